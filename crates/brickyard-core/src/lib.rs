@@ -1,0 +1,23 @@
+//! Core types of brickyard: voxel data types, dataset layout and the
+//! multi-resolution pyramid plan.
+//!
+//! This crate does no I/O and never touches a GPU.
+
+pub mod dtype;
+pub mod pyramid;
+
+pub use dtype::{DType, Sample};
+pub use pyramid::{plan_levels, LevelPlan, PyramidPlan};
+
+/// Axis order used everywhere inside brickyard: `[z, y, x]`, x fastest.
+pub type Dims3 = [u64; 3];
+
+/// Number of voxels in a 3D box.
+pub fn voxel_count(d: Dims3) -> u64 {
+    d[0] * d[1] * d[2]
+}
+
+/// Ceiling division.
+pub fn div_ceil(a: u64, b: u64) -> u64 {
+    a.div_ceil(b)
+}

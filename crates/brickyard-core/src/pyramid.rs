@@ -1,0 +1,127 @@
+//! The multi-resolution pyramid plan: level sizes and per-axis ratios.
+//!
+//! Level 0 is the full-resolution volume. Each next level divides every axis
+//! by 1 or 2; an axis is halved only when its current voxel spacing is less
+//! than √2 times the smallest spacing among the axes still longer than one
+//! voxel. Anisotropic volumes thus become more isotropic level by level
+//! (the thick axis waits while the thin ones catch up). Levels stop when the
+//! coarsest level fits in one brick.
+
+use crate::Dims3;
+use serde::{Deserialize, Serialize};
+
+/// One level of the pyramid.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct LevelPlan {
+    /// Size in voxels, `[z, y, x]`.
+    pub dims: Dims3,
+    /// Downsampling ratio from the previous level (`[1,1,1]` for level 0).
+    pub ratio: [u32; 3],
+    /// Cumulative ratio from level 0.
+    pub cum_ratio: [u64; 3],
+    /// Physical voxel spacing at this level.
+    pub scale: [f64; 3],
+    /// Physical position of the centre of voxel 0 at this level.
+    pub translation: [f64; 3],
+}
+
+/// All levels of a pyramid.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct PyramidPlan {
+    pub levels: Vec<LevelPlan>,
+}
+
+/// Per-axis ratios for the next level, from the current spacing.
+pub fn next_ratio(dims: Dims3, spacing: [f64; 3]) -> [u32; 3] {
+    let smin = (0..3)
+        .filter(|&a| dims[a] > 1)
+        .map(|a| spacing[a])
+        .fold(f64::INFINITY, f64::min);
+    let mut r = [1u32; 3];
+    for a in 0..3 {
+        if dims[a] > 1 && spacing[a] < smin * std::f64::consts::SQRT_2 * (1.0 - 1e-9) {
+            r[a] = 2;
+        }
+    }
+    r
+}
+
+/// Plan the levels of a volume of `dims` voxels with `spacing` and origin
+/// (centre of voxel 0) `origin`, for bricks of `brick` voxels.
+pub fn plan_levels(dims: Dims3, spacing: [f64; 3], origin: [f64; 3], brick: Dims3) -> PyramidPlan {
+    assert!(dims.iter().all(|&d| d > 0), "empty volume");
+    assert!(brick.iter().all(|&b| b > 0), "empty brick");
+    let spacing = spacing.map(|s| if s.is_finite() && s > 0.0 { s } else { 1.0 });
+    let mut levels = vec![LevelPlan {
+        dims,
+        ratio: [1; 3],
+        cum_ratio: [1; 3],
+        scale: spacing,
+        translation: origin,
+    }];
+    loop {
+        let cur = levels.last().unwrap();
+        if (0..3).all(|a| cur.dims[a] <= brick[a]) {
+            break;
+        }
+        let ratio = next_ratio(cur.dims, cur.scale);
+        let mut dims2 = cur.dims;
+        let mut cum = cur.cum_ratio;
+        let mut scale = cur.scale;
+        let mut translation = origin;
+        for a in 0..3 {
+            dims2[a] = cur.dims[a].div_ceil(ratio[a] as u64);
+            cum[a] *= ratio[a] as u64;
+            scale[a] = spacing[a] * cum[a] as f64;
+            // The centre of a box of `cum` voxels starting at voxel 0.
+            translation[a] = origin[a] + (cum[a] as f64 - 1.0) * 0.5 * spacing[a];
+        }
+        levels.push(LevelPlan {
+            dims: dims2,
+            ratio,
+            cum_ratio: cum,
+            scale,
+            translation,
+        });
+    }
+    PyramidPlan { levels }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn isotropic_cube() {
+        let p = plan_levels([1024; 3], [1.0; 3], [0.0; 3], [64; 3]);
+        let dims: Vec<_> = p.levels.iter().map(|l| l.dims[0]).collect();
+        assert_eq!(dims, vec![1024, 512, 256, 128, 64]);
+        assert_eq!(p.levels[1].translation, [0.5; 3]);
+        assert_eq!(p.levels[2].scale, [4.0; 3]);
+    }
+
+    #[test]
+    fn anisotropic_becomes_isotropic() {
+        // 256 x 256 x 25 slices at 0.78 x 0.78 x 6.5 mm.
+        let p = plan_levels([25, 256, 256], [6.5, 0.78, 0.78], [0.0; 3], [16; 3]);
+        let r: Vec<_> = p.levels.iter().skip(1).map(|l| l.ratio).collect();
+        assert_eq!(r[0], [1, 2, 2]);
+        assert_eq!(r[1], [1, 2, 2]);
+        assert_eq!(r[2], [1, 2, 2]);
+        // spacing is now 6.5 vs 6.24: isotropic enough, all axes halve.
+        assert_eq!(r[3], [2, 2, 2]);
+        let last = p.levels.last().unwrap();
+        assert!(last.dims.iter().all(|&d| d <= 16));
+    }
+
+    #[test]
+    fn odd_and_thin() {
+        let p = plan_levels([1, 100, 3], [1.0; 3], [0.0; 3], [8; 3]);
+        for l in &p.levels[1..] {
+            assert_eq!(l.ratio[0], 1, "a one-voxel axis is never halved");
+        }
+        assert_eq!(p.levels.last().unwrap().dims, [1, 7, 1]);
+        let p = plan_levels([5, 5, 5], [1.0; 3], [0.0; 3], [64; 3]);
+        assert_eq!(p.levels.len(), 1);
+    }
+}

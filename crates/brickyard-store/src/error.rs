@@ -1,0 +1,84 @@
+//! Errors of the store: each names the file and what was wrong with it.
+
+use std::path::PathBuf;
+
+#[derive(Debug, thiserror::Error)]
+pub enum StoreError {
+    /// An I/O error on a named path.
+    #[error("{}: {source}", path.display())]
+    Io {
+        path: PathBuf,
+        #[source]
+        source: std::io::Error,
+    },
+    /// The content of a file is invalid: `field` is the offending field
+    /// (header key, tag, JSON key ...), `msg` says what was expected.
+    #[error("{}: {field}: {msg}", path.display())]
+    Invalid {
+        path: PathBuf,
+        field: String,
+        msg: String,
+    },
+    /// The input is valid but uses something brickyard does not support.
+    #[error("{}: unsupported {field}: {msg}", path.display())]
+    Unsupported {
+        path: PathBuf,
+        field: String,
+        msg: String,
+    },
+    /// The output exists and `--overwrite` was not given, or similar.
+    #[error("{}: {msg}", path.display())]
+    Refused { path: PathBuf, msg: String },
+    /// An error from the Zarr library.
+    #[error("{}: zarr: {msg}", path.display())]
+    Zarr { path: PathBuf, msg: String },
+    /// Conversion was interrupted (Ctrl-C).
+    #[error("interrupted")]
+    Interrupted,
+}
+
+pub type Result<T, E = StoreError> = std::result::Result<T, E>;
+
+impl StoreError {
+    pub fn io(path: impl Into<PathBuf>, source: std::io::Error) -> Self {
+        StoreError::Io {
+            path: path.into(),
+            source,
+        }
+    }
+    pub fn invalid(path: impl Into<PathBuf>, field: impl Into<String>, msg: impl Into<String>) -> Self {
+        StoreError::Invalid {
+            path: path.into(),
+            field: field.into(),
+            msg: msg.into(),
+        }
+    }
+    pub fn unsupported(
+        path: impl Into<PathBuf>,
+        field: impl Into<String>,
+        msg: impl Into<String>,
+    ) -> Self {
+        StoreError::Unsupported {
+            path: path.into(),
+            field: field.into(),
+            msg: msg.into(),
+        }
+    }
+    pub fn zarr(path: impl Into<PathBuf>, msg: impl std::fmt::Display) -> Self {
+        StoreError::Zarr {
+            path: path.into(),
+            msg: msg.to_string(),
+        }
+    }
+}
+
+/// Extension to attach a path to `std::io::Result`.
+pub trait IoContext<T> {
+    fn at(self, path: impl Into<PathBuf>) -> Result<T>;
+}
+
+impl<T> IoContext<T> for std::io::Result<T> {
+    fn at(self, path: impl Into<PathBuf>) -> Result<T> {
+        self.map_err(|e| StoreError::io(path, e))
+    }
+}

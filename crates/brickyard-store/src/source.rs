@@ -1,0 +1,97 @@
+//! The interface every importer implements: a volume that can be read
+//! region by region, so that nothing ever has to hold a whole large volume.
+
+use crate::error::Result;
+use brickyard_core::{DType, Dims3};
+use std::ops::Range;
+use std::path::PathBuf;
+
+/// What an importer knows about its volume.
+#[derive(Debug, Clone, PartialEq)]
+pub struct SourceMeta {
+    /// The file or directory the volume comes from (used in error messages).
+    pub path: PathBuf,
+    /// Size in voxels, `[z, y, x]`.
+    pub dims: Dims3,
+    /// Number of channels (1 for a scalar volume).
+    pub channels: usize,
+    pub dtype: DType,
+    /// Voxel spacing `[z, y, x]`, if the file stores one.
+    pub spacing: Option<[f64; 3]>,
+    /// Physical position of the centre of voxel (0,0,0), `[z, y, x]`, if known.
+    pub origin: Option<[f64; 3]>,
+    /// Unit of spacing and origin (an OME-NGFF unit name such as `millimeter`).
+    pub unit: Option<String>,
+    /// Per-channel names, if the file has them.
+    pub channel_names: Vec<String>,
+    /// Whether the volume holds labels (segmentation ids) rather than
+    /// intensities; importers set this only when the file says so.
+    pub labels: bool,
+}
+
+impl SourceMeta {
+    pub fn new(path: impl Into<PathBuf>, dims: Dims3, channels: usize, dtype: DType) -> Self {
+        SourceMeta {
+            path: path.into(),
+            dims,
+            channels,
+            dtype,
+            spacing: None,
+            origin: None,
+            unit: None,
+            channel_names: Vec::new(),
+            labels: false,
+        }
+    }
+
+    /// Bytes of one channel of the whole volume.
+    pub fn channel_bytes(&self) -> u64 {
+        self.dims.iter().product::<u64>() * self.dtype.size() as u64
+    }
+}
+
+/// A readable volume.
+///
+/// `read_region` fills `out` with the voxels of channel `c` in the box
+/// `z × y × x` as a dense native-endian array in C order (x fastest).
+/// `out.len()` equals the box's voxel count times the voxel size. Regions are
+/// always inside the volume. Implementations must be callable from several
+/// threads at once.
+pub trait VolumeSource: Send + Sync {
+    fn meta(&self) -> &SourceMeta;
+
+    fn read_region(
+        &self,
+        c: usize,
+        z: Range<u64>,
+        y: Range<u64>,
+        x: Range<u64>,
+        out: &mut [u8],
+    ) -> Result<()>;
+
+    /// The box shape `[z, y, x]` the source reads most efficiently, e.g.
+    /// whole slices for a stack of images or one chunk for a Zarr array.
+    /// The pyramid builder uses it to choose its read pattern.
+    fn preferred_read(&self) -> Dims3 {
+        let d = self.meta().dims;
+        [1, d[1], d[2]]
+    }
+}
+
+/// Check that a region request is inside the volume and that the buffer has
+/// the right size. Importers call this first in `read_region`.
+pub fn check_region(
+    meta: &SourceMeta,
+    c: usize,
+    z: &Range<u64>,
+    y: &Range<u64>,
+    x: &Range<u64>,
+    out: &[u8],
+) {
+    assert!(c < meta.channels, "channel {c} out of range");
+    for (r, d) in [z, y, x].iter().zip(meta.dims) {
+        assert!(r.start <= r.end && r.end <= d, "region {r:?} outside 0..{d}");
+    }
+    let n = (z.end - z.start) * (y.end - y.start) * (x.end - x.start);
+    assert_eq!(out.len() as u64, n * meta.dtype.size() as u64, "buffer size");
+}
