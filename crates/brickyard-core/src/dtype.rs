@@ -100,7 +100,9 @@ impl fmt::Display for DType {
 }
 
 /// A voxel value type. Implemented for every [`DType`].
-pub trait Sample: Copy + PartialOrd + PartialEq + Send + Sync + Default + fmt::Debug + 'static {
+pub trait Sample:
+    Copy + PartialOrd + PartialEq + Send + Sync + Default + fmt::Debug + 'static
+{
     const DTYPE: DType;
     fn to_f64(self) -> f64;
     /// Box mean of `count` voxels whose sum is `sum`, rounded as documented in
@@ -249,18 +251,30 @@ macro_rules! dispatch_dtype {
 /// only runs on little-endian targets).
 pub fn cast_slice<T: Sample>(b: &[u8]) -> &[T] {
     assert_eq!(b.len() % std::mem::size_of::<T>(), 0);
-    assert_eq!(b.as_ptr() as usize % std::mem::align_of::<T>(), 0, "misaligned buffer");
+    assert_eq!(
+        b.as_ptr() as usize % std::mem::align_of::<T>(),
+        0,
+        "misaligned buffer"
+    );
     // SAFETY: all Sample types are plain old data valid for any bit pattern;
     // length and alignment are checked above.
-    unsafe { std::slice::from_raw_parts(b.as_ptr() as *const T, b.len() / std::mem::size_of::<T>()) }
+    unsafe {
+        std::slice::from_raw_parts(b.as_ptr() as *const T, b.len() / std::mem::size_of::<T>())
+    }
 }
 
 /// Mutable version of [`cast_slice`].
 pub fn cast_slice_mut<T: Sample>(b: &mut [u8]) -> &mut [T] {
     assert_eq!(b.len() % std::mem::size_of::<T>(), 0);
-    assert_eq!(b.as_ptr() as usize % std::mem::align_of::<T>(), 0, "misaligned buffer");
+    assert_eq!(
+        b.as_ptr() as usize % std::mem::align_of::<T>(),
+        0,
+        "misaligned buffer"
+    );
     // SAFETY: as in cast_slice.
-    unsafe { std::slice::from_raw_parts_mut(b.as_mut_ptr() as *mut T, b.len() / std::mem::size_of::<T>()) }
+    unsafe {
+        std::slice::from_raw_parts_mut(b.as_mut_ptr() as *mut T, b.len() / std::mem::size_of::<T>())
+    }
 }
 
 /// View samples as bytes.

@@ -6,7 +6,7 @@
 pub mod dtype;
 pub mod pyramid;
 
-pub use dtype::{DType, Sample};
+pub use dtype::{as_bytes, cast_slice, cast_slice_mut, DType, Sample};
 pub use pyramid::{plan_levels, LevelPlan, PyramidPlan};
 
 /// Axis order used everywhere inside brickyard: `[z, y, x]`, x fastest.

@@ -46,7 +46,11 @@ impl StoreError {
             source,
         }
     }
-    pub fn invalid(path: impl Into<PathBuf>, field: impl Into<String>, msg: impl Into<String>) -> Self {
+    pub fn invalid(
+        path: impl Into<PathBuf>,
+        field: impl Into<String>,
+        msg: impl Into<String>,
+    ) -> Self {
         StoreError::Invalid {
             path: path.into(),
             field: field.into(),

@@ -90,8 +90,15 @@ pub fn check_region(
 ) {
     assert!(c < meta.channels, "channel {c} out of range");
     for (r, d) in [z, y, x].iter().zip(meta.dims) {
-        assert!(r.start <= r.end && r.end <= d, "region {r:?} outside 0..{d}");
+        assert!(
+            r.start <= r.end && r.end <= d,
+            "region {r:?} outside 0..{d}"
+        );
     }
     let n = (z.end - z.start) * (y.end - y.start) * (x.end - x.start);
-    assert_eq!(out.len() as u64, n * meta.dtype.size() as u64, "buffer size");
+    assert_eq!(
+        out.len() as u64,
+        n * meta.dtype.size() as u64,
+        "buffer size"
+    );
 }

@@ -1,1 +1,426 @@
-fn main() {}
+//! The `brickyard` command line.
+
+mod bench;
+mod progress;
+
+use anyhow::{bail, Context, Result};
+use brickyard_core::DType;
+use brickyard_store::builder::partial_path;
+use brickyard_store::generate::{parse_size, Kind, Procedural};
+use brickyard_store::import::raw::RawOptions;
+use brickyard_store::import::{open_input, ImportOptions};
+use brickyard_store::info::{format_info, human_bytes, inspect};
+use brickyard_store::{convert, Compression, ConvertOptions, VolumeSource};
+use clap::{Args, Parser, Subcommand};
+use std::path::{Path, PathBuf};
+use std::sync::atomic::{AtomicBool, Ordering};
+
+/// brickyard: interactive visualization and on-demand processing of volumes
+/// larger than memory.
+#[derive(Parser)]
+#[command(name = "brickyard", version, about, long_about = None)]
+struct Cli {
+    /// Worker threads (default: all cores).
+    #[arg(long, global = true)]
+    threads: Option<usize>,
+    #[command(subcommand)]
+    cmd: Cmd,
+}
+
+#[derive(Subcommand)]
+enum Cmd {
+    /// Convert a volume (raw, TIFF, NRRD, NIfTI, Zarr/OME-Zarr) into a
+    /// multi-resolution OME-Zarr 0.5 pyramid.
+    Convert(ConvertCmd),
+    /// Describe a store: levels, shapes, chunks, codecs, sizes, brick statistics.
+    Info {
+        path: PathBuf,
+        /// Print JSON instead of text.
+        #[arg(long)]
+        json: bool,
+    },
+    /// Generate a procedural volume (raw + JSON sidecar, or an OME-Zarr
+    /// pyramid when OUTPUT ends in .zarr).
+    Generate {
+        /// mandelbulb or marschner-lobb
+        kind: String,
+        output: PathBuf,
+        /// N (a cube) or XxYxZ.
+        #[arg(long, default_value = "256")]
+        size: String,
+        #[arg(long, default_value = "u8")]
+        dtype: String,
+        #[command(flatten)]
+        pyramid: PyramidArgs,
+    },
+    /// The main job on a built-in dataset: generate a procedural volume and
+    /// convert it into a pyramid under a small memory budget.
+    Demo {
+        /// Output folder.
+        #[arg(long, default_value = "brickyard-demo")]
+        out: PathBuf,
+        /// Volume size (N or XxYxZ).
+        #[arg(long, default_value = "384")]
+        size: String,
+    },
+    /// Run a benchmark scenario and print one JSON line of figures.
+    Bench(bench::BenchCmd),
+}
+
+#[derive(Args, Clone)]
+struct PyramidArgs {
+    /// Brick (inner chunk) edge in voxels.
+    #[arg(long, default_value_t = 64)]
+    brick: u64,
+    /// Shard edge in voxels (a multiple of the brick).
+    #[arg(long, default_value_t = 512)]
+    shard: u64,
+    /// lz4 (blosc), zstd, zstd:LEVEL or none.
+    #[arg(long, default_value = "lz4")]
+    compression: String,
+    /// The volume holds labels: coarser levels take the mode, not the mean.
+    #[arg(long)]
+    labels: bool,
+    /// Memory budget (e.g. 1GiB, 512MiB).
+    #[arg(long, default_value = "1GiB")]
+    memory: String,
+    /// Replace an existing output.
+    #[arg(long)]
+    overwrite: bool,
+    /// Voxel spacing X,Y,Z (overrides the file's).
+    #[arg(long)]
+    spacing: Option<String>,
+    /// Position X,Y,Z of the first voxel's centre (overrides the file's).
+    #[arg(long)]
+    origin: Option<String>,
+    /// Unit of spacing and origin (micrometer, millimeter, ...).
+    #[arg(long)]
+    unit: Option<String>,
+    /// Print the report as JSON.
+    #[arg(long)]
+    json: bool,
+    /// No progress bar.
+    #[arg(long)]
+    quiet: bool,
+}
+
+#[derive(Args)]
+struct ConvertCmd {
+    input: PathBuf,
+    output: PathBuf,
+    /// Raw input: size XxYxZ.
+    #[arg(long)]
+    dims: Option<String>,
+    /// Raw input: voxel type (u8, i8, u16, i16, u32, i32, f32, f64).
+    #[arg(long)]
+    dtype: Option<String>,
+    /// Raw input: little or big.
+    #[arg(long, default_value = "little")]
+    endian: String,
+    /// Raw input: number of channels (stored one after the other).
+    #[arg(long, default_value_t = 1)]
+    channels: usize,
+    /// Raw input: bytes to skip at the start of the file.
+    #[arg(long, default_value_t = 0)]
+    header_bytes: u64,
+    /// OME-Zarr input: level to convert.
+    #[arg(long, default_value_t = 0)]
+    level: usize,
+    #[command(flatten)]
+    pyramid: PyramidArgs,
+}
+
+static CANCEL: AtomicBool = AtomicBool::new(false);
+
+extern "C" fn on_sigint(_: libc::c_int) {
+    CANCEL.store(true, Ordering::SeqCst);
+}
+
+fn install_ctrl_c() {
+    // SAFETY: the handler only stores to an atomic.
+    unsafe {
+        libc::signal(libc::SIGINT, on_sigint as *const () as libc::sighandler_t);
+        libc::signal(libc::SIGTERM, on_sigint as *const () as libc::sighandler_t);
+    }
+}
+
+/// Parse `1GiB`, `512MiB`, `2G`, `100MB`, `4096`.
+pub fn parse_bytes(s: &str) -> Result<u64> {
+    let t = s.trim();
+    let idx = t
+        .find(|c: char| !(c.is_ascii_digit() || c == '.'))
+        .unwrap_or(t.len());
+    let (num, unit) = t.split_at(idx);
+    let v: f64 = num
+        .parse()
+        .with_context(|| format!("memory: expected a size like 1GiB, found {s:?}"))?;
+    let mul: f64 = match unit.trim().to_ascii_lowercase().as_str() {
+        "" | "b" => 1.0,
+        "k" | "kib" => 1024.0,
+        "kb" => 1e3,
+        "m" | "mib" => 1024.0 * 1024.0,
+        "mb" => 1e6,
+        "g" | "gib" => 1024.0 * 1024.0 * 1024.0,
+        "gb" => 1e9,
+        "t" | "tib" => 1024f64.powi(4),
+        "tb" => 1e12,
+        u => bail!("memory: unknown unit {u:?} in {s:?} (use KiB, MiB, GiB)"),
+    };
+    Ok((v * mul) as u64)
+}
+
+fn parse_triple(s: &str, what: &str) -> Result<[f64; 3]> {
+    let v: Vec<f64> = s
+        .split([',', 'x'])
+        .map(|p| p.trim().parse::<f64>())
+        .collect::<std::result::Result<_, _>>()
+        .with_context(|| format!("{what}: expected X,Y,Z numbers, found {s:?}"))?;
+    if v.len() != 3 {
+        bail!("{what}: expected three numbers X,Y,Z, found {s:?}");
+    }
+    Ok([v[0], v[1], v[2]])
+}
+
+/// Peak resident set size of this process in bytes (Linux).
+pub fn peak_rss() -> u64 {
+    std::fs::read_to_string("/proc/self/status")
+        .ok()
+        .and_then(|s| {
+            s.lines().find(|l| l.starts_with("VmHWM:")).and_then(|l| {
+                l.split_whitespace()
+                    .nth(1)
+                    .and_then(|v| v.parse::<u64>().ok())
+            })
+        })
+        .map(|kb| kb * 1024)
+        .unwrap_or(0)
+}
+
+fn convert_options(p: &PyramidArgs) -> Result<ConvertOptions> {
+    let compression = Compression::parse(&p.compression).with_context(|| {
+        format!(
+            "compression: expected lz4, zstd, zstd:LEVEL or none, found {:?}",
+            p.compression
+        )
+    })?;
+    if p.brick < 2 || p.brick % 2 != 0 {
+        bail!(
+            "brick: expected an even number of voxels >= 2, found {}",
+            p.brick
+        );
+    }
+    if p.shard < p.brick || p.shard % p.brick != 0 {
+        bail!(
+            "shard: expected a multiple of the brick ({}), found {}",
+            p.brick,
+            p.shard
+        );
+    }
+    let xyz = |o: Option<[f64; 3]>| o.map(|v| [v[2], v[1], v[0]]);
+    let spacing = xyz(p
+        .spacing
+        .as_deref()
+        .map(|s| parse_triple(s, "spacing"))
+        .transpose()?);
+    if let Some(s) = spacing {
+        if s.iter().any(|v| !(v.is_finite() && *v > 0.0)) {
+            bail!(
+                "spacing: expected positive numbers, found {:?}",
+                p.spacing.as_deref().unwrap_or("")
+            );
+        }
+    }
+    Ok(ConvertOptions {
+        brick: [p.brick; 3],
+        shard: [p.shard; 3],
+        compression,
+        labels: p.labels,
+        memory: parse_bytes(&p.memory)?,
+        overwrite: p.overwrite,
+        spacing,
+        origin: xyz(p
+            .origin
+            .as_deref()
+            .map(|s| parse_triple(s, "origin"))
+            .transpose()?),
+        unit: p.unit.clone(),
+    })
+}
+
+/// Convert with a progress bar and print the report.
+fn run_convert(src: &dyn VolumeSource, output: &Path, p: &PyramidArgs) -> Result<()> {
+    let opts = convert_options(p)?;
+    install_ctrl_c();
+    let bar = progress::Bar::new(p.quiet || p.json, "converting");
+    let r = convert(src, output, &opts, &bar, &CANCEL);
+    bar.finish();
+    let r = match r {
+        Ok(r) => r,
+        Err(e) => {
+            if CANCEL.load(Ordering::SeqCst) {
+                let _ = std::fs::remove_dir_all(partial_path(output));
+            }
+            return Err(e.into());
+        }
+    };
+    let rss = peak_rss();
+    if p.json {
+        let mut j = serde_json::to_value(&r)?;
+        j["peak_rss_bytes"] = rss.into();
+        j["input_mb_s"] = (r.bytes_in as f64 / 1e6 / r.seconds).into();
+        println!("{}", serde_json::to_string(&j)?);
+    } else {
+        println!(
+            "wrote {} ({} levels, {} bricks: {} empty, {} constant) in {:.2} s: {} in, {} out, {:.0} MB/s, peak RSS {}",
+            output.display(),
+            r.levels.len(),
+            r.bricks,
+            r.bricks_empty,
+            r.bricks_constant,
+            r.seconds,
+            human_bytes(r.bytes_in),
+            human_bytes(r.bytes_written),
+            r.bytes_in as f64 / 1e6 / r.seconds,
+            human_bytes(rss)
+        );
+    }
+    Ok(())
+}
+
+fn main() {
+    let cli = Cli::parse();
+    tracing_subscriber::fmt()
+        .with_env_filter(tracing_subscriber::EnvFilter::from_env("BRICKYARD_LOG"))
+        .with_writer(std::io::stderr)
+        .init();
+    if let Some(t) = cli.threads {
+        let _ = rayon::ThreadPoolBuilder::new()
+            .num_threads(t)
+            .build_global();
+    }
+    if let Err(e) = run(cli.cmd) {
+        eprintln!("error: {e:#}");
+        std::process::exit(1);
+    }
+}
+
+fn run(cmd: Cmd) -> Result<()> {
+    match cmd {
+        Cmd::Convert(c) => {
+            let raw = match (&c.dims, &c.dtype) {
+                (None, None) => None,
+                (Some(d), Some(t)) => {
+                    let zyx = parse_size(d).map_err(|e| anyhow::anyhow!("dims: {e}"))?;
+                    let dtype = DType::parse(t).with_context(|| {
+                        format!("dtype: expected one of u8, i8, u16, i16, u32, i32, f32, f64, found {t:?}")
+                    })?;
+                    Some(RawOptions {
+                        dims: [zyx[2], zyx[1], zyx[0]],
+                        dtype,
+                        endian: c.endian.clone(),
+                        spacing: None,
+                        origin: None,
+                        unit: None,
+                        channels: c.channels,
+                        header_bytes: c.header_bytes,
+                    })
+                }
+                _ => bail!("raw input needs both --dims and --dtype"),
+            };
+            let src = open_input(
+                &c.input,
+                &ImportOptions {
+                    raw,
+                    zarr_level: c.level,
+                },
+            )?;
+            run_convert(src.as_ref(), &c.output, &c.pyramid)
+        }
+        Cmd::Info { path, json } => {
+            let i = inspect(&path)?;
+            if json {
+                println!("{}", serde_json::to_string_pretty(&i)?);
+            } else {
+                print!("{}", format_info(&i));
+            }
+            if i.complete == Some(false) {
+                std::process::exit(2);
+            }
+            Ok(())
+        }
+        Cmd::Generate {
+            kind,
+            output,
+            size,
+            dtype,
+            pyramid,
+        } => {
+            let k = Kind::parse(&kind).with_context(|| {
+                format!("kind: expected mandelbulb or marschner-lobb, found {kind:?}")
+            })?;
+            let dims = parse_size(&size).map_err(|e| anyhow::anyhow!("size: {e}"))?;
+            let dt = DType::parse(&dtype)
+                .with_context(|| format!("dtype: unknown voxel type {dtype:?}"))?;
+            let src = Procedural::new(k, dims, dt);
+            let s = output.to_string_lossy();
+            if s.ends_with(".zarr") || s.ends_with(".zarr/") {
+                run_convert(&src, &output, &pyramid)
+            } else {
+                if output.exists() && !pyramid.overwrite {
+                    bail!(
+                        "{}: output exists; pass --overwrite to replace it",
+                        output.display()
+                    );
+                }
+                let bar = progress::Bar::new(pyramid.quiet, "generating");
+                brickyard_store::generate::write_raw(&src, &output, &bar)?;
+                bar.finish();
+                println!(
+                    "wrote {} ({}x{}x{} {dt}) and {}",
+                    output.display(),
+                    dims[2],
+                    dims[1],
+                    dims[0],
+                    RawOptions::sidecar_path(&output).display()
+                );
+                Ok(())
+            }
+        }
+        Cmd::Demo { out, size } => demo(&out, &size),
+        Cmd::Bench(b) => bench::run(b),
+    }
+}
+
+fn demo(out: &Path, size: &str) -> Result<()> {
+    std::fs::create_dir_all(out).with_context(|| format!("{}: cannot create", out.display()))?;
+    let dims = parse_size(size).map_err(|e| anyhow::anyhow!("size: {e}"))?;
+    let store = out.join("mandelbulb.ome.zarr");
+    let src = Procedural::new(Kind::Mandelbulb, dims, DType::U16);
+    println!(
+        "demo: converting a {}x{}x{} u16 Mandelbulb into {}",
+        dims[2],
+        dims[1],
+        dims[0],
+        store.display()
+    );
+    let args = PyramidArgs {
+        brick: 64,
+        shard: 256,
+        compression: "lz4".into(),
+        labels: false,
+        memory: "256MiB".into(),
+        overwrite: true,
+        spacing: None,
+        origin: None,
+        unit: Some("micrometer".into()),
+        json: false,
+        quiet: false,
+    };
+    run_convert(&src, &store, &args)?;
+    print!("{}", format_info(&inspect(&store)?));
+    println!(
+        "demo: done; inspect it with `brickyard info {}`",
+        store.display()
+    );
+    Ok(())
+}

@@ -2,7 +2,9 @@
 
 pub mod nifti;
 pub mod nrrd;
+pub mod raw;
 pub mod tiff;
+pub mod zarr;
 
 /// Reverse the byte order of every `size`-byte element of `buf` in place
 /// (used for big-endian inputs).
@@ -12,4 +14,103 @@ pub fn swap_bytes_in_place(buf: &mut [u8], size: usize) {
             e.reverse();
         }
     }
+}
+
+use crate::error::{IoContext, Result, StoreError};
+use crate::source::VolumeSource;
+use std::io::Read;
+use std::path::Path;
+
+/// How to read an input whose format cannot describe itself (raw), and
+/// which level of a multiscale input to take.
+#[derive(Debug, Clone, Default)]
+pub struct ImportOptions {
+    /// Raw description from the command line; a `FILE.json` sidecar is used
+    /// when this is `None`.
+    pub raw: Option<raw::RawOptions>,
+    /// Level of an OME-Zarr input to read (0 = full resolution).
+    pub zarr_level: usize,
+}
+
+/// The input formats brickyard reads.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Format {
+    Raw,
+    Tiff,
+    TiffGlob,
+    TiffDir,
+    Nrrd,
+    Nifti,
+    Zarr,
+}
+
+/// Decide the format of `path` from its name and first bytes.
+pub fn detect(path: &Path) -> Result<Format> {
+    let s = path.to_string_lossy();
+    if s.contains('*') || s.contains('?') {
+        return Ok(Format::TiffGlob);
+    }
+    if path.is_dir() {
+        if zarr::is_zarr(path) {
+            return Ok(Format::Zarr);
+        }
+        return Ok(Format::TiffDir);
+    }
+    let lower = s.to_ascii_lowercase();
+    let mut magic = [0u8; 4];
+    let n = std::fs::File::open(path)
+        .at(path)?
+        .read(&mut magic)
+        .at(path)?;
+    let magic = &magic[..n];
+    if magic.starts_with(b"NRRD") || lower.ends_with(".nrrd") || lower.ends_with(".nhdr") {
+        return Ok(Format::Nrrd);
+    }
+    if magic.starts_with(b"II*\0")
+        || magic.starts_with(b"MM\0*")
+        || magic.starts_with(b"II+\0")
+        || magic.starts_with(b"MM\0+")
+    {
+        return Ok(Format::Tiff);
+    }
+    if lower.ends_with(".nii") || lower.ends_with(".nii.gz") || lower.ends_with(".hdr") {
+        return Ok(Format::Nifti);
+    }
+    if lower.ends_with(".tif") || lower.ends_with(".tiff") {
+        return Ok(Format::Tiff);
+    }
+    Ok(Format::Raw)
+}
+
+/// Open any supported input.
+pub fn open_input(path: &Path, opts: &ImportOptions) -> Result<Box<dyn VolumeSource>> {
+    let fmt = detect(path)?;
+    Ok(match fmt {
+        Format::Raw => {
+            let ro = match &opts.raw {
+                Some(r) => r.clone(),
+                None => {
+                    let side = raw::RawOptions::sidecar_path(path);
+                    if !side.exists() {
+                        return Err(StoreError::invalid(
+                            path,
+                            "format",
+                            format!(
+                                "not a TIFF, NRRD, NIfTI or Zarr input; for raw data give --dims, --dtype \
+                                 (and --endian, --spacing) or write a sidecar {}",
+                                side.display()
+                            ),
+                        ));
+                    }
+                    raw::RawOptions::read_sidecar(&side)?
+                }
+            };
+            Box::new(raw::open(path, &ro)?)
+        }
+        Format::Tiff | Format::TiffDir => Box::new(tiff::open(path)?),
+        Format::TiffGlob => Box::new(tiff::open_glob(&path.to_string_lossy())?),
+        Format::Nrrd => Box::new(nrrd::open(path)?),
+        Format::Nifti => Box::new(nifti::open(path)?),
+        Format::Zarr => Box::new(zarr::open(path, opts.zarr_level)?),
+    })
 }

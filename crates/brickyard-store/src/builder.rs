@@ -1,0 +1,800 @@
+//! The streaming pyramid builder: reads a source in slabs, writes level 0
+//! and all coarser levels as sharded OME-Zarr 0.5, with per-brick statistics.
+//!
+//! Memory is bounded by the configured budget whatever the volume size:
+//! the volume is processed in tiles (x–y columns) of one brick of depth at a
+//! time. Each level keeps one slab of bricks per tile; the downsampled rows
+//! cascade level by level. A tile must be aligned to whole bricks at every
+//! level it produces, so when the budget does not allow tiles that wide the
+//! builder produces the levels in several passes, later passes reading back
+//! the finest level of the previous one from the output (≤ 1/4 of its size).
+//!
+//! Output is written to `OUTPUT.partial` and renamed into place at the end,
+//! so an interrupted conversion never leaves a store that looks complete.
+
+use crate::codec::{BrickEncoder, Compression};
+use crate::downsample::downsample;
+use crate::error::{IoContext, Result, StoreError};
+use crate::import::zarr::ZarrSource;
+use crate::omezarr::{
+    self, level_array_json, multiscales_json, plain_array_json, write_json, ATTR, STATS_DIR,
+};
+use crate::shard::ShardSetWriter;
+use crate::source::VolumeSource;
+use brickyard_core::{as_bytes, dispatch_dtype, plan_levels, DType, Dims3, LevelPlan, Sample};
+use rayon::prelude::*;
+use serde::Serialize;
+use serde_json::json;
+use std::path::{Path, PathBuf};
+use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
+use std::sync::Mutex;
+use std::time::Instant;
+
+/// Options of a conversion.
+#[derive(Debug, Clone)]
+pub struct ConvertOptions {
+    /// Brick (inner chunk) shape `[z, y, x]`; each must be even.
+    pub brick: Dims3,
+    /// Shard shape `[z, y, x]`, a multiple of the brick (clipped to the level).
+    pub shard: Dims3,
+    pub compression: Compression,
+    /// Mode instead of mean for coarser levels.
+    pub labels: bool,
+    /// Memory budget in bytes.
+    pub memory: u64,
+    /// Replace an existing output.
+    pub overwrite: bool,
+    /// Overrides of what the source says (`[z, y, x]`).
+    pub spacing: Option<[f64; 3]>,
+    pub origin: Option<[f64; 3]>,
+    pub unit: Option<String>,
+}
+
+impl Default for ConvertOptions {
+    fn default() -> Self {
+        ConvertOptions {
+            brick: [64; 3],
+            shard: [512; 3],
+            compression: Compression::Lz4,
+            labels: false,
+            memory: 1 << 30,
+            overwrite: false,
+            spacing: None,
+            origin: None,
+            unit: None,
+        }
+    }
+}
+
+/// Receives progress in bytes of source data processed.
+pub trait Progress: Sync {
+    fn start(&self, total_bytes: u64);
+    fn inc(&self, bytes: u64);
+    fn message(&self, _msg: &str) {}
+}
+
+/// No progress reporting.
+pub struct NoProgress;
+impl Progress for NoProgress {
+    fn start(&self, _: u64) {}
+    fn inc(&self, _: u64) {}
+}
+
+/// What a conversion did.
+#[derive(Debug, Clone, Serialize)]
+pub struct ConvertReport {
+    pub output: PathBuf,
+    pub levels: Vec<LevelPlan>,
+    pub channels: usize,
+    pub dtype: DType,
+    pub passes: Vec<PassPlan>,
+    pub bytes_in: u64,
+    pub bytes_written: u64,
+    pub bricks: u64,
+    pub bricks_empty: u64,
+    pub bricks_constant: u64,
+    pub seconds: f64,
+    /// Bytes of slab memory the plan uses.
+    pub planned_bytes: u64,
+}
+
+/// One pass of the builder: levels `from+1 ..= to` (and `from` itself when
+/// `from == 0`) produced from level `from`, in tiles of `tile` voxels
+/// (`[y, x]`, in level-`from` voxels).
+#[derive(Debug, Clone, Serialize, PartialEq)]
+pub struct PassPlan {
+    pub from: usize,
+    pub to: usize,
+    pub tile: [u64; 2],
+    pub bytes: u64,
+}
+
+/// Fixed overhead we keep outside the slab plan (binary, allocator, codec
+/// state, per-thread brick buffers are added separately).
+const OVERHEAD: u64 = 48 << 20;
+
+/// Plan the passes for levels `levels` under `budget` bytes of slab memory.
+pub fn plan_passes(
+    levels: &[LevelPlan],
+    brick: Dims3,
+    esize: u64,
+    budget: u64,
+    readback_copy: bool,
+) -> Option<Vec<PassPlan>> {
+    let n = levels.len();
+    let mut passes = vec![];
+    let mut m = 0;
+    if n == 1 {
+        return Some(vec![plan_tile(
+            levels,
+            0,
+            0,
+            brick,
+            esize,
+            budget,
+            readback_copy,
+        )?]);
+    }
+    while m < n - 1 {
+        let mut chosen = None;
+        for j in (1..n - m).rev() {
+            if let Some(p) = plan_tile(
+                levels,
+                m,
+                m + j,
+                brick,
+                esize,
+                budget,
+                readback_copy || m > 0,
+            ) {
+                chosen = Some(p);
+                break;
+            }
+        }
+        let p = chosen?;
+        m = p.to;
+        passes.push(p);
+    }
+    Some(passes)
+}
+
+fn pass_bytes(
+    levels: &[LevelPlan],
+    from: usize,
+    to: usize,
+    brick: Dims3,
+    tile: [u64; 2],
+    esize: u64,
+    copy: bool,
+) -> u64 {
+    let b = &levels[from];
+    let mut total = 0;
+    for l in &levels[from..=to] {
+        let ry = l.cum_ratio[1] / b.cum_ratio[1];
+        let rx = l.cum_ratio[2] / b.cum_ratio[2];
+        let ty = tile[0].div_ceil(ry).min(l.dims[1]);
+        let tx = tile[1].div_ceil(rx).min(l.dims[2]);
+        total += brick[0].min(l.dims[0]) * ty * tx * esize;
+    }
+    if copy {
+        total += brick[0].min(b.dims[0]) * tile[0].min(b.dims[1]) * tile[1].min(b.dims[2]) * esize;
+    }
+    total
+}
+
+fn plan_tile(
+    levels: &[LevelPlan],
+    from: usize,
+    to: usize,
+    brick: Dims3,
+    esize: u64,
+    budget: u64,
+    copy: bool,
+) -> Option<PassPlan> {
+    let b = &levels[from];
+    let t = &levels[to];
+    // Alignment unit in level-`from` voxels.
+    let uy = brick[1] * (t.cum_ratio[1] / b.cum_ratio[1]);
+    let ux = brick[2] * (t.cum_ratio[2] / b.cum_ratio[2]);
+    let (dy, dx) = (b.dims[1], b.dims[2]);
+    let bytes = |ty: u64, tx: u64| pass_bytes(levels, from, to, brick, [ty, tx], esize, copy);
+    let (mut ty, mut tx) = (uy.min(dy), ux.min(dx));
+    if bytes(ty, tx) > budget {
+        return None;
+    }
+    // Prefer full-width tiles (contiguous reads), then as tall as fits.
+    if bytes(ty, dx) <= budget {
+        tx = dx;
+        while ty < dy && bytes((ty + uy).min(dy), tx) <= budget {
+            ty = (ty + uy).min(dy);
+        }
+    } else {
+        while tx < dx && bytes(ty, (tx + ux).min(dx)) <= budget {
+            tx = (tx + ux).min(dx);
+        }
+    }
+    Some(PassPlan {
+        from,
+        to,
+        tile: [ty, tx],
+        bytes: bytes(ty, tx),
+    })
+}
+
+/// Per-level output state.
+struct LevelOut {
+    plan: LevelPlan,
+    nb: Dims3,
+    per_shard: Dims3,
+    writer: ShardSetWriter,
+    /// `(min, max)` per channel and brick.
+    stats: Mutex<Vec<[f64; 2]>>,
+}
+
+impl LevelOut {
+    fn expected_in_shard(&self, s: &[u64; 3]) -> u64 {
+        (0..3)
+            .map(|a| ((s[a] + 1) * self.per_shard[a]).min(self.nb[a]) - s[a] * self.per_shard[a])
+            .product()
+    }
+}
+
+struct Counters {
+    bricks: AtomicU64,
+    empty: AtomicU64,
+    constant: AtomicU64,
+}
+
+/// Convert `src` into an OME-Zarr 0.5 pyramid at `output`.
+pub fn convert(
+    src: &dyn VolumeSource,
+    output: &Path,
+    opts: &ConvertOptions,
+    progress: &dyn Progress,
+    cancel: &AtomicBool,
+) -> Result<ConvertReport> {
+    let t0 = Instant::now();
+    let meta = src.meta().clone();
+    for a in 0..3 {
+        if opts.brick[a] < 2 || opts.brick[a] % 2 != 0 {
+            return Err(StoreError::invalid(
+                output,
+                "brick",
+                format!(
+                    "brick sizes must be even and at least 2, got {:?}",
+                    opts.brick
+                ),
+            ));
+        }
+        if opts.shard[a] == 0 || opts.shard[a] % opts.brick[a] != 0 {
+            return Err(StoreError::invalid(
+                output,
+                "shard",
+                format!(
+                    "shard {:?} must be a multiple of the brick {:?}",
+                    opts.shard, opts.brick
+                ),
+            ));
+        }
+    }
+    // Refuse to touch existing data unless asked; never convert onto the input.
+    if output.exists() && !opts.overwrite {
+        return Err(StoreError::Refused {
+            path: output.into(),
+            msg: "output exists; pass --overwrite to replace it".into(),
+        });
+    }
+    if let (Ok(a), Ok(b)) = (output.canonicalize(), meta.path.canonicalize()) {
+        if b.starts_with(&a) || a.starts_with(&b) {
+            return Err(StoreError::Refused {
+                path: output.into(),
+                msg: "output and input overlap".into(),
+            });
+        }
+    }
+    let spacing = opts.spacing.or(meta.spacing).unwrap_or([1.0; 3]);
+    let origin = opts.origin.or(meta.origin).unwrap_or([0.0; 3]);
+    let unit = opts
+        .unit
+        .clone()
+        .or(meta.unit.clone())
+        .and_then(|u| omezarr::normalize_unit(&u));
+    let plan = plan_levels(meta.dims, spacing, origin, opts.brick);
+    let levels = plan.levels;
+    let esize = meta.dtype.size() as u64;
+    let threads = rayon::current_num_threads() as u64;
+    let brick_bytes = opts.brick.iter().product::<u64>() * esize;
+    let nbricks_total: u64 = levels
+        .iter()
+        .map(|l| {
+            (0..3)
+                .map(|a| l.dims[a].div_ceil(opts.brick[a]))
+                .product::<u64>()
+        })
+        .sum::<u64>()
+        * meta.channels as u64;
+    let fixed = OVERHEAD + threads * brick_bytes * 3 + nbricks_total * 16;
+    let budget = opts.memory.saturating_sub(fixed);
+    let zarr_copy = meta.path.is_dir();
+    let passes = plan_passes(&levels, opts.brick, esize, budget, zarr_copy).ok_or_else(|| {
+        let need = pass_bytes(
+            &levels,
+            0,
+            0,
+            opts.brick,
+            [opts.brick[1], opts.brick[2]],
+            esize,
+            true,
+        ) + fixed;
+        StoreError::invalid(
+            output,
+            "memory",
+            format!(
+                "budget of {} MiB is too small for bricks of {:?}: need at least {} MiB",
+                opts.memory >> 20,
+                opts.brick,
+                need.div_ceil(1 << 20)
+            ),
+        )
+    })?;
+    let planned_bytes = passes.iter().map(|p| p.bytes).max().unwrap_or(0) + fixed;
+
+    // Prepare the partial output next to the final one.
+    let partial = partial_path(output);
+    if partial.exists() {
+        std::fs::remove_dir_all(&partial).at(&partial)?;
+    }
+    std::fs::create_dir_all(&partial).at(&partial)?;
+    let name = meta
+        .path
+        .file_name()
+        .map(|s| s.to_string_lossy().into_owned())
+        .unwrap_or_default();
+    let c = meta.channels;
+    let dim_names: Vec<&str> = if c > 1 {
+        vec!["c", "z", "y", "x"]
+    } else {
+        vec!["z", "y", "x"]
+    };
+    let root = |complete: bool| {
+        json!({
+            "zarr_format": 3,
+            "node_type": "group",
+            "attributes": {
+                "ome": {"version": "0.5", "multiscales": multiscales_json(&levels, c, unit.as_deref(), &name)},
+                ATTR: {
+                    "version": 1,
+                    "complete": complete,
+                    "brick": opts.brick,
+                    "labels": opts.labels,
+                    "stats": STATS_DIR,
+                    "source": meta.path.to_string_lossy(),
+                    "ratios": levels.iter().map(|l| l.ratio).collect::<Vec<_>>(),
+                }
+            }
+        })
+    };
+    write_json(&partial.join("zarr.json"), &root(false))?;
+    let mut outs = vec![];
+    for (k, l) in levels.iter().enumerate() {
+        let shard: Vec<u64> = (0..3)
+            .map(|a| opts.shard[a].min(l.dims[a].div_ceil(opts.brick[a]) * opts.brick[a]))
+            .collect();
+        let nb: Dims3 = [0, 1, 2].map(|a| l.dims[a].div_ceil(opts.brick[a]));
+        let per_shard: Dims3 = [0, 1, 2].map(|a| shard[a] / opts.brick[a]);
+        let (shape, sh, inner, ps): (Vec<u64>, Vec<u64>, Vec<u64>, Vec<u64>) = if c > 1 {
+            (
+                [&[c as u64][..], &l.dims].concat(),
+                [&[1][..], &shard[..]].concat(),
+                [&[1][..], &opts.brick[..]].concat(),
+                [&[1][..], &per_shard[..]].concat(),
+            )
+        } else {
+            (
+                l.dims.to_vec(),
+                shard.clone(),
+                opts.brick.to_vec(),
+                per_shard.to_vec(),
+            )
+        };
+        let dir = partial.join(k.to_string());
+        write_json(
+            &dir.join("zarr.json"),
+            &level_array_json(
+                &shape,
+                &sh,
+                &inner,
+                meta.dtype,
+                opts.compression,
+                &dim_names,
+            ),
+        )?;
+        outs.push(LevelOut {
+            plan: l.clone(),
+            nb,
+            per_shard,
+            writer: ShardSetWriter::new(&dir, ps),
+            stats: Mutex::new(vec![
+                [f64::NAN; 2];
+                c * (nb.iter().product::<u64>() as usize)
+            ]),
+        });
+    }
+
+    let total: u64 = passes
+        .iter()
+        .map(|p| levels[p.from].dims.iter().product::<u64>() * esize * c as u64)
+        .sum();
+    progress.start(total);
+    let counters = Counters {
+        bricks: AtomicU64::new(0),
+        empty: AtomicU64::new(0),
+        constant: AtomicU64::new(0),
+    };
+    let encoder = BrickEncoder::new(opts.compression, meta.dtype);
+    let ctx = Ctx {
+        opts,
+        outs: &outs,
+        encoder: &encoder,
+        counters: &counters,
+        cancel,
+        channels: c,
+    };
+    let result = (|| -> Result<()> {
+        for p in &passes {
+            // Later passes read back the finest level of the previous pass.
+            let readback;
+            let source: &dyn VolumeSource = if p.from == 0 {
+                src
+            } else {
+                readback = ZarrSource::open_level_array(&partial.join(p.from.to_string()))?;
+                &readback
+            };
+            for ch in 0..c {
+                dispatch_dtype!(meta.dtype, T => { run_pass::<T>(&ctx, source, p, ch, progress)?; });
+            }
+        }
+        for o in &outs {
+            o.writer.finish()?;
+        }
+        write_stats(&partial, &outs, c)?;
+        Ok(())
+    })();
+    if let Err(e) = result {
+        // Leave nothing behind that could be mistaken for a store.
+        let _ = std::fs::remove_dir_all(&partial);
+        return Err(e);
+    }
+    let bytes_written: u64 = outs
+        .iter()
+        .map(|o| o.writer.bytes.load(Ordering::Relaxed))
+        .sum();
+    write_json(&partial.join("zarr.json"), &root(true))?;
+    // Swap into place: the old output (if any) is removed only after the new
+    // one is complete.
+    if output.exists() {
+        let old = output.with_file_name(format!(
+            "{}.old",
+            output.file_name().unwrap().to_string_lossy()
+        ));
+        std::fs::rename(output, &old).at(output)?;
+        std::fs::rename(&partial, output).at(output)?;
+        std::fs::remove_dir_all(&old).at(&old)?;
+    } else {
+        std::fs::rename(&partial, output).at(output)?;
+    }
+    Ok(ConvertReport {
+        output: output.to_path_buf(),
+        levels,
+        channels: c,
+        dtype: meta.dtype,
+        passes,
+        bytes_in: meta.channel_bytes() * c as u64,
+        bytes_written,
+        bricks: counters.bricks.load(Ordering::Relaxed),
+        bricks_empty: counters.empty.load(Ordering::Relaxed),
+        bricks_constant: counters.constant.load(Ordering::Relaxed),
+        seconds: t0.elapsed().as_secs_f64(),
+        planned_bytes,
+    })
+}
+
+/// Where an unfinished conversion of `output` is written.
+pub fn partial_path(output: &Path) -> PathBuf {
+    output.with_file_name(format!(
+        "{}.partial",
+        output
+            .file_name()
+            .map(|s| s.to_string_lossy().into_owned())
+            .unwrap_or_default()
+    ))
+}
+
+struct Ctx<'a> {
+    opts: &'a ConvertOptions,
+    outs: &'a [LevelOut],
+    encoder: &'a BrickEncoder,
+    counters: &'a Counters,
+    cancel: &'a AtomicBool,
+    channels: usize,
+}
+
+/// A slab of one level inside a tile: rows `z0..z0+rows` of the tile
+/// `[y0, y0+ty) × [x0, x0+tx)`, in that level's voxels.
+struct Slab<T> {
+    data: Vec<T>,
+    z0: u64,
+    rows: u64,
+    y0: u64,
+    x0: u64,
+    ty: u64,
+    tx: u64,
+}
+
+fn run_pass<T: Sample>(
+    ctx: &Ctx,
+    src: &dyn VolumeSource,
+    p: &PassPlan,
+    ch: usize,
+    progress: &dyn Progress,
+) -> Result<()> {
+    let outs = ctx.outs;
+    let bz = ctx.opts.brick[0];
+    let base = &outs[p.from].plan;
+    let [dz, dy, dx] = base.dims;
+    let mut ty0 = 0;
+    while ty0 < dy {
+        let ty = p.tile[0].min(dy - ty0);
+        let mut tx0 = 0;
+        while tx0 < dx {
+            let tx = p.tile[1].min(dx - tx0);
+            // Accumulators of the coarser levels for this tile.
+            let mut accs: Vec<Slab<T>> = (p.from + 1..=p.to)
+                .map(|k| {
+                    let l = &outs[k].plan;
+                    let ry = l.cum_ratio[1] / base.cum_ratio[1];
+                    let rx = l.cum_ratio[2] / base.cum_ratio[2];
+                    let (y0, x0) = (ty0 / ry, tx0 / rx);
+                    let (y1, x1) = (
+                        (ty0 + ty).div_ceil(ry).min(l.dims[1]),
+                        (tx0 + tx).div_ceil(rx).min(l.dims[2]),
+                    );
+                    Slab {
+                        data: Vec::new(),
+                        z0: 0,
+                        rows: 0,
+                        y0,
+                        x0,
+                        ty: y1 - y0,
+                        tx: x1 - x0,
+                    }
+                })
+                .collect();
+            let mut buf: Vec<T> = Vec::new();
+            let mut z0 = 0;
+            while z0 < dz {
+                if ctx.cancel.load(Ordering::Relaxed) {
+                    return Err(StoreError::Interrupted);
+                }
+                let h = bz.min(dz - z0);
+                let n = (h * ty * tx) as usize;
+                buf.resize(n, T::default());
+                src.read_region(
+                    ch,
+                    z0..z0 + h,
+                    ty0..ty0 + ty,
+                    tx0..tx0 + tx,
+                    cast_slice_mut_t(&mut buf),
+                )?;
+                progress.inc(n as u64 * std::mem::size_of::<T>() as u64);
+                let slab = Slab {
+                    data: std::mem::take(&mut buf),
+                    z0,
+                    rows: h,
+                    y0: ty0,
+                    x0: tx0,
+                    ty,
+                    tx,
+                };
+                if p.from == 0 {
+                    write_bricks(ctx, 0, ch, &slab)?;
+                }
+                if p.to > p.from {
+                    cascade(ctx, p, ch, p.from + 1, &slab, &mut accs)?;
+                }
+                buf = slab.data;
+                z0 += h;
+            }
+            tx0 += tx;
+        }
+        ty0 += ty;
+    }
+    Ok(())
+}
+
+fn cast_slice_mut_t<T: Sample>(v: &mut [T]) -> &mut [u8] {
+    // SAFETY: plain old data.
+    unsafe { std::slice::from_raw_parts_mut(v.as_mut_ptr() as *mut u8, std::mem::size_of_val(v)) }
+}
+
+/// Downsample `fine` (a slab of level k-1) into the accumulator of level k;
+/// when that is full (or the level ends), write its bricks and go on down.
+fn cascade<T: Sample>(
+    ctx: &Ctx,
+    p: &PassPlan,
+    ch: usize,
+    k: usize,
+    fine: &Slab<T>,
+    accs: &mut [Slab<T>],
+) -> Result<()> {
+    let l = &ctx.outs[k].plan;
+    let r = l.ratio;
+    let bz = ctx.opts.brick[0];
+    let (first, rest) = accs.split_at_mut(1);
+    let acc = &mut first[0];
+    if acc.rows == 0 {
+        acc.z0 = fine.z0 / r[0] as u64;
+        acc.data
+            .resize((bz.min(l.dims[0]) * acc.ty * acc.tx) as usize, T::default());
+    }
+    let rows = fine.rows.div_ceil(r[0] as u64);
+    debug_assert_eq!(fine.ty.div_ceil(r[1] as u64), acc.ty);
+    debug_assert_eq!(fine.tx.div_ceil(r[2] as u64), acc.tx);
+    let off = (acc.rows * acc.ty * acc.tx) as usize;
+    let len = (rows * acc.ty * acc.tx) as usize;
+    downsample(
+        &fine.data[..(fine.rows * fine.ty * fine.tx) as usize],
+        [fine.rows as usize, fine.ty as usize, fine.tx as usize],
+        r,
+        ctx.opts.labels,
+        &mut acc.data[off..off + len],
+    );
+    acc.rows += rows;
+    if acc.rows == bz || acc.z0 + acc.rows == l.dims[0] {
+        let full = Slab {
+            data: std::mem::take(&mut acc.data),
+            z0: acc.z0,
+            rows: acc.rows,
+            y0: acc.y0,
+            x0: acc.x0,
+            ty: acc.ty,
+            tx: acc.tx,
+        };
+        write_bricks(ctx, k, ch, &full)?;
+        if k < p.to {
+            cascade(ctx, p, ch, k + 1, &full, rest)?;
+        }
+        acc.data = full.data;
+        acc.rows = 0;
+    }
+    Ok(())
+}
+
+/// Cut a slab into bricks, compute their statistics, encode and write them.
+fn write_bricks<T: Sample>(ctx: &Ctx, k: usize, ch: usize, s: &Slab<T>) -> Result<()> {
+    let out = &ctx.outs[k];
+    let b = ctx.opts.brick;
+    let bzi = s.z0 / b[0];
+    debug_assert_eq!(s.z0 % b[0], 0);
+    debug_assert_eq!(s.y0 % b[1], 0);
+    debug_assert_eq!(s.x0 % b[2], 0);
+    let bys = s.y0 / b[1]..(s.y0 + s.ty).div_ceil(b[1]);
+    let bxs = s.x0 / b[2]..(s.x0 + s.tx).div_ceil(b[2]);
+    let list: Vec<(u64, u64)> = bys.flat_map(|y| bxs.clone().map(move |x| (y, x))).collect();
+    let results: Vec<Result<(usize, [f64; 2])>> = list
+        .par_iter()
+        .map(|&(byi, bxi)| {
+            let (oy, ox) = (byi * b[1] - s.y0, bxi * b[2] - s.x0);
+            let vy = b[1].min(s.ty - oy) as usize;
+            let vx = b[2].min(s.tx - ox) as usize;
+            let vz = s.rows as usize;
+            let (bz_, by_, bx_) = (b[0] as usize, b[1] as usize, b[2] as usize);
+            let mut brick = vec![T::default(); bz_ * by_ * bx_];
+            let mut mn = f64::INFINITY;
+            let mut mx = f64::NEG_INFINITY;
+            for z in 0..vz {
+                for y in 0..vy {
+                    let src = ((z as u64 * s.ty + oy + y as u64) * s.tx + ox) as usize;
+                    let row = &s.data[src..src + vx];
+                    let dst = (z * by_ + y) * bx_;
+                    brick[dst..dst + vx].copy_from_slice(row);
+                    for v in row {
+                        let f = v.to_f64();
+                        if f < mn {
+                            mn = f;
+                        }
+                        if f > mx {
+                            mx = f;
+                        }
+                    }
+                }
+            }
+            let bytes = as_bytes(&brick);
+            let nonzero = bytes.iter().any(|&x| x != 0);
+            let key: Vec<u64> = if ctx.channels > 1 {
+                vec![ch as u64, bzi, byi, bxi]
+            } else {
+                vec![bzi, byi, bxi]
+            };
+            let sidx = [
+                bzi / out.per_shard[0],
+                byi / out.per_shard[1],
+                bxi / out.per_shard[2],
+            ];
+            let expected = out.expected_in_shard(&sidx);
+            if nonzero {
+                let enc = ctx.encoder.encode(bytes.to_vec());
+                out.writer.put(&key, Some(&enc), expected)?;
+            } else {
+                out.writer.put(&key, None, expected)?;
+                ctx.counters.empty.fetch_add(1, Ordering::Relaxed);
+            }
+            if mn == mx {
+                ctx.counters.constant.fetch_add(1, Ordering::Relaxed);
+            }
+            ctx.counters.bricks.fetch_add(1, Ordering::Relaxed);
+            let idx = ((ch as u64 * out.nb[0] + bzi) * out.nb[1] + byi) * out.nb[2] + bxi;
+            Ok((idx as usize, [mn, mx]))
+        })
+        .collect();
+    let mut st = out.stats.lock().unwrap();
+    for r in results {
+        let (i, mm) = r?;
+        st[i] = mm;
+    }
+    Ok(())
+}
+
+/// Write the per-brick statistics as Zarr v3 arrays `_brickyard/stats/<k>`
+/// of shape `[c, bz, by, bx, 2]` (min, max) in float64.
+fn write_stats(root: &Path, outs: &[LevelOut], c: usize) -> Result<()> {
+    write_json(
+        &root.join("_brickyard/zarr.json"),
+        &json!({"zarr_format": 3, "node_type": "group", "attributes": {}}),
+    )?;
+    write_json(
+        &root.join(STATS_DIR).join("zarr.json"),
+        &json!({"zarr_format": 3, "node_type": "group", "attributes": {
+        "description": "per-brick (min, max) of every level: shape [channel, brick z, brick y, brick x, 2]"}}),
+    )?;
+    let enc = BrickEncoder::new(Compression::Zstd(3), DType::F64);
+    for (k, o) in outs.iter().enumerate() {
+        let nb = o.nb;
+        let chunk = [1, nb[0].min(32), nb[1].min(32), nb[2].min(32), 2];
+        let shape = [c as u64, nb[0], nb[1], nb[2], 2];
+        let dir = root.join(STATS_DIR).join(k.to_string());
+        write_json(
+            &dir.join("zarr.json"),
+            &plain_array_json(&shape, &chunk, DType::F64, Compression::Zstd(3)),
+        )?;
+        let st = o.stats.lock().unwrap();
+        for ci in 0..c as u64 {
+            for cz in 0..nb[0].div_ceil(chunk[1]) {
+                for cy in 0..nb[1].div_ceil(chunk[2]) {
+                    for cx in 0..nb[2].div_ceil(chunk[3]) {
+                        let mut data =
+                            vec![f64::NAN; (chunk[1] * chunk[2] * chunk[3] * 2) as usize];
+                        for z in 0..chunk[1] {
+                            for y in 0..chunk[2] {
+                                for x in 0..chunk[3] {
+                                    let (gz, gy, gx) =
+                                        (cz * chunk[1] + z, cy * chunk[2] + y, cx * chunk[3] + x);
+                                    if gz < nb[0] && gy < nb[1] && gx < nb[2] {
+                                        let i = (((ci * nb[0] + gz) * nb[1] + gy) * nb[2] + gx)
+                                            as usize;
+                                        let d = (((z * chunk[2] + y) * chunk[3] + x) * 2) as usize;
+                                        data[d..d + 2].copy_from_slice(&st[i]);
+                                    }
+                                }
+                            }
+                        }
+                        let p = dir.join(format!("c/{ci}/{cz}/{cy}/{cx}/0"));
+                        std::fs::create_dir_all(p.parent().unwrap()).at(&p)?;
+                        std::fs::write(&p, enc.encode(as_bytes(&data).to_vec())).at(&p)?;
+                    }
+                }
+            }
+        }
+    }
+    Ok(())
+}

@@ -1,0 +1,271 @@
+//! Raw binary volumes: dims, dtype, endianness and spacing come from the
+//! caller (command-line flags) or from a JSON sidecar next to the file.
+//!
+//! Layout on disk: `header_bytes` skipped, then channel-major
+//! (`c, z, y, x`, x fastest) voxels.
+
+use crate::error::{IoContext, Result, StoreError};
+use crate::import::swap_bytes_in_place;
+use crate::source::{check_region, SourceMeta, VolumeSource};
+use brickyard_core::DType;
+use serde::{Deserialize, Serialize};
+use std::fs::File;
+use std::ops::Range;
+use std::os::unix::fs::FileExt;
+use std::path::{Path, PathBuf};
+
+/// Description of a raw file. Dims and spacing are in `x, y, z` order, as
+/// people write them; brickyard converts to `[z, y, x]` internally.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct RawOptions {
+    /// `[x, y, z]` in voxels.
+    pub dims: [u64; 3],
+    pub dtype: DType,
+    /// `"little"` (default) or `"big"`.
+    #[serde(default = "default_endian")]
+    pub endian: String,
+    /// `[x, y, z]` voxel spacing.
+    #[serde(default)]
+    pub spacing: Option<[f64; 3]>,
+    /// `[x, y, z]` position of the centre of the first voxel.
+    #[serde(default)]
+    pub origin: Option<[f64; 3]>,
+    #[serde(default)]
+    pub unit: Option<String>,
+    #[serde(default = "one")]
+    pub channels: usize,
+    #[serde(default)]
+    pub header_bytes: u64,
+}
+
+fn default_endian() -> String {
+    "little".into()
+}
+fn one() -> usize {
+    1
+}
+
+impl RawOptions {
+    /// The sidecar path of a raw file: `FILE.json`.
+    pub fn sidecar_path(raw: &Path) -> PathBuf {
+        let mut s = raw.as_os_str().to_owned();
+        s.push(".json");
+        PathBuf::from(s)
+    }
+
+    /// Read a sidecar file.
+    pub fn read_sidecar(path: &Path) -> Result<RawOptions> {
+        let text = std::fs::read_to_string(path).at(path)?;
+        serde_json::from_str(&text).map_err(|e| {
+            StoreError::invalid(
+                path,
+                "sidecar",
+                format!(
+                    "{e}; expected {{\"dims\":[x,y,z],\"dtype\":\"u16\",\"endian\":\"little\",\
+                     \"spacing\":[x,y,z],\"channels\":1,\"header_bytes\":0}}"
+                ),
+            )
+        })
+    }
+
+    /// Write a sidecar file.
+    pub fn write_sidecar(&self, path: &Path) -> Result<()> {
+        let text = serde_json::to_string_pretty(self).expect("serializable");
+        std::fs::write(path, text + "\n").at(path)
+    }
+}
+
+/// A raw volume read with positioned reads (no buffering of the whole file).
+pub struct RawSource {
+    meta: SourceMeta,
+    file: File,
+    big_endian: bool,
+    header: u64,
+}
+
+/// Open a raw file described by `opts`.
+pub fn open(path: &Path, opts: &RawOptions) -> Result<RawSource> {
+    let big_endian = match opts.endian.to_ascii_lowercase().as_str() {
+        "little" | "le" => false,
+        "big" | "be" => true,
+        other => {
+            return Err(StoreError::invalid(
+                path,
+                "endian",
+                format!("expected \"little\" or \"big\", found {other:?}"),
+            ))
+        }
+    };
+    if opts.dims.contains(&0) {
+        return Err(StoreError::invalid(
+            path,
+            "dims",
+            format!("expected three positive sizes, found {:?}", opts.dims),
+        ));
+    }
+    if opts.channels == 0 {
+        return Err(StoreError::invalid(path, "channels", "expected at least 1"));
+    }
+    let file = File::open(path).at(path)?;
+    let len = file.metadata().at(path)?.len();
+    let [x, y, z] = opts.dims;
+    let need = x
+        .checked_mul(y)
+        .and_then(|v| v.checked_mul(z))
+        .and_then(|v| v.checked_mul(opts.channels as u64))
+        .and_then(|v| v.checked_mul(opts.dtype.size() as u64))
+        .and_then(|v| v.checked_add(opts.header_bytes))
+        .ok_or_else(|| StoreError::invalid(path, "dims", "volume size overflows 64 bits"))?;
+    if len != need {
+        return Err(StoreError::invalid(
+            path,
+            "dims",
+            format!(
+                "file holds {len} bytes but {x}x{y}x{z} voxels x {} channel(s) of {} \
+                 plus {} header bytes need {need}",
+                opts.channels, opts.dtype, opts.header_bytes
+            ),
+        ));
+    }
+    let mut meta = SourceMeta::new(path, [z, y, x], opts.channels, opts.dtype);
+    meta.spacing = opts.spacing.map(|s| [s[2], s[1], s[0]]);
+    meta.origin = opts.origin.map(|s| [s[2], s[1], s[0]]);
+    meta.unit = opts.unit.clone();
+    Ok(RawSource {
+        meta,
+        file,
+        big_endian,
+        header: opts.header_bytes,
+    })
+}
+
+impl VolumeSource for RawSource {
+    fn meta(&self) -> &SourceMeta {
+        &self.meta
+    }
+
+    fn read_region(
+        &self,
+        c: usize,
+        z: Range<u64>,
+        y: Range<u64>,
+        x: Range<u64>,
+        out: &mut [u8],
+    ) -> Result<()> {
+        check_region(&self.meta, c, &z, &y, &x, out);
+        let es = self.meta.dtype.size() as u64;
+        let [_, dy, dx] = self.meta.dims;
+        let base = self.header + c as u64 * self.meta.channel_bytes();
+        let row = (x.end - x.start) * es;
+        let full_rows = x.start == 0 && x.end == dx;
+        let mut o = 0usize;
+        for zz in z.clone() {
+            if full_rows {
+                // One contiguous read per slice.
+                let n = ((y.end - y.start) * row) as usize;
+                let off = base + ((zz * dy + y.start) * dx) * es;
+                self.file
+                    .read_exact_at(&mut out[o..o + n], off)
+                    .at(&self.meta.path)?;
+                o += n;
+            } else {
+                for yy in y.clone() {
+                    let off = base + ((zz * dy + yy) * dx + x.start) * es;
+                    let n = row as usize;
+                    self.file
+                        .read_exact_at(&mut out[o..o + n], off)
+                        .at(&self.meta.path)?;
+                    o += n;
+                }
+            }
+        }
+        if self.big_endian {
+            swap_bytes_in_place(out, es as usize);
+        }
+        Ok(())
+    }
+
+    fn preferred_read(&self) -> brickyard_core::Dims3 {
+        let d = self.meta.dims;
+        [1, d[1], d[2]]
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn reads_regions_and_swaps() {
+        let dir = tempfile::tempdir().unwrap();
+        let p = dir.path().join("v.raw");
+        let dims = [5u64, 4, 3]; // x y z
+        let n = 5 * 4 * 3;
+        let vals: Vec<u16> = (0..n as u16 * 2).map(|v| v * 7 + 1).collect();
+        let mut bytes = vec![0u8; 3];
+        for v in &vals {
+            bytes.extend_from_slice(&v.to_be_bytes());
+        }
+        std::fs::write(&p, &bytes).unwrap();
+        let opts = RawOptions {
+            dims,
+            dtype: DType::U16,
+            endian: "big".into(),
+            spacing: Some([1.0, 2.0, 3.0]),
+            origin: None,
+            unit: None,
+            channels: 2,
+            header_bytes: 3,
+        };
+        let s = open(&p, &opts).unwrap();
+        assert_eq!(s.meta().dims, [3, 4, 5]);
+        assert_eq!(s.meta().spacing, Some([3.0, 2.0, 1.0]));
+        let mut out = vec![0u8; 2 * 2 * 2 * 2];
+        s.read_region(1, 1..3, 2..4, 3..5, &mut out).unwrap();
+        let got: Vec<u16> = out
+            .chunks(2)
+            .map(|b| u16::from_le_bytes([b[0], b[1]]))
+            .collect();
+        let mut want = vec![];
+        for z in 1..3 {
+            for y in 2..4 {
+                for x in 3..5 {
+                    want.push(vals[n + (z * 4 + y) * 5 + x]);
+                }
+            }
+        }
+        assert_eq!(got, want);
+    }
+
+    #[test]
+    fn size_mismatch_is_a_clear_error() {
+        let dir = tempfile::tempdir().unwrap();
+        let p = dir.path().join("bad.raw");
+        std::fs::write(&p, vec![0u8; 100]).unwrap();
+        let opts = RawOptions {
+            dims: [10, 10, 2],
+            dtype: DType::U8,
+            endian: "little".into(),
+            spacing: None,
+            origin: None,
+            unit: None,
+            channels: 1,
+            header_bytes: 0,
+        };
+        let e = open(&p, &opts).err().unwrap().to_string();
+        assert!(
+            e.contains("bad.raw") && e.contains("dims") && e.contains("200"),
+            "{e}"
+        );
+        let e = open(&dir.path().join("missing.raw"), &opts)
+            .err()
+            .unwrap()
+            .to_string();
+        assert!(e.contains("missing.raw"), "{e}");
+        let side = dir.path().join("s.json");
+        std::fs::write(&side, "{\"dims\":[1,2],\"dtype\":\"u8\"}").unwrap();
+        let e = RawOptions::read_sidecar(&side).err().unwrap().to_string();
+        assert!(e.contains("s.json") && e.contains("sidecar"), "{e}");
+    }
+}

@@ -1,0 +1,424 @@
+//! `brickyard info`: what a store holds — levels, shapes, chunking, codecs,
+//! size on disk against raw size, brick statistics — for brickyard's own
+//! stores and foreign (OME-)Zarr alike.
+
+use crate::error::{Result, StoreError};
+use crate::import::zarr::is_zarr;
+use crate::omezarr::{read_json, read_multiscale, STATS_DIR};
+use brickyard_core::DType;
+use serde::Serialize;
+use serde_json::Value;
+use std::path::{Path, PathBuf};
+use std::sync::Arc;
+use zarrs::array::Array;
+use zarrs::filesystem::FilesystemStore;
+
+/// Summary of one level.
+#[derive(Debug, Clone, Serialize)]
+pub struct LevelInfo {
+    pub path: String,
+    pub shape: Vec<u64>,
+    pub dtype: String,
+    /// Chunk (or shard) shape of the array.
+    pub chunk: Vec<u64>,
+    /// Inner chunk shape when the array is sharded.
+    pub inner_chunk: Option<Vec<u64>>,
+    pub codecs: Vec<String>,
+    pub scale: Option<Vec<f64>>,
+    pub translation: Option<Vec<f64>>,
+    pub bytes_on_disk: u64,
+    pub bytes_raw: u64,
+    pub stats: Option<BrickSummary>,
+}
+
+/// Counts from the per-brick statistics of one level.
+#[derive(Debug, Clone, Serialize, Default)]
+pub struct BrickSummary {
+    pub bricks: u64,
+    /// Constant bricks whose value is the fill value 0 (never stored).
+    pub empty: u64,
+    /// Constant bricks (min == max), including empty ones.
+    pub constant: u64,
+    pub min: f64,
+    pub max: f64,
+}
+
+/// Summary of a store.
+#[derive(Debug, Clone, Serialize)]
+pub struct StoreInfo {
+    pub path: PathBuf,
+    pub zarr_format: u8,
+    pub ome_version: Option<String>,
+    /// `Some(false)` when the store is an unfinished brickyard conversion.
+    pub complete: Option<bool>,
+    pub axes: Vec<String>,
+    pub units: Vec<Option<String>>,
+    pub labels: bool,
+    pub levels: Vec<LevelInfo>,
+    pub problems: Vec<String>,
+}
+
+fn dir_size(p: &Path) -> u64 {
+    let mut n = 0;
+    if let Ok(rd) = std::fs::read_dir(p) {
+        for e in rd.flatten() {
+            match e.file_type() {
+                Ok(t) if t.is_dir() => n += dir_size(&e.path()),
+                Ok(_) => n += e.metadata().map(|m| m.len()).unwrap_or(0),
+                Err(_) => {}
+            }
+        }
+    }
+    n
+}
+
+fn codec_names(list: &Value) -> Vec<String> {
+    list.as_array()
+        .map(|a| {
+            a.iter()
+                .map(|c| {
+                    let name = c.get("name").and_then(Value::as_str).unwrap_or("?");
+                    let conf = c.get("configuration");
+                    match (name, conf) {
+                        ("blosc", Some(cf)) => format!(
+                            "blosc({}, {})",
+                            cf.get("cname").and_then(Value::as_str).unwrap_or("?"),
+                            cf.get("shuffle").and_then(Value::as_str).unwrap_or("?")
+                        ),
+                        ("zstd", Some(cf)) => format!(
+                            "zstd({})",
+                            cf.get("level").and_then(Value::as_i64).unwrap_or(0)
+                        ),
+                        ("bytes", Some(cf)) => format!(
+                            "bytes({})",
+                            cf.get("endian").and_then(Value::as_str).unwrap_or("?")
+                        ),
+                        _ => name.to_string(),
+                    }
+                })
+                .collect()
+        })
+        .unwrap_or_default()
+}
+
+fn array_info(dir: &Path) -> Result<(Vec<u64>, String, Vec<u64>, Option<Vec<u64>>, Vec<String>)> {
+    let v3 = dir.join("zarr.json");
+    if v3.exists() {
+        let j = read_json(&v3)?;
+        let shape: Vec<u64> = serde_json::from_value(j["shape"].clone())
+            .map_err(|_| StoreError::invalid(&v3, "shape", "expected a list of integers"))?;
+        let dtype = j["data_type"].as_str().unwrap_or("?").to_string();
+        let chunk: Vec<u64> =
+            serde_json::from_value(j["chunk_grid"]["configuration"]["chunk_shape"].clone())
+                .unwrap_or_default();
+        let codecs = &j["codecs"];
+        if let Some(sh) = codecs
+            .as_array()
+            .and_then(|a| a.iter().find(|c| c["name"] == "sharding_indexed"))
+        {
+            let inner: Vec<u64> =
+                serde_json::from_value(sh["configuration"]["chunk_shape"].clone())
+                    .unwrap_or_default();
+            let mut names = vec!["sharding_indexed".to_string()];
+            names.extend(
+                codec_names(&sh["configuration"]["codecs"])
+                    .into_iter()
+                    .map(|n| format!("inner:{n}")),
+            );
+            return Ok((shape, dtype, chunk, Some(inner), names));
+        }
+        return Ok((shape, dtype, chunk, None, codec_names(codecs)));
+    }
+    let v2 = dir.join(".zarray");
+    let j = read_json(&v2)?;
+    let shape: Vec<u64> = serde_json::from_value(j["shape"].clone())
+        .map_err(|_| StoreError::invalid(&v2, "shape", "expected a list of integers"))?;
+    let chunk: Vec<u64> = serde_json::from_value(j["chunks"].clone()).unwrap_or_default();
+    let dtype = j["dtype"].as_str().unwrap_or("?").to_string();
+    let mut names = vec![];
+    if let Some(f) = j["filters"].as_array() {
+        names.extend(
+            f.iter()
+                .map(|f| f["id"].as_str().unwrap_or("?").to_string()),
+        );
+    }
+    match &j["compressor"] {
+        Value::Null => {}
+        c => names.push(match c["id"].as_str() {
+            Some("blosc") => format!(
+                "blosc({}, shuffle={})",
+                c["cname"].as_str().unwrap_or("?"),
+                c["shuffle"]
+            ),
+            Some(id) => id.to_string(),
+            None => "?".into(),
+        }),
+    }
+    Ok((shape, dtype, chunk, None, names))
+}
+
+/// Summarize the statistics array of one level, chunk by chunk.
+fn brick_summary(root: &Path, level: usize) -> Option<BrickSummary> {
+    let dir = root.join(STATS_DIR).join(level.to_string());
+    if !dir.join("zarr.json").exists() {
+        return None;
+    }
+    let store = Arc::new(FilesystemStore::new(&dir).ok()?);
+    let a = Array::open(store, "/").ok()?;
+    let grid = a.chunk_grid_shape().to_vec();
+    let mut s = BrickSummary {
+        min: f64::INFINITY,
+        max: f64::NEG_INFINITY,
+        ..Default::default()
+    };
+    let n: u64 = grid.iter().product();
+    for i in 0..n {
+        let mut idx = vec![0u64; grid.len()];
+        let mut r = i;
+        for d in (0..grid.len()).rev() {
+            idx[d] = r % grid[d];
+            r /= grid[d];
+        }
+        let v: Vec<f64> = a.retrieve_chunk::<Vec<f64>>(&idx).ok()?;
+        // Clip to the array: retrieve_chunk returns the full chunk.
+        let shape = a.chunk_shape(&idx).ok()?;
+        let cs: Vec<u64> = shape.iter().map(|c| c.get()).collect();
+        let ashape = a.shape();
+        let ne = v.len() / 2;
+        for e in 0..ne {
+            // Position of element e inside the chunk (last axis is the pair).
+            let mut rem = e as u64;
+            let mut inside = true;
+            for d in (0..4).rev() {
+                let p = rem % cs[d];
+                rem /= cs[d];
+                if idx[d] * cs[d] + p >= ashape[d] {
+                    inside = false;
+                }
+            }
+            if !inside {
+                continue;
+            }
+            let (mn, mx) = (v[2 * e], v[2 * e + 1]);
+            if mn.is_nan() && mx.is_nan() {
+                continue;
+            }
+            s.bricks += 1;
+            if mn == mx {
+                s.constant += 1;
+                if mn == 0.0 {
+                    s.empty += 1;
+                }
+            }
+            s.min = s.min.min(mn);
+            s.max = s.max.max(mx);
+        }
+    }
+    Some(s)
+}
+
+/// Inspect a store.
+pub fn inspect(path: &Path) -> Result<StoreInfo> {
+    if !path.exists() {
+        return Err(StoreError::io(
+            path,
+            std::io::Error::from(std::io::ErrorKind::NotFound),
+        ));
+    }
+    if !is_zarr(path) {
+        return Err(StoreError::invalid(
+            path,
+            "zarr.json",
+            "not a Zarr store (no zarr.json, .zgroup or .zarray)",
+        ));
+    }
+    let mut problems = vec![];
+    let ms = read_multiscale(path)?;
+    let mut info = StoreInfo {
+        path: path.to_path_buf(),
+        zarr_format: 3,
+        ome_version: None,
+        complete: None,
+        axes: vec![],
+        units: vec![],
+        labels: false,
+        levels: vec![],
+        problems: vec![],
+    };
+    let datasets: Vec<(String, Option<Vec<f64>>, Option<Vec<f64>>)> = match &ms {
+        Some(m) => {
+            info.zarr_format = m.zarr_format;
+            info.ome_version = Some(m.version.clone());
+            info.axes = m.axes.iter().map(|a| a.name.clone()).collect();
+            info.units = m.axes.iter().map(|a| a.unit.clone()).collect();
+            if let Some(b) = &m.brickyard {
+                info.complete = Some(b.get("complete").and_then(Value::as_bool).unwrap_or(false));
+                info.labels = b.get("labels").and_then(Value::as_bool).unwrap_or(false);
+            }
+            m.datasets
+                .iter()
+                .map(|d| (d.path.clone(), d.scale.clone(), d.translation.clone()))
+                .collect()
+        }
+        None => {
+            // A bare array.
+            info.zarr_format = if path.join("zarr.json").exists() {
+                3
+            } else {
+                2
+            };
+            vec![(String::new(), None, None)]
+        }
+    };
+    if path.to_string_lossy().ends_with(".partial") {
+        info.complete = Some(false);
+    }
+    for (k, (p, scale, translation)) in datasets.into_iter().enumerate() {
+        let dir = if p.is_empty() {
+            path.to_path_buf()
+        } else {
+            path.join(&p)
+        };
+        match array_info(&dir) {
+            Ok((shape, dtype, chunk, inner, codecs)) => {
+                let es = DType::parse(&dtype).map(|d| d.size() as u64).unwrap_or(0);
+                let bytes_raw = shape.iter().product::<u64>() * es;
+                let mut bytes_on_disk = dir_size(&dir);
+                if p.is_empty() {
+                    bytes_on_disk = dir_size(path);
+                }
+                info.levels.push(LevelInfo {
+                    path: p,
+                    shape,
+                    dtype,
+                    chunk,
+                    inner_chunk: inner,
+                    codecs,
+                    scale,
+                    translation,
+                    bytes_on_disk,
+                    bytes_raw,
+                    stats: brick_summary(path, k),
+                });
+            }
+            Err(e) => problems.push(format!("level {k}: {e}")),
+        }
+    }
+    if info.complete == Some(false) {
+        problems.push("INCOMPLETE: the conversion that wrote this store did not finish".into());
+    }
+    info.problems = problems;
+    Ok(info)
+}
+
+/// Human-readable byte count.
+pub fn human_bytes(n: u64) -> String {
+    let units = ["B", "KiB", "MiB", "GiB", "TiB", "PiB"];
+    let mut v = n as f64;
+    let mut u = 0;
+    while v >= 1024.0 && u + 1 < units.len() {
+        v /= 1024.0;
+        u += 1;
+    }
+    if u == 0 {
+        format!("{n} B")
+    } else {
+        format!("{v:.1} {}", units[u])
+    }
+}
+
+/// Print a store summary as text.
+pub fn format_info(i: &StoreInfo) -> String {
+    use std::fmt::Write;
+    let mut s = String::new();
+    let _ = writeln!(s, "{}", i.path.display());
+    let status = match i.complete {
+        Some(true) => "complete (brickyard)",
+        Some(false) => "INCOMPLETE",
+        None => "foreign store",
+    };
+    let _ = writeln!(
+        s,
+        "  format: Zarr v{}, OME-Zarr {}, {status}{}",
+        i.zarr_format,
+        i.ome_version.as_deref().unwrap_or("-"),
+        if i.labels { ", labels" } else { "" }
+    );
+    if !i.axes.is_empty() {
+        let ax: Vec<String> = i
+            .axes
+            .iter()
+            .zip(&i.units)
+            .map(|(a, u)| match u {
+                Some(u) => format!("{a} ({u})"),
+                None => a.clone(),
+            })
+            .collect();
+        let _ = writeln!(s, "  axes: {}", ax.join(", "));
+    }
+    let (mut disk, mut raw) = (0, 0);
+    for (k, l) in i.levels.iter().enumerate() {
+        disk += l.bytes_on_disk;
+        raw += l.bytes_raw;
+        let _ = writeln!(
+            s,
+            "  level {k} [{}]: shape {:?} {}  chunk {:?}{}  codecs [{}]",
+            l.path,
+            l.shape,
+            l.dtype,
+            l.chunk,
+            l.inner_chunk
+                .as_ref()
+                .map(|c| format!(" inner {c:?}"))
+                .unwrap_or_default(),
+            l.codecs.join(", ")
+        );
+        if let Some(sc) = &l.scale {
+            let _ = writeln!(
+                s,
+                "           scale {:?}{}",
+                sc,
+                l.translation
+                    .as_ref()
+                    .map(|t| format!(" translation {t:?}"))
+                    .unwrap_or_default()
+            );
+        }
+        let ratio = if l.bytes_on_disk > 0 {
+            l.bytes_raw as f64 / l.bytes_on_disk as f64
+        } else {
+            f64::INFINITY
+        };
+        let _ = writeln!(
+            s,
+            "           {} on disk, {} raw ({ratio:.2}x)",
+            human_bytes(l.bytes_on_disk),
+            human_bytes(l.bytes_raw)
+        );
+        if let Some(b) = &l.stats {
+            let _ = writeln!(
+                s,
+                "           bricks: {} ({} empty, {} constant incl. empty), values {}..{}",
+                b.bricks, b.empty, b.constant, b.min, b.max
+            );
+        }
+    }
+    let ratio = if disk > 0 {
+        raw as f64 / disk as f64
+    } else {
+        f64::INFINITY
+    };
+    let _ = writeln!(
+        s,
+        "  total: {} on disk, {} raw ({ratio:.2}x)",
+        human_bytes(disk),
+        human_bytes(raw)
+    );
+    if i.levels.iter().all(|l| l.stats.is_none()) {
+        let _ = writeln!(s, "  brick statistics: none stored");
+    }
+    for p in &i.problems {
+        let _ = writeln!(s, "  problem: {p}");
+    }
+    s
+}

@@ -1,0 +1,344 @@
+//! OME-Zarr metadata: writing OME-Zarr 0.5 (Zarr v3) and reading the
+//! `multiscales` of OME-Zarr 0.4 (Zarr v2 or v3) and 0.5.
+
+use crate::codec::Compression;
+use crate::error::{IoContext, Result, StoreError};
+use brickyard_core::{DType, LevelPlan};
+use serde_json::{json, Value};
+use std::path::{Path, PathBuf};
+
+/// Name of the brickyard attribute block in the root group.
+pub const ATTR: &str = "brickyard";
+/// Where the per-brick statistics live, relative to the root.
+pub const STATS_DIR: &str = "_brickyard/stats";
+
+/// Units accepted by OME-NGFF for space axes (UDUNITS-2 names).
+pub const SPACE_UNITS: &[&str] = &[
+    "angstrom",
+    "attometer",
+    "centimeter",
+    "decimeter",
+    "exameter",
+    "femtometer",
+    "foot",
+    "gigameter",
+    "hectometer",
+    "inch",
+    "kilometer",
+    "megameter",
+    "meter",
+    "micrometer",
+    "mile",
+    "millimeter",
+    "nanometer",
+    "parsec",
+    "petameter",
+    "picometer",
+    "terameter",
+    "yard",
+    "yoctometer",
+    "yottameter",
+    "zeptometer",
+    "zettameter",
+];
+
+/// Normalize common unit spellings to OME-NGFF names.
+pub fn normalize_unit(u: &str) -> Option<String> {
+    let t = u.trim().to_ascii_lowercase();
+    let n = match t.as_str() {
+        "mm" => "millimeter",
+        "um" | "µm" | "μm" | "micron" | "microns" => "micrometer",
+        "nm" => "nanometer",
+        "m" => "meter",
+        "cm" => "centimeter",
+        "pm" => "picometer",
+        "a" | "å" => "angstrom",
+        _ => t.as_str(),
+    };
+    SPACE_UNITS.contains(&n).then(|| n.to_string())
+}
+
+/// Zarr v3 array metadata of one sharded pyramid level.
+pub fn level_array_json(
+    shape: &[u64],
+    shard: &[u64],
+    inner: &[u64],
+    dtype: DType,
+    compression: Compression,
+    dim_names: &[&str],
+) -> Value {
+    let fill = if dtype.is_float() {
+        json!(0.0)
+    } else {
+        json!(0)
+    };
+    json!({
+        "zarr_format": 3,
+        "node_type": "array",
+        "shape": shape,
+        "data_type": dtype.zarr_name(),
+        "chunk_grid": {"name": "regular", "configuration": {"chunk_shape": shard}},
+        "chunk_key_encoding": {"name": "default", "configuration": {"separator": "/"}},
+        "fill_value": fill,
+        "codecs": [{
+            "name": "sharding_indexed",
+            "configuration": {
+                "chunk_shape": inner,
+                "codecs": compression.codecs_json(dtype),
+                "index_codecs": [
+                    {"name": "bytes", "configuration": {"endian": "little"}},
+                    {"name": "crc32c"}
+                ],
+                "index_location": "end"
+            }
+        }],
+        "dimension_names": dim_names,
+        "attributes": {}
+    })
+}
+
+/// Zarr v3 metadata of a plain chunked array (used for statistics).
+pub fn plain_array_json(
+    shape: &[u64],
+    chunk: &[u64],
+    dtype: DType,
+    compression: Compression,
+) -> Value {
+    json!({
+        "zarr_format": 3,
+        "node_type": "array",
+        "shape": shape,
+        "data_type": dtype.zarr_name(),
+        "chunk_grid": {"name": "regular", "configuration": {"chunk_shape": chunk}},
+        "chunk_key_encoding": {"name": "default", "configuration": {"separator": "/"}},
+        "fill_value": if dtype.is_float() { json!("NaN") } else { json!(0) },
+        "codecs": compression.codecs_json(dtype),
+        "attributes": {}
+    })
+}
+
+/// The `multiscales` block of OME-Zarr 0.5 for the given levels.
+pub fn multiscales_json(
+    levels: &[LevelPlan],
+    channels: usize,
+    unit: Option<&str>,
+    name: &str,
+) -> Value {
+    let mut axes = vec![];
+    if channels > 1 {
+        axes.push(json!({"name": "c", "type": "channel"}));
+    }
+    for a in ["z", "y", "x"] {
+        let mut ax = json!({"name": a, "type": "space"});
+        if let Some(u) = unit {
+            ax["unit"] = json!(u);
+        }
+        axes.push(ax);
+    }
+    let datasets: Vec<Value> = levels
+        .iter()
+        .enumerate()
+        .map(|(i, l)| {
+            let mut scale: Vec<f64> = l.scale.to_vec();
+            let mut tr: Vec<f64> = l.translation.to_vec();
+            if channels > 1 {
+                scale.insert(0, 1.0);
+                tr.insert(0, 0.0);
+            }
+            let mut t = vec![json!({"type": "scale", "scale": scale})];
+            if tr.iter().any(|&v| v != 0.0) {
+                t.push(json!({"type": "translation", "translation": tr}));
+            }
+            json!({"path": i.to_string(), "coordinateTransformations": t})
+        })
+        .collect();
+    json!([{
+        "name": name,
+        "axes": axes,
+        "datasets": datasets,
+        "type": "mean"
+    }])
+}
+
+/// Write a JSON document atomically (temporary file + rename).
+pub fn write_json(path: &Path, v: &Value) -> Result<()> {
+    if let Some(p) = path.parent() {
+        std::fs::create_dir_all(p).at(p)?;
+    }
+    let tmp = path.with_extension("json.tmp");
+    std::fs::write(&tmp, serde_json::to_string_pretty(v).unwrap() + "\n").at(&tmp)?;
+    std::fs::rename(&tmp, path).at(path)
+}
+
+/// Read a JSON document.
+pub fn read_json(path: &Path) -> Result<Value> {
+    let text = std::fs::read_to_string(path).at(path)?;
+    serde_json::from_str(&text)
+        .map_err(|e| StoreError::invalid(path, "json", format!("not valid JSON: {e}")))
+}
+
+/// One axis of a multiscale image.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Axis {
+    pub name: String,
+    pub kind: Option<String>,
+    pub unit: Option<String>,
+}
+
+/// One dataset (level) of a multiscale image.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Dataset {
+    pub path: String,
+    pub scale: Option<Vec<f64>>,
+    pub translation: Option<Vec<f64>>,
+}
+
+/// The parsed `multiscales[0]` of an OME-Zarr image.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Multiscale {
+    /// `"0.4"`, `"0.5"`, ...
+    pub version: String,
+    pub axes: Vec<Axis>,
+    pub datasets: Vec<Dataset>,
+    /// Zarr format of the group (2 or 3).
+    pub zarr_format: u8,
+    /// The root's `brickyard` attribute block, if any.
+    pub brickyard: Option<Value>,
+}
+
+/// Read the group attributes of a Zarr v2 or v3 group directory.
+/// Returns `(zarr_format, attributes)` or `None` if `dir` is not a group.
+pub fn read_group_attributes(dir: &Path) -> Result<Option<(u8, Value)>> {
+    let v3 = dir.join("zarr.json");
+    if v3.exists() {
+        let j = read_json(&v3)?;
+        if j.get("node_type").and_then(Value::as_str) != Some("group") {
+            return Ok(None);
+        }
+        return Ok(Some((3, j.get("attributes").cloned().unwrap_or(json!({})))));
+    }
+    if dir.join(".zgroup").exists() {
+        let attrs = dir.join(".zattrs");
+        let a = if attrs.exists() {
+            read_json(&attrs)?
+        } else {
+            json!({})
+        };
+        return Ok(Some((2, a)));
+    }
+    Ok(None)
+}
+
+/// Parse the OME multiscales of the group at `dir`, if it has any.
+pub fn read_multiscale(dir: &Path) -> Result<Option<Multiscale>> {
+    let Some((zarr_format, attrs)) = read_group_attributes(dir)? else {
+        return Ok(None);
+    };
+    let meta_path: PathBuf = if zarr_format == 3 {
+        dir.join("zarr.json")
+    } else {
+        dir.join(".zattrs")
+    };
+    let brickyard = attrs.get(ATTR).cloned();
+    // 0.5 puts everything under "ome"; 0.4 at the top level.
+    let (ome, version_default) = match attrs.get("ome") {
+        Some(o) => (o.clone(), "0.5"),
+        None => (attrs.clone(), "0.4"),
+    };
+    let Some(ms) = ome.get("multiscales") else {
+        return Ok(None);
+    };
+    let ms0 = ms.as_array().and_then(|a| a.first()).ok_or_else(|| {
+        StoreError::invalid(&meta_path, "multiscales", "expected a non-empty list")
+    })?;
+    let version = ome
+        .get("version")
+        .or_else(|| ms0.get("version"))
+        .and_then(Value::as_str)
+        .unwrap_or(version_default)
+        .to_string();
+    let axes = match ms0.get("axes").and_then(Value::as_array) {
+        Some(a) => a
+            .iter()
+            .map(|ax| match ax {
+                Value::String(s) => Ok(Axis {
+                    name: s.clone(),
+                    kind: None,
+                    unit: None,
+                }),
+                Value::Object(o) => Ok(Axis {
+                    name: o
+                        .get("name")
+                        .and_then(Value::as_str)
+                        .ok_or_else(|| {
+                            StoreError::invalid(
+                                &meta_path,
+                                "multiscales.axes",
+                                "axis without a name",
+                            )
+                        })?
+                        .to_string(),
+                    kind: o.get("type").and_then(Value::as_str).map(str::to_string),
+                    unit: o.get("unit").and_then(Value::as_str).map(str::to_string),
+                }),
+                _ => Err(StoreError::invalid(
+                    &meta_path,
+                    "multiscales.axes",
+                    "expected objects or names",
+                )),
+            })
+            .collect::<Result<Vec<_>>>()?,
+        // 0.1-0.3 had no axes: assume the last three are z, y, x.
+        None => vec![],
+    };
+    let datasets = ms0
+        .get("datasets")
+        .and_then(Value::as_array)
+        .filter(|d| !d.is_empty())
+        .ok_or_else(|| {
+            StoreError::invalid(
+                &meta_path,
+                "multiscales.datasets",
+                "expected a non-empty list",
+            )
+        })?
+        .iter()
+        .map(|d| {
+            let path = d
+                .get("path")
+                .and_then(Value::as_str)
+                .ok_or_else(|| {
+                    StoreError::invalid(&meta_path, "multiscales.datasets.path", "missing")
+                })?
+                .to_string();
+            let mut scale = None;
+            let mut translation = None;
+            if let Some(ts) = d.get("coordinateTransformations").and_then(Value::as_array) {
+                for t in ts {
+                    let vals = |k: &str| {
+                        t.get(k)
+                            .and_then(Value::as_array)
+                            .map(|a| a.iter().filter_map(Value::as_f64).collect::<Vec<_>>())
+                    };
+                    match t.get("type").and_then(Value::as_str) {
+                        Some("scale") => scale = vals("scale"),
+                        Some("translation") => translation = vals("translation"),
+                        _ => {}
+                    }
+                }
+            }
+            Ok(Dataset {
+                path,
+                scale,
+                translation,
+            })
+        })
+        .collect::<Result<Vec<_>>>()?;
+    Ok(Some(Multiscale {
+        version,
+        axes,
+        datasets,
+        zarr_format,
+        brickyard,
+    }))
+}

@@ -1,0 +1,145 @@
+//! `brickyard bench SCENARIO`: measured scenarios, each printing one JSON
+//! line of figures. Later capabilities add scenarios here.
+
+use anyhow::{bail, Context, Result};
+use brickyard_core::{DType, Sample};
+use brickyard_store::downsample::downsample;
+use brickyard_store::generate::{parse_size, Kind, Procedural};
+use brickyard_store::import::raw::RawOptions;
+use clap::Args;
+use serde_json::json;
+use std::path::PathBuf;
+use std::process::Command;
+use std::time::Instant;
+
+#[derive(Args)]
+pub struct BenchCmd {
+    /// convert: raw → OME-Zarr pyramid, in a child process (wall time,
+    /// input MB/s, peak RSS); downsample: the 2×2×2 mean kernel in memory.
+    scenario: String,
+    /// Volume size (N or XxYxZ).
+    #[arg(long, default_value = "256")]
+    size: String,
+    #[arg(long, default_value = "u8")]
+    dtype: String,
+    /// Where inputs are generated (kept between runs) and outputs written.
+    #[arg(long, default_value = "bench-data")]
+    dir: PathBuf,
+    /// Memory budget handed to the converter.
+    #[arg(long, default_value = "1GiB")]
+    memory: String,
+    #[arg(long, default_value_t = 64)]
+    brick: u64,
+    #[arg(long, default_value_t = 256)]
+    shard: u64,
+    #[arg(long, default_value = "lz4")]
+    compression: String,
+    /// Repetitions (the best is reported, all are listed).
+    #[arg(long, default_value_t = 1)]
+    repeat: usize,
+}
+
+pub fn run(b: BenchCmd) -> Result<()> {
+    let dims = parse_size(&b.size).map_err(|e| anyhow::anyhow!("size: {e}"))?;
+    let dtype = DType::parse(&b.dtype).with_context(|| format!("dtype: unknown {:?}", b.dtype))?;
+    match b.scenario.as_str() {
+        "convert" => bench_convert(&b, dims, dtype),
+        "downsample" => bench_downsample(&b, dims, dtype),
+        s => bail!("scenario: expected convert or downsample, found {s:?}"),
+    }
+}
+
+fn bench_convert(b: &BenchCmd, dims: [u64; 3], dtype: DType) -> Result<()> {
+    std::fs::create_dir_all(&b.dir)
+        .with_context(|| format!("{}: cannot create", b.dir.display()))?;
+    let raw = b.dir.join(format!(
+        "mandelbulb-{}x{}x{}-{}.raw",
+        dims[2], dims[1], dims[0], dtype
+    ));
+    let sidecar = RawOptions::sidecar_path(&raw);
+    if !raw.exists() || !sidecar.exists() {
+        eprintln!("bench: generating {}", raw.display());
+        let src = Procedural::new(Kind::Mandelbulb, dims, dtype);
+        brickyard_store::generate::write_raw(&src, &raw, &brickyard_store::NoProgress)?;
+    }
+    let out = b.dir.join("bench-out.ome.zarr");
+    let exe = std::env::current_exe()?;
+    let mut runs = vec![];
+    for _ in 0..b.repeat.max(1) {
+        let t = Instant::now();
+        let o = Command::new(&exe)
+            .arg("convert")
+            .arg(&raw)
+            .arg(&out)
+            .args([
+                "--overwrite",
+                "--json",
+                "--quiet",
+                "--memory",
+                &b.memory,
+                "--compression",
+                &b.compression,
+            ])
+            .args([
+                "--brick",
+                &b.brick.to_string(),
+                "--shard",
+                &b.shard.to_string(),
+            ])
+            .output()?;
+        let wall = t.elapsed().as_secs_f64();
+        if !o.status.success() {
+            bail!("convert failed: {}", String::from_utf8_lossy(&o.stderr));
+        }
+        let r: serde_json::Value =
+            serde_json::from_slice(&o.stdout).context("convert --json output")?;
+        runs.push((wall, r));
+    }
+    let (wall, r) = runs
+        .iter()
+        .min_by(|a, b| a.0.partial_cmp(&b.0).unwrap())
+        .cloned()
+        .unwrap();
+    let bytes_in = r["bytes_in"].as_u64().unwrap_or(0);
+    println!(
+        "{}",
+        json!({
+            "scenario": "convert",
+            "size": [dims[2], dims[1], dims[0]],
+            "dtype": dtype.short_name(),
+            "brick": b.brick, "shard": b.shard, "compression": b.compression,
+            "memory_budget": b.memory,
+            "threads": rayon::current_num_threads(),
+            "wall_s": wall,
+            "convert_s": r["seconds"],
+            "input_mb_s": bytes_in as f64 / 1e6 / wall,
+            "peak_rss_mb": r["peak_rss_bytes"].as_u64().unwrap_or(0) as f64 / 1e6,
+            "bytes_in": bytes_in,
+            "bytes_out": r["bytes_written"],
+            "levels": r["levels"].as_array().map(|a| a.len()),
+            "passes": r["passes"].as_array().map(|a| a.len()),
+            "all_wall_s": runs.iter().map(|r| r.0).collect::<Vec<_>>(),
+        })
+    );
+    Ok(())
+}
+
+fn bench_downsample(b: &BenchCmd, dims: [u64; 3], dtype: DType) -> Result<()> {
+    let n = (dims[0] * dims[1] * dims[2]) as usize;
+    brickyard_core::dispatch_dtype!(dtype, T => {
+        let src: Vec<T> = vec![T::default(); n];
+        let o = [dims[0].div_ceil(2), dims[1].div_ceil(2), dims[2].div_ceil(2)];
+        let mut dst: Vec<T> = vec![T::default(); (o[0] * o[1] * o[2]) as usize];
+        let mut best = f64::INFINITY;
+        for _ in 0..b.repeat.max(1) {
+            let t = Instant::now();
+            downsample(&src, [dims[0] as usize, dims[1] as usize, dims[2] as usize], [2, 2, 2], false, &mut dst);
+            best = best.min(t.elapsed().as_secs_f64());
+        }
+        let bytes = (n * std::mem::size_of::<T>()) as f64;
+        println!("{}", json!({"scenario": "downsample", "size": [dims[2], dims[1], dims[0]], "dtype": dtype.short_name(),
+            "seconds": best, "input_gb_s": bytes / 1e9 / best, "threads": rayon::current_num_threads()}));
+        let _ = <T as Sample>::DTYPE;
+    });
+    Ok(())
+}
