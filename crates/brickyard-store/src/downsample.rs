@@ -134,8 +134,8 @@ mod tests {
     #[test]
     fn matches_naive_on_odd_shapes() {
         let mut seed = 12345u64;
-        for d in [[5, 7, 9], [4, 6, 8], [1, 3, 1], [3, 1, 2], [2, 2, 2]] {
-            for r in [[2, 2, 2], [1, 2, 2], [2, 1, 1], [1, 1, 2]] {
+        for d in [[5usize, 7, 9], [4, 6, 8], [1, 3, 1], [3, 1, 2], [2, 2, 2]] {
+            for r in [[2usize, 2, 2], [1, 2, 2], [2, 1, 1], [1, 1, 2]] {
                 let src: Vec<u16> = (0..d[0] * d[1] * d[2])
                     .map(|_| {
                         seed = seed

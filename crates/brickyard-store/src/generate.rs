@@ -2,9 +2,10 @@
 //! region (so a multi-GB volume never has to be held in memory):
 //!
 //! - `mandelbulb`: the power-8 Mandelbulb over `[-1.2, 1.2]³`; the value is
-//!   the escape iteration count (bail-out radius 2, 16 iterations) scaled to
-//!   the type's range; points that never escape get the maximum. Large
-//!   empty (zero) and constant (interior) regions, fine detail on the surface.
+//!   the escape iteration count `n` (bail-out radius 2, 16 iterations) as
+//!   `max(n - 2, 0) / 14` scaled to the type's range; points that never
+//!   escape get the maximum. Large empty (zero) and constant (interior)
+//!   regions, fine detail on the surface.
 //! - `marschner-lobb`: the Marschner–Lobb test signal over `[-1, 1]³`
 //!   (f_M = 6, α = 0.25), values in `[0, 1]` scaled to the type's range.
 //!
@@ -68,6 +69,7 @@ impl Procedural {
 }
 
 const MB_ITER: u32 = 16;
+const MB_EMPTY: u32 = 2;
 
 /// Escape-time of the power-8 Mandelbulb (trigonometry-free form of the
 /// White–Nylander iteration, `y` as the polar axis), normalized to `[0, 1]`.
@@ -76,7 +78,8 @@ pub fn mandelbulb(cx: f64, cy: f64, cz: f64) -> f64 {
     for i in 0..MB_ITER {
         let r2 = x * x + y * y + z * z;
         if r2 > 4.0 {
-            return i as f64 / MB_ITER as f64;
+            // Points that leave within the first iterations are empty space.
+            return i.saturating_sub(MB_EMPTY) as f64 / (MB_ITER - MB_EMPTY) as f64;
         }
         let (x2, y2, z2) = (x * x, y * y, z * z);
         let (x4, y4, z4) = (x2 * x2, y2 * y2, z2 * z2);

@@ -1,1 +1,1447 @@
-//! (being written)
+//! NIfTI-1 and NIfTI-2 importer: `.nii`, `.nii.gz` and `.hdr`/`.img` pairs
+//! (either half of a pair may be gzip-compressed).
+//!
+//! The header is parsed by hand rather than with the `nifti` crate: that
+//! crate (0.18) knows NIfTI-1 only and reads whole volumes into memory,
+//! while this importer must stream regions of volumes larger than memory.
+//! Both header layouts are fixed structs (348 bytes for NIfTI-1, 540 for
+//! NIfTI-2); the byte order is detected from `sizeof_hdr`.
+//!
+//! Axes: NIfTI stores x fastest, then y, z (and t), which is brickyard's
+//! `[z, y, x]` C order, so `dims = [dim[3], dim[2], dim[1]]`. A fourth
+//! dimension becomes channels (channel `c` is the `c`-th 3-D volume); more
+//! dimensions are unsupported.
+//!
+//! Memory stays bounded: an uncompressed file is read with positioned reads
+//! at `vox_offset`; a gzip-compressed one is decompressed sequentially by a
+//! few cursors kept between requests (a cursor restarts from the beginning of
+//! the file only when a request lies behind every cursor), so reading slices
+//! in z order decompresses the file once. Truncated gzip data is detected
+//! when a read reaches it, not at [`open`].
+
+use crate::error::{IoContext, Result, StoreError};
+use crate::import::swap_bytes_in_place;
+use crate::source::{check_region, SourceMeta, VolumeSource};
+use brickyard_core::{DType, Dims3};
+use flate2::read::MultiGzDecoder;
+use std::fs::File;
+use std::io::{self, BufReader, Read};
+use std::ops::Range;
+use std::path::{Path, PathBuf};
+use std::sync::{Mutex, PoisonError};
+
+const NIFTI1_HDR: usize = 348;
+const NIFTI2_HDR: usize = 540;
+const GZ_MAGIC: [u8; 2] = [0x1f, 0x8b];
+/// `NIFTI_INTENT_LABEL`: the voxels are label indices.
+const INTENT_LABEL: i32 = 1002;
+/// Most gzip cursors kept open at once (one per channel up to this).
+const MAX_GZ_CURSORS: usize = 8;
+/// Scratch buffer used to skip forward in a gzip stream.
+const SKIP_CHUNK: usize = 64 * 1024;
+/// Companion file extensions of a `.hdr`/`.img` pair, in search order.
+const HDR_EXTS: [&str; 5] = [".hdr", ".HDR", ".hdr.gz", ".HDR.gz", ".HDR.GZ"];
+const IMG_EXTS: [&str; 5] = [".img", ".IMG", ".img.gz", ".IMG.gz", ".IMG.GZ"];
+
+/// A NIfTI volume opened for region reads. See the [module docs](self).
+pub struct NiftiSource {
+    meta: SourceMeta,
+    /// `(scl_slope, scl_inter)` when the header asks for a linear rescale
+    /// other than the identity (`slope` non-zero and not `(1, 0)`).
+    ///
+    /// The rescale is **not applied**: [`VolumeSource::read_region`] returns
+    /// the voxel values exactly as stored; the physical value of a voxel is
+    /// `slope * stored + inter`.
+    pub scale: Option<(f64, f64)>,
+    version: u8,
+    /// File holding the voxels (the `.img` of a pair).
+    data_path: PathBuf,
+    /// Byte offset of the first voxel in the (decompressed) data file.
+    data_offset: u64,
+    /// The data is big-endian and must be swapped.
+    swap: bool,
+    data: Data,
+}
+
+enum Data {
+    /// Uncompressed: positioned reads.
+    Raw(File),
+    /// Gzip-compressed: sequential decompression by pooled cursors.
+    Gz(Mutex<GzPool>),
+}
+
+impl std::fmt::Debug for NiftiSource {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("NiftiSource")
+            .field("meta", &self.meta)
+            .field("scale", &self.scale)
+            .field("version", &self.version)
+            .field("data_path", &self.data_path)
+            .field("data_offset", &self.data_offset)
+            .field("gzip", &matches!(self.data, Data::Gz(_)))
+            .finish()
+    }
+}
+
+impl NiftiSource {
+    /// NIfTI format version of the header: 1 or 2.
+    pub fn version(&self) -> u8 {
+        self.version
+    }
+
+    /// Whether the voxel data is gzip-compressed.
+    pub fn is_gzip(&self) -> bool {
+        matches!(self.data, Data::Gz(_))
+    }
+
+    /// Error for voxel data that ends before the volume does.
+    fn data_short(&self, held: u64) -> StoreError {
+        let [z, y, x] = self.meta.dims;
+        let mut shape = format!("{x}×{y}×{z}");
+        if self.meta.channels > 1 {
+            shape += &format!("×{}", self.meta.channels);
+        }
+        let need = self.meta.channel_bytes() * self.meta.channels as u64;
+        StoreError::invalid(
+            &self.data_path,
+            "data",
+            format!(
+                "file holds {held} bytes of voxel data, dims {shape} × {} need {need}",
+                self.meta.dtype
+            ),
+        )
+    }
+
+    /// Map an error from the gzip stream: truncation is a `data` error,
+    /// undecodable bytes a `gzip` error.
+    fn gz_error(&self, e: io::Error, pos: u64) -> StoreError {
+        match e.kind() {
+            io::ErrorKind::UnexpectedEof => self.data_short(pos.saturating_sub(self.data_offset)),
+            io::ErrorKind::InvalidInput | io::ErrorKind::InvalidData => StoreError::invalid(
+                &self.data_path,
+                "gzip",
+                format!("corrupt compressed data after {pos} decompressed bytes: {e}"),
+            ),
+            _ => StoreError::io(&self.data_path, e),
+        }
+    }
+
+    fn read_gz(
+        &self,
+        pool: &Mutex<GzPool>,
+        runs: &[(u64, Range<usize>)],
+        out: &mut [u8],
+    ) -> Result<()> {
+        let Some(first) = runs.first() else {
+            return Ok(());
+        };
+        let mut pool = pool.lock().unwrap_or_else(PoisonError::into_inner);
+        let mut cur = pool.take(&self.data_path, first.0)?;
+        for (off, range) in runs {
+            let pos = cur.pos;
+            match cur.skip_to(*off, &mut pool.scratch) {
+                Ok(true) => {}
+                Ok(false) => return Err(self.data_short(cur.pos.saturating_sub(self.data_offset))),
+                Err(e) => return Err(self.gz_error(e, pos)),
+            }
+            let dst = &mut out[range.clone()];
+            match cur.read_fully(dst) {
+                Ok(n) if n == dst.len() => {}
+                Ok(_) => return Err(self.data_short(cur.pos.saturating_sub(self.data_offset))),
+                Err(e) => return Err(self.gz_error(e, cur.pos)),
+            }
+        }
+        pool.put(cur);
+        Ok(())
+    }
+}
+
+impl VolumeSource for NiftiSource {
+    fn meta(&self) -> &SourceMeta {
+        &self.meta
+    }
+
+    fn read_region(
+        &self,
+        c: usize,
+        z: Range<u64>,
+        y: Range<u64>,
+        x: Range<u64>,
+        out: &mut [u8],
+    ) -> Result<()> {
+        check_region(&self.meta, c, &z, &y, &x, out);
+        if out.is_empty() {
+            return Ok(());
+        }
+        let size = self.meta.dtype.size() as u64;
+        let base = self.data_offset + c as u64 * self.meta.channel_bytes();
+        let runs = contiguous_runs(base, self.meta.dims, size, &z, &y, &x);
+        match &self.data {
+            Data::Raw(file) => {
+                for (off, range) in &runs {
+                    read_exact_at(file, &mut out[range.clone()], *off).at(&self.data_path)?;
+                }
+            }
+            Data::Gz(pool) => self.read_gz(pool, &runs, out)?,
+        }
+        if self.swap {
+            swap_bytes_in_place(out, size as usize);
+        }
+        Ok(())
+    }
+}
+
+/// Open a NIfTI-1 or NIfTI-2 file: `.nii`, `.nii.gz`, or either file of a
+/// `.hdr`/`.img` pair. Only the header is read here.
+///
+/// Supported voxel types: uint8, int8, uint16, int16, uint32, int32,
+/// float32, float64. Spacing comes from `pixdim[1..=3]` (unit from
+/// `xyzt_units`), the origin from the sform translation if `sform_code > 0`,
+/// else from the qform offsets if `qform_code > 0`.
+pub fn open(path: &Path) -> Result<NiftiSource> {
+    let (hdr_path, img_path) = locate(path)?;
+    let (head, hdr_gz) = read_head(&hdr_path)?;
+    let h = parse_header(&head, &hdr_path)?;
+
+    let data_path = if h.pair {
+        match img_path {
+            Some(p) => p,
+            None => companion(&hdr_path, &IMG_EXTS).ok_or_else(|| {
+                StoreError::invalid(
+                    &hdr_path,
+                    "magic",
+                    format!(
+                        "\"ni{}\" means the voxels are in a separate .img file, but none was \
+                         found next to the header",
+                        h.version
+                    ),
+                )
+            })?,
+        }
+    } else {
+        hdr_path.clone()
+    };
+
+    // Dimensions and channels.
+    let hp = &hdr_path;
+    let ndim = h.dim[0];
+    if !(1..=7).contains(&ndim) {
+        return Err(StoreError::invalid(
+            hp,
+            "dim",
+            format!("dim[0] = {ndim}; expected 1 to 7"),
+        ));
+    }
+    let mut d = [1u64; 8];
+    for (i, (&n, di)) in h.dim.iter().zip(&mut d).enumerate().skip(1) {
+        if i > ndim as usize {
+            break;
+        }
+        if n < 1 {
+            return Err(StoreError::invalid(
+                hp,
+                "dim",
+                format!("dim[{i}] = {n}; every used dimension must be at least 1"),
+            ));
+        }
+        *di = n as u64;
+    }
+    if let Some(i) = (5..=7).find(|&i| d[i] > 1) {
+        return Err(StoreError::unsupported(
+            hp,
+            "dim",
+            format!(
+                "{ndim}-D data with dim[{i}] = {}; only 3-D volumes and 4-D volumes \
+                 (the 4th dimension read as channels) are supported",
+                d[i]
+            ),
+        ));
+    }
+    let dims: Dims3 = [d[3], d[2], d[1]];
+    let channels = usize::try_from(d[4])
+        .map_err(|_| StoreError::invalid(hp, "dim", format!("dim[4] = {} is too large", d[4])))?;
+
+    let dtype = dtype_from_code(h.datatype).map_err(|name| {
+        StoreError::unsupported(
+            hp,
+            "datatype",
+            format!(
+                "datatype {} ({name}); supported are uint8, int8, uint16, int16, uint32, int32, \
+                 float32 and float64",
+                h.datatype
+            ),
+        )
+    })?;
+    if h.bitpix != 8 * dtype.size() as i32 {
+        tracing::warn!(
+            "{}: bitpix is {} but datatype {} ({dtype}) has {} bits; using datatype",
+            hp.display(),
+            h.bitpix,
+            h.datatype,
+            8 * dtype.size()
+        );
+    }
+    let total = dims
+        .iter()
+        .chain([&d[4]])
+        .try_fold(dtype.size() as u64, |acc, &n| acc.checked_mul(n))
+        .filter(|&t| t <= i64::MAX as u64)
+        .ok_or_else(|| {
+            StoreError::invalid(
+                hp,
+                "dim",
+                format!(
+                    "{}×{}×{}×{} voxels of {dtype} do not fit in a 64-bit size",
+                    d[1], d[2], d[3], d[4]
+                ),
+            )
+        })?;
+
+    // Where the voxels start.
+    let vo = h.vox_offset;
+    if !vo.is_finite() || vo < 0.0 || vo.fract() != 0.0 || vo >= 2f64.powi(62) {
+        return Err(StoreError::invalid(
+            hp,
+            "vox_offset",
+            format!("{vo} is not a valid byte offset"),
+        ));
+    }
+    let data_offset = vo as u64;
+    let hdr_size = if h.version == 1 {
+        NIFTI1_HDR
+    } else {
+        NIFTI2_HDR
+    };
+    if !h.pair && data_offset < hdr_size as u64 {
+        return Err(StoreError::invalid(
+            hp,
+            "vox_offset",
+            format!(
+                "{data_offset} lies inside the {hdr_size}-byte header of a single-file NIfTI-{}",
+                h.version
+            ),
+        ));
+    }
+
+    // Physical metadata.
+    let mut meta = SourceMeta::new(path, dims, channels, dtype);
+    meta.spacing = spacing(&h, dims, hp);
+    meta.origin = if h.sform_code > 0 && h.srow_offset.iter().all(|v| v.is_finite()) {
+        let [ox, oy, oz] = h.srow_offset;
+        Some([oz, oy, ox])
+    } else if h.qform_code > 0 && h.qoffset.iter().all(|v| v.is_finite()) {
+        let [ox, oy, oz] = h.qoffset;
+        Some([oz, oy, ox])
+    } else {
+        None
+    };
+    meta.unit = match h.xyzt_units & 0x07 {
+        1 => Some("meter".to_string()),
+        2 => Some("millimeter".to_string()),
+        3 => Some("micrometer".to_string()),
+        _ => None,
+    };
+    meta.labels = h.intent_code == INTENT_LABEL;
+    let scale = (h.scl_slope.is_finite()
+        && h.scl_slope != 0.0
+        && !(h.scl_slope == 1.0 && (h.scl_inter == 0.0 || !h.scl_inter.is_finite())))
+    .then(|| {
+        let inter = if h.scl_inter.is_finite() {
+            h.scl_inter
+        } else {
+            0.0
+        };
+        (h.scl_slope, inter)
+    });
+
+    // The voxel data.
+    let (file, gz) = if data_path == hdr_path {
+        (File::open(&data_path).at(&data_path)?, hdr_gz)
+    } else {
+        let mut f = File::open(&data_path).at(&data_path)?;
+        let magic = read_up_to(&mut f, 2).at(&data_path)?;
+        (f, magic == GZ_MAGIC)
+    };
+    let data = if gz {
+        drop(file);
+        Data::Gz(Mutex::new(GzPool {
+            cursors: Vec::new(),
+            max: channels.clamp(2, MAX_GZ_CURSORS),
+            tick: 0,
+            scratch: vec![0; SKIP_CHUNK],
+        }))
+    } else {
+        Data::Raw(file)
+    };
+    let src = NiftiSource {
+        meta,
+        scale,
+        version: h.version,
+        data_path,
+        data_offset,
+        swap: h.big_endian,
+        data,
+    };
+    // The size of compressed data is only known once it is decompressed:
+    // a short gzip stream is reported by the read that reaches its end.
+    if let Data::Raw(file) = &src.data {
+        let len = file.metadata().at(&src.data_path)?.len();
+        let held = len.saturating_sub(data_offset);
+        if held < total {
+            return Err(src.data_short(held));
+        }
+    }
+    Ok(src)
+}
+
+/// Voxel spacing `[z, y, x]` from `pixdim[1..=3]`. Axes of size 1 may have
+/// an unset pixdim (taken as 1); any other invalid value drops the spacing.
+fn spacing(h: &Header, dims: Dims3, path: &Path) -> Option<[f64; 3]> {
+    let mut s = [0.0; 3];
+    for (k, i) in [3usize, 2, 1].into_iter().enumerate() {
+        let p = h.pixdim[i].abs();
+        s[k] = if p.is_finite() && p > 0.0 {
+            p
+        } else if dims[k] == 1 {
+            1.0
+        } else {
+            tracing::warn!(
+                "{}: pixdim[{i}] = {} is not a valid spacing; ignoring pixdim",
+                path.display(),
+                h.pixdim[i]
+            );
+            return None;
+        };
+    }
+    Some(s)
+}
+
+/// The brickyard type of a NIfTI datatype code, or the name of the code.
+fn dtype_from_code(code: i32) -> std::result::Result<DType, &'static str> {
+    Ok(match code {
+        2 => DType::U8,
+        4 => DType::I16,
+        8 => DType::I32,
+        16 => DType::F32,
+        64 => DType::F64,
+        256 => DType::I8,
+        512 => DType::U16,
+        768 => DType::U32,
+        0 => return Err("DT_UNKNOWN"),
+        1 => return Err("binary"),
+        32 => return Err("complex64"),
+        128 => return Err("RGB24"),
+        1024 => return Err("int64"),
+        1280 => return Err("uint64"),
+        1536 => return Err("float128"),
+        1792 => return Err("complex128"),
+        2048 => return Err("complex256"),
+        2304 => return Err("RGBA32"),
+        _ => return Err("unknown code"),
+    })
+}
+
+/// The header file and, if `path` is the `.img` of a pair, the data file.
+fn locate(path: &Path) -> Result<(PathBuf, Option<PathBuf>)> {
+    let lower = path.to_string_lossy().to_ascii_lowercase();
+    if lower.ends_with(".img") || lower.ends_with(".img.gz") {
+        let hdr = companion(path, &HDR_EXTS).ok_or_else(|| {
+            StoreError::io(
+                path,
+                io::Error::new(
+                    io::ErrorKind::NotFound,
+                    "no .hdr header file next to this .img file",
+                ),
+            )
+        })?;
+        Ok((hdr, Some(path.to_path_buf())))
+    } else {
+        Ok((path.to_path_buf(), None))
+    }
+}
+
+/// The existing file with `path`'s stem (without `.hdr`/`.img`, `.nii`,
+/// optionally followed by `.gz`) and one of `exts`.
+fn companion(path: &Path, exts: &[&str]) -> Option<PathBuf> {
+    let s = path.to_str()?;
+    let lower = s.to_ascii_lowercase();
+    let stem_len = [".hdr.gz", ".img.gz", ".nii.gz", ".hdr", ".img", ".nii"]
+        .iter()
+        .find(|e| lower.ends_with(*e))
+        .map_or(s.len(), |e| s.len() - e.len());
+    let stem = &s[..stem_len];
+    exts.iter()
+        .map(|e| PathBuf::from(format!("{stem}{e}")))
+        .find(|p| p.is_file())
+}
+
+/// Read the first bytes of a header file (decompressing it if it is
+/// gzip-compressed). Returns them and whether the file is compressed.
+fn read_head(path: &Path) -> Result<(Vec<u8>, bool)> {
+    let mut f = File::open(path).at(path)?;
+    let head = read_up_to(&mut f, NIFTI2_HDR).at(path)?;
+    if !head.starts_with(&GZ_MAGIC) {
+        if path.to_string_lossy().to_ascii_lowercase().ends_with(".gz") {
+            tracing::warn!(
+                "{}: named .gz but not gzip-compressed; reading it as uncompressed",
+                path.display()
+            );
+        }
+        return Ok((head, false));
+    }
+    let f = File::open(path).at(path)?;
+    let mut gz = MultiGzDecoder::new(BufReader::new(f));
+    match read_up_to(&mut gz, NIFTI2_HDR) {
+        Ok(head) => Ok((head, true)),
+        Err(e) if e.kind() == io::ErrorKind::UnexpectedEof => Err(StoreError::invalid(
+            path,
+            "gzip",
+            format!("compressed stream ends inside the header (truncated file?): {e}"),
+        )),
+        Err(e)
+            if matches!(
+                e.kind(),
+                io::ErrorKind::InvalidInput | io::ErrorKind::InvalidData
+            ) =>
+        {
+            Err(StoreError::invalid(
+                path,
+                "gzip",
+                format!("cannot decompress the header: {e}"),
+            ))
+        }
+        Err(e) => Err(StoreError::io(path, e)),
+    }
+}
+
+/// Read up to `n` bytes (fewer only at end of stream).
+fn read_up_to(r: &mut impl Read, n: usize) -> io::Result<Vec<u8>> {
+    let mut buf = Vec::with_capacity(n);
+    r.take(n as u64).read_to_end(&mut buf)?;
+    Ok(buf)
+}
+
+/// The header fields brickyard uses, widened to common types.
+#[derive(Debug, Clone)]
+struct Header {
+    version: u8,
+    big_endian: bool,
+    /// Magic `ni1`/`ni2`: the voxels are in a separate `.img` file.
+    pair: bool,
+    dim: [i64; 8],
+    datatype: i32,
+    bitpix: i32,
+    pixdim: [f64; 8],
+    vox_offset: f64,
+    scl_slope: f64,
+    scl_inter: f64,
+    xyzt_units: i32,
+    intent_code: i32,
+    qform_code: i32,
+    sform_code: i32,
+    /// `qoffset_x`, `qoffset_y`, `qoffset_z`.
+    qoffset: [f64; 3],
+    /// `srow_x[3]`, `srow_y[3]`, `srow_z[3]`.
+    srow_offset: [f64; 3],
+}
+
+/// Endian-aware field access into a header buffer of checked length.
+struct Fields<'a> {
+    b: &'a [u8],
+    be: bool,
+}
+
+macro_rules! field_getter {
+    ($name:ident, $t:ty) => {
+        fn $name(&self, off: usize) -> $t {
+            const N: usize = std::mem::size_of::<$t>();
+            let mut a = [0u8; N];
+            a.copy_from_slice(&self.b[off..off + N]);
+            if self.be {
+                <$t>::from_be_bytes(a)
+            } else {
+                <$t>::from_le_bytes(a)
+            }
+        }
+    };
+}
+
+impl Fields<'_> {
+    field_getter!(i16, i16);
+    field_getter!(i32, i32);
+    field_getter!(i64, i64);
+    field_getter!(f32, f32);
+    field_getter!(f64, f64);
+}
+
+/// Parse a NIfTI-1 or NIfTI-2 header from the first bytes of a file.
+fn parse_header(b: &[u8], path: &Path) -> Result<Header> {
+    if b.len() < 4 {
+        return Err(StoreError::invalid(
+            path,
+            "sizeof_hdr",
+            format!(
+                "file holds only {} bytes, too few for a NIfTI header",
+                b.len()
+            ),
+        ));
+    }
+    let raw = [b[0], b[1], b[2], b[3]];
+    let (le, be) = (i32::from_le_bytes(raw), i32::from_be_bytes(raw));
+    let (version, big_endian, size) = match (le, be) {
+        (348, _) => (1u8, false, NIFTI1_HDR),
+        (540, _) => (2, false, NIFTI2_HDR),
+        (_, 348) => (1, true, NIFTI1_HDR),
+        (_, 540) => (2, true, NIFTI2_HDR),
+        _ => {
+            return Err(StoreError::invalid(
+                path,
+                "sizeof_hdr",
+                format!(
+                    "is {le} (byte-swapped {be}); expected 348 (NIfTI-1) or 540 (NIfTI-2) — \
+                     not a NIfTI file?"
+                ),
+            ))
+        }
+    };
+    if b.len() < size {
+        return Err(StoreError::invalid(
+            path,
+            "sizeof_hdr",
+            format!(
+                "NIfTI-{version} header needs {size} bytes but the file holds only {}",
+                b.len()
+            ),
+        ));
+    }
+    let magic = if version == 1 { &b[344..348] } else { &b[4..8] };
+    let pair = match (magic[0], magic[1], magic[2], magic[3]) {
+        (b'n', b'+', v, 0) if v == b'0' + version => false,
+        (b'n', b'i', v, 0) if v == b'0' + version => true,
+        (0, 0, 0, 0) if version == 1 => {
+            return Err(StoreError::unsupported(
+                path,
+                "magic",
+                "no NIfTI magic: an ANALYZE 7.5 header, which is not supported",
+            ))
+        }
+        _ => {
+            return Err(StoreError::invalid(
+                path,
+                "magic",
+                format!(
+                    "{:?} is not \"n+{version}\" or \"ni{version}\"",
+                    String::from_utf8_lossy(magic)
+                ),
+            ))
+        }
+    };
+    let f = Fields {
+        b: &b[..size],
+        be: big_endian,
+    };
+    let h = if version == 1 {
+        Header {
+            version,
+            big_endian,
+            pair,
+            dim: std::array::from_fn(|i| f.i16(40 + 2 * i) as i64),
+            datatype: f.i16(70) as i32,
+            bitpix: f.i16(72) as i32,
+            pixdim: std::array::from_fn(|i| f.f32(76 + 4 * i) as f64),
+            vox_offset: f.f32(108) as f64,
+            scl_slope: f.f32(112) as f64,
+            scl_inter: f.f32(116) as f64,
+            xyzt_units: b[123] as i32,
+            intent_code: f.i16(68) as i32,
+            qform_code: f.i16(252) as i32,
+            sform_code: f.i16(254) as i32,
+            qoffset: std::array::from_fn(|i| f.f32(268 + 4 * i) as f64),
+            srow_offset: std::array::from_fn(|i| f.f32(292 + 16 * i) as f64),
+        }
+    } else {
+        Header {
+            version,
+            big_endian,
+            pair,
+            dim: std::array::from_fn(|i| f.i64(16 + 8 * i)),
+            datatype: f.i16(12) as i32,
+            bitpix: f.i16(14) as i32,
+            pixdim: std::array::from_fn(|i| f.f64(104 + 8 * i)),
+            vox_offset: f.i64(168) as f64,
+            scl_slope: f.f64(176),
+            scl_inter: f.f64(184),
+            xyzt_units: f.i32(500),
+            intent_code: f.i32(504),
+            qform_code: f.i32(344),
+            sform_code: f.i32(348),
+            qoffset: std::array::from_fn(|i| f.f64(376 + 8 * i)),
+            srow_offset: std::array::from_fn(|i| f.f64(424 + 32 * i)),
+        }
+    };
+    Ok(h)
+}
+
+/// The byte runs of a region of one channel, in file order: `(file offset,
+/// range in the output buffer)`. Rows adjacent in the file are merged.
+fn contiguous_runs(
+    base: u64,
+    dims: Dims3,
+    size: u64,
+    z: &Range<u64>,
+    y: &Range<u64>,
+    x: &Range<u64>,
+) -> Vec<(u64, Range<usize>)> {
+    let row = ((x.end - x.start) * size) as usize;
+    let mut runs: Vec<(u64, Range<usize>)> = Vec::new();
+    let mut out_pos = 0usize;
+    for zz in z.clone() {
+        for yy in y.clone() {
+            let off = base + ((zz * dims[1] + yy) * dims[2] + x.start) * size;
+            match runs.last_mut() {
+                Some((o, r)) if *o + r.len() as u64 == off => r.end += row,
+                _ => runs.push((off, out_pos..out_pos + row)),
+            }
+            out_pos += row;
+        }
+    }
+    runs
+}
+
+/// Fill `buf` from `file` at byte `offset`.
+#[cfg(unix)]
+fn read_exact_at(file: &File, buf: &mut [u8], offset: u64) -> io::Result<()> {
+    std::os::unix::fs::FileExt::read_exact_at(file, buf, offset)
+}
+
+/// Fill `buf` from `file` at byte `offset`.
+#[cfg(windows)]
+fn read_exact_at(file: &File, mut buf: &mut [u8], mut offset: u64) -> io::Result<()> {
+    use std::os::windows::fs::FileExt;
+    while !buf.is_empty() {
+        match file.seek_read(buf, offset) {
+            Ok(0) => return Err(io::ErrorKind::UnexpectedEof.into()),
+            Ok(n) => {
+                buf = &mut buf[n..];
+                offset += n as u64;
+            }
+            Err(e) if e.kind() == io::ErrorKind::Interrupted => {}
+            Err(e) => return Err(e),
+        }
+    }
+    Ok(())
+}
+
+/// A position in the decompressed stream of a gzip file.
+struct GzCursor {
+    reader: MultiGzDecoder<BufReader<File>>,
+    /// Decompressed bytes consumed so far.
+    pos: u64,
+    last_use: u64,
+}
+
+impl GzCursor {
+    fn open(path: &Path) -> Result<Self> {
+        let f = File::open(path).at(path)?;
+        Ok(GzCursor {
+            reader: MultiGzDecoder::new(BufReader::with_capacity(SKIP_CHUNK, f)),
+            pos: 0,
+            last_use: 0,
+        })
+    }
+
+    /// Decompress and discard up to `target`. `Ok(false)` at end of stream.
+    fn skip_to(&mut self, target: u64, scratch: &mut [u8]) -> io::Result<bool> {
+        while self.pos < target {
+            let n = (target - self.pos).min(scratch.len() as u64) as usize;
+            let got = self.read_fully(&mut scratch[..n])?;
+            if got < n {
+                return Ok(false);
+            }
+        }
+        Ok(true)
+    }
+
+    /// Fill `buf`; returns fewer bytes than asked only at end of stream.
+    fn read_fully(&mut self, buf: &mut [u8]) -> io::Result<usize> {
+        let mut done = 0;
+        while done < buf.len() {
+            match self.reader.read(&mut buf[done..]) {
+                Ok(0) => break,
+                Ok(n) => {
+                    done += n;
+                    self.pos += n as u64;
+                }
+                Err(e) if e.kind() == io::ErrorKind::Interrupted => {}
+                Err(e) => return Err(e),
+            }
+        }
+        Ok(done)
+    }
+}
+
+/// The gzip cursors of one source.
+struct GzPool {
+    cursors: Vec<GzCursor>,
+    max: usize,
+    tick: u64,
+    scratch: Vec<u8>,
+}
+
+impl GzPool {
+    /// Take the cursor nearest before `target`, opening a new one (and
+    /// dropping the least recently used) if every cursor is past it.
+    fn take(&mut self, path: &Path, target: u64) -> Result<GzCursor> {
+        self.tick += 1;
+        let best = (0..self.cursors.len())
+            .filter(|&i| self.cursors[i].pos <= target)
+            .max_by_key(|&i| self.cursors[i].pos);
+        if let Some(i) = best {
+            return Ok(self.cursors.swap_remove(i));
+        }
+        if self.cursors.len() >= self.max {
+            if let Some(i) = (0..self.cursors.len()).min_by_key(|&i| self.cursors[i].last_use) {
+                self.cursors.swap_remove(i);
+            }
+        }
+        GzCursor::open(path)
+    }
+
+    /// Return a cursor after a successful read (a failed one is dropped).
+    fn put(&mut self, mut cur: GzCursor) {
+        cur.last_use = self.tick;
+        self.cursors.push(cur);
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use flate2::write::GzEncoder;
+    use std::io::Write;
+
+    /// Read the whole of channel `c`.
+    fn read_all(src: &dyn VolumeSource, c: usize) -> Vec<u8> {
+        let m = src.meta();
+        let mut out = vec![0u8; m.channel_bytes() as usize];
+        let [z, y, x] = m.dims;
+        src.read_region(c, 0..z, 0..y, 0..x, &mut out).unwrap();
+        out
+    }
+
+    /// Read channel `c` block by block, last block first (so that requests
+    /// go backwards), and stitch the blocks together.
+    fn read_stitched(src: &dyn VolumeSource, c: usize, block: Dims3) -> Vec<u8> {
+        let m = src.meta();
+        let s = m.dtype.size();
+        let d = m.dims;
+        let mut out = vec![0u8; m.channel_bytes() as usize];
+        let mut boxes = Vec::new();
+        for z0 in (0..d[0]).step_by(block[0] as usize) {
+            for y0 in (0..d[1]).step_by(block[1] as usize) {
+                for x0 in (0..d[2]).step_by(block[2] as usize) {
+                    boxes.push([
+                        z0..(z0 + block[0]).min(d[0]),
+                        y0..(y0 + block[1]).min(d[1]),
+                        x0..(x0 + block[2]).min(d[2]),
+                    ]);
+                }
+            }
+        }
+        boxes.reverse();
+        for [z, y, x] in boxes {
+            let (nz, ny, nx) = (z.end - z.start, y.end - y.start, x.end - x.start);
+            let mut buf = vec![0u8; (nz * ny * nx) as usize * s];
+            src.read_region(c, z.clone(), y.clone(), x.clone(), &mut buf)
+                .unwrap();
+            for k in 0..nz {
+                for j in 0..ny {
+                    let src_off = ((k * ny + j) * nx) as usize * s;
+                    let dst_off =
+                        (((z.start + k) * d[1] + y.start + j) * d[2] + x.start) as usize * s;
+                    out[dst_off..dst_off + nx as usize * s]
+                        .copy_from_slice(&buf[src_off..src_off + nx as usize * s]);
+                }
+            }
+        }
+        out
+    }
+
+    fn shared(name: &str) -> PathBuf {
+        let p = Path::new(env!("CARGO_MANIFEST_DIR"))
+            .join("../../../shared/data")
+            .join(name);
+        assert!(
+            p.is_file(),
+            "the shared data folder is missing: {} not found (tests need ../shared/data/ next to \
+             the project root)",
+            p.display()
+        );
+        p
+    }
+
+    #[test]
+    fn colin27_real_file() {
+        let path = shared("colin27-t1-0.5mm.nii.gz");
+        let src = open(&path).unwrap();
+        let m = src.meta();
+        assert_eq!(m.dims, [316, 370, 301]);
+        assert_eq!(m.channels, 1);
+        assert_eq!(m.dtype, DType::U8);
+        assert_eq!(m.spacing, Some([0.5, 0.5, 0.5]));
+        assert_eq!(m.origin, Some([-69.5, -107.0, -75.0]));
+        assert_eq!(src.version(), 1);
+        assert!(src.is_gzip());
+        assert_eq!(src.scale, None);
+
+        let whole = read_all(&src, 0);
+        assert!(whole.iter().all(|&v| v <= 130));
+        assert_eq!(whole.iter().copied().max(), Some(130));
+
+        // Independent decode: inflate the whole file, index from vox_offset.
+        let mut raw = Vec::new();
+        flate2::read::GzDecoder::new(File::open(&path).unwrap())
+            .read_to_end(&mut raw)
+            .unwrap();
+        let vox = f32::from_le_bytes(raw[108..112].try_into().unwrap()) as usize;
+        assert_eq!(raw.len() - vox, whole.len());
+        assert!(
+            whole == raw[vox..],
+            "whole read differs from an independent decode"
+        );
+        let slice = 370 * 301;
+        for z in [0u64, 157, 315] {
+            let mut s = vec![0u8; slice];
+            src.read_region(0, z..z + 1, 0..370, 0..301, &mut s)
+                .unwrap();
+            let o = vox + z as usize * slice;
+            assert!(s == raw[o..o + slice], "slice {z} differs");
+        }
+
+        let stitched = read_stitched(&src, 0, [120, 200, 160]);
+        assert!(
+            stitched == whole,
+            "stitched sub-region reads differ from the whole read"
+        );
+    }
+
+    /// Description of a synthetic NIfTI header.
+    #[derive(Clone)]
+    struct Synth {
+        version: u8,
+        be: bool,
+        dims: Vec<i64>,
+        datatype: i16,
+        bitpix: i16,
+        pixdim: [f64; 3],
+        units: u8,
+        vox_offset: u64,
+        sform: Option<[f64; 3]>,
+        qoffset: Option<[f64; 3]>,
+        slope: f64,
+        inter: f64,
+        intent: i32,
+        pair: bool,
+    }
+
+    impl Default for Synth {
+        fn default() -> Self {
+            Synth {
+                version: 1,
+                be: false,
+                dims: vec![5, 4, 3],
+                datatype: 4,
+                bitpix: 16,
+                pixdim: [0.8, 0.9, 2.5],
+                units: 2,
+                vox_offset: 352,
+                sform: None,
+                qoffset: None,
+                slope: 0.0,
+                inter: 0.0,
+                intent: 0,
+                pair: false,
+            }
+        }
+    }
+
+    struct Put<'a> {
+        b: &'a mut Vec<u8>,
+        be: bool,
+    }
+
+    macro_rules! putter {
+        ($name:ident, $t:ty) => {
+            fn $name(&mut self, off: usize, v: $t) {
+                let a = if self.be {
+                    v.to_be_bytes()
+                } else {
+                    v.to_le_bytes()
+                };
+                self.b[off..off + a.len()].copy_from_slice(&a);
+            }
+        };
+    }
+
+    impl Put<'_> {
+        putter!(i16, i16);
+        putter!(i32, i32);
+        putter!(i64, i64);
+        putter!(f32, f32);
+        putter!(f64, f64);
+    }
+
+    /// Header bytes, padded with zeros up to `vox_offset` for single files.
+    fn header(s: &Synth) -> Vec<u8> {
+        let n = if s.version == 1 {
+            NIFTI1_HDR
+        } else {
+            NIFTI2_HDR
+        };
+        let mut b = vec![0u8; n];
+        let mut p = Put {
+            b: &mut b,
+            be: s.be,
+        };
+        let mut dim = [1i64; 8];
+        dim[0] = s.dims.len() as i64;
+        dim[1..=s.dims.len()].copy_from_slice(&s.dims);
+        let pix = [
+            1.0,
+            s.pixdim[0],
+            s.pixdim[1],
+            s.pixdim[2],
+            1.0,
+            0.0,
+            0.0,
+            0.0,
+        ];
+        let magic: &[u8] = match (s.version, s.pair) {
+            (1, false) => b"n+1\0",
+            (1, true) => b"ni1\0",
+            (_, false) => b"n+2\0\r\n\x1a\n",
+            (_, true) => b"ni2\0\r\n\x1a\n",
+        };
+        if s.version == 1 {
+            p.i32(0, 348);
+            for (i, d) in dim.iter().enumerate() {
+                p.i16(40 + 2 * i, *d as i16);
+            }
+            p.i16(68, s.intent as i16);
+            p.i16(70, s.datatype);
+            p.i16(72, s.bitpix);
+            for (i, v) in pix.iter().enumerate() {
+                p.f32(76 + 4 * i, *v as f32);
+            }
+            p.f32(108, s.vox_offset as f32);
+            p.f32(112, s.slope as f32);
+            p.f32(116, s.inter as f32);
+            p.b[123] = s.units;
+            if let Some(q) = s.qoffset {
+                p.i16(252, 1);
+                for (i, v) in q.iter().enumerate() {
+                    p.f32(268 + 4 * i, *v as f32);
+                }
+            }
+            if let Some(t) = s.sform {
+                p.i16(254, 2);
+                for (i, v) in t.iter().enumerate() {
+                    p.f32(280 + 16 * i + 4 * i, 1.0); // diagonal
+                    p.f32(292 + 16 * i, *v as f32);
+                }
+            }
+            p.b[344..348].copy_from_slice(magic);
+        } else {
+            p.i32(0, 540);
+            p.b[4..12].copy_from_slice(magic);
+            p.i16(12, s.datatype);
+            p.i16(14, s.bitpix);
+            for (i, d) in dim.iter().enumerate() {
+                p.i64(16 + 8 * i, *d);
+            }
+            for (i, v) in pix.iter().enumerate() {
+                p.f64(104 + 8 * i, *v);
+            }
+            p.i64(168, s.vox_offset as i64);
+            p.f64(176, s.slope);
+            p.f64(184, s.inter);
+            if let Some(q) = s.qoffset {
+                p.i32(344, 1);
+                for (i, v) in q.iter().enumerate() {
+                    p.f64(376 + 8 * i, *v);
+                }
+            }
+            if let Some(t) = s.sform {
+                p.i32(348, 2);
+                for (i, v) in t.iter().enumerate() {
+                    p.f64(400 + 32 * i + 8 * i, 1.0);
+                    p.f64(424 + 32 * i, *v);
+                }
+            }
+            p.i32(500, s.units as i32);
+            p.i32(504, s.intent);
+        }
+        if !s.pair {
+            b.resize(s.vox_offset as usize, 0);
+        }
+        b
+    }
+
+    fn i16_bytes(v: &[i16], be: bool) -> Vec<u8> {
+        v.iter()
+            .flat_map(|x| if be { x.to_be_bytes() } else { x.to_le_bytes() })
+            .collect()
+    }
+
+    fn f32_bytes(v: &[f32], be: bool) -> Vec<u8> {
+        v.iter()
+            .flat_map(|x| if be { x.to_be_bytes() } else { x.to_le_bytes() })
+            .collect()
+    }
+
+    fn ne_i16(v: &[i16]) -> Vec<u8> {
+        v.iter().flat_map(|x| x.to_ne_bytes()).collect()
+    }
+
+    fn gzip(b: &[u8]) -> Vec<u8> {
+        let mut e = GzEncoder::new(Vec::new(), flate2::Compression::fast());
+        e.write_all(b).unwrap();
+        e.finish().unwrap()
+    }
+
+    fn ramp_i16(n: usize) -> Vec<i16> {
+        (0..n).map(|i| (i as i32 * 37 - 20000) as i16).collect()
+    }
+
+    fn check_i16(be: bool) {
+        let dir = tempfile::tempdir().unwrap();
+        let s = Synth {
+            be,
+            sform: Some([10.0, -20.0, 30.5]),
+            qoffset: Some([1.0, 2.0, 3.0]),
+            ..Default::default()
+        };
+        let vals = ramp_i16(5 * 4 * 3);
+        let mut file = header(&s);
+        file.extend(i16_bytes(&vals, be));
+        let path = dir.path().join(if be { "be.nii" } else { "le.nii" });
+        std::fs::write(&path, &file).unwrap();
+
+        let src = open(&path).unwrap();
+        let m = src.meta();
+        assert_eq!(m.dims, [3, 4, 5]);
+        assert_eq!(m.channels, 1);
+        assert_eq!(m.dtype, DType::I16);
+        let sp = m.spacing.unwrap();
+        assert!(
+            (sp[0] - 2.5).abs() < 1e-6 && (sp[1] - 0.9).abs() < 1e-6 && (sp[2] - 0.8).abs() < 1e-6
+        );
+        assert_eq!(m.unit.as_deref(), Some("millimeter"));
+        assert_eq!(m.origin, Some([30.5, -20.0, 10.0]), "sform wins over qform");
+        assert!(!src.is_gzip());
+        assert_eq!(read_all(&src, 0), ne_i16(&vals));
+        assert_eq!(read_stitched(&src, 0, [2, 3, 2]), ne_i16(&vals));
+
+        // One voxel: z=2, y=1, x=3.
+        let mut one = [0u8; 2];
+        src.read_region(0, 2..3, 1..2, 3..4, &mut one).unwrap();
+        assert_eq!(i16::from_ne_bytes(one), vals[(2 * 4 + 1) * 5 + 3]);
+    }
+
+    #[test]
+    fn nifti1_little_endian_i16() {
+        check_i16(false);
+    }
+
+    #[test]
+    fn nifti1_big_endian_i16() {
+        check_i16(true);
+    }
+
+    #[test]
+    fn nifti2_f32_with_qform_origin_and_scale() {
+        let dir = tempfile::tempdir().unwrap();
+        let s = Synth {
+            version: 2,
+            dims: vec![6, 5, 4],
+            datatype: 16,
+            bitpix: 32,
+            vox_offset: 544,
+            units: 3,
+            qoffset: Some([1.5, 2.5, 3.5]),
+            slope: 2.0,
+            inter: -1.0,
+            ..Default::default()
+        };
+        let vals: Vec<f32> = (0..120).map(|i| i as f32 * 0.25 - 7.0).collect();
+        for be in [false, true] {
+            let mut file = header(&Synth { be, ..s.clone() });
+            file.extend(f32_bytes(&vals, be));
+            let path = dir.path().join(format!("n2-{be}.nii"));
+            std::fs::write(&path, &file).unwrap();
+            let src = open(&path).unwrap();
+            assert_eq!(src.version(), 2);
+            let m = src.meta();
+            assert_eq!(m.dims, [4, 5, 6]);
+            assert_eq!(m.dtype, DType::F32);
+            assert_eq!(m.unit.as_deref(), Some("micrometer"));
+            assert_eq!(m.origin, Some([3.5, 2.5, 1.5]));
+            assert_eq!(src.scale, Some((2.0, -1.0)));
+            let got = read_all(&src, 0);
+            let want: Vec<u8> = vals.iter().flat_map(|v| v.to_ne_bytes()).collect();
+            assert_eq!(got, want, "values are returned as stored, unscaled");
+        }
+    }
+
+    /// A 4-D file with 3 volumes: channel c must be the c-th volume.
+    fn four_d(gz: bool) {
+        let dir = tempfile::tempdir().unwrap();
+        let s = Synth {
+            dims: vec![7, 6, 5, 3],
+            ..Default::default()
+        };
+        let n = 7 * 6 * 5;
+        let vals = ramp_i16(n * 3);
+        let mut file = header(&s);
+        file.extend(i16_bytes(&vals, false));
+        let name = if gz { "4d.nii.gz" } else { "4d.nii" };
+        let path = dir.path().join(name);
+        std::fs::write(&path, if gz { gzip(&file) } else { file }).unwrap();
+        let src = open(&path).unwrap();
+        assert_eq!(src.is_gzip(), gz);
+        assert_eq!(src.meta().dims, [5, 6, 7]);
+        assert_eq!(src.meta().channels, 3);
+        // Interleave channels slice by slice, as a pyramid builder would.
+        for z in 0..5u64 {
+            for c in 0..3 {
+                let mut out = vec![0u8; 6 * 7 * 2];
+                src.read_region(c, z..z + 1, 0..6, 0..7, &mut out).unwrap();
+                let o = c * n + z as usize * 42;
+                assert_eq!(out, ne_i16(&vals[o..o + 42]), "c {c} z {z}");
+            }
+        }
+        for c in 0..3 {
+            let want = ne_i16(&vals[c * n..(c + 1) * n]);
+            assert_eq!(read_all(&src, c), want);
+            assert_eq!(read_stitched(&src, c, [2, 4, 3]), want);
+        }
+    }
+
+    #[test]
+    fn four_d_becomes_channels() {
+        four_d(false);
+    }
+
+    #[test]
+    fn four_d_gz_becomes_channels() {
+        four_d(true);
+    }
+
+    #[test]
+    fn gz_big_endian_with_backward_reads() {
+        let dir = tempfile::tempdir().unwrap();
+        let s = Synth {
+            be: true,
+            dims: vec![33, 20, 17],
+            ..Default::default()
+        };
+        let vals = ramp_i16(33 * 20 * 17);
+        let mut file = header(&s);
+        file.extend(i16_bytes(&vals, true));
+        let path = dir.path().join("vol.nii.gz");
+        std::fs::write(&path, gzip(&file)).unwrap();
+        let src = open(&path).unwrap();
+        assert!(src.is_gzip());
+        assert_eq!(read_all(&src, 0), ne_i16(&vals));
+        assert_eq!(read_stitched(&src, 0, [5, 7, 11]), ne_i16(&vals));
+    }
+
+    #[test]
+    fn hdr_img_pair() {
+        let dir = tempfile::tempdir().unwrap();
+        let s = Synth {
+            pair: true,
+            vox_offset: 0,
+            intent: INTENT_LABEL,
+            ..Default::default()
+        };
+        let vals = ramp_i16(60);
+        std::fs::write(dir.path().join("pair.hdr"), header(&s)).unwrap();
+        std::fs::write(dir.path().join("pair.img"), i16_bytes(&vals, false)).unwrap();
+        for name in ["pair.hdr", "pair.img"] {
+            let src = open(&dir.path().join(name)).unwrap();
+            assert_eq!(src.meta().dims, [3, 4, 5]);
+            assert!(src.meta().labels, "intent_code 1002 marks labels");
+            assert_eq!(read_all(&src, 0), ne_i16(&vals));
+        }
+        // A compressed image half.
+        std::fs::remove_file(dir.path().join("pair.img")).unwrap();
+        std::fs::write(
+            dir.path().join("pair.img.gz"),
+            gzip(&i16_bytes(&vals, false)),
+        )
+        .unwrap();
+        let src = open(&dir.path().join("pair.hdr")).unwrap();
+        assert!(src.is_gzip());
+        assert_eq!(read_all(&src, 0), ne_i16(&vals));
+    }
+
+    /// Assert that `r` failed and its message names `file` and `field`.
+    fn assert_err<T: std::fmt::Debug>(r: Result<T>, file: &str, field: &str) -> String {
+        let e = r.expect_err("expected an error");
+        let msg = e.to_string();
+        assert!(msg.contains(file), "{msg:?} does not name the file {file}");
+        assert!(
+            msg.contains(&format!(" {field}: ")),
+            "{msg:?} does not name the field {field}"
+        );
+        msg
+    }
+
+    fn write(dir: &Path, name: &str, bytes: &[u8]) -> PathBuf {
+        let p = dir.join(name);
+        std::fs::write(&p, bytes).unwrap();
+        p
+    }
+
+    #[test]
+    fn truncated_data() {
+        let dir = tempfile::tempdir().unwrap();
+        let mut file = header(&Synth::default());
+        file.extend(i16_bytes(&ramp_i16(59), false)); // one voxel short
+        let p = write(dir.path(), "short.nii", &file);
+        let msg = assert_err(open(&p), "short.nii", "data");
+        assert!(msg.contains("file holds 118 bytes of voxel data"), "{msg}");
+        assert!(msg.contains("need 120"), "{msg}");
+
+        // Truncated inside the header.
+        let p = write(dir.path(), "stub.nii", &file[..200]);
+        assert_err(open(&p), "stub.nii", "sizeof_hdr");
+    }
+
+    #[test]
+    fn truncated_gz_fails_on_read() {
+        let dir = tempfile::tempdir().unwrap();
+        let s = Synth {
+            dims: vec![64, 64, 16],
+            ..Default::default()
+        };
+        let mut file = header(&s);
+        // Incompressible-ish data so that the cut lands inside the voxels.
+        let mut x = 12345u32;
+        file.extend((0..64 * 64 * 16 * 2).map(|_| {
+            x = x.wrapping_mul(1664525).wrapping_add(1013904223);
+            (x >> 24) as u8
+        }));
+        let gz = gzip(&file);
+        let p = write(dir.path(), "cut.nii.gz", &gz[..gz.len() / 2]);
+        let src = open(&p).unwrap();
+        let mut out = vec![0u8; src.meta().channel_bytes() as usize];
+        let r = src.read_region(0, 0..16, 0..64, 0..64, &mut out);
+        assert_err(r, "cut.nii.gz", "data");
+    }
+
+    #[test]
+    fn bad_sizeof_hdr() {
+        let dir = tempfile::tempdir().unwrap();
+        let mut file = header(&Synth::default());
+        file[0..4].copy_from_slice(&349i32.to_le_bytes());
+        file.extend(vec![0u8; 120]);
+        let p = write(dir.path(), "bad.nii", &file);
+        assert_err(open(&p), "bad.nii", "sizeof_hdr");
+        let p = write(dir.path(), "text.nii", b"this is not a NIfTI file at all");
+        assert_err(open(&p), "text.nii", "sizeof_hdr");
+    }
+
+    #[test]
+    fn unsupported_datatype() {
+        let dir = tempfile::tempdir().unwrap();
+        for (code, bitpix) in [(128i16, 24i16), (1024, 64), (32, 64)] {
+            let s = Synth {
+                datatype: code,
+                bitpix,
+                ..Default::default()
+            };
+            let mut file = header(&s);
+            file.extend(vec![0u8; 60 * bitpix as usize / 8]);
+            let name = format!("dt{code}.nii");
+            let p = write(dir.path(), &name, &file);
+            let msg = assert_err(open(&p), &name, "datatype");
+            assert!(msg.contains(&code.to_string()), "{msg}");
+            assert!(matches!(open(&p), Err(StoreError::Unsupported { .. })));
+        }
+    }
+
+    #[test]
+    fn bad_dims_and_offsets() {
+        let dir = tempfile::tempdir().unwrap();
+        let five_d = Synth {
+            dims: vec![2, 2, 2, 1, 3],
+            ..Default::default()
+        };
+        let mut file = header(&five_d);
+        file.extend(vec![0u8; 2 * 8 * 3]);
+        let p = write(dir.path(), "5d.nii", &file);
+        assert_err(open(&p), "5d.nii", "dim");
+
+        let mut file = header(&Synth::default());
+        file[40..42].copy_from_slice(&9i16.to_le_bytes()); // dim[0] = 9
+        file.extend(vec![0u8; 120]);
+        let p = write(dir.path(), "dim0.nii", &file);
+        assert_err(open(&p), "dim0.nii", "dim");
+
+        let mut file = header(&Synth::default());
+        file[42..44].copy_from_slice(&(-5i16).to_le_bytes()); // dim[1] = -5
+        file.extend(vec![0u8; 120]);
+        let p = write(dir.path(), "neg.nii", &file);
+        assert_err(open(&p), "neg.nii", "dim");
+
+        let mut file = header(&Synth::default());
+        file[108..112].copy_from_slice(&100.0f32.to_le_bytes());
+        file.extend(vec![0u8; 120]);
+        let p = write(dir.path(), "vox.nii", &file);
+        assert_err(open(&p), "vox.nii", "vox_offset");
+
+        let mut file = header(&Synth::default());
+        file[108..112].copy_from_slice(&f32::NAN.to_le_bytes());
+        file.extend(vec![0u8; 120]);
+        let p = write(dir.path(), "nan.nii", &file);
+        assert_err(open(&p), "nan.nii", "vox_offset");
+
+        let mut file = header(&Synth::default());
+        file[344..348].copy_from_slice(b"xyz\0");
+        file.extend(vec![0u8; 120]);
+        let p = write(dir.path(), "magic.nii", &file);
+        assert_err(open(&p), "magic.nii", "magic");
+    }
+
+    #[test]
+    fn corrupt_gzip() {
+        let dir = tempfile::tempdir().unwrap();
+        let mut file = header(&Synth::default());
+        file.extend(vec![7u8; 120]);
+        let mut gz = gzip(&file);
+        // Keep the 10-byte gzip header, garble the deflate stream.
+        for (i, b) in gz[10..].iter_mut().enumerate() {
+            *b = 0xff ^ (i as u8).wrapping_mul(31);
+        }
+        let p = write(dir.path(), "corrupt.nii.gz", &gz);
+        assert_err(open(&p), "corrupt.nii.gz", "gzip");
+    }
+
+    #[test]
+    fn missing_file() {
+        let dir = tempfile::tempdir().unwrap();
+        let p = dir.path().join("nowhere.nii.gz");
+        let e = open(&p).unwrap_err();
+        assert!(e.to_string().contains("nowhere.nii.gz"), "{e}");
+        assert!(
+            matches!(&e, StoreError::Io { source, .. } if source.kind() == io::ErrorKind::NotFound)
+        );
+
+        // The .img of a pair without its header.
+        let p = write(dir.path(), "lonely.img", &[0u8; 16]);
+        let e = open(&p).unwrap_err();
+        assert!(e.to_string().contains("lonely.img"), "{e}");
+    }
+}
