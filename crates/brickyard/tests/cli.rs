@@ -1,0 +1,252 @@
+//! The command line as a user meets it: bad inputs give clear errors and a
+//! non-zero exit, memory stays under the budget for volumes larger than it,
+//! unfinished stores are reported as such.
+
+use std::path::Path;
+use std::process::{Command, Output};
+
+fn bin() -> Command {
+    Command::new(env!("CARGO_BIN_EXE_brickyard"))
+}
+
+fn run(args: &[&str]) -> Output {
+    bin().args(args).output().unwrap()
+}
+
+fn stderr(o: &Output) -> String {
+    String::from_utf8_lossy(&o.stderr).into_owned()
+}
+
+fn s(p: &Path) -> &str {
+    p.to_str().unwrap()
+}
+
+#[track_caller]
+fn fails_with(o: &Output, needles: &[&str]) {
+    assert!(
+        !o.status.success(),
+        "expected failure, got success: {}",
+        String::from_utf8_lossy(&o.stdout)
+    );
+    let e = stderr(o);
+    assert!(!e.contains("panicked"), "panic: {e}");
+    for n in needles {
+        assert!(e.contains(n), "error {e:?} should mention {n:?}");
+    }
+}
+
+#[test]
+fn bad_inputs_give_clear_errors() {
+    let d = tempfile::tempdir().unwrap();
+    let out = d.path().join("o.ome.zarr");
+    // Missing path.
+    fails_with(
+        &run(&["convert", s(&d.path().join("nope.tif")), s(&out)]),
+        &["nope.tif"],
+    );
+    // Dims that do not match the file size.
+    let raw = d.path().join("v.raw");
+    std::fs::write(&raw, vec![0u8; 1000]).unwrap();
+    fails_with(
+        &run(&[
+            "convert",
+            s(&raw),
+            s(&out),
+            "--dims",
+            "10x10x11",
+            "--dtype",
+            "u8",
+        ]),
+        &["v.raw", "dims", "1000"],
+    );
+    // Unsupported dtype.
+    fails_with(
+        &run(&[
+            "convert",
+            s(&raw),
+            s(&out),
+            "--dims",
+            "10x10x10",
+            "--dtype",
+            "c64",
+        ]),
+        &["dtype", "c64"],
+    );
+    // Raw without description.
+    fails_with(&run(&["convert", s(&raw), s(&out)]), &["v.raw", "--dims"]);
+    // Corrupt gzip NIfTI.
+    let nii = d.path().join("bad.nii.gz");
+    std::fs::write(&nii, [0x1f, 0x8b, 8, 0, 1, 2, 3, 4, 5, 6, 7, 8, 9]).unwrap();
+    fails_with(&run(&["convert", s(&nii), s(&out)]), &["bad.nii.gz"]);
+    // Truncated TIFF.
+    let src =
+        Path::new(env!("CARGO_MANIFEST_DIR")).join("../../../shared/data/nuclei-confocal-u16.tif");
+    let bytes = std::fs::read(&src).expect("shared/data/nuclei-confocal-u16.tif is missing");
+    let tif = d.path().join("cut.tif");
+    std::fs::write(&tif, &bytes[..bytes.len() / 2]).unwrap();
+    fails_with(&run(&["convert", s(&tif), s(&out)]), &["cut.tif"]);
+    assert!(!out.exists(), "no output after failures");
+    // Existing output without --overwrite is refused and left alone.
+    std::fs::create_dir(&out).unwrap();
+    std::fs::write(out.join("precious"), b"keep").unwrap();
+    std::fs::write(&raw, vec![7u8; 1000]).unwrap();
+    fails_with(
+        &run(&[
+            "convert",
+            s(&raw),
+            s(&out),
+            "--dims",
+            "10x10x10",
+            "--dtype",
+            "u8",
+        ]),
+        &["--overwrite"],
+    );
+    assert_eq!(std::fs::read(out.join("precious")).unwrap(), b"keep");
+    // Bad option values.
+    fails_with(
+        &run(&[
+            "convert",
+            s(&raw),
+            s(&out),
+            "--dims",
+            "10x10x10",
+            "--dtype",
+            "u8",
+            "--brick",
+            "7",
+        ]),
+        &["brick"],
+    );
+    fails_with(
+        &run(&[
+            "convert",
+            s(&raw),
+            s(&out),
+            "--dims",
+            "10x10x10",
+            "--dtype",
+            "u8",
+            "--memory",
+            "lots",
+        ]),
+        &["memory"],
+    );
+    // info on something that is not a store.
+    fails_with(&run(&["info", s(&raw)]), &["v.raw"]);
+}
+
+#[test]
+fn memory_stays_under_budget_for_a_larger_volume() {
+    let d = tempfile::tempdir().unwrap();
+    let raw = d.path().join("big.raw");
+    // 448 x 448 x 256 u16 = 98 MiB, converted under a 72 MiB budget.
+    let g = run(&[
+        "generate",
+        "marschner-lobb",
+        s(&raw),
+        "--size",
+        "448x448x256",
+        "--dtype",
+        "u16",
+        "--quiet",
+    ]);
+    assert!(g.status.success(), "{}", stderr(&g));
+    let out = d.path().join("big.ome.zarr");
+    let o = run(&[
+        "convert",
+        s(&raw),
+        s(&out),
+        "--memory",
+        "72MiB",
+        "--json",
+        "--quiet",
+    ]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    let r: serde_json::Value = serde_json::from_slice(&o.stdout).unwrap();
+    let rss = r["peak_rss_bytes"].as_u64().unwrap();
+    let input = r["bytes_in"].as_u64().unwrap();
+    assert!(
+        input > 72 << 20,
+        "the volume must be larger than the budget"
+    );
+    assert!(
+        rss > 0 && rss <= 72 << 20,
+        "peak RSS {rss} over the 72 MiB budget; passes {}",
+        r["passes"]
+    );
+    let i = run(&["info", s(&out)]);
+    assert!(i.status.success());
+    let text = String::from_utf8_lossy(&i.stdout);
+    assert!(
+        text.contains("complete (brickyard)") && text.contains("level 3"),
+        "{text}"
+    );
+}
+
+#[test]
+fn info_reports_an_unfinished_store() {
+    let d = tempfile::tempdir().unwrap();
+    let out = d.path().join("x.ome.zarr");
+    let o = run(&[
+        "generate",
+        "mandelbulb",
+        s(&out),
+        "--size",
+        "40",
+        "--quiet",
+        "--brick",
+        "8",
+        "--shard",
+        "16",
+    ]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    assert!(run(&["info", s(&out)]).status.success());
+    // What a crash leaves: the partial folder, whose root says incomplete.
+    let partial = d.path().join("x.ome.zarr.partial");
+    std::fs::rename(&out, &partial).unwrap();
+    let root = partial.join("zarr.json");
+    let text = std::fs::read_to_string(&root)
+        .unwrap()
+        .replace("\"complete\": true", "\"complete\": false");
+    std::fs::write(&root, text).unwrap();
+    let i = run(&["info", s(&partial)]);
+    assert_eq!(i.status.code(), Some(2));
+    assert!(String::from_utf8_lossy(&i.stdout).contains("INCOMPLETE"));
+}
+
+#[test]
+fn sigint_leaves_no_store() {
+    let d = tempfile::tempdir().unwrap();
+    let out = d.path().join("int.ome.zarr");
+    let mut child = bin()
+        .args([
+            "generate",
+            "mandelbulb",
+            s(&out),
+            "--size",
+            "512",
+            "--quiet",
+        ])
+        .spawn()
+        .unwrap();
+    std::thread::sleep(std::time::Duration::from_millis(1500));
+    unsafe {
+        libc_kill(child.id() as i32, 2);
+    }
+    let st = child.wait().unwrap();
+    assert!(!st.success());
+    assert!(
+        !out.exists(),
+        "an interrupted conversion must not leave the output"
+    );
+    assert!(
+        !d.path().join("int.ome.zarr.partial").exists(),
+        "nor a partial store"
+    );
+}
+
+extern "C" {
+    #[link_name = "kill"]
+    fn libc_kill(pid: i32, sig: i32) -> i32;
+}
