@@ -116,6 +116,9 @@ pub trait Sample:
     fn from_le(b: &[u8]) -> Self;
     /// Raw bits for exact comparison and mode computation (bit-pattern equality).
     fn bits(self) -> u64;
+    /// Smallest and largest value of a non-empty slice (NaN ignored; a
+    /// slice of only NaN gives NaN). Written to vectorize.
+    fn min_max(s: &[Self]) -> (Self, Self);
 }
 
 macro_rules! int_sample {
@@ -144,6 +147,18 @@ macro_rules! int_sample {
             #[inline]
             fn bits(self) -> u64 {
                 self as u64
+            }
+            #[inline]
+            fn min_max(s: &[Self]) -> (Self, Self) {
+                let mut mn = <$t>::MAX;
+                let mut mx = <$t>::MIN;
+                for c in s.chunks(64) {
+                    for &v in c {
+                        mn = mn.min(v);
+                        mx = mx.max(v);
+                    }
+                }
+                (mn, mx)
             }
         }
     };
@@ -178,6 +193,17 @@ impl Sample for f32 {
     fn bits(self) -> u64 {
         self.to_bits() as u64
     }
+    #[inline]
+    fn min_max(s: &[Self]) -> (Self, Self) {
+        let mut mn = f32::NAN;
+        let mut mx = f32::NAN;
+        for &v in s {
+            // f::min/max return the other operand when one is NaN.
+            mn = mn.min(v);
+            mx = mx.max(v);
+        }
+        (mn, mx)
+    }
 }
 
 impl Sample for f64 {
@@ -202,6 +228,17 @@ impl Sample for f64 {
     #[inline]
     fn bits(self) -> u64 {
         self.to_bits()
+    }
+    #[inline]
+    fn min_max(s: &[Self]) -> (Self, Self) {
+        let mut mn = f64::NAN;
+        let mut mx = f64::NAN;
+        for &v in s {
+            // f::min/max return the other operand when one is NaN.
+            mn = mn.min(v);
+            mx = mx.max(v);
+        }
+        (mn, mx)
     }
 }
 
@@ -301,6 +338,14 @@ mod tests {
         assert_eq!(u8::mean(255 * 8, 8), 255);
         assert_eq!(u32::mean(u32::MAX as u64 * 8, 8), u32::MAX);
         assert_eq!(i32::mean(i32::MIN as i64 * 8, 8), i32::MIN);
+    }
+
+    #[test]
+    fn min_max_ignores_nan() {
+        assert_eq!(u16::min_max(&[5, 3, 9, 4]), (3, 9));
+        assert_eq!(i8::min_max(&[-5, 3, -9, 4]), (-9, 4));
+        assert_eq!(f32::min_max(&[f32::NAN, 2.0, -1.0]), (-1.0, 2.0));
+        assert!(f64::min_max(&[f64::NAN]).0.is_nan());
     }
 
     #[test]

@@ -690,27 +690,32 @@ fn write_bricks<T: Sample>(ctx: &Ctx, k: usize, ch: usize, s: &Slab<T>) -> Resul
             let vz = s.rows as usize;
             let (bz_, by_, bx_) = (b[0] as usize, b[1] as usize, b[2] as usize);
             let mut brick = vec![T::default(); bz_ * by_ * bx_];
-            let mut mn = f64::INFINITY;
-            let mut mx = f64::NEG_INFINITY;
+            let mut mm: Option<(T, T)> = None;
             for z in 0..vz {
                 for y in 0..vy {
                     let src = ((z as u64 * s.ty + oy + y as u64) * s.tx + ox) as usize;
                     let row = &s.data[src..src + vx];
                     let dst = (z * by_ + y) * bx_;
                     brick[dst..dst + vx].copy_from_slice(row);
-                    for v in row {
-                        let f = v.to_f64();
-                        if f < mn {
-                            mn = f;
-                        }
-                        if f > mx {
-                            mx = f;
-                        }
-                    }
+                    let (a, b) = T::min_max(row);
+                    mm = Some(match mm {
+                        None => (a, b),
+                        Some((m0, m1)) => (
+                            if a < m0 || m0 != m0 { a } else { m0 },
+                            if b > m1 || m1 != m1 { b } else { m1 },
+                        ),
+                    });
                 }
             }
+            let (mn, mx) = mm.map(|(a, b)| (a.to_f64(), b.to_f64())).unwrap_or((f64::NAN, f64::NAN));
             let bytes = as_bytes(&brick);
-            let nonzero = bytes.iter().any(|&x| x != 0);
+            // Padding is zero, so for integers min/max tell whether the brick
+            // is all fill value; floats also need -0.0 kept (bit test).
+            let nonzero = if T::DTYPE.is_float() {
+                !(mn == 0.0 && mx == 0.0) || bytes.iter().any(|&x| x != 0)
+            } else {
+                !(mn == 0.0 && mx == 0.0)
+            };
             let key: Vec<u64> = if ctx.channels > 1 {
                 vec![ch as u64, bzi, byi, bxi]
             } else {
@@ -723,7 +728,7 @@ fn write_bricks<T: Sample>(ctx: &Ctx, k: usize, ch: usize, s: &Slab<T>) -> Resul
             ];
             let expected = out.expected_in_shard(&sidx);
             if nonzero {
-                let enc = ctx.encoder.encode(bytes.to_vec());
+                let enc = ctx.encoder.encode(bytes);
                 out.writer.put(&key, Some(&enc), expected)?;
             } else {
                 out.writer.put(&key, None, expected)?;
@@ -790,7 +795,7 @@ fn write_stats(root: &Path, outs: &[LevelOut], c: usize) -> Result<()> {
                         }
                         let p = dir.join(format!("c/{ci}/{cz}/{cy}/{cx}/0"));
                         std::fs::create_dir_all(p.parent().unwrap()).at(&p)?;
-                        std::fs::write(&p, enc.encode(as_bytes(&data).to_vec())).at(&p)?;
+                        std::fs::write(&p, enc.encode(as_bytes(&data))).at(&p)?;
                     }
                 }
             }

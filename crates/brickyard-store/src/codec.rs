@@ -83,18 +83,18 @@ impl BrickEncoder {
     }
 
     /// Encode the little-endian bytes of one brick.
-    pub fn encode(&self, raw: Vec<u8>) -> Vec<u8> {
+    pub fn encode(&self, raw: &[u8]) -> Vec<u8> {
         let opts = CodecOptions::default();
         match &self.kind {
             Kind::Blosc(c) => c
-                .encode(Cow::Owned(raw), &opts)
+                .encode(Cow::Borrowed(raw), &opts)
                 .expect("blosc encoding cannot fail")
                 .into_owned(),
             Kind::Zstd(c) => c
-                .encode(Cow::Owned(raw), &opts)
+                .encode(Cow::Borrowed(raw), &opts)
                 .expect("zstd encoding cannot fail")
                 .into_owned(),
-            Kind::None => raw,
+            Kind::None => raw.to_vec(),
         }
     }
 }
