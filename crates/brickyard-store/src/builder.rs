@@ -256,7 +256,7 @@ pub fn convert(
     let t0 = Instant::now();
     let meta = src.meta().clone();
     for a in 0..3 {
-        if opts.brick[a] < 2 || opts.brick[a] % 2 != 0 {
+        if opts.brick[a] < 2 || !opts.brick[a].is_multiple_of(2) {
             return Err(StoreError::invalid(
                 output,
                 "brick",
@@ -266,7 +266,7 @@ pub fn convert(
                 ),
             ));
         }
-        if opts.shard[a] == 0 || opts.shard[a] % opts.brick[a] != 0 {
+        if opts.shard[a] == 0 || !opts.shard[a].is_multiple_of(opts.brick[a]) {
             return Err(StoreError::invalid(
                 output,
                 "shard",
@@ -700,14 +700,13 @@ fn write_bricks<T: Sample>(ctx: &Ctx, k: usize, ch: usize, s: &Slab<T>) -> Resul
                     let (a, b) = T::min_max(row);
                     mm = Some(match mm {
                         None => (a, b),
-                        Some((m0, m1)) => (
-                            if a < m0 || m0 != m0 { a } else { m0 },
-                            if b > m1 || m1 != m1 { b } else { m1 },
-                        ),
+                        Some((m0, m1)) => (T::min_max(&[m0, a]).0, T::min_max(&[m1, b]).1),
                     });
                 }
             }
-            let (mn, mx) = mm.map(|(a, b)| (a.to_f64(), b.to_f64())).unwrap_or((f64::NAN, f64::NAN));
+            let (mn, mx) = mm
+                .map(|(a, b)| (a.to_f64(), b.to_f64()))
+                .unwrap_or((f64::NAN, f64::NAN));
             let bytes = as_bytes(&brick);
             // Padding is zero, so for integers min/max tell whether the brick
             // is all fill value; floats also need -0.0 kept (bit test).

@@ -101,7 +101,10 @@ fn codec_names(list: &Value) -> Vec<String> {
         .unwrap_or_default()
 }
 
-fn array_info(dir: &Path) -> Result<(Vec<u64>, String, Vec<u64>, Option<Vec<u64>>, Vec<String>)> {
+/// Shape, data type, chunk shape, inner chunk shape, codec names.
+type ArraySummary = (Vec<u64>, String, Vec<u64>, Option<Vec<u64>>, Vec<String>);
+
+fn array_info(dir: &Path) -> Result<ArraySummary> {
     let v3 = dir.join("zarr.json");
     if v3.exists() {
         let j = read_json(&v3)?;
@@ -245,7 +248,8 @@ pub fn inspect(path: &Path) -> Result<StoreInfo> {
         levels: vec![],
         problems: vec![],
     };
-    let datasets: Vec<(String, Option<Vec<f64>>, Option<Vec<f64>>)> = match &ms {
+    type Ds = (String, Option<Vec<f64>>, Option<Vec<f64>>);
+    let datasets: Vec<Ds> = match &ms {
         Some(m) => {
             info.zarr_format = m.zarr_format;
             info.ome_version = Some(m.version.clone());

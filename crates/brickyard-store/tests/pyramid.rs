@@ -46,7 +46,7 @@ fn awkward_shapes_round_trip_and_levels_match_reference() {
             &AtomicBool::new(false),
         )
         .unwrap();
-        assert!(r.levels.len() >= 1);
+        assert!(!r.levels.is_empty());
         check_store(&src, &out, false);
         assert!(!partial_path(&out).exists());
     }

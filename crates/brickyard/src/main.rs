@@ -203,13 +203,13 @@ fn convert_options(p: &PyramidArgs) -> Result<ConvertOptions> {
             p.compression
         )
     })?;
-    if p.brick < 2 || p.brick % 2 != 0 {
+    if p.brick < 2 || !p.brick.is_multiple_of(2) {
         bail!(
             "brick: expected an even number of voxels >= 2, found {}",
             p.brick
         );
     }
-    if p.shard < p.brick || p.shard % p.brick != 0 {
+    if p.shard < p.brick || !p.shard.is_multiple_of(p.brick) {
         bail!(
             "shard: expected a multiple of the brick ({}), found {}",
             p.brick,

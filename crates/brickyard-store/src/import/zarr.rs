@@ -252,9 +252,9 @@ impl VolumeSource for ZarrSource {
         let n = self.array.shape().len();
         let mut ranges: Vec<Range<u64>> = vec![0..1; n];
         let rs = [z, y, x];
-        for a in 0..3 {
+        for (a, r) in rs.iter().enumerate() {
             if let Some(i) = self.zyx[a] {
-                ranges[i] = rs[a].clone();
+                ranges[i] = r.clone();
             }
         }
         if let Some(i) = self.caxis {
