@@ -113,6 +113,9 @@ pub struct PassPlan {
 /// state, per-thread brick buffers are added separately).
 const OVERHEAD: u64 = 48 << 20;
 
+/// Slab memory beyond which the planner prefers another pass to wider tiles.
+const COMFORTABLE: u64 = 384 << 20;
+
 /// Plan the passes for levels `levels` under `budget` bytes of slab memory.
 pub fn plan_passes(
     levels: &[LevelPlan],
@@ -135,23 +138,18 @@ pub fn plan_passes(
             readback_copy,
         )?]);
     }
+    // Larger tiles do not make the work faster, and a later pass only reads
+    // back a level that is a fraction of the size: so prefer the most levels
+    // per pass that fit a comfortable slab memory, and use the whole budget
+    // only when nothing fits that.
+    let soft = budget.min(COMFORTABLE);
     while m < n - 1 {
-        let mut chosen = None;
-        for j in (1..n - m).rev() {
-            if let Some(p) = plan_tile(
-                levels,
-                m,
-                m + j,
-                brick,
-                esize,
-                budget,
-                readback_copy || m > 0,
-            ) {
-                chosen = Some(p);
-                break;
-            }
-        }
-        let p = chosen?;
+        let pick = |limit: u64| {
+            (1..n - m)
+                .rev()
+                .find_map(|j| plan_tile(levels, m, m + j, brick, esize, limit, readback_copy || m > 0))
+        };
+        let p = pick(soft).or_else(|| pick(budget))?;
         m = p.to;
         passes.push(p);
     }
@@ -176,8 +174,12 @@ fn pass_bytes(
         let tx = tile[1].div_ceil(rx).min(l.dims[2]);
         total += brick[0].min(l.dims[0]) * ty * tx * esize;
     }
+    // The reader thread fills a second slab of the source level while the
+    // first is processed.
+    let slab = brick[0].min(b.dims[0]) * tile[0].min(b.dims[1]) * tile[1].min(b.dims[2]) * esize;
+    total += slab;
     if copy {
-        total += brick[0].min(b.dims[0]) * tile[0].min(b.dims[1]) * tile[1].min(b.dims[2]) * esize;
+        total += slab;
     }
     total
 }
@@ -198,16 +200,14 @@ fn plan_tile(
     let ux = brick[2] * (t.cum_ratio[2] / b.cum_ratio[2]);
     let (dy, dx) = (b.dims[1], b.dims[2]);
     let bytes = |ty: u64, tx: u64| pass_bytes(levels, from, to, brick, [ty, tx], esize, copy);
-    let (mut ty, mut tx) = (uy.min(dy), ux.min(dx));
+    let (ty, mut tx) = (uy.min(dy), ux.min(dx));
     if bytes(ty, tx) > budget {
         return None;
     }
-    // Prefer full-width tiles (contiguous reads), then as tall as fits.
+    // Prefer full-width tiles (contiguous reads); one alignment unit tall is
+    // enough, taller tiles only cost memory.
     if bytes(ty, dx) <= budget {
         tx = dx;
-        while ty < dy && bytes((ty + uy).min(dy), tx) <= budget {
-            ty = (ty + uy).min(dy);
-        }
     } else {
         while tx < dx && bytes(ty, (tx + ux).min(dx)) <= budget {
             tx = (tx + ux).min(dx);
@@ -570,41 +570,45 @@ fn run_pass<T: Sample>(
                     }
                 })
                 .collect();
-            let mut buf: Vec<T> = Vec::new();
-            let mut z0 = 0;
-            while z0 < dz {
-                if ctx.cancel.load(Ordering::Relaxed) {
-                    return Err(StoreError::Interrupted);
+            // A reader thread fetches slab i+1 while slab i is processed
+            // (two slab buffers in flight; the plan counts both).
+            std::thread::scope(|scope| -> Result<()> {
+                let (tx_slab, rx_slab) = std::sync::mpsc::sync_channel::<Result<(u64, u64, Vec<T>)>>(0);
+                let (tx_back, rx_back) = std::sync::mpsc::channel::<Vec<T>>();
+                let (y_rng, x_rng) = (ty0..ty0 + ty, tx0..tx0 + tx);
+                scope.spawn(move || {
+                    let mut z0 = 0;
+                    while z0 < dz {
+                        let h = bz.min(dz - z0);
+                        let mut buf = rx_back.try_recv().unwrap_or_default();
+                        buf.resize((h * ty * tx) as usize, T::default());
+                        let r = src
+                            .read_region(ch, z0..z0 + h, y_rng.clone(), x_rng.clone(), cast_slice_mut_t(&mut buf))
+                            .map(|()| (z0, h, buf));
+                        let failed = r.is_err();
+                        if tx_slab.send(r).is_err() || failed {
+                            return;
+                        }
+                        z0 += h;
+                    }
+                });
+                for msg in rx_slab {
+                    if ctx.cancel.load(Ordering::Relaxed) {
+                        return Err(StoreError::Interrupted);
+                    }
+                    let (z0, h, data) = msg?;
+                    progress.inc(data.len() as u64 * std::mem::size_of::<T>() as u64);
+                    let slab = Slab { data, z0, rows: h, y0: ty0, x0: tx0, ty, tx };
+                    if p.from == 0 {
+                        write_bricks(ctx, 0, ch, &slab)?;
+                    }
+                    if p.to > p.from {
+                        cascade(ctx, p, ch, p.from + 1, &slab, &mut accs)?;
+                    }
+                    let _ = tx_back.send(slab.data);
                 }
-                let h = bz.min(dz - z0);
-                let n = (h * ty * tx) as usize;
-                buf.resize(n, T::default());
-                src.read_region(
-                    ch,
-                    z0..z0 + h,
-                    ty0..ty0 + ty,
-                    tx0..tx0 + tx,
-                    cast_slice_mut_t(&mut buf),
-                )?;
-                progress.inc(n as u64 * std::mem::size_of::<T>() as u64);
-                let slab = Slab {
-                    data: std::mem::take(&mut buf),
-                    z0,
-                    rows: h,
-                    y0: ty0,
-                    x0: tx0,
-                    ty,
-                    tx,
-                };
-                if p.from == 0 {
-                    write_bricks(ctx, 0, ch, &slab)?;
-                }
-                if p.to > p.from {
-                    cascade(ctx, p, ch, p.from + 1, &slab, &mut accs)?;
-                }
-                buf = slab.data;
-                z0 += h;
-            }
+                Ok(())
+            })?;
             tx0 += tx;
         }
         ty0 += ty;
