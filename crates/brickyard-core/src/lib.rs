@@ -5,6 +5,7 @@
 
 pub mod dtype;
 pub mod pyramid;
+pub mod vm;
 
 pub use dtype::{as_bytes, cast_slice, cast_slice_mut, DType, Sample};
 pub use pyramid::{plan_levels, LevelPlan, PyramidPlan};
