@@ -1,0 +1,764 @@
+//! The loader: a pool of I/O threads that turn brick requests into
+//! [`LoadedBrick`]s.
+//!
+//! The pool is made of plain OS threads, not the rayon pool: a thread
+//! blocked in a read must never hold back compute.
+//!
+//! Requests are deduplicated (a brick that is cached, queued or being read
+//! is not queued again), served highest priority first (ties: coarser level
+//! first, then in request order) and can be withdrawn while they wait
+//! ([`Loader::cancel_except`]). Finished bricks go into the [`HostCache`]
+//! and are handed out by [`Loader::poll`].
+//!
+//! Loading a brick:
+//! 1. If the store has per-brick statistics (`_brickyard/stats/<level>`) and
+//!    every store brick that the *padded* region (brick + apron, clamped to
+//!    the level) touches is constant with one common value, the brick is
+//!    [`BrickContent::Empty`] (value 0) or [`BrickContent::Constant`],
+//!    without reading any voxel.
+//! 2. Otherwise the padded region clamped to the level is read (one
+//!    `read_region`, whatever the store's chunking), and the parts of the
+//!    apron outside the level are filled by replicating the border voxel.
+//!    A trilinear sample inside the padded brick therefore equals a
+//!    clamp-to-edge trilinear sample of the whole level. If the padded
+//!    brick turns out uniform (stores without statistics, or statistics
+//!    too coarse to tell), it is returned as empty/constant all the same.
+//!
+//! A failed load (unreadable store, corrupt chunk, even a panic in a codec)
+//! never takes a worker down: it is reported by [`Loader::take_failures`]
+//! and the key is not loaded again until [`Loader::retry_failed`].
+
+use crate::brick::{BrickContent, BrickGeometry, BrickKey, LoadedBrick};
+use crate::host_cache::HostCache;
+use brickyard_core::{dispatch_dtype, Dims3, Sample};
+use brickyard_store::error::{Result, StoreError};
+use brickyard_store::import::zarr::{open, ZarrSource};
+use brickyard_store::omezarr::{read_multiscale, STATS_DIR};
+use brickyard_store::source::VolumeSource;
+use std::cmp::Reverse;
+use std::collections::{BTreeSet, HashMap, HashSet};
+use std::panic::{catch_unwind, AssertUnwindSafe};
+use std::path::{Path, PathBuf};
+use std::sync::atomic::{AtomicU64, Ordering};
+use std::sync::{Arc, Condvar, Mutex, MutexGuard};
+use std::thread::JoinHandle;
+use std::time::{Duration, Instant};
+use zarrs::array::Array;
+use zarrs::filesystem::FilesystemStore;
+
+/// A brick that could not be loaded.
+#[derive(Clone, Debug, PartialEq)]
+pub struct LoadFailure {
+    pub key: BrickKey,
+    pub message: String,
+}
+
+/// A snapshot of the loader's counters.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub struct LoaderStats {
+    /// Bytes of voxel data read from the store.
+    pub bytes_read: u64,
+    /// Bricks produced by the workers (data, empty and constant).
+    pub bricks_loaded: u64,
+    /// Of those, bricks returned empty / constant.
+    pub bricks_empty: u64,
+    pub bricks_constant: u64,
+    /// Requests answered from the host cache without a load.
+    pub bricks_from_cache: u64,
+    /// Loads that failed.
+    pub bricks_failed: u64,
+    /// Requests waiting for a worker.
+    pub pending: usize,
+    /// Bricks being read now.
+    pub in_flight: usize,
+}
+
+/// Per-brick statistics of one level: `[C, bz, by, bx, 2]` float64 (min,
+/// max), read lazily one Zarr chunk at a time.
+struct LevelStats {
+    array: Array<FilesystemStore>,
+    /// Store brick size.
+    brick: Dims3,
+    /// Chunk shape of the statistics array (first four axes).
+    chunk: [u64; 4],
+    /// Decoded chunks (`None`: the chunk could not be read; the bricks it
+    /// covers are treated as unknown). At most the size of the statistics
+    /// array, 16 bytes per store brick and channel.
+    chunks: Mutex<HashMap<[u64; 4], StatsChunk>>,
+}
+
+/// A decoded chunk of the statistics array, `None` when unreadable.
+type StatsChunk = Option<Arc<Vec<f64>>>;
+
+impl LevelStats {
+    fn open(dir: &Path, brick: Dims3, dims: Dims3, channels: usize) -> Option<LevelStats> {
+        if !dir.join("zarr.json").exists() {
+            return None;
+        }
+        let store = Arc::new(FilesystemStore::new(dir).ok()?);
+        let array = Array::open(store, "/").ok()?;
+        let nb = [0, 1, 2].map(|a| dims[a].div_ceil(brick[a]));
+        let want = [channels as u64, nb[0], nb[1], nb[2], 2];
+        if array.shape() != want {
+            return None;
+        }
+        let cs: Vec<u64> = array
+            .chunk_shape(&[0; 5])
+            .ok()?
+            .iter()
+            .map(|c| c.get())
+            .collect();
+        if cs.len() != 5 || cs[4] != 2 {
+            return None;
+        }
+        Some(LevelStats {
+            array,
+            brick,
+            chunk: [cs[0], cs[1], cs[2], cs[3]],
+            chunks: Mutex::new(HashMap::new()),
+        })
+    }
+
+    /// (min, max) of store brick `b` of channel `c`, `None` if unknown.
+    fn get(&self, c: u64, b: Dims3) -> Option<(f64, f64)> {
+        let p = [c, b[0], b[1], b[2]];
+        let ci = [0, 1, 2, 3].map(|a| p[a] / self.chunk[a]);
+        let cached = lock(&self.chunks).get(&ci).cloned();
+        let chunk = match cached {
+            Some(ch) => ch,
+            None => {
+                let idx = [ci[0], ci[1], ci[2], ci[3], 0];
+                let n = self.chunk.iter().product::<u64>() as usize * 2;
+                let ch = self
+                    .array
+                    .retrieve_chunk::<Vec<f64>>(&idx)
+                    .ok()
+                    .filter(|v| v.len() == n)
+                    .map(Arc::new);
+                lock(&self.chunks).insert(ci, ch.clone());
+                ch
+            }
+        }?;
+        let ch = self.chunk;
+        let r = [0, 1, 2, 3].map(|a| p[a] % ch[a]);
+        let e = ((((r[0] * ch[1] + r[1]) * ch[2] + r[2]) * ch[3] + r[3]) * 2) as usize;
+        Some((chunk[e], chunk[e + 1]))
+    }
+
+    /// The common value of every store brick touching `[lo, hi)` if they
+    /// are all constant with the same value.
+    fn uniform(&self, c: u64, lo: Dims3, hi: Dims3) -> Option<f64> {
+        let sb = self.brick;
+        let r = [0, 1, 2].map(|a| lo[a] / sb[a]..=(hi[a] - 1) / sb[a]);
+        let mut val = None;
+        for z in r[0].clone() {
+            for y in r[1].clone() {
+                for x in r[2].clone() {
+                    let (mn, mx) = self.get(c, [z, y, x])?;
+                    // NaN fails both comparisons.
+                    if mn != mx || val.is_some_and(|v| v != mn) {
+                        return None;
+                    }
+                    val = Some(mn);
+                }
+            }
+        }
+        val
+    }
+}
+
+struct Level {
+    src: ZarrSource,
+    stats: Option<LevelStats>,
+}
+
+/// Order of the request queue: the first element is served first.
+#[derive(Clone, Copy, PartialEq, Eq, PartialOrd, Ord)]
+struct QueueEntry {
+    priority: Reverse<u32>,
+    /// Coarser (higher) level first.
+    level: Reverse<u8>,
+    seq: u64,
+    key: BrickKey,
+}
+
+#[derive(Default)]
+struct State {
+    queue: BTreeSet<QueueEntry>,
+    queued: HashMap<BrickKey, QueueEntry>,
+    in_flight: HashSet<BrickKey>,
+    done: Vec<Arc<LoadedBrick>>,
+    done_keys: HashSet<BrickKey>,
+    failures: Vec<LoadFailure>,
+    failed_keys: HashSet<BrickKey>,
+    seq: u64,
+    paused: bool,
+    shutdown: bool,
+}
+
+#[derive(Default)]
+struct Counters {
+    bytes_read: AtomicU64,
+    loaded: AtomicU64,
+    empty: AtomicU64,
+    constant: AtomicU64,
+    from_cache: AtomicU64,
+    failed: AtomicU64,
+}
+
+struct Shared {
+    path: PathBuf,
+    geometry: BrickGeometry,
+    store_brick: Option<Dims3>,
+    levels: Vec<Level>,
+    cache: Arc<HostCache>,
+    state: Mutex<State>,
+    /// Signalled when work arrives (or on pause changes / shutdown).
+    work: Condvar,
+    /// Signalled when a load finishes.
+    finished: Condvar,
+    counters: Counters,
+}
+
+fn lock<T>(m: &Mutex<T>) -> MutexGuard<'_, T> {
+    // Loads run outside the locks and panics inside them are caught, so a
+    // poisoned lock still guards consistent data.
+    m.lock().unwrap_or_else(|e| e.into_inner())
+}
+
+/// Mutable byte view of samples (plain old data).
+fn bytes_mut<T: Sample>(s: &mut [T]) -> &mut [u8] {
+    // SAFETY: every Sample type is plain old data, valid for any bit
+    // pattern; the byte slice covers exactly the same memory.
+    unsafe { std::slice::from_raw_parts_mut(s.as_mut_ptr() as *mut u8, std::mem::size_of_val(s)) }
+}
+
+/// Source index along one axis for each padded position: the clamped
+/// level coordinate, relative to the start of the region read.
+fn clamp_map(padded_origin: i64, n: u64, lo: u64, hi: u64) -> Vec<usize> {
+    (0..n as i64)
+        .map(|i| ((padded_origin + i).clamp(lo as i64, hi as i64 - 1) - lo as i64) as usize)
+        .collect()
+}
+
+impl Shared {
+    /// Load one brick (called by the workers, or directly).
+    fn load(&self, key: &BrickKey) -> Result<LoadedBrick> {
+        let g = &self.geometry;
+        if !g.contains(key) {
+            return Err(StoreError::invalid(
+                &self.path,
+                "brick key",
+                format!("{key:?} is outside the volume"),
+            ));
+        }
+        let level = &self.levels[key.level as usize];
+        let dims = g.levels[key.level as usize];
+        let c = key.channel as u64;
+        let po = g.padded_origin_of(key);
+        let p = g.padded();
+        // The padded region clamped to the level (never empty: it holds
+        // the brick's first voxel).
+        let lo: Dims3 = [0, 1, 2].map(|a| po[a].max(0) as u64);
+        let hi: Dims3 = [0, 1, 2].map(|a| ((po[a] + p[a] as i64) as u64).min(dims[a]));
+        if let Some(v) = level.stats.as_ref().and_then(|s| s.uniform(c, lo, hi)) {
+            return Ok(uniform_brick(*key, v, 0));
+        }
+        let ext = g.extent_of(key);
+        let a = g.apron as usize;
+        dispatch_dtype!(g.dtype, T => {
+            let r = [0, 1, 2].map(|a| hi[a] - lo[a]);
+            let mut buf = vec![T::default(); r.iter().product::<u64>() as usize];
+            level
+                .src
+                .read_region(key.channel as usize, lo[0]..hi[0], lo[1]..hi[1], lo[2]..hi[2], bytes_mut(&mut buf))?;
+            let bytes_read = std::mem::size_of_val(&buf[..]) as u64;
+            let [zs, ys, xs] = [0, 1, 2].map(|a| clamp_map(po[a], p[a], lo[a], hi[a]));
+            let (r1, r2) = (r[1] as usize, r[2] as usize);
+            let mut out: Vec<T> = Vec::with_capacity(g.voxels_per_brick() as usize);
+            for &sz in &zs {
+                for &sy in &ys {
+                    let row = &buf[(sz * r1 + sy) * r2..][..r2];
+                    out.extend(xs.iter().map(|&sx| row[sx]));
+                }
+            }
+            // Min / max of the brick proper.
+            let (p1, p2) = (p[1] as usize, p[2] as usize);
+            let (mut mn, mut mx) = (f64::NAN, f64::NAN);
+            for z in a..a + ext[0] as usize {
+                for y in a..a + ext[1] as usize {
+                    let s = (z * p1 + y) * p2 + a;
+                    let (rmn, rmx) = T::min_max(&out[s..s + ext[2] as usize]);
+                    // f64::min / max ignore a NaN operand.
+                    mn = mn.min(rmn.to_f64());
+                    mx = mx.max(rmx.to_f64());
+                }
+            }
+            let first = out[0];
+            let v0 = first.to_f64();
+            if !v0.is_nan() && out.iter().all(|v| v.bits() == first.bits()) {
+                return Ok(uniform_brick(*key, v0, bytes_read));
+            }
+            Ok(LoadedBrick {
+                key: *key,
+                content: BrickContent::Data(Arc::from(brickyard_core::as_bytes(&out))),
+                min: mn,
+                max: mx,
+                bytes_read,
+            })
+        })
+    }
+
+    fn worker(&self) {
+        loop {
+            let key = {
+                let mut st = lock(&self.state);
+                loop {
+                    if st.shutdown {
+                        return;
+                    }
+                    if !st.paused {
+                        if let Some(e) = st.queue.pop_first() {
+                            st.queued.remove(&e.key);
+                            st.in_flight.insert(e.key);
+                            break e.key;
+                        }
+                    }
+                    st = self.work.wait(st).unwrap_or_else(|e| e.into_inner());
+                }
+            };
+            let result = catch_unwind(AssertUnwindSafe(|| self.load(&key)));
+            let result = match result {
+                Ok(Ok(b)) => Ok(Arc::new(b)),
+                Ok(Err(e)) => Err(e.to_string()),
+                Err(panic) => Err(format!(
+                    "panic while loading: {}",
+                    panic
+                        .downcast_ref::<String>()
+                        .map(String::as_str)
+                        .or_else(|| panic.downcast_ref::<&str>().copied())
+                        .unwrap_or("(no message)")
+                )),
+            };
+            let c = &self.counters;
+            match &result {
+                Ok(b) => {
+                    c.bytes_read.fetch_add(b.bytes_read, Ordering::Relaxed);
+                    c.loaded.fetch_add(1, Ordering::Relaxed);
+                    match b.content {
+                        BrickContent::Empty => c.empty.fetch_add(1, Ordering::Relaxed),
+                        BrickContent::Constant(_) => c.constant.fetch_add(1, Ordering::Relaxed),
+                        BrickContent::Data(_) => 0,
+                    };
+                    self.cache.insert(b.clone());
+                }
+                Err(_) => {
+                    c.failed.fetch_add(1, Ordering::Relaxed);
+                }
+            }
+            let mut st = lock(&self.state);
+            st.in_flight.remove(&key);
+            match result {
+                Ok(b) => {
+                    if st.done_keys.insert(key) {
+                        st.done.push(b);
+                    }
+                }
+                Err(message) => {
+                    st.failed_keys.insert(key);
+                    st.failures.push(LoadFailure { key, message });
+                }
+            }
+            drop(st);
+            self.finished.notify_all();
+        }
+    }
+}
+
+fn uniform_brick(key: BrickKey, v: f64, bytes_read: u64) -> LoadedBrick {
+    LoadedBrick {
+        key,
+        content: if v == 0.0 {
+            BrickContent::Empty
+        } else {
+            BrickContent::Constant(v)
+        },
+        min: v,
+        max: v,
+        bytes_read,
+    }
+}
+
+/// Reads bricks of one store on a pool of I/O threads.
+///
+/// One loader per store and one store per [`HostCache`]: keys do not name
+/// the store.
+pub struct Loader {
+    shared: Arc<Shared>,
+    threads: Vec<JoinHandle<()>>,
+}
+
+impl Loader {
+    /// Open every level of the (OME-)Zarr store at `store_path` (a bare
+    /// Zarr array is one level) and start `threads` workers (at least one).
+    /// `brick` is the engine's brick size `[z, y, x]` (independent of the
+    /// store's chunking), `apron` the border added on every side.
+    /// Statistics are used when the store has them and they match the
+    /// level (brickyard stores); foreign stores are read without.
+    pub fn open(
+        store_path: &Path,
+        brick: Dims3,
+        apron: u64,
+        threads: usize,
+        cache: Arc<HostCache>,
+    ) -> Result<Loader> {
+        if brick.contains(&0) {
+            return Err(StoreError::invalid(
+                store_path,
+                "brick",
+                format!("brick size {brick:?} must be at least 1 on every axis"),
+            ));
+        }
+        let ms = read_multiscale(store_path)?;
+        let nlevels = ms.as_ref().map(|m| m.datasets.len()).unwrap_or(1);
+        let by = ms.as_ref().and_then(|m| m.brickyard.as_ref());
+        let store_brick: Option<Dims3> = by
+            .and_then(|b| b.get("brick"))
+            .and_then(|v| v.as_array())
+            .filter(|a| a.len() == 3)
+            .and_then(|a| {
+                let v: Vec<u64> = a.iter().filter_map(|x| x.as_u64()).collect();
+                (v.len() == 3 && !v.contains(&0)).then(|| [v[0], v[1], v[2]])
+            });
+        let stats_dir = store_path.join(
+            by.and_then(|b| b.get("stats"))
+                .and_then(|v| v.as_str())
+                .unwrap_or(STATS_DIR),
+        );
+        let mut levels = Vec::with_capacity(nlevels);
+        let mut dims = Vec::with_capacity(nlevels);
+        for l in 0..nlevels {
+            let src = open(store_path, l)?;
+            let m = src.meta();
+            if let Some(first) = levels.first() {
+                let f: &Level = first;
+                let fm = f.src.meta();
+                if fm.dtype != m.dtype || fm.channels != m.channels {
+                    return Err(StoreError::invalid(
+                        store_path,
+                        "levels",
+                        format!(
+                            "level {l} has {} channel(s) of {} but level 0 has {} of {}",
+                            m.channels, m.dtype, fm.channels, fm.dtype
+                        ),
+                    ));
+                }
+            }
+            let stats = store_brick.and_then(|sb| {
+                LevelStats::open(&stats_dir.join(l.to_string()), sb, m.dims, m.channels)
+            });
+            dims.push(m.dims);
+            levels.push(Level { src, stats });
+        }
+        let m0 = levels[0].src.meta();
+        let geometry = BrickGeometry {
+            brick,
+            apron,
+            levels: dims,
+            channels: m0.channels,
+            dtype: m0.dtype,
+        };
+        if !geometry.keys_fit() {
+            return Err(StoreError::unsupported(
+                store_path,
+                "brick grid",
+                format!(
+                    "{} levels, {} channels, {:?} bricks at level 0: brick keys hold at most 32 levels, 2048 channels and 65536 bricks per axis",
+                    geometry.levels.len(),
+                    geometry.channels,
+                    geometry.bricks_per_level(0)
+                ),
+            ));
+        }
+        let shared = Arc::new(Shared {
+            path: store_path.to_path_buf(),
+            geometry,
+            store_brick,
+            levels,
+            cache,
+            state: Mutex::new(State::default()),
+            work: Condvar::new(),
+            finished: Condvar::new(),
+            counters: Counters::default(),
+        });
+        let mut handles = Vec::new();
+        for i in 0..threads.max(1) {
+            let s = shared.clone();
+            let h = std::thread::Builder::new()
+                .name(format!("brickyard-loader-{i}"))
+                .spawn(move || s.worker())
+                .map_err(|e| StoreError::io(store_path, e))?;
+            handles.push(h);
+        }
+        Ok(Loader {
+            shared,
+            threads: handles,
+        })
+    }
+
+    /// The engine's brick grid over the store.
+    pub fn geometry(&self) -> &BrickGeometry {
+        &self.shared.geometry
+    }
+
+    /// The store's brick (inner chunk) size, for brickyard stores.
+    pub fn store_brick(&self) -> Option<Dims3> {
+        self.shared.store_brick
+    }
+
+    /// Whether per-brick statistics are used for `level`.
+    pub fn has_stats(&self, level: usize) -> bool {
+        self.shared
+            .levels
+            .get(level)
+            .is_some_and(|l| l.stats.is_some())
+    }
+
+    /// The host cache the loader fills.
+    pub fn cache(&self) -> &Arc<HostCache> {
+        &self.shared.cache
+    }
+
+    /// Ask for bricks, each with a priority (higher first).
+    ///
+    /// - A brick in the host cache is not loaded: it is handed out by the
+    ///   next [`Loader::poll`] (and counted in `bricks_from_cache`).
+    /// - A brick already queued takes the new priority; one being read is
+    ///   left alone.
+    /// - A brick whose load failed is skipped until [`Loader::retry_failed`].
+    /// - A key outside the volume is reported as a failure.
+    ///
+    /// Ties in priority go to the coarser level, then to the earlier request.
+    pub fn request(&self, keys: &[(BrickKey, u32)]) {
+        let mut st = lock(&self.shared.state);
+        let mut added = false;
+        for &(key, priority) in keys {
+            if st.in_flight.contains(&key) || st.failed_keys.contains(&key) {
+                continue;
+            }
+            if !self.shared.geometry.contains(&key) {
+                st.failed_keys.insert(key);
+                st.failures.push(LoadFailure {
+                    key,
+                    message: format!(
+                        "{}: {key:?} is outside the volume",
+                        self.shared.path.display()
+                    ),
+                });
+                self.shared.counters.failed.fetch_add(1, Ordering::Relaxed);
+                continue;
+            }
+            if let Some(old) = st.queued.get(&key).copied() {
+                if old.priority.0 == priority {
+                    continue;
+                }
+                st.queue.remove(&old);
+            } else if !st.done_keys.contains(&key) {
+                if let Some(b) = self.shared.cache.get(&key) {
+                    self.shared
+                        .counters
+                        .from_cache
+                        .fetch_add(1, Ordering::Relaxed);
+                    st.done_keys.insert(key);
+                    st.done.push(b);
+                    continue;
+                }
+            } else {
+                // Finished and not yet polled.
+                continue;
+            }
+            let e = QueueEntry {
+                priority: Reverse(priority),
+                level: Reverse(key.level),
+                seq: st.seq,
+                key,
+            };
+            st.seq += 1;
+            st.queue.insert(e);
+            st.queued.insert(key, e);
+            added = true;
+        }
+        drop(st);
+        if added {
+            self.shared.work.notify_all();
+        }
+    }
+
+    /// Drop every queued request whose key is not in `wanted` (bricks being
+    /// read are not interrupted). Returns the number of requests dropped.
+    pub fn cancel_except(&self, wanted: &[BrickKey]) -> usize {
+        let wanted: HashSet<BrickKey> = wanted.iter().copied().collect();
+        let mut st = lock(&self.shared.state);
+        let before = st.queue.len();
+        st.queue.retain(|e| wanted.contains(&e.key));
+        st.queued.retain(|k, _| wanted.contains(k));
+        let dropped = before - st.queue.len();
+        drop(st);
+        if dropped > 0 {
+            self.shared.finished.notify_all();
+        }
+        dropped
+    }
+
+    /// Bricks finished (or answered from the cache) since the last poll, in
+    /// the order they finished. They are in the host cache already (unless
+    /// larger than its whole budget).
+    pub fn poll(&self) -> Vec<Arc<LoadedBrick>> {
+        let mut st = lock(&self.shared.state);
+        st.done_keys.clear();
+        std::mem::take(&mut st.done)
+    }
+
+    /// Failures since the last call.
+    pub fn take_failures(&self) -> Vec<LoadFailure> {
+        std::mem::take(&mut lock(&self.shared.state).failures)
+    }
+
+    /// Keys that failed and are not requested again.
+    pub fn failed_keys(&self) -> Vec<BrickKey> {
+        let mut v: Vec<BrickKey> = lock(&self.shared.state)
+            .failed_keys
+            .iter()
+            .copied()
+            .collect();
+        v.sort();
+        v
+    }
+
+    /// Allow failed keys to be requested again (e.g. after the store was
+    /// repaired).
+    pub fn retry_failed(&self) {
+        lock(&self.shared.state).failed_keys.clear();
+    }
+
+    /// Stop (`true`) or resume (`false`) starting new loads; loads in
+    /// progress finish. Requests keep being queued while paused.
+    pub fn set_paused(&self, paused: bool) {
+        lock(&self.shared.state).paused = paused;
+        self.shared.work.notify_all();
+        self.shared.finished.notify_all();
+    }
+
+    /// Requests waiting for a worker.
+    pub fn pending(&self) -> usize {
+        lock(&self.shared.state).queue.len()
+    }
+
+    /// Bricks being read now.
+    pub fn in_flight(&self) -> usize {
+        lock(&self.shared.state).in_flight.len()
+    }
+
+    /// Block until nothing is queued or being read, or `timeout` passes.
+    /// Returns whether the loader is idle. (While paused with requests
+    /// queued it is not idle.)
+    pub fn wait_idle(&self, timeout: Duration) -> bool {
+        let end = Instant::now() + timeout;
+        let mut st = lock(&self.shared.state);
+        loop {
+            if st.queue.is_empty() && st.in_flight.is_empty() {
+                return true;
+            }
+            let now = Instant::now();
+            if now >= end {
+                return false;
+            }
+            st = self
+                .shared
+                .finished
+                .wait_timeout(st, end - now)
+                .unwrap_or_else(|e| e.into_inner())
+                .0;
+        }
+    }
+
+    /// Load one brick on the calling thread, bypassing queue and cache.
+    pub fn load_now(&self, key: &BrickKey) -> Result<LoadedBrick> {
+        self.shared.load(key)
+    }
+
+    /// Bytes of voxel data read from the store so far.
+    pub fn bytes_read(&self) -> u64 {
+        self.shared.counters.bytes_read.load(Ordering::Relaxed)
+    }
+
+    /// Bricks produced by the workers so far.
+    pub fn bricks_loaded(&self) -> u64 {
+        self.shared.counters.loaded.load(Ordering::Relaxed)
+    }
+
+    /// Requests answered from the host cache.
+    pub fn bricks_from_cache(&self) -> u64 {
+        self.shared.counters.from_cache.load(Ordering::Relaxed)
+    }
+
+    /// All counters at once.
+    pub fn stats(&self) -> LoaderStats {
+        let c = &self.shared.counters;
+        let st = lock(&self.shared.state);
+        LoaderStats {
+            bytes_read: c.bytes_read.load(Ordering::Relaxed),
+            bricks_loaded: c.loaded.load(Ordering::Relaxed),
+            bricks_empty: c.empty.load(Ordering::Relaxed),
+            bricks_constant: c.constant.load(Ordering::Relaxed),
+            bricks_from_cache: c.from_cache.load(Ordering::Relaxed),
+            bricks_failed: c.failed.load(Ordering::Relaxed),
+            pending: st.queue.len(),
+            in_flight: st.in_flight.len(),
+        }
+    }
+}
+
+impl Drop for Loader {
+    /// Queued requests are dropped; loads in progress finish first.
+    fn drop(&mut self) {
+        lock(&self.shared.state).shutdown = true;
+        self.shared.work.notify_all();
+        for h in self.threads.drain(..) {
+            let _ = h.join();
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn clamp_map_replicates_borders() {
+        // Padded origin -2, 8 positions, region 0..5 of the level.
+        assert_eq!(clamp_map(-2, 8, 0, 5), [0, 0, 0, 1, 2, 3, 4, 4]);
+        // Region 3..7, padded origin 2: position 0 maps to 3.
+        assert_eq!(clamp_map(2, 6, 3, 7), [0, 0, 1, 2, 3, 3]);
+    }
+
+    #[test]
+    fn queue_order() {
+        let e = |p, l, s| QueueEntry {
+            priority: Reverse(p),
+            level: Reverse(l),
+            seq: s,
+            key: BrickKey::new(l, 0, [0; 3]),
+        };
+        let mut q = BTreeSet::new();
+        q.insert(e(1, 0, 0));
+        q.insert(e(5, 0, 1));
+        q.insert(e(5, 2, 2));
+        q.insert(e(5, 2, 3));
+        let order: Vec<(u32, u8, u64)> = q
+            .into_iter()
+            .map(|x| (x.priority.0, x.level.0, x.seq))
+            .collect();
+        assert_eq!(order, [(5, 2, 2), (5, 2, 3), (5, 0, 1), (1, 0, 0)]);
+    }
+}

@@ -1,0 +1,789 @@
+//! The virtual memory for voxels, on the CPU: a multi-level,
+//! multi-resolution page-table hierarchy over a brick pool, with usage
+//! tracking, LRU by order-preserving compaction, bounded request collection
+//! and the update step. It is written as a sequence of data-parallel passes
+//! (usage marking, compaction, request reduction, update) so that it is the
+//! reference twin of the GPU kernels.
+//!
+//! Addresses are `(level, channel, p)` with `p ∈ [0, 1]³` the normalized
+//! position in the real volume (`[z, y, x]`); the page tables are addressed
+//! with the virtual position derived per level (equations 1–3 and the
+//! real/virtual correction of `brickyard_core::vm`).
+//!
+//! Frame protocol:
+//! 1. [`VirtualMemory::begin_frame`];
+//! 2. consumers call [`VirtualMemory::sample`] (from any number of threads,
+//!    each with its own [`Requests`]); misses fall back to the finest
+//!    resident coarser level and are recorded as requests;
+//! 3. [`VirtualMemory::end_frame`] merges the requests into a capped,
+//!    prioritized list and compacts the LRU lists;
+//! 4. bricks delivered by the loader are written with
+//!    [`VirtualMemory::insert`] (evict from the LRU tail, write, reference),
+//!    at most `upload_bytes_per_frame` per frame.
+
+use crate::brick::{BrickContent, BrickKey, LoadedBrick};
+use brickyard_core::vm::{PageEntry, PageFlag, VirtualLayout};
+use brickyard_core::{dispatch_dtype, DType, Dims3, Sample};
+use std::collections::HashMap;
+use std::sync::atomic::{AtomicU32, Ordering};
+use std::sync::Arc;
+
+/// Configuration of a virtual memory. All budgets are hard limits.
+#[derive(Debug, Clone)]
+pub struct VmConfig {
+    /// Brick size (without apron), `[z, y, x]`.
+    pub brick: Dims3,
+    /// Apron voxels on each side of a brick in the pool (≥ 1 for trilinear).
+    pub apron: u64,
+    /// Block size of the intermediate page tables.
+    pub pt_block: Dims3,
+    /// Largest directory (entries per channel) before another page-table
+    /// level is added.
+    pub max_dir_entries: u64,
+    /// Bytes of the brick pool.
+    pub pool_bytes: u64,
+    /// Blocks in each intermediate page-table cache.
+    pub pt_cache_blocks: u64,
+    /// Requests reported per frame (global cap).
+    pub request_cap: usize,
+    /// Brick bytes written into the pool per frame.
+    pub upload_bytes_per_frame: u64,
+}
+
+impl Default for VmConfig {
+    fn default() -> Self {
+        VmConfig {
+            brick: [32; 3],
+            apron: 1,
+            pt_block: [16; 3],
+            max_dir_entries: 1 << 15,
+            pool_bytes: 256 << 20,
+            pt_cache_blocks: 512,
+            request_cap: 256,
+            upload_bytes_per_frame: 64 << 20,
+        }
+    }
+}
+
+/// Which entry references a slot or block (so that evicting it can unmap
+/// that entry).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+enum Owner {
+    None,
+    /// Index into the directory (channel-major).
+    Dir(u32),
+    /// Cache level `n` (1-based intermediate level), block, entry in block.
+    Pt(u8, u32, u32),
+}
+
+/// A set of slots with usage timestamps and an LRU order.
+struct SlotSet {
+    grid: [u32; 3],
+    usage: Vec<AtomicU32>,
+    /// Most recently used first.
+    lru: Vec<u32>,
+    owner: Vec<Owner>,
+    /// Slots whose owner disappeared (orphans) or that were never used.
+    free: Vec<u32>,
+    /// Next eviction candidate, counting from the tail of `lru`.
+    cursor: usize,
+}
+
+impl SlotSet {
+    fn new(count: u64) -> SlotSet {
+        let max = brickyard_core::vm::MAX_SLOTS_PER_AXIS as u64;
+        let gx = count.clamp(1, max);
+        let gy = (count / gx).clamp(1, max);
+        let gz = (count / (gx * gy)).clamp(1, max);
+        let n = (gx * gy * gz).min(count.max(1)) as u32;
+        let n = if count == 0 { 0 } else { n };
+        SlotSet {
+            grid: [gz as u32, gy as u32, gx as u32],
+            usage: (0..n).map(|_| AtomicU32::new(0)).collect(),
+            lru: (0..n).collect(),
+            owner: vec![Owner::None; n as usize],
+            free: (0..n).rev().collect(),
+            cursor: 0,
+        }
+    }
+    fn len(&self) -> usize {
+        self.owner.len()
+    }
+    fn coords(&self, id: u32) -> [u32; 3] {
+        let [_, gy, gx] = self.grid;
+        [id / (gy * gx), (id / gx) % gy, id % gx]
+    }
+    fn id(&self, c: [u32; 3]) -> u32 {
+        (c[0] * self.grid[1] + c[1]) * self.grid[2] + c[2]
+    }
+    /// Order-preserving compaction: slots used in `frame` first, then the
+    /// others, each group in its previous order.
+    fn compact(&mut self, frame: u32) {
+        let (mut used, mut rest): (Vec<u32>, Vec<u32>) = self
+            .lru
+            .iter()
+            .partition(|&&s| self.usage[s as usize].load(Ordering::Relaxed) == frame);
+        used.append(&mut rest);
+        self.lru = used;
+        self.cursor = 0;
+    }
+    /// A slot that may be (re)used now: a free one, else the least recently
+    /// used one not used in `frame`. `None` when every slot is in use.
+    fn take(&mut self, frame: u32) -> Option<u32> {
+        while let Some(s) = self.free.pop() {
+            if self.owner[s as usize] == Owner::None
+                && self.usage[s as usize].load(Ordering::Relaxed) != frame
+            {
+                return Some(s);
+            }
+        }
+        // Walk from the tail; slots used this frame (including ones just
+        // filled from the free list) are skipped. The cursor only moves
+        // forward, so a frame costs O(slots) at most.
+        while self.cursor < self.lru.len() {
+            let s = self.lru[self.lru.len() - 1 - self.cursor];
+            self.cursor += 1;
+            if self.usage[s as usize].load(Ordering::Relaxed) != frame {
+                return Some(s);
+            }
+        }
+        None
+    }
+}
+
+/// Requests collected by one consumer thread during a frame. Memory is
+/// bounded by its capacity, independent of the volume size; keys beyond
+/// it are dropped (and counted).
+#[derive(Debug, Clone)]
+pub struct Requests {
+    map: HashMap<u64, u32>,
+    cap: usize,
+    /// Misses that could not be recorded because the collector was full.
+    pub dropped: u64,
+}
+
+impl Requests {
+    pub fn with_capacity(cap: usize) -> Requests {
+        Requests {
+            map: HashMap::with_capacity(cap),
+            cap,
+            dropped: 0,
+        }
+    }
+    #[inline]
+    pub fn add(&mut self, key: BrickKey, samples: u32) {
+        let k = key.pack();
+        if let Some(c) = self.map.get_mut(&k) {
+            *c += samples;
+        } else if self.map.len() < self.cap {
+            self.map.insert(k, samples);
+        } else {
+            self.dropped += 1;
+        }
+    }
+    pub fn len(&self) -> usize {
+        self.map.len()
+    }
+    pub fn is_empty(&self) -> bool {
+        self.map.is_empty()
+    }
+    /// Bytes this collector may use at most.
+    pub fn max_bytes(&self) -> u64 {
+        // hashbrown: key + value + control byte per bucket, buckets ≤ 2 × cap.
+        (self.cap as u64 * 2) * (8 + 4 + 1)
+    }
+}
+
+/// How a sample was served.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Lookup {
+    pub value: f32,
+    /// The level that served the sample (`None`: nothing resident at all).
+    pub level: Option<u8>,
+}
+
+/// Per-frame figures.
+#[derive(Debug, Clone, Default)]
+pub struct FrameReport {
+    pub frame: u32,
+    /// The capped, prioritized request list (most wanted first).
+    pub requests: Vec<BrickKey>,
+    /// Distinct bricks asked for before the cap.
+    pub requested: usize,
+    pub dropped: u64,
+    pub resident_bricks: usize,
+    pub resident_pt_blocks: Vec<usize>,
+}
+
+/// Figures of one insert step.
+#[derive(Debug, Clone, Default)]
+pub struct InsertReport {
+    pub inserted: usize,
+    pub flagged: usize,
+    pub bytes_uploaded: u64,
+    pub evicted_bricks: usize,
+    pub evicted_pt_blocks: usize,
+    pub orphans_reclaimed: usize,
+    /// Bricks that did not fit this frame (budget or every slot in use).
+    pub deferred: usize,
+}
+
+/// The virtual memory.
+pub struct VirtualMemory {
+    layout: VirtualLayout,
+    cfg: VmConfig,
+    channels: usize,
+    dtype: DType,
+    frame: u32,
+    /// Channel-major directory.
+    dir: Vec<PageEntry>,
+    dir_len: usize,
+    /// Intermediate page-table caches `n = 1 .. nmax-1`: entries and slots.
+    pt: Vec<(Vec<PageEntry>, SlotSet)>,
+    pt_block_len: Vec<usize>,
+    /// Brick pool.
+    pool: Vec<u8>,
+    slots: SlotSet,
+    padded: [usize; 3],
+    brick_bytes: usize,
+    merged: Requests,
+}
+
+fn entry_kind(e: &PageEntry, dtype: DType) -> Kind {
+    match e.flag() {
+        PageFlag::Mapped => Kind::Mapped(e.slot().expect("mapped entries carry a slot")),
+        PageFlag::Empty => Kind::Empty,
+        PageFlag::Constant => Kind::Constant(e.constant_value(dtype).unwrap_or(0.0) as f32),
+        PageFlag::Unmapped => Kind::Unmapped,
+    }
+}
+
+enum Kind {
+    Unmapped,
+    Mapped([u32; 3]),
+    Empty,
+    Constant(f32),
+}
+
+impl VirtualMemory {
+    /// A virtual memory for a volume with `levels` (voxels per level,
+    /// `[z, y, x]`), `channels` and `dtype`.
+    pub fn new(levels: &[Dims3], channels: usize, dtype: DType, cfg: VmConfig) -> VirtualMemory {
+        let layout = VirtualLayout::auto(
+            levels.to_vec(),
+            cfg.brick,
+            cfg.pt_block,
+            cfg.max_dir_entries,
+        );
+        let dir_len = layout.dir_dims.iter().product::<u64>() as usize;
+        let nmax = layout.nmax();
+        let mut pt = vec![];
+        let mut pt_block_len = vec![];
+        for n in 1..nmax {
+            let b = layout.pt_blocks[n - 1];
+            let len = b.iter().product::<u64>() as usize;
+            let slots = SlotSet::new(cfg.pt_cache_blocks);
+            pt.push((vec![PageEntry::unmapped(); slots.len() * len], slots));
+            pt_block_len.push(len);
+        }
+        let padded = cfg.brick.map(|b| (b + 2 * cfg.apron) as usize);
+        let brick_bytes = padded.iter().product::<usize>() * dtype.size();
+        let slots = SlotSet::new(cfg.pool_bytes / brick_bytes as u64);
+        VirtualMemory {
+            merged: Requests::with_capacity(cfg.request_cap * 8),
+            layout,
+            channels,
+            dtype,
+            frame: 1,
+            dir: vec![PageEntry::unmapped(); dir_len * channels],
+            dir_len,
+            pt,
+            pt_block_len,
+            pool: vec![0u8; slots.len() * brick_bytes],
+            slots,
+            padded,
+            brick_bytes,
+            cfg,
+        }
+    }
+
+    pub fn layout(&self) -> &VirtualLayout {
+        &self.layout
+    }
+    pub fn config(&self) -> &VmConfig {
+        &self.cfg
+    }
+    pub fn frame(&self) -> u32 {
+        self.frame
+    }
+    /// Number of brick slots in the pool.
+    pub fn pool_slots(&self) -> usize {
+        self.slots.len()
+    }
+    /// Bytes of the pool.
+    pub fn pool_bytes(&self) -> usize {
+        self.pool.len()
+    }
+    /// A request collector sized for this virtual memory.
+    pub fn requests(&self) -> Requests {
+        Requests::with_capacity(self.cfg.request_cap * 8)
+    }
+
+    /// Start a new frame.
+    pub fn begin_frame(&mut self) {
+        self.frame += 1;
+        self.merged.map.clear();
+        self.merged.dropped = 0;
+    }
+
+    fn dir_index(&self, l: usize, c: usize, p: [f64; 3]) -> usize {
+        let e = self.layout.dir_entry(l, p);
+        let d = self.layout.dir_dims;
+        c * self.dir_len + ((e[0] * d[1] + e[1]) * d[2] + e[2]) as usize
+    }
+
+    fn block_entry(&self, n: usize, l: usize, p: [f64; 3]) -> usize {
+        let o = self.layout.offset_in_block(l, n, p);
+        let b = self.layout.pt_blocks[n - 1];
+        ((o[0] * b[1] + o[1]) * b[2] + o[2]) as usize
+    }
+
+    /// Virtual position of the centre of voxel `v` of level `l`.
+    fn p_of_voxel(&self, l: usize, v: [u64; 3]) -> [f64; 3] {
+        let vv = self.layout.virt[l][self.layout.nmax()];
+        [0, 1, 2].map(|a| (v[a] as f64 + 0.5) / vv[a] as f64)
+    }
+
+    /// Walk the hierarchy for the brick holding voxel `v` of level `l`.
+    /// Marks usage on the way. Returns the final entry kind, or `Unmapped`
+    /// at the first missing level.
+    fn resolve(&self, l: usize, c: usize, v: [u64; 3]) -> Kind {
+        let p = self.p_of_voxel(l, v);
+        let mut e = self.dir[self.dir_index(l, c, p)];
+        for n in 1..self.layout.nmax() {
+            match entry_kind(&e, self.dtype) {
+                Kind::Mapped(slot) => {
+                    let (entries, set) = &self.pt[n - 1];
+                    let b = set.id(slot);
+                    set.usage[b as usize].store(self.frame, Ordering::Relaxed);
+                    e = entries[b as usize * self.pt_block_len[n - 1] + self.block_entry(n, l, p)];
+                }
+                k => return k,
+            }
+        }
+        entry_kind(&e, self.dtype)
+    }
+
+    fn key_of(&self, l: usize, c: usize, v: [u64; 3]) -> BrickKey {
+        let b = self.cfg.brick;
+        BrickKey {
+            level: l as u8,
+            channel: c as u16,
+            brick: [0, 1, 2].map(|a| (v[a] / b[a]) as u32),
+        }
+    }
+
+    #[inline]
+    fn voxel(&self, slot: u32, local: [usize; 3]) -> f32 {
+        let [_, py, px] = self.padded;
+        let i = (local[0] * py + local[1]) * px + local[2];
+        let base = slot as usize * self.brick_bytes;
+        let es = self.dtype.size();
+        let b = &self.pool[base + i * es..base + (i + 1) * es];
+        dispatch_dtype!(self.dtype, T => { <T as Sample>::from_le(b).to_f64() as f32 })
+    }
+
+    /// Sample channel `c` at the normalized real position `p` (`[z, y, x]`)
+    /// of level `l`, nearest or trilinear. On a miss the brick is requested
+    /// and the finest resident coarser level answers.
+    pub fn sample(
+        &self,
+        l: usize,
+        c: usize,
+        p: [f64; 3],
+        trilinear: bool,
+        req: &mut Requests,
+    ) -> Lookup {
+        let nl = self.layout.levels.len();
+        for lv in l.min(nl - 1)..nl {
+            let dims = self.layout.levels[lv];
+            // Continuous voxel coordinates (voxel centres at i + 0.5).
+            let pos = [0, 1, 2].map(|a| p[a] * dims[a] as f64);
+            let (base, frac) = if trilinear {
+                let q = [0, 1, 2].map(|a| (pos[a] - 0.5).clamp(0.0, (dims[a] - 1) as f64));
+                let b = q.map(|x| x.floor());
+                (
+                    [0, 1, 2].map(|a| b[a] as u64),
+                    [0, 1, 2].map(|a| (q[a] - b[a]) as f32),
+                )
+            } else {
+                (
+                    [0, 1, 2].map(|a| (pos[a].floor().max(0.0) as u64).min(dims[a] - 1)),
+                    [0.0; 3],
+                )
+            };
+            match self.resolve(lv, c, base) {
+                Kind::Mapped(slot) => {
+                    let s = self.slots.id(slot);
+                    self.slots.usage[s as usize].store(self.frame, Ordering::Relaxed);
+                    let a = self.cfg.apron as usize;
+                    let b = self.cfg.brick;
+                    let local = [0, 1, 2].map(|i| (base[i] % b[i]) as usize + a);
+                    let value = if trilinear {
+                        let mut acc = 0.0f32;
+                        for dz in 0..2 {
+                            for dy in 0..2 {
+                                for dx in 0..2 {
+                                    let w = (if dz == 1 { frac[0] } else { 1.0 - frac[0] })
+                                        * (if dy == 1 { frac[1] } else { 1.0 - frac[1] })
+                                        * (if dx == 1 { frac[2] } else { 1.0 - frac[2] });
+                                    if w != 0.0 {
+                                        acc += w * self.voxel(
+                                            s,
+                                            [local[0] + dz, local[1] + dy, local[2] + dx],
+                                        );
+                                    }
+                                }
+                            }
+                        }
+                        acc
+                    } else {
+                        self.voxel(s, local)
+                    };
+                    return Lookup {
+                        value,
+                        level: Some(lv as u8),
+                    };
+                }
+                Kind::Empty => {
+                    return Lookup {
+                        value: 0.0,
+                        level: Some(lv as u8),
+                    }
+                }
+                Kind::Constant(v) => {
+                    return Lookup {
+                        value: v,
+                        level: Some(lv as u8),
+                    }
+                }
+                Kind::Unmapped => req.add(self.key_of(lv, c, base), 1),
+            }
+        }
+        Lookup {
+            value: 0.0,
+            level: None,
+        }
+    }
+
+    /// End the frame: merge the collectors into the capped, prioritized
+    /// request list (most samples first; ties: coarser level first), and
+    /// reorder the LRU lists by compaction.
+    pub fn end_frame<'a>(
+        &mut self,
+        collectors: impl IntoIterator<Item = &'a Requests>,
+    ) -> FrameReport {
+        let mut dropped = 0;
+        for r in collectors {
+            dropped += r.dropped;
+            for (&k, &n) in &r.map {
+                let key = BrickKey::unpack(k);
+                self.merged.add(key, n);
+            }
+        }
+        dropped += self.merged.dropped;
+        let mut list: Vec<(u64, u32)> = self.merged.map.iter().map(|(&k, &n)| (k, n)).collect();
+        let requested = list.len();
+        list.sort_by(|a, b| {
+            let (ka, kb) = (BrickKey::unpack(a.0), BrickKey::unpack(b.0));
+            b.1.cmp(&a.1)
+                .then(kb.level.cmp(&ka.level))
+                .then(ka.cmp(&kb))
+        });
+        list.truncate(self.cfg.request_cap);
+        let frame = self.frame;
+        self.slots.compact(frame);
+        for (_, s) in &mut self.pt {
+            s.compact(frame);
+        }
+        FrameReport {
+            frame,
+            requests: list.into_iter().map(|(k, _)| BrickKey::unpack(k)).collect(),
+            requested,
+            dropped,
+            resident_bricks: self
+                .slots
+                .owner
+                .iter()
+                .filter(|o| **o != Owner::None)
+                .count(),
+            resident_pt_blocks: self
+                .pt
+                .iter()
+                .map(|(_, s)| s.owner.iter().filter(|o| **o != Owner::None).count())
+                .collect(),
+        }
+    }
+
+    /// Unmap the entry `o` refers to.
+    fn unmap_owner(&mut self, o: Owner) {
+        match o {
+            Owner::None => {}
+            Owner::Dir(i) => self.dir[i as usize] = PageEntry::unmapped(),
+            Owner::Pt(n, b, e) => {
+                let len = self.pt_block_len[n as usize - 1];
+                self.pt[n as usize - 1].0[b as usize * len + e as usize] = PageEntry::unmapped();
+            }
+        }
+    }
+
+    /// Forget the children of page-table block `b` of cache `n` (after it
+    /// lost its owner): their slots become free, recursively, and the
+    /// block's entries are cleared so no stale mapping survives.
+    fn orphan_children(&mut self, n: usize, b: u32, report: &mut InsertReport) {
+        let len = self.pt_block_len[n - 1];
+        for i in 0..len {
+            let e = self.pt[n - 1].0[b as usize * len + i];
+            if let Kind::Mapped(slot) = entry_kind(&e, self.dtype) {
+                if n + 1 < self.layout.nmax() {
+                    let child = self.pt[n].1.id(slot);
+                    self.pt[n].1.owner[child as usize] = Owner::None;
+                    self.pt[n].1.free.push(child);
+                    self.orphan_children(n + 1, child, report);
+                } else {
+                    let child = self.slots.id(slot);
+                    self.slots.owner[child as usize] = Owner::None;
+                    self.slots.free.push(child);
+                }
+                report.orphans_reclaimed += 1;
+            }
+            self.pt[n - 1].0[b as usize * len + i] = PageEntry::unmapped();
+        }
+    }
+
+    /// Take a block of PT cache `n` for a new reference, evicting if needed.
+    fn take_pt_block(&mut self, n: usize, report: &mut InsertReport) -> Option<u32> {
+        let frame = self.frame;
+        let b = self.pt[n - 1].1.take(frame)?;
+        let old = self.pt[n - 1].1.owner[b as usize];
+        if old != Owner::None {
+            self.unmap_owner(old);
+            report.evicted_pt_blocks += 1;
+        }
+        self.pt[n - 1].1.owner[b as usize] = Owner::None;
+        self.orphan_children(n, b, report);
+        Some(b)
+    }
+
+    /// Insert loaded bricks (in the given order, most wanted first) in the
+    /// paper's order: evict from the LRU tail and unmap, write the brick into
+    /// its slot, then reference it, creating page-table blocks as needed.
+    /// Empty and constant bricks are mapped by flag and take no slot.
+    pub fn insert(&mut self, bricks: &[Arc<LoadedBrick>]) -> InsertReport {
+        let mut report = InsertReport::default();
+        let frame = self.frame;
+        for lb in bricks {
+            let key = lb.key;
+            let l = key.level as usize;
+            let c = key.channel as usize;
+            let v = [0, 1, 2].map(|a| key.brick[a] as u64 * self.cfg.brick[a]);
+            let data = matches!(lb.content, BrickContent::Data(_));
+            if data
+                && report.bytes_uploaded + self.brick_bytes as u64 > self.cfg.upload_bytes_per_frame
+            {
+                report.deferred += 1;
+                continue;
+            }
+            let p = self.p_of_voxel(l, v);
+            // Walk down, creating page-table blocks as needed.
+            let mut owner = Owner::Dir(self.dir_index(l, c, p) as u32);
+            let mut ok = true;
+            for n in 1..self.layout.nmax() {
+                let e = self.entry(owner);
+                let b = match entry_kind(&e, self.dtype) {
+                    Kind::Mapped(slot) => self.pt[n - 1].1.id(slot),
+                    _ => match self.take_pt_block(n, &mut report) {
+                        Some(b) => {
+                            let coords = self.pt[n - 1].1.coords(b);
+                            self.set_entry(owner, PageEntry::mapped(coords));
+                            self.pt[n - 1].1.owner[b as usize] = owner;
+                            b
+                        }
+                        None => {
+                            ok = false;
+                            break;
+                        }
+                    },
+                };
+                self.pt[n - 1].1.usage[b as usize].store(frame, Ordering::Relaxed);
+                owner = Owner::Pt(n as u8, b, self.block_entry(n, l, p) as u32);
+            }
+            if !ok {
+                report.deferred += 1;
+                continue;
+            }
+            if let Kind::Mapped(_) = entry_kind(&self.entry(owner), self.dtype) {
+                continue; // already resident
+            }
+            match &lb.content {
+                BrickContent::Empty => {
+                    self.set_entry(owner, PageEntry::empty());
+                    report.flagged += 1;
+                }
+                BrickContent::Constant(v) => {
+                    self.set_entry(owner, PageEntry::constant_of(self.dtype, *v));
+                    report.flagged += 1;
+                }
+                BrickContent::Data(bytes) => {
+                    let Some(s) = self.slots.take(frame) else {
+                        report.deferred += 1;
+                        continue;
+                    };
+                    // 1. evict and unmap
+                    let old = self.slots.owner[s as usize];
+                    if old != Owner::None {
+                        self.unmap_owner(old);
+                        report.evicted_bricks += 1;
+                    }
+                    // 2. write
+                    let dst = &mut self.pool
+                        [s as usize * self.brick_bytes..(s as usize + 1) * self.brick_bytes];
+                    assert_eq!(bytes.len(), dst.len(), "brick size mismatch");
+                    dst.copy_from_slice(bytes);
+                    // 3. reference
+                    let coords = self.slots.coords(s);
+                    self.set_entry(owner, PageEntry::mapped(coords));
+                    self.slots.owner[s as usize] = owner;
+                    self.slots.usage[s as usize].store(frame, Ordering::Relaxed);
+                    report.inserted += 1;
+                    report.bytes_uploaded += self.brick_bytes as u64;
+                }
+            }
+        }
+        report
+    }
+
+    fn entry(&self, o: Owner) -> PageEntry {
+        match o {
+            Owner::None => PageEntry::unmapped(),
+            Owner::Dir(i) => self.dir[i as usize],
+            Owner::Pt(n, b, e) => {
+                let len = self.pt_block_len[n as usize - 1];
+                self.pt[n as usize - 1].0[b as usize * len + e as usize]
+            }
+        }
+    }
+
+    fn set_entry(&mut self, o: Owner, e: PageEntry) {
+        match o {
+            Owner::None => {}
+            Owner::Dir(i) => self.dir[i as usize] = e,
+            Owner::Pt(n, b, i) => {
+                let len = self.pt_block_len[n as usize - 1];
+                self.pt[n as usize - 1].0[b as usize * len + i as usize] = e;
+            }
+        }
+    }
+
+    /// Whether brick `key` is mapped (resident or flagged).
+    pub fn is_resident(&self, key: BrickKey) -> bool {
+        let v = [0, 1, 2].map(|a| key.brick[a] as u64 * self.cfg.brick[a]);
+        !matches!(
+            self.resolve(key.level as usize, key.channel as usize, v),
+            Kind::Unmapped
+        )
+    }
+
+    /// Check the structural invariants (for tests): every mapped entry
+    /// points at a slot whose owner is that entry, and every owned slot is
+    /// pointed at by its owner.
+    pub fn check_invariants(&self) -> Result<(), String> {
+        let check = |o: Owner, e: PageEntry, set: &SlotSet| -> Result<(), String> {
+            if let Kind::Mapped(slot) = entry_kind(&e, self.dtype) {
+                let id = set.id(slot);
+                if set.owner[id as usize] != o {
+                    return Err(format!(
+                        "entry {o:?} maps slot {id} owned by {:?}",
+                        set.owner[id as usize]
+                    ));
+                }
+            }
+            Ok(())
+        };
+        let nmax = self.layout.nmax();
+        for (i, e) in self.dir.iter().enumerate() {
+            let set = if nmax > 1 { &self.pt[0].1 } else { &self.slots };
+            check(Owner::Dir(i as u32), *e, set)?;
+        }
+        for n in 1..nmax {
+            let (entries, set) = &self.pt[n - 1];
+            let len = self.pt_block_len[n - 1];
+            let below = if n + 1 < nmax {
+                &self.pt[n].1
+            } else {
+                &self.slots
+            };
+            for b in 0..set.len() {
+                if set.owner[b] == Owner::None {
+                    // An unowned block must hold no mapping.
+                    if entries[b * len..(b + 1) * len]
+                        .iter()
+                        .any(|e| !matches!(entry_kind(e, self.dtype), Kind::Unmapped))
+                    {
+                        return Err(format!(
+                            "unowned PT block {b} of level {n} still maps entries"
+                        ));
+                    }
+                    continue;
+                }
+                for i in 0..len {
+                    check(
+                        Owner::Pt(n as u8, b as u32, i as u32),
+                        entries[b * len + i],
+                        below,
+                    )?;
+                }
+            }
+        }
+        for (s, o) in self.slots.owner.iter().enumerate() {
+            if *o != Owner::None {
+                match entry_kind(&self.entry(*o), self.dtype) {
+                    Kind::Mapped(c) if self.slots.id(c) == s as u32 => {}
+                    _ => return Err(format!("slot {s} owned by {o:?} which does not map it")),
+                }
+            }
+        }
+        Ok(())
+    }
+
+    /// Management memory in bytes: directory, PT caches, usage, LRU, owners,
+    /// request collector (bounded), pool.
+    pub fn footprint(&self) -> Vec<(String, u64)> {
+        let e = std::mem::size_of::<PageEntry>() as u64;
+        let mut v = vec![("directory".to_string(), self.dir.len() as u64 * e)];
+        for (n, (entries, set)) in self.pt.iter().enumerate() {
+            v.push((
+                format!("page-table cache {}", n + 1),
+                entries.len() as u64 * e,
+            ));
+            v.push((
+                format!("page-table cache {} usage + LRU + owners", n + 1),
+                set.len() as u64 * (4 + 4 + 12),
+            ));
+        }
+        v.push((
+            "pool usage + LRU + owners".into(),
+            self.slots.len() as u64 * (4 + 4 + 12),
+        ));
+        v.push((
+            "request collector (bounded)".into(),
+            self.merged.max_bytes(),
+        ));
+        v.push(("brick pool".into(), self.pool.len() as u64));
+        v
+    }
+
+    pub fn channels(&self) -> usize {
+        self.channels
+    }
+}

@@ -1,0 +1,754 @@
+//! Loader and host cache against real stores written by the converter and
+//! read back, as oracle, whole level by whole level through `ZarrSource`.
+
+use brickyard_cache::brick::{BrickContent, BrickGeometry, BrickKey, LoadedBrick};
+use brickyard_cache::host_cache::{entry_cost, HostCache};
+use brickyard_cache::loader::Loader;
+use brickyard_core::{dispatch_dtype, DType, Dims3, Sample};
+use brickyard_store::builder::{convert, ConvertOptions, NoProgress};
+use brickyard_store::error::Result as SResult;
+use brickyard_store::import::zarr;
+use brickyard_store::source::{SourceMeta, VolumeSource};
+use std::collections::{HashMap, HashSet};
+use std::ops::Range;
+use std::path::{Path, PathBuf};
+use std::sync::atomic::AtomicBool;
+use std::sync::Arc;
+use std::time::Duration;
+
+const WAIT: Duration = Duration::from_secs(120);
+
+fn lcg(s: &mut u64) -> u64 {
+    *s = s
+        .wrapping_mul(6364136223846793005)
+        .wrapping_add(1442695040888963407);
+    *s >> 33
+}
+
+/// An in-memory volume, channel-major, x fastest, native endian.
+struct MemSource {
+    meta: SourceMeta,
+    data: Vec<u8>,
+}
+
+impl VolumeSource for MemSource {
+    fn meta(&self) -> &SourceMeta {
+        &self.meta
+    }
+    fn read_region(
+        &self,
+        c: usize,
+        z: Range<u64>,
+        y: Range<u64>,
+        x: Range<u64>,
+        out: &mut [u8],
+    ) -> SResult<()> {
+        let es = self.meta.dtype.size() as u64;
+        let [dz, dy, dx] = self.meta.dims;
+        let base = c as u64 * dz * dy * dx;
+        let row = ((x.end - x.start) * es) as usize;
+        let mut o = 0;
+        for zz in z {
+            for yy in y.clone() {
+                let s = ((base + (zz * dy + yy) * dx + x.start) * es) as usize;
+                out[o..o + row].copy_from_slice(&self.data[s..s + row]);
+                o += row;
+            }
+        }
+        Ok(())
+    }
+}
+
+/// A volume whose voxel (c, z, y, x) is `f(c, z, y, x)` converted to `dtype`.
+fn mem_source(
+    dims: Dims3,
+    channels: usize,
+    dtype: DType,
+    f: impl Fn(usize, u64, u64, u64) -> f64,
+) -> MemSource {
+    let mut data = Vec::new();
+    for c in 0..channels {
+        for z in 0..dims[0] {
+            for y in 0..dims[1] {
+                for x in 0..dims[2] {
+                    data.extend(brickyard_cache::brick::value_bytes(dtype, f(c, z, y, x)));
+                }
+            }
+        }
+    }
+    MemSource {
+        meta: SourceMeta::new("mem", dims, channels, dtype),
+        data,
+    }
+}
+
+/// Zero slab (z < d/4), constant slab (z < d/2, value 37 + c), noise.
+fn slabs(dims: Dims3, seed: u64) -> impl Fn(usize, u64, u64, u64) -> f64 {
+    move |c, z, y, x| {
+        if z < dims[0] / 4 {
+            0.0
+        } else if z < dims[0] / 2 {
+            37.0 + c as f64
+        } else {
+            let mut s = seed ^ (((c as u64 * 1000 + z) * 1000 + y) * 1000 + x);
+            lcg(&mut s);
+            (lcg(&mut s) % 200) as f64 + 1.0
+        }
+    }
+}
+
+fn convert_to(dir: &Path, name: &str, src: &MemSource, brick: u64, shard: u64) -> PathBuf {
+    let out = dir.join(name);
+    let opts = ConvertOptions {
+        brick: [brick; 3],
+        shard: [shard; 3],
+        ..Default::default()
+    };
+    convert(src, &out, &opts, &NoProgress, &AtomicBool::new(false)).unwrap();
+    out
+}
+
+/// Every level, every channel, read whole through `ZarrSource`, as f64.
+struct Levels {
+    dims: Vec<Dims3>,
+    /// `[level][channel]` voxels.
+    data: Vec<Vec<Vec<f64>>>,
+    dtype: DType,
+}
+
+fn read_levels(store: &Path, nlevels: usize) -> Levels {
+    let mut dims = vec![];
+    let mut data = vec![];
+    let mut dtype = DType::U8;
+    for l in 0..nlevels {
+        let src = zarr::open(store, l).unwrap();
+        let m = src.meta();
+        dtype = m.dtype;
+        let [dz, dy, dx] = m.dims;
+        let es = m.dtype.size();
+        let mut chans = vec![];
+        for c in 0..m.channels {
+            let mut b = vec![0u8; (dz * dy * dx) as usize * es];
+            src.read_region(c, 0..dz, 0..dy, 0..dx, &mut b).unwrap();
+            let v: Vec<f64> = dispatch_dtype!(m.dtype, T => {
+                b.chunks_exact(es).map(|e| <T as Sample>::from_le(e).to_f64()).collect()
+            });
+            chans.push(v);
+        }
+        dims.push(m.dims);
+        data.push(chans);
+    }
+    Levels { dims, data, dtype }
+}
+
+/// Values of a padded brick as a dense f64 array.
+fn brick_values(b: &LoadedBrick, g: &BrickGeometry) -> Vec<f64> {
+    let n = g.voxels_per_brick() as usize;
+    let bytes = b.content.to_dense(n, g.dtype);
+    let es = g.dtype.size();
+    dispatch_dtype!(g.dtype, T => {
+        bytes.chunks_exact(es).map(|e| <T as Sample>::from_le(e).to_f64()).collect()
+    })
+}
+
+/// The padded brick cut from the whole level with clamp-to-edge, and the
+/// (min, max) of the brick proper.
+fn crop(levels: &Levels, g: &BrickGeometry, key: &BrickKey) -> (Vec<f64>, f64, f64) {
+    let d = levels.dims[key.level as usize];
+    let v = &levels.data[key.level as usize][key.channel as usize];
+    let po = g.padded_origin_of(key);
+    let p = g.padded();
+    let o = g.origin_of(key);
+    let mut out = vec![];
+    let (mut mn, mut mx) = (f64::INFINITY, f64::NEG_INFINITY);
+    for k in 0..p[0] as i64 {
+        for j in 0..p[1] as i64 {
+            for i in 0..p[2] as i64 {
+                let q = [po[0] + k, po[1] + j, po[2] + i];
+                let c = [0, 1, 2].map(|a| q[a].clamp(0, d[a] as i64 - 1) as u64);
+                let val = v[((c[0] * d[1] + c[1]) * d[2] + c[2]) as usize];
+                out.push(val);
+                let inside = (0..3).all(|a| {
+                    q[a] >= o[a] as i64 && q[a] < (o[a] + g.brick[a]) as i64 && (q[a] as u64) < d[a]
+                });
+                if inside {
+                    mn = mn.min(val);
+                    mx = mx.max(val);
+                }
+            }
+        }
+    }
+    (out, mn, mx)
+}
+
+fn all_keys(g: &BrickGeometry) -> Vec<BrickKey> {
+    let mut keys = vec![];
+    for l in 0..g.levels.len() {
+        for c in 0..g.channels {
+            keys.extend(g.keys(l, c));
+        }
+    }
+    keys
+}
+
+/// Request everything, wait, and return what arrived by key.
+fn load_all(loader: &Loader, keys: &[BrickKey]) -> HashMap<BrickKey, Arc<LoadedBrick>> {
+    let req: Vec<(BrickKey, u32)> = keys.iter().map(|&k| (k, 1)).collect();
+    loader.request(&req);
+    assert!(loader.wait_idle(WAIT), "loader did not finish");
+    let mut got = HashMap::new();
+    for b in loader.poll() {
+        assert!(got.insert(b.key, b).is_none(), "brick delivered twice");
+    }
+    got
+}
+
+/// Load every brick and compare; returns how many came back uniform.
+fn check_all_bricks(store: &Path, brick: Dims3, apron: u64, expect_stats: bool) -> u64 {
+    let cache = Arc::new(HostCache::new(1 << 30));
+    let loader = Loader::open(store, brick, apron, 2, cache.clone()).unwrap();
+    let g = loader.geometry().clone();
+    assert_eq!(loader.has_stats(0), expect_stats);
+    let levels = read_levels(store, g.levels.len());
+    assert_eq!(levels.dims, g.levels);
+    assert_eq!(levels.dtype, g.dtype);
+    let keys = all_keys(&g);
+    let got = load_all(&loader, &keys);
+    assert!(loader.take_failures().is_empty());
+    assert_eq!(got.len(), keys.len());
+    let mut uniform = 0;
+    let mut read = 0;
+    for k in &keys {
+        let b = &got[k];
+        let (want, mn, mx) = crop(&levels, &g, k);
+        let have = brick_values(b, &g);
+        assert_eq!(have, want, "brick {k:?} (brick {brick:?}, apron {apron})");
+        assert_eq!((b.min, b.max), (mn, mx), "min/max of {k:?}");
+        // Uniform exactly when the padded brick is.
+        assert_eq!(b.is_uniform(), want.iter().all(|&v| v == want[0]), "{k:?}");
+        if let BrickContent::Data(d) = &b.content {
+            assert_eq!(d.len() as u64, g.bytes_per_brick());
+            assert!(b.bytes_read > 0);
+        } else {
+            uniform += 1;
+        }
+        read += b.bytes_read;
+        assert!(cache.contains(k));
+    }
+    let st = loader.stats();
+    assert_eq!(st.bricks_loaded, keys.len() as u64);
+    assert_eq!(st.bytes_read, read);
+    assert_eq!(st.bricks_empty + st.bricks_constant, uniform);
+    // A second request is answered from the cache without reading.
+    let again = load_all(&loader, &keys);
+    assert_eq!(again.len(), keys.len());
+    assert_eq!(loader.bricks_from_cache(), keys.len() as u64);
+    assert_eq!(loader.bytes_read(), read);
+    for k in &keys {
+        assert!(Arc::ptr_eq(&again[k], &got[k]));
+    }
+    uniform
+}
+
+#[test]
+fn every_brick_equals_a_clamped_crop_of_its_level() {
+    let dir = tempfile::tempdir().unwrap();
+    let dims = [37, 45, 51];
+    let src = mem_source(dims, 1, DType::U16, slabs(dims, 1));
+    let store = convert_to(dir.path(), "a.ome.zarr", &src, 16, 32);
+    for apron in [1, 2] {
+        for brick in [[8; 3], [12; 3], [20; 3], [12, 8, 20]] {
+            let uniform = check_all_bricks(&store, brick, apron, true);
+            // Zero below z = 9, constant below z = 18.
+            if brick == [8; 3] && apron == 1 {
+                assert!(uniform > 0, "the volume has uniform bricks");
+            }
+        }
+    }
+}
+
+#[test]
+fn multichannel_and_signed_bricks_equal_crops() {
+    let dir = tempfile::tempdir().unwrap();
+    let dims = [40, 26, 30];
+    let f = slabs(dims, 2);
+    let src = mem_source(dims, 2, DType::I16, move |c, z, y, x| f(c, z, y, x) - 50.0);
+    let store = convert_to(dir.path(), "m.ome.zarr", &src, 8, 16);
+    for (brick, apron) in [([8; 3], 1), ([6, 10, 4], 2), ([32; 3], 1)] {
+        let uniform = check_all_bricks(&store, brick, apron, true);
+        assert_eq!(uniform > 0, brick != [32; 3], "{brick:?}");
+    }
+}
+
+#[test]
+fn stores_without_statistics_load_the_same() {
+    let dir = tempfile::tempdir().unwrap();
+    let dims = [37, 45, 51];
+    let src = mem_source(dims, 1, DType::F32, slabs(dims, 3));
+    let store = convert_to(dir.path(), "f.ome.zarr", &src, 16, 32);
+    std::fs::remove_dir_all(store.join("_brickyard")).unwrap();
+    // Uniform padded bricks are still recognized, after reading them.
+    assert!(check_all_bricks(&store, [8; 3], 1, false) > 0);
+    check_all_bricks(&store, [20; 3], 2, false);
+}
+
+/// Expected kind of each brick, from the level's voxels: `Some(true)` when
+/// the statistics prove it uniform (no read), `Some(false)` when it is
+/// uniform but only reading shows it, `None` for data.
+fn expected_kind(
+    levels: &Levels,
+    g: &BrickGeometry,
+    store_brick: Dims3,
+    key: &BrickKey,
+) -> Option<bool> {
+    let d = levels.dims[key.level as usize];
+    let v = &levels.data[key.level as usize][key.channel as usize];
+    let po = g.padded_origin_of(key);
+    let p = g.padded();
+    let lo = [0, 1, 2].map(|a| po[a].max(0) as u64);
+    let hi = [0, 1, 2].map(|a| ((po[a] + p[a] as i64) as u64).min(d[a]));
+    let uniform = |lo: Dims3, hi: Dims3| -> bool {
+        let first = v[((lo[0] * d[1] + lo[1]) * d[2] + lo[2]) as usize];
+        (lo[0]..hi[0]).all(|z| {
+            (lo[1]..hi[1])
+                .all(|y| (lo[2]..hi[2]).all(|x| v[((z * d[1] + y) * d[2] + x) as usize] == first))
+        })
+    };
+    let slo = [0, 1, 2].map(|a| lo[a] / store_brick[a] * store_brick[a]);
+    let shi = [0, 1, 2].map(|a| (hi[a].div_ceil(store_brick[a]) * store_brick[a]).min(d[a]));
+    if uniform(slo, shi) {
+        Some(true)
+    } else if uniform(lo, hi) {
+        Some(false)
+    } else {
+        None
+    }
+}
+
+#[test]
+fn uniform_regions_need_no_reads() {
+    let dir = tempfile::tempdir().unwrap();
+    let dims = [64, 40, 44];
+    // Zero below z = 24, 9 up to z = 48, noise above.
+    let src = mem_source(dims, 1, DType::U8, |_, z, y, x| {
+        if z < 24 {
+            0.0
+        } else if z < 48 {
+            9.0
+        } else {
+            let mut s = (z * 1000 + y) * 1000 + x;
+            lcg(&mut s);
+            (lcg(&mut s) % 250) as f64 + 1.0
+        }
+    });
+    let store = convert_to(dir.path(), "u.ome.zarr", &src, 8, 16);
+
+    // Engine brick = store brick, apron 1: brick z-index 0 and 1 are empty,
+    // 4 is constant, 2, 3, 5 (touching another region through the apron)
+    // and above are data.
+    let cache = Arc::new(HostCache::new(1 << 30));
+    let loader = Loader::open(&store, [8; 3], 1, 2, cache).unwrap();
+    let g = loader.geometry().clone();
+    let got = load_all(&loader, &g.keys(0, 0).collect::<Vec<_>>());
+    for (k, b) in &got {
+        match k.brick[0] {
+            0 | 1 => {
+                assert_eq!(b.content, BrickContent::Empty, "{k:?}");
+                assert_eq!(b.bytes_read, 0);
+                assert_eq!((b.min, b.max), (0.0, 0.0));
+            }
+            4 => {
+                assert_eq!(b.content, BrickContent::Constant(9.0), "{k:?}");
+                assert_eq!(b.bytes_read, 0);
+                assert_eq!((b.min, b.max), (9.0, 9.0));
+            }
+            _ => {
+                assert!(matches!(b.content, BrickContent::Data(_)), "{k:?}");
+                assert!(b.bytes_read > 0);
+            }
+        }
+    }
+    let st = loader.stats();
+    let per_layer = (5 * 6) as u64;
+    assert_eq!(st.bricks_empty, 2 * per_layer);
+    assert_eq!(st.bricks_constant, per_layer);
+    assert_eq!(
+        st.bytes_read,
+        got.values().map(|b| b.bytes_read).sum::<u64>()
+    );
+    // Interior data bricks read exactly their padded size.
+    let inner = BrickKey::new(0, 0, [6, 2, 2]);
+    assert_eq!(got[&inner].bytes_read, g.bytes_per_brick());
+    drop(loader);
+
+    // Other engine bricks, every level: the kind follows from the voxels.
+    for (brick, apron) in [([12; 3], 2), ([4; 3], 1), ([6, 16, 10], 1)] {
+        let cache = Arc::new(HostCache::new(1 << 30));
+        let loader = Loader::open(&store, brick, apron, 2, cache).unwrap();
+        let g = loader.geometry().clone();
+        let levels = read_levels(&store, g.levels.len());
+        let got = load_all(&loader, &all_keys(&g));
+        let mut counts = [0; 3];
+        for (k, b) in &got {
+            match expected_kind(&levels, &g, [8; 3], k) {
+                Some(true) => {
+                    assert!(b.is_uniform(), "{k:?} {brick:?}");
+                    assert_eq!(b.bytes_read, 0, "{k:?} {brick:?}");
+                    counts[0] += 1;
+                }
+                Some(false) => {
+                    assert!(b.is_uniform(), "{k:?} {brick:?}");
+                    assert!(b.bytes_read > 0, "{k:?} {brick:?}");
+                    counts[1] += 1;
+                }
+                None => {
+                    assert!(!b.is_uniform(), "{k:?} {brick:?}");
+                    counts[2] += 1;
+                }
+            }
+            let (want, _, _) = crop(&levels, &g, k);
+            assert_eq!(brick_values(b, &g), want);
+        }
+        assert!(counts[0] > 0 && counts[2] > 0, "{brick:?}: {counts:?}");
+    }
+}
+
+fn test_brick(i: u64, data: usize) -> Arc<LoadedBrick> {
+    Arc::new(LoadedBrick {
+        key: BrickKey::new((i % 3) as u8, 0, [i as u32, 0, 0]),
+        content: match data {
+            0 => BrickContent::Empty,
+            1 => BrickContent::Constant(5.0),
+            n => BrickContent::Data(vec![7u8; n].into()),
+        },
+        min: 0.0,
+        max: 0.0,
+        bytes_read: 0,
+    })
+}
+
+#[test]
+fn host_cache_matches_a_naive_lru_model() {
+    for budget in [0, 300, 5_000, 40_000] {
+        let cache = HostCache::new(budget);
+        // Most recently used first: (key, cost).
+        let mut model: Vec<(BrickKey, u64)> = vec![];
+        let mut s = budget + 11;
+        for step in 0..20_000 {
+            let i = lcg(&mut s) % 48;
+            if lcg(&mut s) % 5 < 3 {
+                let size = match lcg(&mut s) % 4 {
+                    0 => 0,
+                    1 => 1,
+                    _ => (lcg(&mut s) % 4000) as usize,
+                };
+                let b = test_brick(i, size);
+                let cost = entry_cost(&b);
+                let key = b.key;
+                let ok = cache.insert(b);
+                model.retain(|e| e.0 != key);
+                if cost <= budget {
+                    while model.iter().map(|e| e.1).sum::<u64>() + cost > budget {
+                        model.pop();
+                    }
+                    model.insert(0, (key, cost));
+                }
+                assert_eq!(ok, cost <= budget);
+            } else {
+                let key = test_brick(i, 0).key;
+                let got = cache.get(&key);
+                let pos = model.iter().position(|e| e.0 == key);
+                assert_eq!(got.is_some(), pos.is_some(), "step {step}");
+                if let Some(p) = pos {
+                    let e = model.remove(p);
+                    model.insert(0, e);
+                    assert_eq!(got.unwrap().key, key);
+                }
+            }
+            assert!(cache.bytes() <= budget);
+            assert_eq!(cache.bytes(), model.iter().map(|e| e.1).sum::<u64>());
+            assert_eq!(
+                cache.keys_by_recency(),
+                model.iter().map(|e| e.0).collect::<Vec<_>>(),
+                "step {step}"
+            );
+        }
+        assert_eq!(cache.len(), model.len());
+        assert_eq!(cache.budget(), budget);
+    }
+}
+
+#[test]
+fn host_cache_budget_holds_under_concurrency() {
+    let budget = 50_000;
+    let cache = Arc::new(HostCache::new(budget));
+    std::thread::scope(|sc| {
+        for t in 0..4u64 {
+            let cache = cache.clone();
+            sc.spawn(move || {
+                let mut s = t + 1;
+                for _ in 0..20_000 {
+                    let i = lcg(&mut s) % 200;
+                    if lcg(&mut s).is_multiple_of(2) {
+                        cache.insert(test_brick(i, (lcg(&mut s) % 3000) as usize));
+                    } else if let Some(b) = cache.get(&test_brick(i, 0).key) {
+                        assert_eq!(b.key, test_brick(i, 0).key);
+                    }
+                    assert!(cache.bytes() <= budget);
+                }
+            });
+        }
+    });
+    assert!(cache.bytes() <= budget);
+    assert!(cache.hits() > 0 && cache.misses() > 0 && cache.evictions() > 0);
+    let n = cache.keys_by_recency().len();
+    assert_eq!(n, cache.len());
+}
+
+fn noise_store(dir: &Path) -> PathBuf {
+    let dims = [40, 36, 44];
+    let src = mem_source(dims, 1, DType::U16, |_, z, y, x| {
+        let mut s = (z * 1000 + y) * 1000 + x + 5;
+        lcg(&mut s);
+        (lcg(&mut s) % 60000) as f64
+    });
+    convert_to(dir, "n.ome.zarr", &src, 8, 16)
+}
+
+/// Keys of every level with pseudo-random priorities (many ties).
+fn prioritized(g: &BrickGeometry, seed: u64) -> Vec<(BrickKey, u32)> {
+    let mut s = seed;
+    let mut v: Vec<(BrickKey, u32)> = all_keys(g)
+        .into_iter()
+        .map(|k| (k, (lcg(&mut s) % 5) as u32))
+        .collect();
+    // Shuffle the request order.
+    for i in (1..v.len()).rev() {
+        let j = (lcg(&mut s) % (i as u64 + 1)) as usize;
+        v.swap(i, j);
+    }
+    v
+}
+
+/// The service order: priority, then coarser level, then request order.
+fn service_order(req: &[(BrickKey, u32)]) -> Vec<BrickKey> {
+    let mut v: Vec<(usize, &(BrickKey, u32))> = req.iter().enumerate().collect();
+    v.sort_by_key(|(i, (k, p))| (std::cmp::Reverse(*p), std::cmp::Reverse(k.level), *i));
+    v.into_iter().map(|(_, (k, _))| *k).collect()
+}
+
+#[test]
+fn one_thread_serves_by_priority_then_coarser_level() {
+    let dir = tempfile::tempdir().unwrap();
+    let store = noise_store(dir.path());
+    let cache = Arc::new(HostCache::new(1 << 30));
+    let loader = Loader::open(&store, [8; 3], 1, 1, cache).unwrap();
+    let req = prioritized(loader.geometry(), 9);
+    assert!(req.len() > 100);
+    loader.set_paused(true);
+    loader.request(&req);
+    // Duplicates in one call and across calls are queued once.
+    loader.request(&req[..10]);
+    assert_eq!(loader.pending(), req.len());
+    assert!(!loader.wait_idle(Duration::from_millis(50)));
+    loader.set_paused(false);
+    assert!(loader.wait_idle(WAIT));
+    let got: Vec<BrickKey> = loader.poll().iter().map(|b| b.key).collect();
+    assert_eq!(got, service_order(&req));
+    assert!(loader.poll().is_empty());
+
+    // Without pausing: a request made in one call is served in order too
+    // (the worker takes the best entry each time).
+    let dir2 = tempfile::tempdir().unwrap();
+    let store2 = noise_store(dir2.path());
+    let loader = Loader::open(&store2, [12; 3], 1, 1, Arc::new(HostCache::new(1 << 30))).unwrap();
+    let req = prioritized(loader.geometry(), 10);
+    loader.request(&req);
+    assert!(loader.wait_idle(WAIT));
+    let got: Vec<BrickKey> = loader.poll().iter().map(|b| b.key).collect();
+    assert_eq!(got, service_order(&req));
+}
+
+#[test]
+fn raising_a_priority_moves_the_request_forward() {
+    let dir = tempfile::tempdir().unwrap();
+    let store = noise_store(dir.path());
+    let loader = Loader::open(&store, [8; 3], 1, 1, Arc::new(HostCache::new(1 << 30))).unwrap();
+    let keys: Vec<BrickKey> = loader.geometry().keys(0, 0).take(20).collect();
+    loader.set_paused(true);
+    loader.request(&keys.iter().map(|&k| (k, 1)).collect::<Vec<_>>());
+    loader.request(&[(keys[19], 9), (keys[7], 5)]);
+    assert_eq!(loader.pending(), 20);
+    loader.set_paused(false);
+    assert!(loader.wait_idle(WAIT));
+    let got: Vec<BrickKey> = loader.poll().iter().map(|b| b.key).collect();
+    let mut want = vec![keys[19], keys[7]];
+    want.extend(keys.iter().filter(|k| **k != keys[19] && **k != keys[7]));
+    assert_eq!(got, want);
+}
+
+#[test]
+fn cancelled_requests_never_arrive() {
+    let dir = tempfile::tempdir().unwrap();
+    let store = noise_store(dir.path());
+    let cache = Arc::new(HostCache::new(1 << 30));
+    let loader = Loader::open(&store, [8; 3], 1, 1, cache.clone()).unwrap();
+    let req = prioritized(loader.geometry(), 21);
+    loader.set_paused(true);
+    loader.request(&req);
+    let wanted: Vec<BrickKey> = req.iter().step_by(3).map(|e| e.0).collect();
+    let dropped = loader.cancel_except(&wanted);
+    assert_eq!(dropped, req.len() - wanted.len());
+    assert_eq!(loader.pending(), wanted.len());
+    loader.set_paused(false);
+    assert!(loader.wait_idle(WAIT));
+    let got: Vec<BrickKey> = loader.poll().iter().map(|b| b.key).collect();
+    let want_order: Vec<BrickKey> = service_order(&req)
+        .into_iter()
+        .filter(|k| wanted.contains(k))
+        .collect();
+    assert_eq!(got, want_order);
+    assert_eq!(loader.bricks_loaded(), wanted.len() as u64);
+    assert_eq!(cache.len(), wanted.len());
+
+    // Racing a running worker: what arrives is a prefix of the service
+    // order (started before the cancel) followed by wanted keys only.
+    let cache = Arc::new(HostCache::new(1 << 30));
+    let loader = Loader::open(&store, [4; 3], 1, 1, cache).unwrap();
+    let req = prioritized(loader.geometry(), 22);
+    let order = service_order(&req);
+    loader.request(&req);
+    let wanted: HashSet<BrickKey> = req.iter().step_by(2).map(|e| e.0).collect();
+    let dropped = loader.cancel_except(&wanted.iter().copied().collect::<Vec<_>>());
+    assert!(loader.wait_idle(WAIT));
+    let got: Vec<BrickKey> = loader.poll().iter().map(|b| b.key).collect();
+    assert_eq!(got.len() + dropped, req.len());
+    let last_unwanted = got.iter().rposition(|k| !wanted.contains(k));
+    let prefix = last_unwanted.map_or(0, |i| i + 1);
+    assert_eq!(got[..prefix], order[..prefix]);
+    let rest: Vec<BrickKey> = order[prefix..]
+        .iter()
+        .filter(|k| wanted.contains(k))
+        .copied()
+        .collect();
+    assert_eq!(got[prefix..], rest[..]);
+}
+
+#[test]
+fn cached_bricks_are_delivered_without_loading() {
+    let dir = tempfile::tempdir().unwrap();
+    let store = noise_store(dir.path());
+    let cache = Arc::new(HostCache::new(1 << 30));
+    let loader = Loader::open(&store, [8; 3], 1, 2, cache.clone()).unwrap();
+    let keys: Vec<BrickKey> = loader.geometry().keys(1, 0).collect();
+    let first = load_all(&loader, &keys);
+    let read = loader.bytes_read();
+    // Requesting again, twice before polling: each delivered once.
+    let req: Vec<(BrickKey, u32)> = keys.iter().map(|&k| (k, 3)).collect();
+    loader.request(&req);
+    loader.request(&req);
+    assert_eq!(loader.pending(), 0);
+    let again = loader.poll();
+    assert_eq!(again.len(), keys.len());
+    for b in &again {
+        assert!(Arc::ptr_eq(b, &first[&b.key]));
+    }
+    assert_eq!(loader.bytes_read(), read);
+    assert_eq!(loader.bricks_from_cache(), keys.len() as u64);
+    assert_eq!(loader.bricks_loaded(), keys.len() as u64);
+
+    // A cache too small for one data brick: bricks still arrive by poll.
+    let tiny = Arc::new(HostCache::new(100));
+    let loader = Loader::open(&store, [8; 3], 1, 2, tiny.clone()).unwrap();
+    let got = load_all(&loader, &keys);
+    assert_eq!(got.len(), keys.len());
+    assert_eq!(tiny.len(), 0);
+}
+
+fn shard_files(dir: &Path, out: &mut Vec<PathBuf>) {
+    for e in std::fs::read_dir(dir).unwrap().flatten() {
+        let p = e.path();
+        if p.is_dir() {
+            shard_files(&p, out);
+        } else if p.file_name().unwrap() != "zarr.json" {
+            out.push(p);
+        }
+    }
+}
+
+#[test]
+fn broken_stores_report_failures_without_hanging() {
+    let dir = tempfile::tempdir().unwrap();
+    let store = noise_store(dir.path());
+    let mut shards = vec![];
+    shard_files(&store.join("0"), &mut shards);
+    shards.sort();
+    assert!(shards.len() >= 4);
+    // One shard truncated, one with garbage of the same length (bad CRC).
+    std::fs::write(&shards[0], b"garbage").unwrap();
+    let len = std::fs::metadata(&shards[1]).unwrap().len() as usize;
+    std::fs::write(&shards[1], vec![0xA5u8; len]).unwrap();
+
+    let cache = Arc::new(HostCache::new(1 << 30));
+    let loader = Loader::open(&store, [8; 3], 1, 2, cache).unwrap();
+    let keys: Vec<BrickKey> = loader.geometry().keys(0, 0).collect();
+    let got = load_all(&loader, &keys);
+    let failures = loader.take_failures();
+    assert!(!failures.is_empty());
+    assert_eq!(got.len() + failures.len(), keys.len());
+    for f in &failures {
+        assert!(!got.contains_key(&f.key));
+        assert!(!f.message.is_empty());
+    }
+    assert_eq!(loader.failed_keys().len(), failures.len());
+    assert_eq!(loader.stats().bricks_failed, failures.len() as u64);
+    // Failed keys are not retried on a new request...
+    loader.request(&failures.iter().map(|f| (f.key, 1)).collect::<Vec<_>>());
+    assert_eq!(loader.pending(), 0);
+    assert!(loader.wait_idle(WAIT));
+    assert!(loader.take_failures().is_empty());
+    // ... until asked to.
+    loader.retry_failed();
+    loader.request(&failures.iter().map(|f| (f.key, 1)).collect::<Vec<_>>());
+    assert!(loader.wait_idle(WAIT));
+    assert_eq!(loader.take_failures().len(), failures.len());
+    // The workers are still alive.
+    let ok: Vec<BrickKey> = loader.geometry().keys(1, 0).collect();
+    assert_eq!(load_all(&loader, &ok).len(), ok.len());
+
+    // A key outside the volume is a failure, not a panic.
+    let bad = BrickKey::new(0, 0, [999, 0, 0]);
+    loader.request(&[(bad, 1)]);
+    assert_eq!(loader.take_failures()[0].key, bad);
+    assert!(loader.load_now(&bad).is_err());
+
+    // Stores that cannot be opened.
+    assert!(Loader::open(
+        &dir.path().join("missing"),
+        [8; 3],
+        1,
+        1,
+        Arc::new(HostCache::new(0))
+    )
+    .is_err());
+    std::fs::remove_file(store.join("1/zarr.json")).unwrap();
+    assert!(Loader::open(&store, [8; 3], 1, 1, Arc::new(HostCache::new(0))).is_err());
+    assert!(Loader::open(&store, [0, 8, 8], 1, 1, Arc::new(HostCache::new(0))).is_err());
+}
+
+#[test]
+fn a_deleted_shard_reads_as_fill_value() {
+    // Zarr semantics: a missing shard is all fill value, not an error.
+    // Statistics still say "data", so the bricks are read and come back 0.
+    let dir = tempfile::tempdir().unwrap();
+    let store = noise_store(dir.path());
+    let mut shards = vec![];
+    shard_files(&store.join("0"), &mut shards);
+    shards.sort();
+    std::fs::remove_file(&shards[0]).unwrap();
+    let loader = Loader::open(&store, [8; 3], 0, 1, Arc::new(HostCache::new(1 << 30))).unwrap();
+    let k = BrickKey::new(0, 0, [0, 0, 0]);
+    let b = loader.load_now(&k).unwrap();
+    assert_eq!(b.content, BrickContent::Empty);
+    assert!(b.bytes_read > 0);
+}

@@ -1,0 +1,273 @@
+//! The virtual memory against a naive model: random access sequences with
+//! random budgets never return a wrong value, never exceed a budget,
+//! eventually serve every request when the working set fits, and keep
+//! making progress when it does not.
+
+use brickyard_cache::brick::{BrickContent, BrickKey, LoadedBrick};
+use brickyard_cache::vm::{VirtualMemory, VmConfig};
+use brickyard_core::{plan_levels, DType, Dims3};
+use std::sync::Arc;
+
+struct Lcg(u64);
+impl Lcg {
+    fn next(&mut self) -> u64 {
+        self.0 = self
+            .0
+            .wrapping_mul(6364136223846793005)
+            .wrapping_add(1442695040888963407);
+        self.0 >> 33
+    }
+    fn unit(&mut self) -> f64 {
+        (self.next() % 1_000_000) as f64 / 1_000_000.0
+    }
+    fn below(&mut self, n: u64) -> u64 {
+        self.next() % n.max(1)
+    }
+}
+
+/// Whole levels in memory (u16), independent per level.
+struct Model {
+    levels: Vec<Dims3>,
+    data: Vec<Vec<u16>>,
+}
+
+impl Model {
+    fn new(dims: Dims3, rng: &mut Lcg) -> Model {
+        let levels: Vec<Dims3> = plan_levels(dims, [1.0; 3], [0.0; 3], [4; 3])
+            .levels
+            .iter()
+            .map(|l| l.dims)
+            .collect();
+        let data = levels
+            .iter()
+            .map(|d| {
+                let n = (d[0] * d[1] * d[2]) as usize;
+                // Smooth-ish data with a zero half, so empty bricks occur.
+                (0..n)
+                    .map(|i| {
+                        let x = i as u64 % d[2];
+                        if x < d[2] / 3 {
+                            0
+                        } else {
+                            (rng.next() % 1000) as u16
+                        }
+                    })
+                    .collect()
+            })
+            .collect();
+        Model { levels, data }
+    }
+    fn at(&self, l: usize, v: [i64; 3]) -> f32 {
+        let d = self.levels[l];
+        let c = [0, 1, 2].map(|a| v[a].clamp(0, d[a] as i64 - 1) as u64);
+        self.data[l][((c[0] * d[1] + c[1]) * d[2] + c[2]) as usize] as f32
+    }
+    /// Reference sample: clamp-to-edge trilinear or nearest on the level.
+    fn sample(&self, l: usize, p: [f64; 3], trilinear: bool) -> f32 {
+        let d = self.levels[l];
+        let pos = [0, 1, 2].map(|a| p[a] * d[a] as f64);
+        if !trilinear {
+            return self.at(
+                l,
+                [0, 1, 2].map(|a| (pos[a].floor() as i64).min(d[a] as i64 - 1)),
+            );
+        }
+        let q = [0, 1, 2].map(|a| (pos[a] - 0.5).clamp(0.0, (d[a] - 1) as f64));
+        let b = q.map(|x| x.floor());
+        let f = [0, 1, 2].map(|a| q[a] - b[a]);
+        let mut acc = 0.0;
+        for dz in 0..2 {
+            for dy in 0..2 {
+                for dx in 0..2 {
+                    let w = (if dz == 1 { f[0] } else { 1.0 - f[0] })
+                        * (if dy == 1 { f[1] } else { 1.0 - f[1] })
+                        * (if dx == 1 { f[2] } else { 1.0 - f[2] });
+                    acc += w * self.at(l, [b[0] as i64 + dz, b[1] as i64 + dy, b[2] as i64 + dx])
+                        as f64;
+                }
+            }
+        }
+        acc as f32
+    }
+    /// The brick with its apron, as the loader delivers it.
+    fn brick(&self, key: BrickKey, brick: Dims3, apron: u64) -> Arc<LoadedBrick> {
+        let l = key.level as usize;
+        let a = apron as i64;
+        let mut out = vec![];
+        let (mut mn, mut mx) = (f64::INFINITY, f64::NEG_INFINITY);
+        let mut uniform = true;
+        let first = self.at(
+            l,
+            [0, 1, 2].map(|i| key.brick[i] as i64 * brick[i] as i64 - a),
+        );
+        for z in -a..brick[0] as i64 + a {
+            for y in -a..brick[1] as i64 + a {
+                for x in -a..brick[2] as i64 + a {
+                    let v = [z, y, x];
+                    let g = [0, 1, 2].map(|i| key.brick[i] as i64 * brick[i] as i64 + v[i]);
+                    let val = self.at(l, g);
+                    uniform &= val == first;
+                    out.extend_from_slice(&(val as u16).to_le_bytes());
+                    let inside = (0..3).all(|i| {
+                        v[i] >= 0 && v[i] < brick[i] as i64 && g[i] < self.levels[l][i] as i64
+                    });
+                    if inside {
+                        mn = mn.min(val as f64);
+                        mx = mx.max(val as f64);
+                    }
+                }
+            }
+        }
+        let content = if uniform && first == 0.0 {
+            BrickContent::Empty
+        } else if uniform {
+            BrickContent::Constant(first as f64)
+        } else {
+            BrickContent::Data(out.into())
+        };
+        Arc::new(LoadedBrick {
+            key,
+            content,
+            min: mn,
+            max: mx,
+            bytes_read: 0,
+        })
+    }
+}
+
+/// Counts of what a case exercised.
+#[derive(Default)]
+struct Seen {
+    evicted_bricks: usize,
+    evicted_pt_blocks: usize,
+    orphans: usize,
+    deep: usize,
+    flagged: usize,
+}
+
+fn run_case(seed: u64, fits: bool, seen: &mut Seen) {
+    let mut rng = Lcg(seed);
+    let dims = [4 + rng.below(20), 4 + rng.below(30), 4 + rng.below(40)];
+    let model = Model::new(dims, &mut rng);
+    let brick = [4, 4, 4];
+    let apron = 1;
+    let padded_bytes = 6 * 6 * 6 * 2;
+    let total_bricks: u64 = model
+        .levels
+        .iter()
+        .map(|d| (0..3).map(|a| d[a].div_ceil(4)).product::<u64>())
+        .sum();
+    let slots = if fits {
+        total_bricks + 2
+    } else {
+        2 + rng.below(total_bricks / 3 + 1)
+    };
+    let cfg = VmConfig {
+        brick,
+        apron,
+        pt_block: [1 + rng.below(2), 2, 2],
+        max_dir_entries: [4, 16, 64, 100_000][rng.below(4) as usize],
+        pool_bytes: slots * padded_bytes,
+        pt_cache_blocks: if fits { 4096 } else { 2 + rng.below(6) },
+        request_cap: 1 + rng.below(12) as usize,
+        upload_bytes_per_frame: padded_bytes * (1 + rng.below(8)),
+    };
+    let cap = cfg.request_cap;
+    let pool_budget = cfg.pool_bytes;
+    let mut vm = VirtualMemory::new(&model.levels, 1, DType::U16, cfg);
+    if vm.layout().nmax() >= 3 {
+        seen.deep += 1;
+    }
+    assert!(vm.pool_bytes() as u64 <= pool_budget, "pool over budget");
+    // A fixed working set of positions, sampled every frame.
+    let mut points: Vec<(usize, [f64; 3], bool)> = (0..60)
+        .map(|_| {
+            let l = rng.below(model.levels.len() as u64) as usize;
+            (l, [rng.unit(), rng.unit(), rng.unit()], rng.below(2) == 0)
+        })
+        .collect();
+    let mut complete_at = None;
+    let mut inserted_total = 0;
+    for frame in 0..400 {
+        // A view that fits stays put until complete; otherwise it moves:
+        // a few points change every frame.
+        if !fits {
+            for _ in 0..6 {
+                let i = rng.below(points.len() as u64) as usize;
+                let l = rng.below(model.levels.len() as u64) as usize;
+                points[i] = (l, [rng.unit(), rng.unit(), rng.unit()], rng.below(2) == 0);
+            }
+        }
+        vm.begin_frame();
+        let mut req = vm.requests();
+        let mut served_exact = 0;
+        for &(l, p, tri) in &points {
+            let r = vm.sample(l, 0, p, tri, &mut req);
+            if let Some(lv) = r.level {
+                let lv = lv as usize;
+                assert!(lv >= l, "served finer than asked");
+                let want = model.sample(lv, p, tri);
+                assert!(
+                    (r.value - want).abs() <= 1e-3 * want.abs().max(1.0),
+                    "seed {seed} frame {frame}: level {lv} p {p:?} tri {tri}: got {} want {want}",
+                    r.value
+                );
+                if lv == l {
+                    served_exact += 1;
+                }
+            }
+        }
+        let rep = vm.end_frame([&req]);
+        assert!(rep.requests.len() <= cap);
+        if served_exact == points.len() && complete_at.is_none() {
+            complete_at = Some(frame);
+            if fits {
+                break;
+            }
+        }
+        let bricks: Vec<_> = rep
+            .requests
+            .iter()
+            .map(|&k| model.brick(k, brick, apron))
+            .collect();
+        let ins = vm.insert(&bricks);
+        inserted_total += ins.inserted + ins.flagged;
+        seen.evicted_bricks += ins.evicted_bricks;
+        seen.evicted_pt_blocks += ins.evicted_pt_blocks;
+        seen.orphans += ins.orphans_reclaimed;
+        seen.flagged += ins.flagged;
+        vm.check_invariants()
+            .unwrap_or_else(|e| panic!("seed {seed} frame {frame}: {e}"));
+    }
+    if fits {
+        assert!(complete_at.is_some(), "seed {seed}: view never completed");
+    } else {
+        assert!(inserted_total > 0, "seed {seed}: no progress");
+    }
+}
+
+#[test]
+fn random_sequences_fitting_working_set_complete_with_exact_values() {
+    let mut seen = Seen::default();
+    for seed in 0..40 {
+        run_case(seed, true, &mut seen);
+    }
+    assert!(
+        seen.deep > 0 && seen.flagged > 0,
+        "cases must cover deep hierarchies and flagged bricks"
+    );
+}
+
+#[test]
+fn random_sequences_with_tight_budgets_stay_correct_and_progress() {
+    let mut seen = Seen::default();
+    for seed in 100..160 {
+        run_case(seed, false, &mut seen);
+    }
+    // The tight cases must really evict bricks and page-table blocks and
+    // reclaim the orphans of evicted blocks.
+    assert!(seen.evicted_bricks > 0, "no brick eviction");
+    assert!(seen.evicted_pt_blocks > 0, "no page-table block eviction");
+    assert!(seen.orphans > 0, "no orphan reclaimed");
+    assert!(seen.deep > 0, "no deep hierarchy");
+}
