@@ -31,4 +31,5 @@
 pub mod brick;
 pub mod host_cache;
 pub mod loader;
+pub mod session;
 pub mod vm;

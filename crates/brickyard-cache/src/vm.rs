@@ -224,8 +224,12 @@ pub struct InsertReport {
     pub evicted_bricks: usize,
     pub evicted_pt_blocks: usize,
     pub orphans_reclaimed: usize,
-    /// Bricks that did not fit this frame (budget or every slot in use).
+    /// Bricks that found no slot (every slot in use this frame); dropped,
+    /// they will be requested again.
     pub deferred: usize,
+    /// Bricks consumed from the front of the input; the rest did not fit
+    /// this frame's upload budget and should be offered again next frame.
+    pub processed: usize,
 }
 
 /// The virtual memory.
@@ -235,6 +239,7 @@ pub struct VirtualMemory {
     channels: usize,
     dtype: DType,
     frame: u32,
+    uploaded: u64,
     /// Channel-major directory.
     dir: Vec<PageEntry>,
     dir_len: usize,
@@ -295,6 +300,7 @@ impl VirtualMemory {
             channels,
             dtype,
             frame: 1,
+            uploaded: 0,
             dir: vec![PageEntry::unmapped(); dir_len * channels],
             dir_len,
             pt,
@@ -332,6 +338,7 @@ impl VirtualMemory {
     /// Start a new frame.
     pub fn begin_frame(&mut self) {
         self.frame += 1;
+        self.uploaded = 0;
         self.merged.map.clear();
         self.merged.dropped = 0;
     }
@@ -657,6 +664,7 @@ impl VirtualMemory {
                     self.slots.usage[s as usize].store(frame, Ordering::Relaxed);
                     report.inserted += 1;
                     report.bytes_uploaded += self.brick_bytes as u64;
+                    self.uploaded += self.brick_bytes as u64;
                 }
             }
         }

@@ -1,0 +1,110 @@
+//! A streaming session: the virtual memory fed by the loader, frame by
+//! frame. Consumers sample through [`Session::vm`]; [`Session::finish_frame`]
+//! sends the capped request list to the loader (cancelling queued requests
+//! that are no longer wanted) and writes whatever bricks have arrived into
+//! the pool, within the per-frame upload budget. Nothing here waits for I/O.
+
+use crate::brick::{BrickKey, LoadedBrick};
+use crate::host_cache::HostCache;
+use crate::loader::Loader;
+use crate::vm::{FrameReport, InsertReport, Requests, VirtualMemory, VmConfig};
+use std::collections::VecDeque;
+use std::path::Path;
+use std::sync::Arc;
+
+/// Figures of one frame.
+#[derive(Debug, Clone, Default)]
+pub struct FrameStats {
+    pub frame: FrameReport,
+    pub insert: InsertReport,
+    /// Bricks delivered by the loader this frame (from disk or host cache).
+    pub delivered: usize,
+    /// Requests cancelled because the view no longer wants them.
+    pub cancelled: usize,
+    /// Loader queue and reads in flight after this frame.
+    pub pending: usize,
+    pub in_flight: usize,
+    /// Bricks that arrived but wait for a later frame's upload budget.
+    pub waiting_upload: usize,
+}
+
+/// Virtual memory + loader + host cache for one store.
+pub struct Session {
+    vm: VirtualMemory,
+    loader: Loader,
+    waiting: VecDeque<Arc<LoadedBrick>>,
+}
+
+impl Session {
+    /// Open `store` (an OME-Zarr written by brickyard or any other tool)
+    /// with the given virtual-memory configuration, a host cache of
+    /// `host_bytes` and `threads` loader threads.
+    pub fn open(
+        store: &Path,
+        cfg: VmConfig,
+        host_bytes: u64,
+        threads: usize,
+    ) -> brickyard_store::Result<Session> {
+        let cache = Arc::new(HostCache::new(host_bytes));
+        let loader = Loader::open(store, cfg.brick, cfg.apron, threads, cache)?;
+        let g = loader.geometry().clone();
+        let vm = VirtualMemory::new(&g.levels, g.channels, g.dtype, cfg);
+        Ok(Session {
+            vm,
+            loader,
+            waiting: VecDeque::new(),
+        })
+    }
+
+    pub fn vm(&self) -> &VirtualMemory {
+        &self.vm
+    }
+    pub fn loader(&self) -> &Loader {
+        &self.loader
+    }
+
+    /// Start a frame.
+    pub fn begin_frame(&mut self) {
+        self.vm.begin_frame();
+    }
+
+    /// End a frame: requests out, arrived bricks in.
+    pub fn finish_frame<'a>(
+        &mut self,
+        collectors: impl IntoIterator<Item = &'a Requests>,
+    ) -> FrameStats {
+        let frame = self.vm.end_frame(collectors);
+        let n = frame.requests.len() as u32;
+        let wanted: Vec<(BrickKey, u32)> = frame
+            .requests
+            .iter()
+            .enumerate()
+            .filter(|(_, k)| !self.vm.is_resident(**k))
+            .map(|(i, k)| (*k, n - i as u32))
+            .collect();
+        let keys: Vec<BrickKey> = wanted.iter().map(|w| w.0).collect();
+        let cancelled = self.loader.cancel_except(&keys);
+        self.loader.request(&wanted);
+        let arrived = self.loader.poll();
+        let delivered = arrived.len();
+        self.waiting.extend(arrived);
+        let batch: Vec<Arc<LoadedBrick>> = self.waiting.iter().cloned().collect();
+        let insert = self.vm.insert(&batch);
+        self.waiting.drain(..insert.processed);
+        // Do not hoard: bricks waiting for upload are also in the host cache
+        // and will be asked for again if still wanted.
+        let keep = self.vm.config().request_cap * 2;
+        while self.waiting.len() > keep {
+            self.waiting.pop_back();
+        }
+        FrameStats {
+            frame,
+            insert,
+            delivered,
+            cancelled,
+            pending: self.loader.pending(),
+            in_flight: self.loader.in_flight(),
+            waiting_upload: self.waiting.len(),
+        }
+    }
+}
