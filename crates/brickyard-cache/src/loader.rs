@@ -167,6 +167,11 @@ impl LevelStats {
     }
 }
 
+/// Decoded-chunk cache of the loader for level 0; level `l` gets this
+/// halved `l` times (at least 4 MiB), so all levels together stay under
+/// twice this plus 4 MiB per level.
+pub const CHUNK_CACHE_BYTES: u64 = 64 << 20;
+
 struct Level {
     src: ZarrSource,
     stats: Option<LevelStats>,
@@ -438,7 +443,10 @@ impl Loader {
         let mut levels = Vec::with_capacity(nlevels);
         let mut dims = Vec::with_capacity(nlevels);
         for l in 0..nlevels {
-            let src = open(store_path, l)?;
+            let mut src = open(store_path, l)?;
+            // Neighbouring bricks share the chunks their aprons reach into:
+            // keep decoded chunks so each is decoded about once.
+            src.enable_chunk_cache((CHUNK_CACHE_BYTES >> l.min(8)).max(4 << 20));
             let m = src.meta();
             if let Some(first) = levels.first() {
                 let f: &Level = first;

@@ -45,7 +45,16 @@ impl Session {
         host_bytes: u64,
         threads: usize,
     ) -> brickyard_store::Result<Session> {
-        let cache = Arc::new(HostCache::new(host_bytes));
+        Self::with_cache(store, cfg, Arc::new(HostCache::new(host_bytes)), threads)
+    }
+
+    /// Like [`Session::open`] with an existing host cache (of the same store).
+    pub fn with_cache(
+        store: &Path,
+        cfg: VmConfig,
+        cache: Arc<HostCache>,
+        threads: usize,
+    ) -> brickyard_store::Result<Session> {
         let loader = Loader::open(store, cfg.brick, cfg.apron, threads, cache)?;
         let g = loader.geometry().clone();
         let vm = VirtualMemory::new(&g.levels, g.channels, g.dtype, cfg);

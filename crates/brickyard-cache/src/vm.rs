@@ -322,6 +322,15 @@ impl VirtualMemory {
     pub fn frame(&self) -> u32 {
         self.frame
     }
+    /// Bricks currently in the pool.
+    pub fn resident_bricks(&self) -> usize {
+        self.slots
+            .owner
+            .iter()
+            .filter(|o| **o != Owner::None)
+            .count()
+    }
+
     /// Number of brick slots in the pool.
     pub fn pool_slots(&self) -> usize {
         self.slots.len()

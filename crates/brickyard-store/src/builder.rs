@@ -145,9 +145,17 @@ pub fn plan_passes(
     let soft = budget.min(COMFORTABLE);
     while m < n - 1 {
         let pick = |limit: u64| {
-            (1..n - m)
-                .rev()
-                .find_map(|j| plan_tile(levels, m, m + j, brick, esize, limit, readback_copy || m > 0))
+            (1..n - m).rev().find_map(|j| {
+                plan_tile(
+                    levels,
+                    m,
+                    m + j,
+                    brick,
+                    esize,
+                    limit,
+                    readback_copy || m > 0,
+                )
+            })
         };
         let p = pick(soft).or_else(|| pick(budget))?;
         m = p.to;
@@ -573,7 +581,8 @@ fn run_pass<T: Sample>(
             // A reader thread fetches slab i+1 while slab i is processed
             // (two slab buffers in flight; the plan counts both).
             std::thread::scope(|scope| -> Result<()> {
-                let (tx_slab, rx_slab) = std::sync::mpsc::sync_channel::<Result<(u64, u64, Vec<T>)>>(0);
+                let (tx_slab, rx_slab) =
+                    std::sync::mpsc::sync_channel::<Result<(u64, u64, Vec<T>)>>(0);
                 let (tx_back, rx_back) = std::sync::mpsc::channel::<Vec<T>>();
                 let (y_rng, x_rng) = (ty0..ty0 + ty, tx0..tx0 + tx);
                 scope.spawn(move || {
@@ -583,7 +592,13 @@ fn run_pass<T: Sample>(
                         let mut buf = rx_back.try_recv().unwrap_or_default();
                         buf.resize((h * ty * tx) as usize, T::default());
                         let r = src
-                            .read_region(ch, z0..z0 + h, y_rng.clone(), x_rng.clone(), cast_slice_mut_t(&mut buf))
+                            .read_region(
+                                ch,
+                                z0..z0 + h,
+                                y_rng.clone(),
+                                x_rng.clone(),
+                                cast_slice_mut_t(&mut buf),
+                            )
                             .map(|()| (z0, h, buf));
                         let failed = r.is_err();
                         if tx_slab.send(r).is_err() || failed {
@@ -598,7 +613,15 @@ fn run_pass<T: Sample>(
                     }
                     let (z0, h, data) = msg?;
                     progress.inc(data.len() as u64 * std::mem::size_of::<T>() as u64);
-                    let slab = Slab { data, z0, rows: h, y0: ty0, x0: tx0, ty, tx };
+                    let slab = Slab {
+                        data,
+                        z0,
+                        rows: h,
+                        y0: ty0,
+                        x0: tx0,
+                        ty,
+                        tx,
+                    };
                     if p.from == 0 {
                         write_bricks(ctx, 0, ch, &slab)?;
                     }

@@ -132,3 +132,48 @@ fn raw_with_sidecar_and_zarr_reconversion() {
     .unwrap();
     assert_eq!(l1.meta().dims, [17, 20, 24]);
 }
+
+#[test]
+fn chunk_cached_reads_equal_plain_reads() {
+    let dir = tempfile::tempdir().unwrap();
+    let out = dir.path().join("c.ome.zarr");
+    let g = Procedural::new(Kind::Mandelbulb, [29, 37, 41], DType::I16);
+    let o = ConvertOptions {
+        brick: [8; 3],
+        shard: [16; 3],
+        ..Default::default()
+    };
+    convert(&g, &out, &o, &NoProgress, &AtomicBool::new(false)).unwrap();
+    for budget in [0u64, 3000, 1 << 20] {
+        let plain = brickyard_store::import::zarr::open(&out, 0).unwrap();
+        let mut cached = brickyard_store::import::zarr::open(&out, 0).unwrap();
+        cached.enable_chunk_cache(budget);
+        let mut s = 99u64;
+        for _ in 0..60 {
+            let mut r = |n: u64| {
+                s = s
+                    .wrapping_mul(6364136223846793005)
+                    .wrapping_add(1442695040888963407);
+                (s >> 33) % n
+            };
+            let z0 = r(29);
+            let z1 = z0 + 1 + r(29 - z0);
+            let y0 = r(37);
+            let y1 = y0 + 1 + r(37 - y0);
+            let x0 = r(41);
+            let x1 = x0 + 1 + r(41 - x0);
+            let n = ((z1 - z0) * (y1 - y0) * (x1 - x0) * 2) as usize;
+            let (mut a, mut b) = (vec![0u8; n], vec![0u8; n]);
+            plain
+                .read_region(0, z0..z1, y0..y1, x0..x1, &mut a)
+                .unwrap();
+            cached
+                .read_region(0, z0..z1, y0..y1, x0..x1, &mut b)
+                .unwrap();
+            assert_eq!(
+                a, b,
+                "budget {budget} region {z0}..{z1} {y0}..{y1} {x0}..{x1}"
+            );
+        }
+    }
+}

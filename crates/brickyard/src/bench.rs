@@ -15,7 +15,11 @@ use std::time::Instant;
 #[derive(Args)]
 pub struct BenchCmd {
     /// convert: raw → OME-Zarr pyramid, in a child process (wall time,
-    /// input MB/s, peak RSS); downsample: the 2×2×2 mean kernel in memory.
+    /// input MB/s, peak RSS); downsample: the 2×2×2 mean kernel in memory;
+    /// vm-sample: trilinear samples/s through the page tables vs a plain
+    /// array; vm-update: LRU + request update per frame for pools of
+    /// 1k–64k slots; loader: decoded GB/s; latency: one brick and one full
+    /// view from an empty cache (paper Table 2).
     scenario: String,
     /// Volume size (N or XxYxZ).
     #[arg(long, default_value = "256")]
@@ -37,6 +41,9 @@ pub struct BenchCmd {
     /// Repetitions (the best is reported, all are listed).
     #[arg(long, default_value_t = 1)]
     repeat: usize,
+    /// loader, latency: drop the page cache first (needs root), for cold-disk figures.
+    #[arg(long)]
+    cold: bool,
 }
 
 pub fn run(b: BenchCmd) -> Result<()> {
@@ -45,7 +52,13 @@ pub fn run(b: BenchCmd) -> Result<()> {
     match b.scenario.as_str() {
         "convert" => bench_convert(&b, dims, dtype),
         "downsample" => bench_downsample(&b, dims, dtype),
-        s => bail!("scenario: expected convert or downsample, found {s:?}"),
+        "vm-sample" => crate::vmbench::sample(&b.dir, dims, dtype, b.repeat),
+        "vm-update" => crate::vmbench::update(b.repeat),
+        "loader" => crate::vmbench::loader(&b.dir, dims, dtype, b.cold),
+        "latency" => crate::vmbench::latency(&b.dir, dims, dtype, b.cold),
+        s => bail!(
+            "scenario: expected convert, downsample, vm-sample, vm-update, loader or latency, found {s:?}"
+        ),
     }
 }
 

@@ -2,6 +2,8 @@
 
 mod bench;
 mod progress;
+mod vmbench;
+mod vmcmd;
 
 use anyhow::{bail, Context, Result};
 use brickyard_core::DType;
@@ -65,6 +67,16 @@ enum Cmd {
     },
     /// Run a benchmark scenario and print one JSON line of figures.
     Bench(bench::BenchCmd),
+    /// Virtual memory for voxels: `footprint` prints the management memory
+    /// of a configuration beside the paper's accounting.
+    #[command(subcommand)]
+    Vm(VmCmd),
+}
+
+#[derive(Subcommand)]
+enum VmCmd {
+    /// Management memory of a virtual-memory configuration.
+    Footprint(vmcmd::FootprintCmd),
 }
 
 #[derive(Args, Clone)]
@@ -388,6 +400,7 @@ fn run(cmd: Cmd) -> Result<()> {
         }
         Cmd::Demo { out, size } => demo(&out, &size),
         Cmd::Bench(b) => bench::run(b),
+        Cmd::Vm(VmCmd::Footprint(f)) => vmcmd::footprint(f),
     }
 }
 

@@ -6,11 +6,18 @@ use crate::omezarr::{read_json, read_multiscale, Multiscale};
 use crate::source::{check_region, SourceMeta, VolumeSource};
 use brickyard_core::{as_bytes, dispatch_dtype, DType, Dims3};
 use serde_json::Value;
+use std::collections::HashMap;
 use std::ops::Range;
 use std::path::{Path, PathBuf};
-use std::sync::Arc;
-use zarrs::array::{Array, ArraySubset};
+use std::sync::{Arc, Mutex};
+use zarrs::array::codec::api::CodecOptions;
+use zarrs::array::{
+    Array, ArrayShardedExt, ArrayShardedReadableExt, ArrayShardedReadableExtCache, ArraySubset,
+};
 use zarrs::filesystem::FilesystemStore;
+
+/// Most shard decoders kept by one source.
+pub const SHARD_CACHE_MAX: usize = 256;
 
 /// A 3D (optionally multi-channel) view of one Zarr array.
 pub struct ZarrSource {
@@ -21,6 +28,13 @@ pub struct ZarrSource {
     /// Array axis index of the channel axis.
     caxis: Option<usize>,
     chunk: Vec<u64>,
+    /// Decoders of recently used shards (their indexes), so that reading a
+    /// brick does not re-read the shard index. Cleared when it grows past
+    /// [`SHARD_CACHE_MAX`] shards, to keep memory bounded.
+    shards: ArrayShardedReadableExtCache,
+    /// Optional cache of decoded read-granularity chunks (see
+    /// [`ZarrSource::enable_chunk_cache`]).
+    chunk_cache: Option<ChunkCache>,
     /// The multiscale metadata, when the path was an OME-Zarr image.
     pub multiscale: Option<Multiscale>,
 }
@@ -213,7 +227,10 @@ fn open_array(
         .iter()
         .map(|c| c.get())
         .collect();
+    let shards = ArrayShardedReadableExtCache::new(&array);
     Ok(ZarrSource {
+        chunk_cache: None,
+        shards,
         meta,
         array,
         zyx,
@@ -223,7 +240,163 @@ fn open_array(
     })
 }
 
+/// An LRU of decoded chunks (the read granularity: inner chunks of a
+/// sharded array, chunks otherwise), bounded in bytes.
+struct ChunkCache {
+    budget: u64,
+    grain: Vec<u64>,
+    state: Mutex<ChunkCacheState>,
+}
+
+#[derive(Default)]
+struct ChunkCacheState {
+    map: HashMap<Vec<u64>, (Arc<Vec<u8>>, u64)>,
+    bytes: u64,
+    tick: u64,
+}
+
+impl ChunkCache {
+    fn get(&self, k: &[u64]) -> Option<Arc<Vec<u8>>> {
+        let mut st = self.state.lock().unwrap();
+        st.tick += 1;
+        let t = st.tick;
+        st.map.get_mut(k).map(|e| {
+            e.1 = t;
+            e.0.clone()
+        })
+    }
+    fn put(&self, k: Vec<u64>, v: Arc<Vec<u8>>) {
+        let n = v.len() as u64;
+        if n > self.budget {
+            return;
+        }
+        let mut st = self.state.lock().unwrap();
+        while st.bytes + n > self.budget {
+            let Some(old) = st.map.iter().min_by_key(|e| e.1 .1).map(|e| e.0.clone()) else {
+                break;
+            };
+            if let Some((b, _)) = st.map.remove(&old) {
+                st.bytes -= b.len() as u64;
+            }
+        }
+        st.tick += 1;
+        let t = st.tick;
+        if let Some((old, _)) = st.map.insert(k, (v, t)) {
+            st.bytes -= old.len() as u64;
+        }
+        st.bytes += n;
+    }
+}
+
 impl ZarrSource {
+    /// Keep up to `bytes` of decoded chunks, so that reads of overlapping
+    /// regions (bricks with aprons) decode each chunk once. Off by default.
+    pub fn enable_chunk_cache(&mut self, bytes: u64) {
+        let grain: Vec<u64> = if self.shards.array_is_sharded() {
+            self.array
+                .effective_subchunk_shape()
+                .map(|c| c.iter().map(|v| v.get()).collect())
+                .unwrap_or_else(|| self.chunk.clone())
+        } else {
+            self.chunk.clone()
+        };
+        self.chunk_cache = Some(ChunkCache {
+            budget: bytes,
+            grain,
+            state: Mutex::new(ChunkCacheState::default()),
+        });
+    }
+
+    /// Assemble `ranges` (array axis order) from cached chunks.
+    fn read_cached<T: brickyard_core::Sample + zarrs::array::ElementOwned>(
+        &self,
+        cc: &ChunkCache,
+        ranges: &[Range<u64>],
+    ) -> Result<Vec<T>> {
+        let n = ranges.len();
+        let shape = self.array.shape();
+        let sizes: Vec<u64> = ranges.iter().map(|r| r.end - r.start).collect();
+        let mut out = vec![T::default(); sizes.iter().product::<u64>() as usize];
+        let first: Vec<u64> = (0..n).map(|a| ranges[a].start / cc.grain[a]).collect();
+        let last: Vec<u64> = (0..n).map(|a| (ranges[a].end - 1) / cc.grain[a]).collect();
+        let mut idx = first.clone();
+        loop {
+            // The chunk's region, clipped to the array.
+            let creg: Vec<Range<u64>> = (0..n)
+                .map(|a| idx[a] * cc.grain[a]..((idx[a] + 1) * cc.grain[a]).min(shape[a]))
+                .collect();
+            let mut key = idx.clone();
+            key.push(std::mem::size_of::<T>() as u64);
+            let data = match cc.get(&key) {
+                Some(d) => d,
+                None => {
+                    let sub = ArraySubset::new_with_ranges(&creg);
+                    let v: Vec<T> = if self.shards.array_is_sharded() {
+                        self.array.retrieve_array_subset_sharded_opt::<Vec<T>>(
+                            &self.shards,
+                            &sub,
+                            &CodecOptions::default(),
+                        )
+                    } else {
+                        self.array.retrieve_array_subset::<Vec<T>>(&sub)
+                    }
+                    .map_err(|e| StoreError::zarr(&self.meta.path, e))?;
+                    let d = Arc::new(as_bytes(&v).to_vec());
+                    cc.put(key, d.clone());
+                    d
+                }
+            };
+            let src: &[T] = brickyard_core::cast_slice(&data);
+            // Copy the overlap, one run along the last axis at a time.
+            let csz: Vec<u64> = creg.iter().map(|r| r.end - r.start).collect();
+            let lo: Vec<u64> = (0..n).map(|a| ranges[a].start.max(creg[a].start)).collect();
+            let hi: Vec<u64> = (0..n).map(|a| ranges[a].end.min(creg[a].end)).collect();
+            let run = (hi[n - 1] - lo[n - 1]) as usize;
+            let mut p = lo.clone();
+            loop {
+                let mut so = 0u64;
+                let mut oo = 0u64;
+                for a in 0..n {
+                    so = so * csz[a] + (p[a] - creg[a].start);
+                    oo = oo * sizes[a] + (p[a] - ranges[a].start);
+                }
+                out[oo as usize..oo as usize + run]
+                    .copy_from_slice(&src[so as usize..so as usize + run]);
+                // Next position over all axes but the last.
+                let mut a = n - 1;
+                let mut done = true;
+                while a > 0 {
+                    a -= 1;
+                    p[a] += 1;
+                    if p[a] < hi[a] {
+                        done = false;
+                        break;
+                    }
+                    p[a] = lo[a];
+                }
+                if done {
+                    break;
+                }
+            }
+            // Next chunk.
+            let mut a = n;
+            let mut done = true;
+            while a > 0 {
+                a -= 1;
+                idx[a] += 1;
+                if idx[a] <= last[a] {
+                    done = false;
+                    break;
+                }
+                idx[a] = first[a];
+            }
+            if done {
+                break;
+            }
+        }
+        Ok(out)
+    }
+
     /// Open one Zarr array directory directly (no multiscale metadata).
     pub fn open_level_array(path: &Path) -> Result<ZarrSource> {
         open_array(path, None, None)
@@ -271,10 +444,18 @@ impl VolumeSource for ZarrSource {
         let natural = order.windows(2).all(|w| w[0] < w[1]);
         let path = &self.meta.path;
         dispatch_dtype!(self.meta.dtype, T => {
-            let v: Vec<T> = self
-                .array
-                .retrieve_array_subset::<Vec<T>>(&subset)
-                .map_err(|e| StoreError::zarr(path, e))?;
+            if self.shards.len() > SHARD_CACHE_MAX {
+                self.shards.clear();
+            }
+            let v: Vec<T> = if let Some(cc) = &self.chunk_cache {
+                self.read_cached::<T>(cc, &ranges)?
+            } else if self.shards.array_is_sharded() {
+                self.array
+                    .retrieve_array_subset_sharded_opt::<Vec<T>>(&self.shards, &subset, &CodecOptions::default())
+                    .map_err(|e| StoreError::zarr(path, e))?
+            } else {
+                self.array.retrieve_array_subset::<Vec<T>>(&subset).map_err(|e| StoreError::zarr(path, e))?
+            };
             if natural {
                 out.copy_from_slice(as_bytes(&v));
             } else {

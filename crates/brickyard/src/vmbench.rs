@@ -1,0 +1,392 @@
+//! Benchmarks of the virtual memory: sampling through the hierarchy, the
+//! per-frame update, the loader, and load latencies.
+
+use anyhow::Result;
+use brickyard_cache::brick::{BrickContent, BrickKey, LoadedBrick};
+use brickyard_cache::host_cache::HostCache;
+use brickyard_cache::loader::Loader;
+use brickyard_cache::session::Session;
+use brickyard_cache::vm::{VirtualMemory, VmConfig};
+use brickyard_core::{DType, Dims3};
+use brickyard_store::builder::{convert, ConvertOptions};
+use brickyard_store::generate::{Kind, Procedural};
+use brickyard_store::import::zarr;
+use brickyard_store::{NoProgress, VolumeSource};
+use rayon::prelude::*;
+use serde_json::json;
+use std::path::{Path, PathBuf};
+use std::sync::atomic::AtomicBool;
+use std::sync::Arc;
+use std::time::{Duration, Instant};
+
+/// A Mandelbulb store in `dir` (made once).
+fn store(dir: &Path, dims: Dims3, dtype: DType) -> Result<PathBuf> {
+    std::fs::create_dir_all(dir)?;
+    let p = dir.join(format!(
+        "mandelbulb-{}x{}x{}-{}.ome.zarr",
+        dims[2], dims[1], dims[0], dtype
+    ));
+    if !p.exists() {
+        eprintln!("bench: writing {}", p.display());
+        let src = Procedural::new(Kind::Mandelbulb, dims, dtype);
+        let o = ConvertOptions {
+            shard: [256; 3],
+            ..Default::default()
+        };
+        convert(&src, &p, &o, &NoProgress, &AtomicBool::new(false))?;
+    }
+    Ok(p)
+}
+
+fn drop_caches() -> bool {
+    unsafe { libc::sync() };
+    std::fs::write("/proc/sys/vm/drop_caches", "3").is_ok()
+}
+
+struct Rng(u64);
+impl Rng {
+    fn unit(&mut self) -> f64 {
+        self.0 = self
+            .0
+            .wrapping_mul(6364136223846793005)
+            .wrapping_add(1442695040888963407);
+        (self.0 >> 11) as f64 / (1u64 << 53) as f64
+    }
+}
+
+/// Sample positions along random rays (coherent like a ray caster's).
+fn ray_points(n: usize, dims: Dims3, seed: u64) -> Vec<[f64; 3]> {
+    let mut r = Rng(seed);
+    let mut pts = Vec::with_capacity(n);
+    let step = 1.0 / dims.iter().copied().max().unwrap() as f64;
+    while pts.len() < n {
+        let o = [r.unit(), r.unit(), r.unit()];
+        let mut d = [r.unit() - 0.5, r.unit() - 0.5, r.unit() - 0.5];
+        let len = (d[0] * d[0] + d[1] * d[1] + d[2] * d[2]).sqrt().max(1e-9);
+        d = d.map(|v| v / len * step);
+        let mut p = o;
+        while p.iter().all(|v| (0.0..1.0).contains(v)) && pts.len() < n {
+            pts.push(p);
+            p = [p[0] + d[0], p[1] + d[1], p[2] + d[2]];
+        }
+    }
+    pts
+}
+
+/// Trilinear samples/s through the hierarchy (all resident) vs direct
+/// sampling of the same level in a plain array.
+pub fn sample(dir: &Path, dims: Dims3, dtype: DType, repeat: usize) -> Result<()> {
+    let st = store(dir, dims, dtype)?;
+    let vox: u64 = dims.iter().product();
+    let cfg = VmConfig {
+        brick: [32; 3],
+        pool_bytes: (vox * dtype.size() as u64) * 2 + (64 << 20),
+        pt_cache_blocks: 4096,
+        request_cap: 4096,
+        upload_bytes_per_frame: u64::MAX,
+        ..Default::default()
+    };
+    let mut s = Session::open(&st, cfg, 1 << 30, 2)?;
+    let pts = ray_points(2_000_000, dims, 1);
+    // Warm: until every sample is served at level 0.
+    let t = Instant::now();
+    let mut frames = 0;
+    loop {
+        s.begin_frame();
+        let mut req = s.vm().requests();
+        let mut exact = 0usize;
+        for p in pts.iter().step_by(7) {
+            exact += (s.vm().sample(0, 0, *p, true, &mut req).level == Some(0)) as usize;
+        }
+        s.finish_frame([&req]);
+        frames += 1;
+        if exact == pts.len().div_ceil(7) {
+            break;
+        }
+        std::thread::sleep(Duration::from_millis(2));
+    }
+    let warm_s = t.elapsed().as_secs_f64();
+    // Plain array of level 0.
+    let src = zarr::open(&st, 0)?;
+    let mut raw = vec![0u8; (vox as usize) * dtype.size()];
+    src.read_region(0, 0..dims[0], 0..dims[1], 0..dims[2], &mut raw)?;
+    let plain: Vec<f32> = brickyard_core::dispatch_dtype!(dtype, T => {
+        brickyard_core::cast_slice::<T>(&raw).iter().map(|v| brickyard_core::Sample::to_f64(*v) as f32).collect()
+    });
+    let direct = |p: [f64; 3]| -> f32 {
+        let q = [0, 1, 2].map(|a| (p[a] * dims[a] as f64 - 0.5).clamp(0.0, (dims[a] - 1) as f64));
+        let b = q.map(|x| x.floor() as usize);
+        let f = [0, 1, 2].map(|a| (q[a] - b[a] as f64) as f32);
+        let (dy, dx) = (dims[1] as usize, dims[2] as usize);
+        let at = |z: usize, y: usize, x: usize| {
+            plain[(z.min(dims[0] as usize - 1) * dy + y.min(dy - 1)) * dx + x.min(dx - 1)]
+        };
+        let mut acc = 0.0;
+        for dz in 0..2 {
+            for yy in 0..2 {
+                for xx in 0..2 {
+                    let w = (if dz == 1 { f[0] } else { 1.0 - f[0] })
+                        * (if yy == 1 { f[1] } else { 1.0 - f[1] })
+                        * (if xx == 1 { f[2] } else { 1.0 - f[2] });
+                    acc += w * at(b[0] + dz, b[1] + yy, b[2] + xx);
+                }
+            }
+        }
+        acc
+    };
+    let mut best_vm = f64::INFINITY;
+    let mut best_direct = f64::INFINITY;
+    let mut best_vm_par = f64::INFINITY;
+    let mut checksum = (0.0f64, 0.0f64);
+    for _ in 0..repeat.max(1) {
+        s.begin_frame();
+        let t = Instant::now();
+        let mut req = s.vm().requests();
+        let mut sum = 0.0f64;
+        for p in &pts {
+            sum += s.vm().sample(0, 0, *p, true, &mut req).value as f64;
+        }
+        best_vm = best_vm.min(t.elapsed().as_secs_f64());
+        let t = Instant::now();
+        let sum_par: f64 = pts
+            .par_chunks(4096)
+            .map(|c| {
+                let mut req = s.vm().requests();
+                c.iter()
+                    .map(|p| s.vm().sample(0, 0, *p, true, &mut req).value as f64)
+                    .sum::<f64>()
+            })
+            .sum();
+        best_vm_par = best_vm_par.min(t.elapsed().as_secs_f64());
+        s.finish_frame([&req]);
+        let t = Instant::now();
+        let mut sum2 = 0.0f64;
+        for p in &pts {
+            sum2 += direct(*p) as f64;
+        }
+        best_direct = best_direct.min(t.elapsed().as_secs_f64());
+        checksum = (sum, sum2);
+        let _ = sum_par;
+    }
+    let n = pts.len() as f64;
+    println!(
+        "{}",
+        json!({"scenario": "vm-sample", "size": [dims[2], dims[1], dims[0]], "dtype": dtype.short_name(),
+            "samples": pts.len(), "pt_levels": s.vm().layout().pt_levels(),
+            "vm_msamples_s_1thread": n / best_vm / 1e6,
+            "vm_msamples_s_all_threads": n / best_vm_par / 1e6,
+            "direct_msamples_s_1thread": n / best_direct / 1e6,
+            "vm_over_direct_time": best_vm / best_direct,
+            "max_abs_checksum_diff_per_sample": (checksum.0 - checksum.1).abs() / n,
+            "warm_frames": frames, "warm_s": warm_s})
+    );
+    Ok(())
+}
+
+/// LRU compaction + request merge + insert time per frame for pools of
+/// 1k–64k slots (bricks of 8³ u8 so that 64k slots stay small).
+pub fn update(repeat: usize) -> Result<()> {
+    for slots in [1024u64, 4096, 16384, 65536] {
+        let side = ((slots as f64).cbrt().ceil() as u64 * 8 * 2).max(64);
+        let levels = vec![[side; 3], [side / 2; 3], [side / 4; 3]];
+        let cfg = VmConfig {
+            brick: [8; 3],
+            apron: 1,
+            pt_block: [8; 3],
+            pool_bytes: slots * 1000,
+            pt_cache_blocks: 4096,
+            request_cap: 256,
+            upload_bytes_per_frame: 64 * 1000,
+            ..Default::default()
+        };
+        let mut vm = VirtualMemory::new(&levels, 1, DType::U8, cfg);
+        let per = side / 8;
+        let data: Arc<[u8]> = vec![7u8; 1000].into();
+        let mut next = 0u64;
+        let brick = |n: u64| -> Arc<LoadedBrick> {
+            let i = n % (per * per * per);
+            Arc::new(LoadedBrick {
+                key: BrickKey {
+                    level: 0,
+                    channel: 0,
+                    brick: [
+                        (i / (per * per)) as u32,
+                        ((i / per) % per) as u32,
+                        (i % per) as u32,
+                    ],
+                },
+                content: BrickContent::Data(data.clone()),
+                min: 7.0,
+                max: 7.0,
+                bytes_read: 0,
+            })
+        };
+        // Fill the pool.
+        while vm.resident_bricks() < vm.pool_slots() {
+            vm.begin_frame();
+            let b: Vec<_> = (0..64)
+                .map(|_| {
+                    next += 1;
+                    brick(next)
+                })
+                .collect();
+            vm.insert(&b);
+            if next > slots * 4 {
+                break;
+            }
+        }
+        let mut times = vec![];
+        let mut rng = Rng(5);
+        for _ in 0..repeat.max(1) * 20 {
+            vm.begin_frame();
+            // Touch half of the bricks and miss 1024 others.
+            let mut req = vm.requests();
+            for i in 0..(slots / 2 + 1024) {
+                let p = [rng.unit(), rng.unit(), rng.unit()];
+                let _ = i;
+                vm.sample(0, 0, p, false, &mut req);
+            }
+            let t = Instant::now();
+            let rep = vm.end_frame([&req]);
+            let b: Vec<_> = rep
+                .requests
+                .iter()
+                .take(64)
+                .map(|k| {
+                    Arc::new(LoadedBrick {
+                        key: *k,
+                        content: BrickContent::Data(data.clone()),
+                        min: 7.0,
+                        max: 7.0,
+                        bytes_read: 0,
+                    })
+                })
+                .collect();
+            vm.insert(&b);
+            times.push(t.elapsed().as_secs_f64() * 1e3);
+        }
+        times.sort_by(|a, b| a.partial_cmp(b).unwrap());
+        println!(
+            "{}",
+            json!({"scenario": "vm-update", "pool_slots": vm.pool_slots(), "pt_levels": vm.layout().pt_levels(),
+                "median_ms_per_frame": times[times.len() / 2], "max_ms": times[times.len() - 1],
+                "requests_per_frame": 256, "inserts_per_frame": 64})
+        );
+    }
+    Ok(())
+}
+
+/// Decoded GB/s of the loader reading every brick of level 0.
+pub fn loader(dir: &Path, dims: Dims3, dtype: DType, cold: bool) -> Result<()> {
+    let st = store(dir, dims, dtype)?;
+    for threads in [1usize, 2, 4] {
+        let dropped = cold && drop_caches();
+        let cache = Arc::new(HostCache::new(64 << 20));
+        let l = Loader::open(&st, [64; 3], 1, threads, cache)?;
+        let keys: Vec<(BrickKey, u32)> = l.geometry().keys(0, 0).map(|k| (k, 1)).collect();
+        let t = Instant::now();
+        l.request(&keys);
+        let mut got = 0;
+        let mut data_bricks = 0;
+        while got < keys.len() {
+            for b in l.poll() {
+                got += 1;
+                data_bricks += matches!(b.content, BrickContent::Data(_)) as usize;
+            }
+            std::thread::sleep(Duration::from_micros(200));
+        }
+        let s = t.elapsed().as_secs_f64();
+        let bytes = l.bytes_read();
+        let decoded = (data_bricks as u64) * 66u64.pow(3) * dtype.size() as u64;
+        println!(
+            "{}",
+            json!({"scenario": "loader", "size": [dims[2], dims[1], dims[0]], "dtype": dtype.short_name(), "threads": threads,
+                "cold": dropped, "bricks": keys.len(), "data_bricks": data_bricks, "seconds": s,
+                "decoded_gb_s": decoded as f64 / 1e9 / s, "read_gb_s": bytes as f64 / 1e9 / s})
+        );
+    }
+    Ok(())
+}
+
+/// One brick and one full view (a 1920×1080 slice through the middle at
+/// level 0) from an empty device pool: from host cache and from disk.
+pub fn latency(dir: &Path, dims: Dims3, dtype: DType, cold: bool) -> Result<()> {
+    let st = store(dir, dims, dtype)?;
+    let cfg = VmConfig {
+        brick: [64; 3],
+        pool_bytes: 1 << 30,
+        pt_cache_blocks: 512,
+        request_cap: 512,
+        upload_bytes_per_frame: 256 << 20,
+        ..Default::default()
+    };
+    let view: Vec<[f64; 3]> = (0..1080)
+        .flat_map(|y| {
+            (0..1920).map(move |x| [0.5, (y as f64 + 0.5) / 1080.0, (x as f64 + 0.5) / 1920.0])
+        })
+        .collect();
+    let host = Arc::new(HostCache::new(2 << 30));
+    for source in ["disk", "host cache"] {
+        let dropped = source == "disk" && cold && drop_caches();
+        // One brick.
+        let mut s = Session::open(&st, cfg.clone(), 2 << 30, 2)?;
+        if source == "host cache" {
+            // Share the warm host cache of the previous run.
+            s = session_with_cache(&st, cfg.clone(), host.clone())?;
+        }
+        let t = Instant::now();
+        let p = [0.5, 0.5, 0.5];
+        loop {
+            s.begin_frame();
+            let mut req = s.vm().requests();
+            let r = s.vm().sample(0, 0, p, false, &mut req);
+            s.finish_frame([&req]);
+            if r.level == Some(0) {
+                break;
+            }
+            std::thread::sleep(Duration::from_micros(100));
+        }
+        let one = t.elapsed().as_secs_f64() * 1e3;
+        // Full view.
+        let t = Instant::now();
+        let mut frames = 0;
+        loop {
+            s.begin_frame();
+            let exact: usize = view
+                .par_chunks(8192)
+                .map(|c| {
+                    let mut req = s.vm().requests();
+                    c.iter()
+                        .filter(|p| s.vm().sample(0, 0, **p, true, &mut req).level == Some(0))
+                        .count()
+                })
+                .sum();
+            let mut req = s.vm().requests();
+            for p in view.iter().step_by(97) {
+                s.vm().sample(0, 0, *p, true, &mut req);
+            }
+            s.finish_frame([&req]);
+            frames += 1;
+            if exact == view.len() {
+                break;
+            }
+        }
+        let full = t.elapsed().as_secs_f64();
+        for b in s.loader().cache().keys_by_recency() {
+            if let Some(x) = s.loader().cache().get(&b) {
+                host.insert(x);
+            }
+        }
+        println!(
+            "{}",
+            json!({"scenario": "latency", "size": [dims[2], dims[1], dims[0]], "dtype": dtype.short_name(), "from": source,
+                "cold": dropped, "one_brick_ms": one, "full_view_s": full, "frames": frames,
+                "bricks_resident": s.vm().resident_bricks()})
+        );
+    }
+    Ok(())
+}
+
+fn session_with_cache(st: &Path, cfg: VmConfig, cache: Arc<HostCache>) -> Result<Session> {
+    Ok(Session::with_cache(st, cfg, cache, 2)?)
+}
