@@ -78,108 +78,113 @@ fn ray_points(n: usize, dims: Dims3, seed: u64) -> Vec<[f64; 3]> {
 pub fn sample(dir: &Path, dims: Dims3, dtype: DType, repeat: usize) -> Result<()> {
     let st = store(dir, dims, dtype)?;
     let vox: u64 = dims.iter().product();
-    let cfg = VmConfig {
-        brick: [32; 3],
-        pool_bytes: (vox * dtype.size() as u64) * 2 + (64 << 20),
-        pt_cache_blocks: 4096,
-        request_cap: 4096,
-        upload_bytes_per_frame: u64::MAX,
-        ..Default::default()
-    };
-    let mut s = Session::open(&st, cfg, 1 << 30, 2)?;
-    let pts = ray_points(2_000_000, dims, 1);
-    // Warm: until every sample is served at level 0.
-    let t = Instant::now();
-    let mut frames = 0;
-    loop {
-        s.begin_frame();
-        let mut req = s.vm().requests();
-        let mut exact = 0usize;
-        for p in pts.iter().step_by(7) {
-            exact += (s.vm().sample(0, 0, *p, true, &mut req).level == Some(0)) as usize;
-        }
-        s.finish_frame([&req]);
-        frames += 1;
-        if exact == pts.len().div_ceil(7) {
-            break;
-        }
-        std::thread::sleep(Duration::from_millis(2));
-    }
-    let warm_s = t.elapsed().as_secs_f64();
-    // Plain array of level 0.
-    let src = zarr::open(&st, 0)?;
-    let mut raw = vec![0u8; (vox as usize) * dtype.size()];
-    src.read_region(0, 0..dims[0], 0..dims[1], 0..dims[2], &mut raw)?;
-    let plain: Vec<f32> = brickyard_core::dispatch_dtype!(dtype, T => {
-        brickyard_core::cast_slice::<T>(&raw).iter().map(|v| brickyard_core::Sample::to_f64(*v) as f32).collect()
-    });
-    let direct = |p: [f64; 3]| -> f32 {
-        let q = [0, 1, 2].map(|a| (p[a] * dims[a] as f64 - 0.5).clamp(0.0, (dims[a] - 1) as f64));
-        let b = q.map(|x| x.floor() as usize);
-        let f = [0, 1, 2].map(|a| (q[a] - b[a] as f64) as f32);
-        let (dy, dx) = (dims[1] as usize, dims[2] as usize);
-        let at = |z: usize, y: usize, x: usize| {
-            plain[(z.min(dims[0] as usize - 1) * dy + y.min(dy - 1)) * dx + x.min(dx - 1)]
+    // The default hierarchy, then one forced to use intermediate page tables.
+    for max_dir in [1u64 << 15, 8] {
+        let cfg = VmConfig {
+            brick: [32; 3],
+            pool_bytes: (vox * dtype.size() as u64) * 2 + (64 << 20),
+            pt_cache_blocks: 4096,
+            request_cap: 4096,
+            upload_bytes_per_frame: u64::MAX,
+            max_dir_entries: max_dir,
+            ..Default::default()
         };
-        let mut acc = 0.0;
-        for dz in 0..2 {
-            for yy in 0..2 {
-                for xx in 0..2 {
-                    let w = (if dz == 1 { f[0] } else { 1.0 - f[0] })
-                        * (if yy == 1 { f[1] } else { 1.0 - f[1] })
-                        * (if xx == 1 { f[2] } else { 1.0 - f[2] });
-                    acc += w * at(b[0] + dz, b[1] + yy, b[2] + xx);
+        let mut s = Session::open(&st, cfg, 1 << 30, 2)?;
+        let pts = ray_points(2_000_000, dims, 1);
+        // Warm: until every sample is served at level 0.
+        let t = Instant::now();
+        let mut frames = 0;
+        loop {
+            s.begin_frame();
+            let mut req = s.vm().requests();
+            let mut exact = 0usize;
+            for p in pts.iter().step_by(7) {
+                exact += (s.vm().sample(0, 0, *p, true, &mut req).level == Some(0)) as usize;
+            }
+            s.finish_frame([&req]);
+            frames += 1;
+            if exact == pts.len().div_ceil(7) {
+                break;
+            }
+            std::thread::sleep(Duration::from_millis(2));
+        }
+        let warm_s = t.elapsed().as_secs_f64();
+        // Plain array of level 0.
+        let src = zarr::open(&st, 0)?;
+        let mut raw = vec![0u8; (vox as usize) * dtype.size()];
+        src.read_region(0, 0..dims[0], 0..dims[1], 0..dims[2], &mut raw)?;
+        let plain: Vec<f32> = brickyard_core::dispatch_dtype!(dtype, T => {
+            brickyard_core::cast_slice::<T>(&raw).iter().map(|v| brickyard_core::Sample::to_f64(*v) as f32).collect()
+        });
+        let direct = |p: [f64; 3]| -> f32 {
+            let q =
+                [0, 1, 2].map(|a| (p[a] * dims[a] as f64 - 0.5).clamp(0.0, (dims[a] - 1) as f64));
+            let b = q.map(|x| x.floor() as usize);
+            let f = [0, 1, 2].map(|a| (q[a] - b[a] as f64) as f32);
+            let (dy, dx) = (dims[1] as usize, dims[2] as usize);
+            let at = |z: usize, y: usize, x: usize| {
+                plain[(z.min(dims[0] as usize - 1) * dy + y.min(dy - 1)) * dx + x.min(dx - 1)]
+            };
+            let mut acc = 0.0;
+            for dz in 0..2 {
+                for yy in 0..2 {
+                    for xx in 0..2 {
+                        let w = (if dz == 1 { f[0] } else { 1.0 - f[0] })
+                            * (if yy == 1 { f[1] } else { 1.0 - f[1] })
+                            * (if xx == 1 { f[2] } else { 1.0 - f[2] });
+                        acc += w * at(b[0] + dz, b[1] + yy, b[2] + xx);
+                    }
                 }
             }
+            acc
+        };
+        let mut best_vm = f64::INFINITY;
+        let mut best_direct = f64::INFINITY;
+        let mut best_vm_par = f64::INFINITY;
+        let mut checksum = (0.0f64, 0.0f64);
+        for _ in 0..repeat.max(1) {
+            s.begin_frame();
+            let t = Instant::now();
+            let mut req = s.vm().requests();
+            let mut sum = 0.0f64;
+            for p in &pts {
+                sum += s.vm().sample(0, 0, *p, true, &mut req).value as f64;
+            }
+            best_vm = best_vm.min(t.elapsed().as_secs_f64());
+            let t = Instant::now();
+            let sum_par: f64 = pts
+                .par_chunks(4096)
+                .map(|c| {
+                    let mut req = s.vm().requests();
+                    c.iter()
+                        .map(|p| s.vm().sample(0, 0, *p, true, &mut req).value as f64)
+                        .sum::<f64>()
+                })
+                .sum();
+            best_vm_par = best_vm_par.min(t.elapsed().as_secs_f64());
+            s.finish_frame([&req]);
+            let t = Instant::now();
+            let mut sum2 = 0.0f64;
+            for p in &pts {
+                sum2 += direct(*p) as f64;
+            }
+            best_direct = best_direct.min(t.elapsed().as_secs_f64());
+            checksum = (sum, sum2);
+            let _ = sum_par;
         }
-        acc
-    };
-    let mut best_vm = f64::INFINITY;
-    let mut best_direct = f64::INFINITY;
-    let mut best_vm_par = f64::INFINITY;
-    let mut checksum = (0.0f64, 0.0f64);
-    for _ in 0..repeat.max(1) {
-        s.begin_frame();
-        let t = Instant::now();
-        let mut req = s.vm().requests();
-        let mut sum = 0.0f64;
-        for p in &pts {
-            sum += s.vm().sample(0, 0, *p, true, &mut req).value as f64;
-        }
-        best_vm = best_vm.min(t.elapsed().as_secs_f64());
-        let t = Instant::now();
-        let sum_par: f64 = pts
-            .par_chunks(4096)
-            .map(|c| {
-                let mut req = s.vm().requests();
-                c.iter()
-                    .map(|p| s.vm().sample(0, 0, *p, true, &mut req).value as f64)
-                    .sum::<f64>()
-            })
-            .sum();
-        best_vm_par = best_vm_par.min(t.elapsed().as_secs_f64());
-        s.finish_frame([&req]);
-        let t = Instant::now();
-        let mut sum2 = 0.0f64;
-        for p in &pts {
-            sum2 += direct(*p) as f64;
-        }
-        best_direct = best_direct.min(t.elapsed().as_secs_f64());
-        checksum = (sum, sum2);
-        let _ = sum_par;
+        let n = pts.len() as f64;
+        println!(
+            "{}",
+            json!({"scenario": "vm-sample", "size": [dims[2], dims[1], dims[0]], "dtype": dtype.short_name(),
+                "samples": pts.len(), "pt_levels": s.vm().layout().pt_levels(),
+                "vm_msamples_s_1thread": n / best_vm / 1e6,
+                "vm_msamples_s_all_threads": n / best_vm_par / 1e6,
+                "direct_msamples_s_1thread": n / best_direct / 1e6,
+                "vm_over_direct_time": best_vm / best_direct,
+                "max_abs_checksum_diff_per_sample": (checksum.0 - checksum.1).abs() / n,
+                "warm_frames": frames, "warm_s": warm_s})
+        );
     }
-    let n = pts.len() as f64;
-    println!(
-        "{}",
-        json!({"scenario": "vm-sample", "size": [dims[2], dims[1], dims[0]], "dtype": dtype.short_name(),
-            "samples": pts.len(), "pt_levels": s.vm().layout().pt_levels(),
-            "vm_msamples_s_1thread": n / best_vm / 1e6,
-            "vm_msamples_s_all_threads": n / best_vm_par / 1e6,
-            "direct_msamples_s_1thread": n / best_direct / 1e6,
-            "vm_over_direct_time": best_vm / best_direct,
-            "max_abs_checksum_diff_per_sample": (checksum.0 - checksum.1).abs() / n,
-            "warm_frames": frames, "warm_s": warm_s})
-    );
     Ok(())
 }
 
