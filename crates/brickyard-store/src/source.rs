@@ -102,3 +102,57 @@ pub fn check_region(
         "buffer size"
     );
 }
+
+/// Helpers for importer tests.
+#[cfg(test)]
+pub(crate) mod test_util {
+    use super::VolumeSource;
+    use brickyard_core::Dims3;
+
+    /// Read the whole of channel `c`.
+    pub fn read_all(src: &dyn VolumeSource, c: usize) -> Vec<u8> {
+        let m = src.meta();
+        let mut out = vec![0u8; m.channel_bytes() as usize];
+        let [z, y, x] = m.dims;
+        src.read_region(c, 0..z, 0..y, 0..x, &mut out).unwrap();
+        out
+    }
+
+    /// Read channel `c` block by block, last block first (so that requests
+    /// go backwards), and stitch the blocks together.
+    pub fn read_stitched(src: &dyn VolumeSource, c: usize, block: Dims3) -> Vec<u8> {
+        let m = src.meta();
+        let s = m.dtype.size();
+        let d = m.dims;
+        let mut out = vec![0u8; m.channel_bytes() as usize];
+        let mut boxes = Vec::new();
+        for z0 in (0..d[0]).step_by(block[0] as usize) {
+            for y0 in (0..d[1]).step_by(block[1] as usize) {
+                for x0 in (0..d[2]).step_by(block[2] as usize) {
+                    boxes.push([
+                        z0..(z0 + block[0]).min(d[0]),
+                        y0..(y0 + block[1]).min(d[1]),
+                        x0..(x0 + block[2]).min(d[2]),
+                    ]);
+                }
+            }
+        }
+        boxes.reverse();
+        for [z, y, x] in boxes {
+            let (nz, ny, nx) = (z.end - z.start, y.end - y.start, x.end - x.start);
+            let mut buf = vec![0u8; (nz * ny * nx) as usize * s];
+            src.read_region(c, z.clone(), y.clone(), x.clone(), &mut buf)
+                .unwrap();
+            for k in 0..nz {
+                for j in 0..ny {
+                    let src_off = ((k * ny + j) * nx) as usize * s;
+                    let dst_off =
+                        (((z.start + k) * d[1] + y.start + j) * d[2] + x.start) as usize * s;
+                    out[dst_off..dst_off + nx as usize * s]
+                        .copy_from_slice(&buf[src_off..src_off + nx as usize * s]);
+                }
+            }
+        }
+        out
+    }
+}

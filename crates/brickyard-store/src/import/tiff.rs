@@ -1088,53 +1088,11 @@ fn wildcard_match(pattern: &str, name: &str) -> bool {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::source::test_util::{read_all, read_stitched};
     use std::io::BufWriter;
     use tiff::decoder::DecodingResult;
     use tiff::encoder::{colortype, compression::DeflateLevel, Compression, TiffEncoder};
     use tiff::encoder::{TiffKind, TiffKindBig, TiffKindStandard, TiffValue};
-
-    fn read_all(src: &dyn VolumeSource, c: usize) -> Vec<u8> {
-        let m = src.meta();
-        let mut out = vec![0u8; m.channel_bytes() as usize];
-        let [z, y, x] = m.dims;
-        src.read_region(c, 0..z, 0..y, 0..x, &mut out).unwrap();
-        out
-    }
-
-    /// Read channel `c` block by block, last block first, and stitch.
-    fn read_stitched(src: &dyn VolumeSource, c: usize, block: [u64; 3]) -> Vec<u8> {
-        let m = src.meta();
-        let s = m.dtype.size();
-        let d = m.dims;
-        let mut out = vec![0u8; m.channel_bytes() as usize];
-        let mut boxes = Vec::new();
-        for z0 in (0..d[0]).step_by(block[0] as usize) {
-            for y0 in (0..d[1]).step_by(block[1] as usize) {
-                for x0 in (0..d[2]).step_by(block[2] as usize) {
-                    boxes.push([
-                        z0..(z0 + block[0]).min(d[0]),
-                        y0..(y0 + block[1]).min(d[1]),
-                        x0..(x0 + block[2]).min(d[2]),
-                    ]);
-                }
-            }
-        }
-        boxes.reverse();
-        for [z, y, x] in boxes {
-            let (nz, ny, nx) = (z.end - z.start, y.end - y.start, x.end - x.start);
-            let mut buf = vec![0u8; (nz * ny * nx) as usize * s];
-            src.read_region(c, z.clone(), y.clone(), x.clone(), &mut buf)
-                .unwrap();
-            for k in 0..nz {
-                for j in 0..ny {
-                    let so = ((k * ny + j) * nx) as usize * s;
-                    let dst = (((z.start + k) * d[1] + y.start + j) * d[2] + x.start) as usize * s;
-                    out[dst..dst + nx as usize * s].copy_from_slice(&buf[so..so + nx as usize * s]);
-                }
-            }
-        }
-        out
-    }
 
     fn shared(name: &str) -> PathBuf {
         let p = Path::new(env!("CARGO_MANIFEST_DIR"))
