@@ -638,8 +638,8 @@ impl VirtualMemory {
                 report.deferred += 1;
                 continue;
             }
-            if let Kind::Mapped(_) = entry_kind(&self.entry(owner), self.dtype) {
-                continue; // already resident
+            if !matches!(entry_kind(&self.entry(owner), self.dtype), Kind::Unmapped) {
+                continue; // already resident (a brick may be delivered twice)
             }
             match &lb.content {
                 BrickContent::Empty => {
