@@ -476,7 +476,11 @@ fn stream_demo(store: &Path) -> Result<()> {
                 let mut exact = 0;
                 for y in rows {
                     for x in 0..w {
-                        let p = [0.5, (y as f64 + 0.5) / h as f64, (x as f64 + 0.5) / w as f64];
+                        let p = [
+                            0.5,
+                            (y as f64 + 0.5) / h as f64,
+                            (x as f64 + 0.5) / w as f64,
+                        ];
                         exact += (vm.sample(0, 0, p, true, &mut req).level == Some(0)) as usize;
                     }
                 }
