@@ -1,14 +1,19 @@
 //! Core types of brickyard: voxel data types, dataset layout and the
-//! multi-resolution pyramid plan.
+//! multi-resolution pyramid plan, the virtual-address math, cameras and
+//! transfer functions.
 //!
 //! This crate does no I/O and never touches a GPU.
 
+pub mod camera;
 pub mod dtype;
 pub mod pyramid;
+pub mod transfer;
 pub mod vm;
 
+pub use camera::{Camera, ConfigError, Projection, Ray};
 pub use dtype::{as_bytes, cast_slice, cast_slice_mut, DType, Sample};
 pub use pyramid::{plan_levels, LevelPlan, PyramidPlan};
+pub use transfer::{ColorMap, TransferFunction};
 
 /// Axis order used everywhere inside brickyard: `[z, y, x]`, x fastest.
 pub type Dims3 = [u64; 3];

@@ -1,0 +1,1012 @@
+//! Cameras, rays and the world ↔ volume coordinate conventions.
+//!
+//! # WORLD COORDINATES ARE `[x, y, z]`
+//!
+//! Everything else in brickyard (array shapes, spacing, voxel indices, the
+//! normalized positions `p` of the virtual memory) is ordered `[z, y, x]`.
+//! **This module is the one exception**: cameras, rays and world points use
+//! the graphics convention `[x, y, z]`. Convert with [`world_extent`],
+//! [`world_to_normalized`] and [`normalized_to_world`]; never index one
+//! with the other's order.
+//!
+//! - The volume occupies the world box `[0, X] × [0, Y] × [0, Z]` where
+//!   `X = dims_x · spacing_x` (physical size, from the spacing), and so on.
+//!   The centre of voxel `(k, j, i)` (`[z, y, x]` indices) is the world point
+//!   `((i + 0.5)·sx, (j + 0.5)·sy, (k + 0.5)·sz)`.
+//! - The normalized real position used by the virtual memory is
+//!   `p = [z, y, x] ∈ [0, 1]³` with `p[a] = world[axis] / extent[axis]`
+//!   (`p[0] = world[2] / Z`, `p[1] = world[1] / Y`, `p[2] = world[0] / X`).
+//! - World up is **+z** for the orbit and turntable helpers: azimuth turns
+//!   about the z axis, elevation lifts the eye towards +z.
+//! - Image space: pixel `(i, j)` covers `[i, i+1) × [j, j+1)`, its centre is
+//!   `(i + 0.5, j + 0.5)`, x grows to the right and **y grows downwards**
+//!   (row 0 is the top row).
+
+use serde::{Deserialize, Serialize};
+use serde_json::Value;
+use std::fmt;
+
+/// A 3-vector in world coordinates `[x, y, z]`.
+pub type Vec3 = [f64; 3];
+
+/// World extent `[X, Y, Z]` of a volume of `dims` voxels (`[z, y, x]`) with
+/// voxel spacing `spacing` (`[z, y, x]`).
+pub fn world_extent(dims: [u64; 3], spacing: [f64; 3]) -> Vec3 {
+    [
+        dims[2] as f64 * spacing[2],
+        dims[1] as f64 * spacing[1],
+        dims[0] as f64 * spacing[0],
+    ]
+}
+
+/// Normalized real position `p = [z, y, x]` of the world point `world`
+/// (`[x, y, z]`) in a volume of world extent `extent` (`[X, Y, Z]`):
+/// `p[a] = world[axis] / extent[axis]`. Not clamped: points outside the box
+/// give values outside `[0, 1]`. Renderers that must match each other
+/// sample-for-sample use this exact function.
+#[inline]
+pub fn world_to_normalized(world: Vec3, extent: Vec3) -> [f64; 3] {
+    [
+        world[2] / extent[2],
+        world[1] / extent[1],
+        world[0] / extent[0],
+    ]
+}
+
+/// Inverse of [`world_to_normalized`]: the world point `[x, y, z]` of the
+/// normalized position `p = [z, y, x]`.
+#[inline]
+pub fn normalized_to_world(p: [f64; 3], extent: Vec3) -> Vec3 {
+    [p[2] * extent[0], p[1] * extent[1], p[0] * extent[2]]
+}
+
+#[inline]
+pub fn dot(a: Vec3, b: Vec3) -> f64 {
+    a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
+}
+
+#[inline]
+pub fn cross(a: Vec3, b: Vec3) -> Vec3 {
+    [
+        a[1] * b[2] - a[2] * b[1],
+        a[2] * b[0] - a[0] * b[2],
+        a[0] * b[1] - a[1] * b[0],
+    ]
+}
+
+#[inline]
+pub fn sub(a: Vec3, b: Vec3) -> Vec3 {
+    [a[0] - b[0], a[1] - b[1], a[2] - b[2]]
+}
+
+#[inline]
+pub fn add(a: Vec3, b: Vec3) -> Vec3 {
+    [a[0] + b[0], a[1] + b[1], a[2] + b[2]]
+}
+
+#[inline]
+pub fn scale(a: Vec3, s: f64) -> Vec3 {
+    [a[0] * s, a[1] * s, a[2] * s]
+}
+
+#[inline]
+pub fn length(a: Vec3) -> f64 {
+    dot(a, a).sqrt()
+}
+
+/// `a / |a|`; a zero vector stays zero.
+#[inline]
+pub fn normalize(a: Vec3) -> Vec3 {
+    let l = length(a);
+    if l > 0.0 {
+        scale(a, 1.0 / l)
+    } else {
+        a
+    }
+}
+
+/// A ray in world coordinates: the points `origin + t·dir`, `t ≥ 0`;
+/// `dir` has unit length, so `t` is a world distance.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Ray {
+    pub origin: Vec3,
+    pub dir: Vec3,
+}
+
+impl Ray {
+    /// The point at parameter `t`.
+    #[inline]
+    pub fn at(&self, t: f64) -> Vec3 {
+        [
+            self.origin[0] + t * self.dir[0],
+            self.origin[1] + t * self.dir[1],
+            self.origin[2] + t * self.dir[2],
+        ]
+    }
+}
+
+/// The part of `ray` (`t ≥ 0`) inside the closed box `[min, max]` (world,
+/// `[x, y, z]`), as `(t0, t1)` with `0 ≤ t0 ≤ t1`, or `None` when the ray
+/// misses the box, only touches it in a single point, or the box lies
+/// behind the origin. A ray starting inside the box gets `t0 = 0`.
+/// Components of `dir` that are exactly zero are handled (the ray is inside
+/// that slab everywhere or nowhere).
+pub fn intersect_box(ray: &Ray, min: Vec3, max: Vec3) -> Option<(f64, f64)> {
+    let mut t0 = 0.0f64;
+    let mut t1 = f64::INFINITY;
+    for a in 0..3 {
+        let o = ray.origin[a];
+        let d = ray.dir[a];
+        if d == 0.0 {
+            if o < min[a] || o > max[a] {
+                return None;
+            }
+            continue;
+        }
+        let inv = 1.0 / d;
+        let (mut ta, mut tb) = ((min[a] - o) * inv, (max[a] - o) * inv);
+        if ta > tb {
+            std::mem::swap(&mut ta, &mut tb);
+        }
+        t0 = t0.max(ta);
+        t1 = t1.min(tb);
+    }
+    if t1 > t0 {
+        Some((t0, t1))
+    } else {
+        None
+    }
+}
+
+/// How the camera projects.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize)]
+#[serde(tag = "type", rename_all = "lowercase")]
+pub enum Projection {
+    /// Pinhole camera with a vertical field of view in degrees (0 < fov < 180).
+    Perspective { fov_y_deg: f64 },
+    /// Parallel rays; `height` is the world size of the image's height.
+    Orthographic { height: f64 },
+}
+
+/// A look-at camera. **World coordinates `[x, y, z]`** (see the module docs).
+///
+/// The view direction is `target − eye`; `up` need not be unit length nor
+/// orthogonal to the view direction, only not parallel to it.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+#[serde(try_from = "serde_json::Value")]
+pub struct Camera {
+    pub projection: Projection,
+    pub eye: Vec3,
+    pub target: Vec3,
+    pub up: Vec3,
+}
+
+/// Orthonormal camera frame: `right`, `up` (on screen) and `forward`
+/// (view direction). `right = forward × up_hint` normalized,
+/// `up = right × forward`.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Basis {
+    pub right: Vec3,
+    pub up: Vec3,
+    pub forward: Vec3,
+}
+
+/// Rays of one camera for one image size, with the frame precomputed.
+/// [`Camera::ray`] goes through this, so both give identical rays.
+#[derive(Debug, Clone, Copy)]
+pub struct RayGen {
+    eye: Vec3,
+    basis: Basis,
+    width: f64,
+    height: f64,
+    /// Perspective: `tan(fov_y / 2)`; orthographic: half the view height.
+    half_h: f64,
+    perspective: bool,
+}
+
+impl RayGen {
+    /// The ray through the continuous image position `(px, py)`: pixel
+    /// `(i, j)` has its centre at `(i + 0.5, j + 0.5)`; y grows downwards.
+    #[inline]
+    pub fn ray(&self, px: f64, py: f64) -> Ray {
+        let aspect = self.width / self.height;
+        let sx = (2.0 * px / self.width - 1.0) * self.half_h * aspect;
+        let sy = (1.0 - 2.0 * py / self.height) * self.half_h;
+        let b = &self.basis;
+        let off = add(scale(b.right, sx), scale(b.up, sy));
+        if self.perspective {
+            Ray {
+                origin: self.eye,
+                dir: normalize(add(b.forward, off)),
+            }
+        } else {
+            Ray {
+                origin: add(self.eye, off),
+                dir: b.forward,
+            }
+        }
+    }
+
+    /// The ray through the centre of pixel `(i, j)`.
+    #[inline]
+    pub fn pixel_ray(&self, i: u32, j: u32) -> Ray {
+        self.ray(i as f64 + 0.5, j as f64 + 0.5)
+    }
+}
+
+impl Camera {
+    /// A look-at camera. Call [`Camera::validate`] on untrusted input.
+    pub fn look_at(eye: Vec3, target: Vec3, up: Vec3, projection: Projection) -> Camera {
+        Camera {
+            projection,
+            eye,
+            target,
+            up,
+        }
+    }
+
+    /// A camera on a sphere of radius `distance` around `target`, world up
+    /// +z. Azimuth 0 puts the eye on the −y side looking towards +y (x to
+    /// the right, z up on screen); positive azimuth turns the eye
+    /// counter-clockwise seen from +z (azimuth 90: eye on the +x side).
+    /// Elevation lifts the eye towards +z (90: looking straight down −z,
+    /// with +y up on screen at azimuth 0). The camera's `up` is the
+    /// elevation tangent, so every elevation, ±90 included, is well defined.
+    pub fn orbit(
+        target: Vec3,
+        distance: f64,
+        azimuth_deg: f64,
+        elevation_deg: f64,
+        projection: Projection,
+    ) -> Camera {
+        let (sa, ca) = azimuth_deg.to_radians().sin_cos();
+        let (se, ce) = elevation_deg.to_radians().sin_cos();
+        let offset = [distance * ce * sa, -distance * ce * ca, distance * se];
+        let up = [-se * sa, se * ca, ce];
+        Camera {
+            projection,
+            eye: add(target, offset),
+            target,
+            up,
+        }
+    }
+
+    /// An orbit camera that frames the whole box `[0, extent]` (world
+    /// `[x, y, z]`): it looks at the box centre and its view contains the
+    /// box's bounding sphere vertically (for images at least as wide as
+    /// they are tall, horizontally too). Orthographic: `height` in
+    /// `projection` is replaced by the sphere's diameter.
+    pub fn fit(
+        extent: Vec3,
+        azimuth_deg: f64,
+        elevation_deg: f64,
+        projection: Projection,
+    ) -> Camera {
+        let centre = scale(extent, 0.5);
+        let r = length(extent) * 0.5;
+        let (distance, projection) = match projection {
+            Projection::Perspective { fov_y_deg } => {
+                let half = (fov_y_deg * 0.5).to_radians();
+                (r / half.sin(), projection)
+            }
+            Projection::Orthographic { .. } => {
+                (2.0 * r, Projection::Orthographic { height: 2.0 * r })
+            }
+        };
+        Camera::orbit(centre, distance, azimuth_deg, elevation_deg, projection)
+    }
+
+    /// An orthographic camera looking along `normal` at the plane through
+    /// `origin`, the plane filling a view `height` world units tall. The eye
+    /// sits `height` in front of the plane. On screen: for a normal along
+    /// ±z, x goes right and y **down** (like an image of an `[y, x]` slice);
+    /// otherwise world +z is up.
+    pub fn facing_plane(origin: Vec3, normal: Vec3, height: f64) -> Camera {
+        let n = normalize(normal);
+        let up = if n[0].abs() < 1e-9 && n[1].abs() < 1e-9 {
+            [0.0, -1.0, 0.0]
+        } else {
+            [0.0, 0.0, 1.0]
+        };
+        Camera {
+            projection: Projection::Orthographic { height },
+            eye: sub(origin, scale(n, height)),
+            target: origin,
+            up,
+        }
+    }
+
+    /// The camera frame. Assumes a valid camera ([`Camera::validate`]).
+    pub fn basis(&self) -> Basis {
+        let forward = normalize(sub(self.target, self.eye));
+        let right = normalize(cross(forward, self.up));
+        let up = cross(right, forward);
+        Basis { right, up, forward }
+    }
+
+    /// Precomputed ray generation for a `width × height` image.
+    pub fn ray_gen(&self, width: u32, height: u32) -> RayGen {
+        let (half_h, perspective) = match self.projection {
+            Projection::Perspective { fov_y_deg } => ((fov_y_deg * 0.5).to_radians().tan(), true),
+            Projection::Orthographic { height } => (height * 0.5, false),
+        };
+        RayGen {
+            eye: self.eye,
+            basis: self.basis(),
+            width: width as f64,
+            height: height as f64,
+            half_h,
+            perspective,
+        }
+    }
+
+    /// The ray through the continuous image position `(px, py)` of a
+    /// `width × height` image. **Pixel `(i, j)` has its centre at
+    /// `(i + 0.5, j + 0.5)`** (pass `i as f64 + 0.5`); y grows downwards.
+    /// Perspective rays start at the eye; orthographic rays start on the
+    /// plane through the eye perpendicular to the view direction. For many
+    /// rays use [`Camera::ray_gen`] (same result, frame computed once).
+    pub fn ray(&self, px: f64, py: f64, width: u32, height: u32) -> Ray {
+        self.ray_gen(width, height).ray(px, py)
+    }
+
+    /// The continuous image position `(px, py)` (pixel centres at `+0.5`,
+    /// y down) where the world point `point` appears in a `width × height`
+    /// image, or `None` when it lies on or behind the eye's plane
+    /// (perspective only). Inverse of [`Camera::ray`]: the ray through the
+    /// returned position passes through `point`.
+    pub fn project(&self, point: Vec3, width: u32, height: u32) -> Option<[f64; 2]> {
+        let b = self.basis();
+        let v = sub(point, self.eye);
+        let (x, y, z) = (dot(v, b.right), dot(v, b.up), dot(v, b.forward));
+        let (w, h) = (width as f64, height as f64);
+        let (half_h, sx, sy) = match self.projection {
+            Projection::Perspective { fov_y_deg } => {
+                if z <= 0.0 {
+                    return None;
+                }
+                ((fov_y_deg * 0.5).to_radians().tan(), x / z, y / z)
+            }
+            Projection::Orthographic { height } => (height * 0.5, x, y),
+        };
+        let nx = sx / (half_h * w / h);
+        let ny = sy / half_h;
+        Some([(nx + 1.0) * 0.5 * w, (1.0 - ny) * 0.5 * h])
+    }
+
+    /// World size of one pixel (its height) at distance `distance_along_ray`
+    /// from the eye, for an image `height` pixels tall: for choosing the
+    /// level of detail. Perspective: `2·d·tan(fov_y/2) / height` (exact for
+    /// the central ray; off-axis rays, whose distance overstates the depth
+    /// by `1/cos θ`, get a slightly larger, i.e. coarser, value).
+    /// Orthographic: `view height / height` at every distance.
+    pub fn pixel_footprint(&self, distance_along_ray: f64, height: u32) -> f64 {
+        match self.projection {
+            Projection::Perspective { fov_y_deg } => {
+                2.0 * distance_along_ray * (fov_y_deg * 0.5).to_radians().tan() / height as f64
+            }
+            Projection::Orthographic { height: h } => h / height as f64,
+        }
+    }
+
+    /// Frame `i` of a `frames`-frame turntable: this camera rotated by
+    /// `360° · i / frames` about the world z axis through the target (eye
+    /// and up rotate; positive angles counter-clockwise seen from +z, the
+    /// same sense as the orbit azimuth).
+    pub fn turntable(&self, frames: u32, i: u32) -> Camera {
+        let angle = if frames == 0 {
+            0.0
+        } else {
+            360.0 * i as f64 / frames as f64
+        };
+        let (s, c) = angle.to_radians().sin_cos();
+        let rot = |v: Vec3| [c * v[0] - s * v[1], s * v[0] + c * v[1], v[2]];
+        Camera {
+            projection: self.projection,
+            eye: add(self.target, rot(sub(self.eye, self.target))),
+            target: self.target,
+            up: rot(self.up),
+        }
+    }
+
+    /// Check that the camera can produce rays: finite numbers, eye ≠
+    /// target, up not parallel to the view direction, 0 < fov < 180,
+    /// orthographic height > 0.
+    pub fn validate(&self) -> Result<(), ConfigError> {
+        let err = |field: &str, msg: String| Err(ConfigError::new("camera", field, msg));
+        for (name, v) in [("eye", self.eye), ("target", self.target), ("up", self.up)] {
+            if v.iter().any(|x| !x.is_finite()) {
+                return err(name, format!("must be finite numbers, got {v:?}"));
+            }
+        }
+        match self.projection {
+            Projection::Perspective { fov_y_deg } => {
+                if !(fov_y_deg > 0.0 && fov_y_deg < 180.0) {
+                    return err(
+                        "projection.fov_y_deg",
+                        format!("must be between 0 and 180 degrees (exclusive), got {fov_y_deg}"),
+                    );
+                }
+            }
+            Projection::Orthographic { height } => {
+                if !(height > 0.0 && height.is_finite()) {
+                    return err(
+                        "projection.height",
+                        format!("must be a positive world length, got {height}"),
+                    );
+                }
+            }
+        }
+        let f = sub(self.target, self.eye);
+        let lf = length(f);
+        if lf == 0.0 {
+            return err(
+                "target",
+                "equals eye: the view direction is undefined".into(),
+            );
+        }
+        let lu = length(self.up);
+        if lu == 0.0 || length(cross(f, self.up)) <= 1e-9 * lf * lu {
+            return err(
+                "up",
+                format!("{:?} is zero or parallel to the view direction", self.up),
+            );
+        }
+        Ok(())
+    }
+
+    /// Parse a camera from JSON, e.g.
+    /// `{"projection": {"type": "perspective", "fov_y_deg": 30},
+    ///   "eye": [0, -500, 100], "target": [128, 128, 80], "up": [0, 0, 1]}`
+    /// (`up` defaults to `[0, 0, 1]`). Errors name the offending field.
+    pub fn from_json(s: &str) -> Result<Camera, ConfigError> {
+        let v: Value = serde_json::from_str(s).map_err(|e| ConfigError::syntax("camera", &e))?;
+        Camera::try_from(v)
+    }
+
+    /// The camera as pretty JSON (what [`Camera::from_json`] reads).
+    pub fn to_json(&self) -> String {
+        serde_json::to_string_pretty(self).expect("a camera always serializes")
+    }
+}
+
+impl TryFrom<Value> for Camera {
+    type Error = ConfigError;
+    fn try_from(v: Value) -> Result<Camera, ConfigError> {
+        let o = Fields::new("camera", &v, &["projection", "eye", "target", "up"])?;
+        let pv = o.required("projection")?;
+        let projection = parse_projection(pv)?;
+        let cam = Camera {
+            projection,
+            eye: o.vec3("eye")?.ok_or_else(|| o.missing("eye"))?,
+            target: o.vec3("target")?.ok_or_else(|| o.missing("target"))?,
+            up: o.vec3("up")?.unwrap_or([0.0, 0.0, 1.0]),
+        };
+        cam.validate()?;
+        Ok(cam)
+    }
+}
+
+fn parse_projection(v: &Value) -> Result<Projection, ConfigError> {
+    let what = "camera";
+    let obj = v.as_object().ok_or_else(|| {
+        ConfigError::new(
+            what,
+            "projection",
+            format!(
+                "expected an object like {{\"type\": \"perspective\", \"fov_y_deg\": 30}} or \
+                 {{\"type\": \"orthographic\", \"height\": 100}}, got {}",
+                brief(v)
+            ),
+        )
+    })?;
+    let ty = obj.get("type").and_then(Value::as_str).ok_or_else(|| {
+        ConfigError::new(
+            what,
+            "projection.type",
+            "missing or not a string; expected \"perspective\" or \"orthographic\"",
+        )
+    })?;
+    let num = |key: &str| -> Result<f64, ConfigError> {
+        let field = format!("projection.{key}");
+        match obj.get(key) {
+            None => Err(ConfigError::new(
+                what,
+                &field,
+                format!("missing (required for a {ty} projection)"),
+            )),
+            Some(x) => x.as_f64().ok_or_else(|| {
+                ConfigError::new(what, &field, format!("expected a number, got {}", brief(x)))
+            }),
+        }
+    };
+    let check_keys = |allowed: &[&str]| -> Result<(), ConfigError> {
+        for k in obj.keys() {
+            if k != "type" && !allowed.contains(&k.as_str()) {
+                return Err(ConfigError::new(
+                    what,
+                    &format!("projection.{k}"),
+                    format!("unknown field for a {ty} projection (expected {allowed:?})"),
+                ));
+            }
+        }
+        Ok(())
+    };
+    match ty {
+        "perspective" => {
+            check_keys(&["fov_y_deg"])?;
+            Ok(Projection::Perspective {
+                fov_y_deg: num("fov_y_deg")?,
+            })
+        }
+        "orthographic" => {
+            check_keys(&["height"])?;
+            Ok(Projection::Orthographic {
+                height: num("height")?,
+            })
+        }
+        other => Err(ConfigError::new(
+            what,
+            "projection.type",
+            format!("unknown projection {other:?}; expected \"perspective\" or \"orthographic\""),
+        )),
+    }
+}
+
+/// An invalid camera or transfer function (JSON or values), naming the
+/// field at fault.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct ConfigError {
+    /// What was being read: `"camera"`, `"transfer function"`.
+    pub what: String,
+    /// The field at fault (`"eye"`, `"opacity[2]"`, `"projection.type"`);
+    /// empty for errors of the whole document (JSON syntax).
+    pub field: String,
+    pub message: String,
+}
+
+impl ConfigError {
+    pub fn new(what: &str, field: &str, message: impl Into<String>) -> ConfigError {
+        ConfigError {
+            what: what.into(),
+            field: field.into(),
+            message: message.into(),
+        }
+    }
+
+    /// A JSON syntax error.
+    pub fn syntax(what: &str, e: &serde_json::Error) -> ConfigError {
+        ConfigError::new(what, "", format!("invalid JSON: {e}"))
+    }
+}
+
+impl fmt::Display for ConfigError {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        if self.field.is_empty() {
+            write!(f, "{}: {}", self.what, self.message)
+        } else {
+            write!(f, "{}: field `{}`: {}", self.what, self.field, self.message)
+        }
+    }
+}
+
+impl std::error::Error for ConfigError {}
+
+/// A short rendering of a JSON value for error messages.
+pub(crate) fn brief(v: &Value) -> String {
+    let s = v.to_string();
+    if s.chars().count() > 60 {
+        format!("{}…", s.chars().take(57).collect::<String>())
+    } else {
+        s
+    }
+}
+
+/// Field access on a JSON object with errors that name the field.
+pub(crate) struct Fields<'a> {
+    pub what: &'static str,
+    pub obj: &'a serde_json::Map<String, Value>,
+}
+
+impl<'a> Fields<'a> {
+    /// `v` must be an object whose keys are all in `allowed`.
+    pub fn new(what: &'static str, v: &'a Value, allowed: &[&str]) -> Result<Self, ConfigError> {
+        let obj = v.as_object().ok_or_else(|| {
+            ConfigError::new(
+                what,
+                "",
+                format!("expected a JSON object, got {}", brief(v)),
+            )
+        })?;
+        for k in obj.keys() {
+            if !allowed.contains(&k.as_str()) {
+                return Err(ConfigError::new(
+                    what,
+                    k,
+                    format!("unknown field (expected one of {allowed:?})"),
+                ));
+            }
+        }
+        Ok(Fields { what, obj })
+    }
+
+    pub fn missing(&self, key: &str) -> ConfigError {
+        ConfigError::new(self.what, key, "missing")
+    }
+
+    pub fn required(&self, key: &str) -> Result<&'a Value, ConfigError> {
+        self.obj.get(key).ok_or_else(|| self.missing(key))
+    }
+
+    pub fn err(&self, field: &str, msg: impl Into<String>) -> ConfigError {
+        ConfigError::new(self.what, field, msg)
+    }
+
+    /// An array of exactly `N` numbers at `field` (for messages).
+    pub fn numbers<const N: usize>(&self, field: &str, v: &Value) -> Result<[f64; N], ConfigError> {
+        let bad = || {
+            self.err(
+                field,
+                format!("expected an array of {N} numbers, got {}", brief(v)),
+            )
+        };
+        let a = v.as_array().ok_or_else(bad)?;
+        if a.len() != N {
+            return Err(bad());
+        }
+        let mut out = [0.0; N];
+        for (o, x) in out.iter_mut().zip(a) {
+            *o = x.as_f64().ok_or_else(bad)?;
+        }
+        Ok(out)
+    }
+
+    /// Optional `[x, y, z]`.
+    pub fn vec3(&self, key: &str) -> Result<Option<Vec3>, ConfigError> {
+        self.obj
+            .get(key)
+            .map(|v| self.numbers::<3>(key, v))
+            .transpose()
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn close(a: Vec3, b: Vec3, eps: f64) -> bool {
+        (0..3).all(|i| (a[i] - b[i]).abs() <= eps)
+    }
+
+    /// Distance from `p` to the ray's line.
+    fn dist_to_ray(r: &Ray, p: Vec3) -> f64 {
+        let v = sub(p, r.origin);
+        length(sub(v, scale(r.dir, dot(v, r.dir))))
+    }
+
+    const PERSP: Projection = Projection::Perspective { fov_y_deg: 40.0 };
+    const ORTHO: Projection = Projection::Orthographic { height: 30.0 };
+
+    fn cameras() -> Vec<Camera> {
+        let mut v = vec![];
+        for proj in [PERSP, ORTHO] {
+            for (az, el) in [
+                (0.0, 0.0),
+                (30.0, 20.0),
+                (-135.0, -60.0),
+                (90.0, 90.0),
+                (10.0, -90.0),
+            ] {
+                v.push(Camera::orbit([5.0, -3.0, 2.0], 50.0, az, el, proj));
+            }
+            v.push(Camera::look_at(
+                [1.0, 2.0, 3.0],
+                [4.0, -6.0, 8.0],
+                [0.3, 0.1, 1.0],
+                proj,
+            ));
+        }
+        v
+    }
+
+    #[test]
+    fn normalized_round_trip() {
+        let ext = [10.0, 20.0, 40.0];
+        let w = [2.5, 5.0, 30.0];
+        let p = world_to_normalized(w, ext);
+        assert_eq!(p, [0.75, 0.25, 0.25]);
+        assert_eq!(normalized_to_world(p, ext), w);
+        assert_eq!(world_extent([4, 5, 6], [2.0, 1.0, 0.5]), [3.0, 5.0, 8.0]);
+    }
+
+    #[test]
+    fn centre_ray_hits_target_and_rays_are_unit() {
+        for cam in cameras() {
+            cam.validate().unwrap();
+            for (w, h) in [(64, 64), (100, 50), (33, 71)] {
+                let r = cam.ray(w as f64 / 2.0, h as f64 / 2.0, w, h);
+                assert!(dist_to_ray(&r, cam.target) < 1e-9, "{cam:?} {w}x{h}");
+                let f = normalize(sub(cam.target, cam.eye));
+                assert!(close(r.dir, f, 1e-12));
+                for (px, py) in [(0.5, 0.5), (w as f64 - 0.5, 3.5), (7.25, h as f64 - 0.5)] {
+                    let r = cam.ray(px, py, w, h);
+                    assert!((length(r.dir) - 1.0).abs() < 1e-12);
+                }
+            }
+        }
+    }
+
+    #[test]
+    fn orthographic_rays_are_parallel_and_evenly_spaced() {
+        let cam = Camera::orbit([0.0; 3], 100.0, 25.0, 35.0, ORTHO);
+        let (w, h) = (40u32, 20u32);
+        let b = cam.basis();
+        let r00 = cam.ray(0.5, 0.5, w, h);
+        for j in 0..h {
+            for i in 0..w {
+                let r = cam.ray(i as f64 + 0.5, j as f64 + 0.5, w, h);
+                assert_eq!(r.dir, b.forward);
+                // One pixel = height/h world units, right and down.
+                let d = sub(r.origin, r00.origin);
+                let step = 30.0 / h as f64;
+                assert!((dot(d, b.right) - i as f64 * step).abs() < 1e-9);
+                assert!((dot(d, b.up) + j as f64 * step).abs() < 1e-9);
+                assert!(dot(d, b.forward).abs() < 1e-9);
+            }
+        }
+        // The image spans `height` vertically and height·aspect horizontally.
+        let top = cam.ray(20.0, 0.0, w, h);
+        let bottom = cam.ray(20.0, 20.0, w, h);
+        assert!((length(sub(top.origin, bottom.origin)) - 30.0).abs() < 1e-9);
+        let left = cam.ray(0.0, 10.0, w, h);
+        let right = cam.ray(40.0, 10.0, w, h);
+        assert!((length(sub(left.origin, right.origin)) - 60.0).abs() < 1e-9);
+    }
+
+    #[test]
+    fn image_axes_right_and_down() {
+        // Looking along +y from the -y side (azimuth 0): x to the right, z up.
+        let cam = Camera::orbit([0.0; 3], 10.0, 0.0, 0.0, PERSP);
+        assert!(close(cam.eye, [0.0, -10.0, 0.0], 1e-12));
+        let b = cam.basis();
+        assert!(close(b.right, [1.0, 0.0, 0.0], 1e-12));
+        assert!(close(b.up, [0.0, 0.0, 1.0], 1e-12));
+        // Pixel (0, 0) is top-left: its ray goes left (-x) and up (+z).
+        let r = cam.ray(0.5, 0.5, 8, 8);
+        assert!(r.dir[0] < 0.0 && r.dir[2] > 0.0);
+        // Azimuth 90: eye on +x; elevation 90: looking down -z with +y up.
+        let c = Camera::orbit([0.0; 3], 10.0, 90.0, 0.0, PERSP);
+        assert!(close(c.eye, [10.0, 0.0, 0.0], 1e-12));
+        let c = Camera::orbit([0.0; 3], 10.0, 0.0, 90.0, PERSP);
+        assert!(close(c.eye, [0.0, 0.0, 10.0], 1e-12));
+        let b = c.basis();
+        assert!(close(b.forward, [0.0, 0.0, -1.0], 1e-12));
+        assert!(close(b.right, [1.0, 0.0, 0.0], 1e-12));
+        assert!(close(b.up, [0.0, 1.0, 0.0], 1e-12));
+        // A plane facing +z shows x right and y down.
+        let c = Camera::facing_plane([1.0, 1.0, 1.0], [0.0, 0.0, 1.0], 4.0);
+        let b = c.basis();
+        assert!(close(b.right, [1.0, 0.0, 0.0], 1e-12));
+        assert!(close(b.up, [0.0, -1.0, 0.0], 1e-12));
+    }
+
+    #[test]
+    fn pixel_footprint_matches_ray_spacing() {
+        let (w, h) = (256u32, 256u32);
+        let cam = Camera::orbit([0.0; 3], 80.0, 10.0, 20.0, PERSP);
+        for d in [1.0, 80.0, 1000.0] {
+            // Two rays through neighbouring pixels at the image centre,
+            // followed to distance d: their separation is one pixel.
+            let a = cam.ray(127.5, 128.0, w, h);
+            let b = cam.ray(128.5, 128.0, w, h);
+            let sep = length(sub(a.at(d), b.at(d)));
+            let fp = cam.pixel_footprint(d, h);
+            assert!((sep - fp).abs() / fp < 1e-4, "{sep} vs {fp}");
+        }
+        let cam = Camera::orbit([0.0; 3], 80.0, 10.0, 20.0, ORTHO);
+        let a = cam.ray(3.5, 3.5, w, h);
+        let b = cam.ray(3.5, 4.5, w, h);
+        let fp = cam.pixel_footprint(12.0, h);
+        assert!((length(sub(a.origin, b.origin)) - fp).abs() < 1e-12);
+        assert!((fp - 30.0 / 256.0).abs() < 1e-15);
+    }
+
+    #[test]
+    fn project_inverts_ray() {
+        for cam in cameras() {
+            let (w, h) = (64u32, 48u32);
+            for (px, py) in [(0.5, 0.5), (63.5, 47.5), (20.25, 30.75), (32.0, 24.0)] {
+                let r = cam.ray(px, py, w, h);
+                let p = r.at(37.0);
+                let q = cam.project(p, w, h).unwrap();
+                assert!(
+                    (q[0] - px).abs() < 1e-7 && (q[1] - py).abs() < 1e-7,
+                    "{q:?}"
+                );
+            }
+        }
+        let cam = Camera::orbit([0.0; 3], 10.0, 0.0, 0.0, PERSP);
+        assert!(cam.project([0.0, -20.0, 0.0], 8, 8).is_none());
+    }
+
+    #[test]
+    fn fit_frames_the_box() {
+        let ext = [200.0, 150.0, 60.0];
+        for proj in [PERSP, ORTHO] {
+            for (az, el) in [(0.0, 0.0), (30.0, 20.0), (200.0, -70.0), (0.0, 90.0)] {
+                let cam = Camera::fit(ext, az, el, proj);
+                assert!(close(cam.target, [100.0, 75.0, 30.0], 1e-12));
+                for c in 0..8 {
+                    let p = [0, 1, 2].map(|a| if c >> a & 1 == 1 { ext[a] } else { 0.0 });
+                    let q = cam.project(p, 100, 100).unwrap();
+                    assert!(
+                        (0.0..=100.0).contains(&q[0]) && (0.0..=100.0).contains(&q[1]),
+                        "corner {p:?} at {q:?} ({proj:?}, {az}, {el})"
+                    );
+                }
+            }
+        }
+    }
+
+    #[test]
+    fn turntable_rotates_about_z() {
+        let cam = Camera::orbit([1.0, 2.0, 3.0], 10.0, 0.0, 30.0, PERSP);
+        assert_eq!(cam.turntable(8, 0), cam);
+        let q = cam.turntable(4, 1);
+        let expect = Camera::orbit([1.0, 2.0, 3.0], 10.0, 90.0, 30.0, PERSP);
+        assert!(close(q.eye, expect.eye, 1e-9));
+        assert!(close(q.up, expect.up, 1e-9));
+        let full = cam.turntable(5, 5);
+        assert!(close(full.eye, cam.eye, 1e-9));
+        for i in 0..7 {
+            let c = cam.turntable(7, i);
+            assert!((length(sub(c.eye, c.target)) - 10.0).abs() < 1e-9);
+            assert!((c.eye[2] - cam.eye[2]).abs() < 1e-9);
+        }
+    }
+
+    #[test]
+    fn box_intersection() {
+        let (lo, hi) = ([0.0; 3], [2.0, 4.0, 8.0]);
+        let r = Ray {
+            origin: [1.0, 1.0, -2.0],
+            dir: [0.0, 0.0, 1.0],
+        };
+        assert_eq!(intersect_box(&r, lo, hi), Some((2.0, 10.0)));
+        // Starting inside.
+        let r = Ray {
+            origin: [1.0, 1.0, 1.0],
+            dir: [0.0, 0.0, 1.0],
+        };
+        assert_eq!(intersect_box(&r, lo, hi), Some((0.0, 7.0)));
+        // Behind.
+        let r = Ray {
+            origin: [1.0, 1.0, 10.0],
+            dir: [0.0, 0.0, 1.0],
+        };
+        assert_eq!(intersect_box(&r, lo, hi), None);
+        // Parallel to a slab, outside it.
+        let r = Ray {
+            origin: [3.0, 1.0, -2.0],
+            dir: [0.0, 0.0, 1.0],
+        };
+        assert_eq!(intersect_box(&r, lo, hi), None);
+        // Parallel and exactly on a face: inside the closed box.
+        let r = Ray {
+            origin: [0.0, 1.0, -2.0],
+            dir: [0.0, 0.0, 1.0],
+        };
+        assert_eq!(intersect_box(&r, lo, hi), Some((2.0, 10.0)));
+        // Diagonal through two corners.
+        let d = normalize([2.0, 4.0, 8.0]);
+        let r = Ray {
+            origin: scale(d, -1.0),
+            dir: d,
+        };
+        let (t0, t1) = intersect_box(&r, lo, hi).unwrap();
+        assert!((t0 - 1.0).abs() < 1e-12 && (t1 - 1.0 - length(hi)).abs() < 1e-12);
+        // Grazing an edge: touches the box in a single point.
+        let r = Ray {
+            origin: [-1.0, 3.0, 4.0],
+            dir: normalize([1.0, 1.0, 0.0]),
+        };
+        assert_eq!(intersect_box(&r, lo, hi), None);
+        // Missing.
+        let r = Ray {
+            origin: [-1.0, -1.0, -1.0],
+            dir: normalize([-1.0, 1.0, 1.0]),
+        };
+        assert_eq!(intersect_box(&r, lo, hi), None);
+        // Random rays: entry and exit points lie on the box surface.
+        let mut s = 12345u64;
+        let mut rnd = || {
+            s = s
+                .wrapping_mul(6364136223846793005)
+                .wrapping_add(1442695040888963407);
+            (s >> 11) as f64 / (1u64 << 53) as f64
+        };
+        let mut hits = 0;
+        for _ in 0..2000 {
+            let o = [rnd() * 6.0 - 2.0, rnd() * 8.0 - 2.0, rnd() * 12.0 - 2.0];
+            let d = normalize([rnd() - 0.5, rnd() - 0.5, rnd() - 0.5]);
+            let r = Ray { origin: o, dir: d };
+            if let Some((t0, t1)) = intersect_box(&r, lo, hi) {
+                hits += 1;
+                let mid = r.at(0.5 * (t0 + t1));
+                assert!((0..3).all(|a| mid[a] >= -1e-9 && mid[a] <= hi[a] + 1e-9));
+                for t in [t0, t1] {
+                    let p = r.at(t);
+                    let on_face =
+                        (0..3).any(|a| (p[a] - lo[a]).abs() < 1e-9 || (p[a] - hi[a]).abs() < 1e-9);
+                    let inside = (0..3).all(|a| p[a] > -1e-9 && p[a] < hi[a] + 1e-9);
+                    assert!(inside && (on_face || t == 0.0), "{r:?} {t0} {t1}");
+                }
+            } else {
+                // Dense check: no point of the ray is strictly inside.
+                for k in 0..400 {
+                    let p = r.at(k as f64 * 0.05);
+                    assert!(!(0..3).all(|a| p[a] > 1e-6 && p[a] < hi[a] - 1e-6), "{r:?}");
+                }
+            }
+        }
+        assert!(hits > 200);
+    }
+
+    #[test]
+    fn json_round_trip() {
+        // serde_json's default float parser may be off by one ulp.
+        let same = |a: &Camera, b: &Camera| {
+            a.projection == b.projection
+                && close(a.eye, b.eye, 1e-12)
+                && close(a.target, b.target, 1e-12)
+                && close(a.up, b.up, 1e-12)
+        };
+        for cam in cameras() {
+            let s = cam.to_json();
+            assert!(same(&Camera::from_json(&s).unwrap(), &cam), "{s}");
+            let v: Camera = serde_json::from_str(&s).unwrap();
+            assert!(same(&v, &cam));
+        }
+        let c = Camera::from_json(
+            r#"{"projection": {"type": "orthographic", "height": 5}, "eye": [0, 0, 10], "target": [0, 0, 0], "up": [0, 1, 0]}"#,
+        )
+        .unwrap();
+        assert_eq!(c.projection, Projection::Orthographic { height: 5.0 });
+        // up defaults to +z.
+        let c = Camera::from_json(
+            r#"{"projection": {"type": "perspective", "fov_y_deg": 30}, "eye": [0, -9, 0], "target": [0, 0, 0]}"#,
+        )
+        .unwrap();
+        assert_eq!(c.up, [0.0, 0.0, 1.0]);
+    }
+
+    #[test]
+    fn bad_json_names_the_field() {
+        let p = r#""projection": {"type": "perspective", "fov_y_deg": 30}"#;
+        let cases = [
+            (format!(r#"{{{p}, "target": [0, 0, 0]}}"#), "`eye`", "missing"),
+            (format!(r#"{{{p}, "eye": [0, 0], "target": [0, 0, 0]}}"#), "`eye`", "3 numbers"),
+            (format!(r#"{{{p}, "eye": [0, "a", 1], "target": [0, 0, 0]}}"#), "`eye`", "3 numbers"),
+            (format!(r#"{{{p}, "eye": [0, 0, 1], "target": [0, 0, 1]}}"#), "`target`", "equals eye"),
+            (format!(r#"{{{p}, "eye": [0, 0, 1], "target": [0, 0, 0], "up": [0, 0, 2]}}"#), "`up`", "parallel"),
+            (format!(r#"{{{p}, "eye": [0, 0, 1], "target": [0, 0, 0], "fov": 3}}"#), "`fov`", "unknown field"),
+            (r#"{"projection": {"type": "fisheye"}, "eye": [0, 0, 1], "target": [0, 0, 0]}"#.into(), "`projection.type`", "fisheye"),
+            (r#"{"projection": {"type": "perspective", "fov_y_deg": 180}, "eye": [0, 0, 1], "target": [0, 0, 0]}"#.into(), "`projection.fov_y_deg`", "between 0 and 180"),
+            (r#"{"projection": {"type": "perspective"}, "eye": [0, 0, 1], "target": [0, 0, 0]}"#.into(), "`projection.fov_y_deg`", "missing"),
+            (r#"{"projection": {"type": "orthographic", "height": -1}, "eye": [0, 0, 1], "target": [0, 0, 0]}"#.into(), "`projection.height`", "positive"),
+            (r#"{"projection": "perspective", "eye": [0, 0, 1], "target": [0, 0, 0]}"#.into(), "`projection`", "expected an object"),
+            (r#"{"projection": {"type": "perspective", "fov_y_deg": 30}, "eye": [0, 0, 1],"#.into(), "", "invalid JSON"),
+            ("[1, 2]".into(), "", "expected a JSON object"),
+        ];
+        for (json, field, msg) in cases {
+            let e = Camera::from_json(&json).unwrap_err().to_string();
+            assert!(e.starts_with("camera: "), "{e}");
+            assert!(e.contains(field) && e.contains(msg), "{json}\n→ {e}");
+            // The serde path gives the same message.
+            if let Ok(v) = serde_json::from_str::<Value>(&json) {
+                let e2 = serde_json::from_value::<Camera>(v).unwrap_err().to_string();
+                assert!(e2.contains(msg), "{e2}");
+            }
+        }
+    }
+}

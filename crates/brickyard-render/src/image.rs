@@ -1,0 +1,186 @@
+//! Float RGBA images (premultiplied alpha), PNG output and comparison.
+
+use std::fmt;
+use std::fs::File;
+use std::io::BufWriter;
+use std::path::{Path, PathBuf};
+
+/// A `width × height` image of premultiplied linear RGBA in `[0, 1]`,
+/// row-major, row 0 at the top: pixel `(x, y)` is `rgba[y · width + x]`.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Image {
+    pub width: u32,
+    pub height: u32,
+    pub rgba: Vec<[f32; 4]>,
+}
+
+/// Writing a PNG failed.
+#[derive(Debug)]
+pub struct PngError {
+    pub path: PathBuf,
+    pub message: String,
+}
+
+impl fmt::Display for PngError {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        write!(
+            f,
+            "{}: cannot write PNG: {}",
+            self.path.display(),
+            self.message
+        )
+    }
+}
+
+impl std::error::Error for PngError {}
+
+#[inline]
+fn to_u8(v: f32) -> u8 {
+    // NaN maps to 0 (`as` saturates and sends NaN to 0).
+    (v.clamp(0.0, 1.0) * 255.0).round() as u8
+}
+
+impl Image {
+    /// A fully transparent image.
+    pub fn new(width: u32, height: u32) -> Image {
+        Image {
+            width,
+            height,
+            rgba: vec![[0.0; 4]; width as usize * height as usize],
+        }
+    }
+
+    #[inline]
+    pub fn get(&self, x: u32, y: u32) -> [f32; 4] {
+        self.rgba[y as usize * self.width as usize + x as usize]
+    }
+
+    #[inline]
+    pub fn set(&mut self, x: u32, y: u32, v: [f32; 4]) {
+        self.rgba[y as usize * self.width as usize + x as usize] = v;
+    }
+
+    /// 8-bit RGBA (straight alpha, as PNG stores it) of this image composited
+    /// over `background` (straight RGBA; alpha 1 gives an opaque image,
+    /// `[0, 0, 0, 0]` keeps the image's own transparency). Values are
+    /// written as they are (no gamma conversion), clamped to `[0, 1]` and
+    /// rounded to the nearest of 0…255.
+    pub fn to_rgba8(&self, background: [f32; 4]) -> Vec<u8> {
+        let ba = background[3];
+        let bg = [
+            background[0] * ba,
+            background[1] * ba,
+            background[2] * ba,
+            ba,
+        ];
+        let mut out = Vec::with_capacity(self.rgba.len() * 4);
+        for p in &self.rgba {
+            let k = 1.0 - p[3];
+            let c = [0, 1, 2, 3].map(|i| p[i] + k * bg[i]);
+            let a = c[3];
+            if a > 0.0 {
+                out.extend_from_slice(&[
+                    to_u8(c[0] / a),
+                    to_u8(c[1] / a),
+                    to_u8(c[2] / a),
+                    to_u8(a),
+                ]);
+            } else {
+                out.extend_from_slice(&[0, 0, 0, 0]);
+            }
+        }
+        out
+    }
+
+    /// Write the image, over `background` (see [`Image::to_rgba8`]), as an
+    /// 8-bit RGBA PNG.
+    pub fn write_png(&self, path: &Path, background: [f32; 4]) -> Result<(), PngError> {
+        let err = |m: String| PngError {
+            path: path.into(),
+            message: m,
+        };
+        let f = File::create(path).map_err(|e| err(e.to_string()))?;
+        let mut enc = png::Encoder::new(BufWriter::new(f), self.width, self.height);
+        enc.set_color(png::ColorType::Rgba);
+        enc.set_depth(png::BitDepth::Eight);
+        let mut w = enc.write_header().map_err(|e| err(e.to_string()))?;
+        w.write_image_data(&self.to_rgba8(background))
+            .map_err(|e| err(e.to_string()))?;
+        w.finish().map_err(|e| err(e.to_string()))
+    }
+
+    fn check_same_size(&self, other: &Image) {
+        assert!(
+            self.width == other.width && self.height == other.height,
+            "comparing images of different sizes: {}×{} and {}×{}",
+            self.width,
+            self.height,
+            other.width,
+            other.height
+        );
+    }
+
+    /// Largest absolute difference of any channel of any pixel.
+    /// Panics when the sizes differ.
+    pub fn max_abs_diff(&self, other: &Image) -> f32 {
+        self.check_same_size(other);
+        self.rgba
+            .iter()
+            .zip(&other.rgba)
+            .flat_map(|(a, b)| (0..4).map(move |i| (a[i] - b[i]).abs()))
+            .fold(0.0, f32::max)
+    }
+
+    /// Mean absolute difference over all channels of all pixels.
+    /// Panics when the sizes differ.
+    pub fn mean_abs_diff(&self, other: &Image) -> f64 {
+        self.check_same_size(other);
+        let n = self.rgba.len() * 4;
+        if n == 0 {
+            return 0.0;
+        }
+        let s: f64 = self
+            .rgba
+            .iter()
+            .zip(&other.rgba)
+            .flat_map(|(a, b)| (0..4).map(move |i| (a[i] - b[i]).abs() as f64))
+            .sum();
+        s / n as f64
+    }
+
+    /// Peak signal-to-noise ratio in dB over all four channels, peak 1.0:
+    /// `10 · log10(1 / MSE)`; infinite for identical images.
+    /// Panics when the sizes differ.
+    pub fn psnr(&self, other: &Image) -> f64 {
+        self.check_same_size(other);
+        let n = self.rgba.len() * 4;
+        if n == 0 {
+            return f64::INFINITY;
+        }
+        let s: f64 = self
+            .rgba
+            .iter()
+            .zip(&other.rgba)
+            .flat_map(|(a, b)| {
+                (0..4).map(move |i| {
+                    let d = (a[i] - b[i]) as f64;
+                    d * d
+                })
+            })
+            .sum();
+        let mse = s / n as f64;
+        if mse == 0.0 {
+            f64::INFINITY
+        } else {
+            10.0 * (1.0 / mse).log10()
+        }
+    }
+
+    /// Fraction of pixels whose alpha is at least `threshold`.
+    pub fn coverage(&self, threshold: f32) -> f64 {
+        if self.rgba.is_empty() {
+            return 0.0;
+        }
+        self.rgba.iter().filter(|p| p[3] >= threshold).count() as f64 / self.rgba.len() as f64
+    }
+}

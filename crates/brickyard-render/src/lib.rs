@@ -1,0 +1,15 @@
+//! brickyard-render: images and renderers.
+//!
+//! - [`image`]: premultiplied float RGBA images, PNG output, comparisons.
+//! - [`reference`](mod@reference): the in-core reference renderer (whole level in RAM,
+//!   plain trilinear) — the oracle for every out-of-core image.
+//!
+//! Cameras and transfer functions live in `brickyard_core::{camera,
+//! transfer}`. **World coordinates are `[x, y, z]`**; volumes, spacing and
+//! normalized positions are `[z, y, x]` (see `brickyard_core::camera`).
+
+pub mod image;
+pub mod reference;
+
+pub use image::Image;
+pub use reference::{render, RenderMode, RenderParams, Volume};

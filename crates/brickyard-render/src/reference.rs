@@ -1,0 +1,458 @@
+//! The in-core reference renderer: one whole level of one channel in RAM,
+//! plain clamp-to-edge trilinear sampling, the same camera and transfer
+//! function as every other renderer. It is written to be obviously correct,
+//! not fast: it is the oracle that out-of-core images are tested against
+//! (`../shared/DESIGN.md`, invariant 8).
+//!
+//! # The rules another renderer must follow to match it
+//!
+//! - **World box.** The volume fills `[0, X] × [0, Y] × [0, Z]` (world
+//!   `[x, y, z]`, [`Volume::extent`]); a world point `w` is sampled at the
+//!   normalized position `p = world_to_normalized(w, extent)` (`[z, y, x]`).
+//! - **Sampling** ([`Volume::sample`]): voxel coordinate `p·dims − 0.5`
+//!   clamped to `[0, dims − 1]` per axis, then trilinear with `f32`
+//!   weights, exactly as `brickyard_cache::vm::VirtualMemory::sample`
+//!   (bit-identical for the same level).
+//! - **Steps** (DVR, MIP): along each ray, `(t0, t1)` is the part inside the
+//!   box ([`intersect_box`], `t ≥ 0`); samples are taken at
+//!   `t_k = t0 + (k + 0.5)·Δ` for `k = 0, 1, …` while `t_k < t1`
+//!   ([`step_t`]). `Δ = voxel / samples_per_voxel`, where `voxel` is the
+//!   smallest spacing of the level ([`Volume::voxel_size`]).
+//! - **DVR**: emission–absorption, front to back, premultiplied colour:
+//!   for each sample, `[r, g, b, α] = tf.lookup(v)`, opacity corrected for
+//!   the step as `α' = 1 − (1 − α)^(Δ/Δ_ref)` ([`correct_opacity`];
+//!   `Δ_ref` = one voxel of the level unless
+//!   [`RenderParams::reference_step`] says otherwise), then
+//!   `C += (1 − A)·α'·rgb`, `A += (1 − A)·α'`; the ray stops once
+//!   `A ≥ 0.99` ([`EARLY_TERMINATION`]). Arithmetic is `f32`.
+//! - **MIP**: the largest sampled value along the ray (NaN ignored) is
+//!   mapped through the transfer function's *colour*; alpha is 1 for every
+//!   ray that took at least one sample, 0 otherwise (the TF's opacity is not
+//!   used).
+//! - **Slice**: see [`RenderMode::Slice`].
+
+use crate::image::Image;
+use brickyard_core::camera::{
+    dot, intersect_box, length, normalize, sub, world_extent, world_to_normalized, Ray, Vec3,
+};
+use brickyard_core::{dispatch_dtype, Camera, ConfigError, Sample, TransferFunction};
+use brickyard_store::import::zarr;
+use brickyard_store::{StoreError, VolumeSource};
+use rayon::prelude::*;
+use serde::{Deserialize, Serialize};
+use std::path::Path;
+
+/// DVR stops a ray once its accumulated opacity reaches this.
+pub const EARLY_TERMINATION: f32 = 0.99;
+
+/// One channel of one level, whole, as `f32`.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Volume {
+    /// Size in voxels, `[z, y, x]`.
+    pub dims: [u64; 3],
+    /// Voxel spacing (world units per voxel), `[z, y, x]`.
+    pub spacing: [f64; 3],
+    /// Voxels, `[z, y, x]`, x fastest; `len = dims` product.
+    pub data: Vec<f32>,
+}
+
+impl Volume {
+    /// A volume from its voxels. Panics if `data` does not match `dims` or a
+    /// dimension or spacing is not positive.
+    pub fn new(dims: [u64; 3], spacing: [f64; 3], data: Vec<f32>) -> Volume {
+        assert!(dims.iter().all(|&d| d > 0), "empty volume {dims:?}");
+        assert!(
+            spacing.iter().all(|&s| s > 0.0 && s.is_finite()),
+            "spacing must be positive, got {spacing:?}"
+        );
+        assert_eq!(
+            data.len() as u64,
+            dims[0] * dims[1] * dims[2],
+            "data length does not match dims {dims:?}"
+        );
+        Volume {
+            dims,
+            spacing,
+            data,
+        }
+    }
+
+    /// A volume whose voxel `(z, y, x)` is `f(z, y, x)`.
+    pub fn from_fn(dims: [u64; 3], spacing: [f64; 3], f: impl Fn(u64, u64, u64) -> f32) -> Volume {
+        let mut data = Vec::with_capacity((dims[0] * dims[1] * dims[2]) as usize);
+        for z in 0..dims[0] {
+            for y in 0..dims[1] {
+                for x in 0..dims[2] {
+                    data.push(f(z, y, x));
+                }
+            }
+        }
+        Volume::new(dims, spacing, data)
+    }
+
+    /// Channel `channel` of a source, whole. Spacing from the source
+    /// (1 on every axis when it has none). Values are converted as the
+    /// virtual memory converts them (`to_f64() as f32`).
+    pub fn from_source(src: &dyn VolumeSource, channel: usize) -> Result<Volume, StoreError> {
+        let m = src.meta();
+        if channel >= m.channels {
+            return Err(StoreError::invalid(
+                &m.path,
+                "channel",
+                format!(
+                    "channel {channel} asked for but the volume has {}",
+                    m.channels
+                ),
+            ));
+        }
+        let d = m.dims;
+        let es = m.dtype.size();
+        let slice = (d[1] * d[2]) as usize;
+        let mut data = Vec::with_capacity(d[0] as usize * slice);
+        // A few slices at a time, so that the raw bytes never double the
+        // memory of the whole volume.
+        let zs = ((16 << 20) / (slice * es)).max(1) as u64;
+        let mut buf = Vec::new();
+        for z0 in (0..d[0]).step_by(zs as usize) {
+            let z1 = (z0 + zs).min(d[0]);
+            buf.resize((z1 - z0) as usize * slice * es, 0u8);
+            src.read_region(channel, z0..z1, 0..d[1], 0..d[2], &mut buf)?;
+            dispatch_dtype!(m.dtype, T => {
+                data.extend(buf.chunks_exact(es).map(|b| <T as Sample>::from_le(b).to_f64() as f32));
+            });
+        }
+        let spacing = m.spacing.unwrap_or([1.0; 3]);
+        if !spacing.iter().all(|&s| s > 0.0 && s.is_finite()) {
+            return Err(StoreError::invalid(
+                &m.path,
+                "spacing",
+                format!("spacing must be positive, got {spacing:?}"),
+            ));
+        }
+        Ok(Volume::new(d, spacing, data))
+    }
+
+    /// Level `level`, channel `channel` of a store (OME-Zarr image or bare
+    /// Zarr array), read whole through `brickyard_store::import::zarr`.
+    ///
+    /// The spacing is chosen so that **every level fills the world box of
+    /// level 0** (`dims₀ · spacing₀`): `spacing_l = dims₀ · spacing₀ / dims_l`.
+    /// This is the convention of the virtual memory, whose normalized
+    /// position `p` means the same point at every level; it differs from the
+    /// level's own OME-Zarr scale by less than one level-`l` voxel when a
+    /// dimension is odd. Level 0 keeps its spacing exactly.
+    pub fn from_store(path: &Path, level: usize, channel: usize) -> Result<Volume, StoreError> {
+        let src = zarr::open(path, level)?;
+        let mut v = Volume::from_source(&src, channel)?;
+        if level > 0 {
+            let base = zarr::open(path, 0)?;
+            let m0 = base.meta();
+            let ext = world_extent(m0.dims, m0.spacing.unwrap_or([1.0; 3]));
+            // world_extent is [x, y, z]; spacing is [z, y, x].
+            v.spacing = [
+                ext[2] / v.dims[0] as f64,
+                ext[1] / v.dims[1] as f64,
+                ext[0] / v.dims[2] as f64,
+            ];
+        }
+        Ok(v)
+    }
+
+    /// World extent `[X, Y, Z]` (note: `[x, y, z]`, the camera's order).
+    pub fn extent(&self) -> Vec3 {
+        world_extent(self.dims, self.spacing)
+    }
+
+    /// One voxel of this level for stepping and opacity correction: the
+    /// smallest spacing.
+    pub fn voxel_size(&self) -> f64 {
+        self.spacing.iter().copied().fold(f64::INFINITY, f64::min)
+    }
+
+    /// The voxel at integer `[z, y, x]`.
+    #[inline]
+    pub fn voxel(&self, z: u64, y: u64, x: u64) -> f32 {
+        let d = self.dims;
+        self.data[((z * d[1] + y) * d[2] + x) as usize]
+    }
+
+    /// Smallest and largest value (NaN ignored; `(NaN, NaN)` if all are).
+    pub fn min_max(&self) -> (f32, f32) {
+        self.data
+            .iter()
+            .filter(|v| !v.is_nan())
+            .fold((f32::NAN, f32::NAN), |(a, b), &v| (a.min(v), b.max(v)))
+    }
+
+    /// Clamp-to-edge trilinear sample at the normalized position
+    /// `p = [z, y, x]` (the rule of `VirtualMemory::sample`: voxel
+    /// coordinate `p·dims − 0.5` clamped to `[0, dims − 1]`, `f32` weights,
+    /// accumulation in the order z, y, x, zero weights skipped).
+    #[inline]
+    pub fn sample(&self, p: [f64; 3]) -> f32 {
+        let d = self.dims;
+        let q = [0, 1, 2].map(|a| (p[a] * d[a] as f64 - 0.5).clamp(0.0, (d[a] - 1) as f64));
+        let b = q.map(|x| x.floor());
+        let base = [0, 1, 2].map(|a| b[a] as u64);
+        let frac = [0, 1, 2].map(|a| (q[a] - b[a]) as f32);
+        let mut acc = 0.0f32;
+        for dz in 0..2u64 {
+            for dy in 0..2u64 {
+                for dx in 0..2u64 {
+                    let w = (if dz == 1 { frac[0] } else { 1.0 - frac[0] })
+                        * (if dy == 1 { frac[1] } else { 1.0 - frac[1] })
+                        * (if dx == 1 { frac[2] } else { 1.0 - frac[2] });
+                    if w != 0.0 {
+                        acc += w * self.voxel(
+                            (base[0] + dz).min(d[0] - 1),
+                            (base[1] + dy).min(d[1] - 1),
+                            (base[2] + dx).min(d[2] - 1),
+                        );
+                    }
+                }
+            }
+        }
+        acc
+    }
+
+    /// Sample at the world point `world` (`[x, y, z]`).
+    #[inline]
+    pub fn sample_world(&self, world: Vec3, extent: Vec3) -> f32 {
+        self.sample(world_to_normalized(world, extent))
+    }
+}
+
+/// What to render.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(tag = "mode", rename_all = "lowercase")]
+pub enum RenderMode {
+    /// Direct volume rendering (emission–absorption).
+    Dvr,
+    /// Maximum intensity projection.
+    Mip,
+    /// The plane through `origin` (world `[x, y, z]`) perpendicular to
+    /// `normal` (any length but zero), **as the camera sees it**: each
+    /// pixel's ray is intersected with the plane (`t ≥ 0`); where the point
+    /// lies inside the closed world box the volume is sampled there and the
+    /// pixel gets the transfer function's colour with alpha 1; elsewhere it
+    /// stays transparent. Any camera works (an oblique plane in perspective
+    /// is fine); [`Camera::facing_plane`] gives the usual face-on view.
+    Slice { origin: [f64; 3], normal: [f64; 3] },
+}
+
+/// Everything a render needs besides the volume.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct RenderParams {
+    pub width: u32,
+    pub height: u32,
+    pub camera: Camera,
+    pub tf: TransferFunction,
+    pub mode: RenderMode,
+    /// Samples per voxel along a ray: `Δ = voxel / samples_per_voxel`.
+    #[serde(default = "one")]
+    pub samples_per_voxel: f64,
+    /// The world length the transfer function's opacity refers to
+    /// (`Δ_ref`); `None`: one voxel of the rendered level
+    /// ([`Volume::voxel_size`]). Set it (e.g. to level 0's voxel) to keep
+    /// images of different levels equally opaque.
+    #[serde(default)]
+    pub reference_step: Option<f64>,
+}
+
+fn one() -> f64 {
+    1.0
+}
+
+impl RenderParams {
+    /// Parameters with one sample per voxel and `Δ_ref` = one voxel.
+    pub fn new(
+        width: u32,
+        height: u32,
+        camera: Camera,
+        tf: TransferFunction,
+        mode: RenderMode,
+    ) -> RenderParams {
+        RenderParams {
+            width,
+            height,
+            camera,
+            tf,
+            mode,
+            samples_per_voxel: 1.0,
+            reference_step: None,
+        }
+    }
+
+    /// Check everything [`render`] relies on.
+    pub fn validate(&self) -> Result<(), ConfigError> {
+        let bad = |f: &str, m: String| Err(ConfigError::new("render parameters", f, m));
+        if self.width == 0 || self.height == 0 {
+            return bad(
+                "width",
+                format!(
+                    "image size must be positive, got {}×{}",
+                    self.width, self.height
+                ),
+            );
+        }
+        if !(self.samples_per_voxel > 0.0 && self.samples_per_voxel.is_finite()) {
+            return bad(
+                "samples_per_voxel",
+                format!("must be positive, got {}", self.samples_per_voxel),
+            );
+        }
+        if let Some(r) = self.reference_step {
+            if !(r > 0.0 && r.is_finite()) {
+                return bad("reference_step", format!("must be positive, got {r}"));
+            }
+        }
+        if let RenderMode::Slice { origin, normal } = &self.mode {
+            if origin.iter().chain(normal).any(|x| !x.is_finite()) || length(*normal) == 0.0 {
+                return bad(
+                    "mode.normal",
+                    format!("slice needs a finite origin and a non-zero normal, got {origin:?}, {normal:?}"),
+                );
+            }
+        }
+        self.camera.validate()?;
+        self.tf.validate()
+    }
+}
+
+/// The parameter of step `k` on a ray entering the volume at `t0`.
+#[inline]
+pub fn step_t(t0: f64, k: u64, dt: f64) -> f64 {
+    t0 + (k as f64 + 0.5) * dt
+}
+
+/// Opacity for a step of `exponent = Δ/Δ_ref` reference steps:
+/// `1 − (1 − α)^exponent` (exactly `α` when the exponent is 1).
+#[inline]
+pub fn correct_opacity(alpha: f32, exponent: f32) -> f32 {
+    if exponent == 1.0 {
+        alpha
+    } else {
+        1.0 - (1.0 - alpha).powf(exponent)
+    }
+}
+
+/// Render `volume` with `params` (rows in parallel). Panics if
+/// `params.validate()` fails.
+pub fn render(volume: &Volume, params: &RenderParams) -> Image {
+    if let Err(e) = params.validate() {
+        panic!("invalid render parameters: {e}");
+    }
+    let (w, h) = (params.width, params.height);
+    let mut img = Image::new(w, h);
+    let rg = params.camera.ray_gen(w, h);
+    let extent = volume.extent();
+    let voxel = volume.voxel_size();
+    let dt = voxel / params.samples_per_voxel;
+    let exponent = (dt / params.reference_step.unwrap_or(voxel)) as f32;
+    img.rgba
+        .par_chunks_mut(w as usize)
+        .enumerate()
+        .for_each(|(j, row)| {
+            for (i, px) in row.iter_mut().enumerate() {
+                let ray = rg.pixel_ray(i as u32, j as u32);
+                *px = match &params.mode {
+                    RenderMode::Dvr => dvr_ray(volume, &params.tf, &ray, extent, dt, exponent),
+                    RenderMode::Mip => mip_ray(volume, &params.tf, &ray, extent, dt),
+                    RenderMode::Slice { origin, normal } => {
+                        slice_ray(volume, &params.tf, &ray, extent, *origin, *normal)
+                    }
+                };
+            }
+        });
+    img
+}
+
+fn dvr_ray(
+    vol: &Volume,
+    tf: &TransferFunction,
+    ray: &Ray,
+    extent: Vec3,
+    dt: f64,
+    exponent: f32,
+) -> [f32; 4] {
+    let mut acc = [0.0f32; 4];
+    let Some((t0, t1)) = intersect_box(ray, [0.0; 3], extent) else {
+        return acc;
+    };
+    let mut k = 0u64;
+    loop {
+        let t = step_t(t0, k, dt);
+        if t >= t1 {
+            break;
+        }
+        k += 1;
+        let c = tf.lookup(vol.sample_world(ray.at(t), extent));
+        if c[3] <= 0.0 {
+            continue;
+        }
+        let a = correct_opacity(c[3], exponent);
+        let wgt = (1.0 - acc[3]) * a;
+        acc[0] += wgt * c[0];
+        acc[1] += wgt * c[1];
+        acc[2] += wgt * c[2];
+        acc[3] += wgt;
+        if acc[3] >= EARLY_TERMINATION {
+            break;
+        }
+    }
+    acc
+}
+
+fn mip_ray(vol: &Volume, tf: &TransferFunction, ray: &Ray, extent: Vec3, dt: f64) -> [f32; 4] {
+    let Some((t0, t1)) = intersect_box(ray, [0.0; 3], extent) else {
+        return [0.0; 4];
+    };
+    let mut best = f32::NAN;
+    let mut hit = false;
+    let mut k = 0u64;
+    loop {
+        let t = step_t(t0, k, dt);
+        if t >= t1 {
+            break;
+        }
+        k += 1;
+        hit = true;
+        let v = vol.sample_world(ray.at(t), extent);
+        // f32::max ignores NaN.
+        best = best.max(v);
+    }
+    if !hit || best.is_nan() {
+        return if hit { [0.0, 0.0, 0.0, 1.0] } else { [0.0; 4] };
+    }
+    let c = tf.lookup(best);
+    [c[0], c[1], c[2], 1.0]
+}
+
+fn slice_ray(
+    vol: &Volume,
+    tf: &TransferFunction,
+    ray: &Ray,
+    extent: Vec3,
+    origin: Vec3,
+    normal: Vec3,
+) -> [f32; 4] {
+    let n = normalize(normal);
+    let denom = dot(ray.dir, n);
+    if denom == 0.0 {
+        return [0.0; 4];
+    }
+    let t = dot(sub(origin, ray.origin), n) / denom;
+    if t.is_nan() || t < 0.0 {
+        return [0.0; 4];
+    }
+    let w = ray.at(t);
+    if (0..3).any(|a| !(w[a] >= 0.0 && w[a] <= extent[a])) {
+        return [0.0; 4];
+    }
+    let v = vol.sample_world(w, extent);
+    if v.is_nan() {
+        return [0.0; 4];
+    }
+    let c = tf.lookup(v);
+    [c[0], c[1], c[2], 1.0]
+}
