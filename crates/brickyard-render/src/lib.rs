@@ -8,6 +8,7 @@
 //! transfer}`. **World coordinates are `[x, y, z]`**; volumes, spacing and
 //! normalized positions are `[z, y, x]` (see `brickyard_core::camera`).
 
+pub mod cpu;
 pub mod image;
 pub mod reference;
 

@@ -14,9 +14,15 @@ fn resident_virtual_memory_samples_equal_the_reference() {
     let dir = tempfile::tempdir().unwrap();
     let store = dir.path().join("t.ome.zarr");
     let src = Procedural::new(Kind::MarschnerLobb, [30, 41, 52], DType::U16);
-    let o = ConvertOptions { brick: [16; 3], shard: [32; 3], ..Default::default() };
+    let o = ConvertOptions {
+        brick: [16; 3],
+        shard: [32; 3],
+        ..Default::default()
+    };
     convert(&src, &store, &o, &NoProgress, &AtomicBool::new(false)).unwrap();
-    let levels: Vec<Volume> = (0..3).map(|l| Volume::from_store(&store, l, 0).unwrap()).collect();
+    let levels: Vec<Volume> = (0..3)
+        .map(|l| Volume::from_store(&store, l, 0).unwrap())
+        .collect();
     let cfg = VmConfig {
         brick: [8; 3],
         pool_bytes: 64 << 20,
@@ -29,10 +35,14 @@ fn resident_virtual_memory_samples_equal_the_reference() {
     let mut s = Session::open(&store, cfg, 64 << 20, 2).unwrap();
     let mut r = 1u64;
     let mut next = move || {
-        r = r.wrapping_mul(6364136223846793005).wrapping_add(1442695040888963407);
+        r = r
+            .wrapping_mul(6364136223846793005)
+            .wrapping_add(1442695040888963407);
         (r >> 11) as f64 / (1u64 << 53) as f64 * 1.2 - 0.1
     };
-    let pts: Vec<(usize, [f64; 3])> = (0..5000).map(|i| (i % 3, [next(), next(), next()])).collect();
+    let pts: Vec<(usize, [f64; 3])> = (0..5000)
+        .map(|i| (i % 3, [next(), next(), next()]))
+        .collect();
     for frame in 0..500 {
         s.begin_frame();
         let mut req = s.vm().requests();
