@@ -2,6 +2,7 @@
 
 mod bench;
 mod progress;
+mod render;
 mod vmbench;
 mod vmcmd;
 
@@ -65,6 +66,8 @@ enum Cmd {
         #[arg(long, default_value = "384")]
         size: String,
     },
+    /// Render a store (DVR, MIP or slice) to PNG through the virtual memory.
+    Render(render::RenderCmd),
     /// Run a benchmark scenario and print one JSON line of figures.
     Bench(bench::BenchCmd),
     /// Virtual memory for voxels: `footprint` prints the management memory
@@ -399,6 +402,7 @@ fn run(cmd: Cmd) -> Result<()> {
             }
         }
         Cmd::Demo { out, size } => demo(&out, &size),
+        Cmd::Render(r) => render::run(r),
         Cmd::Bench(b) => bench::run(b),
         Cmd::Vm(VmCmd::Footprint(f)) => vmcmd::footprint(f),
     }

@@ -250,3 +250,79 @@ extern "C" {
     #[link_name = "kill"]
     fn libc_kill(pid: i32, sig: i32) -> i32;
 }
+
+#[test]
+fn render_writes_pngs_and_rejects_bad_options() {
+    let d = tempfile::tempdir().unwrap();
+    let store = d.path().join("r.ome.zarr");
+    let o = run(&[
+        "generate",
+        "mandelbulb",
+        s(&store),
+        "--size",
+        "48",
+        "--quiet",
+        "--brick",
+        "16",
+        "--shard",
+        "32",
+    ]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    for mode in ["dvr", "mip", "slice"] {
+        let png = d.path().join(format!("{mode}.png"));
+        let cam = d.path().join(format!("{mode}.json"));
+        let o = run(&[
+            "render",
+            s(&store),
+            "--mode",
+            mode,
+            "--size",
+            "48x40",
+            "--out",
+            s(&png),
+            "--pool",
+            "1MiB",
+            "--brick",
+            "8",
+            "--save-camera",
+            s(&cam),
+        ]);
+        assert!(o.status.success(), "{mode}: {}", stderr(&o));
+        let out = String::from_utf8_lossy(&o.stdout);
+        assert!(out.contains("100.00% complete"), "{mode}: {out}");
+        let bytes = std::fs::read(&png).unwrap();
+        assert_eq!(&bytes[1..4], b"PNG");
+        // The saved camera renders the same view again.
+        let png2 = d.path().join(format!("{mode}-again.png"));
+        let o = run(&[
+            "render",
+            s(&store),
+            "--mode",
+            mode,
+            "--size",
+            "48x40",
+            "--out",
+            s(&png2),
+            "--camera",
+            s(&cam),
+            "--brick",
+            "8",
+        ]);
+        assert!(o.status.success(), "{mode}: {}", stderr(&o));
+        assert_eq!(
+            std::fs::read(&png2).unwrap(),
+            bytes,
+            "{mode}: same camera, same image"
+        );
+    }
+    fails_with(
+        &run(&["render", s(&store), "--mode", "xray"]),
+        &["mode", "xray"],
+    );
+    fails_with(&run(&["render", s(&store), "--size", "0x10"]), &["size"]);
+    fails_with(&run(&["render", s(&store), "--tf", "nonsense"]), &["tf"]);
+    fails_with(
+        &run(&["render", s(&d.path().join("missing.zarr"))]),
+        &["missing.zarr"],
+    );
+}

@@ -1,0 +1,277 @@
+//! `brickyard render`: DVR, MIP or a slice of a store to PNG, out of core
+//! through the virtual memory, frame after frame until the view is complete.
+
+use anyhow::{bail, Context, Result};
+use brickyard_cache::session::Session;
+use brickyard_cache::vm::VmConfig;
+use brickyard_core::camera::{world_extent, Camera, Projection};
+use brickyard_core::TransferFunction;
+use brickyard_render::cpu::{render_frame, Lod, Scene};
+use brickyard_render::reference::{RenderMode, RenderParams};
+use brickyard_store::import::zarr;
+use brickyard_store::info::{human_bytes, inspect};
+use brickyard_store::VolumeSource;
+use clap::Args;
+use std::path::PathBuf;
+use std::time::Instant;
+
+#[derive(Args)]
+pub struct RenderCmd {
+    /// An OME-Zarr store (convert other formats first).
+    store: PathBuf,
+    /// dvr, mip or slice.
+    #[arg(long, default_value = "dvr")]
+    mode: String,
+    /// Image size WxH.
+    #[arg(long, default_value = "512x512")]
+    size: String,
+    /// Output PNG (a turntable writes NAME-0000.png, NAME-0001.png, ...).
+    #[arg(long, short, default_value = "render.png")]
+    out: PathBuf,
+    /// Camera JSON file (as written by `--save-camera` or the viewer).
+    #[arg(long)]
+    camera: Option<PathBuf>,
+    #[arg(long, default_value_t = 30.0)]
+    azimuth: f64,
+    #[arg(long, default_value_t = 20.0)]
+    elevation: f64,
+    /// Vertical field of view in degrees (perspective).
+    #[arg(long, default_value_t = 35.0)]
+    fov: f64,
+    /// Orthographic projection.
+    #[arg(long)]
+    ortho: bool,
+    /// Write the camera used to this JSON file.
+    #[arg(long)]
+    save_camera: Option<PathBuf>,
+    /// Transfer function: a preset (linear, soft, hot, viridis, coolwarm,
+    /// opaque) or a JSON file.
+    #[arg(long, default_value = "soft")]
+    tf: String,
+    /// Data window LO,HI (default: the data range from the brick statistics).
+    #[arg(long)]
+    window: Option<String>,
+    /// Slice: position of the plane along z as a fraction of the depth.
+    #[arg(long, default_value_t = 0.5)]
+    slice_z: f64,
+    /// Render this level only (default: automatic level of detail).
+    #[arg(long)]
+    level: Option<usize>,
+    /// Automatic level of detail: shift by this many levels (negative = finer).
+    #[arg(long, default_value_t = 0.0)]
+    lod_bias: f64,
+    #[arg(long, default_value_t = 1.0)]
+    samples_per_voxel: f64,
+    /// Device-pool budget.
+    #[arg(long, default_value = "256MiB")]
+    pool: String,
+    /// Host-cache budget.
+    #[arg(long, default_value = "512MiB")]
+    host: String,
+    /// Engine brick edge.
+    #[arg(long, default_value_t = 32)]
+    brick: u64,
+    /// Bytes written into the pool per frame.
+    #[arg(long, default_value = "64MiB")]
+    upload: String,
+    /// Requests per frame.
+    #[arg(long, default_value_t = 256)]
+    requests: usize,
+    #[arg(long, default_value_t = 2)]
+    loader_threads: usize,
+    /// Give up (and write what there is) after this many frames.
+    #[arg(long, default_value_t = 2000)]
+    max_frames: usize,
+    /// Render a turntable of N views.
+    #[arg(long)]
+    turntable: Option<u32>,
+    /// Print one JSON line per frame.
+    #[arg(long)]
+    json: bool,
+}
+
+fn parse_pair(s: &str, what: &str) -> Result<[f64; 2]> {
+    let v: Vec<f64> = s
+        .split([',', 'x'])
+        .map(|p| p.trim().parse::<f64>())
+        .collect::<std::result::Result<_, _>>()
+        .with_context(|| format!("{what}: expected two numbers, found {s:?}"))?;
+    if v.len() != 2 {
+        bail!("{what}: expected two numbers, found {s:?}");
+    }
+    Ok([v[0], v[1]])
+}
+
+pub fn run(c: RenderCmd) -> Result<()> {
+    let [w, h] = parse_pair(&c.size, "size")?;
+    let (w, h) = (w as u32, h as u32);
+    if w == 0 || h == 0 || w > 16384 || h > 16384 {
+        bail!("size: expected WxH between 1 and 16384, found {:?}", c.size);
+    }
+    let info = inspect(&c.store)?;
+    if info.complete == Some(false) {
+        bail!(
+            "{}: the store is incomplete (an interrupted conversion)",
+            c.store.display()
+        );
+    }
+    let l0 = zarr::open(&c.store, 0)?;
+    let m = l0.meta().clone();
+    let spacing = m.spacing.unwrap_or([1.0; 3]);
+    let extent = world_extent(m.dims, spacing);
+    let mut levels = vec![];
+    for l in 0..info.levels.len() {
+        levels.push(zarr::open(&c.store, l)?.meta().dims);
+    }
+    let scene = Scene {
+        extent,
+        levels,
+        channel: 0,
+    };
+    let (lo, hi) = match &c.window {
+        Some(wd) => {
+            let p = parse_pair(wd, "window")?;
+            (p[0], p[1])
+        }
+        None => info
+            .levels
+            .iter()
+            .rev()
+            .find_map(|l| l.stats.as_ref().map(|s| (s.min, s.max)))
+            .unwrap_or((0.0, 1.0)),
+    };
+    let tf = if c.tf.ends_with(".json") {
+        let text =
+            std::fs::read_to_string(&c.tf).with_context(|| format!("{}: cannot read", c.tf))?;
+        TransferFunction::from_json(&text).map_err(|e| anyhow::anyhow!("{}: {e}", c.tf))?
+    } else {
+        TransferFunction::preset(&c.tf, [lo as f32, hi as f32])
+            .map_err(|e| anyhow::anyhow!("tf: {e}"))?
+    };
+    let projection = if c.ortho {
+        Projection::Orthographic {
+            height: extent.iter().cloned().fold(0.0, f64::max) * 1.2,
+        }
+    } else {
+        Projection::Perspective { fov_y_deg: c.fov }
+    };
+    let mode = match c.mode.as_str() {
+        "dvr" => RenderMode::Dvr,
+        "mip" => RenderMode::Mip,
+        "slice" => RenderMode::Slice {
+            origin: [extent[0] / 2.0, extent[1] / 2.0, extent[2] * c.slice_z],
+            normal: [0.0, 0.0, 1.0],
+        },
+        s => bail!("mode: expected dvr, mip or slice, found {s:?}"),
+    };
+    let camera = match &c.camera {
+        Some(p) => {
+            let text = std::fs::read_to_string(p)
+                .with_context(|| format!("{}: cannot read", p.display()))?;
+            Camera::from_json(&text).map_err(|e| anyhow::anyhow!("{}: {e}", p.display()))?
+        }
+        None => match &mode {
+            RenderMode::Slice { origin, normal } => {
+                Camera::facing_plane(*origin, *normal, extent[0].max(extent[1]) * 1.05)
+            }
+            _ => Camera::fit(extent, c.azimuth, c.elevation, projection),
+        },
+    };
+    if let Some(p) = &c.save_camera {
+        std::fs::write(p, camera.to_json())
+            .with_context(|| format!("{}: cannot write", p.display()))?;
+    }
+    let cfg = VmConfig {
+        brick: [c.brick; 3],
+        pool_bytes: crate::parse_bytes(&c.pool)?,
+        upload_bytes_per_frame: crate::parse_bytes(&c.upload)?,
+        request_cap: c.requests,
+        ..Default::default()
+    };
+    let mut s = Session::open(
+        &c.store,
+        cfg,
+        crate::parse_bytes(&c.host)?,
+        c.loader_threads,
+    )?;
+    let lod = match c.level {
+        Some(l) if l >= scene.levels.len() => {
+            bail!("level: the store has {} levels", scene.levels.len())
+        }
+        Some(l) => Lod::Fixed(l),
+        None => Lod::Auto { bias: c.lod_bias },
+    };
+    let views = c.turntable.unwrap_or(1).max(1);
+    for v in 0..views {
+        let cam = if c.turntable.is_some() {
+            camera.turntable(views, v)
+        } else {
+            camera
+        };
+        let mut params = RenderParams::new(w, h, cam, tf.clone(), mode.clone());
+        params.samples_per_voxel = c.samples_per_voxel;
+        params.reference_step = Some(scene.voxel(0));
+        params.validate().map_err(|e| anyhow::anyhow!("{e}"))?;
+        let t0 = Instant::now();
+        let mut last = None;
+        for frame in 1..=c.max_frames {
+            let ft = Instant::now();
+            s.begin_frame();
+            let (img, st, reqs) = render_frame(s.vm(), &scene, &params, lod);
+            let fs = s.finish_frame(reqs.iter());
+            let done = st.completeness() >= 1.0;
+            let ms = ft.elapsed().as_secs_f64() * 1e3;
+            let read = s.loader().bytes_read();
+            if c.json {
+                println!(
+                    "{}",
+                    serde_json::json!({"view": v, "frame": frame, "ms": ms, "completeness": st.completeness(),
+                        "samples": st.samples, "requests": fs.frame.requests.len(),
+                        "bricks_in": fs.insert.inserted + fs.insert.flagged,
+                        "uploaded_bytes": fs.insert.bytes_uploaded, "bytes_read_total": read,
+                        "resident": fs.frame.resident_bricks})
+                );
+            } else {
+                println!(
+                    "view {v} frame {frame:4}: {:6.2}% complete, {:8.1} ms, {:4} requests, {:4} bricks in, {} read so far",
+                    100.0 * st.completeness(),
+                    ms,
+                    fs.frame.requests.len(),
+                    fs.insert.inserted + fs.insert.flagged,
+                    human_bytes(read)
+                );
+            }
+            last = Some(img);
+            if done {
+                break;
+            }
+            if fs.frame.requests.is_empty()
+                && fs.pending == 0
+                && fs.in_flight == 0
+                && fs.waiting_upload == 0
+            {
+                // Nothing more can arrive (e.g. the pool is too small).
+                std::thread::sleep(std::time::Duration::from_millis(1));
+            }
+        }
+        let img = last.expect("at least one frame");
+        let path = if c.turntable.is_some() {
+            let stem = c
+                .out
+                .file_stem()
+                .map(|s| s.to_string_lossy().into_owned())
+                .unwrap_or_default();
+            c.out.with_file_name(format!("{stem}-{v:04}.png"))
+        } else {
+            c.out.clone()
+        };
+        img.write_png(&path, [0.0, 0.0, 0.0, 1.0])
+            .map_err(|e| anyhow::anyhow!("{}: {e}", path.display()))?;
+        println!(
+            "wrote {} ({:.2} s)",
+            path.display(),
+            t0.elapsed().as_secs_f64()
+        );
+    }
+    Ok(())
+}
