@@ -436,9 +436,69 @@ fn demo(out: &Path, size: &str) -> Result<()> {
     run_convert(&src, &store, &args)?;
     print!("{}", format_info(&inspect(&store)?));
     stream_demo(&store)?;
+    render_demo(&store, out)?;
     println!(
         "demo: done; inspect it with `brickyard info {}`",
         store.display()
+    );
+    Ok(())
+}
+
+/// Render a DVR turntable (4 views), a MIP and a slice of the demo store to
+/// PNGs through the virtual memory (a pool a quarter of the volume).
+fn render_demo(store: &Path, out: &Path) -> Result<()> {
+    let base = [
+        "--size",
+        "256x256",
+        "--pool",
+        "32MiB",
+        "--host",
+        "64MiB",
+        "--brick",
+        "32",
+        "--lod-bias",
+        "1",
+    ];
+    let jobs: Vec<(Vec<String>, &str)> = vec![
+        (
+            vec![
+                "--mode".into(),
+                "dvr".into(),
+                "--turntable".into(),
+                "4".into(),
+                "--tf".into(),
+                "hot".into(),
+            ],
+            "dvr.png",
+        ),
+        (vec!["--mode".into(), "mip".into()], "mip.png"),
+        (
+            vec![
+                "--mode".into(),
+                "slice".into(),
+                "--tf".into(),
+                "linear".into(),
+            ],
+            "slice.png",
+        ),
+    ];
+    for (args, name) in jobs {
+        let path = out.join(name);
+        println!("demo: rendering {} ({})", path.display(), args.join(" "));
+        let mut all: Vec<String> = vec![
+            "brickyard".into(),
+            "render".into(),
+            store.to_string_lossy().into_owned(),
+        ];
+        all.extend(base.iter().map(|s| s.to_string()));
+        all.extend(args);
+        all.extend(["--out".to_string(), path.to_string_lossy().into_owned()]);
+        let cmd = render::RenderCmd::try_parse_from(&all).map_err(|e| anyhow::anyhow!("{e}"))?;
+        render::run_quiet(cmd)?;
+    }
+    println!(
+        "demo: images in {} (dvr-0000.png … dvr-0003.png, mip.png, slice.png)",
+        out.display()
     );
     Ok(())
 }

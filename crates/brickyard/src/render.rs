@@ -88,6 +88,9 @@ pub struct RenderCmd {
     /// Print one JSON line per frame.
     #[arg(long)]
     json: bool,
+    /// Print only the final frame of each view.
+    #[arg(long)]
+    quiet: bool,
 }
 
 fn parse_pair(s: &str, what: &str) -> Result<[f64; 2]> {
@@ -100,6 +103,22 @@ fn parse_pair(s: &str, what: &str) -> Result<[f64; 2]> {
         bail!("{what}: expected two numbers, found {s:?}");
     }
     Ok([v[0], v[1]])
+}
+
+impl RenderCmd {
+    /// Parse from a full argument list (`brickyard render …`).
+    pub fn try_parse_from(args: &[String]) -> Result<RenderCmd, clap::Error> {
+        use clap::{Args as _, FromArgMatches as _};
+        let cmd = RenderCmd::augment_args(clap::Command::new("render")).no_binary_name(false);
+        let m = cmd.try_get_matches_from(args.iter().skip(1))?;
+        RenderCmd::from_arg_matches(&m)
+    }
+}
+
+/// Like [`run`], printing only the last frame of each view.
+pub fn run_quiet(mut c: RenderCmd) -> Result<()> {
+    c.quiet = true;
+    run(c)
 }
 
 pub fn run(c: RenderCmd) -> Result<()> {
@@ -222,7 +241,9 @@ pub fn run(c: RenderCmd) -> Result<()> {
             let done = st.completeness() >= 1.0;
             let ms = ft.elapsed().as_secs_f64() * 1e3;
             let read = s.loader().bytes_read();
-            if c.json {
+            if c.quiet && !done && frame < c.max_frames {
+                // Progress is only shown at the end.
+            } else if c.json {
                 println!(
                     "{}",
                     serde_json::json!({"view": v, "frame": frame, "ms": ms, "completeness": st.completeness(),
