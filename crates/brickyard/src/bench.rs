@@ -19,7 +19,8 @@ pub struct BenchCmd {
     /// vm-sample: trilinear samples/s through the page tables vs a plain
     /// array; vm-update: LRU + request update per frame for pools of
     /// 1k–64k slots; loader: decoded GB/s; latency: one brick and one full
-    /// view from an empty cache (paper Table 2).
+    /// view from an empty cache (paper Table 2); render: DVR frame times
+    /// through the virtual memory beside the in-core reference.
     scenario: String,
     /// Volume size (N or XxYxZ).
     #[arg(long, default_value = "256")]
@@ -41,6 +42,9 @@ pub struct BenchCmd {
     /// Repetitions (the best is reported, all are listed).
     #[arg(long, default_value_t = 1)]
     repeat: usize,
+    /// render: image edge in pixels.
+    #[arg(long, default_value_t = 512)]
+    image: u32,
     /// loader, latency: drop the page cache first (needs root), for cold-disk figures.
     #[arg(long)]
     cold: bool,
@@ -56,8 +60,9 @@ pub fn run(b: BenchCmd) -> Result<()> {
         "vm-update" => crate::vmbench::update(b.repeat),
         "loader" => crate::vmbench::loader(&b.dir, dims, dtype, b.cold),
         "latency" => crate::vmbench::latency(&b.dir, dims, dtype, b.cold),
+        "render" => crate::vmbench::render(&b.dir, dims, dtype, b.image, b.repeat),
         s => bail!(
-            "scenario: expected convert, downsample, vm-sample, vm-update, loader or latency, found {s:?}"
+            "scenario: expected convert, downsample, vm-sample, vm-update, loader, latency or render, found {s:?}"
         ),
     }
 }

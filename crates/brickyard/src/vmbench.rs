@@ -395,3 +395,90 @@ pub fn latency(dir: &Path, dims: Dims3, dtype: DType, cold: bool) -> Result<()> 
 fn session_with_cache(st: &Path, cfg: VmConfig, cache: Arc<HostCache>) -> Result<Session> {
     Ok(Session::with_cache(st, cfg, cache, 2)?)
 }
+
+/// DVR frame times through the virtual memory (warm: everything resident;
+/// cold: from an empty pool to a complete view) beside the in-core
+/// reference renderer on the same level, same camera and transfer function.
+pub fn render(dir: &Path, dims: Dims3, dtype: DType, image: u32, repeat: usize) -> Result<()> {
+    use brickyard_core::camera::{world_extent, Camera, Projection};
+    use brickyard_core::TransferFunction;
+    use brickyard_render::cpu::{render_frame, Lod, Scene};
+    use brickyard_render::reference::{render as render_ref, RenderMode, RenderParams, Volume};
+    let st = store(dir, dims, dtype)?;
+    let vol = Volume::from_store(&st, 0, 0)?;
+    let extent = world_extent(dims, vol.spacing);
+    let mut levels = vec![];
+    for l in 0.. {
+        match zarr::open(&st, l) {
+            Ok(s) => levels.push(s.meta().dims),
+            Err(_) => break,
+        }
+    }
+    let scene = Scene {
+        extent,
+        levels,
+        channel: 0,
+    };
+    let max = match dtype {
+        DType::U8 => 255.0,
+        DType::U16 => 65535.0,
+        _ => 1.0,
+    };
+    let tf = TransferFunction::preset("soft", [0.0, max])?;
+    let cam = Camera::fit(
+        extent,
+        30.0,
+        20.0,
+        Projection::Perspective { fov_y_deg: 35.0 },
+    );
+    let mut p = RenderParams::new(image, image, cam, tf, RenderMode::Dvr);
+    p.reference_step = Some(scene.voxel(0));
+    let vox: u64 = dims.iter().product();
+    let cfg = VmConfig {
+        brick: [32; 3],
+        pool_bytes: vox * dtype.size() as u64 / 2 + (32 << 20),
+        pt_cache_blocks: 4096,
+        request_cap: 1024,
+        upload_bytes_per_frame: 256 << 20,
+        ..Default::default()
+    };
+    let mut s = Session::open(&st, cfg, 1 << 30, 2)?;
+    // Cold: empty pool (page cache as it is) to a complete view.
+    let t = Instant::now();
+    let mut frames = 0;
+    loop {
+        s.begin_frame();
+        let (_, stt, reqs) = render_frame(s.vm(), &scene, &p, Lod::Auto { bias: 0.0 });
+        s.finish_frame(reqs.iter());
+        frames += 1;
+        if stt.completeness() >= 1.0 || frames > 500 {
+            break;
+        }
+    }
+    let cold_s = t.elapsed().as_secs_f64();
+    let mut warm = f64::INFINITY;
+    let mut samples = 0;
+    for _ in 0..repeat.max(1) {
+        s.begin_frame();
+        let t = Instant::now();
+        let (_, stt, reqs) = render_frame(s.vm(), &scene, &p, Lod::Auto { bias: 0.0 });
+        warm = warm.min(t.elapsed().as_secs_f64());
+        samples = stt.samples;
+        s.finish_frame(reqs.iter());
+    }
+    let mut reference = f64::INFINITY;
+    for _ in 0..repeat.max(1) {
+        let t = Instant::now();
+        let _ = render_ref(&vol, &p);
+        reference = reference.min(t.elapsed().as_secs_f64());
+    }
+    println!(
+        "{}",
+        json!({"scenario": "render", "mode": "dvr", "size": [dims[2], dims[1], dims[0]], "dtype": dtype.short_name(),
+            "image": [image, image], "pool_bytes": s.vm().pool_bytes(), "volume_bytes": vox * dtype.size() as u64,
+            "cold_to_complete_s": cold_s, "cold_frames": frames,
+            "warm_frame_ms": warm * 1e3, "warm_msamples_s": samples as f64 / warm / 1e6,
+            "reference_frame_ms": reference * 1e3, "threads": rayon::current_num_threads()})
+    );
+    Ok(())
+}
