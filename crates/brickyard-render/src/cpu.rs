@@ -9,9 +9,9 @@
 //! complete frame at a fixed level equals the in-core reference image.
 
 use crate::image::Image;
-use crate::reference::{correct_opacity, step_t, RenderMode, RenderParams, EARLY_TERMINATION};
+use crate::reference::{composite, mip_color, slice_point, step_t, RenderMode, RenderParams};
 use brickyard_cache::vm::{Requests, VirtualMemory};
-use brickyard_core::camera::{dot, intersect_box, normalize, sub, world_to_normalized, Ray, Vec3};
+use brickyard_core::camera::{intersect_box, world_to_normalized, Ray, Vec3};
 use brickyard_core::Dims3;
 use rayon::prelude::*;
 
@@ -191,17 +191,7 @@ impl Ctx<'_> {
             let Some(v) = self.sample(level, ray.at(t), req, st) else {
                 continue;
             };
-            let c = self.params.tf.lookup(v);
-            if c[3] <= 0.0 {
-                continue;
-            }
-            let a = correct_opacity(c[3], exponent);
-            let wgt = (1.0 - acc[3]) * a;
-            acc[0] += wgt * c[0];
-            acc[1] += wgt * c[1];
-            acc[2] += wgt * c[2];
-            acc[3] += wgt;
-            if acc[3] >= EARLY_TERMINATION {
+            if composite(&mut acc, self.params.tf.lookup(v), exponent) {
                 break;
             }
         }
@@ -228,11 +218,7 @@ impl Ctx<'_> {
                 best = best.max(v);
             }
         }
-        if !hit || best.is_nan() {
-            return if hit { [0.0, 0.0, 0.0, 1.0] } else { [0.0; 4] };
-        }
-        let c = self.params.tf.lookup(best);
-        [c[0], c[1], c[2], 1.0]
+        mip_color(&self.params.tf, hit, best)
     }
 
     fn slice(
@@ -243,20 +229,9 @@ impl Ctx<'_> {
         req: &mut Requests,
         st: &mut FrameStats,
     ) -> [f32; 4] {
-        let n = normalize(normal);
-        let denom = dot(ray.dir, n);
-        if denom == 0.0 {
+        let Some((w, t)) = slice_point(ray, origin, normal, self.scene.extent) else {
             return [0.0; 4];
-        }
-        let t = dot(sub(origin, ray.origin), n) / denom;
-        if t.is_nan() || t < 0.0 {
-            return [0.0; 4];
-        }
-        let w = ray.at(t);
-        let e = self.scene.extent;
-        if (0..3).any(|a| !(w[a] >= 0.0 && w[a] <= e[a])) {
-            return [0.0; 4];
-        }
+        };
         let level = self.level_at(t);
         match self.sample(level, w, req, st) {
             Some(v) if !v.is_nan() => {

@@ -336,6 +336,55 @@ pub fn correct_opacity(alpha: f32, exponent: f32) -> f32 {
     }
 }
 
+/// Front-to-back compositing of one sample of straight-alpha colour `c`
+/// (opacity corrected by `exponent`) into the premultiplied `acc`.
+/// Returns true when the ray is opaque enough to stop.
+#[inline]
+pub fn composite(acc: &mut [f32; 4], c: [f32; 4], exponent: f32) -> bool {
+    if c[3] <= 0.0 {
+        return false;
+    }
+    let a = correct_opacity(c[3], exponent);
+    let wgt = (1.0 - acc[3]) * a;
+    acc[0] += wgt * c[0];
+    acc[1] += wgt * c[1];
+    acc[2] += wgt * c[2];
+    acc[3] += wgt;
+    acc[3] >= EARLY_TERMINATION
+}
+
+/// The pixel of a MIP ray: the transfer function's colour of the maximum,
+/// opaque where the ray took a sample.
+#[inline]
+pub fn mip_color(tf: &TransferFunction, hit: bool, best: f32) -> [f32; 4] {
+    if !hit || best.is_nan() {
+        return if hit { [0.0, 0.0, 0.0, 1.0] } else { [0.0; 4] };
+    }
+    let c = tf.lookup(best);
+    [c[0], c[1], c[2], 1.0]
+}
+
+/// Where `ray` meets the plane through `origin` with `normal`, if that is
+/// in front of the ray and inside the box `[0, extent]`: the world point
+/// and the ray parameter.
+#[inline]
+pub fn slice_point(ray: &Ray, origin: Vec3, normal: Vec3, extent: Vec3) -> Option<(Vec3, f64)> {
+    let n = normalize(normal);
+    let denom = dot(ray.dir, n);
+    if denom == 0.0 {
+        return None;
+    }
+    let t = dot(sub(origin, ray.origin), n) / denom;
+    if t.is_nan() || t < 0.0 {
+        return None;
+    }
+    let w = ray.at(t);
+    if (0..3).any(|a| !(w[a] >= 0.0 && w[a] <= extent[a])) {
+        return None;
+    }
+    Some((w, t))
+}
+
 /// Render `volume` with `params` (rows in parallel). Panics if
 /// `params.validate()` fails.
 pub fn render(volume: &Volume, params: &RenderParams) -> Image {
@@ -387,16 +436,7 @@ fn dvr_ray(
         }
         k += 1;
         let c = tf.lookup(vol.sample_world(ray.at(t), extent));
-        if c[3] <= 0.0 {
-            continue;
-        }
-        let a = correct_opacity(c[3], exponent);
-        let wgt = (1.0 - acc[3]) * a;
-        acc[0] += wgt * c[0];
-        acc[1] += wgt * c[1];
-        acc[2] += wgt * c[2];
-        acc[3] += wgt;
-        if acc[3] >= EARLY_TERMINATION {
+        if composite(&mut acc, c, exponent) {
             break;
         }
     }
@@ -421,11 +461,7 @@ fn mip_ray(vol: &Volume, tf: &TransferFunction, ray: &Ray, extent: Vec3, dt: f64
         // f32::max ignores NaN.
         best = best.max(v);
     }
-    if !hit || best.is_nan() {
-        return if hit { [0.0, 0.0, 0.0, 1.0] } else { [0.0; 4] };
-    }
-    let c = tf.lookup(best);
-    [c[0], c[1], c[2], 1.0]
+    mip_color(tf, hit, best)
 }
 
 fn slice_ray(
@@ -436,19 +472,9 @@ fn slice_ray(
     origin: Vec3,
     normal: Vec3,
 ) -> [f32; 4] {
-    let n = normalize(normal);
-    let denom = dot(ray.dir, n);
-    if denom == 0.0 {
+    let Some((w, _)) = slice_point(ray, origin, normal, extent) else {
         return [0.0; 4];
-    }
-    let t = dot(sub(origin, ray.origin), n) / denom;
-    if t.is_nan() || t < 0.0 {
-        return [0.0; 4];
-    }
-    let w = ray.at(t);
-    if (0..3).any(|a| !(w[a] >= 0.0 && w[a] <= extent[a])) {
-        return [0.0; 4];
-    }
+    };
     let v = vol.sample_world(w, extent);
     if v.is_nan() {
         return [0.0; 4];
