@@ -773,31 +773,17 @@ impl VirtualMemory {
         Ok(())
     }
 
-    /// Management memory in bytes: directory, PT caches, usage, LRU, owners,
-    /// request collector (bounded), pool.
-    pub fn footprint(&self) -> Vec<(String, u64)> {
-        let e = std::mem::size_of::<PageEntry>() as u64;
-        let mut v = vec![("directory".to_string(), self.dir.len() as u64 * e)];
-        for (n, (entries, set)) in self.pt.iter().enumerate() {
-            v.push((
-                format!("page-table cache {}", n + 1),
-                entries.len() as u64 * e,
-            ));
-            v.push((
-                format!("page-table cache {} usage + LRU + owners", n + 1),
-                set.len() as u64 * (4 + 4 + 12),
-            ));
-        }
-        v.push((
-            "pool usage + LRU + owners".into(),
-            self.slots.len() as u64 * (4 + 4 + 12),
-        ));
-        v.push((
-            "request collector (bounded)".into(),
-            self.merged.max_bytes(),
-        ));
-        v.push(("brick pool".into(), self.pool.len() as u64));
-        v
+    /// Management memory of this configuration, line by line (the same
+    /// accounting as `brickyard vm footprint`).
+    pub fn footprint(&self) -> brickyard_core::vm::Footprint {
+        let pt: Vec<u64> = self.pt.iter().map(|(_, set)| set.len() as u64).collect();
+        brickyard_core::vm::Footprint::of(
+            &self.layout,
+            self.slots.len() as u64,
+            &pt,
+            self.brick_bytes as u64,
+            self.cfg.request_cap as u64,
+        )
     }
 
     pub fn channels(&self) -> usize {

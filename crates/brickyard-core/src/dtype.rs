@@ -314,6 +314,12 @@ pub fn cast_slice_mut<T: Sample>(b: &mut [u8]) -> &mut [T] {
     }
 }
 
+/// View samples as mutable bytes.
+pub fn as_bytes_mut<T: Sample>(s: &mut [T]) -> &mut [u8] {
+    // SAFETY: plain old data, valid for any bit pattern.
+    unsafe { std::slice::from_raw_parts_mut(s.as_mut_ptr() as *mut u8, std::mem::size_of_val(s)) }
+}
+
 /// View samples as bytes.
 pub fn as_bytes<T: Sample>(s: &[T]) -> &[u8] {
     // SAFETY: plain old data.

@@ -597,7 +597,7 @@ fn run_pass<T: Sample>(
                                 z0..z0 + h,
                                 y_rng.clone(),
                                 x_rng.clone(),
-                                cast_slice_mut_t(&mut buf),
+                                brickyard_core::as_bytes_mut(&mut buf),
                             )
                             .map(|()| (z0, h, buf));
                         let failed = r.is_err();
@@ -637,11 +637,6 @@ fn run_pass<T: Sample>(
         ty0 += ty;
     }
     Ok(())
-}
-
-fn cast_slice_mut_t<T: Sample>(v: &mut [T]) -> &mut [u8] {
-    // SAFETY: plain old data.
-    unsafe { std::slice::from_raw_parts_mut(v.as_mut_ptr() as *mut u8, std::mem::size_of_val(v)) }
 }
 
 /// Downsample `fine` (a slab of level k-1) into the accumulator of level k;
