@@ -26,6 +26,16 @@ pub struct Scene {
 }
 
 impl Scene {
+    /// A scene of channel 0 of a volume with world size `extent` (`[x, y, z]`)
+    /// and `levels` (voxels per level, `[z, y, x]`).
+    pub fn new(extent: Vec3, levels: Vec<Dims3>) -> Scene {
+        Scene {
+            extent,
+            levels,
+            channel: 0,
+        }
+    }
+
     /// Smallest voxel edge of level `l` in world units.
     pub fn voxel(&self, l: usize) -> f64 {
         let d = self.levels[l];

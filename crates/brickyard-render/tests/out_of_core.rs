@@ -68,11 +68,7 @@ fn out_of_core_frames_converge_to_the_reference() {
         .collect();
     let spacing0 = levels[0].spacing;
     let extent = world_extent(dims, spacing0);
-    let scene = Scene {
-        extent,
-        levels: levels.iter().map(|v| v.dims).collect(),
-        channel: 0,
-    };
+    let scene = Scene::new(extent, levels.iter().map(|v| v.dims).collect());
     let tf = TransferFunction::preset("soft", [0.0, 65535.0]).unwrap();
     let cam = Camera::fit(
         extent,
@@ -134,11 +130,7 @@ fn automatic_level_of_detail_completes_and_uses_coarser_levels_far_away() {
     let levels: Vec<_> = (0..nlev)
         .map(|l| Volume::from_store(&store, l, 0).unwrap().dims)
         .collect();
-    let scene = Scene {
-        extent,
-        levels,
-        channel: 0,
-    };
+    let scene = Scene::new(extent, levels);
     let tf = TransferFunction::preset("soft", [0.0, 255.0]).unwrap();
     // A small image of the whole volume: one pixel covers several voxels.
     let cam = Camera::fit(
@@ -192,11 +184,7 @@ fn real_mr_volume_out_of_core_equals_the_reference() {
         .collect();
     let dims = levels[0].dims;
     let extent = world_extent(dims, levels[0].spacing);
-    let scene = Scene {
-        extent,
-        levels: levels.iter().map(|v| v.dims).collect(),
-        channel: 0,
-    };
+    let scene = Scene::new(extent, levels.iter().map(|v| v.dims).collect());
     let (lo, hi) = levels[0].min_max();
     let vol_bytes = dims.iter().product::<u64>() * 2;
     for (mode, level, tfname) in [

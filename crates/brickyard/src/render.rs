@@ -142,11 +142,7 @@ pub fn run(c: RenderCmd) -> Result<()> {
     for l in 0..info.levels.len() {
         levels.push(zarr::open(&c.store, l)?.meta().dims);
     }
-    let scene = Scene {
-        extent,
-        levels,
-        channel: 0,
-    };
+    let scene = Scene::new(extent, levels);
     let (lo, hi) = match &c.window {
         Some(wd) => {
             let p = parse_pair(wd, "window")?;

@@ -414,11 +414,7 @@ pub fn render(dir: &Path, dims: Dims3, dtype: DType, image: u32, repeat: usize) 
             Err(_) => break,
         }
     }
-    let scene = Scene {
-        extent,
-        levels,
-        channel: 0,
-    };
+    let scene = Scene::new(extent, levels);
     let max = match dtype {
         DType::U8 => 255.0,
         DType::U16 => 65535.0,
