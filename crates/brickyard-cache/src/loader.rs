@@ -223,6 +223,9 @@ struct Shared {
     /// Signalled when a load finishes.
     finished: Condvar,
     counters: Counters,
+    /// Artificial delay of every load that reads the store, in
+    /// nanoseconds ([`Loader::set_read_delay`]).
+    read_delay_ns: AtomicU64,
 }
 
 fn lock<T>(m: &Mutex<T>) -> MutexGuard<'_, T> {
@@ -274,9 +277,11 @@ impl Shared {
         dispatch_dtype!(g.dtype, T => {
             let r = [0, 1, 2].map(|a| hi[a] - lo[a]);
             let mut buf = vec![T::default(); r.iter().product::<u64>() as usize];
-            level
+            let read = level
                 .src
-                .read_region(key.channel as usize, lo[0]..hi[0], lo[1]..hi[1], lo[2]..hi[2], bytes_mut(&mut buf))?;
+                .read_region(key.channel as usize, lo[0]..hi[0], lo[1]..hi[1], lo[2]..hi[2], bytes_mut(&mut buf));
+            self.simulated_delay();
+            read?;
             let bytes_read = std::mem::size_of_val(&buf[..]) as u64;
             let [zs, ys, xs] = [0, 1, 2].map(|a| clamp_map(po[a], p[a], lo[a], hi[a]));
             let (r1, r2) = (r[1] as usize, r[2] as usize);
@@ -312,6 +317,14 @@ impl Shared {
                 bytes_read,
             })
         })
+    }
+
+    /// Sleep for the delay set by [`Loader::set_read_delay`], if any.
+    fn simulated_delay(&self) {
+        let ns = self.read_delay_ns.load(Ordering::Relaxed);
+        if ns > 0 {
+            std::thread::sleep(Duration::from_nanos(ns));
+        }
     }
 
     fn worker(&self) {
@@ -498,6 +511,7 @@ impl Loader {
             work: Condvar::new(),
             finished: Condvar::new(),
             counters: Counters::default(),
+            read_delay_ns: AtomicU64::new(0),
         });
         let mut handles = Vec::new();
         for i in 0..threads.max(1) {
@@ -655,6 +669,23 @@ impl Loader {
         lock(&self.shared.state).paused = paused;
         self.shared.work.notify_all();
         self.shared.finished.notify_all();
+    }
+
+    /// Make every load that reads the store sleep `d` after its read, on
+    /// the thread doing the load (a worker, or the caller of
+    /// [`Loader::load_now`]): a testing and benchmarking aid to simulate a
+    /// slow disk or network store. Bricks answered from the statistics
+    /// (empty / constant without a read) or from the host cache are not
+    /// delayed. `Duration::ZERO` (the default) turns it off; a change
+    /// applies to loads whose read finishes afterwards.
+    pub fn set_read_delay(&self, d: Duration) {
+        let ns = u64::try_from(d.as_nanos()).unwrap_or(u64::MAX);
+        self.shared.read_delay_ns.store(ns, Ordering::Relaxed);
+    }
+
+    /// The delay set by [`Loader::set_read_delay`].
+    pub fn read_delay(&self) -> Duration {
+        Duration::from_nanos(self.shared.read_delay_ns.load(Ordering::Relaxed))
     }
 
     /// Requests waiting for a worker.

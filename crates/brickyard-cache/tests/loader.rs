@@ -752,3 +752,91 @@ fn a_deleted_shard_reads_as_fill_value() {
     assert_eq!(b.content, BrickContent::Empty);
     assert!(b.bytes_read > 0);
 }
+
+#[test]
+fn read_delay_slows_reads_only() {
+    let dir = tempfile::tempdir().unwrap();
+    // Zero below z = 16, noise above.
+    let src = mem_source([32, 24, 24], 1, DType::U16, |_, z, y, x| {
+        if z < 16 {
+            0.0
+        } else {
+            let mut s = (z * 1000 + y) * 1000 + x + 3;
+            lcg(&mut s);
+            (lcg(&mut s) % 60000) as f64 + 1.0
+        }
+    });
+    let store = convert_to(dir.path(), "d.ome.zarr", &src, 8, 16);
+    let cache = Arc::new(HostCache::new(1 << 30));
+    let loader = Loader::open(&store, [8; 3], 1, 1, cache).unwrap();
+    assert!(loader.has_stats(0));
+    assert_eq!(loader.read_delay(), Duration::ZERO);
+    let delay = Duration::from_millis(30);
+    loader.set_read_delay(delay);
+    assert_eq!(loader.read_delay(), delay);
+
+    // Four data bricks (z index 3: noise, apron included) on one thread:
+    // at least four delays.
+    let data: Vec<BrickKey> = (0..4)
+        .map(|i| BrickKey::new(0, 0, [3, i / 2, i % 2]))
+        .collect();
+    let t = std::time::Instant::now();
+    loader.request(&data.iter().map(|&k| (k, 1)).collect::<Vec<_>>());
+    assert!(loader.wait_idle(WAIT));
+    let took = t.elapsed();
+    let got = loader.poll();
+    assert_eq!(got.len(), 4);
+    assert!(got.iter().all(|b| b.bytes_read > 0 && !b.is_uniform()));
+    assert!(
+        took >= Duration::from_millis(100),
+        "4 reads with a 30 ms delay took {took:?}"
+    );
+
+    // Host-cache hits are answered inside `request`, without a worker.
+    loader.request(&data.iter().map(|&k| (k, 1)).collect::<Vec<_>>());
+    assert_eq!((loader.pending(), loader.in_flight()), (0, 0));
+    assert_eq!(loader.poll().len(), 4);
+    assert_eq!(loader.bricks_from_cache(), 4);
+
+    // Bricks the statistics prove empty are not read, hence not delayed:
+    // nine of them with a 1 s delay would take 9 s.
+    loader.set_read_delay(Duration::from_secs(1));
+    let empty: Vec<BrickKey> = (0..9)
+        .map(|i| BrickKey::new(0, 0, [0, i / 3, i % 3]))
+        .collect();
+    let t = std::time::Instant::now();
+    loader.request(&empty.iter().map(|&k| (k, 1)).collect::<Vec<_>>());
+    assert!(loader.wait_idle(WAIT));
+    let took = t.elapsed();
+    let got = loader.poll();
+    assert_eq!(got.len(), 9);
+    assert!(got
+        .iter()
+        .all(|b| b.content == BrickContent::Empty && b.bytes_read == 0));
+    assert!(
+        took < Duration::from_secs(4),
+        "empty bricks were delayed: {took:?}"
+    );
+
+    // `load_now` reads on the calling thread and is delayed there.
+    loader.set_read_delay(Duration::from_millis(50));
+    let t = std::time::Instant::now();
+    let b = loader.load_now(&BrickKey::new(0, 0, [2, 1, 1])).unwrap();
+    assert!(b.bytes_read > 0);
+    assert!(t.elapsed() >= Duration::from_millis(50));
+
+    // Zero turns it off (one-sided: far below four 1 s delays).
+    loader.set_read_delay(Duration::from_secs(1));
+    loader.set_read_delay(Duration::ZERO);
+    let fresh: Vec<BrickKey> = (0..4)
+        .map(|i| BrickKey::new(0, 0, [2, i / 2, i % 2]))
+        .collect();
+    let t = std::time::Instant::now();
+    loader.request(&fresh.iter().map(|&k| (k, 1)).collect::<Vec<_>>());
+    assert!(loader.wait_idle(WAIT));
+    assert!(
+        t.elapsed() < Duration::from_secs(3),
+        "delay not turned off: {:?}",
+        t.elapsed()
+    );
+}
