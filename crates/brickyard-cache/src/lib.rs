@@ -31,5 +31,6 @@
 pub mod brick;
 pub mod host_cache;
 pub mod loader;
+pub mod ranges;
 pub mod session;
 pub mod vm;

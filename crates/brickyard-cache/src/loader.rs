@@ -30,6 +30,7 @@
 
 use crate::brick::{BrickContent, BrickGeometry, BrickKey, LoadedBrick};
 use crate::host_cache::HostCache;
+use crate::ranges::BrickRanges;
 use brickyard_core::{dispatch_dtype, Dims3, Sample};
 use brickyard_store::error::{Result, StoreError};
 use brickyard_store::import::zarr::{open, ZarrSource};
@@ -661,6 +662,27 @@ impl Loader {
     /// repaired).
     pub fn retry_failed(&self) {
         lock(&self.shared.state).failed_keys.clear();
+    }
+
+    /// Value ranges of every padded brick (apron included), from the
+    /// store's per-brick statistics, for empty-space skipping. Levels
+    /// without statistics (foreign stores) or with more than `max_bricks`
+    /// bricks × channels are left out; a level's entry is `[NaN, NaN]`
+    /// where the statistics cannot be read.
+    pub fn brick_ranges(&self, max_bricks: u64) -> BrickRanges {
+        let sh = &self.shared;
+        let Some(sb) = sh.store_brick else {
+            return BrickRanges {
+                levels: vec![None; sh.levels.len()],
+            };
+        };
+        BrickRanges::build(
+            &sh.geometry,
+            sb,
+            max_bricks,
+            |l| sh.levels[l].stats.is_some(),
+            |l, c, b| sh.levels[l].stats.as_ref()?.get(c as u64, b),
+        )
     }
 
     /// Stop (`true`) or resume (`false`) starting new loads; loads in

@@ -91,12 +91,14 @@ struct SlotSet {
 
 impl SlotSet {
     fn new(count: u64) -> SlotSet {
+        // Exactly `count` slots (up to the grid's limit), ids row-major in a
+        // grid that covers them; only the last row or layer is partly used.
         let max = brickyard_core::vm::MAX_SLOTS_PER_AXIS as u64;
+        let count = count.min(max * max * max);
         let gx = count.clamp(1, max);
-        let gy = (count / gx).clamp(1, max);
-        let gz = (count / (gx * gy)).clamp(1, max);
-        let n = (gx * gy * gz).min(count.max(1)) as u32;
-        let n = if count == 0 { 0 } else { n };
+        let gy = count.div_ceil(gx).clamp(1, max);
+        let gz = count.div_ceil(gx * gy).clamp(1, max);
+        let n = count as u32;
         SlotSet {
             grid: [gz as u32, gy as u32, gx as u32],
             usage: (0..n).map(|_| AtomicU32::new(0)).collect(),
@@ -202,6 +204,19 @@ pub struct Lookup {
     pub level: Option<u8>,
 }
 
+/// What [`VirtualMemory::brick`] finds for a brick.
+#[derive(Debug, Clone, Copy)]
+pub enum BrickRef<'a> {
+    /// Not mapped at this level: request it, use a coarser level meanwhile.
+    Unmapped,
+    /// Every voxel (apron included) is 0.
+    Empty,
+    /// Every voxel (apron included) has this value.
+    Constant(f32),
+    /// Resident: the padded brick's bytes in the pool.
+    Data(&'a [u8]),
+}
+
 /// Per-frame figures.
 #[derive(Debug, Clone, Default)]
 pub struct FrameReport {
@@ -246,8 +261,10 @@ pub struct VirtualMemory {
     /// Intermediate page-table caches `n = 1 .. nmax-1`: entries and slots.
     pt: Vec<(Vec<PageEntry>, SlotSet)>,
     pt_block_len: Vec<usize>,
-    /// Brick pool.
-    pool: Vec<u8>,
+    /// Brick pool (8-byte words so that every slot is aligned for any
+    /// sample type: slot offsets are multiples of the padded brick's
+    /// voxel count times the sample size).
+    pool: Vec<u64>,
     slots: SlotSet,
     padded: [usize; 3],
     brick_bytes: usize,
@@ -305,7 +322,7 @@ impl VirtualMemory {
             dir_len,
             pt,
             pt_block_len,
-            pool: vec![0u8; slots.len() * brick_bytes],
+            pool: vec![0u64; (slots.len() * brick_bytes).div_ceil(8)],
             slots,
             padded,
             brick_bytes,
@@ -337,7 +354,57 @@ impl VirtualMemory {
     }
     /// Bytes of the pool.
     pub fn pool_bytes(&self) -> usize {
-        self.pool.len()
+        self.slots.len() * self.brick_bytes
+    }
+
+    fn pool(&self) -> &[u8] {
+        // SAFETY: u64 words viewed as bytes; same memory, any bit pattern.
+        unsafe { std::slice::from_raw_parts(self.pool.as_ptr() as *const u8, self.pool_bytes()) }
+    }
+
+    fn pool_mut(&mut self) -> &mut [u8] {
+        let n = self.pool_bytes();
+        // SAFETY: as in `pool`; `n ≤ 8 · pool.len()`.
+        unsafe { std::slice::from_raw_parts_mut(self.pool.as_mut_ptr() as *mut u8, n) }
+    }
+
+    /// Sample type of the pool.
+    pub fn dtype(&self) -> DType {
+        self.dtype
+    }
+
+    /// Padded brick size `[z, y, x]` (brick + apron on both sides).
+    pub fn padded(&self) -> [usize; 3] {
+        self.padded
+    }
+
+    /// Number of levels.
+    pub fn levels(&self) -> usize {
+        self.layout.levels.len()
+    }
+
+    /// Resolve brick `brick` (brick coordinates, `[z, y, x]`) of level `l`,
+    /// channel `c` for a consumer that walks bricks instead of sampling
+    /// point by point: marks it (and its page-table blocks) used this frame
+    /// and returns what its entry says. A resident brick comes with its
+    /// padded voxels (sample type [`dtype`](Self::dtype), x fastest, aligned
+    /// for that type): voxel `v` of the level, with `v` inside the brick or
+    /// one apron voxel around it, is at local index
+    /// `v − brick·B + apron` per axis. Nothing is requested: the consumer
+    /// adds misses to its [`Requests`] itself.
+    pub fn brick(&self, l: usize, c: usize, brick: [u64; 3]) -> BrickRef<'_> {
+        let v = [0, 1, 2].map(|a| brick[a] * self.cfg.brick[a]);
+        match self.resolve(l, c, v) {
+            Kind::Mapped(slot) => {
+                let s = self.slots.id(slot);
+                self.slots.usage[s as usize].store(self.frame, Ordering::Relaxed);
+                let o = s as usize * self.brick_bytes;
+                BrickRef::Data(&self.pool()[o..o + self.brick_bytes])
+            }
+            Kind::Empty => BrickRef::Empty,
+            Kind::Constant(v) => BrickRef::Constant(v),
+            Kind::Unmapped => BrickRef::Unmapped,
+        }
     }
     /// A request collector sized for this virtual memory.
     pub fn requests(&self) -> Requests {
@@ -405,7 +472,7 @@ impl VirtualMemory {
         let i = (local[0] * py + local[1]) * px + local[2];
         let base = slot as usize * self.brick_bytes;
         let es = self.dtype.size();
-        let b = &self.pool[base + i * es..base + (i + 1) * es];
+        let b = &self.pool()[base + i * es..base + (i + 1) * es];
         dispatch_dtype!(self.dtype, T => { <T as Sample>::from_le(b).to_f64() as f32 })
     }
 
@@ -427,7 +494,8 @@ impl VirtualMemory {
             let pos = [0, 1, 2].map(|a| p[a] * dims[a] as f64);
             let (base, frac) = if trilinear {
                 let q = [0, 1, 2].map(|a| (pos[a] - 0.5).clamp(0.0, (dims[a] - 1) as f64));
-                let b = q.map(|x| x.floor());
+                // q ≥ 0 after the clamp: truncation is floor (and avoids a libm call).
+                let b = q.map(|x| (x as u64) as f64);
                 (
                     [0, 1, 2].map(|a| b[a] as u64),
                     [0, 1, 2].map(|a| (q[a] - b[a]) as f32),
@@ -662,8 +730,8 @@ impl VirtualMemory {
                         report.evicted_bricks += 1;
                     }
                     // 2. write
-                    let dst = &mut self.pool
-                        [s as usize * self.brick_bytes..(s as usize + 1) * self.brick_bytes];
+                    let bb = self.brick_bytes;
+                    let dst = &mut self.pool_mut()[s as usize * bb..(s as usize + 1) * bb];
                     assert_eq!(bytes.len(), dst.len(), "brick size mismatch");
                     dst.copy_from_slice(bytes);
                     // 3. reference

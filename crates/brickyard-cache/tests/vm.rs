@@ -271,3 +271,20 @@ fn random_sequences_with_tight_budgets_stay_correct_and_progress() {
     assert!(seen.orphans > 0, "no orphan reclaimed");
     assert!(seen.deep > 0, "no deep hierarchy");
 }
+
+#[test]
+fn the_pool_gets_every_slot_its_budget_pays_for() {
+    let levels: Vec<Dims3> = vec![[256, 256, 256], [128, 128, 128]];
+    for slots in [1u64, 7, 1024, 1025, 1509, 2047, 24147] {
+        let cfg = VmConfig {
+            brick: [8; 3],
+            apron: 1,
+            pool_bytes: slots * 1000 + 999,
+            ..Default::default()
+        };
+        let vm = VirtualMemory::new(&levels, 1, DType::U8, cfg);
+        assert_eq!(vm.pool_slots() as u64, slots, "budget for {slots} slots");
+        assert_eq!(vm.pool_bytes() as u64, slots * 1000);
+        vm.check_invariants().unwrap();
+    }
+}

@@ -105,6 +105,12 @@ pub trait Sample:
 {
     const DTYPE: DType;
     fn to_f64(self) -> f64;
+    /// `self.to_f64() as f32`, in one conversion (the same value: both
+    /// round once).
+    #[inline]
+    fn to_f32(self) -> f32 {
+        self.to_f64() as f32
+    }
     /// Box mean of `count` voxels whose sum is `sum`, rounded as documented in
     /// `docs/FORMAT.md`: integers round half up (`floor(sum/count + 1/2)`,
     /// exact in integer arithmetic), floats are the f64 mean cast to the type.
@@ -129,6 +135,10 @@ macro_rules! int_sample {
             #[inline]
             fn to_f64(self) -> f64 {
                 self as f64
+            }
+            #[inline]
+            fn to_f32(self) -> f32 {
+                self as f32
             }
             #[inline]
             fn acc(self) -> $acc {
@@ -176,6 +186,10 @@ impl Sample for f32 {
     #[inline]
     fn to_f64(self) -> f64 {
         self as f64
+    }
+    #[inline]
+    fn to_f32(self) -> f32 {
+        self
     }
     #[inline]
     fn acc(self) -> f64 {
@@ -332,6 +346,16 @@ compile_error!("brickyard supports little-endian targets only");
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn to_f32_is_to_f64_then_f32() {
+        for v in [0u32, 1, 16_777_217, 16_777_219, u32::MAX, 2_147_483_649] {
+            assert_eq!(v.to_f32(), v.to_f64() as f32, "{v}");
+            let i = v as i32;
+            assert_eq!(i.to_f32(), i.to_f64() as f32, "{i}");
+        }
+        assert_eq!(f64::MAX.to_f32(), f64::MAX.to_f64() as f32);
+    }
 
     #[test]
     fn integer_mean_rounds_half_up() {

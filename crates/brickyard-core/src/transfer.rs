@@ -310,6 +310,25 @@ impl TransferFunction {
         [r, g, b, self.opacity_at(x)]
     }
 
+    /// [`lookup`](Self::lookup) for values it gives a positive opacity,
+    /// `None` for the rest (NaN included), without computing their colour:
+    /// what front-to-back compositing needs, as it ignores transparent
+    /// samples.
+    #[inline]
+    pub fn lookup_visible(&self, value: f32) -> Option<[f32; 4]> {
+        if value.is_nan() {
+            return None;
+        }
+        let x = self.normalize(value);
+        let a = self.opacity_at(x);
+        if a > 0.0 {
+            let [r, g, b] = self.colormap.color(x);
+            Some([r, g, b, a])
+        } else {
+            None
+        }
+    }
+
     /// `n` entries of `lookup` at the windowed values `x_i = i / (n − 1)`
     /// (for `n = 1`: `x = 0`), i.e. index `round(x · (n − 1))`.
     pub fn lut(&self, n: usize) -> Vec<[f32; 4]> {

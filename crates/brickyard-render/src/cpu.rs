@@ -7,13 +7,44 @@
 //! Sampling follows the reference renderer's rules (step positions
 //! `t0 + (k + ½)·Δ`, opacity correction, early termination at 0.99), so a
 //! complete frame at a fixed level equals the in-core reference image.
+//!
+//! # How it is fast
+//!
+//! - **Brick walking.** Each thread keeps, per level, the brick its last
+//!   sample fell into: the page tables are walked (and usage marked) once
+//!   per brick a ray enters, not once per sample. Samples inside the
+//!   current brick read the pool directly with a trilinear kernel
+//!   specialised for the sample type. Misses are counted per brick and
+//!   handed to the request collector when the walker leaves it.
+//! - **Empty-space skipping.** A brick whose value range (from the store's
+//!   statistics, [`BrickRanges`], or an EMPTY/CONSTANT page entry) the
+//!   transfer function maps to zero opacity is crossed in one jump, without
+//!   a lookup and without being requested, so it is never loaded. In a MIP
+//!   a brick whose maximum cannot raise the ray's maximum is skipped the
+//!   same way. Skipping never changes a complete frame: every skipped
+//!   sample would have contributed nothing.
+//! - **Tiles.** Work is split into 8×8-pixel tiles (rows of tiles in
+//!   parallel on all cores) so that neighbouring rays share bricks.
+//! - The level of detail is re-evaluated only where the pixel footprint
+//!   crosses a level boundary, not per sample; transparent samples skip
+//!   the colour lookup.
 
 use crate::image::Image;
-use crate::reference::{composite, mip_color, slice_point, step_t, RenderMode, RenderParams};
-use brickyard_cache::vm::{Requests, VirtualMemory};
-use brickyard_core::camera::{intersect_box, world_to_normalized, Ray, Vec3};
-use brickyard_core::Dims3;
+use crate::reference::{
+    mip_color, mix_channels, slice_point, step_t, RenderMode, RenderParams, EARLY_TERMINATION,
+};
+use brickyard_cache::brick::BrickKey;
+use brickyard_cache::ranges::BrickRanges;
+use brickyard_cache::vm::{BrickRef, Requests, VirtualMemory};
+use brickyard_core::camera::{intersect_box, Projection, Ray, Vec3};
+use brickyard_core::{cast_slice, dispatch_dtype, Dims3, Sample, TransferFunction};
 use rayon::prelude::*;
+use std::sync::Arc;
+
+pub use crate::reference::MAX_CHANNELS;
+
+/// Tile edge in pixels.
+const TILE: usize = 8;
 
 /// What the renderer needs to know about the volume besides the pages.
 #[derive(Debug, Clone)]
@@ -23,6 +54,9 @@ pub struct Scene {
     /// Voxels per level, `[z, y, x]`.
     pub levels: Vec<Dims3>,
     pub channel: usize,
+    /// Value ranges of the bricks, for empty-space skipping (`None`: only
+    /// EMPTY/CONSTANT entries are skipped).
+    pub ranges: Option<Arc<BrickRanges>>,
 }
 
 impl Scene {
@@ -33,6 +67,7 @@ impl Scene {
             extent,
             levels,
             channel: 0,
+            ranges: None,
         }
     }
 
@@ -59,11 +94,15 @@ pub enum Lod {
 /// Figures of one frame.
 #[derive(Debug, Clone, Default)]
 pub struct FrameStats {
+    /// Samples taken (skipped empty space is not counted).
     pub samples: u64,
     /// Samples served at the level they asked for.
     pub exact: u64,
     /// Samples with nothing resident at all.
     pub unserved: u64,
+    /// Bricks crossed without sampling (transparent or, in a MIP, unable
+    /// to raise the maximum), counted per ray and brick.
+    pub skipped_bricks: u64,
 }
 
 impl FrameStats {
@@ -75,6 +114,13 @@ impl FrameStats {
             self.exact as f64 / self.samples as f64
         }
     }
+
+    fn add(&mut self, o: &FrameStats) {
+        self.samples += o.samples;
+        self.exact += o.exact;
+        self.unserved += o.unserved;
+        self.skipped_bricks += o.skipped_bricks;
+    }
 }
 
 /// Render one frame. Returns the image, its statistics and the request
@@ -85,65 +131,205 @@ pub fn render_frame(
     params: &RenderParams,
     lod: Lod,
 ) -> (Image, FrameStats, Vec<Requests>) {
-    let (w, h) = (params.width, params.height);
-    let rg = params.camera.ray_gen(w, h);
-    let mut img = Image::new(w, h);
-    let rows_per_task = 8usize;
+    dispatch_dtype!(vm.dtype(), T => { render_typed::<T>(vm, scene, params, lod) })
+}
+
+fn render_typed<T: Sample>(
+    vm: &VirtualMemory,
+    scene: &Scene,
+    params: &RenderParams,
+    lod: Lod,
+) -> (Image, FrameStats, Vec<Requests>) {
+    let frame = Frame::new(vm, scene, params, lod);
+    let (w, h) = (params.width as usize, params.height as usize);
+    let rg = params.camera.ray_gen(params.width, params.height);
+    let mut img = Image::new(params.width, params.height);
     let parts: Vec<(FrameStats, Requests)> = img
         .rgba
-        .par_chunks_mut(w as usize * rows_per_task)
+        .par_chunks_mut(w * TILE)
         .enumerate()
-        .map(|(chunk, rows)| {
+        .map(|(band, rows)| {
             let mut req = vm.requests();
             let mut st = FrameStats::default();
-            let ctx = Ctx {
-                vm,
-                scene,
-                params,
-                lod,
+            // One walker per channel shown.
+            let mut walkers: Vec<Walker<T>> = if params.channels.is_empty() {
+                vec![Walker::new(&frame, scene.channel)]
+            } else {
+                params
+                    .channels
+                    .iter()
+                    .map(|c| Walker::new(&frame, c.channel))
+                    .collect()
             };
-            for (r, row) in rows.chunks_mut(w as usize).enumerate() {
-                let j = (chunk * rows_per_task + r) as u32;
-                for (i, px) in row.iter_mut().enumerate() {
-                    let ray = rg.pixel_ray(i as u32, j);
-                    *px = match &params.mode {
-                        RenderMode::Dvr => ctx.dvr(&ray, &mut req, &mut st),
-                        RenderMode::Mip => ctx.mip(&ray, &mut req, &mut st),
-                        RenderMode::Slice { origin, normal } => {
-                            ctx.slice(&ray, *origin, *normal, &mut req, &mut st)
-                        }
-                    };
+            let multi = !params.channels.is_empty();
+            let nrows = rows.len() / w;
+            for x0 in (0..w).step_by(TILE) {
+                for r in 0..nrows {
+                    let j = (band * TILE + r) as u32;
+                    for i in x0..(x0 + TILE).min(w) {
+                        let ray = rg.pixel_ray(i as u32, j);
+                        rows[r * w + i] = match &params.mode {
+                            RenderMode::Dvr => walkers[0].dvr(&ray, &mut req, &mut st),
+                            RenderMode::Mip if multi => {
+                                match intersect_box(&ray, [0.0; 3], scene.extent) {
+                                    Some(span) => {
+                                        let mut best = [f32::NAN; MAX_CHANNELS];
+                                        let mut hit = false;
+                                        for (b, wk) in best.iter_mut().zip(&mut walkers) {
+                                            if let Some(m) =
+                                                wk.mip_max(&ray, span, &mut req, &mut st)
+                                            {
+                                                hit = true;
+                                                *b = m;
+                                            }
+                                        }
+                                        if hit {
+                                            mix_channels(&params.channels, best.into_iter())
+                                        } else {
+                                            [0.0; 4]
+                                        }
+                                    }
+                                    None => [0.0; 4],
+                                }
+                            }
+                            RenderMode::Mip => walkers[0].mip(&ray, &mut req, &mut st),
+                            RenderMode::Slice { origin, normal } => {
+                                match slice_point(&ray, *origin, *normal, scene.extent) {
+                                    Some((wp, t)) if multi => {
+                                        let mut v = [f32::NAN; MAX_CHANNELS];
+                                        for (x, wk) in v.iter_mut().zip(&mut walkers) {
+                                            *x = wk
+                                                .slice_value(wp, t, &mut req, &mut st)
+                                                .unwrap_or(f32::NAN);
+                                        }
+                                        mix_channels(&params.channels, v.into_iter())
+                                    }
+                                    Some((wp, t)) => {
+                                        match walkers[0].slice_value(wp, t, &mut req, &mut st) {
+                                            Some(v) if !v.is_nan() => {
+                                                let c = params.tf.lookup(v);
+                                                [c[0], c[1], c[2], 1.0]
+                                            }
+                                            _ => [0.0; 4],
+                                        }
+                                    }
+                                    None => [0.0; 4],
+                                }
+                            }
+                        };
+                    }
                 }
+            }
+            for wk in &mut walkers {
+                wk.flush(&mut req);
             }
             (st, req)
         })
         .collect();
+    debug_assert_eq!(parts.len(), h.div_ceil(TILE));
     let mut stats = FrameStats::default();
     let mut reqs = Vec::with_capacity(parts.len());
     for (s, r) in parts {
-        stats.samples += s.samples;
-        stats.exact += s.exact;
-        stats.unserved += s.unserved;
+        stats.add(&s);
         reqs.push(r);
     }
     (img, stats, reqs)
 }
 
-struct Ctx<'a> {
+/// Per-frame constants.
+struct Frame<'a> {
     vm: &'a VirtualMemory,
     scene: &'a Scene,
     params: &'a RenderParams,
+    tf: &'a TransferFunction,
     lod: Lod,
+    /// Voxels per level `[z, y, x]`.
+    dims: Vec<Dims3>,
+    /// Per level, voxels per world unit along `[z, y, x]`.
+    scale: Vec<[f64; 3]>,
+    /// Per level, the largest voxel coordinate `dims − 1`.
+    qmax: Vec<[f64; 3]>,
+    brick: Dims3,
+    apron: u64,
+    /// Pool strides of a padded brick: `[z, y]` (x is 1).
+    stride: [usize; 2],
+    voxel: Vec<f64>,
+    /// World length of one pixel at distance `t` is `fp_slope·t` in
+    /// perspective (0 for orthographic views, where it does not vary).
+    fp_slope: f64,
+    /// DVR: per level, whether each brick of the scene's channel is
+    /// transparent under the transfer function (from the ranges).
+    transparent: Vec<Option<Vec<bool>>>,
 }
 
-impl Ctx<'_> {
+impl<'a> Frame<'a> {
+    fn new(
+        vm: &'a VirtualMemory,
+        scene: &'a Scene,
+        params: &'a RenderParams,
+        lod: Lod,
+    ) -> Frame<'a> {
+        let cfg = vm.config();
+        let padded = vm.padded();
+        let nl = scene.levels.len();
+        let fp_slope = match params.camera.projection {
+            Projection::Perspective { .. } => params.camera.pixel_footprint(1.0, params.height),
+            Projection::Orthographic { .. } => 0.0,
+        };
+        let transparent = (0..nl)
+            .map(|l| {
+                let r = scene.ranges.as_ref()?.level(l)?;
+                if !matches!(params.mode, RenderMode::Dvr) || scene.channel >= r.channels {
+                    return None;
+                }
+                let n = r.bricks.iter().product::<u64>() as usize;
+                let off = scene.channel * n;
+                Some(
+                    r.range[off..off + n]
+                        .iter()
+                        .map(|&[lo, hi]| params.tf.max_opacity(lo, hi) <= 0.0)
+                        .collect(),
+                )
+            })
+            .collect();
+        Frame {
+            vm,
+            scene,
+            params,
+            tf: &params.tf,
+            lod,
+            dims: scene.levels.clone(),
+            scale: scene
+                .levels
+                .iter()
+                .map(|d| [0, 1, 2].map(|a| d[a] as f64 / scene.extent[2 - a]))
+                .collect(),
+            qmax: scene
+                .levels
+                .iter()
+                .map(|d| d.map(|x| (x - 1) as f64))
+                .collect(),
+            brick: cfg.brick,
+            apron: cfg.apron,
+            stride: [padded[1] * padded[2], padded[2]],
+            voxel: (0..nl).map(|l| scene.voxel(l)).collect(),
+            fp_slope,
+            transparent,
+        }
+    }
+
+    fn levels(&self) -> usize {
+        self.dims.len()
+    }
+
+    /// The level a sample at distance `t` asks for.
     fn level_at(&self, t: f64) -> usize {
-        let n = self.scene.levels.len();
+        let n = self.levels();
         match self.lod {
             Lod::Fixed(l) => l.min(n - 1),
             Lod::Auto { bias } => {
                 let fp = self.params.camera.pixel_footprint(t, self.params.height);
-                let l = (fp / self.scene.voxel(0)).log2() + bias;
+                let l = (fp / self.voxel[0]).log2() + bias;
                 if l.is_finite() && l > 0.0 {
                     (l.floor() as usize).min(n - 1)
                 } else {
@@ -153,67 +339,328 @@ impl Ctx<'_> {
         }
     }
 
-    #[inline]
-    fn sample(&self, l: usize, w: Vec3, req: &mut Requests, st: &mut FrameStats) -> Option<f32> {
-        let p = world_to_normalized(w, self.scene.extent);
-        let r = self.vm.sample(l, self.scene.channel, p, true, req);
-        st.samples += 1;
-        match r.level {
-            Some(lv) => {
-                st.exact += (lv as usize == l) as u64;
-                Some(r.value)
+    /// The distance from which on the level may be coarser than `level`
+    /// (infinity when it never changes).
+    fn next_level_t(&self, level: usize) -> f64 {
+        match self.lod {
+            Lod::Auto { bias } if level + 1 < self.levels() && self.fp_slope > 0.0 => {
+                // fp(t) / voxel0 = 2^(level + 1 − bias)
+                let t = self.voxel[0] * (level as f64 + 1.0 - bias).exp2() / self.fp_slope;
+                // Slightly early rather than late: `level_at` decides.
+                t * (1.0 - 1e-9)
             }
-            None => {
-                st.unserved += 1;
-                None
+            _ => f64::INFINITY,
+        }
+    }
+
+    /// Clamped voxel base and trilinear fractions of the world point `w`
+    /// (`[x, y, z]`) at level `l`: voxel coordinate `q = w·dims/extent −
+    /// ½` clamped to `[0, dims − 1]` (the reference sampler's rule, with
+    /// the division folded into a scale).
+    #[inline(always)]
+    fn coords(&self, l: usize, w: Vec3) -> (Dims3, [f32; 3]) {
+        let s = &self.scale[l];
+        let m = &self.qmax[l];
+        let q = [0, 1, 2].map(|a| (w[2 - a] * s[a] - 0.5).clamp(0.0, m[a]));
+        // q ≥ 0: truncation is floor (and avoids a libm call).
+        let b = q.map(|x| x as u64);
+        (b, [0, 1, 2].map(|a| (q[a] - b[a] as f64) as f32))
+    }
+
+    /// The ray parameter where the clamped voxel base of level `l` leaves
+    /// the box `[lo, hi)` (voxels), or `t_max` if it does not before.
+    fn exit_t(&self, l: usize, ray: &Ray, lo: Dims3, hi: Dims3, t_max: f64) -> f64 {
+        let d = self.dims[l];
+        let ext = self.scene.extent;
+        let mut t = t_max;
+        for a in 0..3 {
+            let wa = 2 - a; // world axis of zyx axis a
+            let s = d[a] as f64 / ext[wa];
+            let alpha = ray.origin[wa] * s - 0.5;
+            let beta = ray.dir[wa] * s;
+            if beta > 0.0 && hi[a] < d[a] {
+                t = t.min((hi[a] as f64 - alpha) / beta);
+            } else if beta < 0.0 && lo[a] > 0 {
+                t = t.min((lo[a] as f64 - alpha) / beta);
+            }
+        }
+        t
+    }
+}
+
+/// What a walker knows about the brick it is in at one level.
+#[derive(Clone, Copy)]
+enum Content<'a, T> {
+    /// Page tables not walked yet.
+    Unresolved,
+    Unmapped,
+    /// EMPTY (0) or CONSTANT.
+    Value(f32),
+    Data(&'a [T]),
+}
+
+#[derive(Clone, Copy)]
+struct Cached<'a, T> {
+    /// Voxel box `[lo, hi)` of the brick (empty: nothing cached).
+    lo: Dims3,
+    hi: Dims3,
+    brick: Dims3,
+    content: Content<'a, T>,
+    /// Value range (apron included); NaN: unknown.
+    range: [f32; 2],
+    /// DVR: every sample in it is transparent.
+    transparent: bool,
+    /// Samples that missed it, not yet handed to the request collector.
+    missed: u32,
+}
+
+impl<T> Cached<'_, T> {
+    const NONE: Self = Cached {
+        lo: [1; 3],
+        hi: [0; 3],
+        brick: [0; 3],
+        content: Content::Unresolved,
+        range: [f32::NAN; 2],
+        transparent: false,
+        missed: 0,
+    };
+
+    #[inline(always)]
+    fn contains(&self, v: Dims3) -> bool {
+        (0..3).all(|a| v[a] >= self.lo[a] && v[a] < self.hi[a])
+    }
+}
+
+/// One thread's view of one channel: the current brick per level.
+struct Walker<'f, 'a, T> {
+    f: &'f Frame<'a>,
+    channel: usize,
+    cache: Vec<Cached<'a, T>>,
+}
+
+impl<'f, 'a, T: Sample> Walker<'f, 'a, T> {
+    fn new(f: &'f Frame<'a>, channel: usize) -> Self {
+        Walker {
+            f,
+            channel,
+            cache: vec![Cached::NONE; f.levels()],
+        }
+    }
+
+    /// Hand every pending miss to the collector.
+    fn flush(&mut self, req: &mut Requests) {
+        for l in 0..self.cache.len() {
+            self.flush_level(l, req);
+        }
+    }
+
+    fn flush_level(&mut self, l: usize, req: &mut Requests) {
+        let c = &mut self.cache[l];
+        if c.missed > 0 {
+            let b = c.brick;
+            req.add(
+                BrickKey::new(
+                    l as u8,
+                    self.channel as u16,
+                    [b[0] as u32, b[1] as u32, b[2] as u32],
+                ),
+                c.missed,
+            );
+            c.missed = 0;
+        }
+    }
+
+    /// Make the cache of level `l` hold the brick of voxel `v`.
+    #[inline(always)]
+    fn enter(&mut self, l: usize, v: Dims3, req: &mut Requests) -> &Cached<'a, T> {
+        if !self.cache[l].contains(v) {
+            self.refill(l, v, req);
+        }
+        &self.cache[l]
+    }
+
+    #[cold]
+    fn refill(&mut self, l: usize, v: Dims3, req: &mut Requests) {
+        self.flush_level(l, req);
+        let f = self.f;
+        let bs = f.brick;
+        let d = f.dims[l];
+        let brick = [0, 1, 2].map(|a| v[a] / bs[a]);
+        let lo = [0, 1, 2].map(|a| brick[a] * bs[a]);
+        let hi = [0, 1, 2].map(|a| (lo[a] + bs[a]).min(d[a]));
+        let range = f
+            .scene
+            .ranges
+            .as_ref()
+            .and_then(|r| r.level(l))
+            .filter(|r| self.channel < r.channels)
+            .map(|r| r.get(self.channel, brick))
+            .unwrap_or([f32::NAN; 2]);
+        let transparent = self.channel == f.scene.channel
+            && f.transparent[l].as_ref().is_some_and(|t| {
+                let nb = [0, 1, 2].map(|a| d[a].div_ceil(bs[a]));
+                t[((brick[0] * nb[1] + brick[1]) * nb[2] + brick[2]) as usize]
+            });
+        self.cache[l] = Cached {
+            lo,
+            hi,
+            brick,
+            content: Content::Unresolved,
+            range,
+            transparent,
+            missed: 0,
+        };
+    }
+
+    /// Walk the page tables for the cached brick of level `l`.
+    #[cold]
+    fn resolve(&mut self, l: usize) {
+        let f = self.f;
+        let c = &mut self.cache[l];
+        c.content = match f.vm.brick(l, self.channel, c.brick) {
+            BrickRef::Unmapped => Content::Unmapped,
+            BrickRef::Empty => Content::Value(0.0),
+            BrickRef::Constant(v) => Content::Value(v),
+            BrickRef::Data(bytes) => Content::Data(cast_slice::<T>(bytes)),
+        };
+        if let Content::Value(v) = c.content {
+            c.range = [v, v];
+            if matches!(f.params.mode, RenderMode::Dvr) && self.channel == f.scene.channel {
+                c.transparent = f.tf.lookup_visible(v).is_none();
             }
         }
     }
 
-    fn dvr(&self, ray: &Ray, req: &mut Requests, st: &mut FrameStats) -> [f32; 4] {
+    /// The value at normalized position `p` asked at level `l`, whose
+    /// voxel base `base` and fractions `frac` are given and whose brick is
+    /// cached; falls back to coarser levels on a miss. Counts the sample.
+    #[inline(always)]
+    fn value(
+        &mut self,
+        l: usize,
+        w: Vec3,
+        base: Dims3,
+        frac: [f32; 3],
+        req: &mut Requests,
+        st: &mut FrameStats,
+    ) -> Option<f32> {
+        st.samples += 1;
+        let (mut base, mut frac) = (base, frac);
+        for lv in l..self.cache.len() {
+            if lv > l {
+                (base, frac) = self.f.coords(lv, w);
+                self.enter(lv, base, req);
+            }
+            if matches!(self.cache[lv].content, Content::Unresolved) {
+                self.resolve(lv);
+            }
+            let c = &mut self.cache[lv];
+            match c.content {
+                Content::Data(vox) => {
+                    st.exact += (lv == l) as u64;
+                    let a = self.f.apron;
+                    let [sz, sy] = self.f.stride;
+                    let i = ((base[0] - c.lo[0] + a) as usize) * sz
+                        + ((base[1] - c.lo[1] + a) as usize) * sy
+                        + (base[2] - c.lo[2] + a) as usize;
+                    return Some(trilinear(vox, i, sz, sy, frac));
+                }
+                Content::Value(v) => {
+                    st.exact += (lv == l) as u64;
+                    return Some(v);
+                }
+                Content::Unmapped => c.missed += 1,
+                Content::Unresolved => unreachable!("resolved above"),
+            }
+        }
+        st.unserved += 1;
+        None
+    }
+
+    fn dvr(&mut self, ray: &Ray, req: &mut Requests, st: &mut FrameStats) -> [f32; 4] {
         let mut acc = [0.0f32; 4];
-        let Some((t0, t1)) = intersect_box(ray, [0.0; 3], self.scene.extent) else {
+        let f = self.f;
+        let extent = f.scene.extent;
+        let Some((t0, t1)) = intersect_box(ray, [0.0; 3], extent) else {
             return acc;
         };
-        let spv = self.params.samples_per_voxel;
-        let reference = self.params.reference_step.unwrap_or(self.scene.voxel(0));
+        let spv = f.params.samples_per_voxel;
+        let reference = f.params.reference_step.unwrap_or(f.voxel[0]);
         // Steps keep the reference renderer's positions while the level
         // stays the same; a level change restarts the grid at the current t.
-        let mut level = self.level_at(t0);
-        let mut dt = self.scene.voxel(level) / spv;
+        let mut level = f.level_at(t0);
+        let mut next_t = f.next_level_t(level);
+        let mut dt = f.voxel[level] / spv;
         let mut exponent = (dt / reference) as f32;
-        let mut base = t0;
+        let mut base_t = t0;
         let mut k = 0u64;
         loop {
-            let t = step_t(base, k, dt);
+            let t = step_t(base_t, k, dt);
             if t >= t1 {
                 break;
             }
             k += 1;
-            let l = self.level_at(t);
-            if l != level {
-                level = l;
-                base = t;
-                k = 0;
-                dt = self.scene.voxel(level) / spv;
-                exponent = (dt / reference) as f32;
+            if t >= next_t {
+                let l = f.level_at(t);
+                if l != level {
+                    level = l;
+                    base_t = t;
+                    k = 0;
+                    dt = f.voxel[level] / spv;
+                    exponent = (dt / reference) as f32;
+                }
+                next_t = f.next_level_t(level);
+                if next_t <= t {
+                    // At the boundary `level_at` and the threshold may
+                    // disagree by a rounding: ask again at the next step.
+                    next_t = t + dt;
+                }
             }
-            let Some(v) = self.sample(level, ray.at(t), req, st) else {
+            let w = ray.at(t);
+            let (vb, frac) = f.coords(level, w);
+            let c = self.enter(level, vb, req);
+            if c.transparent {
+                let (lo, hi) = (c.lo, c.hi);
+                st.skipped_bricks += 1;
+                let te = f.exit_t(level, ray, lo, hi, t1.min(next_t));
+                k = k.max(jump_k(base_t, te, dt));
+                continue;
+            }
+            let Some(v) = self.value(level, w, vb, frac, req, st) else {
                 continue;
             };
-            if composite(&mut acc, self.params.tf.lookup(v), exponent) {
-                break;
+            if let Some(c) = f.tf.lookup_visible(v) {
+                if composite_visible(&mut acc, c, exponent) {
+                    break;
+                }
             }
         }
         acc
     }
 
-    fn mip(&self, ray: &Ray, req: &mut Requests, st: &mut FrameStats) -> [f32; 4] {
-        let Some((t0, t1)) = intersect_box(ray, [0.0; 3], self.scene.extent) else {
+    fn mip(&mut self, ray: &Ray, req: &mut Requests, st: &mut FrameStats) -> [f32; 4] {
+        let Some(span) = intersect_box(ray, [0.0; 3], self.f.scene.extent) else {
             return [0.0; 4];
         };
-        let level = self.level_at(t0);
-        let dt = self.scene.voxel(level) / self.params.samples_per_voxel;
+        match self.mip_max(ray, span, req, st) {
+            Some(best) => mip_color(self.f.tf, true, best),
+            None => mip_color(self.f.tf, false, f32::NAN),
+        }
+    }
+
+    /// The largest value along the ray inside `(t0, t1)` (NaN ignored; NaN
+    /// if every sample was NaN or unserved), `None` when the ray takes no
+    /// sample.
+    fn mip_max(
+        &mut self,
+        ray: &Ray,
+        (t0, t1): (f64, f64),
+        req: &mut Requests,
+        st: &mut FrameStats,
+    ) -> Option<f32> {
+        let f = self.f;
+        let level = f.level_at(t0);
+        let dt = f.voxel[level] / f.params.samples_per_voxel;
         let mut best = f32::NAN;
         let mut hit = false;
         let mut k = 0u64;
@@ -224,31 +671,88 @@ impl Ctx<'_> {
             }
             k += 1;
             hit = true;
-            if let Some(v) = self.sample(level, ray.at(t), req, st) {
+            let w = ray.at(t);
+            let (vb, frac) = f.coords(level, w);
+            let c = self.enter(level, vb, req);
+            // NaN range or best: no skip.
+            if c.range[1] <= best {
+                let (lo, hi) = (c.lo, c.hi);
+                st.skipped_bricks += 1;
+                let te = f.exit_t(level, ray, lo, hi, t1);
+                k = k.max(jump_k(t0, te, dt));
+                continue;
+            }
+            if let Some(v) = self.value(level, w, vb, frac, req, st) {
+                // f32::max ignores NaN.
                 best = best.max(v);
             }
         }
-        mip_color(&self.params.tf, hit, best)
+        hit.then_some(best)
     }
 
-    fn slice(
-        &self,
-        ray: &Ray,
-        origin: Vec3,
-        normal: Vec3,
+    /// The value at the world point `w` of a slice, `t` along the ray.
+    fn slice_value(
+        &mut self,
+        w: Vec3,
+        t: f64,
         req: &mut Requests,
         st: &mut FrameStats,
-    ) -> [f32; 4] {
-        let Some((w, t)) = slice_point(ray, origin, normal, self.scene.extent) else {
-            return [0.0; 4];
-        };
-        let level = self.level_at(t);
-        match self.sample(level, w, req, st) {
-            Some(v) if !v.is_nan() => {
-                let c = self.params.tf.lookup(v);
-                [c[0], c[1], c[2], 1.0]
+    ) -> Option<f32> {
+        let f = self.f;
+        let level = f.level_at(t);
+        let (vb, frac) = f.coords(level, w);
+        self.enter(level, vb, req);
+        self.value(level, w, vb, frac, req, st)
+    }
+}
+
+/// The step index from which on samples may lie beyond `t_exit` (two steps
+/// early, so rounding never skips a sample that is still needed: the ones
+/// still inside the skipped brick are recognised and skipped again).
+#[inline]
+fn jump_k(base_t: f64, t_exit: f64, dt: f64) -> u64 {
+    let x = ((t_exit - base_t) / dt - 0.5).ceil() - 2.0;
+    if x > 0.0 {
+        x as u64
+    } else {
+        0
+    }
+}
+
+/// Front-to-back compositing of a sample with positive opacity (the
+/// reference's [`crate::reference::composite`] without its transparent-
+/// sample test).
+#[inline(always)]
+fn composite_visible(acc: &mut [f32; 4], c: [f32; 4], exponent: f32) -> bool {
+    let a = crate::reference::correct_opacity(c[3], exponent);
+    let wgt = (1.0 - acc[3]) * a;
+    acc[0] += wgt * c[0];
+    acc[1] += wgt * c[1];
+    acc[2] += wgt * c[2];
+    acc[3] += wgt;
+    acc[3] >= EARLY_TERMINATION
+}
+
+/// Trilinear sample of a padded brick at local index `i` (the base voxel)
+/// with strides `sz`, `sy` (x: 1): the reference sampler's arithmetic
+/// (weights `wz·wy·wx`, accumulated in z, y, x order, zero weights
+/// skipped).
+#[inline(always)]
+fn trilinear<T: Sample>(v: &[T], i: usize, sz: usize, sy: usize, f: [f32; 3]) -> f32 {
+    let g = |o: usize| v[i + o].to_f32();
+    let wz = [1.0 - f[0], f[0]];
+    let wy = [1.0 - f[1], f[1]];
+    let wx = [1.0 - f[2], f[2]];
+    let mut acc = 0.0f32;
+    for (dz, &a) in wz.iter().enumerate() {
+        for (dy, &b) in wy.iter().enumerate() {
+            for (dx, &c) in wx.iter().enumerate() {
+                let w = a * b * c;
+                if w != 0.0 {
+                    acc += w * g(dz * sz + dy * sy + dx);
+                }
             }
-            _ => [0.0; 4],
         }
     }
+    acc
 }

@@ -15,8 +15,12 @@ use std::path::Path;
 use std::sync::atomic::AtomicBool;
 
 fn session(store: &Path, pool_bytes: u64) -> Session {
+    session_with(store, pool_bytes, 16)
+}
+
+fn session_with(store: &Path, pool_bytes: u64, brick: u64) -> Session {
     let cfg = VmConfig {
-        brick: [16; 3],
+        brick: [brick; 3],
         apron: 1,
         pt_block: [4; 3],
         max_dir_entries: 64,
@@ -235,4 +239,204 @@ fn real_mr_volume_out_of_core_equals_the_reference() {
         );
         assert!(img.coverage(0.01) > 0.1, "{mode:?}: image nearly empty");
     }
+}
+
+/// Frames until complete with the given scene; returns the image and the
+/// bricks the loader produced.
+fn converge_counting(
+    store: &Path,
+    pool: u64,
+    scene: &Scene,
+    p: &RenderParams,
+    lod: Lod,
+) -> (brickyard_render::image::Image, u64, u64) {
+    // Engine bricks of 8 inside store bricks of 16: most padded bricks lie
+    // inside one store brick, so their ranges are as tight as the
+    // statistics.
+    let mut s = session_with(store, pool, 8);
+    let (img, _, _) = converge(&mut s, scene, p, lod);
+    s.begin_frame();
+    let (_, st, _) = render_frame(s.vm(), scene, p, lod);
+    (img, s.loader().bricks_loaded(), st.skipped_bricks)
+}
+
+#[test]
+fn empty_space_skipping_changes_no_pixel_and_loads_less() {
+    let dir = tempfile::tempdir().unwrap();
+    let store = dir.path().join("m.ome.zarr");
+    let dims = [64, 64, 64];
+    let src = Procedural::new(Kind::Mandelbulb, dims, DType::U16);
+    let o = ConvertOptions {
+        brick: [16; 3],
+        shard: [32; 3],
+        ..Default::default()
+    };
+    convert(&src, &store, &o, &NoProgress, &AtomicBool::new(false)).unwrap();
+    let levels: Vec<_> = (0..3)
+        .map(|l| Volume::from_store(&store, l, 0).unwrap())
+        .collect();
+    let extent = world_extent(dims, levels[0].spacing);
+    let plain = Scene::new(extent, levels.iter().map(|v| v.dims).collect());
+    let mut skipping = plain.clone();
+    skipping.ranges = Some(std::sync::Arc::new(
+        session_with(&store, 1 << 20, 8)
+            .loader()
+            .brick_ranges(1 << 20),
+    ));
+    assert!(skipping.ranges.as_ref().unwrap().level(0).is_some());
+    // Values below 30 % of the range are transparent.
+    let tf = TransferFunction::new(
+        [0.0, 65535.0],
+        vec![[0.0, 0.0], [0.3, 0.0], [1.0, 0.6]],
+        brickyard_core::transfer::ColorMap::Preset(brickyard_core::transfer::Preset::Hot),
+    )
+    .unwrap();
+    let cam = Camera::fit(
+        extent,
+        35.0,
+        25.0,
+        Projection::Perspective { fov_y_deg: 40.0 },
+    );
+    // Level 0 whole (64 padded bricks) fits; the saving is in what is loaded.
+    let vol_bytes = 64 * 64 * 64 * 2 * 2;
+    for mode in [RenderMode::Dvr, RenderMode::Mip] {
+        let mut p = RenderParams::new(64, 64, cam, tf.clone(), mode.clone());
+        p.reference_step = Some(plain.voxel(0));
+        let (a, loaded_a, skipped_a) =
+            converge_counting(&store, vol_bytes, &plain, &p, Lod::Fixed(0));
+        let (b, loaded_b, skipped_b) =
+            converge_counting(&store, vol_bytes, &skipping, &p, Lod::Fixed(0));
+        assert_eq!(a.max_abs_diff(&b), 0.0, "{mode:?}: skipping changed pixels");
+        let want = render(&levels[0], &p);
+        assert!(b.max_abs_diff(&want) <= 1e-5, "{mode:?}");
+        assert!(skipped_b > 0, "{mode:?}: nothing skipped");
+        assert!(
+            skipped_b >= skipped_a,
+            "{mode:?}: ranges skip more ({skipped_a} → {skipped_b})"
+        );
+        if mode == RenderMode::Dvr {
+            assert!(
+                loaded_b < loaded_a,
+                "{mode:?}: transparent bricks are not loaded ({loaded_a} → {loaded_b})"
+            );
+        } else {
+            assert!(loaded_b <= loaded_a, "{mode:?}: {loaded_a} → {loaded_b}");
+        }
+    }
+}
+
+#[test]
+fn several_channels_add_up_in_slices_and_mips() {
+    use brickyard_render::reference::{render_channels, ChannelStyle};
+    let dir = tempfile::tempdir().unwrap();
+    // Two channels, channel-major: a Mandelbulb and a Marschner–Lobb.
+    let dims = [40u64, 48, 64];
+    let raw = dir.path().join("two.raw");
+    let mut bytes = vec![];
+    for kind in [Kind::Mandelbulb, Kind::MarschnerLobb] {
+        let g = Procedural::new(kind, dims, DType::U8);
+        for z in 0..dims[0] {
+            for y in 0..dims[1] {
+                for x in 0..dims[2] {
+                    bytes.push((g.value(z, y, x) * 255.0).round() as u8);
+                }
+            }
+        }
+    }
+    std::fs::write(&raw, &bytes).unwrap();
+    let opts: brickyard_store::import::raw::RawOptions =
+        serde_json::from_str(r#"{"dims":[64,48,40],"dtype":"u8","channels":2}"#).unwrap();
+    let src = brickyard_store::import::raw::open(&raw, &opts).unwrap();
+    let store = dir.path().join("two.ome.zarr");
+    let o = ConvertOptions {
+        brick: [16; 3],
+        shard: [32; 3],
+        ..Default::default()
+    };
+    convert(&src, &store, &o, &NoProgress, &AtomicBool::new(false)).unwrap();
+    let nlev = (0..)
+        .take_while(|&l| Volume::from_store(&store, l, 0).is_ok())
+        .count();
+    let extent = world_extent(dims, Volume::from_store(&store, 0, 0).unwrap().spacing);
+    let mut scene = Scene::new(
+        extent,
+        (0..nlev)
+            .map(|l| Volume::from_store(&store, l, 0).unwrap().dims)
+            .collect(),
+    );
+    let styles = vec![
+        ChannelStyle {
+            channel: 0,
+            color: [1.0, 0.2, 0.0],
+            window: [0.0, 255.0],
+        },
+        ChannelStyle {
+            channel: 1,
+            color: [0.0, 0.8, 1.0],
+            window: [40.0, 200.0],
+        },
+    ];
+    let tf = TransferFunction::preset("linear", [0.0, 255.0]).unwrap();
+    let vol_bytes = 2 * dims.iter().product::<u64>();
+    let slice = RenderMode::Slice {
+        origin: [extent[0] * 0.5, extent[1] * 0.5, extent[2] * 0.45],
+        normal: [0.1, -0.05, 1.0],
+    };
+    // The slice at level 0 (its bricks and their stand-ins fit), the MIP at
+    // level 1 through a pool of half the volume.
+    for (mode, level, pool) in [
+        (slice.clone(), 0, vol_bytes),
+        (RenderMode::Mip, 1, vol_bytes / 2),
+    ] {
+        let vols: Vec<_> = (0..2)
+            .map(|c| Volume::from_store(&store, level, c).unwrap())
+            .collect();
+        let cam = match &mode {
+            RenderMode::Slice { origin, normal } => {
+                Camera::facing_plane(*origin, *normal, extent[0] * 1.1)
+            }
+            _ => Camera::fit(
+                extent,
+                30.0,
+                20.0,
+                Projection::Perspective { fov_y_deg: 40.0 },
+            ),
+        };
+        let mut p = RenderParams::new(72, 60, cam, tf.clone(), mode.clone());
+        p.channels = styles.clone();
+        for with_ranges in [false, true] {
+            let mut s = session(&store, pool);
+            scene.ranges =
+                with_ranges.then(|| std::sync::Arc::new(s.loader().brick_ranges(1 << 20)));
+            let (img, frames, _) = converge(&mut s, &scene, &p, Lod::Fixed(level));
+            let want = render_channels(&vols, &p);
+            let diff = img.max_abs_diff(&want);
+            assert!(
+                diff <= 1e-5,
+                "{mode:?} ranges {with_ranges}: diff {diff} after {frames} frames"
+            );
+            // Both channels show: red from channel 0, blue from channel 1.
+            let sum = |c: usize| img.rgba.iter().map(|px| px[c] as f64).sum::<f64>();
+            assert!(
+                sum(0) > 1.0 && sum(2) > 1.0,
+                "{mode:?}: a channel is missing"
+            );
+        }
+    }
+    // Multi-channel DVR is refused with a clear error.
+    let mut p = RenderParams::new(
+        8,
+        8,
+        Camera::fit(
+            extent,
+            0.0,
+            0.0,
+            Projection::Perspective { fov_y_deg: 40.0 },
+        ),
+        tf,
+        RenderMode::Dvr,
+    );
+    p.channels = styles;
+    let e = p.validate().unwrap_err().to_string();
+    assert!(e.contains("channels"), "{e}");
 }

@@ -51,6 +51,14 @@ pub struct RenderCmd {
     /// Data window LO,HI (default: the data range from the brick statistics).
     #[arg(long)]
     window: Option<String>,
+    /// A channel to show, `C[:COLOR[:LO,HI]]` (repeat for several). In mip
+    /// and slice modes the channels are added up, each windowed to LO,HI
+    /// (default: --window) and tinted with COLOR (red, green, blue, cyan,
+    /// magenta, yellow, orange, white, gray or RRGGBB hex); dvr takes one
+    /// channel through the transfer function. Default: channel 0 through
+    /// the transfer function.
+    #[arg(long = "channel")]
+    channels: Vec<String>,
     /// Slice: position of the plane along z as a fraction of the depth.
     #[arg(long, default_value_t = 0.5)]
     slice_z: f64,
@@ -91,6 +99,59 @@ pub struct RenderCmd {
     /// Print only the final frame of each view.
     #[arg(long)]
     quiet: bool,
+}
+
+/// `C[:COLOR[:LO,HI]]`.
+fn parse_channel(
+    s: &str,
+    window: [f32; 2],
+    channels: usize,
+) -> Result<brickyard_render::reference::ChannelStyle> {
+    let mut parts = s.splitn(3, ':');
+    let c: usize = parts.next().unwrap_or("").trim().parse().with_context(|| {
+        format!("channel: expected C[:COLOR[:LO,HI]] with C a channel number, found {s:?}")
+    })?;
+    if c >= channels {
+        bail!("channel: {c} asked for but the store has {channels} channel(s)");
+    }
+    let color = match parts.next().map(|x| x.trim().to_ascii_lowercase()) {
+        None => [1.0, 1.0, 1.0],
+        Some(name) => {
+            match name.as_str() {
+                "red" => [1.0, 0.0, 0.0],
+                "green" => [0.0, 1.0, 0.0],
+                "blue" => [0.0, 0.0, 1.0],
+                "cyan" => [0.0, 1.0, 1.0],
+                "magenta" => [1.0, 0.0, 1.0],
+                "yellow" => [1.0, 1.0, 0.0],
+                "orange" => [1.0, 0.5, 0.0],
+                "white" => [1.0, 1.0, 1.0],
+                "gray" | "grey" => [0.5, 0.5, 0.5],
+                hex => {
+                    let h = hex.trim_start_matches('#');
+                    let v = (h.len() == 6)
+                    .then(|| u32::from_str_radix(h, 16).ok())
+                    .flatten()
+                    .with_context(|| {
+                        format!("channel: colour {hex:?} in {s:?} is not a colour name or RRGGBB hex")
+                    })?;
+                    [16, 8, 0].map(|sh| ((v >> sh) & 0xff) as f32 / 255.0)
+                }
+            }
+        }
+    };
+    let window = match parts.next() {
+        None => window,
+        Some(w) => {
+            let p = parse_pair(w, "channel window")?;
+            [p[0] as f32, p[1] as f32]
+        }
+    };
+    Ok(brickyard_render::reference::ChannelStyle {
+        channel: c,
+        color,
+        window,
+    })
 }
 
 fn parse_pair(s: &str, what: &str) -> Result<[f64; 2]> {
@@ -142,7 +203,7 @@ pub fn run(c: RenderCmd) -> Result<()> {
     for l in 0..info.levels.len() {
         levels.push(zarr::open(&c.store, l)?.meta().dims);
     }
-    let scene = Scene::new(extent, levels);
+    let mut scene = Scene::new(extent, levels);
     let (lo, hi) = match &c.window {
         Some(wd) => {
             let p = parse_pair(wd, "window")?;
@@ -203,12 +264,27 @@ pub fn run(c: RenderCmd) -> Result<()> {
         request_cap: c.requests,
         ..Default::default()
     };
+    let styles = c
+        .channels
+        .iter()
+        .map(|x| parse_channel(x, [lo as f32, hi as f32], m.channels))
+        .collect::<Result<Vec<_>>>()?;
+    if mode == RenderMode::Dvr {
+        match styles.as_slice() {
+            [] => {}
+            [one] => scene.channel = one.channel,
+            _ => bail!("channel: dvr shows one channel; use --mode mip or slice to add several up"),
+        }
+    }
     let mut s = Session::open(
         &c.store,
         cfg,
         crate::parse_bytes(&c.host)?,
         c.loader_threads,
     )?;
+    // Value ranges from the store's statistics: skip what the transfer
+    // function hides without loading it.
+    scene.ranges = Some(std::sync::Arc::new(s.loader().brick_ranges(1 << 24)));
     let lod = match c.level {
         Some(l) if l >= scene.levels.len() => {
             bail!("level: the store has {} levels", scene.levels.len())
@@ -225,6 +301,9 @@ pub fn run(c: RenderCmd) -> Result<()> {
         };
         let mut params = RenderParams::new(w, h, cam, tf.clone(), mode.clone());
         params.samples_per_voxel = c.samples_per_voxel;
+        if mode != RenderMode::Dvr {
+            params.channels = styles.clone();
+        }
         params.reference_step = Some(scene.voxel(0));
         params.validate().map_err(|e| anyhow::anyhow!("{e}"))?;
         let t0 = Instant::now();

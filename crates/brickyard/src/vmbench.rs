@@ -414,7 +414,7 @@ pub fn render(dir: &Path, dims: Dims3, dtype: DType, image: u32, repeat: usize) 
             Err(_) => break,
         }
     }
-    let scene = Scene::new(extent, levels);
+    let mut scene = Scene::new(extent, levels);
     let max = match dtype {
         DType::U8 => 255.0,
         DType::U16 => 65535.0,
@@ -439,6 +439,7 @@ pub fn render(dir: &Path, dims: Dims3, dtype: DType, image: u32, repeat: usize) 
         ..Default::default()
     };
     let mut s = Session::open(&st, cfg, 1 << 30, 2)?;
+    scene.ranges = Some(std::sync::Arc::new(s.loader().brick_ranges(1 << 24)));
     // Cold: empty pool (page cache as it is) to a complete view.
     let t = Instant::now();
     let mut frames = 0;
