@@ -88,7 +88,8 @@ impl DType {
         })
     }
 
-    pub fn is_float(self) -> bool {
+    #[inline]
+    pub const fn is_float(self) -> bool {
         matches!(self, DType::F32 | DType::F64)
     }
 }

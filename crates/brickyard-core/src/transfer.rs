@@ -139,10 +139,27 @@ impl ColorMap {
         }
     }
 
-    /// Colour at `x` (clamped into `[0, 1]`).
+    /// Colour at `x` (clamped into `[0, 1]`): per channel exactly
+    /// [`eval_piecewise`] of that channel, with one search for the segment.
+    #[inline]
     pub fn color(&self, x: f32) -> [f32; 3] {
         let pts = self.points();
-        [1, 2, 3].map(|c| eval_piecewise(pts, x, |p| p[0], |p| p[c]))
+        let i = pts.partition_point(|p| p[0] <= x);
+        if i == 0 {
+            let p = &pts[0];
+            return [p[1], p[2], p[3]];
+        }
+        if i == pts.len() {
+            let p = &pts[i - 1];
+            return [p[1], p[2], p[3]];
+        }
+        let (a, b) = (&pts[i - 1], &pts[i]);
+        let t = (x - a[0]) / (b[0] - a[0]);
+        [1, 2, 3].map(|c| {
+            let (v0, v1) = (a[c], b[c]);
+            let v = v0 + (v1 - v0) * t;
+            v.clamp(v0.min(v1), v0.max(v1))
+        })
     }
 }
 
@@ -545,6 +562,121 @@ impl TryFrom<Value> for ColorMap {
     }
 }
 
+/// Bins of a [`TfEval`] segment table.
+const TF_BINS: usize = 1024;
+
+/// For each of [`TF_BINS`] equal bins of `x ∈ [0, 1]`: the segment index
+/// `partition_point(p.x <= x)` that every `x` of the bin has, or
+/// `u16::MAX` where a control point lies in or near the bin (those `x` are
+/// searched as usual).
+fn segment_table(xs: impl Iterator<Item = f32> + Clone) -> Vec<u16> {
+    let n = TF_BINS as f32;
+    (0..TF_BINS)
+        .map(|b| {
+            // A margin of a few ulps around the bin's edges covers any
+            // rounding of `x · TF_BINS`.
+            let lo = b as f32 / n - 1e-6;
+            let hi = (b + 1) as f32 / n + 1e-6;
+            if xs.clone().any(|x| x >= lo && x <= hi) {
+                u16::MAX
+            } else {
+                xs.clone()
+                    .filter(|&x| x < lo)
+                    .count()
+                    .min(u16::MAX as usize - 1) as u16
+            }
+        })
+        .collect()
+}
+
+#[inline(always)]
+fn bin_of(x: f32) -> usize {
+    ((x * TF_BINS as f32) as usize).min(TF_BINS - 1)
+}
+
+/// A transfer function prepared for many lookups (one per frame): the
+/// same results as [`TransferFunction::lookup_visible`], bit for bit, with
+/// the control-point searches replaced by a table of segments.
+#[derive(Debug, Clone)]
+pub struct TfEval<'a> {
+    tf: &'a TransferFunction,
+    opacity_seg: Vec<u16>,
+    color_seg: Vec<u16>,
+}
+
+impl TransferFunction {
+    /// An evaluator for many lookups.
+    pub fn evaluator(&self) -> TfEval<'_> {
+        TfEval {
+            tf: self,
+            opacity_seg: segment_table(self.opacity.iter().map(|p| p[0])),
+            color_seg: segment_table(self.colormap.points().iter().map(|p| p[0])),
+        }
+    }
+}
+
+/// [`eval_piecewise`]'s value of segment `i` (the result of its search).
+#[inline(always)]
+fn eval_segment<P>(
+    pts: &[P],
+    i: usize,
+    x: f32,
+    px: impl Fn(&P) -> f32,
+    pv: impl Fn(&P) -> f32,
+) -> f32 {
+    if i == 0 {
+        return pv(&pts[0]);
+    }
+    if i == pts.len() {
+        return pv(&pts[i - 1]);
+    }
+    let (a, b) = (&pts[i - 1], &pts[i]);
+    let (x0, x1, v0, v1) = (px(a), px(b), pv(a), pv(b));
+    let t = (x - x0) / (x1 - x0);
+    let v = v0 + (v1 - v0) * t;
+    v.clamp(v0.min(v1), v0.max(v1))
+}
+
+impl TfEval<'_> {
+    /// Exactly [`TransferFunction::lookup_visible`].
+    #[inline]
+    pub fn lookup_visible(&self, value: f32) -> Option<[f32; 4]> {
+        if value.is_nan() {
+            return None;
+        }
+        let tf = self.tf;
+        let x = tf.normalize(value);
+        let bin = bin_of(x);
+        let op = &tf.opacity;
+        let i = match self.opacity_seg[bin] {
+            u16::MAX => op.partition_point(|p| p[0] <= x),
+            s => s as usize,
+        };
+        let a = eval_segment(op, i, x, |p| p[0], |p| p[1]);
+        if a <= 0.0 {
+            return None;
+        }
+        let pts = tf.colormap.points();
+        let i = match self.color_seg[bin] {
+            u16::MAX => pts.partition_point(|p| p[0] <= x),
+            s => s as usize,
+        };
+        let rgb = if i == 0 || i == pts.len() {
+            let p = &pts[i.saturating_sub(1).min(pts.len() - 1)];
+            [p[1], p[2], p[3]]
+        } else {
+            let (a, b) = (&pts[i - 1], &pts[i]);
+            let t = (x - a[0]) / (b[0] - a[0]);
+            [1, 2, 3].map(|c| {
+                let (v0, v1) = (a[c], b[c]);
+                let v = v0 + (v1 - v0) * t;
+                v.clamp(v0.min(v1), v0.max(v1))
+            })
+        };
+        Some([rgb[0], rgb[1], rgb[2], a])
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -562,6 +694,79 @@ mod tests {
 
     fn tf(opacity: Vec<[f32; 2]>) -> TransferFunction {
         TransferFunction::new([100.0, 300.0], opacity, ColorMap::default()).unwrap()
+    }
+
+    #[test]
+    fn evaluator_equals_lookup_visible_bit_for_bit() {
+        let mut tfs: Vec<TransferFunction> = TransferFunction::PRESETS
+            .iter()
+            .map(|p| TransferFunction::preset(p, [-3.0, 1000.0]).unwrap())
+            .collect();
+        // Steps, points on bin edges, many points.
+        tfs.push(
+            TransferFunction::new(
+                [0.0, 1.0],
+                vec![
+                    [0.0, 0.0],
+                    [0.25, 0.0],
+                    [0.25, 0.5],
+                    [0.5, 1.0],
+                    [0.75, 0.0],
+                    [1.0, 0.3],
+                ],
+                ColorMap::Points(vec![
+                    [0.0, 1.0, 0.0, 0.0],
+                    [0.5, 0.0, 1.0, 0.0],
+                    [0.5, 0.0, 0.0, 1.0],
+                    [1.0, 1.0, 1.0, 1.0],
+                ]),
+            )
+            .unwrap(),
+        );
+        let mut seed = 7u64;
+        for tf in &tfs {
+            let ev = tf.evaluator();
+            let [w0, w1] = tf.window;
+            let mut xs: Vec<f32> = (0..=20_000)
+                .map(|k| w0 - 5.0 + (w1 - w0 + 10.0) * k as f32 / 20_000.0)
+                .collect();
+            for p in tf
+                .opacity
+                .iter()
+                .map(|p| p[0])
+                .chain(tf.colormap.points().iter().map(|p| p[0]))
+            {
+                let v = w0 + p * (w1 - w0);
+                xs.extend([v, v.next_up(), v.next_down()]);
+            }
+            for _ in 0..20_000 {
+                seed = seed
+                    .wrapping_mul(6364136223846793005)
+                    .wrapping_add(1442695040888963407);
+                xs.push(w0 + (w1 - w0) * ((seed >> 40) as f32 / (1u64 << 24) as f32));
+            }
+            xs.push(f32::NAN);
+            for v in xs {
+                let (a, b) = (ev.lookup_visible(v), tf.lookup_visible(v));
+                assert_eq!(
+                    a.map(|c| c.map(f32::to_bits)),
+                    b.map(|c| c.map(f32::to_bits)),
+                    "{v}"
+                );
+            }
+        }
+    }
+
+    #[test]
+    fn one_search_colour_equals_per_channel_evaluation() {
+        for p in Preset::ALL {
+            let pts = p.points();
+            for k in 0..=1000 {
+                let x = k as f32 / 1000.0 - 0.01;
+                let want = [1, 2, 3].map(|c| eval_piecewise(pts, x, |p| p[0], |p| p[c]));
+                assert_eq!(ColorMap::Preset(p).color(x), want, "{p:?} at {x}");
+            }
+        }
     }
 
     #[test]

@@ -37,6 +37,7 @@ use brickyard_cache::brick::BrickKey;
 use brickyard_cache::ranges::BrickRanges;
 use brickyard_cache::vm::{BrickRef, Requests, VirtualMemory};
 use brickyard_core::camera::{intersect_box, Projection, Ray, Vec3};
+use brickyard_core::transfer::TfEval;
 use brickyard_core::{cast_slice, dispatch_dtype, Dims3, Sample, TransferFunction};
 use rayon::prelude::*;
 use std::sync::Arc;
@@ -103,6 +104,9 @@ pub struct FrameStats {
     /// Bricks crossed without sampling (transparent or, in a MIP, unable
     /// to raise the maximum), counted per ray and brick.
     pub skipped_bricks: u64,
+    /// Ray steps walked (DVR, MIP): samples plus steps inside skipped
+    /// bricks before a jump.
+    pub steps: u64,
 }
 
 impl FrameStats {
@@ -120,6 +124,7 @@ impl FrameStats {
         self.exact += o.exact;
         self.unserved += o.unserved;
         self.skipped_bricks += o.skipped_bricks;
+        self.steps += o.steps;
     }
 }
 
@@ -148,83 +153,88 @@ fn render_typed<T: Sample>(
         .rgba
         .par_chunks_mut(w * TILE)
         .enumerate()
-        .map(|(band, rows)| {
-            let mut req = vm.requests();
-            let mut st = FrameStats::default();
-            // One walker per channel shown.
-            let mut walkers: Vec<Walker<T>> = if params.channels.is_empty() {
-                vec![Walker::new(&frame, scene.channel)]
-            } else {
-                params
-                    .channels
-                    .iter()
-                    .map(|c| Walker::new(&frame, c.channel))
-                    .collect()
-            };
-            let multi = !params.channels.is_empty();
-            let nrows = rows.len() / w;
-            for x0 in (0..w).step_by(TILE) {
-                for r in 0..nrows {
-                    let j = (band * TILE + r) as u32;
-                    for i in x0..(x0 + TILE).min(w) {
-                        let ray = rg.pixel_ray(i as u32, j);
-                        rows[r * w + i] = match &params.mode {
-                            RenderMode::Dvr => walkers[0].dvr(&ray, &mut req, &mut st),
-                            RenderMode::Mip if multi => {
-                                match intersect_box(&ray, [0.0; 3], scene.extent) {
-                                    Some(span) => {
-                                        let mut best = [f32::NAN; MAX_CHANNELS];
-                                        let mut hit = false;
-                                        for (b, wk) in best.iter_mut().zip(&mut walkers) {
-                                            if let Some(m) =
-                                                wk.mip_max(&ray, span, &mut req, &mut st)
-                                            {
-                                                hit = true;
-                                                *b = m;
+        .map_init(
+            || -> Vec<Walker<T>> {
+                // One walker per channel shown, per worker thread (their
+                // brick memos live for this frame).
+                if params.channels.is_empty() {
+                    vec![Walker::new(&frame, scene.channel)]
+                } else {
+                    params
+                        .channels
+                        .iter()
+                        .map(|c| Walker::new(&frame, c.channel))
+                        .collect()
+                }
+            },
+            |walkers, (band, rows)| {
+                let mut req = vm.requests();
+                let mut st = FrameStats::default();
+                let multi = !params.channels.is_empty();
+                let nrows = rows.len() / w;
+                for x0 in (0..w).step_by(TILE) {
+                    for r in 0..nrows {
+                        let j = (band * TILE + r) as u32;
+                        for i in x0..(x0 + TILE).min(w) {
+                            let ray = rg.pixel_ray(i as u32, j);
+                            rows[r * w + i] = match &params.mode {
+                                RenderMode::Dvr => walkers[0].dvr(&ray, &mut req, &mut st),
+                                RenderMode::Mip if multi => {
+                                    match intersect_box(&ray, [0.0; 3], scene.extent) {
+                                        Some(span) => {
+                                            let mut best = [f32::NAN; MAX_CHANNELS];
+                                            let mut hit = false;
+                                            for (b, wk) in best.iter_mut().zip(walkers.iter_mut()) {
+                                                if let Some(m) =
+                                                    wk.mip_max(&ray, span, &mut req, &mut st)
+                                                {
+                                                    hit = true;
+                                                    *b = m;
+                                                }
+                                            }
+                                            if hit {
+                                                mix_channels(&params.channels, best.into_iter())
+                                            } else {
+                                                [0.0; 4]
                                             }
                                         }
-                                        if hit {
-                                            mix_channels(&params.channels, best.into_iter())
-                                        } else {
-                                            [0.0; 4]
-                                        }
+                                        None => [0.0; 4],
                                     }
-                                    None => [0.0; 4],
                                 }
-                            }
-                            RenderMode::Mip => walkers[0].mip(&ray, &mut req, &mut st),
-                            RenderMode::Slice { origin, normal } => {
-                                match slice_point(&ray, *origin, *normal, scene.extent) {
-                                    Some((wp, t)) if multi => {
-                                        let mut v = [f32::NAN; MAX_CHANNELS];
-                                        for (x, wk) in v.iter_mut().zip(&mut walkers) {
-                                            *x = wk
-                                                .slice_value(wp, t, &mut req, &mut st)
-                                                .unwrap_or(f32::NAN);
-                                        }
-                                        mix_channels(&params.channels, v.into_iter())
-                                    }
-                                    Some((wp, t)) => {
-                                        match walkers[0].slice_value(wp, t, &mut req, &mut st) {
-                                            Some(v) if !v.is_nan() => {
-                                                let c = params.tf.lookup(v);
-                                                [c[0], c[1], c[2], 1.0]
+                                RenderMode::Mip => walkers[0].mip(&ray, &mut req, &mut st),
+                                RenderMode::Slice { origin, normal } => {
+                                    match slice_point(&ray, *origin, *normal, scene.extent) {
+                                        Some((wp, t)) if multi => {
+                                            let mut v = [f32::NAN; MAX_CHANNELS];
+                                            for (x, wk) in v.iter_mut().zip(walkers.iter_mut()) {
+                                                *x = wk
+                                                    .slice_value(wp, t, &mut req, &mut st)
+                                                    .unwrap_or(f32::NAN);
                                             }
-                                            _ => [0.0; 4],
+                                            mix_channels(&params.channels, v.into_iter())
                                         }
+                                        Some((wp, t)) => {
+                                            match walkers[0].slice_value(wp, t, &mut req, &mut st) {
+                                                Some(v) if !v.is_nan() => {
+                                                    let c = params.tf.lookup(v);
+                                                    [c[0], c[1], c[2], 1.0]
+                                                }
+                                                _ => [0.0; 4],
+                                            }
+                                        }
+                                        None => [0.0; 4],
                                     }
-                                    None => [0.0; 4],
                                 }
-                            }
-                        };
+                            };
+                        }
                     }
                 }
-            }
-            for wk in &mut walkers {
-                wk.flush(&mut req);
-            }
-            (st, req)
-        })
+                for wk in walkers.iter_mut() {
+                    wk.flush(&mut req);
+                }
+                (st, req)
+            },
+        )
         .collect();
     debug_assert_eq!(parts.len(), h.div_ceil(TILE));
     let mut stats = FrameStats::default();
@@ -242,6 +252,8 @@ struct Frame<'a> {
     scene: &'a Scene,
     params: &'a RenderParams,
     tf: &'a TransferFunction,
+    /// The transfer function prepared for this frame's lookups.
+    tf_eval: TfEval<'a>,
     lod: Lod,
     /// Voxels per level `[z, y, x]`.
     dims: Vec<Dims3>,
@@ -250,6 +262,10 @@ struct Frame<'a> {
     /// Per level, the largest voxel coordinate `dims − 1`.
     qmax: Vec<[f64; 3]>,
     brick: Dims3,
+    /// `log2(brick)` per axis when every edge is a power of two.
+    brick_shift: Option<[u32; 3]>,
+    /// Bricks per axis per level.
+    bricks: Vec<Dims3>,
     apron: u64,
     /// Pool strides of a padded brick: `[z, y]` (x is 1).
     stride: [usize; 2],
@@ -297,6 +313,7 @@ impl<'a> Frame<'a> {
             scene,
             params,
             tf: &params.tf,
+            tf_eval: params.tf.evaluator(),
             lod,
             dims: scene.levels.clone(),
             scale: scene
@@ -310,6 +327,16 @@ impl<'a> Frame<'a> {
                 .map(|d| d.map(|x| (x - 1) as f64))
                 .collect(),
             brick: cfg.brick,
+            brick_shift: cfg
+                .brick
+                .iter()
+                .all(|b| b.is_power_of_two())
+                .then(|| cfg.brick.map(|b| b.trailing_zeros())),
+            bricks: scene
+                .levels
+                .iter()
+                .map(|d| [0, 1, 2].map(|a| d[a].div_ceil(cfg.brick[a])))
+                .collect(),
             apron: cfg.apron,
             stride: [padded[1] * padded[2], padded[2]],
             voxel: (0..nl).map(|l| scene.voxel(l)).collect(),
@@ -320,6 +347,29 @@ impl<'a> Frame<'a> {
 
     fn levels(&self) -> usize {
         self.dims.len()
+    }
+
+    /// Index in a padded brick whose first voxel (apron excluded) is `lo`
+    /// of the level's voxel `v`.
+    #[inline(always)]
+    fn local_index(&self, v: Dims3, lo: Dims3) -> usize {
+        let a = self.apron;
+        ((v[0] - lo[0] + a) as usize) * self.stride[0]
+            + ((v[1] - lo[1] + a) as usize) * self.stride[1]
+            + (v[2] - lo[2] + a) as usize
+    }
+
+    /// The brick holding voxel `v`.
+    #[inline]
+    fn brick_of(&self, v: Dims3) -> Dims3 {
+        match self.brick_shift {
+            Some(s) => [v[0] >> s[0], v[1] >> s[1], v[2] >> s[2]],
+            None => [
+                v[0] / self.brick[0],
+                v[1] / self.brick[1],
+                v[2] / self.brick[2],
+            ],
+        }
     }
 
     /// The level a sample at distance `t` asks for.
@@ -361,10 +411,21 @@ impl<'a> Frame<'a> {
     fn coords(&self, l: usize, w: Vec3) -> (Dims3, [f32; 3]) {
         let s = &self.scale[l];
         let m = &self.qmax[l];
-        let q = [0, 1, 2].map(|a| (w[2 - a] * s[a] - 0.5).clamp(0.0, m[a]));
-        // q ≥ 0: truncation is floor (and avoids a libm call).
-        let b = q.map(|x| x as u64);
-        (b, [0, 1, 2].map(|a| (q[a] - b[a] as f64) as f32))
+        // Written out per axis (no closures) to keep the hot loop flat.
+        let qz = clamp(w[2] * s[0] - 0.5, m[0]);
+        let qy = clamp(w[1] * s[1] - 0.5, m[1]);
+        let qx = clamp(w[0] * s[2] - 0.5, m[2]);
+        // q ≥ 0: truncation is floor; through i64, which converts in one
+        // instruction each way (u64 does not).
+        let (bz, by, bx) = (qz as i64, qy as i64, qx as i64);
+        (
+            [bz as u64, by as u64, bx as u64],
+            [
+                (qz - bz as f64) as f32,
+                (qy - by as f64) as f32,
+                (qx - bx as f64) as f32,
+            ],
+        )
     }
 
     /// The ray parameter where the clamped voxel base of level `l` leaves
@@ -427,15 +488,23 @@ impl<T> Cached<'_, T> {
 
     #[inline(always)]
     fn contains(&self, v: Dims3) -> bool {
-        (0..3).all(|a| v[a] >= self.lo[a] && v[a] < self.hi[a])
+        inside(v, self.lo, self.hi)
     }
 }
 
-/// One thread's view of one channel: the current brick per level.
+/// Entries of a walker's brick memo (a power of two).
+const MEMO: usize = 1024;
+
+/// One thread's view of one channel: the current brick per level, and a
+/// memo of every brick resolved this frame (direct-mapped by level and
+/// brick), so that the rays of a tile, which enter the same bricks one
+/// after another, walk the page tables about once per brick.
 struct Walker<'f, 'a, T> {
     f: &'f Frame<'a>,
     channel: usize,
     cache: Vec<Cached<'a, T>>,
+    memo_key: Vec<u64>,
+    memo: Vec<Cached<'a, T>>,
 }
 
 impl<'f, 'a, T: Sample> Walker<'f, 'a, T> {
@@ -444,6 +513,8 @@ impl<'f, 'a, T: Sample> Walker<'f, 'a, T> {
             f,
             channel,
             cache: vec![Cached::NONE; f.levels()],
+            memo_key: vec![u64::MAX; MEMO],
+            memo: vec![Cached::NONE; MEMO],
         }
     }
 
@@ -483,11 +554,22 @@ impl<'f, 'a, T: Sample> Walker<'f, 'a, T> {
     fn refill(&mut self, l: usize, v: Dims3, req: &mut Requests) {
         self.flush_level(l, req);
         let f = self.f;
+        let brick = f.brick_of(v);
+        let key = ((l as u64) << 60) | (brick[0] << 40) | (brick[1] << 20) | brick[2];
+        let slot =
+            (key.wrapping_mul(0x9E37_79B9_7F4A_7C15) >> (64 - MEMO.trailing_zeros())) as usize;
+        if self.memo_key[slot] == key {
+            self.cache[l] = self.memo[slot];
+            return;
+        }
         let bs = f.brick;
         let d = f.dims[l];
-        let brick = [0, 1, 2].map(|a| v[a] / bs[a]);
-        let lo = [0, 1, 2].map(|a| brick[a] * bs[a]);
-        let hi = [0, 1, 2].map(|a| (lo[a] + bs[a]).min(d[a]));
+        let lo = [brick[0] * bs[0], brick[1] * bs[1], brick[2] * bs[2]];
+        let hi = [
+            (lo[0] + bs[0]).min(d[0]),
+            (lo[1] + bs[1]).min(d[1]),
+            (lo[2] + bs[2]).min(d[2]),
+        ];
         let range = f
             .scene
             .ranges
@@ -498,7 +580,7 @@ impl<'f, 'a, T: Sample> Walker<'f, 'a, T> {
             .unwrap_or([f32::NAN; 2]);
         let transparent = self.channel == f.scene.channel
             && f.transparent[l].as_ref().is_some_and(|t| {
-                let nb = [0, 1, 2].map(|a| d[a].div_ceil(bs[a]));
+                let nb = f.bricks[l];
                 t[((brick[0] * nb[1] + brick[1]) * nb[2] + brick[2]) as usize]
             });
         self.cache[l] = Cached {
@@ -510,6 +592,11 @@ impl<'f, 'a, T: Sample> Walker<'f, 'a, T> {
             transparent,
             missed: 0,
         };
+        if !transparent {
+            self.resolve(l);
+        }
+        self.memo_key[slot] = key;
+        self.memo[slot] = self.cache[l];
     }
 
     /// Walk the page tables for the cached brick of level `l`.
@@ -558,11 +645,8 @@ impl<'f, 'a, T: Sample> Walker<'f, 'a, T> {
             match c.content {
                 Content::Data(vox) => {
                     st.exact += (lv == l) as u64;
-                    let a = self.f.apron;
                     let [sz, sy] = self.f.stride;
-                    let i = ((base[0] - c.lo[0] + a) as usize) * sz
-                        + ((base[1] - c.lo[1] + a) as usize) * sy
-                        + (base[2] - c.lo[2] + a) as usize;
+                    let i = self.f.local_index(base, c.lo);
                     return Some(trilinear(vox, i, sz, sy, frac));
                 }
                 Content::Value(v) => {
@@ -616,6 +700,7 @@ impl<'f, 'a, T: Sample> Walker<'f, 'a, T> {
                     next_t = t + dt;
                 }
             }
+            st.steps += 1;
             let w = ray.at(t);
             let (vb, frac) = f.coords(level, w);
             let c = self.enter(level, vb, req);
@@ -626,10 +711,46 @@ impl<'f, 'a, T: Sample> Walker<'f, 'a, T> {
                 k = k.max(jump_k(base_t, te, dt));
                 continue;
             }
+            if let Content::Data(vox) = c.content {
+                // Resident at the level asked for: stay in this brick for
+                // as many steps as it holds (same positions, same
+                // arithmetic as the general path below).
+                let (lo, hi) = (c.lo, c.hi);
+                let limit = t1.min(next_t);
+                let (mut b, mut fr) = (vb, frac);
+                let mut n = 0u64;
+                let done = loop {
+                    n += 1;
+                    let v = trilinear(vox, f.local_index(b, lo), f.stride[0], f.stride[1], fr);
+                    if let Some(c) = f.tf_eval.lookup_visible(v) {
+                        if composite_visible(&mut acc, c, exponent) {
+                            break true;
+                        }
+                    }
+                    let tn = step_t(base_t, k, dt);
+                    if tn >= limit {
+                        break false;
+                    }
+                    let (bn, frn) = f.coords(level, ray.at(tn));
+                    if !inside(bn, lo, hi) {
+                        // The general path takes this step.
+                        break false;
+                    }
+                    k += 1;
+                    (b, fr) = (bn, frn);
+                };
+                st.samples += n;
+                st.exact += n;
+                st.steps += n - 1;
+                if done {
+                    break;
+                }
+                continue;
+            }
             let Some(v) = self.value(level, w, vb, frac, req, st) else {
                 continue;
             };
-            if let Some(c) = f.tf.lookup_visible(v) {
+            if let Some(c) = f.tf_eval.lookup_visible(v) {
                 if composite_visible(&mut acc, c, exponent) {
                     break;
                 }
@@ -671,6 +792,7 @@ impl<'f, 'a, T: Sample> Walker<'f, 'a, T> {
             }
             k += 1;
             hit = true;
+            st.steps += 1;
             let w = ray.at(t);
             let (vb, frac) = f.coords(level, w);
             let c = self.enter(level, vb, req);
@@ -733,6 +855,25 @@ fn composite_visible(acc: &mut [f32; 4], c: [f32; 4], exponent: f32) -> bool {
     acc[3] >= EARLY_TERMINATION
 }
 
+/// Whether voxel `v` lies in the box `[lo, hi)`.
+#[inline(always)]
+fn inside(v: Dims3, lo: Dims3, hi: Dims3) -> bool {
+    v[0] >= lo[0] && v[0] < hi[0] && v[1] >= lo[1] && v[1] < hi[1] && v[2] >= lo[2] && v[2] < hi[2]
+}
+
+/// `x.clamp(0, hi)` for `hi ≥ 0` (NaN stays NaN), without `clamp`'s
+/// argument check.
+#[inline(always)]
+fn clamp(x: f64, hi: f64) -> f64 {
+    if x < 0.0 {
+        0.0
+    } else if x > hi {
+        hi
+    } else {
+        x
+    }
+}
+
 /// Trilinear sample of a padded brick at local index `i` (the base voxel)
 /// with strides `sz`, `sy` (x: 1): the reference sampler's arithmetic
 /// (weights `wz·wy·wx`, accumulated in z, y, x order, zero weights
@@ -748,7 +889,9 @@ fn trilinear<T: Sample>(v: &[T], i: usize, sz: usize, sy: usize, f: [f32; 3]) ->
         for (dy, &b) in wy.iter().enumerate() {
             for (dx, &c) in wx.iter().enumerate() {
                 let w = a * b * c;
-                if w != 0.0 {
+                // A zero weight times an integer sample adds +0.0 or
+                // leaves `acc` as it is: only floats (NaN, ∞) need the test.
+                if !T::DTYPE.is_float() || w != 0.0 {
                     acc += w * g(dz * sz + dy * sy + dx);
                 }
             }

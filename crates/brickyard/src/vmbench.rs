@@ -455,12 +455,16 @@ pub fn render(dir: &Path, dims: Dims3, dtype: DType, image: u32, repeat: usize) 
     let cold_s = t.elapsed().as_secs_f64();
     let mut warm = f64::INFINITY;
     let mut samples = 0;
+    let mut steps = 0;
+    let mut skipped = 0;
     for _ in 0..repeat.max(1) {
         s.begin_frame();
         let t = Instant::now();
         let (_, stt, reqs) = render_frame(s.vm(), &scene, &p, Lod::Auto { bias: 0.0 });
         warm = warm.min(t.elapsed().as_secs_f64());
         samples = stt.samples;
+        steps = stt.steps;
+        skipped = stt.skipped_bricks;
         s.finish_frame(reqs.iter());
     }
     let mut reference = f64::INFINITY;
@@ -474,7 +478,7 @@ pub fn render(dir: &Path, dims: Dims3, dtype: DType, image: u32, repeat: usize) 
         json!({"scenario": "render", "mode": "dvr", "size": [dims[2], dims[1], dims[0]], "dtype": dtype.short_name(),
             "image": [image, image], "pool_bytes": s.vm().pool_bytes(), "volume_bytes": vox * dtype.size() as u64,
             "cold_to_complete_s": cold_s, "cold_frames": frames,
-            "warm_frame_ms": warm * 1e3, "warm_msamples_s": samples as f64 / warm / 1e6,
+            "warm_frame_ms": warm * 1e3, "warm_samples": samples, "warm_steps": steps, "warm_skipped_bricks": skipped, "warm_msamples_s": samples as f64 / warm / 1e6,
             "reference_frame_ms": reference * 1e3, "threads": rayon::current_num_threads()})
     );
     Ok(())
