@@ -80,6 +80,15 @@ enum Owner {
 struct SlotSet {
     grid: [u32; 3],
     usage: Vec<AtomicU32>,
+    /// Brick pool only: the last frame in which the slot's brick served a
+    /// sample at the level that sample asked for. A slot used in the
+    /// current frame but not exactly was only a stand-in for finer data.
+    exact: Vec<AtomicU32>,
+    /// Brick pool only: level of the brick in the slot.
+    level: Vec<u8>,
+    /// The finest level for which no stand-in was found this frame (255:
+    /// none failed yet), so a saturated pool is scanned once per frame.
+    stand_in_failed: u8,
     /// Most recently used first.
     lru: Vec<u32>,
     owner: Vec<Owner>,
@@ -102,6 +111,9 @@ impl SlotSet {
         SlotSet {
             grid: [gz as u32, gy as u32, gx as u32],
             usage: (0..n).map(|_| AtomicU32::new(0)).collect(),
+            exact: (0..n).map(|_| AtomicU32::new(0)).collect(),
+            level: vec![0; n as usize],
+            stand_in_failed: u8::MAX,
             lru: (0..n).collect(),
             owner: vec![Owner::None; n as usize],
             free: (0..n).rev().collect(),
@@ -128,6 +140,39 @@ impl SlotSet {
         used.append(&mut rest);
         self.lru = used;
         self.cursor = 0;
+        self.stand_in_failed = u8::MAX;
+    }
+
+    /// When [`take`](Self::take) finds every slot in use: the least
+    /// recently used slot that only stood in, this frame, for finer data
+    /// and holds a brick coarser than `level` — the brick to be written
+    /// replaces what it stood in for. Slots used at their own level are
+    /// never taken, so the exact working set of a view that fits the pool
+    /// always completes.
+    fn take_stand_in(&mut self, frame: u32, level: u8) -> Option<u32> {
+        if level >= self.stand_in_failed {
+            return None;
+        }
+        // The finest such stand-in (least recently used among equals):
+        // what it covered falls back to a coarser one still resident,
+        // rather than to nothing.
+        let found = self
+            .lru
+            .iter()
+            .rev()
+            .copied()
+            .filter(|&s| {
+                let s = s as usize;
+                self.owner[s] != Owner::None
+                    && self.usage[s].load(Ordering::Relaxed) == frame
+                    && self.exact[s].load(Ordering::Relaxed) != frame
+                    && self.level[s] > level
+            })
+            .min_by_key(|&s| self.level[s as usize]);
+        if found.is_none() {
+            self.stand_in_failed = level;
+        }
+        found
     }
     /// A slot that may be (re)used now: a free one, else the least recently
     /// used one not used in `frame`. `None` when every slot is in use.
@@ -213,8 +258,8 @@ pub enum BrickRef<'a> {
     Empty,
     /// Every voxel (apron included) has this value.
     Constant(f32),
-    /// Resident: the padded brick's bytes in the pool.
-    Data(&'a [u8]),
+    /// Resident: the padded brick's bytes in the pool and its slot.
+    Data { voxels: &'a [u8], slot: u32 },
 }
 
 /// Per-frame figures.
@@ -392,20 +437,39 @@ impl VirtualMemory {
     /// one apron voxel around it, is at local index
     /// `v − brick·B + apron` per axis. Nothing is requested: the consumer
     /// adds misses to its [`Requests`] itself.
-    pub fn brick(&self, l: usize, c: usize, brick: [u64; 3]) -> BrickRef<'_> {
+    ///
+    /// `exact` says whether the consumer samples the brick at its own level
+    /// (rather than as a stand-in for a finer one); see
+    /// [`mark_exact`](Self::mark_exact).
+    pub fn brick(&self, l: usize, c: usize, brick: [u64; 3], exact: bool) -> BrickRef<'_> {
         let v = [0, 1, 2].map(|a| brick[a] * self.cfg.brick[a]);
         match self.resolve(l, c, v) {
             Kind::Mapped(slot) => {
                 let s = self.slots.id(slot);
                 self.slots.usage[s as usize].store(self.frame, Ordering::Relaxed);
+                if exact {
+                    self.mark_exact(s);
+                }
                 let o = s as usize * self.brick_bytes;
-                BrickRef::Data(&self.pool()[o..o + self.brick_bytes])
+                BrickRef::Data {
+                    voxels: &self.pool()[o..o + self.brick_bytes],
+                    slot: s,
+                }
             }
             Kind::Empty => BrickRef::Empty,
             Kind::Constant(v) => BrickRef::Constant(v),
             Kind::Unmapped => BrickRef::Unmapped,
         }
     }
+    /// Record that pool slot `slot` (from [`BrickRef::Data`]) served a
+    /// sample at its own level this frame. Bricks used only as stand-ins
+    /// for finer, missing ones may be evicted in favour of finer bricks
+    /// when the pool is full.
+    #[inline]
+    pub fn mark_exact(&self, slot: u32) {
+        self.slots.exact[slot as usize].store(self.frame, Ordering::Relaxed);
+    }
+
     /// A request collector sized for this virtual memory.
     pub fn requests(&self) -> Requests {
         Requests::with_capacity(self.cfg.request_cap * 8)
@@ -488,7 +552,11 @@ impl VirtualMemory {
         req: &mut Requests,
     ) -> Lookup {
         let nl = self.layout.levels.len();
-        for lv in l.min(nl - 1)..nl {
+        let l0 = l.min(nl - 1);
+        // Coarser misses, requested only if nothing serves the sample (a
+        // sample served by a stand-in asks for its own level only).
+        let mut missed = [None; 32];
+        for lv in l0..nl {
             let dims = self.layout.levels[lv];
             // Continuous voxel coordinates (voxel centres at i + 0.5).
             let pos = [0, 1, 2].map(|a| p[a] * dims[a] as f64);
@@ -510,6 +578,9 @@ impl VirtualMemory {
                 Kind::Mapped(slot) => {
                     let s = self.slots.id(slot);
                     self.slots.usage[s as usize].store(self.frame, Ordering::Relaxed);
+                    if lv == l.min(nl - 1) {
+                        self.mark_exact(s);
+                    }
                     let a = self.cfg.apron as usize;
                     let b = self.cfg.brick;
                     let local = [0, 1, 2].map(|i| (base[i] % b[i]) as usize + a);
@@ -551,8 +622,13 @@ impl VirtualMemory {
                         level: Some(lv as u8),
                     }
                 }
-                Kind::Unmapped => req.add(self.key_of(lv, c, base), 1),
+                Kind::Unmapped if lv == l0 => req.add(self.key_of(lv, c, base), 1),
+                Kind::Unmapped => missed[lv.min(31)] = Some(self.key_of(lv, c, base)),
             }
+        }
+        // Nothing resident: request the whole chain so something shows soon.
+        for k in missed.iter().flatten() {
+            req.add(*k, 1);
         }
         Lookup {
             value: 0.0,
@@ -675,9 +751,14 @@ impl VirtualMemory {
             if data
                 && report.bytes_uploaded + self.brick_bytes as u64 > self.cfg.upload_bytes_per_frame
             {
-                report.deferred += 1;
-                continue;
+                // Over this frame's upload budget: this brick and the rest
+                // are offered again next frame.
+                break;
             }
+            // From here on the brick is consumed: written, flagged, found
+            // resident already, or dropped for want of a slot (it will be
+            // requested again if still wanted).
+            report.processed += 1;
             let p = self.p_of_voxel(l, v);
             // Walk down, creating page-table blocks as needed.
             let mut owner = Owner::Dir(self.dir_index(l, c, p) as u32);
@@ -719,7 +800,11 @@ impl VirtualMemory {
                     report.flagged += 1;
                 }
                 BrickContent::Data(bytes) => {
-                    let Some(s) = self.slots.take(frame) else {
+                    let Some(s) = self
+                        .slots
+                        .take(frame)
+                        .or_else(|| self.slots.take_stand_in(frame, key.level))
+                    else {
                         report.deferred += 1;
                         continue;
                     };
@@ -739,6 +824,9 @@ impl VirtualMemory {
                     self.set_entry(owner, PageEntry::mapped(coords));
                     self.slots.owner[s as usize] = owner;
                     self.slots.usage[s as usize].store(frame, Ordering::Relaxed);
+                    // Fresh bricks are not taken back as stand-ins this frame.
+                    self.slots.exact[s as usize].store(frame, Ordering::Relaxed);
+                    self.slots.level[s as usize] = key.level;
                     report.inserted += 1;
                     report.bytes_uploaded += self.brick_bytes as u64;
                     self.uploaded += self.brick_bytes as u64;

@@ -288,3 +288,40 @@ fn the_pool_gets_every_slot_its_budget_pays_for() {
         vm.check_invariants().unwrap();
     }
 }
+
+#[test]
+fn bricks_over_the_upload_budget_wait_and_the_rest_are_consumed() {
+    let levels: Vec<Dims3> = vec![[64, 64, 64], [32, 32, 32]];
+    let cfg = VmConfig {
+        brick: [8; 3],
+        apron: 1,
+        pool_bytes: 100 * 1000,
+        upload_bytes_per_frame: 3 * 1000,
+        ..Default::default()
+    };
+    let mut vm = VirtualMemory::new(&levels, 1, DType::U8, cfg);
+    let data = |x: u32| {
+        Arc::new(LoadedBrick {
+            key: BrickKey::new(0, 0, [0, 0, x]),
+            content: BrickContent::Data(Arc::from(vec![x as u8 + 1; 1000])),
+            min: 0.0,
+            max: 255.0,
+            bytes_read: 0,
+        })
+    };
+    let batch: Vec<_> = (0..5).map(data).collect();
+    vm.begin_frame();
+    vm.end_frame(std::iter::empty());
+    let r = vm.insert(&batch);
+    // Three fit the budget; the other two are left for the next frame.
+    assert_eq!((r.inserted, r.processed, r.bytes_uploaded), (3, 3, 3000));
+    vm.begin_frame();
+    vm.end_frame(std::iter::empty());
+    let r = vm.insert(&batch[r.processed..]);
+    assert_eq!((r.inserted, r.processed), (2, 2));
+    // Offering a resident brick again consumes it without writing.
+    let r = vm.insert(&batch[..1]);
+    assert_eq!((r.inserted, r.processed), (0, 1));
+    assert_eq!(vm.resident_bricks(), 5);
+    vm.check_invariants().unwrap();
+}

@@ -473,6 +473,11 @@ struct Cached<'a, T> {
     transparent: bool,
     /// Samples that missed it, not yet handed to the request collector.
     missed: u32,
+    /// Pool slot of a resident brick (`u32::MAX` otherwise).
+    slot: u32,
+    /// The slot is marked as used at its own level this frame (or needs
+    /// no mark).
+    marked: bool,
 }
 
 impl<T> Cached<'_, T> {
@@ -484,6 +489,8 @@ impl<T> Cached<'_, T> {
         range: [f32::NAN; 2],
         transparent: false,
         missed: 0,
+        slot: u32::MAX,
+        marked: true,
     };
 
     #[inline(always)]
@@ -542,16 +549,19 @@ impl<'f, 'a, T: Sample> Walker<'f, 'a, T> {
     }
 
     /// Make the cache of level `l` hold the brick of voxel `v`.
+    /// `exact`: the sample asks for level `l` (not a stand-in lookup).
     #[inline(always)]
-    fn enter(&mut self, l: usize, v: Dims3, req: &mut Requests) -> &Cached<'a, T> {
+    fn enter(&mut self, l: usize, v: Dims3, req: &mut Requests, exact: bool) -> &Cached<'a, T> {
         if !self.cache[l].contains(v) {
-            self.refill(l, v, req);
+            self.refill(l, v, req, exact);
+        } else if exact && !self.cache[l].marked {
+            self.mark(l);
         }
         &self.cache[l]
     }
 
     #[cold]
-    fn refill(&mut self, l: usize, v: Dims3, req: &mut Requests) {
+    fn refill(&mut self, l: usize, v: Dims3, req: &mut Requests, exact: bool) {
         self.flush_level(l, req);
         let f = self.f;
         let brick = f.brick_of(v);
@@ -560,6 +570,9 @@ impl<'f, 'a, T: Sample> Walker<'f, 'a, T> {
             (key.wrapping_mul(0x9E37_79B9_7F4A_7C15) >> (64 - MEMO.trailing_zeros())) as usize;
         if self.memo_key[slot] == key {
             self.cache[l] = self.memo[slot];
+            if exact && !self.cache[l].marked {
+                self.mark(l);
+            }
             return;
         }
         let bs = f.brick;
@@ -591,24 +604,38 @@ impl<'f, 'a, T: Sample> Walker<'f, 'a, T> {
             range,
             transparent,
             missed: 0,
+            slot: u32::MAX,
+            marked: true,
         };
         if !transparent {
-            self.resolve(l);
+            self.resolve(l, exact);
         }
         self.memo_key[slot] = key;
         self.memo[slot] = self.cache[l];
     }
 
+    /// Mark the cached brick of level `l` as used at its own level.
+    #[cold]
+    fn mark(&mut self, l: usize) {
+        let c = &mut self.cache[l];
+        self.f.vm.mark_exact(c.slot);
+        c.marked = true;
+    }
+
     /// Walk the page tables for the cached brick of level `l`.
     #[cold]
-    fn resolve(&mut self, l: usize) {
+    fn resolve(&mut self, l: usize, exact: bool) {
         let f = self.f;
         let c = &mut self.cache[l];
-        c.content = match f.vm.brick(l, self.channel, c.brick) {
+        c.content = match f.vm.brick(l, self.channel, c.brick, exact) {
             BrickRef::Unmapped => Content::Unmapped,
             BrickRef::Empty => Content::Value(0.0),
             BrickRef::Constant(v) => Content::Value(v),
-            BrickRef::Data(bytes) => Content::Data(cast_slice::<T>(bytes)),
+            BrickRef::Data { voxels, slot } => {
+                c.slot = slot;
+                c.marked = exact;
+                Content::Data(cast_slice::<T>(voxels))
+            }
         };
         if let Content::Value(v) = c.content {
             c.range = [v, v];
@@ -636,10 +663,10 @@ impl<'f, 'a, T: Sample> Walker<'f, 'a, T> {
         for lv in l..self.cache.len() {
             if lv > l {
                 (base, frac) = self.f.coords(lv, w);
-                self.enter(lv, base, req);
+                self.enter(lv, base, req, false);
             }
             if matches!(self.cache[lv].content, Content::Unresolved) {
-                self.resolve(lv);
+                self.resolve(lv, lv == l);
             }
             let c = &mut self.cache[lv];
             match c.content {
@@ -653,9 +680,17 @@ impl<'f, 'a, T: Sample> Walker<'f, 'a, T> {
                     st.exact += (lv == l) as u64;
                     return Some(v);
                 }
-                Content::Unmapped => c.missed += 1,
+                Content::Unmapped if lv == l => c.missed += 1,
+                Content::Unmapped => {}
                 Content::Unresolved => unreachable!("resolved above"),
             }
+        }
+        // Nothing resident serves the sample: request the coarser bricks
+        // on the way too, so something shows soon. (A sample served by a
+        // stand-in requests only its own level: stand-ins evicted for
+        // finer bricks are not fetched back.)
+        for c in &mut self.cache[l + 1..] {
+            c.missed += 1;
         }
         st.unserved += 1;
         None
@@ -703,7 +738,7 @@ impl<'f, 'a, T: Sample> Walker<'f, 'a, T> {
             st.steps += 1;
             let w = ray.at(t);
             let (vb, frac) = f.coords(level, w);
-            let c = self.enter(level, vb, req);
+            let c = self.enter(level, vb, req, true);
             if c.transparent {
                 let (lo, hi) = (c.lo, c.hi);
                 st.skipped_bricks += 1;
@@ -748,6 +783,7 @@ impl<'f, 'a, T: Sample> Walker<'f, 'a, T> {
                 continue;
             }
             let Some(v) = self.value(level, w, vb, frac, req, st) else {
+                k = self.skip_unserved(level, ray, (base_t, k, dt), t1.min(next_t), st);
                 continue;
             };
             if let Some(c) = f.tf_eval.lookup_visible(v) {
@@ -757,6 +793,31 @@ impl<'f, 'a, T: Sample> Walker<'f, 'a, T> {
             }
         }
         acc
+    }
+
+    /// After a sample that nothing resident could serve: cross the rest of
+    /// the level's brick in one jump (first frames would otherwise walk
+    /// the whole fallback chain for every sample of a region with nothing
+    /// to show). The steps jumped count as unserved samples and as misses
+    /// of the brick, so its request keeps its weight. Returns the step
+    /// index to continue from.
+    fn skip_unserved(
+        &mut self,
+        level: usize,
+        ray: &Ray,
+        (base_t, k, dt): (f64, u64, f64),
+        limit: f64,
+        st: &mut FrameStats,
+    ) -> u64 {
+        let c = &mut self.cache[level];
+        let te = self.f.exit_t(level, ray, c.lo, c.hi, limit);
+        let kn = jump_k(base_t, te, dt).max(k);
+        let n = kn - k;
+        st.samples += n;
+        st.unserved += n;
+        st.steps += n;
+        c.missed = c.missed.saturating_add(n as u32);
+        kn
     }
 
     fn mip(&mut self, ray: &Ray, req: &mut Requests, st: &mut FrameStats) -> [f32; 4] {
@@ -795,7 +856,7 @@ impl<'f, 'a, T: Sample> Walker<'f, 'a, T> {
             st.steps += 1;
             let w = ray.at(t);
             let (vb, frac) = f.coords(level, w);
-            let c = self.enter(level, vb, req);
+            let c = self.enter(level, vb, req, true);
             // NaN range or best: no skip.
             if c.range[1] <= best {
                 let (lo, hi) = (c.lo, c.hi);
@@ -804,9 +865,10 @@ impl<'f, 'a, T: Sample> Walker<'f, 'a, T> {
                 k = k.max(jump_k(t0, te, dt));
                 continue;
             }
-            if let Some(v) = self.value(level, w, vb, frac, req, st) {
+            match self.value(level, w, vb, frac, req, st) {
                 // f32::max ignores NaN.
-                best = best.max(v);
+                Some(v) => best = best.max(v),
+                None => k = self.skip_unserved(level, ray, (t0, k, dt), t1, st),
             }
         }
         hit.then_some(best)
@@ -823,7 +885,7 @@ impl<'f, 'a, T: Sample> Walker<'f, 'a, T> {
         let f = self.f;
         let level = f.level_at(t);
         let (vb, frac) = f.coords(level, w);
-        self.enter(level, vb, req);
+        self.enter(level, vb, req, true);
         self.value(level, w, vb, frac, req, st)
     }
 }

@@ -45,7 +45,7 @@ pub struct BenchCmd {
     /// render: image edge in pixels.
     #[arg(long, default_value_t = 512)]
     image: u32,
-    /// loader, latency: drop the page cache first (needs root), for cold-disk figures.
+    /// loader, latency, render: drop the page cache first (needs root), for cold-disk figures.
     #[arg(long)]
     cold: bool,
 }
@@ -60,7 +60,7 @@ pub fn run(b: BenchCmd) -> Result<()> {
         "vm-update" => crate::vmbench::update(b.repeat),
         "loader" => crate::vmbench::loader(&b.dir, dims, dtype, b.cold),
         "latency" => crate::vmbench::latency(&b.dir, dims, dtype, b.cold),
-        "render" => crate::vmbench::render(&b.dir, dims, dtype, b.image, b.repeat),
+        "render" => crate::vmbench::render(&b.dir, dims, dtype, b.image, b.repeat, b.cold),
         s => bail!(
             "scenario: expected convert, downsample, vm-sample, vm-update, loader, latency or render, found {s:?}"
         ),

@@ -399,14 +399,21 @@ fn session_with_cache(st: &Path, cfg: VmConfig, cache: Arc<HostCache>) -> Result
 /// DVR frame times through the virtual memory (warm: everything resident;
 /// cold: from an empty pool to a complete view) beside the in-core
 /// reference renderer on the same level, same camera and transfer function.
-pub fn render(dir: &Path, dims: Dims3, dtype: DType, image: u32, repeat: usize) -> Result<()> {
+pub fn render(
+    dir: &Path,
+    dims: Dims3,
+    dtype: DType,
+    image: u32,
+    repeat: usize,
+    cold: bool,
+) -> Result<()> {
     use brickyard_core::camera::{world_extent, Camera, Projection};
     use brickyard_core::TransferFunction;
     use brickyard_render::cpu::{render_frame, Lod, Scene};
     use brickyard_render::reference::{render as render_ref, RenderMode, RenderParams, Volume};
     let st = store(dir, dims, dtype)?;
-    let vol = Volume::from_store(&st, 0, 0)?;
-    let extent = world_extent(dims, vol.spacing);
+    let spacing = zarr::open(&st, 0)?.meta().spacing.unwrap_or([1.0; 3]);
+    let extent = world_extent(dims, spacing);
     let mut levels = vec![];
     for l in 0.. {
         match zarr::open(&st, l) {
@@ -440,13 +447,19 @@ pub fn render(dir: &Path, dims: Dims3, dtype: DType, image: u32, repeat: usize) 
     };
     let mut s = Session::open(&st, cfg, 1 << 30, 2)?;
     scene.ranges = Some(std::sync::Arc::new(s.loader().brick_ranges(1 << 24)));
-    // Cold: empty pool (page cache as it is) to a complete view.
+    // Cold: empty pool (and, with --cold, an empty page cache) to a
+    // complete view.
+    let dropped = cold && drop_caches();
     let t = Instant::now();
     let mut frames = 0;
+    let mut first_frame_ms = 0.0;
     loop {
         s.begin_frame();
         let (_, stt, reqs) = render_frame(s.vm(), &scene, &p, Lod::Auto { bias: 0.0 });
         s.finish_frame(reqs.iter());
+        if frames == 0 {
+            first_frame_ms = t.elapsed().as_secs_f64() * 1e3;
+        }
         frames += 1;
         if stt.completeness() >= 1.0 || frames > 500 {
             break;
@@ -467,6 +480,10 @@ pub fn render(dir: &Path, dims: Dims3, dtype: DType, image: u32, repeat: usize) 
         skipped = stt.skipped_bricks;
         s.finish_frame(reqs.iter());
     }
+    let bytes_read = s.loader().bytes_read();
+    let pool_bytes = s.vm().pool_bytes();
+    drop(s);
+    let vol = Volume::from_store(&st, 0, 0)?;
     let mut reference = f64::INFINITY;
     for _ in 0..repeat.max(1) {
         let t = Instant::now();
@@ -476,8 +493,8 @@ pub fn render(dir: &Path, dims: Dims3, dtype: DType, image: u32, repeat: usize) 
     println!(
         "{}",
         json!({"scenario": "render", "mode": "dvr", "size": [dims[2], dims[1], dims[0]], "dtype": dtype.short_name(),
-            "image": [image, image], "pool_bytes": s.vm().pool_bytes(), "volume_bytes": vox * dtype.size() as u64,
-            "cold_to_complete_s": cold_s, "cold_frames": frames,
+            "image": [image, image], "pool_bytes": pool_bytes, "volume_bytes": vox * dtype.size() as u64,
+            "cold": dropped, "first_frame_ms": first_frame_ms, "cold_to_complete_s": cold_s, "cold_frames": frames, "bytes_read": bytes_read,
             "warm_frame_ms": warm * 1e3, "warm_samples": samples, "warm_steps": steps, "warm_skipped_bricks": skipped, "warm_msamples_s": samples as f64 / warm / 1e6,
             "reference_frame_ms": reference * 1e3, "threads": rayon::current_num_threads()})
     );
