@@ -48,6 +48,9 @@ pub struct BenchCmd {
     /// loader, latency, render: drop the page cache first (needs root), for cold-disk figures.
     #[arg(long)]
     cold: bool,
+    /// render: brick-pool budget (default: half the volume plus 32 MiB).
+    #[arg(long)]
+    pool: Option<String>,
 }
 
 pub fn run(b: BenchCmd) -> Result<()> {
@@ -60,7 +63,10 @@ pub fn run(b: BenchCmd) -> Result<()> {
         "vm-update" => crate::vmbench::update(b.repeat),
         "loader" => crate::vmbench::loader(&b.dir, dims, dtype, b.cold),
         "latency" => crate::vmbench::latency(&b.dir, dims, dtype, b.cold),
-        "render" => crate::vmbench::render(&b.dir, dims, dtype, b.image, b.repeat, b.cold),
+        "render" => {
+            let pool = b.pool.as_deref().map(crate::parse_bytes).transpose()?;
+            crate::vmbench::render(&b.dir, dims, dtype, b.image, b.repeat, b.cold, pool)
+        }
         s => bail!(
             "scenario: expected convert, downsample, vm-sample, vm-update, loader, latency or render, found {s:?}"
         ),

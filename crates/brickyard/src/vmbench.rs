@@ -406,6 +406,7 @@ pub fn render(
     image: u32,
     repeat: usize,
     cold: bool,
+    pool: Option<u64>,
 ) -> Result<()> {
     use brickyard_core::camera::{world_extent, Camera, Projection};
     use brickyard_core::TransferFunction;
@@ -439,7 +440,7 @@ pub fn render(
     let vox: u64 = dims.iter().product();
     let cfg = VmConfig {
         brick: [32; 3],
-        pool_bytes: vox * dtype.size() as u64 / 2 + (32 << 20),
+        pool_bytes: pool.unwrap_or(vox * dtype.size() as u64 / 2 + (32 << 20)),
         pt_cache_blocks: 4096,
         request_cap: 1024,
         upload_bytes_per_frame: 256 << 20,
