@@ -144,23 +144,26 @@ impl ColorMap {
     #[inline]
     pub fn color(&self, x: f32) -> [f32; 3] {
         let pts = self.points();
-        let i = pts.partition_point(|p| p[0] <= x);
-        if i == 0 {
-            let p = &pts[0];
-            return [p[1], p[2], p[3]];
-        }
-        if i == pts.len() {
-            let p = &pts[i - 1];
-            return [p[1], p[2], p[3]];
-        }
-        let (a, b) = (&pts[i - 1], &pts[i]);
-        let t = (x - a[0]) / (b[0] - a[0]);
-        [1, 2, 3].map(|c| {
-            let (v0, v1) = (a[c], b[c]);
-            let v = v0 + (v1 - v0) * t;
-            v.clamp(v0.min(v1), v0.max(v1))
-        })
+        color_in_segment(pts, pts.partition_point(|p| p[0] <= x), x)
     }
+}
+
+/// The colour at `x` of colour-map points `pts` whose search for `x` gave
+/// segment `i`: per channel what [`eval_piecewise`] gives, with one search.
+#[inline]
+fn color_in_segment(pts: &[[f32; 4]], i: usize, x: f32) -> [f32; 3] {
+    if i == 0 || i == pts.len() {
+        let p = if i == 0 { &pts[0] } else { &pts[i - 1] };
+        return [p[1], p[2], p[3]];
+    }
+    let (a, b) = (&pts[i - 1], &pts[i]);
+    // x0 <= x < x1 here, so x1 > x0.
+    let t = (x - a[0]) / (b[0] - a[0]);
+    [1, 2, 3].map(|c| {
+        let (v0, v1) = (a[c], b[c]);
+        let v = v0 + (v1 - v0) * t;
+        v.clamp(v0.min(v1), v0.max(v1))
+    })
 }
 
 /// Value of the piecewise-linear function through `pts` at `x`: constant
@@ -170,18 +173,7 @@ impl ColorMap {
 #[inline]
 fn eval_piecewise<P>(pts: &[P], x: f32, px: impl Fn(&P) -> f32, pv: impl Fn(&P) -> f32) -> f32 {
     let i = pts.partition_point(|p| px(p) <= x);
-    if i == 0 {
-        return pv(&pts[0]);
-    }
-    if i == pts.len() {
-        return pv(&pts[i - 1]);
-    }
-    let (a, b) = (&pts[i - 1], &pts[i]);
-    let (x0, x1, v0, v1) = (px(a), px(b), pv(a), pv(b));
-    // x0 <= x < x1 here, so x1 > x0.
-    let t = (x - x0) / (x1 - x0);
-    let v = v0 + (v1 - v0) * t;
-    v.clamp(v0.min(v1), v0.max(v1))
+    eval_segment(pts, i, x, px, pv)
 }
 
 /// A transfer function. JSON (errors name the field):
@@ -661,18 +653,7 @@ impl TfEval<'_> {
             u16::MAX => pts.partition_point(|p| p[0] <= x),
             s => s as usize,
         };
-        let rgb = if i == 0 || i == pts.len() {
-            let p = &pts[i.saturating_sub(1).min(pts.len() - 1)];
-            [p[1], p[2], p[3]]
-        } else {
-            let (a, b) = (&pts[i - 1], &pts[i]);
-            let t = (x - a[0]) / (b[0] - a[0]);
-            [1, 2, 3].map(|c| {
-                let (v0, v1) = (a[c], b[c]);
-                let v = v0 + (v1 - v0) * t;
-                v.clamp(v0.min(v1), v0.max(v1))
-            })
-        };
+        let rgb = color_in_segment(pts, i, x);
         Some([rgb[0], rgb[1], rgb[2], a])
     }
 }

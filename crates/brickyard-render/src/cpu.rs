@@ -31,7 +31,7 @@
 
 use crate::image::Image;
 use crate::reference::{
-    mip_color, mix_channels, slice_point, step_t, RenderMode, RenderParams, EARLY_TERMINATION,
+    composite_visible, mip_color, mix_channels, slice_point, step_t, RenderMode, RenderParams,
 };
 use brickyard_cache::brick::BrickKey;
 use brickyard_cache::ranges::BrickRanges;
@@ -901,20 +901,6 @@ fn jump_k(base_t: f64, t_exit: f64, dt: f64) -> u64 {
     } else {
         0
     }
-}
-
-/// Front-to-back compositing of a sample with positive opacity (the
-/// reference's [`crate::reference::composite`] without its transparent-
-/// sample test).
-#[inline(always)]
-fn composite_visible(acc: &mut [f32; 4], c: [f32; 4], exponent: f32) -> bool {
-    let a = crate::reference::correct_opacity(c[3], exponent);
-    let wgt = (1.0 - acc[3]) * a;
-    acc[0] += wgt * c[0];
-    acc[1] += wgt * c[1];
-    acc[2] += wgt * c[2];
-    acc[3] += wgt;
-    acc[3] >= EARLY_TERMINATION
 }
 
 /// Whether voxel `v` lies in the box `[lo, hi)`.

@@ -427,6 +427,12 @@ pub fn composite(acc: &mut [f32; 4], c: [f32; 4], exponent: f32) -> bool {
     if c[3] <= 0.0 {
         return false;
     }
+    composite_visible(acc, c, exponent)
+}
+
+/// [`composite`] for a sample known to have positive opacity.
+#[inline(always)]
+pub fn composite_visible(acc: &mut [f32; 4], c: [f32; 4], exponent: f32) -> bool {
     let a = correct_opacity(c[3], exponent);
     let wgt = (1.0 - acc[3]) * a;
     acc[0] += wgt * c[0];
