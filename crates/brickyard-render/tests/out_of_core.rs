@@ -32,6 +32,33 @@ fn session_with(store: &Path, pool_bytes: u64, brick: u64) -> Session {
     Session::open(store, cfg, 8 << 20, 2).unwrap()
 }
 
+/// A generated volume converted to a store `name` in `dir` (16³ bricks).
+fn generated(
+    dir: &Path,
+    name: &str,
+    kind: Kind,
+    dims: [u64; 3],
+    dtype: DType,
+    shard: u64,
+) -> std::path::PathBuf {
+    let store = dir.join(name);
+    let o = ConvertOptions {
+        brick: [16; 3],
+        shard: [shard; 3],
+        ..Default::default()
+    };
+    let src = Procedural::new(kind, dims, dtype);
+    convert(&src, &store, &o, &NoProgress, &AtomicBool::new(false)).unwrap();
+    store
+}
+
+/// Every level of channel 0 of a store, whole.
+fn pyramid(store: &Path) -> Vec<Volume> {
+    (0..)
+        .map_while(|l| Volume::from_store(store, l, 0).ok())
+        .collect()
+}
+
 /// Frames until complete; returns the final image, the number of frames and
 /// the completeness of the first frame.
 fn converge(
@@ -49,14 +76,6 @@ fn converge(
         let fs = s.finish_frame(reqs.iter());
         if st.completeness() == 1.0 {
             return (img, frame, first.unwrap());
-        }
-        if std::env::var("DBG").is_ok() {
-            let g = s.loader().geometry().clone();
-            let per: Vec<usize> = (0..g.levels.len())
-                .map(|l| g.keys(l, 0).filter(|k| s.vm().is_resident(*k)).count())
-                .collect();
-            let lv: Vec<u8> = fs.frame.requests.iter().map(|k| k.level).collect();
-            eprintln!("frame {frame}: c {:.4} resident per level {per:?} req levels {lv:?} ins {} def {} ev {}", st.completeness(), fs.insert.inserted, fs.insert.deferred, fs.insert.evicted_bricks);
         }
         last = format!(
             "completeness {:.4}, {} of {} slots resident, {} requests, {} inserted, {} deferred, {} evicted",
@@ -284,18 +303,16 @@ fn converge_counting(
 #[test]
 fn empty_space_skipping_changes_no_pixel_and_loads_less() {
     let dir = tempfile::tempdir().unwrap();
-    let store = dir.path().join("m.ome.zarr");
     let dims = [64, 64, 64];
-    let src = Procedural::new(Kind::Mandelbulb, dims, DType::U16);
-    let o = ConvertOptions {
-        brick: [16; 3],
-        shard: [32; 3],
-        ..Default::default()
-    };
-    convert(&src, &store, &o, &NoProgress, &AtomicBool::new(false)).unwrap();
-    let levels: Vec<_> = (0..3)
-        .map(|l| Volume::from_store(&store, l, 0).unwrap())
-        .collect();
+    let store = generated(
+        dir.path(),
+        "m.ome.zarr",
+        Kind::Mandelbulb,
+        dims,
+        DType::U16,
+        32,
+    );
+    let levels = pyramid(&store);
     let extent = world_extent(dims, levels[0].spacing);
     let plain = Scene::new(extent, levels.iter().map(|v| v.dims).collect());
     let mut skipping = plain.clone();
@@ -468,26 +485,19 @@ fn a_view_that_fits_completes_even_when_its_stand_ins_do_not() {
     // coarser bricks that stand in while they load. The pool holds 72:
     // enough for the view, not for the view and its stand-ins at once.
     let dir = tempfile::tempdir().unwrap();
-    let store = dir.path().join("ml.ome.zarr");
     let dims = [32, 128, 128];
-    let src = Procedural::new(Kind::MarschnerLobb, dims, DType::U16);
-    let o = ConvertOptions {
-        brick: [16; 3],
-        shard: [64; 3],
-        ..Default::default()
-    };
-    convert(&src, &store, &o, &NoProgress, &AtomicBool::new(false)).unwrap();
-    let nlev = (0..)
-        .take_while(|&l| Volume::from_store(&store, l, 0).is_ok())
-        .count();
-    let l0 = Volume::from_store(&store, 0, 0).unwrap();
-    let extent = world_extent(dims, l0.spacing);
-    let scene = Scene::new(
-        extent,
-        (0..nlev)
-            .map(|l| Volume::from_store(&store, l, 0).unwrap().dims)
-            .collect(),
+    let store = generated(
+        dir.path(),
+        "ml.ome.zarr",
+        Kind::MarschnerLobb,
+        dims,
+        DType::U16,
+        64,
     );
+    let levels = pyramid(&store);
+    let l0 = &levels[0];
+    let extent = world_extent(dims, l0.spacing);
+    let scene = Scene::new(extent, levels.iter().map(|v| v.dims).collect());
     let mode = RenderMode::Slice {
         origin: [extent[0] / 2.0, extent[1] / 2.0, extent[2] * 0.25],
         normal: [0.0, 0.0, 1.0],
@@ -502,7 +512,7 @@ fn a_view_that_fits_completes_even_when_its_stand_ins_do_not() {
     let mut s = session(&store, 72 * slot_bytes);
     assert_eq!(s.vm().pool_slots(), 72);
     let (img, frames, _) = converge(&mut s, &scene, &p, Lod::Fixed(0));
-    let diff = img.max_abs_diff(&render(&l0, &p));
+    let diff = img.max_abs_diff(&render(l0, &p));
     assert!(diff <= 1e-5, "diff {diff} after {frames} frames");
     s.vm().check_invariants().unwrap();
 }
