@@ -173,6 +173,12 @@ fn frames_keep_coming_while_io_is_slow() {
     );
     assert!(img.coverage(0.01) > 0.05, "image nearly empty");
     s.vm().check_invariants().unwrap();
+    // Once complete, the view stays complete and the image stops changing.
+    for _ in 0..5 {
+        let (again, c) = frame(&mut s, &scene, &p, lod);
+        assert_eq!(c, 1.0, "completeness fell after the view completed");
+        assert_eq!(again.max_abs_diff(&img), 0.0, "a complete view changed");
+    }
     let largest_drop = history
         .windows(2)
         .map(|w| w[0] - w[1])
