@@ -148,22 +148,78 @@ impl ColorMap {
     }
 }
 
+/// One linear piece `[x0, x1)` of a piecewise-linear function from `v0` to
+/// `v1`, in the form every evaluation uses (so that a table of pieces gives
+/// the same bits as evaluating from the points): `v0 + (x − x0)·slope`,
+/// `slope = (v1 − v0)/(x1 − x0)`, clamped to `[min(v0, v1), max(v0, v1)]`.
+/// Outside the points the function is constant: `slope = 0`.
+#[derive(Debug, Clone, Copy, PartialEq)]
+struct Piece {
+    x0: f32,
+    v0: f32,
+    slope: f32,
+    lo: f32,
+    hi: f32,
+}
+
+impl Piece {
+    #[inline(always)]
+    fn new(x0: f32, x1: f32, v0: f32, v1: f32) -> Piece {
+        Piece {
+            x0,
+            v0,
+            // x0 <= x < x1 inside a piece, so x1 > x0.
+            slope: (v1 - v0) / (x1 - x0),
+            lo: v0.min(v1),
+            hi: v0.max(v1),
+        }
+    }
+
+    #[inline(always)]
+    fn constant(v: f32) -> Piece {
+        Piece {
+            x0: 0.0,
+            v0: v,
+            slope: 0.0,
+            lo: v,
+            hi: v,
+        }
+    }
+
+    /// The value at `x` (finite); the clamp keeps rounding inside the
+    /// piece's range, which keeps `max_opacity` exactly conservative.
+    #[inline(always)]
+    fn at(&self, x: f32) -> f32 {
+        let v = self.v0 + (x - self.x0) * self.slope;
+        if v < self.lo {
+            self.lo
+        } else if v > self.hi {
+            self.hi
+        } else {
+            v
+        }
+    }
+}
+
+/// Piece `i` (the result of `partition_point(p.x <= x)`) of the points
+/// `pts` for the value `pv`.
+#[inline(always)]
+fn piece<P>(pts: &[P], i: usize, px: impl Fn(&P) -> f32, pv: impl Fn(&P) -> f32) -> Piece {
+    if i == 0 {
+        return Piece::constant(pv(&pts[0]));
+    }
+    if i == pts.len() {
+        return Piece::constant(pv(&pts[i - 1]));
+    }
+    let (a, b) = (&pts[i - 1], &pts[i]);
+    Piece::new(px(a), px(b), pv(a), pv(b))
+}
+
 /// The colour at `x` of colour-map points `pts` whose search for `x` gave
 /// segment `i`: per channel what [`eval_piecewise`] gives, with one search.
 #[inline]
 fn color_in_segment(pts: &[[f32; 4]], i: usize, x: f32) -> [f32; 3] {
-    if i == 0 || i == pts.len() {
-        let p = if i == 0 { &pts[0] } else { &pts[i - 1] };
-        return [p[1], p[2], p[3]];
-    }
-    let (a, b) = (&pts[i - 1], &pts[i]);
-    // x0 <= x < x1 here, so x1 > x0.
-    let t = (x - a[0]) / (b[0] - a[0]);
-    [1, 2, 3].map(|c| {
-        let (v0, v1) = (a[c], b[c]);
-        let v = v0 + (v1 - v0) * t;
-        v.clamp(v0.min(v1), v0.max(v1))
-    })
+    [1, 2, 3].map(|c| piece(pts, i, |p| p[0], |p| p[c]).at(x))
 }
 
 /// Value of the piecewise-linear function through `pts` at `x`: constant
@@ -298,7 +354,7 @@ impl TransferFunction {
     #[inline]
     pub fn normalize(&self, value: f32) -> f32 {
         let [w0, w1] = self.window;
-        ((value - w0) / (w1 - w0)).clamp(0.0, 1.0)
+        ((value - w0) * (1.0 / (w1 - w0))).clamp(0.0, 1.0)
     }
 
     /// Opacity at the windowed value `x`.
@@ -592,17 +648,32 @@ fn bin_of(x: f32) -> usize {
 #[derive(Debug, Clone)]
 pub struct TfEval<'a> {
     tf: &'a TransferFunction,
+    /// `1 / (w1 − w0)`, as [`TransferFunction::normalize`] computes it.
+    inv_width: f32,
     opacity_seg: Vec<u16>,
     color_seg: Vec<u16>,
+    /// The pieces of the opacity and of the colour map's three channels,
+    /// by segment index.
+    opacity_pieces: Vec<Piece>,
+    color_pieces: Vec<[Piece; 3]>,
 }
 
 impl TransferFunction {
     /// An evaluator for many lookups.
     pub fn evaluator(&self) -> TfEval<'_> {
+        let op = &self.opacity;
+        let cm = self.colormap.points();
         TfEval {
             tf: self,
-            opacity_seg: segment_table(self.opacity.iter().map(|p| p[0])),
-            color_seg: segment_table(self.colormap.points().iter().map(|p| p[0])),
+            inv_width: 1.0 / (self.window[1] - self.window[0]),
+            opacity_seg: segment_table(op.iter().map(|p| p[0])),
+            color_seg: segment_table(cm.iter().map(|p| p[0])),
+            opacity_pieces: (0..=op.len())
+                .map(|i| piece(op, i, |p| p[0], |p| p[1]))
+                .collect(),
+            color_pieces: (0..=cm.len())
+                .map(|i| [1, 2, 3].map(|c| piece(cm, i, |p| p[0], |p| p[c])))
+                .collect(),
         }
     }
 }
@@ -616,17 +687,7 @@ fn eval_segment<P>(
     px: impl Fn(&P) -> f32,
     pv: impl Fn(&P) -> f32,
 ) -> f32 {
-    if i == 0 {
-        return pv(&pts[0]);
-    }
-    if i == pts.len() {
-        return pv(&pts[i - 1]);
-    }
-    let (a, b) = (&pts[i - 1], &pts[i]);
-    let (x0, x1, v0, v1) = (px(a), px(b), pv(a), pv(b));
-    let t = (x - x0) / (x1 - x0);
-    let v = v0 + (v1 - v0) * t;
-    v.clamp(v0.min(v1), v0.max(v1))
+    piece(pts, i, px, pv).at(x)
 }
 
 impl TfEval<'_> {
@@ -637,24 +698,22 @@ impl TfEval<'_> {
             return None;
         }
         let tf = self.tf;
-        let x = tf.normalize(value);
+        let x = ((value - tf.window[0]) * self.inv_width).clamp(0.0, 1.0);
         let bin = bin_of(x);
-        let op = &tf.opacity;
         let i = match self.opacity_seg[bin] {
-            u16::MAX => op.partition_point(|p| p[0] <= x),
+            u16::MAX => tf.opacity.partition_point(|p| p[0] <= x),
             s => s as usize,
         };
-        let a = eval_segment(op, i, x, |p| p[0], |p| p[1]);
+        let a = self.opacity_pieces[i].at(x);
         if a <= 0.0 {
             return None;
         }
-        let pts = tf.colormap.points();
         let i = match self.color_seg[bin] {
-            u16::MAX => pts.partition_point(|p| p[0] <= x),
+            u16::MAX => tf.colormap.points().partition_point(|p| p[0] <= x),
             s => s as usize,
         };
-        let rgb = color_in_segment(pts, i, x);
-        Some([rgb[0], rgb[1], rgb[2], a])
+        let [r, g, b] = &self.color_pieces[i];
+        Some([r.at(x), g.at(x), b.at(x), a])
     }
 }
 
