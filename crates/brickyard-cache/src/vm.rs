@@ -585,23 +585,20 @@ impl VirtualMemory {
                     let b = self.cfg.brick;
                     let local = [0, 1, 2].map(|i| (base[i] % b[i]) as usize + a);
                     let value = if trilinear {
-                        let mut acc = 0.0f32;
-                        for dz in 0..2 {
-                            for dy in 0..2 {
-                                for dx in 0..2 {
-                                    let w = (if dz == 1 { frac[0] } else { 1.0 - frac[0] })
-                                        * (if dy == 1 { frac[1] } else { 1.0 - frac[1] })
-                                        * (if dx == 1 { frac[2] } else { 1.0 - frac[2] });
-                                    if w != 0.0 {
-                                        acc += w * self.voxel(
-                                            s,
-                                            [local[0] + dz, local[1] + dy, local[2] + dx],
-                                        );
-                                    }
-                                }
-                            }
-                        }
-                        acc
+                        let v = |dz: usize, dy: usize, dx: usize| {
+                            self.voxel(s, [local[0] + dz, local[1] + dy, local[2] + dx])
+                        };
+                        let corners = [
+                            v(0, 0, 0),
+                            v(0, 0, 1),
+                            v(0, 1, 0),
+                            v(0, 1, 1),
+                            v(1, 0, 0),
+                            v(1, 0, 1),
+                            v(1, 1, 0),
+                            v(1, 1, 1),
+                        ];
+                        brickyard_core::trilinear(corners, frac, true)
                     } else {
                         self.voxel(s, local)
                     };

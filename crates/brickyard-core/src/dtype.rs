@@ -299,6 +299,33 @@ macro_rules! dispatch_dtype {
     };
 }
 
+/// Trilinear interpolation of the 8 corner values `c` (`[z][y][x]` order:
+/// `c[4·dz + 2·dy + dx]`) at fractions `f = [fz, fy, fx]` in `[0, 1)`: the
+/// one formula every sampler uses (the reference, the virtual memory's
+/// point lookup and the renderers), so that they agree bit for bit. Lerps
+/// along x, then y, then z (`a + (b − a)·t`); with `skip_zero` a fraction
+/// of exactly 0 takes the first value as it is, so a NaN on the far side of
+/// a voxel centre does not leak into samples that give it no weight (float
+/// volumes; integer ones can pass `false`).
+#[inline(always)]
+pub fn trilinear(c: [f32; 8], f: [f32; 3], skip_zero: bool) -> f32 {
+    #[inline(always)]
+    fn lerp(a: f32, b: f32, t: f32, skip_zero: bool) -> f32 {
+        if skip_zero && t == 0.0 {
+            a
+        } else {
+            a + (b - a) * t
+        }
+    }
+    let x00 = lerp(c[0], c[1], f[2], skip_zero);
+    let x01 = lerp(c[2], c[3], f[2], skip_zero);
+    let x10 = lerp(c[4], c[5], f[2], skip_zero);
+    let x11 = lerp(c[6], c[7], f[2], skip_zero);
+    let y0 = lerp(x00, x01, f[1], skip_zero);
+    let y1 = lerp(x10, x11, f[1], skip_zero);
+    lerp(y0, y1, f[0], skip_zero)
+}
+
 /// View a byte buffer as a slice of samples (native endianness; brickyard
 /// only runs on little-endian targets).
 pub fn cast_slice<T: Sample>(b: &[u8]) -> &[T] {

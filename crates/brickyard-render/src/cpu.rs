@@ -923,27 +923,19 @@ fn clamp(x: f64, hi: f64) -> f64 {
 }
 
 /// Trilinear sample of a padded brick at local index `i` (the base voxel)
-/// with strides `sz`, `sy` (x: 1): the reference sampler's arithmetic
-/// (weights `wz·wy·wx`, accumulated in z, y, x order, zero weights
-/// skipped).
+/// with strides `sz`, `sy` (x: 1), by [`brickyard_core::trilinear`].
 #[inline(always)]
 fn trilinear<T: Sample>(v: &[T], i: usize, sz: usize, sy: usize, f: [f32; 3]) -> f32 {
     let g = |o: usize| v[i + o].to_f32();
-    let wz = [1.0 - f[0], f[0]];
-    let wy = [1.0 - f[1], f[1]];
-    let wx = [1.0 - f[2], f[2]];
-    let mut acc = 0.0f32;
-    for (dz, &a) in wz.iter().enumerate() {
-        for (dy, &b) in wy.iter().enumerate() {
-            for (dx, &c) in wx.iter().enumerate() {
-                let w = a * b * c;
-                // A zero weight times an integer sample adds +0.0 or
-                // leaves `acc` as it is: only floats (NaN, ∞) need the test.
-                if !T::DTYPE.is_float() || w != 0.0 {
-                    acc += w * g(dz * sz + dy * sy + dx);
-                }
-            }
-        }
-    }
-    acc
+    let c = [
+        g(0),
+        g(1),
+        g(sy),
+        g(sy + 1),
+        g(sz),
+        g(sz + 1),
+        g(sz + sy),
+        g(sz + sy + 1),
+    ];
+    brickyard_core::trilinear(c, f, T::DTYPE.is_float())
 }

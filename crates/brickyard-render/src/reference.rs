@@ -10,8 +10,8 @@
 //!   `[x, y, z]`, [`Volume::extent`]); a world point `w` is sampled at the
 //!   normalized position `p = world_to_normalized(w, extent)` (`[z, y, x]`).
 //! - **Sampling** ([`Volume::sample`]): voxel coordinate `p·dims − 0.5`
-//!   clamped to `[0, dims − 1]` per axis, then trilinear with `f32`
-//!   weights, exactly as `brickyard_cache::vm::VirtualMemory::sample`
+//!   clamped to `[0, dims − 1]` per axis, then `brickyard_core::trilinear` (lerps along
+//!   x, y, z), exactly as `brickyard_cache::vm::VirtualMemory::sample`
 //!   (bit-identical for the same level).
 //! - **Steps** (DVR, MIP): along each ray, `(t0, t1)` is the part inside the
 //!   box ([`intersect_box`], `t ≥ 0`); samples are taken at
@@ -35,7 +35,7 @@ use crate::image::Image;
 use brickyard_core::camera::{
     dot, intersect_box, length, normalize, sub, world_extent, world_to_normalized, Ray, Vec3,
 };
-use brickyard_core::{dispatch_dtype, Camera, ConfigError, Sample, TransferFunction};
+use brickyard_core::{dispatch_dtype, trilinear, Camera, ConfigError, Sample, TransferFunction};
 use brickyard_store::import::zarr;
 use brickyard_store::{StoreError, VolumeSource};
 use rayon::prelude::*;
@@ -186,8 +186,9 @@ impl Volume {
 
     /// Clamp-to-edge trilinear sample at the normalized position
     /// `p = [z, y, x]` (the rule of `VirtualMemory::sample`: voxel
-    /// coordinate `p·dims − 0.5` clamped to `[0, dims − 1]`, `f32` weights,
-    /// accumulation in the order z, y, x, zero weights skipped).
+    /// coordinate `p·dims − 0.5` clamped to `[0, dims − 1]`, `f32`
+    /// fractions, then [`brickyard_core::trilinear`]: lerps along x, y, z,
+    /// a zero fraction taking the first value as it is).
     #[inline]
     pub fn sample(&self, p: [f64; 3]) -> f32 {
         let d = self.dims;
@@ -196,24 +197,24 @@ impl Volume {
         let b = q.map(|x| (x as u64) as f64);
         let base = [0, 1, 2].map(|a| b[a] as u64);
         let frac = [0, 1, 2].map(|a| (q[a] - b[a]) as f32);
-        let mut acc = 0.0f32;
-        for dz in 0..2u64 {
-            for dy in 0..2u64 {
-                for dx in 0..2u64 {
-                    let w = (if dz == 1 { frac[0] } else { 1.0 - frac[0] })
-                        * (if dy == 1 { frac[1] } else { 1.0 - frac[1] })
-                        * (if dx == 1 { frac[2] } else { 1.0 - frac[2] });
-                    if w != 0.0 {
-                        acc += w * self.voxel(
-                            (base[0] + dz).min(d[0] - 1),
-                            (base[1] + dy).min(d[1] - 1),
-                            (base[2] + dx).min(d[2] - 1),
-                        );
-                    }
-                }
-            }
-        }
-        acc
+        let v = |dz: u64, dy: u64, dx: u64| {
+            self.voxel(
+                (base[0] + dz).min(d[0] - 1),
+                (base[1] + dy).min(d[1] - 1),
+                (base[2] + dx).min(d[2] - 1),
+            )
+        };
+        let c = [
+            v(0, 0, 0),
+            v(0, 0, 1),
+            v(0, 1, 0),
+            v(0, 1, 1),
+            v(1, 0, 0),
+            v(1, 0, 1),
+            v(1, 1, 0),
+            v(1, 1, 1),
+        ];
+        trilinear(c, frac, true)
     }
 
     /// Sample at the world point `world` (`[x, y, z]`).
