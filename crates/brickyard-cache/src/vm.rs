@@ -585,20 +585,13 @@ impl VirtualMemory {
                     let b = self.cfg.brick;
                     let local = [0, 1, 2].map(|i| (base[i] % b[i]) as usize + a);
                     let value = if trilinear {
-                        let v = |dz: usize, dy: usize, dx: usize| {
-                            self.voxel(s, [local[0] + dz, local[1] + dy, local[2] + dx])
-                        };
-                        let corners = [
-                            v(0, 0, 0),
-                            v(0, 0, 1),
-                            v(0, 1, 0),
-                            v(0, 1, 1),
-                            v(1, 0, 0),
-                            v(1, 0, 1),
-                            v(1, 1, 0),
-                            v(1, 1, 1),
-                        ];
-                        brickyard_core::trilinear(corners, frac, true)
+                        brickyard_core::trilinear_of(
+                            |dz, dy, dx| {
+                                self.voxel(s, [local[0] + dz, local[1] + dy, local[2] + dx])
+                            },
+                            frac,
+                            true,
+                        )
                     } else {
                         self.voxel(s, local)
                     };

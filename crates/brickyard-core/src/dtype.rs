@@ -326,6 +326,26 @@ pub fn trilinear(c: [f32; 8], f: [f32; 3], skip_zero: bool) -> f32 {
     lerp(y0, y1, f[0], skip_zero)
 }
 
+/// [`trilinear`] of the corners `corner(dz, dy, dx)` (each 0 or 1).
+#[inline(always)]
+pub fn trilinear_of(
+    corner: impl Fn(usize, usize, usize) -> f32,
+    f: [f32; 3],
+    skip_zero: bool,
+) -> f32 {
+    let c = [
+        corner(0, 0, 0),
+        corner(0, 0, 1),
+        corner(0, 1, 0),
+        corner(0, 1, 1),
+        corner(1, 0, 0),
+        corner(1, 0, 1),
+        corner(1, 1, 0),
+        corner(1, 1, 1),
+    ];
+    trilinear(c, f, skip_zero)
+}
+
 /// View a byte buffer as a slice of samples (native endianness; brickyard
 /// only runs on little-endian targets).
 pub fn cast_slice<T: Sample>(b: &[u8]) -> &[T] {

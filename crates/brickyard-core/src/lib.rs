@@ -11,7 +11,9 @@ pub mod transfer;
 pub mod vm;
 
 pub use camera::{Camera, ConfigError, Projection, Ray};
-pub use dtype::{as_bytes, as_bytes_mut, cast_slice, cast_slice_mut, trilinear, DType, Sample};
+pub use dtype::{
+    as_bytes, as_bytes_mut, cast_slice, cast_slice_mut, trilinear, trilinear_of, DType, Sample,
+};
 pub use pyramid::{plan_levels, LevelPlan, PyramidPlan};
 pub use transfer::{ColorMap, TransferFunction};
 

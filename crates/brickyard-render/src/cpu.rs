@@ -432,11 +432,10 @@ impl<'a> Frame<'a> {
     /// the box `[lo, hi)` (voxels), or `t_max` if it does not before.
     fn exit_t(&self, l: usize, ray: &Ray, lo: Dims3, hi: Dims3, t_max: f64) -> f64 {
         let d = self.dims[l];
-        let ext = self.scene.extent;
         let mut t = t_max;
         for a in 0..3 {
             let wa = 2 - a; // world axis of zyx axis a
-            let s = d[a] as f64 / ext[wa];
+            let s = self.scale[l][a];
             let alpha = ray.origin[wa] * s - 0.5;
             let beta = ray.dir[wa] * s;
             if beta > 0.0 && hi[a] < d[a] {
@@ -926,16 +925,9 @@ fn clamp(x: f64, hi: f64) -> f64 {
 /// with strides `sz`, `sy` (x: 1), by [`brickyard_core::trilinear`].
 #[inline(always)]
 fn trilinear<T: Sample>(v: &[T], i: usize, sz: usize, sy: usize, f: [f32; 3]) -> f32 {
-    let g = |o: usize| v[i + o].to_f32();
-    let c = [
-        g(0),
-        g(1),
-        g(sy),
-        g(sy + 1),
-        g(sz),
-        g(sz + 1),
-        g(sz + sy),
-        g(sz + sy + 1),
-    ];
-    brickyard_core::trilinear(c, f, T::DTYPE.is_float())
+    brickyard_core::trilinear_of(
+        |dz, dy, dx| v[i + dz * sz + dy * sy + dx].to_f32(),
+        f,
+        T::DTYPE.is_float(),
+    )
 }

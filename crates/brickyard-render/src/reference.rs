@@ -35,7 +35,7 @@ use crate::image::Image;
 use brickyard_core::camera::{
     dot, intersect_box, length, normalize, sub, world_extent, world_to_normalized, Ray, Vec3,
 };
-use brickyard_core::{dispatch_dtype, trilinear, Camera, ConfigError, Sample, TransferFunction};
+use brickyard_core::{dispatch_dtype, trilinear_of, Camera, ConfigError, Sample, TransferFunction};
 use brickyard_store::import::zarr;
 use brickyard_store::{StoreError, VolumeSource};
 use rayon::prelude::*;
@@ -197,24 +197,17 @@ impl Volume {
         let b = q.map(|x| (x as u64) as f64);
         let base = [0, 1, 2].map(|a| b[a] as u64);
         let frac = [0, 1, 2].map(|a| (q[a] - b[a]) as f32);
-        let v = |dz: u64, dy: u64, dx: u64| {
-            self.voxel(
-                (base[0] + dz).min(d[0] - 1),
-                (base[1] + dy).min(d[1] - 1),
-                (base[2] + dx).min(d[2] - 1),
-            )
-        };
-        let c = [
-            v(0, 0, 0),
-            v(0, 0, 1),
-            v(0, 1, 0),
-            v(0, 1, 1),
-            v(1, 0, 0),
-            v(1, 0, 1),
-            v(1, 1, 0),
-            v(1, 1, 1),
-        ];
-        trilinear(c, frac, true)
+        trilinear_of(
+            |dz, dy, dx| {
+                self.voxel(
+                    (base[0] + dz as u64).min(d[0] - 1),
+                    (base[1] + dy as u64).min(d[1] - 1),
+                    (base[2] + dx as u64).min(d[2] - 1),
+                )
+            },
+            frac,
+            true,
+        )
     }
 
     /// Sample at the world point `world` (`[x, y, z]`).
@@ -546,19 +539,9 @@ pub fn render_channels(volumes: &[Volume], params: &RenderParams) -> Image {
                     }
                     RenderMode::Mip => match intersect_box(&ray, [0.0; 3], extent) {
                         Some((t0, t1)) if step_t(t0, 0, dt) < t1 => {
-                            let best = volumes.iter().map(|v| {
-                                let mut best = f32::NAN;
-                                let mut k = 0;
-                                loop {
-                                    let t = step_t(t0, k, dt);
-                                    if t >= t1 {
-                                        break;
-                                    }
-                                    k += 1;
-                                    best = best.max(v.sample_world(ray.at(t), extent));
-                                }
-                                best
-                            });
+                            let best = volumes
+                                .iter()
+                                .map(|v| max_along(v, &ray, (t0, t1), extent, dt));
                             mix_channels(styles, best)
                         }
                         _ => [0.0; 4],
@@ -598,11 +581,19 @@ fn dvr_ray(
 }
 
 fn mip_ray(vol: &Volume, tf: &TransferFunction, ray: &Ray, extent: Vec3, dt: f64) -> [f32; 4] {
-    let Some((t0, t1)) = intersect_box(ray, [0.0; 3], extent) else {
-        return [0.0; 4];
-    };
+    match intersect_box(ray, [0.0; 3], extent) {
+        Some((t0, t1)) => {
+            let hit = step_t(t0, 0, dt) < t1;
+            mip_color(tf, hit, max_along(vol, ray, (t0, t1), extent, dt))
+        }
+        None => [0.0; 4],
+    }
+}
+
+/// The largest sample along `ray` inside `(t0, t1)` (NaN ignored; NaN when
+/// there is none).
+fn max_along(vol: &Volume, ray: &Ray, (t0, t1): (f64, f64), extent: Vec3, dt: f64) -> f32 {
     let mut best = f32::NAN;
-    let mut hit = false;
     let mut k = 0u64;
     loop {
         let t = step_t(t0, k, dt);
@@ -610,12 +601,10 @@ fn mip_ray(vol: &Volume, tf: &TransferFunction, ray: &Ray, extent: Vec3, dt: f64
             break;
         }
         k += 1;
-        hit = true;
-        let v = vol.sample_world(ray.at(t), extent);
         // f32::max ignores NaN.
-        best = best.max(v);
+        best = best.max(vol.sample_world(ray.at(t), extent));
     }
-    mip_color(tf, hit, best)
+    best
 }
 
 fn slice_ray(
