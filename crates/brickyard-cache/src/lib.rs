@@ -29,6 +29,7 @@
 //! This crate never depends on a GPU API.
 
 pub mod brick;
+pub mod cells;
 pub mod host_cache;
 pub mod loader;
 pub mod ranges;

@@ -22,6 +22,8 @@
 //!    at most `upload_bytes_per_frame` per frame.
 
 use crate::brick::{BrickContent, BrickKey, LoadedBrick};
+use crate::cells::{cell_ranges, CELL_COUNT};
+use brickyard_core::cast_slice;
 use brickyard_core::vm::{PageEntry, PageFlag, VirtualLayout};
 use brickyard_core::{dispatch_dtype, DType, Dims3, Sample};
 use std::collections::HashMap;
@@ -310,10 +312,19 @@ pub struct VirtualMemory {
     /// sample type: slot offsets are multiples of the padded brick's
     /// voxel count times the sample size).
     pool: Vec<u64>,
+    /// Per pool slot, the value ranges of its brick's cells
+    /// ([`crate::cells`]), `CELL_COUNT` entries a slot.
+    cells: Vec<[f32; 2]>,
     slots: SlotSet,
     padded: [usize; 3],
     brick_bytes: usize,
     merged: Requests,
+}
+
+/// `u64` words viewed as bytes.
+fn words_as_bytes(w: &[u64]) -> &[u8] {
+    // SAFETY: same memory, 8 bytes a word, any bit pattern is a valid u8.
+    unsafe { std::slice::from_raw_parts(w.as_ptr() as *const u8, w.len() * 8) }
 }
 
 fn entry_kind(e: &PageEntry, dtype: DType) -> Kind {
@@ -368,6 +379,7 @@ impl VirtualMemory {
             pt,
             pt_block_len,
             pool: vec![0u64; (slots.len() * brick_bytes).div_ceil(8)],
+            cells: vec![[f32::NAN; 2]; slots.len() * CELL_COUNT],
             slots,
             padded,
             brick_bytes,
@@ -403,8 +415,7 @@ impl VirtualMemory {
     }
 
     fn pool(&self) -> &[u8] {
-        // SAFETY: u64 words viewed as bytes; same memory, any bit pattern.
-        unsafe { std::slice::from_raw_parts(self.pool.as_ptr() as *const u8, self.pool_bytes()) }
+        &words_as_bytes(&self.pool)[..self.pool_bytes()]
     }
 
     fn pool_mut(&mut self) -> &mut [u8] {
@@ -461,6 +472,27 @@ impl VirtualMemory {
             Kind::Unmapped => BrickRef::Unmapped,
         }
     }
+    /// The value ranges of the cells of the brick in pool slot `slot`
+    /// (from [`BrickRef::Data`]): [`CELL_COUNT`] entries, `[z][y][x]`; see
+    /// [`crate::cells`] for the cell geometry.
+    #[inline]
+    pub fn cell_ranges(&self, slot: u32) -> &[[f32; 2]] {
+        let o = slot as usize * CELL_COUNT;
+        &self.cells[o..o + CELL_COUNT]
+    }
+
+    fn write_cells(&mut self, slot: u32) {
+        let bb = self.brick_bytes;
+        let o = slot as usize * bb;
+        let (padded, brick, apron) = (self.padded, self.cfg.brick, self.cfg.apron);
+        let c = slot as usize * CELL_COUNT;
+        let pool = words_as_bytes(&self.pool);
+        let out = &mut self.cells[c..c + CELL_COUNT];
+        dispatch_dtype!(self.dtype, T => {
+            cell_ranges(cast_slice::<T>(&pool[o..o + bb]), padded, brick, apron, out)
+        });
+    }
+
     /// Record that pool slot `slot` (from [`BrickRef::Data`]) served a
     /// sample at its own level this frame. Bricks used only as stand-ins
     /// for finer, missing ones may be evicted in favour of finer bricks
@@ -809,6 +841,7 @@ impl VirtualMemory {
                     let dst = &mut self.pool_mut()[s as usize * bb..(s as usize + 1) * bb];
                     assert_eq!(bytes.len(), dst.len(), "brick size mismatch");
                     dst.copy_from_slice(bytes);
+                    self.write_cells(s);
                     // 3. reference
                     let coords = self.slots.coords(s);
                     self.set_entry(owner, PageEntry::mapped(coords));

@@ -34,6 +34,7 @@ use crate::reference::{
     composite_visible, mip_color, mix_channels, slice_point, step_t, RenderMode, RenderParams,
 };
 use brickyard_cache::brick::BrickKey;
+use brickyard_cache::cells;
 use brickyard_cache::ranges::BrickRanges;
 use brickyard_cache::vm::{BrickRef, Requests, VirtualMemory};
 use brickyard_core::camera::{intersect_box, Projection, Ray, Vec3};
@@ -58,6 +59,10 @@ pub struct Scene {
     /// Value ranges of the bricks, for empty-space skipping (`None`: only
     /// EMPTY/CONSTANT entries are skipped).
     pub ranges: Option<Arc<BrickRanges>>,
+    /// DVR: cross the cells of resident bricks that the transfer function
+    /// maps to zero opacity without sampling them (the image is the same
+    /// either way; off only to measure or test the saving).
+    pub skip_cells: bool,
 }
 
 impl Scene {
@@ -69,6 +74,7 @@ impl Scene {
             levels,
             channel: 0,
             ranges: None,
+            skip_cells: true,
         }
     }
 
@@ -107,6 +113,12 @@ pub struct FrameStats {
     /// Ray steps walked (DVR, MIP): samples plus steps inside skipped
     /// bricks before a jump.
     pub steps: u64,
+    /// DVR: samples whose value the transfer function maps to zero
+    /// opacity (taken, but adding nothing).
+    pub transparent: u64,
+    /// DVR: cells of resident bricks crossed without sampling (every
+    /// sample in them transparent), counted per ray and cell.
+    pub skipped_cells: u64,
 }
 
 impl FrameStats {
@@ -125,6 +137,8 @@ impl FrameStats {
         self.unserved += o.unserved;
         self.skipped_bricks += o.skipped_bricks;
         self.steps += o.steps;
+        self.transparent += o.transparent;
+        self.skipped_cells += o.skipped_cells;
     }
 }
 
@@ -276,6 +290,10 @@ struct Frame<'a> {
     /// DVR: per level, whether each brick of the scene's channel is
     /// transparent under the transfer function (from the ranges).
     transparent: Vec<Option<Vec<bool>>>,
+    /// Voxels per cell edge of a brick ([`brickyard_cache::cells`]).
+    cell_edge: Dims3,
+    /// `log2(cell_edge)` per axis when every edge is a power of two.
+    cell_shift: Option<[u32; 3]>,
 }
 
 impl<'a> Frame<'a> {
@@ -342,6 +360,11 @@ impl<'a> Frame<'a> {
             voxel: (0..nl).map(|l| scene.voxel(l)).collect(),
             fp_slope,
             transparent,
+            cell_edge: cells::cell_edge(cfg.brick),
+            cell_shift: cells::cell_edge(cfg.brick)
+                .iter()
+                .all(|e| e.is_power_of_two())
+                .then(|| cells::cell_edge(cfg.brick).map(|e| e.trailing_zeros())),
         }
     }
 
@@ -370,6 +393,29 @@ impl<'a> Frame<'a> {
                 v[2] / self.brick[2],
             ],
         }
+    }
+
+    /// The cell of base voxel `v` of the brick whose first voxel is `lo`.
+    #[inline(always)]
+    fn cell_of(&self, v: Dims3, lo: Dims3) -> usize {
+        let u = [v[0] - lo[0], v[1] - lo[1], v[2] - lo[2]];
+        match self.cell_shift {
+            Some(s) => {
+                (((u[0] >> s[0]) as usize * cells::CELLS) + (u[1] >> s[1]) as usize) * cells::CELLS
+                    + (u[2] >> s[2]) as usize
+            }
+            None => cells::cell_index(u, self.cell_edge),
+        }
+    }
+
+    /// The voxel box `[lo, hi)` of cell `cell` of the brick `[blo, bhi)`.
+    fn cell_box(&self, cell: usize, blo: Dims3, bhi: Dims3) -> (Dims3, Dims3) {
+        let n = cells::CELLS;
+        let c = [cell / (n * n), (cell / n) % n, cell % n];
+        let e = self.cell_edge;
+        let lo = [0, 1, 2].map(|a| blo[a] + c[a] as u64 * e[a]);
+        let hi = [0, 1, 2].map(|a| (lo[a] + e[a]).min(bhi[a]));
+        (lo, hi)
     }
 
     /// The level a sample at distance `t` asks for.
@@ -428,20 +474,43 @@ impl<'a> Frame<'a> {
         )
     }
 
-    /// The ray parameter where the clamped voxel base of level `l` leaves
-    /// the box `[lo, hi)` (voxels), or `t_max` if it does not before.
-    fn exit_t(&self, l: usize, ray: &Ray, lo: Dims3, hi: Dims3, t_max: f64) -> f64 {
-        let d = self.dims[l];
+    /// Ray `ray` in the voxel coordinates of level `l`.
+    fn track(&self, l: usize, ray: &Ray) -> Track {
+        let s = self.scale[l];
+        let alpha = [0, 1, 2].map(|a| ray.origin[2 - a] * s[a] - 0.5);
+        let beta = [0, 1, 2].map(|a| ray.dir[2 - a] * s[a]);
+        Track {
+            alpha,
+            beta,
+            inv_beta: beta.map(|b| 1.0 / b),
+            dims: self.dims[l],
+        }
+    }
+}
+
+/// A ray in the voxel coordinates of one level, `q(t) = alpha + beta·t`
+/// per axis `[z, y, x]`, for finding where it leaves boxes of voxels.
+#[derive(Clone, Copy)]
+struct Track {
+    alpha: [f64; 3],
+    beta: [f64; 3],
+    inv_beta: [f64; 3],
+    dims: Dims3,
+}
+
+impl Track {
+    /// About the ray parameter where the clamped voxel base leaves the box
+    /// `[lo, hi)` (voxels), or `t_max` if it does not before. (Callers land
+    /// steps early enough that the rounding of `1/beta` does not matter.)
+    #[inline]
+    fn exit_t(&self, lo: Dims3, hi: Dims3, t_max: f64) -> f64 {
         let mut t = t_max;
         for a in 0..3 {
-            let wa = 2 - a; // world axis of zyx axis a
-            let s = self.scale[l][a];
-            let alpha = ray.origin[wa] * s - 0.5;
-            let beta = ray.dir[wa] * s;
-            if beta > 0.0 && hi[a] < d[a] {
-                t = t.min((hi[a] as f64 - alpha) / beta);
-            } else if beta < 0.0 && lo[a] > 0 {
-                t = t.min((lo[a] as f64 - alpha) / beta);
+            let b = self.beta[a];
+            if b > 0.0 && hi[a] < self.dims[a] {
+                t = t.min((hi[a] as f64 - self.alpha[a]) * self.inv_beta[a]);
+            } else if b < 0.0 && lo[a] > 0 {
+                t = t.min((lo[a] as f64 - self.alpha[a]) * self.inv_beta[a]);
             }
         }
         t
@@ -470,6 +539,9 @@ struct Cached<'a, T> {
     range: [f32; 2],
     /// DVR: every sample in it is transparent.
     transparent: bool,
+    /// DVR, resident bricks: bit `i` set when every sample of cell `i` is
+    /// transparent.
+    clear_cells: u64,
     /// Samples that missed it, not yet handed to the request collector.
     missed: u32,
     /// Pool slot of a resident brick (`u32::MAX` otherwise).
@@ -487,6 +559,7 @@ impl<T> Cached<'_, T> {
         content: Content::Unresolved,
         range: [f32::NAN; 2],
         transparent: false,
+        clear_cells: 0,
         missed: 0,
         slot: u32::MAX,
         marked: true,
@@ -602,6 +675,7 @@ impl<'f, 'a, T: Sample> Walker<'f, 'a, T> {
             content: Content::Unresolved,
             range,
             transparent,
+            clear_cells: 0,
             missed: 0,
             slot: u32::MAX,
             marked: true,
@@ -633,6 +707,17 @@ impl<'f, 'a, T: Sample> Walker<'f, 'a, T> {
             BrickRef::Data { voxels, slot } => {
                 c.slot = slot;
                 c.marked = exact;
+                if matches!(f.params.mode, RenderMode::Dvr)
+                    && self.channel == f.scene.channel
+                    && f.scene.skip_cells
+                {
+                    c.clear_cells =
+                        f.vm.cell_ranges(slot)
+                            .iter()
+                            .enumerate()
+                            .filter(|(_, &[lo, hi])| f.tf.max_opacity(lo, hi) <= 0.0)
+                            .fold(0u64, |m, (i, _)| m | 1 << i);
+                }
                 Content::Data(cast_slice::<T>(voxels))
             }
         };
@@ -709,6 +794,8 @@ impl<'f, 'a, T: Sample> Walker<'f, 'a, T> {
         let mut level = f.level_at(t0);
         let mut next_t = f.next_level_t(level);
         let mut dt = f.voxel[level] / spv;
+        let mut inv_dt = 1.0 / dt;
+        let mut track = f.track(level, ray);
         let mut exponent = (dt / reference) as f32;
         let mut base_t = t0;
         let mut k = 0u64;
@@ -725,6 +812,8 @@ impl<'f, 'a, T: Sample> Walker<'f, 'a, T> {
                     base_t = t;
                     k = 0;
                     dt = f.voxel[level] / spv;
+                    inv_dt = 1.0 / dt;
+                    track = f.track(level, ray);
                     exponent = (dt / reference) as f32;
                 }
                 next_t = f.next_level_t(level);
@@ -741,24 +830,44 @@ impl<'f, 'a, T: Sample> Walker<'f, 'a, T> {
             if c.transparent {
                 let (lo, hi) = (c.lo, c.hi);
                 st.skipped_bricks += 1;
-                let te = f.exit_t(level, ray, lo, hi, t1.min(next_t));
-                k = k.max(jump_k(base_t, te, dt));
+                let te = track.exit_t(lo, hi, t1.min(next_t));
+                k = k.max(jump_k(base_t, te, inv_dt));
                 continue;
             }
             if let Content::Data(vox) = c.content {
                 // Resident at the level asked for: stay in this brick for
                 // as many steps as it holds (same positions, same
                 // arithmetic as the general path below).
-                let (lo, hi) = (c.lo, c.hi);
+                let (lo, hi, clear) = (c.lo, c.hi, c.clear_cells);
                 let limit = t1.min(next_t);
                 let (mut b, mut fr) = (vb, frac);
                 let mut n = 0u64;
+                // The clear cell last jumped over (samples the jump, which
+                // lands early, leaves in it are passed over without another).
+                let mut passed = usize::MAX;
+                let mut steps = 0u64;
                 let done = loop {
-                    n += 1;
-                    let v = trilinear(vox, f.local_index(b, lo), f.stride[0], f.stride[1], fr);
-                    if let Some(c) = f.tf_eval.lookup_visible(v) {
-                        if composite_visible(&mut acc, c, exponent) {
-                            break true;
+                    steps += 1;
+                    let cell = f.cell_of(b, lo);
+                    if clear >> cell & 1 != 0 {
+                        // Every sample here is transparent: jump to the
+                        // cell's exit (positions stay on the step grid).
+                        if cell != passed {
+                            passed = cell;
+                            st.skipped_cells += 1;
+                            let (clo, chi) = f.cell_box(cell, lo, hi);
+                            let te = track.exit_t(clo, chi, limit);
+                            k = k.max(jump_k(base_t, te, inv_dt));
+                        }
+                    } else {
+                        n += 1;
+                        let v = trilinear(vox, f.local_index(b, lo), f.stride[0], f.stride[1], fr);
+                        if let Some(c) = f.tf_eval.lookup_visible(v) {
+                            if composite_visible(&mut acc, c, exponent) {
+                                break true;
+                            }
+                        } else {
+                            st.transparent += 1;
                         }
                     }
                     let tn = step_t(base_t, k, dt);
@@ -775,14 +884,14 @@ impl<'f, 'a, T: Sample> Walker<'f, 'a, T> {
                 };
                 st.samples += n;
                 st.exact += n;
-                st.steps += n - 1;
+                st.steps += steps - 1;
                 if done {
                     break;
                 }
                 continue;
             }
             let Some(v) = self.value(level, w, vb, frac, req, st) else {
-                k = self.skip_unserved(level, ray, (base_t, k, dt), t1.min(next_t), st);
+                k = self.skip_unserved(level, &track, (base_t, k, inv_dt), t1.min(next_t), st);
                 continue;
             };
             if let Some(c) = f.tf_eval.lookup_visible(v) {
@@ -803,14 +912,14 @@ impl<'f, 'a, T: Sample> Walker<'f, 'a, T> {
     fn skip_unserved(
         &mut self,
         level: usize,
-        ray: &Ray,
-        (base_t, k, dt): (f64, u64, f64),
+        track: &Track,
+        (base_t, k, inv_dt): (f64, u64, f64),
         limit: f64,
         st: &mut FrameStats,
     ) -> u64 {
         let c = &mut self.cache[level];
-        let te = self.f.exit_t(level, ray, c.lo, c.hi, limit);
-        let kn = jump_k(base_t, te, dt).max(k);
+        let te = track.exit_t(c.lo, c.hi, limit);
+        let kn = jump_k(base_t, te, inv_dt).max(k);
         let n = kn - k;
         st.samples += n;
         st.unserved += n;
@@ -842,6 +951,8 @@ impl<'f, 'a, T: Sample> Walker<'f, 'a, T> {
         let f = self.f;
         let level = f.level_at(t0);
         let dt = f.voxel[level] / f.params.samples_per_voxel;
+        let inv_dt = 1.0 / dt;
+        let track = f.track(level, ray);
         let mut best = f32::NAN;
         let mut hit = false;
         let mut k = 0u64;
@@ -860,14 +971,14 @@ impl<'f, 'a, T: Sample> Walker<'f, 'a, T> {
             if c.range[1] <= best {
                 let (lo, hi) = (c.lo, c.hi);
                 st.skipped_bricks += 1;
-                let te = f.exit_t(level, ray, lo, hi, t1);
-                k = k.max(jump_k(t0, te, dt));
+                let te = track.exit_t(lo, hi, t1);
+                k = k.max(jump_k(t0, te, inv_dt));
                 continue;
             }
             match self.value(level, w, vb, frac, req, st) {
                 // f32::max ignores NaN.
                 Some(v) => best = best.max(v),
-                None => k = self.skip_unserved(level, ray, (t0, k, dt), t1, st),
+                None => k = self.skip_unserved(level, &track, (t0, k, inv_dt), t1, st),
             }
         }
         hit.then_some(best)
@@ -893,13 +1004,12 @@ impl<'f, 'a, T: Sample> Walker<'f, 'a, T> {
 /// early, so rounding never skips a sample that is still needed: the ones
 /// still inside the skipped brick are recognised and skipped again).
 #[inline]
-fn jump_k(base_t: f64, t_exit: f64, dt: f64) -> u64 {
-    let x = ((t_exit - base_t) / dt - 0.5).ceil() - 2.0;
-    if x > 0.0 {
-        x as u64
-    } else {
-        0
-    }
+fn jump_k(base_t: f64, t_exit: f64, inv_dt: f64) -> u64 {
+    // ceil(x) − 2 without a libm call (x is finite; the cast saturates).
+    let x = (t_exit - base_t) * inv_dt - 0.5;
+    let i = x as i64;
+    let ceil = if (i as f64) < x { i + 1 } else { i };
+    (ceil - 2).max(0) as u64
 }
 
 /// Whether voxel `v` lies in the box `[lo, hi)`.

@@ -7,7 +7,7 @@ use brickyard_cache::session::Session;
 use brickyard_cache::vm::VmConfig;
 use brickyard_core::camera::{world_extent, Camera, Projection};
 use brickyard_core::{DType, TransferFunction};
-use brickyard_render::cpu::{render_frame, Lod, Scene};
+use brickyard_render::cpu::{render_frame, FrameStats, Lod, Scene};
 use brickyard_render::reference::{render, RenderMode, RenderParams, Volume};
 use brickyard_store::builder::{convert, ConvertOptions, NoProgress};
 use brickyard_store::generate::{Kind, Procedural};
@@ -281,15 +281,15 @@ fn real_mr_volume_out_of_core_equals_the_reference() {
     }
 }
 
-/// Frames until complete with the given scene; returns the image and the
-/// bricks the loader produced.
+/// Frames until complete with the given scene; returns the image, the
+/// bricks the loader produced and the statistics of one more frame.
 fn converge_counting(
     store: &Path,
     pool: u64,
     scene: &Scene,
     p: &RenderParams,
     lod: Lod,
-) -> (brickyard_render::image::Image, u64, u64) {
+) -> (brickyard_render::image::Image, u64, FrameStats) {
     // Engine bricks of 8 inside store bricks of 16: most padded bricks lie
     // inside one store brick, so their ranges are as tight as the
     // statistics.
@@ -297,7 +297,7 @@ fn converge_counting(
     let (img, _, _) = converge(&mut s, scene, p, lod);
     s.begin_frame();
     let (_, st, _) = render_frame(s.vm(), scene, p, lod);
-    (img, s.loader().bricks_loaded(), st.skipped_bricks)
+    (img, s.loader().bricks_loaded(), st)
 }
 
 #[test]
@@ -314,8 +314,9 @@ fn empty_space_skipping_changes_no_pixel_and_loads_less() {
     );
     let levels = pyramid(&store);
     let extent = world_extent(dims, levels[0].spacing);
-    let plain = Scene::new(extent, levels.iter().map(|v| v.dims).collect());
+    let mut plain = Scene::new(extent, levels.iter().map(|v| v.dims).collect());
     let mut skipping = plain.clone();
+    plain.skip_cells = false;
     skipping.ranges = Some(std::sync::Arc::new(
         session_with(&store, 1 << 20, 8)
             .loader()
@@ -340,10 +341,10 @@ fn empty_space_skipping_changes_no_pixel_and_loads_less() {
     for mode in [RenderMode::Dvr, RenderMode::Mip] {
         let mut p = RenderParams::new(64, 64, cam, tf.clone(), mode.clone());
         p.reference_step = Some(plain.voxel(0));
-        let (a, loaded_a, skipped_a) =
-            converge_counting(&store, vol_bytes, &plain, &p, Lod::Fixed(0));
-        let (b, loaded_b, skipped_b) =
+        let (a, loaded_a, st_a) = converge_counting(&store, vol_bytes, &plain, &p, Lod::Fixed(0));
+        let (b, loaded_b, st_b) =
             converge_counting(&store, vol_bytes, &skipping, &p, Lod::Fixed(0));
+        let (skipped_a, skipped_b) = (st_a.skipped_bricks, st_b.skipped_bricks);
         assert_eq!(a.max_abs_diff(&b), 0.0, "{mode:?}: skipping changed pixels");
         let want = render(&levels[0], &p);
         assert!(b.max_abs_diff(&want) <= 1e-5, "{mode:?}");
@@ -353,6 +354,14 @@ fn empty_space_skipping_changes_no_pixel_and_loads_less() {
             "{mode:?}: ranges skip more ({skipped_a} → {skipped_b})"
         );
         if mode == RenderMode::Dvr {
+            assert_eq!(st_a.skipped_cells, 0);
+            assert!(st_b.skipped_cells > 0, "no transparent cell crossed");
+            assert!(
+                st_b.samples < st_a.samples,
+                "cells save samples ({} → {})",
+                st_a.samples,
+                st_b.samples
+            );
             assert!(
                 loaded_b < loaded_a,
                 "{mode:?}: transparent bricks are not loaded ({loaded_a} → {loaded_b})"

@@ -51,6 +51,9 @@ pub struct BenchCmd {
     /// render: brick-pool budget (default: half the volume plus 32 MiB).
     #[arg(long)]
     pool: Option<String>,
+    /// render: leave out the in-core reference renderer (for profiling).
+    #[arg(long)]
+    no_reference: bool,
 }
 
 pub fn run(b: BenchCmd) -> Result<()> {
@@ -65,7 +68,14 @@ pub fn run(b: BenchCmd) -> Result<()> {
         "latency" => crate::vmbench::latency(&b.dir, dims, dtype, b.cold),
         "render" => {
             let pool = b.pool.as_deref().map(crate::parse_bytes).transpose()?;
-            crate::vmbench::render(&b.dir, dims, dtype, b.image, b.repeat, b.cold, pool)
+            let o = crate::vmbench::RenderBench {
+                image: b.image,
+                repeat: b.repeat,
+                cold: b.cold,
+                pool,
+                reference: !b.no_reference,
+            };
+            crate::vmbench::render(&b.dir, dims, dtype, &o)
         }
         s => bail!(
             "scenario: expected convert, downsample, vm-sample, vm-update, loader, latency or render, found {s:?}"

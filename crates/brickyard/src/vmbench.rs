@@ -399,15 +399,27 @@ fn session_with_cache(st: &Path, cfg: VmConfig, cache: Arc<HostCache>) -> Result
 /// DVR frame times through the virtual memory (warm: everything resident;
 /// cold: from an empty pool to a complete view) beside the in-core
 /// reference renderer on the same level, same camera and transfer function.
-pub fn render(
-    dir: &Path,
-    dims: Dims3,
-    dtype: DType,
-    image: u32,
-    repeat: usize,
-    cold: bool,
-    pool: Option<u64>,
-) -> Result<()> {
+/// Options of the render benchmark.
+pub struct RenderBench {
+    /// Image edge in pixels.
+    pub image: u32,
+    pub repeat: usize,
+    /// Drop the page cache first.
+    pub cold: bool,
+    /// Brick-pool budget (default: half the volume plus 32 MiB).
+    pub pool: Option<u64>,
+    /// Also time the in-core reference renderer.
+    pub reference: bool,
+}
+
+pub fn render(dir: &Path, dims: Dims3, dtype: DType, o: &RenderBench) -> Result<()> {
+    let RenderBench {
+        image,
+        repeat,
+        cold,
+        pool,
+        reference: with_reference,
+    } = *o;
     use brickyard_core::camera::{world_extent, Camera, Projection};
     use brickyard_core::TransferFunction;
     use brickyard_render::cpu::{render_frame, Lod, Scene};
@@ -471,6 +483,8 @@ pub fn render(
     let mut samples = 0;
     let mut steps = 0;
     let mut skipped = 0;
+    let mut transparent = 0;
+    let mut skipped_cells = 0;
     for _ in 0..repeat.max(1) {
         s.begin_frame();
         let t = Instant::now();
@@ -479,16 +493,20 @@ pub fn render(
         samples = stt.samples;
         steps = stt.steps;
         skipped = stt.skipped_bricks;
+        transparent = stt.transparent;
+        skipped_cells = stt.skipped_cells;
         s.finish_frame(reqs.iter());
     }
     let bytes_read = s.loader().bytes_read();
     let pool_bytes = s.vm().pool_bytes();
     drop(s);
-    let vol = Volume::from_store(&st, 0, 0)?;
-    let mut reference = f64::INFINITY;
-    for _ in 0..repeat.max(1) {
+    let mut reference = f64::NAN;
+    let vol = with_reference
+        .then(|| Volume::from_store(&st, 0, 0))
+        .transpose()?;
+    for vol in std::iter::repeat_n(vol.as_ref(), repeat.max(1)).flatten() {
         let t = Instant::now();
-        let _ = render_ref(&vol, &p);
+        let _ = render_ref(vol, &p);
         reference = reference.min(t.elapsed().as_secs_f64());
     }
     println!(
@@ -496,7 +514,7 @@ pub fn render(
         json!({"scenario": "render", "mode": "dvr", "size": [dims[2], dims[1], dims[0]], "dtype": dtype.short_name(),
             "image": [image, image], "pool_bytes": pool_bytes, "volume_bytes": vox * dtype.size() as u64,
             "cold": dropped, "first_frame_ms": first_frame_ms, "cold_to_complete_s": cold_s, "cold_frames": frames, "bytes_read": bytes_read,
-            "warm_frame_ms": warm * 1e3, "warm_samples": samples, "warm_steps": steps, "warm_skipped_bricks": skipped, "warm_msamples_s": samples as f64 / warm / 1e6,
+            "warm_frame_ms": warm * 1e3, "warm_samples": samples, "warm_steps": steps, "warm_skipped_bricks": skipped, "warm_transparent_samples": transparent, "warm_skipped_cells": skipped_cells, "warm_msamples_s": samples as f64 / warm / 1e6,
             "reference_frame_ms": reference * 1e3, "threads": rayon::current_num_threads()})
     );
     Ok(())
