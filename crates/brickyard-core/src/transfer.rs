@@ -651,6 +651,9 @@ pub struct TfEval<'a> {
     /// `1 / (w1 − w0)`, as [`TransferFunction::normalize`] computes it.
     inv_width: f32,
     opacity_seg: Vec<u16>,
+    /// Per bin: every `x` of it has opacity 0 (its segment is known and
+    /// the piece never rises above 0), so the lookup ends there.
+    clear: Vec<bool>,
     color_seg: Vec<u16>,
     /// The pieces of the opacity and of the colour map's three channels,
     /// by segment index.
@@ -663,14 +666,20 @@ impl TransferFunction {
     pub fn evaluator(&self) -> TfEval<'_> {
         let op = &self.opacity;
         let cm = self.colormap.points();
+        let opacity_seg = segment_table(op.iter().map(|p| p[0]));
+        let opacity_pieces: Vec<Piece> = (0..=op.len())
+            .map(|i| piece(op, i, |p| p[0], |p| p[1]))
+            .collect();
         TfEval {
             tf: self,
             inv_width: 1.0 / (self.window[1] - self.window[0]),
-            opacity_seg: segment_table(op.iter().map(|p| p[0])),
-            color_seg: segment_table(cm.iter().map(|p| p[0])),
-            opacity_pieces: (0..=op.len())
-                .map(|i| piece(op, i, |p| p[0], |p| p[1]))
+            clear: opacity_seg
+                .iter()
+                .map(|&s| s != u16::MAX && opacity_pieces[s as usize].hi <= 0.0)
                 .collect(),
+            opacity_seg,
+            color_seg: segment_table(cm.iter().map(|p| p[0])),
+            opacity_pieces,
             color_pieces: (0..=cm.len())
                 .map(|i| [1, 2, 3].map(|c| piece(cm, i, |p| p[0], |p| p[c])))
                 .collect(),
@@ -692,7 +701,7 @@ fn eval_segment<P>(
 
 impl TfEval<'_> {
     /// Exactly [`TransferFunction::lookup_visible`].
-    #[inline]
+    #[inline(always)]
     pub fn lookup_visible(&self, value: f32) -> Option<[f32; 4]> {
         if value.is_nan() {
             return None;
@@ -700,6 +709,9 @@ impl TfEval<'_> {
         let tf = self.tf;
         let x = ((value - tf.window[0]) * self.inv_width).clamp(0.0, 1.0);
         let bin = bin_of(x);
+        if self.clear[bin] {
+            return None;
+        }
         let i = match self.opacity_seg[bin] {
             u16::MAX => tf.opacity.partition_point(|p| p[0] <= x),
             s => s as usize,

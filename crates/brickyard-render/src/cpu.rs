@@ -424,7 +424,10 @@ impl<'a> Frame<'a> {
         match self.lod {
             Lod::Fixed(l) => l.min(n - 1),
             Lod::Auto { bias } => {
-                let fp = self.params.camera.pixel_footprint(t, self.params.height);
+                let fp = match self.fp_slope {
+                    0.0 => self.params.camera.pixel_footprint(t, self.params.height),
+                    slope => slope * t,
+                };
                 let l = (fp / self.voxel[0]).log2() + bias;
                 if l.is_finite() && l > 0.0 {
                     (l.floor() as usize).min(n - 1)
@@ -474,6 +477,42 @@ impl<'a> Frame<'a> {
         )
     }
 
+    /// After step `k − 1`, which lies in the box `[lo, hi)` (voxels) of
+    /// level `l`, the box is crossed without sampling: the step to go on
+    /// from, the first from `k` on whose voxel base may lie outside the box
+    /// or whose parameter reaches `limit`. Estimated from where the ray
+    /// leaves the box and checked on the step before: the voxel base moves
+    /// monotonically along the ray, so the steps inside a box are
+    /// consecutive, and a landing whose previous step is inside (and
+    /// before `limit`) skips only steps inside.
+    #[inline]
+    fn land(
+        &self,
+        l: usize,
+        ray: &Ray,
+        track: &Track,
+        g: Grid,
+        k: u64,
+        (lo, hi): (Dims3, Dims3),
+        limit: f64,
+    ) -> u64 {
+        let te = track.exit_t(lo, hi, limit);
+        // First grid step at or after the exit (a thousandth of a step
+        // early: ties land before).
+        let x = (te - g.base_t) * g.inv_dt - 0.5 - 1e-3;
+        let i = x as i64; // finite; the cast saturates
+        let mut kk = (if (i as f64) < x { i + 1 } else { i }).max(0) as u64;
+        // Back off an overshoot (rounding of the estimate).
+        while kk > k {
+            let t = step_t(g.base_t, kk - 1, g.dt);
+            if t < limit && inside(self.coords(l, ray.at(t)).0, lo, hi) {
+                break;
+            }
+            kk -= 1;
+        }
+        kk.max(k)
+    }
+
     /// Ray `ray` in the voxel coordinates of level `l`.
     fn track(&self, l: usize, ray: &Ray) -> Track {
         let s = self.scale[l];
@@ -488,6 +527,14 @@ impl<'a> Frame<'a> {
     }
 }
 
+/// The step grid of a ray at one level: step `k` at `base_t + (k + ½)·dt`.
+#[derive(Clone, Copy)]
+struct Grid {
+    base_t: f64,
+    dt: f64,
+    inv_dt: f64,
+}
+
 /// A ray in the voxel coordinates of one level, `q(t) = alpha + beta·t`
 /// per axis `[z, y, x]`, for finding where it leaves boxes of voxels.
 #[derive(Clone, Copy)]
@@ -500,8 +547,8 @@ struct Track {
 
 impl Track {
     /// About the ray parameter where the clamped voxel base leaves the box
-    /// `[lo, hi)` (voxels), or `t_max` if it does not before. (Callers land
-    /// steps early enough that the rounding of `1/beta` does not matter.)
+    /// `[lo, hi)` (voxels), or `t_max` if it does not before (an estimate:
+    /// [`Frame::land`] checks it).
     #[inline]
     fn exit_t(&self, lo: Dims3, hi: Dims3, t_max: f64) -> f64 {
         let mut t = t_max;
@@ -830,8 +877,8 @@ impl<'f, 'a, T: Sample> Walker<'f, 'a, T> {
             if c.transparent {
                 let (lo, hi) = (c.lo, c.hi);
                 st.skipped_bricks += 1;
-                let te = track.exit_t(lo, hi, t1.min(next_t));
-                k = k.max(jump_k(base_t, te, inv_dt));
+                let g = Grid { base_t, dt, inv_dt };
+                k = f.land(level, ray, &track, g, k, (lo, hi), t1.min(next_t));
                 continue;
             }
             if let Content::Data(vox) = c.content {
@@ -856,8 +903,8 @@ impl<'f, 'a, T: Sample> Walker<'f, 'a, T> {
                             passed = cell;
                             st.skipped_cells += 1;
                             let (clo, chi) = f.cell_box(cell, lo, hi);
-                            let te = track.exit_t(clo, chi, limit);
-                            k = k.max(jump_k(base_t, te, inv_dt));
+                            let g = Grid { base_t, dt, inv_dt };
+                            k = f.land(level, ray, &track, g, k, (clo, chi), limit);
                         }
                     } else {
                         n += 1;
@@ -891,7 +938,8 @@ impl<'f, 'a, T: Sample> Walker<'f, 'a, T> {
                 continue;
             }
             let Some(v) = self.value(level, w, vb, frac, req, st) else {
-                k = self.skip_unserved(level, &track, (base_t, k, inv_dt), t1.min(next_t), st);
+                let g = Grid { base_t, dt, inv_dt };
+                k = self.skip_unserved(level, ray, &track, (g, k), t1.min(next_t), st);
                 continue;
             };
             if let Some(c) = f.tf_eval.lookup_visible(v) {
@@ -912,14 +960,15 @@ impl<'f, 'a, T: Sample> Walker<'f, 'a, T> {
     fn skip_unserved(
         &mut self,
         level: usize,
+        ray: &Ray,
         track: &Track,
-        (base_t, k, inv_dt): (f64, u64, f64),
+        (g, k): (Grid, u64),
         limit: f64,
         st: &mut FrameStats,
     ) -> u64 {
+        let c = &self.cache[level];
+        let kn = self.f.land(level, ray, track, g, k, (c.lo, c.hi), limit);
         let c = &mut self.cache[level];
-        let te = track.exit_t(c.lo, c.hi, limit);
-        let kn = jump_k(base_t, te, inv_dt).max(k);
         let n = kn - k;
         st.samples += n;
         st.unserved += n;
@@ -971,14 +1020,25 @@ impl<'f, 'a, T: Sample> Walker<'f, 'a, T> {
             if c.range[1] <= best {
                 let (lo, hi) = (c.lo, c.hi);
                 st.skipped_bricks += 1;
-                let te = track.exit_t(lo, hi, t1);
-                k = k.max(jump_k(t0, te, inv_dt));
+                let g = Grid {
+                    base_t: t0,
+                    dt,
+                    inv_dt,
+                };
+                k = f.land(level, ray, &track, g, k, (lo, hi), t1);
                 continue;
             }
             match self.value(level, w, vb, frac, req, st) {
                 // f32::max ignores NaN.
                 Some(v) => best = best.max(v),
-                None => k = self.skip_unserved(level, &track, (t0, k, inv_dt), t1, st),
+                None => {
+                    let g = Grid {
+                        base_t: t0,
+                        dt,
+                        inv_dt,
+                    };
+                    k = self.skip_unserved(level, ray, &track, (g, k), t1, st)
+                }
             }
         }
         hit.then_some(best)
@@ -998,18 +1058,6 @@ impl<'f, 'a, T: Sample> Walker<'f, 'a, T> {
         self.enter(level, vb, req, true);
         self.value(level, w, vb, frac, req, st)
     }
-}
-
-/// The step index from which on samples may lie beyond `t_exit` (two steps
-/// early, so rounding never skips a sample that is still needed: the ones
-/// still inside the skipped brick are recognised and skipped again).
-#[inline]
-fn jump_k(base_t: f64, t_exit: f64, inv_dt: f64) -> u64 {
-    // ceil(x) − 2 without a libm call (x is finite; the cast saturates).
-    let x = (t_exit - base_t) * inv_dt - 0.5;
-    let i = x as i64;
-    let ceil = if (i as f64) < x { i + 1 } else { i };
-    (ceil - 2).max(0) as u64
 }
 
 /// Whether voxel `v` lies in the box `[lo, hi)`.
