@@ -478,7 +478,7 @@ impl<'a> Frame<'a> {
     }
 
     /// After step `k − 1`, which lies in the box `[lo, hi)` (voxels) of
-    /// level `l`, the box is crossed without sampling: the step to go on
+    /// the track's level, the box is crossed without sampling: the step to go on
     /// from, the first from `k` on whose voxel base may lie outside the box
     /// or whose parameter reaches `limit`. Estimated from where the ray
     /// leaves the box and checked on the step before: the voxel base moves
@@ -488,7 +488,6 @@ impl<'a> Frame<'a> {
     #[inline]
     fn land(
         &self,
-        l: usize,
         ray: &Ray,
         track: &Track,
         g: Grid,
@@ -516,7 +515,7 @@ impl<'a> Frame<'a> {
         let mut kk = first(0.0);
         while kk > k {
             let t = step_t(g.base_t, kk - 1, g.dt);
-            if t < limit && inside(self.coords(l, ray.at(t)).0, lo, hi) {
+            if t < limit && inside(self.coords(track.level, ray.at(t)).0, lo, hi) {
                 break;
             }
             kk -= 1;
@@ -547,6 +546,7 @@ impl<'a> Frame<'a> {
             beta,
             inv_beta,
             dims: self.dims[l],
+            level: l,
             slack,
         }
     }
@@ -568,6 +568,7 @@ struct Track {
     beta: [f64; 3],
     inv_beta: [f64; 3],
     dims: Dims3,
+    level: usize,
     /// How far (in `t`) a crossing of a voxel plane by the sampler's
     /// coordinates may lie from the crossing of `alpha + beta·t`, on any
     /// axis (infinite for an axis nearly parallel to the planes).
@@ -907,7 +908,7 @@ impl<'f, 'a, T: Sample> Walker<'f, 'a, T> {
                 let (lo, hi) = (c.lo, c.hi);
                 st.skipped_bricks += 1;
                 let g = Grid { base_t, dt, inv_dt };
-                k = f.land(level, ray, &track, g, k, (lo, hi), t1.min(next_t));
+                k = f.land(ray, &track, g, k, (lo, hi), t1.min(next_t));
                 continue;
             }
             if let Content::Data(vox) = c.content {
@@ -933,7 +934,7 @@ impl<'f, 'a, T: Sample> Walker<'f, 'a, T> {
                             st.skipped_cells += 1;
                             let (clo, chi) = f.cell_box(cell, lo, hi);
                             let g = Grid { base_t, dt, inv_dt };
-                            k = f.land(level, ray, &track, g, k, (clo, chi), limit);
+                            k = f.land(ray, &track, g, k, (clo, chi), limit);
                         }
                     } else {
                         n += 1;
@@ -996,7 +997,7 @@ impl<'f, 'a, T: Sample> Walker<'f, 'a, T> {
         st: &mut FrameStats,
     ) -> u64 {
         let c = &self.cache[level];
-        let kn = self.f.land(level, ray, track, g, k, (c.lo, c.hi), limit);
+        let kn = self.f.land(ray, track, g, k, (c.lo, c.hi), limit);
         let c = &mut self.cache[level];
         let n = kn - k;
         st.samples += n;
@@ -1054,7 +1055,7 @@ impl<'f, 'a, T: Sample> Walker<'f, 'a, T> {
                     dt,
                     inv_dt,
                 };
-                k = f.land(level, ray, &track, g, k, (lo, hi), t1);
+                k = f.land(ray, &track, g, k, (lo, hi), t1);
                 continue;
             }
             match self.value(level, w, vb, frac, req, st) {
@@ -1212,7 +1213,7 @@ mod tests {
                 }
                 want += 1;
             }
-            let got = f.land(0, &ray, &track, g, k0, (lo, hi), limit);
+            let got = f.land(&ray, &track, g, k0, (lo, hi), limit);
             assert!(
                 got <= want && got + 1 >= want,
                 "trial {trial}: landed at {got}, first step out is {want} (from {k0})"
