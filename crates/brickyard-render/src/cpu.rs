@@ -408,16 +408,6 @@ impl<'a> Frame<'a> {
         }
     }
 
-    /// The voxel box `[lo, hi)` of cell `cell` of the brick `[blo, bhi)`.
-    fn cell_box(&self, cell: usize, blo: Dims3, bhi: Dims3) -> (Dims3, Dims3) {
-        let n = cells::CELLS;
-        let c = [cell / (n * n), (cell / n) % n, cell % n];
-        let e = self.cell_edge;
-        let lo = [0, 1, 2].map(|a| blo[a] + c[a] as u64 * e[a]);
-        let hi = [0, 1, 2].map(|a| (lo[a] + e[a]).min(bhi[a]));
-        (lo, hi)
-    }
-
     /// The level a sample at distance `t` asks for.
     fn level_at(&self, t: f64) -> usize {
         let n = self.levels();
@@ -495,17 +485,7 @@ impl<'a> Frame<'a> {
         (lo, hi): (Dims3, Dims3),
         limit: f64,
     ) -> u64 {
-        let te = track.exit_t(lo, hi, limit);
-        // First grid step at or after the exit, moved early by the slack
-        // of the estimate and a thousandth of a step (ties land before;
-        // the rounding of `te`, `step_t` and this expression is far below
-        // that for any ray of fewer than 10⁹ steps).
-        let margin = track.slack * g.inv_dt;
-        let first = |margin: f64| {
-            let x = (te - g.base_t) * g.inv_dt - 0.5 - margin - 1e-3;
-            let i = x as i64; // finite; the cast saturates
-            (if (i as f64) < x { i + 1 } else { i }).max(0) as u64
-        };
+        let (first, margin) = track.first_out(g, (lo, hi), limit);
         if margin < 0.25 {
             // The steps before it lie before the sampler's exit.
             return first(margin).max(k);
@@ -560,6 +540,66 @@ struct Grid {
     inv_dt: f64,
 }
 
+/// The steps of a ray through one resident brick, by fixed-point increments
+/// (32 fractional bits) instead of from the ray parameter: voxel coordinate
+/// `q = w·scale − ½` of the first step plus `beta·dt` per step, clamped to
+/// the level like the general path's coordinates. The positions differ
+/// from the general path's by rounding (below 1e-7 voxel for runs of up to
+/// 1000 steps), and so do the samples (trilinear interpolation is
+/// continuous). A step that rounding puts just outside the brick is
+/// sampled on its face (base clamped, fraction 0 or 1): the same value.
+struct Run {
+    q: [i64; 3],
+    dq: [i64; 3],
+    qmax: [i64; 3],
+    lo: [i64; 3],
+    /// Voxels of the brick per axis, minus one.
+    last: [i64; 3],
+}
+
+const FIX: f64 = (1u64 << 32) as f64;
+
+impl Run {
+    #[inline(always)]
+    fn new(f: &Frame, l: usize, track: &Track, w: Vec3, dt: f64, lo: Dims3, hi: Dims3) -> Run {
+        let s = f.scale[l];
+        let m = f.qmax[l];
+        Run {
+            q: [
+                ((w[2] * s[0] - 0.5) * FIX) as i64,
+                ((w[1] * s[1] - 0.5) * FIX) as i64,
+                ((w[0] * s[2] - 0.5) * FIX) as i64,
+            ],
+            dq: [0, 1, 2].map(|a| (track.beta[a] * dt * FIX) as i64),
+            qmax: [0, 1, 2].map(|a| (m[a] * FIX) as i64),
+            lo: lo.map(|x| x as i64),
+            last: [0, 1, 2].map(|a| (hi[a] - lo[a]) as i64 - 1),
+        }
+    }
+
+    /// The current step's voxel base in the brick (apron excluded) and its
+    /// fractions; then advance.
+    #[inline(always)]
+    fn next(&mut self) -> (Dims3, [f32; 3]) {
+        let mut u = [0u64; 3];
+        let mut fr = [0f32; 3];
+        for a in 0..3 {
+            let q = self.q[a].clamp(0, self.qmax[a]);
+            self.q[a] += self.dq[a];
+            let b = (q >> 32) - self.lo[a];
+            let x = (q & 0xffff_ffff) as f32 * (1.0 / FIX as f32);
+            (u[a], fr[a]) = if b < 0 {
+                (0, 0.0)
+            } else if b > self.last[a] {
+                (self.last[a] as u64, 1.0)
+            } else {
+                (b as u64, x)
+            };
+        }
+        (u, fr)
+    }
+}
+
 /// A ray in the voxel coordinates of one level, `q(t) = alpha + beta·t`
 /// per axis `[z, y, x]`, for finding where it leaves boxes of voxels.
 #[derive(Clone, Copy)]
@@ -576,6 +616,29 @@ struct Track {
 }
 
 impl Track {
+    /// The first grid step at or after where the ray leaves the box
+    /// `[lo, hi)` or reaches `limit`, moved early by `margin` steps and a
+    /// thousandth of a step (ties land before; the rounding of the exit,
+    /// `step_t` and this expression is far below that for any ray of
+    /// fewer than 10⁹ steps); and the margin that makes it safe, `slack`
+    /// in steps: with that margin, every step before it has its sampler
+    /// voxel base in the box and lies before `limit`.
+    #[inline(always)]
+    fn first_out(
+        &self,
+        g: Grid,
+        (lo, hi): (Dims3, Dims3),
+        limit: f64,
+    ) -> (impl Fn(f64) -> u64, f64) {
+        let te = self.exit_t(lo, hi, limit);
+        let first = move |margin: f64| {
+            let x = (te - g.base_t) * g.inv_dt - 0.5 - margin - 1e-3;
+            let i = x as i64; // finite; the cast saturates
+            (if (i as f64) < x { i + 1 } else { i }).max(0) as u64
+        };
+        (first, self.slack * g.inv_dt)
+    }
+
     /// About the ray parameter where the clamped voxel base leaves the box
     /// `[lo, hi)` (voxels), or `t_max` if it does not before (an estimate:
     /// [`Frame::land`] checks it).
@@ -912,59 +975,45 @@ impl<'f, 'a, T: Sample> Walker<'f, 'a, T> {
                 continue;
             }
             if let Content::Data(vox) = c.content {
-                // Resident at the level asked for: stay in this brick for
-                // as many steps as it holds (same positions, same
-                // arithmetic as the general path below).
+                // Resident at the level asked for: take every step the ray
+                // makes in this brick here.
                 let (lo, hi, clear) = (c.lo, c.hi, c.clear_cells);
-                let limit = t1.min(next_t);
-                let (mut b, mut fr) = (vb, frac);
-                let mut n = 0u64;
-                // The clear cell last jumped over (samples the jump, which
-                // lands early, leaves in it are passed over without another).
-                let mut passed = usize::MAX;
-                let mut steps = 0u64;
-                let done = loop {
-                    steps += 1;
-                    let cell = f.cell_of(b, lo);
-                    if clear >> cell & 1 != 0 {
-                        // Every sample here is transparent: jump to the
-                        // cell's exit (positions stay on the step grid).
-                        if cell != passed {
-                            passed = cell;
-                            st.skipped_cells += 1;
-                            let (clo, chi) = f.cell_box(cell, lo, hi);
-                            let g = Grid { base_t, dt, inv_dt };
-                            k = f.land(ray, &track, g, k, (clo, chi), limit);
+                let g = Grid { base_t, dt, inv_dt };
+                let (first, margin) = track.first_out(g, (lo, hi), t1.min(next_t));
+                // Steps k − 1 … end − 1 lie in the brick (up to rounding:
+                // see `Run`).
+                let end = first(if margin < 0.25 { margin } else { 0.0 }).max(k);
+                let mut run = Run::new(f, level, &track, w, dt, lo, hi);
+                let (mut n, mut passed) = (0u64, 0u64);
+                let done = 'run: {
+                    for _ in k - 1..end {
+                        let (u, fr) = run.next();
+                        if clear >> f.cell_of(u, [0; 3]) & 1 != 0 {
+                            // A cell whose samples are all transparent.
+                            passed += 1;
+                            continue;
                         }
-                    } else {
                         n += 1;
-                        let v = trilinear(vox, f.local_index(b, lo), f.stride[0], f.stride[1], fr);
+                        let v =
+                            trilinear(vox, f.local_index(u, [0; 3]), f.stride[0], f.stride[1], fr);
                         if let Some(c) = f.tf_eval.lookup_visible(v) {
                             if composite_visible(&mut acc, c, exponent) {
-                                break true;
+                                break 'run true;
                             }
                         } else {
                             st.transparent += 1;
                         }
                     }
-                    let tn = step_t(base_t, k, dt);
-                    if tn >= limit {
-                        break false;
-                    }
-                    let (bn, frn) = f.coords(level, ray.at(tn));
-                    if !inside(bn, lo, hi) {
-                        // The general path takes this step.
-                        break false;
-                    }
-                    k += 1;
-                    (b, fr) = (bn, frn);
+                    false
                 };
                 st.samples += n;
                 st.exact += n;
-                st.steps += steps - 1;
+                st.skipped_cells += passed;
+                st.steps += end - k;
                 if done {
                     break;
                 }
+                k = end;
                 continue;
             }
             let Some(v) = self.value(level, w, vb, frac, req, st) else {
@@ -1127,10 +1176,22 @@ mod tests {
     use brickyard_core::camera::{Camera, Projection};
     use brickyard_core::DType;
 
+    /// The voxel box `[lo, hi)` of cell `cell` of the brick `[blo, bhi)`.
+    fn cell_box(f: &Frame, cell: usize, blo: Dims3, bhi: Dims3) -> (Dims3, Dims3) {
+        let n = cells::CELLS;
+        let c = [cell / (n * n), (cell / n) % n, cell % n];
+        let e = f.cell_edge;
+        let lo = [0, 1, 2].map(|a| blo[a] + c[a] as u64 * e[a]);
+        let hi = [0, 1, 2].map(|a| (lo[a] + e[a]).min(bhi[a]));
+        (lo, hi)
+    }
+
     /// `land` against stepping one by one: it never passes a step whose
     /// voxel base leaves the box (or that reaches the limit), and it lands
     /// at most one step early — on random rays, including ones nearly
-    /// parallel to the voxel planes and ones from far away.
+    /// parallel to the voxel planes and ones from far away. The fast path's
+    /// fixed-point run through a brick takes the same steps at the same
+    /// positions (to 1e-6 voxel).
     #[test]
     fn landing_equals_stepping_through_the_box() {
         let dims = [40u64, 56, 48];
@@ -1198,7 +1259,7 @@ mod tests {
             let (lo, hi) = if trial % 2 == 0 {
                 (blo, bhi)
             } else {
-                f.cell_box(f.cell_of(v, blo), blo, bhi)
+                cell_box(&f, f.cell_of(v, blo), blo, bhi)
             };
             let limit = if trial % 3 == 0 {
                 t0 + rnd() * (t1 - t0)
@@ -1220,6 +1281,30 @@ mod tests {
             );
             checked += 1;
             exact += (got == want) as u32;
+            if trial % 2 == 0 {
+                // The fast path's run through the brick: the same steps,
+                // at the general path's positions up to rounding.
+                let (first, margin) = track.first_out(g, (lo, hi), limit);
+                let end = first(if margin < 0.25 { margin } else { 0.0 }).max(k0);
+                assert!(
+                    end <= want && end + 1 >= want,
+                    "trial {trial}: run ends at {end}"
+                );
+                let w = ray.at(step_t(t0, k0 - 1, dt));
+                let mut run = Run::new(&f, 0, &track, w, dt, lo, hi);
+                for k in k0 - 1..end {
+                    let (u, fr) = run.next();
+                    let (b, frac) = f.coords(0, ray.at(step_t(t0, k, dt)));
+                    for a in 0..3 {
+                        let q_run = (lo[a] + u[a]) as f64 + fr[a] as f64;
+                        let q = b[a] as f64 + frac[a] as f64;
+                        assert!(
+                            (q_run - q).abs() < 1e-6,
+                            "trial {trial} step {k}: {q_run} vs {q}"
+                        );
+                    }
+                }
+            }
         }
         assert!(checked > 2000, "{checked} rays checked");
         assert!(exact * 10 > checked * 9, "{exact} of {checked} exact");
