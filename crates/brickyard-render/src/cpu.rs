@@ -290,6 +290,8 @@ struct Frame<'a> {
     /// DVR: per level, whether each brick of the scene's channel is
     /// transparent under the transfer function (from the ranges).
     transparent: Vec<Option<Vec<bool>>>,
+    /// Per level, [`next_level_t`](Self::next_level_t).
+    next_t: Vec<f64>,
     /// Voxels per cell edge of a brick ([`brickyard_cache::cells`]).
     cell_edge: Dims3,
     /// `log2(cell_edge)` per axis when every edge is a power of two.
@@ -326,7 +328,8 @@ impl<'a> Frame<'a> {
                 )
             })
             .collect();
-        Frame {
+        let mut frame = Frame {
+            next_t: vec![],
             vm,
             scene,
             params,
@@ -365,7 +368,9 @@ impl<'a> Frame<'a> {
                 .iter()
                 .all(|e| e.is_power_of_two())
                 .then(|| cells::cell_edge(cfg.brick).map(|e| e.trailing_zeros())),
-        }
+        };
+        frame.next_t = (0..nl).map(|l| frame.compute_next_level_t(l)).collect();
+        frame
     }
 
     fn levels(&self) -> usize {
@@ -408,6 +413,17 @@ impl<'a> Frame<'a> {
         }
     }
 
+    /// The voxel box `[lo, hi)` of cell `cell` of the brick `[blo, bhi)`.
+    #[inline]
+    fn cell_box(&self, cell: usize, blo: Dims3, bhi: Dims3) -> (Dims3, Dims3) {
+        let n = cells::CELLS;
+        let c = [cell / (n * n), (cell / n) % n, cell % n];
+        let e = self.cell_edge;
+        let lo = [0, 1, 2].map(|a| blo[a] + c[a] as u64 * e[a]);
+        let hi = [0, 1, 2].map(|a| (lo[a] + e[a]).min(bhi[a]));
+        (lo, hi)
+    }
+
     /// The level a sample at distance `t` asks for.
     fn level_at(&self, t: f64) -> usize {
         let n = self.levels();
@@ -431,6 +447,10 @@ impl<'a> Frame<'a> {
     /// The distance from which on the level may be coarser than `level`
     /// (infinity when it never changes).
     fn next_level_t(&self, level: usize) -> f64 {
+        self.next_t[level]
+    }
+
+    fn compute_next_level_t(&self, level: usize) -> f64 {
         match self.lod {
             Lod::Auto { bias } if level + 1 < self.levels() && self.fp_slope > 0.0 => {
                 // fp(t) / voxel0 = 2^(level + 1 − bias)
@@ -579,13 +599,30 @@ impl Run {
 
     /// The current step's voxel base in the brick (apron excluded) and its
     /// fractions; then advance.
-    #[inline(always)]
+    #[cfg(test)]
     fn next(&mut self) -> (Dims3, [f32; 3]) {
+        let r = self.current();
+        self.advance(1);
+        r
+    }
+
+    /// Move on by `m` steps (exactly `m` single steps: integer arithmetic).
+    #[inline(always)]
+    fn advance(&mut self, m: u64) {
+        for a in 0..3 {
+            self.q[a] += self.dq[a] * m as i64;
+        }
+    }
+
+    /// The current step's voxel base in the brick (apron excluded) and its
+    /// fractions.
+    #[inline(always)]
+    fn current(&self) -> (Dims3, [f32; 3]) {
         let mut u = [0u64; 3];
         let mut fr = [0f32; 3];
         for a in 0..3 {
-            let q = self.q[a].clamp(0, self.qmax[a]);
-            self.q[a] += self.dq[a];
+            // (`max`/`min`: `clamp` checks its bounds every time.)
+            let q = self.q[a].max(0).min(self.qmax[a]);
             let b = (q >> 32) - self.lo[a];
             let x = (q & 0xffff_ffff) as f32 * (1.0 / FIX as f32);
             (u[a], fr[a]) = if b < 0 {
@@ -637,6 +674,16 @@ impl Track {
             (if (i as f64) < x { i + 1 } else { i }).max(0) as u64
         };
         (first, self.slack * g.inv_dt)
+    }
+
+    /// The step a fixed-point [`Run`] through the box `[lo, hi)` ends at:
+    /// [`first_out`](Self::first_out) with its margin, or without one for
+    /// a ray nearly parallel to a voxel plane (whose steps lie on the box's
+    /// face within rounding, where `Run` samples them).
+    #[inline(always)]
+    fn run_end(&self, g: Grid, bx: (Dims3, Dims3), limit: f64) -> u64 {
+        let (first, margin) = self.first_out(g, bx, limit);
+        first(if margin < 0.25 { margin } else { 0.0 })
     }
 
     /// About the ray parameter where the clamped voxel base leaves the box
@@ -979,32 +1026,41 @@ impl<'f, 'a, T: Sample> Walker<'f, 'a, T> {
                 // makes in this brick here.
                 let (lo, hi, clear) = (c.lo, c.hi, c.clear_cells);
                 let g = Grid { base_t, dt, inv_dt };
-                let (first, margin) = track.first_out(g, (lo, hi), t1.min(next_t));
+                let limit = t1.min(next_t);
                 // Steps k − 1 … end − 1 lie in the brick (up to rounding:
                 // see `Run`).
-                let end = first(if margin < 0.25 { margin } else { 0.0 }).max(k);
+                let end = track.run_end(g, (lo, hi), limit).max(k);
                 let mut run = Run::new(f, level, &track, w, dt, lo, hi);
                 let (mut n, mut passed) = (0u64, 0u64);
-                let done = 'run: {
-                    for _ in k - 1..end {
-                        let (u, fr) = run.next();
-                        if clear >> f.cell_of(u, [0; 3]) & 1 != 0 {
-                            // A cell whose samples are all transparent.
-                            passed += 1;
-                            continue;
-                        }
-                        n += 1;
-                        let v =
-                            trilinear(vox, f.local_index(u, [0; 3]), f.stride[0], f.stride[1], fr);
-                        if let Some(c) = f.tf_eval.lookup_visible(v) {
-                            if composite_visible(&mut acc, c, exponent) {
-                                break 'run true;
-                            }
-                        } else {
-                            st.transparent += 1;
-                        }
+                let mut j = k - 1;
+                let done = loop {
+                    if j >= end {
+                        break false;
                     }
-                    false
+                    let (u, fr) = run.current();
+                    let cell = f.cell_of(u, [0; 3]);
+                    if clear >> cell & 1 != 0 {
+                        // A cell whose samples are all transparent: on to
+                        // the step where the ray leaves it.
+                        passed += 1;
+                        let jn = track
+                            .run_end(g, f.cell_box(cell, lo, hi), limit)
+                            .clamp(j + 1, end);
+                        run.advance(jn - j);
+                        j = jn;
+                        continue;
+                    }
+                    run.advance(1);
+                    j += 1;
+                    n += 1;
+                    let v = trilinear(vox, f.local_index(u, [0; 3]), f.stride[0], f.stride[1], fr);
+                    if let Some(c) = f.tf_eval.lookup_visible(v) {
+                        if composite_visible(&mut acc, c, exponent) {
+                            break true;
+                        }
+                    } else {
+                        st.transparent += 1;
+                    }
                 };
                 st.samples += n;
                 st.exact += n;
@@ -1176,16 +1232,6 @@ mod tests {
     use brickyard_core::camera::{Camera, Projection};
     use brickyard_core::DType;
 
-    /// The voxel box `[lo, hi)` of cell `cell` of the brick `[blo, bhi)`.
-    fn cell_box(f: &Frame, cell: usize, blo: Dims3, bhi: Dims3) -> (Dims3, Dims3) {
-        let n = cells::CELLS;
-        let c = [cell / (n * n), (cell / n) % n, cell % n];
-        let e = f.cell_edge;
-        let lo = [0, 1, 2].map(|a| blo[a] + c[a] as u64 * e[a]);
-        let hi = [0, 1, 2].map(|a| (lo[a] + e[a]).min(bhi[a]));
-        (lo, hi)
-    }
-
     /// `land` against stepping one by one: it never passes a step whose
     /// voxel base leaves the box (or that reaches the limit), and it lands
     /// at most one step early — on random rays, including ones nearly
@@ -1259,7 +1305,7 @@ mod tests {
             let (lo, hi) = if trial % 2 == 0 {
                 (blo, bhi)
             } else {
-                cell_box(&f, f.cell_of(v, blo), blo, bhi)
+                f.cell_box(f.cell_of(v, blo), blo, bhi)
             };
             let limit = if trial % 3 == 0 {
                 t0 + rnd() * (t1 - t0)
@@ -1284,8 +1330,7 @@ mod tests {
             if trial % 2 == 0 {
                 // The fast path's run through the brick: the same steps,
                 // at the general path's positions up to rounding.
-                let (first, margin) = track.first_out(g, (lo, hi), limit);
-                let end = first(if margin < 0.25 { margin } else { 0.0 }).max(k0);
+                let end = track.run_end(g, (lo, hi), limit).max(k0);
                 assert!(
                     end <= want && end + 1 >= want,
                     "trial {trial}: run ends at {end}"
