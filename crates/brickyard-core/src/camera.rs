@@ -132,6 +132,14 @@ impl Ray {
 /// Components of `dir` that are exactly zero are handled (the ray is inside
 /// that slab everywhere or nowhere).
 pub fn intersect_box(ray: &Ray, min: Vec3, max: Vec3) -> Option<(f64, f64)> {
+    let d = ray.dir;
+    intersect_box_inv(ray, [1.0 / d[0], 1.0 / d[1], 1.0 / d[2]], min, max)
+}
+
+/// [`intersect_box`] given `inv_dir = 1 / ray.dir` per axis (for a caller
+/// that needs the inverse too); the same result.
+#[inline]
+pub fn intersect_box_inv(ray: &Ray, inv_dir: Vec3, min: Vec3, max: Vec3) -> Option<(f64, f64)> {
     let mut t0 = 0.0f64;
     let mut t1 = f64::INFINITY;
     for a in 0..3 {
@@ -143,7 +151,7 @@ pub fn intersect_box(ray: &Ray, min: Vec3, max: Vec3) -> Option<(f64, f64)> {
             }
             continue;
         }
-        let inv = 1.0 / d;
+        let inv = inv_dir[a];
         let (mut ta, mut tb) = ((min[a] - o) * inv, (max[a] - o) * inv);
         if ta > tb {
             std::mem::swap(&mut ta, &mut tb);

@@ -37,7 +37,7 @@ use brickyard_cache::brick::BrickKey;
 use brickyard_cache::cells;
 use brickyard_cache::ranges::BrickRanges;
 use brickyard_cache::vm::{BrickRef, Requests, VirtualMemory};
-use brickyard_core::camera::{intersect_box, Projection, Ray, Vec3};
+use brickyard_core::camera::{intersect_box, intersect_box_inv, Projection, Ray, Vec3};
 use brickyard_core::transfer::TfEval;
 use brickyard_core::{cast_slice, dispatch_dtype, Dims3, Sample, TransferFunction};
 use rayon::prelude::*;
@@ -292,6 +292,11 @@ struct Frame<'a> {
     transparent: Vec<Option<Vec<bool>>>,
     /// Per level, [`next_level_t`](Self::next_level_t).
     next_t: Vec<f64>,
+    /// Per level, DVR and MIP steps: `dt` (world units), `1/dt` and the
+    /// opacity-correction exponent `dt / reference step`.
+    step: Vec<(f64, f64, f32)>,
+    /// Per level, `1 / scale`.
+    inv_scale: Vec<[f64; 3]>,
     /// Voxels per cell edge of a brick ([`brickyard_cache::cells`]).
     cell_edge: Dims3,
     /// `log2(cell_edge)` per axis when every edge is a power of two.
@@ -328,8 +333,21 @@ impl<'a> Frame<'a> {
                 )
             })
             .collect();
+        let spv = params.samples_per_voxel;
+        let reference = params.reference_step.unwrap_or(scene.voxel(0));
         let mut frame = Frame {
             next_t: vec![],
+            step: (0..nl)
+                .map(|l| {
+                    let dt = scene.voxel(l) / spv;
+                    (dt, 1.0 / dt, (dt / reference) as f32)
+                })
+                .collect(),
+            inv_scale: scene
+                .levels
+                .iter()
+                .map(|d| [0, 1, 2].map(|a| 1.0 / (d[a] as f64 / scene.extent[2 - a])))
+                .collect(),
             vm,
             scene,
             params,
@@ -524,12 +542,13 @@ impl<'a> Frame<'a> {
     }
 
     /// Ray `ray` in the voxel coordinates of level `l`.
-    /// `t_end`: where the ray leaves the volume.
-    fn track(&self, l: usize, ray: &Ray, t_end: f64) -> Track {
+    /// `inv_dir`: `1 / ray.dir`; `t_end`: where the ray leaves the volume.
+    fn track(&self, l: usize, ray: &Ray, inv_dir: Vec3, t_end: f64) -> Track {
         let s = self.scale[l];
         let alpha = [0, 1, 2].map(|a| ray.origin[2 - a] * s[a] - 0.5);
         let beta = [0, 1, 2].map(|a| ray.dir[2 - a] * s[a]);
-        let inv_beta = beta.map(|b| 1.0 / b);
+        // 1/beta within an ulp or two (estimates only).
+        let inv_beta = [0, 1, 2].map(|a| inv_dir[2 - a] * self.inv_scale[l][a]);
         // The sampler's voxel coordinate (`coords` of `ray.at(t)`) differs
         // from `alpha + beta·t` by a few ulps of the terms: bound it by
         // 1e-15 (about 9 ulps) of their magnitude, in voxels, and turn that
@@ -971,19 +990,17 @@ impl<'f, 'a, T: Sample> Walker<'f, 'a, T> {
         let mut acc = [0.0f32; 4];
         let f = self.f;
         let extent = f.scene.extent;
-        let Some((t0, t1)) = intersect_box(ray, [0.0; 3], extent) else {
+        let d = ray.dir;
+        let inv_dir = [1.0 / d[0], 1.0 / d[1], 1.0 / d[2]];
+        let Some((t0, t1)) = intersect_box_inv(ray, inv_dir, [0.0; 3], extent) else {
             return acc;
         };
-        let spv = f.params.samples_per_voxel;
-        let reference = f.params.reference_step.unwrap_or(f.voxel[0]);
         // Steps keep the reference renderer's positions while the level
         // stays the same; a level change restarts the grid at the current t.
         let mut level = f.level_at(t0);
         let mut next_t = f.next_level_t(level);
-        let mut dt = f.voxel[level] / spv;
-        let mut inv_dt = 1.0 / dt;
-        let mut track = f.track(level, ray, t1);
-        let mut exponent = (dt / reference) as f32;
+        let (mut dt, mut inv_dt, mut exponent) = f.step[level];
+        let mut track = f.track(level, ray, inv_dir, t1);
         let mut base_t = t0;
         let mut k = 0u64;
         loop {
@@ -998,10 +1015,8 @@ impl<'f, 'a, T: Sample> Walker<'f, 'a, T> {
                     level = l;
                     base_t = t;
                     k = 0;
-                    dt = f.voxel[level] / spv;
-                    inv_dt = 1.0 / dt;
-                    track = f.track(level, ray, t1);
-                    exponent = (dt / reference) as f32;
+                    (dt, inv_dt, exponent) = f.step[level];
+                    track = f.track(level, ray, inv_dir, t1);
                 }
                 next_t = f.next_level_t(level);
                 if next_t <= t {
@@ -1134,9 +1149,8 @@ impl<'f, 'a, T: Sample> Walker<'f, 'a, T> {
     ) -> Option<f32> {
         let f = self.f;
         let level = f.level_at(t0);
-        let dt = f.voxel[level] / f.params.samples_per_voxel;
-        let inv_dt = 1.0 / dt;
-        let track = f.track(level, ray, t1);
+        let (dt, inv_dt, _) = f.step[level];
+        let track = f.track(level, ray, ray.dir.map(|d| 1.0 / d), t1);
         let mut best = f32::NAN;
         let mut hit = false;
         let mut k = 0u64;
@@ -1291,7 +1305,7 @@ mod tests {
                 dt,
                 inv_dt: 1.0 / dt,
             };
-            let track = f.track(0, &ray, t1);
+            let track = f.track(0, &ray, ray.dir.map(|d| 1.0 / d), t1);
             // A step inside the volume, the box of its brick or of a cell.
             let steps = ((t1 - t0) / dt) as u64;
             if steps < 2 {
