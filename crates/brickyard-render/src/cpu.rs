@@ -160,18 +160,19 @@ fn render_typed<T: Sample>(
     lod: Lod,
 ) -> (Image, FrameStats, Vec<Requests>) {
     let frame = Frame::new(vm, scene, params, lod);
-    let (w, h) = (params.width as usize, params.height as usize);
+    let w = params.width as usize;
     let rg = params.camera.ray_gen(params.width, params.height);
     let mut img = Image::new(params.width, params.height);
     let parts: Vec<(FrameStats, Requests)> = img
         .rgba
         .par_chunks_mut(w * TILE)
         .enumerate()
-        .map_init(
-            || -> Vec<Walker<T>> {
-                // One walker per channel shown, per worker thread (their
+        .fold(
+            || -> (Vec<Walker<T>>, Requests, FrameStats) {
+                // One walker per channel shown and one request collector,
+                // per piece of work rayon splits the frame into (their
                 // brick memos live for this frame).
-                if params.channels.is_empty() {
+                let walkers = if params.channels.is_empty() {
                     vec![Walker::new(&frame, scene.channel)]
                 } else {
                     params
@@ -179,11 +180,10 @@ fn render_typed<T: Sample>(
                         .iter()
                         .map(|c| Walker::new(&frame, c.channel))
                         .collect()
-                }
+                };
+                (walkers, vm.requests(), FrameStats::default())
             },
-            |walkers, (band, rows)| {
-                let mut req = vm.requests();
-                let mut st = FrameStats::default();
+            |(mut walkers, mut req, mut st), (band, rows)| {
                 let multi = !params.channels.is_empty();
                 let nrows = rows.len() / w;
                 for x0 in (0..w).step_by(TILE) {
@@ -243,14 +243,16 @@ fn render_typed<T: Sample>(
                         }
                     }
                 }
-                for wk in walkers.iter_mut() {
-                    wk.flush(&mut req);
-                }
-                (st, req)
+                (walkers, req, st)
             },
         )
+        .map(|(mut walkers, mut req, st)| {
+            for wk in walkers.iter_mut() {
+                wk.flush(&mut req);
+            }
+            (st, req)
+        })
         .collect();
-    debug_assert_eq!(parts.len(), h.div_ceil(TILE));
     let mut stats = FrameStats::default();
     let mut reqs = Vec::with_capacity(parts.len());
     for (s, r) in parts {
