@@ -292,6 +292,10 @@ struct Frame<'a> {
     /// DVR: per level, whether each brick of the scene's channel is
     /// transparent under the transfer function (from the ranges).
     transparent: Vec<Option<Vec<bool>>>,
+    /// DVR: per level, for blocks of 2ᵐ×2ᵐ×2ᵐ bricks (`m = 1 ..=`
+    /// [`MACRO_LEVELS`]), whether every brick of the block is transparent:
+    /// `[level][m − 1]`, blocks `[z][y][x]` with their counts per axis.
+    clear_blocks: Vec<Vec<(Dims3, Vec<bool>)>>,
     /// Per level, [`next_level_t`](Self::next_level_t).
     next_t: Vec<f64>,
     /// Per level, DVR and MIP steps: `dt` (world units), `1/dt` and the
@@ -319,7 +323,7 @@ impl<'a> Frame<'a> {
             Projection::Perspective { .. } => params.camera.pixel_footprint(1.0, params.height),
             Projection::Orthographic { .. } => 0.0,
         };
-        let transparent = (0..nl)
+        let transparent: Vec<Option<Vec<bool>>> = (0..nl)
             .map(|l| {
                 let r = scene.ranges.as_ref()?.level(l)?;
                 if !matches!(params.mode, RenderMode::Dvr) || scene.channel >= r.channels {
@@ -337,7 +341,19 @@ impl<'a> Frame<'a> {
             .collect();
         let spv = params.samples_per_voxel;
         let reference = params.reference_step.unwrap_or(scene.voxel(0));
+        let bricks: Vec<Dims3> = scene
+            .levels
+            .iter()
+            .map(|d| [0, 1, 2].map(|a| d[a].div_ceil(cfg.brick[a])))
+            .collect();
+        let clear_blocks = (0..nl)
+            .map(|l| match &transparent[l] {
+                Some(t) => clear_blocks(bricks[l], t),
+                None => vec![],
+            })
+            .collect();
         let mut frame = Frame {
+            clear_blocks,
             next_t: vec![],
             step: (0..nl)
                 .map(|l| {
@@ -373,11 +389,7 @@ impl<'a> Frame<'a> {
                 .iter()
                 .all(|b| b.is_power_of_two())
                 .then(|| cfg.brick.map(|b| b.trailing_zeros())),
-            bricks: scene
-                .levels
-                .iter()
-                .map(|d| [0, 1, 2].map(|a| d[a].div_ceil(cfg.brick[a])))
-                .collect(),
+            bricks,
             apron: cfg.apron,
             stride: [padded[1] * padded[2], padded[2]],
             voxel: (0..nl).map(|l| scene.voxel(l)).collect(),
@@ -431,6 +443,26 @@ impl<'a> Frame<'a> {
             }
             None => cells::cell_index(u, self.cell_edge),
         }
+    }
+
+    /// The voxel box `[lo, hi)` of the largest block of transparent bricks
+    /// (see `clear_blocks`) around the transparent brick `b` of level `l`
+    /// whose box is `[lo, hi)`.
+    #[inline]
+    fn clear_box(&self, l: usize, b: Dims3, lo: Dims3, hi: Dims3) -> (Dims3, Dims3) {
+        let mut found = (lo, hi);
+        for (m, (n, clear)) in self.clear_blocks[l].iter().enumerate() {
+            let s = m as u32 + 1;
+            let c = b.map(|x| x >> s);
+            if !clear[((c[0] * n[1] + c[1]) * n[2] + c[2]) as usize] {
+                break;
+            }
+            let d = self.dims[l];
+            let blo = [0, 1, 2].map(|a| (c[a] << s) * self.brick[a]);
+            let bhi = [0, 1, 2].map(|a| (blo[a] + (self.brick[a] << s)).min(d[a]));
+            found = (blo, bhi);
+        }
+        found
     }
 
     /// The voxel box `[lo, hi)` of cell `cell` of the brick `[blo, bhi)`.
@@ -1032,7 +1064,7 @@ impl<'f, 'a, T: Sample> Walker<'f, 'a, T> {
             let (vb, frac) = f.coords(level, w);
             let c = self.enter(level, vb, req, true);
             if c.transparent {
-                let (lo, hi) = (c.lo, c.hi);
+                let (lo, hi) = f.clear_box(level, c.brick, c.lo, c.hi);
                 st.skipped_bricks += 1;
                 let g = Grid { base_t, dt, inv_dt };
                 k = f.land(ray, &track, g, k, (lo, hi), t1.min(next_t));
@@ -1209,6 +1241,33 @@ impl<'f, 'a, T: Sample> Walker<'f, 'a, T> {
         self.enter(level, vb, req, true);
         self.value(level, w, vb, frac, req, st)
     }
+}
+
+/// Blocks of 2ᵐ×2ᵐ×2ᵐ bricks.
+const MACRO_LEVELS: usize = 3;
+
+/// For `m = 1 ..= MACRO_LEVELS`: the block counts per axis and whether
+/// every brick of each block of 2ᵐ bricks per axis is transparent, from the
+/// per-brick flags `t` (`[z][y][x]`, `n` bricks per axis).
+fn clear_blocks(n: Dims3, t: &[bool]) -> Vec<(Dims3, Vec<bool>)> {
+    let mut out: Vec<(Dims3, Vec<bool>)> = Vec::with_capacity(MACRO_LEVELS);
+    let (mut prev_n, mut prev) = (n, t.to_vec());
+    for _ in 0..MACRO_LEVELS {
+        let nn = prev_n.map(|x| x.div_ceil(2));
+        let mut cur = vec![true; (nn[0] * nn[1] * nn[2]) as usize];
+        for z in 0..prev_n[0] {
+            for y in 0..prev_n[1] {
+                for x in 0..prev_n[2] {
+                    if !prev[((z * prev_n[1] + y) * prev_n[2] + x) as usize] {
+                        cur[(((z / 2) * nn[1] + y / 2) * nn[2] + x / 2) as usize] = false;
+                    }
+                }
+            }
+        }
+        out.push((nn, cur.clone()));
+        (prev_n, prev) = (nn, cur);
+    }
+    out
 }
 
 /// Whether voxel `v` lies in the box `[lo, hi)`.
