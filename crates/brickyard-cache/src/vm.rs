@@ -22,7 +22,7 @@
 //!    at most `upload_bytes_per_frame` per frame.
 
 use crate::brick::{BrickContent, BrickKey, LoadedBrick};
-use crate::cells::{cell_ranges, CELL_COUNT};
+use crate::cells::{cell_ranges, CellGrid};
 use brickyard_core::cast_slice;
 use brickyard_core::vm::{PageEntry, PageFlag, VirtualLayout};
 use brickyard_core::{dispatch_dtype, DType, Dims3, Sample};
@@ -313,8 +313,10 @@ pub struct VirtualMemory {
     /// voxel count times the sample size).
     pool: Vec<u64>,
     /// Per pool slot, the value ranges of its brick's cells
-    /// ([`crate::cells`]), `CELL_COUNT` entries a slot.
+    /// ([`crate::cells`]), `cell_grid.len()` entries a slot. Counted in the
+    /// pool's budget.
     cells: Vec<[f32; 2]>,
+    cell_grid: CellGrid,
     slots: SlotSet,
     padded: [usize; 3],
     brick_bytes: usize,
@@ -366,7 +368,9 @@ impl VirtualMemory {
         }
         let padded = cfg.brick.map(|b| (b + 2 * cfg.apron) as usize);
         let brick_bytes = padded.iter().product::<usize>() * dtype.size();
-        let slots = SlotSet::new(cfg.pool_bytes / brick_bytes as u64);
+        let cell_grid = CellGrid::new(cfg.brick);
+        let cell_bytes = cell_grid.len() * std::mem::size_of::<[f32; 2]>();
+        let slots = SlotSet::new(cfg.pool_bytes / (brick_bytes + cell_bytes) as u64);
         VirtualMemory {
             merged: Requests::with_capacity(cfg.request_cap * 8),
             layout,
@@ -379,7 +383,8 @@ impl VirtualMemory {
             pt,
             pt_block_len,
             pool: vec![0u64; (slots.len() * brick_bytes).div_ceil(8)],
-            cells: vec![[f32::NAN; 2]; slots.len() * CELL_COUNT],
+            cells: vec![[f32::NAN; 2]; slots.len() * cell_grid.len()],
+            cell_grid,
             slots,
             padded,
             brick_bytes,
@@ -409,17 +414,28 @@ impl VirtualMemory {
     pub fn pool_slots(&self) -> usize {
         self.slots.len()
     }
-    /// Bytes of the pool.
+    /// Bytes of the pool: its slots, each a padded brick and the value
+    /// ranges of its cells.
     pub fn pool_bytes(&self) -> usize {
+        self.slots.len() * (self.brick_bytes + self.cell_grid.len() * 8)
+    }
+
+    /// Bytes of the bricks in the pool.
+    fn brick_pool_bytes(&self) -> usize {
         self.slots.len() * self.brick_bytes
     }
 
+    /// How bricks are cut into cells for [`cell_ranges`](Self::cell_ranges).
+    pub fn cell_grid(&self) -> CellGrid {
+        self.cell_grid
+    }
+
     fn pool(&self) -> &[u8] {
-        &words_as_bytes(&self.pool)[..self.pool_bytes()]
+        &words_as_bytes(&self.pool)[..self.brick_pool_bytes()]
     }
 
     fn pool_mut(&mut self) -> &mut [u8] {
-        let n = self.pool_bytes();
+        let n = self.brick_pool_bytes();
         // SAFETY: as in `pool`; `n ≤ 8 · pool.len()`.
         unsafe { std::slice::from_raw_parts_mut(self.pool.as_mut_ptr() as *mut u8, n) }
     }
@@ -473,21 +489,22 @@ impl VirtualMemory {
         }
     }
     /// The value ranges of the cells of the brick in pool slot `slot`
-    /// (from [`BrickRef::Data`]): [`CELL_COUNT`] entries, `[z][y][x]`; see
-    /// [`crate::cells`] for the cell geometry.
+    /// (from [`BrickRef::Data`]): one per cell of [`cell_grid`](Self::cell_grid),
+    /// `[z][y][x]`; see [`crate::cells`].
     #[inline]
     pub fn cell_ranges(&self, slot: u32) -> &[[f32; 2]] {
-        let o = slot as usize * CELL_COUNT;
-        &self.cells[o..o + CELL_COUNT]
+        let n = self.cell_grid.len();
+        &self.cells[slot as usize * n..(slot as usize + 1) * n]
     }
 
     fn write_cells(&mut self, slot: u32) {
         let bb = self.brick_bytes;
         let o = slot as usize * bb;
         let (padded, brick, apron) = (self.padded, self.cfg.brick, self.cfg.apron);
-        let c = slot as usize * CELL_COUNT;
+        let n = self.cell_grid.len();
+        let c = slot as usize * n;
         let pool = words_as_bytes(&self.pool);
-        let out = &mut self.cells[c..c + CELL_COUNT];
+        let out = &mut self.cells[c..c + n];
         dispatch_dtype!(self.dtype, T => {
             cell_ranges(cast_slice::<T>(&pool[o..o + bb]), padded, brick, apron, out)
         });

@@ -275,16 +275,19 @@ fn random_sequences_with_tight_budgets_stay_correct_and_progress() {
 #[test]
 fn the_pool_gets_every_slot_its_budget_pays_for() {
     let levels: Vec<Dims3> = vec![[256, 256, 256], [128, 128, 128]];
+    // A slot: a padded 10³ u8 brick and the range of its one cell (8
+    // bytes).
+    let slot = 1000 + 8;
     for slots in [1u64, 7, 1024, 1025, 1509, 2047, 24147] {
         let cfg = VmConfig {
             brick: [8; 3],
             apron: 1,
-            pool_bytes: slots * 1000 + 999,
+            pool_bytes: slots * slot + slot - 1,
             ..Default::default()
         };
         let vm = VirtualMemory::new(&levels, 1, DType::U8, cfg);
         assert_eq!(vm.pool_slots() as u64, slots, "budget for {slots} slots");
-        assert_eq!(vm.pool_bytes() as u64, slots * 1000);
+        assert_eq!(vm.pool_bytes() as u64, slots * slot);
         vm.check_invariants().unwrap();
     }
 }

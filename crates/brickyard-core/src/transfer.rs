@@ -423,7 +423,12 @@ impl TransferFunction {
             return all();
         }
         let (lo, hi) = if lo <= hi { (lo, hi) } else { (hi, lo) };
-        let (xa, xb) = (self.normalize(lo), self.normalize(hi));
+        self.max_opacity_x(self.normalize(lo), self.normalize(hi))
+    }
+
+    /// The largest opacity at any windowed value in `[xa, xb]` (`xa ≤ xb`),
+    /// exactly conservative as [`max_opacity`](Self::max_opacity).
+    fn max_opacity_x(&self, xa: f32, xb: f32) -> f32 {
         let mut m = self.opacity_at(xa).max(self.opacity_at(xb));
         for p in &self.opacity {
             if p[0] >= xa && p[0] <= xb {
@@ -651,9 +656,10 @@ pub struct TfEval<'a> {
     /// `1 / (w1 − w0)`, as [`TransferFunction::normalize`] computes it.
     inv_width: f32,
     opacity_seg: Vec<u16>,
-    /// Per bin: every `x` of it has opacity 0 (its segment is known and
-    /// the piece never rises above 0), so the lookup ends there.
+    /// Per bin: every `x` of it has opacity 0, so the lookup ends there.
     clear: Vec<bool>,
+    /// Bins not `clear` before bin `i` (`TF_BINS + 1` entries).
+    open_before: Vec<u32>,
     color_seg: Vec<u16>,
     /// The pieces of the opacity and of the colour map's three channels,
     /// by segment index.
@@ -670,13 +676,22 @@ impl TransferFunction {
         let opacity_pieces: Vec<Piece> = (0..=op.len())
             .map(|i| piece(op, i, |p| p[0], |p| p[1]))
             .collect();
+        // The windowed values of bin b are in [b/n, (b+1)/n] (x·n is exact).
+        let n = TF_BINS as f32;
+        let clear: Vec<bool> = (0..TF_BINS)
+            .map(|b| self.max_opacity_x(b as f32 / n, (b + 1) as f32 / n) <= 0.0)
+            .collect();
+        let open_before = std::iter::once(0)
+            .chain(clear.iter().scan(0u32, |n, &c| {
+                *n += !c as u32;
+                Some(*n)
+            }))
+            .collect();
         TfEval {
             tf: self,
             inv_width: 1.0 / (self.window[1] - self.window[0]),
-            clear: opacity_seg
-                .iter()
-                .map(|&s| s != u16::MAX && opacity_pieces[s as usize].hi <= 0.0)
-                .collect(),
+            clear,
+            open_before,
             opacity_seg,
             color_seg: segment_table(cm.iter().map(|p| p[0])),
             opacity_pieces,
@@ -700,6 +715,23 @@ fn eval_segment<P>(
 }
 
 impl TfEval<'_> {
+    /// Whether some value in `[lo, hi]` (either order) may be visible: when
+    /// this is false, [`lookup_visible`](Self::lookup_visible) gives `None`
+    /// for every value in it. A constant-time, conservative
+    /// [`TransferFunction::max_opacity`] (it may say true for a range that
+    /// is transparent, by the resolution of its bins). A NaN bound: true.
+    #[inline]
+    pub fn range_visible(&self, lo: f32, hi: f32) -> bool {
+        if lo.is_nan() || hi.is_nan() {
+            return true;
+        }
+        let (lo, hi) = if lo <= hi { (lo, hi) } else { (hi, lo) };
+        let w0 = self.tf.window[0];
+        let b0 = bin_of(((lo - w0) * self.inv_width).clamp(0.0, 1.0));
+        let b1 = bin_of(((hi - w0) * self.inv_width).clamp(0.0, 1.0));
+        self.open_before[b1 + 1] > self.open_before[b0]
+    }
+
     /// Exactly [`TransferFunction::lookup_visible`].
     #[inline(always)]
     pub fn lookup_visible(&self, value: f32) -> Option<[f32; 4]> {
@@ -807,6 +839,50 @@ mod tests {
                 );
             }
         }
+    }
+
+    #[test]
+    fn range_visible_is_conservative_and_close_to_max_opacity() {
+        let mut rnd = Lcg(99);
+        let mut tfs: Vec<TransferFunction> = TransferFunction::PRESETS
+            .iter()
+            .map(|p| TransferFunction::preset(p, [0.0, 255.0]).unwrap())
+            .collect();
+        tfs.push(tf(vec![
+            [0.0, 0.0],
+            [0.3, 0.0],
+            [0.31, 0.5],
+            [0.6, 0.0],
+            [1.0, 0.0],
+        ]));
+        let (mut agree, mut total) = (0, 0);
+        for tf in &tfs {
+            let ev = tf.evaluator();
+            let [w0, w1] = tf.window;
+            for _ in 0..20_000 {
+                let a = w0 - 10.0 + (w1 - w0 + 20.0) * rnd.next();
+                let b = a + (w1 - w0) * 0.2 * rnd.next() * rnd.next();
+                let visible = ev.range_visible(a, b);
+                let max = tf.max_opacity(a, b);
+                if !visible {
+                    assert!(max <= 0.0, "[{a}, {b}]: said clear, max opacity {max}");
+                    for i in 0..=16 {
+                        let v = a + (b - a) * i as f32 / 16.0;
+                        assert!(ev.lookup_visible(v).is_none(), "{v} in [{a}, {b}]");
+                    }
+                }
+                total += 1;
+                agree += (visible == (max > 0.0)) as u32;
+            }
+            assert!(ev.range_visible(f32::NAN, 1.0));
+        }
+        // Conservative only near the edges of the transparent ranges.
+        assert!(agree * 100 > total * 95, "{agree} of {total}");
+        // "soft": transparent up to 15 % of the window.
+        let soft = TransferFunction::preset("soft", [0.0, 255.0]).unwrap();
+        let ev = soft.evaluator();
+        assert!(!ev.range_visible(0.0, 30.0));
+        assert!(ev.range_visible(0.0, 60.0));
     }
 
     #[test]

@@ -304,8 +304,8 @@ struct Frame<'a> {
     /// Per level, `1 / scale`.
     inv_scale: Vec<[f64; 3]>,
     /// Voxels per cell edge of a brick ([`brickyard_cache::cells`]).
-    cell_edge: Dims3,
-    /// `log2(cell_edge)` per axis when every edge is a power of two.
+    cells: cells::CellGrid,
+    /// `log2(cell edge)` per axis when every edge is a power of two.
     cell_shift: Option<[u32; 3]>,
 }
 
@@ -395,11 +395,13 @@ impl<'a> Frame<'a> {
             voxel: (0..nl).map(|l| scene.voxel(l)).collect(),
             fp_slope,
             transparent,
-            cell_edge: cells::cell_edge(cfg.brick),
-            cell_shift: cells::cell_edge(cfg.brick)
+            cells: vm.cell_grid(),
+            cell_shift: vm
+                .cell_grid()
+                .edge
                 .iter()
                 .all(|e| e.is_power_of_two())
-                .then(|| cells::cell_edge(cfg.brick).map(|e| e.trailing_zeros())),
+                .then(|| vm.cell_grid().edge.map(|e| e.trailing_zeros())),
         };
         frame.next_t = (0..nl).map(|l| frame.compute_next_level_t(l)).collect();
         frame
@@ -438,10 +440,10 @@ impl<'a> Frame<'a> {
         let u = [v[0] - lo[0], v[1] - lo[1], v[2] - lo[2]];
         match self.cell_shift {
             Some(s) => {
-                (((u[0] >> s[0]) as usize * cells::CELLS) + (u[1] >> s[1]) as usize) * cells::CELLS
-                    + (u[2] >> s[2]) as usize
+                let n = self.cells.count;
+                (((u[0] >> s[0]) * n[1] + (u[1] >> s[1])) * n[2] + (u[2] >> s[2])) as usize
             }
-            None => cells::cell_index(u, self.cell_edge),
+            None => self.cells.index(u),
         }
     }
 
@@ -468,10 +470,9 @@ impl<'a> Frame<'a> {
     /// The voxel box `[lo, hi)` of cell `cell` of the brick `[blo, bhi)`.
     #[inline]
     fn cell_box(&self, cell: usize, blo: Dims3, bhi: Dims3) -> (Dims3, Dims3) {
-        let n = cells::CELLS;
-        let c = [cell / (n * n), (cell / n) % n, cell % n];
-        let e = self.cell_edge;
-        let lo = [0, 1, 2].map(|a| blo[a] + c[a] as u64 * e[a]);
+        let c = self.cells.coords(cell);
+        let e = self.cells.edge;
+        let lo = [0, 1, 2].map(|a| blo[a] + c[a] * e[a]);
         let hi = [0, 1, 2].map(|a| (lo[a] + e[a]).min(bhi[a]));
         (lo, hi)
     }
@@ -781,7 +782,7 @@ struct Cached<'a, T> {
     transparent: bool,
     /// DVR, resident bricks: bit `i` set when every sample of cell `i` is
     /// transparent.
-    clear_cells: u64,
+    clear_cells: [u64; CLEAR_WORDS],
     /// Samples that missed it, not yet handed to the request collector.
     missed: u32,
     /// Pool slot of a resident brick (`u32::MAX` otherwise).
@@ -799,7 +800,7 @@ impl<T> Cached<'_, T> {
         content: Content::Unresolved,
         range: [f32::NAN; 2],
         transparent: false,
-        clear_cells: 0,
+        clear_cells: [0; CLEAR_WORDS],
         missed: 0,
         slot: u32::MAX,
         marked: true,
@@ -810,6 +811,9 @@ impl<T> Cached<'_, T> {
         inside(v, self.lo, self.hi)
     }
 }
+
+/// Words of a brick's clear-cell bit set.
+const CLEAR_WORDS: usize = cells::MAX_CELLS / 64;
 
 /// Entries of a walker's brick memo (a power of two).
 const MEMO: usize = 1024;
@@ -915,7 +919,7 @@ impl<'f, 'a, T: Sample> Walker<'f, 'a, T> {
             content: Content::Unresolved,
             range,
             transparent,
-            clear_cells: 0,
+            clear_cells: [0; CLEAR_WORDS],
             missed: 0,
             slot: u32::MAX,
             marked: true,
@@ -951,12 +955,13 @@ impl<'f, 'a, T: Sample> Walker<'f, 'a, T> {
                     && self.channel == f.scene.channel
                     && f.scene.skip_cells
                 {
-                    c.clear_cells =
-                        f.vm.cell_ranges(slot)
-                            .iter()
-                            .enumerate()
-                            .filter(|(_, &[lo, hi])| f.tf.max_opacity(lo, hi) <= 0.0)
-                            .fold(0u64, |m, (i, _)| m | 1 << i);
+                    let mut m = [0u64; CLEAR_WORDS];
+                    for (i, &[lo, hi]) in f.vm.cell_ranges(slot).iter().enumerate() {
+                        if !f.tf_eval.range_visible(lo, hi) {
+                            m[i >> 6] |= 1 << (i & 63);
+                        }
+                    }
+                    c.clear_cells = m;
                 }
                 Content::Data(cast_slice::<T>(voxels))
             }
@@ -1088,7 +1093,7 @@ impl<'f, 'a, T: Sample> Walker<'f, 'a, T> {
                     }
                     let (u, fr) = run.current();
                     let cell = f.cell_of(u, [0; 3]);
-                    if clear >> cell & 1 != 0 {
+                    if clear[cell >> 6] >> (cell & 63) & 1 != 0 {
                         // A cell whose samples are all transparent: on to
                         // the step where the ray leaves it.
                         passed += 1;

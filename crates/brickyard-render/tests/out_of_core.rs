@@ -517,7 +517,8 @@ fn a_view_that_fits_completes_even_when_its_stand_ins_do_not() {
     };
     let tf = TransferFunction::preset("linear", [0.0, 65535.0]).unwrap();
     let p = RenderParams::new(96, 96, cam, tf, mode);
-    let slot_bytes = 18 * 18 * 18 * 2;
+    // A slot: the padded u16 brick and the ranges of its 2³ cells.
+    let slot_bytes = 18 * 18 * 18 * 2 + 8 * 8;
     let mut s = session(&store, 72 * slot_bytes);
     assert_eq!(s.vm().pool_slots(), 72);
     let (img, frames, _) = converge(&mut s, &scene, &p, Lod::Fixed(0));
