@@ -50,6 +50,7 @@ def main():
     ap.add_argument("--repeat", type=int, default=5)
     ap.add_argument("--window", type=float, nargs=2, default=[0.0, 255.0])
     ap.add_argument("--png")
+    ap.add_argument("--threads", type=int, default=0, help="worker threads (0: VTK's default, all cores)")
     a = ap.parse_args()
 
     x, y, z = a.dims
@@ -80,6 +81,8 @@ def main():
     mapper = vtk.vtkFixedPointVolumeRayCastMapper()
     mapper.SetInputData(img)
     mapper.AutoAdjustSampleDistancesOff()
+    if a.threads > 0:
+        mapper.SetNumberOfThreads(a.threads)
     mapper.SetSampleDistance(1.0)
     mapper.SetImageSampleDistance(1.0)
     mapper.SetInteractiveSampleDistance(1.0)

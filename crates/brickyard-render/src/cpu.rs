@@ -782,7 +782,7 @@ struct Cached<'a, T> {
     transparent: bool,
     /// DVR, resident bricks: bit `i` set when every sample of cell `i` is
     /// transparent.
-    clear_cells: [u64; CLEAR_WORDS],
+    clear_cells: u64,
     /// Samples that missed it, not yet handed to the request collector.
     missed: u32,
     /// Pool slot of a resident brick (`u32::MAX` otherwise).
@@ -800,7 +800,7 @@ impl<T> Cached<'_, T> {
         content: Content::Unresolved,
         range: [f32::NAN; 2],
         transparent: false,
-        clear_cells: [0; CLEAR_WORDS],
+        clear_cells: 0,
         missed: 0,
         slot: u32::MAX,
         marked: true,
@@ -812,8 +812,8 @@ impl<T> Cached<'_, T> {
     }
 }
 
-/// Words of a brick's clear-cell bit set.
-const CLEAR_WORDS: usize = cells::MAX_CELLS / 64;
+// A brick's clear cells are one bit each in a u64.
+const _: () = assert!(cells::MAX_CELLS <= 64);
 
 /// Entries of a walker's brick memo (a power of two).
 const MEMO: usize = 1024;
@@ -919,7 +919,7 @@ impl<'f, 'a, T: Sample> Walker<'f, 'a, T> {
             content: Content::Unresolved,
             range,
             transparent,
-            clear_cells: [0; CLEAR_WORDS],
+            clear_cells: 0,
             missed: 0,
             slot: u32::MAX,
             marked: true,
@@ -955,10 +955,10 @@ impl<'f, 'a, T: Sample> Walker<'f, 'a, T> {
                     && self.channel == f.scene.channel
                     && f.scene.skip_cells
                 {
-                    let mut m = [0u64; CLEAR_WORDS];
+                    let mut m = 0u64;
                     for (i, &[lo, hi]) in f.vm.cell_ranges(slot).iter().enumerate() {
                         if !f.tf_eval.range_visible(lo, hi) {
-                            m[i >> 6] |= 1 << (i & 63);
+                            m |= 1 << i;
                         }
                     }
                     c.clear_cells = m;
@@ -1093,7 +1093,7 @@ impl<'f, 'a, T: Sample> Walker<'f, 'a, T> {
                     }
                     let (u, fr) = run.current();
                     let cell = f.cell_of(u, [0; 3]);
-                    if clear[cell >> 6] >> (cell & 63) & 1 != 0 {
+                    if clear >> cell & 1 != 0 {
                         // A cell whose samples are all transparent: on to
                         // the step where the ray leaves it.
                         passed += 1;
