@@ -848,20 +848,26 @@ impl<'f, 'a, T: Sample> Walker<'f, 'a, T> {
         }
     }
 
+    #[inline]
     fn flush_level(&mut self, l: usize, req: &mut Requests) {
-        let c = &mut self.cache[l];
-        if c.missed > 0 {
-            let b = c.brick;
-            req.add(
-                BrickKey::new(
-                    l as u8,
-                    self.channel as u16,
-                    [b[0] as u32, b[1] as u32, b[2] as u32],
-                ),
-                c.missed,
-            );
-            c.missed = 0;
+        if self.cache[l].missed > 0 {
+            self.flush_misses(l, req);
         }
+    }
+
+    #[cold]
+    fn flush_misses(&mut self, l: usize, req: &mut Requests) {
+        let c = &mut self.cache[l];
+        let b = c.brick;
+        req.add(
+            BrickKey::new(
+                l as u8,
+                self.channel as u16,
+                [b[0] as u32, b[1] as u32, b[2] as u32],
+            ),
+            c.missed,
+        );
+        c.missed = 0;
     }
 
     /// Make the cache of level `l` hold the brick of voxel `v`.
@@ -1298,8 +1304,12 @@ fn clamp(x: f64, hi: f64) -> f64 {
 /// with strides `sz`, `sy` (x: 1), by [`brickyard_core::trilinear`].
 #[inline(always)]
 fn trilinear<T: Sample>(v: &[T], i: usize, sz: usize, sy: usize, f: [f32; 3]) -> f32 {
+    // One bounds check for the farthest corner instead of eight.
+    let v = &v[i..=i + sz + sy + 1];
     brickyard_core::trilinear_of(
-        |dz, dy, dx| v[i + dz * sz + dy * sy + dx].to_f32(),
+        // SAFETY: every corner index is at most `sz + sy + 1`, the last
+        // element of the slice just checked.
+        |dz, dy, dx| unsafe { v.get_unchecked(dz * sz + dy * sy + dx) }.to_f32(),
         f,
         T::DTYPE.is_float(),
     )
