@@ -540,14 +540,17 @@ impl<'a> Frame<'a> {
         )
     }
 
-    /// After step `k − 1`, which lies in the box `[lo, hi)` (voxels) of
-    /// the track's level, the box is crossed without sampling: the step to go on
-    /// from, the first from `k` on whose voxel base may lie outside the box
-    /// or whose parameter reaches `limit`. Estimated from where the ray
-    /// leaves the box and checked on the step before: the voxel base moves
-    /// monotonically along the ray, so the steps inside a box are
-    /// consecutive, and a landing whose previous step is inside (and
-    /// before `limit`) skips only steps inside.
+    /// After step `k − 1`, which lies in the box `[lo, hi)` (voxels) of the
+    /// track's level, the box is crossed without sampling: the step to go
+    /// on from, the first from `k` on whose voxel base may lie outside the
+    /// box or whose parameter reaches `limit` (or one step earlier).
+    /// Estimated from where the ray leaves the box, moved early by a bound
+    /// on the rounding of the sampler's coordinates. Where that bound is
+    /// over a quarter step (a ray nearly parallel to a voxel plane), the
+    /// landing is checked on the step before and backed off: the voxel base
+    /// moves monotonically along the ray, so the steps inside a box are
+    /// consecutive, and a landing whose previous step is inside (and before
+    /// `limit`) skips only steps inside.
     #[inline]
     fn land(
         &self,
