@@ -1225,6 +1225,45 @@ impl<'f, 'a, T: Sample> Walker<'f, 'a, T> {
                 k = f.land(ray, &track, g, k, (lo, hi), t1);
                 continue;
             }
+            if let Content::Data(vox) = c.content {
+                // Resident: a fixed-point run through the brick (as in
+                // DVR), crossing cells whose maximum cannot raise `best`.
+                let (lo, hi, slot) = (c.lo, c.hi, c.slot);
+                let g = Grid {
+                    base_t: t0,
+                    dt,
+                    inv_dt,
+                };
+                let end = track.run_end(g, (lo, hi), t1).max(k);
+                let ranges = f.scene.skip_cells.then(|| f.vm.cell_ranges(slot));
+                let mut run = Run::new(f, level, &track, w, dt, lo, hi);
+                let (mut n, mut j) = (0u64, k - 1);
+                while j < end {
+                    let (u, fr) = run.current();
+                    let cell = f.cell_of(u, [0; 3]);
+                    // NaN bound or best: no skip.
+                    if ranges.is_some_and(|r| r[cell][1] <= best) {
+                        st.skipped_cells += 1;
+                        let jn = track
+                            .run_end(g, f.cell_box(cell, lo, hi), t1)
+                            .clamp(j + 1, end);
+                        run.advance(jn - j);
+                        j = jn;
+                        continue;
+                    }
+                    run.advance(1);
+                    j += 1;
+                    n += 1;
+                    let v = trilinear(vox, f.local_index(u, [0; 3]), f.stride[0], f.stride[1], fr);
+                    // f32::max ignores NaN.
+                    best = best.max(v);
+                }
+                st.samples += n;
+                st.exact += n;
+                st.steps += end - k;
+                k = end;
+                continue;
+            }
             match self.value(level, w, vb, frac, req, st) {
                 // f32::max ignores NaN.
                 Some(v) => best = best.max(v),

@@ -19,7 +19,7 @@ pub struct BenchCmd {
     /// vm-sample: trilinear samples/s through the page tables vs a plain
     /// array; vm-update: LRU + request update per frame for pools of
     /// 1k–64k slots; loader: decoded GB/s; latency: one brick and one full
-    /// view from an empty cache (paper Table 2); render: DVR frame times
+    /// view from an empty cache (paper Table 2); render: DVR (or --mode mip) frame times
     /// through the virtual memory beside the in-core reference.
     scenario: String,
     /// Volume size (N or XxYxZ).
@@ -54,6 +54,9 @@ pub struct BenchCmd {
     /// render: leave out the in-core reference renderer (for profiling).
     #[arg(long)]
     no_reference: bool,
+    /// render: dvr or mip.
+    #[arg(long, default_value = "dvr")]
+    mode: String,
 }
 
 pub fn run(b: BenchCmd) -> Result<()> {
@@ -74,6 +77,11 @@ pub fn run(b: BenchCmd) -> Result<()> {
                 cold: b.cold,
                 pool,
                 reference: !b.no_reference,
+                mip: match b.mode.as_str() {
+                    "dvr" => false,
+                    "mip" => true,
+                    m => bail!("--mode: expected dvr or mip, found {m:?}"),
+                },
             };
             crate::vmbench::render(&b.dir, dims, dtype, &o)
         }

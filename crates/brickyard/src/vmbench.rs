@@ -410,6 +410,8 @@ pub struct RenderBench {
     pub pool: Option<u64>,
     /// Also time the in-core reference renderer.
     pub reference: bool,
+    /// MIP instead of DVR.
+    pub mip: bool,
 }
 
 pub fn render(dir: &Path, dims: Dims3, dtype: DType, o: &RenderBench) -> Result<()> {
@@ -419,6 +421,7 @@ pub fn render(dir: &Path, dims: Dims3, dtype: DType, o: &RenderBench) -> Result<
         cold,
         pool,
         reference: with_reference,
+        mip,
     } = *o;
     use brickyard_core::camera::{world_extent, Camera, Projection};
     use brickyard_core::TransferFunction;
@@ -447,7 +450,8 @@ pub fn render(dir: &Path, dims: Dims3, dtype: DType, o: &RenderBench) -> Result<
         20.0,
         Projection::Perspective { fov_y_deg: 35.0 },
     );
-    let mut p = RenderParams::new(image, image, cam, tf, RenderMode::Dvr);
+    let mode = if mip { RenderMode::Mip } else { RenderMode::Dvr };
+    let mut p = RenderParams::new(image, image, cam, tf, mode);
     p.reference_step = Some(scene.voxel(0));
     let vox: u64 = dims.iter().product();
     let cfg = VmConfig {
@@ -511,7 +515,7 @@ pub fn render(dir: &Path, dims: Dims3, dtype: DType, o: &RenderBench) -> Result<
     }
     println!(
         "{}",
-        json!({"scenario": "render", "mode": "dvr", "size": [dims[2], dims[1], dims[0]], "dtype": dtype.short_name(),
+        json!({"scenario": "render", "mode": if mip { "mip" } else { "dvr" }, "size": [dims[2], dims[1], dims[0]], "dtype": dtype.short_name(),
             "image": [image, image], "pool_bytes": pool_bytes, "volume_bytes": vox * dtype.size() as u64,
             "cold": dropped, "first_frame_ms": first_frame_ms, "cold_to_complete_s": cold_s, "cold_frames": frames, "bytes_read": bytes_read,
             "warm_frame_ms": warm * 1e3, "warm_samples": samples, "warm_steps": steps, "warm_skipped_bricks": skipped, "warm_transparent_samples": transparent, "warm_skipped_cells": skipped_cells, "warm_msamples_s": samples as f64 / warm / 1e6,
