@@ -663,6 +663,28 @@ impl Run {
         r
     }
 
+    /// At step `j` (of a run ending at `end`), in cell `cell` of the brick,
+    /// whose samples need no evaluation: move to the step where the ray
+    /// leaves the cell (at least one on, at most `end`) and return it.
+    #[inline(always)]
+    fn cross_cell(
+        &mut self,
+        f: &Frame,
+        track: &Track,
+        g: Grid,
+        cell: usize,
+        limit: f64,
+        (j, end): (u64, u64),
+    ) -> u64 {
+        let lo = self.lo.map(|x| x as u64);
+        let hi = [0, 1, 2].map(|a| (self.lo[a] + self.last[a] + 1) as u64);
+        let jn = track
+            .run_end(g, f.cell_box(cell, lo, hi), limit)
+            .clamp(j + 1, end);
+        self.advance(jn - j);
+        jn
+    }
+
     /// Move on by `m` steps (exactly `m` single steps: integer arithmetic).
     #[inline(always)]
     fn advance(&mut self, m: u64) {
@@ -1106,11 +1128,7 @@ impl<'f, 'a, T: Sample> Walker<'f, 'a, T> {
                         // A cell whose samples are all transparent: on to
                         // the step where the ray leaves it.
                         passed += 1;
-                        let jn = track
-                            .run_end(g, f.cell_box(cell, lo, hi), limit)
-                            .clamp(j + 1, end);
-                        run.advance(jn - j);
-                        j = jn;
+                        j = run.cross_cell(f, &track, g, cell, limit, (j, end));
                         continue;
                     }
                     run.advance(1);
@@ -1244,11 +1262,7 @@ impl<'f, 'a, T: Sample> Walker<'f, 'a, T> {
                     // NaN bound or best: no skip.
                     if ranges.is_some_and(|r| r[cell][1] <= best) {
                         st.skipped_cells += 1;
-                        let jn = track
-                            .run_end(g, f.cell_box(cell, lo, hi), t1)
-                            .clamp(j + 1, end);
-                        run.advance(jn - j);
-                        j = jn;
+                        j = run.cross_cell(f, &track, g, cell, t1, (j, end));
                         continue;
                     }
                     run.advance(1);

@@ -450,7 +450,11 @@ pub fn render(dir: &Path, dims: Dims3, dtype: DType, o: &RenderBench) -> Result<
         20.0,
         Projection::Perspective { fov_y_deg: 35.0 },
     );
-    let mode = if mip { RenderMode::Mip } else { RenderMode::Dvr };
+    let mode = if mip {
+        RenderMode::Mip
+    } else {
+        RenderMode::Dvr
+    };
     let mut p = RenderParams::new(image, image, cam, tf, mode);
     p.reference_step = Some(scene.voxel(0));
     let vox: u64 = dims.iter().product();
