@@ -644,7 +644,8 @@ fn segment_table(xs: impl Iterator<Item = f32> + Clone) -> Vec<u16> {
 
 #[inline(always)]
 fn bin_of(x: f32) -> usize {
-    ((x * TF_BINS as f32) as usize).min(TF_BINS - 1)
+    // Through i32: one conversion instruction (usize takes two).
+    ((x * TF_BINS as f32) as i32).clamp(0, TF_BINS as i32 - 1) as usize
 }
 
 /// A transfer function prepared for many lookups (one per frame): the

@@ -773,10 +773,17 @@ impl Track {
         let mut t = t_max;
         for a in 0..3 {
             let b = self.beta[a];
-            if b > 0.0 && hi[a] < self.dims[a] {
-                t = t.min((hi[a] as f64 - self.alpha[a]) * self.inv_beta[a]);
+            // (A comparison, not `f64::min`: a NaN is ignored either way,
+            // and this is cheaper.)
+            let ta = if b > 0.0 && hi[a] < self.dims[a] {
+                (hi[a] as f64 - self.alpha[a]) * self.inv_beta[a]
             } else if b < 0.0 && lo[a] > 0 {
-                t = t.min((lo[a] as f64 - self.alpha[a]) * self.inv_beta[a]);
+                (lo[a] as f64 - self.alpha[a]) * self.inv_beta[a]
+            } else {
+                continue;
+            };
+            if ta < t {
+                t = ta;
             }
         }
         t
