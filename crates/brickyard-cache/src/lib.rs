@@ -26,8 +26,12 @@
 //! The virtual-memory manager (directory, page tables, brick pool, usage and
 //! requests) is built on these in the same crate.
 //!
+//! [`bookkeeping`] holds the cache-management passes as plain functions:
+//! what the virtual memory runs, and the CPU twins of the device kernels.
+//!
 //! This crate never depends on a GPU API.
 
+pub mod bookkeeping;
 pub mod brick;
 pub mod cells;
 pub mod host_cache;

@@ -135,12 +135,9 @@ impl SlotSet {
     /// Order-preserving compaction: slots used in `frame` first, then the
     /// others, each group in its previous order.
     fn compact(&mut self, frame: u32) {
-        let (mut used, mut rest): (Vec<u32>, Vec<u32>) = self
-            .lru
-            .iter()
-            .partition(|&&s| self.usage[s as usize].load(Ordering::Relaxed) == frame);
-        used.append(&mut rest);
-        self.lru = used;
+        self.lru = crate::bookkeeping::compact_lru(&self.lru, |s| {
+            self.usage[s as usize].load(Ordering::Relaxed) == frame
+        });
         self.cursor = 0;
         self.stand_in_failed = u8::MAX;
     }
@@ -691,15 +688,14 @@ impl VirtualMemory {
             }
         }
         dropped += self.merged.dropped;
-        let mut list: Vec<(u64, u32)> = self.merged.map.iter().map(|(&k, &n)| (k, n)).collect();
+        let list: Vec<(BrickKey, u32)> = self
+            .merged
+            .map
+            .iter()
+            .map(|(&k, &n)| (BrickKey::unpack(k), n))
+            .collect();
         let requested = list.len();
-        list.sort_by(|a, b| {
-            let (ka, kb) = (BrickKey::unpack(a.0), BrickKey::unpack(b.0));
-            b.1.cmp(&a.1)
-                .then(kb.level.cmp(&ka.level))
-                .then(ka.cmp(&kb))
-        });
-        list.truncate(self.cfg.request_cap);
+        let list = crate::bookkeeping::prioritize(list, self.cfg.request_cap);
         let frame = self.frame;
         self.slots.compact(frame);
         for (_, s) in &mut self.pt {
@@ -707,7 +703,7 @@ impl VirtualMemory {
         }
         FrameReport {
             frame,
-            requests: list.into_iter().map(|(k, _)| BrickKey::unpack(k)).collect(),
+            requests: list.into_iter().map(|(k, _)| k).collect(),
             requested,
             dropped,
             resident_bricks: self

@@ -1,0 +1,21 @@
+//! brickyard-gpu: the virtual memory's device side through `wgpu`
+//! (Vulkan, Metal, DX12; WGSL kernels).
+//!
+//! - [`context`]: adapter choice (discrete, integrated, virtual, then
+//!   software), conservative limits, optional features, read-back, and the
+//!   test policy ([`context::test_gpu`]: no adapter is a failure unless
+//!   explicitly opted out).
+//! - [`lru`]: LRU order by order-preserving compaction.
+//! - [`requests`]: request collection in a bounded table and the capped,
+//!   prioritized request list.
+//!
+//! Every kernel is the twin of a CPU function of
+//! [`brickyard_cache::bookkeeping`]; `tests/twins.rs` compares them on
+//! random inputs.
+
+pub mod context;
+pub mod kernel;
+pub mod lru;
+pub mod requests;
+
+pub use context::{AdapterChoice, Gpu, GpuError};

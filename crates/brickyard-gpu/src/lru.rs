@@ -1,0 +1,123 @@
+//! LRU order by order-preserving compaction on the device: the twin of
+//! [`brickyard_cache::bookkeeping::compact_lru`].
+
+use crate::context::{Gpu, GpuError};
+use crate::kernel::{Binding, Kernel};
+
+/// Entries per workgroup (256 invocations × 4).
+const BLOCK: u32 = 1024;
+
+#[repr(C)]
+#[derive(Clone, Copy, bytemuck::Pod, bytemuck::Zeroable)]
+struct Params {
+    n: u32,
+    frame: u32,
+    blocks: u32,
+    pad: u32,
+}
+
+/// The compaction kernel (three passes: block scans, scan of the block
+/// sums, scatter).
+pub struct LruCompaction {
+    kernel: Kernel,
+}
+
+/// Device buffers of one LRU list: the order (most recently used first)
+/// and, per slot, the last frame it was used in.
+pub struct LruBuffers {
+    pub n: u32,
+    pub order: wgpu::Buffer,
+    pub usage: wgpu::Buffer,
+    /// Scratch: per-entry prefix, per-block sums, the compacted order.
+    prefix: wgpu::Buffer,
+    block_sums: wgpu::Buffer,
+    out: wgpu::Buffer,
+}
+
+impl LruBuffers {
+    /// Buffers for `order` (a permutation of `0..n`) and `usage` (`n`
+    /// frame stamps).
+    pub fn new(gpu: &Gpu, order: &[u32], usage: &[u32]) -> Result<LruBuffers, GpuError> {
+        assert_eq!(order.len(), usage.len(), "one usage stamp per slot");
+        let n = order.len() as u32;
+        let blocks = n.div_ceil(BLOCK);
+        let max = gpu.limits.max_compute_workgroups_per_dimension;
+        if blocks > max {
+            return Err(GpuError::Limit {
+                what: "LRU slots / 1024".into(),
+                got: blocks as u64,
+                limit: max as u64,
+            });
+        }
+        Ok(LruBuffers {
+            n,
+            order: gpu.storage_buffer("lru order", order),
+            usage: gpu.storage_buffer("lru usage", usage),
+            prefix: gpu.storage_buffer_zeroed("lru prefix", n as u64 * 4),
+            block_sums: gpu.storage_buffer_zeroed("lru block sums", (blocks as u64 + 1) * 4),
+            out: gpu.storage_buffer_zeroed("lru out", n as u64 * 4),
+        })
+    }
+
+    /// The order, read back (for tests and reports).
+    pub fn read_order(&self, gpu: &Gpu) -> Result<Vec<u32>, GpuError> {
+        gpu.read_u32("LRU order", &self.order, self.n as usize)
+    }
+}
+
+impl LruCompaction {
+    pub fn new(gpu: &Gpu) -> LruCompaction {
+        use Binding::*;
+        LruCompaction {
+            kernel: Kernel::new(
+                gpu,
+                "lru",
+                include_str!("shaders/lru.wgsl"),
+                &["scan_blocks", "scan_sums", "scatter"],
+                &[Uniform, Read, Read, ReadWrite, ReadWrite, ReadWrite],
+            ),
+        }
+    }
+
+    /// Record the compaction of `b` for `frame` into `enc`: afterwards
+    /// `b.order` holds the slots used in `frame` first, then the others,
+    /// each group in its previous order.
+    pub fn record(&self, gpu: &Gpu, enc: &mut wgpu::CommandEncoder, b: &LruBuffers, frame: u32) {
+        if b.n == 0 {
+            return;
+        }
+        let blocks = b.n.div_ceil(BLOCK);
+        let params = gpu.uniform_buffer(
+            "lru params",
+            &Params {
+                n: b.n,
+                frame,
+                blocks,
+                pad: 0,
+            },
+        );
+        let bind = self.kernel.bind(
+            gpu,
+            &[
+                &params,
+                &b.order,
+                &b.usage,
+                &b.prefix,
+                &b.block_sums,
+                &b.out,
+            ],
+        );
+        self.kernel
+            .dispatch(enc, "scan_blocks", &bind, [blocks, 1, 1]);
+        self.kernel.dispatch(enc, "scan_sums", &bind, [1, 1, 1]);
+        self.kernel.dispatch(enc, "scatter", &bind, [blocks, 1, 1]);
+        enc.copy_buffer_to_buffer(&b.out, 0, &b.order, 0, b.n as u64 * 4);
+    }
+
+    /// [`record`](Self::record) and submit.
+    pub fn run(&self, gpu: &Gpu, b: &LruBuffers, frame: u32) {
+        let mut enc = gpu.device.create_command_encoder(&Default::default());
+        self.record(gpu, &mut enc, b, frame);
+        gpu.queue.submit([enc.finish()]);
+    }
+}

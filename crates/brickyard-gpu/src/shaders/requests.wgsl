@@ -1,0 +1,126 @@
+// Bounded request collection and the capped request list. Twins of
+// `brickyard_cache::bookkeeping::{RequestTable, prioritize}`.
+//
+//   insert: adds misses (brick id, samples) to an open-addressing table of
+//           a power-of-two number of buckets (linear probing; a key that
+//           finds no bucket is dropped and counted). Counts saturate.
+//   sort:   one workgroup sorts the buckets (bitonic, in place in
+//           `sorted`): most samples first, then coarser levels, then ids
+//           in order; empty buckets last. The host reads back only the
+//           first `cap` entries: the request list.
+
+struct Params {
+    buckets: u32,
+    count: u32,
+    levels: u32,
+    pad: u32,
+}
+
+@group(0) @binding(0) var<uniform> params: Params;
+@group(0) @binding(1) var<storage, read> misses: array<vec2<u32>>;
+@group(0) @binding(2) var<storage, read_write> keys: array<atomic<u32>>;
+@group(0) @binding(3) var<storage, read_write> counts: array<atomic<u32>>;
+@group(0) @binding(4) var<storage, read_write> dropped: array<atomic<u32>>;
+@group(0) @binding(5) var<storage, read> level_starts: array<u32>;
+@group(0) @binding(6) var<storage, read_write> sorted: array<vec2<u32>>;
+
+const NO_BRICK: u32 = 0xffffffffu;
+const WG: u32 = 256u;
+
+fn bucket(id: u32, mask: u32) -> u32 {
+    return ((id * 0x9E3779B1u) >> 7u) & mask;
+}
+
+fn add_saturating(b: u32, s: u32) {
+    let old = atomicAdd(&counts[b], s);
+    if (old + s < old) {
+        // Wrapped: every add that wraps sets the maximum after it, so the
+        // final count is the maximum whatever the order.
+        atomicMax(&counts[b], NO_BRICK);
+    }
+}
+
+@compute @workgroup_size(256)
+fn insert(@builtin(global_invocation_id) g: vec3<u32>, @builtin(num_workgroups) nw: vec3<u32>) {
+    let i = g.x + g.y * nw.x * WG;
+    if (i >= params.count) {
+        return;
+    }
+    let id = misses[i].x;
+    let s = misses[i].y;
+    let mask = params.buckets - 1u;
+    var b = bucket(id, mask);
+    for (var p = 0u; p < params.buckets; p = p + 1u) {
+        loop {
+            let r = atomicCompareExchangeWeak(&keys[b], NO_BRICK, id);
+            if (r.exchanged || r.old_value == id) {
+                add_saturating(b, s);
+                return;
+            }
+            if (r.old_value != NO_BRICK) {
+                break;
+            }
+            // A spurious failure of the weak exchange: try again.
+        }
+        b = (b + 1u) & mask;
+    }
+    atomicAdd(&dropped[0], 1u);
+}
+
+fn level_of(id: u32) -> u32 {
+    var l = 0u;
+    for (var i = 1u; i < params.levels; i = i + 1u) {
+        if (id >= level_starts[i]) {
+            l = i;
+        }
+    }
+    return l;
+}
+
+// Whether entry `a` comes before entry `b` in the request list.
+fn before(a: vec2<u32>, b: vec2<u32>) -> bool {
+    if (a.x == NO_BRICK) {
+        return false;
+    }
+    if (b.x == NO_BRICK) {
+        return true;
+    }
+    if (a.y != b.y) {
+        return a.y > b.y;
+    }
+    let la = level_of(a.x);
+    let lb = level_of(b.x);
+    if (la != lb) {
+        return la > lb;
+    }
+    return a.x < b.x;
+}
+
+@compute @workgroup_size(256)
+fn sort(@builtin(local_invocation_index) t: u32) {
+    let n = params.buckets;
+    for (var i = t; i < n; i = i + WG) {
+        sorted[i] = vec2<u32>(atomicLoad(&keys[i]), atomicLoad(&counts[i]));
+    }
+    storageBarrier();
+    for (var k = 2u; k <= n; k = k * 2u) {
+        for (var j = k / 2u; j > 0u; j = j / 2u) {
+            for (var i = t; i < n; i = i + WG) {
+                let l = i ^ j;
+                if (l > i) {
+                    let a = sorted[i];
+                    let b = sorted[l];
+                    var swap = before(a, b);
+                    if ((i & k) == 0u) {
+                        swap = before(b, a);
+                    }
+                    if (swap) {
+                        sorted[i] = b;
+                        sorted[l] = a;
+                    }
+                }
+            }
+            storageBarrier();
+        }
+    }
+}
