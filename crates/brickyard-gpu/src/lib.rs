@@ -5,6 +5,8 @@
 //!   software), conservative limits, optional features, read-back, and the
 //!   test policy ([`context::test_gpu`]: no adapter is a failure unless
 //!   explicitly opted out).
+//! - [`pool`]: the brick pool as one 3D texture (format per data type
+//!   and adapter), and the host→device write of padded bricks.
 //! - [`lru`]: LRU order by order-preserving compaction.
 //! - [`requests`]: request collection in a bounded table and the capped,
 //!   prioritized request list.
@@ -16,6 +18,7 @@
 pub mod context;
 pub mod kernel;
 pub mod lru;
+pub mod pool;
 pub mod requests;
 
 pub use context::{AdapterChoice, Gpu, GpuError};
