@@ -18,7 +18,8 @@ pub struct BenchCmd {
     /// input MB/s, peak RSS); downsample: the 2×2×2 mean kernel in memory;
     /// vm-sample: trilinear samples/s through the page tables vs a plain
     /// array; vm-update: LRU + request update per frame for pools of
-    /// 1k–64k slots; loader: decoded GB/s; latency: one brick and one full
+    /// 1k–64k slots; cache-kernels: the device's LRU and request kernels
+    /// beside their CPU twins; loader: decoded GB/s; latency: one brick and one full
     /// view from an empty cache (paper Table 2); render: DVR (or --mode mip) frame times
     /// through the virtual memory beside the in-core reference.
     scenario: String,
@@ -67,6 +68,7 @@ pub fn run(b: BenchCmd) -> Result<()> {
         "downsample" => bench_downsample(&b, dims, dtype),
         "vm-sample" => crate::vmbench::sample(&b.dir, dims, dtype, b.repeat),
         "vm-update" => crate::vmbench::update(b.repeat),
+        "cache-kernels" => crate::gpubench::cache_kernels(b.repeat),
         "loader" => crate::vmbench::loader(&b.dir, dims, dtype, b.cold),
         "latency" => crate::vmbench::latency(&b.dir, dims, dtype, b.cold),
         "render" => {
@@ -86,7 +88,7 @@ pub fn run(b: BenchCmd) -> Result<()> {
             crate::vmbench::render(&b.dir, dims, dtype, &o)
         }
         s => bail!(
-            "scenario: expected convert, downsample, vm-sample, vm-update, loader, latency or render, found {s:?}"
+            "scenario: expected convert, downsample, vm-sample, vm-update, cache-kernels, loader, latency or render, found {s:?}"
         ),
     }
 }

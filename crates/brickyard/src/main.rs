@@ -1,6 +1,7 @@
 //! The `brickyard` command line.
 
 mod bench;
+mod gpubench;
 mod progress;
 mod render;
 mod vmbench;
