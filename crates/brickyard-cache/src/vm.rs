@@ -318,6 +318,20 @@ pub struct VirtualMemory {
     padded: [usize; 3],
     brick_bytes: usize,
     merged: Requests,
+    /// Change tracking for a device mirror (`None`: off): indices into
+    /// [`VirtualMemory::tables`] of entries set, and pool slots written,
+    /// since the last [`VirtualMemory::take_changes`].
+    changes: Option<(Vec<u32>, Vec<u32>)>,
+}
+
+/// What changed in a virtual memory since the last
+/// [`VirtualMemory::take_changes`]: page-table entries (index into the
+/// concatenated tables, new value; each index once) and pool slots whose
+/// brick was written.
+#[derive(Debug, Clone, Default, PartialEq)]
+pub struct VmChanges {
+    pub entries: Vec<(u32, PageEntry)>,
+    pub slots: Vec<u32>,
 }
 
 /// `u64` words viewed as bytes.
@@ -386,6 +400,99 @@ impl VirtualMemory {
             padded,
             brick_bytes,
             cfg,
+            changes: None,
+        }
+    }
+
+    /// Record changes for [`take_changes`](Self::take_changes) from now on
+    /// (a device mirror turns this on; it costs a few bytes per change
+    /// until taken).
+    pub fn track_changes(&mut self) {
+        self.changes.get_or_insert_with(Default::default);
+    }
+
+    /// The changes since the last call (tracking must be on), each entry
+    /// and slot once, in index order.
+    pub fn take_changes(&mut self) -> VmChanges {
+        let Some((entries, slots)) = self.changes.as_mut() else {
+            return VmChanges::default();
+        };
+        let (mut e, mut s) = (std::mem::take(entries), std::mem::take(slots));
+        e.sort_unstable();
+        e.dedup();
+        s.sort_unstable();
+        s.dedup();
+        let tables = self.tables();
+        let offsets = self.table_offsets();
+        let entries = e
+            .into_iter()
+            .map(|i| {
+                let t = offsets.partition_point(|&o| o <= i) - 1;
+                (i, tables[t][(i - offsets[t]) as usize])
+            })
+            .collect();
+        VmChanges { entries, slots: s }
+    }
+
+    /// The page tables: the directory (channel-major, `channels ×
+    /// directory entries`), then the cache of each intermediate level
+    /// (`blocks × block entries`, blocks in slot order).
+    pub fn tables(&self) -> Vec<&[PageEntry]> {
+        std::iter::once(&self.dir[..])
+            .chain(self.pt.iter().map(|(e, _)| &e[..]))
+            .collect()
+    }
+
+    /// First index of each table of [`tables`](Self::tables) in their
+    /// concatenation, then the total.
+    pub fn table_offsets(&self) -> Vec<u32> {
+        let mut o = vec![0u32];
+        for t in self.tables() {
+            o.push(o.last().copied().unwrap_or(0) + t.len() as u32);
+        }
+        o
+    }
+
+    /// Slots per axis `[z, y, x]` of the brick pool (`brick`) or of the
+    /// cache of intermediate level `n` (`1 ≤ n < nmax`): a slot id is
+    /// `(z·gy + y)·gx + x` of the coordinates a page entry holds.
+    pub fn slot_grid(&self, n: Option<usize>) -> [u32; 3] {
+        match n {
+            None => self.slots.grid,
+            Some(n) => self.pt[n - 1].1.grid,
+        }
+    }
+
+    /// Entries in one block of intermediate level `n`.
+    pub fn pt_block_len(&self, n: usize) -> usize {
+        self.pt_block_len[n - 1]
+    }
+
+    /// Entries of one channel's directory.
+    pub fn dir_len(&self) -> usize {
+        self.dir_len
+    }
+
+    /// The padded brick in pool slot `s` (native-endian voxels).
+    pub fn slot_voxels(&self, s: u32) -> &[u8] {
+        let bb = self.brick_bytes;
+        &self.pool()[s as usize * bb..(s as usize + 1) * bb]
+    }
+
+    /// Index in the concatenated tables of an owner's entry.
+    fn table_index(&self, o: Owner) -> Option<u32> {
+        match o {
+            Owner::None => None,
+            Owner::Dir(i) => Some(i),
+            Owner::Pt(n, b, e) => {
+                let base: usize = self.dir.len()
+                    + self.pt[..n as usize - 1]
+                        .iter()
+                        .map(|(t, _)| t.len())
+                        .sum::<usize>();
+                let len = self.pt_block_len[n as usize - 1];
+                Some((base + b as usize * len + e as usize) as u32)
+            }
         }
     }
 
@@ -551,20 +658,58 @@ impl VirtualMemory {
     /// Marks usage on the way. Returns the final entry kind, or `Unmapped`
     /// at the first missing level.
     fn resolve(&self, l: usize, c: usize, v: [u64; 3]) -> Kind {
+        entry_kind(&self.walk(l, c, v, true), self.dtype)
+    }
+
+    /// The entry the hierarchy holds for the brick of voxel `v` of level
+    /// `l`: the first non-mapped entry on the way down, or the brick's.
+    /// `mark`: mark the page-table blocks passed as used this frame.
+    fn walk(&self, l: usize, c: usize, v: [u64; 3], mark: bool) -> PageEntry {
         let p = self.p_of_voxel(l, v);
         let mut e = self.dir[self.dir_index(l, c, p)];
         for n in 1..self.layout.nmax() {
-            match entry_kind(&e, self.dtype) {
-                Kind::Mapped(slot) => {
-                    let (entries, set) = &self.pt[n - 1];
-                    let b = set.id(slot);
-                    set.usage[b as usize].store(self.frame, Ordering::Relaxed);
-                    e = entries[b as usize * self.pt_block_len[n - 1] + self.block_entry(n, l, p)];
-                }
-                k => return k,
+            let Kind::Mapped(slot) = entry_kind(&e, self.dtype) else {
+                return e;
+            };
+            let (entries, set) = &self.pt[n - 1];
+            let b = set.id(slot);
+            if mark {
+                set.usage[b as usize].store(self.frame, Ordering::Relaxed);
             }
+            e = entries[b as usize * self.pt_block_len[n - 1] + self.block_entry(n, l, p)];
         }
-        entry_kind(&e, self.dtype)
+        e
+    }
+
+    /// [`walk`](Self::walk) without side effects: the twin of the device's
+    /// page-table walk.
+    pub fn entry_of(&self, l: usize, c: usize, v: [u64; 3]) -> PageEntry {
+        self.walk(l, c, v, false)
+    }
+
+    /// Trilinear sample of channel `c` at level `l` with voxel base `base`
+    /// (`[z, y, x]`, at most the level's last voxel) and fractions `frac`,
+    /// if its brick is mapped (resident or flagged); no fallback, no usage
+    /// marks: the twin of the device's sampler.
+    pub fn sample_at(&self, l: usize, c: usize, base: [u64; 3], frac: [f32; 3]) -> Option<f32> {
+        match entry_kind(&self.entry_of(l, c, base), self.dtype) {
+            Kind::Unmapped => None,
+            Kind::Empty => Some(0.0),
+            Kind::Constant(v) => Some(v),
+            Kind::Mapped(slot) => Some(self.trilinear_in(self.slots.id(slot), base, frac)),
+        }
+    }
+
+    /// Trilinear sample in pool slot `s` at level voxel `base` + `frac`.
+    fn trilinear_in(&self, s: u32, base: [u64; 3], frac: [f32; 3]) -> f32 {
+        let a = self.cfg.apron as usize;
+        let b = self.cfg.brick;
+        let local = [0, 1, 2].map(|i| (base[i] % b[i]) as usize + a);
+        brickyard_core::trilinear_of(
+            |dz, dy, dx| self.voxel(s, [local[0] + dz, local[1] + dy, local[2] + dx]),
+            frac,
+            true,
+        )
     }
 
     fn key_of(&self, l: usize, c: usize, v: [u64; 3]) -> BrickKey {
@@ -627,19 +772,12 @@ impl VirtualMemory {
                     if lv == l.min(nl - 1) {
                         self.mark_exact(s);
                     }
-                    let a = self.cfg.apron as usize;
-                    let b = self.cfg.brick;
-                    let local = [0, 1, 2].map(|i| (base[i] % b[i]) as usize + a);
                     let value = if trilinear {
-                        brickyard_core::trilinear_of(
-                            |dz, dy, dx| {
-                                self.voxel(s, [local[0] + dz, local[1] + dy, local[2] + dx])
-                            },
-                            frac,
-                            true,
-                        )
+                        self.trilinear_in(s, base, frac)
                     } else {
-                        self.voxel(s, local)
+                        let a = self.cfg.apron as usize;
+                        let b = self.cfg.brick;
+                        self.voxel(s, [0, 1, 2].map(|i| (base[i] % b[i]) as usize + a))
                     };
                     return Lookup {
                         value,
@@ -722,14 +860,7 @@ impl VirtualMemory {
 
     /// Unmap the entry `o` refers to.
     fn unmap_owner(&mut self, o: Owner) {
-        match o {
-            Owner::None => {}
-            Owner::Dir(i) => self.dir[i as usize] = PageEntry::unmapped(),
-            Owner::Pt(n, b, e) => {
-                let len = self.pt_block_len[n as usize - 1];
-                self.pt[n as usize - 1].0[b as usize * len + e as usize] = PageEntry::unmapped();
-            }
-        }
+        self.set_entry(o, PageEntry::unmapped());
     }
 
     /// Forget the children of page-table block `b` of cache `n` (after it
@@ -752,7 +883,7 @@ impl VirtualMemory {
                 }
                 report.orphans_reclaimed += 1;
             }
-            self.pt[n - 1].0[b as usize * len + i] = PageEntry::unmapped();
+            self.set_entry(Owner::Pt(n as u8, b, i as u32), PageEntry::unmapped());
         }
     }
 
@@ -855,6 +986,9 @@ impl VirtualMemory {
                     assert_eq!(bytes.len(), dst.len(), "brick size mismatch");
                     dst.copy_from_slice(bytes);
                     self.write_cells(s);
+                    if let Some((_, slots)) = self.changes.as_mut() {
+                        slots.push(s);
+                    }
                     // 3. reference
                     let coords = self.slots.coords(s);
                     self.set_entry(owner, PageEntry::mapped(coords));
@@ -884,6 +1018,13 @@ impl VirtualMemory {
     }
 
     fn set_entry(&mut self, o: Owner, e: PageEntry) {
+        if self.changes.is_some() {
+            if let Some(i) = self.table_index(o) {
+                if let Some((entries, _)) = self.changes.as_mut() {
+                    entries.push(i);
+                }
+            }
+        }
         match o {
             Owner::None => {}
             Owner::Dir(i) => self.dir[i as usize] = e,

@@ -8,6 +8,9 @@
 //! - [`pool`]: the brick pool as one 3D texture (format per data type
 //!   and adapter), and the host→device write of padded bricks.
 //! - [`lru`]: LRU order by order-preserving compaction.
+//! - [`vm`]: the page tables on the device (kept in step with the host's
+//!   virtual memory by its changes only), the page-table walk and the
+//!   sampler.
 //! - [`requests`]: request collection in a bounded table and the capped,
 //!   prioritized request list.
 //!
@@ -20,5 +23,6 @@ pub mod kernel;
 pub mod lru;
 pub mod pool;
 pub mod requests;
+pub mod vm;
 
 pub use context::{AdapterChoice, Gpu, GpuError};
