@@ -34,6 +34,11 @@ pub struct RequestTableGpu {
     pub downloaded: u64,
 }
 
+/// WGSL adding misses to a request table (`request_add(id, samples,
+/// buckets)`); the including shader declares `keys`, `counts` and
+/// `dropped` as in `requests.wgsl`.
+pub const REQUEST_INSERT_WGSL: &str = include_str!("shaders/request_insert.wgsl");
+
 /// Largest table one workgroup sorts in reasonable time.
 pub const MAX_BUCKETS: usize = 1 << 16;
 
@@ -47,7 +52,11 @@ impl RequestTableGpu {
         let kernel = Kernel::new(
             gpu,
             "requests",
-            include_str!("shaders/requests.wgsl"),
+            &format!(
+                "{}\n{}",
+                include_str!("shaders/requests.wgsl"),
+                REQUEST_INSERT_WGSL
+            ),
             &["insert", "sort"],
             &[
                 Uniform, Read, ReadWrite, ReadWrite, ReadWrite, Read, ReadWrite,
@@ -70,6 +79,12 @@ impl RequestTableGpu {
 
     pub fn buckets(&self) -> usize {
         self.buckets as usize
+    }
+
+    /// The table's keys, counts and drop counter, for kernels that add
+    /// misses themselves.
+    pub fn buffers(&self) -> [&wgpu::Buffer; 3] {
+        [&self.keys, &self.counts, &self.dropped]
     }
 
     /// Empty the table (start of a frame).

@@ -70,6 +70,19 @@ impl Query {
 /// resident brick, its pool slot.
 pub type Walked = ([u32; 2], Option<u32>);
 
+/// `source` after `vm_common.wgsl` (the layout, bindings 0–2, the walk and
+/// the sampler), for kernels that read the virtual memory.
+pub fn with_vm_common(source: &str) -> String {
+    format!("{}\n{}", include_str!("shaders/vm_common.wgsl"), source)
+}
+
+/// Bindings 0–2 of a kernel built with [`with_vm_common`].
+pub struct VmResources<'a> {
+    pub layout: wgpu::Buffer,
+    pub entries: &'a wgpu::Buffer,
+    pub pool: wgpu::TextureView,
+}
+
 /// What one [`DeviceVm::sync`] carried to the device.
 #[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
 pub struct SyncReport {
@@ -170,9 +183,9 @@ impl DeviceVm {
         let kernel = Kernel::new(
             gpu,
             "vm",
-            include_str!("shaders/vm.wgsl"),
+            &with_vm_common(include_str!("shaders/vm.wgsl")),
             &["apply", "lookup", "sample"],
-            &[Uniform, ReadWrite, Read, Read, ReadWrite, Texture3d],
+            &[Uniform, ReadWrite, Texture3d, Read, Read, ReadWrite],
         );
         let dvm = DeviceVm {
             kernel,
@@ -202,21 +215,30 @@ impl DeviceVm {
         queries: &wgpu::Buffer,
         results: &wgpu::Buffer,
     ) -> wgpu::BindGroup {
-        let mut l = self.layout;
-        l.count = count as u32;
-        let uniform = gpu.uniform_buffer("vm layout", &l);
-        let view = self.pool.texture.create_view(&Default::default());
+        let res = self.resources(gpu, count as u32);
         self.kernel.bind_resources(
             gpu,
             vec![
-                uniform.as_entire_binding(),
+                res.layout.as_entire_binding(),
                 self.entries.as_entire_binding(),
+                wgpu::BindingResource::TextureView(&res.pool),
                 updates.as_entire_binding(),
                 queries.as_entire_binding(),
                 results.as_entire_binding(),
-                wgpu::BindingResource::TextureView(&view),
             ],
         )
+    }
+
+    /// What a kernel built on `vm_common.wgsl` binds at 0–2: the layout
+    /// uniform (with `count`), the page tables and the pool.
+    pub fn resources(&self, gpu: &Gpu, count: u32) -> VmResources<'_> {
+        let mut l = self.layout;
+        l.count = count;
+        VmResources {
+            layout: gpu.uniform_buffer("vm layout", &l),
+            entries: &self.entries,
+            pool: self.pool.texture.create_view(&Default::default()),
+        }
     }
 
     /// Carry `vm`'s changes since the last sync to the device: the bricks

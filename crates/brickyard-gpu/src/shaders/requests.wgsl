@@ -1,4 +1,5 @@
-// Bounded request collection and the capped request list. Twins of
+// Bounded request collection and the capped request list (request_insert.wgsl
+// is appended). Twins of
 // `brickyard_cache::bookkeeping::{RequestTable, prioritize}`.
 //
 //   insert: adds misses (brick id, samples) to an open-addressing table of
@@ -24,21 +25,7 @@ struct Params {
 @group(0) @binding(5) var<storage, read> level_starts: array<u32>;
 @group(0) @binding(6) var<storage, read_write> sorted: array<vec2<u32>>;
 
-const NO_BRICK: u32 = 0xffffffffu;
 const WG: u32 = 256u;
-
-fn bucket(id: u32, mask: u32) -> u32 {
-    return ((id * 0x9E3779B1u) >> 7u) & mask;
-}
-
-fn add_saturating(b: u32, s: u32) {
-    let old = atomicAdd(&counts[b], s);
-    if (old + s < old) {
-        // Wrapped: every add that wraps sets the maximum after it, so the
-        // final count is the maximum whatever the order.
-        atomicMax(&counts[b], NO_BRICK);
-    }
-}
 
 @compute @workgroup_size(256)
 fn insert(@builtin(global_invocation_id) g: vec3<u32>, @builtin(num_workgroups) nw: vec3<u32>) {
@@ -46,25 +33,7 @@ fn insert(@builtin(global_invocation_id) g: vec3<u32>, @builtin(num_workgroups) 
     if (i >= params.count) {
         return;
     }
-    let id = misses[i].x;
-    let s = misses[i].y;
-    let mask = params.buckets - 1u;
-    var b = bucket(id, mask);
-    for (var p = 0u; p < params.buckets; p = p + 1u) {
-        loop {
-            let r = atomicCompareExchangeWeak(&keys[b], NO_BRICK, id);
-            if (r.exchanged || r.old_value == id) {
-                add_saturating(b, s);
-                return;
-            }
-            if (r.old_value != NO_BRICK) {
-                break;
-            }
-            // A spurious failure of the weak exchange: try again.
-        }
-        b = (b + 1u) & mask;
-    }
-    atomicAdd(&dropped[0], 1u);
+    request_add(misses[i].x, misses[i].y, params.buckets);
 }
 
 fn level_of(id: u32) -> u32 {
