@@ -65,6 +65,12 @@ impl Session {
         })
     }
 
+    /// The virtual memory, mutable: for a device mirror to take its
+    /// changes ([`VirtualMemory::take_changes`]).
+    pub fn vm_mut(&mut self) -> &mut VirtualMemory {
+        &mut self.vm
+    }
+
     pub fn vm(&self) -> &VirtualMemory {
         &self.vm
     }

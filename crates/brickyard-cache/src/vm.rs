@@ -623,6 +623,26 @@ impl VirtualMemory {
         self.slots.exact[slot as usize].store(self.frame, Ordering::Relaxed);
     }
 
+    /// Mark pool slot `slot` as used this frame (and `exact`: used at its
+    /// own level), with the page-table blocks on the path to it: what a
+    /// walk and sample on the host marks, for samples taken elsewhere (the
+    /// device's renderers report the slots they used).
+    pub fn mark_used(&self, slot: u32, exact: bool) {
+        let Some(&owner) = self.slots.owner.get(slot as usize) else {
+            return;
+        };
+        self.slots.usage[slot as usize].store(self.frame, Ordering::Relaxed);
+        if exact {
+            self.mark_exact(slot);
+        }
+        let mut o = owner;
+        while let Owner::Pt(n, b, _) = o {
+            let set = &self.pt[n as usize - 1].1;
+            set.usage[b as usize].store(self.frame, Ordering::Relaxed);
+            o = set.owner[b as usize];
+        }
+    }
+
     /// A request collector sized for this virtual memory.
     pub fn requests(&self) -> Requests {
         Requests::with_capacity(self.cfg.request_cap * 8)

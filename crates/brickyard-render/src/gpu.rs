@@ -1,0 +1,278 @@
+//! Ray-guided DVR and MIP on the device (`gpu.wgsl`), through the device's
+//! copy of the virtual memory ([`brickyard_gpu::vm::DeviceVm`]): the twin
+//! of [`crate::cpu`]. One invocation per pixel; per frame the device
+//! reports the capped request list, the pool slots it used (so that the
+//! host's LRU keeps them) and its sample counts.
+//!
+//! Not yet on the device: empty-space skipping (every step is sampled
+//! until early termination), slices, several channels.
+
+use crate::cpu::{FrameStats, Lod, Scene};
+use crate::image::Image;
+use crate::reference::{RenderMode, RenderParams};
+use brickyard_cache::bookkeeping::BrickIds;
+use brickyard_cache::vm::{Requests, VirtualMemory};
+use brickyard_core::camera::Projection;
+use brickyard_gpu::context::{Gpu, GpuError};
+use brickyard_gpu::kernel::{Binding, Kernel};
+use brickyard_gpu::requests::{RequestTableGpu, REQUEST_INSERT_WGSL};
+use brickyard_gpu::vm::{with_vm_common, DeviceVm, MAX_LEVELS};
+
+/// The render uniform (see `gpu.wgsl`).
+#[repr(C)]
+#[derive(Clone, Copy, bytemuck::Pod, bytemuck::Zeroable)]
+struct Uniform {
+    width: u32,
+    height: u32,
+    mode: u32,
+    levels: u32,
+    eye: [f32; 4],
+    right: [f32; 4],
+    up: [f32; 4],
+    forward: [f32; 4],
+    extent: [f32; 4],
+    half_h: f32,
+    aspect: f32,
+    perspective: u32,
+    lod_fixed: u32,
+    lod_bias: f32,
+    fp_slope: f32,
+    fp_const: f32,
+    voxel0: f32,
+    window0: f32,
+    inv_width: f32,
+    n_opacity: u32,
+    n_color: u32,
+    frame: u32,
+    buckets: u32,
+    channel: u32,
+    used_cap: u32,
+    scale: [[f32; 4]; MAX_LEVELS],
+    qmax: [[f32; 4]; MAX_LEVELS],
+    step: [[f32; 4]; MAX_LEVELS],
+    bricks: [[u32; 4]; MAX_LEVELS],
+}
+
+const EXACT_BIT: u32 = 0x8000_0000;
+
+/// One frame on the device.
+pub struct GpuFrame {
+    pub image: Image,
+    /// Samples, exact samples and unserved samples (the other counts of
+    /// [`FrameStats`] stay 0).
+    pub stats: FrameStats,
+    /// The capped request list as a collector, for `Session::finish_frame`.
+    pub requests: Requests,
+    /// Misses dropped because the device's request table was full.
+    pub dropped: u64,
+    /// Pool slots used this frame.
+    pub used_slots: usize,
+    /// Device→host bytes of cache management this frame (request list,
+    /// counters, used slots; the image read-back is not counted).
+    pub bytes_down: u64,
+}
+
+/// The device renderer: pipelines and the per-slot buffers that persist
+/// between frames.
+pub struct GpuRenderer {
+    kernel: Kernel,
+    stamps: Option<(u32, wgpu::Buffer)>,
+    table: Option<RequestTableGpu>,
+}
+
+impl GpuRenderer {
+    pub fn new(gpu: &Gpu) -> GpuRenderer {
+        use Binding::*;
+        let source = format!(
+            "{}\n{}",
+            with_vm_common(include_str!("gpu.wgsl")),
+            REQUEST_INSERT_WGSL
+        );
+        let kernel = Kernel::new(
+            gpu,
+            "render",
+            &source,
+            &["render"],
+            &[
+                Uniform, ReadWrite, Texture3d, Uniform, Read, ReadWrite, ReadWrite, ReadWrite,
+                ReadWrite, ReadWrite, ReadWrite,
+            ],
+        );
+        GpuRenderer {
+            kernel,
+            stamps: None,
+            table: None,
+        }
+    }
+
+    /// Render one frame of `scene` (DVR or MIP of one channel) from what
+    /// `dvm` holds; marks the slots used in `vm` (the host's virtual
+    /// memory, between `begin_frame` and `end_frame`).
+    pub fn render(
+        &mut self,
+        gpu: &Gpu,
+        dvm: &DeviceVm,
+        vm: &VirtualMemory,
+        scene: &Scene,
+        params: &RenderParams,
+        lod: Lod,
+    ) -> Result<GpuFrame, GpuError> {
+        let mode = match params.mode {
+            RenderMode::Dvr => 0,
+            RenderMode::Mip => 1,
+            RenderMode::Slice { .. } => unimplemented!("slices are rendered on the CPU for now"),
+        };
+        let nl = scene.levels.len();
+        assert!(
+            nl <= MAX_LEVELS && nl == vm.levels(),
+            "levels of the scene and the virtual memory"
+        );
+        let grid: Vec<[u64; 3]> = scene
+            .levels
+            .iter()
+            .map(|d| [0, 1, 2].map(|a| d[a].div_ceil(vm.config().brick[a])))
+            .collect();
+        let ids = BrickIds::new(&grid, vm.channels()).ok_or_else(|| GpuError::Limit {
+            what: "bricks of the volume".into(),
+            got: u32::MAX as u64,
+            limit: u32::MAX as u64 - 1,
+        })?;
+        let buckets = vm.config().request_cap * 8;
+        if self.table.as_ref().is_none_or(|t| t.buckets() < buckets) {
+            self.table = Some(RequestTableGpu::new(gpu, &ids, buckets));
+        }
+        let table = self.table.as_mut().expect("made above");
+        table.clear(gpu);
+        let slots = dvm.pool.slots();
+        if self.stamps.as_ref().is_none_or(|(n, _)| *n != slots) {
+            let b = gpu.storage_buffer_zeroed("slot stamps", slots as u64 * 8);
+            self.stamps = Some((slots, b));
+        }
+        let stamps = &self.stamps.as_ref().expect("made above").1;
+
+        let (w, h) = (params.width, params.height);
+        let cam = &params.camera;
+        let basis = cam.basis();
+        let f4 = |v: [f64; 3]| [v[0] as f32, v[1] as f32, v[2] as f32, 0.0];
+        let (half_h, perspective) = match cam.projection {
+            Projection::Perspective { fov_y_deg } => ((fov_y_deg * 0.5).to_radians().tan(), 1),
+            Projection::Orthographic { height } => (height * 0.5, 0),
+        };
+        let tf = &params.tf;
+        let reference = params.reference_step.unwrap_or(scene.voxel(0));
+        let used_cap = 2 * slots;
+        let mut u = Uniform {
+            width: w,
+            height: h,
+            mode,
+            levels: nl as u32,
+            eye: f4(cam.eye),
+            right: f4(basis.right),
+            up: f4(basis.up),
+            forward: f4(basis.forward),
+            extent: f4(scene.extent),
+            half_h: half_h as f32,
+            aspect: (w as f64 / h as f64) as f32,
+            perspective,
+            lod_fixed: match lod {
+                Lod::Fixed(l) => l as u32,
+                Lod::Auto { .. } => u32::MAX,
+            },
+            lod_bias: match lod {
+                Lod::Auto { bias } => bias as f32,
+                Lod::Fixed(_) => 0.0,
+            },
+            fp_slope: cam.pixel_footprint(1.0, h) as f32,
+            fp_const: cam.pixel_footprint(0.0, h) as f32,
+            voxel0: scene.voxel(0) as f32,
+            window0: tf.window[0],
+            inv_width: 1.0 / (tf.window[1] - tf.window[0]),
+            n_opacity: tf.opacity.len() as u32,
+            n_color: tf.colormap.points().len() as u32,
+            frame: vm.frame(),
+            buckets: table.buckets() as u32,
+            channel: scene.channel as u32,
+            used_cap,
+            ..bytemuck::Zeroable::zeroed()
+        };
+        let starts = ids.level_starts();
+        for (l, d) in scene.levels.iter().enumerate() {
+            let ext = [scene.extent[2], scene.extent[1], scene.extent[0]];
+            u.scale[l] = [0, 1, 2, 3].map(|a| {
+                if a < 3 {
+                    (d[a] as f64 / ext[a]) as f32
+                } else {
+                    0.0
+                }
+            });
+            u.qmax[l] = [0, 1, 2, 3].map(|a| if a < 3 { (d[a] - 1) as f32 } else { 0.0 });
+            let dt = scene.voxel(l) / params.samples_per_voxel;
+            u.step[l] = [dt as f32, (dt / reference) as f32, 0.0, 0.0];
+            u.bricks[l] = [
+                grid[l][0] as u32,
+                grid[l][1] as u32,
+                grid[l][2] as u32,
+                starts[l],
+            ];
+        }
+        let mut tf_points: Vec<[f32; 4]> =
+            tf.opacity.iter().map(|p| [p[0], p[1], 0.0, 0.0]).collect();
+        tf_points.extend(tf.colormap.points().iter().copied());
+
+        let uniform = gpu.uniform_buffer("render", &u);
+        let tf_buf = gpu.storage_buffer("transfer function", &tf_points);
+        let image = gpu.storage_buffer_zeroed("image", w as u64 * h as u64 * 16);
+        let counters = gpu.storage_buffer_zeroed("counters", (4 + used_cap as u64) * 4);
+        let res = dvm.resources(gpu, 0);
+        let [keys, counts, dropped] = table.buffers();
+        let bind = self.kernel.bind_resources(
+            gpu,
+            vec![
+                res.layout.as_entire_binding(),
+                res.entries.as_entire_binding(),
+                wgpu::BindingResource::TextureView(&res.pool),
+                uniform.as_entire_binding(),
+                tf_buf.as_entire_binding(),
+                image.as_entire_binding(),
+                stamps.as_entire_binding(),
+                counters.as_entire_binding(),
+                keys.as_entire_binding(),
+                counts.as_entire_binding(),
+                dropped.as_entire_binding(),
+            ],
+        );
+        let mut enc = gpu.device.create_command_encoder(&Default::default());
+        self.kernel
+            .dispatch(&mut enc, "render", &bind, [w.div_ceil(8), h.div_ceil(8), 1]);
+        gpu.queue.submit([enc.finish()]);
+
+        let head = gpu.read_u32("frame counters", &counters, 4)?;
+        let used_n = head[3].min(used_cap) as usize;
+        let used = gpu.read_back("used slots", &counters, (4 + used_n as u64) * 4)?;
+        let used: Vec<u32> = bytemuck::pod_collect_to_vec(&used[16..]);
+        for &s in &used {
+            vm.mark_used(s & !EXACT_BIT, s & EXACT_BIT != 0);
+        }
+        let (list, dropped) = table.list(gpu, vm.config().request_cap)?;
+        let mut requests = vm.requests();
+        for (id, n) in list {
+            requests.add(ids.key(id), n);
+        }
+        let pixels = gpu.read_back("image", &image, w as u64 * h as u64 * 16)?;
+        let mut img = Image::new(w, h);
+        img.rgba = bytemuck::pod_collect_to_vec(&pixels);
+        Ok(GpuFrame {
+            image: img,
+            stats: FrameStats {
+                samples: head[0] as u64,
+                exact: head[1] as u64,
+                unserved: head[2] as u64,
+                ..Default::default()
+            },
+            requests,
+            dropped,
+            used_slots: used.len(),
+            bytes_down: 16 + used.len() as u64 * 4 + table.downloaded,
+        })
+    }
+}

@@ -1,0 +1,352 @@
+// Ray-guided DVR and MIP through the virtual memory on the device: the
+// twin of `cpu.rs` (same rays, steps, levels, fallback and compositing, in
+// f32 where the CPU uses f64 for positions). Appended to vm_common.wgsl
+// (bindings 0–2: layout, page tables, pool); request_insert.wgsl follows.
+//
+// Per frame each invocation (one pixel) marks the pool slots it used
+// (frame stamps, and a list of newly used slots for the host), adds its
+// misses to the request table (runs of the same brick added at once), and
+// counts samples, exact samples and unserved samples.
+
+struct Render {
+    width: u32,
+    height: u32,
+    // 0: DVR, 1: MIP.
+    mode: u32,
+    levels: u32,
+    eye: vec4<f32>,
+    right: vec4<f32>,
+    up: vec4<f32>,
+    forward: vec4<f32>,
+    // World box [0, extent], (x, y, z).
+    extent: vec4<f32>,
+    half_h: f32,
+    aspect: f32,
+    perspective: u32,
+    // A fixed level, or AUTO.
+    lod_fixed: u32,
+    lod_bias: f32,
+    // Pixel footprint at distance t: fp_slope·t (perspective) or fp_const.
+    fp_slope: f32,
+    fp_const: f32,
+    voxel0: f32,
+    window0: f32,
+    inv_width: f32,
+    n_opacity: u32,
+    n_color: u32,
+    frame: u32,
+    buckets: u32,
+    channel: u32,
+    used_cap: u32,
+    // Per level: voxels per world unit (z, y, x); w unused.
+    scale: array<vec4<f32>, 16>,
+    // Per level: last voxel index (z, y, x) as floats.
+    qmax: array<vec4<f32>, 16>,
+    // Per level: (step, opacity-correction exponent, 0, 0).
+    step: array<vec4<f32>, 16>,
+    // Per level: bricks per axis (z, y, x); w: first brick id of the level.
+    bricks: array<vec4<u32>, 16>,
+}
+
+@group(0) @binding(3) var<uniform> R: Render;
+// Opacity points (x, alpha, 0, 0), then colour-map points (x, r, g, b).
+@group(0) @binding(4) var<storage, read> tf: array<vec4<f32>>;
+// Premultiplied RGBA per pixel, rows top to bottom.
+@group(0) @binding(5) var<storage, read_write> image: array<vec4<f32>>;
+// Per pool slot: (frame last used, frame last used at its own level).
+@group(0) @binding(6) var<storage, read_write> stamps: array<atomic<u32>>;
+// 0: samples, 1: exact, 2: unserved, 3: used-list length; from 4 on the
+// used list (slot, | EXACT_BIT when used at its own level).
+@group(0) @binding(7) var<storage, read_write> counters: array<atomic<u32>>;
+@group(0) @binding(8) var<storage, read_write> keys: array<atomic<u32>>;
+@group(0) @binding(9) var<storage, read_write> counts: array<atomic<u32>>;
+@group(0) @binding(10) var<storage, read_write> dropped: array<atomic<u32>>;
+
+const AUTO: u32 = 0xffffffffu;
+const EARLY_TERMINATION: f32 = 0.99;
+const EXACT_BIT: u32 = 0x80000000u;
+const USED_BASE: u32 = 4u;
+
+var<private> last_mark: u32;
+var<private> miss_id: u32;
+var<private> miss_n: u32;
+
+fn piece_at(x: f32, a: vec2<f32>, b: vec2<f32>) -> f32 {
+    let slope = (b.y - a.y) / (b.x - a.x);
+    let v = a.y + (x - a.x) * slope;
+    return clamp(v, min(a.y, b.y), max(a.y, b.y));
+}
+
+// Piecewise-linear opacity at the windowed value x (constant outside the
+// points, right-continuous at steps).
+fn opacity_at(x: f32) -> f32 {
+    let n = R.n_opacity;
+    var i = 0u;
+    while (i < n && tf[i].x <= x) {
+        i = i + 1u;
+    }
+    if (i == 0u) {
+        return tf[0].y;
+    }
+    if (i == n) {
+        return tf[n - 1u].y;
+    }
+    return piece_at(x, tf[i - 1u].xy, tf[i].xy);
+}
+
+fn color_at(x: f32) -> vec3<f32> {
+    let o = R.n_opacity;
+    let n = R.n_color;
+    var i = 0u;
+    while (i < n && tf[o + i].x <= x) {
+        i = i + 1u;
+    }
+    if (i == 0u) {
+        return tf[o].yzw;
+    }
+    if (i == n) {
+        return tf[o + n - 1u].yzw;
+    }
+    let a = tf[o + i - 1u];
+    let b = tf[o + i];
+    return vec3<f32>(
+        piece_at(x, a.xy, b.xy),
+        piece_at(x, a.xz, b.xz),
+        piece_at(x, a.xw, b.xw),
+    );
+}
+
+fn windowed(v: f32) -> f32 {
+    return clamp((v - R.window0) * R.inv_width, 0.0, 1.0);
+}
+
+fn is_nan(v: f32) -> bool {
+    return !(v == v);
+}
+
+fn append_used(x: u32) {
+    let i = atomicAdd(&counters[3], 1u);
+    if (i < R.used_cap) {
+        atomicStore(&counters[USED_BASE + i], x);
+    }
+}
+
+// Mark pool slot `s` as used this frame (`exact`: at its own level).
+fn mark(s: u32, exact: bool) {
+    var key = s;
+    if (exact) {
+        key = s | EXACT_BIT;
+    }
+    if (key == last_mark) {
+        return;
+    }
+    last_mark = key;
+    if (atomicExchange(&stamps[2u * s], R.frame) != R.frame) {
+        append_used(s);
+    }
+    if (exact && atomicExchange(&stamps[2u * s + 1u], R.frame) != R.frame) {
+        append_used(s | EXACT_BIT);
+    }
+}
+
+fn flush_misses() {
+    if (miss_n > 0u) {
+        request_add(miss_id, miss_n, R.buckets);
+    }
+    miss_n = 0u;
+}
+
+fn miss(id: u32) {
+    if (id != miss_id) {
+        flush_misses();
+        miss_id = id;
+    }
+    miss_n = miss_n + 1u;
+}
+
+// Brick id (as brickyard_cache::bookkeeping::BrickIds numbers them) of
+// voxel `v` of level `l`.
+fn brick_id(l: u32, v: vec3<u32>) -> u32 {
+    let g = R.bricks[l];
+    let b = v / lay.block[lay.nmax].xyz;
+    return g.w + (R.channel * g.x + b.x) * g.y * g.z + b.y * g.z + b.z;
+}
+
+// Voxel base and fractions of world point `w` (x, y, z) at level `l`.
+fn coords(l: u32, w: vec3<f32>) -> vec4<f32> {
+    let s = R.scale[l];
+    let q = clamp(vec3<f32>(w.z * s.x, w.y * s.y, w.x * s.z) - vec3<f32>(0.5), vec3<f32>(0.0), R.qmax[l].xyz);
+    return vec4<f32>(q, 0.0);
+}
+
+// The value at world point `w` asked at level `level`, from the finest
+// mapped level at or above it: (value, 0 unserved / 1 coarser / 2 exact).
+fn sample_at(w: vec3<f32>, level: u32) -> vec2<f32> {
+    for (var lv = level; lv < R.levels; lv = lv + 1u) {
+        let q = coords(lv, w).xyz;
+        let b = vec3<u32>(q);
+        let e = walk(lv, R.channel, b);
+        let r = value_of(e, b, q - vec3<f32>(b));
+        if (r.y > 0.0) {
+            if (flag(e) == MAPPED) {
+                mark(slot_id(e, lay.brick_grid), lv == level);
+            }
+            if (lv == level) {
+                return vec2<f32>(r.x, 2.0);
+            }
+            return vec2<f32>(r.x, 1.0);
+        }
+        if (lv == level) {
+            miss(brick_id(lv, b));
+        }
+    }
+    // Nothing resident serves it: ask for the coarser bricks too.
+    for (var lv = level + 1u; lv < R.levels; lv = lv + 1u) {
+        miss(brick_id(lv, vec3<u32>(coords(lv, w).xyz)));
+    }
+    return vec2<f32>(0.0, 0.0);
+}
+
+fn level_at(t: f32) -> u32 {
+    if (R.lod_fixed != AUTO) {
+        return min(R.lod_fixed, R.levels - 1u);
+    }
+    var fp = R.fp_const;
+    if (R.perspective == 1u) {
+        fp = R.fp_slope * t;
+    }
+    let l = log2(fp / R.voxel0) + R.lod_bias;
+    if (l > 0.0 && l < 1e9) {
+        return min(u32(floor(l)), R.levels - 1u);
+    }
+    return 0u;
+}
+
+struct Ray {
+    o: vec3<f32>,
+    d: vec3<f32>,
+}
+
+fn pixel_ray(i: u32, j: u32) -> Ray {
+    let px = f32(i) + 0.5;
+    let py = f32(j) + 0.5;
+    let sx = (2.0 * px / f32(R.width) - 1.0) * R.half_h * R.aspect;
+    let sy = (1.0 - 2.0 * py / f32(R.height)) * R.half_h;
+    let off = R.right.xyz * sx + R.up.xyz * sy;
+    if (R.perspective == 1u) {
+        return Ray(R.eye.xyz, normalize(R.forward.xyz + off));
+    }
+    return Ray(R.eye.xyz + off, R.forward.xyz);
+}
+
+// (t0, t1) of the ray in the world box, t0 ≥ 0; t1 ≤ t0 when it misses.
+fn intersect(r: Ray) -> vec2<f32> {
+    var t0 = 0.0;
+    var t1 = 3.0e38;
+    for (var a = 0u; a < 3u; a = a + 1u) {
+        let o = r.o[a];
+        let d = r.d[a];
+        let hi = R.extent[a];
+        if (d == 0.0) {
+            if (o < 0.0 || o > hi) {
+                return vec2<f32>(1.0, 0.0);
+            }
+            continue;
+        }
+        var ta = (0.0 - o) / d;
+        var tb = (hi - o) / d;
+        if (ta > tb) {
+            let x = ta;
+            ta = tb;
+            tb = x;
+        }
+        t0 = max(t0, ta);
+        t1 = min(t1, tb);
+    }
+    return vec2<f32>(t0, t1);
+}
+
+fn correct_opacity(a: f32, e: f32) -> f32 {
+    if (e == 1.0) {
+        return a;
+    }
+    return 1.0 - pow(1.0 - a, e);
+}
+
+@compute @workgroup_size(8, 8)
+fn render(@builtin(global_invocation_id) g: vec3<u32>) {
+    if (g.x >= R.width || g.y >= R.height) {
+        return;
+    }
+    last_mark = AUTO;
+    miss_id = AUTO;
+    miss_n = 0u;
+    let ray = pixel_ray(g.x, g.y);
+    let span = intersect(ray);
+    var acc = vec4<f32>(0.0);
+    var samples = 0u;
+    var exact = 0u;
+    var unserved = 0u;
+    var best = 0.0;
+    var found = false;
+    var hit = false;
+    if (span.y > span.x) {
+        let t1 = span.y;
+        var level = level_at(span.x);
+        var base_t = span.x;
+        var k = 0u;
+        loop {
+            let t = base_t + (f32(k) + 0.5) * R.step[level].x;
+            if (t >= t1) {
+                break;
+            }
+            hit = true;
+            k = k + 1u;
+            let l = level_at(t);
+            if (l != level) {
+                // A level change restarts the step grid here.
+                level = l;
+                base_t = t;
+                k = 0u;
+            }
+            let s = sample_at(ray.o + ray.d * t, level);
+            samples = samples + 1u;
+            if (s.y == 2.0) {
+                exact = exact + 1u;
+            }
+            if (s.y == 0.0 || is_nan(s.x)) {
+                unserved = unserved + u32(s.y == 0.0);
+                continue;
+            }
+            if (R.mode == 1u) {
+                if (!found || s.x > best) {
+                    best = s.x;
+                    found = true;
+                }
+                continue;
+            }
+            let x = windowed(s.x);
+            let alpha = opacity_at(x);
+            if (alpha > 0.0) {
+                let a = correct_opacity(alpha, R.step[level].y);
+                let w = (1.0 - acc.w) * a;
+                acc = acc + vec4<f32>(color_at(x) * w, w);
+                if (acc.w >= EARLY_TERMINATION) {
+                    break;
+                }
+            }
+        }
+    }
+    if (R.mode == 1u && hit) {
+        if (found) {
+            acc = vec4<f32>(color_at(windowed(best)), 1.0);
+        } else {
+            acc = vec4<f32>(0.0, 0.0, 0.0, 1.0);
+        }
+    }
+    flush_misses();
+    image[g.y * R.width + g.x] = acc;
+    atomicAdd(&counters[0], samples);
+    atomicAdd(&counters[1], exact);
+    atomicAdd(&counters[2], unserved);
+}

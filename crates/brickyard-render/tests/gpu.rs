@@ -1,0 +1,194 @@
+//! The device renderer through the device's copy of the virtual memory,
+//! with a pool a quarter of the volume: frames come while bricks stream in,
+//! completeness reaches 100 %, and the final image equals the in-core
+//! reference and the CPU renderer within the stated tolerance (positions
+//! are f32 on the device, f64 on the host). Runs on lavapipe in CI.
+
+use brickyard_cache::session::Session;
+use brickyard_cache::vm::VmConfig;
+use brickyard_core::camera::{world_extent, Camera, Projection};
+use brickyard_core::{DType, TransferFunction};
+use brickyard_gpu::context::test_gpu;
+use brickyard_gpu::vm::DeviceVm;
+use brickyard_render::cpu::{render_frame, Lod, Scene};
+use brickyard_render::gpu::GpuRenderer;
+use brickyard_render::reference::{render, RenderMode, RenderParams, Volume};
+use brickyard_store::builder::{convert, ConvertOptions, NoProgress};
+use brickyard_store::generate::{Kind, Procedural};
+use std::sync::atomic::AtomicBool;
+
+/// Largest difference of any channel of any pixel allowed between the
+/// device's image and the host's (premultiplied RGBA in [0, 1]).
+const TOLERANCE: f32 = 1e-4;
+
+/// `pool`: the pool as a fraction of the volume's bytes; `image`: edge.
+#[allow(clippy::too_many_arguments)]
+fn case(
+    kind: Kind,
+    dims: [u64; 3],
+    dtype: DType,
+    window: [f32; 2],
+    mode: RenderMode,
+    lod: Lod,
+    pool: f64,
+    image: u32,
+) {
+    let Some(gpu) = test_gpu() else { return };
+    let dir = tempfile::tempdir().unwrap();
+    let store = dir.path().join("v.ome.zarr");
+    let o = ConvertOptions {
+        brick: [16; 3],
+        shard: [32; 3],
+        ..Default::default()
+    };
+    convert(
+        &Procedural::new(kind, dims, dtype),
+        &store,
+        &o,
+        &NoProgress,
+        &AtomicBool::new(false),
+    )
+    .unwrap();
+    let nlev = (0..)
+        .take_while(|&l| Volume::from_store(&store, l, 0).is_ok())
+        .count();
+    let levels: Vec<Volume> = (0..nlev)
+        .map(|l| Volume::from_store(&store, l, 0).unwrap())
+        .collect();
+    let extent = world_extent(dims, levels[0].spacing);
+    let scene = Scene::new(extent, levels.iter().map(|v| v.dims).collect());
+    let vol_bytes = dims.iter().product::<u64>() * dtype.size() as u64;
+    let cfg = VmConfig {
+        brick: [16; 3],
+        apron: 1,
+        pt_block: [4; 3],
+        max_dir_entries: 64,
+        pool_bytes: (vol_bytes as f64 * pool) as u64,
+        pt_cache_blocks: 256,
+        request_cap: 64,
+        upload_bytes_per_frame: 24 * 18 * 18 * 18 * dtype.size() as u64,
+    };
+    let mut s = Session::open(&store, cfg, 8 << 20, 2).unwrap();
+    let (mut dvm, _) = DeviceVm::new(&gpu, s.vm_mut()).unwrap();
+    let mut renderer = GpuRenderer::new(&gpu);
+    let tf = TransferFunction::preset("soft", window).unwrap();
+    let cam = Camera::fit(
+        extent,
+        30.0,
+        20.0,
+        Projection::Perspective { fov_y_deg: 40.0 },
+    );
+    let mut p = RenderParams::new(image, image * 4 / 5, cam, tf, mode.clone());
+    p.reference_step = Some(scene.voxel(0));
+    let mut first = None;
+    let mut done = None;
+    for frame in 1..=400 {
+        s.begin_frame();
+        let f = renderer
+            .render(&gpu, &dvm, s.vm(), &scene, &p, lod)
+            .unwrap();
+        first.get_or_insert(f.stats.completeness());
+        assert!(f.bytes_down <= 16 + 4 * 2 * s.vm().pool_slots() as u64 + 64 * 8 + 4);
+        s.finish_frame([&f.requests]);
+        dvm.sync(&gpu, s.vm_mut());
+        if f.stats.completeness() == 1.0 && f.stats.samples > 0 {
+            done = Some((frame, f));
+            break;
+        }
+        std::thread::sleep(std::time::Duration::from_millis(1));
+    }
+    let (frames, f) = done.expect("the view completes");
+    assert!(
+        frames > 1 && first.unwrap() < 1.0,
+        "{mode:?}: frames came before the data"
+    );
+    assert!(
+        f.image.coverage(0.01) > 0.05,
+        "{mode:?}: image nearly empty"
+    );
+    // The in-core reference at the level shown (fixed LOD).
+    if let Lod::Fixed(l) = lod {
+        let want = render(&levels[l], &p);
+        let d = f.image.max_abs_diff(&want);
+        eprintln!(
+            "{mode:?} {dtype:?}: {frames} frames, max abs diff to the reference {d}, mean {}",
+            f.image.mean_abs_diff(&want)
+        );
+        assert!(
+            d <= TOLERANCE,
+            "{mode:?} {dtype:?}: max abs diff {d} to the reference"
+        );
+    }
+    // The CPU renderer on the same resident data.
+    s.begin_frame();
+    let (cpu, st, reqs) = render_frame(s.vm(), &scene, &p, lod);
+    s.finish_frame(reqs.iter());
+    assert_eq!(st.completeness(), 1.0);
+    let d = f.image.max_abs_diff(&cpu);
+    eprintln!("{mode:?} {dtype:?}: max abs diff to the CPU renderer {d}");
+    assert!(
+        d <= TOLERANCE,
+        "{mode:?} {dtype:?}: max abs diff {d} to the CPU renderer"
+    );
+    s.vm().check_invariants().unwrap();
+}
+
+#[test]
+fn gpu_dvr_converges_to_the_reference_u16() {
+    case(
+        Kind::Mandelbulb,
+        [64, 80, 96],
+        DType::U16,
+        [0.0, 65535.0],
+        RenderMode::Dvr,
+        Lod::Fixed(1),
+        0.25,
+        80,
+    );
+}
+
+#[test]
+fn gpu_dvr_converges_to_the_reference_u8_level0() {
+    // Level 0 in full: 64 bricks of 18³ padded voxels; the pool holds them
+    // (it is bigger than the 64³ voxels), and they still stream in over
+    // several frames.
+    case(
+        Kind::MarschnerLobb,
+        [64, 64, 64],
+        DType::U8,
+        [0.0, 255.0],
+        RenderMode::Dvr,
+        Lod::Fixed(0),
+        1.5,
+        64,
+    );
+}
+
+#[test]
+fn gpu_mip_converges_to_the_reference() {
+    case(
+        Kind::Mandelbulb,
+        [64, 80, 96],
+        DType::U16,
+        [0.0, 65535.0],
+        RenderMode::Mip,
+        Lod::Fixed(1),
+        0.25,
+        80,
+    );
+}
+
+#[test]
+fn gpu_automatic_lod_equals_the_cpu_renderer() {
+    // A small image: one pixel covers several voxels, coarser levels serve.
+    case(
+        Kind::MarschnerLobb,
+        [64, 64, 64],
+        DType::U8,
+        [0.0, 255.0],
+        RenderMode::Dvr,
+        Lod::Auto { bias: 0.0 },
+        0.25,
+        24,
+    );
+}
