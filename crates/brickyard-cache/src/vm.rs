@@ -473,6 +473,13 @@ impl VirtualMemory {
         self.dir_len
     }
 
+    /// Pool slots that hold a brick.
+    pub fn resident_slots(&self) -> Vec<u32> {
+        (0..self.slots.len() as u32)
+            .filter(|&s| self.slots.owner[s as usize] != Owner::None)
+            .collect()
+    }
+
     /// The padded brick in pool slot `s` (native-endian voxels).
     pub fn slot_voxels(&self, s: u32) -> &[u8] {
         let bb = self.brick_bytes;

@@ -106,8 +106,8 @@ fn v4(d: [u64; 3]) -> [u32; 4] {
 }
 
 impl DeviceVm {
-    /// Mirror `vm` on the device (its current page tables and every pool
-    /// slot) and turn on its change tracking for [`sync`](Self::sync).
+    /// Mirror `vm` on the device (its current page tables and resident
+    /// bricks) and turn on its change tracking for [`sync`](Self::sync).
     pub fn new(gpu: &Gpu, vm: &mut VirtualMemory) -> Result<(DeviceVm, SyncReport), GpuError> {
         let lay = vm.layout();
         let nmax = lay.nmax();
@@ -174,7 +174,8 @@ impl DeviceVm {
             .collect();
         let entries = gpu.storage_buffer("page tables", &words);
         let mut bytes = words.len() as u64 * 8;
-        for s in 0..vm.pool_slots() as u32 {
+        let resident = vm.resident_slots();
+        for &s in &resident {
             pool.write(gpu, s, vm.slot_voxels(s));
         }
         bytes += pool.take_uploaded();
@@ -196,7 +197,7 @@ impl DeviceVm {
         };
         let report = SyncReport {
             entries: words.len(),
-            bricks: vm.pool_slots(),
+            bricks: resident.len(),
             bytes,
         };
         Ok((dvm, report))

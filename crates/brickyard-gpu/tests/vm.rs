@@ -135,7 +135,7 @@ fn run_case(dtype: DType, seed: u64) {
     let mut vm = VirtualMemory::new(&model.levels, 1, dtype, cfg);
     assert!(vm.layout().nmax() >= 3, "two intermediate levels at least");
     let (mut dvm, first) = DeviceVm::new(&gpu, &mut vm).unwrap();
-    assert_eq!(first.bricks, vm.pool_slots());
+    assert_eq!(first.bricks, 0, "a fresh virtual memory holds no bricks");
     let grids: Vec<Dims3> = model
         .levels
         .iter()
@@ -214,6 +214,29 @@ fn run_case(dtype: DType, seed: u64) {
                 ),
                 (g, w) => assert_eq!(g.is_some(), w.is_some(), "level {l}, voxel {v:?}"),
             }
+        }
+    }
+    // A mirror made of a virtual memory already in use holds the same.
+    let (late, rep) = DeviceVm::new(&gpu, &mut vm).unwrap();
+    assert_eq!(rep.bricks, vm.resident_slots().len());
+    assert!(rep.bricks > 0);
+    let qs: Vec<Query> = (0..400)
+        .map(|_| {
+            let l = rng.below(model.levels.len() as u64) as usize;
+            let v = [0, 1, 2].map(|a| rng.below(model.levels[l][a]));
+            Query::new(l, 0, v, [0.25, 0.5, 0.75])
+        })
+        .collect();
+    let got = late.sample(&gpu, &qs).unwrap();
+    for (q, g) in qs.iter().zip(got) {
+        let v = [0, 1, 2].map(|a| q.voxel[a] as u64);
+        let w = vm.sample_at(q.level as usize, 0, v, [0.25, 0.5, 0.75]);
+        assert_eq!(g.is_some(), w.is_some());
+        if let (Some(g), Some(w)) = (g, w) {
+            assert!(
+                (g - w).abs() <= 1e-5 * w.abs().max(1.0),
+                "late mirror: {g} vs {w}"
+            );
         }
     }
     // The case exercised residency, flags and evictions.

@@ -4,15 +4,19 @@
 //! reports the capped request list, the pool slots it used (so that the
 //! host's LRU keeps them) and its sample counts.
 //!
-//! Not yet on the device: empty-space skipping (every step is sampled
-//! until early termination), slices, several channels.
+//! Empty space: DVR rays cross bricks in one jump where the transfer
+//! function maps the brick to zero opacity, known from the store's value
+//! ranges or from an EMPTY/CONSTANT page entry. Not yet on the device:
+//! skipping inside bricks (cells), MIP skipping, slices, several channels.
 
 use crate::cpu::{FrameStats, Lod, Scene};
 use crate::image::Image;
 use crate::reference::{RenderMode, RenderParams};
 use brickyard_cache::bookkeeping::BrickIds;
+use brickyard_cache::ranges::BrickRanges;
 use brickyard_cache::vm::{Requests, VirtualMemory};
 use brickyard_core::camera::Projection;
+use brickyard_core::TransferFunction;
 use brickyard_gpu::context::{Gpu, GpuError};
 use brickyard_gpu::kernel::{Binding, Kernel};
 use brickyard_gpu::requests::{RequestTableGpu, REQUEST_INSERT_WGSL};
@@ -47,6 +51,9 @@ struct Uniform {
     buckets: u32,
     channel: u32,
     used_cap: u32,
+    skip: u32,
+    clear_off: u32,
+    pad: [u32; 2],
     scale: [[f32; 4]; MAX_LEVELS],
     qmax: [[f32; 4]; MAX_LEVELS],
     step: [[f32; 4]; MAX_LEVELS],
@@ -58,8 +65,8 @@ const EXACT_BIT: u32 = 0x8000_0000;
 /// One frame on the device.
 pub struct GpuFrame {
     pub image: Image,
-    /// Samples, exact samples and unserved samples (the other counts of
-    /// [`FrameStats`] stay 0).
+    /// Samples, exact samples, unserved samples and bricks crossed in one
+    /// jump (the other counts of [`FrameStats`] stay 0).
     pub stats: FrameStats,
     /// The capped request list as a collector, for `Session::finish_frame`.
     pub requests: Requests,
@@ -78,6 +85,39 @@ pub struct GpuRenderer {
     kernel: Kernel,
     stamps: Option<(u32, wgpu::Buffer)>,
     table: Option<RequestTableGpu>,
+    /// The transfer function and transparent-brick bits (`gpu.wgsl`'s
+    /// `aux`) and where the bits start; rebuilt only when what they were
+    /// made for changes.
+    aux: Option<(AuxKey, wgpu::Buffer, u32)>,
+}
+
+/// Transfer function, value ranges (by address), channel, brick grid.
+type AuxKey = (TransferFunction, usize, usize, Vec<[u64; 3]>);
+
+/// One bit per brick id: set when the transfer function maps the brick's
+/// value range (from `ranges`, for `channel`) to zero opacity.
+fn clear_bits(
+    ids: &BrickIds,
+    ranges: &BrickRanges,
+    tf: &TransferFunction,
+    channel: usize,
+) -> Vec<u32> {
+    let mut bits = vec![0u32; (ids.len() as usize).div_ceil(32).max(1)];
+    let starts = ids.level_starts();
+    for (l, &first) in starts.iter().enumerate().take(starts.len() - 1) {
+        let Some(r) = ranges.level(l).filter(|r| channel < r.channels) else {
+            continue;
+        };
+        let n = r.bricks.iter().product::<u64>() as usize;
+        let off = channel * n;
+        for (i, &[lo, hi]) in r.range[off..off + n].iter().enumerate() {
+            if tf.max_opacity(lo, hi) <= 0.0 {
+                let id = first as usize + off + i;
+                bits[id / 32] |= 1 << (id % 32);
+            }
+        }
+    }
+    bits
 }
 
 impl GpuRenderer {
@@ -102,6 +142,7 @@ impl GpuRenderer {
             kernel,
             stamps: None,
             table: None,
+            aux: None,
         }
     }
 
@@ -215,14 +256,39 @@ impl GpuRenderer {
                 starts[l],
             ];
         }
-        let mut tf_points: Vec<[f32; 4]> =
-            tf.opacity.iter().map(|p| [p[0], p[1], 0.0, 0.0]).collect();
-        tf_points.extend(tf.colormap.points().iter().copied());
-
+        let key: AuxKey = (
+            tf.clone(),
+            scene
+                .ranges
+                .as_ref()
+                .map_or(0, |r| std::sync::Arc::as_ptr(r) as usize),
+            scene.channel,
+            grid.clone(),
+        );
+        if self.aux.as_ref().is_none_or(|(k, ..)| *k != key) {
+            // The transfer function's points, then the clear bits.
+            let mut words: Vec<u32> = tf
+                .opacity
+                .iter()
+                .flat_map(|p| [p[0], p[1], 0.0, 0.0])
+                .chain(tf.colormap.points().iter().flatten().copied())
+                .map(f32::to_bits)
+                .collect();
+            let off = words.len() as u32;
+            let bits = match (&scene.ranges, mode) {
+                (Some(r), 0) => clear_bits(&ids, r, tf, scene.channel),
+                _ => vec![0],
+            };
+            words.extend(bits);
+            let buf = gpu.storage_buffer("transfer function", &words);
+            self.aux = Some((key, buf, off));
+        }
+        let (_, aux, off) = self.aux.as_ref().expect("made above");
+        u.skip = (mode == 0) as u32;
+        u.clear_off = *off;
         let uniform = gpu.uniform_buffer("render", &u);
-        let tf_buf = gpu.storage_buffer("transfer function", &tf_points);
         let image = gpu.storage_buffer_zeroed("image", w as u64 * h as u64 * 16);
-        let counters = gpu.storage_buffer_zeroed("counters", (4 + used_cap as u64) * 4);
+        let counters = gpu.storage_buffer_zeroed("counters", (8 + used_cap as u64) * 4);
         let res = dvm.resources(gpu, 0);
         let [keys, counts, dropped] = table.buffers();
         let bind = self.kernel.bind_resources(
@@ -232,7 +298,7 @@ impl GpuRenderer {
                 res.entries.as_entire_binding(),
                 wgpu::BindingResource::TextureView(&res.pool),
                 uniform.as_entire_binding(),
-                tf_buf.as_entire_binding(),
+                aux.as_entire_binding(),
                 image.as_entire_binding(),
                 stamps.as_entire_binding(),
                 counters.as_entire_binding(),
@@ -246,10 +312,10 @@ impl GpuRenderer {
             .dispatch(&mut enc, "render", &bind, [w.div_ceil(8), h.div_ceil(8), 1]);
         gpu.queue.submit([enc.finish()]);
 
-        let head = gpu.read_u32("frame counters", &counters, 4)?;
-        let used_n = head[3].min(used_cap) as usize;
-        let used = gpu.read_back("used slots", &counters, (4 + used_n as u64) * 4)?;
-        let used: Vec<u32> = bytemuck::pod_collect_to_vec(&used[16..]);
+        let head = gpu.read_u32("frame counters", &counters, 8)?;
+        let used_n = head[4].min(used_cap) as usize;
+        let used = gpu.read_back("used slots", &counters, (8 + used_n as u64) * 4)?;
+        let used: Vec<u32> = bytemuck::pod_collect_to_vec(&used[32..]);
         for &s in &used {
             vm.mark_used(s & !EXACT_BIT, s & EXACT_BIT != 0);
         }
@@ -267,12 +333,13 @@ impl GpuRenderer {
                 samples: head[0] as u64,
                 exact: head[1] as u64,
                 unserved: head[2] as u64,
+                skipped_bricks: head[3] as u64,
                 ..Default::default()
             },
             requests,
             dropped,
             used_slots: used.len(),
-            bytes_down: 16 + used.len() as u64 * 4 + table.downloaded,
+            bytes_down: 32 + used.len() as u64 * 4 + table.downloaded,
         })
     }
 }

@@ -38,6 +38,11 @@ struct Render {
     buckets: u32,
     channel: u32,
     used_cap: u32,
+    // DVR: cross hidden bricks in one jump (1), or sample every step (0).
+    skip: u32,
+    clear_off: u32,
+    pad1: u32,
+    pad2: u32,
     // Per level: voxels per world unit (z, y, x); w unused.
     scale: array<vec4<f32>, 16>,
     // Per level: last voxel index (z, y, x) as floats.
@@ -49,25 +54,47 @@ struct Render {
 }
 
 @group(0) @binding(3) var<uniform> R: Render;
-// Opacity points (x, alpha, 0, 0), then colour-map points (x, r, g, b).
-@group(0) @binding(4) var<storage, read> tf: array<vec4<f32>>;
+// The transfer function's opacity points (x, alpha, 0, 0) and colour-map
+// points (x, r, g, b) as f32 bits, four words each; from word
+// `R.clear_off` on, one bit per brick id: the transfer function maps the
+// brick's whole value range to zero opacity (from the store's statistics).
+@group(0) @binding(4) var<storage, read> aux: array<u32>;
 // Premultiplied RGBA per pixel, rows top to bottom.
 @group(0) @binding(5) var<storage, read_write> image: array<vec4<f32>>;
 // Per pool slot: (frame last used, frame last used at its own level).
 @group(0) @binding(6) var<storage, read_write> stamps: array<atomic<u32>>;
-// 0: samples, 1: exact, 2: unserved, 3: used-list length; from 4 on the
-// used list (slot, | EXACT_BIT when used at its own level).
+// 0: samples, 1: exact, 2: unserved, 3: bricks crossed in one jump (per
+// ray and brick), 4: used-list length; from 8 on the used list (slot,
+// | EXACT_BIT when used at its own level).
 @group(0) @binding(7) var<storage, read_write> counters: array<atomic<u32>>;
 @group(0) @binding(8) var<storage, read_write> keys: array<atomic<u32>>;
 @group(0) @binding(9) var<storage, read_write> counts: array<atomic<u32>>;
 @group(0) @binding(10) var<storage, read_write> dropped: array<atomic<u32>>;
 
+
 const AUTO: u32 = 0xffffffffu;
 const EARLY_TERMINATION: f32 = 0.99;
 const EXACT_BIT: u32 = 0x80000000u;
-const USED_BASE: u32 = 4u;
+const USED_BASE: u32 = 8u;
 
 var<private> last_mark: u32;
+// The page entry of the brick last walked to: its level, brick, entry.
+var<private> memo_level: u32;
+var<private> memo_brick: vec3<u32>;
+var<private> memo_entry: vec2<u32>;
+
+fn tf(i: u32) -> vec4<f32> {
+    return vec4<f32>(
+        bitcast<f32>(aux[4u * i]),
+        bitcast<f32>(aux[4u * i + 1u]),
+        bitcast<f32>(aux[4u * i + 2u]),
+        bitcast<f32>(aux[4u * i + 3u]),
+    );
+}
+
+fn is_clear(id: u32) -> bool {
+    return ((aux[R.clear_off + (id >> 5u)] >> (id & 31u)) & 1u) == 1u;
+}
 var<private> miss_id: u32;
 var<private> miss_n: u32;
 
@@ -82,33 +109,33 @@ fn piece_at(x: f32, a: vec2<f32>, b: vec2<f32>) -> f32 {
 fn opacity_at(x: f32) -> f32 {
     let n = R.n_opacity;
     var i = 0u;
-    while (i < n && tf[i].x <= x) {
+    while (i < n && tf(i).x <= x) {
         i = i + 1u;
     }
     if (i == 0u) {
-        return tf[0].y;
+        return tf(0).y;
     }
     if (i == n) {
-        return tf[n - 1u].y;
+        return tf(n - 1u).y;
     }
-    return piece_at(x, tf[i - 1u].xy, tf[i].xy);
+    return piece_at(x, tf(i - 1u).xy, tf(i).xy);
 }
 
 fn color_at(x: f32) -> vec3<f32> {
     let o = R.n_opacity;
     let n = R.n_color;
     var i = 0u;
-    while (i < n && tf[o + i].x <= x) {
+    while (i < n && tf(o + i).x <= x) {
         i = i + 1u;
     }
     if (i == 0u) {
-        return tf[o].yzw;
+        return tf(o).yzw;
     }
     if (i == n) {
-        return tf[o + n - 1u].yzw;
+        return tf(o + n - 1u).yzw;
     }
-    let a = tf[o + i - 1u];
-    let b = tf[o + i];
+    let a = tf(o + i - 1u);
+    let b = tf(o + i);
     return vec3<f32>(
         piece_at(x, a.xy, b.xy),
         piece_at(x, a.xz, b.xz),
@@ -125,7 +152,7 @@ fn is_nan(v: f32) -> bool {
 }
 
 fn append_used(x: u32) {
-    let i = atomicAdd(&counters[3], 1u);
+    let i = atomicAdd(&counters[4], 1u);
     if (i < R.used_cap) {
         atomicStore(&counters[USED_BASE + i], x);
     }
@@ -181,15 +208,20 @@ fn coords(l: u32, w: vec3<f32>) -> vec4<f32> {
 
 // The value at world point `w` asked at level `level`, from the finest
 // mapped level at or above it: (value, 0 unserved / 1 coarser / 2 exact).
-fn sample_at(w: vec3<f32>, level: u32) -> vec2<f32> {
+// `q` and `e`: the voxel coordinates and page entry at `level`.
+fn sample_from(w: vec3<f32>, level: u32, q: vec3<f32>, e: vec2<u32>) -> vec2<f32> {
+    var lq = q;
+    var le = e;
     for (var lv = level; lv < R.levels; lv = lv + 1u) {
-        let q = coords(lv, w).xyz;
-        let b = vec3<u32>(q);
-        let e = walk(lv, R.channel, b);
-        let r = value_of(e, b, q - vec3<f32>(b));
+        if (lv > level) {
+            lq = coords(lv, w).xyz;
+            le = entry_at(lv, vec3<u32>(lq));
+        }
+        let b = vec3<u32>(lq);
+        let r = value_of(le, b, lq - vec3<f32>(b));
         if (r.y > 0.0) {
-            if (flag(e) == MAPPED) {
-                mark(slot_id(e, lay.brick_grid), lv == level);
+            if (flag(le) == MAPPED) {
+                mark(slot_id(le, lay.brick_grid), lv == level);
             }
             if (lv == level) {
                 return vec2<f32>(r.x, 2.0);
@@ -205,6 +237,23 @@ fn sample_at(w: vec3<f32>, level: u32) -> vec2<f32> {
         miss(brick_id(lv, vec3<u32>(coords(lv, w).xyz)));
     }
     return vec2<f32>(0.0, 0.0);
+}
+
+// `walk`, remembering the last brick: consecutive samples of a ray mostly
+// stay in one brick.
+fn entry_at(level: u32, v: vec3<u32>) -> vec2<u32> {
+    let b = v / lay.block[lay.nmax].xyz;
+    if (level != memo_level || any(b != memo_brick)) {
+        memo_level = level;
+        memo_brick = b;
+        memo_entry = walk(level, R.channel, v);
+    }
+    return memo_entry;
+}
+
+fn sample_at(w: vec3<f32>, level: u32) -> vec2<f32> {
+    let q = coords(level, w).xyz;
+    return sample_from(w, level, q, entry_at(level, vec3<u32>(q)));
 }
 
 fn level_at(t: f32) -> u32 {
@@ -266,6 +315,50 @@ fn intersect(r: Ray) -> vec2<f32> {
     return vec2<f32>(t0, t1);
 }
 
+// Where the level changes after `level` (automatic LOD; a huge value when
+// it never does).
+fn next_level_t(level: u32) -> f32 {
+    if (R.lod_fixed != AUTO || R.perspective == 0u || level + 1u >= R.levels) {
+        return 3.0e38;
+    }
+    return R.voxel0 * exp2(f32(level) + 1.0 - R.lod_bias) / R.fp_slope;
+}
+
+// The ray parameter where the voxel base at `level` leaves the box
+// [lo, hi) (voxels, z y x), or `limit` if it does not before.
+fn exit_t(r: Ray, level: u32, lo: vec3<u32>, hi: vec3<u32>, limit: f32) -> f32 {
+    var t = limit;
+    let s = R.scale[level];
+    let dims = lay.dims[level];
+    for (var a = 0u; a < 3u; a = a + 1u) {
+        let o = r.o[2u - a];
+        let d = r.d[2u - a];
+        if (d > 0.0 && hi[a] < dims[a]) {
+            t = min(t, ((f32(hi[a]) + 0.5) / s[a] - o) / d);
+        } else if (d < 0.0 && lo[a] > 0u) {
+            t = min(t, ((f32(lo[a]) + 0.5) / s[a] - o) / d);
+        }
+    }
+    return t;
+}
+
+// The step to go on from after step `k − 1` (in the brick of voxel `b`
+// at `level`): the first step past where the ray leaves the brick, a
+// hundredth of a step early so that rounding never passes a step outside,
+// and never past a change of level (whose restart of the step grid must
+// stay where it is without the jump).
+fn land(r: Ray, level: u32, b: vec3<u32>, base_t: f32, k: u32, t1: f32) -> u32 {
+    let bs = lay.block[lay.nmax].xyz;
+    let lo = (b / bs) * bs;
+    let hi = min(lo + bs, lay.dims[level].xyz);
+    let te = exit_t(r, level, lo, hi, min(t1, next_level_t(level)));
+    let kn = ceil((te - base_t) / R.step[level].x - 0.5 - 0.01);
+    if (kn > f32(k)) {
+        return u32(kn);
+    }
+    return k;
+}
+
 fn correct_opacity(a: f32, e: f32) -> f32 {
     if (e == 1.0) {
         return a;
@@ -279,6 +372,7 @@ fn render(@builtin(global_invocation_id) g: vec3<u32>) {
         return;
     }
     last_mark = AUTO;
+    memo_level = AUTO;
     miss_id = AUTO;
     miss_n = 0u;
     let ray = pixel_ray(g.x, g.y);
@@ -287,6 +381,7 @@ fn render(@builtin(global_invocation_id) g: vec3<u32>) {
     var samples = 0u;
     var exact = 0u;
     var unserved = 0u;
+    var jumps = 0u;
     var best = 0.0;
     var found = false;
     var hit = false;
@@ -309,7 +404,32 @@ fn render(@builtin(global_invocation_id) g: vec3<u32>) {
                 base_t = t;
                 k = 0u;
             }
-            let s = sample_at(ray.o + ray.d * t, level);
+            let w = ray.o + ray.d * t;
+            var s: vec2<f32>;
+            if (R.skip == 1u) {
+                // Bricks the transfer function hides (by their value range,
+                // or as EMPTY/CONSTANT entries) are crossed in one jump.
+                let q = coords(level, w).xyz;
+                let b = vec3<u32>(q);
+                let e = entry_at(level, b);
+                let f = flag(e);
+                var hidden = is_clear(brick_id(level, b));
+                if (!hidden && (f == EMPTY || f == CONSTANT)) {
+                    var v = 0.0;
+                    if (f == CONSTANT) {
+                        v = constant_value(e.y);
+                    }
+                    hidden = is_nan(v) || opacity_at(windowed(v)) <= 0.0;
+                }
+                if (hidden) {
+                    jumps = jumps + 1u;
+                    k = land(ray, level, b, base_t, k, t1);
+                    continue;
+                }
+                s = sample_from(w, level, q, e);
+            } else {
+                s = sample_at(w, level);
+            }
             samples = samples + 1u;
             if (s.y == 2.0) {
                 exact = exact + 1u;
@@ -349,4 +469,5 @@ fn render(@builtin(global_invocation_id) g: vec3<u32>) {
     atomicAdd(&counters[0], samples);
     atomicAdd(&counters[1], exact);
     atomicAdd(&counters[2], unserved);
+    atomicAdd(&counters[3], jumps);
 }

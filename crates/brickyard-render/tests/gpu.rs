@@ -10,11 +10,12 @@ use brickyard_core::camera::{world_extent, Camera, Projection};
 use brickyard_core::{DType, TransferFunction};
 use brickyard_gpu::context::test_gpu;
 use brickyard_gpu::vm::DeviceVm;
-use brickyard_render::cpu::{render_frame, Lod, Scene};
+use brickyard_render::cpu::{render_frame, FrameStats, Lod, Scene};
 use brickyard_render::gpu::GpuRenderer;
 use brickyard_render::reference::{render, RenderMode, RenderParams, Volume};
 use brickyard_store::builder::{convert, ConvertOptions, NoProgress};
 use brickyard_store::generate::{Kind, Procedural};
+use brickyard_store::source::{check_region, SourceMeta, VolumeSource};
 use std::sync::atomic::AtomicBool;
 
 /// Largest difference of any channel of any pixel allowed between the
@@ -24,16 +25,16 @@ const TOLERANCE: f32 = 1e-4;
 /// `pool`: the pool as a fraction of the volume's bytes; `image`: edge.
 #[allow(clippy::too_many_arguments)]
 fn case(
-    kind: Kind,
-    dims: [u64; 3],
-    dtype: DType,
+    src: &dyn VolumeSource,
     window: [f32; 2],
     mode: RenderMode,
     lod: Lod,
     pool: f64,
     image: u32,
-) {
-    let Some(gpu) = test_gpu() else { return };
+) -> FrameStats {
+    let Some(gpu) = test_gpu() else {
+        return FrameStats::default();
+    };
     let dir = tempfile::tempdir().unwrap();
     let store = dir.path().join("v.ome.zarr");
     let o = ConvertOptions {
@@ -41,14 +42,8 @@ fn case(
         shard: [32; 3],
         ..Default::default()
     };
-    convert(
-        &Procedural::new(kind, dims, dtype),
-        &store,
-        &o,
-        &NoProgress,
-        &AtomicBool::new(false),
-    )
-    .unwrap();
+    let (dims, dtype) = (src.meta().dims, src.meta().dtype);
+    convert(src, &store, &o, &NoProgress, &AtomicBool::new(false)).unwrap();
     let nlev = (0..)
         .take_while(|&l| Volume::from_store(&store, l, 0).is_ok())
         .count();
@@ -69,6 +64,10 @@ fn case(
         upload_bytes_per_frame: 24 * 18 * 18 * 18 * dtype.size() as u64,
     };
     let mut s = Session::open(&store, cfg, 8 << 20, 2).unwrap();
+    // Brick value ranges from the store's statistics: transparent bricks
+    // are crossed in one jump on both back ends.
+    let mut scene = scene;
+    scene.ranges = Some(std::sync::Arc::new(s.loader().brick_ranges(1 << 24)));
     let (mut dvm, _) = DeviceVm::new(&gpu, s.vm_mut()).unwrap();
     let mut renderer = GpuRenderer::new(&gpu);
     let tf = TransferFunction::preset("soft", window).unwrap();
@@ -88,7 +87,7 @@ fn case(
             .render(&gpu, &dvm, s.vm(), &scene, &p, lod)
             .unwrap();
         first.get_or_insert(f.stats.completeness());
-        assert!(f.bytes_down <= 16 + 4 * 2 * s.vm().pool_slots() as u64 + 64 * 8 + 4);
+        assert!(f.bytes_down <= 32 + 4 * 2 * s.vm().pool_slots() as u64 + 64 * 8 + 4);
         s.finish_frame([&f.requests]);
         dvm.sync(&gpu, s.vm_mut());
         if f.stats.completeness() == 1.0 && f.stats.samples > 0 {
@@ -131,14 +130,13 @@ fn case(
         "{mode:?} {dtype:?}: max abs diff {d} to the CPU renderer"
     );
     s.vm().check_invariants().unwrap();
+    f.stats
 }
 
 #[test]
 fn gpu_dvr_converges_to_the_reference_u16() {
     case(
-        Kind::Mandelbulb,
-        [64, 80, 96],
-        DType::U16,
+        &Procedural::new(Kind::Mandelbulb, [64, 80, 96], DType::U16),
         [0.0, 65535.0],
         RenderMode::Dvr,
         Lod::Fixed(1),
@@ -153,9 +151,7 @@ fn gpu_dvr_converges_to_the_reference_u8_level0() {
     // (it is bigger than the 64³ voxels), and they still stream in over
     // several frames.
     case(
-        Kind::MarschnerLobb,
-        [64, 64, 64],
-        DType::U8,
+        &Procedural::new(Kind::MarschnerLobb, [64, 64, 64], DType::U8),
         [0.0, 255.0],
         RenderMode::Dvr,
         Lod::Fixed(0),
@@ -167,9 +163,7 @@ fn gpu_dvr_converges_to_the_reference_u8_level0() {
 #[test]
 fn gpu_mip_converges_to_the_reference() {
     case(
-        Kind::Mandelbulb,
-        [64, 80, 96],
-        DType::U16,
+        &Procedural::new(Kind::Mandelbulb, [64, 80, 96], DType::U16),
         [0.0, 65535.0],
         RenderMode::Mip,
         Lod::Fixed(1),
@@ -182,13 +176,60 @@ fn gpu_mip_converges_to_the_reference() {
 fn gpu_automatic_lod_equals_the_cpu_renderer() {
     // A small image: one pixel covers several voxels, coarser levels serve.
     case(
-        Kind::MarschnerLobb,
-        [64, 64, 64],
-        DType::U8,
+        &Procedural::new(Kind::MarschnerLobb, [64, 64, 64], DType::U8),
         [0.0, 255.0],
         RenderMode::Dvr,
         Lod::Auto { bias: 0.0 },
         0.25,
         24,
     );
+}
+
+/// Empty, then data with a hard edge between: y below 33 is 0 (EMPTY
+/// bricks; the side the test camera looks from), the rest a varying
+/// pattern in [100, 227].
+struct HalfEmpty(SourceMeta);
+
+impl VolumeSource for HalfEmpty {
+    fn meta(&self) -> &SourceMeta {
+        &self.0
+    }
+    fn read_region(
+        &self,
+        c: usize,
+        z: std::ops::Range<u64>,
+        y: std::ops::Range<u64>,
+        x: std::ops::Range<u64>,
+        out: &mut [u8],
+    ) -> brickyard_store::Result<()> {
+        check_region(&self.0, c, &z, &y, &x, out);
+        // One voxel past a brick border (16): the first sample past the
+        // last EMPTY brick already mixes in data.
+        let half = 33;
+        let mut i = 0;
+        for zz in z {
+            for yy in y.clone() {
+                for xx in x.clone() {
+                    out[i] = if yy < half {
+                        0
+                    } else {
+                        100 + ((xx * 7 + yy * 3 + zz * 5) % 128) as u8
+                    };
+                    i += 1;
+                }
+            }
+        }
+        Ok(())
+    }
+}
+
+/// Rays that cross empty bricks in one jump must land before the first
+/// step past them: landing one step late skips the first sample that
+/// mixes in the data behind the hard edge (checked: the image then differs
+/// by 0.22).
+#[test]
+fn gpu_jumps_over_empty_bricks_land_on_time() {
+    let src = HalfEmpty(SourceMeta::new("<half-empty>", [48, 48, 64], 1, DType::U8));
+    let st = case(&src, [0.0, 255.0], RenderMode::Dvr, Lod::Fixed(0), 1.5, 64);
+    assert!(st.skipped_bricks > 100, "jumps: {}", st.skipped_bricks);
 }

@@ -58,6 +58,9 @@ pub struct BenchCmd {
     /// render: dvr or mip.
     #[arg(long, default_value = "dvr")]
     mode: String,
+    /// render: cpu, gpu, auto or both (CPU then GPU, side by side).
+    #[arg(long, default_value = "cpu")]
+    backend: String,
 }
 
 pub fn run(b: BenchCmd) -> Result<()> {
@@ -79,6 +82,10 @@ pub fn run(b: BenchCmd) -> Result<()> {
                 cold: b.cold,
                 pool,
                 reference: !b.no_reference,
+                backends: match b.backend.as_str() {
+                    "both" => vec!["cpu".into(), "gpu".into()],
+                    x => vec![x.into()],
+                },
                 mip: match b.mode.as_str() {
                     "dvr" => false,
                     "mip" => true,

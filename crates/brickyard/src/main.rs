@@ -1,5 +1,6 @@
 //! The `brickyard` command line.
 
+mod backend;
 mod bench;
 mod gpubench;
 mod progress;

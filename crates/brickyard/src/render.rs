@@ -6,7 +6,7 @@ use brickyard_cache::session::Session;
 use brickyard_cache::vm::VmConfig;
 use brickyard_core::camera::{world_extent, Camera, Projection};
 use brickyard_core::TransferFunction;
-use brickyard_render::cpu::{render_frame, Lod, Scene};
+use brickyard_render::cpu::{Lod, Scene};
 use brickyard_render::reference::{RenderMode, RenderParams};
 use brickyard_store::import::zarr;
 use brickyard_store::info::{human_bytes, inspect};
@@ -99,6 +99,10 @@ pub struct RenderCmd {
     /// Print only the final frame of each view.
     #[arg(long)]
     quiet: bool,
+    /// auto (a hardware GPU for DVR and MIP when there is one, else the
+    /// CPU), gpu or cpu.
+    #[arg(long, default_value = "auto")]
+    backend: String,
 }
 
 /// `C[:COLOR[:LO,HI]]`.
@@ -292,6 +296,15 @@ pub fn run(c: RenderCmd) -> Result<()> {
         Some(l) => Lod::Fixed(l),
         None => Lod::Auto { bias: c.lod_bias },
     };
+    let shown = if mode == RenderMode::Dvr {
+        1
+    } else {
+        styles.len()
+    };
+    let mut backend = crate::backend::Backend::choose(&c.backend, &mut s, &mode, shown)?;
+    if !c.json {
+        println!("rendering on {}", backend.describe());
+    }
     let views = c.turntable.unwrap_or(1).max(1);
     for v in 0..views {
         let cam = if c.turntable.is_some() {
@@ -310,9 +323,8 @@ pub fn run(c: RenderCmd) -> Result<()> {
         let mut last = None;
         for frame in 1..=c.max_frames {
             let ft = Instant::now();
-            s.begin_frame();
-            let (img, st, reqs) = render_frame(s.vm(), &scene, &params, lod);
-            let fs = s.finish_frame(reqs.iter());
+            let f = backend.frame(&mut s, &scene, &params, lod)?;
+            let (img, st, fs) = (f.image, f.stats, f.session);
             let done = st.completeness() >= 1.0;
             let ms = ft.elapsed().as_secs_f64() * 1e3;
             let read = s.loader().bytes_read();
@@ -325,6 +337,7 @@ pub fn run(c: RenderCmd) -> Result<()> {
                         "samples": st.samples, "requests": fs.frame.requests.len(),
                         "bricks_in": fs.insert.inserted + fs.insert.flagged,
                         "uploaded_bytes": fs.insert.bytes_uploaded, "bytes_read_total": read,
+                        "render_ms": f.render_ms, "host_to_device_bytes": f.up, "device_to_host_bytes": f.down,
                         "resident": fs.frame.resident_bricks})
                 );
             } else {

@@ -412,6 +412,8 @@ pub struct RenderBench {
     pub reference: bool,
     /// MIP instead of DVR.
     pub mip: bool,
+    /// Back ends to measure, one after the other (`cpu`, `gpu`).
+    pub backends: Vec<String>,
 }
 
 pub fn render(dir: &Path, dims: Dims3, dtype: DType, o: &RenderBench) -> Result<()> {
@@ -422,10 +424,11 @@ pub fn render(dir: &Path, dims: Dims3, dtype: DType, o: &RenderBench) -> Result<
         pool,
         reference: with_reference,
         mip,
+        ..
     } = *o;
     use brickyard_core::camera::{world_extent, Camera, Projection};
     use brickyard_core::TransferFunction;
-    use brickyard_render::cpu::{render_frame, Lod, Scene};
+    use brickyard_render::cpu::{Lod, Scene};
     use brickyard_render::reference::{render as render_ref, RenderMode, RenderParams, Volume};
     let st = store(dir, dims, dtype)?;
     let spacing = zarr::open(&st, 0)?.meta().spacing.unwrap_or([1.0; 3]);
@@ -466,48 +469,7 @@ pub fn render(dir: &Path, dims: Dims3, dtype: DType, o: &RenderBench) -> Result<
         upload_bytes_per_frame: 256 << 20,
         ..Default::default()
     };
-    let mut s = Session::open(&st, cfg, 1 << 30, 2)?;
-    scene.ranges = Some(std::sync::Arc::new(s.loader().brick_ranges(1 << 24)));
-    // Cold: empty pool (and, with --cold, an empty page cache) to a
-    // complete view.
-    let dropped = cold && drop_caches();
-    let t = Instant::now();
-    let mut frames = 0;
-    let mut first_frame_ms = 0.0;
-    loop {
-        s.begin_frame();
-        let (_, stt, reqs) = render_frame(s.vm(), &scene, &p, Lod::Auto { bias: 0.0 });
-        s.finish_frame(reqs.iter());
-        if frames == 0 {
-            first_frame_ms = t.elapsed().as_secs_f64() * 1e3;
-        }
-        frames += 1;
-        if stt.completeness() >= 1.0 || frames > 500 {
-            break;
-        }
-    }
-    let cold_s = t.elapsed().as_secs_f64();
-    let mut warm = f64::INFINITY;
-    let mut samples = 0;
-    let mut steps = 0;
-    let mut skipped = 0;
-    let mut transparent = 0;
-    let mut skipped_cells = 0;
-    for _ in 0..repeat.max(1) {
-        s.begin_frame();
-        let t = Instant::now();
-        let (_, stt, reqs) = render_frame(s.vm(), &scene, &p, Lod::Auto { bias: 0.0 });
-        warm = warm.min(t.elapsed().as_secs_f64());
-        samples = stt.samples;
-        steps = stt.steps;
-        skipped = stt.skipped_bricks;
-        transparent = stt.transparent;
-        skipped_cells = stt.skipped_cells;
-        s.finish_frame(reqs.iter());
-    }
-    let bytes_read = s.loader().bytes_read();
-    let pool_bytes = s.vm().pool_bytes();
-    drop(s);
+    let vox_bytes = vox * dtype.size() as u64;
     let mut reference = f64::NAN;
     let vol = with_reference
         .then(|| Volume::from_store(&st, 0, 0))
@@ -517,13 +479,50 @@ pub fn render(dir: &Path, dims: Dims3, dtype: DType, o: &RenderBench) -> Result<
         let _ = render_ref(vol, &p);
         reference = reference.min(t.elapsed().as_secs_f64());
     }
-    println!(
-        "{}",
-        json!({"scenario": "render", "mode": if mip { "mip" } else { "dvr" }, "size": [dims[2], dims[1], dims[0]], "dtype": dtype.short_name(),
-            "image": [image, image], "pool_bytes": pool_bytes, "volume_bytes": vox * dtype.size() as u64,
-            "cold": dropped, "first_frame_ms": first_frame_ms, "cold_to_complete_s": cold_s, "cold_frames": frames, "bytes_read": bytes_read,
-            "warm_frame_ms": warm * 1e3, "warm_samples": samples, "warm_steps": steps, "warm_skipped_bricks": skipped, "warm_transparent_samples": transparent, "warm_skipped_cells": skipped_cells, "warm_msamples_s": samples as f64 / warm / 1e6,
-            "reference_frame_ms": reference * 1e3, "threads": rayon::current_num_threads()})
-    );
+    for name in &o.backends {
+        let mut s = Session::open(&st, cfg.clone(), 1 << 30, 2)?;
+        scene.ranges = Some(std::sync::Arc::new(s.loader().brick_ranges(1 << 24)));
+        let mut backend = crate::backend::Backend::choose(name, &mut s, &p.mode, 1)?;
+        // Cold: empty pool (and, with --cold, an empty page cache) to a
+        // complete view.
+        let dropped = cold && drop_caches();
+        let t = Instant::now();
+        let mut frames = 0;
+        let mut first_frame_ms = 0.0;
+        let (mut up, mut down) = (0u64, 0u64);
+        loop {
+            let f = backend.frame(&mut s, &scene, &p, Lod::Auto { bias: 0.0 })?;
+            (up, down) = (up + f.up, down + f.down);
+            if frames == 0 {
+                first_frame_ms = t.elapsed().as_secs_f64() * 1e3;
+            }
+            frames += 1;
+            if f.stats.completeness() >= 1.0 || frames > 500 {
+                break;
+            }
+        }
+        let cold_s = t.elapsed().as_secs_f64();
+        let mut warm = f64::INFINITY;
+        let mut last = None;
+        let mut warm_down = 0;
+        for _ in 0..repeat.max(1) {
+            let f = backend.frame(&mut s, &scene, &p, Lod::Auto { bias: 0.0 })?;
+            warm = warm.min(f.render_ms / 1e3);
+            warm_down = f.down;
+            last = Some(f.stats);
+        }
+        let stt = last.expect("one warm frame");
+        let bytes_read = s.loader().bytes_read();
+        let pool_bytes = s.vm().pool_bytes();
+        println!(
+            "{}",
+            json!({"scenario": "render", "backend": backend.describe(), "mode": if mip { "mip" } else { "dvr" }, "size": [dims[2], dims[1], dims[0]], "dtype": dtype.short_name(),
+                "image": [image, image], "pool_bytes": pool_bytes, "volume_bytes": vox_bytes,
+                "cold": dropped, "first_frame_ms": first_frame_ms, "cold_to_complete_s": cold_s, "cold_frames": frames, "bytes_read": bytes_read,
+                "cold_host_to_device_bytes": up, "cold_device_to_host_bytes": down, "warm_device_to_host_bytes": warm_down,
+                "warm_frame_ms": warm * 1e3, "warm_samples": stt.samples, "warm_steps": stt.steps, "warm_skipped_bricks": stt.skipped_bricks, "warm_transparent_samples": stt.transparent, "warm_skipped_cells": stt.skipped_cells, "warm_msamples_s": stt.samples as f64 / warm / 1e6,
+                "reference_frame_ms": reference * 1e3, "threads": rayon::current_num_threads()})
+        );
+    }
     Ok(())
 }

@@ -1,0 +1,119 @@
+//! `--backend auto|gpu|cpu`: who renders the frames of a session. The GPU
+//! back end keeps a copy of the virtual memory on the device, carries the
+//! host's changes over after every frame and reports what crossed the bus.
+
+use anyhow::{bail, Context, Result};
+use brickyard_cache::session::{FrameStats as SessionStats, Session};
+use brickyard_gpu::vm::DeviceVm;
+use brickyard_gpu::{AdapterChoice, Gpu};
+use brickyard_render::cpu::{render_frame, FrameStats, Lod, Scene};
+use brickyard_render::gpu::GpuRenderer;
+use brickyard_render::reference::{RenderMode, RenderParams};
+use brickyard_render::Image;
+
+/// One frame, whoever drew it.
+pub struct Frame {
+    pub image: Image,
+    pub stats: FrameStats,
+    pub session: SessionStats,
+    /// Host→device bytes after the frame (bricks and page entries; the
+    /// CPU back end: bytes written into its pool).
+    pub up: u64,
+    /// Device→host bytes of cache management (request list, used slots,
+    /// counters); 0 on the CPU.
+    pub down: u64,
+    /// Milliseconds spent drawing (the GPU: submission to completion,
+    /// read-backs included).
+    pub render_ms: f64,
+}
+
+pub struct GpuBackend {
+    gpu: Gpu,
+    dvm: DeviceVm,
+    renderer: GpuRenderer,
+}
+
+pub enum Backend {
+    Cpu,
+    Gpu(Box<GpuBackend>),
+}
+
+impl Backend {
+    /// The back end `choice` names for rendering `mode` (with `channels`
+    /// added up) from session `s`. `auto` takes a hardware adapter when
+    /// there is one and the mode runs on the device, the CPU otherwise (a
+    /// software adapter is slower than the CPU renderer).
+    pub fn choose(
+        choice: &str,
+        s: &mut Session,
+        mode: &RenderMode,
+        channels: usize,
+    ) -> Result<Backend> {
+        let device_mode = matches!(mode, RenderMode::Dvr | RenderMode::Mip) && channels <= 1;
+        let gpu = match choice {
+            "cpu" => return Ok(Backend::Cpu),
+            "gpu" => {
+                if !device_mode {
+                    bail!("--backend gpu: slices and several channels are rendered on the CPU for now (use --backend cpu or auto)");
+                }
+                Gpu::new(AdapterChoice::Best).context("--backend gpu")?
+            }
+            "auto" => match (device_mode, Gpu::new(AdapterChoice::Best)) {
+                (true, Ok(g)) if g.info.device_type != wgpu::DeviceType::Cpu => g,
+                _ => return Ok(Backend::Cpu),
+            },
+            c => bail!("--backend: expected auto, gpu or cpu, found {c:?}"),
+        };
+        let (dvm, _) = DeviceVm::new(&gpu, s.vm_mut())?;
+        let renderer = GpuRenderer::new(&gpu);
+        Ok(Backend::Gpu(Box::new(GpuBackend { gpu, dvm, renderer })))
+    }
+
+    pub fn describe(&self) -> String {
+        match self {
+            Backend::Cpu => format!("CPU ({} threads)", rayon::current_num_threads()),
+            Backend::Gpu(g) => format!("GPU: {}", g.gpu.describe()),
+        }
+    }
+
+    /// Draw one frame and end it (requests out, bricks in).
+    pub fn frame(
+        &mut self,
+        s: &mut Session,
+        scene: &Scene,
+        p: &RenderParams,
+        lod: Lod,
+    ) -> Result<Frame> {
+        s.begin_frame();
+        let t = std::time::Instant::now();
+        match self {
+            Backend::Cpu => {
+                let (image, stats, reqs) = render_frame(s.vm(), scene, p, lod);
+                let render_ms = t.elapsed().as_secs_f64() * 1e3;
+                let session = s.finish_frame(reqs.iter());
+                Ok(Frame {
+                    image,
+                    stats,
+                    up: session.insert.bytes_uploaded,
+                    down: 0,
+                    session,
+                    render_ms,
+                })
+            }
+            Backend::Gpu(g) => {
+                let f = g.renderer.render(&g.gpu, &g.dvm, s.vm(), scene, p, lod)?;
+                let render_ms = t.elapsed().as_secs_f64() * 1e3;
+                let session = s.finish_frame([&f.requests]);
+                let sync = g.dvm.sync(&g.gpu, s.vm_mut());
+                Ok(Frame {
+                    image: f.image,
+                    stats: f.stats,
+                    session,
+                    up: sync.bytes,
+                    down: f.bytes_down,
+                    render_ms,
+                })
+            }
+        }
+    }
+}
