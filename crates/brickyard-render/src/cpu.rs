@@ -1113,7 +1113,9 @@ impl<'f, 'a, T: Sample> Walker<'f, 'a, T> {
                 k = f.land(ray, &track, g, k, (lo, hi), t1.min(next_t));
                 continue;
             }
-            if let Content::Data(vox) = c.content {
+            // (Right after a level change the sample lies at the new grid's
+            // origin, not on a step `k − 1`: the general path takes it.)
+            if let (Content::Data(vox), true) = (c.content, k > 0) {
                 // Resident at the level asked for: take every step the ray
                 // makes in this brick here.
                 let (lo, hi, clear) = (c.lo, c.hi, c.clear_cells);

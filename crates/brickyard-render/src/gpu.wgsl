@@ -398,7 +398,8 @@ fn render(@builtin(global_invocation_id) g: vec3<u32>) {
             hit = true;
             k = k + 1u;
             let l = level_at(t);
-            if (l != level) {
+            // A MIP keeps the level of the ray's entry (as on the CPU).
+            if (l != level && R.mode == 0u) {
                 // A level change restarts the step grid here.
                 level = l;
                 base_t = t;

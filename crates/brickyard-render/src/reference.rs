@@ -553,6 +553,65 @@ pub fn render_channels(volumes: &[Volume], params: &RenderParams) -> Image {
     img
 }
 
+/// DVR with automatic level of detail, written plainly on whole levels in
+/// memory (`levels[l]`: level `l`, all of one extent): each step `t = base
+/// + (k + ½)·Δ_l` samples level `l`, the level whose voxel matches the pixel
+/// footprint at `t` (`⌊log2(footprint / voxel₀) + bias⌋`, clamped); where
+/// that level changes the step grid restarts at that `t`. The oracle of the
+/// renderers' `Lod::Auto`. Panics if the parameters are invalid.
+pub fn render_auto_lod(levels: &[Volume], params: &RenderParams, bias: f64) -> Image {
+    if let Err(e) = params.validate() {
+        panic!("invalid render parameters: {e}");
+    }
+    let (w, h) = (params.width, params.height);
+    let rg = params.camera.ray_gen(w, h);
+    let extent = levels[0].extent();
+    let voxel = |l: usize| levels[l].voxel_size();
+    let reference = params.reference_step.unwrap_or(voxel(0));
+    let level_at = |t: f64| {
+        let l = (params.camera.pixel_footprint(t, h) / voxel(0)).log2() + bias;
+        if l.is_finite() && l > 0.0 {
+            (l.floor() as usize).min(levels.len() - 1)
+        } else {
+            0
+        }
+    };
+    let mut img = Image::new(w, h);
+    img.rgba
+        .par_chunks_mut(w as usize)
+        .enumerate()
+        .for_each(|(j, row)| {
+            for (i, px) in row.iter_mut().enumerate() {
+                let ray = rg.pixel_ray(i as u32, j as u32);
+                let mut acc = [0.0f32; 4];
+                if let Some((t0, t1)) = intersect_box(&ray, [0.0; 3], extent) {
+                    let mut level = level_at(t0);
+                    let (mut base, mut k) = (t0, 0u64);
+                    loop {
+                        let dt = voxel(level) / params.samples_per_voxel;
+                        let t = step_t(base, k, dt);
+                        if t >= t1 {
+                            break;
+                        }
+                        k += 1;
+                        let l = level_at(t);
+                        if l != level {
+                            (level, base, k) = (l, t, 0);
+                        }
+                        let dt = voxel(level) / params.samples_per_voxel;
+                        let v = levels[level].sample_world(ray.at(t), extent);
+                        let c = params.tf.lookup(v);
+                        if composite(&mut acc, c, (dt / reference) as f32) {
+                            break;
+                        }
+                    }
+                }
+                *px = acc;
+            }
+        });
+    img
+}
+
 fn dvr_ray(
     vol: &Volume,
     tf: &TransferFunction,

@@ -12,7 +12,7 @@ use brickyard_gpu::context::test_gpu;
 use brickyard_gpu::vm::DeviceVm;
 use brickyard_render::cpu::{render_frame, FrameStats, Lod, Scene};
 use brickyard_render::gpu::GpuRenderer;
-use brickyard_render::reference::{render, RenderMode, RenderParams, Volume};
+use brickyard_render::reference::{render, render_auto_lod, RenderMode, RenderParams, Volume};
 use brickyard_store::builder::{convert, ConvertOptions, NoProgress};
 use brickyard_store::generate::{Kind, Procedural};
 use brickyard_store::source::{check_region, SourceMeta, VolumeSource};
@@ -118,6 +118,16 @@ fn case(
             "{mode:?} {dtype:?}: max abs diff {d} to the reference"
         );
     }
+    // Automatic LOD: against the plain f64 model of level changes.
+    if let (Lod::Auto { bias: 0.0 }, RenderMode::Dvr) = (lod, &mode) {
+        let want = render_auto_lod(&levels, &p, 0.0);
+        let d = f.image.max_abs_diff(&want);
+        eprintln!("auto LOD: max abs diff to the plain model {d}");
+        assert!(
+            d <= TOLERANCE,
+            "auto LOD: max abs diff {d} to the plain model"
+        );
+    }
     // The CPU renderer on the same resident data.
     s.begin_frame();
     let (cpu, st, reqs) = render_frame(s.vm(), &scene, &p, lod);
@@ -182,6 +192,19 @@ fn gpu_automatic_lod_equals_the_cpu_renderer() {
         Lod::Auto { bias: 0.0 },
         0.25,
         24,
+    );
+}
+
+#[test]
+fn gpu_automatic_lod_across_level_changes() {
+    // Levels change inside the volume along most rays.
+    case(
+        &Procedural::new(Kind::Mandelbulb, [48, 48, 48], DType::U8),
+        [0.0, 255.0],
+        RenderMode::Dvr,
+        Lod::Auto { bias: 0.0 },
+        1.5,
+        48,
     );
 }
 

@@ -526,3 +526,38 @@ fn a_view_that_fits_completes_even_when_its_stand_ins_do_not() {
     assert!(diff <= 1e-5, "diff {diff} after {frames} frames");
     s.vm().check_invariants().unwrap();
 }
+
+/// Automatic LOD where the level changes inside the volume along most rays
+/// equals the plain in-core model of it (`render_auto_lod`): the sample at
+/// a level change lies at the new step grid's origin, not on a step of it.
+#[test]
+fn automatic_level_of_detail_across_level_changes_equals_the_plain_model() {
+    let dir = tempfile::tempdir().unwrap();
+    let dims = [48, 48, 48];
+    let store = generated(
+        dir.path(),
+        "m.ome.zarr",
+        Kind::Mandelbulb,
+        dims,
+        DType::U8,
+        32,
+    );
+    let levels = pyramid(&store);
+    let extent = world_extent(dims, levels[0].spacing);
+    let mut scene = Scene::new(extent, levels.iter().map(|v| v.dims).collect());
+    let tf = TransferFunction::preset("soft", [0.0, 255.0]).unwrap();
+    let cam = Camera::fit(
+        extent,
+        30.0,
+        20.0,
+        Projection::Perspective { fov_y_deg: 40.0 },
+    );
+    let mut p = RenderParams::new(48, 38, cam, tf, RenderMode::Dvr);
+    p.reference_step = Some(scene.voxel(0));
+    let mut s = session(&store, 1 << 20);
+    scene.ranges = Some(std::sync::Arc::new(s.loader().brick_ranges(1 << 24)));
+    let (img, _, _) = converge(&mut s, &scene, &p, Lod::Auto { bias: 0.0 });
+    let want = brickyard_render::reference::render_auto_lod(&levels, &p, 0.0);
+    let d = img.max_abs_diff(&want);
+    assert!(d <= 1e-5, "max abs diff {d}");
+}

@@ -326,3 +326,81 @@ fn render_writes_pngs_and_rejects_bad_options() {
         &["missing.zarr"],
     );
 }
+
+/// Decoded RGBA8 pixels of a PNG.
+fn png_pixels(p: &Path) -> Vec<u8> {
+    let dec = png::Decoder::new(std::io::BufReader::new(std::fs::File::open(p).unwrap()));
+    let mut r = dec.read_info().unwrap();
+    let mut buf = vec![0; r.output_buffer_size().unwrap()];
+    let info = r.next_frame(&mut buf).unwrap();
+    buf.truncate(info.buffer_size());
+    buf
+}
+
+#[test]
+fn gpu_and_cpu_backends_draw_the_same_pngs() {
+    if brickyard_gpu::context::test_gpu().is_none() {
+        return; // BRICKYARD_SKIP_GPU=1
+    }
+    let d = tempfile::tempdir().unwrap();
+    let store = d.path().join("b.ome.zarr");
+    let o = run(&[
+        "generate",
+        "mandelbulb",
+        s(&store),
+        "--size",
+        "48",
+        "--quiet",
+        "--brick",
+        "16",
+        "--shard",
+        "32",
+    ]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    for mode in ["dvr", "mip"] {
+        let mut pixels = vec![];
+        for backend in ["cpu", "gpu"] {
+            let png = d.path().join(format!("{mode}-{backend}.png"));
+            let o = run(&[
+                "render",
+                s(&store),
+                "--mode",
+                mode,
+                "--size",
+                "48x40",
+                "--out",
+                s(&png),
+                "--pool",
+                "1MiB",
+                "--brick",
+                "8",
+                "--backend",
+                backend,
+            ]);
+            assert!(o.status.success(), "{mode} {backend}: {}", stderr(&o));
+            let out = String::from_utf8_lossy(&o.stdout);
+            assert!(out.contains("100.00% complete"), "{mode} {backend}: {out}");
+            assert!(
+                out.contains(if backend == "gpu" { "GPU:" } else { "CPU (" }),
+                "{out}"
+            );
+            pixels.push(png_pixels(&png));
+        }
+        assert_eq!(pixels[0].len(), pixels[1].len());
+        let worst = pixels[0]
+            .iter()
+            .zip(&pixels[1])
+            .map(|(a, b)| a.abs_diff(*b))
+            .max()
+            .unwrap();
+        assert!(worst <= 1, "{mode}: 8-bit images differ by {worst}");
+    }
+    fails_with(
+        &run(&["render", s(&store), "--mode", "slice", "--backend", "gpu"]),
+        &["backend", "slice"],
+    );
+    fails_with(
+        &run(&["render", s(&store), "--backend", "quantum"]),
+        &["backend", "quantum"],
+    );
+}
