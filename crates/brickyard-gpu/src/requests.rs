@@ -68,7 +68,7 @@ impl RequestTableGpu {
             levels: (starts.len() - 1) as u32,
             keys: gpu.storage_buffer("request keys", &vec![NO_BRICK; n as usize]),
             counts: gpu.storage_buffer_zeroed("request counts", n as u64 * 4),
-            dropped: gpu.storage_buffer_zeroed("requests dropped", 4),
+            dropped: gpu.storage_buffer_zeroed("requests dropped, occupied", 8),
             level_starts: gpu.storage_buffer("level starts", &starts),
             sorted: gpu.storage_buffer_zeroed("requests sorted", n as u64 * 8),
             no_misses: gpu.storage_buffer_zeroed("no misses", 8),
@@ -94,7 +94,7 @@ impl RequestTableGpu {
             .write_buffer(&self.keys, 0, bytemuck::cast_slice(&vec![NO_BRICK; n]));
         gpu.queue
             .write_buffer(&self.counts, 0, bytemuck::cast_slice(&vec![0u32; n]));
-        gpu.queue.write_buffer(&self.dropped, 0, &[0; 4]);
+        gpu.queue.write_buffer(&self.dropped, 0, &[0; 8]);
     }
 
     fn bind(&self, gpu: &Gpu, params: &wgpu::Buffer, misses: &wgpu::Buffer) -> wgpu::BindGroup {
@@ -152,15 +152,12 @@ impl RequestTableGpu {
         let mut enc = gpu.device.create_command_encoder(&Default::default());
         self.kernel.dispatch(&mut enc, "sort", &bind, [1, 1, 1]);
         gpu.queue.submit([enc.finish()]);
-        let cap = cap.min(self.buckets as usize);
-        let words = gpu.read_u32("request list", &self.sorted, cap * 2)?;
-        let dropped = gpu.read_u32("dropped requests", &self.dropped, 1)?[0] as u64;
-        self.downloaded = (cap * 8 + 4) as u64;
-        let list = words
-            .chunks_exact(2)
-            .map(|w| (w[0], w[1]))
-            .take_while(|e| e.0 != NO_BRICK)
-            .collect();
+        let head = gpu.read_u32("dropped requests", &self.dropped, 2)?;
+        let (dropped, occupied) = (head[0] as u64, head[1] as usize);
+        let n = cap.min(occupied);
+        let words = gpu.read_u32("request list", &self.sorted, n * 2)?;
+        self.downloaded = (n * 8 + 8) as u64;
+        let list = words.chunks_exact(2).map(|w| (w[0], w[1])).collect();
         Ok((list, dropped))
     }
 }

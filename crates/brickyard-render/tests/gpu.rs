@@ -87,7 +87,7 @@ fn case(
             .render(&gpu, &dvm, s.vm(), &scene, &p, lod)
             .unwrap();
         first.get_or_insert(f.stats.completeness());
-        assert!(f.bytes_down <= 32 + 4 * 2 * s.vm().pool_slots() as u64 + 64 * 8 + 4);
+        assert!(f.bytes_down <= 32 + 4 * 2 * s.vm().pool_slots() as u64 + 64 * 8 + 8);
         s.finish_frame([&f.requests]);
         dvm.sync(&gpu, s.vm_mut());
         if f.stats.completeness() == 1.0 && f.stats.samples > 0 {

@@ -25,6 +25,11 @@ pub struct Frame {
     /// Milliseconds spent drawing (the GPU: submission to completion,
     /// read-backs included).
     pub render_ms: f64,
+    /// Milliseconds of cache management after drawing: requests to the
+    /// loader, bricks into the host's pool and, on the GPU, to the device.
+    pub cache_ms: f64,
+    /// Of that, milliseconds carrying changes to the device (0 on the CPU).
+    pub upload_ms: f64,
 }
 
 pub struct GpuBackend {
@@ -90,6 +95,7 @@ impl Backend {
             Backend::Cpu => {
                 let (image, stats, reqs) = render_frame(s.vm(), scene, p, lod);
                 let render_ms = t.elapsed().as_secs_f64() * 1e3;
+                let c = std::time::Instant::now();
                 let session = s.finish_frame(reqs.iter());
                 Ok(Frame {
                     image,
@@ -98,13 +104,19 @@ impl Backend {
                     down: 0,
                     session,
                     render_ms,
+                    cache_ms: c.elapsed().as_secs_f64() * 1e3,
+                    upload_ms: 0.0,
                 })
             }
             Backend::Gpu(g) => {
                 let f = g.renderer.render(&g.gpu, &g.dvm, s.vm(), scene, p, lod)?;
                 let render_ms = t.elapsed().as_secs_f64() * 1e3;
+                let c = std::time::Instant::now();
                 let session = s.finish_frame([&f.requests]);
+                let u = std::time::Instant::now();
                 let sync = g.dvm.sync(&g.gpu, s.vm_mut());
+                // The copies are queued: wait for them, to time them.
+                let _ = g.gpu.device.poll(wgpu::PollType::wait_indefinitely());
                 Ok(Frame {
                     image: f.image,
                     stats: f.stats,
@@ -112,6 +124,8 @@ impl Backend {
                     up: sync.bytes,
                     down: f.bytes_down,
                     render_ms,
+                    cache_ms: c.elapsed().as_secs_f64() * 1e3,
+                    upload_ms: u.elapsed().as_secs_f64() * 1e3,
                 })
             }
         }

@@ -43,9 +43,13 @@ pub struct BenchCmd {
     /// Repetitions (the best is reported, all are listed).
     #[arg(long, default_value_t = 1)]
     repeat: usize,
-    /// render: image edge in pixels.
-    #[arg(long, default_value_t = 512)]
-    image: u32,
+    /// render: image size, N (square) or WxH.
+    #[arg(long, default_value = "512")]
+    image: String,
+    /// render: move the camera this many times closer than the full view
+    /// (zoomed in: most rays cross dense data, more bricks per pixel).
+    #[arg(long, default_value_t = 1.0)]
+    zoom: f64,
     /// loader, latency, render: drop the page cache first (needs root), for cold-disk figures.
     #[arg(long)]
     cold: bool,
@@ -77,7 +81,8 @@ pub fn run(b: BenchCmd) -> Result<()> {
         "render" => {
             let pool = b.pool.as_deref().map(crate::parse_bytes).transpose()?;
             let o = crate::vmbench::RenderBench {
-                image: b.image,
+                image: parse_image(&b.image)?,
+                zoom: b.zoom,
                 repeat: b.repeat,
                 cold: b.cold,
                 pool,
@@ -98,6 +103,24 @@ pub fn run(b: BenchCmd) -> Result<()> {
             "scenario: expected convert, downsample, vm-sample, vm-update, cache-kernels, loader, latency or render, found {s:?}"
         ),
     }
+}
+
+/// `N` or `WxH`.
+fn parse_image(s: &str) -> Result<[u32; 2]> {
+    let bad = || anyhow::anyhow!("--image: expected N or WxH (1 to 16384), found {s:?}");
+    let v: Vec<u32> = s
+        .split('x')
+        .map(|p| p.parse::<u32>().map_err(|_| bad()))
+        .collect::<Result<_>>()?;
+    let wh = match v.as_slice() {
+        [n] => [*n, *n],
+        [w, h] => [*w, *h],
+        _ => return Err(bad()),
+    };
+    if wh.iter().any(|&x| x == 0 || x > 16384) {
+        return Err(bad());
+    }
+    Ok(wh)
 }
 
 fn bench_convert(b: &BenchCmd, dims: [u64; 3], dtype: DType) -> Result<()> {

@@ -401,8 +401,10 @@ fn session_with_cache(st: &Path, cfg: VmConfig, cache: Arc<HostCache>) -> Result
 /// reference renderer on the same level, same camera and transfer function.
 /// Options of the render benchmark.
 pub struct RenderBench {
-    /// Image edge in pixels.
-    pub image: u32,
+    /// Image width and height in pixels.
+    pub image: [u32; 2],
+    /// Camera this many times closer than the full view.
+    pub zoom: f64,
     pub repeat: usize,
     /// Drop the page cache first.
     pub cold: bool,
@@ -419,6 +421,7 @@ pub struct RenderBench {
 pub fn render(dir: &Path, dims: Dims3, dtype: DType, o: &RenderBench) -> Result<()> {
     let RenderBench {
         image,
+        zoom,
         repeat,
         cold,
         pool,
@@ -447,18 +450,21 @@ pub fn render(dir: &Path, dims: Dims3, dtype: DType, o: &RenderBench) -> Result<
         _ => 1.0,
     };
     let tf = TransferFunction::preset("soft", [0.0, max])?;
-    let cam = Camera::fit(
+    let full = Camera::fit(
         extent,
         30.0,
         20.0,
         Projection::Perspective { fov_y_deg: 35.0 },
     );
+    // Zoomed in: the eye moves towards the target.
+    let eye = [0, 1, 2].map(|a| full.target[a] + (full.eye[a] - full.target[a]) / zoom.max(1e-3));
+    let cam = Camera { eye, ..full };
     let mode = if mip {
         RenderMode::Mip
     } else {
         RenderMode::Dvr
     };
-    let mut p = RenderParams::new(image, image, cam, tf, mode);
+    let mut p = RenderParams::new(image[0], image[1], cam, tf, mode);
     p.reference_step = Some(scene.voxel(0));
     let vox: u64 = dims.iter().product();
     let cfg = VmConfig {
@@ -480,47 +486,67 @@ pub fn render(dir: &Path, dims: Dims3, dtype: DType, o: &RenderBench) -> Result<
         reference = reference.min(t.elapsed().as_secs_f64());
     }
     for name in &o.backends {
-        let mut s = Session::open(&st, cfg.clone(), 1 << 30, 2)?;
-        scene.ranges = Some(std::sync::Arc::new(s.loader().brick_ranges(1 << 24)));
-        let mut backend = crate::backend::Backend::choose(name, &mut s, &p.mode, 1)?;
-        // Cold: empty pool (and, with --cold, an empty page cache) to a
-        // complete view.
+        let host = std::sync::Arc::new(brickyard_cache::host_cache::HostCache::new(1 << 30));
+        // Cold: empty pool and host cache (and, with --cold, an empty page
+        // cache) to a complete view; then again with a new pool but the
+        // host cache kept: bricks come from RAM.
         let dropped = cold && drop_caches();
-        let t = Instant::now();
-        let mut frames = 0;
-        let mut first_frame_ms = 0.0;
-        let (mut up, mut down) = (0u64, 0u64);
-        loop {
-            let f = backend.frame(&mut s, &scene, &p, Lod::Auto { bias: 0.0 })?;
-            (up, down) = (up + f.up, down + f.down);
-            if frames == 0 {
-                first_frame_ms = t.elapsed().as_secs_f64() * 1e3;
+        let mut runs = vec![];
+        let mut warm_session = None;
+        for _ in 0..2 {
+            let mut s = Session::with_cache(&st, cfg.clone(), host.clone(), 2)?;
+            scene.ranges = Some(std::sync::Arc::new(s.loader().brick_ranges(1 << 24)));
+            let mut backend = crate::backend::Backend::choose(name, &mut s, &p.mode, 1)?;
+            let t = Instant::now();
+            let (mut frames, mut first_frame_ms) = (0, 0.0);
+            let (mut up, mut down, mut upload_ms) = (0u64, 0u64, 0.0);
+            loop {
+                let f = backend.frame(&mut s, &scene, &p, Lod::Auto { bias: 0.0 })?;
+                (up, down, upload_ms) = (up + f.up, down + f.down, upload_ms + f.upload_ms);
+                if frames == 0 {
+                    first_frame_ms = t.elapsed().as_secs_f64() * 1e3;
+                }
+                frames += 1;
+                if f.stats.completeness() >= 1.0 || frames > 500 {
+                    break;
+                }
             }
-            frames += 1;
-            if f.stats.completeness() >= 1.0 || frames > 500 {
-                break;
-            }
+            runs.push((
+                t.elapsed().as_secs_f64(),
+                frames,
+                first_frame_ms,
+                up,
+                down,
+                upload_ms,
+            ));
+            warm_session = Some((s, backend));
         }
-        let cold_s = t.elapsed().as_secs_f64();
+        let (mut s, mut backend) = warm_session.expect("two runs");
         let mut warm = f64::INFINITY;
+        let (mut cache_ms, mut warm_down) = (f64::INFINITY, 0);
         let mut last = None;
-        let mut warm_down = 0;
         for _ in 0..repeat.max(1) {
             let f = backend.frame(&mut s, &scene, &p, Lod::Auto { bias: 0.0 })?;
             warm = warm.min(f.render_ms / 1e3);
+            cache_ms = f64::min(cache_ms, f.cache_ms);
             warm_down = f.down;
             last = Some(f.stats);
         }
         let stt = last.expect("one warm frame");
+        let (cold_s, frames, first_frame_ms, up, down, upload_ms) = runs[0];
+        let (host_s, host_frames, ..) = runs[1];
         let bytes_read = s.loader().bytes_read();
         let pool_bytes = s.vm().pool_bytes();
         println!(
             "{}",
             json!({"scenario": "render", "backend": backend.describe(), "mode": if mip { "mip" } else { "dvr" }, "size": [dims[2], dims[1], dims[0]], "dtype": dtype.short_name(),
-                "image": [image, image], "pool_bytes": pool_bytes, "volume_bytes": vox_bytes,
-                "cold": dropped, "first_frame_ms": first_frame_ms, "cold_to_complete_s": cold_s, "cold_frames": frames, "bytes_read": bytes_read,
-                "cold_host_to_device_bytes": up, "cold_device_to_host_bytes": down, "warm_device_to_host_bytes": warm_down,
-                "warm_frame_ms": warm * 1e3, "warm_samples": stt.samples, "warm_steps": stt.steps, "warm_skipped_bricks": stt.skipped_bricks, "warm_transparent_samples": stt.transparent, "warm_skipped_cells": stt.skipped_cells, "warm_msamples_s": stt.samples as f64 / warm / 1e6,
+                "image": image, "zoom": zoom, "pool_bytes": pool_bytes, "volume_bytes": vox_bytes,
+                "cold": dropped, "first_frame_ms": first_frame_ms, "cold_to_complete_s": cold_s, "cold_frames": frames,
+                "host_cache_to_complete_s": host_s, "host_cache_frames": host_frames, "bytes_read": bytes_read,
+                "cold_host_to_device_bytes": up, "cold_device_to_host_bytes": down,
+                "cold_upload_ms": upload_ms, "upload_gb_s": if upload_ms > 0.0 { up as f64 / upload_ms / 1e6 } else { f64::NAN },
+                "warm_frame_ms": warm * 1e3, "warm_cache_ms": cache_ms, "warm_device_to_host_bytes": warm_down,
+                "warm_samples": stt.samples, "warm_steps": stt.steps, "warm_skipped_bricks": stt.skipped_bricks, "warm_transparent_samples": stt.transparent, "warm_skipped_cells": stt.skipped_cells, "warm_msamples_s": stt.samples as f64 / warm / 1e6,
                 "reference_frame_ms": reference * 1e3, "threads": rayon::current_num_threads()})
         );
     }

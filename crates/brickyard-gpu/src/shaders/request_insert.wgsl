@@ -1,6 +1,7 @@
 // Adding misses to the request table: shared by requests.wgsl and the
 // renderers, which declare `keys`, `counts` (array<atomic<u32>>) and
-// `dropped` (array<atomic<u32>>, one entry) and append this file.
+// `dropped` (array<atomic<u32>>: misses dropped, buckets occupied) and
+// append this file.
 
 const NO_BRICK: u32 = 0xffffffffu;
 
@@ -25,6 +26,9 @@ fn request_add(id: u32, s: u32, buckets: u32) {
     for (var p = 0u; p < buckets; p = p + 1u) {
         loop {
             let r = atomicCompareExchangeWeak(&keys[b], NO_BRICK, id);
+            if (r.exchanged) {
+                atomicAdd(&dropped[1], 1u);
+            }
             if (r.exchanged || r.old_value == id) {
                 add_saturating(b, s);
                 return;

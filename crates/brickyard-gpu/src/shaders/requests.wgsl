@@ -5,10 +5,11 @@
 //   insert: adds misses (brick id, samples) to an open-addressing table of
 //           a power-of-two number of buckets (linear probing; a key that
 //           finds no bucket is dropped and counted). Counts saturate.
-//   sort:   one workgroup sorts the buckets (bitonic, in place in
-//           `sorted`): most samples first, then coarser levels, then ids
-//           in order; empty buckets last. The host reads back only the
-//           first `cap` entries: the request list.
+//   sort:   one workgroup gathers the occupied buckets into `sorted` and
+//           sorts them (bitonic, over the next power of two): most samples
+//           first, then coarser levels, then ids in order. The host reads
+//           back only the first min(cap, occupied) entries: the request
+//           list. `dropped` holds [misses dropped, buckets occupied].
 
 struct Params {
     buckets: u32,
@@ -65,11 +66,29 @@ fn before(a: vec2<u32>, b: vec2<u32>) -> bool {
     return a.x < b.x;
 }
 
+var<workgroup> occupied: u32;
+var<workgroup> placed: atomic<u32>;
+
 @compute @workgroup_size(256)
 fn sort(@builtin(local_invocation_index) t: u32) {
-    let n = params.buckets;
-    for (var i = t; i < n; i = i + WG) {
-        sorted[i] = vec2<u32>(atomicLoad(&keys[i]), atomicLoad(&counts[i]));
+    // The occupied buckets first (in any order), padded with empty entries
+    // to a power of two; then only those are sorted.
+    if (t == 0u) {
+        occupied = atomicLoad(&dropped[1]);
+    }
+    let m = workgroupUniformLoad(&occupied);
+    var n = 1u;
+    while (n < m) {
+        n = n * 2u;
+    }
+    for (var i = t; i < params.buckets; i = i + WG) {
+        let key = atomicLoad(&keys[i]);
+        if (key != NO_BRICK) {
+            sorted[atomicAdd(&placed, 1u)] = vec2<u32>(key, atomicLoad(&counts[i]));
+        }
+    }
+    for (var i = m + t; i < n; i = i + WG) {
+        sorted[i] = vec2<u32>(NO_BRICK, 0u);
     }
     storageBarrier();
     for (var k = 2u; k <= n; k = k * 2u) {
