@@ -64,6 +64,7 @@ const EXACT_BIT: u32 = 0x8000_0000;
 
 /// One frame on the device.
 pub struct GpuFrame {
+    /// The frame (0 × 0 when [`GpuRenderer::read_image`] is off).
     pub image: Image,
     /// Samples, exact samples, unserved samples and bricks crossed in one
     /// jump (the other counts of [`FrameStats`] stay 0).
@@ -82,6 +83,9 @@ pub struct GpuFrame {
 /// The device renderer: pipelines and the per-slot buffers that persist
 /// between frames.
 pub struct GpuRenderer {
+    /// Read the image back to the host after each frame (on by default;
+    /// off for benchmarks and for views that present it on the device).
+    pub read_image: bool,
     kernel: Kernel,
     stamps: Option<(u32, wgpu::Buffer)>,
     table: Option<RequestTableGpu>,
@@ -139,6 +143,7 @@ impl GpuRenderer {
             ],
         );
         GpuRenderer {
+            read_image: true,
             kernel,
             stamps: None,
             table: None,
@@ -324,9 +329,14 @@ impl GpuRenderer {
         for (id, n) in list {
             requests.add(ids.key(id), n);
         }
-        let pixels = gpu.read_back("image", &image, w as u64 * h as u64 * 16)?;
-        let mut img = Image::new(w, h);
-        img.rgba = bytemuck::pod_collect_to_vec(&pixels);
+        let img = if self.read_image {
+            let pixels = gpu.read_back("image", &image, w as u64 * h as u64 * 16)?;
+            let mut img = Image::new(w, h);
+            img.rgba = bytemuck::pod_collect_to_vec(&pixels);
+            img
+        } else {
+            Image::new(0, 0)
+        };
         Ok(GpuFrame {
             image: img,
             stats: FrameStats {

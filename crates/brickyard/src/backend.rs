@@ -74,6 +74,15 @@ impl Backend {
         Ok(Backend::Gpu(Box::new(GpuBackend { gpu, dvm, renderer })))
     }
 
+    /// Whether frames come back to the host as images (on by default; a
+    /// benchmark of the device turns it off: a viewer presents the image
+    /// where it was drawn).
+    pub fn set_read_image(&mut self, on: bool) {
+        if let Backend::Gpu(g) = self {
+            g.renderer.read_image = on;
+        }
+    }
+
     pub fn describe(&self) -> String {
         match self {
             Backend::Cpu => format!("CPU ({} threads)", rayon::current_num_threads()),

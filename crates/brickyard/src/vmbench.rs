@@ -497,6 +497,7 @@ pub fn render(dir: &Path, dims: Dims3, dtype: DType, o: &RenderBench) -> Result<
             let mut s = Session::with_cache(&st, cfg.clone(), host.clone(), 2)?;
             scene.ranges = Some(std::sync::Arc::new(s.loader().brick_ranges(1 << 24)));
             let mut backend = crate::backend::Backend::choose(name, &mut s, &p.mode, 1)?;
+            backend.set_read_image(false);
             let t = Instant::now();
             let (mut frames, mut first_frame_ms) = (0, 0.0);
             let (mut up, mut down, mut upload_ms) = (0u64, 0u64, 0.0);

@@ -1,0 +1,56 @@
+#!/usr/bin/env bash
+# The GPU benchmark, for a Linux machine with a real GPU, no Rust toolchain
+# and no network. It runs the binary packed by scripts/pack-gpu-bench.sh
+# (dist/brickyard), brings the Vulkan loader along when the machine has
+# none, generates its data locally, and prints one JSON line per scenario:
+#   - the adapter and the cache-management kernels (LRU compaction,
+#     request list) beside their CPU twins;
+#   - DVR at 1920x1080 of a 1024^3 Mandelbulb, full view and zoomed in, on
+#     the GPU: warm frame time, cache management per frame, upload GB/s,
+#     time to a complete view from disk (page cache dropped when root) and
+#     from the host cache;
+#   - the same at 512^3 on the CPU and the GPU side by side.
+# Everything runs under timeouts that add up to less than 10 minutes.
+# Usage: bash scripts/gpu-bench.sh [DATA_DIR]   (default /tmp/brickyard-gpu-bench)
+# BIG and SMALL (default 1024 and 512) set the volume edges, e.g. to try the
+# script on a software adapter first.
+set -uo pipefail
+cd "$(dirname "${BASH_SOURCE[0]}")/.."
+BIN=${BRICKYARD_BIN:-dist/brickyard}
+DATA=${1:-/tmp/brickyard-gpu-bench}
+mkdir -p "$DATA"
+[ -x "$BIN" ] || { echo "gpu-bench: $BIN missing: run scripts/pack-gpu-bench.sh where Rust is" >&2; exit 2; }
+
+# The Vulkan loader: the system's, else the packed copy.
+if ! ldconfig -p 2>/dev/null | grep -q 'libvulkan\.so\.1 '; then
+    export LD_LIBRARY_PATH="$PWD/dist/vulkan${LD_LIBRARY_PATH:+:$LD_LIBRARY_PATH}"
+    echo "gpu-bench: using the packed Vulkan loader" >&2
+fi
+# The NVIDIA driver's Vulkan entry: when no ICD manifest names it, point
+# the loader at the driver library directly.
+if ! ls /usr/share/vulkan/icd.d/*nvidia* /etc/vulkan/icd.d/*nvidia* >/dev/null 2>&1; then
+    lib=$(ldconfig -p 2>/dev/null | awk '/libGLX_nvidia\.so\.0 / {print $NF; exit}')
+    if [ -n "$lib" ]; then
+        mkdir -p "$DATA/icd"
+        printf '{"file_format_version":"1.0.0","ICD":{"library_path":"%s","api_version":"1.3.0"}}\n' "$lib" > "$DATA/icd/nvidia_icd.json"
+        export VK_ICD_FILENAMES="$DATA/icd/nvidia_icd.json"
+        echo "gpu-bench: wrote an ICD manifest for $lib" >&2
+    fi
+fi
+BIG=${BIG:-1024}
+SMALL=${SMALL:-512}
+
+step() { # NAME SECONDS ARGS...
+    local name=$1 secs=$2; shift 2
+    local t0=$(date +%s)
+    timeout "$secs" "$BIN" "$@"
+    local rc=$?
+    echo "gpu-bench: $name: exit $rc after $(( $(date +%s) - t0 )) s" >&2
+}
+
+nproc >&2; nvidia-smi --query-gpu=name,memory.total,driver_version --format=csv,noheader 2>/dev/null >&2 || true
+step "cache kernels" 60 bench cache-kernels --repeat 20
+# Data: generated and converted here (kept between runs).
+step "$BIG^3 full view, GPU" 240 bench render --size "$BIG" --dtype u8 --dir "$DATA" --image 1920x1080 --zoom 1 --repeat 20 --backend gpu --no-reference --cold
+step "$BIG^3 zoomed in, GPU" 90 bench render --size "$BIG" --dtype u8 --dir "$DATA" --image 1920x1080 --zoom 4 --repeat 20 --backend gpu --no-reference --cold
+step "$SMALL^3, CPU and GPU" 120 bench render --size "$SMALL" --dtype u8 --dir "$DATA" --image 1920x1080 --zoom 1 --repeat 5 --backend both --no-reference
