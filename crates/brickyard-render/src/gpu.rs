@@ -4,10 +4,11 @@
 //! reports the capped request list, the pool slots it used (so that the
 //! host's LRU keeps them) and its sample counts.
 //!
-//! Empty space: DVR rays cross bricks in one jump where the transfer
-//! function maps the brick to zero opacity, known from the store's value
-//! ranges or from an EMPTY/CONSTANT page entry. Not yet on the device:
-//! skipping inside bricks (cells), MIP skipping, slices, several channels.
+//! Modes: DVR, MIP and slices of one channel. Empty space: DVR rays cross
+//! bricks in one jump where the transfer function maps the brick to zero
+//! opacity, known from the store's value ranges or from an EMPTY/CONSTANT
+//! page entry. Not yet on the device: skipping inside bricks (cells), MIP
+//! skipping, several channels added up.
 
 use crate::cpu::{FrameStats, Lod, Scene};
 use crate::image::Image;
@@ -54,6 +55,8 @@ struct Uniform {
     skip: u32,
     clear_off: u32,
     pad: [u32; 2],
+    plane_origin: [f32; 4],
+    plane_normal: [f32; 4],
     scale: [[f32; 4]; MAX_LEVELS],
     qmax: [[f32; 4]; MAX_LEVELS],
     step: [[f32; 4]; MAX_LEVELS],
@@ -163,10 +166,16 @@ impl GpuRenderer {
         params: &RenderParams,
         lod: Lod,
     ) -> Result<GpuFrame, GpuError> {
-        let mode = match params.mode {
-            RenderMode::Dvr => 0,
-            RenderMode::Mip => 1,
-            RenderMode::Slice { .. } => unimplemented!("slices are rendered on the CPU for now"),
+        assert!(
+            params.channels.is_empty(),
+            "several channels are rendered on the CPU for now"
+        );
+        let (mode, plane) = match params.mode {
+            RenderMode::Dvr => (0, ([0.0; 3], [0.0; 3])),
+            RenderMode::Mip => (1, ([0.0; 3], [0.0; 3])),
+            RenderMode::Slice { origin, normal } => {
+                (2, (origin, brickyard_core::camera::normalize(normal)))
+            }
         };
         let nl = scene.levels.len();
         assert!(
@@ -290,6 +299,8 @@ impl GpuRenderer {
         }
         let (_, aux, off) = self.aux.as_ref().expect("made above");
         u.skip = (mode == 0) as u32;
+        u.plane_origin = f4(plane.0);
+        u.plane_normal = f4(plane.1);
         u.clear_off = *off;
         let uniform = gpu.uniform_buffer("render", &u);
         let image = gpu.storage_buffer_zeroed("image", w as u64 * h as u64 * 16);

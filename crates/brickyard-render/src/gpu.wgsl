@@ -11,7 +11,7 @@
 struct Render {
     width: u32,
     height: u32,
-    // 0: DVR, 1: MIP.
+    // 0: DVR, 1: MIP, 2: slice.
     mode: u32,
     levels: u32,
     eye: vec4<f32>,
@@ -43,6 +43,9 @@ struct Render {
     clear_off: u32,
     pad1: u32,
     pad2: u32,
+    // Slice: a point of the plane and its unit normal (x, y, z).
+    plane_origin: vec4<f32>,
+    plane_normal: vec4<f32>,
     // Per level: voxels per world unit (z, y, x); w unused.
     scale: array<vec4<f32>, 16>,
     // Per level: last voxel index (z, y, x) as floats.
@@ -366,6 +369,38 @@ fn correct_opacity(a: f32, e: f32) -> f32 {
     return 1.0 - pow(1.0 - a, e);
 }
 
+// A slice: the plane as the camera sees it, sampled where the pixel's ray
+// meets it inside the closed world box, opaque there (as on the CPU).
+fn slice_pixel(ray: Ray) -> vec4<f32> {
+    let n = R.plane_normal.xyz;
+    let denom = dot(ray.d, n);
+    if (denom == 0.0) {
+        return vec4<f32>(0.0);
+    }
+    let t = dot(R.plane_origin.xyz - ray.o, n) / denom;
+    if (is_nan(t) || t < 0.0) {
+        return vec4<f32>(0.0);
+    }
+    let w = ray.o + ray.d * t;
+    if (any(w < vec3<f32>(0.0)) || any(w > R.extent.xyz)) {
+        return vec4<f32>(0.0);
+    }
+    let level = level_at(t);
+    let s = sample_at(w, level);
+    atomicAdd(&counters[0], 1u);
+    if (s.y == 2.0) {
+        atomicAdd(&counters[1], 1u);
+    }
+    if (s.y == 0.0) {
+        atomicAdd(&counters[2], 1u);
+        return vec4<f32>(0.0);
+    }
+    if (is_nan(s.x)) {
+        return vec4<f32>(0.0);
+    }
+    return vec4<f32>(color_at(windowed(s.x)), 1.0);
+}
+
 @compute @workgroup_size(8, 8)
 fn render(@builtin(global_invocation_id) g: vec3<u32>) {
     if (g.x >= R.width || g.y >= R.height) {
@@ -376,6 +411,11 @@ fn render(@builtin(global_invocation_id) g: vec3<u32>) {
     miss_id = AUTO;
     miss_n = 0u;
     let ray = pixel_ray(g.x, g.y);
+    if (R.mode == 2u) {
+        image[g.y * R.width + g.x] = slice_pixel(ray);
+        flush_misses();
+        return;
+    }
     let span = intersect(ray);
     var acc = vec4<f32>(0.0);
     var samples = 0u;

@@ -4,7 +4,7 @@
 //! - [`reference`](mod@reference): the in-core reference renderer (whole level in RAM,
 //!   plain trilinear) — the oracle for every out-of-core image.
 //! - [`cpu`]: ray-guided DVR, MIP and slices through the virtual memory.
-//! - [`gpu`]: DVR and MIP on the device (WGSL), the twin of `cpu`.
+//! - [`gpu`]: DVR, MIP and slices on the device (WGSL), the twin of `cpu`.
 //!
 //! Cameras and transfer functions live in `brickyard_core::{camera,
 //! transfer}`. **World coordinates are `[x, y, z]`**; volumes, spacing and

@@ -183,6 +183,23 @@ fn gpu_mip_converges_to_the_reference() {
 }
 
 #[test]
+fn gpu_oblique_slice_converges_to_the_reference() {
+    let dims = [64, 80, 96];
+    let extent = [96.0, 80.0, 64.0];
+    case(
+        &Procedural::new(Kind::Mandelbulb, dims, DType::U16),
+        [0.0, 65535.0],
+        RenderMode::Slice {
+            origin: [extent[0] / 2.0, extent[1] / 2.0, extent[2] * 0.4],
+            normal: [0.02, 0.01, 1.0],
+        },
+        Lod::Fixed(0),
+        0.5,
+        80,
+    );
+}
+
+#[test]
 fn gpu_automatic_lod_equals_the_cpu_renderer() {
     // A small image: one pixel covers several voxels, coarser levels serve.
     case(

@@ -8,7 +8,7 @@ use brickyard_gpu::vm::DeviceVm;
 use brickyard_gpu::{AdapterChoice, Gpu};
 use brickyard_render::cpu::{render_frame, FrameStats, Lod, Scene};
 use brickyard_render::gpu::GpuRenderer;
-use brickyard_render::reference::{RenderMode, RenderParams};
+use brickyard_render::reference::RenderParams;
 use brickyard_render::Image;
 
 /// One frame, whoever drew it.
@@ -44,22 +44,17 @@ pub enum Backend {
 }
 
 impl Backend {
-    /// The back end `choice` names for rendering `mode` (with `channels`
-    /// added up) from session `s`. `auto` takes a hardware adapter when
-    /// there is one and the mode runs on the device, the CPU otherwise (a
-    /// software adapter is slower than the CPU renderer).
-    pub fn choose(
-        choice: &str,
-        s: &mut Session,
-        mode: &RenderMode,
-        channels: usize,
-    ) -> Result<Backend> {
-        let device_mode = matches!(mode, RenderMode::Dvr | RenderMode::Mip) && channels <= 1;
+    /// The back end `choice` names for rendering `channels` channels (added
+    /// up when several) from session `s`. `auto` takes a hardware adapter when
+    /// there is one and the view runs on the device (one channel), the CPU
+    /// otherwise (a software adapter is slower than the CPU renderer).
+    pub fn choose(choice: &str, s: &mut Session, channels: usize) -> Result<Backend> {
+        let device_mode = channels <= 1;
         let gpu = match choice {
             "cpu" => return Ok(Backend::Cpu),
             "gpu" => {
                 if !device_mode {
-                    bail!("--backend gpu: slices and several channels are rendered on the CPU for now (use --backend cpu or auto)");
+                    bail!("--backend gpu: several channels added up are rendered on the CPU for now (use --backend cpu or auto)");
                 }
                 Gpu::new(AdapterChoice::Best).context("--backend gpu")?
             }

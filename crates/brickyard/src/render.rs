@@ -301,7 +301,7 @@ pub fn run(c: RenderCmd) -> Result<()> {
     } else {
         styles.len()
     };
-    let mut backend = crate::backend::Backend::choose(&c.backend, &mut s, &mode, shown)?;
+    let mut backend = crate::backend::Backend::choose(&c.backend, &mut s, shown)?;
     if !c.json {
         println!("rendering on {}", backend.describe());
     }
