@@ -1,4 +1,4 @@
-//! Ray-guided DVR and MIP on the device (`gpu.wgsl`), through the device's
+//! Ray-guided DVR, MIP and slices on the device (`gpu.wgsl`), through the device's
 //! copy of the virtual memory ([`brickyard_gpu::vm::DeviceVm`]): the twin
 //! of [`crate::cpu`]. One invocation per pixel; per frame the device
 //! reports the capped request list, the pool slots it used (so that the
