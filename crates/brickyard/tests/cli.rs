@@ -251,10 +251,9 @@ extern "C" {
     fn libc_kill(pid: i32, sig: i32) -> i32;
 }
 
-#[test]
-fn render_writes_pngs_and_rejects_bad_options() {
-    let d = tempfile::tempdir().unwrap();
-    let store = d.path().join("r.ome.zarr");
+/// A 48³ Mandelbulb store (16³ bricks, 32³ shards) `name` in `dir`.
+fn mandelbulb_48(dir: &Path, name: &str) -> std::path::PathBuf {
+    let store = dir.join(name);
     let o = run(&[
         "generate",
         "mandelbulb",
@@ -268,6 +267,13 @@ fn render_writes_pngs_and_rejects_bad_options() {
         "32",
     ]);
     assert!(o.status.success(), "{}", stderr(&o));
+    store
+}
+
+#[test]
+fn render_writes_pngs_and_rejects_bad_options() {
+    let d = tempfile::tempdir().unwrap();
+    let store = mandelbulb_48(d.path(), "r.ome.zarr");
     for mode in ["dvr", "mip", "slice"] {
         let png = d.path().join(format!("{mode}.png"));
         let cam = d.path().join(format!("{mode}.json"));
@@ -343,20 +349,7 @@ fn gpu_and_cpu_backends_draw_the_same_pngs() {
         return; // BRICKYARD_SKIP_GPU=1
     }
     let d = tempfile::tempdir().unwrap();
-    let store = d.path().join("b.ome.zarr");
-    let o = run(&[
-        "generate",
-        "mandelbulb",
-        s(&store),
-        "--size",
-        "48",
-        "--quiet",
-        "--brick",
-        "16",
-        "--shard",
-        "32",
-    ]);
-    assert!(o.status.success(), "{}", stderr(&o));
+    let store = mandelbulb_48(d.path(), "b.ome.zarr");
     for mode in ["dvr", "mip", "slice"] {
         let mut pixels = vec![];
         for backend in ["cpu", "gpu"] {
