@@ -342,12 +342,14 @@ pub fn run(c: RenderCmd) -> Result<()> {
                 );
             } else {
                 println!(
-                    "view {v} frame {frame:4}: {:6.2}% complete, {:8.1} ms, {:4} requests, {:4} bricks in, {} read so far",
+                    "view {v} frame {frame:4}: {:6.2}% complete, {:8.1} ms, {:4} requests, {:4} bricks in, {} read so far, {} up, {} down",
                     100.0 * st.completeness(),
                     ms,
                     fs.frame.requests.len(),
                     fs.insert.inserted + fs.insert.flagged,
-                    human_bytes(read)
+                    human_bytes(read),
+                    human_bytes(f.up),
+                    human_bytes(f.down)
                 );
             }
             last = Some(img);
