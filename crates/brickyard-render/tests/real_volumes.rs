@@ -1,13 +1,16 @@
 //! Out-of-core rendering under realistic conditions: a slow store (every
 //! read delayed) never stalls the frame loop, a paused loader leaves frames
 //! coming and unchanged, and real scans (NIfTI, TIFF) rendered through a
-//! pool far smaller than the volume equal the in-core reference.
+//! pool far smaller than the volume equal the in-core reference, on the CPU
+//! and on the device.
 
 use brickyard_cache::session::Session;
 use brickyard_cache::vm::VmConfig;
 use brickyard_core::camera::{world_extent, Camera, Projection};
 use brickyard_core::{DType, TransferFunction};
+use brickyard_gpu::vm::DeviceVm;
 use brickyard_render::cpu::{render_frame, Lod, Scene};
+use brickyard_render::gpu::GpuRenderer;
 use brickyard_render::image::Image;
 use brickyard_render::reference::{render, RenderMode, RenderParams, Volume};
 use brickyard_store::builder::{convert, ConvertOptions, NoProgress};
@@ -253,7 +256,8 @@ fn shared_data(name: &str) -> PathBuf {
 
 /// Convert `input` and render DVR and MIP at level 1 and an oblique slice
 /// at level 0 through pools of `pools.0` / `pools.1` of the volume's bytes;
-/// each must equal the reference within 1e-5.
+/// each must equal the reference within 1e-5 on the CPU and 1e-4 on the
+/// device (f32 positions).
 ///
 /// A slice at level 0 needs its whole layer of level-0 bricks at once; the
 /// coarser bricks standing in while they load give way to them when the
@@ -293,6 +297,7 @@ fn real_volume_equals_the_reference(
     let vol_bytes = dims.iter().product::<u64>() * dtype.size() as u64;
     let (lo, hi) = levels[0].min_max();
     let t_convert = t0.elapsed();
+    let gpu = brickyard_gpu::context::test_gpu();
     let slice = RenderMode::Slice {
         origin: [extent[0] * 0.45, extent[1] * 0.55, extent[2] * 0.5],
         normal: [0.25, -0.2, 1.0],
@@ -334,6 +339,39 @@ fn real_volume_equals_the_reference(
         );
         assert!(img.coverage(0.01) > 0.1, "{mode:?}: image nearly empty");
         s.vm().check_invariants().unwrap();
+        if let Some(gpu) = &gpu {
+            // The same view on the device, through a new pool of the same size.
+            let mut s = session(&store, dtype, (vol_bytes as f64 * frac) as u64, 256, 256);
+            let (mut dvm, _) = DeviceVm::new(gpu, s.vm_mut()).unwrap();
+            let mut r = GpuRenderer::new(gpu);
+            let start = Instant::now();
+            let img = loop {
+                s.begin_frame();
+                let f = r
+                    .render(gpu, &dvm, s.vm(), &scene, &p, Lod::Fixed(level))
+                    .unwrap();
+                s.finish_frame([&f.requests]);
+                dvm.sync(gpu, s.vm_mut());
+                if f.stats.completeness() == 1.0 {
+                    break f.image;
+                }
+                assert!(
+                    start.elapsed() < Duration::from_secs(60),
+                    "{mode:?}: device view incomplete"
+                );
+            };
+            let diff = img.max_abs_diff(&want);
+            eprintln!(
+                "{}: {mode:?} level {level} on the device: max abs diff {diff}",
+                input.display()
+            );
+            assert!(
+                diff <= 1e-4,
+                "{}: {mode:?} level {level} on the device: max abs diff {diff}",
+                input.display()
+            );
+            s.vm().check_invariants().unwrap();
+        }
         eprintln!(
             "{}: {mode:?} level {level}: {frames} frames, {} of {} slots resident, {:?}",
             input.display(),
