@@ -99,6 +99,9 @@ pub struct DeviceVm {
     pub pool: DevicePool,
     entries: wgpu::Buffer,
     n_entries: u32,
+    /// Bound where a pass reads nothing (updates, queries, results): two,
+    /// as one buffer cannot be bound read-only and writable at once.
+    unused: [wgpu::Buffer; 2],
 }
 
 fn v4(d: [u64; 3]) -> [u32; 4] {
@@ -194,6 +197,7 @@ impl DeviceVm {
             pool,
             entries,
             n_entries: words.len() as u32,
+            unused: [0, 1].map(|_| gpu.storage_buffer_zeroed("unused", 64)),
         };
         let report = SyncReport {
             entries: words.len(),
@@ -258,9 +262,8 @@ impl DeviceVm {
                 .collect();
             bytes += ups.len() as u64 * 16;
             let buf = gpu.storage_buffer("entry updates", &ups);
-            let none = gpu.storage_buffer_zeroed("none", 64);
-            let none2 = gpu.storage_buffer_zeroed("none", 64);
-            let bind = self.bind(gpu, ups.len(), &buf, &none, &none2);
+            let [queries, results] = &self.unused;
+            let bind = self.bind(gpu, ups.len(), &buf, queries, results);
             let mut enc = gpu.device.create_command_encoder(&Default::default());
             let groups = (ups.len() as u32).div_ceil(64);
             self.kernel
@@ -280,8 +283,7 @@ impl DeviceVm {
         }
         let q = gpu.storage_buffer("queries", queries);
         let r = gpu.storage_buffer_zeroed("results", queries.len() as u64 * 16);
-        let none = gpu.storage_buffer_zeroed("none", 64);
-        let bind = self.bind(gpu, queries.len(), &none, &q, &r);
+        let bind = self.bind(gpu, queries.len(), &self.unused[0], &q, &r);
         let mut enc = gpu.device.create_command_encoder(&Default::default());
         let groups = (queries.len() as u32).div_ceil(64);
         self.kernel.dispatch(&mut enc, entry, &bind, [groups, 1, 1]);

@@ -90,8 +90,15 @@ pub struct GpuRenderer {
     /// off for benchmarks and for views that present it on the device).
     pub read_image: bool,
     kernel: Kernel,
+    /// Per pool slot: frame stamps; with the slot count they were made for.
     stamps: Option<(u32, wgpu::Buffer)>,
-    table: Option<RequestTableGpu>,
+    /// The counters and used-slot list (sized by the slot count), and the
+    /// image (sized by width × height): kept between frames.
+    counters: Option<(u32, wgpu::Buffer)>,
+    image: Option<((u32, u32), wgpu::Buffer)>,
+    /// The request table and the first brick id of each level it was made
+    /// for.
+    table: Option<(Vec<u32>, RequestTableGpu)>,
     /// The transfer function and transparent-brick bits (`gpu.wgsl`'s
     /// `aux`) and where the bits start; rebuilt only when what they were
     /// made for changes.
@@ -149,6 +156,8 @@ impl GpuRenderer {
             read_image: true,
             kernel,
             stamps: None,
+            counters: None,
+            image: None,
             table: None,
             aux: None,
         }
@@ -193,19 +202,36 @@ impl GpuRenderer {
             limit: u32::MAX as u64 - 1,
         })?;
         let buckets = vm.config().request_cap * 8;
-        if self.table.as_ref().is_none_or(|t| t.buckets() < buckets) {
-            self.table = Some(RequestTableGpu::new(gpu, &ids, buckets));
+        let starts = ids.level_starts();
+        if self
+            .table
+            .as_ref()
+            .is_none_or(|(s, t)| *s != starts || t.buckets() < buckets)
+        {
+            self.table = Some((starts.clone(), RequestTableGpu::new(gpu, &ids, buckets)));
         }
-        let table = self.table.as_mut().expect("made above");
+        let table = &mut self.table.as_mut().expect("made above").1;
         table.clear(gpu);
         let slots = dvm.pool.slots();
+        let used_cap = 2 * slots;
         if self.stamps.as_ref().is_none_or(|(n, _)| *n != slots) {
             let b = gpu.storage_buffer_zeroed("slot stamps", slots as u64 * 8);
             self.stamps = Some((slots, b));
+            let c = gpu.storage_buffer_zeroed("counters", (8 + used_cap as u64) * 4);
+            self.counters = Some((slots, c));
         }
         let stamps = &self.stamps.as_ref().expect("made above").1;
-
+        let counters = &self.counters.as_ref().expect("made with the stamps").1;
+        // The counters start at 0; the used list is written up to its count.
+        gpu.queue.write_buffer(counters, 0, &[0; 32]);
         let (w, h) = (params.width, params.height);
+        if self.image.as_ref().is_none_or(|(d, _)| *d != (w, h)) {
+            // Every invocation writes its pixel: no clearing between frames.
+            let b = gpu.storage_buffer_zeroed("image", w as u64 * h as u64 * 16);
+            self.image = Some(((w, h), b));
+        }
+        let image = &self.image.as_ref().expect("made above").1;
+
         let cam = &params.camera;
         let basis = cam.basis();
         let f4 = |v: [f64; 3]| [v[0] as f32, v[1] as f32, v[2] as f32, 0.0];
@@ -215,7 +241,6 @@ impl GpuRenderer {
         };
         let tf = &params.tf;
         let reference = params.reference_step.unwrap_or(scene.voxel(0));
-        let used_cap = 2 * slots;
         let mut u = Uniform {
             width: w,
             height: h,
@@ -250,7 +275,6 @@ impl GpuRenderer {
             used_cap,
             ..bytemuck::Zeroable::zeroed()
         };
-        let starts = ids.level_starts();
         for (l, d) in scene.levels.iter().enumerate() {
             let ext = [scene.extent[2], scene.extent[1], scene.extent[0]];
             u.scale[l] = [0, 1, 2, 3].map(|a| {
@@ -303,8 +327,6 @@ impl GpuRenderer {
         u.plane_normal = f4(plane.1);
         u.clear_off = *off;
         let uniform = gpu.uniform_buffer("render", &u);
-        let image = gpu.storage_buffer_zeroed("image", w as u64 * h as u64 * 16);
-        let counters = gpu.storage_buffer_zeroed("counters", (8 + used_cap as u64) * 4);
         let res = dvm.resources(gpu, 0);
         let [keys, counts, dropped] = table.buffers();
         let bind = self.kernel.bind_resources(
@@ -328,9 +350,9 @@ impl GpuRenderer {
             .dispatch(&mut enc, "render", &bind, [w.div_ceil(8), h.div_ceil(8), 1]);
         gpu.queue.submit([enc.finish()]);
 
-        let head = gpu.read_u32("frame counters", &counters, 8)?;
+        let head = gpu.read_u32("frame counters", counters, 8)?;
         let used_n = head[4].min(used_cap) as usize;
-        let used = gpu.read_back("used slots", &counters, (8 + used_n as u64) * 4)?;
+        let used = gpu.read_back("used slots", counters, (8 + used_n as u64) * 4)?;
         let used: Vec<u32> = bytemuck::pod_collect_to_vec(&used[32..]);
         for &s in &used {
             vm.mark_used(s & !EXACT_BIT, s & EXACT_BIT != 0);
@@ -341,7 +363,7 @@ impl GpuRenderer {
             requests.add(ids.key(id), n);
         }
         let img = if self.read_image {
-            let pixels = gpu.read_back("image", &image, w as u64 * h as u64 * 16)?;
+            let pixels = gpu.read_back("image", image, w as u64 * h as u64 * 16)?;
             let mut img = Image::new(w, h);
             img.rgba = bytemuck::pod_collect_to_vec(&pixels);
             img
