@@ -468,35 +468,41 @@ pub fn slice_point(ray: &Ray, origin: Vec3, normal: Vec3, extent: Vec3) -> Optio
     Some((w, t))
 }
 
-/// Render `volume` with `params` (rows in parallel). Panics if
-/// `params.validate()` fails.
-pub fn render(volume: &Volume, params: &RenderParams) -> Image {
+/// An image of `params`' size whose pixel `(i, j)` is `pixel(ray)` for the
+/// camera's ray through it (rows in parallel). Panics if `params.validate()`
+/// fails.
+fn per_pixel(params: &RenderParams, pixel: impl Fn(&Ray) -> [f32; 4] + Sync) -> Image {
     if let Err(e) = params.validate() {
         panic!("invalid render parameters: {e}");
     }
     let (w, h) = (params.width, params.height);
     let mut img = Image::new(w, h);
     let rg = params.camera.ray_gen(w, h);
-    let extent = volume.extent();
-    let voxel = volume.voxel_size();
-    let dt = voxel / params.samples_per_voxel;
-    let exponent = (dt / params.reference_step.unwrap_or(voxel)) as f32;
     img.rgba
         .par_chunks_mut(w as usize)
         .enumerate()
         .for_each(|(j, row)| {
             for (i, px) in row.iter_mut().enumerate() {
-                let ray = rg.pixel_ray(i as u32, j as u32);
-                *px = match &params.mode {
-                    RenderMode::Dvr => dvr_ray(volume, &params.tf, &ray, extent, dt, exponent),
-                    RenderMode::Mip => mip_ray(volume, &params.tf, &ray, extent, dt),
-                    RenderMode::Slice { origin, normal } => {
-                        slice_ray(volume, &params.tf, &ray, extent, *origin, *normal)
-                    }
-                };
+                *px = pixel(&rg.pixel_ray(i as u32, j as u32));
             }
         });
     img
+}
+
+/// Render `volume` with `params` (rows in parallel). Panics if
+/// `params.validate()` fails.
+pub fn render(volume: &Volume, params: &RenderParams) -> Image {
+    let extent = volume.extent();
+    let voxel = volume.voxel_size();
+    let dt = voxel / params.samples_per_voxel;
+    let exponent = (dt / params.reference_step.unwrap_or(voxel)) as f32;
+    per_pixel(params, |ray| match &params.mode {
+        RenderMode::Dvr => dvr_ray(volume, &params.tf, ray, extent, dt, exponent),
+        RenderMode::Mip => mip_ray(volume, &params.tf, ray, extent, dt),
+        RenderMode::Slice { origin, normal } => {
+            slice_ray(volume, &params.tf, ray, extent, *origin, *normal)
+        }
+    })
 }
 
 /// Render several channels additively (`params.channels`, slice or MIP):
@@ -504,9 +510,6 @@ pub fn render(volume: &Volume, params: &RenderParams) -> Image {
 /// of one size). Panics if the parameters are invalid, no channel is given
 /// or the volumes do not match them.
 pub fn render_channels(volumes: &[Volume], params: &RenderParams) -> Image {
-    if let Err(e) = params.validate() {
-        panic!("invalid render parameters: {e}");
-    }
     assert!(!params.channels.is_empty(), "no channels to render");
     assert_eq!(
         volumes.len(),
@@ -514,43 +517,26 @@ pub fn render_channels(volumes: &[Volume], params: &RenderParams) -> Image {
         "one volume per channel"
     );
     assert!(volumes.iter().all(|v| v.dims == volumes[0].dims));
-    let (w, h) = (params.width, params.height);
-    let mut img = Image::new(w, h);
-    let rg = params.camera.ray_gen(w, h);
     let v0 = &volumes[0];
     let extent = v0.extent();
     let dt = v0.voxel_size() / params.samples_per_voxel;
     let styles = &params.channels;
-    img.rgba
-        .par_chunks_mut(w as usize)
-        .enumerate()
-        .for_each(|(j, row)| {
-            for (i, px) in row.iter_mut().enumerate() {
-                let ray = rg.pixel_ray(i as u32, j as u32);
-                *px = match &params.mode {
-                    RenderMode::Slice { origin, normal } => {
-                        match slice_point(&ray, *origin, *normal, extent) {
-                            Some((p, _)) => mix_channels(
-                                styles,
-                                volumes.iter().map(|v| v.sample_world(p, extent)),
-                            ),
-                            None => [0.0; 4],
-                        }
-                    }
-                    RenderMode::Mip => match intersect_box(&ray, [0.0; 3], extent) {
-                        Some((t0, t1)) if step_t(t0, 0, dt) < t1 => {
-                            let best = volumes
-                                .iter()
-                                .map(|v| max_along(v, &ray, (t0, t1), extent, dt));
-                            mix_channels(styles, best)
-                        }
-                        _ => [0.0; 4],
-                    },
-                    RenderMode::Dvr => unreachable!("validate rejects multi-channel DVR"),
-                };
+    per_pixel(params, |ray| match &params.mode {
+        RenderMode::Slice { origin, normal } => match slice_point(ray, *origin, *normal, extent) {
+            Some((p, _)) => mix_channels(styles, volumes.iter().map(|v| v.sample_world(p, extent))),
+            None => [0.0; 4],
+        },
+        RenderMode::Mip => match intersect_box(ray, [0.0; 3], extent) {
+            Some((t0, t1)) if step_t(t0, 0, dt) < t1 => {
+                let best = volumes
+                    .iter()
+                    .map(|v| max_along(v, ray, (t0, t1), extent, dt));
+                mix_channels(styles, best)
             }
-        });
-    img
+            _ => [0.0; 4],
+        },
+        RenderMode::Dvr => unreachable!("validate rejects multi-channel DVR"),
+    })
 }
 
 /// DVR with automatic level of detail, written plainly on whole levels in
@@ -560,56 +546,44 @@ pub fn render_channels(volumes: &[Volume], params: &RenderParams) -> Image {
 /// that level changes the step grid restarts at that `t`. The oracle of the
 /// renderers' `Lod::Auto`. Panics if the parameters are invalid.
 pub fn render_auto_lod(levels: &[Volume], params: &RenderParams, bias: f64) -> Image {
-    if let Err(e) = params.validate() {
-        panic!("invalid render parameters: {e}");
-    }
-    let (w, h) = (params.width, params.height);
-    let rg = params.camera.ray_gen(w, h);
     let extent = levels[0].extent();
     let voxel = |l: usize| levels[l].voxel_size();
     let reference = params.reference_step.unwrap_or(voxel(0));
     let level_at = |t: f64| {
-        let l = (params.camera.pixel_footprint(t, h) / voxel(0)).log2() + bias;
+        let l = (params.camera.pixel_footprint(t, params.height) / voxel(0)).log2() + bias;
         if l.is_finite() && l > 0.0 {
             (l.floor() as usize).min(levels.len() - 1)
         } else {
             0
         }
     };
-    let mut img = Image::new(w, h);
-    img.rgba
-        .par_chunks_mut(w as usize)
-        .enumerate()
-        .for_each(|(j, row)| {
-            for (i, px) in row.iter_mut().enumerate() {
-                let ray = rg.pixel_ray(i as u32, j as u32);
-                let mut acc = [0.0f32; 4];
-                if let Some((t0, t1)) = intersect_box(&ray, [0.0; 3], extent) {
-                    let mut level = level_at(t0);
-                    let (mut base, mut k) = (t0, 0u64);
-                    loop {
-                        let dt = voxel(level) / params.samples_per_voxel;
-                        let t = step_t(base, k, dt);
-                        if t >= t1 {
-                            break;
-                        }
-                        k += 1;
-                        let l = level_at(t);
-                        if l != level {
-                            (level, base, k) = (l, t, 0);
-                        }
-                        let dt = voxel(level) / params.samples_per_voxel;
-                        let v = levels[level].sample_world(ray.at(t), extent);
-                        let c = params.tf.lookup(v);
-                        if composite(&mut acc, c, (dt / reference) as f32) {
-                            break;
-                        }
-                    }
-                }
-                *px = acc;
+    per_pixel(params, |ray| {
+        let mut acc = [0.0f32; 4];
+        let Some((t0, t1)) = intersect_box(ray, [0.0; 3], extent) else {
+            return acc;
+        };
+        let mut level = level_at(t0);
+        let (mut base, mut k) = (t0, 0u64);
+        loop {
+            let t = step_t(base, k, voxel(level) / params.samples_per_voxel);
+            if t >= t1 {
+                break;
             }
-        });
-    img
+            k += 1;
+            let l = level_at(t);
+            if l != level {
+                (level, base, k) = (l, t, 0);
+            }
+            let dt = voxel(level) / params.samples_per_voxel;
+            let c = params
+                .tf
+                .lookup(levels[level].sample_world(ray.at(t), extent));
+            if composite(&mut acc, c, (dt / reference) as f32) {
+                break;
+            }
+        }
+        acc
+    })
 }
 
 fn dvr_ray(
