@@ -81,7 +81,7 @@ pub fn run(b: BenchCmd) -> Result<()> {
         "render" => {
             let pool = b.pool.as_deref().map(crate::parse_bytes).transpose()?;
             let o = crate::vmbench::RenderBench {
-                image: parse_image(&b.image)?,
+                image: crate::render::parse_image_size(&b.image, "--image")?,
                 zoom: b.zoom,
                 repeat: b.repeat,
                 cold: b.cold,
@@ -103,24 +103,6 @@ pub fn run(b: BenchCmd) -> Result<()> {
             "scenario: expected convert, downsample, vm-sample, vm-update, cache-kernels, loader, latency or render, found {s:?}"
         ),
     }
-}
-
-/// `N` or `WxH`.
-fn parse_image(s: &str) -> Result<[u32; 2]> {
-    let bad = || anyhow::anyhow!("--image: expected N or WxH (1 to 16384), found {s:?}");
-    let v: Vec<u32> = s
-        .split('x')
-        .map(|p| p.parse::<u32>().map_err(|_| bad()))
-        .collect::<Result<_>>()?;
-    let wh = match v.as_slice() {
-        [n] => [*n, *n],
-        [w, h] => [*w, *h],
-        _ => return Err(bad()),
-    };
-    if wh.iter().any(|&x| x == 0 || x > 16384) {
-        return Err(bad());
-    }
-    Ok(wh)
 }
 
 fn bench_convert(b: &BenchCmd, dims: [u64; 3], dtype: DType) -> Result<()> {

@@ -22,7 +22,7 @@ pub struct RenderCmd {
     /// dvr, mip or slice.
     #[arg(long, default_value = "dvr")]
     mode: String,
-    /// Image size WxH.
+    /// Image size WxH (or N: square).
     #[arg(long, default_value = "512x512")]
     size: String,
     /// Output PNG (a turntable writes NAME-0000.png, NAME-0001.png, ...).
@@ -158,6 +158,24 @@ fn parse_channel(
     })
 }
 
+/// An image size, `N` (square) or `WxH`, each between 1 and 16384.
+pub fn parse_image_size(s: &str, what: &str) -> Result<[u32; 2]> {
+    let bad = || anyhow::anyhow!("{what}: expected N or WxH between 1 and 16384, found {s:?}");
+    let v: Vec<u32> = s
+        .split('x')
+        .map(|p| p.trim().parse::<u32>().map_err(|_| bad()))
+        .collect::<Result<_>>()?;
+    let wh = match v.as_slice() {
+        [n] => [*n, *n],
+        [w, h] => [*w, *h],
+        _ => return Err(bad()),
+    };
+    if wh.iter().any(|&x| x == 0 || x > 16384) {
+        return Err(bad());
+    }
+    Ok(wh)
+}
+
 fn parse_pair(s: &str, what: &str) -> Result<[f64; 2]> {
     let v: Vec<f64> = s
         .split([',', 'x'])
@@ -187,11 +205,7 @@ pub fn run_quiet(mut c: RenderCmd) -> Result<()> {
 }
 
 pub fn run(c: RenderCmd) -> Result<()> {
-    let [w, h] = parse_pair(&c.size, "size")?;
-    let (w, h) = (w as u32, h as u32);
-    if w == 0 || h == 0 || w > 16384 || h > 16384 {
-        bail!("size: expected WxH between 1 and 16384, found {:?}", c.size);
-    }
+    let [w, h] = parse_image_size(&c.size, "size")?;
     let info = inspect(&c.store)?;
     if info.complete == Some(false) {
         bail!(
