@@ -1073,7 +1073,8 @@ impl<'f, 'a, T: Sample> Walker<'f, 'a, T> {
             return acc;
         };
         // Steps keep the reference renderer's positions while the level
-        // stays the same; a level change restarts the grid at the current t.
+        // stays the same; at a level change the sample there becomes step 0
+        // of the new level's grid.
         let mut level = f.level_at(t0);
         let mut next_t = f.next_level_t(level);
         let (mut dt, mut inv_dt, mut exponent) = f.step[level];
@@ -1089,10 +1090,12 @@ impl<'f, 'a, T: Sample> Walker<'f, 'a, T> {
             if t >= next_t {
                 let l = f.level_at(t);
                 if l != level {
+                    // The new level's step grid has this sample as its
+                    // step 0: the next one lies a step of the new level on.
                     level = l;
-                    base_t = t;
-                    k = 0;
                     (dt, inv_dt, exponent) = f.step[level];
+                    base_t = t - 0.5 * dt;
+                    k = 1;
                     track = f.track(level, ray, inv_dir, t1);
                 }
                 next_t = f.next_level_t(level);
@@ -1113,9 +1116,7 @@ impl<'f, 'a, T: Sample> Walker<'f, 'a, T> {
                 k = f.land(ray, &track, g, k, (lo, hi), t1.min(next_t));
                 continue;
             }
-            // (Right after a level change the sample lies at the new grid's
-            // origin, not on a step `k − 1`: the general path takes it.)
-            if let (Content::Data(vox), true) = (c.content, k > 0) {
+            if let Content::Data(vox) = c.content {
                 // Resident at the level asked for: take every step the ray
                 // makes in this brick here.
                 let (lo, hi, clear) = (c.lo, c.hi, c.clear_cells);

@@ -440,10 +440,11 @@ fn render(@builtin(global_invocation_id) g: vec3<u32>) {
             let l = level_at(t);
             // A MIP keeps the level of the ray's entry (as on the CPU).
             if (l != level && R.mode == 0u) {
-                // A level change restarts the step grid here.
+                // A level change: the new level's step grid has this
+                // sample as its step 0 (as on the CPU).
                 level = l;
-                base_t = t;
-                k = 0u;
+                base_t = t - 0.5 * R.step[level].x;
+                k = 1u;
             }
             let w = ray.o + ray.d * t;
             var s: vec2<f32>;

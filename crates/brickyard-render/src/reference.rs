@@ -543,7 +543,9 @@ pub fn render_channels(volumes: &[Volume], params: &RenderParams) -> Image {
 /// memory (`levels[l]`: level `l`, all of one extent): each step `t = base
 /// + (k + ½)·Δ_l` samples level `l`, the level whose voxel matches the pixel
 /// footprint at `t` (`⌊log2(footprint / voxel₀) + bias⌋`, clamped); where
-/// that level changes the step grid restarts at that `t`. The oracle of the
+/// that level changes, the new level's step grid takes that sample as its
+/// step 0 (the next step lies `Δ_new` on: samples stay evenly spaced within
+/// a level). The oracle of the
 /// renderers' `Lod::Auto`. Panics if the parameters are invalid.
 pub fn render_auto_lod(levels: &[Volume], params: &RenderParams, bias: f64) -> Image {
     let extent = levels[0].extent();
@@ -571,10 +573,10 @@ pub fn render_auto_lod(levels: &[Volume], params: &RenderParams, bias: f64) -> I
             }
             k += 1;
             let l = level_at(t);
+            let dt = voxel(l) / params.samples_per_voxel;
             if l != level {
-                (level, base, k) = (l, t, 0);
+                (level, base, k) = (l, t - 0.5 * dt, 1);
             }
-            let dt = voxel(level) / params.samples_per_voxel;
             let c = params
                 .tf
                 .lookup(levels[level].sample_world(ray.at(t), extent));

@@ -529,7 +529,8 @@ fn a_view_that_fits_completes_even_when_its_stand_ins_do_not() {
 
 /// Automatic LOD where the level changes inside the volume along most rays
 /// equals the plain in-core model of it (`render_auto_lod`): the sample at
-/// a level change lies at the new step grid's origin, not on a step of it.
+/// a level change is step 0 of the new level's grid, and the fixed-point
+/// runs must treat it so.
 #[test]
 fn automatic_level_of_detail_across_level_changes_equals_the_plain_model() {
     let dir = tempfile::tempdir().unwrap();
