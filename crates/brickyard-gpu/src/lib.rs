@@ -13,6 +13,9 @@
 //!   sampler.
 //! - [`requests`]: request collection in a bounded table and the capped,
 //!   prioritized request list.
+//! - [`update`]: the update step on the device: slots chosen by the
+//!   device's LRU orders, bricks referenced in parallel (one page-table
+//!   block per region, never two).
 //!
 //! Every kernel is the twin of a CPU function of
 //! [`brickyard_cache::bookkeeping`]; `tests/twins.rs` compares them on
@@ -23,6 +26,7 @@ pub mod kernel;
 pub mod lru;
 pub mod pool;
 pub mod requests;
+pub mod update;
 pub mod vm;
 
 pub use context::{AdapterChoice, Gpu, GpuError};

@@ -13,7 +13,9 @@ struct Params {
     n: u32,
     frame: u32,
     blocks: u32,
-    pad: u32,
+    base: u32,
+    stride: u32,
+    pad: [u32; 3],
 }
 
 /// The compaction kernel (three passes: block scans, scan of the block
@@ -39,6 +41,10 @@ impl LruBuffers {
     /// frame stamps).
     pub fn new(gpu: &Gpu, order: &[u32], usage: &[u32]) -> Result<LruBuffers, GpuError> {
         assert_eq!(order.len(), usage.len(), "one usage stamp per slot");
+        Self::build(gpu, order, Some(usage))
+    }
+
+    fn build(gpu: &Gpu, order: &[u32], usage: Option<&[u32]>) -> Result<LruBuffers, GpuError> {
         let n = order.len() as u32;
         let blocks = n.div_ceil(BLOCK);
         let max = gpu.limits.max_compute_workgroups_per_dimension;
@@ -52,11 +58,20 @@ impl LruBuffers {
         Ok(LruBuffers {
             n,
             order: gpu.storage_buffer("lru order", order),
-            usage: gpu.storage_buffer("lru usage", usage),
+            usage: match usage {
+                Some(u) => gpu.storage_buffer("lru usage", u),
+                None => gpu.storage_buffer_zeroed("lru usage (unused)", 16),
+            },
             prefix: gpu.storage_buffer_zeroed("lru prefix", n as u64 * 4),
             block_sums: gpu.storage_buffer_zeroed("lru block sums", (blocks as u64 + 1) * 4),
             out: gpu.storage_buffer_zeroed("lru out", n as u64 * 4),
         })
+    }
+
+    /// Buffers for `order` whose stamps live elsewhere (see
+    /// [`LruCompaction::record_with`]).
+    pub fn order_only(gpu: &Gpu, order: &[u32]) -> Result<LruBuffers, GpuError> {
+        Self::build(gpu, order, None)
     }
 
     /// The order, read back (for tests and reports).
@@ -83,6 +98,22 @@ impl LruCompaction {
     /// `b.order` holds the slots used in `frame` first, then the others,
     /// each group in its previous order.
     pub fn record(&self, gpu: &Gpu, enc: &mut wgpu::CommandEncoder, b: &LruBuffers, frame: u32) {
+        self.record_with(gpu, enc, b, &b.usage, 0, 1, frame)
+    }
+
+    /// [`record`](Self::record) with the stamps in another buffer: slot
+    /// `i`'s stamp is word `stride · (base + i)` of `usage`.
+    #[allow(clippy::too_many_arguments)]
+    pub fn record_with(
+        &self,
+        gpu: &Gpu,
+        enc: &mut wgpu::CommandEncoder,
+        b: &LruBuffers,
+        usage: &wgpu::Buffer,
+        base: u32,
+        stride: u32,
+        frame: u32,
+    ) {
         if b.n == 0 {
             return;
         }
@@ -93,7 +124,9 @@ impl LruCompaction {
                 n: b.n,
                 frame,
                 blocks,
-                pad: 0,
+                base,
+                stride,
+                pad: [0; 3],
             },
         );
         let bind = self.kernel.bind(
@@ -101,7 +134,7 @@ impl LruCompaction {
             &[
                 &params,
                 &b.order,
-                &b.usage,
+                usage,
                 &b.prefix,
                 &b.block_sums,
                 &b.out,

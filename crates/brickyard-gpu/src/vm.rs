@@ -21,25 +21,29 @@ pub const MAX_NMAX: usize = 7;
 /// The layout uniform (see `vm.wgsl`); vectors are `[z, y, x, _]`.
 #[repr(C)]
 #[derive(Clone, Copy, bytemuck::Pod, bytemuck::Zeroable)]
-struct Layout {
-    levels: u32,
-    nmax: u32,
-    channels: u32,
-    dir_len: u32,
-    apron: u32,
-    scale: f32,
-    count: u32,
-    value_kind: u32,
-    dir_dims: [u32; 4],
-    brick_grid: [u32; 4],
-    dev_grid: [u32; 4],
-    padded: [u32; 4],
-    dims: [[u32; 4]; MAX_LEVELS],
-    dir_base: [[u32; 4]; MAX_LEVELS],
-    span: [[u32; 4]; 8],
-    block: [[u32; 4]; 8],
-    pt_grid: [[u32; 4]; 8],
-    table_off: [[u32; 4]; 8],
+pub(crate) struct Layout {
+    pub(crate) levels: u32,
+    pub(crate) nmax: u32,
+    pub(crate) channels: u32,
+    pub(crate) dir_len: u32,
+    pub(crate) apron: u32,
+    pub(crate) scale: f32,
+    pub(crate) count: u32,
+    pub(crate) value_kind: u32,
+    pub(crate) dir_dims: [u32; 4],
+    pub(crate) brick_grid: [u32; 4],
+    pub(crate) dev_grid: [u32; 4],
+    pub(crate) padded: [u32; 4],
+    pub(crate) dims: [[u32; 4]; MAX_LEVELS],
+    pub(crate) dir_base: [[u32; 4]; MAX_LEVELS],
+    pub(crate) span: [[u32; 4]; 8],
+    pub(crate) block: [[u32; 4]; 8],
+    pub(crate) pt_grid: [[u32; 4]; 8],
+    pub(crate) table_off: [[u32; 4]; 8],
+    /// Per slot set (0: the brick pool, n: the cache of intermediate level
+    /// n): `.x` its first slot in the per-slot arrays of all sets (stamps,
+    /// owners), `.y` its slots.
+    pub(crate) set_base: [[u32; 4]; 8],
 }
 
 /// One query of the walk or the sampler: level, channel, voxel (base)
@@ -170,6 +174,12 @@ impl DeviceVm {
         for (n, &o) in offsets.iter().take(nmax).enumerate() {
             l.table_off[n][0] = o;
         }
+        l.set_base[0] = [0, vm.pool_slots() as u32, 0, 0];
+        for n in 1..nmax {
+            let blocks = (offsets[n + 1] - offsets[n]) / vm.pt_block_len(n) as u32;
+            let prev = l.set_base[n - 1];
+            l.set_base[n] = [prev[0] + prev[1], blocks, 0, 0];
+        }
         let words: Vec<[u32; 2]> = vm
             .tables()
             .iter()
@@ -210,6 +220,31 @@ impl DeviceVm {
     /// Entries in all page tables.
     pub fn entries(&self) -> u32 {
         self.n_entries
+    }
+
+    /// The page tables on the device (`(word, value)` pairs, the tables of
+    /// [`VirtualMemory::tables`] one after the other).
+    pub fn entries_buffer(&self) -> &wgpu::Buffer {
+        &self.entries
+    }
+
+    pub(crate) fn layout(&self) -> &Layout {
+        &self.layout
+    }
+
+    /// Slots of every set together: the brick pool, then the cache of
+    /// each intermediate level (the length of per-slot arrays such as the
+    /// renderer's usage stamps).
+    pub fn all_slots(&self) -> u32 {
+        let n = self.layout.nmax as usize;
+        let last = self.layout.set_base[n - 1];
+        last[0] + last[1]
+    }
+
+    /// The page tables, read back (for tests).
+    pub fn read_entries(&self, gpu: &Gpu) -> Result<Vec<[u32; 2]>, GpuError> {
+        let w = gpu.read_u32("page tables", &self.entries, self.n_entries as usize * 2)?;
+        Ok(w.chunks_exact(2).map(|c| [c[0], c[1]]).collect())
     }
 
     fn bind(

@@ -37,6 +37,10 @@ struct Layout {
     pt_grid: array<vec4<u32>, 8>,
     // .x: first entry of table n (0: the directory).
     table_off: array<vec4<u32>, 8>,
+    // Per slot set (0: the brick pool, n: the cache of intermediate level
+    // n): .x its first slot in the per-slot arrays of all sets (usage
+    // stamps, owners), .y its slots.
+    set_base: array<vec4<u32>, 8>,
 }
 
 @group(0) @binding(0) var<uniform> lay: Layout;
