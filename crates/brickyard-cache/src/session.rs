@@ -83,6 +83,50 @@ impl Session {
         self.vm.begin_frame();
     }
 
+    /// For a device that decides its updates itself (the host's virtual
+    /// memory stays empty): send the device's capped request list (most
+    /// wanted first; the device asks only for bricks it lacks) to the
+    /// loader, cancelling queued requests no longer wanted, and collect
+    /// the bricks that arrived into [`waiting`](Self::waiting) (each key
+    /// once). Returns (delivered, cancelled).
+    pub fn exchange(&mut self, requests: &[BrickKey]) -> (usize, usize) {
+        let n = requests.len() as u32;
+        let wanted: Vec<(BrickKey, u32)> = requests
+            .iter()
+            .enumerate()
+            .map(|(i, k)| (*k, n - i as u32))
+            .collect();
+        let cancelled = self.loader.cancel_except(requests);
+        self.loader.request(&wanted);
+        let arrived = self.loader.poll();
+        let delivered = arrived.len();
+        let have: std::collections::HashSet<BrickKey> =
+            self.waiting.iter().map(|b| b.key).collect();
+        self.waiting
+            .extend(arrived.into_iter().filter(|b| !have.contains(&b.key)));
+        // Do not hoard (see `finish_frame`).
+        let keep = self.vm.config().request_cap * 2;
+        while self.waiting.len() > keep {
+            self.waiting.pop_back();
+        }
+        (delivered, cancelled)
+    }
+
+    /// Bricks that arrived and wait to be handed to a device, oldest first.
+    pub fn waiting(&self) -> &VecDeque<Arc<LoadedBrick>> {
+        &self.waiting
+    }
+
+    /// Drop the waiting bricks for which `done` is true (handed over).
+    pub fn hand_over(&mut self, done: &[bool]) {
+        let mut i = 0;
+        self.waiting.retain(|_| {
+            let keep = !done.get(i).copied().unwrap_or(false);
+            i += 1;
+            keep
+        });
+    }
+
     /// End a frame: requests out, arrived bricks in.
     pub fn finish_frame<'a>(
         &mut self,

@@ -15,7 +15,8 @@ struct Params {
     blocks: u32,
     base: u32,
     stride: u32,
-    pad: [u32; 3],
+    word: u32,
+    pad: [u32; 2],
 }
 
 /// The compaction kernel (three passes: block scans, scan of the block
@@ -98,22 +99,22 @@ impl LruCompaction {
     /// `b.order` holds the slots used in `frame` first, then the others,
     /// each group in its previous order.
     pub fn record(&self, gpu: &Gpu, enc: &mut wgpu::CommandEncoder, b: &LruBuffers, frame: u32) {
-        self.record_with(gpu, enc, b, &b.usage, 0, 1, frame)
+        self.record_with(gpu, enc, b, &b.usage, [0, 1, 0], frame)
     }
 
     /// [`record`](Self::record) with the stamps in another buffer: slot
-    /// `i`'s stamp is word `stride · (base + i)` of `usage`.
-    #[allow(clippy::too_many_arguments)]
+    /// `i`'s stamp is word `stride · (base + i) + word` of `usage`, where
+    /// `at = [base, stride, word]`.
     pub fn record_with(
         &self,
         gpu: &Gpu,
         enc: &mut wgpu::CommandEncoder,
         b: &LruBuffers,
         usage: &wgpu::Buffer,
-        base: u32,
-        stride: u32,
+        at: [u32; 3],
         frame: u32,
     ) {
+        let [base, stride, word] = at;
         if b.n == 0 {
             return;
         }
@@ -126,19 +127,13 @@ impl LruCompaction {
                 blocks,
                 base,
                 stride,
-                pad: [0; 3],
+                word,
+                pad: [0; 2],
             },
         );
         let bind = self.kernel.bind(
             gpu,
-            &[
-                &params,
-                &b.order,
-                usage,
-                &b.prefix,
-                &b.block_sums,
-                &b.out,
-            ],
+            &[&params, &b.order, usage, &b.prefix, &b.block_sums, &b.out],
         );
         self.kernel
             .dispatch(enc, "scan_blocks", &bind, [blocks, 1, 1]);

@@ -118,6 +118,15 @@ struct Params {
     h: u32,
 }
 
+/// Which of a slot's two stamps orders its set: for the pool, the frame
+/// it was last used at its own level, so a brick that only stood in for
+/// finer, missing data ages and gives way to that data when the pool is
+/// full (a view whose finest bricks fit the pool completes); for
+/// page-table blocks, the frame last passed through.
+fn stamp_word(set: usize) -> u32 {
+    u32::from(set == 0)
+}
+
 /// Per-slot owners from the current page tables (entries mapping a slot).
 fn owners_of(lay: &Layout, entries: &[[u32; 2]]) -> Vec<u32> {
     let nmax = lay.nmax as usize;
@@ -210,16 +219,21 @@ impl UpdateModel {
 
     fn compact(&mut self, set: usize, frame: u32) {
         let base = self.lay.set_base[set][0];
+        let w = stamp_word(set) as usize;
         let stamps = &self.stamps;
         self.order[set] = compact_lru(&self.order[set], |s| {
-            stamps[2 * (base + s) as usize] == frame
+            stamps[2 * (base + s) as usize + w] == frame
         });
     }
 
-    /// What the renderer does for a slot it used: stamp it.
-    pub fn stamp(&mut self, set: usize, slot: u32, frame: u32) {
+    /// What the renderer does for a slot it used: stamp it (`exact`: a
+    /// pool slot used at its own level).
+    pub fn stamp(&mut self, set: usize, slot: u32, frame: u32, exact: bool) {
         let i = 2 * (self.lay.set_base[set][0] + slot) as usize;
         self.stamps[i] = frame;
+        if exact && set == 0 {
+            self.stamps[i + 1] = frame;
+        }
     }
 
     /// Compact every set, then reserve `k` pool slots (NONE where none).
@@ -234,7 +248,7 @@ impl UpdateModel {
                     return NONE;
                 }
                 let s = self.order[0][cnt - 1 - i];
-                if self.stamps[2 * s as usize] == frame {
+                if self.stamps[2 * s as usize + 1] == frame {
                     return NONE;
                 }
                 let o = self.owner[s as usize];
@@ -459,7 +473,9 @@ impl UpdateModel {
                 }
                 let s = slot_id(e, g);
                 if s >= lay.set_base[set][1] {
-                    return Err(format!("entry {i} maps slot {s} of set {set}, past its end"));
+                    return Err(format!(
+                        "entry {i} maps slot {s} of set {set}, past its end"
+                    ));
                 }
                 let gs = lay.set_base[set][0] + s;
                 if let Some(prev) = mapped_by.insert(gs, i as u32) {
@@ -477,6 +493,14 @@ impl UpdateModel {
         }
         Ok(())
     }
+}
+
+/// What [`DeviceCache::read_state`] returns: two stamps per slot of every
+/// set, owners, and each set's LRU order.
+pub struct CacheState {
+    pub stamps: Vec<u32>,
+    pub owner: Vec<u32>,
+    pub orders: Vec<Vec<u32>>,
 }
 
 /// The device's update step (see the module text).
@@ -594,8 +618,14 @@ impl DeviceCache {
         let mut enc = gpu.device.create_command_encoder(&Default::default());
         for set in 0..self.sets {
             let base = dvm.layout().set_base[set][0];
-            self.lru
-                .record_with(gpu, &mut enc, &self.orders[set], &self.stamps, base, 2, frame);
+            self.lru.record_with(
+                gpu,
+                &mut enc,
+                &self.orders[set],
+                &self.stamps,
+                [base, 2, stamp_word(set)],
+                frame,
+            );
         }
         if k > 0 {
             let params = Params {
@@ -646,8 +676,14 @@ impl DeviceCache {
             let bind = self.bind(gpu, dvm, p(n as u32), &self.orders[n].order);
             self.kernel.dispatch(&mut enc, "path", &bind, groups);
             let base = dvm.layout().set_base[n][0];
-            self.lru
-                .record_with(gpu, &mut enc, &self.orders[n], &self.stamps, base, 2, frame);
+            self.lru.record_with(
+                gpu,
+                &mut enc,
+                &self.orders[n],
+                &self.stamps,
+                [base, 2, 0],
+                frame,
+            );
             enc.clear_buffer(&self.claims, 0, Some(h as u64 * 8));
             self.kernel.dispatch(&mut enc, "claim", &bind, groups);
             self.kernel.dispatch(&mut enc, "assign", &bind, [1, 1, 1]);
@@ -659,8 +695,8 @@ impl DeviceCache {
         k as u64 * 48
     }
 
-    /// The device's state, read back (for tests): stamps, owners, orders.
-    pub fn read_state(&self, gpu: &Gpu) -> Result<(Vec<u32>, Vec<u32>, Vec<Vec<u32>>), GpuError> {
+    /// The device's state, read back (for tests).
+    pub fn read_state(&self, gpu: &Gpu) -> Result<CacheState, GpuError> {
         let n = self.owner.size() as usize / 4;
         let stamps = gpu.read_u32("stamps", &self.stamps, 2 * n)?;
         let owner = gpu.read_u32("owners", &self.owner, n)?;
@@ -669,6 +705,10 @@ impl DeviceCache {
             .iter()
             .map(|o| o.read_order(gpu))
             .collect::<Result<Vec<_>, _>>()?;
-        Ok((stamps, owner, orders))
+        Ok(CacheState {
+            stamps,
+            owner,
+            orders,
+        })
     }
 }

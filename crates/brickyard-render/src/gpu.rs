@@ -14,13 +14,18 @@ use crate::cpu::{FrameStats, Lod, Scene};
 use crate::image::Image;
 use crate::reference::{RenderMode, RenderParams};
 use brickyard_cache::bookkeeping::BrickIds;
+use brickyard_cache::brick::BrickContent;
+use brickyard_cache::brick::BrickKey;
 use brickyard_cache::ranges::BrickRanges;
+use brickyard_cache::session::Session;
 use brickyard_cache::vm::{Requests, VirtualMemory};
 use brickyard_core::camera::Projection;
+use brickyard_core::vm::PageEntry;
 use brickyard_core::TransferFunction;
 use brickyard_gpu::context::{Gpu, GpuError};
 use brickyard_gpu::kernel::{Binding, Kernel};
 use brickyard_gpu::requests::{RequestTableGpu, REQUEST_INSERT_WGSL};
+use brickyard_gpu::update::{DeviceCache, Item, UpdateCounts, NONE};
 use brickyard_gpu::vm::{with_vm_common, DeviceVm, MAX_LEVELS};
 
 /// The render uniform (see `gpu.wgsl`).
@@ -74,6 +79,8 @@ pub struct GpuFrame {
     pub stats: FrameStats,
     /// The capped request list as a collector, for `Session::finish_frame`.
     pub requests: Requests,
+    /// The same list, most wanted first.
+    pub list: Vec<BrickKey>,
     /// Misses dropped because the device's request table was full.
     pub dropped: u64,
     /// Pool slots used this frame.
@@ -90,7 +97,8 @@ pub struct GpuRenderer {
     /// off for benchmarks and for views that present it on the device).
     pub read_image: bool,
     kernel: Kernel,
-    /// Per pool slot: frame stamps; with the slot count they were made for.
+    /// Per slot of every set: frame stamps, with the slot count they were
+    /// made for (with the update on the device, its stamps are used).
     stamps: Option<(u32, wgpu::Buffer)>,
     /// The counters and used-slot list (sized by the slot count), and the
     /// image (sized by width × height): kept between frames.
@@ -175,6 +183,24 @@ impl GpuRenderer {
         params: &RenderParams,
         lod: Lod,
     ) -> Result<GpuFrame, GpuError> {
+        self.render_with(gpu, dvm, vm, None, scene, params, lod)
+    }
+
+    /// [`render`](Self::render); with `cache`, the device decides updates
+    /// ([`DeviceCache`]): the frame stamps its slots and page-table blocks
+    /// there and nothing about them comes back to the host (`vm` then
+    /// only gives the frame number and configuration).
+    #[allow(clippy::too_many_arguments)]
+    pub fn render_with(
+        &mut self,
+        gpu: &Gpu,
+        dvm: &DeviceVm,
+        vm: &VirtualMemory,
+        cache: Option<&DeviceCache>,
+        scene: &Scene,
+        params: &RenderParams,
+        lod: Lod,
+    ) -> Result<GpuFrame, GpuError> {
         assert!(
             params.channels.is_empty(),
             "several channels are rendered on the CPU for now"
@@ -213,14 +239,19 @@ impl GpuRenderer {
         let table = &mut self.table.as_mut().expect("made above").1;
         table.clear(gpu);
         let slots = dvm.pool.slots();
-        let used_cap = 2 * slots;
-        if self.stamps.as_ref().is_none_or(|(n, _)| *n != slots) {
-            let b = gpu.storage_buffer_zeroed("slot stamps", slots as u64 * 8);
-            self.stamps = Some((slots, b));
-            let c = gpu.storage_buffer_zeroed("counters", (8 + used_cap as u64) * 4);
-            self.counters = Some((slots, c));
+        let all = dvm.all_slots();
+        if self.stamps.as_ref().is_none_or(|(n, _)| *n != all) {
+            let b = gpu.storage_buffer_zeroed("slot stamps", all as u64 * 8);
+            self.stamps = Some((all, b));
+            let c = gpu.storage_buffer_zeroed("counters", (8 + 2 * slots as u64) * 4);
+            self.counters = Some((all, c));
         }
-        let stamps = &self.stamps.as_ref().expect("made above").1;
+        // With the update on the device, no used list comes back.
+        let used_cap = if cache.is_some() { 0 } else { 2 * slots };
+        let stamps = match cache {
+            Some(c) => &c.stamps,
+            None => &self.stamps.as_ref().expect("made above").1,
+        };
         let counters = &self.counters.as_ref().expect("made with the stamps").1;
         // The counters start at 0; the used list is written up to its count.
         gpu.queue.write_buffer(counters, 0, &[0; 32]);
@@ -352,16 +383,21 @@ impl GpuRenderer {
 
         let head = gpu.read_u32("frame counters", counters, 8)?;
         let used_n = head[4].min(used_cap) as usize;
-        let used = gpu.read_back("used slots", counters, (8 + used_n as u64) * 4)?;
-        let used: Vec<u32> = bytemuck::pod_collect_to_vec(&used[32..]);
+        let used: Vec<u32> = if used_n > 0 {
+            let used = gpu.read_back("used slots", counters, (8 + used_n as u64) * 4)?;
+            bytemuck::pod_collect_to_vec(&used[32..])
+        } else {
+            vec![]
+        };
         for &s in &used {
             vm.mark_used(s & !EXACT_BIT, s & EXACT_BIT != 0);
         }
         let (list, dropped) = table.list(gpu, vm.config().request_cap)?;
         let mut requests = vm.requests();
-        for (id, n) in list {
+        for &(id, n) in &list {
             requests.add(ids.key(id), n);
         }
+        let list = list.into_iter().map(|(id, _)| ids.key(id)).collect();
         let img = if self.read_image {
             let pixels = gpu.read_back("image", image, w as u64 * h as u64 * 16)?;
             let mut img = Image::new(w, h);
@@ -380,9 +416,104 @@ impl GpuRenderer {
                 ..Default::default()
             },
             requests,
+            list,
             dropped,
             used_slots: used.len(),
             bytes_down: 32 + used.len() as u64 * 4 + table.downloaded,
         })
     }
+}
+
+/// What one [`update_on_device`] did.
+#[derive(Debug, Clone, Copy, Default)]
+pub struct DeviceUpdate {
+    /// Bricks the loader delivered, and queued requests it cancelled.
+    pub delivered: usize,
+    pub cancelled: usize,
+    /// Data bricks written, empty or constant bricks sent.
+    pub inserted: usize,
+    pub flagged: usize,
+    /// Data bricks ready that found no free slot (every slot in use this
+    /// frame); they wait.
+    pub deferred: usize,
+    /// Host→device bytes (bricks as texels, 48 bytes of key per brick) and
+    /// device→host bytes (the counts and 4 bytes per slot asked for).
+    pub up: u64,
+    pub down: u64,
+    pub counts: UpdateCounts,
+}
+
+/// The host's part of a frame when the device decides updates
+/// ([`DeviceCache`]), after [`GpuRenderer::render_with`]: hand the
+/// device's request list (`list`, most wanted first) to the loader; ask the
+/// device for as many pool slots as data bricks are ready, within the
+/// upload budget; write those bricks there; send every ready brick's key
+/// and kind, which the device references. Queued on the device; nothing
+/// waits for I/O.
+pub fn update_on_device(
+    gpu: &Gpu,
+    dvm: &mut DeviceVm,
+    cache: &mut DeviceCache,
+    s: &mut Session,
+    frame: u32,
+    list: &[BrickKey],
+) -> Result<DeviceUpdate, GpuError> {
+    let (delivered, cancelled) = s.exchange(list);
+    // Every empty or constant brick goes; data bricks up to the upload
+    // budget, oldest first.
+    let budget = s.vm().config().upload_bytes_per_frame;
+    let mut bytes = 0u64;
+    let mut data = vec![];
+    for (i, b) in s.waiting().iter().enumerate() {
+        if let BrickContent::Data(v) = &b.content {
+            if bytes + v.len() as u64 > budget {
+                break;
+            }
+            bytes += v.len() as u64;
+            data.push(i);
+        }
+    }
+    let slots = cache.end_frame(gpu, dvm, frame, data.len())?;
+    // Slots run out at the end of the list, if at all.
+    let mut given = data
+        .iter()
+        .zip(&slots)
+        .filter(|(_, &slot)| slot != NONE)
+        .map(|(&i, &slot)| (i, slot))
+        .peekable();
+    let mut done = vec![false; s.waiting().len()];
+    let mut items = vec![];
+    let dtype = s.vm().dtype();
+    for (i, b) in s.waiting().iter().enumerate() {
+        let item = match &b.content {
+            BrickContent::Empty => Item::empty(b.key),
+            BrickContent::Constant(v) => {
+                Item::constant(b.key, PageEntry::constant_bits_of(dtype, *v))
+            }
+            BrickContent::Data(v) => match given.peek() {
+                Some(&(j, slot)) if j == i => {
+                    given.next();
+                    dvm.pool.write(gpu, slot, v);
+                    Item::data(b.key, slot)
+                }
+                _ => continue,
+            },
+        };
+        done[i] = true;
+        items.push(item);
+    }
+    let mut up = dvm.pool.take_uploaded();
+    up += cache.reference(gpu, dvm, frame, &items);
+    s.hand_over(&done);
+    let inserted = items.iter().filter(|i| i.kind == 1).count();
+    Ok(DeviceUpdate {
+        delivered,
+        cancelled,
+        inserted,
+        flagged: items.len() - inserted,
+        deferred: data.len() - inserted,
+        up,
+        down: 32 + 4 * slots.len() as u64,
+        counts: cache.counts(),
+    })
 }

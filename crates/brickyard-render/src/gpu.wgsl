@@ -64,7 +64,9 @@ struct Render {
 @group(0) @binding(4) var<storage, read> aux: array<u32>;
 // Premultiplied RGBA per pixel, rows top to bottom.
 @group(0) @binding(5) var<storage, read_write> image: array<vec4<f32>>;
-// Per pool slot: (frame last used, frame last used at its own level).
+// Per slot of every set (the pool, then the cache of each intermediate
+// level: `lay.set_base`): (frame last used, frame last used at its own
+// level; pool only).
 @group(0) @binding(6) var<storage, read_write> stamps: array<atomic<u32>>;
 // 0: samples, 1: exact, 2: unserved, 3: bricks crossed in one jump (per
 // ray and brick), 4: used-list length; from 8 on the used list (slot,
@@ -242,6 +244,26 @@ fn sample_from(w: vec3<f32>, level: u32, q: vec3<f32>, e: vec2<u32>) -> vec2<f32
     return vec2<f32>(0.0, 0.0);
 }
 
+// `walk` (vm_common.wgsl), stamping the page-table blocks it passes
+// through as used this frame.
+fn walk_marking(l: u32, c: u32, v: vec3<u32>) -> vec2<u32> {
+    let d = lay.dir_base[l].xyz + v / lay.span[0].xyz;
+    let dd = lay.dir_dims;
+    var e = entries[c * lay.dir_len + (d.x * dd.y + d.y) * dd.z + d.z];
+    for (var n = 1u; n < lay.nmax; n = n + 1u) {
+        if (flag(e) != MAPPED) {
+            return e;
+        }
+        let b = slot_id(e, lay.pt_grid[n]);
+        atomicStore(&stamps[2u * (lay.set_base[n].x + b)], R.frame);
+        let o = (v / lay.span[n].xyz) % lay.block[n].xyz;
+        let bl = lay.block[n];
+        let i = (o.x * bl.y + o.y) * bl.z + o.z;
+        e = entries[lay.table_off[n].x + b * lay.pt_grid[n].w + i];
+    }
+    return e;
+}
+
 // `walk`, remembering the last brick: consecutive samples of a ray mostly
 // stay in one brick.
 fn entry_at(level: u32, v: vec3<u32>) -> vec2<u32> {
@@ -249,7 +271,7 @@ fn entry_at(level: u32, v: vec3<u32>) -> vec2<u32> {
     if (level != memo_level || any(b != memo_brick)) {
         memo_level = level;
         memo_brick = b;
-        memo_entry = walk(level, R.channel, v);
+        memo_entry = walk_marking(level, R.channel, v);
     }
     return memo_entry;
 }

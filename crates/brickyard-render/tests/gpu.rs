@@ -9,9 +9,10 @@ use brickyard_cache::vm::VmConfig;
 use brickyard_core::camera::{world_extent, Camera, Projection};
 use brickyard_core::{DType, TransferFunction};
 use brickyard_gpu::context::test_gpu;
+use brickyard_gpu::update::DeviceCache;
 use brickyard_gpu::vm::DeviceVm;
 use brickyard_render::cpu::{render_frame, FrameStats, Lod, Scene};
-use brickyard_render::gpu::GpuRenderer;
+use brickyard_render::gpu::{update_on_device, GpuRenderer};
 use brickyard_render::reference::{render, render_auto_lod, RenderMode, RenderParams, Volume};
 use brickyard_store::builder::{convert, ConvertOptions, NoProgress};
 use brickyard_store::generate::{Kind, Procedural};
@@ -63,12 +64,11 @@ fn case(
         request_cap: 64,
         upload_bytes_per_frame: 24 * 18 * 18 * 18 * dtype.size() as u64,
     };
-    let mut s = Session::open(&store, cfg, 8 << 20, 2).unwrap();
+    let mut s = Session::open(&store, cfg.clone(), 8 << 20, 2).unwrap();
     // Brick value ranges from the store's statistics: transparent bricks
     // are crossed in one jump on both back ends.
     let mut scene = scene;
     scene.ranges = Some(std::sync::Arc::new(s.loader().brick_ranges(1 << 24)));
-    let (mut dvm, _) = DeviceVm::new(&gpu, s.vm_mut()).unwrap();
     let mut renderer = GpuRenderer::new(&gpu);
     let tf = TransferFunction::preset("soft", window).unwrap();
     let cam = Camera::fit(
@@ -79,6 +79,36 @@ fn case(
     );
     let mut p = RenderParams::new(image, image * 4 / 5, cam, tf, mode.clone());
     p.reference_step = Some(scene.voxel(0));
+    // Updates decided on the device: a fresh session of its own.
+    let mut sd = Session::open(&store, cfg.clone(), 8 << 20, 2).unwrap();
+    let (mut ddvm, _) = DeviceVm::new(&gpu, sd.vm_mut()).unwrap();
+    let mut cache = DeviceCache::new(&gpu, &ddvm, sd.vm()).unwrap();
+    let mut first_d = None;
+    let mut done_d = None;
+    for frame in 1..=400 {
+        sd.begin_frame();
+        let n = sd.vm().frame();
+        let f = renderer
+            .render_with(&gpu, &ddvm, sd.vm(), Some(&cache), &scene, &p, lod)
+            .unwrap();
+        first_d.get_or_insert(f.stats.completeness());
+        // Only the counters and the request list come back.
+        assert!(f.bytes_down <= 32 + 64 * 8 + 8, "{}", f.bytes_down);
+        let x = update_on_device(&gpu, &mut ddvm, &mut cache, &mut sd, n, &f.list).unwrap();
+        assert!(x.down <= 32 + 4 * sd.vm().config().request_cap as u64 * 2);
+        if f.stats.completeness() == 1.0 && f.stats.samples > 0 {
+            done_d = Some((frame, f));
+            break;
+        }
+        std::thread::sleep(std::time::Duration::from_millis(1));
+    }
+    let (frames_d, fd) = done_d.expect("the view completes with updates on the device");
+    assert!(
+        frames_d > 1 && first_d.unwrap() < 1.0,
+        "{mode:?}: frames came before the data (device updates)"
+    );
+    // Updates decided on the host, mirrored.
+    let (mut dvm, _) = DeviceVm::new(&gpu, s.vm_mut()).unwrap();
     let mut first = None;
     let mut done = None;
     for frame in 1..=400 {
@@ -105,6 +135,10 @@ fn case(
         f.image.coverage(0.01) > 0.05,
         "{mode:?}: image nearly empty"
     );
+    // Complete views sample the same data whoever decided the updates.
+    let d = fd.image.max_abs_diff(&f.image);
+    eprintln!("{mode:?} {dtype:?}: {frames_d} frames with device updates, {frames} with host updates; max abs diff {d}");
+    assert!(d <= 1e-6, "{mode:?}: device and host updates differ by {d}");
     // The in-core reference at the level shown (fixed LOD).
     if let Lod::Fixed(l) = lod {
         let want = render(&levels[l], &p);
@@ -272,4 +306,104 @@ fn gpu_jumps_over_empty_bricks_land_on_time() {
     let src = HalfEmpty(SourceMeta::new("<half-empty>", [48, 48, 64], 1, DType::U8));
     let st = case(&src, [0.0, 255.0], RenderMode::Dvr, Lod::Fixed(0), 1.5, 64);
     assert!(st.skipped_bricks > 100, "jumps: {}", st.skipped_bricks);
+}
+
+#[test]
+fn device_updates_evict_and_every_view_completes_correctly() {
+    // Four slices, each to completion, through a pool of 30 slots: the
+    // bricks of one slice fit, those of all four do not, so the device's
+    // LRU evicts (and reuses page-table blocks) between views. Each
+    // complete view equals the in-core reference. The pool is tight: a
+    // slice's level-0 bricks and the coarser ones standing in while they
+    // load do not fit together (with the pool ordered by last use at any
+    // level, view 1 stalls), so stand-ins must give way to finer bricks.
+    let Some(gpu) = test_gpu() else { return };
+    let dir = tempfile::tempdir().unwrap();
+    let store = dir.path().join("v.ome.zarr");
+    let dims = [64, 80, 96];
+    let src = Procedural::new(Kind::Mandelbulb, dims, DType::U16);
+    let o = ConvertOptions {
+        brick: [16; 3],
+        shard: [32; 3],
+        ..Default::default()
+    };
+    convert(&src, &store, &o, &NoProgress, &AtomicBool::new(false)).unwrap();
+    let level0 = Volume::from_store(&store, 0, 0).unwrap();
+    let extent = world_extent(dims, level0.spacing);
+    let nlev = (0..)
+        .take_while(|&l| Volume::from_store(&store, l, 0).is_ok())
+        .count();
+    let levels: Vec<_> = (0..nlev)
+        .map(|l| Volume::from_store(&store, l, 0).unwrap().dims)
+        .collect();
+    let cfg = VmConfig {
+        brick: [16; 3],
+        apron: 1,
+        pt_block: [2; 3],
+        max_dir_entries: 8,
+        pool_bytes: 30 * (18 * 18 * 18 * 2 + 512),
+        pt_cache_blocks: 32,
+        request_cap: 64,
+        upload_bytes_per_frame: 8 * 18 * 18 * 18 * 2,
+    };
+    let mut s = Session::open(&store, cfg, 8 << 20, 2).unwrap();
+    assert!(
+        s.vm().layout().nmax() >= 3,
+        "two intermediate levels at least"
+    );
+    let slots = s.vm().pool_slots();
+    assert!((28..=32).contains(&slots), "{slots} slots");
+    let (mut dvm, _) = DeviceVm::new(&gpu, s.vm_mut()).unwrap();
+    let mut cache = DeviceCache::new(&gpu, &dvm, s.vm()).unwrap();
+    let mut renderer = GpuRenderer::new(&gpu);
+    let scene = Scene::new(extent, levels);
+    let tf = TransferFunction::preset("soft", [0.0, 65535.0]).unwrap();
+    let cam = Camera::fit(
+        extent,
+        30.0,
+        20.0,
+        Projection::Perspective { fov_y_deg: 40.0 },
+    );
+    let mut loaded = 0;
+    for (v, z) in [0.15, 0.4, 0.65, 0.9, 0.15].into_iter().enumerate() {
+        let mode = RenderMode::Slice {
+            origin: [extent[0] / 2.0, extent[1] / 2.0, extent[2] * z],
+            normal: [0.0, 0.0, 1.0],
+        };
+        let p = RenderParams::new(96, 80, cam, tf.clone(), mode);
+        let mut done = None;
+        for _ in 0..200 {
+            s.begin_frame();
+            let n = s.vm().frame();
+            let f = renderer
+                .render_with(&gpu, &dvm, s.vm(), Some(&cache), &scene, &p, Lod::Fixed(0))
+                .unwrap();
+            let x = update_on_device(&gpu, &mut dvm, &mut cache, &mut s, n, &f.list).unwrap();
+            loaded += x.inserted;
+            if f.stats.completeness() == 1.0 && f.stats.samples > 0 {
+                done = Some(f);
+                break;
+            }
+            std::thread::sleep(std::time::Duration::from_millis(1));
+        }
+        let f = done.unwrap_or_else(|| panic!("view {v} completes"));
+        let want = render(&level0, &p);
+        let d = f.image.max_abs_diff(&want);
+        eprintln!("view {v}: max abs diff {d}, {:?}", cache.counts());
+        assert!(d <= TOLERANCE, "view {v}: max abs diff {d}");
+        assert!(
+            f.image.coverage(0.01) > 0.05,
+            "view {v}: image nearly empty"
+        );
+    }
+    cache.end_frame(&gpu, &dvm, s.vm().frame() + 1, 0).unwrap();
+    let c = cache.counts();
+    assert!(
+        loaded > slots,
+        "{loaded} bricks loaded through {slots} slots"
+    );
+    assert!(
+        c.bricks_unmapped > 0 && c.blocks_unmapped > 0,
+        "bricks and page-table blocks were evicted: {c:?}"
+    );
 }

@@ -1,12 +1,20 @@
-//! `--backend auto|gpu|cpu`: who renders the frames of a session. The GPU
-//! back end keeps a copy of the virtual memory on the device, carries the
-//! host's changes over after every frame and reports what crossed the bus.
+//! `--backend auto|gpu|cpu`: who renders the frames of a session, and
+//! `--gpu-update device|host`: who decides the device's cache updates.
+//! With `device` (the default) the device keeps its own LRU orders and
+//! page tables: per frame only the request list and the slots to write
+//! come back, and only bricks with their keys go over. With `host` the
+//! host's virtual memory decides and the device mirrors its changes (the
+//! used slots come back so the host's LRU keeps them). Both report what
+//! crossed the bus.
 
 use anyhow::{bail, Context, Result};
 use brickyard_cache::session::{FrameStats as SessionStats, Session};
+use brickyard_cache::vm::{FrameReport, InsertReport};
+use brickyard_gpu::update::DeviceCache;
 use brickyard_gpu::vm::DeviceVm;
 use brickyard_gpu::{AdapterChoice, Gpu};
 use brickyard_render::cpu::{render_frame, FrameStats, Lod, Scene};
+use brickyard_render::gpu::update_on_device;
 use brickyard_render::gpu::GpuRenderer;
 use brickyard_render::reference::RenderParams;
 use brickyard_render::Image;
@@ -36,6 +44,26 @@ pub struct GpuBackend {
     gpu: Gpu,
     dvm: DeviceVm,
     renderer: GpuRenderer,
+    /// The update step on the device (`None`: the host decides).
+    cache: Option<DeviceCache>,
+}
+
+/// Who decides the device's cache updates.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum GpuUpdate {
+    Device,
+    Host,
+}
+
+impl std::str::FromStr for GpuUpdate {
+    type Err = String;
+    fn from_str(s: &str) -> Result<Self, String> {
+        match s {
+            "device" => Ok(GpuUpdate::Device),
+            "host" => Ok(GpuUpdate::Host),
+            _ => Err(format!("expected device or host, found {s:?}")),
+        }
+    }
 }
 
 pub enum Backend {
@@ -48,7 +76,12 @@ impl Backend {
     /// up when several) from session `s`. `auto` takes a hardware adapter when
     /// there is one and the view runs on the device (one channel), the CPU
     /// otherwise (a software adapter is slower than the CPU renderer).
-    pub fn choose(choice: &str, s: &mut Session, channels: usize) -> Result<Backend> {
+    pub fn choose(
+        choice: &str,
+        update: GpuUpdate,
+        s: &mut Session,
+        channels: usize,
+    ) -> Result<Backend> {
         let device_mode = channels <= 1;
         let gpu = match choice {
             "cpu" => return Ok(Backend::Cpu),
@@ -66,7 +99,16 @@ impl Backend {
         };
         let (dvm, _) = DeviceVm::new(&gpu, s.vm_mut())?;
         let renderer = GpuRenderer::new(&gpu);
-        Ok(Backend::Gpu(Box::new(GpuBackend { gpu, dvm, renderer })))
+        let cache = match update {
+            GpuUpdate::Device => Some(DeviceCache::new(&gpu, &dvm, s.vm())?),
+            GpuUpdate::Host => None,
+        };
+        Ok(Backend::Gpu(Box::new(GpuBackend {
+            gpu,
+            dvm,
+            renderer,
+            cache,
+        })))
     }
 
     /// Whether frames come back to the host as images (on by default; a
@@ -81,7 +123,11 @@ impl Backend {
     pub fn describe(&self) -> String {
         match self {
             Backend::Cpu => format!("CPU ({} threads)", rayon::current_num_threads()),
-            Backend::Gpu(g) => format!("GPU: {}", g.gpu.describe()),
+            Backend::Gpu(g) => format!(
+                "GPU: {} (updates decided on the {})",
+                g.gpu.describe(),
+                if g.cache.is_some() { "device" } else { "host" }
+            ),
         }
     }
 
@@ -112,6 +158,7 @@ impl Backend {
                     upload_ms: 0.0,
                 })
             }
+            Backend::Gpu(g) if g.cache.is_some() => g.device_frame(s, scene, p, lod, t),
             Backend::Gpu(g) => {
                 let f = g.renderer.render(&g.gpu, &g.dvm, s.vm(), scene, p, lod)?;
                 let render_ms = t.elapsed().as_secs_f64() * 1e3;
@@ -133,5 +180,69 @@ impl Backend {
                 })
             }
         }
+    }
+}
+
+impl GpuBackend {
+    /// A frame with the update step on the device: draw (stamping what was
+    /// used), then [`update_on_device`].
+    fn device_frame(
+        &mut self,
+        s: &mut Session,
+        scene: &Scene,
+        p: &RenderParams,
+        lod: Lod,
+        t: std::time::Instant,
+    ) -> Result<Frame> {
+        let cache = self.cache.as_mut().expect("device updates");
+        let frame = s.vm().frame();
+        let f =
+            self.renderer
+                .render_with(&self.gpu, &self.dvm, s.vm(), Some(cache), scene, p, lod)?;
+        let render_ms = t.elapsed().as_secs_f64() * 1e3;
+        let c = std::time::Instant::now();
+        let before = cache.counts();
+        let x = update_on_device(&self.gpu, &mut self.dvm, cache, s, frame, &f.list)?;
+        let _ = self.gpu.device.poll(wgpu::PollType::wait_indefinitely());
+        // Deciding and carrying over are one step here.
+        let upload_ms = c.elapsed().as_secs_f64() * 1e3;
+        let now = x.counts;
+        let session = SessionStats {
+            frame: FrameReport {
+                frame,
+                requests: f.list.clone(),
+                requested: f.list.len(),
+                dropped: f.dropped,
+                resident_bricks: now.resident_bricks() as usize,
+                resident_pt_blocks: vec![
+                    now.blocks_mapped.saturating_sub(now.blocks_unmapped) as usize
+                ],
+            },
+            insert: InsertReport {
+                inserted: x.inserted,
+                flagged: x.flagged,
+                bytes_uploaded: x.up,
+                evicted_bricks: (now.bricks_unmapped - before.bricks_unmapped) as usize,
+                evicted_pt_blocks: (now.blocks_unmapped - before.blocks_unmapped) as usize,
+                deferred: x.deferred,
+                processed: x.inserted + x.flagged,
+                ..Default::default()
+            },
+            delivered: x.delivered,
+            cancelled: x.cancelled,
+            pending: s.loader().pending(),
+            in_flight: s.loader().in_flight(),
+            waiting_upload: s.waiting().len(),
+        };
+        Ok(Frame {
+            image: f.image,
+            stats: f.stats,
+            session,
+            up: x.up,
+            down: f.bytes_down + x.down,
+            render_ms,
+            cache_ms: c.elapsed().as_secs_f64() * 1e3,
+            upload_ms,
+        })
     }
 }

@@ -62,7 +62,9 @@ pub struct BenchCmd {
     /// render: dvr or mip.
     #[arg(long, default_value = "dvr")]
     mode: String,
-    /// render: cpu, gpu, auto or both (CPU then GPU, side by side).
+    /// render: cpu, gpu, auto, both (CPU then GPU, side by side) or all
+    /// (CPU, GPU with updates on the device, GPU with updates on the
+    /// host); `gpu-host` and `auto-host` have the host decide updates.
     #[arg(long, default_value = "cpu")]
     backend: String,
 }
@@ -89,6 +91,7 @@ pub fn run(b: BenchCmd) -> Result<()> {
                 reference: !b.no_reference,
                 backends: match b.backend.as_str() {
                     "both" => vec!["cpu".into(), "gpu".into()],
+                    "all" => vec!["cpu".into(), "gpu".into(), "gpu-host".into()],
                     x => vec![x.into()],
                 },
                 mip: match b.mode.as_str() {

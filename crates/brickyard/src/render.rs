@@ -103,6 +103,11 @@ pub struct RenderCmd {
     /// CPU), gpu or cpu.
     #[arg(long, default_value = "auto")]
     backend: String,
+    /// On the GPU, who decides cache updates: device (its own LRU and
+    /// page tables; only requests and slot numbers come back) or host (the
+    /// device mirrors the host's decisions).
+    #[arg(long, default_value = "device")]
+    gpu_update: crate::backend::GpuUpdate,
 }
 
 /// `C[:COLOR[:LO,HI]]`.
@@ -315,7 +320,7 @@ pub fn run(c: RenderCmd) -> Result<()> {
     } else {
         styles.len()
     };
-    let mut backend = crate::backend::Backend::choose(&c.backend, &mut s, shown)?;
+    let mut backend = crate::backend::Backend::choose(&c.backend, c.gpu_update, &mut s, shown)?;
     if !c.json {
         println!("rendering on {}", backend.describe());
     }

@@ -496,7 +496,11 @@ pub fn render(dir: &Path, dims: Dims3, dtype: DType, o: &RenderBench) -> Result<
         for _ in 0..2 {
             let mut s = Session::with_cache(&st, cfg.clone(), host.clone(), 2)?;
             scene.ranges = Some(std::sync::Arc::new(s.loader().brick_ranges(1 << 24)));
-            let mut backend = crate::backend::Backend::choose(name, &mut s, 1)?;
+            let (choice, update) = match name.strip_suffix("-host") {
+                Some(c) => (c, crate::backend::GpuUpdate::Host),
+                None => (name.as_str(), crate::backend::GpuUpdate::Device),
+            };
+            let mut backend = crate::backend::Backend::choose(choice, update, &mut s, 1)?;
             backend.set_read_image(false);
             let t = Instant::now();
             let (mut frames, mut first_frame_ms) = (0, 0.0);

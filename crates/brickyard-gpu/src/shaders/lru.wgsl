@@ -13,11 +13,11 @@ struct Params {
     n: u32,
     frame: u32,
     blocks: u32,
-    // Slot i's stamp is usage[stride * (base + i)] (the device cache keeps
-    // every set's stamps in one buffer, two words a slot).
+    // Slot i's stamp is usage[stride * (base + i) + word] (the device
+    // cache keeps every set's stamps in one buffer, two words a slot).
     base: u32,
     stride: u32,
-    pad0: u32,
+    word: u32,
     pad1: u32,
     pad2: u32,
 }
@@ -36,7 +36,7 @@ const BLOCK: u32 = 1024u;
 var<workgroup> sums: array<u32, 256>;
 
 fn used(i: u32) -> u32 {
-    if (i < params.n && usage[params.stride * (params.base + order_in[i])] == params.frame) {
+    if (i < params.n && usage[params.stride * (params.base + order_in[i]) + params.word] == params.frame) {
         return 1u;
     }
     return 0u;

@@ -10,9 +10,12 @@
 // now hold another mapping.
 //
 // Per frame, after the renderer has stamped what it used:
-//   compaction of every set's LRU order (lru.wgsl);
-//   reserve:  the k least recently used pool slots not used this frame,
-//             unmapped from their owners (the host writes the bricks);
+//   compaction of every set's LRU order (lru.wgsl; the pool by the frame
+//             last used at its own level, so stand-ins for finer bricks
+//             age and give way to them);
+//   reserve:  the k least recently used pool slots not used at their own
+//             level this frame, unmapped from their owners (the host
+//             writes the bricks);
 //   start:    each item's directory entry;
 //   per intermediate level n:
 //     path:    stamp the blocks of level n the items pass through (so none
@@ -92,10 +95,11 @@ fn reserve(@builtin(global_invocation_id) gid: vec3<u32>) {
         atomicStore(&out[RESERVED + i], NONE);
         return;
     }
-    // Used slots come first after compaction: the tail up to the first
-    // used one is free to take.
+    // Slots used at their own level come first after compaction: the
+    // tail up to the first of them may be taken (bricks that only stood
+    // in for finer ones this frame included).
     let s = order[cnt - 1u - i];
-    if (stamps[2u * s] == P.frame) {
+    if (stamps[2u * s + 1u] == P.frame) {
         atomicStore(&out[RESERVED + i], NONE);
         return;
     }
