@@ -2,11 +2,11 @@
 //! device's page-table walk and sampler (twins of
 //! [`VirtualMemory::entry_of`] and [`VirtualMemory::sample_at`]).
 //!
-//! For now the host's [`VirtualMemory`] decides every update (which slot a
-//! brick takes, which entries change); [`DeviceVm::sync`] carries over
-//! only what changed since the last frame: the bricks written and the
-//! entries set (16 bytes each), applied on the device by a scatter kernel.
-//! Choosing slots and referencing on the device comes next.
+//! Who decides updates: either the device ([`crate::update::DeviceCache`]
+//! chooses slots and references bricks in these tables), or the host's
+//! [`VirtualMemory`], whose changes [`DeviceVm::sync`] carries over: the
+//! bricks written and the entries set (16 bytes each), applied on the
+//! device by a scatter kernel.
 
 use crate::context::{Gpu, GpuError};
 use crate::kernel::{Binding, Kernel};

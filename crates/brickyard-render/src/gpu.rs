@@ -1,8 +1,10 @@
 //! Ray-guided DVR, MIP and slices on the device (`gpu.wgsl`), through the device's
 //! copy of the virtual memory ([`brickyard_gpu::vm::DeviceVm`]): the twin
-//! of [`crate::cpu`]. One invocation per pixel; per frame the device
-//! reports the capped request list, the pool slots it used (so that the
-//! host's LRU keeps them) and its sample counts.
+//! of [`crate::cpu`]. One invocation per pixel; each frame stamps the pool
+//! slots and page-table blocks it used and reports the capped request list
+//! and its sample counts. With the update step on the device
+//! ([`update_on_device`]) nothing else comes back; with the host deciding,
+//! the newly used slots do too (so that the host's LRU keeps them).
 //!
 //! Modes: DVR, MIP and slices of one channel. Empty space: DVR rays cross
 //! bricks in one jump where the transfer function maps the brick to zero

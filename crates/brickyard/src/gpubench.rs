@@ -1,6 +1,8 @@
 //! `brickyard bench cache-kernels`: the device's cache-management kernels
 //! beside their CPU twins, in one run: LRU compaction of pools of 16k–1M
-//! slots, and request collection + the capped list for a frame's misses.
+//! slots, request collection + the capped list for a frame's misses, and
+//! the whole update step (every LRU order, slot reservation, referencing)
+//! for batches of bricks.
 //! Device times are wall times from submission to completion (read-back of
 //! the request list included), on whatever adapter `Gpu::new` picks.
 
@@ -106,5 +108,81 @@ pub fn cache_kernels(repeat: usize) -> Result<()> {
                "cpu_ms": cpu_ms, "device_ms": dev_ms, "device_sort_and_readback_ms": list_ms,
                "readback_bytes": t.downloaded, "adapter": adapter})
     );
+    update_step(&gpu, repeat, &adapter)
+}
+
+/// The update step (compaction of every LRU order, slot reservation and
+/// referencing of a batch of bricks) for the virtual memory of a 4096³
+/// volume (64 GiB of u8) with a 512 MiB pool: the device's kernels beside
+/// their CPU twin ([`UpdateModel`]), bookkeeping only (no brick data).
+fn update_step(gpu: &Gpu, repeat: usize, adapter: &str) -> Result<()> {
+    use brickyard_cache::brick::BrickKey;
+    use brickyard_cache::vm::{VirtualMemory, VmConfig};
+    use brickyard_gpu::update::{DeviceCache, Item, UpdateModel};
+    use brickyard_gpu::vm::DeviceVm;
+    let dims = [4096u64; 3];
+    let levels: Vec<[u64; 3]> = (0..8).map(|l| dims.map(|d| (d >> l).max(1))).collect();
+    let cfg = VmConfig {
+        pool_bytes: 512 << 20,
+        ..Default::default()
+    };
+    let mut vm = VirtualMemory::new(&levels, 1, brickyard_core::DType::U8, cfg);
+    let (dvm, _) = DeviceVm::new(gpu, &mut vm)?;
+    let mut cache = DeviceCache::new(gpu, &dvm, &vm)?;
+    let mut model = UpdateModel::new(&dvm, &vm);
+    let slots = vm.pool_slots();
+    for &k in &[64usize, 1024] {
+        let (mut cpu_ms, mut dev_ms) = (f64::INFINITY, f64::INFINITY);
+        for r in 0..repeat.max(1) + 1 {
+            let frame = 2 * r as u32 + 1 + if k == 64 { 0 } else { 1000 };
+            // A batch of neighbouring bricks of level 0 (sharing page-table
+            // blocks), a different region each time.
+            let z = (r * 8 + k / 64) as u32 % 128;
+            let items: Vec<Item> = (0..k as u32)
+                .map(|i| {
+                    let key = BrickKey::new(0, 0, [z, i / 32 % 128, i % 32 + (r as u32 % 4) * 32]);
+                    Item::data(key, 0)
+                })
+                .collect();
+            let t = Instant::now();
+            let got = model.end_frame(frame, k);
+            let items_m: Vec<Item> = items
+                .iter()
+                .zip(&got)
+                .map(|(it, &s)| {
+                    Item::data(
+                        BrickKey::new(0, 0, [it.brick[0], it.brick[1], it.brick[2]]),
+                        s,
+                    )
+                })
+                .collect();
+            model.reference(frame, &items_m);
+            cpu_ms = cpu_ms.min(t.elapsed().as_secs_f64() * 1e3);
+            let t = Instant::now();
+            let got = cache.end_frame(gpu, &dvm, frame, k)?;
+            let items_d: Vec<Item> = items
+                .iter()
+                .zip(&got)
+                .map(|(it, &s)| {
+                    Item::data(
+                        BrickKey::new(0, 0, [it.brick[0], it.brick[1], it.brick[2]]),
+                        s,
+                    )
+                })
+                .collect();
+            cache.reference(gpu, &dvm, frame, &items_d);
+            let _ = gpu.device.poll(wgpu::PollType::wait_indefinitely());
+            if r > 0 {
+                dev_ms = dev_ms.min(t.elapsed().as_secs_f64() * 1e3);
+            }
+        }
+        println!(
+            "{}",
+            json!({"scenario": "cache-kernels", "kernel": "update-step", "volume": "4096^3 u8",
+                   "pool_slots": slots, "page_table_levels": vm.layout().nmax(), "bricks": k,
+                   "cpu_twin_ms": cpu_ms, "device_ms": dev_ms,
+                   "readback_bytes": 32 + 4 * k, "upload_bytes": 48 * k, "adapter": adapter})
+        );
+    }
     Ok(())
 }
