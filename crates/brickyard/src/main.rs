@@ -5,6 +5,7 @@ mod bench;
 mod gpubench;
 mod progress;
 mod render;
+mod view;
 mod vmbench;
 mod vmcmd;
 
@@ -70,6 +71,9 @@ enum Cmd {
     },
     /// Render a store (DVR, MIP or slice) to PNG through the virtual memory.
     Render(render::RenderCmd),
+    /// Open an interactive viewer (no STORE: the demo dataset, generated on
+    /// first use).
+    View(view::ViewCmd),
     /// Run a benchmark scenario and print one JSON line of figures.
     Bench(bench::BenchCmd),
     /// Virtual memory for voxels: `footprint` prints the management memory
@@ -405,12 +409,29 @@ fn run(cmd: Cmd) -> Result<()> {
         }
         Cmd::Demo { out, size } => demo(&out, &size),
         Cmd::Render(r) => render::run(r),
+        Cmd::View(v) => {
+            let code = view::run(v, || demo_store(Path::new("brickyard-demo"), "384"))?;
+            if code != 0 {
+                std::process::exit(code);
+            }
+            Ok(())
+        }
         Cmd::Bench(b) => bench::run(b),
         Cmd::Vm(VmCmd::Footprint(f)) => vmcmd::footprint(f),
     }
 }
 
-fn demo(out: &Path, size: &str) -> Result<()> {
+/// The demo store in `out`, converted now if it is missing or incomplete.
+fn demo_store(out: &Path, size: &str) -> Result<PathBuf> {
+    let store = out.join("mandelbulb.ome.zarr");
+    if inspect(&store).is_ok_and(|i| i.complete != Some(false)) {
+        return Ok(store);
+    }
+    convert_demo(out, size)?;
+    Ok(store)
+}
+
+fn convert_demo(out: &Path, size: &str) -> Result<PathBuf> {
     std::fs::create_dir_all(out).with_context(|| format!("{}: cannot create", out.display()))?;
     let dims = parse_size(size).map_err(|e| anyhow::anyhow!("size: {e}"))?;
     let store = out.join("mandelbulb.ome.zarr");
@@ -436,6 +457,11 @@ fn demo(out: &Path, size: &str) -> Result<()> {
         quiet: false,
     };
     run_convert(&src, &store, &args)?;
+    Ok(store)
+}
+
+fn demo(out: &Path, size: &str) -> Result<()> {
+    let store = convert_demo(out, size)?;
     print!("{}", format_info(&inspect(&store)?));
     stream_demo(&store)?;
     render_demo(&store, out)?;

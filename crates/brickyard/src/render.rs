@@ -62,6 +62,13 @@ pub struct RenderCmd {
     /// Slice: position of the plane along z as a fraction of the depth.
     #[arg(long, default_value_t = 0.5)]
     slice_z: f64,
+    /// Slice: a point of the plane in world coordinates X,Y,Z (overrides
+    /// --slice-z; as the viewer's saved views give it).
+    #[arg(long)]
+    slice_origin: Option<String>,
+    /// Slice: the plane's normal X,Y,Z (default 0,0,1).
+    #[arg(long)]
+    slice_normal: Option<String>,
     /// Render this level only (default: automatic level of detail).
     #[arg(long)]
     level: Option<usize>,
@@ -181,6 +188,19 @@ pub fn parse_image_size(s: &str, what: &str) -> Result<[u32; 2]> {
     Ok(wh)
 }
 
+/// `X,Y,Z`: three finite numbers.
+pub fn parse_vec3(s: &str, what: &str) -> Result<[f64; 3]> {
+    let v: Vec<f64> = s
+        .split(',')
+        .map(|p| p.trim().parse::<f64>())
+        .collect::<std::result::Result<_, _>>()
+        .with_context(|| format!("{what}: expected X,Y,Z, found {s:?}"))?;
+    match v[..] {
+        [x, y, z] if v.iter().all(|a| a.is_finite()) => Ok([x, y, z]),
+        _ => bail!("{what}: expected three finite numbers X,Y,Z, found {s:?}"),
+    }
+}
+
 fn parse_pair(s: &str, what: &str) -> Result<[f64; 2]> {
     let v: Vec<f64> = s
         .split([',', 'x'])
@@ -257,10 +277,22 @@ pub fn run(c: RenderCmd) -> Result<()> {
     let mode = match c.mode.as_str() {
         "dvr" => RenderMode::Dvr,
         "mip" => RenderMode::Mip,
-        "slice" => RenderMode::Slice {
-            origin: [extent[0] / 2.0, extent[1] / 2.0, extent[2] * c.slice_z],
-            normal: [0.0, 0.0, 1.0],
-        },
+        "slice" => {
+            let origin = match &c.slice_origin {
+                Some(o) => parse_vec3(o, "slice-origin")?,
+                None => [extent[0] / 2.0, extent[1] / 2.0, extent[2] * c.slice_z],
+            };
+            let normal = match &c.slice_normal {
+                Some(n) => parse_vec3(n, "slice-normal")?,
+                None => [0.0, 0.0, 1.0],
+            };
+            if brickyard_core::camera::length(normal) < 1e-12
+                || !normal.iter().all(|v| v.is_finite())
+            {
+                bail!("slice-normal: expected a non-zero vector, found {normal:?}");
+            }
+            RenderMode::Slice { origin, normal }
+        }
         s => bail!("mode: expected dvr, mip or slice, found {s:?}"),
     };
     let camera = match &c.camera {

@@ -1,0 +1,248 @@
+//! `brickyard view`: an interactive viewer. A 3D view (DVR, MIP or an
+//! oblique plane) and four slice views through a cursor, streamed through
+//! the virtual memory on a render thread, with a transfer-function editor
+//! over a histogram of the bricks' value ranges, per-channel colours, level
+//! of detail and budgets, a live status line, screenshots, and views saved
+//! as the camera/transfer-function JSON that `brickyard render` takes.
+//! `--script` drives it from a file of input events (tests, recordings).
+
+mod app;
+pub mod script;
+mod worker;
+
+use crate::backend::GpuUpdate;
+use anyhow::{bail, Context, Result};
+use brickyard_cache::vm::VmConfig;
+use brickyard_core::camera::{world_extent, Camera};
+use brickyard_core::TransferFunction;
+use brickyard_render::cpu::Scene;
+use brickyard_store::import::zarr;
+use brickyard_store::info::inspect;
+use brickyard_store::VolumeSource;
+use clap::Args;
+use std::path::PathBuf;
+use std::sync::atomic::{AtomicI32, Ordering};
+use std::sync::Arc;
+use std::time::Duration;
+
+#[derive(Args)]
+pub struct ViewCmd {
+    /// An OME-Zarr store; none: the demo dataset (brickyard-demo/,
+    /// generated on first use).
+    store: Option<PathBuf>,
+    /// auto (a hardware GPU when there is one and one channel, else the
+    /// CPU), gpu or cpu.
+    #[arg(long, default_value = "auto")]
+    backend: String,
+    /// On the GPU, who decides cache updates: device or host.
+    #[arg(long, default_value = "device")]
+    gpu_update: GpuUpdate,
+    /// Brick-pool budget.
+    #[arg(long, default_value = "256MiB")]
+    pool: String,
+    /// Host-cache budget.
+    #[arg(long, default_value = "1GiB")]
+    host: String,
+    /// Engine brick edge.
+    #[arg(long, default_value_t = 32)]
+    brick: u64,
+    /// Bytes written into the pool per frame.
+    #[arg(long, default_value = "64MiB")]
+    upload: String,
+    #[arg(long, default_value_t = 2)]
+    loader_threads: usize,
+    /// Start with this camera (JSON, as `render --camera` takes).
+    #[arg(long)]
+    camera: Option<PathBuf>,
+    /// Transfer function: a preset or a JSON file.
+    #[arg(long, default_value = "soft")]
+    tf: String,
+    /// 3D view: dvr, mip or slice.
+    #[arg(long, default_value = "dvr")]
+    mode: String,
+    /// Window size WxH in points.
+    #[arg(long, default_value = "1400x860")]
+    window_size: String,
+    /// Run the input events and checks of this file (see the README), then
+    /// stay open unless it ends with `quit`.
+    #[arg(long)]
+    script: Option<PathBuf>,
+    /// Write one JSON line per frame received to this file.
+    #[arg(long)]
+    log: Option<PathBuf>,
+    /// Slow every brick read down by this many milliseconds (to watch
+    /// streaming).
+    #[arg(long, default_value_t = 0)]
+    read_delay_ms: u64,
+}
+
+/// Histogram of brick value ranges over `range`: each brick adds one,
+/// spread evenly over the bins its range covers. Takes the finest level
+/// with at most 2^18 bricks.
+fn histogram(
+    ranges: &brickyard_cache::ranges::BrickRanges,
+    range: [f32; 2],
+    bins: usize,
+) -> Vec<f32> {
+    let mut h = vec![0f32; bins];
+    let level = (0..ranges.levels.len())
+        .filter_map(|l| ranges.level(l))
+        .find(|r| r.range.len() <= 1 << 18);
+    let Some(r) = level else { return h };
+    let [lo, hi] = range;
+    if hi <= lo {
+        return h;
+    }
+    let bin =
+        |v: f32| (((v - lo) / (hi - lo)) * bins as f32).clamp(0.0, bins as f32 - 1.0) as usize;
+    for &[a, b] in &r.range {
+        if !(a.is_finite() && b.is_finite()) {
+            continue;
+        }
+        let (i, j) = (bin(a), bin(b));
+        let w = 1.0 / (j - i + 1) as f32;
+        for x in &mut h[i..=j] {
+            *x += w;
+        }
+    }
+    h
+}
+
+pub fn run(c: ViewCmd, demo_store: impl FnOnce() -> Result<PathBuf>) -> Result<i32> {
+    let store = match c.store.clone() {
+        Some(s) => s,
+        None => demo_store()?,
+    };
+    let info = inspect(&store)?;
+    if info.complete == Some(false) {
+        bail!(
+            "{}: the store is incomplete (an interrupted conversion)",
+            store.display()
+        );
+    }
+    let l0 = zarr::open(&store, 0)?;
+    let m = l0.meta().clone();
+    let extent = world_extent(m.dims, m.spacing.unwrap_or([1.0; 3]));
+    let levels = (0..info.levels.len())
+        .map(|l| Ok(zarr::open(&store, l)?.meta().dims))
+        .collect::<Result<Vec<_>>>()?;
+    let range = info
+        .levels
+        .iter()
+        .rev()
+        .find_map(|l| l.stats.as_ref().map(|s| [s.min as f32, s.max as f32]))
+        .filter(|r| r[1] > r[0])
+        .unwrap_or([0.0, 1.0]);
+    let tf = if c.tf.ends_with(".json") {
+        let text =
+            std::fs::read_to_string(&c.tf).with_context(|| format!("{}: cannot read", c.tf))?;
+        TransferFunction::from_json(&text).map_err(|e| anyhow::anyhow!("{}: {e}", c.tf))?
+    } else {
+        TransferFunction::preset(&c.tf, range).map_err(|e| anyhow::anyhow!("tf: {e}"))?
+    };
+    if !["dvr", "mip", "slice"].contains(&c.mode.as_str()) {
+        bail!("mode: expected dvr, mip or slice, found {:?}", c.mode);
+    }
+    let camera = match &c.camera {
+        Some(p) => {
+            let text = std::fs::read_to_string(p)
+                .with_context(|| format!("{}: cannot read", p.display()))?;
+            Some(Camera::from_json(&text).map_err(|e| anyhow::anyhow!("{}: {e}", p.display()))?)
+        }
+        None => None,
+    };
+    let script = match &c.script {
+        Some(p) => {
+            let text = std::fs::read_to_string(p)
+                .with_context(|| format!("{}: cannot read", p.display()))?;
+            script::parse(p, &text)?
+        }
+        None => vec![],
+    };
+    let log = match &c.log {
+        Some(p) => Some(
+            std::fs::File::create(p).with_context(|| format!("{}: cannot create", p.display()))?,
+        ),
+        None => None,
+    };
+    let [ww, wh] = crate::render::parse_image_size(&c.window_size, "window-size")?;
+    let cfg = VmConfig {
+        brick: [c.brick; 3],
+        pool_bytes: crate::parse_bytes(&c.pool)?,
+        upload_bytes_per_frame: crate::parse_bytes(&c.upload)?,
+        ..Default::default()
+    };
+    let setup = worker::Setup {
+        store: store.clone(),
+        cfg,
+        host_bytes: crate::parse_bytes(&c.host)?,
+        loader_threads: c.loader_threads,
+        backend: c.backend.clone(),
+        gpu_update: c.gpu_update,
+        channels: m.channels,
+        read_delay: Duration::from_millis(c.read_delay_ms),
+    };
+    // The histogram from the bricks' value ranges (statistics only).
+    let loader = brickyard_cache::loader::Loader::open(
+        &store,
+        setup.cfg.brick,
+        setup.cfg.apron,
+        1,
+        Arc::new(brickyard_cache::host_cache::HostCache::new(1 << 20)),
+    )?;
+    let ranges = loader.brick_ranges(1 << 24);
+    drop(loader);
+    let ds = Arc::new(app::Dataset {
+        store: store.clone(),
+        extent,
+        histogram: histogram(&ranges, range, 128),
+        levels: levels.clone(),
+        dtype: m.dtype,
+        channels: m.channels,
+        range,
+    });
+    let (to_worker, worker_rx) = std::sync::mpsc::channel();
+    let (worker_tx, from_worker) = std::sync::mpsc::channel();
+    let exit = Arc::new(AtomicI32::new(0));
+    let opts = eframe::NativeOptions {
+        viewport: eframe::egui::ViewportBuilder::default()
+            .with_inner_size([ww as f32, wh as f32])
+            .with_title(format!("brickyard view — {}", store.display())),
+        ..Default::default()
+    };
+    let scene = Scene::new(extent, levels);
+    let exit2 = exit.clone();
+    let mode = c.mode.clone();
+    let r = eframe::run_native(
+        "brickyard view",
+        opts,
+        Box::new(move |cc| {
+            let ctx = cc.egui_ctx.clone();
+            let setup2 = setup.clone();
+            std::thread::Builder::new()
+                .name("render".into())
+                .spawn(move || {
+                    worker::run(setup2, scene, worker_rx, worker_tx, move || {
+                        ctx.request_repaint()
+                    })
+                })
+                .map_err(|e| format!("render thread: {e}"))?;
+            Ok(Box::new(app::ViewerApp::new(
+                ds,
+                setup,
+                to_worker,
+                from_worker,
+                camera,
+                tf,
+                mode,
+                script,
+                log,
+                exit2,
+            )))
+        }),
+    );
+    if let Err(e) = r {
+        bail!("view: cannot open a window: {e} (is a display available? under CI use xvfb-run)");
+    }
+    Ok(exit.load(Ordering::SeqCst))
+}

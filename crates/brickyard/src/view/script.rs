@@ -1,0 +1,229 @@
+//! `brickyard view --script FILE`: input events and checks, one per line,
+//! run in order by the window (each through the same handler a mouse or
+//! key event uses). `#` starts a comment. Commands:
+//!
+//! | command | effect |
+//! |---|---|
+//! | `size VIEW W H` | draw view VIEW (`3d`, `xy`, `xz`, `yz`, `oblique`) at W×H pixels, whatever its place on screen |
+//! | `mode dvr\|mip\|slice` | the 3D view's mode |
+//! | `drag VIEW BUTTON DX DY` | a drag by (DX, DY) pixels with `left`, `right` or `middle` (3D: orbit, pan; slices: cursor, pan) |
+//! | `scroll VIEW STEPS` | the mouse wheel (zoom; positive: in) |
+//! | `click VIEW X Y` | a click at pixel (X, Y) of the view (slices: move the cursor there) |
+//! | `key NAME` | a key: `left`, `right`, `up`, `down` (orbit), `plus`, `minus` (zoom), `r` (reset) |
+//! | `tf PRESET` | a transfer-function preset |
+//! | `colormap NAME` | a colour map |
+//! | `window LO HI` | the data window |
+//! | `point X ALPHA` | add an opacity point (x in [0, 1] of the window) |
+//! | `cursor X Y Z` | the cursor, as fractions of the volume |
+//! | `oblique AZIMUTH ELEVATION` | the oblique plane's normal, in degrees |
+//! | `lod-bias B` / `level L\|auto` / `quality S` | level of detail; samples per voxel |
+//! | `wait-complete [SECONDS]` | wait until every view is complete (default 120 s) |
+//! | `screenshot VIEW FILE.png` | write the view's last complete image |
+//! | `save-view VIEW PREFIX` | write PREFIX.camera.json, PREFIX.tf.json and PREFIX.args (the `brickyard render` arguments for the same image) |
+//! | `window-shot FILE.png` | a screenshot of the whole window |
+//! | `expect-streaming VIEW N` | fail unless at least N frames of VIEW showed partial data since the last check |
+//! | `quit` | close the window (exit 0) |
+
+use anyhow::{bail, Context, Result};
+use std::path::{Path, PathBuf};
+
+#[derive(Debug, Clone, PartialEq)]
+pub enum Cmd {
+    Size(usize, u32, u32),
+    Mode(String),
+    Drag(usize, String, f32, f32),
+    Scroll(usize, f32),
+    Click(usize, f32, f32),
+    Key(String),
+    Tf(String),
+    Colormap(String),
+    Window(f32, f32),
+    Point(f32, f32),
+    Cursor([f64; 3]),
+    Oblique(f64, f64),
+    LodBias(f64),
+    Level(Option<usize>),
+    Quality(f64),
+    WaitComplete(f64),
+    Screenshot(usize, PathBuf),
+    SaveView(usize, PathBuf),
+    WindowShot(PathBuf),
+    ExpectStreaming(usize, usize),
+    Quit,
+}
+
+/// View names, in the order of the window's views.
+pub const VIEWS: [&str; 5] = ["3d", "xy", "xz", "yz", "oblique"];
+
+fn view(s: &str) -> Result<usize> {
+    VIEWS
+        .iter()
+        .position(|v| *v == s)
+        .with_context(|| format!("expected a view ({}), found {s:?}", VIEWS.join(", ")))
+}
+
+fn num<T: std::str::FromStr>(s: &str) -> Result<T> {
+    s.parse::<T>()
+        .ok()
+        .with_context(|| format!("expected a number, found {s:?}"))
+}
+
+/// Parse a script; errors name the file and line.
+pub fn parse(path: &Path, text: &str) -> Result<Vec<Cmd>> {
+    let mut out = vec![];
+    for (n, line) in text.lines().enumerate() {
+        let line = line.split('#').next().unwrap_or("").trim();
+        if line.is_empty() {
+            continue;
+        }
+        let w: Vec<&str> = line.split_whitespace().collect();
+        let cmd = parse_line(&w)
+            .with_context(|| format!("{}: line {}: {line:?}", path.display(), n + 1))?;
+        out.push(cmd);
+    }
+    Ok(out)
+}
+
+fn parse_line(w: &[&str]) -> Result<Cmd> {
+    let arity = |k: usize| -> Result<()> {
+        if w.len() != k + 1 {
+            bail!("{} takes {k} argument(s), found {}", w[0], w.len() - 1);
+        }
+        Ok(())
+    };
+    Ok(match w[0] {
+        "size" => {
+            arity(3)?;
+            Cmd::Size(view(w[1])?, num(w[2])?, num(w[3])?)
+        }
+        "mode" => {
+            arity(1)?;
+            if !["dvr", "mip", "slice"].contains(&w[1]) {
+                bail!("mode: expected dvr, mip or slice, found {:?}", w[1]);
+            }
+            Cmd::Mode(w[1].into())
+        }
+        "drag" => {
+            arity(4)?;
+            if !["left", "right", "middle"].contains(&w[2]) {
+                bail!("drag: expected left, right or middle, found {:?}", w[2]);
+            }
+            Cmd::Drag(view(w[1])?, w[2].into(), num(w[3])?, num(w[4])?)
+        }
+        "scroll" => {
+            arity(2)?;
+            Cmd::Scroll(view(w[1])?, num(w[2])?)
+        }
+        "click" => {
+            arity(3)?;
+            Cmd::Click(view(w[1])?, num(w[2])?, num(w[3])?)
+        }
+        "key" => {
+            arity(1)?;
+            if !["left", "right", "up", "down", "plus", "minus", "r"].contains(&w[1]) {
+                bail!("key: unknown key {:?}", w[1]);
+            }
+            Cmd::Key(w[1].into())
+        }
+        "tf" => {
+            arity(1)?;
+            Cmd::Tf(w[1].into())
+        }
+        "colormap" => {
+            arity(1)?;
+            Cmd::Colormap(w[1].into())
+        }
+        "window" => {
+            arity(2)?;
+            Cmd::Window(num(w[1])?, num(w[2])?)
+        }
+        "point" => {
+            arity(2)?;
+            Cmd::Point(num(w[1])?, num(w[2])?)
+        }
+        "cursor" => {
+            arity(3)?;
+            Cmd::Cursor([num(w[1])?, num(w[2])?, num(w[3])?])
+        }
+        "oblique" => {
+            arity(2)?;
+            Cmd::Oblique(num(w[1])?, num(w[2])?)
+        }
+        "lod-bias" => {
+            arity(1)?;
+            Cmd::LodBias(num(w[1])?)
+        }
+        "level" => {
+            arity(1)?;
+            Cmd::Level(if w[1] == "auto" {
+                None
+            } else {
+                Some(num(w[1])?)
+            })
+        }
+        "quality" => {
+            arity(1)?;
+            Cmd::Quality(num(w[1])?)
+        }
+        "wait-complete" => match w.len() {
+            1 => Cmd::WaitComplete(120.0),
+            2 => Cmd::WaitComplete(num(w[1])?),
+            _ => bail!("wait-complete takes at most one argument"),
+        },
+        "screenshot" => {
+            arity(2)?;
+            Cmd::Screenshot(view(w[1])?, w[2].into())
+        }
+        "save-view" => {
+            arity(2)?;
+            Cmd::SaveView(view(w[1])?, w[2].into())
+        }
+        "window-shot" => {
+            arity(1)?;
+            Cmd::WindowShot(w[1].into())
+        }
+        "expect-streaming" => {
+            arity(2)?;
+            Cmd::ExpectStreaming(view(w[1])?, num(w[2])?)
+        }
+        "quit" => {
+            arity(0)?;
+            Cmd::Quit
+        }
+        c => bail!("unknown command {c:?}"),
+    })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn scripts_parse_and_errors_name_the_line() {
+        let p = Path::new("s.txt");
+        let c = parse(
+            p,
+            "size 3d 64 48 # main\n\nmode mip\ndrag xy left 3 -4\nquit\n",
+        )
+        .unwrap();
+        assert_eq!(
+            c,
+            vec![
+                Cmd::Size(0, 64, 48),
+                Cmd::Mode("mip".into()),
+                Cmd::Drag(1, "left".into(), 3.0, -4.0),
+                Cmd::Quit
+            ]
+        );
+        let e = format!(
+            "{:#}",
+            parse(p, "mode dvr\ndrag side left 1 1\n").unwrap_err()
+        );
+        assert!(
+            e.contains("s.txt: line 2") && e.contains("expected a view"),
+            "{e}"
+        );
+        let e = format!("{:#}", parse(p, "window 1\n").unwrap_err());
+        assert!(e.contains("line 1") && e.contains("takes 2"), "{e}");
+    }
+}

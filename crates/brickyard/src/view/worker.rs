@@ -1,0 +1,211 @@
+//! The viewer's render thread: it owns the session (virtual memory, loader,
+//! host cache) and the back end, and draws the views the window asks for,
+//! one frame at a time, round robin over the views that are not complete.
+//! The window never waits for it: it sends view specifications and takes
+//! finished frames when they come. A complete view is not drawn again until
+//! its specification changes; when every view is complete the thread
+//! sleeps until a message arrives.
+
+use crate::backend::{Backend, GpuUpdate};
+use brickyard_cache::session::Session;
+use brickyard_cache::vm::VmConfig;
+use brickyard_render::cpu::{Lod, Scene};
+use brickyard_render::reference::RenderParams;
+use brickyard_render::Image;
+use std::path::PathBuf;
+use std::sync::mpsc::{Receiver, RecvTimeoutError, Sender};
+use std::time::{Duration, Instant};
+
+/// What one view shows.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Spec {
+    pub params: RenderParams,
+    pub lod: Lod,
+    /// The channel a DVR shows.
+    pub channel: usize,
+}
+
+/// How the worker opens its session and back end.
+#[derive(Debug, Clone)]
+pub struct Setup {
+    pub store: PathBuf,
+    pub cfg: VmConfig,
+    pub host_bytes: u64,
+    pub loader_threads: usize,
+    pub backend: String,
+    pub gpu_update: GpuUpdate,
+    /// Channels shown at once (more than one: the CPU back end).
+    pub channels: usize,
+    pub read_delay: Duration,
+}
+
+pub enum Msg {
+    /// View `i` now shows `spec` (`None`: hidden), version `v`.
+    View(usize, u64, Option<Spec>),
+    /// New budgets: the session and back end are made again.
+    Reopen(Setup),
+    Quit,
+}
+
+/// One drawn frame of one view.
+pub struct Out {
+    pub view: usize,
+    pub version: u64,
+    pub image: Image,
+    pub completeness: f64,
+    pub render_ms: f64,
+    pub cache_ms: f64,
+    pub up: u64,
+    pub down: u64,
+    pub resident_bricks: usize,
+    pub pool_slots: usize,
+    pub pending: usize,
+    pub bytes_read: u64,
+    pub host_bytes: u64,
+    pub host_budget: u64,
+    pub backend: String,
+}
+
+pub enum Reply {
+    Frame(Box<Out>),
+    Error(String),
+}
+
+struct View {
+    version: u64,
+    spec: Option<Spec>,
+    complete: bool,
+}
+
+fn open(setup: &Setup, scene: &mut Scene) -> anyhow::Result<(Session, Backend)> {
+    let mut s = Session::open(
+        &setup.store,
+        setup.cfg.clone(),
+        setup.host_bytes,
+        setup.loader_threads,
+    )?;
+    s.loader().set_read_delay(setup.read_delay);
+    scene.ranges = Some(std::sync::Arc::new(s.loader().brick_ranges(1 << 24)));
+    let b = Backend::choose(&setup.backend, setup.gpu_update, &mut s, setup.channels)?;
+    Ok((s, b))
+}
+
+/// Run the worker until [`Msg::Quit`] or the window goes away. `wake` is
+/// called after each frame sent (the window repaints).
+pub fn run(setup: Setup, mut scene: Scene, rx: Receiver<Msg>, tx: Sender<Reply>, wake: impl Fn()) {
+    let (mut s, mut backend) = match open(&setup, &mut scene) {
+        Ok(x) => x,
+        Err(e) => {
+            let _ = tx.send(Reply::Error(format!("{e:#}")));
+            wake();
+            return;
+        }
+    };
+    backend.set_read_image(true);
+    let mut views: Vec<View> = vec![];
+    let mut next = 0;
+    let mut idle_since = Instant::now();
+    loop {
+        // Take every message; wait for one only when nothing is left to do.
+        let busy = views.iter().any(|v| v.spec.is_some() && !v.complete);
+        let first = if busy {
+            rx.try_recv().ok()
+        } else {
+            match rx.recv_timeout(Duration::from_millis(250)) {
+                Ok(m) => Some(m),
+                Err(RecvTimeoutError::Timeout) => continue,
+                Err(RecvTimeoutError::Disconnected) => return,
+            }
+        };
+        for m in first
+            .into_iter()
+            .chain(std::iter::from_fn(|| rx.try_recv().ok()))
+        {
+            match m {
+                Msg::Quit => return,
+                Msg::View(i, version, spec) => {
+                    while views.len() <= i {
+                        views.push(View {
+                            version: 0,
+                            spec: None,
+                            complete: true,
+                        });
+                    }
+                    let v = &mut views[i];
+                    v.version = version;
+                    v.complete = spec.is_none();
+                    v.spec = spec;
+                }
+                Msg::Reopen(setup) => match open(&setup, &mut scene) {
+                    Ok((s2, b2)) => {
+                        s = s2;
+                        backend = b2;
+                        backend.set_read_image(true);
+                        for v in &mut views {
+                            v.complete = v.spec.is_none();
+                        }
+                    }
+                    Err(e) => {
+                        let _ = tx.send(Reply::Error(format!("reopen: {e:#}")));
+                        wake();
+                    }
+                },
+            }
+        }
+        let n = views.len();
+        let Some(i) = (0..n).map(|k| (next + k) % n.max(1)).find(|&k| {
+            views
+                .get(k)
+                .is_some_and(|v| v.spec.is_some() && !v.complete)
+        }) else {
+            continue;
+        };
+        next = i + 1;
+        let v = &views[i];
+        let spec = v.spec.clone().expect("chosen above");
+        let mut sc = scene.clone();
+        sc.channel = spec.channel;
+        let f = match backend.frame(&mut s, &sc, &spec.params, spec.lod) {
+            Ok(f) => f,
+            Err(e) => {
+                let _ = tx.send(Reply::Error(format!("{e:#}")));
+                wake();
+                views[i].complete = true;
+                continue;
+            }
+        };
+        let completeness = f.stats.completeness();
+        let done = completeness >= 1.0;
+        views[i].complete = done;
+        let loader = s.loader();
+        let out = Out {
+            view: i,
+            version: views[i].version,
+            image: f.image,
+            completeness,
+            render_ms: f.render_ms,
+            cache_ms: f.cache_ms,
+            up: f.up,
+            down: f.down,
+            resident_bricks: f.session.frame.resident_bricks,
+            pool_slots: s.vm().pool_slots(),
+            pending: f.session.pending + f.session.in_flight + f.session.waiting_upload,
+            bytes_read: loader.bytes_read(),
+            host_bytes: loader.cache().bytes(),
+            host_budget: loader.cache().budget(),
+            backend: backend.describe(),
+        };
+        if tx.send(Reply::Frame(Box::new(out))).is_err() {
+            return;
+        }
+        wake();
+        // Waiting for I/O: frames keep coming, but not as a busy loop.
+        if !done && f.session.insert.inserted == 0 && f.session.insert.flagged == 0 {
+            if idle_since.elapsed() > Duration::from_millis(2) {
+                std::thread::sleep(Duration::from_millis(4));
+            }
+        } else {
+            idle_since = Instant::now();
+        }
+    }
+}
