@@ -230,3 +230,27 @@ mod tests {
         assert!(out[7][0].is_nan(), "only NaN: unknown");
     }
 }
+
+/// [`cell_ranges`] of a padded brick given as native-endian bytes of
+/// `dtype` (any alignment), for bricks that never enter a host pool.
+pub fn cell_ranges_of_bytes(
+    dtype: brickyard_core::DType,
+    bytes: &[u8],
+    padded: [usize; 3],
+    brick: Dims3,
+    apron: u64,
+) -> Vec<[f32; 2]> {
+    let mut out = vec![[f32::NAN; 2]; CellGrid::new(brick).len()];
+    brickyard_core::dispatch_dtype!(dtype, T => {
+        let n = bytes.len() / std::mem::size_of::<T>();
+        let mut v: Vec<T> = Vec::with_capacity(n);
+        // SAFETY: `v` has room for `n` values of `T`, a plain number type
+        // for which every bit pattern is valid; the bytes are copied whole.
+        unsafe {
+            std::ptr::copy_nonoverlapping(bytes.as_ptr(), v.as_mut_ptr() as *mut u8, n * std::mem::size_of::<T>());
+            v.set_len(n);
+        }
+        cell_ranges(&v, padded, brick, apron, &mut out);
+    });
+    out
+}

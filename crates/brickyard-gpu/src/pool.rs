@@ -68,6 +68,10 @@ pub struct DevicePool {
     slots: u32,
     /// Host→device bytes written since the last [`take_uploaded`](Self::take_uploaded).
     uploaded: u64,
+    /// The value range `(lo, hi)` of each cell of each slot's brick
+    /// (`brickyard_cache::cells`), `Rg32Float`, cells of slot `s` at its
+    /// slot coordinates × cells per axis; and cells per axis `[z, y, x]`.
+    cells: Option<(wgpu::Texture, [u32; 3])>,
 }
 
 impl DevicePool {
@@ -129,7 +133,89 @@ impl DevicePool {
             grid: [gz, gy, gx],
             slots,
             uploaded: 0,
+            cells: None,
         })
+    }
+
+    /// Keep the value ranges of `count` cells per axis (`[z, y, x]`) per
+    /// slot, for skipping cells the transfer function hides; every range
+    /// starts unknown (`NaN`: never skipped).
+    pub fn enable_cells(&mut self, gpu: &Gpu, count: [u32; 3]) {
+        let [gz, gy, gx] = self.grid;
+        let size = wgpu::Extent3d {
+            width: gx * count[2],
+            height: gy * count[1],
+            depth_or_array_layers: gz * count[0],
+        };
+        let t = gpu.device.create_texture(&wgpu::TextureDescriptor {
+            label: Some("cell ranges"),
+            size,
+            mip_level_count: 1,
+            sample_count: 1,
+            dimension: wgpu::TextureDimension::D3,
+            format: wgpu::TextureFormat::Rg32Float,
+            usage: wgpu::TextureUsages::TEXTURE_BINDING | wgpu::TextureUsages::COPY_DST,
+            view_formats: &[],
+        });
+        let n = (size.width * size.height * size.depth_or_array_layers) as usize;
+        let nan: Vec<f32> = vec![f32::NAN; 2 * n];
+        gpu.queue.write_texture(
+            wgpu::TexelCopyTextureInfo {
+                texture: &t,
+                mip_level: 0,
+                origin: wgpu::Origin3d::ZERO,
+                aspect: wgpu::TextureAspect::All,
+            },
+            bytemuck::cast_slice(&nan),
+            wgpu::TexelCopyBufferLayout {
+                offset: 0,
+                bytes_per_row: Some(size.width * 8),
+                rows_per_image: Some(size.height),
+            },
+            size,
+        );
+        self.cells = Some((t, count));
+    }
+
+    /// Cells per axis `[z, y, x]` and a view of the cell ranges (`None`
+    /// until [`enable_cells`](Self::enable_cells)).
+    pub fn cells(&self) -> Option<([u32; 3], wgpu::TextureView)> {
+        self.cells
+            .as_ref()
+            .map(|(t, c)| (*c, t.create_view(&Default::default())))
+    }
+
+    /// Write the cell ranges of slot `s` (`[z][y][x]` order, as
+    /// `brickyard_cache::cells::cell_ranges` gives them).
+    pub fn write_cells(&mut self, gpu: &Gpu, s: u32, ranges: &[[f32; 2]]) {
+        let Some((t, c)) = &self.cells else { return };
+        assert_eq!(ranges.len(), c.iter().product::<u32>() as usize, "one range per cell");
+        let g = self.grid;
+        let slot = [s / (g[2] * g[1]), (s / g[2]) % g[1], s % g[2]];
+        gpu.queue.write_texture(
+            wgpu::TexelCopyTextureInfo {
+                texture: t,
+                mip_level: 0,
+                origin: wgpu::Origin3d {
+                    x: slot[2] * c[2],
+                    y: slot[1] * c[1],
+                    z: slot[0] * c[0],
+                },
+                aspect: wgpu::TextureAspect::All,
+            },
+            bytemuck::cast_slice(ranges),
+            wgpu::TexelCopyBufferLayout {
+                offset: 0,
+                bytes_per_row: Some(c[2] * 8),
+                rows_per_image: Some(c[1]),
+            },
+            wgpu::Extent3d {
+                width: c[2],
+                height: c[1],
+                depth_or_array_layers: c[0],
+            },
+        );
+        self.uploaded += ranges.len() as u64 * 8;
     }
 
     pub fn slots(&self) -> u32 {

@@ -131,6 +131,7 @@ impl DeviceVm {
         }
         let padded = vm.padded().map(|p| p as u32);
         let mut pool = DevicePool::new(gpu, vm.dtype(), padded, vm.pool_slots() as u32)?;
+        pool.enable_cells(gpu, vm.cell_grid().count.map(|c| c as u32));
         let offsets = vm.table_offsets();
         let mut l = Layout {
             levels: lay.num_levels() as u32,
@@ -190,6 +191,7 @@ impl DeviceVm {
         let resident = vm.resident_slots();
         for &s in &resident {
             pool.write(gpu, s, vm.slot_voxels(s));
+            pool.write_cells(gpu, s, vm.cell_ranges(s));
         }
         bytes += pool.take_uploaded();
         vm.track_changes();
@@ -287,6 +289,7 @@ impl DeviceVm {
         let ch = vm.take_changes();
         for &s in &ch.slots {
             self.pool.write(gpu, s, vm.slot_voxels(s));
+            self.pool.write_cells(gpu, s, vm.cell_ranges(s));
         }
         let mut bytes = self.pool.take_uploaded();
         if !ch.entries.is_empty() {

@@ -17,6 +17,7 @@ use crate::image::Image;
 use crate::reference::{RenderMode, RenderParams};
 use brickyard_cache::bookkeeping::BrickIds;
 use brickyard_cache::brick::BrickContent;
+use brickyard_cache::cells::cell_ranges_of_bytes;
 use brickyard_cache::brick::BrickKey;
 use brickyard_cache::ranges::BrickRanges;
 use brickyard_cache::session::Session;
@@ -61,7 +62,13 @@ struct Uniform {
     used_cap: u32,
     skip: u32,
     clear_off: u32,
-    pad: [u32; 2],
+    /// DVR: cross cells of resident bricks that the transfer function
+    /// hides.
+    skip_cells: u32,
+    pad: u32,
+    /// Cells per brick and axis, and voxels per cell edge (`[z, y, x, _]`).
+    cell_count: [u32; 4],
+    cell_edge: [u32; 4],
     plane_origin: [f32; 4],
     plane_normal: [f32; 4],
     scale: [[f32; 4]; MAX_LEVELS],
@@ -159,7 +166,7 @@ impl GpuRenderer {
             &["render"],
             &[
                 Uniform, ReadWrite, Texture3d, Uniform, Read, ReadWrite, ReadWrite, ReadWrite,
-                ReadWrite, ReadWrite, ReadWrite,
+                ReadWrite, ReadWrite, ReadWrite, Texture3d,
             ],
         );
         GpuRenderer {
@@ -356,6 +363,11 @@ impl GpuRenderer {
         }
         let (_, aux, off) = self.aux.as_ref().expect("made above");
         u.skip = (mode == 0) as u32;
+        let (count, cells) = dvm.pool.cells().expect("DeviceVm keeps cell ranges");
+        let edge = brickyard_cache::cells::CellGrid::new(vm.config().brick).edge;
+        u.skip_cells = (mode <= 1 && scene.skip_cells) as u32;
+        u.cell_count = [count[0], count[1], count[2], 0];
+        u.cell_edge = [edge[0] as u32, edge[1] as u32, edge[2] as u32, 0];
         u.plane_origin = f4(plane.0);
         u.plane_normal = f4(plane.1);
         u.clear_off = *off;
@@ -376,6 +388,7 @@ impl GpuRenderer {
                 keys.as_entire_binding(),
                 counts.as_entire_binding(),
                 dropped.as_entire_binding(),
+                wgpu::BindingResource::TextureView(&cells),
             ],
         );
         let mut enc = gpu.device.create_command_encoder(&Default::default());
@@ -415,6 +428,7 @@ impl GpuRenderer {
                 exact: head[1] as u64,
                 unserved: head[2] as u64,
                 skipped_bricks: head[3] as u64,
+                skipped_cells: head[5] as u64,
                 ..Default::default()
             },
             requests,
@@ -486,6 +500,7 @@ pub fn update_on_device(
     let mut done = vec![false; s.waiting().len()];
     let mut items = vec![];
     let dtype = s.vm().dtype();
+    let (brick, apron, padded) = (s.vm().config().brick, s.vm().config().apron, s.vm().padded());
     for (i, b) in s.waiting().iter().enumerate() {
         let item = match &b.content {
             BrickContent::Empty => Item::empty(b.key),
@@ -496,6 +511,8 @@ pub fn update_on_device(
                 Some(&(j, slot)) if j == i => {
                     given.next();
                     dvm.pool.write(gpu, slot, v);
+                    let cells = cell_ranges_of_bytes(dtype, v, padded, brick, apron);
+                    dvm.pool.write_cells(gpu, slot, &cells);
                     Item::data(b.key, slot)
                 }
                 _ => continue,

@@ -41,8 +41,13 @@ struct Render {
     // DVR: cross hidden bricks in one jump (1), or sample every step (0).
     skip: u32,
     clear_off: u32,
+    // DVR: cross cells of resident bricks the transfer function hides;
+    // MIP: cells whose maximum cannot raise the ray's (1), or not (0).
+    skip_cells: u32,
     pad1: u32,
-    pad2: u32,
+    // Cells per brick and axis, voxels per cell edge (z, y, x).
+    cell_count: vec4<u32>,
+    cell_edge: vec4<u32>,
     // Slice: a point of the plane and its unit normal (x, y, z).
     plane_origin: vec4<f32>,
     plane_normal: vec4<f32>,
@@ -69,12 +74,15 @@ struct Render {
 // level; pool only).
 @group(0) @binding(6) var<storage, read_write> stamps: array<atomic<u32>>;
 // 0: samples, 1: exact, 2: unserved, 3: bricks crossed in one jump (per
-// ray and brick), 4: used-list length; from 8 on the used list (slot,
-// | EXACT_BIT when used at its own level).
+// ray and brick), 4: used-list length, 5: cells crossed in one jump; from
+// 8 on the used list (slot, | EXACT_BIT when used at its own level).
 @group(0) @binding(7) var<storage, read_write> counters: array<atomic<u32>>;
 @group(0) @binding(8) var<storage, read_write> keys: array<atomic<u32>>;
 @group(0) @binding(9) var<storage, read_write> counts: array<atomic<u32>>;
 @group(0) @binding(10) var<storage, read_write> dropped: array<atomic<u32>>;
+// Per pool slot, the value range (lo, hi) of each cell of its brick (NaN:
+// unknown), at the slot's coordinates × cells per axis.
+@group(0) @binding(11) var cells: texture_3d<f32>;
 
 
 const AUTO: u32 = 0xffffffffu;
@@ -375,13 +383,49 @@ fn exit_t(r: Ray, level: u32, lo: vec3<u32>, hi: vec3<u32>, limit: f32) -> f32 {
 fn land(r: Ray, level: u32, b: vec3<u32>, base_t: f32, k: u32, t1: f32) -> u32 {
     let bs = lay.block[lay.nmax].xyz;
     let lo = (b / bs) * bs;
-    let hi = min(lo + bs, lay.dims[level].xyz);
+    return land_box(r, level, lo, min(lo + bs, lay.dims[level].xyz), base_t, k, t1);
+}
+
+// `land` for the box [lo, hi) of voxel bases (a brick or a cell).
+fn land_box(r: Ray, level: u32, lo: vec3<u32>, hi: vec3<u32>, base_t: f32, k: u32, t1: f32) -> u32 {
     let te = exit_t(r, level, lo, hi, min(t1, next_level_t(level)));
     let kn = ceil((te - base_t) / R.step[level].x - 0.5 - 0.01);
     if (kn > f32(k)) {
         return u32(kn);
     }
     return k;
+}
+
+// Whether the transfer function gives zero opacity to every value in
+// [lo, hi] (NaN: unknown, so no): the piecewise-linear opacity is largest
+// at the ends of the windowed range or at a point inside it.
+fn range_clear(lo: f32, hi: f32) -> bool {
+    if (is_nan(lo) || is_nan(hi)) {
+        return false;
+    }
+    let x0 = windowed(lo);
+    let x1 = windowed(hi);
+    if (opacity_at(x0) > 0.0 || opacity_at(x1) > 0.0) {
+        return false;
+    }
+    for (var i = 0u; i < R.n_opacity; i = i + 1u) {
+        let p = tf(i);
+        if (p.x >= x0 && p.x <= x1 && p.y > 0.0) {
+            return false;
+        }
+    }
+    return true;
+}
+
+// The value range of the cell of resident brick slot `slot` holding base
+// voxel `b` (level voxel coordinates).
+fn cell_range(slot: u32, b: vec3<u32>) -> vec2<f32> {
+    let local = b % lay.block[lay.nmax].xyz;
+    let c = local / R.cell_edge.xyz;
+    let g = lay.dev_grid;
+    let sc = vec3<u32>(slot / (g.z * g.y), (slot / g.z) % g.y, slot % g.z);
+    let t = sc * R.cell_count.xyz + c;
+    return textureLoad(cells, vec3<i32>(t.zyx), 0).xy;
 }
 
 fn correct_opacity(a: f32, e: f32) -> f32 {
@@ -444,6 +488,7 @@ fn render(@builtin(global_invocation_id) g: vec3<u32>) {
     var exact = 0u;
     var unserved = 0u;
     var jumps = 0u;
+    var cells_crossed = 0u;
     var best = 0.0;
     var found = false;
     var hit = false;
@@ -469,14 +514,13 @@ fn render(@builtin(global_invocation_id) g: vec3<u32>) {
                 k = 1u;
             }
             let w = ray.o + ray.d * t;
-            var s: vec2<f32>;
+            let q = coords(level, w).xyz;
+            let b = vec3<u32>(q);
+            let e = entry_at(level, b);
+            let f = flag(e);
             if (R.skip == 1u) {
                 // Bricks the transfer function hides (by their value range,
                 // or as EMPTY/CONSTANT entries) are crossed in one jump.
-                let q = coords(level, w).xyz;
-                let b = vec3<u32>(q);
-                let e = entry_at(level, b);
-                let f = flag(e);
                 var hidden = is_clear(brick_id(level, b));
                 if (!hidden && (f == EMPTY || f == CONSTANT)) {
                     var v = 0.0;
@@ -490,10 +534,32 @@ fn render(@builtin(global_invocation_id) g: vec3<u32>) {
                     k = land(ray, level, b, base_t, k, t1);
                     continue;
                 }
-                s = sample_from(w, level, q, e);
-            } else {
-                s = sample_at(w, level);
             }
+            if (R.skip_cells == 1u && f == MAPPED) {
+                // Inside a resident brick: a cell whose values the transfer
+                // function hides (DVR), or whose maximum cannot raise the
+                // ray's (MIP), is crossed in one jump. Its brick is still
+                // in use.
+                let slot = slot_id(e, lay.brick_grid);
+                let r = cell_range(slot, b);
+                var skip = false;
+                if (R.mode == 0u) {
+                    skip = range_clear(r.x, r.y);
+                } else {
+                    skip = found && !is_nan(r.y) && r.y <= best;
+                }
+                if (skip) {
+                    mark(slot, true);
+                    cells_crossed = cells_crossed + 1u;
+                    let bs = lay.block[lay.nmax].xyz;
+                    let b0 = (b / bs) * bs;
+                    let lo = b0 + ((b - b0) / R.cell_edge.xyz) * R.cell_edge.xyz;
+                    let hi = min(min(lo + R.cell_edge.xyz, b0 + bs), lay.dims[level].xyz);
+                    k = land_box(ray, level, lo, hi, base_t, k, t1);
+                    continue;
+                }
+            }
+            let s = sample_from(w, level, q, e);
             samples = samples + 1u;
             if (s.y == 2.0) {
                 exact = exact + 1u;
@@ -534,4 +600,5 @@ fn render(@builtin(global_invocation_id) g: vec3<u32>) {
     atomicAdd(&counters[1], exact);
     atomicAdd(&counters[2], unserved);
     atomicAdd(&counters[3], jumps);
+    atomicAdd(&counters[5], cells_crossed);
 }

@@ -407,3 +407,84 @@ fn device_updates_evict_and_every_view_completes_correctly() {
         "bricks and page-table blocks were evicted: {c:?}"
     );
 }
+
+#[test]
+fn gpu_cells_are_crossed_without_changing_the_image() {
+    // Cells of resident bricks that the transfer function hides (DVR), or
+    // whose maximum cannot raise the ray's (MIP), are crossed in one jump:
+    // fewer samples, the same complete image, with updates on the device.
+    let Some(gpu) = test_gpu() else { return };
+    let dir = tempfile::tempdir().unwrap();
+    let store = dir.path().join("v.ome.zarr");
+    let dims = [64, 64, 64];
+    let src = Procedural::new(Kind::Mandelbulb, dims, DType::U8);
+    let o = ConvertOptions {
+        brick: [32; 3],
+        shard: [64; 3],
+        ..Default::default()
+    };
+    convert(&src, &store, &o, &NoProgress, &AtomicBool::new(false)).unwrap();
+    let level0 = Volume::from_store(&store, 0, 0).unwrap();
+    let extent = world_extent(dims, level0.spacing);
+    let cfg = VmConfig {
+        brick: [32; 3],
+        pool_bytes: 64 << 20,
+        ..Default::default()
+    };
+    let mut s = Session::open(&store, cfg, 64 << 20, 2).unwrap();
+    let (mut dvm, _) = DeviceVm::new(&gpu, s.vm_mut()).unwrap();
+    let mut cache = DeviceCache::new(&gpu, &dvm, s.vm()).unwrap();
+    let mut renderer = GpuRenderer::new(&gpu);
+    let nlev = (0..)
+        .take_while(|&l| Volume::from_store(&store, l, 0).is_ok())
+        .count();
+    let levels: Vec<_> = (0..nlev)
+        .map(|l| Volume::from_store(&store, l, 0).unwrap().dims)
+        .collect();
+    let mut scene = Scene::new(extent, levels);
+    // No store statistics: only cells (ranges computed from the bricks as
+    // they arrive) can hide anything.
+    scene.ranges = None;
+    let cam = Camera::fit(extent, 30.0, 20.0, Projection::Perspective { fov_y_deg: 40.0 });
+    for mode in [RenderMode::Dvr, RenderMode::Mip] {
+        let tf = TransferFunction::preset("hot", [0.0, 255.0]).unwrap();
+        let p = RenderParams::new(96, 80, cam, tf, mode.clone());
+        let mut frame = |s: &mut Session, sc: &Scene| {
+            s.begin_frame();
+            let n = s.vm().frame();
+            let f = renderer
+                .render_with(&gpu, &dvm, s.vm(), Some(&cache), sc, &p, Lod::Fixed(0))
+                .unwrap();
+            update_on_device(&gpu, &mut dvm, &mut cache, s, n, &f.list).unwrap();
+            f
+        };
+        let mut done = None;
+        for _ in 0..100 {
+            let f = frame(&mut s, &scene);
+            if f.stats.completeness() == 1.0 && f.stats.samples > 0 {
+                done = Some(f);
+                break;
+            }
+            std::thread::sleep(std::time::Duration::from_millis(2));
+        }
+        let with = done.expect("the view completes");
+        scene.skip_cells = false;
+        let without = frame(&mut s, &scene);
+        scene.skip_cells = true;
+        assert_eq!(without.stats.completeness(), 1.0);
+        let d = with.image.max_abs_diff(&without.image);
+        eprintln!(
+            "{mode:?}: samples {} with cells ({} cells crossed), {} without; max abs diff {d}",
+            with.stats.samples, with.stats.skipped_cells, without.stats.samples
+        );
+        assert!(d <= 1e-6, "{mode:?}: crossing cells changed the image by {d}");
+        assert!(with.stats.skipped_cells > 0, "{mode:?}: no cell crossed");
+        assert!(
+            (with.stats.samples as f64) < 0.9 * without.stats.samples as f64,
+            "{mode:?}: cells saved too few samples"
+        );
+        let want = render(&level0, &p);
+        let r = with.image.max_abs_diff(&want);
+        assert!(r <= TOLERANCE, "{mode:?}: max abs diff {r} to the reference");
+    }
+}
