@@ -189,7 +189,11 @@ impl DevicePool {
     /// `brickyard_cache::cells::cell_ranges` gives them).
     pub fn write_cells(&mut self, gpu: &Gpu, s: u32, ranges: &[[f32; 2]]) {
         let Some((t, c)) = &self.cells else { return };
-        assert_eq!(ranges.len(), c.iter().product::<u32>() as usize, "one range per cell");
+        assert_eq!(
+            ranges.len(),
+            c.iter().product::<u32>() as usize,
+            "one range per cell"
+        );
         let g = self.grid;
         let slot = [s / (g[2] * g[1]), (s / g[2]) % g[1], s % g[2]];
         gpu.queue.write_texture(

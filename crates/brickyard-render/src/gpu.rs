@@ -9,16 +9,17 @@
 //! Modes: DVR, MIP and slices of one channel. Empty space: DVR rays cross
 //! bricks in one jump where the transfer function maps the brick to zero
 //! opacity, known from the store's value ranges or from an EMPTY/CONSTANT
-//! page entry. Not yet on the device: skipping inside bricks (cells), MIP
-//! skipping, several channels added up.
+//! page entry; inside resident bricks, DVR rays cross cells whose value
+//! range the transfer function hides and MIP rays cells whose maximum
+//! cannot raise theirs. Not yet on the device: several channels added up.
 
 use crate::cpu::{FrameStats, Lod, Scene};
 use crate::image::Image;
 use crate::reference::{RenderMode, RenderParams};
 use brickyard_cache::bookkeeping::BrickIds;
 use brickyard_cache::brick::BrickContent;
-use brickyard_cache::cells::cell_ranges_of_bytes;
 use brickyard_cache::brick::BrickKey;
+use brickyard_cache::cells::cell_ranges_of_bytes;
 use brickyard_cache::ranges::BrickRanges;
 use brickyard_cache::session::Session;
 use brickyard_cache::vm::{Requests, VirtualMemory};
@@ -500,7 +501,11 @@ pub fn update_on_device(
     let mut done = vec![false; s.waiting().len()];
     let mut items = vec![];
     let dtype = s.vm().dtype();
-    let (brick, apron, padded) = (s.vm().config().brick, s.vm().config().apron, s.vm().padded());
+    let (brick, apron, padded) = (
+        s.vm().config().brick,
+        s.vm().config().apron,
+        s.vm().padded(),
+    );
     for (i, b) in s.waiting().iter().enumerate() {
         let item = match &b.content {
             BrickContent::Empty => Item::empty(b.key),

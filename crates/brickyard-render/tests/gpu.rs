@@ -445,7 +445,12 @@ fn gpu_cells_are_crossed_without_changing_the_image() {
     // No store statistics: only cells (ranges computed from the bricks as
     // they arrive) can hide anything.
     scene.ranges = None;
-    let cam = Camera::fit(extent, 30.0, 20.0, Projection::Perspective { fov_y_deg: 40.0 });
+    let cam = Camera::fit(
+        extent,
+        30.0,
+        20.0,
+        Projection::Perspective { fov_y_deg: 40.0 },
+    );
     for mode in [RenderMode::Dvr, RenderMode::Mip] {
         let tf = TransferFunction::preset("hot", [0.0, 255.0]).unwrap();
         let p = RenderParams::new(96, 80, cam, tf, mode.clone());
@@ -477,7 +482,10 @@ fn gpu_cells_are_crossed_without_changing_the_image() {
             "{mode:?}: samples {} with cells ({} cells crossed), {} without; max abs diff {d}",
             with.stats.samples, with.stats.skipped_cells, without.stats.samples
         );
-        assert!(d <= 1e-6, "{mode:?}: crossing cells changed the image by {d}");
+        assert!(
+            d <= 1e-6,
+            "{mode:?}: crossing cells changed the image by {d}"
+        );
         assert!(with.stats.skipped_cells > 0, "{mode:?}: no cell crossed");
         assert!(
             (with.stats.samples as f64) < 0.9 * without.stats.samples as f64,
@@ -485,6 +493,9 @@ fn gpu_cells_are_crossed_without_changing_the_image() {
         );
         let want = render(&level0, &p);
         let r = with.image.max_abs_diff(&want);
-        assert!(r <= TOLERANCE, "{mode:?}: max abs diff {r} to the reference");
+        assert!(
+            r <= TOLERANCE,
+            "{mode:?}: max abs diff {r} to the reference"
+        );
     }
 }
