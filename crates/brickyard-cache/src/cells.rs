@@ -151,6 +151,30 @@ pub fn cell_ranges<T: Sample>(
     }
 }
 
+/// [`cell_ranges`] of a padded brick given as native-endian bytes of
+/// `dtype` (any alignment), for bricks that never enter a host pool.
+pub fn cell_ranges_of_bytes(
+    dtype: brickyard_core::DType,
+    bytes: &[u8],
+    padded: [usize; 3],
+    brick: Dims3,
+    apron: u64,
+) -> Vec<[f32; 2]> {
+    let mut out = vec![[f32::NAN; 2]; CellGrid::new(brick).len()];
+    brickyard_core::dispatch_dtype!(dtype, T => {
+        let n = bytes.len() / std::mem::size_of::<T>();
+        let mut v: Vec<T> = Vec::with_capacity(n);
+        // SAFETY: `v` has room for `n` values of `T`, a plain number type
+        // for which every bit pattern is valid; the bytes are copied whole.
+        unsafe {
+            std::ptr::copy_nonoverlapping(bytes.as_ptr(), v.as_mut_ptr().cast::<u8>(), n * std::mem::size_of::<T>());
+            v.set_len(n);
+        }
+        cell_ranges(&v, padded, brick, apron, &mut out);
+    });
+    out
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -229,28 +253,20 @@ mod tests {
         assert_eq!(out[0], [3.0 - m(3.0), 3.0 + m(3.0)]);
         assert!(out[7][0].is_nan(), "only NaN: unknown");
     }
-}
 
-/// [`cell_ranges`] of a padded brick given as native-endian bytes of
-/// `dtype` (any alignment), for bricks that never enter a host pool.
-pub fn cell_ranges_of_bytes(
-    dtype: brickyard_core::DType,
-    bytes: &[u8],
-    padded: [usize; 3],
-    brick: Dims3,
-    apron: u64,
-) -> Vec<[f32; 2]> {
-    let mut out = vec![[f32::NAN; 2]; CellGrid::new(brick).len()];
-    brickyard_core::dispatch_dtype!(dtype, T => {
-        let n = bytes.len() / std::mem::size_of::<T>();
-        let mut v: Vec<T> = Vec::with_capacity(n);
-        // SAFETY: `v` has room for `n` values of `T`, a plain number type
-        // for which every bit pattern is valid; the bytes are copied whole.
-        unsafe {
-            std::ptr::copy_nonoverlapping(bytes.as_ptr(), v.as_mut_ptr() as *mut u8, n * std::mem::size_of::<T>());
-            v.set_len(n);
-        }
-        cell_ranges(&v, padded, brick, apron, &mut out);
-    });
-    out
+    #[test]
+    fn ranges_of_unaligned_bytes_equal_the_typed_ones() {
+        let brick = [16, 16, 16];
+        let padded = [18usize, 18, 18];
+        let vox: Vec<u16> = (0..18 * 18 * 18)
+            .map(|i| ((i * 37) % 4001) as u16)
+            .collect();
+        let mut want = vec![[0.0; 2]; CellGrid::new(brick).len()];
+        cell_ranges(&vox, padded, brick, 1, &mut want);
+        // One byte in: the slice is not aligned for u16.
+        let mut bytes = vec![0u8];
+        bytes.extend(vox.iter().flat_map(|v| v.to_ne_bytes()));
+        let got = cell_ranges_of_bytes(brickyard_core::DType::U16, &bytes[1..], padded, brick, 1);
+        assert_eq!(got, want);
+    }
 }
