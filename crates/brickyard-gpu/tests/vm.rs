@@ -160,8 +160,9 @@ fn run_case(dtype: DType, seed: u64) {
         let padded_voxels: u64 = vm.padded().iter().product::<usize>() as u64;
         assert_eq!(
             sync.bytes,
-            sync.entries as u64 * 16 + sync.bricks as u64 * padded_voxels * texel,
-            "only changes cross"
+            sync.entries as u64 * 16
+                + sync.bricks as u64 * (padded_voxels * texel + vm.cell_grid().len() as u64 * 8),
+            "only changes cross (entries; bricks with their cell ranges)"
         );
         // Queries: voxels of the bricks just inserted and random ones.
         let mut queries = vec![];
