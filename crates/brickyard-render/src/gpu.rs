@@ -113,18 +113,26 @@ pub struct GpuRenderer {
     /// The counters and used-slot list (sized by the slot count), and the
     /// image (sized by width × height): kept between frames.
     counters: Option<(u32, wgpu::Buffer)>,
-    image: Option<((u32, u32), wgpu::Buffer)>,
+    /// Image buffers by size, most recently used last (a viewer draws
+    /// several views of different sizes in turn).
+    images: Vec<((u32, u32), wgpu::Buffer)>,
     /// The request table and the first brick id of each level it was made
     /// for.
     table: Option<(Vec<u32>, RequestTableGpu)>,
     /// The transfer function and transparent-brick bits (`gpu.wgsl`'s
     /// `aux`) and where the bits start; rebuilt only when what they were
     /// made for changes.
-    aux: Option<(AuxKey, wgpu::Buffer, u32)>,
+    /// Several, most recently used last (views with different transfer
+    /// functions in turn).
+    aux: Vec<(AuxKey, wgpu::Buffer, u32)>,
 }
 
-/// Transfer function, value ranges (by address), channel, brick grid.
-type AuxKey = (TransferFunction, usize, usize, Vec<[u64; 3]>);
+/// Transfer function, value ranges (by address), channel, brick grid, DVR
+/// (the clear bits are for DVR only).
+type AuxKey = (TransferFunction, usize, usize, Vec<[u64; 3]>, bool);
+
+/// Image and transfer-function buffers kept for reuse.
+const KEPT: usize = 6;
 
 /// One bit per brick id: set when the transfer function maps the brick's
 /// value range (from `ranges`, for `channel`) to zero opacity.
@@ -175,9 +183,9 @@ impl GpuRenderer {
             kernel,
             stamps: None,
             counters: None,
-            image: None,
+            images: vec![],
             table: None,
-            aux: None,
+            aux: vec![],
         }
     }
 
@@ -266,12 +274,22 @@ impl GpuRenderer {
         // The counters start at 0; the used list is written up to its count.
         gpu.queue.write_buffer(counters, 0, &[0; 32]);
         let (w, h) = (params.width, params.height);
-        if self.image.as_ref().is_none_or(|(d, _)| *d != (w, h)) {
-            // Every invocation writes its pixel: no clearing between frames.
-            let b = gpu.storage_buffer_zeroed("image", w as u64 * h as u64 * 16);
-            self.image = Some(((w, h), b));
+        match self.images.iter().position(|(d, _)| *d == (w, h)) {
+            Some(i) => {
+                let x = self.images.remove(i);
+                self.images.push(x);
+            }
+            None => {
+                // Every invocation writes its pixel: no clearing between
+                // frames.
+                let b = gpu.storage_buffer_zeroed("image", w as u64 * h as u64 * 16);
+                if self.images.len() >= KEPT {
+                    self.images.remove(0);
+                }
+                self.images.push(((w, h), b));
+            }
         }
-        let image = &self.image.as_ref().expect("made above").1;
+        let image = &self.images.last().expect("made above").1;
 
         let cam = &params.camera;
         let basis = cam.basis();
@@ -343,8 +361,12 @@ impl GpuRenderer {
                 .map_or(0, |r| std::sync::Arc::as_ptr(r) as usize),
             scene.channel,
             grid.clone(),
+            mode == 0,
         );
-        if self.aux.as_ref().is_none_or(|(k, ..)| *k != key) {
+        if let Some(i) = self.aux.iter().position(|(k, ..)| *k == key) {
+            let x = self.aux.remove(i);
+            self.aux.push(x);
+        } else {
             // The transfer function's points, then the clear bits.
             let mut words: Vec<u32> = tf
                 .opacity
@@ -360,9 +382,12 @@ impl GpuRenderer {
             };
             words.extend(bits);
             let buf = gpu.storage_buffer("transfer function", &words);
-            self.aux = Some((key, buf, off));
+            if self.aux.len() >= KEPT {
+                self.aux.remove(0);
+            }
+            self.aux.push((key, buf, off));
         }
-        let (_, aux, off) = self.aux.as_ref().expect("made above");
+        let (_, aux, off) = self.aux.last().expect("made above");
         u.skip = (mode == 0) as u32;
         let (count, cells) = dvm.pool.cells().expect("DeviceVm keeps cell ranges");
         let edge = brickyard_cache::cells::CellGrid::new(vm.config().brick).edge;
