@@ -15,7 +15,7 @@
 
 use crate::cpu::{FrameStats, Lod, Scene};
 use crate::image::Image;
-use crate::reference::{RenderMode, RenderParams};
+use crate::reference::{ChannelStyle, RenderMode, RenderParams};
 use brickyard_cache::bookkeeping::BrickIds;
 use brickyard_cache::brick::BrickContent;
 use brickyard_cache::brick::BrickKey;
@@ -70,6 +70,11 @@ struct Uniform {
     /// Cells per brick and axis, and voxels per cell edge (`[z, y, x, _]`).
     cell_count: [u32; 4],
     cell_edge: [u32; 4],
+    /// Channels added up (0: one through the transfer function), and where
+    /// their styles start in the aux buffer.
+    n_channels: u32,
+    styles_off: u32,
+    pad3: [u32; 2],
     plane_origin: [f32; 4],
     plane_normal: [f32; 4],
     scale: [[f32; 4]; MAX_LEVELS],
@@ -124,12 +129,19 @@ pub struct GpuRenderer {
     /// made for changes.
     /// Several, most recently used last (views with different transfer
     /// functions in turn).
-    aux: Vec<(AuxKey, wgpu::Buffer, u32)>,
+    aux: Vec<(AuxKey, wgpu::Buffer, u32, u32)>,
 }
 
 /// Transfer function, value ranges (by address), channel, brick grid, DVR
 /// (the clear bits are for DVR only).
-type AuxKey = (TransferFunction, usize, usize, Vec<[u64; 3]>, bool);
+type AuxKey = (
+    TransferFunction,
+    usize,
+    usize,
+    Vec<[u64; 3]>,
+    bool,
+    Vec<ChannelStyle>,
+);
 
 /// Image and transfer-function buffers kept for reuse.
 const KEPT: usize = 6;
@@ -219,10 +231,7 @@ impl GpuRenderer {
         params: &RenderParams,
         lod: Lod,
     ) -> Result<GpuFrame, GpuError> {
-        assert!(
-            params.channels.is_empty(),
-            "several channels are rendered on the CPU for now"
-        );
+        assert!(params.channels.len() <= 16, "at most 16 channels added up");
         let (mode, plane) = match params.mode {
             RenderMode::Dvr => (0, ([0.0; 3], [0.0; 3])),
             RenderMode::Mip => (1, ([0.0; 3], [0.0; 3])),
@@ -362,6 +371,7 @@ impl GpuRenderer {
             scene.channel,
             grid.clone(),
             mode == 0,
+            params.channels.clone(),
         );
         if let Some(i) = self.aux.iter().position(|(k, ..)| *k == key) {
             let x = self.aux.remove(i);
@@ -381,13 +391,29 @@ impl GpuRenderer {
                 _ => vec![0],
             };
             words.extend(bits);
+            let styles_off = words.len() as u32;
+            // The channels added up: channel, lo, hi, 0, r, g, b, 0.
+            for c in &params.channels {
+                words.extend([
+                    c.channel as u32,
+                    c.window[0].to_bits(),
+                    c.window[1].to_bits(),
+                    0,
+                    c.color[0].to_bits(),
+                    c.color[1].to_bits(),
+                    c.color[2].to_bits(),
+                    0,
+                ]);
+            }
             let buf = gpu.storage_buffer("transfer function", &words);
             if self.aux.len() >= KEPT {
                 self.aux.remove(0);
             }
-            self.aux.push((key, buf, off));
+            self.aux.push((key, buf, off, styles_off));
         }
-        let (_, aux, off) = self.aux.last().expect("made above");
+        let (_, aux, off, styles_off) = self.aux.last().expect("made above");
+        u.n_channels = params.channels.len() as u32;
+        u.styles_off = *styles_off;
         u.skip = (mode == 0) as u32;
         let (count, cells) = dvm.pool.cells().expect("DeviceVm keeps cell ranges");
         let edge = brickyard_cache::cells::CellGrid::new(vm.config().brick).edge;

@@ -48,6 +48,13 @@ struct Render {
     // Cells per brick and axis, voxels per cell edge (z, y, x).
     cell_count: vec4<u32>,
     cell_edge: vec4<u32>,
+    // Several channels added up (slice, MIP): how many (0: one channel
+    // through the transfer function) and where their styles start in
+    // `aux` (8 words each: channel, lo, hi, 0, r, g, b, 0).
+    n_channels: u32,
+    styles_off: u32,
+    pad3: u32,
+    pad4: u32,
     // Slice: a point of the plane and its unit normal (x, y, z).
     plane_origin: vec4<f32>,
     plane_normal: vec4<f32>,
@@ -92,9 +99,13 @@ const USED_BASE: u32 = 8u;
 
 var<private> last_mark: u32;
 // The page entry of the brick last walked to: its level, brick, entry.
-var<private> memo_level: u32;
-var<private> memo_brick: vec3<u32>;
-var<private> memo_entry: vec2<u32>;
+// Per channel shown (index `cur_idx`): the last brick walked to.
+var<private> memo_level: array<u32, 16>;
+var<private> memo_brick: array<vec3<u32>, 16>;
+var<private> memo_entry: array<vec2<u32>, 16>;
+// The channel being sampled and its index among those shown.
+var<private> cur_ch: u32;
+var<private> cur_idx: u32;
 
 fn tf(i: u32) -> vec4<f32> {
     return vec4<f32>(
@@ -209,7 +220,7 @@ fn miss(id: u32) {
 fn brick_id(l: u32, v: vec3<u32>) -> u32 {
     let g = R.bricks[l];
     let b = v / lay.block[lay.nmax].xyz;
-    return g.w + (R.channel * g.x + b.x) * g.y * g.z + b.y * g.z + b.z;
+    return g.w + (cur_ch * g.x + b.x) * g.y * g.z + b.y * g.z + b.z;
 }
 
 // Voxel base and fractions of world point `w` (x, y, z) at level `l`.
@@ -276,12 +287,13 @@ fn walk_marking(l: u32, c: u32, v: vec3<u32>) -> vec2<u32> {
 // stay in one brick.
 fn entry_at(level: u32, v: vec3<u32>) -> vec2<u32> {
     let b = v / lay.block[lay.nmax].xyz;
-    if (level != memo_level || any(b != memo_brick)) {
-        memo_level = level;
-        memo_brick = b;
-        memo_entry = walk_marking(level, R.channel, v);
+    let i = cur_idx;
+    if (level != memo_level[i] || any(b != memo_brick[i])) {
+        memo_level[i] = level;
+        memo_brick[i] = b;
+        memo_entry[i] = walk_marking(level, cur_ch, v);
     }
-    return memo_entry;
+    return memo_entry[i];
 }
 
 fn sample_at(w: vec3<f32>, level: u32) -> vec2<f32> {
@@ -467,16 +479,173 @@ fn slice_pixel(ray: Ray) -> vec4<f32> {
     return vec4<f32>(color_at(windowed(s.x)), 1.0);
 }
 
+
+// Channel `i` of those added up: (channel, lo, hi) and colour.
+fn style(i: u32) -> vec4<f32> {
+    let o = R.styles_off + 8u * i;
+    return vec4<f32>(f32(aux[o]), bitcast<f32>(aux[o + 1u]), bitcast<f32>(aux[o + 2u]), 0.0);
+}
+
+fn style_color(i: u32) -> vec3<f32> {
+    let o = R.styles_off + 8u * i + 4u;
+    return vec3<f32>(bitcast<f32>(aux[o]), bitcast<f32>(aux[o + 1u]), bitcast<f32>(aux[o + 2u]));
+}
+
+fn use_channel(i: u32) {
+    cur_idx = i;
+    cur_ch = aux[R.styles_off + 8u * i];
+}
+
+// The additive mix of the channels' values `v[i]` (bit i of `have` clear,
+// or NaN: nothing), as the CPU's `mix_channels`: Σ colour·intensity,
+// clamped to 1, opaque.
+fn mix(v: array<f32, 16>, have: u32) -> vec4<f32> {
+    var rgb = vec3<f32>(0.0);
+    for (var i = 0u; i < R.n_channels; i = i + 1u) {
+        let st = style(i);
+        let raw = (v[i] - st.y) / (st.z - st.y);
+        var x = 0.0;
+        if (((have >> i) & 1u) == 1u && !is_nan(raw)) {
+            x = clamp(raw, 0.0, 1.0);
+        }
+        rgb = rgb + style_color(i) * x;
+    }
+    return vec4<f32>(min(rgb, vec3<f32>(1.0)), 1.0);
+}
+
+// A slice of several channels.
+fn slice_channels(ray: Ray) -> vec4<f32> {
+    let n = R.plane_normal.xyz;
+    let denom = dot(ray.d, n);
+    if (denom == 0.0) {
+        return vec4<f32>(0.0);
+    }
+    let t = dot(R.plane_origin.xyz - ray.o, n) / denom;
+    if (is_nan(t) || t < 0.0) {
+        return vec4<f32>(0.0);
+    }
+    let w = ray.o + ray.d * t;
+    if (any(w < vec3<f32>(0.0)) || any(w > R.extent.xyz)) {
+        return vec4<f32>(0.0);
+    }
+    let level = level_at(t);
+    var v: array<f32, 16>;
+    var have = 0u;
+    for (var i = 0u; i < R.n_channels; i = i + 1u) {
+        use_channel(i);
+        let s = sample_at(w, level);
+        atomicAdd(&counters[0], 1u);
+        if (s.y == 2.0) {
+            atomicAdd(&counters[1], 1u);
+        }
+        if (s.y == 0.0) {
+            atomicAdd(&counters[2], 1u);
+        } else {
+            v[i] = s.x;
+            have = have | (1u << i);
+        }
+    }
+    return mix(v, have);
+}
+
+// The largest value of the current channel along the ray in `span` at the
+// entry level (NaN samples and unserved ones left out), and whether there
+// was one; crossing cells whose maximum cannot raise it; as the CPU's
+// `mip_max`.
+fn mip_max(ray: Ray, span: vec2<f32>) -> vec2<f32> {
+    let t1 = span.y;
+    let level = level_at(span.x);
+    var best = 0.0;
+    var found = false;
+    var k = 0u;
+    var samples = 0u;
+    var exact = 0u;
+    var unserved = 0u;
+    var crossed = 0u;
+    loop {
+        let t = span.x + (f32(k) + 0.5) * R.step[level].x;
+        if (t >= t1) {
+            break;
+        }
+        k = k + 1u;
+        let w = ray.o + ray.d * t;
+        let q = coords(level, w).xyz;
+        let b = vec3<u32>(q);
+        let e = entry_at(level, b);
+        if (R.skip_cells == 1u && found && flag(e) == MAPPED) {
+            let slot = slot_id(e, lay.brick_grid);
+            let r = cell_range(slot, b);
+            if (!is_nan(r.y) && r.y <= best) {
+                mark(slot, true);
+                crossed = crossed + 1u;
+                let bs = lay.block[lay.nmax].xyz;
+                let b0 = (b / bs) * bs;
+                let lo = b0 + ((b - b0) / R.cell_edge.xyz) * R.cell_edge.xyz;
+                let hi = min(min(lo + R.cell_edge.xyz, b0 + bs), lay.dims[level].xyz);
+                k = land_box(ray, level, lo, hi, span.x, k, t1);
+                continue;
+            }
+        }
+        let s = sample_from(w, level, q, e);
+        samples = samples + 1u;
+        if (s.y == 2.0) {
+            exact = exact + 1u;
+        }
+        if (s.y == 0.0 || is_nan(s.x)) {
+            unserved = unserved + u32(s.y == 0.0);
+            continue;
+        }
+        if (!found || s.x > best) {
+            best = s.x;
+            found = true;
+        }
+    }
+    atomicAdd(&counters[0], samples);
+    atomicAdd(&counters[1], exact);
+    atomicAdd(&counters[2], unserved);
+    atomicAdd(&counters[5], crossed);
+    return vec2<f32>(best, f32(found));
+}
+
 @compute @workgroup_size(8, 8)
 fn render(@builtin(global_invocation_id) g: vec3<u32>) {
     if (g.x >= R.width || g.y >= R.height) {
         return;
     }
     last_mark = AUTO;
-    memo_level = AUTO;
+    for (var i = 0u; i < 16u; i = i + 1u) {
+        memo_level[i] = AUTO;
+    }
+    cur_ch = R.channel;
+    cur_idx = 0u;
     miss_id = AUTO;
     miss_n = 0u;
     let ray = pixel_ray(g.x, g.y);
+    if (R.n_channels > 0u) {
+        var px = vec4<f32>(0.0);
+        if (R.mode == 2u) {
+            px = slice_channels(ray);
+        } else {
+            // MIP: each channel's maximum along the ray, then the mix.
+            let span = intersect(ray);
+            if (span.y > span.x && span.x + 0.5 * R.step[level_at(span.x)].x < span.y) {
+                var v: array<f32, 16>;
+                var have = 0u;
+                for (var i = 0u; i < R.n_channels; i = i + 1u) {
+                    use_channel(i);
+                    let m = mip_max(ray, span);
+                    v[i] = m.x;
+                    if (m.y > 0.0) {
+                        have = have | (1u << i);
+                    }
+                }
+                px = mix(v, have);
+            }
+        }
+        flush_misses();
+        image[g.y * R.width + g.x] = px;
+        return;
+    }
     if (R.mode == 2u) {
         image[g.y * R.width + g.x] = slice_pixel(ray);
         flush_misses();

@@ -499,3 +499,131 @@ fn gpu_cells_are_crossed_without_changing_the_image() {
         );
     }
 }
+
+#[test]
+fn gpu_channels_add_up_in_slices_and_mips() {
+    // Two channels (a Mandelbulb and a Marschner–Lobb), each windowed and
+    // tinted, added up on the device with its own update step: complete
+    // images equal the in-core `render_channels` within the tolerance.
+    use brickyard_render::reference::{render_channels, ChannelStyle};
+    let Some(gpu) = test_gpu() else { return };
+    let dir = tempfile::tempdir().unwrap();
+    let dims = [40u64, 48, 64];
+    let raw = dir.path().join("two.raw");
+    let mut bytes = vec![];
+    for kind in [Kind::Mandelbulb, Kind::MarschnerLobb] {
+        let g = Procedural::new(kind, dims, DType::U8);
+        for z in 0..dims[0] {
+            for y in 0..dims[1] {
+                for x in 0..dims[2] {
+                    bytes.push((g.value(z, y, x) * 255.0).round() as u8);
+                }
+            }
+        }
+    }
+    std::fs::write(&raw, &bytes).unwrap();
+    let opts: brickyard_store::import::raw::RawOptions =
+        serde_json::from_str(r#"{"dims":[64,48,40],"dtype":"u8","channels":2}"#).unwrap();
+    let src = brickyard_store::import::raw::open(&raw, &opts).unwrap();
+    let store = dir.path().join("two.ome.zarr");
+    let o = ConvertOptions {
+        brick: [16; 3],
+        shard: [32; 3],
+        ..Default::default()
+    };
+    convert(&src, &store, &o, &NoProgress, &AtomicBool::new(false)).unwrap();
+    let nlev = (0..)
+        .take_while(|&l| Volume::from_store(&store, l, 0).is_ok())
+        .count();
+    let extent = world_extent(dims, Volume::from_store(&store, 0, 0).unwrap().spacing);
+    let scene = Scene::new(
+        extent,
+        (0..nlev)
+            .map(|l| Volume::from_store(&store, l, 0).unwrap().dims)
+            .collect(),
+    );
+    let styles = vec![
+        ChannelStyle {
+            channel: 0,
+            color: [1.0, 0.2, 0.0],
+            window: [0.0, 255.0],
+        },
+        ChannelStyle {
+            channel: 1,
+            color: [0.0, 0.8, 1.0],
+            window: [40.0, 200.0],
+        },
+    ];
+    let tf = TransferFunction::preset("linear", [0.0, 255.0]).unwrap();
+    let vol_bytes = 2 * dims.iter().product::<u64>();
+    let slice = RenderMode::Slice {
+        origin: [extent[0] * 0.5, extent[1] * 0.5, extent[2] * 0.45],
+        normal: [0.1, -0.05, 1.0],
+    };
+    let mut renderer = GpuRenderer::new(&gpu);
+    for (mode, level, pool) in [
+        (slice.clone(), 0, vol_bytes),
+        (RenderMode::Mip, 1, vol_bytes / 2),
+    ] {
+        let vols: Vec<_> = (0..2)
+            .map(|c| Volume::from_store(&store, level, c).unwrap())
+            .collect();
+        let cam = match &mode {
+            RenderMode::Slice { origin, normal } => {
+                Camera::facing_plane(*origin, *normal, extent[0] * 1.1)
+            }
+            _ => Camera::fit(
+                extent,
+                30.0,
+                20.0,
+                Projection::Perspective { fov_y_deg: 40.0 },
+            ),
+        };
+        let mut p = RenderParams::new(72, 60, cam, tf.clone(), mode.clone());
+        p.channels = styles.clone();
+        let cfg = VmConfig {
+            brick: [16; 3],
+            pool_bytes: pool,
+            request_cap: 64,
+            ..Default::default()
+        };
+        let mut s = Session::open(&store, cfg, 8 << 20, 2).unwrap();
+        let (mut dvm, _) = DeviceVm::new(&gpu, s.vm_mut()).unwrap();
+        let mut cache = DeviceCache::new(&gpu, &dvm, s.vm()).unwrap();
+        let mut done = None;
+        for frame in 1..=300 {
+            s.begin_frame();
+            let n = s.vm().frame();
+            let f = renderer
+                .render_with(
+                    &gpu,
+                    &dvm,
+                    s.vm(),
+                    Some(&cache),
+                    &scene,
+                    &p,
+                    Lod::Fixed(level),
+                )
+                .unwrap();
+            update_on_device(&gpu, &mut dvm, &mut cache, &mut s, n, &f.list).unwrap();
+            if f.stats.completeness() == 1.0 && f.stats.samples > 0 {
+                done = Some((frame, f));
+                break;
+            }
+            std::thread::sleep(std::time::Duration::from_millis(1));
+        }
+        let (frames, f) = done.expect("the view completes");
+        let want = render_channels(&vols, &p);
+        let d = f.image.max_abs_diff(&want);
+        eprintln!("{mode:?}: {frames} frames, max abs diff {d} to render_channels");
+        assert!(
+            d <= TOLERANCE,
+            "{mode:?}: max abs diff {d} to render_channels"
+        );
+        let sum = |c: usize| f.image.rgba.iter().map(|px| px[c] as f64).sum::<f64>();
+        assert!(
+            sum(0) > 1.0 && sum(2) > 1.0,
+            "{mode:?}: a channel is missing"
+        );
+    }
+}

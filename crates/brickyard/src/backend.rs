@@ -74,25 +74,22 @@ pub enum Backend {
 impl Backend {
     /// The back end `choice` names for rendering `channels` channels (added
     /// up when several) from session `s`. `auto` takes a hardware adapter when
-    /// there is one and the view runs on the device (one channel), the CPU
-    /// otherwise (a software adapter is slower than the CPU renderer).
+    /// there is one, the CPU otherwise (a software adapter is slower than the
+    /// CPU renderer).
     pub fn choose(
         choice: &str,
         update: GpuUpdate,
         s: &mut Session,
         channels: usize,
     ) -> Result<Backend> {
-        let device_mode = channels <= 1;
+        if channels > 16 {
+            bail!("at most 16 channels can be added up, {channels} asked for");
+        }
         let gpu = match choice {
             "cpu" => return Ok(Backend::Cpu),
-            "gpu" => {
-                if !device_mode {
-                    bail!("--backend gpu: several channels added up are rendered on the CPU for now (use --backend cpu or auto)");
-                }
-                Gpu::new(AdapterChoice::Best).context("--backend gpu")?
-            }
-            "auto" => match (device_mode, Gpu::new(AdapterChoice::Best)) {
-                (true, Ok(g)) if g.info.device_type != wgpu::DeviceType::Cpu => g,
+            "gpu" => Gpu::new(AdapterChoice::Best).context("--backend gpu")?,
+            "auto" => match Gpu::new(AdapterChoice::Best) {
+                Ok(g) if g.info.device_type != wgpu::DeviceType::Cpu => g,
                 _ => return Ok(Backend::Cpu),
             },
             c => bail!("--backend: expected auto, gpu or cpu, found {c:?}"),

@@ -388,21 +388,41 @@ fn gpu_and_cpu_backends_draw_the_same_pngs() {
             .unwrap();
         assert!(worst <= 1, "{mode}: 8-bit images differ by {worst}");
     }
-    fails_with(
-        &run(&[
+    // Channels added up (here one channel twice, with different windows
+    // and colours) on both back ends.
+    let mut pixels = vec![];
+    for backend in ["cpu", "gpu"] {
+        let png = d.path().join(format!("channels-{backend}.png"));
+        let o = run(&[
             "render",
             s(&store),
             "--mode",
             "mip",
             "--channel",
-            "0:green",
+            "0:green:0,200",
             "--channel",
-            "0:red",
+            "0:ff4000:60,255",
+            "--size",
+            "48x40",
+            "--out",
+            s(&png),
+            "--pool",
+            "1MiB",
+            "--brick",
+            "8",
             "--backend",
-            "gpu",
-        ]),
-        &["backend", "channels"],
-    );
+            backend,
+        ]);
+        assert!(o.status.success(), "channels {backend}: {}", stderr(&o));
+        pixels.push(png_pixels(&png));
+    }
+    let worst = pixels[0]
+        .iter()
+        .zip(&pixels[1])
+        .map(|(a, b)| a.abs_diff(*b))
+        .max()
+        .unwrap();
+    assert!(worst <= 1, "channels: 8-bit images differ by {worst}");
     fails_with(
         &run(&["render", s(&store), "--backend", "quantum"]),
         &["backend", "quantum"],
