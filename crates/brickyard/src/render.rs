@@ -106,7 +106,7 @@ pub struct RenderCmd {
     /// Print only the final frame of each view.
     #[arg(long)]
     quiet: bool,
-    /// auto (a hardware GPU for DVR and MIP when there is one, else the
+    /// auto (a hardware GPU when there is one, else the
     /// CPU), gpu or cpu.
     #[arg(long, default_value = "auto")]
     backend: String,

@@ -30,8 +30,7 @@ pub struct ViewCmd {
     /// An OME-Zarr store; none: the demo dataset (brickyard-demo/,
     /// generated on first use).
     store: Option<PathBuf>,
-    /// auto (a hardware GPU when there is one and one channel, else the
-    /// CPU), gpu or cpu.
+    /// auto (a hardware GPU when there is one, else the CPU), gpu or cpu.
     #[arg(long, default_value = "auto")]
     backend: String,
     /// On the GPU, who decides cache updates: device or host.
