@@ -210,3 +210,118 @@ quit
     assert!(w >= 600 && h >= 400, "window shot {w}x{h}");
     assert!(px.chunks(4).any(|c| c[0] > 100), "window shot is blank");
 }
+
+#[test]
+fn viewer_adds_channels_up_as_render_does() {
+    let d = tempfile::tempdir().unwrap();
+    let p = |n: &str| d.path().join(n);
+    // Two channels, one after the other in one raw file.
+    let mut bytes = vec![];
+    for kind in ["mandelbulb", "marschner-lobb"] {
+        let raw = p(&format!("{kind}.raw"));
+        let o = Command::new(bin())
+            .args(["generate", kind, s(&raw), "--size", "40x36x32", "--quiet"])
+            .output()
+            .unwrap();
+        assert!(o.status.success(), "{}", stderr(&o));
+        bytes.extend(std::fs::read(&raw).unwrap());
+    }
+    std::fs::write(p("two.raw"), bytes).unwrap();
+    let store = p("two.ome.zarr");
+    let o = Command::new(bin())
+        .args(["convert", s(&p("two.raw")), s(&store), "--dims", "40x36x32"])
+        .args([
+            "--dtype",
+            "u8",
+            "--channels",
+            "2",
+            "--brick",
+            "16",
+            "--quiet",
+        ])
+        .output()
+        .unwrap();
+    assert!(o.status.success(), "{}", stderr(&o));
+    let script = format!(
+        "size 3d 80 64
+size xy 48 48
+size xz 48 40
+size yz 40 48
+size oblique 48 48
+channel-color 0 ff3000
+channel-window 0 0 220
+channel-color 1 00c0ff
+channel-window 1 40 200
+mode mip
+wait-complete 300
+screenshot 3d {mip}.png
+save-view 3d {mip}
+screenshot xz {xz}.png
+save-view xz {xz}
+channel 0 off
+wait-complete 300
+screenshot xy {one}.png
+save-view xy {one}
+quit
+",
+        mip = s(&p("mip")),
+        xz = s(&p("xz")),
+        one = s(&p("one")),
+    );
+    std::fs::write(p("s.txt"), script).unwrap();
+    let Some(mut cmd) = with_display(&[
+        "view",
+        s(&store),
+        "--script",
+        s(&p("s.txt")),
+        "--pool",
+        "4MiB",
+        "--brick",
+        "8",
+        "--backend",
+        "cpu",
+        "--window-size",
+        "900x600",
+    ]) else {
+        return;
+    };
+    let o = cmd.output().unwrap();
+    assert!(o.status.success(), "viewer: {}", stderr(&o));
+    for name in ["mip", "xz", "one"] {
+        let args = std::fs::read_to_string(p(&format!("{name}.args"))).unwrap();
+        let want_channels = if name == "one" { 1 } else { 2 };
+        assert_eq!(
+            args.lines().filter(|l| *l == "--channel").count(),
+            want_channels,
+            "{name}: {args}"
+        );
+        let reference = p(&format!("{name}-render.png"));
+        let o = Command::new(bin())
+            .args(["render", s(&store)])
+            .args(args.lines())
+            .args(["--out", s(&reference), "--pool", "4MiB", "--brick", "8"])
+            .args(["--backend", "cpu", "--quiet"])
+            .output()
+            .unwrap();
+        assert!(o.status.success(), "render {name}: {}", stderr(&o));
+        let (_, _, a) = png_pixels(&p(&format!("{name}.png")));
+        let (_, _, b) = png_pixels(&reference);
+        assert_eq!(a.len(), b.len(), "{name}: sizes");
+        let worst = a.iter().zip(&b).map(|(x, y)| x.abs_diff(*y)).max().unwrap();
+        assert!(
+            worst <= 1,
+            "{name}: the viewer's image and render's differ by {worst}"
+        );
+        // Both colours show where both channels are visible.
+        let red = a.chunks(4).filter(|c| c[0] > 60).count();
+        let blue = a.chunks(4).filter(|c| c[2] > 60).count();
+        if name == "one" {
+            assert!(
+                red < a.len() / 400 && blue > 0,
+                "{name}: red {red} blue {blue}"
+            );
+        } else {
+            assert!(red > 0 && blue > 0, "{name}: red {red} blue {blue}");
+        }
+    }
+}

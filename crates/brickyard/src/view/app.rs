@@ -537,6 +537,13 @@ impl ViewerApp {
         self.tf.opacity.insert(i, [x, a]);
     }
 
+    fn channel_ui(&mut self, c: usize) -> Result<&mut ChannelUi> {
+        let n = self.channels.len();
+        self.channels
+            .get_mut(c)
+            .with_context(|| format!("channel {c}: the store has {n} channel(s)"))
+    }
+
     // ---- saving ----------------------------------------------------------
 
     /// The `brickyard render` arguments that draw view `v` as it is now.
@@ -678,6 +685,26 @@ impl ViewerApp {
                     Cmd::Cursor(f) => {
                         let e = self.ds.extent;
                         self.cursor = [0, 1, 2].map(|a| f[a].clamp(0.0, 1.0) * e[a]);
+                        true
+                    }
+                    Cmd::Channel(c, on) => {
+                        self.channel_ui(*c)?.visible = *on;
+                        true
+                    }
+                    Cmd::ChannelColor(c, rgb) => {
+                        self.channel_ui(*c)?.color = *rgb;
+                        true
+                    }
+                    Cmd::ChannelWindow(c, lo, hi) => {
+                        if !(lo.is_finite() && hi.is_finite() && hi > lo) {
+                            bail!("channel-window: expected LO < HI, found {lo} {hi}");
+                        }
+                        self.channel_ui(*c)?.window = [*lo, *hi];
+                        true
+                    }
+                    Cmd::DvrChannel(c) => {
+                        self.channel_ui(*c)?;
+                        self.dvr_channel = *c;
                         true
                     }
                     Cmd::Oblique(az, el) => {

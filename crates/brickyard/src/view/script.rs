@@ -15,6 +15,8 @@
 //! | `window LO HI` | the data window |
 //! | `point X ALPHA` | add an opacity point (x in [0, 1] of the window) |
 //! | `cursor X Y Z` | the cursor, as fractions of the volume |
+//! | `channel C on\|off` / `channel-color C RRGGBB` / `channel-window C LO HI` | a channel's visibility, colour and window (MIP and slices add the visible ones up) |
+//! | `dvr-channel C` | the channel a DVR shows |
 //! | `oblique AZIMUTH ELEVATION` | the oblique plane's normal, in degrees |
 //! | `lod-bias B` / `level L\|auto` / `quality S` | level of detail; samples per voxel |
 //! | `wait-complete [SECONDS]` | wait until every view is complete (default 120 s) |
@@ -40,6 +42,10 @@ pub enum Cmd {
     Window(f32, f32),
     Point(f32, f32),
     Cursor([f64; 3]),
+    Channel(usize, bool),
+    ChannelColor(usize, [u8; 3]),
+    ChannelWindow(usize, f32, f32),
+    DvrChannel(usize),
     Oblique(f64, f64),
     LodBias(f64),
     Level(Option<usize>),
@@ -144,6 +150,32 @@ fn parse_line(w: &[&str]) -> Result<Cmd> {
         "cursor" => {
             arity(3)?;
             Cmd::Cursor([num(w[1])?, num(w[2])?, num(w[3])?])
+        }
+        "channel" => {
+            arity(2)?;
+            let on = match w[2] {
+                "on" => true,
+                "off" => false,
+                x => bail!("channel: expected on or off, found {x:?}"),
+            };
+            Cmd::Channel(num(w[1])?, on)
+        }
+        "channel-color" => {
+            arity(2)?;
+            let h = w[2].trim_start_matches('#');
+            let v = (h.len() == 6)
+                .then(|| u32::from_str_radix(h, 16).ok())
+                .flatten()
+                .with_context(|| format!("channel-color: expected RRGGBB, found {:?}", w[2]))?;
+            Cmd::ChannelColor(num(w[1])?, [16, 8, 0].map(|s| ((v >> s) & 0xff) as u8))
+        }
+        "channel-window" => {
+            arity(3)?;
+            Cmd::ChannelWindow(num(w[1])?, num(w[2])?, num(w[3])?)
+        }
+        "dvr-channel" => {
+            arity(1)?;
+            Cmd::DvrChannel(num(w[1])?)
         }
         "oblique" => {
             arity(2)?;
