@@ -104,6 +104,8 @@ pub struct ViewerApp {
     interacting: Instant,
     read_history: Vec<(Instant, u64)>,
     drag_point: Option<usize>,
+    /// Milliseconds of the last full-size frame of the 3D view.
+    full_ms: f64,
     counter: u32,
     camera_path: String,
 }
@@ -191,6 +193,7 @@ impl ViewerApp {
             interacting: Instant::now() - Duration::from_secs(10),
             read_history: vec![],
             drag_point: None,
+            full_ms: 40.0,
             counter: 0,
             camera_path: String::new(),
         }
@@ -218,9 +221,11 @@ impl ViewerApp {
         if let Some(f) = vs.forced {
             return f;
         }
-        // While the 3D view moves, half the pixels: frames keep up.
+        // While the 3D view moves, fewer pixels, so that frames keep up:
+        // aim at about 40 ms a frame from what full-size frames took.
         if v == 0 && self.interacting.elapsed() < Duration::from_millis(200) {
-            return vs.size.map(|s| (s / 2).max(8));
+            let k = (40.0 / self.full_ms.max(1.0)).sqrt().clamp(0.25, 0.5);
+            return vs.size.map(|s| ((s as f64 * k) as u32).max(8));
         }
         vs.size
     }
@@ -361,6 +366,9 @@ impl ViewerApp {
                     "up": out.up, "down": out.down,
                 })
             );
+        }
+        if v == 0 && [out.image.width, out.image.height] == self.views[0].size {
+            self.full_ms = out.render_ms;
         }
         self.read_history.push((Instant::now(), out.bytes_read));
         let cut = Instant::now() - Duration::from_secs(2);
