@@ -742,7 +742,10 @@ impl ViewerApp {
                     Cmd::WaitComplete(secs) => {
                         self.send_specs();
                         let since = *self.waiting.get_or_insert_with(Instant::now);
-                        if (0..N_VIEWS).all(|v| self.complete(v)) {
+                        // Not while a reduced-resolution frame stands in
+                        // for the full one.
+                        let settled = self.interacting.elapsed() >= Duration::from_millis(200);
+                        if settled && (0..N_VIEWS).all(|v| self.complete(v)) {
                             self.waiting = None;
                             true
                         } else if since.elapsed().as_secs_f64() > *secs {
