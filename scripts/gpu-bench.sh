@@ -51,6 +51,7 @@ step() { # NAME SECONDS ARGS...
 nproc >&2; nvidia-smi --query-gpu=name,memory.total,driver_version --format=csv,noheader 2>/dev/null >&2 || true
 step "cache kernels" 60 bench cache-kernels --repeat 20
 # Data: generated and converted here (kept between runs).
-step "$BIG^3 full view, GPU" 240 bench render --size "$BIG" --dtype u8 --dir "$DATA" --image 1920x1080 --zoom 1 --repeat 20 --backend gpu --no-reference --cold
+step "$BIG^3 full view, GPU" 160 bench render --size "$BIG" --dtype u8 --dir "$DATA" --image 1920x1080 --zoom 1 --repeat 20 --backend gpu --no-reference --cold
 step "$BIG^3 zoomed in, GPU" 90 bench render --size "$BIG" --dtype u8 --dir "$DATA" --image 1920x1080 --zoom 4 --repeat 20 --backend gpu --no-reference --cold
+step "4096^3 procedural (64 GiB of u8, computed brick by brick), GPU" 130 bench render --size 4096 --procedural --dtype u8 --image 1920x1080 --zoom 1 --repeat 20 --backend gpu --no-reference
 step "$SMALL^3, CPU, GPU, GPU with host updates" 120 bench render --size "$SMALL" --dtype u8 --dir "$DATA" --image 1920x1080 --zoom 1 --repeat 5 --backend all --no-reference

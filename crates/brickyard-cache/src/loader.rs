@@ -33,7 +33,7 @@ use crate::host_cache::HostCache;
 use crate::ranges::BrickRanges;
 use brickyard_core::{dispatch_dtype, Dims3, Sample};
 use brickyard_store::error::{Result, StoreError};
-use brickyard_store::import::zarr::{open, ZarrSource};
+use brickyard_store::import::zarr::open;
 use brickyard_store::omezarr::{read_multiscale, STATS_DIR};
 use brickyard_store::source::VolumeSource;
 use std::cmp::Reverse;
@@ -174,7 +174,8 @@ impl LevelStats {
 pub const CHUNK_CACHE_BYTES: u64 = 64 << 20;
 
 struct Level {
-    src: ZarrSource,
+    /// The level's voxels: a store's array, or a procedural volume.
+    src: Box<dyn VolumeSource>,
     stats: Option<LevelStats>,
 }
 
@@ -480,8 +481,76 @@ impl Loader {
                 LevelStats::open(&stats_dir.join(l.to_string()), sb, m.dims, m.channels)
             });
             dims.push(m.dims);
-            levels.push(Level { src, stats });
+            levels.push(Level {
+                src: Box::new(src),
+                stats,
+            });
         }
+        Self::start(
+            store_path,
+            store_brick,
+            levels,
+            dims,
+            brick,
+            apron,
+            threads,
+            cache,
+        )
+    }
+
+    /// A loader over a procedural volume of `dims` voxels (`[z, y, x]`)
+    /// that exists nowhere: each level is the function sampled at that
+    /// level's voxel centres (the levels of `plan_levels` for bricks of
+    /// `brick`), each brick computed when it is asked for. No statistics,
+    /// so nothing is known to be empty before it is loaded. For benchmarks
+    /// of volumes larger than any disk at hand.
+    pub fn procedural(
+        kind: brickyard_store::generate::Kind,
+        dims: Dims3,
+        dtype: brickyard_core::DType,
+        brick: Dims3,
+        apron: u64,
+        threads: usize,
+        cache: Arc<HostCache>,
+    ) -> Result<Loader> {
+        let name = PathBuf::from(format!(
+            "<{} {}x{}x{}>",
+            kind.name(),
+            dims[2],
+            dims[1],
+            dims[0]
+        ));
+        if brick.contains(&0) || dims.contains(&0) {
+            return Err(StoreError::invalid(
+                &name,
+                "size",
+                format!("volume {dims:?} and brick {brick:?} must be at least 1 on every axis"),
+            ));
+        }
+        let plan = brickyard_core::plan_levels(dims, [1.0; 3], [0.0; 3], brick);
+        let dims: Vec<Dims3> = plan.levels.iter().map(|l| l.dims).collect();
+        let levels = dims
+            .iter()
+            .map(|d| Level {
+                src: Box::new(brickyard_store::generate::Procedural::new(kind, *d, dtype))
+                    as Box<dyn VolumeSource>,
+                stats: None,
+            })
+            .collect();
+        Self::start(&name, None, levels, dims, brick, apron, threads, cache)
+    }
+
+    #[allow(clippy::too_many_arguments)]
+    fn start(
+        store_path: &Path,
+        store_brick: Option<Dims3>,
+        levels: Vec<Level>,
+        dims: Vec<Dims3>,
+        brick: Dims3,
+        apron: u64,
+        threads: usize,
+        cache: Arc<HostCache>,
+    ) -> Result<Loader> {
         let m0 = levels[0].src.meta();
         let geometry = BrickGeometry {
             brick,
@@ -794,6 +863,52 @@ impl Drop for Loader {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn procedural_bricks_are_the_function_at_each_level() {
+        use brickyard_store::generate::{Kind, Procedural};
+        let cache = Arc::new(HostCache::new(1 << 20));
+        let dims = [40, 48, 64];
+        let l = Loader::procedural(
+            Kind::Mandelbulb,
+            dims,
+            brickyard_core::DType::U8,
+            [16; 3],
+            1,
+            2,
+            cache,
+        )
+        .unwrap();
+        let g = l.geometry().clone();
+        assert!(g.levels.len() >= 3 && g.levels[0] == dims);
+        for key in [
+            BrickKey::new(0, 0, [1, 1, 2]),
+            BrickKey::new(1, 0, [0, 1, 1]),
+        ] {
+            let d = g.levels[key.level as usize];
+            let want = Procedural::new(Kind::Mandelbulb, d, brickyard_core::DType::U8);
+            let b = l.load_now(&key).unwrap();
+            let BrickContent::Data(bytes) = &b.content else {
+                panic!("{key:?}: expected data");
+            };
+            // Padded voxel (i, j, k) is level voxel origin − 1 + (i, j, k),
+            // clamped to the level.
+            let p = g.padded();
+            let o = g.padded_origin_of(&key);
+            for (i, j, k) in [(1, 1, 1), (5, 9, 3), (17, 17, 17), (0, 0, 0)] {
+                let v = [o[0] + i, o[1] + j, o[2] + k]
+                    .iter()
+                    .zip(d)
+                    .map(|(&c, n)| c.clamp(0, n as i64 - 1) as u64)
+                    .collect::<Vec<_>>();
+                let mut one = [0u8; 1];
+                want.read_region(0, v[0]..v[0] + 1, v[1]..v[1] + 1, v[2]..v[2] + 1, &mut one)
+                    .unwrap();
+                let idx = ((i as u64 * p[1] + j as u64) * p[2] + k as u64) as usize;
+                assert_eq!(bytes[idx], one[0], "{key:?} voxel {v:?}");
+            }
+        }
+    }
 
     #[test]
     fn clamp_map_replicates_borders() {

@@ -65,6 +65,17 @@ impl Session {
         })
     }
 
+    /// A session over an open loader (e.g. [`Loader::procedural`]).
+    pub fn from_loader(loader: Loader, cfg: VmConfig) -> Session {
+        let g = loader.geometry().clone();
+        let vm = VirtualMemory::new(&g.levels, g.channels, g.dtype, cfg);
+        Session {
+            vm,
+            loader,
+            waiting: VecDeque::new(),
+        }
+    }
+
     /// The virtual memory, mutable: for a device mirror to take its
     /// changes ([`VirtualMemory::take_changes`]).
     pub fn vm_mut(&mut self) -> &mut VirtualMemory {

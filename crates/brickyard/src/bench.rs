@@ -62,6 +62,10 @@ pub struct BenchCmd {
     /// render: dvr or mip.
     #[arg(long, default_value = "dvr")]
     mode: String,
+    /// render: a procedural Mandelbulb computed brick by brick as the view
+    /// asks for it, instead of a store (any size: 4096 is 64 GiB of u8).
+    #[arg(long)]
+    procedural: bool,
     /// render: cpu, gpu, auto, both (CPU then GPU, side by side) or all
     /// (CPU, GPU with updates on the device, GPU with updates on the
     /// host); `gpu-host` and `auto-host` have the host decide updates.
@@ -94,6 +98,7 @@ pub fn run(b: BenchCmd) -> Result<()> {
                     "all" => vec!["cpu".into(), "gpu".into(), "gpu-host".into()],
                     x => vec![x.into()],
                 },
+                procedural: b.procedural,
                 mip: match b.mode.as_str() {
                     "dvr" => false,
                     "mip" => true,

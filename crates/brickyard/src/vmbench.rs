@@ -416,6 +416,9 @@ pub struct RenderBench {
     pub mip: bool,
     /// Back ends to measure, one after the other (`cpu`, `gpu`).
     pub backends: Vec<String>,
+    /// A procedural Mandelbulb computed brick by brick as it is asked for
+    /// (no store: any size, e.g. 4096³ = 64 GiB of u8).
+    pub procedural: bool,
 }
 
 pub fn render(dir: &Path, dims: Dims3, dtype: DType, o: &RenderBench) -> Result<()> {
@@ -427,22 +430,40 @@ pub fn render(dir: &Path, dims: Dims3, dtype: DType, o: &RenderBench) -> Result<
         pool,
         reference: with_reference,
         mip,
+        procedural,
         ..
     } = *o;
     use brickyard_core::camera::{world_extent, Camera, Projection};
     use brickyard_core::TransferFunction;
     use brickyard_render::cpu::{Lod, Scene};
     use brickyard_render::reference::{render as render_ref, RenderMode, RenderParams, Volume};
-    let st = store(dir, dims, dtype)?;
-    let spacing = zarr::open(&st, 0)?.meta().spacing.unwrap_or([1.0; 3]);
-    let extent = world_extent(dims, spacing);
-    let mut levels = vec![];
-    for l in 0.. {
-        match zarr::open(&st, l) {
-            Ok(s) => levels.push(s.meta().dims),
-            Err(_) => break,
+    let brick = [32u64; 3];
+    let st = if procedural {
+        None
+    } else {
+        Some(store(dir, dims, dtype)?)
+    };
+    let (extent, levels) = match &st {
+        Some(st) => {
+            let spacing = zarr::open(st, 0)?.meta().spacing.unwrap_or([1.0; 3]);
+            let mut levels = vec![];
+            for l in 0.. {
+                match zarr::open(st, l) {
+                    Ok(s) => levels.push(s.meta().dims),
+                    Err(_) => break,
+                }
+            }
+            (world_extent(dims, spacing), levels)
         }
-    }
+        None => (
+            world_extent(dims, [1.0; 3]),
+            brickyard_core::plan_levels(dims, [1.0; 3], [0.0; 3], brick)
+                .levels
+                .iter()
+                .map(|l| l.dims)
+                .collect(),
+        ),
+    };
     let mut scene = Scene::new(extent, levels);
     let max = match dtype {
         DType::U8 => 255.0,
@@ -467,9 +488,14 @@ pub fn render(dir: &Path, dims: Dims3, dtype: DType, o: &RenderBench) -> Result<
     let mut p = RenderParams::new(image[0], image[1], cam, tf, mode);
     p.reference_step = Some(scene.voxel(0));
     let vox: u64 = dims.iter().product();
+    let default_pool = vox * dtype.size() as u64 / 2 + (32 << 20);
     let cfg = VmConfig {
-        brick: [32; 3],
-        pool_bytes: pool.unwrap_or(vox * dtype.size() as u64 / 2 + (32 << 20)),
+        brick,
+        pool_bytes: pool.unwrap_or(if procedural {
+            default_pool.min(2 << 30)
+        } else {
+            default_pool
+        }),
         pt_cache_blocks: 4096,
         request_cap: 1024,
         upload_bytes_per_frame: 256 << 20,
@@ -477,9 +503,10 @@ pub fn render(dir: &Path, dims: Dims3, dtype: DType, o: &RenderBench) -> Result<
     };
     let vox_bytes = vox * dtype.size() as u64;
     let mut reference = f64::NAN;
-    let vol = with_reference
-        .then(|| Volume::from_store(&st, 0, 0))
-        .transpose()?;
+    let vol = match (&st, with_reference) {
+        (Some(st), true) => Some(Volume::from_store(st, 0, 0)?),
+        _ => None,
+    };
     for vol in std::iter::repeat_n(vol.as_ref(), repeat.max(1)).flatten() {
         let t = Instant::now();
         let _ = render_ref(vol, &p);
@@ -494,8 +521,29 @@ pub fn render(dir: &Path, dims: Dims3, dtype: DType, o: &RenderBench) -> Result<
         let mut runs = vec![];
         let mut warm_session = None;
         for _ in 0..2 {
-            let mut s = Session::with_cache(&st, cfg.clone(), host.clone(), 2)?;
-            scene.ranges = Some(std::sync::Arc::new(s.loader().brick_ranges(1 << 24)));
+            let mut s = match &st {
+                Some(st) => {
+                    let s = Session::with_cache(st, cfg.clone(), host.clone(), 2)?;
+                    scene.ranges = Some(std::sync::Arc::new(s.loader().brick_ranges(1 << 24)));
+                    s
+                }
+                None => {
+                    // Computing bricks takes cores, not disks: one loader
+                    // thread per core.
+                    let threads = std::thread::available_parallelism().map_or(2, |n| n.get());
+                    let l = brickyard_cache::loader::Loader::procedural(
+                        brickyard_store::generate::Kind::Mandelbulb,
+                        dims,
+                        dtype,
+                        brick,
+                        cfg.apron,
+                        threads,
+                        host.clone(),
+                    )?;
+                    scene.ranges = None;
+                    Session::from_loader(l, cfg.clone())
+                }
+            };
             let (choice, update) = match name.strip_suffix("-host") {
                 Some(c) => (c, crate::backend::GpuUpdate::Host),
                 None => (name.as_str(), crate::backend::GpuUpdate::Device),
@@ -505,6 +553,7 @@ pub fn render(dir: &Path, dims: Dims3, dtype: DType, o: &RenderBench) -> Result<
             let t = Instant::now();
             let (mut frames, mut first_frame_ms) = (0, 0.0);
             let (mut up, mut down, mut upload_ms) = (0u64, 0u64, 0.0);
+            let mut completeness: f64;
             loop {
                 let f = backend.frame(&mut s, &scene, &p, Lod::Auto { bias: 0.0 })?;
                 (up, down, upload_ms) = (up + f.up, down + f.down, upload_ms + f.upload_ms);
@@ -512,7 +561,15 @@ pub fn render(dir: &Path, dims: Dims3, dtype: DType, o: &RenderBench) -> Result<
                     first_frame_ms = t.elapsed().as_secs_f64() * 1e3;
                 }
                 frames += 1;
-                if f.stats.completeness() >= 1.0 || frames > 500 {
+                completeness = f.stats.completeness();
+                // A procedural volume's bricks are computed, which takes
+                // long on few cores: give up after 90 s (reported).
+                let out_of_time = if procedural {
+                    t.elapsed().as_secs() >= 90
+                } else {
+                    frames > 500
+                };
+                if completeness >= 1.0 || out_of_time {
                     break;
                 }
             }
@@ -523,6 +580,7 @@ pub fn render(dir: &Path, dims: Dims3, dtype: DType, o: &RenderBench) -> Result<
                 up,
                 down,
                 upload_ms,
+                completeness,
             ));
             warm_session = Some((s, backend));
         }
@@ -538,15 +596,16 @@ pub fn render(dir: &Path, dims: Dims3, dtype: DType, o: &RenderBench) -> Result<
             last = Some(f.stats);
         }
         let stt = last.expect("one warm frame");
-        let (cold_s, frames, first_frame_ms, up, down, upload_ms) = runs[0];
-        let (host_s, host_frames, ..) = runs[1];
+        let (cold_s, frames, first_frame_ms, up, down, upload_ms, cold_done) = runs[0];
+        let (host_s, host_frames, .., host_done) = runs[1];
         let bytes_read = s.loader().bytes_read();
         let pool_bytes = s.vm().pool_bytes();
         println!(
             "{}",
-            json!({"scenario": "render", "backend": backend.describe(), "mode": if mip { "mip" } else { "dvr" }, "size": [dims[2], dims[1], dims[0]], "dtype": dtype.short_name(),
+            json!({"scenario": "render", "procedural": procedural, "backend": backend.describe(), "mode": if mip { "mip" } else { "dvr" }, "size": [dims[2], dims[1], dims[0]], "dtype": dtype.short_name(),
                 "image": image, "zoom": zoom, "pool_bytes": pool_bytes, "volume_bytes": vox_bytes,
                 "cold": dropped, "first_frame_ms": first_frame_ms, "cold_to_complete_s": cold_s, "cold_frames": frames,
+                "cold_completeness": cold_done, "host_cache_completeness": host_done,
                 "host_cache_to_complete_s": host_s, "host_cache_frames": host_frames, "bytes_read": bytes_read,
                 "cold_host_to_device_bytes": up, "cold_device_to_host_bytes": down,
                 "cold_upload_ms": upload_ms, "upload_gb_s": if upload_ms > 0.0 { up as f64 / upload_ms / 1e6 } else { f64::NAN },
