@@ -398,6 +398,15 @@ fn land(r: Ray, level: u32, b: vec3<u32>, base_t: f32, k: u32, t1: f32) -> u32 {
     return land_box(r, level, lo, min(lo + bs, lay.dims[level].xyz), base_t, k, t1);
 }
 
+// `land` past the cell of base voxel `b` (inside its brick).
+fn land_cell(r: Ray, level: u32, b: vec3<u32>, base_t: f32, k: u32, t1: f32) -> u32 {
+    let bs = lay.block[lay.nmax].xyz;
+    let b0 = (b / bs) * bs;
+    let lo = b0 + ((b - b0) / R.cell_edge.xyz) * R.cell_edge.xyz;
+    let hi = min(min(lo + R.cell_edge.xyz, b0 + bs), lay.dims[level].xyz);
+    return land_box(r, level, lo, hi, base_t, k, t1);
+}
+
 // `land` for the box [lo, hi) of voxel bases (a brick or a cell).
 fn land_box(r: Ray, level: u32, lo: vec3<u32>, hi: vec3<u32>, base_t: f32, k: u32, t1: f32) -> u32 {
     let te = exit_t(r, level, lo, hi, min(t1, next_level_t(level)));
@@ -578,11 +587,7 @@ fn mip_max(ray: Ray, span: vec2<f32>) -> vec2<f32> {
             if (!is_nan(r.y) && r.y <= best) {
                 mark(slot, true);
                 crossed = crossed + 1u;
-                let bs = lay.block[lay.nmax].xyz;
-                let b0 = (b / bs) * bs;
-                let lo = b0 + ((b - b0) / R.cell_edge.xyz) * R.cell_edge.xyz;
-                let hi = min(min(lo + R.cell_edge.xyz, b0 + bs), lay.dims[level].xyz);
-                k = land_box(ray, level, lo, hi, span.x, k, t1);
+                k = land_cell(ray, level, b, span.x, k, t1);
                 continue;
             }
         }
@@ -720,11 +725,7 @@ fn render(@builtin(global_invocation_id) g: vec3<u32>) {
                 if (skip) {
                     mark(slot, true);
                     cells_crossed = cells_crossed + 1u;
-                    let bs = lay.block[lay.nmax].xyz;
-                    let b0 = (b / bs) * bs;
-                    let lo = b0 + ((b - b0) / R.cell_edge.xyz) * R.cell_edge.xyz;
-                    let hi = min(min(lo + R.cell_edge.xyz, b0 + bs), lay.dims[level].xyz);
-                    k = land_box(ray, level, lo, hi, base_t, k, t1);
+                    k = land_cell(ray, level, b, base_t, k, t1);
                     continue;
                 }
             }

@@ -4,6 +4,7 @@
 //! reference and the CPU renderer within the stated tolerance (positions
 //! are f32 on the device, f64 on the host). Runs on lavapipe in CI.
 
+mod common;
 use brickyard_cache::session::Session;
 use brickyard_cache::vm::VmConfig;
 use brickyard_core::camera::{world_extent, Camera, Projection};
@@ -508,40 +509,9 @@ fn gpu_channels_add_up_in_slices_and_mips() {
     use brickyard_render::reference::{render_channels, ChannelStyle};
     let Some(gpu) = test_gpu() else { return };
     let dir = tempfile::tempdir().unwrap();
+    let (store, extent, levels) = common::two_channel_store(dir.path());
     let dims = [40u64, 48, 64];
-    let raw = dir.path().join("two.raw");
-    let mut bytes = vec![];
-    for kind in [Kind::Mandelbulb, Kind::MarschnerLobb] {
-        let g = Procedural::new(kind, dims, DType::U8);
-        for z in 0..dims[0] {
-            for y in 0..dims[1] {
-                for x in 0..dims[2] {
-                    bytes.push((g.value(z, y, x) * 255.0).round() as u8);
-                }
-            }
-        }
-    }
-    std::fs::write(&raw, &bytes).unwrap();
-    let opts: brickyard_store::import::raw::RawOptions =
-        serde_json::from_str(r#"{"dims":[64,48,40],"dtype":"u8","channels":2}"#).unwrap();
-    let src = brickyard_store::import::raw::open(&raw, &opts).unwrap();
-    let store = dir.path().join("two.ome.zarr");
-    let o = ConvertOptions {
-        brick: [16; 3],
-        shard: [32; 3],
-        ..Default::default()
-    };
-    convert(&src, &store, &o, &NoProgress, &AtomicBool::new(false)).unwrap();
-    let nlev = (0..)
-        .take_while(|&l| Volume::from_store(&store, l, 0).is_ok())
-        .count();
-    let extent = world_extent(dims, Volume::from_store(&store, 0, 0).unwrap().spacing);
-    let scene = Scene::new(
-        extent,
-        (0..nlev)
-            .map(|l| Volume::from_store(&store, l, 0).unwrap().dims)
-            .collect(),
-    );
+    let scene = Scene::new(extent, levels);
     let styles = vec![
         ChannelStyle {
             channel: 0,

@@ -3,6 +3,7 @@
 //! slices, at fixed levels; meanwhile every frame is drawn from whatever is
 //! resident, and completeness rises to 100 %.
 
+mod common;
 use brickyard_cache::session::Session;
 use brickyard_cache::vm::VmConfig;
 use brickyard_core::camera::{world_extent, Camera, Projection};
@@ -377,40 +378,9 @@ fn several_channels_add_up_in_slices_and_mips() {
     use brickyard_render::reference::{render_channels, ChannelStyle};
     let dir = tempfile::tempdir().unwrap();
     // Two channels, channel-major: a Mandelbulb and a Marschner–Lobb.
+    let (store, extent, levels) = common::two_channel_store(dir.path());
     let dims = [40u64, 48, 64];
-    let raw = dir.path().join("two.raw");
-    let mut bytes = vec![];
-    for kind in [Kind::Mandelbulb, Kind::MarschnerLobb] {
-        let g = Procedural::new(kind, dims, DType::U8);
-        for z in 0..dims[0] {
-            for y in 0..dims[1] {
-                for x in 0..dims[2] {
-                    bytes.push((g.value(z, y, x) * 255.0).round() as u8);
-                }
-            }
-        }
-    }
-    std::fs::write(&raw, &bytes).unwrap();
-    let opts: brickyard_store::import::raw::RawOptions =
-        serde_json::from_str(r#"{"dims":[64,48,40],"dtype":"u8","channels":2}"#).unwrap();
-    let src = brickyard_store::import::raw::open(&raw, &opts).unwrap();
-    let store = dir.path().join("two.ome.zarr");
-    let o = ConvertOptions {
-        brick: [16; 3],
-        shard: [32; 3],
-        ..Default::default()
-    };
-    convert(&src, &store, &o, &NoProgress, &AtomicBool::new(false)).unwrap();
-    let nlev = (0..)
-        .take_while(|&l| Volume::from_store(&store, l, 0).is_ok())
-        .count();
-    let extent = world_extent(dims, Volume::from_store(&store, 0, 0).unwrap().spacing);
-    let mut scene = Scene::new(
-        extent,
-        (0..nlev)
-            .map(|l| Volume::from_store(&store, l, 0).unwrap().dims)
-            .collect(),
-    );
+    let mut scene = Scene::new(extent, levels);
     let styles = vec![
         ChannelStyle {
             channel: 0,

@@ -28,6 +28,32 @@ fn png_pixels(p: &Path) -> (u32, u32, Vec<u8>) {
     (info.width, info.height, buf)
 }
 
+/// Render the view the viewer saved as `dir/NAME.args` with `brickyard
+/// render` and check it equals the viewer's `dir/NAME.png` within 1/255;
+/// returns the viewer's pixels (RGBA).
+fn equals_render(store: &Path, dir: &Path, name: &str) -> Vec<u8> {
+    let p = |n: String| dir.join(n);
+    let args = std::fs::read_to_string(p(format!("{name}.args"))).unwrap();
+    let reference = p(format!("{name}-render.png"));
+    let o = Command::new(bin())
+        .args(["render", s(store)])
+        .args(args.lines())
+        .args(["--out", s(&reference), "--pool", "4MiB", "--brick", "8"])
+        .args(["--backend", "cpu", "--quiet"])
+        .output()
+        .unwrap();
+    assert!(o.status.success(), "render {name}: {}", stderr(&o));
+    let (w, h, a) = png_pixels(&p(format!("{name}.png")));
+    let (w2, h2, b) = png_pixels(&reference);
+    assert_eq!((w, h), (w2, h2), "{name}: sizes");
+    let worst = a.iter().zip(&b).map(|(x, y)| x.abs_diff(*y)).max().unwrap();
+    assert!(
+        worst <= 1,
+        "{name}: the viewer's image and render's differ by {worst}"
+    );
+    a
+}
+
 /// A command with a display: the current one, or a virtual one.
 fn with_display(args: &[&str]) -> Option<Command> {
     if std::env::var_os("DISPLAY").is_some() {
@@ -154,24 +180,7 @@ quit
     );
     // Each saved view against `brickyard render` with its arguments.
     for name in ["dvr", "mip", "xy", "xz", "yz", "oblique", "slice3d"] {
-        let args = std::fs::read_to_string(p(&format!("{name}.args"))).unwrap();
-        let reference = p(&format!("{name}-render.png"));
-        let o = Command::new(bin())
-            .args(["render", s(&store)])
-            .args(args.lines())
-            .args(["--out", s(&reference), "--pool", "4MiB", "--brick", "8"])
-            .args(["--backend", "cpu", "--quiet"])
-            .output()
-            .unwrap();
-        assert!(o.status.success(), "render {name}: {}", stderr(&o));
-        let (w, h, a) = png_pixels(&p(&format!("{name}.png")));
-        let (w2, h2, b) = png_pixels(&reference);
-        assert_eq!((w, h), (w2, h2), "{name}: sizes");
-        let worst = a.iter().zip(&b).map(|(x, y)| x.abs_diff(*y)).max().unwrap();
-        assert!(
-            worst <= 1,
-            "{name}: the viewer's image and render's differ by {worst}"
-        );
+        let a = equals_render(&store, d.path(), name);
         let lit = a
             .chunks(4)
             .filter(|c| c[0] as u32 + c[1] as u32 + c[2] as u32 > 30)
@@ -295,23 +304,7 @@ quit
             want_channels,
             "{name}: {args}"
         );
-        let reference = p(&format!("{name}-render.png"));
-        let o = Command::new(bin())
-            .args(["render", s(&store)])
-            .args(args.lines())
-            .args(["--out", s(&reference), "--pool", "4MiB", "--brick", "8"])
-            .args(["--backend", "cpu", "--quiet"])
-            .output()
-            .unwrap();
-        assert!(o.status.success(), "render {name}: {}", stderr(&o));
-        let (_, _, a) = png_pixels(&p(&format!("{name}.png")));
-        let (_, _, b) = png_pixels(&reference);
-        assert_eq!(a.len(), b.len(), "{name}: sizes");
-        let worst = a.iter().zip(&b).map(|(x, y)| x.abs_diff(*y)).max().unwrap();
-        assert!(
-            worst <= 1,
-            "{name}: the viewer's image and render's differ by {worst}"
-        );
+        let a = equals_render(&store, d.path(), name);
         // Both colours show where both channels are visible.
         let red = a.chunks(4).filter(|c| c[0] > 60).count();
         let blue = a.chunks(4).filter(|c| c[2] > 60).count();
