@@ -375,52 +375,16 @@ fn empty_space_skipping_changes_no_pixel_and_loads_less() {
 
 #[test]
 fn several_channels_add_up_in_slices_and_mips() {
-    use brickyard_render::reference::{render_channels, ChannelStyle};
+    use brickyard_render::reference::render_channels;
     let dir = tempfile::tempdir().unwrap();
     // Two channels, channel-major: a Mandelbulb and a Marschner–Lobb.
     let (store, extent, levels) = common::two_channel_store(dir.path());
-    let dims = [40u64, 48, 64];
     let mut scene = Scene::new(extent, levels);
-    let styles = vec![
-        ChannelStyle {
-            channel: 0,
-            color: [1.0, 0.2, 0.0],
-            window: [0.0, 255.0],
-        },
-        ChannelStyle {
-            channel: 1,
-            color: [0.0, 0.8, 1.0],
-            window: [40.0, 200.0],
-        },
-    ];
-    let tf = TransferFunction::preset("linear", [0.0, 255.0]).unwrap();
-    let vol_bytes = 2 * dims.iter().product::<u64>();
-    let slice = RenderMode::Slice {
-        origin: [extent[0] * 0.5, extent[1] * 0.5, extent[2] * 0.45],
-        normal: [0.1, -0.05, 1.0],
-    };
-    // The slice at level 0 (its bricks and their stand-ins fit), the MIP at
-    // level 1 through a pool of half the volume.
-    for (mode, level, pool) in [
-        (slice.clone(), 0, vol_bytes),
-        (RenderMode::Mip, 1, vol_bytes / 2),
-    ] {
+    for (p, level, pool) in common::two_channel_views(extent) {
+        let mode = p.mode.clone();
         let vols: Vec<_> = (0..2)
             .map(|c| Volume::from_store(&store, level, c).unwrap())
             .collect();
-        let cam = match &mode {
-            RenderMode::Slice { origin, normal } => {
-                Camera::facing_plane(*origin, *normal, extent[0] * 1.1)
-            }
-            _ => Camera::fit(
-                extent,
-                30.0,
-                20.0,
-                Projection::Perspective { fov_y_deg: 40.0 },
-            ),
-        };
-        let mut p = RenderParams::new(72, 60, cam, tf.clone(), mode.clone());
-        p.channels = styles.clone();
         for with_ranges in [false, true] {
             let mut s = session(&store, pool);
             scene.ranges =
@@ -450,10 +414,10 @@ fn several_channels_add_up_in_slices_and_mips() {
             0.0,
             Projection::Perspective { fov_y_deg: 40.0 },
         ),
-        tf,
+        TransferFunction::preset("linear", [0.0, 255.0]).unwrap(),
         RenderMode::Dvr,
     );
-    p.channels = styles;
+    p.channels = common::two_channel_styles();
     let e = p.validate().unwrap_err().to_string();
     assert!(e.contains("channels"), "{e}");
 }

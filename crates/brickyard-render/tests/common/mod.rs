@@ -1,8 +1,8 @@
 //! Test data shared by the renderer tests.
 
-use brickyard_core::camera::{world_extent, Vec3};
-use brickyard_core::{DType, Dims3};
-use brickyard_render::reference::Volume;
+use brickyard_core::camera::{world_extent, Camera, Projection, Vec3};
+use brickyard_core::{DType, Dims3, TransferFunction};
+use brickyard_render::reference::{ChannelStyle, RenderMode, RenderParams, Volume};
 use brickyard_store::builder::{convert, ConvertOptions, NoProgress};
 use brickyard_store::generate::{Kind, Procedural};
 use std::path::{Path, PathBuf};
@@ -44,4 +44,59 @@ pub fn two_channel_store(dir: &Path) -> (PathBuf, Vec3, Vec<Dims3>) {
         .map(|l| Volume::from_store(&store, l, 0).unwrap().dims)
         .collect();
     (store, extent, levels)
+}
+
+/// The two channels' styles: channel 0 orange-red over 0–255, channel 1
+/// cyan over 40–200.
+pub fn two_channel_styles() -> Vec<ChannelStyle> {
+    vec![
+        ChannelStyle {
+            channel: 0,
+            color: [1.0, 0.2, 0.0],
+            window: [0.0, 255.0],
+        },
+        ChannelStyle {
+            channel: 1,
+            color: [0.0, 0.8, 1.0],
+            window: [40.0, 200.0],
+        },
+    ]
+}
+
+/// Views of the two-channel store (72×60, both channels added up), each
+/// with the level it is drawn at and a pool budget: an oblique slice at
+/// level 0 (its bricks and their stand-ins fit the whole volume's bytes),
+/// a MIP at level 1 through a pool of half the volume.
+pub fn two_channel_views(extent: Vec3) -> Vec<(RenderParams, usize, u64)> {
+    let vol_bytes = 2 * 40 * 48 * 64;
+    let tf = TransferFunction::preset("linear", [0.0, 255.0]).unwrap();
+    let (origin, normal) = (
+        [extent[0] * 0.5, extent[1] * 0.5, extent[2] * 0.45],
+        [0.1, -0.05, 1.0],
+    );
+    let slice = (
+        RenderMode::Slice { origin, normal },
+        Camera::facing_plane(origin, normal, extent[0] * 1.1),
+        0,
+        vol_bytes,
+    );
+    let mip = (
+        RenderMode::Mip,
+        Camera::fit(
+            extent,
+            30.0,
+            20.0,
+            Projection::Perspective { fov_y_deg: 40.0 },
+        ),
+        1,
+        vol_bytes / 2,
+    );
+    [slice, mip]
+        .into_iter()
+        .map(|(mode, cam, level, pool)| {
+            let mut p = RenderParams::new(72, 60, cam, tf.clone(), mode);
+            p.channels = two_channel_styles();
+            (p, level, pool)
+        })
+        .collect()
 }
