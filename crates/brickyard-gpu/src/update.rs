@@ -32,7 +32,7 @@ const MAPPED: u32 = 1;
 const EMPTY: u32 = 2;
 const CONSTANT: u32 = 3;
 /// Words before the reserved slots in the output buffer.
-const HEADER: usize = 8;
+const HEADER: usize = 16;
 
 /// One brick to reference (see `update.wgsl`).
 #[repr(C)]
@@ -236,11 +236,28 @@ impl UpdateModel {
         }
     }
 
+    /// Move the last `r` slots of set `set`'s order to its front (the slots
+    /// just taken from the tail become the most recently used).
+    fn rotate(&mut self, set: usize, r: usize) {
+        let o = &mut self.order[set];
+        let n = o.len();
+        if n > 0 {
+            o.rotate_right(r % n);
+        }
+    }
+
     /// Compact every set, then reserve `k` pool slots (NONE where none).
     pub fn end_frame(&mut self, frame: u32, k: usize) -> Vec<u32> {
         for set in 0..self.sets() {
             self.compact(set, frame);
         }
+        let reserved = self.reserve(frame, k);
+        let r = reserved.iter().filter(|&&s| s != NONE).count();
+        self.rotate(0, r);
+        reserved
+    }
+
+    fn reserve(&mut self, frame: u32, k: usize) -> Vec<u32> {
         let cnt = self.lay.set_base[0][1] as usize;
         (0..k)
             .map(|i| {
@@ -349,6 +366,8 @@ impl UpdateModel {
                 self.entries[p as usize] = [mapped_word(b, g), 0];
                 self.counts.blocks_mapped += 1;
             }
+            let taken = leaders.iter().filter(|&&b| b != NONE).count();
+            self.rotate(n, taken);
             for (i, it) in items.iter().enumerate() {
                 let p = cursor[i];
                 if p == NONE {
@@ -537,6 +556,7 @@ impl DeviceCache {
             &with_vm_common(include_str!("shaders/update.wgsl")),
             &[
                 "reserve", "start", "path", "claim", "assign", "take", "descend", "finish",
+                "rotate",
             ],
             &[
                 Uniform, ReadWrite, Texture3d, Uniform, ReadWrite, ReadWrite, Read, ReadWrite,
@@ -551,7 +571,11 @@ impl DeviceCache {
             owner: gpu.storage_buffer("owners", &m.owner),
             items: gpu.storage_buffer_zeroed("update items", 48),
             items_cap: 1,
-            claims: gpu.storage_buffer_zeroed("claims", 16),
+            // Also the scratch of `rotate`: room for the largest set.
+            claims: gpu.storage_buffer_zeroed(
+                "claims",
+                m.order.iter().map(|o| o.len()).max().unwrap_or(1).max(4) as u64 * 4,
+            ),
             out: gpu.storage_buffer_zeroed("update out", HEADER as u64 * 4),
             out_cap: 0,
             sets: m.order.len(),
@@ -615,6 +639,8 @@ impl DeviceCache {
         k: usize,
     ) -> Result<Vec<u32>, GpuError> {
         self.grow_out(gpu, k);
+        // This frame's counts of slots taken start at 0.
+        gpu.queue.write_buffer(&self.out, 28, &[0u8; 36]);
         let mut enc = gpu.device.create_command_encoder(&Default::default());
         for set in 0..self.sets {
             let base = dvm.layout().set_base[set][0];
@@ -637,11 +663,38 @@ impl DeviceCache {
             let bind = self.bind(gpu, dvm, params, &self.orders[0].order);
             self.kernel
                 .dispatch(&mut enc, "reserve", &bind, [(k as u32).div_ceil(64), 1, 1]);
+            self.record_rotate(gpu, dvm, &mut enc, frame, 0);
         }
         gpu.queue.submit([enc.finish()]);
         let w = gpu.read_u32("reserved slots", &self.out, HEADER + k)?;
         self.counts = UpdateCounts::from_words(&w);
         Ok(w[HEADER..].to_vec())
+    }
+
+    /// Record the rotation of set `set`'s order by the slots taken from its
+    /// tail this frame (they become the most recently used).
+    fn record_rotate(
+        &self,
+        gpu: &Gpu,
+        dvm: &DeviceVm,
+        enc: &mut wgpu::CommandEncoder,
+        frame: u32,
+        set: usize,
+    ) {
+        let o = &self.orders[set];
+        if o.n == 0 {
+            return;
+        }
+        let params = Params {
+            frame,
+            k: 0,
+            n: set as u32,
+            h: 1,
+        };
+        let bind = self.bind(gpu, dvm, params, &o.order);
+        self.kernel
+            .dispatch(enc, "rotate", &bind, [o.n.div_ceil(64), 1, 1]);
+        enc.copy_buffer_to_buffer(&self.claims, 0, &o.order, 0, o.n as u64 * 4);
     }
 
     /// Reference `items` (bricks written into the slots
@@ -660,7 +713,8 @@ impl DeviceCache {
             .write_buffer(&self.items, 0, bytemuck::cast_slice(items));
         let h = (2 * k).next_power_of_two().max(64);
         if self.claims.size() < h as u64 * 8 {
-            self.claims = gpu.storage_buffer_zeroed("claims", h as u64 * 8);
+            let largest = self.orders.iter().map(|o| o.n).max().unwrap_or(1) as u64 * 4;
+            self.claims = gpu.storage_buffer_zeroed("claims", (h as u64 * 8).max(largest));
         }
         let groups = [(k as u32).div_ceil(64), 1, 1];
         let mut enc = gpu.device.create_command_encoder(&Default::default());
@@ -688,6 +742,7 @@ impl DeviceCache {
             self.kernel.dispatch(&mut enc, "claim", &bind, groups);
             self.kernel.dispatch(&mut enc, "assign", &bind, [1, 1, 1]);
             self.kernel.dispatch(&mut enc, "take", &bind, groups);
+            self.record_rotate(gpu, dvm, &mut enc, frame, n);
             self.kernel.dispatch(&mut enc, "descend", &bind, groups);
         }
         self.kernel.dispatch(&mut enc, "finish", &bind0, groups);

@@ -233,3 +233,33 @@ fn bricks_sharing_blocks_make_one_block_per_region() {
         assert_eq!(slot, Some(*s), "brick {k:?}");
     }
 }
+
+#[test]
+fn fresh_bricks_are_not_taken_back_while_never_used_slots_remain() {
+    // A brick written in one frame and not used in the next (the next frame
+    // drew another view) must stay: slots never used come first.
+    let Some(gpu) = test_gpu() else { return };
+    let dims = [40, 36, 48];
+    let mut vm = vm(dims, 1, 40, 64);
+    let (dvm, _) = DeviceVm::new(&gpu, &mut vm).unwrap();
+    let mut cache = DeviceCache::new(&gpu, &dvm, &vm).unwrap();
+    let keys: Vec<BrickKey> = all_keys(dims, 1).into_iter().take(12).collect();
+    let mut slots_seen = HashSet::new();
+    for (frame, batch) in keys.chunks(4).enumerate() {
+        let frame = frame as u32 + 1;
+        let slots = cache.end_frame(&gpu, &dvm, frame, batch.len()).unwrap();
+        for &s in &slots {
+            assert!(s != NONE && slots_seen.insert(s), "frame {frame}: slot {s} taken again");
+        }
+        let items: Vec<Item> = batch.iter().zip(&slots).map(|(k, &s)| Item::data(*k, s)).collect();
+        cache.reference(&gpu, &dvm, frame, &items);
+    }
+    // Every brick is still where it was put.
+    let queries: Vec<Query> = keys
+        .iter()
+        .map(|k| Query::new(k.level as usize, 0, k.brick.map(|b| b as u64 * BRICK), [0.0; 3]))
+        .collect();
+    for (k, (_, slot)) in keys.iter().zip(dvm.lookup(&gpu, &queries).unwrap()) {
+        assert!(slot.is_some(), "brick {k:?} was evicted");
+    }
+}

@@ -77,6 +77,20 @@ fn with_display(args: &[&str]) -> Option<Command> {
 
 #[test]
 fn viewer_views_equal_render_and_stream_while_loading() {
+    viewer_case("cpu");
+}
+
+#[test]
+fn viewer_on_the_device_equals_render() {
+    // The same script with the viewer drawing on the GPU back end (lavapipe
+    // in CI), against `render` on the CPU.
+    if brickyard_gpu::context::test_gpu().is_none() {
+        return; // BRICKYARD_SKIP_GPU=1
+    }
+    viewer_case("gpu");
+}
+
+fn viewer_case(backend: &str) {
     let d = tempfile::tempdir().unwrap();
     let store = d.path().join("m.ome.zarr");
     let o = Command::new(bin())
@@ -163,7 +177,7 @@ quit
         "--brick",
         "8",
         "--backend",
-        "cpu",
+        backend,
         "--read-delay-ms",
         "15",
         "--window-size",

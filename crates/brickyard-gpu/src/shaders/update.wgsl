@@ -29,6 +29,8 @@
 //     descend: every item moves to its entry in the block of level n;
 //   finish:   each item's entry is set: mapped to its slot, empty or
 //             constant (left alone if something is there already).
+// After reserve, and after take at each level, `rotate` moves the slots
+// just taken to the front of their order (most recently used).
 
 struct Params {
     frame: u32,
@@ -63,11 +65,20 @@ struct Item {
 @group(0) @binding(7) var<storage, read_write> items: array<Item>;
 @group(0) @binding(8) var<storage, read_write> claims: array<atomic<u32>>;
 // Counters (cumulative): 0 bricks unmapped, 1 blocks unmapped, 2 bricks
-// mapped, 3 flags set, 4 items failed, 5 blocks mapped; from 8 on the
-// reserved slots.
+// mapped, 3 flags set, 4 items failed, 5 blocks mapped; this frame: 7 pool
+// slots reserved, 8 + n blocks taken at level n; from 16 on the reserved
+// slots.
 @group(0) @binding(9) var<storage, read_write> out: array<atomic<u32>>;
 
-const RESERVED: u32 = 8u;
+const RESERVED: u32 = 16u;
+
+// Where the count of slots of set `which` taken this frame is kept.
+fn taken_index(which: u32) -> u32 {
+    if (which == 0u) {
+        return 7u;
+    }
+    return 8u + which;
+}
 
 fn mapped_word(s: u32, g: vec4<u32>) -> u32 {
     let z = s / (g.z * g.y);
@@ -112,6 +123,23 @@ fn reserve(@builtin(global_invocation_id) gid: vec3<u32>) {
     stamps[2u * s] = P.frame;
     stamps[2u * s + 1u] = P.frame;
     atomicStore(&out[RESERVED + i], s);
+    atomicAdd(&out[7], 1u);
+}
+
+// The slots just taken (the tail of set `P.n`'s order) become the most
+// recently used: the order rotated by their count, into `claims` (copied
+// back by the host). Otherwise a fresh brick that the next frame does not
+// use (another view is drawn, say) would sit at the tail, behind slots
+// never used, and be taken again at once.
+@compute @workgroup_size(64)
+fn rotate(@builtin(global_invocation_id) gid: vec3<u32>) {
+    let i = gid.x;
+    let cnt = lay.set_base[P.n].y;
+    if (i >= cnt) {
+        return;
+    }
+    let r = atomicLoad(&out[taken_index(P.n)]);
+    atomicStore(&claims[i], order[(i + cnt - r % cnt) % cnt]);
 }
 
 @compute @workgroup_size(64)
@@ -271,6 +299,7 @@ fn take(@builtin(global_invocation_id) gid: vec3<u32>) {
     }
     entries[p] = vec2<u32>(mapped_word(b, g), 0u);
     atomicAdd(&out[5], 1u);
+    atomicAdd(&out[taken_index(P.n)], 1u);
 }
 
 @compute @workgroup_size(64)
