@@ -249,15 +249,29 @@ fn fresh_bricks_are_not_taken_back_while_never_used_slots_remain() {
         let frame = frame as u32 + 1;
         let slots = cache.end_frame(&gpu, &dvm, frame, batch.len()).unwrap();
         for &s in &slots {
-            assert!(s != NONE && slots_seen.insert(s), "frame {frame}: slot {s} taken again");
+            assert!(
+                s != NONE && slots_seen.insert(s),
+                "frame {frame}: slot {s} taken again"
+            );
         }
-        let items: Vec<Item> = batch.iter().zip(&slots).map(|(k, &s)| Item::data(*k, s)).collect();
+        let items: Vec<Item> = batch
+            .iter()
+            .zip(&slots)
+            .map(|(k, &s)| Item::data(*k, s))
+            .collect();
         cache.reference(&gpu, &dvm, frame, &items);
     }
     // Every brick is still where it was put.
     let queries: Vec<Query> = keys
         .iter()
-        .map(|k| Query::new(k.level as usize, 0, k.brick.map(|b| b as u64 * BRICK), [0.0; 3]))
+        .map(|k| {
+            Query::new(
+                k.level as usize,
+                0,
+                k.brick.map(|b| b as u64 * BRICK),
+                [0.0; 3],
+            )
+        })
         .collect();
     for (k, (_, slot)) in keys.iter().zip(dvm.lookup(&gpu, &queries).unwrap()) {
         assert!(slot.is_some(), "brick {k:?} was evicted");
