@@ -343,7 +343,7 @@ fn device_updates_evict_and_every_view_completes_correctly() {
         pt_block: [2; 3],
         max_dir_entries: 8,
         pool_bytes: 30 * (18 * 18 * 18 * 2 + 512),
-        pt_cache_blocks: 32,
+        pt_cache_blocks: 16,
         request_cap: 64,
         upload_bytes_per_frame: 8 * 18 * 18 * 18 * 2,
     };
