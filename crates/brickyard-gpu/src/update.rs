@@ -293,16 +293,7 @@ impl UpdateModel {
     pub fn reference(&mut self, frame: u32, items: &[Item]) {
         let lay = self.lay;
         let nmax = lay.nmax as usize;
-        let mut cursor: Vec<u32> = items
-            .iter()
-            .map(|it| {
-                let v = self.voxel_of(it);
-                let d: [u32; 3] =
-                    [0, 1, 2].map(|a| lay.dir_base[it.level as usize][a] + v[a] / lay.span[0][a]);
-                let dd = lay.dir_dims;
-                it.channel * lay.dir_len + (d[0] * dd[1] + d[1]) * dd[2] + d[2]
-            })
-            .collect();
+        let mut cursor: Vec<u32> = items.iter().map(|it| self.dir_index(it)).collect();
         for n in 1..nmax {
             let g = lay.pt_grid[n];
             let base = lay.set_base[n][0];
@@ -379,12 +370,7 @@ impl UpdateModel {
                     self.counts.failed += 1;
                     continue;
                 }
-                let b = slot_id(e, g);
-                let v = self.voxel_of(it);
-                let bl = lay.block[n];
-                let o: [u32; 3] = [0, 1, 2].map(|a| (v[a] / lay.span[n][a]) % bl[a]);
-                let j = (o[0] * bl[1] + o[1]) * bl[2] + o[2];
-                cursor[i] = lay.table_off[n][0] + b * g[3] + j;
+                cursor[i] = self.block_index(it, n, slot_id(e, g));
             }
         }
         for (i, it) in items.iter().enumerate() {
@@ -413,54 +399,57 @@ impl UpdateModel {
         }
     }
 
-    /// The entry the tables hold for the brick of `it` (walking down; the
-    /// first entry not mapped on the way), and its index.
-    pub fn entry_for(&self, it: &Item) -> (u32, [u32; 2]) {
+    /// Index of `it`'s directory entry.
+    fn dir_index(&self, it: &Item) -> u32 {
         let lay = &self.lay;
         let v = self.voxel_of(it);
         let d: [u32; 3] =
             [0, 1, 2].map(|a| lay.dir_base[it.level as usize][a] + v[a] / lay.span[0][a]);
         let dd = lay.dir_dims;
-        let mut p = it.channel * lay.dir_len + (d[0] * dd[1] + d[1]) * dd[2] + d[2];
-        for n in 1..lay.nmax as usize {
+        it.channel * lay.dir_len + (d[0] * dd[1] + d[1]) * dd[2] + d[2]
+    }
+
+    /// Index of `it`'s entry in block `b` of intermediate level `n`.
+    fn block_index(&self, it: &Item, n: usize, b: u32) -> u32 {
+        let lay = &self.lay;
+        let v = self.voxel_of(it);
+        let bl = lay.block[n];
+        let o: [u32; 3] = [0, 1, 2].map(|a| (v[a] / lay.span[n][a]) % bl[a]);
+        lay.table_off[n][0] + b * lay.pt_grid[n][3] + (o[0] * bl[1] + o[1]) * bl[2] + o[2]
+    }
+
+    /// Walk down to `it`'s brick: the last entry reached (the first not
+    /// mapped on the way, or the brick's) with its index, and the
+    /// page-table blocks passed `(level, block)`.
+    fn walk(&self, it: &Item) -> (u32, [u32; 2], Vec<(usize, u32)>) {
+        let mut p = self.dir_index(it);
+        let mut path = vec![];
+        for n in 1..self.lay.nmax as usize {
             let e = self.entries[p as usize];
             if flag(e) != MAPPED {
-                return (p, e);
+                return (p, e, path);
             }
-            let g = lay.pt_grid[n];
-            let bl = lay.block[n];
-            let o: [u32; 3] = [0, 1, 2].map(|a| (v[a] / lay.span[n][a]) % bl[a]);
-            p = lay.table_off[n][0] + slot_id(e, g) * g[3] + (o[0] * bl[1] + o[1]) * bl[2] + o[2];
+            let b = slot_id(e, self.lay.pt_grid[n]);
+            path.push((n, b));
+            p = self.block_index(it, n, b);
         }
-        (p, self.entries[p as usize])
+        (p, self.entries[p as usize], path)
+    }
+
+    /// The entry the tables hold for the brick of `it` (walking down; the
+    /// first entry not mapped on the way), and its index.
+    pub fn entry_for(&self, it: &Item) -> (u32, [u32; 2]) {
+        let (p, e, _) = self.walk(it);
+        (p, e)
     }
 
     /// The slots a walk to `it`'s brick passes through: `(set, slot)` of
     /// each page-table block, then the brick's pool slot if it is mapped
     /// (what a renderer stamps).
     pub fn path_of(&self, it: &Item) -> Vec<(usize, u32)> {
-        let lay = &self.lay;
-        let v = self.voxel_of(it);
-        let d: [u32; 3] =
-            [0, 1, 2].map(|a| lay.dir_base[it.level as usize][a] + v[a] / lay.span[0][a]);
-        let dd = lay.dir_dims;
-        let mut p = it.channel * lay.dir_len + (d[0] * dd[1] + d[1]) * dd[2] + d[2];
-        let mut path = vec![];
-        for n in 1..lay.nmax as usize {
-            let e = self.entries[p as usize];
-            if flag(e) != MAPPED {
-                return path;
-            }
-            let g = lay.pt_grid[n];
-            let b = slot_id(e, g);
-            path.push((n, b));
-            let bl = lay.block[n];
-            let o: [u32; 3] = [0, 1, 2].map(|a| (v[a] / lay.span[n][a]) % bl[a]);
-            p = lay.table_off[n][0] + b * g[3] + (o[0] * bl[1] + o[1]) * bl[2] + o[2];
-        }
-        let e = self.entries[p as usize];
+        let (_, e, mut path) = self.walk(it);
         if flag(e) == MAPPED {
-            path.push((0, slot_id(e, lay.brick_grid)));
+            path.push((0, slot_id(e, self.lay.brick_grid)));
         }
         path
     }
