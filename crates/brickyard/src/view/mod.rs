@@ -189,7 +189,7 @@ pub fn run(c: ViewCmd, demo_store: impl FnOnce() -> Result<PathBuf>) -> Result<i
         1,
         Arc::new(brickyard_cache::host_cache::HostCache::new(1 << 20)),
     )?;
-    let ranges = loader.brick_ranges(1 << 24);
+    let ranges = Arc::new(loader.brick_ranges(1 << 24));
     drop(loader);
     let ds = Arc::new(app::Dataset {
         store: store.clone(),
@@ -209,7 +209,9 @@ pub fn run(c: ViewCmd, demo_store: impl FnOnce() -> Result<PathBuf>) -> Result<i
             .with_title(format!("brickyard view — {}", store.display())),
         ..Default::default()
     };
-    let scene = Scene::new(extent, levels);
+    let mut scene = Scene::new(extent, levels);
+    // The render thread uses the same brick ranges (read once).
+    scene.ranges = Some(ranges.clone());
     let exit2 = exit.clone();
     let mode = c.mode.clone();
     let r = eframe::run_native(

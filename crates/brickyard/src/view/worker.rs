@@ -85,7 +85,10 @@ fn open(setup: &Setup, scene: &mut Scene) -> anyhow::Result<(Session, Backend)> 
         setup.loader_threads,
     )?;
     s.loader().set_read_delay(setup.read_delay);
-    scene.ranges = Some(std::sync::Arc::new(s.loader().brick_ranges(1 << 24)));
+    // The window's histogram already read the statistics (same bricks).
+    if scene.ranges.is_none() {
+        scene.ranges = Some(std::sync::Arc::new(s.loader().brick_ranges(1 << 24)));
+    }
     let b = Backend::choose(&setup.backend, setup.gpu_update, &mut s, setup.channels)?;
     Ok((s, b))
 }
