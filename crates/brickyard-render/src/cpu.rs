@@ -468,7 +468,7 @@ impl<'a> Frame<'a> {
     }
 
     /// The voxel box `[lo, hi)` of cell `cell` of the brick `[blo, bhi)`.
-    #[inline]
+    #[cfg(test)]
     fn cell_box(&self, cell: usize, blo: Dims3, bhi: Dims3) -> (Dims3, Dims3) {
         let c = self.cells.coords(cell);
         let e = self.cells.edge;
@@ -625,6 +625,7 @@ struct Grid {
 /// 1000 steps), and so do the samples (trilinear interpolation is
 /// continuous). A step that rounding puts just outside the brick is
 /// sampled on its face (base clamped, fraction 0 or 1): the same value.
+#[derive(Clone)]
 struct Run {
     q: [i64; 3],
     dq: [i64; 3],
@@ -663,24 +664,46 @@ impl Run {
         r
     }
 
-    /// At step `j` (of a run ending at `end`), in cell `cell` of the brick,
-    /// whose samples need no evaluation: move to the step where the ray
-    /// leaves the cell (at least one on, at most `end`) and return it.
+    /// At step `j` (of a run ending at `end`), whose voxel base `u` (from
+    /// [`current`](Self::current)) lies in a cell whose samples need no
+    /// evaluation: move to the first step whose base lies in another cell
+    /// (at least one on, at most `end`) and return it. Exact: the same step
+    /// stepping one by one would stop at, found per axis in integer
+    /// arithmetic from where the fixed-point coordinate crosses the cell's
+    /// face (the base moves monotonically along each axis, and the clamps
+    /// of `current` only hold it at the brick's and the volume's faces,
+    /// which no cell face beyond them is).
     #[inline(always)]
-    fn cross_cell(
-        &mut self,
-        f: &Frame,
-        track: &Track,
-        g: Grid,
-        cell: usize,
-        limit: f64,
-        (j, end): (u64, u64),
-    ) -> u64 {
-        let lo = self.lo.map(|x| x as u64);
-        let hi = [0, 1, 2].map(|a| (self.lo[a] + self.last[a] + 1) as u64);
-        let jn = track
-            .run_end(g, f.cell_box(cell, lo, hi), limit)
-            .clamp(j + 1, end);
+    fn cross_cell(&mut self, f: &Frame, u: Dims3, (j, end): (u64, u64)) -> u64 {
+        let mut m = u64::MAX;
+        for a in 0..3 {
+            let (dq, e) = (self.dq[a], f.cells.edge[a] as i64);
+            let c = match f.cell_shift {
+                Some(s) => (u[a] >> s[a]) as i64,
+                None => u[a] as i64 / e,
+            };
+            if dq > 0 {
+                // Leaves when the base reaches the next cell's first voxel
+                // (none past the brick's last voxel).
+                let h = (c + 1) * e;
+                if h > self.last[a] {
+                    continue;
+                }
+                let d = ((self.lo[a] + h) << 32) - self.q[a];
+                debug_assert!(d > 0);
+                m = m.min(((d + dq - 1) / dq) as u64);
+            } else if dq < 0 {
+                // Leaves when the base drops below the cell's first voxel.
+                let l = c * e;
+                if l == 0 {
+                    continue;
+                }
+                let d = self.q[a] - ((self.lo[a] + l) << 32);
+                debug_assert!(d >= 0);
+                m = m.min((d / -dq) as u64 + 1);
+            }
+        }
+        let jn = j.saturating_add(m).clamp(j + 1, end.max(j + 1));
         self.advance(jn - j);
         jn
     }
@@ -1138,7 +1161,7 @@ impl<'f, 'a, T: Sample> Walker<'f, 'a, T> {
                         // A cell whose samples are all transparent: on to
                         // the step where the ray leaves it.
                         passed += 1;
-                        j = run.cross_cell(f, &track, g, cell, limit, (j, end));
+                        j = run.cross_cell(f, u, (j, end));
                         continue;
                     }
                     run.advance(1);
@@ -1272,7 +1295,7 @@ impl<'f, 'a, T: Sample> Walker<'f, 'a, T> {
                     // NaN bound or best: no skip.
                     if ranges.is_some_and(|r| r[cell][1] <= best) {
                         st.skipped_cells += 1;
-                        j = run.cross_cell(f, &track, g, cell, t1, (j, end));
+                        j = run.cross_cell(f, u, (j, end));
                         continue;
                     }
                     run.advance(1);
@@ -1509,5 +1532,104 @@ mod tests {
         }
         assert!(checked > 2000, "{checked} rays checked");
         assert!(exact * 10 > checked * 9, "{exact} of {checked} exact");
+    }
+
+    /// `Run::cross_cell` lands exactly where stepping one by one leaves
+    /// the cell (or at the run's end), for power-of-two cells and others,
+    /// on random rays including ones parallel to voxel planes.
+    #[test]
+    fn crossing_a_cell_equals_stepping_out_of_it() {
+        for brick in [[32u64, 32, 16], [24, 20, 32]] {
+            let dims = [70u64, 61, 77];
+            let levels = vec![dims];
+            let cfg = VmConfig {
+                brick,
+                pool_bytes: 1 << 22,
+                ..Default::default()
+            };
+            let vm = VirtualMemory::new(&levels, 1, DType::U8, cfg);
+            let extent = [1.1, 0.8, 1.4];
+            let scene = Scene::new(extent, levels);
+            let cam = Camera::fit(
+                extent,
+                30.0,
+                20.0,
+                Projection::Perspective { fov_y_deg: 35.0 },
+            );
+            let tf = TransferFunction::preset("soft", [0.0, 255.0]).unwrap();
+            let params = RenderParams::new(4, 4, cam, tf, RenderMode::Dvr);
+            let f = Frame::new(&vm, &scene, &params, Lod::Fixed(0));
+            assert!(f.cells.len() > 4, "{:?}", f.cells);
+            let mut seed = 0x51ed_2701_f00d_cafeu64;
+            let mut rnd = move || {
+                seed = seed
+                    .wrapping_mul(6364136223846793005)
+                    .wrapping_add(1442695040888963407);
+                (seed >> 11) as f64 / (1u64 << 53) as f64
+            };
+            let (mut crossings, mut multi) = (0, 0);
+            for trial in 0..3000 {
+                let target = [0, 1, 2].map(|a| rnd() * extent[a]);
+                let mut dir = [0, 1, 2].map(|_| rnd() - 0.5);
+                match trial % 4 {
+                    0 => dir[trial % 3] = 0.0,
+                    1 => dir[trial % 3] = 1e-12 * (rnd() - 0.5),
+                    _ => {}
+                }
+                let n = dir.iter().map(|d| d * d).sum::<f64>().sqrt();
+                let dir = dir.map(|d| d / n);
+                let origin = [0, 1, 2].map(|a| target[a] - 3.0 * dir[a]);
+                let ray = Ray { origin, dir };
+                let Some((t0, t1)) = intersect_box(&ray, [0.0; 3], extent) else {
+                    continue;
+                };
+                let dt = f.voxel[0] * (0.2 + 1.5 * rnd());
+                let g = Grid {
+                    base_t: t0,
+                    dt,
+                    inv_dt: 1.0 / dt,
+                };
+                let track = f.track(0, &ray, ray.dir.map(|d| 1.0 / d), t1);
+                let steps = ((t1 - t0) / dt) as u64;
+                if steps < 2 {
+                    continue;
+                }
+                let k0 = 1 + (rnd() * (steps - 1) as f64) as u64;
+                let w = ray.at(step_t(t0, k0 - 1, dt));
+                let (v, _) = f.coords(0, w);
+                let b = f.brick_of(v);
+                let lo = [0, 1, 2].map(|a| b[a] * brick[a]);
+                let hi = [0, 1, 2].map(|a| (lo[a] + brick[a]).min(dims[a]));
+                let end = track.run_end(g, (lo, hi), t1).max(k0);
+                let mut run = Run::new(&f, 0, &track, w, dt, lo, hi);
+                let mut j = k0 - 1;
+                while j < end {
+                    let (u, _) = run.current();
+                    let cell = f.cell_of(u, [0; 3]);
+                    // Stepping one by one.
+                    let mut step = run.clone();
+                    let mut want = j;
+                    while want < end {
+                        step.advance(1);
+                        want += 1;
+                        if f.cell_of(step.current().0, [0; 3]) != cell {
+                            break;
+                        }
+                    }
+                    let mut jump = run.clone();
+                    let got = jump.cross_cell(&f, u, (j, end));
+                    assert_eq!(got, want, "brick {brick:?} trial {trial} from step {j}");
+                    assert_eq!(jump.q, step.q, "brick {brick:?} trial {trial}");
+                    crossings += 1;
+                    multi += (got > j + 1) as u32;
+                    run.advance(1);
+                    j += 1;
+                }
+            }
+            assert!(
+                crossings > 20_000 && multi > 5_000,
+                "{crossings} crossings, {multi} long"
+            );
+        }
     }
 }
