@@ -23,7 +23,7 @@
 //!   a brick whose maximum cannot raise the ray's maximum is skipped the
 //!   same way. Skipping never changes a complete frame: every skipped
 //!   sample would have contributed nothing.
-//! - **Tiles.** Work is split into 8×8-pixel tiles (rows of tiles in
+//! - **Tiles.** Work is split into 32×16-pixel tiles (rows of tiles in
 //!   parallel on all cores) so that neighbouring rays share bricks.
 //! - The level of detail is re-evaluated only where the pixel footprint
 //!   crosses a level boundary, not per sample; transparent samples skip
@@ -45,8 +45,9 @@ use std::sync::Arc;
 
 pub use crate::reference::MAX_CHANNELS;
 
-/// Tile edge in pixels.
-const TILE: usize = 8;
+/// Tile width and height in pixels.
+const TILE_W: usize = 32;
+const TILE_H: usize = 16;
 
 /// What the renderer needs to know about the volume besides the pages.
 #[derive(Debug, Clone)]
@@ -165,7 +166,7 @@ fn render_typed<T: Sample>(
     let mut img = Image::new(params.width, params.height);
     let parts: Vec<(FrameStats, Requests)> = img
         .rgba
-        .par_chunks_mut(w * TILE)
+        .par_chunks_mut(w * TILE_H)
         .enumerate()
         .fold(
             || -> (Vec<Walker<T>>, Requests, FrameStats) {
@@ -186,10 +187,10 @@ fn render_typed<T: Sample>(
             |(mut walkers, mut req, mut st), (band, rows)| {
                 let multi = !params.channels.is_empty();
                 let nrows = rows.len() / w;
-                for x0 in (0..w).step_by(TILE) {
+                for x0 in (0..w).step_by(TILE_W) {
                     for r in 0..nrows {
-                        let j = (band * TILE + r) as u32;
-                        for i in x0..(x0 + TILE).min(w) {
+                        let j = (band * TILE_H + r) as u32;
+                        for i in x0..(x0 + TILE_W).min(w) {
                             let ray = rg.pixel_ray(i as u32, j);
                             rows[r * w + i] = match &params.mode {
                                 RenderMode::Dvr => walkers[0].dvr(&ray, &mut req, &mut st),
