@@ -483,6 +483,14 @@ impl<'a> Frame<'a> {
         let n = self.levels();
         match self.lod {
             Lod::Fixed(l) => l.min(n - 1),
+            // In perspective, before the first threshold (which lies
+            // slightly early) the level is 0 without a logarithm: most
+            // rays start there.
+            Lod::Auto { .. }
+                if self.fp_slope > 0.0 && t < self.next_t.first().copied().unwrap_or(0.0) =>
+            {
+                0
+            }
             Lod::Auto { bias } => {
                 let fp = match self.fp_slope {
                     0.0 => self.params.camera.pixel_footprint(t, self.params.height),
@@ -1632,5 +1640,41 @@ mod tests {
                 "{crossings} crossings, {multi} long"
             );
         }
+    }
+
+    /// `level_at`'s shortcut before the first threshold gives the level
+    /// of the footprint formula, in perspective and orthographic views
+    /// (where it does not apply) and for several biases.
+    #[test]
+    fn level_shortcut_equals_the_footprint_formula() {
+        let levels = vec![[64u64, 64, 64], [32, 32, 32], [16, 16, 16], [8, 8, 8]];
+        let vm = VirtualMemory::new(&levels, 1, DType::U8, VmConfig::default());
+        let extent = [1.0, 1.0, 1.0];
+        let scene = Scene::new(extent, levels);
+        let tf = TransferFunction::preset("soft", [0.0, 255.0]).unwrap();
+        let mut checked = 0;
+        for proj in [
+            Projection::Perspective { fov_y_deg: 40.0 },
+            Projection::Orthographic { height: 3.0 },
+        ] {
+            let cam = Camera::fit(extent, 30.0, 20.0, proj);
+            for bias in [-1.5, 0.0, 0.7, 2.0] {
+                let params = RenderParams::new(40, 30, cam, tf.clone(), RenderMode::Dvr);
+                let f = Frame::new(&vm, &scene, &params, Lod::Auto { bias });
+                for i in 0..20_000 {
+                    let t = i as f64 * 1e-3;
+                    let fp = cam.pixel_footprint(t, 30);
+                    let l = (fp / f.voxel[0]).log2() + bias;
+                    let want = if l.is_finite() && l > 0.0 {
+                        (l.floor() as usize).min(3)
+                    } else {
+                        0
+                    };
+                    assert_eq!(f.level_at(t), want, "{proj:?} bias {bias} t {t}");
+                    checked += (want > 0) as u32;
+                }
+            }
+        }
+        assert!(checked > 10_000, "{checked}");
     }
 }
