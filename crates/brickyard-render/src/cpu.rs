@@ -1420,6 +1420,70 @@ mod tests {
     use brickyard_core::camera::{Camera, Projection};
     use brickyard_core::DType;
 
+    /// A ray, its span, step grid and track, and a step on it.
+    type RandomStep = (Ray, (f64, f64), Grid, Track, u64);
+
+    /// One level of `dims` voxels in bricks of `brick`, world size
+    /// `extent`, a DVR view of it (for frames at level 0).
+    fn fixture(dims: Dims3, brick: Dims3, extent: Vec3) -> (VirtualMemory, Scene, RenderParams) {
+        let levels = vec![dims];
+        let cfg = VmConfig {
+            brick,
+            pool_bytes: 1 << 22,
+            ..Default::default()
+        };
+        let vm = VirtualMemory::new(&levels, 1, DType::U8, cfg);
+        let scene = Scene::new(extent, levels);
+        let cam = Camera::fit(
+            extent,
+            30.0,
+            20.0,
+            Projection::Perspective { fov_y_deg: 35.0 },
+        );
+        let tf = TransferFunction::preset("soft", [0.0, 255.0]).unwrap();
+        (vm, scene, RenderParams::new(4, 4, cam, tf, RenderMode::Dvr))
+    }
+
+    /// Uniform numbers in `[0, 1)` from a linear congruential generator.
+    fn uniform(mut seed: u64) -> impl FnMut() -> f64 {
+        move || {
+            seed = seed
+                .wrapping_mul(6364136223846793005)
+                .wrapping_add(1442695040888963407);
+            (seed >> 11) as f64 / (1u64 << 53) as f64
+        }
+    }
+
+    /// The ray towards `target` along `dir` (normalized here) from `far`
+    /// away, its span through the volume, its step grid of `dt` and track
+    /// at level 0, and the step at fraction `u` of its steps (at least
+    /// step 1); `None` when it misses the volume or takes under 2 steps.
+    fn random_step(
+        f: &Frame,
+        extent: Vec3,
+        (target, dir, far): (Vec3, Vec3, f64),
+        dt: f64,
+        u: f64,
+    ) -> Option<RandomStep> {
+        let n = dir.iter().map(|d| d * d).sum::<f64>().sqrt();
+        let dir = dir.map(|d| d / n);
+        let origin = [0, 1, 2].map(|a| target[a] - far * dir[a]);
+        let ray = Ray { origin, dir };
+        let (t0, t1) = intersect_box(&ray, [0.0; 3], extent)?;
+        let g = Grid {
+            base_t: t0,
+            dt,
+            inv_dt: 1.0 / dt,
+        };
+        let track = f.track(0, &ray, ray.dir.map(|d| 1.0 / d), t1);
+        let steps = ((t1 - t0) / dt) as u64;
+        if steps < 2 {
+            return None;
+        }
+        let k0 = 1 + (u * (steps - 1) as f64) as u64;
+        Some((ray, (t0, t1), g, track, k0))
+    }
+
     /// `land` against stepping one by one: it never passes a step whose
     /// voxel base leaves the box (or that reaches the limit), and it lands
     /// at most one step early — on random rays, including ones nearly
@@ -1429,31 +1493,10 @@ mod tests {
     #[test]
     fn landing_equals_stepping_through_the_box() {
         let dims = [40u64, 56, 48];
-        let levels = vec![dims];
-        let cfg = VmConfig {
-            brick: [8; 3],
-            pool_bytes: 1 << 20,
-            ..Default::default()
-        };
-        let vm = VirtualMemory::new(&levels, 1, DType::U8, cfg);
         let extent = [1.3, 0.9, 1.7];
-        let scene = Scene::new(extent, levels);
-        let cam = Camera::fit(
-            extent,
-            30.0,
-            20.0,
-            Projection::Perspective { fov_y_deg: 35.0 },
-        );
-        let tf = TransferFunction::preset("soft", [0.0, 255.0]).unwrap();
-        let params = RenderParams::new(4, 4, cam, tf, RenderMode::Dvr);
+        let (vm, scene, params) = fixture(dims, [8; 3], extent);
         let f = Frame::new(&vm, &scene, &params, Lod::Fixed(0));
-        let mut seed = 0x9e37_79b9_7f4a_7c15u64;
-        let mut rnd = move || {
-            seed = seed
-                .wrapping_mul(6364136223846793005)
-                .wrapping_add(1442695040888963407);
-            (seed >> 11) as f64 / (1u64 << 53) as f64
-        };
+        let mut rnd = uniform(0x9e37_79b9_7f4a_7c15);
         let (mut checked, mut exact) = (0, 0);
         for trial in 0..4000 {
             let far = if trial % 4 == 0 { 1e4 } else { 3.0 };
@@ -1466,26 +1509,13 @@ mod tests {
                 2 => dir[trial % 3] = 1e-17,
                 _ => {}
             }
-            let n = dir.iter().map(|d| d * d).sum::<f64>().sqrt();
-            let dir = dir.map(|d| d / n);
-            let origin = [0, 1, 2].map(|a| target[a] - far * dir[a]);
-            let ray = Ray { origin, dir };
-            let Some((t0, t1)) = intersect_box(&ray, [0.0; 3], extent) else {
-                continue;
-            };
             let dt = f.voxel[0] * (0.3 + 1.2 * rnd());
-            let g = Grid {
-                base_t: t0,
-                dt,
-                inv_dt: 1.0 / dt,
-            };
-            let track = f.track(0, &ray, ray.dir.map(|d| 1.0 / d), t1);
             // A step inside the volume, the box of its brick or of a cell.
-            let steps = ((t1 - t0) / dt) as u64;
-            if steps < 2 {
+            let Some((ray, (t0, t1), g, track, k0)) =
+                random_step(&f, extent, (target, dir, far), dt, rnd())
+            else {
                 continue;
-            }
-            let k0 = 1 + (rnd() * (steps - 1) as f64) as u64;
+            };
             let (v, _) = f.coords(0, ray.at(step_t(t0, k0 - 1, dt)));
             let b = f.brick_of(v);
             let blo = [0, 1, 2].map(|a| b[a] * 8);
@@ -1550,32 +1580,11 @@ mod tests {
     fn crossing_a_cell_equals_stepping_out_of_it() {
         for brick in [[32u64, 32, 16], [24, 20, 32]] {
             let dims = [70u64, 61, 77];
-            let levels = vec![dims];
-            let cfg = VmConfig {
-                brick,
-                pool_bytes: 1 << 22,
-                ..Default::default()
-            };
-            let vm = VirtualMemory::new(&levels, 1, DType::U8, cfg);
             let extent = [1.1, 0.8, 1.4];
-            let scene = Scene::new(extent, levels);
-            let cam = Camera::fit(
-                extent,
-                30.0,
-                20.0,
-                Projection::Perspective { fov_y_deg: 35.0 },
-            );
-            let tf = TransferFunction::preset("soft", [0.0, 255.0]).unwrap();
-            let params = RenderParams::new(4, 4, cam, tf, RenderMode::Dvr);
+            let (vm, scene, params) = fixture(dims, brick, extent);
             let f = Frame::new(&vm, &scene, &params, Lod::Fixed(0));
             assert!(f.cells.len() > 4, "{:?}", f.cells);
-            let mut seed = 0x51ed_2701_f00d_cafeu64;
-            let mut rnd = move || {
-                seed = seed
-                    .wrapping_mul(6364136223846793005)
-                    .wrapping_add(1442695040888963407);
-                (seed >> 11) as f64 / (1u64 << 53) as f64
-            };
+            let mut rnd = uniform(0x51ed_2701_f00d_cafe);
             let (mut crossings, mut multi) = (0, 0);
             for trial in 0..3000 {
                 let target = [0, 1, 2].map(|a| rnd() * extent[a]);
@@ -1585,25 +1594,12 @@ mod tests {
                     1 => dir[trial % 3] = 1e-12 * (rnd() - 0.5),
                     _ => {}
                 }
-                let n = dir.iter().map(|d| d * d).sum::<f64>().sqrt();
-                let dir = dir.map(|d| d / n);
-                let origin = [0, 1, 2].map(|a| target[a] - 3.0 * dir[a]);
-                let ray = Ray { origin, dir };
-                let Some((t0, t1)) = intersect_box(&ray, [0.0; 3], extent) else {
-                    continue;
-                };
                 let dt = f.voxel[0] * (0.2 + 1.5 * rnd());
-                let g = Grid {
-                    base_t: t0,
-                    dt,
-                    inv_dt: 1.0 / dt,
-                };
-                let track = f.track(0, &ray, ray.dir.map(|d| 1.0 / d), t1);
-                let steps = ((t1 - t0) / dt) as u64;
-                if steps < 2 {
+                let Some((ray, (t0, t1), g, track, k0)) =
+                    random_step(&f, extent, (target, dir, 3.0), dt, rnd())
+                else {
                     continue;
-                }
-                let k0 = 1 + (rnd() * (steps - 1) as f64) as u64;
+                };
                 let w = ray.at(step_t(t0, k0 - 1, dt));
                 let (v, _) = f.coords(0, w);
                 let b = f.brick_of(v);
