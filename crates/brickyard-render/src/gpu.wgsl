@@ -660,15 +660,28 @@ fn render(@builtin(global_invocation_id) g: vec3<u32>) {
         return;
     }
     let span = intersect(ray);
+    if (R.mode == 1u) {
+        // MIP: the maximum along the ray, opaque where the ray took a
+        // sample (black when none was served).
+        var px = vec4<f32>(0.0);
+        if (span.y > span.x && span.x + 0.5 * R.step[level_at(span.x)].x < span.y) {
+            let m = mip_max(ray, span);
+            px = vec4<f32>(0.0, 0.0, 0.0, 1.0);
+            if (m.y > 0.0) {
+                px = vec4<f32>(color_at(windowed(m.x)), 1.0);
+            }
+        }
+        flush_misses();
+        image[g.y * R.width + g.x] = px;
+        return;
+    }
+    // DVR.
     var acc = vec4<f32>(0.0);
     var samples = 0u;
     var exact = 0u;
     var unserved = 0u;
     var jumps = 0u;
     var cells_crossed = 0u;
-    var best = 0.0;
-    var found = false;
-    var hit = false;
     if (span.y > span.x) {
         let t1 = span.y;
         var level = level_at(span.x);
@@ -679,11 +692,9 @@ fn render(@builtin(global_invocation_id) g: vec3<u32>) {
             if (t >= t1) {
                 break;
             }
-            hit = true;
             k = k + 1u;
             let l = level_at(t);
-            // A MIP keeps the level of the ray's entry (as on the CPU).
-            if (l != level && R.mode == 0u) {
+            if (l != level) {
                 // A level change: the new level's step grid has this
                 // sample as its step 0 (as on the CPU).
                 level = l;
@@ -714,18 +725,11 @@ fn render(@builtin(global_invocation_id) g: vec3<u32>) {
             }
             if (R.skip_cells == 1u && f == MAPPED) {
                 // Inside a resident brick: a cell whose values the transfer
-                // function hides (DVR), or whose maximum cannot raise the
-                // ray's (MIP), is crossed in one jump. Its brick is still
+                // function hides is crossed in one jump. Its brick is still
                 // in use.
                 let slot = slot_id(e, lay.brick_grid);
                 let r = cell_range(slot, b);
-                var skip = false;
-                if (R.mode == 0u) {
-                    skip = range_clear(r.x, r.y);
-                } else {
-                    skip = found && !is_nan(r.y) && r.y <= best;
-                }
-                if (skip) {
+                if (range_clear(r.x, r.y)) {
                     mark(slot, true);
                     cells_crossed = cells_crossed + 1u;
                     k = land_cell(ray, level, b, base_t, k, t1);
@@ -741,13 +745,6 @@ fn render(@builtin(global_invocation_id) g: vec3<u32>) {
                 unserved = unserved + u32(s.y == 0.0);
                 continue;
             }
-            if (R.mode == 1u) {
-                if (!found || s.x > best) {
-                    best = s.x;
-                    found = true;
-                }
-                continue;
-            }
             let x = windowed(s.x);
             let alpha = opacity_at(x);
             if (alpha > 0.0) {
@@ -758,13 +755,6 @@ fn render(@builtin(global_invocation_id) g: vec3<u32>) {
                     break;
                 }
             }
-        }
-    }
-    if (R.mode == 1u && hit) {
-        if (found) {
-            acc = vec4<f32>(color_at(windowed(best)), 1.0);
-        } else {
-            acc = vec4<f32>(0.0, 0.0, 0.0, 1.0);
         }
     }
     flush_misses();
