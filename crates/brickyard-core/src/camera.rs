@@ -152,12 +152,12 @@ pub fn intersect_box_inv(ray: &Ray, inv_dir: Vec3, min: Vec3, max: Vec3) -> Opti
             continue;
         }
         let inv = inv_dir[a];
-        let (mut ta, mut tb) = ((min[a] - o) * inv, (max[a] - o) * inv);
-        if ta > tb {
-            std::mem::swap(&mut ta, &mut tb);
-        }
-        t0 = t0.max(ta);
-        t1 = t1.min(tb);
+        let (ta, tb) = ((min[a] - o) * inv, (max[a] - o) * inv);
+        let (ta, tb) = if ta > tb { (tb, ta) } else { (ta, tb) };
+        // Comparisons rather than `f64::max`/`min` (which handle NaN in
+        // more instructions): a NaN is ignored either way.
+        t0 = if ta > t0 { ta } else { t0 };
+        t1 = if tb < t1 { tb } else { t1 };
     }
     if t1 > t0 {
         Some((t0, t1))

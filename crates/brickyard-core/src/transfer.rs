@@ -642,10 +642,33 @@ fn segment_table(xs: impl Iterator<Item = f32> + Clone) -> Vec<u16> {
         .collect()
 }
 
+/// The bin of a windowed value `x ∈ [0, 1]` (NaN, from a degenerate
+/// window, gives the last).
 #[inline(always)]
 fn bin_of(x: f32) -> usize {
-    // Through i32: one conversion instruction (usize takes two).
-    ((x * TF_BINS as f32) as i32).clamp(0, TF_BINS as i32 - 1) as usize
+    debug_assert!(x.is_nan() || (0.0..=1.0).contains(&x));
+    // `y < last` is false for NaN: y ∈ [0, TF_BINS − 1], NaN excluded.
+    let last = (TF_BINS - 1) as f32;
+    let y = x * TF_BINS as f32;
+    let y = if y < last { y } else { last };
+    // SAFETY: `y` is finite and in [0, TF_BINS − 1] (x ≥ 0 or NaN above),
+    // which i32 holds. (Unchecked: one conversion instruction instead of
+    // a saturating conversion and a clamp.)
+    let b = unsafe { y.to_int_unchecked::<i32>() } as usize;
+    // (The mask proves the range to the compiler: no bounds checks.)
+    b & (TF_BINS - 1)
+}
+
+/// Per bin of the windowed values: what [`TfEval::lookup_visible`] needs
+/// first, in one load.
+#[derive(Debug, Clone, Copy)]
+struct Bin {
+    /// The opacity's and the colour map's segment for every `x` of the bin
+    /// (`u16::MAX`: a control point lies in the bin, search).
+    opacity_seg: u16,
+    color_seg: u16,
+    /// Every `x` of the bin has opacity 0, so the lookup ends there.
+    clear: bool,
 }
 
 /// A transfer function prepared for many lookups (one per frame): the
@@ -656,12 +679,9 @@ pub struct TfEval<'a> {
     tf: &'a TransferFunction,
     /// `1 / (w1 − w0)`, as [`TransferFunction::normalize`] computes it.
     inv_width: f32,
-    opacity_seg: Vec<u16>,
-    /// Per bin: every `x` of it has opacity 0, so the lookup ends there.
-    clear: Vec<bool>,
+    bins: Box<[Bin; TF_BINS]>,
     /// Bins not `clear` before bin `i` (`TF_BINS + 1` entries).
     open_before: Vec<u32>,
-    color_seg: Vec<u16>,
     /// The pieces of the opacity and of the colour map's three channels,
     /// by segment index.
     opacity_pieces: Vec<Piece>,
@@ -688,13 +708,17 @@ impl TransferFunction {
                 Some(*n)
             }))
             .collect();
+        let color_seg = segment_table(cm.iter().map(|p| p[0]));
+        let bins = Box::new(std::array::from_fn(|b| Bin {
+            opacity_seg: opacity_seg[b],
+            color_seg: color_seg[b],
+            clear: clear[b],
+        }));
         TfEval {
             tf: self,
             inv_width: 1.0 / (self.window[1] - self.window[0]),
-            clear,
+            bins,
             open_before,
-            opacity_seg,
-            color_seg: segment_table(cm.iter().map(|p| p[0])),
             opacity_pieces,
             color_pieces: (0..=cm.len())
                 .map(|i| [1, 2, 3].map(|c| piece(cm, i, |p| p[0], |p| p[c])))
@@ -741,11 +765,11 @@ impl TfEval<'_> {
         }
         let tf = self.tf;
         let x = ((value - tf.window[0]) * self.inv_width).clamp(0.0, 1.0);
-        let bin = bin_of(x);
-        if self.clear[bin] {
+        let bin = self.bins[bin_of(x)];
+        if bin.clear {
             return None;
         }
-        let i = match self.opacity_seg[bin] {
+        let i = match bin.opacity_seg {
             u16::MAX => tf.opacity.partition_point(|p| p[0] <= x),
             s => s as usize,
         };
@@ -753,7 +777,7 @@ impl TfEval<'_> {
         if a <= 0.0 {
             return None;
         }
-        let i = match self.color_seg[bin] {
+        let i = match bin.color_seg {
             u16::MAX => tf.colormap.points().partition_point(|p| p[0] <= x),
             s => s as usize,
         };

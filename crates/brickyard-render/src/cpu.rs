@@ -278,6 +278,8 @@ struct Frame<'a> {
     scale: Vec<[f64; 3]>,
     /// Per level, the largest voxel coordinate `dims − 1`.
     qmax: Vec<[f64; 3]>,
+    /// The same in [`Run`]'s fixed point.
+    qmax_fix: Vec<[i64; 3]>,
     brick: Dims3,
     /// `log2(brick)` per axis when every edge is a power of two.
     brick_shift: Option<[u32; 3]>,
@@ -308,6 +310,9 @@ struct Frame<'a> {
     cells: cells::CellGrid,
     /// `log2(cell edge)` per axis when every edge is a power of two.
     cell_shift: Option<[u32; 3]>,
+    /// Per axis, per brick coordinate `x`, its part of the cell index:
+    /// `x / edge` times the cells of the faster axes.
+    cell_part: [Vec<u16>; 3],
 }
 
 impl<'a> Frame<'a> {
@@ -384,6 +389,11 @@ impl<'a> Frame<'a> {
                 .iter()
                 .map(|d| d.map(|x| (x - 1) as f64))
                 .collect(),
+            qmax_fix: scene
+                .levels
+                .iter()
+                .map(|d| d.map(|x| ((x - 1) as i64) << 32))
+                .collect(),
             brick: cfg.brick,
             brick_shift: cfg
                 .brick
@@ -397,6 +407,15 @@ impl<'a> Frame<'a> {
             fp_slope,
             transparent,
             cells: vm.cell_grid(),
+            cell_part: {
+                let g = vm.cell_grid();
+                let stride = [g.count[1] * g.count[2], g.count[2], 1];
+                [0, 1, 2].map(|a| {
+                    (0..cfg.brick[a])
+                        .map(|x| ((x / g.edge[a]) * stride[a]) as u16)
+                        .collect()
+                })
+            },
             cell_shift: vm
                 .cell_grid()
                 .edge
@@ -435,16 +454,20 @@ impl<'a> Frame<'a> {
         }
     }
 
-    /// The cell of base voxel `v` of the brick whose first voxel is `lo`.
+    /// The cell of base voxel `u` of a brick (brick coordinates, apron
+    /// excluded): [`cells::CellGrid::index`] by table.
     #[inline(always)]
-    fn cell_of(&self, v: Dims3, lo: Dims3) -> usize {
-        let u = [v[0] - lo[0], v[1] - lo[1], v[2] - lo[2]];
+    fn cell_of(&self, u: Dims3) -> usize {
+        let [z, y, x] = &self.cell_part;
+        (z[u[0] as usize] + y[u[1] as usize] + x[u[2] as usize]) as usize
+    }
+
+    /// The cell coordinate along axis `a` of brick coordinate `x`.
+    #[inline(always)]
+    fn cell_coord(&self, a: usize, x: u64) -> u64 {
         match self.cell_shift {
-            Some(s) => {
-                let n = self.cells.count;
-                (((u[0] >> s[0]) * n[1] + (u[1] >> s[1])) * n[2] + (u[2] >> s[2])) as usize
-            }
-            None => self.cells.index(u),
+            Some(s) => x >> s[a],
+            None => x / self.cells.edge[a],
         }
     }
 
@@ -538,7 +561,14 @@ impl<'a> Frame<'a> {
         let qx = clamp(w[0] * s[2] - 0.5, m[2]);
         // q ≥ 0: truncation is floor; through i64, which converts in one
         // instruction each way (u64 does not).
-        let (bz, by, bx) = (qz as i64, qy as i64, qx as i64);
+        // SAFETY: `clamp` gives a finite value in [0, dims − 1].
+        let (bz, by, bx) = unsafe {
+            (
+                qz.to_int_unchecked::<i64>(),
+                qy.to_int_unchecked::<i64>(),
+                qx.to_int_unchecked::<i64>(),
+            )
+        };
         (
             [bz as u64, by as u64, bx as u64],
             [
@@ -607,12 +637,14 @@ impl<'a> Frame<'a> {
                 err * inv_beta[a].abs()
             })
             .fold(0.0, f64::max);
+        let dt = self.step[l].0;
         Track {
             alpha,
             beta,
             inv_beta,
             dims: self.dims[l],
             level: l,
+            dq: beta.map(|b| (b * dt * FIX) as i64),
             slack,
         }
     }
@@ -636,31 +668,39 @@ struct Grid {
 /// sampled on its face (base clamped, fraction 0 or 1): the same value.
 #[derive(Clone)]
 struct Run {
+    /// The coordinate relative to the brick's first voxel: `q − lo·2³²`.
     q: [i64; 3],
     dq: [i64; 3],
-    qmax: [i64; 3],
-    lo: [i64; 3],
+    /// Where `q` is clamped: the volume's last voxel or the brick's last
+    /// voxel with fraction 1, whichever comes first (below, the clamp is
+    /// 0: the brick's first voxel with fraction 0, which the volume's
+    /// first voxel is not above).
+    qhi: [i64; 3],
     /// Voxels of the brick per axis, minus one.
     last: [i64; 3],
 }
 
 const FIX: f64 = (1u64 << 32) as f64;
+/// The fraction bits of a fixed-point coordinate.
+const FRAC: i64 = 0xffff_ffff;
 
 impl Run {
     #[inline(always)]
-    fn new(f: &Frame, l: usize, track: &Track, w: Vec3, dt: f64, lo: Dims3, hi: Dims3) -> Run {
+    fn new(f: &Frame, l: usize, track: &Track, w: Vec3, lo: Dims3, hi: Dims3) -> Run {
         let s = f.scale[l];
-        let m = f.qmax[l];
+        let m = f.qmax_fix[l];
+        let q = [
+            ((w[2] * s[0] - 0.5) * FIX) as i64,
+            ((w[1] * s[1] - 0.5) * FIX) as i64,
+            ((w[0] * s[2] - 0.5) * FIX) as i64,
+        ];
+        let last = [0, 1, 2].map(|a| (hi[a] - lo[a]) as i64 - 1);
         Run {
-            q: [
-                ((w[2] * s[0] - 0.5) * FIX) as i64,
-                ((w[1] * s[1] - 0.5) * FIX) as i64,
-                ((w[0] * s[2] - 0.5) * FIX) as i64,
-            ],
-            dq: [0, 1, 2].map(|a| (track.beta[a] * dt * FIX) as i64),
-            qmax: [0, 1, 2].map(|a| (m[a] * FIX) as i64),
-            lo: lo.map(|x| x as i64),
-            last: [0, 1, 2].map(|a| (hi[a] - lo[a]) as i64 - 1),
+            q: [0, 1, 2].map(|a| q[a] - ((lo[a] as i64) << 32)),
+            dq: track.dq,
+            // (The fraction of `FRAC` converts to exactly 1.0 in f32.)
+            qhi: [0, 1, 2].map(|a| (m[a] - ((lo[a] as i64) << 32)).min((last[a] << 32) | FRAC)),
+            last,
         }
     }
 
@@ -685,31 +725,29 @@ impl Run {
     #[inline(always)]
     fn cross_cell(&mut self, f: &Frame, u: Dims3, (j, end): (u64, u64)) -> u64 {
         let mut m = u64::MAX;
-        for a in 0..3 {
+        for (a, &ua) in u.iter().enumerate() {
             let (dq, e) = (self.dq[a], f.cells.edge[a] as i64);
-            let c = match f.cell_shift {
-                Some(s) => (u[a] >> s[a]) as i64,
-                None => u[a] as i64 / e,
+            let c = f.cell_coord(a, ua) as i64;
+            // Forwards, the base leaves when it reaches the next cell's
+            // first voxel `h` (none past the brick's last voxel): after
+            // ⌈(h·2³² − q) / dq⌉ steps. Backwards, when it drops below the
+            // cell's first voxel `l` (none below the brick's first): after
+            // ⌊(q − l·2³²) / −dq⌋ + 1 = ⌈(q − l·2³² + 1) / −dq⌉ steps.
+            let fwd = dq > 0;
+            let face = if fwd { (c + 1) * e } else { c * e };
+            let exists = if fwd {
+                face <= self.last[a]
+            } else {
+                face > 0 && dq < 0
             };
-            if dq > 0 {
-                // Leaves when the base reaches the next cell's first voxel
-                // (none past the brick's last voxel).
-                let h = (c + 1) * e;
-                if h > self.last[a] {
-                    continue;
-                }
-                let d = ((self.lo[a] + h) << 32) - self.q[a];
+            let d = if fwd {
+                (face << 32) - self.q[a]
+            } else {
+                self.q[a] - (face << 32) + 1
+            };
+            if exists {
                 debug_assert!(d > 0);
-                m = m.min(((d + dq - 1) / dq) as u64);
-            } else if dq < 0 {
-                // Leaves when the base drops below the cell's first voxel.
-                let l = c * e;
-                if l == 0 {
-                    continue;
-                }
-                let d = self.q[a] - ((self.lo[a] + l) << 32);
-                debug_assert!(d >= 0);
-                m = m.min((d / -dq) as u64 + 1);
+                m = m.min(div_ceil_exact(d, dq.abs()));
             }
         }
         let jn = j.saturating_add(m).clamp(j + 1, end.max(j + 1));
@@ -733,16 +771,9 @@ impl Run {
         let mut fr = [0f32; 3];
         for a in 0..3 {
             // (`max`/`min`: `clamp` checks its bounds every time.)
-            let q = self.q[a].max(0).min(self.qmax[a]);
-            let b = (q >> 32) - self.lo[a];
-            let x = (q & 0xffff_ffff) as f32 * (1.0 / FIX as f32);
-            (u[a], fr[a]) = if b < 0 {
-                (0, 0.0)
-            } else if b > self.last[a] {
-                (self.last[a] as u64, 1.0)
-            } else {
-                (b as u64, x)
-            };
+            let q = self.q[a].max(0).min(self.qhi[a]);
+            u[a] = (q >> 32) as u64;
+            fr[a] = (q & FRAC) as f32 * (1.0 / FIX as f32);
         }
         (u, fr)
     }
@@ -757,6 +788,8 @@ struct Track {
     inv_beta: [f64; 3],
     dims: Dims3,
     level: usize,
+    /// [`Run`]'s fixed-point increment per step of the level: `beta·dt`.
+    dq: [i64; 3],
     /// How far (in `t`) a crossing of a voxel plane by the sampler's
     /// coordinates may lie from the crossing of `alpha + beta·t`, on any
     /// axis (infinite for an axis nearly parallel to the planes).
@@ -1157,7 +1190,7 @@ impl<'f, 'a, T: Sample> Walker<'f, 'a, T> {
                 // Steps k − 1 … end − 1 lie in the brick (up to rounding:
                 // see `Run`).
                 let end = track.run_end(g, (lo, hi), limit).max(k);
-                let mut run = Run::new(f, level, &track, w, dt, lo, hi);
+                let mut run = Run::new(f, level, &track, w, lo, hi);
                 let (mut n, mut passed) = (0u64, 0u64);
                 let mut j = k - 1;
                 let done = loop {
@@ -1165,7 +1198,7 @@ impl<'f, 'a, T: Sample> Walker<'f, 'a, T> {
                         break false;
                     }
                     let (u, fr) = run.current();
-                    let cell = f.cell_of(u, [0; 3]);
+                    let cell = f.cell_of(u);
                     if clear >> cell & 1 != 0 {
                         // A cell whose samples are all transparent: on to
                         // the step where the ray leaves it.
@@ -1296,11 +1329,11 @@ impl<'f, 'a, T: Sample> Walker<'f, 'a, T> {
                 };
                 let end = track.run_end(g, (lo, hi), t1).max(k);
                 let ranges = f.scene.skip_cells.then(|| f.vm.cell_ranges(slot));
-                let mut run = Run::new(f, level, &track, w, dt, lo, hi);
+                let mut run = Run::new(f, level, &track, w, lo, hi);
                 let (mut n, mut j) = (0u64, k - 1);
                 while j < end {
                     let (u, fr) = run.current();
-                    let cell = f.cell_of(u, [0; 3]);
+                    let cell = f.cell_of(u);
                     // NaN bound or best: no skip.
                     if ranges.is_some_and(|r| r[cell][1] <= best) {
                         st.skipped_cells += 1;
@@ -1379,22 +1412,34 @@ fn clear_blocks(n: Dims3, t: &[bool]) -> Vec<(Dims3, Vec<bool>)> {
     out
 }
 
+/// `⌈n / d⌉` for `0 ≤ n, 0 < d < 2⁵³` through a float division (fewer
+/// instructions than an integer one), exact: both convert exactly, the
+/// quotient is correctly rounded, and a quotient `k + r/d` that is not a
+/// whole number lies at least `1/d` from one, more than half an ulp of it.
+#[inline(always)]
+fn div_ceil_exact(n: i64, d: i64) -> u64 {
+    debug_assert!(n >= 0 && d > 0 && n < 1 << 53 && d < 1 << 53);
+    let q = n as f64 / d as f64;
+    // (Not `ceil`, which is a library call without SSE4.1.)
+    let t = q as i64;
+    (t + ((t as f64) < q) as i64) as u64
+}
+
 /// Whether voxel `v` lies in the box `[lo, hi)`.
 #[inline(always)]
 fn inside(v: Dims3, lo: Dims3, hi: Dims3) -> bool {
     v[0] >= lo[0] && v[0] < hi[0] && v[1] >= lo[1] && v[1] < hi[1] && v[2] >= lo[2] && v[2] < hi[2]
 }
 
-/// `x.clamp(0, hi)` for `hi ≥ 0` (NaN stays NaN), without `clamp`'s
-/// argument check.
+/// `x` clamped to `[0, hi]` for a finite `hi ≥ 0`, NaN to 0: always a
+/// finite value in the range (a max and a min, without branches).
 #[inline(always)]
 fn clamp(x: f64, hi: f64) -> f64 {
-    if x < 0.0 {
-        0.0
-    } else if x > hi {
-        hi
+    let y = if x > 0.0 { x } else { 0.0 };
+    if y < hi {
+        y
     } else {
-        x
+        hi
     }
 }
 
@@ -1403,7 +1448,7 @@ fn clamp(x: f64, hi: f64) -> f64 {
 #[inline(always)]
 fn trilinear<T: Sample>(v: &[T], i: usize, sz: usize, sy: usize, f: [f32; 3]) -> f32 {
     // One bounds check for the farthest corner instead of eight.
-    let v = &v[i..=i + sz + sy + 1];
+    let v = &v[i..i + sz + sy + 2];
     brickyard_core::trilinear_of(
         // SAFETY: every corner index is at most `sz + sy + 1`, the last
         // element of the slice just checked.
@@ -1475,7 +1520,12 @@ mod tests {
             dt,
             inv_dt: 1.0 / dt,
         };
+        // The track of this step size (not the level's).
         let track = f.track(0, &ray, ray.dir.map(|d| 1.0 / d), t1);
+        let track = Track {
+            dq: track.beta.map(|b| (b * dt * FIX) as i64),
+            ..track
+        };
         let steps = ((t1 - t0) / dt) as u64;
         if steps < 2 {
             return None;
@@ -1523,7 +1573,7 @@ mod tests {
             let (lo, hi) = if trial % 2 == 0 {
                 (blo, bhi)
             } else {
-                f.cell_box(f.cell_of(v, blo), blo, bhi)
+                f.cell_box(f.cell_of([0, 1, 2].map(|a| v[a] - blo[a])), blo, bhi)
             };
             let limit = if trial % 3 == 0 {
                 t0 + rnd() * (t1 - t0)
@@ -1554,7 +1604,7 @@ mod tests {
                     "trial {trial}: run ends at {end}"
                 );
                 let w = ray.at(step_t(t0, k0 - 1, dt));
-                let mut run = Run::new(&f, 0, &track, w, dt, lo, hi);
+                let mut run = Run::new(&f, 0, &track, w, lo, hi);
                 for k in k0 - 1..end {
                     let (u, fr) = run.next();
                     let (b, frac) = f.coords(0, ray.at(step_t(t0, k, dt)));
@@ -1571,6 +1621,148 @@ mod tests {
         }
         assert!(checked > 2000, "{checked} rays checked");
         assert!(exact * 10 > checked * 9, "{exact} of {checked} exact");
+    }
+
+    /// `Run::current` (one clamp of the brick-relative coordinate) equals
+    /// clamping to the volume first and then to the brick (base to the
+    /// brick's first or last voxel, fraction 0 or 1), near every face.
+    #[test]
+    fn current_equals_clamping_to_volume_then_brick() {
+        let dims = [70u64, 61, 77];
+        let brick = [32u64, 32, 16];
+        let (vm, scene, params) = fixture(dims, brick, [1.1, 0.8, 1.4]);
+        let f = Frame::new(&vm, &scene, &params, Lod::Fixed(0));
+        let mut rnd = uniform(5);
+        let track = f.track(
+            0,
+            &Ray {
+                origin: [0.0; 3],
+                dir: [0.6, 0.0, 0.8],
+            },
+            [1.0 / 0.6, f64::INFINITY, 1.25],
+            10.0,
+        );
+        for b in [[0u64, 0, 0], [2, 1, 4], [1, 1, 2]] {
+            let lo = [0, 1, 2].map(|a| b[a] * brick[a]);
+            let hi = [0, 1, 2].map(|a| (lo[a] + brick[a]).min(dims[a]));
+            let mut run = Run::new(&f, 0, &track, [0.0; 3], lo, hi);
+            for _ in 0..20_000 {
+                // Absolute coordinates around the brick and the volume.
+                let qa = [0, 1, 2].map(|a| {
+                    let v = lo[a] as f64 - 2.0 + (hi[a] - lo[a] + 4) as f64 * rnd();
+                    let x = (v * FIX) as i64;
+                    match (rnd() * 4.0) as u32 {
+                        0 => x & !FRAC,
+                        1 => x | FRAC,
+                        _ => x,
+                    }
+                });
+                run.q = [0, 1, 2].map(|a| qa[a] - ((lo[a] as i64) << 32));
+                let want: (Dims3, [f32; 3]) = {
+                    let mut u = [0u64; 3];
+                    let mut fr = [0f32; 3];
+                    for a in 0..3 {
+                        let qmax = (f.qmax[0][a] * FIX) as i64;
+                        let q = qa[a].clamp(0, qmax);
+                        let bb = (q >> 32) - lo[a] as i64;
+                        let last = (hi[a] - lo[a]) as i64 - 1;
+                        (u[a], fr[a]) = if bb < 0 {
+                            (0, 0.0)
+                        } else if bb > last {
+                            (last as u64, 1.0)
+                        } else {
+                            (bb as u64, (q & FRAC) as f32 / FIX as f32)
+                        };
+                    }
+                    (u, fr)
+                };
+                assert_eq!(run.current(), want, "brick {b:?} q {qa:?}");
+            }
+        }
+    }
+
+    /// `Run::cross_cell` against stepping where the fixed-point coordinate
+    /// lands exactly on a cell face after a whole number of steps (which
+    /// random rays almost never do).
+    #[test]
+    fn crossing_onto_a_face_equals_stepping() {
+        let dims = [70u64, 61, 77];
+        let brick = [64u64, 64, 32];
+        let (vm, scene, params) = fixture(dims, brick, [1.1, 0.8, 1.4]);
+        let f = Frame::new(&vm, &scene, &params, Lod::Fixed(0));
+        let mut rnd = uniform(23);
+        let (lo, hi) = ([0u64; 3], [64u64, 61, 32]);
+        let last = [0, 1, 2].map(|a| (hi[a] - lo[a]) as i64 - 1);
+        let mut checked = 0;
+        for _ in 0..20_000 {
+            let steps = 1 + (rnd() * 12.0) as i64;
+            let mut run = Run {
+                q: [0; 3],
+                dq: [0; 3],
+                qhi: [0, 1, 2].map(|a| (last[a] << 32) | FRAC),
+                last,
+            };
+            for (a, &la) in last.iter().enumerate() {
+                let e = f.cells.edge[a] as i64;
+                let faces = (la + e) / e;
+                let face = e * (1 + (rnd() * (faces - 1).max(1) as f64) as i64).min(faces - 1);
+                let dq =
+                    ((1i64 << 32) as f64 * (0.05 + rnd())) as i64 * [1, -1][(rnd() * 2.0) as usize];
+                // `steps` steps from exactly on the face (or a random start).
+                let q = if rnd() < 0.7 {
+                    (face << 32) - steps * dq
+                } else {
+                    (rnd() * (la << 32) as f64) as i64
+                };
+                run.q[a] = q.clamp(0, la << 32);
+                run.dq[a] = dq;
+            }
+            let end = 200;
+            let (u, _) = run.current();
+            let cell = f.cell_of(u);
+            let mut step = run.clone();
+            let mut want = 0;
+            while want < end {
+                step.advance(1);
+                want += 1;
+                if f.cell_of(step.current().0) != cell {
+                    break;
+                }
+            }
+            let mut jump = run.clone();
+            assert_eq!(
+                jump.cross_cell(&f, u, (0, end)),
+                want,
+                "{:?} {:?}",
+                run.q,
+                run.dq
+            );
+            checked += 1;
+        }
+        assert!(checked > 10_000);
+    }
+
+    /// The float division of `Run::cross_cell` equals the integer one, for
+    /// whole quotients, their neighbours and random ones.
+    #[test]
+    fn float_division_is_exact() {
+        let mut rnd = uniform(17);
+        for i in 0..200_000u64 {
+            let d = match i % 4 {
+                0 => 1 + (rnd() * 16.0) as i64,
+                1 => 1 + (rnd() * (1u64 << 34) as f64) as i64,
+                2 => (1i64 << 32) + (rnd() * 1000.0) as i64 - 500,
+                _ => 1 + (rnd() * (1u64 << 52) as f64) as i64,
+            };
+            let k = (rnd() * 2000.0) as i64;
+            let n = match i % 3 {
+                0 => k * d,
+                1 => (k * d + (rnd() * 3.0) as i64 - 1).max(0),
+                _ => (rnd() * (1u64 << 44) as f64) as i64,
+            }
+            .min((1i64 << 53) - 1);
+            assert_eq!(div_ceil_exact(n, d), ((n + d - 1) / d) as u64, "{n} / {d}");
+        }
     }
 
     /// `Run::cross_cell` lands exactly where stepping one by one leaves
@@ -1606,18 +1798,18 @@ mod tests {
                 let lo = [0, 1, 2].map(|a| b[a] * brick[a]);
                 let hi = [0, 1, 2].map(|a| (lo[a] + brick[a]).min(dims[a]));
                 let end = track.run_end(g, (lo, hi), t1).max(k0);
-                let mut run = Run::new(&f, 0, &track, w, dt, lo, hi);
+                let mut run = Run::new(&f, 0, &track, w, lo, hi);
                 let mut j = k0 - 1;
                 while j < end {
                     let (u, _) = run.current();
-                    let cell = f.cell_of(u, [0; 3]);
+                    let cell = f.cell_of(u);
                     // Stepping one by one.
                     let mut step = run.clone();
                     let mut want = j;
                     while want < end {
                         step.advance(1);
                         want += 1;
-                        if f.cell_of(step.current().0, [0; 3]) != cell {
+                        if f.cell_of(step.current().0) != cell {
                             break;
                         }
                     }

@@ -585,6 +585,8 @@ pub fn render(dir: &Path, dims: Dims3, dtype: DType, o: &RenderBench) -> Result<
             warm_session = Some((s, backend));
         }
         let (mut s, mut backend) = warm_session.expect("two runs");
+        // (A mark for profilers that should see only the warm frames.)
+        tracing::debug!("render bench: warm frames start");
         let mut warm = f64::INFINITY;
         let (mut cache_ms, mut warm_down) = (f64::INFINITY, 0);
         let mut last = None;
