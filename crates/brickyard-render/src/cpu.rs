@@ -1623,6 +1623,22 @@ mod tests {
         assert!(exact * 10 > checked * 9, "{exact} of {checked} exact");
     }
 
+    /// From step `j` of `run`, stepping one by one: the first step (at most
+    /// `end`) whose voxel base lies in another cell, and the run there.
+    fn step_out_of_cell(f: &Frame, run: &Run, (j, end): (u64, u64)) -> (u64, Run) {
+        let cell = f.cell_of(run.current().0);
+        let mut step = run.clone();
+        let mut k = j;
+        while k < end {
+            step.advance(1);
+            k += 1;
+            if f.cell_of(step.current().0) != cell {
+                break;
+            }
+        }
+        (k, step)
+    }
+
     /// `Run::current` (one clamp of the brick-relative coordinate) equals
     /// clamping to the volume first and then to the brick (base to the
     /// brick's first or last voxel, fraction 0 or 1), near every face.
@@ -1719,16 +1735,7 @@ mod tests {
             }
             let end = 200;
             let (u, _) = run.current();
-            let cell = f.cell_of(u);
-            let mut step = run.clone();
-            let mut want = 0;
-            while want < end {
-                step.advance(1);
-                want += 1;
-                if f.cell_of(step.current().0) != cell {
-                    break;
-                }
-            }
+            let (want, _) = step_out_of_cell(&f, &run, (0, end));
             let mut jump = run.clone();
             assert_eq!(
                 jump.cross_cell(&f, u, (0, end)),
@@ -1802,17 +1809,7 @@ mod tests {
                 let mut j = k0 - 1;
                 while j < end {
                     let (u, _) = run.current();
-                    let cell = f.cell_of(u);
-                    // Stepping one by one.
-                    let mut step = run.clone();
-                    let mut want = j;
-                    while want < end {
-                        step.advance(1);
-                        want += 1;
-                        if f.cell_of(step.current().0) != cell {
-                            break;
-                        }
-                    }
+                    let (want, step) = step_out_of_cell(&f, &run, (j, end));
                     let mut jump = run.clone();
                     let got = jump.cross_cell(&f, u, (j, end));
                     assert_eq!(got, want, "brick {brick:?} trial {trial} from step {j}");
