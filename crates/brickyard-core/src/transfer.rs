@@ -647,17 +647,22 @@ fn segment_table(xs: impl Iterator<Item = f32> + Clone) -> Vec<u16> {
 #[inline(always)]
 fn bin_of(x: f32) -> usize {
     debug_assert!(x.is_nan() || (0.0..=1.0).contains(&x));
-    // `y < last` is false for NaN: y ∈ [0, TF_BINS − 1], NaN excluded.
+    // `y < last` is false for NaN: after the two selects (a min and a max)
+    // y is finite and in [0, TF_BINS − 1] whatever `x` is.
     let last = (TF_BINS - 1) as f32;
     let y = x * TF_BINS as f32;
     let y = if y < last { y } else { last };
-    // SAFETY: `y` is finite and in [0, TF_BINS − 1] (x ≥ 0 or NaN above),
-    // which i32 holds. (Unchecked: one conversion instruction instead of
-    // a saturating conversion and a clamp.)
+    let y = if y > 0.0 { y } else { 0.0 };
+    // SAFETY: `y` is finite and in [0, TF_BINS − 1], which i32 holds.
+    // (Unchecked: one conversion instruction instead of a saturating
+    // conversion and a clamp.)
     let b = unsafe { y.to_int_unchecked::<i32>() } as usize;
     // (The mask proves the range to the compiler: no bounds checks.)
     b & (TF_BINS - 1)
 }
+
+// `bin_of` masks with `TF_BINS − 1`.
+const _: () = assert!(TF_BINS.is_power_of_two());
 
 /// Per bin of the windowed values: what [`TfEval::lookup_visible`] needs
 /// first, in one load.
