@@ -146,6 +146,25 @@ impl LevelStats {
         Some((chunk[e], chunk[e + 1]))
     }
 
+    /// The first store brick touching `[lo, hi)` whose statistics say it
+    /// holds something other than zeros: `(brick, min, max)`.
+    fn data_in(&self, c: u64, lo: Dims3, hi: Dims3) -> Option<(Dims3, f64, f64)> {
+        let sb = self.brick;
+        let r = [0, 1, 2].map(|a| lo[a] / sb[a]..=(hi[a] - 1) / sb[a]);
+        for z in r[0].clone() {
+            for y in r[1].clone() {
+                for x in r[2].clone() {
+                    if let Some((mn, mx)) = self.get(c, [z, y, x]) {
+                        if mn != 0.0 || mx != 0.0 {
+                            return Some(([z, y, x], mn, mx));
+                        }
+                    }
+                }
+            }
+        }
+        None
+    }
+
     /// The common value of every store brick touching `[lo, hi)` if they
     /// are all constant with the same value.
     fn uniform(&self, c: u64, lo: Dims3, hi: Dims3) -> Option<f64> {
@@ -168,9 +187,10 @@ impl LevelStats {
     }
 }
 
-/// Decoded-chunk cache of the loader for level 0; level `l` gets this
-/// halved `l` times (at least 4 MiB), so all levels together stay under
-/// twice this plus 4 MiB per level.
+/// Decoded-chunk cache of the loader for level 0 by default
+/// ([`Loader::open`]); level `l` gets this halved `l` times (at least half
+/// a MiB), so all levels together stay under twice this plus half a MiB
+/// per level. [`Loader::open_with_chunk_cache`] sets the total.
 pub const CHUNK_CACHE_BYTES: u64 = 64 << 20;
 
 struct Level {
@@ -309,6 +329,28 @@ impl Shared {
             let first = out[0];
             let v0 = first.to_f64();
             if !v0.is_nan() && out.iter().all(|v| v.bits() == first.bits()) {
+                if v0 == 0.0 {
+                    if let Some(st) = &level.stats {
+                        // Zeros where the statistics say there is data: the
+                        // store lost it (a shard file removed, a chunk
+                        // dropped from its index), which a Zarr reader
+                        // cannot tell from the fill value.
+                        let o = g.origin_of(key);
+                        let e = [0, 1, 2].map(|a| o[a] + ext[a]);
+                        if let Some((b, mn, mx)) = st.data_in(c, o, e) {
+                            let v = [0, 1, 2].map(|a| b[a] * st.brick[a]);
+                            if let Some(f) = level.src.chunk_file(c as usize, v).filter(|f| !f.exists()) {
+                                return Err(StoreError::invalid(
+                                    f,
+                                    format!("channel {c} store brick {b:?}"),
+                                    format!(
+                                        "the file is missing, but the statistics say this brick holds values in [{mn}, {mx}]"
+                                    ),
+                                ));
+                            }
+                        }
+                    }
+                }
                 return Ok(uniform_brick(*key, v0, bytes_read));
             }
             Ok(LoadedBrick {
@@ -432,6 +474,27 @@ impl Loader {
         threads: usize,
         cache: Arc<HostCache>,
     ) -> Result<Loader> {
+        Self::open_with_chunk_cache(
+            store_path,
+            brick,
+            apron,
+            threads,
+            cache,
+            2 * CHUNK_CACHE_BYTES,
+        )
+    }
+
+    /// Like [`Loader::open`], with the decoded-chunk caches of all levels
+    /// together bounded by `chunk_bytes` plus half a MiB per level: level
+    /// `l` keeps `chunk_bytes / 2^(l+1)`, at least half a MiB.
+    pub fn open_with_chunk_cache(
+        store_path: &Path,
+        brick: Dims3,
+        apron: u64,
+        threads: usize,
+        cache: Arc<HostCache>,
+        chunk_bytes: u64,
+    ) -> Result<Loader> {
         if brick.contains(&0) {
             return Err(StoreError::invalid(
                 store_path,
@@ -461,7 +524,7 @@ impl Loader {
             let mut src = open(store_path, l)?;
             // Neighbouring bricks share the chunks their aprons reach into:
             // keep decoded chunks so each is decoded about once.
-            src.enable_chunk_cache((CHUNK_CACHE_BYTES >> l.min(8)).max(4 << 20));
+            src.enable_chunk_cache((chunk_bytes >> (l + 1).min(63)).max(512 << 10));
             let m = src.meta();
             if let Some(first) = levels.first() {
                 let f: &Level = first;

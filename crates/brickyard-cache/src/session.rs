@@ -6,11 +6,12 @@
 
 use crate::brick::{BrickKey, LoadedBrick};
 use crate::host_cache::HostCache;
-use crate::loader::Loader;
+use crate::loader::{LoadFailure, Loader};
 use crate::vm::{FrameReport, InsertReport, Requests, VirtualMemory, VmConfig};
 use std::collections::VecDeque;
 use std::path::Path;
 use std::sync::Arc;
+use std::time::Duration;
 
 /// Figures of one frame.
 #[derive(Debug, Clone, Default)]
@@ -26,13 +27,60 @@ pub struct FrameStats {
     pub in_flight: usize,
     /// Bricks that arrived but wait for a later frame's upload budget.
     pub waiting_upload: usize,
+    /// Loads that failed this frame (see [`Session::failures`]).
+    pub failed: usize,
 }
+
+/// What [`Session::pin_coarsest`] made resident for good.
+#[derive(Debug, Clone, Default)]
+pub struct PinReport {
+    /// Levels pinned (coarsest first).
+    pub levels: Vec<usize>,
+    /// Data bricks pinned in the pool.
+    pub bricks: usize,
+    /// Empty or constant bricks pinned (no pool slot).
+    pub flagged: usize,
+    /// Pool bytes the pinned bricks take.
+    pub bytes: u64,
+    /// Pinned bricks that could not be loaded.
+    pub failed: usize,
+}
+
+/// The pool cannot hold the coarsest level (plus room to work).
+#[derive(Debug, Clone)]
+pub struct PoolTooSmall {
+    /// Bricks the pool holds.
+    pub slots: usize,
+    /// Bricks the coarsest level needs (all channels).
+    pub needed: usize,
+    /// Pool bytes that would be enough.
+    pub minimum_bytes: u64,
+}
+
+impl std::fmt::Display for PoolTooSmall {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        write!(
+            f,
+            "the pool holds {} bricks, but the coarsest level alone needs {} (kept resident so that every part of the volume can be drawn) plus as many to work with; give the pool at least {:.1} MiB",
+            self.slots,
+            self.needed,
+            self.minimum_bytes as f64 / (1u64 << 20) as f64
+        )
+    }
+}
+
+impl std::error::Error for PoolTooSmall {}
 
 /// Virtual memory + loader + host cache for one store.
 pub struct Session {
     vm: VirtualMemory,
     loader: Loader,
     waiting: VecDeque<Arc<LoadedBrick>>,
+    /// Batch mode: after sending a frame's requests, wait up to this long
+    /// for them to load before inserting (see [`Session::set_batch`]).
+    batch: Option<Duration>,
+    /// Every load failure so far, oldest first.
+    failures: Vec<LoadFailure>,
 }
 
 impl Session {
@@ -46,6 +94,27 @@ impl Session {
         threads: usize,
     ) -> brickyard_store::Result<Session> {
         Self::with_cache(store, cfg, Arc::new(HostCache::new(host_bytes)), threads)
+    }
+
+    /// Like [`Session::open`], with the loader's decoded-chunk caches
+    /// bounded by `chunk_bytes` (plus half a MiB per level).
+    pub fn open_with_budget(
+        store: &Path,
+        cfg: VmConfig,
+        host_bytes: u64,
+        chunk_bytes: u64,
+        threads: usize,
+    ) -> brickyard_store::Result<Session> {
+        let cache = Arc::new(HostCache::new(host_bytes));
+        let loader = Loader::open_with_chunk_cache(
+            store,
+            cfg.brick,
+            cfg.apron,
+            threads,
+            cache,
+            chunk_bytes,
+        )?;
+        Ok(Self::from_loader(loader, cfg))
     }
 
     /// Like [`Session::open`] with an existing host cache (of the same store).
@@ -62,6 +131,8 @@ impl Session {
             vm,
             loader,
             waiting: VecDeque::new(),
+            batch: None,
+            failures: vec![],
         })
     }
 
@@ -73,6 +144,8 @@ impl Session {
             vm,
             loader,
             waiting: VecDeque::new(),
+            batch: None,
+            failures: vec![],
         }
     }
 
@@ -87,6 +160,106 @@ impl Session {
     }
     pub fn loader(&self) -> &Loader {
         &self.loader
+    }
+
+    /// Batch mode (`Some(limit)`): a frame that sends requests waits, up
+    /// to `limit`, for the loader to deliver them before inserting, so a
+    /// render that nobody watches loads its working set at the loader's
+    /// full rate instead of drawing a frame for each batch. `None`: never
+    /// wait (interactive views).
+    pub fn set_batch(&mut self, wait: Option<Duration>) {
+        self.batch = wait;
+    }
+
+    /// Every load failure so far (key and message), oldest first.
+    pub fn failures(&self) -> &[LoadFailure] {
+        &self.failures
+    }
+
+    /// Take the loader's new failures: the bricks are marked failed in the
+    /// virtual memory (never requested again; drawn from coarser data).
+    fn collect_failures(&mut self) -> usize {
+        let new = self.loader.take_failures();
+        for f in &new {
+            self.vm.mark_failed(f.key);
+        }
+        let n = new.len();
+        self.failures.extend(new);
+        n
+    }
+
+    /// Make the coarsest levels of every channel resident for good, so that
+    /// every sample finds data at some level whatever the pool's pressure:
+    /// the coarsest level always, and finer ones while all pinned bricks
+    /// stay within an eighth of the pool and `max_bricks`. Loads them now
+    /// (waiting up to `timeout`). Fails when the pool cannot hold twice the
+    /// coarsest level.
+    pub fn pin_coarsest(
+        &mut self,
+        max_bricks: usize,
+        timeout: Duration,
+    ) -> Result<PinReport, PoolTooSmall> {
+        let g = self.loader.geometry().clone();
+        let nl = g.levels.len();
+        let per_level =
+            |l: usize| g.bricks_per_level(l).iter().product::<u64>() as usize * g.channels;
+        let slots = self.vm.pool_slots();
+        let coarsest = per_level(nl - 1);
+        if slots < 2 * coarsest {
+            let slot_bytes = self.vm.pool_bytes() as u64 / slots.max(1) as u64;
+            return Err(PoolTooSmall {
+                slots,
+                needed: coarsest,
+                minimum_bytes: 2 * coarsest as u64 * slot_bytes.max(1),
+            });
+        }
+        let limit = (slots / 8).min(max_bricks).max(coarsest);
+        let mut levels = vec![nl - 1];
+        let mut total = coarsest;
+        for l in (0..nl - 1).rev() {
+            let n = per_level(l);
+            if total + n > limit {
+                break;
+            }
+            total += n;
+            levels.push(l);
+        }
+        let mut keys: Vec<BrickKey> = vec![];
+        for &l in &levels {
+            for c in 0..g.channels {
+                keys.extend(g.keys(l, c));
+            }
+        }
+        let wanted: Vec<(BrickKey, u32)> = keys.iter().map(|k| (*k, u32::MAX)).collect();
+        self.loader.request(&wanted);
+        self.loader.wait_idle(timeout);
+        let arrived: Vec<Arc<LoadedBrick>> = self.loader.poll();
+        let failed = self.collect_failures();
+        // The pool has room for all of them (checked above); write them in
+        // upload-budget-sized portions.
+        let mut rest = &arrived[..];
+        while !rest.is_empty() {
+            let r = self.vm.insert(rest);
+            if r.processed == 0 {
+                break;
+            }
+            rest = &rest[r.processed..];
+        }
+        let mut report = PinReport {
+            levels,
+            failed,
+            ..Default::default()
+        };
+        for b in &arrived {
+            if self.vm.pin(b.key) {
+                match b.content {
+                    crate::brick::BrickContent::Data(_) => report.bricks += 1,
+                    _ => report.flagged += 1,
+                }
+            }
+        }
+        report.bytes = report.bricks as u64 * (self.vm.pool_bytes() / slots.max(1)) as u64;
+        Ok(report)
     }
 
     /// Start a frame.
@@ -109,7 +282,11 @@ impl Session {
             .collect();
         let cancelled = self.loader.cancel_except(requests);
         self.loader.request(&wanted);
+        if let Some(limit) = self.batch {
+            self.loader.wait_idle(limit);
+        }
         let arrived = self.loader.poll();
+        self.collect_failures();
         let delivered = arrived.len();
         let have: std::collections::HashSet<BrickKey> =
             self.waiting.iter().map(|b| b.key).collect();
@@ -155,7 +332,13 @@ impl Session {
         let keys: Vec<BrickKey> = wanted.iter().map(|w| w.0).collect();
         let cancelled = self.loader.cancel_except(&keys);
         self.loader.request(&wanted);
+        if let Some(limit) = self.batch {
+            if !wanted.is_empty() {
+                self.loader.wait_idle(limit);
+            }
+        }
         let arrived = self.loader.poll();
+        let failed = self.collect_failures();
         let delivered = arrived.len();
         self.waiting.extend(arrived);
         let batch: Vec<Arc<LoadedBrick>> = self.waiting.iter().cloned().collect();
@@ -175,6 +358,7 @@ impl Session {
             pending: self.loader.pending(),
             in_flight: self.loader.in_flight(),
             waiting_upload: self.waiting.len(),
+            failed,
         }
     }
 }

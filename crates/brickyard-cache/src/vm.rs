@@ -26,7 +26,7 @@ use crate::cells::{cell_ranges, CellGrid};
 use brickyard_core::cast_slice;
 use brickyard_core::vm::{PageEntry, PageFlag, VirtualLayout};
 use brickyard_core::{dispatch_dtype, DType, Dims3, Sample};
-use std::collections::HashMap;
+use std::collections::{HashMap, HashSet};
 use std::sync::atomic::{AtomicU32, Ordering};
 use std::sync::Arc;
 
@@ -98,6 +98,9 @@ struct SlotSet {
     free: Vec<u32>,
     /// Next eviction candidate, counting from the tail of `lru`.
     cursor: usize,
+    /// Slots never taken for another brick or block (the always-resident
+    /// coarsest levels and the page-table blocks on their paths).
+    pinned: Vec<bool>,
 }
 
 impl SlotSet {
@@ -120,6 +123,7 @@ impl SlotSet {
             owner: vec![Owner::None; n as usize],
             free: (0..n).rev().collect(),
             cursor: 0,
+            pinned: vec![false; n as usize],
         }
     }
     fn len(&self) -> usize {
@@ -163,6 +167,7 @@ impl SlotSet {
             .filter(|&s| {
                 let s = s as usize;
                 self.owner[s] != Owner::None
+                    && !self.pinned[s]
                     && self.usage[s].load(Ordering::Relaxed) == frame
                     && self.exact[s].load(Ordering::Relaxed) != frame
                     && self.level[s] > level
@@ -178,6 +183,7 @@ impl SlotSet {
     fn take(&mut self, frame: u32) -> Option<u32> {
         while let Some(s) = self.free.pop() {
             if self.owner[s as usize] == Owner::None
+                && !self.pinned[s as usize]
                 && self.usage[s as usize].load(Ordering::Relaxed) != frame
             {
                 return Some(s);
@@ -189,7 +195,7 @@ impl SlotSet {
         while self.cursor < self.lru.len() {
             let s = self.lru[self.lru.len() - 1 - self.cursor];
             self.cursor += 1;
-            if self.usage[s as usize].load(Ordering::Relaxed) != frame {
+            if self.usage[s as usize].load(Ordering::Relaxed) != frame && !self.pinned[s as usize] {
                 return Some(s);
             }
         }
@@ -211,7 +217,9 @@ pub struct Requests {
 impl Requests {
     pub fn with_capacity(cap: usize) -> Requests {
         Requests {
-            map: HashMap::with_capacity(cap),
+            // Grown on demand up to `cap` (large caps are common in batch
+            // renders; most collectors see few misses).
+            map: HashMap::with_capacity(cap.min(1024)),
             cap,
             dropped: 0,
         }
@@ -272,6 +280,13 @@ pub struct FrameReport {
     pub dropped: u64,
     pub resident_bricks: usize,
     pub resident_pt_blocks: Vec<usize>,
+    /// Pool slots whose brick served samples at its own level this frame
+    /// (the part of the pool the view's working set fills; pinned slots
+    /// only when used so).
+    pub exact_slots: usize,
+    /// Requests for bricks that failed to load, left out of the list
+    /// (their regions are drawn from coarser data).
+    pub failed_requested: usize,
 }
 
 /// Figures of one insert step.
@@ -318,6 +333,9 @@ pub struct VirtualMemory {
     padded: [usize; 3],
     brick_bytes: usize,
     merged: Requests,
+    /// Bricks that failed to load (packed keys): never requested again;
+    /// samples there fall back to coarser data.
+    failed: HashSet<u64>,
     /// Change tracking for a device mirror (`None`: off): indices into
     /// [`VirtualMemory::tables`] of entries set, and pool slots written,
     /// since the last [`VirtualMemory::take_changes`].
@@ -400,6 +418,7 @@ impl VirtualMemory {
             padded,
             brick_bytes,
             cfg,
+            failed: HashSet::new(),
             changes: None,
         }
     }
@@ -853,10 +872,16 @@ impl VirtualMemory {
             }
         }
         dropped += self.merged.dropped;
+        let mut failed_requested = 0;
         let list: Vec<(BrickKey, u32)> = self
             .merged
             .map
             .iter()
+            .filter(|(k, _)| {
+                let f = self.failed.contains(*k);
+                failed_requested += usize::from(f);
+                !f
+            })
             .map(|(&k, &n)| (BrickKey::unpack(k), n))
             .collect();
         let requested = list.len();
@@ -866,7 +891,16 @@ impl VirtualMemory {
         for (_, s) in &mut self.pt {
             s.compact(frame);
         }
+        let exact_slots = self
+            .slots
+            .exact
+            .iter()
+            .zip(&self.slots.owner)
+            .filter(|(e, o)| **o != Owner::None && e.load(Ordering::Relaxed) == frame)
+            .count();
         FrameReport {
+            exact_slots,
+            failed_requested,
             frame,
             requests: list.into_iter().map(|(k, _)| k).collect(),
             requested,
@@ -1060,6 +1094,77 @@ impl VirtualMemory {
                 self.pt[n as usize - 1].0[b as usize * len + i as usize] = e;
             }
         }
+    }
+
+    /// Keep brick `key` (resident or flagged) and the page-table blocks on
+    /// its path resident for good: they are never evicted nor taken as
+    /// stand-ins. Returns false (and pins nothing) if it is not mapped.
+    pub fn pin(&mut self, key: BrickKey) -> bool {
+        let l = key.level as usize;
+        let c = key.channel as usize;
+        let v = [0, 1, 2].map(|a| key.brick[a] as u64 * self.cfg.brick[a]);
+        let p = self.p_of_voxel(l, v);
+        let mut e = self.dir[self.dir_index(l, c, p)];
+        let mut path = vec![];
+        for n in 1..self.layout.nmax() {
+            let Kind::Mapped(slot) = entry_kind(&e, self.dtype) else {
+                return false;
+            };
+            let (entries, set) = &self.pt[n - 1];
+            let b = set.id(slot);
+            path.push((n, b));
+            e = entries[b as usize * self.pt_block_len[n - 1] + self.block_entry(n, l, p)];
+        }
+        let slot = match entry_kind(&e, self.dtype) {
+            Kind::Unmapped => return false,
+            Kind::Mapped(slot) => Some(self.slots.id(slot)),
+            Kind::Empty | Kind::Constant(_) => None,
+        };
+        for (n, b) in path {
+            self.pt[n - 1].1.pinned[b as usize] = true;
+        }
+        if let Some(s) = slot {
+            self.slots.pinned[s as usize] = true;
+        }
+        true
+    }
+
+    /// Pinned slots: `(set, slot)` with set 0 the brick pool and set `n`
+    /// the `n`-th page-table cache (the device's numbering).
+    pub fn pinned_slots(&self) -> Vec<(usize, u32)> {
+        let mut out: Vec<(usize, u32)> = (0..self.slots.len() as u32)
+            .filter(|&s| self.slots.pinned[s as usize])
+            .map(|s| (0, s))
+            .collect();
+        for (n, (_, set)) in self.pt.iter().enumerate() {
+            out.extend(
+                (0..set.len() as u32)
+                    .filter(|&b| set.pinned[b as usize])
+                    .map(|b| (n + 1, b)),
+            );
+        }
+        out
+    }
+
+    /// Pool slots pinned.
+    pub fn pinned_bricks(&self) -> usize {
+        self.slots.pinned.iter().filter(|p| **p).count()
+    }
+
+    /// Mark `key` as failed to load: it is left out of request lists from
+    /// now on (samples there fall back to coarser data).
+    pub fn mark_failed(&mut self, key: BrickKey) {
+        self.failed.insert(key.pack());
+    }
+
+    /// Whether `key` was marked failed.
+    pub fn is_failed(&self, key: BrickKey) -> bool {
+        self.failed.contains(&key.pack())
+    }
+
+    /// Bricks marked failed.
+    pub fn failed_count(&self) -> usize {
+        self.failed.len()
     }
 
     /// Whether brick `key` is mapped (resident or flagged).

@@ -127,6 +127,30 @@ fn stamp_word(set: usize) -> u32 {
     u32::from(set == 0)
 }
 
+/// Indices into the stamp table (`set_base` + slot) of pinned slots, sorted.
+fn pinned_indices(lay: &Layout, slots: &[(usize, u32)]) -> Vec<u32> {
+    let mut v: Vec<u32> = slots
+        .iter()
+        .filter(|(set, s)| *set < lay.nmax as usize && *s < lay.set_base[*set][1])
+        .map(|(set, s)| lay.set_base[*set][0] + s)
+        .collect();
+    v.sort_unstable();
+    v.dedup();
+    v
+}
+
+/// Sorted indices as runs `(first, count)`.
+fn runs_of(v: &[u32]) -> Vec<(u32, u32)> {
+    let mut runs: Vec<(u32, u32)> = vec![];
+    for &i in v {
+        match runs.last_mut() {
+            Some((a, n)) if *a + *n == i => *n += 1,
+            _ => runs.push((i, 1)),
+        }
+    }
+    runs
+}
+
 /// Per-slot owners from the current page tables (entries mapping a slot).
 fn owners_of(lay: &Layout, entries: &[[u32; 2]]) -> Vec<u32> {
     let nmax = lay.nmax as usize;
@@ -188,6 +212,9 @@ pub struct UpdateModel {
     /// LRU order per set (0: pool).
     pub order: Vec<Vec<u32>>,
     pub counts: UpdateCounts,
+    /// Pinned slots (`set_base` index + slot): stamped as used at their
+    /// own level at every frame's end, so they are never taken.
+    pub pinned: Vec<u32>,
 }
 
 impl UpdateModel {
@@ -210,6 +237,7 @@ impl UpdateModel {
             owner,
             order,
             counts: UpdateCounts::default(),
+            pinned: pinned_indices(&lay, &vm.pinned_slots()),
         }
     }
 
@@ -246,8 +274,18 @@ impl UpdateModel {
         }
     }
 
+    /// Pin `(set, slot)`s (as [`VirtualMemory::pinned_slots`] lists them;
+    /// [`UpdateModel::new`] takes those of the virtual memory it mirrors).
+    pub fn pin(&mut self, slots: &[(usize, u32)]) {
+        self.pinned = pinned_indices(&self.lay, slots);
+    }
+
     /// Compact every set, then reserve `k` pool slots (NONE where none).
     pub fn end_frame(&mut self, frame: u32, k: usize) -> Vec<u32> {
+        for &i in &self.pinned {
+            self.stamps[2 * i as usize] = frame;
+            self.stamps[2 * i as usize + 1] = frame;
+        }
         for set in 0..self.sets() {
             self.compact(set, frame);
         }
@@ -526,9 +564,19 @@ pub struct DeviceCache {
     out_cap: usize,
     sets: usize,
     counts: UpdateCounts,
+    /// Pinned slots as runs `(first stamp-table index, count)`.
+    pinned: Vec<(u32, u32)>,
 }
 
 impl DeviceCache {
+    /// Pin `(set, slot)`s (as [`VirtualMemory::pinned_slots`] lists them):
+    /// at every frame's end they are stamped as used at their own level,
+    /// so the update step never takes them. [`DeviceCache::new`] pins what
+    /// the virtual memory it starts from has pinned.
+    pub fn pin(&mut self, dvm: &DeviceVm, slots: &[(usize, u32)]) {
+        self.pinned = runs_of(&pinned_indices(dvm.layout(), slots));
+    }
+
     /// The update step for `dvm`, starting from what it holds (mirroring
     /// `vm`): owners from its tables, LRU orders by slot id, no stamps.
     pub fn new(gpu: &Gpu, dvm: &DeviceVm, vm: &VirtualMemory) -> Result<DeviceCache, GpuError> {
@@ -569,6 +617,7 @@ impl DeviceCache {
             out_cap: 0,
             sets: m.order.len(),
             counts: UpdateCounts::default(),
+            pinned: runs_of(&m.pinned),
         })
     }
 
@@ -630,6 +679,11 @@ impl DeviceCache {
         self.grow_out(gpu, k);
         // This frame's counts of slots taken start at 0.
         gpu.queue.write_buffer(&self.out, 28, &[0u8; 36]);
+        for &(first, n) in &self.pinned {
+            let words = vec![frame; 2 * n as usize];
+            gpu.queue
+                .write_buffer(&self.stamps, first as u64 * 8, bytemuck::cast_slice(&words));
+        }
         let mut enc = gpu.device.create_command_encoder(&Default::default());
         for set in 0..self.sets {
             let base = dvm.layout().set_base[set][0];

@@ -277,3 +277,106 @@ fn fresh_bricks_are_not_taken_back_while_never_used_slots_remain() {
         assert!(slot.is_some(), "brick {k:?} was evicted");
     }
 }
+
+/// Bricks pinned in the host's virtual memory before the device mirrors it
+/// (the coarsest levels, as `Session::pin_coarsest` does) survive any
+/// pressure on the device: every frame asks for more slots than the pool
+/// has and references far more bricks than fit, yet the pinned bricks keep
+/// their slots and page-table paths, on the device and in its twin alike.
+#[test]
+fn pinned_bricks_are_never_taken() {
+    use brickyard_cache::brick::{BrickContent, LoadedBrick};
+    use std::sync::Arc;
+    let Some(gpu) = test_gpu() else { return };
+    let dims = [40, 36, 48];
+    let mut vm = vm(dims, 1, 40, 6);
+    let keys = all_keys(dims, 1);
+    let coarsest = levels(dims).len() - 1;
+    let pinned_keys: Vec<BrickKey> = keys
+        .iter()
+        .copied()
+        .filter(|k| k.level as usize >= coarsest - 1)
+        .collect();
+    assert!(pinned_keys.len() >= 2 && pinned_keys.len() < 20);
+    let bricks: Vec<Arc<LoadedBrick>> = pinned_keys
+        .iter()
+        .map(|&key| {
+            Arc::new(LoadedBrick {
+                key,
+                content: BrickContent::Data(Arc::from(vec![9u8; 216])),
+                min: 9.0,
+                max: 9.0,
+                bytes_read: 216,
+            })
+        })
+        .collect();
+    vm.begin_frame();
+    let r = vm.insert(&bricks);
+    assert_eq!(r.inserted, bricks.len());
+    for k in &pinned_keys {
+        assert!(vm.pin(*k));
+    }
+    let pins = vm.pinned_slots();
+    assert_eq!(pins.iter().filter(|p| p.0 == 0).count(), pinned_keys.len());
+    assert!(pins.iter().any(|p| p.0 > 0), "page-table blocks pinned too");
+    let (dvm, _) = DeviceVm::new(&gpu, &mut vm).unwrap();
+    let mut cache = DeviceCache::new(&gpu, &dvm, &vm).unwrap();
+    let mut model = UpdateModel::new(&dvm, &vm);
+    let pinned_items: Vec<Item> = pinned_keys
+        .iter()
+        .map(|&k| {
+            let (_, e) = model.entry_for(&Item::empty(k));
+            assert_eq!(e[0] >> 30, 1, "pinned brick mapped at start");
+            Item::empty(k)
+        })
+        .collect();
+    let before: Vec<[u32; 2]> = pinned_items
+        .iter()
+        .map(|it| model.entry_for(it).1)
+        .collect();
+    let slots = vm.pool_slots();
+    let mut rng = Lcg(7);
+    let mut taken_total = 0;
+    for frame in 2..=16u32 {
+        gpu.queue
+            .write_buffer(&cache.stamps, 0, bytemuck::cast_slice(&model.stamps));
+        // More than the pool: everything not pinned is taken.
+        let k = slots + 4;
+        let want = model.end_frame(frame, k);
+        let got = cache.end_frame(&gpu, &dvm, frame, k).unwrap();
+        assert_eq!(got, want, "reserved slots, frame {frame}");
+        let free: Vec<u32> = got.iter().copied().filter(|&s| s != NONE).collect();
+        assert_eq!(free.len(), slots - pinned_keys.len(), "frame {frame}");
+        taken_total += free.len();
+        let mut items = vec![];
+        let mut used = HashSet::new();
+        for s in free {
+            loop {
+                let key = keys[rng.below(keys.len() as u64) as usize];
+                if !pinned_keys.contains(&key) && used.insert(key) {
+                    items.push(Item::data(key, s));
+                    break;
+                }
+            }
+        }
+        model.reference(frame, &items);
+        cache.reference(&gpu, &dvm, frame, &items);
+        let entries = dvm.read_entries(&gpu).unwrap();
+        assert!(entries == model.entries, "page tables, frame {frame}");
+        let st = cache.read_state(&gpu).unwrap();
+        assert!(st.stamps == model.stamps, "stamps, frame {frame}");
+        model
+            .check()
+            .unwrap_or_else(|e| panic!("frame {frame}: {e}"));
+        let now: Vec<[u32; 2]> = pinned_items
+            .iter()
+            .map(|it| model.entry_for(it).1)
+            .collect();
+        assert_eq!(now, before, "pinned bricks moved, frame {frame}");
+    }
+    assert!(taken_total > 10 * slots, "the pool was under pressure");
+    assert!(
+        model.counts.blocks_unmapped > 0,
+        "page-table blocks were evicted"
+    );
+}

@@ -76,6 +76,14 @@ pub trait VolumeSource: Send + Sync {
         let d = self.meta().dims;
         [1, d[1], d[2]]
     }
+
+    /// The file that holds voxel `v` (`[z, y, x]`) of channel `c`, for
+    /// sources stored as one file per chunk or shard (`None`: not such a
+    /// source). A reader that finds such a file missing reads the fill
+    /// value; callers that know data should be there check it.
+    fn chunk_file(&self, _c: usize, _v: Dims3) -> Option<std::path::PathBuf> {
+        None
+    }
 }
 
 /// Check that a region request is inside the volume and that the buffer has

@@ -37,6 +37,8 @@ pub struct ZarrSource {
     chunk_cache: Option<ChunkCache>,
     /// The multiscale metadata, when the path was an OME-Zarr image.
     pub multiscale: Option<Multiscale>,
+    /// The array's directory (chunk keys are relative to it).
+    dir: std::path::PathBuf,
 }
 
 fn is_array_dir(p: &Path) -> bool {
@@ -237,6 +239,7 @@ fn open_array(
         caxis,
         chunk,
         multiscale: ms.map(|(m, _)| m),
+        dir: apath.to_path_buf(),
     })
 }
 
@@ -340,7 +343,14 @@ impl ZarrSource {
                     } else {
                         self.array.retrieve_array_subset::<Vec<T>>(&sub)
                     }
-                    .map_err(|e| StoreError::zarr(&self.meta.path, e))?;
+                    .map_err(|e| {
+                        // Name the file that holds the chunk (its shard).
+                        let outer: Vec<u64> = (0..n)
+                            .map(|a| creg[a].start / self.chunk[a].max(1))
+                            .collect();
+                        let file = self.dir.join(self.array.chunk_key(&outer).as_str());
+                        StoreError::zarr(file, format!("chunk at {:?}: {e}", sub.start()))
+                    })?;
                     let d = Arc::new(as_bytes(&v).to_vec());
                     cc.put(key, d.clone());
                     d
@@ -409,6 +419,20 @@ impl ZarrSource {
 }
 
 impl VolumeSource for ZarrSource {
+    fn chunk_file(&self, c: usize, v: Dims3) -> Option<std::path::PathBuf> {
+        let n = self.array.shape().len();
+        let mut idx = vec![0u64; n];
+        for a in 0..3 {
+            if let Some(i) = self.zyx[a] {
+                idx[i] = v[a] / self.chunk[i].max(1);
+            }
+        }
+        if let Some(i) = self.caxis {
+            idx[i] = c as u64 / self.chunk[i].max(1);
+        }
+        Some(self.dir.join(self.array.chunk_key(&idx).as_str()))
+    }
+
     fn meta(&self) -> &SourceMeta {
         &self.meta
     }
