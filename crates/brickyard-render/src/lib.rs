@@ -10,6 +10,7 @@
 //! transfer}`. **World coordinates are `[x, y, z]`**; volumes, spacing and
 //! normalized positions are `[z, y, x]` (see `brickyard_core::camera`).
 
+pub mod budget;
 pub mod cpu;
 pub mod gpu;
 pub mod image;

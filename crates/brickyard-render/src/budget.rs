@@ -1,0 +1,318 @@
+//! Budget-aware level of detail: the per-view LOD bias that makes a view's
+//! working set fit the brick pool.
+//!
+//! A view whose finest working set is larger than the pool can never
+//! complete at full resolution: every slot serves a sample at its own level,
+//! the bricks still asked for find no slot, and the frame loop would go on
+//! forever. [`LodBudget`] watches each frame's signals and coarsens the view
+//! (raises the bias of automatic LOD, or the fixed level) until the working
+//! set fits; then the view converges to a complete image at that detail. An
+//! interactive view refines again, with hysteresis, when the working set
+//! has shrunk well below the pool.
+//!
+//! The same rule serves the CPU and the device back ends and the viewer; it
+//! only reads per-frame counts.
+
+use crate::cpu::Lod;
+
+/// What one frame tells the controller.
+#[derive(Debug, Clone, Copy, Default, PartialEq)]
+pub struct FrameSignals {
+    /// Every sample was served at the level it asked for.
+    pub complete: bool,
+    /// Bricks still asked for (the capped list, failed bricks left out).
+    pub requests: usize,
+    /// Distinct bricks asked for before the cap (failed left out).
+    pub requested: usize,
+    /// Data bricks that arrived but found no pool slot: every slot served
+    /// a sample at its own level this frame.
+    pub deferred: usize,
+    /// Pool slots used at their own level this frame, when known (the
+    /// device does not count them).
+    pub exact_slots: Option<usize>,
+    /// Pool slots not pinned.
+    pub free_slots: usize,
+    /// Something changed this frame: a brick arrived or loads are pending.
+    pub progress: bool,
+}
+
+/// Why a non-interactive render stops.
+#[derive(Debug, Clone, PartialEq)]
+pub enum Stop {
+    /// Every sample at the level it asked for (under the current bias).
+    Complete,
+    /// Nothing left to ask for but bricks that failed to load (drawn from
+    /// coarser data).
+    CompleteButFailed,
+    /// No progress for several frames (nothing arrives, nothing can be
+    /// placed, the bias is at its limit).
+    NoProgress,
+}
+
+/// The controller's decision after a frame.
+#[derive(Debug, Clone, PartialEq)]
+pub enum Decision {
+    /// Draw another frame.
+    Continue,
+    /// The bias changed (coarser or finer); draw another frame.
+    Changed { from: f64, to: f64 },
+    /// A render may stop here.
+    Stop(Stop),
+}
+
+/// The per-view LOD bias and its rules.
+#[derive(Debug, Clone)]
+pub struct LodBudget {
+    /// The bias the user asked for (never refined past it).
+    pub base: f64,
+    /// The bias in force now (≥ `base`).
+    pub bias: f64,
+    /// The largest bias worth trying (every sample at the coarsest level).
+    pub max: f64,
+    /// Whether the bias may go down again (views), or only up (renders).
+    pub interactive: bool,
+    /// Frames in a row with too little room.
+    saturated: u32,
+    /// Frames in a row with much room to spare (views).
+    roomy: u32,
+    /// Frames in a row without progress.
+    stalled: u32,
+    /// The working set at the user's bias, in bricks, as first measured
+    /// when it did not fit (a lower bound).
+    pub needed_at_base: Option<usize>,
+}
+
+/// Steps of the bias.
+const STEP: f64 = 0.5;
+/// Frames without progress before a render gives up.
+const STALL_FRAMES: u32 = 8;
+
+impl LodBudget {
+    /// A controller starting at the user's bias `base`, for a volume of
+    /// `levels` levels.
+    pub fn new(base: f64, levels: usize, interactive: bool) -> LodBudget {
+        LodBudget {
+            base,
+            bias: base,
+            // A bias of `levels` sends every sample to the coarsest level
+            // from any distance a view can have (plus margin for zoomed-in
+            // cameras, whose footprint is below a voxel).
+            max: base.max(0.0) + levels as f64 + 2.0,
+            interactive,
+            saturated: 0,
+            roomy: 0,
+            stalled: 0,
+            needed_at_base: None,
+        }
+    }
+
+    /// The level of detail to draw with: `lod` shifted by the bias in
+    /// force (automatic LOD: the bias replaces the user's; a fixed level
+    /// moves to a coarser one by the whole levels of the extra bias).
+    pub fn apply(&self, lod: Lod, levels: usize) -> Lod {
+        match lod {
+            Lod::Auto { .. } => Lod::Auto { bias: self.bias },
+            Lod::Fixed(l) => {
+                let extra = (self.bias - self.base).max(0.0).ceil() as usize;
+                Lod::Fixed((l + extra).min(levels.saturating_sub(1)))
+            }
+        }
+    }
+
+    /// The extra bias in force (0 when the view fits at the asked detail).
+    pub fn extra(&self) -> f64 {
+        self.bias - self.base
+    }
+
+    /// The view changed (camera, mode): forget the counts of frames, keep
+    /// the bias (the next frames correct it either way).
+    pub fn view_changed(&mut self) {
+        self.saturated = 0;
+        self.roomy = 0;
+        self.stalled = 0;
+    }
+
+    /// Take one frame's signals and decide.
+    pub fn update(&mut self, s: &FrameSignals) -> Decision {
+        // Saturated: bricks are wanted, and what arrived found no room.
+        let full = s.deferred > 0 && s.requests > 0;
+        if full {
+            self.saturated += 1;
+        } else {
+            self.saturated = 0;
+        }
+        if s.progress || full {
+            self.stalled = 0;
+        } else if !s.complete {
+            self.stalled += 1;
+        }
+        if full && self.saturated >= 1 && self.bias < self.max {
+            // How much too big is the working set? Slots used at their own
+            // level plus bricks still asked for, against the room there is.
+            let used = s.exact_slots.unwrap_or(s.free_slots);
+            let need = used + s.requested.max(s.requests);
+            if self.bias == self.base && self.needed_at_base.is_none() {
+                self.needed_at_base = Some(need);
+            }
+            let room = (s.free_slots as f64 * 0.85).max(1.0);
+            // A working set shrinks about 4× per level for surfaces (rays
+            // end early) and 8× for volumes seen through: take the surface
+            // rate, the safe one, and step at least half a level.
+            let levels = ((need as f64 / room).log2() / 2.0).max(STEP);
+            let step = ((levels / STEP).ceil() * STEP).min(2.0);
+            let from = self.bias;
+            self.bias = (self.bias + step).min(self.max);
+            self.saturated = 0;
+            self.roomy = 0;
+            return Decision::Changed {
+                from,
+                to: self.bias,
+            };
+        }
+        if self.interactive {
+            // Refine when the working set would still fit at the finer
+            // bias (twice as many bricks for half a level, with a margin).
+            let roomy = s.complete
+                && self.bias > self.base
+                && s.exact_slots
+                    .is_some_and(|u| (u as f64) * 2.0 < 0.7 * s.free_slots as f64);
+            if roomy {
+                self.roomy += 1;
+            } else {
+                self.roomy = 0;
+            }
+            if self.roomy >= 3 {
+                let from = self.bias;
+                self.bias = (self.bias - STEP).max(self.base);
+                self.roomy = 0;
+                return Decision::Changed {
+                    from,
+                    to: self.bias,
+                };
+            }
+            return Decision::Continue;
+        }
+        if s.complete {
+            return Decision::Stop(Stop::Complete);
+        }
+        if s.requests == 0 && !s.progress {
+            // Nothing left to load: what is missing failed.
+            return Decision::Stop(Stop::CompleteButFailed);
+        }
+        if self.stalled >= STALL_FRAMES {
+            return Decision::Stop(Stop::NoProgress);
+        }
+        Decision::Continue
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn sig(complete: bool, requests: usize, deferred: usize, exact: usize) -> FrameSignals {
+        FrameSignals {
+            complete,
+            requests,
+            requested: requests,
+            deferred,
+            exact_slots: Some(exact),
+            free_slots: 100,
+            progress: deferred > 0 || requests > 0,
+        }
+    }
+
+    #[test]
+    fn a_saturated_pool_coarsens_by_the_working_sets_excess() {
+        let mut b = LodBudget::new(0.0, 6, false);
+        // 100 used + 1500 wanted in a pool of 100: 16× too big → 2 levels
+        // at the surface rate (capped at 2).
+        match b.update(&sig(false, 1500, 10, 100)) {
+            Decision::Changed { from, to } => assert_eq!((from, to), (0.0, 2.0)),
+            d => panic!("{d:?}"),
+        }
+        assert_eq!(b.needed_at_base, Some(1600));
+        // Slightly too big: the smallest step.
+        match b.update(&sig(false, 10, 1, 100)) {
+            Decision::Changed { from, to } => assert_eq!((from, to), (2.0, 2.5)),
+            d => panic!("{d:?}"),
+        }
+        // Fits: the render stops when complete, at that bias.
+        assert_eq!(b.update(&sig(false, 5, 0, 60)), Decision::Continue);
+        assert_eq!(
+            b.update(&sig(true, 0, 0, 60)),
+            Decision::Stop(Stop::Complete)
+        );
+        assert_eq!(b.bias, 2.5);
+    }
+
+    #[test]
+    fn the_bias_never_passes_its_limit_and_a_stalled_render_stops() {
+        let mut b = LodBudget::new(0.0, 2, false);
+        for _ in 0..20 {
+            b.update(&sig(false, 50, 5, 100));
+        }
+        assert_eq!(b.bias, b.max);
+        // No progress: nothing arrives, nothing pending, requests remain.
+        let stuck = FrameSignals {
+            progress: false,
+            deferred: 0,
+            ..sig(false, 50, 0, 100)
+        };
+        let mut d = Decision::Continue;
+        for _ in 0..STALL_FRAMES {
+            d = b.update(&stuck);
+        }
+        assert_eq!(d, Decision::Stop(Stop::NoProgress));
+    }
+
+    #[test]
+    fn only_failed_bricks_left_stops_a_render() {
+        let mut b = LodBudget::new(0.0, 4, false);
+        let s = FrameSignals {
+            progress: false,
+            ..sig(false, 0, 0, 10)
+        };
+        assert_eq!(b.update(&s), Decision::Stop(Stop::CompleteButFailed));
+    }
+
+    #[test]
+    fn a_view_refines_with_hysteresis_but_never_past_the_users_bias() {
+        let mut b = LodBudget::new(-0.5, 6, true);
+        b.update(&sig(false, 400, 10, 100));
+        let raised = b.bias;
+        assert!(raised > -0.5);
+        // Two roomy frames are not enough; the third refines by one step.
+        assert_eq!(b.update(&sig(true, 0, 0, 20)), Decision::Continue);
+        assert_eq!(b.update(&sig(true, 0, 0, 20)), Decision::Continue);
+        assert_eq!(
+            b.update(&sig(true, 0, 0, 20)),
+            Decision::Changed {
+                from: raised,
+                to: raised - STEP
+            }
+        );
+        // A working set using half the pool stays where it is.
+        for _ in 0..10 {
+            assert_eq!(b.update(&sig(true, 0, 0, 50)), Decision::Continue);
+        }
+        // Never below the user's bias.
+        for _ in 0..100 {
+            b.update(&sig(true, 0, 0, 1));
+        }
+        assert_eq!(b.bias, -0.5);
+        // Views never stop.
+        assert_eq!(b.update(&sig(true, 0, 0, 60)), Decision::Continue);
+    }
+
+    #[test]
+    fn a_fixed_level_moves_by_whole_levels() {
+        let mut b = LodBudget::new(0.0, 5, false);
+        assert_eq!(b.apply(Lod::Fixed(1), 5), Lod::Fixed(1));
+        b.bias = 0.5;
+        assert_eq!(b.apply(Lod::Fixed(1), 5), Lod::Fixed(2));
+        b.bias = 9.0;
+        assert_eq!(b.apply(Lod::Fixed(1), 5), Lod::Fixed(4));
+        assert_eq!(b.apply(Lod::Auto { bias: 0.0 }, 5), Lod::Auto { bias: 9.0 });
+    }
+}
