@@ -38,6 +38,9 @@ pub struct Frame {
     pub cache_ms: f64,
     /// Of that, milliseconds carrying changes to the device (0 on the CPU).
     pub upload_ms: f64,
+    /// Pool slots used at their own level this frame (`None`: the device
+    /// decided its updates and did not count them).
+    pub exact_slots: Option<usize>,
 }
 
 pub struct GpuBackend {
@@ -66,6 +69,38 @@ impl std::str::FromStr for GpuUpdate {
     }
 }
 
+/// Run `f` with the process's standard error silenced. Probing the
+/// graphics stack on a machine without a display makes window-system
+/// libraries print errors (`XDG_RUNTIME_DIR is invalid or not set`) that
+/// explain nothing about a render; a real failure comes back as `f`'s
+/// error and is reported with context.
+fn quietly<T>(f: impl FnOnce() -> T) -> T {
+    if std::env::var_os("BRICKYARD_GPU_STDERR").is_some() {
+        return f();
+    }
+    // SAFETY: plain descriptor calls; the saved descriptor is restored and
+    // closed before returning, whatever `f` returned.
+    unsafe {
+        let saved = libc::dup(2);
+        let null = libc::open(c"/dev/null".as_ptr(), libc::O_WRONLY);
+        if saved < 0 || null < 0 {
+            if saved >= 0 {
+                libc::close(saved);
+            }
+            if null >= 0 {
+                libc::close(null);
+            }
+            return f();
+        }
+        libc::dup2(null, 2);
+        libc::close(null);
+        let out = f();
+        libc::dup2(saved, 2);
+        libc::close(saved);
+        out
+    }
+}
+
 pub enum Backend {
     Cpu,
     Gpu(Box<GpuBackend>),
@@ -87,8 +122,8 @@ impl Backend {
         }
         let gpu = match choice {
             "cpu" => return Ok(Backend::Cpu),
-            "gpu" => Gpu::new(AdapterChoice::Best).context("--backend gpu")?,
-            "auto" => match Gpu::new(AdapterChoice::Best) {
+            "gpu" => quietly(|| Gpu::new(AdapterChoice::Best)).context("--backend gpu")?,
+            "auto" => match quietly(|| Gpu::new(AdapterChoice::Best)) {
                 Ok(g) if g.info.device_type != wgpu::DeviceType::Cpu => g,
                 _ => return Ok(Backend::Cpu),
             },
@@ -145,6 +180,7 @@ impl Backend {
                 let c = std::time::Instant::now();
                 let session = s.finish_frame(reqs.iter());
                 Ok(Frame {
+                    exact_slots: Some(session.frame.exact_slots),
                     image,
                     stats,
                     up: session.insert.bytes_uploaded,
@@ -166,6 +202,7 @@ impl Backend {
                 // The copies are queued: wait for them, to time them.
                 let _ = g.gpu.device.poll(wgpu::PollType::wait_indefinitely());
                 Ok(Frame {
+                    exact_slots: Some(session.frame.exact_slots),
                     image: f.image,
                     stats: f.stats,
                     session,
@@ -204,8 +241,12 @@ impl GpuBackend {
         // Deciding and carrying over are one step here.
         let upload_ms = c.elapsed().as_secs_f64() * 1e3;
         let now = x.counts;
+        let failed_requested = f.list.iter().filter(|k| s.vm().is_failed(**k)).count();
         let session = SessionStats {
+            failed: 0,
             frame: FrameReport {
+                exact_slots: 0,
+                failed_requested,
                 frame,
                 requests: f.list.clone(),
                 requested: f.list.len(),
@@ -232,6 +273,7 @@ impl GpuBackend {
             waiting_upload: s.waiting().len(),
         };
         Ok(Frame {
+            exact_slots: None,
             image: f.image,
             stats: f.stats,
             session,

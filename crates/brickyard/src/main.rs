@@ -2,12 +2,15 @@
 
 mod backend;
 mod bench;
+mod frames;
 mod gpubench;
+mod memory;
 mod progress;
 mod render;
 mod view;
 mod vmbench;
 mod vmcmd;
+mod window;
 
 use anyhow::{bail, Context, Result};
 use brickyard_core::DType;
@@ -408,7 +411,7 @@ fn run(cmd: Cmd) -> Result<()> {
             }
         }
         Cmd::Demo { out, size } => demo(&out, &size),
-        Cmd::Render(r) => render::run(r),
+        Cmd::Render(r) => render::run(r).map(|_| ()),
         Cmd::View(v) => {
             let code = view::run(v, || demo_store(Path::new("brickyard-demo"), "384"))?;
             if code != 0 {
@@ -472,62 +475,75 @@ fn demo(out: &Path, size: &str) -> Result<()> {
     Ok(())
 }
 
-/// Render a DVR turntable (4 views), a MIP and a slice of the demo store to
-/// PNGs through the virtual memory (a pool a quarter of the volume).
+/// Render the demo store to PNGs at 1024²: a DVR turntable (4 views), a
+/// MIP, a slice, and one DVR through a pool far smaller than the view's
+/// working set (drawn as fine as that pool allows, and saying so); then a
+/// summary of what was shown and measured.
 fn render_demo(store: &Path, out: &Path) -> Result<()> {
-    let base = [
-        "--size",
-        "256x256",
-        "--pool",
-        "32MiB",
-        "--host",
-        "64MiB",
-        "--brick",
-        "32",
-        "--lod-bias",
-        "1",
-    ];
-    let jobs: Vec<(Vec<String>, &str)> = vec![
+    let base = ["--size", "1024x1024", "--brick", "32"];
+    let jobs: Vec<(Vec<&str>, &str, &str)> = vec![
         (
-            vec![
-                "--mode".into(),
-                "dvr".into(),
-                "--turntable".into(),
-                "4".into(),
-                "--tf".into(),
-                "hot".into(),
-            ],
+            vec!["--mode", "dvr", "--turntable", "4", "--tf", "hot"],
             "dvr.png",
+            "DVR turntable, 4 views",
         ),
-        (vec!["--mode".into(), "mip".into()], "mip.png"),
+        (
+            vec!["--mode", "mip", "--tf", "hot"],
+            "mip.png",
+            "maximum intensity projection",
+        ),
+        (
+            vec!["--mode", "slice", "--slice-z", "0.45", "--tf", "viridis"],
+            "slice.png",
+            "slice through the middle",
+        ),
         (
             vec![
-                "--mode".into(),
-                "slice".into(),
-                "--tf".into(),
-                "linear".into(),
+                "--mode",
+                "dvr",
+                "--tf",
+                "hot",
+                "--pool",
+                "8MiB",
+                "--azimuth",
+                "120",
             ],
-            "slice.png",
+            "dvr-8mib-pool.png",
+            "DVR through an 8 MiB pool (a tenth of the view's working set)",
         ),
     ];
-    for (args, name) in jobs {
+    let mut summary = vec![];
+    for (args, name, what) in jobs {
         let path = out.join(name);
-        println!("demo: rendering {} ({})", path.display(), args.join(" "));
+        println!("demo: rendering {what} ({})", args.join(" "));
         let mut all: Vec<String> = vec![
             "brickyard".into(),
             "render".into(),
             store.to_string_lossy().into_owned(),
         ];
         all.extend(base.iter().map(|s| s.to_string()));
-        all.extend(args);
+        all.extend(args.iter().map(|s| s.to_string()));
         all.extend(["--out".to_string(), path.to_string_lossy().into_owned()]);
         let cmd = render::RenderCmd::try_parse_from(&all).map_err(|e| anyhow::anyhow!("{e}"))?;
-        render::run_quiet(cmd)?;
+        let t = std::time::Instant::now();
+        let lines = render::run_quiet(cmd)?;
+        summary.push(format!(
+            "  {what} ({:.1} s):\n{}",
+            t.elapsed().as_secs_f64(),
+            lines
+                .iter()
+                .map(|l| format!("    {l}"))
+                .collect::<Vec<_>>()
+                .join("\n")
+        ));
     }
-    println!(
-        "demo: images in {} (dvr-0000.png … dvr-0003.png, mip.png, slice.png)",
-        out.display()
-    );
+    println!("demo: summary");
+    for s in &summary {
+        println!("{s}");
+    }
+    if let Some(p) = memory::peak_rss() {
+        println!("demo: peak memory {}", human_bytes(p));
+    }
     Ok(())
 }
 

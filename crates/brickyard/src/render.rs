@@ -6,6 +6,7 @@ use brickyard_cache::session::Session;
 use brickyard_cache::vm::VmConfig;
 use brickyard_core::camera::{world_extent, Camera, Projection};
 use brickyard_core::TransferFunction;
+use brickyard_render::budget::Stop;
 use brickyard_render::cpu::{Lod, Scene};
 use brickyard_render::reference::{RenderMode, RenderParams};
 use brickyard_store::import::zarr;
@@ -13,7 +14,6 @@ use brickyard_store::info::{human_bytes, inspect};
 use brickyard_store::VolumeSource;
 use clap::Args;
 use std::path::PathBuf;
-use std::time::Instant;
 
 #[derive(Args)]
 pub struct RenderCmd {
@@ -77,24 +77,38 @@ pub struct RenderCmd {
     lod_bias: f64,
     #[arg(long, default_value_t = 1.0)]
     samples_per_voxel: f64,
-    /// Device-pool budget.
-    #[arg(long, default_value = "256MiB")]
-    pool: String,
-    /// Host-cache budget.
-    #[arg(long, default_value = "512MiB")]
-    host: String,
+    /// Memory for the whole process: the brick pool, host cache, decoded
+    /// chunks and images are split out of it (default: a quarter of RAM).
+    #[arg(long)]
+    memory: Option<String>,
+    /// Brick-pool budget (default: a share of --memory). A pool smaller
+    /// than the view's working set costs detail, not completeness: the
+    /// view is drawn as fine as the pool allows, and the run says so.
+    #[arg(long)]
+    pool: Option<String>,
+    /// Host-cache budget (default: a share of --memory).
+    #[arg(long)]
+    host: Option<String>,
     /// Engine brick edge.
     #[arg(long, default_value_t = 32)]
     brick: u64,
-    /// Bytes written into the pool per frame.
-    #[arg(long, default_value = "64MiB")]
-    upload: String,
-    /// Requests per frame.
-    #[arg(long, default_value_t = 256)]
-    requests: usize,
+    /// Bytes written into the pool per frame (default: the pool in batch
+    /// renders, 64MiB with --progressive).
+    #[arg(long)]
+    upload: Option<String>,
+    /// Requests per frame (default: what the pool and host cache hold in
+    /// batch renders, 256 with --progressive).
+    #[arg(long)]
+    requests: Option<usize>,
+    /// Draw a frame for each batch of arriving bricks, as a viewer does,
+    /// instead of loading each frame's working set before drawing again.
+    #[arg(long)]
+    progressive: bool,
     #[arg(long, default_value_t = 2)]
     loader_threads: usize,
-    /// Give up (and write what there is) after this many frames.
+    /// A safety net: stop (and write what there is) after this many
+    /// frames. Runs end by themselves: complete at the finest detail the
+    /// pool holds, or when nothing more can arrive.
     #[arg(long, default_value_t = 2000)]
     max_frames: usize,
     /// Render a turntable of N views.
@@ -223,13 +237,14 @@ impl RenderCmd {
     }
 }
 
-/// Like [`run`], printing only the last frame of each view.
-pub fn run_quiet(mut c: RenderCmd) -> Result<()> {
+/// Like [`run`], printing only each view's closing lines.
+pub fn run_quiet(mut c: RenderCmd) -> Result<Vec<String>> {
     c.quiet = true;
     run(c)
 }
 
-pub fn run(c: RenderCmd) -> Result<()> {
+/// Render; returns one line per view written (file, how it ended).
+pub fn run(c: RenderCmd) -> Result<Vec<String>> {
     let [w, h] = parse_image_size(&c.size, "size")?;
     let info = inspect(&c.store)?;
     if info.complete == Some(false) {
@@ -252,12 +267,23 @@ pub fn run(c: RenderCmd) -> Result<()> {
             let p = parse_pair(wd, "window")?;
             (p[0], p[1])
         }
-        None => info
-            .levels
-            .iter()
-            .rev()
-            .find_map(|l| l.stats.as_ref().map(|s| (s.min, s.max)))
-            .unwrap_or((0.0, 1.0)),
+        None => {
+            // The channel shown (DVR) or the first one listed.
+            let ch = c
+                .channels
+                .first()
+                .and_then(|x| x.split(':').next()?.trim().parse::<usize>().ok())
+                .unwrap_or(0)
+                .min(m.channels.saturating_sub(1));
+            crate::window::auto_window(&c.store, info.levels.len(), ch)?
+                .or_else(|| {
+                    info.levels
+                        .iter()
+                        .rev()
+                        .find_map(|l| l.stats.as_ref().map(|s| (s.min, s.max)))
+                })
+                .unwrap_or((0.0, 1.0))
+        }
     };
     let tf = if c.tf.ends_with(".json") {
         let text =
@@ -312,11 +338,33 @@ pub fn run(c: RenderCmd) -> Result<()> {
         std::fs::write(p, camera.to_json())
             .with_context(|| format!("{}: cannot write", p.display()))?;
     }
+    let opt_bytes = |v: &Option<String>| v.as_deref().map(crate::parse_bytes).transpose();
+    let batch = !c.progressive;
+    let split = crate::memory::split(
+        opt_bytes(&c.memory)?,
+        opt_bytes(&c.pool)?,
+        opt_bytes(&c.host)?,
+        w as u64 * h as u64,
+        info.levels.len(),
+    )?;
+    // A padded brick of the pool (its cell ranges included), to size the
+    // batch's requests and uploads.
+    let slot_bytes = (c.brick + 2).pow(3) * m.dtype.size() as u64 + 64 * 8;
     let cfg = VmConfig {
         brick: [c.brick; 3],
-        pool_bytes: crate::parse_bytes(&c.pool)?,
-        upload_bytes_per_frame: crate::parse_bytes(&c.upload)?,
-        request_cap: c.requests,
+        pool_bytes: split.pool,
+        upload_bytes_per_frame: match opt_bytes(&c.upload)? {
+            Some(u) => u,
+            None if batch => split.pool,
+            None => 64 << 20,
+        },
+        // A batch asks for as much as the pool and the host cache can take
+        // at once (bricks waiting to be written are held by the host cache).
+        request_cap: c.requests.unwrap_or(if batch {
+            (split.pool.min(split.host) / slot_bytes).clamp(256, 4096) as usize
+        } else {
+            256
+        }),
         ..Default::default()
     };
     let styles = c
@@ -331,12 +379,16 @@ pub fn run(c: RenderCmd) -> Result<()> {
             _ => bail!("channel: dvr shows one channel; use --mode mip or slice to add several up"),
         }
     }
-    let mut s = Session::open(
-        &c.store,
-        cfg,
-        crate::parse_bytes(&c.host)?,
-        c.loader_threads,
-    )?;
+    let mut s =
+        Session::open_with_budget(&c.store, cfg, split.host, split.chunks, c.loader_threads)?;
+    // The coarsest levels stay resident: every sample finds data at some
+    // level, whatever the pool's pressure.
+    let pinned = s
+        .pin_coarsest(512, std::time::Duration::from_secs(120))
+        .map_err(|e| anyhow::anyhow!("pool: {e}"))?;
+    if batch {
+        s.set_batch(Some(std::time::Duration::from_secs(30)));
+    }
     // Value ranges from the store's statistics: skip what the transfer
     // function hides without loading it.
     scene.ranges = Some(std::sync::Arc::new(s.loader().brick_ranges(1 << 24)));
@@ -356,7 +408,31 @@ pub fn run(c: RenderCmd) -> Result<()> {
     if !c.json {
         println!("rendering on {}", backend.describe());
     }
+    if !c.json && !c.quiet {
+        println!("{}", split.describe());
+        println!(
+            "pool: {} bricks of {}; levels {:?} kept resident ({} bricks, {})",
+            s.vm().pool_slots(),
+            human_bytes(slot_bytes),
+            pinned.levels,
+            pinned.bricks + pinned.flagged,
+            human_bytes(pinned.bytes)
+        );
+    }
+    let mut written = vec![];
     let views = c.turntable.unwrap_or(1).max(1);
+    let opt = crate::frames::DriveOptions {
+        batch,
+        max_frames: c.max_frames,
+    };
+    let levels = scene.levels.len();
+    let base_bias = match lod {
+        Lod::Auto { bias } => bias,
+        Lod::Fixed(_) => 0.0,
+    };
+    // One budget for all views of a turntable: what did not fit one view
+    // is unlikely to fit the next.
+    let mut budget = brickyard_render::budget::LodBudget::new(base_bias, levels, false);
     for v in 0..views {
         let cam = if c.turntable.is_some() {
             camera.turntable(views, v)
@@ -370,52 +446,116 @@ pub fn run(c: RenderCmd) -> Result<()> {
         }
         params.reference_step = Some(scene.voxel(0));
         params.validate().map_err(|e| anyhow::anyhow!("{e}"))?;
-        let t0 = Instant::now();
-        let mut last = None;
-        for frame in 1..=c.max_frames {
-            let ft = Instant::now();
-            let f = backend.frame(&mut s, &scene, &params, lod)?;
-            let (img, st, fs) = (f.image, f.stats, f.session);
-            let done = st.completeness() >= 1.0;
-            let ms = ft.elapsed().as_secs_f64() * 1e3;
-            let read = s.loader().bytes_read();
-            if c.quiet && !done && frame < c.max_frames {
-                // Progress is only shown at the end.
-            } else if c.json {
+        budget.view_changed();
+        let (json, quiet) = (c.json, c.quiet);
+        let out = crate::frames::drive(
+            &mut backend,
+            &mut s,
+            &scene,
+            &params,
+            lod,
+            opt,
+            &mut budget,
+            |fi| {
+                let (f, st, fs) = (fi.f, &fi.f.stats, &fi.f.session);
+                let read = fi.bytes_read;
+                if json {
+                    println!(
+                        "{}",
+                        serde_json::json!({"view": v, "frame": fi.frame, "pass": if fi.pass {"requests"} else {"image"},
+                            "ms": fi.ms, "completeness": st.completeness(), "lod_bias": fi.bias,
+                            "samples": st.samples, "requests": fs.frame.requests.len(),
+                            "bricks_in": fs.insert.inserted + fs.insert.flagged, "deferred": fs.insert.deferred,
+                            "uploaded_bytes": fs.insert.bytes_uploaded, "bytes_read_total": read,
+                            "render_ms": f.render_ms, "host_to_device_bytes": f.up, "device_to_host_bytes": f.down,
+                            "resident": fs.frame.resident_bricks})
+                    );
+                } else if !quiet {
+                    println!(
+                        "view {v} {} {:4}: {:6.2}% complete, {:8.1} ms, {:5} requests, {:5} bricks in, LOD bias {:+.1}, {} up, {} down",
+                        if fi.pass { "pass " } else { "frame" },
+                        fi.frame,
+                        100.0 * st.completeness(),
+                        fi.ms,
+                        fs.frame.requests.len(),
+                        fs.insert.inserted + fs.insert.flagged,
+                        fi.bias,
+                        human_bytes(f.up),
+                        human_bytes(f.down)
+                    );
+                }
+            },
+        )?;
+        let read = s.loader().bytes_read();
+        let failures = s.failures();
+        let why = match &out.stop {
+            Some(Stop::Complete) => "complete".to_string(),
+            Some(Stop::CompleteButFailed) => format!(
+                "complete but for {} brick(s) that could not be loaded (drawn from coarser data)",
+                failures.len()
+            ),
+            Some(Stop::NoProgress) => format!(
+                "stopped at {:.1}% complete: nothing more could arrive or be placed for several frames",
+                100.0 * out.completeness
+            ),
+            None => format!(
+                "stopped at {:.1}% complete after --max-frames {}",
+                100.0 * out.completeness,
+                c.max_frames
+            ),
+        };
+        let b = &out.budget;
+        let detail = if b.extra() > 0.0 {
+            let need = b
+                .needed_at_base
+                .map(|n| {
+                    format!(
+                        ", this view needs at least about {} at full detail",
+                        human_bytes(n as u64 * slot_bytes)
+                    )
+                })
+                .unwrap_or_default();
+            format!(
+                " at LOD bias {:+.1} (asked {:+.1}): the pool holds {}{need}",
+                b.bias,
+                b.base,
+                human_bytes(s.vm().pool_bytes() as u64)
+            )
+        } else {
+            String::new()
+        };
+        let peak = crate::memory::peak_rss();
+        if c.json {
+            println!(
+                "{}",
+                serde_json::json!({"view": v, "summary": true, "stop": format!("{:?}", out.stop),
+                    "completeness": out.completeness, "frames": out.frames, "seconds": out.seconds,
+                    "lod_bias": b.bias, "lod_bias_asked": b.base,
+                    "needed_bytes_at_full_detail": b.needed_at_base.map(|n| n as u64 * slot_bytes),
+                    "pool_bytes": s.vm().pool_bytes(), "bytes_read_total": read,
+                    "failed_bricks": failures.iter().map(|f| serde_json::json!({"key": format!("{:?}", f.key), "error": f.message})).collect::<Vec<_>>(),
+                    "peak_rss_bytes": peak, "memory_budget_bytes": split.total})
+            );
+        }
+        let detail_line = format!(
+            "{why}{detail}; {} frames, {:.2} s, {} read",
+            out.frames,
+            out.seconds,
+            human_bytes(read)
+        );
+        if !c.json {
+            println!("view {v}: {detail_line}");
+            for f in failures.iter().take(10) {
                 println!(
-                    "{}",
-                    serde_json::json!({"view": v, "frame": frame, "ms": ms, "completeness": st.completeness(),
-                        "samples": st.samples, "requests": fs.frame.requests.len(),
-                        "bricks_in": fs.insert.inserted + fs.insert.flagged,
-                        "uploaded_bytes": fs.insert.bytes_uploaded, "bytes_read_total": read,
-                        "render_ms": f.render_ms, "host_to_device_bytes": f.up, "device_to_host_bytes": f.down,
-                        "resident": fs.frame.resident_bricks})
-                );
-            } else {
-                println!(
-                    "view {v} frame {frame:4}: {:6.2}% complete, {:8.1} ms, {:4} requests, {:4} bricks in, {} read so far, {} up, {} down",
-                    100.0 * st.completeness(),
-                    ms,
-                    fs.frame.requests.len(),
-                    fs.insert.inserted + fs.insert.flagged,
-                    human_bytes(read),
-                    human_bytes(f.up),
-                    human_bytes(f.down)
+                    "  could not load level {} channel {} brick {:?}: {}",
+                    f.key.level, f.key.channel, f.key.brick, f.message
                 );
             }
-            last = Some(img);
-            if done {
-                break;
-            }
-            if fs.frame.requests.is_empty()
-                && fs.pending == 0
-                && fs.in_flight == 0
-                && fs.waiting_upload == 0
-            {
-                // Nothing more can arrive (e.g. the pool is too small).
-                std::thread::sleep(std::time::Duration::from_millis(1));
+            if failures.len() > 10 {
+                println!("  … and {} more", failures.len() - 10);
             }
         }
+        let last = Some(out.image);
         let img = last.expect("at least one frame");
         let path = if c.turntable.is_some() {
             let stem = c
@@ -429,11 +569,17 @@ pub fn run(c: RenderCmd) -> Result<()> {
         };
         img.write_png(&path, [0.0, 0.0, 0.0, 1.0])
             .map_err(|e| anyhow::anyhow!("{}: {e}", path.display()))?;
-        println!(
-            "wrote {} ({:.2} s)",
-            path.display(),
-            t0.elapsed().as_secs_f64()
-        );
+        println!("wrote {}", path.display());
+        written.push(format!("{}: {detail_line}", path.display()));
     }
-    Ok(())
+    if !c.json && !c.quiet {
+        if let Some(p) = crate::memory::peak_rss() {
+            println!(
+                "peak memory {} of a {} budget",
+                human_bytes(p),
+                human_bytes(split.total)
+            );
+        }
+    }
+    Ok(written)
 }

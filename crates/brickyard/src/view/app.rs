@@ -364,6 +364,7 @@ impl ViewerApp {
                     "cache_ms": out.cache_ms, "resident_bricks": out.resident_bricks,
                     "pending": out.pending, "bytes_read": out.bytes_read,
                     "up": out.up, "down": out.down,
+                    "lod_extra": out.lod_extra, "failed_bricks": out.failed,
                 })
             );
         }
@@ -1223,8 +1224,18 @@ impl ViewerApp {
             (Some(a), Some(b)) if b.0 > a.0 => (b.1 - a.1) as f64 / (b.0 - a.0).as_secs_f64(),
             _ => 0.0,
         };
+        let mut detail = String::new();
+        if o.lod_extra > 0.0 {
+            detail += &format!(
+                " · coarser by {:.1} level(s): the pool is too small for full detail",
+                o.lod_extra
+            );
+        }
+        if o.failed > 0 {
+            detail += &format!(" · {} brick(s) unreadable, drawn coarser", o.failed);
+        }
         format!(
-            "{:.1} ms/frame · {:.1}% complete\n{} bricks resident of {} slots · {} pending\nhost cache {} of {} · {:.1} MiB/s read\n{}",
+            "{:.1} ms/frame · {:.1}% complete{detail}\n{} bricks resident of {} slots · {} pending\nhost cache {} of {} · {:.1} MiB/s read\n{}",
             o.render_ms,
             100.0 * o.completeness,
             o.resident_bricks,

@@ -137,7 +137,12 @@ pub fn run(c: ViewCmd, demo_store: impl FnOnce() -> Result<PathBuf>) -> Result<i
             std::fs::read_to_string(&c.tf).with_context(|| format!("{}: cannot read", c.tf))?;
         TransferFunction::from_json(&text).map_err(|e| anyhow::anyhow!("{}: {e}", c.tf))?
     } else {
-        TransferFunction::preset(&c.tf, range).map_err(|e| anyhow::anyhow!("tf: {e}"))?
+        // The window `render` takes by default (robust percentiles).
+        let window = crate::window::auto_window(&store, levels.len(), 0)?
+            .map(|(lo, hi)| [lo as f32, hi as f32])
+            .filter(|w| w[1] > w[0])
+            .unwrap_or(range);
+        TransferFunction::preset(&c.tf, window).map_err(|e| anyhow::anyhow!("tf: {e}"))?
     };
     if !["dvr", "mip", "slice"].contains(&c.mode.as_str()) {
         bail!("mode: expected dvr, mip or slice, found {:?}", c.mode);

@@ -9,6 +9,7 @@
 use crate::backend::{Backend, GpuUpdate};
 use brickyard_cache::session::Session;
 use brickyard_cache::vm::VmConfig;
+use brickyard_render::budget::{Decision, LodBudget};
 use brickyard_render::cpu::{Lod, Scene};
 use brickyard_render::reference::RenderParams;
 use brickyard_render::Image;
@@ -64,6 +65,10 @@ pub struct Out {
     pub host_bytes: u64,
     pub host_budget: u64,
     pub backend: String,
+    /// The LOD bias this view's pool budget added (0: full detail).
+    pub lod_extra: f64,
+    /// Bricks that could not be loaded (drawn from coarser data).
+    pub failed: usize,
 }
 
 pub enum Reply {
@@ -75,6 +80,8 @@ struct View {
     version: u64,
     spec: Option<Spec>,
     complete: bool,
+    /// Coarsens the view when its working set does not fit the pool.
+    budget: LodBudget,
 }
 
 fn open(setup: &Setup, scene: &mut Scene) -> anyhow::Result<(Session, Backend)> {
@@ -85,6 +92,10 @@ fn open(setup: &Setup, scene: &mut Scene) -> anyhow::Result<(Session, Backend)> 
         setup.loader_threads,
     )?;
     s.loader().set_read_delay(setup.read_delay);
+    // The coarsest levels stay resident, so no part of a view is ever
+    // empty (before the back end mirrors the pool).
+    s.pin_coarsest(512, Duration::from_secs(120))
+        .map_err(|e| anyhow::anyhow!("pool: {e}"))?;
     // The window's histogram already read the statistics (same bricks).
     if scene.ranges.is_none() {
         scene.ranges = Some(std::sync::Arc::new(s.loader().brick_ranges(1 << 24)));
@@ -132,11 +143,23 @@ pub fn run(setup: Setup, mut scene: Scene, rx: Receiver<Msg>, tx: Sender<Reply>,
                             version: 0,
                             spec: None,
                             complete: true,
+                            budget: LodBudget::new(0.0, scene.levels.len(), true),
                         });
                     }
                     let v = &mut views[i];
                     v.version = version;
                     v.complete = spec.is_none();
+                    if let Some(sp) = &spec {
+                        let base = match sp.lod {
+                            Lod::Auto { bias } => bias,
+                            Lod::Fixed(_) => 0.0,
+                        };
+                        if base != v.budget.base {
+                            // The user moved the bias: start from it.
+                            v.budget = LodBudget::new(base, scene.levels.len(), true);
+                        }
+                    }
+                    v.budget.view_changed();
                     v.spec = spec;
                 }
                 Msg::Reopen(setup) => match open(&setup, &mut scene) {
@@ -168,7 +191,8 @@ pub fn run(setup: Setup, mut scene: Scene, rx: Receiver<Msg>, tx: Sender<Reply>,
         let spec = v.spec.clone().expect("chosen above");
         let mut sc = scene.clone();
         sc.channel = spec.channel;
-        let f = match backend.frame(&mut s, &sc, &spec.params, spec.lod) {
+        let lod = views[i].budget.apply(spec.lod, sc.levels.len());
+        let f = match backend.frame(&mut s, &sc, &spec.params, lod) {
             Ok(f) => f,
             Err(e) => {
                 let _ = tx.send(Reply::Error(format!("{e:#}")));
@@ -178,7 +202,10 @@ pub fn run(setup: Setup, mut scene: Scene, rx: Receiver<Msg>, tx: Sender<Reply>,
             }
         };
         let completeness = f.stats.completeness();
-        let done = completeness >= 1.0;
+        let sig = crate::frames::signals(&s, &f);
+        let changed = matches!(views[i].budget.update(&sig), Decision::Changed { .. });
+        // Complete, or nothing left to ask for but bricks that failed.
+        let done = !changed && (completeness >= 1.0 || (sig.requests == 0 && !sig.progress));
         views[i].complete = done;
         let loader = s.loader();
         let out = Out {
@@ -197,6 +224,8 @@ pub fn run(setup: Setup, mut scene: Scene, rx: Receiver<Msg>, tx: Sender<Reply>,
             host_bytes: loader.cache().bytes(),
             host_budget: loader.cache().budget(),
             backend: backend.describe(),
+            lod_extra: views[i].budget.extra(),
+            failed: s.vm().failed_count(),
         };
         if tx.send(Reply::Frame(Box::new(out))).is_err() {
             return;

@@ -1,0 +1,170 @@
+//! The frame loop of one view, for renders nobody watches (`render`,
+//! turntables, `demo`) and the budget rules every view follows.
+//!
+//! - **Batch** (the default of `render`): the session waits for each
+//!   frame's requests to load before inserting them, requests and uploads
+//!   are sized to the pool, and a first pass at a quarter of the pixels
+//!   (with the level of detail of the full image) finds most of the working
+//!   set cheaply. The full image is drawn once that pass asks for nothing.
+//! - **Progressive** (`--progressive`, the viewer): one frame per batch of
+//!   arrivals, never waiting.
+//!
+//! Either way the LOD budget ([`LodBudget`]) coarsens a view whose working
+//! set does not fit the pool, and the loop ends: complete (at the detail
+//! that fits), complete but for bricks that failed to load, or because
+//! nothing has moved for several frames.
+
+use crate::backend::{Backend, Frame};
+use anyhow::Result;
+use brickyard_cache::session::Session;
+use brickyard_render::budget::{Decision, FrameSignals, LodBudget, Stop};
+use brickyard_render::cpu::{Lod, Scene};
+use brickyard_render::reference::RenderParams;
+use brickyard_render::Image;
+use std::time::Instant;
+
+/// How a view is driven.
+#[derive(Debug, Clone, Copy)]
+pub struct DriveOptions {
+    pub batch: bool,
+    pub max_frames: usize,
+}
+
+/// One frame as the loop saw it (for progress lines).
+pub struct FrameInfo<'a> {
+    pub frame: usize,
+    /// The request pass (a quarter of the pixels) rather than the image.
+    pub pass: bool,
+    pub ms: f64,
+    pub bias: f64,
+    /// Bytes the loader has read so far.
+    pub bytes_read: u64,
+    pub f: &'a Frame,
+}
+
+/// How a view ended.
+pub struct Outcome {
+    pub image: Image,
+    pub frames: usize,
+    pub stop: Option<Stop>,
+    /// The LOD budget as it ended (bias in force, working set estimate).
+    pub budget: LodBudget,
+    pub completeness: f64,
+    pub seconds: f64,
+}
+
+/// The signals of a frame for the LOD budget.
+pub fn signals(s: &Session, f: &Frame) -> FrameSignals {
+    let fs = &f.session;
+    let failed_in_list = fs
+        .frame
+        .requests
+        .iter()
+        .filter(|k| s.vm().is_failed(**k))
+        .count();
+    let free_slots = s.vm().pool_slots() - s.vm().pinned_bricks();
+    FrameSignals {
+        complete: f.stats.completeness() >= 1.0,
+        requests: fs.frame.requests.len() - failed_in_list,
+        requested: fs.frame.requested.saturating_sub(failed_in_list),
+        deferred: fs.insert.deferred,
+        exact_slots: f.exact_slots,
+        free_slots,
+        progress: fs.insert.inserted + fs.insert.flagged > 0
+            || fs.delivered > 0
+            || fs.pending > 0
+            || fs.in_flight > 0
+            || fs.waiting_upload > 0,
+    }
+}
+
+/// Draw one view until it ends. `lod` is what the user asked for (its bias
+/// is the budget's base); `on_frame` sees every frame.
+pub fn drive(
+    backend: &mut Backend,
+    s: &mut Session,
+    scene: &Scene,
+    params: &RenderParams,
+    lod: Lod,
+    opt: DriveOptions,
+    budget: &mut LodBudget,
+    mut on_frame: impl FnMut(&FrameInfo),
+) -> Result<Outcome> {
+    let t0 = Instant::now();
+    let levels = scene.levels.len();
+    let mut frames = 0;
+    // The request pass: half the width and height, one level finer than
+    // the automatic rule would pick for that size, which is the level the
+    // full image asks for (the pixel footprint doubles).
+    let small = (opt.batch && params.width >= 128 && params.height >= 128).then(|| {
+        let mut p = params.clone();
+        p.width = params.width / 2;
+        p.height = params.height / 2;
+        p
+    });
+    if let Some(sp) = &small {
+        while frames < opt.max_frames {
+            let l = match budget.apply(lod, levels) {
+                Lod::Auto { bias } => Lod::Auto { bias: bias - 1.0 },
+                fixed => fixed,
+            };
+            let ft = Instant::now();
+            let f = backend.frame(s, scene, sp, l)?;
+            frames += 1;
+            let sig = signals(s, &f);
+            on_frame(&FrameInfo {
+                frame: frames,
+                pass: true,
+                ms: ft.elapsed().as_secs_f64() * 1e3,
+                bias: budget.bias,
+                bytes_read: s.loader().bytes_read(),
+                f: &f,
+            });
+            match budget.update(&sig) {
+                Decision::Changed { .. } => continue,
+                // Complete, or only failed bricks left, or stalled: the
+                // full image takes over.
+                Decision::Stop(_) => break,
+                Decision::Continue if sig.requests == 0 => break,
+                Decision::Continue => {}
+            }
+        }
+    }
+    let mut last = None;
+    let mut stop = None;
+    let mut completeness = 0.0;
+    // At least one full frame, whatever the request pass took.
+    while frames < opt.max_frames || last.is_none() {
+        let ft = Instant::now();
+        let f = backend.frame(s, scene, params, budget.apply(lod, levels))?;
+        frames += 1;
+        let sig = signals(s, &f);
+        on_frame(&FrameInfo {
+            frame: frames,
+            pass: false,
+            ms: ft.elapsed().as_secs_f64() * 1e3,
+            bias: budget.bias,
+            bytes_read: s.loader().bytes_read(),
+            f: &f,
+        });
+        completeness = f.stats.completeness();
+        let d = budget.update(&sig);
+        last = Some(f.image);
+        if let Decision::Stop(why) = d {
+            stop = Some(why);
+            break;
+        }
+        if !opt.batch && !sig.progress && !sig.complete {
+            // Nothing arrived yet: do not spin.
+            std::thread::sleep(std::time::Duration::from_millis(1));
+        }
+    }
+    Ok(Outcome {
+        image: last.unwrap_or_else(|| Image::new(params.width, params.height)),
+        frames,
+        stop,
+        budget: budget.clone(),
+        completeness,
+        seconds: t0.elapsed().as_secs_f64(),
+    })
+}

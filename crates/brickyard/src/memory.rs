@@ -1,0 +1,184 @@
+//! One memory budget for the whole process (`--memory`): the brick pool,
+//! the host cache, the loader's decoded-chunk caches and the image buffers
+//! are split out of it, after a fixed allowance for the program itself.
+
+use anyhow::{bail, Result};
+use brickyard_store::info::human_bytes;
+
+/// The program itself: code, allocator, thread stacks (rayon, loader),
+/// codec buffers, request collectors and the store's metadata.
+pub const FIXED_BYTES: u64 = 48 << 20;
+
+/// Bytes of image buffers per pixel of a render: the frame (RGBA f32)
+/// twice (the one drawn and the last kept), the request pass (a quarter),
+/// and the 8-bit copy written to PNG.
+pub const IMAGE_BYTES_PER_PIXEL: u64 = 16 * 2 + 4 + 4;
+
+/// Physical memory (from /proc/meminfo; 8 GiB where unknown).
+pub fn physical_ram() -> u64 {
+    std::fs::read_to_string("/proc/meminfo")
+        .ok()
+        .and_then(|t| {
+            t.lines()
+                .find(|l| l.starts_with("MemTotal:"))
+                .and_then(|l| l.split_whitespace().nth(1))
+                .and_then(|k| k.parse::<u64>().ok())
+        })
+        .map(|kib| kib << 10)
+        .unwrap_or(8 << 30)
+}
+
+/// The default budget: a quarter of physical memory.
+pub fn default_memory() -> u64 {
+    physical_ram() / 4
+}
+
+/// The process's peak resident set so far (VmHWM), where the system says.
+pub fn peak_rss() -> Option<u64> {
+    let t = std::fs::read_to_string("/proc/self/status").ok()?;
+    let l = t.lines().find(|l| l.starts_with("VmHWM:"))?;
+    l.split_whitespace()
+        .nth(1)?
+        .parse::<u64>()
+        .ok()
+        .map(|k| k << 10)
+}
+
+/// How a budget is split.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Split {
+    pub total: u64,
+    pub pool: u64,
+    pub host: u64,
+    /// The loader's decoded-chunk caches (all levels).
+    pub chunks: u64,
+    pub images: u64,
+    pub fixed: u64,
+    /// Whether the total was given (`--memory`) rather than the default.
+    pub explicit: bool,
+}
+
+impl Split {
+    pub fn describe(&self) -> String {
+        format!(
+            "memory budget {}{}: pool {}, host cache {}, decoded chunks {}, images {}, program {}",
+            human_bytes(self.total),
+            if self.explicit {
+                ""
+            } else {
+                " (default: a quarter of RAM)"
+            },
+            human_bytes(self.pool),
+            human_bytes(self.host),
+            human_bytes(self.chunks),
+            human_bytes(self.images),
+            human_bytes(self.fixed)
+        )
+    }
+}
+
+/// Split `total` (default: [`default_memory`]) for images of `pixels`
+/// pixels and a store of `levels` levels; `pool` and `host` override
+/// their shares. A split that does not fit an explicit total is refused.
+pub fn split(
+    total: Option<u64>,
+    pool: Option<u64>,
+    host: Option<u64>,
+    pixels: u64,
+    levels: usize,
+) -> Result<Split> {
+    let images = pixels * IMAGE_BYTES_PER_PIXEL;
+    // Each level's chunk cache keeps at least half a MiB.
+    let fixed = FIXED_BYTES + levels as u64 * (512 << 10);
+    let explicit = total.is_some();
+    let want_total = total.unwrap_or_else(default_memory);
+    let rest = want_total.saturating_sub(fixed + images);
+    let min_chunks = 4u64 << 20;
+    let (pool, host, chunks) = match (pool, host) {
+        (None, None) => {
+            let chunks = (rest * 15 / 100).min(256 << 20);
+            let pool = (rest - chunks) * 55 / 100;
+            (pool, rest - chunks - pool, chunks)
+        }
+        (Some(p), None) => {
+            let left = rest.saturating_sub(p);
+            let chunks = (left / 4).clamp(min_chunks, 256 << 20);
+            (p, left.saturating_sub(chunks), chunks)
+        }
+        (None, Some(h)) => {
+            let left = rest.saturating_sub(h);
+            let chunks = (left / 4).clamp(min_chunks, 256 << 20);
+            (left.saturating_sub(chunks), h, chunks)
+        }
+        (Some(p), Some(h)) => {
+            let left = rest.saturating_sub(p + h);
+            (p, h, left.clamp(min_chunks, 256 << 20))
+        }
+    };
+    let need = pool + host + chunks + images + fixed;
+    if explicit && (need > want_total || pool == 0 || host == 0) {
+        bail!(
+            "memory: {} does not hold this split: pool {}, host cache {}, decoded chunks {} (at least {}), images {} and {} for the program; raise --memory or lower --pool/--host",
+            human_bytes(want_total),
+            human_bytes(pool),
+            human_bytes(host),
+            human_bytes(chunks),
+            human_bytes(min_chunks),
+            human_bytes(images),
+            human_bytes(fixed)
+        );
+    }
+    // Without --memory, explicit pool and host sizes stand; the total is
+    // what they add up to.
+    let total = want_total.max(need);
+    if pool == 0 {
+        bail!("memory: no room left for the brick pool; raise --memory or set --pool");
+    }
+    Ok(Split {
+        total,
+        pool,
+        host: host.max(1 << 20),
+        chunks,
+        images,
+        fixed,
+        explicit,
+    })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn shares_add_up_to_the_budget() {
+        let s = split(Some(1 << 30), None, None, 1 << 20, 5).unwrap();
+        assert_eq!(s.pool + s.host + s.chunks + s.images + s.fixed, s.total);
+        assert!(s.pool > s.host / 2 && s.host > 0 && s.chunks >= 4 << 20);
+        assert_eq!(s.images, 40 << 20);
+    }
+
+    #[test]
+    fn overrides_that_do_not_fit_are_refused() {
+        let e = split(
+            Some(256 << 20),
+            Some(200 << 20),
+            Some(100 << 20),
+            1 << 20,
+            5,
+        )
+        .unwrap_err()
+        .to_string();
+        assert!(e.contains("does not hold"), "{e}");
+        // Without --memory they stand, and the total grows to hold them.
+        let s = split(None, Some(64 << 30), Some(1 << 30), 1 << 20, 5).unwrap();
+        assert_eq!((s.pool, s.host), (64 << 30, 1 << 30));
+        assert!(s.total >= s.pool + s.host + s.chunks + s.images + s.fixed);
+    }
+
+    #[test]
+    fn an_explicit_pool_takes_from_the_rest() {
+        let s = split(Some(512 << 20), Some(100 << 20), None, 0, 4).unwrap();
+        assert_eq!(s.pool, 100 << 20);
+        assert!(s.pool + s.host + s.chunks + s.fixed <= s.total);
+    }
+}

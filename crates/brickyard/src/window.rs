@@ -1,0 +1,112 @@
+//! The default data window of `render` and `view`: robust percentiles of
+//! the values, so that a CT shows tissue rather than the cylinder of its
+//! field of view, and a microscopy stack its cells rather than a few hot
+//! pixels.
+
+use anyhow::Result;
+use brickyard_core::{as_bytes_mut, dispatch_dtype, Sample};
+use brickyard_store::import::zarr;
+use brickyard_store::VolumeSource;
+use std::path::Path;
+
+/// Voxels read at most: the finest level at or under this is read whole.
+const MAX_VOXELS: u64 = 1 << 22;
+
+/// The window of `values`: the 0.5th and 99.5th percentiles of the finite
+/// values, leaving out a value that fills more than 5 % of the volume at
+/// either end of the range (padding, the outside of a scanner's field of
+/// view, an empty background). `None` without two distinct values.
+pub fn robust_window(mut values: Vec<f64>) -> Option<(f64, f64)> {
+    values.retain(|v| v.is_finite());
+    if values.is_empty() {
+        return None;
+    }
+    values.sort_unstable_by(|a, b| a.total_cmp(b));
+    let n = values.len();
+    let (min, max) = (values[0], values[n - 1]);
+    if min == max {
+        return None;
+    }
+    let run = |v: f64| {
+        let lo = values.partition_point(|x| *x < v);
+        let hi = values.partition_point(|x| *x <= v);
+        (lo, hi)
+    };
+    let (mut a, mut b) = (0, n);
+    let (_, min_end) = run(min);
+    if min_end * 20 > n {
+        a = min_end;
+    }
+    let (max_start, _) = run(max);
+    if (n - max_start) * 20 > n {
+        b = max_start;
+    }
+    if b <= a {
+        return Some((min, max));
+    }
+    let s = &values[a..b];
+    let q = |f: f64| s[((s.len() - 1) as f64 * f).round() as usize];
+    let (lo, hi) = (q(0.005), q(0.995));
+    if hi > lo {
+        Some((lo, hi))
+    } else {
+        Some((s[0], s[s.len() - 1]))
+            .filter(|(l, h)| h > l)
+            .or(Some((min, max)))
+    }
+}
+
+/// The default window of channel `c` of `store`, from the finest level of
+/// at most four million voxels (read whole).
+pub fn auto_window(store: &Path, levels: usize, c: usize) -> Result<Option<(f64, f64)>> {
+    let mut chosen = None;
+    for l in 0..levels {
+        let src = zarr::open(store, l)?;
+        if src.meta().dims.iter().product::<u64>() <= MAX_VOXELS {
+            chosen = Some(src);
+            break;
+        }
+    }
+    let Some(src) = chosen else {
+        return Ok(None);
+    };
+    let m = src.meta().clone();
+    let [z, y, x] = m.dims;
+    let values: Vec<f64> = dispatch_dtype!(m.dtype, T => {
+        let mut buf = vec![T::default(); (z * y * x) as usize];
+        src.read_region(c, 0..z, 0..y, 0..x, as_bytes_mut(&mut buf))?;
+        buf.iter().map(|v| v.to_f64()).collect()
+    });
+    Ok(robust_window(values))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn a_ct_like_volume_leaves_out_its_padding_and_outliers() {
+        // 30 % padding at -3024, air around -1000, tissue 0..100, a few
+        // metal voxels at 3000.
+        let mut v = vec![-3024.0; 3000];
+        v.extend((0..3000).map(|i| -1000.0 + (i % 20) as f64));
+        v.extend((0..3990).map(|i| (i % 100) as f64));
+        v.extend([3000.0; 10]);
+        let (lo, hi) = robust_window(v).unwrap();
+        assert!((-1000.0..=-990.0).contains(&lo), "{lo}");
+        assert!((90.0..=99.0).contains(&hi), "{hi}");
+    }
+
+    #[test]
+    fn plain_ranges_and_degenerate_inputs() {
+        let v: Vec<f64> = (0..1001).map(|i| i as f64).collect();
+        let (lo, hi) = robust_window(v).unwrap();
+        assert_eq!((lo, hi), (5.0, 995.0));
+        assert_eq!(robust_window(vec![7.0; 10]), None);
+        assert_eq!(robust_window(vec![f64::NAN; 3]), None);
+        // Two values, both frequent: the whole range.
+        let mut v = vec![0.0; 50];
+        v.extend([1.0; 50]);
+        assert_eq!(robust_window(v), Some((0.0, 1.0)));
+    }
+}

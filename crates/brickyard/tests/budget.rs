@@ -1,0 +1,311 @@
+//! `render` as a user with a small machine meets it: pools from far below
+//! to above the view's working set complete in a few frames, on the CPU and
+//! on the device, at the detail the pool holds (and say so), with no part of
+//! the volume missing; the process stays within `--memory`; damaged chunks
+//! are drawn from coarser data and reported, and the run ends.
+
+use std::path::{Path, PathBuf};
+use std::process::{Command, Output};
+
+fn run(args: &[&str]) -> Output {
+    Command::new(env!("CARGO_BIN_EXE_brickyard"))
+        .args(args)
+        .output()
+        .unwrap()
+}
+
+fn s(p: &Path) -> &str {
+    p.to_str().unwrap()
+}
+
+fn ok(o: &Output) -> String {
+    let out = String::from_utf8_lossy(&o.stdout).into_owned();
+    assert!(
+        o.status.success(),
+        "failed: {}\n{out}",
+        String::from_utf8_lossy(&o.stderr)
+    );
+    out
+}
+
+/// A 128³ u8 Mandelbulb: 64³ store bricks in 64³ shards (levels 128, 64).
+fn store(dir: &Path) -> PathBuf {
+    let store = dir.join("m.ome.zarr");
+    ok(&run(&[
+        "generate",
+        "mandelbulb",
+        s(&store),
+        "--size",
+        "128",
+        "--dtype",
+        "u8",
+        "--quiet",
+        "--brick",
+        "32",
+        "--shard",
+        "64",
+    ]));
+    store
+}
+
+/// The summary line of `render --json`.
+fn summary(out: &str) -> serde_json::Value {
+    out.lines()
+        .filter_map(|l| serde_json::from_str::<serde_json::Value>(l).ok())
+        .find(|v| v["summary"] == true)
+        .unwrap_or_else(|| panic!("no summary in {out}"))
+}
+
+fn png_rgba(p: &Path) -> Vec<u8> {
+    let dec = png::Decoder::new(std::io::BufReader::new(std::fs::File::open(p).unwrap()));
+    let mut r = dec.read_info().unwrap();
+    let mut buf = vec![0; r.output_buffer_size().unwrap()];
+    let info = r.next_frame(&mut buf).unwrap();
+    buf.truncate(info.buffer_size());
+    buf
+}
+
+/// Pixels lit (any channel above 8) in `full` but black in `img`.
+fn holes(full: &[u8], img: &[u8]) -> usize {
+    full.chunks(4)
+        .zip(img.chunks(4))
+        .filter(|(a, b)| a[..3].iter().any(|&v| v > 8) && b[..3].iter().all(|&v| v == 0))
+        .count()
+}
+
+fn lit(img: &[u8]) -> usize {
+    img.chunks(4)
+        .filter(|p| p[..3].iter().any(|&v| v > 8))
+        .count()
+}
+
+fn render(store: &Path, out: &Path, backend: &str, extra: &[&str]) -> serde_json::Value {
+    let mut args = vec![
+        "render",
+        s(store),
+        "--size",
+        "160",
+        "--brick",
+        "16",
+        "--window",
+        "0,255",
+        "--backend",
+        backend,
+        "--json",
+        "--out",
+        s(out),
+    ];
+    args.extend_from_slice(extra);
+    summary(&ok(&run(&args)))
+}
+
+fn pools_complete_at_the_detail_that_fits(backend: &str) {
+    let d = tempfile::tempdir().unwrap();
+    let store = store(d.path());
+    let full_png = d.path().join("full.png");
+    let full = render(&store, &full_png, backend, &["--pool", "64MiB"]);
+    assert_eq!(full["stop"], "Some(Complete)", "{full}");
+    assert_eq!(full["lod_bias"], 0.0, "{full}");
+    let full_px = png_rgba(&full_png);
+    assert!(lit(&full_px) > full_px.len() / 4 / 10, "too little content");
+    let mut biases = vec![];
+    // 16³ bricks of u8 take about 6 KiB each: 160 KiB hold 25 (the
+    // coarsest level pins 8 of 64³ at level 1... 16³ bricks: 64 bricks at
+    // level 1 would not fit; level 2 is the one pinned).
+    for pool in ["2MiB", "600KiB", "256KiB", "160KiB"] {
+        let png = d.path().join(format!("{pool}.png"));
+        let v = render(&store, &png, backend, &["--pool", pool]);
+        assert_eq!(v["stop"], "Some(Complete)", "{pool}: {v}");
+        let frames = v["frames"].as_u64().unwrap();
+        assert!(frames <= 30, "{pool}: {frames} frames");
+        let bias = v["lod_bias"].as_f64().unwrap();
+        let px = png_rgba(&png);
+        assert_eq!(holes(&full_px, &px), 0, "{pool} (bias {bias}): holes");
+        if bias > 0.0 {
+            assert!(
+                v["needed_bytes_at_full_detail"].as_u64().unwrap()
+                    > v["pool_bytes"].as_u64().unwrap(),
+                "{v}"
+            );
+        }
+        // The same view with a large pool at the bias reached is the
+        // same image: the small pool cost detail, nothing else.
+        let again = d.path().join(format!("{pool}-again.png"));
+        let b = format!("{bias}");
+        let w = render(
+            &store,
+            &again,
+            backend,
+            &["--pool", "64MiB", "--lod-bias", &b],
+        );
+        assert_eq!(w["lod_bias"].as_f64().unwrap(), bias, "{w}");
+        let worst = px
+            .iter()
+            .zip(&png_rgba(&again))
+            .map(|(a, b)| a.abs_diff(*b))
+            .max()
+            .unwrap();
+        assert!(
+            worst <= 1,
+            "{pool}: differs from the large pool at bias {bias} by {worst}/255"
+        );
+        biases.push(bias);
+    }
+    assert!(
+        biases[3] > 0.0,
+        "the smallest pool must coarsen: {biases:?}"
+    );
+    // Too small even for the coarsest level: refused, with the minimum.
+    let o = run(&[
+        "render",
+        s(&store),
+        "--brick",
+        "16",
+        "--backend",
+        backend,
+        "--pool",
+        "20KiB",
+        "--out",
+        s(&d.path().join("x.png")),
+    ]);
+    assert!(!o.status.success());
+    let e = String::from_utf8_lossy(&o.stderr);
+    assert!(e.contains("pool") && e.contains("at least"), "{e}");
+}
+
+#[test]
+fn pools_from_tiny_to_large_complete_on_the_cpu() {
+    pools_complete_at_the_detail_that_fits("cpu");
+}
+
+#[test]
+fn pools_from_tiny_to_large_complete_on_the_device() {
+    if brickyard_gpu::context::test_gpu().is_none() {
+        eprintln!("skipped on purpose: BRICKYARD_SKIP_GPU=1 and no adapter");
+        return;
+    }
+    pools_complete_at_the_detail_that_fits("gpu");
+}
+
+#[test]
+fn the_process_stays_within_its_memory_budget() {
+    let d = tempfile::tempdir().unwrap();
+    let store = d.path().join("big.ome.zarr");
+    // 256³ u16 = 32 MiB of voxels.
+    ok(&run(&[
+        "generate",
+        "mandelbulb",
+        s(&store),
+        "--size",
+        "256",
+        "--dtype",
+        "u16",
+        "--quiet",
+    ]));
+    for (memory, pool) in [("96MiB", None), ("160MiB", Some("1MiB")), ("256MiB", None)] {
+        let mut extra = vec!["--memory", memory, "--size", "512"];
+        if let Some(p) = pool {
+            extra.extend(["--pool", p]);
+        }
+        let v = render(&store, &d.path().join("m.png"), "cpu", &extra);
+        assert_eq!(v["stop"], "Some(Complete)", "{memory}: {v}");
+        let peak = v["peak_rss_bytes"].as_u64().unwrap();
+        let budget = v["memory_budget_bytes"].as_u64().unwrap();
+        // The budget, plus a constant for what is not split (the
+        // allocator's slack).
+        assert!(
+            peak <= budget + (16 << 20),
+            "{memory}: peak {} MiB over the budget {} MiB",
+            peak >> 20,
+            budget >> 20
+        );
+    }
+    // A split that cannot fit is refused.
+    let o = run(&[
+        "render",
+        s(&store),
+        "--memory",
+        "64MiB",
+        "--pool",
+        "60MiB",
+        "--out",
+        s(&d.path().join("x.png")),
+    ]);
+    assert!(!o.status.success());
+    assert!(String::from_utf8_lossy(&o.stderr).contains("does not hold"));
+}
+
+/// Shard files of level `l` of a store, sorted.
+fn shards(store: &Path, l: usize) -> Vec<PathBuf> {
+    fn walk(p: &Path, out: &mut Vec<PathBuf>) {
+        for e in std::fs::read_dir(p).unwrap() {
+            let p = e.unwrap().path();
+            if p.is_dir() {
+                walk(&p, out);
+            } else if p.file_name().unwrap() != "zarr.json" {
+                out.push(p);
+            }
+        }
+    }
+    let mut v = vec![];
+    walk(&store.join(l.to_string()).join("c"), &mut v);
+    v.sort();
+    v
+}
+
+#[test]
+fn damaged_chunks_are_drawn_coarser_and_reported() {
+    let d = tempfile::tempdir().unwrap();
+    let store = store(d.path());
+    let clean_png = d.path().join("clean.png");
+    render(&store, &clean_png, "cpu", &[]);
+    let clean = png_rgba(&clean_png);
+    let l0 = shards(&store, 0);
+    assert!(l0.len() >= 4, "{l0:?}");
+    // One shard truncated (its index gone), one with its chunks' bytes
+    // scrambled (bad compressed streams), one removed.
+    let t = std::fs::read(&l0[0]).unwrap();
+    std::fs::write(&l0[0], &t[..t.len() / 3]).unwrap();
+    let mut c = std::fs::read(&l0[1]).unwrap();
+    let n = c.len();
+    for b in &mut c[16..n.saturating_sub(600)] {
+        *b = b.wrapping_mul(31).wrapping_add(7);
+    }
+    std::fs::write(&l0[1], &c).unwrap();
+    std::fs::remove_file(&l0[2]).unwrap();
+    let png = d.path().join("damaged.png");
+    let v = render(&store, &png, "cpu", &[]);
+    let stop = v["stop"].as_str().unwrap();
+    assert!(
+        stop == "Some(CompleteButFailed)" || stop == "Some(Complete)",
+        "{v}"
+    );
+    let failed = v["failed_bricks"].as_array().unwrap();
+    assert!(!failed.is_empty(), "{v}");
+    assert!(
+        failed
+            .iter()
+            .any(|f| f["error"].as_str().unwrap().contains("c/")),
+        "errors should name the chunk's file: {v}"
+    );
+    let frames = v["frames"].as_u64().unwrap();
+    assert!(frames <= 30, "{frames} frames");
+    // Regions of failed bricks are drawn from coarser data: nothing lit in
+    // the clean image is black now.
+    assert_eq!(holes(&clean, &png_rgba(&png)), 0);
+    // The text report lists them too, and exits 0.
+    let o = run(&[
+        "render",
+        s(&store),
+        "--size",
+        "160",
+        "--brick",
+        "16",
+        "--backend",
+        "cpu",
+        "--out",
+        s(&png),
+    ]);
+    let out = ok(&o);
+    assert!(out.contains("could not load level 0"), "{out}");
+}
