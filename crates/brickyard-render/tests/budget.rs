@@ -116,7 +116,17 @@ fn check_pools(store: &Path, dtype: DType, tf_window: [f32; 2], pools: &[u64], s
             full.rgba.iter().filter(|p| p[3] > 0.05).count() > full.rgba.len() / 20,
             "the full-detail image has too little content to test holes"
         );
-        assert_eq!(holes(full, &img), 0, "pool {pool} bricks, bias {bias}");
+        // No pixel the in-core renderer draws at this bias is empty here.
+        assert_eq!(holes(&want, &img), 0, "pool {pool} bricks, bias {bias}");
+        // Against full detail, coarser data may only thin out features
+        // finer than its voxels at silhouettes (a hole would be a brick's
+        // whole footprint).
+        let content = full.rgba.iter().filter(|p| p[3] > 0.05).count();
+        let lost = holes(full, &img);
+        assert!(
+            lost * 50 <= content,
+            "pool {pool} bricks, bias {bias}: {lost} of {content} pixels with content are empty"
+        );
         s.vm().check_invariants().unwrap();
         biases.push(bias);
     }
@@ -188,7 +198,7 @@ fn pools_from_far_below_to_above_the_working_set_complete_on_a_real_scan() {
         &store,
         DType::I16,
         [lo as f32 + 0.1 * (hi - lo) as f32, hi as f32],
-        &[2 * bricks0, bricks0 / 6, bricks0 / 30, 12],
+        &[2 * bricks0, bricks0 / 6, bricks0 / 30, 20],
         160,
     );
 }

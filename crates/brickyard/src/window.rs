@@ -57,27 +57,28 @@ pub fn robust_window(mut values: Vec<f64>) -> Option<(f64, f64)> {
 }
 
 /// The default window of channel `c` of `store`, from the finest level of
-/// at most four million voxels (read whole).
+/// at most four million voxels (read whole). A level that cannot be read
+/// (a damaged chunk) gives way to the next coarser one; `None` when none
+/// can be read.
 pub fn auto_window(store: &Path, levels: usize, c: usize) -> Result<Option<(f64, f64)>> {
-    let mut chosen = None;
     for l in 0..levels {
         let src = zarr::open(store, l)?;
-        if src.meta().dims.iter().product::<u64>() <= MAX_VOXELS {
-            chosen = Some(src);
-            break;
+        let m = src.meta().clone();
+        let [z, y, x] = m.dims;
+        if z * y * x > MAX_VOXELS {
+            continue;
+        }
+        let values: Option<Vec<f64>> = dispatch_dtype!(m.dtype, T => {
+            let mut buf = vec![T::default(); (z * y * x) as usize];
+            src.read_region(c, 0..z, 0..y, 0..x, as_bytes_mut(&mut buf))
+                .ok()
+                .map(|_| buf.iter().map(|v| v.to_f64()).collect())
+        });
+        if let Some(v) = values {
+            return Ok(robust_window(v));
         }
     }
-    let Some(src) = chosen else {
-        return Ok(None);
-    };
-    let m = src.meta().clone();
-    let [z, y, x] = m.dims;
-    let values: Vec<f64> = dispatch_dtype!(m.dtype, T => {
-        let mut buf = vec![T::default(); (z * y * x) as usize];
-        src.read_region(c, 0..z, 0..y, 0..x, as_bytes_mut(&mut buf))?;
-        buf.iter().map(|v| v.to_f64()).collect()
-    });
-    Ok(robust_window(values))
+    Ok(None)
 }
 
 #[cfg(test)]
