@@ -96,6 +96,12 @@ pub struct ConvertReport {
     pub seconds: f64,
     /// Bytes of slab memory the plan uses.
     pub planned_bytes: u64,
+    /// The rescale of stored numbers the input asked for and what was done
+    /// with it (see [`crate::import::scale`]).
+    pub values: Option<crate::import::scale::ValueScaling>,
+    /// What the importer did, or deliberately did not do, with header fields
+    /// that change what values or positions mean.
+    pub notes: Vec<String>,
 }
 
 /// One pass of the builder: levels `from+1 ..= to` (and `from` itself when
@@ -377,6 +383,8 @@ pub fn convert(
                     "labels": opts.labels,
                     "stats": STATS_DIR,
                     "source": meta.path.to_string_lossy(),
+                    "source_notes": meta.notes,
+                    "source_values": meta.scaling,
                     "ratios": levels.iter().map(|l| l.ratio).collect::<Vec<_>>(),
                 }
             }
@@ -504,6 +512,8 @@ pub fn convert(
         bricks_constant: counters.constant.load(Ordering::Relaxed),
         seconds: t0.elapsed().as_secs_f64(),
         planned_bytes,
+        values: meta.scaling.clone(),
+        notes: meta.notes.clone(),
     })
 }
 
