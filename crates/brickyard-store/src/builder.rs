@@ -259,7 +259,9 @@ struct Counters {
     constant: AtomicU64,
 }
 
-/// Convert `src` into an OME-Zarr 0.5 pyramid at `output`.
+/// Convert `src` into an OME-Zarr 0.5 pyramid at `output`. The volume is
+/// treated as labels when `opts.labels` is set or the source says so
+/// ([`SourceMeta::labels`](crate::SourceMeta::labels)).
 pub fn convert(
     src: &dyn VolumeSource,
     output: &Path,
@@ -269,6 +271,16 @@ pub fn convert(
 ) -> Result<ConvertReport> {
     let t0 = Instant::now();
     let meta = src.meta().clone();
+    let with_labels;
+    let opts = if meta.labels && !opts.labels {
+        with_labels = ConvertOptions {
+            labels: true,
+            ..opts.clone()
+        };
+        &with_labels
+    } else {
+        opts
+    };
     for a in 0..3 {
         if opts.brick[a] < 2 || !opts.brick[a].is_multiple_of(2) {
             return Err(StoreError::invalid(

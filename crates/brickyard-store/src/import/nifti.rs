@@ -31,7 +31,7 @@
 //! when a read reaches it, not at [`open`].
 
 use crate::error::{IoContext, Result, StoreError};
-use crate::import::scale::{self, Choice, ValueScaling};
+use crate::import::scale::{self, num, Choice, ValueScaling};
 use crate::import::swap_bytes_in_place;
 use crate::source::{check_region, SourceMeta, VolumeSource};
 use brickyard_core::{as_bytes_mut, dispatch_dtype, DType, Dims3, Sample};
@@ -421,9 +421,33 @@ pub fn open_with(path: &Path, raw_values: bool) -> Result<NiftiSource> {
         1 => Some("meter".to_string()),
         2 => Some("millimeter".to_string()),
         3 => Some("micrometer".to_string()),
+        // Unknown, with a qform or sform placing the voxels in scanner or
+        // template space: those coordinates are millimetres.
+        _ if h.sform_code > 0 || h.qform_code > 0 => {
+            meta.notes.push(
+                "xyzt_units gives no spatial unit: millimetres assumed, as for the scanner or \
+                 template coordinates of the qform/sform"
+                    .to_string(),
+            );
+            Some("millimeter".to_string())
+        }
         _ => None,
     };
     meta.labels = h.intent_code == INTENT_LABEL;
+    if meta.labels {
+        meta.notes.push(
+            "intent_code 1002 (label): the voxels are labels, coarser levels take the mode"
+                .to_string(),
+        );
+    }
+    if let Some(n) = orientation_note(&h) {
+        meta.notes.push(n);
+    }
+    if channels > 1 {
+        meta.notes.push(format!(
+            "dim[4] = {channels}: the volumes are read as channels"
+        ));
+    }
     let scale = scale::effective(h.scl_slope, h.scl_inter);
     if let Some((slope, inter)) = scale {
         if !inter.is_finite() && !raw_values {
@@ -505,6 +529,56 @@ pub fn open_with(path: &Path, raw_values: bool) -> Result<NiftiSource> {
         src.meta.scaling = Some(s);
     }
     Ok(src)
+}
+
+/// A report line when the transform that gives the origin (the sform if
+/// `sform_code > 0`, else the qform if `qform_code > 0`) also flips or
+/// rotates the axes, which brickyard does not apply.
+fn orientation_note(h: &Header) -> Option<String> {
+    let plain = |m: &[[f64; 3]; 3]| {
+        (0..3).all(|r| {
+            (0..3).all(|c| {
+                if r == c {
+                    m[r][c] > 0.0
+                } else {
+                    m[r][c] == 0.0
+                }
+            })
+        })
+    };
+    if h.sform_code > 0 && h.srow_offset.iter().all(|v| v.is_finite()) {
+        if plain(&h.srow_linear) {
+            return None;
+        }
+        let rows: Vec<String> = h
+            .srow_linear
+            .iter()
+            .map(|r| format!("[{} {} {}]", num(r[0]), num(r[1]), num(r[2])))
+            .collect();
+        Some(format!(
+            "sform (code {}) {} flips or rotates the axes: not applied (spacing = pixdim, \
+             origin = sform translation)",
+            h.sform_code,
+            rows.join(" ")
+        ))
+    } else if h.qform_code > 0 && h.qoffset.iter().all(|v| v.is_finite()) {
+        let [b, c, d] = h.quatern;
+        let flip = h.pixdim[0] < 0.0;
+        if b == 0.0 && c == 0.0 && d == 0.0 && !flip {
+            return None;
+        }
+        Some(format!(
+            "qform (code {}) quaternion ({}, {}, {}){} rotates or flips the axes: not \
+             applied (spacing = pixdim, origin = qoffset)",
+            h.qform_code,
+            num(b),
+            num(c),
+            num(d),
+            if flip { " with qfac −1" } else { "" }
+        ))
+    } else {
+        None
+    }
 }
 
 /// Voxel spacing `[z, y, x]` from `pixdim[1..=3]`. Axes of size 1 may have
@@ -656,6 +730,10 @@ struct Header {
     qoffset: [f64; 3],
     /// `srow_x[3]`, `srow_y[3]`, `srow_z[3]`.
     srow_offset: [f64; 3],
+    /// The 3×3 linear part of the sform: row r is `srow_{x,y,z}[0..3]`.
+    srow_linear: [[f64; 3]; 3],
+    /// `quatern_b`, `quatern_c`, `quatern_d`.
+    quatern: [f64; 3],
 }
 
 /// Endian-aware field access into a header buffer of checked length.
@@ -771,6 +849,10 @@ fn parse_header(b: &[u8], path: &Path) -> Result<Header> {
             sform_code: f.i16(254) as i32,
             qoffset: std::array::from_fn(|i| f.f32(268 + 4 * i) as f64),
             srow_offset: std::array::from_fn(|i| f.f32(292 + 16 * i) as f64),
+            srow_linear: std::array::from_fn(|r| {
+                std::array::from_fn(|c| f.f32(280 + 16 * r + 4 * c) as f64)
+            }),
+            quatern: std::array::from_fn(|i| f.f32(256 + 4 * i) as f64),
         }
     } else {
         Header {
@@ -790,6 +872,10 @@ fn parse_header(b: &[u8], path: &Path) -> Result<Header> {
             sform_code: f.i32(348),
             qoffset: std::array::from_fn(|i| f.f64(376 + 8 * i)),
             srow_offset: std::array::from_fn(|i| f.f64(424 + 32 * i)),
+            srow_linear: std::array::from_fn(|r| {
+                std::array::from_fn(|c| f.f64(400 + 32 * r + 8 * c))
+            }),
+            quatern: std::array::from_fn(|i| f.f64(352 + 8 * i)),
         }
     };
     Ok(h)
@@ -957,6 +1043,13 @@ mod tests {
         assert_eq!(m.dtype, DType::U8);
         assert_eq!(m.spacing, Some([0.5, 0.5, 0.5]));
         assert_eq!(m.origin, Some([-69.5, -107.0, -75.0]));
+        assert_eq!(
+            m.unit.as_deref(),
+            Some("millimeter"),
+            "xyzt_units 0 with an sform"
+        );
+        assert_eq!(m.notes.len(), 1, "{:?}", m.notes);
+        assert!(m.notes[0].contains("millimetres assumed"));
         assert_eq!(m.scaling, None);
         assert_eq!(src.version(), 1);
         assert!(src.is_gzip());
@@ -1486,6 +1579,49 @@ mod tests {
         let got = from_ne(&read_all(&src, 1), i32::from_ne_bytes);
         assert_eq!(got[7], i16::MIN as i32 - 1024);
         assert_eq!(got[0], 100 - 1024);
+    }
+
+    /// Flips and rotations of the sform/qform are not applied, and the
+    /// report says so; a plain sform adds no note.
+    #[test]
+    fn orientation_notes() {
+        let dir = tempfile::tempdir().unwrap();
+        let s = Synth {
+            sform: Some([1.0, 2.0, 3.0]),
+            ..Default::default()
+        };
+        let data = i16_bytes(&ramp_i16(60), false);
+        let mut file = header(&s);
+        file.extend(&data);
+        let p = write(dir.path(), "plain.nii", &file);
+        assert!(open(&p).unwrap().meta().notes.is_empty());
+        file[280..284].copy_from_slice(&(-0.8f32).to_le_bytes()); // srow_x[0]
+        let p = write(dir.path(), "flip.nii", &file);
+        let src = open(&p).unwrap();
+        assert_eq!(src.meta().origin, Some([3.0, 2.0, 1.0]));
+        assert_eq!(src.meta().spacing.unwrap()[2] as f32, 0.8);
+        assert_eq!(src.meta().notes.len(), 1);
+        assert!(
+            src.meta().notes[0].starts_with("sform (code 2) [-0.8 0 0]"),
+            "{:?}",
+            src.meta().notes
+        );
+
+        let s = Synth {
+            qoffset: Some([1.0, 2.0, 3.0]),
+            ..Default::default()
+        };
+        let mut file = header(&s);
+        file.extend(&data);
+        let p = write(dir.path(), "q.nii", &file);
+        assert!(open(&p).unwrap().meta().notes.is_empty());
+        file[256..260].copy_from_slice(&0.5f32.to_le_bytes()); // quatern_b
+        let p = write(dir.path(), "qrot.nii", &file);
+        let n = open(&p).unwrap().meta().notes.clone();
+        assert!(
+            n[0].starts_with("qform (code 1) quaternion (0.5, 0, 0)"),
+            "{n:?}"
+        );
     }
 
     /// A 4-D file with 3 volumes: channel c must be the c-th volume.
