@@ -1,6 +1,7 @@
 #!/usr/bin/env bash
 # Interop test: brickyard output checked with zarr-python / numpy / ome-zarr-py,
-# and Python-written stores (ome-zarr-py, zarr-python v2/v3) converted by brickyard.
+# Python-written stores (ome-zarr-py, zarr-python v2/v3) converted by brickyard,
+# and NIfTI rescaling (scl_slope/scl_inter) compared with nibabel.
 #
 # Usage: bash scripts/interop/run.sh BRICKYARD_BIN
 # Env:   INTEROP_KEEP=1     keep the temp dir (always kept on failure)
@@ -202,6 +203,11 @@ case_nifti() {
     check "$D/nii.zarr" --npy "$D/inputs/vol_nii.npy" --spacing 1.5 1.5 1.5 --brick 16 --shard 32
 }
 
+case_nifti_scaling() {
+    # scl_slope/scl_inter applied as nibabel's get_fdata() does; --raw-values
+    py "$HERE/nifti_scaling.py" "$BIN" "$D/nifti_scaling"
+}
+
 case_tiff() {
     mk_inputs
     by convert "$D/inputs/vol.tif" "$D/tif.zarr" --brick 16 --shard 32
@@ -254,6 +260,7 @@ run_case raw_f32_unit        case_raw_f32_unit
 run_case raw_labels_ties     case_raw_labels_ties
 run_case nrrd_i16_gzip       case_nrrd
 run_case nifti_u16           case_nifti
+run_case nifti_scaling       case_nifti_scaling
 run_case tiff_u8             case_tiff
 run_case reconvert_omezarr05 case_reconvert
 run_case generate_zarr       case_generate_zarr

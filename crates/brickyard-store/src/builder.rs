@@ -96,6 +96,12 @@ pub struct ConvertReport {
     pub seconds: f64,
     /// Bytes of slab memory the plan uses.
     pub planned_bytes: u64,
+    /// The rescale of stored numbers the input asked for and what was done
+    /// with it (see [`crate::import::scale`]).
+    pub values: Option<crate::import::scale::ValueScaling>,
+    /// What the importer did, or deliberately did not do, with header fields
+    /// that change what values or positions mean.
+    pub notes: Vec<String>,
 }
 
 /// One pass of the builder: levels `from+1 ..= to` (and `from` itself when
@@ -253,7 +259,9 @@ struct Counters {
     constant: AtomicU64,
 }
 
-/// Convert `src` into an OME-Zarr 0.5 pyramid at `output`.
+/// Convert `src` into an OME-Zarr 0.5 pyramid at `output`. The volume is
+/// treated as labels when `opts.labels` is set or the source says so
+/// ([`SourceMeta::labels`](crate::SourceMeta::labels)).
 pub fn convert(
     src: &dyn VolumeSource,
     output: &Path,
@@ -263,6 +271,16 @@ pub fn convert(
 ) -> Result<ConvertReport> {
     let t0 = Instant::now();
     let meta = src.meta().clone();
+    let with_labels;
+    let opts = if meta.labels && !opts.labels {
+        with_labels = ConvertOptions {
+            labels: true,
+            ..opts.clone()
+        };
+        &with_labels
+    } else {
+        opts
+    };
     for a in 0..3 {
         if opts.brick[a] < 2 || !opts.brick[a].is_multiple_of(2) {
             return Err(StoreError::invalid(
@@ -377,6 +395,8 @@ pub fn convert(
                     "labels": opts.labels,
                     "stats": STATS_DIR,
                     "source": meta.path.to_string_lossy(),
+                    "source_notes": meta.notes,
+                    "source_values": meta.scaling,
                     "ratios": levels.iter().map(|l| l.ratio).collect::<Vec<_>>(),
                 }
             }
@@ -504,6 +524,8 @@ pub fn convert(
         bricks_constant: counters.constant.load(Ordering::Relaxed),
         seconds: t0.elapsed().as_secs_f64(),
         planned_bytes,
+        values: meta.scaling.clone(),
+        notes: meta.notes.clone(),
     })
 }
 

@@ -54,6 +54,9 @@ pub struct StoreInfo {
     pub axes: Vec<String>,
     pub units: Vec<Option<String>>,
     pub labels: bool,
+    /// What the importer did with the source's header fields (brickyard
+    /// stores: the root attribute `brickyard.source_notes`).
+    pub source_notes: Vec<String>,
     pub levels: Vec<LevelInfo>,
     pub problems: Vec<String>,
 }
@@ -245,6 +248,7 @@ pub fn inspect(path: &Path) -> Result<StoreInfo> {
         axes: vec![],
         units: vec![],
         labels: false,
+        source_notes: vec![],
         levels: vec![],
         problems: vec![],
     };
@@ -258,6 +262,16 @@ pub fn inspect(path: &Path) -> Result<StoreInfo> {
             if let Some(b) = &m.brickyard {
                 info.complete = Some(b.get("complete").and_then(Value::as_bool).unwrap_or(false));
                 info.labels = b.get("labels").and_then(Value::as_bool).unwrap_or(false);
+                info.source_notes = b
+                    .get("source_notes")
+                    .and_then(Value::as_array)
+                    .map(|a| {
+                        a.iter()
+                            .filter_map(Value::as_str)
+                            .map(str::to_string)
+                            .collect()
+                    })
+                    .unwrap_or_default();
             }
             m.datasets
                 .iter()
@@ -359,6 +373,9 @@ pub fn format_info(i: &StoreInfo) -> String {
             })
             .collect();
         let _ = writeln!(s, "  axes: {}", ax.join(", "));
+    }
+    for n in &i.source_notes {
+        let _ = writeln!(s, "  source: {n}");
     }
     let (mut disk, mut raw) = (0, 0);
     for (k, l) in i.levels.iter().enumerate() {

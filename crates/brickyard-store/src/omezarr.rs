@@ -206,6 +206,29 @@ pub struct Multiscale {
     pub brickyard: Option<Value>,
 }
 
+/// The `scale` and `translation` of an object's `coordinateTransformations`
+/// (given inline; `identity` and transformations stored in a `path` add
+/// nothing).
+fn scale_translation(o: &Value) -> (Option<Vec<f64>>, Option<Vec<f64>>) {
+    let mut scale = None;
+    let mut translation = None;
+    if let Some(ts) = o.get("coordinateTransformations").and_then(Value::as_array) {
+        for t in ts {
+            let vals = |k: &str| {
+                t.get(k)
+                    .and_then(Value::as_array)
+                    .map(|a| a.iter().filter_map(Value::as_f64).collect::<Vec<_>>())
+            };
+            match t.get("type").and_then(Value::as_str) {
+                Some("scale") => scale = vals("scale"),
+                Some("translation") => translation = vals("translation"),
+                _ => {}
+            }
+        }
+    }
+    (scale, translation)
+}
+
 /// Read the group attributes of a Zarr v2 or v3 group directory.
 /// Returns `(zarr_format, attributes)` or `None` if `dir` is not a group.
 pub fn read_group_attributes(dir: &Path) -> Result<Option<(u8, Value)>> {
@@ -311,27 +334,54 @@ pub fn read_multiscale(dir: &Path) -> Result<Option<Multiscale>> {
                     StoreError::invalid(&meta_path, "multiscales.datasets.path", "missing")
                 })?
                 .to_string();
-            let mut scale = None;
-            let mut translation = None;
-            if let Some(ts) = d.get("coordinateTransformations").and_then(Value::as_array) {
-                for t in ts {
-                    let vals = |k: &str| {
-                        t.get(k)
-                            .and_then(Value::as_array)
-                            .map(|a| a.iter().filter_map(Value::as_f64).collect::<Vec<_>>())
-                    };
-                    match t.get("type").and_then(Value::as_str) {
-                        Some("scale") => scale = vals("scale"),
-                        Some("translation") => translation = vals("translation"),
-                        _ => {}
-                    }
-                }
-            }
+            let (scale, translation) = scale_translation(d);
             Ok(Dataset {
                 path,
                 scale,
                 translation,
             })
+        })
+        .collect::<Result<Vec<_>>>()?;
+    // Transformations of the whole multiscale apply after each dataset's:
+    // world = gs · (s · i + t) + gt. Fold them into the datasets.
+    let (gs, gt) = scale_translation(ms0);
+    let datasets = datasets
+        .into_iter()
+        .map(|mut d| {
+            let n = d
+                .scale
+                .as_ref()
+                .or(d.translation.as_ref())
+                .map(Vec::len)
+                .or(gs.as_ref().map(Vec::len))
+                .or(gt.as_ref().map(Vec::len))
+                .unwrap_or(0);
+            for (what, g) in [("scale", &gs), ("translation", &gt)] {
+                if let Some(g) = g {
+                    if g.len() != n {
+                        return Err(StoreError::invalid(
+                            &meta_path,
+                            "multiscales.coordinateTransformations",
+                            format!(
+                                "{what} has {} values but the datasets' transformations have {n}",
+                                g.len()
+                            ),
+                        ));
+                    }
+                }
+            }
+            if let Some(g) = &gs {
+                let s = d.scale.get_or_insert_with(|| vec![1.0; n]);
+                s.iter_mut().zip(g).for_each(|(v, g)| *v *= g);
+                if let Some(t) = &mut d.translation {
+                    t.iter_mut().zip(g).for_each(|(v, g)| *v *= g);
+                }
+            }
+            if let Some(g) = &gt {
+                let t = d.translation.get_or_insert_with(|| vec![0.0; n]);
+                t.iter_mut().zip(g).for_each(|(v, g)| *v += g);
+            }
+            Ok(d)
         })
         .collect::<Result<Vec<_>>>()?;
     Ok(Some(Multiscale {

@@ -2,6 +2,7 @@
 //! region by region, so that nothing ever has to hold a whole large volume.
 
 use crate::error::Result;
+use crate::import::scale::ValueScaling;
 use brickyard_core::{DType, Dims3};
 use std::ops::Range;
 use std::path::PathBuf;
@@ -27,6 +28,14 @@ pub struct SourceMeta {
     /// Whether the volume holds labels (segmentation ids) rather than
     /// intensities; importers set this only when the file says so.
     pub labels: bool,
+    /// The rescale of stored numbers into values that the file asks for,
+    /// and whether the importer applied it (`dtype` is then the type of the
+    /// rescaled values).
+    pub scaling: Option<ValueScaling>,
+    /// What the importer did, or deliberately did not do, with header fields
+    /// that change what the values or positions mean: one sentence each,
+    /// for the conversion report.
+    pub notes: Vec<String>,
 }
 
 impl SourceMeta {
@@ -41,6 +50,8 @@ impl SourceMeta {
             unit: None,
             channel_names: Vec::new(),
             labels: false,
+            scaling: None,
+            notes: Vec::new(),
         }
     }
 

@@ -125,8 +125,8 @@ fn raw_with_sidecar_and_zarr_reconversion() {
     let l1 = open_input(
         &out,
         &ImportOptions {
-            raw: None,
             zarr_level: 1,
+            ..Default::default()
         },
     )
     .unwrap();

@@ -52,6 +52,25 @@ fn awkward_shapes_round_trip_and_levels_match_reference() {
     }
 }
 
+/// A source that says it holds labels gets the mode without `labels` set.
+#[test]
+fn labels_from_the_source_use_the_mode() {
+    let dir = tempfile::tempdir().unwrap();
+    let out = dir.path().join("l.ome.zarr");
+    let mut src = make_source([13, 18, 20], 1, DType::U16, 9);
+    for b in src.data.iter_mut() {
+        *b %= 3;
+    }
+    src.meta.labels = true;
+    let o = opts(4, 8);
+    assert!(!o.labels);
+    convert(&src, &out, &o, &NoProgress, &AtomicBool::new(false)).unwrap();
+    check_store(&src, &out, true);
+    let root: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(out.join("zarr.json")).unwrap()).unwrap();
+    assert_eq!(root["attributes"]["brickyard"]["labels"], true);
+}
+
 #[test]
 fn labels_use_the_mode() {
     let dir = tempfile::tempdir().unwrap();

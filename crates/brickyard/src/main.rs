@@ -150,6 +150,10 @@ struct ConvertCmd {
     /// OME-Zarr input: level to convert.
     #[arg(long, default_value_t = 0)]
     level: usize,
+    /// Keep the numbers as stored: do not apply the rescale the file asks
+    /// for (NIfTI scl_slope/scl_inter).
+    #[arg(long)]
+    raw_values: bool,
     #[command(flatten)]
     pyramid: PyramidArgs,
 }
@@ -307,6 +311,9 @@ fn run_convert(src: &dyn VolumeSource, output: &Path, p: &PyramidArgs) -> Result
             r.bytes_in as f64 / 1e6 / r.seconds,
             human_bytes(rss)
         );
+        for n in &r.notes {
+            println!("  {n}");
+        }
     }
     Ok(())
 }
@@ -356,6 +363,7 @@ fn run(cmd: Cmd) -> Result<()> {
                 &ImportOptions {
                     raw,
                     zarr_level: c.level,
+                    raw_values: c.raw_values,
                 },
             )?;
             run_convert(src.as_ref(), &c.output, &c.pyramid)

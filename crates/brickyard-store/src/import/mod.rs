@@ -3,6 +3,7 @@
 pub mod nifti;
 pub mod nrrd;
 pub mod raw;
+pub mod scale;
 pub mod tiff;
 pub mod zarr;
 
@@ -30,6 +31,9 @@ pub struct ImportOptions {
     pub raw: Option<raw::RawOptions>,
     /// Level of an OME-Zarr input to read (0 = full resolution).
     pub zarr_level: usize,
+    /// Keep the numbers as stored: do not apply a rescale the file asks for
+    /// (NIfTI `scl_slope`/`scl_inter`).
+    pub raw_values: bool,
 }
 
 /// The input formats brickyard reads.
@@ -110,7 +114,7 @@ pub fn open_input(path: &Path, opts: &ImportOptions) -> Result<Box<dyn VolumeSou
         Format::Tiff | Format::TiffDir => Box::new(tiff::open(path)?),
         Format::TiffGlob => Box::new(tiff::open_glob(&path.to_string_lossy())?),
         Format::Nrrd => Box::new(nrrd::open(path)?),
-        Format::Nifti => Box::new(nifti::open(path)?),
+        Format::Nifti => Box::new(nifti::open_with(path, opts.raw_values)?),
         Format::Zarr => Box::new(zarr::open(path, opts.zarr_level)?),
     })
 }

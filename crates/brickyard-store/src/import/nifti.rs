@@ -12,6 +12,17 @@
 //! dimension becomes channels (channel `c` is the `c`-th 3-D volume); more
 //! dimensions are unsupported.
 //!
+//! Values: `scl_slope`/`scl_inter` are applied (`value = slope · stored +
+//! inter`) unless raw values are asked for ([`open_with`]); a slope of 0 or
+//! not finite means no scaling and `(1, 0)` is the identity, as nibabel reads
+//! them. The type of the values is chosen by [`scale::choose_dtype`]: the
+//! integer type is kept (or widened) when the rescale is exact and the values
+//! fit, else the values are float. Deciding that may need the range of the
+//! stored numbers: then [`open_with`] reads the voxels once, streaming, to
+//! find it (only for integer data with an integer slope and intercept whose
+//! rescaled type range overflows the stored type, such as int16 CT with
+//! intercept −1024).
+//!
 //! Memory stays bounded: an uncompressed file is read with positioned reads
 //! at `vox_offset`; a gzip-compressed one is decompressed sequentially by a
 //! few cursors kept between requests (a cursor restarts from the beginning of
@@ -20,9 +31,10 @@
 //! when a read reaches it, not at [`open`].
 
 use crate::error::{IoContext, Result, StoreError};
+use crate::import::scale::{self, num, Choice, ValueScaling};
 use crate::import::swap_bytes_in_place;
 use crate::source::{check_region, SourceMeta, VolumeSource};
-use brickyard_core::{DType, Dims3};
+use brickyard_core::{as_bytes_mut, dispatch_dtype, DType, Dims3, Sample};
 use flate2::read::MultiGzDecoder;
 use std::fs::File;
 use std::io::{self, BufReader, Read};
@@ -47,12 +59,12 @@ const IMG_EXTS: [&str; 5] = [".img", ".IMG", ".img.gz", ".IMG.gz", ".IMG.GZ"];
 pub struct NiftiSource {
     meta: SourceMeta,
     /// `(scl_slope, scl_inter)` when the header asks for a linear rescale
-    /// other than the identity (`slope` non-zero and not `(1, 0)`).
-    ///
-    /// The rescale is **not applied**: [`VolumeSource::read_region`] returns
-    /// the voxel values exactly as stored; the physical value of a voxel is
-    /// `slope * stored + inter`.
+    /// other than the identity (`slope` finite, non-zero and not `(1, 0)`),
+    /// applied or not: `meta().scaling` says which.
     pub scale: Option<(f64, f64)>,
+    /// Type of the numbers in the file (`meta.dtype` is that of the values
+    /// returned, which differs when a rescale changes the type).
+    stored: DType,
     version: u8,
     /// File holding the voxels (the `.img` of a pair).
     data_path: PathBuf,
@@ -75,6 +87,7 @@ impl std::fmt::Debug for NiftiSource {
         f.debug_struct("NiftiSource")
             .field("meta", &self.meta)
             .field("scale", &self.scale)
+            .field("stored", &self.stored)
             .field("version", &self.version)
             .field("data_path", &self.data_path)
             .field("data_offset", &self.data_offset)
@@ -101,15 +114,73 @@ impl NiftiSource {
         if self.meta.channels > 1 {
             shape += &format!("×{}", self.meta.channels);
         }
-        let need = self.meta.channel_bytes() * self.meta.channels as u64;
+        let need = self.stored_channel_bytes() * self.meta.channels as u64;
         StoreError::invalid(
             &self.data_path,
             "data",
             format!(
                 "file holds {held} bytes of voxel data, dims {shape} × {} need {need}",
-                self.meta.dtype
+                self.stored
             ),
         )
+    }
+
+    /// Bytes of one channel in the file.
+    fn stored_channel_bytes(&self) -> u64 {
+        self.meta.dims.iter().product::<u64>() * self.stored.size() as u64
+    }
+
+    /// Read the stored numbers of a region (native-endian, unscaled) into
+    /// `out`, which holds `stored.size()` bytes per voxel.
+    fn read_stored(
+        &self,
+        c: usize,
+        z: &Range<u64>,
+        y: &Range<u64>,
+        x: &Range<u64>,
+        out: &mut [u8],
+    ) -> Result<()> {
+        let size = self.stored.size() as u64;
+        let base = self.data_offset + c as u64 * self.stored_channel_bytes();
+        let runs = contiguous_runs(base, self.meta.dims, size, z, y, x);
+        match &self.data {
+            Data::Raw(file) => {
+                for (off, range) in &runs {
+                    read_exact_at(file, &mut out[range.clone()], *off).at(&self.data_path)?;
+                }
+            }
+            Data::Gz(pool) => self.read_gz(pool, &runs, out)?,
+        }
+        if self.swap {
+            swap_bytes_in_place(out, size as usize);
+        }
+        Ok(())
+    }
+
+    /// `[min, max]` of the stored numbers of every channel (integer types
+    /// only), read slice by slice in file order with bounded memory.
+    fn stored_range(&self) -> Result<[f64; 2]> {
+        const BUDGET: u64 = 8 << 20;
+        let [nz, ny, nx] = self.meta.dims;
+        let row = nx * self.stored.size() as u64;
+        let rows = (BUDGET / row.max(1)).clamp(1, ny);
+        let (mut lo, mut hi) = (f64::INFINITY, f64::NEG_INFINITY);
+        dispatch_dtype!(self.stored, T => {
+            let mut buf: Vec<T> = Vec::new();
+            for c in 0..self.meta.channels {
+                for z in 0..nz {
+                    for y0 in (0..ny).step_by(rows as usize) {
+                        let y1 = (y0 + rows).min(ny);
+                        buf.resize(((y1 - y0) * nx) as usize, T::default());
+                        self.read_stored(c, &(z..z + 1), &(y0..y1), &(0..nx), as_bytes_mut(&mut buf))?;
+                        let (a, b) = T::min_max(&buf);
+                        lo = lo.min(a.to_f64());
+                        hi = hi.max(b.to_f64());
+                    }
+                }
+            }
+        });
+        Ok([lo, hi])
     }
 
     /// Map an error from the gzip stream: truncation is a `data` error,
@@ -173,32 +244,43 @@ impl VolumeSource for NiftiSource {
         if out.is_empty() {
             return Ok(());
         }
-        let size = self.meta.dtype.size() as u64;
-        let base = self.data_offset + c as u64 * self.meta.channel_bytes();
-        let runs = contiguous_runs(base, self.meta.dims, size, &z, &y, &x);
-        match &self.data {
-            Data::Raw(file) => {
-                for (off, range) in &runs {
-                    read_exact_at(file, &mut out[range.clone()], *off).at(&self.data_path)?;
-                }
+        match self.meta.scaling.as_ref().filter(|s| s.applied) {
+            None => self.read_stored(c, &z, &y, &x, out),
+            Some(s) if s.stored.size() == s.dtype.size() => {
+                self.read_stored(c, &z, &y, &x, out)?;
+                s.apply_in_place(out);
+                Ok(())
             }
-            Data::Gz(pool) => self.read_gz(pool, &runs, out)?,
+            Some(s) => {
+                let n = out.len() / s.dtype.size();
+                let mut stored = vec![0u8; n * s.stored.size()];
+                self.read_stored(c, &z, &y, &x, &mut stored)?;
+                s.apply(&stored, out);
+                Ok(())
+            }
         }
-        if self.swap {
-            swap_bytes_in_place(out, size as usize);
-        }
-        Ok(())
     }
 }
 
 /// Open a NIfTI-1 or NIfTI-2 file: `.nii`, `.nii.gz`, or either file of a
-/// `.hdr`/`.img` pair. Only the header is read here.
+/// `.hdr`/`.img` pair, with `scl_slope`/`scl_inter` applied. See
+/// [`open_with`].
+pub fn open(path: &Path) -> Result<NiftiSource> {
+    open_with(path, false)
+}
+
+/// Open a NIfTI-1 or NIfTI-2 file: `.nii`, `.nii.gz`, or either file of a
+/// `.hdr`/`.img` pair. Only the header is read here, unless choosing the
+/// type of rescaled values needs the range of the stored numbers (see the
+/// [module docs](self)).
 ///
 /// Supported voxel types: uint8, int8, uint16, int16, uint32, int32,
 /// float32, float64. Spacing comes from `pixdim[1..=3]` (unit from
 /// `xyzt_units`), the origin from the sform translation if `sform_code > 0`,
-/// else from the qform offsets if `qform_code > 0`.
-pub fn open(path: &Path) -> Result<NiftiSource> {
+/// else from the qform offsets if `qform_code > 0`; rotations, shears and
+/// flips of the sform/qform are not applied. With `raw_values` the stored
+/// numbers are returned as they are, without `scl_slope`/`scl_inter`.
+pub fn open_with(path: &Path, raw_values: bool) -> Result<NiftiSource> {
     let (hdr_path, img_path) = locate(path)?;
     let (head, hdr_gz) = read_head(&hdr_path)?;
     let h = parse_header(&head, &hdr_path)?;
@@ -339,20 +421,46 @@ pub fn open(path: &Path) -> Result<NiftiSource> {
         1 => Some("meter".to_string()),
         2 => Some("millimeter".to_string()),
         3 => Some("micrometer".to_string()),
+        // Unknown, with a qform or sform placing the voxels in scanner or
+        // template space: those coordinates are millimetres.
+        _ if h.sform_code > 0 || h.qform_code > 0 => {
+            meta.notes.push(
+                "xyzt_units gives no spatial unit: millimetres assumed, as for the scanner or \
+                 template coordinates of the qform/sform"
+                    .to_string(),
+            );
+            Some("millimeter".to_string())
+        }
         _ => None,
     };
     meta.labels = h.intent_code == INTENT_LABEL;
-    let scale = (h.scl_slope.is_finite()
-        && h.scl_slope != 0.0
-        && !(h.scl_slope == 1.0 && (h.scl_inter == 0.0 || !h.scl_inter.is_finite())))
-    .then(|| {
-        let inter = if h.scl_inter.is_finite() {
-            h.scl_inter
-        } else {
-            0.0
-        };
-        (h.scl_slope, inter)
-    });
+    if meta.labels {
+        meta.notes.push(
+            "intent_code 1002 (label): the voxels are labels, coarser levels take the mode"
+                .to_string(),
+        );
+    }
+    if let Some(n) = orientation_note(&h) {
+        meta.notes.push(n);
+    }
+    if channels > 1 {
+        meta.notes.push(format!(
+            "dim[4] = {channels}: the volumes are read as channels"
+        ));
+    }
+    let scale = scale::effective(h.scl_slope, h.scl_inter);
+    if let Some((slope, inter)) = scale {
+        if !inter.is_finite() && !raw_values {
+            return Err(StoreError::invalid(
+                hp,
+                "scl_inter",
+                format!(
+                    "{inter} with scl_slope {slope}: the values cannot be rescaled (convert \
+                     with raw values to keep the stored numbers)"
+                ),
+            ));
+        }
+    }
 
     // The voxel data.
     let (file, gz) = if data_path == hdr_path {
@@ -373,9 +481,10 @@ pub fn open(path: &Path) -> Result<NiftiSource> {
     } else {
         Data::Raw(file)
     };
-    let src = NiftiSource {
+    let mut src = NiftiSource {
         meta,
         scale,
+        stored: dtype,
         version: h.version,
         data_path,
         data_offset,
@@ -391,7 +500,85 @@ pub fn open(path: &Path) -> Result<NiftiSource> {
             return Err(src.data_short(held));
         }
     }
+    if let Some((slope, inter)) = scale {
+        let (out, scanned) = if raw_values {
+            (dtype, None)
+        } else {
+            match scale::choose_dtype(dtype, slope, inter, None) {
+                Choice::Type(t) => (t, None),
+                Choice::NeedsRange => {
+                    let r = src.stored_range()?;
+                    match scale::choose_dtype(dtype, slope, inter, Some(r)) {
+                        Choice::Type(t) => (t, Some(r)),
+                        Choice::NeedsRange => unreachable!("a known range always decides"),
+                    }
+                }
+            }
+        };
+        let s = ValueScaling {
+            fields: ["scl_slope", "scl_inter"],
+            slope,
+            inter,
+            stored: dtype,
+            dtype: out,
+            applied: !raw_values,
+            scanned,
+        };
+        src.meta.notes.push(s.describe());
+        src.meta.dtype = out;
+        src.meta.scaling = Some(s);
+    }
     Ok(src)
+}
+
+/// A report line when the transform that gives the origin (the sform if
+/// `sform_code > 0`, else the qform if `qform_code > 0`) also flips or
+/// rotates the axes, which brickyard does not apply.
+fn orientation_note(h: &Header) -> Option<String> {
+    let plain = |m: &[[f64; 3]; 3]| {
+        (0..3).all(|r| {
+            (0..3).all(|c| {
+                if r == c {
+                    m[r][c] > 0.0
+                } else {
+                    m[r][c] == 0.0
+                }
+            })
+        })
+    };
+    if h.sform_code > 0 && h.srow_offset.iter().all(|v| v.is_finite()) {
+        if plain(&h.srow_linear) {
+            return None;
+        }
+        let rows: Vec<String> = h
+            .srow_linear
+            .iter()
+            .map(|r| format!("[{} {} {}]", num(r[0]), num(r[1]), num(r[2])))
+            .collect();
+        Some(format!(
+            "sform (code {}) {} flips or rotates the axes: not applied (spacing = pixdim, \
+             origin = sform translation)",
+            h.sform_code,
+            rows.join(" ")
+        ))
+    } else if h.qform_code > 0 && h.qoffset.iter().all(|v| v.is_finite()) {
+        let [b, c, d] = h.quatern;
+        let flip = h.pixdim[0] < 0.0;
+        if b == 0.0 && c == 0.0 && d == 0.0 && !flip {
+            return None;
+        }
+        Some(format!(
+            "qform (code {}) quaternion ({}, {}, {}){} rotates or flips the axes: not \
+             applied (spacing = pixdim, origin = qoffset)",
+            h.qform_code,
+            num(b),
+            num(c),
+            num(d),
+            if flip { " with qfac −1" } else { "" }
+        ))
+    } else {
+        None
+    }
 }
 
 /// Voxel spacing `[z, y, x]` from `pixdim[1..=3]`. Axes of size 1 may have
@@ -543,6 +730,10 @@ struct Header {
     qoffset: [f64; 3],
     /// `srow_x[3]`, `srow_y[3]`, `srow_z[3]`.
     srow_offset: [f64; 3],
+    /// The 3×3 linear part of the sform: row r is `srow_{x,y,z}[0..3]`.
+    srow_linear: [[f64; 3]; 3],
+    /// `quatern_b`, `quatern_c`, `quatern_d`.
+    quatern: [f64; 3],
 }
 
 /// Endian-aware field access into a header buffer of checked length.
@@ -658,6 +849,10 @@ fn parse_header(b: &[u8], path: &Path) -> Result<Header> {
             sform_code: f.i16(254) as i32,
             qoffset: std::array::from_fn(|i| f.f32(268 + 4 * i) as f64),
             srow_offset: std::array::from_fn(|i| f.f32(292 + 16 * i) as f64),
+            srow_linear: std::array::from_fn(|r| {
+                std::array::from_fn(|c| f.f32(280 + 16 * r + 4 * c) as f64)
+            }),
+            quatern: std::array::from_fn(|i| f.f32(256 + 4 * i) as f64),
         }
     } else {
         Header {
@@ -677,6 +872,10 @@ fn parse_header(b: &[u8], path: &Path) -> Result<Header> {
             sform_code: f.i32(348),
             qoffset: std::array::from_fn(|i| f.f64(376 + 8 * i)),
             srow_offset: std::array::from_fn(|i| f.f64(424 + 32 * i)),
+            srow_linear: std::array::from_fn(|r| {
+                std::array::from_fn(|c| f.f64(400 + 32 * r + 8 * c))
+            }),
+            quatern: std::array::from_fn(|i| f.f64(352 + 8 * i)),
         }
     };
     Ok(h)
@@ -844,6 +1043,14 @@ mod tests {
         assert_eq!(m.dtype, DType::U8);
         assert_eq!(m.spacing, Some([0.5, 0.5, 0.5]));
         assert_eq!(m.origin, Some([-69.5, -107.0, -75.0]));
+        assert_eq!(
+            m.unit.as_deref(),
+            Some("millimeter"),
+            "xyzt_units 0 with an sform"
+        );
+        assert_eq!(m.notes.len(), 1, "{:?}", m.notes);
+        assert!(m.notes[0].contains("millimetres assumed"));
+        assert_eq!(m.scaling, None);
         assert_eq!(src.version(), 1);
         assert!(src.is_gzip());
         assert_eq!(src.scale, None);
@@ -1142,9 +1349,279 @@ mod tests {
             assert_eq!(m.origin, Some([3.5, 2.5, 1.5]));
             assert_eq!(src.scale, Some((2.0, -1.0)));
             let got = read_all(&src, 0);
+            let want: Vec<u8> = vals
+                .iter()
+                .flat_map(|v| ((*v as f64 * 2.0 - 1.0) as f32).to_ne_bytes())
+                .collect();
+            assert_eq!(got, want, "values are rescaled: 2 · stored − 1");
+            assert_eq!(read_stitched(&src, 0, [3, 2, 4]), want);
+            let raw = open_with(&path, true).unwrap();
             let want: Vec<u8> = vals.iter().flat_map(|v| v.to_ne_bytes()).collect();
-            assert_eq!(got, want, "values are returned as stored, unscaled");
+            assert_eq!(read_all(&raw, 0), want, "raw values: as stored");
         }
+    }
+
+    /// Write a one-file NIfTI-1 with `slope`/`inter` over `data` bytes.
+    fn scaled_file(dir: &Path, name: &str, s: Synth, data: Vec<u8>) -> PathBuf {
+        let mut file = header(&s);
+        file.extend(data);
+        let p = dir.join(name);
+        if name.ends_with(".gz") {
+            std::fs::write(&p, gzip(&file)).unwrap();
+        } else {
+            std::fs::write(&p, &file).unwrap();
+        }
+        p
+    }
+
+    fn from_ne<T: Copy, const N: usize>(b: &[u8], f: fn([u8; N]) -> T) -> Vec<T> {
+        b.chunks_exact(N)
+            .map(|c| f(c.try_into().unwrap()))
+            .collect()
+    }
+
+    /// int16 CT: Hounsfield units = stored − 1024. The stored numbers
+    /// (0..4095) shifted fit int16, so int16 is kept; with raw values the
+    /// stored numbers come back.
+    #[test]
+    fn ct_int16_intercept_keeps_int16() {
+        let dir = tempfile::tempdir().unwrap();
+        let dims = vec![9i64, 7, 5];
+        let n = 9 * 7 * 5;
+        let stored: Vec<i16> = (0..n).map(|i| (i * 97 % 4096) as i16).collect();
+        for (be, gz) in [(false, false), (true, false), (false, true)] {
+            let s = Synth {
+                be,
+                dims: dims.clone(),
+                slope: 1.0,
+                inter: -1024.0,
+                ..Default::default()
+            };
+            let name = format!("ct-{be}.nii{}", if gz { ".gz" } else { "" });
+            let p = scaled_file(dir.path(), &name, s, i16_bytes(&stored, be));
+            let src = open(&p).unwrap();
+            let m = src.meta();
+            assert_eq!(m.dtype, DType::I16, "int16 kept");
+            let sc = m.scaling.clone().unwrap();
+            assert!(sc.applied);
+            assert_eq!((sc.slope, sc.inter), (1.0, -1024.0));
+            let max = *stored.iter().max().unwrap();
+            assert_eq!(sc.scanned, Some([0.0, max as f64]));
+            assert_eq!(
+                m.notes,
+                vec![format!(
+                    "values scaled by scl_slope=1, scl_inter=-1024 (int16 kept; stored numbers \
+                     span 0..{max})"
+                )]
+            );
+            let want: Vec<i16> = stored.iter().map(|v| v - 1024).collect();
+            assert_eq!(from_ne(&read_all(&src, 0), i16::from_ne_bytes), want);
+            assert_eq!(
+                from_ne(&read_stitched(&src, 0, [2, 3, 4]), i16::from_ne_bytes),
+                want
+            );
+
+            let raw = open_with(&p, true).unwrap();
+            assert_eq!(raw.meta().dtype, DType::I16);
+            assert!(!raw.meta().scaling.as_ref().unwrap().applied);
+            assert!(raw.meta().notes[0].contains("not applied"));
+            assert_eq!(read_all(&raw, 0), ne_i16(&stored));
+        }
+    }
+
+    /// Stored numbers over the whole int16 range minus 1024 need int32.
+    #[test]
+    fn int16_full_range_widens_to_int32() {
+        let dir = tempfile::tempdir().unwrap();
+        let stored: Vec<i16> = vec![i16::MIN, -1, 0, 1, i16::MAX, 5];
+        let s = Synth {
+            dims: vec![3, 2, 1],
+            slope: 1.0,
+            inter: -1024.0,
+            ..Default::default()
+        };
+        let p = scaled_file(dir.path(), "wide.nii", s, i16_bytes(&stored, false));
+        let src = open(&p).unwrap();
+        assert_eq!(src.meta().dtype, DType::I32);
+        let want: Vec<i32> = stored.iter().map(|&v| v as i32 - 1024).collect();
+        assert_eq!(from_ne(&read_all(&src, 0), i32::from_ne_bytes), want);
+    }
+
+    /// uint8 with intercept −1024 becomes int16 (exact); uint8 plus 10
+    /// stays uint8 when the stored numbers leave room.
+    #[test]
+    fn uint8_widened_or_kept() {
+        let dir = tempfile::tempdir().unwrap();
+        let stored: Vec<u8> = (0..60).map(|i| (i * 3) as u8).collect();
+        let u8s = |slope: f64, inter: f64| Synth {
+            datatype: 2,
+            bitpix: 8,
+            slope,
+            inter,
+            ..Default::default()
+        };
+        let p = scaled_file(dir.path(), "u8a.nii", u8s(2.0, -1024.0), stored.clone());
+        let src = open(&p).unwrap();
+        assert_eq!(src.meta().dtype, DType::I16);
+        let want: Vec<i16> = stored.iter().map(|&v| v as i16 * 2 - 1024).collect();
+        assert_eq!(from_ne(&read_all(&src, 0), i16::from_ne_bytes), want);
+        assert!(
+            src.meta().notes[0].contains("(uint8 → int16, exact"),
+            "{:?}",
+            src.meta().notes
+        );
+
+        let p = scaled_file(dir.path(), "u8b.nii", u8s(1.0, 10.0), stored.clone());
+        let src = open(&p).unwrap();
+        assert_eq!(src.meta().dtype, DType::U8);
+        let want: Vec<u8> = stored.iter().map(|&v| v + 10).collect();
+        assert_eq!(read_all(&src, 0), want);
+    }
+
+    /// A fractional slope or intercept makes float32 values.
+    #[test]
+    fn fractional_scale_makes_float32() {
+        let dir = tempfile::tempdir().unwrap();
+        let stored = ramp_i16(60);
+        let s = Synth {
+            slope: 0.5,
+            inter: 3.25,
+            ..Default::default()
+        };
+        let p = scaled_file(dir.path(), "frac.nii.gz", s, i16_bytes(&stored, false));
+        let src = open(&p).unwrap();
+        assert_eq!(src.meta().dtype, DType::F32);
+        assert_eq!(src.meta().scaling.as_ref().unwrap().scanned, None);
+        assert_eq!(
+            src.meta().notes,
+            vec!["values scaled by scl_slope=0.5, scl_inter=3.25 (int16 → float32)".to_string()]
+        );
+        let want: Vec<f32> = stored.iter().map(|&v| v as f32 * 0.5 + 3.25).collect();
+        assert_eq!(from_ne(&read_all(&src, 0), f32::from_ne_bytes), want);
+        assert_eq!(
+            from_ne(&read_stitched(&src, 0, [1, 3, 2]), f32::from_ne_bytes),
+            want
+        );
+        let raw = open_with(&p, true).unwrap();
+        assert_eq!(raw.meta().dtype, DType::I16);
+        assert_eq!(read_all(&raw, 0), ne_i16(&stored));
+    }
+
+    /// A slope of 0 (or not finite) means no scaling; so does (1, 0).
+    #[test]
+    fn slope_zero_nan_and_identity_mean_no_scaling() {
+        let dir = tempfile::tempdir().unwrap();
+        let stored = ramp_i16(60);
+        for (k, (slope, inter)) in [(0.0, -1024.0), (f64::NAN, 5.0), (1.0, 0.0)]
+            .into_iter()
+            .enumerate()
+        {
+            let s = Synth {
+                slope,
+                inter,
+                ..Default::default()
+            };
+            let p = scaled_file(
+                dir.path(),
+                &format!("n{k}.nii"),
+                s,
+                i16_bytes(&stored, false),
+            );
+            let src = open(&p).unwrap();
+            assert_eq!(src.scale, None, "slope {slope}, inter {inter}");
+            assert_eq!(src.meta().scaling, None);
+            assert!(src.meta().notes.is_empty());
+            assert_eq!(src.meta().dtype, DType::I16);
+            assert_eq!(read_all(&src, 0), ne_i16(&stored));
+        }
+    }
+
+    /// A valid slope with an intercept that is not finite cannot be applied
+    /// (nibabel refuses it too); raw values still read.
+    #[test]
+    fn non_finite_intercept_is_an_error() {
+        let dir = tempfile::tempdir().unwrap();
+        let s = Synth {
+            slope: 2.0,
+            inter: f64::NAN,
+            ..Default::default()
+        };
+        let p = scaled_file(
+            dir.path(),
+            "naninter.nii",
+            s,
+            i16_bytes(&ramp_i16(60), false),
+        );
+        assert_err(open(&p), "naninter.nii", "scl_inter");
+        assert_eq!(
+            read_all(&open_with(&p, true).unwrap(), 0),
+            ne_i16(&ramp_i16(60))
+        );
+    }
+
+    /// 4-D data: the stored range is scanned over every channel.
+    #[test]
+    fn scan_covers_every_channel() {
+        let dir = tempfile::tempdir().unwrap();
+        let n = 5 * 4 * 3;
+        let mut stored: Vec<i16> = vec![100; n * 2];
+        stored[n + 7] = i16::MIN; // only channel 1 overflows int16 after −1024
+        let s = Synth {
+            dims: vec![5, 4, 3, 2],
+            slope: 1.0,
+            inter: -1024.0,
+            ..Default::default()
+        };
+        let p = scaled_file(dir.path(), "4d.nii", s, i16_bytes(&stored, false));
+        let src = open(&p).unwrap();
+        assert_eq!(src.meta().channels, 2);
+        assert_eq!(src.meta().dtype, DType::I32);
+        let got = from_ne(&read_all(&src, 1), i32::from_ne_bytes);
+        assert_eq!(got[7], i16::MIN as i32 - 1024);
+        assert_eq!(got[0], 100 - 1024);
+    }
+
+    /// Flips and rotations of the sform/qform are not applied, and the
+    /// report says so; a plain sform adds no note.
+    #[test]
+    fn orientation_notes() {
+        let dir = tempfile::tempdir().unwrap();
+        let s = Synth {
+            sform: Some([1.0, 2.0, 3.0]),
+            ..Default::default()
+        };
+        let data = i16_bytes(&ramp_i16(60), false);
+        let mut file = header(&s);
+        file.extend(&data);
+        let p = write(dir.path(), "plain.nii", &file);
+        assert!(open(&p).unwrap().meta().notes.is_empty());
+        file[280..284].copy_from_slice(&(-0.8f32).to_le_bytes()); // srow_x[0]
+        let p = write(dir.path(), "flip.nii", &file);
+        let src = open(&p).unwrap();
+        assert_eq!(src.meta().origin, Some([3.0, 2.0, 1.0]));
+        assert_eq!(src.meta().spacing.unwrap()[2] as f32, 0.8);
+        assert_eq!(src.meta().notes.len(), 1);
+        assert!(
+            src.meta().notes[0].starts_with("sform (code 2) [-0.8 0 0]"),
+            "{:?}",
+            src.meta().notes
+        );
+
+        let s = Synth {
+            qoffset: Some([1.0, 2.0, 3.0]),
+            ..Default::default()
+        };
+        let mut file = header(&s);
+        file.extend(&data);
+        let p = write(dir.path(), "q.nii", &file);
+        assert!(open(&p).unwrap().meta().notes.is_empty());
+        file[256..260].copy_from_slice(&0.5f32.to_le_bytes()); // quatern_b
+        let p = write(dir.path(), "qrot.nii", &file);
+        let n = open(&p).unwrap().meta().notes.clone();
+        assert!(
+            n[0].starts_with("qform (code 1) quaternion (0.5, 0, 0)"),
+            "{n:?}"
+        );
     }
 
     /// A 4-D file with 3 volumes: channel c must be the c-th volume.

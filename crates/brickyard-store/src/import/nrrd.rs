@@ -1098,6 +1098,7 @@ fn interpret(path: &Path, h: &Header) -> Result<Plan> {
     }
 
     let mut meta = SourceMeta::new(path, dims, channels as usize, dtype);
+    meta.notes = header_notes(h, &spatial, dirs.as_deref(), origin.is_some());
     meta.spacing = spacing_xyz.map(|s| {
         if s.len() == 3 {
             [s[2], s[1], s[0]]
@@ -1128,6 +1129,49 @@ fn interpret(path: &Path, h: &Header) -> Result<Plan> {
         data_files,
         total_bytes,
     })
+}
+
+/// Report lines for the fields that change what values or positions mean
+/// but are deliberately not applied.
+fn header_notes(
+    h: &Header,
+    spatial: &[usize],
+    dirs: Option<&[Option<Vec<f64>>]>,
+    has_origin: bool,
+) -> Vec<String> {
+    let mut notes = Vec::new();
+    if let Some(d) = dirs {
+        // Plain: axis k of the image points along +component k only.
+        let plain = spatial.iter().enumerate().all(|(k, &i)| {
+            d[i].as_deref().is_some_and(|v| {
+                v.iter()
+                    .enumerate()
+                    .all(|(j, &c)| if j == k { c > 0.0 } else { c == 0.0 })
+            })
+        });
+        if !plain {
+            let v = h.get("space directions").map_or("", |x| x.1);
+            notes.push(format!(
+                "space directions {} flip or rotate the axes: not applied (spacing = vector \
+                 lengths, origin = space origin)",
+                truncate(v, 80)
+            ));
+        }
+    }
+    let old = (h.get("old min"), h.get("old max"));
+    if old.0.is_some() || old.1.is_some() {
+        let v = |f: Option<(&str, &str)>| f.map_or("?", |x| x.1).to_string();
+        notes.push(format!(
+            "old min/old max ({}..{}, the range before quantization) not applied: values are \
+             the stored numbers",
+            v(old.0),
+            v(old.1)
+        ));
+    }
+    if !has_origin && h.get("axis mins").is_some() {
+        notes.push("axis mins not applied: no origin recorded".to_string());
+    }
+    notes
 }
 
 /// Origin `[z, y, x]` from a `space origin`: each axis takes the component
@@ -1939,6 +1983,13 @@ mod tests {
             assert!((a - b).abs() < 1e-9, "origin {o:?}");
         }
         assert_eq!(m.unit.as_deref(), Some("millimeter"));
+        assert_eq!(
+            m.notes.len(),
+            1,
+            "the flipped y axis is noted: {:?}",
+            m.notes
+        );
+        assert!(m.notes[0].contains("not applied"));
 
         // Independent decode: the payload follows the first blank line.
         let bytes = std::fs::read(&path).unwrap();
@@ -2010,6 +2061,34 @@ mod tests {
         assert_eq!((m.origin, m.unit.as_deref()), (None, None));
         assert_eq!(read_all(&s, 0), le(&v));
         check_boxes(&s, 0, &le(&v), 30, 1);
+    }
+
+    /// Fields that are deliberately not applied are named in the notes; the
+    /// stored numbers come back unchanged.
+    #[test]
+    fn unapplied_fields_are_noted() {
+        let dir = tempfile::tempdir().unwrap();
+        let v = values(60);
+        let plain = format!(
+            "{HDR_U16}endian: little\nencoding: raw\nspace: RAS\n\
+             space directions: (0.5,0,0) (0,0.25,0) (0,0,2)\nspace origin: (1,2,3)\n\n"
+        );
+        let p = write(dir.path(), "plain.nrrd", &[plain.as_bytes(), &le(&v)]);
+        assert!(open(&p).unwrap().meta().notes.is_empty());
+
+        let hdr = format!(
+            "{HDR_U16}endian: little\nencoding: raw\nspace: RAS\n\
+             space directions: (0.5,0,0) (0,-0.25,0) (0,0,2)\nold min: -1.5\nold max: 7\n\
+             axis mins: 0 0 0\n\n"
+        );
+        let p = write(dir.path(), "noted.nrrd", &[hdr.as_bytes(), &le(&v)]);
+        let s = open(&p).unwrap();
+        let n = &s.meta().notes;
+        assert_eq!(n.len(), 3, "{n:?}");
+        assert!(n[0].starts_with("space directions (0.5,0,0) (0,-0.25,0) (0,0,2) flip"));
+        assert!(n[1].contains("(-1.5..7, the range before quantization) not applied"));
+        assert!(n[2].starts_with("axis mins not applied"));
+        assert_eq!(read_all(&s, 0), le(&v), "values are the stored numbers");
     }
 
     #[test]

@@ -15,10 +15,32 @@
 //! own IFD, so random access does not walk the IFD chain.
 //!
 //! Reduced-resolution pages (`NewSubfileType` bit 0, i.e. thumbnails and
-//! pyramid levels) are skipped. TIFF stores no reliable voxel spacing
-//! (`XResolution` is about printing), so `spacing` is `None`.
+//! pyramid levels) are skipped.
+//!
+//! Header fields that change what values or positions mean:
+//!
+//! * `SampleFormat` and `BitsPerSample` give the voxel type; `Predictor`
+//!   (horizontal differencing, floating point) and the byte order are undone
+//!   by the decoder.
+//! * `PhotometricInterpretation` MinIsWhite (0): the decoder returns
+//!   `max − stored` for unsigned integers (`max` of the type) and
+//!   `1 − stored` for floats, so that higher values are brighter; the
+//!   conversion report says so. Signed or multi-sample MinIsWhite images are
+//!   refused.
+//! * An ImageJ file (a multi-page file whose `ImageDescription` starts with
+//!   `ImageJ=`): `channels=C` makes C channels of interleaved pages (ImageJ
+//!   stores channel fastest, then slice, then frame); the spacing is
+//!   `1/XResolution`, `1/YResolution` and `spacing=` (z), in `unit=`, when
+//!   a unit other than `pixel` is given. Several frames of a single slice
+//!   are read as z; several frames of several slices (a time series of
+//!   volumes) are refused.
+//! * Otherwise TIFF stores no reliable voxel spacing (`XResolution` of a
+//!   plain TIFF is about printing), so `spacing` is `None`; OME-TIFF XML
+//!   metadata is not read (pages are z in file order), which the report
+//!   notes.
 
 use crate::error::{IoContext, Result, StoreError};
+use crate::omezarr::normalize_unit;
 use crate::source::{check_region, SourceMeta, VolumeSource};
 use brickyard_core::DType;
 use std::cmp::Ordering;
@@ -46,6 +68,9 @@ pub struct TiffSource {
     stack: Stack,
     pages: Vec<PageGeom>,
     format: PageFormat,
+    /// Channels stored as interleaved pages (ImageJ `channels=`): page
+    /// `z · page_channels + c` holds channel `c` of slice `z`. 1 otherwise.
+    page_channels: usize,
     cache: Mutex<ChunkCache>,
 }
 
@@ -86,6 +111,8 @@ struct PageFormat {
     dtype: DType,
     channels: usize,
     planar: bool,
+    /// `PhotometricInterpretation` 0: the decoder inverts the values.
+    min_is_white: bool,
 }
 
 impl std::fmt::Debug for TiffSource {
@@ -185,12 +212,13 @@ impl TiffSource {
         }
     }
 
-    /// Decoded bytes of one page, all channels.
+    /// Decoded bytes of one page, all its samples.
     fn page_bytes(&self) -> usize {
         let f = &self.format;
         (f.width as usize)
             .saturating_mul(f.height as usize)
             .saturating_mul(f.channels * f.dtype.size())
+            .saturating_mul(self.page_channels)
     }
 
     /// The file holding page `z`, and how messages name the page.
@@ -278,7 +306,9 @@ impl VolumeSource for TiffSource {
         // Samples per pixel inside a decoded chunk, the sample to pick, and
         // the plane (planar-separate images keep each channel in its own
         // strips/tiles).
-        let (spp, sample, plane) = if f.planar {
+        let (spp, sample, plane) = if self.page_channels > 1 {
+            (1, 0, 0)
+        } else if f.planar {
             (1, 0, c as u64)
         } else {
             (f.channels, c, 0)
@@ -286,7 +316,7 @@ impl VolumeSource for TiffSource {
         let nx = (x.end - x.start) as usize;
         let slab = nx * (y.end - y.start) as usize * ss;
         for (k, zz) in z.clone().enumerate() {
-            let zi = zz as usize;
+            let zi = zz as usize * self.page_channels + if self.page_channels > 1 { c } else { 0 };
             let geom = self.pages[zi];
             let out_z = &mut out[k * slab..(k + 1) * slab];
             let (cw, ch) = (geom.chunk_w as u64, geom.chunk_h as u64);
@@ -367,12 +397,13 @@ fn open_multipage(path: &Path) -> Result<TiffSource> {
     }
     let bigtiff = version == 43;
 
-    let (pages, format) = guard(path, "page 0", || {
+    let (pages, format, tags) = guard(path, "page 0", || {
         let mut dec = Decoder::new(BufReader::new(PageReader::new(file.clone(), len)))
             .map(|d| d.with_limits(limits()))
             .map_err(|e| tiff_error(path, "page 0", "header", e))?;
         let mut pages = Vec::new();
         let mut first: Option<(PageFormat, String)> = None;
+        let mut tags = PageTags::default();
         let mut index = 0usize;
         loop {
             let label = format!("page {index}");
@@ -381,7 +412,10 @@ fn open_multipage(path: &Path) -> Result<TiffSource> {
                 let (fmt, chunk) = page_info(&mut dec, path, &label)?;
                 check_chunk_extents(&mut dec, path, &label, len)?;
                 match &first {
-                    None => first = Some((fmt, label)),
+                    None => {
+                        first = Some((fmt, label));
+                        tags = PageTags::read(&mut dec);
+                    }
                     Some((f0, l0)) => same_format(f0, l0, &fmt, &label, path)?,
                 }
                 pages.push(PageGeom {
@@ -399,7 +433,7 @@ fn open_multipage(path: &Path) -> Result<TiffSource> {
                 .map_err(|e| tiff_error(path, &format!("page {index}"), "IFD", e))?;
         }
         match first {
-            Some((format, _)) => Ok((pages, format)),
+            Some((format, _)) => Ok((pages, format, tags)),
             None => Err(StoreError::invalid(
                 path,
                 "page count",
@@ -407,7 +441,7 @@ fn open_multipage(path: &Path) -> Result<TiffSource> {
             )),
         }
     })?;
-    Ok(TiffSource::new(
+    TiffSource::new(
         path,
         Stack::File {
             path: path.to_path_buf(),
@@ -418,7 +452,8 @@ fn open_multipage(path: &Path) -> Result<TiffSource> {
         },
         pages,
         format,
-    ))
+        tags,
+    )
 }
 
 /// Open a stack of 2-D files (already sorted), checking every file.
@@ -480,32 +515,220 @@ fn open_files(stack_path: &Path, files: Vec<PathBuf>) -> Result<TiffSource> {
     let Some((format, _)) = first else {
         return Err(StoreError::invalid(stack_path, "page count", "no slices"));
     };
-    Ok(TiffSource::new(
+    // Each slice file is a plain 2-D image: no stack metadata.
+    TiffSource::new(
         stack_path,
         Stack::Files(files),
         pages,
         format,
-    ))
+        PageTags::default(),
+    )
 }
 
 impl TiffSource {
-    fn new(path: &Path, stack: Stack, pages: Vec<PageGeom>, format: PageFormat) -> Self {
+    fn new(
+        path: &Path,
+        stack: Stack,
+        pages: Vec<PageGeom>,
+        format: PageFormat,
+        tags: PageTags,
+    ) -> Result<Self> {
+        let mut notes = Vec::new();
+        let mut page_channels = 1usize;
+        let mut spacing = None;
+        let mut unit = None;
+        let n = pages.len();
+        if let Some(ij) = tags.imagej() {
+            let (c, z, t) = (ij.channels, ij.slices, ij.frames);
+            if c.saturating_mul(z).saturating_mul(t) != n {
+                notes.push(format!(
+                    "ImageJ description (channels={c}, slices={z}, frames={t}) does not match \
+                     the {n} pages: its layout and spacing are not applied, pages are z"
+                ));
+            } else {
+                if t > 1 && z > 1 {
+                    return Err(StoreError::unsupported(
+                        path,
+                        "ImageDescription",
+                        format!(
+                            "an ImageJ time series of {t} frames of {z} slices; brickyard \
+                             converts one 3-D (multi-channel) volume"
+                        ),
+                    ));
+                }
+                if c > 1 {
+                    if format.channels > 1 {
+                        return Err(StoreError::unsupported(
+                            path,
+                            "ImageDescription",
+                            format!(
+                                "ImageJ channels={c} of pages with {} samples each",
+                                format.channels
+                            ),
+                        ));
+                    }
+                    page_channels = c;
+                    notes.push(format!(
+                        "ImageJ channels={c}: interleaved pages read as {c} channels"
+                    ));
+                }
+                if t > 1 {
+                    notes.push(format!("ImageJ frames={t} (one slice each) read as z"));
+                }
+                if let (Some(u), Some(xr), Some(yr)) = (&ij.unit, tags.xres, tags.yres) {
+                    let dz = if t > 1 {
+                        1.0
+                    } else {
+                        ij.spacing.unwrap_or(1.0)
+                    };
+                    spacing = Some([dz, 1.0 / yr, 1.0 / xr]);
+                    unit = normalize_unit(u);
+                    notes.push(format!(
+                        "ImageJ calibration: spacing {}, {}, {dz} {u} (1/XResolution, \
+                         1/YResolution, spacing=)",
+                        1.0 / xr,
+                        1.0 / yr
+                    ));
+                }
+            }
+        } else if tags.ome_xml {
+            notes.push(
+                "OME-TIFF XML metadata not read: pages are z in file order, no spacing".into(),
+            );
+        }
+        if format.min_is_white {
+            notes.push(if format.dtype.is_float() {
+                "PhotometricInterpretation MinIsWhite: values are 1 − stored, higher is brighter"
+                    .to_string()
+            } else {
+                format!(
+                    "PhotometricInterpretation MinIsWhite: values are {} − stored, higher is \
+                     brighter",
+                    (1u64 << (8 * format.dtype.size())) - 1
+                )
+            });
+        }
         let dims = [
-            pages.len() as u64,
+            (n / page_channels) as u64,
             format.height as u64,
             format.width as u64,
         ];
-        let meta = SourceMeta::new(path, dims, format.channels, format.dtype);
+        let channels = if page_channels > 1 {
+            page_channels
+        } else {
+            format.channels
+        };
+        let mut meta = SourceMeta::new(path, dims, channels, format.dtype);
+        meta.spacing = spacing;
+        meta.unit = unit;
+        meta.notes = notes;
         let src = TiffSource {
             meta,
             stack,
             pages,
             format,
+            page_channels,
             cache: Mutex::new(ChunkCache::default()),
         };
         src.set_cache_pages(DEFAULT_CACHE_PAGES);
-        src
+        Ok(src)
     }
+}
+
+/// Tags of the first page that describe the whole stack.
+#[derive(Debug, Default)]
+struct PageTags {
+    description: Option<String>,
+    /// Pixels per unit (`XResolution`, `YResolution`), when positive.
+    xres: Option<f64>,
+    yres: Option<f64>,
+    /// The description is OME-XML.
+    ome_xml: bool,
+}
+
+/// What an ImageJ `ImageDescription` says about the stack.
+#[derive(Debug, PartialEq)]
+struct ImageJ {
+    channels: usize,
+    slices: usize,
+    frames: usize,
+    /// `spacing=`: the z step.
+    spacing: Option<f64>,
+    /// `unit=`, absent for `pixel` (uncalibrated).
+    unit: Option<String>,
+}
+
+impl PageTags {
+    /// Read the tags of the decoder's current page; unreadable tags are
+    /// treated as absent (they only add metadata).
+    fn read<R: Read + Seek>(dec: &mut Decoder<R>) -> PageTags {
+        let res = |dec: &mut Decoder<R>, tag| -> Option<f64> {
+            let v = match dec.find_tag(tag).ok()?? {
+                tiff::decoder::ifd::Value::Rational(n, d) => n as f64 / d as f64,
+                _ => return None,
+            };
+            (v.is_finite() && v > 0.0).then_some(v)
+        };
+        let description = dec
+            .find_tag(Tag::ImageDescription)
+            .ok()
+            .flatten()
+            .and_then(|v| v.into_string().ok());
+        let ome_xml = description
+            .as_deref()
+            .is_some_and(|d| d.trim_start().starts_with("<?xml") && d.contains("<OME"));
+        PageTags {
+            xres: res(dec, Tag::XResolution),
+            yres: res(dec, Tag::YResolution),
+            description,
+            ome_xml,
+        }
+    }
+
+    /// The ImageJ metadata, if the description is ImageJ's.
+    fn imagej(&self) -> Option<ImageJ> {
+        parse_imagej(self.description.as_deref()?)
+    }
+}
+
+/// Parse an ImageJ `ImageDescription` (`ImageJ=1.54f\nimages=6\nchannels=2
+/// \n...`); `None` if it is not one.
+fn parse_imagej(d: &str) -> Option<ImageJ> {
+    if !d.starts_with("ImageJ=") {
+        return None;
+    }
+    let mut kv = HashMap::new();
+    for line in d.lines() {
+        if let Some((k, v)) = line.split_once('=') {
+            kv.insert(k.trim(), v.trim());
+        }
+    }
+    let count = |k: &str| {
+        kv.get(k)
+            .and_then(|v| v.parse::<usize>().ok())
+            .filter(|&n| n > 0)
+    };
+    let images = count("images");
+    let channels = count("channels").unwrap_or(1);
+    let frames = count("frames").unwrap_or(1);
+    let slices =
+        count("slices").unwrap_or_else(|| images.map_or(1, |i| (i / (channels * frames)).max(1)));
+    let spacing = kv
+        .get("spacing")
+        .and_then(|v| v.parse::<f64>().ok())
+        .map(f64::abs)
+        .filter(|v| v.is_finite() && *v > 0.0);
+    let unit = kv
+        .get("unit")
+        .map(|u| u.replace("\\u00B5", "µ").replace("\\u00b5", "µ"))
+        .filter(|u| !u.is_empty() && !u.eq_ignore_ascii_case("pixel") && u != "pixels");
+    Some(ImageJ {
+        channels,
+        slices,
+        frames,
+        spacing,
+        unit,
+    })
 }
 
 /// Decoder limits: none, as reads go into buffers sized here (see
@@ -563,6 +786,10 @@ fn page_info<R: Read + Seek>(
         ));
     }
     let bits = color.bit_depth();
+    let photometric = dec
+        .find_tag_unsigned::<u16>(Tag::PhotometricInterpretation)
+        .map_err(err("PhotometricInterpretation"))?;
+    let min_is_white = photometric == Some(0);
     let spp = dec
         .find_tag_unsigned::<u16>(Tag::SamplesPerPixel)
         .map_err(err("SamplesPerPixel"))?
@@ -630,6 +857,21 @@ fn page_info<R: Read + Seek>(
     } else {
         color.num_samples() as usize
     };
+    if min_is_white && (channels > 1 || sample_format == 2) {
+        return Err(StoreError::unsupported(
+            path,
+            "PhotometricInterpretation",
+            format!(
+                "{label}: MinIsWhite (0) with {}; brickyard inverts MinIsWhite only for \
+                 single-sample unsigned integer or float images",
+                if channels > 1 {
+                    format!("{channels} samples per pixel")
+                } else {
+                    "signed samples".to_string()
+                }
+            ),
+        ));
+    }
     let chunk = dec.chunk_dimensions();
     if chunk.0 == 0 || chunk.1 == 0 {
         return Err(StoreError::invalid(
@@ -646,6 +888,7 @@ fn page_info<R: Read + Seek>(
         dtype,
         channels,
         planar,
+        min_is_white,
     };
     Ok((format, chunk))
 }
@@ -741,6 +984,19 @@ fn same_format(
             "PlanarConfiguration",
             (f.planar as u8 + 1).to_string(),
             (f0.planar as u8 + 1).to_string(),
+        )
+    } else if f.min_is_white != f0.min_is_white {
+        let name = |w: bool| {
+            if w {
+                "0 (MinIsWhite)"
+            } else {
+                "not MinIsWhite"
+            }
+        };
+        (
+            "PhotometricInterpretation",
+            name(f.min_is_white).to_string(),
+            name(f0.min_is_white).to_string(),
         )
     } else {
         return Ok(());
@@ -1258,6 +1514,220 @@ mod tests {
         let want = bytes(&pages.concat());
         assert_eq!(read_all(&src, 0), want);
         assert_eq!(read_stitched(&src, 0, [2, 2, 5]), want);
+    }
+
+    /// Set tag `tag` (a SHORT held in the entry) of every IFD of a classic
+    /// little-endian TIFF to `value`.
+    fn patch_short_tag(bytes: &mut [u8], tag: u16, value: u16) {
+        let u16at = |b: &[u8], o: usize| u16::from_le_bytes([b[o], b[o + 1]]);
+        let u32at = |b: &[u8], o: usize| u32::from_le_bytes(b[o..o + 4].try_into().unwrap());
+        assert_eq!(&bytes[..4], b"II*\0");
+        let mut ifd = u32at(bytes, 4) as usize;
+        let mut found = 0;
+        while ifd != 0 {
+            let n = u16at(bytes, ifd) as usize;
+            for e in 0..n {
+                let o = ifd + 2 + 12 * e;
+                if u16at(bytes, o) == tag {
+                    assert_eq!(u16at(bytes, o + 2), 3, "a SHORT");
+                    bytes[o + 8..o + 10].copy_from_slice(&value.to_le_bytes());
+                    found += 1;
+                }
+            }
+            ifd = u32at(bytes, ifd + 2 + 12 * n) as usize;
+        }
+        assert!(found > 0, "tag {tag} not found");
+    }
+
+    /// The horizontal-differencing predictor is undone: the values read are
+    /// the values written. (The encoder writes no floating-point predictor;
+    /// the decoder undoes that one the same way.)
+    #[test]
+    fn predictor_is_undone() {
+        use tiff::tags::Predictor;
+        let dir = tempfile::tempdir().unwrap();
+        let (w, h) = (23u32, 6u32);
+        let pages: Vec<Vec<u16>> = (0..3)
+            .map(|z| (0..w * h).map(|i| (i * 977 + z * 13) as u16).collect())
+            .collect();
+        let path = dir.path().join("pred.tif");
+        {
+            let f = BufWriter::new(File::create(&path).unwrap());
+            let mut enc = TiffEncoder::new(f)
+                .unwrap()
+                .with_compression(Compression::Lzw)
+                .with_predictor(Predictor::Horizontal);
+            for p in &pages {
+                enc.write_image::<colortype::Gray16>(w, h, p).unwrap();
+            }
+        }
+        let src = open(&path).unwrap();
+        assert_eq!(read_all(&src, 0), bytes(&pages.concat()));
+        assert_eq!(read_stitched(&src, 0, [2, 4, 5]), bytes(&pages.concat()));
+    }
+
+    /// MinIsWhite: unsigned values are inverted (`max − stored`) and the
+    /// report says so; signed MinIsWhite is refused.
+    #[test]
+    fn min_is_white() {
+        let dir = tempfile::tempdir().unwrap();
+        let (w, h) = (9u32, 4u32);
+        let pages: Vec<Vec<u16>> = (0..2)
+            .map(|z| (0..w * h).map(|i| (i * 1000 + z) as u16).collect())
+            .collect();
+        let path = dir.path().join("white.tif");
+        write_pages::<colortype::Gray16, TiffKindStandard>(
+            &path,
+            w,
+            h,
+            &pages,
+            Compression::Uncompressed,
+            None,
+        );
+        let mut b = std::fs::read(&path).unwrap();
+        patch_short_tag(&mut b, 262, 0);
+        std::fs::write(&path, &b).unwrap();
+        let src = open(&path).unwrap();
+        assert_eq!(src.meta().dtype, DType::U16);
+        let want: Vec<u16> = pages.concat().iter().map(|v| u16::MAX - v).collect();
+        assert_eq!(read_all(&src, 0), bytes(&want));
+        assert_eq!(
+            src.meta().notes,
+            vec![
+                "PhotometricInterpretation MinIsWhite: values are 65535 − stored, higher is \
+                 brighter"
+                    .to_string()
+            ]
+        );
+
+        let ipages: Vec<Vec<i16>> = vec![(0..(w * h) as i16).collect()];
+        let path = dir.path().join("iwhite.tif");
+        write_pages::<colortype::GrayI16, TiffKindStandard>(
+            &path,
+            w,
+            h,
+            &ipages,
+            Compression::Uncompressed,
+            None,
+        );
+        let mut b = std::fs::read(&path).unwrap();
+        patch_short_tag(&mut b, 262, 0);
+        std::fs::write(&path, &b).unwrap();
+        let r = open(&path);
+        assert!(
+            matches!(&r, Err(StoreError::Unsupported { field, .. }) if field == "PhotometricInterpretation"),
+            "{r:?}"
+        );
+    }
+
+    /// Write an ImageJ-style stack: `description` and resolution on the
+    /// first page.
+    fn write_imagej(path: &Path, w: u32, h: u32, pages: &[Vec<u16>], desc: &str, res: Option<u32>) {
+        let f = BufWriter::new(File::create(path).unwrap());
+        let mut enc = TiffEncoder::new(f).unwrap();
+        for (k, p) in pages.iter().enumerate() {
+            let mut img = enc.new_image::<colortype::Gray16>(w, h).unwrap();
+            if k == 0 {
+                img.encoder()
+                    .write_tag(Tag::ImageDescription, desc)
+                    .unwrap();
+                if let Some(r) = res {
+                    img.resolution(
+                        tiff::tags::ResolutionUnit::None,
+                        tiff::encoder::Rational { n: r, d: 1 },
+                    );
+                }
+            }
+            img.write_data(p).unwrap();
+        }
+    }
+
+    /// ImageJ hyperstack: channels interleaved page by page, spacing from
+    /// the resolution and `spacing=`, unit from `unit=`.
+    #[test]
+    fn imagej_channels_and_calibration() {
+        let dir = tempfile::tempdir().unwrap();
+        let (w, h) = (7u32, 5u32);
+        // Page k = z · 2 + c holds value 100·c + z everywhere.
+        let pages: Vec<Vec<u16>> = (0..6)
+            .map(|k| vec![(100 * (k % 2) + k / 2) as u16; (w * h) as usize])
+            .collect();
+        let path = dir.path().join("ij.tif");
+        let desc = "ImageJ=1.54f\nimages=6\nchannels=2\nslices=3\nhyperstack=true\n\
+                    mode=composite\nunit=micron\nspacing=2.5\nloop=false\n";
+        write_imagej(&path, w, h, &pages, desc, Some(4));
+        let src = open(&path).unwrap();
+        let m = src.meta();
+        assert_eq!(m.dims, [3, 5, 7]);
+        assert_eq!(m.channels, 2);
+        assert_eq!(m.spacing, Some([2.5, 0.25, 0.25]));
+        assert_eq!(m.unit.as_deref(), Some("micrometer"));
+        assert!(m.notes[0].contains("channels=2"), "{:?}", m.notes);
+        for c in 0..2 {
+            let want: Vec<u16> = (0..3)
+                .flat_map(|z| vec![(100 * c + z) as u16; (w * h) as usize])
+                .collect();
+            assert_eq!(read_all(&src, c), bytes(&want), "channel {c}");
+            assert_eq!(read_stitched(&src, c, [2, 2, 3]), bytes(&want));
+        }
+
+        // Without a unit (uncalibrated): no spacing.
+        let path = dir.path().join("ij-nounit.tif");
+        write_imagej(
+            &path,
+            w,
+            h,
+            &pages[..3],
+            "ImageJ=1.54f\nimages=3\nslices=3\n",
+            Some(4),
+        );
+        let src = open(&path).unwrap();
+        assert_eq!(src.meta().spacing, None);
+        assert_eq!(src.meta().channels, 1);
+        assert_eq!(src.meta().dims[0], 3);
+
+        // A time series of volumes is refused.
+        let path = dir.path().join("ij-t.tif");
+        let desc = "ImageJ=1.54f\nimages=6\nslices=3\nframes=2\n";
+        write_imagej(&path, w, h, &pages, desc, None);
+        assert!(matches!(
+            open(&path),
+            Err(StoreError::Unsupported { field, .. }) if field == "ImageDescription"
+        ));
+
+        // A description that does not match the pages is not applied.
+        let path = dir.path().join("ij-bad.tif");
+        write_imagej(
+            &path,
+            w,
+            h,
+            &pages,
+            "ImageJ=1.54f\nimages=8\nchannels=2\nslices=4\n",
+            None,
+        );
+        let src = open(&path).unwrap();
+        assert_eq!(src.meta().dims[0], 6);
+        assert_eq!(src.meta().channels, 1);
+        assert!(src.meta().notes[0].contains("not applied"));
+    }
+
+    #[test]
+    fn imagej_description_parser() {
+        let ij = parse_imagej("ImageJ=1.11a\nimages=12\nchannels=3\nunit=\\u00B5m\nspacing=-0.5\n")
+            .unwrap();
+        assert_eq!(
+            ij,
+            ImageJ {
+                channels: 3,
+                slices: 4,
+                frames: 1,
+                spacing: Some(0.5),
+                unit: Some("µm".into()),
+            }
+        );
+        assert_eq!(normalize_unit("µm").as_deref(), Some("micrometer"));
+        assert_eq!(parse_imagej("ImageJ=1.5\nunit=pixel\n").unwrap().unit, None);
+        assert_eq!(parse_imagej("{\"shape\": [60, 256, 256]}"), None);
     }
 
     #[test]

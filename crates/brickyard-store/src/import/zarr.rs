@@ -509,3 +509,97 @@ impl VolumeSource for ZarrSource {
         [cz, self.meta.dims[1], self.meta.dims[2]]
     }
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::source::test_util::read_all;
+    use serde_json::json;
+
+    /// A Zarr v3 uint16 array `4×4×4` in chunks of `2×4×4` with fill value
+    /// 7, of which only the first chunk is written (values 0..32).
+    fn write_array(dir: &Path) {
+        std::fs::create_dir_all(dir.join("c/0/0")).unwrap();
+        let meta = json!({
+            "zarr_format": 3,
+            "node_type": "array",
+            "shape": [4, 4, 4],
+            "data_type": "uint16",
+            "chunk_grid": {"name": "regular", "configuration": {"chunk_shape": [2, 4, 4]}},
+            "chunk_key_encoding": {"name": "default", "configuration": {"separator": "/"}},
+            "fill_value": 7,
+            "codecs": [{"name": "bytes", "configuration": {"endian": "little"}}],
+            "dimension_names": ["z", "y", "x"],
+        });
+        std::fs::write(dir.join("zarr.json"), meta.to_string()).unwrap();
+        let chunk: Vec<u8> = (0..32u16).flat_map(|v| v.to_le_bytes()).collect();
+        std::fs::write(dir.join("c/0/0/0"), chunk).unwrap();
+    }
+
+    /// Chunks that were never written read as the array's fill value.
+    #[test]
+    fn missing_chunks_read_as_fill_value() {
+        let dir = tempfile::tempdir().unwrap();
+        write_array(dir.path());
+        let src = open(dir.path(), 0).unwrap();
+        assert_eq!(src.meta().dims, [4, 4, 4]);
+        let got: Vec<u16> = read_all(&src, 0)
+            .chunks_exact(2)
+            .map(|b| u16::from_ne_bytes([b[0], b[1]]))
+            .collect();
+        let want: Vec<u16> = (0..32).chain(std::iter::repeat_n(7, 32)).collect();
+        assert_eq!(got, want);
+    }
+
+    /// The multiscale's own coordinateTransformations apply after each
+    /// dataset's: world = gs · (s · i + t) + gt.
+    #[test]
+    fn multiscale_transformations_compose_with_the_datasets() {
+        let dir = tempfile::tempdir().unwrap();
+        write_array(&dir.path().join("0"));
+        let axes: Vec<Value> = ["z", "y", "x"]
+            .iter()
+            .map(|n| json!({"name": n, "type": "space", "unit": "micrometer"}))
+            .collect();
+        let group = json!({
+            "zarr_format": 3,
+            "node_type": "group",
+            "attributes": {"ome": {"version": "0.5", "multiscales": [{
+                "axes": axes,
+                "datasets": [{"path": "0", "coordinateTransformations": [
+                    {"type": "scale", "scale": [2.0, 1.0, 1.0]},
+                    {"type": "translation", "translation": [1.0, 0.0, 0.0]}
+                ]}],
+                "coordinateTransformations": [
+                    {"type": "scale", "scale": [0.5, 0.25, 0.25]},
+                    {"type": "translation", "translation": [10.0, 20.0, 30.0]}
+                ]
+            }]}}
+        });
+        std::fs::write(dir.path().join("zarr.json"), group.to_string()).unwrap();
+        let src = open(dir.path(), 0).unwrap();
+        assert_eq!(src.meta().spacing, Some([1.0, 0.25, 0.25]));
+        assert_eq!(src.meta().origin, Some([10.5, 20.0, 30.0]));
+        assert_eq!(src.meta().unit.as_deref(), Some("micrometer"));
+
+        // Only a global scale: dataset translations are scaled too.
+        let mut g = group.clone();
+        g["attributes"]["ome"]["multiscales"][0]["coordinateTransformations"] =
+            json!([{"type": "scale", "scale": [3.0, 1.0, 1.0]}]);
+        std::fs::write(dir.path().join("zarr.json"), g.to_string()).unwrap();
+        let src = open(dir.path(), 0).unwrap();
+        assert_eq!(src.meta().spacing, Some([6.0, 1.0, 1.0]));
+        assert_eq!(src.meta().origin, Some([3.0, 0.0, 0.0]));
+
+        // A global transformation of the wrong length is an error.
+        let mut g = group;
+        g["attributes"]["ome"]["multiscales"][0]["coordinateTransformations"] =
+            json!([{"type": "scale", "scale": [3.0, 1.0]}]);
+        std::fs::write(dir.path().join("zarr.json"), g.to_string()).unwrap();
+        let Err(e) = open(dir.path(), 0) else {
+            panic!("a global scale of the wrong length was accepted");
+        };
+        let e = e.to_string();
+        assert!(e.contains("multiscales.coordinateTransformations"), "{e}");
+    }
+}
