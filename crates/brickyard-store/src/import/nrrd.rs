@@ -75,6 +75,15 @@ pub fn open(path: &Path) -> Result<NrrdSource> {
     NrrdSource::new(path, file, header.end, plan)
 }
 
+/// Parse and check a NRRD header held in memory (the start of a `.nrrd` file
+/// or a whole `.nhdr`): everything [`open`] decides from the header alone,
+/// without touching any data. `path` names the file in errors and anchors
+/// relative data file names.
+pub fn parse_header(path: &Path, bytes: &[u8]) -> Result<SourceMeta> {
+    let header = read_header(path, bytes)?;
+    Ok(interpret(path, &header)?.meta)
+}
+
 /// A NRRD volume opened for streaming reads; see the [module docs](self).
 ///
 /// `read_region` may be called from several threads. For `gzip` data the
@@ -232,8 +241,8 @@ fn trim_eol(line: &[u8]) -> &[u8] {
     line.strip_suffix(b"\r").unwrap_or(line)
 }
 
-fn read_header(path: &Path, file: &File) -> Result<Header> {
-    let mut r = BufReader::new(file);
+fn read_header(path: &Path, src: impl Read) -> Result<Header> {
+    let mut r = BufReader::new(src);
     let mut line = Vec::new();
     let mut pos = read_line(&mut r, &mut line).at(path)?;
 
