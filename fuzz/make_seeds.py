@@ -323,7 +323,10 @@ def shard(chunks, end=True, crc=True, be=False):
     return bytes(body + index) if end else bytes(index + body)
 
 
-def level_array(shape, shard_shape, inner, dtype="uint16", inner_codecs=None, index_location="end"):
+def level_array(shape, shard_shape, inner, dtype="uint16", inner_codecs=None, index_location="end", crc=True):
+    index_codecs = [{"name": "bytes", "configuration": {"endian": "little"}}]
+    if crc:
+        index_codecs.append({"name": "crc32c"})
     return {
         "zarr_format": 3,
         "node_type": "array",
@@ -337,10 +340,7 @@ def level_array(shape, shard_shape, inner, dtype="uint16", inner_codecs=None, in
             "configuration": {
                 "chunk_shape": inner,
                 "codecs": inner_codecs or [{"name": "bytes", "configuration": {"endian": "little"}}],
-                "index_codecs": [
-                    {"name": "bytes", "configuration": {"endian": "little"}},
-                    {"name": "crc32c"},
-                ],
+                "index_codecs": index_codecs,
                 "index_location": index_location,
             },
         }],
@@ -382,9 +382,13 @@ def zarr():
         + b"\0" + shard(inner))
     put(t, "sharded-start-edge", json.dumps(level_array([3, 5, 4], [4, 4, 4], [2, 2, 2], index_location="start")).encode()
         + b"\0" + shard(inner, end=False))
+    put(t, "sharded-nocrc", json.dumps(level_array([4, 4, 4], [4, 4, 4], [2, 2, 2], crc=False)).encode()
+        + b"\0" + shard(inner, crc=False))
     gzc = [{"name": "bytes", "configuration": {"endian": "little"}}, {"name": "gzip", "configuration": {"level": 1}}]
     put(t, "sharded-gzip", json.dumps(level_array([2, 2, 4], [2, 2, 4], [1, 2, 4], inner_codecs=gzc)).encode()
         + b"\0" + shard([gz(le(range(8))), gz(le(range(8, 16)))]))
+    put(t, "sharded-gzip-nocrc", json.dumps(level_array([2, 2, 4], [2, 2, 4], [1, 2, 4], inner_codecs=gzc, crc=False)).encode()
+        + b"\0" + shard([gz(le(range(8))), gz(le(range(8, 16)))], crc=False))
     plain = {
         "zarr_format": 3, "node_type": "array", "shape": [2, 3, 4, 5], "data_type": "float32",
         "chunk_grid": {"name": "regular", "configuration": {"chunk_shape": [2, 3, 4, 5]}},
