@@ -20,7 +20,7 @@
 //! when a read reaches it, not at [`open`].
 
 use crate::error::{IoContext, Result, StoreError};
-use crate::import::swap_bytes_in_place;
+use crate::import::{swap_bytes_in_place, MAX_DEFLATE_RATIO};
 use crate::source::{check_region, SourceMeta, VolumeSource};
 use brickyard_core::{DType, Dims3};
 use flate2::read::MultiGzDecoder;
@@ -94,19 +94,41 @@ impl NiftiSource {
         matches!(self.data, Data::Gz(_))
     }
 
-    /// Error for voxel data that ends before the volume does.
-    fn data_short(&self, held: u64) -> StoreError {
+    /// The volume's shape as the header gives it (`x×y×z[×t]`) and the
+    /// bytes it needs.
+    fn shape_and_need(&self) -> (String, u64) {
         let [z, y, x] = self.meta.dims;
         let mut shape = format!("{x}×{y}×{z}");
         if self.meta.channels > 1 {
             shape += &format!("×{}", self.meta.channels);
         }
-        let need = self.meta.channel_bytes() * self.meta.channels as u64;
+        (shape, self.meta.channel_bytes() * self.meta.channels as u64)
+    }
+
+    /// Error for voxel data that ends before the volume does.
+    fn data_short(&self, held: u64) -> StoreError {
+        let (shape, need) = self.shape_and_need();
         StoreError::invalid(
             &self.data_path,
             "data",
             format!(
                 "file holds {held} bytes of voxel data, dims {shape} × {} need {need}",
+                self.meta.dtype
+            ),
+        )
+    }
+
+    /// Error for a gzip file of `len` bytes too small to inflate to the
+    /// volume: it holds at most `most` bytes of voxel data.
+    fn gz_too_small(&self, len: u64, most: u64) -> StoreError {
+        let (shape, need) = self.shape_and_need();
+        StoreError::invalid(
+            &self.data_path,
+            "data",
+            format!(
+                "gzip-compressed file of {len} bytes holds at most {most} bytes of voxel data \
+                 (deflate inflates at most {MAX_DEFLATE_RATIO}-fold), dims {shape} × {} need \
+                 {need}",
                 self.meta.dtype
             ),
         )
@@ -389,6 +411,14 @@ pub fn open(path: &Path) -> Result<NiftiSource> {
         let held = len.saturating_sub(data_offset);
         if held < total {
             return Err(src.data_short(held));
+        }
+    } else {
+        // But deflate inflates at most MAX_DEFLATE_RATIO-fold, which bounds
+        // what a gzip file can hold without decompressing it.
+        let len = std::fs::metadata(&src.data_path).at(&src.data_path)?.len();
+        let most = len.saturating_mul(MAX_DEFLATE_RATIO);
+        if total.saturating_add(data_offset) > most {
+            return Err(src.gz_too_small(len, most.saturating_sub(data_offset)));
         }
     }
     Ok(src)

@@ -38,7 +38,7 @@
 //! count) so that reading the other channels of the same region is free.
 
 use crate::error::{IoContext, Result, StoreError};
-use crate::import::swap_bytes_in_place;
+use crate::import::{swap_bytes_in_place, MAX_DEFLATE_RATIO};
 use crate::source::{check_region, SourceMeta, VolumeSource};
 use brickyard_core::{DType, Dims3};
 use flate2::read::MultiGzDecoder;
@@ -1436,6 +1436,28 @@ fn locate(
                         "gzip stream is corrupt{in_}: expected the gzip signature 1f 8b{at}, \
                          found {:02x} {:02x}",
                         magic[0], magic[1]
+                    ),
+                ));
+            }
+            // Deflate inflates at most MAX_DEFLATE_RATIO-fold: a header
+            // claiming more than the stream can hold is refused now rather
+            // than after decompressing all of it.
+            let compressed = len.saturating_sub(start);
+            let most = compressed.saturating_mul(MAX_DEFLATE_RATIO);
+            let skip = plan.byte_skip.max(0) as u64;
+            if per_file.saturating_add(skip) > most {
+                let skipped = if skip > 0 {
+                    format!(" plus {skip} (byte skip)")
+                } else {
+                    String::new()
+                };
+                return Err(StoreError::invalid(
+                    header,
+                    "data",
+                    format!(
+                        "{what} holds a gzip stream of {compressed} bytes{at}{after}, which \
+                         inflates to at most {most} bytes, but sizes × type need \
+                         {per_file}{per}{skipped}"
                     ),
                 ));
             }
