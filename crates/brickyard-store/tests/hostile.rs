@@ -8,7 +8,7 @@
 mod common;
 
 use brickyard_store::error::StoreError;
-use brickyard_store::import::{nifti, nrrd};
+use brickyard_store::import::{nifti, nrrd, tiff};
 use brickyard_store::VolumeSource;
 use std::io::Write;
 use std::path::{Path, PathBuf};
@@ -297,4 +297,182 @@ fn nifti_gz_header_reading_is_bounded() {
     let p = write(dir.path(), "bomb.nii.gz", &gz);
     let src = nifti::open(&p).unwrap();
     assert_eq!(src.meta().dims, [4, 4, 4]);
+}
+
+// ---------------------------------------------------------------------------
+// TIFF
+
+/// One IFD entry: tag, type (3 SHORT, 4 LONG), count, value or offset.
+type Entry = (u16, u16, u32, u32);
+
+/// A classic little-endian TIFF: `data` at offset 8, then one IFD per page
+/// (entries sorted by tag), chained in order.
+fn tiff_file(data: &[u8], pages: &[Vec<Entry>]) -> Vec<u8> {
+    let mut out = b"II\x2a\0".to_vec();
+    out.extend(0u32.to_le_bytes());
+    out.extend_from_slice(data);
+    if out.len() % 2 == 1 {
+        out.push(0);
+    }
+    let mut prev = 4;
+    for entries in pages {
+        let mut e = entries.clone();
+        e.sort();
+        let at = out.len();
+        out[prev..prev + 4].copy_from_slice(&(at as u32).to_le_bytes());
+        out.extend((e.len() as u16).to_le_bytes());
+        for (tag, typ, count, value) in e {
+            out.extend(tag.to_le_bytes());
+            out.extend(typ.to_le_bytes());
+            out.extend(count.to_le_bytes());
+            out.extend(value.to_le_bytes());
+        }
+        prev = out.len();
+        out.extend(0u32.to_le_bytes());
+    }
+    out
+}
+
+/// The entries of a `w`×`h` 8-bit grey page in one strip at `offset` of
+/// `count` bytes.
+fn tiff_page(w: u32, h: u32, compression: u32, offset: u32, count: u32) -> Vec<Entry> {
+    vec![
+        (256, 4, 1, w),
+        (257, 4, 1, h),
+        (258, 3, 1, 8),
+        (259, 3, 1, compression),
+        (262, 3, 1, 1),
+        (273, 4, 1, offset),
+        (277, 3, 1, 1),
+        (278, 4, 1, h),
+        (279, 4, 1, count),
+    ]
+}
+
+/// A page claiming 10^12 pixels whose single strip holds 64 bytes.
+#[test]
+fn tiff_more_pixels_than_the_strips_hold() {
+    let dir = tempfile::tempdir().unwrap();
+    let data = [0u8; 64];
+    let f = tiff_file(&data, &[tiff_page(1_000_000, 1_000_000, 1, 8, 64)]);
+    let p = write(dir.path(), "huge.tif", &f);
+    let e = err(tiff::open(&p));
+    assert_refused(
+        &e,
+        "huge.tif",
+        "StripByteCounts",
+        &["page 0", "hold 64 bytes (uncompressed)", "1000000000000"],
+    );
+    // Deflate: 64 bytes decode to at most 1032 times as much.
+    let z = {
+        let mut e = flate2::write::ZlibEncoder::new(Vec::new(), flate2::Compression::best());
+        e.write_all(&[0u8; 1 << 16]).unwrap();
+        e.finish().unwrap()
+    };
+    let f = tiff_file(&z, &[tiff_page(1_000_000, 1_000_000, 8, 8, z.len() as u32)]);
+    let p = write(dir.path(), "huge-deflate.tif", &f);
+    let e = err(tiff::open(&p));
+    assert_refused(
+        &e,
+        "huge-deflate.tif",
+        "StripByteCounts",
+        &["decodes at most 1032-fold", "1000000000000"],
+    );
+    // The same strip for the page it holds still opens and reads.
+    let f = tiff_file(&z, &[tiff_page(256, 256, 8, 8, z.len() as u32)]);
+    let p = write(dir.path(), "ok-deflate.tif", &f);
+    read_all(&tiff::open(&p).unwrap()).unwrap();
+}
+
+/// Many pages sharing one strip: each page looks fine on its own, the file
+/// as a whole cannot hold them.
+#[test]
+fn tiff_pages_sharing_one_strip() {
+    let dir = tempfile::tempdir().unwrap();
+    let data = [7u8; 100 * 100];
+    let pages = vec![tiff_page(100, 100, 1, 8, 100 * 100); 1000];
+    let p = write(dir.path(), "shared.tif", &tiff_file(&data, &pages));
+    let e = err(tiff::open(&p));
+    assert_refused(
+        &e,
+        "shared.tif",
+        "page count",
+        &["pages of 100×100", "file holds only"],
+    );
+}
+
+#[test]
+fn tiff_strip_past_the_end_of_the_file() {
+    let dir = tempfile::tempdir().unwrap();
+    let data = [0u8; 64];
+    let p = write(
+        dir.path(),
+        "offset.tif",
+        &tiff_file(&data, &[tiff_page(8, 8, 1, 1 << 30, 64)]),
+    );
+    let e = err(tiff::open(&p));
+    assert_refused(
+        &e,
+        "offset.tif",
+        "StripByteCounts",
+        &["page 0", "strip 0 ends at byte"],
+    );
+    let p = write(
+        dir.path(),
+        "overflow.tif",
+        &tiff_file(&data, &[tiff_page(8, 8, 1, u32::MAX, u32::MAX)]),
+    );
+    let e = err(tiff::open(&p));
+    assert_refused(
+        &e,
+        "overflow.tif",
+        "StripByteCounts",
+        &["strip 0 ends at byte"],
+    );
+}
+
+/// A second page whose strip offsets claim 2^32 - 1 values: the decoder
+/// must refuse the count instead of allocating for it (which aborts).
+#[test]
+fn tiff_absurd_strip_count() {
+    let dir = tempfile::tempdir().unwrap();
+    let data = [1u8; 64];
+    let mut second = tiff_page(8, 8, 1, 8, 64);
+    second[5] = (273, 4, u32::MAX, 8);
+    second[8] = (279, 4, u32::MAX, 8);
+    let p = write(
+        dir.path(),
+        "strips.tif",
+        &tiff_file(&data, &[tiff_page(8, 8, 1, 8, 64), second]),
+    );
+    let e = err(tiff::open(&p));
+    assert_refused(
+        &e,
+        "strips.tif",
+        "IFD",
+        &["page 1", "more values than the file could hold"],
+    );
+}
+
+// ---------------------------------------------------------------------------
+// Inputs found by fuzzing (tests/fuzz/, named after their fuzz target)
+
+fn fuzz_input(name: &str) -> PathBuf {
+    Path::new(env!("CARGO_MANIFEST_DIR"))
+        .join("tests/fuzz")
+        .join(name)
+}
+
+/// `tiff_header`: the second IFD's ImageWidth claims 1334545665 values; the
+/// `tiff` decoder reserved 40 GiB for them before reading any (an abort).
+#[test]
+fn fuzz_tiff_tag_count() {
+    let p = fuzz_input("tiff_header-tag-count.tif");
+    let e = err(tiff::open(&p));
+    assert_refused(
+        &e,
+        "tiff_header-tag-count.tif",
+        "IFD",
+        &["page 1", "more values than the file could hold"],
+    );
 }
