@@ -172,8 +172,13 @@ pub fn write_json(path: &Path, v: &Value) -> Result<()> {
 
 /// Read a JSON document.
 pub fn read_json(path: &Path) -> Result<Value> {
-    let text = std::fs::read_to_string(path).at(path)?;
-    serde_json::from_str(&text)
+    let bytes = std::fs::read(path).at(path)?;
+    parse_json(path, &bytes)
+}
+
+/// Parse a JSON document held in memory; `path` names it in errors.
+pub fn parse_json(path: &Path, bytes: &[u8]) -> Result<Value> {
+    serde_json::from_slice(bytes)
         .map_err(|e| StoreError::invalid(path, "json", format!("not valid JSON: {e}")))
 }
 
@@ -262,6 +267,17 @@ pub fn read_multiscale(dir: &Path) -> Result<Option<Multiscale>> {
     } else {
         dir.join(".zattrs")
     };
+    parse_multiscale(&meta_path, zarr_format, &attrs)
+}
+
+/// Parse the OME multiscales in the attributes `attrs` of a Zarr v2 or v3
+/// group (`meta_path` names the file they come from in errors); `Ok(None)`
+/// when there are none.
+pub fn parse_multiscale(
+    meta_path: &Path,
+    zarr_format: u8,
+    attrs: &Value,
+) -> Result<Option<Multiscale>> {
     let brickyard = attrs.get(ATTR).cloned();
     // 0.5 puts everything under "ome"; 0.4 at the top level.
     let (ome, version_default) = match attrs.get("ome") {
@@ -272,7 +288,7 @@ pub fn read_multiscale(dir: &Path) -> Result<Option<Multiscale>> {
         return Ok(None);
     };
     let ms0 = ms.as_array().and_then(|a| a.first()).ok_or_else(|| {
-        StoreError::invalid(&meta_path, "multiscales", "expected a non-empty list")
+        StoreError::invalid(meta_path, "multiscales", "expected a non-empty list")
     })?;
     let version = ome
         .get("version")
@@ -295,7 +311,7 @@ pub fn read_multiscale(dir: &Path) -> Result<Option<Multiscale>> {
                         .and_then(Value::as_str)
                         .ok_or_else(|| {
                             StoreError::invalid(
-                                &meta_path,
+                                meta_path,
                                 "multiscales.axes",
                                 "axis without a name",
                             )
@@ -305,7 +321,7 @@ pub fn read_multiscale(dir: &Path) -> Result<Option<Multiscale>> {
                     unit: o.get("unit").and_then(Value::as_str).map(str::to_string),
                 }),
                 _ => Err(StoreError::invalid(
-                    &meta_path,
+                    meta_path,
                     "multiscales.axes",
                     "expected objects or names",
                 )),
@@ -320,7 +336,7 @@ pub fn read_multiscale(dir: &Path) -> Result<Option<Multiscale>> {
         .filter(|d| !d.is_empty())
         .ok_or_else(|| {
             StoreError::invalid(
-                &meta_path,
+                meta_path,
                 "multiscales.datasets",
                 "expected a non-empty list",
             )
@@ -331,7 +347,7 @@ pub fn read_multiscale(dir: &Path) -> Result<Option<Multiscale>> {
                 .get("path")
                 .and_then(Value::as_str)
                 .ok_or_else(|| {
-                    StoreError::invalid(&meta_path, "multiscales.datasets.path", "missing")
+                    StoreError::invalid(meta_path, "multiscales.datasets.path", "missing")
                 })?
                 .to_string();
             let (scale, translation) = scale_translation(d);

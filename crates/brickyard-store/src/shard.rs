@@ -7,13 +7,275 @@
 //! Bricks are appended as soon as they are encoded and the index is written
 //! when the last brick of the shard has been seen, so a shard never has to be
 //! held in memory.
+//!
+//! Reading side: [`check_index`] and [`read_index`] decode a shard's index
+//! and check every entry against the length of the shard file, so that a
+//! damaged or hostile index is a clear error before any reader sizes a
+//! buffer from it.
 
-use crate::error::{IoContext, Result};
+use crate::error::{IoContext, Result, StoreError};
+use serde_json::Value;
 use std::collections::HashMap;
 use std::fs::{File, OpenOptions};
 use std::io::Write;
+use std::os::unix::fs::FileExt;
 use std::path::{Path, PathBuf};
 use std::sync::{Arc, Mutex};
+
+/// Most inner chunks one shard may hold (16 bytes of index each): a larger
+/// count in an array's metadata is refused before any index is read.
+pub const MAX_INDEX_ENTRIES: u64 = 1 << 24;
+
+/// Where a shard's index lies in the shard file.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum IndexLocation {
+    Start,
+    End,
+}
+
+/// How a shard index is laid out: the `sharding_indexed` codec's
+/// `index_location` and `index_codecs` (`bytes`, optionally `crc32c`), and
+/// the number of inner chunks of a shard.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct IndexLayout {
+    /// Inner chunks per shard (entries of the index).
+    pub entries: u64,
+    pub location: IndexLocation,
+    pub big_endian: bool,
+    /// Whether a CRC32C of the entries follows them.
+    pub crc32c: bool,
+}
+
+impl IndexLayout {
+    /// The layout brickyard writes: index at the end, little-endian, CRC32C.
+    pub fn brickyard(entries: u64) -> IndexLayout {
+        IndexLayout {
+            entries,
+            location: IndexLocation::End,
+            big_endian: false,
+            crc32c: true,
+        }
+    }
+
+    /// Bytes of the encoded index (at most [`MAX_INDEX_ENTRIES`] entries).
+    pub fn index_bytes(&self) -> u64 {
+        self.entries.min(MAX_INDEX_ENTRIES) * 16 + if self.crc32c { 4 } else { 0 }
+    }
+
+    /// The layout of a `sharding_indexed` codec's `configuration` for shards
+    /// of `shard_shape`, in `path`'s metadata. `Ok(None)` when the index uses
+    /// codecs this reader does not check (the Zarr library still reads it).
+    /// Errors name the offending key: inner chunk sizes of 0, a shard shape
+    /// that is not a multiple of the inner chunk, or more than
+    /// [`MAX_INDEX_ENTRIES`] inner chunks per shard.
+    pub fn from_codec(
+        path: &Path,
+        config: &Value,
+        shard_shape: &[u64],
+    ) -> Result<Option<IndexLayout>> {
+        let inv = |field: &str, msg: String| StoreError::invalid(path, field, msg);
+        let inner: Vec<u64> = config
+            .get("chunk_shape")
+            .and_then(Value::as_array)
+            .and_then(|a| a.iter().map(Value::as_u64).collect::<Option<Vec<u64>>>())
+            .ok_or_else(|| {
+                inv(
+                    "sharding_indexed.chunk_shape",
+                    format!(
+                        "expected a list of {} positive integers, found {}",
+                        shard_shape.len(),
+                        short_json(config.get("chunk_shape"))
+                    ),
+                )
+            })?;
+        if inner.len() != shard_shape.len() || inner.contains(&0) {
+            return Err(inv(
+                "sharding_indexed.chunk_shape",
+                format!(
+                    "expected {} positive integers (one per axis of the shard {shard_shape:?}), \
+                     found {inner:?}",
+                    shard_shape.len()
+                ),
+            ));
+        }
+        let mut entries = 1u64;
+        for (&s, &i) in shard_shape.iter().zip(&inner) {
+            if s % i != 0 {
+                return Err(inv(
+                    "sharding_indexed.chunk_shape",
+                    format!(
+                        "the shard {shard_shape:?} is not a multiple of the inner chunk {inner:?}"
+                    ),
+                ));
+            }
+            entries = entries.saturating_mul(s / i);
+        }
+        if entries > MAX_INDEX_ENTRIES {
+            return Err(inv(
+                "sharding_indexed.chunk_shape",
+                format!(
+                    "shards of {shard_shape:?} in inner chunks of {inner:?} hold {entries} inner \
+                     chunks; at most {MAX_INDEX_ENTRIES} are supported"
+                ),
+            ));
+        }
+        let location = match config.get("index_location").and_then(Value::as_str) {
+            None | Some("end") => IndexLocation::End,
+            Some("start") => IndexLocation::Start,
+            Some(other) => {
+                return Err(inv(
+                    "sharding_indexed.index_location",
+                    format!("expected \"start\" or \"end\", found {other:?}"),
+                ))
+            }
+        };
+        let codecs = config.get("index_codecs").and_then(Value::as_array);
+        let names: Vec<&str> = codecs
+            .map(|c| {
+                c.iter()
+                    .map(|c| c.get("name").and_then(Value::as_str).unwrap_or("?"))
+                    .collect()
+            })
+            .unwrap_or_default();
+        let (big_endian, crc32c) = match names.as_slice() {
+            ["bytes"] | ["bytes", "crc32c"] => {
+                let endian = codecs.unwrap()[0]
+                    .get("configuration")
+                    .and_then(|c| c.get("endian"))
+                    .and_then(Value::as_str);
+                (endian == Some("big"), names.len() == 2)
+            }
+            _ => return Ok(None),
+        };
+        Ok(Some(IndexLayout {
+            entries,
+            location,
+            big_endian,
+            crc32c,
+        }))
+    }
+}
+
+fn short_json(v: Option<&Value>) -> String {
+    let s = v.map_or("nothing".to_string(), Value::to_string);
+    if s.chars().count() > 80 {
+        format!("{}...", s.chars().take(80).collect::<String>())
+    } else {
+        s
+    }
+}
+
+/// Decode the encoded `index` of a shard file of `shard_len` bytes and check
+/// it: the CRC32C (when the layout has one), and that every present inner
+/// chunk lies inside the shard's data (not in the index, not past the end).
+/// Returns `(offset, nbytes)` per inner chunk, `(u64::MAX, u64::MAX)` for an
+/// absent one. Errors name the shard file and the entry.
+pub fn check_index(
+    path: &Path,
+    index: &[u8],
+    shard_len: u64,
+    layout: &IndexLayout,
+) -> Result<Vec<[u64; 2]>> {
+    let inv = |msg: String| StoreError::invalid(path, "shard index", msg);
+    if layout.entries > MAX_INDEX_ENTRIES {
+        return Err(inv(format!(
+            "{} inner chunks per shard; at most {MAX_INDEX_ENTRIES} are supported",
+            layout.entries
+        )));
+    }
+    let ib = layout.index_bytes();
+    if shard_len < ib {
+        return Err(inv(format!(
+            "the shard file holds {shard_len} bytes, fewer than its index of {} entries \
+             needs ({ib} bytes; truncated file?)",
+            layout.entries
+        )));
+    }
+    if index.len() as u64 != ib {
+        return Err(inv(format!(
+            "expected {ib} index bytes, found {}",
+            index.len()
+        )));
+    }
+    let body = &index[..layout.entries as usize * 16];
+    if layout.crc32c {
+        let stored = u32::from_le_bytes(index[body.len()..].try_into().unwrap());
+        let crc = crc32c::crc32c(body);
+        if stored != crc {
+            return Err(inv(format!(
+                "CRC32C {crc:#010x} of the index does not match the stored {stored:#010x} \
+                 (damaged shard?)"
+            )));
+        }
+    }
+    let data = match layout.location {
+        IndexLocation::End => 0..shard_len - ib,
+        IndexLocation::Start => ib..shard_len,
+    };
+    let word = |b: &[u8]| {
+        let a: [u8; 8] = b.try_into().unwrap();
+        if layout.big_endian {
+            u64::from_be_bytes(a)
+        } else {
+            u64::from_le_bytes(a)
+        }
+    };
+    let mut out = Vec::with_capacity(layout.entries as usize);
+    for (k, e) in body.chunks_exact(16).enumerate() {
+        let (off, n) = (word(&e[..8]), word(&e[8..]));
+        if off == u64::MAX && n == u64::MAX {
+            out.push([off, n]);
+            continue;
+        }
+        match off.checked_add(n) {
+            Some(end) if off >= data.start && end <= data.end => out.push([off, n]),
+            end => {
+                return Err(inv(format!(
+                    "entry {k} (offset {off}, {n} bytes) ends at byte {} but the inner chunks \
+                     must lie in bytes {}..{} of the {shard_len}-byte shard file",
+                    end.map_or_else(|| "2^64+".to_string(), |e| e.to_string()),
+                    data.start,
+                    data.end
+                )))
+            }
+        }
+    }
+    Ok(out)
+}
+
+/// Check the index of a shard held in memory (the whole shard file).
+pub fn parse_index(path: &Path, shard: &[u8], layout: &IndexLayout) -> Result<Vec<[u64; 2]>> {
+    let len = shard.len() as u64;
+    let ib = layout.index_bytes().min(len) as usize;
+    let index = match layout.location {
+        IndexLocation::End => &shard[shard.len() - ib..],
+        IndexLocation::Start => &shard[..ib],
+    };
+    check_index(path, index, len, layout)
+}
+
+/// Read and check the index of the shard file at `path` (see
+/// [`check_index`]); `Ok(None)` when there is no such file (a shard that
+/// holds only the fill value).
+pub fn read_index(path: &Path, layout: &IndexLayout) -> Result<Option<Vec<[u64; 2]>>> {
+    let file = match File::open(path) {
+        Ok(f) => f,
+        Err(e) if e.kind() == std::io::ErrorKind::NotFound => return Ok(None),
+        Err(e) => return Err(StoreError::io(path, e)),
+    };
+    let len = file.metadata().at(path)?.len();
+    let ib = layout.index_bytes();
+    if len < ib || layout.entries > MAX_INDEX_ENTRIES {
+        return check_index(path, &[], len, layout).map(Some);
+    }
+    let at = match layout.location {
+        IndexLocation::End => len - ib,
+        IndexLocation::Start => 0,
+    };
+    let mut index = vec![0u8; ib as usize];
+    file.read_exact_at(&mut index, at).at(path)?;
+    check_index(path, &index, len, layout).map(Some)
+}
 
 struct OpenShard {
     path: PathBuf,

@@ -7,6 +7,12 @@ pub mod scale;
 pub mod tiff;
 pub mod zarr;
 
+/// Most bytes a deflate stream (gzip, zlib) inflates to per byte of input:
+/// the longest match, 258 bytes, coded in 2 bits. A gzip file of `n` bytes
+/// cannot hold more than `n × MAX_DEFLATE_RATIO` bytes of data, so a header
+/// claiming more is refused before anything is decompressed.
+pub const MAX_DEFLATE_RATIO: u64 = 1032;
+
 /// Reverse the byte order of every `size`-byte element of `buf` in place
 /// (used for big-endian inputs).
 pub fn swap_bytes_in_place(buf: &mut [u8], size: usize) {

@@ -32,7 +32,7 @@
 
 use crate::error::{IoContext, Result, StoreError};
 use crate::import::scale::{self, num, Choice, ValueScaling};
-use crate::import::swap_bytes_in_place;
+use crate::import::{swap_bytes_in_place, MAX_DEFLATE_RATIO};
 use crate::source::{check_region, SourceMeta, VolumeSource};
 use brickyard_core::{as_bytes_mut, dispatch_dtype, DType, Dims3, Sample};
 use flate2::read::MultiGzDecoder;
@@ -105,6 +105,22 @@ impl NiftiSource {
     /// Whether the voxel data is gzip-compressed.
     pub fn is_gzip(&self) -> bool {
         matches!(self.data, Data::Gz(_))
+    }
+
+    /// Error for voxel data that ends before the volume does.
+    fn gz_too_small(&self, len: u64, most: u64) -> StoreError {
+        let [z, y, x] = self.meta.dims;
+        let need = self.stored_channel_bytes() * self.meta.channels as u64;
+        StoreError::invalid(
+            &self.data_path,
+            "data",
+            format!(
+                "gzip-compressed file of {len} bytes holds at most {most} bytes of voxel data \
+                 (deflate inflates at most {MAX_DEFLATE_RATIO}-fold), dims {x}×{y}×{z} × {} need \
+                 {need}",
+                self.stored
+            ),
+        )
     }
 
     /// Error for voxel data that ends before the volume does.
@@ -498,6 +514,14 @@ pub fn open_with(path: &Path, raw_values: bool) -> Result<NiftiSource> {
         let held = len.saturating_sub(data_offset);
         if held < total {
             return Err(src.data_short(held));
+        }
+    } else {
+        // But deflate inflates at most MAX_DEFLATE_RATIO-fold, which bounds
+        // what a gzip file can hold without decompressing it.
+        let len = std::fs::metadata(&src.data_path).at(&src.data_path)?.len();
+        let most = len.saturating_mul(MAX_DEFLATE_RATIO);
+        if total.saturating_add(data_offset) > most {
+            return Err(src.gz_too_small(len, most.saturating_sub(data_offset)));
         }
     }
     if let Some((slope, inter)) = scale {

@@ -38,7 +38,7 @@
 //! count) so that reading the other channels of the same region is free.
 
 use crate::error::{IoContext, Result, StoreError};
-use crate::import::swap_bytes_in_place;
+use crate::import::{swap_bytes_in_place, MAX_DEFLATE_RATIO};
 use crate::source::{check_region, SourceMeta, VolumeSource};
 use brickyard_core::{DType, Dims3};
 use flate2::read::MultiGzDecoder;
@@ -73,6 +73,15 @@ pub fn open(path: &Path) -> Result<NrrdSource> {
     let header = read_header(path, &file)?;
     let plan = interpret(path, &header)?;
     NrrdSource::new(path, file, header.end, plan)
+}
+
+/// Parse and check a NRRD header held in memory (the start of a `.nrrd` file
+/// or a whole `.nhdr`): everything [`open`] decides from the header alone,
+/// without touching any data. `path` names the file in errors and anchors
+/// relative data file names.
+pub fn parse_header(path: &Path, bytes: &[u8]) -> Result<SourceMeta> {
+    let header = read_header(path, bytes)?;
+    Ok(interpret(path, &header)?.meta)
 }
 
 /// A NRRD volume opened for streaming reads; see the [module docs](self).
@@ -232,8 +241,8 @@ fn trim_eol(line: &[u8]) -> &[u8] {
     line.strip_suffix(b"\r").unwrap_or(line)
 }
 
-fn read_header(path: &Path, file: &File) -> Result<Header> {
-    let mut r = BufReader::new(file);
+fn read_header(path: &Path, src: impl Read) -> Result<Header> {
+    let mut r = BufReader::new(src);
     let mut line = Vec::new();
     let mut pos = read_line(&mut r, &mut line).at(path)?;
 
@@ -1471,6 +1480,28 @@ fn locate(
                         "gzip stream is corrupt{in_}: expected the gzip signature 1f 8b{at}, \
                          found {:02x} {:02x}",
                         magic[0], magic[1]
+                    ),
+                ));
+            }
+            // Deflate inflates at most MAX_DEFLATE_RATIO-fold: a header
+            // claiming more than the stream can hold is refused now rather
+            // than after decompressing all of it.
+            let compressed = len.saturating_sub(start);
+            let most = compressed.saturating_mul(MAX_DEFLATE_RATIO);
+            let skip = plan.byte_skip.max(0) as u64;
+            if per_file.saturating_add(skip) > most {
+                let skipped = if skip > 0 {
+                    format!(" plus {skip} (byte skip)")
+                } else {
+                    String::new()
+                };
+                return Err(StoreError::invalid(
+                    header,
+                    "data",
+                    format!(
+                        "{what} holds a gzip stream of {compressed} bytes{at}{after}, which \
+                         inflates to at most {most} bytes, but sizes × type need \
+                         {per_file}{per}{skipped}"
                     ),
                 ));
             }

@@ -56,8 +56,13 @@ impl RawOptions {
 
     /// Read a sidecar file.
     pub fn read_sidecar(path: &Path) -> Result<RawOptions> {
-        let text = std::fs::read_to_string(path).at(path)?;
-        serde_json::from_str(&text).map_err(|e| {
+        let bytes = std::fs::read(path).at(path)?;
+        Self::parse_sidecar(path, &bytes)
+    }
+
+    /// Parse the bytes of a sidecar file; `path` names it in errors.
+    pub fn parse_sidecar(path: &Path, bytes: &[u8]) -> Result<RawOptions> {
+        serde_json::from_slice(bytes).map_err(|e| {
             StoreError::invalid(
                 path,
                 "sidecar",

@@ -40,6 +40,7 @@
 //!   notes.
 
 use crate::error::{IoContext, Result, StoreError};
+use crate::import::MAX_DEFLATE_RATIO;
 use crate::omezarr::normalize_unit;
 use crate::source::{check_region, SourceMeta, VolumeSource};
 use brickyard_core::DType;
@@ -246,8 +247,9 @@ impl TiffSource {
                 PageReader::new(Arc::new(file), len)
             }
         };
+        let len = reader.len;
         Decoder::new(BufReader::new(reader))
-            .map(|d| d.with_limits(limits()))
+            .map(|d| d.with_limits(limits(len)))
             .map_err(|e| tiff_error(path, &label, "IFD", e))
     }
 
@@ -399,18 +401,43 @@ fn open_multipage(path: &Path) -> Result<TiffSource> {
 
     let (pages, format, tags) = guard(path, "page 0", || {
         let mut dec = Decoder::new(BufReader::new(PageReader::new(file.clone(), len)))
-            .map(|d| d.with_limits(limits()))
+            .map(|d| d.with_limits(limits(len)))
             .map_err(|e| tiff_error(path, "page 0", "header", e))?;
         let mut pages = Vec::new();
         let mut first: Option<(PageFormat, String)> = None;
         let mut tags = PageTags::default();
         let mut index = 0usize;
+        // Bytes all pages need, and the largest decoding ratio among them.
+        let (mut need, mut ratio) = (0u64, 1u64);
         loop {
             let label = format!("page {index}");
             let ifd = dec.ifd_pointer().map(|p| p.0).unwrap_or(0);
             if !is_reduced(&mut dec, path, &label)? {
                 let (fmt, chunk) = page_info(&mut dec, path, &label)?;
-                check_chunk_extents(&mut dec, path, &label, len)?;
+                let (n, r) = check_chunk_extents(&mut dec, path, &label, len, &fmt)?;
+                need = need.saturating_add(n);
+                ratio = ratio.max(r);
+                // Pages may share strips, so check the whole file too.
+                if need > len.saturating_mul(ratio) {
+                    return Err(StoreError::invalid(
+                        path,
+                        "page count",
+                        format!(
+                            "{} pages of {}×{} pixels × {} sample(s) of {} need {need} bytes, \
+                             but the file holds only {len} bytes{}",
+                            pages.len() + 1,
+                            fmt.width,
+                            fmt.height,
+                            fmt.channels,
+                            fmt.dtype,
+                            if ratio > 1 {
+                                format!(", which decode at most {ratio}-fold")
+                            } else {
+                                String::new()
+                            }
+                        ),
+                    ));
+                }
                 match &first {
                     None => {
                         first = Some((fmt, label));
@@ -466,7 +493,7 @@ fn open_files(stack_path: &Path, files: Vec<PathBuf>) -> Result<TiffSource> {
         let len = file.metadata().at(path)?.len();
         let geom = guard(path, &label, || {
             let mut dec = Decoder::new(BufReader::new(PageReader::new(Arc::new(file), len)))
-                .map(|d| d.with_limits(limits()))
+                .map(|d| d.with_limits(limits(len)))
                 .map_err(|e| tiff_error(path, &label, "header", e))?;
             // Skip leading reduced-resolution pages; any further
             // full-resolution page makes the file a stack of its own.
@@ -477,7 +504,7 @@ fn open_files(stack_path: &Path, files: Vec<PathBuf>) -> Result<TiffSource> {
                     .map_err(|e| tiff_error(path, &format!("{label} page {index}"), "IFD", e))?;
             }
             let (fmt, chunk) = page_info(&mut dec, path, &label)?;
-            check_chunk_extents(&mut dec, path, &label, len)?;
+            check_chunk_extents(&mut dec, path, &label, len, &fmt)?;
             let mut extra = 0;
             while dec.more_images() {
                 let l = format!("{label} page {}", index + 1);
@@ -731,10 +758,34 @@ fn parse_imagej(d: &str) -> Option<ImageJ> {
     })
 }
 
-/// Decoder limits: none, as reads go into buffers sized here (see
-/// [`MAX_CHUNK_BYTES`]) one strip or tile at a time.
-fn limits() -> Limits {
-    Limits::unlimited()
+/// Decoder limits for a file of `file_len` bytes. Pixel data is read into
+/// buffers sized here (see [`MAX_CHUNK_BYTES`]) one strip or tile at a time,
+/// so only tag values are limited: the decoder sizes them from the counts
+/// in the IFD before reading them, so a count is allowed only as large as
+/// the file could hold (one byte per value at least), never an absurd one.
+fn limits(file_len: u64) -> Limits {
+    let value = std::mem::size_of::<tiff::decoder::ifd::Value>() as u64;
+    let tag_bytes = file_len.max(64).saturating_mul(value);
+    let mut l = Limits::unlimited();
+    l.decoding_buffer_size = usize::try_from(tag_bytes).unwrap_or(usize::MAX);
+    l.ifd_value_size = l.decoding_buffer_size;
+    l
+}
+
+/// Most bytes one byte of a strip or tile can decode to, per TIFF
+/// compression (`None`: not bounded): PackBits repeats a byte at most 128
+/// times for 2 bytes; an LZW code of 9 bits at least yields at most 4096
+/// bytes; deflate, see [`MAX_DEFLATE_RATIO`]; a JPEG block of 64 samples
+/// (of up to 4 components, up to 16 bits) costs one bit at least.
+fn max_ratio(compression: u16) -> Option<u64> {
+    match compression {
+        1 => Some(1),
+        32773 => Some(64),
+        5 => Some(4096 * 8 / 9 + 1),
+        8 | 32946 => Some(MAX_DEFLATE_RATIO),
+        7 => Some(64 * 4 * 2 * 8),
+        _ => None,
+    }
 }
 
 /// Run `f`, turning a panic inside the `tiff` crate into an error.
@@ -910,13 +961,18 @@ fn unsupported_compression(code: u16) -> Option<&'static str> {
     }
 }
 
-/// Check that every strip or tile of the current page lies inside the file.
+/// Check that every strip or tile of the current page lies inside the file
+/// and that together they can hold the page: as many bytes as its pixels
+/// need when uncompressed, at least that divided by the compression's
+/// [`max_ratio`] otherwise. Returns the bytes the page needs and the
+/// compression's largest ratio (`u64::MAX` when unbounded).
 fn check_chunk_extents<R: Read + Seek>(
     dec: &mut Decoder<R>,
     path: &Path,
     label: &str,
     file_len: u64,
-) -> Result<()> {
+    fmt: &PageFormat,
+) -> Result<(u64, u64)> {
     let (offsets_tag, counts_tag, what) = match dec.get_chunk_type() {
         ChunkType::Strip => (Tag::StripOffsets, Tag::StripByteCounts, "strip"),
         ChunkType::Tile => (Tag::TileOffsets, Tag::TileByteCounts, "tile"),
@@ -943,7 +999,37 @@ fn check_chunk_extents<R: Read + Seek>(
             }
         }
     }
-    Ok(())
+    let need = (fmt.width as u64)
+        .saturating_mul(fmt.height as u64)
+        .saturating_mul(fmt.channels as u64)
+        .saturating_mul(fmt.dtype.size() as u64);
+    let compression = dec
+        .find_tag_unsigned::<u16>(Tag::Compression)
+        .map_err(|e| tiff_error(path, label, "Compression", e))?
+        .unwrap_or(1);
+    let ratio = max_ratio(compression).unwrap_or(u64::MAX);
+    let held: u64 = counts
+        .iter()
+        .take(offsets.len())
+        .fold(0, |a, &n| a.saturating_add(n));
+    let most = held.saturating_mul(ratio);
+    if need > most {
+        let how = if ratio == 1 {
+            "uncompressed".to_string()
+        } else {
+            format!("compression {compression} decodes at most {ratio}-fold, to {most} bytes")
+        };
+        return Err(StoreError::invalid(
+            path,
+            format!("{counts_tag:?}"),
+            format!(
+                "{label}: the {what}s hold {held} bytes ({how}) but {}×{} pixels × {} \
+                 sample(s) of {} need {need}",
+                fmt.width, fmt.height, fmt.channels, fmt.dtype
+            ),
+        ));
+    }
+    Ok((need, ratio))
 }
 
 /// Check that a page agrees with the first one.
@@ -1048,10 +1134,16 @@ fn tiff_error(path: &Path, label: &str, field: &str, e: TiffError) -> StoreError
             format!("{label}: the file ends early (truncated?): {io}"),
         ),
         TiffError::IoError(io) => StoreError::io(path, io),
-        TiffError::LimitsExceeded => StoreError::unsupported(
+        TiffError::LimitsExceeded if field == "strip data" => StoreError::unsupported(
             path,
             field,
             format!("{label}: a strip or tile is too large to decode in one piece"),
+        ),
+        // Only tag values are limited otherwise (see `limits`).
+        TiffError::LimitsExceeded => StoreError::invalid(
+            path,
+            field,
+            format!("{label}: a tag claims more values than the file could hold (damaged IFD?)"),
         ),
         TiffError::UnsupportedError(_) => {
             StoreError::unsupported(path, field, format!("{label}: {e}"))
