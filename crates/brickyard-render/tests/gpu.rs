@@ -499,6 +499,11 @@ fn gpu_cells_are_crossed_without_changing_the_image() {
             r <= TOLERANCE,
             "{mode:?}: max abs diff {r} to the reference"
         );
+        // The images compared are not blank.
+        assert!(
+            with.image.coverage(0.01) > 0.05,
+            "{mode:?}: image nearly empty"
+        );
     }
 }
 
