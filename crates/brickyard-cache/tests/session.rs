@@ -138,7 +138,7 @@ fn streamed_samples_are_exact_and_a_still_view_completes() {
     );
     s.vm().check_invariants().unwrap();
     // Then a moving view over every level: values stay exact, bricks keep coming.
-    let mut inserted = 0;
+    let (mut inserted, mut checked) = (0, 0);
     for frame in 0..300 {
         s.begin_frame();
         let mut req = s.vm().requests();
@@ -152,6 +152,7 @@ fn streamed_samples_are_exact_and_a_still_view_completes() {
                     (r.value as f64 - want).abs() < 1e-2 * want.abs().max(1.0),
                     "moving frame {frame}"
                 );
+                checked += 1;
             }
         }
         let st = s.finish_frame([&req]);
@@ -159,4 +160,10 @@ fn streamed_samples_are_exact_and_a_still_view_completes() {
         s.vm().check_invariants().unwrap();
     }
     assert!(inserted > 0);
+    // Most samples were served (and so compared), not only a few.
+    assert!(
+        checked > 300 * 30 / 2,
+        "{checked} of {} samples served",
+        300 * 30
+    );
 }

@@ -68,6 +68,11 @@ fn pool_holds_what_was_written_for_every_dtype() {
         );
         for (s, values) in &written {
             let got = pool.read_slot(&gpu, *s).unwrap();
+            assert_eq!(
+                got.len(),
+                values.len(),
+                "{dtype:?} slot {s}: voxels read back"
+            );
             for (i, (&g, &v)) in got.iter().zip(values).enumerate() {
                 let ok = if fmt.exact {
                     // Unorm texels come back as texel/255 × 255: within

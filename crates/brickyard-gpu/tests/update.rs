@@ -208,6 +208,7 @@ fn bricks_sharing_blocks_make_one_block_per_region() {
     let (dvm, _) = DeviceVm::new(&gpu, &mut vm).unwrap();
     let mut cache = DeviceCache::new(&gpu, &dvm, &vm).unwrap();
     let slots = cache.end_frame(&gpu, &dvm, 1, keys.len()).unwrap();
+    assert_eq!(slots.len(), keys.len());
     assert!(slots.iter().all(|&s| s != NONE));
     let items: Vec<Item> = keys
         .iter()
@@ -229,6 +230,7 @@ fn bricks_sharing_blocks_make_one_block_per_region() {
         })
         .collect();
     let found = dvm.lookup(&gpu, &queries).unwrap();
+    assert_eq!(found.len(), keys.len(), "one answer per query");
     for ((k, s), (_, slot)) in keys.iter().zip(&slots).zip(found) {
         assert_eq!(slot, Some(*s), "brick {k:?}");
     }
@@ -248,6 +250,11 @@ fn fresh_bricks_are_not_taken_back_while_never_used_slots_remain() {
     for (frame, batch) in keys.chunks(4).enumerate() {
         let frame = frame as u32 + 1;
         let slots = cache.end_frame(&gpu, &dvm, frame, batch.len()).unwrap();
+        assert_eq!(
+            slots.len(),
+            batch.len(),
+            "frame {frame}: one slot per brick"
+        );
         for &s in &slots {
             assert!(
                 s != NONE && slots_seen.insert(s),
@@ -273,7 +280,9 @@ fn fresh_bricks_are_not_taken_back_while_never_used_slots_remain() {
             )
         })
         .collect();
-    for (k, (_, slot)) in keys.iter().zip(dvm.lookup(&gpu, &queries).unwrap()) {
+    let found = dvm.lookup(&gpu, &queries).unwrap();
+    assert_eq!(found.len(), keys.len(), "one answer per query");
+    for (k, (_, slot)) in keys.iter().zip(found) {
         assert!(slot.is_some(), "brick {k:?} was evicted");
     }
 }

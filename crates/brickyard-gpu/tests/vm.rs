@@ -229,6 +229,7 @@ fn run_case(dtype: DType, seed: u64) {
         })
         .collect();
     let got = late.sample(&gpu, &qs).unwrap();
+    assert_eq!(got.len(), qs.len(), "one sample per query");
     for (q, g) in qs.iter().zip(got) {
         let v = [0, 1, 2].map(|a| q.voxel[a] as u64);
         let w = vm.sample_at(q.level as usize, 0, v, [0.25, 0.5, 0.75]);

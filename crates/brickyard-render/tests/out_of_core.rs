@@ -156,6 +156,40 @@ fn out_of_core_frames_converge_to_the_reference() {
     }
 }
 
+/// The level `Lod::Auto { bias: 0 }` gives a sample at distance `t` from
+/// the eye (the rule of `reference::render_auto_lod`).
+fn auto_level(p: &RenderParams, voxel0: f64, levels: usize, t: f64) -> usize {
+    let l = (p.camera.pixel_footprint(t, p.height) / voxel0).log2();
+    if l.is_finite() && l > 0.0 {
+        (l.floor() as usize).min(levels - 1)
+    } else {
+        0
+    }
+}
+
+/// The smallest distance from the eye to brick `b` (`[z, y, x]`, `edge`
+/// voxels) of level `l`.
+fn brick_distance(scene: &Scene, eye: [f64; 3], l: usize, b: [u32; 3], edge: u64) -> f64 {
+    let dims = scene.levels[l];
+    let mut d2 = 0.0;
+    for a in 0..3 {
+        // World axis 2 - a; a voxel of level l is extent / dims wide.
+        let w = scene.extent[2 - a] / dims[a] as f64;
+        let lo = (b[a] as u64 * edge) as f64 * w;
+        let hi = ((b[a] as u64 + 1) * edge).min(dims[a]) as f64 * w;
+        let e = eye[2 - a];
+        let d = if e < lo {
+            lo - e
+        } else if e > hi {
+            e - hi
+        } else {
+            0.0
+        };
+        d2 += d * d;
+    }
+    d2.sqrt()
+}
+
 #[test]
 fn automatic_level_of_detail_completes_and_uses_coarser_levels_far_away() {
     let dir = tempfile::tempdir().unwrap();
@@ -178,7 +212,8 @@ fn automatic_level_of_detail_completes_and_uses_coarser_levels_far_away() {
         .collect();
     let scene = Scene::new(extent, levels);
     let tf = TransferFunction::preset("soft", [0.0, 255.0]).unwrap();
-    // A small image of the whole volume: one pixel covers several voxels.
+    // A small image of the whole volume: one pixel covers several voxels,
+    // so the near half is drawn at level 1 and the far half at level 2.
     let cam = Camera::fit(
         extent,
         10.0,
@@ -186,16 +221,75 @@ fn automatic_level_of_detail_completes_and_uses_coarser_levels_far_away() {
         Projection::Perspective { fov_y_deg: 40.0 },
     );
     let p = RenderParams::new(24, 24, cam, tf, RenderMode::Dvr);
+    let lod = Lod::Auto { bias: 0.0 };
     let mut s = session(&store, 64 * 64 * 64 / 4);
-    let (img, _frames, _) = converge(&mut s, &scene, &p, Lod::Auto { bias: 0.0 });
-    assert!(img.coverage(0.01) > 0.1);
-    // Fewer bricks than level 0 has: coarser levels did the work.
-    let l0_bricks = 4 * 4 * 4;
-    assert!(
-        s.vm().resident_bricks() < l0_bricks,
-        "resident {}",
-        s.vm().resident_bricks()
+    // Frames until complete, keeping every brick asked for.
+    let mut requested = std::collections::BTreeSet::new();
+    let mut done = None;
+    for _ in 0..400 {
+        s.begin_frame();
+        let (img, st, reqs) = render_frame(s.vm(), &scene, &p, lod);
+        let fs = s.finish_frame(reqs.iter());
+        requested.extend(
+            fs.frame
+                .requests
+                .iter()
+                .map(|k| (k.level as usize, k.brick)),
+        );
+        if st.completeness() == 1.0 && st.samples > 0 {
+            done = Some(img);
+            break;
+        }
+        std::thread::sleep(std::time::Duration::from_millis(1));
+    }
+    let img = done.expect("the view completes");
+    assert!(img.coverage(0.01) > 0.1, "image nearly empty");
+    // Every brick asked for is of the level the rule gives somewhere in it
+    // or coarser (a level-l voxel of margin: the trilinear base of a
+    // sample near a face lies in the neighbouring brick).
+    let voxel0 = scene.voxel(0);
+    let edge = 16;
+    let finest_in = |l: usize, b: [u32; 3]| {
+        let margin = scene.voxel(l);
+        let d = brick_distance(&scene, cam.eye, l, b, edge);
+        auto_level(&p, voxel0, nlev, (d - margin).max(0.0))
+    };
+    assert_eq!(nlev, 3, "levels 64³, 32³, 16³");
+    for &(l, b) in &requested {
+        assert!(
+            l >= finest_in(l, b),
+            "level {l} brick {b:?} asked for, but the rule gives level {} at best there",
+            finest_in(l, b)
+        );
+    }
+    let asked = |l: usize| requested.iter().filter(|r| r.0 == l).count();
+    // Near: level 1 (no level-0 brick at all, the pixels cover more than
+    // two voxels everywhere); far: level 2.
+    assert_eq!(asked(0), 0, "level 0 asked for: {requested:?}");
+    assert!(asked(1) > 0 && asked(2) > 0, "{requested:?}");
+    // The back half of level 1 lies where the rule gives level 2: those
+    // bricks exist (the test would prove nothing otherwise) and were not
+    // asked for.
+    let far: Vec<[u32; 3]> = (0..8u32)
+        .map(|i| [i / 4, i / 2 % 2, i % 2])
+        .filter(|&b| finest_in(1, b) >= 2)
+        .collect();
+    eprintln!(
+        "bricks asked for: {requested:?}; level-1 bricks where the rule gives level 2: {far:?}"
     );
+    assert!(
+        !far.is_empty() && far.len() < 8,
+        "far level-1 bricks: {far:?}"
+    );
+    assert!(asked(1) + far.len() <= 8, "{requested:?}");
+    // And level 0 is not resident either.
+    for b in (0..64u32).map(|i| [i / 16, i / 4 % 4, i % 4]) {
+        assert!(
+            !s.vm()
+                .is_resident(brickyard_cache::brick::BrickKey::new(0, 0, b)),
+            "level-0 brick {b:?} resident"
+        );
+    }
 }
 
 #[test]
@@ -347,6 +441,7 @@ fn empty_space_skipping_changes_no_pixel_and_loads_less() {
             converge_counting(&store, vol_bytes, &skipping, &p, Lod::Fixed(0));
         let (skipped_a, skipped_b) = (st_a.skipped_bricks, st_b.skipped_bricks);
         assert_eq!(a.max_abs_diff(&b), 0.0, "{mode:?}: skipping changed pixels");
+        assert!(b.coverage(0.01) > 0.05, "{mode:?}: image nearly empty");
         let want = render(&levels[0], &p);
         assert!(b.max_abs_diff(&want) <= 1e-5, "{mode:?}");
         assert!(skipped_b > 0, "{mode:?}: nothing skipped");
@@ -458,6 +553,12 @@ fn a_view_that_fits_completes_even_when_its_stand_ins_do_not() {
     let (img, frames, _) = converge(&mut s, &scene, &p, Lod::Fixed(0));
     let diff = img.max_abs_diff(&render(l0, &p));
     assert!(diff <= 1e-5, "diff {diff} after {frames} frames");
+    // Not blank: the slice fills the view, and its grey levels vary.
+    assert!(img.coverage(0.99) > 0.5, "slice not drawn");
+    let (lo, hi) = img.rgba.iter().fold((f32::MAX, f32::MIN), |(a, b), px| {
+        (a.min(px[0]), b.max(px[0]))
+    });
+    assert!(hi - lo > 0.1, "flat slice: {lo}..{hi}");
     s.vm().check_invariants().unwrap();
 }
 
@@ -495,4 +596,23 @@ fn automatic_level_of_detail_across_level_changes_equals_the_plain_model() {
     let want = brickyard_render::reference::render_auto_lod(&levels, &p, 0.0);
     let d = img.max_abs_diff(&want);
     assert!(d <= 1e-5, "max abs diff {d}");
+    assert!(img.coverage(0.01) > 0.05, "image nearly empty");
+    // The premise: the level does change inside the volume along most of
+    // the rays that cross it.
+    let voxel0 = scene.voxel(0);
+    let (mut crossing, mut changing) = (0, 0);
+    for j in 0..p.height {
+        for i in 0..p.width {
+            let ray = cam.ray(i as f64 + 0.5, j as f64 + 0.5, p.width, p.height);
+            if let Some((t0, t1)) = brickyard_core::camera::intersect_box(&ray, [0.0; 3], extent) {
+                crossing += 1;
+                let level = |t| auto_level(&p, voxel0, levels.len(), t);
+                changing += (level(t0) != level(t1)) as usize;
+            }
+        }
+    }
+    assert!(
+        crossing > 100 && changing * 2 > crossing,
+        "the level changes along {changing} of {crossing} rays"
+    );
 }

@@ -213,9 +213,13 @@ fn frames_keep_coming_while_io_is_slow() {
     let start = Instant::now();
     loop {
         let (_, c) = frame(&mut s, &scene, &p, lod);
-        if c > 0.0 || start.elapsed() > Duration::from_secs(60) {
+        if c > 0.0 {
             break;
         }
+        assert!(
+            start.elapsed() < Duration::from_secs(60),
+            "no brick arrived within 60 s after resuming"
+        );
     }
     s.loader().set_paused(true);
     while s.loader().in_flight() > 0 {
@@ -225,6 +229,8 @@ fn frames_keep_coming_while_io_is_slow() {
     // Two frames take in what arrived (within the upload budget).
     frame(&mut s, &scene, &p, lod);
     let (frozen_img, frozen) = frame(&mut s, &scene, &p, lod);
+    // Frozen part-way: more than the paused start, not complete.
+    assert!(frozen > first && frozen < 1.0, "frozen at {frozen}");
     let resident = s.vm().resident_bricks();
     for i in 0..20 {
         let (img, c) = frame(&mut s, &scene, &p, lod);

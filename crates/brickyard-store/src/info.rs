@@ -1,6 +1,9 @@
 //! `brickyard info`: what a store holds — levels, shapes, chunking, codecs,
 //! size on disk against raw size, brick statistics — for brickyard's own
-//! stores and foreign (OME-)Zarr alike.
+//! stores and foreign (OME-)Zarr alike; `check` reads and decodes every
+//! chunk.
+
+pub mod check;
 
 use crate::error::{Result, StoreError};
 use crate::import::zarr::is_zarr;

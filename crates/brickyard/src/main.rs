@@ -47,6 +47,10 @@ enum Cmd {
         /// Print JSON instead of text.
         #[arg(long)]
         json: bool,
+        /// Also read and decode every chunk of every level and of the
+        /// statistics, and list the damaged ones (exit status 1 if any).
+        #[arg(long)]
+        check: bool,
     },
     /// Generate a procedural volume (raw + JSON sidecar, or an OME-Zarr
     /// pyramid when OUTPUT ends in .zarr).
@@ -368,12 +372,30 @@ fn run(cmd: Cmd) -> Result<()> {
             )?;
             run_convert(src.as_ref(), &c.output, &c.pyramid)
         }
-        Cmd::Info { path, json } => {
+        Cmd::Info { path, json, check } => {
             let i = inspect(&path)?;
+            let checked = if check {
+                let bar = progress::Bar::counting(false, "checking chunks");
+                let r = brickyard_store::info::check::check(&path, &bar)?;
+                bar.finish();
+                Some(r)
+            } else {
+                None
+            };
             if json {
-                println!("{}", serde_json::to_string_pretty(&i)?);
+                let mut v = serde_json::to_value(&i)?;
+                if let Some(r) = &checked {
+                    v["check"] = serde_json::to_value(r)?;
+                }
+                println!("{}", serde_json::to_string_pretty(&v)?);
             } else {
                 print!("{}", format_info(&i));
+                if let Some(r) = &checked {
+                    print!("{}", brickyard_store::info::check::format_check(r));
+                }
+            }
+            if checked.as_ref().is_some_and(|r| !r.ok()) {
+                std::process::exit(1);
             }
             if i.complete == Some(false) {
                 std::process::exit(2);

@@ -23,6 +23,21 @@ impl Bar {
         Bar { bar: Some(bar) }
     }
 
+    /// A bar that counts items (chunks) rather than bytes.
+    pub fn counting(quiet: bool, what: &str) -> Bar {
+        if quiet {
+            return Bar { bar: None };
+        }
+        let bar = ProgressBar::new(0);
+        bar.set_style(
+            ProgressStyle::with_template("{msg} [{bar:40}] {pos}/{len} {per_sec} ETA {eta}")
+                .unwrap()
+                .progress_chars("=> "),
+        );
+        bar.set_message(what.to_string());
+        Bar { bar: Some(bar) }
+    }
+
     pub fn finish(&self) {
         if let Some(b) = &self.bar {
             b.finish_and_clear();

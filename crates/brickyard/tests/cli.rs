@@ -298,6 +298,7 @@ fn render_writes_pngs_and_rejects_bad_options() {
         assert!(out.contains("100.00% complete"), "{mode}: {out}");
         let bytes = std::fs::read(&png).unwrap();
         assert_eq!(&bytes[1..4], b"PNG");
+        has_content(&png_pixels(&png), mode);
         // The saved camera renders the same view again.
         let png2 = d.path().join(format!("{mode}-again.png"));
         let o = run(&[
@@ -343,6 +344,25 @@ fn png_pixels(p: &Path) -> Vec<u8> {
     buf
 }
 
+/// Fails unless RGBA8 `pixels` (drawn over black) show something: at least
+/// 5 % of the pixels lit and at least 16 distinct colours among them, so
+/// that two blank (or flat) images cannot pass a comparison.
+#[track_caller]
+fn has_content(pixels: &[u8], what: &str) {
+    let lit: Vec<&[u8]> = pixels
+        .chunks(4)
+        .filter(|c| c[0].max(c[1]).max(c[2]) > 8)
+        .collect();
+    let colours: std::collections::HashSet<&[u8]> = lit.iter().map(|c| &c[..3]).collect();
+    let n = pixels.len() / 4;
+    assert!(
+        lit.len() * 20 >= n && colours.len() >= 16,
+        "{what}: {} of {n} pixels lit, {} distinct colours: blank or flat",
+        lit.len(),
+        colours.len()
+    );
+}
+
 #[test]
 fn gpu_and_cpu_backends_draw_the_same_pngs() {
     if brickyard_gpu::context::test_gpu().is_none() {
@@ -377,7 +397,9 @@ fn gpu_and_cpu_backends_draw_the_same_pngs() {
                 out.contains(if backend == "gpu" { "GPU:" } else { "CPU (" }),
                 "{out}"
             );
-            pixels.push(png_pixels(&png));
+            let px = png_pixels(&png);
+            has_content(&px, &format!("{mode} {backend}"));
+            pixels.push(px);
         }
         assert_eq!(pixels[0].len(), pixels[1].len());
         let worst = pixels[0]
@@ -414,7 +436,9 @@ fn gpu_and_cpu_backends_draw_the_same_pngs() {
             backend,
         ]);
         assert!(o.status.success(), "channels {backend}: {}", stderr(&o));
-        pixels.push(png_pixels(&png));
+        let px = png_pixels(&png);
+        has_content(&px, &format!("channels {backend}"));
+        pixels.push(px);
     }
     let worst = pixels[0]
         .iter()

@@ -216,6 +216,7 @@ pub fn check_store(src: &dyn VolumeSource, out: &Path, labels: bool) {
             "level 0 differs"
         );
         let mut prev = (l0, d0);
+        let mut dims = vec![d0];
         for k in 1..ms.datasets.len() {
             let s0 = ms.datasets[k - 1].scale.clone().unwrap();
             let s1 = ms.datasets[k].scale.clone().unwrap();
@@ -230,9 +231,24 @@ pub fn check_store(src: &dyn VolumeSource, out: &Path, labels: bool) {
                     "level {k} channel {ch} voxel {i}: got {g}, want {w}"
                 );
             }
+            dims.push(got.1);
             prev = got;
         }
+        // The pyramid goes down to one brick (the inner chunk).
+        let info = brickyard_store::info::inspect(out).unwrap();
+        let lv0 = &info.levels[0];
+        let inner = lv0.inner_chunk.clone().unwrap_or_else(|| lv0.chunk.clone());
+        let brick = &inner[inner.len() - 3..];
         let last = prev.1;
-        assert!(last.iter().all(|&d| d <= 64), "coarsest level fits a brick");
+        assert!(
+            (0..3).all(|a| last[a] <= brick[a]),
+            "coarsest level {last:?} fits a brick {brick:?}"
+        );
+        if let [.., above, _] = &dims[..] {
+            assert!(
+                (0..3).any(|a| above[a] > brick[a]),
+                "the level above the coarsest, {above:?}, fits a brick already"
+            );
+        }
     }
 }

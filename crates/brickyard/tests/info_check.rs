@@ -1,0 +1,424 @@
+//! `brickyard info --check`: a clean store passes with exit status 0; each
+//! kind of damage (bytes flipped inside a chunk, a truncated shard, a broken
+//! index CRC, an index entry past the end of the file, a chunk that decodes
+//! to the wrong length, a chunk or shard missing where the statistics say
+//! there is data, damaged statistics, an unreadable shard) is listed with
+//! its shard file and a non-zero exit status, while what Zarr allows (a
+//! missing shard where nothing says there is data) passes.
+
+use std::path::{Path, PathBuf};
+use std::process::{Command, Output};
+
+fn run(args: &[&str]) -> Output {
+    Command::new(env!("CARGO_BIN_EXE_brickyard"))
+        .args(args)
+        .output()
+        .unwrap()
+}
+
+fn s(p: &Path) -> &str {
+    p.to_str().unwrap()
+}
+
+/// A 40³ u8 Mandelbulb store: bricks of 8³ in shards of 16³, so each shard
+/// file holds up to 2×2×2 chunks and ends with an index of 8 entries and
+/// its CRC32C.
+fn clean_store(dir: &Path) -> PathBuf {
+    let store = dir.join("clean.ome.zarr");
+    let o = run(&[
+        "generate",
+        "mandelbulb",
+        s(&store),
+        "--size",
+        "40",
+        "--quiet",
+        "--brick",
+        "8",
+        "--shard",
+        "16",
+    ]);
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    store
+}
+
+fn copy_dir(from: &Path, to: &Path) {
+    std::fs::create_dir_all(to).unwrap();
+    for e in std::fs::read_dir(from).unwrap() {
+        let e = e.unwrap();
+        let p = e.path();
+        if p.is_dir() {
+            copy_dir(&p, &to.join(e.file_name()));
+        } else {
+            std::fs::copy(&p, to.join(e.file_name())).unwrap();
+        }
+    }
+}
+
+/// `info --check --json`: the exit status and the `check` object.
+fn check(store: &Path) -> (Option<i32>, serde_json::Value, String) {
+    let o = run(&["info", s(store), "--check", "--json"]);
+    let stderr = String::from_utf8_lossy(&o.stderr).into_owned();
+    assert!(!stderr.contains("panicked"), "{stderr}");
+    let v: serde_json::Value = serde_json::from_slice(&o.stdout)
+        .unwrap_or_else(|e| panic!("{e}: {}\n{stderr}", String::from_utf8_lossy(&o.stdout)));
+    (o.status.code(), v["check"].clone(), stderr)
+}
+
+const N: usize = 8; // chunks per shard
+const INDEX: usize = N * 16 + 4;
+
+/// The index entries `(offset, length)` of a shard file.
+fn index(path: &Path) -> Vec<(u64, u64)> {
+    let b = std::fs::read(path).unwrap();
+    let ix = &b[b.len() - INDEX..];
+    let crc = u32::from_le_bytes(ix[N * 16..].try_into().unwrap());
+    assert_eq!(crc, crc32c::crc32c(&ix[..N * 16]), "{}", path.display());
+    (0..N)
+        .map(|j| {
+            let e = |k: usize| u64::from_le_bytes(ix[16 * j + 8 * k..][..8].try_into().unwrap());
+            (e(0), e(1))
+        })
+        .collect()
+}
+
+/// Replace the index of a shard file (with a correct CRC), keeping its data
+/// and appending `extra` bytes to the data first.
+fn rewrite_index(path: &Path, extra: &[u8], entries: &[(u64, u64)]) {
+    let b = std::fs::read(path).unwrap();
+    let mut out = b[..b.len() - INDEX].to_vec();
+    out.extend_from_slice(extra);
+    let mut ix = vec![];
+    for &(o, l) in entries {
+        ix.extend_from_slice(&o.to_le_bytes());
+        ix.extend_from_slice(&l.to_le_bytes());
+    }
+    let crc = crc32c::crc32c(&ix);
+    out.extend_from_slice(&ix);
+    out.extend_from_slice(&crc.to_le_bytes());
+    std::fs::write(path, out).unwrap();
+}
+
+/// A level-0 shard whose eight chunks are all stored, its shard index and
+/// its entries.
+fn full_shard(store: &Path) -> (PathBuf, [u64; 3], Vec<(u64, u64)>) {
+    for z in 0..3 {
+        for y in 0..3 {
+            for x in 0..3 {
+                let p = store.join(format!("0/c/{z}/{y}/{x}"));
+                if p.exists() {
+                    let e = index(&p);
+                    if e.iter().all(|&(o, _)| o != u64::MAX) {
+                        return (p, [z, y, x], e);
+                    }
+                }
+            }
+        }
+    }
+    panic!("no level-0 shard with all eight chunks stored");
+}
+
+/// The chunk (brick) index of entry `j` of shard `sh`.
+fn chunk_of(sh: [u64; 3], j: usize) -> Vec<u64> {
+    let l = [j as u64 / 4, j as u64 / 2 % 2, j as u64 % 2];
+    (0..3).map(|a| sh[a] * 2 + l[a]).collect()
+}
+
+/// Exit status 1, and a problem on `path` (and `chunk`, when given) whose
+/// message contains each of `words`.
+#[track_caller]
+fn reported(
+    what: &str,
+    (code, check, stderr): &(Option<i32>, serde_json::Value, String),
+    path: &Path,
+    chunk: Option<&[u64]>,
+    words: &[&str],
+) {
+    let problems = check["problems"].as_array().expect("problems");
+    let hit = problems.iter().find(|p| {
+        Path::new(p["path"].as_str().unwrap()) == path
+            && chunk.is_none_or(|c| p["chunk"] == serde_json::json!(c))
+    });
+    let Some(hit) = hit else {
+        panic!(
+            "{what}: no problem reported on {} chunk {chunk:?}: {problems:#?}\n{stderr}",
+            path.display()
+        );
+    };
+    let msg = hit["error"].as_str().unwrap();
+    eprintln!("{what}: {msg}");
+    for w in words {
+        assert!(msg.contains(w), "{what}: {msg:?} should mention {w:?}");
+    }
+    assert_eq!(*code, Some(1), "{what}: exit status");
+}
+
+#[test]
+fn info_check_passes_clean_stores() {
+    let d = tempfile::tempdir().unwrap();
+    let store = clean_store(d.path());
+    let (code, c, stderr) = check(&store);
+    assert_eq!(code, Some(0), "{c:#}\n{stderr}");
+    assert_eq!(c["problems"], serde_json::json!([]));
+    // 5³ + 3³ + 2³ + 1 bricks in the levels (40, 20, 10, 5 voxels), and
+    // one statistics chunk per level.
+    let chunks = c["chunks"].as_u64().unwrap();
+    assert_eq!(chunks, 125 + 27 + 8 + 1 + 4, "{c:#}");
+    let (stored, absent) = (c["stored"].as_u64().unwrap(), c["absent"].as_u64().unwrap());
+    assert_eq!(stored + absent, chunks);
+    assert!(stored > 100 && absent > 0, "{c:#}");
+    assert_eq!(c["arrays"], 8);
+    // The text form says the same.
+    let o = run(&["info", s(&store), "--check"]);
+    assert!(o.status.success());
+    let text = String::from_utf8_lossy(&o.stdout);
+    assert!(
+        text.contains(&format!("check: {chunks} chunks in 8 arrays")) && text.contains("; 0 bad"),
+        "{text}"
+    );
+    assert!(!text.contains("BAD"), "{text}");
+
+    // Two channels (4-D arrays), zstd: the statistics still match.
+    let raw = d.path().join("one.raw");
+    let o = run(&[
+        "generate",
+        "marschner-lobb",
+        s(&raw),
+        "--size",
+        "24x20x18",
+        "--quiet",
+    ]);
+    assert!(o.status.success());
+    let one = std::fs::read(&raw).unwrap();
+    let two = d.path().join("two.raw");
+    std::fs::write(
+        &two,
+        [one.clone(), one.iter().map(|v| v / 2).collect()].concat(),
+    )
+    .unwrap();
+    let store2 = d.path().join("two.ome.zarr");
+    let o = run(&[
+        "convert",
+        s(&two),
+        s(&store2),
+        "--dims",
+        "24x20x18",
+        "--dtype",
+        "u8",
+        "--channels",
+        "2",
+        "--brick",
+        "8",
+        "--shard",
+        "16",
+        "--compression",
+        "zstd",
+        "--quiet",
+    ]);
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let (code, c, stderr) = check(&store2);
+    assert_eq!(code, Some(0), "{c:#}\n{stderr}");
+    assert!(c["stored"].as_u64().unwrap() > 20, "{c:#}");
+
+    // Without statistics nothing says where data should be: a missing
+    // shard is the fill value, as Zarr has it.
+    let bare = d.path().join("bare.ome.zarr");
+    copy_dir(&store, &bare);
+    std::fs::remove_dir_all(bare.join("_brickyard")).unwrap();
+    let (p, _, _) = full_shard(&bare);
+    std::fs::remove_file(&p).unwrap();
+    let (code, c, _) = check(&bare);
+    assert_eq!(code, Some(0), "{c:#}");
+    assert_eq!(c["arrays"], 4);
+    assert!(c["absent"].as_u64().unwrap() >= 8);
+}
+
+#[test]
+fn info_check_lists_damaged_chunks_and_shards() {
+    let d = tempfile::tempdir().unwrap();
+    let clean = clean_store(d.path());
+    let mut n = 0;
+    let mut copy = || {
+        n += 1;
+        let p = d.path().join(format!("damaged-{n}.ome.zarr"));
+        copy_dir(&clean, &p);
+        p
+    };
+
+    // Bytes flipped inside a chunk's compressed data (past the 16-byte
+    // blosc header).
+    let store = copy();
+    let (path, sh, e) = full_shard(&store);
+    let (j, &(off, len)) = e.iter().enumerate().max_by_key(|(_, e)| e.1).unwrap();
+    assert!(len > 64, "{len}");
+    let mut b = std::fs::read(&path).unwrap();
+    for x in &mut b[off as usize + 16..(off + len) as usize] {
+        *x ^= 0x5a;
+    }
+    std::fs::write(&path, b).unwrap();
+    reported(
+        "flipped bytes",
+        &check(&store),
+        &path,
+        Some(&chunk_of(sh, j)),
+        &[],
+    );
+
+    // A shard cut in half: its index is gone (what is now at the end fails
+    // the CRC), and a shard shorter than an index.
+    let store = copy();
+    let (path, _, _) = full_shard(&store);
+    let f = std::fs::OpenOptions::new().write(true).open(&path).unwrap();
+    let len = f.metadata().unwrap().len();
+    f.set_len(len / 2).unwrap();
+    drop(f);
+    reported("truncated", &check(&store), &path, None, &["CRC32C"]);
+    let f = std::fs::OpenOptions::new().write(true).open(&path).unwrap();
+    f.set_len(100).unwrap();
+    drop(f);
+    reported(
+        "truncated below the index",
+        &check(&store),
+        &path,
+        None,
+        &["fewer than its index"],
+    );
+
+    // The index CRC damaged.
+    let store = copy();
+    let (path, _, _) = full_shard(&store);
+    let mut b = std::fs::read(&path).unwrap();
+    *b.last_mut().unwrap() ^= 1;
+    std::fs::write(&path, b).unwrap();
+    reported(
+        "index CRC",
+        &check(&store),
+        &path,
+        None,
+        &["CRC32C mismatch"],
+    );
+
+    // A chunk whose offset lies past the end of the file (valid CRC).
+    let store = copy();
+    let (path, sh, mut e) = full_shard(&store);
+    let size = std::fs::metadata(&path).unwrap().len();
+    e[3].0 = size + 1000;
+    rewrite_index(&path, &[], &e);
+    reported(
+        "offset past the end",
+        &check(&store),
+        &path,
+        Some(&chunk_of(sh, 3)),
+        &["outside the shard's data"],
+    );
+
+    // A chunk that decodes to the wrong length: a valid blosc stream of 100
+    // bytes where a brick has 512.
+    let store = copy();
+    let (path, sh, mut e) = full_shard(&store);
+    let short = brickyard_store::codec::BrickEncoder::new(
+        brickyard_store::Compression::Lz4,
+        brickyard_core::DType::U8,
+    )
+    .encode(&[7u8; 100]);
+    let data_end = std::fs::metadata(&path).unwrap().len() - INDEX as u64;
+    e[5] = (data_end, short.len() as u64);
+    rewrite_index(&path, &short, &e);
+    reported(
+        "wrong length",
+        &check(&store),
+        &path,
+        Some(&chunk_of(sh, 5)),
+        &["decode"],
+    );
+
+    // A chunk left out of the index, and a shard file removed, where the
+    // statistics say there is data.
+    let store = copy();
+    let (path, sh, mut e) = full_shard(&store);
+    e[6] = (u64::MAX, u64::MAX);
+    rewrite_index(&path, &[], &e);
+    reported(
+        "absent chunk",
+        &check(&store),
+        &path,
+        Some(&chunk_of(sh, 6)),
+        &["absent from the shard index", "statistics"],
+    );
+    let store = copy();
+    let (path, sh, _) = full_shard(&store);
+    std::fs::remove_file(&path).unwrap();
+    reported(
+        "missing shard",
+        &check(&store),
+        &path,
+        Some(&chunk_of(sh, 0)),
+        &["missing", "statistics say 8 of its chunks"],
+    );
+
+    // Damaged statistics (zstd, unsharded).
+    let store = copy();
+    let path = store.join("_brickyard/stats/0/c/0/0/0/0/0");
+    let mut b = std::fs::read(&path).unwrap();
+    let mid = b.len() / 2;
+    for x in &mut b[4..mid] {
+        *x ^= 0xff;
+    }
+    std::fs::write(&path, b).unwrap();
+    let r = check(&store);
+    reported("statistics", &r, &path, None, &[]);
+    assert!(
+        r.1["problems"]
+            .as_array()
+            .unwrap()
+            .iter()
+            .any(|p| p["array"] == "statistics of level 0"),
+        "{:#}",
+        r.1
+    );
+
+    // A shard nobody may read.
+    let store = copy();
+    let (path, _, _) = full_shard(&store);
+    use std::os::unix::fs::PermissionsExt;
+    std::fs::set_permissions(&path, std::fs::Permissions::from_mode(0o000)).unwrap();
+    if std::fs::File::open(&path).is_ok() {
+        // Root (or CAP_DAC_OVERRIDE) reads it anyway: nothing to detect.
+        eprintln!(
+            "note: the permission case is not checked: this process can read a file with mode 000 (running as root)"
+        );
+    } else {
+        reported(
+            "unreadable",
+            &check(&store),
+            &path,
+            None,
+            &["cannot open", "ermission"],
+        );
+    }
+    std::fs::set_permissions(&path, std::fs::Permissions::from_mode(0o644)).unwrap();
+
+    // Several problems at once are all listed, in the text form too.
+    let store = copy();
+    let (a, _, _) = full_shard(&store);
+    let mut b = std::fs::read(&a).unwrap();
+    *b.last_mut().unwrap() ^= 1;
+    std::fs::write(&a, b).unwrap();
+    let other = store.join("1/c/0/0/0");
+    let mut b = std::fs::read(&other).unwrap();
+    *b.last_mut().unwrap() ^= 1;
+    std::fs::write(&other, b).unwrap();
+    let o = run(&["info", s(&store), "--check"]);
+    assert_eq!(o.status.code(), Some(1));
+    let text = String::from_utf8_lossy(&o.stdout);
+    let bad: Vec<&str> = text.lines().filter(|l| l.contains("BAD:")).collect();
+    assert_eq!(bad.len(), 2, "{text}");
+    assert!(
+        bad[0].contains("level 0, shard") && bad[0].contains(s(&a)),
+        "{text}"
+    );
+    assert!(
+        bad[1].contains("level 1, shard") && bad[1].contains(s(&other)),
+        "{text}"
+    );
+    assert!(text.contains("; 2 bad"), "{text}");
+}
