@@ -190,8 +190,8 @@ impl Session {
 
     /// Make the coarsest levels of every channel resident for good, so that
     /// every sample finds data at some level whatever the pool's pressure:
-    /// the coarsest level always, and finer ones while all pinned bricks
-    /// stay within an eighth of the pool and `max_bricks`. Loads them now
+    /// the coarsest level always, and finer ones (never level 0) while all
+    /// pinned bricks stay within an eighth of the pool and `max_bricks`. Loads them now
     /// (waiting up to `timeout`). Fails when the pool cannot hold twice the
     /// coarsest level.
     pub fn pin_coarsest(
@@ -216,7 +216,9 @@ impl Session {
         let limit = (slots / 8).min(max_bricks).max(coarsest);
         let mut levels = vec![nl - 1];
         let mut total = coarsest;
-        for l in (0..nl - 1).rev() {
+        // Never level 0: pinning it would only keep the view's own data,
+        // which the LRU does anyway while it fits.
+        for l in (1..nl - 1).rev() {
             let n = per_level(l);
             if total + n > limit {
                 break;
