@@ -737,9 +737,10 @@ fn broken_stores_report_failures_without_hanging() {
 }
 
 #[test]
-fn a_deleted_shard_reads_as_fill_value() {
-    // Zarr semantics: a missing shard is all fill value, not an error.
-    // Statistics still say "data", so the bricks are read and come back 0.
+fn a_deleted_shard_where_statistics_say_data_is_a_failure_naming_the_file() {
+    // A Zarr reader sees a missing shard as all fill value; the store's
+    // statistics say the brick holds data, so the loader reports the
+    // missing file instead of handing out an empty brick.
     let dir = tempfile::tempdir().unwrap();
     let store = noise_store(dir.path());
     let mut shards = vec![];
@@ -748,9 +749,9 @@ fn a_deleted_shard_reads_as_fill_value() {
     std::fs::remove_file(&shards[0]).unwrap();
     let loader = Loader::open(&store, [8; 3], 0, 1, Arc::new(HostCache::new(1 << 30))).unwrap();
     let k = BrickKey::new(0, 0, [0, 0, 0]);
-    let b = loader.load_now(&k).unwrap();
-    assert_eq!(b.content, BrickContent::Empty);
-    assert!(b.bytes_read > 0);
+    let e = loader.load_now(&k).unwrap_err().to_string();
+    assert!(e.contains(shards[0].to_str().unwrap()), "{e}");
+    assert!(e.contains("missing") && e.contains("store brick"), "{e}");
 }
 
 #[test]
