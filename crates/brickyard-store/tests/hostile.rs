@@ -8,6 +8,7 @@
 mod common;
 
 use brickyard_store::error::StoreError;
+use brickyard_store::import::raw::{self, RawOptions};
 use brickyard_store::import::{nifti, nrrd, tiff};
 use brickyard_store::VolumeSource;
 use std::io::Write;
@@ -452,6 +453,97 @@ fn tiff_absurd_strip_count() {
         "IFD",
         &["page 1", "more values than the file could hold"],
     );
+}
+
+// ---------------------------------------------------------------------------
+// Raw with a JSON sidecar
+
+fn sidecar(dir: &Path, name: &str, json: &str) -> brickyard_store::Result<RawOptions> {
+    let p = write(dir, name, json.as_bytes());
+    RawOptions::read_sidecar(&p)
+}
+
+#[test]
+fn raw_more_voxels_than_the_file_holds() {
+    let dir = tempfile::tempdir().unwrap();
+    let o = sidecar(
+        dir.path(),
+        "v.raw.json",
+        r#"{"dims":[10000,10000,10000],"dtype":"u8"}"#,
+    )
+    .unwrap();
+    let p = write(dir.path(), "v.raw", &[0u8; 64]);
+    let e = err(raw::open(&p, &o));
+    assert_refused(&e, "v.raw", "dims", &["holds 64 bytes", "1000000000000"]);
+}
+
+#[test]
+fn raw_overflowing_and_negative_dims() {
+    let dir = tempfile::tempdir().unwrap();
+    let o = sidecar(
+        dir.path(),
+        "o.raw.json",
+        r#"{"dims":[4294967296,4294967296,4294967296],"dtype":"u16"}"#,
+    )
+    .unwrap();
+    let p = write(dir.path(), "o.raw", &[0u8; 64]);
+    let e = err(raw::open(&p, &o));
+    assert_refused(&e, "o.raw", "dims", &["overflows 64 bits"]);
+    let o = sidecar(
+        dir.path(),
+        "c.raw.json",
+        r#"{"dims":[2,2,2],"dtype":"u8","channels":4611686018427387904}"#,
+    )
+    .unwrap();
+    let e = err(raw::open(&p, &o));
+    assert_refused(&e, "o.raw", "dims", &["overflows 64 bits"]);
+
+    let e = err(sidecar(
+        dir.path(),
+        "n.raw.json",
+        r#"{"dims":[-4,4,4],"dtype":"u8"}"#,
+    ));
+    assert_refused(&e, "n.raw.json", "sidecar", &["-4", "expected"]);
+}
+
+#[test]
+fn raw_header_bytes_past_the_end_of_the_file() {
+    let dir = tempfile::tempdir().unwrap();
+    let o = sidecar(
+        dir.path(),
+        "h.raw.json",
+        r#"{"dims":[4,4,4],"dtype":"u8","header_bytes":18446744073709551615}"#,
+    )
+    .unwrap();
+    let p = write(dir.path(), "h.raw", &[0u8; 64]);
+    let e = err(raw::open(&p, &o));
+    assert_refused(&e, "h.raw", "dims", &["overflows 64 bits"]);
+    let o = sidecar(
+        dir.path(),
+        "h2.raw.json",
+        r#"{"dims":[4,4,4],"dtype":"u8","header_bytes":4096}"#,
+    )
+    .unwrap();
+    let e = err(raw::open(&p, &o));
+    assert_refused(
+        &e,
+        "h.raw",
+        "dims",
+        &["holds 64 bytes", "4096 header bytes"],
+    );
+}
+
+/// A sidecar is read up to a bound: a (valid) 2 MiB one is refused rather
+/// than read whole.
+#[test]
+fn raw_sidecar_reading_is_bounded() {
+    let dir = tempfile::tempdir().unwrap();
+    let json = format!(
+        "{}{{\"dims\":[4,4,4],\"dtype\":\"u8\"}}",
+        " ".repeat(2 << 20)
+    );
+    let e = err(sidecar(dir.path(), "big.raw.json", &json));
+    assert_refused(&e, "big.raw.json", "sidecar", &["larger than"]);
 }
 
 // ---------------------------------------------------------------------------

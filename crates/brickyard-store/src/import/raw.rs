@@ -10,6 +10,7 @@ use crate::source::{check_region, SourceMeta, VolumeSource};
 use brickyard_core::DType;
 use serde::{Deserialize, Serialize};
 use std::fs::File;
+use std::io::Read;
 use std::ops::Range;
 use std::os::unix::fs::FileExt;
 use std::path::{Path, PathBuf};
@@ -39,6 +40,9 @@ pub struct RawOptions {
     pub header_bytes: u64,
 }
 
+/// Largest sidecar file read.
+pub const MAX_SIDECAR_BYTES: u64 = 1 << 20;
+
 fn default_endian() -> String {
     "little".into()
 }
@@ -54,9 +58,21 @@ impl RawOptions {
         PathBuf::from(s)
     }
 
-    /// Read a sidecar file.
+    /// Read a sidecar file (at most [`MAX_SIDECAR_BYTES`] of it).
     pub fn read_sidecar(path: &Path) -> Result<RawOptions> {
-        let bytes = std::fs::read(path).at(path)?;
+        let mut bytes = Vec::new();
+        File::open(path)
+            .at(path)?
+            .take(MAX_SIDECAR_BYTES + 1)
+            .read_to_end(&mut bytes)
+            .at(path)?;
+        if bytes.len() as u64 > MAX_SIDECAR_BYTES {
+            return Err(StoreError::invalid(
+                path,
+                "sidecar",
+                format!("larger than {MAX_SIDECAR_BYTES} bytes; expected a short JSON description"),
+            ));
+        }
         Self::parse_sidecar(path, &bytes)
     }
 
