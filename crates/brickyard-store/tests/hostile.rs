@@ -7,12 +7,17 @@
 
 mod common;
 
+use brickyard_core::DType;
+use brickyard_store::builder::{convert, ConvertOptions, NoProgress};
 use brickyard_store::error::StoreError;
 use brickyard_store::import::raw::{self, RawOptions};
+use brickyard_store::import::zarr::{self, ZarrSource};
 use brickyard_store::import::{nifti, nrrd, tiff};
-use brickyard_store::VolumeSource;
+use brickyard_store::shard::{self, IndexLayout, IndexLocation};
+use brickyard_store::{Compression, VolumeSource};
 use std::io::Write;
 use std::path::{Path, PathBuf};
+use std::sync::atomic::AtomicBool;
 
 /// The error of `r`, which must be one.
 fn err<T>(r: brickyard_store::Result<T>) -> StoreError {
@@ -547,6 +552,279 @@ fn raw_sidecar_reading_is_bounded() {
 }
 
 // ---------------------------------------------------------------------------
+// Zarr metadata
+
+/// A Zarr v3 array directory with the given `zarr.json`.
+fn zarr_array(dir: &Path, name: &str, json: serde_json::Value) -> PathBuf {
+    let a = dir.join(name);
+    write(&a, "zarr.json", json.to_string().as_bytes());
+    a
+}
+
+fn v3(shape: serde_json::Value, chunk: serde_json::Value, dtype: &str) -> serde_json::Value {
+    serde_json::json!({
+        "zarr_format": 3,
+        "node_type": "array",
+        "shape": shape,
+        "data_type": dtype,
+        "chunk_grid": {"name": "regular", "configuration": {"chunk_shape": chunk}},
+        "chunk_key_encoding": {"name": "default", "configuration": {"separator": "/"}},
+        "fill_value": 0,
+        "codecs": [{"name": "bytes", "configuration": {"endian": "little"}}]
+    })
+}
+
+#[test]
+fn zarr_huge_and_negative_shapes() {
+    let dir = tempfile::tempdir().unwrap();
+    let big = 1u64 << 40;
+    let a = zarr_array(
+        dir.path(),
+        "huge",
+        v3(
+            serde_json::json!([big, big, big]),
+            serde_json::json!([64, 64, 64]),
+            "uint16",
+        ),
+    );
+    let e = err(ZarrSource::open_level_array(&a));
+    assert_refused(&e, "huge/zarr.json", "shape", &["more than 2^63 bytes"]);
+
+    let a = zarr_array(
+        dir.path(),
+        "negative",
+        v3(
+            serde_json::json!([-4, 4, 4]),
+            serde_json::json!([4, 4, 4]),
+            "uint8",
+        ),
+    );
+    let e = err(ZarrSource::open_level_array(&a));
+    assert_refused(&e, "negative/zarr.json", "shape", &["positive integers"]);
+
+    // A channel axis of 2^32 channels (no data needed: all fill value).
+    let mut j = v3(
+        serde_json::json!([1u64 << 32, 4, 4, 4]),
+        serde_json::json!([1, 4, 4, 4]),
+        "uint8",
+    );
+    j["dimension_names"] = serde_json::json!(["c", "z", "y", "x"]);
+    let a = zarr_array(dir.path(), "channels", j);
+    let e = err(ZarrSource::open_level_array(&a));
+    assert_refused(
+        &e,
+        "channels/zarr.json",
+        "shape",
+        &["4294967296 channels", "at most 65536"],
+    );
+}
+
+#[test]
+fn zarr_zero_and_huge_chunks() {
+    let dir = tempfile::tempdir().unwrap();
+    let a = zarr_array(
+        dir.path(),
+        "zero",
+        v3(
+            serde_json::json!([8, 8, 8]),
+            serde_json::json!([4, 0, 4]),
+            "uint8",
+        ),
+    );
+    let e = err(ZarrSource::open_level_array(&a));
+    assert_refused(
+        &e,
+        "zero/zarr.json",
+        "chunk_grid.configuration.chunk_shape",
+        &["3 positive integers", "[4,0,4]"],
+    );
+    // Zarr v2: `chunks`.
+    let a = dir.path().join("zero-v2");
+    write(
+        &a,
+        ".zarray",
+        br#"{"zarr_format":2,"shape":[8,8,8],"chunks":[0,8,8],"dtype":"|u1","compressor":null,"fill_value":0,"order":"C","filters":null}"#,
+    );
+    let e = err(ZarrSource::open_level_array(&a));
+    assert_refused(&e, "zero-v2/.zarray", "chunks", &["3 positive integers"]);
+
+    // One 64 GiB chunk for a tiny array.
+    let a = zarr_array(
+        dir.path(),
+        "bigchunk",
+        v3(
+            serde_json::json!([2, 2, 2]),
+            serde_json::json!([4096, 4096, 4096]),
+            "uint8",
+        ),
+    );
+    let e = err(ZarrSource::open_level_array(&a));
+    assert_refused(
+        &e,
+        "bigchunk/zarr.json",
+        "chunk_grid.configuration.chunk_shape",
+        &["68719476736 bytes", "at most"],
+    );
+}
+
+/// A sharded array whose shards would list 2^36 inner chunks each.
+#[test]
+fn zarr_absurd_shard_index() {
+    let dir = tempfile::tempdir().unwrap();
+    let mut j = v3(
+        serde_json::json!([8, 8, 8]),
+        serde_json::json!([4096, 4096, 4096]),
+        "uint8",
+    );
+    j["codecs"] = serde_json::json!([{
+        "name": "sharding_indexed",
+        "configuration": {
+            "chunk_shape": [1, 1, 1],
+            "codecs": [{"name": "bytes", "configuration": {"endian": "little"}}],
+            "index_codecs": [{"name": "bytes", "configuration": {"endian": "little"}}, {"name": "crc32c"}],
+            "index_location": "end"
+        }
+    }]);
+    let a = zarr_array(dir.path(), "index", j);
+    let e = err(ZarrSource::open_level_array(&a));
+    assert_refused(
+        &e,
+        "index/zarr.json",
+        "sharding_indexed.chunk_shape",
+        &["68719476736 inner chunks", "at most 16777216"],
+    );
+}
+
+// ---------------------------------------------------------------------------
+// Shard index
+
+/// Convert a small volume to a store and return (tempdir, store, the
+/// level-0 shard file holding the first brick).
+fn small_store() -> (tempfile::TempDir, PathBuf, PathBuf) {
+    let src = common::make_source([16, 16, 16], 1, DType::U16, 3);
+    let dir = tempfile::tempdir().unwrap();
+    let out = dir.path().join("s.ome.zarr");
+    let opts = ConvertOptions {
+        brick: [8; 3],
+        shard: [16; 3],
+        compression: Compression::None,
+        ..Default::default()
+    };
+    convert(&src, &out, &opts, &NoProgress, &AtomicBool::new(false)).unwrap();
+    let shard = out.join("0/c/0/0/0");
+    assert!(shard.exists());
+    (dir, out, shard)
+}
+
+/// Rewrite entry `k` of a brickyard shard's index (8 entries, CRC after
+/// them) and fix the CRC, so that only the entry is wrong.
+fn set_entry(shard: &Path, k: usize, off: u64, n: u64) {
+    let mut b = std::fs::read(shard).unwrap();
+    let ib = b.len() - (8 * 16 + 4);
+    b[ib + 16 * k..ib + 16 * k + 8].copy_from_slice(&off.to_le_bytes());
+    b[ib + 16 * k + 8..ib + 16 * k + 16].copy_from_slice(&n.to_le_bytes());
+    let crc = crc32c::crc32c(&b[ib..ib + 8 * 16]);
+    let l = b.len();
+    b[l - 4..].copy_from_slice(&crc.to_le_bytes());
+    std::fs::write(shard, b).unwrap();
+}
+
+fn read_level0(store: &Path) -> brickyard_store::Result<()> {
+    let src = zarr::open(store, 0)?;
+    read_all(&src)
+}
+
+#[test]
+fn shard_entry_past_the_end_of_the_shard() {
+    let (_d, store, shard) = small_store();
+    read_level0(&store).unwrap();
+    for (off, n) in [
+        (0, 1u64 << 40),
+        (1 << 40, 16),
+        (u64::MAX - 8, 16),
+        (0, u64::MAX),
+    ] {
+        set_entry(&shard, 0, off, n);
+        let e = err(read_level0(&store));
+        assert_refused(
+            &e,
+            "0/c/0/0/0",
+            "shard index",
+            &["entry 0", "must lie in bytes 0.."],
+        );
+    }
+    // An entry inside the index itself is refused too.
+    let len = std::fs::metadata(&shard).unwrap().len();
+    set_entry(&shard, 0, len - 100, 64);
+    let e = err(read_level0(&store));
+    assert_refused(&e, "0/c/0/0/0", "shard index", &["entry 0"]);
+}
+
+#[test]
+fn shard_bad_crc_and_truncated_shard() {
+    let (_d, store, shard) = small_store();
+    let mut b = std::fs::read(&shard).unwrap();
+    let l = b.len();
+    b[l - 1] ^= 0xff;
+    std::fs::write(&shard, &b).unwrap();
+    let e = err(read_level0(&store));
+    assert_refused(
+        &e,
+        "0/c/0/0/0",
+        "shard index",
+        &["CRC32C", "does not match"],
+    );
+
+    std::fs::write(&shard, &b[..100]).unwrap();
+    let e = err(read_level0(&store));
+    assert_refused(
+        &e,
+        "0/c/0/0/0",
+        "shard index",
+        &["holds 100 bytes", "132 bytes"],
+    );
+}
+
+#[test]
+fn shard_index_parser() {
+    let p = Path::new("shard");
+    let layout = IndexLayout::brickyard(2);
+    // Two chunks of 3 bytes, then the index.
+    let mut b = vec![1u8, 2, 3, 4, 5, 6];
+    for (o, n) in [(0u64, 3u64), (3, 3)] {
+        b.extend(o.to_le_bytes());
+        b.extend(n.to_le_bytes());
+    }
+    let crc = crc32c::crc32c(&b[6..]);
+    b.extend(crc.to_le_bytes());
+    assert_eq!(
+        shard::parse_index(p, &b, &layout).unwrap(),
+        vec![[0, 3], [3, 3]]
+    );
+    // Index at the start: offsets count from the start of the file.
+    let start = IndexLayout {
+        location: IndexLocation::Start,
+        crc32c: false,
+        ..layout
+    };
+    let mut s = Vec::new();
+    for (o, n) in [(32u64, 3u64), (u64::MAX, u64::MAX)] {
+        s.extend(o.to_le_bytes());
+        s.extend(n.to_le_bytes());
+    }
+    s.extend([9, 9, 9]);
+    assert_eq!(
+        shard::parse_index(p, &s, &start).unwrap(),
+        vec![[32, 3], [u64::MAX, u64::MAX]]
+    );
+    s[0] = 0; // offset 0: inside the index
+    let e = err(shard::parse_index(p, &s, &start));
+    assert_refused(&e, "shard", "shard index", &["entry 0", "bytes 32..35"]);
+    let e = err(shard::parse_index(p, &b[..10], &layout));
+    assert_refused(&e, "shard", "shard index", &["holds 10 bytes"]);
+}
+
+// ---------------------------------------------------------------------------
 // Inputs found by fuzzing (tests/fuzz/, named after their fuzz target)
 
 fn fuzz_input(name: &str) -> PathBuf {
@@ -566,5 +844,57 @@ fn fuzz_tiff_tag_count() {
         "tiff_header-tag-count.tif",
         "IFD",
         &["page 1", "more values than the file could hold"],
+    );
+}
+
+/// Lay out an input of the `zarr_array` fuzz target as that target does:
+/// the metadata up to the first NUL byte, then the first chunk.
+fn zarr_array_input(dir: &Path, name: &str) -> PathBuf {
+    let data = std::fs::read(fuzz_input(name)).unwrap();
+    let i = data.iter().position(|&b| b == 0).unwrap();
+    let (meta, chunk) = (&data[..i], &data[i + 1..]);
+    let j: serde_json::Value = serde_json::from_slice(meta).unwrap();
+    let n = j["shape"].as_array().unwrap().len();
+    let a = dir.join(name);
+    if j["zarr_format"] == 2 {
+        write(&a, ".zarray", meta);
+        write(&a, &vec!["0"; n].join("."), chunk);
+    } else {
+        write(&a, "zarr.json", meta);
+        write(&a, &format!("c/{}", vec!["0"; n].join("/")), chunk);
+    }
+    a
+}
+
+/// `zarr_array`: a Zarr v2 array of shape [3, 4, 0] opened as an empty
+/// volume (which the fuzz target then read out of bounds).
+#[test]
+fn fuzz_zarr_empty_shape() {
+    let dir = tempfile::tempdir().unwrap();
+    let a = zarr_array_input(dir.path(), "zarr_array-empty-shape");
+    let e = err(ZarrSource::open_level_array(&a));
+    assert_refused(
+        &e,
+        "zarr_array-empty-shape/.zarray",
+        "shape",
+        &["[3, 4, 0] holds no voxels"],
+    );
+}
+
+/// `zarr_array` (a seed with one index entry set by hand): a shard index
+/// without CRC whose entry claims 2^40 bytes; `zarrs` allocated them
+/// before reading the gzip-compressed inner chunk (an abort).
+#[test]
+fn fuzz_zarr_shard_entry() {
+    let dir = tempfile::tempdir().unwrap();
+    let a = zarr_array_input(dir.path(), "zarr_array-shard-entry");
+    let src = ZarrSource::open_level_array(&a).unwrap();
+    let mut out = vec![0u8; 2];
+    let e = err(src.read_region(0, 0..1, 0..1, 0..1, &mut out));
+    assert_refused(
+        &e,
+        "c/0/0/0",
+        "shard index",
+        &["entry 0", "1099511627776 bytes"],
     );
 }

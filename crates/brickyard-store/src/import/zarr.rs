@@ -3,10 +3,11 @@
 
 use crate::error::{Result, StoreError};
 use crate::omezarr::{read_json, read_multiscale, Multiscale};
+use crate::shard::{self, IndexLayout};
 use crate::source::{check_region, SourceMeta, VolumeSource};
 use brickyard_core::{as_bytes, dispatch_dtype, DType, Dims3};
 use serde_json::Value;
-use std::collections::HashMap;
+use std::collections::{HashMap, HashSet};
 use std::ops::Range;
 use std::path::{Path, PathBuf};
 use std::sync::{Arc, Mutex};
@@ -18,6 +19,19 @@ use zarrs::filesystem::FilesystemStore;
 
 /// Most shard decoders kept by one source.
 pub const SHARD_CACHE_MAX: usize = 256;
+
+/// Largest chunk (inner chunk of a sharded array) decoded in one piece:
+/// metadata asking for more is refused when the array is opened.
+pub const MAX_CHUNK_BYTES: u64 = 1 << 30;
+
+/// Most channels read from one array: every channel costs per-channel
+/// state downstream, and an array's channel axis, unlike a file's, need
+/// not be backed by any data.
+pub const MAX_CHANNELS: u64 = 1 << 16;
+
+/// Shards whose index was checked, remembered per source (the set is
+/// cleared when it grows past this, so it stays small).
+const CHECKED_SHARDS_MAX: usize = 1 << 16;
 
 /// A 3D (optionally multi-channel) view of one Zarr array.
 pub struct ZarrSource {
@@ -35,6 +49,8 @@ pub struct ZarrSource {
     /// Optional cache of decoded read-granularity chunks (see
     /// [`ZarrSource::enable_chunk_cache`]).
     chunk_cache: Option<ChunkCache>,
+    /// Shard index checking, for sharded arrays whose index layout is known.
+    shard_check: Option<ShardCheck>,
     /// The multiscale metadata, when the path was an OME-Zarr image.
     pub multiscale: Option<Multiscale>,
     /// The array's directory (chunk keys are relative to it).
@@ -99,11 +115,169 @@ pub fn open(path: &Path, level: usize) -> Result<ZarrSource> {
     open_array(&apath, Some((ms, level)), Some(ds0.path))
 }
 
+/// Shard index checking of one sharded array.
+struct ShardCheck {
+    layout: IndexLayout,
+    /// The array's directory (shard keys are relative to it).
+    dir: PathBuf,
+    /// Shards (by grid index) whose index was found sound.
+    checked: Mutex<HashSet<Vec<u64>>>,
+}
+
+/// The metadata file of the array at `apath` and its chunk shape key.
+fn metadata_file(apath: &Path) -> (PathBuf, &'static str) {
+    if apath.join("zarr.json").exists() {
+        (
+            apath.join("zarr.json"),
+            "chunk_grid.configuration.chunk_shape",
+        )
+    } else {
+        (apath.join(".zarray"), "chunks")
+    }
+}
+
+/// Check the shape and chunk shape of an array's metadata before the Zarr
+/// library sees them: lists of positive integers of one length (an empty
+/// array has nothing to convert or show). The library's own errors about
+/// these are less clear, and it accepts empty arrays.
+fn precheck_metadata(apath: &Path) -> Result<()> {
+    let (file, chunk_key) = metadata_file(apath);
+    let j = read_json(&file)?;
+    let ints = |v: Option<&Value>| -> Option<Vec<u64>> {
+        v?.as_array()?.iter().map(Value::as_u64).collect()
+    };
+    let shape = ints(j.get("shape")).ok_or_else(|| {
+        StoreError::invalid(
+            &file,
+            "shape",
+            "expected a list of positive integers (one size per axis)",
+        )
+    })?;
+    if shape.contains(&0) {
+        return Err(StoreError::invalid(
+            &file,
+            "shape",
+            format!("{shape:?} holds no voxels; every axis needs a size of at least 1"),
+        ));
+    }
+    let chunk_json = if chunk_key == "chunks" {
+        j.get("chunks")
+    } else {
+        match j.get("chunk_grid").and_then(|g| g.get("name")) {
+            Some(Value::String(n)) if n == "regular" => j
+                .get("chunk_grid")
+                .and_then(|g| g.get("configuration"))
+                .and_then(|c| c.get("chunk_shape")),
+            // Other grids: the library checks them.
+            _ => return Ok(()),
+        }
+    };
+    let chunk = ints(chunk_json).filter(|c| c.len() == shape.len() && !c.contains(&0));
+    if chunk.is_none() {
+        return Err(StoreError::invalid(
+            &file,
+            chunk_key,
+            format!(
+                "expected {} positive integers (one per axis of the shape {shape:?}), found {}",
+                shape.len(),
+                chunk_json.map_or("nothing".to_string(), |v| {
+                    let s = v.to_string();
+                    if s.len() > 80 {
+                        format!("{}...", s.chars().take(80).collect::<String>())
+                    } else {
+                        s
+                    }
+                })
+            ),
+        ));
+    }
+    Ok(())
+}
+
+/// Check an opened array's sizes: the array addressable in bytes, one
+/// decoded (inner) chunk at most [`MAX_CHUNK_BYTES`], and the shard index
+/// layout. Returns the shard check to use when reading.
+fn check_sizes(
+    apath: &Path,
+    array: &Array<FilesystemStore>,
+    mj: &Value,
+    dtype: DType,
+) -> Result<Option<ShardCheck>> {
+    let (file, chunk_key) = metadata_file(apath);
+    let shape = array.shape();
+    let size = dtype.size() as u64;
+    shape
+        .iter()
+        .try_fold(size, |a, &s| a.checked_mul(s))
+        .filter(|&b| b <= i64::MAX as u64)
+        .ok_or_else(|| {
+            StoreError::invalid(
+                &file,
+                "shape",
+                format!("{shape:?} of {dtype} makes an array of more than 2^63 bytes"),
+            )
+        })?;
+    let n = shape.len();
+    let chunk: Vec<u64> = array
+        .chunk_shape(&vec![0; n])
+        .map_err(|e| StoreError::zarr(apath, e))?
+        .iter()
+        .map(|c| c.get())
+        .collect();
+    let sharding = mj.get("codecs").and_then(Value::as_array).and_then(|c| {
+        c.iter()
+            .position(|c| c.get("name").and_then(Value::as_str) == Some("sharding_indexed"))
+            .map(|i| (i, &c[i]))
+    });
+    let (grain, grain_key): (Vec<u64>, &str) = match (array.is_sharded(), sharding) {
+        (true, Some(_)) => match array.effective_subchunk_shape() {
+            Some(s) => (
+                s.iter().map(|c| c.get()).collect(),
+                "sharding_indexed.chunk_shape",
+            ),
+            None => (chunk.clone(), chunk_key),
+        },
+        _ => (chunk.clone(), chunk_key),
+    };
+    let grain_bytes = grain
+        .iter()
+        .try_fold(size, |a, &c| a.checked_mul(c))
+        .unwrap_or(u64::MAX);
+    if grain_bytes > MAX_CHUNK_BYTES {
+        return Err(StoreError::invalid(
+            &file,
+            grain_key,
+            format!(
+                "chunks of {grain:?} {dtype} hold {grain_bytes} bytes; at most {MAX_CHUNK_BYTES} \
+                 are decoded in one piece"
+            ),
+        ));
+    }
+    let Some((pos, codec)) = sharding.filter(|_| array.is_sharded()) else {
+        return Ok(None);
+    };
+    if pos != 0 {
+        // Array-to-array codecs before sharding change the shard's shape;
+        // leave such (rare) arrays to the library.
+        return Ok(None);
+    }
+    let empty = Value::Null;
+    let config = codec.get("configuration").unwrap_or(&empty);
+    Ok(
+        IndexLayout::from_codec(&file, config, &chunk)?.map(|layout| ShardCheck {
+            layout,
+            dir: apath.to_path_buf(),
+            checked: Mutex::new(HashSet::new()),
+        }),
+    )
+}
+
 fn open_array(
     apath: &Path,
     ms: Option<(Multiscale, usize)>,
     _p0: Option<String>,
 ) -> Result<ZarrSource> {
+    precheck_metadata(apath)?;
     let store = Arc::new(FilesystemStore::new(apath).map_err(|e| StoreError::zarr(apath, e))?);
     let array = Array::open(store, "/").map_err(|e| StoreError::zarr(apath, e))?;
     let mj = serde_json::to_value(array.metadata()).map_err(|e| StoreError::zarr(apath, e))?;
@@ -129,6 +303,7 @@ fn open_array(
             format!("{n} dimensions; expected 2 to 5"),
         ));
     }
+    let shard_check = check_sizes(apath, &array, &mj, dtype)?;
     // Axis names: from the multiscale, else from dimension_names, else positional.
     let mut names: Vec<Option<String>> = vec![None; n];
     let mut kinds: Vec<Option<String>> = vec![None; n];
@@ -197,7 +372,18 @@ fn open_array(
     }
     let dim = |a: Option<usize>| a.map(|i| shape[i]).unwrap_or(1);
     let dims: Dims3 = [dim(zyx[0]), dim(zyx[1]), dim(zyx[2])];
-    let channels = caxis.map(|i| shape[i] as usize).unwrap_or(1);
+    let channels = caxis.map(|i| shape[i]).unwrap_or(1);
+    if channels > MAX_CHANNELS {
+        return Err(StoreError::invalid(
+            metadata_file(apath).0,
+            "shape",
+            format!(
+                "{channels} channels (axis {} of {shape:?}); at most {MAX_CHANNELS} are supported",
+                caxis.unwrap_or(0)
+            ),
+        ));
+    }
+    let channels = channels as usize;
     let mut meta = SourceMeta::new(apath, dims, channels, dtype);
     if let Some((m, level)) = &ms {
         let ds = &m.datasets[*level];
@@ -232,6 +418,7 @@ fn open_array(
     let shards = ArrayShardedReadableExtCache::new(&array);
     Ok(ZarrSource {
         chunk_cache: None,
+        shard_check,
         shards,
         meta,
         array,
@@ -334,6 +521,7 @@ impl ZarrSource {
                 Some(d) => d,
                 None => {
                     let sub = ArraySubset::new_with_ranges(&creg);
+                    self.check_shards(&sub)?;
                     let v: Vec<T> = if self.shards.array_is_sharded() {
                         self.array.retrieve_array_subset_sharded_opt::<Vec<T>>(
                             &self.shards,
@@ -407,6 +595,44 @@ impl ZarrSource {
         Ok(out)
     }
 
+    /// Check the index of every shard that `subset` (array axis order)
+    /// touches and that was not checked before (see [`shard::read_index`]),
+    /// so that a damaged index is a clear error before the Zarr library
+    /// sizes a read from it.
+    fn check_shards(&self, subset: &ArraySubset) -> Result<()> {
+        let Some(sc) = &self.shard_check else {
+            return Ok(());
+        };
+        let shards = self
+            .array
+            .chunks_in_array_subset(subset)
+            .map_err(|e| StoreError::zarr(&sc.dir, e))?;
+        let Some(shards) = shards else {
+            return Ok(());
+        };
+        for idx in &shards.indices() {
+            if sc
+                .checked
+                .lock()
+                .unwrap_or_else(std::sync::PoisonError::into_inner)
+                .contains(&idx[..])
+            {
+                continue;
+            }
+            let path = sc.dir.join(self.array.chunk_key(&idx).as_str());
+            shard::read_index(&path, &sc.layout)?;
+            let mut checked = sc
+                .checked
+                .lock()
+                .unwrap_or_else(std::sync::PoisonError::into_inner);
+            if checked.len() >= CHECKED_SHARDS_MAX {
+                checked.clear();
+            }
+            checked.insert(idx.to_vec());
+        }
+        Ok(())
+    }
+
     /// Open one Zarr array directory directly (no multiscale metadata).
     pub fn open_level_array(path: &Path) -> Result<ZarrSource> {
         open_array(path, None, None)
@@ -474,6 +700,7 @@ impl VolumeSource for ZarrSource {
             let v: Vec<T> = if let Some(cc) = &self.chunk_cache {
                 self.read_cached::<T>(cc, &ranges)?
             } else if self.shards.array_is_sharded() {
+                self.check_shards(&subset)?;
                 self.array
                     .retrieve_array_subset_sharded_opt::<Vec<T>>(&self.shards, &subset, &CodecOptions::default())
                     .map_err(|e| StoreError::zarr(path, e))?
