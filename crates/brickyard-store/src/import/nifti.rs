@@ -20,8 +20,9 @@
 //! fit, else the values are float. Deciding that may need the range of the
 //! stored numbers: then [`open_with`] reads the voxels once, streaming, to
 //! find it (only for integer data with an integer slope and intercept whose
-//! rescaled type range overflows the stored type, such as int16 CT with
-//! intercept −1024).
+//! rescaled type range overflows the stored type and where the stored
+//! numbers could change the answer, such as int16 CT with intercept −1024;
+//! not for uint8 with intercept −1024, which is int16 whatever they are).
 //!
 //! Memory stays bounded: an uncompressed file is read with positioned reads
 //! at `vox_offset`; a gzip-compressed one is decompressed sequentially by a
@@ -1487,10 +1488,15 @@ mod tests {
         let p = scaled_file(dir.path(), "u8a.nii", u8s(2.0, -1024.0), stored.clone());
         let src = open(&p).unwrap();
         assert_eq!(src.meta().dtype, DType::I16);
+        assert_eq!(
+            src.meta().scaling.as_ref().unwrap().scanned,
+            None,
+            "no stored number fits uint8 after −1024: int16 without a scan"
+        );
         let want: Vec<i16> = stored.iter().map(|&v| v as i16 * 2 - 1024).collect();
         assert_eq!(from_ne(&read_all(&src, 0), i16::from_ne_bytes), want);
         assert!(
-            src.meta().notes[0].contains("(uint8 → int16, exact"),
+            src.meta().notes[0].contains("(uint8 → int16, exact)"),
             "{:?}",
             src.meta().notes
         );

@@ -9,7 +9,8 @@
 //!   else the narrowest wider type that holds them (`uint8` with intercept
 //!   −1024 becomes `int16`). Whether they fit is judged over the range of the
 //!   stored type or, better, over the range of the numbers actually stored
-//!   when the caller has scanned it;
+//!   when the caller has scanned it ([`Choice::NeedsRange`] asks for that
+//!   only when the answer can depend on it);
 //! * anything else becomes float: float32 for 8- and 16-bit input, float64
 //!   for 32-bit input (float32 would round stored integers above 2²⁴).
 //!
@@ -197,22 +198,45 @@ pub fn choose_dtype(stored: DType, slope: f64, inter: f64, range: Option<[f64; 2
     if fits(stored) {
         return Choice::Type(stored);
     }
-    if range.is_none() {
-        return Choice::NeedsRange;
-    }
-    // The narrowest wider type, the stored signedness first.
+    // The narrowest type that holds them (at least as wide as the stored
+    // one), the stored signedness first.
     let signed = matches!(stored, DType::I8 | DType::I16 | DType::I32);
     let order: &[DType] = if signed {
-        &[DType::I16, DType::U16, DType::I32, DType::U32]
+        &[
+            DType::I8,
+            DType::U8,
+            DType::I16,
+            DType::U16,
+            DType::I32,
+            DType::U32,
+        ]
     } else {
-        &[DType::U16, DType::I16, DType::U32, DType::I32]
+        &[
+            DType::U8,
+            DType::I8,
+            DType::U16,
+            DType::I16,
+            DType::U32,
+            DType::I32,
+        ]
     };
-    order
+    let pick = order
         .iter()
         .copied()
         .filter(|t| t.size() >= stored.size())
-        .find(|&t| fits(t))
-        .map_or(Choice::Type(float), Choice::Type)
+        .find(|&t| fits(t));
+    if range.is_none() {
+        // Over the type's range the values overflow the stored type. The
+        // numbers actually stored may do better, unless no stored number
+        // maps into the stored type at all and the type's range already
+        // fits the next size up (uint8 with intercept −1024: int16).
+        let never_fits = hi < tlo || lo > thi;
+        match pick {
+            Some(t) if never_fits && t.size() == 2 * stored.size() => {}
+            _ => return Choice::NeedsRange,
+        }
+    }
+    pick.map_or(Choice::Type(float), Choice::Type)
 }
 
 /// A number as people write it: a value that came from a float32 header
@@ -336,11 +360,33 @@ mod tests {
             choose_dtype(DType::I16, 1.0, -1024.0, Some([-32768.0, 100.0])),
             Type(DType::I32)
         );
-        // uint8 minus 1024: int16, whatever the stored numbers.
-        assert_eq!(choose_dtype(DType::U8, 1.0, -1024.0, None), NeedsRange);
+        // uint8 minus 1024: int16 whatever the stored numbers, so no scan.
+        assert_eq!(
+            choose_dtype(DType::U8, 1.0, -1024.0, None),
+            Type(DType::I16)
+        );
+        assert_eq!(
+            choose_dtype(DType::U8, 2.0, -1024.0, None),
+            Type(DType::I16)
+        );
         assert_eq!(
             choose_dtype(DType::U8, 1.0, -1024.0, Some([0.0, 255.0])),
             Type(DType::I16)
+        );
+        // int8 plus 128 over its whole range: uint8 (same size).
+        assert_eq!(choose_dtype(DType::I8, 1.0, 128.0, None), NeedsRange);
+        assert_eq!(
+            choose_dtype(DType::I8, 1.0, 128.0, Some([-128.0, 127.0])),
+            Type(DType::U8)
+        );
+        // int16 times 4 never fits int16 over its range, but int32 is two
+        // sizes up: the stored numbers decide.
+        assert_eq!(choose_dtype(DType::I16, 4.0, 0.0, None), NeedsRange);
+        // Disjoint from the stored type but beyond the next size: scan.
+        assert_eq!(choose_dtype(DType::U8, 1.0, 70000.0, None), NeedsRange);
+        assert_eq!(
+            choose_dtype(DType::U8, 1.0, 70000.0, Some([0.0, 3.0])),
+            Type(DType::U32)
         );
         // uint8 plus 10: uint8 kept when the stored numbers leave room.
         assert_eq!(
