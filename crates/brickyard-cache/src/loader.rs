@@ -146,23 +146,24 @@ impl LevelStats {
         Some((chunk[e], chunk[e + 1]))
     }
 
-    /// The first store brick touching `[lo, hi)` whose statistics say it
-    /// holds something other than zeros: `(brick, min, max)`.
-    fn data_in(&self, c: u64, lo: Dims3, hi: Dims3) -> Option<(Dims3, f64, f64)> {
+    /// The store bricks touching `[lo, hi)` whose statistics say they hold
+    /// something other than zeros: `(brick, min, max)` each.
+    fn data_in(&self, c: u64, lo: Dims3, hi: Dims3) -> Vec<(Dims3, f64, f64)> {
         let sb = self.brick;
         let r = [0, 1, 2].map(|a| lo[a] / sb[a]..=(hi[a] - 1) / sb[a]);
+        let mut out = vec![];
         for z in r[0].clone() {
             for y in r[1].clone() {
                 for x in r[2].clone() {
                     if let Some((mn, mx)) = self.get(c, [z, y, x]) {
                         if mn != 0.0 || mx != 0.0 {
-                            return Some(([z, y, x], mn, mx));
+                            out.push(([z, y, x], mn, mx));
                         }
                     }
                 }
             }
         }
-        None
+        out
     }
 
     /// The common value of every store brick touching `[lo, hi)` if they
@@ -337,14 +338,14 @@ impl Shared {
                         // cannot tell from the fill value.
                         let o = g.origin_of(key);
                         let e = [0, 1, 2].map(|a| o[a] + ext[a]);
-                        if let Some((b, mn, mx)) = st.data_in(c, o, e) {
+                        for (b, mn, mx) in st.data_in(c, o, e) {
                             let v = [0, 1, 2].map(|a| b[a] * st.brick[a]);
-                            if let Some(f) = level.src.chunk_file(c as usize, v).filter(|f| !f.exists()) {
+                            if let Some((f, why)) = level.src.chunk_absent(c as usize, v) {
                                 return Err(StoreError::invalid(
                                     f,
                                     format!("channel {c} store brick {b:?}"),
                                     format!(
-                                        "the file is missing, but the statistics say this brick holds values in [{mn}, {mx}]"
+                                        "{why}, but the statistics say this brick holds values in [{mn}, {mx}]"
                                     ),
                                 ));
                             }

@@ -754,6 +754,149 @@ fn a_deleted_shard_where_statistics_say_data_is_a_failure_naming_the_file() {
     assert!(e.contains("missing") && e.contains("store brick"), "{e}");
 }
 
+/// The shard file of level 0 holding store brick `[0, 0, 0]`.
+fn first_shard(store: &Path) -> PathBuf {
+    let mut shards = vec![];
+    shard_files(&store.join("0"), &mut shards);
+    shards
+        .into_iter()
+        .find(|p| p.to_str().unwrap().ends_with("/0/0/0"))
+        .expect("a shard at the origin")
+}
+
+#[test]
+fn a_chunk_dropped_from_its_shard_index_is_a_failure_naming_the_file() {
+    // The shard file is there and its index is sound (CRC32C included),
+    // but the entry of one inner chunk says "absent": a Zarr reader gives
+    // the fill value; the statistics say the brick holds data.
+    let dir = tempfile::tempdir().unwrap();
+    let store = noise_store(dir.path());
+    let shard = first_shard(&store);
+    let mut bytes = std::fs::read(&shard).unwrap();
+    // 16³ shards of 8³ inner chunks: 8 entries of 16 bytes, then the CRC.
+    let ib = 8 * 16 + 4;
+    let at = bytes.len() - ib;
+    let crc = |b: &[u8]| crc32c::crc32c(&b[at..at + 128]).to_le_bytes();
+    assert_eq!(
+        crc(&bytes),
+        bytes[at + 128..],
+        "the index layout assumed here"
+    );
+    bytes[at..at + 16].fill(0xff);
+    let c = crc(&bytes);
+    bytes[at + 128..].copy_from_slice(&c);
+    std::fs::write(&shard, &bytes).unwrap();
+
+    let loader = Loader::open(&store, [8; 3], 0, 1, Arc::new(HostCache::new(1 << 30))).unwrap();
+    let e = loader
+        .load_now(&BrickKey::new(0, 0, [0, 0, 0]))
+        .unwrap_err()
+        .to_string();
+    assert!(e.contains(shard.to_str().unwrap()), "{e}");
+    assert!(e.contains("no entry for its inner chunk"), "{e}");
+    // Its neighbours in the same shard still load, with their values.
+    let levels = read_levels(&store, 1);
+    let g = loader.geometry().clone();
+    for k in [[0, 0, 1], [0, 1, 0], [1, 1, 1]] {
+        let k = BrickKey::new(0, 0, k);
+        let b = loader.load_now(&k).unwrap();
+        assert_eq!(brick_values(&b, &g), crop(&levels, &g, &k).0, "{k:?}");
+    }
+}
+
+#[test]
+fn a_store_damaged_while_open_fails_bricks_and_keeps_serving_the_rest() {
+    // Some bricks of each shard are read (the reader now holds their shard
+    // indexes), then the store changes under the open loader: one shard
+    // scrambled in place (same length), one truncated, one deleted, and a
+    // whole coarser level removed. The rest are then asked for: no panic,
+    // every brick either equals its crop or is a reported failure, the
+    // untouched shards' bricks all arrive, and the loader keeps working.
+    let dir = tempfile::tempdir().unwrap();
+    let store = noise_store(dir.path());
+    let levels = read_levels(&store, 2);
+    let loader = Loader::open(&store, [8; 3], 0, 2, Arc::new(HostCache::new(0))).unwrap();
+    let g = loader.geometry().clone();
+    let keys: Vec<BrickKey> = g.keys(0, 0).collect();
+    let (early, late): (Vec<BrickKey>, Vec<BrickKey>) = keys
+        .iter()
+        .partition(|k| k.brick.iter().sum::<u32>() % 2 == 0);
+    let got = load_all(&loader, &early);
+    assert_eq!(got.len(), early.len());
+    assert!(loader.take_failures().is_empty());
+
+    let mut shards = vec![];
+    shard_files(&store.join("0"), &mut shards);
+    shards.sort();
+    assert!(shards.len() >= 6);
+    let len = std::fs::metadata(&shards[0]).unwrap().len() as usize;
+    std::fs::write(&shards[0], vec![0x5Au8; len]).unwrap();
+    let f = std::fs::OpenOptions::new()
+        .write(true)
+        .open(&shards[1])
+        .unwrap();
+    f.set_len(len as u64 / 3).unwrap();
+    drop(f);
+    std::fs::remove_file(&shards[2]).unwrap();
+    std::fs::remove_dir_all(store.join("1")).unwrap();
+    let damaged: Vec<&PathBuf> = shards[..3].iter().collect();
+    // The shard file of a level-0 brick (16³ shards of 8³ bricks).
+    let shard_of = |k: &BrickKey| {
+        let s = k.brick.map(|p| p / 2);
+        shards
+            .iter()
+            .find(|p| {
+                p.to_str()
+                    .unwrap()
+                    .ends_with(&format!("/{}/{}/{}", s[0], s[1], s[2]))
+            })
+            .unwrap()
+    };
+
+    let got = load_all(&loader, &late);
+    let failures = loader.take_failures();
+    assert_eq!(got.len() + failures.len(), late.len());
+    for (k, b) in &got {
+        assert_eq!(brick_values(b, &g), crop(&levels, &g, k).0, "{k:?}");
+    }
+    for f in &failures {
+        assert!(
+            damaged.contains(&shard_of(&f.key)),
+            "{:?} failed but its shard was not damaged: {}",
+            f.key,
+            f.message
+        );
+    }
+    let lost: HashSet<&PathBuf> = failures.iter().map(|f| shard_of(&f.key)).collect();
+    assert!(
+        lost.len() >= 2,
+        "failures in {} of the 3 damaged shards",
+        lost.len()
+    );
+    for k in &late {
+        if !damaged.contains(&shard_of(k)) {
+            assert!(
+                got.contains_key(k),
+                "{k:?} of an intact shard did not arrive"
+            );
+        }
+    }
+    // The removed level fails brick by brick; level 0 still serves.
+    let l1: Vec<BrickKey> = g.keys(1, 0).collect();
+    let got1 = load_all(&loader, &l1);
+    let f1 = loader.take_failures();
+    assert_eq!(got1.len() + f1.len(), l1.len());
+    assert!(!f1.is_empty());
+    let intact: Vec<BrickKey> = late
+        .iter()
+        .filter(|k| !damaged.contains(&shard_of(k)))
+        .copied()
+        .collect();
+    assert!(!intact.is_empty());
+    loader.retry_failed();
+    assert_eq!(load_all(&loader, &intact).len(), intact.len());
+}
+
 #[test]
 fn read_delay_slows_reads_only() {
     let dir = tempfile::tempdir().unwrap();

@@ -88,11 +88,13 @@ pub trait VolumeSource: Send + Sync {
         [1, d[1], d[2]]
     }
 
-    /// The file that holds voxel `v` (`[z, y, x]`) of channel `c`, for
-    /// sources stored as one file per chunk or shard (`None`: not such a
-    /// source). A reader that finds such a file missing reads the fill
-    /// value; callers that know data should be there check it.
-    fn chunk_file(&self, _c: usize, _v: Dims3) -> Option<std::path::PathBuf> {
+    /// Whether the store has no data for the chunk that holds voxel `v`
+    /// (`[z, y, x]`) of channel `c`, for sources stored as files of chunks
+    /// or shards: `Some((file, why))` when its file is missing or its shard's
+    /// index has no entry for it. A Zarr reader reads such a chunk as the
+    /// fill value; callers that know data should be there (the store's
+    /// statistics say so) report it. `None`: present, or not such a source.
+    fn chunk_absent(&self, _c: usize, _v: Dims3) -> Option<(std::path::PathBuf, String)> {
         None
     }
 }

@@ -644,19 +644,58 @@ impl ZarrSource {
     }
 }
 
-impl VolumeSource for ZarrSource {
-    fn chunk_file(&self, c: usize, v: Dims3) -> Option<std::path::PathBuf> {
-        let n = self.array.shape().len();
-        let mut idx = vec![0u64; n];
+impl ZarrSource {
+    /// Array coordinates of voxel `v` (`[z, y, x]`) of channel `c`.
+    fn array_coords(&self, c: usize, v: Dims3) -> Vec<u64> {
+        let mut at = vec![0u64; self.array.shape().len()];
         for a in 0..3 {
             if let Some(i) = self.zyx[a] {
-                idx[i] = v[a] / self.chunk[i].max(1);
+                at[i] = v[a];
             }
         }
         if let Some(i) = self.caxis {
-            idx[i] = c as u64 / self.chunk[i].max(1);
+            at[i] = c as u64;
         }
-        Some(self.dir.join(self.array.chunk_key(&idx).as_str()))
+        at
+    }
+}
+
+impl VolumeSource for ZarrSource {
+    fn chunk_absent(&self, c: usize, v: Dims3) -> Option<(PathBuf, String)> {
+        let at = self.array_coords(c, v);
+        let grid: Vec<u64> = at
+            .iter()
+            .zip(&self.chunk)
+            .map(|(&p, &n)| p / n.max(1))
+            .collect();
+        let file = self.dir.join(self.array.chunk_key(&grid).as_str());
+        if !file.exists() {
+            return Some((file, "the file is missing".into()));
+        }
+        // A shard whose index has no entry for the inner chunk (index in C
+        // order over the shard's grid of inner chunks).
+        let sc = self.shard_check.as_ref()?;
+        let inner: Vec<u64> = self
+            .array
+            .effective_subchunk_shape()?
+            .iter()
+            .map(|c| c.get())
+            .collect();
+        let mut entry = 0u64;
+        let mut pos = vec![];
+        for i in 0..at.len() {
+            let per = (self.chunk[i] / inner[i].max(1)).max(1);
+            let k = (at[i] % self.chunk[i].max(1)) / inner[i].max(1);
+            entry = entry * per + k;
+            pos.push(k);
+        }
+        let index = shard::read_index(&file, &sc.layout).ok()??;
+        (index.get(entry as usize)? == &[u64::MAX, u64::MAX]).then(|| {
+            (
+                file,
+                format!("the shard's index has no entry for its inner chunk {pos:?}"),
+            )
+        })
     }
 
     fn meta(&self) -> &SourceMeta {
