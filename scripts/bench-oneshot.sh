@@ -56,7 +56,7 @@ for n in $SIZES; do
   for s in 512 1024; do
     c=$(drop); vtk "$n" "$s" "$c"
     c=$(drop); ours "$n" "$s" "$c"
-    c=$(drop); ours "$n" "$s" "$c" --memory 48MiB
+    c=$(drop); ours "$n" "$s" "$c" --memory 128MiB
     ours "$n" "$s" warm
     ours "$n" "$s" warm --progressive
   done

@@ -14,6 +14,7 @@
 //! only reads per-frame counts.
 
 use crate::cpu::Lod;
+use brickyard_cache::session::{FrameStats, Session};
 
 /// What one frame tells the controller.
 #[derive(Debug, Clone, Copy, Default, PartialEq)]
@@ -34,6 +35,37 @@ pub struct FrameSignals {
     pub free_slots: usize,
     /// Something changed this frame: a brick arrived or loads are pending.
     pub progress: bool,
+}
+
+impl FrameSignals {
+    /// The signals of a frame: `fs` is what the session said of it
+    /// ([`Session::finish_frame`]), `complete` whether every sample was
+    /// served at its own level, `exact_slots` the slots used at their own
+    /// level where the back end counts them. Failed bricks are left out of
+    /// the request counts: asking for them again cannot help.
+    pub fn of_frame(
+        s: &Session,
+        fs: &FrameStats,
+        complete: bool,
+        exact_slots: Option<usize>,
+    ) -> FrameSignals {
+        let failed_in_list = fs
+            .frame
+            .requests
+            .iter()
+            .filter(|k| s.vm().is_failed(**k))
+            .count();
+        FrameSignals {
+            complete,
+            requests: fs.frame.requests.len() - failed_in_list,
+            requested: fs.frame.requested.saturating_sub(failed_in_list),
+            deferred: fs.insert.deferred,
+            exact_slots,
+            free_slots: s.vm().pool_slots() - s.vm().pinned_bricks(),
+            progress: fs.insert.inserted + fs.insert.flagged + fs.delivered > 0
+                || fs.pending + fs.in_flight + fs.waiting_upload > 0,
+        }
+    }
 }
 
 /// Why a non-interactive render stops.

@@ -52,16 +52,8 @@ fn drive(s: &mut Session, scene: &Scene, p: &RenderParams) -> (Image, usize, f64
         s.begin_frame();
         let (img, st, reqs) = render_frame(s.vm(), scene, p, b.apply(Lod::Auto { bias: 0.0 }, 9));
         let fs = s.finish_frame(reqs.iter());
-        let sig = FrameSignals {
-            complete: st.completeness() >= 1.0,
-            requests: fs.frame.requests.len(),
-            requested: fs.frame.requested,
-            deferred: fs.insert.deferred,
-            exact_slots: Some(fs.frame.exact_slots),
-            free_slots: s.vm().pool_slots() - s.vm().pinned_bricks(),
-            progress: fs.insert.inserted + fs.insert.flagged + fs.delivered > 0
-                || fs.pending + fs.in_flight + fs.waiting_upload > 0,
-        };
+        let sig =
+            FrameSignals::of_frame(s, &fs, st.completeness() >= 1.0, Some(fs.frame.exact_slots));
         // Every sample found data at some level.
         assert_eq!(st.unserved, 0, "frame {frame}: samples with no data at all");
         let used = b.bias;

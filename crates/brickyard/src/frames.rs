@@ -55,27 +55,7 @@ pub struct Outcome {
 
 /// The signals of a frame for the LOD budget.
 pub fn signals(s: &Session, f: &Frame) -> FrameSignals {
-    let fs = &f.session;
-    let failed_in_list = fs
-        .frame
-        .requests
-        .iter()
-        .filter(|k| s.vm().is_failed(**k))
-        .count();
-    let free_slots = s.vm().pool_slots() - s.vm().pinned_bricks();
-    FrameSignals {
-        complete: f.stats.completeness() >= 1.0,
-        requests: fs.frame.requests.len() - failed_in_list,
-        requested: fs.frame.requested.saturating_sub(failed_in_list),
-        deferred: fs.insert.deferred,
-        exact_slots: f.exact_slots,
-        free_slots,
-        progress: fs.insert.inserted + fs.insert.flagged > 0
-            || fs.delivered > 0
-            || fs.pending > 0
-            || fs.in_flight > 0
-            || fs.waiting_upload > 0,
-    }
+    FrameSignals::of_frame(s, &f.session, f.stats.completeness() >= 1.0, f.exact_slots)
 }
 
 /// Draw one view until it ends. `lod` is what the user asked for (its bias
@@ -102,53 +82,53 @@ pub fn drive(
         p.height = params.height / 2;
         p
     });
-    if let Some(sp) = &small {
-        while frames < opt.max_frames {
-            let l = match budget.apply(lod, levels) {
-                Lod::Auto { bias } => Lod::Auto { bias: bias - 1.0 },
-                fixed => fixed,
-            };
-            let ft = Instant::now();
-            let f = backend.frame(s, scene, sp, l)?;
-            frames += 1;
-            let sig = signals(s, &f);
-            on_frame(&FrameInfo {
-                frame: frames,
-                pass: true,
-                ms: ft.elapsed().as_secs_f64() * 1e3,
-                bias: budget.bias,
-                bytes_read: s.loader().bytes_read(),
-                f: &f,
-            });
-            match budget.update(&sig) {
-                Decision::Changed { .. } => continue,
-                // Complete, or only failed bricks left, or stalled: the
-                // full image takes over.
-                Decision::Stop(_) => break,
-                Decision::Continue if sig.requests == 0 => break,
-                Decision::Continue => {}
-            }
-        }
-    }
+    // First the request pass (while it finds bricks to ask for), then full
+    // frames until the budget says stop; at least one full frame.
+    let mut pass = small.is_some();
     let mut last = None;
     let mut stop = None;
     let mut completeness = 0.0;
-    // At least one full frame, whatever the request pass took.
-    while frames < opt.max_frames || last.is_none() {
+    loop {
+        if frames >= opt.max_frames {
+            if last.is_some() {
+                break;
+            }
+            pass = false;
+        }
+        let (p, l) = match (&small, pass) {
+            (Some(sp), true) => (
+                sp,
+                match budget.apply(lod, levels) {
+                    Lod::Auto { bias } => Lod::Auto { bias: bias - 1.0 },
+                    fixed => fixed,
+                },
+            ),
+            _ => (params, budget.apply(lod, levels)),
+        };
         let ft = Instant::now();
-        let f = backend.frame(s, scene, params, budget.apply(lod, levels))?;
+        let f = backend.frame(s, scene, p, l)?;
         frames += 1;
         let sig = signals(s, &f);
         on_frame(&FrameInfo {
             frame: frames,
-            pass: false,
+            pass,
             ms: ft.elapsed().as_secs_f64() * 1e3,
             bias: budget.bias,
             bytes_read: s.loader().bytes_read(),
             f: &f,
         });
-        completeness = f.stats.completeness();
         let d = budget.update(&sig);
+        if pass {
+            // Complete, only failed bricks left, stalled, or nothing more
+            // to ask for: the full image takes over.
+            pass = match d {
+                Decision::Changed { .. } => true,
+                Decision::Stop(_) => false,
+                Decision::Continue => sig.requests > 0,
+            };
+            continue;
+        }
+        completeness = f.stats.completeness();
         last = Some(f.image);
         if let Decision::Stop(why) = d {
             stop = Some(why);

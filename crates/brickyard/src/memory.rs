@@ -14,6 +14,10 @@ pub const FIXED_BYTES: u64 = 48 << 20;
 /// and the 8-bit copy written to PNG.
 pub const IMAGE_BYTES_PER_PIXEL: u64 = 16 * 2 + 4 + 4;
 
+/// The viewer's window beyond [`FIXED_BYTES`]: the windowing and OpenGL
+/// libraries (a software OpenGL included), egui, and the views' textures.
+pub const WINDOW_BYTES: u64 = 96 << 20;
+
 /// Physical memory (from /proc/meminfo; 8 GiB where unknown).
 pub fn physical_ram() -> u64 {
     std::fs::read_to_string("/proc/meminfo")
@@ -87,9 +91,22 @@ pub fn split(
     pixels: u64,
     levels: usize,
 ) -> Result<Split> {
+    split_with(total, pool, host, pixels, levels, 0)
+}
+
+/// [`split`] for a program that needs `extra` bytes beyond
+/// [`FIXED_BYTES`] for itself (the viewer's window: see [`WINDOW_BYTES`]).
+pub fn split_with(
+    total: Option<u64>,
+    pool: Option<u64>,
+    host: Option<u64>,
+    pixels: u64,
+    levels: usize,
+    extra: u64,
+) -> Result<Split> {
     let images = pixels * IMAGE_BYTES_PER_PIXEL;
     // Each level's chunk cache keeps at least half a MiB.
-    let fixed = FIXED_BYTES + levels as u64 * (512 << 10);
+    let fixed = FIXED_BYTES + extra + levels as u64 * (512 << 10);
     let explicit = total.is_some();
     let want_total = total.unwrap_or_else(default_memory);
     let rest = want_total.saturating_sub(fixed + images);

@@ -381,6 +381,8 @@ pub fn run(c: RenderCmd) -> Result<Vec<String>> {
     }
     let mut s =
         Session::open_with_budget(&c.store, cfg, split.host, split.chunks, c.loader_threads)?;
+    // The pool's true slot size (from here on: reports and estimates).
+    let slot_bytes = (s.vm().pool_bytes() / s.vm().pool_slots().max(1)) as u64;
     // The coarsest levels stay resident: every sample finds data at some
     // level, whatever the pool's pressure.
     let pinned = s

@@ -332,3 +332,268 @@ quit
         }
     }
 }
+
+fn copy_dir(from: &Path, to: &Path) {
+    std::fs::create_dir_all(to).unwrap();
+    for e in std::fs::read_dir(from).unwrap().flatten() {
+        let (a, b) = (e.path(), to.join(e.file_name()));
+        if a.is_dir() {
+            copy_dir(&a, &b);
+        } else {
+            std::fs::copy(&a, &b).unwrap();
+        }
+    }
+}
+
+fn shard_files(dir: &Path, out: &mut Vec<std::path::PathBuf>) {
+    for e in std::fs::read_dir(dir).unwrap().flatten() {
+        let p = e.path();
+        if p.is_dir() {
+            shard_files(&p, out);
+        } else if p.file_name().unwrap() != "zarr.json" {
+            out.push(p);
+        }
+    }
+}
+
+#[test]
+fn viewer_survives_a_store_damaged_before_and_during_the_session() {
+    // One level-0 shard scrambled before the viewer opens the store; then,
+    // while it shows level 1, another truncated and a third deleted. The
+    // script then asks for level 0: the views settle, the unreadable
+    // bricks are counted and named, and their regions are drawn from
+    // coarser data (no pixel dark where the intact store's image is lit,
+    // up to the coarser data's own edges).
+    let d = tempfile::tempdir().unwrap();
+    let p = |n: &str| d.path().join(n);
+    let store = p("m.ome.zarr");
+    let o = Command::new(bin())
+        .args([
+            "generate",
+            "mandelbulb",
+            s(&store),
+            "--size",
+            "48",
+            "--quiet",
+        ])
+        .args(["--brick", "16", "--shard", "32"])
+        .output()
+        .unwrap();
+    assert!(o.status.success(), "{}", stderr(&o));
+    copy_dir(&store, &p("intact.ome.zarr"));
+    let mut shards = vec![];
+    shard_files(&store.join("0"), &mut shards);
+    shards.sort();
+    assert_eq!(shards.len(), 8, "{shards:?}");
+    let len = std::fs::metadata(&shards[0]).unwrap().len() as usize;
+    std::fs::write(&shards[0], vec![0x5Au8; len]).unwrap();
+
+    let script = format!(
+        "size 3d 96 80
+size xy 64 64
+size xz 64 56
+size yz 56 64
+size oblique 64 64
+level 1
+wait-complete 300
+touch {ready}
+wait-file {go} 300
+level 0
+wait-complete 300
+screenshot 3d {dvr}.png
+save-view 3d {dvr}
+screenshot xz {xz}.png
+save-view xz {xz}
+quit
+",
+        ready = s(&p("ready")),
+        go = s(&p("go")),
+        dvr = s(&p("dvr")),
+        xz = s(&p("xz")),
+    );
+    std::fs::write(p("s.txt"), script).unwrap();
+    let log = p("log.jsonl");
+    let Some(mut cmd) = with_display(&[
+        "view",
+        s(&store),
+        "--script",
+        s(&p("s.txt")),
+        "--log",
+        s(&log),
+        "--pool",
+        "4MiB",
+        "--brick",
+        "8",
+        "--backend",
+        "cpu",
+        "--window-size",
+        "1000x700",
+    ]) else {
+        return;
+    };
+    let child = cmd
+        .stdout(std::process::Stdio::piped())
+        .stderr(std::process::Stdio::piped())
+        .spawn()
+        .unwrap();
+    let t = std::time::Instant::now();
+    while !p("ready").exists() {
+        assert!(
+            t.elapsed().as_secs() < 400,
+            "the viewer never reached the damage point"
+        );
+        std::thread::sleep(std::time::Duration::from_millis(50));
+    }
+    // The store changes under the open session.
+    let f = std::fs::OpenOptions::new()
+        .write(true)
+        .open(&shards[3])
+        .unwrap();
+    f.set_len(len as u64 / 3).unwrap();
+    drop(f);
+    std::fs::remove_file(&shards[5]).unwrap();
+    std::fs::write(p("go"), b"").unwrap();
+    let o = child.wait_with_output().unwrap();
+    let err = stderr(&o);
+    assert!(o.status.success(), "viewer: {err}");
+
+    // Reported: on stderr with the files, and in the log.
+    assert!(err.contains("cannot load"), "{err}");
+    let named = [0, 3, 5]
+        .iter()
+        .filter(|&&i| err.contains(shards[i].to_str().unwrap()))
+        .count();
+    assert!(named >= 2, "{named} of the damaged shards named: {err}");
+    let text = std::fs::read_to_string(&log).unwrap();
+    let last3d: serde_json::Value = text
+        .lines()
+        .map(|l| serde_json::from_str::<serde_json::Value>(l).unwrap())
+        .filter(|v| v["view"] == "3d")
+        .last()
+        .unwrap();
+    assert!(last3d["failed_bricks"].as_u64().unwrap() > 0, "{last3d}");
+    assert_eq!(last3d["settled"], true, "{last3d}");
+
+    // No holes: rendered from the intact copy with the same arguments.
+    for name in ["dvr", "xz"] {
+        let args = std::fs::read_to_string(p(&format!("{name}.args"))).unwrap();
+        assert!(args.lines().any(|l| l == "--level"), "{name}: {args}");
+        let reference = p(&format!("{name}-intact.png"));
+        let o = Command::new(bin())
+            .args(["render", s(&p("intact.ome.zarr"))])
+            .args(args.lines())
+            .args(["--out", s(&reference), "--pool", "64MiB", "--brick", "8"])
+            .args(["--backend", "cpu", "--quiet"])
+            .output()
+            .unwrap();
+        assert!(o.status.success(), "render {name}: {}", stderr(&o));
+        let (_, _, want) = png_pixels(&reference);
+        let (_, _, have) = png_pixels(&p(&format!("{name}.png")));
+        assert_eq!(want.len(), have.len());
+        let sum = |c: &[u8]| c[0] as u32 + c[1] as u32 + c[2] as u32;
+        let lit = want.chunks(4).filter(|c| sum(c) > 30).count();
+        let holes = want
+            .chunks(4)
+            .zip(have.chunks(4))
+            .filter(|(w, h)| sum(w) > 30 && sum(h) <= 6)
+            .count();
+        assert!(lit > want.len() / 4 / 10, "{name}: {lit} lit pixels");
+        assert!(
+            holes * 50 <= lit,
+            "{name}: {holes} of {lit} lit pixels are dark in the viewer's image"
+        );
+        // The damage shows: the image is not the intact one.
+        let worst = want
+            .iter()
+            .zip(&have)
+            .map(|(a, b)| a.abs_diff(*b))
+            .max()
+            .unwrap();
+        assert!(worst > 8, "{name}: no damaged brick was in view");
+    }
+}
+
+#[test]
+fn viewer_stays_within_its_memory_budget() {
+    // The whole viewer process (window, software OpenGL, pool, caches,
+    // images) against `--memory`, for a small and a larger budget: the
+    // peak resident set (VmHWM, logged with every frame) stays within the
+    // budget plus 16 MiB.
+    let d = tempfile::tempdir().unwrap();
+    let p = |n: &str| d.path().join(n);
+    let store = p("m.ome.zarr");
+    let o = Command::new(bin())
+        .args([
+            "generate",
+            "mandelbulb",
+            s(&store),
+            "--size",
+            "256",
+            "--quiet",
+        ])
+        .output()
+        .unwrap();
+    assert!(o.status.success(), "{}", stderr(&o));
+    std::fs::write(
+        p("s.txt"),
+        "wait-complete 300\nmode mip\nwait-complete 300\nkey left\nwait-complete 300\nquit\n",
+    )
+    .unwrap();
+    for memory in ["200MiB", "400MiB"] {
+        let log = p(&format!("log-{memory}.jsonl"));
+        let Some(mut cmd) = with_display(&[
+            "view",
+            s(&store),
+            "--script",
+            s(&p("s.txt")),
+            "--log",
+            s(&log),
+            "--memory",
+            memory,
+            "--brick",
+            "16",
+            "--backend",
+            "cpu",
+            "--window-size",
+            "800x600",
+        ]) else {
+            return;
+        };
+        let o = cmd.output().unwrap();
+        assert!(
+            o.status.success(),
+            "viewer --memory {memory}: {}",
+            stderr(&o)
+        );
+        let text = std::fs::read_to_string(&log).unwrap();
+        let last: serde_json::Value = serde_json::from_str(text.lines().last().unwrap()).unwrap();
+        let peak = last["peak_rss_bytes"].as_u64().unwrap();
+        let budget = last["memory_budget_bytes"].as_u64().unwrap();
+        assert_eq!(
+            budget >> 20,
+            memory.trim_end_matches("MiB").parse::<u64>().unwrap()
+        );
+        eprintln!("--memory {memory}: peak {} MiB", peak >> 20);
+        assert!(
+            peak <= budget + (16 << 20),
+            "--memory {memory}: peak {} MiB over the budget {} MiB",
+            peak >> 20,
+            budget >> 20
+        );
+        assert!(last["completeness"].as_f64().unwrap() >= 1.0 || last["settled"] == true);
+    }
+    // A budget that cannot hold the window and a pool is refused.
+    let o = Command::new(bin())
+        .args([
+            "view",
+            s(&store),
+            "--memory",
+            "64MiB",
+            "--script",
+            s(&p("s.txt")),
+        ])
+        .output()
+        .unwrap();
+    assert!(!o.status.success());
+    assert!(stderr(&o).contains("memory"), "{}", stderr(&o));
+}

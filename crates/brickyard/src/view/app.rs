@@ -108,6 +108,9 @@ pub struct ViewerApp {
     full_ms: f64,
     counter: u32,
     camera_path: String,
+    /// Load failures reported so far, and the latest (the status line).
+    failures_seen: usize,
+    last_failure: Option<String>,
 }
 
 fn tf_opaque(tf: &TransferFunction) -> TransferFunction {
@@ -196,6 +199,8 @@ impl ViewerApp {
             full_ms: 40.0,
             counter: 0,
             camera_path: String::new(),
+            failures_seen: 0,
+            last_failure: None,
         }
     }
 
@@ -365,8 +370,24 @@ impl ViewerApp {
                     "pending": out.pending, "bytes_read": out.bytes_read,
                     "up": out.up, "down": out.down,
                     "lod_extra": out.lod_extra, "failed_bricks": out.failed,
+                    "settled": out.settled, "new_failures": out.new_failures,
+                    "peak_rss_bytes": crate::memory::peak_rss(),
+                    "memory_budget_bytes": self.setup.memory_budget,
                 })
             );
+        }
+        // Unreadable bricks: reported on stderr (the first ones; a store
+        // removed under the view fails every brick it still needed) and in
+        // the status line; the view goes on with coarser data.
+        const SHOWN: usize = 20;
+        for f in &out.new_failures {
+            self.failures_seen += 1;
+            if self.failures_seen <= SHOWN {
+                eprintln!("view: cannot load {f} (drawn from coarser data)");
+            } else if self.failures_seen == SHOWN + 1 {
+                eprintln!("view: more bricks cannot be loaded; the status line counts them");
+            }
+            self.last_failure = Some(f.clone());
         }
         if v == 0 && [out.image.width, out.image.height] == self.views[0].size {
             self.full_ms = out.render_ms;
@@ -399,7 +420,7 @@ impl ViewerApp {
         let vs = &self.views[v];
         vs.last
             .as_ref()
-            .is_some_and(|o| o.version == vs.version && o.completeness >= 1.0)
+            .is_some_and(|o| o.version == vs.version && (o.completeness >= 1.0 || o.settled))
     }
 
     // ---- interactions (mouse, keys and scripts share these) -------------
@@ -790,6 +811,21 @@ impl ViewerApp {
                         self.views[*v].streaming = 0;
                         true
                     }
+                    Cmd::Touch(p) => {
+                        std::fs::write(p, b"").with_context(|| format!("touch {}", p.display()))?;
+                        true
+                    }
+                    Cmd::WaitFile(p, secs) => {
+                        let since = *self.waiting.get_or_insert_with(Instant::now);
+                        if p.exists() {
+                            self.waiting = None;
+                            true
+                        } else if since.elapsed().as_secs_f64() > *secs {
+                            bail!("wait-file: {} did not appear in {secs} s", p.display());
+                        } else {
+                            false
+                        }
+                    }
                     Cmd::Quit => {
                         ctx.send_viewport_cmd(egui::ViewportCommand::Close);
                         self.pc = self.script.len();
@@ -946,6 +982,9 @@ impl ViewerApp {
                 let mut s = self.setup.clone();
                 s.cfg.pool_bytes = (self.pool_mib * (1 << 20) as f64) as u64;
                 s.host_bytes = (self.host_mib * (1 << 20) as f64) as u64;
+                // The budget moves with the shares the user set.
+                s.memory_budget = (s.memory_budget + s.cfg.pool_bytes + s.host_bytes)
+                    .saturating_sub(self.setup.cfg.pool_bytes + self.setup.host_bytes);
                 self.setup = s.clone();
                 let _ = self.tx.send(Msg::Reopen(s));
                 for vs in &mut self.views {
@@ -1233,9 +1272,20 @@ impl ViewerApp {
         }
         if o.failed > 0 {
             detail += &format!(" · {} brick(s) unreadable, drawn coarser", o.failed);
+            if let Some(f) = &self.last_failure {
+                let f: String = f.chars().take(160).collect();
+                detail += &format!("\nlast: {f}");
+            }
         }
+        let peak = crate::memory::peak_rss().map_or(String::new(), |p| {
+            format!(
+                " · peak memory {} of {}",
+                human_bytes(p),
+                human_bytes(self.setup.memory_budget)
+            )
+        });
         format!(
-            "{:.1} ms/frame · {:.1}% complete{detail}\n{} bricks resident of {} slots · {} pending\nhost cache {} of {} · {:.1} MiB/s read\n{}",
+            "{:.1} ms/frame · {:.1}% complete{detail}\n{} bricks resident of {} slots · {} pending\nhost cache {} of {} · {:.1} MiB/s read{peak}\n{}",
             o.render_ms,
             100.0 * o.completeness,
             o.resident_bricks,

@@ -36,12 +36,17 @@ pub struct ViewCmd {
     /// On the GPU, who decides cache updates: device or host.
     #[arg(long, default_value = "device")]
     gpu_update: GpuUpdate,
-    /// Brick-pool budget.
-    #[arg(long, default_value = "256MiB")]
-    pool: String,
-    /// Host-cache budget.
-    #[arg(long, default_value = "1GiB")]
-    host: String,
+    /// One budget for the whole viewer: the brick pool, host cache,
+    /// decoded-chunk caches, view images and the window are split out of
+    /// it. Without it: --pool 256MiB and --host 1GiB.
+    #[arg(long)]
+    memory: Option<String>,
+    /// Brick-pool budget (default: 256 MiB, or a share of --memory).
+    #[arg(long)]
+    pool: Option<String>,
+    /// Host-cache budget (default: 1 GiB, or a share of --memory).
+    #[arg(long)]
+    host: Option<String>,
     /// Engine brick edge.
     #[arg(long, default_value_t = 32)]
     brick: u64,
@@ -170,16 +175,34 @@ pub fn run(c: ViewCmd, demo_store: impl FnOnce() -> Result<PathBuf>) -> Result<i
         None => None,
     };
     let [ww, wh] = crate::render::parse_image_size(&c.window_size, "window-size")?;
+    let opt = |v: &Option<String>| v.as_deref().map(crate::parse_bytes).transpose();
+    let (memory, mut pool, mut host) = (opt(&c.memory)?, opt(&c.pool)?, opt(&c.host)?);
+    if memory.is_none() {
+        pool.get_or_insert(256 << 20);
+        host.get_or_insert(1 << 30);
+    }
+    // The views' images, their textures and the window's frame buffers:
+    // together about the window's pixels.
+    let split = crate::memory::split_with(
+        memory,
+        pool,
+        host,
+        ww as u64 * wh as u64,
+        levels.len(),
+        crate::memory::WINDOW_BYTES,
+    )?;
     let cfg = VmConfig {
         brick: [c.brick; 3],
-        pool_bytes: crate::parse_bytes(&c.pool)?,
+        pool_bytes: split.pool,
         upload_bytes_per_frame: crate::parse_bytes(&c.upload)?,
         ..Default::default()
     };
     let setup = worker::Setup {
         store: store.clone(),
         cfg,
-        host_bytes: crate::parse_bytes(&c.host)?,
+        host_bytes: split.host,
+        chunk_bytes: split.chunks,
+        memory_budget: split.total,
         loader_threads: c.loader_threads,
         backend: c.backend.clone(),
         gpu_update: c.gpu_update,

@@ -23,6 +23,8 @@
 //! | `screenshot VIEW FILE.png` | write the view's last complete image |
 //! | `save-view VIEW PREFIX` | write PREFIX.camera.json, PREFIX.tf.json and PREFIX.args (the `brickyard render` arguments for the same image) |
 //! | `window-shot FILE.png` | a screenshot of the whole window |
+//! | `touch FILE` | create FILE (empty), e.g. to tell a process driving the test where the script is |
+//! | `wait-file FILE [SECONDS]` | wait until FILE exists (default 120 s) |
 //! | `expect-streaming VIEW N` | fail unless at least N frames of VIEW showed partial data since the last check |
 //! | `quit` | close the window (exit 0) |
 
@@ -55,6 +57,8 @@ pub enum Cmd {
     SaveView(usize, PathBuf),
     WindowShot(PathBuf),
     ExpectStreaming(usize, usize),
+    Touch(PathBuf),
+    WaitFile(PathBuf, f64),
     Quit,
 }
 
@@ -218,6 +222,15 @@ fn parse_line(w: &[&str]) -> Result<Cmd> {
             arity(2)?;
             Cmd::ExpectStreaming(view(w[1])?, num(w[2])?)
         }
+        "touch" => {
+            arity(1)?;
+            Cmd::Touch(w[1].into())
+        }
+        "wait-file" => match w.len() {
+            2 => Cmd::WaitFile(w[1].into(), 120.0),
+            3 => Cmd::WaitFile(w[1].into(), num(w[2])?),
+            _ => bail!("wait-file takes a file and at most a number of seconds"),
+        },
         "quit" => {
             arity(0)?;
             Cmd::Quit
@@ -235,7 +248,7 @@ mod tests {
         let p = Path::new("s.txt");
         let c = parse(
             p,
-            "size 3d 64 48 # main\n\nmode mip\ndrag xy left 3 -4\nquit\n",
+            "size 3d 64 48 # main\n\nmode mip\ndrag xy left 3 -4\ntouch a.txt\nwait-file c\nwait-file d 5\nquit\n",
         )
         .unwrap();
         assert_eq!(
@@ -244,6 +257,9 @@ mod tests {
                 Cmd::Size(0, 64, 48),
                 Cmd::Mode("mip".into()),
                 Cmd::Drag(1, "left".into(), 3.0, -4.0),
+                Cmd::Touch("a.txt".into()),
+                Cmd::WaitFile("c".into(), 120.0),
+                Cmd::WaitFile("d".into(), 5.0),
                 Cmd::Quit
             ]
         );

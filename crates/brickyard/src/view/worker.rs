@@ -32,6 +32,10 @@ pub struct Setup {
     pub store: PathBuf,
     pub cfg: VmConfig,
     pub host_bytes: u64,
+    /// The loader's decoded-chunk caches, all levels.
+    pub chunk_bytes: u64,
+    /// The whole viewer's budget (reported beside the peak).
+    pub memory_budget: u64,
     pub loader_threads: usize,
     pub backend: String,
     pub gpu_update: GpuUpdate,
@@ -69,6 +73,11 @@ pub struct Out {
     pub lod_extra: f64,
     /// Bricks that could not be loaded (drawn from coarser data).
     pub failed: usize,
+    /// Load failures new since the last frame sent: "brick: error".
+    pub new_failures: Vec<String>,
+    /// Nothing more will come for this view until it changes: complete,
+    /// or what is missing are bricks that failed to load.
+    pub settled: bool,
 }
 
 pub enum Reply {
@@ -85,10 +94,11 @@ struct View {
 }
 
 fn open(setup: &Setup, scene: &mut Scene) -> anyhow::Result<(Session, Backend)> {
-    let mut s = Session::open(
+    let mut s = Session::open_with_budget(
         &setup.store,
         setup.cfg.clone(),
         setup.host_bytes,
+        setup.chunk_bytes,
         setup.loader_threads,
     )?;
     s.loader().set_read_delay(setup.read_delay);
@@ -119,6 +129,8 @@ pub fn run(setup: Setup, mut scene: Scene, rx: Receiver<Msg>, tx: Sender<Reply>,
     let mut views: Vec<View> = vec![];
     let mut next = 0;
     let mut idle_since = Instant::now();
+    // Failures of the session already sent to the window.
+    let mut reported = 0;
     loop {
         // Take every message; wait for one only when nothing is left to do.
         let busy = views.iter().any(|v| v.spec.is_some() && !v.complete);
@@ -166,6 +178,7 @@ pub fn run(setup: Setup, mut scene: Scene, rx: Receiver<Msg>, tx: Sender<Reply>,
                     Ok((s2, b2)) => {
                         s = s2;
                         backend = b2;
+                        reported = 0;
                         backend.set_read_image(true);
                         for v in &mut views {
                             v.complete = v.spec.is_none();
@@ -207,6 +220,17 @@ pub fn run(setup: Setup, mut scene: Scene, rx: Receiver<Msg>, tx: Sender<Reply>,
         // Complete, or nothing left to ask for but bricks that failed.
         let done = !changed && (completeness >= 1.0 || (sig.requests == 0 && !sig.progress));
         views[i].complete = done;
+        let new_failures: Vec<String> = s.failures()[reported.min(s.failures().len())..]
+            .iter()
+            .map(|f| {
+                let k = f.key;
+                format!(
+                    "level {} channel {} brick {:?}: {}",
+                    k.level, k.channel, k.brick, f.message
+                )
+            })
+            .collect();
+        reported = s.failures().len();
         let loader = s.loader();
         let out = Out {
             view: i,
@@ -226,6 +250,8 @@ pub fn run(setup: Setup, mut scene: Scene, rx: Receiver<Msg>, tx: Sender<Reply>,
             backend: backend.describe(),
             lod_extra: views[i].budget.extra(),
             failed: s.vm().failed_count(),
+            new_failures,
+            settled: done,
         };
         if tx.send(Reply::Frame(Box::new(out))).is_err() {
             return;
