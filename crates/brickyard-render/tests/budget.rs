@@ -189,7 +189,7 @@ fn pools_from_far_below_to_above_the_working_set_complete_on_a_real_scan() {
     check_pools(
         &store,
         DType::I16,
-        [lo as f32 + 0.1 * (hi - lo) as f32, hi as f32],
+        [lo + 0.1 * (hi - lo), hi],
         &[2 * bricks0, bricks0 / 6, bricks0 / 30, 20],
         160,
     );

@@ -376,7 +376,7 @@ pub fn parse_multiscale(
                 if let Some(g) = g {
                     if g.len() != n {
                         return Err(StoreError::invalid(
-                            &meta_path,
+                            meta_path,
                             "multiscales.coordinateTransformations",
                             format!(
                                 "{what} has {} values but the datasets' transformations have {n}",

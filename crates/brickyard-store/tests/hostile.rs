@@ -171,7 +171,7 @@ fn nrrd_header_reading_is_bounded() {
     let dir = tempfile::tempdir().unwrap();
     let mut hdr = b"NRRD0004\n# ".to_vec();
     hdr.extend(std::iter::repeat_n(b'a', 2 << 20));
-    hdr.extend_from_slice(nrrd_header("2 2 2", "raw", "")[9..].as_bytes());
+    hdr.extend_from_slice(&nrrd_header("2 2 2", "raw", "").as_bytes()[9..]);
     hdr.extend_from_slice(&[0u8; 8]);
     let p = write(dir.path(), "long.nrrd", &hdr);
     let e = err(nrrd::open(&p));

@@ -28,6 +28,8 @@ use std::time::Instant;
 pub struct DriveOptions {
     pub batch: bool,
     pub max_frames: usize,
+    /// What the user asked for (its bias is the budget's base).
+    pub lod: Lod,
 }
 
 /// One frame as the loop saw it (for progress lines).
@@ -58,19 +60,18 @@ pub fn signals(s: &Session, f: &Frame) -> FrameSignals {
     FrameSignals::of_frame(s, &f.session, f.stats.completeness() >= 1.0, f.exact_slots)
 }
 
-/// Draw one view until it ends. `lod` is what the user asked for (its bias
-/// is the budget's base); `on_frame` sees every frame.
+/// Draw one view until it ends; `on_frame` sees every frame.
 pub fn drive(
     backend: &mut Backend,
     s: &mut Session,
     scene: &Scene,
     params: &RenderParams,
-    lod: Lod,
     opt: DriveOptions,
     budget: &mut LodBudget,
     mut on_frame: impl FnMut(&FrameInfo),
 ) -> Result<Outcome> {
     let t0 = Instant::now();
+    let lod = opt.lod;
     let levels = scene.levels.len();
     let mut frames = 0;
     // The request pass: half the width and height, one level finer than

@@ -426,6 +426,7 @@ pub fn run(c: RenderCmd) -> Result<Vec<String>> {
     let opt = crate::frames::DriveOptions {
         batch,
         max_frames: c.max_frames,
+        lod,
     };
     let levels = scene.levels.len();
     let base_bias = match lod {
@@ -455,7 +456,6 @@ pub fn run(c: RenderCmd) -> Result<Vec<String>> {
             &mut s,
             &scene,
             &params,
-            lod,
             opt,
             &mut budget,
             |fi| {
@@ -557,8 +557,7 @@ pub fn run(c: RenderCmd) -> Result<Vec<String>> {
                 println!("  … and {} more", failures.len() - 10);
             }
         }
-        let last = Some(out.image);
-        let img = last.expect("at least one frame");
+        let img = out.image;
         let path = if c.turntable.is_some() {
             let stem = c
                 .out

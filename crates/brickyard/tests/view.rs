@@ -468,8 +468,7 @@ quit
     let last3d: serde_json::Value = text
         .lines()
         .map(|l| serde_json::from_str::<serde_json::Value>(l).unwrap())
-        .filter(|v| v["view"] == "3d")
-        .last()
+        .rfind(|v| v["view"] == "3d")
         .unwrap();
     assert!(last3d["failed_bricks"].as_u64().unwrap() > 0, "{last3d}");
     assert_eq!(last3d["settled"], true, "{last3d}");

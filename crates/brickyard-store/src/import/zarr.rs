@@ -648,9 +648,9 @@ impl ZarrSource {
     /// Array coordinates of voxel `v` (`[z, y, x]`) of channel `c`.
     fn array_coords(&self, c: usize, v: Dims3) -> Vec<u64> {
         let mut at = vec![0u64; self.array.shape().len()];
-        for a in 0..3 {
-            if let Some(i) = self.zyx[a] {
-                at[i] = v[a];
+        for (axis, p) in self.zyx.iter().zip(v) {
+            if let Some(i) = axis {
+                at[*i] = p;
             }
         }
         if let Some(i) = self.caxis {
