@@ -75,6 +75,17 @@ impl LruBuffers {
         Self::build(gpu, order, None)
     }
 
+    /// Record a copy of the number of slots the last recorded compaction
+    /// found used (its total after the last block) to `dst` at byte
+    /// `offset`.
+    pub fn copy_used_count(&self, enc: &mut wgpu::CommandEncoder, dst: &wgpu::Buffer, offset: u64) {
+        if self.n == 0 {
+            return;
+        }
+        let blocks = self.n.div_ceil(BLOCK) as u64;
+        enc.copy_buffer_to_buffer(&self.block_sums, blocks * 4, dst, offset, 4);
+    }
+
     /// The order, read back (for tests and reports).
     pub fn read_order(&self, gpu: &Gpu) -> Result<Vec<u32>, GpuError> {
         gpu.read_u32("LRU order", &self.order, self.n as usize)

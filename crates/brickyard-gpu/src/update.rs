@@ -90,6 +90,9 @@ pub struct UpdateCounts {
     /// Items that found no page-table block (every block in use).
     pub failed: u32,
     pub blocks_mapped: u32,
+    /// Not cumulative: pool slots used at their own level in the frame
+    /// last ended, pinned slots included (they are stamped so).
+    pub exact_pool_slots: u32,
 }
 
 impl UpdateCounts {
@@ -101,6 +104,7 @@ impl UpdateCounts {
             flags_set: w[3],
             failed: w[4],
             blocks_mapped: w[5],
+            exact_pool_slots: w[6],
         }
     }
     /// Bricks resident now (orphans two levels down are not subtracted).
@@ -289,6 +293,10 @@ impl UpdateModel {
         for set in 0..self.sets() {
             self.compact(set, frame);
         }
+        let [base, n, ..] = self.lay.set_base[0];
+        self.counts.exact_pool_slots = (base..base + n)
+            .filter(|&i| self.stamps[2 * i as usize + 1] == frame)
+            .count() as u32;
         let reserved = self.reserve(frame, k);
         let r = reserved.iter().filter(|&&s| s != NONE).count();
         self.rotate(0, r);
@@ -696,6 +704,9 @@ impl DeviceCache {
                 frame,
             );
         }
+        // The compaction of the pool's order counted the slots used at
+        // their own level (its stamp word): word 6 of the output.
+        self.orders[0].copy_used_count(&mut enc, &self.out, 6 * 4);
         if k > 0 {
             let params = Params {
                 frame,

@@ -105,14 +105,23 @@ fn update_step_equals_cpu_twin_frame_after_frame() {
         let mut rng = Lcg(seed);
         let mut inserted: Vec<Item> = vec![];
         let mut failed_some = false;
+        let mut most_exact = 0;
         for frame in 1..=24u32 {
             // The renderer: use some resident bricks this frame.
             let mut used = 0;
+            // Pool slots used at their own level (what the device counts).
+            let mut exact = HashSet::new();
             for it in &inserted {
                 if rng.below(3) == 0 && touch(&mut model, it, frame) {
                     used += 1;
+                    if it.level.is_multiple_of(2) || frame.is_multiple_of(3) {
+                        let path = model.path_of(it);
+                        let pool = path.iter().find(|(set, _)| *set == 0).unwrap();
+                        exact.insert(pool.1);
+                    }
                 }
             }
+            most_exact = most_exact.max(exact.len());
             gpu.queue
                 .write_buffer(&cache.stamps, 0, bytemuck::cast_slice(&model.stamps));
             // Slots for a batch of bricks: sometimes more than the pool
@@ -122,6 +131,11 @@ fn update_step_equals_cpu_twin_frame_after_frame() {
             let got = cache.end_frame(&gpu, &dvm, frame, k).unwrap();
             assert_eq!(got, want, "reserved slots, frame {frame}");
             assert_eq!(cache.counts(), model.counts, "counts, frame {frame}");
+            assert_eq!(
+                cache.counts().exact_pool_slots as usize,
+                exact.len(),
+                "slots used at their own level, frame {frame}"
+            );
             let free: Vec<u32> = got.iter().copied().filter(|&s| s != NONE).collect();
             if free.len() < k {
                 assert!(used > 0 || k > slots, "slots withheld only when in use");
@@ -177,6 +191,10 @@ fn update_step_equals_cpu_twin_frame_after_frame() {
         // The small caches must have been under pressure.
         let c = model.counts;
         assert!(c.bricks_unmapped > 0 && c.blocks_unmapped > 0, "{c:?}");
+        assert!(
+            most_exact > 1,
+            "slots used at their own level: at most {most_exact}"
+        );
         if pt_blocks < 10 {
             assert!(failed_some, "some items found no page-table block: {c:?}");
         }

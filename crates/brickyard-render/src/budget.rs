@@ -28,8 +28,8 @@ pub struct FrameSignals {
     /// Data bricks that arrived but found no pool slot: every slot served
     /// a sample at its own level this frame.
     pub deferred: usize,
-    /// Pool slots used at their own level this frame, when known (the
-    /// device does not count them).
+    /// Pool slots used at their own level this frame, pinned ones left
+    /// out, when known (`None`: treated as a full pool).
     pub exact_slots: Option<usize>,
     /// Pool slots not pinned.
     pub free_slots: usize,

@@ -38,8 +38,8 @@ pub struct Frame {
     pub cache_ms: f64,
     /// Of that, milliseconds carrying changes to the device (0 on the CPU).
     pub upload_ms: f64,
-    /// Pool slots used at their own level this frame (`None`: the device
-    /// decided its updates and did not count them).
+    /// Pool slots used at their own level this frame, pinned slots left
+    /// out (on the device: counted by the pool's LRU compaction).
     pub exact_slots: Option<usize>,
 }
 
@@ -242,10 +242,14 @@ impl GpuBackend {
         let upload_ms = c.elapsed().as_secs_f64() * 1e3;
         let now = x.counts;
         let failed_requested = f.list.iter().filter(|k| s.vm().is_failed(**k)).count();
+        // Slots used at their own level, as the CPU counts them: the
+        // pinned ones are stamped so at every frame's end, whether used or
+        // not, and are left out.
+        let exact_slots = (now.exact_pool_slots as usize).saturating_sub(s.vm().pinned_bricks());
         let session = SessionStats {
             failed: 0,
             frame: FrameReport {
-                exact_slots: 0,
+                exact_slots,
                 failed_requested,
                 frame,
                 requests: f.list.clone(),
@@ -273,7 +277,7 @@ impl GpuBackend {
             waiting_upload: s.waiting().len(),
         };
         Ok(Frame {
-            exact_slots: None,
+            exact_slots: Some(exact_slots),
             image: f.image,
             stats: f.stats,
             session,
