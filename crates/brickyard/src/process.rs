@@ -248,7 +248,8 @@ pub fn run(c: ProcessCmd) -> Result<()> {
     let is_label = pipe.is_label_output();
     let dir = store.join(if is_label { "labels" } else { "derived" });
     let paths = Paths::new(dir, &c.out);
-    paths.recover(c.quiet || c.json)?;
+    // What an interrupted run left is reported even with --quiet.
+    paths.recover(false)?;
     if paths.fin.exists() && !c.overwrite {
         bail!(
             "{}: exists; pass --overwrite to replace it",
