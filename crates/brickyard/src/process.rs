@@ -275,9 +275,14 @@ pub fn run(c: ProcessCmd) -> Result<()> {
         unit: meta.unit.clone(),
     };
     let quiet = c.quiet || c.json;
+    let made_dir = !paths.dir.exists();
     let cleanup = |e: anyhow::Error| -> anyhow::Error {
         let _ = std::fs::remove_dir_all(&paths.partial);
         let _ = std::fs::remove_dir_all(&paths.staged);
+        if made_dir {
+            // Only if still empty: the store is left as it was.
+            let _ = std::fs::remove_dir(&paths.dir);
+        }
         if CANCEL.load(Ordering::SeqCst) {
             anyhow::anyhow!(
                 "interrupted; {} is as it was (nothing was published); run the same command again to start over",
