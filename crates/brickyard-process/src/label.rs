@@ -467,6 +467,9 @@ fn join_pair(
     }
 }
 
+/// A box and the final labels in it.
+type Part = ([Range<u64>; 3], Vec<u32>);
+
 /// Pass 2: the final labels (u32) as a volume source.
 pub struct LabelSource {
     mask: Arc<dyn VolumeSource>,
@@ -527,7 +530,7 @@ impl VolumeSource for LabelSource {
                     .max(r[a].start / lab.block[a])
         });
         let blocks = tile(&br, [1, 1, 1]);
-        let parts: Vec<Result<([Range<u64>; 3], Vec<u32>)>> = blocks
+        let parts: Vec<Result<Part>> = blocks
             .par_iter()
             .map(|bb| {
                 let b = [bb[0].start, bb[1].start, bb[2].start];

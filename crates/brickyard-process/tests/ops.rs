@@ -347,7 +347,7 @@ fn threshold_and_window_make_u8_masks() {
     assert_eq!(dt, DType::U8);
     let want: Vec<f64> = v.iter().map(|&x| (x > 50.5) as u8 as f64).collect();
     assert_eq!(got, want);
-    assert!(want.iter().any(|&x| x == 1.0) && want.iter().any(|&x| x == 0.0));
+    assert!(want.contains(&1.0) && want.contains(&0.0));
     let (v, got, _) = run_filter::<i8>("window(-3,40)", DIMS, 41, [4, 4, 4], [5, 5, 5]);
     let want: Vec<f64> = v
         .iter()
@@ -562,8 +562,8 @@ fn label_statistics_equal_those_of_the_labels() {
         }
         assert_eq!(s.voxels, cnt, "label {}", s.label);
         assert_eq!((s.min, s.max), (mn, mx), "label {}", s.label);
-        for a in 0..3 {
-            assert!((s.centroid[a] - sum[a] / cnt as f64).abs() < 1e-9);
+        for (c, sm) in s.centroid.iter().zip(sum) {
+            assert!((c - sm / cnt as f64).abs() < 1e-9);
         }
         assert!((s.mean.unwrap() - si / cnt as f64).abs() < 1e-9);
     }
