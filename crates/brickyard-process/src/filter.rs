@@ -243,22 +243,32 @@ impl VolumeSource for FilterSource {
         check_region(&self.meta, c, &z, &y, &x, out);
         let r = [z, y, x];
         let blocks = tile(&r, self.block);
-        let vals: Vec<Result<Vec<f64>>> = blocks
-            .par_iter()
-            .map(|b| self.compute(b[0].clone(), b[1].clone(), b[2].clone()))
-            .collect();
+        // Each block is cast to the output type as soon as it is computed
+        // (the f64 values of a whole region are never held at once).
         match self.meta.dtype {
             DType::F32 => {
+                let vals: Vec<Result<Vec<f32>>> = blocks
+                    .par_iter()
+                    .map(|b| {
+                        let v = self.compute(b[0].clone(), b[1].clone(), b[2].clone())?;
+                        Ok(v.into_iter().map(|x| x as f32).collect())
+                    })
+                    .collect();
                 let o = brickyard_core::cast_slice_mut::<f32>(out);
                 for (b, v) in blocks.iter().zip(vals) {
-                    let v: Vec<f32> = v?.into_iter().map(|x| x as f32).collect();
-                    place(o, &r, b, &v);
+                    place(o, &r, b, &v?);
                 }
             }
             DType::U8 => {
+                let vals: Vec<Result<Vec<u8>>> = blocks
+                    .par_iter()
+                    .map(|b| {
+                        let v = self.compute(b[0].clone(), b[1].clone(), b[2].clone())?;
+                        Ok(v.into_iter().map(|x| x as u8).collect())
+                    })
+                    .collect();
                 for (b, v) in blocks.iter().zip(vals) {
-                    let v: Vec<u8> = v?.into_iter().map(|x| x as u8).collect();
-                    place(out, &r, b, &v);
+                    place(out, &r, b, &v?);
                 }
             }
             t => unreachable!("filters write f32 or u8, not {t}"),

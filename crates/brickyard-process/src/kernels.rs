@@ -118,36 +118,56 @@ pub const SOBEL_S: [f64; 3] = [1.0, 2.0, 1.0];
 /// voxel; background 0. Returns the labels and `n`.
 pub fn label_block(mask: &[bool], dims: [usize; 3], conn: u8) -> (Vec<u32>, u32) {
     let [nz, ny, nx] = dims;
-    let mut labels = vec![0u32; mask.len()];
-    let offs = neighbour_offsets(conn);
+    // Work in a copy padded by one background voxel on every side, so that
+    // neighbours are plain index offsets without bounds checks.
+    let (py, px) = (ny + 2, nx + 2);
+    let plane = py * px;
+    let mut lab = vec![0u32; (nz + 2) * plane];
+    // u32::MAX marks foreground not yet labelled.
+    for z in 0..nz {
+        for y in 0..ny {
+            let s = (z * ny + y) * nx;
+            let d = ((z + 1) * py + y + 1) * px + 1;
+            for (o, &m) in lab[d..d + nx].iter_mut().zip(&mask[s..s + nx]) {
+                *o = if m { u32::MAX } else { 0 };
+            }
+        }
+    }
+    let offs: Vec<isize> = neighbour_offsets(conn)
+        .iter()
+        .map(|[dz, dy, dx]| {
+            (*dz as isize) * plane as isize + (*dy as isize) * px as isize + *dx as isize
+        })
+        .collect();
     let mut n = 0u32;
     let mut stack: Vec<usize> = vec![];
-    for start in 0..mask.len() {
-        if !mask[start] || labels[start] != 0 {
-            continue;
-        }
-        n += 1;
-        labels[start] = n;
-        stack.push(start);
-        while let Some(i) = stack.pop() {
-            let (z, y, x) = (i / (ny * nx), (i / nx) % ny, i % nx);
-            for &[dz, dy, dx] in &offs {
-                let (zz, yy, xx) = (z as i64 + dz, y as i64 + dy, x as i64 + dx);
-                if zz < 0
-                    || yy < 0
-                    || xx < 0
-                    || zz >= nz as i64
-                    || yy >= ny as i64
-                    || xx >= nx as i64
-                {
+    for z in 0..nz {
+        for y in 0..ny {
+            let row = ((z + 1) * py + y + 1) * px + 1;
+            for start in row..row + nx {
+                if lab[start] != u32::MAX {
                     continue;
                 }
-                let j = (zz as usize * ny + yy as usize) * nx + xx as usize;
-                if mask[j] && labels[j] == 0 {
-                    labels[j] = n;
-                    stack.push(j);
+                n += 1;
+                lab[start] = n;
+                stack.push(start);
+                while let Some(i) = stack.pop() {
+                    for &o in &offs {
+                        let j = (i as isize + o) as usize;
+                        if lab[j] == u32::MAX {
+                            lab[j] = n;
+                            stack.push(j);
+                        }
+                    }
                 }
             }
+        }
+    }
+    let mut labels = Vec::with_capacity(mask.len());
+    for z in 0..nz {
+        for y in 0..ny {
+            let s = ((z + 1) * py + y + 1) * px + 1;
+            labels.extend_from_slice(&lab[s..s + nx]);
         }
     }
     (labels, n)
