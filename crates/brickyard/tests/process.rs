@@ -336,3 +336,91 @@ fn bad_process_inputs_give_clear_errors() {
     // Nothing was written by the failures.
     assert!(!store.join("labels").exists() && !store.join("derived").exists());
 }
+
+#[test]
+fn the_chosen_channel_is_processed_and_measured() {
+    // Two channels, stored one after the other: channel 0 noise, channel 1
+    // a few boxes of distinct values on zero.
+    let d = tempfile::tempdir().unwrap();
+    let dims: Dims3 = [12, 14, 16];
+    let n = dims.iter().product::<u64>() as usize;
+    let mut r = 0x853c49e6748fea9bu64;
+    let mut c0 = vec![0u16; n];
+    for v in &mut c0 {
+        r ^= r << 13;
+        r ^= r >> 7;
+        r ^= r << 17;
+        *v = (r >> 48) as u16;
+    }
+    let mut c1 = vec![0u16; n];
+    let boxes = [
+        ([1, 2, 3], [4, 5, 6], 500u16),
+        ([6, 8, 9], [11, 13, 15], 900),
+    ];
+    for (lo, hi, val) in boxes {
+        for z in lo[0]..hi[0] {
+            for y in lo[1]..hi[1] {
+                for x in lo[2]..hi[2] {
+                    c1[(z * 14 + y) * 16 + x] = val;
+                }
+            }
+        }
+    }
+    let mut bytes = vec![];
+    for v in c0.iter().chain(&c1) {
+        bytes.extend_from_slice(&v.to_le_bytes());
+    }
+    let raw = d.path().join("two.raw");
+    std::fs::write(&raw, bytes).unwrap();
+    let store = d.path().join("two.zarr");
+    ok(run(&[
+        "convert",
+        s(&raw),
+        s(&store),
+        "--dims",
+        "16x14x12",
+        "--dtype",
+        "u16",
+        "--channels",
+        "2",
+        "--brick",
+        "8",
+        "--shard",
+        "16",
+        "--quiet",
+    ]));
+    let stats = d.path().join("boxes.csv");
+    ok(run(&[
+        "process",
+        s(&store),
+        "threshold(0)|label(6)",
+        "--out",
+        "boxes",
+        "--channel",
+        "1",
+        "--stats",
+        s(&stats),
+        "--quiet",
+    ]));
+    let (got, gd) = read_level0::<u32>(&store.join("labels/boxes"));
+    assert_eq!(gd, dims);
+    let want = flood(&c1.iter().map(|&v| v > 0).collect::<Vec<_>>(), dims, 6);
+    assert!(got == want);
+    let csv = std::fs::read_to_string(&stats).unwrap();
+    let rows: Vec<Vec<&str>> = csv
+        .lines()
+        .skip(1)
+        .map(|l| l.split(',').collect())
+        .collect();
+    assert_eq!(rows.len(), 2);
+    for (row, (lo, hi, val)) in rows.iter().zip(boxes) {
+        let vox: u64 = (0..3).map(|a| (hi[a] - lo[a]) as u64).product();
+        assert_eq!(row[1], vox.to_string());
+        assert_eq!(
+            &row[2..8],
+            &[lo[0], lo[1], lo[2], hi[0] - 1, hi[1] - 1, hi[2] - 1].map(|v| v.to_string())[..]
+        );
+        // The mean is over channel 1 (the processed one), not channel 0.
+        assert_eq!(row[11].parse::<f64>().unwrap(), val as f64);
+    }
+}
