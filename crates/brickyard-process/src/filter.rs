@@ -212,6 +212,31 @@ pub(crate) fn tile(r: &[Range<u64>; 3], block: Dims3) -> Vec<[Range<u64>; 3]> {
     v
 }
 
+/// Cut a region into about `len / block` near-equal pieces per axis
+/// (at least one; pieces up to 1.5 blocks long). A region one halo larger
+/// than a block — what the next stage asks for — stays one piece instead of
+/// a block and a sliver that would need its own halo.
+pub(crate) fn split(r: &[Range<u64>; 3], block: Dims3) -> Vec<[Range<u64>; 3]> {
+    let cuts = |a: usize| -> Vec<Range<u64>> {
+        let len = r[a].end - r[a].start;
+        let n = ((len + block[a] / 2) / block[a]).max(1);
+        (0..n)
+            .map(|i| r[a].start + len * i / n..r[a].start + len * (i + 1) / n)
+            .filter(|p| p.end > p.start)
+            .collect()
+    };
+    let (cz, cy, cx) = (cuts(0), cuts(1), cuts(2));
+    let mut v = vec![];
+    for z in &cz {
+        for y in &cy {
+            for x in &cx {
+                v.push([z.clone(), y.clone(), x.clone()]);
+            }
+        }
+    }
+    v
+}
+
 /// Copy a dense block `b` (box `bb`) into `out` (box `r`), as `T`.
 pub(crate) fn place<T: Copy>(out: &mut [T], r: &[Range<u64>; 3], bb: &[Range<u64>; 3], b: &[T]) {
     let (ry, rx) = (r[1].end - r[1].start, r[2].end - r[2].start);
@@ -242,7 +267,7 @@ impl VolumeSource for FilterSource {
     ) -> Result<()> {
         check_region(&self.meta, c, &z, &y, &x, out);
         let r = [z, y, x];
-        let blocks = tile(&r, self.block);
+        let blocks = split(&r, self.block);
         // Each block is cast to the output type as soon as it is computed
         // (the f64 values of a whole region are never held at once).
         match self.meta.dtype {
