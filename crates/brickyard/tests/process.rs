@@ -335,6 +335,23 @@ fn bad_process_inputs_give_clear_errors() {
     assert!(String::from_utf8_lossy(&o.stderr).contains("none.zarr"));
     // Nothing was written by the failures.
     assert!(!store.join("labels").exists() && !store.join("derived").exists());
+    // A labels group whose list is not a list of names: named, refused,
+    // left as it was.
+    std::fs::create_dir_all(store.join("labels")).unwrap();
+    let bad = r#"{"zarr_format": 3, "node_type": "group", "attributes": {"ome": {"labels": 5}}}"#;
+    std::fs::write(store.join("labels/zarr.json"), bad).unwrap();
+    let o = run(&["process", s(&store), "threshold(1)", "--out", "m"]);
+    let e = String::from_utf8_lossy(&o.stderr);
+    assert!(!o.status.success() && !e.contains("panicked"), "{e}");
+    assert!(
+        e.contains("labels/zarr.json") && e.contains("attributes.ome.labels"),
+        "{e}"
+    );
+    assert_eq!(
+        std::fs::read_to_string(store.join("labels/zarr.json")).unwrap(),
+        bad
+    );
+    assert_eq!(std::fs::read_dir(store.join("labels")).unwrap().count(), 1);
 }
 
 #[test]
