@@ -1,7 +1,8 @@
 #!/usr/bin/env bash
 # Interop test: brickyard output checked with zarr-python / numpy / ome-zarr-py,
 # Python-written stores (ome-zarr-py, zarr-python v2/v3) converted by brickyard,
-# and NIfTI rescaling (scl_slope/scl_inter) compared with nibabel.
+# NIfTI rescaling (scl_slope/scl_inter) compared with nibabel, and
+# `brickyard process` compared with scipy.ndimage.
 #
 # Usage: bash scripts/interop/run.sh BRICKYARD_BIN
 # Env:   INTEROP_KEEP=1     keep the temp dir (always kept on failure)
@@ -245,6 +246,10 @@ case_reference() {
     py "$HERE/check_roundtrip.py" "$D/ref/$name.zarr" "$D/conv_$name.zarr" --brick 16 --shard 32
 }
 
+# `brickyard process` against scipy.ndimage (filters, labels, statistics),
+# and jobs killed at random points (the store stays as it was).
+case_process() { py "$HERE/check_process.py" "$BIN" "$TMP/process_$1" "$1"; }
+
 # ---------------------------------------------------------------- run
 run_case selftest            case_selftest
 run_case generate_raw        case_generate
@@ -266,6 +271,9 @@ run_case reconvert_omezarr05 case_reconvert
 run_case generate_zarr       case_generate_zarr
 run_case info_json           case_info_json
 run_case memory_budget       case_memory_budget
+run_case process_generated   case_process generated
+run_case process_nuclei      case_process nuclei
+run_case process_crash       case_process crash
 for ref in ome04_v2_u16 v3_plain_u16 v3_sharded_u16 ome05_2ch_u8 v3_f32_be v2_i16_be_F; do
     run_case "ref_$ref" case_reference "$ref"
 done

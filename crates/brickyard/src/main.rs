@@ -5,6 +5,7 @@ mod bench;
 mod frames;
 mod gpubench;
 mod memory;
+mod process;
 mod progress;
 mod render;
 mod view;
@@ -41,6 +42,10 @@ enum Cmd {
     /// Convert a volume (raw, TIFF, NRRD, NIfTI, Zarr/OME-Zarr) into a
     /// multi-resolution OME-Zarr 0.5 pyramid.
     Convert(ConvertCmd),
+    /// Run a processing pipeline (e.g. "gauss(1.5)|threshold(0.3)|label(26)")
+    /// over a store and write the result into it at every level: labels and
+    /// masks under STORE/labels/NAME, other results under STORE/derived/NAME.
+    Process(process::ProcessCmd),
     /// Describe a store: levels, shapes, chunks, codecs, sizes, brick statistics.
     Info {
         path: PathBuf,
@@ -372,6 +377,7 @@ fn run(cmd: Cmd) -> Result<()> {
             )?;
             run_convert(src.as_ref(), &c.output, &c.pyramid)
         }
+        Cmd::Process(p) => process::run(p),
         Cmd::Info { path, json, check } => {
             let i = inspect(&path)?;
             let checked = if check {

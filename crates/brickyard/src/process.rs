@@ -1,0 +1,425 @@
+//! `brickyard process STORE PIPELINE --out NAME`: run a pipeline over a
+//! level of a store and write the result back into the store, at every
+//! level, as a new multiscale image.
+//!
+//! Where results go: label and mask results (pipelines ending in `label`,
+//! `threshold` or `window`) under `STORE/labels/NAME`, as the OME-Zarr 0.5
+//! labels spec says (`labels/zarr.json` lists them; the image carries
+//! `image-label` metadata); other results under `STORE/derived/NAME`.
+//!
+//! Crash safety: the result is written aside (`.NAME.new.partial`, then
+//! `.NAME.new`), published by renaming it to `NAME`, and only then listed in
+//! `labels/zarr.json` (written to a temporary file and renamed). Nothing
+//! that exists is modified before the result is complete; a killed job
+//! leaves only hidden `.NAME.*` directories, which the next run removes.
+
+use crate::{install_ctrl_c, parse_bytes, peak_rss, progress, CANCEL};
+use anyhow::{bail, Context, Result};
+use brickyard_process::{build, label_pass1, stats_csv, stats_json, LabelSource, Pipeline};
+use brickyard_store::import::zarr::{self, ZarrSource};
+use brickyard_store::info::human_bytes;
+use brickyard_store::omezarr::{read_json, write_json};
+use brickyard_store::{convert, Compression, ConvertOptions, VolumeSource};
+use clap::Args;
+use serde_json::{json, Value};
+use std::path::{Path, PathBuf};
+use std::sync::atomic::Ordering;
+use std::sync::Arc;
+use std::time::Instant;
+
+#[derive(Args)]
+pub struct ProcessCmd {
+    /// The OME-Zarr image to process (a store written by `convert`).
+    pub store: PathBuf,
+    /// The pipeline, e.g. "gauss(1.5)|threshold(0.3)|label(26)". Stages:
+    /// gauss(σ), gradmag(σ), sobel, threshold(t), window(lo,hi), label(6|26);
+    /// σ in voxels, or with a unit (1.5um); three values are x,y,z.
+    pub pipeline: String,
+    /// Name of the result: STORE/labels/NAME for labels and masks,
+    /// STORE/derived/NAME otherwise.
+    #[arg(long)]
+    pub out: String,
+    /// Memory budget (e.g. 1GiB, 512MiB).
+    #[arg(long, default_value = "1GiB")]
+    pub memory: String,
+    /// Level of the store to process (0 = full resolution).
+    #[arg(long, default_value_t = 0)]
+    pub level: usize,
+    /// Channel of the store to process.
+    #[arg(long, default_value_t = 0)]
+    pub channel: usize,
+    /// Labelling: also write the per-label statistics to FILE (.csv or
+    /// .json). They are always stored in the label image as
+    /// `_brickyard/labels.csv` and `_brickyard/labels.json`.
+    #[arg(long)]
+    pub stats: Option<PathBuf>,
+    /// Replace an existing result of the same name.
+    #[arg(long)]
+    pub overwrite: bool,
+    /// Print the report as JSON.
+    #[arg(long)]
+    pub json: bool,
+    /// No progress bar.
+    #[arg(long)]
+    pub quiet: bool,
+}
+
+fn check_name(name: &str) -> Result<()> {
+    if name.is_empty()
+        || name.starts_with('.')
+        || name.contains(['/', '\\'])
+        || name.ends_with(".partial")
+    {
+        bail!("--out: expected a plain name (no '/', not starting with '.'), found {name:?}");
+    }
+    Ok(())
+}
+
+/// Names of the directories a run of `name` uses in `dir`.
+struct Paths {
+    dir: PathBuf,
+    name: String,
+    /// The published result.
+    fin: PathBuf,
+    /// Where `convert` writes the complete, unpublished result.
+    staged: PathBuf,
+    /// What `convert` writes while it works.
+    partial: PathBuf,
+    /// The previous result while it is being replaced.
+    old: PathBuf,
+}
+
+impl Paths {
+    fn new(dir: PathBuf, name: &str) -> Paths {
+        Paths {
+            fin: dir.join(name),
+            staged: dir.join(format!(".{name}.new")),
+            partial: dir.join(format!(".{name}.new.partial")),
+            old: dir.join(format!(".{name}.old")),
+            dir,
+            name: name.to_string(),
+        }
+    }
+
+    /// Undo what an interrupted run left: a replaced result that was not
+    /// yet swapped back comes back; unpublished results go.
+    fn recover(&self, quiet: bool) -> Result<()> {
+        if self.old.exists() {
+            if self.fin.exists() {
+                note(
+                    quiet,
+                    &format!(
+                        "removing {} (left by an interrupted run)",
+                        self.old.display()
+                    ),
+                );
+                std::fs::remove_dir_all(&self.old)
+                    .with_context(|| format!("{}: cannot remove", self.old.display()))?;
+            } else {
+                note(
+                    quiet,
+                    &format!(
+                        "restoring {} from {} (an interrupted run was replacing it)",
+                        self.fin.display(),
+                        self.old.display()
+                    ),
+                );
+                std::fs::rename(&self.old, &self.fin)
+                    .with_context(|| format!("{}: cannot restore", self.fin.display()))?;
+            }
+        }
+        for p in [&self.partial, &self.staged] {
+            if p.exists() {
+                note(
+                    quiet,
+                    &format!(
+                        "removing {} (left by an interrupted run; the job starts again from the beginning)",
+                        p.display()
+                    ),
+                );
+                std::fs::remove_dir_all(p)
+                    .with_context(|| format!("{}: cannot remove", p.display()))?;
+            }
+        }
+        Ok(())
+    }
+}
+
+fn note(quiet: bool, s: &str) {
+    if !quiet {
+        eprintln!("note: {s}");
+    }
+}
+
+/// The `labels` group's list of label images.
+fn labels_list(dir: &Path) -> Result<(Value, Vec<String>)> {
+    let f = dir.join("zarr.json");
+    if !f.exists() {
+        return Ok((
+            json!({"zarr_format": 3, "node_type": "group",
+                   "attributes": {"ome": {"version": "0.5", "labels": []}}}),
+            vec![],
+        ));
+    }
+    let j = read_json(&f)?;
+    if j.get("node_type").and_then(Value::as_str) != Some("group") {
+        bail!(
+            "{}: node_type: expected \"group\" (the labels group)",
+            f.display()
+        );
+    }
+    let list = match j.pointer("/attributes/ome/labels") {
+        None => vec![],
+        Some(Value::Array(a)) => a
+            .iter()
+            .map(|v| {
+                v.as_str().map(str::to_string).with_context(|| {
+                    format!(
+                        "{}: attributes.ome.labels: expected names, found {v}",
+                        f.display()
+                    )
+                })
+            })
+            .collect::<Result<_>>()?,
+        Some(v) => bail!(
+            "{}: attributes.ome.labels: expected a list of names, found {v}",
+            f.display()
+        ),
+    };
+    Ok((j, list))
+}
+
+pub fn run(c: ProcessCmd) -> Result<()> {
+    let t0 = Instant::now();
+    let pipe = Pipeline::parse(&c.pipeline).map_err(|e| anyhow::anyhow!("{e}"))?;
+    check_name(&c.out)?;
+    let memory = parse_bytes(&c.memory)?;
+    if c.stats.is_some() && !matches!(pipe.ops.last(), Some(brickyard_process::Op::Label(_))) {
+        bail!("--stats: only a pipeline that ends in label(...) has per-label statistics");
+    }
+    let stats_fmt = match &c.stats {
+        None => None,
+        Some(p) => match p.extension().and_then(|e| e.to_str()) {
+            Some("csv") => Some(false),
+            Some("json") => Some(true),
+            _ => bail!(
+                "--stats: expected a file name ending in .csv or .json, found {}",
+                p.display()
+            ),
+        },
+    };
+    // The input: a level of an OME-Zarr image.
+    let store = &c.store;
+    if !zarr::is_zarr(store) {
+        bail!(
+            "{}: not a Zarr store (no zarr.json); convert the volume first with `brickyard convert`",
+            store.display()
+        );
+    }
+    let mut src = zarr::open(store, c.level)?;
+    let ms = src.multiscale.clone().with_context(|| {
+        format!(
+            "{}: expected an OME-Zarr multiscale image (a store written by `brickyard convert`), found a bare array",
+            store.display()
+        )
+    })?;
+    let brick: [u64; 3] = ms
+        .brickyard
+        .as_ref()
+        .and_then(|b| b.get("brick"))
+        .and_then(|b| serde_json::from_value(b.clone()).ok())
+        .filter(|b: &[u64; 3]| b.iter().all(|&v| v >= 2 && v % 2 == 0))
+        .unwrap_or([64; 3]);
+    // Bricks read with their halo overlap: keep decoded chunks (an eighth
+    // of the budget; the pyramid writer plans with the rest).
+    src.enable_chunk_cache(memory / 8);
+    let meta = src.meta().clone();
+    if c.channel >= meta.channels {
+        bail!(
+            "--channel: {} asked for but {} has {} channel(s)",
+            c.channel,
+            store.display(),
+            meta.channels
+        );
+    }
+    let input: Arc<ZarrSource> = Arc::new(src);
+    let built = build(&pipe, input.clone(), c.channel, brick)
+        .map_err(|e| anyhow::anyhow!("pipeline {:?}: {e}", c.pipeline))?;
+    let is_label = pipe.is_label_output();
+    let dir = store.join(if is_label { "labels" } else { "derived" });
+    let paths = Paths::new(dir, &c.out);
+    // What an interrupted run left is reported even with --quiet.
+    paths.recover(false)?;
+    if paths.fin.exists() && !c.overwrite {
+        bail!(
+            "{}: exists; pass --overwrite to replace it",
+            paths.fin.display()
+        );
+    }
+    let listed = if is_label {
+        Some(labels_list(&paths.dir)?)
+    } else {
+        None
+    };
+
+    install_ctrl_c();
+    let opts = ConvertOptions {
+        brick,
+        shard: [512; 3].map(|s: u64| s.max(brick[0]).div_ceil(brick[0]) * brick[0]),
+        compression: Compression::Lz4,
+        labels: is_label,
+        memory: memory - memory / 8,
+        overwrite: false,
+        spacing: meta.spacing,
+        origin: meta.origin,
+        unit: meta.unit.clone(),
+    };
+    let quiet = c.quiet || c.json;
+    let made_dir = !paths.dir.exists();
+    let cleanup = |e: anyhow::Error| -> anyhow::Error {
+        let _ = std::fs::remove_dir_all(&paths.partial);
+        let _ = std::fs::remove_dir_all(&paths.staged);
+        if made_dir {
+            // Only if still empty: the store is left as it was.
+            let _ = std::fs::remove_dir(&paths.dir);
+        }
+        if CANCEL.load(Ordering::SeqCst) {
+            anyhow::anyhow!(
+                "interrupted; {} is as it was (nothing was published); run the same command again to start over",
+                store.display()
+            )
+        } else {
+            e
+        }
+    };
+    std::fs::create_dir_all(&paths.dir)
+        .with_context(|| format!("{}: cannot create", paths.dir.display()))?;
+    let mut labeling = None;
+    let report = (|| -> Result<brickyard_store::ConvertReport> {
+        let out_src: Arc<dyn VolumeSource> = match built.label {
+            Some(conn) => {
+                let bar = progress::Bar::counting(quiet, "labelling (pass 1, voxels)");
+                let inten: &dyn VolumeSource = input.as_ref();
+                let lab = label_pass1(
+                    built.source.as_ref(),
+                    built.channel,
+                    conn,
+                    brick,
+                    Some((inten, c.channel)),
+                    &bar,
+                    &CANCEL,
+                );
+                bar.finish();
+                let lab = Arc::new(lab?);
+                labeling = Some(lab.clone());
+                Arc::new(LabelSource::new(built.source.clone(), built.channel, lab))
+            }
+            None => built.source.clone(),
+        };
+        let bar = progress::Bar::new(quiet, "writing");
+        let r = convert(out_src.as_ref(), &paths.staged, &opts, &bar, &CANCEL);
+        bar.finish();
+        Ok(r?)
+    })()
+    .map_err(cleanup)?;
+
+    // Describe the result, store the statistics, then publish.
+    let root = paths.staged.join("zarr.json");
+    let mut j = read_json(&root)?;
+    let attrs = j["attributes"].as_object_mut().context("attributes")?;
+    let origin = json!({
+        "pipeline": pipe.text(),
+        "input": store.to_string_lossy(),
+        "level": c.level,
+        "channel": c.channel,
+        "boundary_mode": "nearest",
+        "truncate": brickyard_process::filter::TRUNCATE,
+    });
+    if let Some(b) = attrs.get_mut(brickyard_store::omezarr::ATTR) {
+        b["process"] = origin;
+        b["source"] = json!(store.to_string_lossy());
+    }
+    if is_label {
+        attrs["ome"]["image-label"] = json!({"version": "0.5", "source": {"image": "../../"}});
+    }
+    write_json(&root, &j).map_err(|e| cleanup(e.into()))?;
+    if let Some(lab) = &labeling {
+        let extra = [
+            (
+                "pipeline",
+                brickyard_process::label::json_string(&pipe.text()),
+            ),
+            ("level", c.level.to_string()),
+            ("intensity_channel", c.channel.to_string()),
+        ];
+        let dirs = paths.staged.join("_brickyard");
+        std::fs::write(dirs.join("labels.csv"), stats_csv(&lab.stats))
+            .and_then(|_| std::fs::write(dirs.join("labels.json"), stats_json(lab, &extra)))
+            .with_context(|| format!("{}: cannot write statistics", dirs.display()))
+            .map_err(cleanup)?;
+        if let (Some(p), Some(is_json)) = (&c.stats, stats_fmt) {
+            let text = if is_json {
+                stats_json(lab, &extra)
+            } else {
+                stats_csv(&lab.stats)
+            };
+            std::fs::write(p, text).with_context(|| format!("{}: cannot write", p.display()))?;
+        }
+    }
+    if paths.fin.exists() {
+        std::fs::rename(&paths.fin, &paths.old)
+            .with_context(|| format!("{}: cannot move aside", paths.fin.display()))?;
+        std::fs::rename(&paths.staged, &paths.fin)
+            .with_context(|| format!("{}: cannot publish", paths.fin.display()))?;
+        std::fs::remove_dir_all(&paths.old)
+            .with_context(|| format!("{}: cannot remove", paths.old.display()))?;
+    } else {
+        std::fs::rename(&paths.staged, &paths.fin)
+            .with_context(|| format!("{}: cannot publish", paths.fin.display()))?;
+    }
+    if let Some((mut j, mut list)) = listed {
+        if !list.contains(&paths.name) {
+            list.push(paths.name.clone());
+            j["attributes"]["ome"]["version"] = json!("0.5");
+            j["attributes"]["ome"]["labels"] = json!(list);
+            write_json(&paths.dir.join("zarr.json"), &j)?;
+        }
+    } else {
+        let g = paths.dir.join("zarr.json");
+        if !g.exists() {
+            write_json(
+                &g,
+                &json!({"zarr_format": 3, "node_type": "group", "attributes": {}}),
+            )?;
+        }
+    }
+    let rss = peak_rss();
+    let secs = t0.elapsed().as_secs_f64();
+    let count = labeling.as_ref().map(|l| l.count());
+    if c.json {
+        println!(
+            "{}",
+            json!({
+                "output": paths.fin,
+                "pipeline": pipe.text(),
+                "labels": count,
+                "levels": report.levels.len(),
+                "dtype": report.dtype.short_name(),
+                "seconds": secs,
+                "bytes_written": report.bytes_written,
+                "peak_rss_bytes": rss,
+            })
+        );
+    } else {
+        println!(
+            "wrote {} ({}, {} levels{}) in {:.2} s, peak RSS {}",
+            paths.fin.display(),
+            report.dtype,
+            report.levels.len(),
+            count.map(|n| format!(", {n} labels")).unwrap_or_default(),
+            secs,
+            human_bytes(rss)
+        );
+    }
+    Ok(())
+}

@@ -1,0 +1,443 @@
+//! `brickyard process` as a user meets it: labels written into the store
+//! equal an in-core flood fill; jobs killed at random points leave the
+//! store as it was and readable, and a rerun completes.
+
+use brickyard_core::{as_bytes_mut, Dims3};
+use brickyard_store::import::zarr;
+use brickyard_store::VolumeSource;
+use std::collections::BTreeMap;
+use std::path::Path;
+use std::process::{Command, Output};
+use std::time::{Duration, Instant};
+
+fn bin() -> Command {
+    Command::new(env!("CARGO_BIN_EXE_brickyard"))
+}
+
+fn run(args: &[&str]) -> Output {
+    bin().args(args).output().unwrap()
+}
+
+fn s(p: &Path) -> &str {
+    p.to_str().unwrap()
+}
+
+#[track_caller]
+fn ok(o: Output) -> Output {
+    assert!(
+        o.status.success(),
+        "failed: {}{}",
+        String::from_utf8_lossy(&o.stdout),
+        String::from_utf8_lossy(&o.stderr)
+    );
+    o
+}
+
+fn read_level0<T: brickyard_core::Sample>(path: &Path) -> (Vec<T>, Dims3) {
+    let src = zarr::open(path, 0).unwrap();
+    let d = src.meta().dims;
+    let mut v = vec![T::default(); d.iter().product::<u64>() as usize];
+    src.read_region(0, 0..d[0], 0..d[1], 0..d[2], as_bytes_mut(&mut v))
+        .unwrap();
+    (v, d)
+}
+
+/// Flood fill in raster order (the reference numbering).
+fn flood(mask: &[bool], d: Dims3, conn: u8) -> Vec<u32> {
+    let (nz, ny, nx) = (d[0] as i64, d[1] as i64, d[2] as i64);
+    let mut lab = vec![0u32; mask.len()];
+    let mut n = 0;
+    let mut st = vec![];
+    for s0 in 0..mask.len() {
+        if !mask[s0] || lab[s0] != 0 {
+            continue;
+        }
+        n += 1;
+        lab[s0] = n;
+        st.push(s0);
+        while let Some(i) = st.pop() {
+            let (z, y, x) = (i as i64 / (ny * nx), i as i64 / nx % ny, i as i64 % nx);
+            for dz in -1i64..=1 {
+                for dy in -1i64..=1 {
+                    for dx in -1i64..=1 {
+                        let k = dz.abs() + dy.abs() + dx.abs();
+                        if k == 0 || (conn == 6 && k > 1) {
+                            continue;
+                        }
+                        let (a, b, c) = (z + dz, y + dy, x + dx);
+                        if a < 0 || b < 0 || c < 0 || a >= nz || b >= ny || c >= nx {
+                            continue;
+                        }
+                        let j = ((a * ny + b) * nx + c) as usize;
+                        if mask[j] && lab[j] == 0 {
+                            lab[j] = n;
+                            st.push(j);
+                        }
+                    }
+                }
+            }
+        }
+    }
+    lab
+}
+
+/// Every file of the store outside `labels/`, with its bytes.
+fn snapshot(store: &Path) -> BTreeMap<String, Vec<u8>> {
+    let mut m = BTreeMap::new();
+    let mut todo = vec![store.to_path_buf()];
+    while let Some(d) = todo.pop() {
+        for e in std::fs::read_dir(&d).unwrap() {
+            let p = e.unwrap().path();
+            let rel = p
+                .strip_prefix(store)
+                .unwrap()
+                .to_string_lossy()
+                .into_owned();
+            if rel.starts_with("labels") {
+                continue;
+            }
+            if p.is_dir() {
+                todo.push(p);
+            } else {
+                m.insert(rel, std::fs::read(&p).unwrap());
+            }
+        }
+    }
+    m
+}
+
+fn make_store(dir: &Path, size: &str) -> std::path::PathBuf {
+    let store = dir.join("v.zarr");
+    ok(run(&[
+        "generate",
+        "marschner-lobb",
+        s(&store),
+        "--size",
+        size,
+        "--dtype",
+        "u16",
+        "--brick",
+        "16",
+        "--shard",
+        "32",
+        "--quiet",
+    ]));
+    store
+}
+
+#[test]
+fn labels_equal_an_in_core_flood_fill_and_follow_the_labels_spec() {
+    let d = tempfile::tempdir().unwrap();
+    // Random bytes; about 8 % of voxels above the threshold: many
+    // components with either connectivity, some across many bricks.
+    let dims: Dims3 = [41, 29, 37];
+    let mut r = 0x2545f4914f6cdd1du64;
+    let v: Vec<u8> = (0..dims.iter().product::<u64>())
+        .map(|_| {
+            r ^= r << 13;
+            r ^= r >> 7;
+            r ^= r << 17;
+            (r >> 56) as u8
+        })
+        .collect();
+    let raw = d.path().join("v.raw");
+    std::fs::write(&raw, &v).unwrap();
+    let store = d.path().join("v.zarr");
+    ok(run(&[
+        "convert",
+        s(&raw),
+        s(&store),
+        "--dims",
+        "37x29x41",
+        "--dtype",
+        "u8",
+        "--brick",
+        "8",
+        "--shard",
+        "16",
+        "--quiet",
+    ]));
+    let t = 235u8;
+    let stats = d.path().join("cells.json");
+    for conn in [6u8, 26] {
+        let pipe = format!("threshold({t})|label({conn})");
+        ok(run(&[
+            "process",
+            s(&store),
+            &pipe,
+            "--out",
+            "cells",
+            "--stats",
+            s(&stats),
+            "--overwrite",
+            "--quiet",
+        ]));
+        let (got, gd) = read_level0::<u32>(&store.join("labels/cells"));
+        assert_eq!(gd, dims);
+        let mask: Vec<bool> = v.iter().map(|&x| x > t).collect();
+        let want = flood(&mask, dims, conn);
+        let n = *want.iter().max().unwrap();
+        assert!(n > 2, "the test volume should have several components");
+        assert!(got == want, "labels differ from the flood fill ({conn})");
+        let j: serde_json::Value =
+            serde_json::from_str(&std::fs::read_to_string(&stats).unwrap()).unwrap();
+        assert_eq!(j["count"], n);
+        assert_eq!(j["labels"].as_array().unwrap().len(), n as usize);
+    }
+    let lj: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(store.join("labels/zarr.json")).unwrap())
+            .unwrap();
+    assert_eq!(
+        lj["attributes"]["ome"]["labels"],
+        serde_json::json!(["cells"])
+    );
+    let ij: serde_json::Value = serde_json::from_str(
+        &std::fs::read_to_string(store.join("labels/cells/zarr.json")).unwrap(),
+    )
+    .unwrap();
+    assert!(ij["attributes"]["ome"]["image-label"].is_object());
+    assert_eq!(ij["attributes"]["brickyard"]["labels"], true);
+    assert!(store.join("labels/cells/_brickyard/labels.csv").exists());
+    // A second label image is added to the list, the first kept.
+    ok(run(&[
+        "process",
+        s(&store),
+        "window(100,200)|label(6)",
+        "--out",
+        "band",
+        "--quiet",
+    ]));
+    let lj: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(store.join("labels/zarr.json")).unwrap())
+            .unwrap();
+    assert_eq!(
+        lj["attributes"]["ome"]["labels"],
+        serde_json::json!(["cells", "band"])
+    );
+}
+
+#[test]
+fn killed_jobs_leave_the_store_as_it_was_and_a_rerun_completes() {
+    let d = tempfile::tempdir().unwrap();
+    let store = make_store(d.path(), "120x110x100");
+    let before = snapshot(&store);
+    let pipe = "gauss(2)|threshold(30000)|label(26)";
+    let args = |extra: &[&str]| {
+        let mut a = vec!["process", s(&store), pipe, "--out", "cells", "--quiet"];
+        a.extend_from_slice(extra);
+        a.into_iter().map(String::from).collect::<Vec<_>>()
+    };
+    // An uninterrupted run: its duration and result.
+    let t0 = Instant::now();
+    ok(bin().args(args(&[])).output().unwrap());
+    let dur = t0.elapsed();
+    let (want, _) = read_level0::<u32>(&store.join("labels/cells"));
+    std::fs::remove_dir_all(store.join("labels")).unwrap();
+    assert_eq!(snapshot(&store), before);
+    let mut leftovers_seen = 0;
+    // Kill points spread over the job (pseudo-random, fixed seed).
+    let mut r = 0x9e3779b97f4a7c15u64;
+    // The last round kills the job as soon as its partial output appears,
+    // so that at least one kill lands while the pyramid is being written.
+    for k in 0..6 {
+        r ^= r << 13;
+        r ^= r >> 7;
+        r ^= r << 17;
+        let f = 0.05 + 0.9 * ((r >> 11) as f64 / (1u64 << 53) as f64);
+        let mut child = bin().args(args(&[])).spawn().unwrap();
+        if k == 5 {
+            let partial = store.join("labels/.cells.new.partial/0");
+            let t = Instant::now();
+            while !partial.exists() && t.elapsed() < Duration::from_secs(60) {
+                std::thread::sleep(Duration::from_millis(2));
+            }
+            assert!(partial.exists(), "the job never wrote its partial output");
+        } else {
+            std::thread::sleep(Duration::from_secs_f64(dur.as_secs_f64() * f));
+        }
+        let _ = child.kill(); // SIGKILL
+        let st = child.wait().unwrap();
+        // The store opens, the image is unchanged byte for byte.
+        assert_eq!(snapshot(&store), before, "kill {k}: the store changed");
+        zarr::open(&store, 0).unwrap();
+        let labels = store.join("labels");
+        let published = labels.join("cells").exists();
+        if published {
+            // Killed after publishing: the result is complete.
+            let (got, _) = read_level0::<u32>(&labels.join("cells"));
+            assert!(got == want, "kill {k}: published labels differ");
+        }
+        let hidden = labels.exists()
+            && std::fs::read_dir(&labels)
+                .unwrap()
+                .any(|e| e.unwrap().file_name().to_string_lossy().starts_with('.'));
+        let extra: &[&str] = if published { &["--overwrite"] } else { &[] };
+        let o = ok(bin().args(args(extra)).output().unwrap());
+        let err = String::from_utf8_lossy(&o.stderr);
+        if hidden {
+            leftovers_seen += 1;
+            assert!(
+                err.contains("interrupted run"),
+                "kill {k}: the rerun should say what it cleaned up: {err:?}"
+            );
+        }
+        let (got, _) = read_level0::<u32>(&labels.join("cells"));
+        assert!(
+            got == want,
+            "kill {k} ({st:?} after {f:.2} of the job): rerun differs"
+        );
+        assert!(!std::fs::read_dir(&labels).unwrap().any(|e| e
+            .unwrap()
+            .file_name()
+            .to_string_lossy()
+            .starts_with('.')));
+        std::fs::remove_dir_all(&labels).unwrap();
+    }
+    eprintln!("kills that left hidden leftovers: {leftovers_seen} of 6");
+    assert!(leftovers_seen >= 1);
+}
+
+#[test]
+fn bad_process_inputs_give_clear_errors() {
+    let d = tempfile::tempdir().unwrap();
+    let store = make_store(d.path(), "20");
+    for (args, want) in [
+        (vec!["gauss(1)|treshold(3)", "--out", "x"], "treshold"),
+        (
+            vec!["gauss(1)|label(8)", "--out", "x"],
+            "connectivity 6 or 26",
+        ),
+        (vec!["sobel", "--out", "a/b"], "--out"),
+        (vec!["sobel", "--out", "x", "--level", "7"], "level 7"),
+        (vec!["sobel", "--out", "x", "--channel", "2"], "channel"),
+        (
+            vec!["label", "--out", "x", "--stats", "s.txt"],
+            ".csv or .json",
+        ),
+        (vec!["sobel", "--out", "x", "--memory", "lots"], "memory"),
+    ] {
+        let mut a = vec!["process", s(&store)];
+        a.extend(args.iter().copied());
+        let o = run(&a);
+        let e = String::from_utf8_lossy(&o.stderr);
+        assert!(!o.status.success(), "{a:?} succeeded");
+        assert!(!e.contains("panicked"), "{a:?}: {e}");
+        assert!(e.contains(want), "{a:?}: {e:?} should mention {want:?}");
+    }
+    let o = run(&[
+        "process",
+        s(&d.path().join("none.zarr")),
+        "sobel",
+        "--out",
+        "x",
+    ]);
+    assert!(!o.status.success());
+    assert!(String::from_utf8_lossy(&o.stderr).contains("none.zarr"));
+    // Nothing was written by the failures.
+    assert!(!store.join("labels").exists() && !store.join("derived").exists());
+    // A labels group whose list is not a list of names: named, refused,
+    // left as it was.
+    std::fs::create_dir_all(store.join("labels")).unwrap();
+    let bad = r#"{"zarr_format": 3, "node_type": "group", "attributes": {"ome": {"labels": 5}}}"#;
+    std::fs::write(store.join("labels/zarr.json"), bad).unwrap();
+    let o = run(&["process", s(&store), "threshold(1)", "--out", "m"]);
+    let e = String::from_utf8_lossy(&o.stderr);
+    assert!(!o.status.success() && !e.contains("panicked"), "{e}");
+    assert!(
+        e.contains("labels/zarr.json") && e.contains("attributes.ome.labels"),
+        "{e}"
+    );
+    assert_eq!(
+        std::fs::read_to_string(store.join("labels/zarr.json")).unwrap(),
+        bad
+    );
+    assert_eq!(std::fs::read_dir(store.join("labels")).unwrap().count(), 1);
+}
+
+#[test]
+fn the_chosen_channel_is_processed_and_measured() {
+    // Two channels, stored one after the other: channel 0 noise, channel 1
+    // a few boxes of distinct values on zero.
+    let d = tempfile::tempdir().unwrap();
+    let dims: Dims3 = [12, 14, 16];
+    let n = dims.iter().product::<u64>() as usize;
+    let mut r = 0x853c49e6748fea9bu64;
+    let mut c0 = vec![0u16; n];
+    for v in &mut c0 {
+        r ^= r << 13;
+        r ^= r >> 7;
+        r ^= r << 17;
+        *v = (r >> 48) as u16;
+    }
+    let mut c1 = vec![0u16; n];
+    let boxes = [
+        ([1, 2, 3], [4, 5, 6], 500u16),
+        ([6, 8, 9], [11, 13, 15], 900),
+    ];
+    for (lo, hi, val) in boxes {
+        for z in lo[0]..hi[0] {
+            for y in lo[1]..hi[1] {
+                for x in lo[2]..hi[2] {
+                    c1[(z * 14 + y) * 16 + x] = val;
+                }
+            }
+        }
+    }
+    let mut bytes = vec![];
+    for v in c0.iter().chain(&c1) {
+        bytes.extend_from_slice(&v.to_le_bytes());
+    }
+    let raw = d.path().join("two.raw");
+    std::fs::write(&raw, bytes).unwrap();
+    let store = d.path().join("two.zarr");
+    ok(run(&[
+        "convert",
+        s(&raw),
+        s(&store),
+        "--dims",
+        "16x14x12",
+        "--dtype",
+        "u16",
+        "--channels",
+        "2",
+        "--brick",
+        "8",
+        "--shard",
+        "16",
+        "--quiet",
+    ]));
+    let stats = d.path().join("boxes.csv");
+    ok(run(&[
+        "process",
+        s(&store),
+        "threshold(0)|label(6)",
+        "--out",
+        "boxes",
+        "--channel",
+        "1",
+        "--stats",
+        s(&stats),
+        "--quiet",
+    ]));
+    let (got, gd) = read_level0::<u32>(&store.join("labels/boxes"));
+    assert_eq!(gd, dims);
+    let want = flood(&c1.iter().map(|&v| v > 0).collect::<Vec<_>>(), dims, 6);
+    assert!(got == want);
+    let csv = std::fs::read_to_string(&stats).unwrap();
+    let rows: Vec<Vec<&str>> = csv
+        .lines()
+        .skip(1)
+        .map(|l| l.split(',').collect())
+        .collect();
+    assert_eq!(rows.len(), 2);
+    for (row, (lo, hi, val)) in rows.iter().zip(boxes) {
+        let vox: u64 = (0..3).map(|a| (hi[a] - lo[a]) as u64).product();
+        assert_eq!(row[1], vox.to_string());
+        assert_eq!(
+            &row[2..8],
+            &[lo[0], lo[1], lo[2], hi[0] - 1, hi[1] - 1, hi[2] - 1].map(|v| v.to_string())[..]
+        );
+        // The mean is over channel 1 (the processed one), not channel 0.
+        assert_eq!(row[11].parse::<f64>().unwrap(), val as f64);
+    }
+}

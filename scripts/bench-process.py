@@ -1,0 +1,92 @@
+#!/usr/bin/env python3
+"""Benchmark: `brickyard process` against scipy.ndimage and cc3d, one volume.
+
+Usage: bench-process.py BRICKYARD_BIN WORKDIR [SIZE]   (SIZE: edge of a cube, default 256)
+
+Makes a smooth random u16 cube (many blobs), converts it to a store (64³
+bricks), then times, each in its own process so that peak RSS is its own:
+  - brickyard process STORE "gauss(2)" / "sobel" / "threshold(T)|label(26)"
+    (reads the store, computes, writes the whole pyramid, lz4; --memory 1GiB)
+  - scipy.ndimage.gaussian_filter(v, 2, mode="nearest", output=float32),
+    generic_gradient_magnitude(v as float32, sobel, mode="nearest"),
+    label(v > T, 26-connectivity); cc3d.connected_components(v > T, 26)
+    (in core: the volume is loaded from the raw file first; the time is the
+    operation's, the peak RSS the whole process's).
+Prints one JSON line per run.
+"""
+import json
+import os
+import subprocess
+import sys
+import time
+
+BIN, WORK = sys.argv[1], sys.argv[2]
+N = int(sys.argv[3]) if len(sys.argv) > 3 else 256
+PY = sys.executable
+os.makedirs(WORK, exist_ok=True)
+raw = os.path.join(WORK, f"cube{N}.raw")
+store = os.path.join(WORK, f"cube{N}.zarr")
+
+if not os.path.exists(raw):
+    import numpy as np
+    import scipy.ndimage as ndi
+    rng = np.random.default_rng(5)
+    v = ndi.gaussian_filter(rng.random((N, N, N), dtype=np.float32), 3.0, mode="nearest")
+    v = (v - v.min()) / (v.max() - v.min())
+    (v * 60000).astype(np.uint16).tofile(raw)
+    del v
+if not os.path.exists(store):
+    subprocess.run([BIN, "convert", raw, store, "--dims", f"{N}x{N}x{N}", "--dtype", "u16",
+                    "--quiet"], check=True)
+T = 33000
+
+
+def timed(cmd):
+    """Run cmd under /usr/bin/time: wall seconds and peak RSS (MiB)."""
+    t0 = time.time()
+    r = subprocess.run(["/usr/bin/time", "-f", "RSS %M", *cmd], capture_output=True, text=True)
+    wall = time.time() - t0
+    if r.returncode != 0:
+        raise SystemExit(f"{cmd}: exit {r.returncode}\n{r.stdout}\n{r.stderr}")
+    rss = int([l for l in r.stderr.splitlines() if l.startswith("RSS ")][-1].split()[1]) / 1024
+    return wall, rss, r.stdout
+
+
+SCIPY = r"""
+import sys, time, json, numpy as np, scipy.ndimage as ndi
+op, raw, n, t = sys.argv[1], sys.argv[2], int(sys.argv[3]), int(sys.argv[4])
+v = np.fromfile(raw, dtype=np.uint16).reshape(n, n, n)
+t0 = time.time()
+if op == "gauss":
+    r = ndi.gaussian_filter(v, 2.0, mode="nearest", output=np.float32)
+elif op == "sobel":
+    r = ndi.generic_gradient_magnitude(v.astype(np.float32), ndi.sobel, mode="nearest")
+elif op == "label":
+    r, k = ndi.label(v > t, structure=np.ones((3, 3, 3)))
+elif op == "cc3d":
+    import cc3d
+    r = cc3d.connected_components(v > t, connectivity=26)
+    k = int(r.max())
+dt = time.time() - t0
+print(json.dumps({"op_seconds": dt, "labels": int(k) if op in ("label", "cc3d") else None}))
+"""
+
+runs = [
+    ("gauss(2)", "gauss", "g"),
+    ("sobel", "sobel", "s"),
+    (f"threshold({T})|label(26)", "label", "l"),
+]
+for pipe, op, name in runs:
+    wall, rss, out = timed([BIN, "process", store, pipe, "--out", name, "--overwrite", "--quiet",
+                            "--json", "--memory", "1GiB"])
+    j = json.loads(out.strip().splitlines()[-1])
+    print(json.dumps({"tool": "brickyard process", "op": pipe, "n": N, "wall_s": round(wall, 3),
+                      "peak_rss_mib": round(rss, 1), "labels": j.get("labels")}), flush=True)
+    ops = [op] + (["cc3d"] if op == "label" else [])
+    for o in ops:
+        wall, rss, out = timed([PY, "-c", SCIPY, o, raw, str(N), str(T)])
+        j = json.loads(out.strip().splitlines()[-1])
+        tool = "cc3d 26" if o == "cc3d" else f"scipy.ndimage {o}"
+        print(json.dumps({"tool": tool, "op": pipe, "n": N, "wall_s": round(wall, 3),
+                          "op_s": round(j["op_seconds"], 3), "peak_rss_mib": round(rss, 1),
+                          "labels": j["labels"]}), flush=True)
