@@ -151,7 +151,60 @@ pub fn render_frame(
     params: &RenderParams,
     lod: Lod,
 ) -> (Image, FrameStats, Vec<Requests>) {
-    dispatch_dtype!(vm.dtype(), T => { render_typed::<T>(vm, scene, params, lod) })
+    let mut img = Image::new(params.width, params.height);
+    let mut tiles = Tiles::all(params.width, params.height);
+    let (stats, reqs) = render_tiles(vm, scene, params, lod, &mut img, &mut tiles);
+    (img, stats, reqs)
+}
+
+/// Tiles of a frame: which need drawing again. A tile is *settled* when
+/// every sample in it was served at the level it asked for: drawn again
+/// with the same parameters and level of detail, it gives the same pixels
+/// (bricks arriving later change only tiles that were not).
+#[derive(Debug, Clone, PartialEq)]
+pub struct Tiles {
+    pub width: u32,
+    pub height: u32,
+    /// Row-major over tiles; `true`: to draw.
+    pub redo: Vec<bool>,
+}
+
+impl Tiles {
+    /// Tiles of an image of `width` × `height` pixels, all to draw.
+    pub fn all(width: u32, height: u32) -> Tiles {
+        let n = (width as usize).div_ceil(TILE_W) * (height as usize).div_ceil(TILE_H);
+        Tiles {
+            width,
+            height,
+            redo: vec![true; n],
+        }
+    }
+
+    /// Tiles still to draw.
+    pub fn count(&self) -> usize {
+        self.redo.iter().filter(|r| **r).count()
+    }
+}
+
+/// Draw again only the tiles of `img` (the last frame of the same view,
+/// parameters and level of detail) that `tiles` marks, and mark afresh
+/// which of them are still not settled. Pixels of the other tiles are
+/// kept: they are what a full frame would draw (see [`Tiles`]). The
+/// statistics and requests cover the tiles drawn.
+pub fn render_tiles(
+    vm: &VirtualMemory,
+    scene: &Scene,
+    params: &RenderParams,
+    lod: Lod,
+    img: &mut Image,
+    tiles: &mut Tiles,
+) -> (FrameStats, Vec<Requests>) {
+    assert_eq!(
+        (img.width, img.height, tiles.width, tiles.height),
+        (params.width, params.height, params.width, params.height),
+        "image, tiles and parameters of one size"
+    );
+    dispatch_dtype!(vm.dtype(), T => { render_typed::<T>(vm, scene, params, lod, img, tiles) })
 }
 
 fn render_typed<T: Sample>(
@@ -159,15 +212,19 @@ fn render_typed<T: Sample>(
     scene: &Scene,
     params: &RenderParams,
     lod: Lod,
-) -> (Image, FrameStats, Vec<Requests>) {
+    img: &mut Image,
+    tiles: &mut Tiles,
+) -> (FrameStats, Vec<Requests>) {
     let frame = Frame::new(vm, scene, params, lod);
     let w = params.width as usize;
+    let tiles_x = w.div_ceil(TILE_W);
     let rg = params.camera.ray_gen(params.width, params.height);
-    let mut img = Image::new(params.width, params.height);
     let parts: Vec<(FrameStats, Requests)> = img
         .rgba
         .par_chunks_mut(w * TILE_H)
+        .zip(tiles.redo.par_chunks_mut(tiles_x))
         .enumerate()
+        .map(|(band, (rows, redo))| (band, rows, redo))
         .fold(
             || -> (Vec<Walker<T>>, Requests, FrameStats) {
                 // One walker per channel shown and one request collector,
@@ -184,10 +241,14 @@ fn render_typed<T: Sample>(
                 };
                 (walkers, vm.requests(), FrameStats::default())
             },
-            |(mut walkers, mut req, mut st), (band, rows)| {
+            |(mut walkers, mut req, mut st), (band, rows, redo)| {
                 let multi = !params.channels.is_empty();
                 let nrows = rows.len() / w;
-                for x0 in (0..w).step_by(TILE_W) {
+                for (tx, x0) in (0..w).step_by(TILE_W).enumerate() {
+                    if !redo[tx] {
+                        continue;
+                    }
+                    let (samples, exact) = (st.samples, st.exact);
                     for r in 0..nrows {
                         let j = (band * TILE_H + r) as u32;
                         for i in x0..(x0 + TILE_W).min(w) {
@@ -243,6 +304,8 @@ fn render_typed<T: Sample>(
                             };
                         }
                     }
+                    // Settled: every sample of the tile at its own level.
+                    redo[tx] = st.exact - exact != st.samples - samples;
                 }
                 (walkers, req, st)
             },
@@ -260,7 +323,7 @@ fn render_typed<T: Sample>(
         stats.add(&s);
         reqs.push(r);
     }
-    (img, stats, reqs)
+    (stats, reqs)
 }
 
 /// Per-frame constants.

@@ -13,7 +13,7 @@ use brickyard_cache::vm::{FrameReport, InsertReport};
 use brickyard_gpu::update::DeviceCache;
 use brickyard_gpu::vm::DeviceVm;
 use brickyard_gpu::{AdapterChoice, Gpu};
-use brickyard_render::cpu::{render_frame, FrameStats, Lod, Scene};
+use brickyard_render::cpu::{render_tiles, FrameStats, Lod, Scene, Tiles};
 use brickyard_render::gpu::update_on_device;
 use brickyard_render::gpu::GpuRenderer;
 use brickyard_render::reference::RenderParams;
@@ -41,6 +41,9 @@ pub struct Frame {
     /// Pool slots used at their own level this frame, pinned slots left
     /// out (on the device: counted by the pool's LRU compaction).
     pub exact_slots: Option<usize>,
+    /// The CPU: which tiles are not settled yet (see [`Tiles`]), for
+    /// [`Backend::frame_again`].
+    pub tiles: Option<Tiles>,
 }
 
 pub struct GpuBackend {
@@ -175,12 +178,15 @@ impl Backend {
         let t = std::time::Instant::now();
         match self {
             Backend::Cpu => {
-                let (image, stats, reqs) = render_frame(s.vm(), scene, p, lod);
+                let mut image = Image::new(p.width, p.height);
+                let mut tiles = Tiles::all(p.width, p.height);
+                let (stats, reqs) = render_tiles(s.vm(), scene, p, lod, &mut image, &mut tiles);
                 let render_ms = t.elapsed().as_secs_f64() * 1e3;
                 let c = std::time::Instant::now();
                 let session = s.finish_frame(reqs.iter());
                 Ok(Frame {
                     exact_slots: Some(session.frame.exact_slots),
+                    tiles: Some(tiles),
                     image,
                     stats,
                     up: session.insert.bytes_uploaded,
@@ -203,6 +209,7 @@ impl Backend {
                 let _ = g.gpu.device.poll(wgpu::PollType::wait_indefinitely());
                 Ok(Frame {
                     exact_slots: Some(session.frame.exact_slots),
+                    tiles: None,
                     image: f.image,
                     stats: f.stats,
                     session,
@@ -214,6 +221,44 @@ impl Backend {
                 })
             }
         }
+    }
+}
+
+impl Backend {
+    /// The next frame of a view whose last frame (`image`, `tiles`, from
+    /// the CPU) had the same parameters and level of detail: only the
+    /// tiles not settled then are drawn again (the others would come out
+    /// the same). Other back ends draw a whole frame.
+    pub fn frame_again(
+        &mut self,
+        s: &mut Session,
+        scene: &Scene,
+        p: &RenderParams,
+        lod: Lod,
+        mut image: Image,
+        mut tiles: Tiles,
+    ) -> Result<Frame> {
+        if !matches!(self, Backend::Cpu) {
+            return self.frame(s, scene, p, lod);
+        }
+        s.begin_frame();
+        let t = std::time::Instant::now();
+        let (stats, reqs) = render_tiles(s.vm(), scene, p, lod, &mut image, &mut tiles);
+        let render_ms = t.elapsed().as_secs_f64() * 1e3;
+        let c = std::time::Instant::now();
+        let session = s.finish_frame(reqs.iter());
+        Ok(Frame {
+            exact_slots: Some(session.frame.exact_slots),
+            tiles: Some(tiles),
+            image,
+            stats,
+            up: session.insert.bytes_uploaded,
+            down: 0,
+            session,
+            render_ms,
+            cache_ms: c.elapsed().as_secs_f64() * 1e3,
+            upload_ms: 0.0,
+        })
     }
 }
 
@@ -278,6 +323,7 @@ impl GpuBackend {
         };
         Ok(Frame {
             exact_slots: Some(exact_slots),
+            tiles: None,
             image: f.image,
             stats: f.stats,
             session,

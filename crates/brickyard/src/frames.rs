@@ -18,7 +18,7 @@ use crate::backend::{Backend, Frame};
 use anyhow::Result;
 use brickyard_cache::session::Session;
 use brickyard_render::budget::{Decision, FrameSignals, LodBudget, Stop};
-use brickyard_render::cpu::{Lod, Scene};
+use brickyard_render::cpu::{Lod, Scene, Tiles};
 use brickyard_render::reference::RenderParams;
 use brickyard_render::Image;
 use std::time::Instant;
@@ -84,14 +84,18 @@ pub fn drive(
         p
     });
     // First the request pass (while it finds bricks to ask for), then full
-    // frames until the budget says stop; at least one full frame.
+    // frames until the budget says stop; at least one full frame. On the
+    // CPU a frame like the last (same pass, same level of detail) draws
+    // again only the tiles that were not settled.
     let mut pass = small.is_some();
-    let mut last = None;
+    let mut full_drawn = false;
+    let mut keep: Option<(bool, Lod, Image, Tiles)> = None;
+    let mut shown: Option<Image> = None;
     let mut stop = None;
     let mut completeness = 0.0;
     loop {
         if frames >= opt.max_frames {
-            if last.is_some() {
+            if full_drawn {
                 break;
             }
             pass = false;
@@ -107,7 +111,12 @@ pub fn drive(
             _ => (params, budget.apply(lod, levels)),
         };
         let ft = Instant::now();
-        let f = backend.frame(s, scene, p, l)?;
+        let mut f = match keep.take() {
+            Some((kp, kl, img, tiles)) if kp == pass && kl == l => {
+                backend.frame_again(s, scene, p, l, img, tiles)?
+            }
+            _ => backend.frame(s, scene, p, l)?,
+        };
         frames += 1;
         let sig = signals(s, &f);
         on_frame(&FrameInfo {
@@ -119,7 +128,9 @@ pub fn drive(
             f: &f,
         });
         let d = budget.update(&sig);
+        let tiles = f.tiles.take();
         if pass {
+            keep = tiles.map(|t| (true, l, f.image, t));
             // Complete, only failed bricks left, stalled, or nothing more
             // to ask for: the full image takes over.
             pass = match d {
@@ -129,8 +140,12 @@ pub fn drive(
             };
             continue;
         }
+        full_drawn = true;
         completeness = f.stats.completeness();
-        last = Some(f.image);
+        match tiles {
+            Some(t) => keep = Some((false, l, f.image, t)),
+            None => shown = Some(f.image),
+        }
         if let Decision::Stop(why) = d {
             stop = Some(why);
             break;
@@ -140,8 +155,12 @@ pub fn drive(
             std::thread::sleep(std::time::Duration::from_millis(1));
         }
     }
+    let image = match keep {
+        Some((false, _, img, _)) => img,
+        _ => shown.unwrap_or_else(|| Image::new(params.width, params.height)),
+    };
     Ok(Outcome {
-        image: last.unwrap_or_else(|| Image::new(params.width, params.height)),
+        image,
         frames,
         stop,
         budget: budget.clone(),

@@ -106,6 +106,9 @@ pub struct RenderCmd {
     progressive: bool,
     #[arg(long, default_value_t = 2)]
     loader_threads: usize,
+    /// Slow every brick read down by this many milliseconds (a slow disk).
+    #[arg(long, default_value_t = 0)]
+    read_delay_ms: u64,
     /// A safety net: stop (and write what there is) after this many
     /// frames. Runs end by themselves: complete at the finest detail the
     /// pool holds, or when nothing more can arrive.
@@ -381,6 +384,8 @@ pub fn run(c: RenderCmd) -> Result<Vec<String>> {
     }
     let mut s =
         Session::open_with_budget(&c.store, cfg, split.host, split.chunks, c.loader_threads)?;
+    s.loader()
+        .set_read_delay(std::time::Duration::from_millis(c.read_delay_ms));
     // The pool's true slot size (from here on: reports and estimates).
     let slot_bytes = (s.vm().pool_bytes() / s.vm().pool_slots().max(1)) as u64;
     // The coarsest levels stay resident: every sample finds data at some

@@ -316,3 +316,68 @@ fn damaged_chunks_are_drawn_coarser_and_reported() {
     let out = ok(&o);
     assert!(out.contains("could not load level 0"), "{out}");
 }
+
+#[test]
+fn a_store_damaged_during_a_render_is_drawn_coarser_and_reported() {
+    // A slow render (a few bricks a frame, each read delayed) of a store
+    // whose level-0 shards are truncated, scrambled and removed after its
+    // second frame: what was read stays, what was not fails, and the run
+    // ends with the failures listed and no part of the volume missing.
+    use std::io::BufRead;
+    let d = tempfile::tempdir().unwrap();
+    let store = store(d.path());
+    let clean_png = d.path().join("clean.png");
+    render(&store, &clean_png, "cpu", &[]);
+    let clean = png_rgba(&clean_png);
+    let l0 = shards(&store, 0);
+    assert!(l0.len() >= 4, "{l0:?}");
+    let png = d.path().join("damaged.png");
+    let mut child = Command::new(env!("CARGO_BIN_EXE_brickyard"))
+        .args(["render", s(&store), "--size", "160", "--brick", "16"])
+        .args(["--window", "0,255", "--backend", "cpu", "--json"])
+        .args(["--progressive", "--requests", "4", "--loader-threads", "1"])
+        .args(["--read-delay-ms", "10", "--out", s(&png)])
+        .stdout(std::process::Stdio::piped())
+        .stderr(std::process::Stdio::piped())
+        .spawn()
+        .unwrap();
+    let mut lines = std::io::BufReader::new(child.stdout.take().unwrap()).lines();
+    let mut out = String::new();
+    let mut frames = 0;
+    for l in lines.by_ref() {
+        let l = l.unwrap();
+        frames += l.contains("\"frame\"") as usize;
+        out += &l;
+        out.push('\n');
+        if frames == 2 {
+            break;
+        }
+    }
+    assert_eq!(frames, 2, "the render ended before its second frame: {out}");
+    let t = std::fs::read(&l0[0]).unwrap();
+    std::fs::write(&l0[0], &t[..t.len() / 3]).unwrap();
+    let mut c = std::fs::read(&l0[1]).unwrap();
+    let n = c.len();
+    for b in &mut c[16..n.saturating_sub(600)] {
+        *b = b.wrapping_mul(31).wrapping_add(7);
+    }
+    std::fs::write(&l0[1], &c).unwrap();
+    std::fs::remove_file(&l0[2]).unwrap();
+    for l in lines {
+        out += &l.unwrap();
+        out.push('\n');
+    }
+    let status = child.wait().unwrap();
+    assert!(status.success(), "{out}");
+    let v = summary(&out);
+    let stop = v["stop"].as_str().unwrap();
+    assert!(
+        stop == "Some(CompleteButFailed)" || stop == "Some(Complete)",
+        "{v}"
+    );
+    let failed = v["failed_bricks"].as_array().unwrap();
+    assert!(!failed.is_empty(), "no brick failed: {v}");
+    assert!(v["frames"].as_u64().unwrap() > 2, "{v}");
+    let lost = holes(&clean, &png_rgba(&png));
+    assert!(lost * 200 <= lit(&clean), "{lost} pixels lost");
+}
