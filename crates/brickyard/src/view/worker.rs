@@ -10,7 +10,7 @@ use crate::backend::{Backend, GpuUpdate};
 use brickyard_cache::session::Session;
 use brickyard_cache::vm::VmConfig;
 use brickyard_render::budget::{Decision, LodBudget};
-use brickyard_render::cpu::{Lod, Scene};
+use brickyard_render::cpu::{Lod, Scene, Tiles};
 use brickyard_render::reference::RenderParams;
 use brickyard_render::Image;
 use std::path::PathBuf;
@@ -91,6 +91,9 @@ struct View {
     complete: bool,
     /// Coarsens the view when its working set does not fit the pool.
     budget: LodBudget,
+    /// The CPU's last frame of this view and its unsettled tiles: the
+    /// next frame at the same level of detail draws only those.
+    keep: Option<(Lod, Image, Tiles)>,
 }
 
 fn open(setup: &Setup, scene: &mut Scene) -> anyhow::Result<(Session, Backend)> {
@@ -156,6 +159,7 @@ pub fn run(setup: Setup, mut scene: Scene, rx: Receiver<Msg>, tx: Sender<Reply>,
                             spec: None,
                             complete: true,
                             budget: LodBudget::new(0.0, scene.levels.len(), true),
+                            keep: None,
                         });
                     }
                     let v = &mut views[i];
@@ -173,6 +177,7 @@ pub fn run(setup: Setup, mut scene: Scene, rx: Receiver<Msg>, tx: Sender<Reply>,
                     }
                     v.budget.view_changed();
                     v.spec = spec;
+                    v.keep = None;
                 }
                 Msg::Reopen(setup) => match open(&setup, &mut scene) {
                     Ok((s2, b2)) => {
@@ -182,6 +187,7 @@ pub fn run(setup: Setup, mut scene: Scene, rx: Receiver<Msg>, tx: Sender<Reply>,
                         backend.set_read_image(true);
                         for v in &mut views {
                             v.complete = v.spec.is_none();
+                            v.keep = None;
                         }
                     }
                     Err(e) => {
@@ -205,7 +211,13 @@ pub fn run(setup: Setup, mut scene: Scene, rx: Receiver<Msg>, tx: Sender<Reply>,
         let mut sc = scene.clone();
         sc.channel = spec.channel;
         let lod = views[i].budget.apply(spec.lod, sc.levels.len());
-        let f = match backend.frame(&mut s, &sc, &spec.params, lod) {
+        let drawn = match views[i].keep.take() {
+            Some((kl, img, tiles)) if kl == lod => {
+                backend.frame_again(&mut s, &sc, &spec.params, lod, img, tiles)
+            }
+            _ => backend.frame(&mut s, &sc, &spec.params, lod),
+        };
+        let mut f = match drawn {
             Ok(f) => f,
             Err(e) => {
                 let _ = tx.send(Reply::Error(format!("{e:#}")));
@@ -220,6 +232,10 @@ pub fn run(setup: Setup, mut scene: Scene, rx: Receiver<Msg>, tx: Sender<Reply>,
         // Complete, or nothing left to ask for but bricks that failed.
         let done = !changed && (completeness >= 1.0 || (sig.requests == 0 && !sig.progress));
         views[i].complete = done;
+        // Not done: the next frame of this view draws only what changed.
+        if let Some(t) = f.tiles.take().filter(|_| !done) {
+            views[i].keep = Some((lod, f.image.clone(), t));
+        }
         let new_failures: Vec<String> = s.failures()[reported.min(s.failures().len())..]
             .iter()
             .map(|f| {
