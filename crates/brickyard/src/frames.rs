@@ -4,8 +4,11 @@
 //! - **Batch** (the default of `render`): the session waits for each
 //!   frame's requests to load before inserting them, requests and uploads
 //!   are sized to the pool, and a first pass at a quarter of the pixels
-//!   (with the level of detail of the full image) finds most of the working
-//!   set cheaply. The full image is drawn once that pass asks for nothing.
+//!   and a quarter of the samples along each ray (with the level of detail
+//!   of the full image) finds most of the working set cheaply. The full
+//!   image is drawn once that pass asks for nothing; what the pass missed
+//!   the full image's next frames ask for, and they draw again only the
+//!   tiles it touches.
 //! - **Progressive** (`--progressive`, the viewer): one frame per batch of
 //!   arrivals, never waiting.
 //!
@@ -76,11 +79,17 @@ pub fn drive(
     let mut frames = 0;
     // The request pass: half the width and height, one level finer than
     // the automatic rule would pick for that size, which is the level the
-    // full image asks for (the pixel footprint doubles).
+    // full image asks for (the pixel footprint doubles), and a quarter of
+    // the samples along each ray: rays cross the same bricks and, with the
+    // opacity corrected for the longer step, end about where they would
+    // (at 512³ and 1024² the full frames then asked for 25 bricks more
+    // than the pass's 1915, against 22 more than 1917 at the full rate;
+    // the pass drew 4.2 M samples instead of 16.9 M).
     let small = (opt.batch && params.width >= 128 && params.height >= 128).then(|| {
         let mut p = params.clone();
         p.width = params.width / 2;
         p.height = params.height / 2;
+        p.samples_per_voxel = params.samples_per_voxel * 0.25;
         p
     });
     // First the request pass (while it finds bricks to ask for), then full
