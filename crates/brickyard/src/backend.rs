@@ -174,31 +174,18 @@ impl Backend {
         p: &RenderParams,
         lod: Lod,
     ) -> Result<Frame> {
+        let g = match self {
+            Backend::Cpu => {
+                let (w, h) = (p.width, p.height);
+                return cpu_frame(s, scene, p, lod, Image::new(w, h), Tiles::all(w, h));
+            }
+            Backend::Gpu(g) => g,
+        };
         s.begin_frame();
         let t = std::time::Instant::now();
-        match self {
-            Backend::Cpu => {
-                let mut image = Image::new(p.width, p.height);
-                let mut tiles = Tiles::all(p.width, p.height);
-                let (stats, reqs) = render_tiles(s.vm(), scene, p, lod, &mut image, &mut tiles);
-                let render_ms = t.elapsed().as_secs_f64() * 1e3;
-                let c = std::time::Instant::now();
-                let session = s.finish_frame(reqs.iter());
-                Ok(Frame {
-                    exact_slots: Some(session.frame.exact_slots),
-                    tiles: Some(tiles),
-                    image,
-                    stats,
-                    up: session.insert.bytes_uploaded,
-                    down: 0,
-                    session,
-                    render_ms,
-                    cache_ms: c.elapsed().as_secs_f64() * 1e3,
-                    upload_ms: 0.0,
-                })
-            }
-            Backend::Gpu(g) if g.cache.is_some() => g.device_frame(s, scene, p, lod, t),
-            Backend::Gpu(g) => {
+        match g.cache {
+            Some(_) => g.device_frame(s, scene, p, lod, t),
+            None => {
                 let f = g.renderer.render(&g.gpu, &g.dvm, s.vm(), scene, p, lod)?;
                 let render_ms = t.elapsed().as_secs_f64() * 1e3;
                 let c = std::time::Instant::now();
@@ -235,31 +222,43 @@ impl Backend {
         scene: &Scene,
         p: &RenderParams,
         lod: Lod,
-        mut image: Image,
-        mut tiles: Tiles,
+        image: Image,
+        tiles: Tiles,
     ) -> Result<Frame> {
         if !matches!(self, Backend::Cpu) {
             return self.frame(s, scene, p, lod);
         }
-        s.begin_frame();
-        let t = std::time::Instant::now();
-        let (stats, reqs) = render_tiles(s.vm(), scene, p, lod, &mut image, &mut tiles);
-        let render_ms = t.elapsed().as_secs_f64() * 1e3;
-        let c = std::time::Instant::now();
-        let session = s.finish_frame(reqs.iter());
-        Ok(Frame {
-            exact_slots: Some(session.frame.exact_slots),
-            tiles: Some(tiles),
-            image,
-            stats,
-            up: session.insert.bytes_uploaded,
-            down: 0,
-            session,
-            render_ms,
-            cache_ms: c.elapsed().as_secs_f64() * 1e3,
-            upload_ms: 0.0,
-        })
+        cpu_frame(s, scene, p, lod, image, tiles)
     }
+}
+
+/// A CPU frame: draw the marked tiles of `image`, then end the frame.
+fn cpu_frame(
+    s: &mut Session,
+    scene: &Scene,
+    p: &RenderParams,
+    lod: Lod,
+    mut image: Image,
+    mut tiles: Tiles,
+) -> Result<Frame> {
+    s.begin_frame();
+    let t = std::time::Instant::now();
+    let (stats, reqs) = render_tiles(s.vm(), scene, p, lod, &mut image, &mut tiles);
+    let render_ms = t.elapsed().as_secs_f64() * 1e3;
+    let c = std::time::Instant::now();
+    let session = s.finish_frame(reqs.iter());
+    Ok(Frame {
+        exact_slots: Some(session.frame.exact_slots),
+        tiles: Some(tiles),
+        image,
+        stats,
+        up: session.insert.bytes_uploaded,
+        down: 0,
+        session,
+        render_ms,
+        cache_ms: c.elapsed().as_secs_f64() * 1e3,
+        upload_ms: 0.0,
+    })
 }
 
 impl GpuBackend {

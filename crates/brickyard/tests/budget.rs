@@ -259,6 +259,20 @@ fn shards(store: &Path, l: usize) -> Vec<PathBuf> {
     v
 }
 
+/// One shard truncated (its index gone), one with its chunks' bytes
+/// scrambled (bad compressed streams), one removed.
+fn damage(shards: &[PathBuf]) {
+    let t = std::fs::read(&shards[0]).unwrap();
+    std::fs::write(&shards[0], &t[..t.len() / 3]).unwrap();
+    let mut c = std::fs::read(&shards[1]).unwrap();
+    let n = c.len();
+    for b in &mut c[16..n.saturating_sub(600)] {
+        *b = b.wrapping_mul(31).wrapping_add(7);
+    }
+    std::fs::write(&shards[1], &c).unwrap();
+    std::fs::remove_file(&shards[2]).unwrap();
+}
+
 #[test]
 fn damaged_chunks_are_drawn_coarser_and_reported() {
     let d = tempfile::tempdir().unwrap();
@@ -268,17 +282,7 @@ fn damaged_chunks_are_drawn_coarser_and_reported() {
     let clean = png_rgba(&clean_png);
     let l0 = shards(&store, 0);
     assert!(l0.len() >= 4, "{l0:?}");
-    // One shard truncated (its index gone), one with its chunks' bytes
-    // scrambled (bad compressed streams), one removed.
-    let t = std::fs::read(&l0[0]).unwrap();
-    std::fs::write(&l0[0], &t[..t.len() / 3]).unwrap();
-    let mut c = std::fs::read(&l0[1]).unwrap();
-    let n = c.len();
-    for b in &mut c[16..n.saturating_sub(600)] {
-        *b = b.wrapping_mul(31).wrapping_add(7);
-    }
-    std::fs::write(&l0[1], &c).unwrap();
-    std::fs::remove_file(&l0[2]).unwrap();
+    damage(&l0);
     let png = d.path().join("damaged.png");
     let v = render(&store, &png, "cpu", &[]);
     let stop = v["stop"].as_str().unwrap();
@@ -354,15 +358,7 @@ fn a_store_damaged_during_a_render_is_drawn_coarser_and_reported() {
         }
     }
     assert_eq!(frames, 2, "the render ended before its second frame: {out}");
-    let t = std::fs::read(&l0[0]).unwrap();
-    std::fs::write(&l0[0], &t[..t.len() / 3]).unwrap();
-    let mut c = std::fs::read(&l0[1]).unwrap();
-    let n = c.len();
-    for b in &mut c[16..n.saturating_sub(600)] {
-        *b = b.wrapping_mul(31).wrapping_add(7);
-    }
-    std::fs::write(&l0[1], &c).unwrap();
-    std::fs::remove_file(&l0[2]).unwrap();
+    damage(&l0);
     for l in lines {
         out += &l.unwrap();
         out.push('\n');
