@@ -61,6 +61,9 @@ pub struct StoreInfo {
     /// stores: the root attribute `brickyard.source_notes`).
     pub source_notes: Vec<String>,
     pub levels: Vec<LevelInfo>,
+    /// Images written into the store by processing (`labels/NAME`,
+    /// `derived/NAME`): path inside the store and a one-line summary.
+    pub inner_images: Vec<(String, String)>,
     pub problems: Vec<String>,
 }
 
@@ -253,6 +256,7 @@ pub fn inspect(path: &Path) -> Result<StoreInfo> {
         labels: false,
         source_notes: vec![],
         levels: vec![],
+        inner_images: vec![],
         problems: vec![],
     };
     type Ds = (String, Option<Vec<f64>>, Option<Vec<f64>>);
@@ -328,8 +332,50 @@ pub fn inspect(path: &Path) -> Result<StoreInfo> {
     if info.complete == Some(false) {
         problems.push("INCOMPLETE: the conversion that wrote this store did not finish".into());
     }
+    info.inner_images = inner_images(path, &mut problems);
     info.problems = problems;
     Ok(info)
+}
+
+/// The images under `labels/` and `derived/` (what `brickyard process`
+/// writes), and the leftovers of interrupted jobs as problems.
+fn inner_images(path: &Path, problems: &mut Vec<String>) -> Vec<(String, String)> {
+    let mut out = vec![];
+    for group in ["labels", "derived"] {
+        let Ok(rd) = std::fs::read_dir(path.join(group)) else {
+            continue;
+        };
+        let mut names: Vec<String> = rd
+            .flatten()
+            .filter(|e| e.path().is_dir())
+            .map(|e| e.file_name().to_string_lossy().into_owned())
+            .collect();
+        names.sort();
+        for name in names {
+            let rel = format!("{group}/{name}");
+            if name.starts_with('.') {
+                problems.push(format!(
+                    "{rel}: left by an interrupted processing job (the same `brickyard process` \
+                     command removes it and starts again)"
+                ));
+                continue;
+            }
+            let dir = path.join(group).join(&name);
+            let summary = read_multiscale(&dir).map(|ms| {
+                let ms = ms?;
+                let first = ms.datasets.first()?;
+                let meta = read_json(&dir.join(&first.path).join("zarr.json")).ok()?;
+                let dtype = meta.get("data_type")?.as_str()?.to_string();
+                Some(format!("{dtype}, {} levels", ms.datasets.len()))
+            });
+            match summary {
+                Ok(Some(s)) => out.push((rel, s)),
+                Ok(None) => problems.push(format!("{rel}: not a multiscale image")),
+                Err(e) => problems.push(format!("{rel}: {e}")),
+            }
+        }
+    }
+    out
 }
 
 /// Human-readable byte count.
@@ -440,6 +486,9 @@ pub fn format_info(i: &StoreInfo) -> String {
     );
     if i.levels.iter().all(|l| l.stats.is_none()) {
         let _ = writeln!(s, "  brick statistics: none stored");
+    }
+    for (rel, summary) in &i.inner_images {
+        let _ = writeln!(s, "  image inside: {rel} ({summary})");
     }
     for p in &i.problems {
         let _ = writeln!(s, "  problem: {p}");

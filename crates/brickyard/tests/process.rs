@@ -214,6 +214,15 @@ fn labels_equal_an_in_core_flood_fill_and_follow_the_labels_spec() {
         lj["attributes"]["ome"]["labels"],
         serde_json::json!(["cells", "band"])
     );
+    // `info` lists them.
+    let o = ok(run(&["info", s(&store)]));
+    let text = String::from_utf8_lossy(&o.stdout);
+    for l in [
+        "image inside: labels/band (uint32, ",
+        "image inside: labels/cells (uint32, ",
+    ] {
+        assert!(text.contains(l), "{l:?} not in {text}");
+    }
 }
 
 #[test]
