@@ -4,7 +4,7 @@
 //! kept coming while bricks were still loading. Needs Xvfb (`xvfb-run`);
 //! `BRICKYARD_SKIP_VIEW=1` opts out explicitly.
 
-use std::path::Path;
+use std::path::{Path, PathBuf};
 use std::process::{Command, Output};
 
 fn bin() -> &'static str {
@@ -75,6 +75,36 @@ fn with_display(args: &[&str]) -> Option<Command> {
     Some(c)
 }
 
+/// `brickyard generate mandelbulb DIR/m.ome.zarr --size SIZE` and `extra`.
+fn mandelbulb(dir: &Path, size: &str, extra: &[&str]) -> PathBuf {
+    let store = dir.join("m.ome.zarr");
+    let o = Command::new(bin())
+        .args([
+            "generate",
+            "mandelbulb",
+            s(&store),
+            "--size",
+            size,
+            "--quiet",
+        ])
+        .args(extra)
+        .output()
+        .unwrap();
+    assert!(o.status.success(), "{}", stderr(&o));
+    store
+}
+
+/// `brickyard view STORE --script SCRIPT [--log LOG]` and `extra`, with a
+/// display (`None`: the test opts out, see [`with_display`]).
+fn viewer(store: &Path, script: &Path, log: Option<&Path>, extra: &[&str]) -> Option<Command> {
+    let mut args = vec!["view", s(store), "--script", s(script)];
+    if let Some(l) = log {
+        args.extend(["--log", s(l)]);
+    }
+    args.extend_from_slice(extra);
+    with_display(&args)
+}
+
 #[test]
 fn viewer_views_equal_render_and_stream_while_loading() {
     viewer_case("cpu");
@@ -92,20 +122,7 @@ fn viewer_on_the_device_equals_render() {
 
 fn viewer_case(backend: &str) {
     let d = tempfile::tempdir().unwrap();
-    let store = d.path().join("m.ome.zarr");
-    let o = Command::new(bin())
-        .args([
-            "generate",
-            "mandelbulb",
-            s(&store),
-            "--size",
-            "48",
-            "--quiet",
-        ])
-        .args(["--brick", "16", "--shard", "32"])
-        .output()
-        .unwrap();
-    assert!(o.status.success(), "{}", stderr(&o));
+    let store = mandelbulb(d.path(), "48", &["--brick", "16", "--shard", "32"]);
     let p = |n: &str| d.path().join(n);
     let script = format!(
         "# sizes fixed so that images compare pixel for pixel
@@ -165,24 +182,23 @@ quit
     );
     std::fs::write(p("s.txt"), script).unwrap();
     let log = p("log.jsonl");
-    let Some(mut cmd) = with_display(&[
-        "view",
-        s(&store),
-        "--script",
-        s(&p("s.txt")),
-        "--log",
-        s(&log),
-        "--pool",
-        "4MiB",
-        "--brick",
-        "8",
-        "--backend",
-        backend,
-        "--read-delay-ms",
-        "15",
-        "--window-size",
-        "1000x700",
-    ]) else {
+    let Some(mut cmd) = viewer(
+        &store,
+        &p("s.txt"),
+        Some(&log),
+        &[
+            "--pool",
+            "4MiB",
+            "--brick",
+            "8",
+            "--backend",
+            backend,
+            "--read-delay-ms",
+            "15",
+            "--window-size",
+            "1000x700",
+        ],
+    ) else {
         return;
     };
     let o = cmd.output().unwrap();
@@ -292,20 +308,21 @@ quit
         one = s(&p("one")),
     );
     std::fs::write(p("s.txt"), script).unwrap();
-    let Some(mut cmd) = with_display(&[
-        "view",
-        s(&store),
-        "--script",
-        s(&p("s.txt")),
-        "--pool",
-        "4MiB",
-        "--brick",
-        "8",
-        "--backend",
-        "cpu",
-        "--window-size",
-        "900x600",
-    ]) else {
+    let Some(mut cmd) = viewer(
+        &store,
+        &p("s.txt"),
+        None,
+        &[
+            "--pool",
+            "4MiB",
+            "--brick",
+            "8",
+            "--backend",
+            "cpu",
+            "--window-size",
+            "900x600",
+        ],
+    ) else {
         return;
     };
     let o = cmd.output().unwrap();
@@ -345,7 +362,7 @@ fn copy_dir(from: &Path, to: &Path) {
     }
 }
 
-fn shard_files(dir: &Path, out: &mut Vec<std::path::PathBuf>) {
+fn shard_files(dir: &Path, out: &mut Vec<PathBuf>) {
     for e in std::fs::read_dir(dir).unwrap().flatten() {
         let p = e.path();
         if p.is_dir() {
@@ -366,20 +383,7 @@ fn viewer_survives_a_store_damaged_before_and_during_the_session() {
     // up to the coarser data's own edges).
     let d = tempfile::tempdir().unwrap();
     let p = |n: &str| d.path().join(n);
-    let store = p("m.ome.zarr");
-    let o = Command::new(bin())
-        .args([
-            "generate",
-            "mandelbulb",
-            s(&store),
-            "--size",
-            "48",
-            "--quiet",
-        ])
-        .args(["--brick", "16", "--shard", "32"])
-        .output()
-        .unwrap();
-    assert!(o.status.success(), "{}", stderr(&o));
+    let store = mandelbulb(d.path(), "48", &["--brick", "16", "--shard", "32"]);
     copy_dir(&store, &p("intact.ome.zarr"));
     let mut shards = vec![];
     shard_files(&store.join("0"), &mut shards);
@@ -413,22 +417,21 @@ quit
     );
     std::fs::write(p("s.txt"), script).unwrap();
     let log = p("log.jsonl");
-    let Some(mut cmd) = with_display(&[
-        "view",
-        s(&store),
-        "--script",
-        s(&p("s.txt")),
-        "--log",
-        s(&log),
-        "--pool",
-        "4MiB",
-        "--brick",
-        "8",
-        "--backend",
-        "cpu",
-        "--window-size",
-        "1000x700",
-    ]) else {
+    let Some(mut cmd) = viewer(
+        &store,
+        &p("s.txt"),
+        Some(&log),
+        &[
+            "--pool",
+            "4MiB",
+            "--brick",
+            "8",
+            "--backend",
+            "cpu",
+            "--window-size",
+            "1000x700",
+        ],
+    ) else {
         return;
     };
     let child = cmd
@@ -520,19 +523,7 @@ fn viewer_stays_within_its_memory_budget() {
     // budget plus 16 MiB.
     let d = tempfile::tempdir().unwrap();
     let p = |n: &str| d.path().join(n);
-    let store = p("m.ome.zarr");
-    let o = Command::new(bin())
-        .args([
-            "generate",
-            "mandelbulb",
-            s(&store),
-            "--size",
-            "256",
-            "--quiet",
-        ])
-        .output()
-        .unwrap();
-    assert!(o.status.success(), "{}", stderr(&o));
+    let store = mandelbulb(d.path(), "256", &[]);
     std::fs::write(
         p("s.txt"),
         "wait-complete 300\nmode mip\nwait-complete 300\nkey left\nwait-complete 300\nquit\n",
@@ -540,22 +531,21 @@ fn viewer_stays_within_its_memory_budget() {
     .unwrap();
     for memory in ["200MiB", "400MiB"] {
         let log = p(&format!("log-{memory}.jsonl"));
-        let Some(mut cmd) = with_display(&[
-            "view",
-            s(&store),
-            "--script",
-            s(&p("s.txt")),
-            "--log",
-            s(&log),
-            "--memory",
-            memory,
-            "--brick",
-            "16",
-            "--backend",
-            "cpu",
-            "--window-size",
-            "800x600",
-        ]) else {
+        let Some(mut cmd) = viewer(
+            &store,
+            &p("s.txt"),
+            Some(&log),
+            &[
+                "--memory",
+                memory,
+                "--brick",
+                "16",
+                "--backend",
+                "cpu",
+                "--window-size",
+                "800x600",
+            ],
+        ) else {
             return;
         };
         let o = cmd.output().unwrap();
