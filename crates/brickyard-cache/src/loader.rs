@@ -196,9 +196,14 @@ pub const CHUNK_CACHE_BYTES: u64 = 64 << 20;
 
 struct Level {
     /// The level's voxels: a store's array, or a procedural volume.
-    src: Box<dyn VolumeSource>,
+    src: Arc<dyn VolumeSource>,
     stats: Option<LevelStats>,
 }
+
+/// Turns level `l`'s stored array into the source a derived loader reads
+/// (see [`Loader::open_derived`]); an error names what cannot be derived.
+pub type Derive<'a> =
+    &'a dyn Fn(usize, Arc<dyn VolumeSource>) -> std::result::Result<Arc<dyn VolumeSource>, String>;
 
 /// Order of the request queue: the first element is served first.
 #[derive(Clone, Copy, PartialEq, Eq, PartialOrd, Ord)]
@@ -496,6 +501,48 @@ impl Loader {
         cache: Arc<HostCache>,
         chunk_bytes: u64,
     ) -> Result<Loader> {
+        Self::open_inner(store_path, brick, apron, threads, cache, chunk_bytes, None)
+    }
+
+    /// A loader over a volume derived from the store: `derive(l, level)`
+    /// turns each level's array into the source its bricks are read from
+    /// (a filter computed when a brick is asked for). Bricks then go
+    /// through the same queue, priorities, host cache and failure reports
+    /// as stored ones. The store's statistics describe the stored values,
+    /// not the derived ones, so none are used: nothing is known to be empty
+    /// before it is computed. Every level's derived source must have the
+    /// same channels and voxel type.
+    #[allow(clippy::too_many_arguments)]
+    pub fn open_derived(
+        store_path: &Path,
+        brick: Dims3,
+        apron: u64,
+        threads: usize,
+        cache: Arc<HostCache>,
+        chunk_bytes: u64,
+        derive: Derive<'_>,
+    ) -> Result<Loader> {
+        Self::open_inner(
+            store_path,
+            brick,
+            apron,
+            threads,
+            cache,
+            chunk_bytes,
+            Some(derive),
+        )
+    }
+
+    #[allow(clippy::too_many_arguments)]
+    fn open_inner(
+        store_path: &Path,
+        brick: Dims3,
+        apron: u64,
+        threads: usize,
+        cache: Arc<HostCache>,
+        chunk_bytes: u64,
+        derive: Option<Derive<'_>>,
+    ) -> Result<Loader> {
         if brick.contains(&0) {
             return Err(StoreError::invalid(
                 store_path,
@@ -522,10 +569,15 @@ impl Loader {
         let mut levels = Vec::with_capacity(nlevels);
         let mut dims = Vec::with_capacity(nlevels);
         for l in 0..nlevels {
-            let mut src = open(store_path, l)?;
+            let mut stored = open(store_path, l)?;
             // Neighbouring bricks share the chunks their aprons reach into:
             // keep decoded chunks so each is decoded about once.
-            src.enable_chunk_cache((chunk_bytes >> (l + 1).min(63)).max(512 << 10));
+            stored.enable_chunk_cache((chunk_bytes >> (l + 1).min(63)).max(512 << 10));
+            let src: Arc<dyn VolumeSource> = match &derive {
+                None => Arc::new(stored),
+                Some(d) => d(l, Arc::new(stored))
+                    .map_err(|e| StoreError::invalid(store_path, "derived channel", e))?,
+            };
             let m = src.meta();
             if let Some(first) = levels.first() {
                 let f: &Level = first;
@@ -541,18 +593,15 @@ impl Loader {
                     ));
                 }
             }
-            let stats = store_brick.and_then(|sb| {
+            let stats = store_brick.filter(|_| derive.is_none()).and_then(|sb| {
                 LevelStats::open(&stats_dir.join(l.to_string()), sb, m.dims, m.channels)
             });
             dims.push(m.dims);
-            levels.push(Level {
-                src: Box::new(src),
-                stats,
-            });
+            levels.push(Level { src, stats });
         }
         Self::start(
             store_path,
-            store_brick,
+            store_brick.filter(|_| derive.is_none()),
             levels,
             dims,
             brick,
@@ -596,8 +645,8 @@ impl Loader {
         let levels = dims
             .iter()
             .map(|d| Level {
-                src: Box::new(brickyard_store::generate::Procedural::new(kind, *d, dtype))
-                    as Box<dyn VolumeSource>,
+                src: Arc::new(brickyard_store::generate::Procedural::new(kind, *d, dtype))
+                    as Arc<dyn VolumeSource>,
                 stats: None,
             })
             .collect();

@@ -117,6 +117,29 @@ impl Session {
         Ok(Self::from_loader(loader, cfg))
     }
 
+    /// Like [`Session::open_with_budget`], over a volume derived from the
+    /// store level by level (see [`Loader::open_derived`]).
+    pub fn open_derived(
+        store: &Path,
+        cfg: VmConfig,
+        host_bytes: u64,
+        chunk_bytes: u64,
+        threads: usize,
+        derive: crate::loader::Derive<'_>,
+    ) -> brickyard_store::Result<Session> {
+        let cache = Arc::new(HostCache::new(host_bytes));
+        let loader = Loader::open_derived(
+            store,
+            cfg.brick,
+            cfg.apron,
+            threads,
+            cache,
+            chunk_bytes,
+            derive,
+        )?;
+        Ok(Self::from_loader(loader, cfg))
+    }
+
     /// Like [`Session::open`] with an existing host cache (of the same store).
     pub fn with_cache(
         store: &Path,

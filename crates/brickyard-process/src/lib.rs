@@ -8,11 +8,13 @@
 //! [`brickyard_store::convert`] writes any stage as a multiresolution
 //! OME-Zarr image under a memory budget.
 
+pub mod derive;
 pub mod filter;
 pub mod kernels;
 pub mod label;
 pub mod pipeline;
 
+pub use derive::{check_live, derive_level, level_factor};
 pub use filter::{Filter, FilterSource};
 pub use label::{label_pass1, stats_csv, stats_json, LabelSource, LabelStats, Labeling};
 pub use pipeline::{Op, ParseError, Pipeline, Sigma};

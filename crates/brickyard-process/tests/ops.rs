@@ -630,3 +630,131 @@ fn results_do_not_depend_on_how_regions_are_cut() {
         );
     }
 }
+
+/// Mean of each 2×2×2 block (a pyramid's next level; sizes even here).
+fn halve(v: &[f64], d: Dims3) -> (Vec<f64>, Dims3) {
+    let h = d.map(|n| n / 2);
+    let mut out = vec![0.0; h.iter().product::<u64>() as usize];
+    for z in 0..h[0] {
+        for y in 0..h[1] {
+            for x in 0..h[2] {
+                let mut s = 0.0;
+                for (dz, dy, dx) in (0..8).map(|i| (i >> 2, (i >> 1) & 1, i & 1)) {
+                    s += v[(((2 * z + dz) * d[1] + 2 * y + dy) * d[2] + 2 * x + dx) as usize];
+                }
+                out[((z * h[1] + y) * h[2] + x) as usize] = s / 8.0;
+            }
+        }
+    }
+    (out, h)
+}
+
+fn derived(pipe: &str, v: &[f64], d: Dims3, factor: [f64; 3]) -> Vec<f64> {
+    let v32: Vec<f32> = v.iter().map(|x| *x as f32).collect();
+    let src: Arc<dyn VolumeSource> = Arc::new(Mem::new(d, &v32));
+    let p = Pipeline::parse(pipe).unwrap();
+    let s = brickyard_process::derive_level(&p, src, 0, factor, [7, 9, 8]).unwrap();
+    read_all_regions(s.as_ref(), [5, 6, 7])
+}
+
+/// A smooth ramp with a ball (a step edge) in it, level 0 and level 1.
+fn ramp_and_ball() -> (Vec<f64>, Dims3, Vec<f64>, Dims3) {
+    let d: Dims3 = [32, 36, 40];
+    let mut v = vec![0.0; d.iter().product::<u64>() as usize];
+    for z in 0..d[0] {
+        for y in 0..d[1] {
+            for x in 0..d[2] {
+                let r2 = (z as f64 - 16.0).powi(2)
+                    + (y as f64 - 18.0).powi(2)
+                    + (x as f64 - 20.0).powi(2);
+                let ball = if r2 < 81.0 { 200.0 } else { 0.0 };
+                v[((z * d[1] + y) * d[2] + x) as usize] = 3.0 * x as f64 + ball;
+            }
+        }
+    }
+    let (h, hd) = halve(&v, d);
+    (v, d, h, hd)
+}
+
+#[test]
+fn a_derived_coarse_level_is_the_pipeline_on_that_level_with_lengths_scaled() {
+    let (_, _, h, hd) = ramp_and_ball();
+    let f = [2.0; 3];
+    // σ in level-0 voxels: σ 2 is σ 1 at a level of twice the voxel size.
+    assert_close(
+        &derived("gauss(2)", &h, hd, f),
+        &gauss_ref(&h, hd, [1.0; 3]),
+        "gauss level 1",
+    );
+    // Gradients are per level-0 voxel: halved at level 1.
+    let want: Vec<f64> = gradmag_ref(&h, hd, [1.0; 3])
+        .iter()
+        .map(|g| g / 2.0)
+        .collect();
+    assert_close(&derived("gradmag(2)", &h, hd, f), &want, "gradmag level 1");
+    // Sobel is the level's own three-voxel stencil, per level-0 voxel too.
+    let want: Vec<f64> = sobel_ref(&h, hd).iter().map(|g| g / 2.0).collect();
+    assert_close(&derived("sobel", &h, hd, f), &want, "sobel level 1");
+    // Anisotropic factors (z kept, y and x halved): σ scaled per axis.
+    let got = derived("gauss(2)", &h, hd, [1.0, 2.0, 2.0]);
+    assert_close(
+        &got,
+        &gauss_ref(&h, hd, [2.0, 1.0, 1.0]),
+        "gauss anisotropic level",
+    );
+    // Level 0 is the pipeline itself.
+    assert_close(
+        &derived("gauss(1.5)|sobel", &h, hd, [1.0; 3]),
+        &{
+            let g = gauss_ref(&h, hd, [1.5; 3]);
+            sobel_ref(&g, hd)
+        },
+        "level 0",
+    );
+}
+
+#[test]
+fn a_derived_coarse_level_stands_in_for_the_finer_result() {
+    // The choice above makes level 1 of the derived channel close to the
+    // finer result downsampled, as a stored pyramid's level 1 is: for the
+    // gradient of the ramp (3 per level-0 voxel) and of the ball's edge.
+    let (v, d, h, hd) = ramp_and_ball();
+    for pipe in ["gauss(2)", "gradmag(2)", "gauss(2)|sobel"] {
+        let fine = derived(pipe, &v, d, [1.0; 3]);
+        let (fine_down, _) = halve(&fine, d);
+        let coarse = derived(pipe, &h, hd, [2.0; 3]);
+        // Away from the faces (where "nearest" differs between levels).
+        let (mut err, mut mag, mut n) = (0.0, 0.0, 0.0);
+        for z in 4..hd[0] - 4 {
+            for y in 4..hd[1] - 4 {
+                for x in 4..hd[2] - 4 {
+                    let i = ((z * hd[1] + y) * hd[2] + x) as usize;
+                    err += (coarse[i] - fine_down[i]).abs();
+                    mag += fine_down[i].abs();
+                    n += 1.0;
+                }
+            }
+        }
+        let rel = err / mag;
+        eprintln!("{pipe}: level 1 vs level 0 downsampled: mean relative difference {rel:.4} over {n} voxels");
+        // Sobel's stencil is not scaled with the level (it reaches three
+        // coarse voxels, six fine ones): a looser stand-in.
+        let bound = if pipe.ends_with("sobel") { 0.15 } else { 0.05 };
+        assert!(rel < bound, "{pipe}: {rel}");
+    }
+    // The ramp's gradient, far from the ball: 3 per level-0 voxel at both.
+    let coarse = derived("gradmag(2)", &h, hd, [2.0; 3]);
+    let i = ((2 * hd[1] + 2) * hd[2] + 10) as usize;
+    assert!((coarse[i] - 3.0).abs() < 0.01, "{}", coarse[i]);
+}
+
+#[test]
+fn label_has_no_live_form() {
+    let v = vec![0.0f32; 8];
+    let src: Arc<dyn VolumeSource> = Arc::new(Mem::new([2, 2, 2], &v));
+    let p = Pipeline::parse("threshold(0)|label(6)").unwrap();
+    let e = brickyard_process::derive_level(&p, src, 0, [1.0; 3], [8; 3])
+        .err()
+        .expect("label refused");
+    assert!(e.contains("brickyard process"), "{e}");
+}

@@ -2,6 +2,7 @@
 
 mod backend;
 mod bench;
+mod derive;
 mod frames;
 mod gpubench;
 mod memory;

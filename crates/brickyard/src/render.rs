@@ -59,6 +59,13 @@ pub struct RenderCmd {
     /// the transfer function.
     #[arg(long = "channel")]
     channels: Vec<String>,
+    /// A live derived channel: this processing pipeline (stages as in
+    /// `brickyard process`, e.g. `gauss(1.5)|sobel`; no `label`) applied to
+    /// the shown channel, each brick computed when the view asks for it, at
+    /// every level (σ in voxels scaled to the level). Shown instead of the
+    /// stored channel; --window is then in the derived values.
+    #[arg(long)]
+    derive: Option<String>,
     /// Slice: position of the plane along z as a fraction of the depth.
     #[arg(long, default_value_t = 0.5)]
     slice_z: f64,
@@ -265,19 +272,33 @@ pub fn run(c: RenderCmd) -> Result<Vec<String>> {
         levels.push(zarr::open(&c.store, l)?.meta().dims);
     }
     let mut scene = Scene::new(extent, levels);
+    // The store's channel the view shows (DVR) or the first one listed.
+    let first_channel = c
+        .channels
+        .first()
+        .and_then(|x| x.split(':').next()?.trim().parse::<usize>().ok())
+        .unwrap_or(0);
+    let derived = match &c.derive {
+        Some(p) => {
+            if c.channels.len() > 1 {
+                bail!("derive: a derived channel is computed from one channel; give at most one --channel");
+            }
+            Some(crate::derive::Derived::new(&c.store, p, first_channel)?)
+        }
+        None => None,
+    };
     let (lo, hi) = match &c.window {
         Some(wd) => {
             let p = parse_pair(wd, "window")?;
             (p[0], p[1])
         }
+        None if derived.is_some() => {
+            let d = derived.as_ref().unwrap();
+            crate::window::window_of_levels(info.levels.len(), 0, |l| d.open_level(l))?
+                .unwrap_or((0.0, 1.0))
+        }
         None => {
-            // The channel shown (DVR) or the first one listed.
-            let ch = c
-                .channels
-                .first()
-                .and_then(|x| x.split(':').next()?.trim().parse::<usize>().ok())
-                .unwrap_or(0)
-                .min(m.channels.saturating_sub(1));
+            let ch = first_channel.min(m.channels.saturating_sub(1));
             crate::window::auto_window(&c.store, info.levels.len(), ch)?
                 .or_else(|| {
                     info.levels
@@ -352,7 +373,11 @@ pub fn run(c: RenderCmd) -> Result<Vec<String>> {
     )?;
     // A padded brick of the pool (its cell ranges included), to size the
     // batch's requests and uploads.
-    let slot_bytes = (c.brick + 2).pow(3) * m.dtype.size() as u64 + 64 * 8;
+    let dtype = match &derived {
+        Some(d) => d.open_level(0)?.meta().dtype,
+        None => m.dtype,
+    };
+    let slot_bytes = (c.brick + 2).pow(3) * dtype.size() as u64 + 64 * 8;
     let cfg = VmConfig {
         brick: [c.brick; 3],
         pool_bytes: split.pool,
@@ -370,11 +395,17 @@ pub fn run(c: RenderCmd) -> Result<Vec<String>> {
         }),
         ..Default::default()
     };
-    let styles = c
+    let mut styles = c
         .channels
         .iter()
         .map(|x| parse_channel(x, [lo as f32, hi as f32], m.channels))
         .collect::<Result<Vec<_>>>()?;
+    if derived.is_some() {
+        // The derived volume has one channel.
+        for st in &mut styles {
+            st.channel = 0;
+        }
+    }
     if mode == RenderMode::Dvr {
         match styles.as_slice() {
             [] => {}
@@ -382,8 +413,12 @@ pub fn run(c: RenderCmd) -> Result<Vec<String>> {
             _ => bail!("channel: dvr shows one channel; use --mode mip or slice to add several up"),
         }
     }
-    let mut s =
-        Session::open_with_budget(&c.store, cfg, split.host, split.chunks, c.loader_threads)?;
+    let mut s = match &derived {
+        Some(d) => d.session(cfg, split.host, split.chunks, c.loader_threads)?,
+        None => {
+            Session::open_with_budget(&c.store, cfg, split.host, split.chunks, c.loader_threads)?
+        }
+    };
     s.loader()
         .set_read_delay(std::time::Duration::from_millis(c.read_delay_ms));
     // The pool's true slot size (from here on: reports and estimates).

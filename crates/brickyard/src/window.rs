@@ -61,8 +61,20 @@ pub fn robust_window(mut values: Vec<f64>) -> Option<(f64, f64)> {
 /// (a damaged chunk) gives way to the next coarser one; `None` when none
 /// can be read.
 pub fn auto_window(store: &Path, levels: usize, c: usize) -> Result<Option<(f64, f64)>> {
+    window_of_levels(levels, c, |l| {
+        Ok(std::sync::Arc::new(zarr::open(store, l)?) as std::sync::Arc<dyn VolumeSource>)
+    })
+}
+
+/// Like [`auto_window`], over the levels `open(l)` gives (finest first):
+/// a store's, or those of a derived channel.
+pub fn window_of_levels(
+    levels: usize,
+    c: usize,
+    open: impl Fn(usize) -> Result<std::sync::Arc<dyn VolumeSource>>,
+) -> Result<Option<(f64, f64)>> {
     for l in 0..levels {
-        let src = zarr::open(store, l)?;
+        let src = open(l)?;
         let m = src.meta().clone();
         let [z, y, x] = m.dims;
         if z * y * x > MAX_VOXELS {

@@ -450,3 +450,126 @@ fn the_chosen_channel_is_processed_and_measured() {
         assert_eq!(row[11].parse::<f64>().unwrap(), val as f64);
     }
 }
+
+fn png_rgba(p: &Path) -> Vec<u8> {
+    let d = png::Decoder::new(std::io::BufReader::new(std::fs::File::open(p).unwrap()));
+    let mut r = d.read_info().unwrap();
+    let mut buf = vec![0; r.output_buffer_size().unwrap()];
+    let info = r.next_frame(&mut buf).unwrap();
+    buf.truncate(info.buffer_size());
+    buf
+}
+
+/// Mean and largest absolute difference of two RGBA images (0..255).
+fn image_diff(a: &[u8], b: &[u8]) -> (f64, u8) {
+    assert_eq!(a.len(), b.len());
+    let sum: u64 = a.iter().zip(b).map(|(x, y)| x.abs_diff(*y) as u64).sum();
+    let max = a.iter().zip(b).map(|(x, y)| x.abs_diff(*y)).max().unwrap();
+    (sum as f64 / a.len() as f64, max)
+}
+
+#[test]
+fn a_live_derived_channel_equals_the_written_result_and_stands_in_at_coarse_levels() {
+    let d = tempfile::tempdir().unwrap();
+    let store = make_store(d.path(), "48");
+    let render = |src: &Path, derive: Option<&str>, level: &str, window: &str, out: &str| {
+        let out = d.path().join(out);
+        let mut a = vec![
+            "render",
+            s(src),
+            "--mode",
+            "slice",
+            "--slice-z",
+            "0.37",
+            "--level",
+            level,
+            "--window",
+            window,
+            "--tf",
+            "linear",
+            "--size",
+            "96",
+            "--quiet",
+            "--out",
+            s(&out),
+        ];
+        if let Some(p) = derive {
+            a.extend(["--derive", p]);
+        }
+        ok(run(&a));
+        png_rgba(&out)
+    };
+    for (pipe, name, window) in [
+        ("gauss(1)|sobel", "gs", "0,110000"),
+        ("gradmag(2)", "gm", "0,2400"),
+    ] {
+        ok(run(&["process", s(&store), pipe, "--out", name, "--quiet"]));
+        let written = store.join("derived").join(name);
+        // Level 0: the live channel is the pipeline itself.
+        let a = render(&written, None, "0", window, &format!("{name}-w0.png"));
+        let b = render(&store, Some(pipe), "0", window, &format!("{name}-l0.png"));
+        let lit = a.chunks(4).filter(|p| p[0] > 8).count() as f64 / (a.len() / 4) as f64;
+        let shades = a
+            .chunks(4)
+            .map(|p| p[0])
+            .collect::<std::collections::BTreeSet<_>>()
+            .len();
+        assert!(
+            lit > 0.2 && shades > 50,
+            "{pipe}: a flat image ({lit} lit, {shades} shades)"
+        );
+        let (mean, max) = image_diff(&a, &b);
+        assert!(
+            max <= 1,
+            "{pipe} level 0: live differs from written by up to {max}/255"
+        );
+        // Level 1: the written level is the finer result downsampled, the
+        // live one the pipeline on level 1 with σ and gradients scaled.
+        let a1 = render(&written, None, "1", window, &format!("{name}-w1.png"));
+        let b1 = render(&store, Some(pipe), "1", window, &format!("{name}-l1.png"));
+        let (mean1, max1) = image_diff(&a1, &b1);
+        eprintln!("{pipe}: level 0 mean {mean:.3} max {max}; level 1 mean {mean1:.2} max {max1}");
+        // Sobel's stencil is not scaled with the level: a looser stand-in.
+        let bound = if pipe.ends_with("sobel") { 12.0 } else { 6.0 };
+        assert!(mean1 < bound, "{pipe} level 1: mean difference {mean1}/255");
+    }
+}
+
+#[test]
+fn bad_derive_pipelines_give_clear_errors() {
+    let d = tempfile::tempdir().unwrap();
+    let store = make_store(d.path(), "24");
+    let out = d.path().join("x.png");
+    for (pipe, want) in [
+        ("threshold(5)|label(6)", "brickyard process"),
+        ("gauss(", "pipeline"),
+        ("blur(2)", "blur"),
+        ("gauss(1um)", "spacing"),
+    ] {
+        let o = run(&[
+            "render",
+            s(&store),
+            "--derive",
+            pipe,
+            "--out",
+            s(&out),
+            "--quiet",
+        ]);
+        let e = String::from_utf8_lossy(&o.stderr);
+        assert!(!o.status.success(), "{pipe}: accepted");
+        assert!(e.contains(want) && !e.contains("panicked"), "{pipe}: {e}");
+    }
+    let o = run(&[
+        "render",
+        s(&store),
+        "--derive",
+        "sobel",
+        "--channel",
+        "3",
+        "--out",
+        s(&out),
+    ]);
+    assert!(!o.status.success());
+    assert!(String::from_utf8_lossy(&o.stderr).contains("channel"));
+    assert!(!out.exists(), "no image after a refused run");
+}

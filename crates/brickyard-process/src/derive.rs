@@ -1,0 +1,147 @@
+//! Live derived channels: a pipeline applied level by level to a pyramid,
+//! each brick computed when a view asks for it.
+//!
+//! How a brick of a coarse level is made: the pipeline runs on that level's
+//! own (downsampled) data, with every length scaled to the level, so that
+//! the level is a stand-in for the finer result, as a stored pyramid is:
+//! - `gauss(σ)` and `gradmag(σ)` with σ in voxels: σ is in level-0 voxels
+//!   and becomes `σ / f` at a level whose voxels are `f` level-0 voxels
+//!   wide (per axis); σ with a unit is converted with the level's spacing,
+//!   which comes to the same;
+//! - `gradmag` and `sobel` are derivatives: their values are per level-0
+//!   voxel at every level (divided by `f`, the geometric mean of the three
+//!   axes' factors when they differ), so that a ramp has the same gradient
+//!   at every level and an edge the gradient of the finer result averaged
+//!   over the coarse voxel (`sobel` keeps its three-voxel stencil, which
+//!   spans a wider region at a coarser level);
+//! - `threshold` and `window` act on each value: the same at every level.
+//!
+//! `label` needs the whole mask at once and has no live form: it is a job
+//! for `brickyard process`.
+
+use crate::filter::{Filter, FilterSource};
+use crate::pipeline::{Op, Pipeline, Sigma};
+use crate::sigma_voxels;
+use brickyard_core::{as_bytes_mut, Dims3};
+use brickyard_store::source::check_region;
+use brickyard_store::{Result, SourceMeta, VolumeSource};
+use std::ops::Range;
+use std::sync::Arc;
+
+/// Size of a voxel of `level` in voxels of `level0`, `[z, y, x]`: the ratio
+/// of their spacings when both have one, else of their dimensions.
+pub fn level_factor(level0: &SourceMeta, level: &SourceMeta) -> [f64; 3] {
+    match (level0.spacing, level.spacing) {
+        (Some(a), Some(b)) if a.iter().all(|v| *v > 0.0) => [0, 1, 2].map(|k| b[k] / a[k]),
+        _ => [0, 1, 2].map(|k| level0.dims[k] as f64 / level.dims[k].max(1) as f64),
+    }
+}
+
+/// Check that `p` can be derived live (no `label`, at least one stage).
+pub fn check_live(p: &Pipeline) -> std::result::Result<(), String> {
+    if p.ops.is_empty() {
+        return Err("the pipeline has no stage".into());
+    }
+    if p.ops.iter().any(|o| matches!(o, Op::Label(_))) {
+        return Err(
+            "label needs the whole mask and has no live form; write labels with `brickyard process STORE PIPELINE --out NAME` and view them"
+                .into(),
+        );
+    }
+    Ok(())
+}
+
+/// The derived volume of `p` over channel `channel` of one pyramid level
+/// (`level`, whose voxels are `factor` level-0 voxels wide), computed in
+/// blocks of at most `block` voxels. One channel, of the last stage's type.
+pub fn derive_level(
+    p: &Pipeline,
+    level: Arc<dyn VolumeSource>,
+    channel: usize,
+    factor: [f64; 3],
+    block: Dims3,
+) -> std::result::Result<Arc<dyn VolumeSource>, String> {
+    check_live(p)?;
+    let m = level.meta();
+    if channel >= m.channels {
+        return Err(format!(
+            "channel {channel} asked for but the volume has {} channel(s)",
+            m.channels
+        ));
+    }
+    let (spacing, unit) = (m.spacing, m.unit.clone());
+    let sigma = |s: &Sigma| -> std::result::Result<[f64; 3], String> {
+        match s {
+            Sigma::Voxels(v) => Ok([0, 1, 2].map(|k| v[k] / factor[k])),
+            Sigma::Physical { .. } => sigma_voxels(s, spacing, unit.as_deref()),
+        }
+    };
+    let mean_factor = factor.iter().product::<f64>().cbrt();
+    let mut src = level;
+    let mut ch = channel;
+    for op in &p.ops {
+        let f = match op {
+            Op::Gauss(s) => Filter::Gauss(sigma(s)?),
+            Op::GradMag(s) => Filter::GradMag(sigma(s)?),
+            Op::Sobel => Filter::Sobel,
+            Op::Threshold(t) => Filter::Threshold(*t),
+            Op::Window(a, b) => Filter::Window(*a, *b),
+            Op::Label(_) => unreachable!("checked by check_live"),
+        };
+        src = Arc::new(FilterSource::new(src, ch, f, &op.text(), block));
+        if matches!(op, Op::GradMag(_) | Op::Sobel) && (mean_factor - 1.0).abs() > 1e-12 {
+            src = Arc::new(Scaled::new(src, 1.0 / mean_factor));
+        }
+        ch = 0;
+    }
+    Ok(src)
+}
+
+/// An f32 source with every value multiplied by a constant.
+pub struct Scaled {
+    inner: Arc<dyn VolumeSource>,
+    by: f32,
+    meta: SourceMeta,
+}
+
+impl Scaled {
+    /// `inner` must be one channel of f32.
+    pub fn new(inner: Arc<dyn VolumeSource>, by: f64) -> Scaled {
+        let meta = inner.meta().clone();
+        assert_eq!(meta.dtype, brickyard_core::DType::F32);
+        Scaled {
+            inner,
+            by: by as f32,
+            meta,
+        }
+    }
+}
+
+impl VolumeSource for Scaled {
+    fn meta(&self) -> &SourceMeta {
+        &self.meta
+    }
+
+    fn read_region(
+        &self,
+        c: usize,
+        z: Range<u64>,
+        y: Range<u64>,
+        x: Range<u64>,
+        out: &mut [u8],
+    ) -> Result<()> {
+        check_region(&self.meta, c, &z, &y, &x, out);
+        let n = out.len() / 4;
+        let mut v = vec![0f32; n];
+        self.inner.read_region(c, z, y, x, as_bytes_mut(&mut v))?;
+        for x in &mut v {
+            *x *= self.by;
+        }
+        out.copy_from_slice(brickyard_core::as_bytes(&v));
+        Ok(())
+    }
+
+    fn preferred_read(&self) -> Dims3 {
+        self.inner.preferred_read()
+    }
+}
