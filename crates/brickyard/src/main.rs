@@ -83,7 +83,7 @@ enum Cmd {
         size: String,
     },
     /// Render a store (DVR, MIP or slice) to PNG through the virtual memory.
-    Render(render::RenderCmd),
+    Render(Box<render::RenderCmd>),
     /// Open an interactive viewer (no STORE: the demo dataset, generated on
     /// first use).
     View(view::ViewCmd),
@@ -448,7 +448,7 @@ fn run(cmd: Cmd) -> Result<()> {
             }
         }
         Cmd::Demo { out, size } => demo(&out, &size),
-        Cmd::Render(r) => render::run(r).map(|_| ()),
+        Cmd::Render(r) => render::run(*r).map(|_| ()),
         Cmd::View(v) => {
             let code = view::run(v, || demo_store(Path::new("brickyard-demo"), "384"))?;
             if code != 0 {
