@@ -1,0 +1,393 @@
+//! Input: mouse, keys and script commands, all through the same handlers
+//! (orbit, pan, zoom, cursor moves, transfer-function and channel edits),
+//! and the script runner that checks what the views show.
+
+use super::{ChannelUi, Vec3, ViewerApp, N_VIEWS};
+use crate::view::script::{Cmd, VIEWS};
+use anyhow::{bail, Context, Result};
+use brickyard_core::camera::{add, dot, length, normalize, scale, sub, Camera, Projection};
+use brickyard_core::transfer::{ColorMap, Preset};
+use brickyard_core::TransferFunction;
+use eframe::egui;
+use std::sync::atomic::Ordering;
+use std::time::{Duration, Instant};
+
+/// Orbit parameters of a camera: (distance, azimuth, elevation) around its
+/// target (see [`Camera::orbit`]).
+fn orbit_of(c: &Camera) -> (f64, f64, f64) {
+    let v = sub(c.eye, c.target);
+    let d = length(v).max(1e-9);
+    let el = (v[2] / d).clamp(-1.0, 1.0).asin().to_degrees();
+    let az = v[0].atan2(-v[1]).to_degrees();
+    (d, az, el)
+}
+
+impl ViewerApp {
+    // ---- interactions (mouse, keys and scripts share these) -------------
+
+    pub(super) fn orbit(&mut self, dx: f64, dy: f64) {
+        let (d, az, el) = orbit_of(&self.cam);
+        let el = (el + dy * 0.4).clamp(-89.0, 89.0);
+        self.cam = Camera::orbit(self.cam.target, d, az - dx * 0.4, el, self.cam.projection);
+        self.interacting = Instant::now();
+    }
+
+    pub(super) fn pixel_world(&self, cam: &Camera, h: u32) -> f64 {
+        match cam.projection {
+            Projection::Perspective { fov_y_deg } => {
+                2.0 * length(sub(cam.eye, cam.target)) * (fov_y_deg * 0.5).to_radians().tan()
+                    / h as f64
+            }
+            Projection::Orthographic { height } => height / h as f64,
+        }
+    }
+
+    pub(super) fn pan(&mut self, dx: f64, dy: f64) {
+        let s = self.pixel_world(&self.cam, self.render_size(0)[1].max(1));
+        let b = self.cam.basis();
+        let shift = add(scale(b.right, -dx * s), scale(b.up, dy * s));
+        self.cam.eye = add(self.cam.eye, shift);
+        self.cam.target = add(self.cam.target, shift);
+        self.interacting = Instant::now();
+    }
+
+    pub(super) fn zoom(&mut self, steps: f64) {
+        let k = 0.85f64.powf(steps);
+        match &mut self.cam.projection {
+            Projection::Orthographic { height } => *height *= k,
+            Projection::Perspective { .. } => {
+                let v = sub(self.cam.eye, self.cam.target);
+                self.cam.eye = add(self.cam.target, scale(v, k));
+            }
+        }
+        self.interacting = Instant::now();
+    }
+
+    pub(super) fn key(&mut self, k: &str) {
+        match k {
+            "left" => self.orbit(-12.5, 0.0),
+            "right" => self.orbit(12.5, 0.0),
+            "up" => self.orbit(0.0, 12.5),
+            "down" => self.orbit(0.0, -12.5),
+            "plus" => self.zoom(1.0),
+            "minus" => self.zoom(-1.0),
+            "r" => {
+                self.cam = self.home;
+                for vs in &mut self.views {
+                    vs.zoom = 1.0;
+                    vs.pan = [0.0; 2];
+                }
+            }
+            _ => {}
+        }
+    }
+
+    /// The world point under render pixel `(px, py)` of slice view `v`, in
+    /// its plane (clamped into the volume).
+    pub(super) fn slice_point(&self, v: usize, px: f64, py: f64) -> Vec3 {
+        let size = self.render_size(v);
+        let cam = self.slice_camera(v, size);
+        let ray = cam.ray(px, py, size[0], size[1]);
+        let n = normalize(self.plane_normal(v));
+        let t = dot(n, sub(self.cursor, ray.origin)) / dot(n, ray.dir);
+        let p = ray.at(t);
+        let e = self.ds.extent;
+        [0, 1, 2].map(|a| p[a].clamp(0.0, e[a]))
+    }
+
+    /// Where the cursor is in slice view `v`, in render pixels.
+    pub(super) fn cursor_pixel(&self, v: usize) -> Option<[f64; 2]> {
+        let size = self.render_size(v);
+        self.slice_camera(v, size)
+            .project(self.cursor, size[0], size[1])
+    }
+
+    pub(super) fn slice_drag(&mut self, v: usize, button: &str, dx: f64, dy: f64) {
+        if button == "left" {
+            if let Some([x, y]) = self.cursor_pixel(v) {
+                self.cursor = self.slice_point(v, x + dx, y + dy);
+            }
+        } else {
+            let size = self.render_size(v);
+            let cam = self.slice_camera(v, size);
+            let s = self.pixel_world(&cam, size[1].max(1));
+            let vs = &mut self.views[v];
+            vs.pan[0] -= dx * s;
+            vs.pan[1] += dy * s;
+        }
+    }
+
+    pub(super) fn drag(&mut self, v: usize, button: &str, dx: f64, dy: f64) {
+        if v == 0 {
+            match button {
+                "left" => self.orbit(dx, dy),
+                _ => self.pan(dx, dy),
+            }
+        } else {
+            self.slice_drag(v, button, dx, dy);
+        }
+    }
+
+    pub(super) fn scroll(&mut self, v: usize, steps: f64) {
+        if v == 0 {
+            self.zoom(steps);
+        } else {
+            let vs = &mut self.views[v];
+            vs.zoom = (vs.zoom * 1.15f64.powf(steps)).clamp(0.05, 200.0);
+        }
+    }
+
+    pub(super) fn set_tf_preset(&mut self, name: &str) -> Result<()> {
+        self.tf =
+            TransferFunction::preset(name, self.tf.window).map_err(|e| anyhow::anyhow!("{e}"))?;
+        Ok(())
+    }
+
+    pub(super) fn set_colormap(&mut self, name: &str) -> Result<()> {
+        let p = Preset::parse(name).with_context(|| format!("unknown colour map {name:?}"))?;
+        self.tf.colormap = ColorMap::Preset(p);
+        Ok(())
+    }
+
+    pub(super) fn set_window(&mut self, lo: f32, hi: f32) -> Result<()> {
+        if !(lo.is_finite() && hi.is_finite() && hi > lo) {
+            bail!("window: expected LO < HI, found {lo} {hi}");
+        }
+        self.tf.window = [lo, hi];
+        for c in &mut self.channels {
+            c.window = [lo, hi];
+        }
+        Ok(())
+    }
+
+    pub(super) fn add_point(&mut self, x: f32, a: f32) {
+        let x = x.clamp(0.0, 1.0);
+        let a = a.clamp(0.0, 1.0);
+        let i = self.tf.opacity.partition_point(|p| p[0] <= x);
+        self.tf.opacity.insert(i, [x, a]);
+    }
+
+    pub(super) fn channel_ui(&mut self, c: usize) -> Result<&mut ChannelUi> {
+        let n = self.channels.len();
+        self.channels
+            .get_mut(c)
+            .with_context(|| format!("channel {c}: the store has {n} channel(s)"))
+    }
+
+    /// Keys pressed this frame (when no text field has focus).
+    pub(super) fn keys(&mut self, ctx: &egui::Context) {
+        if !ctx.egui_wants_keyboard_input() {
+            let keys = ctx.input(|i| {
+                [
+                    (egui::Key::ArrowLeft, "left"),
+                    (egui::Key::ArrowRight, "right"),
+                    (egui::Key::ArrowUp, "up"),
+                    (egui::Key::ArrowDown, "down"),
+                    (egui::Key::Plus, "plus"),
+                    (egui::Key::Equals, "plus"),
+                    (egui::Key::Minus, "minus"),
+                    (egui::Key::R, "r"),
+                ]
+                .into_iter()
+                .filter(|(k, _)| i.key_pressed(*k))
+                .map(|(_, n)| n)
+                .collect::<Vec<_>>()
+            });
+            for k in keys {
+                self.key(k);
+            }
+        }
+    }
+
+    // ---- scripts ---------------------------------------------------------
+
+    pub(super) fn fail(&mut self, ctx: &egui::Context, e: &str) {
+        eprintln!("view: script: {e}");
+        self.exit.store(1, Ordering::SeqCst);
+        self.script.clear();
+        ctx.send_viewport_cmd(egui::ViewportCommand::Close);
+    }
+
+    /// Run script commands until one has to wait.
+    pub(super) fn run_script(&mut self, ctx: &egui::Context) {
+        while self.pc < self.script.len() {
+            if self.window_shot.is_some() {
+                return;
+            }
+            let cmd = self.script[self.pc].clone();
+            let r: Result<bool> = (|| {
+                Ok(match &cmd {
+                    Cmd::Size(v, w, h) => {
+                        self.views[*v].forced = Some([*w, *h]);
+                        true
+                    }
+                    Cmd::Mode(m) => {
+                        self.mode = m.clone();
+                        true
+                    }
+                    Cmd::Drag(v, b, dx, dy) => {
+                        self.drag(*v, b, *dx as f64, *dy as f64);
+                        true
+                    }
+                    Cmd::Scroll(v, s) => {
+                        self.scroll(*v, *s as f64);
+                        true
+                    }
+                    Cmd::Click(v, x, y) => {
+                        if *v > 0 {
+                            self.cursor = self.slice_point(*v, *x as f64, *y as f64);
+                        }
+                        true
+                    }
+                    Cmd::Key(k) => {
+                        self.key(k);
+                        true
+                    }
+                    Cmd::Tf(p) => {
+                        self.set_tf_preset(p)?;
+                        true
+                    }
+                    Cmd::Colormap(c) => {
+                        self.set_colormap(c)?;
+                        true
+                    }
+                    Cmd::Window(lo, hi) => {
+                        self.set_window(*lo, *hi)?;
+                        true
+                    }
+                    Cmd::Point(x, a) => {
+                        self.add_point(*x, *a);
+                        true
+                    }
+                    Cmd::Cursor(f) => {
+                        let e = self.ds.extent;
+                        self.cursor = [0, 1, 2].map(|a| f[a].clamp(0.0, 1.0) * e[a]);
+                        true
+                    }
+                    Cmd::Channel(c, on) => {
+                        self.channel_ui(*c)?.visible = *on;
+                        true
+                    }
+                    Cmd::ChannelColor(c, rgb) => {
+                        self.channel_ui(*c)?.color = *rgb;
+                        true
+                    }
+                    Cmd::ChannelWindow(c, lo, hi) => {
+                        if !(lo.is_finite() && hi.is_finite() && hi > lo) {
+                            bail!("channel-window: expected LO < HI, found {lo} {hi}");
+                        }
+                        self.channel_ui(*c)?.window = [*lo, *hi];
+                        true
+                    }
+                    Cmd::DvrChannel(c) => {
+                        self.channel_ui(*c)?;
+                        self.dvr_channel = *c;
+                        true
+                    }
+                    Cmd::Oblique(az, el) => {
+                        self.oblique = [*az, *el];
+                        true
+                    }
+                    Cmd::LodBias(b) => {
+                        self.lod_bias = *b;
+                        true
+                    }
+                    Cmd::Level(l) => {
+                        if let Some(l) = l {
+                            if *l >= self.ds.levels.len() {
+                                bail!("level: the store has {} levels", self.ds.levels.len());
+                            }
+                        }
+                        self.level = *l;
+                        true
+                    }
+                    Cmd::Quality(q) => {
+                        if !(*q > 0.0 && *q <= 16.0) {
+                            bail!("quality: expected samples per voxel in (0, 16], found {q}");
+                        }
+                        self.quality = *q;
+                        true
+                    }
+                    Cmd::WaitComplete(secs) => {
+                        self.send_specs();
+                        let since = *self.waiting.get_or_insert_with(Instant::now);
+                        // Not while a reduced-resolution frame stands in
+                        // for the full one.
+                        let settled = self.interacting.elapsed() >= Duration::from_millis(200);
+                        if settled && (0..N_VIEWS).all(|v| self.complete(v)) {
+                            self.waiting = None;
+                            true
+                        } else if since.elapsed().as_secs_f64() > *secs {
+                            bail!("wait-complete: the views did not complete in {secs} s");
+                        } else {
+                            false
+                        }
+                    }
+                    Cmd::Screenshot(v, p) => {
+                        if !self.complete(*v) {
+                            bail!(
+                                "screenshot {}: the view is not complete (wait-complete first)",
+                                VIEWS[*v]
+                            );
+                        }
+                        self.screenshot(*v, p)?;
+                        true
+                    }
+                    Cmd::SaveView(v, p) => {
+                        self.save_view(*v, p)?;
+                        true
+                    }
+                    Cmd::WindowShot(p) => {
+                        self.window_shot = Some(p.clone());
+                        let slot = self.shot.clone();
+                        let c2 = ctx.clone();
+                        ctx.request_screenshot(move |img| {
+                            *slot.lock().unwrap_or_else(|e| e.into_inner()) = Some(img);
+                            c2.request_repaint();
+                        });
+                        true
+                    }
+                    Cmd::ExpectStreaming(v, n) => {
+                        let got = self.views[*v].streaming;
+                        if got < *n {
+                            bail!(
+                                "expect-streaming {}: {got} frame(s) showed partial data, expected at least {n}",
+                                VIEWS[*v]
+                            );
+                        }
+                        self.views[*v].streaming = 0;
+                        true
+                    }
+                    Cmd::Touch(p) => {
+                        std::fs::write(p, b"").with_context(|| format!("touch {}", p.display()))?;
+                        true
+                    }
+                    Cmd::WaitFile(p, secs) => {
+                        let since = *self.waiting.get_or_insert_with(Instant::now);
+                        if p.exists() {
+                            self.waiting = None;
+                            true
+                        } else if since.elapsed().as_secs_f64() > *secs {
+                            bail!("wait-file: {} did not appear in {secs} s", p.display());
+                        } else {
+                            false
+                        }
+                    }
+                    Cmd::Quit => {
+                        ctx.send_viewport_cmd(egui::ViewportCommand::Close);
+                        self.pc = self.script.len();
+                        return Ok(false);
+                    }
+                })
+            })();
+            match r {
+                Ok(true) => self.pc += 1,
+                Ok(false) => return,
+                Err(e) => {
+                    self.fail(ctx, &format!("{e:#}"));
+                    return;
+                }
+            }
+        }
+    }
+}

@@ -1,0 +1,180 @@
+//! What each view shows and where it sits: plane normals, render sizes,
+//! the slice views' cameras, the render specification sent for each view,
+//! and the window's arrangement (controls on the left, the 3D view, the
+//! four slice views in a column).
+
+use super::{Vec3, ViewerApp, N_VIEWS};
+use crate::view::worker::{Msg, Spec};
+use brickyard_core::camera::{add, dot, normalize, scale, sub, Camera};
+use brickyard_core::TransferFunction;
+use brickyard_render::cpu::Lod;
+use brickyard_render::reference::{ChannelStyle, RenderMode, RenderParams};
+use eframe::egui;
+use std::time::Duration;
+
+/// What slices use: the transfer function's window and colours at opacity 1.
+fn tf_opaque(tf: &TransferFunction) -> TransferFunction {
+    TransferFunction {
+        window: tf.window,
+        opacity: vec![[0.0, 1.0]],
+        colormap: tf.colormap.clone(),
+    }
+}
+
+impl ViewerApp {
+    pub(super) fn oblique_normal(&self) -> Vec3 {
+        let (sa, ca) = self.oblique[0].to_radians().sin_cos();
+        let (se, ce) = self.oblique[1].to_radians().sin_cos();
+        [ce * sa, -ce * ca, se]
+    }
+
+    pub(super) fn plane_normal(&self, v: usize) -> Vec3 {
+        match v {
+            1 => [0.0, 0.0, 1.0],
+            2 => [0.0, 1.0, 0.0],
+            3 => [1.0, 0.0, 0.0],
+            _ => self.oblique_normal(),
+        }
+    }
+
+    pub(super) fn render_size(&self, v: usize) -> [u32; 2] {
+        let vs = &self.views[v];
+        if let Some(f) = vs.forced {
+            return f;
+        }
+        // While the 3D view moves, fewer pixels, so that frames keep up:
+        // aim at about 40 ms a frame from what full-size frames took.
+        if v == 0 && self.interacting.elapsed() < Duration::from_millis(200) {
+            let k = (40.0 / self.full_ms.max(1.0)).sqrt().clamp(0.25, 0.5);
+            return vs.size.map(|s| ((s as f64 * k) as u32).max(8));
+        }
+        vs.size
+    }
+
+    pub(super) fn slice_camera(&self, v: usize, size: [u32; 2]) -> Camera {
+        let n = self.plane_normal(v);
+        let vs = &self.views[v];
+        let e = self.ds.extent;
+        let height = e.iter().cloned().fold(0.0, f64::max) * 1.05 / vs.zoom;
+        let base = Camera::facing_plane(self.cursor, n, height);
+        let b = base.basis();
+        let _ = size;
+        let shift = add(scale(b.right, vs.pan[0]), scale(b.up, vs.pan[1]));
+        // Centre the view on the volume's centre projected into the plane,
+        // then pan.
+        let c = scale(e, 0.5);
+        let c_in_plane = sub(c, scale(n, dot(sub(c, self.cursor), normalize(n))));
+        let centre = add(c_in_plane, shift);
+        Camera {
+            eye: add(centre, sub(base.eye, base.target)),
+            target: centre,
+            ..base
+        }
+    }
+
+    pub(super) fn styles(&self) -> Vec<ChannelStyle> {
+        if self.ds.channels <= 1 {
+            return vec![];
+        }
+        self.channels
+            .iter()
+            .enumerate()
+            .filter(|(_, c)| c.visible)
+            .map(|(i, c)| ChannelStyle {
+                channel: i,
+                color: c.color.map(|x| x as f32 / 255.0),
+                window: c.window,
+            })
+            .collect()
+    }
+
+    pub(super) fn spec(&self, v: usize) -> Spec {
+        let [w, h] = self.render_size(v);
+        let lod = match self.level {
+            Some(l) => Lod::Fixed(l),
+            None => Lod::Auto {
+                bias: self.lod_bias,
+            },
+        };
+        let (camera, tf, mode) = if v == 0 {
+            let mode = match self.mode.as_str() {
+                "mip" => RenderMode::Mip,
+                "slice" => RenderMode::Slice {
+                    origin: self.cursor,
+                    normal: self.oblique_normal(),
+                },
+                _ => RenderMode::Dvr,
+            };
+            let tf = if self.mode == "slice" {
+                tf_opaque(&self.tf)
+            } else {
+                self.tf.clone()
+            };
+            (self.cam, tf, mode)
+        } else {
+            let mode = RenderMode::Slice {
+                origin: self.cursor,
+                normal: self.plane_normal(v),
+            };
+            (self.slice_camera(v, [w, h]), tf_opaque(&self.tf), mode)
+        };
+        let mut params = RenderParams::new(w, h, camera, tf, mode.clone());
+        params.samples_per_voxel = self.quality;
+        params.reference_step = Some(self.voxel0());
+        if mode != RenderMode::Dvr {
+            params.channels = self.styles();
+        }
+        Spec {
+            params,
+            lod,
+            channel: self.dvr_channel,
+        }
+    }
+
+    pub(super) fn voxel0(&self) -> f64 {
+        let d = self.ds.levels[0];
+        let e = self.ds.extent;
+        // As `Scene::voxel(0)`: the smallest voxel edge of level 0.
+        [0, 1, 2]
+            .map(|a| e[a] / d[2 - a] as f64)
+            .into_iter()
+            .fold(f64::INFINITY, f64::min)
+    }
+
+    pub(super) fn send_specs(&mut self) {
+        for v in 0..N_VIEWS {
+            let spec = self.spec(v);
+            if self.views[v].sent.as_ref() != Some(&spec) {
+                self.views[v].version += 1;
+                self.views[v].sent = Some(spec.clone());
+                let _ = self
+                    .tx
+                    .send(Msg::View(v, self.views[v].version, Some(spec)));
+            }
+        }
+    }
+
+    /// The window: controls in a panel on the left, the 3D view, and the
+    /// four slice views in a column beside it.
+    pub(super) fn lay_out(&mut self, ui: &mut egui::Ui) {
+        egui::Panel::left("controls")
+            .resizable(false)
+            .exact_size(310.0)
+            .show(ui, |ui| {
+                egui::ScrollArea::vertical().show(ui, |ui| self.controls(ui));
+            });
+        egui::CentralPanel::default().show(ui, |ui| {
+            let avail = ui.available_size();
+            let side = (avail.x * 0.3).max(120.0);
+            ui.horizontal(|ui| {
+                self.view_panel(ui, 0, egui::vec2(avail.x - side - 8.0, avail.y));
+                ui.vertical(|ui| {
+                    let h = (avail.y - 12.0) / 4.0;
+                    for v in 1..N_VIEWS {
+                        self.view_panel(ui, v, egui::vec2(side, h));
+                    }
+                });
+            });
+        });
+    }
+}
