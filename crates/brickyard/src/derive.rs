@@ -16,7 +16,7 @@ use std::sync::Arc;
 const BLOCK: [u64; 3] = [160; 3];
 
 /// A parsed `--derive` over one channel of a store.
-#[derive(Clone)]
+#[derive(Clone, Debug)]
 pub struct Derived {
     pub pipeline: Pipeline,
     /// The store's channel it is computed from.

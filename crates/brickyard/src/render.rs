@@ -63,7 +63,8 @@ pub struct RenderCmd {
     /// `brickyard process`, e.g. `gauss(1.5)|sobel`; no `label`) applied to
     /// the shown channel, each brick computed when the view asks for it, at
     /// every level (σ in voxels scaled to the level). Shown instead of the
-    /// stored channel; --window is then in the derived values.
+    /// stored channel; --window is then in the derived values, and a bare
+    /// `--channel C` names the channel it is computed from.
     #[arg(long)]
     derive: Option<String>,
     /// Slice: position of the plane along z as a fraction of the depth.
@@ -401,7 +402,12 @@ pub fn run(c: RenderCmd) -> Result<Vec<String>> {
         .map(|x| parse_channel(x, [lo as f32, hi as f32], m.channels))
         .collect::<Result<Vec<_>>>()?;
     if derived.is_some() {
-        // The derived volume has one channel.
+        // The derived volume has one channel. A bare `--channel C` only
+        // names the channel it is computed from; with a colour it is also
+        // how the derived channel is shown.
+        if !c.channels.iter().any(|x| x.contains(':')) {
+            styles.clear();
+        }
         for st in &mut styles {
             st.channel = 0;
         }

@@ -586,3 +586,65 @@ fn viewer_stays_within_its_memory_budget() {
     assert!(!o.status.success());
     assert!(stderr(&o).contains("memory"), "{}", stderr(&o));
 }
+
+#[test]
+fn viewer_shows_a_live_derived_channel_as_render_derive_does() {
+    let d = tempfile::tempdir().unwrap();
+    let store = mandelbulb(d.path(), "48", &["--brick", "16", "--shard", "32"]);
+    let p = |n: &str| d.path().join(n);
+    let script = format!(
+        "size 3d 96 80
+size xy 64 64
+size xz 64 56
+size yz 56 64
+size oblique 64 64
+mode mip
+derive gauss(1) | sobel
+wait-complete 300
+screenshot 3d {mip}.png
+save-view 3d {mip}
+screenshot xy {xy}.png
+save-view xy {xy}
+derive off
+wait-complete 300
+screenshot 3d {plain}.png
+save-view 3d {plain}
+quit
+",
+        mip = s(&p("sobel-mip")),
+        xy = s(&p("sobel-xy")),
+        plain = s(&p("plain-mip")),
+    );
+    std::fs::write(p("s.txt"), script).unwrap();
+    let Some(mut cmd) = viewer(
+        &store,
+        &p("s.txt"),
+        None,
+        &["--pool", "4MiB", "--brick", "8", "--backend", "cpu"],
+    ) else {
+        return;
+    };
+    let o = cmd.output().unwrap();
+    assert!(o.status.success(), "viewer: {}", stderr(&o));
+    let args = std::fs::read_to_string(p("sobel-mip.args")).unwrap();
+    assert!(args.contains("--derive\ngauss(1)|sobel\n"), "{args}");
+    let plain_args = std::fs::read_to_string(p("plain-mip.args")).unwrap();
+    assert!(!plain_args.contains("--derive"), "{plain_args}");
+    // The derived views equal `render --derive` of the same view, and the
+    // stored one `render` again after `derive off`.
+    let sobel = equals_render(&store, d.path(), "sobel-mip");
+    let xy = equals_render(&store, d.path(), "sobel-xy");
+    let plain = equals_render(&store, d.path(), "plain-mip");
+    let lit = |a: &[u8]| a.chunks(4).filter(|c| c[0] > 16).count();
+    assert!(lit(&sobel) > sobel.len() / 40 && lit(&xy) > xy.len() / 40);
+    // It is the derived channel: edges, not the stored values.
+    let differ = sobel
+        .chunks(4)
+        .zip(plain.chunks(4))
+        .filter(|(a, b)| a[0].abs_diff(b[0]) > 24)
+        .count();
+    assert!(
+        differ > sobel.len() / 40,
+        "sobel and plain MIPs differ at {differ} pixels"
+    );
+}

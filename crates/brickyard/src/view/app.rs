@@ -14,7 +14,10 @@
 mod input;
 mod layout;
 mod panels;
+mod process;
 mod save;
+
+pub use process::derived_dataset;
 
 use super::script::{Cmd, VIEWS};
 use super::worker::{Msg, Out, Reply, Setup, Spec};
@@ -30,7 +33,8 @@ use std::time::{Duration, Instant};
 
 type Vec3 = [f64; 3];
 
-/// What the window knows of the dataset.
+/// What the window knows of the dataset (or of the derived channel shown).
+#[derive(Clone)]
 pub struct Dataset {
     pub store: PathBuf,
     pub extent: Vec3,
@@ -117,6 +121,15 @@ pub struct ViewerApp {
     /// Load failures reported so far, and the latest (the status line).
     failures_seen: usize,
     last_failure: Option<String>,
+    /// The store's dataset (`ds` is the derived channel's while one is
+    /// shown).
+    stored: Arc<Dataset>,
+    /// The pipeline typed in the processing panel.
+    derive_text: String,
+    /// The live derived channel shown: pipeline and the store's channel it
+    /// is computed from; with the transfer-function window of the stored
+    /// data, to go back to.
+    derived: Option<(String, usize, [f32; 2])>,
 }
 
 impl ViewerApp {
@@ -132,18 +145,25 @@ impl ViewerApp {
         script: Vec<Cmd>,
         log: Option<std::fs::File>,
         exit: Arc<AtomicI32>,
+        derived: Option<(Arc<Dataset>, (String, usize, [f32; 2]))>,
     ) -> ViewerApp {
+        // Started on a derived channel: `ds` is its dataset, and the
+        // store's comes with it.
+        let (stored, derived) = match derived {
+            Some((st, shown)) => (st, Some(shown)),
+            None => (ds.clone(), None),
+        };
         let home = Camera::fit(
             ds.extent,
             30.0,
             20.0,
             Projection::Perspective { fov_y_deg: 35.0 },
         );
-        let channels = (0..ds.channels)
+        let channels = (0..stored.channels)
             .map(|c| ChannelUi {
                 visible: c < 3,
                 color: CHANNEL_COLORS[c % CHANNEL_COLORS.len()],
-                window: ds.range,
+                window: stored.range,
             })
             .collect();
         let views = (0..N_VIEWS)
@@ -154,6 +174,9 @@ impl ViewerApp {
             })
             .collect();
         ViewerApp {
+            derive_text: derived.as_ref().map(|d| d.0.clone()).unwrap_or_default(),
+            derived,
+            stored,
             cursor: scale(ds.extent, 0.5),
             pool_mib: setup.cfg.pool_bytes as f64 / (1 << 20) as f64,
             host_mib: setup.host_bytes as f64 / (1 << 20) as f64,

@@ -74,6 +74,11 @@ pub struct ViewCmd {
     /// Write one JSON line per frame received to this file.
     #[arg(long)]
     log: Option<PathBuf>,
+    /// Start showing a live derived channel: this processing pipeline
+    /// (e.g. `gauss(1.5)|sobel`) over channel 0, computed brick by brick as
+    /// the views ask for it (the processing panel changes it).
+    #[arg(long)]
+    derive: Option<String>,
     /// Slow every brick read down by this many milliseconds (to watch
     /// streaming).
     #[arg(long, default_value_t = 0)]
@@ -208,6 +213,7 @@ pub fn run(c: ViewCmd, demo_store: impl FnOnce() -> Result<PathBuf>) -> Result<i
         gpu_update: c.gpu_update,
         channels: m.channels,
         read_delay: Duration::from_millis(c.read_delay_ms),
+        derive: None,
     };
     // The histogram from the bricks' value ranges (statistics only).
     let loader = brickyard_cache::loader::Loader::open(
@@ -228,6 +234,24 @@ pub fn run(c: ViewCmd, demo_store: impl FnOnce() -> Result<PathBuf>) -> Result<i
         channels: m.channels,
         range,
     });
+    let mut setup = setup;
+    let mut tf = tf;
+    // `--derive`: the window starts on the derived channel.
+    let (ds, derived) = match &c.derive {
+        Some(p) => {
+            let d = crate::derive::Derived::new(&store, p, 0)?;
+            let dds = app::derived_dataset(&ds, &d)?;
+            let stored_window = tf.window;
+            if !c.tf.ends_with(".json") {
+                tf.window = dds.range;
+            }
+            let shown = (d.pipeline.text(), 0, stored_window);
+            setup.derive = Some(d);
+            setup.channels = 1;
+            (Arc::new(dds), Some((ds, shown)))
+        }
+        None => (ds, None),
+    };
     let (to_worker, worker_rx) = std::sync::mpsc::channel();
     let (worker_tx, from_worker) = std::sync::mpsc::channel();
     let exit = Arc::new(AtomicI32::new(0));
@@ -267,6 +291,7 @@ pub fn run(c: ViewCmd, demo_store: impl FnOnce() -> Result<PathBuf>) -> Result<i
                 script,
                 log,
                 exit2,
+                derived,
             )))
         }),
     );

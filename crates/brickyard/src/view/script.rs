@@ -17,6 +17,7 @@
 //! | `cursor X Y Z` | the cursor, as fractions of the volume |
 //! | `channel C on\|off` / `channel-color C RRGGBB` / `channel-window C LO HI` | a channel's visibility, colour and window (MIP and slices add the visible ones up) |
 //! | `dvr-channel C` | the channel a DVR shows |
+//! | `derive PIPELINE` / `derive off` | show the live derived channel of PIPELINE (as the processing panel does) over the DVR channel; `off`: the stored data |
 //! | `oblique AZIMUTH ELEVATION` | the oblique plane's normal, in degrees |
 //! | `lod-bias B` / `level L\|auto` / `quality S` | level of detail; samples per voxel |
 //! | `wait-complete [SECONDS]` | wait until every view is complete (default 120 s) |
@@ -48,6 +49,7 @@ pub enum Cmd {
     ChannelColor(usize, [u8; 3]),
     ChannelWindow(usize, f32, f32),
     DvrChannel(usize),
+    Derive(Option<String>),
     Oblique(f64, f64),
     LodBias(f64),
     Level(Option<usize>),
@@ -176,6 +178,18 @@ fn parse_line(w: &[&str]) -> Result<Cmd> {
         "channel-window" => {
             arity(3)?;
             Cmd::ChannelWindow(num(w[1])?, num(w[2])?, num(w[3])?)
+        }
+        "derive" => {
+            // The pipeline may hold spaces: the rest of the line.
+            if w.len() < 2 {
+                bail!("derive takes a pipeline or off");
+            }
+            let rest = w[1..].join(" ");
+            if rest == "off" {
+                Cmd::Derive(None)
+            } else {
+                Cmd::Derive(Some(rest))
+            }
         }
         "dvr-channel" => {
             arity(1)?;

@@ -42,6 +42,8 @@ pub struct Setup {
     /// Channels shown at once (more than one: the CPU back end).
     pub channels: usize,
     pub read_delay: Duration,
+    /// A live derived channel shown instead of the stored ones.
+    pub derive: Option<crate::derive::Derived>,
 }
 
 pub enum Msg {
@@ -97,20 +99,31 @@ struct View {
 }
 
 fn open(setup: &Setup, scene: &mut Scene) -> anyhow::Result<(Session, Backend)> {
-    let mut s = Session::open_with_budget(
-        &setup.store,
-        setup.cfg.clone(),
-        setup.host_bytes,
-        setup.chunk_bytes,
-        setup.loader_threads,
-    )?;
+    let mut s = match &setup.derive {
+        Some(d) => d.session(
+            setup.cfg.clone(),
+            setup.host_bytes,
+            setup.chunk_bytes,
+            setup.loader_threads,
+        )?,
+        None => Session::open_with_budget(
+            &setup.store,
+            setup.cfg.clone(),
+            setup.host_bytes,
+            setup.chunk_bytes,
+            setup.loader_threads,
+        )?,
+    };
     s.loader().set_read_delay(setup.read_delay);
     // The coarsest levels stay resident, so no part of a view is ever
     // empty (before the back end mirrors the pool).
     s.pin_coarsest(512, Duration::from_secs(120))
         .map_err(|e| anyhow::anyhow!("pool: {e}"))?;
-    // The window's histogram already read the statistics (same bricks).
-    if scene.ranges.is_none() {
+    // The window's histogram already read the statistics (same bricks);
+    // a derived channel has none (nothing is known to be empty), and
+    // leaving it reads them again.
+    let unknown = |r: &brickyard_cache::ranges::BrickRanges| r.levels.iter().all(Option::is_none);
+    if setup.derive.is_some() || scene.ranges.as_deref().is_none_or(unknown) {
         scene.ranges = Some(std::sync::Arc::new(s.loader().brick_ranges(1 << 24)));
     }
     let b = Backend::choose(&setup.backend, setup.gpu_update, &mut s, setup.channels)?;

@@ -279,6 +279,10 @@ impl ViewerApp {
                         self.channel_ui(*c)?.window = [*lo, *hi];
                         true
                     }
+                    Cmd::Derive(p) => {
+                        self.set_derive(p.as_deref())?;
+                        true
+                    }
                     Cmd::DvrChannel(c) => {
                         self.channel_ui(*c)?;
                         self.dvr_channel = *c;

@@ -56,6 +56,8 @@ impl ViewerApp {
             }
         }
         ui.separator();
+        self.processing_panel(ui);
+        ui.separator();
         ui.label("Transfer function (drag points; double-click adds, right-click removes):");
         self.tf_editor(ui);
         ui.horizontal(|ui| {

@@ -50,7 +50,15 @@ impl ViewerApp {
             Lod::Fixed(l) => a.extend(["--level".into(), l.to_string()]),
             Lod::Auto { bias } => a.extend(["--lod-bias".into(), format!("{bias}")]),
         }
-        if p.mode == RenderMode::Dvr {
+        if let Some((pipeline, channel)) = self.derived_args() {
+            // The derived channel, computed from one stored channel.
+            a.extend([
+                "--derive".into(),
+                pipeline,
+                "--channel".into(),
+                channel.to_string(),
+            ]);
+        } else if p.mode == RenderMode::Dvr {
             if self.ds.channels > 1 {
                 a.extend(["--channel".into(), spec.channel.to_string()]);
             }
