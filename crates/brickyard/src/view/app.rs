@@ -129,8 +129,12 @@ pub struct ViewerApp {
     /// The live derived channel shown: pipeline and the store's channel it
     /// is computed from; with the transfer-function window of the stored
     /// data, to go back to.
-    derived: Option<(String, usize, [f32; 2])>,
+    derived: Option<Shown>,
 }
+
+/// A live derived channel shown: its pipeline, the store's channel it is
+/// computed from, and the transfer-function window of the stored data.
+pub type Shown = (String, usize, [f32; 2]);
 
 impl ViewerApp {
     #[allow(clippy::too_many_arguments)]
@@ -145,7 +149,7 @@ impl ViewerApp {
         script: Vec<Cmd>,
         log: Option<std::fs::File>,
         exit: Arc<AtomicI32>,
-        derived: Option<(Arc<Dataset>, (String, usize, [f32; 2]))>,
+        derived: Option<(Arc<Dataset>, Shown)>,
     ) -> ViewerApp {
         // Started on a derived channel: `ds` is its dataset, and the
         // store's comes with it.

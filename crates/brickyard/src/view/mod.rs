@@ -246,7 +246,7 @@ pub fn run(c: ViewCmd, demo_store: impl FnOnce() -> Result<PathBuf>) -> Result<i
                 tf.window = dds.range;
             }
             let shown = (d.pipeline.text(), 0, stored_window);
-            setup.derive = Some(d);
+            setup.derive = Some(Arc::new(d));
             setup.channels = 1;
             (Arc::new(dds), Some((ds, shown)))
         }

@@ -43,13 +43,14 @@ pub struct Setup {
     pub channels: usize,
     pub read_delay: Duration,
     /// A live derived channel shown instead of the stored ones.
-    pub derive: Option<crate::derive::Derived>,
+    pub derive: Option<std::sync::Arc<crate::derive::Derived>>,
 }
 
 pub enum Msg {
     /// View `i` now shows `spec` (`None`: hidden), version `v`.
     View(usize, u64, Option<Spec>),
-    /// New budgets: the session and back end are made again.
+    /// New budgets or a derived channel: the session and back end are
+    /// made again.
     Reopen(Setup),
     Quit,
 }

@@ -64,7 +64,7 @@ impl ViewerApp {
                     "showing {} of channel {channel}, computed as the views ask for it",
                     d.pipeline.text()
                 );
-                setup.derive = Some(d);
+                setup.derive = Some(Arc::new(d));
                 setup.channels = 1;
             }
         }
