@@ -605,10 +605,12 @@ screenshot 3d {mip}.png
 save-view 3d {mip}
 screenshot xy {xy}.png
 save-view xy {xy}
+apply gs
 derive off
 wait-complete 300
 screenshot 3d {plain}.png
 save-view 3d {plain}
+wait-job 300
 quit
 ",
         mip = s(&p("sobel-mip")),
@@ -646,5 +648,39 @@ quit
     assert!(
         differ > sobel.len() / 40,
         "sobel and plain MIPs differ at {differ} pixels"
+    );
+    // "Apply to whole volume" wrote the same pipeline into the store while
+    // the views went on; a render of it equals the live channel's.
+    let written = store.join("derived").join("gs");
+    let o = Command::new(bin())
+        .args(["info", s(&written)])
+        .output()
+        .unwrap();
+    let info = String::from_utf8_lossy(&o.stdout);
+    assert!(o.status.success() && info.contains("complete"), "{info}");
+    let slice = |src: &Path, derive: bool, out: &str| {
+        let mut c = Command::new(bin());
+        c.args([
+            "render",
+            s(src),
+            "--mode",
+            "slice",
+            "--level",
+            "0",
+            "--size",
+            "64",
+        ])
+        .args(["--window", "0,2000", "--tf", "linear", "--quiet", "--out"])
+        .arg(p(out));
+        if derive {
+            c.args(["--derive", "gauss(1)|sobel"]);
+        }
+        let o = c.output().unwrap();
+        assert!(o.status.success(), "{}", stderr(&o));
+        png_pixels(&p(out)).2
+    };
+    assert_eq!(
+        slice(&written, false, "w.png"),
+        slice(&store, true, "l.png")
     );
 }

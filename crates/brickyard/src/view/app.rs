@@ -130,6 +130,11 @@ pub struct ViewerApp {
     /// is computed from; with the transfer-function window of the stored
     /// data, to go back to.
     derived: Option<Shown>,
+    /// The whole-volume job running, its name field, and how the last one
+    /// ended.
+    job: Option<process::Job>,
+    job_name: String,
+    last_job: Option<process::JobEnd>,
 }
 
 /// A live derived channel shown: its pipeline, the store's channel it is
@@ -181,6 +186,9 @@ impl ViewerApp {
             derive_text: derived.as_ref().map(|d| d.0.clone()).unwrap_or_default(),
             derived,
             stored,
+            job: None,
+            job_name: "processed".into(),
+            last_job: None,
             cursor: scale(ds.extent, 0.5),
             pool_mib: setup.cfg.pool_bytes as f64 / (1 << 20) as f64,
             host_mib: setup.host_bytes as f64 / (1 << 20) as f64,
@@ -309,6 +317,7 @@ impl eframe::App for ViewerApp {
     fn ui(&mut self, ui: &mut egui::Ui, _frame: &mut eframe::Frame) {
         let ctx = ui.ctx().clone();
         self.take_frames(&ctx);
+        self.poll_job();
         self.take_window_shot(&ctx);
         self.run_script(&ctx);
         self.keys(&ctx);
@@ -318,6 +327,7 @@ impl eframe::App for ViewerApp {
         // window when one arrives.
         let busy = (0..N_VIEWS).any(|v| !self.complete(v))
             || self.pc < self.script.len()
+            || self.job.is_some()
             || self.interacting.elapsed() < Duration::from_millis(300);
         if busy {
             ctx.request_repaint_after(Duration::from_millis(30));
@@ -326,5 +336,12 @@ impl eframe::App for ViewerApp {
 
     fn on_exit(&mut self, _gl: Option<&eframe::glow::Context>) {
         let _ = self.tx.send(Msg::Quit);
+        if let Some(mut j) = self.job.take() {
+            j.stop();
+            eprintln!(
+                "view: stopped writing {} as {}; the store is as it was",
+                j.pipeline, j.name
+            );
+        }
     }
 }

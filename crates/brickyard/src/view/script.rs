@@ -17,6 +17,8 @@
 //! | `cursor X Y Z` | the cursor, as fractions of the volume |
 //! | `channel C on\|off` / `channel-color C RRGGBB` / `channel-window C LO HI` | a channel's visibility, colour and window (MIP and slices add the visible ones up) |
 //! | `dvr-channel C` | the channel a DVR shows |
+//! | `apply NAME` | write the derived channel shown into the store as NAME, at every level, in the background (the panel's "Apply to whole volume") |
+//! | `wait-job [SECONDS]` | wait until the job ends (default 600 s); fail if it failed |
 //! | `derive PIPELINE` / `derive off` | show the live derived channel of PIPELINE (as the processing panel does) over the DVR channel; `off`: the stored data |
 //! | `oblique AZIMUTH ELEVATION` | the oblique plane's normal, in degrees |
 //! | `lod-bias B` / `level L\|auto` / `quality S` | level of detail; samples per voxel |
@@ -50,6 +52,8 @@ pub enum Cmd {
     ChannelWindow(usize, f32, f32),
     DvrChannel(usize),
     Derive(Option<String>),
+    Apply(String),
+    WaitJob(f64),
     Oblique(f64, f64),
     LodBias(f64),
     Level(Option<usize>),
@@ -179,6 +183,15 @@ fn parse_line(w: &[&str]) -> Result<Cmd> {
             arity(3)?;
             Cmd::ChannelWindow(num(w[1])?, num(w[2])?, num(w[3])?)
         }
+        "apply" => {
+            arity(1)?;
+            Cmd::Apply(w[1].into())
+        }
+        "wait-job" => match w.len() {
+            1 => Cmd::WaitJob(600.0),
+            2 => Cmd::WaitJob(num(w[1])?),
+            _ => bail!("wait-job takes at most 1 argument"),
+        },
         "derive" => {
             // The pipeline may hold spaces: the rest of the line.
             if w.len() < 2 {

@@ -279,6 +279,25 @@ impl ViewerApp {
                         self.channel_ui(*c)?.window = [*lo, *hi];
                         true
                     }
+                    Cmd::Apply(name) => {
+                        self.apply(name)?;
+                        true
+                    }
+                    Cmd::WaitJob(secs) => {
+                        let since = *self.waiting.get_or_insert_with(Instant::now);
+                        if self.job.is_none() {
+                            self.waiting = None;
+                            match &self.last_job {
+                                Some(super::process::JobEnd::Failed(m)) => bail!("wait-job: {m}"),
+                                Some(_) => true,
+                                None => bail!("wait-job: no job was started"),
+                            }
+                        } else if since.elapsed().as_secs_f64() > *secs {
+                            bail!("wait-job: still running after {secs} s");
+                        } else {
+                            false
+                        }
+                    }
                     Cmd::Derive(p) => {
                         self.set_derive(p.as_deref())?;
                         true

@@ -103,5 +103,169 @@ impl ViewerApp {
         if let Some((p, c, _)) = &self.derived {
             ui.label(format!("showing {p} of channel {c}"));
         }
+        ui.horizontal(|ui| {
+            ui.add(
+                egui::TextEdit::singleline(&mut self.job_name)
+                    .hint_text("name")
+                    .desired_width(90.0),
+            );
+            let running = self.job.is_some();
+            if ui
+                .add_enabled(!running, egui::Button::new("Apply to whole volume"))
+                .clicked()
+            {
+                let name = self.job_name.clone();
+                if let Err(e) = self.apply(&name) {
+                    self.message = format!("{e:#}");
+                }
+            }
+            if running && ui.button("Stop").clicked() {
+                if let Some(mut j) = self.job.take() {
+                    j.stop();
+                    self.message = format!("{} stopped; the store is as it was", j.pipeline);
+                }
+            }
+        });
+        if let Some(j) = &self.job {
+            ui.label(format!(
+                "writing {} as {} ({:.0} s)…",
+                j.pipeline,
+                j.name,
+                j.seconds()
+            ));
+        }
+    }
+
+    /// Write the pipeline shown (or typed) into the store as NAME, at every
+    /// level, in the background.
+    pub(super) fn apply(&mut self, name: &str) -> Result<()> {
+        if self.job.is_some() {
+            anyhow::bail!("apply: a job is running; wait for it or stop it");
+        }
+        let (pipeline, channel) = match &self.derived {
+            Some((p, c, _)) => (p.clone(), *c),
+            None if !self.derive_text.trim().is_empty() => {
+                (self.derive_text.clone(), self.dvr_channel)
+            }
+            None => anyhow::bail!("apply: type a pipeline first"),
+        };
+        if name.trim().is_empty() {
+            anyhow::bail!("apply: give the result a name");
+        }
+        // A quarter of the viewer's budget, at least 256 MiB.
+        let memory = (self.setup.memory_budget / 4).max(256 << 20);
+        self.job = Some(Job::start(
+            &self.stored.store,
+            &pipeline,
+            name,
+            channel,
+            memory,
+        )?);
+        self.message = format!("writing {pipeline} as {name} in the background");
+        Ok(())
+    }
+
+    /// Take the job's end, if it ended.
+    pub(super) fn poll_job(&mut self) -> Option<JobEnd> {
+        let end = self.job.as_mut()?.poll()?;
+        self.job = None;
+        self.message = match &end {
+            JobEnd::Done(m) | JobEnd::Failed(m) => m.clone(),
+        };
+        eprintln!("view: {}", self.message);
+        self.last_job = Some(end.clone());
+        Some(end)
+    }
+}
+
+/// A whole-volume processing job started from the viewer: `brickyard
+/// process` in a child process at a lower CPU priority (nice 10) and with
+/// its own memory budget, so that it never takes the view's cores first
+/// or its memory. It publishes its result only when complete, as the
+/// command does; closing the viewer stops it and leaves the store as it
+/// was.
+pub struct Job {
+    child: std::process::Child,
+    pub name: String,
+    pub pipeline: String,
+    started: std::time::Instant,
+    stderr_path: std::path::PathBuf,
+}
+
+/// How a job ended.
+#[derive(Debug, Clone, PartialEq)]
+pub enum JobEnd {
+    Done(String),
+    Failed(String),
+}
+
+impl Job {
+    /// Start `brickyard process STORE PIPELINE --out NAME` over `channel`.
+    pub fn start(
+        store: &std::path::Path,
+        pipeline: &str,
+        name: &str,
+        channel: usize,
+        memory: u64,
+    ) -> Result<Job> {
+        let exe = std::env::current_exe()?;
+        let stderr_path = std::env::temp_dir().join(format!(
+            "brickyard-view-job-{}-{name}.log",
+            std::process::id()
+        ));
+        let err = std::fs::File::create(&stderr_path)?;
+        let child = std::process::Command::new(exe)
+            .args(["process", &store.to_string_lossy(), pipeline, "--out", name])
+            .args(["--channel", &channel.to_string()])
+            .args(["--memory", &format!("{}MiB", (memory >> 20).max(64))])
+            .args(["--overwrite", "--quiet"])
+            .stdin(std::process::Stdio::null())
+            .stdout(std::process::Stdio::null())
+            .stderr(err)
+            .spawn()?;
+        // Below the view: the scheduler serves the viewer's threads first.
+        // SAFETY: setpriority on a child's pid has no memory effects.
+        unsafe {
+            libc::setpriority(libc::PRIO_PROCESS, child.id() as libc::id_t, 10);
+        }
+        Ok(Job {
+            child,
+            name: name.to_string(),
+            pipeline: pipeline.to_string(),
+            started: std::time::Instant::now(),
+            stderr_path,
+        })
+    }
+
+    /// `None` while it runs.
+    pub fn poll(&mut self) -> Option<JobEnd> {
+        let status = self.child.try_wait().ok()??;
+        let err = std::fs::read_to_string(&self.stderr_path).unwrap_or_default();
+        let _ = std::fs::remove_file(&self.stderr_path);
+        let secs = self.started.elapsed().as_secs_f64();
+        Some(if status.success() {
+            JobEnd::Done(format!(
+                "{} written to the store as {} in {secs:.1} s",
+                self.pipeline, self.name
+            ))
+        } else {
+            let last = err
+                .lines()
+                .rev()
+                .find(|l| !l.trim().is_empty())
+                .unwrap_or("");
+            JobEnd::Failed(format!("{} failed ({status}): {last}", self.pipeline))
+        })
+    }
+
+    pub fn seconds(&self) -> f64 {
+        self.started.elapsed().as_secs_f64()
+    }
+
+    /// Stop the job: its result is not published.
+    pub fn stop(&mut self) {
+        let _ = self.child.kill();
+        let _ = self.child.wait();
+        let _ = std::fs::remove_file(&self.stderr_path);
     }
 }
