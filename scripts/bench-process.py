@@ -2,6 +2,9 @@
 """Benchmark: `brickyard process` against scipy.ndimage and cc3d, one volume.
 
 Usage: bench-process.py BRICKYARD_BIN WORKDIR [SIZE]   (SIZE: edge of a cube, default 256)
+       bench-process.py BRICKYARD_BIN WORKDIR --out-of-core SIZE [MEMORY]
+         (brickyard only: a generated SIZE³ u8 Mandelbulb store, gauss(2) and
+          gauss(1)|threshold(100)|label(26) under --memory MEMORY, default 1GiB)
 
 Makes a smooth random u16 cube (many blobs), converts it to a store (64³
 bricks), then times, each in its own process so that peak RSS is its own:
@@ -9,7 +12,9 @@ bricks), then times, each in its own process so that peak RSS is its own:
     (reads the store, computes, writes the whole pyramid, lz4; --memory 1GiB)
   - scipy.ndimage.gaussian_filter(v, 2, mode="nearest", output=float32),
     generic_gradient_magnitude(v as float32, sobel, mode="nearest"),
-    label(v > T, 26-connectivity); cc3d.connected_components(v > T, 26)
+    label(v > T, 26-connectivity); cc3d.connected_components(v > T, 26);
+    SimpleITK (all threads): DiscreteGaussian(variance 4, no spacing),
+    SobelEdgeDetection (float32), ConnectedComponent(v > T, fully connected)
     (in core: the volume is loaded from the raw file first; the time is the
     operation's, the peak RSS the whole process's).
 Prints one JSON line per run.
@@ -21,6 +26,34 @@ import sys
 import time
 
 BIN, WORK = sys.argv[1], sys.argv[2]
+if len(sys.argv) > 3 and sys.argv[3] == "--out-of-core":
+    n = int(sys.argv[4])
+    mem = sys.argv[5] if len(sys.argv) > 5 else "1GiB"
+    os.makedirs(WORK, exist_ok=True)
+    st = os.path.join(WORK, f"mandelbulb{n}.zarr")
+
+    def run(cmd):
+        t0 = time.time()
+        r = subprocess.run(["/usr/bin/time", "-f", "RSS %M", *cmd], capture_output=True, text=True)
+        if r.returncode != 0:
+            raise SystemExit(f"{cmd}: exit {r.returncode}\n{r.stderr}")
+        rss = int([l for l in r.stderr.splitlines() if l.startswith("RSS ")][-1].split()[1]) / 1024
+        return time.time() - t0, rss, r.stdout
+
+    if not os.path.exists(st):
+        w, rss, _ = run([BIN, "generate", "mandelbulb", st, "--size", str(n), "--memory", mem,
+                         "--quiet"])
+        print(json.dumps({"tool": "brickyard generate", "n": n, "wall_s": round(w, 1),
+                          "peak_rss_mib": round(rss, 1)}), flush=True)
+    for pipe, name in [("gauss(2)", "g"), ("gauss(1)|threshold(100)|label(26)", "l")]:
+        w, rss, out = run([BIN, "process", st, pipe, "--out", name, "--overwrite", "--quiet",
+                           "--json", "--memory", mem])
+        j = json.loads(out.strip().splitlines()[-1])
+        print(json.dumps({"tool": "brickyard process", "op": pipe, "n": n, "memory": mem,
+                          "wall_s": round(w, 1), "peak_rss_mib": round(rss, 1),
+                          "labels": j.get("labels"), "voxels_per_s": round(n ** 3 / w)}),
+              flush=True)
+    sys.exit(0)
 N = int(sys.argv[3]) if len(sys.argv) > 3 else 256
 PY = sys.executable
 os.makedirs(WORK, exist_ok=True)
@@ -63,12 +96,25 @@ elif op == "sobel":
     r = ndi.generic_gradient_magnitude(v.astype(np.float32), ndi.sobel, mode="nearest")
 elif op == "label":
     r, k = ndi.label(v > t, structure=np.ones((3, 3, 3)))
+elif op.startswith("sitk"):
+    import SimpleITK as sitk
+    img = sitk.GetImageFromArray(v)
+    t0 = time.time()
+    if op == "sitk-gauss":
+        r = sitk.DiscreteGaussian(sitk.Cast(img, sitk.sitkFloat32), variance=4.0,
+                                  maximumKernelWidth=64, maximumError=0.001,
+                                  useImageSpacing=False)
+    elif op == "sitk-sobel":
+        r = sitk.SobelEdgeDetection(sitk.Cast(img, sitk.sitkFloat32))
+    else:
+        r = sitk.ConnectedComponent(img > t, True)
+        k = int(sitk.GetArrayViewFromImage(r).max())
 elif op == "cc3d":
     import cc3d
     r = cc3d.connected_components(v > t, connectivity=26)
     k = int(r.max())
 dt = time.time() - t0
-print(json.dumps({"op_seconds": dt, "labels": int(k) if op in ("label", "cc3d") else None}))
+print(json.dumps({"op_seconds": dt, "labels": int(k) if op in ("label", "cc3d", "sitk-label") else None}))
 """
 
 runs = [
@@ -82,11 +128,12 @@ for pipe, op, name in runs:
     j = json.loads(out.strip().splitlines()[-1])
     print(json.dumps({"tool": "brickyard process", "op": pipe, "n": N, "wall_s": round(wall, 3),
                       "peak_rss_mib": round(rss, 1), "labels": j.get("labels")}), flush=True)
-    ops = [op] + (["cc3d"] if op == "label" else [])
+    ops = [op] + (["cc3d"] if op == "label" else []) + [f"sitk-{op}"]
     for o in ops:
         wall, rss, out = timed([PY, "-c", SCIPY, o, raw, str(N), str(T)])
         j = json.loads(out.strip().splitlines()[-1])
-        tool = "cc3d 26" if o == "cc3d" else f"scipy.ndimage {o}"
+        tool = ("cc3d 26" if o == "cc3d" else "SimpleITK" if o.startswith("sitk")
+                else f"scipy.ndimage {o}")
         print(json.dumps({"tool": tool, "op": pipe, "n": N, "wall_s": round(wall, 3),
                           "op_s": round(j["op_seconds"], 3), "peak_rss_mib": round(rss, 1),
                           "labels": j["labels"]}), flush=True)

@@ -55,11 +55,37 @@ pub fn correlate_valid(
     let sy = dims[2];
     let sz = dims[1] * dims[2];
     let step = [sz, sy, 1][axis];
+    // Gaussians are symmetric and their derivatives antisymmetric: pair
+    // the taps `r − k` and `r + k` (one multiplication for two), centre
+    // tap first, then the pairs outwards.
+    let sym = (0..r).all(|k| w[k] == w[2 * r - k]);
+    let anti = !sym && w[r] == 0.0 && (0..r).all(|k| w[k] == -w[2 * r - k]);
     for z in 0..nz {
         for y in 0..ny {
             let o = (z * ny + y) * nx;
             let orow = &mut out[o..o + nx];
             let base = z * sz + y * sy;
+            if sym || anti {
+                let c = &data[base + r * step..][..nx];
+                for (a, &b) in orow.iter_mut().zip(c) {
+                    *a = w[r] * b;
+                }
+                for k in 1..=r {
+                    let lo = &data[base + (r - k) * step..][..nx];
+                    let hi = &data[base + (r + k) * step..][..nx];
+                    let wk = w[r + k];
+                    if sym {
+                        for ((a, &l), &h) in orow.iter_mut().zip(lo).zip(hi) {
+                            *a += wk * (h + l);
+                        }
+                    } else {
+                        for ((a, &l), &h) in orow.iter_mut().zip(lo).zip(hi) {
+                            *a += wk * (h - l);
+                        }
+                    }
+                }
+                continue;
+            }
             for (k, &wk) in w.iter().enumerate() {
                 let s = base + k * step;
                 let irow = &data[s..s + nx];
