@@ -9,11 +9,14 @@
 #     the GPU: warm frame time, cache management per frame, upload GB/s,
 #     time to a complete view from disk (page cache dropped when root) and
 #     from the host cache;
-#   - the same at 512^3 on the CPU and the GPU side by side.
+#   - the same at 512^3 on the CPU and the GPU side by side;
+#   - the processing filters gauss(2) and sobel of a generated PROC^3 u16
+#     volume (default 512) on the CPU and the GPU side by side, with the
+#     largest difference beside the stated tolerance.
 # Everything runs under timeouts that add up to less than 10 minutes.
 # Usage: bash scripts/gpu-bench.sh [DATA_DIR]   (default /tmp/brickyard-gpu-bench)
-# BIG and SMALL (default 1024 and 512) set the volume edges, e.g. to try the
-# script on a software adapter first.
+# BIG, SMALL and PROC (default 1024, 512 and 512) set the volume edges, e.g.
+# to try the script on a software adapter first.
 set -uo pipefail
 cd "$(dirname "${BASH_SOURCE[0]}")/.."
 BIN=${BRICKYARD_BIN:-dist/brickyard}
@@ -39,6 +42,7 @@ if ! ls /usr/share/vulkan/icd.d/*nvidia* /etc/vulkan/icd.d/*nvidia* >/dev/null 2
 fi
 BIG=${BIG:-1024}
 SMALL=${SMALL:-512}
+PROC=${PROC:-512}
 
 step() { # NAME SECONDS ARGS...
     local name=$1 secs=$2; shift 2
@@ -55,3 +59,4 @@ step "$BIG^3 full view, GPU" 160 bench render --size "$BIG" --dtype u8 --dir "$D
 step "$BIG^3 zoomed in, GPU" 90 bench render --size "$BIG" --dtype u8 --dir "$DATA" --image 1920x1080 --zoom 4 --repeat 20 --backend gpu --no-reference --cold
 step "4096^3 procedural (64 GiB of u8, computed brick by brick), GPU" 130 bench render --size 4096 --procedural --dtype u8 --image 1920x1080 --zoom 1 --repeat 20 --backend gpu --no-reference
 step "$SMALL^3, CPU, GPU, GPU with host updates" 120 bench render --size "$SMALL" --dtype u8 --dir "$DATA" --image 1920x1080 --zoom 1 --repeat 5 --backend all --no-reference
+step "process filters $PROC^3, CPU and GPU" 35 bench process-filters --size "$PROC" --dtype u16 --backend both --repeat 2

@@ -5,14 +5,21 @@
 //! Boundary mode: `nearest` everywhere (scipy's `mode="nearest"`: the edge
 //! voxel repeated), for every stage, also on the results of earlier stages,
 //! which is what scipy does when stages are applied one after the other.
+//!
+//! A stage computes on the CPU in f64 by default, or on the device in f32
+//! ([`FilterSource::with_device`], [`crate::gpu`]); both store the same
+//! types.
 
-use crate::kernels::{gaussian_weights, magnitude, separable, SOBEL_D, SOBEL_S};
+use crate::gpu::{DeviceFilter, FilterKernels};
+use crate::kernels::{
+    gaussian_weights, magnitude, separable, threshold, window, Real, SOBEL_D, SOBEL_S,
+};
 use brickyard_core::{as_bytes_mut, dispatch_dtype, DType, Dims3, Sample};
 use brickyard_store::source::check_region;
-use brickyard_store::{Result, SourceMeta, VolumeSource};
+use brickyard_store::{Result, SourceMeta, StoreError, VolumeSource};
 use rayon::prelude::*;
 use std::ops::Range;
-use std::sync::Arc;
+use std::sync::{Arc, Mutex};
 
 /// scipy's default `truncate`: kernels reach `int(4σ + 0.5)` voxels.
 pub const TRUNCATE: f64 = 4.0;
@@ -56,48 +63,66 @@ impl Filter {
         }
     }
 
-    /// Compute on a block padded by [`Filter::halo`]; `dims` are the padded
-    /// dimensions. Returns the block's values (f64).
-    pub fn apply(&self, data: Vec<f64>, dims: [usize; 3]) -> Vec<f64> {
+    /// The separable passes of a float filter: one weight vector per axis
+    /// `[z, y, x]` for each component, and whether the result is the root of
+    /// the components' sum of squares (a gradient magnitude) rather than the
+    /// one component. `None` for threshold and window.
+    pub fn components(&self) -> Option<(Vec<[Vec<f64>; 3]>, bool)> {
         match self {
-            Filter::Gauss(s) => {
-                let w = s.map(|v| gaussian_weights(v, 0, TRUNCATE));
-                separable(data, dims, [&w[0], &w[1], &w[2]]).0
-            }
+            Filter::Gauss(s) => Some((vec![s.map(|v| gaussian_weights(v, 0, TRUNCATE))], false)),
             Filter::GradMag(s) => {
-                let g = s.map(|v| gaussian_weights(v, 0, TRUNCATE));
-                let d = s.map(|v| gaussian_weights(v, 1, TRUNCATE));
-                magnitude(
-                    &data,
-                    dims,
-                    [
-                        [&d[0], &g[1], &g[2]],
-                        [&g[0], &d[1], &g[2]],
-                        [&g[0], &g[1], &d[2]],
+                let [g0, g1, g2] = s.map(|v| gaussian_weights(v, 0, TRUNCATE));
+                let [d0, d1, d2] = s.map(|v| gaussian_weights(v, 1, TRUNCATE));
+                Some((
+                    vec![
+                        [d0, g1.clone(), g2.clone()],
+                        [g0.clone(), d1, g2],
+                        [g0, g1, d2],
                     ],
-                )
-                .0
+                    true,
+                ))
             }
             Filter::Sobel => {
-                magnitude(
-                    &data,
-                    dims,
-                    [
-                        [&SOBEL_D, &SOBEL_S, &SOBEL_S],
-                        [&SOBEL_S, &SOBEL_D, &SOBEL_S],
-                        [&SOBEL_S, &SOBEL_S, &SOBEL_D],
+                let (d, s) = (SOBEL_D.to_vec(), SOBEL_S.to_vec());
+                Some((
+                    vec![
+                        [d.clone(), s.clone(), s.clone()],
+                        [s.clone(), d.clone(), s.clone()],
+                        [s.clone(), s, d],
                     ],
-                )
-                .0
+                    true,
+                ))
             }
-            Filter::Threshold(t) => data
-                .into_iter()
-                .map(|v| if v > *t { 1.0 } else { 0.0 })
-                .collect(),
-            Filter::Window(lo, hi) => data
-                .into_iter()
-                .map(|v| if *lo <= v && v <= *hi { 1.0 } else { 0.0 })
-                .collect(),
+            Filter::Threshold(_) | Filter::Window(..) => None,
+        }
+    }
+
+    /// Compute on a block padded by [`Filter::halo`]; `dims` are the padded
+    /// dimensions. Returns the block's values. In f64 this is the CPU
+    /// filter; in f32 it is the twin of [`crate::gpu::DeviceFilter::apply`]
+    /// (the same kernels in the same order, weights rounded to f32).
+    pub fn apply<R: Real>(&self, data: Vec<R>, dims: [usize; 3]) -> Vec<R> {
+        match (self, self.components()) {
+            (_, Some((cs, mag))) => {
+                let cs: Vec<[Vec<R>; 3]> = cs
+                    .iter()
+                    .map(|c| {
+                        c.each_ref()
+                            .map(|w| w.iter().map(|&v| R::from_f64(v)).collect())
+                    })
+                    .collect();
+                fn refs<R>(c: &[Vec<R>; 3]) -> [&[R]; 3] {
+                    [&c[0], &c[1], &c[2]]
+                }
+                if mag {
+                    magnitude(&data, dims, [refs(&cs[0]), refs(&cs[1]), refs(&cs[2])]).0
+                } else {
+                    separable(data, dims, refs(&cs[0])).0
+                }
+            }
+            (Filter::Threshold(t), None) => threshold(&data, *t),
+            (Filter::Window(lo, hi), None) => window(&data, *lo, *hi),
+            _ => unreachable!("float filters have components"),
         }
     }
 }
@@ -111,6 +136,14 @@ pub struct FilterSource {
     /// Largest block computed at once; regions are cut into such blocks and
     /// the blocks computed in parallel.
     block: Dims3,
+    /// Set by [`FilterSource::with_device`]: reads compute on the device.
+    device: Option<DeviceStage>,
+}
+
+/// A stage's filter on the device, and the most voxels of a padded piece.
+struct DeviceStage {
+    filter: Mutex<DeviceFilter>,
+    max_voxels: u64,
 }
 
 impl FilterSource {
@@ -134,48 +167,104 @@ impl FilterSource {
             filter,
             meta,
             block: block.map(|b| b.max(1)),
+            device: None,
         }
+    }
+
+    /// Compute this stage's reads on the device of `k`, in f32 (see
+    /// [`crate::gpu`] for the tolerance against the CPU's f64). A region is
+    /// computed in pieces of at most [`FilterKernels::max_voxels`] padded
+    /// voxels: its input is read and padded on the CPU, the piece computed
+    /// on the device. A stage whose halo alone exceeds that (a Gaussian of
+    /// σ ≳ 25 voxels on every axis) stays on the CPU.
+    pub fn with_device(mut self, k: &Arc<FilterKernels>) -> FilterSource {
+        let max_voxels = k.max_voxels();
+        let h = self.filter.halo();
+        if h.iter().map(|&v| 2 * v as u64 + 1).product::<u64>() <= max_voxels {
+            self.device = Some(DeviceStage {
+                filter: Mutex::new(DeviceFilter::new(k.clone(), self.filter.clone())),
+                max_voxels,
+            });
+        }
+        self
+    }
+
+    /// Whether reads compute on the device.
+    pub fn on_device(&self) -> bool {
+        self.device.is_some()
     }
 
     pub fn filter(&self) -> &Filter {
         &self.filter
     }
 
-    /// Values of one block, computed from the inner source.
-    fn compute(&self, z: Range<u64>, y: Range<u64>, x: Range<u64>) -> Result<Vec<f64>> {
+    /// The box `want` grown by the halo, read from the inner source as `R`,
+    /// with the halo outside the volume filled by the boundary mode; and its
+    /// dimensions.
+    fn padded<R: Real>(&self, want: &[Range<u64>; 3]) -> Result<(Vec<R>, [usize; 3])> {
         let h = self.filter.halo();
         let d = self.meta.dims;
-        let want = [z, y, x];
         // The padded box, and the part of it inside the volume.
         let lo: [i64; 3] = [0, 1, 2].map(|a| want[a].start as i64 - h[a] as i64);
         let hi: [i64; 3] = [0, 1, 2].map(|a| want[a].end as i64 + h[a] as i64);
         let rlo: [u64; 3] = [0, 1, 2].map(|a| lo[a].max(0) as u64);
         let rhi: [u64; 3] = [0, 1, 2].map(|a| (hi[a] as u64).min(d[a]));
         let rd: [usize; 3] = [0, 1, 2].map(|a| (rhi[a] - rlo[a]) as usize);
-        let read: Vec<f64> = dispatch_dtype!(self.inner.meta().dtype, T => {
-            read_f64::<T>(self.inner.as_ref(), self.channel, [rlo[0]..rhi[0], rlo[1]..rhi[1], rlo[2]..rhi[2]], rd)?
+        let read: Vec<R> = dispatch_dtype!(self.inner.meta().dtype, T => {
+            read_as::<T, R>(self.inner.as_ref(), self.channel, [rlo[0]..rhi[0], rlo[1]..rhi[1], rlo[2]..rhi[2]], rd)?
         });
         let pd: [usize; 3] = [0, 1, 2].map(|a| (hi[a] - lo[a]) as usize);
-        let padded = if pd == rd {
-            read
-        } else {
-            // Boundary mode "nearest": clamp the coordinate into the volume.
-            let idx = |a: usize| -> Vec<usize> {
-                (lo[a]..hi[a])
-                    .map(|g| (g.clamp(0, d[a] as i64 - 1) as u64 - rlo[a]) as usize)
-                    .collect()
-            };
-            let (iz, iy, ix) = (idx(0), idx(1), idx(2));
-            let mut p = Vec::with_capacity(pd.iter().product());
-            for &zz in &iz {
-                for &yy in &iy {
-                    let row = (zz * rd[1] + yy) * rd[2];
-                    p.extend(ix.iter().map(|&xx| read[row + xx]));
-                }
-            }
-            p
+        if pd == rd {
+            return Ok((read, pd));
+        }
+        // Boundary mode "nearest": clamp the coordinate into the volume.
+        let idx = |a: usize| -> Vec<usize> {
+            (lo[a]..hi[a])
+                .map(|g| (g.clamp(0, d[a] as i64 - 1) as u64 - rlo[a]) as usize)
+                .collect()
         };
+        let (iz, iy, ix) = (idx(0), idx(1), idx(2));
+        let mut p = Vec::with_capacity(pd.iter().product());
+        for &zz in &iz {
+            for &yy in &iy {
+                let row = (zz * rd[1] + yy) * rd[2];
+                p.extend(ix.iter().map(|&xx| read[row + xx]));
+            }
+        }
+        Ok((p, pd))
+    }
+
+    /// Values of one block, computed from the inner source on the CPU.
+    fn compute(&self, b: &[Range<u64>; 3]) -> Result<Vec<f64>> {
+        let (padded, pd) = self.padded::<f64>(b)?;
         Ok(self.filter.apply(padded, pd))
+    }
+
+    /// Values of one piece, computed on the device.
+    fn compute_device(&self, dev: &DeviceStage, b: &[Range<u64>; 3]) -> Result<Vec<f32>> {
+        let (padded, pd) = self.padded::<f32>(b)?;
+        let fail = |e: String| {
+            StoreError::io(
+                &self.meta.path,
+                std::io::Error::other(format!("computing on the device: {e}")),
+            )
+        };
+        let mut f = dev.filter.lock().map_err(|e| fail(e.to_string()))?;
+        Ok(f.apply(&padded, pd).map_err(|e| fail(e.to_string()))?.0)
+    }
+
+    /// Cut region `r` into pieces whose padded boxes have at most
+    /// `max_voxels` voxels: halve the longest side until one fits.
+    fn device_pieces(&self, r: &[Range<u64>; 3], max_voxels: u64) -> Vec<[Range<u64>; 3]> {
+        let h = self.filter.halo();
+        let mut p: [u64; 3] = [0, 1, 2].map(|a| r[a].end - r[a].start);
+        let padded = |p: &[u64; 3]| (0..3).map(|a| p[a] + 2 * h[a] as u64).product::<u64>();
+        while padded(&p) > max_voxels {
+            // `with_device` made sure that a single voxel fits.
+            let a = (0..3).max_by_key(|&a| p[a]).unwrap();
+            p[a] = p[a].div_ceil(2);
+        }
+        tile(r, p)
     }
 }
 
@@ -186,10 +275,20 @@ pub(crate) fn read_f64<T: Sample>(
     r: [Range<u64>; 3],
     rd: [usize; 3],
 ) -> Result<Vec<f64>> {
+    read_as::<T, f64>(src, c, r, rd)
+}
+
+/// Read a region of `src` as `R` (each value rounded once).
+fn read_as<T: Sample, R: Real>(
+    src: &dyn VolumeSource,
+    c: usize,
+    r: [Range<u64>; 3],
+    rd: [usize; 3],
+) -> Result<Vec<R>> {
     let mut buf = vec![T::default(); rd.iter().product()];
     let [z, y, x] = r;
     src.read_region(c, z, y, x, as_bytes_mut(&mut buf))?;
-    Ok(buf.into_iter().map(Sample::to_f64).collect())
+    Ok(buf.into_iter().map(|v| R::from_f64(v.to_f64())).collect())
 }
 
 /// The blocks of at most `block` voxels that tile a region, as
@@ -267,6 +366,27 @@ impl VolumeSource for FilterSource {
     ) -> Result<()> {
         check_region(&self.meta, c, &z, &y, &x, out);
         let r = [z, y, x];
+        if let Some(dev) = &self.device {
+            // The pieces' inputs are read and padded in parallel; the device
+            // computes one piece at a time.
+            let pieces = self.device_pieces(&r, dev.max_voxels);
+            let vals: Vec<Result<Vec<f32>>> = pieces
+                .par_iter()
+                .map(|b| self.compute_device(dev, b))
+                .collect();
+            for (b, v) in pieces.iter().zip(vals) {
+                let v = v?;
+                match self.meta.dtype {
+                    DType::F32 => place(brickyard_core::cast_slice_mut::<f32>(out), &r, b, &v),
+                    DType::U8 => {
+                        let m: Vec<u8> = v.into_iter().map(|x| x as u8).collect();
+                        place(out, &r, b, &m)
+                    }
+                    t => unreachable!("filters write f32 or u8, not {t}"),
+                }
+            }
+            return Ok(());
+        }
         let blocks = split(&r, self.block);
         // Each block is cast to the output type as soon as it is computed
         // (the f64 values of a whole region are never held at once).
@@ -275,7 +395,7 @@ impl VolumeSource for FilterSource {
                 let vals: Vec<Result<Vec<f32>>> = blocks
                     .par_iter()
                     .map(|b| {
-                        let v = self.compute(b[0].clone(), b[1].clone(), b[2].clone())?;
+                        let v = self.compute(b)?;
                         Ok(v.into_iter().map(|x| x as f32).collect())
                     })
                     .collect();
@@ -288,7 +408,7 @@ impl VolumeSource for FilterSource {
                 let vals: Vec<Result<Vec<u8>>> = blocks
                     .par_iter()
                     .map(|b| {
-                        let v = self.compute(b[0].clone(), b[1].clone(), b[2].clone())?;
+                        let v = self.compute(b)?;
                         Ok(v.into_iter().map(|x| x as u8).collect())
                     })
                     .collect();

@@ -1,9 +1,73 @@
-//! In-core kernels on dense f64 blocks (C order, `[z, y, x]`, x fastest).
+//! In-core kernels on dense blocks (C order, `[z, y, x]`, x fastest).
 //!
 //! The filters are separable correlations, computed as in `scipy.ndimage`:
 //! one 1D pass per axis, every pass in f64. A block arrives padded by the
 //! halo of each axis (the caller fills the halo with the boundary mode), and
 //! each pass shrinks its axis by the kernel's two radii ("valid" part only).
+//!
+//! The float kernels are generic over [`Real`]: in f64 they are the CPU
+//! filters; in f32 they are the CPU twins of the device kernels of the same
+//! names (`shaders/filter.wgsl`, see [`crate::gpu`]), which run the same
+//! operations in the same order.
+
+use std::ops::{Add, AddAssign, Mul, Neg, Sub};
+
+/// The arithmetic of the float kernels: f64 (the CPU filters) or f32 (the
+/// twins of the device kernels). Rust never contracts `a + w·b` into a
+/// fused multiply-add, so each product and each sum is rounded once.
+pub trait Real:
+    Copy
+    + Default
+    + PartialEq
+    + Send
+    + Sync
+    + Add<Output = Self>
+    + Sub<Output = Self>
+    + Neg<Output = Self>
+    + Mul<Output = Self>
+    + AddAssign
+    + 'static
+{
+    /// Whether `correlate_valid` pairs symmetric taps (the CPU filter,
+    /// f64); the f32 twin of the device kernel sums tap by tap as the
+    /// device does.
+    const PAIR_TAPS: bool;
+    fn from_f64(v: f64) -> Self;
+    fn to_f64(self) -> f64;
+    fn sqrt(self) -> Self;
+}
+
+impl Real for f64 {
+    const PAIR_TAPS: bool = true;
+    #[inline]
+    fn from_f64(v: f64) -> f64 {
+        v
+    }
+    #[inline]
+    fn to_f64(self) -> f64 {
+        self
+    }
+    #[inline]
+    fn sqrt(self) -> f64 {
+        f64::sqrt(self)
+    }
+}
+
+impl Real for f32 {
+    const PAIR_TAPS: bool = false;
+    #[inline]
+    fn from_f64(v: f64) -> f32 {
+        v as f32
+    }
+    #[inline]
+    fn to_f64(self) -> f64 {
+        self as f64
+    }
+    #[inline]
+    fn sqrt(self) -> f32 {
+        f32::sqrt(self)
+    }
+}
 
 /// The weights of scipy's `_gaussian_kernel1d(sigma, order, radius)` with
 /// `radius = int(truncate * sigma + 0.5)`, as correlation weights: the
@@ -32,25 +96,26 @@ pub fn gaussian_weights(sigma: f64, order: u32, truncate: f64) -> Vec<f64> {
 }
 
 /// Radius of a weight vector of odd length.
-pub fn radius(w: &[f64]) -> usize {
+pub fn radius<R>(w: &[R]) -> usize {
     debug_assert!(w.len() % 2 == 1);
     w.len() / 2
 }
 
 /// Correlate `data` (`dims`) along `axis` with `w`, keeping the valid part:
-/// the result has `dims[axis] − 2·radius(w)` along that axis.
-pub fn correlate_valid(
-    data: &[f64],
+/// the result has `dims[axis] − 2·radius(w)` along that axis. Each result is
+/// `Σ_k w[k] · in[i + k]`, summed from 0 in increasing `k`.
+pub fn correlate_valid<R: Real>(
+    data: &[R],
     dims: [usize; 3],
     axis: usize,
-    w: &[f64],
-) -> (Vec<f64>, [usize; 3]) {
+    w: &[R],
+) -> (Vec<R>, [usize; 3]) {
     let r = radius(w);
     assert!(dims[axis] >= 2 * r, "block thinner than the kernel");
     let mut od = dims;
     od[axis] -= 2 * r;
     let [nz, ny, nx] = od;
-    let mut out = vec![0.0f64; nz * ny * nx];
+    let mut out = vec![R::default(); nz * ny * nx];
     // Input strides.
     let sy = dims[2];
     let sz = dims[1] * dims[2];
@@ -58,8 +123,9 @@ pub fn correlate_valid(
     // Gaussians are symmetric and their derivatives antisymmetric: pair
     // the taps `r − k` and `r + k` (one multiplication for two), centre
     // tap first, then the pairs outwards.
-    let sym = (0..r).all(|k| w[k] == w[2 * r - k]);
-    let anti = !sym && w[r] == 0.0 && (0..r).all(|k| w[k] == -w[2 * r - k]);
+    let sym = R::PAIR_TAPS && (0..r).all(|k| w[k] == w[2 * r - k]);
+    let anti =
+        R::PAIR_TAPS && !sym && w[r] == R::default() && (0..r).all(|k| w[k] == -w[2 * r - k]);
     for z in 0..nz {
         for y in 0..ny {
             let o = (z * ny + y) * nx;
@@ -98,12 +164,18 @@ pub fn correlate_valid(
     (out, od)
 }
 
+/// Whether `w` leaves the data as it is (the weights of a σ whose radius is
+/// 0): such a pass is skipped.
+pub fn is_identity<R: Real>(w: &[R]) -> bool {
+    w.len() == 1 && w[0] == R::from_f64(1.0)
+}
+
 /// Apply one weight vector per axis (z, then y, then x — the order in which
 /// scipy processes axes 0, 1, 2).
-pub fn separable(data: Vec<f64>, dims: [usize; 3], w: [&[f64]; 3]) -> (Vec<f64>, [usize; 3]) {
+pub fn separable<R: Real>(data: Vec<R>, dims: [usize; 3], w: [&[R]; 3]) -> (Vec<R>, [usize; 3]) {
     let (mut d, mut dd) = (data, dims);
     for (axis, wa) in w.iter().enumerate() {
-        if wa.len() == 1 && wa[0] == 1.0 {
+        if is_identity(wa) {
             continue;
         }
         (d, dd) = correlate_valid(&d, dd, axis, wa);
@@ -111,27 +183,76 @@ pub fn separable(data: Vec<f64>, dims: [usize; 3], w: [&[f64]; 3]) -> (Vec<f64>,
     (d, dd)
 }
 
+/// `acc ← acc + v²` element by element (`acc ← v²` when `first`).
+pub fn sum_squares<R: Real>(acc: &mut [R], v: &[R], first: bool) {
+    assert_eq!(acc.len(), v.len());
+    if first {
+        for (a, &x) in acc.iter_mut().zip(v) {
+            *a = x * x;
+        }
+    } else {
+        for (a, &x) in acc.iter_mut().zip(v) {
+            *a += x * x;
+        }
+    }
+}
+
+/// `v ← √v` element by element.
+pub fn square_root<R: Real>(v: &mut [R]) {
+    for x in v {
+        *x = x.sqrt();
+    }
+}
+
 /// `sqrt(Σ_axis (separable pass `ws[axis]`)²)`: a gradient magnitude from
 /// three separable derivative filters on a block padded by the same halo.
-pub fn magnitude(data: &[f64], dims: [usize; 3], ws: [[&[f64]; 3]; 3]) -> (Vec<f64>, [usize; 3]) {
-    let mut acc: Option<(Vec<f64>, [usize; 3])> = None;
+pub fn magnitude<R: Real>(
+    data: &[R],
+    dims: [usize; 3],
+    ws: [[&[R]; 3]; 3],
+) -> (Vec<R>, [usize; 3]) {
+    let mut acc: Option<(Vec<R>, [usize; 3])> = None;
     for w in ws {
         let (d, od) = separable(data.to_vec(), dims, w);
         match &mut acc {
-            None => acc = Some((d.iter().map(|v| v * v).collect(), od)),
+            None => {
+                let mut a = vec![R::default(); d.len()];
+                sum_squares(&mut a, &d, true);
+                acc = Some((a, od));
+            }
             Some((a, ad)) => {
                 debug_assert_eq!(*ad, od);
-                for (x, v) in a.iter_mut().zip(&d) {
-                    *x += v * v;
-                }
+                sum_squares(a, &d, false);
             }
         }
     }
     let (mut a, od) = acc.unwrap();
-    for x in &mut a {
-        *x = x.sqrt();
-    }
+    square_root(&mut a);
     (a, od)
+}
+
+/// 1 where `v > t`, else 0 (compared in f64, as `scipy`'s `x > t` on the
+/// values).
+pub fn threshold<R: Real>(v: &[R], t: f64) -> Vec<R> {
+    let (one, zero) = (R::from_f64(1.0), R::default());
+    v.iter()
+        .map(|&x| if x.to_f64() > t { one } else { zero })
+        .collect()
+}
+
+/// 1 where `lo <= v <= hi`, else 0 (compared in f64).
+pub fn window<R: Real>(v: &[R], lo: f64, hi: f64) -> Vec<R> {
+    let (one, zero) = (R::from_f64(1.0), R::default());
+    v.iter()
+        .map(|&x| {
+            let x = x.to_f64();
+            if lo <= x && x <= hi {
+                one
+            } else {
+                zero
+            }
+        })
+        .collect()
 }
 
 /// Sobel weights of `scipy.ndimage.sobel`: the derivative `[-1, 0, 1]`

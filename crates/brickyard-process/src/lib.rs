@@ -7,15 +7,21 @@
 //! of sources that computes a region when it is read, and
 //! [`brickyard_store::convert`] writes any stage as a multiresolution
 //! OME-Zarr image under a memory budget.
+//!
+//! The filters also run on the device ([`gpu`]): WGSL kernels, each the
+//! twin of the CPU kernel of the same name, chosen per pipeline with
+//! [`build_on`].
 
 pub mod derive;
 pub mod filter;
+pub mod gpu;
 pub mod kernels;
 pub mod label;
 pub mod pipeline;
 
 pub use derive::{check_live, derive_level, level_factor};
 pub use filter::{Filter, FilterSource};
+pub use gpu::{DeviceFilter, FilterKernels};
 pub use label::{label_pass1, stats_csv, stats_json, LabelSource, LabelStats, Labeling};
 pub use pipeline::{Op, ParseError, Pipeline, Sigma};
 
@@ -65,12 +71,25 @@ pub fn sigma_voxels(
 }
 
 /// Chain the filter stages of `p` over channel `channel` of `input`,
-/// computing in blocks of at most `block` voxels.
+/// computing in blocks of at most `block` voxels, on the CPU.
 pub fn build(
     p: &Pipeline,
     input: Arc<dyn VolumeSource>,
     channel: usize,
     block: Dims3,
+) -> Result<Built, String> {
+    build_on(p, input, channel, block, None)
+}
+
+/// [`build`], with the filter stages computing on the device of `device`
+/// when it is given (see [`FilterSource::with_device`]). Labelling stays on
+/// the CPU.
+pub fn build_on(
+    p: &Pipeline,
+    input: Arc<dyn VolumeSource>,
+    channel: usize,
+    block: Dims3,
+    device: Option<&Arc<FilterKernels>>,
 ) -> Result<Built, String> {
     let m = input.meta();
     if channel >= m.channels {
@@ -95,7 +114,11 @@ pub fn build(
                 continue;
             }
         };
-        src = Arc::new(FilterSource::new(src, ch, f, &op.text(), block));
+        let mut stage = FilterSource::new(src, ch, f, &op.text(), block);
+        if let Some(k) = device {
+            stage = stage.with_device(k);
+        }
+        src = Arc::new(stage);
         ch = 0;
     }
     Ok(Built {

@@ -19,7 +19,9 @@ pub struct BenchCmd {
     /// vm-sample: trilinear samples/s through the page tables vs a plain
     /// array; vm-update: LRU + request update per frame for pools of
     /// 1k–64k slots; cache-kernels: the device's LRU and request kernels
-    /// beside their CPU twins; loader: decoded GB/s; latency: one brick and one full
+    /// beside their CPU twins; process-filters: gauss(2) and sobel of a
+    /// generated volume on the CPU and the device (--backend cpu, gpu or
+    /// both); loader: decoded GB/s; latency: one brick and one full
     /// view from an empty cache (paper Table 2); render: DVR (or --mode mip) frame times
     /// through the virtual memory beside the in-core reference.
     scenario: String,
@@ -82,6 +84,7 @@ pub fn run(b: BenchCmd) -> Result<()> {
         "vm-sample" => crate::vmbench::sample(&b.dir, dims, dtype, b.repeat),
         "vm-update" => crate::vmbench::update(b.repeat),
         "cache-kernels" => crate::gpubench::cache_kernels(b.repeat),
+        "process-filters" => crate::gpubench::process_filters(dims, dtype, &b.backend, b.repeat),
         "loader" => crate::vmbench::loader(&b.dir, dims, dtype, b.cold),
         "latency" => crate::vmbench::latency(&b.dir, dims, dtype, b.cold),
         "render" => {
@@ -108,7 +111,7 @@ pub fn run(b: BenchCmd) -> Result<()> {
             crate::vmbench::render(&b.dir, dims, dtype, &o)
         }
         s => bail!(
-            "scenario: expected convert, downsample, vm-sample, vm-update, cache-kernels, loader, latency or render, found {s:?}"
+            "scenario: expected convert, downsample, vm-sample, vm-update, cache-kernels, process-filters, loader, latency or render, found {s:?}"
         ),
     }
 }

@@ -5,6 +5,9 @@
 //! for batches of bricks.
 //! Device times are wall times from submission to completion (read-back of
 //! the request list included), on whatever adapter `Gpu::new` picks.
+//!
+//! `brickyard bench process-filters`: the processing filters on the CPU and
+//! on the device, side by side ([`process_filters`]).
 
 use anyhow::{Context, Result};
 use brickyard_cache::bookkeeping::{compact_lru, prioritize, BrickIds, RequestTable};
@@ -183,6 +186,146 @@ fn update_step(gpu: &Gpu, repeat: usize, adapter: &str) -> Result<()> {
                    "cpu_twin_ms": cpu_ms, "device_ms": dev_ms,
                    "readback_bytes": 32 + 4 * k, "upload_bytes": 48 * k, "adapter": adapter})
         );
+    }
+    Ok(())
+}
+
+/// A volume held in memory (the benchmark's input, generated once).
+struct InMemory {
+    meta: brickyard_store::SourceMeta,
+    data: Vec<u8>,
+}
+
+impl brickyard_store::VolumeSource for InMemory {
+    fn meta(&self) -> &brickyard_store::SourceMeta {
+        &self.meta
+    }
+    fn read_region(
+        &self,
+        _c: usize,
+        z: std::ops::Range<u64>,
+        y: std::ops::Range<u64>,
+        x: std::ops::Range<u64>,
+        out: &mut [u8],
+    ) -> brickyard_store::Result<()> {
+        let s = self.meta.dtype.size();
+        let d = self.meta.dims;
+        let nx = (x.end - x.start) as usize * s;
+        let mut o = 0;
+        for zz in z {
+            for yy in y.clone() {
+                let i = ((zz * d[1] + yy) * d[2] + x.start) as usize * s;
+                out[o..o + nx].copy_from_slice(&self.data[i..i + nx]);
+                o += nx;
+            }
+        }
+        Ok(())
+    }
+}
+
+/// `brickyard bench process-filters`: `gauss(2)` and `sobel` of a generated
+/// volume (Marschner–Lobb, held in memory) computed through the filter
+/// stage as `process` reads it — slabs of 64 z-planes, the CPU in blocks of
+/// 64³ on all threads, the device in pieces of up to 2²³ padded voxels —
+/// on the CPU, the device or both. Wall time from the first read to the
+/// last value on the host (device: host-side padding, upload, kernels and
+/// read-back included), best of `repeat`; with both, the largest
+/// difference beside the stated tolerance.
+pub fn process_filters(
+    dims: [u64; 3],
+    dtype: brickyard_core::DType,
+    backend: &str,
+    repeat: usize,
+) -> Result<()> {
+    use brickyard_process::{build_on, Filter, FilterKernels, Pipeline};
+    use brickyard_store::generate::{Kind, Procedural};
+    use brickyard_store::VolumeSource;
+    use std::sync::Arc;
+    let backends: Vec<&str> = match backend {
+        "cpu" | "gpu" => vec![backend],
+        "both" | "all" => vec!["cpu", "gpu"],
+        b => anyhow::bail!("--backend: expected cpu, gpu or both for process-filters, found {b:?}"),
+    };
+    let t = Instant::now();
+    let p = Procedural::new(Kind::MarschnerLobb, dims, dtype);
+    let mut data = vec![0u8; dims.iter().product::<u64>() as usize * dtype.size()];
+    p.read_region(0, 0..dims[0], 0..dims[1], 0..dims[2], &mut data)?;
+    let gen_s = t.elapsed().as_secs_f64();
+    let max_abs = brickyard_core::dispatch_dtype!(dtype, T => {
+        use brickyard_core::Sample;
+        brickyard_core::cast_slice::<T>(&data)
+            .iter()
+            .fold(0.0f64, |m, v| m.max(v.to_f64().abs()))
+    });
+    let input: Arc<dyn VolumeSource> = Arc::new(InMemory {
+        meta: brickyard_store::SourceMeta::new("generated", dims, 1, dtype),
+        data,
+    });
+    let kernels = if backends.contains(&"gpu") {
+        let g = crate::backend::quietly(|| Gpu::new(AdapterChoice::Best))
+            .context("process-filters --backend gpu needs a GPU adapter")?;
+        Some(FilterKernels::new(Arc::new(g)))
+    } else {
+        None
+    };
+    let adapter = kernels.as_ref().map(|k| k.gpu.describe());
+    for text in ["gauss(2)", "sobel"] {
+        let pipe = Pipeline::parse(text).map_err(|e| anyhow::anyhow!("{e}"))?;
+        let mut outs: Vec<Vec<f32>> = vec![];
+        for &b in &backends {
+            let k = if b == "gpu" { kernels.as_ref() } else { None };
+            let built =
+                build_on(&pipe, input.clone(), 0, [64; 3], k).map_err(|e| anyhow::anyhow!(e))?;
+            let src = built.source;
+            let mut out = vec![0f32; dims.iter().product::<u64>() as usize];
+            let plane = (dims[1] * dims[2]) as usize;
+            let mut runs = vec![];
+            for _ in 0..repeat.max(1) {
+                let t = Instant::now();
+                let mut z = 0;
+                while z < dims[0] {
+                    let h = 64.min(dims[0] - z);
+                    let o = &mut out[z as usize * plane..(z + h) as usize * plane];
+                    src.read_region(
+                        0,
+                        z..z + h,
+                        0..dims[1],
+                        0..dims[2],
+                        brickyard_core::as_bytes_mut(o),
+                    )?;
+                    z += h;
+                }
+                runs.push(t.elapsed().as_secs_f64());
+            }
+            let best_s = runs.iter().cloned().fold(f64::INFINITY, f64::min);
+            println!(
+                "{}",
+                json!({"scenario": "process-filters", "filter": text, "size": dims,
+                       "dtype": dtype.short_name(), "backend": b, "best_s": best_s, "runs_s": runs,
+                       "mvoxels_per_s": out.len() as f64 / best_s / 1e6,
+                       "cpu_threads": rayon::current_num_threads(),
+                       "adapter": if b == "gpu" { adapter.clone() } else { None },
+                       "generate_s": gen_s})
+            );
+            outs.push(out);
+        }
+        if let [a, b] = &outs[..] {
+            let worst = a
+                .iter()
+                .zip(b)
+                .map(|(x, y)| (x - y).abs() as f64)
+                .fold(0.0, f64::max);
+            let f = match text {
+                "sobel" => Filter::Sobel,
+                _ => Filter::Gauss([2.0; 3]),
+            };
+            println!(
+                "{}",
+                json!({"scenario": "process-filters", "filter": text, "size": dims,
+                       "max_abs_diff_device_vs_cpu": worst,
+                       "tolerance": f.device_tolerance(max_abs)})
+            );
+        }
     }
     Ok(())
 }

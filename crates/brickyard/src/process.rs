@@ -12,10 +12,16 @@
 //! `labels/zarr.json` (written to a temporary file and renamed). Nothing
 //! that exists is modified before the result is complete; a killed job
 //! leaves only hidden `.NAME.*` directories, which the next run removes.
+//!
+//! `--backend gpu` computes the filter stages with the WGSL kernels of
+//! `brickyard_process::gpu` (f32; float results within the tolerance stated
+//! there, masks equal for equal values); labelling stays on the CPU.
 
 use crate::{install_ctrl_c, parse_bytes, peak_rss, progress, CANCEL};
 use anyhow::{bail, Context, Result};
-use brickyard_process::{build, label_pass1, stats_csv, stats_json, LabelSource, Pipeline};
+use brickyard_process::{
+    build_on, label_pass1, stats_csv, stats_json, FilterKernels, LabelSource, Pipeline,
+};
 use brickyard_store::import::zarr::{self, ZarrSource};
 use brickyard_store::info::human_bytes;
 use brickyard_store::omezarr::{read_json, write_json};
@@ -62,6 +68,28 @@ pub struct ProcessCmd {
     /// No progress bar.
     #[arg(long)]
     pub quiet: bool,
+    /// Who computes the filter stages: cpu (f64), gpu (f32 WGSL kernels on
+    /// the device; results within the tolerance `brickyard_process::gpu`
+    /// states, masks equal) or auto (a hardware GPU when there is one, else
+    /// the CPU). Labelling runs on the CPU.
+    #[arg(long, default_value = "cpu")]
+    pub backend: String,
+}
+
+/// The filter kernels on the device `--backend` names (`None`: the CPU).
+fn device(backend: &str) -> Result<Option<Arc<FilterKernels>>> {
+    use brickyard_gpu::{AdapterChoice, Gpu};
+    let open = || crate::backend::quietly(|| Gpu::new(AdapterChoice::Best));
+    let gpu = match backend {
+        "cpu" => return Ok(None),
+        "gpu" => open().context("--backend gpu")?,
+        "auto" => match open() {
+            Ok(g) if g.info.device_type != wgpu::DeviceType::Cpu => g,
+            _ => return Ok(None),
+        },
+        b => bail!("--backend: expected cpu, gpu or auto, found {b:?}"),
+    };
+    Ok(Some(FilterKernels::new(Arc::new(gpu))))
 }
 
 fn check_name(name: &str) -> Result<()> {
@@ -243,8 +271,10 @@ pub fn run(c: ProcessCmd) -> Result<()> {
         );
     }
     let input: Arc<ZarrSource> = Arc::new(src);
-    let built = build(&pipe, input.clone(), c.channel, brick)
+    let kernels = device(&c.backend)?;
+    let built = build_on(&pipe, input.clone(), c.channel, brick, kernels.as_ref())
         .map_err(|e| anyhow::anyhow!("pipeline {:?}: {e}", c.pipeline))?;
+    let on = kernels.as_ref().map(|k| k.gpu.describe());
     let is_label = pipe.is_label_output();
     let dir = store.join(if is_label { "labels" } else { "derived" });
     let paths = Paths::new(dir, &c.out);
@@ -275,6 +305,9 @@ pub fn run(c: ProcessCmd) -> Result<()> {
         unit: meta.unit.clone(),
     };
     let quiet = c.quiet || c.json;
+    if let (Some(d), false) = (&on, quiet) {
+        eprintln!("filter stages on the GPU: {d}");
+    }
     let made_dir = !paths.dir.exists();
     let cleanup = |e: anyhow::Error| -> anyhow::Error {
         let _ = std::fs::remove_dir_all(&paths.partial);
@@ -408,6 +441,7 @@ pub fn run(c: ProcessCmd) -> Result<()> {
                 "seconds": secs,
                 "bytes_written": report.bytes_written,
                 "peak_rss_bytes": rss,
+                "device": on,
             })
         );
     } else {

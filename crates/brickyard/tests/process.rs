@@ -573,3 +573,115 @@ fn bad_derive_pipelines_give_clear_errors() {
     assert!(String::from_utf8_lossy(&o.stderr).contains("channel"));
     assert!(!out.exists(), "no image after a refused run");
 }
+
+fn read_level<T: brickyard_core::Sample>(path: &Path, level: usize) -> Vec<T> {
+    let src = zarr::open(path, level).unwrap();
+    let d = src.meta().dims;
+    let mut v = vec![T::default(); d.iter().product::<u64>() as usize];
+    src.read_region(0, 0..d[0], 0..d[1], 0..d[2], as_bytes_mut(&mut v))
+        .unwrap();
+    v
+}
+
+/// `process --backend gpu` writes what `--backend cpu` writes: float
+/// results within the tolerance `brickyard_process::gpu` states (at every
+/// level: coarser levels are means), masks equal except where the value
+/// before the threshold lies within that tolerance of it.
+#[test]
+fn the_device_backend_writes_what_the_cpu_writes() {
+    use brickyard_process::Filter;
+    if brickyard_gpu::context::test_gpu().is_none() {
+        return; // BRICKYARD_SKIP_GPU=1
+    }
+    let d = tempfile::tempdir().unwrap();
+    let store = make_store(d.path(), "45x38x41");
+    let (input, _) = read_level0::<u16>(&store);
+    let m = *input.iter().max().unwrap() as f64;
+    let process = |pipe: &str, name: &str, backend: &str| -> String {
+        let o = ok(run(&[
+            "process",
+            s(&store),
+            pipe,
+            "--out",
+            name,
+            "--backend",
+            backend,
+            "--json",
+        ]));
+        String::from_utf8_lossy(&o.stdout).into_owned()
+    };
+    let g = Filter::Gauss([1.5; 3]);
+    let cases = [
+        ("gauss(1.5)|sobel", "s", {
+            let s = Filter::Sobel;
+            s.gain() * g.device_tolerance(m) + s.device_tolerance(m)
+        }),
+        (
+            "gradmag(1)",
+            "gm",
+            Filter::GradMag([1.0; 3]).device_tolerance(m),
+        ),
+        ("gauss(2)", "g", Filter::Gauss([2.0; 3]).device_tolerance(m)),
+    ];
+    for (pipe, name, tol) in cases {
+        let cpu = process(pipe, &format!("{name}-cpu"), "cpu");
+        assert!(cpu.contains("\"device\":null"), "{cpu}");
+        let gpu = process(pipe, &format!("{name}-gpu"), "gpu");
+        assert!(!gpu.contains("\"device\":null"), "{gpu}");
+        for level in 0..2 {
+            let want = read_level::<f32>(&store.join(format!("derived/{name}-cpu")), level);
+            let got = read_level::<f32>(&store.join(format!("derived/{name}-gpu")), level);
+            assert_eq!(got.len(), want.len());
+            let worst = got
+                .iter()
+                .zip(&want)
+                .map(|(a, b)| (a - b).abs() as f64)
+                .fold(0.0, f64::max);
+            let big = want.iter().fold(0.0f64, |a, v| a.max(v.abs() as f64));
+            assert!(
+                worst <= tol,
+                "{pipe}, level {level}: device and CPU differ by {worst} (tolerance {tol})"
+            );
+            assert!(
+                big > 100.0 * tol,
+                "{pipe}: largest value {big}, tolerance {tol}"
+            );
+        }
+    }
+    // A threshold near the middle of the smoothed values.
+    let smooth = read_level::<f32>(&store.join("derived/g-cpu"), 0);
+    let mut sorted = smooth.clone();
+    sorted.sort_by(f32::total_cmp);
+    let t = (sorted[sorted.len() / 2] as f64).round() + 0.5;
+    let pipe = format!("gauss(2)|threshold({t})");
+    process(&pipe, "t-cpu", "cpu");
+    process(&pipe, "t-gpu", "gpu");
+    let want = read_level::<u8>(&store.join("labels/t-cpu"), 0);
+    let got = read_level::<u8>(&store.join("labels/t-gpu"), 0);
+    let tol = Filter::Gauss([2.0; 3]).device_tolerance(m);
+    for i in 0..want.len() {
+        assert!(
+            got[i] == want[i] || (smooth[i] as f64 - t).abs() <= tol,
+            "voxel {i}: masks differ at {} (threshold {t}, tolerance {tol})",
+            smooth[i]
+        );
+    }
+    let ones = want.iter().filter(|&&v| v == 1).count();
+    assert!(
+        ones > want.len() / 4 && ones < want.len() * 3 / 4,
+        "{ones} set"
+    );
+    // A bad back end is refused before anything is written.
+    let o = run(&[
+        "process",
+        s(&store),
+        "gauss(1)",
+        "--out",
+        "x",
+        "--backend",
+        "tpu",
+    ]);
+    assert!(!o.status.success());
+    assert!(String::from_utf8_lossy(&o.stderr).contains("expected cpu, gpu or auto"));
+    assert!(!store.join("derived/x").exists());
+}
