@@ -21,6 +21,12 @@ pub enum GpuError {
     ReadBack { what: String, reason: String },
     #[error("{what}: {got} exceeds the device's limit of {limit}")]
     Limit { what: String, got: u64, limit: u64 },
+    #[error("the device could not allocate {what} ({bytes} bytes): {reason}; give it a smaller budget (--pool or --memory)")]
+    OutOfMemory {
+        what: String,
+        bytes: u64,
+        reason: String,
+    },
 }
 
 /// Which adapters [`Gpu::new`] accepts.

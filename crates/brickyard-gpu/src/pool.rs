@@ -109,6 +109,9 @@ impl DevicePool {
                 limit: per_axis[0] as u64,
             });
         }
+        // A pool larger than the device's memory is an error to report,
+        // not a panic of the device's error handler.
+        let scope = gpu.device.push_error_scope(wgpu::ErrorFilter::OutOfMemory);
         let texture = gpu.device.create_texture(&wgpu::TextureDescriptor {
             label: Some("brick pool"),
             size: wgpu::Extent3d {
@@ -125,6 +128,15 @@ impl DevicePool {
                 | wgpu::TextureUsages::COPY_SRC,
             view_formats: &[],
         });
+        if let Some(e) = pollster::block_on(scope.pop()) {
+            let voxels =
+                (gx * padded[2]) as u64 * (gy * padded[1]) as u64 * (gz * padded[0]) as u64;
+            return Err(GpuError::OutOfMemory {
+                what: format!("a brick pool of {slots} bricks"),
+                bytes: voxels * dtype.size() as u64,
+                reason: e.to_string(),
+            });
+        }
         Ok(DevicePool {
             texture,
             format,

@@ -334,3 +334,14 @@ impl GpuBackend {
         })
     }
 }
+
+/// Whether `e` is the device running out of memory (for a pool too large
+/// for it).
+pub fn device_out_of_memory(e: &anyhow::Error) -> bool {
+    e.chain().any(|c| {
+        matches!(
+            c.downcast_ref::<brickyard_gpu::context::GpuError>(),
+            Some(brickyard_gpu::context::GpuError::OutOfMemory { .. })
+        )
+    })
+}

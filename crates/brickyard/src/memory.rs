@@ -20,6 +20,11 @@ pub const WINDOW_BYTES: u64 = 96 << 20;
 
 /// Physical memory (from /proc/meminfo; 8 GiB where unknown).
 pub fn physical_ram() -> u64 {
+    known_ram().unwrap_or(8 << 30)
+}
+
+/// Physical memory, where /proc/meminfo tells it.
+fn known_ram() -> Option<u64> {
     std::fs::read_to_string("/proc/meminfo")
         .ok()
         .and_then(|t| {
@@ -29,7 +34,6 @@ pub fn physical_ram() -> u64 {
                 .and_then(|k| k.parse::<u64>().ok())
         })
         .map(|kib| kib << 10)
-        .unwrap_or(8 << 30)
 }
 
 /// The default budget: a quarter of physical memory.
@@ -148,6 +152,15 @@ pub fn split_with(
     // Without --memory, explicit pool and host sizes stand; the total is
     // what they add up to.
     let total = want_total.max(need);
+    if let Some(ram) = known_ram().filter(|r| total > *r) {
+        bail!(
+            "memory: pool {}, host cache {} and the rest need {}, but this machine has {} of RAM; lower --pool/--host or --memory",
+            human_bytes(pool),
+            human_bytes(host),
+            human_bytes(total),
+            human_bytes(ram)
+        );
+    }
     if pool == 0 {
         bail!("memory: no room left for the brick pool; raise --memory or set --pool");
     }

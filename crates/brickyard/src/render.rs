@@ -419,21 +419,53 @@ pub fn run(c: RenderCmd) -> Result<Vec<String>> {
             _ => bail!("channel: dvr shows one channel; use --mode mip or slice to add several up"),
         }
     }
-    let mut s = match &derived {
-        Some(d) => d.session(cfg, split.host, split.chunks, c.loader_threads)?,
-        None => {
-            Session::open_with_budget(&c.store, cfg, split.host, split.chunks, c.loader_threads)?
+    let mut cfg = cfg;
+    let mut split = split;
+    let shown = if mode == RenderMode::Dvr {
+        1
+    } else {
+        styles.len()
+    };
+    // The session and its back end; a default pool the device cannot
+    // allocate is halved until it can (an explicit --pool is an error).
+    let (mut s, pinned, mut backend) = loop {
+        let mut s = match &derived {
+            Some(d) => d.session(cfg.clone(), split.host, split.chunks, c.loader_threads)?,
+            None => Session::open_with_budget(
+                &c.store,
+                cfg.clone(),
+                split.host,
+                split.chunks,
+                c.loader_threads,
+            )?,
+        };
+        s.loader()
+            .set_read_delay(std::time::Duration::from_millis(c.read_delay_ms));
+        // The coarsest levels stay resident: every sample finds data at some
+        // level, whatever the pool's pressure.
+        let pinned = s
+            .pin_coarsest(512, std::time::Duration::from_secs(120))
+            .map_err(|e| anyhow::anyhow!("pool: {e}"))?;
+        match crate::backend::Backend::choose(&c.backend, c.gpu_update, &mut s, shown) {
+            Ok(b) => break (s, pinned, b),
+            Err(e)
+                if c.pool.is_none()
+                    && cfg.pool_bytes >= 64 << 20
+                    && crate::backend::device_out_of_memory(&e) =>
+            {
+                eprintln!(
+                    "note: the device cannot hold a brick pool of {}; trying {}",
+                    human_bytes(cfg.pool_bytes),
+                    human_bytes(cfg.pool_bytes / 2)
+                );
+                cfg.pool_bytes /= 2;
+                split.pool = cfg.pool_bytes;
+            }
+            Err(e) => return Err(e),
         }
     };
-    s.loader()
-        .set_read_delay(std::time::Duration::from_millis(c.read_delay_ms));
     // The pool's true slot size (from here on: reports and estimates).
     let slot_bytes = (s.vm().pool_bytes() / s.vm().pool_slots().max(1)) as u64;
-    // The coarsest levels stay resident: every sample finds data at some
-    // level, whatever the pool's pressure.
-    let pinned = s
-        .pin_coarsest(512, std::time::Duration::from_secs(120))
-        .map_err(|e| anyhow::anyhow!("pool: {e}"))?;
     if batch {
         s.set_batch(Some(std::time::Duration::from_secs(30)));
     }
@@ -447,12 +479,6 @@ pub fn run(c: RenderCmd) -> Result<Vec<String>> {
         Some(l) => Lod::Fixed(l),
         None => Lod::Auto { bias: c.lod_bias },
     };
-    let shown = if mode == RenderMode::Dvr {
-        1
-    } else {
-        styles.len()
-    };
-    let mut backend = crate::backend::Backend::choose(&c.backend, c.gpu_update, &mut s, shown)?;
     if !c.json {
         println!("rendering on {}", backend.describe());
     }

@@ -452,3 +452,30 @@ fn gpu_and_cpu_backends_draw_the_same_pngs() {
         &["backend", "quantum"],
     );
 }
+
+#[test]
+fn a_pool_larger_than_the_device_can_hold_is_an_error_not_a_panic() {
+    if brickyard_gpu::context::test_gpu().is_none() {
+        return; // BRICKYARD_SKIP_GPU=1
+    }
+    let d = tempfile::tempdir().unwrap();
+    let store = mandelbulb_48(d.path(), "m.zarr");
+    let out = d.path().join("x.png");
+    // Beyond the software device's largest allocation (or, on a machine
+    // with less RAM, beyond the machine: refused before any device work).
+    let o = run(&[
+        "render",
+        s(&store),
+        "--backend",
+        "gpu",
+        "--pool",
+        "12GiB",
+        "--host",
+        "64MiB",
+        "--out",
+        s(&out),
+    ]);
+    fails_with(&o, &["pool"]);
+    assert!(!stderr(&o).contains("panicked"), "{}", stderr(&o));
+    assert!(!out.exists());
+}
