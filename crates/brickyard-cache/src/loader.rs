@@ -1,6 +1,8 @@
 //! The loader: a pool of I/O threads that turn brick requests into
 //! [`LoadedBrick`]s.
 //!
+//! Over 800 lines: threads, queue, chunk cache and statistics share one locked state.
+//!
 //! The pool is made of plain OS threads, not the rayon pool: a thread
 //! blocked in a read must never hold back compute.
 //!

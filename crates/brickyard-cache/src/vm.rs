@@ -5,6 +5,8 @@
 //! (usage marking, compaction, request reduction, update) so that it is the
 //! reference twin of the GPU kernels.
 //!
+//! Over 800 lines: its passes share the slot sets and tables; kept whole as the kernels' twin.
+//!
 //! Addresses are `(level, channel, p)` with `p ∈ [0, 1]³` the normalized
 //! position in the real volume (`[z, y, x]`); the page tables are addressed
 //! with the virtual position derived per level (equations 1–3 and the

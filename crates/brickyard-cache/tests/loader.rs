@@ -1,5 +1,7 @@
 //! Loader and host cache against real stores written by the converter and
 //! read back, as oracle, whole level by whole level through `ZarrSource`.
+//!
+//! Over 800 lines: tests only, sharing their store fixtures.
 
 use brickyard_cache::brick::{BrickContent, BrickGeometry, BrickKey, LoadedBrick};
 use brickyard_cache::host_cache::{entry_cost, HostCache};

@@ -1,5 +1,7 @@
 //! Cameras, rays and the world ↔ volume coordinate conventions.
 //!
+//! Over 800 lines: with its tests: 0.7k lines of code, 0.35k of tests.
+//!
 //! # WORLD COORDINATES ARE `[x, y, z]`
 //!
 //! Everything else in brickyard (array shapes, spacing, voxel indices, the

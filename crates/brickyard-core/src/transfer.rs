@@ -1,5 +1,7 @@
 //! Transfer functions: data value → colour and opacity.
 //!
+//! Over 800 lines: with its tests: 0.8k lines of code, 0.4k of tests.
+//!
 //! A value `v` is first mapped through the *window* `[w0, w1]` to
 //! `x = clamp((v − w0) / (w1 − w0), 0, 1)`; opacity and colour are then
 //! piecewise-linear functions of `x` given by control points:

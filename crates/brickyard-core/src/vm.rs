@@ -2,6 +2,8 @@
 //! the multi-resolution page directory layout, page-table levels, lookups,
 //! page-table entries and the memory footprint of the whole structure.
 //!
+//! Over 800 lines: 0.7k lines of address math, 0.75k of tests against the published tables.
+//!
 //! Source: Sarton et al. 2020 (TVCG) §5.1–5.5, equations 1–5, Fig. 4 and
 //! Table 1; Sarton's thesis §3.6 (overlap-aware addressing) and §6.3
 //! (footprint tables). This module is pure arithmetic: it allocates no

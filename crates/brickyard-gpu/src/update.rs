@@ -3,6 +3,8 @@
 //! parallel; the host only reads the capped request list and the slots it
 //! must write, and sends bricks and their keys.
 //!
+//! Over 800 lines: the device's update step beside its CPU twin `UpdateModel`, pass by pass.
+//!
 //! Per frame ([`DeviceCache::end_frame`], then [`DeviceCache::reference`]):
 //! 1. every set's LRU order is compacted by the stamps the renderer wrote
 //!    (brick pool and each intermediate page-table cache);

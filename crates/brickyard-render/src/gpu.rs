@@ -1,4 +1,5 @@
-//! Ray-guided DVR, MIP and slices on the device (`gpu.wgsl`), through the device's
+//! The device frame driver: ray-guided DVR, MIP and slices on the device
+//! (`gpu.wgsl` and the WGSL twins beside the CPU modules), through the device's
 //! copy of the virtual memory ([`brickyard_gpu::vm::DeviceVm`]): the twin
 //! of [`crate::cpu`]. One invocation per pixel; each frame stamps the pool
 //! slots and page-table blocks it used and reports the capped request list
@@ -6,16 +7,17 @@
 //! ([`update_on_device`]) nothing else comes back; with the host deciding,
 //! the newly used slots do too (so that the host's LRU keeps them).
 //!
-//! Modes: DVR, MIP and slices of one channel. Empty space: DVR rays cross
+//! Modes: DVR of one channel; MIP and slices of one channel or of several
+//! added up. Empty space: DVR rays cross
 //! bricks in one jump where the transfer function maps the brick to zero
 //! opacity, known from the store's value ranges or from an EMPTY/CONSTANT
 //! page entry; inside resident bricks, DVR rays cross cells whose value
 //! range the transfer function hides and MIP rays cells whose maximum
-//! cannot raise theirs. Not yet on the device: several channels added up.
+//! cannot raise theirs.
 
 use crate::cpu::{FrameStats, Lod, Scene};
 use crate::image::Image;
-use crate::reference::{ChannelStyle, RenderMode, RenderParams};
+use crate::params::{ChannelStyle, RenderMode, RenderParams};
 use brickyard_cache::bookkeeping::BrickIds;
 use brickyard_cache::brick::BrickContent;
 use brickyard_cache::brick::BrickKey;
@@ -31,6 +33,23 @@ use brickyard_gpu::kernel::{Binding, Kernel};
 use brickyard_gpu::requests::{RequestTableGpu, REQUEST_INSERT_WGSL};
 use brickyard_gpu::update::{DeviceCache, Item, UpdateCounts, NONE};
 use brickyard_gpu::vm::{with_vm_common, DeviceVm, MAX_LEVELS};
+
+/// The render shader: the frame driver (`gpu.wgsl`: uniform, bindings,
+/// the entry point) and the twins of the CPU modules beside their Rust
+/// files, joined at build time (WGSL declarations may come in any order).
+const RENDER_WGSL: &str = concat!(
+    include_str!("gpu.wgsl"),
+    "\n",
+    include_str!("optics.wgsl"),
+    "\n",
+    include_str!("walk.wgsl"),
+    "\n",
+    include_str!("slice.wgsl"),
+    "\n",
+    include_str!("mip.wgsl"),
+    "\n",
+    include_str!("dvr.wgsl"),
+);
 
 /// The render uniform (see `gpu.wgsl`).
 #[repr(C)]
@@ -175,11 +194,7 @@ fn clear_bits(
 impl GpuRenderer {
     pub fn new(gpu: &Gpu) -> GpuRenderer {
         use Binding::*;
-        let source = format!(
-            "{}\n{}",
-            with_vm_common(include_str!("gpu.wgsl")),
-            REQUEST_INSERT_WGSL
-        );
+        let source = format!("{}\n{}", with_vm_common(RENDER_WGSL), REQUEST_INSERT_WGSL);
         let kernel = Kernel::new(
             gpu,
             "render",

@@ -20,27 +20,47 @@
 //!   smallest spacing of the level ([`Volume::voxel_size`]).
 //! - **DVR**: emission–absorption, front to back, premultiplied colour:
 //!   for each sample, `[r, g, b, α] = tf.lookup(v)`, opacity corrected for
-//!   the step as `α' = 1 − (1 − α)^(Δ/Δ_ref)` ([`correct_opacity`];
-//!   `Δ_ref` = one voxel of the level unless
+//!   the step as `α' = 1 − (1 − α)^(Δ/Δ_ref)` (`Δ_ref` = one voxel of
+//!   the level unless
 //!   [`RenderParams::reference_step`] says otherwise), then
 //!   `C += (1 − A)·α'·rgb`, `A += (1 − A)·α'`; the ray stops once
-//!   `A ≥ 0.99` ([`EARLY_TERMINATION`]). Arithmetic is `f32`.
+//!   `A ≥ 0.99` ([`EARLY_TERMINATION`]). Here the arithmetic is `f64`
+//!   (the renderers use `f32`; they agree within the tests' tolerance).
 //! - **MIP**: the largest sampled value along the ray (NaN ignored) is
 //!   mapped through the transfer function's *colour*; alpha is 1 for every
 //!   ray that took at least one sample, 0 otherwise (the TF's opacity is not
 //!   used).
 //! - **Slice**: see [`RenderMode::Slice`].
+//! - **Several channels** (MIP, slice; [`RenderParams::channels`]): each
+//!   channel's value (a MIP: its own largest along the ray) windowed to
+//!   `[0, 1]` (NaN: 0), times its colour, added up, each component
+//!   clamped to 1, opaque.
+//!
+//! # Standing alone
+//!
+//! The oracle shares no code with the product renderers (`cpu`, `gpu`
+//! and the modules they are made of): its step positions, opacity
+//! correction, compositing, MIP colour, channel mix and plane intersection
+//! are written here from the rules above, plainly and in `f64` (the
+//! product works in `f32` where it can), so that a mistake in the
+//! product's versions shows as a difference instead of being repeated in
+//! both. What both take from `brickyard_core` is what defines the view
+//! rather than how it is drawn, each tested there: the camera's rays, the
+//! box intersection, the trilinear formula (bit for bit that of the
+//! virtual memory) and the transfer function's `lookup`. A test in
+//! `lib.rs` checks that this file names no product module.
 
 use crate::image::Image;
-use brickyard_core::camera::{
-    dot, intersect_box, length, normalize, sub, world_extent, world_to_normalized, Ray, Vec3,
-};
-use brickyard_core::{dispatch_dtype, trilinear_of, Camera, ConfigError, Sample, TransferFunction};
+use brickyard_core::camera::{intersect_box, world_extent, world_to_normalized, Ray, Vec3};
+use brickyard_core::{dispatch_dtype, trilinear_of, Sample, TransferFunction};
 use brickyard_store::import::zarr;
 use brickyard_store::{StoreError, VolumeSource};
 use rayon::prelude::*;
-use serde::{Deserialize, Serialize};
 use std::path::Path;
+
+// What to render is the same for every renderer; named here too, as
+// callers have always named it.
+pub use crate::params::{ChannelStyle, RenderMode, RenderParams, MAX_CHANNELS};
 
 /// DVR stops a ray once its accumulated opacity reaches this.
 pub const EARLY_TERMINATION: f32 = 0.99;
@@ -217,256 +237,96 @@ impl Volume {
     }
 }
 
-/// What to render.
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
-#[serde(tag = "mode", rename_all = "lowercase")]
-pub enum RenderMode {
-    /// Direct volume rendering (emission–absorption).
-    Dvr,
-    /// Maximum intensity projection.
-    Mip,
-    /// The plane through `origin` (world `[x, y, z]`) perpendicular to
-    /// `normal` (any length but zero), **as the camera sees it**: each
-    /// pixel's ray is intersected with the plane (`t ≥ 0`); where the point
-    /// lies inside the closed world box the volume is sampled there and the
-    /// pixel gets the transfer function's colour with alpha 1; elsewhere it
-    /// stays transparent. Any camera works (an oblique plane in perspective
-    /// is fine); [`Camera::facing_plane`] gives the usual face-on view.
-    Slice { origin: [f64; 3], normal: [f64; 3] },
-}
+// ---- the rules, from their definitions ---------------------------------
 
-/// Everything a render needs besides the volume.
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
-pub struct RenderParams {
-    pub width: u32,
-    pub height: u32,
-    pub camera: Camera,
-    pub tf: TransferFunction,
-    pub mode: RenderMode,
-    /// Samples per voxel along a ray: `Δ = voxel / samples_per_voxel`.
-    #[serde(default = "one")]
-    pub samples_per_voxel: f64,
-    /// The world length the transfer function's opacity refers to
-    /// (`Δ_ref`); `None`: one voxel of the rendered level
-    /// ([`Volume::voxel_size`]). Set it (e.g. to level 0's voxel) to keep
-    /// images of different levels equally opaque.
-    #[serde(default)]
-    pub reference_step: Option<f64>,
-    /// Several channels at once, added up (slice and MIP only): each
-    /// channel's value is windowed to `[0, 1]` and multiplied by its
-    /// colour; the sum is clamped to 1. A MIP takes each channel's maximum
-    /// along the ray separately. Empty: one channel through `tf`.
-    #[serde(default, skip_serializing_if = "Vec::is_empty")]
-    pub channels: Vec<ChannelStyle>,
-}
-
-/// Most channels one image shows at once.
-pub const MAX_CHANNELS: usize = 16;
-
-/// How one channel of a multi-channel image is shown.
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
-pub struct ChannelStyle {
-    pub channel: usize,
-    /// Linear RGB in `[0, 1]` added at full intensity.
-    pub color: [f32; 3],
-    /// Data values `[lo, hi]` mapped to intensity 0 and 1.
-    pub window: [f32; 2],
-}
-
-impl ChannelStyle {
-    /// Intensity of `value` in `[0, 1]` (NaN: 0).
-    #[inline]
-    pub fn intensity(&self, value: f32) -> f32 {
-        let [lo, hi] = self.window;
-        let x = ((value - lo) / (hi - lo)).clamp(0.0, 1.0);
-        if x.is_nan() {
-            0.0
-        } else {
-            x
-        }
-    }
-}
-
-/// Additive mix of channel intensities: `Σ colour·intensity`, clamped to 1,
-/// opaque.
-#[inline]
-pub fn mix_channels(styles: &[ChannelStyle], values: impl Iterator<Item = f32>) -> [f32; 4] {
-    let mut rgb = [0.0f32; 3];
-    for (s, v) in styles.iter().zip(values) {
-        let i = s.intensity(v);
-        for (c, w) in rgb.iter_mut().zip(s.color) {
-            *c += w * i;
-        }
-    }
-    [rgb[0].min(1.0), rgb[1].min(1.0), rgb[2].min(1.0), 1.0]
-}
-
-fn one() -> f64 {
-    1.0
-}
-
-impl RenderParams {
-    /// Parameters with one sample per voxel and `Δ_ref` = one voxel.
-    pub fn new(
-        width: u32,
-        height: u32,
-        camera: Camera,
-        tf: TransferFunction,
-        mode: RenderMode,
-    ) -> RenderParams {
-        RenderParams {
-            width,
-            height,
-            camera,
-            tf,
-            mode,
-            samples_per_voxel: 1.0,
-            reference_step: None,
-            channels: vec![],
-        }
-    }
-
-    /// Check everything [`render`] relies on.
-    pub fn validate(&self) -> Result<(), ConfigError> {
-        let bad = |f: &str, m: String| Err(ConfigError::new("render parameters", f, m));
-        if self.width == 0 || self.height == 0 {
-            return bad(
-                "width",
-                format!(
-                    "image size must be positive, got {}×{}",
-                    self.width, self.height
-                ),
-            );
-        }
-        if !(self.samples_per_voxel > 0.0 && self.samples_per_voxel.is_finite()) {
-            return bad(
-                "samples_per_voxel",
-                format!("must be positive, got {}", self.samples_per_voxel),
-            );
-        }
-        if let Some(r) = self.reference_step {
-            if !(r > 0.0 && r.is_finite()) {
-                return bad("reference_step", format!("must be positive, got {r}"));
-            }
-        }
-        if let RenderMode::Slice { origin, normal } = &self.mode {
-            if origin.iter().chain(normal).any(|x| !x.is_finite()) || length(*normal) == 0.0 {
-                return bad(
-                    "mode.normal",
-                    format!("slice needs a finite origin and a non-zero normal, got {origin:?}, {normal:?}"),
-                );
-            }
-        }
-        if !self.channels.is_empty() && matches!(self.mode, RenderMode::Dvr) {
-            return bad(
-                "channels",
-                "several channels are shown additively in mip and slice modes; dvr takes one channel and a transfer function".into(),
-            );
-        }
-        if self.channels.len() > MAX_CHANNELS {
-            return bad(
-                "channels",
-                format!(
-                    "at most {MAX_CHANNELS} channels at once, got {}",
-                    self.channels.len()
-                ),
-            );
-        }
-        for (i, c) in self.channels.iter().enumerate() {
-            let [lo, hi] = c.window;
-            if !(lo.is_finite() && hi.is_finite() && lo < hi) {
-                return bad(
-                    &format!("channels[{i}].window"),
-                    format!("needs finite lo < hi, got {:?}", c.window),
-                );
-            }
-            if !c.color.iter().all(|x| x.is_finite() && *x >= 0.0) {
-                return bad(
-                    &format!("channels[{i}].color"),
-                    format!("needs finite non-negative RGB, got {:?}", c.color),
-                );
-            }
-        }
-        self.camera.validate()?;
-        self.tf.validate()
-    }
-}
-
-/// The parameter of step `k` on a ray entering the volume at `t0`.
-#[inline]
+/// The parameter of step `k` on a ray entering the volume at `t0`:
+/// `t0 + (k + ½)·Δ`.
 pub fn step_t(t0: f64, k: u64, dt: f64) -> f64 {
     t0 + (k as f64 + 0.5) * dt
 }
 
-/// Opacity for a step of `exponent = Δ/Δ_ref` reference steps:
-/// `1 − (1 − α)^exponent` (exactly `α` when the exponent is 1).
-#[inline]
-pub fn correct_opacity(alpha: f32, exponent: f32) -> f32 {
-    if exponent == 1.0 {
-        alpha
-    } else if exponent == exponent.trunc() && exponent.abs() <= 64.0 {
-        // Whole exponents (a level 2^l coarser than the reference step)
-        // by multiplication: much cheaper than a general power.
-        1.0 - (1.0 - alpha).powi(exponent as i32)
-    } else {
-        1.0 - (1.0 - alpha).powf(exponent)
+/// A ray's colour so far: premultiplied, front to back, in `f64`.
+#[derive(Default)]
+struct Ray64 {
+    rgb: [f64; 3],
+    alpha: f64,
+}
+
+impl Ray64 {
+    /// Composite a sample of straight-alpha colour `c` behind what the ray
+    /// holds, its opacity corrected for a step of `exponent` reference
+    /// steps (`α' = 1 − (1 − α)^exponent`): `C += (1 − A)·α'·rgb`,
+    /// `A += (1 − A)·α'`. True once `A ≥ EARLY_TERMINATION`.
+    fn add(&mut self, c: [f32; 4], exponent: f64) -> bool {
+        let a = 1.0 - (1.0 - c[3] as f64).powf(exponent);
+        let weight = (1.0 - self.alpha) * a;
+        for (acc, x) in self.rgb.iter_mut().zip(c) {
+            *acc += weight * x as f64;
+        }
+        self.alpha += weight;
+        self.alpha >= EARLY_TERMINATION as f64
+    }
+
+    fn pixel(&self) -> [f32; 4] {
+        let [r, g, b] = self.rgb;
+        [r as f32, g as f32, b as f32, self.alpha as f32]
     }
 }
 
-/// Front-to-back compositing of one sample of straight-alpha colour `c`
-/// (opacity corrected by `exponent`) into the premultiplied `acc`.
-/// Returns true when the ray is opaque enough to stop.
-#[inline]
-pub fn composite(acc: &mut [f32; 4], c: [f32; 4], exponent: f32) -> bool {
-    if c[3] <= 0.0 {
-        return false;
+/// A MIP pixel: the colour the transfer function gives the largest value,
+/// opaque, where the ray took at least one sample (`hit`); black when
+/// every sample was NaN; transparent where it took none.
+fn mip_pixel(tf: &TransferFunction, hit: bool, largest: f32) -> [f32; 4] {
+    match (hit, largest.is_nan()) {
+        (false, _) => [0.0; 4],
+        (true, true) => [0.0, 0.0, 0.0, 1.0],
+        (true, false) => {
+            let [r, g, b, _] = tf.lookup(largest);
+            [r, g, b, 1.0]
+        }
     }
-    composite_visible(acc, c, exponent)
 }
 
-/// [`composite`] for a sample known to have positive opacity.
-#[inline(always)]
-pub fn composite_visible(acc: &mut [f32; 4], c: [f32; 4], exponent: f32) -> bool {
-    let a = correct_opacity(c[3], exponent);
-    let wgt = (1.0 - acc[3]) * a;
-    acc[0] += wgt * c[0];
-    acc[1] += wgt * c[1];
-    acc[2] += wgt * c[2];
-    acc[3] += wgt;
-    acc[3] >= EARLY_TERMINATION
-}
-
-/// The pixel of a MIP ray: the transfer function's colour of the maximum,
-/// opaque where the ray took a sample.
-#[inline]
-pub fn mip_color(tf: &TransferFunction, hit: bool, best: f32) -> [f32; 4] {
-    if !hit || best.is_nan() {
-        return if hit { [0.0, 0.0, 0.0, 1.0] } else { [0.0; 4] };
+/// Several channels added up: each value windowed to `[0, 1]` by its
+/// style (NaN: 0) times the style's colour, summed, each component
+/// clamped to 1, opaque.
+fn channel_mix(styles: &[ChannelStyle], values: &[f32]) -> [f32; 4] {
+    let mut rgb = [0.0f64; 3];
+    for (s, &v) in styles.iter().zip(values) {
+        let (lo, hi) = (s.window[0] as f64, s.window[1] as f64);
+        let x = (v as f64 - lo) / (hi - lo);
+        let intensity = if x.is_nan() { 0.0 } else { x.clamp(0.0, 1.0) };
+        for (acc, c) in rgb.iter_mut().zip(s.color) {
+            *acc += c as f64 * intensity;
+        }
     }
-    let c = tf.lookup(best);
-    [c[0], c[1], c[2], 1.0]
+    let [r, g, b] = rgb.map(|x| x.min(1.0) as f32);
+    [r, g, b, 1.0]
 }
 
-/// Where `ray` meets the plane through `origin` with `normal`, if that is
-/// in front of the ray and inside the box `[0, extent]`: the world point
-/// and the ray parameter.
-#[inline]
-pub fn slice_point(ray: &Ray, origin: Vec3, normal: Vec3, extent: Vec3) -> Option<(Vec3, f64)> {
-    let n = normalize(normal);
-    let denom = dot(ray.dir, n);
-    if denom == 0.0 {
+/// Where `ray` meets the plane through `origin` perpendicular to `normal`:
+/// the world point `o + t·d` with `(o + t·d − origin)·n = 0`, if `t ≥ 0`
+/// and the point lies in the closed box `[0, extent]`; with its `t`.
+fn plane_hit(ray: &Ray, origin: Vec3, normal: Vec3, extent: Vec3) -> Option<(Vec3, f64)> {
+    let len = (normal[0] * normal[0] + normal[1] * normal[1] + normal[2] * normal[2]).sqrt();
+    let n = normal.map(|x| x / len);
+    let (o, d) = (ray.origin, ray.dir);
+    let along = d[0] * n[0] + d[1] * n[1] + d[2] * n[2];
+    if along == 0.0 {
         return None;
     }
-    let t = dot(sub(origin, ray.origin), n) / denom;
+    let t =
+        ((origin[0] - o[0]) * n[0] + (origin[1] - o[1]) * n[1] + (origin[2] - o[2]) * n[2]) / along;
     if t.is_nan() || t < 0.0 {
         return None;
     }
-    let w = ray.at(t);
-    if (0..3).any(|a| !(w[a] >= 0.0 && w[a] <= extent[a])) {
-        return None;
-    }
-    Some((w, t))
+    let w = [o[0] + t * d[0], o[1] + t * d[1], o[2] + t * d[2]];
+    (0..3)
+        .all(|a| w[a] >= 0.0 && w[a] <= extent[a])
+        .then_some((w, t))
 }
+
+// ---- the renderers -----------------------------------------------------
 
 /// An image of `params`' size whose pixel `(i, j)` is `pixel(ray)` for the
 /// camera's ray through it (rows in parallel). Panics if `params.validate()`
@@ -495,7 +355,7 @@ pub fn render(volume: &Volume, params: &RenderParams) -> Image {
     let extent = volume.extent();
     let voxel = volume.voxel_size();
     let dt = voxel / params.samples_per_voxel;
-    let exponent = (dt / params.reference_step.unwrap_or(voxel)) as f32;
+    let exponent = dt / params.reference_step.unwrap_or(voxel);
     per_pixel(params, |ray| match &params.mode {
         RenderMode::Dvr => dvr_ray(volume, &params.tf, ray, extent, dt, exponent),
         RenderMode::Mip => mip_ray(volume, &params.tf, ray, extent, dt),
@@ -522,16 +382,20 @@ pub fn render_channels(volumes: &[Volume], params: &RenderParams) -> Image {
     let dt = v0.voxel_size() / params.samples_per_voxel;
     let styles = &params.channels;
     per_pixel(params, |ray| match &params.mode {
-        RenderMode::Slice { origin, normal } => match slice_point(ray, *origin, *normal, extent) {
-            Some((p, _)) => mix_channels(styles, volumes.iter().map(|v| v.sample_world(p, extent))),
+        RenderMode::Slice { origin, normal } => match plane_hit(ray, *origin, *normal, extent) {
+            Some((p, _)) => {
+                let values: Vec<f32> = volumes.iter().map(|v| v.sample_world(p, extent)).collect();
+                channel_mix(styles, &values)
+            }
             None => [0.0; 4],
         },
         RenderMode::Mip => match intersect_box(ray, [0.0; 3], extent) {
             Some((t0, t1)) if step_t(t0, 0, dt) < t1 => {
-                let best = volumes
+                let largest: Vec<f32> = volumes
                     .iter()
-                    .map(|v| max_along(v, ray, (t0, t1), extent, dt));
-                mix_channels(styles, best)
+                    .map(|v| max_along(v, ray, (t0, t1), extent, dt))
+                    .collect();
+                channel_mix(styles, &largest)
             }
             _ => [0.0; 4],
         },
@@ -560,9 +424,9 @@ pub fn render_auto_lod(levels: &[Volume], params: &RenderParams, bias: f64) -> I
         }
     };
     per_pixel(params, |ray| {
-        let mut acc = [0.0f32; 4];
+        let mut acc = Ray64::default();
         let Some((t0, t1)) = intersect_box(ray, [0.0; 3], extent) else {
-            return acc;
+            return acc.pixel();
         };
         let mut level = level_at(t0);
         let (mut base, mut k) = (t0, 0u64);
@@ -580,11 +444,11 @@ pub fn render_auto_lod(levels: &[Volume], params: &RenderParams, bias: f64) -> I
             let c = params
                 .tf
                 .lookup(levels[level].sample_world(ray.at(t), extent));
-            if composite(&mut acc, c, (dt / reference) as f32) {
+            if acc.add(c, dt / reference) {
                 break;
             }
         }
-        acc
+        acc.pixel()
     })
 }
 
@@ -594,11 +458,11 @@ fn dvr_ray(
     ray: &Ray,
     extent: Vec3,
     dt: f64,
-    exponent: f32,
+    exponent: f64,
 ) -> [f32; 4] {
-    let mut acc = [0.0f32; 4];
+    let mut acc = Ray64::default();
     let Some((t0, t1)) = intersect_box(ray, [0.0; 3], extent) else {
-        return acc;
+        return acc.pixel();
     };
     let mut k = 0u64;
     loop {
@@ -608,18 +472,18 @@ fn dvr_ray(
         }
         k += 1;
         let c = tf.lookup(vol.sample_world(ray.at(t), extent));
-        if composite(&mut acc, c, exponent) {
+        if acc.add(c, exponent) {
             break;
         }
     }
-    acc
+    acc.pixel()
 }
 
 fn mip_ray(vol: &Volume, tf: &TransferFunction, ray: &Ray, extent: Vec3, dt: f64) -> [f32; 4] {
     match intersect_box(ray, [0.0; 3], extent) {
         Some((t0, t1)) => {
             let hit = step_t(t0, 0, dt) < t1;
-            mip_color(tf, hit, max_along(vol, ray, (t0, t1), extent, dt))
+            mip_pixel(tf, hit, max_along(vol, ray, (t0, t1), extent, dt))
         }
         None => [0.0; 4],
     }
@@ -650,7 +514,7 @@ fn slice_ray(
     origin: Vec3,
     normal: Vec3,
 ) -> [f32; 4] {
-    let Some((w, _)) = slice_point(ray, origin, normal, extent) else {
+    let Some((w, _)) = plane_hit(ray, origin, normal, extent) else {
         return [0.0; 4];
     };
     let v = vol.sample_world(w, extent);

@@ -396,3 +396,74 @@ fn params_json_and_validation() {
     let img = render(&vol, &RenderParams::new(4, 4, cam, tf, RenderMode::Mip));
     assert_eq!(img.get(2, 2), [1.0, 1.0, 1.0, 1.0]);
 }
+
+#[test]
+fn channels_add_up_as_defined() {
+    use brickyard_render::reference::{render_channels, ChannelStyle};
+    // Channel 0 holds 50 over the window [0, 200] in green (intensity
+    // 0.25); channel 1 holds 200 over [100, 300] in magenta (0.5), except
+    // one bright voxel of 300 (1.0) that a MIP shows where it projects.
+    let a = Volume::from_fn([8, 8, 8], [1.0; 3], |_, _, _| 50.0);
+    let b = Volume::from_fn([8, 8, 8], [1.0; 3], |z, y, x| {
+        if (z, y, x) == (2, 5, 3) {
+            300.0
+        } else {
+            200.0
+        }
+    });
+    let styles = vec![
+        ChannelStyle {
+            channel: 0,
+            color: [0.0, 1.0, 0.0],
+            window: [0.0, 200.0],
+        },
+        ChannelStyle {
+            channel: 1,
+            color: [1.0, 0.0, 1.0],
+            window: [100.0, 300.0],
+        },
+    ];
+    let tf = constant_tf(1.0, [1.0; 3]);
+    // Straight down through voxel centres, one pixel per voxel column.
+    let cam = top_down([8.0, 8.0], 100.0);
+    let mut p = RenderParams::new(8, 8, cam, tf.clone(), RenderMode::Mip);
+    p.channels = styles.clone();
+    let img = render_channels(&[a.clone(), b.clone()], &p);
+    for j in 0..8 {
+        for i in 0..8 {
+            // Pixel (i, j) looks down the column of voxels (·, 7 − j, i).
+            let expect = if (i, j) == (3, 2) {
+                [1.0, 0.25, 1.0, 1.0]
+            } else {
+                [0.5, 0.25, 0.5, 1.0]
+            };
+            let px = img.get(i, j);
+            for c in 0..4 {
+                assert!((px[c] - expect[c]).abs() < 1e-6, "({i}, {j}): {px:?}");
+            }
+        }
+    }
+    // A slice through the voxel centres z = 5 (without the bright voxel),
+    // and with colours that add up past 1 (clamped).
+    let origin = [4.0, 4.0, 5.5];
+    let cam = Camera::facing_plane(origin, [0.0, 0.0, 1.0], 8.0);
+    let mut p = RenderParams::new(
+        8,
+        8,
+        cam,
+        tf,
+        RenderMode::Slice {
+            origin,
+            normal: [0.0, 0.0, 1.0],
+        },
+    );
+    p.channels = styles;
+    p.channels[0].color = [4.0, 2.0, 0.0];
+    let img = render_channels(&[a, b], &p);
+    for j in 0..8 {
+        for i in 0..8 {
+            // 0.25·(4, 2, 0) + 0.5·(1, 0, 1) = (1.5, 0.5, 0.5) → (1, 0.5, 0.5).
+            assert_eq!(img.get(i, j), [1.0, 0.5, 0.5, 1.0], "({i}, {j})");
+        }
+    }
+}

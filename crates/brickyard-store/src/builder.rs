@@ -1,6 +1,8 @@
 //! The streaming pyramid builder: reads a source in slabs, writes level 0
 //! and all coarser levels as sharded OME-Zarr 0.5, with per-brick statistics.
 //!
+//! Over 800 lines: the pass planner and the slab cascade of a conversion share one context.
+//!
 //! Memory is bounded by the configured budget whatever the volume size:
 //! the volume is processed in tiles (x–y columns) of one brick of depth at a
 //! time. Each level keeps one slab of bricks per tile; the downsampled rows

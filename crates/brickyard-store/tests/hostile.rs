@@ -4,6 +4,8 @@
 //! clear error (naming the file and the offending field) before any large
 //! allocation, instead of panicking, aborting or reading without end. The
 //! inputs found by fuzzing (docs/FUZZING.md) are replayed here too.
+//!
+//! Over 800 lines: tests only, one case per importer and field, sharing the file helpers.
 
 mod common;
 

@@ -1,6 +1,8 @@
 //! NIfTI-1 and NIfTI-2 importer: `.nii`, `.nii.gz` and `.hdr`/`.img` pairs
 //! (either half of a pair may be gzip-compressed).
 //!
+//! Over 800 lines: 1.0k lines of importer (two headers, gzip, pairs), 0.9k of tests.
+//!
 //! The header is parsed by hand rather than with the `nifti` crate: that
 //! crate (0.18) knows NIfTI-1 only and reads whole volumes into memory,
 //! while this importer must stream regions of volumes larger than memory.

@@ -1,5 +1,7 @@
 //! Zarr and OME-Zarr input: Zarr v2 and v3 arrays (any chunking, sharded or
 //! not, any codec `zarrs` decodes) and OME-Zarr 0.4 / 0.5 multiscale images.
+//!
+//! Over 800 lines: with its tests: 0.78k lines of code, 0.1k of tests.
 
 use crate::error::{Result, StoreError};
 use crate::omezarr::{read_json, read_multiscale, Multiscale};

@@ -1,6 +1,8 @@
 //! `brickyard info --check`: read and decode every chunk of every level and
 //! of the statistics arrays, and list what is damaged.
 //!
+//! Over 800 lines: with its tests: 0.76k lines of code, 0.05k of tests.
+//!
 //! What Zarr allows is not reported: a chunk absent from its shard's index,
 //! or a shard (or chunk) file missing altogether, reads as the fill value.
 //! brickyard leaves out only bricks that are all 0, so where the store's

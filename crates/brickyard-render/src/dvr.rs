@@ -1,0 +1,130 @@
+//! Direct volume rendering on the CPU: front-to-back emission–absorption
+//! along each ray, with automatic level of detail (at a level change the
+//! sample there is step 0 of the new level's grid), bricks the transfer
+//! function hides crossed in one landing, fixed-point runs through
+//! resident bricks that cross clear cells, and the fallback to coarser
+//! levels for bricks not resident. `dvr.wgsl` is the device twin.
+
+use crate::cpu::FrameStats;
+use crate::optics::composite_visible;
+use crate::walk::{step_t, trilinear, Content, Grid, Run, Walker};
+use brickyard_cache::vm::Requests;
+use brickyard_core::camera::{intersect_box_inv, Ray};
+use brickyard_core::Sample;
+
+impl<'f, 'a, T: Sample> Walker<'f, 'a, T> {
+    /// The pixel of `ray` in a DVR of the scene's channel.
+    pub(crate) fn dvr(&mut self, ray: &Ray, req: &mut Requests, st: &mut FrameStats) -> [f32; 4] {
+        let mut acc = [0.0f32; 4];
+        let f = self.f;
+        let extent = f.scene.extent;
+        let d = ray.dir;
+        let inv_dir = [1.0 / d[0], 1.0 / d[1], 1.0 / d[2]];
+        let Some((t0, t1)) = intersect_box_inv(ray, inv_dir, [0.0; 3], extent) else {
+            return acc;
+        };
+        // Steps keep the reference renderer's positions while the level
+        // stays the same; at a level change the sample there becomes step 0
+        // of the new level's grid.
+        let mut level = f.level_at(t0);
+        let mut next_t = f.next_level_t(level);
+        let (mut dt, mut inv_dt, mut exponent) = f.step[level];
+        let mut track = f.track(level, ray, inv_dir, t1);
+        let mut base_t = t0;
+        let mut k = 0u64;
+        loop {
+            let t = step_t(base_t, k, dt);
+            if t >= t1 {
+                break;
+            }
+            k += 1;
+            if t >= next_t {
+                let l = f.level_at(t);
+                if l != level {
+                    // The new level's step grid has this sample as its
+                    // step 0: the next one lies a step of the new level on.
+                    level = l;
+                    (dt, inv_dt, exponent) = f.step[level];
+                    base_t = t - 0.5 * dt;
+                    k = 1;
+                    track = f.track(level, ray, inv_dir, t1);
+                }
+                next_t = f.next_level_t(level);
+                if next_t <= t {
+                    // At the boundary `level_at` and the threshold may
+                    // disagree by a rounding: ask again at the next step.
+                    next_t = t + dt;
+                }
+            }
+            st.steps += 1;
+            let w = ray.at(t);
+            let (vb, frac) = f.coords(level, w);
+            let c = self.enter(level, vb, req, true);
+            if c.transparent {
+                let (lo, hi) = f.clear_box(level, c.brick, c.lo, c.hi);
+                st.skipped_bricks += 1;
+                let g = Grid { base_t, dt, inv_dt };
+                k = f.land(ray, &track, g, k, (lo, hi), t1.min(next_t));
+                continue;
+            }
+            if let Content::Data(vox) = c.content {
+                // Resident at the level asked for: take every step the ray
+                // makes in this brick here.
+                let (lo, hi, clear) = (c.lo, c.hi, c.clear_cells);
+                let g = Grid { base_t, dt, inv_dt };
+                let limit = t1.min(next_t);
+                // Steps k − 1 … end − 1 lie in the brick (up to rounding:
+                // see `Run`).
+                let end = track.run_end(g, (lo, hi), limit).max(k);
+                let mut run = Run::new(f, level, &track, w, lo, hi);
+                let (mut n, mut passed) = (0u64, 0u64);
+                let mut j = k - 1;
+                let done = loop {
+                    if j >= end {
+                        break false;
+                    }
+                    let (u, fr) = run.current();
+                    let cell = f.cell_of(u);
+                    if clear >> cell & 1 != 0 {
+                        // A cell whose samples are all transparent: on to
+                        // the step where the ray leaves it.
+                        passed += 1;
+                        j = run.cross_cell(f, u, (j, end));
+                        continue;
+                    }
+                    run.advance(1);
+                    j += 1;
+                    n += 1;
+                    let v = trilinear(vox, f.local_index(u, [0; 3]), f.stride[0], f.stride[1], fr);
+                    if let Some(c) = f.tf_eval.lookup_visible(v) {
+                        if composite_visible(&mut acc, c, exponent) {
+                            break true;
+                        }
+                    } else {
+                        st.transparent += 1;
+                    }
+                };
+                st.samples += n;
+                st.exact += n;
+                st.skipped_cells += passed;
+                st.steps += end - k;
+                if done {
+                    break;
+                }
+                k = end;
+                continue;
+            }
+            let Some(v) = self.value(level, w, vb, frac, req, st) else {
+                let g = Grid { base_t, dt, inv_dt };
+                k = self.skip_unserved(level, ray, &track, (g, k), t1.min(next_t), st);
+                continue;
+            };
+            if let Some(c) = f.tf_eval.lookup_visible(v) {
+                if composite_visible(&mut acc, c, exponent) {
+                    break;
+                }
+            }
+        }
+        acc
+    }
+}

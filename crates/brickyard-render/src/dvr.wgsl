@@ -1,0 +1,98 @@
+// Direct volume rendering on the device, twin of `dvr.rs`: front to back
+// along the pixel's ray with automatic level of detail (at a level change
+// the sample there is step 0 of the new level's grid, as on the CPU),
+// bricks the transfer function hides crossed in one jump, cells of
+// resident bricks it hides crossed the same way, the fallback to coarser
+// levels, and compositing with opacity correction and early termination.
+
+// The pixel of `ray` in a DVR of the scene's channel; adds its counts.
+fn dvr_pixel(ray: Ray) -> vec4<f32> {
+    let span = intersect(ray);
+    var acc = vec4<f32>(0.0);
+    var samples = 0u;
+    var exact = 0u;
+    var unserved = 0u;
+    var jumps = 0u;
+    var cells_crossed = 0u;
+    if (span.y > span.x) {
+        let t1 = span.y;
+        var level = level_at(span.x);
+        var base_t = span.x;
+        var k = 0u;
+        loop {
+            let t = base_t + (f32(k) + 0.5) * R.step[level].x;
+            if (t >= t1) {
+                break;
+            }
+            k = k + 1u;
+            let l = level_at(t);
+            if (l != level) {
+                // A level change: the new level's step grid has this
+                // sample as its step 0 (as on the CPU).
+                level = l;
+                base_t = t - 0.5 * R.step[level].x;
+                k = 1u;
+            }
+            let w = ray.o + ray.d * t;
+            let q = coords(level, w).xyz;
+            let b = vec3<u32>(q);
+            let e = entry_at(level, b);
+            let f = flag(e);
+            if (R.skip == 1u) {
+                // Bricks the transfer function hides (by their value range,
+                // or as EMPTY/CONSTANT entries) are crossed in one jump.
+                var hidden = is_clear(brick_id(level, b));
+                if (!hidden && (f == EMPTY || f == CONSTANT)) {
+                    var v = 0.0;
+                    if (f == CONSTANT) {
+                        v = constant_value(e.y);
+                    }
+                    hidden = is_nan(v) || opacity_at(windowed(v)) <= 0.0;
+                }
+                if (hidden) {
+                    jumps = jumps + 1u;
+                    k = land(ray, level, b, base_t, k, t1);
+                    continue;
+                }
+            }
+            if (R.skip_cells == 1u && f == MAPPED) {
+                // Inside a resident brick: a cell whose values the transfer
+                // function hides is crossed in one jump. Its brick is still
+                // in use.
+                let slot = slot_id(e, lay.brick_grid);
+                let r = cell_range(slot, b);
+                if (range_clear(r.x, r.y)) {
+                    mark(slot, true);
+                    cells_crossed = cells_crossed + 1u;
+                    k = land_cell(ray, level, b, base_t, k, t1);
+                    continue;
+                }
+            }
+            let s = sample_from(w, level, q, e);
+            samples = samples + 1u;
+            if (s.y == 2.0) {
+                exact = exact + 1u;
+            }
+            if (s.y == 0.0 || is_nan(s.x)) {
+                unserved = unserved + u32(s.y == 0.0);
+                continue;
+            }
+            let x = windowed(s.x);
+            let alpha = opacity_at(x);
+            if (alpha > 0.0) {
+                let a = correct_opacity(alpha, R.step[level].y);
+                let w = (1.0 - acc.w) * a;
+                acc = acc + vec4<f32>(color_at(x) * w, w);
+                if (acc.w >= EARLY_TERMINATION) {
+                    break;
+                }
+            }
+        }
+    }
+    atomicAdd(&counters[0], samples);
+    atomicAdd(&counters[1], exact);
+    atomicAdd(&counters[2], unserved);
+    atomicAdd(&counters[3], jumps);
+    atomicAdd(&counters[5], cells_crossed);
+    return acc;
+}

@@ -1,0 +1,95 @@
+// Maximum intensity projections on the device, twin of `mip.rs`: each
+// channel's largest value along the ray at the entry level, crossing cells
+// whose maximum cannot raise it, then the transfer function's colour or
+// the channels' mix.
+
+// The largest value of the current channel along the ray in `span` at the
+// entry level (NaN samples and unserved ones left out), and whether there
+// was one; crossing cells whose maximum cannot raise it; as the CPU's
+// `mip_max`.
+fn mip_max(ray: Ray, span: vec2<f32>) -> vec2<f32> {
+    let t1 = span.y;
+    let level = level_at(span.x);
+    var best = 0.0;
+    var found = false;
+    var k = 0u;
+    var samples = 0u;
+    var exact = 0u;
+    var unserved = 0u;
+    var crossed = 0u;
+    loop {
+        let t = span.x + (f32(k) + 0.5) * R.step[level].x;
+        if (t >= t1) {
+            break;
+        }
+        k = k + 1u;
+        let w = ray.o + ray.d * t;
+        let q = coords(level, w).xyz;
+        let b = vec3<u32>(q);
+        let e = entry_at(level, b);
+        if (R.skip_cells == 1u && found && flag(e) == MAPPED) {
+            let slot = slot_id(e, lay.brick_grid);
+            let r = cell_range(slot, b);
+            if (!is_nan(r.y) && r.y <= best) {
+                mark(slot, true);
+                crossed = crossed + 1u;
+                k = land_cell(ray, level, b, span.x, k, t1);
+                continue;
+            }
+        }
+        let s = sample_from(w, level, q, e);
+        samples = samples + 1u;
+        if (s.y == 2.0) {
+            exact = exact + 1u;
+        }
+        if (s.y == 0.0 || is_nan(s.x)) {
+            unserved = unserved + u32(s.y == 0.0);
+            continue;
+        }
+        if (!found || s.x > best) {
+            best = s.x;
+            found = true;
+        }
+    }
+    atomicAdd(&counters[0], samples);
+    atomicAdd(&counters[1], exact);
+    atomicAdd(&counters[2], unserved);
+    atomicAdd(&counters[5], crossed);
+    return vec2<f32>(best, f32(found));
+}
+
+// The pixel of `ray` in a MIP of one channel: the maximum along the ray,
+// opaque where the ray took a sample (black when none was served).
+fn mip_pixel(ray: Ray) -> vec4<f32> {
+    let span = intersect(ray);
+    var px = vec4<f32>(0.0);
+    if (span.y > span.x && span.x + 0.5 * R.step[level_at(span.x)].x < span.y) {
+        let m = mip_max(ray, span);
+        px = vec4<f32>(0.0, 0.0, 0.0, 1.0);
+        if (m.y > 0.0) {
+            px = vec4<f32>(color_at(windowed(m.x)), 1.0);
+        }
+    }
+    return px;
+}
+
+// The pixel of `ray` in a MIP of several channels added up: each
+// channel's maximum along the ray, then the mix.
+fn mip_channels(ray: Ray) -> vec4<f32> {
+    var px = vec4<f32>(0.0);
+    let span = intersect(ray);
+    if (span.y > span.x && span.x + 0.5 * R.step[level_at(span.x)].x < span.y) {
+        var v: array<f32, 16>;
+        var have = 0u;
+        for (var i = 0u; i < R.n_channels; i = i + 1u) {
+            use_channel(i);
+            let m = mip_max(ray, span);
+            v[i] = m.x;
+            if (m.y > 0.0) {
+                have = have | (1u << i);
+            }
+        }
+        px = mix(v, have);
+    }
+    return px;
+}

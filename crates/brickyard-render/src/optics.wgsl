@@ -1,0 +1,121 @@
+// The device's optics, twin of `optics.rs`: the transfer function read
+// from `aux` (windowing, piecewise-linear opacity and colour map, and
+// whether it hides a whole value range), opacity correction for the step
+// length, and the additive mix of several channels. Compositing itself is
+// in dvr.wgsl (a few lines in the ray loop).
+
+const EARLY_TERMINATION: f32 = 0.99;
+
+fn tf(i: u32) -> vec4<f32> {
+    return vec4<f32>(
+        bitcast<f32>(aux[4u * i]),
+        bitcast<f32>(aux[4u * i + 1u]),
+        bitcast<f32>(aux[4u * i + 2u]),
+        bitcast<f32>(aux[4u * i + 3u]),
+    );
+}
+
+fn piece_at(x: f32, a: vec2<f32>, b: vec2<f32>) -> f32 {
+    let slope = (b.y - a.y) / (b.x - a.x);
+    let v = a.y + (x - a.x) * slope;
+    return clamp(v, min(a.y, b.y), max(a.y, b.y));
+}
+
+// Piecewise-linear opacity at the windowed value x (constant outside the
+// points, right-continuous at steps).
+fn opacity_at(x: f32) -> f32 {
+    let n = R.n_opacity;
+    var i = 0u;
+    while (i < n && tf(i).x <= x) {
+        i = i + 1u;
+    }
+    if (i == 0u) {
+        return tf(0).y;
+    }
+    if (i == n) {
+        return tf(n - 1u).y;
+    }
+    return piece_at(x, tf(i - 1u).xy, tf(i).xy);
+}
+
+fn color_at(x: f32) -> vec3<f32> {
+    let o = R.n_opacity;
+    let n = R.n_color;
+    var i = 0u;
+    while (i < n && tf(o + i).x <= x) {
+        i = i + 1u;
+    }
+    if (i == 0u) {
+        return tf(o).yzw;
+    }
+    if (i == n) {
+        return tf(o + n - 1u).yzw;
+    }
+    let a = tf(o + i - 1u);
+    let b = tf(o + i);
+    return vec3<f32>(
+        piece_at(x, a.xy, b.xy),
+        piece_at(x, a.xz, b.xz),
+        piece_at(x, a.xw, b.xw),
+    );
+}
+
+fn windowed(v: f32) -> f32 {
+    return clamp((v - R.window0) * R.inv_width, 0.0, 1.0);
+}
+
+// Whether the transfer function gives zero opacity to every value in
+// [lo, hi] (NaN: unknown, so no): the piecewise-linear opacity is largest
+// at the ends of the windowed range or at a point inside it.
+fn range_clear(lo: f32, hi: f32) -> bool {
+    if (is_nan(lo) || is_nan(hi)) {
+        return false;
+    }
+    let x0 = windowed(lo);
+    let x1 = windowed(hi);
+    if (opacity_at(x0) > 0.0 || opacity_at(x1) > 0.0) {
+        return false;
+    }
+    for (var i = 0u; i < R.n_opacity; i = i + 1u) {
+        let p = tf(i);
+        if (p.x >= x0 && p.x <= x1 && p.y > 0.0) {
+            return false;
+        }
+    }
+    return true;
+}
+
+fn correct_opacity(a: f32, e: f32) -> f32 {
+    if (e == 1.0) {
+        return a;
+    }
+    return 1.0 - pow(1.0 - a, e);
+}
+
+// Channel `i` of those added up: (channel, lo, hi) and colour.
+fn style(i: u32) -> vec4<f32> {
+    let o = R.styles_off + 8u * i;
+    return vec4<f32>(f32(aux[o]), bitcast<f32>(aux[o + 1u]), bitcast<f32>(aux[o + 2u]), 0.0);
+}
+
+fn style_color(i: u32) -> vec3<f32> {
+    let o = R.styles_off + 8u * i + 4u;
+    return vec3<f32>(bitcast<f32>(aux[o]), bitcast<f32>(aux[o + 1u]), bitcast<f32>(aux[o + 2u]));
+}
+
+// The additive mix of the channels' values `v[i]` (bit i of `have` clear,
+// or NaN: nothing), as the CPU's `mix_channels`: Σ colour·intensity,
+// clamped to 1, opaque.
+fn mix(v: array<f32, 16>, have: u32) -> vec4<f32> {
+    var rgb = vec3<f32>(0.0);
+    for (var i = 0u; i < R.n_channels; i = i + 1u) {
+        let st = style(i);
+        let raw = (v[i] - st.y) / (st.z - st.y);
+        var x = 0.0;
+        if (((have >> i) & 1u) == 1u && !is_nan(raw)) {
+            x = clamp(raw, 0.0, 1.0);
+        }
+        rgb = rgb + style_color(i) * x;
+    }
+    return vec4<f32>(min(rgb, vec3<f32>(1.0)), 1.0);
+}

@@ -1,0 +1,81 @@
+//! Slices on the CPU: the plane as the camera sees it. Each pixel's ray
+//! meets the plane (`t ≥ 0`, inside the closed world box); the walker
+//! samples every channel shown there at the level the footprint at `t`
+//! asks for, and the pixel is the transfer function's colour (one
+//! channel) or the channels' mix, opaque. `slice.wgsl` is the device twin.
+
+use crate::cpu::FrameStats;
+use crate::optics::{mix_channels, slice_color};
+use crate::params::{RenderParams, MAX_CHANNELS};
+use crate::walk::Walker;
+use brickyard_cache::vm::Requests;
+use brickyard_core::camera::{dot, normalize, sub, Ray, Vec3};
+use brickyard_core::Sample;
+
+/// Where `ray` meets the plane through `origin` with `normal`, if that is
+/// in front of the ray and inside the box `[0, extent]`: the world point
+/// and the ray parameter.
+#[inline]
+pub(crate) fn slice_point(
+    ray: &Ray,
+    origin: Vec3,
+    normal: Vec3,
+    extent: Vec3,
+) -> Option<(Vec3, f64)> {
+    let n = normalize(normal);
+    let denom = dot(ray.dir, n);
+    if denom == 0.0 {
+        return None;
+    }
+    let t = dot(sub(origin, ray.origin), n) / denom;
+    if t.is_nan() || t < 0.0 {
+        return None;
+    }
+    let w = ray.at(t);
+    if (0..3).any(|a| !(w[a] >= 0.0 && w[a] <= extent[a])) {
+        return None;
+    }
+    Some((w, t))
+}
+
+/// The pixel of `ray` in a slice through `plane` (origin, normal): one
+/// walker per channel shown (`params.channels`, or one channel through the
+/// transfer function).
+#[inline]
+pub(crate) fn pixel<T: Sample>(
+    walkers: &mut [Walker<'_, '_, T>],
+    ray: &Ray,
+    (origin, normal): (Vec3, Vec3),
+    params: &RenderParams,
+    extent: Vec3,
+    (req, st): (&mut Requests, &mut FrameStats),
+) -> [f32; 4] {
+    let Some((wp, t)) = slice_point(ray, origin, normal, extent) else {
+        return [0.0; 4];
+    };
+    if params.channels.is_empty() {
+        return slice_color(&params.tf, walkers[0].slice_value(wp, t, req, st));
+    }
+    let mut v = [f32::NAN; MAX_CHANNELS];
+    for (x, wk) in v.iter_mut().zip(walkers.iter_mut()) {
+        *x = wk.slice_value(wp, t, req, st).unwrap_or(f32::NAN);
+    }
+    mix_channels(&params.channels, v.into_iter())
+}
+
+impl<'f, 'a, T: Sample> Walker<'f, 'a, T> {
+    /// The value at the world point `w` of a slice, `t` along the ray.
+    pub(crate) fn slice_value(
+        &mut self,
+        w: Vec3,
+        t: f64,
+        req: &mut Requests,
+        st: &mut FrameStats,
+    ) -> Option<f32> {
+        let f = self.f;
+        let level = f.level_at(t);
+        let (vb, frac) = f.coords(level, w);
+        self.enter(level, vb, req, true);
+        self.value(level, w, vb, frac, req, st)
+    }
+}

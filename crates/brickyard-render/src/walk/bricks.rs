@@ -1,0 +1,321 @@
+//! The walker: one thread's view of one channel while it draws. Per level
+//! the brick its last sample fell into (page tables walked once per brick,
+//! usage marked, value range and transparency known), a direct-mapped memo
+//! of every brick resolved this frame, misses counted per brick and handed
+//! to the request collector when the walker leaves it, and the general
+//! sample path that falls back to the finest resident coarser level.
+
+use super::{inside, trilinear, Frame, Grid, Track};
+use crate::cpu::FrameStats;
+use crate::params::RenderMode;
+use brickyard_cache::brick::BrickKey;
+use brickyard_cache::cells;
+use brickyard_cache::vm::{BrickRef, Requests};
+use brickyard_core::camera::{Ray, Vec3};
+use brickyard_core::{cast_slice, Dims3, Sample};
+
+/// What a walker knows about the brick it is in at one level.
+#[derive(Clone, Copy)]
+pub(crate) enum Content<'a, T> {
+    /// Page tables not walked yet.
+    Unresolved,
+    Unmapped,
+    /// EMPTY (0) or CONSTANT.
+    Value(f32),
+    Data(&'a [T]),
+}
+
+#[derive(Clone, Copy)]
+pub(crate) struct Cached<'a, T> {
+    /// Voxel box `[lo, hi)` of the brick (empty: nothing cached).
+    pub(crate) lo: Dims3,
+    pub(crate) hi: Dims3,
+    pub(crate) brick: Dims3,
+    pub(crate) content: Content<'a, T>,
+    /// Value range (apron included); NaN: unknown.
+    pub(crate) range: [f32; 2],
+    /// DVR: every sample in it is transparent.
+    pub(crate) transparent: bool,
+    /// DVR, resident bricks: bit `i` set when every sample of cell `i` is
+    /// transparent.
+    pub(crate) clear_cells: u64,
+    /// Samples that missed it, not yet handed to the request collector.
+    pub(crate) missed: u32,
+    /// Pool slot of a resident brick (`u32::MAX` otherwise).
+    pub(crate) slot: u32,
+    /// The slot is marked as used at its own level this frame (or needs
+    /// no mark).
+    pub(crate) marked: bool,
+}
+
+impl<T> Cached<'_, T> {
+    const NONE: Self = Cached {
+        lo: [1; 3],
+        hi: [0; 3],
+        brick: [0; 3],
+        content: Content::Unresolved,
+        range: [f32::NAN; 2],
+        transparent: false,
+        clear_cells: 0,
+        missed: 0,
+        slot: u32::MAX,
+        marked: true,
+    };
+
+    #[inline(always)]
+    pub(crate) fn contains(&self, v: Dims3) -> bool {
+        inside(v, self.lo, self.hi)
+    }
+}
+
+// A brick's clear cells are one bit each in a u64.
+const _: () = assert!(cells::MAX_CELLS <= 64);
+
+/// Entries of a walker's brick memo (a power of two).
+pub(crate) const MEMO: usize = 1024;
+
+/// One thread's view of one channel: the current brick per level, and a
+/// memo of every brick resolved this frame (direct-mapped by level and
+/// brick), so that the rays of a tile, which enter the same bricks one
+/// after another, walk the page tables about once per brick.
+pub(crate) struct Walker<'f, 'a, T> {
+    pub(crate) f: &'f Frame<'a>,
+    pub(crate) channel: usize,
+    pub(crate) cache: Vec<Cached<'a, T>>,
+    pub(crate) memo_key: Vec<u64>,
+    pub(crate) memo: Vec<Cached<'a, T>>,
+}
+
+impl<'f, 'a, T: Sample> Walker<'f, 'a, T> {
+    pub(crate) fn new(f: &'f Frame<'a>, channel: usize) -> Self {
+        Walker {
+            f,
+            channel,
+            cache: vec![Cached::NONE; f.levels()],
+            memo_key: vec![u64::MAX; MEMO],
+            memo: vec![Cached::NONE; MEMO],
+        }
+    }
+
+    /// Hand every pending miss to the collector.
+    pub(crate) fn flush(&mut self, req: &mut Requests) {
+        for l in 0..self.cache.len() {
+            self.flush_level(l, req);
+        }
+    }
+
+    #[inline]
+    pub(crate) fn flush_level(&mut self, l: usize, req: &mut Requests) {
+        if self.cache[l].missed > 0 {
+            self.flush_misses(l, req);
+        }
+    }
+
+    #[cold]
+    pub(crate) fn flush_misses(&mut self, l: usize, req: &mut Requests) {
+        let c = &mut self.cache[l];
+        let b = c.brick;
+        req.add(
+            BrickKey::new(
+                l as u8,
+                self.channel as u16,
+                [b[0] as u32, b[1] as u32, b[2] as u32],
+            ),
+            c.missed,
+        );
+        c.missed = 0;
+    }
+
+    /// Make the cache of level `l` hold the brick of voxel `v`.
+    /// `exact`: the sample asks for level `l` (not a stand-in lookup).
+    #[inline(always)]
+    pub(crate) fn enter(
+        &mut self,
+        l: usize,
+        v: Dims3,
+        req: &mut Requests,
+        exact: bool,
+    ) -> &Cached<'a, T> {
+        if !self.cache[l].contains(v) {
+            self.refill(l, v, req, exact);
+        } else if exact && !self.cache[l].marked {
+            self.mark(l);
+        }
+        &self.cache[l]
+    }
+
+    #[cold]
+    pub(crate) fn refill(&mut self, l: usize, v: Dims3, req: &mut Requests, exact: bool) {
+        self.flush_level(l, req);
+        let f = self.f;
+        let brick = f.brick_of(v);
+        let key = ((l as u64) << 60) | (brick[0] << 40) | (brick[1] << 20) | brick[2];
+        let slot =
+            (key.wrapping_mul(0x9E37_79B9_7F4A_7C15) >> (64 - MEMO.trailing_zeros())) as usize;
+        if self.memo_key[slot] == key {
+            self.cache[l] = self.memo[slot];
+            if exact && !self.cache[l].marked {
+                self.mark(l);
+            }
+            return;
+        }
+        let bs = f.brick;
+        let d = f.dims[l];
+        let lo = [brick[0] * bs[0], brick[1] * bs[1], brick[2] * bs[2]];
+        let hi = [
+            (lo[0] + bs[0]).min(d[0]),
+            (lo[1] + bs[1]).min(d[1]),
+            (lo[2] + bs[2]).min(d[2]),
+        ];
+        let range = f
+            .scene
+            .ranges
+            .as_ref()
+            .and_then(|r| r.level(l))
+            .filter(|r| self.channel < r.channels)
+            .map(|r| r.get(self.channel, brick))
+            .unwrap_or([f32::NAN; 2]);
+        let transparent = self.channel == f.scene.channel
+            && f.transparent[l].as_ref().is_some_and(|t| {
+                let nb = f.bricks[l];
+                t[((brick[0] * nb[1] + brick[1]) * nb[2] + brick[2]) as usize]
+            });
+        self.cache[l] = Cached {
+            lo,
+            hi,
+            brick,
+            content: Content::Unresolved,
+            range,
+            transparent,
+            clear_cells: 0,
+            missed: 0,
+            slot: u32::MAX,
+            marked: true,
+        };
+        if !transparent {
+            self.resolve(l, exact);
+        }
+        self.memo_key[slot] = key;
+        self.memo[slot] = self.cache[l];
+    }
+
+    /// Mark the cached brick of level `l` as used at its own level.
+    #[cold]
+    pub(crate) fn mark(&mut self, l: usize) {
+        let c = &mut self.cache[l];
+        self.f.vm.mark_exact(c.slot);
+        c.marked = true;
+    }
+
+    /// Walk the page tables for the cached brick of level `l`.
+    #[cold]
+    pub(crate) fn resolve(&mut self, l: usize, exact: bool) {
+        let f = self.f;
+        let c = &mut self.cache[l];
+        c.content = match f.vm.brick(l, self.channel, c.brick, exact) {
+            BrickRef::Unmapped => Content::Unmapped,
+            BrickRef::Empty => Content::Value(0.0),
+            BrickRef::Constant(v) => Content::Value(v),
+            BrickRef::Data { voxels, slot } => {
+                c.slot = slot;
+                c.marked = exact;
+                if matches!(f.params.mode, RenderMode::Dvr)
+                    && self.channel == f.scene.channel
+                    && f.scene.skip_cells
+                {
+                    let mut m = 0u64;
+                    for (i, &[lo, hi]) in f.vm.cell_ranges(slot).iter().enumerate() {
+                        if !f.tf_eval.range_visible(lo, hi) {
+                            m |= 1 << i;
+                        }
+                    }
+                    c.clear_cells = m;
+                }
+                Content::Data(cast_slice::<T>(voxels))
+            }
+        };
+        if let Content::Value(v) = c.content {
+            c.range = [v, v];
+            if matches!(f.params.mode, RenderMode::Dvr) && self.channel == f.scene.channel {
+                c.transparent = f.tf.lookup_visible(v).is_none();
+            }
+        }
+    }
+
+    /// The value at normalized position `p` asked at level `l`, whose
+    /// voxel base `base` and fractions `frac` are given and whose brick is
+    /// cached; falls back to coarser levels on a miss. Counts the sample.
+    #[inline(always)]
+    pub(crate) fn value(
+        &mut self,
+        l: usize,
+        w: Vec3,
+        base: Dims3,
+        frac: [f32; 3],
+        req: &mut Requests,
+        st: &mut FrameStats,
+    ) -> Option<f32> {
+        st.samples += 1;
+        let (mut base, mut frac) = (base, frac);
+        for lv in l..self.cache.len() {
+            if lv > l {
+                (base, frac) = self.f.coords(lv, w);
+                self.enter(lv, base, req, false);
+            }
+            if matches!(self.cache[lv].content, Content::Unresolved) {
+                self.resolve(lv, lv == l);
+            }
+            let c = &mut self.cache[lv];
+            match c.content {
+                Content::Data(vox) => {
+                    st.exact += (lv == l) as u64;
+                    let [sz, sy] = self.f.stride;
+                    let i = self.f.local_index(base, c.lo);
+                    return Some(trilinear(vox, i, sz, sy, frac));
+                }
+                Content::Value(v) => {
+                    st.exact += (lv == l) as u64;
+                    return Some(v);
+                }
+                Content::Unmapped if lv == l => c.missed += 1,
+                Content::Unmapped => {}
+                Content::Unresolved => unreachable!("resolved above"),
+            }
+        }
+        // Nothing resident serves the sample: request the coarser bricks
+        // on the way too, so something shows soon. (A sample served by a
+        // stand-in requests only its own level: stand-ins evicted for
+        // finer bricks are not fetched back.)
+        for c in &mut self.cache[l + 1..] {
+            c.missed += 1;
+        }
+        st.unserved += 1;
+        None
+    }
+
+    /// After a sample that nothing resident could serve: cross the rest of
+    /// the level's brick in one jump (first frames would otherwise walk
+    /// the whole fallback chain for every sample of a region with nothing
+    /// to show). The steps jumped count as unserved samples and as misses
+    /// of the brick, so its request keeps its weight. Returns the step
+    /// index to continue from.
+    pub(crate) fn skip_unserved(
+        &mut self,
+        level: usize,
+        ray: &Ray,
+        track: &Track,
+        (g, k): (Grid, u64),
+        limit: f64,
+        st: &mut FrameStats,
+    ) -> u64 {
+        let c = &self.cache[level];
+        let kn = self.f.land(ray, track, g, k, (c.lo, c.hi), limit);
+        let c = &mut self.cache[level];
+        let n = kn - k;
+        st.samples += n;
+        st.unserved += n;
+        st.steps += n;
+        c.missed = c.missed.saturating_add(n as u32);
+        kn
+    }
+}
