@@ -313,15 +313,22 @@ impl Shared {
             self.simulated_delay();
             read?;
             let bytes_read = std::mem::size_of_val(&buf[..]) as u64;
-            let [zs, ys, xs] = [0, 1, 2].map(|a| clamp_map(po[a], p[a], lo[a], hi[a]));
-            let (r1, r2) = (r[1] as usize, r[2] as usize);
-            let mut out: Vec<T> = Vec::with_capacity(g.voxels_per_brick() as usize);
-            for &sz in &zs {
-                for &sy in &ys {
-                    let row = &buf[(sz * r1 + sy) * r2..][..r2];
-                    out.extend(xs.iter().map(|&sx| row[sx]));
+            // Inside the level the region read is the padded brick itself;
+            // at its faces the missing part repeats the edge voxels.
+            let out: Vec<T> = if r == p {
+                buf
+            } else {
+                let [zs, ys, xs] = [0, 1, 2].map(|a| clamp_map(po[a], p[a], lo[a], hi[a]));
+                let (r1, r2) = (r[1] as usize, r[2] as usize);
+                let mut out: Vec<T> = Vec::with_capacity(g.voxels_per_brick() as usize);
+                for &sz in &zs {
+                    for &sy in &ys {
+                        let row = &buf[(sz * r1 + sy) * r2..][..r2];
+                        out.extend(xs.iter().map(|&sx| row[sx]));
+                    }
                 }
-            }
+                out
+            };
             // Min / max of the brick proper.
             let (p1, p2) = (p[1] as usize, p[2] as usize);
             let (mut mn, mut mx) = (f64::NAN, f64::NAN);
@@ -336,7 +343,9 @@ impl Shared {
             }
             let first = out[0];
             let v0 = first.to_f64();
-            if !v0.is_nan() && out.iter().all(|v| v.bits() == first.bits()) {
+            // Uniform only if the brick proper is (a pass over the apron
+            // only then).
+            if !v0.is_nan() && mn == mx && out.iter().all(|v| v.bits() == first.bits()) {
                 if v0 == 0.0 {
                     if let Some(st) = &level.stats {
                         // Zeros where the statistics say there is data: the
