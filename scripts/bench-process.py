@@ -17,7 +17,9 @@ bricks), then times, each in its own process so that peak RSS is its own:
     SobelEdgeDetection (float32), ConnectedComponent(v > T, fully connected)
     (in core: the volume is loaded from the raw file first; the time is the
     operation's, the peak RSS the whole process's).
-Prints one JSON line per run.
+Prints one JSON line per run. SKIP="brickyard:gauss,sitk:sobel,..." leaves
+runs out (tools: brickyard, scipy, cc3d, sitk; ops: gauss, sobel, label), e.g.
+SimpleITK's Sobel at 1024³, which needs about 40 GiB.
 """
 import json
 import os
@@ -122,14 +124,20 @@ runs = [
     ("sobel", "sobel", "s"),
     (f"threshold({T})|label(26)", "label", "l"),
 ]
+SKIP = set(x for x in os.environ.get("SKIP", "").split(",") if x)
 for pipe, op, name in runs:
-    wall, rss, out = timed([BIN, "process", store, pipe, "--out", name, "--overwrite", "--quiet",
-                            "--json", "--memory", "1GiB"])
-    j = json.loads(out.strip().splitlines()[-1])
-    print(json.dumps({"tool": "brickyard process", "op": pipe, "n": N, "wall_s": round(wall, 3),
-                      "peak_rss_mib": round(rss, 1), "labels": j.get("labels")}), flush=True)
+    if f"brickyard:{op}" not in SKIP:
+        wall, rss, out = timed([BIN, "process", store, pipe, "--out", name, "--overwrite",
+                                "--quiet", "--json", "--memory", "1GiB"])
+        j = json.loads(out.strip().splitlines()[-1])
+        print(json.dumps({"tool": "brickyard process", "op": pipe, "n": N,
+                          "wall_s": round(wall, 3), "peak_rss_mib": round(rss, 1),
+                          "labels": j.get("labels")}), flush=True)
     ops = [op] + (["cc3d"] if op == "label" else []) + [f"sitk-{op}"]
     for o in ops:
+        tool_key = ("cc3d" if o == "cc3d" else "sitk" if o.startswith("sitk") else "scipy")
+        if f"{tool_key}:{op}" in SKIP:
+            continue
         wall, rss, out = timed([PY, "-c", SCIPY, o, raw, str(N), str(T)])
         j = json.loads(out.strip().splitlines()[-1])
         tool = ("cc3d 26" if o == "cc3d" else "SimpleITK" if o.startswith("sitk")

@@ -115,6 +115,61 @@ struct Paths {
     partial: PathBuf,
     /// The previous result while it is being replaced.
     old: PathBuf,
+    /// Held by the job writing `name` (its pid inside).
+    lock: PathBuf,
+}
+
+/// The lock of one result name: one job at a time writes it (a second one
+/// would take the first one's work in progress for an interrupted run's
+/// leftovers). Removed when dropped; a killed job's lock names a process
+/// that is gone, and the next job takes it over.
+struct NameLock(PathBuf);
+
+impl NameLock {
+    fn take(path: &Path, name: &str) -> Result<NameLock> {
+        use std::io::Write;
+        for _ in 0..2 {
+            match std::fs::OpenOptions::new()
+                .write(true)
+                .create_new(true)
+                .open(path)
+            {
+                Ok(mut f) => {
+                    let _ = writeln!(f, "{}", std::process::id());
+                    return Ok(NameLock(path.to_path_buf()));
+                }
+                Err(e) if e.kind() == std::io::ErrorKind::AlreadyExists => {
+                    let pid = std::fs::read_to_string(path)
+                        .ok()
+                        .and_then(|t| t.trim().parse::<u32>().ok());
+                    let alive = pid.is_some_and(|p| Path::new(&format!("/proc/{p}")).exists());
+                    if alive {
+                        bail!(
+                            "{}: another job (pid {}) is writing {name}; wait for it to end or stop it",
+                            path.display(),
+                            pid.unwrap()
+                        );
+                    }
+                    // A killed job's: take it over.
+                    note(
+                        false,
+                        &format!("removing {} (left by an interrupted run)", path.display()),
+                    );
+                    let _ = std::fs::remove_file(path);
+                }
+                Err(e) => {
+                    return Err(e).with_context(|| format!("{}: cannot create", path.display()))
+                }
+            }
+        }
+        bail!("{}: cannot take the lock", path.display())
+    }
+}
+
+impl Drop for NameLock {
+    fn drop(&mut self) {
+        let _ = std::fs::remove_file(&self.0);
+    }
 }
 
 impl Paths {
@@ -124,6 +179,7 @@ impl Paths {
             staged: dir.join(format!(".{name}.new")),
             partial: dir.join(format!(".{name}.new.partial")),
             old: dir.join(format!(".{name}.old")),
+            lock: dir.join(format!(".{name}.lock")),
             dir,
             name: name.to_string(),
         }
@@ -165,8 +221,12 @@ impl Paths {
                         p.display()
                     ),
                 );
-                std::fs::remove_dir_all(p)
-                    .with_context(|| format!("{}: cannot remove", p.display()))?;
+                match std::fs::remove_dir_all(p) {
+                    Err(e) if e.kind() != std::io::ErrorKind::NotFound => {
+                        return Err(e).with_context(|| format!("{}: cannot remove", p.display()))
+                    }
+                    _ => {}
+                }
             }
         }
         Ok(())
@@ -278,16 +338,37 @@ pub fn run(c: ProcessCmd) -> Result<()> {
     let is_label = pipe.is_label_output();
     let dir = store.join(if is_label { "labels" } else { "derived" });
     let paths = Paths::new(dir, &c.out);
+    // One job per name: taken before anything left by an earlier run is
+    // touched.
+    let made_dir = !paths.dir.exists();
+    std::fs::create_dir_all(&paths.dir)
+        .with_context(|| format!("{}: cannot create", paths.dir.display()))?;
+    let _lock = match NameLock::take(&paths.lock, &c.out) {
+        Ok(l) => l,
+        Err(e) => {
+            if made_dir {
+                let _ = std::fs::remove_dir(&paths.dir);
+            }
+            return Err(e);
+        }
+    };
+    let leave = |e: anyhow::Error| -> anyhow::Error {
+        if made_dir {
+            let _ = std::fs::remove_file(&paths.lock);
+            let _ = std::fs::remove_dir(&paths.dir);
+        }
+        e
+    };
     // What an interrupted run left is reported even with --quiet.
-    paths.recover(false)?;
+    paths.recover(false).map_err(leave)?;
     if paths.fin.exists() && !c.overwrite {
-        bail!(
+        return Err(leave(anyhow::anyhow!(
             "{}: exists; pass --overwrite to replace it",
             paths.fin.display()
-        );
+        )));
     }
     let listed = if is_label {
-        Some(labels_list(&paths.dir)?)
+        Some(labels_list(&paths.dir).map_err(leave)?)
     } else {
         None
     };
@@ -308,11 +389,11 @@ pub fn run(c: ProcessCmd) -> Result<()> {
     if let (Some(d), false) = (&on, quiet) {
         eprintln!("filter stages on the GPU: {d}");
     }
-    let made_dir = !paths.dir.exists();
     let cleanup = |e: anyhow::Error| -> anyhow::Error {
         let _ = std::fs::remove_dir_all(&paths.partial);
         let _ = std::fs::remove_dir_all(&paths.staged);
         if made_dir {
+            let _ = std::fs::remove_file(&paths.lock);
             // Only if still empty: the store is left as it was.
             let _ = std::fs::remove_dir(&paths.dir);
         }

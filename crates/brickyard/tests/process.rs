@@ -307,6 +307,52 @@ fn killed_jobs_leave_the_store_as_it_was_and_a_rerun_completes() {
 }
 
 #[test]
+fn a_second_job_on_the_same_name_is_refused_while_the_first_runs() {
+    let d = tempfile::tempdir().unwrap();
+    let store = make_store(d.path(), "120x110x100");
+    let args = [
+        "process",
+        s(&store),
+        "gauss(3)|threshold(30000)|label(26)",
+        "--out",
+        "cells",
+        "--quiet",
+    ];
+    let mut first = bin().args(args).spawn().unwrap();
+    let lock = store.join("labels/.cells.lock");
+    let t = Instant::now();
+    while !lock.exists() && t.elapsed() < Duration::from_secs(60) {
+        std::thread::sleep(Duration::from_millis(1));
+    }
+    assert!(lock.exists(), "the job took no lock");
+    // While it runs: refused, and the first job's work is left alone.
+    let o = run(&args);
+    let first_done = first.try_wait().unwrap().is_some();
+    if !first_done {
+        assert!(!o.status.success(), "a second job ran beside the first");
+        let e = String::from_utf8_lossy(&o.stderr);
+        assert!(e.contains("another job") && !e.contains("panicked"), "{e}");
+    }
+    assert!(first.wait().unwrap().success(), "the first job failed");
+    assert!(!lock.exists(), "the lock outlived its job");
+    let (v, _) = read_level0::<u32>(&store.join("labels/cells"));
+    assert!(v.iter().any(|&l| l > 0));
+    // A lock left by a killed job is taken over.
+    std::fs::write(&lock, "4000000000\n").unwrap();
+    let o = ok(run(&[
+        "process",
+        s(&store),
+        "threshold(30000)",
+        "--out",
+        "cells",
+        "--overwrite",
+        "--quiet",
+    ]));
+    assert!(String::from_utf8_lossy(&o.stderr).contains("interrupted run"));
+    assert!(!lock.exists());
+}
+
+#[test]
 fn bad_process_inputs_give_clear_errors() {
     let d = tempfile::tempdir().unwrap();
     let store = make_store(d.path(), "20");
