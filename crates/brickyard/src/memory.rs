@@ -200,9 +200,20 @@ mod tests {
         .to_string();
         assert!(e.contains("does not hold"), "{e}");
         // Without --memory they stand, and the total grows to hold them.
-        let s = split(None, Some(64 << 30), Some(1 << 30), 1 << 20, 5).unwrap();
-        assert_eq!((s.pool, s.host), (64 << 30, 1 << 30));
+        let s = split(None, Some(1 << 30), Some(512 << 20), 1 << 20, 5).unwrap();
+        assert_eq!((s.pool, s.host), (1 << 30, 512 << 20));
         assert!(s.total >= s.pool + s.host + s.chunks + s.images + s.fixed);
+    }
+
+    #[test]
+    fn budgets_beyond_the_machine_are_refused() {
+        let Some(ram) = known_ram() else {
+            return; // no /proc/meminfo: nothing to hold them against
+        };
+        let e = split(None, Some(2 * ram), Some(1 << 30), 1 << 20, 5)
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("of RAM"), "{e}");
     }
 
     #[test]
