@@ -28,6 +28,7 @@ mod mip;
 pub mod optics;
 pub mod params;
 pub mod reference;
+pub mod savr;
 mod slice;
 mod walk;
 
@@ -84,6 +85,7 @@ mod independence {
             ("mip.rs", include_str!("mip.rs")),
             ("slice.rs", include_str!("slice.rs")),
             ("budget.rs", include_str!("budget.rs")),
+            ("savr.rs", include_str!("savr.rs")),
         ] {
             let names = crate_paths(source);
             assert!(

@@ -1,0 +1,246 @@
+//! Sample accumulation: after 2^m frames the accumulated image is a single
+//! pass at 2^m times the sampling rate (same positions), in core and out of
+//! core with a pool far smaller than the volume; a complete image holds no
+//! stand-in sample; a transfer-function re-blend equals a fresh
+//! accumulation under the new function.
+//!
+//! The single pass is written here, on the in-core oracle's sampler
+//! (`Volume::sample_world`) and a compositing loop of its own.
+
+use brickyard_cache::session::Session;
+use brickyard_cache::vm::VmConfig;
+use brickyard_core::camera::{intersect_box_inv, world_extent, Camera, Projection};
+use brickyard_core::{DType, TransferFunction};
+use brickyard_render::cpu::{Lod, Scene};
+use brickyard_render::image::Image;
+use brickyard_render::reference::{render, RenderMode, RenderParams, Volume};
+use brickyard_render::savr::Accumulation;
+use brickyard_store::builder::{convert, ConvertOptions, NoProgress};
+use brickyard_store::generate::{Kind, Procedural};
+use std::path::Path;
+use std::sync::atomic::AtomicBool;
+
+fn session(store: &Path, pool_bytes: u64) -> Session {
+    let cfg = VmConfig {
+        brick: [16; 3],
+        apron: 1,
+        pt_block: [4; 3],
+        max_dir_entries: 64,
+        pool_bytes,
+        pt_cache_blocks: 256,
+        request_cap: 64,
+        upload_bytes_per_frame: 48 * 18 * 18 * 18 * 2,
+    };
+    Session::open(store, cfg, 8 << 20, 2).unwrap()
+}
+
+struct Fixture {
+    _dir: tempfile::TempDir,
+    store: std::path::PathBuf,
+    levels: Vec<Volume>,
+    scene: Scene,
+    params: RenderParams,
+    bytes: u64,
+}
+
+fn fixture() -> Fixture {
+    let dir = tempfile::tempdir().unwrap();
+    let store = dir.path().join("m.ome.zarr");
+    let dims = [48, 64, 56];
+    let src = Procedural::new(Kind::MarschnerLobb, dims, DType::U8);
+    let o = ConvertOptions {
+        brick: [16; 3],
+        shard: [32; 3],
+        ..Default::default()
+    };
+    convert(&src, &store, &o, &NoProgress, &AtomicBool::new(false)).unwrap();
+    let levels: Vec<Volume> = (0..)
+        .map_while(|l| Volume::from_store(&store, l, 0).ok())
+        .collect();
+    let extent = world_extent(dims, levels[0].spacing);
+    let scene = Scene::new(extent, levels.iter().map(|v| v.dims).collect());
+    // A faint transfer function: rays go deep before they stop.
+    let mut tf = TransferFunction::preset("viridis", [0.0, 255.0]).unwrap();
+    scale_opacity(&mut tf, 0.25);
+    let cam = Camera::fit(
+        extent,
+        30.0,
+        20.0,
+        Projection::Perspective { fov_y_deg: 40.0 },
+    );
+    let mut params = RenderParams::new(40, 30, cam, tf, RenderMode::Dvr);
+    params.reference_step = Some(scene.voxel(0));
+    let bytes = dims.iter().product::<u64>();
+    Fixture {
+        _dir: dir,
+        store,
+        levels,
+        scene,
+        params,
+        bytes,
+    }
+}
+
+fn scale_opacity(tf: &mut TransferFunction, s: f32) {
+    for p in tf.opacity.iter_mut() {
+        p[1] *= s;
+    }
+}
+
+/// A single DVR pass at `rate` samples per frame step of level `level`:
+/// samples at `t0 + i·Δ/rate`, `i = 0, 1, …`, on the oracle's sampler,
+/// composited front to back with opacity corrected by `(Δ/rate)/Δ_ref`
+/// and stopped at opacity 0.99.
+fn single_pass(vol: &Volume, f: &Fixture, tf: &TransferFunction, level: usize, rate: u32) -> Image {
+    let p = &f.params;
+    let extent = f.scene.extent;
+    let dt = f.scene.voxel(level) / p.samples_per_voxel / rate as f64;
+    let e = (dt / p.reference_step.unwrap()) as f32;
+    let rg = p.camera.ray_gen(p.width, p.height);
+    let mut img = Image::new(p.width, p.height);
+    for j in 0..p.height {
+        for i in 0..p.width {
+            let ray = rg.pixel_ray(i, j);
+            let inv = ray.dir.map(|d| 1.0 / d);
+            let Some((t0, t1)) = intersect_box_inv(&ray, inv, [0.0; 3], extent) else {
+                continue;
+            };
+            let mut acc = [0.0f32; 4];
+            let mut k = 0u64;
+            loop {
+                let t = t0 + k as f64 * dt;
+                if t >= t1 {
+                    break;
+                }
+                k += 1;
+                let c = tf.lookup(vol.sample_world(ray.at(t), extent));
+                if c[3] <= 0.0 {
+                    continue;
+                }
+                let a = 1.0 - (1.0 - c[3]).powf(e);
+                let w = (1.0 - acc[3]) * a;
+                for ch in 0..3 {
+                    acc[ch] += w * c[ch];
+                }
+                acc[3] += w;
+                if acc[3] >= 0.99 {
+                    break;
+                }
+            }
+            img.rgba[(j * p.width + i) as usize] = acc;
+        }
+    }
+    img
+}
+
+/// Accumulation frames through session `s` until the accumulation is
+/// complete; returns the frames drawn and the stand-ins kept after the
+/// first.
+fn accumulate(s: &mut Session, f: &Fixture, acc: &mut Accumulation, lod: Lod) -> (usize, u64) {
+    let mut first = None;
+    for frame in 1..=600 {
+        s.begin_frame();
+        let (st, reqs) = acc.frame(s.vm(), &f.scene, &f.params, lod);
+        first.get_or_insert(st.stand_ins);
+        s.finish_frame(reqs.iter());
+        if acc.complete() {
+            return (frame, first.unwrap());
+        }
+        std::thread::sleep(std::time::Duration::from_millis(1));
+    }
+    panic!(
+        "the accumulation never completed: {} stand-ins",
+        acc.stand_ins()
+    );
+}
+
+#[test]
+fn accumulated_frames_equal_a_single_pass_at_the_rate_reached() {
+    let f = fixture();
+    for (n, level) in [(1u32, 0usize), (8, 0), (16, 1)] {
+        let mut s = session(&f.store, 64 << 20);
+        let mut acc = Accumulation::new(f.params.width, f.params.height, n, 1 << 20);
+        let (frames, _) = accumulate(&mut s, &f, &mut acc, Lod::Fixed(level));
+        assert_eq!(acc.frames(), n);
+        assert!(frames >= n as usize);
+        // One frame is the plain renderer's grid, `t0 + (k + ½)·Δ`: the
+        // oracle itself.
+        let want = match n {
+            1 => render(&f.levels[level], &f.params),
+            _ => single_pass(&f.levels[level], &f, &f.params.tf, level, n),
+        };
+        let d = acc.image().max_abs_diff(&want);
+        assert!(d <= 1e-5, "{n} frames, level {level}: max abs diff {d}");
+        assert!(want.coverage(0.01) > 0.2, "image nearly empty");
+        if n > 1 {
+            // Not the single frame's image: the rate matters here.
+            let one = single_pass(&f.levels[level], &f, &f.params.tf, level, 1);
+            assert!(acc.image().max_abs_diff(&one) > 1e-3);
+        }
+    }
+}
+
+/// Out of core (a pool of a third of the volume, bricks arriving a few per
+/// frame): the first frames are drawn from coarser stand-ins, which are
+/// retaken as the finer bricks arrive. The complete image equals the
+/// in-core single pass; a stand-in left in it would not.
+#[test]
+fn a_complete_image_holds_no_stand_in() {
+    let f = fixture();
+    let mut s = session(&f.store, f.bytes / 3);
+    assert!((s.vm().pool_bytes() as u64) * 2 < f.bytes);
+    let mut acc = Accumulation::new(f.params.width, f.params.height, 8, 1 << 20);
+    let (frames, first) = accumulate(&mut s, &f, &mut acc, Lod::Fixed(0));
+    assert!(first > 0, "the first frame must hold stand-ins");
+    assert!(frames > 8, "{frames} frames");
+    assert_eq!(acc.stand_ins(), 0);
+    let want = single_pass(&f.levels[0], &f, &f.params.tf, 0, 8);
+    let d = acc.image().max_abs_diff(&want);
+    assert!(d <= 1e-5, "max abs diff {d} after {frames} frames");
+}
+
+/// A per-pixel budget of 600 samples stops pixels short of the 16 frames
+/// asked for (at ⌊600 / steps of the ray⌋) and the accumulation is
+/// complete there, within the memory bound.
+#[test]
+fn a_full_store_stops_the_pixel_at_the_rate_reached() {
+    let f = fixture();
+    let mut s = session(&f.store, 64 << 20);
+    // The longest ray of this view is well under 200 steps.
+    let mut acc = Accumulation::new(f.params.width, f.params.height, 16, 3 * 200);
+    accumulate(&mut s, &f, &mut acc, Lod::Fixed(0));
+    assert!(acc.frames() >= 3 && acc.frames() < 16, "{}", acc.frames());
+    assert!(acc.complete());
+    assert!(acc.memory() < (f.params.width * f.params.height) as usize * (3 * 200 * 5 + 400));
+}
+
+/// A re-blend under a new transfer function, without the volume, equals a
+/// fresh accumulation under it; one that sees further than the runs were
+/// taken reports the pixels short, and the next frame completes them.
+#[test]
+fn a_reblend_equals_a_fresh_accumulation() {
+    let mut f = fixture();
+    let mut s = session(&f.store, 64 << 20);
+    let mut acc = Accumulation::new(f.params.width, f.params.height, 8, 1 << 20);
+    accumulate(&mut s, &f, &mut acc, Lod::Fixed(0));
+    for (scale, cmap) in [(3.0f32, "hot"), (0.2, "linear")] {
+        let mut tf = TransferFunction::preset(cmap, [0.0, 255.0]).unwrap();
+        scale_opacity(&mut tf, 0.25 * scale);
+        let short = acc.reblend(&tf);
+        f.params.tf = tf.clone();
+        if scale < 1.0 {
+            assert!(short > 0, "a fainter function sees further");
+            assert!(!acc.complete());
+            accumulate(&mut s, &f, &mut acc, Lod::Fixed(0));
+        } else {
+            assert_eq!(short, 0, "a denser function stops earlier");
+            assert!(acc.complete());
+        }
+        let mut fresh = Accumulation::new(f.params.width, f.params.height, 8, 1 << 20);
+        accumulate(&mut s, &f, &mut fresh, Lod::Fixed(0));
+        let d = acc.image().max_abs_diff(fresh.image());
+        assert!(d <= 1e-6, "{cmap}: re-blend vs fresh: {d}");
+        let want = single_pass(&f.levels[0], &f, &tf, 0, 8);
+        assert!(acc.image().max_abs_diff(&want) <= 1e-5);
+    }
+}
