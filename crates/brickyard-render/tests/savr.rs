@@ -244,3 +244,168 @@ fn a_reblend_equals_a_fresh_accumulation() {
         assert!(acc.image().max_abs_diff(&want) <= 1e-5);
     }
 }
+
+/// Mean SSIM of the luminance of two images over black (premultiplied
+/// RGB), on 8×8 windows every 4 pixels, uniform weights, `C1 = 0.01²`,
+/// `C2 = 0.03²`.
+fn ssim(a: &Image, b: &Image) -> f64 {
+    let lum = |c: [f32; 4]| 0.299 * c[0] as f64 + 0.587 * c[1] as f64 + 0.114 * c[2] as f64;
+    let (w, h) = (a.width as usize, a.height as usize);
+    let (c1, c2) = (1e-4, 9e-4);
+    let (mut sum, mut n) = (0.0, 0);
+    for y0 in (0..h.saturating_sub(7)).step_by(4) {
+        for x0 in (0..w.saturating_sub(7)).step_by(4) {
+            let (mut sa, mut sb, mut saa, mut sbb, mut sab) = (0.0, 0.0, 0.0, 0.0, 0.0);
+            for y in y0..y0 + 8 {
+                for x in x0..x0 + 8 {
+                    let (p, q) = (lum(a.rgba[y * w + x]), lum(b.rgba[y * w + x]));
+                    sa += p;
+                    sb += q;
+                    saa += p * p;
+                    sbb += q * q;
+                    sab += p * q;
+                }
+            }
+            let m = 64.0;
+            let (ma, mb) = (sa / m, sb / m);
+            let (va, vb) = (saa / m - ma * ma, sbb / m - mb * mb);
+            let cov = sab / m - ma * mb;
+            sum += ((2.0 * ma * mb + c1) * (2.0 * cov + c2))
+                / ((ma * ma + mb * mb + c1) * (va + vb + c2));
+            n += 1;
+        }
+    }
+    sum / n as f64
+}
+
+#[test]
+fn ssim_of_an_image_with_itself_is_one_and_drops_with_noise() {
+    let f = fixture();
+    let img = render(&f.levels[0], &f.params);
+    assert!((ssim(&img, &img) - 1.0).abs() < 1e-12);
+    let mut noisy = img.clone();
+    for (i, p) in noisy.rgba.iter_mut().enumerate() {
+        p[0] = (p[0] + if i % 3 == 0 { 0.2 } else { -0.1 }).clamp(0.0, 1.0);
+    }
+    assert!(ssim(&img, &noisy) < 0.9, "{}", ssim(&img, &noisy));
+}
+
+/// The figures of BENCHMARKS.md (sample accumulation): frames → PSNR and
+/// SSIM against a single pass at 32 samples per voxel, beside a plain
+/// single pass at the same total rate; accumulation frame time against a
+/// plain DVR frame; a transfer-function re-blend against a fresh
+/// accumulation. Run with `--ignored --nocapture`.
+#[test]
+#[ignore]
+fn convergence_figures() {
+    use brickyard_render::cpu::render_frame;
+    use std::time::Instant;
+    let dir = tempfile::tempdir().unwrap();
+    let store = dir.path().join("mb.ome.zarr");
+    let dims = [128, 128, 128];
+    let o = ConvertOptions {
+        brick: [32; 3],
+        shard: [64; 3],
+        ..Default::default()
+    };
+    let src = Procedural::new(Kind::Mandelbulb, dims, DType::U8);
+    convert(&src, &store, &o, &NoProgress, &AtomicBool::new(false)).unwrap();
+    let vol = Volume::from_store(&store, 0, 0).unwrap();
+    let extent = world_extent(dims, vol.spacing);
+    let mut scene = Scene::new(extent, vec![vol.dims]);
+    scene.ranges = None;
+    // A narrow, dense band of opacity: thin shells that a coarse step
+    // undersamples.
+    let mut tf = TransferFunction::preset("viridis", [0.0, 255.0]).unwrap();
+    tf.opacity = vec![[0.0, 0.0], [0.3, 0.0], [0.33, 0.9], [0.36, 0.0], [1.0, 0.0]];
+    let cam = Camera::fit(
+        extent,
+        30.0,
+        20.0,
+        Projection::Perspective { fov_y_deg: 40.0 },
+    );
+    let mut p = RenderParams::new(256, 256, cam, tf, RenderMode::Dvr);
+    p.reference_step = Some(scene.voxel(0));
+    let t = Instant::now();
+    let mut pr = p.clone();
+    pr.samples_per_voxel = 32.0;
+    let reference = render(&vol, &pr);
+    println!(
+        "reference (32 samples per voxel, oracle): {:.1} s",
+        t.elapsed().as_secs_f64()
+    );
+    let cfg = VmConfig {
+        brick: [32; 3],
+        apron: 1,
+        pt_block: [4; 3],
+        max_dir_entries: 64,
+        pool_bytes: 64 << 20,
+        pt_cache_blocks: 256,
+        request_cap: 4096,
+        upload_bytes_per_frame: 64 << 20,
+    };
+    let mut s = Session::open(&store, cfg, 64 << 20, 2).unwrap();
+    // Load the working set (nothing is timed before it is resident).
+    for _ in 0..50 {
+        s.begin_frame();
+        let (_, st, reqs) = render_frame(s.vm(), &scene, &p, Lod::Fixed(0));
+        s.finish_frame(reqs.iter());
+        if st.completeness() == 1.0 {
+            break;
+        }
+        std::thread::sleep(std::time::Duration::from_millis(20));
+    }
+    let mut plain_ms = f64::INFINITY;
+    for _ in 0..3 {
+        let t = Instant::now();
+        let _ = render_frame(s.vm(), &scene, &p, Lod::Fixed(0));
+        plain_ms = plain_ms.min(t.elapsed().as_secs_f64() * 1e3);
+    }
+    println!("plain DVR frame (1 sample per voxel): {plain_ms:.1} ms");
+    println!("| frames | accumulated PSNR dB | SSIM | frame ms | plain single pass at the same rate: PSNR dB | SSIM |");
+    println!("|---:|---:|---:|---:|---:|---:|");
+    let mut acc = Accumulation::new(p.width, p.height, 32, 1 << 20);
+    let mut total = 0.0;
+    for n in 1..=32u32 {
+        s.begin_frame();
+        let t = Instant::now();
+        let (st, reqs) = acc.frame(s.vm(), &scene, &p, Lod::Fixed(0));
+        let ms = t.elapsed().as_secs_f64() * 1e3;
+        total += ms;
+        s.finish_frame(reqs.iter());
+        assert_eq!(st.stand_ins, 0);
+        if n.is_power_of_two() {
+            let mut pn = p.clone();
+            pn.samples_per_voxel = n as f64;
+            let plain = render(&vol, &pn);
+            println!(
+                "| {n} | {:.2} | {:.4} | {ms:.0} | {:.2} | {:.4} |",
+                acc.image().psnr(&reference),
+                ssim(acc.image(), &reference),
+                plain.psnr(&reference),
+                ssim(&plain, &reference)
+            );
+        }
+        if n == 16 {
+            // Re-blends against a fresh accumulation of 16 frames: new
+            // colours; the band moved and widened.
+            let mut colours = p.tf.clone();
+            colours.colormap = TransferFunction::preset("hot", [0.0, 1.0])
+                .unwrap()
+                .colormap;
+            let mut moved = p.tf.clone();
+            moved.opacity = vec![[0.0, 0.0], [0.25, 0.0], [0.3, 0.9], [0.36, 0.0], [1.0, 0.0]];
+            println!(
+                "16 frames: {total:.0} ms in all, {:.1} MiB kept",
+                acc.memory() as f64 / (1 << 20) as f64
+            );
+            for (what, tf2) in [("colours", colours), ("opacity band", moved)] {
+                let t = Instant::now();
+                let short = acc.reblend(&tf2);
+                let reblend_ms = t.elapsed().as_secs_f64() * 1e3;
+                println!("re-blend, new {what}: {reblend_ms:.1} ms ({short} pixels short of kept samples)");
+            }
+            acc.reblend(&p.tf);
+        }
+    }
+}
