@@ -29,6 +29,7 @@ pub mod optics;
 pub mod params;
 pub mod reference;
 pub mod savr;
+mod shading;
 mod slice;
 mod walk;
 
@@ -86,6 +87,7 @@ mod independence {
             ("slice.rs", include_str!("slice.rs")),
             ("budget.rs", include_str!("budget.rs")),
             ("savr.rs", include_str!("savr.rs")),
+            ("shading.rs", include_str!("shading.rs")),
         ] {
             let names = crate_paths(source);
             assert!(
