@@ -63,11 +63,12 @@ use crate::cpu::{FrameStats, Lod, Scene};
 use crate::image::Image;
 use crate::optics::composite_visible;
 use crate::params::{RenderMode, RenderParams};
+use crate::shading::{cosine, lit};
 use crate::walk::{Frame, Walker};
 use brickyard_cache::vm::{Requests, VirtualMemory};
 use brickyard_core::camera::{intersect_box_inv, Ray};
 use brickyard_core::transfer::TfEval;
-use brickyard_core::{dispatch_dtype, Sample, TransferFunction};
+use brickyard_core::{dispatch_dtype, Sample, Shading, TransferFunction};
 use rayon::prelude::*;
 
 /// The most frames a pixel accumulates.
@@ -109,6 +110,9 @@ struct Pixel {
     t1: f64,
     values: Vec<f32>,
     flags: Vec<u8>,
+    /// With shading: per sample the cosine `|ĝ·d̂|` between its gradient
+    /// and the ray (negative: a zero gradient, unshaded); else empty.
+    cos: Vec<f32>,
     runs: Vec<RunInfo>,
     /// Kept samples flagged as stand-ins.
     stand_ins: u32,
@@ -163,6 +167,9 @@ pub struct Accumulation {
     image: Image,
     /// Frames drawn.
     drawn: u32,
+    /// Whether samples keep their normal's cosine (fixed by the first
+    /// frame: whether its transfer function shades).
+    shaded: Option<bool>,
 }
 
 /// The result of a blend from kept samples.
@@ -195,6 +202,7 @@ impl Accumulation {
             reference: 0.0,
             image: Image::new(width, height),
             drawn: 0,
+            shaded: None,
         }
     }
 
@@ -224,6 +232,7 @@ impl Accumulation {
             .iter()
             .map(|p| {
                 p.values.len() * BYTES_PER_SAMPLE
+                    + p.cos.len() * 4
                     + p.runs.len() * std::mem::size_of::<RunInfo>()
                     + std::mem::size_of::<Pixel>()
             })
@@ -275,6 +284,12 @@ impl Accumulation {
             "accumulation and parameters of one size"
         );
         self.reference = params.reference_step.unwrap_or(scene.voxel(0));
+        let on = params.tf.shading.is_some();
+        let shaded = *self.shaded.get_or_insert(on);
+        assert!(
+            shaded || !on,
+            "the samples of this accumulation keep no normals: start a new one to shade"
+        );
         dispatch_dtype!(vm.dtype(), T => { self.frame_typed::<T>(vm, scene, params, lod) })
     }
 
@@ -289,6 +304,8 @@ impl Accumulation {
         let w = self.width as usize;
         let rg = params.camera.ray_gen(self.width, self.height);
         let tf = params.tf.evaluator();
+        let shading = params.tf.shading;
+        let normals = self.shaded == Some(true);
         let (orders, reference) = (&self.orders.clone(), self.reference);
         let (target, budget) = (self.target, self.budget);
         let room = move |p: &Pixel, k: u32| room(target, budget, p, k);
@@ -316,8 +333,9 @@ impl Accumulation {
                             ray: &ray,
                             req: &mut req,
                             st: &mut st,
+                            normals,
                         };
-                        *o = s.pixel(p, &tf, orders, reference, &room);
+                        *o = s.pixel(p, (&tf, shading.as_ref()), orders, reference, &room);
                     }
                     (wk, req, st)
                 },
@@ -352,9 +370,15 @@ impl Accumulation {
     /// Returns the pixels whose kept runs end before their ray stops under
     /// `tf` (a more transparent function sees further than the runs were
     /// taken): they show the blend so far, and the next
-    /// [`frame`](Self::frame) extends them.
-    pub fn reblend(&mut self, tf: &TransferFunction) -> usize {
+    /// [`frame`](Self::frame) extends them. `None` (nothing done) when `tf`
+    /// shades and the kept samples have no normals (the accumulation began
+    /// unshaded): that takes a new accumulation.
+    pub fn reblend(&mut self, tf: &TransferFunction) -> Option<usize> {
+        if tf.shading.is_some() && self.shaded != Some(true) {
+            return None;
+        }
         let eval = tf.evaluator();
+        let shading = tf.shading.as_ref();
         let (orders, reference) = (&self.orders, self.reference);
         self.pixels
             .par_iter_mut()
@@ -365,7 +389,8 @@ impl Accumulation {
                     return 0;
                 }
                 let n = p.runs.len();
-                let (c, short) = match blend(p, &orders[n - 1], &eval, exponent(p, reference)) {
+                let e = exponent(p, reference);
+                let (c, short) = match blend(p, &orders[n - 1], (&eval, shading), e) {
                     Blend::Done(c) => (c, false),
                     Blend::Short(_, c) => (c, true),
                 };
@@ -373,7 +398,8 @@ impl Accumulation {
                 p.short = short;
                 short as usize
             })
-            .sum()
+            .sum::<usize>()
+            .into()
     }
 }
 
@@ -389,7 +415,13 @@ fn exponent(p: &Pixel, reference: f64) -> f32 {
 
 /// Blend pixel `p`'s kept samples in depth order (`order`: its runs by
 /// offset).
-fn blend(p: &Pixel, order: &[u8], tf: &TfEval, exponent: f32) -> Blend {
+fn blend(
+    p: &Pixel,
+    order: &[u8],
+    (tf, shading): (&TfEval, Option<&Shading>),
+    exponent: f32,
+) -> Blend {
+    let shading = shading.filter(|_| !p.cos.is_empty());
     let mut starts = [0usize; MAX_FRAMES as usize];
     let mut s = 0;
     for (k, r) in p.runs.iter().enumerate() {
@@ -414,7 +446,13 @@ fn blend(p: &Pixel, order: &[u8], tf: &TfEval, exponent: f32) -> Blend {
             if p.flags[i] & UNSERVED != 0 {
                 continue;
             }
-            if let Some(c) = tf.lookup_visible(p.values[i]) {
+            if let Some(mut c) = tf.lookup_visible(p.values[i]) {
+                if let Some(sh) = shading {
+                    let x = p.cos[i];
+                    if x >= 0.0 {
+                        c = lit(sh, c, x as f64);
+                    }
+                }
                 if composite_visible(&mut acc, c, exponent) {
                     return Blend::Done(acc);
                 }
@@ -434,25 +472,39 @@ struct Sampler<'w, 'f, 'a, T> {
     ray: &'w Ray,
     req: &'w mut Requests,
     st: &'w mut AccumStats,
+    /// Keep each sample's normal cosine.
+    normals: bool,
 }
 
 impl<T: Sample> Sampler<'_, '_, '_, T> {
-    /// The value at ray parameter `t` and its flags.
-    fn sample(&mut self, t: f64) -> (f32, u8) {
+    /// The value at ray parameter `t`, its flags and (keeping normals)
+    /// the cosine of its normal with the ray (negative for a zero
+    /// gradient). A sample whose value or any gradient neighbour was not
+    /// served at its level is a stand-in.
+    fn sample(&mut self, t: f64) -> (f32, u8, f32) {
         let f = self.f;
         let level = f.level_at(t);
         let w = self.ray.at(t);
         let (vb, frac) = f.coords(level, w);
         self.wk.enter(level, vb, self.req, true);
-        let exact = self.st.frame.exact;
-        match self
-            .wk
-            .value(level, w, vb, frac, self.req, &mut self.st.frame)
-        {
-            Some(v) if self.st.frame.exact > exact => (v, 0),
-            Some(v) => (v, STAND_IN),
-            None => (0.0, STAND_IN | UNSERVED),
+        let st = &mut self.st.frame;
+        let (samples, exact) = (st.samples, st.exact);
+        let Some(v) = self.wk.value(level, w, vb, frac, self.req, st) else {
+            return (0.0, STAND_IN | UNSERVED, -1.0);
+        };
+        let mut cos = -1.0;
+        if self.normals {
+            match self.wk.gradient(level, w, self.req, st) {
+                Some(g) => cos = cosine(g, self.ray.dir).map_or(-1.0, |x| x as f32),
+                None => return (v, STAND_IN, -1.0),
+            }
         }
+        let fl = if st.exact - exact == st.samples - samples {
+            0
+        } else {
+            STAND_IN
+        };
+        (v, fl, cos)
     }
 
     /// Take samples `j = from, from + 1, …` of run `k` of `p` (offset
@@ -462,7 +514,7 @@ impl<T: Sample> Sampler<'_, '_, '_, T> {
     fn take(&mut self, p: &mut Pixel, k: usize, limit: usize, own: Option<(&TfEval, f32)>) {
         let o = offset(k as u32);
         let start = p.start(k) + p.runs[k].len as usize;
-        let (mut vals, mut flags) = (Vec::new(), Vec::new());
+        let (mut vals, mut flags, mut coss) = (Vec::new(), Vec::new(), Vec::new());
         let mut j = p.runs[k].len as usize;
         let mut acc = [0.0f32; 4];
         let mut ended = false;
@@ -472,9 +524,10 @@ impl<T: Sample> Sampler<'_, '_, '_, T> {
                 ended = true;
                 break;
             }
-            let (v, fl) = self.sample(t);
+            let (v, fl, cos) = self.sample(t);
             vals.push(v);
             flags.push(fl);
+            coss.push(cos);
             j += 1;
             if fl & UNSERVED == 0 {
                 if let Some((tf, e)) = own {
@@ -491,6 +544,9 @@ impl<T: Sample> Sampler<'_, '_, '_, T> {
         p.runs[k].ended = ended;
         p.values.splice(start..start, vals);
         p.flags.splice(start..start, flags);
+        if self.normals {
+            p.cos.splice(start..start, coss);
+        }
     }
 
     /// Retake `p`'s stand-in samples; those now served at their level
@@ -502,7 +558,10 @@ impl<T: Sample> Sampler<'_, '_, '_, T> {
             for j in 0..p.runs[k].len as usize {
                 if p.flags[i] & STAND_IN != 0 {
                     let t = p.t0 + (j as f64 + o) * p.dt;
-                    let (v, fl) = self.sample(t);
+                    let (v, fl, cos) = self.sample(t);
+                    if self.normals && fl & UNSERVED == 0 {
+                        p.cos[i] = cos;
+                    }
                     if fl == 0 {
                         p.values[i] = v;
                         p.flags[i] = 0;
@@ -523,7 +582,7 @@ impl<T: Sample> Sampler<'_, '_, '_, T> {
     fn pixel(
         &mut self,
         p: &mut Pixel,
-        tf: &TfEval,
+        look: (&TfEval, Option<&Shading>),
         orders: &[Vec<u8>],
         reference: f64,
         room: &impl Fn(&Pixel, u32) -> bool,
@@ -552,12 +611,12 @@ impl<T: Sample> Sampler<'_, '_, '_, T> {
                 ended: false,
             });
             let e = (p.dt / reference) as f32;
-            self.take(p, k as usize, usize::MAX, Some((tf, e)));
+            self.take(p, k as usize, usize::MAX, Some((look.0, e)));
         }
         let order = &orders[p.runs.len() - 1];
         let e = exponent(p, reference);
         loop {
-            match blend(p, order, tf, e) {
+            match blend(p, order, look, e) {
                 Blend::Done(c) => {
                     p.short = false;
                     return c;
@@ -611,6 +670,7 @@ mod tests {
             t1: 2.0,
             values: vec![1.0, 2.0, 3.0, 4.0],
             flags: vec![0; 4],
+            cos: vec![],
             runs: vec![
                 RunInfo {
                     len: 2,
@@ -627,7 +687,7 @@ mod tests {
         let a = Accumulation::new(1, 1, 2, 100);
         assert_eq!(a.orders[1], [1, 0]);
         let lin = TransferFunction::preset("linear", [0.0, 16.0]).unwrap();
-        let eval_blend = |p: &Pixel| match blend(p, &a.orders[1], &lin.evaluator(), 1.0) {
+        let eval_blend = |p: &Pixel| match blend(p, &a.orders[1], (&lin.evaluator(), None), 1.0) {
             Blend::Done(c) => c,
             Blend::Short(..) => panic!("short"),
         };
@@ -649,7 +709,7 @@ mod tests {
         q.values.remove(1);
         q.flags.remove(1);
         assert!(matches!(
-            blend(&q, &a.orders[1], &lin.evaluator(), 1.0),
+            blend(&q, &a.orders[1], (&lin.evaluator(), None), 1.0),
             Blend::Short(0, _)
         ));
     }

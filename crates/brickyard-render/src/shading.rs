@@ -73,12 +73,26 @@ impl<T: Sample> Walker<'_, '_, T> {
 /// and the half vector lie along the ray); `c` as it is for a zero
 /// gradient. Opacity unchanged.
 pub(crate) fn blinn_phong(sh: &Shading, c: [f32; 4], g: [f64; 3], dir: Vec3) -> [f32; 4] {
+    match cosine(g, dir) {
+        Some(x) => lit(sh, c, x),
+        None => c,
+    }
+}
+
+/// `|ĝ·d̂|`; `None` for a zero gradient.
+#[inline]
+pub(crate) fn cosine(g: [f64; 3], dir: Vec3) -> Option<f64> {
     let gg = g[0] * g[0] + g[1] * g[1] + g[2] * g[2];
     if gg == 0.0 {
-        return c;
+        return None;
     }
     let dd = dir[0] * dir[0] + dir[1] * dir[1] + dir[2] * dir[2];
-    let x = ((g[0] * dir[0] + g[1] * dir[1] + g[2] * dir[2]) / (gg * dd).sqrt()).abs();
+    Some(((g[0] * dir[0] + g[1] * dir[1] + g[2] * dir[2]) / (gg * dd).sqrt()).abs())
+}
+
+/// Colour `c` lit at cosine `x` (see [`blinn_phong`]).
+#[inline]
+pub(crate) fn lit(sh: &Shading, c: [f32; 4], x: f64) -> [f32; 4] {
     let diffuse = sh.ambient as f64 + sh.diffuse as f64 * x;
     let specular = sh.specular as f64 * x.powf(sh.shininess as f64);
     let f = |ch: f32| (ch as f64 * diffuse + specular) as f32;
