@@ -13,6 +13,9 @@
 //! - [`gpu`]: DVR, MIP and slices on the device (the device frame driver):
 //!   the WGSL twin of each of those modules sits beside it (`walk.wgsl`,
 //!   `dvr.wgsl`, …) and `gpu.rs` joins them into one shader.
+//! - [`savr`]: progressive DVR by sample accumulation on the CPU (kept
+//!   samples per pixel, depth-order blends, re-blends under a new transfer
+//!   function); `shading` holds DVR gradient shading.
 //! - [`budget`]: the level-of-detail budget of a view.
 //!
 //! Cameras and transfer functions live in `brickyard_core::{camera,
