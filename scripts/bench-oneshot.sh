@@ -58,7 +58,7 @@ for n in $SIZES; do
     c=$(drop); ours "$n" "$s" "$c"
     c=$(drop); ours "$n" "$s" "$c" --memory 128MiB
     ours "$n" "$s" warm
-    ours "$n" "$s" warm --progressive
+    ours "$n" "$s" warm --stream
   done
 done
 python3 - "$RUNS" <<'PY'

@@ -244,7 +244,11 @@ fn eval_piecewise<P>(pts: &[P], x: f32, px: impl Fn(&P) -> f32, pv: impl Fn(&P) 
 ///
 /// `colormap` defaults to grayscale; with `"preset"` (see
 /// [`TransferFunction::PRESETS`]) `opacity` and `colormap` are optional
-/// overrides of the preset's.
+/// overrides of the preset's. `"shading"` (DVR only) turns gradient
+/// shading on: `true` with the defaults of [`Shading`], or an object with
+/// any of `ambient`, `diffuse`, `specular`, `shininess`
+/// (`{"preset": "soft", "window": [0, 255], "shading": {"specular": 0.5}}`);
+/// absent or `false`: off.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(try_from = "serde_json::Value")]
 pub struct TransferFunction {
@@ -253,6 +257,36 @@ pub struct TransferFunction {
     /// `(x, alpha)` control points, `x` non-decreasing in `[0, 1]`.
     pub opacity: Vec<[f32; 2]>,
     pub colormap: ColorMap,
+    /// DVR gradient shading (`None`: unshaded).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub shading: Option<Shading>,
+}
+
+/// Gradient shading of DVR samples: Blinn–Phong with a light at the eye.
+/// The normal is the normalized gradient of the sampled field (central
+/// differences one voxel of the sample's level apart along each axis, on
+/// the same clamped trilinear sampler); with the light and the eye along
+/// the ray, a sample's colour `c` becomes
+/// `c·(ambient + diffuse·|n·l|) + specular·|n·l|^shininess` (two-sided;
+/// the half vector is the light direction), opacity unchanged. A zero
+/// gradient leaves the colour as it is.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct Shading {
+    pub ambient: f32,
+    pub diffuse: f32,
+    pub specular: f32,
+    pub shininess: f32,
+}
+
+impl Default for Shading {
+    fn default() -> Shading {
+        Shading {
+            ambient: 0.3,
+            diffuse: 0.7,
+            specular: 0.2,
+            shininess: 32.0,
+        }
+    }
 }
 
 impl TransferFunction {
@@ -270,6 +304,7 @@ impl TransferFunction {
             window,
             opacity,
             colormap,
+            shading: None,
         };
         tf.validate()?;
         Ok(tf)
@@ -348,6 +383,7 @@ impl TransferFunction {
             window: w,
             opacity: vec![[0.0, 0.0], [0.1, 0.0], [1.0, 0.5]],
             colormap: ColorMap::default(),
+            shading: None,
         }
     }
 
@@ -465,6 +501,28 @@ impl TransferFunction {
         if let ColorMap::Points(v) = &self.colormap {
             check_points("colormap", v.iter().map(|p| (p[0], &p[1..])), "r, g, b")?;
         }
+        if let Some(sh) = &self.shading {
+            for (k, x) in [
+                ("ambient", sh.ambient),
+                ("diffuse", sh.diffuse),
+                ("specular", sh.specular),
+            ] {
+                if !(x.is_finite() && x >= 0.0) {
+                    return Err(ConfigError::new(
+                        WHAT,
+                        &format!("shading.{k}"),
+                        format!("must be a finite number ≥ 0, got {x}"),
+                    ));
+                }
+            }
+            if !(sh.shininess.is_finite() && sh.shininess >= 1.0) {
+                return Err(ConfigError::new(
+                    WHAT,
+                    "shading.shininess",
+                    format!("must be a finite number ≥ 1, got {}", sh.shininess),
+                ));
+            }
+        }
         Ok(())
     }
 
@@ -547,6 +605,40 @@ fn parse_points<const N: usize>(
         .collect()
 }
 
+/// `"shading"`: `true`, `false` or an object of [`Shading`]'s fields.
+fn parse_shading(o: &Fields, v: &Value) -> Result<Option<Shading>, ConfigError> {
+    if let Some(b) = v.as_bool() {
+        return Ok(b.then(Shading::default));
+    }
+    let keys = ["ambient", "diffuse", "specular", "shininess"];
+    let s = Fields::new("transfer function shading", v, &keys).map_err(|_| {
+        o.err(
+            "shading",
+            format!(
+                "expected true, false or an object with {keys:?}, got {}",
+                brief(v)
+            ),
+        )
+    })?;
+    let mut sh = Shading::default();
+    for (k, dst) in keys.iter().zip([
+        &mut sh.ambient,
+        &mut sh.diffuse,
+        &mut sh.specular,
+        &mut sh.shininess,
+    ]) {
+        if let Some(x) = s.obj.get(*k) {
+            *dst = x.as_f64().ok_or_else(|| {
+                o.err(
+                    &format!("shading.{k}"),
+                    format!("expected a number, got {}", brief(x)),
+                )
+            })? as f32;
+        }
+    }
+    Ok(Some(sh))
+}
+
 fn parse_colormap(o: &Fields, v: &Value) -> Result<ColorMap, ConfigError> {
     match v {
         Value::String(s) => Preset::parse(s).map(ColorMap::Preset).ok_or_else(|| {
@@ -565,7 +657,11 @@ fn parse_colormap(o: &Fields, v: &Value) -> Result<ColorMap, ConfigError> {
 impl TryFrom<Value> for TransferFunction {
     type Error = ConfigError;
     fn try_from(v: Value) -> Result<TransferFunction, ConfigError> {
-        let o = Fields::new(WHAT, &v, &["preset", "window", "opacity", "colormap"])?;
+        let o = Fields::new(
+            WHAT,
+            &v,
+            &["preset", "window", "opacity", "colormap", "shading"],
+        )?;
         let w = o.numbers::<2>("window", o.required("window")?)?;
         let window = [w[0] as f32, w[1] as f32];
         let mut tf = match o.obj.get("preset") {
@@ -581,6 +677,7 @@ impl TryFrom<Value> for TransferFunction {
                     window,
                     opacity: vec![[0.0, 0.0]],
                     colormap: ColorMap::default(),
+                    shading: None,
                 }
                 .validate()?;
                 TransferFunction::preset(name, window)?
@@ -589,6 +686,7 @@ impl TryFrom<Value> for TransferFunction {
                 window,
                 opacity: Vec::new(),
                 colormap: ColorMap::default(),
+                shading: None,
             },
         };
         match o.obj.get("opacity") {
@@ -598,6 +696,9 @@ impl TryFrom<Value> for TransferFunction {
         }
         if let Some(v) = o.obj.get("colormap") {
             tf.colormap = parse_colormap(&o, v)?;
+        }
+        if let Some(v) = o.obj.get("shading") {
+            tf.shading = parse_shading(&o, v)?;
         }
         tf.validate()?;
         Ok(tf)
@@ -1130,6 +1231,40 @@ mod tests {
         assert_eq!(cm, ColorMap::Preset(Preset::Bone));
         let cm: ColorMap = serde_json::from_str("[[0, 1, 1, 1]]").unwrap();
         assert_eq!(cm, ColorMap::Points(vec![[0.0, 1.0, 1.0, 1.0]]));
+    }
+
+    /// Shading: off when absent or `false`, the defaults with `true`, an
+    /// object overrides some fields; it survives a round trip; bad values
+    /// name their field.
+    #[test]
+    fn shading_in_json() {
+        let base = r#""preset": "soft", "window": [0, 10]"#;
+        let tf = |extra: &str| TransferFunction::from_json(&format!("{{{base}{extra}}}"));
+        assert_eq!(tf("").unwrap().shading, None);
+        assert_eq!(tf(r#", "shading": false"#).unwrap().shading, None);
+        assert_eq!(
+            tf(r#", "shading": true"#).unwrap().shading,
+            Some(Shading::default())
+        );
+        let t = tf(r#", "shading": {"specular": 0.5, "shininess": 8}"#).unwrap();
+        let want = Shading {
+            specular: 0.5,
+            shininess: 8.0,
+            ..Shading::default()
+        };
+        assert_eq!(t.shading, Some(want));
+        assert_eq!(TransferFunction::from_json(&t.to_json()).unwrap(), t);
+        assert!(!tf("").unwrap().to_json().contains("shading"));
+        for (extra, field) in [
+            (r#", "shading": {"diffuse": -1}"#, "shading.diffuse"),
+            (r#", "shading": {"shininess": 0.5}"#, "shading.shininess"),
+            (r#", "shading": {"gloss": 1}"#, "shading"),
+            (r#", "shading": {"ambient": "x"}"#, "shading.ambient"),
+            (r#", "shading": 3"#, "shading"),
+        ] {
+            let e = tf(extra).unwrap_err().to_string();
+            assert!(e.contains(field), "{extra}: {e}");
+        }
     }
 
     #[test]

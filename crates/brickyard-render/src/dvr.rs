@@ -17,6 +17,7 @@ impl<'f, 'a, T: Sample> Walker<'f, 'a, T> {
     pub(crate) fn dvr(&mut self, ray: &Ray, req: &mut Requests, st: &mut FrameStats) -> [f32; 4] {
         let mut acc = [0.0f32; 4];
         let f = self.f;
+        let shading = f.tf.shading;
         let extent = f.scene.extent;
         let d = ray.dir;
         let inv_dir = [1.0 / d[0], 1.0 / d[1], 1.0 / d[2]];
@@ -96,7 +97,11 @@ impl<'f, 'a, T: Sample> Walker<'f, 'a, T> {
                     j += 1;
                     n += 1;
                     let v = trilinear(vox, f.local_index(u, [0; 3]), f.stride[0], f.stride[1], fr);
-                    if let Some(c) = f.tf_eval.lookup_visible(v) {
+                    if let Some(mut c) = f.tf_eval.lookup_visible(v) {
+                        if let Some(sh) = &shading {
+                            let w = ray.at(step_t(base_t, j - 1, dt));
+                            c = self.shade(sh, c, (level, w, d), req, st);
+                        }
                         if composite_visible(&mut acc, c, exponent) {
                             break true;
                         }
@@ -119,7 +124,10 @@ impl<'f, 'a, T: Sample> Walker<'f, 'a, T> {
                 k = self.skip_unserved(level, ray, &track, (g, k), t1.min(next_t), st);
                 continue;
             };
-            if let Some(c) = f.tf_eval.lookup_visible(v) {
+            if let Some(mut c) = f.tf_eval.lookup_visible(v) {
+                if let Some(sh) = &shading {
+                    c = self.shade(sh, c, (level, w, d), req, st);
+                }
                 if composite_visible(&mut acc, c, exponent) {
                     break;
                 }

@@ -13,6 +13,9 @@
 //! - [`gpu`]: DVR, MIP and slices on the device (the device frame driver):
 //!   the WGSL twin of each of those modules sits beside it (`walk.wgsl`,
 //!   `dvr.wgsl`, …) and `gpu.rs` joins them into one shader.
+//! - [`savr`]: progressive DVR by sample accumulation on the CPU (kept
+//!   samples per pixel, depth-order blends, re-blends under a new transfer
+//!   function); `shading` holds DVR gradient shading.
 //! - [`budget`]: the level-of-detail budget of a view.
 //!
 //! Cameras and transfer functions live in `brickyard_core::{camera,
@@ -28,6 +31,8 @@ mod mip;
 pub mod optics;
 pub mod params;
 pub mod reference;
+pub mod savr;
+mod shading;
 mod slice;
 mod walk;
 
@@ -84,6 +89,8 @@ mod independence {
             ("mip.rs", include_str!("mip.rs")),
             ("slice.rs", include_str!("slice.rs")),
             ("budget.rs", include_str!("budget.rs")),
+            ("savr.rs", include_str!("savr.rs")),
+            ("shading.rs", include_str!("shading.rs")),
         ] {
             let names = crate_paths(source);
             assert!(

@@ -9,7 +9,7 @@
 //!   image is drawn once that pass asks for nothing; what the pass missed
 //!   the full image's next frames ask for, and they draw again only the
 //!   tiles it touches.
-//! - **Progressive** (`--progressive`, the viewer): one frame per batch of
+//! - **Streaming** (`--stream`, the viewer): one frame per batch of
 //!   arrivals, never waiting.
 //!
 //! Either way the LOD budget ([`LodBudget`]) coarsens a view whose working

@@ -101,17 +101,24 @@ pub struct RenderCmd {
     #[arg(long, default_value_t = 32)]
     brick: u64,
     /// Bytes written into the pool per frame (default: the pool in batch
-    /// renders, 64MiB with --progressive).
+    /// renders, 64MiB with --stream).
     #[arg(long)]
     upload: Option<String>,
     /// Requests per frame (default: what the pool and host cache hold in
-    /// batch renders, 256 with --progressive).
+    /// batch renders, 256 with --stream).
     #[arg(long)]
     requests: Option<usize>,
     /// Draw a frame for each batch of arriving bricks, as a viewer does,
     /// instead of loading each frame's working set before drawing again.
     #[arg(long)]
-    progressive: bool,
+    stream: bool,
+    /// DVR on the CPU: after the view is complete, accumulate N frames of
+    /// samples at new positions along each ray (frame k shifted within
+    /// the step by a Halton offset), blended in depth order: the image of
+    /// N times the sampling rate. Each frame's time and the memory the
+    /// kept samples take are printed.
+    #[arg(long, value_name = "N")]
+    progressive: Option<u32>,
     #[arg(long, default_value_t = 2)]
     loader_threads: usize,
     /// Slow every brick read down by this many milliseconds (a slow disk).
@@ -364,7 +371,7 @@ pub fn run(c: RenderCmd) -> Result<Vec<String>> {
             .with_context(|| format!("{}: cannot write", p.display()))?;
     }
     let opt_bytes = |v: &Option<String>| v.as_deref().map(crate::parse_bytes).transpose();
-    let batch = !c.progressive;
+    let batch = !c.stream;
     let split = crate::memory::split(
         opt_bytes(&c.memory)?,
         opt_bytes(&c.pool)?,
@@ -479,6 +486,20 @@ pub fn run(c: RenderCmd) -> Result<Vec<String>> {
         Some(l) => Lod::Fixed(l),
         None => Lod::Auto { bias: c.lod_bias },
     };
+    if tf.shading.is_some() && !matches!(backend, crate::backend::Backend::Cpu) {
+        bail!("tf: gradient shading is drawn on the CPU back end only so far (--backend cpu)");
+    }
+    if let Some(n) = c.progressive {
+        if mode != RenderMode::Dvr || !matches!(backend, crate::backend::Backend::Cpu) {
+            bail!("progressive: sample accumulation draws DVR on the CPU back end (--mode dvr --backend cpu)");
+        }
+        if n == 0 || n > brickyard_render::savr::MAX_FRAMES {
+            bail!(
+                "progressive: N frames between 1 and {}, got {n}",
+                brickyard_render::savr::MAX_FRAMES
+            );
+        }
+    }
     if !c.json {
         println!("rendering on {}", backend.describe());
     }
@@ -629,7 +650,16 @@ pub fn run(c: RenderCmd) -> Result<Vec<String>> {
                 println!("  … and {} more", failures.len() - 10);
             }
         }
-        let img = out.image;
+        let img = match c.progressive {
+            Some(n) => {
+                let lod = match lod {
+                    Lod::Auto { .. } => Lod::Auto { bias: b.bias },
+                    fixed => fixed,
+                };
+                accumulate(&mut s, &scene, &params, lod, n, c.json || c.quiet)?
+            }
+            None => out.image,
+        };
         let path = if c.turntable.is_some() {
             let stem = c
                 .out
@@ -655,4 +685,52 @@ pub fn run(c: RenderCmd) -> Result<Vec<String>> {
         }
     }
     Ok(written)
+}
+
+/// `--progressive N`: accumulation frames of the view (whose working set
+/// the drive has just loaded) until `n` frames are blended and no stand-in
+/// is left. The per-pixel store holds `n` whole rays of samples.
+fn accumulate(
+    s: &mut Session,
+    scene: &Scene,
+    params: &RenderParams,
+    lod: Lod,
+    n: u32,
+    quiet: bool,
+) -> Result<brickyard_render::Image> {
+    use brickyard_render::savr::Accumulation;
+    let e = scene.extent;
+    let diagonal = (e[0] * e[0] + e[1] * e[1] + e[2] * e[2]).sqrt();
+    let steps = (diagonal / (scene.voxel(0) / params.samples_per_voxel)).ceil() as usize + 2;
+    let mut acc = Accumulation::new(params.width, params.height, n, n as usize * steps);
+    let t = std::time::Instant::now();
+    for frame in 1..=4 * n as usize + 64 {
+        let f0 = std::time::Instant::now();
+        s.begin_frame();
+        let (st, reqs) = acc.frame(s.vm(), scene, params, lod);
+        s.finish_frame(reqs.iter());
+        if !quiet {
+            println!(
+                "accumulate {}/{n}: {:8.1} ms, {} samples taken, {} stand-ins left, {} kept",
+                acc.frames(),
+                f0.elapsed().as_secs_f64() * 1e3,
+                st.frame.samples,
+                st.stand_ins,
+                human_bytes(acc.memory() as u64)
+            );
+        }
+        if acc.complete() {
+            if !quiet {
+                println!(
+                    "accumulated {n} frames in {frame} passes, {:.2} s",
+                    t.elapsed().as_secs_f64()
+                );
+            }
+            return Ok(acc.image().clone());
+        }
+    }
+    bail!(
+        "progressive: the accumulation did not complete ({} stand-in samples left): the pool cannot hold the view's bricks",
+        acc.stand_ins()
+    )
 }

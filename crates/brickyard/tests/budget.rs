@@ -339,7 +339,7 @@ fn a_store_damaged_during_a_render_is_drawn_coarser_and_reported() {
     let mut child = Command::new(env!("CARGO_BIN_EXE_brickyard"))
         .args(["render", s(&store), "--size", "160", "--brick", "16"])
         .args(["--window", "0,255", "--backend", "cpu", "--json"])
-        .args(["--progressive", "--requests", "4", "--loader-threads", "1"])
+        .args(["--stream", "--requests", "4", "--loader-threads", "1"])
         .args(["--read-delay-ms", "10", "--out", s(&png)])
         .stdout(std::process::Stdio::piped())
         .stderr(std::process::Stdio::piped())

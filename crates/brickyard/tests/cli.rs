@@ -479,3 +479,84 @@ fn a_pool_larger_than_the_device_can_hold_is_an_error_not_a_panic() {
     assert!(!stderr(&o).contains("panicked"), "{}", stderr(&o));
     assert!(!out.exists());
 }
+
+/// `--progressive N` accumulates N frames after the view completes (CPU,
+/// DVR) and writes an image of N times the sampling rate; it refuses other
+/// modes and N = 0; `--stream` is the frame-per-batch loop; a shaded
+/// transfer function draws a different image.
+#[test]
+fn render_progressive_accumulates_frames() {
+    let d = tempfile::tempdir().unwrap();
+    let store = mandelbulb_48(d.path(), "p.ome.zarr");
+    let common = ["--size", "48x40", "--backend", "cpu", "--level", "0"];
+    let png = |name: &str| d.path().join(name);
+    let plain = png("plain.png");
+    let o = run(&[&["render", s(&store), "--out", s(&plain)], &common[..]].concat());
+    assert!(o.status.success(), "{}", stderr(&o));
+    let acc = png("acc.png");
+    let o = run(&[
+        &["render", s(&store), "--out", s(&acc), "--progressive", "4"],
+        &common[..],
+    ]
+    .concat());
+    assert!(o.status.success(), "{}", stderr(&o));
+    let out = String::from_utf8_lossy(&o.stdout);
+    assert!(
+        out.contains("accumulate 4/4") && out.contains("accumulated 4 frames"),
+        "{out}"
+    );
+    let px = png_pixels(&acc);
+    has_content(&px, "progressive");
+    assert_ne!(px, png_pixels(&plain), "4 frames drew the 1-frame image");
+    let streamed = png("stream.png");
+    let o = run(&[
+        &["render", s(&store), "--out", s(&streamed), "--stream"],
+        &common[..],
+    ]
+    .concat());
+    assert!(o.status.success(), "{}", stderr(&o));
+    assert_eq!(png_pixels(&streamed), png_pixels(&plain));
+    let tf = d.path().join("shaded.json");
+    std::fs::write(
+        &tf,
+        r#"{"preset": "soft", "window": [0, 255], "shading": true}"#,
+    )
+    .unwrap();
+    let shaded = png("shaded.png");
+    let o = run(&[
+        &["render", s(&store), "--out", s(&shaded), "--tf", s(&tf)],
+        &common[..],
+    ]
+    .concat());
+    assert!(o.status.success(), "{}", stderr(&o));
+    let mut soft = common.to_vec();
+    soft.extend(["--tf", "soft"]);
+    let unshaded = png("unshaded.png");
+    let o = run(&[&["render", s(&store), "--out", s(&unshaded)], &soft[..]].concat());
+    assert!(o.status.success(), "{}", stderr(&o));
+    assert_ne!(png_pixels(&shaded), png_pixels(&unshaded));
+    fails_with(
+        &run(&[
+            "render",
+            s(&store),
+            "--mode",
+            "mip",
+            "--backend",
+            "cpu",
+            "--progressive",
+            "4",
+        ]),
+        &["progressive", "dvr"],
+    );
+    fails_with(
+        &run(&[
+            "render",
+            s(&store),
+            "--backend",
+            "cpu",
+            "--progressive",
+            "0",
+        ]),
+        &["progressive"],
+    );
+}

@@ -18,6 +18,7 @@ fn tf_opaque(tf: &TransferFunction) -> TransferFunction {
         window: tf.window,
         opacity: vec![[0.0, 1.0]],
         colormap: tf.colormap.clone(),
+        shading: None,
     }
 }
 

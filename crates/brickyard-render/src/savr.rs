@@ -1,0 +1,716 @@
+//! Progressive DVR by sample accumulation on the CPU. Each accumulation
+//! frame takes one more run of samples along every ray, at positions
+//! shifted within the step by a low-discrepancy offset, keeps the values,
+//! and blends every sample kept so far in depth order. After `2^m` frames a
+//! ray has been sampled at `2^m` times the rate of a single frame, at the
+//! positions of a single pass with step `Δ/2^m`; a transfer-function edit
+//! re-blends the kept values without touching the volume.
+//!
+//! # Sample positions
+//!
+//! Frame `k` samples a ray entering the volume at `t0` at
+//! `t0 + (j + o_k)·Δ`, `j = 0, 1, …`, with `o_k = ½ + r₂(k) (mod 1)` and
+//! `r₂` the base-2 radical inverse (Halton/van der Corput: 0, ½, ¼, ¾, …).
+//! Frame 0 is the plain renderer's grid (`o = ½`); the first `2^m` offsets
+//! are the multiples of `2^-m`, so the union of their runs is the grid of
+//! step `Δ/2^m`. `Δ` is the step of the level where the ray enters (with
+//! automatic level of detail the level of each sample still follows its
+//! distance; only the step is the entry level's for the whole ray).
+//!
+//! # The store and its order
+//!
+//! A pixel keeps its samples frame-major: run `k` holds frame `k`'s values
+//! in order of `j`. Depth is implicit (`j` and `k` give it), so a sample
+//! costs 5 bytes: the value (`f32`) and a flag byte (taken from a coarser
+//! stand-in; nothing resident at all). The depth order is a traversal, not
+//! a sort: for `j = 0, 1, …`, the runs in the order of their offsets. A
+//! pixel also keeps its step and a length and end flag per run (8 bytes a
+//! frame) and about 80 bytes of header.
+//!
+//! # Opacity correction and early termination
+//!
+//! A pixel holding `n` runs blends with step `Δ/n`: opacity is corrected
+//! by `(Δ/n)/Δ_ref` (the spacing reached; exactly the spacing of the
+//! samples whenever `n` is a power of two). Blending stops at an
+//! accumulated opacity of 0.99 like the plain renderer. A run is taken up
+//! to its own early termination (as a single frame would stop) and
+//! recorded as *open*; when the blend reaches the end of an open run
+//! before stopping, that run is extended from the volume and the blend
+//! starts again. The blend is thus always what it would be with every run
+//! taken to the ray's end.
+//!
+//! # When the store is full
+//!
+//! The budget is a number of samples per pixel. A run never holds more
+//! than the ray's steps `S = ⌈(t1 − t0)/Δ⌉ + 1`, and a pixel begins run `k`
+//! only when `(k + 1)·S` fits the budget (run 0 always): a pixel whose
+//! budget is spent stays at the rate it reached, blended correctly for it,
+//! and later frames leave it alone. Memory never exceeds
+//! `max(budget, S)·5` bytes a pixel.
+//!
+//! # Out of core
+//!
+//! Samples are looked up through the virtual memory like the plain
+//! renderer's, at the level each sample asks for; a miss is requested and
+//! answered by the finest resident coarser level, and the sample is marked
+//! as a stand-in. Every frame first retakes a pixel's stand-ins, so they
+//! are replaced as the finer bricks arrive: a complete image
+//! ([`Accumulation::complete`]) holds none. Accumulation keeps every value a
+//! ray crosses (a later transfer function may show them), so it does not
+//! skip bricks the current transfer function hides.
+
+use crate::cpu::{FrameStats, Lod, Scene};
+use crate::image::Image;
+use crate::optics::composite_visible;
+use crate::params::{RenderMode, RenderParams};
+use crate::shading::{cosine, lit};
+use crate::walk::{Frame, Walker};
+use brickyard_cache::vm::{Requests, VirtualMemory};
+use brickyard_core::camera::{intersect_box_inv, Ray};
+use brickyard_core::transfer::TfEval;
+use brickyard_core::{dispatch_dtype, Sample, Shading, TransferFunction};
+use rayon::prelude::*;
+
+/// The most frames a pixel accumulates.
+pub const MAX_FRAMES: u32 = 256;
+
+/// Flag: the sample came from a coarser level than it asked for.
+const STAND_IN: u8 = 1;
+/// Flag: nothing resident served the sample (its value is meaningless).
+const UNSERVED: u8 = 2;
+
+/// Samples an open run is extended by when the blend needs more of it.
+const EXTEND: usize = 8;
+
+/// Rows of pixels per piece of parallel work.
+const BAND: usize = 8;
+
+/// Bytes a kept sample costs.
+pub const BYTES_PER_SAMPLE: usize = 5;
+
+/// The offset within a step of frame `k`'s samples: `½ + r₂(k) (mod 1)`.
+pub fn offset(k: u32) -> f64 {
+    let r = k.reverse_bits() as f64 / 4_294_967_296.0;
+    (0.5 + r).fract()
+}
+
+#[derive(Debug, Clone, Copy)]
+struct RunInfo {
+    len: u32,
+    /// Taken to the ray's end (else open: more may be taken).
+    ended: bool,
+}
+
+/// One pixel's kept samples.
+#[derive(Debug, Clone, Default)]
+struct Pixel {
+    /// Step of the runs (0: the ray misses the volume).
+    dt: f64,
+    t0: f64,
+    t1: f64,
+    values: Vec<f32>,
+    flags: Vec<u8>,
+    /// With shading: per sample the cosine `|ĝ·d̂|` between its gradient
+    /// and the ray (negative: a zero gradient, unshaded); else empty.
+    cos: Vec<f32>,
+    runs: Vec<RunInfo>,
+    /// Kept samples flagged as stand-ins.
+    stand_ins: u32,
+    /// The last blend ran out of kept samples (after a re-blend).
+    short: bool,
+}
+
+impl Pixel {
+    fn frames(&self) -> u32 {
+        self.runs.len() as u32
+    }
+
+    /// Upper bound on the samples of one run.
+    fn max_run(&self) -> usize {
+        ((self.t1 - self.t0) / self.dt).ceil() as usize + 1
+    }
+
+    fn start(&self, k: usize) -> usize {
+        self.runs[..k].iter().map(|r| r.len as usize).sum()
+    }
+}
+
+/// What an accumulation frame did.
+#[derive(Debug, Clone, Default)]
+pub struct AccumStats {
+    /// Lookups made (new samples, extensions and retakes).
+    pub frame: FrameStats,
+    /// Stand-in samples retaken at the level they asked for.
+    pub retaken: u64,
+    /// Stand-ins kept after the frame.
+    pub stand_ins: u64,
+    /// Samples added to open runs for the blend.
+    pub extended: u64,
+    /// Pixels whose budget stopped them short of the frames asked for.
+    pub full: u64,
+    /// Samples kept after the frame, all pixels.
+    pub kept: u64,
+}
+
+/// The accumulation of one view: per pixel the samples kept so far, and
+/// the image they blend to. A camera move or a change of image size,
+/// level of detail, sampling rate or channel starts a new one.
+pub struct Accumulation {
+    width: u32,
+    height: u32,
+    target: u32,
+    budget: usize,
+    pixels: Vec<Pixel>,
+    /// `orders[n − 1]`: frames `0..n` by increasing offset.
+    orders: Vec<Vec<u8>>,
+    reference: f64,
+    image: Image,
+    /// Frames drawn.
+    drawn: u32,
+    /// Whether samples keep their normal's cosine (fixed by the first
+    /// frame: whether its transfer function shades).
+    shaded: Option<bool>,
+}
+
+/// The result of a blend from kept samples.
+enum Blend {
+    Done([f32; 4]),
+    /// Run `k` ran out before the ray stopped (colour so far).
+    Short(usize, [f32; 4]),
+}
+
+impl Accumulation {
+    /// An empty accumulation of `target` frames (at most [`MAX_FRAMES`])
+    /// for images of `width × height`, keeping at most `budget` samples per
+    /// pixel (see the module notes).
+    pub fn new(width: u32, height: u32, target: u32, budget: usize) -> Accumulation {
+        let target = target.clamp(1, MAX_FRAMES);
+        let orders = (1..=target)
+            .map(|n| {
+                let mut o: Vec<u8> = (0..n).map(|k| k as u8).collect();
+                o.sort_by(|a, b| offset(*a as u32).total_cmp(&offset(*b as u32)));
+                o
+            })
+            .collect();
+        Accumulation {
+            width,
+            height,
+            target,
+            budget,
+            pixels: vec![Pixel::default(); width as usize * height as usize],
+            orders,
+            reference: 0.0,
+            image: Image::new(width, height),
+            drawn: 0,
+            shaded: None,
+        }
+    }
+
+    /// The image of the samples kept so far.
+    pub fn image(&self) -> &Image {
+        &self.image
+    }
+
+    /// Frames asked for.
+    pub fn target(&self) -> u32 {
+        self.target
+    }
+
+    /// The fewest frames any pixel whose ray meets the volume holds.
+    pub fn frames(&self) -> u32 {
+        self.pixels
+            .iter()
+            .filter(|p| p.dt > 0.0)
+            .map(|p| p.frames())
+            .min()
+            .unwrap_or(self.drawn.min(self.target))
+    }
+
+    /// Bytes of kept samples and run headers, all pixels.
+    pub fn memory(&self) -> usize {
+        self.pixels
+            .iter()
+            .map(|p| {
+                p.values.len() * BYTES_PER_SAMPLE
+                    + p.cos.len() * 4
+                    + p.runs.len() * std::mem::size_of::<RunInfo>()
+                    + std::mem::size_of::<Pixel>()
+            })
+            .sum()
+    }
+
+    /// Every pixel holds the frames asked for (or all its budget allows),
+    /// no stand-in and no run short of its blend: further frames change
+    /// nothing.
+    pub fn complete(&self) -> bool {
+        self.drawn > 0
+            && self.pixels.iter().all(|p| {
+                p.dt == 0.0
+                    || (p.stand_ins == 0
+                        && !p.short
+                        && (p.frames() == self.target || !self.room(p, p.frames())))
+            })
+    }
+
+    /// Stand-in samples kept, all pixels.
+    pub fn stand_ins(&self) -> u64 {
+        self.pixels.iter().map(|p| p.stand_ins as u64).sum()
+    }
+
+    /// Whether pixel `p` may begin run `k`.
+    fn room(&self, p: &Pixel, k: u32) -> bool {
+        room(self.target, self.budget, p, k)
+    }
+
+    /// One accumulation frame of a DVR view (`params.mode` DVR, one
+    /// channel; the same camera and size on every frame): retake stand-ins,
+    /// take one more run per pixel that has room, blend with
+    /// `params.tf`. Returns the figures and the request collectors (hand
+    /// them to `Session::finish_frame`).
+    pub fn frame(
+        &mut self,
+        vm: &VirtualMemory,
+        scene: &Scene,
+        params: &RenderParams,
+        lod: Lod,
+    ) -> (AccumStats, Vec<Requests>) {
+        assert!(
+            matches!(params.mode, RenderMode::Dvr) && params.channels.is_empty(),
+            "accumulation draws DVR of one channel"
+        );
+        assert_eq!(
+            (params.width, params.height),
+            (self.width, self.height),
+            "accumulation and parameters of one size"
+        );
+        self.reference = params.reference_step.unwrap_or(scene.voxel(0));
+        let on = params.tf.shading.is_some();
+        let shaded = *self.shaded.get_or_insert(on);
+        assert!(
+            shaded || !on,
+            "the samples of this accumulation keep no normals: start a new one to shade"
+        );
+        dispatch_dtype!(vm.dtype(), T => { self.frame_typed::<T>(vm, scene, params, lod) })
+    }
+
+    fn frame_typed<T: Sample>(
+        &mut self,
+        vm: &VirtualMemory,
+        scene: &Scene,
+        params: &RenderParams,
+        lod: Lod,
+    ) -> (AccumStats, Vec<Requests>) {
+        let frame = Frame::new(vm, scene, params, lod);
+        let w = self.width as usize;
+        let rg = params.camera.ray_gen(self.width, self.height);
+        let tf = params.tf.evaluator();
+        let shading = params.tf.shading;
+        let normals = self.shaded == Some(true);
+        let (orders, reference) = (&self.orders.clone(), self.reference);
+        let (target, budget) = (self.target, self.budget);
+        let room = move |p: &Pixel, k: u32| room(target, budget, p, k);
+        let mut pixels = std::mem::take(&mut self.pixels);
+        let mut image = std::mem::replace(&mut self.image, Image::new(1, 1));
+        let parts: Vec<(AccumStats, Requests)> = pixels
+            .par_chunks_mut(w * BAND)
+            .zip(image.rgba.par_chunks_mut(w * BAND))
+            .enumerate()
+            .fold(
+                || {
+                    (
+                        Walker::<T>::new(&frame, scene.channel),
+                        vm.requests(),
+                        AccumStats::default(),
+                    )
+                },
+                |(mut wk, mut req, mut st), (band, (px, out))| {
+                    for (n, (p, o)) in px.iter_mut().zip(out.iter_mut()).enumerate() {
+                        let (i, j) = ((n % w) as u32, (band * BAND + n / w) as u32);
+                        let ray = rg.pixel_ray(i, j);
+                        let mut s = Sampler {
+                            wk: &mut wk,
+                            f: &frame,
+                            ray: &ray,
+                            req: &mut req,
+                            st: &mut st,
+                            normals,
+                        };
+                        *o = s.pixel(p, (&tf, shading.as_ref()), orders, reference, &room);
+                    }
+                    (wk, req, st)
+                },
+            )
+            .map(|(mut wk, mut req, st)| {
+                wk.flush(&mut req);
+                (st, req)
+            })
+            .collect();
+        drop(frame);
+        let mut stats = AccumStats::default();
+        let mut reqs = Vec::with_capacity(parts.len());
+        for (s, r) in parts {
+            stats.frame.add(&s.frame);
+            stats.retaken += s.retaken;
+            stats.extended += s.extended;
+            reqs.push(r);
+        }
+        for p in &pixels {
+            stats.stand_ins += p.stand_ins as u64;
+            stats.kept += p.values.len() as u64;
+            stats.full +=
+                (p.dt > 0.0 && p.frames() < self.target && !self.room(p, p.frames())) as u64;
+        }
+        self.pixels = pixels;
+        self.image = image;
+        self.drawn += 1;
+        (stats, reqs)
+    }
+
+    /// Blend the kept samples again under `tf`, without volume access.
+    /// Returns the pixels whose kept runs end before their ray stops under
+    /// `tf` (a more transparent function sees further than the runs were
+    /// taken): they show the blend so far, and the next
+    /// [`frame`](Self::frame) extends them. `None` (nothing done) when `tf`
+    /// shades and the kept samples have no normals (the accumulation began
+    /// unshaded): that takes a new accumulation.
+    pub fn reblend(&mut self, tf: &TransferFunction) -> Option<usize> {
+        if tf.shading.is_some() && self.shaded != Some(true) {
+            return None;
+        }
+        let eval = tf.evaluator();
+        let shading = tf.shading.as_ref();
+        let (orders, reference) = (&self.orders, self.reference);
+        self.pixels
+            .par_iter_mut()
+            .zip(self.image.rgba.par_iter_mut())
+            .map(|(p, o)| {
+                if p.dt == 0.0 {
+                    *o = [0.0; 4];
+                    return 0;
+                }
+                let n = p.runs.len();
+                let e = exponent(p, reference);
+                let (c, short) = match blend(p, &orders[n - 1], (&eval, shading), e) {
+                    Blend::Done(c) => (c, false),
+                    Blend::Short(_, c) => (c, true),
+                };
+                *o = c;
+                p.short = short;
+                short as usize
+            })
+            .sum::<usize>()
+            .into()
+    }
+}
+
+/// Whether pixel `p` may begin run `k` of `target` with `budget` samples.
+fn room(target: u32, budget: usize, p: &Pixel, k: u32) -> bool {
+    k == 0 || (k < target && (k as usize + 1) * p.max_run() <= budget)
+}
+
+/// The opacity-correction exponent of pixel `p`'s blend: `(Δ/n)/Δ_ref`.
+fn exponent(p: &Pixel, reference: f64) -> f32 {
+    ((p.dt / p.runs.len() as f64) / reference) as f32
+}
+
+/// Blend pixel `p`'s kept samples in depth order (`order`: its runs by
+/// offset).
+fn blend(
+    p: &Pixel,
+    order: &[u8],
+    (tf, shading): (&TfEval, Option<&Shading>),
+    exponent: f32,
+) -> Blend {
+    let shading = shading.filter(|_| !p.cos.is_empty());
+    let mut starts = [0usize; MAX_FRAMES as usize];
+    let mut s = 0;
+    for (k, r) in p.runs.iter().enumerate() {
+        starts[k] = s;
+        s += r.len as usize;
+    }
+    let mut acc = [0.0f32; 4];
+    let mut j = 0usize;
+    loop {
+        let mut any = false;
+        for &k in order {
+            let k = k as usize;
+            let r = p.runs[k];
+            if j >= r.len as usize {
+                if !r.ended {
+                    return Blend::Short(k, acc);
+                }
+                continue;
+            }
+            any = true;
+            let i = starts[k] + j;
+            if p.flags[i] & UNSERVED != 0 {
+                continue;
+            }
+            if let Some(mut c) = tf.lookup_visible(p.values[i]) {
+                if let Some(sh) = shading {
+                    let x = p.cos[i];
+                    if x >= 0.0 {
+                        c = lit(sh, c, x as f64);
+                    }
+                }
+                if composite_visible(&mut acc, c, exponent) {
+                    return Blend::Done(acc);
+                }
+            }
+        }
+        if !any {
+            return Blend::Done(acc);
+        }
+        j += 1;
+    }
+}
+
+/// One thread's access to the volume for one pixel.
+struct Sampler<'w, 'f, 'a, T> {
+    wk: &'w mut Walker<'f, 'a, T>,
+    f: &'f Frame<'a>,
+    ray: &'w Ray,
+    req: &'w mut Requests,
+    st: &'w mut AccumStats,
+    /// Keep each sample's normal cosine.
+    normals: bool,
+}
+
+impl<T: Sample> Sampler<'_, '_, '_, T> {
+    /// The value at ray parameter `t`, its flags and (keeping normals)
+    /// the cosine of its normal with the ray (negative for a zero
+    /// gradient). A sample whose value or any gradient neighbour was not
+    /// served at its level is a stand-in.
+    fn sample(&mut self, t: f64) -> (f32, u8, f32) {
+        let f = self.f;
+        let level = f.level_at(t);
+        let w = self.ray.at(t);
+        let (vb, frac) = f.coords(level, w);
+        self.wk.enter(level, vb, self.req, true);
+        let st = &mut self.st.frame;
+        let (samples, exact) = (st.samples, st.exact);
+        let Some(v) = self.wk.value(level, w, vb, frac, self.req, st) else {
+            return (0.0, STAND_IN | UNSERVED, -1.0);
+        };
+        let mut cos = -1.0;
+        if self.normals {
+            match self.wk.gradient(level, w, self.req, st) {
+                Some(g) => cos = cosine(g, self.ray.dir).map_or(-1.0, |x| x as f32),
+                None => return (v, STAND_IN, -1.0),
+            }
+        }
+        let fl = if st.exact - exact == st.samples - samples {
+            0
+        } else {
+            STAND_IN
+        };
+        (v, fl, cos)
+    }
+
+    /// Take samples `j = from, from + 1, …` of run `k` of `p` (offset
+    /// `o`), at most `limit` of them, or (`own` set) until the run alone
+    /// would stop a ray blended at the frame's step with `tf`; appended to
+    /// the run. Marks the run ended when it reaches the ray's end.
+    fn take(&mut self, p: &mut Pixel, k: usize, limit: usize, own: Option<(&TfEval, f32)>) {
+        let o = offset(k as u32);
+        let start = p.start(k) + p.runs[k].len as usize;
+        let (mut vals, mut flags, mut coss) = (Vec::new(), Vec::new(), Vec::new());
+        let mut j = p.runs[k].len as usize;
+        let mut acc = [0.0f32; 4];
+        let mut ended = false;
+        while vals.len() < limit {
+            let t = p.t0 + (j as f64 + o) * p.dt;
+            if t >= p.t1 {
+                ended = true;
+                break;
+            }
+            let (v, fl, cos) = self.sample(t);
+            vals.push(v);
+            flags.push(fl);
+            coss.push(cos);
+            j += 1;
+            if fl & UNSERVED == 0 {
+                if let Some((tf, e)) = own {
+                    if let Some(c) = tf.lookup_visible(v) {
+                        if composite_visible(&mut acc, c, e) {
+                            break;
+                        }
+                    }
+                }
+            }
+        }
+        p.stand_ins += flags.iter().filter(|f| **f & STAND_IN != 0).count() as u32;
+        p.runs[k].len += vals.len() as u32;
+        p.runs[k].ended = ended;
+        p.values.splice(start..start, vals);
+        p.flags.splice(start..start, flags);
+        if self.normals {
+            p.cos.splice(start..start, coss);
+        }
+    }
+
+    /// Retake `p`'s stand-in samples; those now served at their level
+    /// lose the mark.
+    fn retake(&mut self, p: &mut Pixel) {
+        let mut i = 0;
+        for k in 0..p.runs.len() {
+            let o = offset(k as u32);
+            for j in 0..p.runs[k].len as usize {
+                if p.flags[i] & STAND_IN != 0 {
+                    let t = p.t0 + (j as f64 + o) * p.dt;
+                    let (v, fl, cos) = self.sample(t);
+                    if self.normals && fl & UNSERVED == 0 {
+                        p.cos[i] = cos;
+                    }
+                    if fl == 0 {
+                        p.values[i] = v;
+                        p.flags[i] = 0;
+                        p.stand_ins -= 1;
+                        self.st.retaken += 1;
+                    } else if fl & UNSERVED == 0 {
+                        // A finer stand-in than before may have arrived.
+                        p.values[i] = v;
+                        p.flags[i] = fl;
+                    }
+                }
+                i += 1;
+            }
+        }
+    }
+
+    /// One frame of pixel `p`: its colour.
+    fn pixel(
+        &mut self,
+        p: &mut Pixel,
+        look: (&TfEval, Option<&Shading>),
+        orders: &[Vec<u8>],
+        reference: f64,
+        room: &impl Fn(&Pixel, u32) -> bool,
+    ) -> [f32; 4] {
+        if p.runs.is_empty() {
+            let d = self.ray.dir;
+            let inv = [1.0 / d[0], 1.0 / d[1], 1.0 / d[2]];
+            let Some((t0, t1)) = intersect_box_inv(self.ray, inv, [0.0; 3], self.f.scene.extent)
+            else {
+                return [0.0; 4];
+            };
+            p.t0 = t0;
+            p.t1 = t1;
+            p.dt = self.f.step[self.f.level_at(t0)].0;
+        }
+        if p.dt == 0.0 {
+            return [0.0; 4];
+        }
+        if p.stand_ins > 0 {
+            self.retake(p);
+        }
+        let k = p.frames();
+        if room(p, k) {
+            p.runs.push(RunInfo {
+                len: 0,
+                ended: false,
+            });
+            let e = (p.dt / reference) as f32;
+            self.take(p, k as usize, usize::MAX, Some((look.0, e)));
+        }
+        let order = &orders[p.runs.len() - 1];
+        let e = exponent(p, reference);
+        loop {
+            match blend(p, order, look, e) {
+                Blend::Done(c) => {
+                    p.short = false;
+                    return c;
+                }
+                Blend::Short(k, _) => {
+                    let before = p.runs[k].len;
+                    self.take(p, k, EXTEND, None);
+                    self.st.extended += (p.runs[k].len - before) as u64;
+                }
+            }
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// The first 2^m offsets are the multiples of 2^-m, frame 0's is the
+    /// plain grid's ½, and each next frame halves the largest gap.
+    #[test]
+    fn offsets_fill_the_step_evenly() {
+        assert_eq!(
+            (0..4).map(offset).collect::<Vec<_>>(),
+            [0.5, 0.0, 0.75, 0.25]
+        );
+        for m in 0..8u32 {
+            let n = 1u32 << m;
+            let mut o: Vec<f64> = (0..n).map(offset).collect();
+            o.sort_by(f64::total_cmp);
+            let want: Vec<f64> = (0..n).map(|i| i as f64 / n as f64).collect();
+            let mut o2 = o.clone();
+            if n == 1 {
+                o2 = vec![0.0];
+                assert_eq!(o, [0.5]);
+            }
+            assert_eq!(o2, want, "{n} frames");
+        }
+    }
+
+    /// Runs are blended in depth order: with `j` outer and runs by offset
+    /// inner. Two runs of a two-sample ray: frame 0 at ½, 1½; frame 1 at
+    /// 0, 1. Values 1, 2 (frame 0) and 3, 4 (frame 1) in depth order are
+    /// 3, 1, 4, 2: the opacity blended is that order's, which differs from
+    /// the frame-major one's.
+    #[test]
+    fn blend_follows_depth() {
+        let p = Pixel {
+            dt: 1.0,
+            t0: 0.0,
+            t1: 2.0,
+            values: vec![1.0, 2.0, 3.0, 4.0],
+            flags: vec![0; 4],
+            cos: vec![],
+            runs: vec![
+                RunInfo {
+                    len: 2,
+                    ended: true,
+                },
+                RunInfo {
+                    len: 2,
+                    ended: true,
+                },
+            ],
+            stand_ins: 0,
+            short: false,
+        };
+        let a = Accumulation::new(1, 1, 2, 100);
+        assert_eq!(a.orders[1], [1, 0]);
+        let lin = TransferFunction::preset("linear", [0.0, 16.0]).unwrap();
+        let eval_blend = |p: &Pixel| match blend(p, &a.orders[1], (&lin.evaluator(), None), 1.0) {
+            Blend::Done(c) => c,
+            Blend::Short(..) => panic!("short"),
+        };
+        // Under a linear ramp the first sample in depth order (value 3)
+        // has the largest weight: A after it is its own opacity.
+        let c = eval_blend(&p);
+        let op = |v: f32| lin.lookup(v)[3];
+        let mut t = 1.0f32;
+        let mut a_want = 0.0;
+        for v in [3.0, 1.0, 4.0, 2.0] {
+            a_want += t * op(v);
+            t *= 1.0 - op(v);
+        }
+        assert!((c[3] - a_want).abs() < 1e-6, "{c:?} vs {a_want}");
+        // An open run that ran out stops the blend there.
+        let mut q = p.clone();
+        q.runs[0].ended = false;
+        q.runs[0].len = 1;
+        q.values.remove(1);
+        q.flags.remove(1);
+        assert!(matches!(
+            blend(&q, &a.orders[1], (&lin.evaluator(), None), 1.0),
+            Blend::Short(0, _)
+        ));
+    }
+}

@@ -1,0 +1,494 @@
+//! Sample accumulation: after 2^m frames the accumulated image is a single
+//! pass at 2^m times the sampling rate (same positions), in core and out of
+//! core with a pool far smaller than the volume; a complete image holds no
+//! stand-in sample; a transfer-function re-blend equals a fresh
+//! accumulation under the new function.
+//!
+//! The single pass is written here, on the in-core oracle's sampler
+//! (`Volume::sample_world`) and a compositing loop of its own.
+
+use brickyard_cache::session::Session;
+use brickyard_cache::vm::VmConfig;
+use brickyard_core::camera::{intersect_box_inv, world_extent, Camera, Projection, Vec3};
+use brickyard_core::{DType, Shading, TransferFunction};
+use brickyard_render::cpu::{Lod, Scene};
+use brickyard_render::image::Image;
+use brickyard_render::reference::{render, RenderMode, RenderParams, Volume};
+use brickyard_render::savr::Accumulation;
+use brickyard_store::builder::{convert, ConvertOptions, NoProgress};
+use brickyard_store::generate::{Kind, Procedural};
+use std::path::Path;
+use std::sync::atomic::AtomicBool;
+
+fn session(store: &Path, pool_bytes: u64) -> Session {
+    let cfg = VmConfig {
+        brick: [16; 3],
+        apron: 1,
+        pt_block: [4; 3],
+        max_dir_entries: 64,
+        pool_bytes,
+        pt_cache_blocks: 256,
+        request_cap: 64,
+        upload_bytes_per_frame: 48 * 18 * 18 * 18 * 2,
+    };
+    Session::open(store, cfg, 8 << 20, 2).unwrap()
+}
+
+struct Fixture {
+    _dir: tempfile::TempDir,
+    store: std::path::PathBuf,
+    levels: Vec<Volume>,
+    scene: Scene,
+    params: RenderParams,
+    bytes: u64,
+}
+
+fn fixture() -> Fixture {
+    let dir = tempfile::tempdir().unwrap();
+    let store = dir.path().join("m.ome.zarr");
+    let dims = [48, 64, 56];
+    let src = Procedural::new(Kind::MarschnerLobb, dims, DType::U8);
+    let o = ConvertOptions {
+        brick: [16; 3],
+        shard: [32; 3],
+        ..Default::default()
+    };
+    convert(&src, &store, &o, &NoProgress, &AtomicBool::new(false)).unwrap();
+    let levels: Vec<Volume> = (0..)
+        .map_while(|l| Volume::from_store(&store, l, 0).ok())
+        .collect();
+    let extent = world_extent(dims, levels[0].spacing);
+    let scene = Scene::new(extent, levels.iter().map(|v| v.dims).collect());
+    // A faint transfer function: rays go deep before they stop.
+    let mut tf = TransferFunction::preset("viridis", [0.0, 255.0]).unwrap();
+    scale_opacity(&mut tf, 0.25);
+    let cam = Camera::fit(
+        extent,
+        30.0,
+        20.0,
+        Projection::Perspective { fov_y_deg: 40.0 },
+    );
+    let mut params = RenderParams::new(40, 30, cam, tf, RenderMode::Dvr);
+    params.reference_step = Some(scene.voxel(0));
+    let bytes = dims.iter().product::<u64>();
+    Fixture {
+        _dir: dir,
+        store,
+        levels,
+        scene,
+        params,
+        bytes,
+    }
+}
+
+fn scale_opacity(tf: &mut TransferFunction, s: f32) {
+    for p in tf.opacity.iter_mut() {
+        p[1] *= s;
+    }
+}
+
+/// A single DVR pass at `rate` samples per frame step of level `level`:
+/// samples at `t0 + i·Δ/rate`, `i = 0, 1, …`, on the oracle's sampler,
+/// composited front to back with opacity corrected by `(Δ/rate)/Δ_ref`
+/// and stopped at opacity 0.99.
+fn single_pass(vol: &Volume, f: &Fixture, tf: &TransferFunction, level: usize, rate: u32) -> Image {
+    let p = &f.params;
+    let extent = f.scene.extent;
+    let dt = f.scene.voxel(level) / p.samples_per_voxel / rate as f64;
+    let e = (dt / p.reference_step.unwrap()) as f32;
+    let rg = p.camera.ray_gen(p.width, p.height);
+    let mut img = Image::new(p.width, p.height);
+    for j in 0..p.height {
+        for i in 0..p.width {
+            let ray = rg.pixel_ray(i, j);
+            let inv = ray.dir.map(|d| 1.0 / d);
+            let Some((t0, t1)) = intersect_box_inv(&ray, inv, [0.0; 3], extent) else {
+                continue;
+            };
+            let mut acc = [0.0f32; 4];
+            let mut k = 0u64;
+            loop {
+                let t = t0 + k as f64 * dt;
+                if t >= t1 {
+                    break;
+                }
+                k += 1;
+                let w = ray.at(t);
+                let mut c = tf.lookup(vol.sample_world(w, extent));
+                if c[3] <= 0.0 {
+                    continue;
+                }
+                if let Some(sh) = &tf.shading {
+                    c = shade(vol, sh, c, w, ray.dir, extent);
+                }
+                let a = 1.0 - (1.0 - c[3]).powf(e);
+                let w = (1.0 - acc[3]) * a;
+                for ch in 0..3 {
+                    acc[ch] += w * c[ch];
+                }
+                acc[3] += w;
+                if acc[3] >= 0.99 {
+                    break;
+                }
+            }
+            img.rgba[(j * p.width + i) as usize] = acc;
+        }
+    }
+    img
+}
+
+/// The shading rule of `brickyard_core::Shading`, written out: central
+/// differences a voxel apart per world axis on the oracle's sampler, the
+/// cosine with the ray, Blinn–Phong with the light at the eye.
+fn shade(vol: &Volume, sh: &Shading, c: [f32; 4], w: Vec3, d: Vec3, extent: Vec3) -> [f32; 4] {
+    let g: Vec<f64> = (0..3)
+        .map(|a| {
+            let h = extent[a] / vol.dims[2 - a] as f64;
+            let (mut p, mut q) = (w, w);
+            p[a] += h;
+            q[a] -= h;
+            (vol.sample_world(p, extent) as f64 - vol.sample_world(q, extent) as f64) / (2.0 * h)
+        })
+        .collect();
+    let gn = g.iter().map(|x| x * x).sum::<f64>().sqrt();
+    if gn == 0.0 {
+        return c;
+    }
+    let dn = d.iter().map(|x| x * x).sum::<f64>().sqrt();
+    let x = (g.iter().zip(d).map(|(a, b)| a * b).sum::<f64>() / (gn * dn)).abs();
+    let k = sh.ambient as f64 + sh.diffuse as f64 * x;
+    let s = sh.specular as f64 * x.powf(sh.shininess as f64);
+    let mut out = c;
+    for ch in 0..3 {
+        out[ch] = (c[ch] as f64 * k + s) as f32;
+    }
+    out
+}
+
+/// Accumulation frames through session `s` until the accumulation is
+/// complete; returns the frames drawn and the stand-ins kept after the
+/// first.
+fn accumulate(s: &mut Session, f: &Fixture, acc: &mut Accumulation, lod: Lod) -> (usize, u64) {
+    let mut first = None;
+    for frame in 1..=600 {
+        s.begin_frame();
+        let (st, reqs) = acc.frame(s.vm(), &f.scene, &f.params, lod);
+        first.get_or_insert(st.stand_ins);
+        s.finish_frame(reqs.iter());
+        if acc.complete() {
+            return (frame, first.unwrap());
+        }
+        std::thread::sleep(std::time::Duration::from_millis(1));
+    }
+    panic!(
+        "the accumulation never completed: {} stand-ins",
+        acc.stand_ins()
+    );
+}
+
+#[test]
+fn accumulated_frames_equal_a_single_pass_at_the_rate_reached() {
+    let f = fixture();
+    for (n, level) in [(1u32, 0usize), (8, 0), (16, 1)] {
+        let mut s = session(&f.store, 64 << 20);
+        let mut acc = Accumulation::new(f.params.width, f.params.height, n, 1 << 20);
+        let (frames, _) = accumulate(&mut s, &f, &mut acc, Lod::Fixed(level));
+        assert_eq!(acc.frames(), n);
+        assert!(frames >= n as usize);
+        // One frame is the plain renderer's grid, `t0 + (k + ½)·Δ`: the
+        // oracle itself.
+        let want = match n {
+            1 => render(&f.levels[level], &f.params),
+            _ => single_pass(&f.levels[level], &f, &f.params.tf, level, n),
+        };
+        let d = acc.image().max_abs_diff(&want);
+        assert!(d <= 1e-5, "{n} frames, level {level}: max abs diff {d}");
+        assert!(want.coverage(0.01) > 0.2, "image nearly empty");
+        if n > 1 {
+            // Not the single frame's image: the rate matters here.
+            let one = single_pass(&f.levels[level], &f, &f.params.tf, level, 1);
+            assert!(acc.image().max_abs_diff(&one) > 1e-3);
+        }
+    }
+}
+
+/// Out of core (a pool of a third of the volume, bricks arriving a few per
+/// frame): the first frames are drawn from coarser stand-ins, which are
+/// retaken as the finer bricks arrive. The complete image equals the
+/// in-core single pass; a stand-in left in it would not.
+#[test]
+fn a_complete_image_holds_no_stand_in() {
+    let f = fixture();
+    let mut s = session(&f.store, f.bytes / 3);
+    assert!((s.vm().pool_bytes() as u64) * 2 < f.bytes);
+    let mut acc = Accumulation::new(f.params.width, f.params.height, 8, 1 << 20);
+    let (frames, first) = accumulate(&mut s, &f, &mut acc, Lod::Fixed(0));
+    assert!(first > 0, "the first frame must hold stand-ins");
+    assert!(frames > 8, "{frames} frames");
+    assert_eq!(acc.stand_ins(), 0);
+    let want = single_pass(&f.levels[0], &f, &f.params.tf, 0, 8);
+    let d = acc.image().max_abs_diff(&want);
+    assert!(d <= 1e-5, "max abs diff {d} after {frames} frames");
+}
+
+/// A per-pixel budget of 600 samples stops pixels short of the 16 frames
+/// asked for (at ⌊600 / steps of the ray⌋) and the accumulation is
+/// complete there, within the memory bound.
+#[test]
+fn a_full_store_stops_the_pixel_at_the_rate_reached() {
+    let f = fixture();
+    let mut s = session(&f.store, 64 << 20);
+    // The longest ray of this view is well under 200 steps.
+    let mut acc = Accumulation::new(f.params.width, f.params.height, 16, 3 * 200);
+    accumulate(&mut s, &f, &mut acc, Lod::Fixed(0));
+    assert!(acc.frames() >= 3 && acc.frames() < 16, "{}", acc.frames());
+    assert!(acc.complete());
+    assert!(acc.memory() < (f.params.width * f.params.height) as usize * (3 * 200 * 5 + 400));
+}
+
+/// A re-blend under a new transfer function, without the volume, equals a
+/// fresh accumulation under it; one that sees further than the runs were
+/// taken reports the pixels short, and the next frame completes them.
+#[test]
+fn a_reblend_equals_a_fresh_accumulation() {
+    let mut f = fixture();
+    let mut s = session(&f.store, 64 << 20);
+    let mut acc = Accumulation::new(f.params.width, f.params.height, 8, 1 << 20);
+    accumulate(&mut s, &f, &mut acc, Lod::Fixed(0));
+    for (scale, cmap) in [(3.0f32, "hot"), (0.2, "linear")] {
+        let mut tf = TransferFunction::preset(cmap, [0.0, 255.0]).unwrap();
+        scale_opacity(&mut tf, 0.25 * scale);
+        let short = acc.reblend(&tf).unwrap();
+        f.params.tf = tf.clone();
+        if scale < 1.0 {
+            assert!(short > 0, "a fainter function sees further");
+            assert!(!acc.complete());
+            accumulate(&mut s, &f, &mut acc, Lod::Fixed(0));
+        } else {
+            assert_eq!(short, 0, "a denser function stops earlier");
+            assert!(acc.complete());
+        }
+        let mut fresh = Accumulation::new(f.params.width, f.params.height, 8, 1 << 20);
+        accumulate(&mut s, &f, &mut fresh, Lod::Fixed(0));
+        let d = acc.image().max_abs_diff(fresh.image());
+        assert!(d <= 1e-6, "{cmap}: re-blend vs fresh: {d}");
+        let want = single_pass(&f.levels[0], &f, &tf, 0, 8);
+        assert!(acc.image().max_abs_diff(&want) <= 1e-5);
+    }
+}
+
+/// Mean SSIM of the luminance of two images over black (premultiplied
+/// RGB), on 8×8 windows every 4 pixels, uniform weights, `C1 = 0.01²`,
+/// `C2 = 0.03²`.
+fn ssim(a: &Image, b: &Image) -> f64 {
+    let lum = |c: [f32; 4]| 0.299 * c[0] as f64 + 0.587 * c[1] as f64 + 0.114 * c[2] as f64;
+    let (w, h) = (a.width as usize, a.height as usize);
+    let (c1, c2) = (1e-4, 9e-4);
+    let (mut sum, mut n) = (0.0, 0);
+    for y0 in (0..h.saturating_sub(7)).step_by(4) {
+        for x0 in (0..w.saturating_sub(7)).step_by(4) {
+            let (mut sa, mut sb, mut saa, mut sbb, mut sab) = (0.0, 0.0, 0.0, 0.0, 0.0);
+            for y in y0..y0 + 8 {
+                for x in x0..x0 + 8 {
+                    let (p, q) = (lum(a.rgba[y * w + x]), lum(b.rgba[y * w + x]));
+                    sa += p;
+                    sb += q;
+                    saa += p * p;
+                    sbb += q * q;
+                    sab += p * q;
+                }
+            }
+            let m = 64.0;
+            let (ma, mb) = (sa / m, sb / m);
+            let (va, vb) = (saa / m - ma * ma, sbb / m - mb * mb);
+            let cov = sab / m - ma * mb;
+            sum += ((2.0 * ma * mb + c1) * (2.0 * cov + c2))
+                / ((ma * ma + mb * mb + c1) * (va + vb + c2));
+            n += 1;
+        }
+    }
+    sum / n as f64
+}
+
+#[test]
+fn ssim_of_an_image_with_itself_is_one_and_drops_with_noise() {
+    let f = fixture();
+    let img = render(&f.levels[0], &f.params);
+    assert!((ssim(&img, &img) - 1.0).abs() < 1e-12);
+    let mut noisy = img.clone();
+    for (i, p) in noisy.rgba.iter_mut().enumerate() {
+        p[0] = (p[0] + if i % 3 == 0 { 0.2 } else { -0.1 }).clamp(0.0, 1.0);
+    }
+    assert!(ssim(&img, &noisy) < 0.9, "{}", ssim(&img, &noisy));
+}
+
+/// The figures of BENCHMARKS.md (sample accumulation): frames → PSNR and
+/// SSIM against a single pass at 32 samples per voxel, beside a plain
+/// single pass at the same total rate; accumulation frame time against a
+/// plain DVR frame; a transfer-function re-blend against a fresh
+/// accumulation. Run with `--ignored --nocapture`.
+#[test]
+#[ignore]
+fn convergence_figures() {
+    use brickyard_render::cpu::render_frame;
+    use std::time::Instant;
+    let dir = tempfile::tempdir().unwrap();
+    let store = dir.path().join("mb.ome.zarr");
+    let dims = [128, 128, 128];
+    let o = ConvertOptions {
+        brick: [32; 3],
+        shard: [64; 3],
+        ..Default::default()
+    };
+    let src = Procedural::new(Kind::Mandelbulb, dims, DType::U8);
+    convert(&src, &store, &o, &NoProgress, &AtomicBool::new(false)).unwrap();
+    let vol = Volume::from_store(&store, 0, 0).unwrap();
+    let extent = world_extent(dims, vol.spacing);
+    let mut scene = Scene::new(extent, vec![vol.dims]);
+    scene.ranges = None;
+    // A narrow, dense band of opacity: thin shells that a coarse step
+    // undersamples.
+    let mut tf = TransferFunction::preset("viridis", [0.0, 255.0]).unwrap();
+    tf.opacity = vec![[0.0, 0.0], [0.3, 0.0], [0.33, 0.9], [0.36, 0.0], [1.0, 0.0]];
+    let cam = Camera::fit(
+        extent,
+        30.0,
+        20.0,
+        Projection::Perspective { fov_y_deg: 40.0 },
+    );
+    let mut p = RenderParams::new(256, 256, cam, tf, RenderMode::Dvr);
+    p.reference_step = Some(scene.voxel(0));
+    let t = Instant::now();
+    let mut pr = p.clone();
+    pr.samples_per_voxel = 32.0;
+    let reference = render(&vol, &pr);
+    println!(
+        "reference (32 samples per voxel, oracle): {:.1} s",
+        t.elapsed().as_secs_f64()
+    );
+    let cfg = VmConfig {
+        brick: [32; 3],
+        apron: 1,
+        pt_block: [4; 3],
+        max_dir_entries: 64,
+        pool_bytes: 64 << 20,
+        pt_cache_blocks: 256,
+        request_cap: 4096,
+        upload_bytes_per_frame: 64 << 20,
+    };
+    let mut s = Session::open(&store, cfg, 64 << 20, 2).unwrap();
+    // Load the working set (nothing is timed before it is resident).
+    for _ in 0..50 {
+        s.begin_frame();
+        let (_, st, reqs) = render_frame(s.vm(), &scene, &p, Lod::Fixed(0));
+        s.finish_frame(reqs.iter());
+        if st.completeness() == 1.0 {
+            break;
+        }
+        std::thread::sleep(std::time::Duration::from_millis(20));
+    }
+    let mut plain_ms = f64::INFINITY;
+    for _ in 0..3 {
+        let t = Instant::now();
+        let _ = render_frame(s.vm(), &scene, &p, Lod::Fixed(0));
+        plain_ms = plain_ms.min(t.elapsed().as_secs_f64() * 1e3);
+    }
+    println!("plain DVR frame (1 sample per voxel): {plain_ms:.1} ms");
+    println!("| frames | accumulated PSNR dB | SSIM | frame ms | plain single pass at the same rate: PSNR dB | SSIM |");
+    println!("|---:|---:|---:|---:|---:|---:|");
+    let mut acc = Accumulation::new(p.width, p.height, 32, 1 << 20);
+    let mut total = 0.0;
+    for n in 1..=32u32 {
+        s.begin_frame();
+        let t = Instant::now();
+        let (st, reqs) = acc.frame(s.vm(), &scene, &p, Lod::Fixed(0));
+        let ms = t.elapsed().as_secs_f64() * 1e3;
+        total += ms;
+        s.finish_frame(reqs.iter());
+        assert_eq!(st.stand_ins, 0);
+        if n.is_power_of_two() {
+            let mut pn = p.clone();
+            pn.samples_per_voxel = n as f64;
+            let plain = render(&vol, &pn);
+            println!(
+                "| {n} | {:.2} | {:.4} | {ms:.0} | {:.2} | {:.4} |",
+                acc.image().psnr(&reference),
+                ssim(acc.image(), &reference),
+                plain.psnr(&reference),
+                ssim(&plain, &reference)
+            );
+        }
+        if n == 16 {
+            // Re-blends against a fresh accumulation of 16 frames: new
+            // colours; the band moved and widened.
+            let mut colours = p.tf.clone();
+            colours.colormap = TransferFunction::preset("hot", [0.0, 1.0])
+                .unwrap()
+                .colormap;
+            let mut moved = p.tf.clone();
+            moved.opacity = vec![[0.0, 0.0], [0.25, 0.0], [0.3, 0.9], [0.36, 0.0], [1.0, 0.0]];
+            println!(
+                "16 frames: {total:.0} ms in all, {:.1} MiB kept",
+                acc.memory() as f64 / (1 << 20) as f64
+            );
+            for (what, tf2) in [("colours", colours), ("opacity band", moved)] {
+                let t = Instant::now();
+                let short = acc.reblend(&tf2).unwrap();
+                let reblend_ms = t.elapsed().as_secs_f64() * 1e3;
+                println!("re-blend, new {what}: {reblend_ms:.1} ms ({short} pixels short of kept samples)");
+            }
+            acc.reblend(&p.tf);
+        }
+    }
+}
+
+/// Shaded accumulation: each kept sample keeps the cosine of its normal
+/// with the ray, so 8 frames equal the shaded single pass at 8× the rate,
+/// out of core too (a normal from a stand-in is retaken); a re-blend with
+/// other shading parameters equals a fresh accumulation under them; an
+/// accumulation begun unshaded cannot be re-blended shaded.
+#[test]
+fn shaded_accumulation_equals_the_shaded_single_pass() {
+    let mut f = fixture();
+    f.params.tf.shading = Some(Shading::default());
+    // Out of core: a pool of 29 slots for the 48 bricks of level 0. (A
+    // shaded sample needs its brick and its neighbours' at once; with 9
+    // slots, as the unshaded out-of-core test has, the retakes starve.)
+    for pool in [64 << 20, f.bytes] {
+        let mut s = session(&f.store, pool);
+        if pool == f.bytes {
+            assert!(s.vm().pool_slots() < 48, "{}", s.vm().pool_slots());
+        }
+        let mut acc = Accumulation::new(f.params.width, f.params.height, 8, 1 << 20);
+        accumulate(&mut s, &f, &mut acc, Lod::Fixed(0));
+        let want = single_pass(&f.levels[0], &f, &f.params.tf, 0, 8);
+        let d = acc.image().max_abs_diff(&want);
+        assert!(d <= 1e-5, "pool {pool}: max abs diff {d}");
+        let mut plain = f.params.tf.clone();
+        plain.shading = None;
+        let unshaded = single_pass(&f.levels[0], &f, &plain, 0, 8);
+        assert!(want.max_abs_diff(&unshaded) > 0.02, "shading did nothing");
+    }
+    let mut s = session(&f.store, 64 << 20);
+    let mut acc = Accumulation::new(f.params.width, f.params.height, 8, 1 << 20);
+    accumulate(&mut s, &f, &mut acc, Lod::Fixed(0));
+    let mut glossy = f.params.tf.clone();
+    glossy.shading = Some(Shading {
+        ambient: 0.1,
+        diffuse: 0.5,
+        specular: 0.9,
+        shininess: 4.0,
+    });
+    assert_eq!(acc.reblend(&glossy), Some(0));
+    let want = single_pass(&f.levels[0], &f, &glossy, 0, 8);
+    let d = acc.image().max_abs_diff(&want);
+    assert!(d <= 1e-5, "re-blend with new shading: max abs diff {d}");
+    // Begun unshaded: no normals kept.
+    let mut unshaded = f.params.clone();
+    unshaded.tf.shading = None;
+    let mut acc = Accumulation::new(f.params.width, f.params.height, 2, 1 << 20);
+    s.begin_frame();
+    let (_, reqs) = acc.frame(s.vm(), &f.scene, &unshaded, Lod::Fixed(0));
+    s.finish_frame(reqs.iter());
+    assert_eq!(acc.reblend(&glossy), None);
+}
