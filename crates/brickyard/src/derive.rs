@@ -23,6 +23,8 @@ pub struct Derived {
     pub channel: usize,
     store: PathBuf,
     level0: SourceMeta,
+    /// Voxel type of the derived channel (the last stage's).
+    pub dtype: brickyard_core::DType,
 }
 
 impl Derived {
@@ -31,7 +33,8 @@ impl Derived {
     pub fn new(store: &Path, text: &str, channel: usize) -> Result<Derived> {
         let pipeline = Pipeline::parse(text).map_err(|e| anyhow!("derive: {e}"))?;
         brickyard_process::check_live(&pipeline).map_err(|e| anyhow!("derive: {e}"))?;
-        let level0 = zarr::open(store, 0)?.meta().clone();
+        let stored = Arc::new(zarr::open(store, 0)?);
+        let level0 = stored.meta().clone();
         if channel >= level0.channels {
             return Err(anyhow!(
                 "derive: channel {channel} asked for but {} has {} channel(s)",
@@ -39,14 +42,15 @@ impl Derived {
                 level0.channels
             ));
         }
-        let d = Derived {
+        let mut d = Derived {
             pipeline,
             channel,
             store: store.to_path_buf(),
             level0,
+            dtype: brickyard_core::DType::F32,
         };
         // Fail now, naming the stage, rather than on the first brick.
-        d.level(Arc::new(zarr::open(store, 0)?))?;
+        d.dtype = d.level(stored)?.meta().dtype;
         Ok(d)
     }
 

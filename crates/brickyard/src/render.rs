@@ -382,7 +382,7 @@ pub fn run(c: RenderCmd) -> Result<Vec<String>> {
     // A padded brick of the pool (its cell ranges included), to size the
     // batch's requests and uploads.
     let dtype = match &derived {
-        Some(d) => d.open_level(0)?.meta().dtype,
+        Some(d) => d.dtype,
         None => m.dtype,
     };
     let slot_bytes = (c.brick + 2).pow(3) * dtype.size() as u64 + 64 * 8;

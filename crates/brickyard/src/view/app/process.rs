@@ -19,7 +19,7 @@ pub fn derived_dataset(stored: &Dataset, d: &Derived) -> Result<Dataset> {
         .unwrap_or([0.0, 1.0]);
     Ok(Dataset {
         channels: 1,
-        dtype: d.open_level(0)?.meta().dtype,
+        dtype: d.dtype,
         range: window,
         histogram: vec![0.0; stored.histogram.len()],
         ..stored.clone()
