@@ -3,7 +3,8 @@
 // the sample there is step 0 of the new level's grid, as on the CPU),
 // bricks the transfer function hides crossed in one jump, cells of
 // resident bricks it hides crossed the same way, the fallback to coarser
-// levels, and compositing with opacity correction and early termination.
+// levels, gradient shading (shading.wgsl), and compositing with opacity
+// correction and early termination.
 
 // The pixel of `ray` in a DVR of the scene's channel; adds its counts.
 fn dvr_pixel(ray: Ray) -> vec4<f32> {
@@ -81,17 +82,21 @@ fn dvr_pixel(ray: Ray) -> vec4<f32> {
             let alpha = opacity_at(x);
             if (alpha > 0.0) {
                 let a = correct_opacity(alpha, R.step[level].y);
-                let w = (1.0 - acc.w) * a;
-                acc = acc + vec4<f32>(color_at(x) * w, w);
+                var c = color_at(x);
+                if (R.shade == 1u) {
+                    c = shade(c, level, w, ray.d);
+                }
+                let wt = (1.0 - acc.w) * a;
+                acc = acc + vec4<f32>(c * wt, wt);
                 if (acc.w >= EARLY_TERMINATION) {
                     break;
                 }
             }
         }
     }
-    atomicAdd(&counters[0], samples);
-    atomicAdd(&counters[1], exact);
-    atomicAdd(&counters[2], unserved);
+    atomicAdd(&counters[0], samples + nb_samples);
+    atomicAdd(&counters[1], exact + nb_exact);
+    atomicAdd(&counters[2], unserved + nb_unserved);
     atomicAdd(&counters[3], jumps);
     atomicAdd(&counters[5], cells_crossed);
     return acc;

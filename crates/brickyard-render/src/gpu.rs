@@ -49,6 +49,8 @@ const RENDER_WGSL: &str = concat!(
     include_str!("mip.wgsl"),
     "\n",
     include_str!("dvr.wgsl"),
+    "\n",
+    include_str!("shading.wgsl"),
 );
 
 /// The render uniform (see `gpu.wgsl`).
@@ -85,7 +87,8 @@ struct Uniform {
     /// DVR: cross cells of resident bricks that the transfer function
     /// hides.
     skip_cells: u32,
-    pad: u32,
+    /// DVR: gradient shading (1) with `shading`'s parameters.
+    shade: u32,
     /// Cells per brick and axis, and voxels per cell edge (`[z, y, x, _]`).
     cell_count: [u32; 4],
     cell_edge: [u32; 4],
@@ -96,6 +99,8 @@ struct Uniform {
     pad3: [u32; 2],
     plane_origin: [f32; 4],
     plane_normal: [f32; 4],
+    /// Ambient, diffuse, specular, shininess.
+    shading: [f32; 4],
     scale: [[f32; 4]; MAX_LEVELS],
     qmax: [[f32; 4]; MAX_LEVELS],
     step: [[f32; 4]; MAX_LEVELS],
@@ -437,6 +442,10 @@ impl GpuRenderer {
         u.cell_edge = [edge[0] as u32, edge[1] as u32, edge[2] as u32, 0];
         u.plane_origin = f4(plane.0);
         u.plane_normal = f4(plane.1);
+        if let (0, Some(sh)) = (mode, &tf.shading) {
+            u.shade = 1;
+            u.shading = [sh.ambient, sh.diffuse, sh.specular, sh.shininess];
+        }
         u.clear_off = *off;
         let uniform = gpu.uniform_buffer("render", &u);
         let res = dvm.resources(gpu, 0);

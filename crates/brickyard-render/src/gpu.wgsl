@@ -48,7 +48,9 @@ struct Render {
     // DVR: cross cells of resident bricks the transfer function hides;
     // MIP: cells whose maximum cannot raise the ray's (1), or not (0).
     skip_cells: u32,
-    pad1: u32,
+    // DVR: gradient shading of samples (1) or not (0); its parameters in
+    // `shading`.
+    shade: u32,
     // Cells per brick and axis, voxels per cell edge (z, y, x).
     cell_count: vec4<u32>,
     cell_edge: vec4<u32>,
@@ -62,6 +64,8 @@ struct Render {
     // Slice: a point of the plane and its unit normal (x, y, z).
     plane_origin: vec4<f32>,
     plane_normal: vec4<f32>,
+    // Shading: ambient, diffuse, specular, shininess.
+    shading: vec4<f32>,
     // Per level: voxels per world unit (z, y, x); w unused.
     scale: array<vec4<f32>, 16>,
     // Per level: last voxel index (z, y, x) as floats.

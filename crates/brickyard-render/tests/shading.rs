@@ -8,7 +8,10 @@ use brickyard_cache::session::Session;
 use brickyard_cache::vm::VmConfig;
 use brickyard_core::camera::{world_extent, Camera, Projection};
 use brickyard_core::{DType, Shading, TransferFunction};
+use brickyard_gpu::context::test_gpu;
+use brickyard_gpu::vm::DeviceVm;
 use brickyard_render::cpu::{render_frame, Lod, Scene};
+use brickyard_render::gpu::GpuRenderer;
 use brickyard_render::image::Image;
 use brickyard_render::reference::{render, render_auto_lod, RenderMode, RenderParams, Volume};
 use brickyard_store::builder::{convert, ConvertOptions, NoProgress};
@@ -148,4 +151,68 @@ fn no_seams_at_brick_borders_with_a_small_pool() {
     let d = img.max_abs_diff(&want);
     assert!(d <= 1e-5, "max abs diff {d} after {frames} frames");
     s.vm().check_invariants().unwrap();
+}
+
+/// Frames on the device (updates decided on the host, mirrored) until
+/// complete; the final image. `None`: no adapter and BRICKYARD_SKIP_GPU=1.
+fn converge_device(s: &mut Session, scene: &Scene, p: &RenderParams, lod: Lod) -> Option<Image> {
+    let gpu = test_gpu()?;
+    let mut renderer = GpuRenderer::new(&gpu);
+    let (mut dvm, _) = DeviceVm::new(&gpu, s.vm_mut()).unwrap();
+    for _ in 1..=600 {
+        s.begin_frame();
+        let f = renderer.render(&gpu, &dvm, s.vm(), scene, p, lod).unwrap();
+        s.finish_frame([&f.requests]);
+        dvm.sync(&gpu, s.vm_mut());
+        if f.stats.completeness() == 1.0 && f.stats.samples > 0 {
+            return Some(f.image);
+        }
+        std::thread::sleep(std::time::Duration::from_millis(1));
+    }
+    panic!("the device view never completed");
+}
+
+/// The device's shading (`shading.wgsl`) against the oracle and the CPU
+/// twin: in core at two levels, and with 8³ bricks and a pool of a quarter
+/// of the volume (seams would show along the borders). Positions are f32
+/// on the device: within 1e-4, the device tolerance of `tests/gpu.rs`.
+#[test]
+fn device_shading_equals_the_oracle_without_seams() {
+    let f = fixture(Kind::MarschnerLobb, 16);
+    let mut unshaded = f.params.clone();
+    unshaded.tf.shading = None;
+    for level in [0usize, 1] {
+        let mut s = session(&f.store, 64 << 20, 16);
+        let Some(img) = converge_device(&mut s, &f.scene, &f.params, Lod::Fixed(level)) else {
+            return;
+        };
+        let want = render(&f.levels[level], &f.params);
+        let d = img.max_abs_diff(&want);
+        eprintln!("device, level {level}: max abs diff to the oracle {d}");
+        assert!(d <= 1e-4, "device, level {level}: max abs diff {d}");
+        let plain = render(&f.levels[level], &unshaded);
+        assert!(
+            img.max_abs_diff(&plain) > 0.05,
+            "device shading did nothing"
+        );
+    }
+    let mut f = fixture(Kind::Mandelbulb, 8);
+    f.params.tf.opacity = vec![[0.0, 0.0], [0.45, 0.0], [0.6, 0.85], [1.0, 0.85]];
+    let mut s = session(&f.store, f.bytes, 8);
+    f.scene.ranges = Some(std::sync::Arc::new(s.loader().brick_ranges(1 << 24)));
+    assert!(s.vm().pool_slots() * 3 < 336 * 2, "{}", s.vm().pool_slots());
+    let img = converge_device(&mut s, &f.scene, &f.params, Lod::Fixed(0)).unwrap();
+    let want = render(&f.levels[0], &f.params);
+    assert!(want.coverage(0.01) > 0.05, "image nearly empty");
+    let d = img.max_abs_diff(&want);
+    eprintln!("device, small pool: max abs diff to the oracle {d}");
+    assert!(d <= 1e-4, "device, small pool: max abs diff {d}");
+    // The CPU twin on the same resident data.
+    s.begin_frame();
+    let (cpu, st, reqs) = render_frame(s.vm(), &f.scene, &f.params, Lod::Fixed(0));
+    s.finish_frame(reqs.iter());
+    if st.completeness() == 1.0 {
+        let d = img.max_abs_diff(&cpu);
+        assert!(d <= 1e-4, "device and CPU differ by {d}");
+    }
 }

@@ -486,9 +486,6 @@ pub fn run(c: RenderCmd) -> Result<Vec<String>> {
         Some(l) => Lod::Fixed(l),
         None => Lod::Auto { bias: c.lod_bias },
     };
-    if tf.shading.is_some() && !matches!(backend, crate::backend::Backend::Cpu) {
-        bail!("tf: gradient shading is drawn on the CPU back end only so far (--backend cpu)");
-    }
     if let Some(n) = c.progressive {
         if mode != RenderMode::Dvr || !matches!(backend, crate::backend::Backend::Cpu) {
             bail!("progressive: sample accumulation draws DVR on the CPU back end (--mode dvr --backend cpu)");
