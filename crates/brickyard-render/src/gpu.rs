@@ -51,6 +51,8 @@ const RENDER_WGSL: &str = concat!(
     include_str!("dvr.wgsl"),
     "\n",
     include_str!("shading.wgsl"),
+    "\n",
+    include_str!("savr.wgsl"),
 );
 
 /// The render uniform (see `gpu.wgsl`).
@@ -101,6 +103,11 @@ struct Uniform {
     plane_normal: [f32; 4],
     /// Ambient, diffuse, specular, shininess.
     shading: [f32; 4],
+    /// Sample accumulation (`savr.wgsl`): frames, samples a pixel keeps, 0,
+    /// normals kept; store offsets; the reference step.
+    acc: [u32; 4],
+    acc_off: [u32; 4],
+    acc_ref: [f32; 4],
     scale: [[f32; 4]; MAX_LEVELS],
     qmax: [[f32; 4]; MAX_LEVELS],
     step: [[f32; 4]; MAX_LEVELS],
@@ -127,6 +134,20 @@ pub struct GpuFrame {
     /// Device→host bytes of cache management this frame (request list,
     /// counters, used slots; the image read-back is not counted).
     pub bytes_down: u64,
+    /// The frame's eight counters as the entry point left them (`gpu.wgsl`
+    /// for a plain frame, `savr.wgsl` for accumulation).
+    pub counters: [u32; 8],
+}
+
+/// A pass of a sample accumulation (`savr.wgsl`): its entry point
+/// (`accumulate` or `reblend`), the buffer holding the image and the store
+/// after it, and the accumulation's uniform fields.
+pub(crate) struct AccPass<'b> {
+    pub entry: &'static str,
+    pub store: &'b wgpu::Buffer,
+    pub acc: [u32; 4],
+    pub acc_off: [u32; 4],
+    pub reference: f32,
 }
 
 /// The device renderer: pipelines and the per-slot buffers that persist
@@ -204,7 +225,7 @@ impl GpuRenderer {
             gpu,
             "render",
             &source,
-            &["render"],
+            &["render", "accumulate", "reblend"],
             &[
                 Uniform, ReadWrite, Texture3d, Uniform, Read, ReadWrite, ReadWrite, ReadWrite,
                 ReadWrite, ReadWrite, ReadWrite, Texture3d,
@@ -250,6 +271,22 @@ impl GpuRenderer {
         scene: &Scene,
         params: &RenderParams,
         lod: Lod,
+    ) -> Result<GpuFrame, GpuError> {
+        self.draw(gpu, dvm, vm, cache, scene, params, lod, None)
+    }
+
+    /// A frame of `render_with`, or a pass of a sample accumulation.
+    #[allow(clippy::too_many_arguments)]
+    pub(crate) fn draw(
+        &mut self,
+        gpu: &Gpu,
+        dvm: &DeviceVm,
+        vm: &VirtualMemory,
+        cache: Option<&DeviceCache>,
+        scene: &Scene,
+        params: &RenderParams,
+        lod: Lod,
+        pass: Option<AccPass>,
     ) -> Result<GpuFrame, GpuError> {
         assert!(params.channels.len() <= 16, "at most 16 channels added up");
         let (mode, plane) = match params.mode {
@@ -304,6 +341,7 @@ impl GpuRenderer {
         gpu.queue.write_buffer(counters, 0, &[0; 32]);
         let (w, h) = (params.width, params.height);
         match self.images.iter().position(|(d, _)| *d == (w, h)) {
+            _ if pass.is_some() => {}
             Some(i) => {
                 let x = self.images.remove(i);
                 self.images.push(x);
@@ -318,7 +356,10 @@ impl GpuRenderer {
                 self.images.push(((w, h), b));
             }
         }
-        let image = &self.images.last().expect("made above").1;
+        let image = match &pass {
+            Some(p) => p.store,
+            None => &self.images.last().expect("made above").1,
+        };
 
         let cam = &params.camera;
         let basis = cam.basis();
@@ -442,6 +483,11 @@ impl GpuRenderer {
         u.cell_edge = [edge[0] as u32, edge[1] as u32, edge[2] as u32, 0];
         u.plane_origin = f4(plane.0);
         u.plane_normal = f4(plane.1);
+        if let Some(p) = &pass {
+            u.acc = p.acc;
+            u.acc_off = p.acc_off;
+            u.acc_ref = [p.reference, 0.0, 0.0, 0.0];
+        }
         if let (0, Some(sh)) = (mode, &tf.shading) {
             u.shade = 1;
             u.shading = [sh.ambient, sh.diffuse, sh.specular, sh.shininess];
@@ -468,8 +514,9 @@ impl GpuRenderer {
             ],
         );
         let mut enc = gpu.device.create_command_encoder(&Default::default());
+        let entry = pass.as_ref().map_or("render", |p| p.entry);
         self.kernel
-            .dispatch(&mut enc, "render", &bind, [w.div_ceil(8), h.div_ceil(8), 1]);
+            .dispatch(&mut enc, entry, &bind, [w.div_ceil(8), h.div_ceil(8), 1]);
         gpu.queue.submit([enc.finish()]);
 
         let head = gpu.read_u32("frame counters", counters, 8)?;
@@ -512,6 +559,7 @@ impl GpuRenderer {
             dropped,
             used_slots: used.len(),
             bytes_down: 32 + used.len() as u64 * 4 + table.downloaded,
+            counters: head[..8].try_into().expect("eight counters"),
         })
     }
 }

@@ -66,6 +66,12 @@ struct Render {
     plane_normal: vec4<f32>,
     // Shading: ambient, diffuse, specular, shininess.
     shading: vec4<f32>,
+    // Sample accumulation (savr.wgsl): frames asked for, samples a pixel
+    // keeps, 0, normals kept (1); where the runs, values, flags and
+    // cosines start in the store; the reference step.
+    acc: vec4<u32>,
+    acc_off: vec4<u32>,
+    acc_ref: vec4<f32>,
     // Per level: voxels per world unit (z, y, x); w unused.
     scale: array<vec4<f32>, 16>,
     // Per level: last voxel index (z, y, x) as floats.
@@ -82,8 +88,9 @@ struct Render {
 // `R.clear_off` on, one bit per brick id: the transfer function maps the
 // brick's whole value range to zero opacity (from the store's statistics).
 @group(0) @binding(4) var<storage, read> aux: array<u32>;
-// Premultiplied RGBA per pixel, rows top to bottom.
-@group(0) @binding(5) var<storage, read_write> image: array<vec4<f32>>;
+// Premultiplied RGBA per pixel (four f32 as bits), rows top to bottom;
+// for sample accumulation the store follows (savr.wgsl).
+@group(0) @binding(5) var<storage, read_write> image: array<u32>;
 // Per slot of every set (the pool, then the cache of each intermediate
 // level: `lay.set_base`): (frame last used, frame last used at its own
 // level; pool only).
@@ -139,11 +146,15 @@ fn pixel_ray(i: u32, j: u32) -> Ray {
     return Ray(R.eye.xyz + off, R.forward.xyz);
 }
 
-@compute @workgroup_size(8, 8)
-fn render(@builtin(global_invocation_id) g: vec3<u32>) {
-    if (g.x >= R.width || g.y >= R.height) {
-        return;
-    }
+fn put_pixel(i: u32, c: vec4<f32>) {
+    image[4u * i] = bitcast<u32>(c.x);
+    image[4u * i + 1u] = bitcast<u32>(c.y);
+    image[4u * i + 2u] = bitcast<u32>(c.z);
+    image[4u * i + 3u] = bitcast<u32>(c.w);
+}
+
+// The per-invocation state's start.
+fn begin_invocation() {
     last_mark = AUTO;
     for (var i = 0u; i < 16u; i = i + 1u) {
         memo_level[i] = AUTO;
@@ -152,6 +163,14 @@ fn render(@builtin(global_invocation_id) g: vec3<u32>) {
     cur_idx = 0u;
     miss_id = AUTO;
     miss_n = 0u;
+}
+
+@compute @workgroup_size(8, 8)
+fn render(@builtin(global_invocation_id) g: vec3<u32>) {
+    if (g.x >= R.width || g.y >= R.height) {
+        return;
+    }
+    begin_invocation();
     let ray = pixel_ray(g.x, g.y);
     var px = vec4<f32>(0.0);
     if (R.n_channels > 0u) {
@@ -168,5 +187,5 @@ fn render(@builtin(global_invocation_id) g: vec3<u32>) {
         px = dvr_pixel(ray);
     }
     flush_misses();
-    image[g.y * R.width + g.x] = px;
+    put_pixel(g.y * R.width + g.x, px);
 }

@@ -59,6 +59,8 @@
 //! ray crosses (a later transfer function may show them), so it does not
 //! skip bricks the current transfer function hides.
 
+pub mod device;
+
 use crate::cpu::{FrameStats, Lod, Scene};
 use crate::image::Image;
 use crate::optics::composite_visible;

@@ -17,6 +17,8 @@ use brickyard_render::cpu::{render_tiles, FrameStats, Lod, Scene, Tiles};
 use brickyard_render::gpu::update_on_device;
 use brickyard_render::gpu::GpuRenderer;
 use brickyard_render::reference::RenderParams;
+use brickyard_render::savr::device::DeviceAccumulation;
+use brickyard_render::savr::Accumulation;
 use brickyard_render::Image;
 
 /// One frame, whoever drew it.
@@ -344,4 +346,140 @@ pub fn device_out_of_memory(e: &anyhow::Error) -> bool {
             Some(brickyard_gpu::context::GpuError::OutOfMemory { .. })
         )
     })
+}
+
+/// A sample accumulation on the back end that draws the view: the CPU's
+/// [`Accumulation`] or the device's [`DeviceAccumulation`].
+pub enum Accumulating {
+    Cpu(Accumulation),
+    Gpu(DeviceAccumulation),
+}
+
+/// What an accumulation frame reports.
+#[derive(Debug, Clone, Copy, Default)]
+pub struct AccumFrame {
+    /// Lookups made, stand-ins kept after the frame.
+    pub samples: u64,
+    pub stand_ins: u64,
+}
+
+impl Accumulating {
+    /// An empty accumulation of `n` frames for `p`'s image on `backend`,
+    /// keeping at most `budget` samples a pixel (the device lowers it to
+    /// what one of its buffers holds).
+    pub fn new(backend: &Backend, p: &RenderParams, n: u32, budget: usize) -> Accumulating {
+        match backend {
+            Backend::Cpu => Accumulating::Cpu(Accumulation::new(p.width, p.height, n, budget)),
+            Backend::Gpu(g) => Accumulating::Gpu(DeviceAccumulation::new(
+                &g.gpu, p.width, p.height, n, budget,
+            )),
+        }
+    }
+
+    pub fn complete(&self) -> bool {
+        match self {
+            Accumulating::Cpu(a) => a.complete(),
+            Accumulating::Gpu(a) => a.complete(),
+        }
+    }
+
+    pub fn image(&self) -> &Image {
+        match self {
+            Accumulating::Cpu(a) => a.image(),
+            Accumulating::Gpu(a) => a.image(),
+        }
+    }
+
+    /// Frames blended so far (the fewest of any pixel on the CPU; frames
+    /// drawn, at most the target, on the device).
+    pub fn frames(&self) -> u32 {
+        match self {
+            Accumulating::Cpu(a) => a.frames(),
+            Accumulating::Gpu(a) => a.drawn().min(a.target()),
+        }
+    }
+
+    pub fn target(&self) -> u32 {
+        match self {
+            Accumulating::Cpu(a) => a.target(),
+            Accumulating::Gpu(a) => a.target(),
+        }
+    }
+
+    /// Bytes of kept samples (on the device: the whole store, allocated at
+    /// the first frame).
+    pub fn memory(&self) -> u64 {
+        match self {
+            Accumulating::Cpu(a) => a.memory() as u64,
+            Accumulating::Gpu(a) => a.memory(),
+        }
+    }
+
+    /// One accumulation frame, ended (requests out, bricks in).
+    pub fn frame(
+        &mut self,
+        backend: &mut Backend,
+        s: &mut Session,
+        scene: &Scene,
+        p: &RenderParams,
+        lod: Lod,
+    ) -> Result<AccumFrame> {
+        s.begin_frame();
+        match (self, backend) {
+            (Accumulating::Cpu(a), Backend::Cpu) => {
+                let (st, reqs) = a.frame(s.vm(), scene, p, lod);
+                s.finish_frame(reqs.iter());
+                Ok(AccumFrame {
+                    samples: st.frame.samples,
+                    stand_ins: st.stand_ins,
+                })
+            }
+            (Accumulating::Gpu(a), Backend::Gpu(g)) => {
+                let frame = s.vm().frame();
+                let f = a.frame(
+                    &g.gpu,
+                    &mut g.renderer,
+                    &g.dvm,
+                    s.vm(),
+                    g.cache.as_ref(),
+                    scene,
+                    p,
+                    lod,
+                )?;
+                match g.cache.as_mut() {
+                    Some(cache) => {
+                        update_on_device(&g.gpu, &mut g.dvm, cache, s, frame, &f.list)?;
+                    }
+                    None => {
+                        s.finish_frame([&f.requests]);
+                        g.dvm.sync(&g.gpu, s.vm_mut());
+                    }
+                }
+                Ok(AccumFrame {
+                    samples: a.last().frame.samples,
+                    stand_ins: a.last().stand_ins,
+                })
+            }
+            _ => bail!("the accumulation was begun on another back end"),
+        }
+    }
+
+    /// Blend the kept samples again under `p.tf` (no volume access): the
+    /// pixels left short (the next frame extends them); `None` when the
+    /// function shades and the samples keep no normals.
+    pub fn reblend(
+        &mut self,
+        backend: &mut Backend,
+        s: &Session,
+        scene: &Scene,
+        p: &RenderParams,
+    ) -> Result<Option<u64>> {
+        match (self, backend) {
+            (Accumulating::Cpu(a), _) => Ok(a.reblend(&p.tf).map(|n| n as u64)),
+            (Accumulating::Gpu(a), Backend::Gpu(g)) => {
+                Ok(a.reblend(&g.gpu, &mut g.renderer, &g.dvm, s.vm(), scene, p)?)
+            }
+            _ => bail!("the accumulation was begun on another back end"),
+        }
+    }
 }

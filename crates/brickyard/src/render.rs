@@ -487,8 +487,8 @@ pub fn run(c: RenderCmd) -> Result<Vec<String>> {
         None => Lod::Auto { bias: c.lod_bias },
     };
     if let Some(n) = c.progressive {
-        if mode != RenderMode::Dvr || !matches!(backend, crate::backend::Backend::Cpu) {
-            bail!("progressive: sample accumulation draws DVR on the CPU back end (--mode dvr --backend cpu)");
+        if mode != RenderMode::Dvr {
+            bail!("progressive: sample accumulation draws DVR (--mode dvr)");
         }
         if n == 0 || n > brickyard_render::savr::MAX_FRAMES {
             bail!(
@@ -653,7 +653,15 @@ pub fn run(c: RenderCmd) -> Result<Vec<String>> {
                     Lod::Auto { .. } => Lod::Auto { bias: b.bias },
                     fixed => fixed,
                 };
-                accumulate(&mut s, &scene, &params, lod, n, c.json || c.quiet)?
+                accumulate(
+                    &mut backend,
+                    &mut s,
+                    &scene,
+                    &params,
+                    lod,
+                    n,
+                    c.json || c.quiet,
+                )?
             }
             None => out.image,
         };
@@ -684,10 +692,17 @@ pub fn run(c: RenderCmd) -> Result<Vec<String>> {
     Ok(written)
 }
 
+/// The most device memory a sample store takes (the device allocates a
+/// pixel's whole budget up front; pixels whose rays need more stop at the
+/// rate it allows).
+const DEVICE_STORE_BYTES: u64 = 512 << 20;
+
 /// `--progressive N`: accumulation frames of the view (whose working set
 /// the drive has just loaded) until `n` frames are blended and no stand-in
-/// is left. The per-pixel store holds `n` whole rays of samples.
+/// is left. The per-pixel store holds `n` whole rays of samples (on the
+/// device: as many as one of its buffers holds).
 fn accumulate(
+    backend: &mut crate::backend::Backend,
     s: &mut Session,
     scene: &Scene,
     params: &RenderParams,
@@ -695,25 +710,38 @@ fn accumulate(
     n: u32,
     quiet: bool,
 ) -> Result<brickyard_render::Image> {
-    use brickyard_render::savr::Accumulation;
+    use crate::backend::Accumulating;
     let e = scene.extent;
     let diagonal = (e[0] * e[0] + e[1] * e[1] + e[2] * e[2]).sqrt();
     let steps = (diagonal / (scene.voxel(0) / params.samples_per_voxel)).ceil() as usize + 2;
-    let mut acc = Accumulation::new(params.width, params.height, n, n as usize * steps);
+    backend.set_read_image(true);
+    let mut budget = n as usize * steps;
+    if !matches!(backend, crate::backend::Backend::Cpu) {
+        // The device's store is allocated whole: at most this much.
+        let cap = brickyard_render::savr::device::DeviceAccumulation::budget_within(
+            DEVICE_STORE_BYTES,
+            params.width,
+            params.height,
+            n,
+            params.tf.shading.is_some(),
+        );
+        budget = budget.min(cap as usize);
+    }
+    let mut acc = Accumulating::new(backend, params, n, budget);
     let t = std::time::Instant::now();
+    let mut left = 0;
     for frame in 1..=4 * n as usize + 64 {
         let f0 = std::time::Instant::now();
-        s.begin_frame();
-        let (st, reqs) = acc.frame(s.vm(), scene, params, lod);
-        s.finish_frame(reqs.iter());
+        let st = acc.frame(backend, s, scene, params, lod)?;
+        left = st.stand_ins;
         if !quiet {
             println!(
                 "accumulate {}/{n}: {:8.1} ms, {} samples taken, {} stand-ins left, {} kept",
                 acc.frames(),
                 f0.elapsed().as_secs_f64() * 1e3,
-                st.frame.samples,
+                st.samples,
                 st.stand_ins,
-                human_bytes(acc.memory() as u64)
+                human_bytes(acc.memory())
             );
         }
         if acc.complete() {
@@ -727,7 +755,6 @@ fn accumulate(
         }
     }
     bail!(
-        "progressive: the accumulation did not complete ({} stand-in samples left): the pool cannot hold the view's bricks",
-        acc.stand_ins()
+        "progressive: the accumulation did not complete ({left} stand-in samples left): the pool cannot hold the view's bricks"
     )
 }

@@ -1,0 +1,273 @@
+//! Sample accumulation on the device (`savr.wgsl`), twin of
+//! [`Accumulation`](super::Accumulation): the same sample positions, room
+//! rule, stand-in retakes, run extension and blend, drawn through the
+//! device's copy of the virtual memory by [`GpuRenderer`].
+//!
+//! # Memory
+//!
+//! The device cannot grow a pixel's store as the CPU does, so each pixel
+//! owns a fixed region, the sample buffer of the paper: `B` samples (4
+//! bytes of value and 2 bits of flags each, 4 more bytes of normal cosine
+//! when shading), `N` words of run lengths and 8 of header, after the
+//! image itself. Run `k` of a pixel whose ray has `S` steps occupies
+//! samples `k·S …`, so a pixel begins run `k` only when `(k + 1)·S ≤ B` (the
+//! CPU's rule): a pixel whose buffer is full stays at the rate it reached,
+//! blended correctly for it. [`DeviceAccumulation::max_budget`] gives the
+//! largest `B` one storage binding of the device holds.
+
+use super::MAX_FRAMES;
+use crate::cpu::{FrameStats, Lod, Scene};
+use crate::gpu::{AccPass, GpuFrame, GpuRenderer};
+use crate::image::Image;
+use crate::params::{RenderMode, RenderParams};
+use brickyard_cache::vm::VirtualMemory;
+use brickyard_gpu::context::{Gpu, GpuError};
+use brickyard_gpu::update::DeviceCache;
+use brickyard_gpu::vm::DeviceVm;
+
+/// Header words a pixel.
+const HEADER: u64 = 8;
+
+/// What a device accumulation frame did (the device's counters).
+#[derive(Debug, Clone, Default)]
+pub struct DeviceAccumStats {
+    /// Lookups made (new samples, extensions and retakes, gradient
+    /// neighbours not counted).
+    pub frame: FrameStats,
+    /// Stand-in samples retaken at the level they asked for.
+    pub retaken: u64,
+    /// Samples added to open runs for the blend.
+    pub extended: u64,
+    /// Stand-ins kept after the frame.
+    pub stand_ins: u64,
+    /// Pixels not complete after the frame.
+    pub incomplete: u64,
+}
+
+/// The accumulation of one view on the device. A camera move or a change
+/// of image size, level of detail, sampling rate or channel starts a new
+/// one (or [`restart`](Self::restart)s this one).
+pub struct DeviceAccumulation {
+    width: u32,
+    height: u32,
+    target: u32,
+    budget: u32,
+    /// Fixed by the first frame: whether its transfer function shades.
+    normals: Option<bool>,
+    store: Option<wgpu::Buffer>,
+    drawn: u32,
+    last: DeviceAccumStats,
+    image: Image,
+}
+
+impl DeviceAccumulation {
+    /// Words of store a pixel needs (image included).
+    fn words(target: u32, budget: u32, normals: bool) -> u64 {
+        let b = budget as u64;
+        4 + HEADER + target as u64 + b + b.div_ceil(16) + if normals { b } else { 0 }
+    }
+
+    /// The largest per-pixel budget one storage binding of `gpu` holds for
+    /// `width × height` pixels and `target` frames (with normals: shading).
+    pub fn max_budget(gpu: &Gpu, width: u32, height: u32, target: u32, normals: bool) -> u32 {
+        let limit = gpu
+            .limits
+            .max_storage_buffer_binding_size
+            .min(gpu.limits.max_buffer_size);
+        Self::budget_within(limit, width, height, target, normals)
+    }
+
+    /// The largest per-pixel budget whose store takes at most `bytes`.
+    pub fn budget_within(bytes: u64, width: u32, height: u32, target: u32, normals: bool) -> u32 {
+        let limit = bytes;
+        let pixels = (width as u64 * height as u64).max(1);
+        let words = limit / 4 / pixels;
+        let fixed = 4 + HEADER + target as u64;
+        let per = if normals {
+            2.0 + 1.0 / 16.0
+        } else {
+            1.0 + 1.0 / 16.0
+        };
+        let b = (words.saturating_sub(fixed + 1) as f64 / per) as u64;
+        b.min(u32::MAX as u64 / 2) as u32
+    }
+
+    /// An empty accumulation of `target` frames (at most
+    /// [`MAX_FRAMES`]) for images of `width × height`, keeping at most
+    /// `budget` samples per pixel (lowered to [`max_budget`] with normals,
+    /// so a shading function fits too).
+    ///
+    /// [`max_budget`]: Self::max_budget
+    pub fn new(gpu: &Gpu, width: u32, height: u32, target: u32, budget: usize) -> Self {
+        let target = target.clamp(1, MAX_FRAMES);
+        let max = Self::max_budget(gpu, width, height, target, true);
+        DeviceAccumulation {
+            width,
+            height,
+            target,
+            budget: (budget.min(u32::MAX as usize) as u32).min(max).max(1),
+            normals: None,
+            store: None,
+            drawn: 0,
+            last: DeviceAccumStats::default(),
+            image: Image::new(width, height),
+        }
+    }
+
+    /// Samples a pixel keeps.
+    pub fn budget(&self) -> usize {
+        self.budget as usize
+    }
+
+    /// Frames asked for.
+    pub fn target(&self) -> u32 {
+        self.target
+    }
+
+    /// Frames drawn since the start.
+    pub fn drawn(&self) -> u32 {
+        self.drawn
+    }
+
+    /// Bytes of the store on the device (image included).
+    pub fn memory(&self) -> u64 {
+        self.store.as_ref().map_or(0, |b| b.size())
+    }
+
+    /// The image of the last pass (when the renderer reads images back).
+    pub fn image(&self) -> &Image {
+        &self.image
+    }
+
+    /// The figures of the last pass.
+    pub fn last(&self) -> &DeviceAccumStats {
+        &self.last
+    }
+
+    /// Every pixel holds the frames asked for (or all its budget allows),
+    /// no stand-in and no run short of its blend.
+    pub fn complete(&self) -> bool {
+        self.drawn > 0 && self.last.incomplete == 0
+    }
+
+    /// Forget every kept sample (a new view): the store is cleared on the
+    /// device.
+    pub fn restart(&mut self, gpu: &Gpu) {
+        if let Some(b) = &self.store {
+            let mut enc = gpu.device.create_command_encoder(&Default::default());
+            enc.clear_buffer(b, 0, None);
+            gpu.queue.submit([enc.finish()]);
+        }
+        self.normals = None;
+        self.drawn = 0;
+        self.last = DeviceAccumStats::default();
+    }
+
+    fn pass<'b>(&'b self, entry: &'static str, reference: f64) -> AccPass<'b> {
+        let p = self.width as u64 * self.height as u64;
+        let (n, b) = (self.target as u64, self.budget as u64);
+        let runs = HEADER * p;
+        let vals = runs + n * p;
+        let flags = vals + b * p;
+        let cos = flags + b.div_ceil(16) * p;
+        let normals = self.normals == Some(true);
+        AccPass {
+            entry,
+            store: self.store.as_ref().expect("made by the first frame"),
+            acc: [self.target, self.budget, 0, normals as u32],
+            acc_off: [runs as u32, vals as u32, flags as u32, cos as u32],
+            reference: reference as f32,
+        }
+    }
+
+    fn take_counts(&mut self, f: &GpuFrame) {
+        let c = f.counters;
+        self.last = DeviceAccumStats {
+            frame: FrameStats {
+                samples: c[0] as u64,
+                exact: c[1] as u64,
+                unserved: c[2] as u64,
+                ..Default::default()
+            },
+            retaken: c[3] as u64,
+            extended: c[5] as u64,
+            incomplete: c[6] as u64,
+            stand_ins: c[7] as u64,
+        };
+        if !f.image.rgba.is_empty() {
+            self.image = f.image.clone();
+        }
+    }
+
+    /// One accumulation frame of a DVR view (one channel; the same camera
+    /// and size on every frame) from what `dvm` holds: retake stand-ins,
+    /// take one more run per pixel that has room, blend. The frame's
+    /// requests and used slots are in the result, as for a plain frame;
+    /// with `cache`, the device decides updates (see
+    /// [`GpuRenderer::render_with`]).
+    #[allow(clippy::too_many_arguments)]
+    pub fn frame(
+        &mut self,
+        gpu: &Gpu,
+        renderer: &mut GpuRenderer,
+        dvm: &DeviceVm,
+        vm: &VirtualMemory,
+        cache: Option<&DeviceCache>,
+        scene: &Scene,
+        params: &RenderParams,
+        lod: Lod,
+    ) -> Result<GpuFrame, GpuError> {
+        assert!(
+            matches!(params.mode, RenderMode::Dvr) && params.channels.is_empty(),
+            "accumulation draws DVR of one channel"
+        );
+        assert_eq!(
+            (params.width, params.height),
+            (self.width, self.height),
+            "accumulation and parameters of one size"
+        );
+        let on = params.tf.shading.is_some();
+        let normals = *self.normals.get_or_insert(on);
+        assert!(
+            normals || !on,
+            "the samples of this accumulation keep no normals: restart it to shade"
+        );
+        if self.store.is_none() {
+            let words = self.width as u64
+                * self.height as u64
+                * Self::words(self.target, self.budget, true);
+            self.store = Some(gpu.storage_buffer_zeroed("sample store", words * 4));
+        }
+        let reference = params.reference_step.unwrap_or(scene.voxel(0));
+        let pass = self.pass("accumulate", reference);
+        let f = renderer.draw(gpu, dvm, vm, cache, scene, params, lod, Some(pass))?;
+        self.drawn += 1;
+        self.take_counts(&f);
+        Ok(f)
+    }
+
+    /// Blend the kept samples again under `params.tf`, without volume
+    /// access. Returns the pixels whose kept runs end before their ray
+    /// stops (the next [`frame`](Self::frame) extends them); `None`
+    /// (nothing done) when the function shades and the samples keep no
+    /// normals, or before the first frame.
+    #[allow(clippy::too_many_arguments)]
+    pub fn reblend(
+        &mut self,
+        gpu: &Gpu,
+        renderer: &mut GpuRenderer,
+        dvm: &DeviceVm,
+        vm: &VirtualMemory,
+        scene: &Scene,
+        params: &RenderParams,
+    ) -> Result<Option<u64>, GpuError> {
+        if self.drawn == 0 || (params.tf.shading.is_some() && self.normals != Some(true)) {
+            return Ok(None);
+        }
+        let reference = params.reference_step.unwrap_or(scene.voxel(0));
+        let pass = self.pass("reblend", reference);
+        let f = renderer.draw(gpu, dvm, vm, None, scene, params, Lod::Fixed(0), Some(pass))?;
+        self.take_counts(&f);
+        Ok(Some(self.last.incomplete))
+    }
+}

@@ -1,0 +1,317 @@
+//! Sample accumulation on the device (`savr.wgsl`) against its CPU twin
+//! and the single pass at the rate reached: in core after 1, 8 and 16
+//! frames, out of core with a pool far smaller than the volume (no stand-in
+//! survives a complete image), shaded, with a per-pixel budget that stops
+//! pixels short, and re-blended under a new transfer function. Positions
+//! are f32 on the device: within 1e-4 of the host (the device tolerance of
+//! `tests/gpu.rs`). Runs on lavapipe in CI.
+
+use brickyard_cache::session::Session;
+use brickyard_cache::vm::VmConfig;
+use brickyard_core::camera::{world_extent, Camera, Projection};
+use brickyard_core::{DType, Shading, TransferFunction};
+use brickyard_gpu::context::{test_gpu, Gpu};
+use brickyard_gpu::vm::DeviceVm;
+use brickyard_render::cpu::{Lod, Scene};
+use brickyard_render::gpu::GpuRenderer;
+use brickyard_render::image::Image;
+use brickyard_render::reference::{RenderMode, RenderParams, Volume};
+use brickyard_render::savr::device::DeviceAccumulation;
+use brickyard_render::savr::Accumulation;
+use brickyard_store::builder::{convert, ConvertOptions, NoProgress};
+use brickyard_store::generate::{Kind, Procedural};
+use std::path::Path;
+use std::sync::atomic::AtomicBool;
+
+const TOLERANCE: f32 = 1e-4;
+
+/// Whether the device's image `a` is the host's `b` within [`TOLERANCE`],
+/// but for pixels (at most 1 in 200, each within 0.01) where a sample lies
+/// within f32 rounding of the ray's exit: in on one back end, out on the
+/// other (a sample at offset 0 meets the exit whenever the ray's length is
+/// a multiple of the step). Prints the figures.
+fn twins(what: &str, a: &Image, b: &Image) {
+    let n = a.rgba.len();
+    let (mut off, mut worst) = (0usize, 0.0f32);
+    for (p, q) in a.rgba.iter().zip(&b.rgba) {
+        let d = (0..4).map(|c| (p[c] - q[c]).abs()).fold(0.0, f32::max);
+        off += (d > TOLERANCE) as usize;
+        worst = worst.max(d);
+    }
+    eprintln!("{what}: device vs CPU max {worst}, {off} of {n} pixels beyond {TOLERANCE}");
+    assert!(
+        off * 200 <= n && worst <= 0.01,
+        "{what}: device vs CPU max {worst}, {off} of {n} pixels beyond {TOLERANCE}"
+    );
+}
+
+fn session(store: &Path, pool_bytes: u64) -> Session {
+    let cfg = VmConfig {
+        brick: [16; 3],
+        apron: 1,
+        pt_block: [4; 3],
+        max_dir_entries: 64,
+        pool_bytes,
+        pt_cache_blocks: 256,
+        request_cap: 64,
+        upload_bytes_per_frame: 48 * 18 * 18 * 18 * 2,
+    };
+    Session::open(store, cfg, 8 << 20, 2).unwrap()
+}
+
+struct Fixture {
+    _dir: tempfile::TempDir,
+    store: std::path::PathBuf,
+    scene: Scene,
+    params: RenderParams,
+    bytes: u64,
+}
+
+fn fixture() -> Fixture {
+    let dir = tempfile::tempdir().unwrap();
+    let store = dir.path().join("m.ome.zarr");
+    let dims = [48, 64, 56];
+    let src = Procedural::new(Kind::MarschnerLobb, dims, DType::U8);
+    let o = ConvertOptions {
+        brick: [16; 3],
+        shard: [32; 3],
+        ..Default::default()
+    };
+    convert(&src, &store, &o, &NoProgress, &AtomicBool::new(false)).unwrap();
+    let levels: Vec<Volume> = (0..)
+        .map_while(|l| Volume::from_store(&store, l, 0).ok())
+        .collect();
+    let extent = world_extent(dims, levels[0].spacing);
+    let scene = Scene::new(extent, levels.iter().map(|v| v.dims).collect());
+    let mut tf = TransferFunction::preset("viridis", [0.0, 255.0]).unwrap();
+    scale_opacity(&mut tf, 0.25);
+    let cam = Camera::fit(
+        extent,
+        30.0,
+        20.0,
+        Projection::Perspective { fov_y_deg: 40.0 },
+    );
+    let mut params = RenderParams::new(40, 30, cam, tf, RenderMode::Dvr);
+    params.reference_step = Some(scene.voxel(0));
+    Fixture {
+        _dir: dir,
+        store,
+        scene,
+        params,
+        bytes: dims.iter().product(),
+    }
+}
+
+fn scale_opacity(tf: &mut TransferFunction, s: f32) {
+    for p in tf.opacity.iter_mut() {
+        p[1] *= s;
+    }
+}
+
+/// CPU accumulation frames until complete.
+fn accumulate(s: &mut Session, f: &Fixture, p: &RenderParams, acc: &mut Accumulation, lod: Lod) {
+    for _ in 1..=600 {
+        s.begin_frame();
+        let (_, reqs) = acc.frame(s.vm(), &f.scene, p, lod);
+        s.finish_frame(reqs.iter());
+        if acc.complete() {
+            return;
+        }
+        std::thread::sleep(std::time::Duration::from_millis(1));
+    }
+    panic!("the CPU accumulation never completed");
+}
+
+/// Device accumulation frames (updates decided on the host, mirrored)
+/// until complete; the frames drawn and the stand-ins kept after the
+/// first.
+#[allow(clippy::too_many_arguments)]
+fn accumulate_device(
+    gpu: &Gpu,
+    r: &mut GpuRenderer,
+    dvm: &mut DeviceVm,
+    s: &mut Session,
+    f: &Fixture,
+    p: &RenderParams,
+    acc: &mut DeviceAccumulation,
+    lod: Lod,
+) -> (u32, u64) {
+    let mut first = None;
+    for frame in 1..=600 {
+        s.begin_frame();
+        let fr = acc
+            .frame(gpu, r, dvm, s.vm(), None, &f.scene, p, lod)
+            .unwrap();
+        first.get_or_insert(acc.last().stand_ins);
+        s.finish_frame([&fr.requests]);
+        dvm.sync(gpu, s.vm_mut());
+        if acc.complete() {
+            return (frame, first.unwrap());
+        }
+        std::thread::sleep(std::time::Duration::from_millis(1));
+    }
+    panic!("the device accumulation never completed: {:?}", acc.last());
+}
+
+#[test]
+fn device_accumulation_equals_its_cpu_twin() {
+    let Some(gpu) = test_gpu() else { return };
+    let f = fixture();
+    let mut r = GpuRenderer::new(&gpu);
+    // In core, fixed levels, 1, 8 and 16 frames.
+    for (n, level) in [(1u32, 0usize), (8, 0), (16, 1)] {
+        let mut s = session(&f.store, 64 << 20);
+        let (mut dvm, _) = DeviceVm::new(&gpu, s.vm_mut()).unwrap();
+        let mut dacc = DeviceAccumulation::new(&gpu, 40, 30, n, 1 << 16);
+        let (frames, _) = accumulate_device(
+            &gpu,
+            &mut r,
+            &mut dvm,
+            &mut s,
+            &f,
+            &f.params,
+            &mut dacc,
+            Lod::Fixed(level),
+        );
+        assert!(frames >= n);
+        let mut acc = Accumulation::new(40, 30, n, 1 << 16);
+        accumulate(&mut s, &f, &f.params, &mut acc, Lod::Fixed(level));
+        twins(
+            &format!("{n} frames, level {level}"),
+            dacc.image(),
+            acc.image(),
+        );
+        assert!(acc.image().coverage(0.01) > 0.2, "image nearly empty");
+        if n > 1 {
+            let mut one = Accumulation::new(40, 30, 1, 1 << 16);
+            accumulate(&mut s, &f, &f.params, &mut one, Lod::Fixed(level));
+            assert!(
+                dacc.image().max_abs_diff(one.image()) > 1e-3,
+                "the rate changes nothing"
+            );
+        }
+    }
+    // Automatic level of detail.
+    let mut s = session(&f.store, 64 << 20);
+    let (mut dvm, _) = DeviceVm::new(&gpu, s.vm_mut()).unwrap();
+    let lod = Lod::Auto { bias: 0.5 };
+    let mut dacc = DeviceAccumulation::new(&gpu, 40, 30, 4, 1 << 16);
+    accumulate_device(
+        &gpu, &mut r, &mut dvm, &mut s, &f, &f.params, &mut dacc, lod,
+    );
+    let mut acc = Accumulation::new(40, 30, 4, 1 << 16);
+    accumulate(&mut s, &f, &f.params, &mut acc, lod);
+    twins("automatic LOD", dacc.image(), acc.image());
+}
+
+/// A pool of a third of the volume: the first frames hold stand-ins; the
+/// complete image holds none and equals the CPU's in-core accumulation.
+/// With shading, the normals' neighbours must be resident too.
+#[test]
+fn device_accumulation_out_of_core_and_shaded() {
+    let Some(gpu) = test_gpu() else { return };
+    let f = fixture();
+    let mut r = GpuRenderer::new(&gpu);
+    let mut shaded = f.params.clone();
+    shaded.tf.shading = Some(Shading::default());
+    for (p, pool) in [
+        (&f.params, f.bytes / 3),
+        (&shaded, f.bytes),
+        (&shaded, 64 << 20),
+    ] {
+        let mut s = session(&f.store, pool);
+        let (mut dvm, _) = DeviceVm::new(&gpu, s.vm_mut()).unwrap();
+        let mut dacc = DeviceAccumulation::new(&gpu, 40, 30, 8, 1 << 16);
+        let (frames, first) = accumulate_device(
+            &gpu,
+            &mut r,
+            &mut dvm,
+            &mut s,
+            &f,
+            p,
+            &mut dacc,
+            Lod::Fixed(0),
+        );
+        assert_eq!(dacc.last().stand_ins, 0);
+        if pool < 64 << 20 {
+            assert!(
+                first > 0 && frames > 8,
+                "{first} stand-ins first, {frames} frames"
+            );
+        }
+        let mut cs = session(&f.store, 64 << 20);
+        let mut acc = Accumulation::new(40, 30, 8, 1 << 16);
+        accumulate(&mut cs, &f, p, &mut acc, Lod::Fixed(0));
+        let what = format!("pool {pool}, shading {}", p.tf.shading.is_some());
+        twins(&what, dacc.image(), acc.image());
+    }
+}
+
+/// A budget of 600 samples stops pixels short of 16 frames, as on the
+/// CPU; a re-blend under a fainter and a denser function equals the CPU's
+/// re-blend (the fainter one reports short pixels, the next frame
+/// completes them).
+#[test]
+fn device_budget_and_reblend_follow_the_cpu() {
+    let Some(gpu) = test_gpu() else { return };
+    let f = fixture();
+    let mut r = GpuRenderer::new(&gpu);
+    let mut s = session(&f.store, 64 << 20);
+    let (mut dvm, _) = DeviceVm::new(&gpu, s.vm_mut()).unwrap();
+    let mut dacc = DeviceAccumulation::new(&gpu, 40, 30, 16, 600);
+    accumulate_device(
+        &gpu,
+        &mut r,
+        &mut dvm,
+        &mut s,
+        &f,
+        &f.params,
+        &mut dacc,
+        Lod::Fixed(0),
+    );
+    let mut acc = Accumulation::new(40, 30, 16, 600);
+    accumulate(&mut s, &f, &f.params, &mut acc, Lod::Fixed(0));
+    assert!(acc.frames() >= 3 && acc.frames() < 16, "{}", acc.frames());
+    twins("budget 600", dacc.image(), acc.image());
+    for (scale, cmap) in [(3.0f32, "hot"), (0.2, "linear")] {
+        let mut p = f.params.clone();
+        p.tf = TransferFunction::preset(cmap, [0.0, 255.0]).unwrap();
+        scale_opacity(&mut p.tf, 0.25 * scale);
+        let short = dacc
+            .reblend(&gpu, &mut r, &dvm, s.vm(), &f.scene, &p)
+            .unwrap()
+            .unwrap();
+        let cpu_short = acc.reblend(&p.tf).unwrap() as u64;
+        assert_eq!(
+            short > 0,
+            cpu_short > 0,
+            "{cmap}: short pixels {short} vs {cpu_short}"
+        );
+        if short > 0 {
+            accumulate_device(
+                &gpu,
+                &mut r,
+                &mut dvm,
+                &mut s,
+                &f,
+                &p,
+                &mut dacc,
+                Lod::Fixed(0),
+            );
+            accumulate(&mut s, &f, &p, &mut acc, Lod::Fixed(0));
+        }
+        twins(
+            &format!("{cmap}: re-blend ({short} short)"),
+            dacc.image(),
+            acc.image(),
+        );
+        // Not the image before the change.
+        let mut fresh = Accumulation::new(40, 30, 16, 600);
+        accumulate(&mut s, &f, &p, &mut fresh, Lod::Fixed(0));
+        twins(
+            &format!("{cmap}: re-blend vs fresh"),
+            dacc.image(),
+            fresh.image(),
+        );
+    }
+}
