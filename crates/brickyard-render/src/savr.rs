@@ -218,6 +218,11 @@ impl Accumulation {
         self.target
     }
 
+    /// Samples a pixel may keep.
+    pub fn budget(&self) -> usize {
+        self.budget
+    }
+
     /// The fewest frames any pixel whose ray meets the volume holds.
     pub fn frames(&self) -> u32 {
         self.pixels

@@ -358,8 +358,10 @@ pub enum Accumulating {
 /// What an accumulation frame reports.
 #[derive(Debug, Clone, Copy, Default)]
 pub struct AccumFrame {
-    /// Lookups made, stand-ins kept after the frame.
+    /// Lookups made, those served at their level, stand-ins kept after
+    /// the frame.
     pub samples: u64,
+    pub exact: u64,
     pub stand_ins: u64,
 }
 
@@ -406,6 +408,14 @@ impl Accumulating {
         }
     }
 
+    /// Samples a pixel keeps.
+    pub fn budget(&self) -> usize {
+        match self {
+            Accumulating::Cpu(a) => a.budget(),
+            Accumulating::Gpu(a) => a.budget(),
+        }
+    }
+
     /// Bytes of kept samples (on the device: the whole store, allocated at
     /// the first frame).
     pub fn memory(&self) -> u64 {
@@ -431,6 +441,7 @@ impl Accumulating {
                 s.finish_frame(reqs.iter());
                 Ok(AccumFrame {
                     samples: st.frame.samples,
+                    exact: st.frame.exact,
                     stand_ins: st.stand_ins,
                 })
             }
@@ -457,6 +468,7 @@ impl Accumulating {
                 }
                 Ok(AccumFrame {
                     samples: a.last().frame.samples,
+                    exact: a.last().frame.exact,
                     stand_ins: a.last().stand_ins,
                 })
             }

@@ -460,14 +460,21 @@ quit
     let err = stderr(&o);
     assert!(o.status.success(), "viewer: {err}");
 
-    // Reported: on stderr with the files, and in the log.
+    // Reported: on stderr with the files (the first 20 failures), and in
+    // the log (every one).
     assert!(err.contains("cannot load"), "{err}");
+    let text = std::fs::read_to_string(&log).unwrap();
     let named = [0, 3, 5]
         .iter()
-        .filter(|&&i| err.contains(shards[i].to_str().unwrap()))
+        .filter(|&&i| text.contains(shards[i].to_str().unwrap()))
         .count();
-    assert!(named >= 2, "{named} of the damaged shards named: {err}");
-    let text = std::fs::read_to_string(&log).unwrap();
+    assert!(named >= 2, "{named} of the damaged shards named: {text}");
+    assert!(
+        [0, 3, 5]
+            .iter()
+            .any(|&i| err.contains(shards[i].to_str().unwrap())),
+        "{err}"
+    );
     let last3d: serde_json::Value = text
         .lines()
         .map(|l| serde_json::from_str::<serde_json::Value>(l).unwrap())
@@ -682,5 +689,104 @@ quit
     assert_eq!(
         slice(&written, false, "w.png"),
         slice(&store, true, "l.png")
+    );
+}
+
+/// A still DVR view accumulates samples (`--accumulate 8`): the settled
+/// image equals `render --progressive 8` of the same view, and differs
+/// from the plain single pass; a transfer-function edit re-blends the kept
+/// samples (logged as such) into what `render --progressive 8` draws with
+/// the new function.
+#[test]
+fn viewer_accumulates_a_still_view_and_reblends_tf_edits() {
+    let d = tempfile::tempdir().unwrap();
+    let store = mandelbulb(d.path(), "48", &["--brick", "16", "--shard", "32"]);
+    let p = |n: &str| d.path().join(n);
+    let script = format!(
+        "size 3d 96 80
+size xy 32 32
+size xz 32 32
+size yz 32 32
+size oblique 32 32
+mode dvr
+tf soft
+wait-complete 300
+screenshot 3d {a}.png
+save-view 3d {a}
+tf hot
+wait-complete 300
+screenshot 3d {b}.png
+save-view 3d {b}
+quit
+",
+        a = s(&p("acc-a")),
+        b = s(&p("acc-b")),
+    );
+    std::fs::write(p("s.txt"), script).unwrap();
+    let log = p("log.jsonl");
+    let Some(mut cmd) = viewer(
+        &store,
+        &p("s.txt"),
+        Some(&log),
+        &[
+            "--pool",
+            "4MiB",
+            "--brick",
+            "8",
+            "--backend",
+            "cpu",
+            "--accumulate",
+            "8",
+        ],
+    ) else {
+        return;
+    };
+    let o = cmd.output().unwrap();
+    assert!(o.status.success(), "viewer: {}", stderr(&o));
+    let args = std::fs::read_to_string(p("acc-a.args")).unwrap();
+    assert!(args.contains("--progressive\n8\n"), "{args}");
+    let a = equals_render(&store, d.path(), "acc-a");
+    let b = equals_render(&store, d.path(), "acc-b");
+    assert_ne!(a, b, "the edit changed nothing");
+    // Not the plain single pass: the accumulated rate shows.
+    let plain = p("plain.png");
+    let o = Command::new(bin())
+        .args(["render", s(&store)])
+        .args(args.lines().filter(|l| *l != "--progressive" && *l != "8"))
+        .args(["--out", s(&plain), "--backend", "cpu", "--quiet"])
+        .output()
+        .unwrap();
+    assert!(o.status.success(), "render: {}", stderr(&o));
+    let (_, _, single) = png_pixels(&plain);
+    let differ = a
+        .iter()
+        .zip(&single)
+        .filter(|(x, y)| x.abs_diff(**y) > 2)
+        .count();
+    assert!(
+        differ > a.len() / 200,
+        "accumulated and single pass differ at {differ} values"
+    );
+    // The edit was re-blended from the kept samples, and the view then
+    // settled with all 8 frames.
+    let lines: Vec<serde_json::Value> = std::fs::read_to_string(&log)
+        .unwrap()
+        .lines()
+        .map(|l| serde_json::from_str(l).unwrap())
+        .collect();
+    let three_d = |l: &&serde_json::Value| l["view"] == "3d";
+    assert!(
+        lines.iter().filter(three_d).any(|l| l["reblended"] == true),
+        "no re-blended frame"
+    );
+    let settled: Vec<_> = lines
+        .iter()
+        .filter(three_d)
+        .filter(|l| l["settled"] == true && l["accumulated"][0] == 8)
+        .collect();
+    assert!(
+        settled.len() >= 2,
+        "{} settled accumulated frames",
+        settled.len()
     );
 }

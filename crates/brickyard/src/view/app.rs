@@ -260,6 +260,7 @@ impl ViewerApp {
                     "up": out.up, "down": out.down,
                     "lod_extra": out.lod_extra, "failed_bricks": out.failed,
                     "settled": out.settled, "new_failures": out.new_failures,
+                    "accumulated": out.accumulated, "reblended": out.reblended,
                     "peak_rss_bytes": crate::memory::peak_rss(),
                     "memory_budget_bytes": self.setup.memory_budget,
                 })
@@ -307,9 +308,10 @@ impl ViewerApp {
 
     fn complete(&self, v: usize) -> bool {
         let vs = &self.views[v];
-        vs.last
-            .as_ref()
-            .is_some_and(|o| o.version == vs.version && (o.completeness >= 1.0 || o.settled))
+        vs.last.as_ref().is_some_and(|o| {
+            o.version == vs.version
+                && (o.settled || (o.completeness >= 1.0 && o.accumulated.is_none()))
+        })
     }
 }
 

@@ -83,6 +83,11 @@ pub struct ViewCmd {
     /// streaming).
     #[arg(long, default_value_t = 0)]
     read_delay_ms: u64,
+    /// While a DVR view is still, accumulate samples over this many
+    /// frames (sampling N times as densely; transfer-function edits
+    /// re-blend the kept samples); 0: off.
+    #[arg(long, default_value_t = 16)]
+    accumulate: u32,
 }
 
 /// Histogram of brick value ranges over `range`: each brick adds one,
@@ -188,13 +193,26 @@ pub fn run(c: ViewCmd, demo_store: impl FnOnce() -> Result<PathBuf>) -> Result<i
     }
     // The views' images, their textures and the window's frame buffers:
     // together about the window's pixels.
+    if c.accumulate > brickyard_render::savr::MAX_FRAMES {
+        bail!(
+            "accumulate: N frames between 0 and {}, got {}",
+            brickyard_render::savr::MAX_FRAMES,
+            c.accumulate
+        );
+    }
+    // Kept samples of the accumulating view: an eighth of the budget, at
+    // most 256 MiB.
+    let accum_bytes = match c.accumulate {
+        0 => 0,
+        _ => (memory.unwrap_or_else(crate::memory::default_memory) / 8).min(256 << 20),
+    };
     let split = crate::memory::split_with(
         memory,
         pool,
         host,
         ww as u64 * wh as u64,
         levels.len(),
-        crate::memory::WINDOW_BYTES,
+        crate::memory::WINDOW_BYTES + accum_bytes,
     )?;
     let cfg = VmConfig {
         brick: [c.brick; 3],
@@ -214,6 +232,8 @@ pub fn run(c: ViewCmd, demo_store: impl FnOnce() -> Result<PathBuf>) -> Result<i
         channels: m.channels,
         read_delay: Duration::from_millis(c.read_delay_ms),
         derive: None,
+        accumulate: c.accumulate,
+        accum_bytes,
     };
     // The histogram from the bricks' value ranges (statistics only).
     let loader = brickyard_cache::loader::Loader::open(

@@ -6,7 +6,7 @@
 //! its specification changes; when every view is complete the thread
 //! sleeps until a message arrives.
 
-use crate::backend::{Backend, GpuUpdate};
+use crate::backend::{Accumulating, Backend, GpuUpdate};
 use brickyard_cache::session::Session;
 use brickyard_cache::vm::VmConfig;
 use brickyard_render::budget::{Decision, LodBudget};
@@ -44,6 +44,10 @@ pub struct Setup {
     pub read_delay: Duration,
     /// A live derived channel shown instead of the stored ones.
     pub derive: Option<std::sync::Arc<crate::derive::Derived>>,
+    /// Frames a still DVR view accumulates (0: none), and the bytes its
+    /// kept samples may take.
+    pub accumulate: u32,
+    pub accum_bytes: u64,
 }
 
 pub enum Msg {
@@ -81,6 +85,12 @@ pub struct Out {
     /// Nothing more will come for this view until it changes: complete,
     /// or what is missing are bricks that failed to load.
     pub settled: bool,
+    /// Sample accumulation: frames blended and asked for (`Some((0, N))`
+    /// on the plain frame after which it begins).
+    pub accumulated: Option<(u32, u32)>,
+    /// The image is a re-blend of kept samples (a transfer-function edit;
+    /// no volume access).
+    pub reblended: bool,
 }
 
 pub enum Reply {
@@ -97,6 +107,39 @@ struct View {
     /// The CPU's last frame of this view and its unsettled tiles: the
     /// next frame at the same level of detail draws only those.
     keep: Option<(Lod, Image, Tiles)>,
+    /// The samples a still DVR view accumulates.
+    acc: Option<Acc>,
+}
+
+/// A view's sample accumulation: what it was begun for (the view but its
+/// transfer function), the passes drawn, and whether a transfer-function
+/// edit waits to be re-blended.
+struct Acc {
+    key: (RenderParams, Lod, usize),
+    acc: Accumulating,
+    passes: u32,
+    reblend: bool,
+}
+
+/// What an accumulation is valid for: the view without its transfer
+/// function.
+fn acc_key(spec: &Spec, lod: Lod) -> (RenderParams, Lod, usize) {
+    let mut p = spec.params.clone();
+    p.tf = brickyard_core::TransferFunction::preset("linear", [0.0, 1.0]).expect("a preset");
+    (p, lod, spec.channel)
+}
+
+/// Samples a pixel of a `p`-sized view keeps for `n` frames within
+/// `bytes` (5 bytes a sample, 9 with normals, about 160 bytes of
+/// bookkeeping a pixel), and at most `n` whole rays of the scene.
+fn acc_budget(scene: &Scene, p: &RenderParams, n: u32, bytes: u64) -> usize {
+    let e = scene.extent;
+    let diagonal = (e[0] * e[0] + e[1] * e[1] + e[2] * e[2]).sqrt();
+    let steps = (diagonal / (scene.voxel(0) / p.samples_per_voxel)).ceil() as u64 + 2;
+    let per = if p.tf.shading.is_some() { 9 } else { 5 };
+    let pixels = (p.width as u64 * p.height as u64).max(1);
+    let fit = (bytes / pixels).saturating_sub(160) / per;
+    fit.min(n as u64 * steps) as usize
 }
 
 fn open(setup: &Setup, scene: &mut Scene) -> anyhow::Result<(Session, Backend)> {
@@ -143,6 +186,7 @@ pub fn run(setup: Setup, mut scene: Scene, rx: Receiver<Msg>, tx: Sender<Reply>,
         }
     };
     backend.set_read_image(true);
+    let mut setup_accumulate = (setup.accumulate, setup.accum_bytes);
     let mut views: Vec<View> = vec![];
     let mut next = 0;
     let mut idle_since = Instant::now();
@@ -174,6 +218,7 @@ pub fn run(setup: Setup, mut scene: Scene, rx: Receiver<Msg>, tx: Sender<Reply>,
                             complete: true,
                             budget: LodBudget::new(0.0, scene.levels.len(), true),
                             keep: None,
+                            acc: None,
                         });
                     }
                     let v = &mut views[i];
@@ -189,12 +234,31 @@ pub fn run(setup: Setup, mut scene: Scene, rx: Receiver<Msg>, tx: Sender<Reply>,
                             v.budget = LodBudget::new(base, scene.levels.len(), true);
                         }
                     }
-                    v.budget.view_changed();
+                    // A transfer-function edit of an accumulated view
+                    // re-blends its samples; anything else starts over.
+                    let same = match (&v.acc, &spec, &v.spec) {
+                        (Some(a), Some(sp), Some(old)) => {
+                            a.key == acc_key(sp, a.key.1)
+                                && old.lod == sp.lod
+                                && (sp.params.tf.shading.is_none()
+                                    || old.params.tf.shading.is_some())
+                        }
+                        _ => false,
+                    };
+                    if same {
+                        if let Some(a) = &mut v.acc {
+                            a.reblend = true;
+                        }
+                    } else {
+                        v.acc = None;
+                        v.budget.view_changed();
+                        v.keep = None;
+                    }
                     v.spec = spec;
-                    v.keep = None;
                 }
                 Msg::Reopen(setup) => match open(&setup, &mut scene) {
                     Ok((s2, b2)) => {
+                        setup_accumulate = (setup.accumulate, setup.accum_bytes);
                         s = s2;
                         backend = b2;
                         reported = 0;
@@ -202,6 +266,7 @@ pub fn run(setup: Setup, mut scene: Scene, rx: Receiver<Msg>, tx: Sender<Reply>,
                         for v in &mut views {
                             v.complete = v.spec.is_none();
                             v.keep = None;
+                            v.acc = None;
                         }
                     }
                     Err(e) => {
@@ -225,6 +290,30 @@ pub fn run(setup: Setup, mut scene: Scene, rx: Receiver<Msg>, tx: Sender<Reply>,
         let mut sc = scene.clone();
         sc.channel = spec.channel;
         let lod = views[i].budget.apply(spec.lod, sc.levels.len());
+        if views[i].acc.is_some() {
+            match accumulate(&mut views[i], &mut backend, &mut s, &sc, &spec) {
+                Ok((out, done)) => {
+                    views[i].complete = done;
+                    let out = Out {
+                        view: i,
+                        version: views[i].version,
+                        backend: backend.describe(),
+                        ..status(&s, out)
+                    };
+                    if tx.send(Reply::Frame(Box::new(out))).is_err() {
+                        return;
+                    }
+                    wake();
+                }
+                Err(e) => {
+                    let _ = tx.send(Reply::Error(format!("accumulation: {e:#}")));
+                    wake();
+                    views[i].acc = None;
+                    views[i].complete = true;
+                }
+            }
+            continue;
+        }
         let drawn = match views[i].keep.take() {
             Some((kl, img, tiles)) if kl == lod => {
                 backend.frame_again(&mut s, &sc, &spec.params, lod, img, tiles)
@@ -244,7 +333,28 @@ pub fn run(setup: Setup, mut scene: Scene, rx: Receiver<Msg>, tx: Sender<Reply>,
         let sig = crate::frames::signals(&s, &f);
         let changed = matches!(views[i].budget.update(&sig), Decision::Changed { .. });
         // Complete, or nothing left to ask for but bricks that failed.
-        let done = !changed && (completeness >= 1.0 || (sig.requests == 0 && !sig.progress));
+        let mut done = !changed && (completeness >= 1.0 || (sig.requests == 0 && !sig.progress));
+        // A complete DVR view of one channel goes on accumulating samples.
+        let mut accumulated = None;
+        if done
+            && completeness >= 1.0
+            && setup_accumulate.0 > 0
+            && spec.params.mode == brickyard_render::reference::RenderMode::Dvr
+            && spec.params.channels.is_empty()
+        {
+            let n = setup_accumulate.0;
+            let budget = acc_budget(&sc, &spec.params, n, setup_accumulate.1);
+            if budget > 0 {
+                views[i].acc = Some(Acc {
+                    key: acc_key(&spec, lod),
+                    acc: Accumulating::new(&backend, &spec.params, n, budget),
+                    passes: 0,
+                    reblend: false,
+                });
+                accumulated = Some((0, n));
+                done = false;
+            }
+        }
         views[i].complete = done;
         // Not done: the next frame of this view draws only what changed.
         if let Some(t) = f.tiles.take().filter(|_| !done) {
@@ -282,6 +392,8 @@ pub fn run(setup: Setup, mut scene: Scene, rx: Receiver<Msg>, tx: Sender<Reply>,
             failed: s.vm().failed_count(),
             new_failures,
             settled: done,
+            accumulated,
+            reblended: false,
         };
         if tx.send(Reply::Frame(Box::new(out))).is_err() {
             return;
@@ -295,5 +407,93 @@ pub fn run(setup: Setup, mut scene: Scene, rx: Receiver<Msg>, tx: Sender<Reply>,
         } else {
             idle_since = Instant::now();
         }
+    }
+}
+
+/// What an accumulation pass sends (the rest of [`Out`] is filled in by
+/// the caller).
+struct AccOut {
+    image: Image,
+    completeness: f64,
+    render_ms: f64,
+    accumulated: (u32, u32),
+    reblended: bool,
+    settled: bool,
+}
+
+/// One pass of view `v`'s accumulation: a re-blend when its transfer
+/// function changed, else an accumulation frame. Returns what to send and
+/// whether the view is done (the accumulation complete, or given up after
+/// as many passes as `render --progressive` allows).
+fn accumulate(
+    v: &mut View,
+    backend: &mut Backend,
+    s: &mut Session,
+    scene: &Scene,
+    spec: &Spec,
+) -> anyhow::Result<(AccOut, bool)> {
+    let a = v.acc.as_mut().expect("an accumulating view");
+    let lod = a.key.1;
+    let t = Instant::now();
+    if std::mem::take(&mut a.reblend) {
+        if let Some(short) = a.acc.reblend(backend, s, scene, &spec.params)? {
+            let done = short == 0 && a.acc.complete();
+            let out = AccOut {
+                image: a.acc.image().clone(),
+                completeness: 1.0,
+                render_ms: t.elapsed().as_secs_f64() * 1e3,
+                accumulated: (a.acc.frames(), a.acc.target()),
+                reblended: true,
+                settled: done,
+            };
+            return Ok((out, done));
+        }
+        // Shading asked of samples kept without normals: start over.
+        a.acc = Accumulating::new(backend, &spec.params, a.acc.target(), a.acc.budget());
+        a.passes = 0;
+    }
+    let f = a.acc.frame(backend, s, scene, &spec.params, lod)?;
+    a.passes += 1;
+    let done = a.acc.complete() || a.passes >= 4 * a.acc.target() + 64;
+    let out = AccOut {
+        image: a.acc.image().clone(),
+        completeness: if f.samples == 0 {
+            1.0
+        } else {
+            f.exact as f64 / f.samples as f64
+        },
+        render_ms: t.elapsed().as_secs_f64() * 1e3,
+        accumulated: (a.acc.frames(), a.acc.target()),
+        reblended: false,
+        settled: done,
+    };
+    Ok((out, done))
+}
+
+/// An [`Out`] of an accumulation pass, with the session's figures.
+fn status(s: &Session, a: AccOut) -> Out {
+    let loader = s.loader();
+    Out {
+        view: 0,
+        version: 0,
+        image: a.image,
+        completeness: a.completeness,
+        render_ms: a.render_ms,
+        cache_ms: 0.0,
+        up: 0,
+        down: 0,
+        resident_bricks: s.vm().resident_bricks(),
+        pool_slots: s.vm().pool_slots(),
+        pending: 0,
+        bytes_read: loader.bytes_read(),
+        host_bytes: loader.cache().bytes(),
+        host_budget: loader.cache().budget(),
+        backend: String::new(),
+        lod_extra: 0.0,
+        failed: s.vm().failed_count(),
+        new_failures: vec![],
+        settled: a.settled,
+        accumulated: Some(a.accumulated),
+        reblended: a.reblended,
     }
 }

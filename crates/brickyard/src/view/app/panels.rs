@@ -420,6 +420,14 @@ impl ViewerApp {
             _ => 0.0,
         };
         let mut detail = String::new();
+        match o.accumulated {
+            Some((_, n)) if o.settled => detail += &format!(" · accumulated {n} frames"),
+            Some((k, n)) => detail += &format!(" · accumulating {k}/{n}"),
+            None => {}
+        }
+        if o.reblended {
+            detail += " (re-blended)";
+        }
         if o.lod_extra > 0.0 {
             detail += &format!(
                 " · coarser by {:.1} level(s): the pool is too small for full detail",
