@@ -281,6 +281,21 @@ impl Accumulation {
         params: &RenderParams,
         lod: Lod,
     ) -> (AccumStats, Vec<Requests>) {
+        self.frame_rows(vm, scene, params, lod, 0..self.height)
+    }
+
+    /// [`frame`](Self::frame) for the image rows `rows` only (pixels are
+    /// independent: a view can spread a frame over several calls and
+    /// answer input between them). A frame counts as drawn when its part
+    /// reaches the last row.
+    pub fn frame_rows(
+        &mut self,
+        vm: &VirtualMemory,
+        scene: &Scene,
+        params: &RenderParams,
+        lod: Lod,
+        rows: std::ops::Range<u32>,
+    ) -> (AccumStats, Vec<Requests>) {
         assert!(
             matches!(params.mode, RenderMode::Dvr) && params.channels.is_empty(),
             "accumulation draws DVR of one channel"
@@ -297,7 +312,8 @@ impl Accumulation {
             shaded || !on,
             "the samples of this accumulation keep no normals: start a new one to shade"
         );
-        dispatch_dtype!(vm.dtype(), T => { self.frame_typed::<T>(vm, scene, params, lod) })
+        let rows = rows.start.min(self.height)..rows.end.min(self.height);
+        dispatch_dtype!(vm.dtype(), T => { self.frame_typed::<T>(vm, scene, params, lod, rows) })
     }
 
     fn frame_typed<T: Sample>(
@@ -306,6 +322,7 @@ impl Accumulation {
         scene: &Scene,
         params: &RenderParams,
         lod: Lod,
+        rows: std::ops::Range<u32>,
     ) -> (AccumStats, Vec<Requests>) {
         let frame = Frame::new(vm, scene, params, lod);
         let w = self.width as usize;
@@ -318,9 +335,11 @@ impl Accumulation {
         let room = move |p: &Pixel, k: u32| room(target, budget, p, k);
         let mut pixels = std::mem::take(&mut self.pixels);
         let mut image = std::mem::replace(&mut self.image, Image::new(1, 1));
-        let parts: Vec<(AccumStats, Requests)> = pixels
+        let span = rows.start as usize * w..rows.end as usize * w;
+        let first = rows.start as usize;
+        let parts: Vec<(AccumStats, Requests)> = pixels[span.clone()]
             .par_chunks_mut(w * BAND)
-            .zip(image.rgba.par_chunks_mut(w * BAND))
+            .zip(image.rgba[span].par_chunks_mut(w * BAND))
             .enumerate()
             .fold(
                 || {
@@ -332,7 +351,7 @@ impl Accumulation {
                 },
                 |(mut wk, mut req, mut st), (band, (px, out))| {
                     for (n, (p, o)) in px.iter_mut().zip(out.iter_mut()).enumerate() {
-                        let (i, j) = ((n % w) as u32, (band * BAND + n / w) as u32);
+                        let (i, j) = ((n % w) as u32, (first + band * BAND + n / w) as u32);
                         let ray = rg.pixel_ray(i, j);
                         let mut s = Sampler {
                             wk: &mut wk,
@@ -369,7 +388,9 @@ impl Accumulation {
         }
         self.pixels = pixels;
         self.image = image;
-        self.drawn += 1;
+        if rows.end == self.height {
+            self.drawn += 1;
+        }
         (stats, reqs)
     }
 
@@ -521,11 +542,21 @@ impl<T: Sample> Sampler<'_, '_, '_, T> {
     fn take(&mut self, p: &mut Pixel, k: usize, limit: usize, own: Option<(&TfEval, f32)>) {
         let o = offset(k as u32);
         let start = p.start(k) + p.runs[k].len as usize;
-        let (mut vals, mut flags, mut coss) = (Vec::new(), Vec::new(), Vec::new());
+        // The newest run ends the store: its samples are appended in place.
+        let last = k + 1 == p.runs.len();
+        let (mut vals, mut flags, mut coss) = match last {
+            true => (
+                std::mem::take(&mut p.values),
+                std::mem::take(&mut p.flags),
+                std::mem::take(&mut p.cos),
+            ),
+            false => (Vec::new(), Vec::new(), Vec::new()),
+        };
+        let base = if last { vals.len() } else { 0 };
         let mut j = p.runs[k].len as usize;
         let mut acc = [0.0f32; 4];
         let mut ended = false;
-        while vals.len() < limit {
+        while vals.len() - base < limit {
             let t = p.t0 + (j as f64 + o) * p.dt;
             if t >= p.t1 {
                 ended = true;
@@ -534,7 +565,9 @@ impl<T: Sample> Sampler<'_, '_, '_, T> {
             let (v, fl, cos) = self.sample(t);
             vals.push(v);
             flags.push(fl);
-            coss.push(cos);
+            if self.normals {
+                coss.push(cos);
+            }
             j += 1;
             if fl & UNSERVED == 0 {
                 if let Some((tf, e)) = own {
@@ -546,13 +579,17 @@ impl<T: Sample> Sampler<'_, '_, '_, T> {
                 }
             }
         }
-        p.stand_ins += flags.iter().filter(|f| **f & STAND_IN != 0).count() as u32;
-        p.runs[k].len += vals.len() as u32;
+        p.stand_ins += flags[base..].iter().filter(|f| **f & STAND_IN != 0).count() as u32;
+        p.runs[k].len += (vals.len() - base) as u32;
         p.runs[k].ended = ended;
-        p.values.splice(start..start, vals);
-        p.flags.splice(start..start, flags);
-        if self.normals {
-            p.cos.splice(start..start, coss);
+        if last {
+            (p.values, p.flags, p.cos) = (vals, flags, coss);
+        } else {
+            p.values.splice(start..start, vals);
+            p.flags.splice(start..start, flags);
+            if self.normals {
+                p.cos.splice(start..start, coss);
+            }
         }
     }
 

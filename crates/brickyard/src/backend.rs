@@ -378,6 +378,11 @@ impl Accumulating {
         }
     }
 
+    /// Whether frames can be drawn in parts ([`frame_rows`](Self::frame_rows)).
+    pub fn in_parts(&self) -> bool {
+        matches!(self, Accumulating::Cpu(_))
+    }
+
     pub fn complete(&self) -> bool {
         match self {
             Accumulating::Cpu(a) => a.complete(),
@@ -434,10 +439,25 @@ impl Accumulating {
         p: &RenderParams,
         lod: Lod,
     ) -> Result<AccumFrame> {
+        self.frame_rows(backend, s, scene, p, lod, 0..p.height)
+    }
+
+    /// [`frame`](Self::frame) for image rows `rows` only on the CPU (a
+    /// view answers input between the parts of a frame); the device draws
+    /// whole frames.
+    pub fn frame_rows(
+        &mut self,
+        backend: &mut Backend,
+        s: &mut Session,
+        scene: &Scene,
+        p: &RenderParams,
+        lod: Lod,
+        rows: std::ops::Range<u32>,
+    ) -> Result<AccumFrame> {
         s.begin_frame();
         match (self, backend) {
             (Accumulating::Cpu(a), Backend::Cpu) => {
-                let (st, reqs) = a.frame(s.vm(), scene, p, lod);
+                let (st, reqs) = a.frame_rows(s.vm(), scene, p, lod, rows);
                 s.finish_frame(reqs.iter());
                 Ok(AccumFrame {
                     samples: st.frame.samples,

@@ -261,6 +261,7 @@ impl ViewerApp {
                     "lod_extra": out.lod_extra, "failed_bricks": out.failed,
                     "settled": out.settled, "new_failures": out.new_failures,
                     "accumulated": out.accumulated, "reblended": out.reblended,
+                    "since_change_ms": out.since_change_ms,
                     "peak_rss_bytes": crate::memory::peak_rss(),
                     "memory_budget_bytes": self.setup.memory_budget,
                 })

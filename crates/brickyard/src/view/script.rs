@@ -29,6 +29,7 @@
 //! | `touch FILE` | create FILE (empty), e.g. to tell a process driving the test where the script is |
 //! | `wait-file FILE [SECONDS]` | wait until FILE exists (default 120 s) |
 //! | `expect-streaming VIEW N` | fail unless at least N frames of VIEW showed partial data since the last check |
+//! | `sleep MS` | let MS milliseconds pass (the views go on drawing) |
 //! | `quit` | close the window (exit 0) |
 
 use anyhow::{bail, Context, Result};
@@ -65,6 +66,7 @@ pub enum Cmd {
     ExpectStreaming(usize, usize),
     Touch(PathBuf),
     WaitFile(PathBuf, f64),
+    Sleep(f64),
     Quit,
 }
 
@@ -258,6 +260,12 @@ fn parse_line(w: &[&str]) -> Result<Cmd> {
             3 => Cmd::WaitFile(w[1].into(), num(w[2])?),
             _ => bail!("wait-file takes a file and at most a number of seconds"),
         },
+        "sleep" => {
+            if w.len() != 2 {
+                bail!("sleep takes a number of milliseconds");
+            }
+            Cmd::Sleep(num(w[1])?)
+        }
         "quit" => {
             arity(0)?;
             Cmd::Quit

@@ -91,6 +91,9 @@ pub struct Out {
     /// The image is a re-blend of kept samples (a transfer-function edit;
     /// no volume access).
     pub reblended: bool,
+    /// Milliseconds since this version of the view arrived (for its first
+    /// frame: the time to answer the change).
+    pub since_change_ms: f64,
 }
 
 pub enum Reply {
@@ -100,6 +103,8 @@ pub enum Reply {
 
 struct View {
     version: u64,
+    /// When this version arrived.
+    arrived: Instant,
     spec: Option<Spec>,
     complete: bool,
     /// Coarsens the view when its working set does not fit the pool.
@@ -117,9 +122,18 @@ struct View {
 struct Acc {
     key: (RenderParams, Lod, usize),
     acc: Accumulating,
+    /// Frames drawn whole.
     passes: u32,
     reblend: bool,
+    /// The CPU draws a frame in parts of `part` rows (about
+    /// [`PART_MS`] each), from row `next_row` on, so that input is answered
+    /// between them.
+    next_row: u32,
+    part: u32,
 }
+
+/// The time an accumulation part should take.
+const PART_MS: f64 = 40.0;
 
 /// What an accumulation is valid for: the view without its transfer
 /// function.
@@ -214,6 +228,7 @@ pub fn run(setup: Setup, mut scene: Scene, rx: Receiver<Msg>, tx: Sender<Reply>,
                     while views.len() <= i {
                         views.push(View {
                             version: 0,
+                            arrived: Instant::now(),
                             spec: None,
                             complete: true,
                             budget: LodBudget::new(0.0, scene.levels.len(), true),
@@ -223,6 +238,7 @@ pub fn run(setup: Setup, mut scene: Scene, rx: Receiver<Msg>, tx: Sender<Reply>,
                     }
                     let v = &mut views[i];
                     v.version = version;
+                    v.arrived = Instant::now();
                     v.complete = spec.is_none();
                     if let Some(sp) = &spec {
                         let base = match sp.lod {
@@ -298,6 +314,7 @@ pub fn run(setup: Setup, mut scene: Scene, rx: Receiver<Msg>, tx: Sender<Reply>,
                         view: i,
                         version: views[i].version,
                         backend: backend.describe(),
+                        since_change_ms: views[i].arrived.elapsed().as_secs_f64() * 1e3,
                         ..status(&s, out)
                     };
                     if tx.send(Reply::Frame(Box::new(out))).is_err() {
@@ -350,6 +367,8 @@ pub fn run(setup: Setup, mut scene: Scene, rx: Receiver<Msg>, tx: Sender<Reply>,
                     acc: Accumulating::new(&backend, &spec.params, n, budget),
                     passes: 0,
                     reblend: false,
+                    next_row: 0,
+                    part: 8,
                 });
                 accumulated = Some((0, n));
                 done = false;
@@ -394,6 +413,7 @@ pub fn run(setup: Setup, mut scene: Scene, rx: Receiver<Msg>, tx: Sender<Reply>,
             settled: done,
             accumulated,
             reblended: false,
+            since_change_ms: views[i].arrived.elapsed().as_secs_f64() * 1e3,
         };
         if tx.send(Reply::Frame(Box::new(out))).is_err() {
             return;
@@ -422,7 +442,8 @@ struct AccOut {
 }
 
 /// One pass of view `v`'s accumulation: a re-blend when its transfer
-/// function changed, else an accumulation frame. Returns what to send and
+/// function changed, else an accumulation frame (on the CPU, the next
+/// part of one). Returns what to send and
 /// whether the view is done (the accumulation complete, or given up after
 /// as many passes as `render --progressive` allows).
 fn accumulate(
@@ -451,10 +472,28 @@ fn accumulate(
         // Shading asked of samples kept without normals: start over.
         a.acc = Accumulating::new(backend, &spec.params, a.acc.target(), a.acc.budget());
         a.passes = 0;
+        a.next_row = 0;
     }
-    let f = a.acc.frame(backend, s, scene, &spec.params, lod)?;
-    a.passes += 1;
-    let done = a.acc.complete() || a.passes >= 4 * a.acc.target() + 64;
+    let h = spec.params.height;
+    let rows = match a.acc.in_parts() {
+        true => a.next_row..(a.next_row + a.part).min(h),
+        false => 0..h,
+    };
+    let f = a
+        .acc
+        .frame_rows(backend, s, scene, &spec.params, lod, rows.clone())?;
+    // The next part: sized to take about PART_MS.
+    let ms = t.elapsed().as_secs_f64() * 1e3;
+    let n = (rows.end - rows.start) as f64;
+    // (At most twice as many rows as the last part: rows outside the
+    // volume cost nothing and say little about those inside.)
+    let want = (n * PART_MS / ms.max(0.1)).min(2.0 * n) as u32;
+    a.part = want.clamp(1, h.max(1));
+    a.next_row = if rows.end >= h { 0 } else { rows.end };
+    if rows.end >= h {
+        a.passes += 1;
+    }
+    let done = (rows.end >= h && a.acc.complete()) || a.passes >= 4 * a.acc.target() + 64;
     let out = AccOut {
         image: a.acc.image().clone(),
         completeness: if f.samples == 0 {
@@ -495,5 +534,6 @@ fn status(s: &Session, a: AccOut) -> Out {
         settled: a.settled,
         accumulated: Some(a.accumulated),
         reblended: a.reblended,
+        since_change_ms: 0.0,
     }
 }

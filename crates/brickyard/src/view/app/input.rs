@@ -385,6 +385,15 @@ impl ViewerApp {
                         std::fs::write(p, b"").with_context(|| format!("touch {}", p.display()))?;
                         true
                     }
+                    Cmd::Sleep(ms) => {
+                        let since = *self.waiting.get_or_insert_with(Instant::now);
+                        if since.elapsed().as_secs_f64() * 1e3 >= *ms {
+                            self.waiting = None;
+                            true
+                        } else {
+                            false
+                        }
+                    }
                     Cmd::WaitFile(p, secs) => {
                         let since = *self.waiting.get_or_insert_with(Instant::now);
                         if p.exists() {
