@@ -10,6 +10,7 @@
 #     time to a complete view from disk (page cache dropped when root) and
 #     from the host cache;
 #   - the same at 512^3 on the CPU and the GPU side by side;
+#   - 16 frames of shaded sample accumulation on the GPU;
 #   - the processing filters gauss(2) and sobel of a generated PROC^3 u16
 #     volume (default 512) on the CPU and the GPU side by side, with the
 #     largest difference beside the stated tolerance.
@@ -57,6 +58,10 @@ step "cache kernels" 60 bench cache-kernels --repeat 20
 # Data: generated and converted here (kept between runs).
 step "$BIG^3 full view, GPU" 160 bench render --size "$BIG" --dtype u8 --dir "$DATA" --image 1920x1080 --zoom 1 --repeat 20 --backend gpu --no-reference --cold
 step "$BIG^3 zoomed in, GPU" 90 bench render --size "$BIG" --dtype u8 --dir "$DATA" --image 1920x1080 --zoom 4 --repeat 20 --backend gpu --no-reference --cold
-step "4096^3 procedural (64 GiB of u8, computed brick by brick), GPU" 130 bench render --size 4096 --procedural --dtype u8 --image 1920x1080 --zoom 1 --repeat 20 --backend gpu --no-reference
+step "4096^3 procedural (64 GiB of u8, computed brick by brick), GPU" 100 bench render --size 4096 --procedural --dtype u8 --image 1920x1080 --zoom 1 --repeat 20 --backend gpu --no-reference
 step "$SMALL^3, CPU, GPU, GPU with host updates" 120 bench render --size "$SMALL" --dtype u8 --dir "$DATA" --image 1920x1080 --zoom 1 --repeat 5 --backend all --no-reference
 step "process filters $PROC^3, CPU and GPU" 35 bench process-filters --size "$PROC" --dtype u16 --backend both --repeat 2
+# Sample accumulation, shaded, on the store the step above made: 16 frames
+# on the GPU (each frame's time on stdout).
+echo '{"preset": "soft", "window": [0, 255], "shading": true}' > "$DATA/shaded.json"
+step "progressive 16 frames, shaded, $SMALL^3 at 1024^2, GPU" 30 render "$DATA/mandelbulb-${SMALL}x${SMALL}x${SMALL}-u8.ome.zarr" --out "$DATA/progressive.png" --size 1024x1024 --tf "$DATA/shaded.json" --progressive 16 --backend gpu

@@ -322,34 +322,53 @@ fn ssim_of_an_image_with_itself_is_one_and_drops_with_noise() {
     assert!(ssim(&img, &noisy) < 0.9, "{}", ssim(&img, &noisy));
 }
 
-/// The figures of BENCHMARKS.md (sample accumulation): frames → PSNR and
-/// SSIM against a single pass at 32 samples per voxel, beside a plain
-/// single pass at the same total rate; accumulation frame time against a
-/// plain DVR frame; a transfer-function re-blend against a fresh
-/// accumulation. Run with `--ignored --nocapture`.
+/// Convergence figures (run by hand, `--ignored --nocapture`): a generated
+/// 128³ Mandelbulb with a narrow, dense opacity band (thin shells a coarse
+/// step undersamples), and the MR brain of the shared data with a narrow
+/// band over its tissue values (iso-surface-like shells).
 #[test]
 #[ignore]
 fn convergence_figures() {
-    use brickyard_render::cpu::render_frame;
-    use std::time::Instant;
     let dir = tempfile::tempdir().unwrap();
     let store = dir.path().join("mb.ome.zarr");
-    let dims = [128, 128, 128];
     let o = ConvertOptions {
         brick: [32; 3],
         shard: [64; 3],
         ..Default::default()
     };
-    let src = Procedural::new(Kind::Mandelbulb, dims, DType::U8);
+    let src = Procedural::new(Kind::Mandelbulb, [128, 128, 128], DType::U8);
     convert(&src, &store, &o, &NoProgress, &AtomicBool::new(false)).unwrap();
-    let vol = Volume::from_store(&store, 0, 0).unwrap();
-    let extent = world_extent(dims, vol.spacing);
-    let mut scene = Scene::new(extent, vec![vol.dims]);
-    scene.ranges = None;
-    // A narrow, dense band of opacity: thin shells that a coarse step
-    // undersamples.
     let mut tf = TransferFunction::preset("viridis", [0.0, 255.0]).unwrap();
     tf.opacity = vec![[0.0, 0.0], [0.3, 0.0], [0.33, 0.9], [0.36, 0.0], [1.0, 0.0]];
+    println!("## generated 128³ Mandelbulb");
+    convergence(&store, tf);
+    let nrrd = Path::new(env!("CARGO_MANIFEST_DIR")).join("../../../shared/data/mr-brain-i16.nrrd");
+    let src = brickyard_store::import::open_input(&nrrd, &Default::default()).unwrap();
+    let store = dir.path().join("mr.ome.zarr");
+    convert(
+        src.as_ref(),
+        &store,
+        &o,
+        &NoProgress,
+        &AtomicBool::new(false),
+    )
+    .unwrap();
+    let mut tf = TransferFunction::preset("soft", [150.0, 1100.0]).unwrap();
+    tf.opacity = vec![[0.0, 0.0], [0.45, 0.0], [0.5, 0.8], [0.55, 0.0], [1.0, 0.0]];
+    println!("## MR brain (shared data, 256×256×25 int16, 0.78×0.78×6.5 mm)");
+    convergence(&store, tf);
+}
+
+/// Frames → PSNR and SSIM against the oracle at 32 samples per voxel, the
+/// plain single pass at the same rate beside them, frame times, memory and
+/// re-blend times, for a 256² view of level 0 of `store`.
+fn convergence(store: &Path, tf: TransferFunction) {
+    use brickyard_render::cpu::render_frame;
+    use std::time::Instant;
+    let vol = Volume::from_store(store, 0, 0).unwrap();
+    let extent = world_extent(vol.dims, vol.spacing);
+    let mut scene = Scene::new(extent, vec![vol.dims]);
+    scene.ranges = None;
     let cam = Camera::fit(
         extent,
         30.0,

@@ -133,7 +133,7 @@ struct Acc {
 }
 
 /// The time an accumulation part should take.
-const PART_MS: f64 = 40.0;
+const PART_MS: f64 = 20.0;
 
 /// What an accumulation is valid for: the view without its transfer
 /// function.
