@@ -395,7 +395,7 @@ fn convergence(store: &Path, tf: TransferFunction) {
         request_cap: 4096,
         upload_bytes_per_frame: 64 << 20,
     };
-    let mut s = Session::open(&store, cfg, 64 << 20, 2).unwrap();
+    let mut s = Session::open(store, cfg, 64 << 20, 2).unwrap();
     // Load the working set (nothing is timed before it is resident).
     for _ in 0..50 {
         s.begin_frame();
