@@ -28,6 +28,7 @@ mod dvr;
 pub mod gpu;
 pub mod image;
 mod mip;
+pub mod multi;
 pub mod optics;
 pub mod params;
 pub mod reference;
