@@ -34,10 +34,15 @@ const DIMS: Dims3 = [40, 48, 64];
 /// rescaled to 60–255, and 0 elsewhere: every channel is sparse, and a brick
 /// one channel hides often holds another's data.
 fn banded_store(dir: &Path, n: usize) -> (PathBuf, Vec3, Vec<Dims3>) {
+    banded_store_of(dir, n, DIMS)
+}
+
+/// [`banded_store`] of `dims` voxels (`[z, y, x]`).
+fn banded_store_of(dir: &Path, n: usize, dims: Dims3) -> (PathBuf, Vec3, Vec<Dims3>) {
     let raw = dir.join(format!("banded{n}.raw"));
     let kinds =
-        [Kind::Mandelbulb, Kind::MarschnerLobb].map(|k| Procedural::new(k, DIMS, DType::U8));
-    let mut bytes = Vec::with_capacity(n * DIMS.iter().product::<u64>() as usize);
+        [Kind::Mandelbulb, Kind::MarschnerLobb].map(|k| Procedural::new(k, dims, DType::U8));
+    let mut bytes = Vec::with_capacity(n * dims.iter().product::<u64>() as usize);
     for c in 0..n {
         let g = &kinds[c % 2];
         let (lo, hi) = if n == 1 {
@@ -46,9 +51,9 @@ fn banded_store(dir: &Path, n: usize) -> (PathBuf, Vec3, Vec<Dims3>) {
             let w = 1.0 / n as f64;
             ((c as f64 - 0.5) * w, (c as f64 + 1.5) * w)
         };
-        for z in 0..DIMS[0] {
-            for y in 0..DIMS[1] {
-                for x in 0..DIMS[2] {
+        for z in 0..dims[0] {
+            for y in 0..dims[1] {
+                for x in 0..dims[2] {
                     let v = g.value(z, y, x);
                     let b = if v >= lo && v < hi {
                         (60.0 + 195.0 * ((v - lo) / (hi - lo)).clamp(0.0, 1.0)).round() as u8
@@ -63,7 +68,7 @@ fn banded_store(dir: &Path, n: usize) -> (PathBuf, Vec3, Vec<Dims3>) {
     std::fs::write(&raw, &bytes).unwrap();
     let opts: brickyard_store::import::raw::RawOptions = serde_json::from_str(&format!(
         r#"{{"dims":[{},{},{}],"dtype":"u8","channels":{n}}}"#,
-        DIMS[2], DIMS[1], DIMS[0]
+        dims[2], dims[1], dims[0]
     ))
     .unwrap();
     let src = brickyard_store::import::raw::open(&raw, &opts).unwrap();
@@ -77,7 +82,7 @@ fn banded_store(dir: &Path, n: usize) -> (PathBuf, Vec3, Vec<Dims3>) {
     let nlev = (0..)
         .take_while(|&l| Volume::from_store(&store, l, 0).is_ok())
         .count();
-    let extent = world_extent(DIMS, Volume::from_store(&store, 0, 0).unwrap().spacing);
+    let extent = world_extent(dims, Volume::from_store(&store, 0, 0).unwrap().spacing);
     let levels = (0..nlev)
         .map(|l| Volume::from_store(&store, l, 0).unwrap().dims)
         .collect();
@@ -358,6 +363,225 @@ fn gpu_multichannel_dvr_equals_the_cpu_and_the_reference() {
         assert!(
             dc <= TOLERANCE && dr <= TOLERANCE,
             "{n} channels: device vs CPU {dc}, vs reference {dr}"
+        );
+    }
+}
+
+/// The three MNI152 files (T1, grey matter, white matter) as one
+/// three-channel store, or `None` (said on stderr) when the shared data
+/// folder is absent.
+fn mni_store(dir: &Path) -> Option<(PathBuf, Vec3, Vec<Dims3>)> {
+    use brickyard_store::import::stack::ChannelStack;
+    use brickyard_store::import::{open_input, ImportOptions};
+    let data = Path::new(env!("CARGO_MANIFEST_DIR")).join("../../../shared/data");
+    let files =
+        ["mni152-t1-u8", "mni152-gm-u8", "mni152-wm-u8"].map(|f| data.join(format!("{f}.nii.gz")));
+    if !files.iter().all(|f| f.exists()) {
+        eprintln!(
+            "{}: the MNI152 files are missing; test skipped",
+            data.display()
+        );
+        return None;
+    }
+    let sources = files
+        .iter()
+        .map(|f| open_input(f, &ImportOptions::default()).unwrap())
+        .collect();
+    let src = ChannelStack::new(sources).unwrap();
+    let store = dir.join("mni.ome.zarr");
+    let o = ConvertOptions {
+        brick: [32; 3],
+        shard: [64; 3],
+        ..Default::default()
+    };
+    convert(&src, &store, &o, &NoProgress, &AtomicBool::new(false)).unwrap();
+    let nlev = (0..)
+        .take_while(|&l| Volume::from_store(&store, l, 0).is_ok())
+        .count();
+    let v0 = Volume::from_store(&store, 0, 0).unwrap();
+    let extent = world_extent(v0.dims, v0.spacing);
+    let levels = (0..nlev)
+        .map(|l| Volume::from_store(&store, l, 0).unwrap().dims)
+        .collect();
+    Some((store, extent, levels))
+}
+
+#[test]
+fn mni152_three_channels_on_cpu_and_device_equal_the_reference() {
+    // T1 in grey, grey matter in magenta, white matter in cyan (the
+    // store's `omero` colours), windows from the `omero` metadata.
+    let dir = tempfile::tempdir().unwrap();
+    let Some((store, extent, levels)) = mni_store(dir.path()) else {
+        return;
+    };
+    let omero = brickyard_store::omezarr::read_omero(&store)
+        .unwrap()
+        .unwrap();
+    assert_eq!(
+        omero.iter().map(|c| c.label.as_str()).collect::<Vec<_>>(),
+        ["mni152-t1-u8", "mni152-gm-u8", "mni152-wm-u8"]
+    );
+    let cam = Camera::fit(
+        extent,
+        120.0,
+        20.0,
+        Projection::Perspective { fov_y_deg: 40.0 },
+    );
+    let tf = TransferFunction::preset("soft", [0.0, 255.0]).unwrap();
+    let mut p = RenderParams::new(64, 56, cam, tf, RenderMode::Dvr);
+    p.channels = omero
+        .iter()
+        .enumerate()
+        .map(|(i, c)| {
+            let w = c.window.expect("omero windows");
+            ChannelStyle::new(
+                i,
+                c.color.map(|x| x as f32 / 255.0),
+                [w[0] as f32, w[1] as f32],
+            )
+        })
+        .collect();
+    let level = 1;
+    let mut scene = Scene::new(extent, levels);
+    // Opacity per level-0 voxel, as `render` sets it.
+    p.reference_step = Some(scene.voxel(0));
+    let want = reference(&store, &p, level);
+    not_blank(&want, "MNI152 reference");
+    let pool = 64 << 20;
+    let mut s = Session::open(&store, cfg(pool), 32 << 20, 2).unwrap();
+    scene.ranges = Some(Arc::new(s.loader().brick_ranges(1 << 20)));
+    let (cpu, _) = converge(&mut s, &scene, &p, Lod::Fixed(level));
+    let d = cpu.max_abs_diff(&want);
+    eprintln!("MNI152, 3 channels: CPU vs reference {d}");
+    assert!(d <= TOLERANCE, "MNI152: CPU vs reference {d}");
+    // Each channel shows: the mix differs from every channel alone.
+    for c in 0..3 {
+        let mut one = p.clone();
+        one.channels = vec![p.channels[c].clone()];
+        let alone = reference(&store, &one, level);
+        assert!(alone.max_abs_diff(&want) > 0.05, "channel {c} adds nothing");
+    }
+    let Some(gpu) = test_gpu() else { return };
+    let mut renderer = GpuRenderer::new(&gpu);
+    let mut s = Session::open(&store, cfg(pool), 32 << 20, 2).unwrap();
+    let (mut dvm, _) = DeviceVm::new(&gpu, s.vm_mut()).unwrap();
+    let mut cache = DeviceCache::new(&gpu, &dvm, s.vm()).unwrap();
+    let mut img = None;
+    for _ in 0..600 {
+        s.begin_frame();
+        let n = s.vm().frame();
+        let f = renderer
+            .render_with(
+                &gpu,
+                &dvm,
+                s.vm(),
+                Some(&cache),
+                &scene,
+                &p,
+                Lod::Fixed(level),
+            )
+            .unwrap();
+        update_on_device(&gpu, &mut dvm, &mut cache, &mut s, n, &f.list).unwrap();
+        if f.stats.completeness() == 1.0 && f.stats.samples > 0 {
+            img = Some(f.image);
+            break;
+        }
+        std::thread::sleep(std::time::Duration::from_millis(1));
+    }
+    let img = img.expect("the device view completes");
+    let (dc, dr) = (img.max_abs_diff(&cpu), img.max_abs_diff(&want));
+    eprintln!("MNI152, 3 channels: device vs CPU {dc}, vs reference {dr}");
+    assert!(
+        dc <= TOLERANCE && dr <= TOLERANCE,
+        "device vs CPU {dc}, vs reference {dr}"
+    );
+}
+
+/// Frame times of multi-channel DVR, CPU and device, once everything is
+/// resident (a full frame each, no loading): `cargo test --release -p
+/// brickyard-render --test multichannel -- --ignored bench --nocapture`.
+#[test]
+#[ignore]
+fn bench_multichannel_dvr_frame_times() {
+    let size: u64 = std::env::var("BENCH_SIZE")
+        .ok()
+        .and_then(|s| s.parse().ok())
+        .unwrap_or(128);
+    let image: u32 = std::env::var("BENCH_IMAGE")
+        .ok()
+        .and_then(|s| s.parse().ok())
+        .unwrap_or(512);
+    let counts: Vec<usize> = std::env::var("BENCH_CHANNELS")
+        .ok()
+        .map(|s| s.split(',').map(|x| x.parse().unwrap()).collect())
+        .unwrap_or(vec![1, 4, 16]);
+    let dims = [size; 3];
+    let dir = tempfile::tempdir().unwrap();
+    let gpu = test_gpu();
+    let mut base: Option<(f64, f64)> = None;
+    for &n in &counts {
+        let sub = dir.path().join(n.to_string());
+        std::fs::create_dir_all(&sub).unwrap();
+        let (store, extent, levels) = banded_store_of(&sub, n, dims);
+        let shown: Vec<usize> = (0..n).collect();
+        let mut p = dvr_params(extent, &shown, n);
+        p.width = image;
+        p.height = image;
+        let bytes = n as u64 * dims.iter().product::<u64>();
+        let pool = 2 * bytes + (16 << 20);
+        let bcfg = VmConfig {
+            request_cap: 1024,
+            upload_bytes_per_frame: pool,
+            pt_cache_blocks: 4096,
+            ..cfg(pool)
+        };
+        let mut scene = Scene::new(extent, levels);
+        let mut s = Session::open(&store, bcfg.clone(), 64 << 20, 2).unwrap();
+        scene.ranges = Some(Arc::new(s.loader().brick_ranges(1 << 20)));
+        converge(&mut s, &scene, &p, Lod::Fixed(0));
+        let reps = 5;
+        let mut cpu_ms = f64::INFINITY;
+        let mut samples = 0;
+        for _ in 0..reps {
+            s.begin_frame();
+            let t = std::time::Instant::now();
+            let (_, st, reqs) = render_frame(s.vm(), &scene, &p, Lod::Fixed(0));
+            cpu_ms = cpu_ms.min(t.elapsed().as_secs_f64() * 1e3);
+            samples = st.samples;
+            s.finish_frame(reqs.iter());
+        }
+        let mut dev_ms = f64::NAN;
+        if let Some(gpu) = &gpu {
+            let mut renderer = GpuRenderer::new(gpu);
+            let mut s = Session::open(&store, bcfg.clone(), 64 << 20, 2).unwrap();
+            let (mut dvm, _) = DeviceVm::new(gpu, s.vm_mut()).unwrap();
+            let mut cache = DeviceCache::new(gpu, &dvm, s.vm()).unwrap();
+            let mut complete = 0;
+            for _ in 0..600 {
+                s.begin_frame();
+                let fr = s.vm().frame();
+                let t = std::time::Instant::now();
+                let f = renderer
+                    .render_with(gpu, &dvm, s.vm(), Some(&cache), &scene, &p, Lod::Fixed(0))
+                    .unwrap();
+                let ms = t.elapsed().as_secs_f64() * 1e3;
+                update_on_device(gpu, &mut dvm, &mut cache, &mut s, fr, &f.list).unwrap();
+                if f.stats.completeness() == 1.0 {
+                    complete += 1;
+                    if complete > 1 {
+                        dev_ms = if dev_ms.is_nan() { ms } else { dev_ms.min(ms) };
+                    }
+                    if complete > reps {
+                        break;
+                    }
+                }
+            }
+        }
+        let (c1, d1) = *base.get_or_insert((cpu_ms, dev_ms));
+        println!(
+            "channels {n:2}: {size}³ u8, {image}² image: CPU {cpu_ms:8.1} ms ({:.2}× one), device {dev_ms:8.1} ms ({:.2}× one), {samples} samples",
+            cpu_ms / c1,
+            dev_ms / d1
         );
     }
 }
