@@ -551,6 +551,9 @@ pub fn run(c: RenderCmd) -> Result<Vec<String>> {
         if mode != RenderMode::Dvr || !matches!(backend, crate::backend::Backend::Cpu) {
             bail!("progressive: sample accumulation draws DVR on the CPU back end (--mode dvr --backend cpu)");
         }
+        if dvr_multi {
+            bail!("progressive: sample accumulation draws DVR of one channel; give one --channel");
+        }
         if n == 0 || n > brickyard_render::savr::MAX_FRAMES {
             bail!(
                 "progressive: N frames between 1 and {}, got {n}",

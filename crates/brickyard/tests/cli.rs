@@ -661,6 +661,17 @@ fn convert_takes_channels_from_several_files_and_render_shows_them() {
         &["channel-tf", "5"],
     );
 
+    fails_with(
+        &run(&[
+            "render",
+            s(&store),
+            "--backend",
+            "cpu",
+            "--progressive",
+            "4",
+        ]),
+        &["progressive", "one channel"],
+    );
     // Inputs of different grids are refused, naming the file and field.
     let nuclei = t1.with_file_name("nuclei-confocal-u16.tif");
     fails_with(
