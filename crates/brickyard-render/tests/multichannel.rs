@@ -40,30 +40,38 @@ fn banded_store(dir: &Path, n: usize) -> (PathBuf, Vec3, Vec<Dims3>) {
 /// [`banded_store`] of `dims` voxels (`[z, y, x]`).
 fn banded_store_of(dir: &Path, n: usize, dims: Dims3) -> (PathBuf, Vec3, Vec<Dims3>) {
     let raw = dir.join(format!("banded{n}.raw"));
-    let kinds =
-        [Kind::Mandelbulb, Kind::MarschnerLobb].map(|k| Procedural::new(k, dims, DType::U8));
+    // Each function's values once (the kinds used), then the bands.
+    let kinds: Vec<Vec<f64>> = [Kind::Mandelbulb, Kind::MarschnerLobb]
+        .into_iter()
+        .take(n.min(2))
+        .map(|k| {
+            let g = Procedural::new(k, dims, DType::U8);
+            let mut v = Vec::with_capacity(dims.iter().product::<u64>() as usize);
+            for z in 0..dims[0] {
+                for y in 0..dims[1] {
+                    for x in 0..dims[2] {
+                        v.push(g.value(z, y, x));
+                    }
+                }
+            }
+            v
+        })
+        .collect();
     let mut bytes = Vec::with_capacity(n * dims.iter().product::<u64>() as usize);
     for c in 0..n {
-        let g = &kinds[c % 2];
         let (lo, hi) = if n == 1 {
             (0.05, 1.0)
         } else {
             let w = 1.0 / n as f64;
             ((c as f64 - 0.5) * w, (c as f64 + 1.5) * w)
         };
-        for z in 0..dims[0] {
-            for y in 0..dims[1] {
-                for x in 0..dims[2] {
-                    let v = g.value(z, y, x);
-                    let b = if v >= lo && v < hi {
-                        (60.0 + 195.0 * ((v - lo) / (hi - lo)).clamp(0.0, 1.0)).round() as u8
-                    } else {
-                        0
-                    };
-                    bytes.push(b);
-                }
+        bytes.extend(kinds[c % 2].iter().map(|&v| {
+            if v >= lo && v < hi {
+                (60.0 + 195.0 * ((v - lo) / (hi - lo)).clamp(0.0, 1.0)).round() as u8
+            } else {
+                0
             }
-        }
+        }));
     }
     std::fs::write(&raw, &bytes).unwrap();
     let opts: brickyard_store::import::raw::RawOptions = serde_json::from_str(&format!(
@@ -517,7 +525,12 @@ fn bench_multichannel_dvr_frame_times() {
         .unwrap_or(vec![1, 4, 16]);
     let dims = [size; 3];
     let dir = tempfile::tempdir().unwrap();
-    let gpu = test_gpu();
+    // BENCH_NO_DEVICE=1: the CPU only.
+    let gpu = if std::env::var("BENCH_NO_DEVICE").as_deref() == Ok("1") {
+        None
+    } else {
+        test_gpu()
+    };
     let mut base: Option<(f64, f64)> = None;
     for &n in &counts {
         let sub = dir.path().join(n.to_string());
@@ -550,6 +563,18 @@ fn bench_multichannel_dvr_frame_times() {
             samples = st.samples;
             s.finish_frame(reqs.iter());
         }
+        // Channel 0 of the same store alone: the same volume, one channel.
+        let mut alone = p.clone();
+        alone.channels.truncate(1);
+        converge(&mut s, &scene, &alone, Lod::Fixed(0));
+        let mut one_ms = f64::INFINITY;
+        for _ in 0..reps {
+            s.begin_frame();
+            let t = std::time::Instant::now();
+            let (_, _, reqs) = render_frame(s.vm(), &scene, &alone, Lod::Fixed(0));
+            one_ms = one_ms.min(t.elapsed().as_secs_f64() * 1e3);
+            s.finish_frame(reqs.iter());
+        }
         let mut dev_ms = f64::NAN;
         if let Some(gpu) = &gpu {
             let mut renderer = GpuRenderer::new(gpu);
@@ -579,8 +604,9 @@ fn bench_multichannel_dvr_frame_times() {
         }
         let (c1, d1) = *base.get_or_insert((cpu_ms, dev_ms));
         println!(
-            "channels {n:2}: {size}³ u8, {image}² image: CPU {cpu_ms:8.1} ms ({:.2}× one), device {dev_ms:8.1} ms ({:.2}× one), {samples} samples",
+            "channels {n:2}: {size}³ u8, {image}² image: CPU {cpu_ms:8.1} ms ({:.2}× one; channel 0 alone {one_ms:.1} ms, {:.2}×), device {dev_ms:8.1} ms ({:.2}× one), {samples} samples",
             cpu_ms / c1,
+            cpu_ms / one_ms,
             dev_ms / d1
         );
     }
