@@ -41,7 +41,7 @@
 use crate::image::Image;
 use crate::params::{RenderMode, RenderParams};
 use crate::walk::{Frame, Walker};
-use crate::{mip, slice};
+use crate::{mip, multi, slice};
 use brickyard_cache::ranges::BrickRanges;
 use brickyard_cache::vm::{Requests, VirtualMemory};
 use brickyard_core::camera::Vec3;
@@ -222,6 +222,34 @@ fn render_typed<T: Sample>(
     tiles: &mut Tiles,
 ) -> (FrameStats, Vec<Requests>) {
     let frame = Frame::new(vm, scene, params, lod);
+    // DVR of several channels: a frame per channel (its transfer function's
+    // transparent bricks), over the same geometry.
+    let dvr_multi = matches!(params.mode, RenderMode::Dvr) && !params.channels.is_empty();
+    let (ch_scenes, ch_params): (Vec<Scene>, Vec<RenderParams>) = if dvr_multi {
+        params
+            .channels
+            .iter()
+            .map(|c| {
+                let sc = Scene {
+                    channel: c.channel,
+                    ..scene.clone()
+                };
+                let p = RenderParams {
+                    tf: c.dvr_tf(),
+                    channels: vec![],
+                    ..params.clone()
+                };
+                (sc, p)
+            })
+            .unzip()
+    } else {
+        (vec![], vec![])
+    };
+    let ch_frames: Vec<Frame> = ch_scenes
+        .iter()
+        .zip(&ch_params)
+        .map(|(sc, p)| Frame::new(vm, sc, p, lod))
+        .collect();
     let w = params.width as usize;
     let tiles_x = w.div_ceil(TILE_W);
     let rg = params.camera.ray_gen(params.width, params.height);
@@ -236,7 +264,12 @@ fn render_typed<T: Sample>(
                 // One walker per channel shown and one request collector,
                 // per piece of work rayon splits the frame into (their
                 // brick memos live for this frame).
-                let walkers = if params.channels.is_empty() {
+                let walkers = if dvr_multi {
+                    ch_frames
+                        .iter()
+                        .map(|f| Walker::new(f, f.scene.channel))
+                        .collect()
+                } else if params.channels.is_empty() {
                     vec![Walker::new(&frame, scene.channel)]
                 } else {
                     params
@@ -260,6 +293,9 @@ fn render_typed<T: Sample>(
                         for i in x0..(x0 + TILE_W).min(w) {
                             let ray = rg.pixel_ray(i as u32, j);
                             rows[r * w + i] = match &params.mode {
+                                RenderMode::Dvr if multi => {
+                                    multi::dvr_pixel(&mut walkers, &ray, (&mut req, &mut st))
+                                }
                                 RenderMode::Dvr => walkers[0].dvr(&ray, &mut req, &mut st),
                                 RenderMode::Mip if multi => mip::channels_pixel(
                                     &mut walkers,

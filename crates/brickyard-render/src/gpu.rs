@@ -17,7 +17,7 @@
 
 use crate::cpu::{FrameStats, Lod, Scene};
 use crate::image::Image;
-use crate::params::{ChannelStyle, RenderMode, RenderParams};
+use crate::params::{ChannelStyle, RenderMode, RenderParams, MAX_DVR_CHANNELS};
 use brickyard_cache::bookkeeping::BrickIds;
 use brickyard_cache::brick::BrickContent;
 use brickyard_cache::brick::BrickKey;
@@ -53,6 +53,8 @@ const RENDER_WGSL: &str = concat!(
     include_str!("shading.wgsl"),
     "\n",
     include_str!("savr.wgsl"),
+    "\n",
+    include_str!("multi.wgsl"),
 );
 
 /// The render uniform (see `gpu.wgsl`).
@@ -288,7 +290,6 @@ impl GpuRenderer {
         lod: Lod,
         pass: Option<AccPass>,
     ) -> Result<GpuFrame, GpuError> {
-        assert!(params.channels.len() <= 16, "at most 16 channels added up");
         let (mode, plane) = match params.mode {
             RenderMode::Dvr => (0, ([0.0; 3], [0.0; 3])),
             RenderMode::Mip => (1, ([0.0; 3], [0.0; 3])),
@@ -296,6 +297,11 @@ impl GpuRenderer {
                 (2, (origin, brickyard_core::camera::normalize(normal)))
             }
         };
+        let dvr_multi = mode == 0 && !params.channels.is_empty();
+        assert!(
+            params.channels.len() <= if dvr_multi { MAX_DVR_CHANNELS } else { 16 },
+            "at most 16 channels added up, 64 composited"
+        );
         let nl = scene.levels.len();
         assert!(
             nl <= MAX_LEVELS && nl == vm.levels(),
@@ -438,23 +444,65 @@ impl GpuRenderer {
             let x = self.aux.remove(i);
             self.aux.push(x);
         } else {
-            // The transfer function's points, then the clear bits.
-            let mut words: Vec<u32> = tf
-                .opacity
-                .iter()
-                .flat_map(|p| [p[0], p[1], 0.0, 0.0])
-                .chain(tf.colormap.points().iter().flatten().copied())
-                .map(f32::to_bits)
-                .collect();
+            // The transfer function's points (then, for a DVR of several
+            // channels, each channel's), then the clear bits.
+            let points = |t: &TransferFunction| -> Vec<u32> {
+                t.opacity
+                    .iter()
+                    .flat_map(|p| [p[0], p[1], 0.0, 0.0])
+                    .chain(t.colormap.points().iter().flatten().copied())
+                    .map(f32::to_bits)
+                    .collect()
+            };
+            let mut words: Vec<u32> = points(tf);
+            let ch_tfs: Vec<TransferFunction> = if dvr_multi {
+                params.channels.iter().map(|c| c.dvr_tf()).collect()
+            } else {
+                vec![]
+            };
+            let mut first = vec![];
+            for t in &ch_tfs {
+                first.push(words.len() as u32 / 4);
+                words.extend(points(t));
+            }
             let off = words.len() as u32;
             let bits = match (&scene.ranges, mode) {
+                // A channel's bricks have ids of their own: its bits are
+                // set by its own transfer function.
+                (Some(r), 0) if dvr_multi => {
+                    let mut bits = vec![];
+                    for (c, t) in params.channels.iter().zip(&ch_tfs) {
+                        let b = clear_bits(&ids, r, t, c.channel);
+                        bits.resize(b.len(), 0);
+                        for (x, y) in bits.iter_mut().zip(b) {
+                            *x |= y;
+                        }
+                    }
+                    bits
+                }
                 (Some(r), 0) => clear_bits(&ids, r, tf, scene.channel),
                 _ => vec![0],
             };
             words.extend(bits);
             let styles_off = words.len() as u32;
+            if dvr_multi {
+                // Per channel: channel, window start, 1 / width, first
+                // point, opacity points, colour points (multi.wgsl).
+                for ((c, t), &p) in params.channels.iter().zip(&ch_tfs).zip(&first) {
+                    words.extend([
+                        c.channel as u32,
+                        t.window[0].to_bits(),
+                        (1.0 / (t.window[1] - t.window[0])).to_bits(),
+                        p,
+                        t.opacity.len() as u32,
+                        t.colormap.points().len() as u32,
+                        0,
+                        0,
+                    ]);
+                }
+            }
             // The channels added up: channel, lo, hi, 0, r, g, b, 0.
-            for c in &params.channels {
+            for c in params.channels.iter().filter(|_| !dvr_multi) {
                 words.extend([
                     c.channel as u32,
                     c.window[0].to_bits(),

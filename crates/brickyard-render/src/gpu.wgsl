@@ -3,7 +3,7 @@
 // compositing, in f32 where the CPU uses f64 for positions). This file
 // declares the render uniform, the bindings and the per-invocation state,
 // makes each pixel's ray and hands it to its mode; `gpu.rs` appends
-// optics.wgsl, walk.wgsl, slice.wgsl, mip.wgsl and dvr.wgsl to it, all
+// optics.wgsl, walk.wgsl, slice.wgsl, mip.wgsl, dvr.wgsl and multi.wgsl to it, all
 // after vm_common.wgsl (bindings 0–2: layout, page tables, pool) and
 // before request_insert.wgsl.
 //
@@ -54,9 +54,10 @@ struct Render {
     // Cells per brick and axis, voxels per cell edge (z, y, x).
     cell_count: vec4<u32>,
     cell_edge: vec4<u32>,
-    // Several channels added up (slice, MIP): how many (0: one channel
-    // through the transfer function) and where their styles start in
-    // `aux` (8 words each: channel, lo, hi, 0, r, g, b, 0).
+    // Several channels (slice, MIP: added up; DVR: composited, see
+    // multi.wgsl): how many (0: one channel through the transfer function)
+    // and where their styles start in `aux` (8 words each; slice, MIP:
+    // channel, lo, hi, 0, r, g, b, 0).
     n_channels: u32,
     styles_off: u32,
     pad3: u32,
@@ -115,9 +116,10 @@ const USED_BASE: u32 = 8u;
 var<private> last_mark: u32;
 // The page entry of the brick last walked to: its level, brick, entry.
 // Per channel shown (index `cur_idx`): the last brick walked to.
-var<private> memo_level: array<u32, 16>;
-var<private> memo_brick: array<vec3<u32>, 16>;
-var<private> memo_entry: array<vec2<u32>, 16>;
+// Up to 64 channels (multi-channel DVR).
+var<private> memo_level: array<u32, 64>;
+var<private> memo_brick: array<vec3<u32>, 64>;
+var<private> memo_entry: array<vec2<u32>, 64>;
 // The channel being sampled and its index among those shown.
 var<private> cur_ch: u32;
 var<private> cur_idx: u32;
@@ -156,7 +158,7 @@ fn put_pixel(i: u32, c: vec4<f32>) {
 // The per-invocation state's start.
 fn begin_invocation() {
     last_mark = AUTO;
-    for (var i = 0u; i < 16u; i = i + 1u) {
+    for (var i = 0u; i < max(R.n_channels, 1u); i = i + 1u) {
         memo_level[i] = AUTO;
     }
     cur_ch = R.channel;
@@ -176,8 +178,10 @@ fn render(@builtin(global_invocation_id) g: vec3<u32>) {
     if (R.n_channels > 0u) {
         if (R.mode == 2u) {
             px = slice_channels(ray);
-        } else {
+        } else if (R.mode == 1u) {
             px = mip_channels(ray);
+        } else {
+            px = dvr_channels(ray);
         }
     } else if (R.mode == 2u) {
         px = slice_pixel(ray);

@@ -8,8 +8,10 @@
 //!   no code with the renderers below.
 //! - [`cpu`]: ray-guided DVR, MIP and slices through the virtual memory
 //!   (the CPU frame driver), made of `walk` (bricks, landing, cells),
-//!   `dvr`, `mip`, `slice` (one module per mode) and [`optics`] (transfer
-//!   function, opacity correction, compositing, channel mix).
+//!   `dvr`, `mip`, `slice` (one module per mode), [`multi`] (DVR of
+//!   several channels, each through its own transfer function) and
+//!   [`optics`] (transfer function, opacity correction, compositing,
+//!   channel mix).
 //! - [`gpu`]: DVR, MIP and slices on the device (the device frame driver):
 //!   the WGSL twin of each of those modules sits beside it (`walk.wgsl`,
 //!   `dvr.wgsl`, …) and `gpu.rs` joins them into one shader.
@@ -28,6 +30,7 @@ mod dvr;
 pub mod gpu;
 pub mod image;
 mod mip;
+pub mod multi;
 pub mod optics;
 pub mod params;
 pub mod reference;

@@ -193,11 +193,13 @@ mod tests {
             channel: 0,
             color: [0.0, 1.0, 0.0],
             window: [0.0, 200.0],
+            tf: None,
         };
         let magenta = ChannelStyle {
             channel: 1,
             color: [1.0, 0.0, 1.0],
             window: [100.0, 300.0],
+            tf: None,
         };
         assert_eq!(channel_intensity(&green, 50.0), 0.25);
         assert_eq!(channel_intensity(&green, -5.0), 0.0);

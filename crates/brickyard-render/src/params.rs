@@ -42,16 +42,21 @@ pub struct RenderParams {
     /// images of different levels equally opaque.
     #[serde(default)]
     pub reference_step: Option<f64>,
-    /// Several channels at once, added up (slice and MIP only): each
-    /// channel's value is windowed to `[0, 1]` and multiplied by its
-    /// colour; the sum is clamped to 1. A MIP takes each channel's maximum
-    /// along the ray separately. Empty: one channel through `tf`.
+    /// Several channels at once (the visible set). Slice and MIP add them
+    /// up: each channel's value is windowed to `[0, 1]` and multiplied by
+    /// its colour; the sum is clamped to 1 (a MIP takes each channel's
+    /// maximum along the ray separately). DVR composites them per sample,
+    /// each through its own transfer function ([`ChannelStyle::dvr_tf`],
+    /// mixed by [`crate::multi`]'s rule). Empty: one channel through `tf`.
     #[serde(default, skip_serializing_if = "Vec::is_empty")]
     pub channels: Vec<ChannelStyle>,
 }
 
-/// Most channels one image shows at once.
+/// Most channels a slice or MIP adds up at once.
 pub const MAX_CHANNELS: usize = 16;
+
+/// Most channels a DVR composites at once (CPU and device).
+pub const MAX_DVR_CHANNELS: usize = 64;
 
 /// How one channel of a multi-channel image is shown.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -61,6 +66,43 @@ pub struct ChannelStyle {
     pub color: [f32; 3],
     /// Data values `[lo, hi]` mapped to intensity 0 and 1.
     pub window: [f32; 2],
+    /// DVR: this channel's transfer function (colour and opacity); `None`:
+    /// the default made from `color` and `window` ([`ChannelStyle::dvr_tf`]).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub tf: Option<TransferFunction>,
+}
+
+impl ChannelStyle {
+    /// A channel shown with `color` over `window`, with the default DVR
+    /// transfer function.
+    pub fn new(channel: usize, color: [f32; 3], window: [f32; 2]) -> ChannelStyle {
+        ChannelStyle {
+            channel,
+            color,
+            window,
+            tf: None,
+        }
+    }
+
+    /// The channel's DVR transfer function: `tf` if given, else over
+    /// `window` the constant colour `color` (each component at most 1) with
+    /// opacity 0 up to a tenth of the window, then rising linearly to 0.45
+    /// at its top.
+    pub fn dvr_tf(&self) -> TransferFunction {
+        if let Some(tf) = &self.tf {
+            return tf.clone();
+        }
+        let [r, g, b] = self.color.map(|c| c.min(1.0));
+        TransferFunction {
+            window: self.window,
+            opacity: vec![[0.0, 0.0], [0.1, 0.0], [1.0, 0.45]],
+            colormap: brickyard_core::transfer::ColorMap::Points(vec![
+                [0.0, r, g, b],
+                [1.0, r, g, b],
+            ]),
+            shading: None,
+        }
+    }
 }
 
 fn one() -> f64 {
@@ -119,17 +161,13 @@ impl RenderParams {
                 );
             }
         }
-        if !self.channels.is_empty() && matches!(self.mode, RenderMode::Dvr) {
-            return bad(
-                "channels",
-                "several channels are shown additively in mip and slice modes; dvr takes one channel and a transfer function".into(),
-            );
-        }
-        if self.channels.len() > MAX_CHANNELS {
+        let dvr = matches!(self.mode, RenderMode::Dvr);
+        let most = if dvr { MAX_DVR_CHANNELS } else { MAX_CHANNELS };
+        if self.channels.len() > most {
             return bad(
                 "channels",
                 format!(
-                    "at most {MAX_CHANNELS} channels at once, got {}",
+                    "at most {most} channels at once in this mode, got {}",
                     self.channels.len()
                 ),
             );
@@ -147,6 +185,21 @@ impl RenderParams {
                     &format!("channels[{i}].color"),
                     format!("needs finite non-negative RGB, got {:?}", c.color),
                 );
+            }
+            if let Some(tf) = &c.tf {
+                tf.validate().map_err(|e| {
+                    ConfigError::new(
+                        "render parameters",
+                        &format!("channels[{i}].tf"),
+                        e.to_string(),
+                    )
+                })?;
+                if tf.shading.is_some() && dvr {
+                    return bad(
+                        &format!("channels[{i}].tf.shading"),
+                        "gradient shading takes one channel; several channels are composited unshaded".into(),
+                    );
+                }
             }
         }
         self.camera.validate()?;

@@ -42,6 +42,11 @@
 //!   channel's value (a MIP: its own largest along the ray) windowed to
 //!   `[0, 1]` (NaN: 0), times its colour, added up, each component
 //!   clamped to 1, opaque.
+//! - **Several channels, DVR**: at each step every channel's value through
+//!   its own transfer function ([`ChannelStyle::dvr_tf`]); the samples are
+//!   coincident media: opacity `1 − Π(1 − α_i)`, colour `Σ α_i·c_i / Σ α_i`
+//!   (nothing where every `α_i` is 0); that sample is corrected and
+//!   composited as above.
 //!
 //! # Standing alone
 //!
@@ -372,7 +377,8 @@ pub fn render(volume: &Volume, params: &RenderParams) -> Image {
     })
 }
 
-/// Render several channels additively (`params.channels`, slice or MIP):
+/// Render several channels (`params.channels`): added up (slice, MIP) or
+/// composited per sample, each through its own transfer function (DVR):
 /// `volumes[i]` is the level to show of channel `params.channels[i]` (all
 /// of one size). Panics if the parameters are invalid, no channel is given
 /// or the volumes do not match them.
@@ -388,6 +394,7 @@ pub fn render_channels(volumes: &[Volume], params: &RenderParams) -> Image {
     let extent = v0.extent();
     let dt = v0.voxel_size() / params.samples_per_voxel;
     let styles = &params.channels;
+    let tfs: Vec<TransferFunction> = styles.iter().map(|s| s.dvr_tf()).collect();
     per_pixel(params, |ray| match &params.mode {
         RenderMode::Slice { origin, normal } => match plane_hit(ray, *origin, *normal, extent) {
             Some((p, _)) => {
@@ -406,8 +413,60 @@ pub fn render_channels(volumes: &[Volume], params: &RenderParams) -> Image {
             }
             _ => [0.0; 4],
         },
-        RenderMode::Dvr => unreachable!("validate rejects multi-channel DVR"),
+        RenderMode::Dvr => {
+            let exponent = dt / params.reference_step.unwrap_or(v0.voxel_size());
+            dvr_channels_ray(volumes, &tfs, ray, extent, dt, exponent)
+        }
     })
+}
+
+/// DVR of several channels along one ray: at each step every channel's
+/// value through its own transfer function, mixed as coincident media
+/// (opacity `1 − Π(1 − α_i)`, colour `Σ α_i·c_i / Σ α_i`), the mixed
+/// sample's opacity corrected for the step and composited front to back,
+/// all in f64.
+fn dvr_channels_ray(
+    volumes: &[Volume],
+    tfs: &[TransferFunction],
+    ray: &Ray,
+    extent: Vec3,
+    dt: f64,
+    exponent: f64,
+) -> [f32; 4] {
+    let (mut rgb, mut alpha) = ([0.0f64; 3], 0.0f64);
+    if let Some((t0, t1)) = intersect_box(ray, [0.0; 3], extent) {
+        let mut k = 0u64;
+        loop {
+            let t = step_t(t0, k, dt);
+            if t >= t1 {
+                break;
+            }
+            k += 1;
+            let w = ray.at(t);
+            let (mut keep, mut sum, mut weight) = (1.0f64, [0.0f64; 3], 0.0f64);
+            for (vol, tf) in volumes.iter().zip(tfs) {
+                let [r, g, b, a] = tf.lookup(vol.sample_world(w, extent)).map(f64::from);
+                keep *= 1.0 - a;
+                sum[0] += a * r;
+                sum[1] += a * g;
+                sum[2] += a * b;
+                weight += a;
+            }
+            if weight <= 0.0 {
+                continue;
+            }
+            let a = 1.0 - keep.powf(exponent);
+            let wgt = (1.0 - alpha) * a;
+            for (acc, s) in rgb.iter_mut().zip(sum) {
+                *acc += wgt * s / weight;
+            }
+            alpha += wgt;
+            if alpha >= EARLY_TERMINATION as f64 {
+                break;
+            }
+        }
+    }
+    [rgb[0] as f32, rgb[1] as f32, rgb[2] as f32, alpha as f32]
 }
 
 /// DVR with automatic level of detail, written plainly on whole levels in

@@ -499,7 +499,7 @@ fn several_channels_add_up_in_slices_and_mips() {
             );
         }
     }
-    // Multi-channel DVR is refused with a clear error.
+    // More channels than a MIP adds up are refused with a clear error.
     let mut p = RenderParams::new(
         8,
         8,
@@ -510,11 +510,11 @@ fn several_channels_add_up_in_slices_and_mips() {
             Projection::Perspective { fov_y_deg: 40.0 },
         ),
         TransferFunction::preset("linear", [0.0, 255.0]).unwrap(),
-        RenderMode::Dvr,
+        RenderMode::Mip,
     );
-    p.channels = common::two_channel_styles();
+    p.channels = vec![common::two_channel_styles()[0].clone(); 17];
     let e = p.validate().unwrap_err().to_string();
-    assert!(e.contains("channels"), "{e}");
+    assert!(e.contains("channels") && e.contains("16"), "{e}");
 }
 
 #[test]

@@ -416,11 +416,13 @@ fn channels_add_up_as_defined() {
             channel: 0,
             color: [0.0, 1.0, 0.0],
             window: [0.0, 200.0],
+            tf: None,
         },
         ChannelStyle {
             channel: 1,
             color: [1.0, 0.0, 1.0],
             window: [100.0, 300.0],
+            tf: None,
         },
     ];
     let tf = constant_tf(1.0, [1.0; 3]);

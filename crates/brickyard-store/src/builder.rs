@@ -19,14 +19,15 @@ use crate::downsample::downsample;
 use crate::error::{IoContext, Result, StoreError};
 use crate::import::zarr::ZarrSource;
 use crate::omezarr::{
-    self, level_array_json, multiscales_json, plain_array_json, write_json, ATTR, STATS_DIR,
+    self, level_array_json, multiscales_json, omero_json, plain_array_json, write_json, ATTR,
+    STATS_DIR,
 };
 use crate::shard::ShardSetWriter;
 use crate::source::VolumeSource;
 use brickyard_core::{as_bytes, dispatch_dtype, plan_levels, DType, Dims3, LevelPlan, Sample};
 use rayon::prelude::*;
 use serde::Serialize;
-use serde_json::json;
+use serde_json::{json, Value};
 use std::path::{Path, PathBuf};
 use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
 use std::sync::Mutex;
@@ -384,12 +385,25 @@ pub fn convert(
     } else {
         vec!["z", "y", "x"]
     };
-    let root = |complete: bool| {
+    // Channel names: the source's, else "channel i".
+    let labels: Vec<String> = (0..c)
+        .map(|i| {
+            meta.channel_names
+                .get(i)
+                .cloned()
+                .unwrap_or_else(|| format!("channel {i}"))
+        })
+        .collect();
+    let root = |complete: bool, omero: Option<Value>| {
+        let mut ome = json!({"version": "0.5", "multiscales": multiscales_json(&levels, c, unit.as_deref(), &name)});
+        if let Some(o) = omero {
+            ome["omero"] = o;
+        }
         json!({
             "zarr_format": 3,
             "node_type": "group",
             "attributes": {
-                "ome": {"version": "0.5", "multiscales": multiscales_json(&levels, c, unit.as_deref(), &name)},
+                "ome": ome,
                 ATTR: {
                     "version": 1,
                     "complete": complete,
@@ -404,7 +418,7 @@ pub fn convert(
             }
         })
     };
-    write_json(&partial.join("zarr.json"), &root(false))?;
+    write_json(&partial.join("zarr.json"), &root(false, None))?;
     let mut outs = vec![];
     for (k, l) in levels.iter().enumerate() {
         let shard: Vec<u64> = (0..3)
@@ -499,7 +513,26 @@ pub fn convert(
         .iter()
         .map(|o| o.writer.bytes.load(Ordering::Relaxed))
         .sum();
-    write_json(&partial.join("zarr.json"), &root(true))?;
+    // Each channel's data range, from level 0's brick statistics, for the
+    // `omero` windows.
+    let ranges: Vec<(f64, f64)> = {
+        let st = outs[0].stats.lock().unwrap();
+        let per = st.len() / c.max(1);
+        (0..c)
+            .map(|ch| {
+                st[ch * per..(ch + 1) * per]
+                    .iter()
+                    .filter(|m| !m[0].is_nan() && !m[1].is_nan())
+                    .fold((f64::NAN, f64::NAN), |(lo, hi), m| {
+                        (lo.min(m[0]), hi.max(m[1]))
+                    })
+            })
+            .collect()
+    };
+    write_json(
+        &partial.join("zarr.json"),
+        &root(true, Some(omero_json(&labels, &ranges))),
+    )?;
     // Swap into place: the old output (if any) is removed only after the new
     // one is complete.
     if output.exists() {

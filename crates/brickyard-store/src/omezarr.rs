@@ -408,3 +408,129 @@ pub fn parse_multiscale(
         brickyard,
     }))
 }
+
+/// Colours (RRGGBB) given to channels in the `omero` metadata, in order:
+/// one channel is white; several cycle through these.
+pub const CHANNEL_COLORS: [&str; 8] = [
+    "00FF00", "FF00FF", "00FFFF", "FF0000", "0000FF", "FFFF00", "FF8000", "8080FF",
+];
+
+/// How a channel is shown by default (`omero` metadata).
+#[derive(Debug, Clone, PartialEq, serde::Serialize)]
+pub struct OmeroChannel {
+    pub label: String,
+    /// Linear RGB colour, 0–255.
+    pub color: [u8; 3],
+    /// Data values `[start, end]` shown from black to full colour.
+    pub window: Option<[f64; 2]>,
+    pub active: bool,
+}
+
+/// The OME-Zarr `omero` block for channels named `labels` whose data
+/// ranges are `ranges` (`(min, max)`, NaN: unknown): each with its colour,
+/// and a window over its range.
+pub fn omero_json(labels: &[String], ranges: &[(f64, f64)]) -> Value {
+    let n = labels.len();
+    let channels: Vec<Value> = labels
+        .iter()
+        .zip(ranges)
+        .enumerate()
+        .map(|(i, (label, &(lo, hi)))| {
+            let color = if n == 1 {
+                "FFFFFF"
+            } else {
+                CHANNEL_COLORS[i % CHANNEL_COLORS.len()]
+            };
+            let mut c = json!({
+                "label": label,
+                "color": color,
+                "active": true,
+                "coefficient": 1,
+                "family": "linear",
+                "inverted": false,
+            });
+            if lo.is_finite() && hi.is_finite() {
+                let hi = if hi > lo { hi } else { lo + 1.0 };
+                c["window"] = json!({"min": lo, "max": hi, "start": lo, "end": hi});
+            }
+            c
+        })
+        .collect();
+    json!({"channels": channels, "rdefs": {"model": "color"}})
+}
+
+/// The channels of the `omero` block of the group at `dir` (OME-Zarr 0.5:
+/// under `ome`; 0.4: at the top of the attributes); `Ok(None)` when there
+/// is none. A malformed entry is an error naming the field.
+pub fn read_omero(dir: &Path) -> Result<Option<Vec<OmeroChannel>>> {
+    let Some((zarr_format, attrs)) = read_group_attributes(dir)? else {
+        return Ok(None);
+    };
+    let meta_path = if zarr_format == 3 {
+        dir.join("zarr.json")
+    } else {
+        dir.join(".zattrs")
+    };
+    let Some(o) = attrs
+        .get("ome")
+        .and_then(|o| o.get("omero"))
+        .or_else(|| attrs.get("omero"))
+    else {
+        return Ok(None);
+    };
+    let Some(chs) = o.get("channels").and_then(Value::as_array) else {
+        return Err(StoreError::invalid(
+            &meta_path,
+            "omero.channels",
+            "expected an array of channels",
+        ));
+    };
+    let mut out = vec![];
+    for (i, c) in chs.iter().enumerate() {
+        let field = |f: &str| format!("omero.channels[{i}].{f}");
+        let label = c
+            .get("label")
+            .and_then(Value::as_str)
+            .map_or_else(|| format!("channel {i}"), str::to_string);
+        let color = match c.get("color") {
+            None => [255, 255, 255],
+            Some(v) => {
+                let s = v.as_str().unwrap_or("");
+                let ok = s.len() == 6 && s.chars().all(|ch| ch.is_ascii_hexdigit());
+                if !ok {
+                    return Err(StoreError::invalid(
+                        &meta_path,
+                        field("color"),
+                        format!("expected six hex digits RRGGBB, found {v}"),
+                    ));
+                }
+                let b = |k: usize| u8::from_str_radix(&s[2 * k..2 * k + 2], 16).unwrap();
+                [b(0), b(1), b(2)]
+            }
+        };
+        let window = match c.get("window") {
+            None => None,
+            Some(w) => {
+                let num = |k: &str| w.get(k).and_then(Value::as_f64);
+                match (num("start"), num("end")) {
+                    (Some(a), Some(b)) if a.is_finite() && b.is_finite() && a < b => Some([a, b]),
+                    _ => {
+                        return Err(StoreError::invalid(
+                            &meta_path,
+                            field("window"),
+                            format!("expected numbers start < end, found {w}"),
+                        ))
+                    }
+                }
+            }
+        };
+        let active = c.get("active").and_then(Value::as_bool).unwrap_or(true);
+        out.push(OmeroChannel {
+            label,
+            color,
+            window,
+            active,
+        });
+    }
+    Ok(Some(out))
+}

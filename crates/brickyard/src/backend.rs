@@ -122,8 +122,9 @@ impl Backend {
         s: &mut Session,
         channels: usize,
     ) -> Result<Backend> {
-        if channels > 16 {
-            bail!("at most 16 channels can be added up, {channels} asked for");
+        let most = brickyard_render::params::MAX_DVR_CHANNELS;
+        if channels > most {
+            bail!("at most {most} channels at once (16 added up in mip and slice), {channels} asked for");
         }
         let gpu = match choice {
             "cpu" => return Ok(Backend::Cpu),

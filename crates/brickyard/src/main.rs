@@ -19,6 +19,7 @@ use brickyard_core::DType;
 use brickyard_store::builder::partial_path;
 use brickyard_store::generate::{parse_size, Kind, Procedural};
 use brickyard_store::import::raw::RawOptions;
+use brickyard_store::import::stack::ChannelStack;
 use brickyard_store::import::{open_input, ImportOptions};
 use brickyard_store::info::{format_info, human_bytes, inspect};
 use brickyard_store::{convert, Compression, ConvertOptions, VolumeSource};
@@ -140,8 +141,15 @@ struct PyramidArgs {
 
 #[derive(Args)]
 struct ConvertCmd {
-    input: PathBuf,
-    output: PathBuf,
+    /// INPUT... OUTPUT: one input, or several inputs of one grid (same
+    /// shape, voxel type, spacing and origin) stored as the channels of
+    /// one volume, in order, named after the files.
+    #[arg(required = true, num_args = 2.., value_name = "INPUT... OUTPUT")]
+    paths: Vec<PathBuf>,
+    /// Channel names, comma-separated (one per channel; default: the input
+    /// files' names), stored in the OME-Zarr `omero` metadata.
+    #[arg(long)]
+    channel_names: Option<String>,
     /// Raw input: size XxYxZ.
     #[arg(long)]
     dims: Option<String>,
@@ -368,15 +376,27 @@ fn run(cmd: Cmd) -> Result<()> {
                 }
                 _ => bail!("raw input needs both --dims and --dtype"),
             };
-            let src = open_input(
-                &c.input,
-                &ImportOptions {
-                    raw,
-                    zarr_level: c.level,
-                    raw_values: c.raw_values,
-                },
-            )?;
-            run_convert(src.as_ref(), &c.output, &c.pyramid)
+            let (output, inputs) = c.paths.split_last().expect("clap asks for two paths");
+            let opts = ImportOptions {
+                raw,
+                zarr_level: c.level,
+                raw_values: c.raw_values,
+            };
+            let src: Box<dyn VolumeSource> = if inputs.len() == 1 && c.channel_names.is_none() {
+                open_input(&inputs[0], &opts)?
+            } else {
+                let sources = inputs
+                    .iter()
+                    .map(|p| open_input(p, &opts))
+                    .collect::<std::result::Result<Vec<_>, _>>()?;
+                let mut stack = ChannelStack::new(sources)?;
+                if let Some(n) = &c.channel_names {
+                    let names: Vec<String> = n.split(',').map(|s| s.trim().to_string()).collect();
+                    stack = stack.with_names(&names)?;
+                }
+                Box::new(stack)
+            };
+            run_convert(src.as_ref(), output, &c.pyramid)
         }
         Cmd::Process(p) => process::run(p),
         Cmd::Info { path, json, check } => {

@@ -11,6 +11,7 @@ use brickyard_render::cpu::{Lod, Scene};
 use brickyard_render::reference::{RenderMode, RenderParams};
 use brickyard_store::import::zarr;
 use brickyard_store::info::{human_bytes, inspect};
+use brickyard_store::omezarr::OmeroChannel;
 use brickyard_store::VolumeSource;
 use clap::Args;
 use std::path::PathBuf;
@@ -53,12 +54,20 @@ pub struct RenderCmd {
     window: Option<String>,
     /// A channel to show, `C[:COLOR[:LO,HI]]` (repeat for several). In mip
     /// and slice modes the channels are added up, each windowed to LO,HI
-    /// (default: --window) and tinted with COLOR (red, green, blue, cyan,
-    /// magenta, yellow, orange, white, gray or RRGGBB hex); dvr takes one
-    /// channel through the transfer function. Default: channel 0 through
-    /// the transfer function.
+    /// and tinted with COLOR (red, green, blue, cyan, magenta, yellow,
+    /// orange, white, gray or RRGGBB hex); in dvr several channels are
+    /// composited per sample, each through its own transfer function
+    /// (--channel-tf, else its colour with opacity rising over its
+    /// window); one channel goes through --tf. COLOR and LO,HI default to
+    /// the store's `omero` metadata, then white and --window. Default: the
+    /// store's active `omero` channels when it has several, else channel
+    /// 0 through the transfer function.
     #[arg(long = "channel")]
     channels: Vec<String>,
+    /// DVR of several channels: channel C's transfer function, `C=FILE`
+    /// (a JSON file as for --tf; repeat for several).
+    #[arg(long = "channel-tf", value_name = "C=FILE")]
+    channel_tfs: Vec<String>,
     /// A live derived channel: this processing pipeline (stages as in
     /// `brickyard process`, e.g. `gauss(1.5)|sobel`; no `label`) applied to
     /// the shown channel, each brick computed when the view asks for it, at
@@ -154,6 +163,7 @@ fn parse_channel(
     s: &str,
     window: [f32; 2],
     channels: usize,
+    omero: Option<&[OmeroChannel]>,
 ) -> Result<brickyard_render::reference::ChannelStyle> {
     let mut parts = s.splitn(3, ':');
     let c: usize = parts.next().unwrap_or("").trim().parse().with_context(|| {
@@ -162,8 +172,13 @@ fn parse_channel(
     if c >= channels {
         bail!("channel: {c} asked for but the store has {channels} channel(s)");
     }
+    // The store's defaults for the channel.
+    let dflt = omero.and_then(|o| o.get(c));
+    let window = dflt
+        .and_then(|d| d.window)
+        .map_or(window, |w| [w[0] as f32, w[1] as f32]);
     let color = match parts.next().map(|x| x.trim().to_ascii_lowercase()) {
-        None => [1.0, 1.0, 1.0],
+        None => dflt.map_or([1.0, 1.0, 1.0], |d| d.color.map(|x| x as f32 / 255.0)),
         Some(name) => {
             match name.as_str() {
                 "red" => [1.0, 0.0, 0.0],
@@ -199,6 +214,7 @@ fn parse_channel(
         channel: c,
         color,
         window,
+        tf: None,
     })
 }
 
@@ -403,11 +419,44 @@ pub fn run(c: RenderCmd) -> Result<Vec<String>> {
         }),
         ..Default::default()
     };
-    let mut styles = c
-        .channels
+    // The store's channel defaults (names, colours, windows); an explicit
+    // --window overrides their windows.
+    let omero = brickyard_store::omezarr::read_omero(&c.store)?.map(|mut o| {
+        if c.window.is_some() {
+            for ch in &mut o {
+                ch.window = None;
+            }
+        }
+        o
+    });
+    let channel_args: Vec<String> = match &omero {
+        Some(o) if c.channels.is_empty() && derived.is_none() && m.channels > 1 => o
+            .iter()
+            .enumerate()
+            .filter(|(i, ch)| ch.active && *i < m.channels)
+            .map(|(i, _)| i.to_string())
+            .collect(),
+        _ => c.channels.clone(),
+    };
+    let mut styles = channel_args
         .iter()
-        .map(|x| parse_channel(x, [lo as f32, hi as f32], m.channels))
+        .map(|x| parse_channel(x, [lo as f32, hi as f32], m.channels, omero.as_deref()))
         .collect::<Result<Vec<_>>>()?;
+    for t in &c.channel_tfs {
+        let (ch, file) = t
+            .split_once('=')
+            .with_context(|| format!("channel-tf: expected C=FILE, found {t:?}"))?;
+        let ch: usize = ch
+            .trim()
+            .parse()
+            .with_context(|| format!("channel-tf: {ch:?} in {t:?} is not a channel number"))?;
+        let text = std::fs::read_to_string(file).with_context(|| format!("{file}: cannot read"))?;
+        let tf = TransferFunction::from_json(&text).map_err(|e| anyhow::anyhow!("{file}: {e}"))?;
+        let Some(st) = styles.iter_mut().find(|s| s.channel == ch) else {
+            bail!("channel-tf: channel {ch} is not shown (give it with --channel)");
+        };
+        st.tf = Some(tf);
+    }
     if derived.is_some() {
         // The derived volume has one channel. A bare `--channel C` only
         // names the channel it is computed from; with a colour it is also
@@ -422,13 +471,22 @@ pub fn run(c: RenderCmd) -> Result<Vec<String>> {
     if mode == RenderMode::Dvr {
         match styles.as_slice() {
             [] => {}
-            [one] => scene.channel = one.channel,
-            _ => bail!("channel: dvr shows one channel; use --mode mip or slice to add several up"),
+            [one] => {
+                if one.tf.is_some() {
+                    bail!("channel-tf: one channel in dvr goes through --tf");
+                }
+                scene.channel = one.channel;
+            }
+            _ => {}
         }
+    } else if !c.channel_tfs.is_empty() {
+        bail!("channel-tf: transfer functions per channel are for dvr; mip and slice add channels up by colour and window");
     }
+    // DVR of several channels composites them; one goes through --tf.
+    let dvr_multi = mode == RenderMode::Dvr && styles.len() > 1;
     let mut cfg = cfg;
     let mut split = split;
-    let shown = if mode == RenderMode::Dvr {
+    let shown = if mode == RenderMode::Dvr && !dvr_multi {
         1
     } else {
         styles.len()
@@ -490,6 +548,9 @@ pub fn run(c: RenderCmd) -> Result<Vec<String>> {
         if mode != RenderMode::Dvr {
             bail!("progressive: sample accumulation draws DVR (--mode dvr)");
         }
+        if dvr_multi {
+            bail!("progressive: sample accumulation draws DVR of one channel; give one --channel");
+        }
         if n == 0 || n > brickyard_render::savr::MAX_FRAMES {
             bail!(
                 "progressive: N frames between 1 and {}, got {n}",
@@ -534,7 +595,7 @@ pub fn run(c: RenderCmd) -> Result<Vec<String>> {
         };
         let mut params = RenderParams::new(w, h, cam, tf.clone(), mode.clone());
         params.samples_per_voxel = c.samples_per_voxel;
-        if mode != RenderMode::Dvr {
+        if mode != RenderMode::Dvr || dvr_multi {
             params.channels = styles.clone();
         }
         params.reference_step = Some(scene.voxel(0));

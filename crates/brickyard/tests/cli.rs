@@ -560,3 +560,138 @@ fn render_progressive_accumulates_frames() {
         &["progressive"],
     );
 }
+
+/// The three MNI152 files of `../shared/data` (T1, grey and white
+/// matter), or `None` (said on stderr) when the folder is absent.
+fn mni_files() -> Option<[std::path::PathBuf; 3]> {
+    let data = Path::new(env!("CARGO_MANIFEST_DIR")).join("../../../shared/data");
+    let f =
+        ["mni152-t1-u8", "mni152-gm-u8", "mni152-wm-u8"].map(|n| data.join(format!("{n}.nii.gz")));
+    if f.iter().all(|p| p.exists()) {
+        Some(f)
+    } else {
+        eprintln!(
+            "{}: the MNI152 files are missing; test skipped",
+            data.display()
+        );
+        None
+    }
+}
+
+#[test]
+fn convert_takes_channels_from_several_files_and_render_shows_them() {
+    let Some([t1, gm, wm]) = mni_files() else {
+        return;
+    };
+    let d = tempfile::tempdir().unwrap();
+    let store = d.path().join("mni.ome.zarr");
+    let o = run(&["convert", s(&t1), s(&gm), s(&wm), s(&store)]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    // The channels are named in the `omero` metadata, with colours and
+    // windows over their data.
+    let root: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(store.join("zarr.json")).unwrap()).unwrap();
+    let chs = root["attributes"]["ome"]["omero"]["channels"]
+        .as_array()
+        .expect("omero channels")
+        .clone();
+    let labels: Vec<&str> = chs.iter().map(|c| c["label"].as_str().unwrap()).collect();
+    assert_eq!(labels, ["mni152-t1-u8", "mni152-gm-u8", "mni152-wm-u8"]);
+    let colours: std::collections::HashSet<&str> =
+        chs.iter().map(|c| c["color"].as_str().unwrap()).collect();
+    assert_eq!(colours.len(), 3, "{chs:?}");
+    for c in &chs {
+        let (a, b) = (
+            c["window"]["start"].as_f64().unwrap(),
+            c["window"]["end"].as_f64().unwrap(),
+        );
+        assert!(a >= 0.0 && b > a && b <= 255.0, "{c}");
+    }
+    // The axes have a channel axis of 3.
+    let arr: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(store.join("0/zarr.json")).unwrap()).unwrap();
+    assert_eq!(arr["shape"][0], 3);
+
+    // render takes the three channels by default (DVR composites them).
+    let render = |extra: &[&str], png: &Path| {
+        let mut a = vec![
+            "render",
+            s(&store),
+            "--size",
+            "48x40",
+            "--backend",
+            "cpu",
+            "--level",
+            "1",
+            "--out",
+            s(png),
+        ];
+        a.extend_from_slice(extra);
+        let o = run(&a);
+        assert!(o.status.success(), "{extra:?}: {}", stderr(&o));
+        png_pixels(png)
+    };
+    let all = render(&[], &d.path().join("all.png"));
+    has_content(&all, "three channels");
+    let t1_only = render(&["--channel", "0"], &d.path().join("t1.png"));
+    has_content(&t1_only, "T1 alone");
+    assert_ne!(all, t1_only, "the other channels add nothing");
+    // A transfer function of its own for channel 2.
+    let tf = d.path().join("wm.json");
+    std::fs::write(
+        &tf,
+        r#"{"window": [100, 255], "opacity": [[0, 0], [1, 0.9]], "colormap": [[0, 1, 0.5, 0], [1, 1, 1, 0]]}"#,
+    )
+    .unwrap();
+    let custom = render(
+        &["--channel-tf", &format!("2={}", s(&tf))],
+        &d.path().join("custom.png"),
+    );
+    has_content(&custom, "custom channel 2");
+    assert_ne!(custom, all, "--channel-tf changed nothing");
+    fails_with(
+        &run(&[
+            "render",
+            s(&store),
+            "--channel",
+            "0",
+            "--channel-tf",
+            &format!("5={}", s(&tf)),
+        ]),
+        &["channel-tf", "5"],
+    );
+
+    fails_with(
+        &run(&[
+            "render",
+            s(&store),
+            "--backend",
+            "cpu",
+            "--progressive",
+            "4",
+        ]),
+        &["progressive", "one channel"],
+    );
+    // Inputs of different grids are refused, naming the file and field.
+    let nuclei = t1.with_file_name("nuclei-confocal-u16.tif");
+    fails_with(
+        &run(&[
+            "convert",
+            s(&t1),
+            s(&nuclei),
+            s(&d.path().join("bad.ome.zarr")),
+        ]),
+        &["nuclei-confocal-u16.tif", "dims"],
+    );
+    fails_with(
+        &run(&[
+            "convert",
+            s(&t1),
+            s(&gm),
+            s(&d.path().join("bad.ome.zarr")),
+            "--channel-names",
+            "a,b,c",
+        ]),
+        &["channel names", "3 names", "2 channels"],
+    );
+}

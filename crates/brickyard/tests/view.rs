@@ -790,3 +790,96 @@ quit
         settled.len()
     );
 }
+
+#[test]
+fn viewer_composites_channels_in_dvr_and_switches_them_as_render_does() {
+    // Three channels from three files (`convert A B C OUT`); the viewer's
+    // DVR composites the visible ones, then channel 1 is hidden: each view
+    // equals `render` with the same channels.
+    let d = tempfile::tempdir().unwrap();
+    let p = |n: &str| d.path().join(n);
+    let mut raws = vec![];
+    for (i, kind) in ["mandelbulb", "marschner-lobb", "mandelbulb"]
+        .iter()
+        .enumerate()
+    {
+        let raw = p(&format!("c{i}.raw"));
+        let o = Command::new(bin())
+            .args(["generate", kind, s(&raw), "--size", "40x36x32", "--quiet"])
+            .output()
+            .unwrap();
+        assert!(o.status.success(), "{}", stderr(&o));
+        if i == 2 {
+            // A third channel unlike the first: the values inverted.
+            let b: Vec<u8> = std::fs::read(&raw)
+                .unwrap()
+                .iter()
+                .map(|v| 255 - v)
+                .collect();
+            std::fs::write(&raw, b).unwrap();
+        }
+        raws.push(raw);
+    }
+    let store = p("three.ome.zarr");
+    let o = Command::new(bin())
+        .arg("convert")
+        .args(raws.iter().map(|r| s(r)))
+        .arg(s(&store))
+        .args([
+            "--dims", "40x36x32", "--dtype", "u8", "--brick", "16", "--quiet",
+        ])
+        .output()
+        .unwrap();
+    assert!(o.status.success(), "{}", stderr(&o));
+    let script = format!(
+        "size 3d 72 60
+channel-window 2 120 255
+mode dvr
+dvr-channels on
+wait-complete 300
+screenshot 3d {all}.png
+save-view 3d {all}
+channel 1 off
+wait-complete 300
+screenshot 3d {two}.png
+save-view 3d {two}
+quit
+",
+        all = s(&p("all")),
+        two = s(&p("two")),
+    );
+    std::fs::write(p("s.txt"), script).unwrap();
+    let Some(mut cmd) = viewer(
+        &store,
+        &p("s.txt"),
+        None,
+        &[
+            "--pool",
+            "4MiB",
+            "--brick",
+            "8",
+            "--backend",
+            "cpu",
+            "--window-size",
+            "900x600",
+        ],
+    ) else {
+        return;
+    };
+    let o = cmd.output().unwrap();
+    assert!(o.status.success(), "viewer: {}", stderr(&o));
+    let mut images = vec![];
+    for (name, n) in [("all", 3), ("two", 2)] {
+        let args = std::fs::read_to_string(p(&format!("{name}.args"))).unwrap();
+        assert_eq!(
+            args.lines().filter(|l| *l == "--channel").count(),
+            n,
+            "{name}: {args}"
+        );
+        let a = equals_render(&store, d.path(), name);
+        let lit = a.chunks(4).filter(|c| c[0].max(c[1]).max(c[2]) > 8).count();
+        assert!(lit * 20 > a.len() / 4, "{name}: nearly blank ({lit} lit)");
+        images.push(a);
+    }
+    assert_ne!(images[0], images[1], "hiding channel 1 changed nothing");
+}

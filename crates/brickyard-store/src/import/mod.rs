@@ -4,6 +4,7 @@ pub mod nifti;
 pub mod nrrd;
 pub mod raw;
 pub mod scale;
+pub mod stack;
 pub mod tiff;
 pub mod zarr;
 

@@ -93,6 +93,9 @@ pub struct ViewerApp {
     home: Camera,
     tf: TransferFunction,
     dvr_channel: usize,
+    /// DVR composites the visible channels (each through its colour and
+    /// window) instead of showing `dvr_channel` through `tf`.
+    dvr_channels: bool,
     channels: Vec<ChannelUi>,
     cursor: Vec3,
     oblique: [f64; 2],
@@ -168,11 +171,26 @@ impl ViewerApp {
             20.0,
             Projection::Perspective { fov_y_deg: 35.0 },
         );
+        // Colours and windows from the store's `omero` metadata where it
+        // has them.
+        let omero = brickyard_store::omezarr::read_omero(&stored.store)
+            .ok()
+            .flatten()
+            .unwrap_or_default();
         let channels = (0..stored.channels)
-            .map(|c| ChannelUi {
-                visible: c < 3,
-                color: CHANNEL_COLORS[c % CHANNEL_COLORS.len()],
-                window: stored.range,
+            .map(|c| match omero.get(c) {
+                Some(o) => ChannelUi {
+                    visible: o.active && c < 3,
+                    color: o.color,
+                    window: o
+                        .window
+                        .map_or(stored.range, |w| [w[0] as f32, w[1] as f32]),
+                },
+                None => ChannelUi {
+                    visible: c < 3,
+                    color: CHANNEL_COLORS[c % CHANNEL_COLORS.len()],
+                    window: stored.range,
+                },
             })
             .collect();
         let views = (0..N_VIEWS)
@@ -201,6 +219,7 @@ impl ViewerApp {
             home,
             tf,
             dvr_channel: 0,
+            dvr_channels: false,
             channels,
             oblique: [30.0, 30.0],
             lod_bias: 0.0,

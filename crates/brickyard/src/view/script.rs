@@ -17,6 +17,7 @@
 //! | `cursor X Y Z` | the cursor, as fractions of the volume |
 //! | `channel C on\|off` / `channel-color C RRGGBB` / `channel-window C LO HI` | a channel's visibility, colour and window (MIP and slices add the visible ones up) |
 //! | `dvr-channel C` | the channel a DVR shows |
+//! | `dvr-channels on\|off` | DVR composites the visible channels (each in its colour and window) or shows the DVR channel |
 //! | `apply NAME` | write the derived channel shown into the store as NAME, at every level, in the background (the panel's "Apply to whole volume") |
 //! | `wait-job [SECONDS]` | wait until the job ends (default 600 s); fail if it failed |
 //! | `derive PIPELINE` / `derive off` | show the live derived channel of PIPELINE (as the processing panel does) over the DVR channel; `off`: the stored data |
@@ -52,6 +53,7 @@ pub enum Cmd {
     ChannelColor(usize, [u8; 3]),
     ChannelWindow(usize, f32, f32),
     DvrChannel(usize),
+    DvrChannels(bool),
     Derive(Option<String>),
     Apply(String),
     WaitJob(f64),
@@ -209,6 +211,14 @@ fn parse_line(w: &[&str]) -> Result<Cmd> {
         "dvr-channel" => {
             arity(1)?;
             Cmd::DvrChannel(num(w[1])?)
+        }
+        "dvr-channels" => {
+            arity(1)?;
+            Cmd::DvrChannels(match w[1] {
+                "on" => true,
+                "off" => false,
+                x => bail!("dvr-channels: expected on or off, found {x:?}"),
+            })
         }
         "oblique" => {
             arity(2)?;

@@ -307,6 +307,10 @@ impl ViewerApp {
                         self.dvr_channel = *c;
                         true
                     }
+                    Cmd::DvrChannels(on) => {
+                        self.dvr_channels = *on;
+                        true
+                    }
                     Cmd::Oblique(az, el) => {
                         self.oblique = [*az, *el];
                         true

@@ -73,6 +73,15 @@ impl ViewerApp {
         }
     }
 
+    /// Whether DVR composites the visible channels: asked for, with two
+    /// or more visible (one goes through the transfer function, as
+    /// `render --channel C` does).
+    pub(super) fn dvr_composites(&self) -> bool {
+        self.dvr_channels
+            && self.ds.channels > 1
+            && self.channels.iter().filter(|c| c.visible).count() >= 2
+    }
+
     pub(super) fn styles(&self) -> Vec<ChannelStyle> {
         if self.ds.channels <= 1 {
             return vec![];
@@ -85,6 +94,7 @@ impl ViewerApp {
                 channel: i,
                 color: c.color.map(|x| x as f32 / 255.0),
                 window: c.window,
+                tf: None,
             })
             .collect()
     }
@@ -122,7 +132,7 @@ impl ViewerApp {
         let mut params = RenderParams::new(w, h, camera, tf, mode.clone());
         params.samples_per_voxel = self.quality;
         params.reference_step = Some(self.voxel0());
-        if mode != RenderMode::Dvr {
+        if mode != RenderMode::Dvr || self.dvr_composites() {
             params.channels = self.styles();
         }
         Spec {

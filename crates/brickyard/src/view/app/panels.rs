@@ -42,7 +42,11 @@ impl ViewerApp {
                         ui.selectable_value(&mut self.dvr_channel, c, c.to_string());
                     }
                 });
-            ui.label("Channels (MIP and slices, added up):");
+            ui.checkbox(
+                &mut self.dvr_channels,
+                "DVR: composite the visible channels (each in its colour and window)",
+            );
+            ui.label("Channels (MIP and slices add them up):");
             for (i, c) in self.channels.iter_mut().enumerate() {
                 ui.horizontal(|ui| {
                     ui.checkbox(&mut c.visible, format!("{i}"));

@@ -64,7 +64,7 @@ impl ViewerApp {
                 "--channel".into(),
                 channel.to_string(),
             ]);
-        } else if p.mode == RenderMode::Dvr {
+        } else if p.mode == RenderMode::Dvr && p.channels.is_empty() {
             if self.ds.channels > 1 {
                 a.extend(["--channel".into(), spec.channel.to_string()]);
             }

@@ -1,0 +1,150 @@
+// Multi-channel DVR on the device, twin of `multi.rs`: at every step each
+// channel shown (`use_channel`: its own page-table walk memo, its own clear
+// bits) through its own transfer function, mixed as coincident media
+// (opacity 1 − Π(1 − α_i), colour Σ α_i·c_i / Σ α_i) and composited front to
+// back. The ray jumps over a brick only when every channel hides it.
+//
+// Per channel i shown, 8 words of `aux` from R.styles_off + 8·i: channel,
+// window start (f32 bits), 1 / window width (f32 bits), index of its first
+// transfer-function point (in 4-word points), opacity points, colour
+// points, 0, 0. The points themselves lie in `aux` like the one-channel
+// transfer function's, so 64 channels take one binding.
+
+fn ch_word(i: u32, k: u32) -> u32 {
+    return aux[R.styles_off + 8u * i + k];
+}
+
+fn ch_windowed(i: u32, v: f32) -> f32 {
+    return clamp((v - bitcast<f32>(ch_word(i, 1u))) * bitcast<f32>(ch_word(i, 2u)), 0.0, 1.0);
+}
+
+// Channel i's opacity at the windowed value x (as `opacity_at`).
+fn ch_opacity(i: u32, x: f32) -> f32 {
+    let o = ch_word(i, 3u);
+    let n = ch_word(i, 4u);
+    var j = 0u;
+    while (j < n && tf(o + j).x <= x) {
+        j = j + 1u;
+    }
+    if (j == 0u) {
+        return tf(o).y;
+    }
+    if (j == n) {
+        return tf(o + n - 1u).y;
+    }
+    return piece_at(x, tf(o + j - 1u).xy, tf(o + j).xy);
+}
+
+// Channel i's colour at the windowed value x (as `color_at`).
+fn ch_color(i: u32, x: f32) -> vec3<f32> {
+    let o = ch_word(i, 3u) + ch_word(i, 4u);
+    let n = ch_word(i, 5u);
+    var j = 0u;
+    while (j < n && tf(o + j).x <= x) {
+        j = j + 1u;
+    }
+    if (j == 0u) {
+        return tf(o).yzw;
+    }
+    if (j == n) {
+        return tf(o + n - 1u).yzw;
+    }
+    let a = tf(o + j - 1u);
+    let b = tf(o + j);
+    return vec3<f32>(
+        piece_at(x, a.xy, b.xy),
+        piece_at(x, a.xz, b.xz),
+        piece_at(x, a.xw, b.xw),
+    );
+}
+
+// The pixel of `ray` in a DVR of the channels shown; adds its counts.
+fn dvr_channels(ray: Ray) -> vec4<f32> {
+    let span = intersect(ray);
+    var acc = vec4<f32>(0.0);
+    var samples = 0u;
+    var exact = 0u;
+    var unserved = 0u;
+    var jumps = 0u;
+    if (span.y > span.x) {
+        let t1 = span.y;
+        var level = level_at(span.x);
+        var base_t = span.x;
+        var k = 0u;
+        loop {
+            let t = base_t + (f32(k) + 0.5) * R.step[level].x;
+            if (t >= t1) {
+                break;
+            }
+            k = k + 1u;
+            let l = level_at(t);
+            if (l != level) {
+                level = l;
+                base_t = t - 0.5 * R.step[level].x;
+                k = 1u;
+            }
+            let w = ray.o + ray.d * t;
+            let q = coords(level, w).xyz;
+            let b = vec3<u32>(q);
+            var all_clear = true;
+            var keep = 1.0;
+            var rgb = vec3<f32>(0.0);
+            var weight = 0.0;
+            for (var i = 0u; i < R.n_channels; i = i + 1u) {
+                use_channel(i);
+                let e = entry_at(level, b);
+                let f = flag(e);
+                if (R.skip == 1u) {
+                    var hidden = is_clear(brick_id(level, b));
+                    if (!hidden && (f == EMPTY || f == CONSTANT)) {
+                        var v = 0.0;
+                        if (f == CONSTANT) {
+                            v = constant_value(e.y);
+                        }
+                        hidden = is_nan(v) || ch_opacity(i, ch_windowed(i, v)) <= 0.0;
+                    }
+                    if (hidden) {
+                        continue;
+                    }
+                }
+                all_clear = false;
+                let s = sample_from(w, level, q, e);
+                samples = samples + 1u;
+                if (s.y == 2.0) {
+                    exact = exact + 1u;
+                }
+                if (s.y == 0.0 || is_nan(s.x)) {
+                    unserved = unserved + u32(s.y == 0.0);
+                    continue;
+                }
+                let x = ch_windowed(i, s.x);
+                let a = ch_opacity(i, x);
+                if (a > 0.0) {
+                    keep = keep * (1.0 - a);
+                    rgb = rgb + a * ch_color(i, x);
+                    weight = weight + a;
+                }
+            }
+            if (all_clear) {
+                // Every channel hides this brick: one jump (the same for
+                // all, as the brick is).
+                jumps = jumps + 1u;
+                k = land(ray, level, b, base_t, k, t1);
+                continue;
+            }
+            if (weight > 0.0) {
+                let a = correct_opacity(1.0 - keep, R.step[level].y);
+                let wt = (1.0 - acc.w) * a;
+                acc = acc + vec4<f32>(rgb * (1.0 / weight) * wt, wt);
+                if (acc.w >= EARLY_TERMINATION) {
+                    break;
+                }
+            }
+        }
+    }
+    atomicAdd(&counters[0], samples);
+    atomicAdd(&counters[1], exact);
+    atomicAdd(&counters[2], unserved);
+    atomicAdd(&counters[3], jumps);
+    return acc;
+}
