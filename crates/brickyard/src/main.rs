@@ -9,6 +9,7 @@ mod memory;
 mod process;
 mod progress;
 mod render;
+mod serve;
 mod view;
 mod vmbench;
 mod vmcmd;
@@ -89,6 +90,9 @@ enum Cmd {
     View(view::ViewCmd),
     /// Run a benchmark scenario and print one JSON line of figures.
     Bench(bench::BenchCmd),
+    /// Serve store directories read-only over HTTP (GET/HEAD with ranges,
+    /// ETag, CORS); loopback unless a bearer token is set.
+    Serve(serve::ServeCmd),
     /// Virtual memory for voxels: `footprint` prints the management memory
     /// of a configuration beside the paper's accounting.
     #[command(subcommand)]
@@ -168,13 +172,13 @@ struct ConvertCmd {
     pyramid: PyramidArgs,
 }
 
-static CANCEL: AtomicBool = AtomicBool::new(false);
+pub(crate) static CANCEL: AtomicBool = AtomicBool::new(false);
 
 extern "C" fn on_sigint(_: libc::c_int) {
     CANCEL.store(true, Ordering::SeqCst);
 }
 
-fn install_ctrl_c() {
+pub(crate) fn install_ctrl_c() {
     // SAFETY: the handler only stores to an atomic.
     unsafe {
         libc::signal(libc::SIGINT, on_sigint as *const () as libc::sighandler_t);
@@ -339,6 +343,13 @@ fn main() {
             .num_threads(t)
             .build_global();
     }
+    match brickyard_store::storage::http::HttpConfig::from_env() {
+        Ok(c) => brickyard_store::storage::http::configure(c),
+        Err(e) => {
+            eprintln!("error: {e}");
+            std::process::exit(1);
+        }
+    }
     if let Err(e) = run(cli.cmd) {
         eprintln!("error: {e:#}");
         std::process::exit(1);
@@ -457,6 +468,7 @@ fn run(cmd: Cmd) -> Result<()> {
             Ok(())
         }
         Cmd::Bench(b) => bench::run(b),
+        Cmd::Serve(s) => serve::run(s),
         Cmd::Vm(VmCmd::Footprint(f)) => vmcmd::footprint(f),
     }
 }
