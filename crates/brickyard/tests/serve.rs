@@ -231,7 +231,10 @@ fn ranges_etags_and_cors() {
     let p = sv.port;
     let file = std::fs::read(st.join("0/c/0/0/0")).unwrap();
     let n = file.len();
-    assert!(n > 32 << 10, "a shard above tiny_http's chunking threshold (32 KiB)");
+    assert!(
+        n > 32 << 10,
+        "a shard above tiny_http's chunking threshold (32 KiB)"
+    );
 
     let (st0, h, body) = http(p, "GET", "/m.ome.zarr/0/c/0/0/0", &[]);
     assert_eq!(st0, 200);
@@ -435,7 +438,10 @@ fn missing_stores_and_unreachable_servers_are_clear_errors() {
     ]);
     assert!(!o.status.success());
     let e = String::from_utf8_lossy(&o.stderr);
-    assert!(e.contains("nothing.zarr") && e.contains("not a Zarr"), "{e}");
+    assert!(
+        e.contains("nothing.zarr") && e.contains("not a Zarr"),
+        "{e}"
+    );
     // A port nobody listens on: connection refused, retried, then an error
     // naming the URL.
     let free = std::net::TcpListener::bind("127.0.0.1:0")
