@@ -6,6 +6,7 @@ mod derive;
 mod frames;
 mod gpubench;
 mod memory;
+mod netbench;
 mod process;
 mod progress;
 mod render;
