@@ -327,6 +327,24 @@ fn ranges_etags_and_cors() {
     }
     let (_, _, body) = http(p, "GET", "/", &[]);
     assert!(String::from_utf8_lossy(&body).contains("m.ome.zarr"));
+
+    // SIGTERM: the server stops by itself, with status 0.
+    let mut sv = sv;
+    let pid = sv.child.id().to_string();
+    assert!(Command::new("kill")
+        .args(["-TERM", &pid])
+        .status()
+        .unwrap()
+        .success());
+    let t0 = std::time::Instant::now();
+    let status = loop {
+        if let Some(st) = sv.child.try_wait().unwrap() {
+            break st;
+        }
+        assert!(t0.elapsed().as_secs() < 10, "serve did not stop on SIGTERM");
+        std::thread::sleep(std::time::Duration::from_millis(20));
+    };
+    assert!(status.success(), "{status:?}");
 }
 
 #[test]
