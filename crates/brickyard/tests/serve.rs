@@ -484,3 +484,77 @@ fn missing_stores_and_unreachable_servers_are_clear_errors() {
     assert!(!o.status.success());
     assert!(String::from_utf8_lossy(&o.stderr).contains("BRICKYARD_HTTP_RETRIES"));
 }
+
+/// The viewer on a URL: a view it saves, once complete, equals `render`
+/// of the local store with the same camera and transfer function.
+#[test]
+fn viewer_on_a_url_equals_local_render() {
+    let dir = tempfile::tempdir().unwrap();
+    let st = store(dir.path());
+    let sv = serve(&[&st], &["--quiet"]);
+    let url = format!("http://127.0.0.1:{}/m.ome.zarr", sv.port);
+    let p = |n: &str| dir.path().join(n);
+    let script = format!(
+        "size 3d 96 80\nwait-complete 300\nscreenshot 3d {v}.png\nsave-view 3d {v}\nquit\n",
+        v = s(&p("v"))
+    );
+    let script_file = p("s.txt");
+    std::fs::write(&script_file, script).unwrap();
+    let args = [
+        "view",
+        &url,
+        "--script",
+        s(&script_file),
+        "--backend",
+        "cpu",
+        "--pool",
+        "16MiB",
+    ];
+    let mut cmd = if std::env::var_os("DISPLAY").is_some() {
+        let mut c = bin();
+        c.args(args);
+        c
+    } else {
+        // The viewer tests (tests/view.rs) say how a display is found;
+        // here xvfb-run is required.
+        let mut c = Command::new("xvfb-run");
+        c.args([
+            "-a",
+            "-s",
+            "-screen 0 1280x800x24",
+            env!("CARGO_BIN_EXE_brickyard"),
+        ])
+        .args(args);
+        c
+    };
+    let o = cmd.output().unwrap();
+    assert!(
+        o.status.success(),
+        "view: {}",
+        String::from_utf8_lossy(&o.stderr)
+    );
+    let view_args = std::fs::read_to_string(p("v.args")).unwrap();
+    let reference = p("ref.png");
+    ok(&bin()
+        .args(["render", s(&st)])
+        .args(view_args.lines())
+        .args([
+            "--out",
+            s(&reference),
+            "--pool",
+            "16MiB",
+            "--backend",
+            "cpu",
+            "--quiet",
+        ])
+        .output()
+        .unwrap());
+    let (a, b) = (png_rgba(&p("v.png")), png_rgba(&reference));
+    assert_eq!(a.len(), b.len());
+    assert!(a.iter().any(|&v| v != 0), "the view is empty");
+    let worst = a.iter().zip(&b).map(|(x, y)| x.abs_diff(*y)).max().unwrap();
+    assert!(
+        worst <= 1,
+        "the viewer over HTTP and render differ by {worst}"
+    );
+}
