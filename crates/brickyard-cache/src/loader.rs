@@ -38,6 +38,7 @@ use brickyard_store::error::{Result, StoreError};
 use brickyard_store::import::zarr::open;
 use brickyard_store::omezarr::{read_multiscale, STATS_DIR};
 use brickyard_store::source::VolumeSource;
+use brickyard_store::storage::{self, StoreAt};
 use std::cmp::Reverse;
 use std::collections::{BTreeSet, HashMap, HashSet};
 use std::panic::{catch_unwind, AssertUnwindSafe};
@@ -47,7 +48,6 @@ use std::sync::{Arc, Condvar, Mutex, MutexGuard};
 use std::thread::JoinHandle;
 use std::time::{Duration, Instant};
 use zarrs::array::Array;
-use zarrs::filesystem::FilesystemStore;
 
 /// A brick that could not be loaded.
 #[derive(Clone, Debug, PartialEq)]
@@ -79,7 +79,7 @@ pub struct LoaderStats {
 /// Per-brick statistics of one level: `[C, bz, by, bx, 2]` float64 (min,
 /// max), read lazily one Zarr chunk at a time.
 struct LevelStats {
-    array: Array<FilesystemStore>,
+    array: Array<StoreAt>,
     /// Store brick size.
     brick: Dims3,
     /// Chunk shape of the statistics array (first four axes).
@@ -95,10 +95,10 @@ type StatsChunk = Option<Arc<Vec<f64>>>;
 
 impl LevelStats {
     fn open(dir: &Path, brick: Dims3, dims: Dims3, channels: usize) -> Option<LevelStats> {
-        if !dir.join("zarr.json").exists() {
+        if !storage::exists(&dir.join("zarr.json")) {
             return None;
         }
-        let store = Arc::new(FilesystemStore::new(dir).ok()?);
+        let store = Arc::new(StoreAt::new(dir));
         let array = Array::open(store, "/").ok()?;
         let nb = [0, 1, 2].map(|a| dims[a].div_ceil(brick[a]));
         let want = [channels as u64, nb[0], nb[1], nb[2], 2];

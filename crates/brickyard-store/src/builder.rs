@@ -344,7 +344,7 @@ pub fn convert(
         * meta.channels as u64;
     let fixed = OVERHEAD + threads * brick_bytes * 3 + nbricks_total * 16;
     let budget = opts.memory.saturating_sub(fixed);
-    let zarr_copy = meta.path.is_dir();
+    let zarr_copy = meta.path.is_dir() || crate::storage::is_remote(&meta.path);
     let passes = plan_passes(&levels, opts.brick, esize, budget, zarr_copy).ok_or_else(|| {
         let need = pass_bytes(
             &levels,

@@ -8,13 +8,13 @@ pub mod check;
 use crate::error::{Result, StoreError};
 use crate::import::zarr::is_zarr;
 use crate::omezarr::{read_json, read_multiscale, STATS_DIR};
+use crate::storage::{self, StoreAt};
 use brickyard_core::DType;
 use serde::Serialize;
 use serde_json::Value;
 use std::path::{Path, PathBuf};
 use std::sync::Arc;
 use zarrs::array::Array;
-use zarrs::filesystem::FilesystemStore;
 
 /// Summary of one level.
 #[derive(Debug, Clone, Serialize)]
@@ -115,7 +115,7 @@ type ArraySummary = (Vec<u64>, String, Vec<u64>, Option<Vec<u64>>, Vec<String>);
 
 fn array_info(dir: &Path) -> Result<ArraySummary> {
     let v3 = dir.join("zarr.json");
-    if v3.exists() {
+    if storage::exists(&v3) {
         let j = read_json(&v3)?;
         let shape: Vec<u64> = serde_json::from_value(j["shape"].clone())
             .map_err(|_| StoreError::invalid(&v3, "shape", "expected a list of integers"))?;
@@ -172,10 +172,10 @@ fn array_info(dir: &Path) -> Result<ArraySummary> {
 /// Summarize the statistics array of one level, chunk by chunk.
 fn brick_summary(root: &Path, level: usize) -> Option<BrickSummary> {
     let dir = root.join(STATS_DIR).join(level.to_string());
-    if !dir.join("zarr.json").exists() {
+    if !storage::exists(&dir.join("zarr.json")) {
         return None;
     }
-    let store = Arc::new(FilesystemStore::new(&dir).ok()?);
+    let store = Arc::new(StoreAt::new(&dir));
     let a = Array::open(store, "/").ok()?;
     let grid = a.chunk_grid_shape().to_vec();
     let mut s = BrickSummary {
@@ -230,8 +230,13 @@ fn brick_summary(root: &Path, level: usize) -> Option<BrickSummary> {
 }
 
 /// Inspect a store.
+///
+/// A remote store (a URL) is inspected the same way, except that its size
+/// cannot be listed (`bytes_on_disk` is 0, shown as unknown) and of the
+/// images written by processing only the label images named in
+/// `labels/zarr.json` are found.
 pub fn inspect(path: &Path) -> Result<StoreInfo> {
-    if !path.exists() {
+    if !path.exists() && !storage::is_remote(path) {
         return Err(StoreError::io(
             path,
             std::io::Error::from(std::io::ErrorKind::NotFound),
@@ -287,7 +292,7 @@ pub fn inspect(path: &Path) -> Result<StoreInfo> {
         }
         None => {
             // A bare array.
-            info.zarr_format = if path.join("zarr.json").exists() {
+            info.zarr_format = if storage::exists(&path.join("zarr.json")) {
                 3
             } else {
                 2
@@ -342,14 +347,33 @@ pub fn inspect(path: &Path) -> Result<StoreInfo> {
 fn inner_images(path: &Path, problems: &mut Vec<String>) -> Vec<(String, String)> {
     let mut out = vec![];
     for group in ["labels", "derived"] {
-        let Ok(rd) = std::fs::read_dir(path.join(group)) else {
-            continue;
+        let mut names: Vec<String> = if storage::is_remote(path) {
+            // Not listable: the label images the labels group names.
+            if group != "labels" {
+                continue;
+            }
+            let Ok(j) = read_json(&path.join("labels/zarr.json")) else {
+                continue;
+            };
+            j.pointer("/attributes/ome/labels")
+                .or_else(|| j.pointer("/attributes/labels"))
+                .and_then(Value::as_array)
+                .map(|a| {
+                    a.iter()
+                        .filter_map(Value::as_str)
+                        .map(str::to_string)
+                        .collect()
+                })
+                .unwrap_or_default()
+        } else {
+            let Ok(rd) = std::fs::read_dir(path.join(group)) else {
+                continue;
+            };
+            rd.flatten()
+                .filter(|e| e.path().is_dir())
+                .map(|e| e.file_name().to_string_lossy().into_owned())
+                .collect()
         };
-        let mut names: Vec<String> = rd
-            .flatten()
-            .filter(|e| e.path().is_dir())
-            .map(|e| e.file_name().to_string_lossy().into_owned())
-            .collect();
         names.sort();
         for name in names {
             let rel = format!("{group}/{name}");
@@ -454,17 +478,25 @@ pub fn format_info(i: &StoreInfo) -> String {
                     .unwrap_or_default()
             );
         }
-        let ratio = if l.bytes_on_disk > 0 {
-            l.bytes_raw as f64 / l.bytes_on_disk as f64
+        if storage::is_remote(&i.path) {
+            let _ = writeln!(
+                s,
+                "           {} raw (size stored: unknown, a remote store is not listed)",
+                human_bytes(l.bytes_raw)
+            );
         } else {
-            f64::INFINITY
-        };
-        let _ = writeln!(
-            s,
-            "           {} on disk, {} raw ({ratio:.2}x)",
-            human_bytes(l.bytes_on_disk),
-            human_bytes(l.bytes_raw)
-        );
+            let ratio = if l.bytes_on_disk > 0 {
+                l.bytes_raw as f64 / l.bytes_on_disk as f64
+            } else {
+                f64::INFINITY
+            };
+            let _ = writeln!(
+                s,
+                "           {} on disk, {} raw ({ratio:.2}x)",
+                human_bytes(l.bytes_on_disk),
+                human_bytes(l.bytes_raw)
+            );
+        }
         if let Some(b) = &l.stats {
             let _ = writeln!(
                 s,
@@ -478,12 +510,16 @@ pub fn format_info(i: &StoreInfo) -> String {
     } else {
         f64::INFINITY
     };
-    let _ = writeln!(
-        s,
-        "  total: {} on disk, {} raw ({ratio:.2}x)",
-        human_bytes(disk),
-        human_bytes(raw)
-    );
+    if storage::is_remote(&i.path) {
+        let _ = writeln!(s, "  total: {} raw", human_bytes(raw));
+    } else {
+        let _ = writeln!(
+            s,
+            "  total: {} on disk, {} raw ({ratio:.2}x)",
+            human_bytes(disk),
+            human_bytes(raw)
+        );
+    }
     if i.levels.iter().all(|l| l.stats.is_none()) {
         let _ = writeln!(s, "  brick statistics: none stored");
     }

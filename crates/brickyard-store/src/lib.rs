@@ -11,6 +11,7 @@ pub mod info;
 pub mod omezarr;
 pub mod shard;
 pub mod source;
+pub mod storage;
 
 pub use builder::{convert, ConvertOptions, ConvertReport, NoProgress, Progress};
 pub use codec::Compression;

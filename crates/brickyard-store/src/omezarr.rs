@@ -170,9 +170,10 @@ pub fn write_json(path: &Path, v: &Value) -> Result<()> {
     std::fs::rename(&tmp, path).at(path)
 }
 
-/// Read a JSON document.
+/// Read a JSON document (a file or a URL, see [`crate::storage`]).
 pub fn read_json(path: &Path) -> Result<Value> {
-    let bytes = std::fs::read(path).at(path)?;
+    let bytes = crate::storage::read(path)?
+        .ok_or_else(|| StoreError::io(path, std::io::Error::from(std::io::ErrorKind::NotFound)))?;
     parse_json(path, &bytes)
 }
 
@@ -238,16 +239,16 @@ fn scale_translation(o: &Value) -> (Option<Vec<f64>>, Option<Vec<f64>>) {
 /// Returns `(zarr_format, attributes)` or `None` if `dir` is not a group.
 pub fn read_group_attributes(dir: &Path) -> Result<Option<(u8, Value)>> {
     let v3 = dir.join("zarr.json");
-    if v3.exists() {
+    if crate::storage::exists(&v3) {
         let j = read_json(&v3)?;
         if j.get("node_type").and_then(Value::as_str) != Some("group") {
             return Ok(None);
         }
         return Ok(Some((3, j.get("attributes").cloned().unwrap_or(json!({})))));
     }
-    if dir.join(".zgroup").exists() {
+    if crate::storage::exists(&dir.join(".zgroup")) {
         let attrs = dir.join(".zattrs");
-        let a = if attrs.exists() {
+        let a = if crate::storage::exists(&attrs) {
             read_json(&attrs)?
         } else {
             json!({})

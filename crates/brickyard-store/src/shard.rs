@@ -18,7 +18,6 @@ use serde_json::Value;
 use std::collections::HashMap;
 use std::fs::{File, OpenOptions};
 use std::io::Write;
-use std::os::unix::fs::FileExt;
 use std::path::{Path, PathBuf};
 use std::sync::{Arc, Mutex};
 
@@ -257,23 +256,26 @@ pub fn parse_index(path: &Path, shard: &[u8], layout: &IndexLayout) -> Result<Ve
 /// Read and check the index of the shard file at `path` (see
 /// [`check_index`]); `Ok(None)` when there is no such file (a shard that
 /// holds only the fill value).
+///
+/// The read goes through [`crate::storage`] (a file or a URL); remote
+/// indexes at the end of their shard are read as a suffix, which the
+/// HTTP client caches.
 pub fn read_index(path: &Path, layout: &IndexLayout) -> Result<Option<Vec<[u64; 2]>>> {
-    let file = match File::open(path) {
-        Ok(f) => f,
-        Err(e) if e.kind() == std::io::ErrorKind::NotFound => return Ok(None),
-        Err(e) => return Err(StoreError::io(path, e)),
+    let Some(len) = crate::storage::size(path)? else {
+        return Ok(None);
     };
-    let len = file.metadata().at(path)?.len();
     let ib = layout.index_bytes();
     if len < ib || layout.entries > MAX_INDEX_ENTRIES {
         return check_index(path, &[], len, layout).map(Some);
     }
-    let at = match layout.location {
-        IndexLocation::End => len - ib,
-        IndexLocation::Start => 0,
+    let span = match layout.location {
+        IndexLocation::End => crate::storage::Span::Suffix(ib),
+        IndexLocation::Start => crate::storage::Span::Range(0..ib),
     };
-    let mut index = vec![0u8; ib as usize];
-    file.read_exact_at(&mut index, at).at(path)?;
+    let Some(mut parts) = crate::storage::read_spans(path, &[span])? else {
+        return Ok(None);
+    };
+    let index = parts.swap_remove(0);
     check_index(path, &index, len, layout).map(Some)
 }
 

@@ -21,7 +21,8 @@ pub struct BenchCmd {
     /// 1k–64k slots; cache-kernels: the device's LRU and request kernels
     /// beside their CPU twins; process-filters: gauss(2) and sobel of a
     /// generated volume on the CPU and the device (--backend cpu, gpu or
-    /// both); loader: decoded GB/s; latency: one brick and one full
+    /// both); loader: decoded GB/s; remote: brick reads from disk and over
+    /// HTTP on loopback (a `serve` child); latency: one brick and one full
     /// view from an empty cache (paper Table 2); render: DVR (or --mode mip) frame times
     /// through the virtual memory beside the in-core reference.
     scenario: String,
@@ -86,6 +87,7 @@ pub fn run(b: BenchCmd) -> Result<()> {
         "cache-kernels" => crate::gpubench::cache_kernels(b.repeat),
         "process-filters" => crate::gpubench::process_filters(dims, dtype, &b.backend, b.repeat),
         "loader" => crate::vmbench::loader(&b.dir, dims, dtype, b.cold),
+        "remote" => crate::netbench::remote(&b.dir, dims, dtype),
         "latency" => crate::vmbench::latency(&b.dir, dims, dtype, b.cold),
         "render" => {
             let pool = b.pool.as_deref().map(crate::parse_bytes).transpose()?;

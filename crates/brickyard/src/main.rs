@@ -6,9 +6,11 @@ mod derive;
 mod frames;
 mod gpubench;
 mod memory;
+mod netbench;
 mod process;
 mod progress;
 mod render;
+mod serve;
 mod view;
 mod vmbench;
 mod vmcmd;
@@ -90,6 +92,9 @@ enum Cmd {
     View(view::ViewCmd),
     /// Run a benchmark scenario and print one JSON line of figures.
     Bench(bench::BenchCmd),
+    /// Serve store directories read-only over HTTP (GET/HEAD with ranges,
+    /// ETag, CORS); loopback unless a bearer token is set.
+    Serve(serve::ServeCmd),
     /// Virtual memory for voxels: `footprint` prints the management memory
     /// of a configuration beside the paper's accounting.
     #[command(subcommand)]
@@ -176,13 +181,13 @@ struct ConvertCmd {
     pyramid: PyramidArgs,
 }
 
-static CANCEL: AtomicBool = AtomicBool::new(false);
+pub(crate) static CANCEL: AtomicBool = AtomicBool::new(false);
 
 extern "C" fn on_sigint(_: libc::c_int) {
     CANCEL.store(true, Ordering::SeqCst);
 }
 
-fn install_ctrl_c() {
+pub(crate) fn install_ctrl_c() {
     // SAFETY: the handler only stores to an atomic.
     unsafe {
         libc::signal(libc::SIGINT, on_sigint as *const () as libc::sighandler_t);
@@ -347,6 +352,13 @@ fn main() {
             .num_threads(t)
             .build_global();
     }
+    match brickyard_store::storage::http::HttpConfig::from_env() {
+        Ok(c) => brickyard_store::storage::http::configure(c),
+        Err(e) => {
+            eprintln!("error: {e}");
+            std::process::exit(1);
+        }
+    }
     if let Err(e) = run(cli.cmd) {
         eprintln!("error: {e:#}");
         std::process::exit(1);
@@ -477,6 +489,7 @@ fn run(cmd: Cmd) -> Result<()> {
             Ok(())
         }
         Cmd::Bench(b) => bench::run(b),
+        Cmd::Serve(s) => serve::run(s),
         Cmd::Vm(VmCmd::Footprint(f)) => vmcmd::footprint(f),
     }
 }

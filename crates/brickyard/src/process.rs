@@ -298,6 +298,14 @@ pub fn run(c: ProcessCmd) -> Result<()> {
     };
     // The input: a level of an OME-Zarr image.
     let store = &c.store;
+    if brickyard_store::storage::is_remote(store) {
+        bail!(
+            "{}: a remote store is read-only, and `process` writes its result into the store; \
+             view the result live with `render --derive` / `view --derive`, or copy the store \
+             first (`brickyard convert URL local.zarr`)",
+            store.display()
+        );
+    }
     if !zarr::is_zarr(store) {
         bail!(
             "{}: not a Zarr store (no zarr.json); convert the volume first with `brickyard convert`",

@@ -20,7 +20,7 @@ use std::sync::Arc;
 use std::time::{Duration, Instant};
 
 /// A Mandelbulb store in `dir` (made once).
-fn store(dir: &Path, dims: Dims3, dtype: DType) -> Result<PathBuf> {
+pub(crate) fn store(dir: &Path, dims: Dims3, dtype: DType) -> Result<PathBuf> {
     std::fs::create_dir_all(dir)?;
     let p = dir.join(format!(
         "mandelbulb-{}x{}x{}-{}.ome.zarr",

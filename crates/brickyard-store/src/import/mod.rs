@@ -61,6 +61,17 @@ pub fn detect(path: &Path) -> Result<Format> {
     if s.contains('*') || s.contains('?') {
         return Ok(Format::TiffGlob);
     }
+    if crate::storage::is_remote(path) {
+        if zarr::is_zarr(path) {
+            return Ok(Format::Zarr);
+        }
+        return Err(StoreError::unsupported(
+            path,
+            "input",
+            "a URL is read only as a Zarr store, and no zarr.json, .zarray or .zgroup \
+             could be read under it",
+        ));
+    }
     if path.is_dir() {
         if zarr::is_zarr(path) {
             return Ok(Format::Zarr);

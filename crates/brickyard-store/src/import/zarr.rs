@@ -7,6 +7,7 @@ use crate::error::{Result, StoreError};
 use crate::omezarr::{read_json, read_multiscale, Multiscale};
 use crate::shard::{self, IndexLayout};
 use crate::source::{check_region, SourceMeta, VolumeSource};
+use crate::storage::{self, StoreAt};
 use brickyard_core::{as_bytes, dispatch_dtype, DType, Dims3};
 use serde_json::Value;
 use std::collections::{HashMap, HashSet};
@@ -17,7 +18,6 @@ use zarrs::array::codec::api::CodecOptions;
 use zarrs::array::{
     Array, ArrayShardedExt, ArrayShardedReadableExt, ArrayShardedReadableExtCache, ArraySubset,
 };
-use zarrs::filesystem::FilesystemStore;
 
 /// Most shard decoders kept by one source.
 pub const SHARD_CACHE_MAX: usize = 256;
@@ -38,7 +38,7 @@ const CHECKED_SHARDS_MAX: usize = 1 << 16;
 /// A 3D (optionally multi-channel) view of one Zarr array.
 pub struct ZarrSource {
     meta: SourceMeta,
-    array: Array<FilesystemStore>,
+    array: Array<StoreAt>,
     /// Array axis index of z, y, x (`None` for an absent axis of size 1).
     zyx: [Option<usize>; 3],
     /// Array axis index of the channel axis.
@@ -60,7 +60,7 @@ pub struct ZarrSource {
 }
 
 fn is_array_dir(p: &Path) -> bool {
-    if p.join(".zarray").exists() {
+    if storage::exists(&p.join(".zarray")) {
         return true;
     }
     match read_json(&p.join("zarr.json")) {
@@ -71,15 +71,24 @@ fn is_array_dir(p: &Path) -> bool {
 
 /// Whether `p` looks like a Zarr node (group or array).
 pub fn is_zarr(p: &Path) -> bool {
-    p.is_dir()
-        && (p.join("zarr.json").exists()
-            || p.join(".zarray").exists()
-            || p.join(".zgroup").exists())
+    (storage::is_remote(p) || p.is_dir())
+        && (storage::exists(&p.join("zarr.json"))
+            || storage::exists(&p.join(".zarray"))
+            || storage::exists(&p.join(".zgroup")))
 }
 
 /// Open level `level` of an OME-Zarr image, or a bare Zarr array.
 pub fn open(path: &Path, level: usize) -> Result<ZarrSource> {
-    if !path.exists() {
+    if storage::is_remote(path) {
+        if !is_zarr(path) {
+            return Err(StoreError::invalid(
+                path,
+                "zarr.json",
+                "no Zarr group or array at this URL (neither zarr.json, .zarray nor .zgroup \
+                 could be read)",
+            ));
+        }
+    } else if !path.exists() {
         return Err(StoreError::io(
             path,
             std::io::Error::from(std::io::ErrorKind::NotFound),
@@ -128,7 +137,7 @@ struct ShardCheck {
 
 /// The metadata file of the array at `apath` and its chunk shape key.
 fn metadata_file(apath: &Path) -> (PathBuf, &'static str) {
-    if apath.join("zarr.json").exists() {
+    if storage::exists(&apath.join("zarr.json")) {
         (
             apath.join("zarr.json"),
             "chunk_grid.configuration.chunk_shape",
@@ -201,7 +210,7 @@ fn precheck_metadata(apath: &Path) -> Result<()> {
 /// layout. Returns the shard check to use when reading.
 fn check_sizes(
     apath: &Path,
-    array: &Array<FilesystemStore>,
+    array: &Array<StoreAt>,
     mj: &Value,
     dtype: DType,
 ) -> Result<Option<ShardCheck>> {
@@ -280,7 +289,7 @@ fn open_array(
     _p0: Option<String>,
 ) -> Result<ZarrSource> {
     precheck_metadata(apath)?;
-    let store = Arc::new(FilesystemStore::new(apath).map_err(|e| StoreError::zarr(apath, e))?);
+    let store = Arc::new(StoreAt::new(apath));
     let array = Array::open(store, "/").map_err(|e| StoreError::zarr(apath, e))?;
     let mj = serde_json::to_value(array.metadata()).map_err(|e| StoreError::zarr(apath, e))?;
     let dt_name = mj
@@ -671,7 +680,7 @@ impl VolumeSource for ZarrSource {
             .map(|(&p, &n)| p / n.max(1))
             .collect();
         let file = self.dir.join(self.array.chunk_key(&grid).as_str());
-        if !file.exists() {
+        if !storage::exists(&file) {
             return Some((file, "the file is missing".into()));
         }
         // A shard whose index has no entry for the inner chunk (index in C

@@ -107,6 +107,14 @@ pub fn format_check(r: &CheckReport) -> String {
 /// The arrays of a store: `(name, directory)`, levels first, then the
 /// statistics of each level that has them.
 fn arrays_of(path: &Path) -> Result<Vec<(String, PathBuf, Option<usize>)>> {
+    if crate::storage::is_remote(path) {
+        return Err(StoreError::unsupported(
+            path,
+            "--check",
+            "a remote store is checked where it is stored (`brickyard info --check` reads \
+             every shard file of a local directory)",
+        ));
+    }
     if !path.exists() {
         return Err(StoreError::io(
             path,

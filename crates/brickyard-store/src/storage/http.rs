@@ -1,0 +1,614 @@
+//! Reads over HTTP(S): ranged GETs with bounded requests in flight,
+//! retries with backoff, timeouts, coalescing of nearby ranges and a cache
+//! of shard indexes (suffix reads).
+//!
+//! What is retried: server errors (5xx), 429, timeouts, refused or reset
+//! connections and truncated bodies. What is not: 401/403 (access), 404
+//! (a missing value reads as absent, which Zarr means as "fill value"),
+//! 416 and other client errors. Every error names the URL, the bytes
+//! asked for and what happened (`HTTP 403 Forbidden`, `timed out after
+//! 30 s`, `body truncated: 100 of 4096 bytes`), and after the last retry
+//! says how many attempts were made.
+
+use super::Span;
+use crate::error::{Result, StoreError};
+use std::collections::{HashMap, VecDeque};
+use std::io::Read;
+use std::sync::atomic::{AtomicU64, Ordering};
+use std::sync::{Arc, Condvar, Mutex, RwLock};
+use std::time::Duration;
+
+/// How remote stores are read.
+#[derive(Clone, Debug)]
+pub struct HttpConfig {
+    /// Longest time for one request, from connecting to the last byte.
+    pub timeout: Duration,
+    /// Longest time to connect.
+    pub connect_timeout: Duration,
+    /// Attempts after the first for a failure worth retrying.
+    pub retries: u32,
+    /// Wait before the first retry; doubled for each further one (with
+    /// up to a quarter more at random), at most 8 s.
+    pub backoff: Duration,
+    /// Most requests in flight at once, over all threads.
+    pub max_in_flight: usize,
+    /// Ranges of one value closer than this are read in one request.
+    pub coalesce_gap: u64,
+    /// Bearer token sent with every request (`Authorization: Bearer …`).
+    pub token: Option<String>,
+}
+
+impl Default for HttpConfig {
+    fn default() -> Self {
+        HttpConfig {
+            timeout: Duration::from_secs(30),
+            connect_timeout: Duration::from_secs(10),
+            retries: 4,
+            backoff: Duration::from_millis(200),
+            max_in_flight: 16,
+            coalesce_gap: 64 << 10,
+            token: None,
+        }
+    }
+}
+
+impl HttpConfig {
+    /// The defaults, changed by the environment: `BRICKYARD_TOKEN` (bearer
+    /// token), `BRICKYARD_HTTP_TIMEOUT` (seconds per request),
+    /// `BRICKYARD_HTTP_RETRIES`, `BRICKYARD_HTTP_IN_FLIGHT`. A value that
+    /// does not parse is an error naming the variable.
+    pub fn from_env() -> std::result::Result<Self, String> {
+        let mut c = HttpConfig::default();
+        let var = |k: &str| std::env::var(k).ok().filter(|v| !v.trim().is_empty());
+        c.token = var("BRICKYARD_TOKEN").map(|t| t.trim().to_string());
+        if let Some(v) = var("BRICKYARD_HTTP_TIMEOUT") {
+            let s: f64 = v
+                .trim()
+                .parse()
+                .ok()
+                .filter(|s: &f64| *s > 0.0 && s.is_finite())
+                .ok_or(format!(
+                    "BRICKYARD_HTTP_TIMEOUT: expected seconds > 0, found {v:?}"
+                ))?;
+            c.timeout = Duration::from_secs_f64(s);
+            c.connect_timeout = c.connect_timeout.min(c.timeout);
+        }
+        if let Some(v) = var("BRICKYARD_HTTP_RETRIES") {
+            c.retries = v.trim().parse().ok().filter(|&n| n <= 20).ok_or(format!(
+                "BRICKYARD_HTTP_RETRIES: expected 0 to 20, found {v:?}"
+            ))?;
+        }
+        if let Some(v) = var("BRICKYARD_HTTP_IN_FLIGHT") {
+            c.max_in_flight = v
+                .trim()
+                .parse()
+                .ok()
+                .filter(|&n| (1..=1024).contains(&n))
+                .ok_or(format!(
+                    "BRICKYARD_HTTP_IN_FLIGHT: expected 1 to 1024, found {v:?}"
+                ))?;
+        }
+        Ok(c)
+    }
+}
+
+/// Counters of the remote reads since the program started.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub struct HttpStats {
+    pub requests: u64,
+    pub retries: u64,
+    pub failures: u64,
+    pub bytes: u64,
+    pub index_hits: u64,
+}
+
+/// Largest merged range of a coalesced read.
+const COALESCE_MAX: u64 = 16 << 20;
+/// Bytes of shard indexes (suffix reads) kept.
+const INDEX_CACHE_BYTES: usize = 32 << 20;
+/// Longest wait between two attempts.
+const BACKOFF_MAX: Duration = Duration::from_secs(8);
+
+static CLIENT: RwLock<Option<Arc<Client>>> = RwLock::new(None);
+
+/// Set how remote stores are read (once at start; later calls replace the
+/// client, requests under way finish with the old one).
+pub fn configure(cfg: HttpConfig) {
+    *CLIENT.write().unwrap_or_else(|e| e.into_inner()) = Some(Arc::new(Client::new(cfg)));
+}
+
+/// The client, made from [`HttpConfig::from_env`] (the defaults where a
+/// variable does not parse; the CLI checks them first) when none was
+/// configured.
+pub fn client() -> Arc<Client> {
+    if let Some(c) = CLIENT.read().unwrap_or_else(|e| e.into_inner()).as_ref() {
+        return c.clone();
+    }
+    let mut w = CLIENT.write().unwrap_or_else(|e| e.into_inner());
+    w.get_or_insert_with(|| Arc::new(Client::new(HttpConfig::from_env().unwrap_or_default())))
+        .clone()
+}
+
+/// Counters of the current client.
+pub fn stats() -> HttpStats {
+    let c = client();
+    HttpStats {
+        requests: c.requests.load(Ordering::Relaxed),
+        retries: c.retries.load(Ordering::Relaxed),
+        failures: c.failures.load(Ordering::Relaxed),
+        bytes: c.bytes.load(Ordering::Relaxed),
+        index_hits: c.index_hits.load(Ordering::Relaxed),
+    }
+}
+
+/// A counting semaphore bounding the requests in flight.
+struct Slots {
+    free: Mutex<usize>,
+    cv: Condvar,
+}
+
+struct Permit<'a>(&'a Slots);
+
+impl Slots {
+    fn acquire(&self) -> Permit<'_> {
+        let mut n = self.free.lock().unwrap_or_else(|e| e.into_inner());
+        while *n == 0 {
+            n = self.cv.wait(n).unwrap_or_else(|e| e.into_inner());
+        }
+        *n -= 1;
+        Permit(self)
+    }
+}
+
+impl Drop for Permit<'_> {
+    fn drop(&mut self) {
+        *self.0.free.lock().unwrap_or_else(|e| e.into_inner()) += 1;
+        self.0.cv.notify_one();
+    }
+}
+
+/// Suffix reads (shard indexes), first in first out under a byte budget.
+#[derive(Default)]
+struct IndexCache {
+    map: HashMap<(String, u64), Arc<Vec<u8>>>,
+    order: VecDeque<(String, u64)>,
+    bytes: usize,
+}
+
+impl IndexCache {
+    fn put(&mut self, k: (String, u64), v: Arc<Vec<u8>>) {
+        if v.len() > INDEX_CACHE_BYTES {
+            return;
+        }
+        while self.bytes + v.len() > INDEX_CACHE_BYTES {
+            let Some(old) = self.order.pop_front() else {
+                break;
+            };
+            if let Some(b) = self.map.remove(&old) {
+                self.bytes -= b.len();
+            }
+        }
+        self.bytes += v.len();
+        if let Some(b) = self.map.insert(k.clone(), v) {
+            self.bytes -= b.len();
+        } else {
+            self.order.push_back(k);
+        }
+    }
+}
+
+/// One failed attempt.
+struct Failure {
+    retry: bool,
+    what: String,
+}
+
+impl Failure {
+    fn retry(what: impl Into<String>) -> Self {
+        Failure {
+            retry: true,
+            what: what.into(),
+        }
+    }
+    fn fatal(what: impl Into<String>) -> Self {
+        Failure {
+            retry: false,
+            what: what.into(),
+        }
+    }
+}
+
+/// The HTTP client of remote stores.
+pub struct Client {
+    cfg: HttpConfig,
+    agent: ureq::Agent,
+    slots: Slots,
+    indexes: Mutex<IndexCache>,
+    requests: AtomicU64,
+    retries: AtomicU64,
+    failures: AtomicU64,
+    bytes: AtomicU64,
+    index_hits: AtomicU64,
+    seed: AtomicU64,
+}
+
+fn status_text(code: u16) -> &'static str {
+    match code {
+        400 => "Bad Request",
+        401 => "Unauthorized",
+        403 => "Forbidden",
+        404 => "Not Found",
+        405 => "Method Not Allowed",
+        408 => "Request Timeout",
+        416 => "Range Not Satisfiable",
+        429 => "Too Many Requests",
+        500 => "Internal Server Error",
+        502 => "Bad Gateway",
+        503 => "Service Unavailable",
+        504 => "Gateway Timeout",
+        _ => "",
+    }
+}
+
+/// `Content-Range: bytes a-b/len` → `(a, b + 1, len)` (`len` `None` for `*`).
+fn content_range(v: &str) -> Option<(u64, u64, Option<u64>)> {
+    let v = v.trim().strip_prefix("bytes ")?;
+    let (r, len) = v.split_once('/')?;
+    let (a, b) = r.split_once('-')?;
+    let a: u64 = a.trim().parse().ok()?;
+    let b: u64 = b.trim().parse().ok()?;
+    (a <= b).then_some(())?;
+    Some((a, b + 1, len.trim().parse().ok()))
+}
+
+impl Client {
+    pub fn new(cfg: HttpConfig) -> Self {
+        let agent = ureq::Agent::config_builder()
+            .http_status_as_error(false)
+            .timeout_global(Some(cfg.timeout))
+            .timeout_connect(Some(cfg.connect_timeout))
+            .max_redirects(4)
+            .max_idle_connections_per_host(cfg.max_in_flight.max(1))
+            .build()
+            .new_agent();
+        Client {
+            slots: Slots {
+                free: Mutex::new(cfg.max_in_flight.max(1)),
+                cv: Condvar::new(),
+            },
+            agent,
+            cfg,
+            indexes: Mutex::new(IndexCache::default()),
+            requests: AtomicU64::new(0),
+            retries: AtomicU64::new(0),
+            failures: AtomicU64::new(0),
+            bytes: AtomicU64::new(0),
+            index_hits: AtomicU64::new(0),
+            seed: AtomicU64::new(0x9e37_79b9_7f4a_7c15),
+        }
+    }
+
+    /// The configuration in use.
+    pub fn config(&self) -> &HttpConfig {
+        &self.cfg
+    }
+
+    /// The size of the value at `url` (a HEAD request); `None` on 404.
+    pub fn size(&self, url: &str) -> Result<Option<u64>> {
+        self.with_retries(url, "HEAD", None, |resp| {
+            let len = resp
+                .headers()
+                .get("content-length")
+                .and_then(|v| v.to_str().ok())
+                .and_then(|v| v.trim().parse::<u64>().ok());
+            len.ok_or_else(|| Failure::fatal("the answer has no Content-Length"))
+        })
+    }
+
+    /// Read `spans` of the value at `url` (see [`super::read_spans`]).
+    pub fn read_spans(&self, url: &str, spans: &[Span]) -> Result<Option<Vec<Vec<u8>>>> {
+        let mut out: Vec<Option<Vec<u8>>> = vec![None; spans.len()];
+        // Byte ranges, coalesced: sorted, then merged while the gap
+        // between neighbours is small and the merged read stays bounded.
+        let mut ranges: Vec<(usize, std::ops::Range<u64>)> = spans
+            .iter()
+            .enumerate()
+            .filter_map(|(i, s)| match s {
+                Span::Range(r) => Some((i, r.clone())),
+                _ => None,
+            })
+            .collect();
+        ranges.sort_by_key(|(_, r)| (r.start, r.end));
+        let mut k = 0;
+        while k < ranges.len() {
+            let start = ranges[k].1.start;
+            let mut end = ranges[k].1.end;
+            let mut m = k + 1;
+            while m < ranges.len()
+                && ranges[m].1.start <= end.saturating_add(self.cfg.coalesce_gap)
+                && ranges[m].1.end.max(end) - start <= COALESCE_MAX
+            {
+                end = end.max(ranges[m].1.end);
+                m += 1;
+            }
+            let Some(bytes) = self.get(url, &Span::Range(start..end))? else {
+                return Ok(None);
+            };
+            for (i, r) in &ranges[k..m] {
+                out[*i] =
+                    Some(bytes[(r.start - start) as usize..(r.end - start) as usize].to_vec());
+            }
+            k = m;
+        }
+        for (i, s) in spans.iter().enumerate() {
+            if out[i].is_some() {
+                continue;
+            }
+            let got = match s {
+                Span::Suffix(n) => {
+                    let key = (url.to_string(), *n);
+                    let hit = self
+                        .indexes
+                        .lock()
+                        .unwrap_or_else(|e| e.into_inner())
+                        .map
+                        .get(&key)
+                        .cloned();
+                    match hit {
+                        Some(b) => {
+                            self.index_hits.fetch_add(1, Ordering::Relaxed);
+                            Some(b.to_vec())
+                        }
+                        None => {
+                            let b = self.get(url, s)?;
+                            if let Some(b) = &b {
+                                self.indexes
+                                    .lock()
+                                    .unwrap_or_else(|e| e.into_inner())
+                                    .put(key, Arc::new(b.clone()));
+                            }
+                            b
+                        }
+                    }
+                }
+                _ => self.get(url, s)?,
+            };
+            let Some(b) = got else {
+                return Ok(None);
+            };
+            out[i] = Some(b);
+        }
+        Ok(Some(
+            out.into_iter().map(Option::unwrap_or_default).collect(),
+        ))
+    }
+
+    /// GET one span; `None` on 404.
+    fn get(&self, url: &str, span: &Span) -> Result<Option<Vec<u8>>> {
+        if let Span::Range(r) = span {
+            if r.start >= r.end {
+                return Ok(Some(vec![]));
+            }
+        }
+        let range = match span {
+            Span::All => None,
+            Span::Range(r) => Some(format!("bytes={}-{}", r.start, r.end - 1)),
+            Span::From(o) => Some(format!("bytes={o}-")),
+            Span::Suffix(0) => return Ok(Some(vec![])),
+            Span::Suffix(n) => Some(format!("bytes=-{n}")),
+        };
+        let got = self.with_retries(url, "GET", range.as_deref(), |resp| read_body(resp, span))?;
+        if let Some(b) = &got {
+            self.bytes.fetch_add(b.len() as u64, Ordering::Relaxed);
+        }
+        Ok(got)
+    }
+
+    /// One request with retries: `Ok(None)` on 404, the value `take` makes
+    /// of a 200/206 answer otherwise.
+    fn with_retries<T>(
+        &self,
+        url: &str,
+        method: &str,
+        range: Option<&str>,
+        take: impl Fn(&mut ureq::http::Response<ureq::Body>) -> std::result::Result<T, Failure>,
+    ) -> Result<Option<T>> {
+        let mut attempt = 0u32;
+        loop {
+            let res = {
+                let _permit = self.slots.acquire();
+                self.requests.fetch_add(1, Ordering::Relaxed);
+                self.once(url, method, range, &take)
+            };
+            match res {
+                Ok(v) => return Ok(v),
+                Err(f) if f.retry && attempt < self.cfg.retries => {
+                    self.retries.fetch_add(1, Ordering::Relaxed);
+                    std::thread::sleep(self.backoff(attempt));
+                    attempt += 1;
+                }
+                Err(f) => {
+                    self.failures.fetch_add(1, Ordering::Relaxed);
+                    let bytes = range.map(|r| format!(" ({r})")).unwrap_or_default();
+                    let tries = if attempt > 0 {
+                        format!(", after {} attempts", attempt + 1)
+                    } else {
+                        String::new()
+                    };
+                    return Err(StoreError::io(
+                        url,
+                        std::io::Error::other(format!("{method}{bytes}: {}{tries}", f.what)),
+                    ));
+                }
+            }
+        }
+    }
+
+    fn backoff(&self, attempt: u32) -> Duration {
+        let base = self
+            .cfg
+            .backoff
+            .saturating_mul(1 << attempt.min(16))
+            .min(BACKOFF_MAX);
+        // xorshift jitter: up to a quarter more.
+        let mut x = self
+            .seed
+            .fetch_add(0x9e37_79b9_7f4a_7c15, Ordering::Relaxed);
+        x ^= x << 13;
+        x ^= x >> 7;
+        x ^= x << 17;
+        base + base.mul_f64((x % 1000) as f64 / 4000.0)
+    }
+
+    fn once<T>(
+        &self,
+        url: &str,
+        method: &str,
+        range: Option<&str>,
+        take: &impl Fn(&mut ureq::http::Response<ureq::Body>) -> std::result::Result<T, Failure>,
+    ) -> std::result::Result<Option<T>, Failure> {
+        let call = if method == "HEAD" {
+            let mut rq = self.agent.head(url);
+            if let Some(t) = &self.cfg.token {
+                rq = rq.header("Authorization", format!("Bearer {t}"));
+            }
+            rq.call()
+        } else {
+            let mut rq = self.agent.get(url);
+            if let Some(r) = range {
+                rq = rq.header("Range", r);
+            }
+            if let Some(t) = &self.cfg.token {
+                rq = rq.header("Authorization", format!("Bearer {t}"));
+            }
+            rq.call()
+        };
+        let mut resp = call.map_err(|e| self.classify(e))?;
+        let code = resp.status().as_u16();
+        match code {
+            200 | 206 => take(&mut resp).map(Some),
+            404 | 410 => Ok(None),
+            401 | 403 => Err(Failure::fatal(format!(
+                "HTTP {code} {}: access refused{}",
+                status_text(code),
+                if self.cfg.token.is_some() {
+                    " (the bearer token was not accepted)"
+                } else {
+                    " (a token may be needed: --token or BRICKYARD_TOKEN)"
+                }
+            ))),
+            408 | 429 | 500..=599 => {
+                Err(Failure::retry(format!("HTTP {code} {}", status_text(code))))
+            }
+            _ => Err(Failure::fatal(format!("HTTP {code} {}", status_text(code)))),
+        }
+    }
+
+    fn classify(&self, e: ureq::Error) -> Failure {
+        match e {
+            ureq::Error::Timeout(t) => Failure::retry(format!(
+                "timed out ({t}) after at most {:.1} s",
+                self.cfg.timeout.as_secs_f64()
+            )),
+            ureq::Error::HostNotFound => Failure::fatal("host not found"),
+            ureq::Error::BadUri(u) => Failure::fatal(format!("not a valid URL: {u}")),
+            ureq::Error::ConnectionFailed => Failure::retry("connection failed"),
+            ureq::Error::Io(e) => Failure::retry(format!("connection error: {e}")),
+            ureq::Error::BodyStalled => Failure::retry("the body stalled"),
+            e @ ureq::Error::Protocol(_) => Failure::retry(format!("protocol error: {e}")),
+            e => Failure::fatal(e.to_string()),
+        }
+    }
+}
+
+/// Read the body of a 200/206 answer to a GET of `span`, checking its
+/// length against what was asked and what the server announced.
+fn read_body(
+    resp: &mut ureq::http::Response<ureq::Body>,
+    span: &Span,
+) -> std::result::Result<Vec<u8>, Failure> {
+    let partial = resp.status().as_u16() == 206;
+    let header = |k: &str| {
+        resp.headers()
+            .get(k)
+            .and_then(|v| v.to_str().ok())
+            .map(str::to_string)
+    };
+    let announced: Option<u64> = header("content-length").and_then(|v| v.trim().parse().ok());
+    let cr = header("content-range");
+    let mut body = Vec::with_capacity(announced.unwrap_or(0).min(64 << 20) as usize);
+    let res = resp
+        .body_mut()
+        .with_config()
+        .limit(u64::MAX)
+        .reader()
+        .read_to_end(&mut body);
+    if let Err(e) = res {
+        return Err(Failure::retry(format!(
+            "body truncated or reset after {} bytes{}: {e}",
+            body.len(),
+            announced.map(|n| format!(" of {n}")).unwrap_or_default()
+        )));
+    }
+    if let Some(n) = announced {
+        if body.len() as u64 != n {
+            return Err(Failure::retry(format!(
+                "body truncated: {} of {n} bytes",
+                body.len()
+            )));
+        }
+    }
+    let got = body.len() as u64;
+    if partial {
+        let (a, b, _) = cr
+            .as_deref()
+            .and_then(content_range)
+            .ok_or_else(|| Failure::fatal("206 answer without a valid Content-Range"))?;
+        if b - a != got {
+            return Err(Failure::retry(format!(
+                "body truncated: {got} bytes for Content-Range {a}-{}",
+                b - 1
+            )));
+        }
+        let want = match span {
+            Span::Range(r) => Some(r.clone()),
+            Span::From(o) => Some(*o..b),
+            Span::Suffix(_) | Span::All => None,
+        };
+        if let Some(w) = want {
+            if w.start != a || w.end != b {
+                return Err(Failure::fatal(format!(
+                    "asked for bytes {}-{}, the server sent {a}-{}",
+                    w.start,
+                    w.end - 1,
+                    b - 1
+                )));
+            }
+        }
+        Ok(body)
+    } else {
+        // The whole value (a server that ignores Range).
+        let r = span.within(got).ok_or_else(|| {
+            Failure::fatal(format!(
+                "bytes {span:?} asked for, but the value holds {got}"
+            ))
+        })?;
+        if r == (0..got) {
+            return Ok(body);
+        }
+        Ok(body[r.start as usize..r.end as usize].to_vec())
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn content_ranges_parse() {
+        assert_eq!(content_range("bytes 0-9/100"), Some((0, 10, Some(100))));
+        assert_eq!(content_range("bytes 5-5/*"), Some((5, 6, None)));
+        assert_eq!(content_range("bytes 9-5/100"), None);
+        assert_eq!(content_range("items 0-9/100"), None);
+    }
+}

@@ -1,0 +1,95 @@
+//! Byte-range reads of a store, local or remote. Every read of a Zarr
+//! store — group and array metadata, shard indexes, chunks, statistics —
+//! goes through here, so a store on a web server reads exactly as one on
+//! disk.
+//!
+//! A store *location* is a `Path` whose text is either a local path or an
+//! `http://` / `https://` URL ([`is_remote`]); joining keys onto it with
+//! `Path::join` gives the location of a key either way, so the readers keep
+//! their `&Path` signatures. [`StoreAt`] adapts a location to the Zarr
+//! library's storage traits.
+
+pub mod http;
+mod local;
+mod zarr;
+
+pub use zarr::StoreAt;
+
+use crate::error::Result;
+use std::ops::Range;
+use std::path::Path;
+
+/// A part of a value (file) to read.
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub enum Span {
+    /// The whole value.
+    All,
+    /// Bytes `start..end`.
+    Range(Range<u64>),
+    /// From an offset to the end.
+    From(u64),
+    /// The last `n` bytes (a shard index at the end of its shard).
+    Suffix(u64),
+}
+
+impl Span {
+    /// The byte range this span covers in a value of `len` bytes; `None`
+    /// when it reaches past the end.
+    pub fn within(&self, len: u64) -> Option<Range<u64>> {
+        match *self {
+            Span::All => Some(0..len),
+            Span::Range(ref r) => (r.start <= r.end && r.end <= len).then(|| r.clone()),
+            Span::From(o) => (o <= len).then_some(o..len),
+            Span::Suffix(n) => (n <= len).then(|| len - n..len),
+        }
+    }
+}
+
+/// Whether `p` names a remote store (an `http://` or `https://` URL).
+pub fn is_remote(p: &Path) -> bool {
+    p.to_str().is_some_and(|s| {
+        let l = s.get(..8).unwrap_or(s).to_ascii_lowercase();
+        l.starts_with("http://") || l.starts_with("https://")
+    })
+}
+
+/// The location's text as given (a URL keeps its `//`).
+pub(crate) fn url_of(p: &Path) -> &str {
+    p.to_str().unwrap_or_default()
+}
+
+/// Read the whole value at `p`; `Ok(None)` when there is none.
+pub fn read(p: &Path) -> Result<Option<Vec<u8>>> {
+    Ok(read_spans(p, &[Span::All])?.map(|mut v| v.swap_remove(0)))
+}
+
+/// Read `spans` of the value at `p`, in the order given; `Ok(None)` when
+/// there is no such value. Remote reads of nearby ranges are coalesced
+/// into one request.
+pub fn read_spans(p: &Path, spans: &[Span]) -> Result<Option<Vec<Vec<u8>>>> {
+    if is_remote(p) {
+        http::client().read_spans(url_of(p), spans)
+    } else {
+        local::read_spans(p, spans)
+    }
+}
+
+/// The size of the value at `p`; `Ok(None)` when there is none.
+pub fn size(p: &Path) -> Result<Option<u64>> {
+    if is_remote(p) {
+        http::client().size(url_of(p))
+    } else {
+        local::size(p)
+    }
+}
+
+/// Whether there is a value (a file, for local stores) at `p`. Errors
+/// other than "not found" count as present, so that the read that follows
+/// reports them.
+pub fn exists(p: &Path) -> bool {
+    if is_remote(p) {
+        !matches!(size(p), Ok(None))
+    } else {
+        p.exists()
+    }
+}

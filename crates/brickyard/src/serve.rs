@@ -1,0 +1,581 @@
+//! `brickyard serve STORE…`: store directories read-only over HTTP, so that
+//! `info`, `render`, `view` and `convert` elsewhere can read them by URL.
+//!
+//! Each store is served under `/<its directory name>/`; `/` lists them as
+//! JSON. GET and HEAD with a single byte range (`Range: bytes=a-b`, `a-`,
+//! `-n`; 416 when unsatisfiable, several ranges answered with the whole
+//! file), `Content-Length`, a strong `ETag` (size and modification time)
+//! with `If-None-Match` (304), CORS for any origin with the preflight
+//! (`OPTIONS`) and `Content-Range`, `Accept-Ranges`, `Content-Length`,
+//! `ETag` exposed. Safe by default: loopback unless a bearer token is
+//! set (`--token`, `--token-file`; a wrong or missing one gets 401);
+//! a path is decoded once, and a segment that is `..`, `.`, empty, holds
+//! a `%` after decoding (double encoding), a backslash or a NUL is refused
+//! (403) before the file system is touched; the file found is then
+//! resolved (symlinks followed) and must still lie under its store's root
+//! (403 otherwise), and must be a regular file (404 otherwise). Methods
+//! that would write get 405. A fixed pool of worker threads answers
+//! (bounded concurrency); each request is logged on stderr; Ctrl-C or
+//! SIGTERM stops accepting and ends after the requests in progress.
+
+use anyhow::{bail, Context, Result};
+use clap::Args;
+use std::collections::HashMap;
+use std::fs::File;
+use std::io::{Read, Seek, SeekFrom};
+use std::net::{IpAddr, SocketAddr};
+use std::path::PathBuf;
+use std::sync::atomic::Ordering;
+use std::sync::Arc;
+use std::time::{Duration, Instant, UNIX_EPOCH};
+use tiny_http::{Header, Method, Request, Response, Server, StatusCode};
+
+#[derive(Args, Clone, Debug)]
+pub struct ServeCmd {
+    /// Store directories to serve (each under /<directory name>/).
+    #[arg(required = true)]
+    pub stores: Vec<PathBuf>,
+    /// Address to bind. Anything but loopback needs a token.
+    #[arg(long, default_value = "127.0.0.1")]
+    pub bind: IpAddr,
+    /// Port (0: any free one; the address is printed on the first line).
+    #[arg(long, default_value_t = 8000)]
+    pub port: u16,
+    /// Bearer token every request must carry (`Authorization: Bearer …`).
+    #[arg(long, conflicts_with = "token_file")]
+    pub token: Option<String>,
+    /// File holding the bearer token (first line).
+    #[arg(long)]
+    pub token_file: Option<PathBuf>,
+    /// Worker threads (requests answered at once).
+    #[arg(long, default_value_t = 16)]
+    pub workers: usize,
+    /// No access log.
+    #[arg(long)]
+    pub quiet: bool,
+}
+
+/// What the server serves and how.
+struct Site {
+    /// Mount name → canonical root directory.
+    roots: HashMap<String, PathBuf>,
+    token: Option<String>,
+    log: bool,
+}
+
+fn is_loopback(ip: IpAddr) -> bool {
+    ip.is_loopback()
+}
+
+fn read_token(c: &ServeCmd) -> Result<Option<String>> {
+    let t = match (&c.token, &c.token_file) {
+        (Some(t), _) => Some(t.trim().to_string()),
+        (None, Some(f)) => {
+            let s = std::fs::read_to_string(f)
+                .with_context(|| format!("--token-file {}: cannot read it", f.display()))?;
+            Some(s.lines().next().unwrap_or("").trim().to_string())
+        }
+        (None, None) => None,
+    };
+    if let Some(t) = &t {
+        if t.is_empty() {
+            bail!("--token/--token-file: the token is empty");
+        }
+        if t.chars().any(|c| !c.is_ascii_graphic()) {
+            bail!("--token/--token-file: the token must be printable ASCII without spaces");
+        }
+    }
+    Ok(t)
+}
+
+fn site(c: &ServeCmd) -> Result<Site> {
+    let token = read_token(c)?;
+    if !is_loopback(c.bind) && token.is_none() {
+        bail!(
+            "--bind {}: serving beyond this machine (a non-loopback address) needs a bearer \
+             token: pass --token TOKEN or --token-file FILE (clients send it as \
+             `Authorization: Bearer TOKEN`; brickyard reads it from BRICKYARD_TOKEN)",
+            c.bind
+        );
+    }
+    let mut roots = HashMap::new();
+    for s in &c.stores {
+        let root = s
+            .canonicalize()
+            .with_context(|| format!("{}: cannot serve it", s.display()))?;
+        if !root.is_dir() {
+            bail!(
+                "{}: not a directory (a store is served as its directory)",
+                s.display()
+            );
+        }
+        let name = root
+            .file_name()
+            .and_then(|n| n.to_str())
+            .filter(|n| segment_ok(n))
+            .with_context(|| format!("{}: its directory name cannot be a URL path", s.display()))?
+            .to_string();
+        if let Some(prev) = roots.insert(name.clone(), root.clone()) {
+            bail!(
+                "{} and {} would both be served as /{name}/: serve directories of different names",
+                prev.display(),
+                root.display()
+            );
+        }
+    }
+    Ok(Site {
+        roots,
+        token,
+        log: !c.quiet,
+    })
+}
+
+pub fn run(c: ServeCmd) -> Result<()> {
+    let site = Arc::new(site(&c)?);
+    if c.workers == 0 {
+        bail!("--workers: at least 1");
+    }
+    let addr = SocketAddr::new(c.bind, c.port);
+    let listener =
+        std::net::TcpListener::bind(addr).with_context(|| format!("{addr}: cannot listen"))?;
+    no_delay(&listener);
+    let server = Server::from_listener(listener, None)
+        .map_err(|e| anyhow::anyhow!("{addr}: cannot listen: {e}"))?;
+    let local = server
+        .server_addr()
+        .to_ip()
+        .context("the server has no IP address")?;
+    let mut names: Vec<&String> = site.roots.keys().collect();
+    names.sort();
+    // The first line says where (tests and scripts read the port from it).
+    eprintln!(
+        "serving {} store(s) at http://{local}/ : {}{}",
+        names.len(),
+        names
+            .iter()
+            .map(|n| format!("/{n}/"))
+            .collect::<Vec<_>>()
+            .join(" "),
+        if site.token.is_some() {
+            " (bearer token required)"
+        } else {
+            ""
+        }
+    );
+    crate::install_ctrl_c();
+    let server = Arc::new(server);
+    let workers: Vec<_> = (0..c.workers)
+        .map(|_| {
+            let server = server.clone();
+            let site = site.clone();
+            std::thread::spawn(move || {
+                while !crate::CANCEL.load(Ordering::SeqCst) {
+                    match server.recv_timeout(Duration::from_millis(200)) {
+                        Ok(Some(rq)) => answer(&site, rq),
+                        Ok(None) => {}
+                        Err(e) => {
+                            eprintln!("serve: accepting a request failed: {e}");
+                            std::thread::sleep(Duration::from_millis(50));
+                        }
+                    }
+                }
+            })
+        })
+        .collect();
+    for w in workers {
+        let _ = w.join();
+    }
+    eprintln!("serve: stopped");
+    Ok(())
+}
+
+/// TCP_NODELAY on the listening socket, which the accepted connections
+/// inherit (Linux): the server writes a response's head and body
+/// separately, and with Nagle's algorithm the body then waits for the
+/// client's delayed acknowledgement (about 40 ms per request).
+fn no_delay(l: &std::net::TcpListener) {
+    #[cfg(unix)]
+    {
+        use std::os::fd::AsRawFd;
+        let one: libc::c_int = 1;
+        // SAFETY: a valid socket and a c_int option of the right size.
+        unsafe {
+            libc::setsockopt(
+                l.as_raw_fd(),
+                libc::IPPROTO_TCP,
+                libc::TCP_NODELAY,
+                &one as *const libc::c_int as *const libc::c_void,
+                std::mem::size_of::<libc::c_int>() as libc::socklen_t,
+            );
+        }
+    }
+    #[cfg(not(unix))]
+    let _ = l;
+}
+
+fn header(k: &str, v: &str) -> Header {
+    Header::from_bytes(k.as_bytes(), v.as_bytes()).expect("valid header")
+}
+
+fn cors(h: &mut Vec<Header>) {
+    h.push(header("Access-Control-Allow-Origin", "*"));
+    h.push(header(
+        "Access-Control-Expose-Headers",
+        "Content-Range, Accept-Ranges, Content-Length, ETag",
+    ));
+}
+
+/// Percent-decode once; `None` for a malformed escape or non-UTF-8.
+fn percent_decode(s: &str) -> Option<String> {
+    let b = s.as_bytes();
+    let mut out = Vec::with_capacity(b.len());
+    let mut i = 0;
+    while i < b.len() {
+        if b[i] == b'%' {
+            let hex = std::str::from_utf8(b.get(i + 1..i + 3)?).ok()?;
+            out.push(u8::from_str_radix(hex, 16).ok()?);
+            i += 3;
+        } else {
+            out.push(b[i]);
+            i += 1;
+        }
+    }
+    String::from_utf8(out).ok()
+}
+
+/// A decoded path segment that may be looked up.
+fn segment_ok(s: &str) -> bool {
+    !(s.is_empty()
+        || s == "."
+        || s == ".."
+        || s.contains(['%', '\\', '\0', '/'])
+        || s.chars().any(char::is_control))
+}
+
+/// The outcome of resolving a request path.
+enum Target {
+    Index,
+    File(PathBuf),
+    /// Status and reason.
+    Refused(u16, &'static str),
+}
+
+fn resolve(site: &Site, url: &str) -> Target {
+    let path = url.split(['?', '#']).next().unwrap_or("");
+    let Some(rest) = path.strip_prefix('/') else {
+        return Target::Refused(400, "the path must start with /");
+    };
+    if rest.is_empty() {
+        return Target::Index;
+    }
+    let mut segs = vec![];
+    for raw in rest.split('/') {
+        let Some(s) = percent_decode(raw) else {
+            return Target::Refused(400, "malformed percent-encoding");
+        };
+        if !segment_ok(&s) {
+            return Target::Refused(403, "path segment refused");
+        }
+        segs.push(s);
+    }
+    let Some(root) = site.roots.get(&segs[0]) else {
+        return Target::Refused(404, "no such store");
+    };
+    let mut p = root.clone();
+    for s in &segs[1..] {
+        p.push(s);
+    }
+    // Follow symlinks; the result must still be inside the root.
+    match p.canonicalize() {
+        Ok(real) if !real.starts_with(root) => Target::Refused(403, "outside the served store"),
+        Ok(real) if real.is_file() => Target::File(real),
+        Ok(_) => Target::Refused(404, "not a file"),
+        Err(_) => Target::Refused(404, "not found"),
+    }
+}
+
+/// A single range of `Range: bytes=…` over `len` bytes: `Ok(None)` to
+/// send the whole file (no, malformed or several ranges), `Err(())` when
+/// unsatisfiable.
+#[allow(clippy::result_unit_err)]
+pub fn parse_range(v: &str, len: u64) -> std::result::Result<Option<(u64, u64)>, ()> {
+    let Some(spec) = v.trim().strip_prefix("bytes=") else {
+        return Ok(None);
+    };
+    if spec.contains(',') {
+        return Ok(None);
+    }
+    let Some((a, b)) = spec.trim().split_once('-') else {
+        return Ok(None);
+    };
+    let (a, b) = (a.trim(), b.trim());
+    let num = |s: &str| s.parse::<u64>().ok();
+    let (start, end) = match (a.is_empty(), b.is_empty()) {
+        (true, true) => return Ok(None),
+        (true, false) => {
+            let Some(n) = num(b) else { return Ok(None) };
+            if n == 0 || len == 0 {
+                return Err(());
+            }
+            (len - n.min(len), len)
+        }
+        (false, _) => {
+            let Some(s) = num(a) else { return Ok(None) };
+            let e = if b.is_empty() {
+                len
+            } else {
+                match num(b) {
+                    Some(e) if e >= s => e.saturating_add(1).min(len),
+                    _ => return Ok(None),
+                }
+            };
+            if s >= len {
+                return Err(());
+            }
+            (s, e)
+        }
+    };
+    Ok(Some((start, end)))
+}
+
+fn etag_of(m: &std::fs::Metadata) -> String {
+    let t = m
+        .modified()
+        .ok()
+        .and_then(|t| t.duration_since(UNIX_EPOCH).ok())
+        .map_or(0, |d| d.as_nanos());
+    format!("\"{:x}-{:x}\"", m.len(), t)
+}
+
+fn token_ok(site: &Site, rq: &Request) -> bool {
+    let Some(want) = &site.token else {
+        return true;
+    };
+    let got = rq
+        .headers()
+        .iter()
+        .find(|h| h.field.equiv("Authorization"))
+        .map(|h| h.value.as_str().trim())
+        .and_then(|v| v.strip_prefix("Bearer "))
+        .map(str::trim)
+        .unwrap_or("");
+    // Compare in constant time for equal lengths.
+    got.len() == want.len()
+        && got
+            .bytes()
+            .zip(want.bytes())
+            .fold(0u8, |acc, (a, b)| acc | (a ^ b))
+            == 0
+}
+
+fn req_header<'a>(rq: &'a Request, k: &'static str) -> Option<&'a str> {
+    rq.headers()
+        .iter()
+        .find(|h| h.field.equiv(k))
+        .map(|h| h.value.as_str())
+}
+
+fn answer(site: &Site, rq: Request) {
+    let t0 = Instant::now();
+    let method = rq.method().clone();
+    let url = rq.url().to_string();
+    let peer = rq
+        .remote_addr()
+        .map(|a| a.to_string())
+        .unwrap_or_else(|| "-".into());
+    let (status, bytes, res) = respond(site, rq);
+    if site.log {
+        let now = std::time::SystemTime::now()
+            .duration_since(UNIX_EPOCH)
+            .unwrap_or_default()
+            .as_secs_f64();
+        eprintln!(
+            "{now:.3} {peer} {method} {url} {status} {bytes} {:.1}ms{}",
+            t0.elapsed().as_secs_f64() * 1e3,
+            res.map(|e| format!(" ({e})")).unwrap_or_default()
+        );
+    }
+}
+
+fn empty(status: u16, mut h: Vec<Header>) -> Response<std::io::Empty> {
+    cors(&mut h);
+    let mut r = Response::new(StatusCode(status), h, std::io::empty(), Some(0), None);
+    r.add_header(header("Cache-Control", "no-cache"));
+    r
+}
+
+fn text(status: u16, msg: &str) -> Response<std::io::Cursor<Vec<u8>>> {
+    let mut h = vec![header("Content-Type", "text/plain; charset=utf-8")];
+    cors(&mut h);
+    let body = format!("{msg}\n").into_bytes();
+    let n = body.len();
+    Response::new(
+        StatusCode(status),
+        h,
+        std::io::Cursor::new(body),
+        Some(n),
+        None,
+    )
+}
+
+/// Answer `rq`: `(status, body bytes, note for the log)`.
+fn respond(site: &Site, rq: Request) -> (u16, u64, Option<String>) {
+    let send_err = |e: std::io::Error| Some(format!("sending failed: {e}"));
+    match rq.method() {
+        Method::Get | Method::Head => {}
+        Method::Options => {
+            let h = vec![
+                header("Access-Control-Allow-Methods", "GET, HEAD, OPTIONS"),
+                header(
+                    "Access-Control-Allow-Headers",
+                    "Range, Authorization, If-None-Match, Content-Type",
+                ),
+                header("Access-Control-Max-Age", "86400"),
+                header("Allow", "GET, HEAD, OPTIONS"),
+            ];
+            let r = rq.respond(empty(204, h)).err().and_then(send_err);
+            return (204, 0, r);
+        }
+        _ => {
+            let r = text(405, "read-only: only GET, HEAD and OPTIONS")
+                .with_header(header("Allow", "GET, HEAD, OPTIONS"));
+            let e = rq.respond(r).err().and_then(send_err);
+            return (405, 0, e);
+        }
+    }
+    if !token_ok(site, &rq) {
+        let r = text(401, "a valid bearer token is needed")
+            .with_header(header("WWW-Authenticate", "Bearer"));
+        let e = rq.respond(r).err().and_then(send_err);
+        return (401, 0, e);
+    }
+    let file = match resolve(site, rq.url()) {
+        Target::Index => {
+            let mut names: Vec<&String> = site.roots.keys().collect();
+            names.sort();
+            let body = serde_json::json!({ "stores": names })
+                .to_string()
+                .into_bytes();
+            let n = body.len();
+            let mut h = vec![header("Content-Type", "application/json")];
+            cors(&mut h);
+            let r = Response::new(
+                StatusCode(200),
+                h,
+                std::io::Cursor::new(body),
+                Some(n),
+                None,
+            );
+            let e = rq.respond(r).err().and_then(send_err);
+            return (200, n as u64, e);
+        }
+        Target::Refused(code, why) => {
+            let e = rq.respond(text(code, why)).err().and_then(send_err);
+            return (code, 0, e.or(Some(why.to_string())));
+        }
+        Target::File(p) => p,
+    };
+    let opened = File::open(&file).and_then(|f| {
+        let m = f.metadata()?;
+        Ok((f, m))
+    });
+    let (mut f, meta) = match opened {
+        Ok(x) => x,
+        Err(e) => {
+            let r = rq
+                .respond(text(404, "cannot be read"))
+                .err()
+                .and_then(send_err);
+            return (404, 0, r.or(Some(format!("{}: {e}", file.display()))));
+        }
+    };
+    let len = meta.len();
+    let etag = etag_of(&meta);
+    let mut h = vec![
+        header("Accept-Ranges", "bytes"),
+        header("ETag", &etag),
+        header("Cache-Control", "no-cache"),
+    ];
+    if let Some(inm) = req_header(&rq, "If-None-Match") {
+        if inm.split(',').any(|t| {
+            let t = t.trim();
+            t == "*" || t.trim_start_matches("W/") == etag
+        }) {
+            let e = rq.respond(empty(304, h)).err().and_then(send_err);
+            return (304, 0, e);
+        }
+    }
+    let ctype = if file.extension().is_some_and(|e| e == "json")
+        || file
+            .file_name()
+            .is_some_and(|n| n == ".zarray" || n == ".zgroup" || n == ".zattrs")
+    {
+        "application/json"
+    } else {
+        "application/octet-stream"
+    };
+    h.push(header("Content-Type", ctype));
+    cors(&mut h);
+    let range = match req_header(&rq, "Range") {
+        None => Ok(None),
+        Some(v) => parse_range(v, len),
+    };
+    let (status, start, end) = match range {
+        Ok(None) => (200, 0, len),
+        Ok(Some((a, b))) => {
+            h.push(header(
+                "Content-Range",
+                &format!("bytes {a}-{}/{len}", b - 1),
+            ));
+            (206, a, b)
+        }
+        Err(()) => {
+            h.push(header("Content-Range", &format!("bytes */{len}")));
+            let r = Response::new(StatusCode(416), h, std::io::empty(), Some(0), None);
+            let e = rq.respond(r).err().and_then(send_err);
+            return (416, 0, e);
+        }
+    };
+    if let Err(e) = f.seek(SeekFrom::Start(start)) {
+        let r = rq.respond(text(500, "read error")).err().and_then(send_err);
+        return (500, 0, r.or(Some(e.to_string())));
+    }
+    let n = end - start;
+    let body = f.take(n);
+    let head = *rq.method() == Method::Head;
+    // Always Content-Length, never chunked (tiny_http chunks from 32 KiB).
+    let r = Response::new(StatusCode(status), h, body, Some(n as usize), None)
+        .with_chunked_threshold(usize::MAX);
+    let e = rq.respond(r).err().and_then(send_err);
+    (status, if head { 0 } else { n }, e)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn ranges() {
+        assert_eq!(parse_range("bytes=0-9", 100), Ok(Some((0, 10))));
+        assert_eq!(parse_range("bytes=90-", 100), Ok(Some((90, 100))));
+        assert_eq!(parse_range("bytes=-10", 100), Ok(Some((90, 100))));
+        assert_eq!(parse_range("bytes=-200", 100), Ok(Some((0, 100))));
+        assert_eq!(parse_range("bytes=95-200", 100), Ok(Some((95, 100))));
+        assert_eq!(parse_range("bytes=100-", 100), Err(()));
+        assert_eq!(parse_range("bytes=-0", 100), Err(()));
+        assert_eq!(parse_range("bytes=0-1,5-6", 100), Ok(None));
+        assert_eq!(parse_range("bytes=5-1", 100), Ok(None));
+        assert_eq!(parse_range("items=0-1", 100), Ok(None));
+    }
+
+    #[test]
+    fn segments() {
+        for bad in ["..", ".", "", "%2e%2e", "a\\b", "a%00"] {
+            assert!(!segment_ok(bad), "{bad}");
+        }
+        assert!(segment_ok("zarr.json") && segment_ok(".zarray") && segment_ok("c"));
+        assert_eq!(percent_decode("%2e%2E").as_deref(), Some(".."));
+        assert_eq!(percent_decode("%252e").as_deref(), Some("%2e"));
+        assert_eq!(percent_decode("%2"), None);
+    }
+}

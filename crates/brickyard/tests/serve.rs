@@ -1,0 +1,560 @@
+//! `brickyard serve` and remote stores end to end: what is read over HTTP
+//! equals what is read from disk (info, a rendered image, a converted
+//! copy); the server answers ranges, ETags and CORS as HTTP says, and
+//! refuses traversal, writes, bad tokens and unprotected public binds.
+
+use std::io::{BufRead, BufReader, Read, Write};
+use std::net::TcpStream;
+use std::path::{Path, PathBuf};
+use std::process::{Child, Command, Output, Stdio};
+use std::sync::{Arc, Mutex};
+
+fn bin() -> Command {
+    Command::new(env!("CARGO_BIN_EXE_brickyard"))
+}
+
+fn run(args: &[&str]) -> Output {
+    bin().args(args).output().unwrap()
+}
+
+fn s(p: &Path) -> &str {
+    p.to_str().unwrap()
+}
+
+fn ok(o: &Output) -> String {
+    assert!(
+        o.status.success(),
+        "failed: {}\n{}",
+        String::from_utf8_lossy(&o.stderr),
+        String::from_utf8_lossy(&o.stdout)
+    );
+    String::from_utf8_lossy(&o.stdout).into_owned()
+}
+
+/// A 128³ u8 Mandelbulb in 32³ bricks and 64³ shards.
+fn store(dir: &Path) -> PathBuf {
+    let store = dir.join("m.ome.zarr");
+    ok(&run(&[
+        "generate",
+        "mandelbulb",
+        s(&store),
+        "--size",
+        "128",
+        "--dtype",
+        "u8",
+        "--quiet",
+        "--brick",
+        "32",
+        "--shard",
+        "64",
+    ]));
+    store
+}
+
+/// A running `brickyard serve`; killed on drop.
+struct Served {
+    child: Child,
+    port: u16,
+    log: Arc<Mutex<String>>,
+}
+
+impl Drop for Served {
+    fn drop(&mut self) {
+        let _ = self.child.kill();
+        let _ = self.child.wait();
+    }
+}
+
+fn serve(stores: &[&Path], extra: &[&str]) -> Served {
+    let mut cmd = bin();
+    cmd.arg("serve")
+        .args(stores)
+        .args(["--port", "0"])
+        .args(extra);
+    let mut child = cmd.stderr(Stdio::piped()).spawn().unwrap();
+    let mut err = BufReader::new(child.stderr.take().unwrap());
+    let mut first = String::new();
+    err.read_line(&mut first).unwrap();
+    let port: u16 = first
+        .split("127.0.0.1:")
+        .nth(1)
+        .and_then(|r| r.split('/').next())
+        .and_then(|p| p.parse().ok())
+        .unwrap_or_else(|| panic!("no address in {first:?}"));
+    let log = Arc::new(Mutex::new(String::new()));
+    let l2 = log.clone();
+    std::thread::spawn(move || {
+        let mut line = String::new();
+        while err.read_line(&mut line).unwrap_or(0) > 0 {
+            l2.lock().unwrap().push_str(&line);
+            line.clear();
+        }
+    });
+    Served { child, port, log }
+}
+
+/// One raw HTTP/1.1 request (paths sent exactly as given): status,
+/// headers (lower-case names) and body.
+fn http(
+    port: u16,
+    method: &str,
+    path: &str,
+    headers: &[(&str, &str)],
+) -> (u16, Vec<(String, String)>, Vec<u8>) {
+    let mut c = TcpStream::connect(("127.0.0.1", port)).unwrap();
+    let mut rq = format!("{method} {path} HTTP/1.1\r\nHost: localhost\r\nConnection: close\r\n");
+    for (k, v) in headers {
+        rq.push_str(&format!("{k}: {v}\r\n"));
+    }
+    rq.push_str("\r\n");
+    c.write_all(rq.as_bytes()).unwrap();
+    let mut all = vec![];
+    c.read_to_end(&mut all).unwrap();
+    let split = all
+        .windows(4)
+        .position(|w| w == b"\r\n\r\n")
+        .expect("a complete head");
+    let head = String::from_utf8_lossy(&all[..split]).into_owned();
+    let body = all[split + 4..].to_vec();
+    let mut lines = head.lines();
+    let status: u16 = lines
+        .next()
+        .unwrap()
+        .split(' ')
+        .nth(1)
+        .unwrap()
+        .parse()
+        .unwrap();
+    let hs = lines
+        .filter_map(|l| l.split_once(':'))
+        .map(|(k, v)| (k.trim().to_ascii_lowercase(), v.trim().to_string()))
+        .collect();
+    (status, hs, body)
+}
+
+fn get<'a>(h: &'a [(String, String)], k: &str) -> Option<&'a str> {
+    h.iter().find(|(n, _)| n == k).map(|(_, v)| v.as_str())
+}
+
+fn png_rgba(p: &Path) -> Vec<u8> {
+    let dec = png::Decoder::new(std::io::BufReader::new(std::fs::File::open(p).unwrap()));
+    let mut r = dec.read_info().unwrap();
+    let mut buf = vec![0; r.output_buffer_size().unwrap()];
+    let n = r.next_frame(&mut buf).unwrap().buffer_size();
+    buf.truncate(n);
+    buf
+}
+
+/// `info --json` without what only a local store has (its path and sizes).
+fn info_json(store: &str, env: &[(&str, &str)]) -> serde_json::Value {
+    let mut c = bin();
+    c.args(["info", store, "--json"]);
+    for (k, v) in env {
+        c.env(k, v);
+    }
+    let mut v: serde_json::Value = serde_json::from_str(&ok(&c.output().unwrap())).unwrap();
+    v["path"] = serde_json::Value::Null;
+    for l in v["levels"].as_array_mut().unwrap() {
+        l["bytes_on_disk"] = serde_json::Value::Null;
+    }
+    v
+}
+
+#[test]
+fn remote_reads_equal_local_reads() {
+    let dir = tempfile::tempdir().unwrap();
+    let st = store(dir.path());
+    let sv = serve(&[&st], &[]);
+    let url = format!("http://127.0.0.1:{}/m.ome.zarr", sv.port);
+
+    let local = info_json(s(&st), &[]);
+    let remote = info_json(&url, &[]);
+    assert_eq!(local, remote);
+    assert!(local["levels"][0]["stats"]["bricks"].as_u64().unwrap() > 0);
+
+    // The same render, read from disk and over HTTP, to the bit.
+    let args = [
+        "--size",
+        "96x64",
+        "--backend",
+        "cpu",
+        "--memory",
+        "256MiB",
+        "--quiet",
+    ];
+    let (a, b) = (dir.path().join("local.png"), dir.path().join("remote.png"));
+    ok(&bin()
+        .args(["render", s(&st), "-o", s(&a)])
+        .args(args)
+        .output()
+        .unwrap());
+    let o = bin()
+        .args(["render", &url, "-o", s(&b)])
+        .args(args)
+        .output()
+        .unwrap();
+    let out = ok(&o);
+    assert!(!out.contains("could not load"), "{out}");
+    let (pa, pb) = (png_rgba(&a), png_rgba(&b));
+    assert!(pa.iter().any(|&v| v != 0), "the image is empty");
+    assert_eq!(pa, pb, "the remote render differs from the local one");
+
+    // A store converted from the URL holds the same voxels.
+    let copy = dir.path().join("copy.ome.zarr");
+    ok(&run(&[
+        "convert",
+        &url,
+        s(&copy),
+        "--brick",
+        "32",
+        "--shard",
+        "64",
+        "--quiet",
+    ]));
+    let c = bin()
+        .args(["render", s(&copy), "-o", s(&dir.path().join("copy.png"))])
+        .args(args)
+        .output()
+        .unwrap();
+    ok(&c);
+    assert_eq!(png_rgba(&dir.path().join("copy.png")), pa);
+
+    // The server logged ranged reads.
+    assert!(sv.log.lock().unwrap().contains(" 206 "));
+}
+
+#[test]
+fn ranges_etags_and_cors() {
+    let dir = tempfile::tempdir().unwrap();
+    let st = store(dir.path());
+    let sv = serve(&[&st], &["--quiet"]);
+    let p = sv.port;
+    let file = std::fs::read(st.join("0/c/0/0/0")).unwrap();
+    let n = file.len();
+    assert!(
+        n > 32 << 10,
+        "a shard above tiny_http's chunking threshold (32 KiB)"
+    );
+
+    let (st0, h, body) = http(p, "GET", "/m.ome.zarr/0/c/0/0/0", &[]);
+    assert_eq!(st0, 200);
+    assert_eq!(body, file);
+    assert_eq!(get(&h, "content-length"), Some(n.to_string().as_str()));
+    assert_eq!(get(&h, "accept-ranges"), Some("bytes"));
+    let etag = get(&h, "etag").unwrap().to_string();
+
+    let (st1, h, body) = http(
+        p,
+        "GET",
+        "/m.ome.zarr/0/c/0/0/0",
+        &[("Range", "bytes=10-19")],
+    );
+    assert_eq!(st1, 206);
+    assert_eq!(body, &file[10..20]);
+    assert_eq!(
+        get(&h, "content-range"),
+        Some(format!("bytes 10-19/{n}").as_str())
+    );
+    assert_eq!(get(&h, "content-length"), Some("10"));
+
+    let (_, _, body) = http(
+        p,
+        "GET",
+        "/m.ome.zarr/0/c/0/0/0",
+        &[("Range", "bytes=-100")],
+    );
+    assert_eq!(body, &file[n - 100..]);
+    let (st2, h, _) = http(
+        p,
+        "GET",
+        "/m.ome.zarr/0/c/0/0/0",
+        &[("Range", &format!("bytes={n}-"))],
+    );
+    assert_eq!(st2, 416);
+    assert_eq!(
+        get(&h, "content-range"),
+        Some(format!("bytes */{n}").as_str())
+    );
+
+    let (st3, h, body) = http(p, "HEAD", "/m.ome.zarr/0/c/0/0/0", &[]);
+    assert_eq!(st3, 200);
+    assert!(body.is_empty());
+    assert_eq!(get(&h, "content-length"), Some(n.to_string().as_str()));
+
+    let (st4, _, body) = http(
+        p,
+        "GET",
+        "/m.ome.zarr/0/c/0/0/0",
+        &[("If-None-Match", &etag)],
+    );
+    assert_eq!(st4, 304);
+    assert!(body.is_empty());
+    let (st5, _, _) = http(
+        p,
+        "GET",
+        "/m.ome.zarr/0/c/0/0/0",
+        &[("If-None-Match", "\"other\"")],
+    );
+    assert_eq!(st5, 200);
+
+    let (st6, h, _) = http(
+        p,
+        "OPTIONS",
+        "/m.ome.zarr/zarr.json",
+        &[
+            ("Origin", "http://example.org"),
+            ("Access-Control-Request-Method", "GET"),
+            ("Access-Control-Request-Headers", "range"),
+        ],
+    );
+    assert_eq!(st6, 204);
+    assert_eq!(get(&h, "access-control-allow-origin"), Some("*"));
+    assert!(get(&h, "access-control-allow-methods")
+        .unwrap()
+        .contains("GET"));
+    assert!(get(&h, "access-control-allow-headers")
+        .unwrap()
+        .contains("Range"));
+    let (_, h, _) = http(
+        p,
+        "GET",
+        "/m.ome.zarr/zarr.json",
+        &[("Origin", "http://example.org")],
+    );
+    let exposed = get(&h, "access-control-expose-headers").unwrap();
+    for k in ["Content-Range", "Accept-Ranges", "Content-Length"] {
+        assert!(exposed.contains(k), "{exposed}");
+    }
+    let (_, _, body) = http(p, "GET", "/", &[]);
+    assert!(String::from_utf8_lossy(&body).contains("m.ome.zarr"));
+
+    // SIGTERM: the server stops by itself, with status 0.
+    let mut sv = sv;
+    let pid = sv.child.id().to_string();
+    assert!(Command::new("kill")
+        .args(["-TERM", &pid])
+        .status()
+        .unwrap()
+        .success());
+    let t0 = std::time::Instant::now();
+    let status = loop {
+        if let Some(st) = sv.child.try_wait().unwrap() {
+            break st;
+        }
+        assert!(t0.elapsed().as_secs() < 10, "serve did not stop on SIGTERM");
+        std::thread::sleep(std::time::Duration::from_millis(20));
+    };
+    assert!(status.success(), "{status:?}");
+}
+
+#[test]
+fn traversal_writes_and_tokens_are_refused() {
+    let dir = tempfile::tempdir().unwrap();
+    let st = store(dir.path());
+    let secret = "the secret outside the served store";
+    std::fs::write(dir.path().join("secret.txt"), secret).unwrap();
+    std::os::unix::fs::symlink(dir.path().join("secret.txt"), st.join("link.txt")).unwrap();
+    std::os::unix::fs::symlink(dir.path(), st.join("up")).unwrap();
+    // A symlink inside the store to inside the store is fine.
+    std::os::unix::fs::symlink(st.join("zarr.json"), st.join("inner.json")).unwrap();
+    let sv = serve(&[&st], &["--token", "s3cret-token"]);
+    let p = sv.port;
+    let auth = [("Authorization", "Bearer s3cret-token")];
+
+    let (code, _, body) = http(p, "GET", "/m.ome.zarr/inner.json", &auth);
+    assert_eq!(code, 200);
+    assert_eq!(body, std::fs::read(st.join("zarr.json")).unwrap());
+    for path in [
+        "/m.ome.zarr/../secret.txt",
+        "/m.ome.zarr/%2e%2e/secret.txt",
+        "/m.ome.zarr/%2E%2E%2Fsecret.txt",
+        "/m.ome.zarr/%252e%252e/secret.txt",
+        "/m.ome.zarr/..%2fsecret.txt",
+        "/m.ome.zarr/./../secret.txt",
+        "/m.ome.zarr/link.txt",
+        "/m.ome.zarr/up/secret.txt",
+        "/m.ome.zarr//etc/passwd",
+        "/..%5c..%5csecret.txt",
+        "/secret.txt",
+        "/m.ome.zarr/0",
+    ] {
+        let (code, _, body) = http(p, "GET", path, &auth);
+        assert!(code == 403 || code == 404, "{path}: {code}");
+        assert!(
+            !String::from_utf8_lossy(&body).contains(secret),
+            "{path} leaked"
+        );
+    }
+    for m in ["PUT", "POST", "DELETE", "PATCH"] {
+        let (code, h, _) = http(p, m, "/m.ome.zarr/zarr.json", &auth);
+        assert_eq!(code, 405, "{m}");
+        assert!(get(&h, "allow").unwrap().contains("GET"));
+    }
+    assert!(st.join("zarr.json").exists());
+    let (code, _, _) = http(p, "GET", "/m.ome.zarr/zarr.json", &[]);
+    assert_eq!(code, 401);
+    let (code, _, _) = http(
+        p,
+        "GET",
+        "/m.ome.zarr/zarr.json",
+        &[("Authorization", "Bearer wrong-token!")],
+    );
+    assert_eq!(code, 401);
+    let (code, _, _) = http(
+        p,
+        "GET",
+        "/m.ome.zarr/zarr.json",
+        &[("Authorization", "Bearer s3cret-tokem")],
+    );
+    assert_eq!(code, 401);
+
+    // Reading through brickyard: without the token it says 401, with it it reads.
+    let url = format!("http://127.0.0.1:{p}/m.ome.zarr");
+    let o = bin()
+        .args(["info", &url])
+        .env_remove("BRICKYARD_TOKEN")
+        .output()
+        .unwrap();
+    assert!(!o.status.success());
+    let e = String::from_utf8_lossy(&o.stderr);
+    assert!(e.contains("401") && e.contains(&url), "{e}");
+    assert_eq!(
+        info_json(&url, &[("BRICKYARD_TOKEN", "s3cret-token")]),
+        info_json(s(&st), &[])
+    );
+    drop(sv);
+
+    // A public bind needs a token; the error says so and nothing listens.
+    let o = run(&["serve", s(&st), "--bind", "0.0.0.0", "--port", "0"]);
+    assert!(!o.status.success());
+    let e = String::from_utf8_lossy(&o.stderr);
+    assert!(e.contains("--token") && e.contains("0.0.0.0"), "{e}");
+    let f = dir.path().join("empty-token");
+    std::fs::write(&f, "\n").unwrap();
+    let o = run(&[
+        "serve",
+        s(&st),
+        "--bind",
+        "0.0.0.0",
+        "--port",
+        "0",
+        "--token-file",
+        s(&f),
+    ]);
+    assert!(!o.status.success());
+    assert!(String::from_utf8_lossy(&o.stderr).contains("empty"));
+}
+
+#[test]
+fn missing_stores_and_unreachable_servers_are_clear_errors() {
+    let dir = tempfile::tempdir().unwrap();
+    let st = store(dir.path());
+    let sv = serve(&[&st], &["--quiet"]);
+    let o = run(&[
+        "info",
+        &format!("http://127.0.0.1:{}/nothing.zarr", sv.port),
+    ]);
+    assert!(!o.status.success());
+    let e = String::from_utf8_lossy(&o.stderr);
+    assert!(
+        e.contains("nothing.zarr") && e.contains("not a Zarr"),
+        "{e}"
+    );
+    // A port nobody listens on: connection refused, retried, then an error
+    // naming the URL.
+    let free = std::net::TcpListener::bind("127.0.0.1:0")
+        .unwrap()
+        .local_addr()
+        .unwrap()
+        .port();
+    let url = format!("http://127.0.0.1:{free}/m.ome.zarr");
+    let o = bin()
+        .args(["info", &url])
+        .env("BRICKYARD_HTTP_RETRIES", "1")
+        .output()
+        .unwrap();
+    assert!(!o.status.success());
+    let e = String::from_utf8_lossy(&o.stderr);
+    assert!(e.contains(&url) && e.contains("connection"), "{e}");
+    let o = bin()
+        .args(["info", &url])
+        .env("BRICKYARD_HTTP_RETRIES", "x")
+        .output()
+        .unwrap();
+    assert!(!o.status.success());
+    assert!(String::from_utf8_lossy(&o.stderr).contains("BRICKYARD_HTTP_RETRIES"));
+}
+
+/// The viewer on a URL: a view it saves, once complete, equals `render`
+/// of the local store with the same camera and transfer function.
+#[test]
+fn viewer_on_a_url_equals_local_render() {
+    let dir = tempfile::tempdir().unwrap();
+    let st = store(dir.path());
+    let sv = serve(&[&st], &["--quiet"]);
+    let url = format!("http://127.0.0.1:{}/m.ome.zarr", sv.port);
+    let p = |n: &str| dir.path().join(n);
+    let script = format!(
+        "size 3d 96 80\nwait-complete 300\nscreenshot 3d {v}.png\nsave-view 3d {v}\nquit\n",
+        v = s(&p("v"))
+    );
+    let script_file = p("s.txt");
+    std::fs::write(&script_file, script).unwrap();
+    let args = [
+        "view",
+        &url,
+        "--script",
+        s(&script_file),
+        "--backend",
+        "cpu",
+        "--pool",
+        "16MiB",
+    ];
+    let mut cmd = if std::env::var_os("DISPLAY").is_some() {
+        let mut c = bin();
+        c.args(args);
+        c
+    } else {
+        // The viewer tests (tests/view.rs) say how a display is found;
+        // here xvfb-run is required.
+        let mut c = Command::new("xvfb-run");
+        c.args([
+            "-a",
+            "-s",
+            "-screen 0 1280x800x24",
+            env!("CARGO_BIN_EXE_brickyard"),
+        ])
+        .args(args);
+        c
+    };
+    let o = cmd.output().unwrap();
+    assert!(
+        o.status.success(),
+        "view: {}",
+        String::from_utf8_lossy(&o.stderr)
+    );
+    let view_args = std::fs::read_to_string(p("v.args")).unwrap();
+    let reference = p("ref.png");
+    ok(&bin()
+        .args(["render", s(&st)])
+        .args(view_args.lines())
+        .args([
+            "--out",
+            s(&reference),
+            "--pool",
+            "16MiB",
+            "--backend",
+            "cpu",
+            "--quiet",
+        ])
+        .output()
+        .unwrap());
+    let (a, b) = (png_rgba(&p("v.png")), png_rgba(&reference));
+    assert_eq!(a.len(), b.len());
+    assert!(a.iter().any(|&v| v != 0), "the view is empty");
+    let worst = a.iter().zip(&b).map(|(x, y)| x.abs_diff(*y)).max().unwrap();
+    assert!(
+        worst <= 1,
+        "the viewer over HTTP and render differ by {worst}"
+    );
+}
