@@ -245,11 +245,12 @@ def render_args(store: Union[Store, str, os.PathLike], mode: str = "dvr", camera
             continue
         elif isinstance(v, (list, tuple)) and k == "channel":
             for c in v:
-                args += [flag, str(c)]
+                args.append(f"{flag}={c}")
         elif isinstance(v, (list, tuple)):
-            args += [flag, ",".join(str(x) for x in v)]
+            args.append(f"{flag}=" + ",".join(str(x) for x in v))
         else:
-            args += [flag, str(v)]
+            # `--flag=value`: a negative number is a value, not an option.
+            args.append(f"{flag}={v}")
     return args
 
 
