@@ -313,7 +313,7 @@ impl PyConvertOptions {
             }
         };
         for (what, v) in [("brick", self.brick), ("shard", self.shard)] {
-            if v.iter().any(|&x| x == 0) {
+            if v.contains(&0) {
                 return Err(PyValueError::new_err(format!(
                     "{what}: every edge must be positive, got {v:?}"
                 )));

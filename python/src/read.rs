@@ -139,14 +139,12 @@ fn copy_brick(
     let run = (e[2] - s[2]) as usize * es;
     let uniform = match content {
         BrickContent::Data(_) => None,
-        _ => Some(
-            value_bytes(g.dtype, content.uniform_value().unwrap_or(0.0)).repeat(run / es),
-        ),
+        _ => Some(value_bytes(g.dtype, content.uniform_value().unwrap_or(0.0)).repeat(run / es)),
     };
     for z in s[0]..e[0] {
         for y in s[1]..e[1] {
-            let dst = (((z - lo[0]) * shape[1] + (y - lo[1])) * shape[2] + (s[2] - lo[2])) as usize
-                * es;
+            let dst =
+                (((z - lo[0]) * shape[1] + (y - lo[1])) * shape[2] + (s[2] - lo[2])) as usize * es;
             match (&uniform, content) {
                 (Some(v), _) => out[dst..dst + run].copy_from_slice(v),
                 (None, BrickContent::Data(d)) => {

@@ -29,7 +29,12 @@ impl<'a> MemorySource<'a> {
                 data.len()
             );
         }
-        let meta = SourceMeta::new("<numpy array>", [shape[1], shape[2], shape[3]], shape[0] as usize, d);
+        let meta = SourceMeta::new(
+            "<numpy array>",
+            [shape[1], shape[2], shape[3]],
+            shape[0] as usize,
+            d,
+        );
         Ok(MemorySource { meta, data, shape })
     }
 }
