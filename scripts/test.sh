@@ -1,6 +1,7 @@
 #!/usr/bin/env bash
 # The project's test command (README / CI): Rust build + unit tests, then the
-# Python interop test against the release binary.
+# Python interop test against the release binary, then the Python bindings
+# (built into the same target directory) and their pytest suite.
 #
 # Usage: bash scripts/test.sh
 set -euo pipefail
@@ -17,3 +18,6 @@ cargo test --workspace --release
 
 echo "== interop"
 bash scripts/interop/run.sh target/release/brickyard
+
+echo "== python bindings"
+bash scripts/python-bindings.sh

@@ -1,20 +1,17 @@
 //! The `brickyard` command line.
 
-mod backend;
 mod bench;
-mod derive;
-mod frames;
 mod gpubench;
-mod memory;
 mod netbench;
 mod process;
 mod progress;
-mod render;
 mod serve;
 mod view;
 mod vmbench;
 mod vmcmd;
-mod window;
+// The render run (backend, frame loop, memory split, windows, derived
+// channels) lives in brickyard-run, shared with the Python bindings.
+pub use brickyard_run::{backend, derive, frames, memory, render, window};
 
 use anyhow::{bail, Context, Result};
 use brickyard_core::DType;
@@ -195,30 +192,7 @@ pub(crate) fn install_ctrl_c() {
     }
 }
 
-/// Parse `1GiB`, `512MiB`, `2G`, `100MB`, `4096`.
-pub fn parse_bytes(s: &str) -> Result<u64> {
-    let t = s.trim();
-    let idx = t
-        .find(|c: char| !(c.is_ascii_digit() || c == '.'))
-        .unwrap_or(t.len());
-    let (num, unit) = t.split_at(idx);
-    let v: f64 = num
-        .parse()
-        .with_context(|| format!("memory: expected a size like 1GiB, found {s:?}"))?;
-    let mul: f64 = match unit.trim().to_ascii_lowercase().as_str() {
-        "" | "b" => 1.0,
-        "k" | "kib" => 1024.0,
-        "kb" => 1e3,
-        "m" | "mib" => 1024.0 * 1024.0,
-        "mb" => 1e6,
-        "g" | "gib" => 1024.0 * 1024.0 * 1024.0,
-        "gb" => 1e9,
-        "t" | "tib" => 1024f64.powi(4),
-        "tb" => 1e12,
-        u => bail!("memory: unknown unit {u:?} in {s:?} (use KiB, MiB, GiB)"),
-    };
-    Ok((v * mul) as u64)
-}
+pub use brickyard_run::memory::parse_bytes;
 
 fn parse_triple(s: &str, what: &str) -> Result<[f64; 3]> {
     let v: Vec<f64> = s

@@ -156,6 +156,9 @@ pub struct RenderCmd {
     /// device mirrors the host's decisions).
     #[arg(long, default_value = "device")]
     gpu_update: crate::backend::GpuUpdate,
+    /// Print nothing (a caller that takes the images, not the PNG files).
+    #[arg(skip)]
+    silent: bool,
 }
 
 /// `C[:COLOR[:LO,HI]]`.
@@ -279,6 +282,51 @@ pub fn run_quiet(mut c: RenderCmd) -> Result<Vec<String>> {
 
 /// Render; returns one line per view written (file, how it ended).
 pub fn run(c: RenderCmd) -> Result<Vec<String>> {
+    run_with(c, &mut |path, img| {
+        img.write_png(path, [0.0, 0.0, 0.0, 1.0])
+            .map_err(|e| anyhow::anyhow!("{}: {e}", path.display()))?;
+        println!("wrote {}", path.display());
+        Ok(())
+    })
+}
+
+/// Render without printing or writing anything: the image of each view
+/// (as `run` would write it), in view order.
+pub fn images(mut c: RenderCmd) -> Result<Vec<brickyard_render::Image>> {
+    c.silent = true;
+    let mut out = vec![];
+    run_with(c, &mut |_, img| {
+        out.push(img);
+        Ok(())
+    })?;
+    Ok(out)
+}
+
+/// Print unless the run is silent.
+macro_rules! say {
+    ($silent:expr, $($t:tt)*) => {
+        if !$silent {
+            println!($($t)*);
+        }
+    };
+}
+
+/// Print to stderr unless the run is silent.
+macro_rules! say_err {
+    ($silent:expr, $($t:tt)*) => {
+        if !$silent {
+            eprintln!($($t)*);
+        }
+    };
+}
+
+/// The render of [`run`] and [`images`]: `sink` receives each view's
+/// image and the file it is meant for.
+fn run_with(
+    c: RenderCmd,
+    sink: &mut dyn FnMut(&std::path::Path, brickyard_render::Image) -> Result<()>,
+) -> Result<Vec<String>> {
+    let silent = c.silent;
     let [w, h] = parse_image_size(&c.size, "size")?;
     let info = inspect(&c.store)?;
     if info.complete == Some(false) {
@@ -386,7 +434,7 @@ pub fn run(c: RenderCmd) -> Result<Vec<String>> {
         std::fs::write(p, camera.to_json())
             .with_context(|| format!("{}: cannot write", p.display()))?;
     }
-    let opt_bytes = |v: &Option<String>| v.as_deref().map(crate::parse_bytes).transpose();
+    let opt_bytes = |v: &Option<String>| v.as_deref().map(crate::memory::parse_bytes).transpose();
     let batch = !c.stream;
     let split = crate::memory::split(
         opt_bytes(&c.memory)?,
@@ -518,7 +566,8 @@ pub fn run(c: RenderCmd) -> Result<Vec<String>> {
                     && cfg.pool_bytes >= 64 << 20
                     && crate::backend::device_out_of_memory(&e) =>
             {
-                eprintln!(
+                say_err!(
+                    silent,
                     "note: the device cannot hold a brick pool of {}; trying {}",
                     human_bytes(cfg.pool_bytes),
                     human_bytes(cfg.pool_bytes / 2)
@@ -559,11 +608,12 @@ pub fn run(c: RenderCmd) -> Result<Vec<String>> {
         }
     }
     if !c.json {
-        println!("rendering on {}", backend.describe());
+        say!(silent, "rendering on {}", backend.describe());
     }
     if !c.json && !c.quiet {
-        println!("{}", split.describe());
-        println!(
+        say!(silent, "{}", split.describe());
+        say!(
+            silent,
             "pool: {} bricks of {}; levels {:?} kept resident ({} bricks, {})",
             s.vm().pool_slots(),
             human_bytes(slot_bytes),
@@ -613,7 +663,8 @@ pub fn run(c: RenderCmd) -> Result<Vec<String>> {
                 let (f, st, fs) = (fi.f, &fi.f.stats, &fi.f.session);
                 let read = fi.bytes_read;
                 if json {
-                    println!(
+                    say!(
+                        silent,
                         "{}",
                         serde_json::json!({"view": v, "frame": fi.frame, "pass": if fi.pass {"requests"} else {"image"},
                             "ms": fi.ms, "completeness": st.completeness(), "lod_bias": fi.bias,
@@ -624,7 +675,7 @@ pub fn run(c: RenderCmd) -> Result<Vec<String>> {
                             "resident": fs.frame.resident_bricks})
                     );
                 } else if !quiet {
-                    println!(
+                    say!(silent,
                         "view {v} {} {:4}: {:6.2}% complete, {:8.1} ms, {:5} requests, {:5} bricks in, LOD bias {:+.1}, {} up, {} down",
                         if fi.pass { "pass " } else { "frame" },
                         fi.frame,
@@ -679,7 +730,8 @@ pub fn run(c: RenderCmd) -> Result<Vec<String>> {
         };
         let peak = crate::memory::peak_rss();
         if c.json {
-            println!(
+            say!(
+                silent,
                 "{}",
                 serde_json::json!({"view": v, "summary": true, "stop": format!("{:?}", out.stop),
                     "completeness": out.completeness, "frames": out.frames, "seconds": out.seconds,
@@ -697,15 +749,19 @@ pub fn run(c: RenderCmd) -> Result<Vec<String>> {
             human_bytes(read)
         );
         if !c.json {
-            println!("view {v}: {detail_line}");
+            say!(silent, "view {v}: {detail_line}");
             for f in failures.iter().take(10) {
-                println!(
+                say!(
+                    silent,
                     "  could not load level {} channel {} brick {:?}: {}",
-                    f.key.level, f.key.channel, f.key.brick, f.message
+                    f.key.level,
+                    f.key.channel,
+                    f.key.brick,
+                    f.message
                 );
             }
             if failures.len() > 10 {
-                println!("  … and {} more", failures.len() - 10);
+                say!(silent, "  … and {} more", failures.len() - 10);
             }
         }
         let img = match c.progressive {
@@ -721,7 +777,7 @@ pub fn run(c: RenderCmd) -> Result<Vec<String>> {
                     &params,
                     lod,
                     n,
-                    c.json || c.quiet,
+                    c.json || c.quiet || silent,
                 )?
             }
             None => out.image,
@@ -736,14 +792,13 @@ pub fn run(c: RenderCmd) -> Result<Vec<String>> {
         } else {
             c.out.clone()
         };
-        img.write_png(&path, [0.0, 0.0, 0.0, 1.0])
-            .map_err(|e| anyhow::anyhow!("{}: {e}", path.display()))?;
-        println!("wrote {}", path.display());
+        sink(&path, img)?;
         written.push(format!("{}: {detail_line}", path.display()));
     }
     if !c.json && !c.quiet {
         if let Some(p) = crate::memory::peak_rss() {
-            println!(
+            say!(
+                silent,
                 "peak memory {} of a {} budget",
                 human_bytes(p),
                 human_bytes(split.total)

@@ -2,7 +2,7 @@
 //! the host cache, the loader's decoded-chunk caches and the image buffers
 //! are split out of it, after a fixed allowance for the program itself.
 
-use anyhow::{bail, Result};
+use anyhow::{bail, Context, Result};
 use brickyard_store::info::human_bytes;
 
 /// The program itself: code, allocator, thread stacks (rayon, loader),
@@ -173,6 +173,31 @@ pub fn split_with(
         fixed,
         explicit,
     })
+}
+
+/// Parse `1GiB`, `512MiB`, `2G`, `100MB`, `4096`.
+pub fn parse_bytes(s: &str) -> Result<u64> {
+    let t = s.trim();
+    let idx = t
+        .find(|c: char| !(c.is_ascii_digit() || c == '.'))
+        .unwrap_or(t.len());
+    let (num, unit) = t.split_at(idx);
+    let v: f64 = num
+        .parse()
+        .with_context(|| format!("memory: expected a size like 1GiB, found {s:?}"))?;
+    let mul: f64 = match unit.trim().to_ascii_lowercase().as_str() {
+        "" | "b" => 1.0,
+        "k" | "kib" => 1024.0,
+        "kb" => 1e3,
+        "m" | "mib" => 1024.0 * 1024.0,
+        "mb" => 1e6,
+        "g" | "gib" => 1024.0 * 1024.0 * 1024.0,
+        "gb" => 1e9,
+        "t" | "tib" => 1024f64.powi(4),
+        "tb" => 1e12,
+        u => bail!("memory: unknown unit {u:?} in {s:?} (use KiB, MiB, GiB)"),
+    };
+    Ok((v * mul) as u64)
 }
 
 #[cfg(test)]

@@ -79,7 +79,7 @@ impl std::str::FromStr for GpuUpdate {
 /// libraries print errors (`XDG_RUNTIME_DIR is invalid or not set`) that
 /// explain nothing about a render; a real failure comes back as `f`'s
 /// error and is reported with context.
-pub(crate) fn quietly<T>(f: impl FnOnce() -> T) -> T {
+pub fn quietly<T>(f: impl FnOnce() -> T) -> T {
     if std::env::var_os("BRICKYARD_GPU_STDERR").is_some() {
         return f();
     }

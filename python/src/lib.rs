@@ -1,0 +1,422 @@
+//! The extension module `brickyard._native`: a store read through the
+//! loader and host cache, renders as `brickyard render` draws them, and
+//! conversions through the pyramid builder. The Python package `brickyard`
+//! (`python/brickyard/__init__.py`) turns its bytes into NumPy arrays and its
+//! arguments into the CLI's; the GIL is released while work runs.
+
+mod read;
+mod source;
+
+use brickyard_cache::host_cache::HostCache;
+use brickyard_cache::loader::Loader;
+use brickyard_store::builder::Progress;
+use brickyard_store::import::{open_input, ImportOptions};
+use brickyard_store::info::inspect;
+use brickyard_store::{Compression, ConvertOptions, VolumeSource};
+use pyo3::exceptions::{PyFileNotFoundError, PyKeyboardInterrupt, PyOSError, PyValueError};
+use pyo3::prelude::*;
+use pyo3::types::PyByteArray;
+use std::path::{Path, PathBuf};
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::Arc;
+
+/// A long call stopped by Ctrl-C (a signal seen between two pieces of work).
+#[derive(Debug)]
+pub struct Interrupted;
+
+impl std::fmt::Display for Interrupted {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str("interrupted")
+    }
+}
+
+impl std::error::Error for Interrupted {}
+
+/// An error as a Python exception, with the CLI's message: a missing file
+/// is a `FileNotFoundError`, other I/O failures `OSError`, an interrupted
+/// call `KeyboardInterrupt`, everything else (bad arguments, bad stores) a
+/// `ValueError`.
+fn to_py(e: anyhow::Error) -> PyErr {
+    let msg = format!("{e:#}");
+    for cause in e.chain() {
+        if cause.downcast_ref::<Interrupted>().is_some() {
+            return PyKeyboardInterrupt::new_err(msg);
+        }
+        if let Some(io) = cause.downcast_ref::<std::io::Error>() {
+            return match io.kind() {
+                std::io::ErrorKind::NotFound => PyFileNotFoundError::new_err(msg),
+                _ => PyOSError::new_err(msg),
+            };
+        }
+    }
+    PyValueError::new_err(msg)
+}
+
+fn missing(path: &Path) -> PyErr {
+    PyFileNotFoundError::new_err(format!("{}: no such file or directory", path.display()))
+}
+
+/// Whether Ctrl-C was pressed (asks the interpreter, taking the GIL for a
+/// moment): long loops call this between pieces of work.
+fn interrupted() -> bool {
+    Python::attach(|py| py.check_signals().is_err())
+}
+
+/// An OME-Zarr store opened for reading: every level through one loader
+/// and one byte-bounded host cache.
+#[pyclass(module = "brickyard._native", frozen)]
+struct NativeStore {
+    path: PathBuf,
+    loader: Loader,
+    scales: Vec<Option<Vec<f64>>>,
+    translations: Vec<Option<Vec<f64>>>,
+    axes: Vec<String>,
+    units: Vec<Option<String>>,
+}
+
+#[pymethods]
+impl NativeStore {
+    #[new]
+    #[pyo3(signature = (path, cache_bytes, chunk_bytes, brick, threads))]
+    fn new(
+        py: Python<'_>,
+        path: PathBuf,
+        cache_bytes: u64,
+        chunk_bytes: u64,
+        brick: u64,
+        threads: usize,
+    ) -> PyResult<Self> {
+        if !path.exists() {
+            return Err(missing(&path));
+        }
+        if brick == 0 || brick > 1024 {
+            return Err(PyValueError::new_err(format!(
+                "brick: expected an edge between 1 and 1024 voxels, got {brick}"
+            )));
+        }
+        py.detach(|| -> anyhow::Result<NativeStore> {
+            let info = inspect(&path)?;
+            if info.complete == Some(false) {
+                anyhow::bail!(
+                    "{}: the store is incomplete (an interrupted conversion)",
+                    path.display()
+                );
+            }
+            let cache = Arc::new(HostCache::new(cache_bytes));
+            let loader = Loader::open_with_chunk_cache(
+                &path,
+                [brick; 3],
+                0,
+                threads.max(1),
+                cache,
+                chunk_bytes,
+            )?;
+            Ok(NativeStore {
+                scales: info.levels.iter().map(|l| l.scale.clone()).collect(),
+                translations: info.levels.iter().map(|l| l.translation.clone()).collect(),
+                axes: info.axes.clone(),
+                units: info.units.clone(),
+                path: path.clone(),
+                loader,
+            })
+        })
+        .map_err(to_py)
+    }
+
+    #[getter]
+    fn path(&self) -> PathBuf {
+        self.path.clone()
+    }
+
+    /// Level shapes `[z, y, x]`, level 0 first.
+    #[getter]
+    fn shapes(&self) -> Vec<[u64; 3]> {
+        self.loader.geometry().levels.clone()
+    }
+
+    #[getter]
+    fn channels(&self) -> usize {
+        self.loader.geometry().channels
+    }
+
+    /// The voxel type as NumPy names it (`uint8`, `float32`, ...).
+    #[getter]
+    fn dtype(&self) -> &'static str {
+        numpy_name(self.loader.geometry().dtype)
+    }
+
+    /// Per level, the OME `scale` of every axis (`None` when absent).
+    #[getter]
+    fn scales(&self) -> Vec<Option<Vec<f64>>> {
+        self.scales.clone()
+    }
+
+    #[getter]
+    fn translations(&self) -> Vec<Option<Vec<f64>>> {
+        self.translations.clone()
+    }
+
+    #[getter]
+    fn axes(&self) -> Vec<String> {
+        self.axes.clone()
+    }
+
+    #[getter]
+    fn units(&self) -> Vec<Option<String>> {
+        self.units.clone()
+    }
+
+    /// Host cache: (bytes held, budget, hits, misses).
+    fn cache_stats(&self) -> (u64, u64, u64, u64) {
+        let c = self.loader.cache();
+        (c.bytes(), c.budget(), c.hits(), c.misses())
+    }
+
+    /// Bytes of voxel data read from the store so far.
+    fn bytes_read(&self) -> u64 {
+        self.loader.bytes_read()
+    }
+
+    /// The box `lo..hi` (`[z, y, x]`, half open) of one level and channel,
+    /// C order, native-endian voxels.
+    fn read<'py>(
+        &self,
+        py: Python<'py>,
+        level: usize,
+        channel: usize,
+        lo: [u64; 3],
+        hi: [u64; 3],
+    ) -> PyResult<Bound<'py, PyByteArray>> {
+        let out = py
+            .detach(|| read::read_region(&self.loader, level, channel, lo, hi, &interrupted))
+            .map_err(to_py)?;
+        Ok(PyByteArray::new(py, &out))
+    }
+}
+
+fn numpy_name(d: brickyard_core::DType) -> &'static str {
+    use brickyard_core::DType::*;
+    match d {
+        U8 => "uint8",
+        I8 => "int8",
+        U16 => "uint16",
+        I16 => "int16",
+        U32 => "uint32",
+        I32 => "int32",
+        F32 => "float32",
+        F64 => "float64",
+    }
+}
+
+/// Render one view exactly as `brickyard render ARGS…` does (the same
+/// options, the same code); `args` is the whole command line, starting
+/// `brickyard render STORE`. Returns
+/// `(width, height, pixels)`: RGBA8 over black as the PNG holds it, or the
+/// premultiplied RGBA f32 image when `float`.
+#[pyfunction]
+#[pyo3(signature = (args, float = false))]
+fn render<'py>(
+    py: Python<'py>,
+    args: Vec<String>,
+    float: bool,
+) -> PyResult<(u32, u32, Bound<'py, PyByteArray>)> {
+    let cmd = brickyard_run::render::RenderCmd::try_parse_from(&args)
+        .map_err(|e| PyValueError::new_err(e.to_string().trim().to_string()))?;
+    if let Some(store) = args.get(2).map(PathBuf::from) {
+        if !store.exists() {
+            return Err(missing(&store));
+        }
+    }
+    let img = py
+        .detach(|| brickyard_run::render::images(cmd))
+        .map_err(to_py)?
+        .into_iter()
+        .next()
+        .ok_or_else(|| PyValueError::new_err("render: no view was drawn"))?;
+    let bytes: Vec<u8> = if float {
+        img.rgba
+            .iter()
+            .flat_map(|p| p.iter().flat_map(|v| v.to_ne_bytes()))
+            .collect()
+    } else {
+        img.to_rgba8([0.0, 0.0, 0.0, 1.0])
+    };
+    Ok((img.width, img.height, PyByteArray::new(py, &bytes)))
+}
+
+/// The builder's progress, handed to a Python callable `progress(kind,
+/// n)` (`kind` "start" with the total bytes, "inc" with bytes done); a
+/// Ctrl-C seen here cancels the conversion.
+struct PyProgress<'a> {
+    callback: Option<Py<PyAny>>,
+    cancel: &'a AtomicBool,
+}
+
+impl PyProgress<'_> {
+    fn call(&self, kind: &str, n: u64) {
+        Python::attach(|py| {
+            if py.check_signals().is_err() {
+                self.cancel.store(true, Ordering::Relaxed);
+                return;
+            }
+            if let Some(cb) = &self.callback {
+                if let Err(e) = cb.call1(py, (kind, n)) {
+                    e.print(py);
+                }
+            }
+        })
+    }
+}
+
+impl Progress for PyProgress<'_> {
+    fn start(&self, total_bytes: u64) {
+        self.call("start", total_bytes)
+    }
+    fn inc(&self, bytes: u64) {
+        self.call("inc", bytes)
+    }
+}
+
+/// Conversion options as Python gives them.
+#[derive(FromPyObject)]
+#[pyo3(from_item_all)]
+struct PyConvertOptions {
+    brick: [u64; 3],
+    shard: [u64; 3],
+    compression: String,
+    labels: bool,
+    memory: u64,
+    overwrite: bool,
+    spacing: Option<[f64; 3]>,
+    origin: Option<[f64; 3]>,
+    unit: Option<String>,
+}
+
+impl PyConvertOptions {
+    fn to_options(&self) -> PyResult<ConvertOptions> {
+        let compression = match self.compression.as_str() {
+            "lz4" => Compression::Lz4,
+            "none" => Compression::None,
+            z if z.starts_with("zstd") => {
+                let level = z
+                    .strip_prefix("zstd")
+                    .unwrap()
+                    .trim_start_matches(':')
+                    .parse::<i32>()
+                    .unwrap_or(3);
+                Compression::Zstd(level)
+            }
+            other => {
+                return Err(PyValueError::new_err(format!(
+                    "compression: expected lz4, zstd, zstd:LEVEL or none, found {other:?}"
+                )))
+            }
+        };
+        for (what, v) in [("brick", self.brick), ("shard", self.shard)] {
+            if v.contains(&0) {
+                return Err(PyValueError::new_err(format!(
+                    "{what}: every edge must be positive, got {v:?}"
+                )));
+            }
+        }
+        Ok(ConvertOptions {
+            brick: self.brick,
+            shard: self.shard,
+            compression,
+            labels: self.labels,
+            memory: self.memory,
+            overwrite: self.overwrite,
+            spacing: self.spacing,
+            origin: self.origin,
+            unit: self.unit.clone(),
+        })
+    }
+}
+
+fn run_convert(
+    py: Python<'_>,
+    src: &dyn VolumeSource,
+    dst: &Path,
+    opts: &ConvertOptions,
+    progress: Option<Py<PyAny>>,
+) -> PyResult<String> {
+    let cancel = AtomicBool::new(false);
+    let p = PyProgress {
+        callback: progress,
+        cancel: &cancel,
+    };
+    let r = py.detach(|| brickyard_store::convert(src, dst, opts, &p, &cancel));
+    if cancel.load(Ordering::Relaxed) {
+        return Err(PyKeyboardInterrupt::new_err(format!(
+            "{}: conversion interrupted",
+            dst.display()
+        )));
+    }
+    let report = r.map_err(|e| to_py(e.into()))?;
+    Ok(format!(
+        "{} levels, {} bricks ({} empty, {} constant), {} bytes written in {:.2} s",
+        report.levels.len(),
+        report.bricks,
+        report.bricks_empty,
+        report.bricks_constant,
+        report.bytes_written,
+        report.seconds
+    ))
+}
+
+/// Convert any input `brickyard convert` reads (OME-Zarr/Zarr, TIFF, NRRD,
+/// NIfTI, raw with a JSON sidecar) into a brickyard OME-Zarr pyramid.
+#[pyfunction]
+#[pyo3(signature = (src, dst, options, zarr_level = 0, progress = None))]
+fn convert(
+    py: Python<'_>,
+    src: PathBuf,
+    dst: PathBuf,
+    options: PyConvertOptions,
+    zarr_level: usize,
+    progress: Option<Py<PyAny>>,
+) -> PyResult<String> {
+    if !src.exists() {
+        return Err(missing(&src));
+    }
+    let opts = options.to_options()?;
+    let source = py
+        .detach(|| {
+            open_input(
+                &src,
+                &ImportOptions {
+                    zarr_level,
+                    ..Default::default()
+                },
+            )
+        })
+        .map_err(|e| to_py(e.into()))?;
+    run_convert(py, source.as_ref(), &dst, &opts, progress)
+}
+
+/// Convert an in-memory array (C order `[c, z, y, x]`, native-endian
+/// `dtype`) into a brickyard OME-Zarr pyramid.
+#[pyfunction]
+#[pyo3(signature = (data, shape, dtype, dst, options, progress = None))]
+fn from_bytes(
+    py: Python<'_>,
+    data: &[u8],
+    shape: [u64; 4],
+    dtype: &str,
+    dst: PathBuf,
+    options: PyConvertOptions,
+    progress: Option<Py<PyAny>>,
+) -> PyResult<String> {
+    let opts = options.to_options()?;
+    let src = source::MemorySource::new(data, shape, dtype).map_err(to_py)?;
+    run_convert(py, &src, &dst, &opts, progress)
+}
+
+#[pymodule]
+fn _native(m: &Bound<'_, PyModule>) -> PyResult<()> {
+    m.add_class::<NativeStore>()?;
+    m.add_function(wrap_pyfunction!(render, m)?)?;
+    m.add_function(wrap_pyfunction!(convert, m)?)?;
+    m.add_function(wrap_pyfunction!(from_bytes, m)?)?;
+    Ok(())
+}

@@ -1,0 +1,72 @@
+"""render() against `brickyard render` of the same view, bit for bit."""
+
+import json
+
+import numpy as np
+import pytest
+
+import brickyard
+from conftest import read_png, volume
+
+
+@pytest.fixture(scope="module")
+def store(tmp_path_factory):
+    dst = tmp_path_factory.mktemp("render") / "v.ome.zarr"
+    brickyard.from_numpy(volume((48, 56, 64), "uint16", seed=5), dst, spacing=(1.5, 1.0, 1.0), brick=16,
+                         shard=32, progress=False)
+    return dst
+
+
+@pytest.mark.parametrize("mode,tf", [("dvr", "soft"), ("dvr", "hot"), ("mip", "viridis"), ("slice", "linear")])
+def test_render_equals_cli(store, cli, tmp_path, mode, tf):
+    out = tmp_path / "cli.png"
+    cli("render", store, "--mode", mode, "--size", "64x48", "--backend", "cpu", "--tf", tf, "--quiet",
+        "--out", out)
+    want = read_png(out)
+    got = brickyard.render(brickyard.open(store), mode=mode, tf=tf, size=(64, 48), backend="cpu")
+    assert got.shape == (48, 64, 4) and got.dtype == np.uint8
+    assert want.any(), "the CLI's image is black: the test would prove nothing"
+    np.testing.assert_array_equal(got, want)
+
+
+def test_render_camera_and_tf_dicts_equal_cli_files(store, cli, tmp_path):
+    cam_file, out = tmp_path / "cam.json", tmp_path / "cli.png"
+    cli("render", store, "--size", "40x40", "--backend", "cpu", "--azimuth", "70", "--elevation=-15",
+        "--save-camera", cam_file, "--out", tmp_path / "first.png", "--quiet")
+    tf_file = tmp_path / "tf.json"
+    # A transfer function as JSON: the preset the CLI would build, edited.
+    tf = {"window": [10000.0, 50000.0], "colormap": "hot",
+          "opacity": [[0.0, 0.0], [0.5, 0.1], [1.0, 0.8]]}
+    tf_file.write_text(json.dumps(tf))
+    try:
+        cli("render", store, "--size", "40x40", "--backend", "cpu", "--camera", cam_file, "--tf", tf_file,
+            "--out", out, "--quiet")
+    except RuntimeError as e:
+        pytest.fail(f"the transfer-function JSON of this test is not the CLI's format: {e}")
+    want = read_png(out)
+    camera = json.loads(cam_file.read_text())
+    got = brickyard.render(str(store), camera=camera, tf=tf, size=40, backend="cpu")
+    np.testing.assert_array_equal(got, want)
+    # The same as JSON text.
+    got2 = brickyard.render(str(store), camera=json.dumps(camera), tf=json.dumps(tf), size=40, backend="cpu")
+    np.testing.assert_array_equal(got2, want)
+
+
+def test_render_options_pass_through(store, cli, tmp_path):
+    out = tmp_path / "cli.png"
+    cli("render", store, "--mode", "mip", "--size", "32x32", "--backend", "cpu", "--window", "0,40000",
+        "--level", "1", "--out", out, "--quiet")
+    got = brickyard.render(store, mode="mip", size=(32, 32), backend="cpu", window=(0, 40000), level=1)
+    np.testing.assert_array_equal(got, read_png(out))
+    f = brickyard.render(store, mode="mip", size=(32, 32), backend="cpu", window=(0, 40000), level=1,
+                         dtype="float32")
+    assert f.dtype == np.float32 and f.shape == (32, 32, 4)
+    assert 0.0 <= f.min() and f.max() <= 1.0 and f[..., 3].max() > 0
+
+
+def test_render_negative_option_values(store, cli, tmp_path):
+    out = tmp_path / "cli.png"
+    cli("render", store, "--size", "24x24", "--backend", "cpu", "--elevation=-40", "--lod-bias=-1", "--out", out,
+        "--quiet")
+    got = brickyard.render(store, size=24, backend="cpu", elevation=-40, lod_bias=-1)
+    np.testing.assert_array_equal(got, read_png(out))
