@@ -7,6 +7,9 @@
 //! The single pass is written here, on the in-core oracle's sampler
 //! (`Volume::sample_world`) and a compositing loop of its own.
 
+mod accumulation;
+
+use accumulation::{fixture, scale_opacity, session, Fixture};
 use brickyard_cache::session::Session;
 use brickyard_cache::vm::VmConfig;
 use brickyard_core::camera::{intersect_box_inv, world_extent, Camera, Projection, Vec3};
@@ -19,73 +22,6 @@ use brickyard_store::builder::{convert, ConvertOptions, NoProgress};
 use brickyard_store::generate::{Kind, Procedural};
 use std::path::Path;
 use std::sync::atomic::AtomicBool;
-
-fn session(store: &Path, pool_bytes: u64) -> Session {
-    let cfg = VmConfig {
-        brick: [16; 3],
-        apron: 1,
-        pt_block: [4; 3],
-        max_dir_entries: 64,
-        pool_bytes,
-        pt_cache_blocks: 256,
-        request_cap: 64,
-        upload_bytes_per_frame: 48 * 18 * 18 * 18 * 2,
-    };
-    Session::open(store, cfg, 8 << 20, 2).unwrap()
-}
-
-struct Fixture {
-    _dir: tempfile::TempDir,
-    store: std::path::PathBuf,
-    levels: Vec<Volume>,
-    scene: Scene,
-    params: RenderParams,
-    bytes: u64,
-}
-
-fn fixture() -> Fixture {
-    let dir = tempfile::tempdir().unwrap();
-    let store = dir.path().join("m.ome.zarr");
-    let dims = [48, 64, 56];
-    let src = Procedural::new(Kind::MarschnerLobb, dims, DType::U8);
-    let o = ConvertOptions {
-        brick: [16; 3],
-        shard: [32; 3],
-        ..Default::default()
-    };
-    convert(&src, &store, &o, &NoProgress, &AtomicBool::new(false)).unwrap();
-    let levels: Vec<Volume> = (0..)
-        .map_while(|l| Volume::from_store(&store, l, 0).ok())
-        .collect();
-    let extent = world_extent(dims, levels[0].spacing);
-    let scene = Scene::new(extent, levels.iter().map(|v| v.dims).collect());
-    // A faint transfer function: rays go deep before they stop.
-    let mut tf = TransferFunction::preset("viridis", [0.0, 255.0]).unwrap();
-    scale_opacity(&mut tf, 0.25);
-    let cam = Camera::fit(
-        extent,
-        30.0,
-        20.0,
-        Projection::Perspective { fov_y_deg: 40.0 },
-    );
-    let mut params = RenderParams::new(40, 30, cam, tf, RenderMode::Dvr);
-    params.reference_step = Some(scene.voxel(0));
-    let bytes = dims.iter().product::<u64>();
-    Fixture {
-        _dir: dir,
-        store,
-        levels,
-        scene,
-        params,
-        bytes,
-    }
-}
-
-fn scale_opacity(tf: &mut TransferFunction, s: f32) {
-    for p in tf.opacity.iter_mut() {
-        p[1] *= s;
-    }
-}
 
 /// A single DVR pass at `rate` samples per frame step of level `level`:
 /// samples at `t0 + i·Δ/rate`, `i = 0, 1, …`, on the oracle's sampler,
