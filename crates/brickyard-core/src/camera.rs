@@ -237,6 +237,38 @@ impl RayGen {
         }
     }
 
+    /// The ray through `(px, py)` of a camera moved `eye_shift` world units
+    /// along its right vector whose frustum is shifted so that the plane
+    /// `distance` in front of the unmoved eye looks the same (off-axis,
+    /// parallel frusta: what stereo and multi-view displays need; no
+    /// toe-in). Orthographic cameras get the matching oblique projection:
+    /// parallel rays from the moved eye's plane through the same points of
+    /// that plane. `eye_shift = 0` gives [`RayGen::ray`] exactly.
+    #[inline]
+    pub fn shifted_ray(&self, px: f64, py: f64, eye_shift: f64, distance: f64) -> Ray {
+        if eye_shift == 0.0 {
+            return self.ray(px, py);
+        }
+        let aspect = self.width / self.height;
+        let sx = (2.0 * px / self.width - 1.0) * self.half_h * aspect;
+        let sy = (1.0 - 2.0 * py / self.height) * self.half_h;
+        let b = &self.basis;
+        let slope = eye_shift / distance;
+        if self.perspective {
+            let off = add(scale(b.right, sx - slope), scale(b.up, sy));
+            Ray {
+                origin: add(self.eye, scale(b.right, eye_shift)),
+                dir: normalize(add(b.forward, off)),
+            }
+        } else {
+            let off = add(scale(b.right, sx + eye_shift), scale(b.up, sy));
+            Ray {
+                origin: add(self.eye, off),
+                dir: normalize(sub(b.forward, scale(b.right, slope))),
+            }
+        }
+    }
+
     /// The ray through the centre of pixel `(i, j)`.
     #[inline]
     pub fn pixel_ray(&self, i: u32, j: u32) -> Ray {

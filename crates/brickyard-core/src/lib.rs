@@ -1,6 +1,6 @@
 //! Core types of brickyard: voxel data types, dataset layout and the
 //! multi-resolution pyramid plan, the virtual-address math, cameras and
-//! transfer functions.
+//! transfer functions, and the views of stereo and multi-view images.
 //!
 //! This crate does no I/O and never touches a GPU.
 
@@ -8,6 +8,7 @@ pub mod camera;
 pub mod dtype;
 pub mod pyramid;
 pub mod transfer;
+pub mod views;
 pub mod vm;
 
 pub use camera::{Camera, ConfigError, Projection, Ray};

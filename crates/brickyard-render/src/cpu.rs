@@ -41,10 +41,11 @@
 use crate::image::Image;
 use crate::params::{RenderMode, RenderParams};
 use crate::walk::{Frame, Walker};
-use crate::{mip, multi, slice};
+use crate::{mip, multi, slice, superslice};
 use brickyard_cache::ranges::BrickRanges;
 use brickyard_cache::vm::{Requests, VirtualMemory};
 use brickyard_core::camera::Vec3;
+use brickyard_core::views::ViewRays;
 use brickyard_core::{dispatch_dtype, Dims3, Sample};
 use rayon::prelude::*;
 use std::sync::Arc;
@@ -222,6 +223,9 @@ fn render_typed<T: Sample>(
     tiles: &mut Tiles,
 ) -> (FrameStats, Vec<Requests>) {
     let frame = Frame::new(vm, scene, params, lod);
+    if let (RenderMode::Slice { origin, normal }, Some(views)) = (&params.mode, &params.views) {
+        return superslice::draw::<T>(&frame, scene, (*origin, *normal), views, img, tiles);
+    }
     // DVR of several channels: a frame per channel (its transfer function's
     // transparent bricks), over the same geometry.
     let dvr_multi = matches!(params.mode, RenderMode::Dvr) && !params.channels.is_empty();
@@ -252,7 +256,12 @@ fn render_typed<T: Sample>(
         .collect();
     let w = params.width as usize;
     let tiles_x = w.div_ceil(TILE_W);
-    let rg = params.camera.ray_gen(params.width, params.height);
+    let rg = ViewRays::new(
+        &params.camera,
+        params.views.as_ref(),
+        params.width,
+        params.height,
+    );
     let parts: Vec<(FrameStats, Requests)> = img
         .rgba
         .par_chunks_mut(w * TILE_H)

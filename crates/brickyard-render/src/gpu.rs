@@ -25,7 +25,7 @@ use brickyard_cache::cells::cell_ranges_of_bytes;
 use brickyard_cache::ranges::BrickRanges;
 use brickyard_cache::session::Session;
 use brickyard_cache::vm::{Requests, VirtualMemory};
-use brickyard_core::camera::Projection;
+use brickyard_core::camera::{length, sub, Projection};
 use brickyard_core::vm::PageEntry;
 use brickyard_core::TransferFunction;
 use brickyard_gpu::context::{Gpu, GpuError};
@@ -45,6 +45,8 @@ const RENDER_WGSL: &str = concat!(
     include_str!("walk.wgsl"),
     "\n",
     include_str!("slice.wgsl"),
+    "\n",
+    include_str!("superslice.wgsl"),
     "\n",
     include_str!("mip.wgsl"),
     "\n",
@@ -100,7 +102,9 @@ struct Uniform {
     /// their styles start in the aux buffer.
     n_channels: u32,
     styles_off: u32,
-    pad3: [u32; 2],
+    /// Views side by side (1: one) and the width of each.
+    n_views: u32,
+    view_width: u32,
     plane_origin: [f32; 4],
     plane_normal: [f32; 4],
     /// Ambient, diffuse, specular, shininess.
@@ -110,6 +114,9 @@ struct Uniform {
     acc: [u32; 4],
     acc_off: [u32; 4],
     acc_ref: [f32; 4],
+    /// Views: eye separation, distance to the target plane, super-slice
+    /// parallax and slice spacing.
+    views: [f32; 4],
     scale: [[f32; 4]; MAX_LEVELS],
     qmax: [[f32; 4]; MAX_LEVELS],
     step: [[f32; 4]; MAX_LEVELS],
@@ -369,6 +376,8 @@ impl GpuRenderer {
 
         let cam = &params.camera;
         let basis = cam.basis();
+        let n_views = params.views.map_or(1, |v| v.count);
+        let view_width = w / n_views;
         let f4 = |v: [f64; 3]| [v[0] as f32, v[1] as f32, v[2] as f32, 0.0];
         let (half_h, perspective) = match cam.projection {
             Projection::Perspective { fov_y_deg } => ((fov_y_deg * 0.5).to_radians().tan(), 1),
@@ -387,7 +396,17 @@ impl GpuRenderer {
             forward: f4(basis.forward),
             extent: f4(scene.extent),
             half_h: half_h as f32,
-            aspect: (w as f64 / h as f64) as f32,
+            aspect: (view_width as f64 / h as f64) as f32,
+            n_views,
+            view_width,
+            views: params.views.map_or([0.0; 4], |v| {
+                [
+                    v.separation as f32,
+                    length(sub(cam.target, cam.eye)) as f32,
+                    v.parallax as f32,
+                    v.spacing as f32,
+                ]
+            }),
             perspective,
             lod_fixed: match lod {
                 Lod::Fixed(l) => l as u32,

@@ -3,7 +3,7 @@
 // compositing, in f32 where the CPU uses f64 for positions). This file
 // declares the render uniform, the bindings and the per-invocation state,
 // makes each pixel's ray and hands it to its mode; `gpu.rs` appends
-// optics.wgsl, walk.wgsl, slice.wgsl, mip.wgsl, dvr.wgsl and multi.wgsl to it, all
+// optics.wgsl, walk.wgsl, slice.wgsl, superslice.wgsl, mip.wgsl, dvr.wgsl and multi.wgsl to it, all
 // after vm_common.wgsl (bindings 0–2: layout, page tables, pool) and
 // before request_insert.wgsl.
 //
@@ -60,8 +60,9 @@ struct Render {
     // channel, lo, hi, 0, r, g, b, 0).
     n_channels: u32,
     styles_off: u32,
-    pad3: u32,
-    pad4: u32,
+    // Views side by side (1: one) and the width of each.
+    n_views: u32,
+    view_width: u32,
     // Slice: a point of the plane and its unit normal (x, y, z).
     plane_origin: vec4<f32>,
     plane_normal: vec4<f32>,
@@ -73,6 +74,9 @@ struct Render {
     acc: vec4<u32>,
     acc_off: vec4<u32>,
     acc_ref: vec4<f32>,
+    // Views: eye separation, distance to the target plane, super-slice
+    // parallax (pixels) and slice spacing (world).
+    views: vec4<f32>,
     // Per level: voxels per world unit (z, y, x); w unused.
     scale: array<vec4<f32>, 16>,
     // Per level: last voxel index (z, y, x) as floats.
@@ -136,16 +140,38 @@ struct Ray {
     d: vec3<f32>,
 }
 
-fn pixel_ray(i: u32, j: u32) -> Ray {
-    let px = f32(i) + 0.5;
-    let py = f32(j) + 0.5;
-    let sx = (2.0 * px / f32(R.width) - 1.0) * R.half_h * R.aspect;
+// The ray of view `v` through its continuous position (px, py): the
+// camera moved along its right vector, its frustum shifted so that the
+// target plane looks the same in every view (`brickyard_core::views`).
+fn view_ray(v: u32, px: f32, py: f32) -> Ray {
+    let sx = (2.0 * px / f32(R.view_width) - 1.0) * R.half_h * R.aspect;
     let sy = (1.0 - 2.0 * py / f32(R.height)) * R.half_h;
-    let off = R.right.xyz * sx + R.up.xyz * sy;
-    if (R.perspective == 1u) {
-        return Ray(R.eye.xyz, normalize(R.forward.xyz + off));
+    let shift = (f32(v) - 0.5 * f32(R.n_views - 1u)) * R.views.x;
+    if (shift == 0.0) {
+        let off = R.right.xyz * sx + R.up.xyz * sy;
+        if (R.perspective == 1u) {
+            return Ray(R.eye.xyz, normalize(R.forward.xyz + off));
+        }
+        return Ray(R.eye.xyz + off, R.forward.xyz);
     }
-    return Ray(R.eye.xyz + off, R.forward.xyz);
+    let slope = shift / R.views.y;
+    if (R.perspective == 1u) {
+        let off = R.right.xyz * (sx - slope) + R.up.xyz * sy;
+        return Ray(R.eye.xyz + R.right.xyz * shift, normalize(R.forward.xyz + off));
+    }
+    let off = R.right.xyz * (sx + shift) + R.up.xyz * sy;
+    return Ray(R.eye.xyz + off, normalize(R.forward.xyz - R.right.xyz * slope));
+}
+
+// The view of pixel column i and the column within it.
+fn view_of(i: u32) -> vec2<u32> {
+    let v = min(i / R.view_width, R.n_views - 1u);
+    return vec2<u32>(v, i - v * R.view_width);
+}
+
+fn pixel_ray(i: u32, j: u32) -> Ray {
+    let v = view_of(i);
+    return view_ray(v.x, f32(v.y) + 0.5, f32(j) + 0.5);
 }
 
 fn put_pixel(i: u32, c: vec4<f32>) {
@@ -175,7 +201,9 @@ fn render(@builtin(global_invocation_id) g: vec3<u32>) {
     begin_invocation();
     let ray = pixel_ray(g.x, g.y);
     var px = vec4<f32>(0.0);
-    if (R.n_channels > 0u) {
+    if (R.mode == 2u && R.n_views > 1u) {
+        px = superslice_pixel(g.x, g.y);
+    } else if (R.n_channels > 0u) {
         if (R.mode == 2u) {
             px = slice_channels(ray);
         } else if (R.mode == 1u) {

@@ -8,7 +8,8 @@
 //!   no code with the renderers below.
 //! - [`cpu`]: ray-guided DVR, MIP and slices through the virtual memory
 //!   (the CPU frame driver), made of `walk` (bricks, landing, cells),
-//!   `dvr`, `mip`, `slice` (one module per mode), [`multi`] (DVR of
+//!   `dvr`, `mip`, `slice` (one module per mode), `superslice` (the views
+//!   of a slice stack for multi-view displays), [`multi`] (DVR of
 //!   several channels, each through its own transfer function) and
 //!   [`optics`] (transfer function, opacity correction, compositing,
 //!   channel mix).
@@ -37,6 +38,7 @@ pub mod reference;
 pub mod savr;
 mod shading;
 mod slice;
+mod superslice;
 mod walk;
 
 pub use image::Image;
@@ -91,6 +93,7 @@ mod independence {
             ("dvr.rs", include_str!("dvr.rs")),
             ("mip.rs", include_str!("mip.rs")),
             ("slice.rs", include_str!("slice.rs")),
+            ("superslice.rs", include_str!("superslice.rs")),
             ("budget.rs", include_str!("budget.rs")),
             ("savr.rs", include_str!("savr.rs")),
             ("shading.rs", include_str!("shading.rs")),

@@ -1,9 +1,10 @@
 //! What a render draws: the mode (DVR, MIP, slice), the image size,
 //! camera and transfer function, the step rate, the opacity reference and
-//! the channels added up, with their validation. Every renderer takes
+//! the channels added up, the views side by side, with their validation. Every renderer takes
 //! these: the CPU and device renderers and the in-core reference.
 
 use brickyard_core::camera::length;
+use brickyard_core::views::Views;
 use brickyard_core::{Camera, ConfigError, TransferFunction};
 use serde::{Deserialize, Serialize};
 
@@ -50,6 +51,11 @@ pub struct RenderParams {
     /// mixed by [`crate::multi`]'s rule). Empty: one channel through `tf`.
     #[serde(default, skip_serializing_if = "Vec::is_empty")]
     pub channels: Vec<ChannelStyle>,
+    /// Several views side by side (`width` holds them all, see
+    /// [`brickyard_core::views`]): DVR and MIP from cameras along a
+    /// baseline, slices as super-slices. `None`: one view.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub views: Option<Views>,
 }
 
 /// Most channels a slice or MIP adds up at once.
@@ -127,6 +133,7 @@ impl RenderParams {
             samples_per_voxel: 1.0,
             reference_step: None,
             channels: vec![],
+            views: None,
         }
     }
 
@@ -159,6 +166,26 @@ impl RenderParams {
                     "mode.normal",
                     format!("slice needs a finite origin and a non-zero normal, got {origin:?}, {normal:?}"),
                 );
+            }
+        }
+        if let Some(v) = &self.views {
+            v.validate(self.width)?;
+            if matches!(self.mode, RenderMode::Slice { .. }) {
+                if !self.channels.is_empty() {
+                    return bad(
+                        "views",
+                        "a super-slice shows one channel through the transfer function".into(),
+                    );
+                }
+                if v.separation != 0.0 {
+                    return bad(
+                        "views.separation",
+                        format!(
+                            "super-slices take parallax and spacing, not a camera separation (got {})",
+                            v.separation
+                        ),
+                    );
+                }
             }
         }
         let dvr = matches!(self.mode, RenderMode::Dvr);

@@ -38,6 +38,9 @@
 //!   ray that took at least one sample, 0 otherwise (the TF's opacity is not
 //!   used).
 //! - **Slice**: see [`RenderMode::Slice`].
+//! - **Several views** ([`RenderParams::views`], `brickyard_core::views`):
+//!   DVR and MIP rays from each view's camera; slices become super-slices
+//!   (`render_super_slices` says how they are composited).
 //! - **Several channels** (MIP, slice; [`RenderParams::channels`]): each
 //!   channel's value (a MIP: its own largest along the ray) windowed to
 //!   `[0, 1]` (NaN: 0), times its colour, added up, each component
@@ -64,6 +67,7 @@
 
 use crate::image::Image;
 use brickyard_core::camera::{intersect_box, world_extent, world_to_normalized, Ray, Vec3};
+use brickyard_core::views::{ViewRays, Views};
 use brickyard_core::{dispatch_dtype, trilinear_of, Sample, Shading, TransferFunction};
 use brickyard_store::import::zarr;
 use brickyard_store::{StoreError, VolumeSource};
@@ -348,17 +352,92 @@ fn per_pixel(params: &RenderParams, pixel: impl Fn(&Ray) -> [f32; 4] + Sync) -> 
         panic!("invalid render parameters: {e}");
     }
     let (w, h) = (params.width, params.height);
+    let rays = ViewRays::new(&params.camera, params.views.as_ref(), w, h);
+    per_index(params, |i, j| pixel(&rays.pixel_ray(i, j)))
+}
+
+/// An image of `params`' size whose pixel `(i, j)` is `pixel(i, j)`.
+fn per_index(params: &RenderParams, pixel: impl Fn(u32, u32) -> [f32; 4] + Sync) -> Image {
+    let (w, h) = (params.width, params.height);
     let mut img = Image::new(w, h);
-    let rg = params.camera.ray_gen(w, h);
     img.rgba
         .par_chunks_mut(w as usize)
         .enumerate()
         .for_each(|(j, row)| {
             for (i, px) in row.iter_mut().enumerate() {
-                *px = pixel(&rg.pixel_ray(i as u32, j as u32));
+                *px = pixel(i as u32, j as u32);
             }
         });
     img
+}
+
+/// The super-slices of `params.views` through the plane `(origin,
+/// normal)`, as the thesis composites them: for pixel `x` of view `v`,
+/// slice `k` (at `(k − c)·spacing` towards the camera, `c = count/2`) is
+/// sampled where the view's ray through `x + shift(v, k)` meets it and
+/// classified by the transfer function (straight alpha, no step
+/// correction; outside the box or NaN: nothing); slices `0 … c` are laid
+/// back to front (`C = α·rgb + (1 − α)·C` each), then slices `c+1 …
+/// count−1` are added front to back (`C += (1 − A)·α·rgb`).
+fn render_super_slices(
+    volume: &Volume,
+    params: &RenderParams,
+    views: &Views,
+    (origin, normal): (Vec3, Vec3),
+) -> Image {
+    if let Err(e) = params.validate() {
+        panic!("invalid render parameters: {e}");
+    }
+    let extent = volume.extent();
+    let rays = ViewRays::new(&params.camera, Some(views), params.width, params.height);
+    let forward = params.camera.basis().forward;
+    let len = (normal[0] * normal[0] + normal[1] * normal[1] + normal[2] * normal[2]).sqrt();
+    let mut n = [normal[0] / len, normal[1] / len, normal[2] / len];
+    if n[0] * forward[0] + n[1] * forward[1] + n[2] * forward[2] > 0.0 {
+        n = [-n[0], -n[1], -n[2]];
+    }
+    let c = views.count / 2;
+    per_index(params, |i, j| {
+        let (v, x) = rays.view_of(i);
+        let layer = |k: u32| -> Option<[f64; 4]> {
+            let ray = rays.ray(v, x as f64 + 0.5 + views.slice_shift(v, k), j as f64 + 0.5);
+            let d = views.slice_depth(k);
+            let o = [
+                origin[0] + d * n[0],
+                origin[1] + d * n[1],
+                origin[2] + d * n[2],
+            ];
+            let (w, _) = plane_hit(&ray, o, normal, extent)?;
+            let value = volume.sample_world(w, extent);
+            if value.is_nan() {
+                return None;
+            }
+            Some(params.tf.lookup(value).map(f64::from))
+        };
+        let mut acc = [0.0f64; 4];
+        for k in 0..=c {
+            if let Some([r, g, b, a]) = layer(k) {
+                acc = [
+                    a * r + (1.0 - a) * acc[0],
+                    a * g + (1.0 - a) * acc[1],
+                    a * b + (1.0 - a) * acc[2],
+                    a + (1.0 - a) * acc[3],
+                ];
+            }
+        }
+        for k in c + 1..views.count {
+            if let Some([r, g, b, a]) = layer(k) {
+                let wgt = (1.0 - acc[3]) * a;
+                acc = [
+                    acc[0] + wgt * r,
+                    acc[1] + wgt * g,
+                    acc[2] + wgt * b,
+                    acc[3] + wgt,
+                ];
+            }
+        }
+        acc.map(|x| x as f32)
+    })
 }
 
 /// Render `volume` with `params` (rows in parallel). Panics if
@@ -368,6 +447,9 @@ pub fn render(volume: &Volume, params: &RenderParams) -> Image {
     let voxel = volume.voxel_size();
     let dt = voxel / params.samples_per_voxel;
     let exponent = dt / params.reference_step.unwrap_or(voxel);
+    if let (RenderMode::Slice { origin, normal }, Some(views)) = (&params.mode, &params.views) {
+        return render_super_slices(volume, params, views, (*origin, *normal));
+    }
     per_pixel(params, |ray| match &params.mode {
         RenderMode::Dvr => dvr_ray(volume, &params.tf, ray, extent, dt, exponent),
         RenderMode::Mip => mip_ray(volume, &params.tf, ray, extent, dt),

@@ -70,6 +70,7 @@ use crate::walk::{Frame, Walker};
 use brickyard_cache::vm::{Requests, VirtualMemory};
 use brickyard_core::camera::{intersect_box_inv, Ray};
 use brickyard_core::transfer::TfEval;
+use brickyard_core::views::ViewRays;
 use brickyard_core::{dispatch_dtype, Sample, Shading, TransferFunction};
 use rayon::prelude::*;
 
@@ -326,7 +327,12 @@ impl Accumulation {
     ) -> (AccumStats, Vec<Requests>) {
         let frame = Frame::new(vm, scene, params, lod);
         let w = self.width as usize;
-        let rg = params.camera.ray_gen(self.width, self.height);
+        let rg = ViewRays::new(
+            &params.camera,
+            params.views.as_ref(),
+            self.width,
+            self.height,
+        );
         let tf = params.tf.evaluator();
         let shading = params.tf.shading;
         let normals = self.shaded == Some(true);

@@ -6,12 +6,17 @@
 // Where the pixel's ray meets the slice plane inside the closed world box:
 // (point, t), or w = −1 when it does not.
 fn slice_hit(ray: Ray) -> vec4<f32> {
+    return plane_hit_at(ray, R.plane_origin.xyz);
+}
+
+// The same for the parallel plane through `origin`.
+fn plane_hit_at(ray: Ray, origin: vec3<f32>) -> vec4<f32> {
     let n = R.plane_normal.xyz;
     let denom = dot(ray.d, n);
     if (denom == 0.0) {
         return vec4<f32>(-1.0);
     }
-    let t = dot(R.plane_origin.xyz - ray.o, n) / denom;
+    let t = dot(origin - ray.o, n) / denom;
     if (is_nan(t) || t < 0.0) {
         return vec4<f32>(-1.0);
     }
@@ -29,21 +34,26 @@ fn slice_pixel(ray: Ray) -> vec4<f32> {
     if (hit.w < 0.0) {
         return vec4<f32>(0.0);
     }
-    let w = hit.xyz;
-    let level = level_at(hit.w);
-    let s = sample_at(w, level);
+    let v = plane_value(hit);
+    if (is_nan(v)) {
+        return vec4<f32>(0.0);
+    }
+    return vec4<f32>(color_at(windowed(v)), 1.0);
+}
+
+// The value where a ray meets a plane (`hit`: point, t), at the level the
+// footprint asks for, counted; NaN when nothing is resident.
+fn plane_value(hit: vec4<f32>) -> f32 {
+    let s = sample_at(hit.xyz, level_at(hit.w));
     atomicAdd(&counters[0], 1u);
     if (s.y == 2.0) {
         atomicAdd(&counters[1], 1u);
     }
     if (s.y == 0.0) {
         atomicAdd(&counters[2], 1u);
-        return vec4<f32>(0.0);
+        return bitcast<f32>(0x7fc00000u);
     }
-    if (is_nan(s.x)) {
-        return vec4<f32>(0.0);
-    }
-    return vec4<f32>(color_at(windowed(s.x)), 1.0);
+    return s.x;
 }
 
 // A slice of several channels.
