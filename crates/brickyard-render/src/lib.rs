@@ -20,6 +20,8 @@
 //!   samples per pixel, depth-order blends, re-blends under a new transfer
 //!   function); `shading` holds DVR gradient shading.
 //! - [`budget`]: the level-of-detail budget of a view.
+//! - [`views`]: what an image of several views becomes for a display
+//!   (tiles, side by side, top-bottom, anaglyph, multiplexed sub-pixels).
 //!
 //! Cameras and transfer functions live in `brickyard_core::{camera,
 //! transfer}`. **World coordinates are `[x, y, z]`**; volumes, spacing and
@@ -39,6 +41,7 @@ pub mod savr;
 mod shading;
 mod slice;
 mod superslice;
+pub mod views;
 mod walk;
 
 pub use image::Image;

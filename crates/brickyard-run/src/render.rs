@@ -128,6 +128,34 @@ pub struct RenderCmd {
     /// kept samples take are printed.
     #[arg(long, value_name = "N")]
     progressive: Option<u32>,
+    /// N views in one frame (2 to 16; --size is each view's): in dvr and
+    /// mip, cameras --eye-separation apart along the baseline (off-axis);
+    /// in slice mode, a super-slice of N slices --spacing apart, each view
+    /// seeing them shifted by --parallax. Written as --multiplex says.
+    #[arg(long, value_name = "N")]
+    views: Option<u32>,
+    /// Super-slices: pixels of shift between neighbouring views per slice
+    /// away from the reference slice (Δx; default 1).
+    #[arg(long, value_name = "DX")]
+    parallax: Option<f64>,
+    /// Super-slices: slices between the stack's slices, in voxels of
+    /// level 0 (Δz; default 1).
+    #[arg(long, value_name = "DZ")]
+    spacing: Option<f64>,
+    /// How N views are written: `tiles` (a grid, the default) or a JSON
+    /// file of the display's sub-pixel filters (`{"views": N, "pattern":
+    /// [[…]]}` or `{"views": N, "lens": L, "slant": S, "offset": O}`),
+    /// multiplexed into one image.
+    #[arg(long, value_name = "FILE|tiles")]
+    multiplex: Option<String>,
+    /// Stereo pair (dvr, mip): sbs (side by side, left first), tb (left
+    /// above right) or anaglyph (red–cyan).
+    #[arg(long)]
+    stereo: Option<String>,
+    /// Distance between neighbouring eyes in world units (default: a
+    /// thirtieth of the distance to the target, where the views agree).
+    #[arg(long, value_name = "D")]
+    eye_separation: Option<f64>,
     #[arg(long, default_value_t = 2)]
     loader_threads: usize,
     /// Slow every brick read down by this many milliseconds (a slow disk).
@@ -328,6 +356,7 @@ fn run_with(
 ) -> Result<Vec<String>> {
     let silent = c.silent;
     let [w, h] = parse_image_size(&c.size, "size")?;
+    let (n_views, layout) = view_layout(&c)?;
     let info = inspect(&c.store)?;
     if info.complete == Some(false) {
         bail!(
@@ -440,7 +469,7 @@ fn run_with(
         opt_bytes(&c.memory)?,
         opt_bytes(&c.pool)?,
         opt_bytes(&c.host)?,
-        w as u64 * h as u64,
+        n_views as u64 * w as u64 * h as u64,
         info.levels.len(),
     )?;
     // A padded brick of the pool (its cell ranges included), to size the
@@ -643,8 +672,22 @@ fn run_with(
         } else {
             camera
         };
-        let mut params = RenderParams::new(w, h, cam, tf.clone(), mode.clone());
+        let mut params = RenderParams::new(n_views * w, h, cam, tf.clone(), mode.clone());
         params.samples_per_voxel = c.samples_per_voxel;
+        if n_views > 1 {
+            let slices = matches!(mode, RenderMode::Slice { .. });
+            let distance =
+                brickyard_core::camera::length(brickyard_core::camera::sub(cam.target, cam.eye));
+            params.views = Some(brickyard_core::views::Views {
+                count: n_views,
+                separation: match slices {
+                    true => 0.0,
+                    false => c.eye_separation.unwrap_or(distance / 30.0),
+                },
+                parallax: c.parallax.unwrap_or(1.0),
+                spacing: c.spacing.unwrap_or(1.0) * scene.voxel(0),
+            });
+        }
         if mode != RenderMode::Dvr || dvr_multi {
             params.channels = styles.clone();
         }
@@ -782,6 +825,11 @@ fn run_with(
             }
             None => out.image,
         };
+        let img = match &layout {
+            Some(l) => brickyard_render::views::compose(&img, n_views, l, [0.0, 0.0, 0.0, 1.0])
+                .map_err(|e| anyhow::anyhow!("views: {e}"))?,
+            None => img,
+        };
         let path = if c.turntable.is_some() {
             let stem = c
                 .out
@@ -806,6 +854,93 @@ fn run_with(
         }
     }
     Ok(written)
+}
+
+/// `--views`, `--stereo` and their companions: how many views and how
+/// they are written (`None`: one view as it is).
+fn view_layout(c: &RenderCmd) -> Result<(u32, Option<brickyard_render::views::Layout>)> {
+    use brickyard_render::views::{Layout, Multiplex};
+    let slices = c.mode == "slice";
+    if !slices {
+        for (flag, given) in [
+            ("parallax", c.parallax.is_some()),
+            ("spacing", c.spacing.is_some()),
+        ] {
+            if given {
+                bail!("{flag}: super-slices only (--mode slice with --views N)");
+            }
+        }
+    } else if c.eye_separation.is_some() || c.stereo.is_some() {
+        bail!(
+            "stereo: slices take --views N (a super-slice) with --parallax and --spacing, not eyes"
+        );
+    }
+    if let Some(d) = c.eye_separation {
+        if !(d.is_finite() && d >= 0.0) {
+            bail!("eye-separation: expected a distance of 0 or more, got {d}");
+        }
+    }
+    if let Some(z) = c.spacing {
+        if !(z.is_finite() && z >= 0.0) {
+            bail!("spacing: expected 0 or more voxels, got {z}");
+        }
+    }
+    if let Some(x) = c.parallax {
+        if !x.is_finite() {
+            bail!("parallax: expected a number of pixels, got {x}");
+        }
+    }
+    match (&c.stereo, c.views) {
+        (Some(_), Some(_)) => bail!("stereo: give --stereo (two views) or --views N, not both"),
+        (Some(st), None) => {
+            if c.multiplex.is_some() {
+                bail!("multiplex: for --views N; --stereo says how the pair is written");
+            }
+            let layout = match st.as_str() {
+                "sbs" => Layout::SideBySide,
+                "tb" => Layout::TopBottom,
+                "anaglyph" => Layout::Anaglyph,
+                s => bail!("stereo: expected sbs, tb or anaglyph, found {s:?}"),
+            };
+            Ok((2, Some(layout)))
+        }
+        (None, Some(n)) => {
+            if !(2..=brickyard_core::views::MAX_VIEWS).contains(&n) {
+                bail!(
+                    "views: expected 2 to {} views, got {n}",
+                    brickyard_core::views::MAX_VIEWS
+                );
+            }
+            let layout = match c.multiplex.as_deref() {
+                None | Some("tiles") => Layout::Tiles,
+                Some(file) => {
+                    let m = Multiplex::from_file(std::path::Path::new(file))
+                        .map_err(|e| anyhow::anyhow!("multiplex: {e}"))?;
+                    if m.views != n {
+                        bail!(
+                            "multiplex: {file} describes {} views, --views asks for {n}",
+                            m.views
+                        );
+                    }
+                    Layout::Multiplex(m)
+                }
+            };
+            Ok((n, Some(layout)))
+        }
+        (None, None) => {
+            for (flag, given) in [
+                ("multiplex", c.multiplex.is_some()),
+                ("eye-separation", c.eye_separation.is_some()),
+                ("parallax", c.parallax.is_some()),
+                ("spacing", c.spacing.is_some()),
+            ] {
+                if given {
+                    bail!("{flag}: only with --views N or --stereo");
+                }
+            }
+            Ok((1, None))
+        }
+    }
 }
 
 /// The most device memory a sample store takes (the device allocates a
