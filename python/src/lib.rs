@@ -518,8 +518,23 @@ fn process(
         cancel: &cancel,
         phase: Some("writing"),
     };
+    // The job runs beside this thread, which watches for Ctrl-C: the
+    // labelling reports progress from worker threads, where Python does
+    // not run signal handlers.
     let r = py
-        .detach(|| processing::run(&args, &labelling, &writing, &cancel))
+        .detach(|| {
+            std::thread::scope(|s| {
+                let job = s.spawn(|| processing::run(&args, &labelling, &writing, &cancel));
+                while !job.is_finished() {
+                    std::thread::sleep(std::time::Duration::from_millis(50));
+                    if interrupted() {
+                        cancel.store(true, Ordering::SeqCst);
+                    }
+                }
+                job.join()
+                    .unwrap_or_else(|_| Err(anyhow::anyhow!("process: the job panicked")))
+            })
+        })
         .map_err(to_py)?;
     Ok((r.output, r.labels, r.line))
 }

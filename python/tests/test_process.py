@@ -5,6 +5,7 @@ import shutil
 import signal
 import subprocess
 import threading
+import time
 
 import numpy as np
 import pytest
@@ -155,16 +156,54 @@ def test_bad_arguments(two_stores, tmp_path):
     assert sorted(os.listdir(b / "derived")) == ["s", "zarr.json"]
 
 
-def test_ctrl_c_leaves_the_store_as_it_was(tmp_path):
-    a = volume((160, 160, 160), "uint16", seed=5)
+@pytest.mark.parametrize("pipe,phase", [("gauss(2)|sobel", "writing"),
+                                        ("gauss(2)|threshold(30000)|label(26)", "labelling")])
+def test_ctrl_c_leaves_the_store_as_it_was(tmp_path, pipe, phase):
+    a = volume((128, 128, 128), "uint16", seed=5)
     dst = tmp_path / "big.ome.zarr"
-    brickyard.from_numpy(a, dst, brick=32, shard=64, progress=False)
-    # SIGINT while the job runs (on the main thread, inside native code).
-    timer = threading.Timer(0.5, lambda: os.kill(os.getpid(), signal.SIGINT))
-    timer.start()
-    try:
-        with pytest.raises(KeyboardInterrupt, match="as it was"):
-            brickyard.process(dst, "gauss(4)|gradmag(3)", out="slow", memory=64 << 20, progress=False)
-    finally:
-        timer.cancel()
-    assert not (dst / "derived").exists(), os.listdir(dst / "derived")
+    brickyard.from_numpy(a, dst, brick=16, shard=64, progress=False)
+    before = sorted(os.listdir(dst))
+    seen = []
+
+    def progress(kind, n):
+        # SIGINT at the first piece of work of the phase (the labelling
+        # reports from worker threads, the writing from the job's thread).
+        if kind.startswith("start"):
+            seen.append(kind)
+        elif seen and seen[-1].startswith(f"start:{phase}"):
+            seen.append("sent")
+            os.kill(os.getpid(), signal.SIGINT)
+
+    with pytest.raises(KeyboardInterrupt, match="as it was"):
+        brickyard.process(dst, pipe, out="x", progress=progress)
+    assert "sent" in seen, seen
+    if phase == "labelling":
+        assert not any(k.startswith("start:writing") for k in seen), seen
+    assert sorted(os.listdir(dst)) == before
+
+
+
+def test_process_releases_the_gil(tmp_path):
+    dst = tmp_path / "gil.ome.zarr"
+    brickyard.from_numpy(volume((96, 128, 128), "float32", seed=9), dst, brick=32, progress=False)
+    done = threading.Event()
+    result = {}
+
+    def job():
+        t = time.perf_counter()
+        result["store"] = brickyard.process(dst, "gauss(3)|sobel", out="g", progress=False)
+        result["seconds"] = time.perf_counter() - t
+        done.set()
+
+    th = threading.Thread(target=job)
+    th.start()
+    gaps, last = [], time.perf_counter()
+    while not done.is_set():
+        sum(range(200))
+        now = time.perf_counter()
+        gaps.append(now - last)
+        last = now
+    th.join()
+    assert result["seconds"] > 0.1, "the job was too short to tell"
+    assert max(gaps) < 0.5 * result["seconds"], (max(gaps), result["seconds"])
+    assert len(gaps) > 100
