@@ -81,6 +81,10 @@ class Store:
         threads = threads or min(8, os.cpu_count() or 1)
         self._path = os.fspath(path)
         self._native = _native.NativeStore(self._path, int(cache), int(chunk_cache), int(brick), int(threads))
+        # Fixed for the store's life: asked of the native side once, not per read.
+        self._shapes = [tuple(s) for s in self._native.shapes]
+        self._channels = self._native.channels
+        self._dtype = np.dtype(self._native.dtype)
 
     @property
     def path(self) -> str:
@@ -89,12 +93,12 @@ class Store:
 
     @property
     def levels(self) -> int:
-        return len(self._native.shapes)
+        return len(self._shapes)
 
     @property
     def shapes(self) -> list:
         """Shape `(z, y, x)` of every level, level 0 first."""
-        return [tuple(s) for s in self._native.shapes]
+        return list(self._shapes)
 
     @property
     def shape(self) -> tuple:
@@ -103,11 +107,11 @@ class Store:
 
     @property
     def channels(self) -> int:
-        return self._native.channels
+        return self._channels
 
     @property
     def dtype(self) -> np.dtype:
-        return np.dtype(self._native.dtype)
+        return self._dtype
 
     @property
     def scales(self) -> list:
@@ -140,13 +144,14 @@ class Store:
     def read(self, level: int = 0, channel: int = 0, region: Any = None) -> np.ndarray:
         """The region (`np.s_[z0:z1, y0:y1, x0:x1]`; None = the whole level) of
         one level and channel, through the loader and host cache."""
-        if not isinstance(level, (int, np.integer)) or not 0 <= level < self.levels:
-            raise IndexError(f"level: {level} asked for but the store has {self.levels} level(s)")
-        if not isinstance(channel, (int, np.integer)) or not 0 <= channel < self.channels:
-            raise IndexError(f"channel: {channel} asked for but the store has {self.channels} channel(s)")
-        lo, hi, drop = _region(region, self.shapes[level])
+        shapes = self._shapes
+        if not isinstance(level, (int, np.integer)) or not 0 <= level < len(shapes):
+            raise IndexError(f"level: {level} asked for but the store has {len(shapes)} level(s)")
+        if not isinstance(channel, (int, np.integer)) or not 0 <= channel < self._channels:
+            raise IndexError(f"channel: {channel} asked for but the store has {self._channels} channel(s)")
+        lo, hi, drop = _region(region, shapes[level])
         buf = self._native.read(int(level), int(channel), lo, hi)
-        a = np.frombuffer(buf, dtype=self.dtype).reshape(tuple(h - l for l, h in zip(lo, hi)))
+        a = np.frombuffer(buf, dtype=self._dtype).reshape((hi[0] - lo[0], hi[1] - lo[1], hi[2] - lo[2]))
         index = tuple(0 if d else slice(None) for d in drop)
         return a[index]
 

@@ -204,10 +204,16 @@ impl NativeStore {
         lo: [u64; 3],
         hi: [u64; 3],
     ) -> PyResult<Bound<'py, PyByteArray>> {
-        let out = py
-            .detach(|| read::read_region(&self.loader, level, channel, lo, hi, &interrupted))
-            .map_err(to_py)?;
-        Ok(PyByteArray::new(py, &out))
+        // Checked first (a bad box allocates nothing), then read with the
+        // GIL released straight into the bytearray returned (no one else
+        // holds it yet).
+        let n = read::region_len(&self.loader, level, channel, lo, hi).map_err(to_py)?;
+        PyByteArray::new_with(py, n, |buf| {
+            py.detach(|| {
+                read::read_region_into(&self.loader, level, channel, lo, hi, &interrupted, buf)
+            })
+            .map_err(to_py)
+        })
     }
 }
 
