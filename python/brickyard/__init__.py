@@ -284,8 +284,37 @@ def render(store: Union[Store, str, os.PathLike], mode: str = "dvr", camera: Any
     return np.frombuffer(buf, dtype=np.dtype(dtype)).reshape(h, w, 4)
 
 
+class _Bars:
+    """tqdm bars for a native call's progress: one bar per phase ("start:PHASE"
+    begins a new one; a plain "start" sets the total of the current one)."""
+
+    def __init__(self, tqdm, what: str):
+        self._tqdm = tqdm
+        self._what = what
+        self._bar = None
+
+    def _open(self, desc: str, unit: str):
+        self.close()
+        self._bar = self._tqdm(total=0, unit=unit, unit_scale=True, desc=desc)
+
+    def __call__(self, kind: str, n: int) -> None:
+        if kind.startswith("start"):
+            if ":" in kind or self._bar is None:
+                phase = kind.split(":", 1)[1] if ":" in kind else ""
+                self._open(f"{self._what}: {phase}" if phase else self._what,
+                           "vox" if "voxels" in phase else "B")
+            self._bar.reset(total=n)
+        elif self._bar is not None:
+            self._bar.update(n)
+
+    def close(self) -> None:
+        if self._bar is not None:
+            self._bar.close()
+            self._bar = None
+
+
 def _progress_callback(progress: Any, what: str):
-    """A tqdm bar when `progress` is True and tqdm is installed; a callable is used as is."""
+    """tqdm bars when `progress` is True and tqdm is installed; a callable is used as is."""
     if callable(progress):
         return progress, None
     if not progress:
@@ -294,20 +323,8 @@ def _progress_callback(progress: Any, what: str):
         from tqdm.auto import tqdm
     except ImportError:
         return None, None
-    bar = tqdm(total=0, unit="B", unit_scale=True, desc=what)
-
-    def cb(kind: str, n: int) -> None:
-        if kind.startswith("start"):
-            # "start:PHASE" begins a named phase of the call.
-            if ":" in kind:
-                phase = kind.split(":", 1)[1]
-                bar.set_description(f"{what}: {phase}")
-                bar.unit = "vox" if "voxels" in phase else "B"
-            bar.reset(total=n)
-        else:
-            bar.update(n)
-
-    return cb, bar
+    bars = _Bars(tqdm, what)
+    return bars, bars
 
 
 def _options(brick, shard, compression, labels, memory, overwrite, spacing, origin, unit) -> dict:

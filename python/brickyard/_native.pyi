@@ -1,6 +1,7 @@
 """Type stubs of the extension module `brickyard._native` (use `brickyard`'s API)."""
 
 from os import PathLike
+from pathlib import Path
 from typing import Callable, Optional, Sequence, Tuple, TypedDict, Union
 
 class ConvertOptions(TypedDict):
@@ -21,8 +22,9 @@ class NativeStore:
     # path: a directory or an http(s):// URL
     def __init__(self, path: Union[str, PathLike], cache_bytes: int, chunk_bytes: int, brick: int,
                  threads: int) -> None: ...
+    # a pathlib.Path (a URL loses its '//' there: brickyard.Store keeps the text given)
     @property
-    def path(self) -> str: ...
+    def path(self) -> Path: ...
     @property
     def shapes(self) -> list[Tuple[int, int, int]]: ...
     @property
@@ -51,4 +53,4 @@ def from_lazy(read: Callable[[int, int, int, int, int, int, int], bytes], name: 
               dst: Union[str, PathLike], options: ConvertOptions, progress: Optional[Progress] = None) -> str: ...
 def process(store: Union[str, PathLike], pipeline: str, out: str, memory: str, level: int = 0, channel: int = 0,
             stats: Union[str, PathLike, None] = None, overwrite: bool = False, backend: str = "cpu",
-            progress: Optional[Progress] = None) -> Tuple[str, Optional[int], str]: ...
+            progress: Optional[Progress] = None) -> Tuple[Path, Optional[int], str]: ...

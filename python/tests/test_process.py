@@ -207,3 +207,34 @@ def test_process_releases_the_gil(tmp_path):
     assert result["seconds"] > 0.1, "the job was too short to tell"
     assert max(gaps) < 0.5 * result["seconds"], (max(gaps), result["seconds"])
     assert len(gaps) > 100
+
+
+def test_tqdm_bars_per_phase(two_stores, vol, monkeypatch):
+    """progress=True: one tqdm bar per phase, each run to its total."""
+    import sys
+    import types
+
+    bars = []
+
+    class FakeTqdm:
+        def __init__(self, total, unit, unit_scale, desc):
+            self.desc, self.unit, self.total, self.n, self.closed = desc, unit, total, 0, False
+            bars.append(self)
+
+        def reset(self, total):
+            self.total, self.n = total, 0
+
+        def update(self, n):
+            self.n += n
+
+        def close(self):
+            self.closed = True
+
+    monkeypatch.setitem(sys.modules, "tqdm.auto", types.SimpleNamespace(tqdm=FakeTqdm))
+    _, b = two_stores
+    brickyard.process(b, "gauss(1)|threshold(30000)|label(6)", out="l")
+    assert [(x.desc, x.unit) for x in bars] == [("process: labelling (pass 1, voxels)", "vox"),
+                                                 ("process: writing", "B")]
+    assert bars[0].total == bars[0].n == vol.size
+    assert bars[1].total == bars[1].n > 0
+    assert all(x.closed for x in bars)
