@@ -1,13 +1,15 @@
-"""brickyard: out-of-core reads, rendering and conversion of huge OME-Zarr volumes.
+"""brickyard: out-of-core reads, rendering, processing and conversion of huge OME-Zarr volumes.
 
     import brickyard, numpy as np
-    store = brickyard.open("volume.ome.zarr")
+    store = brickyard.open("volume.ome.zarr")          # or "http://host:8000/volume.ome.zarr"
     block = store.read(level=0, region=np.s_[0:64, 100:228, 100:228])
     rgba = brickyard.render(store, mode="dvr", tf="soft", size=(512, 512))
+    edges = brickyard.process(store, "gauss(1.5)|sobel", out="edges")
 
 Reads go through brickyard's loader and a host cache of bounded size, so any
 region of a store larger than memory can be read. `render` draws exactly what
-`brickyard render` draws for the same options.
+`brickyard render` draws for the same options, and `process` writes what
+`brickyard process` writes.
 """
 
 from __future__ import annotations
@@ -22,7 +24,7 @@ import numpy as np
 
 from . import _native
 
-__all__ = ["open", "Store", "Level", "render", "convert", "from_numpy"]
+__all__ = ["open", "Store", "Level", "render", "convert", "from_numpy", "process"]
 
 _MODES = ("dvr", "mip", "slice")
 _BACKENDS = ("auto", "cpu", "gpu")
@@ -77,20 +79,26 @@ class Store:
     def __init__(self, path: Union[str, os.PathLike], cache: int = 256 << 20, chunk_cache: int = 64 << 20,
                  brick: int = 64, threads: Optional[int] = None):
         threads = threads or min(8, os.cpu_count() or 1)
-        self._native = _native.NativeStore(os.fspath(path), int(cache), int(chunk_cache), int(brick), int(threads))
+        self._path = os.fspath(path)
+        self._native = _native.NativeStore(self._path, int(cache), int(chunk_cache), int(brick), int(threads))
+        # Fixed for the store's life: asked of the native side once, not per read.
+        self._shapes = [tuple(s) for s in self._native.shapes]
+        self._channels = self._native.channels
+        self._dtype = np.dtype(self._native.dtype)
 
     @property
     def path(self) -> str:
-        return os.fspath(self._native.path)
+        """The store's path, or its URL as given."""
+        return self._path
 
     @property
     def levels(self) -> int:
-        return len(self._native.shapes)
+        return len(self._shapes)
 
     @property
     def shapes(self) -> list:
         """Shape `(z, y, x)` of every level, level 0 first."""
-        return [tuple(s) for s in self._native.shapes]
+        return list(self._shapes)
 
     @property
     def shape(self) -> tuple:
@@ -99,11 +107,11 @@ class Store:
 
     @property
     def channels(self) -> int:
-        return self._native.channels
+        return self._channels
 
     @property
     def dtype(self) -> np.dtype:
-        return np.dtype(self._native.dtype)
+        return self._dtype
 
     @property
     def scales(self) -> list:
@@ -136,13 +144,14 @@ class Store:
     def read(self, level: int = 0, channel: int = 0, region: Any = None) -> np.ndarray:
         """The region (`np.s_[z0:z1, y0:y1, x0:x1]`; None = the whole level) of
         one level and channel, through the loader and host cache."""
-        if not isinstance(level, (int, np.integer)) or not 0 <= level < self.levels:
-            raise IndexError(f"level: {level} asked for but the store has {self.levels} level(s)")
-        if not isinstance(channel, (int, np.integer)) or not 0 <= channel < self.channels:
-            raise IndexError(f"channel: {channel} asked for but the store has {self.channels} channel(s)")
-        lo, hi, drop = _region(region, self.shapes[level])
+        shapes = self._shapes
+        if not isinstance(level, (int, np.integer)) or not 0 <= level < len(shapes):
+            raise IndexError(f"level: {level} asked for but the store has {len(shapes)} level(s)")
+        if not isinstance(channel, (int, np.integer)) or not 0 <= channel < self._channels:
+            raise IndexError(f"channel: {channel} asked for but the store has {self._channels} channel(s)")
+        lo, hi, drop = _region(region, shapes[level])
         buf = self._native.read(int(level), int(channel), lo, hi)
-        a = np.frombuffer(buf, dtype=self.dtype).reshape(tuple(h - l for l, h in zip(lo, hi)))
+        a = np.frombuffer(buf, dtype=self._dtype).reshape((hi[0] - lo[0], hi[1] - lo[1], hi[2] - lo[2]))
         index = tuple(0 if d else slice(None) for d in drop)
         return a[index]
 
@@ -193,8 +202,10 @@ class Level:
 
 def open(path: Union[str, os.PathLike], cache: int = 256 << 20, chunk_cache: int = 64 << 20,
          brick: int = 64, threads: Optional[int] = None) -> Store:
-    """Open an OME-Zarr store. `cache` bounds the host cache of decoded bricks
-    and `chunk_cache` the decoded store chunks (bytes)."""
+    """Open an OME-Zarr store: a directory, or an `http://` / `https://` URL
+    (e.g. one `brickyard serve` serves), read with ranged requests. `cache`
+    bounds the host cache of decoded bricks and `chunk_cache` the decoded
+    store chunks (bytes)."""
     return Store(path, cache=cache, chunk_cache=chunk_cache, brick=brick, threads=threads)
 
 
@@ -273,8 +284,37 @@ def render(store: Union[Store, str, os.PathLike], mode: str = "dvr", camera: Any
     return np.frombuffer(buf, dtype=np.dtype(dtype)).reshape(h, w, 4)
 
 
+class _Bars:
+    """tqdm bars for a native call's progress: one bar per phase ("start:PHASE"
+    begins a new one; a plain "start" sets the total of the current one)."""
+
+    def __init__(self, tqdm, what: str):
+        self._tqdm = tqdm
+        self._what = what
+        self._bar = None
+
+    def _open(self, desc: str, unit: str):
+        self.close()
+        self._bar = self._tqdm(total=0, unit=unit, unit_scale=True, desc=desc)
+
+    def __call__(self, kind: str, n: int) -> None:
+        if kind.startswith("start"):
+            if ":" in kind or self._bar is None:
+                phase = kind.split(":", 1)[1] if ":" in kind else ""
+                self._open(f"{self._what}: {phase}" if phase else self._what,
+                           "vox" if "voxels" in phase else "B")
+            self._bar.reset(total=n)
+        elif self._bar is not None:
+            self._bar.update(n)
+
+    def close(self) -> None:
+        if self._bar is not None:
+            self._bar.close()
+            self._bar = None
+
+
 def _progress_callback(progress: Any, what: str):
-    """A tqdm bar when `progress` is True and tqdm is installed; a callable is used as is."""
+    """tqdm bars when `progress` is True and tqdm is installed; a callable is used as is."""
     if callable(progress):
         return progress, None
     if not progress:
@@ -283,15 +323,8 @@ def _progress_callback(progress: Any, what: str):
         from tqdm.auto import tqdm
     except ImportError:
         return None, None
-    bar = tqdm(total=0, unit="B", unit_scale=True, desc=what)
-
-    def cb(kind: str, n: int) -> None:
-        if kind == "start":
-            bar.reset(total=n)
-        else:
-            bar.update(n)
-
-    return cb, bar
+    bars = _Bars(tqdm, what)
+    return bars, bars
 
 
 def _options(brick, shard, compression, labels, memory, overwrite, spacing, origin, unit) -> dict:
@@ -328,12 +361,75 @@ def convert(src: Union[str, os.PathLike], dst: Union[str, os.PathLike], *, brick
             bar.close()
 
 
+def _chunk_of(array: Any) -> Optional[Tuple[int, int, int]]:
+    """The `(z, y, x)` chunk a lazy array reads best: dask's `chunksize`,
+    zarr's or h5py's `chunks`; None when it has none."""
+    for attr in ("chunksize", "chunks"):
+        c = getattr(array, attr, None)
+        if isinstance(c, tuple) and len(c) >= 3 and all(isinstance(v, (int, np.integer)) for v in c):
+            return tuple(int(v) for v in c[-3:])
+    return None
+
+
+def _lazy_dtype(array: Any) -> Optional[np.dtype]:
+    """The NumPy dtype of an array that is read region by region (anything
+    with `shape`, `dtype` and `__getitem__` that is not an in-memory NumPy
+    array: dask, zarr, h5py, np.memmap); None for anything else."""
+    if isinstance(array, np.ndarray) and not isinstance(array, np.memmap):
+        return None
+    if not all(hasattr(array, a) for a in ("shape", "dtype", "__getitem__")):
+        return None
+    try:
+        return np.dtype(array.dtype)
+    except TypeError:
+        return None
+
+
 def from_numpy(array: Any, dst: Union[str, os.PathLike], *, spacing=None, origin=None, unit: Optional[str] = None,
                brick=64, shard=512, compression: str = "lz4", labels: bool = False, memory: int = 1 << 30,
                overwrite: bool = False, progress: Any = True) -> str:
-    """Write a `(z, y, x)` or `(c, z, y, x)` array (NumPy, or anything
-    `np.asarray` takes, a dask array computed) as a brickyard OME-Zarr pyramid."""
-    a = np.asarray(array)
+    """Write a `(z, y, x)` or `(c, z, y, x)` array as a brickyard OME-Zarr pyramid.
+
+    A NumPy array is handed over as it is. A lazy array (dask, zarr, h5py,
+    `np.memmap`, anything with `shape`, `dtype` and `__getitem__`) is never
+    materialised whole: the builder asks for one region at a time (slabs of
+    `brick` planes, at most what `memory` allows) and each is fetched with
+    `array[c, z0:z1, y0:y1, x0:x1]` (a dask region is computed then). Other
+    inputs go through `np.asarray`."""
+    dt = _lazy_dtype(array)
+    if dt is None:
+        return _from_memory(np.asarray(array), dst, spacing, origin, unit, brick, shard, compression, labels, memory,
+                            overwrite, progress)
+    shape = tuple(int(n) for n in array.shape)
+    if len(shape) not in (3, 4):
+        raise ValueError(f"array: expected (z, y, x) or (c, z, y, x), got {len(shape)} dimension(s) of shape {shape}")
+    if dt.name not in _DTYPES:
+        raise TypeError(f"array: dtype {dt} is not stored by brickyard (one of {', '.join(_DTYPES)})")
+    native = dt.newbyteorder("=")
+    four = len(shape) == 4
+
+    def read(c: int, z0: int, z1: int, y0: int, y1: int, x0: int, x1: int) -> bytes:
+        key = (slice(z0, z1), slice(y0, y1), slice(x0, x1))
+        block = array[(c,) + key] if four else array[key]
+        block = np.asarray(block)
+        if block.shape != (z1 - z0, y1 - y0, x1 - x0):
+            raise ValueError(f"array: [{z0}:{z1}, {y0}:{y1}, {x0}:{x1}] of channel {c} has shape {block.shape}")
+        return np.ascontiguousarray(block, dtype=native).tobytes()
+
+    name = f"<{type(array).__module__}.{type(array).__name__} of shape {shape}>"
+    c4 = shape if four else (1,) + shape
+    cb, bar = _progress_callback(progress, "from_numpy")
+    try:
+        return _native.from_lazy(read, name, c4, native.name, _chunk_of(array), os.fspath(dst),
+                                 _options(brick, shard, compression, labels, memory, overwrite, spacing, origin, unit),
+                                 cb)
+    finally:
+        if bar is not None:
+            bar.close()
+
+
+def _from_memory(a: np.ndarray, dst, spacing, origin, unit, brick, shard, compression, labels, memory, overwrite,
+                 progress) -> str:
     if a.ndim == 3:
         a = a[np.newaxis]
     if a.ndim != 4:
@@ -349,3 +445,41 @@ def from_numpy(array: Any, dst: Union[str, os.PathLike], *, spacing=None, origin
     finally:
         if bar is not None:
             bar.close()
+
+
+def process(store: Union[Store, str, os.PathLike], pipeline: str, out: str, *, level: int = 0, channel: int = 0,
+            memory: Union[int, str] = "1GiB", stats: Union[str, os.PathLike, None] = None, overwrite: bool = False,
+            backend: str = "cpu", progress: Any = True, open_result: bool = True) -> Union[Store, str]:
+    """Run a pipeline over a level of a store and write the result into the
+    store at every level, exactly as `brickyard process STORE PIPELINE --out
+    OUT` does (the same stages, syntax, messages and output).
+
+    `pipeline` is e.g. `"gauss(1.5)|sobel"` or
+    `"gauss(1.5)|threshold(300)|label(26)"`: stages gauss(σ), gradmag(σ),
+    sobel, threshold(t), window(lo,hi), label(6|26); σ in voxels, or with a
+    unit (`1.5um`). Labels and masks go to `STORE/labels/OUT`, other results
+    to `STORE/derived/OUT`. `stats` also writes the per-label statistics of
+    a labelling to a .csv or .json file. `backend` is cpu, gpu or auto (the
+    filter stages; labelling runs on the CPU). Returns the result opened
+    (a `Store`), or its path with `open_result=False`. Bad pipeline text
+    raises ValueError with the CLI's message; Ctrl-C stops the job and
+    leaves the store as it was."""
+    path = store.path if isinstance(store, Store) else os.fspath(store)
+    if not isinstance(pipeline, str):
+        raise TypeError(f"pipeline: expected text such as \"gauss(1.5)|sobel\", got {type(pipeline).__name__}")
+    if not isinstance(out, str):
+        raise TypeError(f"out: expected a name, got {type(out).__name__}")
+    if isinstance(memory, bool) or not isinstance(memory, (int, np.integer, str)):
+        raise TypeError(f"memory: expected bytes or a size such as \"1GiB\", got {memory!r}")
+    if backend not in ("cpu", "gpu", "auto"):
+        raise ValueError(f"backend: expected cpu, gpu or auto, found {backend!r}")
+    cb, bar = _progress_callback(progress, "process")
+    try:
+        result, _labels, _line = _native.process(path, pipeline, out, str(memory), int(level), int(channel),
+                                                 None if stats is None else os.fspath(stats), bool(overwrite),
+                                                 backend, cb)
+    finally:
+        if bar is not None:
+            bar.close()
+    result = os.fspath(result)
+    return open(result) if open_result else result

@@ -1,6 +1,7 @@
 """Type stubs of the extension module `brickyard._native` (use `brickyard`'s API)."""
 
 from os import PathLike
+from pathlib import Path
 from typing import Callable, Optional, Sequence, Tuple, TypedDict, Union
 
 class ConvertOptions(TypedDict):
@@ -14,13 +15,16 @@ class ConvertOptions(TypedDict):
     origin: Optional[Tuple[float, float, float]]
     unit: Optional[str]
 
+# progress(kind, n): kind "start" (or "start:PHASE" for a named phase) with the total, "inc" with the amount done
 Progress = Callable[[str, int], None]
 
 class NativeStore:
+    # path: a directory or an http(s):// URL
     def __init__(self, path: Union[str, PathLike], cache_bytes: int, chunk_bytes: int, brick: int,
                  threads: int) -> None: ...
+    # a pathlib.Path (a URL loses its '//' there: brickyard.Store keeps the text given)
     @property
-    def path(self) -> str: ...
+    def path(self) -> Path: ...
     @property
     def shapes(self) -> list[Tuple[int, int, int]]: ...
     @property
@@ -44,3 +48,9 @@ def convert(src: Union[str, PathLike], dst: Union[str, PathLike], options: Conve
             progress: Optional[Progress] = None) -> str: ...
 def from_bytes(data: bytes, shape: Tuple[int, int, int, int], dtype: str, dst: Union[str, PathLike],
                options: ConvertOptions, progress: Optional[Progress] = None) -> str: ...
+def from_lazy(read: Callable[[int, int, int, int, int, int, int], bytes], name: str,
+              shape: Tuple[int, int, int, int], dtype: str, chunk: Optional[Tuple[int, int, int]],
+              dst: Union[str, PathLike], options: ConvertOptions, progress: Optional[Progress] = None) -> str: ...
+def process(store: Union[str, PathLike], pipeline: str, out: str, memory: str, level: int = 0, channel: int = 0,
+            stats: Union[str, PathLike, None] = None, overwrite: bool = False, backend: str = "cpu",
+            progress: Optional[Progress] = None) -> Tuple[Path, Optional[int], str]: ...

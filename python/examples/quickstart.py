@@ -3,7 +3,9 @@
     pip install ./python matplotlib
     python python/examples/quickstart.py [STORE.ome.zarr] [OUT.png]
 
-Without a store, a 96³ test volume is written first (brickyard.from_numpy).
+Without a store, a 96³ test volume is written first (brickyard.from_numpy) and
+processed (brickyard.process, gauss(1.5)|sobel into its derived/edges); a store
+given is only read.
 """
 
 import os
@@ -16,7 +18,8 @@ import brickyard
 
 
 def main() -> None:
-    if len(sys.argv) > 1:
+    generated = len(sys.argv) <= 1
+    if not generated:
         path = sys.argv[1]
     else:
         path = os.path.join(tempfile.mkdtemp(prefix="brickyard-example-"), "blob.ome.zarr")
@@ -36,6 +39,11 @@ def main() -> None:
     print(f"region {block.shape} {block.dtype}: min {block.min()}, max {block.max()}, mean {block.mean():.1f}")
     coarse = store.level(store.levels - 1)[...]
     print(f"coarsest level {coarse.shape}: mean {coarse.mean():.1f}")
+
+    if generated:
+        # What `brickyard process STORE "gauss(1.5)|sobel" --out edges` writes.
+        edges = brickyard.process(store, "gauss(1.5)|sobel", out="edges", progress=False)
+        print(f"{edges}: max gradient {edges.read(0).max():.1f}")
 
     # The same image `brickyard render STORE --mode dvr --tf hot` writes.
     rgba = brickyard.render(store, mode="dvr", tf="hot", size=(384, 384), azimuth=35, elevation=25)

@@ -1,9 +1,11 @@
 //! The extension module `brickyard._native`: a store read through the
 //! loader and host cache, renders as `brickyard render` draws them, and
-//! conversions through the pyramid builder. The Python package `brickyard`
+//! conversions through the pyramid builder, pipelines as `brickyard process`
+//! runs them. The Python package `brickyard`
 //! (`python/brickyard/__init__.py`) turns its bytes into NumPy arrays and its
 //! arguments into the CLI's; the GIL is released while work runs.
 
+mod processing;
 mod read;
 mod source;
 
@@ -86,7 +88,9 @@ impl NativeStore {
         brick: u64,
         threads: usize,
     ) -> PyResult<Self> {
-        if !path.exists() {
+        // A URL (http:// or https://) is read through the store layer's
+        // HTTP client; a missing one is reported by `inspect`.
+        if !path.exists() && !brickyard_store::storage::is_remote(&path) {
             return Err(missing(&path));
         }
         if brick == 0 || brick > 1024 {
@@ -95,6 +99,19 @@ impl NativeStore {
             )));
         }
         py.detach(|| -> anyhow::Result<NativeStore> {
+            // Only a 404 makes a URL "not a Zarr store" (other failures
+            // count as present and are reported by the reads that follow).
+            if brickyard_store::storage::is_remote(&path)
+                && !brickyard_store::import::zarr::is_zarr(&path)
+            {
+                return Err(anyhow::Error::new(std::io::Error::new(
+                    std::io::ErrorKind::NotFound,
+                    format!(
+                        "{}: not found (HTTP 404 for zarr.json, .zgroup and .zarray)",
+                        path.display()
+                    ),
+                )));
+            }
             let info = inspect(&path)?;
             if info.complete == Some(false) {
                 anyhow::bail!(
@@ -187,10 +204,16 @@ impl NativeStore {
         lo: [u64; 3],
         hi: [u64; 3],
     ) -> PyResult<Bound<'py, PyByteArray>> {
-        let out = py
-            .detach(|| read::read_region(&self.loader, level, channel, lo, hi, &interrupted))
-            .map_err(to_py)?;
-        Ok(PyByteArray::new(py, &out))
+        // Checked first (a bad box allocates nothing), then read with the
+        // GIL released straight into the bytearray returned (no one else
+        // holds it yet).
+        let n = read::region_len(&self.loader, level, channel, lo, hi).map_err(to_py)?;
+        PyByteArray::new_with(py, n, |buf| {
+            py.detach(|| {
+                read::read_region_into(&self.loader, level, channel, lo, hi, &interrupted, buf)
+            })
+            .map_err(to_py)
+        })
     }
 }
 
@@ -223,7 +246,7 @@ fn render<'py>(
     let cmd = brickyard_run::render::RenderCmd::try_parse_from(&args)
         .map_err(|e| PyValueError::new_err(e.to_string().trim().to_string()))?;
     if let Some(store) = args.get(2).map(PathBuf::from) {
-        if !store.exists() {
+        if !store.exists() && !brickyard_store::storage::is_remote(&store) {
             return Err(missing(&store));
         }
     }
@@ -250,17 +273,23 @@ fn render<'py>(
 struct PyProgress<'a> {
     callback: Option<Py<PyAny>>,
     cancel: &'a AtomicBool,
+    /// Named phases of one call (`process`): "start" becomes "start:PHASE".
+    phase: Option<&'static str>,
 }
 
 impl PyProgress<'_> {
     fn call(&self, kind: &str, n: u64) {
+        let kind = match (kind, self.phase) {
+            ("start", Some(p)) => format!("start:{p}"),
+            _ => kind.to_string(),
+        };
         Python::attach(|py| {
             if py.check_signals().is_err() {
                 self.cancel.store(true, Ordering::Relaxed);
                 return;
             }
             if let Some(cb) = &self.callback {
-                if let Err(e) = cb.call1(py, (kind, n)) {
+                if let Err(e) = cb.call1(py, (kind.as_str(), n)) {
                     e.print(py);
                 }
             }
@@ -344,6 +373,7 @@ fn run_convert(
     let p = PyProgress {
         callback: progress,
         cancel: &cancel,
+        phase: None,
     };
     let r = py.detach(|| brickyard_store::convert(src, dst, opts, &p, &cancel));
     if cancel.load(Ordering::Relaxed) {
@@ -412,11 +442,116 @@ fn from_bytes(
     run_convert(py, &src, &dst, &opts, progress)
 }
 
+/// Convert a lazy array into a brickyard OME-Zarr pyramid, region by
+/// region: `read(c, z0, z1, y0, y1, x0, x1)` returns the bytes of one box
+/// (C order, native-endian `dtype`); `chunk` is the box `[z, y, x]` the
+/// array reads best (its chunks), if it has one. An exception raised by
+/// `read` stops the conversion and is raised again here.
+#[pyfunction]
+#[pyo3(signature = (read, name, shape, dtype, chunk, dst, options, progress = None))]
+#[allow(clippy::too_many_arguments)]
+fn from_lazy(
+    py: Python<'_>,
+    read: Py<PyAny>,
+    name: &str,
+    shape: [u64; 4],
+    dtype: &str,
+    chunk: Option<[u64; 3]>,
+    dst: PathBuf,
+    options: PyConvertOptions,
+    progress: Option<Py<PyAny>>,
+) -> PyResult<String> {
+    let opts = options.to_options()?;
+    let src = source::LazySource::new(read, name, shape, dtype, chunk).map_err(to_py)?;
+    let r = run_convert(py, &src, &dst, &opts, progress);
+    let cause = src.error.lock().unwrap().take();
+    match (r, cause) {
+        // Ctrl-C inside the array's own code: raised as it came.
+        (Err(_), Some(cause)) if cause.is_instance_of::<PyKeyboardInterrupt>(py) => Err(cause),
+        // The builder's error names the region; the array's exception is
+        // its cause.
+        (Err(e), Some(cause)) => {
+            e.set_cause(py, Some(cause));
+            Err(e)
+        }
+        (r, _) => r,
+    }
+}
+
+/// Run a pipeline over a level of a store and publish the result in it,
+/// as `brickyard process STORE PIPELINE --out OUT` does. Returns
+/// `(output path, number of labels or None, report line)`.
+#[pyfunction]
+#[pyo3(signature = (store, pipeline, out, memory, level = 0, channel = 0, stats = None,
+                    overwrite = false, backend = "cpu".to_string(), progress = None))]
+#[allow(clippy::too_many_arguments)]
+fn process(
+    py: Python<'_>,
+    store: PathBuf,
+    pipeline: String,
+    out: String,
+    memory: String,
+    level: usize,
+    channel: usize,
+    stats: Option<PathBuf>,
+    overwrite: bool,
+    backend: String,
+    progress: Option<Py<PyAny>>,
+) -> PyResult<(PathBuf, Option<u32>, String)> {
+    // The CLI's order: the pipeline text is checked first.
+    processing::parse(&pipeline).map_err(to_py)?;
+    let memory = brickyard_run::memory::parse_bytes(&memory).map_err(to_py)?;
+    let args = processing::ProcessArgs {
+        store,
+        pipeline,
+        out,
+        memory,
+        level,
+        channel,
+        stats,
+        overwrite,
+        backend,
+        quiet: progress.is_none(),
+    };
+    let cancel = AtomicBool::new(false);
+    let labelling = PyProgress {
+        callback: progress.as_ref().map(|p| p.clone_ref(py)),
+        cancel: &cancel,
+        phase: Some("labelling (pass 1, voxels)"),
+    };
+    let writing = PyProgress {
+        callback: progress,
+        cancel: &cancel,
+        phase: Some("writing"),
+    };
+    // The job runs beside this thread, which watches for Ctrl-C: the
+    // labelling reports progress from worker threads, where Python does
+    // not run signal handlers.
+    let r = py
+        .detach(|| {
+            std::thread::scope(|s| {
+                let job = s.spawn(|| processing::run(&args, &labelling, &writing, &cancel));
+                while !job.is_finished() {
+                    std::thread::sleep(std::time::Duration::from_millis(50));
+                    if interrupted() {
+                        cancel.store(true, Ordering::SeqCst);
+                    }
+                }
+                job.join()
+                    .unwrap_or_else(|_| Err(anyhow::anyhow!("process: the job panicked")))
+            })
+        })
+        .map_err(to_py)?;
+    Ok((r.output, r.labels, r.line))
+}
+
 #[pymodule]
 fn _native(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_class::<NativeStore>()?;
     m.add_function(wrap_pyfunction!(render, m)?)?;
     m.add_function(wrap_pyfunction!(convert, m)?)?;
     m.add_function(wrap_pyfunction!(from_bytes, m)?)?;
+    m.add_function(wrap_pyfunction!(from_lazy, m)?)?;
+    m.add_function(wrap_pyfunction!(process, m)?)?;
     Ok(())
 }

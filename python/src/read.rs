@@ -10,17 +10,16 @@ use brickyard_cache::loader::Loader;
 use std::collections::HashSet;
 use std::time::Duration;
 
-/// The box `lo..hi` (`[z, y, x]`, half open) of `level` and `channel` as a
-/// dense C-order buffer. `interrupted` is asked between batches.
-pub fn read_region(
+/// The bytes of the box `lo..hi` of `level` and `channel`, after checking
+/// that the box is inside the level and the level and channel exist.
+pub fn region_len(
     loader: &Loader,
     level: usize,
     channel: usize,
     lo: [u64; 3],
     hi: [u64; 3],
-    interrupted: &dyn Fn() -> bool,
-) -> Result<Vec<u8>> {
-    let g = loader.geometry().clone();
+) -> Result<usize> {
+    let g = loader.geometry();
     if level >= g.levels.len() {
         bail!(
             "level: {level} asked for but the store has {} level(s)",
@@ -41,9 +40,31 @@ pub fn read_region(
             );
         }
     }
+    Ok((0..3).map(|a| hi[a] - lo[a]).product::<u64>() as usize * g.dtype.size())
+}
+
+/// The box `lo..hi` (`[z, y, x]`, half open) of `level` and `channel`
+/// into `out` (of [`region_len`] bytes) as a dense C-order buffer; the
+/// caller chooses where the voxels go (the bindings: straight into the
+/// Python bytearray they return). `interrupted` is asked between batches.
+pub fn read_region_into(
+    loader: &Loader,
+    level: usize,
+    channel: usize,
+    lo: [u64; 3],
+    hi: [u64; 3],
+    interrupted: &dyn Fn() -> bool,
+    out: &mut [u8],
+) -> Result<()> {
+    let n = region_len(loader, level, channel, lo, hi)?;
+    if out.len() != n {
+        bail!(
+            "region: {lo:?}..{hi:?} needs {n} bytes, the buffer has {}",
+            out.len()
+        );
+    }
+    let g = loader.geometry().clone();
     let es = g.dtype.size();
-    let shape = [0, 1, 2].map(|a| hi[a] - lo[a]);
-    let mut out = vec![0u8; (shape.iter().product::<u64>() as usize) * es];
     let b = g.brick;
     let first = [0, 1, 2].map(|a| lo[a] / b[a]);
     let last = [0, 1, 2].map(|a| (hi[a] - 1) / b[a]);
@@ -77,7 +98,7 @@ pub fn read_region(
                 let progressed = !got.is_empty();
                 for brick in got {
                     if want.remove(&brick.key) {
-                        copy_brick(&g, &brick.key, &brick.content, lo, hi, es, &mut out);
+                        copy_brick(&g, &brick.key, &brick.content, lo, hi, es, out);
                     }
                 }
                 if let Some(f) = loader
@@ -118,7 +139,7 @@ pub fn read_region(
         loader.cancel_except(&[]);
         loader.poll();
     }
-    result.map(|_| out)
+    result
 }
 
 /// Copy the part of one brick (no apron) that lies in `lo..hi`.

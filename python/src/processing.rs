@@ -1,0 +1,483 @@
+//! `brickyard.process`: a pipeline over a level of a store, written back
+//! into the store as `brickyard process` writes it (the same parsing, the
+//! same stages of `brickyard_process`, the same builder options, the same
+//! crash-safe publishing under `STORE/labels/NAME` or `STORE/derived/NAME`).
+//!
+//! This follows `crates/brickyard/src/process.rs` step for step; the CLI's
+//! progress bars and SIGINT flag are replaced by the caller's progress and
+//! cancel flag (set when Python sees Ctrl-C).
+
+use anyhow::{bail, Context, Result};
+use brickyard_process::{
+    build_on, label_pass1, stats_csv, stats_json, FilterKernels, LabelSource, Op, Pipeline,
+};
+use brickyard_store::builder::Progress;
+use brickyard_store::import::zarr::{self, ZarrSource};
+use brickyard_store::omezarr::{read_json, write_json};
+use brickyard_store::{convert, Compression, ConvertOptions, VolumeSource};
+use serde_json::{json, Value};
+use std::path::{Path, PathBuf};
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::Arc;
+use std::time::Instant;
+
+/// What `brickyard process` takes on its command line.
+pub struct ProcessArgs {
+    pub store: PathBuf,
+    pub pipeline: String,
+    pub out: String,
+    pub memory: u64,
+    pub level: usize,
+    pub channel: usize,
+    pub stats: Option<PathBuf>,
+    pub overwrite: bool,
+    pub backend: String,
+    pub quiet: bool,
+}
+
+/// The result: where it was published and the CLI's report line.
+pub struct ProcessReport {
+    pub output: PathBuf,
+    pub labels: Option<u32>,
+    pub line: String,
+}
+
+/// The pipeline parsed, with the CLI's message on an error.
+pub fn parse(text: &str) -> Result<Pipeline> {
+    Pipeline::parse(text).map_err(|e| anyhow::anyhow!("{e}"))
+}
+
+/// The filter kernels on the device `backend` names (`None`: the CPU).
+fn device(backend: &str) -> Result<Option<Arc<FilterKernels>>> {
+    use brickyard_gpu::{AdapterChoice, Gpu};
+    let open = || brickyard_run::backend::quietly(|| Gpu::new(AdapterChoice::Best));
+    let gpu = match backend {
+        "cpu" => return Ok(None),
+        "gpu" => open().context("backend gpu")?,
+        "auto" => match open() {
+            Ok(g) if g.info.device_type != wgpu::DeviceType::Cpu => g,
+            _ => return Ok(None),
+        },
+        b => bail!("backend: expected cpu, gpu or auto, found {b:?}"),
+    };
+    Ok(Some(FilterKernels::new(Arc::new(gpu))))
+}
+
+fn check_name(name: &str) -> Result<()> {
+    if name.is_empty()
+        || name.starts_with('.')
+        || name.contains(['/', '\\'])
+        || name.ends_with(".partial")
+    {
+        bail!("out: expected a plain name (no '/', not starting with '.'), found {name:?}");
+    }
+    Ok(())
+}
+
+/// Names of the directories a run of `name` uses in `dir` (as the CLI's).
+struct Paths {
+    dir: PathBuf,
+    name: String,
+    fin: PathBuf,
+    staged: PathBuf,
+    partial: PathBuf,
+    old: PathBuf,
+    lock: PathBuf,
+}
+
+impl Paths {
+    fn new(dir: PathBuf, name: &str) -> Paths {
+        Paths {
+            fin: dir.join(name),
+            staged: dir.join(format!(".{name}.new")),
+            partial: dir.join(format!(".{name}.new.partial")),
+            old: dir.join(format!(".{name}.old")),
+            lock: dir.join(format!(".{name}.lock")),
+            dir,
+            name: name.to_string(),
+        }
+    }
+
+    /// Undo what an interrupted run (of the CLI or of Python) left.
+    fn recover(&self) -> Result<()> {
+        if self.old.exists() {
+            if self.fin.exists() {
+                note(&format!(
+                    "removing {} (left by an interrupted run)",
+                    self.old.display()
+                ));
+                std::fs::remove_dir_all(&self.old)
+                    .with_context(|| format!("{}: cannot remove", self.old.display()))?;
+            } else {
+                note(&format!(
+                    "restoring {} from {} (an interrupted run was replacing it)",
+                    self.fin.display(),
+                    self.old.display()
+                ));
+                std::fs::rename(&self.old, &self.fin)
+                    .with_context(|| format!("{}: cannot restore", self.fin.display()))?;
+            }
+        }
+        for p in [&self.partial, &self.staged] {
+            if p.exists() {
+                note(&format!(
+                    "removing {} (left by an interrupted run; the job starts again from the beginning)",
+                    p.display()
+                ));
+                match std::fs::remove_dir_all(p) {
+                    Err(e) if e.kind() != std::io::ErrorKind::NotFound => {
+                        return Err(e).with_context(|| format!("{}: cannot remove", p.display()))
+                    }
+                    _ => {}
+                }
+            }
+        }
+        Ok(())
+    }
+}
+
+fn note(s: &str) {
+    eprintln!("note: {s}");
+}
+
+/// One job per result name; the lock file holds the pid (as the CLI's).
+struct NameLock(PathBuf);
+
+impl NameLock {
+    fn take(path: &Path, name: &str) -> Result<NameLock> {
+        use std::io::Write;
+        for _ in 0..2 {
+            match std::fs::OpenOptions::new()
+                .write(true)
+                .create_new(true)
+                .open(path)
+            {
+                Ok(mut f) => {
+                    let _ = writeln!(f, "{}", std::process::id());
+                    return Ok(NameLock(path.to_path_buf()));
+                }
+                Err(e) if e.kind() == std::io::ErrorKind::AlreadyExists => {
+                    let pid = std::fs::read_to_string(path)
+                        .ok()
+                        .and_then(|t| t.trim().parse::<u32>().ok());
+                    let alive = pid.is_some_and(|p| Path::new(&format!("/proc/{p}")).exists());
+                    if alive {
+                        bail!(
+                            "{}: another job (pid {}) is writing {name}; wait for it to end or stop it",
+                            path.display(),
+                            pid.unwrap()
+                        );
+                    }
+                    note(&format!(
+                        "removing {} (left by an interrupted run)",
+                        path.display()
+                    ));
+                    let _ = std::fs::remove_file(path);
+                }
+                Err(e) => {
+                    return Err(e).with_context(|| format!("{}: cannot create", path.display()))
+                }
+            }
+        }
+        bail!("{}: cannot take the lock", path.display())
+    }
+}
+
+impl Drop for NameLock {
+    fn drop(&mut self) {
+        let _ = std::fs::remove_file(&self.0);
+    }
+}
+
+/// The `labels` group's list of label images.
+fn labels_list(dir: &Path) -> Result<(Value, Vec<String>)> {
+    let f = dir.join("zarr.json");
+    if !f.exists() {
+        return Ok((
+            json!({"zarr_format": 3, "node_type": "group",
+                   "attributes": {"ome": {"version": "0.5", "labels": []}}}),
+            vec![],
+        ));
+    }
+    let j = read_json(&f)?;
+    if j.get("node_type").and_then(Value::as_str) != Some("group") {
+        bail!(
+            "{}: node_type: expected \"group\" (the labels group)",
+            f.display()
+        );
+    }
+    let list = match j.pointer("/attributes/ome/labels") {
+        None => vec![],
+        Some(Value::Array(a)) => a
+            .iter()
+            .map(|v| {
+                v.as_str().map(str::to_string).with_context(|| {
+                    format!(
+                        "{}: attributes.ome.labels: expected names, found {v}",
+                        f.display()
+                    )
+                })
+            })
+            .collect::<Result<_>>()?,
+        Some(v) => bail!(
+            "{}: attributes.ome.labels: expected a list of names, found {v}",
+            f.display()
+        ),
+    };
+    Ok((j, list))
+}
+
+/// Run the pipeline and publish its result. `labelling` reports pass 1 of
+/// a labelling (voxels), `writing` the pyramid (bytes); `cancel` stops the
+/// job between pieces of work, leaving the store as it was.
+pub fn run(
+    c: &ProcessArgs,
+    labelling: &dyn Progress,
+    writing: &dyn Progress,
+    cancel: &AtomicBool,
+) -> Result<ProcessReport> {
+    let t0 = Instant::now();
+    let pipe = parse(&c.pipeline)?;
+    check_name(&c.out)?;
+    let memory = c.memory;
+    if memory < 1 << 20 {
+        bail!("memory: expected at least 1 MiB, got {memory} bytes");
+    }
+    if c.stats.is_some() && !matches!(pipe.ops.last(), Some(Op::Label(_))) {
+        bail!("stats: only a pipeline that ends in label(...) has per-label statistics");
+    }
+    let stats_fmt = match &c.stats {
+        None => None,
+        Some(p) => match p.extension().and_then(|e| e.to_str()) {
+            Some("csv") => Some(false),
+            Some("json") => Some(true),
+            _ => bail!(
+                "stats: expected a file name ending in .csv or .json, found {}",
+                p.display()
+            ),
+        },
+    };
+    let store = &c.store;
+    if brickyard_store::storage::is_remote(store) {
+        bail!(
+            "{}: a remote store is read-only, and `process` writes its result into the store; \
+             copy the store first (`brickyard.convert(URL, \"local.zarr\")`)",
+            store.display()
+        );
+    }
+    if !store.exists() {
+        return Err(std::io::Error::from(std::io::ErrorKind::NotFound))
+            .with_context(|| format!("{}: no such file or directory", store.display()));
+    }
+    if !zarr::is_zarr(store) {
+        bail!(
+            "{}: not a Zarr store (no zarr.json); convert the volume first with `brickyard.convert`",
+            store.display()
+        );
+    }
+    let mut src = zarr::open(store, c.level)?;
+    let ms = src.multiscale.clone().with_context(|| {
+        format!(
+            "{}: expected an OME-Zarr multiscale image (a store written by `brickyard convert`), found a bare array",
+            store.display()
+        )
+    })?;
+    let brick: [u64; 3] = ms
+        .brickyard
+        .as_ref()
+        .and_then(|b| b.get("brick"))
+        .and_then(|b| serde_json::from_value(b.clone()).ok())
+        .filter(|b: &[u64; 3]| b.iter().all(|&v| v >= 2 && v % 2 == 0))
+        .unwrap_or([64; 3]);
+    src.enable_chunk_cache(memory / 8);
+    let meta = src.meta().clone();
+    if c.channel >= meta.channels {
+        bail!(
+            "channel: {} asked for but {} has {} channel(s)",
+            c.channel,
+            store.display(),
+            meta.channels
+        );
+    }
+    let input: Arc<ZarrSource> = Arc::new(src);
+    let kernels = device(&c.backend)?;
+    let built = build_on(&pipe, input.clone(), c.channel, brick, kernels.as_ref())
+        .map_err(|e| anyhow::anyhow!("pipeline {:?}: {e}", c.pipeline))?;
+    let is_label = pipe.is_label_output();
+    let dir = store.join(if is_label { "labels" } else { "derived" });
+    let paths = Paths::new(dir, &c.out);
+    let made_dir = !paths.dir.exists();
+    std::fs::create_dir_all(&paths.dir)
+        .with_context(|| format!("{}: cannot create", paths.dir.display()))?;
+    let _lock = match NameLock::take(&paths.lock, &c.out) {
+        Ok(l) => l,
+        Err(e) => {
+            if made_dir {
+                let _ = std::fs::remove_dir(&paths.dir);
+            }
+            return Err(e);
+        }
+    };
+    let leave = |e: anyhow::Error| -> anyhow::Error {
+        if made_dir {
+            let _ = std::fs::remove_file(&paths.lock);
+            let _ = std::fs::remove_dir(&paths.dir);
+        }
+        e
+    };
+    paths.recover().map_err(leave)?;
+    if paths.fin.exists() && !c.overwrite {
+        return Err(leave(anyhow::anyhow!(
+            "{}: exists; pass overwrite=True to replace it",
+            paths.fin.display()
+        )));
+    }
+    let listed = if is_label {
+        Some(labels_list(&paths.dir).map_err(leave)?)
+    } else {
+        None
+    };
+    let opts = ConvertOptions {
+        brick,
+        shard: [512; 3].map(|s: u64| s.max(brick[0]).div_ceil(brick[0]) * brick[0]),
+        compression: Compression::Lz4,
+        labels: is_label,
+        memory: memory - memory / 8,
+        overwrite: false,
+        spacing: meta.spacing,
+        origin: meta.origin,
+        unit: meta.unit.clone(),
+    };
+    if let (Some(k), false) = (&kernels, c.quiet) {
+        eprintln!("filter stages on the GPU: {}", k.gpu.describe());
+    }
+    let cleanup = |e: anyhow::Error| -> anyhow::Error {
+        let _ = std::fs::remove_dir_all(&paths.partial);
+        let _ = std::fs::remove_dir_all(&paths.staged);
+        if made_dir {
+            let _ = std::fs::remove_file(&paths.lock);
+            let _ = std::fs::remove_dir(&paths.dir);
+        }
+        if cancel.load(Ordering::SeqCst) {
+            anyhow::Error::new(crate::Interrupted).context(format!(
+                "{} is as it was (nothing was published); run the same call again to start over",
+                store.display()
+            ))
+        } else {
+            e
+        }
+    };
+    let mut labeling = None;
+    let report = (|| -> Result<brickyard_store::ConvertReport> {
+        let out_src: Arc<dyn VolumeSource> = match built.label {
+            Some(conn) => {
+                let inten: &dyn VolumeSource = input.as_ref();
+                let lab = Arc::new(label_pass1(
+                    built.source.as_ref(),
+                    built.channel,
+                    conn,
+                    brick,
+                    Some((inten, c.channel)),
+                    labelling,
+                    cancel,
+                )?);
+                labeling = Some(lab.clone());
+                Arc::new(LabelSource::new(built.source.clone(), built.channel, lab))
+            }
+            None => built.source.clone(),
+        };
+        Ok(convert(
+            out_src.as_ref(),
+            &paths.staged,
+            &opts,
+            writing,
+            cancel,
+        )?)
+    })()
+    .map_err(cleanup)?;
+
+    // Describe the result, store the statistics, then publish.
+    let root = paths.staged.join("zarr.json");
+    let mut j = read_json(&root).map_err(|e| cleanup(e.into()))?;
+    let attrs = j["attributes"].as_object_mut().context("attributes")?;
+    let origin = json!({
+        "pipeline": pipe.text(),
+        "input": store.to_string_lossy(),
+        "level": c.level,
+        "channel": c.channel,
+        "boundary_mode": "nearest",
+        "truncate": brickyard_process::filter::TRUNCATE,
+    });
+    if let Some(b) = attrs.get_mut(brickyard_store::omezarr::ATTR) {
+        b["process"] = origin;
+        b["source"] = json!(store.to_string_lossy());
+    }
+    if is_label {
+        attrs["ome"]["image-label"] = json!({"version": "0.5", "source": {"image": "../../"}});
+    }
+    write_json(&root, &j).map_err(|e| cleanup(e.into()))?;
+    if let Some(lab) = &labeling {
+        let extra = [
+            (
+                "pipeline",
+                brickyard_process::label::json_string(&pipe.text()),
+            ),
+            ("level", c.level.to_string()),
+            ("intensity_channel", c.channel.to_string()),
+        ];
+        let dirs = paths.staged.join("_brickyard");
+        std::fs::write(dirs.join("labels.csv"), stats_csv(&lab.stats))
+            .and_then(|_| std::fs::write(dirs.join("labels.json"), stats_json(lab, &extra)))
+            .with_context(|| format!("{}: cannot write statistics", dirs.display()))
+            .map_err(cleanup)?;
+        if let (Some(p), Some(is_json)) = (&c.stats, stats_fmt) {
+            let text = if is_json {
+                stats_json(lab, &extra)
+            } else {
+                stats_csv(&lab.stats)
+            };
+            std::fs::write(p, text).with_context(|| format!("{}: cannot write", p.display()))?;
+        }
+    }
+    if paths.fin.exists() {
+        std::fs::rename(&paths.fin, &paths.old)
+            .with_context(|| format!("{}: cannot move aside", paths.fin.display()))?;
+        std::fs::rename(&paths.staged, &paths.fin)
+            .with_context(|| format!("{}: cannot publish", paths.fin.display()))?;
+        std::fs::remove_dir_all(&paths.old)
+            .with_context(|| format!("{}: cannot remove", paths.old.display()))?;
+    } else {
+        std::fs::rename(&paths.staged, &paths.fin)
+            .with_context(|| format!("{}: cannot publish", paths.fin.display()))?;
+    }
+    if let Some((mut j, mut list)) = listed {
+        if !list.contains(&paths.name) {
+            list.push(paths.name.clone());
+            j["attributes"]["ome"]["version"] = json!("0.5");
+            j["attributes"]["ome"]["labels"] = json!(list);
+            write_json(&paths.dir.join("zarr.json"), &j)?;
+        }
+    } else {
+        let g = paths.dir.join("zarr.json");
+        if !g.exists() {
+            write_json(
+                &g,
+                &json!({"zarr_format": 3, "node_type": "group", "attributes": {}}),
+            )?;
+        }
+    }
+    let count = labeling.as_ref().map(|l| l.count());
+    let line = format!(
+        "wrote {} ({}, {} levels{}) in {:.2} s",
+        paths.fin.display(),
+        report.dtype,
+        report.levels.len(),
+        count.map(|n| format!(", {n} labels")).unwrap_or_default(),
+        t0.elapsed().as_secs_f64(),
+    );
+    Ok(ProcessReport {
+        output: paths.fin.clone(),
+        labels: count,
+        line,
+    })
+}
