@@ -53,7 +53,7 @@ impl Views {
                 format!("needs 2 to {MAX_VIEWS} views, got {}", self.count),
             );
         }
-        if width % self.count != 0 {
+        if !width.is_multiple_of(self.count) {
             return bad(
                 "count",
                 format!(

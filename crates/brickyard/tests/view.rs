@@ -883,3 +883,91 @@ quit
     }
     assert_ne!(images[0], images[1], "hiding channel 1 changed nothing");
 }
+
+/// The 3D view as a red–cyan stereo pair (DVR) and as four tiled views of
+/// a super-slice: each screenshot equals `brickyard render` with the
+/// arguments the viewer saves (`--stereo anaglyph`, `--views 4`), and the
+/// stereo image is not the mono one.
+#[test]
+fn viewer_shows_stereo_and_super_slices_as_render_does() {
+    let d = tempfile::tempdir().unwrap();
+    let store = mandelbulb(d.path(), "48", &["--brick", "16", "--shard", "32"]);
+    let p = |n: &str| d.path().join(n);
+    let script = format!(
+        "size 3d 96 80
+size xy 32 32
+size xz 32 32
+size yz 32 32
+size oblique 32 32
+mode dvr
+tf hot
+wait-complete 300
+screenshot 3d {mono}.png
+stereo anaglyph
+wait-complete 300
+screenshot 3d {ana}.png
+save-view 3d {ana}
+stereo sbs
+wait-complete 300
+screenshot 3d {sbs}.png
+save-view 3d {sbs}
+mode slice
+views 4
+wait-complete 300
+screenshot 3d {ss}.png
+save-view 3d {ss}
+stereo off
+quit
+",
+        mono = s(&p("mono")),
+        ana = s(&p("ana")),
+        sbs = s(&p("sbs")),
+        ss = s(&p("ss")),
+    );
+    std::fs::write(p("s.txt"), script).unwrap();
+    let Some(mut cmd) = viewer(
+        &store,
+        &p("s.txt"),
+        None,
+        &[
+            "--pool",
+            "4MiB",
+            "--brick",
+            "8",
+            "--backend",
+            "cpu",
+            "--accumulate",
+            "0",
+        ],
+    ) else {
+        return;
+    };
+    let o = cmd.output().unwrap();
+    assert!(o.status.success(), "viewer: {}", stderr(&o));
+    let args = std::fs::read_to_string(p("ana.args")).unwrap();
+    assert!(args.contains("--stereo\nanaglyph\n"), "{args}");
+    let ana = equals_render(&store, d.path(), "ana");
+    let sbs = equals_render(&store, d.path(), "sbs");
+    let args = std::fs::read_to_string(p("ss.args")).unwrap();
+    assert!(args.contains("--views\n4\n"), "{args}");
+    let ss = equals_render(&store, d.path(), "ss");
+    let (w, h, mono) = png_pixels(&p("mono.png"));
+    assert_eq!((w, h), (96, 80));
+    assert_eq!(png_pixels(&p("ana.png")).0, 96);
+    // Side by side: two 48-wide eyes in the 96-wide panel.
+    assert_eq!(png_pixels(&p("sbs.png")).0, 96);
+    assert!(ana != mono, "the anaglyph is the mono image");
+    // Four views in a 2×2 grid, not all alike.
+    let (sw, sh, _) = png_pixels(&p("ss.png"));
+    assert_eq!((sw, sh), (96, 80));
+    let tile = |tx: usize, ty: usize| -> Vec<u8> {
+        (0..40)
+            .flat_map(|y| {
+                let row = (ty * 40 + y) * 96 + tx * 48;
+                ss[row * 4..(row + 48) * 4].to_vec()
+            })
+            .collect()
+    };
+    assert!(tile(0, 0) != tile(1, 1), "the outer views are alike");
+    assert!(sbs.iter().any(|&x| x > 0));
+}

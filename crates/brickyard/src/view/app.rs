@@ -96,6 +96,10 @@ pub struct ViewerApp {
     /// DVR composites the visible channels (each through its colour and
     /// window) instead of showing `dvr_channel` through `tf`.
     dvr_channels: bool,
+    /// The 3D view's views: "off", "sbs", "anaglyph" or "tiles" (of
+    /// `n_views`).
+    stereo: String,
+    n_views: u32,
     channels: Vec<ChannelUi>,
     cursor: Vec3,
     oblique: [f64; 2],
@@ -220,6 +224,8 @@ impl ViewerApp {
             tf,
             dvr_channel: 0,
             dvr_channels: false,
+            stereo: "off".into(),
+            n_views: 4,
             channels,
             oblique: [30.0, 30.0],
             lod_bias: 0.0,
@@ -310,7 +316,8 @@ impl ViewerApp {
         if out.completeness < 1.0 {
             vs.streaming += 1;
         }
-        let img = &out.image;
+        let shown = laid_out(vs.sent.as_ref(), &out);
+        let img = shown.as_ref().unwrap_or(&out.image);
         let rgba = img.to_rgba8([0.0, 0.0, 0.0, 1.0]);
         let ci = egui::ColorImage::from_rgba_unmultiplied(
             [img.width as usize, img.height as usize],
@@ -366,4 +373,20 @@ impl eframe::App for ViewerApp {
             );
         }
     }
+}
+
+/// A frame of several views laid out for the screen as the view's spec
+/// says (`None`: one view, or a frame of another size, from an older
+/// spec, shown as it is).
+pub(super) fn laid_out(
+    sent: Option<&crate::view::worker::Spec>,
+    out: &crate::view::worker::Out,
+) -> Option<brickyard_render::Image> {
+    let sp = sent?;
+    let (views, layout) = (sp.params.views?, sp.layout.as_ref()?);
+    let img = &out.image;
+    if [img.width, img.height] != [sp.params.width, sp.params.height] {
+        return None;
+    }
+    brickyard_render::views::compose(img, views.count, layout, [0.0, 0.0, 0.0, 1.0]).ok()
 }

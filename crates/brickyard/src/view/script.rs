@@ -18,6 +18,7 @@
 //! | `channel C on\|off` / `channel-color C RRGGBB` / `channel-window C LO HI` | a channel's visibility, colour and window (MIP and slices add the visible ones up) |
 //! | `dvr-channel C` | the channel a DVR shows |
 //! | `dvr-channels on\|off` | DVR composites the visible channels (each in its colour and window) or shows the DVR channel |
+//! | `stereo off\|sbs\|anaglyph` / `views N` | the 3D view as a stereo pair (side by side, red–cyan) or N views tiled (slice mode: a super-slice) |
 //! | `apply NAME` | write the derived channel shown into the store as NAME, at every level, in the background (the panel's "Apply to whole volume") |
 //! | `wait-job [SECONDS]` | wait until the job ends (default 600 s); fail if it failed |
 //! | `derive PIPELINE` / `derive off` | show the live derived channel of PIPELINE (as the processing panel does) over the DVR channel; `off`: the stored data |
@@ -54,6 +55,8 @@ pub enum Cmd {
     ChannelWindow(usize, f32, f32),
     DvrChannel(usize),
     DvrChannels(bool),
+    /// The 3D view's views: 1 (off), 2 with a stereo layout, or N tiled.
+    Stereo(String, u32),
     Derive(Option<String>),
     Apply(String),
     WaitJob(f64),
@@ -219,6 +222,25 @@ fn parse_line(w: &[&str]) -> Result<Cmd> {
                 "off" => false,
                 x => bail!("dvr-channels: expected on or off, found {x:?}"),
             })
+        }
+        "stereo" => {
+            arity(1)?;
+            match w[1] {
+                "off" => Cmd::Stereo("off".into(), 1),
+                "sbs" | "anaglyph" => Cmd::Stereo(w[1].into(), 2),
+                x => bail!("stereo: expected off, sbs or anaglyph, found {x:?}"),
+            }
+        }
+        "views" => {
+            arity(1)?;
+            let n: u32 = num(w[1])?;
+            if !(2..=brickyard_core::views::MAX_VIEWS).contains(&n) {
+                bail!(
+                    "views: expected 2 to {} views, found {n}",
+                    brickyard_core::views::MAX_VIEWS
+                );
+            }
+            Cmd::Stereo("tiles".into(), n)
         }
         "oblique" => {
             arity(2)?;

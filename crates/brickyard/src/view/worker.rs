@@ -24,6 +24,8 @@ pub struct Spec {
     pub lod: Lod,
     /// The channel a DVR shows.
     pub channel: usize,
+    /// How several views (`params.views`) are laid out on screen.
+    pub layout: Option<brickyard_render::views::Layout>,
 }
 
 /// How the worker opens its session and back end.

@@ -311,6 +311,13 @@ impl ViewerApp {
                         self.dvr_channels = *on;
                         true
                     }
+                    Cmd::Stereo(layout, n) => {
+                        self.stereo = layout.clone();
+                        if layout == "tiles" {
+                            self.n_views = *n;
+                        }
+                        true
+                    }
                     Cmd::Oblique(az, el) => {
                         self.oblique = [*az, *el];
                         true

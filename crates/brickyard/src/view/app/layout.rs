@@ -5,10 +5,12 @@
 
 use super::{Vec3, ViewerApp, N_VIEWS};
 use crate::view::worker::{Msg, Spec};
-use brickyard_core::camera::{add, dot, normalize, scale, sub, Camera};
+use brickyard_core::camera::{add, dot, length, normalize, scale, sub, Camera};
+use brickyard_core::views::Views;
 use brickyard_core::TransferFunction;
 use brickyard_render::cpu::Lod;
 use brickyard_render::reference::{ChannelStyle, RenderMode, RenderParams};
+use brickyard_render::views::Layout;
 use eframe::egui;
 use std::time::Duration;
 
@@ -116,7 +118,9 @@ impl ViewerApp {
                 },
                 _ => RenderMode::Dvr,
             };
-            let tf = if self.mode == "slice" {
+            // A slice is opaque; a super-slice composites its slices
+            // through the transfer function's opacity.
+            let tf = if self.mode == "slice" && self.stereo == "off" {
                 tf_opaque(&self.tf)
             } else {
                 self.tf.clone()
@@ -135,10 +139,40 @@ impl ViewerApp {
         if mode != RenderMode::Dvr || self.dvr_composites() {
             params.channels = self.styles();
         }
+        let mut layout = None;
+        if v == 0 && self.stereo != "off" && (self.mode != "slice" || params.channels.is_empty()) {
+            let (count, l) = match self.stereo.as_str() {
+                "sbs" => (2, Layout::SideBySide),
+                "anaglyph" => (2, Layout::Anaglyph),
+                _ => (self.n_views, Layout::Tiles),
+            };
+            // Each view's size: the panel split between them (side by
+            // side: halves; tiles: a grid), an anaglyph's the whole panel.
+            let [vw, vh] = match l {
+                Layout::SideBySide => [w / 2, h],
+                Layout::Tiles => {
+                    let cols = (count as f64).sqrt().ceil() as u32;
+                    [w / cols, h / count.div_ceil(cols)]
+                }
+                _ => [w, h],
+            };
+            let slices = self.mode == "slice";
+            let distance = length(sub(camera.target, camera.eye));
+            params.width = vw.max(8) * count;
+            params.height = vh.max(8);
+            params.views = Some(Views {
+                count,
+                separation: if slices { 0.0 } else { distance / 30.0 },
+                parallax: 1.0,
+                spacing: self.voxel0(),
+            });
+            layout = Some(l);
+        }
         Spec {
             params,
             lod,
             channel: self.dvr_channel,
+            layout,
         }
     }
 

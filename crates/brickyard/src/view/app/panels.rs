@@ -34,6 +34,23 @@ impl ViewerApp {
                 ui.selectable_value(&mut self.mode, m.to_string(), m.to_uppercase());
             }
         });
+        ui.horizontal(|ui| {
+            ui.label("Views:");
+            for (v, label) in [
+                ("off", "one"),
+                ("sbs", "stereo side by side"),
+                ("anaglyph", "anaglyph"),
+                ("tiles", "N views"),
+            ] {
+                ui.selectable_value(&mut self.stereo, v.to_string(), label);
+            }
+            if self.stereo == "tiles" {
+                ui.add(
+                    egui::DragValue::new(&mut self.n_views)
+                        .range(2..=brickyard_core::views::MAX_VIEWS),
+                );
+            }
+        });
         if self.ds.channels > 1 {
             egui::ComboBox::from_label("DVR channel")
                 .selected_text(self.dvr_channel.to_string())

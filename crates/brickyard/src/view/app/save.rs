@@ -7,6 +7,7 @@ use crate::view::script::VIEWS;
 use anyhow::{bail, Context, Result};
 use brickyard_render::cpu::Lod;
 use brickyard_render::reference::RenderMode;
+use brickyard_render::views::Layout;
 use eframe::egui;
 use std::path::Path;
 
@@ -21,9 +22,10 @@ impl ViewerApp {
             .with_context(|| format!("{}: cannot write", cam_path.display()))?;
         std::fs::write(&tf_path, p.tf.to_json())
             .with_context(|| format!("{}: cannot write", tf_path.display()))?;
+        let count = p.views.map_or(1, |v| v.count);
         let mut a: Vec<String> = vec![
             "--size".into(),
-            format!("{}x{}", p.width, p.height),
+            format!("{}x{}", p.width / count, p.height),
             "--camera".into(),
             cam_path.display().to_string(),
             "--tf".into(),
@@ -50,6 +52,24 @@ impl ViewerApp {
                     "--slice-normal".into(),
                     f(normal),
                 ]);
+            }
+        }
+        if let (Some(views), Some(layout)) = (&p.views, &spec.layout) {
+            let voxels = views.spacing / self.voxel0();
+            match layout {
+                Layout::SideBySide => a.extend(["--stereo".into(), "sbs".into()]),
+                Layout::Anaglyph => a.extend(["--stereo".into(), "anaglyph".into()]),
+                _ => a.extend(["--views".into(), views.count.to_string()]),
+            }
+            if matches!(p.mode, RenderMode::Slice { .. }) {
+                a.extend([
+                    "--parallax".into(),
+                    format!("{}", views.parallax),
+                    "--spacing".into(),
+                    format!("{voxels}"),
+                ]);
+            } else {
+                a.extend(["--eye-separation".into(), format!("{}", views.separation)]);
             }
         }
         match spec.lod {
@@ -96,7 +116,10 @@ impl ViewerApp {
         let Some(o) = &vs.last else {
             bail!("screenshot {}: no frame yet", VIEWS[v]);
         };
-        o.image
+        let shown = super::laid_out(vs.sent.as_ref(), o);
+        shown
+            .as_ref()
+            .unwrap_or(&o.image)
             .write_png(path, [0.0, 0.0, 0.0, 1.0])
             .map_err(|e| anyhow::anyhow!("{e}"))
     }
