@@ -65,3 +65,7 @@ step "process filters $PROC^3, CPU and GPU" 35 bench process-filters --size "$PR
 # on the GPU (each frame's time on stdout).
 echo '{"preset": "soft", "window": [0, 255], "shading": true}' > "$DATA/shaded.json"
 step "progressive 16 frames, shaded, $SMALL^3 at 1024^2, GPU" 30 render "$DATA/mandelbulb-${SMALL}x${SMALL}x${SMALL}-u8.ome.zarr" --out "$DATA/progressive.png" --size 1024x1024 --tf "$DATA/shaded.json" --progressive 16 --backend gpu
+# Multi-view: an 8-view super-slice (Δx = 4, Δz = 1) at 1920x1080 per view
+# against one view alone and the 8 views one by one; stereo against mono
+# DVR (the thesis: 30 ms per 8-view image on a Titan X).
+step "views: 8-view super-slice and stereo DVR, $SMALL^3 at 1920x1080, CPU and GPU" 120 bench views --size "$SMALL" --dtype u8 --dir "$DATA" --image 1920x1080 --views 8 --repeat 5 --backend both

@@ -41,6 +41,10 @@ pub struct Views {
     /// Super-slices: world distance between neighbouring slices.
     #[serde(default)]
     pub spacing: f64,
+    /// Draw this view alone: the image is one view wide (e.g. to spread
+    /// the views over several renderers, or to time one).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub alone: Option<u32>,
 }
 
 impl Views {
@@ -53,7 +57,14 @@ impl Views {
                 format!("needs 2 to {MAX_VIEWS} views, got {}", self.count),
             );
         }
-        if !width.is_multiple_of(self.count) {
+        if let Some(v) = self.alone {
+            if v >= self.count {
+                return bad(
+                    "alone",
+                    format!("view {v} of {} views does not exist", self.count),
+                );
+            }
+        } else if !width.is_multiple_of(self.count) {
             return bad(
                 "count",
                 format!(
@@ -91,6 +102,23 @@ impl Views {
         self.count / 2
     }
 
+    /// The views an image holds: all, or the one drawn alone.
+    pub fn drawn(&self) -> std::ops::Range<u32> {
+        match self.alone {
+            Some(v) => v..v + 1,
+            None => 0..self.count,
+        }
+    }
+
+    /// Views side by side in the image: 1 when one is drawn alone.
+    pub fn columns(&self) -> u32 {
+        if self.alone.is_some() {
+            1
+        } else {
+            self.count
+        }
+    }
+
     /// Slice `k`'s distance from the reference slice, towards the camera.
     pub fn slice_depth(&self, k: u32) -> f64 {
         (k as f64 - self.reference_slice() as f64) * self.spacing
@@ -108,6 +136,8 @@ impl Views {
 pub struct ViewRays {
     gen: RayGen,
     count: u32,
+    /// The first view of the image (a view drawn alone).
+    first: u32,
     view_width: u32,
     separation: f64,
     distance: f64,
@@ -119,10 +149,11 @@ impl ViewRays {
     /// (assumed valid, [`Views::validate`]).
     pub fn new(camera: &Camera, views: Option<&Views>, width: u32, height: u32) -> ViewRays {
         let count = views.map_or(1, |v| v.count).max(1);
-        let view_width = width / count;
+        let view_width = width / views.map_or(1, |v| v.columns()).max(1);
         ViewRays {
             gen: camera.ray_gen(view_width, height),
             count,
+            first: views.and_then(|v| v.alone).unwrap_or(0),
             view_width,
             separation: views.map_or(0.0, |v| v.separation),
             distance: length(sub(camera.target, camera.eye)),
@@ -138,8 +169,8 @@ impl ViewRays {
     /// The view of pixel column `i` and the column within it.
     #[inline]
     pub fn view_of(&self, i: u32) -> (u32, u32) {
-        let v = (i / self.view_width).min(self.count - 1);
-        (v, i - v * self.view_width)
+        let v = (i / self.view_width).min(self.count - 1 - self.first);
+        (self.first + v, i - v * self.view_width)
     }
 
     /// The ray of view `v` through its continuous position `(px, py)`.
@@ -155,6 +186,7 @@ impl ViewRays {
         if self.count == 1 {
             return self.gen.pixel_ray(i, j);
         }
+        // (A view drawn alone: `view_of` gives it for every column.)
         let (v, x) = self.view_of(i);
         self.ray(v, x as f64 + 0.5, j as f64 + 0.5)
     }
@@ -171,6 +203,7 @@ mod tests {
             separation,
             parallax: 0.0,
             spacing: 0.0,
+            alone: None,
         }
     }
 
@@ -229,12 +262,41 @@ mod tests {
     }
 
     #[test]
+    fn a_view_drawn_alone_is_that_view_of_the_whole() {
+        let cam = Camera::look_at(
+            [1.0, -5.0, 2.0],
+            [0.0; 3],
+            [0.0, 0.0, 1.0],
+            Projection::Perspective { fov_y_deg: 30.0 },
+        );
+        let all = views(4, 0.3);
+        let whole = ViewRays::new(&cam, Some(&all), 4 * 32, 24);
+        let one = Views {
+            alone: Some(2),
+            ..all
+        };
+        assert!(one.validate(32).is_ok());
+        assert!(Views {
+            alone: Some(4),
+            ..all
+        }
+        .validate(32)
+        .is_err());
+        let alone = ViewRays::new(&cam, Some(&one), 32, 24);
+        for (i, j) in [(0, 0), (17, 9), (31, 23)] {
+            let (a, b) = (alone.pixel_ray(i, j), whole.pixel_ray(2 * 32 + i, j));
+            assert_eq!((a.origin, a.dir), (b.origin, b.dir));
+        }
+    }
+
+    #[test]
     fn super_slice_shifts_follow_depth_and_view() {
         let v = Views {
             count: 8,
             separation: 0.0,
             parallax: 4.0,
             spacing: 1.0,
+            alone: None,
         };
         assert_eq!(v.reference_slice(), 4);
         assert_eq!(v.slice_shift(0, 4), 0.0);

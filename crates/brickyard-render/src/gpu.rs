@@ -117,6 +117,8 @@ struct Uniform {
     /// Views: eye separation, distance to the target plane, super-slice
     /// parallax and slice spacing.
     views: [f32; 4],
+    /// The first view of the image (a view drawn alone), 0, 0, 0.
+    view_sel: [u32; 4],
     scale: [[f32; 4]; MAX_LEVELS],
     qmax: [[f32; 4]; MAX_LEVELS],
     step: [[f32; 4]; MAX_LEVELS],
@@ -377,7 +379,7 @@ impl GpuRenderer {
         let cam = &params.camera;
         let basis = cam.basis();
         let n_views = params.views.map_or(1, |v| v.count);
-        let view_width = w / n_views;
+        let view_width = w / params.views.map_or(1, |v| v.columns());
         let f4 = |v: [f64; 3]| [v[0] as f32, v[1] as f32, v[2] as f32, 0.0];
         let (half_h, perspective) = match cam.projection {
             Projection::Perspective { fov_y_deg } => ((fov_y_deg * 0.5).to_radians().tan(), 1),
@@ -399,6 +401,7 @@ impl GpuRenderer {
             aspect: (view_width as f64 / h as f64) as f32,
             n_views,
             view_width,
+            view_sel: [params.views.and_then(|v| v.alone).unwrap_or(0), 0, 0, 0],
             views: params.views.map_or([0.0; 4], |v| {
                 [
                     v.separation as f32,

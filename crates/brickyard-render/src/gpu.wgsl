@@ -77,6 +77,8 @@ struct Render {
     // Views: eye separation, distance to the target plane, super-slice
     // parallax (pixels) and slice spacing (world).
     views: vec4<f32>,
+    // The first view of the image (a view drawn alone), 0, 0, 0.
+    view_sel: vec4<u32>,
     // Per level: voxels per world unit (z, y, x); w unused.
     scale: array<vec4<f32>, 16>,
     // Per level: last voxel index (z, y, x) as floats.
@@ -165,8 +167,8 @@ fn view_ray(v: u32, px: f32, py: f32) -> Ray {
 
 // The view of pixel column i and the column within it.
 fn view_of(i: u32) -> vec2<u32> {
-    let v = min(i / R.view_width, R.n_views - 1u);
-    return vec2<u32>(v, i - v * R.view_width);
+    let v = min(i / R.view_width, R.n_views - 1u - R.view_sel.x);
+    return vec2<u32>(R.view_sel.x + v, i - v * R.view_width);
 }
 
 fn pixel_ray(i: u32, j: u32) -> Ray {

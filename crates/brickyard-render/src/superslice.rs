@@ -76,7 +76,7 @@ pub(crate) fn draw<T: Sample>(
     for k in 0..n {
         let first = layers.len();
         let slice_origin = add(origin, scale(towards, views.slice_depth(k)));
-        for v in 0..n {
+        for v in views.drawn() {
             let s = views.slice_shift(v, k);
             let (whole, frac) = (s.floor() as i64, s - s.floor());
             let i = match layers[first..].iter().position(|l| l.frac == frac) {
@@ -106,7 +106,7 @@ pub(crate) fn draw<T: Sample>(
         at += l.width;
     }
     let scratch_len = at;
-    for v in 0..n {
+    for v in views.drawn() {
         for k in 0..n {
             let r = &mut reads[(v * n + k) as usize];
             let l = &layers[r.layer];
@@ -145,8 +145,9 @@ pub(crate) fn draw<T: Sample>(
                         };
                     }
                 }
-                for v in 0..n as usize {
-                    for (x, px) in row[v * vw..(v + 1) * vw].iter_mut().enumerate() {
+                for (col, v) in views.drawn().enumerate() {
+                    let v = v as usize;
+                    for (x, px) in row[col * vw..(col + 1) * vw].iter_mut().enumerate() {
                         let mut acc = [0f32; 4];
                         for &k in &order {
                             let r = reads[v * n as usize + k as usize];

@@ -169,6 +169,7 @@ fn super_slices_equal_the_oracle_on_both_back_ends() {
             separation: 0.0,
             parallax,
             spacing: f.scene.voxel(0) * 1.5,
+            alone: None,
         });
         let want = render(&f.level0, &p);
         assert!(
@@ -237,6 +238,7 @@ fn each_view_is_a_plain_render_of_its_own_camera() {
             separation,
             parallax: 0.0,
             spacing: 0.0,
+            alone: None,
         });
         let want = render(&f.level0, &p);
         assert!(
@@ -331,6 +333,7 @@ fn super_slices_composite_in_the_thesis_order() {
         separation: 0.0,
         parallax: 1.0,
         spacing: 4.0 * vz,
+        alone: None,
     });
     let expect = [0.125f32, 0.0, 0.75, 0.875];
     let check = |img: &Image, who: &str| {
@@ -371,6 +374,7 @@ fn views_share_one_request_list_under_a_small_pool() {
         separation: e[0] * 0.06,
         parallax: 0.0,
         spacing: 0.0,
+        alone: None,
     });
     let want = render(&f.level0, &p);
     // 48·64·56 voxels in 16³ bricks: 48 bricks of level 0 (and 8 of
@@ -384,4 +388,53 @@ fn views_share_one_request_list_under_a_small_pool() {
     no_brick_twice(&lists);
     let d = img.max_abs_diff(&want);
     assert!(d <= 1e-5, "max abs diff {d}");
+}
+
+/// A view drawn alone (`Views::alone`) is that view of the whole image,
+/// on the CPU (its own layers only) and the device.
+#[test]
+fn a_view_drawn_alone_equals_its_part_of_the_whole() {
+    let f = fixture();
+    let e = f.scene.extent;
+    let centre = scale(e, 0.5);
+    let normal = [0.0, 0.0, 1.0];
+    let cam = Camera::facing_plane(centre, normal, e[1]);
+    let tf = TransferFunction {
+        opacity: vec![[0.0, 0.0], [0.3, 0.0], [1.0, 0.6]],
+        ..TransferFunction::preset("viridis", [0.0, 255.0]).unwrap()
+    };
+    let all = Views {
+        count: 6,
+        separation: 0.0,
+        parallax: 2.0,
+        spacing: f.scene.voxel(0),
+        alone: None,
+    };
+    let mode = RenderMode::Slice {
+        origin: centre,
+        normal,
+    };
+    let mut p = RenderParams::new(6 * 30, 28, cam, tf, mode);
+    p.views = Some(all);
+    let mut s = session(&f.store, 64 << 20);
+    let (whole, _) = converge(&mut s, &f.scene, &p, Lod::Fixed(0));
+    for v in [0u32, 4] {
+        let mut one = p.clone();
+        one.width = 30;
+        one.views = Some(Views {
+            alone: Some(v),
+            ..all
+        });
+        let part = crop(&whole, v * 30, 30);
+        assert!(part.coverage(0.05) > 0.2);
+        let (img, _) = converge(&mut s, &f.scene, &one, Lod::Fixed(0));
+        assert_eq!(img.max_abs_diff(&part), 0.0, "CPU, view {v} alone");
+        let want = render(&f.level0, &one);
+        assert!(want.max_abs_diff(&part) <= 1e-5, "oracle, view {v} alone");
+        let mut sd = session(&f.store, 64 << 20);
+        if let Some((img, _)) = converge_device(&mut sd, &f.scene, &one, Lod::Fixed(0)) {
+            let d = img.max_abs_diff(&part);
+            assert!(d <= 1e-4, "device, view {v} alone: {d}");
+        }
+    }
 }

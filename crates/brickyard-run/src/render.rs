@@ -686,6 +686,7 @@ fn run_with(
                 },
                 parallax: c.parallax.unwrap_or(1.0),
                 spacing: c.spacing.unwrap_or(1.0) * scene.voxel(0),
+                alone: None,
             });
         }
         if mode != RenderMode::Dvr || dvr_multi {

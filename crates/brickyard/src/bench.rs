@@ -24,7 +24,9 @@ pub struct BenchCmd {
     /// both); loader: decoded GB/s; remote: brick reads from disk and over
     /// HTTP on loopback (a `serve` child); latency: one brick and one full
     /// view from an empty cache (paper Table 2); render: DVR (or --mode mip) frame times
-    /// through the virtual memory beside the in-core reference.
+    /// through the virtual memory beside the in-core reference; views: an
+    /// N-view super-slice against one view and the views one by one, stereo
+    /// against mono DVR.
     scenario: String,
     /// Volume size (N or XxYxZ).
     #[arg(long, default_value = "256")]
@@ -74,6 +76,9 @@ pub struct BenchCmd {
     /// host); `gpu-host` and `auto-host` have the host decide updates.
     #[arg(long, default_value = "cpu")]
     backend: String,
+    /// views: how many views (2 to 16).
+    #[arg(long, default_value_t = 8)]
+    views: u32,
 }
 
 pub fn run(b: BenchCmd) -> Result<()> {
@@ -89,6 +94,18 @@ pub fn run(b: BenchCmd) -> Result<()> {
         "loader" => crate::vmbench::loader(&b.dir, dims, dtype, b.cold),
         "remote" => crate::netbench::remote(&b.dir, dims, dtype),
         "latency" => crate::vmbench::latency(&b.dir, dims, dtype, b.cold),
+        "views" => crate::viewbench::views(
+            &b.dir,
+            dims,
+            dtype,
+            crate::render::parse_image_size(&b.image, "--image")?,
+            b.views,
+            b.repeat,
+            &match b.backend.as_str() {
+                "both" => vec!["cpu".into(), "gpu".into()],
+                x => vec![x.to_string()],
+            },
+        ),
         "render" => {
             let pool = b.pool.as_deref().map(crate::parse_bytes).transpose()?;
             let o = crate::vmbench::RenderBench {
@@ -113,7 +130,7 @@ pub fn run(b: BenchCmd) -> Result<()> {
             crate::vmbench::render(&b.dir, dims, dtype, &o)
         }
         s => bail!(
-            "scenario: expected convert, downsample, vm-sample, vm-update, cache-kernels, process-filters, loader, latency or render, found {s:?}"
+            "scenario: expected convert, downsample, vm-sample, vm-update, cache-kernels, process-filters, loader, latency, render or views, found {s:?}"
         ),
     }
 }

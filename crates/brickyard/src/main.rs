@@ -7,6 +7,7 @@ mod process;
 mod progress;
 mod serve;
 mod view;
+mod viewbench;
 mod vmbench;
 mod vmcmd;
 // The render run (backend, frame loop, memory split, windows, derived

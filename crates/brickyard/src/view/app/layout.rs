@@ -165,6 +165,7 @@ impl ViewerApp {
                 separation: if slices { 0.0 } else { distance / 30.0 },
                 parallax: 1.0,
                 spacing: self.voxel0(),
+                alone: None,
             });
             layout = Some(l);
         }
