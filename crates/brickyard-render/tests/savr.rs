@@ -32,7 +32,7 @@ fn single_pass(vol: &Volume, f: &Fixture, tf: &TransferFunction, level: usize, r
     let extent = f.scene.extent;
     let dt = f.scene.voxel(level) / p.samples_per_voxel / rate as f64;
     let e = (dt / p.reference_step.unwrap()) as f32;
-    let rg = p.camera.ray_gen(p.width, p.height);
+    let rg = brickyard_core::views::ViewRays::new(&p.camera, p.views.as_ref(), p.width, p.height);
     let mut img = Image::new(p.width, p.height);
     for j in 0..p.height {
         for i in 0..p.width {
@@ -146,6 +146,40 @@ fn accumulated_frames_equal_a_single_pass_at_the_rate_reached() {
             assert!(acc.image().max_abs_diff(&one) > 1e-3);
         }
     }
+}
+
+/// A stereo pair accumulates like one view: each eye's rays (off-axis,
+/// `brickyard_core::views`) reach the single pass at 8 times the rate.
+#[test]
+fn a_stereo_pair_accumulates_as_its_single_pass() {
+    let mut f = fixture();
+    f.params.width *= 2;
+    let d = brickyard_core::camera::length(brickyard_core::camera::sub(
+        f.params.camera.target,
+        f.params.camera.eye,
+    ));
+    f.params.views = Some(brickyard_core::views::Views {
+        count: 2,
+        separation: d / 20.0,
+        parallax: 0.0,
+        spacing: 0.0,
+        alone: None,
+    });
+    let mut s = session(&f.store, 64 << 20);
+    let mut acc = Accumulation::new(f.params.width, f.params.height, 8, 1 << 20);
+    accumulate(&mut s, &f, &mut acc, Lod::Fixed(0));
+    let want = single_pass(&f.levels[0], &f, &f.params.tf, 0, 8);
+    let diff = acc.image().max_abs_diff(&want);
+    assert!(diff <= 1e-5, "max abs diff {diff}");
+    assert!(want.coverage(0.01) > 0.2, "image nearly empty");
+    // The eyes see different images.
+    let w = f.params.width / 2;
+    let (l, r) = (
+        brickyard_render::views::view(&want, 2, 0),
+        brickyard_render::views::view(&want, 2, 1),
+    );
+    assert_eq!(l.width, w);
+    assert!(l.max_abs_diff(&r) > 0.05);
 }
 
 /// Out of core (a pool of a third of the volume, bricks arriving a few per
