@@ -4,6 +4,7 @@ mod bench;
 mod gpubench;
 mod netbench;
 mod process;
+mod remote;
 mod progress;
 mod serve;
 mod view;

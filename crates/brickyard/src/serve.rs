@@ -17,6 +17,8 @@
 //! that would write get 405. A fixed pool of worker threads answers
 //! (bounded concurrency); each request is logged on stderr; Ctrl-C or
 //! SIGTERM stops accepting and ends after the requests in progress.
+//! `--render` adds remote rendering (`remote`): a WebSocket endpoint and
+//! its thin client at `/remote`.
 
 use anyhow::{bail, Context, Result};
 use clap::Args;
@@ -29,6 +31,9 @@ use std::sync::atomic::Ordering;
 use std::sync::Arc;
 use std::time::{Duration, Instant, UNIX_EPOCH};
 use tiny_http::{Header, Method, Request, Response, Server, StatusCode};
+
+/// The thin client of `--render` (the render port written in).
+const REMOTE_PAGE: &str = include_str!("remote.html");
 
 #[derive(Args, Clone, Debug)]
 pub struct ServeCmd {
@@ -53,6 +58,28 @@ pub struct ServeCmd {
     /// No access log.
     #[arg(long)]
     pub quiet: bool,
+    /// Remote rendering: a WebSocket endpoint streaming frames of views
+    /// clients ask for, and the thin client at /remote.
+    #[arg(long)]
+    pub render: bool,
+    /// Port of the render endpoint (0: any free one; printed).
+    #[arg(long, default_value_t = 0)]
+    pub render_port: u16,
+    /// Render sessions at once (more are refused until one ends).
+    #[arg(long, default_value_t = 4)]
+    pub render_sessions: usize,
+    /// Frames sent per second and session, at most.
+    #[arg(long, default_value_t = 20.0)]
+    pub max_fps: f64,
+    /// Brick pool of each render session.
+    #[arg(long, default_value = "256MiB")]
+    pub render_pool: String,
+    /// Host cache of each store, shared by its render sessions.
+    #[arg(long, default_value = "1GiB")]
+    pub render_host: String,
+    /// Who renders: auto (a hardware GPU when there is one), gpu or cpu.
+    #[arg(long, default_value = "auto")]
+    pub backend: String,
 }
 
 /// What the server serves and how.
@@ -61,6 +88,8 @@ struct Site {
     roots: HashMap<String, PathBuf>,
     token: Option<String>,
     log: bool,
+    /// The render endpoint's port (`--render`), for the /remote page.
+    render_port: Option<u16>,
 }
 
 fn is_loopback(ip: IpAddr) -> bool {
@@ -127,14 +156,48 @@ fn site(c: &ServeCmd) -> Result<Site> {
         roots,
         token,
         log: !c.quiet,
+        render_port: None,
     })
 }
 
 pub fn run(c: ServeCmd) -> Result<()> {
-    let site = Arc::new(site(&c)?);
+    let mut site = site(&c)?;
     if c.workers == 0 {
         bail!("--workers: at least 1");
     }
+    let mut render = None;
+    if c.render {
+        if c.render_sessions == 0 {
+            bail!("--render-sessions: at least 1");
+        }
+        if !(c.max_fps > 0.0 && c.max_fps.is_finite()) {
+            bail!("--max-fps: a positive rate, got {}", c.max_fps);
+        }
+        let addr = SocketAddr::new(c.bind, c.render_port);
+        let l = std::net::TcpListener::bind(addr)
+            .with_context(|| format!("{addr}: cannot listen for render sessions"))?;
+        let port = l.local_addr()?.port();
+        site.render_port = Some(port);
+        let rs = Arc::new(crate::remote::RenderSite {
+            roots: site.roots.clone(),
+            token: site.token.clone(),
+            backend: c.backend.clone(),
+            sessions: c.render_sessions,
+            max_fps: c.max_fps,
+            pool: crate::parse_bytes(&c.render_pool).context("--render-pool")?,
+            host: crate::parse_bytes(&c.render_host).context("--render-host")?,
+            log: !c.quiet,
+        });
+        render = Some((
+            format!(
+                "render sessions at ws://{}:{port}/render (at most {}, {} fps); the thin client at /remote",
+                c.bind, c.render_sessions, c.max_fps
+            ),
+            l,
+            rs,
+        ));
+    }
+    let site = Arc::new(site);
     let addr = SocketAddr::new(c.bind, c.port);
     let listener =
         std::net::TcpListener::bind(addr).with_context(|| format!("{addr}: cannot listen"))?;
@@ -162,6 +225,10 @@ pub fn run(c: ServeCmd) -> Result<()> {
             ""
         }
     );
+    if let Some((msg, l, rs)) = render {
+        eprintln!("{msg}");
+        std::thread::spawn(move || crate::remote::serve(l, rs));
+    }
     crate::install_ctrl_c();
     let server = Arc::new(server);
     let workers: Vec<_> = (0..c.workers)
@@ -442,6 +509,20 @@ fn respond(site: &Site, rq: Request) -> (u16, u64, Option<String>) {
             let e = rq.respond(r).err().and_then(send_err);
             return (405, 0, e);
         }
+    }
+    // The thin client's page holds no data: it asks for the token itself.
+    if let (Some(port), "/remote") = (site.render_port, rq.url().split('?').next().unwrap_or("")) {
+        let body = REMOTE_PAGE
+            .replace("__RENDER_PORT__", &port.to_string())
+            .into_bytes();
+        let n = body.len();
+        let h = vec![
+            header("Content-Type", "text/html; charset=utf-8"),
+            header("Cache-Control", "no-cache"),
+        ];
+        let r = Response::new(StatusCode(200), h, std::io::Cursor::new(body), Some(n), None);
+        let e = rq.respond(r).err().and_then(send_err);
+        return (200, n as u64, e);
     }
     if !token_ok(site, &rq) {
         let r = text(401, "a valid bearer token is needed")

@@ -558,3 +558,147 @@ fn viewer_on_a_url_equals_local_render() {
         "the viewer over HTTP and render differ by {worst}"
     );
 }
+
+/// Frames of the render endpoint: read a status and its image.
+fn ws_frame(
+    ws: &mut tungstenite::WebSocket<tungstenite::stream::MaybeTlsStream<TcpStream>>,
+) -> (serde_json::Value, Vec<u8>) {
+    loop {
+        match ws.read().unwrap() {
+            tungstenite::Message::Text(t) => {
+                let m: serde_json::Value = serde_json::from_str(t.as_str()).unwrap();
+                assert!(m.get("error").is_none(), "server error: {m}");
+                let img = match ws.read().unwrap() {
+                    tungstenite::Message::Binary(b) => b.to_vec(),
+                    other => panic!("expected an image after {m}, got {other:?}"),
+                };
+                return (m, img);
+            }
+            tungstenite::Message::Close(_) => panic!("the server closed the session"),
+            _ => {}
+        }
+    }
+}
+
+fn png_bytes_rgba(b: &[u8]) -> (u32, u32, Vec<u8>) {
+    let dec = png::Decoder::new(std::io::Cursor::new(b.to_vec()));
+    let mut r = dec.read_info().unwrap();
+    let mut buf = vec![0; r.output_buffer_size().unwrap()];
+    let info = r.next_frame(&mut buf).unwrap();
+    buf.truncate(info.buffer_size());
+    (info.width, info.height, buf)
+}
+
+/// Remote rendering: a client sends a view (camera, transfer function,
+/// window, size) over the WebSocket; the frames stream back, JPEG while
+/// incomplete, and the final PNG equals `brickyard render` of the same view
+/// within 1/255. A second view in the same session is drawn too; a bad
+/// message gets an error and the session goes on; sessions beyond the limit
+/// and a wrong token are refused at the handshake; the page is served.
+#[test]
+fn remote_rendering_streams_frames_equal_to_render() {
+    let d = tempfile::tempdir().unwrap();
+    let st = store(d.path());
+    let cam = d.path().join("cam.json");
+    ok(&run(&[
+        "render", s(&st), "--size", "96x80", "--save-camera", s(&cam), "--out",
+        s(&d.path().join("a.png")), "--tf", "hot", "--window", "0,255", "--backend", "cpu", "--quiet",
+    ]));
+    let want = png_rgba(&d.path().join("a.png"));
+    let srv = serve(
+        &[&st],
+        &["--render", "--render-sessions", "1", "--backend", "cpu", "--max-fps", "50"],
+    );
+    let log = || srv.log.lock().unwrap().clone();
+    let port: u16 = {
+        let mut port = None;
+        for _ in 0..100 {
+            if let Some(p) = log()
+                .split("/render")
+                .next()
+                .and_then(|l| l.rsplit(':').next())
+                .and_then(|p| p.parse().ok())
+            {
+                port = Some(p);
+                break;
+            }
+            std::thread::sleep(std::time::Duration::from_millis(50));
+        }
+        port.unwrap_or_else(|| panic!("no render port in {}", log()))
+    };
+    let url = format!("ws://127.0.0.1:{port}/render");
+    let (mut ws, _) = tungstenite::connect(url.as_str()).unwrap();
+    let camera: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(&cam).unwrap()).unwrap();
+    let view = serde_json::json!({"store": "m.ome.zarr", "mode": "dvr", "tf": "hot",
+        "window": [0, 255], "size": [96, 80], "camera": camera});
+    ws.send(tungstenite::Message::Text(view.to_string().into())).unwrap();
+    let mut frames = 0;
+    let last = loop {
+        let (m, img) = ws_frame(&mut ws);
+        frames += 1;
+        if m["final"] == true {
+            assert_eq!(m["format"], "png");
+            assert_eq!(m["complete"], true, "{m}");
+            break img;
+        }
+        assert_eq!(m["format"], "jpeg");
+        assert_eq!(&img[..2], &[0xff, 0xd8], "not a JPEG");
+    };
+    let (w, h, got) = png_bytes_rgba(&last);
+    assert_eq!((w, h), (96, 80));
+    let worst = got.iter().zip(&want).map(|(a, b)| a.abs_diff(*b)).max().unwrap();
+    assert!(worst <= 1, "remote frame and render differ by {worst} after {frames} frames");
+    assert!(got.chunks(4).filter(|p| p[0] > 20).count() > 96 * 80 / 20, "nearly black");
+    // A bad message: an error, and the session goes on.
+    ws.send(tungstenite::Message::Text(r#"{"mode": "volume"}"#.into()))
+        .unwrap();
+    match ws.read().unwrap() {
+        tungstenite::Message::Text(t) => assert!(t.as_str().contains("mode"), "{t}"),
+        other => panic!("expected an error, got {other:?}"),
+    }
+    // Another view (orbit and a MIP) in the same session.
+    let orbit = serde_json::json!({"camera": null, "azimuth": 120, "elevation": 10, "mode": "mip"});
+    ws.send(tungstenite::Message::Text(orbit.to_string().into())).unwrap();
+    loop {
+        let (m, img) = ws_frame(&mut ws);
+        if m["final"] == true {
+            let (_, _, px) = png_bytes_rgba(&img);
+            assert!(px != got, "the new view is the old one");
+            break;
+        }
+    }
+    // One session at most: a second is refused while this one lives.
+    match tungstenite::connect(url.as_str()) {
+        Err(tungstenite::Error::Http(r)) => assert_eq!(r.status(), 503),
+        other => panic!("a second session was not refused: {:?}", other.map(|_| ())),
+    }
+    drop(ws);
+    // The thin client's page names the render port.
+    let (status, _, body) = http(srv.port, "GET", "/remote", &[]);
+    assert_eq!(status, 200);
+    assert!(String::from_utf8_lossy(&body).contains(&format!(":{port}/render")));
+    // A token protects the endpoint.
+    let srv2 = serve(&[&st], &["--render", "--token", "sesame", "--backend", "cpu"]);
+    let mut port2 = None;
+    for _ in 0..100 {
+        port2 = srv2
+            .log
+            .lock()
+            .unwrap()
+            .split("/render")
+            .next()
+            .and_then(|l| l.rsplit(':').next())
+            .and_then(|p| p.parse::<u16>().ok());
+        if port2.is_some() {
+            break;
+        }
+        std::thread::sleep(std::time::Duration::from_millis(50));
+    }
+    let port2 = port2.expect("render port");
+    match tungstenite::connect(format!("ws://127.0.0.1:{port2}/render?token=wrong").as_str()) {
+        Err(tungstenite::Error::Http(r)) => assert_eq!(r.status(), 401),
+        other => panic!("a wrong token was not refused: {:?}", other.map(|_| ())),
+    }
+    assert!(tungstenite::connect(format!("ws://127.0.0.1:{port2}/render?token=sesame").as_str()).is_ok());
+}
