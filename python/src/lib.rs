@@ -531,8 +531,10 @@ fn process(
         .detach(|| {
             std::thread::scope(|s| {
                 let job = s.spawn(|| processing::run(&args, &labelling, &writing, &cancel));
+                // (Often: a signal sent at the first piece of a short phase
+                // must stop it before it ends.)
                 while !job.is_finished() {
-                    std::thread::sleep(std::time::Duration::from_millis(50));
+                    std::thread::sleep(std::time::Duration::from_millis(2));
                     if interrupted() {
                         cancel.store(true, Ordering::SeqCst);
                     }

@@ -79,7 +79,12 @@ pub fn serve(listener: TcpListener, site: Arc<RenderSite>) {
 }
 
 /// The handshake (token, session limit), then the session.
-fn connection(stream: TcpStream, site: &RenderSite, live: &AtomicUsize, caches: &Caches) -> Result<()> {
+fn connection(
+    stream: TcpStream,
+    site: &RenderSite,
+    live: &AtomicUsize,
+    caches: &Caches,
+) -> Result<()> {
     let _ = stream.set_nodelay(true);
     stream.set_read_timeout(Some(Duration::from_secs(10)))?;
     // A slot, taken before the handshake so that the limit holds.
@@ -120,7 +125,10 @@ fn connection(stream: TcpStream, site: &RenderSite, live: &AtomicUsize, caches: 
     let mut ws = tungstenite::accept_hdr(stream, check)
         .map_err(|e| anyhow::anyhow!("WebSocket handshake: {e}"))?;
     if site.log {
-        eprintln!("render: session opened ({} live)", live.load(Ordering::SeqCst));
+        eprintln!(
+            "render: session opened ({} live)",
+            live.load(Ordering::SeqCst)
+        );
     }
     let r = session(&mut ws, site, caches);
     let _ = ws.close(None);
@@ -166,7 +174,11 @@ impl View {
     fn apply(&self, m: &serde_json::Map<String, Value>) -> Result<View> {
         let mut v = self.clone();
         for (k, x) in m {
-            let num = || x.as_f64().filter(|f| f.is_finite()).with_context(|| format!("{k}: expected a number, got {x}"));
+            let num = || {
+                x.as_f64()
+                    .filter(|f| f.is_finite())
+                    .with_context(|| format!("{k}: expected a number, got {x}"))
+            };
             match k.as_str() {
                 "store" => v.store = Some(x.as_str().with_context(|| format!("store: expected a name, got {x}"))?.to_string()),
                 "mode" => {
@@ -264,7 +276,9 @@ fn params(o: &Open, v: &View) -> Result<RenderParams> {
     let extent = o.scene.extent;
     let window = v.window.unwrap_or([o.window.0 as f32, o.window.1 as f32]);
     let tf = match &v.tf {
-        Value::String(p) => TransferFunction::preset(p, window).map_err(|e| anyhow::anyhow!("tf: {e}"))?,
+        Value::String(p) => {
+            TransferFunction::preset(p, window).map_err(|e| anyhow::anyhow!("tf: {e}"))?
+        }
         t => TransferFunction::from_json(&t.to_string()).map_err(|e| anyhow::anyhow!("tf: {e}"))?,
     };
     let mode = match v.mode.as_str() {
@@ -276,12 +290,19 @@ fn params(o: &Open, v: &View) -> Result<RenderParams> {
         _ => RenderMode::Dvr,
     };
     let camera = match (&v.camera, &mode) {
-        (Some(c), _) => Camera::from_json(&c.to_string()).map_err(|e| anyhow::anyhow!("camera: {e}"))?,
+        (Some(c), _) => {
+            Camera::from_json(&c.to_string()).map_err(|e| anyhow::anyhow!("camera: {e}"))?
+        }
         (None, RenderMode::Slice { origin, normal }) => {
             Camera::facing_plane(*origin, *normal, extent[0].max(extent[1]) * 1.05 / v.zoom)
         }
         (None, _) => {
-            let full = Camera::fit(extent, v.azimuth, v.elevation, Projection::Perspective { fov_y_deg: 35.0 });
+            let full = Camera::fit(
+                extent,
+                v.azimuth,
+                v.elevation,
+                Projection::Perspective { fov_y_deg: 35.0 },
+            );
             let eye = [0, 1, 2].map(|a| full.target[a] + (full.eye[a] - full.target[a]) / v.zoom);
             Camera { eye, ..full }
         }
@@ -329,7 +350,8 @@ fn session(ws: &mut WebSocket<TcpStream>, site: &RenderSite, caches: &Caches) ->
     loop {
         // Waiting for a view: block a while; drawing: just look.
         let wait = if drawing.is_some() { 1 } else { 250 };
-        ws.get_ref().set_read_timeout(Some(Duration::from_millis(wait)))?;
+        ws.get_ref()
+            .set_read_timeout(Some(Duration::from_millis(wait)))?;
         let mut changed = false;
         loop {
             match ws.read() {
@@ -344,7 +366,10 @@ fn session(ws: &mut WebSocket<TcpStream>, site: &RenderSite, caches: &Caches) ->
                     let mut m = m.as_object().expect("an object").clone();
                     if let Some(r) = m.remove("report") {
                         if site.log || r.is_string() {
-                            eprintln!("render client reports: {}", r.as_str().unwrap_or(&r.to_string()));
+                            eprintln!(
+                                "render client reports: {}",
+                                r.as_str().unwrap_or(&r.to_string())
+                            );
                         }
                     }
                     if m.is_empty() {
@@ -358,16 +383,22 @@ fn session(ws: &mut WebSocket<TcpStream>, site: &RenderSite, caches: &Caches) ->
                         Err(e) => send_json(ws, json!({"error": format!("{e:#}")}))?,
                     }
                     // More messages may be queued: take them all first.
-                    ws.get_ref().set_read_timeout(Some(Duration::from_millis(1)))?;
+                    ws.get_ref()
+                        .set_read_timeout(Some(Duration::from_millis(1)))?;
                 }
                 Ok(Message::Close(_)) => return Ok(()),
                 Ok(_) => {}
                 Err(tungstenite::Error::Io(e))
-                    if matches!(e.kind(), std::io::ErrorKind::WouldBlock | std::io::ErrorKind::TimedOut) =>
+                    if matches!(
+                        e.kind(),
+                        std::io::ErrorKind::WouldBlock | std::io::ErrorKind::TimedOut
+                    ) =>
                 {
                     break
                 }
-                Err(tungstenite::Error::ConnectionClosed | tungstenite::Error::AlreadyClosed) => return Ok(()),
+                Err(tungstenite::Error::ConnectionClosed | tungstenite::Error::AlreadyClosed) => {
+                    return Ok(())
+                }
                 Err(e) => return Err(e.into()),
             }
         }

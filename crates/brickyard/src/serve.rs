@@ -520,7 +520,13 @@ fn respond(site: &Site, rq: Request) -> (u16, u64, Option<String>) {
             header("Content-Type", "text/html; charset=utf-8"),
             header("Cache-Control", "no-cache"),
         ];
-        let r = Response::new(StatusCode(200), h, std::io::Cursor::new(body), Some(n), None);
+        let r = Response::new(
+            StatusCode(200),
+            h,
+            std::io::Cursor::new(body),
+            Some(n),
+            None,
+        );
         let e = rq.respond(r).err().and_then(send_err);
         return (200, n as u64, e);
     }

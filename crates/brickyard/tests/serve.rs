@@ -601,13 +601,34 @@ fn remote_rendering_streams_frames_equal_to_render() {
     let st = store(d.path());
     let cam = d.path().join("cam.json");
     ok(&run(&[
-        "render", s(&st), "--size", "96x80", "--save-camera", s(&cam), "--out",
-        s(&d.path().join("a.png")), "--tf", "hot", "--window", "0,255", "--backend", "cpu", "--quiet",
+        "render",
+        s(&st),
+        "--size",
+        "96x80",
+        "--save-camera",
+        s(&cam),
+        "--out",
+        s(&d.path().join("a.png")),
+        "--tf",
+        "hot",
+        "--window",
+        "0,255",
+        "--backend",
+        "cpu",
+        "--quiet",
     ]));
     let want = png_rgba(&d.path().join("a.png"));
     let srv = serve(
         &[&st],
-        &["--render", "--render-sessions", "1", "--backend", "cpu", "--max-fps", "50"],
+        &[
+            "--render",
+            "--render-sessions",
+            "1",
+            "--backend",
+            "cpu",
+            "--max-fps",
+            "50",
+        ],
     );
     let log = || srv.log.lock().unwrap().clone();
     let port: u16 = {
@@ -632,7 +653,8 @@ fn remote_rendering_streams_frames_equal_to_render() {
         serde_json::from_str(&std::fs::read_to_string(&cam).unwrap()).unwrap();
     let view = serde_json::json!({"store": "m.ome.zarr", "mode": "dvr", "tf": "hot",
         "window": [0, 255], "size": [96, 80], "camera": camera});
-    ws.send(tungstenite::Message::Text(view.to_string().into())).unwrap();
+    ws.send(tungstenite::Message::Text(view.to_string().into()))
+        .unwrap();
     let mut frames = 0;
     let last = loop {
         let (m, img) = ws_frame(&mut ws);
@@ -647,9 +669,20 @@ fn remote_rendering_streams_frames_equal_to_render() {
     };
     let (w, h, got) = png_bytes_rgba(&last);
     assert_eq!((w, h), (96, 80));
-    let worst = got.iter().zip(&want).map(|(a, b)| a.abs_diff(*b)).max().unwrap();
-    assert!(worst <= 1, "remote frame and render differ by {worst} after {frames} frames");
-    assert!(got.chunks(4).filter(|p| p[0] > 20).count() > 96 * 80 / 20, "nearly black");
+    let worst = got
+        .iter()
+        .zip(&want)
+        .map(|(a, b)| a.abs_diff(*b))
+        .max()
+        .unwrap();
+    assert!(
+        worst <= 1,
+        "remote frame and render differ by {worst} after {frames} frames"
+    );
+    assert!(
+        got.chunks(4).filter(|p| p[0] > 20).count() > 96 * 80 / 20,
+        "nearly black"
+    );
     // A bad message: an error, and the session goes on.
     ws.send(tungstenite::Message::Text(r#"{"mode": "volume"}"#.into()))
         .unwrap();
@@ -659,7 +692,8 @@ fn remote_rendering_streams_frames_equal_to_render() {
     }
     // Another view (orbit and a MIP) in the same session.
     let orbit = serde_json::json!({"camera": null, "azimuth": 120, "elevation": 10, "mode": "mip"});
-    ws.send(tungstenite::Message::Text(orbit.to_string().into())).unwrap();
+    ws.send(tungstenite::Message::Text(orbit.to_string().into()))
+        .unwrap();
     loop {
         let (m, img) = ws_frame(&mut ws);
         if m["final"] == true {
@@ -679,7 +713,10 @@ fn remote_rendering_streams_frames_equal_to_render() {
     assert_eq!(status, 200);
     assert!(String::from_utf8_lossy(&body).contains(&format!(":{port}/render")));
     // A token protects the endpoint.
-    let srv2 = serve(&[&st], &["--render", "--token", "sesame", "--backend", "cpu"]);
+    let srv2 = serve(
+        &[&st],
+        &["--render", "--token", "sesame", "--backend", "cpu"],
+    );
     let mut port2 = None;
     for _ in 0..100 {
         port2 = srv2
@@ -700,5 +737,79 @@ fn remote_rendering_streams_frames_equal_to_render() {
         Err(tungstenite::Error::Http(r)) => assert_eq!(r.status(), 401),
         other => panic!("a wrong token was not refused: {:?}", other.map(|_| ())),
     }
-    assert!(tungstenite::connect(format!("ws://127.0.0.1:{port2}/render?token=sesame").as_str()).is_ok());
+    assert!(
+        tungstenite::connect(format!("ws://127.0.0.1:{port2}/render?token=sesame").as_str())
+            .is_ok()
+    );
+}
+
+/// The thin client in a headless browser (Debian's `chromium`): the page
+/// at /remote connects, draws the view, drags it with mouse events once it
+/// is complete and reports the dragged view's final frame to the server's
+/// log. `BRICKYARD_SKIP_BROWSER=1` opts out where no browser is installed.
+#[test]
+fn the_remote_page_drags_the_view_in_a_headless_browser() {
+    let chromium = ["chromium", "chromium-browser", "google-chrome"]
+        .into_iter()
+        .find(|b| {
+            Command::new(b)
+                .arg("--version")
+                .output()
+                .is_ok_and(|o| o.status.success())
+        });
+    let Some(chromium) = chromium else {
+        if std::env::var("BRICKYARD_SKIP_BROWSER").as_deref() == Ok("1") {
+            eprintln!("skipped: no chromium and BRICKYARD_SKIP_BROWSER=1");
+            return;
+        }
+        panic!("this test needs chromium (apt-get install chromium); BRICKYARD_SKIP_BROWSER=1 opts out");
+    };
+    let d = tempfile::tempdir().unwrap();
+    let st = store(d.path());
+    let srv = serve(&[&st], &["--render", "--backend", "cpu"]);
+    let profile = d.path().join("profile");
+    let url = format!(
+        "http://127.0.0.1:{}/remote?selftest=1&store=m.ome.zarr",
+        srv.port
+    );
+    let mut browser = Command::new(chromium)
+        .args([
+            "--headless=new",
+            "--no-sandbox",
+            "--disable-gpu",
+            "--disable-background-networking",
+            "--disable-component-update",
+            "--no-first-run",
+            "--window-size=800,700",
+        ])
+        .arg(format!("--user-data-dir={}", profile.display()))
+        .arg(&url)
+        .stdout(Stdio::null())
+        .stderr(Stdio::null())
+        .spawn()
+        .unwrap();
+    let t0 = std::time::Instant::now();
+    let report = loop {
+        let log = srv.log.lock().unwrap().clone();
+        if let Some(l) = log.lines().find(|l| l.contains("render client reports:")) {
+            break l.to_string();
+        }
+        if t0.elapsed().as_secs() > 180 {
+            let _ = browser.kill();
+            panic!("no report from the page after 180 s; server log:\n{log}");
+        }
+        std::thread::sleep(std::time::Duration::from_millis(200));
+    };
+    let _ = browser.kill();
+    let _ = browser.wait();
+    assert!(report.contains("selftest ok"), "{report}");
+    assert!(report.contains("final complete 640x480"), "{report}");
+    // The drag turned the camera (from azimuth 30).
+    assert!(!report.contains("azimuth 30 "), "{report}");
+    let lit: f64 = report
+        .rsplit("lit ")
+        .next()
+        .and_then(|x| x.trim().parse().ok())
+        .unwrap_or_else(|| panic!("{report}"));
+    assert!(lit > 0.02, "the dragged view is nearly black: {report}");
 }
