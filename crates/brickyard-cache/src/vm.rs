@@ -342,6 +342,10 @@ pub struct VirtualMemory {
     /// [`VirtualMemory::tables`] of entries set, and pool slots written,
     /// since the last [`VirtualMemory::take_changes`].
     changes: Option<(Vec<u32>, Vec<u32>)>,
+    /// Residency log for an index kept beside the page tables (`None`:
+    /// off): keys mapped since the last [`VirtualMemory::take_residency`],
+    /// and whether any mapping was removed since.
+    residency: Option<(Vec<BrickKey>, bool)>,
 }
 
 /// What changed in a virtual memory since the last
@@ -422,6 +426,7 @@ impl VirtualMemory {
             cfg,
             failed: HashSet::new(),
             changes: None,
+            residency: None,
         }
     }
 
@@ -430,6 +435,22 @@ impl VirtualMemory {
     /// until taken).
     pub fn track_changes(&mut self) {
         self.changes.get_or_insert_with(Default::default);
+    }
+
+    /// Log residency from now on for [`take_residency`](Self::take_residency).
+    pub fn track_residency(&mut self) {
+        self.residency.get_or_insert_with(Default::default);
+    }
+
+    /// Since the last call (tracking must be on): the keys mapped (data,
+    /// EMPTY or CONSTANT; a key may since have been unmapped again), and
+    /// whether any mapping was removed (a brick evicted, or page-table
+    /// blocks orphaned with what lies below them).
+    pub fn take_residency(&mut self) -> (Vec<BrickKey>, bool) {
+        match self.residency.as_mut() {
+            Some((keys, lost)) => (std::mem::take(keys), std::mem::replace(lost, false)),
+            None => (vec![], false),
+        }
     }
 
     /// The changes since the last call (tracking must be on), each entry
@@ -1022,10 +1043,12 @@ impl VirtualMemory {
             match &lb.content {
                 BrickContent::Empty => {
                     self.set_entry(owner, PageEntry::empty());
+                    self.log_mapped(key);
                     report.flagged += 1;
                 }
                 BrickContent::Constant(v) => {
                     self.set_entry(owner, PageEntry::constant_of(self.dtype, *v));
+                    self.log_mapped(key);
                     report.flagged += 1;
                 }
                 BrickContent::Data(bytes) => {
@@ -1056,6 +1079,7 @@ impl VirtualMemory {
                     let coords = self.slots.coords(s);
                     self.set_entry(owner, PageEntry::mapped(coords));
                     self.slots.owner[s as usize] = owner;
+                    self.log_mapped(key);
                     self.slots.usage[s as usize].store(frame, Ordering::Relaxed);
                     // Fresh bricks are not taken back as stand-ins this frame.
                     self.slots.exact[s as usize].store(frame, Ordering::Relaxed);
@@ -1067,6 +1091,12 @@ impl VirtualMemory {
             }
         }
         report
+    }
+
+    fn log_mapped(&mut self, key: BrickKey) {
+        if let Some((keys, _)) = self.residency.as_mut() {
+            keys.push(key);
+        }
     }
 
     fn entry(&self, o: Owner) -> PageEntry {
@@ -1081,6 +1111,11 @@ impl VirtualMemory {
     }
 
     fn set_entry(&mut self, o: Owner, e: PageEntry) {
+        if let Some((_, lost)) = self.residency.as_mut() {
+            if e.flag() == PageFlag::Unmapped {
+                *lost = true;
+            }
+        }
         if self.changes.is_some() {
             if let Some(i) = self.table_index(o) {
                 if let Some((entries, _)) = self.changes.as_mut() {

@@ -39,7 +39,9 @@
 //! what a sample becomes on screen is `optics`. Each has its WGSL twin
 //! beside it (`gpu.rs` is the device's frame driver).
 use crate::image::Image;
-use crate::params::{RenderMode, RenderParams};
+use crate::octree::dvr::OctFrame;
+use crate::octree::{self, Octree};
+use crate::params::{DebugCounts, RenderMode, RenderParams, Traversal};
 use crate::walk::{Frame, Walker};
 use crate::{mip, multi, slice, superslice};
 use brickyard_cache::ranges::BrickRanges;
@@ -48,7 +50,7 @@ use brickyard_core::camera::Vec3;
 use brickyard_core::views::ViewRays;
 use brickyard_core::{dispatch_dtype, Dims3, Sample};
 use rayon::prelude::*;
-use std::sync::Arc;
+use std::sync::{Arc, RwLock};
 
 pub use crate::params::MAX_CHANNELS;
 
@@ -71,6 +73,13 @@ pub struct Scene {
     /// maps to zero opacity without sampling them (the image is the same
     /// either way; off only to measure or test the saving).
     pub skip_cells: bool,
+    /// The residency octree kept beside the virtual memory, for
+    /// [`Traversal::Octree`](crate::params::Traversal) (`None`: a frame
+    /// that asks for it builds one from the virtual memory, of depth
+    /// [`DEFAULT_DEPTH`](crate::octree::DEFAULT_DEPTH)). Read by the
+    /// renderers during a frame; updated between frames
+    /// ([`Octree::sync`](crate::octree::Octree::sync)).
+    pub octree: Option<Arc<RwLock<Octree>>>,
 }
 
 impl Scene {
@@ -83,6 +92,7 @@ impl Scene {
             channel: 0,
             ranges: None,
             skip_cells: true,
+            octree: None,
         }
     }
 
@@ -127,6 +137,11 @@ pub struct FrameStats {
     /// DVR: cells of resident bricks crossed without sampling (every
     /// sample in them transparent), counted per ray and cell.
     pub skipped_cells: u64,
+    /// Octree traversal: nodes visited (every node of every descent).
+    pub octree_nodes: u64,
+    /// Octree traversal: nodes crossed without lookups (hidden for every
+    /// channel, or of one value per channel), counted per ray and node.
+    pub skipped_nodes: u64,
 }
 
 impl FrameStats {
@@ -147,6 +162,8 @@ impl FrameStats {
         self.steps += o.steps;
         self.transparent += o.transparent;
         self.skipped_cells += o.skipped_cells;
+        self.octree_nodes += o.octree_nodes;
+        self.skipped_nodes += o.skipped_nodes;
     }
 }
 
@@ -161,6 +178,9 @@ pub fn render_frame(
     let mut img = Image::new(params.width, params.height);
     let mut tiles = Tiles::all(params.width, params.height);
     let (stats, reqs) = render_tiles(vm, scene, params, lod, &mut img, &mut tiles);
+    if params.debug.is_some() {
+        false_colour(&mut img);
+    }
     (img, stats, reqs)
 }
 
@@ -254,6 +274,39 @@ fn render_typed<T: Sample>(
         .zip(&ch_params)
         .map(|(sc, p)| Frame::new(vm, sc, p, lod))
         .collect();
+    // DVR through the residency octree: its tables for this frame.
+    let by_octree = matches!(params.mode, RenderMode::Dvr) && params.traversal == Traversal::Octree;
+    let (built, guard);
+    let tree: Option<&Octree> = if !by_octree {
+        None
+    } else if let Some(o) = &scene.octree {
+        guard = o.read().expect("octree lock");
+        Some(&*guard)
+    } else {
+        built = Octree::of_vm(
+            octree::DEFAULT_DEPTH,
+            &scene.levels,
+            vm,
+            scene.ranges.as_deref(),
+        )
+        .expect("the default depth fits");
+        Some(&built)
+    };
+    let oct_frame = tree.map(|t| {
+        let frames: Vec<&Frame> = if dvr_multi {
+            ch_frames.iter().collect()
+        } else {
+            vec![&frame]
+        };
+        let nl = scene.levels.len();
+        let used: Vec<bool> = (0..nl)
+            .map(|l| match lod {
+                Lod::Fixed(f) => l == f.min(nl - 1),
+                Lod::Auto { .. } => true,
+            })
+            .collect();
+        OctFrame::new(t, &frames, &used)
+    });
     let w = params.width as usize;
     let tiles_x = w.div_ceil(TILE_W);
     let rg = ViewRays::new(
@@ -301,7 +354,14 @@ fn render_typed<T: Sample>(
                         let j = (band * TILE_H + r) as u32;
                         for i in x0..(x0 + TILE_W).min(w) {
                             let ray = rg.pixel_ray(i as u32, j);
+                            let before = params.debug.map(|d| counts(d, &st, &walkers));
                             rows[r * w + i] = match &params.mode {
+                                RenderMode::Dvr if oct_frame.is_some() => octree::dvr::dvr_pixel(
+                                    &mut walkers,
+                                    oct_frame.as_ref().expect("checked"),
+                                    &ray,
+                                    (&mut req, &mut st),
+                                ),
                                 RenderMode::Dvr if multi => {
                                     multi::dvr_pixel(&mut walkers, &ray, (&mut req, &mut st))
                                 }
@@ -323,6 +383,10 @@ fn render_typed<T: Sample>(
                                     (&mut req, &mut st),
                                 ),
                             };
+                            if let (Some(d), Some(b)) = (params.debug, before) {
+                                let n = counts(d, &st, &walkers) - b;
+                                rows[r * w + i] = [n as f32, 0.0, 0.0, 0.0];
+                            }
                         }
                     }
                     // Settled: every sample of the tile at its own level.
@@ -345,4 +409,34 @@ fn render_typed<T: Sample>(
         reqs.push(r);
     }
     (stats, reqs)
+}
+
+/// The count a debug image shows, so far in this piece of work.
+fn counts<T: Sample>(d: DebugCounts, st: &FrameStats, walkers: &[Walker<T>]) -> u64 {
+    match d {
+        DebugCounts::Nodes => st.octree_nodes,
+        DebugCounts::Bricks => walkers.iter().map(|w| w.touched).sum(),
+        DebugCounts::Steps => st.steps,
+    }
+}
+
+/// A debug image's counts to false colour: 0 black, then blue, green,
+/// yellow and white at the largest count; opaque. [`render_frame`] does
+/// this; after [`render_tiles`] the pixels hold the counts (in red, alpha
+/// 0) until the caller calls this.
+pub fn false_colour(img: &mut Image) {
+    let px = &mut img.rgba;
+    let most = px.iter().map(|p| p[0]).fold(0.0f32, f32::max);
+    for p in px.iter_mut() {
+        let n = p[0];
+        *p = if n <= 0.0 {
+            [0.0, 0.0, 0.0, 1.0]
+        } else {
+            let x = n / most * 4.0;
+            let ramp = |a: f32| (x - a).clamp(0.0, 1.0);
+            // blue rises, then green, then red, then blue back to white.
+            let b = ramp(0.0) * (1.0 - ramp(1.0)) + ramp(3.0);
+            [ramp(2.0), ramp(1.0), b.min(1.0), 1.0]
+        };
+    }
 }

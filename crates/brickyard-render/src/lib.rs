@@ -19,6 +19,9 @@
 //! - [`savr`]: progressive DVR by sample accumulation on the CPU (kept
 //!   samples per pixel, depth-order blends, re-blends under a new transfer
 //!   function); `shading` holds DVR gradient shading.
+//! - [`octree`]: the residency octree (per node and channel: levels with
+//!   mapped bricks, value ranges per level) kept from the virtual memory's
+//!   map and evict events, and DVR traversal through it.
 //! - [`budget`]: the level-of-detail budget of a view.
 //! - [`views`]: what an image of several views becomes for a display
 //!   (tiles, side by side, top-bottom, anaglyph, multiplexed sub-pixels).
@@ -34,6 +37,7 @@ pub mod gpu;
 pub mod image;
 mod mip;
 pub mod multi;
+pub mod octree;
 pub mod optics;
 pub mod params;
 pub mod reference;

@@ -26,6 +26,60 @@ pub enum RenderMode {
     Slice { origin: [f64; 3], normal: [f64; 3] },
 }
 
+/// How DVR rays find their bricks.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum Traversal {
+    /// Through the page tables at every step, skipping bricks (and blocks
+    /// of bricks, and cells) the transfer function hides.
+    #[default]
+    PageTable,
+    /// Through the residency octree ([`crate::octree`]): empty and
+    /// homogeneous nodes skipped, misses substituted from the node's
+    /// residency mask; bricks still looked up in the page tables.
+    Octree,
+}
+
+impl std::str::FromStr for Traversal {
+    type Err = String;
+    fn from_str(s: &str) -> Result<Self, String> {
+        match s {
+            "page-table" => Ok(Traversal::PageTable),
+            "octree" => Ok(Traversal::Octree),
+            _ => Err(format!("traversal: octree or page-table, got {s:?}")),
+        }
+    }
+}
+
+/// A debug image: per pixel a count, in false colour (black for 0, then
+/// blue → green → yellow → white up to the frame's largest count).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum DebugCounts {
+    /// Octree nodes visited by the ray (0 with page-table traversal).
+    Nodes,
+    /// Bricks the ray entered (every channel, every level looked up).
+    Bricks,
+    /// Steps the ray walked (samples and steps before jumps).
+    Steps,
+}
+
+impl std::str::FromStr for DebugCounts {
+    type Err = String;
+    fn from_str(s: &str) -> Result<Self, String> {
+        match s {
+            "nodes" => Ok(DebugCounts::Nodes),
+            "bricks" => Ok(DebugCounts::Bricks),
+            "steps" => Ok(DebugCounts::Steps),
+            _ => Err(format!("debug: nodes, bricks or steps, got {s:?}")),
+        }
+    }
+}
+
+fn is_default<T: Default + PartialEq>(t: &T) -> bool {
+    *t == T::default()
+}
+
 /// Everything a render needs besides the volume.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct RenderParams {
@@ -56,6 +110,12 @@ pub struct RenderParams {
     /// baseline, slices as super-slices. `None`: one view.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub views: Option<Views>,
+    /// DVR: how rays find their bricks (page tables or residency octree).
+    #[serde(default, skip_serializing_if = "is_default")]
+    pub traversal: Traversal,
+    /// DVR: draw a count per pixel instead of the image (CPU renderer).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub debug: Option<DebugCounts>,
 }
 
 /// Most channels a slice or MIP adds up at once.
@@ -134,6 +194,8 @@ impl RenderParams {
             reference_step: None,
             channels: vec![],
             views: None,
+            traversal: Traversal::PageTable,
+            debug: None,
         }
     }
 
@@ -189,6 +251,21 @@ impl RenderParams {
             }
         }
         let dvr = matches!(self.mode, RenderMode::Dvr);
+        if self.traversal == Traversal::Octree {
+            if !dvr {
+                return bad("traversal", "the octree traversal draws DVR only".into());
+            }
+            if self.channels.is_empty() && self.tf.shading.is_some() {
+                return bad(
+                    "traversal",
+                    "the octree traversal draws unshaded DVR (turn shading off or use page-table)"
+                        .into(),
+                );
+            }
+        }
+        if self.debug.is_some() && !dvr {
+            return bad("debug", "debug images are drawn for DVR only".into());
+        }
         let most = if dvr { MAX_DVR_CHANNELS } else { MAX_CHANNELS };
         if self.channels.len() > most {
             return bad(

@@ -84,6 +84,8 @@ pub(crate) struct Walker<'f, 'a, T> {
     pub(crate) cache: Vec<Cached<'a, T>>,
     pub(crate) memo_key: Vec<u64>,
     pub(crate) memo: Vec<Cached<'a, T>>,
+    /// Bricks entered (a change of brick at some level), for debug images.
+    pub(crate) touched: u64,
 }
 
 impl<'f, 'a, T: Sample> Walker<'f, 'a, T> {
@@ -94,6 +96,7 @@ impl<'f, 'a, T: Sample> Walker<'f, 'a, T> {
             cache: vec![Cached::NONE; f.levels()],
             memo_key: vec![u64::MAX; MEMO],
             memo: vec![Cached::NONE; MEMO],
+            touched: 0,
         }
     }
 
@@ -147,6 +150,7 @@ impl<'f, 'a, T: Sample> Walker<'f, 'a, T> {
     #[cold]
     pub(crate) fn refill(&mut self, l: usize, v: Dims3, req: &mut Requests, exact: bool) {
         self.flush_level(l, req);
+        self.touched += 1;
         let f = self.f;
         let brick = f.brick_of(v);
         let key = ((l as u64) << 60) | (brick[0] << 40) | (brick[1] << 20) | brick[2];
@@ -255,10 +259,31 @@ impl<'f, 'a, T: Sample> Walker<'f, 'a, T> {
         req: &mut Requests,
         st: &mut FrameStats,
     ) -> Option<f32> {
+        self.value_masked(l, w, base, frac, u32::MAX, req, st)
+    }
+
+    /// [`value`](Self::value), falling back only to the coarser levels
+    /// whose bit is set in `mask` (the residency octree's: levels with
+    /// nothing mapped nearby are not looked up).
+    #[allow(clippy::too_many_arguments)]
+    #[inline(always)]
+    pub(crate) fn value_masked(
+        &mut self,
+        l: usize,
+        w: Vec3,
+        base: Dims3,
+        frac: [f32; 3],
+        mask: u32,
+        req: &mut Requests,
+        st: &mut FrameStats,
+    ) -> Option<f32> {
         st.samples += 1;
         let (mut base, mut frac) = (base, frac);
         for lv in l..self.cache.len() {
             if lv > l {
+                if mask >> lv & 1 == 0 {
+                    continue;
+                }
                 (base, frac) = self.f.coords(lv, w);
                 self.enter(lv, base, req, false);
             }
@@ -286,8 +311,12 @@ impl<'f, 'a, T: Sample> Walker<'f, 'a, T> {
         // on the way too, so something shows soon. (A sample served by a
         // stand-in requests only its own level: stand-ins evicted for
         // finer bricks are not fetched back.)
-        for c in &mut self.cache[l + 1..] {
-            c.missed += 1;
+        for lv in l + 1..self.cache.len() {
+            if mask >> lv & 1 == 0 {
+                let (b, _) = self.f.coords(lv, w);
+                self.enter(lv, b, req, false);
+            }
+            self.cache[lv].missed += 1;
         }
         st.unserved += 1;
         None

@@ -1,0 +1,338 @@
+//! DVR through the residency octree on the CPU (one to 64 channels): per
+//! step the octree is descended from the root to the depth the step size
+//! allows; a node every visible channel's transfer function hides at the
+//! step's level is crossed in one landing, a node where every channel is
+//! hidden or of one known value is composited without lookups, a node
+//! where no visible channel has anything mapped is requested and crossed;
+//! otherwise the steps inside the node are sampled, each channel looked up
+//! through the page tables and, on a miss, substituted from the levels the
+//! node's residency mask names. Steps, levels and mixing are those of
+//! `multi.rs` (and of `dvr.rs` for one channel), so a complete frame
+//! equals the page-table traversal.
+
+use super::Octree;
+use crate::cpu::FrameStats;
+use crate::optics::composite_visible;
+use crate::walk::{step_t, Frame, Walker};
+use brickyard_cache::vm::Requests;
+use brickyard_core::camera::{intersect_box_inv, Ray, Vec3};
+use brickyard_core::Sample;
+
+/// A thousandth of a step: landings lie this much early, and a step this
+/// close to a node's face is taken as outside it.
+const MARGIN: f64 = 1e-3;
+
+/// Per-frame constants of the octree traversal.
+pub(crate) struct OctFrame<'o> {
+    pub(crate) tree: &'o Octree,
+    /// Octree channel of each visible channel.
+    channels: Vec<usize>,
+    /// All visible channels' bits.
+    all: u64,
+    /// Per level, the deepest depth the step size allows.
+    dmax: Vec<u32>,
+    /// `[node][level]`: bit `i` set when visible channel `i` is hidden at
+    /// that level in the node (its range is known and transparent).
+    clear: Vec<u64>,
+    /// `[node][level]`: bit `i` set when visible channel `i` has one known
+    /// value in the node at that level.
+    homog: Vec<u64>,
+}
+
+impl<'o> OctFrame<'o> {
+    /// The tables for the visible channels whose walkers' frames are
+    /// `frames` (their transfer functions) over `tree`; `levels`: the
+    /// levels samples may ask for (others get no table entries set).
+    pub(crate) fn new(tree: &'o Octree, frames: &[&Frame], levels: &[bool]) -> OctFrame<'o> {
+        assert!(frames.len() <= 64, "at most 64 channels");
+        let f0 = frames[0];
+        let nl = tree.levels();
+        let nodes = super::node_count(tree.depth);
+        let channels: Vec<usize> = frames.iter().map(|f| f.scene.channel).collect();
+        let all = if frames.len() == 64 {
+            u64::MAX
+        } else {
+            (1u64 << frames.len()) - 1
+        };
+        let ext = f0.scene.extent;
+        let edge = ext.iter().copied().fold(f64::INFINITY, f64::min);
+        let dmax = (0..nl)
+            .map(|l| {
+                let dt = f0.step[l.min(f0.levels() - 1)].0;
+                (0..=tree.depth)
+                    .rev()
+                    .find(|&d| edge / (1u64 << d) as f64 >= dt)
+                    .unwrap_or(0)
+            })
+            .collect();
+        let mut clear = vec![0u64; nodes * nl];
+        let mut homog = vec![0u64; nodes * nl];
+        for node in 0..nodes {
+            for (l, _) in levels.iter().enumerate().filter(|(_, u)| **u) {
+                let (mut cb, mut hb) = (0u64, 0u64);
+                for (i, (f, &c)) in frames.iter().zip(&channels).enumerate() {
+                    if c >= tree.channels {
+                        continue;
+                    }
+                    let [lo, hi] = tree.range_of(node, c, l);
+                    if lo.is_nan() || hi.is_nan() {
+                        continue;
+                    }
+                    if !f.tf_eval.range_visible(lo, hi) {
+                        cb |= 1 << i;
+                    } else if lo == hi {
+                        hb |= 1 << i;
+                    }
+                }
+                clear[node * nl + l] = cb;
+                homog[node * nl + l] = hb;
+            }
+        }
+        OctFrame {
+            tree,
+            channels,
+            all,
+            dmax,
+            clear,
+            homog,
+        }
+    }
+}
+
+/// The node being sampled: its steps up to `until` are inside it.
+#[derive(Clone, Copy)]
+struct Inside {
+    node: usize,
+    level: usize,
+    until: f64,
+    clear: u64,
+}
+
+/// The ray parameter where `ray` leaves node `c` of depth `d` (world box).
+#[inline]
+fn node_exit(ray: &Ray, inv_dir: Vec3, ext: Vec3, d: u32, c: [u64; 3]) -> f64 {
+    let s = (1u64 << d) as f64;
+    let mut t = f64::INFINITY;
+    for j in 0..3 {
+        // World axis j is octree axis 2 − j.
+        let i = c[2 - j] as f64;
+        let (lo, hi) = (i / s * ext[j], (i + 1.0) / s * ext[j]);
+        let dj = ray.dir[j];
+        let tj = if dj > 0.0 {
+            (hi - ray.origin[j]) * inv_dir[j]
+        } else if dj < 0.0 {
+            (lo - ray.origin[j]) * inv_dir[j]
+        } else {
+            continue;
+        };
+        if tj < t {
+            t = tj;
+        }
+    }
+    t
+}
+
+/// The first step index whose parameter is at least `t` less a margin.
+#[inline]
+fn first_step_from(t: f64, base_t: f64, inv_dt: f64) -> u64 {
+    let x = (t - base_t) * inv_dt - 0.5 - MARGIN;
+    if x <= 0.0 {
+        return 0;
+    }
+    let i = x as u64;
+    if (i as f64) < x {
+        i + 1
+    } else {
+        i
+    }
+}
+
+/// The pixel of `ray`: DVR of the channels of `walkers` (one per visible
+/// channel, in the order of `of`'s tables) through the octree.
+pub(crate) fn dvr_pixel<T: Sample>(
+    walkers: &mut [Walker<'_, '_, T>],
+    of: &OctFrame,
+    ray: &Ray,
+    (req, st): (&mut Requests, &mut FrameStats),
+) -> [f32; 4] {
+    let mut acc = [0.0f32; 4];
+    let f = walkers[0].f;
+    let tree = of.tree;
+    let nl = tree.levels();
+    let ext = f.scene.extent;
+    let d = ray.dir;
+    let inv_dir = [1.0 / d[0], 1.0 / d[1], 1.0 / d[2]];
+    let Some((t0, t1)) = intersect_box_inv(ray, inv_dir, [0.0; 3], ext) else {
+        return acc;
+    };
+    let mut level = f.level_at(t0);
+    let mut next_t = f.next_level_t(level);
+    let (mut dt, mut inv_dt, mut exponent) = f.step[level];
+    let mut base_t = t0;
+    let mut k = 0u64;
+    let mut inside: Option<Inside> = None;
+    'steps: loop {
+        let t = step_t(base_t, k, dt);
+        if t >= t1 {
+            break;
+        }
+        k += 1;
+        if t >= next_t {
+            let l = f.level_at(t);
+            if l != level {
+                level = l;
+                (dt, inv_dt, exponent) = f.step[level];
+                base_t = t - 0.5 * dt;
+                k = 1;
+                inside = None;
+            }
+            next_t = f.next_level_t(level);
+            if next_t <= t {
+                next_t = t + dt;
+            }
+        }
+        st.steps += 1;
+        let w = ray.at(t);
+        let limit = t1.min(next_t);
+        let cur = match inside {
+            Some(n) if n.level == level && t < n.until => n,
+            _ => {
+                // Descend to the deepest node the step size allows.
+                let p = [w[2] / ext[2], w[1] / ext[1], w[0] / ext[0]];
+                let dmax = of.dmax[level];
+                let mut found = None;
+                for dd in 0..=dmax {
+                    let s = 1u64 << dd;
+                    let c = p.map(|x| ((x * s as f64) as u64).min(s - 1));
+                    let node = tree.node(dd, c);
+                    st.octree_nodes += 1;
+                    let clear = of.clear[node * nl + level];
+                    let homog = of.homog[node * nl + level];
+                    let te = node_exit(ray, inv_dir, ext, dd, c);
+                    if clear == of.all {
+                        // Empty for every channel: land past it.
+                        let kn = first_step_from(te.min(limit), base_t, inv_dt);
+                        st.skipped_nodes += 1;
+                        k = kn.max(k);
+                        continue 'steps;
+                    }
+                    if (clear | homog) == of.all {
+                        // One value per channel: composite it at every step
+                        // inside, without lookups.
+                        let c = mixed_constant(walkers, of, node, level);
+                        let kn = first_step_from(te.min(limit), base_t, inv_dt).max(k);
+                        st.skipped_nodes += 1;
+                        if let Some(c) = c {
+                            for _ in (k - 1)..kn {
+                                if composite_visible(&mut acc, c, exponent) {
+                                    break 'steps;
+                                }
+                            }
+                        }
+                        k = kn;
+                        continue 'steps;
+                    }
+                    let open = of.all & !clear;
+                    let mapped = (0..walkers.len())
+                        .filter(|i| open >> i & 1 != 0)
+                        .any(|i| tree.mask_of(node, of.channels[i]) != 0);
+                    if !mapped {
+                        // Nothing mapped for any channel shown: ask for the
+                        // bricks here and cross the node.
+                        let kn = first_step_from(te.min(limit), base_t, inv_dt).max(k);
+                        let n = (kn - (k - 1)) as u32;
+                        let (vb, _) = f.coords(level, w);
+                        for (i, wk) in walkers.iter_mut().enumerate() {
+                            if open >> i & 1 != 0 {
+                                wk.enter(level, vb, req, true);
+                                wk.cache[level].missed = wk.cache[level].missed.saturating_add(n);
+                            }
+                        }
+                        st.samples += n as u64;
+                        st.unserved += n as u64;
+                        k = kn;
+                        continue 'steps;
+                    }
+                    if dd == dmax {
+                        found = Some(Inside {
+                            node,
+                            level,
+                            until: te - MARGIN * dt,
+                            clear,
+                        });
+                        break;
+                    }
+                }
+                let n = found.expect("the deepest node is kept");
+                inside = Some(n);
+                n
+            }
+        };
+        // Sample every channel the node does not hide.
+        let (vb, frac) = f.coords(level, w);
+        let mut keep = 1.0f32;
+        let mut rgb = [0.0f32; 3];
+        let mut weight = 0.0f32;
+        for (i, wk) in walkers.iter_mut().enumerate() {
+            if cur.clear >> i & 1 != 0 {
+                continue;
+            }
+            if wk.enter(level, vb, req, true).transparent {
+                continue;
+            }
+            let mask = tree.mask_of(cur.node, of.channels[i]);
+            let Some(v) = wk.value_masked(level, w, vb, frac, mask, req, st) else {
+                continue;
+            };
+            match wk.f.tf_eval.lookup_visible(v) {
+                Some(c) => {
+                    keep *= 1.0 - c[3];
+                    rgb[0] += c[3] * c[0];
+                    rgb[1] += c[3] * c[1];
+                    rgb[2] += c[3] * c[2];
+                    weight += c[3];
+                }
+                None => st.transparent += 1,
+            }
+        }
+        if weight > 0.0 {
+            let inv = 1.0 / weight;
+            let c = [rgb[0] * inv, rgb[1] * inv, rgb[2] * inv, 1.0 - keep];
+            if composite_visible(&mut acc, c, exponent) {
+                break;
+            }
+        }
+    }
+    acc
+}
+
+/// The mixed sample of a node where every visible channel is hidden or
+/// of one value (`None`: nothing visible).
+fn mixed_constant<T: Sample>(
+    walkers: &[Walker<'_, '_, T>],
+    of: &OctFrame,
+    node: usize,
+    level: usize,
+) -> Option<[f32; 4]> {
+    let clear = of.clear[node * of.tree.levels() + level];
+    let mut keep = 1.0f32;
+    let mut rgb = [0.0f32; 3];
+    let mut weight = 0.0f32;
+    for (i, wk) in walkers.iter().enumerate() {
+        if clear >> i & 1 != 0 {
+            continue;
+        }
+        let v = of.tree.range_of(node, of.channels[i], level)[0];
+        if let Some(c) = wk.f.tf_eval.lookup_visible(v) {
+            keep *= 1.0 - c[3];
+            rgb[0] += c[3] * c[0];
+            rgb[1] += c[3] * c[1];
+            rgb[2] += c[3] * c[2];
+            weight += c[3];
+        }
+    }
+    (weight > 0.0).then(|| {
+        let inv = 1.0 / weight;
+        [rgb[0] * inv, rgb[1] * inv, rgb[2] * inv, 1.0 - keep]
+    })
+}

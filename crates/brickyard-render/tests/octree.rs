@@ -1,0 +1,395 @@
+//! DVR through the residency octree: complete frames equal the page-table
+//! traversal and the in-core reference for 1, 3 and 16 channels, the
+//! octree kept from the virtual
+//! memory's events frame by frame; nodes are really skipped; debug images.
+
+use brickyard_cache::session::Session;
+use brickyard_cache::vm::VmConfig;
+use brickyard_core::camera::{world_extent, Camera, Projection, Vec3};
+use brickyard_core::{DType, Dims3, TransferFunction};
+use brickyard_render::cpu::{render_frame, FrameStats, Lod, Scene};
+use brickyard_render::image::Image;
+use brickyard_render::octree::Octree;
+use brickyard_render::params::{DebugCounts, Traversal};
+use brickyard_render::reference::{
+    render_channels, ChannelStyle, RenderMode, RenderParams, Volume,
+};
+use brickyard_store::builder::{convert, ConvertOptions, NoProgress};
+use brickyard_store::generate::{Kind, Procedural};
+use std::path::{Path, PathBuf};
+use std::sync::atomic::AtomicBool;
+use std::sync::{Arc, RwLock};
+
+const TOLERANCE: f32 = 1e-4;
+const DIMS: Dims3 = [40, 48, 64];
+
+/// An `n`-channel u8 store: channel `c` holds the Mandelbulb's values
+/// (Marschner–Lobb for odd `c`) in the `c`-th of `n` overlapping bands,
+/// rescaled to 60–255, 0 elsewhere (the fixture of `multichannel.rs`).
+fn banded_store(dir: &Path, n: usize) -> (PathBuf, Vec3, Vec<Dims3>) {
+    let dims = DIMS;
+    let raw = dir.join(format!("banded{n}.raw"));
+    let kinds: Vec<Vec<f64>> = [Kind::Mandelbulb, Kind::MarschnerLobb]
+        .into_iter()
+        .take(n.min(2))
+        .map(|k| {
+            let g = Procedural::new(k, dims, DType::U8);
+            let mut v = vec![];
+            for z in 0..dims[0] {
+                for y in 0..dims[1] {
+                    for x in 0..dims[2] {
+                        v.push(g.value(z, y, x));
+                    }
+                }
+            }
+            v
+        })
+        .collect();
+    let mut bytes = vec![];
+    for c in 0..n {
+        let (lo, hi) = if n == 1 {
+            (0.05, 1.0)
+        } else {
+            let w = 1.0 / n as f64;
+            ((c as f64 - 0.5) * w, (c as f64 + 1.5) * w)
+        };
+        bytes.extend(kinds[c % 2].iter().map(|&v| {
+            if v >= lo && v < hi {
+                (60.0 + 195.0 * ((v - lo) / (hi - lo)).clamp(0.0, 1.0)).round() as u8
+            } else {
+                0
+            }
+        }));
+    }
+    std::fs::write(&raw, &bytes).unwrap();
+    let opts: brickyard_store::import::raw::RawOptions = serde_json::from_str(&format!(
+        r#"{{"dims":[{},{},{}],"dtype":"u8","channels":{n}}}"#,
+        dims[2], dims[1], dims[0]
+    ))
+    .unwrap();
+    let src = brickyard_store::import::raw::open(&raw, &opts).unwrap();
+    let store = dir.join(format!("banded{n}.ome.zarr"));
+    let o = ConvertOptions {
+        brick: [16; 3],
+        shard: [32; 3],
+        ..Default::default()
+    };
+    convert(&src, &store, &o, &NoProgress, &AtomicBool::new(false)).unwrap();
+    let nlev = (0..)
+        .take_while(|&l| Volume::from_store(&store, l, 0).is_ok())
+        .count();
+    let extent = world_extent(dims, Volume::from_store(&store, 0, 0).unwrap().spacing);
+    let levels = (0..nlev)
+        .map(|l| Volume::from_store(&store, l, 0).unwrap().dims)
+        .collect();
+    (store, extent, levels)
+}
+
+fn dvr_params(extent: Vec3, n: usize) -> RenderParams {
+    let cam = Camera::fit(
+        extent,
+        35.0,
+        25.0,
+        Projection::Perspective { fov_y_deg: 40.0 },
+    );
+    let tf = TransferFunction::preset("soft", [0.0, 255.0]).unwrap();
+    let mut p = RenderParams::new(56, 48, cam, tf, RenderMode::Dvr);
+    p.channels = (0..n)
+        .map(|c| {
+            let h = c as f32 / n as f32 * 6.0;
+            let col = [
+                ((h - 3.0).abs() - 1.0).clamp(0.0, 1.0),
+                (2.0 - (h - 2.0).abs()).clamp(0.0, 1.0),
+                (2.0 - (h - 4.0).abs()).clamp(0.0, 1.0),
+            ];
+            ChannelStyle::new(c, col, [0.0, 255.0])
+        })
+        .collect();
+    p
+}
+
+fn cfg(pool_bytes: u64) -> VmConfig {
+    VmConfig {
+        brick: [16; 3],
+        apron: 1,
+        pt_block: [4; 3],
+        max_dir_entries: 64,
+        pool_bytes,
+        pt_cache_blocks: 256,
+        request_cap: 64,
+        upload_bytes_per_frame: 48 * 18 * 18 * 18,
+    }
+}
+
+/// CPU frames until complete, the octree (if any) synced after each;
+/// the image and the last frame's figures.
+fn converge(s: &mut Session, scene: &Scene, p: &RenderParams, lod: Lod) -> (Image, FrameStats) {
+    for _ in 0..600 {
+        s.begin_frame();
+        let (img, st, reqs) = render_frame(s.vm(), scene, p, lod);
+        s.finish_frame(reqs.iter());
+        if let Some(o) = &scene.octree {
+            o.write().unwrap().sync(s.vm_mut());
+        }
+        if st.completeness() == 1.0 && st.samples > 0 {
+            return (img, st);
+        }
+        std::thread::sleep(std::time::Duration::from_millis(1));
+    }
+    panic!("the view never completed ({} channels)", p.channels.len());
+}
+
+fn not_blank(img: &Image, what: &str) {
+    let a: f64 = img.rgba.iter().map(|px| px[3] as f64).sum();
+    assert!(
+        a > 0.05 * img.rgba.len() as f64,
+        "{what}: image nearly empty (alpha sum {a})"
+    );
+}
+
+fn reference(store: &Path, p: &RenderParams, level: usize) -> Image {
+    let vols: Vec<Volume> = p
+        .channels
+        .iter()
+        .map(|c| Volume::from_store(store, level, c.channel).unwrap())
+        .collect();
+    render_channels(&vols, p)
+}
+
+/// A session with the store's ranges and an octree of `depth` attached.
+fn open(store: &Path, scene: &mut Scene, pool: u64, depth: u32) -> Session {
+    let mut s = Session::open(store, cfg(pool), 8 << 20, 2).unwrap();
+    let ranges = Arc::new(s.loader().brick_ranges(1 << 20));
+    scene.ranges = Some(ranges.clone());
+    let levels = scene.levels.clone();
+    let o = Octree::attach(depth, &levels, s.vm_mut(), Some(&ranges)).unwrap();
+    scene.octree = Some(Arc::new(RwLock::new(o)));
+    s
+}
+
+#[test]
+fn octree_frames_equal_page_table_frames_and_the_reference() {
+    let dir = tempfile::tempdir().unwrap();
+    for n in [1usize, 3, 16] {
+        let (store, extent, levels) = banded_store(dir.path(), n);
+        let mut p = dvr_params(extent, n);
+        if n == 1 {
+            // One channel through the one-channel path (no channel list).
+            p.tf = p.channels[0].dvr_tf();
+            p.channels.clear();
+        }
+        let want = if n == 1 {
+            brickyard_render::render(&Volume::from_store(&store, 0, 0).unwrap(), &p)
+        } else {
+            reference(&store, &p, 0)
+        };
+        not_blank(&want, &format!("{n} channels, reference"));
+        let vol_bytes = n as u64 * DIMS.iter().product::<u64>();
+        // A pool twice the volume, octrees of depth 4 and 3.
+        for (pool, depth) in [(2 * vol_bytes, 4), (2 * vol_bytes, 3)] {
+            let mut scene = Scene::new(extent, levels.clone());
+            let mut s = open(&store, &mut scene, pool, depth);
+            p.traversal = Traversal::PageTable;
+            let (pt, pst) = converge(&mut s, &scene, &p, Lod::Fixed(0));
+            p.traversal = Traversal::Octree;
+            let (oc, ost) = converge(&mut s, &scene, &p, Lod::Fixed(0));
+            let (d_pt, d_oc, d_both) = (
+                pt.max_abs_diff(&want),
+                oc.max_abs_diff(&want),
+                oc.max_abs_diff(&pt),
+            );
+            eprintln!(
+                "{n} channels, pool {pool}, depth {depth}: octree vs reference {d_oc}, vs page table {d_both} \
+                 (page table vs reference {d_pt}); samples {} vs {}, nodes {} visited, {} skipped",
+                ost.samples, pst.samples, ost.octree_nodes, ost.skipped_nodes
+            );
+            assert!(d_pt <= TOLERANCE && d_oc <= TOLERANCE && d_both <= TOLERANCE);
+            assert!(ost.octree_nodes > 0 && ost.samples > 0);
+            // Fresh from the virtual memory, the octree is what was kept.
+            let o = scene.octree.as_ref().unwrap().read().unwrap();
+            let fresh = Octree::of_vm(depth, &levels, s.vm(), scene.ranges.as_deref()).unwrap();
+            assert_eq!(o.mask, fresh.mask);
+        }
+    }
+}
+
+#[test]
+fn an_octree_built_on_the_fly_and_automatic_lod_agree_with_page_tables() {
+    // No octree in the scene (the frame builds one); automatic level of
+    // detail; transfer functions that hide all but the top values, so
+    // that nodes whose statistics stay below them are skipped: the
+    // octree's frames equal the page table's.
+    let dir = tempfile::tempdir().unwrap();
+    let (store, extent, levels) = banded_store(dir.path(), 3);
+    let mut p = dvr_params(extent, 3);
+    for c in &mut p.channels {
+        c.tf = Some(
+            TransferFunction::from_json(
+                r#"{"window": [0, 255], "opacity": [[0, 0], [0.94, 0], [1, 0.9]], "colormap": "grayscale"}"#,
+            )
+            .unwrap(),
+        );
+    }
+    let mut scene = Scene::new(extent, levels);
+    let mut s = Session::open(&store, cfg(1 << 24), 8 << 20, 2).unwrap();
+    scene.ranges = Some(Arc::new(s.loader().brick_ranges(1 << 20)));
+    for lod in [Lod::Fixed(0), Lod::Auto { bias: 0.0 }] {
+        p.traversal = Traversal::PageTable;
+        let (pt, _) = converge(&mut s, &scene, &p, lod);
+        let shown = pt.rgba.iter().filter(|px| px[3] > 0.05).count();
+        assert!(
+            lod != Lod::Fixed(0) || shown > 20,
+            "{shown} pixels show anything"
+        );
+        p.traversal = Traversal::Octree;
+        let (oc, st) = converge(&mut s, &scene, &p, lod);
+        let d = oc.max_abs_diff(&pt);
+        eprintln!(
+            "{lod:?}: octree vs page table {d}, {} nodes visited, {} skipped; {shown} pixels show",
+            st.octree_nodes, st.skipped_nodes
+        );
+        assert!(d <= TOLERANCE, "{d}");
+        if lod == Lod::Fixed(0) {
+            assert!(st.skipped_nodes > 0, "no node skipped");
+            let want = reference(&store, &p, 0);
+            let dr = oc.max_abs_diff(&want);
+            assert!(dr <= TOLERANCE, "octree vs reference {dr}");
+        }
+    }
+}
+
+#[test]
+fn debug_images_count_nodes_bricks_and_steps() {
+    let dir = tempfile::tempdir().unwrap();
+    let (store, extent, levels) = banded_store(dir.path(), 3);
+    let mut p = dvr_params(extent, 3);
+    let mut scene = Scene::new(extent, levels);
+    let mut s = open(&store, &mut scene, 1 << 24, 4);
+    p.traversal = Traversal::Octree;
+    converge(&mut s, &scene, &p, Lod::Fixed(0));
+    for d in [DebugCounts::Nodes, DebugCounts::Bricks, DebugCounts::Steps] {
+        p.debug = Some(d);
+        s.begin_frame();
+        let (img, st, reqs) = render_frame(s.vm(), &scene, &p, Lod::Fixed(0));
+        s.finish_frame(reqs.iter());
+        // Opaque everywhere; black where rays miss the volume (corners),
+        // coloured where they cross it; some pixel at the top (white).
+        assert!(img.rgba.iter().all(|px| px[3] == 1.0), "{d:?}");
+        let black = img.rgba.iter().filter(|px| px[..3] == [0.0; 3]).count();
+        let white = img.rgba.iter().filter(|px| px[..3] == [1.0; 3]).count();
+        assert!(
+            black > 0 && black < img.rgba.len() * 3 / 4,
+            "{d:?}: {black} black"
+        );
+        assert!(white > 0, "{d:?}: no pixel at the largest count");
+        assert!(st.octree_nodes > 0);
+    }
+    // Page tables visit no nodes: all black.
+    p.traversal = Traversal::PageTable;
+    p.debug = Some(DebugCounts::Nodes);
+    let (img, _, _) = render_frame(s.vm(), &scene, &p, Lod::Fixed(0));
+    assert!(img.rgba.iter().all(|px| px[..3] == [0.0; 3]));
+}
+
+/// Small deterministic generator (xorshift).
+struct Rng(u64);
+impl Rng {
+    fn below(&mut self, n: u64) -> u64 {
+        self.0 ^= self.0 << 13;
+        self.0 ^= self.0 >> 7;
+        self.0 ^= self.0 << 17;
+        self.0 % n
+    }
+}
+
+#[test]
+fn device_octree_passes_equal_the_cpu_model_over_random_sequences() {
+    use brickyard_cache::brick::BrickKey;
+    use brickyard_cache::ranges::{BrickRanges, LevelRanges};
+    use brickyard_render::octree::device::DeviceOctree;
+    use brickyard_render::octree::Event;
+    let Some(gpu) = brickyard_gpu::context::test_gpu() else {
+        return;
+    };
+    // Odd sizes (bricks and nodes do not line up), a level without
+    // statistics, a few unknown brick ranges.
+    let dims: Vec<Dims3> = vec![[37, 50, 61], [19, 25, 31], [10, 13, 16], [5, 7, 8]];
+    let brick = [8u64; 3];
+    let channels = 3;
+    let mut rng = Rng(0x5eed);
+    let ranges = BrickRanges {
+        levels: dims
+            .iter()
+            .enumerate()
+            .map(|(l, d)| {
+                (l != 2).then(|| {
+                    let nb = d.map(|x| x.div_ceil(8));
+                    let n = nb.iter().product::<u64>() as usize * channels;
+                    LevelRanges {
+                        bricks: nb,
+                        channels,
+                        range: (0..n)
+                            .map(|i| {
+                                if l == 1 && i % 53 == 7 {
+                                    [f32::NAN; 2]
+                                } else {
+                                    let a = rng.below(200) as f32;
+                                    [a, a + rng.below(50) as f32]
+                                }
+                            })
+                            .collect(),
+                    }
+                })
+            })
+            .collect(),
+    };
+    let same_ranges = |a: &[[f32; 2]], b: &[[f32; 2]]| {
+        a.len() == b.len()
+            && a.iter()
+                .zip(b)
+                .all(|(x, y)| (x[0].is_nan() && y[0].is_nan()) || (x[0] == y[0] && x[1] == y[1]))
+    };
+    let mut frames = 0;
+    for depth in [1, 2, 3, 4] {
+        let mut o = Octree::new(depth, &dims, brick, channels, Some(&ranges)).unwrap();
+        let mut dev = DeviceOctree::new(&gpu, &o, Some(&ranges));
+        let (_, _, r) = dev.read(&gpu).unwrap();
+        assert!(same_ranges(&r, &o.range), "depth {depth}: ranges");
+        let known = o.range.iter().filter(|r| !r[0].is_nan()).count();
+        assert!(known > o.range.len() / 4, "depth {depth}: {known} known");
+        let mut mapped: Vec<BrickKey> = vec![];
+        for frame in 0..25 {
+            let mut events = vec![];
+            for _ in 0..rng.below(40) {
+                let l = rng.below(dims.len() as u64) as usize;
+                let nb = o.bricks(l);
+                let key = BrickKey::new(
+                    l as u8,
+                    rng.below(channels as u64) as u16,
+                    [0, 1, 2].map(|a| rng.below(nb[a]) as u32),
+                );
+                events.push(Event { key, mapped: true });
+            }
+            for _ in 0..rng.below(20).min(mapped.len() as u64) {
+                let key = mapped[rng.below(mapped.len() as u64) as usize];
+                events.push(Event { key, mapped: false });
+            }
+            let eff = o.effective(&events);
+            for e in &eff {
+                if e.mapped {
+                    mapped.push(e.key);
+                } else {
+                    mapped.retain(|k| *k != e.key);
+                }
+            }
+            o.pass(&eff);
+            dev.update(&gpu, &eff);
+            let (m, c, _) = dev.read(&gpu).unwrap();
+            assert_eq!(c, o.count, "depth {depth}, frame {frame}: counters");
+            assert_eq!(m, o.mask, "depth {depth}, frame {frame}: masks");
+            frames += 1;
+        }
+        assert!(o.mask.iter().any(|&m| m != 0) && o.mapped_count() > 20);
+    }
+    assert_eq!(frames, 100);
+}
