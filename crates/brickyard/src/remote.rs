@@ -79,6 +79,8 @@ pub fn serve(listener: TcpListener, site: Arc<RenderSite>) {
 }
 
 /// The handshake (token, session limit), then the session.
+// (The handshake callback's error type is tungstenite's HTTP response.)
+#[allow(clippy::result_large_err)]
 fn connection(
     stream: TcpStream,
     site: &RenderSite,
