@@ -264,19 +264,54 @@ fn lock<T>(m: &Mutex<T>) -> MutexGuard<'_, T> {
     m.lock().unwrap_or_else(|e| e.into_inner())
 }
 
-/// Mutable byte view of samples (plain old data).
-fn bytes_mut<T: Sample>(s: &mut [T]) -> &mut [u8] {
-    // SAFETY: every Sample type is plain old data, valid for any bit
-    // pattern; the byte slice covers exactly the same memory.
-    unsafe { std::slice::from_raw_parts_mut(s.as_mut_ptr() as *mut u8, std::mem::size_of_val(s)) }
+/// A zeroed byte buffer of `n` bytes, aligned for every sample type.
+fn zeroed_bytes(n: usize) -> Arc<[u8]> {
+    let mut a = Arc::<[u8]>::new_uninit_slice(n);
+    let s = Arc::get_mut(&mut a).expect("a new buffer is not shared");
+    // SAFETY: every byte is written before the buffer is taken as
+    // initialized `u8`s.
+    unsafe {
+        std::ptr::write_bytes(s.as_mut_ptr(), 0, n);
+        a.assume_init()
+    }
 }
 
-/// Source index along one axis for each padded position: the clamped
-/// level coordinate, relative to the start of the region read.
-fn clamp_map(padded_origin: i64, n: u64, lo: u64, hi: u64) -> Vec<usize> {
-    (0..n as i64)
-        .map(|i| ((padded_origin + i).clamp(lo as i64, hi as i64 - 1) - lo as i64) as usize)
-        .collect()
+/// Fill the part of a padded brick of `p` voxels (`es` bytes each) outside
+/// the box of `r` voxels at `at` by repeating the box's edge voxels
+/// (clamp to edge): along x within the box's rows, then whole rows along y
+/// within its planes, then whole planes along z.
+fn replicate_edges(buf: &mut [u8], p: Dims3, at: Dims3, r: Dims3, es: usize) {
+    let [pz, py, px] = p.map(|v| v as usize);
+    let [az, ay, ax] = at.map(|v| v as usize);
+    let [rz, ry, rx] = r.map(|v| v as usize);
+    let row = px * es;
+    let plane = py * row;
+    for z in az..az + rz {
+        for y in ay..ay + ry {
+            let o = z * plane + y * row;
+            let line = &mut buf[o..o + row];
+            let (first, last) = (ax * es, (ax + rx - 1) * es);
+            for x in 0..ax {
+                line.copy_within(first..first + es, x * es);
+            }
+            for x in ax + rx..px {
+                line.copy_within(last..last + es, x * es);
+            }
+        }
+        let pl = z * plane;
+        for y in 0..ay {
+            buf.copy_within(pl + ay * row..pl + (ay + 1) * row, pl + y * row);
+        }
+        for y in ay + ry..py {
+            buf.copy_within(pl + (ay + ry - 1) * row..pl + (ay + ry) * row, pl + y * row);
+        }
+    }
+    for z in 0..az {
+        buf.copy_within(az * plane..(az + 1) * plane, z * plane);
+    }
+    for z in az + rz..pz {
+        buf.copy_within((az + rz - 1) * plane..(az + rz) * plane, z * plane);
+    }
 }
 
 impl Shared {
@@ -304,31 +339,28 @@ impl Shared {
         }
         let ext = g.extent_of(key);
         let a = g.apron as usize;
+        let es = g.dtype.size();
+        let r: Dims3 = [0, 1, 2].map(|a| hi[a] - lo[a]);
+        // The brick's final buffer: the level's voxels are read straight
+        // into it, then the apron outside the level repeats the edge.
+        let mut data: Arc<[u8]> = zeroed_bytes(g.voxels_per_brick() as usize * es);
+        let buf = Arc::get_mut(&mut data).expect("a new buffer is not shared");
+        let at: Dims3 = [0, 1, 2].map(|a| (lo[a] as i64 - po[a]) as u64);
+        let read = level.src.read_region_into(
+            key.channel as usize,
+            [lo[0]..hi[0], lo[1]..hi[1], lo[2]..hi[2]],
+            buf,
+            p,
+            at,
+        );
+        self.simulated_delay();
+        read?;
+        let bytes_read = r.iter().product::<u64>() * es as u64;
+        if r != p {
+            replicate_edges(buf, p, at, r, es);
+        }
         dispatch_dtype!(g.dtype, T => {
-            let r = [0, 1, 2].map(|a| hi[a] - lo[a]);
-            let mut buf = vec![T::default(); r.iter().product::<u64>() as usize];
-            let read = level
-                .src
-                .read_region(key.channel as usize, lo[0]..hi[0], lo[1]..hi[1], lo[2]..hi[2], bytes_mut(&mut buf));
-            self.simulated_delay();
-            read?;
-            let bytes_read = std::mem::size_of_val(&buf[..]) as u64;
-            // Inside the level the region read is the padded brick itself;
-            // at its faces the missing part repeats the edge voxels.
-            let out: Vec<T> = if r == p {
-                buf
-            } else {
-                let [zs, ys, xs] = [0, 1, 2].map(|a| clamp_map(po[a], p[a], lo[a], hi[a]));
-                let (r1, r2) = (r[1] as usize, r[2] as usize);
-                let mut out: Vec<T> = Vec::with_capacity(g.voxels_per_brick() as usize);
-                for &sz in &zs {
-                    for &sy in &ys {
-                        let row = &buf[(sz * r1 + sy) * r2..][..r2];
-                        out.extend(xs.iter().map(|&sx| row[sx]));
-                    }
-                }
-                out
-            };
+            let out: &[T] = brickyard_core::cast_slice(&data);
             // Min / max of the brick proper.
             let (p1, p2) = (p[1] as usize, p[2] as usize);
             let (mut mn, mut mx) = (f64::NAN, f64::NAN);
@@ -341,11 +373,11 @@ impl Shared {
                     mx = mx.max(rmx.to_f64());
                 }
             }
-            let first = out[0];
-            let v0 = first.to_f64();
+            let v0 = out[0].to_f64();
             // Uniform only if the brick proper is (a pass over the apron
-            // only then).
-            if !v0.is_nan() && mn == mx && out.iter().all(|v| v.bits() == first.bits()) {
+            // only then). Every voxel has the first one's bits exactly when
+            // the buffer equals itself shifted by one voxel (one memcmp).
+            if !v0.is_nan() && mn == mx && data[es..] == data[..data.len() - es] {
                 if v0 == 0.0 {
                     if let Some(st) = &level.stats {
                         // Zeros where the statistics say there is data: the
@@ -372,7 +404,7 @@ impl Shared {
             }
             Ok(LoadedBrick {
                 key: *key,
-                content: BrickContent::Data(Arc::from(brickyard_core::as_bytes(&out))),
+                content: BrickContent::Data(data.clone()),
                 min: mn,
                 max: mx,
                 bytes_read,
@@ -583,7 +615,10 @@ impl Loader {
             let mut stored = open(store_path, l)?;
             // Neighbouring bricks share the chunks their aprons reach into:
             // keep decoded chunks so each is decoded about once.
-            stored.enable_chunk_cache((chunk_bytes >> (l + 1).min(63)).max(512 << 10));
+            stored.enable_chunk_cache_with_shells(
+                (chunk_bytes >> (l + 1).min(63)).max(512 << 10),
+                apron,
+            );
             let src: Arc<dyn VolumeSource> = match &derive {
                 None => Arc::new(stored),
                 Some(d) => d(l, Arc::new(stored))
@@ -1035,11 +1070,34 @@ mod tests {
     }
 
     #[test]
-    fn clamp_map_replicates_borders() {
-        // Padded origin -2, 8 positions, region 0..5 of the level.
-        assert_eq!(clamp_map(-2, 8, 0, 5), [0, 0, 0, 1, 2, 3, 4, 4]);
-        // Region 3..7, padded origin 2: position 0 maps to 3.
-        assert_eq!(clamp_map(2, 6, 3, 7), [0, 0, 1, 2, 3, 3]);
+    fn replicate_edges_clamps_to_the_box() {
+        // A 2×3×4 box of u16 at (1, 0, 2) in a 4×4×7 padded brick.
+        let (p, at, r) = ([4u64, 4, 7], [1u64, 0, 2], [2u64, 3, 4]);
+        let mut buf = vec![0u16; 4 * 4 * 7];
+        let val = |z: u64, y: u64, x: u64| (100 * z + 10 * y + x) as u16;
+        for z in 0..r[0] {
+            for y in 0..r[1] {
+                for x in 0..r[2] {
+                    buf[(((at[0] + z) * p[1] + at[1] + y) * p[2] + at[2] + x) as usize] =
+                        val(z, y, x);
+                }
+            }
+        }
+        replicate_edges(brickyard_core::as_bytes_mut(&mut buf), p, at, r, 2);
+        for z in 0..p[0] {
+            for y in 0..p[1] {
+                for x in 0..p[2] {
+                    let c = |v: u64, a: usize| {
+                        (v as i64 - at[a] as i64).clamp(0, r[a] as i64 - 1) as u64
+                    };
+                    assert_eq!(
+                        buf[((z * p[1] + y) * p[2] + x) as usize],
+                        val(c(z, 0), c(y, 1), c(x, 2)),
+                        "padded voxel {z} {y} {x}"
+                    );
+                }
+            }
+        }
     }
 
     #[test]

@@ -80,6 +80,24 @@ pub trait VolumeSource: Send + Sync {
         out: &mut [u8],
     ) -> Result<()>;
 
+    /// Read `region` (`[z, y, x]` ranges) of channel `c` into a larger box
+    /// of `dims` voxels (z, y, x order, C order) held by `out`, the
+    /// region's first voxel at `at`; the rest of the box is left as it is.
+    /// The loader reads a brick's apron this way, straight into the
+    /// brick's final layout. The default reads the region into a buffer
+    /// and copies it row by row; sources that can write into the box
+    /// directly override it.
+    fn read_region_into(
+        &self,
+        c: usize,
+        region: [Range<u64>; 3],
+        out: &mut [u8],
+        dims: Dims3,
+        at: Dims3,
+    ) -> Result<()> {
+        read_region_into_by_copy(self, c, region, out, dims, at)
+    }
+
     /// The box shape `[z, y, x]` the source reads most efficiently, e.g.
     /// whole slices for a stack of images or one chunk for a Zarr array.
     /// The pyramid builder uses it to choose its read pattern.
@@ -122,6 +140,66 @@ pub fn check_region(
         n * meta.dtype.size() as u64,
         "buffer size"
     );
+}
+
+/// Check a [`VolumeSource::read_region_into`] request: the region inside
+/// the volume, the box large enough for it at `at`, the buffer the box's
+/// size.
+pub fn check_box(
+    meta: &SourceMeta,
+    c: usize,
+    region: &[Range<u64>; 3],
+    out: &[u8],
+    dims: Dims3,
+    at: Dims3,
+) {
+    assert!(c < meta.channels, "channel {c} out of range");
+    for a in 0..3 {
+        let r = &region[a];
+        assert!(
+            r.start <= r.end && r.end <= meta.dims[a],
+            "region {r:?} outside 0..{}",
+            meta.dims[a]
+        );
+        assert!(
+            at[a] + (r.end - r.start) <= dims[a],
+            "region {r:?} at {} outside a box of {}",
+            at[a],
+            dims[a]
+        );
+    }
+    assert_eq!(
+        out.len() as u64,
+        dims.iter().product::<u64>() * meta.dtype.size() as u64,
+        "buffer size"
+    );
+}
+
+/// [`VolumeSource::read_region_into`] by a read into a buffer and a copy.
+pub fn read_region_into_by_copy<S: VolumeSource + ?Sized>(
+    src: &S,
+    c: usize,
+    region: [Range<u64>; 3],
+    out: &mut [u8],
+    dims: Dims3,
+    at: Dims3,
+) -> Result<()> {
+    check_box(src.meta(), c, &region, out, dims, at);
+    let es = src.meta().dtype.size();
+    let r: Dims3 = [0, 1, 2].map(|a| region[a].end - region[a].start);
+    let mut buf = vec![0u8; (r.iter().product::<u64>() as usize) * es];
+    let [z, y, x] = region;
+    src.read_region(c, z, y, x, &mut buf)?;
+    let row = r[2] as usize * es;
+    if row == 0 {
+        return Ok(());
+    }
+    for (i, src_row) in buf.chunks_exact(row).enumerate() {
+        let (k, j) = (i as u64 / r[1].max(1), i as u64 % r[1].max(1));
+        let o = (((at[0] + k) * dims[1] + at[1] + j) * dims[2] + at[2]) as usize * es;
+        out[o..o + row].copy_from_slice(src_row);
+    }
+    Ok(())
 }
 
 /// Helpers for importer tests.

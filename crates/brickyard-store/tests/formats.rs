@@ -144,10 +144,10 @@ fn chunk_cached_reads_equal_plain_reads() {
         ..Default::default()
     };
     convert(&g, &out, &o, &NoProgress, &AtomicBool::new(false)).unwrap();
-    for budget in [0u64, 3000, 1 << 20] {
+    for (budget, shells) in [(0u64, 0), (3000, 0), (3000, 1), (5000, 2), (1 << 20, 1)] {
         let plain = brickyard_store::import::zarr::open(&out, 0).unwrap();
         let mut cached = brickyard_store::import::zarr::open(&out, 0).unwrap();
-        cached.enable_chunk_cache(budget);
+        cached.enable_chunk_cache_with_shells(budget, shells);
         let mut s = 99u64;
         for _ in 0..60 {
             let mut r = |n: u64| {
@@ -172,8 +172,94 @@ fn chunk_cached_reads_equal_plain_reads() {
                 .unwrap();
             assert_eq!(
                 a, b,
-                "budget {budget} region {z0}..{z1} {y0}..{y1} {x0}..{x1}"
+                "budget {budget} shells {shells} region {z0}..{z1} {y0}..{y1} {x0}..{x1}"
             );
+            assert!(cached.chunk_cache_bytes() <= budget);
         }
     }
+}
+
+/// Reads into a larger box (the loader's padded bricks) land at their
+/// offset, leave the rest of the box alone, and equal plain reads, with
+/// several threads sharing one small decoded-chunk cache.
+#[test]
+fn box_reads_through_a_shared_chunk_cache_equal_plain_reads() {
+    let dir = tempfile::tempdir().unwrap();
+    let out = dir.path().join("c.ome.zarr");
+    let g = Procedural::new(Kind::Mandelbulb, [33, 40, 47], DType::U16);
+    let o = ConvertOptions {
+        brick: [8; 3],
+        shard: [16; 3],
+        ..Default::default()
+    };
+    convert(&g, &out, &o, &NoProgress, &AtomicBool::new(false)).unwrap();
+    let plain = brickyard_store::import::zarr::open(&out, 0).unwrap();
+    let mut cached = brickyard_store::import::zarr::open(&out, 0).unwrap();
+    let budget = 4 * 8 * 8 * 8 * 2;
+    cached.enable_chunk_cache_with_shells(budget, 1);
+    std::thread::scope(|s| {
+        for t in 0..3u64 {
+            let (plain, cached) = (&plain, &cached);
+            s.spawn(move || {
+                let mut seed = 7 + t;
+                let mut r = |n: u64| {
+                    seed = seed
+                        .wrapping_mul(6364136223846793005)
+                        .wrapping_add(1442695040888963407);
+                    (seed >> 33) % n
+                };
+                for _ in 0..40 {
+                    let lo = [r(33), r(40), r(47)];
+                    let hi = [
+                        lo[0] + 1 + r(33 - lo[0]),
+                        lo[1] + 1 + r(40 - lo[1]),
+                        lo[2] + 1 + r(47 - lo[2]),
+                    ];
+                    let n: Vec<u64> = (0..3).map(|a| hi[a] - lo[a]).collect();
+                    let at = [r(3), r(3), r(3)];
+                    let dims = [
+                        n[0] + at[0] + r(3),
+                        n[1] + at[1] + r(3),
+                        n[2] + at[2] + r(3),
+                    ];
+                    let mut want = vec![0u8; (n[0] * n[1] * n[2] * 2) as usize];
+                    plain
+                        .read_region(0, lo[0]..hi[0], lo[1]..hi[1], lo[2]..hi[2], &mut want)
+                        .unwrap();
+                    let mut b = vec![0xABu8; (dims[0] * dims[1] * dims[2] * 2) as usize];
+                    cached
+                        .read_region_into(
+                            0,
+                            [lo[0]..hi[0], lo[1]..hi[1], lo[2]..hi[2]],
+                            &mut b,
+                            dims,
+                            at,
+                        )
+                        .unwrap();
+                    let mut k = 0;
+                    for z in 0..dims[0] {
+                        for y in 0..dims[1] {
+                            for x in 0..dims[2] {
+                                let i = (((z * dims[1] + y) * dims[2] + x) * 2) as usize;
+                                let inside = (z >= at[0] && z < at[0] + n[0])
+                                    && (y >= at[1] && y < at[1] + n[1])
+                                    && (x >= at[2] && x < at[2] + n[2]);
+                                if inside {
+                                    assert_eq!(
+                                        b[i..i + 2],
+                                        want[k..k + 2],
+                                        "{lo:?}..{hi:?} at {at:?}"
+                                    );
+                                    k += 2;
+                                } else {
+                                    assert_eq!(b[i..i + 2], [0xAB, 0xAB], "outside the region");
+                                }
+                            }
+                        }
+                    }
+                    assert!(cached.chunk_cache_bytes() <= budget);
+                }
+            });
+        }
+    });
 }

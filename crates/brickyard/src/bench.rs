@@ -21,7 +21,8 @@ pub struct BenchCmd {
     /// 1k–64k slots; cache-kernels: the device's LRU and request kernels
     /// beside their CPU twins; process-filters: gauss(2) and sobel of a
     /// generated volume on the CPU and the device (--backend cpu, gpu or
-    /// both); loader: decoded GB/s; remote: brick reads from disk and over
+    /// both); loader: decoded GB/s of every level-0 brick (--brick: engine
+    /// brick size, store chunks stay 64³); remote: brick reads from disk and over
     /// HTTP on loopback (a `serve` child); latency: one brick and one full
     /// view from an empty cache (paper Table 2); render: DVR (or --mode mip) frame times
     /// through the virtual memory beside the in-core reference; views: an
@@ -55,7 +56,9 @@ pub struct BenchCmd {
     /// (zoomed in: most rays cross dense data, more bricks per pixel).
     #[arg(long, default_value_t = 1.0)]
     zoom: f64,
-    /// loader, latency, render: drop the page cache first (needs root), for cold-disk figures.
+    /// loader, latency, render: drop the page cache first, for cold-disk
+    /// figures (needs root; loader: without root, the store's files are
+    /// dropped with posix_fadvise instead).
     #[arg(long)]
     cold: bool,
     /// render: brick-pool budget (default: half the volume plus 32 MiB).
@@ -71,6 +74,12 @@ pub struct BenchCmd {
     /// asks for it, instead of a store (any size: 4096 is 64 GiB of u8).
     #[arg(long)]
     procedural: bool,
+    /// loader: loader thread counts to measure, comma-separated.
+    #[arg(long, default_value = "1,2,4")]
+    loader_threads: String,
+    /// loader: decoded-chunk cache of the loader, all levels together.
+    #[arg(long, default_value = "128MiB")]
+    chunk_cache: String,
     /// render: cpu, gpu, auto, both (CPU then GPU, side by side) or all
     /// (CPU, GPU with updates on the device, GPU with updates on the
     /// host); `gpu-host` and `auto-host` have the host decide updates.
@@ -91,7 +100,24 @@ pub fn run(b: BenchCmd) -> Result<()> {
         "vm-update" => crate::vmbench::update(b.repeat),
         "cache-kernels" => crate::gpubench::cache_kernels(b.repeat),
         "process-filters" => crate::gpubench::process_filters(dims, dtype, &b.backend, b.repeat),
-        "loader" => crate::vmbench::loader(&b.dir, dims, dtype, b.cold),
+        "loader" => {
+            let threads = b
+                .loader_threads
+                .split(',')
+                .map(|t| t.trim().parse::<usize>())
+                .collect::<std::result::Result<Vec<_>, _>>()
+                .with_context(|| {
+                    format!("--loader-threads: expected numbers, found {:?}", b.loader_threads)
+                })?;
+            let o = crate::vmbench::LoaderBench {
+                brick: b.brick,
+                threads,
+                repeat: b.repeat,
+                cold: b.cold,
+                chunk_cache: crate::parse_bytes(&b.chunk_cache)?,
+            };
+            crate::vmbench::loader(&b.dir, dims, dtype, &o)
+        }
         "remote" => crate::netbench::remote(&b.dir, dims, dtype),
         "latency" => crate::vmbench::latency(&b.dir, dims, dtype, b.cold),
         "views" => crate::viewbench::views(

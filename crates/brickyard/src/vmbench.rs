@@ -282,33 +282,96 @@ pub fn update(repeat: usize) -> Result<()> {
 }
 
 /// Decoded GB/s of the loader reading every brick of level 0.
-pub fn loader(dir: &Path, dims: Dims3, dtype: DType, cold: bool) -> Result<()> {
-    let st = store(dir, dims, dtype)?;
-    for threads in [1usize, 2, 4] {
-        let dropped = cold && drop_caches();
-        let cache = Arc::new(HostCache::new(64 << 20));
-        let l = Loader::open(&st, [64; 3], 1, threads, cache)?;
-        let keys: Vec<(BrickKey, u32)> = l.geometry().keys(0, 0).map(|k| (k, 1)).collect();
-        let t = Instant::now();
-        l.request(&keys);
-        let mut got = 0;
-        let mut data_bricks = 0;
-        while got < keys.len() {
-            for b in l.poll() {
-                got += 1;
-                data_bricks += matches!(b.content, BrickContent::Data(_)) as usize;
+/// Options of the loader benchmark.
+pub struct LoaderBench {
+    /// Engine brick size (the store's chunks are 64³ in 256³ shards).
+    pub brick: u64,
+    pub threads: Vec<usize>,
+    /// Runs per thread count (each printed).
+    pub repeat: usize,
+    /// Drop the store from the page cache before each run.
+    pub cold: bool,
+    /// Decoded-chunk cache of the loader (all levels).
+    pub chunk_cache: u64,
+}
+
+/// Drop every file of `dir` from the page cache with posix_fadvise
+/// (DONTNEED; no root needed, clean pages only). Returns the bytes asked.
+fn fadvise_dont_need(dir: &Path) -> u64 {
+    let mut n = 0;
+    let mut stack = vec![dir.to_path_buf()];
+    while let Some(d) = stack.pop() {
+        let Ok(rd) = std::fs::read_dir(&d) else {
+            continue;
+        };
+        for e in rd.flatten() {
+            let p = e.path();
+            if p.is_dir() {
+                stack.push(p);
+            } else if let Ok(f) = std::fs::File::open(&p) {
+                use std::os::fd::AsRawFd;
+                // SAFETY: a plain system call on an open descriptor.
+                unsafe { libc::posix_fadvise(f.as_raw_fd(), 0, 0, libc::POSIX_FADV_DONTNEED) };
+                n += f.metadata().map(|m| m.len()).unwrap_or(0);
             }
-            std::thread::sleep(Duration::from_micros(200));
         }
-        let s = t.elapsed().as_secs_f64();
-        let bytes = l.bytes_read();
-        let decoded = (data_bricks as u64) * 66u64.pow(3) * dtype.size() as u64;
-        println!(
-            "{}",
-            json!({"scenario": "loader", "size": [dims[2], dims[1], dims[0]], "dtype": dtype.short_name(), "threads": threads,
-                "cold": dropped, "bricks": keys.len(), "data_bricks": data_bricks, "seconds": s,
-                "decoded_gb_s": decoded as f64 / 1e9 / s, "read_gb_s": bytes as f64 / 1e9 / s})
-        );
+    }
+    n
+}
+
+/// Every brick of level 0, loaded by the loader's threads into a host
+/// cache that holds them all; decoded GB/s counts the padded data bricks
+/// (empty and constant ones come from the statistics without a read),
+/// level GB/s the level's bytes (what a reader of the whole array gets).
+pub fn loader(dir: &Path, dims: Dims3, dtype: DType, o: &LoaderBench) -> Result<()> {
+    let st = store(dir, dims, dtype)?;
+    let level_bytes = dims.iter().product::<u64>() * dtype.size() as u64;
+    for &threads in &o.threads {
+        for _ in 0..o.repeat.max(1) {
+            let cold = if !o.cold {
+                "no"
+            } else if drop_caches() {
+                "drop_caches"
+            } else {
+                fadvise_dont_need(&st);
+                "fadvise"
+            };
+            let cache = Arc::new(HostCache::new(4 * level_bytes + (256 << 20)));
+            let l =
+                Loader::open_with_chunk_cache(&st, [o.brick; 3], 1, threads, cache, o.chunk_cache)?;
+            let keys: Vec<(BrickKey, u32)> = l.geometry().keys(0, 0).map(|k| (k, 1)).collect();
+            let decodes = zarr::chunks_decoded();
+            let t = Instant::now();
+            l.request(&keys);
+            let mut got = 0;
+            let mut data_bricks = 0;
+            while got < keys.len() {
+                for b in l.poll() {
+                    got += 1;
+                    data_bricks += matches!(b.content, BrickContent::Data(_)) as usize;
+                }
+                std::thread::sleep(Duration::from_micros(200));
+            }
+            let s = t.elapsed().as_secs_f64();
+            let failed = l.take_failures();
+            anyhow::ensure!(
+                failed.is_empty(),
+                "{} bricks failed: {}",
+                failed.len(),
+                failed[0].message
+            );
+            let bytes = l.bytes_read();
+            let padded = (o.brick + 2).pow(3);
+            let decoded = (data_bricks as u64) * padded * dtype.size() as u64;
+            println!(
+                "{}",
+                json!({"scenario": "loader", "size": [dims[2], dims[1], dims[0]], "dtype": dtype.short_name(),
+                    "brick": o.brick, "threads": threads, "cold": cold, "bricks": keys.len(), "data_bricks": data_bricks,
+                    "seconds": s, "decoded_gb_s": decoded as f64 / 1e9 / s, "read_gb_s": bytes as f64 / 1e9 / s,
+                    "level_gb_s": level_bytes as f64 / 1e9 / s,
+                    "chunks_decoded": zarr::chunks_decoded() - decodes})
+            );
+        }
     }
     Ok(())
 }

@@ -1,5 +1,6 @@
 //! Importers: one module per input format, each returning a [`VolumeSource`].
 
+mod chunks;
 pub mod nifti;
 pub mod nrrd;
 pub mod raw;

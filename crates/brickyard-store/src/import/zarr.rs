@@ -3,14 +3,15 @@
 //!
 //! Over 800 lines: with its tests: 0.78k lines of code, 0.1k of tests.
 
+use super::chunks::{copy_into, Body, ChunkCache, Decoded, ShardReader};
 use crate::error::{Result, StoreError};
 use crate::omezarr::{read_json, read_multiscale, Multiscale};
 use crate::shard::{self, IndexLayout};
-use crate::source::{check_region, SourceMeta, VolumeSource};
+use crate::source::{check_box, check_region, SourceMeta, VolumeSource};
 use crate::storage::{self, StoreAt};
 use brickyard_core::{as_bytes, dispatch_dtype, DType, Dims3};
 use serde_json::Value;
-use std::collections::{HashMap, HashSet};
+use std::collections::HashSet;
 use std::ops::Range;
 use std::path::{Path, PathBuf};
 use std::sync::{Arc, Mutex};
@@ -30,6 +31,13 @@ pub const MAX_CHUNK_BYTES: u64 = 1 << 30;
 /// state downstream, and an array's channel axis, unlike a file's, need
 /// not be backed by any data.
 pub const MAX_CHANNELS: u64 = 1 << 16;
+
+/// Chunks decoded so far by the direct reads of sharded arrays (every
+/// array of this process): benchmarks compare it with the chunks a read
+/// covers to count decodes per chunk.
+pub fn chunks_decoded() -> u64 {
+    super::chunks::CHUNKS_DECODED.load(std::sync::atomic::Ordering::Relaxed)
+}
 
 /// Shards whose index was checked, remembered per source (the set is
 /// cleared when it grows past this, so it stays small).
@@ -51,6 +59,14 @@ pub struct ZarrSource {
     /// Optional cache of decoded read-granularity chunks (see
     /// [`ZarrSource::enable_chunk_cache`]).
     chunk_cache: Option<ChunkCache>,
+    /// The read granularity: inner chunks of a sharded array, chunks
+    /// otherwise (array axis order).
+    grain: Vec<u64>,
+    /// Direct reads of the inner chunks of a sharded array whose index
+    /// layout is known (otherwise the Zarr library reads them).
+    direct: Option<ShardReader>,
+    /// The fill value, one element.
+    fill: Vec<u8>,
     /// Shard index checking, for sharded arrays whose index layout is known.
     shard_check: Option<ShardCheck>,
     /// The multiscale metadata, when the path was an OME-Zarr image.
@@ -420,15 +436,42 @@ fn open_array(
             meta.labels = b.get("labels").and_then(Value::as_bool).unwrap_or(false);
         }
     }
-    let chunk = array
+    let chunk: Vec<u64> = array
         .chunk_shape(&vec![0; n])
         .map_err(|e| StoreError::zarr(apath, e))?
         .iter()
         .map(|c| c.get())
         .collect();
     let shards = ArrayShardedReadableExtCache::new(&array);
+    let fill = array.fill_value().as_ne_bytes().to_vec();
+    let direct = shard_check.as_ref().and_then(|sc| {
+        let config = mj
+            .get("codecs")?
+            .as_array()?
+            .first()?
+            .get("configuration")?;
+        ShardReader::new(
+            sc.layout,
+            &chunk,
+            config,
+            array.data_type(),
+            array.fill_value(),
+            dtype.size(),
+        )
+    });
+    let grain: Vec<u64> = match &direct {
+        Some(d) => d.inner().to_vec(),
+        None if array.is_sharded() => array
+            .effective_subchunk_shape()
+            .map(|c| c.iter().map(|v| v.get()).collect())
+            .unwrap_or_else(|| chunk.clone()),
+        None => chunk.clone(),
+    };
     Ok(ZarrSource {
         chunk_cache: None,
+        grain,
+        direct,
+        fill,
         shard_check,
         shards,
         meta,
@@ -441,98 +484,54 @@ fn open_array(
     })
 }
 
-/// An LRU of decoded chunks (the read granularity: inner chunks of a
-/// sharded array, chunks otherwise), bounded in bytes.
-struct ChunkCache {
-    budget: u64,
-    grain: Vec<u64>,
-    state: Mutex<ChunkCacheState>,
-}
-
-#[derive(Default)]
-struct ChunkCacheState {
-    map: HashMap<Vec<u64>, (Arc<Vec<u8>>, u64)>,
-    bytes: u64,
-    tick: u64,
-}
-
-impl ChunkCache {
-    fn get(&self, k: &[u64]) -> Option<Arc<Vec<u8>>> {
-        let mut st = self.state.lock().unwrap();
-        st.tick += 1;
-        let t = st.tick;
-        st.map.get_mut(k).map(|e| {
-            e.1 = t;
-            e.0.clone()
-        })
-    }
-    fn put(&self, k: Vec<u64>, v: Arc<Vec<u8>>) {
-        let n = v.len() as u64;
-        if n > self.budget {
-            return;
-        }
-        let mut st = self.state.lock().unwrap();
-        while st.bytes + n > self.budget {
-            let Some(old) = st.map.iter().min_by_key(|e| e.1 .1).map(|e| e.0.clone()) else {
-                break;
-            };
-            if let Some((b, _)) = st.map.remove(&old) {
-                st.bytes -= b.len() as u64;
-            }
-        }
-        st.tick += 1;
-        let t = st.tick;
-        if let Some((old, _)) = st.map.insert(k, (v, t)) {
-            st.bytes -= old.len() as u64;
-        }
-        st.bytes += n;
-    }
-}
-
 impl ZarrSource {
     /// Keep up to `bytes` of decoded chunks, so that reads of overlapping
-    /// regions (bricks with aprons) decode each chunk once. Off by default.
+    /// regions (bricks with aprons) decode each chunk once; reads then go
+    /// chunk by chunk through that cache, straight into the caller's
+    /// buffer. Off by default.
     pub fn enable_chunk_cache(&mut self, bytes: u64) {
-        let grain: Vec<u64> = if self.shards.array_is_sharded() {
-            self.array
-                .effective_subchunk_shape()
-                .map(|c| c.iter().map(|v| v.get()).collect())
-                .unwrap_or_else(|| self.chunk.clone())
-        } else {
-            self.chunk.clone()
-        };
-        self.chunk_cache = Some(ChunkCache {
-            budget: bytes,
-            grain,
-            state: Mutex::new(ChunkCacheState::default()),
-        });
+        self.enable_chunk_cache_with_shells(bytes, 0);
     }
 
-    /// Assemble `ranges` (array axis order) from cached chunks.
-    fn read_cached<T: brickyard_core::Sample + zarrs::array::ElementOwned>(
-        &self,
-        cc: &ChunkCache,
-        ranges: &[Range<u64>],
-    ) -> Result<Vec<T>> {
-        let n = ranges.len();
+    /// [`ZarrSource::enable_chunk_cache`], keeping of each evicted chunk
+    /// its faces `width` voxels deep (within the same budget): what the
+    /// aprons of neighbouring bricks `width` deep read, for a tenth of the
+    /// chunk's bytes (64³ chunks, width 1).
+    pub fn enable_chunk_cache_with_shells(&mut self, bytes: u64, width: u64) {
+        self.chunk_cache = Some(ChunkCache::new(bytes, width, self.meta.dtype.size()));
+    }
+
+    /// Bytes held by the decoded-chunk cache now (0 without one): never
+    /// more than its budget.
+    pub fn chunk_cache_bytes(&self) -> u64 {
+        self.chunk_cache.as_ref().map_or(0, ChunkCache::bytes)
+    }
+
+    /// Read and decode the read-granularity chunks `keys` (chunk grid
+    /// indices over the grain, array axis order).
+    fn load_chunks(&self, keys: &[Vec<u64>]) -> Result<Vec<Decoded>> {
+        if let Some(d) = &self.direct {
+            return d.load(&self.array, &self.dir, keys);
+        }
+        let n = self.grain.len();
         let shape = self.array.shape();
-        let sizes: Vec<u64> = ranges.iter().map(|r| r.end - r.start).collect();
-        let mut out = vec![T::default(); sizes.iter().product::<u64>() as usize];
-        let first: Vec<u64> = (0..n).map(|a| ranges[a].start / cc.grain[a]).collect();
-        let last: Vec<u64> = (0..n).map(|a| (ranges[a].end - 1) / cc.grain[a]).collect();
-        let mut idx = first.clone();
-        loop {
-            // The chunk's region, clipped to the array.
-            let creg: Vec<Range<u64>> = (0..n)
-                .map(|a| idx[a] * cc.grain[a]..((idx[a] + 1) * cc.grain[a]).min(shape[a]))
-                .collect();
-            let mut key = idx.clone();
-            key.push(std::mem::size_of::<T>() as u64);
-            let data = match cc.get(&key) {
-                Some(d) => d,
-                None => {
-                    let sub = ArraySubset::new_with_ranges(&creg);
-                    self.check_shards(&sub)?;
+        keys.iter()
+            .map(|idx| {
+                // The chunk's region, clipped to the array.
+                let creg: Vec<Range<u64>> = (0..n)
+                    .map(|a| idx[a] * self.grain[a]..((idx[a] + 1) * self.grain[a]).min(shape[a]))
+                    .collect();
+                let sub = ArraySubset::new_with_ranges(&creg);
+                self.check_shards(&sub)?;
+                let err = |e: zarrs::array::ArrayError| {
+                    // Name the file that holds the chunk (its shard).
+                    let outer: Vec<u64> = (0..n)
+                        .map(|a| creg[a].start / self.chunk[a].max(1))
+                        .collect();
+                    let file = self.dir.join(self.array.chunk_key(&outer).as_str());
+                    StoreError::zarr(file, format!("chunk at {:?}: {e}", sub.start()))
+                };
+                let data = dispatch_dtype!(self.meta.dtype, T => {
                     let v: Vec<T> = if self.shards.array_is_sharded() {
                         self.array.retrieve_array_subset_sharded_opt::<Vec<T>>(
                             &self.shards,
@@ -542,68 +541,97 @@ impl ZarrSource {
                     } else {
                         self.array.retrieve_array_subset::<Vec<T>>(&sub)
                     }
-                    .map_err(|e| {
-                        // Name the file that holds the chunk (its shard).
-                        let outer: Vec<u64> = (0..n)
-                            .map(|a| creg[a].start / self.chunk[a].max(1))
-                            .collect();
-                        let file = self.dir.join(self.array.chunk_key(&outer).as_str());
-                        StoreError::zarr(file, format!("chunk at {:?}: {e}", sub.start()))
-                    })?;
-                    let d = Arc::new(as_bytes(&v).to_vec());
-                    cc.put(key, d.clone());
-                    d
-                }
-            };
-            let src: &[T] = brickyard_core::cast_slice(&data);
-            // Copy the overlap, one run along the last axis at a time.
-            let csz: Vec<u64> = creg.iter().map(|r| r.end - r.start).collect();
-            let lo: Vec<u64> = (0..n).map(|a| ranges[a].start.max(creg[a].start)).collect();
-            let hi: Vec<u64> = (0..n).map(|a| ranges[a].end.min(creg[a].end)).collect();
-            let run = (hi[n - 1] - lo[n - 1]) as usize;
-            let mut p = lo.clone();
-            loop {
-                let mut so = 0u64;
-                let mut oo = 0u64;
-                for a in 0..n {
-                    so = so * csz[a] + (p[a] - creg[a].start);
-                    oo = oo * sizes[a] + (p[a] - ranges[a].start);
-                }
-                out[oo as usize..oo as usize + run]
-                    .copy_from_slice(&src[so as usize..so as usize + run]);
-                // Next position over all axes but the last.
-                let mut a = n - 1;
-                let mut done = true;
-                while a > 0 {
-                    a -= 1;
-                    p[a] += 1;
-                    if p[a] < hi[a] {
-                        done = false;
-                        break;
-                    }
-                    p[a] = lo[a];
-                }
-                if done {
-                    break;
-                }
-            }
-            // Next chunk.
+                    .map_err(err)?;
+                    as_bytes(&v).to_vec()
+                });
+                Ok(Decoded {
+                    origin: creg.iter().map(|r| r.start).collect(),
+                    dims: creg.iter().map(|r| r.end - r.start).collect(),
+                    body: Body::Data(data),
+                })
+            })
+            .collect()
+    }
+
+    /// Read `ranges` (array axis order) through the chunk cache into `out`:
+    /// array position `p` goes to element `base + Σ (p[a] − start[a]) ·
+    /// stride[a]`.
+    fn read_cached(
+        &self,
+        cc: &ChunkCache,
+        ranges: &[Range<u64>],
+        out: &mut [u8],
+        base: usize,
+        stride: &[usize],
+    ) -> Result<()> {
+        let n = ranges.len();
+        if self.shards.len() > SHARD_CACHE_MAX {
+            self.shards.clear();
+        }
+        let first: Vec<u64> = (0..n).map(|a| ranges[a].start / self.grain[a]).collect();
+        let last: Vec<u64> = (0..n)
+            .map(|a| (ranges[a].end - 1) / self.grain[a])
+            .collect();
+        let mut keys = vec![];
+        let mut need = vec![];
+        let mut idx = first.clone();
+        'all: loop {
+            keys.push(idx.clone());
+            need.push((
+                (0..n)
+                    .map(|a| ranges[a].start.max(idx[a] * self.grain[a]))
+                    .collect(),
+                (0..n)
+                    .map(|a| ranges[a].end.min((idx[a] + 1) * self.grain[a]))
+                    .collect(),
+            ));
             let mut a = n;
-            let mut done = true;
-            while a > 0 {
+            loop {
+                if a == 0 {
+                    break 'all;
+                }
                 a -= 1;
                 idx[a] += 1;
                 if idx[a] <= last[a] {
-                    done = false;
                     break;
                 }
                 idx[a] = first[a];
             }
-            if done {
-                break;
+        }
+        let chunks = cc.get_or_load(&keys, &need, |ks| self.load_chunks(ks))?;
+        for c in &chunks {
+            copy_into(c, ranges, &self.fill, out, base, stride);
+        }
+        Ok(())
+    }
+
+    /// Read the region `rs` (`[z, y, x]`) of channel `c` through the chunk
+    /// cache into a box of `dims` voxels (z, y, x order) held by `out`, its
+    /// first voxel at `at`.
+    fn read_box(
+        &self,
+        cc: &ChunkCache,
+        c: usize,
+        rs: [Range<u64>; 3],
+        out: &mut [u8],
+        dims: Dims3,
+        at: Dims3,
+    ) -> Result<()> {
+        let n = self.array.shape().len();
+        let mut ranges: Vec<Range<u64>> = vec![0..1; n];
+        let mut stride = vec![0usize; n];
+        let bstride = [(dims[1] * dims[2]) as usize, dims[2] as usize, 1];
+        for (a, r) in rs.iter().enumerate() {
+            if let Some(i) = self.zyx[a] {
+                ranges[i] = r.clone();
+                stride[i] = bstride[a];
             }
         }
-        Ok(out)
+        if let Some(i) = self.caxis {
+            ranges[i] = c as u64..c as u64 + 1;
+        }
+        let base = ((at[0] * dims[1] + at[1]) * dims[2] + at[2]) as usize;
+        self.read_cached(cc, &ranges, out, base, &stride)
     }
 
     /// Check the index of every shard that `subset` (array axis order)
@@ -722,6 +750,10 @@ impl VolumeSource for ZarrSource {
         out: &mut [u8],
     ) -> Result<()> {
         check_region(&self.meta, c, &z, &y, &x, out);
+        if let Some(cc) = &self.chunk_cache {
+            let dims = [z.end - z.start, y.end - y.start, x.end - x.start];
+            return self.read_box(cc, c, [z, y, x], out, dims, [0; 3]);
+        }
         let n = self.array.shape().len();
         let mut ranges: Vec<Range<u64>> = vec![0..1; n];
         let rs = [z, y, x];
@@ -747,9 +779,7 @@ impl VolumeSource for ZarrSource {
             if self.shards.len() > SHARD_CACHE_MAX {
                 self.shards.clear();
             }
-            let v: Vec<T> = if let Some(cc) = &self.chunk_cache {
-                self.read_cached::<T>(cc, &ranges)?
-            } else if self.shards.array_is_sharded() {
+            let v: Vec<T> = if self.shards.array_is_sharded() {
                 self.check_shards(&subset)?;
                 self.array
                     .retrieve_array_subset_sharded_opt::<Vec<T>>(&self.shards, &subset, &CodecOptions::default())
@@ -779,6 +809,23 @@ impl VolumeSource for ZarrSource {
             }
         });
         Ok(())
+    }
+
+    fn read_region_into(
+        &self,
+        c: usize,
+        region: [Range<u64>; 3],
+        out: &mut [u8],
+        dims: Dims3,
+        at: Dims3,
+    ) -> Result<()> {
+        match &self.chunk_cache {
+            Some(cc) => {
+                check_box(&self.meta, c, &region, out, dims, at);
+                self.read_box(cc, c, region, out, dims, at)
+            }
+            None => crate::source::read_region_into_by_copy(self, c, region, out, dims, at),
+        }
     }
 
     fn preferred_read(&self) -> Dims3 {

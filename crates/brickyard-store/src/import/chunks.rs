@@ -1,0 +1,936 @@
+//! Decoded chunks of a Zarr array for the loader's region reads: a cache of
+//! decoded read-granularity chunks shared by the reading threads and bounded
+//! in bytes (a chunk wanted by several threads at once is decoded by one
+//! while the others wait for it), the direct reader of sharded arrays (shard
+//! indexes cached, the byte ranges of the chunks one read needs coalesced
+//! into one read per run of neighbours in the shard file, each chunk decoded
+//! by the inner codecs), and the copy of a chunk's overlap with a read
+//! straight into the caller's box.
+
+use crate::error::{Result, StoreError};
+use crate::shard::{self, IndexLayout};
+use crate::storage::{self, Span, StoreAt};
+use serde_json::Value;
+use std::borrow::Cow;
+use std::collections::{BTreeMap, HashMap};
+use std::num::NonZeroU64;
+use std::ops::Range;
+use std::path::Path;
+use std::sync::atomic::{AtomicU64, Ordering};
+use std::sync::{Arc, Condvar, Mutex, MutexGuard};
+use zarrs::array::codec::api::CodecOptions;
+use zarrs::array::{Array, ArrayToBytesCodecTraits, CodecChain, DataType, FillValue};
+use zarrs::metadata::v3::MetadataV3;
+
+/// Two byte ranges of one shard file closer than this are read as one (the
+/// bytes between are read and dropped).
+pub const COALESCE_GAP: u64 = 64 << 10;
+
+/// Longest single read of coalesced ranges.
+pub const COALESCE_MAX: u64 = 32 << 20;
+
+/// Most shard indexes one reader keeps (the set is cleared past this).
+const INDEX_CACHE_MAX: usize = 1024;
+
+/// Bookkeeping charged per cached chunk on top of its bytes.
+const ENTRY_COST: u64 = 128;
+
+/// Chunks decoded by direct shard reads in this process (all arrays): for
+/// benchmarks, to tell decodes from cache hits.
+pub static CHUNKS_DECODED: AtomicU64 = AtomicU64::new(0);
+
+fn lock<T>(m: &Mutex<T>) -> MutexGuard<'_, T> {
+    // Decoding runs outside the lock; a panic inside it leaves consistent
+    // data (see `Claim`).
+    m.lock().unwrap_or_else(|e| e.into_inner())
+}
+
+/// A decoded chunk: the box it covers (array axis order) and what is held
+/// of it.
+pub(crate) struct Decoded {
+    pub origin: Vec<u64>,
+    pub dims: Vec<u64>,
+    pub body: Body,
+}
+
+pub(crate) enum Body {
+    /// Every element is the fill value.
+    Fill,
+    /// Every element, in C order over the box.
+    Data(Vec<u8>),
+    /// Only the faces of the box (each in C order over its own box): what
+    /// the aprons of neighbouring bricks read, kept after the whole chunk
+    /// was evicted.
+    Shell(Vec<Face>),
+}
+
+pub(crate) struct Face {
+    origin: Vec<u64>,
+    dims: Vec<u64>,
+    data: Vec<u8>,
+}
+
+fn contains(origin: &[u64], dims: &[u64], lo: &[u64], hi: &[u64]) -> bool {
+    (0..origin.len()).all(|a| origin[a] <= lo[a] && hi[a] <= origin[a] + dims[a])
+}
+
+impl Decoded {
+    fn cost(&self) -> u64 {
+        ENTRY_COST
+            + match &self.body {
+                Body::Fill => 0,
+                Body::Data(d) => d.len() as u64,
+                Body::Shell(f) => f.iter().map(|f| f.data.len() as u64 + ENTRY_COST).sum(),
+            }
+    }
+
+    /// Whether the box `[lo, hi)` (inside the chunk) can be read from what
+    /// is held.
+    fn covers(&self, lo: &[u64], hi: &[u64]) -> bool {
+        match &self.body {
+            Body::Fill | Body::Data(_) => true,
+            Body::Shell(faces) => faces.iter().any(|f| contains(&f.origin, &f.dims, lo, hi)),
+        }
+    }
+
+    /// The faces `width` deep of a whole chunk of `es`-byte elements, on
+    /// every axis longer than twice that; `None` when that would not be
+    /// much smaller than the chunk.
+    fn shell(&self, width: u64, es: usize) -> Option<Decoded> {
+        let Body::Data(d) = &self.body else {
+            return None;
+        };
+        let n = self.dims.len();
+        let mut faces = vec![];
+        for a in 0..n {
+            if self.dims[a] <= 2 * width {
+                continue;
+            }
+            for hi_side in [false, true] {
+                let mut origin = self.origin.clone();
+                let mut dims = self.dims.clone();
+                if hi_side {
+                    origin[a] += self.dims[a] - width;
+                }
+                dims[a] = width;
+                let ranges: Vec<Range<u64>> =
+                    (0..n).map(|b| origin[b]..origin[b] + dims[b]).collect();
+                let mut stride = vec![1usize; n];
+                for b in (0..n - 1).rev() {
+                    stride[b] = stride[b + 1] * dims[b + 1] as usize;
+                }
+                let mut data = vec![0u8; dims.iter().product::<u64>() as usize * es];
+                let fill = vec![0u8; es];
+                copy_box(
+                    &self.origin,
+                    &self.dims,
+                    Some(d.as_slice()),
+                    &ranges,
+                    &fill,
+                    &mut data,
+                    0,
+                    &stride,
+                );
+                faces.push(Face { origin, dims, data });
+            }
+        }
+        let s = Decoded {
+            origin: self.origin.clone(),
+            dims: self.dims.clone(),
+            body: Body::Shell(faces),
+        };
+        (!faces_empty(&s) && s.cost() * 2 < self.cost()).then_some(s)
+    }
+}
+
+fn faces_empty(d: &Decoded) -> bool {
+    matches!(&d.body, Body::Shell(f) if f.is_empty())
+}
+
+enum Entry {
+    /// A thread is reading and decoding it.
+    Loading,
+    Ready {
+        chunk: Arc<Decoded>,
+        tick: u64,
+    },
+}
+
+#[derive(Default)]
+struct CacheState {
+    map: HashMap<Vec<u64>, Entry>,
+    /// Ready entries by last use.
+    lru: BTreeMap<u64, Vec<u64>>,
+    bytes: u64,
+    tick: u64,
+}
+
+/// Decoded chunks, least recently used evicted first, at most `budget`
+/// bytes held (chunks being read by a thread, and those handed out, are
+/// not counted: at most one read's worth per reading thread).
+pub(crate) struct ChunkCache {
+    budget: u64,
+    /// Depth of the shells kept of evicted chunks (0: none), and the
+    /// element size.
+    shell: u64,
+    elem: usize,
+    state: Mutex<CacheState>,
+    /// Signalled when chunks being loaded become ready (or fail).
+    ready: Condvar,
+}
+
+/// Chunks a thread claimed for loading: dropped (on success, failure or a
+/// panic in a codec), whatever is still marked loading is unmarked and the
+/// waiting threads are woken.
+struct Claim<'a> {
+    cache: &'a ChunkCache,
+    keys: Vec<Vec<u64>>,
+}
+
+impl Drop for Claim<'_> {
+    fn drop(&mut self) {
+        let mut st = lock(&self.cache.state);
+        for k in &self.keys {
+            if matches!(st.map.get(k), Some(Entry::Loading)) {
+                st.map.remove(k);
+            }
+        }
+        drop(st);
+        self.cache.ready.notify_all();
+    }
+}
+
+impl ChunkCache {
+    /// A cache of `budget` bytes; whole chunks it evicts leave their faces
+    /// `shell` elements deep (`elem` bytes each) behind, while they fit.
+    pub fn new(budget: u64, shell: u64, elem: usize) -> ChunkCache {
+        ChunkCache {
+            budget,
+            shell,
+            elem,
+            state: Mutex::new(CacheState::default()),
+            ready: Condvar::new(),
+        }
+    }
+
+    /// Bytes held now.
+    pub fn bytes(&self) -> u64 {
+        lock(&self.state).bytes
+    }
+
+    /// Insert a chunk, evicting the least recently used; returns the whole
+    /// chunks evicted (to leave their shells).
+    fn insert(
+        &self,
+        st: &mut CacheState,
+        key: Vec<u64>,
+        chunk: Arc<Decoded>,
+    ) -> Vec<(Vec<u64>, Arc<Decoded>)> {
+        let mut evicted = vec![];
+        let n = chunk.cost();
+        if n > self.budget {
+            st.map.remove(&key);
+            return evicted;
+        }
+        while st.bytes + n > self.budget {
+            let Some((_, old)) = st.lru.pop_first() else {
+                break;
+            };
+            if let Some(Entry::Ready { chunk, .. }) = st.map.remove(&old) {
+                st.bytes -= chunk.cost();
+                if matches!(chunk.body, Body::Data(_)) {
+                    evicted.push((old, chunk));
+                }
+            }
+        }
+        st.tick += 1;
+        let tick = st.tick;
+        st.lru.insert(tick, key.clone());
+        st.bytes += n;
+        st.map.insert(key, Entry::Ready { chunk, tick });
+        evicted
+    }
+
+    /// Keep the shells of evicted chunks that nobody loaded again since.
+    fn keep_shells(&self, evicted: Vec<(Vec<u64>, Arc<Decoded>)>) {
+        if self.shell == 0 || evicted.is_empty() {
+            return;
+        }
+        let shells: Vec<(Vec<u64>, Decoded)> = evicted
+            .into_iter()
+            .filter_map(|(k, c)| Some((k, c.shell(self.shell, self.elem)?)))
+            .collect();
+        let mut st = lock(&self.state);
+        for (k, s) in shells {
+            if !st.map.contains_key(&k) {
+                // Chunks this evicts are dropped whole (no cascade).
+                self.insert(&mut st, k, Arc::new(s));
+            }
+        }
+    }
+
+    /// The chunks `keys`: from the cache, or by `load` (called outside the
+    /// lock with the keys this thread claimed, each at most once, returning
+    /// their chunks in that order). Chunks another thread is loading are
+    /// waited for (a thread loads what it claimed before it waits, so two
+    /// threads never wait for each other).
+    ///
+    /// `need[i]`: the box (`lo`, `hi`) of chunk `i` the caller reads; a
+    /// shell that does not hold it counts as missing.
+    pub fn get_or_load(
+        &self,
+        keys: &[Vec<u64>],
+        need: &[(Vec<u64>, Vec<u64>)],
+        load: impl Fn(&[Vec<u64>]) -> Result<Vec<Decoded>>,
+    ) -> Result<Vec<Arc<Decoded>>> {
+        let mut out: Vec<Option<Arc<Decoded>>> = vec![None; keys.len()];
+        loop {
+            let mut mine = vec![];
+            let mut waiting = false;
+            {
+                let mut st = lock(&self.state);
+                for (i, k) in keys.iter().enumerate() {
+                    if out[i].is_some() {
+                        continue;
+                    }
+                    st.tick += 1;
+                    let now = st.tick;
+                    let st = &mut *st;
+                    if let Some(Entry::Ready { chunk, tick }) = st.map.get(k) {
+                        if !chunk.covers(&need[i].0, &need[i].1) {
+                            // A shell without the part wanted: load whole.
+                            let (tick, cost) = (*tick, chunk.cost());
+                            st.lru.remove(&tick);
+                            st.bytes -= cost;
+                            st.map.remove(k);
+                        }
+                    }
+                    match st.map.get_mut(k) {
+                        Some(Entry::Ready { chunk, tick }) => {
+                            out[i] = Some(chunk.clone());
+                            if let Some(key) = st.lru.remove(tick) {
+                                st.lru.insert(now, key);
+                            }
+                            *tick = now;
+                        }
+                        Some(Entry::Loading) => waiting = true,
+                        None => {
+                            st.map.insert(k.clone(), Entry::Loading);
+                            mine.push(i);
+                        }
+                    }
+                }
+            }
+            if !mine.is_empty() {
+                let claim = Claim {
+                    cache: self,
+                    keys: mine.iter().map(|&i| keys[i].clone()).collect(),
+                };
+                let loaded = load(&claim.keys)?;
+                debug_assert_eq!(loaded.len(), mine.len());
+                let mut st = lock(&self.state);
+                let mut evicted = vec![];
+                for (&i, d) in mine.iter().zip(loaded) {
+                    let d = Arc::new(d);
+                    evicted.extend(self.insert(&mut st, keys[i].clone(), d.clone()));
+                    out[i] = Some(d);
+                }
+                drop(st);
+                drop(claim);
+                self.keep_shells(evicted);
+            }
+            if waiting {
+                let mut st = lock(&self.state);
+                while keys
+                    .iter()
+                    .zip(&out)
+                    .any(|(k, o)| o.is_none() && matches!(st.map.get(k), Some(Entry::Loading)))
+                {
+                    st = self.ready.wait(st).unwrap_or_else(|e| e.into_inner());
+                }
+            }
+            if out.iter().all(Option::is_some) {
+                return Ok(out.into_iter().flatten().collect());
+            }
+        }
+    }
+}
+
+/// A shard's checked index, `(offset, bytes)` per inner chunk; `None`: no
+/// shard file.
+type ShardIndex = Option<Arc<Vec<[u64; 2]>>>;
+
+/// Byte ranges of one shard read together: the range read, and the chunks
+/// in it as `(offset, bytes, position in the request)`.
+type Run = (Range<u64>, Vec<(u64, u64, usize)>);
+
+/// The direct reader of a sharded array whose shard index layout is known
+/// (`sharding_indexed` first among the array's codecs).
+pub(crate) struct ShardReader {
+    layout: IndexLayout,
+    /// Shard and inner chunk shapes (array axis order).
+    shard: Vec<u64>,
+    inner: Vec<u64>,
+    inner_nz: Vec<NonZeroU64>,
+    codecs: CodecChain,
+    data_type: DataType,
+    fill_value: FillValue,
+    elem: usize,
+    /// Checked indexes by shard grid index (`None`: no shard file).
+    indexes: Mutex<HashMap<Vec<u64>, ShardIndex>>,
+}
+
+impl ShardReader {
+    /// `config`: the `sharding_indexed` codec's configuration. `None` when
+    /// the inner codecs cannot be built here (the Zarr library reads such
+    /// arrays) or the element size is not fixed.
+    pub fn new(
+        layout: IndexLayout,
+        shard: &[u64],
+        config: &Value,
+        data_type: &DataType,
+        fill_value: &FillValue,
+        elem: usize,
+    ) -> Option<ShardReader> {
+        let inner: Vec<u64> = config
+            .get("chunk_shape")?
+            .as_array()?
+            .iter()
+            .map(Value::as_u64)
+            .collect::<Option<_>>()?;
+        let inner_nz: Vec<NonZeroU64> = inner
+            .iter()
+            .map(|&v| NonZeroU64::new(v))
+            .collect::<Option<_>>()?;
+        if inner.len() != shard.len() || fill_value.as_ne_bytes().len() != elem {
+            return None;
+        }
+        let metas: Vec<MetadataV3> = serde_json::from_value(config.get("codecs")?.clone()).ok()?;
+        let codecs = CodecChain::from_metadata(&metas).ok()?;
+        Some(ShardReader {
+            layout,
+            shard: shard.to_vec(),
+            inner,
+            inner_nz,
+            codecs,
+            data_type: data_type.clone(),
+            fill_value: fill_value.clone(),
+            elem,
+            indexes: Mutex::new(HashMap::new()),
+        })
+    }
+
+    /// The read granularity: the inner chunk shape.
+    pub fn inner(&self) -> &[u64] {
+        &self.inner
+    }
+
+    fn index(&self, file: &Path, shard_idx: &[u64]) -> Result<ShardIndex> {
+        if let Some(ix) = lock(&self.indexes).get(shard_idx) {
+            return Ok(ix.clone());
+        }
+        let ix = shard::read_index(file, &self.layout)?.map(Arc::new);
+        let mut m = lock(&self.indexes);
+        if m.len() >= INDEX_CACHE_MAX {
+            m.clear();
+        }
+        m.insert(shard_idx.to_vec(), ix.clone());
+        Ok(ix)
+    }
+
+    /// Read and decode the inner chunks `keys` (inner chunk grid indices)
+    /// of `array` (stored at `dir`), in the order given.
+    pub fn load(
+        &self,
+        array: &Array<StoreAt>,
+        dir: &Path,
+        keys: &[Vec<u64>],
+    ) -> Result<Vec<Decoded>> {
+        let n = self.inner.len();
+        let per: Vec<u64> = (0..n).map(|a| self.shard[a] / self.inner[a]).collect();
+        let mut out: Vec<Option<Decoded>> = keys.iter().map(|_| None).collect();
+        // Group by shard.
+        let mut by_shard: BTreeMap<Vec<u64>, Vec<usize>> = BTreeMap::new();
+        for (i, k) in keys.iter().enumerate() {
+            let s: Vec<u64> = (0..n).map(|a| k[a] / per[a]).collect();
+            by_shard.entry(s).or_default().push(i);
+        }
+        for (s, members) in by_shard {
+            let file = dir.join(array.chunk_key(&s).as_str());
+            let index = self.index(&file, &s)?;
+            // Present chunks: (offset, bytes, key position).
+            let mut present = vec![];
+            for &i in &members {
+                let k = &keys[i];
+                let mut entry = 0u64;
+                for a in 0..n {
+                    entry = entry * per[a] + k[a] % per[a];
+                }
+                let e = index
+                    .as_ref()
+                    .and_then(|ix| ix.get(entry as usize))
+                    .copied()
+                    .unwrap_or([u64::MAX, u64::MAX]);
+                if e == [u64::MAX, u64::MAX] {
+                    out[i] = Some(self.fill(k));
+                } else {
+                    present.push((e[0], e[1], i));
+                }
+            }
+            if present.is_empty() {
+                continue;
+            }
+            present.sort_unstable();
+            // Runs of neighbouring ranges, one read each.
+            let mut runs: Vec<Run> = vec![];
+            for p in present {
+                let end = p.0 + p.1;
+                match runs.last_mut() {
+                    Some((r, m))
+                        if p.0 <= r.end.saturating_add(COALESCE_GAP)
+                            && end.max(r.end) - r.start <= COALESCE_MAX =>
+                    {
+                        r.end = r.end.max(end);
+                        m.push(p);
+                    }
+                    _ => runs.push((p.0..end, vec![p])),
+                }
+            }
+            let spans: Vec<Span> = runs.iter().map(|(r, _)| Span::Range(r.clone())).collect();
+            let Some(bufs) = storage::read_spans(&file, &spans)? else {
+                // The shard vanished after its index was read.
+                return Err(StoreError::invalid(
+                    &file,
+                    "shard",
+                    "the shard file is gone (it held chunks when its index was read)",
+                ));
+            };
+            for ((r, m), buf) in runs.iter().zip(&bufs) {
+                for &(off, len, i) in m {
+                    let at = (off - r.start) as usize;
+                    let bytes = &buf[at..at + len as usize];
+                    out[i] = Some(self.decode(&file, &keys[i], bytes)?);
+                }
+            }
+        }
+        Ok(out
+            .into_iter()
+            .map(|d| d.expect("every key read"))
+            .collect())
+    }
+
+    fn origin(&self, k: &[u64]) -> Vec<u64> {
+        k.iter().zip(&self.inner).map(|(i, c)| i * c).collect()
+    }
+
+    fn fill(&self, k: &[u64]) -> Decoded {
+        Decoded {
+            origin: self.origin(k),
+            dims: self.inner.clone(),
+            body: Body::Fill,
+        }
+    }
+
+    fn decode(&self, file: &Path, k: &[u64], bytes: &[u8]) -> Result<Decoded> {
+        CHUNKS_DECODED.fetch_add(1, Ordering::Relaxed);
+        let origin = self.origin(k);
+        let err = |e: String| StoreError::zarr(file, format!("chunk at {origin:?}: {e}"));
+        let d = self
+            .codecs
+            .decode(
+                Cow::Borrowed(bytes),
+                &self.inner_nz,
+                &self.data_type,
+                &self.fill_value,
+                &CodecOptions::default(),
+            )
+            .map_err(|e| err(e.to_string()))?
+            .into_fixed()
+            .map_err(|e| err(e.to_string()))?
+            .into_owned();
+        let want = self.inner.iter().product::<u64>() * self.elem as u64;
+        if d.len() as u64 != want {
+            return Err(err(format!(
+                "decoded to {} bytes, expected {want}",
+                d.len()
+            )));
+        }
+        Ok(Decoded {
+            origin,
+            dims: self.inner.clone(),
+            body: Body::Data(d),
+        })
+    }
+}
+
+/// Copy the part of `chunk` inside `ranges` (array axis order) into `out`:
+/// the element at array position `p` goes to element
+/// `base + Σ_a (p[a] − ranges[a].start) · stride[a]` of `out`, whose
+/// elements are `fill.len()` bytes (the fill value, written where the chunk
+/// is all fill). A shell must hold the part (see `ChunkCache::get_or_load`).
+pub(crate) fn copy_into(
+    chunk: &Decoded,
+    ranges: &[Range<u64>],
+    fill: &[u8],
+    out: &mut [u8],
+    base: usize,
+    stride: &[usize],
+) {
+    match &chunk.body {
+        Body::Fill => copy_box(
+            &chunk.origin,
+            &chunk.dims,
+            None,
+            ranges,
+            fill,
+            out,
+            base,
+            stride,
+        ),
+        Body::Data(d) => copy_box(
+            &chunk.origin,
+            &chunk.dims,
+            Some(d.as_slice()),
+            ranges,
+            fill,
+            out,
+            base,
+            stride,
+        ),
+        Body::Shell(faces) => {
+            let n = ranges.len();
+            let lo: Vec<u64> = (0..n)
+                .map(|a| ranges[a].start.max(chunk.origin[a]))
+                .collect();
+            let hi: Vec<u64> = (0..n)
+                .map(|a| ranges[a].end.min(chunk.origin[a] + chunk.dims[a]))
+                .collect();
+            if (0..n).any(|a| lo[a] >= hi[a]) {
+                return;
+            }
+            let f = faces
+                .iter()
+                .find(|f| contains(&f.origin, &f.dims, &lo, &hi))
+                .expect("a shell is used only for parts it holds");
+            copy_box(
+                &f.origin,
+                &f.dims,
+                Some(f.data.as_slice()),
+                ranges,
+                fill,
+                out,
+                base,
+                stride,
+            )
+        }
+    }
+}
+
+/// Copy the first `es` bytes of `src` to `dst` with fixed-size moves.
+#[inline(always)]
+fn copy_element(dst: &mut [u8], src: &[u8], es: usize) {
+    match es {
+        1 => dst[0] = src[0],
+        2 => dst[..2].copy_from_slice(&src[..2]),
+        4 => dst[..4].copy_from_slice(&src[..4]),
+        8 => dst[..8].copy_from_slice(&src[..8]),
+        _ => dst[..es].copy_from_slice(&src[..es]),
+    }
+}
+
+/// [`copy_into`] from a box at `origin` of `dims` elements (`None`: fill).
+#[allow(clippy::too_many_arguments)]
+fn copy_box(
+    origin: &[u64],
+    dims: &[u64],
+    data: Option<&[u8]>,
+    ranges: &[Range<u64>],
+    fill: &[u8],
+    out: &mut [u8],
+    base: usize,
+    stride: &[usize],
+) {
+    let n = ranges.len();
+    let es = fill.len();
+    let lo: Vec<u64> = (0..n).map(|a| ranges[a].start.max(origin[a])).collect();
+    let hi: Vec<u64> = (0..n)
+        .map(|a| ranges[a].end.min(origin[a] + dims[a]))
+        .collect();
+    if (0..n).any(|a| lo[a] >= hi[a]) {
+        return;
+    }
+    let mut cstride = vec![1usize; n];
+    for a in (0..n - 1).rev() {
+        cstride[a] = cstride[a + 1] * dims[a + 1] as usize;
+    }
+    // Runs along the last axis, rows along the one before, an odometer
+    // over the others (one position for a channel or a 3D array).
+    let last = n - 1;
+    let rows_axis = n.saturating_sub(2);
+    let rows = if n >= 2 {
+        (hi[rows_axis] - lo[rows_axis]) as usize
+    } else {
+        1
+    };
+    let (cs_row, os_row) = if n >= 2 {
+        (cstride[rows_axis] * es, stride[rows_axis] * es)
+    } else {
+        (0, 0)
+    };
+    let run = (hi[last] - lo[last]) as usize;
+    let contiguous = stride[last] == 1;
+    let os_el = stride[last] * es;
+    let uniform_fill = fill.iter().all(|&b| b == fill[0]);
+    let outer = n.saturating_sub(2);
+    let mut p = lo.clone();
+    loop {
+        let mut so = 0usize;
+        let mut oo = base;
+        for a in 0..n {
+            so += (p[a] - origin[a]) as usize * cstride[a];
+            oo += (p[a] - ranges[a].start) as usize * stride[a];
+        }
+        let (mut so, mut oo) = (so * es, oo * es);
+        for _ in 0..rows {
+            match (data, contiguous) {
+                // Runs of a voxel or two (an apron one deep, a shell's
+                // face across the last axis): element stores, not a
+                // `memcpy` call each.
+                (Some(d), true) if run <= 2 => {
+                    for i in 0..run {
+                        copy_element(&mut out[oo + i * es..], &d[so + i * es..], es);
+                    }
+                }
+                (Some(d), true) => {
+                    out[oo..oo + run * es].copy_from_slice(&d[so..so + run * es]);
+                }
+                (Some(d), false) => {
+                    for i in 0..run {
+                        let o = oo + i * os_el;
+                        out[o..o + es].copy_from_slice(&d[so + i * es..so + (i + 1) * es]);
+                    }
+                }
+                (None, true) if uniform_fill => out[oo..oo + run * es].fill(fill[0]),
+                (None, _) => {
+                    for i in 0..run {
+                        let o = oo + i * os_el;
+                        out[o..o + es].copy_from_slice(fill);
+                    }
+                }
+            }
+            so += cs_row;
+            oo += os_row;
+        }
+        // Next position over the outer axes.
+        let mut a = outer;
+        loop {
+            if a == 0 {
+                return;
+            }
+            a -= 1;
+            p[a] += 1;
+            if p[a] < hi[a] {
+                break;
+            }
+            p[a] = lo[a];
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use std::sync::atomic::AtomicUsize;
+
+    fn chunk(origin: [u64; 2], dims: [u64; 2], base: u8) -> Decoded {
+        let n = (dims[0] * dims[1]) as usize;
+        Decoded {
+            origin: origin.to_vec(),
+            dims: dims.to_vec(),
+            body: Body::Data((0..n).map(|i| base.wrapping_add(i as u8)).collect()),
+        }
+    }
+
+    fn first(d: &Decoded) -> u8 {
+        match &d.body {
+            Body::Data(v) => v[0],
+            _ => panic!("not a whole chunk"),
+        }
+    }
+
+    /// Whole boxes wanted of keys `[i, 0]` (chunks of 1×4 at row i).
+    fn whole(keys: &[Vec<u64>]) -> Vec<(Vec<u64>, Vec<u64>)> {
+        keys.iter()
+            .map(|k| (vec![k[0], 0], vec![k[0] + 1, 4]))
+            .collect()
+    }
+
+    #[test]
+    fn copy_into_places_the_overlap() {
+        // Chunk covers rows 2..4, columns 4..8; the read 3..5 × 2..6 into a
+        // 4×6 box at (1, 1).
+        let c = chunk([2, 4], [2, 4], 0);
+        let mut out = vec![9u8; 24];
+        copy_into(&c, &[3..5, 2..6], &[0], &mut out, 6 + 1, &[6, 1]);
+        // Overlap: row 3, columns 4..6 → chunk elements 4, 5 at box (1, 3..5).
+        let mut want = vec![9u8; 24];
+        want[6 + 3] = 4;
+        want[6 + 4] = 5;
+        assert_eq!(out, want);
+        // All-fill chunk.
+        let f = Decoded {
+            origin: vec![2, 4],
+            dims: vec![2, 4],
+            body: Body::Fill,
+        };
+        let mut out = vec![9u8; 24];
+        copy_into(&f, &[3..5, 2..6], &[7], &mut out, 7, &[6, 1]);
+        want[6 + 3] = 7;
+        want[6 + 4] = 7;
+        assert_eq!(out, want);
+    }
+
+    #[test]
+    fn shells_hold_the_faces_and_read_like_the_chunk() {
+        // A 64×64 chunk at (64, 128), shell one deep.
+        let c = chunk([64, 128], [64, 64], 0);
+        let s = c.shell(1, 1).unwrap();
+        assert!(s.cost() < c.cost() / 2);
+        // Each edge row / column is held, and parts of them; the middle is not.
+        for (lo, hi) in [
+            ([64, 128], [65, 192]),
+            ([127, 128], [128, 192]),
+            ([64, 128], [128, 129]),
+            ([64, 191], [128, 192]),
+            ([90, 191], [100, 192]),
+        ] {
+            assert!(s.covers(&lo, &hi), "{lo:?}..{hi:?}");
+            let ranges = [lo[0]..hi[0], lo[1]..hi[1]];
+            let n = ((hi[0] - lo[0]) * (hi[1] - lo[1])) as usize;
+            let stride = [(hi[1] - lo[1]) as usize, 1];
+            let (mut a, mut b) = (vec![0u8; n], vec![1u8; n]);
+            copy_into(&c, &ranges, &[0], &mut a, 0, &stride);
+            copy_into(&s, &ranges, &[0], &mut b, 0, &stride);
+            assert_eq!(a, b, "{lo:?}..{hi:?}");
+        }
+        assert!(!s.covers(&[65, 129], &[66, 130]));
+        assert!(!s.covers(&[64, 128], &[66, 130]));
+        // Too small to be worth a shell.
+        assert!(chunk([0, 0], [8, 8], 0).shell(1, 1).is_none());
+    }
+
+    #[test]
+    fn cache_loads_each_chunk_once_and_stays_in_budget() {
+        let budget = 3 * (ENTRY_COST + 4);
+        let cache = ChunkCache::new(budget, 0, 1);
+        let loads = AtomicUsize::new(0);
+        let load = |ks: &[Vec<u64>]| -> Result<Vec<Decoded>> {
+            loads.fetch_add(ks.len(), Ordering::Relaxed);
+            Ok(ks
+                .iter()
+                .map(|k| chunk([k[0], 0], [1, 4], k[0] as u8))
+                .collect())
+        };
+        let keys: Vec<Vec<u64>> = (0..3).map(|i| vec![i, 0]).collect();
+        let got = cache.get_or_load(&keys, &whole(&keys), load).unwrap();
+        assert_eq!(first(&got[2]), 2);
+        cache.get_or_load(&keys, &whole(&keys), load).unwrap();
+        assert_eq!(loads.load(Ordering::Relaxed), 3);
+        // A fourth chunk evicts the least recently used (chunk 0).
+        let k3 = [vec![3, 0]];
+        cache.get_or_load(&k3, &whole(&k3), load).unwrap();
+        assert!(cache.bytes() <= budget);
+        cache
+            .get_or_load(&keys[1..], &whole(&keys[1..]), load)
+            .unwrap();
+        assert_eq!(loads.load(Ordering::Relaxed), 4);
+        cache
+            .get_or_load(&keys[..1], &whole(&keys[..1]), load)
+            .unwrap();
+        assert_eq!(loads.load(Ordering::Relaxed), 5);
+        assert!(cache.bytes() <= budget);
+    }
+
+    #[test]
+    fn evicted_chunks_leave_shells_that_serve_aprons() {
+        // Room for two 64×64 chunks and a shell.
+        let whole_cost = ENTRY_COST + 64 * 64;
+        let budget = 2 * whole_cost + 1000;
+        let cache = ChunkCache::new(budget, 1, 1);
+        let loads = AtomicUsize::new(0);
+        let load = |ks: &[Vec<u64>]| -> Result<Vec<Decoded>> {
+            loads.fetch_add(ks.len(), Ordering::Relaxed);
+            Ok(ks
+                .iter()
+                .map(|k| chunk([64 * k[0], 0], [64, 64], k[0] as u8))
+                .collect())
+        };
+        let all = |k: u64| (vec![64 * k, 0], vec![64 * k + 64, 64]);
+        for k in 0..3 {
+            cache.get_or_load(&[vec![k, 0]], &[all(k)], load).unwrap();
+            assert!(cache.bytes() <= budget);
+        }
+        assert_eq!(loads.load(Ordering::Relaxed), 3);
+        // Chunk 0 was evicted whole: its last row is still there.
+        let got = cache
+            .get_or_load(&[vec![0, 0]], &[(vec![63, 0], vec![64, 64])], load)
+            .unwrap();
+        assert!(matches!(got[0].body, Body::Shell(_)));
+        assert_eq!(loads.load(Ordering::Relaxed), 3);
+        // Its middle is not: loaded again.
+        let got = cache.get_or_load(&[vec![0, 0]], &[all(0)], load).unwrap();
+        assert_eq!(first(&got[0]), 0);
+        assert_eq!(loads.load(Ordering::Relaxed), 4);
+        assert!(cache.bytes() <= budget);
+    }
+
+    #[test]
+    fn failed_and_panicking_loads_release_their_claims() {
+        let cache = ChunkCache::new(1 << 20, 0, 1);
+        let k = vec![vec![0, 0]];
+        let need = whole(&k);
+        let e = cache.get_or_load(&k, &need, |_| {
+            Err(StoreError::invalid(Path::new("x"), "chunk", "bad"))
+        });
+        assert!(e.is_err());
+        let r = std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| {
+            let _ = cache.get_or_load(&k, &need, |_| panic!("codec"));
+        }));
+        assert!(r.is_err());
+        // Neither left the chunk marked as loading: this returns.
+        let got = cache
+            .get_or_load(&k, &need, |ks| {
+                Ok(ks.iter().map(|_| chunk([0, 0], [1, 4], 5)).collect())
+            })
+            .unwrap();
+        assert_eq!(first(&got[0]), 5);
+    }
+
+    #[test]
+    fn threads_share_a_chunk_being_loaded() {
+        let cache = ChunkCache::new(1 << 20, 0, 1);
+        let loads = AtomicUsize::new(0);
+        let keys: Vec<Vec<u64>> = (0..8).map(|i| vec![i, 0]).collect();
+        let need = whole(&keys);
+        std::thread::scope(|s| {
+            for _ in 0..4 {
+                s.spawn(|| {
+                    let got = cache
+                        .get_or_load(&keys, &need, |ks| {
+                            loads.fetch_add(ks.len(), Ordering::Relaxed);
+                            std::thread::sleep(std::time::Duration::from_millis(5));
+                            Ok(ks
+                                .iter()
+                                .map(|k| chunk([k[0], 0], [1, 4], k[0] as u8))
+                                .collect())
+                        })
+                        .unwrap();
+                    for (i, g) in got.iter().enumerate() {
+                        assert_eq!(first(g), i as u8);
+                    }
+                });
+            }
+        });
+        assert_eq!(loads.load(Ordering::Relaxed), 8);
+    }
+}
