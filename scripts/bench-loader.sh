@@ -35,7 +35,14 @@ SHARDS=$(find "$STORE/0/c" -type f | sort)
 SBYTES=$(cat $SHARDS | wc -c)
 echo "# store $STORE: level 0 in $(echo "$SHARDS" | wc -l) shard files, $SBYTES bytes"
 
-echo "## disk: sequential read of the level-0 shard files"
+echo "## disk: sequential reads"
+BIG="$DIR/dd-seq.bin"
+[ -f "$BIG" ] || dd if=/dev/urandom of="$BIG" bs=16M count=32 status=none
+t0=$(date +%s.%N)
+dd if="$BIG" of=/dev/null bs=16M iflag=direct status=none
+t1=$(date +%s.%N)
+BB=$(stat -c %s "$BIG")
+echo "{\"reader\": \"dd O_DIRECT bs=16M, one 512 MiB file\", \"bytes\": $BB, \"seconds\": $(echo "$t1 - $t0" | bc -l), \"gb_s\": $(echo "$BB / 1000000000 / ($t1 - $t0)" | bc -l)}"
 t0=$(date +%s.%N)
 for f in $SHARDS; do dd if="$f" of=/dev/null bs=16M iflag=direct status=none; done
 t1=$(date +%s.%N)

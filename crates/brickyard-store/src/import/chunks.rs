@@ -6,6 +6,9 @@
 //! into one read per run of neighbours in the shard file, each chunk decoded
 //! by the inner codecs), and the copy of a chunk's overlap with a read
 //! straight into the caller's box.
+//!
+//! Over 800 lines: with its tests: 0.74k lines of code (cache, shells,
+//! shard reader and copy belong together), 0.2k of tests.
 
 use crate::error::{Result, StoreError};
 use crate::shard::{self, IndexLayout};
