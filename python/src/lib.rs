@@ -5,7 +5,6 @@
 //! (`python/brickyard/__init__.py`) turns its bytes into NumPy arrays and its
 //! arguments into the CLI's; the GIL is released while work runs.
 
-mod processing;
 mod read;
 mod source;
 
@@ -22,17 +21,9 @@ use std::path::{Path, PathBuf};
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::Arc;
 
-/// A long call stopped by Ctrl-C (a signal seen between two pieces of work).
-#[derive(Debug)]
-pub struct Interrupted;
-
-impl std::fmt::Display for Interrupted {
-    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        f.write_str("interrupted")
-    }
-}
-
-impl std::error::Error for Interrupted {}
+/// A long call stopped by Ctrl-C (a signal seen between two pieces of
+/// work): the same marker as a processing job's.
+pub use brickyard_run::process::Interrupted;
 
 /// An error as a Python exception, with the CLI's message: a missing file
 /// is a `FileNotFoundError`, other I/O failures `OSError`, an interrupted
@@ -306,6 +297,30 @@ impl Progress for PyProgress<'_> {
     }
 }
 
+/// A processing job's two phases, reported to the Python callback.
+struct PyPhases<'a> {
+    labelling: PyProgress<'a>,
+    writing: PyProgress<'a>,
+}
+
+impl brickyard_run::process::Phases for PyPhases<'_> {
+    fn labelling(&self) -> &dyn Progress {
+        &self.labelling
+    }
+    fn writing(&self) -> &dyn Progress {
+        &self.writing
+    }
+}
+
+/// How `brickyard.process` names things in messages.
+const PYTHON: brickyard_run::process::Caller = brickyard_run::process::Caller {
+    flag: "",
+    convert: "`brickyard.convert`",
+    remote: "copy the store first (`brickyard.convert(URL, \"local.zarr\")`)",
+    overwrite: "pass overwrite=True",
+    again: "call",
+};
+
 /// Conversion options as Python gives them.
 #[derive(FromPyObject)]
 #[pyo3(from_item_all)]
@@ -499,9 +514,9 @@ fn process(
     progress: Option<Py<PyAny>>,
 ) -> PyResult<(PathBuf, Option<u32>, String)> {
     // The CLI's order: the pipeline text is checked first.
-    processing::parse(&pipeline).map_err(to_py)?;
+    brickyard_run::process::parse(&pipeline).map_err(to_py)?;
     let memory = brickyard_run::memory::parse_bytes(&memory).map_err(to_py)?;
-    let args = processing::ProcessArgs {
+    let args = brickyard_run::process::ProcessArgs {
         store,
         pipeline,
         out,
@@ -514,15 +529,17 @@ fn process(
         quiet: progress.is_none(),
     };
     let cancel = AtomicBool::new(false);
-    let labelling = PyProgress {
-        callback: progress.as_ref().map(|p| p.clone_ref(py)),
-        cancel: &cancel,
-        phase: Some("labelling (pass 1, voxels)"),
-    };
-    let writing = PyProgress {
-        callback: progress,
-        cancel: &cancel,
-        phase: Some("writing"),
+    let phases = PyPhases {
+        labelling: PyProgress {
+            callback: progress.as_ref().map(|p| p.clone_ref(py)),
+            cancel: &cancel,
+            phase: Some("labelling (pass 1, voxels)"),
+        },
+        writing: PyProgress {
+            callback: progress,
+            cancel: &cancel,
+            phase: Some("writing"),
+        },
     };
     // The job runs beside this thread, which watches for Ctrl-C: the
     // labelling reports progress from worker threads, where Python does
@@ -530,7 +547,7 @@ fn process(
     let r = py
         .detach(|| {
             std::thread::scope(|s| {
-                let job = s.spawn(|| processing::run(&args, &labelling, &writing, &cancel));
+                let job = s.spawn(|| brickyard_run::process::run(&args, &PYTHON, &phases, &cancel));
                 // (Often: a signal sent at the first piece of a short phase
                 // must stop it before it ends.)
                 while !job.is_finished() {
@@ -544,7 +561,7 @@ fn process(
             })
         })
         .map_err(to_py)?;
-    Ok((r.output, r.labels, r.line))
+    Ok((r.output.clone(), r.labels, r.summary()))
 }
 
 #[pymodule]

@@ -16,22 +16,18 @@
 //! `--backend gpu` computes the filter stages with the WGSL kernels of
 //! `brickyard_process::gpu` (f32; float results within the tolerance stated
 //! there, masks equal for equal values); labelling stays on the CPU.
+//!
+//! The job itself is `brickyard_run::process` (the Python bindings run it
+//! too); this file holds the options, the progress bars and the report.
 
 use crate::{install_ctrl_c, parse_bytes, peak_rss, progress, CANCEL};
-use anyhow::{bail, Context, Result};
-use brickyard_process::{
-    build_on, label_pass1, stats_csv, stats_json, FilterKernels, LabelSource, Pipeline,
-};
-use brickyard_store::import::zarr::{self, ZarrSource};
+use anyhow::Result;
+use brickyard_run::process::{Caller, Phases, ProcessArgs};
 use brickyard_store::info::human_bytes;
-use brickyard_store::omezarr::{read_json, write_json};
-use brickyard_store::{convert, Compression, ConvertOptions, VolumeSource};
+use brickyard_store::Progress;
 use clap::Args;
-use serde_json::{json, Value};
-use std::path::{Path, PathBuf};
-use std::sync::atomic::Ordering;
-use std::sync::Arc;
-use std::time::Instant;
+use serde_json::json;
+use std::path::PathBuf;
 
 #[derive(Args)]
 pub struct ProcessCmd {
@@ -76,473 +72,76 @@ pub struct ProcessCmd {
     pub backend: String,
 }
 
-/// The filter kernels on the device `--backend` names (`None`: the CPU).
-fn device(backend: &str) -> Result<Option<Arc<FilterKernels>>> {
-    use brickyard_gpu::{AdapterChoice, Gpu};
-    let open = || crate::backend::quietly(|| Gpu::new(AdapterChoice::Best));
-    let gpu = match backend {
-        "cpu" => return Ok(None),
-        "gpu" => open().context("--backend gpu")?,
-        "auto" => match open() {
-            Ok(g) if g.info.device_type != wgpu::DeviceType::Cpu => g,
-            _ => return Ok(None),
-        },
-        b => bail!("--backend: expected cpu, gpu or auto, found {b:?}"),
-    };
-    Ok(Some(FilterKernels::new(Arc::new(gpu))))
+/// How the command line names things in messages.
+const CLI: Caller = Caller {
+    flag: "--",
+    convert: "`brickyard convert`",
+    remote: "view the result live with `render --derive` / `view --derive`, or copy the \
+             store first (`brickyard convert URL local.zarr`)",
+    overwrite: "pass --overwrite",
+    again: "command",
+};
+
+/// A bar per phase, cleared when the phase ends.
+struct Bars {
+    labelling: progress::Bar,
+    writing: progress::Bar,
 }
 
-fn check_name(name: &str) -> Result<()> {
-    if name.is_empty()
-        || name.starts_with('.')
-        || name.contains(['/', '\\'])
-        || name.ends_with(".partial")
-    {
-        bail!("--out: expected a plain name (no '/', not starting with '.'), found {name:?}");
+impl Phases for Bars {
+    fn labelling(&self) -> &dyn Progress {
+        &self.labelling
     }
-    Ok(())
-}
-
-/// Names of the directories a run of `name` uses in `dir`.
-struct Paths {
-    dir: PathBuf,
-    name: String,
-    /// The published result.
-    fin: PathBuf,
-    /// Where `convert` writes the complete, unpublished result.
-    staged: PathBuf,
-    /// What `convert` writes while it works.
-    partial: PathBuf,
-    /// The previous result while it is being replaced.
-    old: PathBuf,
-    /// Held by the job writing `name` (its pid inside).
-    lock: PathBuf,
-}
-
-/// The lock of one result name: one job at a time writes it (a second one
-/// would take the first one's work in progress for an interrupted run's
-/// leftovers). Removed when dropped; a killed job's lock names a process
-/// that is gone, and the next job takes it over.
-struct NameLock(PathBuf);
-
-impl NameLock {
-    fn take(path: &Path, name: &str) -> Result<NameLock> {
-        use std::io::Write;
-        for _ in 0..2 {
-            match std::fs::OpenOptions::new()
-                .write(true)
-                .create_new(true)
-                .open(path)
-            {
-                Ok(mut f) => {
-                    let _ = writeln!(f, "{}", std::process::id());
-                    return Ok(NameLock(path.to_path_buf()));
-                }
-                Err(e) if e.kind() == std::io::ErrorKind::AlreadyExists => {
-                    let pid = std::fs::read_to_string(path)
-                        .ok()
-                        .and_then(|t| t.trim().parse::<u32>().ok());
-                    let alive = pid.is_some_and(|p| Path::new(&format!("/proc/{p}")).exists());
-                    if alive {
-                        bail!(
-                            "{}: another job (pid {}) is writing {name}; wait for it to end or stop it",
-                            path.display(),
-                            pid.unwrap()
-                        );
-                    }
-                    // A killed job's: take it over.
-                    note(
-                        false,
-                        &format!("removing {} (left by an interrupted run)", path.display()),
-                    );
-                    let _ = std::fs::remove_file(path);
-                }
-                Err(e) => {
-                    return Err(e).with_context(|| format!("{}: cannot create", path.display()))
-                }
-            }
-        }
-        bail!("{}: cannot take the lock", path.display())
+    fn writing(&self) -> &dyn Progress {
+        &self.writing
     }
-}
-
-impl Drop for NameLock {
-    fn drop(&mut self) {
-        let _ = std::fs::remove_file(&self.0);
-    }
-}
-
-impl Paths {
-    fn new(dir: PathBuf, name: &str) -> Paths {
-        Paths {
-            fin: dir.join(name),
-            staged: dir.join(format!(".{name}.new")),
-            partial: dir.join(format!(".{name}.new.partial")),
-            old: dir.join(format!(".{name}.old")),
-            lock: dir.join(format!(".{name}.lock")),
-            dir,
-            name: name.to_string(),
+    fn done(&self, labelling: bool) {
+        if labelling {
+            self.labelling.finish()
+        } else {
+            self.writing.finish()
         }
     }
-
-    /// Undo what an interrupted run left: a replaced result that was not
-    /// yet swapped back comes back; unpublished results go.
-    fn recover(&self, quiet: bool) -> Result<()> {
-        if self.old.exists() {
-            if self.fin.exists() {
-                note(
-                    quiet,
-                    &format!(
-                        "removing {} (left by an interrupted run)",
-                        self.old.display()
-                    ),
-                );
-                std::fs::remove_dir_all(&self.old)
-                    .with_context(|| format!("{}: cannot remove", self.old.display()))?;
-            } else {
-                note(
-                    quiet,
-                    &format!(
-                        "restoring {} from {} (an interrupted run was replacing it)",
-                        self.fin.display(),
-                        self.old.display()
-                    ),
-                );
-                std::fs::rename(&self.old, &self.fin)
-                    .with_context(|| format!("{}: cannot restore", self.fin.display()))?;
-            }
-        }
-        for p in [&self.partial, &self.staged] {
-            if p.exists() {
-                note(
-                    quiet,
-                    &format!(
-                        "removing {} (left by an interrupted run; the job starts again from the beginning)",
-                        p.display()
-                    ),
-                );
-                match std::fs::remove_dir_all(p) {
-                    Err(e) if e.kind() != std::io::ErrorKind::NotFound => {
-                        return Err(e).with_context(|| format!("{}: cannot remove", p.display()))
-                    }
-                    _ => {}
-                }
-            }
-        }
-        Ok(())
-    }
-}
-
-fn note(quiet: bool, s: &str) {
-    if !quiet {
-        eprintln!("note: {s}");
-    }
-}
-
-/// The `labels` group's list of label images.
-fn labels_list(dir: &Path) -> Result<(Value, Vec<String>)> {
-    let f = dir.join("zarr.json");
-    if !f.exists() {
-        return Ok((
-            json!({"zarr_format": 3, "node_type": "group",
-                   "attributes": {"ome": {"version": "0.5", "labels": []}}}),
-            vec![],
-        ));
-    }
-    let j = read_json(&f)?;
-    if j.get("node_type").and_then(Value::as_str) != Some("group") {
-        bail!(
-            "{}: node_type: expected \"group\" (the labels group)",
-            f.display()
-        );
-    }
-    let list = match j.pointer("/attributes/ome/labels") {
-        None => vec![],
-        Some(Value::Array(a)) => a
-            .iter()
-            .map(|v| {
-                v.as_str().map(str::to_string).with_context(|| {
-                    format!(
-                        "{}: attributes.ome.labels: expected names, found {v}",
-                        f.display()
-                    )
-                })
-            })
-            .collect::<Result<_>>()?,
-        Some(v) => bail!(
-            "{}: attributes.ome.labels: expected a list of names, found {v}",
-            f.display()
-        ),
-    };
-    Ok((j, list))
 }
 
 pub fn run(c: ProcessCmd) -> Result<()> {
-    let t0 = Instant::now();
-    let pipe = Pipeline::parse(&c.pipeline).map_err(|e| anyhow::anyhow!("{e}"))?;
-    check_name(&c.out)?;
-    let memory = parse_bytes(&c.memory)?;
-    if c.stats.is_some() && !matches!(pipe.ops.last(), Some(brickyard_process::Op::Label(_))) {
-        bail!("--stats: only a pipeline that ends in label(...) has per-label statistics");
-    }
-    let stats_fmt = match &c.stats {
-        None => None,
-        Some(p) => match p.extension().and_then(|e| e.to_str()) {
-            Some("csv") => Some(false),
-            Some("json") => Some(true),
-            _ => bail!(
-                "--stats: expected a file name ending in .csv or .json, found {}",
-                p.display()
-            ),
-        },
-    };
-    // The input: a level of an OME-Zarr image.
-    let store = &c.store;
-    if brickyard_store::storage::is_remote(store) {
-        bail!(
-            "{}: a remote store is read-only, and `process` writes its result into the store; \
-             view the result live with `render --derive` / `view --derive`, or copy the store \
-             first (`brickyard convert URL local.zarr`)",
-            store.display()
-        );
-    }
-    if !zarr::is_zarr(store) {
-        bail!(
-            "{}: not a Zarr store (no zarr.json); convert the volume first with `brickyard convert`",
-            store.display()
-        );
-    }
-    let mut src = zarr::open(store, c.level)?;
-    let ms = src.multiscale.clone().with_context(|| {
-        format!(
-            "{}: expected an OME-Zarr multiscale image (a store written by `brickyard convert`), found a bare array",
-            store.display()
-        )
-    })?;
-    let brick: [u64; 3] = ms
-        .brickyard
-        .as_ref()
-        .and_then(|b| b.get("brick"))
-        .and_then(|b| serde_json::from_value(b.clone()).ok())
-        .filter(|b: &[u64; 3]| b.iter().all(|&v| v >= 2 && v % 2 == 0))
-        .unwrap_or([64; 3]);
-    // Bricks read with their halo overlap: keep decoded chunks (an eighth
-    // of the budget; the pyramid writer plans with the rest).
-    src.enable_chunk_cache(memory / 8);
-    let meta = src.meta().clone();
-    if c.channel >= meta.channels {
-        bail!(
-            "--channel: {} asked for but {} has {} channel(s)",
-            c.channel,
-            store.display(),
-            meta.channels
-        );
-    }
-    let input: Arc<ZarrSource> = Arc::new(src);
-    let kernels = device(&c.backend)?;
-    let built = build_on(&pipe, input.clone(), c.channel, brick, kernels.as_ref())
-        .map_err(|e| anyhow::anyhow!("pipeline {:?}: {e}", c.pipeline))?;
-    let on = kernels.as_ref().map(|k| k.gpu.describe());
-    let is_label = pipe.is_label_output();
-    let dir = store.join(if is_label { "labels" } else { "derived" });
-    let paths = Paths::new(dir, &c.out);
-    // One job per name: taken before anything left by an earlier run is
-    // touched.
-    let made_dir = !paths.dir.exists();
-    std::fs::create_dir_all(&paths.dir)
-        .with_context(|| format!("{}: cannot create", paths.dir.display()))?;
-    let _lock = match NameLock::take(&paths.lock, &c.out) {
-        Ok(l) => l,
-        Err(e) => {
-            if made_dir {
-                let _ = std::fs::remove_dir(&paths.dir);
-            }
-            return Err(e);
-        }
-    };
-    let leave = |e: anyhow::Error| -> anyhow::Error {
-        if made_dir {
-            let _ = std::fs::remove_file(&paths.lock);
-            let _ = std::fs::remove_dir(&paths.dir);
-        }
-        e
-    };
-    // What an interrupted run left is reported even with --quiet.
-    paths.recover(false).map_err(leave)?;
-    if paths.fin.exists() && !c.overwrite {
-        return Err(leave(anyhow::anyhow!(
-            "{}: exists; pass --overwrite to replace it",
-            paths.fin.display()
-        )));
-    }
-    let listed = if is_label {
-        Some(labels_list(&paths.dir).map_err(leave)?)
-    } else {
-        None
-    };
-
-    install_ctrl_c();
-    let opts = ConvertOptions {
-        brick,
-        shard: [512; 3].map(|s: u64| s.max(brick[0]).div_ceil(brick[0]) * brick[0]),
-        compression: Compression::Lz4,
-        labels: is_label,
-        memory: memory - memory / 8,
-        overwrite: false,
-        spacing: meta.spacing,
-        origin: meta.origin,
-        unit: meta.unit.clone(),
-    };
     let quiet = c.quiet || c.json;
-    if let (Some(d), false) = (&on, quiet) {
-        eprintln!("filter stages on the GPU: {d}");
-    }
-    let cleanup = |e: anyhow::Error| -> anyhow::Error {
-        let _ = std::fs::remove_dir_all(&paths.partial);
-        let _ = std::fs::remove_dir_all(&paths.staged);
-        if made_dir {
-            let _ = std::fs::remove_file(&paths.lock);
-            // Only if still empty: the store is left as it was.
-            let _ = std::fs::remove_dir(&paths.dir);
-        }
-        if CANCEL.load(Ordering::SeqCst) {
-            anyhow::anyhow!(
-                "interrupted; {} is as it was (nothing was published); run the same command again to start over",
-                store.display()
-            )
-        } else {
-            e
-        }
+    let job = ProcessArgs {
+        store: c.store,
+        pipeline: c.pipeline,
+        out: c.out,
+        memory: parse_bytes(&c.memory)?,
+        level: c.level,
+        channel: c.channel,
+        stats: c.stats,
+        overwrite: c.overwrite,
+        backend: c.backend,
+        quiet,
     };
-    std::fs::create_dir_all(&paths.dir)
-        .with_context(|| format!("{}: cannot create", paths.dir.display()))?;
-    let mut labeling = None;
-    let report = (|| -> Result<brickyard_store::ConvertReport> {
-        let out_src: Arc<dyn VolumeSource> = match built.label {
-            Some(conn) => {
-                let bar = progress::Bar::counting(quiet, "labelling (pass 1, voxels)");
-                let inten: &dyn VolumeSource = input.as_ref();
-                let lab = label_pass1(
-                    built.source.as_ref(),
-                    built.channel,
-                    conn,
-                    brick,
-                    Some((inten, c.channel)),
-                    &bar,
-                    &CANCEL,
-                );
-                bar.finish();
-                let lab = Arc::new(lab?);
-                labeling = Some(lab.clone());
-                Arc::new(LabelSource::new(built.source.clone(), built.channel, lab))
-            }
-            None => built.source.clone(),
-        };
-        let bar = progress::Bar::new(quiet, "writing");
-        let r = convert(out_src.as_ref(), &paths.staged, &opts, &bar, &CANCEL);
-        bar.finish();
-        Ok(r?)
-    })()
-    .map_err(cleanup)?;
-
-    // Describe the result, store the statistics, then publish.
-    let root = paths.staged.join("zarr.json");
-    let mut j = read_json(&root)?;
-    let attrs = j["attributes"].as_object_mut().context("attributes")?;
-    let origin = json!({
-        "pipeline": pipe.text(),
-        "input": store.to_string_lossy(),
-        "level": c.level,
-        "channel": c.channel,
-        "boundary_mode": "nearest",
-        "truncate": brickyard_process::filter::TRUNCATE,
-    });
-    if let Some(b) = attrs.get_mut(brickyard_store::omezarr::ATTR) {
-        b["process"] = origin;
-        b["source"] = json!(store.to_string_lossy());
-    }
-    if is_label {
-        attrs["ome"]["image-label"] = json!({"version": "0.5", "source": {"image": "../../"}});
-    }
-    write_json(&root, &j).map_err(|e| cleanup(e.into()))?;
-    if let Some(lab) = &labeling {
-        let extra = [
-            (
-                "pipeline",
-                brickyard_process::label::json_string(&pipe.text()),
-            ),
-            ("level", c.level.to_string()),
-            ("intensity_channel", c.channel.to_string()),
-        ];
-        let dirs = paths.staged.join("_brickyard");
-        std::fs::write(dirs.join("labels.csv"), stats_csv(&lab.stats))
-            .and_then(|_| std::fs::write(dirs.join("labels.json"), stats_json(lab, &extra)))
-            .with_context(|| format!("{}: cannot write statistics", dirs.display()))
-            .map_err(cleanup)?;
-        if let (Some(p), Some(is_json)) = (&c.stats, stats_fmt) {
-            let text = if is_json {
-                stats_json(lab, &extra)
-            } else {
-                stats_csv(&lab.stats)
-            };
-            std::fs::write(p, text).with_context(|| format!("{}: cannot write", p.display()))?;
-        }
-    }
-    if paths.fin.exists() {
-        std::fs::rename(&paths.fin, &paths.old)
-            .with_context(|| format!("{}: cannot move aside", paths.fin.display()))?;
-        std::fs::rename(&paths.staged, &paths.fin)
-            .with_context(|| format!("{}: cannot publish", paths.fin.display()))?;
-        std::fs::remove_dir_all(&paths.old)
-            .with_context(|| format!("{}: cannot remove", paths.old.display()))?;
-    } else {
-        std::fs::rename(&paths.staged, &paths.fin)
-            .with_context(|| format!("{}: cannot publish", paths.fin.display()))?;
-    }
-    if let Some((mut j, mut list)) = listed {
-        if !list.contains(&paths.name) {
-            list.push(paths.name.clone());
-            j["attributes"]["ome"]["version"] = json!("0.5");
-            j["attributes"]["ome"]["labels"] = json!(list);
-            write_json(&paths.dir.join("zarr.json"), &j)?;
-        }
-    } else {
-        let g = paths.dir.join("zarr.json");
-        if !g.exists() {
-            write_json(
-                &g,
-                &json!({"zarr_format": 3, "node_type": "group", "attributes": {}}),
-            )?;
-        }
-    }
+    install_ctrl_c();
+    let bars = Bars {
+        labelling: progress::Bar::counting(quiet, "labelling (pass 1, voxels)"),
+        writing: progress::Bar::new(quiet, "writing"),
+    };
+    let r = brickyard_run::process::run(&job, &CLI, &bars, &CANCEL)?;
     let rss = peak_rss();
-    let secs = t0.elapsed().as_secs_f64();
-    let count = labeling.as_ref().map(|l| l.count());
     if c.json {
         println!(
             "{}",
             json!({
-                "output": paths.fin,
-                "pipeline": pipe.text(),
-                "labels": count,
-                "levels": report.levels.len(),
-                "dtype": report.dtype.short_name(),
-                "seconds": secs,
-                "bytes_written": report.bytes_written,
+                "output": r.output,
+                "pipeline": r.pipeline,
+                "labels": r.labels,
+                "levels": r.levels,
+                "dtype": r.dtype.short_name(),
+                "seconds": r.seconds,
+                "bytes_written": r.bytes_written,
                 "peak_rss_bytes": rss,
-                "device": on,
+                "device": r.device,
             })
         );
     } else {
-        println!(
-            "wrote {} ({}, {} levels{}) in {:.2} s, peak RSS {}",
-            paths.fin.display(),
-            report.dtype,
-            report.levels.len(),
-            count.map(|n| format!(", {n} labels")).unwrap_or_default(),
-            secs,
-            human_bytes(rss)
-        );
+        println!("{}, peak RSS {}", r.summary(), human_bytes(rss));
     }
     Ok(())
 }

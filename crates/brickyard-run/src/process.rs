@@ -1,11 +1,11 @@
-//! `brickyard.process`: a pipeline over a level of a store, written back
-//! into the store as `brickyard process` writes it (the same parsing, the
-//! same stages of `brickyard_process`, the same builder options, the same
-//! crash-safe publishing under `STORE/labels/NAME` or `STORE/derived/NAME`).
-//!
-//! This follows `crates/brickyard/src/process.rs` step for step; the CLI's
-//! progress bars and SIGINT flag are replaced by the caller's progress and
-//! cancel flag (set when Python sees Ctrl-C).
+//! `brickyard process` and `brickyard.process`: a pipeline over a level of
+//! a store, written back into it (`STORE/labels/NAME` for labels and masks,
+//! `STORE/derived/NAME` otherwise) with crash-safe publishing: one job per
+//! name (a lock file holding its pid), the result staged beside the final
+//! name and swapped in, leftovers of an interrupted run undone first. The
+//! command line and the Python bindings both run this; they differ only in
+//! how they name options in messages ([`Caller`]) and how they show
+//! progress ([`Phases`]).
 
 use anyhow::{bail, Context, Result};
 use brickyard_process::{
@@ -21,7 +21,42 @@ use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::Arc;
 use std::time::Instant;
 
-/// What `brickyard process` takes on its command line.
+/// A job stopped by its cancel flag (Ctrl-C); the store is as it was.
+#[derive(Debug)]
+pub struct Interrupted;
+
+impl std::fmt::Display for Interrupted {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str("interrupted")
+    }
+}
+
+impl std::error::Error for Interrupted {}
+
+/// How the caller names things in messages.
+pub struct Caller {
+    /// Before an option's name: `"--"` on the command line, `""` for
+    /// keyword arguments.
+    pub flag: &'static str,
+    /// How a volume is converted first.
+    pub convert: &'static str,
+    /// What to do about a remote store.
+    pub remote: &'static str,
+    /// How an existing result is replaced.
+    pub overwrite: &'static str,
+    /// What is run again after an interruption ("command", "call").
+    pub again: &'static str,
+}
+
+/// Progress of a job's phases: `labelling` (pass 1 of a labelling, in
+/// voxels) and `writing` (the pyramid, in bytes); `done` once each ends.
+pub trait Phases {
+    fn labelling(&self) -> &dyn Progress;
+    fn writing(&self) -> &dyn Progress;
+    fn done(&self, _labelling: bool) {}
+}
+
+/// What a job is asked to do (the command line's options).
 pub struct ProcessArgs {
     pub store: PathBuf,
     pub pipeline: String,
@@ -32,14 +67,40 @@ pub struct ProcessArgs {
     pub stats: Option<PathBuf>,
     pub overwrite: bool,
     pub backend: String,
+    /// No line about the device.
     pub quiet: bool,
 }
 
-/// The result: where it was published and the CLI's report line.
+/// What a job did.
 pub struct ProcessReport {
+    /// Where the result was published.
     pub output: PathBuf,
+    /// Labels found (a labelling).
     pub labels: Option<u32>,
-    pub line: String,
+    /// The pipeline as parsed.
+    pub pipeline: String,
+    pub levels: usize,
+    pub dtype: brickyard_core::DType,
+    pub bytes_written: u64,
+    /// The device the filter stages ran on (`None`: the CPU).
+    pub device: Option<String>,
+    pub seconds: f64,
+}
+
+impl ProcessReport {
+    /// `wrote OUTPUT (DTYPE, N levels[, M labels]) in S s`.
+    pub fn summary(&self) -> String {
+        format!(
+            "wrote {} ({}, {} levels{}) in {:.2} s",
+            self.output.display(),
+            self.dtype,
+            self.levels,
+            self.labels
+                .map(|n| format!(", {n} labels"))
+                .unwrap_or_default(),
+            self.seconds,
+        )
+    }
 }
 
 /// The pipeline parsed, with the CLI's message on an error.
@@ -48,33 +109,33 @@ pub fn parse(text: &str) -> Result<Pipeline> {
 }
 
 /// The filter kernels on the device `backend` names (`None`: the CPU).
-fn device(backend: &str) -> Result<Option<Arc<FilterKernels>>> {
+fn device(backend: &str, flag: &str) -> Result<Option<Arc<FilterKernels>>> {
     use brickyard_gpu::{AdapterChoice, Gpu};
-    let open = || brickyard_run::backend::quietly(|| Gpu::new(AdapterChoice::Best));
+    let open = || crate::backend::quietly(|| Gpu::new(AdapterChoice::Best));
     let gpu = match backend {
         "cpu" => return Ok(None),
-        "gpu" => open().context("backend gpu")?,
+        "gpu" => open().with_context(|| format!("{flag}backend gpu"))?,
         "auto" => match open() {
             Ok(g) if g.info.device_type != wgpu::DeviceType::Cpu => g,
             _ => return Ok(None),
         },
-        b => bail!("backend: expected cpu, gpu or auto, found {b:?}"),
+        b => bail!("{flag}backend: expected cpu, gpu or auto, found {b:?}"),
     };
     Ok(Some(FilterKernels::new(Arc::new(gpu))))
 }
 
-fn check_name(name: &str) -> Result<()> {
+fn check_name(name: &str, flag: &str) -> Result<()> {
     if name.is_empty()
         || name.starts_with('.')
         || name.contains(['/', '\\'])
         || name.ends_with(".partial")
     {
-        bail!("out: expected a plain name (no '/', not starting with '.'), found {name:?}");
+        bail!("{flag}out: expected a plain name (no '/', not starting with '.'), found {name:?}");
     }
     Ok(())
 }
 
-/// Names of the directories a run of `name` uses in `dir` (as the CLI's).
+/// Names of the directories a run of `name` uses in `dir`.
 struct Paths {
     dir: PathBuf,
     name: String,
@@ -98,7 +159,8 @@ impl Paths {
         }
     }
 
-    /// Undo what an interrupted run (of the CLI or of Python) left.
+    /// Undo what an interrupted run left: a replaced result that was not
+    /// yet swapped back comes back; unpublished results go.
     fn recover(&self) -> Result<()> {
         if self.old.exists() {
             if self.fin.exists() {
@@ -140,7 +202,10 @@ fn note(s: &str) {
     eprintln!("note: {s}");
 }
 
-/// One job per result name; the lock file holds the pid (as the CLI's).
+/// The lock of one result name: one job at a time writes it (a second one
+/// would take the first one's work in progress for an interrupted run's
+/// leftovers). Removed when dropped; a killed job's lock names a process
+/// that is gone, and the next job takes it over.
 struct NameLock(PathBuf);
 
 impl NameLock {
@@ -227,24 +292,25 @@ fn labels_list(dir: &Path) -> Result<(Value, Vec<String>)> {
     Ok((j, list))
 }
 
-/// Run the pipeline and publish its result. `labelling` reports pass 1 of
-/// a labelling (voxels), `writing` the pyramid (bytes); `cancel` stops the
-/// job between pieces of work, leaving the store as it was.
+/// Run the pipeline and publish its result; `cancel` stops the job between
+/// pieces of work, leaving the store as it was (the error is then
+/// [`Interrupted`] with what to do in its context).
 pub fn run(
     c: &ProcessArgs,
-    labelling: &dyn Progress,
-    writing: &dyn Progress,
+    caller: &Caller,
+    phases: &dyn Phases,
     cancel: &AtomicBool,
 ) -> Result<ProcessReport> {
+    let f = caller.flag;
     let t0 = Instant::now();
     let pipe = parse(&c.pipeline)?;
-    check_name(&c.out)?;
+    check_name(&c.out, f)?;
     let memory = c.memory;
     if memory < 1 << 20 {
-        bail!("memory: expected at least 1 MiB, got {memory} bytes");
+        bail!("{f}memory: expected at least 1 MiB, got {memory} bytes");
     }
     if c.stats.is_some() && !matches!(pipe.ops.last(), Some(Op::Label(_))) {
-        bail!("stats: only a pipeline that ends in label(...) has per-label statistics");
+        bail!("{f}stats: only a pipeline that ends in label(...) has per-label statistics");
     }
     let stats_fmt = match &c.stats {
         None => None,
@@ -252,7 +318,7 @@ pub fn run(
             Some("csv") => Some(false),
             Some("json") => Some(true),
             _ => bail!(
-                "stats: expected a file name ending in .csv or .json, found {}",
+                "{f}stats: expected a file name ending in .csv or .json, found {}",
                 p.display()
             ),
         },
@@ -260,9 +326,9 @@ pub fn run(
     let store = &c.store;
     if brickyard_store::storage::is_remote(store) {
         bail!(
-            "{}: a remote store is read-only, and `process` writes its result into the store; \
-             copy the store first (`brickyard.convert(URL, \"local.zarr\")`)",
-            store.display()
+            "{}: a remote store is read-only, and `process` writes its result into the store; {}",
+            store.display(),
+            caller.remote
         );
     }
     if !store.exists() {
@@ -271,8 +337,9 @@ pub fn run(
     }
     if !zarr::is_zarr(store) {
         bail!(
-            "{}: not a Zarr store (no zarr.json); convert the volume first with `brickyard.convert`",
-            store.display()
+            "{}: not a Zarr store (no zarr.json); convert the volume first with {}",
+            store.display(),
+            caller.convert
         );
     }
     let mut src = zarr::open(store, c.level)?;
@@ -293,14 +360,15 @@ pub fn run(
     let meta = src.meta().clone();
     if c.channel >= meta.channels {
         bail!(
-            "channel: {} asked for but {} has {} channel(s)",
+            "{f}channel: {} asked for but {} has {} channel(s)",
             c.channel,
             store.display(),
             meta.channels
         );
     }
     let input: Arc<ZarrSource> = Arc::new(src);
-    let kernels = device(&c.backend)?;
+    let kernels = device(&c.backend, f)?;
+    let on = kernels.as_ref().map(|k| k.gpu.describe());
     let built = build_on(&pipe, input.clone(), c.channel, brick, kernels.as_ref())
         .map_err(|e| anyhow::anyhow!("pipeline {:?}: {e}", c.pipeline))?;
     let is_label = pipe.is_label_output();
@@ -328,8 +396,9 @@ pub fn run(
     paths.recover().map_err(leave)?;
     if paths.fin.exists() && !c.overwrite {
         return Err(leave(anyhow::anyhow!(
-            "{}: exists; pass overwrite=True to replace it",
-            paths.fin.display()
+            "{}: exists; {} to replace it",
+            paths.fin.display(),
+            caller.overwrite
         )));
     }
     let listed = if is_label {
@@ -348,8 +417,8 @@ pub fn run(
         origin: meta.origin,
         unit: meta.unit.clone(),
     };
-    if let (Some(k), false) = (&kernels, c.quiet) {
-        eprintln!("filter stages on the GPU: {}", k.gpu.describe());
+    if let (Some(d), false) = (&on, c.quiet) {
+        eprintln!("filter stages on the GPU: {d}");
     }
     let cleanup = |e: anyhow::Error| -> anyhow::Error {
         let _ = std::fs::remove_dir_all(&paths.partial);
@@ -359,9 +428,10 @@ pub fn run(
             let _ = std::fs::remove_dir(&paths.dir);
         }
         if cancel.load(Ordering::SeqCst) {
-            anyhow::Error::new(crate::Interrupted).context(format!(
-                "{} is as it was (nothing was published); run the same call again to start over",
-                store.display()
+            anyhow::Error::new(Interrupted).context(format!(
+                "{} is as it was (nothing was published); run the same {} again to start over",
+                store.display(),
+                caller.again
             ))
         } else {
             e
@@ -372,27 +442,31 @@ pub fn run(
         let out_src: Arc<dyn VolumeSource> = match built.label {
             Some(conn) => {
                 let inten: &dyn VolumeSource = input.as_ref();
-                let lab = Arc::new(label_pass1(
+                let lab = label_pass1(
                     built.source.as_ref(),
                     built.channel,
                     conn,
                     brick,
                     Some((inten, c.channel)),
-                    labelling,
+                    phases.labelling(),
                     cancel,
-                )?);
+                );
+                phases.done(true);
+                let lab = Arc::new(lab?);
                 labeling = Some(lab.clone());
                 Arc::new(LabelSource::new(built.source.clone(), built.channel, lab))
             }
             None => built.source.clone(),
         };
-        Ok(convert(
+        let r = convert(
             out_src.as_ref(),
             &paths.staged,
             &opts,
-            writing,
+            phases.writing(),
             cancel,
-        )?)
+        );
+        phases.done(false);
+        Ok(r?)
     })()
     .map_err(cleanup)?;
 
@@ -466,18 +540,14 @@ pub fn run(
             )?;
         }
     }
-    let count = labeling.as_ref().map(|l| l.count());
-    let line = format!(
-        "wrote {} ({}, {} levels{}) in {:.2} s",
-        paths.fin.display(),
-        report.dtype,
-        report.levels.len(),
-        count.map(|n| format!(", {n} labels")).unwrap_or_default(),
-        t0.elapsed().as_secs_f64(),
-    );
     Ok(ProcessReport {
         output: paths.fin.clone(),
-        labels: count,
-        line,
+        labels: labeling.as_ref().map(|l| l.count()),
+        pipeline: pipe.text(),
+        levels: report.levels.len(),
+        dtype: report.dtype,
+        bytes_written: report.bytes_written,
+        device: on,
+        seconds: t0.elapsed().as_secs_f64(),
     })
 }
