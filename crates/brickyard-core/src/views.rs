@@ -186,7 +186,6 @@ impl ViewRays {
         if self.count == 1 {
             return self.gen.pixel_ray(i, j);
         }
-        // (A view drawn alone: `view_of` gives it for every column.)
         let (v, x) = self.view_of(i);
         self.ray(v, x as f64 + 0.5, j as f64 + 0.5)
     }

@@ -358,21 +358,15 @@ fn session(ws: &mut WebSocket<TcpStream>, site: &RenderSite, caches: &Caches) ->
         loop {
             match ws.read() {
                 Ok(Message::Text(t)) => {
-                    let m: Value = match serde_json::from_str(t.as_str()) {
-                        Ok(Value::Object(m)) => Value::Object(m),
-                        _ => {
-                            send_json(ws, json!({"error": "expected a JSON object"}))?;
-                            continue;
-                        }
+                    let Ok(Value::Object(mut m)) = serde_json::from_str(t.as_str()) else {
+                        send_json(ws, json!({"error": "expected a JSON object"}))?;
+                        continue;
                     };
-                    let mut m = m.as_object().expect("an object").clone();
                     if let Some(r) = m.remove("report") {
-                        if site.log || r.is_string() {
-                            eprintln!(
-                                "render client reports: {}",
-                                r.as_str().unwrap_or(&r.to_string())
-                            );
-                        }
+                        eprintln!(
+                            "render client reports: {}",
+                            r.as_str().unwrap_or(&r.to_string())
+                        );
                     }
                     if m.is_empty() {
                         continue;
