@@ -286,13 +286,19 @@ pub fn run(c: ViewCmd, demo_store: impl FnOnce() -> Result<PathBuf>) -> Result<i
     scene.ranges = Some(ranges.clone());
     let exit2 = exit.clone();
     let mode = c.mode.clone();
+    // The render thread is joined before the process ends: it holds the
+    // device (with the software drivers, threads of their own), and a
+    // process that exits while a driver still works can die in the
+    // libraries' exit-time teardown.
+    let render_thread = Arc::new(std::sync::Mutex::new(None));
+    let render_thread2 = render_thread.clone();
     let r = eframe::run_native(
         "brickyard view",
         opts,
         Box::new(move |cc| {
             let ctx = cc.egui_ctx.clone();
             let setup2 = setup.clone();
-            std::thread::Builder::new()
+            let handle = std::thread::Builder::new()
                 .name("render".into())
                 .spawn(move || {
                     worker::run(setup2, scene, worker_rx, worker_tx, move || {
@@ -300,6 +306,7 @@ pub fn run(c: ViewCmd, demo_store: impl FnOnce() -> Result<PathBuf>) -> Result<i
                     })
                 })
                 .map_err(|e| format!("render thread: {e}"))?;
+            *render_thread2.lock().unwrap() = Some(handle);
             Ok(Box::new(app::ViewerApp::new(
                 ds,
                 setup,
@@ -315,6 +322,14 @@ pub fn run(c: ViewCmd, demo_store: impl FnOnce() -> Result<PathBuf>) -> Result<i
             )))
         }),
     );
+    // The window is gone and with it the sender of the worker's messages:
+    // the worker sees that (or the `Quit` sent on exit) and returns.
+    let handle = render_thread.lock().unwrap().take();
+    if let Some(h) = handle {
+        if h.join().is_err() {
+            eprintln!("view: the render thread panicked");
+        }
+    }
     if let Err(e) = r {
         bail!("view: cannot open a window: {e} (is a display available? under CI use xvfb-run)");
     }

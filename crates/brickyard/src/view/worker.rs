@@ -14,7 +14,7 @@ use brickyard_render::cpu::{Lod, Scene, Tiles};
 use brickyard_render::reference::RenderParams;
 use brickyard_render::Image;
 use std::path::PathBuf;
-use std::sync::mpsc::{Receiver, RecvTimeoutError, Sender};
+use std::sync::mpsc::{Receiver, RecvTimeoutError, Sender, TryRecvError};
 use std::time::{Duration, Instant};
 
 /// What one view shows.
@@ -212,7 +212,11 @@ pub fn run(setup: Setup, mut scene: Scene, rx: Receiver<Msg>, tx: Sender<Reply>,
         // Take every message; wait for one only when nothing is left to do.
         let busy = views.iter().any(|v| v.spec.is_some() && !v.complete);
         let first = if busy {
-            rx.try_recv().ok()
+            match rx.try_recv() {
+                Ok(m) => Some(m),
+                Err(TryRecvError::Empty) => None,
+                Err(TryRecvError::Disconnected) => return,
+            }
         } else {
             match rx.recv_timeout(Duration::from_millis(250)) {
                 Ok(m) => Some(m),
