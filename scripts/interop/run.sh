@@ -1,8 +1,9 @@
 #!/usr/bin/env bash
 # Interop test: brickyard output checked with zarr-python / numpy / ome-zarr-py,
 # Python-written stores (ome-zarr-py, zarr-python v2/v3) converted by brickyard,
-# NIfTI rescaling (scl_slope/scl_inter) compared with nibabel, and
-# `brickyard process` compared with scipy.ndimage.
+# NIfTI rescaling (scl_slope/scl_inter) compared with nibabel,
+# `brickyard process` compared with scipy.ndimage, and s3:// stores read
+# from moto's S3 server.
 #
 # Usage: bash scripts/interop/run.sh BRICKYARD_BIN
 # Env:   INTEROP_KEEP=1     keep the temp dir (always kept on failure)
@@ -250,6 +251,9 @@ case_reference() {
 # and jobs killed at random points (the store stays as it was).
 case_process() { py "$HERE/check_process.py" "$BIN" "$TMP/process_$1" "$1"; }
 
+# s3:// stores against moto's S3 server (signed, anonymous, private/public)
+case_s3() { py "$HERE/check_s3.py" "$BIN" "$TMP/s3"; }
+
 # ---------------------------------------------------------------- run
 run_case selftest            case_selftest
 run_case generate_raw        case_generate
@@ -274,6 +278,7 @@ run_case memory_budget       case_memory_budget
 run_case process_generated   case_process generated
 run_case process_nuclei      case_process nuclei
 run_case process_crash       case_process crash
+run_case s3_moto             case_s3
 for ref in ome04_v2_u16 v3_plain_u16 v3_sharded_u16 ome05_2ch_u8 v3_f32_be v2_i16_be_F; do
     run_case "ref_$ref" case_reference "$ref"
 done

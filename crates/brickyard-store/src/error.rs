@@ -4,12 +4,12 @@ use std::path::PathBuf;
 
 #[derive(Debug, thiserror::Error)]
 pub enum StoreError {
-    /// An I/O error on a named path.
-    #[error("{}: {source}", path.display())]
+    /// An I/O error on a named path. The cause is part of the message and
+    /// not a separate source, so that a chain of errors says it once.
+    #[error("{}: {error}", path.display())]
     Io {
         path: PathBuf,
-        #[source]
-        source: std::io::Error,
+        error: std::io::Error,
     },
     /// The content of a file is invalid: `field` is the offending field
     /// (header key, tag, JSON key ...), `msg` says what was expected.
@@ -43,7 +43,7 @@ impl StoreError {
     pub fn io(path: impl Into<PathBuf>, source: std::io::Error) -> Self {
         StoreError::Io {
             path: path.into(),
-            source,
+            error: source,
         }
     }
     pub fn invalid(

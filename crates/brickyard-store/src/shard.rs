@@ -259,12 +259,22 @@ pub fn parse_index(path: &Path, shard: &[u8], layout: &IndexLayout) -> Result<Ve
 ///
 /// The read goes through [`crate::storage`] (a file or a URL); remote
 /// indexes at the end of their shard are read as a suffix, which the
-/// HTTP client caches.
+/// HTTP client caches with the shard's length (no HEAD request).
 pub fn read_index(path: &Path, layout: &IndexLayout) -> Result<Option<Vec<[u64; 2]>>> {
+    let ib = layout.index_bytes();
+    if layout.location == IndexLocation::End && layout.entries <= MAX_INDEX_ENTRIES {
+        // The index and the shard's length in one read.
+        let Some((index, len)) = crate::storage::read_suffix(path, ib)? else {
+            return Ok(None);
+        };
+        if len < ib {
+            return check_index(path, &[], len, layout).map(Some);
+        }
+        return check_index(path, &index, len, layout).map(Some);
+    }
     let Some(len) = crate::storage::size(path)? else {
         return Ok(None);
     };
-    let ib = layout.index_bytes();
     if len < ib || layout.entries > MAX_INDEX_ENTRIES {
         return check_index(path, &[], len, layout).map(Some);
     }

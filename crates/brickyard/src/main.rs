@@ -36,6 +36,20 @@ struct Cli {
     /// Worker threads (default: all cores).
     #[arg(long, global = true)]
     threads: Option<usize>,
+    /// s3:// stores: an S3-compatible endpoint (http(s)://host:port),
+    /// addressed path style; default AWS_ENDPOINT_URL_S3 or
+    /// AWS_ENDPOINT_URL, else Amazon's regional endpoint. Credentials come
+    /// from AWS_ACCESS_KEY_ID, AWS_SECRET_ACCESS_KEY and AWS_SESSION_TOKEN.
+    #[arg(long, global = true, value_name = "URL")]
+    s3_endpoint: Option<String>,
+    /// s3:// stores: the region (default AWS_REGION, AWS_DEFAULT_REGION,
+    /// else us-east-1).
+    #[arg(long, global = true, value_name = "REGION")]
+    s3_region: Option<String>,
+    /// s3:// stores: unsigned requests (public buckets), whatever
+    /// credentials the environment holds (as AWS_NO_SIGN_REQUEST=true).
+    #[arg(long, global = true)]
+    s3_anonymous: bool,
     #[command(subcommand)]
     cmd: Cmd,
 }
@@ -331,6 +345,33 @@ fn main() {
     match brickyard_store::storage::http::HttpConfig::from_env() {
         Ok(c) => brickyard_store::storage::http::configure(c),
         Err(e) => {
+            eprintln!("error: {e}");
+            std::process::exit(1);
+        }
+    }
+    // s3:// settings: the flags over the environment's variables.
+    let s3 = brickyard_store::storage::s3::S3Config::from_vars(|k| {
+        let flag = match k {
+            "AWS_ENDPOINT_URL_S3" => cli.s3_endpoint.as_ref(),
+            "AWS_REGION" => cli.s3_region.as_ref(),
+            _ => None,
+        };
+        match (flag, k) {
+            (Some(v), _) => Some(v.clone()),
+            (None, "AWS_NO_SIGN_REQUEST") if cli.s3_anonymous => Some("true".into()),
+            _ => std::env::var(k).ok(),
+        }
+    });
+    match s3 {
+        Ok(c) => brickyard_store::storage::s3::configure(c),
+        Err(e) => {
+            let e = e
+                .replacen(
+                    "AWS_ENDPOINT_URL_S3:",
+                    "--s3-endpoint (or AWS_ENDPOINT_URL_S3):",
+                    1,
+                )
+                .replacen("AWS_REGION:", "--s3-region (or AWS_REGION):", 1);
             eprintln!("error: {e}");
             std::process::exit(1);
         }

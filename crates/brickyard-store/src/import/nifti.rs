@@ -1899,7 +1899,7 @@ mod tests {
         let e = open(&p).unwrap_err();
         assert!(e.to_string().contains("nowhere.nii.gz"), "{e}");
         assert!(
-            matches!(&e, StoreError::Io { source, .. } if source.kind() == io::ErrorKind::NotFound)
+            matches!(&e, StoreError::Io { error, .. } if error.kind() == io::ErrorKind::NotFound)
         );
 
         // The .img of a pair without its header.

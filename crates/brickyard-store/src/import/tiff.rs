@@ -2306,7 +2306,7 @@ mod tests {
         let e = open(&dir.path().join("gone.tif")).unwrap_err();
         assert!(e.to_string().contains("gone.tif"), "{e}");
         assert!(
-            matches!(&e, StoreError::Io { source, .. } if source.kind() == io::ErrorKind::NotFound)
+            matches!(&e, StoreError::Io { error, .. } if error.kind() == io::ErrorKind::NotFound)
         );
     }
 }

@@ -167,16 +167,20 @@ impl Drop for Permit<'_> {
     }
 }
 
-/// Suffix reads (shard indexes), first in first out under a byte budget.
+/// The last bytes of a value and the value's length.
+type Suffix = (Arc<Vec<u8>>, u64);
+
+/// Suffix reads (shard indexes) with the length of their value, first in
+/// first out under a byte budget.
 #[derive(Default)]
 struct IndexCache {
-    map: HashMap<(String, u64), Arc<Vec<u8>>>,
+    map: HashMap<(String, u64), Suffix>,
     order: VecDeque<(String, u64)>,
     bytes: usize,
 }
 
 impl IndexCache {
-    fn put(&mut self, k: (String, u64), v: Arc<Vec<u8>>) {
+    fn put(&mut self, k: (String, u64), v: Arc<Vec<u8>>, len: u64) {
         if v.len() > INDEX_CACHE_BYTES {
             return;
         }
@@ -184,12 +188,12 @@ impl IndexCache {
             let Some(old) = self.order.pop_front() else {
                 break;
             };
-            if let Some(b) = self.map.remove(&old) {
+            if let Some((b, _)) = self.map.remove(&old) {
                 self.bytes -= b.len();
             }
         }
         self.bytes += v.len();
-        if let Some(b) = self.map.insert(k.clone(), v) {
+        if let Some((b, _)) = self.map.insert(k.clone(), (v, len)) {
             self.bytes -= b.len();
         } else {
             self.order.push_back(k);
@@ -230,6 +234,30 @@ pub struct Client {
     bytes: AtomicU64,
     index_hits: AtomicU64,
     seed: AtomicU64,
+    /// Metadata documents (`zarr.json`, `.zarray`, …) and whether they
+    /// exist, read once per process: remote stores are read-only here.
+    meta: Mutex<MetaCache>,
+}
+
+/// Whole metadata documents by URL (`None`: not there), bounded in bytes.
+#[derive(Default)]
+struct MetaCache {
+    map: HashMap<String, Option<Arc<Vec<u8>>>>,
+    bytes: usize,
+}
+
+/// Most bytes of metadata documents kept.
+const META_CACHE_BYTES: usize = 16 << 20;
+/// Largest document kept.
+const META_MAX: usize = 1 << 20;
+
+/// Whether `url` names a metadata document of a Zarr store.
+fn is_meta(url: &str) -> bool {
+    let name = url.rsplit('/').next().unwrap_or("");
+    matches!(
+        name,
+        "zarr.json" | ".zarray" | ".zattrs" | ".zgroup" | ".zmetadata"
+    )
 }
 
 fn status_text(code: u16) -> &'static str {
@@ -285,6 +313,7 @@ impl Client {
             bytes: AtomicU64::new(0),
             index_hits: AtomicU64::new(0),
             seed: AtomicU64::new(0x9e37_79b9_7f4a_7c15),
+            meta: Mutex::new(MetaCache::default()),
         }
     }
 
@@ -295,6 +324,10 @@ impl Client {
 
     /// The size of the value at `url` (a HEAD request); `None` on 404.
     pub fn size(&self, url: &str) -> Result<Option<u64>> {
+        if is_meta(url) {
+            // A metadata document is read whole, once: its length with it.
+            return Ok(self.meta_doc(url)?.map(|d| d.len() as u64));
+        }
         self.with_retries(url, "HEAD", None, |resp| {
             let len = resp
                 .headers()
@@ -305,8 +338,55 @@ impl Client {
         })
     }
 
+    /// The metadata document at `url`, from the cache or one GET.
+    fn meta_doc(&self, url: &str) -> Result<Option<Arc<Vec<u8>>>> {
+        let hit = self
+            .meta
+            .lock()
+            .unwrap_or_else(|e| e.into_inner())
+            .map
+            .get(url)
+            .cloned();
+        if let Some(h) = hit {
+            self.index_hits.fetch_add(1, Ordering::Relaxed);
+            return Ok(h);
+        }
+        let doc = self.get(url, &Span::All)?.map(Arc::new);
+        let size = doc.as_ref().map_or(0, |d| d.len());
+        let mut m = self.meta.lock().unwrap_or_else(|e| e.into_inner());
+        if size <= META_MAX && m.bytes + size <= META_CACHE_BYTES {
+            m.bytes += size;
+            m.map.insert(url.to_string(), doc.clone());
+        }
+        Ok(doc)
+    }
+
     /// Read `spans` of the value at `url` (see [`super::read_spans`]).
     pub fn read_spans(&self, url: &str, spans: &[Span]) -> Result<Option<Vec<Vec<u8>>>> {
+        if is_meta(url) {
+            let Some(doc) = self.meta_doc(url)? else {
+                return Ok(None);
+            };
+            let len = doc.len() as u64;
+            return spans
+                .iter()
+                .map(|s| {
+                    let r = match s {
+                        Span::Suffix(n) => len.saturating_sub(*n)..len,
+                        s => s.within(len).ok_or_else(|| {
+                            crate::error::StoreError::io(
+                                url,
+                                std::io::Error::other(format!(
+                                    "bytes {s:?} asked for, but the value holds {len}"
+                                )),
+                            )
+                        })?,
+                    };
+                    Ok(doc[r.start as usize..r.end as usize].to_vec())
+                })
+                .collect::<Result<Vec<_>>>()
+                .map(Some);
+        }
         let mut out: Vec<Option<Vec<u8>>> = vec![None; spans.len()];
         // Byte ranges, coalesced: sorted, then merged while the gap
         // between neighbours is small and the merged read stays bounded.
@@ -345,32 +425,7 @@ impl Client {
                 continue;
             }
             let got = match s {
-                Span::Suffix(n) => {
-                    let key = (url.to_string(), *n);
-                    let hit = self
-                        .indexes
-                        .lock()
-                        .unwrap_or_else(|e| e.into_inner())
-                        .map
-                        .get(&key)
-                        .cloned();
-                    match hit {
-                        Some(b) => {
-                            self.index_hits.fetch_add(1, Ordering::Relaxed);
-                            Some(b.to_vec())
-                        }
-                        None => {
-                            let b = self.get(url, s)?;
-                            if let Some(b) = &b {
-                                self.indexes
-                                    .lock()
-                                    .unwrap_or_else(|e| e.into_inner())
-                                    .put(key, Arc::new(b.clone()));
-                            }
-                            b
-                        }
-                    }
-                }
+                Span::Suffix(n) => self.suffix(url, *n)?.map(|(b, _)| b.to_vec()),
                 _ => self.get(url, s)?,
             };
             let Some(b) = got else {
@@ -381,6 +436,80 @@ impl Client {
         Ok(Some(
             out.into_iter().map(Option::unwrap_or_default).collect(),
         ))
+    }
+
+    /// The last `n` bytes of the value at `url` (fewer when it is shorter)
+    /// and the value's length, from one ranged GET (the length is in the
+    /// answer's `Content-Range`), cached: a shard's index and size without
+    /// a HEAD request. `None` on 404.
+    pub fn suffix(&self, url: &str, n: u64) -> Result<Option<(Arc<Vec<u8>>, u64)>> {
+        let key = (url.to_string(), n);
+        let hit = self
+            .indexes
+            .lock()
+            .unwrap_or_else(|e| e.into_inner())
+            .map
+            .get(&key)
+            .cloned();
+        if let Some(h) = hit {
+            self.index_hits.fetch_add(1, Ordering::Relaxed);
+            return Ok(Some(h));
+        }
+        if n == 0 {
+            return Ok(self.size(url)?.map(|len| (Arc::new(vec![]), len)));
+        }
+        let range = format!("bytes=-{n}");
+        let got = self.with_retries(url, "GET", Some(&range), |resp| {
+            let header = |k: &str| {
+                resp.headers()
+                    .get(k)
+                    .and_then(|v| v.to_str().ok())
+                    .map(str::to_string)
+            };
+            // 206: `bytes a-b/len`; 200 (Range ignored): the whole value.
+            let total = if resp.status().as_u16() == 206 {
+                header("content-range")
+                    .as_deref()
+                    .and_then(content_range)
+                    .and_then(|(_, _, len)| len)
+            } else {
+                header("content-length").and_then(|v| v.trim().parse().ok())
+            };
+            let body = read_body(resp, &Span::Suffix(n))?;
+            Ok((body, total))
+        });
+        // A value shorter than `n`: S3 and most servers answer with all of
+        // it; others refuse with 416.
+        let got = match got {
+            Err(e) if e.to_string().contains("HTTP 416") => {
+                return match self.get(url, &Span::All)? {
+                    Some(b) => {
+                        let len = b.len() as u64;
+                        Ok(Some((Arc::new(b), len)))
+                    }
+                    None => Ok(None),
+                };
+            }
+            g => g?,
+        };
+        let Some((body, total)) = got else {
+            return Ok(None);
+        };
+        self.bytes.fetch_add(body.len() as u64, Ordering::Relaxed);
+        let len = match total {
+            Some(t) => t,
+            // No length in the answer: ask for it.
+            None => match self.size(url)? {
+                Some(t) => t,
+                None => return Ok(None),
+            },
+        };
+        let body = Arc::new(body);
+        self.indexes
+            .lock()
+            .unwrap_or_else(|e| e.into_inner())
+            .put(key, body.clone(), len);
+        Ok(Some((body, len)))
     }
 
     /// GET one span; `None` on 404.
@@ -467,9 +596,19 @@ impl Client {
         range: Option<&str>,
         take: &impl Fn(&mut ureq::http::Response<ureq::Body>) -> std::result::Result<T, Failure>,
     ) -> std::result::Result<Option<T>, Failure> {
+        // An s3:// location is signed for this attempt (the signature
+        // holds the time); its token is not a bearer token.
+        let s3 = super::s3::is_s3(url);
+        let signed;
+        let (url, token) = if s3 {
+            signed = super::s3::request_url(url, method).map_err(Failure::fatal)?;
+            (signed.as_str(), None)
+        } else {
+            (url, self.cfg.token.as_ref())
+        };
         let call = if method == "HEAD" {
             let mut rq = self.agent.head(url);
-            if let Some(t) = &self.cfg.token {
+            if let Some(t) = token {
                 rq = rq.header("Authorization", format!("Bearer {t}"));
             }
             rq.call()
@@ -478,7 +617,7 @@ impl Client {
             if let Some(r) = range {
                 rq = rq.header("Range", r);
             }
-            if let Some(t) = &self.cfg.token {
+            if let Some(t) = token {
                 rq = rq.header("Authorization", format!("Bearer {t}"));
             }
             rq.call()
@@ -491,7 +630,16 @@ impl Client {
             401 | 403 => Err(Failure::fatal(format!(
                 "HTTP {code} {}: access refused{}",
                 status_text(code),
-                if self.cfg.token.is_some() {
+                if s3 {
+                    if super::s3::signed() {
+                        " (the signed request was refused: check AWS_ACCESS_KEY_ID, \
+                         AWS_SECRET_ACCESS_KEY, AWS_SESSION_TOKEN and AWS_REGION; \
+                         S3 also answers 403 for a missing key without list permission)"
+                    } else {
+                        " (an unsigned request: set AWS_ACCESS_KEY_ID and \
+                         AWS_SECRET_ACCESS_KEY for a private bucket)"
+                    }
+                } else if self.cfg.token.is_some() {
                     " (the bearer token was not accepted)"
                 } else {
                     " (a token may be needed: --token or BRICKYARD_TOKEN)"
@@ -587,7 +735,13 @@ fn read_body(
         }
         Ok(body)
     } else {
-        // The whole value (a server that ignores Range).
+        // The whole value (a server that ignores Range); a suffix longer
+        // than the value is all of it, as a 206 would have been.
+        if let Span::Suffix(n) = span {
+            if *n >= got {
+                return Ok(body);
+            }
+        }
         let r = span.within(got).ok_or_else(|| {
             Failure::fatal(format!(
                 "bytes {span:?} asked for, but the value holds {got}"

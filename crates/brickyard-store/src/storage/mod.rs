@@ -3,14 +3,16 @@
 //! goes through here, so a store on a web server reads exactly as one on
 //! disk.
 //!
-//! A store *location* is a `Path` whose text is either a local path or an
-//! `http://` / `https://` URL ([`is_remote`]); joining keys onto it with
+//! A store *location* is a `Path` whose text is either a local path, an
+//! `http://` / `https://` URL or an `s3://bucket/key` location
+//! ([`is_remote`]; S3 requests are HTTPS requests made by [`s3`]); joining keys onto it with
 //! `Path::join` gives the location of a key either way, so the readers keep
 //! their `&Path` signatures. [`StoreAt`] adapts a location to the Zarr
 //! library's storage traits.
 
 pub mod http;
 mod local;
+pub mod s3;
 mod zarr;
 
 pub use zarr::StoreAt;
@@ -45,11 +47,12 @@ impl Span {
     }
 }
 
-/// Whether `p` names a remote store (an `http://` or `https://` URL).
+/// Whether `p` names a remote store (an `http://` or `https://` URL, or
+/// an `s3://` location).
 pub fn is_remote(p: &Path) -> bool {
     p.to_str().is_some_and(|s| {
         let l = s.get(..8).unwrap_or(s).to_ascii_lowercase();
-        l.starts_with("http://") || l.starts_with("https://")
+        l.starts_with("http://") || l.starts_with("https://") || s3::is_s3(s)
     })
 }
 
@@ -72,6 +75,24 @@ pub fn read_spans(p: &Path, spans: &[Span]) -> Result<Option<Vec<Vec<u8>>>> {
     } else {
         local::read_spans(p, spans)
     }
+}
+
+/// The last `n` bytes of the value at `p` (all of it when it is shorter)
+/// and its length; `Ok(None)` when there is none. Remote: one ranged GET,
+/// cached (a shard index and the shard's size without a HEAD request).
+pub fn read_suffix(p: &Path, n: u64) -> Result<Option<(Vec<u8>, u64)>> {
+    if is_remote(p) {
+        return Ok(http::client()
+            .suffix(url_of(p), n)?
+            .map(|(b, len)| (b.to_vec(), len)));
+    }
+    let Some(len) = local::size(p)? else {
+        return Ok(None);
+    };
+    let Some(mut v) = local::read_spans(p, &[Span::Suffix(n.min(len))])? else {
+        return Ok(None);
+    };
+    Ok(Some((v.swap_remove(0), len)))
 }
 
 /// The size of the value at `p`; `Ok(None)` when there is none.
