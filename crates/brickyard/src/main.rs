@@ -3,6 +3,7 @@
 mod bench;
 mod gpubench;
 mod netbench;
+mod octbench;
 mod process;
 mod progress;
 mod remote;

@@ -1,7 +1,8 @@
 //! `render --traversal octree|page-table`, `--octree-depth`, `--debug` and
 //! `bench octree` as a user meets them: the octree draws the page tables'
 //! image (one and two channels, two depths), debug images count what they
-//! say, unsupported values and combinations fail naming the flag.
+//! say, unsupported values and combinations fail naming the flag; the
+//! benchmark measures both traversals.
 
 use std::path::{Path, PathBuf};
 use std::process::{Command, Output};
@@ -294,5 +295,51 @@ fn bad_values_and_combinations_name_the_flag() {
         stderr(&o).contains("--backend auto takes the CPU"),
         "{}",
         stderr(&o)
+    );
+}
+
+#[test]
+fn bench_octree_measures_both_traversals() {
+    let d = tempfile::tempdir().unwrap();
+    let o = run(&[
+        "bench",
+        "octree",
+        "--size",
+        "32",
+        "--image",
+        "40",
+        "--channels",
+        "1,3",
+        "--dir",
+        s(d.path()),
+    ]);
+    let out = ok(&o, "bench octree");
+    let rows: Vec<Vec<&str>> = out
+        .lines()
+        .map(|l| l.split_whitespace().collect::<Vec<_>>())
+        .filter(|w| w.len() >= 12 && (w[1] == "page-table" || w[1] == "octree"))
+        .collect();
+    let names: Vec<(&str, &str)> = rows.iter().map(|w| (w[0], w[1])).collect();
+    assert_eq!(
+        names,
+        [
+            ("1", "page-table"),
+            ("1", "octree"),
+            ("3", "page-table"),
+            ("3", "octree")
+        ],
+        "{out}"
+    );
+    for w in &rows {
+        let num = |i: usize| w[i].parse::<f64>().unwrap();
+        // Frame time, samples per ray, images equal.
+        assert!(num(2) > 0.0 && num(4) > 0.0, "{w:?}");
+        assert!(num(w.len() - 1) <= 1e-4, "images differ: {w:?}");
+        // Nodes per ray: none through page tables, some through the octree.
+        assert_eq!(num(6) > 0.0, w[1] == "octree", "{w:?}");
+    }
+    fails_with(
+        &run(&["bench", "octree", "--channels", "0", "--dir", s(d.path())]),
+        &["channels"],
     );
 }
