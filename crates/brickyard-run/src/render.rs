@@ -878,15 +878,24 @@ fn run_with(
                 .iter()
                 .fold((0.0f32, 0.0f64), |(m, t), p| (m.max(p[0]), t + p[0] as f64));
             let rays = (img.width as f64 * img.height as f64).max(1.0);
-            say!(
-                silent,
-                "view {v}: debug {} per ray: largest {most} (white), mean {:.1}; {} octree nodes, {} steps, {} samples in the frame",
-                format!("{d:?}").to_lowercase(),
-                sum / rays,
-                f.stats.octree_nodes,
-                f.stats.steps,
-                f.stats.samples
-            );
+            let name = format!("{d:?}").to_lowercase();
+            if c.json {
+                say!(
+                    silent,
+                    "{}",
+                    serde_json::json!({"view": v, "debug": name, "largest": most, "mean": sum / rays,
+                        "octree_nodes": f.stats.octree_nodes, "steps": f.stats.steps, "samples": f.stats.samples})
+                );
+            } else {
+                say!(
+                    silent,
+                    "view {v}: debug {name} per ray: largest {most} (white), mean {:.1}; {} octree nodes, {} steps, {} samples in the frame",
+                    sum / rays,
+                    f.stats.octree_nodes,
+                    f.stats.steps,
+                    f.stats.samples
+                );
+            }
             brickyard_render::cpu::false_colour(&mut img);
             let path = match c.turntable {
                 Some(_) => {
@@ -905,11 +914,7 @@ fn run_with(
                 None => img,
             };
             sink(&path, img)?;
-            written.push(format!(
-                "{}: debug {}; {detail_line}",
-                path.display(),
-                format!("{d:?}").to_lowercase()
-            ));
+            written.push(format!("{}: debug {name}; {detail_line}", path.display()));
             continue;
         }
         let img = match c.progressive {

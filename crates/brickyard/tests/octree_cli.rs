@@ -111,8 +111,8 @@ fn lit(pixels: &[u8]) -> usize {
 
 /// `render STORE --size 64x56 --backend cpu --json ARGS --out DIR/NAME`,
 /// which must end complete: the pixels and the octree nodes its frames
-/// visited.
-fn render(store: &Path, dir: &Path, name: &str, args: &[&str]) -> (Vec<u8>, u64) {
+/// visited and the largest count of a debug image (`None` without one).
+fn render(store: &Path, dir: &Path, name: &str, args: &[&str]) -> (Vec<u8>, u64, Option<f64>) {
     let png = dir.join(name);
     let mut a = vec![
         "render",
@@ -130,12 +130,17 @@ fn render(store: &Path, dir: &Path, name: &str, args: &[&str]) -> (Vec<u8>, u64)
     a.extend_from_slice(args);
     let out = ok(&run(&a), name);
     assert!(out.contains(r#""stop":"Some(Complete)""#), "{name}: {out}");
-    let nodes = out
+    let lines: Vec<serde_json::Value> = out
         .lines()
-        .filter_map(|l| serde_json::from_str::<serde_json::Value>(l).ok())
+        .filter_map(|l| serde_json::from_str(l).ok())
+        .collect();
+    let nodes = lines
+        .iter()
+        .filter(|v| v["frame"].is_u64())
         .filter_map(|v| v["octree_nodes"].as_u64())
         .sum();
-    (png_pixels(&png), nodes)
+    let largest = lines.iter().find_map(|v| v["largest"].as_f64());
+    (png_pixels(&png), nodes, largest)
 }
 
 /// Largest difference of two RGBA8 images, in 1/255.
@@ -155,7 +160,7 @@ fn octree_draws_the_page_tables_image() {
         (&one, &["--level", "1"][..], "one channel, level 1"),
         (&two, &two_ch[..], "two channels"),
     ] {
-        let (pt, pt_nodes) = render(store, d.path(), "pt.png", extra);
+        let (pt, pt_nodes, _) = render(store, d.path(), "pt.png", extra);
         assert_eq!(pt_nodes, 0, "{what}: page tables visit no octree nodes");
         let n = pt.len() / 4;
         assert!(
@@ -166,7 +171,7 @@ fn octree_draws_the_page_tables_image() {
         for depth in ["4", "2"] {
             let mut a = vec!["--traversal", "octree", "--octree-depth", depth];
             a.extend_from_slice(extra);
-            let (oc, nodes) = render(store, d.path(), "oc.png", &a);
+            let (oc, nodes, _) = render(store, d.path(), "oc.png", &a);
             assert!(nodes > 0, "{what}, depth {depth}: no octree node visited");
             let diff = max_diff(&pt, &oc);
             assert!(
@@ -177,7 +182,7 @@ fn octree_draws_the_page_tables_image() {
         // Explicit page tables are the default.
         let mut a = vec!["--traversal", "page-table"];
         a.extend_from_slice(extra);
-        let (pt2, _) = render(store, d.path(), "pt2.png", &a);
+        let (pt2, _, _) = render(store, d.path(), "pt2.png", &a);
         assert_eq!(pt, pt2, "{what}");
     }
 }
@@ -187,13 +192,14 @@ fn debug_images_count_nodes_only_through_the_octree() {
     let d = tempfile::tempdir().unwrap();
     let store = two_channels(d.path());
     let opaque = |px: &[u8]| px.chunks(4).all(|c| c[3] == 255);
-    let (nodes, visited) = render(
+    let (nodes, visited, largest) = render(
         &store,
         d.path(),
         "nodes.png",
         &["--traversal", "octree", "--debug", "nodes"],
     );
     assert!(visited > 0);
+    assert!(largest.is_some_and(|m| m >= 1.0), "{largest:?}");
     let n = nodes.len() / 4;
     // Rays through the volume visit nodes, rays beside it none (black);
     // the largest count is white.
@@ -209,13 +215,14 @@ fn debug_images_count_nodes_only_through_the_octree() {
     );
     // Page tables visit no nodes: all black, yet their bricks and steps
     // images show the volume.
-    let (pt_nodes, _) = render(&store, d.path(), "pt-nodes.png", &["--debug", "nodes"]);
+    let (pt_nodes, _, largest) = render(&store, d.path(), "pt-nodes.png", &["--debug", "nodes"]);
+    assert_eq!(largest, Some(0.0));
     assert!(opaque(&pt_nodes));
     assert_eq!(lit(&pt_nodes), 0, "page-table nodes image not black");
     assert!(pt_nodes.chunks(4).all(|c| c[..3] == [0; 3]));
     for what in ["bricks", "steps"] {
-        let (pt, _) = render(&store, d.path(), "pt.png", &["--debug", what]);
-        let (oc, _) = render(
+        let (pt, _, _) = render(&store, d.path(), "pt.png", &["--debug", what]);
+        let (oc, _, _) = render(
             &store,
             d.path(),
             "oc.png",
