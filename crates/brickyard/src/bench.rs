@@ -29,7 +29,7 @@ pub struct BenchCmd {
     /// N-view super-slice against one view and the views one by one, stereo
     /// against mono DVR; octree: DVR through the residency octree beside
     /// the page tables on the CPU for 1, 4, 16, 64 channels (--channels) of a
-    /// generated banded volume or of --store.
+    /// generated banded volume or of --store (a table, not JSON).
     scenario: String,
     /// Volume size (N or XxYxZ; default 256, octree 128).
     #[arg(long)]
