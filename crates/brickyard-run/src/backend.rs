@@ -250,6 +250,10 @@ fn cpu_frame(
     let render_ms = t.elapsed().as_secs_f64() * 1e3;
     let c = std::time::Instant::now();
     let session = s.finish_frame(reqs.iter());
+    // The residency octree follows what the frame mapped and evicted.
+    if let Some(o) = &scene.octree {
+        o.write().expect("octree lock").sync(s.vm_mut());
+    }
     Ok(Frame {
         exact_slots: Some(session.frame.exact_slots),
         tiles: Some(tiles),

@@ -8,6 +8,8 @@ use brickyard_core::camera::{world_extent, Camera, Projection};
 use brickyard_core::TransferFunction;
 use brickyard_render::budget::Stop;
 use brickyard_render::cpu::{Lod, Scene};
+use brickyard_render::octree::{Octree, DEFAULT_DEPTH, MAX_DEPTH, MIN_DEPTH};
+use brickyard_render::params::{DebugCounts, Traversal};
 use brickyard_render::reference::{RenderMode, RenderParams};
 use brickyard_store::import::zarr;
 use brickyard_store::info::{human_bytes, inspect};
@@ -184,6 +186,22 @@ pub struct RenderCmd {
     /// device mirrors the host's decisions).
     #[arg(long, default_value = "device")]
     gpu_update: crate::backend::GpuUpdate,
+    /// DVR: how rays find their bricks: page-table (the page tables at
+    /// every step) or octree (the residency octree: empty and homogeneous
+    /// nodes skipped, misses substituted from the levels a node has). The
+    /// octree draws unshaded DVR on the CPU only; with --backend auto it
+    /// takes the CPU.
+    #[arg(long, default_value = "page-table", value_name = "octree|page-table")]
+    traversal: String,
+    /// --traversal octree: the octree's depth, 1 to 7 (default 4).
+    #[arg(long, value_name = "D")]
+    octree_depth: Option<u32>,
+    /// DVR on the CPU: write a count per pixel in false colour instead of
+    /// the image (black 0, then blue, green, yellow, white at the largest
+    /// count): octree nodes visited (0 with page tables), bricks entered
+    /// or ray steps; drawn once the view is complete.
+    #[arg(long, value_name = "nodes|bricks|steps")]
+    debug: Option<String>,
     /// Print nothing (a caller that takes the images, not the PNG files).
     #[arg(skip)]
     silent: bool,
@@ -357,6 +375,18 @@ fn run_with(
     let silent = c.silent;
     let [w, h] = parse_image_size(&c.size, "size")?;
     let (n_views, layout) = view_layout(&c)?;
+    let (traversal, octree_depth, debug, backend_choice) = traversal_options(&c)?;
+    if backend_choice != c.backend {
+        say_err!(
+            silent,
+            "note: {} draws on the CPU (the device draws through the page tables, without debug images): --backend auto takes the CPU",
+            if traversal == Traversal::Octree {
+                "--traversal octree"
+            } else {
+                "--debug"
+            }
+        );
+    }
     let info = inspect(&c.store)?;
     if info.complete == Some(false) {
         bail!(
@@ -418,6 +448,12 @@ fn run_with(
         TransferFunction::preset(&c.tf, [lo as f32, hi as f32])
             .map_err(|e| anyhow::anyhow!("tf: {e}"))?
     };
+    if traversal == Traversal::Octree && tf.shading.is_some() && c.channels.len() <= 1 {
+        bail!(
+            "traversal: the octree traversal draws unshaded DVR; the transfer function {:?} has shading (turn it off or use --traversal page-table)",
+            c.tf
+        );
+    }
     let projection = if c.ortho {
         Projection::Orthographic {
             height: extent.iter().cloned().fold(0.0, f64::max) * 1.2,
@@ -588,7 +624,7 @@ fn run_with(
         let pinned = s
             .pin_coarsest(512, std::time::Duration::from_secs(120))
             .map_err(|e| anyhow::anyhow!("pool: {e}"))?;
-        match crate::backend::Backend::choose(&c.backend, c.gpu_update, &mut s, shown) {
+        match crate::backend::Backend::choose(&backend_choice, c.gpu_update, &mut s, shown) {
             Ok(b) => break (s, pinned, b),
             Err(e)
                 if c.pool.is_none()
@@ -615,6 +651,18 @@ fn run_with(
     // Value ranges from the store's statistics: skip what the transfer
     // function hides without loading it.
     scene.ranges = Some(std::sync::Arc::new(s.loader().brick_ranges(1 << 24)));
+    if traversal == Traversal::Octree {
+        // Kept from the virtual memory's events after every frame
+        // (`backend::cpu_frame`).
+        let o = Octree::attach(
+            octree_depth,
+            &scene.levels,
+            s.vm_mut(),
+            scene.ranges.as_deref(),
+        )
+        .map_err(|e| anyhow::anyhow!("octree-depth: {e}"))?;
+        scene.octree = Some(std::sync::Arc::new(std::sync::RwLock::new(o)));
+    }
     let lod = match c.level {
         Some(l) if l >= scene.levels.len() => {
             bail!("level: the store has {} levels", scene.levels.len())
@@ -637,7 +685,16 @@ fn run_with(
         }
     }
     if !c.json {
-        say!(silent, "rendering on {}", backend.describe());
+        say!(
+            silent,
+            "rendering on {}{}",
+            backend.describe(),
+            match traversal {
+                Traversal::Octree =>
+                    format!(", DVR through a residency octree of depth {octree_depth}"),
+                Traversal::PageTable => String::new(),
+            }
+        );
     }
     if !c.json && !c.quiet {
         say!(silent, "{}", split.describe());
@@ -693,6 +750,7 @@ fn run_with(
             params.channels = styles.clone();
         }
         params.reference_step = Some(scene.voxel(0));
+        params.traversal = traversal;
         params.validate().map_err(|e| anyhow::anyhow!("{e}"))?;
         budget.view_changed();
         let (json, quiet) = (c.json, c.quiet);
@@ -712,7 +770,7 @@ fn run_with(
                         "{}",
                         serde_json::json!({"view": v, "frame": fi.frame, "pass": if fi.pass {"requests"} else {"image"},
                             "ms": fi.ms, "completeness": st.completeness(), "lod_bias": fi.bias,
-                            "samples": st.samples, "requests": fs.frame.requests.len(),
+                            "samples": st.samples, "steps": st.steps, "octree_nodes": st.octree_nodes, "requests": fs.frame.requests.len(),
                             "bricks_in": fs.insert.inserted + fs.insert.flagged, "deferred": fs.insert.deferred,
                             "uploaded_bytes": fs.insert.bytes_uploaded, "bytes_read_total": read,
                             "render_ms": f.render_ms, "host_to_device_bytes": f.up, "device_to_host_bytes": f.down,
@@ -808,6 +866,57 @@ fn run_with(
                 say!(silent, "  … and {} more", failures.len() - 10);
             }
         }
+        if let Some(d) = debug {
+            // The debug image of the complete view: one more whole frame
+            // at the level of detail the view ended with, counting.
+            let mut dp = params.clone();
+            dp.debug = Some(d);
+            let f = backend.frame(&mut s, &scene, &dp, out.budget.apply(lod, levels))?;
+            let mut img = f.image;
+            let (most, sum) = img
+                .rgba
+                .iter()
+                .fold((0.0f32, 0.0f64), |(m, t), p| (m.max(p[0]), t + p[0] as f64));
+            let rays = (img.width as f64 * img.height as f64).max(1.0);
+            let name = format!("{d:?}").to_lowercase();
+            if c.json {
+                say!(
+                    silent,
+                    "{}",
+                    serde_json::json!({"view": v, "debug": name, "largest": most, "mean": sum / rays,
+                        "octree_nodes": f.stats.octree_nodes, "steps": f.stats.steps, "samples": f.stats.samples})
+                );
+            } else {
+                say!(
+                    silent,
+                    "view {v}: debug {name} per ray: largest {most} (white), mean {:.1}; {} octree nodes, {} steps, {} samples in the frame",
+                    sum / rays,
+                    f.stats.octree_nodes,
+                    f.stats.steps,
+                    f.stats.samples
+                );
+            }
+            brickyard_render::cpu::false_colour(&mut img);
+            let path = match c.turntable {
+                Some(_) => {
+                    let stem = c
+                        .out
+                        .file_stem()
+                        .map(|s| s.to_string_lossy().into_owned())
+                        .unwrap_or_default();
+                    c.out.with_file_name(format!("{stem}-{v:04}.png"))
+                }
+                None => c.out.clone(),
+            };
+            let img = match &layout {
+                Some(l) => brickyard_render::views::compose(&img, n_views, l, [0.0, 0.0, 0.0, 1.0])
+                    .map_err(|e| anyhow::anyhow!("views: {e}"))?,
+                None => img,
+            };
+            sink(&path, img)?;
+            written.push(format!("{}: debug {name}; {detail_line}", path.display()));
+            continue;
+        }
         let img = match c.progressive {
             Some(n) => {
                 let lod = match lod {
@@ -855,6 +964,53 @@ fn run_with(
         }
     }
     Ok(written)
+}
+
+/// `--traversal`, `--octree-depth`, `--debug` and what they allow: the
+/// traversal, the octree's depth, the debug image and the back end to
+/// open (`auto` becomes `cpu` for what only the CPU draws).
+fn traversal_options(c: &RenderCmd) -> Result<(Traversal, u32, Option<DebugCounts>, String)> {
+    let traversal: Traversal = c.traversal.parse().map_err(|e| anyhow::anyhow!("{e}"))?;
+    let debug: Option<DebugCounts> = c
+        .debug
+        .as_deref()
+        .map(str::parse)
+        .transpose()
+        .map_err(|e: String| anyhow::anyhow!("{e}"))?;
+    let depth = c.octree_depth.unwrap_or(DEFAULT_DEPTH);
+    if !(MIN_DEPTH..=MAX_DEPTH).contains(&depth) {
+        bail!("octree-depth: expected {MIN_DEPTH} to {MAX_DEPTH}, got {depth}");
+    }
+    let octree = traversal == Traversal::Octree;
+    if c.octree_depth.is_some() && !octree {
+        bail!("octree-depth: only with --traversal octree");
+    }
+    if octree && c.mode != "dvr" {
+        bail!(
+            "traversal: the octree traversal draws DVR (--mode dvr); --mode {} draws through the page tables",
+            c.mode
+        );
+    }
+    if debug.is_some() && c.mode != "dvr" {
+        bail!("debug: debug images are drawn for DVR (--mode dvr)");
+    }
+    if octree || debug.is_some() {
+        let (flag, what) = match octree {
+            true => ("traversal", "--traversal octree"),
+            false => ("debug", "--debug"),
+        };
+        if c.progressive.is_some() {
+            bail!("{flag}: {what} and --progressive do not go together (sample accumulation walks the page tables)");
+        }
+        match c.backend.as_str() {
+            "gpu" => bail!(
+                "{flag}: {what} draws on the CPU only (the device draws through the page tables, without debug images): use --backend cpu or auto"
+            ),
+            "auto" => return Ok((traversal, depth, debug, "cpu".into())),
+            _ => {}
+        }
+    }
+    Ok((traversal, depth, debug, c.backend.clone()))
 }
 
 /// `--views`, `--stereo` and their companions: how many views and how

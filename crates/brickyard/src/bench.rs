@@ -27,11 +27,13 @@ pub struct BenchCmd {
     /// view from an empty cache (paper Table 2); render: DVR (or --mode mip) frame times
     /// through the virtual memory beside the in-core reference; views: an
     /// N-view super-slice against one view and the views one by one, stereo
-    /// against mono DVR.
+    /// against mono DVR; octree: DVR through the residency octree beside
+    /// the page tables on the CPU for 1, 4, 16, 64 channels (--channels) of a
+    /// generated banded volume or of --store (a table, not JSON).
     scenario: String,
-    /// Volume size (N or XxYxZ).
-    #[arg(long, default_value = "256")]
-    size: String,
+    /// Volume size (N or XxYxZ; default 256, octree 128).
+    #[arg(long)]
+    size: Option<String>,
     #[arg(long, default_value = "u8")]
     dtype: String,
     /// Where inputs are generated (kept between runs) and outputs written.
@@ -49,9 +51,10 @@ pub struct BenchCmd {
     /// Repetitions (the best is reported, all are listed).
     #[arg(long, default_value_t = 1)]
     repeat: usize,
-    /// render: image size, N (square) or WxH.
-    #[arg(long, default_value = "512")]
-    image: String,
+    /// render, views, octree: image size, N (square) or WxH (default 512,
+    /// octree 256).
+    #[arg(long)]
+    image: Option<String>,
     /// render: move the camera this many times closer than the full view
     /// (zoomed in: most rays cross dense data, more bricks per pixel).
     #[arg(long, default_value_t = 1.0)]
@@ -88,10 +91,31 @@ pub struct BenchCmd {
     /// views: how many views (2 to 16).
     #[arg(long, default_value_t = 8)]
     views: u32,
+    /// octree: channel counts to measure, comma-separated (1 to 64 each).
+    #[arg(long, default_value = "1,4,16,64")]
+    channels: String,
+    /// octree: measure this store's first channels instead of generated
+    /// volumes.
+    #[arg(long)]
+    store: Option<PathBuf>,
+    /// octree: the octree's depth (1 to 7).
+    #[arg(long, default_value_t = 4)]
+    octree_depth: u32,
 }
 
 pub fn run(b: BenchCmd) -> Result<()> {
-    let dims = parse_size(&b.size).map_err(|e| anyhow::anyhow!("size: {e}"))?;
+    let octree = b.scenario == "octree";
+    let size = b
+        .size
+        .clone()
+        .unwrap_or_else(|| if octree { "128" } else { "256" }.into());
+    let dims = parse_size(&size).map_err(|e| anyhow::anyhow!("size: {e}"))?;
+    let image = crate::render::parse_image_size(
+        b.image
+            .as_deref()
+            .unwrap_or(if octree { "256" } else { "512" }),
+        "--image",
+    )?;
     let dtype = DType::parse(&b.dtype).with_context(|| format!("dtype: unknown {:?}", b.dtype))?;
     match b.scenario.as_str() {
         "convert" => bench_convert(&b, dims, dtype),
@@ -124,7 +148,7 @@ pub fn run(b: BenchCmd) -> Result<()> {
             &b.dir,
             dims,
             dtype,
-            crate::render::parse_image_size(&b.image, "--image")?,
+            image,
             b.views,
             b.repeat,
             &match b.backend.as_str() {
@@ -135,7 +159,7 @@ pub fn run(b: BenchCmd) -> Result<()> {
         "render" => {
             let pool = b.pool.as_deref().map(crate::parse_bytes).transpose()?;
             let o = crate::vmbench::RenderBench {
-                image: crate::render::parse_image_size(&b.image, "--image")?,
+                image,
                 zoom: b.zoom,
                 repeat: b.repeat,
                 cold: b.cold,
@@ -155,8 +179,40 @@ pub fn run(b: BenchCmd) -> Result<()> {
             };
             crate::vmbench::render(&b.dir, dims, dtype, &o)
         }
+        "octree" => {
+            if !(brickyard_render::octree::MIN_DEPTH..=brickyard_render::octree::MAX_DEPTH)
+                .contains(&b.octree_depth)
+            {
+                bail!("octree-depth: expected 1 to 7, got {}", b.octree_depth);
+            }
+            let channels = b
+                .channels
+                .split(',')
+                .map(|t| t.trim().parse::<usize>())
+                .collect::<std::result::Result<Vec<_>, _>>()
+                .with_context(|| {
+                    format!("--channels: expected numbers, found {:?}", b.channels)
+                })?;
+            if let Some(n) = channels
+                .iter()
+                .find(|&&n| n == 0 || n > brickyard_render::params::MAX_DVR_CHANNELS)
+            {
+                bail!("--channels: 1 to 64 channels, got {n}");
+            }
+            let o = crate::octbench::OctreeBench {
+                dims,
+                store: b.store.clone(),
+                channels,
+                image,
+                depth: b.octree_depth,
+                repeat: b.repeat,
+                chunk: b.brick,
+                shard: b.shard,
+            };
+            crate::octbench::run(&b.dir, &o)
+        }
         s => bail!(
-            "scenario: expected convert, downsample, vm-sample, vm-update, cache-kernels, process-filters, loader, latency, render or views, found {s:?}"
+            "scenario: expected convert, downsample, vm-sample, vm-update, cache-kernels, process-filters, loader, latency, render, views or octree, found {s:?}"
         ),
     }
 }

@@ -3,6 +3,7 @@
 mod bench;
 mod gpubench;
 mod netbench;
+mod octbench;
 mod process;
 mod progress;
 mod remote;
@@ -103,7 +104,8 @@ enum Cmd {
     /// Open an interactive viewer (no STORE: the demo dataset, generated on
     /// first use).
     View(view::ViewCmd),
-    /// Run a benchmark scenario and print one JSON line of figures.
+    /// Run a benchmark scenario and print its figures (one JSON line; a
+    /// table for `octree`).
     Bench(bench::BenchCmd),
     /// Serve store directories read-only over HTTP (GET/HEAD with ranges,
     /// ETag, CORS); loopback unless a bearer token is set.

@@ -1,0 +1,352 @@
+//! `render --traversal octree|page-table`, `--octree-depth`, `--debug` and
+//! `bench octree` as a user meets them: the octree draws the page tables'
+//! image (one and two channels, two depths), debug images count what they
+//! say, unsupported values and combinations fail naming the flag; the
+//! benchmark measures both traversals.
+
+use std::path::{Path, PathBuf};
+use std::process::{Command, Output};
+
+fn run(args: &[&str]) -> Output {
+    Command::new(env!("CARGO_BIN_EXE_brickyard"))
+        .args(args)
+        .output()
+        .unwrap()
+}
+
+fn stderr(o: &Output) -> String {
+    String::from_utf8_lossy(&o.stderr).into_owned()
+}
+
+fn s(p: &Path) -> &str {
+    p.to_str().unwrap()
+}
+
+#[track_caller]
+fn ok(o: &Output, what: &str) -> String {
+    assert!(o.status.success(), "{what}: {}", stderr(o));
+    String::from_utf8_lossy(&o.stdout).into_owned()
+}
+
+#[track_caller]
+fn fails_with(o: &Output, needles: &[&str]) {
+    assert!(
+        !o.status.success(),
+        "expected failure, got success: {}",
+        String::from_utf8_lossy(&o.stdout)
+    );
+    let e = stderr(o);
+    assert!(!e.contains("panicked"), "panic: {e}");
+    for n in needles {
+        assert!(e.contains(n), "error {e:?} should mention {n:?}");
+    }
+}
+
+/// A 48³ Mandelbulb store of 16³ bricks.
+fn mandelbulb(dir: &Path) -> PathBuf {
+    let store = dir.join("m.ome.zarr");
+    let o = run(&[
+        "generate",
+        "mandelbulb",
+        s(&store),
+        "--size",
+        "48",
+        "--quiet",
+        "--brick",
+        "16",
+        "--shard",
+        "32",
+    ]);
+    ok(&o, "generate");
+    store
+}
+
+/// A two-channel store: a Mandelbulb and a Marschner–Lobb of 40×48×56,
+/// converted from raw files as the channels of one volume.
+fn two_channels(dir: &Path) -> PathBuf {
+    let mut raws = vec![];
+    for kind in ["mandelbulb", "marschner-lobb"] {
+        let raw = dir.join(format!("{kind}.raw"));
+        ok(
+            &run(&["generate", kind, s(&raw), "--size", "56x48x40", "--quiet"]),
+            kind,
+        );
+        raws.push(raw);
+    }
+    let store = dir.join("two.ome.zarr");
+    ok(
+        &run(&[
+            "convert",
+            s(&raws[0]),
+            s(&raws[1]),
+            s(&store),
+            "--brick",
+            "16",
+            "--shard",
+            "32",
+            "--quiet",
+        ]),
+        "convert",
+    );
+    store
+}
+
+/// Decoded RGBA8 pixels of a PNG.
+fn png_pixels(p: &Path) -> Vec<u8> {
+    let dec = png::Decoder::new(std::io::BufReader::new(std::fs::File::open(p).unwrap()));
+    let mut r = dec.read_info().unwrap();
+    let mut buf = vec![0; r.output_buffer_size().unwrap()];
+    let info = r.next_frame(&mut buf).unwrap();
+    buf.truncate(info.buffer_size());
+    buf
+}
+
+/// Pixels (of RGBA8) with some colour over black.
+fn lit(pixels: &[u8]) -> usize {
+    pixels
+        .chunks(4)
+        .filter(|c| c[0].max(c[1]).max(c[2]) > 8)
+        .count()
+}
+
+/// `render STORE --size 64x56 --backend cpu --json ARGS --out DIR/NAME`,
+/// which must end complete: the pixels and the octree nodes its frames
+/// visited and the largest count of a debug image (`None` without one).
+fn render(store: &Path, dir: &Path, name: &str, args: &[&str]) -> (Vec<u8>, u64, Option<f64>) {
+    let png = dir.join(name);
+    let mut a = vec![
+        "render",
+        s(store),
+        "--size",
+        "64x56",
+        "--brick",
+        "8",
+        "--backend",
+        "cpu",
+        "--json",
+        "--out",
+        s(&png),
+    ];
+    a.extend_from_slice(args);
+    let out = ok(&run(&a), name);
+    assert!(out.contains(r#""stop":"Some(Complete)""#), "{name}: {out}");
+    let lines: Vec<serde_json::Value> = out
+        .lines()
+        .filter_map(|l| serde_json::from_str(l).ok())
+        .collect();
+    let nodes = lines
+        .iter()
+        .filter(|v| v["frame"].is_u64())
+        .filter_map(|v| v["octree_nodes"].as_u64())
+        .sum();
+    let largest = lines.iter().find_map(|v| v["largest"].as_f64());
+    (png_pixels(&png), nodes, largest)
+}
+
+/// Largest difference of two RGBA8 images, in 1/255.
+fn max_diff(a: &[u8], b: &[u8]) -> u8 {
+    assert_eq!(a.len(), b.len());
+    a.iter().zip(b).map(|(x, y)| x.abs_diff(*y)).max().unwrap()
+}
+
+#[test]
+fn octree_draws_the_page_tables_image() {
+    let d = tempfile::tempdir().unwrap();
+    let one = mandelbulb(d.path());
+    let two = two_channels(d.path());
+    let two_ch = ["--channel", "0:green", "--channel", "1:magenta"];
+    for (store, extra, what) in [
+        (&one, &[][..], "one channel"),
+        (&one, &["--level", "1"][..], "one channel, level 1"),
+        (&two, &two_ch[..], "two channels"),
+    ] {
+        let (pt, pt_nodes, _) = render(store, d.path(), "pt.png", extra);
+        assert_eq!(pt_nodes, 0, "{what}: page tables visit no octree nodes");
+        let n = pt.len() / 4;
+        assert!(
+            lit(&pt) * 10 >= n,
+            "{what}: only {} of {n} pixels lit",
+            lit(&pt)
+        );
+        for depth in ["4", "2"] {
+            let mut a = vec!["--traversal", "octree", "--octree-depth", depth];
+            a.extend_from_slice(extra);
+            let (oc, nodes, _) = render(store, d.path(), "oc.png", &a);
+            assert!(nodes > 0, "{what}, depth {depth}: no octree node visited");
+            let diff = max_diff(&pt, &oc);
+            assert!(
+                diff <= 1,
+                "{what}, depth {depth}: pixels differ by {diff}/255"
+            );
+        }
+        // Explicit page tables are the default.
+        let mut a = vec!["--traversal", "page-table"];
+        a.extend_from_slice(extra);
+        let (pt2, _, _) = render(store, d.path(), "pt2.png", &a);
+        assert_eq!(pt, pt2, "{what}");
+    }
+}
+
+#[test]
+fn debug_images_count_nodes_only_through_the_octree() {
+    let d = tempfile::tempdir().unwrap();
+    let store = two_channels(d.path());
+    let opaque = |px: &[u8]| px.chunks(4).all(|c| c[3] == 255);
+    let (nodes, visited, largest) = render(
+        &store,
+        d.path(),
+        "nodes.png",
+        &["--traversal", "octree", "--debug", "nodes"],
+    );
+    assert!(visited > 0);
+    assert!(largest.is_some_and(|m| m >= 1.0), "{largest:?}");
+    let n = nodes.len() / 4;
+    // Rays through the volume visit nodes, rays beside it none (black);
+    // the largest count is white.
+    assert!(opaque(&nodes));
+    assert!(
+        lit(&nodes) * 4 >= n && lit(&nodes) < n,
+        "nodes: {} of {n} lit",
+        lit(&nodes)
+    );
+    assert!(
+        nodes.chunks(4).any(|c| c[..3] == [255; 3]),
+        "no white pixel"
+    );
+    // Page tables visit no nodes: all black, yet their bricks and steps
+    // images show the volume.
+    let (pt_nodes, _, largest) = render(&store, d.path(), "pt-nodes.png", &["--debug", "nodes"]);
+    assert_eq!(largest, Some(0.0));
+    assert!(opaque(&pt_nodes));
+    assert_eq!(lit(&pt_nodes), 0, "page-table nodes image not black");
+    assert!(pt_nodes.chunks(4).all(|c| c[..3] == [0; 3]));
+    for what in ["bricks", "steps"] {
+        let (pt, _, _) = render(&store, d.path(), "pt.png", &["--debug", what]);
+        let (oc, _, _) = render(
+            &store,
+            d.path(),
+            "oc.png",
+            &["--traversal", "octree", "--debug", what],
+        );
+        for (img, t) in [(&pt, "page-table"), (&oc, "octree")] {
+            assert!(
+                lit(img) * 4 >= n && lit(img) < n,
+                "{what} through {t}: {} of {n} lit",
+                lit(img)
+            );
+        }
+    }
+}
+
+#[test]
+fn bad_values_and_combinations_name_the_flag() {
+    let d = tempfile::tempdir().unwrap();
+    let store = mandelbulb(d.path());
+    let out = d.path().join("x.png");
+    let r = |args: &[&str]| {
+        let mut a = vec!["render", s(&store), "--size", "16", "--out", s(&out)];
+        a.extend_from_slice(args);
+        run(&a)
+    };
+    let oc = ["--traversal", "octree"];
+    fails_with(
+        &r(&[&oc[..], &["--octree-depth", "0"]].concat()),
+        &["octree-depth", "1 to 7", "0"],
+    );
+    fails_with(
+        &r(&[&oc[..], &["--octree-depth", "9"]].concat()),
+        &["octree-depth", "9"],
+    );
+    fails_with(&r(&["--octree-depth", "x"]), &["--octree-depth"]);
+    fails_with(&r(&["--octree-depth", "3"]), &["octree-depth", "octree"]);
+    fails_with(&r(&["--traversal", "foo"]), &["traversal", "foo"]);
+    fails_with(&r(&["--debug", "foo"]), &["debug", "foo"]);
+    for mode in ["mip", "slice"] {
+        fails_with(
+            &r(&[&oc[..], &["--mode", mode]].concat()),
+            &["traversal", "dvr", mode],
+        );
+        fails_with(&r(&["--debug", "nodes", "--mode", mode]), &["debug", "dvr"]);
+    }
+    fails_with(
+        &r(&[&oc[..], &["--backend", "gpu"]].concat()),
+        &["traversal", "CPU", "page tables"],
+    );
+    fails_with(
+        &r(&["--debug", "steps", "--backend", "gpu"]),
+        &["debug", "CPU"],
+    );
+    fails_with(
+        &r(&[&oc[..], &["--progressive", "4"]].concat()),
+        &["traversal", "progressive"],
+    );
+    // Shading in the transfer function.
+    let tf = d.path().join("shaded.json");
+    std::fs::write(
+        &tf,
+        r#"{"preset": "soft", "window": [0, 255], "shading": true}"#,
+    )
+    .unwrap();
+    ok(
+        &r(&["--tf", s(&tf), "--backend", "cpu"]),
+        "shaded page tables",
+    );
+    fails_with(
+        &r(&[&oc[..], &["--tf", s(&tf)]].concat()),
+        &["traversal", "shading"],
+    );
+    // --backend auto takes the CPU for the octree, and says so.
+    let o = r(&oc);
+    ok(&o, "octree, auto");
+    assert!(
+        stderr(&o).contains("--backend auto takes the CPU"),
+        "{}",
+        stderr(&o)
+    );
+}
+
+#[test]
+fn bench_octree_measures_both_traversals() {
+    let d = tempfile::tempdir().unwrap();
+    let o = run(&[
+        "bench",
+        "octree",
+        "--size",
+        "32",
+        "--image",
+        "40",
+        "--channels",
+        "1,3",
+        "--dir",
+        s(d.path()),
+    ]);
+    let out = ok(&o, "bench octree");
+    let rows: Vec<Vec<&str>> = out
+        .lines()
+        .map(|l| l.split_whitespace().collect::<Vec<_>>())
+        .filter(|w| w.len() >= 12 && (w[1] == "page-table" || w[1] == "octree"))
+        .collect();
+    let names: Vec<(&str, &str)> = rows.iter().map(|w| (w[0], w[1])).collect();
+    assert_eq!(
+        names,
+        [
+            ("1", "page-table"),
+            ("1", "octree"),
+            ("3", "page-table"),
+            ("3", "octree")
+        ],
+        "{out}"
+    );
+    for w in &rows {
+        let num = |i: usize| w[i].parse::<f64>().unwrap();
+        // Frame time, samples per ray, images equal.
+        assert!(num(2) > 0.0 && num(4) > 0.0, "{w:?}");
+        assert!(num(w.len() - 1) <= 1e-4, "images differ: {w:?}");
+        // Nodes per ray: none through page tables, some through the octree.
+        assert_eq!(num(6) > 0.0, w[1] == "octree", "{w:?}");
+    }
+    fails_with(
+        &run(&["bench", "octree", "--channels", "0", "--dir", s(d.path())]),
+        &["channels"],
+    );
+}
