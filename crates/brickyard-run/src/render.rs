@@ -375,6 +375,26 @@ fn run_with(
     let silent = c.silent;
     let [w, h] = parse_image_size(&c.size, "size")?;
     let (n_views, layout) = view_layout(&c)?;
+    // The image written for view `v`: the N views composed as asked, at
+    // `--out` (numbered for turntables).
+    let compose = |img: brickyard_render::image::Image| -> Result<brickyard_render::image::Image> {
+        match &layout {
+            Some(l) => brickyard_render::views::compose(&img, n_views, l, [0.0, 0.0, 0.0, 1.0])
+                .map_err(|e| anyhow::anyhow!("views: {e}")),
+            None => Ok(img),
+        }
+    };
+    let out_path = |v: u32| match c.turntable {
+        Some(_) => {
+            let stem = c
+                .out
+                .file_stem()
+                .map(|s| s.to_string_lossy().into_owned())
+                .unwrap_or_default();
+            c.out.with_file_name(format!("{stem}-{v:04}.png"))
+        }
+        None => c.out.clone(),
+    };
     let (traversal, octree_depth, debug, backend_choice) = traversal_options(&c)?;
     if backend_choice != c.backend {
         say_err!(
@@ -897,23 +917,8 @@ fn run_with(
                 );
             }
             brickyard_render::cpu::false_colour(&mut img);
-            let path = match c.turntable {
-                Some(_) => {
-                    let stem = c
-                        .out
-                        .file_stem()
-                        .map(|s| s.to_string_lossy().into_owned())
-                        .unwrap_or_default();
-                    c.out.with_file_name(format!("{stem}-{v:04}.png"))
-                }
-                None => c.out.clone(),
-            };
-            let img = match &layout {
-                Some(l) => brickyard_render::views::compose(&img, n_views, l, [0.0, 0.0, 0.0, 1.0])
-                    .map_err(|e| anyhow::anyhow!("views: {e}"))?,
-                None => img,
-            };
-            sink(&path, img)?;
+            let path = out_path(v);
+            sink(&path, compose(img)?)?;
             written.push(format!("{}: debug {name}; {detail_line}", path.display()));
             continue;
         }
@@ -935,21 +940,8 @@ fn run_with(
             }
             None => out.image,
         };
-        let img = match &layout {
-            Some(l) => brickyard_render::views::compose(&img, n_views, l, [0.0, 0.0, 0.0, 1.0])
-                .map_err(|e| anyhow::anyhow!("views: {e}"))?,
-            None => img,
-        };
-        let path = if c.turntable.is_some() {
-            let stem = c
-                .out
-                .file_stem()
-                .map(|s| s.to_string_lossy().into_owned())
-                .unwrap_or_default();
-            c.out.with_file_name(format!("{stem}-{v:04}.png"))
-        } else {
-            c.out.clone()
-        };
+        let img = compose(img)?;
+        let path = out_path(v);
         sink(&path, img)?;
         written.push(format!("{}: {detail_line}", path.display()));
     }
