@@ -44,11 +44,13 @@ def main():
                     "azimuth": 30 + 15 * turn, "elevation": 20}
             t0 = time.perf_counter()
             ws.send(json.dumps(view))
-            first, frames, nbytes = None, 0, 0
+            first, frames, nbytes, per = None, 0, 0, []
             while True:
                 m = json.loads(ws.recv())
                 img = ws.recv()
                 frames += 1
+                per.append([round(m["ms"], 1), round(m["completeness"], 3),
+                            round(time.perf_counter() - t0, 3)])
                 nbytes += len(img)
                 if first is None:
                     first = time.perf_counter() - t0
@@ -56,7 +58,8 @@ def main():
                     break
             rows.append({"view": turn, "first_frame_ms": first * 1e3,
                          "final_ms": (time.perf_counter() - t0) * 1e3, "frames": frames,
-                         "bytes": nbytes, "complete": m["complete"]})
+                         "bytes": nbytes, "complete": m["complete"],
+                         "per_frame_ms_completeness_at": per})
             print(json.dumps(rows[-1]))
         ws.close()
     finally:
