@@ -41,15 +41,15 @@ struct Cli {
     /// addressed path style; default AWS_ENDPOINT_URL_S3 or
     /// AWS_ENDPOINT_URL, else Amazon's regional endpoint. Credentials come
     /// from AWS_ACCESS_KEY_ID, AWS_SECRET_ACCESS_KEY and AWS_SESSION_TOKEN.
-    #[arg(long, global = true, value_name = "URL")]
+    #[arg(long, global = true, value_name = "URL", help_heading = "s3:// stores")]
     s3_endpoint: Option<String>,
     /// s3:// stores: the region (default AWS_REGION, AWS_DEFAULT_REGION,
     /// else us-east-1).
-    #[arg(long, global = true, value_name = "REGION")]
+    #[arg(long, global = true, value_name = "REGION", help_heading = "s3:// stores")]
     s3_region: Option<String>,
     /// s3:// stores: unsigned requests (public buckets), whatever
     /// credentials the environment holds (as AWS_NO_SIGN_REQUEST=true).
-    #[arg(long, global = true)]
+    #[arg(long, global = true, help_heading = "s3:// stores")]
     s3_anonymous: bool,
     #[command(subcommand)]
     cmd: Cmd,
