@@ -3,7 +3,9 @@
 //! sample there is step 0 of the new level's grid), bricks the transfer
 //! function hides crossed in one landing, fixed-point runs through
 //! resident bricks that cross clear cells, and the fallback to coarser
-//! levels for bricks not resident. `dvr.wgsl` is the device twin.
+//! levels for bricks not resident, crossing the regions where the
+//! stand-in hides every sample. `dvr.wgsl` is the device twin (it samples
+//! every step of a stand-in's region; the images are the same).
 
 use crate::cpu::FrameStats;
 use crate::optics::composite_visible;
@@ -17,6 +19,7 @@ impl<'f, 'a, T: Sample> Walker<'f, 'a, T> {
     pub(crate) fn dvr(&mut self, ray: &Ray, req: &mut Requests, st: &mut FrameStats) -> [f32; 4] {
         let mut acc = [0.0f32; 4];
         let f = self.f;
+        self.ray_serial += 1;
         let shading = f.tf.shading;
         let extent = f.scene.extent;
         let d = ray.dir;
@@ -130,6 +133,14 @@ impl<'f, 'a, T: Sample> Walker<'f, 'a, T> {
                 }
                 if composite_visible(&mut acc, c, exponent) {
                     break;
+                }
+            } else {
+                // Hidden: a stand-in may hide the samples after it too.
+                let g = Grid { base_t, dt, inv_dt };
+                let lim = (t1.min(next_t), t1);
+                if let Some(kn) = self.skip_hidden_stand_in(level, ray, inv_dir, w, (g, k), lim, st)
+                {
+                    k = kn;
                 }
             }
         }

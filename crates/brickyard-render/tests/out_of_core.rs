@@ -468,6 +468,79 @@ fn empty_space_skipping_changes_no_pixel_and_loads_less() {
     }
 }
 
+/// A first frame drawn from stand-ins (only the coarse levels resident):
+/// the clear cells and hidden bricks of the stand-ins are crossed without
+/// sampling, and the image is exactly the one sampling every step gives.
+#[test]
+fn stand_ins_hide_empty_space_without_changing_a_pixel() {
+    let dir = tempfile::tempdir().unwrap();
+    let dims = [64, 64, 64];
+    let store = generated(
+        dir.path(),
+        "m.ome.zarr",
+        Kind::Mandelbulb,
+        dims,
+        DType::U16,
+        32,
+    );
+    let levels = pyramid(&store);
+    assert!(levels.len() >= 3);
+    let extent = world_extent(dims, levels[0].spacing);
+    let mut plain = Scene::new(extent, levels.iter().map(|v| v.dims).collect());
+    let mut skipping = plain.clone();
+    plain.skip_cells = false;
+    skipping.ranges = Some(std::sync::Arc::new(
+        session_with(&store, 1 << 20, 8)
+            .loader()
+            .brick_ranges(1 << 20),
+    ));
+    let tf = TransferFunction::new(
+        [0.0, 65535.0],
+        vec![[0.0, 0.0], [0.3, 0.0], [1.0, 0.6]],
+        brickyard_core::transfer::ColorMap::Preset(brickyard_core::transfer::Preset::Hot),
+    )
+    .unwrap();
+    let cam = Camera::fit(
+        extent,
+        35.0,
+        25.0,
+        Projection::Perspective { fov_y_deg: 40.0 },
+    );
+    let mut p = RenderParams::new(64, 64, cam, tf, RenderMode::Dvr);
+    p.reference_step = Some(plain.voxel(0));
+    let first = |scene: &Scene| {
+        let mut s = session_with(&store, 8 << 20, 8);
+        let pin = s
+            .pin_coarsest(4096, std::time::Duration::from_secs(60))
+            .unwrap();
+        // Level 0 is never pinned: every sample is a stand-in's.
+        s.begin_frame();
+        let (img, st, _) = render_frame(s.vm(), scene, &p, Lod::Fixed(0));
+        (img, st, pin)
+    };
+    let (a, st_a, _) = first(&plain);
+    let (b, st_b, _) = first(&skipping);
+    assert_eq!(st_a.exact, 0, "level 0 was resident: no stand-ins");
+    assert!(st_a.samples > st_a.unserved, "nothing served by stand-ins");
+    assert!(a.coverage(0.01) > 0.05, "image nearly empty");
+    assert_eq!(
+        a.max_abs_diff(&b),
+        0.0,
+        "crossing hidden stand-ins changed pixels"
+    );
+    assert_eq!(st_a.skipped_cells, 0);
+    assert!(
+        st_b.skipped_cells > 0,
+        "no clear cell of a stand-in crossed"
+    );
+    assert!(
+        st_b.samples < st_a.samples,
+        "stand-ins' clear cells save samples ({} → {})",
+        st_a.samples,
+        st_b.samples
+    );
+}
+
 #[test]
 fn several_channels_add_up_in_slices_and_mips() {
     use brickyard_render::reference::render_channels;

@@ -45,7 +45,12 @@ struct Cli {
     s3_endpoint: Option<String>,
     /// s3:// stores: the region (default AWS_REGION, AWS_DEFAULT_REGION,
     /// else us-east-1).
-    #[arg(long, global = true, value_name = "REGION", help_heading = "s3:// stores")]
+    #[arg(
+        long,
+        global = true,
+        value_name = "REGION",
+        help_heading = "s3:// stores"
+    )]
     s3_region: Option<String>,
     /// s3:// stores: unsigned requests (public buckets), whatever
     /// credentials the environment holds (as AWS_NO_SIGN_REQUEST=true).

@@ -86,6 +86,10 @@ pub(crate) struct Walker<'f, 'a, T> {
     pub(crate) memo: Vec<Cached<'a, T>>,
     /// Bricks entered (a change of brick at some level), for debug images.
     pub(crate) touched: u64,
+    /// The ray being drawn (a serial number) and its tracks per level, made
+    /// when a jump over a hidden stand-in first needs them.
+    pub(crate) ray_serial: u64,
+    pub(crate) tracks: Vec<(u64, Option<Track>)>,
 }
 
 impl<'f, 'a, T: Sample> Walker<'f, 'a, T> {
@@ -97,6 +101,22 @@ impl<'f, 'a, T: Sample> Walker<'f, 'a, T> {
             memo_key: vec![u64::MAX; MEMO],
             memo: vec![Cached::NONE; MEMO],
             touched: 0,
+            ray_serial: 1,
+            tracks: vec![(0, None); f.levels()],
+        }
+    }
+
+    /// The track of the current ray at level `l` (see `ray_serial`).
+    fn track_of(&mut self, l: usize, ray: &Ray, inv_dir: Vec3, t_end: f64) -> Track {
+        let (serial, t) = &mut self.tracks[l];
+        match t {
+            Some(t) if *serial == self.ray_serial => *t,
+            _ => {
+                let made = self.f.track(l, ray, inv_dir, t_end);
+                *serial = self.ray_serial;
+                *t = Some(made);
+                made
+            }
         }
     }
 
@@ -320,6 +340,77 @@ impl<'f, 'a, T: Sample> Walker<'f, 'a, T> {
         }
         st.unserved += 1;
         None
+    }
+
+    /// After a transparent sample served by a stand-in (the brick of
+    /// `level` is not resident; the finest resident coarser level served
+    /// it): when the stand-in hides every sample around it, cross the
+    /// region where it would serve and hide them all, without sampling.
+    /// The stand-in hides the region when the transfer function hides its
+    /// whole brick (by its value range) or the clear cell holding the
+    /// sample's voxel base at its level; the region is that box, within the
+    /// box of every level's brick the lookup passed through (not resident,
+    /// so the same stand-in serves the next samples). Each landing comes at
+    /// or before the first step that may lie outside its box, so only steps
+    /// that would have been looked up and found transparent are jumped:
+    /// the image is the same. First frames of a streamed view, drawn mostly
+    /// from stand-ins, otherwise take every step through empty space. The
+    /// steps jumped count as steps (not samples), the jump as a skipped
+    /// cell (or brick), and the steps as misses of the brick of `level`
+    /// (its request keeps its weight). Returns the step
+    /// index to continue from; `None` when the stand-in does not hide the
+    /// region.
+    #[allow(clippy::too_many_arguments)]
+    pub(crate) fn skip_hidden_stand_in(
+        &mut self,
+        level: usize,
+        ray: &Ray,
+        inv_dir: Vec3,
+        w: Vec3,
+        (g, k): (Grid, u64),
+        (limit, t_end): (f64, f64),
+        st: &mut FrameStats,
+    ) -> Option<u64> {
+        let f = self.f;
+        if !matches!(f.params.mode, RenderMode::Dvr)
+            || self.channel != f.scene.channel
+            || !matches!(self.cache[level].content, Content::Unmapped)
+        {
+            return None;
+        }
+        let lv = (level + 1..self.cache.len())
+            .find(|&m| matches!(self.cache[m].content, Content::Data(_) | Content::Value(_)))?;
+        let c = &self.cache[lv];
+        let whole = c.transparent;
+        let (lo, hi) = if whole {
+            (c.lo, c.hi)
+        } else if c.clear_cells != 0 && matches!(c.content, Content::Data(_)) {
+            let (u, _) = f.coords(lv, w);
+            let cell = f.cell_of([0, 1, 2].map(|a| u[a] - c.lo[a]));
+            if c.clear_cells >> cell & 1 == 0 {
+                return None;
+            }
+            f.cell_box(cell, c.lo, c.hi)
+        } else {
+            return None;
+        };
+        let track = self.track_of(lv, ray, inv_dir, t_end);
+        let mut kn = f.land(ray, &track, g, k, (lo, hi), limit);
+        for m in level..lv {
+            let (blo, bhi) = (self.cache[m].lo, self.cache[m].hi);
+            let track = self.track_of(m, ray, inv_dir, t_end);
+            kn = kn.min(f.land(ray, &track, g, k, (blo, bhi), limit));
+        }
+        let n = kn.saturating_sub(k);
+        st.steps += n;
+        if whole {
+            st.skipped_bricks += 1;
+        } else {
+            st.skipped_cells += 1;
+        }
+        let c = &mut self.cache[level];
+        c.missed = c.missed.saturating_add(n as u32);
+        Some(kn.max(k))
     }
 
     /// After a sample that nothing resident could serve: cross the rest of

@@ -148,7 +148,6 @@ impl Frame<'_> {
     }
 
     /// The voxel box `[lo, hi)` of cell `cell` of the brick `[blo, bhi)`.
-    #[cfg(test)]
     pub(crate) fn cell_box(&self, cell: usize, blo: Dims3, bhi: Dims3) -> (Dims3, Dims3) {
         let c = self.cells.coords(cell);
         let e = self.cells.edge;
