@@ -85,10 +85,13 @@
 //! incomplete frame) is not bounded by the level's range, as with the
 //! statistics.
 //!
-//! *Memory.* Per mapped brick the ranges of the leaves it overlaps
-//! (`Π (B·2^D/n + 2)` per axis at most), dropped on eviction; per level and
-//! channel at most `Π (2^D + bricks)` entries of 8 bytes for everything
-//! mapped. Updates: a map or evict event recomputes the leaves the brick
+//! *Memory.* Per mapped brick with data the ranges of the leaves it
+//! overlaps (at most `⌈B·2^D/n⌉ + 1` per axis: 8 where a brick is no
+//! smaller than a leaf), one range for an EMPTY/CONSTANT entry; dropped
+//! on eviction. Per level and channel at most `Π (2^D + bricks)` entries
+//! of 8 bytes with everything mapped; not counted in [`MAX_BYTES`]: the
+//! large per-brick parts are those of the coarse levels, which have few
+//! bricks. Updates: a map or evict event recomputes the leaves the brick
 //! overlaps (each the union over its bricks) and then their ancestors.
 //!
 //! # Residency, and why counters
@@ -178,7 +181,8 @@ pub struct Octree {
 }
 
 /// A mapped brick's value ranges in the leaves `[lo, hi)` it overlaps
-/// (`[z][y][x]`, relative to `lo`).
+/// (`[z][y][x]`, relative to `lo`; one range: the same in all, for an
+/// EMPTY or CONSTANT entry).
 #[derive(Debug, Clone)]
 struct LeafRanges {
     lo: Dims3,
@@ -189,6 +193,9 @@ struct LeafRanges {
 impl LeafRanges {
     #[inline]
     fn get(&self, leaf: Dims3) -> [f32; 2] {
+        if self.range.len() == 1 {
+            return self.range[0];
+        }
         let (lo, hi) = (self.lo, self.hi);
         let e = [0, 1, 2].map(|a| hi[a] - lo[a]);
         self.range[(((leaf[0] - lo[0]) * e[1] + leaf[1] - lo[1]) * e[2] + leaf[2] - lo[2]) as usize]
@@ -611,7 +618,7 @@ impl Octree {
             Some(LeafRanges {
                 lo,
                 hi,
-                range: vec![[v, v]; leaves],
+                range: vec![[v, v]],
             })
         };
         let voxels = match vm.peek(key) {
