@@ -641,6 +641,28 @@ impl VirtualMemory {
             Kind::Unmapped => BrickRef::Unmapped,
         }
     }
+    /// What brick `key`'s entry says, as [`brick`](Self::brick) does, but
+    /// without side effects (no usage marks, nothing requested): for
+    /// readers of a brick's voxels outside of sampling (the residency
+    /// octree's value ranges).
+    pub fn peek(&self, key: BrickKey) -> BrickRef<'_> {
+        let v = [0, 1, 2].map(|a| key.brick[a] as u64 * self.cfg.brick[a]);
+        let e = self.walk(key.level as usize, key.channel as usize, v, false);
+        match entry_kind(&e, self.dtype) {
+            Kind::Mapped(slot) => {
+                let s = self.slots.id(slot);
+                let o = s as usize * self.brick_bytes;
+                BrickRef::Data {
+                    voxels: &self.pool()[o..o + self.brick_bytes],
+                    slot: s,
+                }
+            }
+            Kind::Empty => BrickRef::Empty,
+            Kind::Constant(v) => BrickRef::Constant(v),
+            Kind::Unmapped => BrickRef::Unmapped,
+        }
+    }
+
     /// The value ranges of the cells of the brick in pool slot `slot`
     /// (from [`BrickRef::Data`]): one per cell of [`cell_grid`](Self::cell_grid),
     /// `[z][y][x]`; see [`crate::cells`].

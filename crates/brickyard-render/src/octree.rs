@@ -1,8 +1,8 @@
 //! The residency octree (CPU model): a full, pointerless octree over the
 //! normalized volume whose nodes say, per channel, in which resolution
 //! levels some overlapping brick is resident (a bitmask) and which values
-//! the node's samples can take at each level (min/max from the store's
-//! per-brick statistics). Kept up to date from the virtual memory's map
+//! the node's samples can take at each level (min/max of the resident
+//! voxels, else the store's per-brick statistics). Kept up to date from the virtual memory's map
 //! and evict events, frame by frame; `octree/dvr.rs` traverses it. The
 //! device twin of the update pass is `octree.wgsl` (`gpu/octree.rs`).
 //!
@@ -26,17 +26,73 @@
 //!
 //! # Value ranges, per level
 //!
-//! A sample at normalized `p` of level `l` is a trilinear interpolation of
-//! the voxels around `p·n − ½`, which lie in the *padded* brick (apron
-//! included) whose box holds `p·n`. That brick overlaps every node that
-//! holds `p`. So the union of the padded ranges ([`BrickRanges`]) of the
-//! level-`l` bricks overlapping a node bounds every level-`l` sample
-//! taken inside it: that is the node's range at level `l`. One range for
-//! all levels would have to include the coarsest brick, which covers the
-//! whole volume, and nothing could be skipped. A level without statistics
-//! gives NaN (unknown: never skipped). Leaves are computed from the
-//! bricks, inner nodes as the union of their children (the bricks
-//! overlapping a node are those overlapping its children).
+//! The renderers sample level `l` by trilinear interpolation of that
+//! level's voxels, whose values are not those of level 0, so ranges are
+//! kept per level: one range for all levels would have to include the
+//! coarsest brick, which covers the whole volume, and nothing could be
+//! skipped. A leaf's range at level `l` is the union, over the level-`l`
+//! bricks overlapping it, of
+//!
+//! - the range of the brick's voxels *that a sample inside the leaf can
+//!   read* when the brick is mapped: read from the pool for resident data
+//!   ([`VirtualMemory::peek`]), the value itself for an EMPTY (0) or
+//!   CONSTANT entry (every voxel, apron included, has it);
+//! - else the brick's statistics range ([`BrickRanges`], padded with the
+//!   apron, so every voxel of the padded brick is inside it);
+//! - else unknown (NaN, never skipped).
+//!
+//! Inner nodes are the union of their children (the bricks overlapping a
+//! node are those overlapping its children). [`Octree::new`] gives the
+//! statistics-only ranges (what the device computes, `octree.wgsl`);
+//! [`Octree::sync`] and [`Octree::of_vm`] tighten them from the voxels.
+//!
+//! *The voxels a sample inside a leaf can read.* Take one axis, the
+//! level's `n` voxels, voxel `j` centred at `j + ½`, and a leaf of depth
+//! `D` with index `i`: it covers the continuous coordinates `[a, b)`, `a =
+//! i·n/2^D`, `b = (i+1)·n/2^D`. A sample at `p` (continuous coordinate `x
+//! = p·n ∈ [a, b)`) takes `q = clamp(x − ½, 0, n − 1)` (clamp to edge),
+//! the base voxel `j₀ = ⌊q⌋` and reads `j₀` and `j₀ + 1` with weights `1 −
+//! f` and `f = q − j₀`. If `q = n − 1` (the clamp at the upper edge), `f =
+//! 0`: voxel `n` (the apron beyond the volume) gets no weight and `lerp(a,
+//! b, 0) = a` exactly. So the voxels read with any weight lie in `[0, n −
+//! 1]` and in `[⌊a − ½⌋, ⌊b − ½⌋ + 1] ⊆ [⌊a⌋ − 1, ⌈b⌉]`: the leaf's voxels
+//! grown by one on each side. The slack is at least half a voxel on each
+//! side, so a point computed in floating point slightly outside the leaf
+//! (the traversal finds the node from `w / extent`, the sampler `q` from
+//! `w · n / extent`) still reads only these voxels. Per brick the octree
+//! keeps the range of the voxels of its padded box (apron included) in that
+//! grown leaf box, clamped to `[0, n − 1]`.
+//!
+//! *Whichever brick is looked up.* The sampler looks up the brick holding
+//! the base voxel `j₀`, which need not overlap the leaf (`x` just inside
+//! the leaf at a brick's lower face: `j₀` is the previous brick's last
+//! voxel). What it returns is still a convex combination of the *level's*
+//! voxel values at the voxels above (an apron holds copies of the
+//! neighbours' voxels; an EMPTY/CONSTANT entry is uniform, apron included,
+//! so its value is that of every voxel it covers). And each voxel `j` of
+//! the grown box is in the padded box of a brick overlapping the leaf: `j ∈
+//! [⌊a⌋, ⌈b⌉ − 1]` is inside the leaf's own voxels, whose bricks overlap it
+//! (the same integer test as below), and `⌊a⌋ − 1`, `⌈b⌉` are apron voxels
+//! of the bricks of `⌊a⌋` and `⌈b⌉ − 1`. That brick's contribution
+//! includes `j` (from its voxels if mapped, else inside its padded
+//! statistics). So the leaf's range bounds every level-`l` sample taken
+//! inside it, up to the rounding of the three lerps, which is absorbed by
+//! widening a range with `lo < hi` by `max(|lo|, |hi|)·2⁻²⁰` on each side
+//! ([`widen`]; one value, `lo == hi`, is exact: `a + (a − a)·t = a`). NaN
+//! voxels (float volumes) make NaN, transparent samples and are left out,
+//! as in the statistics; a brick part with only NaN voxels is unknown.
+//! A sample that misses its brick and is served by a coarser level (an
+//! incomplete frame) is not bounded by the level's range, as with the
+//! statistics.
+//!
+//! *Memory.* Per mapped brick with data the ranges of the leaves it
+//! overlaps (at most `⌈B·2^D/n⌉ + 1` per axis: 8 where a brick is no
+//! smaller than a leaf), one range for an EMPTY/CONSTANT entry; dropped
+//! on eviction. Per level and channel at most `Π (2^D + bricks)` entries
+//! of 8 bytes with everything mapped; not counted in [`MAX_BYTES`]: the
+//! large per-brick parts are those of the coarse levels, which have few
+//! bricks. Updates: a map or evict event recomputes the leaves the brick
+//! overlaps (each the union over its bricks) and then their ancestors.
 //!
 //! # Residency, and why counters
 //!
@@ -66,10 +122,10 @@ pub mod device;
 pub(crate) mod dvr;
 
 use brickyard_cache::brick::BrickKey;
-use brickyard_cache::ranges::BrickRanges;
-use brickyard_cache::vm::VirtualMemory;
-use brickyard_core::{ConfigError, Dims3};
-use std::collections::HashSet;
+use brickyard_cache::ranges::{BrickRanges, LevelRanges};
+use brickyard_cache::vm::{BrickRef, VirtualMemory};
+use brickyard_core::{cast_slice, dispatch_dtype, ConfigError, DType, Dims3, Sample};
+use std::collections::{HashMap, HashSet};
 
 /// Smallest depth (the root and its children).
 pub const MIN_DEPTH: u32 = 1;
@@ -117,6 +173,33 @@ pub struct Octree {
     pub count: Vec<u32>,
     /// Keys counted as mapped (packed).
     counted: HashSet<u64>,
+    /// Per level: the store's per-brick statistics (`None`: unknown).
+    stats: Vec<Option<LevelRanges>>,
+    /// Per mapped brick whose values were read (packed key): its ranges
+    /// in the leaves it overlaps.
+    resident: HashMap<u64, LeafRanges>,
+}
+
+/// A mapped brick's value ranges in the leaves `[lo, hi)` it overlaps
+/// (`[z][y][x]`, relative to `lo`; one range: the same in all, for an
+/// EMPTY or CONSTANT entry).
+#[derive(Debug, Clone)]
+struct LeafRanges {
+    lo: Dims3,
+    hi: Dims3,
+    range: Vec<[f32; 2]>,
+}
+
+impl LeafRanges {
+    #[inline]
+    fn get(&self, leaf: Dims3) -> [f32; 2] {
+        if self.range.len() == 1 {
+            return self.range[0];
+        }
+        let (lo, hi) = (self.lo, self.hi);
+        let e = [0, 1, 2].map(|a| hi[a] - lo[a]);
+        self.range[(((leaf[0] - lo[0]) * e[1] + leaf[1] - lo[1]) * e[2] + leaf[2] - lo[2]) as usize]
+    }
 }
 
 impl Octree {
@@ -160,6 +243,15 @@ impl Octree {
             range: vec![[f32::NAN; 2]; nodes as usize * channels * nl],
             count: vec![0; leaves as usize * channels * nl],
             counted: HashSet::new(),
+            stats: (0..nl)
+                .map(|l| {
+                    ranges
+                        .and_then(|r| r.level(l))
+                        .filter(|r| r.channels >= channels)
+                        .cloned()
+                })
+                .collect(),
+            resident: HashMap::new(),
         };
         o.build_ranges(ranges);
         Ok(o)
@@ -179,7 +271,8 @@ impl Octree {
     }
 
     /// The octree of `vm`'s volume with what `vm` has mapped now (every
-    /// brick key checked once: one page-table walk each).
+    /// brick key checked once: one page-table walk each), node ranges
+    /// tightened by the mapped bricks' values.
     pub fn of_vm(
         depth: u32,
         dims: &[Dims3],
@@ -204,7 +297,9 @@ impl Octree {
                 }
             }
         }
-        o.apply(&events);
+        let e = o.effective(&events);
+        o.pass(&e);
+        o.pass_ranges(&e, Some(vm));
         Ok(o)
     }
 
@@ -337,15 +432,20 @@ impl Octree {
                 mapped: false,
             }));
         }
-        self.apply(&events);
+        let e = self.effective(&events);
+        self.pass(&e);
+        self.pass_ranges(&e, Some(vm));
         events
     }
 
     /// Filter then pass: [`effective`](Self::effective) events through
-    /// [`pass`](Self::pass).
+    /// [`pass`](Self::pass) and [`pass_ranges`](Self::pass_ranges) without
+    /// voxels (mapped bricks keep their statistics ranges; evicted ones
+    /// drop what was read of them).
     pub fn apply(&mut self, events: &[Event]) {
         let e = self.effective(events);
         self.pass(&e);
+        self.pass_ranges(&e, None);
     }
 
     /// The events that change something, in order: map events of keys not
@@ -451,6 +551,245 @@ impl Octree {
             }
         }
     }
+}
+
+/// Node ranges from the resident voxels (see the module's documentation).
+impl Octree {
+    /// Bricks `[lo, hi)` per axis of level `l` that leaf `leaf` overlaps:
+    /// the inverse of [`overlap`] (the same integer test).
+    pub fn bricks_of_leaf(&self, l: usize, leaf: Dims3) -> (Dims3, Dims3) {
+        let d = self.depth;
+        let (dims, brick) = (self.dims[l], self.brick);
+        let mut lo = [0; 3];
+        let mut hi = [0; 3];
+        for a in 0..3 {
+            // The leaf's voxels [v0, v1).
+            let v0 = (leaf[a] * dims[a]) >> d;
+            let v1 = ((leaf[a] + 1) * dims[a]).div_ceil(1 << d);
+            lo[a] = v0 / brick[a];
+            hi[a] = v1.div_ceil(brick[a]).min(dims[a].div_ceil(brick[a]));
+        }
+        (lo, hi)
+    }
+
+    /// The statistics range of brick `b` of level `l`, channel `c` (NaN:
+    /// unknown).
+    #[inline]
+    fn stat(&self, l: usize, c: usize, b: Dims3) -> [f32; 2] {
+        match &self.stats[l] {
+            Some(r) => r.get(c, b),
+            None => [f32::NAN; 2],
+        }
+    }
+
+    /// Leaf `leaf`'s range for channel `c` at level `l`: the union over
+    /// its bricks of their ranges in it (read) or statistics.
+    fn leaf_range(&self, l: usize, c: usize, leaf: Dims3) -> [f32; 2] {
+        let (lo, hi) = self.bricks_of_leaf(l, leaf);
+        let mut acc = [f32::INFINITY, f32::NEG_INFINITY];
+        for z in lo[0]..hi[0] {
+            for y in lo[1]..hi[1] {
+                for x in lo[2]..hi[2] {
+                    let b = [z, y, x];
+                    let key = BrickKey::new(l as u8, c as u16, b.map(|v| v as u32));
+                    let r = match self.resident.get(&key.pack()) {
+                        Some(lr) => lr.get(leaf),
+                        None => self.stat(l, c, b),
+                    };
+                    acc = union(acc, r);
+                    if acc[0].is_nan() {
+                        return acc;
+                    }
+                }
+            }
+        }
+        acc
+    }
+
+    /// The ranges of brick `key` in the leaves it overlaps from what `vm`
+    /// maps for it (`None`: unmapped, or no apron to bound the samples).
+    fn read_brick(&self, key: BrickKey, vm: &VirtualMemory) -> Option<LeafRanges> {
+        let l = key.level as usize;
+        let b = key.brick.map(|v| v as u64);
+        let (lo, hi) = self.leaves_of(l, b);
+        let e = [0, 1, 2].map(|a| hi[a] - lo[a]);
+        let leaves = (e[0] * e[1] * e[2]) as usize;
+        let one = |v: f32| {
+            Some(LeafRanges {
+                lo,
+                hi,
+                range: vec![[v, v]],
+            })
+        };
+        let voxels = match vm.peek(key) {
+            BrickRef::Unmapped => return None,
+            BrickRef::Empty => return one(0.0),
+            BrickRef::Constant(v) => return one(v),
+            BrickRef::Data { voxels, .. } => voxels,
+        };
+        let apron = vm.config().apron;
+        if apron == 0 {
+            return None;
+        }
+        let (d, dims, brick) = (self.depth, self.dims[l], self.brick);
+        let padded = vm.padded();
+        // Per axis and leaf: the voxels read, as local indices `[s, t]`
+        // in the padded brick (empty when s > t).
+        let spans: Vec<Vec<(usize, usize)>> = (0..3)
+            .map(|a| {
+                let p0 = (b[a] * brick[a]) as i64 - apron as i64;
+                let p1 = p0 + padded[a] as i64 - 1;
+                (lo[a]..hi[a])
+                    .map(|i| {
+                        let g0 = ((i * dims[a]) >> d) as i64 - 1;
+                        let g1 = ((i + 1) * dims[a]).div_ceil(1 << d) as i64;
+                        let s = g0.max(0).max(p0);
+                        let t = g1.min(dims[a] as i64 - 1).min(p1);
+                        if t < s {
+                            (1, 0) // nothing (cannot happen for an overlapping brick)
+                        } else {
+                            ((s - p0) as usize, (t - p0) as usize)
+                        }
+                    })
+                    .collect()
+            })
+            .collect();
+        let dtype: DType = vm.dtype();
+        let mut range = Vec::with_capacity(leaves);
+        dispatch_dtype!(dtype, T => {
+            let v = cast_slice::<T>(voxels);
+            for &(z0, z1) in &spans[0] {
+                for &(y0, y1) in &spans[1] {
+                    for &(x0, x1) in &spans[2] {
+                        let (mut mn, mut mx) = (f32::INFINITY, f32::NEG_INFINITY);
+                        for z in z0..=z1 {
+                            for y in y0..=y1 {
+                                let row = (z * padded[1] + y) * padded[2];
+                                for &s in &v[row + x0..=row + x1] {
+                                    let f = <T as Sample>::to_f32(s);
+                                    mn = mn.min(f);
+                                    mx = mx.max(f);
+                                }
+                            }
+                        }
+                        range.push(if mn > mx { [f32::NAN; 2] } else { widen([mn, mx]) });
+                    }
+                }
+            }
+        });
+        Some(LeafRanges { lo, hi, range })
+    }
+
+    /// The range pass: for the map events in `events` (which must be
+    /// [`effective`](Self::effective)) whose values `vm` gives, their
+    /// ranges in the leaves they overlap are read; evict events drop them;
+    /// the leaves changed are recomputed, then their ancestors as the
+    /// union of their children. Without `vm` mapped bricks keep their
+    /// statistics.
+    pub fn pass_ranges(&mut self, events: &[Event], vm: Option<&VirtualMemory>) {
+        let (nl, ch, d) = (self.levels(), self.channels, self.depth);
+        let n = 1u64 << d;
+        // (leaf · ch + c) · nl + l
+        let mut touched: Vec<u64> = vec![];
+        for e in events {
+            let k = e.key.pack();
+            let changed = if e.mapped {
+                match vm.and_then(|vm| self.read_brick(e.key, vm)) {
+                    Some(r) => self.resident.insert(k, r).is_none(),
+                    None => false,
+                }
+            } else {
+                self.resident.remove(&k).is_some()
+            };
+            if !changed {
+                continue;
+            }
+            let (l, c) = (e.key.level as usize, e.key.channel as usize);
+            let (lo, hi) = self.leaves_of(l, e.key.brick.map(|v| v as u64));
+            for z in lo[0]..hi[0] {
+                for y in lo[1]..hi[1] {
+                    for x in lo[2]..hi[2] {
+                        let leaf = (z * n + y) * n + x;
+                        touched.push((leaf * ch as u64 + c as u64) * nl as u64 + l as u64);
+                    }
+                }
+            }
+        }
+        touched.sort_unstable();
+        touched.dedup();
+        let leaf0 = node_offset(d);
+        let mut dirty: Vec<u64> = vec![]; // (node at depth dd · ch + c) · nl + l
+        for &t in &touched {
+            let l = (t % nl as u64) as usize;
+            let c = (t / nl as u64 % ch as u64) as usize;
+            let leaf = t / nl as u64 / ch as u64;
+            let r = self.leaf_range(l, c, [leaf / (n * n), leaf / n % n, leaf % n]);
+            let i = ((leaf0 + leaf as usize) * ch + c) * nl + l;
+            if !same(self.range[i], r) {
+                self.range[i] = r;
+                dirty.push(t);
+            }
+        }
+        for dd in (0..d).rev() {
+            let m = 1u64 << (dd + 1);
+            let pm = m / 2;
+            let mut parents: Vec<u64> = dirty
+                .iter()
+                .map(|&t| {
+                    let cl = t % (ch * nl) as u64;
+                    let node = t / (ch * nl) as u64;
+                    let (z, y, x) = (node / (m * m), node / m % m, node % m);
+                    (((z / 2) * pm + y / 2) * pm + x / 2) * (ch * nl) as u64 + cl
+                })
+                .collect();
+            parents.sort_unstable();
+            parents.dedup();
+            dirty.clear();
+            for &t in &parents {
+                let l = (t % nl as u64) as usize;
+                let c = (t / nl as u64 % ch as u64) as usize;
+                let p = t / (ch * nl) as u64;
+                let (z, y, x) = (p / (pm * pm), p / pm % pm, p % pm);
+                let mut acc = [f32::INFINITY, f32::NEG_INFINITY];
+                for k in 0..8u64 {
+                    let cc = [2 * z + (k >> 2), 2 * y + (k >> 1 & 1), 2 * x + (k & 1)];
+                    acc = union(acc, self.range_of(self.node(dd + 1, cc), c, l));
+                }
+                let i = (self.node(dd, [z, y, x]) * ch + c) * nl + l;
+                if !same(self.range[i], acc) {
+                    self.range[i] = acc;
+                    dirty.push(t);
+                }
+            }
+            if dirty.is_empty() {
+                break;
+            }
+        }
+    }
+
+    /// Bricks whose values were read (for tests and figures).
+    pub fn read_bricks(&self) -> usize {
+        self.resident.len()
+    }
+}
+
+/// A range read from voxels, widened for the rounding of trilinear
+/// interpolation: by `max(|lo|, |hi|)·2⁻²⁰` on each side when `lo < hi`
+/// (one value is exact).
+#[inline]
+pub fn widen(r: [f32; 2]) -> [f32; 2] {
+    if r[0] < r[1] {
+        let m = r[0].abs().max(r[1].abs()) * (1.0 / (1u32 << 20) as f32);
+        [r[0] - m, r[1] + m]
+    } else {
+        r
+    }
+}
+
+/// Equal ranges, NaN equal to NaN.
+#[inline]
+fn same(a: [f32; 2], b: [f32; 2]) -> bool {
+    a[0].to_bits() == b[0].to_bits() && a[1].to_bits() == b[1].to_bits()
 }
 
 /// The union of two ranges; NaN (unknown) wins.

@@ -209,6 +209,10 @@ fn octree_frames_equal_page_table_frames_and_the_reference() {
             let o = scene.octree.as_ref().unwrap().read().unwrap();
             let fresh = Octree::of_vm(depth, &levels, s.vm(), scene.ranges.as_deref()).unwrap();
             assert_eq!(o.mask, fresh.mask);
+            let bits = |r: &[[f32; 2]]| -> Vec<[u32; 2]> {
+                r.iter().map(|x| x.map(f32::to_bits)).collect()
+            };
+            assert_eq!(bits(&o.range), bits(&fresh.range), "ranges kept vs fresh");
         }
     }
 }
@@ -254,6 +258,90 @@ fn an_octree_built_on_the_fly_and_automatic_lod_agree_with_page_tables() {
             let want = reference(&store, &p, 0);
             let dr = oc.max_abs_diff(&want);
             assert!(dr <= TOLERANCE, "octree vs reference {dr}");
+        }
+    }
+}
+
+#[test]
+fn ranges_from_resident_voxels_let_the_octree_skip_where_statistics_did_not() {
+    // The banded volume has empty (0) regions smaller than a brick: with
+    // node ranges from the store's statistics the default transfer
+    // function hides no node of one channel; with ranges from the
+    // resident voxels nodes are skipped, and complete frames still equal
+    // the page tables and the in-core reference. Three channels: channel
+    // 0 holds 60 (not 0) where the Mandelbulb is empty, so transfer
+    // functions hiding values below 30% of the window; more nodes skipped
+    // than with the statistics.
+    let dir = tempfile::tempdir().unwrap();
+    for n in [1usize, 3] {
+        let (store, extent, levels) = banded_store(dir.path(), n);
+        let mut p = dvr_params(extent, n);
+        if n == 1 {
+            p.tf = p.channels[0].dvr_tf();
+            p.channels.clear();
+        } else {
+            for c in &mut p.channels {
+                c.tf = Some(
+                    TransferFunction::from_json(
+                        r#"{"window": [0, 255], "opacity": [[0, 0], [0.3, 0], [1, 0.8]], "colormap": "grayscale"}"#,
+                    )
+                    .unwrap(),
+                );
+            }
+        }
+        let vol_bytes = n as u64 * DIMS.iter().product::<u64>();
+        for lod in [Lod::Fixed(0), Lod::Auto { bias: 0.0 }] {
+            let mut scene = Scene::new(extent, levels.clone());
+            let mut s = open(&store, &mut scene, 2 * vol_bytes, 4);
+            p.traversal = Traversal::PageTable;
+            let (pt, _) = converge(&mut s, &scene, &p, lod);
+            p.traversal = Traversal::Octree;
+            let (oc, ost) = converge(&mut s, &scene, &p, lod);
+            // The same octree with the statistics' ranges, one frame more
+            // (everything it needs is resident).
+            let mut stats_tree = scene.octree.as_ref().unwrap().read().unwrap().clone();
+            assert!(stats_tree.read_bricks() > 0);
+            stats_tree.range = Octree::new(4, &levels, [16; 3], n, scene.ranges.as_deref())
+                .unwrap()
+                .range;
+            let mut stats_scene = Scene::new(extent, levels.clone());
+            stats_scene.ranges = scene.ranges.clone();
+            stats_scene.octree = Some(Arc::new(RwLock::new(stats_tree)));
+            s.begin_frame();
+            let (os, sst, reqs) = render_frame(s.vm(), &stats_scene, &p, lod);
+            s.finish_frame(reqs.iter());
+            assert_eq!(sst.completeness(), 1.0);
+            let d_oc = oc.max_abs_diff(&pt);
+            let d_os = os.max_abs_diff(&pt);
+            eprintln!(
+                "{n} channels, {lod:?}: skipped nodes {} (statistics: {}), visited {} ({}), \
+                 samples {} ({}); octree vs page table {d_oc} ({d_os})",
+                ost.skipped_nodes,
+                sst.skipped_nodes,
+                ost.octree_nodes,
+                sst.octree_nodes,
+                ost.samples,
+                sst.samples,
+            );
+            if n == 1 {
+                assert_eq!(sst.skipped_nodes, 0, "statistics skipped");
+            }
+            assert!(
+                ost.skipped_nodes > sst.skipped_nodes,
+                "no more nodes skipped"
+            );
+            assert!(ost.samples < sst.samples, "no sample saved");
+            assert!(d_oc <= TOLERANCE && d_os <= TOLERANCE, "{d_oc} {d_os}");
+            if lod == Lod::Fixed(0) {
+                let want = if n == 1 {
+                    brickyard_render::render(&Volume::from_store(&store, 0, 0).unwrap(), &p)
+                } else {
+                    reference(&store, &p, 0)
+                };
+                not_blank(&want, "reference");
+                let dr = oc.max_abs_diff(&want);
+                assert!(dr <= TOLERANCE, "octree vs reference {dr}");
+            }
         }
     }
 }
@@ -390,6 +478,15 @@ fn device_octree_passes_equal_the_cpu_model_over_random_sequences() {
             frames += 1;
         }
         assert!(o.mask.iter().any(|&m| m != 0) && o.mapped_count() > 20);
+        // The device's ranges are the statistics-only ones, which the CPU
+        // model keeps when no voxels are read (`pass` alone, or `new`).
+        let (_, _, r) = dev.read(&gpu).unwrap();
+        let stats_only = Octree::new(depth, &dims, brick, channels, Some(&ranges)).unwrap();
+        assert!(
+            same_ranges(&r, &stats_only.range),
+            "depth {depth}: ranges after"
+        );
+        assert!(same_ranges(&r, &o.range), "depth {depth}: ranges after");
     }
     assert_eq!(frames, 100);
 }

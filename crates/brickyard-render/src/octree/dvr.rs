@@ -8,7 +8,9 @@
 //! through the page tables and, on a miss, substituted from the levels the
 //! node's residency mask names. Steps, levels and mixing are those of
 //! `multi.rs` (and of `dvr.rs` for one channel), so a complete frame
-//! equals the page-table traversal.
+//! equals the page-table traversal. The per-node tables are made for each
+//! frame from the octree's ranges as they are then (tightened by the
+//! voxels of the bricks mapped so far, `Octree::sync`).
 
 use super::Octree;
 use crate::cpu::FrameStats;
