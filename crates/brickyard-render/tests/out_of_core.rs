@@ -12,7 +12,7 @@ use brickyard_render::cpu::{render_frame, FrameStats, Lod, Scene};
 use brickyard_render::reference::{render, RenderMode, RenderParams, Volume};
 use brickyard_store::builder::{convert, ConvertOptions, NoProgress};
 use brickyard_store::generate::{Kind, Procedural};
-use std::path::Path;
+use std::path::{Path, PathBuf};
 use std::sync::atomic::AtomicBool;
 
 fn session(store: &Path, pool_bytes: u64) -> Session {
@@ -395,18 +395,13 @@ fn converge_counting(
     (img, s.loader().bricks_loaded(), st)
 }
 
-#[test]
-fn empty_space_skipping_changes_no_pixel_and_loads_less() {
-    let dir = tempfile::tempdir().unwrap();
+/// A 64³ u16 Mandelbulb store in `dir`, its levels, a scene that samples
+/// every step (no ranges, no cells) and one that skips (brick ranges and
+/// clear cells), a transfer function hiding values below 30 % of the range
+/// and a camera on it.
+fn skipping_setup(dir: &Path) -> (PathBuf, Vec<Volume>, Scene, Scene, TransferFunction, Camera) {
     let dims = [64, 64, 64];
-    let store = generated(
-        dir.path(),
-        "m.ome.zarr",
-        Kind::Mandelbulb,
-        dims,
-        DType::U16,
-        32,
-    );
+    let store = generated(dir, "m.ome.zarr", Kind::Mandelbulb, dims, DType::U16, 32);
     let levels = pyramid(&store);
     let extent = world_extent(dims, levels[0].spacing);
     let mut plain = Scene::new(extent, levels.iter().map(|v| v.dims).collect());
@@ -418,7 +413,6 @@ fn empty_space_skipping_changes_no_pixel_and_loads_less() {
             .brick_ranges(1 << 20),
     ));
     assert!(skipping.ranges.as_ref().unwrap().level(0).is_some());
-    // Values below 30 % of the range are transparent.
     let tf = TransferFunction::new(
         [0.0, 65535.0],
         vec![[0.0, 0.0], [0.3, 0.0], [1.0, 0.6]],
@@ -431,6 +425,13 @@ fn empty_space_skipping_changes_no_pixel_and_loads_less() {
         25.0,
         Projection::Perspective { fov_y_deg: 40.0 },
     );
+    (store, levels, plain, skipping, tf, cam)
+}
+
+#[test]
+fn empty_space_skipping_changes_no_pixel_and_loads_less() {
+    let dir = tempfile::tempdir().unwrap();
+    let (store, levels, plain, skipping, tf, cam) = skipping_setup(dir.path());
     // Level 0 whole (64 padded bricks) fits; the saving is in what is loaded.
     let vol_bytes = 64 * 64 * 64 * 2 * 2;
     for mode in [RenderMode::Dvr, RenderMode::Mip] {
@@ -474,38 +475,8 @@ fn empty_space_skipping_changes_no_pixel_and_loads_less() {
 #[test]
 fn stand_ins_hide_empty_space_without_changing_a_pixel() {
     let dir = tempfile::tempdir().unwrap();
-    let dims = [64, 64, 64];
-    let store = generated(
-        dir.path(),
-        "m.ome.zarr",
-        Kind::Mandelbulb,
-        dims,
-        DType::U16,
-        32,
-    );
-    let levels = pyramid(&store);
+    let (store, levels, plain, skipping, tf, cam) = skipping_setup(dir.path());
     assert!(levels.len() >= 3);
-    let extent = world_extent(dims, levels[0].spacing);
-    let mut plain = Scene::new(extent, levels.iter().map(|v| v.dims).collect());
-    let mut skipping = plain.clone();
-    plain.skip_cells = false;
-    skipping.ranges = Some(std::sync::Arc::new(
-        session_with(&store, 1 << 20, 8)
-            .loader()
-            .brick_ranges(1 << 20),
-    ));
-    let tf = TransferFunction::new(
-        [0.0, 65535.0],
-        vec![[0.0, 0.0], [0.3, 0.0], [1.0, 0.6]],
-        brickyard_core::transfer::ColorMap::Preset(brickyard_core::transfer::Preset::Hot),
-    )
-    .unwrap();
-    let cam = Camera::fit(
-        extent,
-        35.0,
-        25.0,
-        Projection::Perspective { fov_y_deg: 40.0 },
-    );
     let mut p = RenderParams::new(64, 64, cam, tf, RenderMode::Dvr);
     p.reference_step = Some(plain.voxel(0));
     let first = |scene: &Scene| {
