@@ -24,7 +24,7 @@ pub struct BenchCmd {
     /// both); loader: decoded GB/s of every level-0 brick (--brick: engine
     /// brick size, store chunks stay 64³); remote: brick reads from disk and over
     /// HTTP on loopback (a `serve` child); latency: one brick and one full
-    /// view from an empty cache (paper Table 2); render: DVR (or --mode mip) frame times
+    /// view from an empty cache (paper Table 2); render: DVR (or --mode mip or slice) frame times
     /// through the virtual memory beside the in-core reference; views: an
     /// N-view super-slice against one view and the views one by one, stereo
     /// against mono DVR; octree: DVR through the residency octree beside
@@ -70,7 +70,8 @@ pub struct BenchCmd {
     /// render: leave out the in-core reference renderer (for profiling).
     #[arg(long)]
     no_reference: bool,
-    /// render: dvr or mip.
+    /// render: dvr, mip or slice (a plane through the centre, facing the
+    /// camera).
     #[arg(long, default_value = "dvr")]
     mode: String,
     /// render: a procedural Mandelbulb computed brick by brick as the view
@@ -171,10 +172,11 @@ pub fn run(b: BenchCmd) -> Result<()> {
                     x => vec![x.into()],
                 },
                 procedural: b.procedural,
-                mip: match b.mode.as_str() {
-                    "dvr" => false,
-                    "mip" => true,
-                    m => bail!("--mode: expected dvr or mip, found {m:?}"),
+                mode: match b.mode.as_str() {
+                    "dvr" => "dvr",
+                    "mip" => "mip",
+                    "slice" => "slice",
+                    m => bail!("--mode: expected dvr, mip or slice, found {m:?}"),
                 },
             };
             crate::vmbench::render(&b.dir, dims, dtype, &o)

@@ -475,8 +475,9 @@ pub struct RenderBench {
     pub pool: Option<u64>,
     /// Also time the in-core reference renderer.
     pub reference: bool,
-    /// MIP instead of DVR.
-    pub mip: bool,
+    /// `dvr`, `mip`, or `slice` (a plane through the volume's centre
+    /// facing the camera).
+    pub mode: &'static str,
     /// Back ends to measure, one after the other (`cpu`, `gpu`).
     pub backends: Vec<String>,
     /// A procedural Mandelbulb computed brick by brick as it is asked for
@@ -492,7 +493,7 @@ pub fn render(dir: &Path, dims: Dims3, dtype: DType, o: &RenderBench) -> Result<
         cold,
         pool,
         reference: with_reference,
-        mip,
+        mode: mode_name,
         procedural,
         ..
     } = *o;
@@ -543,10 +544,18 @@ pub fn render(dir: &Path, dims: Dims3, dtype: DType, o: &RenderBench) -> Result<
     // Zoomed in: the eye moves towards the target.
     let eye = [0, 1, 2].map(|a| full.target[a] + (full.eye[a] - full.target[a]) / zoom.max(1e-3));
     let cam = Camera { eye, ..full };
-    let mode = if mip {
-        RenderMode::Mip
-    } else {
-        RenderMode::Dvr
+    let mode = match mode_name {
+        "mip" => RenderMode::Mip,
+        "slice" => {
+            let origin = extent.map(|e| e / 2.0);
+            let d = [0, 1, 2].map(|a| cam.eye[a] - cam.target[a]);
+            let n = (d[0] * d[0] + d[1] * d[1] + d[2] * d[2]).sqrt();
+            RenderMode::Slice {
+                origin,
+                normal: d.map(|x| x / n),
+            }
+        }
+        _ => RenderMode::Dvr,
     };
     let mut p = RenderParams::new(image[0], image[1], cam, tf, mode);
     p.reference_step = Some(scene.voxel(0));
@@ -647,6 +656,40 @@ pub fn render(dir: &Path, dims: Dims3, dtype: DType, o: &RenderBench) -> Result<
             ));
             warm_session = Some((s, backend));
         }
+        // From the warm host cache again, the way `render` draws a view:
+        // batch mode (a quarter-size request pass, frames waiting for
+        // their bricks), to a complete view.
+        let batch_s = match &st {
+            Some(st) => {
+                let mut s = Session::with_cache(st, cfg.clone(), host.clone(), 2)?;
+                s.set_batch(Some(Duration::from_secs(30)));
+                let (choice, update) = match name.strip_suffix("-host") {
+                    Some(c) => (c, crate::backend::GpuUpdate::Host),
+                    None => (name.as_str(), crate::backend::GpuUpdate::Device),
+                };
+                let mut backend = crate::backend::Backend::choose(choice, update, &mut s, 1)?;
+                backend.set_read_image(false);
+                let mut budget =
+                    brickyard_render::budget::LodBudget::new(0.0, scene.levels.len(), false);
+                let opt = crate::frames::DriveOptions {
+                    batch: true,
+                    max_frames: 500,
+                    lod: Lod::Auto { bias: 0.0 },
+                };
+                let t = Instant::now();
+                let out = crate::frames::drive(
+                    &mut backend,
+                    &mut s,
+                    &scene,
+                    &p,
+                    opt,
+                    &mut budget,
+                    |_| {},
+                )?;
+                (out.completeness >= 1.0).then(|| t.elapsed().as_secs_f64())
+            }
+            None => None,
+        };
         let (mut s, mut backend) = warm_session.expect("two runs");
         // (A mark for profilers that should see only the warm frames.)
         tracing::debug!("render bench: warm frames start");
@@ -667,11 +710,11 @@ pub fn render(dir: &Path, dims: Dims3, dtype: DType, o: &RenderBench) -> Result<
         let pool_bytes = s.vm().pool_bytes();
         println!(
             "{}",
-            json!({"scenario": "render", "procedural": procedural, "backend": backend.describe(), "mode": if mip { "mip" } else { "dvr" }, "size": [dims[2], dims[1], dims[0]], "dtype": dtype.short_name(),
+            json!({"scenario": "render", "procedural": procedural, "backend": backend.describe(), "mode": mode_name, "size": [dims[2], dims[1], dims[0]], "dtype": dtype.short_name(),
                 "image": image, "zoom": zoom, "pool_bytes": pool_bytes, "volume_bytes": vox_bytes,
                 "cold": dropped, "first_frame_ms": first_frame_ms, "cold_to_complete_s": cold_s, "cold_frames": frames,
                 "cold_completeness": cold_done, "host_cache_completeness": host_done,
-                "host_cache_to_complete_s": host_s, "host_cache_frames": host_frames, "bytes_read": bytes_read,
+                "host_cache_to_complete_s": host_s, "host_cache_frames": host_frames, "host_cache_batch_to_complete_s": batch_s, "bytes_read": bytes_read,
                 "cold_host_to_device_bytes": up, "cold_device_to_host_bytes": down,
                 "cold_upload_ms": upload_ms, "upload_gb_s": if upload_ms > 0.0 { up as f64 / upload_ms / 1e6 } else { f64::NAN },
                 "warm_frame_ms": warm * 1e3, "warm_cache_ms": cache_ms, "warm_device_to_host_bytes": warm_down,
