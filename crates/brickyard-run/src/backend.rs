@@ -464,6 +464,11 @@ impl Accumulating {
             (Accumulating::Cpu(a), Backend::Cpu) => {
                 let (st, reqs) = a.frame_rows(s.vm(), scene, p, lod, rows);
                 s.finish_frame(reqs.iter());
+                // Accumulation walks the page tables, but a residency
+                // octree kept beside them follows this frame too.
+                if let Some(o) = &scene.octree {
+                    o.write().expect("octree lock").sync(s.vm_mut());
+                }
                 Ok(AccumFrame {
                     samples: st.frame.samples,
                     exact: st.frame.exact,

@@ -468,12 +468,7 @@ fn run_with(
         TransferFunction::preset(&c.tf, [lo as f32, hi as f32])
             .map_err(|e| anyhow::anyhow!("tf: {e}"))?
     };
-    if traversal == Traversal::Octree && tf.shading.is_some() && c.channels.len() <= 1 {
-        bail!(
-            "traversal: the octree traversal draws unshaded DVR; the transfer function {:?} has shading (turn it off or use --traversal page-table)",
-            c.tf
-        );
-    }
+    check_octree_shading(traversal, &tf, &c.tf, c.channels.len() <= 1)?;
     let projection = if c.ortho {
         Projection::Orthographic {
             height: extent.iter().cloned().fold(0.0, f64::max) * 1.2,
@@ -962,39 +957,75 @@ fn run_with(
 /// traversal, the octree's depth, the debug image and the back end to
 /// open (`auto` becomes `cpu` for what only the CPU draws).
 fn traversal_options(c: &RenderCmd) -> Result<(Traversal, u32, Option<DebugCounts>, String)> {
-    let traversal: Traversal = c.traversal.parse().map_err(|e| anyhow::anyhow!("{e}"))?;
-    let debug: Option<DebugCounts> = c
+    check_traversal(&TraversalFlags {
+        traversal: &c.traversal,
+        octree_depth: c.octree_depth,
+        debug: c.debug.as_deref(),
+        mode: Some(&c.mode),
+        accumulation: c.progressive.map(|_| "--progressive"),
+        backend: &c.backend,
+    })
+}
+
+/// What a command was given of the flags that choose how DVR rays find
+/// their bricks ([`check_traversal`]).
+pub struct TraversalFlags<'a> {
+    /// `--traversal`: octree or page-table.
+    pub traversal: &'a str,
+    pub octree_depth: Option<u32>,
+    /// `--debug` (commands without it: `None`).
+    pub debug: Option<&'a str>,
+    /// `--mode` when it holds for everything drawn (`None`: the viewer,
+    /// whose 3D view changes mode and whose slice views keep the page
+    /// tables).
+    pub mode: Option<&'a str>,
+    /// The sample-accumulation flag given (`--progressive`,
+    /// `--accumulate`), if any.
+    pub accumulation: Option<&'a str>,
+    /// `--backend`: auto, gpu or cpu.
+    pub backend: &'a str,
+}
+
+/// The rules of `--traversal`, `--octree-depth` and `--debug`, shared by
+/// `render` and `view`: the traversal, the octree's depth, the debug image
+/// and the back end to open (`auto` becomes `cpu` for what only the CPU
+/// draws; the caller says so).
+pub fn check_traversal(
+    f: &TraversalFlags,
+) -> Result<(Traversal, u32, Option<DebugCounts>, String)> {
+    let traversal: Traversal = f.traversal.parse().map_err(|e| anyhow::anyhow!("{e}"))?;
+    let debug: Option<DebugCounts> = f
         .debug
-        .as_deref()
         .map(str::parse)
         .transpose()
         .map_err(|e: String| anyhow::anyhow!("{e}"))?;
-    let depth = c.octree_depth.unwrap_or(DEFAULT_DEPTH);
+    let depth = f.octree_depth.unwrap_or(DEFAULT_DEPTH);
     if !(MIN_DEPTH..=MAX_DEPTH).contains(&depth) {
         bail!("octree-depth: expected {MIN_DEPTH} to {MAX_DEPTH}, got {depth}");
     }
     let octree = traversal == Traversal::Octree;
-    if c.octree_depth.is_some() && !octree {
+    if f.octree_depth.is_some() && !octree {
         bail!("octree-depth: only with --traversal octree");
     }
-    if octree && c.mode != "dvr" {
-        bail!(
-            "traversal: the octree traversal draws DVR (--mode dvr); --mode {} draws through the page tables",
-            c.mode
-        );
-    }
-    if debug.is_some() && c.mode != "dvr" {
-        bail!("debug: debug images are drawn for DVR (--mode dvr)");
+    if let Some(mode) = f.mode.filter(|m| *m != "dvr") {
+        if octree {
+            bail!(
+                "traversal: the octree traversal draws DVR (--mode dvr); --mode {mode} draws through the page tables"
+            );
+        }
+        if debug.is_some() {
+            bail!("debug: debug images are drawn for DVR (--mode dvr)");
+        }
     }
     if octree || debug.is_some() {
         let (flag, what) = match octree {
             true => ("traversal", "--traversal octree"),
             false => ("debug", "--debug"),
         };
-        if c.progressive.is_some() {
-            bail!("{flag}: {what} and --progressive do not go together (sample accumulation walks the page tables)");
+        if let Some(acc) = f.accumulation {
+            bail!("{flag}: {what} and {acc} do not go together (sample accumulation walks the page tables)");
         }
-        match c.backend.as_str() {
+        match f.backend {
             "gpu" => bail!(
                 "{flag}: {what} draws on the CPU only (the device draws through the page tables, without debug images): use --backend cpu or auto"
             ),
@@ -1002,7 +1033,23 @@ fn traversal_options(c: &RenderCmd) -> Result<(Traversal, u32, Option<DebugCount
             _ => {}
         }
     }
-    Ok((traversal, depth, debug, c.backend.clone()))
+    Ok((traversal, depth, debug, f.backend.to_string()))
+}
+
+/// The octree traversal draws unshaded DVR: an error naming `--traversal`
+/// when the transfer function `name` (`tf`) of a one-channel DVR shades.
+pub fn check_octree_shading(
+    traversal: Traversal,
+    tf: &TransferFunction,
+    name: &str,
+    one_channel: bool,
+) -> Result<()> {
+    if traversal == Traversal::Octree && tf.shading.is_some() && one_channel {
+        bail!(
+            "traversal: the octree traversal draws unshaded DVR; the transfer function {name:?} has shading (turn it off or use --traversal page-table)"
+        );
+    }
+    Ok(())
 }
 
 /// `--views`, `--stereo` and their companions: how many views and how

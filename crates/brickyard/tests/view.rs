@@ -1009,3 +1009,163 @@ quit
     assert!(tile(0, 0) != tile(1, 1), "the outer views are alike");
     assert!(sbs.iter().any(|&x| x > 0));
 }
+
+#[test]
+fn viewer_draws_dvr_through_the_residency_octree_as_render_does() {
+    let d = tempfile::tempdir().unwrap();
+    let store = mandelbulb(d.path(), "40", &["--brick", "16"]);
+    let p = |n: &str| d.path().join(n);
+    // `hot` over 30..230 hides the low values: whole octree nodes are
+    // crossed without lookups.
+    let script = format!(
+        "size 3d 96 80
+size xy 48 48
+size xz 48 40
+size yz 40 48
+size oblique 48 48
+tf hot
+window 30 230
+point 0.5 0.9
+wait-complete 300
+screenshot 3d {a}.png
+save-view 3d {a}
+drag 3d left 40 -15
+scroll 3d 1
+wait-complete 300
+screenshot 3d {b}.png
+save-view 3d {b}
+screenshot xy {xy}.png
+save-view xy {xy}
+quit
+",
+        a = s(&p("a")),
+        b = s(&p("b")),
+        xy = s(&p("xy")),
+    );
+    std::fs::write(p("s.txt"), script).unwrap();
+    let log = p("log.jsonl");
+    let Some(mut cmd) = viewer(
+        &store,
+        &p("s.txt"),
+        Some(&log),
+        &[
+            "--pool",
+            "4MiB",
+            "--brick",
+            "8",
+            "--traversal",
+            "octree",
+            "--octree-depth",
+            "3",
+            // Bricks arrive over several frames: the octree follows them.
+            "--read-delay-ms",
+            "5",
+            "--window-size",
+            "900x600",
+        ],
+    ) else {
+        return;
+    };
+    let o = cmd.output().unwrap();
+    assert!(o.status.success(), "viewer: {}", stderr(&o));
+    // `--backend auto` took the CPU, and said so.
+    assert!(
+        stderr(&o).contains("--backend auto takes the CPU"),
+        "{}",
+        stderr(&o)
+    );
+    for name in ["a", "b"] {
+        let args = std::fs::read_to_string(p(&format!("{name}.args"))).unwrap();
+        let lines: Vec<&str> = args.lines().collect();
+        assert!(
+            lines
+                .windows(4)
+                .any(|w| w == ["--traversal", "octree", "--octree-depth", "3"]),
+            "{name}: {args}"
+        );
+        // No sample accumulation with the octree.
+        assert!(!lines.contains(&"--progressive"), "{name}: {args}");
+        // The viewer's complete frame equals `render` with the saved
+        // arguments (through the octree) ...
+        let px = equals_render(&store, d.path(), name);
+        let lit = px
+            .chunks(4)
+            .filter(|c| c[0] as u32 + c[1] as u32 + c[2] as u32 > 30)
+            .count();
+        assert!(
+            lit > px.len() / 4 / 20,
+            "{name}: image nearly black ({lit} lit pixels)"
+        );
+        // ... and `render` through the page tables of the same camera.
+        let mut pt = vec![];
+        let mut i = 0;
+        while i < lines.len() {
+            match lines[i] {
+                "--traversal" | "--octree-depth" => i += 2,
+                l => {
+                    pt.push(l);
+                    i += 1;
+                }
+            }
+        }
+        std::fs::write(p(&format!("{name}-pt.args")), pt.join("\n") + "\n").unwrap();
+        std::fs::copy(p(&format!("{name}.png")), p(&format!("{name}-pt.png"))).unwrap();
+        equals_render(&store, d.path(), &format!("{name}-pt"));
+    }
+    // The slice views keep the page tables.
+    let xy = std::fs::read_to_string(p("xy.args")).unwrap();
+    assert!(!xy.contains("--traversal"), "{xy}");
+    equals_render(&store, d.path(), "xy");
+    // The octree drew the 3D view (nodes visited), never a slice view.
+    let text = std::fs::read_to_string(&log).unwrap();
+    let frames: Vec<serde_json::Value> = text
+        .lines()
+        .map(|l| serde_json::from_str(l).unwrap())
+        .collect();
+    let nodes = |view: &str| -> Vec<u64> {
+        frames
+            .iter()
+            .filter(|v| v["view"] == view)
+            .map(|v| v["octree_nodes"].as_u64().unwrap())
+            .collect()
+    };
+    let (d3, dxy) = (nodes("3d"), nodes("xy"));
+    assert!(!d3.is_empty() && d3.iter().all(|&n| n > 0), "3d: {d3:?}");
+    assert!(
+        !dxy.is_empty() && dxy.iter().all(|&n| n == 0),
+        "xy: {dxy:?}"
+    );
+}
+
+#[test]
+fn viewer_refuses_octree_flags_it_cannot_honour() {
+    // Checked before the window opens: no display needed.
+    let d = tempfile::tempdir().unwrap();
+    let store = mandelbulb(d.path(), "24", &[]);
+    for (extra, flag) in [
+        (
+            &["--traversal", "octree", "--backend", "gpu"][..],
+            "traversal:",
+        ),
+        (
+            &["--traversal", "octree", "--octree-depth", "9"][..],
+            "octree-depth:",
+        ),
+        (&["--octree-depth", "3"][..], "octree-depth:"),
+        (
+            &["--traversal", "octree", "--accumulate", "8"][..],
+            "--accumulate",
+        ),
+    ] {
+        let o = Command::new(bin())
+            .args(["view", s(&store)])
+            .args(extra)
+            .env_remove("DISPLAY")
+            .output()
+            .unwrap();
+        assert!(!o.status.success(), "{extra:?} was accepted");
+        let e = stderr(&o);
+        assert!(e.contains(flag), "{extra:?}: {e}");
+        assert!(!e.contains("cannot open a window"), "{extra:?}: {e}");
+    }
+}

@@ -287,6 +287,7 @@ impl ViewerApp {
                     "settled": out.settled, "new_failures": out.new_failures,
                     "accumulated": out.accumulated, "reblended": out.reblended,
                     "since_change_ms": out.since_change_ms,
+                    "octree_nodes": out.octree_nodes,
                     "peak_rss_bytes": crate::memory::peak_rss(),
                     "memory_budget_bytes": self.setup.memory_budget,
                 })

@@ -16,6 +16,7 @@ use brickyard_cache::vm::VmConfig;
 use brickyard_core::camera::{world_extent, Camera};
 use brickyard_core::TransferFunction;
 use brickyard_render::cpu::Scene;
+use brickyard_render::params::Traversal;
 use brickyard_store::import::zarr;
 use brickyard_store::info::inspect;
 use brickyard_store::VolumeSource;
@@ -85,9 +86,23 @@ pub struct ViewCmd {
     read_delay_ms: u64,
     /// While a DVR view is still, accumulate samples over this many
     /// frames (sampling N times as densely; transfer-function edits
-    /// re-blend the kept samples); 0: off.
-    #[arg(long, default_value_t = 16)]
-    accumulate: u32,
+    /// re-blend the kept samples); 0: off. Default 16, 0 with
+    /// --traversal octree (accumulation walks the page tables).
+    #[arg(long, value_name = "N")]
+    accumulate: Option<u32>,
+    /// How the 3D view's DVR rays find their bricks: page-table (the page
+    /// tables at every step) or octree (the residency octree, kept from
+    /// the session's virtual memory after every frame: empty and
+    /// homogeneous nodes skipped, misses substituted from the levels a
+    /// node has). The octree draws unshaded DVR on the CPU only (--backend
+    /// auto takes the CPU) and does not accumulate samples; the 3D view in
+    /// MIP or slice mode and the xy, xz, yz and oblique views always draw
+    /// through the page tables.
+    #[arg(long, default_value = "page-table", value_name = "octree|page-table")]
+    traversal: String,
+    /// --traversal octree: the octree's depth, 1 to 7 (default 4).
+    #[arg(long, value_name = "D")]
+    octree_depth: Option<u32>,
 }
 
 /// Histogram of brick value ranges over `range`: each brick adds one,
@@ -123,6 +138,23 @@ fn histogram(
 }
 
 pub fn run(c: ViewCmd, demo_store: impl FnOnce() -> Result<PathBuf>) -> Result<i32> {
+    // The rules of `render --traversal` (checked before anything is read).
+    let (traversal, octree_depth, _, backend) =
+        crate::render::check_traversal(&crate::render::TraversalFlags {
+            traversal: &c.traversal,
+            octree_depth: c.octree_depth,
+            debug: None,
+            mode: None,
+            accumulation: c.accumulate.filter(|&n| n > 0).map(|_| "--accumulate"),
+            backend: &c.backend,
+        })?;
+    let octree = traversal == Traversal::Octree;
+    if backend != c.backend {
+        eprintln!(
+            "note: --traversal octree draws on the CPU (the device draws through the page tables): --backend auto takes the CPU"
+        );
+    }
+    let accumulate = c.accumulate.unwrap_or(if octree { 0 } else { 16 });
     let store = match c.store.clone() {
         Some(s) => s,
         None => demo_store()?,
@@ -159,6 +191,7 @@ pub fn run(c: ViewCmd, demo_store: impl FnOnce() -> Result<PathBuf>) -> Result<i
             .unwrap_or(range);
         TransferFunction::preset(&c.tf, window).map_err(|e| anyhow::anyhow!("tf: {e}"))?
     };
+    crate::render::check_octree_shading(traversal, &tf, &c.tf, true)?;
     if !["dvr", "mip", "slice"].contains(&c.mode.as_str()) {
         bail!("mode: expected dvr, mip or slice, found {:?}", c.mode);
     }
@@ -193,16 +226,16 @@ pub fn run(c: ViewCmd, demo_store: impl FnOnce() -> Result<PathBuf>) -> Result<i
     }
     // The views' images, their textures and the window's frame buffers:
     // together about the window's pixels.
-    if c.accumulate > brickyard_render::savr::MAX_FRAMES {
+    if accumulate > brickyard_render::savr::MAX_FRAMES {
         bail!(
             "accumulate: N frames between 0 and {}, got {}",
             brickyard_render::savr::MAX_FRAMES,
-            c.accumulate
+            accumulate
         );
     }
     // Kept samples of the accumulating view: an eighth of the budget, at
     // most 256 MiB.
-    let accum_bytes = match c.accumulate {
+    let accum_bytes = match accumulate {
         0 => 0,
         _ => (memory.unwrap_or_else(crate::memory::default_memory) / 8).min(256 << 20),
     };
@@ -227,13 +260,14 @@ pub fn run(c: ViewCmd, demo_store: impl FnOnce() -> Result<PathBuf>) -> Result<i
         chunk_bytes: split.chunks,
         memory_budget: split.total,
         loader_threads: c.loader_threads,
-        backend: c.backend.clone(),
+        backend,
         gpu_update: c.gpu_update,
         channels: m.channels,
         read_delay: Duration::from_millis(c.read_delay_ms),
         derive: None,
-        accumulate: c.accumulate,
+        accumulate,
         accum_bytes,
+        octree: octree.then_some(octree_depth),
     };
     // The histogram from the bricks' value ranges (statistics only).
     let loader = brickyard_cache::loader::Loader::open(

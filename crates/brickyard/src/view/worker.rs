@@ -11,6 +11,7 @@ use brickyard_cache::session::Session;
 use brickyard_cache::vm::VmConfig;
 use brickyard_render::budget::{Decision, LodBudget};
 use brickyard_render::cpu::{Lod, Scene, Tiles};
+use brickyard_render::octree::Octree;
 use brickyard_render::reference::RenderParams;
 use brickyard_render::Image;
 use std::path::PathBuf;
@@ -50,6 +51,11 @@ pub struct Setup {
     /// kept samples may take.
     pub accumulate: u32,
     pub accum_bytes: u64,
+    /// `--traversal octree`: the residency octree's depth (`None`: page
+    /// tables). The octree is attached to each session's virtual memory
+    /// and kept after every frame; the 3D view's unshaded DVR goes
+    /// through it.
+    pub octree: Option<u32>,
 }
 
 pub enum Msg {
@@ -96,6 +102,9 @@ pub struct Out {
     /// Milliseconds since this version of the view arrived (for its first
     /// frame: the time to answer the change).
     pub since_change_ms: f64,
+    /// Residency-octree nodes the frame's rays visited (0: drawn through
+    /// the page tables).
+    pub octree_nodes: u64,
 }
 
 pub enum Reply {
@@ -187,6 +196,16 @@ fn open(setup: &Setup, scene: &mut Scene) -> anyhow::Result<(Session, Backend)> 
         scene.ranges = Some(std::sync::Arc::new(s.loader().brick_ranges(1 << 24)));
     }
     let b = Backend::choose(&setup.backend, setup.gpu_update, &mut s, setup.channels)?;
+    // The residency octree of this session's virtual memory, from what it
+    // holds now; every frame's end syncs it (`backend::cpu_frame`).
+    scene.octree = match setup.octree {
+        Some(depth) => {
+            let o = Octree::attach(depth, &scene.levels, s.vm_mut(), scene.ranges.as_deref())
+                .map_err(|e| anyhow::anyhow!("octree-depth: {e}"))?;
+            Some(std::sync::Arc::new(std::sync::RwLock::new(o)))
+        }
+        None => None,
+    };
     Ok((s, b))
 }
 
@@ -420,6 +439,7 @@ pub fn run(setup: Setup, mut scene: Scene, rx: Receiver<Msg>, tx: Sender<Reply>,
             accumulated,
             reblended: false,
             since_change_ms: views[i].arrived.elapsed().as_secs_f64() * 1e3,
+            octree_nodes: f.stats.octree_nodes,
         };
         if tx.send(Reply::Frame(Box::new(out))).is_err() {
             return;
@@ -541,5 +561,6 @@ fn status(s: &Session, a: AccOut) -> Out {
         accumulated: Some(a.accumulated),
         reblended: a.reblended,
         since_change_ms: 0.0,
+        octree_nodes: 0,
     }
 }

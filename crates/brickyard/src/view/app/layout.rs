@@ -9,6 +9,7 @@ use brickyard_core::camera::{add, dot, length, normalize, scale, sub, Camera};
 use brickyard_core::views::Views;
 use brickyard_core::TransferFunction;
 use brickyard_render::cpu::Lod;
+use brickyard_render::params::Traversal;
 use brickyard_render::reference::{ChannelStyle, RenderMode, RenderParams};
 use brickyard_render::views::Layout;
 use eframe::egui;
@@ -139,6 +140,9 @@ impl ViewerApp {
         if mode != RenderMode::Dvr || self.dvr_composites() {
             params.channels = self.styles();
         }
+        if v == 0 && self.octree_draws(&params) {
+            params.traversal = Traversal::Octree;
+        }
         let mut layout = None;
         if v == 0 && self.stereo != "off" && (self.mode != "slice" || params.channels.is_empty()) {
             let (count, l) = match self.stereo.as_str() {
@@ -175,6 +179,15 @@ impl ViewerApp {
             channel: self.dvr_channel,
             layout,
         }
+    }
+
+    /// Whether the 3D view's `params` go through the residency octree
+    /// (`--traversal octree`: DVR, unshaded unless it composites
+    /// channels); everything else walks the page tables.
+    pub(super) fn octree_draws(&self, params: &RenderParams) -> bool {
+        self.setup.octree.is_some()
+            && params.mode == RenderMode::Dvr
+            && !(params.channels.is_empty() && params.tf.shading.is_some())
     }
 
     pub(super) fn voxel0(&self) -> f64 {

@@ -9,6 +9,7 @@ use crate::view::worker::Msg;
 use brickyard_core::camera::Camera;
 use brickyard_core::transfer::{ColorMap, Preset};
 use brickyard_core::TransferFunction;
+use brickyard_render::params::Traversal;
 use brickyard_store::info::human_bytes;
 use eframe::egui;
 use std::path::PathBuf;
@@ -409,7 +410,15 @@ impl ViewerApp {
             }
         }
         let label = match v {
-            0 => format!("3D · {}", self.mode.to_uppercase()),
+            // With --traversal octree: which traversal draws the 3D view
+            // (the slice views always walk the page tables).
+            0 => match (self.setup.octree, self.views[0].sent.as_ref()) {
+                (Some(d), Some(sp)) if sp.params.traversal == Traversal::Octree => {
+                    format!("3D · {} · octree, depth {d}", self.mode.to_uppercase())
+                }
+                (Some(_), _) => format!("3D · {} · page tables", self.mode.to_uppercase()),
+                (None, _) => format!("3D · {}", self.mode.to_uppercase()),
+            },
             _ => VIEWS[v].to_uppercase(),
         };
         let c = self.views[v].last.as_ref().map_or(0.0, |o| o.completeness);

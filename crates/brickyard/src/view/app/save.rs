@@ -6,6 +6,7 @@ use super::{Vec3, ViewerApp};
 use crate::view::script::VIEWS;
 use anyhow::{bail, Context, Result};
 use brickyard_render::cpu::Lod;
+use brickyard_render::params::Traversal;
 use brickyard_render::reference::RenderMode;
 use brickyard_render::views::Layout;
 use eframe::egui;
@@ -71,6 +72,14 @@ impl ViewerApp {
             } else {
                 a.extend(["--eye-separation".into(), format!("{}", views.separation)]);
             }
+        }
+        if let (Traversal::Octree, Some(depth)) = (p.traversal, self.setup.octree) {
+            a.extend([
+                "--traversal".into(),
+                "octree".into(),
+                "--octree-depth".into(),
+                depth.to_string(),
+            ]);
         }
         match spec.lod {
             Lod::Fixed(l) => a.extend(["--level".into(), l.to_string()]),
