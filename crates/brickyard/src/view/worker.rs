@@ -167,6 +167,9 @@ fn acc_budget(scene: &Scene, p: &RenderParams, n: u32, bytes: u64) -> usize {
     fit.min(n as u64 * steps) as usize
 }
 
+/// Longest wait of a frame for the bricks it asked for.
+const LOAD_WAIT: Duration = Duration::from_millis(100);
+
 fn open(setup: &Setup, scene: &mut Scene) -> anyhow::Result<(Session, Backend)> {
     let mut s = match &setup.derive {
         Some(d) => d.session(
@@ -184,6 +187,11 @@ fn open(setup: &Setup, scene: &mut Scene) -> anyhow::Result<(Session, Backend)> 
         )?,
     };
     s.loader().set_read_delay(setup.read_delay);
+    // A frame that asks for bricks waits a little for them before they are
+    // inserted: the next frame shows them, instead of drawing the same
+    // stand-ins again while the loader shares the cores with it. The
+    // window keeps drawing meanwhile; frames come at least this often.
+    s.set_batch(Some(LOAD_WAIT));
     // The coarsest levels stay resident, so no part of a view is ever
     // empty (before the back end mirrors the pool).
     s.pin_coarsest(512, Duration::from_secs(120))
