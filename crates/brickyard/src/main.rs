@@ -40,11 +40,12 @@ struct Cli {
     /// s3:// stores: an S3-compatible endpoint (http(s)://host:port),
     /// addressed path style; default AWS_ENDPOINT_URL_S3 or
     /// AWS_ENDPOINT_URL, else Amazon's regional endpoint. Credentials come
-    /// from AWS_ACCESS_KEY_ID, AWS_SECRET_ACCESS_KEY and AWS_SESSION_TOKEN.
+    /// from AWS_ACCESS_KEY_ID, AWS_SECRET_ACCESS_KEY and AWS_SESSION_TOKEN,
+    /// else from the profile AWS_PROFILE (default) of ~/.aws/credentials.
     #[arg(long, global = true, value_name = "URL", help_heading = "s3:// stores")]
     s3_endpoint: Option<String>,
     /// s3:// stores: the region (default AWS_REGION, AWS_DEFAULT_REGION,
-    /// else us-east-1).
+    /// the profile's region in ~/.aws/config, else us-east-1).
     #[arg(
         long,
         global = true,

@@ -11,8 +11,11 @@
 //!   addressed virtual-host style (`bucket.s3.region.amazonaws.com`) where
 //!   the bucket's name allows it.
 //! - `AWS_REGION` or `AWS_DEFAULT_REGION` (default `us-east-1`).
-//! - `AWS_ACCESS_KEY_ID`, `AWS_SECRET_ACCESS_KEY`, `AWS_SESSION_TOKEN`:
-//!   without a key pair, or with `AWS_NO_SIGN_REQUEST=true`, requests go
+//! - `AWS_ACCESS_KEY_ID`, `AWS_SECRET_ACCESS_KEY`, `AWS_SESSION_TOKEN`;
+//!   else the profile `AWS_PROFILE` (default `default`) of
+//!   `~/.aws/credentials` (`AWS_SHARED_CREDENTIALS_FILE`), with its region
+//!   from `~/.aws/config` (`AWS_CONFIG_FILE`) when no variable gives one.
+//!   Without a key pair, or with `AWS_NO_SIGN_REQUEST=true`, requests go
 //!   unsigned (anonymous reads of public buckets).
 
 use rusty_s3::actions::{GetObject, HeadObject, S3Action};
@@ -72,13 +75,50 @@ impl S3Config {
                 break;
             }
         }
-        if let Some(r) = var("AWS_REGION").or_else(|| var("AWS_DEFAULT_REGION")) {
+        // The shared files: `~/.aws/credentials` and `~/.aws/config` (or
+        // where AWS_SHARED_CREDENTIALS_FILE and AWS_CONFIG_FILE say), the
+        // profile AWS_PROFILE names or `default`.
+        let named = var("AWS_PROFILE");
+        let profile = named.clone().unwrap_or_else(|| "default".into());
+        let home = var("HOME").map(std::path::PathBuf::from);
+        let file = |v: &str, name: &str| {
+            var(v)
+                .map(std::path::PathBuf::from)
+                .or_else(|| home.as_ref().map(|h| h.join(".aws").join(name)))
+        };
+        let creds_file = file("AWS_SHARED_CREDENTIALS_FILE", "credentials");
+        let config_file = file("AWS_CONFIG_FILE", "config");
+        let creds_section = read_profile(creds_file.as_deref(), &profile)?;
+        let config_section = read_profile(
+            config_file.as_deref(),
+            &if profile == "default" {
+                profile.clone()
+            } else {
+                format!("profile {profile}")
+            },
+        )?;
+        if let (Some(p), None, None) = (&named, &creds_section, &config_section) {
+            return Err(format!(
+                "AWS_PROFILE: no profile {p:?} in {} or {}",
+                show(creds_file.as_deref()),
+                show(config_file.as_deref())
+            ));
+        }
+        let from_config = config_section
+            .as_ref()
+            .and_then(|(_, m)| m.get("region").cloned())
+            .map(|r| (r, format!("region in {}", show(config_file.as_deref()))));
+        let region = var("AWS_REGION")
+            .map(|r| (r, "AWS_REGION".to_string()))
+            .or_else(|| var("AWS_DEFAULT_REGION").map(|r| (r, "AWS_REGION".to_string())))
+            .or(from_config);
+        if let Some((r, from)) = region {
             if !r
                 .chars()
                 .all(|ch| ch.is_ascii_alphanumeric() || ch == '-' || ch == '_')
             {
                 return Err(format!(
-                    "AWS_REGION: expected a region name such as eu-west-1, found {r:?}"
+                    "{from}: expected a region name such as eu-west-1, found {r:?}"
                 ));
             }
             c.region = r;
@@ -96,7 +136,24 @@ impl S3Config {
         match (var("AWS_ACCESS_KEY_ID"), var("AWS_SECRET_ACCESS_KEY")) {
             _ if anonymous => {}
             (Some(k), Some(s)) => c.credentials = Some((k, s, var("AWS_SESSION_TOKEN"))),
-            (None, None) => {}
+            (None, None) => {
+                if let Some((path, m)) = &creds_section {
+                    let get = |k: &str| m.get(k).filter(|v| !v.is_empty()).cloned();
+                    match (get("aws_access_key_id"), get("aws_secret_access_key")) {
+                        (Some(k), Some(s)) => {
+                            c.credentials = Some((k, s, get("aws_session_token")))
+                        }
+                        (None, None) => {}
+                        _ => {
+                            return Err(format!(
+                                "{}: profile {profile:?}: aws_access_key_id and \
+                                 aws_secret_access_key go together (both or neither)",
+                                path.display()
+                            ))
+                        }
+                    }
+                }
+            }
             (Some(_), None) => {
                 return Err(
                     "AWS_SECRET_ACCESS_KEY: not set, but AWS_ACCESS_KEY_ID is (both or neither; \
@@ -113,6 +170,32 @@ impl S3Config {
         }
         Ok(c)
     }
+}
+
+type Section = std::collections::HashMap<String, String>;
+
+/// The keys of section `name` of the INI file at `path`; `None` when
+/// there is no such file or section. A file that cannot be read or parsed
+/// is an error naming it.
+fn read_profile(
+    path: Option<&std::path::Path>,
+    name: &str,
+) -> Result<Option<(std::path::PathBuf, Section)>, String> {
+    let Some(path) = path.filter(|p| p.exists()) else {
+        return Ok(None);
+    };
+    let ini = ini::Ini::load_from_file(path).map_err(|e| format!("{}: {e}", path.display()))?;
+    Ok(ini.section(Some(name)).map(|props| {
+        let m = props
+            .iter()
+            .map(|(k, v)| (k.trim().to_ascii_lowercase(), v.trim().to_string()))
+            .collect();
+        (path.to_path_buf(), m)
+    }))
+}
+
+fn show(p: Option<&std::path::Path>) -> String {
+    p.map_or("(no file)".into(), |p| p.display().to_string())
 }
 
 static CONFIG: RwLock<Option<S3Config>> = RwLock::new(None);
@@ -309,6 +392,61 @@ mod tests {
             "https://s3.us-east-1.amazonaws.com/data.lab/v"
         );
         assert!(request_url_with(&aws, "s3://abc/v", "PUT", t).is_err());
+    }
+
+    #[test]
+    fn profiles_from_the_shared_files() {
+        let d = tempfile::tempdir().unwrap();
+        let aws = d.path().join(".aws");
+        std::fs::create_dir(&aws).unwrap();
+        std::fs::write(
+            aws.join("credentials"),
+            "[default]\naws_access_key_id = AKDEF\naws_secret_access_key = sdef\n\n\
+             [lab]\naws_access_key_id=AKLAB\naws_secret_access_key=slab\naws_session_token=tlab\n\
+             [half]\naws_access_key_id=AKHALF\n",
+        )
+        .unwrap();
+        std::fs::write(
+            aws.join("config"),
+            "[default]\nregion = eu-west-1\n[profile lab]\nregion=us-west-2\n[profile bad]\nregion=a b\n",
+        )
+        .unwrap();
+        let home = d.path().to_str().unwrap();
+        let c = S3Config::from_vars(vars(&[("HOME", home)])).unwrap();
+        assert_eq!(c.credentials, Some(("AKDEF".into(), "sdef".into(), None)));
+        assert_eq!(c.region, "eu-west-1");
+        let c = S3Config::from_vars(vars(&[("HOME", home), ("AWS_PROFILE", "lab")])).unwrap();
+        assert_eq!(
+            c.credentials,
+            Some(("AKLAB".into(), "slab".into(), Some("tlab".into())))
+        );
+        assert_eq!(c.region, "us-west-2");
+        // The variables win over the files.
+        let c = S3Config::from_vars(vars(&[
+            ("HOME", home),
+            ("AWS_ACCESS_KEY_ID", "k"),
+            ("AWS_SECRET_ACCESS_KEY", "s"),
+            ("AWS_REGION", "ap-south-1"),
+        ]))
+        .unwrap();
+        assert_eq!(c.credentials, Some(("k".into(), "s".into(), None)));
+        assert_eq!(c.region, "ap-south-1");
+        // Anonymous whatever the files hold.
+        let c = S3Config::from_vars(vars(&[("HOME", home), ("AWS_NO_SIGN_REQUEST", "1")])).unwrap();
+        assert_eq!(c.credentials, None);
+        // Errors name the file, the profile or the variable.
+        let e = S3Config::from_vars(vars(&[("HOME", home), ("AWS_PROFILE", "nope")])).unwrap_err();
+        assert!(
+            e.starts_with("AWS_PROFILE") && e.contains("\"nope\""),
+            "{e}"
+        );
+        let e = S3Config::from_vars(vars(&[("HOME", home), ("AWS_PROFILE", "half")])).unwrap_err();
+        assert!(e.contains("credentials") && e.contains("\"half\""), "{e}");
+        let e = S3Config::from_vars(vars(&[("HOME", home), ("AWS_PROFILE", "bad")])).unwrap_err();
+        assert!(e.contains("config") && e.contains("region"), "{e}");
+        // No files: no credentials, the default region.
+        let c = S3Config::from_vars(vars(&[("HOME", "/nonexistent")])).unwrap();
+        assert_eq!((c.credentials, c.region.as_str()), (None, "us-east-1"));
     }
 
     #[test]
