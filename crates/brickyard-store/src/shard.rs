@@ -261,32 +261,35 @@ pub fn parse_index(path: &Path, shard: &[u8], layout: &IndexLayout) -> Result<Ve
 /// indexes at the end of their shard are read as a suffix, which the
 /// HTTP client caches with the shard's length (no HEAD request).
 pub fn read_index(path: &Path, layout: &IndexLayout) -> Result<Option<Vec<[u64; 2]>>> {
+    use crate::storage;
     let ib = layout.index_bytes();
-    if layout.location == IndexLocation::End && layout.entries <= MAX_INDEX_ENTRIES {
-        // The index and the shard's length in one read.
-        let Some((index, len)) = crate::storage::read_suffix(path, ib)? else {
-            return Ok(None);
-        };
-        if len < ib {
-            return check_index(path, &[], len, layout).map(Some);
+    // The index (when there is one to read) and the shard's length.
+    let (index, len) = match layout.location {
+        _ if layout.entries > MAX_INDEX_ENTRIES => match storage::size(path)? {
+            Some(len) => (vec![], len),
+            None => return Ok(None),
+        },
+        // One read gives both (a suffix read also tells the value's length).
+        IndexLocation::End => match storage::read_suffix(path, ib)? {
+            Some(x) => x,
+            None => return Ok(None),
+        },
+        IndexLocation::Start => {
+            let Some(len) = storage::size(path)? else {
+                return Ok(None);
+            };
+            if len < ib {
+                (vec![], len)
+            } else {
+                match storage::read_spans(path, &[storage::Span::Range(0..ib)])? {
+                    Some(mut parts) => (parts.swap_remove(0), len),
+                    None => return Ok(None),
+                }
+            }
         }
-        return check_index(path, &index, len, layout).map(Some);
-    }
-    let Some(len) = crate::storage::size(path)? else {
-        return Ok(None);
     };
-    if len < ib || layout.entries > MAX_INDEX_ENTRIES {
-        return check_index(path, &[], len, layout).map(Some);
-    }
-    let span = match layout.location {
-        IndexLocation::End => crate::storage::Span::Suffix(ib),
-        IndexLocation::Start => crate::storage::Span::Range(0..ib),
-    };
-    let Some(mut parts) = crate::storage::read_spans(path, &[span])? else {
-        return Ok(None);
-    };
-    let index = parts.swap_remove(0);
-    check_index(path, &index, len, layout).map(Some)
+    let index = if len < ib { &[][..] } else { &index[..] };
+    check_index(path, index, len, layout).map(Some)
 }
 
 struct OpenShard {
