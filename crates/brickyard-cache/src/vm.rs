@@ -623,24 +623,16 @@ impl VirtualMemory {
     /// [`mark_exact`](Self::mark_exact).
     pub fn brick(&self, l: usize, c: usize, brick: [u64; 3], exact: bool) -> BrickRef<'_> {
         let v = [0, 1, 2].map(|a| brick[a] * self.cfg.brick[a]);
-        match self.resolve(l, c, v) {
-            Kind::Mapped(slot) => {
-                let s = self.slots.id(slot);
-                self.slots.usage[s as usize].store(self.frame, Ordering::Relaxed);
-                if exact {
-                    self.mark_exact(s);
-                }
-                let o = s as usize * self.brick_bytes;
-                BrickRef::Data {
-                    voxels: &self.pool()[o..o + self.brick_bytes],
-                    slot: s,
-                }
+        let r = self.brick_ref(self.resolve(l, c, v));
+        if let BrickRef::Data { slot, .. } = r {
+            self.slots.usage[slot as usize].store(self.frame, Ordering::Relaxed);
+            if exact {
+                self.mark_exact(slot);
             }
-            Kind::Empty => BrickRef::Empty,
-            Kind::Constant(v) => BrickRef::Constant(v),
-            Kind::Unmapped => BrickRef::Unmapped,
         }
+        r
     }
+
     /// What brick `key`'s entry says, as [`brick`](Self::brick) does, but
     /// without side effects (no usage marks, nothing requested): for
     /// readers of a brick's voxels outside of sampling (the residency
@@ -648,7 +640,13 @@ impl VirtualMemory {
     pub fn peek(&self, key: BrickKey) -> BrickRef<'_> {
         let v = [0, 1, 2].map(|a| key.brick[a] as u64 * self.cfg.brick[a]);
         let e = self.walk(key.level as usize, key.channel as usize, v, false);
-        match entry_kind(&e, self.dtype) {
+        self.brick_ref(entry_kind(&e, self.dtype))
+    }
+
+    /// An entry's kind as a consumer sees it (a mapped brick with its
+    /// padded voxels in the pool).
+    fn brick_ref(&self, kind: Kind) -> BrickRef<'_> {
+        match kind {
             Kind::Mapped(slot) => {
                 let s = self.slots.id(slot);
                 let o = s as usize * self.brick_bytes;
