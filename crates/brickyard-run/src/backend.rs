@@ -235,6 +235,34 @@ impl Backend {
     }
 }
 
+/// End a frame drawn on the CPU (requests out, arrivals in); the scene's
+/// residency octree, if any, follows what the frame mapped and evicted.
+fn finish_cpu_frame<'a>(
+    s: &mut Session,
+    scene: &Scene,
+    reqs: impl IntoIterator<Item = &'a brickyard_cache::vm::Requests>,
+) -> SessionStats {
+    let session = s.finish_frame(reqs);
+    if let Some(o) = &scene.octree {
+        o.write().expect("octree lock").sync(s.vm_mut());
+    }
+    session
+}
+
+/// A residency octree of depth `depth` over `s`'s virtual memory as it is
+/// now, kept in `scene` (every CPU frame's end syncs it).
+pub fn attach_octree(scene: &mut Scene, s: &mut Session, depth: u32) -> Result<()> {
+    let o = brickyard_render::octree::Octree::attach(
+        depth,
+        &scene.levels,
+        s.vm_mut(),
+        scene.ranges.as_deref(),
+    )
+    .map_err(|e| anyhow::anyhow!("octree-depth: {e}"))?;
+    scene.octree = Some(std::sync::Arc::new(std::sync::RwLock::new(o)));
+    Ok(())
+}
+
 /// A CPU frame: draw the marked tiles of `image`, then end the frame.
 fn cpu_frame(
     s: &mut Session,
@@ -249,11 +277,7 @@ fn cpu_frame(
     let (stats, reqs) = render_tiles(s.vm(), scene, p, lod, &mut image, &mut tiles);
     let render_ms = t.elapsed().as_secs_f64() * 1e3;
     let c = std::time::Instant::now();
-    let session = s.finish_frame(reqs.iter());
-    // The residency octree follows what the frame mapped and evicted.
-    if let Some(o) = &scene.octree {
-        o.write().expect("octree lock").sync(s.vm_mut());
-    }
+    let session = finish_cpu_frame(s, scene, reqs.iter());
     Ok(Frame {
         exact_slots: Some(session.frame.exact_slots),
         tiles: Some(tiles),
@@ -463,12 +487,7 @@ impl Accumulating {
         match (self, backend) {
             (Accumulating::Cpu(a), Backend::Cpu) => {
                 let (st, reqs) = a.frame_rows(s.vm(), scene, p, lod, rows);
-                s.finish_frame(reqs.iter());
-                // Accumulation walks the page tables, but a residency
-                // octree kept beside them follows this frame too.
-                if let Some(o) = &scene.octree {
-                    o.write().expect("octree lock").sync(s.vm_mut());
-                }
+                finish_cpu_frame(s, scene, reqs.iter());
                 Ok(AccumFrame {
                     samples: st.frame.samples,
                     exact: st.frame.exact,

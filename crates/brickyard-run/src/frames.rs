@@ -9,8 +9,11 @@
 //!   image is drawn once that pass asks for nothing; what the pass missed
 //!   the full image's next frames ask for, and they draw again only the
 //!   tiles it touches.
-//! - **Streaming** (`--stream`, the viewer): one frame per batch of
-//!   arrivals, never waiting.
+//! - **Streaming** (`--stream`, the viewer, remote sessions): one frame
+//!   per batch of arrivals. `render --stream` never waits; the viewer and
+//!   remote sessions let a frame that asks for bricks wait up to
+//!   [`STREAM_LOAD_WAIT`] for them before inserting, so that the next
+//!   frame shows them rather than the same stand-ins again.
 //!
 //! Either way the LOD budget ([`LodBudget`]) coarsens a view whose working
 //! set does not fit the pool, and the loop ends: complete (at the detail
@@ -25,6 +28,11 @@ use brickyard_render::cpu::{Lod, Scene, Tiles};
 use brickyard_render::reference::RenderParams;
 use brickyard_render::Image;
 use std::time::Instant;
+
+/// The longest a frame of a watched view (viewer, remote session) waits
+/// for the bricks it asked for (`Session::set_batch`): frames come at
+/// least this often while loading.
+pub const STREAM_LOAD_WAIT: std::time::Duration = std::time::Duration::from_millis(100);
 
 /// How a view is driven.
 #[derive(Debug, Clone, Copy)]

@@ -8,7 +8,7 @@ use brickyard_core::camera::{world_extent, Camera, Projection};
 use brickyard_core::TransferFunction;
 use brickyard_render::budget::Stop;
 use brickyard_render::cpu::{Lod, Scene};
-use brickyard_render::octree::{Octree, DEFAULT_DEPTH, MAX_DEPTH, MIN_DEPTH};
+use brickyard_render::octree::{DEFAULT_DEPTH, MAX_DEPTH, MIN_DEPTH};
 use brickyard_render::params::{DebugCounts, Traversal};
 use brickyard_render::reference::{RenderMode, RenderParams};
 use brickyard_store::import::zarr;
@@ -397,15 +397,7 @@ fn run_with(
     };
     let (traversal, octree_depth, debug, backend_choice) = traversal_options(&c)?;
     if backend_choice != c.backend {
-        say_err!(
-            silent,
-            "note: {} draws on the CPU (the device draws through the page tables, without debug images): --backend auto takes the CPU",
-            if traversal == Traversal::Octree {
-                "--traversal octree"
-            } else {
-                "--debug"
-            }
-        );
+        say_err!(silent, "{}", auto_takes_cpu(traversal));
     }
     let info = inspect(&c.store)?;
     if info.complete == Some(false) {
@@ -667,16 +659,7 @@ fn run_with(
     // function hides without loading it.
     scene.ranges = Some(std::sync::Arc::new(s.loader().brick_ranges(1 << 24)));
     if traversal == Traversal::Octree {
-        // Kept from the virtual memory's events after every frame
-        // (`backend::cpu_frame`).
-        let o = Octree::attach(
-            octree_depth,
-            &scene.levels,
-            s.vm_mut(),
-            scene.ranges.as_deref(),
-        )
-        .map_err(|e| anyhow::anyhow!("octree-depth: {e}"))?;
-        scene.octree = Some(std::sync::Arc::new(std::sync::RwLock::new(o)));
+        crate::backend::attach_octree(&mut scene, &mut s, octree_depth)?;
     }
     let lod = match c.level {
         Some(l) if l >= scene.levels.len() => {
@@ -1034,6 +1017,18 @@ pub fn check_traversal(
         }
     }
     Ok((traversal, depth, debug, f.backend.to_string()))
+}
+
+/// What `render` and `view` say when `--backend auto` became `cpu` for
+/// [`check_traversal`]: for the octree, else for a debug image.
+pub fn auto_takes_cpu(traversal: Traversal) -> String {
+    format!(
+        "note: {} draws on the CPU (the device draws through the page tables, without debug images): --backend auto takes the CPU",
+        match traversal {
+            Traversal::Octree => "--traversal octree",
+            Traversal::PageTable => "--debug",
+        }
+    )
 }
 
 /// The octree traversal draws unshaded DVR: an error naming `--traversal`

@@ -226,10 +226,6 @@ struct Open {
     window: (f64, f64),
 }
 
-/// Longest wait of a frame for the bricks it asked for (the session's
-/// messages wait meanwhile).
-const LOAD_WAIT: Duration = Duration::from_millis(100);
-
 fn open(site: &RenderSite, caches: &Caches, name: &str) -> Result<Open> {
     let root = site
         .roots
@@ -258,10 +254,9 @@ fn open(site: &RenderSite, caches: &Caches, name: &str) -> Result<Open> {
         ..Default::default()
     };
     let mut s = Session::with_cache(root, cfg, host, 2)?;
-    // A frame that asks for bricks waits a little for them before they are
-    // inserted: the next frame shows them, instead of drawing the same
-    // stand-ins again while the loader shares the cores with it.
-    s.set_batch(Some(LOAD_WAIT));
+    // A frame waits a little for the bricks it asked for (the session's
+    // messages wait meanwhile).
+    s.set_batch(Some(brickyard_run::frames::STREAM_LOAD_WAIT));
     s.pin_coarsest(512, Duration::from_secs(120))
         .map_err(|e| anyhow::anyhow!("pool: {e}"))?;
     let backend = brickyard_run::backend::Backend::choose(

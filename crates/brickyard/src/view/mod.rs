@@ -150,9 +150,7 @@ pub fn run(c: ViewCmd, demo_store: impl FnOnce() -> Result<PathBuf>) -> Result<i
         })?;
     let octree = traversal == Traversal::Octree;
     if backend != c.backend {
-        eprintln!(
-            "note: --traversal octree draws on the CPU (the device draws through the page tables): --backend auto takes the CPU"
-        );
+        eprintln!("{}", crate::render::auto_takes_cpu(traversal));
     }
     let accumulate = c.accumulate.unwrap_or(if octree { 0 } else { 16 });
     let store = match c.store.clone() {

@@ -11,7 +11,6 @@ use brickyard_cache::session::Session;
 use brickyard_cache::vm::VmConfig;
 use brickyard_render::budget::{Decision, LodBudget};
 use brickyard_render::cpu::{Lod, Scene, Tiles};
-use brickyard_render::octree::Octree;
 use brickyard_render::reference::RenderParams;
 use brickyard_render::Image;
 use std::path::PathBuf;
@@ -167,9 +166,6 @@ fn acc_budget(scene: &Scene, p: &RenderParams, n: u32, bytes: u64) -> usize {
     fit.min(n as u64 * steps) as usize
 }
 
-/// Longest wait of a frame for the bricks it asked for.
-const LOAD_WAIT: Duration = Duration::from_millis(100);
-
 fn open(setup: &Setup, scene: &mut Scene) -> anyhow::Result<(Session, Backend)> {
     let mut s = match &setup.derive {
         Some(d) => d.session(
@@ -187,11 +183,9 @@ fn open(setup: &Setup, scene: &mut Scene) -> anyhow::Result<(Session, Backend)> 
         )?,
     };
     s.loader().set_read_delay(setup.read_delay);
-    // A frame that asks for bricks waits a little for them before they are
-    // inserted: the next frame shows them, instead of drawing the same
-    // stand-ins again while the loader shares the cores with it. The
-    // window keeps drawing meanwhile; frames come at least this often.
-    s.set_batch(Some(LOAD_WAIT));
+    // A frame waits a little for the bricks it asked for (the window keeps
+    // drawing meanwhile).
+    s.set_batch(Some(crate::frames::STREAM_LOAD_WAIT));
     // The coarsest levels stay resident, so no part of a view is ever
     // empty (before the back end mirrors the pool).
     s.pin_coarsest(512, Duration::from_secs(120))
@@ -204,16 +198,11 @@ fn open(setup: &Setup, scene: &mut Scene) -> anyhow::Result<(Session, Backend)> 
         scene.ranges = Some(std::sync::Arc::new(s.loader().brick_ranges(1 << 24)));
     }
     let b = Backend::choose(&setup.backend, setup.gpu_update, &mut s, setup.channels)?;
-    // The residency octree of this session's virtual memory, from what it
-    // holds now; every frame's end syncs it (`backend::cpu_frame`).
-    scene.octree = match setup.octree {
-        Some(depth) => {
-            let o = Octree::attach(depth, &scene.levels, s.vm_mut(), scene.ranges.as_deref())
-                .map_err(|e| anyhow::anyhow!("octree-depth: {e}"))?;
-            Some(std::sync::Arc::new(std::sync::RwLock::new(o)))
-        }
-        None => None,
-    };
+    // The residency octree of this session's virtual memory.
+    scene.octree = None;
+    if let Some(depth) = setup.octree {
+        crate::backend::attach_octree(scene, &mut s, depth)?;
+    }
     Ok((s, b))
 }
 
