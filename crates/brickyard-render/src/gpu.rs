@@ -17,7 +17,9 @@
 
 use crate::cpu::{FrameStats, Lod, Scene};
 use crate::image::Image;
-use crate::params::{ChannelStyle, RenderMode, RenderParams, MAX_DVR_CHANNELS};
+use crate::octree::dvr::OctFrame;
+use crate::octree::Octree;
+use crate::params::{ChannelStyle, RenderMode, RenderParams, Traversal, MAX_DVR_CHANNELS};
 use brickyard_cache::bookkeeping::BrickIds;
 use brickyard_cache::brick::BrickContent;
 use brickyard_cache::brick::BrickKey;
@@ -57,6 +59,8 @@ const RENDER_WGSL: &str = concat!(
     include_str!("savr.wgsl"),
     "\n",
     include_str!("multi.wgsl"),
+    "\n",
+    include_str!("octree/dvr.wgsl"),
 );
 
 /// The render uniform (see `gpu.wgsl`).
@@ -119,6 +123,9 @@ struct Uniform {
     views: [f32; 4],
     /// The first view of the image (a view drawn alone), 0, 0, 0.
     view_sel: [u32; 4],
+    /// DVR through the residency octree: where its node table, masks and
+    /// deepest depths start in the aux buffer; 1 when traversed.
+    oct: [u32; 4],
     scale: [[f32; 4]; MAX_LEVELS],
     qmax: [[f32; 4]; MAX_LEVELS],
     step: [[f32; 4]; MAX_LEVELS],
@@ -185,11 +192,12 @@ pub struct GpuRenderer {
     /// made for changes.
     /// Several, most recently used last (views with different transfer
     /// functions in turn).
-    aux: Vec<(AuxKey, wgpu::Buffer, u32, u32)>,
+    aux: Vec<(AuxKey, wgpu::Buffer, u32, u32, u32)>,
 }
 
 /// Transfer function, value ranges (by address), channel, brick grid, DVR
-/// (the clear bits are for DVR only).
+/// (the clear bits are for DVR only), channels, the words of the octree's
+/// tables (0: no octree).
 type AuxKey = (
     TransferFunction,
     usize,
@@ -197,6 +205,7 @@ type AuxKey = (
     Vec<[u64; 3]>,
     bool,
     Vec<ChannelStyle>,
+    usize,
 );
 
 /// Image and transfer-function buffers kept for reuse.
@@ -307,6 +316,13 @@ impl GpuRenderer {
             }
         };
         let dvr_multi = mode == 0 && !params.channels.is_empty();
+        // DVR through the residency octree: always by channel styles (one
+        // for a one-channel DVR), its tables after them in `aux`.
+        let by_octree = mode == 0 && params.traversal == Traversal::Octree;
+        assert!(
+            !(by_octree && cache.is_some()),
+            "the octree follows the host's virtual memory: its updates must be decided on the host"
+        );
         assert!(
             params.channels.len() <= if dvr_multi { MAX_DVR_CHANNELS } else { 16 },
             "at most 16 channels added up, 64 composited"
@@ -451,6 +467,13 @@ impl GpuRenderer {
                 starts[l],
             ];
         }
+        // The octree's tables for this frame, from the host's octree (kept
+        // in step with the host's virtual memory by `Octree::sync`).
+        let oct_words = if by_octree {
+            Some(octree_tables(vm, scene, params, lod)?)
+        } else {
+            None
+        };
         let key: AuxKey = (
             tf.clone(),
             scene
@@ -461,6 +484,7 @@ impl GpuRenderer {
             grid.clone(),
             mode == 0,
             params.channels.clone(),
+            oct_words.as_ref().map_or(0, |o| o.0.len()),
         );
         if let Some(i) = self.aux.iter().position(|(k, ..)| *k == key) {
             let x = self.aux.remove(i);
@@ -477,13 +501,20 @@ impl GpuRenderer {
                     .collect()
             };
             let mut words: Vec<u32> = points(tf);
-            let ch_tfs: Vec<TransferFunction> = if dvr_multi {
-                params.channels.iter().map(|c| c.dvr_tf()).collect()
+            // DVR channels by style: (channel, transfer function).
+            let ch_tfs: Vec<(usize, TransferFunction)> = if dvr_multi {
+                params
+                    .channels
+                    .iter()
+                    .map(|c| (c.channel, c.dvr_tf()))
+                    .collect()
+            } else if by_octree {
+                vec![(scene.channel, tf.clone())]
             } else {
                 vec![]
             };
             let mut first = vec![];
-            for t in &ch_tfs {
+            for (_, t) in &ch_tfs {
                 first.push(words.len() as u32 / 4);
                 words.extend(points(t));
             }
@@ -491,10 +522,10 @@ impl GpuRenderer {
             let bits = match (&scene.ranges, mode) {
                 // A channel's bricks have ids of their own: its bits are
                 // set by its own transfer function.
-                (Some(r), 0) if dvr_multi => {
+                (Some(r), 0) if !ch_tfs.is_empty() => {
                     let mut bits = vec![];
-                    for (c, t) in params.channels.iter().zip(&ch_tfs) {
-                        let b = clear_bits(&ids, r, t, c.channel);
+                    for (c, t) in &ch_tfs {
+                        let b = clear_bits(&ids, r, t, *c);
                         bits.resize(b.len(), 0);
                         for (x, y) in bits.iter_mut().zip(b) {
                             *x |= y;
@@ -507,12 +538,12 @@ impl GpuRenderer {
             };
             words.extend(bits);
             let styles_off = words.len() as u32;
-            if dvr_multi {
+            {
                 // Per channel: channel, window start, 1 / width, first
                 // point, opacity points, colour points (multi.wgsl).
-                for ((c, t), &p) in params.channels.iter().zip(&ch_tfs).zip(&first) {
+                for ((c, t), &p) in ch_tfs.iter().zip(&first) {
                     words.extend([
-                        c.channel as u32,
+                        *c as u32,
                         t.window[0].to_bits(),
                         (1.0 / (t.window[1] - t.window[0])).to_bits(),
                         p,
@@ -536,14 +567,37 @@ impl GpuRenderer {
                     0,
                 ]);
             }
+            // The octree's tables follow, rewritten every frame.
+            let oct_off = words.len() as u32;
+            if let Some((o, ..)) = &oct_words {
+                words.extend(std::iter::repeat_n(0, o.len()));
+            }
+            let bytes = words.len() as u64 * 4;
+            let limit = gpu.limits.max_storage_buffer_binding_size;
+            if bytes > limit {
+                return Err(GpuError::Limit {
+                    what: "the transfer functions and the octree's tables (bytes; a smaller --octree-depth or fewer channels)".into(),
+                    got: bytes,
+                    limit,
+                });
+            }
             let buf = gpu.storage_buffer("transfer function", &words);
             if self.aux.len() >= KEPT {
                 self.aux.remove(0);
             }
-            self.aux.push((key, buf, off, styles_off));
+            self.aux.push((key, buf, off, styles_off, oct_off));
         }
-        let (_, aux, off, styles_off) = self.aux.last().expect("made above");
-        u.n_channels = params.channels.len() as u32;
+        let (_, aux, off, styles_off, oct_off) = self.aux.last().expect("made above");
+        u.n_channels = if by_octree {
+            params.channels.len().max(1) as u32
+        } else {
+            params.channels.len() as u32
+        };
+        if let Some((words, masks, depths)) = &oct_words {
+            gpu.queue
+                .write_buffer(aux, *oct_off as u64 * 4, bytemuck::cast_slice(words));
+            u.oct = [*oct_off, oct_off + masks, oct_off + depths, 1];
+        }
         u.styles_off = *styles_off;
         u.skip = (mode == 0) as u32;
         let (count, cells) = dvm.pool.cells().expect("DeviceVm keeps cell ranges");
@@ -622,6 +676,8 @@ impl GpuRenderer {
                 unserved: head[2] as u64,
                 skipped_bricks: head[3] as u64,
                 skipped_cells: head[5] as u64,
+                octree_nodes: if by_octree { head[6] as u64 } else { 0 },
+                skipped_nodes: if by_octree { head[7] as u64 } else { 0 },
                 ..Default::default()
             },
             requests,
@@ -733,4 +789,71 @@ pub fn update_on_device(
         down: 32 + 4 * slots.len() as u64,
         counts: cache.counts(),
     })
+}
+
+/// The residency octree's tables for a frame drawn on the device
+/// ([`OctFrame::device_words`]): from the scene's octree, or one made from
+/// `vm` as the CPU frame does when the scene has none.
+fn octree_tables(
+    vm: &VirtualMemory,
+    scene: &Scene,
+    params: &RenderParams,
+    lod: Lod,
+) -> Result<(Vec<u32>, u32, u32), GpuError> {
+    use crate::walk::Frame;
+    let (built, guard);
+    let tree: &Octree = if let Some(o) = &scene.octree {
+        guard = o.read().expect("octree lock");
+        &guard
+    } else {
+        built = Octree::of_vm(
+            crate::octree::DEFAULT_DEPTH,
+            &scene.levels,
+            vm,
+            scene.ranges.as_deref(),
+        )
+        .expect("the default depth fits");
+        &built
+    };
+    let nl = scene.levels.len();
+    let (ch_scenes, ch_params): (Vec<Scene>, Vec<RenderParams>) = if params.channels.is_empty() {
+        (vec![scene.clone()], vec![params.clone()])
+    } else {
+        params
+            .channels
+            .iter()
+            .map(|c| {
+                (
+                    Scene {
+                        channel: c.channel,
+                        ..scene.clone()
+                    },
+                    RenderParams {
+                        tf: c.dvr_tf(),
+                        channels: vec![],
+                        ..params.clone()
+                    },
+                )
+            })
+            .unzip()
+    };
+    let frames: Vec<Frame> = ch_scenes
+        .iter()
+        .zip(&ch_params)
+        .map(|(sc, p)| Frame::new(vm, sc, p, lod))
+        .collect();
+    let refs: Vec<&Frame> = frames.iter().collect();
+    let used: Vec<bool> = (0..nl)
+        .map(|l| match lod {
+            Lod::Fixed(f) => l == f.min(nl - 1),
+            Lod::Auto { .. } => true,
+        })
+        .collect();
+    let of = OctFrame::new(tree, &refs, &used);
+    let words = of.device_words(&refs);
+    debug_assert_eq!(
+        words.0.len(),
+        OctFrame::device_len(tree.depth, nl, refs.len())
+    );
+    Ok(words)
 }

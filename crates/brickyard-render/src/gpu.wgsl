@@ -79,6 +79,10 @@ struct Render {
     views: vec4<f32>,
     // The first view of the image (a view drawn alone), 0, 0, 0.
     view_sel: vec4<u32>,
+    // DVR through the residency octree (octree/dvr.wgsl): where its node
+    // table, masks and deepest depths per level start in `aux`; w: 1 when
+    // the octree is traversed.
+    oct: vec4<u32>,
     // Per level: voxels per world unit (z, y, x); w unused.
     scale: array<vec4<f32>, 16>,
     // Per level: last voxel index (z, y, x) as floats.
@@ -103,8 +107,9 @@ struct Render {
 // level; pool only).
 @group(0) @binding(6) var<storage, read_write> stamps: array<atomic<u32>>;
 // 0: samples, 1: exact, 2: unserved, 3: bricks crossed in one jump (per
-// ray and brick), 4: used-list length, 5: cells crossed in one jump; from
-// 8 on the used list (slot, | EXACT_BIT when used at its own level).
+// ray and brick), 4: used-list length, 5: cells crossed in one jump, 6:
+// octree nodes visited, 7: octree nodes crossed unsampled; from 8 on the
+// used list (slot, | EXACT_BIT when used at its own level).
 @group(0) @binding(7) var<storage, read_write> counters: array<atomic<u32>>;
 @group(0) @binding(8) var<storage, read_write> keys: array<atomic<u32>>;
 @group(0) @binding(9) var<storage, read_write> counts: array<atomic<u32>>;
@@ -210,6 +215,8 @@ fn render(@builtin(global_invocation_id) g: vec3<u32>) {
             px = slice_channels(ray);
         } else if (R.mode == 1u) {
             px = mip_channels(ray);
+        } else if (R.oct.w == 1u) {
+            px = dvr_octree(ray);
         } else {
             px = dvr_channels(ray);
         }

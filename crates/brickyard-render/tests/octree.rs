@@ -490,3 +490,127 @@ fn device_octree_passes_equal_the_cpu_model_over_random_sequences() {
     }
     assert_eq!(frames, 100);
 }
+
+/// Device frames with the host deciding updates (the octree follows the
+/// host's virtual memory, synced after each frame as on the CPU), until
+/// complete: the image and the last frame's figures.
+fn converge_device(
+    gpu: &brickyard_gpu::context::Gpu,
+    s: &mut Session,
+    scene: &Scene,
+    p: &RenderParams,
+    lod: Lod,
+) -> (Image, FrameStats) {
+    use brickyard_gpu::vm::DeviceVm;
+    use brickyard_render::gpu::GpuRenderer;
+    let mut renderer = GpuRenderer::new(gpu);
+    let (mut dvm, _) = DeviceVm::new(gpu, s.vm_mut()).unwrap();
+    for _ in 0..600 {
+        s.begin_frame();
+        let f = renderer.render(gpu, &dvm, s.vm(), scene, p, lod).unwrap();
+        s.finish_frame([&f.requests]);
+        if let Some(o) = &scene.octree {
+            o.write().unwrap().sync(s.vm_mut());
+        }
+        dvm.sync(gpu, s.vm_mut());
+        if f.stats.completeness() == 1.0 && f.stats.samples > 0 {
+            return (f.image, f.stats);
+        }
+        std::thread::sleep(std::time::Duration::from_millis(1));
+    }
+    panic!(
+        "the device's view never completed ({} channels)",
+        p.channels.len()
+    );
+}
+
+#[test]
+fn device_octree_frames_equal_the_cpu_octree_page_tables_and_the_reference() {
+    // The traversal of `octree/dvr.wgsl` against its CPU twin, the
+    // device's page-table traversal and the in-core reference, for 1, 3
+    // and 16 channels; then transfer functions that hide all but the top
+    // values, where nodes are crossed unsampled on the device too.
+    let Some(gpu) = brickyard_gpu::context::test_gpu() else {
+        return;
+    };
+    let dir = tempfile::tempdir().unwrap();
+    let mut stores = std::collections::HashMap::new();
+    for (n, sparse) in [(1usize, false), (3, false), (16, false), (3, true)] {
+        let (store, extent, levels) = stores
+            .entry(n)
+            .or_insert_with(|| banded_store(dir.path(), n))
+            .clone();
+        let mut p = dvr_params(extent, n);
+        if n == 1 {
+            p.tf = p.channels[0].dvr_tf();
+            p.channels.clear();
+        }
+        if sparse {
+            for c in &mut p.channels {
+                c.tf = Some(
+                    TransferFunction::from_json(
+                        r#"{"window": [0, 255], "opacity": [[0, 0], [0.94, 0], [1, 0.9]], "colormap": "grayscale"}"#,
+                    )
+                    .unwrap(),
+                );
+            }
+        }
+        let want = if n == 1 {
+            brickyard_render::render(&Volume::from_store(&store, 0, 0).unwrap(), &p)
+        } else {
+            reference(&store, &p, 0)
+        };
+        if !sparse {
+            not_blank(&want, &format!("{n} channels, reference"));
+        } else {
+            let shown = want.rgba.iter().filter(|px| px[3] > 0.05).count();
+            assert!(shown > 20, "{shown} pixels show anything");
+        }
+        let pool = 2 * n as u64 * DIMS.iter().product::<u64>();
+        let mut cpu_scene = Scene::new(extent, levels.clone());
+        let mut cs = open(&store, &mut cpu_scene, pool, 4);
+        p.traversal = Traversal::Octree;
+        let (cpu, cst) = converge(&mut cs, &cpu_scene, &p, Lod::Fixed(0));
+        let mut pt_scene = Scene::new(extent, levels.clone());
+        let mut ps = open(&store, &mut pt_scene, pool, 4);
+        p.traversal = Traversal::PageTable;
+        let (pt, _) = converge_device(&gpu, &mut ps, &pt_scene, &p, Lod::Fixed(0));
+        let mut scene = Scene::new(extent, levels.clone());
+        let mut s = open(&store, &mut scene, pool, 4);
+        p.traversal = Traversal::Octree;
+        let (dev, dst) = converge_device(&gpu, &mut s, &scene, &p, Lod::Fixed(0));
+        let (d_cpu, d_pt, d_ref) = (
+            dev.max_abs_diff(&cpu),
+            dev.max_abs_diff(&pt),
+            dev.max_abs_diff(&want),
+        );
+        eprintln!(
+            "{n} channels (sparse: {sparse}): device octree vs CPU octree {d_cpu}, vs device page tables {d_pt}, \
+             vs reference {d_ref}; nodes visited {} (CPU {}), crossed unsampled {} (CPU {}), samples {} (CPU {})",
+            dst.octree_nodes, cst.octree_nodes, dst.skipped_nodes, cst.skipped_nodes, dst.samples, cst.samples
+        );
+        // The device's page tables and octree: the same samples. Against
+        // the CPU: the device's f32 positions, which the steep transfer
+        // functions of the sparse case (opacity 0 to 0.9 over 6% of the
+        // window) turn into up to 2e-4 for both device traversals alike.
+        let cpu_tol = if sparse { 1e-3 } else { TOLERANCE };
+        assert!(
+            d_pt <= TOLERANCE && d_cpu <= cpu_tol && d_ref <= cpu_tol,
+            "{d_cpu} {d_pt} {d_ref}"
+        );
+        assert!(dst.octree_nodes > 0, "no node visited");
+        if sparse {
+            assert!(dst.skipped_nodes > 0, "no node crossed unsampled");
+        }
+        // The same descent on both sides: node counts within 1% (rays may
+        // round differently at a node's face).
+        let rel =
+            (dst.octree_nodes as f64 - cst.octree_nodes as f64).abs() / cst.octree_nodes as f64;
+        assert!(
+            rel < 0.01,
+            "nodes visited: device {} vs CPU {}",
+            dst.octree_nodes,
+            cst.octree_nodes
+        );
+    }
+}

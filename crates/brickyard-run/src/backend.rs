@@ -192,7 +192,7 @@ impl Backend {
                 let f = g.renderer.render(&g.gpu, &g.dvm, s.vm(), scene, p, lod)?;
                 let render_ms = t.elapsed().as_secs_f64() * 1e3;
                 let c = std::time::Instant::now();
-                let session = s.finish_frame([&f.requests]);
+                let session = finish_host_frame(s, scene, [&f.requests]);
                 let u = std::time::Instant::now();
                 let sync = g.dvm.sync(&g.gpu, s.vm_mut());
                 // The copies are queued: wait for them, to time them.
@@ -235,9 +235,10 @@ impl Backend {
     }
 }
 
-/// End a frame drawn on the CPU (requests out, arrivals in); the scene's
+/// End a frame whose updates the host decides (drawn on the CPU, or on the
+/// device mirroring the host): requests out, arrivals in; the scene's
 /// residency octree, if any, follows what the frame mapped and evicted.
-fn finish_cpu_frame<'a>(
+fn finish_host_frame<'a>(
     s: &mut Session,
     scene: &Scene,
     reqs: impl IntoIterator<Item = &'a brickyard_cache::vm::Requests>,
@@ -277,7 +278,7 @@ fn cpu_frame(
     let (stats, reqs) = render_tiles(s.vm(), scene, p, lod, &mut image, &mut tiles);
     let render_ms = t.elapsed().as_secs_f64() * 1e3;
     let c = std::time::Instant::now();
-    let session = finish_cpu_frame(s, scene, reqs.iter());
+    let session = finish_host_frame(s, scene, reqs.iter());
     Ok(Frame {
         exact_slots: Some(session.frame.exact_slots),
         tiles: Some(tiles),
@@ -487,7 +488,7 @@ impl Accumulating {
         match (self, backend) {
             (Accumulating::Cpu(a), Backend::Cpu) => {
                 let (st, reqs) = a.frame_rows(s.vm(), scene, p, lod, rows);
-                finish_cpu_frame(s, scene, reqs.iter());
+                finish_host_frame(s, scene, reqs.iter());
                 Ok(AccumFrame {
                     samples: st.frame.samples,
                     exact: st.frame.exact,

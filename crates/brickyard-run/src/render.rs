@@ -183,14 +183,15 @@ pub struct RenderCmd {
     backend: String,
     /// On the GPU, who decides cache updates: device (its own LRU and
     /// page tables; only requests and slot numbers come back) or host (the
-    /// device mirrors the host's decisions).
-    #[arg(long, default_value = "device")]
-    gpu_update: crate::backend::GpuUpdate,
+    /// device mirrors the host's decisions). Default: device, host with
+    /// --traversal octree (the octree follows the host's virtual memory).
+    #[arg(long, value_name = "device|host")]
+    gpu_update: Option<crate::backend::GpuUpdate>,
     /// DVR: how rays find their bricks: page-table (the page tables at
     /// every step) or octree (the residency octree: empty and homogeneous
     /// nodes skipped, misses substituted from the levels a node has). The
-    /// octree draws unshaded DVR on the CPU only; with --backend auto it
-    /// takes the CPU.
+    /// octree draws unshaded DVR, on the CPU or the GPU (with updates
+    /// decided on the host).
     #[arg(long, default_value = "page-table", value_name = "octree|page-table")]
     traversal: String,
     /// --traversal octree: the octree's depth, 1 to 7 (default 4).
@@ -395,9 +396,15 @@ fn run_with(
         }
         None => c.out.clone(),
     };
-    let (traversal, octree_depth, debug, backend_choice) = traversal_options(&c)?;
+    let TraversalChoice {
+        traversal,
+        depth: octree_depth,
+        debug,
+        backend: backend_choice,
+        gpu_update,
+    } = traversal_options(&c)?;
     if backend_choice != c.backend {
-        say_err!(silent, "{}", auto_takes_cpu(traversal));
+        say_err!(silent, "{}", auto_takes_cpu());
     }
     let info = inspect(&c.store)?;
     if info.complete == Some(false) {
@@ -631,7 +638,7 @@ fn run_with(
         let pinned = s
             .pin_coarsest(512, std::time::Duration::from_secs(120))
             .map_err(|e| anyhow::anyhow!("pool: {e}"))?;
-        match crate::backend::Backend::choose(&backend_choice, c.gpu_update, &mut s, shown) {
+        match crate::backend::Backend::choose(&backend_choice, gpu_update, &mut s, shown) {
             Ok(b) => break (s, pinned, b),
             Err(e)
                 if c.pool.is_none()
@@ -939,8 +946,9 @@ fn run_with(
 /// `--traversal`, `--octree-depth`, `--debug` and what they allow: the
 /// traversal, the octree's depth, the debug image and the back end to
 /// open (`auto` becomes `cpu` for what only the CPU draws).
-fn traversal_options(c: &RenderCmd) -> Result<(Traversal, u32, Option<DebugCounts>, String)> {
+fn traversal_options(c: &RenderCmd) -> Result<TraversalChoice> {
     check_traversal(&TraversalFlags {
+        gpu_update: c.gpu_update,
         traversal: &c.traversal,
         octree_depth: c.octree_depth,
         debug: c.debug.as_deref(),
@@ -967,15 +975,30 @@ pub struct TraversalFlags<'a> {
     pub accumulation: Option<&'a str>,
     /// `--backend`: auto, gpu or cpu.
     pub backend: &'a str,
+    /// `--gpu-update`, if given.
+    pub gpu_update: Option<crate::backend::GpuUpdate>,
+}
+
+/// What [`check_traversal`] allows of the flags.
+pub struct TraversalChoice {
+    pub traversal: Traversal,
+    /// The octree's depth.
+    pub depth: u32,
+    pub debug: Option<DebugCounts>,
+    /// The back end to open: `--backend`, or `cpu` for `auto` with a debug
+    /// image (the caller says so).
+    pub backend: String,
+    /// Who decides the device's updates: `--gpu-update`, else the device,
+    /// or the host for the octree.
+    pub gpu_update: crate::backend::GpuUpdate,
 }
 
 /// The rules of `--traversal`, `--octree-depth` and `--debug`, shared by
 /// `render` and `view`: the traversal, the octree's depth, the debug image
 /// and the back end to open (`auto` becomes `cpu` for what only the CPU
 /// draws; the caller says so).
-pub fn check_traversal(
-    f: &TraversalFlags,
-) -> Result<(Traversal, u32, Option<DebugCounts>, String)> {
+pub fn check_traversal(f: &TraversalFlags) -> Result<TraversalChoice> {
+    use crate::backend::GpuUpdate;
     let traversal: Traversal = f.traversal.parse().map_err(|e| anyhow::anyhow!("{e}"))?;
     let debug: Option<DebugCounts> = f
         .debug
@@ -1008,27 +1031,38 @@ pub fn check_traversal(
         if let Some(acc) = f.accumulation {
             bail!("{flag}: {what} and {acc} do not go together (sample accumulation walks the page tables)");
         }
+    }
+    let gpu_update = match (f.gpu_update, octree) {
+        (Some(GpuUpdate::Device), true) => bail!(
+            "gpu-update: the residency octree follows the host's virtual memory, so --traversal octree takes --gpu-update host (its default there)"
+        ),
+        (Some(u), _) => u,
+        (None, true) => GpuUpdate::Host,
+        (None, false) => GpuUpdate::Device,
+    };
+    let mut backend = f.backend.to_string();
+    if debug.is_some() {
         match f.backend {
             "gpu" => bail!(
-                "{flag}: {what} draws on the CPU only (the device draws through the page tables, without debug images): use --backend cpu or auto"
+                "debug: --debug draws on the CPU only (the device counts nothing per pixel): use --backend cpu or auto"
             ),
-            "auto" => return Ok((traversal, depth, debug, "cpu".into())),
+            "auto" => backend = "cpu".into(),
             _ => {}
         }
     }
-    Ok((traversal, depth, debug, f.backend.to_string()))
+    Ok(TraversalChoice {
+        traversal,
+        depth,
+        debug,
+        backend,
+        gpu_update,
+    })
 }
 
-/// What `render` and `view` say when `--backend auto` became `cpu` for
-/// [`check_traversal`]: for the octree, else for a debug image.
-pub fn auto_takes_cpu(traversal: Traversal) -> String {
-    format!(
-        "note: {} draws on the CPU (the device draws through the page tables, without debug images): --backend auto takes the CPU",
-        match traversal {
-            Traversal::Octree => "--traversal octree",
-            Traversal::PageTable => "--debug",
-        }
-    )
+/// What `render` says when `--backend auto` became `cpu` for a debug
+/// image ([`check_traversal`]).
+pub fn auto_takes_cpu() -> String {
+    "note: --debug draws on the CPU (the device counts nothing per pixel): --backend auto takes the CPU".into()
 }
 
 /// The octree traversal draws unshaded DVR: an error naming `--traversal`

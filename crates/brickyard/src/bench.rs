@@ -28,8 +28,9 @@ pub struct BenchCmd {
     /// through the virtual memory beside the in-core reference; views: an
     /// N-view super-slice against one view and the views one by one, stereo
     /// against mono DVR; octree: DVR through the residency octree beside
-    /// the page tables on the CPU for 1, 4, 16, 64 channels (--channels) of a
-    /// generated banded volume or of --store (a table, not JSON).
+    /// the page tables for 1, 4, 16, 64 channels (--channels) of a
+    /// generated banded volume or of --store, on the CPU, the GPU or both
+    /// (--backend; a table, not JSON).
     scenario: String,
     /// Volume size (N or XxYxZ; default 256, octree 128).
     #[arg(long)]
@@ -210,6 +211,12 @@ pub fn run(b: BenchCmd) -> Result<()> {
                 repeat: b.repeat,
                 chunk: b.brick,
                 shard: b.shard,
+                backends: match b.backend.as_str() {
+                    "cpu" => vec!["cpu"],
+                    "gpu" => vec!["gpu"],
+                    "both" => vec!["cpu", "gpu"],
+                    x => bail!("--backend: octree measures cpu, gpu or both, found {x:?}"),
+                },
             };
             crate::octbench::run(&b.dir, &o)
         }

@@ -1,19 +1,21 @@
 //! `brickyard bench octree`: DVR through the residency octree beside the
-//! page tables on the CPU, for 1, 4, 16 and 64 channels of a generated
-//! banded volume or of a given store: warm frame times of a complete
-//! frame, samples, steps, nodes and bricks per ray, peak bricks resident,
-//! and how far the two images differ.
+//! page tables on the CPU and the device (`--backend cpu|gpu|both`), for
+//! 1, 4, 16 and 64 channels of a generated banded volume or of a given
+//! store: warm frame times of a complete frame, samples, steps, nodes and
+//! bricks per ray (the bricks: CPU only), peak bricks resident, and how
+//! far the two images differ.
 
 use anyhow::{bail, Context, Result};
 use brickyard_cache::session::Session;
 use brickyard_cache::vm::VmConfig;
 use brickyard_core::camera::{world_extent, Camera, Projection};
 use brickyard_core::{DType, Dims3, TransferFunction};
-use brickyard_render::cpu::{render_frame, render_tiles, FrameStats, Lod, Scene, Tiles};
+use brickyard_render::cpu::{render_tiles, FrameStats, Lod, Scene, Tiles};
 use brickyard_render::image::Image;
 use brickyard_render::octree::Octree;
 use brickyard_render::params::{DebugCounts, Traversal};
 use brickyard_render::reference::{ChannelStyle, RenderMode, RenderParams};
+use brickyard_run::backend::{Backend, GpuUpdate};
 use brickyard_store::error::Result as StoreResult;
 use brickyard_store::generate::{Kind, Procedural};
 use brickyard_store::import::zarr;
@@ -41,6 +43,9 @@ pub struct OctreeBench {
     /// Store chunk and shard edges of the generated volumes.
     pub chunk: u64,
     pub shard: u64,
+    /// Back ends measured: `cpu`, `gpu` (updates decided on the host, as
+    /// the octree needs) or both.
+    pub backends: Vec<&'static str>,
 }
 
 /// `n` channels of one grid: channel `c` holds the Mandelbulb's values
@@ -155,14 +160,21 @@ struct Row {
     best_ms: f64,
     median_ms: f64,
     stats: FrameStats,
-    bricks: f64,
+    /// Bricks entered per ray (CPU only: the debug count).
+    bricks: Option<f64>,
     peak_resident: usize,
     image: Image,
 }
 
 /// `n` visible channels of `store` through `traversal`: frames until the
 /// view is complete, then warm frames.
-fn measure(store: &Path, n: usize, traversal: Traversal, o: &OctreeBench) -> Result<Row> {
+fn measure(
+    store: &Path,
+    n: usize,
+    traversal: Traversal,
+    backend: &str,
+    o: &OctreeBench,
+) -> Result<Row> {
     let l0 = zarr::open(store, 0)?;
     let m = l0.meta().clone();
     let extent = world_extent(m.dims, m.spacing.unwrap_or([1.0; 3]));
@@ -184,6 +196,7 @@ fn measure(store: &Path, n: usize, traversal: Traversal, o: &OctreeBench) -> Res
     };
     let mut s = Session::open(store, cfg, pool, 2)?;
     s.set_batch(Some(Duration::from_secs(60)));
+    let mut be = Backend::choose(backend, GpuUpdate::Host, &mut s, n)?;
     let ranges = Arc::new(s.loader().brick_ranges(1 << 24));
     scene.ranges = Some(ranges.clone());
     if traversal == Traversal::Octree {
@@ -227,23 +240,19 @@ fn measure(store: &Path, n: usize, traversal: Traversal, o: &OctreeBench) -> Res
     p.validate().map_err(|e| anyhow::anyhow!("{e}"))?;
     let lod = Lod::Auto { bias: 0.0 };
     let mut peak_resident = 0;
-    let mut frame = |s: &mut Session, p: &RenderParams| {
-        s.begin_frame();
-        let t = Instant::now();
-        let (img, st, reqs) = render_frame(s.vm(), &scene, p, lod);
-        let ms = t.elapsed().as_secs_f64() * 1e3;
-        let fs = s.finish_frame(reqs.iter());
-        if let Some(oc) = &scene.octree {
-            oc.write().expect("octree lock").sync(s.vm_mut());
-        }
-        peak_resident = peak_resident.max(fs.frame.resident_bricks);
-        (img, st, ms)
+    // A frame through the back end, its octree (if any) synced after it;
+    // the time of its render (CPU: drawing; device: drawing and reading
+    // back the image and counters).
+    let mut frame = |s: &mut Session, p: &RenderParams| -> Result<(Image, FrameStats, f64)> {
+        let f = be.frame(s, &scene, p, lod)?;
+        peak_resident = peak_resident.max(f.session.frame.resident_bricks);
+        Ok((f.image, f.stats, f.render_ms))
     };
     let t0 = Instant::now();
     let mut complete_frames = 0;
     loop {
         complete_frames += 1;
-        let (_, st, _) = frame(&mut s, &p);
+        let (_, st, _) = frame(&mut s, &p)?;
         if st.completeness() >= 1.0 {
             break;
         }
@@ -255,7 +264,7 @@ fn measure(store: &Path, n: usize, traversal: Traversal, o: &OctreeBench) -> Res
     let mut times = vec![];
     let mut last = None;
     for _ in 0..o.repeat.max(3) {
-        let (img, st, ms) = frame(&mut s, &p);
+        let (img, st, ms) = frame(&mut s, &p)?;
         times.push(ms);
         last = Some((img, st));
     }
@@ -263,22 +272,24 @@ fn measure(store: &Path, n: usize, traversal: Traversal, o: &OctreeBench) -> Res
     if stats.completeness() < 1.0 {
         bail!("{n} channels through {traversal:?}: a warm frame was not complete");
     }
-    // Bricks entered per ray: the debug image's counts (before false colour).
-    let mut dp = p.clone();
-    dp.debug = Some(DebugCounts::Bricks);
-    let mut counts = Image::new(p.width, p.height);
-    s.begin_frame();
-    let (_, reqs) = render_tiles(
-        s.vm(),
-        &scene,
-        &dp,
-        lod,
-        &mut counts,
-        &mut Tiles::all(p.width, p.height),
-    );
-    s.finish_frame(reqs.iter());
-    let bricks =
-        counts.rgba.iter().map(|px| px[0] as f64).sum::<f64>() / (p.width as f64 * p.height as f64);
+    // Bricks entered per ray: the debug image's counts (before false
+    // colour), on the CPU.
+    let bricks = (backend == "cpu").then(|| {
+        let mut dp = p.clone();
+        dp.debug = Some(DebugCounts::Bricks);
+        let mut counts = Image::new(p.width, p.height);
+        s.begin_frame();
+        let (_, reqs) = render_tiles(
+            s.vm(),
+            &scene,
+            &dp,
+            lod,
+            &mut counts,
+            &mut Tiles::all(p.width, p.height),
+        );
+        s.finish_frame(reqs.iter());
+        counts.rgba.iter().map(|px| px[0] as f64).sum::<f64>() / (p.width as f64 * p.height as f64)
+    });
     times.sort_by(f64::total_cmp);
     Ok(Row {
         complete_frames,
@@ -317,16 +328,18 @@ pub fn run(dir: &Path, o: &OctreeBench) -> Result<()> {
         ),
     };
     println!(
-        "bench octree: {what}; image {}x{}, engine bricks 32³, octree depth {}, CPU {} threads, DVR with automatic level of detail, pool holding every brick",
+        "bench octree: {what}; image {}x{}, engine bricks 32³, octree depth {}, CPU {} threads, DVR with automatic level of detail, pool holding every brick; back ends: {}",
         o.image[0],
         o.image[1],
         o.depth,
-        rayon::current_num_threads()
+        rayon::current_num_threads(),
+        o.backends.join(", ")
     );
     println!("per ray: over all {} pixels' rays; frame: the render of a complete, warm frame (best and median of {})", o.image[0] as u64 * o.image[1] as u64, o.repeat.max(3));
     println!(
-        "{:>8} {:>10} {:>10} {:>10} {:>9} {:>9} {:>9} {:>10} {:>10} {:>9} {:>13} {:>9}",
+        "{:>8} {:>7} {:>10} {:>10} {:>10} {:>9} {:>9} {:>9} {:>10} {:>10} {:>9} {:>13} {:>9}",
         "channels",
+        "backend",
         "traversal",
         "best ms",
         "median ms",
@@ -345,26 +358,33 @@ pub fn run(dir: &Path, o: &OctreeBench) -> Result<()> {
             Some(st) => st.clone(),
             None => banded_store(dir, o.dims, n, o)?,
         };
-        let pt = measure(&store, n, Traversal::PageTable, o)?;
-        let oc = measure(&store, n, Traversal::Octree, o)?;
-        let diff = pt.image.max_abs_diff(&oc.image);
-        for (name, r) in [("page-table", &pt), ("octree", &oc)] {
-            let st = &r.stats;
-            println!(
-                "{:>8} {:>10} {:>10.1} {:>10.1} {:>9.1} {:>9.1} {:>9.1} {:>10.1} {:>10.1} {:>9} {:>13} {:>9.1e}",
+        for &backend in &o.backends {
+            let pt = measure(&store, n, Traversal::PageTable, backend, o)?;
+            let oc = measure(&store, n, Traversal::Octree, backend, o)?;
+            let diff = pt.image.max_abs_diff(&oc.image);
+            for (name, r) in [("page-table", &pt), ("octree", &oc)] {
+                let st = &r.stats;
+                println!(
+                "{:>8} {:>7} {:>10} {:>10.1} {:>10.1} {:>9.1} {:>9} {:>9.1} {:>10.1} {:>10} {:>9} {:>13} {:>9.1e}",
                 n,
+                backend,
                 name,
                 r.best_ms,
                 r.median_ms,
                 st.samples as f64 / rays,
-                st.steps as f64 / rays,
+                if backend == "cpu" {
+                    format!("{:.1}", st.steps as f64 / rays)
+                } else {
+                    "-".into()
+                },
                 st.octree_nodes as f64 / rays,
                 st.skipped_nodes as f64 / rays,
-                r.bricks,
+                r.bricks.map_or("-".into(), |b| format!("{b:.1}")),
                 r.peak_resident,
                 format!("{} fr {:.1} s", r.complete_frames, r.complete_s),
                 diff
             );
+            }
         }
     }
     Ok(())

@@ -109,9 +109,10 @@ fn lit(pixels: &[u8]) -> usize {
         .count()
 }
 
-/// `render STORE --size 64x56 --backend cpu --json ARGS --out DIR/NAME`,
-/// which must end complete: the pixels and the octree nodes its frames
-/// visited and the largest count of a debug image (`None` without one).
+/// `render STORE --size 64x56 --backend cpu --json ARGS --out DIR/NAME`
+/// (`--backend cpu` unless ARGS choose one), which must end complete: the
+/// pixels and the octree nodes its frames visited and the largest count of
+/// a debug image (`None` without one).
 fn render(store: &Path, dir: &Path, name: &str, args: &[&str]) -> (Vec<u8>, u64, Option<f64>) {
     let png = dir.join(name);
     let mut a = vec![
@@ -121,12 +122,13 @@ fn render(store: &Path, dir: &Path, name: &str, args: &[&str]) -> (Vec<u8>, u64,
         "64x56",
         "--brick",
         "8",
-        "--backend",
-        "cpu",
         "--json",
         "--out",
         s(&png),
     ];
+    if !args.contains(&"--backend") {
+        a.extend(["--backend", "cpu"]);
+    }
     a.extend_from_slice(args);
     let out = ok(&run(&a), name);
     assert!(out.contains(r#""stop":"Some(Complete)""#), "{name}: {out}");
@@ -177,6 +179,19 @@ fn octree_draws_the_page_tables_image() {
             assert!(
                 diff <= 1,
                 "{what}, depth {depth}: pixels differ by {diff}/255"
+            );
+            // The same on the device (Vulkan: lavapipe here), its updates
+            // decided on the host.
+            a.extend(["--backend", "gpu"]);
+            let (dev, dev_nodes, _) = render(store, d.path(), "dev.png", &a);
+            assert!(
+                dev_nodes > 0,
+                "{what}, depth {depth}: the device visited no node"
+            );
+            let diff = max_diff(&oc, &dev);
+            assert!(
+                diff <= 1,
+                "{what}, depth {depth}: device and CPU octree differ by {diff}/255"
             );
         }
         // Explicit page tables are the default.
@@ -269,8 +284,8 @@ fn bad_values_and_combinations_name_the_flag() {
         fails_with(&r(&["--debug", "nodes", "--mode", mode]), &["debug", "dvr"]);
     }
     fails_with(
-        &r(&[&oc[..], &["--backend", "gpu"]].concat()),
-        &["traversal", "CPU", "page tables"],
+        &r(&[&oc[..], &["--gpu-update", "device"]].concat()),
+        &["gpu-update", "host", "octree"],
     );
     fails_with(
         &r(&["--debug", "steps", "--backend", "gpu"]),
@@ -295,9 +310,9 @@ fn bad_values_and_combinations_name_the_flag() {
         &r(&[&oc[..], &["--tf", s(&tf)]].concat()),
         &["traversal", "shading"],
     );
-    // --backend auto takes the CPU for the octree, and says so.
-    let o = r(&oc);
-    ok(&o, "octree, auto");
+    // --backend auto takes the CPU for a debug image, and says so.
+    let o = r(&["--debug", "steps"]);
+    ok(&o, "debug, auto");
     assert!(
         stderr(&o).contains("--backend auto takes the CPU"),
         "{}",

@@ -316,25 +316,85 @@ fn mixed_constant<T: Sample>(
     node: usize,
     level: usize,
 ) -> Option<[f32; 4]> {
-    let clear = of.clear[node * of.tree.levels() + level];
-    let mut keep = 1.0f32;
-    let mut rgb = [0.0f32; 3];
-    let mut weight = 0.0f32;
-    for (i, wk) in walkers.iter().enumerate() {
-        if clear >> i & 1 != 0 {
-            continue;
+    of.mixed(walkers.iter().map(|w| w.f), node, level)
+}
+
+impl OctFrame<'_> {
+    /// The mixed colour (straight alpha) of node `node` at `level` where
+    /// every visible channel (their frames `frames`, in table order) is
+    /// hidden or of one value; `None`: nothing visible.
+    fn mixed<'x, 'a: 'x>(
+        &self,
+        frames: impl Iterator<Item = &'x Frame<'a>>,
+        node: usize,
+        level: usize,
+    ) -> Option<[f32; 4]> {
+        let clear = self.clear[node * self.tree.levels() + level];
+        let mut keep = 1.0f32;
+        let mut rgb = [0.0f32; 3];
+        let mut weight = 0.0f32;
+        for (i, f) in frames.enumerate() {
+            if clear >> i & 1 != 0 {
+                continue;
+            }
+            let v = self.tree.range_of(node, self.channels[i], level)[0];
+            if let Some(c) = f.tf_eval.lookup_visible(v) {
+                keep *= 1.0 - c[3];
+                rgb[0] += c[3] * c[0];
+                rgb[1] += c[3] * c[1];
+                rgb[2] += c[3] * c[2];
+                weight += c[3];
+            }
         }
-        let v = of.tree.range_of(node, of.channels[i], level)[0];
-        if let Some(c) = wk.f.tf_eval.lookup_visible(v) {
-            keep *= 1.0 - c[3];
-            rgb[0] += c[3] * c[0];
-            rgb[1] += c[3] * c[1];
-            rgb[2] += c[3] * c[2];
-            weight += c[3];
-        }
+        (weight > 0.0).then(|| {
+            let inv = 1.0 / weight;
+            [rgb[0] * inv, rgb[1] * inv, rgb[2] * inv, 1.0 - keep]
+        })
     }
-    (weight > 0.0).then(|| {
-        let inv = 1.0 / weight;
-        [rgb[0] * inv, rgb[1] * inv, rgb[2] * inv, 1.0 - keep]
-    })
+
+    /// This frame's tables for the device's traversal (`octree/dvr.wgsl`),
+    /// the visible channels' frames `frames` in table order: per node and
+    /// level 8 words (hidden channels' bits, low and high word; kind 0:
+    /// descend or sample, 1: hidden for every channel, 2: one mixed colour;
+    /// 0; the colour as f32 bits), then per node and visible channel its
+    /// residency mask, then per level the deepest depth. Returns the words
+    /// and where the masks and the depths start (relative).
+    pub(crate) fn device_words(&self, frames: &[&Frame]) -> (Vec<u32>, u32, u32) {
+        let nl = self.tree.levels();
+        let nodes = super::node_count(self.tree.depth);
+        let nv = self.channels.len();
+        let mut words = Vec::with_capacity(nodes * (nl * 8 + nv) + nl);
+        for node in 0..nodes {
+            for l in 0..nl {
+                let clear = self.clear[node * nl + l];
+                let homog = self.homog[node * nl + l];
+                let (kind, color) = if clear == self.all {
+                    (1, [0.0; 4])
+                } else if clear | homog == self.all {
+                    (
+                        2,
+                        self.mixed(frames.iter().copied(), node, l)
+                            .unwrap_or([0.0; 4]),
+                    )
+                } else {
+                    (0, [0.0; 4])
+                };
+                words.extend([clear as u32, (clear >> 32) as u32, kind, 0]);
+                words.extend(color.map(f32::to_bits));
+            }
+        }
+        let masks = words.len() as u32;
+        for node in 0..nodes {
+            words.extend(self.channels.iter().map(|&c| self.tree.mask_of(node, c)));
+        }
+        let depths = words.len() as u32;
+        words.extend(self.dmax.iter().copied());
+        (words, masks, depths)
+    }
+
+    /// Words [`device_words`](Self::device_words) gives for an octree of
+    /// `depth` with `levels` levels and `channels` visible channels.
+    pub(crate) fn device_len(depth: u32, levels: usize, channels: usize) -> usize {
+        super::node_count(depth) * (levels * 8 + channels) + levels
+    }
 }

@@ -34,9 +34,10 @@ pub struct ViewCmd {
     /// auto (a hardware GPU when there is one, else the CPU), gpu or cpu.
     #[arg(long, default_value = "auto")]
     backend: String,
-    /// On the GPU, who decides cache updates: device or host.
-    #[arg(long, default_value = "device")]
-    gpu_update: GpuUpdate,
+    /// On the GPU, who decides cache updates: device or host. Default:
+    /// device, host with --traversal octree.
+    #[arg(long, value_name = "device|host")]
+    gpu_update: Option<GpuUpdate>,
     /// One budget for the whole viewer: the brick pool, host cache,
     /// decoded-chunk caches, view images and the window are split out of
     /// it. Without it: --pool 256MiB and --host 1GiB.
@@ -94,8 +95,8 @@ pub struct ViewCmd {
     /// tables at every step) or octree (the residency octree, kept from
     /// the session's virtual memory after every frame: empty and
     /// homogeneous nodes skipped, misses substituted from the levels a
-    /// node has). The octree draws unshaded DVR on the CPU only (--backend
-    /// auto takes the CPU) and does not accumulate samples; the 3D view in
+    /// node has). The octree draws unshaded DVR, on the CPU or the GPU (with
+    /// updates decided on the host), and does not accumulate samples; the 3D view in
     /// MIP or slice mode and the xy, xz, yz and oblique views always draw
     /// through the page tables.
     #[arg(long, default_value = "page-table", value_name = "octree|page-table")]
@@ -139,19 +140,22 @@ fn histogram(
 
 pub fn run(c: ViewCmd, demo_store: impl FnOnce() -> Result<PathBuf>) -> Result<i32> {
     // The rules of `render --traversal` (checked before anything is read).
-    let (traversal, octree_depth, _, backend) =
-        crate::render::check_traversal(&crate::render::TraversalFlags {
-            traversal: &c.traversal,
-            octree_depth: c.octree_depth,
-            debug: None,
-            mode: None,
-            accumulation: c.accumulate.filter(|&n| n > 0).map(|_| "--accumulate"),
-            backend: &c.backend,
-        })?;
+    let crate::render::TraversalChoice {
+        traversal,
+        depth: octree_depth,
+        backend,
+        gpu_update,
+        ..
+    } = crate::render::check_traversal(&crate::render::TraversalFlags {
+        gpu_update: c.gpu_update,
+        traversal: &c.traversal,
+        octree_depth: c.octree_depth,
+        debug: None,
+        mode: None,
+        accumulation: c.accumulate.filter(|&n| n > 0).map(|_| "--accumulate"),
+        backend: &c.backend,
+    })?;
     let octree = traversal == Traversal::Octree;
-    if backend != c.backend {
-        eprintln!("{}", crate::render::auto_takes_cpu(traversal));
-    }
     let accumulate = c.accumulate.unwrap_or(if octree { 0 } else { 16 });
     let store = match c.store.clone() {
         Some(s) => s,
@@ -259,7 +263,7 @@ pub fn run(c: ViewCmd, demo_store: impl FnOnce() -> Result<PathBuf>) -> Result<i
         memory_budget: split.total,
         loader_threads: c.loader_threads,
         backend,
-        gpu_update: c.gpu_update,
+        gpu_update,
         channels: m.channels,
         read_delay: Duration::from_millis(c.read_delay_ms),
         derive: None,
