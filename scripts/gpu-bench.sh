@@ -13,8 +13,14 @@
 #   - 16 frames of shaded sample accumulation on the GPU;
 #   - the processing filters gauss(2) and sobel of a generated PROC^3 u16
 #     volume (default 512) on the CPU and the GPU side by side, with the
-#     largest difference beside the stated tolerance.
-# Everything runs under timeouts that add up to less than 10 minutes.
+#     largest difference beside the stated tolerance;
+#   - multi-view super-slices and stereo DVR;
+#   - DVR through the residency octree beside the page tables for 1, 4, 16
+#     and 64 channels of a generated banded OCT^3 volume (default 192) at
+#     1920x1080 on the GPU (a table).
+# Everything runs under timeouts that add up to about 13 minutes; the
+# steps are independent, so a shorter lease can run a part (comment out
+# the others).
 # Usage: bash scripts/gpu-bench.sh [DATA_DIR]   (default /tmp/brickyard-gpu-bench)
 # BIG, SMALL and PROC (default 1024, 512 and 512) set the volume edges, e.g.
 # to try the script on a software adapter first.
@@ -44,6 +50,7 @@ fi
 BIG=${BIG:-1024}
 SMALL=${SMALL:-512}
 PROC=${PROC:-512}
+OCT=${OCT:-192}
 
 step() { # NAME SECONDS ARGS...
     local name=$1 secs=$2; shift 2
@@ -69,3 +76,6 @@ step "progressive 16 frames, shaded, $SMALL^3 at 1024^2, GPU" 30 render "$DATA/m
 # against one view alone and the 8 views one by one; stereo against mono
 # DVR (the thesis: 30 ms per 8-view image on a Titan X).
 step "views: 8-view super-slice and stereo DVR, $SMALL^3 at 1920x1080, CPU and GPU" 120 bench views --size "$SMALL" --dtype u8 --dir "$DATA" --image 1920x1080 --views 8 --repeat 5 --backend both
+# The residency octree vs page tables on the device, 1 to 64 channels (the
+# paper's Table 1: 4.6-14 ms for one channel, 25.7 ms for 16 on a GTX 1080).
+step "octree vs page tables, 1-64 channels of $OCT^3 at 1920x1080, GPU" 90 bench octree --size "$OCT" --dir "$DATA" --image 1920x1080 --channels 1,4,16,64 --repeat 5 --backend gpu
