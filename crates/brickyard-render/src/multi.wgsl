@@ -58,13 +58,59 @@ fn ch_color(i: u32, x: f32) -> vec3<f32> {
     );
 }
 
+// Samples, exact samples and unserved samples of the channels shown (this
+// invocation's, added to the counters at the ray's end).
+var<private> ch_samples: u32;
+var<private> ch_exact: u32;
+var<private> ch_unserved: u32;
+
+// Channel i shown at world point `w` of `level` (voxel coordinates `q`):
+// (α·colour, α) through its transfer function, α 0 where nothing shows;
+// α −1 when `skip` and the channel hides the brick there (known clear,
+// or an EMPTY/CONSTANT entry it maps to zero opacity). On a miss, only the
+// coarser levels whose bit `mask` has substitute.
+fn channel_sample(i: u32, level: u32, w: vec3<f32>, q: vec3<f32>, mask: u32, skip: bool) -> vec4<f32> {
+    use_channel(i);
+    let b = vec3<u32>(q);
+    let e = entry_at(level, b);
+    if (skip) {
+        let f = flag(e);
+        var hidden = is_clear(brick_id(level, b));
+        if (!hidden && (f == EMPTY || f == CONSTANT)) {
+            var v = 0.0;
+            if (f == CONSTANT) {
+                v = constant_value(e.y);
+            }
+            hidden = is_nan(v) || ch_opacity(i, ch_windowed(i, v)) <= 0.0;
+        }
+        if (hidden) {
+            return vec4<f32>(0.0, 0.0, 0.0, -1.0);
+        }
+    }
+    let s = sample_masked(w, level, q, e, mask);
+    ch_samples = ch_samples + 1u;
+    if (s.y == 2.0) {
+        ch_exact = ch_exact + 1u;
+    }
+    if (s.y == 0.0 || is_nan(s.x)) {
+        ch_unserved = ch_unserved + u32(s.y == 0.0);
+        return vec4<f32>(0.0);
+    }
+    let x = ch_windowed(i, s.x);
+    let a = ch_opacity(i, x);
+    if (a > 0.0) {
+        return vec4<f32>(a * ch_color(i, x), a);
+    }
+    return vec4<f32>(0.0);
+}
+
 // The pixel of `ray` in a DVR of the channels shown; adds its counts.
 fn dvr_channels(ray: Ray) -> vec4<f32> {
     let span = intersect(ray);
     var acc = vec4<f32>(0.0);
-    var samples = 0u;
-    var exact = 0u;
-    var unserved = 0u;
+    ch_samples = 0u;
+    ch_exact = 0u;
+    ch_unserved = 0u;
     var jumps = 0u;
     if (span.y > span.x) {
         let t1 = span.y;
@@ -91,38 +137,15 @@ fn dvr_channels(ray: Ray) -> vec4<f32> {
             var rgb = vec3<f32>(0.0);
             var weight = 0.0;
             for (var i = 0u; i < R.n_channels; i = i + 1u) {
-                use_channel(i);
-                let e = entry_at(level, b);
-                let f = flag(e);
-                if (R.skip == 1u) {
-                    var hidden = is_clear(brick_id(level, b));
-                    if (!hidden && (f == EMPTY || f == CONSTANT)) {
-                        var v = 0.0;
-                        if (f == CONSTANT) {
-                            v = constant_value(e.y);
-                        }
-                        hidden = is_nan(v) || ch_opacity(i, ch_windowed(i, v)) <= 0.0;
-                    }
-                    if (hidden) {
-                        continue;
-                    }
-                }
-                all_clear = false;
-                let s = sample_from(w, level, q, e);
-                samples = samples + 1u;
-                if (s.y == 2.0) {
-                    exact = exact + 1u;
-                }
-                if (s.y == 0.0 || is_nan(s.x)) {
-                    unserved = unserved + u32(s.y == 0.0);
+                let c = channel_sample(i, level, w, q, ALL_LEVELS, R.skip == 1u);
+                if (c.w < 0.0) {
                     continue;
                 }
-                let x = ch_windowed(i, s.x);
-                let a = ch_opacity(i, x);
-                if (a > 0.0) {
-                    keep = keep * (1.0 - a);
-                    rgb = rgb + a * ch_color(i, x);
-                    weight = weight + a;
+                all_clear = false;
+                if (c.w > 0.0) {
+                    keep = keep * (1.0 - c.w);
+                    rgb = rgb + c.xyz;
+                    weight = weight + c.w;
                 }
             }
             if (all_clear) {
@@ -142,9 +165,9 @@ fn dvr_channels(ray: Ray) -> vec4<f32> {
             }
         }
     }
-    atomicAdd(&counters[0], samples);
-    atomicAdd(&counters[1], exact);
-    atomicAdd(&counters[2], unserved);
+    atomicAdd(&counters[0], ch_samples);
+    atomicAdd(&counters[1], ch_exact);
+    atomicAdd(&counters[2], ch_unserved);
     atomicAdd(&counters[3], jumps);
     return acc;
 }

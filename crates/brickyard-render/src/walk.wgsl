@@ -63,14 +63,27 @@ fn coords(l: u32, w: vec3<f32>) -> vec4<f32> {
     return vec4<f32>(q, 0.0);
 }
 
+// Every level's bit: a mask that lets every coarser level substitute.
+const ALL_LEVELS: u32 = 0xffffffffu;
+
 // The value at world point `w` asked at level `level`, from the finest
 // mapped level at or above it: (value, 0 unserved / 1 coarser / 2 exact).
 // `q` and `e`: the voxel coordinates and page entry at `level`.
 fn sample_from(w: vec3<f32>, level: u32, q: vec3<f32>, e: vec2<u32>) -> vec2<f32> {
+    return sample_masked(w, level, q, e, ALL_LEVELS);
+}
+
+// `sample_from`, substituting on a miss only from the coarser levels whose
+// bit `mask` has (the residency octree: the others have nothing mapped
+// near the sample).
+fn sample_masked(w: vec3<f32>, level: u32, q: vec3<f32>, e: vec2<u32>, mask: u32) -> vec2<f32> {
     var lq = q;
     var le = e;
     for (var lv = level; lv < R.levels; lv = lv + 1u) {
         if (lv > level) {
+            if (((mask >> lv) & 1u) == 0u) {
+                continue;
+            }
             lq = coords(lv, w).xyz;
             le = entry_at(lv, vec3<u32>(lq));
         }

@@ -79,40 +79,6 @@ fn oct_first_step(t: f32, base_t: f32, dt: f32) -> u32 {
     return u32(ceil(x));
 }
 
-// `sample_from`, substituting on a miss only from the coarser levels whose
-// bit `mask` has (the others have nothing mapped near this node).
-fn sample_masked(w: vec3<f32>, level: u32, q: vec3<f32>, e: vec2<u32>, mask: u32) -> vec2<f32> {
-    var lq = q;
-    var le = e;
-    for (var lv = level; lv < R.levels; lv = lv + 1u) {
-        if (lv > level) {
-            if (((mask >> lv) & 1u) == 0u) {
-                continue;
-            }
-            lq = coords(lv, w).xyz;
-            le = entry_at(lv, vec3<u32>(lq));
-        }
-        let b = vec3<u32>(lq);
-        let r = value_of(le, b, lq - vec3<f32>(b));
-        if (r.y > 0.0) {
-            if (flag(le) == MAPPED) {
-                mark(slot_id(le, lay.brick_grid), lv == level);
-            }
-            if (lv == level) {
-                return vec2<f32>(r.x, 2.0);
-            }
-            return vec2<f32>(r.x, 1.0);
-        }
-        if (lv == level) {
-            miss(brick_id(lv, b));
-        }
-    }
-    for (var lv = level + 1u; lv < R.levels; lv = lv + 1u) {
-        miss(brick_id(lv, vec3<u32>(coords(lv, w).xyz)));
-    }
-    return vec2<f32>(0.0, 0.0);
-}
-
 // Front-to-back compositing of straight-alpha `c` with the opacity
 // correction of `level`; true when the ray is done.
 fn oct_composite(acc: ptr<function, vec4<f32>>, c: vec4<f32>, level: u32) -> bool {
@@ -127,9 +93,9 @@ fn oct_composite(acc: ptr<function, vec4<f32>>, c: vec4<f32>, level: u32) -> boo
 fn dvr_octree(ray: Ray) -> vec4<f32> {
     let span = intersect(ray);
     var acc = vec4<f32>(0.0);
-    var samples = 0u;
-    var exact = 0u;
-    var unserved = 0u;
+    ch_samples = 0u;
+    ch_exact = 0u;
+    ch_unserved = 0u;
     var nodes = 0u;
     var skipped = 0u;
     let all = oct_all();
@@ -230,8 +196,8 @@ fn dvr_octree(ray: Ray) -> vec4<f32> {
                                 miss_n = miss_n + m;
                             }
                         }
-                        samples = samples + m;
-                        unserved = unserved + m;
+                        ch_samples = ch_samples + m;
+                        ch_unserved = ch_unserved + m;
                         k = kn;
                         crossed = true;
                         break;
@@ -249,7 +215,6 @@ fn dvr_octree(ray: Ray) -> vec4<f32> {
             }
             // Sample every channel the node does not hide.
             let q = coords(level, w).xyz;
-            let b = vec3<u32>(q);
             var keep = 1.0;
             var rgb = vec3<f32>(0.0);
             var weight = 0.0;
@@ -257,35 +222,11 @@ fn dvr_octree(ray: Ray) -> vec4<f32> {
                 if (oct_bit(in_clear, i)) {
                     continue;
                 }
-                use_channel(i);
-                let e = entry_at(level, b);
-                let f = flag(e);
-                var hidden = is_clear(brick_id(level, b));
-                if (!hidden && (f == EMPTY || f == CONSTANT)) {
-                    var v = 0.0;
-                    if (f == CONSTANT) {
-                        v = constant_value(e.y);
-                    }
-                    hidden = is_nan(v) || ch_opacity(i, ch_windowed(i, v)) <= 0.0;
-                }
-                if (hidden) {
-                    continue;
-                }
-                let s = sample_masked(w, level, q, e, aux[R.oct.y + in_node * n + i]);
-                samples = samples + 1u;
-                if (s.y == 2.0) {
-                    exact = exact + 1u;
-                }
-                if (s.y == 0.0 || is_nan(s.x)) {
-                    unserved = unserved + u32(s.y == 0.0);
-                    continue;
-                }
-                let x = ch_windowed(i, s.x);
-                let a = ch_opacity(i, x);
-                if (a > 0.0) {
-                    keep = keep * (1.0 - a);
-                    rgb = rgb + a * ch_color(i, x);
-                    weight = weight + a;
+                let c = channel_sample(i, level, w, q, aux[R.oct.y + in_node * n + i], true);
+                if (c.w > 0.0) {
+                    keep = keep * (1.0 - c.w);
+                    rgb = rgb + c.xyz;
+                    weight = weight + c.w;
                 }
             }
             if (weight > 0.0) {
@@ -295,9 +236,9 @@ fn dvr_octree(ray: Ray) -> vec4<f32> {
             }
         }
     }
-    atomicAdd(&counters[0], samples);
-    atomicAdd(&counters[1], exact);
-    atomicAdd(&counters[2], unserved);
+    atomicAdd(&counters[0], ch_samples);
+    atomicAdd(&counters[1], ch_exact);
+    atomicAdd(&counters[2], ch_unserved);
     atomicAdd(&counters[6], nodes);
     atomicAdd(&counters[7], skipped);
     return acc;

@@ -269,13 +269,17 @@ impl ViewerApp {
         }
     }
 
+    /// One line of the `--log` file (JSON), if there is one.
+    pub(super) fn log_line(&mut self, v: serde_json::Value) {
+        if let Some(log) = &mut self.log {
+            let _ = writeln!(log, "{v}");
+        }
+    }
+
     fn show_frame(&mut self, ctx: &egui::Context, out: Box<Out>) {
         let v = out.view;
-        if let Some(log) = &mut self.log {
-            let _ = writeln!(
-                log,
-                "{}",
-                serde_json::json!({
+        if self.log.is_some() {
+            self.log_line(serde_json::json!({
                     "t": self.started.elapsed().as_secs_f64(),
                     "view": VIEWS[v], "version": out.version,
                     "current": out.version == self.views[v].version,
@@ -290,8 +294,7 @@ impl ViewerApp {
                     "octree_nodes": out.octree_nodes,
                     "peak_rss_bytes": crate::memory::peak_rss(),
                     "memory_budget_bytes": self.setup.memory_budget,
-                })
-            );
+            }));
         }
         // Unreadable bricks: reported on stderr (the first ones; a store
         // removed under the view fails every brick it still needed) and in

@@ -9,7 +9,6 @@ use brickyard_core::camera::{add, dot, length, normalize, scale, sub, Camera, Pr
 use brickyard_core::transfer::{ColorMap, Preset};
 use brickyard_core::TransferFunction;
 use eframe::egui;
-use std::io::Write;
 use std::sync::atomic::Ordering;
 use std::time::{Duration, Instant};
 
@@ -428,17 +427,11 @@ impl ViewerApp {
                 Ok(true) => {
                     // The log marks where each command took effect, between
                     // the frames before and after it.
-                    if let Some(log) = &mut self.log {
-                        let _ = writeln!(
-                            log,
-                            "{}",
-                            serde_json::json!({
-                                "t": self.started.elapsed().as_secs_f64(),
-                                "script_line": self.pc + 1,
-                                "command": format!("{cmd:?}"),
-                            })
-                        );
-                    }
+                    self.log_line(serde_json::json!({
+                        "t": self.started.elapsed().as_secs_f64(),
+                        "script_line": self.pc + 1,
+                        "command": format!("{cmd:?}"),
+                    }));
                     self.pc += 1
                 }
                 Ok(false) => return,
