@@ -272,7 +272,12 @@ fn render_typed<T: Sample>(
     let ch_frames: Vec<Frame> = ch_scenes
         .iter()
         .zip(&ch_params)
-        .map(|(sc, p)| Frame::new(vm, sc, p, lod))
+        .zip(&params.channels)
+        .map(|((sc, p), c)| {
+            let mut f = Frame::new(vm, sc, p, lod);
+            f.channel_levels = c.levels;
+            f
+        })
         .collect();
     // DVR through the residency octree: its tables for this frame.
     let by_octree = matches!(params.mode, RenderMode::Dvr) && params.traversal == Traversal::Octree;

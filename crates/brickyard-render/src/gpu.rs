@@ -501,20 +501,21 @@ impl GpuRenderer {
                     .collect()
             };
             let mut words: Vec<u32> = points(tf);
-            // DVR channels by style: (channel, transfer function).
-            let ch_tfs: Vec<(usize, TransferFunction)> = if dvr_multi {
+            // DVR channels by style: (channel, transfer function, level
+            // range).
+            let ch_tfs: Vec<(usize, TransferFunction, Option<[usize; 2]>)> = if dvr_multi {
                 params
                     .channels
                     .iter()
-                    .map(|c| (c.channel, c.dvr_tf()))
+                    .map(|c| (c.channel, c.dvr_tf(), c.levels))
                     .collect()
             } else if by_octree {
-                vec![(scene.channel, tf.clone())]
+                vec![(scene.channel, tf.clone(), None)]
             } else {
                 vec![]
             };
             let mut first = vec![];
-            for (_, t) in &ch_tfs {
+            for (_, t, _) in &ch_tfs {
                 first.push(words.len() as u32 / 4);
                 words.extend(points(t));
             }
@@ -524,7 +525,7 @@ impl GpuRenderer {
                 // set by its own transfer function.
                 (Some(r), 0) if !ch_tfs.is_empty() => {
                     let mut bits = vec![];
-                    for (c, t) in &ch_tfs {
+                    for (c, t, _) in &ch_tfs {
                         let b = clear_bits(&ids, r, t, *c);
                         bits.resize(b.len(), 0);
                         for (x, y) in bits.iter_mut().zip(b) {
@@ -540,8 +541,10 @@ impl GpuRenderer {
             let styles_off = words.len() as u32;
             {
                 // Per channel: channel, window start, 1 / width, first
-                // point, opacity points, colour points (multi.wgsl).
-                for ((c, t), &p) in ch_tfs.iter().zip(&first) {
+                // point, opacity points, colour points, finest and
+                // coarsest level (multi.wgsl).
+                for ((c, t, lv), &p) in ch_tfs.iter().zip(&first) {
+                    let [lo, hi] = lv.map_or([0, u32::MAX], |[a, b]| [a as u32, b as u32]);
                     words.extend([
                         *c as u32,
                         t.window[0].to_bits(),
@@ -549,8 +552,8 @@ impl GpuRenderer {
                         p,
                         t.opacity.len() as u32,
                         t.colormap.points().len() as u32,
-                        0,
-                        0,
+                        lo,
+                        hi,
                     ]);
                 }
             }
@@ -840,7 +843,12 @@ fn octree_tables(
     let frames: Vec<Frame> = ch_scenes
         .iter()
         .zip(&ch_params)
-        .map(|(sc, p)| Frame::new(vm, sc, p, lod))
+        .enumerate()
+        .map(|(i, (sc, p))| {
+            let mut f = Frame::new(vm, sc, p, lod);
+            f.channel_levels = params.channels.get(i).and_then(|c| c.levels);
+            f
+        })
         .collect();
     let refs: Vec<&Frame> = frames.iter().collect();
     let used: Vec<bool> = (0..nl)

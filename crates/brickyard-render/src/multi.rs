@@ -84,19 +84,30 @@ pub(crate) fn dvr_pixel<T: Sample>(
         let mut rgb = [0.0f32; 3];
         let mut weight = 0.0f32;
         for wk in walkers.iter_mut() {
+            // The channel's own level (its level range), usually the step's.
+            let lc = wk.f.channel_level(level);
+            let (cb, cf) = if lc == level {
+                (vb, frac)
+            } else {
+                f.coords(lc, w)
+            };
             let (clear, brick, lo, hi) = {
-                let c = wk.enter(level, vb, req, true);
+                let c = wk.enter(lc, cb, req, true);
                 (c.transparent, c.brick, c.lo, c.hi)
             };
             if clear {
-                if all_clear {
+                if all_clear && lc == level {
                     let bx = wk.f.clear_box(level, brick, lo, hi);
                     land = land.min(wk.f.land(ray, &track, g, k, bx, limit));
+                } else {
+                    // A brick of another level than the step's: no landing
+                    // from it; the ray steps on.
+                    all_clear = false;
                 }
                 continue;
             }
             all_clear = false;
-            let Some(v) = wk.value(level, w, vb, frac, req, st) else {
+            let Some(v) = wk.value(lc, w, cb, cf, req, st) else {
                 continue;
             };
             match wk.f.tf_eval.lookup_visible(v) {

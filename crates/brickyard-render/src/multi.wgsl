@@ -7,7 +7,8 @@
 // Per channel i shown, 8 words of `aux` from R.styles_off + 8·i: channel,
 // window start (f32 bits), 1 / window width (f32 bits), index of its first
 // transfer-function point (in 4-word points), opacity points, colour
-// points, 0, 0. The points themselves lie in `aux` like the one-channel
+// points, the finest and the coarsest level it is read at (0 and AUTO:
+// every level). The points themselves lie in `aux` like the one-channel
 // transfer function's, so 64 channels take one binding.
 
 fn ch_word(i: u32, k: u32) -> u32 {
@@ -64,13 +65,26 @@ var<private> ch_samples: u32;
 var<private> ch_exact: u32;
 var<private> ch_unserved: u32;
 
-// Channel i shown at world point `w` of `level` (voxel coordinates `q`):
+// The level channel i is read at where a step asks for `level` (its level
+// range, `ChannelStyle::level_for`).
+fn ch_level(i: u32, level: u32) -> u32 {
+    return min(clamp(level, ch_word(i, 6u), ch_word(i, 7u)), R.levels - 1u);
+}
+
+// Channel i shown at world point `w` of the step's level `step_level`
+// (voxel coordinates `step_q`), read at its own level (`ch_level`):
 // (α·colour, α) through its transfer function, α 0 where nothing shows;
-// α −1 when `skip` and the channel hides the brick there (known clear,
-// or an EMPTY/CONSTANT entry it maps to zero opacity). On a miss, only the
-// coarser levels whose bit `mask` has substitute.
-fn channel_sample(i: u32, level: u32, w: vec3<f32>, q: vec3<f32>, mask: u32, skip: bool) -> vec4<f32> {
+// α −1 when `skip` and the channel hides the brick there (known clear, or
+// an EMPTY/CONSTANT entry it maps to zero opacity) and that brick is of the
+// step's level (a brick of another level gives no landing: α 0). On a
+// miss, only the coarser levels whose bit `mask` has substitute.
+fn channel_sample(i: u32, step_level: u32, w: vec3<f32>, step_q: vec3<f32>, mask: u32, skip: bool) -> vec4<f32> {
     use_channel(i);
+    let level = ch_level(i, step_level);
+    var q = step_q;
+    if (level != step_level) {
+        q = coords(level, w).xyz;
+    }
     let b = vec3<u32>(q);
     let e = entry_at(level, b);
     if (skip) {
@@ -84,6 +98,9 @@ fn channel_sample(i: u32, level: u32, w: vec3<f32>, q: vec3<f32>, mask: u32, ski
             hidden = is_nan(v) || ch_opacity(i, ch_windowed(i, v)) <= 0.0;
         }
         if (hidden) {
+            if (level != step_level) {
+                return vec4<f32>(0.0);
+            }
             return vec4<f32>(0.0, 0.0, 0.0, -1.0);
         }
     }

@@ -194,12 +194,14 @@ mod tests {
             color: [0.0, 1.0, 0.0],
             window: [0.0, 200.0],
             tf: None,
+            levels: None,
         };
         let magenta = ChannelStyle {
             channel: 1,
             color: [1.0, 0.0, 1.0],
             window: [100.0, 300.0],
             tf: None,
+            levels: None,
         };
         assert_eq!(channel_intensity(&green, 50.0), 0.25);
         assert_eq!(channel_intensity(&green, -5.0), 0.0);

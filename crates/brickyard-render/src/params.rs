@@ -136,9 +136,25 @@ pub struct ChannelStyle {
     /// the default made from `color` and `window` ([`ChannelStyle::dvr_tf`]).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub tf: Option<TransferFunction>,
+    /// DVR: the finest and coarsest pyramid level this channel is drawn
+    /// at (`[lo, hi]`, `lo <= hi`): a step asking for level `l` reads the
+    /// channel at `l` clamped to that range (and to the volume's levels).
+    /// `None`: every level, as the step asks.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub levels: Option<[usize; 2]>,
 }
 
 impl ChannelStyle {
+    /// The level this channel is read at where a DVR step asks for `level`
+    /// of a volume of `count` levels ([`ChannelStyle::levels`]).
+    #[inline]
+    pub fn level_for(levels: Option<[usize; 2]>, level: usize, count: usize) -> usize {
+        match levels {
+            Some([lo, hi]) => level.clamp(lo, hi).min(count - 1),
+            None => level,
+        }
+    }
+
     /// A channel shown with `color` over `window`, with the default DVR
     /// transfer function.
     pub fn new(channel: usize, color: [f32; 3], window: [f32; 2]) -> ChannelStyle {
@@ -147,6 +163,7 @@ impl ChannelStyle {
             color,
             window,
             tf: None,
+            levels: None,
         }
     }
 

@@ -462,7 +462,8 @@ pub fn render(volume: &Volume, params: &RenderParams) -> Image {
 /// Render several channels (`params.channels`): added up (slice, MIP) or
 /// composited per sample, each through its own transfer function (DVR):
 /// `volumes[i]` is the level to show of channel `params.channels[i]` (all
-/// of one size). Panics if the parameters are invalid, no channel is given
+/// of one size, but for DVR, where each may be another level of one
+/// extent). Panics if the parameters are invalid, no channel is given
 /// or the volumes do not match them.
 pub fn render_channels(volumes: &[Volume], params: &RenderParams) -> Image {
     assert!(!params.channels.is_empty(), "no channels to render");
@@ -471,7 +472,12 @@ pub fn render_channels(volumes: &[Volume], params: &RenderParams) -> Image {
         params.channels.len(),
         "one volume per channel"
     );
-    assert!(volumes.iter().all(|v| v.dims == volumes[0].dims));
+    // DVR may read channels at other levels (their level ranges): each
+    // volume is sampled at the same normalized positions; the first one
+    // gives the extent and the step. Slices and MIPs take one grid.
+    assert!(
+        matches!(params.mode, RenderMode::Dvr) || volumes.iter().all(|v| v.dims == volumes[0].dims)
+    );
     let v0 = &volumes[0];
     let extent = v0.extent();
     let dt = v0.voxel_size() / params.samples_per_voxel;

@@ -78,6 +78,10 @@ pub(crate) struct Frame<'a> {
     /// Per axis, per brick coordinate `x`, its part of the cell index:
     /// `x / edge` times the cells of the faster axes.
     pub(crate) cell_part: [Vec<u16>; 3],
+    /// DVR of several channels: this channel's level range
+    /// ([`ChannelStyle::levels`](crate::params::ChannelStyle::levels));
+    /// `None`: the levels the steps ask for.
+    pub(crate) channel_levels: Option<[usize; 2]>,
 }
 
 impl<'a> Frame<'a> {
@@ -187,9 +191,17 @@ impl<'a> Frame<'a> {
                 .iter()
                 .all(|e| e.is_power_of_two())
                 .then(|| vm.cell_grid().edge.map(|e| e.trailing_zeros())),
+            channel_levels: None,
         };
         frame.next_t = (0..nl).map(|l| frame.compute_next_level_t(l)).collect();
         frame
+    }
+
+    /// The level this frame's channel is read at where a step asks for
+    /// `level` (its level range, [`Frame::channel_levels`]).
+    #[inline]
+    pub(crate) fn channel_level(&self, level: usize) -> usize {
+        crate::params::ChannelStyle::level_for(self.channel_levels, level, self.dims.len())
     }
 
     pub(crate) fn levels(&self) -> usize {

@@ -614,3 +614,67 @@ fn device_octree_frames_equal_the_cpu_octree_page_tables_and_the_reference() {
         );
     }
 }
+
+#[test]
+fn per_channel_level_ranges_read_each_channel_at_its_level() {
+    // Three channels at a fixed level 0; channel 1 drawn at level 1 only,
+    // channel 2 at levels 1–2 (so at 1): CPU and device, page tables and
+    // octree, equal the reference that reads those levels; no level-0
+    // brick of channels 1 and 2 is ever mapped.
+    let dir = tempfile::tempdir().unwrap();
+    let (store, extent, levels) = banded_store(dir.path(), 3);
+    assert!(levels.len() >= 3);
+    let mut p = dvr_params(extent, 3);
+    p.reference_step = Some(extent[0] / DIMS[2] as f64);
+    p.channels[1].levels = Some([1, 1]);
+    p.channels[2].levels = Some([1, 2]);
+    let vols: Vec<Volume> = [(0, 0), (1, 1), (2, 1)]
+        .iter()
+        .map(|&(c, l)| Volume::from_store(&store, l, c).unwrap())
+        .collect();
+    let want = render_channels(&vols, &p);
+    not_blank(&want, "reference");
+    let all_fine = reference(&store, &p, 0);
+    assert!(
+        want.max_abs_diff(&all_fine) > 0.02,
+        "the level ranges changed nothing"
+    );
+    let gpu = brickyard_gpu::context::test_gpu();
+    let pool = 6 * DIMS.iter().product::<u64>();
+    for traversal in [Traversal::PageTable, Traversal::Octree] {
+        p.traversal = traversal;
+        let mut scene = Scene::new(extent, levels.clone());
+        let mut s = open(&store, &mut scene, pool, 4);
+        let (cpu, _) = converge(&mut s, &scene, &p, Lod::Fixed(0));
+        let d = cpu.max_abs_diff(&want);
+        eprintln!("{traversal:?}, CPU: vs reference {d}");
+        assert!(d <= TOLERANCE, "{traversal:?}, CPU: {d}");
+        let o = scene.octree.as_ref().unwrap().read().unwrap();
+        let root = o.node(0, [0, 0, 0]);
+        assert_eq!(
+            o.mask_of(root, 1) & 1,
+            0,
+            "a level-0 brick of channel 1 mapped"
+        );
+        assert_eq!(
+            o.mask_of(root, 2) & 1,
+            0,
+            "a level-0 brick of channel 2 mapped"
+        );
+        assert_ne!(o.mask_of(root, 0) & 1, 0);
+        drop(o);
+        if let Some(gpu) = &gpu {
+            let mut scene = Scene::new(extent, levels.clone());
+            let mut s = open(&store, &mut scene, pool, 4);
+            let (dev, _) = converge_device(gpu, &mut s, &scene, &p, Lod::Fixed(0));
+            let (dr, dc) = (dev.max_abs_diff(&want), dev.max_abs_diff(&cpu));
+            eprintln!("{traversal:?}, device: vs reference {dr}, vs CPU {dc}");
+            assert!(
+                dr <= TOLERANCE && dc <= TOLERANCE,
+                "{traversal:?}, device: {dr} {dc}"
+            );
+            let o = scene.octree.as_ref().unwrap().read().unwrap();
+            assert_eq!(o.mask_of(o.node(0, [0, 0, 0]), 1) & 1, 0);
+        }
+    }
+}

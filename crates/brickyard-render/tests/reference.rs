@@ -417,12 +417,14 @@ fn channels_add_up_as_defined() {
             color: [0.0, 1.0, 0.0],
             window: [0.0, 200.0],
             tf: None,
+            levels: None,
         },
         ChannelStyle {
             channel: 1,
             color: [1.0, 0.0, 1.0],
             window: [100.0, 300.0],
             tf: None,
+            levels: None,
         },
     ];
     let tf = constant_tf(1.0, [1.0; 3]);

@@ -70,6 +70,13 @@ pub struct RenderCmd {
     /// (a JSON file as for --tf; repeat for several).
     #[arg(long = "channel-tf", value_name = "C=FILE")]
     channel_tfs: Vec<String>,
+    /// DVR of several channels: channel C drawn only at pyramid levels LO
+    /// to HI, `C=LO-HI` (`C=L`: level L alone; repeat for several). A
+    /// step asking for a finer level reads the channel at LO, a coarser
+    /// one at HI: a context channel drawn coarse costs a fraction of the
+    /// bricks of one drawn in full.
+    #[arg(long = "channel-levels", value_name = "C=LO-HI")]
+    channel_levels: Vec<String>,
     /// A live derived channel: this processing pipeline (stages as in
     /// `brickyard process`, e.g. `gauss(1.5)|sobel`; no `label`) applied to
     /// the shown channel, each brick computed when the view asks for it, at
@@ -265,7 +272,28 @@ fn parse_channel(
         color,
         window,
         tf: None,
+        levels: None,
     })
+}
+
+/// `C=LO-HI` or `C=L` of `--channel-levels`: the channel and its level
+/// range, checked against the store's `levels`.
+pub fn parse_channel_levels(t: &str, levels: usize) -> Result<(usize, [usize; 2])> {
+    let bad = || anyhow::anyhow!("channel-levels: expected C=LO-HI or C=L, found {t:?}");
+    let (ch, range) = t.split_once('=').ok_or_else(bad)?;
+    let ch: usize = ch.trim().parse().map_err(|_| bad())?;
+    let (lo, hi) = range.split_once('-').unwrap_or((range, range));
+    let (lo, hi): (usize, usize) = (
+        lo.trim().parse().map_err(|_| bad())?,
+        hi.trim().parse().map_err(|_| bad())?,
+    );
+    if lo > hi || hi >= levels {
+        bail!(
+            "channel-levels: {t:?}: expected levels LO <= HI within 0-{} (the store has {levels} levels)",
+            levels - 1
+        );
+    }
+    Ok((ch, [lo, hi]))
 }
 
 /// An image size, `N` (square) or `WxH`, each between 1 and 16384.
@@ -584,6 +612,13 @@ fn run_with(
         };
         st.tf = Some(tf);
     }
+    for t in &c.channel_levels {
+        let (ch, range) = parse_channel_levels(t, info.levels.len())?;
+        let Some(st) = styles.iter_mut().find(|s| s.channel == ch) else {
+            bail!("channel-levels: channel {ch} is not shown (give it with --channel)");
+        };
+        st.levels = Some(range);
+    }
     if derived.is_some() {
         // The derived volume has one channel. A bare `--channel C` only
         // names the channel it is computed from; with a colour it is also
@@ -602,12 +637,17 @@ fn run_with(
                 if one.tf.is_some() {
                     bail!("channel-tf: one channel in dvr goes through --tf");
                 }
+                if one.levels.is_some() {
+                    bail!("channel-levels: one channel in dvr is drawn at --level (or the automatic level of detail); level ranges are for several channels");
+                }
                 scene.channel = one.channel;
             }
             _ => {}
         }
     } else if !c.channel_tfs.is_empty() {
         bail!("channel-tf: transfer functions per channel are for dvr; mip and slice add channels up by colour and window");
+    } else if !c.channel_levels.is_empty() {
+        bail!("channel-levels: level ranges per channel are for dvr; mip and slice read every channel at one level");
     }
     // DVR of several channels composites them; one goes through --tf.
     let dvr_multi = mode == RenderMode::Dvr && styles.len() > 1;

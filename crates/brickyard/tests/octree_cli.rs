@@ -287,6 +287,42 @@ fn bad_values_and_combinations_name_the_flag() {
         &r(&[&oc[..], &["--gpu-update", "device"]].concat()),
         &["gpu-update", "host", "octree"],
     );
+    // Level ranges per channel: several channels in DVR, levels the store
+    // has.
+    let two = two_channels(d.path());
+    let r2 = |args: &[&str]| {
+        let mut a = vec!["render", s(&two), "--size", "16", "--out", s(&out)];
+        a.extend_from_slice(args);
+        run(&a)
+    };
+    let both = ["--channel", "0:green", "--channel", "1:magenta"];
+    for (bad, words) in [
+        ("1=x", &["channel-levels", "C=LO-HI", "1=x"][..]),
+        ("1=2-1", &["channel-levels", "LO <= HI"][..]),
+        ("1=0-9", &["channel-levels", "levels"][..]),
+        ("5=0", &["channel-levels", "channel 5", "not shown"][..]),
+    ] {
+        fails_with(
+            &r2(&[&both[..], &["--channel-levels", bad]].concat()),
+            words,
+        );
+    }
+    fails_with(
+        &r2(&["--channel", "1", "--channel-levels", "1=1"]),
+        &["channel-levels", "several channels"],
+    );
+    fails_with(
+        &r2(&[&both[..], &["--mode", "mip", "--channel-levels", "1=1"]].concat()),
+        &["channel-levels", "dvr"],
+    );
+    ok(
+        &r2(&[
+            &both[..],
+            &["--channel-levels", "1=1-1", "--backend", "cpu"],
+        ]
+        .concat()),
+        "a channel at level 1",
+    );
     fails_with(
         &r(&["--debug", "steps", "--backend", "gpu"]),
         &["debug", "CPU"],
@@ -332,6 +368,8 @@ fn bench_octree_measures_both_traversals() {
         "40",
         "--channels",
         "1,3",
+        "--backend",
+        "both",
         "--dir",
         s(d.path()),
     ]);
@@ -339,26 +377,35 @@ fn bench_octree_measures_both_traversals() {
     let rows: Vec<Vec<&str>> = out
         .lines()
         .map(|l| l.split_whitespace().collect::<Vec<_>>())
-        .filter(|w| w.len() >= 12 && (w[1] == "page-table" || w[1] == "octree"))
+        .filter(|w| w.len() >= 13 && (w[2] == "page-table" || w[2] == "octree"))
         .collect();
-    let names: Vec<(&str, &str)> = rows.iter().map(|w| (w[0], w[1])).collect();
+    let names: Vec<(&str, &str, &str)> = rows.iter().map(|w| (w[0], w[1], w[2])).collect();
     assert_eq!(
         names,
         [
-            ("1", "page-table"),
-            ("1", "octree"),
-            ("3", "page-table"),
-            ("3", "octree")
+            ("1", "cpu", "page-table"),
+            ("1", "cpu", "octree"),
+            ("1", "gpu", "page-table"),
+            ("1", "gpu", "octree"),
+            ("3", "cpu", "page-table"),
+            ("3", "cpu", "octree"),
+            ("3", "gpu", "page-table"),
+            ("3", "gpu", "octree"),
         ],
         "{out}"
     );
     for w in &rows {
         let num = |i: usize| w[i].parse::<f64>().unwrap();
         // Frame time, samples per ray, images equal.
-        assert!(num(2) > 0.0 && num(4) > 0.0, "{w:?}");
+        assert!(num(3) > 0.0 && num(5) > 0.0, "{w:?}");
         assert!(num(w.len() - 1) <= 1e-4, "images differ: {w:?}");
         // Nodes per ray: none through page tables, some through the octree.
-        assert_eq!(num(6) > 0.0, w[1] == "octree", "{w:?}");
+        assert_eq!(num(7) > 0.0, w[2] == "octree", "{w:?}");
+    }
+    // The same samples per ray on both back ends.
+    for pair in rows.chunks(4) {
+        assert_eq!(pair[0][5], pair[2][5], "{out}");
+        assert_eq!(pair[1][5], pair[3][5], "{out}");
     }
     fails_with(
         &run(&["bench", "octree", "--channels", "0", "--dir", s(d.path())]),

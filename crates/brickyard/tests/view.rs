@@ -901,11 +901,16 @@ channel 1 on
 wait-complete 300
 screenshot 3d {again}.png
 save-view 3d {again}
+channel-levels 2 1 1
+wait-complete 300
+screenshot 3d {coarse}.png
+save-view 3d {coarse}
 quit
 ",
         all = s(&p("all")),
         two = s(&p("two")),
         again = s(&p("again")),
+        coarse = s(&p("coarse")),
     );
     std::fs::write(p("s.txt"), script).unwrap();
     let log = p("log.jsonl");
@@ -926,7 +931,7 @@ quit
     let o = cmd.output().unwrap();
     assert!(o.status.success(), "viewer: {}", stderr(&o));
     let mut images = vec![];
-    for (name, n) in [("all", 3), ("two", 2), ("again", 3)] {
+    for (name, n) in [("all", 3), ("two", 2), ("again", 3), ("coarse", 3)] {
         let args = std::fs::read_to_string(p(&format!("{name}.args"))).unwrap();
         assert_eq!(
             args.lines().filter(|l| *l == "--channel").count(),
@@ -939,6 +944,14 @@ quit
         images.push(a);
     }
     assert_ne!(images[0], images[1], "hiding channel 1 changed nothing");
+    // Channel 2 drawn at level 1 only: saved as `--channel-levels 2=1-1`,
+    // and not the image of every channel at level 0.
+    let coarse = std::fs::read_to_string(p("coarse.args")).unwrap();
+    assert!(coarse.lines().any(|l| l == "2=1-1"), "coarse: {coarse}");
+    assert_ne!(
+        images[2], images[3],
+        "channel 2's level range changed nothing"
+    );
     // Bytes read by the loader, frame by frame: none after the first
     // complete view (the script's lines mark where each command ran).
     let lines: Vec<serde_json::Value> = std::fs::read_to_string(&log)
@@ -957,10 +970,19 @@ quit
     let read = |v: &serde_json::Value| v["bytes_read"].as_u64();
     let before = lines[..hidden].iter().filter_map(read).max().unwrap();
     assert!(before > 0, "nothing read for the first view");
-    let after: Vec<u64> = lines[hidden..].iter().filter_map(read).collect();
+    // (Up to the level range: channel 2 at level 1 reads its bricks.)
+    let ranged = lines
+        .iter()
+        .position(|v| {
+            v["command"]
+                .as_str()
+                .is_some_and(|c| c.starts_with("ChannelLevels"))
+        })
+        .expect("the log marks `channel-levels`");
+    let after: Vec<u64> = lines[hidden..ranged].iter().filter_map(read).collect();
     assert!(
         lines[hidden..shown].iter().filter_map(read).count() > 0
-            && lines[shown..].iter().filter_map(read).count() > 0,
+            && lines[shown..ranged].iter().filter_map(read).count() > 0,
         "no frame after a switch"
     );
     assert!(

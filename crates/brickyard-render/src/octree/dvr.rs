@@ -76,7 +76,7 @@ impl<'o> OctFrame<'o> {
                     if c >= tree.channels {
                         continue;
                     }
-                    let [lo, hi] = tree.range_of(node, c, l);
+                    let [lo, hi] = tree.range_of(node, c, f.channel_level(l));
                     if lo.is_nan() || hi.is_nan() {
                         continue;
                     }
@@ -243,11 +243,12 @@ pub(crate) fn dvr_pixel<T: Sample>(
                         // bricks here and cross the node.
                         let kn = first_step_from(te.min(limit), base_t, inv_dt).max(k);
                         let n = (kn - (k - 1)) as u32;
-                        let (vb, _) = f.coords(level, w);
                         for (i, wk) in walkers.iter_mut().enumerate() {
                             if open >> i & 1 != 0 {
-                                wk.enter(level, vb, req, true);
-                                wk.cache[level].missed = wk.cache[level].missed.saturating_add(n);
+                                let lc = wk.f.channel_level(level);
+                                let (vb, _) = f.coords(lc, w);
+                                wk.enter(lc, vb, req, true);
+                                wk.cache[lc].missed = wk.cache[lc].missed.saturating_add(n);
                             }
                         }
                         st.samples += n as u64;
@@ -279,11 +280,18 @@ pub(crate) fn dvr_pixel<T: Sample>(
             if cur.clear >> i & 1 != 0 {
                 continue;
             }
-            if wk.enter(level, vb, req, true).transparent {
+            // The channel's own level (its level range), usually the step's.
+            let lc = wk.f.channel_level(level);
+            let (cb, cf) = if lc == level {
+                (vb, frac)
+            } else {
+                f.coords(lc, w)
+            };
+            if wk.enter(lc, cb, req, true).transparent {
                 continue;
             }
             let mask = tree.mask_of(cur.node, of.channels[i]);
-            let Some(v) = wk.value_masked(level, w, vb, frac, mask, req, st) else {
+            let Some(v) = wk.value_masked(lc, w, cb, cf, mask, req, st) else {
                 continue;
             };
             match wk.f.tf_eval.lookup_visible(v) {
@@ -337,7 +345,9 @@ impl OctFrame<'_> {
             if clear >> i & 1 != 0 {
                 continue;
             }
-            let v = self.tree.range_of(node, self.channels[i], level)[0];
+            let v = self
+                .tree
+                .range_of(node, self.channels[i], f.channel_level(level))[0];
             if let Some(c) = f.tf_eval.lookup_visible(v) {
                 keep *= 1.0 - c[3];
                 rgb[0] += c[3] * c[0];

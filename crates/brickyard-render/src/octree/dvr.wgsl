@@ -184,11 +184,11 @@ fn dvr_octree(ray: Ray) -> vec4<f32> {
                         // bricks here and cross the node.
                         let kn = max(oct_first_step(min(te, limit), base_t, dt), k);
                         let m = kn - (k - 1u);
-                        let b = vec3<u32>(coords(level, w).xyz);
                         for (var i = 0u; i < n; i = i + 1u) {
                             if (oct_bit(open, i)) {
                                 use_channel(i);
-                                let id = brick_id(level, b);
+                                let lc = ch_level(i, level);
+                                let id = brick_id(lc, vec3<u32>(coords(lc, w).xyz));
                                 if (id != miss_id) {
                                     flush_misses();
                                     miss_id = id;

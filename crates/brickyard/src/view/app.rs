@@ -64,6 +64,9 @@ struct ChannelUi {
     visible: bool,
     color: [u8; 3],
     window: [f32; 2],
+    /// DVR of several channels: the finest and coarsest level it is drawn
+    /// at (`None`: every level).
+    levels: Option<[usize; 2]>,
 }
 
 #[derive(Default)]
@@ -189,11 +192,13 @@ impl ViewerApp {
                     window: o
                         .window
                         .map_or(stored.range, |w| [w[0] as f32, w[1] as f32]),
+                    levels: None,
                 },
                 None => ChannelUi {
                     visible: c < 3,
                     color: CHANNEL_COLORS[c % CHANNEL_COLORS.len()],
                     window: stored.range,
+                    levels: None,
                 },
             })
             .collect();

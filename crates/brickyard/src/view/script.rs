@@ -53,6 +53,8 @@ pub enum Cmd {
     Channel(usize, bool),
     ChannelColor(usize, [u8; 3]),
     ChannelWindow(usize, f32, f32),
+    /// `channel-levels C LO HI` (`C all`: every level).
+    ChannelLevels(usize, Option<[usize; 2]>),
     DvrChannel(usize),
     DvrChannels(bool),
     /// The 3D view's views: 1 (off), 2 with a stereo layout, or N tiled.
@@ -190,6 +192,11 @@ fn parse_line(w: &[&str]) -> Result<Cmd> {
             arity(3)?;
             Cmd::ChannelWindow(num(w[1])?, num(w[2])?, num(w[3])?)
         }
+        "channel-levels" => match w.len() {
+            3 if w[2] == "all" => Cmd::ChannelLevels(num(w[1])?, None),
+            4 => Cmd::ChannelLevels(num(w[1])?, Some([num(w[2])?, num(w[3])?])),
+            _ => bail!("channel-levels takes a channel and LO HI, or a channel and `all`"),
+        },
         "apply" => {
             arity(1)?;
             Cmd::Apply(w[1].into())

@@ -279,6 +279,16 @@ impl ViewerApp {
                         self.channel_ui(*c)?.window = [*lo, *hi];
                         true
                     }
+                    Cmd::ChannelLevels(c, range) => {
+                        let n = self.ds.levels.len();
+                        if let Some([lo, hi]) = range {
+                            if lo > hi || *hi >= n {
+                                bail!("channel-levels: expected LO <= HI within 0-{}, found {lo} {hi}", n - 1);
+                            }
+                        }
+                        self.channel_ui(*c)?.levels = *range;
+                        true
+                    }
                     Cmd::Apply(name) => {
                         self.apply(name)?;
                         true

@@ -98,6 +98,7 @@ impl ViewerApp {
                 color: c.color.map(|x| x as f32 / 255.0),
                 window: c.window,
                 tf: None,
+                levels: c.levels,
             })
             .collect()
     }

@@ -65,6 +65,7 @@ impl ViewerApp {
                 "DVR: composite the visible channels (each in its colour and window)",
             );
             ui.label("Channels (MIP and slices add them up):");
+            let nl = self.ds.levels.len();
             for (i, c) in self.channels.iter_mut().enumerate() {
                 ui.horizontal(|ui| {
                     ui.checkbox(&mut c.visible, format!("{i}"));
@@ -74,6 +75,20 @@ impl ViewerApp {
                     }
                     ui.add(egui::DragValue::new(&mut c.window[0]).speed(1.0));
                     ui.add(egui::DragValue::new(&mut c.window[1]).speed(1.0));
+                    // DVR: the levels this channel is drawn at.
+                    let mut limited = c.levels.is_some();
+                    if ui
+                        .checkbox(&mut limited, "levels")
+                        .on_hover_text("DVR of several channels: draw this channel only at these pyramid levels (finest, coarsest)")
+                        .changed()
+                    {
+                        c.levels = limited.then_some([0, nl - 1]);
+                    }
+                    if let Some([lo, hi]) = &mut c.levels {
+                        ui.add(egui::DragValue::new(lo).range(0..=nl - 1));
+                        ui.add(egui::DragValue::new(hi).range(0..=nl - 1));
+                        *hi = (*hi).max(*lo);
+                    }
                 });
             }
         }

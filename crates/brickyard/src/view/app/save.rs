@@ -108,6 +108,16 @@ impl ViewerApp {
                     ),
                 ]);
             }
+            if p.mode == RenderMode::Dvr {
+                for s in &p.channels {
+                    if let Some([lo, hi]) = s.levels {
+                        a.extend([
+                            "--channel-levels".into(),
+                            format!("{}={lo}-{hi}", s.channel),
+                        ]);
+                    }
+                }
+            }
         }
         Ok(a)
     }
