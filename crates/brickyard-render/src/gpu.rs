@@ -17,6 +17,7 @@
 
 use crate::cpu::{FrameStats, Lod, Scene};
 use crate::image::Image;
+use crate::octree::device::DeviceOctree;
 use crate::octree::dvr::OctFrame;
 use crate::octree::Octree;
 use crate::params::{ChannelStyle, RenderMode, RenderParams, Traversal, MAX_DVR_CHANNELS};
@@ -193,6 +194,10 @@ pub struct GpuRenderer {
     /// Several, most recently used last (views with different transfer
     /// functions in turn).
     aux: Vec<(AuxKey, wgpu::Buffer, u32, u32, u32)>,
+    /// The device's twin of the scene's residency octree (its update
+    /// passes keep the masks the octree traversal reads), with the octree
+    /// it follows (`Octree::id`).
+    octree: Option<(u64, DeviceOctree)>,
 }
 
 /// Transfer function, value ranges (by address), channel, brick grid, DVR
@@ -259,7 +264,14 @@ impl GpuRenderer {
             images: vec![],
             table: None,
             aux: vec![],
+            octree: None,
         }
+    }
+
+    /// The device's twin of the scene's octree (for tests: its masks
+    /// equal the host's as of the last frame drawn).
+    pub fn device_octree(&self) -> Option<&DeviceOctree> {
+        self.octree.as_ref().map(|(_, d)| d)
     }
 
     /// Render one frame of `scene` (DVR or MIP of one channel) from what
@@ -468,11 +480,17 @@ impl GpuRenderer {
             ];
         }
         // The octree's tables for this frame, from the host's octree (kept
-        // in step with the host's virtual memory by `Octree::sync`).
+        // in step with the host's virtual memory by `Octree::sync`); its
+        // residency masks from the device's twin, brought up to date with
+        // the events since the last frame.
         let oct_words = if by_octree {
             Some(octree_tables(vm, scene, params, lod)?)
         } else {
             None
+        };
+        let oct_masks = match (&oct_words, &scene.octree) {
+            (Some(_), Some(arc)) => Some(device_octree_for(&mut self.octree, gpu, arc, scene)),
+            _ => None,
         };
         let key: AuxKey = (
             tf.clone(),
@@ -596,10 +614,26 @@ impl GpuRenderer {
         } else {
             params.channels.len() as u32
         };
+        let mut copy_masks = None;
         if let Some((words, masks, depths)) = &oct_words {
+            let (m, d) = (*masks as usize, *depths as usize);
+            let at = |rel: usize| (*oct_off as usize + rel) as u64 * 4;
             gpu.queue
-                .write_buffer(aux, *oct_off as u64 * 4, bytemuck::cast_slice(words));
-            u.oct = [*oct_off, oct_off + masks, oct_off + depths, 1];
+                .write_buffer(aux, at(0), bytemuck::cast_slice(&words[..m]));
+            gpu.queue
+                .write_buffer(aux, at(d), bytemuck::cast_slice(&words[d..]));
+            match oct_masks {
+                // The device's masks, copied on the device before drawing.
+                Some(channels) => copy_masks = Some((at(m), (d - m) as u64 * 4, channels)),
+                None => gpu
+                    .queue
+                    .write_buffer(aux, at(m), bytemuck::cast_slice(&words[m..d])),
+            }
+            let channels = scene
+                .octree
+                .as_ref()
+                .map_or(vm.channels(), |o| o.read().expect("octree lock").channels);
+            u.oct = [*oct_off, oct_off + masks, oct_off + depths, channels as u32];
         }
         u.styles_off = *styles_off;
         u.skip = (mode == 0) as u32;
@@ -641,6 +675,9 @@ impl GpuRenderer {
             ],
         );
         let mut enc = gpu.device.create_command_encoder(&Default::default());
+        if let (Some((at, bytes, _)), Some((_, dev))) = (copy_masks, &self.octree) {
+            enc.copy_buffer_to_buffer(&dev.masks, 0, aux, at, bytes);
+        }
         let entry = pass.as_ref().map_or("render", |p| p.entry);
         self.kernel
             .dispatch(&mut enc, entry, &bind, [w.div_ceil(8), h.div_ceil(8), 1]);
@@ -864,4 +901,29 @@ fn octree_tables(
         OctFrame::device_len(tree.depth, nl, refs.len())
     );
     Ok(words)
+}
+
+/// Bring the device's twin (`slot`) of the octree `arc` up to date: made
+/// when the octree is new to the renderer, then updated by its passes with
+/// the events the octree logged since the last frame. Returns the
+/// octree's channels.
+fn device_octree_for(
+    slot: &mut Option<(u64, DeviceOctree)>,
+    gpu: &Gpu,
+    arc: &std::sync::Arc<std::sync::RwLock<Octree>>,
+    scene: &Scene,
+) -> usize {
+    let mut tree = arc.write().expect("octree lock");
+    match slot {
+        Some((id, dev)) if *id == tree.id() => {
+            let events = tree.take_device_events();
+            dev.update(gpu, &events);
+        }
+        _ => {
+            let dev = DeviceOctree::new(gpu, &tree, scene.ranges.as_deref());
+            tree.log_for_device();
+            *slot = Some((tree.id(), dev));
+        }
+    }
+    tree.channels
 }

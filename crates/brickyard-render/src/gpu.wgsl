@@ -80,8 +80,9 @@ struct Render {
     // The first view of the image (a view drawn alone), 0, 0, 0.
     view_sel: vec4<u32>,
     // DVR through the residency octree (octree/dvr.wgsl): where its node
-    // table, masks and deepest depths per level start in `aux`; w: 1 when
-    // the octree is traversed.
+    // table, masks and deepest depths per level start in `aux`; w: the
+    // volume's channels (the masks' stride) when the octree is traversed,
+    // 0 otherwise.
     oct: vec4<u32>,
     // Per level: voxels per world unit (z, y, x); w unused.
     scale: array<vec4<f32>, 16>,
@@ -215,7 +216,7 @@ fn render(@builtin(global_invocation_id) g: vec3<u32>) {
             px = slice_channels(ray);
         } else if (R.mode == 1u) {
             px = mip_channels(ray);
-        } else if (R.oct.w == 1u) {
+        } else if (R.oct.w != 0u) {
             px = dvr_octree(ray);
         } else {
             px = dvr_channels(ray);

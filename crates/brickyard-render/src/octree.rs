@@ -178,6 +178,12 @@ pub struct Octree {
     /// Per mapped brick whose values were read (packed key): its ranges
     /// in the leaves it overlaps.
     resident: HashMap<u64, LeafRanges>,
+    /// The effective events since the device's twin last took them
+    /// ([`Octree::take_device_events`]); `None`: no twin on a device.
+    device_events: Option<Vec<Event>>,
+    /// Unique per octree made (kept by clones): which octree a device twin
+    /// follows.
+    id: u64,
 }
 
 /// A mapped brick's value ranges in the leaves `[lo, hi)` it overlaps
@@ -252,6 +258,11 @@ impl Octree {
                 })
                 .collect(),
             resident: HashMap::new(),
+            device_events: None,
+            id: {
+                static NEXT: std::sync::atomic::AtomicU64 = std::sync::atomic::AtomicU64::new(1);
+                NEXT.fetch_add(1, std::sync::atomic::Ordering::Relaxed)
+            },
         };
         o.build_ranges(ranges);
         Ok(o)
@@ -435,7 +446,32 @@ impl Octree {
         let e = self.effective(&events);
         self.pass(&e);
         self.pass_ranges(&e, Some(vm));
+        if let Some(d) = &mut self.device_events {
+            d.extend_from_slice(&e);
+        }
         events
+    }
+
+    /// Which octree this is (unique per octree made; a clone keeps it).
+    pub fn id(&self) -> u64 {
+        self.id
+    }
+
+    /// From now on, keep the effective events of [`sync`](Self::sync) and
+    /// [`apply`](Self::apply) for a twin on a device (made from the octree
+    /// as it is now), until [`take_device_events`](Self::take_device_events).
+    pub fn log_for_device(&mut self) {
+        self.device_events = Some(vec![]);
+    }
+
+    /// The effective events since the last call (or since
+    /// [`log_for_device`](Self::log_for_device)), for the device twin's
+    /// update pass ([`device::DeviceOctree::update`]).
+    pub fn take_device_events(&mut self) -> Vec<Event> {
+        self.device_events
+            .as_mut()
+            .map(std::mem::take)
+            .unwrap_or_default()
     }
 
     /// Filter then pass: [`effective`](Self::effective) events through
@@ -446,6 +482,9 @@ impl Octree {
         let e = self.effective(events);
         self.pass(&e);
         self.pass_ranges(&e, None);
+        if let Some(d) = &mut self.device_events {
+            d.extend_from_slice(&e);
+        }
     }
 
     /// The events that change something, in order: map events of keys not

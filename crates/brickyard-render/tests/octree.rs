@@ -508,6 +508,12 @@ fn converge_device(
     for _ in 0..600 {
         s.begin_frame();
         let f = renderer.render(gpu, &dvm, s.vm(), scene, p, lod).unwrap();
+        if let (Some(o), Traversal::Octree) = (&scene.octree, p.traversal) {
+            // The masks the frame read: the device twin's, kept by its own
+            // update passes from the events, equal to the host's.
+            let (masks, _, _) = renderer.device_octree().unwrap().read(gpu).unwrap();
+            assert_eq!(masks, o.read().unwrap().mask, "device and host masks");
+        }
         s.finish_frame([&f.requests]);
         if let Some(o) = &scene.octree {
             o.write().unwrap().sync(s.vm_mut());

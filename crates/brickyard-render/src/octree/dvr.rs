@@ -366,9 +366,11 @@ impl OctFrame<'_> {
     /// the visible channels' frames `frames` in table order: per node and
     /// level 8 words (hidden channels' bits, low and high word; kind 0:
     /// descend or sample, 1: hidden for every channel, 2: one mixed colour;
-    /// 0; the colour as f32 bits), then per node and visible channel its
-    /// residency mask, then per level the deepest depth. Returns the words
-    /// and where the masks and the depths start (relative).
+    /// 0; the colour as f32 bits), then the residency masks as the octree
+    /// keeps them (`[node][channel]`, every channel of the volume: what the
+    /// device twin's masks buffer holds), then per level the deepest
+    /// depth. Returns the words and where the masks and the depths start
+    /// (relative).
     pub(crate) fn device_words(&self, frames: &[&Frame]) -> (Vec<u32>, u32, u32) {
         let nl = self.tree.levels();
         let nodes = super::node_count(self.tree.depth);
@@ -394,9 +396,7 @@ impl OctFrame<'_> {
             }
         }
         let masks = words.len() as u32;
-        for node in 0..nodes {
-            words.extend(self.channels.iter().map(|&c| self.tree.mask_of(node, c)));
-        }
+        words.extend_from_slice(&self.tree.mask);
         let depths = words.len() as u32;
         words.extend(self.dmax.iter().copied());
         (words, masks, depths)

@@ -18,8 +18,10 @@
 //   32–63), kind (0: descend or sample, 1: every channel hidden, 2: one
 //   mixed colour, in the last four words as f32 bits, alpha 0: nothing
 //   visible), 0;
-// - from R.oct.y, per node and shown channel, the residency mask (bit l:
-//   some level-l brick overlapping the node is mapped);
+// - from R.oct.y, per node and channel of the volume (R.oct.w of them),
+//   the residency mask (bit l: some level-l brick overlapping the node is
+//   mapped), copied from the device's own octree (`octree.wgsl`'s passes
+//   keep it from the map and evict events);
 // - from R.oct.z, per level, the deepest depth the step size allows.
 // Counters 6 and 7: octree nodes visited, nodes crossed without sampling.
 
@@ -36,6 +38,11 @@ fn oct_bit(bits: vec2<u32>, i: u32) -> bool {
         return ((bits.x >> i) & 1u) == 1u;
     }
     return ((bits.y >> (i - 32u)) & 1u) == 1u;
+}
+
+// The residency mask of node `node` for shown channel i.
+fn oct_mask(node: u32, i: u32) -> u32 {
+    return aux[R.oct.y + node * R.oct.w + ch_word(i, 0u)];
 }
 
 // Bits of all shown channels.
@@ -174,7 +181,7 @@ fn dvr_octree(ray: Ray) -> vec4<f32> {
                     let open = all & ~clear;
                     var mapped = false;
                     for (var i = 0u; i < n; i = i + 1u) {
-                        if (oct_bit(open, i) && aux[R.oct.y + node * n + i] != 0u) {
+                        if (oct_bit(open, i) && oct_mask(node, i) != 0u) {
                             mapped = true;
                             break;
                         }
@@ -222,7 +229,7 @@ fn dvr_octree(ray: Ray) -> vec4<f32> {
                 if (oct_bit(in_clear, i)) {
                     continue;
                 }
-                let c = channel_sample(i, level, w, q, aux[R.oct.y + in_node * n + i], true);
+                let c = channel_sample(i, level, w, q, oct_mask(in_node, i), true);
                 if (c.w > 0.0) {
                     keep = keep * (1.0 - c.w);
                     rgb = rgb + c.xyz;

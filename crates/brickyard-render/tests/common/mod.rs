@@ -55,12 +55,14 @@ pub fn two_channel_styles() -> Vec<ChannelStyle> {
             color: [1.0, 0.2, 0.0],
             window: [0.0, 255.0],
             tf: None,
+            levels: None,
         },
         ChannelStyle {
             channel: 1,
             color: [0.0, 0.8, 1.0],
             window: [40.0, 200.0],
             tf: None,
+            levels: None,
         },
     ]
 }
