@@ -1,0 +1,11 @@
+//! Work shared by several processes: distributed conversion, image- and
+//! data-parallel rendering, sort-last compositing.
+//!
+//! The scheduling ([`tiles`]), the k-d split of the bricks into convex
+//! regions with their visibility order ([`kd`]) and the compositing of
+//! premultiplied RGBA with its exchange schedules ([`composite`]) are plain
+//! code, tested in one process. The MPI glue ([`cluster`]) sits behind the
+//! `mpi` feature.
+
+pub mod composite;
+pub mod kd;
