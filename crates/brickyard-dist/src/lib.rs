@@ -13,16 +13,7 @@ pub mod composite;
 pub mod kd;
 #[cfg(feature = "mpi")]
 pub use cluster::Cluster;
+#[cfg(feature = "mpi")]
+pub mod share;
 
-/// A failure every rank agreed on at a meeting point (the message names
-/// the rank that failed and why).
-#[derive(Debug, Clone)]
-pub struct Agreed(pub String);
-
-impl std::fmt::Display for Agreed {
-    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        f.write_str(&self.0)
-    }
-}
-
-impl std::error::Error for Agreed {}
+pub use brickyard_run::share::Agreed;

@@ -30,6 +30,6 @@ pub fn agreed(e: &anyhow::Error) -> bool {
         matches!(
             c.downcast_ref::<brickyard_store::StoreError>(),
             Some(brickyard_store::StoreError::Team(_))
-        ) || c.downcast_ref::<brickyard_dist::Agreed>().is_some()
+        ) || c.downcast_ref::<brickyard_run::share::Agreed>().is_some()
     })
 }

@@ -557,7 +557,20 @@ fn run(cmd: Cmd, cluster: Option<&dist::Cluster>) -> Result<()> {
             }
         }
         Cmd::Demo { out, size } => demo(&out, &size),
-        Cmd::Render(r) => render::run(*r).map(|_| ()),
+        Cmd::Render(r) => match cluster {
+            // Under mpirun: the ranks share the render (rank 0 writes).
+            #[cfg(feature = "mpi")]
+            Some(c) if dist::rank_size(Some(c)).1 > 1 => {
+                let split = match r.distribute.as_deref() {
+                    None | Some("image") => brickyard_run::share::Split::Image,
+                    Some("data") => brickyard_run::share::Split::Data,
+                    Some(d) => bail!("distribute: expected image or data, found {d:?}"),
+                };
+                let mut share = brickyard_dist::share::RenderShare::new(c, split);
+                render::run_shared(*r, Some(&mut share)).map(|_| ())
+            }
+            _ => render::run(*r).map(|_| ()),
+        },
         Cmd::View(v) => {
             let code = view::run(v, || demo_store(Path::new("brickyard-demo"), "384"))?;
             if code != 0 {
