@@ -206,6 +206,29 @@ pub fn columns(
     (unit, n)
 }
 
+/// Which of `ranks` ranks draws each of a pass's columns (row-major over
+/// `n = [y, x]` columns of `unit` voxels of a level of `dims = [y, x]`):
+/// the largest columns first, each to the rank with the fewest voxels so
+/// far (ties: the lower rank, and among equal columns the earlier one).
+pub fn column_owners(unit: [u64; 2], n: [u64; 2], dims: [u64; 2], ranks: usize) -> Vec<usize> {
+    let area = |k: u64| {
+        let (cy, cx) = (k / n[1], k % n[1]);
+        let h = ((cy + 1) * unit[0]).min(dims[0]) - cy * unit[0];
+        let w = ((cx + 1) * unit[1]).min(dims[1]) - cx * unit[1];
+        h * w
+    };
+    let mut cols: Vec<u64> = (0..n[0] * n[1]).collect();
+    cols.sort_by_key(|&k| (std::cmp::Reverse(area(k)), k));
+    let mut load = vec![0u64; ranks.max(1)];
+    let mut owner = vec![0usize; cols.len()];
+    for k in cols {
+        let r = (0..load.len()).min_by_key(|&r| (load[r], r)).unwrap();
+        load[r] += area(k);
+        owner[k as usize] = r;
+    }
+    owner
+}
+
 /// Plan the passes for levels `levels` under `budget` bytes of slab memory,
 /// shards of `shard` voxels.
 pub fn plan_passes(
@@ -242,9 +265,13 @@ pub fn plan_passes(
             let c = columns(levels, m, t, brick, shard).1;
             c[0] * c[1]
         };
-        let want = count(m).min(MIN_COLUMNS);
-        let top = (m + 1..n).take_while(|&t| count(t) >= want).last();
-        let top = top.unwrap_or(m + 1);
+        // (A pass makes at least level m + 1: when that has fewer, the
+        // pass goes on as long as the count stays at that.)
+        let want = count(m).min(MIN_COLUMNS).min(count(m + 1));
+        let top = (m + 1..n)
+            .take_while(|&t| count(t) >= want)
+            .last()
+            .unwrap_or(m + 1);
         let pick = |limit: u64| {
             (1..=top - m).rev().find_map(|j| {
                 plan_tile(
@@ -640,8 +667,9 @@ pub fn convert_team(
         .map(|p| {
             let cols = columns(&levels, p.from, p.to, opts.brick, opts.shard);
             let d = levels[p.from].dims;
+            let owners = column_owners(cols.0, cols.1, [d[1], d[2]], team.size());
             let mine: u64 = (0..cols.1[0] * cols.1[1])
-                .filter(|&k| k as usize % team.size() == team.rank())
+                .filter(|&k| owners[k as usize] == team.rank())
                 .map(|k| {
                     let (cy, cx) = (k / cols.1[1], k % cols.1[1]);
                     let h = ((cy + 1) * cols.0[0]).min(d[1]) - cy * cols.0[0];
@@ -886,7 +914,8 @@ fn run_pass<T: Sample>(
     let [_, dy, dx] = base.dims;
     let levels: Vec<LevelPlan> = ctx.outs.iter().map(|o| o.plan.clone()).collect();
     let (unit, ncols) = columns(&levels, p.from, p.to, ctx.opts.brick, ctx.opts.shard);
-    let (rank, size) = (ctx.team.rank(), ctx.team.size());
+    let owners = column_owners(unit, ncols, [dy, dx], ctx.team.size());
+    let rank = ctx.team.rank();
     // The tiles in the order one process draws them; each cut where a
     // column ends (a tile is never taller than a column), the pieces of
     // this rank's columns drawn.
@@ -900,7 +929,7 @@ fn run_pass<T: Sample>(
             while x < tx0 + tx {
                 let end = ((x / unit[1] + 1) * unit[1]).min(tx0 + tx);
                 let col = (ty0 / unit[0]) * ncols[1] + x / unit[1];
-                if col as usize % size == rank {
+                if owners[col as usize] == rank {
                     run_tile::<T>(ctx, src, p, ch, progress, [ty0, ty], [x, end - x])?;
                 }
                 x = end;
@@ -1201,4 +1230,43 @@ fn write_stats(root: &Path, outs: &[LevelOut], c: usize) -> Result<()> {
         }
     }
     Ok(())
+}
+
+#[cfg(test)]
+mod column_tests {
+    use super::*;
+
+    #[test]
+    fn owners_balance_uneven_columns() {
+        // 384 voxels in columns of 256: areas 256², 256·128, 128·256, 128².
+        let o = column_owners([256, 256], [2, 2], [384, 384], 2);
+        // 65536 to rank 0, 32768 twice to rank 1, the last 16384 to the
+        // lower rank of a tie: 81920 against 65536 voxels.
+        assert_eq!(o, vec![0, 1, 1, 0]);
+        // One rank takes everything; more ranks than columns leave some idle.
+        assert_eq!(column_owners([8, 8], [3, 2], [24, 16], 1), vec![0; 6]);
+        let o = column_owners([8, 8], [1, 2], [8, 16], 4);
+        assert_eq!(o, vec![0, 1]);
+    }
+
+    #[test]
+    fn passes_keep_enough_columns() {
+        let brick = [16; 3];
+        let shard = [32; 3];
+        let plan = plan_levels([64, 256, 256], [1.0; 3], [0.0; 3], brick);
+        let passes = plan_passes(&plan.levels, brick, shard, 2, 1 << 30, false).unwrap();
+        // Level 0 has 8×8 columns of 32; levels up to 2 keep at least 4
+        // (columns of 128: 2×2); level 3's shards (32 of its voxels, 256
+        // of level 0's) cover everything: a later pass.
+        assert_eq!(passes[0].from, 0);
+        assert_eq!(passes[0].to, 2, "{passes:?}");
+        // The rest (one column) in one pass reading level 2 back.
+        assert_eq!(passes.len(), 2, "{passes:?}");
+        assert_eq!(passes[1].from, 2);
+        assert_eq!(passes.last().unwrap().to, plan.levels.len() - 1);
+        // One shard column: one pass as before.
+        let plan = plan_levels([64, 100, 100], [1.0; 3], [0.0; 3], brick);
+        let passes = plan_passes(&plan.levels, brick, [512; 3], 2, 1 << 30, false).unwrap();
+        assert_eq!(passes.len(), 1);
+    }
 }
