@@ -55,8 +55,8 @@ use std::sync::{Arc, RwLock};
 pub use crate::params::MAX_CHANNELS;
 
 /// Tile width and height in pixels.
-const TILE_W: usize = 32;
-const TILE_H: usize = 16;
+pub const TILE_W: usize = 32;
+pub const TILE_H: usize = 16;
 
 /// What the renderer needs to know about the volume besides the pages.
 #[derive(Debug, Clone)]
@@ -205,6 +205,27 @@ impl Tiles {
             height,
             redo: vec![true; n],
         }
+    }
+
+    /// Tiles of an image of `width` × `height` pixels, those in tile rows
+    /// `rows` (of [`Tiles::rows_of`]) to draw: one band of the image.
+    pub fn band(width: u32, height: u32, rows: std::ops::Range<u32>) -> Tiles {
+        let mut t = Tiles::all(width, height);
+        let per_row = (width as usize).div_ceil(TILE_W);
+        for (i, r) in t.redo.iter_mut().enumerate() {
+            *r = rows.contains(&((i / per_row) as u32));
+        }
+        t
+    }
+
+    /// Rows of tiles of an image `height` pixels tall.
+    pub fn rows_of(height: u32) -> u32 {
+        (height as usize).div_ceil(TILE_H) as u32
+    }
+
+    /// Pixel rows of tile rows `rows` in an image `height` pixels tall.
+    pub fn pixel_rows(height: u32, rows: std::ops::Range<u32>) -> std::ops::Range<u32> {
+        (rows.start * TILE_H as u32).min(height)..(rows.end * TILE_H as u32).min(height)
     }
 
     /// Tiles still to draw.

@@ -27,6 +27,16 @@ impl<'f, 'a, T: Sample> Walker<'f, 'a, T> {
         let Some((t0, t1)) = intersect_box_inv(ray, inv_dir, [0.0; 3], extent) else {
             return acc;
         };
+        // A region (sort-last): the whole ray's step grid, samples in
+        // [c0, c1) only.
+        let (c0, t1) = match f.params.clip {
+            None => (t0, t1),
+            Some([lo, hi]) => match intersect_box_inv(ray, inv_dir, lo, hi) {
+                Some((c0, c1)) => (c0, t1.min(c1)),
+                None => return acc,
+            },
+        };
+        let terminate = f.params.early_termination;
         // Steps keep the reference renderer's positions while the level
         // stays the same; at a level change the sample there becomes step 0
         // of the new level's grid.
@@ -59,6 +69,10 @@ impl<'f, 'a, T: Sample> Walker<'f, 'a, T> {
                     // disagree by a rounding: ask again at the next step.
                     next_t = t + dt;
                 }
+            }
+            if t < c0 {
+                // Before the region: another rank's samples.
+                continue;
             }
             st.steps += 1;
             let w = ray.at(t);
@@ -105,7 +119,7 @@ impl<'f, 'a, T: Sample> Walker<'f, 'a, T> {
                             let w = ray.at(step_t(base_t, j - 1, dt));
                             c = self.shade(sh, c, (level, w, d), req, st);
                         }
-                        if composite_visible(&mut acc, c, exponent) {
+                        if composite_visible(&mut acc, c, exponent) && terminate {
                             break true;
                         }
                     } else {
@@ -131,7 +145,7 @@ impl<'f, 'a, T: Sample> Walker<'f, 'a, T> {
                 if let Some(sh) = &shading {
                     c = self.shade(sh, c, (level, w, d), req, st);
                 }
-                if composite_visible(&mut acc, c, exponent) {
+                if composite_visible(&mut acc, c, exponent) && terminate {
                     break;
                 }
             } else {

@@ -47,7 +47,21 @@ impl<'f, 'a, T: Sample> Walker<'f, 'a, T> {
         let Some(span) = intersect_box(ray, [0.0; 3], self.f.scene.extent) else {
             return [0.0; 4];
         };
-        match self.mip_max(ray, span, req, st) {
+        let best = match self.f.params.clip {
+            None => self.mip_max(ray, span, req, st),
+            // A region: samples of the whole ray's grid in [c0, c1) only.
+            Some([lo, hi]) => match intersect_box(ray, lo, hi) {
+                Some((c0, c1)) => self.mip_max_in(ray, span, (c0, c1), req, st),
+                None => None,
+            },
+        };
+        if self.f.params.mip_values {
+            return match best {
+                Some(b) => [b, 0.0, 0.0, 1.0],
+                None => [0.0; 4],
+            };
+        }
+        match best {
             Some(best) => mip_color(self.f.tf, true, best),
             None => mip_color(self.f.tf, false, f32::NAN),
         }
@@ -59,11 +73,25 @@ impl<'f, 'a, T: Sample> Walker<'f, 'a, T> {
     pub(crate) fn mip_max(
         &mut self,
         ray: &Ray,
+        span: (f64, f64),
+        req: &mut Requests,
+        st: &mut FrameStats,
+    ) -> Option<f32> {
+        self.mip_max_in(ray, span, span, req, st)
+    }
+
+    /// [`mip_max`](Self::mip_max) over the samples of the grid of
+    /// `(t0, t1)` that lie in `[c0, c1)`.
+    pub(crate) fn mip_max_in(
+        &mut self,
+        ray: &Ray,
         (t0, t1): (f64, f64),
+        (c0, c1): (f64, f64),
         req: &mut Requests,
         st: &mut FrameStats,
     ) -> Option<f32> {
         let f = self.f;
+        let t1 = t1.min(c1);
         let level = f.level_at(t0);
         let (dt, inv_dt, _) = f.step[level];
         let track = f.track(level, ray, ray.dir.map(|d| 1.0 / d), t1);
@@ -76,6 +104,10 @@ impl<'f, 'a, T: Sample> Walker<'f, 'a, T> {
                 break;
             }
             k += 1;
+            if t < c0 {
+                // Before the region: another rank's samples.
+                continue;
+            }
             hit = true;
             st.steps += 1;
             let w = ray.at(t);

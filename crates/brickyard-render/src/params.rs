@@ -116,6 +116,33 @@ pub struct RenderParams {
     /// DVR: draw a count per pixel instead of the image (CPU renderer).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub debug: Option<DebugCounts>,
+    /// DVR and MIP of one channel on the CPU, page-table traversal: take
+    /// only the samples inside this world box `[lo, hi]` (`[x, y, z]`, a
+    /// sample at `t` counts when the ray is inside the box at `t`, entry
+    /// included, exit not), on the step grid of the whole ray, so that the
+    /// regions of a partition of the volume split every ray's samples
+    /// between them (sort-last rendering). `None`: the whole volume.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub clip: Option<[[f64; 3]; 2]>,
+    /// DVR: end a ray once its opacity reaches 0.99 (the default). Off:
+    /// every sample is composited, which the compositing of regions
+    /// reproduces exactly.
+    #[serde(default = "yes", skip_serializing_if = "is_true")]
+    pub early_termination: bool,
+    /// MIP with [`clip`](Self::clip): each pixel is `[maximum, 0, 0, 1]`
+    /// (`[0; 4]` where the ray takes no sample) rather than its colour,
+    /// for the maxima of regions to be combined before the transfer
+    /// function ([`crate::optics::mip_color`]).
+    #[serde(default, skip_serializing_if = "is_default")]
+    pub mip_values: bool,
+}
+
+fn yes() -> bool {
+    true
+}
+
+fn is_true(b: &bool) -> bool {
+    *b
 }
 
 /// Most channels a slice or MIP adds up at once.
@@ -213,12 +240,37 @@ impl RenderParams {
             views: None,
             traversal: Traversal::PageTable,
             debug: None,
+            clip: None,
+            early_termination: true,
+            mip_values: false,
         }
     }
 
     /// Check everything the renderers rely on.
     pub fn validate(&self) -> Result<(), ConfigError> {
         let bad = |f: &str, m: String| Err(ConfigError::new("render parameters", f, m));
+        if let Some([lo, hi]) = self.clip {
+            if !(0..3).all(|a| lo[a].is_finite() && hi[a].is_finite() && lo[a] <= hi[a]) {
+                return bad(
+                    "clip",
+                    format!("expected a box lo <= hi, got {lo:?} {hi:?}"),
+                );
+            }
+            let one_channel = self.channels.len() <= 1 || matches!(self.mode, RenderMode::Dvr);
+            if matches!(self.mode, RenderMode::Slice { .. })
+                || !self.channels.is_empty() && !one_channel
+                || self.traversal != Traversal::PageTable
+                || self.views.is_some()
+                || self.debug.is_some()
+            {
+                return bad(
+                    "clip",
+                    "regions are drawn for DVR and MIP of one channel, one view, \
+                     page-table traversal"
+                        .into(),
+                );
+            }
+        }
         if self.width == 0 || self.height == 0 {
             return bad(
                 "width",

@@ -41,6 +41,11 @@ pub struct DriveOptions {
     pub max_frames: usize,
     /// What the user asked for (its bias is the budget's base).
     pub lod: Lod,
+    /// Draw only the tile rows `[start, end)` (CPU; see
+    /// [`Tiles::band`]): one rank's share of an image-parallel render. No
+    /// request pass (it has another tile grid); the other pixels stay
+    /// transparent.
+    pub band: Option<(u32, u32)>,
 }
 
 /// One frame as the loop saw it (for progress lines).
@@ -93,13 +98,14 @@ pub fn drive(
     // (at 512³ and 1024² the full frames then asked for 25 bricks more
     // than the pass's 1915, against 22 more than 1917 at the full rate;
     // the pass drew 4.2 M samples instead of 16.9 M).
-    let small = (opt.batch && params.width >= 128 && params.height >= 128).then(|| {
-        let mut p = params.clone();
-        p.width = params.width / 2;
-        p.height = params.height / 2;
-        p.samples_per_voxel = params.samples_per_voxel * 0.25;
-        p
-    });
+    let small = (opt.batch && opt.band.is_none() && params.width >= 128 && params.height >= 128)
+        .then(|| {
+            let mut p = params.clone();
+            p.width = params.width / 2;
+            p.height = params.height / 2;
+            p.samples_per_voxel = params.samples_per_voxel * 0.25;
+            p
+        });
     // First the request pass (while it finds bricks to ask for), then full
     // frames until the budget says stop; at least one full frame. On the
     // CPU a frame like the last (same pass, same level of detail) draws
@@ -132,7 +138,20 @@ pub fn drive(
             Some((kp, kl, img, tiles)) if kp == pass && kl == l => {
                 backend.frame_again(s, scene, p, l, img, tiles)?
             }
-            _ => backend.frame(s, scene, p, l)?,
+            _ => match opt.band {
+                Some((a, b)) => {
+                    let (w, h) = (p.width, p.height);
+                    backend.frame_again(
+                        s,
+                        scene,
+                        p,
+                        l,
+                        Image::new(w, h),
+                        Tiles::band(w, h, a..b),
+                    )?
+                }
+                None => backend.frame(s, scene, p, l)?,
+            },
         };
         frames += 1;
         let sig = signals(s, &f);

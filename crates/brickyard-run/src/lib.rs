@@ -10,4 +10,5 @@ pub mod frames;
 pub mod memory;
 pub mod process;
 pub mod render;
+pub mod share;
 pub mod window;

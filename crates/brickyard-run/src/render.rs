@@ -1,6 +1,7 @@
 //! `brickyard render`: DVR, MIP or a slice of a store to PNG, out of core
 //! through the virtual memory, frame after frame until the view is complete.
 
+use crate::share::{Share, Split};
 use anyhow::{bail, Context, Result};
 use brickyard_cache::session::Session;
 use brickyard_cache::vm::VmConfig;
@@ -210,6 +211,23 @@ pub struct RenderCmd {
     /// or ray steps; drawn once the view is complete.
     #[arg(long, value_name = "nodes|bricks|steps")]
     debug: Option<String>,
+    /// Under mpirun: how the ranks share the render: image (bands of
+    /// tiles handed out on demand, the default) or data (sort-last: each
+    /// rank draws its k-d region of the volume, the partial images are
+    /// composited in visibility order; DVR and MIP of one channel, no early
+    /// ray termination). Both draw on the CPU.
+    #[arg(long, value_name = "image|data")]
+    pub distribute: Option<String>,
+    /// DVR: composite every sample of a ray (no early termination at an
+    /// opacity of 0.99): the image `--distribute data` composites exactly.
+    #[arg(long)]
+    pub no_early_termination: bool,
+    /// Also write each image as premultiplied linear RGBA in 32-bit floats
+    /// (little-endian, row-major, top row first, width × height × 4) beside
+    /// its PNG, with the extension .f32: what the renderer computed, before
+    /// 8-bit rounding.
+    #[arg(long)]
+    pub raw_f32: bool,
     /// Print nothing (a caller that takes the images, not the PNG files).
     #[arg(skip)]
     silent: bool,
@@ -357,7 +375,27 @@ pub fn run_quiet(mut c: RenderCmd) -> Result<Vec<String>> {
 
 /// Render; returns one line per view written (file, how it ended).
 pub fn run(c: RenderCmd) -> Result<Vec<String>> {
-    run_with(c, &mut |path, img| {
+    run_shared(c, None)
+}
+
+/// [`run`] shared by the ranks of `share` (rank 0 writes the images and
+/// prints; the others draw their part quietly).
+pub fn run_shared(mut c: RenderCmd, share: Option<&mut dyn Share>) -> Result<Vec<String>> {
+    if share.as_ref().is_some_and(|s| s.rank() > 0) {
+        c.silent = true;
+    }
+    let raw = c.raw_f32;
+    run_with(c, share, &mut |path, img| {
+        if raw {
+            let f = path.with_extension("f32");
+            let bytes: Vec<u8> = img
+                .rgba
+                .as_flattened()
+                .iter()
+                .flat_map(|v| v.to_le_bytes())
+                .collect();
+            std::fs::write(&f, bytes).with_context(|| format!("{}: cannot write", f.display()))?;
+        }
         img.write_png(path, [0.0, 0.0, 0.0, 1.0])
             .map_err(|e| anyhow::anyhow!("{}: {e}", path.display()))?;
         println!("wrote {}", path.display());
@@ -370,7 +408,7 @@ pub fn run(c: RenderCmd) -> Result<Vec<String>> {
 pub fn images(mut c: RenderCmd) -> Result<Vec<brickyard_render::Image>> {
     c.silent = true;
     let mut out = vec![];
-    run_with(c, &mut |_, img| {
+    run_with(c, None, &mut |_, img| {
         out.push(img);
         Ok(())
     })?;
@@ -399,9 +437,33 @@ macro_rules! say_err {
 /// image and the file it is meant for.
 fn run_with(
     c: RenderCmd,
+    mut share: Option<&mut dyn Share>,
     sink: &mut dyn FnMut(&std::path::Path, brickyard_render::Image) -> Result<()>,
 ) -> Result<Vec<String>> {
     let silent = c.silent;
+    // Several ranks, and how they share the render.
+    let shared = match (&c.distribute, share.as_ref().map(|s| s.size())) {
+        (Some(d), _) if d != "image" && d != "data" => {
+            bail!("distribute: expected image or data, found {d:?}")
+        }
+        (_, Some(n)) if n > 1 => Some(share.as_ref().unwrap().split()),
+        _ => None,
+    };
+    if shared.is_some() {
+        if c.progressive.is_some() || c.debug.is_some() {
+            bail!("distribute: --progressive and --debug draw on one process");
+        }
+        if c.backend == "gpu" {
+            bail!("distribute: the ranks draw their parts on the CPU; use --backend cpu or auto");
+        }
+        if c.derive.is_some() {
+            bail!("distribute: live derived channels draw on one process");
+        }
+    }
+    let data_split = shared == Some(Split::Data);
+    if data_split && (c.views.is_some() || c.stereo.is_some() || c.multiplex.is_some()) {
+        bail!("distribute data: one view per image (no --views, --stereo or --multiplex)");
+    }
     let [w, h] = parse_image_size(&c.size, "size")?;
     let (n_views, layout) = view_layout(&c)?;
     // The image written for view `v`: the N views composed as asked, at
@@ -431,7 +493,12 @@ fn run_with(
         backend: backend_choice,
         gpu_update,
     } = traversal_options(&c)?;
-    if backend_choice != c.backend {
+    let backend_choice = if shared.is_some() {
+        "cpu".to_string()
+    } else {
+        backend_choice
+    };
+    if backend_choice != c.backend && shared.is_none() {
         say_err!(silent, "{}", auto_takes_cpu());
     }
     let info = inspect(&c.store)?;
@@ -759,6 +826,7 @@ fn run_with(
         batch,
         max_frames: c.max_frames,
         lod,
+        band: None,
     };
     let levels = scene.levels.len();
     let base_bias = match lod {
@@ -768,6 +836,22 @@ fn run_with(
     // One budget for all views of a turntable: what did not fit one view
     // is unlikely to fit the next.
     let mut budget = brickyard_render::budget::LodBudget::new(base_bias, levels, false);
+    // Data-parallel: this rank's region of the volume.
+    let region = match (shared, share.as_deref_mut()) {
+        (Some(Split::Data), Some(sh)) => {
+            if !matches!(mode, RenderMode::Dvr | RenderMode::Mip) || styles.len() > 1 {
+                bail!("distribute data: DVR or MIP of one channel (sort-last compositing)");
+            }
+            if traversal != Traversal::PageTable {
+                bail!("distribute data: --traversal page-table (regions clip the rays)");
+            }
+            Some(
+                sh.region(m.dims, spacing, c.brick)
+                    .map_or([[0.0; 3]; 2], |(lo, hi)| [lo, hi]),
+            )
+        }
+        _ => None,
+    };
     for v in 0..views {
         let cam = if c.turntable.is_some() {
             camera.turntable(views, v)
@@ -796,33 +880,31 @@ fn run_with(
         }
         params.reference_step = Some(scene.voxel(0));
         params.traversal = traversal;
+        params.early_termination = !(c.no_early_termination || data_split);
+        if let Some(r) = region {
+            params.clip = Some(r);
+            params.mip_values = mode == RenderMode::Mip;
+        }
         params.validate().map_err(|e| anyhow::anyhow!("{e}"))?;
         budget.view_changed();
         let (json, quiet) = (c.json, c.quiet);
-        let out = crate::frames::drive(
-            &mut backend,
-            &mut s,
-            &scene,
-            &params,
-            opt,
-            &mut budget,
-            |fi| {
-                let (f, st, fs) = (fi.f, &fi.f.stats, &fi.f.session);
-                let read = fi.bytes_read;
-                if json {
-                    say!(
-                        silent,
-                        "{}",
-                        serde_json::json!({"view": v, "frame": fi.frame, "pass": if fi.pass {"requests"} else {"image"},
+        let mut on_frame = |fi: &crate::frames::FrameInfo| {
+            let (f, st, fs) = (fi.f, &fi.f.stats, &fi.f.session);
+            let read = fi.bytes_read;
+            if json {
+                say!(
+                    silent,
+                    "{}",
+                    serde_json::json!({"view": v, "frame": fi.frame, "pass": if fi.pass {"requests"} else {"image"},
                             "ms": fi.ms, "completeness": st.completeness(), "lod_bias": fi.bias,
                             "samples": st.samples, "steps": st.steps, "octree_nodes": st.octree_nodes, "requests": fs.frame.requests.len(),
                             "bricks_in": fs.insert.inserted + fs.insert.flagged, "deferred": fs.insert.deferred,
                             "uploaded_bytes": fs.insert.bytes_uploaded, "bytes_read_total": read,
                             "render_ms": f.render_ms, "host_to_device_bytes": f.up, "device_to_host_bytes": f.down,
                             "resident": fs.frame.resident_bricks})
-                    );
-                } else if !quiet {
-                    say!(silent,
+                );
+            } else if !quiet {
+                say!(silent,
                         "view {v} {} {:4}: {:6.2}% complete, {:8.1} ms, {:5} requests, {:5} bricks in, LOD bias {:+.1}, {} up, {} down",
                         if fi.pass { "pass " } else { "frame" },
                         fi.frame,
@@ -834,9 +916,39 @@ fn run_with(
                         human_bytes(f.up),
                         human_bytes(f.down)
                     );
-                }
-            },
-        )?;
+            }
+        };
+        let drawn = match (shared, share.as_deref_mut()) {
+            (Some(Split::Image), Some(sh)) => draw_bands(
+                sh,
+                v,
+                (&mut backend, &mut s, &scene, &params),
+                opt,
+                &mut budget,
+                &mut on_frame,
+            ),
+            _ => crate::frames::drive(
+                &mut backend,
+                &mut s,
+                &scene,
+                &params,
+                opt,
+                &mut budget,
+                &mut on_frame,
+            ),
+        };
+        // Shared: every rank says how its part went before the images meet.
+        let out = match share.as_deref_mut() {
+            Some(sh) if shared.is_some() => {
+                let mine = drawn
+                    .as_ref()
+                    .map(|_| ())
+                    .map_err(|e| anyhow::anyhow!("{e:#}"));
+                sh.agree(mine)?;
+                drawn?
+            }
+            _ => drawn?,
+        };
         let read = s.loader().bytes_read();
         let failures = s.failures();
         let why = match &out.stop {
@@ -964,6 +1076,38 @@ fn run_with(
                 )?
             }
             None => out.image,
+        };
+        // Shared: the ranks' parts become one image on rank 0.
+        let img = match (shared, share.as_deref_mut()) {
+            (Some(Split::Image), Some(sh)) => sh.sum(img)?,
+            (Some(Split::Data), Some(sh)) => {
+                let (img, ms) =
+                    sh.composite(img, mode == RenderMode::Mip, order_eye(&cam, extent))?;
+                say!(
+                    silent,
+                    "view {v}: composited {} ranks ({}) in {ms:.1} ms",
+                    sh.size(),
+                    if sh.size().is_power_of_two() {
+                        "binary swap"
+                    } else {
+                        "direct send"
+                    }
+                );
+                img.map(|mut i| {
+                    if mode == RenderMode::Mip {
+                        // The maxima of all regions through the transfer
+                        // function, as one process maps its rays' maxima.
+                        for p in &mut i.rgba {
+                            *p = brickyard_render::optics::mip_color(&tf, p[3] > 0.0, p[0]);
+                        }
+                    }
+                    i
+                })
+            }
+            _ => Some(img),
+        };
+        let Some(img) = img else {
+            continue;
         };
         let img = compose(img)?;
         let path = out_path(v);
@@ -1273,4 +1417,84 @@ fn accumulate(
     bail!(
         "progressive: the accumulation did not complete ({left} stand-in samples left): the pool cannot hold the view's bricks"
     )
+}
+
+/// Where the eye is for the visibility order of regions: the camera's eye
+/// (perspective), or far back along the view direction (orthographic:
+/// every ray shares that direction).
+fn order_eye(cam: &Camera, extent: [f64; 3]) -> [f64; 3] {
+    match cam.projection {
+        Projection::Orthographic { .. } => {
+            let d = brickyard_core::camera::sub(cam.target, cam.eye);
+            let len = brickyard_core::camera::length(d).max(1e-300);
+            let far = 1e6 * extent.iter().cloned().fold(1.0, f64::max);
+            [0, 1, 2].map(|a| cam.target[a] - d[a] / len * far)
+        }
+        _ => cam.eye,
+    }
+}
+
+/// Image-parallel: draw bands of tile rows of view `v` as `share` hands
+/// them out, each until it is complete, into one image (the other pixels
+/// transparent). Rank 0 answers the others between its frames.
+fn draw_bands(
+    share: &mut dyn Share,
+    v: u32,
+    (backend, s, scene, params): (
+        &mut crate::backend::Backend,
+        &mut Session,
+        &Scene,
+        &RenderParams,
+    ),
+    opt: crate::frames::DriveOptions,
+    budget: &mut brickyard_render::budget::LodBudget,
+    on_frame: &mut dyn FnMut(&crate::frames::FrameInfo),
+) -> Result<crate::frames::Outcome> {
+    use brickyard_render::cpu::Tiles;
+    let t0 = std::time::Instant::now();
+    let (w, h) = (params.width, params.height);
+    let rows = Tiles::rows_of(h);
+    let mut image = brickyard_render::Image::new(w, h);
+    let (mut frames, mut completeness, mut stop) = (0, 1.0f64, Some(Stop::Complete));
+    let r = (|| -> Result<()> {
+        while let Some((a, b)) = share.next_band(v, rows)? {
+            let o = crate::frames::drive(
+                backend,
+                s,
+                scene,
+                params,
+                crate::frames::DriveOptions {
+                    band: Some((a, b)),
+                    ..opt
+                },
+                budget,
+                |fi| {
+                    on_frame(fi);
+                    share.serve();
+                },
+            )?;
+            let px = Tiles::pixel_rows(h, a..b);
+            let span = px.start as usize * w as usize..px.end as usize * w as usize;
+            image.rgba[span.clone()].copy_from_slice(&o.image.rgba[span]);
+            frames += o.frames;
+            completeness = completeness.min(o.completeness);
+            if o.stop != Some(Stop::Complete) {
+                stop = o.stop;
+            }
+        }
+        Ok(())
+    })();
+    if r.is_err() {
+        // No more bands for this rank; rank 0 still answers the others.
+        share.stop_asking(v);
+    }
+    r?;
+    Ok(crate::frames::Outcome {
+        image,
+        frames,
+        stop,
+        budget: budget.clone(),
+        completeness,
+        seconds: t0.elapsed().as_secs_f64(),
+    })
 }

@@ -13,6 +13,14 @@
 //!
 //! Output is written to `OUTPUT.partial` and renamed into place at the end,
 //! so an interrupted conversion never leaves a store that looks complete.
+//!
+//! Several processes may share a conversion ([`Team`], MPI in
+//! `brickyard-dist`): a pass's tiles are cut at *columns* (y–x blocks whole
+//! in shards at every level of the pass), each column goes to one rank,
+//! each rank writes the shards of its columns; rank 0 prepares the output,
+//! gathers the statistics and writes the metadata last. Bricks reach a
+//! shard in the same order whoever writes it, so the store is byte for byte
+//! the one a single process writes.
 
 use crate::codec::{BrickEncoder, Compression};
 use crate::downsample::downsample;
@@ -83,6 +91,41 @@ impl Progress for NoProgress {
     fn inc(&self, _: u64) {}
 }
 
+/// Several processes converting one volume together (rank 0 prepares the
+/// output and writes the metadata). Every rank calls the methods in the
+/// same order; they are collective.
+pub trait Team: Sync {
+    fn rank(&self) -> usize;
+    fn size(&self) -> usize;
+    /// Every rank passes its outcome so far; each gets back the first
+    /// failure, its message naming the rank.
+    fn agree(&self, mine: std::result::Result<(), String>) -> std::result::Result<(), String>;
+    /// Rank 0's `words` replace every other rank's.
+    fn broadcast(&self, words: &mut Vec<u64>);
+    /// Bitwise OR of `words` over all ranks, into rank 0's `words` (the
+    /// others' are left as they are).
+    fn or_to_root(&self, words: &mut [u64]);
+    /// Sum of `words` over all ranks, into rank 0's `words`.
+    fn sum_to_root(&self, words: &mut [u64]);
+}
+
+/// One process: the team of one.
+pub struct Solo;
+impl Team for Solo {
+    fn rank(&self) -> usize {
+        0
+    }
+    fn size(&self) -> usize {
+        1
+    }
+    fn agree(&self, mine: std::result::Result<(), String>) -> std::result::Result<(), String> {
+        mine
+    }
+    fn broadcast(&self, _: &mut Vec<u64>) {}
+    fn or_to_root(&self, _: &mut [u64]) {}
+    fn sum_to_root(&self, _: &mut [u64]) {}
+}
+
 /// What a conversion did.
 #[derive(Debug, Clone, Serialize)]
 pub struct ConvertReport {
@@ -125,10 +168,73 @@ const OVERHEAD: u64 = 48 << 20;
 /// Slab memory beyond which the planner prefers another pass to wider tiles.
 const COMFORTABLE: u64 = 384 << 20;
 
-/// Plan the passes for levels `levels` under `budget` bytes of slab memory.
+/// A pass goes on to coarser levels only while its columns (see
+/// [`columns`]) number at least this many, or as many as its first level
+/// has: beyond, another pass reads the level back, so that several
+/// processes can share the finer levels.
+pub const MIN_COLUMNS: u64 = 4;
+
+fn gcd(a: u64, b: u64) -> u64 {
+    if b == 0 {
+        a
+    } else {
+        gcd(b, a % b)
+    }
+}
+
+/// The column of a pass producing levels `from..=to`: the smallest y–x
+/// block (in level-`from` voxels) whole in the shards of every one of
+/// those levels (`shard` clipped to each level as the writer does), and how
+/// many columns cover the level (`[y, x]`).
+pub fn columns(
+    levels: &[LevelPlan],
+    from: usize,
+    to: usize,
+    brick: Dims3,
+    shard: Dims3,
+) -> ([u64; 2], [u64; 2]) {
+    let b = &levels[from];
+    let mut unit = [1u64, 1];
+    for l in &levels[from..=to] {
+        for (i, a) in [1usize, 2].into_iter().enumerate() {
+            let sh = shard[a].min(l.dims[a].div_ceil(brick[a]) * brick[a]);
+            let u = sh * (l.cum_ratio[a] / b.cum_ratio[a]);
+            unit[i] = unit[i] / gcd(unit[i], u) * u;
+        }
+    }
+    let n = [b.dims[1].div_ceil(unit[0]), b.dims[2].div_ceil(unit[1])];
+    (unit, n)
+}
+
+/// Which of `ranks` ranks draws each of a pass's columns (row-major over
+/// `n = [y, x]` columns of `unit` voxels of a level of `dims = [y, x]`):
+/// the largest columns first, each to the rank with the fewest voxels so
+/// far (ties: the lower rank, and among equal columns the earlier one).
+pub fn column_owners(unit: [u64; 2], n: [u64; 2], dims: [u64; 2], ranks: usize) -> Vec<usize> {
+    let area = |k: u64| {
+        let (cy, cx) = (k / n[1], k % n[1]);
+        let h = ((cy + 1) * unit[0]).min(dims[0]) - cy * unit[0];
+        let w = ((cx + 1) * unit[1]).min(dims[1]) - cx * unit[1];
+        h * w
+    };
+    let mut cols: Vec<u64> = (0..n[0] * n[1]).collect();
+    cols.sort_by_key(|&k| (std::cmp::Reverse(area(k)), k));
+    let mut load = vec![0u64; ranks.max(1)];
+    let mut owner = vec![0usize; cols.len()];
+    for k in cols {
+        let r = (0..load.len()).min_by_key(|&r| (load[r], r)).unwrap();
+        load[r] += area(k);
+        owner[k as usize] = r;
+    }
+    owner
+}
+
+/// Plan the passes for levels `levels` under `budget` bytes of slab memory,
+/// shards of `shard` voxels.
 pub fn plan_passes(
     levels: &[LevelPlan],
     brick: Dims3,
+    shard: Dims3,
     esize: u64,
     budget: u64,
     readback_copy: bool,
@@ -153,8 +259,21 @@ pub fn plan_passes(
     // only when nothing fits that.
     let soft = budget.min(COMFORTABLE);
     while m < n - 1 {
+        // The coarsest level that keeps the pass's columns (at least
+        // MIN_COLUMNS of them, or as many as level m has).
+        let count = |t: usize| {
+            let c = columns(levels, m, t, brick, shard).1;
+            c[0] * c[1]
+        };
+        // (A pass makes at least level m + 1: when that has fewer, the
+        // pass goes on as long as the count stays at that.)
+        let want = count(m).min(MIN_COLUMNS).min(count(m + 1));
+        let top = (m + 1..n)
+            .take_while(|&t| count(t) >= want)
+            .last()
+            .unwrap_or(m + 1);
         let pick = |limit: u64| {
-            (1..n - m).rev().find_map(|j| {
+            (1..=top - m).rev().find_map(|j| {
                 plan_tile(
                     levels,
                     m,
@@ -244,8 +363,14 @@ struct LevelOut {
     nb: Dims3,
     per_shard: Dims3,
     writer: ShardSetWriter,
+    stats: Mutex<Stats>,
+}
+
+struct Stats {
     /// `(min, max)` per channel and brick.
-    stats: Mutex<Vec<[f64; 2]>>,
+    minmax: Vec<[f64; 2]>,
+    /// With several ranks: which bricks this rank wrote.
+    mine: Vec<bool>,
 }
 
 impl LevelOut {
@@ -272,7 +397,25 @@ pub fn convert(
     progress: &dyn Progress,
     cancel: &AtomicBool,
 ) -> Result<ConvertReport> {
+    convert_team(src, output, opts, progress, cancel, &Solo)
+}
+
+/// [`convert`] shared by the ranks of `team` (each with the same source
+/// and options): the same store, byte for byte. Every rank returns the
+/// report of the whole conversion (counts summed) or the first rank's
+/// failure; `bytes_in` and the progress are the rank's own share.
+pub fn convert_team(
+    src: &dyn VolumeSource,
+    output: &Path,
+    opts: &ConvertOptions,
+    progress: &dyn Progress,
+    cancel: &AtomicBool,
+    team: &dyn Team,
+) -> Result<ConvertReport> {
     let t0 = Instant::now();
+    let root_rank = team.rank() == 0;
+    // A failure of any rank at a meeting point, as this rank's error.
+    let team_err = |e: String| StoreError::Team(e);
     let meta = src.meta().clone();
     let with_labels;
     let opts = if meta.labels && !opts.labels {
@@ -345,35 +488,65 @@ pub fn convert(
     let fixed = OVERHEAD + threads * brick_bytes * 3 + nbricks_total * 16;
     let budget = opts.memory.saturating_sub(fixed);
     let zarr_copy = meta.path.is_dir() || crate::storage::is_remote(&meta.path);
-    let passes = plan_passes(&levels, opts.brick, esize, budget, zarr_copy).ok_or_else(|| {
-        let need = pass_bytes(
-            &levels,
-            0,
-            0,
-            opts.brick,
-            [opts.brick[1], opts.brick[2]],
-            esize,
-            true,
-        ) + fixed;
-        StoreError::invalid(
-            output,
-            "memory",
-            format!(
-                "budget of {} MiB is too small for bricks of {:?}: need at least {} MiB",
-                opts.memory >> 20,
+    let passes = plan_passes(&levels, opts.brick, opts.shard, esize, budget, zarr_copy)
+        .ok_or_else(|| {
+            let need = pass_bytes(
+                &levels,
+                0,
+                0,
                 opts.brick,
-                need.div_ceil(1 << 20)
-            ),
-        )
-    })?;
+                [opts.brick[1], opts.brick[2]],
+                esize,
+                true,
+            ) + fixed;
+            StoreError::invalid(
+                output,
+                "memory",
+                format!(
+                    "budget of {} MiB is too small for bricks of {:?}: need at least {} MiB",
+                    opts.memory >> 20,
+                    opts.brick,
+                    need.div_ceil(1 << 20)
+                ),
+            )
+        })?;
+    // Rank 0's plan for everyone (the thread count enters the plan).
+    let passes = if team.size() > 1 {
+        let mut w: Vec<u64> = passes
+            .iter()
+            .flat_map(|p| [p.from as u64, p.to as u64, p.tile[0], p.tile[1], p.bytes])
+            .collect();
+        team.broadcast(&mut w);
+        w.chunks_exact(5)
+            .map(|c| PassPlan {
+                from: c[0] as usize,
+                to: c[1] as usize,
+                tile: [c[2], c[3]],
+                bytes: c[4],
+            })
+            .collect()
+    } else {
+        passes
+    };
     let planned_bytes = passes.iter().map(|p| p.bytes).max().unwrap_or(0) + fixed;
 
     // Prepare the partial output next to the final one.
     let partial = partial_path(output);
-    if partial.exists() {
-        std::fs::remove_dir_all(&partial).at(&partial)?;
+    let prepared = (|| -> Result<()> {
+        if root_rank {
+            if partial.exists() {
+                std::fs::remove_dir_all(&partial).at(&partial)?;
+            }
+            std::fs::create_dir_all(&partial).at(&partial)?;
+        }
+        Ok(())
+    })();
+    if team.size() == 1 {
+        prepared?;
+    } else {
+        team.agree(prepared.map_err(|e| e.to_string()))
+            .map_err(team_err)?;
     }
-    std::fs::create_dir_all(&partial).at(&partial)?;
     let name = meta
         .path
         .file_name()
@@ -418,8 +591,12 @@ pub fn convert(
             }
         })
     };
-    write_json(&partial.join("zarr.json"), &root(false, None))?;
     let mut outs = vec![];
+    let mut prepared: Result<()> = if root_rank {
+        write_json(&partial.join("zarr.json"), &root(false, None))
+    } else {
+        Ok(())
+    };
     for (k, l) in levels.iter().enumerate() {
         let shard: Vec<u64> = (0..3)
             .map(|a| opts.shard[a].min(l.dims[a].div_ceil(opts.brick[a]) * opts.brick[a]))
@@ -442,32 +619,66 @@ pub fn convert(
             )
         };
         let dir = partial.join(k.to_string());
-        write_json(
-            &dir.join("zarr.json"),
-            &level_array_json(
-                &shape,
-                &sh,
-                &inner,
-                meta.dtype,
-                opts.compression,
-                &dim_names,
-            ),
-        )?;
+        if root_rank && prepared.is_ok() {
+            prepared = write_json(
+                &dir.join("zarr.json"),
+                &level_array_json(
+                    &shape,
+                    &sh,
+                    &inner,
+                    meta.dtype,
+                    opts.compression,
+                    &dim_names,
+                ),
+            );
+        }
         outs.push(LevelOut {
             plan: l.clone(),
             nb,
             per_shard,
             writer: ShardSetWriter::new(&dir, ps),
-            stats: Mutex::new(vec![
-                [f64::NAN; 2];
-                c * (nb.iter().product::<u64>() as usize)
-            ]),
+            stats: Mutex::new(Stats {
+                minmax: vec![[f64::NAN; 2]; c * (nb.iter().product::<u64>() as usize)],
+                mine: vec![
+                    false;
+                    if team.size() > 1 {
+                        c * (nb.iter().product::<u64>() as usize)
+                    } else {
+                        0
+                    }
+                ],
+            }),
         });
+    }
+    if team.size() == 1 {
+        if let Err(e) = prepared {
+            let _ = std::fs::remove_dir_all(&partial);
+            return Err(e);
+        }
+    } else if let Err(e) = team.agree(prepared.map_err(|e| e.to_string())) {
+        if root_rank {
+            let _ = std::fs::remove_dir_all(&partial);
+        }
+        return Err(team_err(e));
     }
 
     let total: u64 = passes
         .iter()
-        .map(|p| levels[p.from].dims.iter().product::<u64>() * esize * c as u64)
+        .map(|p| {
+            let cols = columns(&levels, p.from, p.to, opts.brick, opts.shard);
+            let d = levels[p.from].dims;
+            let owners = column_owners(cols.0, cols.1, [d[1], d[2]], team.size());
+            let mine: u64 = (0..cols.1[0] * cols.1[1])
+                .filter(|&k| owners[k as usize] == team.rank())
+                .map(|k| {
+                    let (cy, cx) = (k / cols.1[1], k % cols.1[1]);
+                    let h = ((cy + 1) * cols.0[0]).min(d[1]) - cy * cols.0[0];
+                    let w = ((cx + 1) * cols.0[1]).min(d[2]) - cx * cols.0[1];
+                    h * w
+                })
+                .sum();
+            d[0] * mine * esize * c as u64
+        })
         .sum();
     progress.start(total);
     let counters = Counters {
@@ -483,9 +694,29 @@ pub fn convert(
         counters: &counters,
         cancel,
         channels: c,
+        team,
     };
-    let result = (|| -> Result<()> {
-        for p in &passes {
+    // Leave nothing behind that could be mistaken for a store: rank 0
+    // removes the partial output once every rank has stopped writing.
+    let give_up = |e: String| {
+        if root_rank {
+            let _ = std::fs::remove_dir_all(&partial);
+        }
+        team_err(e)
+    };
+    let mut own_error: Option<StoreError> = None;
+    let mut keep = |r: Result<()>| -> std::result::Result<(), String> {
+        match r {
+            Ok(()) => Ok(()),
+            Err(e) => {
+                let m = e.to_string();
+                own_error.get_or_insert(e);
+                Err(m)
+            }
+        }
+    };
+    for p in &passes {
+        let r = (|| -> Result<()> {
             // Later passes read back the finest level of the previous pass.
             let readback;
             let source: &dyn VolumeSource = if p.from == 0 {
@@ -497,26 +728,116 @@ pub fn convert(
             for ch in 0..c {
                 dispatch_dtype!(meta.dtype, T => { run_pass::<T>(&ctx, source, p, ch, progress)?; });
             }
+            Ok(())
+        })();
+        let mine = keep(r);
+        // Every rank's shards of this pass are written before the next
+        // reads them back.
+        if let Err(e) = team.agree(mine) {
+            let _ = give_up(String::new());
+            // One process: its own error as it was.
+            return Err(match (team.size(), own_error) {
+                (1, Some(own)) => own,
+                _ => team_err(e),
+            });
         }
+    }
+    let r = (|| -> Result<()> {
         for o in &outs {
             o.writer.finish()?;
         }
-        write_stats(&partial, &outs, c)?;
         Ok(())
     })();
-    if let Err(e) = result {
-        // Leave nothing behind that could be mistaken for a store.
-        let _ = std::fs::remove_dir_all(&partial);
-        return Err(e);
+    let mine = keep(r);
+    if let Err(e) = team.agree(mine) {
+        let _ = give_up(String::new());
+        return Err(match (team.size(), own_error) {
+            (1, Some(own)) => own,
+            _ => team_err(e),
+        });
     }
-    let bytes_written: u64 = outs
-        .iter()
-        .map(|o| o.writer.bytes.load(Ordering::Relaxed))
-        .sum();
+    // The statistics and counts of every rank, on rank 0.
+    if team.size() > 1 {
+        for o in &outs {
+            let mut st = o.stats.lock().unwrap();
+            let st = &mut *st;
+            // Bricks another rank wrote are zero bits here: the OR is each
+            // brick's value as its writer computed it, bit for bit.
+            for chunk in (0..st.minmax.len()).step_by(1 << 16) {
+                let end = (chunk + (1 << 16)).min(st.minmax.len());
+                let mut w: Vec<u64> = (chunk..end)
+                    .flat_map(|i| match st.mine[i] {
+                        true => [st.minmax[i][0].to_bits(), st.minmax[i][1].to_bits()],
+                        false => [0, 0],
+                    })
+                    .collect();
+                team.or_to_root(&mut w);
+                if root_rank {
+                    for (k, i) in (chunk..end).enumerate() {
+                        st.minmax[i] = [f64::from_bits(w[2 * k]), f64::from_bits(w[2 * k + 1])];
+                    }
+                }
+            }
+        }
+    }
+    let mut sums = vec![
+        outs.iter()
+            .map(|o| o.writer.bytes.load(Ordering::Relaxed))
+            .sum::<u64>(),
+        counters.bricks.load(Ordering::Relaxed),
+        counters.empty.load(Ordering::Relaxed),
+        counters.constant.load(Ordering::Relaxed),
+    ];
+    team.sum_to_root(&mut sums);
+    team.broadcast(&mut sums);
+    let bytes_written = sums[0];
+    let finished = if root_rank {
+        finish_store(&partial, output, &outs, c, &labels, &root)
+    } else {
+        Ok(())
+    };
+    let mine = keep(finished);
+    if let Err(e) = team.agree(mine) {
+        let _ = give_up(String::new());
+        return Err(match (team.size(), own_error) {
+            (1, Some(own)) => own,
+            _ => team_err(e),
+        });
+    }
+    Ok(ConvertReport {
+        output: output.to_path_buf(),
+        levels,
+        channels: c,
+        dtype: meta.dtype,
+        passes,
+        bytes_in: meta.channel_bytes() * c as u64 / team.size() as u64,
+        bytes_written,
+        bricks: sums[1],
+        bricks_empty: sums[2],
+        bricks_constant: sums[3],
+        seconds: t0.elapsed().as_secs_f64(),
+        planned_bytes,
+        values: meta.scaling.clone(),
+        notes: meta.notes.clone(),
+    })
+}
+
+/// Rank 0 at the end: the statistics, the root metadata saying the store
+/// is complete, and the swap into place.
+fn finish_store(
+    partial: &Path,
+    output: &Path,
+    outs: &[LevelOut],
+    c: usize,
+    labels: &[String],
+    root: &dyn Fn(bool, Option<Value>) -> Value,
+) -> Result<()> {
+    write_stats(partial, outs, c)?;
     // Each channel's data range, from level 0's brick statistics, for the
     // `omero` windows.
     let ranges: Vec<(f64, f64)> = {
         let st = outs[0].stats.lock().unwrap();
+        let st = &st.minmax;
         let per = st.len() / c.max(1);
         (0..c)
             .map(|ch| {
@@ -531,7 +852,7 @@ pub fn convert(
     };
     write_json(
         &partial.join("zarr.json"),
-        &root(true, Some(omero_json(&labels, &ranges))),
+        &root(true, Some(omero_json(labels, &ranges))),
     )?;
     // Swap into place: the old output (if any) is removed only after the new
     // one is complete.
@@ -541,27 +862,12 @@ pub fn convert(
             output.file_name().unwrap().to_string_lossy()
         ));
         std::fs::rename(output, &old).at(output)?;
-        std::fs::rename(&partial, output).at(output)?;
+        std::fs::rename(partial, output).at(output)?;
         std::fs::remove_dir_all(&old).at(&old)?;
     } else {
-        std::fs::rename(&partial, output).at(output)?;
+        std::fs::rename(partial, output).at(output)?;
     }
-    Ok(ConvertReport {
-        output: output.to_path_buf(),
-        levels,
-        channels: c,
-        dtype: meta.dtype,
-        passes,
-        bytes_in: meta.channel_bytes() * c as u64,
-        bytes_written,
-        bricks: counters.bricks.load(Ordering::Relaxed),
-        bricks_empty: counters.empty.load(Ordering::Relaxed),
-        bricks_constant: counters.constant.load(Ordering::Relaxed),
-        seconds: t0.elapsed().as_secs_f64(),
-        planned_bytes,
-        values: meta.scaling.clone(),
-        notes: meta.notes.clone(),
-    })
+    Ok(())
 }
 
 /// Where an unfinished conversion of `output` is written.
@@ -582,6 +888,7 @@ struct Ctx<'a> {
     counters: &'a Counters,
     cancel: &'a AtomicBool,
     channels: usize,
+    team: &'a dyn Team,
 }
 
 /// A slab of one level inside a tile: rows `z0..z0+rows` of the tile
@@ -603,16 +910,54 @@ fn run_pass<T: Sample>(
     ch: usize,
     progress: &dyn Progress,
 ) -> Result<()> {
-    let outs = ctx.outs;
-    let bz = ctx.opts.brick[0];
-    let base = &outs[p.from].plan;
-    let [dz, dy, dx] = base.dims;
+    let base = &ctx.outs[p.from].plan;
+    let [_, dy, dx] = base.dims;
+    let levels: Vec<LevelPlan> = ctx.outs.iter().map(|o| o.plan.clone()).collect();
+    let (unit, ncols) = columns(&levels, p.from, p.to, ctx.opts.brick, ctx.opts.shard);
+    let owners = column_owners(unit, ncols, [dy, dx], ctx.team.size());
+    let rank = ctx.team.rank();
+    // The tiles in the order one process draws them; each cut where a
+    // column ends (a tile is never taller than a column), the pieces of
+    // this rank's columns drawn.
     let mut ty0 = 0;
     while ty0 < dy {
         let ty = p.tile[0].min(dy - ty0);
         let mut tx0 = 0;
         while tx0 < dx {
             let tx = p.tile[1].min(dx - tx0);
+            let mut x = tx0;
+            while x < tx0 + tx {
+                let end = ((x / unit[1] + 1) * unit[1]).min(tx0 + tx);
+                let col = (ty0 / unit[0]) * ncols[1] + x / unit[1];
+                if owners[col as usize] == rank {
+                    run_tile::<T>(ctx, src, p, ch, progress, [ty0, ty], [x, end - x])?;
+                }
+                x = end;
+            }
+            tx0 += tx;
+        }
+        ty0 += ty;
+    }
+    Ok(())
+}
+
+/// One tile (or the piece of a tile in one column) of a pass: `[y0, ty]`
+/// and `[x0, tx]` in level-`p.from` voxels, all its depth.
+fn run_tile<T: Sample>(
+    ctx: &Ctx,
+    src: &dyn VolumeSource,
+    p: &PassPlan,
+    ch: usize,
+    progress: &dyn Progress,
+    [ty0, ty]: [u64; 2],
+    [tx0, tx]: [u64; 2],
+) -> Result<()> {
+    let outs = ctx.outs;
+    let bz = ctx.opts.brick[0];
+    let base = &outs[p.from].plan;
+    let [dz, _, _] = base.dims;
+    {
+        {
             // Accumulators of the coarser levels for this tile.
             let mut accs: Vec<Slab<T>> = (p.from + 1..=p.to)
                 .map(|k| {
@@ -689,9 +1034,7 @@ fn run_pass<T: Sample>(
                 }
                 Ok(())
             })?;
-            tx0 += tx;
         }
-        ty0 += ty;
     }
     Ok(())
 }
@@ -760,70 +1103,76 @@ fn write_bricks<T: Sample>(ctx: &Ctx, k: usize, ch: usize, s: &Slab<T>) -> Resul
     let bys = s.y0 / b[1]..(s.y0 + s.ty).div_ceil(b[1]);
     let bxs = s.x0 / b[2]..(s.x0 + s.tx).div_ceil(b[2]);
     let list: Vec<(u64, u64)> = bys.flat_map(|y| bxs.clone().map(move |x| (y, x))).collect();
-    let results: Vec<Result<(usize, [f64; 2])>> = list
-        .par_iter()
-        .map(|&(byi, bxi)| {
-            let (oy, ox) = (byi * b[1] - s.y0, bxi * b[2] - s.x0);
-            let vy = b[1].min(s.ty - oy) as usize;
-            let vx = b[2].min(s.tx - ox) as usize;
-            let vz = s.rows as usize;
-            let (bz_, by_, bx_) = (b[0] as usize, b[1] as usize, b[2] as usize);
-            let mut brick = vec![T::default(); bz_ * by_ * bx_];
-            let mut mm: Option<(T, T)> = None;
-            for z in 0..vz {
-                for y in 0..vy {
-                    let src = ((z as u64 * s.ty + oy + y as u64) * s.tx + ox) as usize;
-                    let row = &s.data[src..src + vx];
-                    let dst = (z * by_ + y) * bx_;
-                    brick[dst..dst + vx].copy_from_slice(row);
-                    let (a, b) = T::min_max(row);
-                    mm = Some(match mm {
-                        None => (a, b),
-                        Some((m0, m1)) => (T::min_max(&[m0, a]).0, T::min_max(&[m1, b]).1),
-                    });
+    // Bricks are encoded in parallel a few at a time and appended to their
+    // shards in list order: a shard's bytes do not depend on the threads'
+    // timing (nor on which process writes it).
+    let batch = 2 * rayon::current_num_threads().max(1);
+    let mut st = out.stats.lock().unwrap();
+    for part in list.chunks(batch) {
+        let encoded: Vec<(usize, [f64; 2], Vec<u64>, Option<Vec<u8>>, u64)> = part
+            .par_iter()
+            .map(|&(byi, bxi)| {
+                let (oy, ox) = (byi * b[1] - s.y0, bxi * b[2] - s.x0);
+                let vy = b[1].min(s.ty - oy) as usize;
+                let vx = b[2].min(s.tx - ox) as usize;
+                let vz = s.rows as usize;
+                let (bz_, by_, bx_) = (b[0] as usize, b[1] as usize, b[2] as usize);
+                let mut brick = vec![T::default(); bz_ * by_ * bx_];
+                let mut mm: Option<(T, T)> = None;
+                for z in 0..vz {
+                    for y in 0..vy {
+                        let src = ((z as u64 * s.ty + oy + y as u64) * s.tx + ox) as usize;
+                        let row = &s.data[src..src + vx];
+                        let dst = (z * by_ + y) * bx_;
+                        brick[dst..dst + vx].copy_from_slice(row);
+                        let (a, b) = T::min_max(row);
+                        mm = Some(match mm {
+                            None => (a, b),
+                            Some((m0, m1)) => (T::min_max(&[m0, a]).0, T::min_max(&[m1, b]).1),
+                        });
+                    }
                 }
-            }
-            let (mn, mx) = mm
-                .map(|(a, b)| (a.to_f64(), b.to_f64()))
-                .unwrap_or((f64::NAN, f64::NAN));
-            let bytes = as_bytes(&brick);
-            // Padding is zero, so for integers min/max tell whether the brick
-            // is all fill value; floats also need -0.0 kept (bit test).
-            let nonzero = if T::DTYPE.is_float() {
-                !(mn == 0.0 && mx == 0.0) || bytes.iter().any(|&x| x != 0)
-            } else {
-                !(mn == 0.0 && mx == 0.0)
-            };
-            let key: Vec<u64> = if ctx.channels > 1 {
-                vec![ch as u64, bzi, byi, bxi]
-            } else {
-                vec![bzi, byi, bxi]
-            };
-            let sidx = [
-                bzi / out.per_shard[0],
-                byi / out.per_shard[1],
-                bxi / out.per_shard[2],
-            ];
-            let expected = out.expected_in_shard(&sidx);
-            if nonzero {
-                let enc = ctx.encoder.encode(bytes);
-                out.writer.put(&key, Some(&enc), expected)?;
-            } else {
-                out.writer.put(&key, None, expected)?;
+                let (mn, mx) = mm
+                    .map(|(a, b)| (a.to_f64(), b.to_f64()))
+                    .unwrap_or((f64::NAN, f64::NAN));
+                let bytes = as_bytes(&brick);
+                // Padding is zero, so for integers min/max tell whether the brick
+                // is all fill value; floats also need -0.0 kept (bit test).
+                let nonzero = if T::DTYPE.is_float() {
+                    !(mn == 0.0 && mx == 0.0) || bytes.iter().any(|&x| x != 0)
+                } else {
+                    !(mn == 0.0 && mx == 0.0)
+                };
+                let key: Vec<u64> = if ctx.channels > 1 {
+                    vec![ch as u64, bzi, byi, bxi]
+                } else {
+                    vec![bzi, byi, bxi]
+                };
+                let sidx = [
+                    bzi / out.per_shard[0],
+                    byi / out.per_shard[1],
+                    bxi / out.per_shard[2],
+                ];
+                let expected = out.expected_in_shard(&sidx);
+                let enc = nonzero.then(|| ctx.encoder.encode(bytes));
+                let idx = ((ch as u64 * out.nb[0] + bzi) * out.nb[1] + byi) * out.nb[2] + bxi;
+                (idx as usize, [mn, mx], key, enc, expected)
+            })
+            .collect();
+        for (i, mm, key, enc, expected) in encoded {
+            out.writer.put(&key, enc.as_deref(), expected)?;
+            if enc.is_none() {
                 ctx.counters.empty.fetch_add(1, Ordering::Relaxed);
             }
-            if mn == mx {
+            if mm[0] == mm[1] {
                 ctx.counters.constant.fetch_add(1, Ordering::Relaxed);
             }
             ctx.counters.bricks.fetch_add(1, Ordering::Relaxed);
-            let idx = ((ch as u64 * out.nb[0] + bzi) * out.nb[1] + byi) * out.nb[2] + bxi;
-            Ok((idx as usize, [mn, mx]))
-        })
-        .collect();
-    let mut st = out.stats.lock().unwrap();
-    for r in results {
-        let (i, mm) = r?;
-        st[i] = mm;
+            st.minmax[i] = mm;
+            if let Some(m) = st.mine.get_mut(i) {
+                *m = true;
+            }
+        }
     }
     Ok(())
 }
@@ -851,6 +1200,7 @@ fn write_stats(root: &Path, outs: &[LevelOut], c: usize) -> Result<()> {
             &plain_array_json(&shape, &chunk, DType::F64, Compression::Zstd(3)),
         )?;
         let st = o.stats.lock().unwrap();
+        let st = &st.minmax;
         for ci in 0..c as u64 {
             for cz in 0..nb[0].div_ceil(chunk[1]) {
                 for cy in 0..nb[1].div_ceil(chunk[2]) {
@@ -880,4 +1230,43 @@ fn write_stats(root: &Path, outs: &[LevelOut], c: usize) -> Result<()> {
         }
     }
     Ok(())
+}
+
+#[cfg(test)]
+mod column_tests {
+    use super::*;
+
+    #[test]
+    fn owners_balance_uneven_columns() {
+        // 384 voxels in columns of 256: areas 256², 256·128, 128·256, 128².
+        let o = column_owners([256, 256], [2, 2], [384, 384], 2);
+        // 65536 to rank 0, 32768 twice to rank 1, the last 16384 to the
+        // lower rank of a tie: 81920 against 65536 voxels.
+        assert_eq!(o, vec![0, 1, 1, 0]);
+        // One rank takes everything; more ranks than columns leave some idle.
+        assert_eq!(column_owners([8, 8], [3, 2], [24, 16], 1), vec![0; 6]);
+        let o = column_owners([8, 8], [1, 2], [8, 16], 4);
+        assert_eq!(o, vec![0, 1]);
+    }
+
+    #[test]
+    fn passes_keep_enough_columns() {
+        let brick = [16; 3];
+        let shard = [32; 3];
+        let plan = plan_levels([64, 256, 256], [1.0; 3], [0.0; 3], brick);
+        let passes = plan_passes(&plan.levels, brick, shard, 2, 1 << 30, false).unwrap();
+        // Level 0 has 8×8 columns of 32; levels up to 2 keep at least 4
+        // (columns of 128: 2×2); level 3's shards (32 of its voxels, 256
+        // of level 0's) cover everything: a later pass.
+        assert_eq!(passes[0].from, 0);
+        assert_eq!(passes[0].to, 2, "{passes:?}");
+        // The rest (one column) in one pass reading level 2 back.
+        assert_eq!(passes.len(), 2, "{passes:?}");
+        assert_eq!(passes[1].from, 2);
+        assert_eq!(passes.last().unwrap().to, plan.levels.len() - 1);
+        // One shard column: one pass as before.
+        let plan = plan_levels([64, 100, 100], [1.0; 3], [0.0; 3], brick);
+        let passes = plan_passes(&plan.levels, brick, [512; 3], 2, 1 << 30, false).unwrap();
+        assert_eq!(passes.len(), 1);
+    }
 }

@@ -35,6 +35,10 @@ pub enum StoreError {
     /// Conversion was interrupted (Ctrl-C).
     #[error("interrupted")]
     Interrupted,
+    /// Another process of a shared conversion failed (the message names
+    /// its rank and cause).
+    #[error("{0}")]
+    Team(String),
 }
 
 pub type Result<T, E = StoreError> = std::result::Result<T, E>;

@@ -1,6 +1,7 @@
 //! The `brickyard` command line.
 
 mod bench;
+mod dist;
 mod gpubench;
 mod netbench;
 mod octbench;
@@ -296,12 +297,25 @@ fn convert_options(p: &PyramidArgs) -> Result<ConvertOptions> {
     })
 }
 
-/// Convert with a progress bar and print the report.
-fn run_convert(src: &dyn VolumeSource, output: &Path, p: &PyramidArgs) -> Result<()> {
+/// Convert with a progress bar and print the report; under `mpirun` the
+/// ranks share the conversion (rank 0 reports).
+fn run_convert(
+    src: &dyn VolumeSource,
+    output: &Path,
+    p: &PyramidArgs,
+    cluster: Option<&dist::Cluster>,
+) -> Result<()> {
     let opts = convert_options(p)?;
     install_ctrl_c();
-    let bar = progress::Bar::new(p.quiet || p.json, "converting");
-    let r = convert(src, output, &opts, &bar, &CANCEL);
+    let (rank, size) = dist::rank_size(cluster);
+    let bar = progress::Bar::new(p.quiet || p.json || rank > 0, "converting");
+    let r = match cluster {
+        #[cfg(feature = "mpi")]
+        Some(c) if size > 1 => {
+            brickyard_store::builder::convert_team(src, output, &opts, &bar, &CANCEL, c)
+        }
+        _ => convert(src, output, &opts, &bar, &CANCEL),
+    };
     bar.finish();
     let r = match r {
         Ok(r) => r,
@@ -313,23 +327,30 @@ fn run_convert(src: &dyn VolumeSource, output: &Path, p: &PyramidArgs) -> Result
         }
     };
     let rss = peak_rss();
+    if rank > 0 {
+        return Ok(());
+    }
     if p.json {
         let mut j = serde_json::to_value(&r)?;
         j["peak_rss_bytes"] = rss.into();
-        j["input_mb_s"] = (r.bytes_in as f64 / 1e6 / r.seconds).into();
+        if size > 1 {
+            j["ranks"] = size.into();
+        }
+        j["input_mb_s"] = ((r.bytes_in * size as u64) as f64 / 1e6 / r.seconds).into();
         println!("{}", serde_json::to_string(&j)?);
     } else {
         println!(
-            "wrote {} ({} levels, {} bricks: {} empty, {} constant) in {:.2} s: {} in, {} out, {:.0} MB/s, peak RSS {}",
+            "wrote {}{} ({} levels, {} bricks: {} empty, {} constant) in {:.2} s: {} in, {} out, {:.0} MB/s, peak RSS {}",
             output.display(),
+            if size > 1 { format!(" on {size} ranks") } else { String::new() },
             r.levels.len(),
             r.bricks,
             r.bricks_empty,
             r.bricks_constant,
             r.seconds,
-            human_bytes(r.bytes_in),
+            human_bytes(r.bytes_in * size as u64),
             human_bytes(r.bytes_written),
-            r.bytes_in as f64 / 1e6 / r.seconds,
+            (r.bytes_in * size as u64) as f64 / 1e6 / r.seconds,
             human_bytes(rss)
         );
         for n in &r.notes {
@@ -384,13 +405,44 @@ fn main() {
             std::process::exit(1);
         }
     }
-    if let Err(e) = run(cli.cmd) {
-        eprintln!("error: {e:#}");
-        std::process::exit(1);
-    }
+    // Under an MPI launcher (feature `mpi`): the ranks sharing the work.
+    #[cfg(feature = "mpi")]
+    let cluster = match brickyard_dist::Cluster::from_launcher() {
+        Ok(c) => c,
+        Err(e) => {
+            eprintln!("error: {e:#}");
+            std::process::exit(1);
+        }
+    };
+    #[cfg(not(feature = "mpi"))]
+    let cluster: Option<dist::Cluster> = None;
+    let (rank, size) = dist::rank_size(cluster.as_ref());
+    let code = match run(cli.cmd, cluster.as_ref()) {
+        Ok(()) => 0,
+        Err(e) => {
+            // What every rank agreed on is said once, by rank 0; a rank's
+            // own failure by that rank.
+            if size == 1 {
+                eprintln!("error: {e:#}");
+            } else if rank == 0 || !dist::agreed(&e) {
+                eprintln!(
+                    "error: {}{e:#}",
+                    if dist::agreed(&e) {
+                        String::new()
+                    } else {
+                        format!("rank {rank}: ")
+                    }
+                );
+            }
+            1
+        }
+    };
+    // MPI_Finalize before leaving.
+    drop(cluster);
+    std::process::exit(code);
 }
 
-fn run(cmd: Cmd) -> Result<()> {
+fn run(cmd: Cmd, cluster: Option<&dist::Cluster>) -> Result<()> {
     match cmd {
         Cmd::Convert(c) => {
             let raw = match (&c.dims, &c.dtype) {
@@ -433,7 +485,7 @@ fn run(cmd: Cmd) -> Result<()> {
                 }
                 Box::new(stack)
             };
-            run_convert(src.as_ref(), output, &c.pyramid)
+            run_convert(src.as_ref(), output, &c.pyramid, cluster)
         }
         Cmd::Process(p) => process::run(p),
         Cmd::Info { path, json, check } => {
@@ -482,7 +534,7 @@ fn run(cmd: Cmd) -> Result<()> {
             let src = Procedural::new(k, dims, dt);
             let s = output.to_string_lossy();
             if s.ends_with(".zarr") || s.ends_with(".zarr/") {
-                run_convert(&src, &output, &pyramid)
+                run_convert(&src, &output, &pyramid, cluster)
             } else {
                 if output.exists() && !pyramid.overwrite {
                     bail!(
@@ -505,7 +557,20 @@ fn run(cmd: Cmd) -> Result<()> {
             }
         }
         Cmd::Demo { out, size } => demo(&out, &size),
-        Cmd::Render(r) => render::run(*r).map(|_| ()),
+        Cmd::Render(r) => match cluster {
+            // Under mpirun: the ranks share the render (rank 0 writes).
+            #[cfg(feature = "mpi")]
+            Some(c) if dist::rank_size(Some(c)).1 > 1 => {
+                let split = match r.distribute.as_deref() {
+                    None | Some("image") => brickyard_run::share::Split::Image,
+                    Some("data") => brickyard_run::share::Split::Data,
+                    Some(d) => bail!("distribute: expected image or data, found {d:?}"),
+                };
+                let mut share = brickyard_dist::share::RenderShare::new(c, split);
+                render::run_shared(*r, Some(&mut share)).map(|_| ())
+            }
+            _ => render::run(*r).map(|_| ()),
+        },
         Cmd::View(v) => {
             let code = view::run(v, || demo_store(Path::new("brickyard-demo"), "384"))?;
             if code != 0 {
@@ -554,7 +619,7 @@ fn convert_demo(out: &Path, size: &str) -> Result<PathBuf> {
         json: false,
         quiet: false,
     };
-    run_convert(&src, &store, &args)?;
+    run_convert(&src, &store, &args, None)?;
     Ok(store)
 }
 

@@ -675,6 +675,7 @@ pub fn render(dir: &Path, dims: Dims3, dtype: DType, o: &RenderBench) -> Result<
                     batch: true,
                     max_frames: 500,
                     lod: Lod::Auto { bias: 0.0 },
+                    band: None,
                 };
                 let t = Instant::now();
                 let out = crate::frames::drive(

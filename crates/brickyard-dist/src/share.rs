@@ -1,0 +1,301 @@
+//! A render shared by the MPI ranks ([`brickyard_run::share::Share`]):
+//! bands of tiles on demand from rank 0 (image-parallel), the k-d regions
+//! and the sort-last compositing of their partial images by binary swap
+//! (a power-of-two count of ranks) or direct send (any other count), then
+//! gathered on rank 0.
+
+use crate::cluster::Cluster;
+use crate::composite::{binary_swap, split_even, Operator};
+use crate::kd::{eye_side, KdTree};
+use anyhow::Result;
+use brickyard_render::Image;
+use brickyard_run::share::{Agreed, Share, Split};
+use brickyard_store::builder::Team;
+use mpi::datatype::{Partition, PartitionMut};
+use mpi::point_to_point::send_receive_into;
+use mpi::traits::*;
+use mpi::Count;
+
+const TAG_ASK: i32 = 11;
+const TAG_BAND: i32 = 12;
+const NONE: u32 = u32::MAX;
+
+/// Bands of tile rows per rank: more than one, so that a rank that
+/// finishes early takes work a slower one would otherwise do.
+pub const BANDS_PER_RANK: u32 = 4;
+
+/// The `n` bands of `rows` tile rows for `ranks` ranks: `[start, end)`.
+pub fn bands(rows: u32, ranks: usize) -> Vec<(u32, u32)> {
+    let n = rows.min(BANDS_PER_RANK * ranks as u32).max(1);
+    (0..n)
+        .map(|i| (rows * i / n, rows * (i + 1) / n))
+        .filter(|(a, b)| b > a)
+        .collect()
+}
+
+/// The ranks of `mpirun` drawing one render.
+pub struct RenderShare<'c> {
+    c: &'c Cluster,
+    split: Split,
+    /// Rank 0: the view being handed out, its bands, the next one, and how
+    /// many other ranks were told there are none left.
+    view: Option<u32>,
+    queue: Vec<(u32, u32)>,
+    next: usize,
+    told: usize,
+    /// Data-parallel: the tree of regions and how cuts map to the world.
+    tree: Option<(KdTree, u64, [f64; 3])>,
+}
+
+impl<'c> RenderShare<'c> {
+    pub fn new(c: &'c Cluster, split: Split) -> RenderShare<'c> {
+        RenderShare {
+            c,
+            split,
+            view: None,
+            queue: vec![],
+            next: 0,
+            told: 0,
+            tree: None,
+        }
+    }
+
+    /// Rank 0: start handing out view `v` (once).
+    fn open_view(&mut self, v: u32, rows: u32) {
+        if self.view != Some(v) {
+            self.view = Some(v);
+            self.queue = bands(rows, self.c.size());
+            self.next = 0;
+            self.told = 0;
+        }
+    }
+
+    /// Rank 0: answer one request.
+    fn answer(&mut self, from: i32, req: [u32; 2]) {
+        let p = self.c.world().process_at_rank(from);
+        if req[1] == 1 {
+            // That rank stopped asking.
+            self.told += 1;
+            return;
+        }
+        let band = if self.next < self.queue.len() {
+            self.next += 1;
+            self.queue[self.next - 1]
+        } else {
+            self.told += 1;
+            (NONE, NONE)
+        };
+        p.send_with_tag(&[band.0, band.1][..], TAG_BAND);
+    }
+
+    /// Rank 0: answer every request waiting now.
+    fn answer_waiting(&mut self) {
+        let world = self.c.world();
+        while let Some((msg, _)) = world
+            .any_process()
+            .immediate_matched_probe_with_tag(TAG_ASK)
+        {
+            let mut req = [0u32; 2];
+            let st = msg.matched_receive_into(&mut req[..]);
+            self.answer(st.source_rank(), req);
+        }
+    }
+
+    /// Rank 0: answer until every other rank was told no band is left.
+    fn answer_until_all_told(&mut self) {
+        let world = self.c.world();
+        while self.told < self.c.size() - 1 {
+            let mut req = [0u32; 2];
+            let st = world
+                .any_process()
+                .receive_into_with_tag(&mut req[..], TAG_ASK);
+            self.answer(st.source_rank(), req);
+        }
+    }
+
+    /// The pieces of this rank's final span, gathered on rank 0 into one
+    /// image of `len` pixels: `spans[r]` is rank r's span.
+    fn gather(
+        &self,
+        mine: &[[f32; 4]],
+        spans: &[std::ops::Range<usize>],
+        len: usize,
+        w: u32,
+        h: u32,
+    ) -> Option<Image> {
+        let root = self.c.world().process_at_rank(0);
+        let flat: &[f32] = mine.as_flattened();
+        if self.c.rank() == 0 {
+            let counts: Vec<Count> = spans.iter().map(|s| (s.len() * 4) as Count).collect();
+            let displs: Vec<Count> = spans.iter().map(|s| (s.start * 4) as Count).collect();
+            let mut out = vec![[0f32; 4]; len];
+            {
+                let mut part = PartitionMut::new(out.as_flattened_mut(), &counts[..], &displs[..]);
+                root.gather_varcount_into_root(flat, &mut part);
+            }
+            Some(Image {
+                width: w,
+                height: h,
+                rgba: out,
+            })
+        } else {
+            root.gather_varcount_into(flat);
+            None
+        }
+    }
+}
+
+impl Share for RenderShare<'_> {
+    fn rank(&self) -> usize {
+        self.c.rank()
+    }
+
+    fn size(&self) -> usize {
+        self.c.size()
+    }
+
+    fn split(&self) -> Split {
+        self.split
+    }
+
+    fn next_band(&mut self, view: u32, rows: u32) -> Result<Option<(u32, u32)>> {
+        if self.c.rank() == 0 {
+            self.open_view(view, rows);
+            self.answer_waiting();
+            if self.next < self.queue.len() {
+                self.next += 1;
+                return Ok(Some(self.queue[self.next - 1]));
+            }
+            self.answer_until_all_told();
+            return Ok(None);
+        }
+        let root = self.c.world().process_at_rank(0);
+        root.send_with_tag(&[view, 0][..], TAG_ASK);
+        let mut band = [0u32; 2];
+        root.receive_into_with_tag(&mut band[..], TAG_BAND);
+        Ok((band[0] != NONE).then_some((band[0], band[1])))
+    }
+
+    fn serve(&mut self) {
+        if self.c.rank() == 0 && self.view.is_some() {
+            self.answer_waiting();
+        }
+    }
+
+    fn stop_asking(&mut self, view: u32) {
+        if self.c.rank() == 0 {
+            // The others take the bands left.
+            if self.view == Some(view) {
+                self.answer_until_all_told();
+            }
+        } else {
+            let root = self.c.world().process_at_rank(0);
+            root.send_with_tag(&[view, 1][..], TAG_ASK);
+        }
+    }
+
+    fn agree(&mut self, mine: Result<()>) -> Result<()> {
+        self.c
+            .agree(mine.map_err(|e| format!("{e:#}")))
+            .map_err(|e| Agreed(e).into())
+    }
+
+    fn sum(&mut self, mut img: Image) -> Result<Option<Image>> {
+        self.c.sum_f32_to_root(img.rgba.as_flattened_mut());
+        Ok((self.c.rank() == 0).then_some(img))
+    }
+
+    fn region(
+        &mut self,
+        dims: [u64; 3],
+        spacing: [f64; 3],
+        brick: u64,
+    ) -> Option<([f64; 3], [f64; 3])> {
+        let nb = dims.map(|d| d.div_ceil(brick));
+        let tree = KdTree::build(nb, self.c.size(), &|_| 1.0);
+        let r = tree.regions()[self.c.rank()];
+        self.tree = Some((tree, brick, spacing));
+        if r.is_empty() {
+            return None;
+        }
+        let (lo, hi) = r.voxels([brick; 3], dims);
+        let world = |v: [u64; 3]| {
+            [
+                v[2] as f64 * spacing[2],
+                v[1] as f64 * spacing[1],
+                v[0] as f64 * spacing[0],
+            ]
+        };
+        Some((world(lo), world(hi)))
+    }
+
+    fn composite(&mut self, img: Image, mip: bool, eye: [f64; 3]) -> Result<(Option<Image>, f64)> {
+        let t0 = std::time::Instant::now();
+        let (tree, brick, spacing) = self
+            .tree
+            .as_ref()
+            .ok_or_else(|| anyhow::anyhow!("composite: no regions (call region first)"))?;
+        let side = eye_side(eye, [*brick; 3], *spacing);
+        let op = if mip { Operator::Max } else { Operator::Over };
+        let (n, rank) = (self.c.size(), self.c.rank());
+        let len = img.rgba.len();
+        let (w, h) = (img.width, img.height);
+        let world = self.c.world();
+        let out = if n.is_power_of_two() {
+            let front = |a: std::ops::Range<usize>, b: std::ops::Range<usize>| {
+                tree.front(a, b, &side).unwrap_or(false)
+            };
+            let mut buf = img.rgba;
+            let stages = binary_swap(rank, n, len, &front);
+            for st in &stages {
+                let p = world.process_at_rank(st.partner as i32);
+                let mut got = vec![[0f32; 4]; st.keep.len()];
+                send_receive_into(
+                    buf[st.send.clone()].as_flattened(),
+                    &p,
+                    got.as_flattened_mut(),
+                    &p,
+                );
+                let mine = &mut buf[st.keep.clone()];
+                if st.in_front {
+                    op.apply(mine, &got);
+                } else {
+                    op.apply_under(mine, &got);
+                }
+            }
+            let spans: Vec<std::ops::Range<usize>> = (0..n)
+                .map(|r| {
+                    binary_swap(r, n, len, &front)
+                        .last()
+                        .map_or(0..len, |s| s.keep.clone())
+                })
+                .collect();
+            let keep = spans[rank].clone();
+            self.gather(&buf[keep], &spans, len, w, h)
+        } else {
+            // Direct send: span r of every partial image goes to rank r,
+            // which composites the n pieces in visibility order.
+            let spans = split_even(len, n);
+            let counts: Vec<Count> = spans.iter().map(|s| (s.len() * 4) as Count).collect();
+            let displs: Vec<Count> = spans.iter().map(|s| (s.start * 4) as Count).collect();
+            let mine = spans[rank].len();
+            let rcounts: Vec<Count> = vec![(mine * 4) as Count; n];
+            let rdispls: Vec<Count> = (0..n).map(|i| (i * mine * 4) as Count).collect();
+            let mut pieces = vec![[0f32; 4]; mine * n];
+            {
+                let send = Partition::new(img.rgba.as_flattened(), &counts[..], &displs[..]);
+                let mut recv =
+                    PartitionMut::new(pieces.as_flattened_mut(), &rcounts[..], &rdispls[..]);
+                world.all_to_all_varcount_into(&send, &mut recv);
+            }
+            let order = tree.order(&side);
+            let piece = |r: usize| &pieces[r * mine..(r + 1) * mine];
+            let mut acc = piece(order[0]).to_vec();
+            for &r in &order[1..] {
+                op.apply(&mut acc, piece(r));
+            }
+            self.gather(&acc, &spans, len, w, h)
+        };
+        Ok((out, t0.elapsed().as_secs_f64() * 1e3))
+    }
+}

@@ -1,0 +1,510 @@
+//! `mpirun -n N brickyard …` (feature `mpi`): distributed conversion is
+//! byte for byte the single-process one, image- and data-parallel renders
+//! equal the single-process image, and a rank that fails gives a clear
+//! error and no store that looks complete.
+//!
+//! These run only with the `mpi` feature. Without `mpirun` on the PATH
+//! they say so and pass, unless `BRICKYARD_REQUIRE_MPI=1` (CI), where a
+//! missing `mpirun` fails them.
+#![cfg(feature = "mpi")]
+
+use std::collections::BTreeMap;
+use std::path::{Path, PathBuf};
+use std::process::{Command, Output};
+
+fn bin() -> &'static str {
+    env!("CARGO_BIN_EXE_brickyard")
+}
+
+/// Whether `mpirun` can be used; a failure when CI asks for MPI.
+fn have_mpirun() -> bool {
+    let ok = Command::new("mpirun")
+        .arg("--version")
+        .output()
+        .is_ok_and(|o| o.status.success());
+    if !ok {
+        assert!(
+            std::env::var("BRICKYARD_REQUIRE_MPI").as_deref() != Ok("1"),
+            "BRICKYARD_REQUIRE_MPI=1 but mpirun cannot be run (install openmpi-bin)"
+        );
+        eprintln!(
+            "mpirun not found: skipping the MPI test (set BRICKYARD_REQUIRE_MPI=1 to fail instead)"
+        );
+    }
+    ok
+}
+
+/// One `mpirun` at a time: concurrent launchers race for their session
+/// directory, and the ranks of one already fill the cores.
+static MPIRUN: std::sync::Mutex<()> = std::sync::Mutex::new(());
+
+/// `mpirun --oversubscribe -n N brickyard ARGS` (as root too).
+fn mpirun(n: usize, args: &[&str], env: &[(&str, &str)]) -> Output {
+    let _one = MPIRUN.lock().unwrap_or_else(|e| e.into_inner());
+    let mut c = Command::new("mpirun");
+    c.args(["--oversubscribe", "-n", &n.to_string(), bin()])
+        .args(args)
+        .env("OMPI_ALLOW_RUN_AS_ROOT", "1")
+        .env("OMPI_ALLOW_RUN_AS_ROOT_CONFIRM", "1")
+        .env("OMPI_MCA_rmaps_base_oversubscribe", "1");
+    for (k, v) in env {
+        c.env(k, v);
+    }
+    c.output().unwrap()
+}
+
+fn run(args: &[&str]) -> Output {
+    Command::new(bin()).args(args).output().unwrap()
+}
+
+#[track_caller]
+fn ok(o: &Output, what: &str) {
+    assert!(
+        o.status.success(),
+        "{what} failed: {}\n{}",
+        String::from_utf8_lossy(&o.stdout),
+        String::from_utf8_lossy(&o.stderr)
+    );
+}
+
+fn s(p: &Path) -> &str {
+    p.to_str().unwrap()
+}
+
+fn shared_data(name: &str) -> PathBuf {
+    let path = Path::new(env!("CARGO_MANIFEST_DIR"))
+        .join("../../../shared/data")
+        .join(name);
+    assert!(
+        path.exists(),
+        "{} is missing: this test needs the shared data folder",
+        path.display()
+    );
+    path
+}
+
+/// Every file under `dir`, by relative path, with its bytes.
+fn files(dir: &Path) -> BTreeMap<PathBuf, Vec<u8>> {
+    let mut out = BTreeMap::new();
+    let mut stack = vec![dir.to_path_buf()];
+    while let Some(d) = stack.pop() {
+        for e in std::fs::read_dir(&d).unwrap() {
+            let p = e.unwrap().path();
+            if p.is_dir() {
+                stack.push(p);
+            } else {
+                out.insert(
+                    p.strip_prefix(dir).unwrap().to_path_buf(),
+                    std::fs::read(&p).unwrap(),
+                );
+            }
+        }
+    }
+    out
+}
+
+#[track_caller]
+fn same_store(a: &Path, b: &Path) {
+    let (fa, fb) = (files(a), files(b));
+    assert_eq!(
+        fa.keys().collect::<Vec<_>>(),
+        fb.keys().collect::<Vec<_>>(),
+        "{} and {} hold different files",
+        a.display(),
+        b.display()
+    );
+    for (k, v) in &fa {
+        assert!(
+            v == &fb[k],
+            "{}: differs between {} and {}",
+            k.display(),
+            a.display(),
+            b.display()
+        );
+    }
+    assert!(fa.len() > 20, "{} files only", fa.len());
+}
+
+/// Conversion on 2, 3 and 4 ranks writes the single-process store, byte
+/// for byte, for a generated and a real volume; several shard columns per
+/// level so that every rank writes shards.
+#[test]
+fn distributed_conversion_is_byte_identical() {
+    if !have_mpirun() {
+        return;
+    }
+    let dir = tempfile::tempdir().unwrap();
+    let raw = dir.path().join("m.raw");
+    ok(
+        &run(&[
+            "generate",
+            "mandelbulb",
+            s(&raw),
+            "--size",
+            "150x130x70",
+            "--dtype",
+            "u16",
+            "--quiet",
+        ]),
+        "generate",
+    );
+    let nii = shared_data("mni152-t1-u8.nii.gz");
+    for (name, input) in [("gen", raw.as_path()), ("mni", nii.as_path())] {
+        let single = dir.path().join(format!("{name}-1.ome.zarr"));
+        let args = ["--brick", "16", "--shard", "32", "--quiet"];
+        let mut a = vec!["convert", s(input), s(&single)];
+        a.extend(args);
+        ok(&run(&a), "single-process convert");
+        for n in [2usize, 3, 4] {
+            let out = dir.path().join(format!("{name}-{n}.ome.zarr"));
+            let mut a = vec!["convert", s(input), s(&out), "--json"];
+            a.extend(args);
+            let o = mpirun(n, &a, &[]);
+            ok(&o, &format!("convert on {n} ranks"));
+            let stdout = String::from_utf8_lossy(&o.stdout);
+            // One report, from rank 0, saying how many ranks shared it.
+            assert_eq!(stdout.lines().count(), 1, "{stdout}");
+            let j: serde_json::Value = serde_json::from_str(stdout.trim()).unwrap();
+            assert_eq!(j["ranks"], n, "{stdout}");
+            same_store(&single, &out);
+        }
+    }
+}
+
+/// A rank failing in the middle of a conversion: every rank stops, the
+/// exit status is non-zero, the error names the rank and the cause, and
+/// nothing at the output looks like a complete store.
+#[test]
+fn a_failing_rank_leaves_no_complete_store() {
+    if !have_mpirun() {
+        return;
+    }
+    let dir = tempfile::tempdir().unwrap();
+    let raw = dir.path().join("m.raw");
+    ok(
+        &run(&[
+            "generate",
+            "mandelbulb",
+            s(&raw),
+            "--size",
+            "150x130x70",
+            "--dtype",
+            "u16",
+            "--quiet",
+        ]),
+        "generate",
+    );
+    // An error reported by rank 1 after the first pass (meeting 3): rank 0
+    // removes the partial output.
+    let out = dir.path().join("e.ome.zarr");
+    let o = mpirun(
+        3,
+        &[
+            "convert",
+            s(&raw),
+            s(&out),
+            "--brick",
+            "16",
+            "--shard",
+            "32",
+            "--quiet",
+        ],
+        &[("BRICKYARD_MPI_FAIL", "1:3:error")],
+    );
+    assert!(!o.status.success());
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(
+        err.contains("rank 1: injected failure at meeting point 3"),
+        "{err}"
+    );
+    assert!(!out.exists());
+    assert!(!dir.path().join("e.ome.zarr.partial").exists());
+    // Rank 2 dies outright mid-job: mpirun ends the job; what is left is
+    // the partial output, which says it is incomplete.
+    let out = dir.path().join("x.ome.zarr");
+    let o = mpirun(
+        3,
+        &[
+            "convert",
+            s(&raw),
+            s(&out),
+            "--brick",
+            "16",
+            "--shard",
+            "32",
+            "--quiet",
+        ],
+        &[("BRICKYARD_MPI_FAIL", "2:3:exit")],
+    );
+    assert!(!o.status.success());
+    assert!(!out.exists());
+    let partial = dir.path().join("x.ome.zarr.partial");
+    if partial.exists() {
+        let root: serde_json::Value =
+            serde_json::from_slice(&std::fs::read(partial.join("zarr.json")).unwrap()).unwrap();
+        assert_eq!(root["attributes"]["brickyard"]["complete"], false);
+        let info = run(&["info", s(&partial)]);
+        assert_eq!(info.status.code(), Some(2), "info must call it incomplete");
+    }
+}
+
+/// The premultiplied RGBA floats `render --raw-f32` wrote beside `png`.
+fn floats(png: &Path) -> Vec<f32> {
+    std::fs::read(png.with_extension("f32"))
+        .unwrap()
+        .chunks_exact(4)
+        .map(|b| f32::from_le_bytes(b.try_into().unwrap()))
+        .collect()
+}
+
+#[track_caller]
+fn close(a: &Path, b: &Path, tol: f32, what: &str) {
+    let (x, y) = (floats(a), floats(b));
+    assert_eq!(x.len(), y.len(), "{what}: image sizes");
+    let d = x
+        .iter()
+        .zip(&y)
+        .map(|(p, q)| (p - q).abs())
+        .fold(0.0f32, f32::max);
+    assert!(d <= tol, "{what}: max abs diff {d} > {tol}");
+    // Something was drawn (not two empty images).
+    let lit = x.chunks_exact(4).filter(|p| p[3] > 0.05).count();
+    assert!(lit > x.len() / 4 / 20, "{what}: {lit} pixels drawn");
+}
+
+/// Two stores: a generated Mandelbulb and the MNI152 T1 scan.
+fn stores(dir: &Path) -> Vec<PathBuf> {
+    let gen = dir.join("gen.ome.zarr");
+    ok(
+        &run(&[
+            "generate",
+            "mandelbulb",
+            s(&gen),
+            "--size",
+            "112x96x80",
+            "--dtype",
+            "u16",
+            "--brick",
+            "32",
+            "--shard",
+            "64",
+            "--quiet",
+        ]),
+        "generate",
+    );
+    let mni = dir.join("mni.ome.zarr");
+    let nii = shared_data("mni152-t1-u8.nii.gz");
+    ok(
+        &run(&[
+            "convert",
+            s(&nii),
+            s(&mni),
+            "--brick",
+            "32",
+            "--shard",
+            "64",
+            "--quiet",
+        ]),
+        "convert",
+    );
+    vec![gen, mni]
+}
+
+/// Image-parallel renders on 1 to 4 ranks equal the single-process image
+/// within 1e-5, DVR and MIP, for both stores.
+#[test]
+fn image_parallel_equals_one_process() {
+    if !have_mpirun() {
+        return;
+    }
+    let dir = tempfile::tempdir().unwrap();
+    for store in stores(dir.path()) {
+        let name = store.file_stem().unwrap().to_string_lossy().into_owned();
+        for mode in ["dvr", "mip"] {
+            let view = [
+                "--size",
+                "150x110",
+                "--mode",
+                mode,
+                "--azimuth",
+                "40",
+                "--quiet",
+                "--raw-f32",
+            ];
+            let one = dir.path().join(format!("{name}-{mode}-1p.png"));
+            let mut a = vec!["render", s(&store), "--backend", "cpu", "--out", s(&one)];
+            a.extend(view);
+            ok(&run(&a), "single-process render");
+            for n in 1..=4usize {
+                let out = dir.path().join(format!("{name}-{mode}-i{n}.png"));
+                let mut a = vec![
+                    "render",
+                    s(&store),
+                    "--distribute",
+                    "image",
+                    "--out",
+                    s(&out),
+                ];
+                a.extend(view);
+                let o = mpirun(n, &a, &[]);
+                ok(&o, &format!("{name} {mode} on {n} ranks"));
+                // Rank 0 alone reports.
+                let stdout = String::from_utf8_lossy(&o.stdout);
+                assert_eq!(stdout.matches("wrote ").count(), 1, "{stdout}");
+                close(
+                    &one,
+                    &out,
+                    1e-5,
+                    &format!("{name} {mode} image-parallel on {n} ranks"),
+                );
+            }
+        }
+    }
+}
+
+/// Data-parallel (sort-last) renders on 2 to 4 ranks (binary swap on 2
+/// and 4, direct send on 3) equal the single-process image within 1e-5:
+/// DVR against the image without early ray termination (every sample
+/// composited, as the regions do), MIP against the plain one. One rank
+/// draws the plain image.
+#[test]
+fn data_parallel_equals_one_process() {
+    if !have_mpirun() {
+        return;
+    }
+    let dir = tempfile::tempdir().unwrap();
+    for store in stores(dir.path()) {
+        let name = store.file_stem().unwrap().to_string_lossy().into_owned();
+        for mode in ["dvr", "mip"] {
+            let view = [
+                "--size",
+                "150x110",
+                "--mode",
+                mode,
+                "--azimuth=-70",
+                "--elevation",
+                "35",
+                "--quiet",
+                "--raw-f32",
+            ];
+            let plain = dir.path().join(format!("{name}-{mode}-plain.png"));
+            let mut a = vec!["render", s(&store), "--backend", "cpu", "--out", s(&plain)];
+            a.extend(view);
+            ok(&run(&a), "single-process render");
+            let all = dir.path().join(format!("{name}-{mode}-all.png"));
+            let mut a = vec![
+                "render",
+                s(&store),
+                "--backend",
+                "cpu",
+                "--no-early-termination",
+                "--out",
+                s(&all),
+            ];
+            a.extend(view);
+            ok(&run(&a), "single-process render without early termination");
+            if mode == "mip" {
+                close(&plain, &all, 0.0, "MIP does not terminate early");
+            }
+            for n in 1..=4usize {
+                let out = dir.path().join(format!("{name}-{mode}-d{n}.png"));
+                let mut a = vec![
+                    "render",
+                    s(&store),
+                    "--distribute",
+                    "data",
+                    "--out",
+                    s(&out),
+                ];
+                a.extend(view);
+                let o = mpirun(n, &a, &[]);
+                ok(&o, &format!("{name} {mode} data-parallel on {n} ranks"));
+                let stdout = String::from_utf8_lossy(&o.stdout);
+                if n > 1 {
+                    let how = if n == 3 { "direct send" } else { "binary swap" };
+                    assert!(
+                        stdout.contains(&format!("composited {n} ranks ({how})")),
+                        "{stdout}"
+                    );
+                }
+                let want = if n == 1 { &plain } else { &all };
+                close(
+                    want,
+                    &out,
+                    1e-5,
+                    &format!("{name} {mode} data-parallel on {n} ranks"),
+                );
+            }
+        }
+    }
+}
+
+/// A rank failing during a render: every rank stops with a failure
+/// status, rank 0 says which rank failed and why, no image is written;
+/// a bad --distribute is a clear error.
+#[test]
+fn a_failing_rank_stops_the_render() {
+    if !have_mpirun() {
+        return;
+    }
+    let dir = tempfile::tempdir().unwrap();
+    let store = dir.path().join("g.ome.zarr");
+    ok(
+        &run(&[
+            "generate",
+            "mandelbulb",
+            s(&store),
+            "--size",
+            "64",
+            "--brick",
+            "32",
+            "--shard",
+            "64",
+            "--quiet",
+        ]),
+        "generate",
+    );
+    for split in ["image", "data"] {
+        let out = dir.path().join(format!("{split}.png"));
+        let o = mpirun(
+            3,
+            &[
+                "render",
+                s(&store),
+                "--distribute",
+                split,
+                "--size",
+                "64x64",
+                "--out",
+                s(&out),
+                "--quiet",
+            ],
+            &[("BRICKYARD_MPI_FAIL", "2:1:error")],
+        );
+        assert!(!o.status.success(), "{split}: expected a failure");
+        let err = String::from_utf8_lossy(&o.stderr);
+        assert!(
+            err.contains("rank 2: injected failure at meeting point 1"),
+            "{split}: {err}"
+        );
+        assert!(!out.exists(), "{split}: an image was written");
+    }
+    let o = mpirun(
+        2,
+        &[
+            "render",
+            s(&store),
+            "--distribute",
+            "pixels",
+            "--out",
+            s(&dir.path().join("x.png")),
+        ],
+        &[],
+    );
+    assert!(!o.status.success());
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(
+        err.contains("distribute: expected image or data, found \"pixels\""),
+        "{err}"
+    );
+}
