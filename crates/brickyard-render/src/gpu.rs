@@ -193,7 +193,7 @@ pub struct GpuRenderer {
     /// made for changes.
     /// Several, most recently used last (views with different transfer
     /// functions in turn).
-    aux: Vec<(AuxKey, wgpu::Buffer, u32, u32, u32)>,
+    aux: Vec<(AuxKey, wgpu::Buffer, u32, u32, u32, Option<TableKey>)>,
     /// The device's twin of the scene's residency octree (its update
     /// passes keep the masks the octree traversal reads), with the octree
     /// it follows (`Octree::id`).
@@ -212,6 +212,27 @@ type AuxKey = (
     Vec<ChannelStyle>,
     usize,
 );
+
+/// What the octree's tables in an aux buffer were made of: the octree
+/// (id, generation), the transfer functions and channels, the step, the
+/// levels a step may ask for.
+#[derive(Clone, PartialEq)]
+struct TableKey {
+    octree: (u64, u64),
+    tf: TransferFunction,
+    channels: Vec<ChannelStyle>,
+    channel: usize,
+    samples_per_voxel: u64,
+    used: Vec<bool>,
+}
+
+/// Whether a step may ask for level `l` of `n` at `lod`.
+fn level_used(lod: Lod, l: usize, n: usize) -> bool {
+    match lod {
+        Lod::Fixed(f) => l == f.min(n - 1),
+        Lod::Auto { .. } => true,
+    }
+}
 
 /// Image and transfer-function buffers kept for reuse.
 const KEPT: usize = 6;
@@ -480,15 +501,38 @@ impl GpuRenderer {
             ];
         }
         // The octree's tables for this frame, from the host's octree (kept
-        // in step with the host's virtual memory by `Octree::sync`); its
-        // residency masks from the device's twin, brought up to date with
-        // the events since the last frame.
-        let oct_words = if by_octree {
-            Some(octree_tables(vm, scene, params, lod)?)
-        } else {
-            None
+        // in step with the host's virtual memory by `Octree::sync`): their
+        // layout, and what they were made of (`None`: an octree made for
+        // this frame alone); its residency masks from the device's twin,
+        // brought up to date with the events since the last frame.
+        let nl_oct = scene.levels.len();
+        let (oct_layout, table_key) = match (by_octree, &scene.octree) {
+            (false, _) => (None, None),
+            (true, None) => (
+                Some(OctFrame::device_layout(
+                    crate::octree::DEFAULT_DEPTH,
+                    nl_oct,
+                    vm.channels(),
+                )),
+                None,
+            ),
+            (true, Some(o)) => {
+                let t = o.read().expect("octree lock");
+                let used: Vec<bool> = (0..nl_oct).map(|l| level_used(lod, l, nl_oct)).collect();
+                (
+                    Some(OctFrame::device_layout(t.depth, nl_oct, t.channels)),
+                    Some(TableKey {
+                        octree: (t.id(), t.generation()),
+                        tf: tf.clone(),
+                        channels: params.channels.clone(),
+                        channel: scene.channel,
+                        samples_per_voxel: params.samples_per_voxel.to_bits(),
+                        used,
+                    }),
+                )
+            }
         };
-        let oct_masks = match (&oct_words, &scene.octree) {
+        let oct_masks = match (&oct_layout, &scene.octree) {
             (Some(_), Some(arc)) => Some(device_octree_for(&mut self.octree, gpu, arc, scene)),
             _ => None,
         };
@@ -502,7 +546,7 @@ impl GpuRenderer {
             grid.clone(),
             mode == 0,
             params.channels.clone(),
-            oct_words.as_ref().map_or(0, |o| o.0.len()),
+            oct_layout.map_or(0, |o| o[2]),
         );
         if let Some(i) = self.aux.iter().position(|(k, ..)| *k == key) {
             let x = self.aux.remove(i);
@@ -588,10 +632,11 @@ impl GpuRenderer {
                     0,
                 ]);
             }
-            // The octree's tables follow, rewritten every frame.
+            // The octree's tables follow, rewritten when what they are made
+            // of changes.
             let oct_off = words.len() as u32;
-            if let Some((o, ..)) = &oct_words {
-                words.extend(std::iter::repeat_n(0, o.len()));
+            if let Some(o) = &oct_layout {
+                words.extend(std::iter::repeat_n(0, o[2]));
             }
             let bytes = words.len() as u64 * 4;
             let limit = gpu.limits.max_storage_buffer_binding_size;
@@ -606,34 +651,42 @@ impl GpuRenderer {
             if self.aux.len() >= KEPT {
                 self.aux.remove(0);
             }
-            self.aux.push((key, buf, off, styles_off, oct_off));
+            self.aux.push((key, buf, off, styles_off, oct_off, None));
         }
-        let (_, aux, off, styles_off, oct_off) = self.aux.last().expect("made above");
+        let (_, aux, off, styles_off, oct_off, written) = self.aux.last_mut().expect("made above");
         u.n_channels = if by_octree {
             params.channels.len().max(1) as u32
         } else {
             params.channels.len() as u32
         };
         let mut copy_masks = None;
-        if let Some((words, masks, depths)) = &oct_words {
-            let (m, d) = (*masks as usize, *depths as usize);
+        if let Some([m, d, _]) = oct_layout {
             let at = |rel: usize| (*oct_off as usize + rel) as u64 * 4;
-            gpu.queue
-                .write_buffer(aux, at(0), bytemuck::cast_slice(&words[..m]));
-            gpu.queue
-                .write_buffer(aux, at(d), bytemuck::cast_slice(&words[d..]));
-            match oct_masks {
-                // The device's masks, copied on the device before drawing.
-                Some(channels) => copy_masks = Some((at(m), (d - m) as u64 * 4, channels)),
-                None => gpu
-                    .queue
-                    .write_buffer(aux, at(m), bytemuck::cast_slice(&words[m..d])),
+            // The tables, unless this buffer holds them as they are.
+            if table_key.is_none() || *written != table_key {
+                let (words, masks, depths) = octree_tables(vm, scene, params, lod)?;
+                debug_assert_eq!([masks as usize, depths as usize], [m, d]);
+                gpu.queue
+                    .write_buffer(aux, at(0), bytemuck::cast_slice(&words[..m]));
+                gpu.queue
+                    .write_buffer(aux, at(d), bytemuck::cast_slice(&words[d..]));
+                if oct_masks.is_none() {
+                    gpu.queue
+                        .write_buffer(aux, at(m), bytemuck::cast_slice(&words[m..d]));
+                }
+                *written = table_key;
             }
-            let channels = scene
-                .octree
-                .as_ref()
-                .map_or(vm.channels(), |o| o.read().expect("octree lock").channels);
-            u.oct = [*oct_off, oct_off + masks, oct_off + depths, channels as u32];
+            // The device's masks, copied on the device before drawing.
+            if oct_masks.is_some() {
+                copy_masks = Some((at(m), (d - m) as u64 * 4));
+            }
+            let channels = oct_masks.unwrap_or(vm.channels());
+            u.oct = [
+                *oct_off,
+                *oct_off + m as u32,
+                *oct_off + d as u32,
+                channels as u32,
+            ];
         }
         u.styles_off = *styles_off;
         u.skip = (mode == 0) as u32;
@@ -675,7 +728,7 @@ impl GpuRenderer {
             ],
         );
         let mut enc = gpu.device.create_command_encoder(&Default::default());
-        if let (Some((at, bytes, _)), Some((_, dev))) = (copy_masks, &self.octree) {
+        if let (Some((at, bytes)), Some((_, dev))) = (copy_masks, &self.octree) {
             enc.copy_buffer_to_buffer(&dev.masks, 0, aux, at, bytes);
         }
         let entry = pass.as_ref().map_or("render", |p| p.entry);
@@ -888,17 +941,12 @@ fn octree_tables(
         })
         .collect();
     let refs: Vec<&Frame> = frames.iter().collect();
-    let used: Vec<bool> = (0..nl)
-        .map(|l| match lod {
-            Lod::Fixed(f) => l == f.min(nl - 1),
-            Lod::Auto { .. } => true,
-        })
-        .collect();
+    let used: Vec<bool> = (0..nl).map(|l| level_used(lod, l, nl)).collect();
     let of = OctFrame::new(tree, &refs, &used);
     let words = of.device_words(&refs);
     debug_assert_eq!(
         words.0.len(),
-        OctFrame::device_len(tree.depth, nl, refs.len())
+        OctFrame::device_layout(tree.depth, nl, tree.channels)[2]
     );
     Ok(words)
 }

@@ -184,6 +184,10 @@ pub struct Octree {
     /// Unique per octree made (kept by clones): which octree a device twin
     /// follows.
     id: u64,
+    /// Changes whenever [`sync`](Self::sync) or [`apply`](Self::apply)
+    /// changed masks or ranges (tables made from the octree are current
+    /// while it stays).
+    generation: u64,
 }
 
 /// A mapped brick's value ranges in the leaves `[lo, hi)` it overlaps
@@ -263,6 +267,7 @@ impl Octree {
                 static NEXT: std::sync::atomic::AtomicU64 = std::sync::atomic::AtomicU64::new(1);
                 NEXT.fetch_add(1, std::sync::atomic::Ordering::Relaxed)
             },
+            generation: 0,
         };
         o.build_ranges(ranges);
         Ok(o)
@@ -446,10 +451,26 @@ impl Octree {
         let e = self.effective(&events);
         self.pass(&e);
         self.pass_ranges(&e, Some(vm));
-        if let Some(d) = &mut self.device_events {
-            d.extend_from_slice(&e);
-        }
+        self.logged(&e);
         events
+    }
+
+    /// After `e` (effective) was applied: kept for the device twin, and a
+    /// new generation when anything changed.
+    fn logged(&mut self, e: &[Event]) {
+        if e.is_empty() {
+            return;
+        }
+        self.generation += 1;
+        if let Some(d) = &mut self.device_events {
+            d.extend_from_slice(e);
+        }
+    }
+
+    /// Which state of the octree this is ([`id`](Self::id) and a counter
+    /// of the changes by events).
+    pub fn generation(&self) -> u64 {
+        self.generation
     }
 
     /// Which octree this is (unique per octree made; a clone keeps it).
@@ -482,9 +503,7 @@ impl Octree {
         let e = self.effective(events);
         self.pass(&e);
         self.pass_ranges(&e, None);
-        if let Some(d) = &mut self.device_events {
-            d.extend_from_slice(&e);
-        }
+        self.logged(&e);
     }
 
     /// The events that change something, in order: map events of keys not

@@ -402,9 +402,13 @@ impl OctFrame<'_> {
         (words, masks, depths)
     }
 
-    /// Words [`device_words`](Self::device_words) gives for an octree of
-    /// `depth` with `levels` levels and `channels` visible channels.
-    pub(crate) fn device_len(depth: u32, levels: usize, channels: usize) -> usize {
-        super::node_count(depth) * (levels * 8 + channels) + levels
+    /// Where [`device_words`](Self::device_words)' masks and depths start
+    /// and how many words it gives, for an octree of `depth` with `levels`
+    /// levels and `channels` channels (the volume's).
+    pub(crate) fn device_layout(depth: u32, levels: usize, channels: usize) -> [usize; 3] {
+        let nodes = super::node_count(depth);
+        let masks = nodes * levels * 8;
+        let depths = masks + nodes * channels;
+        [masks, depths, depths + levels]
     }
 }
