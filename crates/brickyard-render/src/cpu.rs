@@ -39,7 +39,7 @@
 //! what a sample becomes on screen is `optics`. Each has its WGSL twin
 //! beside it (`gpu.rs` is the device's frame driver).
 use crate::image::Image;
-use crate::octree::dvr::OctFrame;
+use crate::octree::dvr::{OctFrame, TableKey};
 use crate::octree::{self, Octree};
 use crate::params::{DebugCounts, RenderMode, RenderParams, Traversal};
 use crate::walk::{Frame, Walker};
@@ -324,14 +324,8 @@ fn render_typed<T: Sample>(
         } else {
             vec![&frame]
         };
-        let nl = scene.levels.len();
-        let used: Vec<bool> = (0..nl)
-            .map(|l| match lod {
-                Lod::Fixed(f) => l == f.min(nl - 1),
-                Lod::Auto { .. } => true,
-            })
-            .collect();
-        OctFrame::new(t, &frames, &used)
+        let key = TableKey::new(t, scene, params, lod);
+        OctFrame::cached(t, &frames, &key.used.clone(), key)
     });
     let w = params.width as usize;
     let tiles_x = w.div_ceil(TILE_W);

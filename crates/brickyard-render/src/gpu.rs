@@ -18,7 +18,7 @@
 use crate::cpu::{FrameStats, Lod, Scene};
 use crate::image::Image;
 use crate::octree::device::DeviceOctree;
-use crate::octree::dvr::OctFrame;
+use crate::octree::dvr::{OctFrame, TableKey};
 use crate::octree::Octree;
 use crate::params::{ChannelStyle, RenderMode, RenderParams, Traversal, MAX_DVR_CHANNELS};
 use brickyard_cache::bookkeeping::BrickIds;
@@ -212,27 +212,6 @@ type AuxKey = (
     Vec<ChannelStyle>,
     usize,
 );
-
-/// What the octree's tables in an aux buffer were made of: the octree
-/// (id, generation), the transfer functions and channels, the step, the
-/// levels a step may ask for.
-#[derive(Clone, PartialEq)]
-struct TableKey {
-    octree: (u64, u64),
-    tf: TransferFunction,
-    channels: Vec<ChannelStyle>,
-    channel: usize,
-    samples_per_voxel: u64,
-    used: Vec<bool>,
-}
-
-/// Whether a step may ask for level `l` of `n` at `lod`.
-fn level_used(lod: Lod, l: usize, n: usize) -> bool {
-    match lod {
-        Lod::Fixed(f) => l == f.min(n - 1),
-        Lod::Auto { .. } => true,
-    }
-}
 
 /// Image and transfer-function buffers kept for reuse.
 const KEPT: usize = 6;
@@ -518,17 +497,9 @@ impl GpuRenderer {
             ),
             (true, Some(o)) => {
                 let t = o.read().expect("octree lock");
-                let used: Vec<bool> = (0..nl_oct).map(|l| level_used(lod, l, nl_oct)).collect();
                 (
                     Some(OctFrame::device_layout(t.depth, nl_oct, t.channels)),
-                    Some(TableKey {
-                        octree: (t.id(), t.generation()),
-                        tf: tf.clone(),
-                        channels: params.channels.clone(),
-                        channel: scene.channel,
-                        samples_per_voxel: params.samples_per_voxel.to_bits(),
-                        used,
-                    }),
+                    Some(TableKey::new(&t, scene, params, lod)),
                 )
             }
         };
@@ -941,8 +912,8 @@ fn octree_tables(
         })
         .collect();
     let refs: Vec<&Frame> = frames.iter().collect();
-    let used: Vec<bool> = (0..nl).map(|l| level_used(lod, l, nl)).collect();
-    let of = OctFrame::new(tree, &refs, &used);
+    let key = TableKey::new(tree, scene, params, lod);
+    let of = OctFrame::cached(tree, &refs, &key.used.clone(), key);
     let words = of.device_words(&refs);
     debug_assert_eq!(
         words.0.len(),

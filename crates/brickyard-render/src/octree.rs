@@ -188,6 +188,9 @@ pub struct Octree {
     /// changed masks or ranges (tables made from the octree are current
     /// while it stays).
     generation: u64,
+    /// The traversal's last per-frame tables (`dvr::OctFrame`), reused
+    /// while nothing they are made of changes.
+    pub(crate) tables: dvr::TableCache,
 }
 
 /// A mapped brick's value ranges in the leaves `[lo, hi)` it overlaps
@@ -268,6 +271,7 @@ impl Octree {
                 NEXT.fetch_add(1, std::sync::atomic::Ordering::Relaxed)
             },
             generation: 0,
+            tables: dvr::TableCache::default(),
         };
         o.build_ranges(ranges);
         Ok(o)

@@ -13,12 +13,15 @@
 //! voxels of the bricks mapped so far, `Octree::sync`).
 
 use super::Octree;
-use crate::cpu::FrameStats;
+use crate::cpu::{FrameStats, Lod, Scene};
 use crate::optics::composite_visible;
+use crate::params::{ChannelStyle, RenderParams};
 use crate::walk::{step_t, Frame, Walker};
 use brickyard_cache::vm::Requests;
 use brickyard_core::camera::{intersect_box_inv, Ray, Vec3};
 use brickyard_core::Sample;
+use brickyard_core::TransferFunction;
+use std::sync::{Arc, Mutex};
 
 /// A thousandth of a step: landings lie this much early, and a step this
 /// close to a node's face is taken as outside it.
@@ -34,18 +37,97 @@ pub(crate) struct OctFrame<'o> {
     /// Per level, the deepest depth the step size allows.
     dmax: Vec<u32>,
     /// `[node][level]`: bit `i` set when visible channel `i` is hidden at
-    /// that level in the node (its range is known and transparent).
+    /// that level in the node (its range is known and transparent), and
+    /// bit `i` set when it has one known value in the node at that level.
+    tables: Arc<Tables>,
+}
+
+/// The hidden and one-value bits of an [`OctFrame`] (see its fields).
+#[derive(Debug)]
+pub(crate) struct Tables {
     clear: Vec<u64>,
-    /// `[node][level]`: bit `i` set when visible channel `i` has one known
-    /// value in the node at that level.
     homog: Vec<u64>,
 }
 
+/// What an [`OctFrame`]'s tables are made of: the octree's state
+/// ([`Octree::id`], [`Octree::generation`]), the transfer functions and
+/// channels, the step, the levels a step may ask for. Frames of one key
+/// share their tables (kept in the octree, [`TableCache`]).
+#[derive(Debug, Clone, PartialEq)]
+pub(crate) struct TableKey {
+    octree: (u64, u64),
+    tf: TransferFunction,
+    channels: Vec<ChannelStyle>,
+    channel: usize,
+    samples_per_voxel: u64,
+    pub(crate) used: Vec<bool>,
+}
+
+impl TableKey {
+    pub(crate) fn new(tree: &Octree, scene: &Scene, params: &RenderParams, lod: Lod) -> TableKey {
+        let nl = scene.levels.len();
+        TableKey {
+            octree: (tree.id(), tree.generation()),
+            tf: params.tf.clone(),
+            channels: params.channels.clone(),
+            channel: scene.channel,
+            samples_per_voxel: params.samples_per_voxel.to_bits(),
+            used: (0..nl).map(|l| level_used(lod, l, nl)).collect(),
+        }
+    }
+}
+
+/// Whether a step may ask for level `l` of `n` at `lod`.
+pub(crate) fn level_used(lod: Lod, l: usize, n: usize) -> bool {
+    match lod {
+        Lod::Fixed(f) => l == f.min(n - 1),
+        Lod::Auto { .. } => true,
+    }
+}
+
+/// The last tables made from an octree, with their key (a clone of the
+/// octree starts empty).
+#[derive(Debug, Default)]
+pub(crate) struct TableCache(Mutex<Option<(TableKey, Arc<Tables>)>>);
+
+impl Clone for TableCache {
+    fn clone(&self) -> TableCache {
+        TableCache::default()
+    }
+}
+
 impl<'o> OctFrame<'o> {
+    /// The frame's tables ([`new_with`](Self::new_with)), reusing those
+    /// of the last frame of the same `key` (kept in `tree`) when there is
+    /// one.
+    pub(crate) fn cached(
+        tree: &'o Octree,
+        frames: &[&Frame],
+        levels: &[bool],
+        key: TableKey,
+    ) -> OctFrame<'o> {
+        let kept = {
+            let c = tree.tables.0.lock().unwrap_or_else(|e| e.into_inner());
+            c.as_ref()
+                .filter(|(k, _)| *k == key)
+                .map(|(_, t)| t.clone())
+        };
+        let of = OctFrame::new_with(tree, frames, levels, kept);
+        let mut c = tree.tables.0.lock().unwrap_or_else(|e| e.into_inner());
+        *c = Some((key, of.tables.clone()));
+        of
+    }
+
     /// The tables for the visible channels whose walkers' frames are
     /// `frames` (their transfer functions) over `tree`; `levels`: the
-    /// levels samples may ask for (others get no table entries set).
-    pub(crate) fn new(tree: &'o Octree, frames: &[&Frame], levels: &[bool]) -> OctFrame<'o> {
+    /// levels samples may ask for (others get no table entries set);
+    /// `kept`: the hidden and one-value bits already made for them.
+    fn new_with(
+        tree: &'o Octree,
+        frames: &[&Frame],
+        levels: &[bool],
+        kept: Option<Arc<Tables>>,
+    ) -> OctFrame<'o> {
         assert!(frames.len() <= 64, "at most 64 channels");
         let f0 = frames[0];
         let nl = tree.levels();
@@ -67,6 +149,15 @@ impl<'o> OctFrame<'o> {
                     .unwrap_or(0)
             })
             .collect();
+        if let Some(tables) = kept {
+            return OctFrame {
+                tree,
+                channels,
+                all,
+                dmax,
+                tables,
+            };
+        }
         let mut clear = vec![0u64; nodes * nl];
         let mut homog = vec![0u64; nodes * nl];
         for node in 0..nodes {
@@ -95,8 +186,7 @@ impl<'o> OctFrame<'o> {
             channels,
             all,
             dmax,
-            clear,
-            homog,
+            tables: Arc::new(Tables { clear, homog }),
         }
     }
 }
@@ -208,8 +298,8 @@ pub(crate) fn dvr_pixel<T: Sample>(
                     let c = p.map(|x| ((x * s as f64) as u64).min(s - 1));
                     let node = tree.node(dd, c);
                     st.octree_nodes += 1;
-                    let clear = of.clear[node * nl + level];
-                    let homog = of.homog[node * nl + level];
+                    let clear = of.tables.clear[node * nl + level];
+                    let homog = of.tables.homog[node * nl + level];
                     let te = node_exit(ray, inv_dir, ext, dd, c);
                     if clear == of.all {
                         // Empty for every channel: land past it.
@@ -337,7 +427,7 @@ impl OctFrame<'_> {
         node: usize,
         level: usize,
     ) -> Option<[f32; 4]> {
-        let clear = self.clear[node * self.tree.levels() + level];
+        let clear = self.tables.clear[node * self.tree.levels() + level];
         let mut keep = 1.0f32;
         let mut rgb = [0.0f32; 3];
         let mut weight = 0.0f32;
@@ -378,8 +468,8 @@ impl OctFrame<'_> {
         let mut words = Vec::with_capacity(nodes * (nl * 8 + nv) + nl);
         for node in 0..nodes {
             for l in 0..nl {
-                let clear = self.clear[node * nl + l];
-                let homog = self.homog[node * nl + l];
+                let clear = self.tables.clear[node * nl + l];
+                let homog = self.tables.homog[node * nl + l];
                 let (kind, color) = if clear == self.all {
                     (1, [0.0; 4])
                 } else if clear | homog == self.all {
