@@ -504,7 +504,7 @@ impl GpuRenderer {
             }
         };
         let oct_masks = match (&oct_layout, &scene.octree) {
-            (Some(_), Some(arc)) => Some(device_octree_for(&mut self.octree, gpu, arc, scene)),
+            (Some(_), Some(arc)) => Some(device_octree_for(&mut self.octree, gpu, arc, scene)?),
             _ => None,
         };
         let key: AuxKey = (
@@ -925,13 +925,13 @@ fn octree_tables(
 /// Bring the device's twin (`slot`) of the octree `arc` up to date: made
 /// when the octree is new to the renderer, then updated by its passes with
 /// the events the octree logged since the last frame. Returns the
-/// octree's channels.
+/// octree's channels, or the device's limit the twin would pass.
 fn device_octree_for(
     slot: &mut Option<(u64, DeviceOctree)>,
     gpu: &Gpu,
     arc: &std::sync::Arc<std::sync::RwLock<Octree>>,
     scene: &Scene,
-) -> usize {
+) -> Result<usize, GpuError> {
     let mut tree = arc.write().expect("octree lock");
     match slot {
         Some((id, dev)) if *id == tree.id() => {
@@ -939,10 +939,10 @@ fn device_octree_for(
             dev.update(gpu, &events);
         }
         _ => {
-            let dev = DeviceOctree::new(gpu, &tree, scene.ranges.as_deref());
+            let dev = DeviceOctree::new(gpu, &tree, scene.ranges.as_deref())?;
             tree.log_for_device();
             *slot = Some((tree.id(), dev));
         }
     }
-    tree.channels
+    Ok(tree.channels)
 }

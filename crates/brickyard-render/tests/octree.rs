@@ -440,7 +440,7 @@ fn device_octree_passes_equal_the_cpu_model_over_random_sequences() {
     let mut frames = 0;
     for depth in [1, 2, 3, 4] {
         let mut o = Octree::new(depth, &dims, brick, channels, Some(&ranges)).unwrap();
-        let mut dev = DeviceOctree::new(&gpu, &o, Some(&ranges));
+        let mut dev = DeviceOctree::new(&gpu, &o, Some(&ranges)).unwrap();
         let (_, _, r) = dev.read(&gpu).unwrap();
         assert!(same_ranges(&r, &o.range), "depth {depth}: ranges");
         let known = o.range.iter().filter(|r| !r[0].is_nan()).count();

@@ -323,6 +323,19 @@ fn bad_values_and_combinations_name_the_flag() {
         .concat()),
         "a channel at level 1",
     );
+    // The deepest octree on the device: drawn, or refused naming the
+    // depth where its buffers pass the device's limits (lavapipe: 128
+    // MiB per binding), never a panic.
+    let o = r2(&[
+        &both[..],
+        &oc[..],
+        &["--octree-depth", "7", "--backend", "gpu"],
+    ]
+    .concat());
+    if !o.status.success() {
+        let e = stderr(&o);
+        assert!(e.contains("octree-depth") && !e.contains("panicked"), "{e}");
+    }
     fails_with(
         &r(&["--debug", "steps", "--backend", "gpu"]),
         &["debug", "CPU"],

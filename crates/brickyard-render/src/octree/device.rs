@@ -50,9 +50,34 @@ fn groups(n: usize) -> [u32; 3] {
 impl DeviceOctree {
     /// The device twin of `tree` (its counters and masks as they are
     /// now); node ranges computed on the device from `ranges`, the store's
-    /// per-brick statistics (see [`DeviceOctree::read`] to compare).
-    pub fn new(gpu: &Gpu, tree: &Octree, ranges: Option<&BrickRanges>) -> DeviceOctree {
+    /// per-brick statistics (see [`DeviceOctree::read`] to compare). An
+    /// error when a buffer would pass the device's binding limit.
+    pub fn new(
+        gpu: &Gpu,
+        tree: &Octree,
+        ranges: Option<&BrickRanges>,
+    ) -> Result<DeviceOctree, GpuError> {
         let nl = tree.levels();
+        let limit = gpu.limits.max_storage_buffer_binding_size;
+        let nodes = node_count(tree.depth) as u64;
+        let leaves = 1u64 << (3 * tree.depth);
+        let (ch, l) = (tree.channels as u64, nl as u64);
+        for (what, bytes) in [
+            ("node ranges", nodes * ch * l * 8),
+            ("leaf counters", leaves * ch * l * 4),
+            ("masks", nodes * ch * 4),
+        ] {
+            if bytes > limit {
+                return Err(GpuError::Limit {
+                    what: format!(
+                        "the residency octree's {what} on the device, bytes (depth {} with {} channels: choose a smaller --octree-depth)",
+                        tree.depth, tree.channels
+                    ),
+                    got: bytes,
+                    limit,
+                });
+            }
+        }
         let mut params = Params {
             depth: tree.depth,
             channels: tree.channels as u32,
@@ -137,7 +162,7 @@ impl DeviceOctree {
             let n = 1usize << (3 * d);
             o.run(gpu, "union_up", n as u32, d, n * per);
         }
-        o
+        Ok(o)
     }
 
     fn run(&mut self, gpu: &Gpu, entry: &str, count: u32, d: u32, invocations: usize) {
