@@ -125,7 +125,8 @@ struct Uniform {
     /// The first view of the image (a view drawn alone), 0, 0, 0.
     view_sel: [u32; 4],
     /// DVR through the residency octree: where its node table, masks and
-    /// deepest depths start in the aux buffer; 1 when traversed.
+    /// deepest depths start in the aux buffer; the volume's channels (the
+    /// masks' stride) when traversed, 0 when not.
     oct: [u32; 4],
     scale: [[f32; 4]; MAX_LEVELS],
     qmax: [[f32; 4]; MAX_LEVELS],
