@@ -225,6 +225,12 @@ def _json_arg(value: Any, what: str, tmp: str) -> str:
     return path
 
 
+# CLI flags given once per value (lists: one flag each), and those of the
+# form C=VALUE per channel (dicts {C: VALUE}).
+_REPEATED = ("channel", "channel_tf", "channel_levels")
+_PER_CHANNEL = ("channel_tf", "channel_levels")
+
+
 def render_args(store: Union[Store, str, os.PathLike], mode: str = "dvr", camera: Any = None, tf: Any = "soft",
                 size: Union[int, Tuple[int, int]] = (512, 512), backend: str = "auto", tmpdir: str = ".",
                 **options: Any) -> list:
@@ -254,9 +260,17 @@ def render_args(store: Union[Store, str, os.PathLike], mode: str = "dvr", camera
             args.append(flag)
         elif v is False or v is None:
             continue
-        elif isinstance(v, (list, tuple)) and k == "channel":
+        elif isinstance(v, (list, tuple)) and k in _REPEATED:
             for c in v:
                 args.append(f"{flag}={c}")
+        elif isinstance(v, dict) and k in _PER_CHANNEL:
+            # {C: value}: `--channel-tf C=FILE`, `--channel-levels C=LO-HI`.
+            for c, x in v.items():
+                if k == "channel_levels" and isinstance(x, (list, tuple)):
+                    x = "-".join(str(int(i)) for i in x)
+                elif k == "channel_tf":
+                    x = _json_arg(x, f"channel-tf-{int(c)}", tmpdir)
+                args.append(f"{flag}={int(c)}={x}")
         elif isinstance(v, (list, tuple)):
             args.append(f"{flag}=" + ",".join(str(x) for x in v))
         else:

@@ -70,3 +70,29 @@ def test_render_negative_option_values(store, cli, tmp_path):
         "--quiet")
     got = brickyard.render(store, size=24, backend="cpu", elevation=-40, lod_bias=-1)
     np.testing.assert_array_equal(got, read_png(out))
+
+
+def test_render_per_channel_options_equal_cli(tmp_path, cli):
+    # Two channels in DVR, channel 1 with a transfer function of its own
+    # and drawn at level 1 only: dicts and lists give the CLI's flags.
+    dst = tmp_path / "two.ome.zarr"
+    vol = np.stack([volume((40, 48, 56), "uint8", seed=3), volume((40, 48, 56), "uint8", seed=4)])
+    brickyard.from_numpy(vol, dst, brick=16, shard=32, progress=False)
+    tf = {"window": [0.0, 255.0], "colormap": "hot", "opacity": [[0.0, 0.0], [0.5, 0.0], [1.0, 0.6]]}
+    tf_file = tmp_path / "tf1.json"
+    tf_file.write_text(json.dumps(tf))
+    out = tmp_path / "cli.png"
+    cli("render", dst, "--size", "48x40", "--backend", "cpu", "--channel", "0:green", "--channel", "1:magenta",
+        "--channel-tf", f"1={tf_file}", "--channel-levels", "1=1-1", "--out", out, "--quiet")
+    want = read_png(out)
+    assert want.any(), "the CLI's image is black: the test would prove nothing"
+    got = brickyard.render(dst, size=(48, 40), backend="cpu", channel=["0:green", "1:magenta"],
+                           channel_tf={1: tf}, channel_levels={1: (1, 1)})
+    np.testing.assert_array_equal(got, want)
+    got2 = brickyard.render(dst, size=(48, 40), backend="cpu", channel=["0:green", "1:magenta"],
+                            channel_tf=[f"1={tf_file}"], channel_levels=["1=1-1"])
+    np.testing.assert_array_equal(got2, want)
+    # The level range changes the image.
+    full = brickyard.render(dst, size=(48, 40), backend="cpu", channel=["0:green", "1:magenta"],
+                            channel_tf={1: tf})
+    assert (full != want).any()
