@@ -75,6 +75,16 @@ fn with_display(args: &[&str]) -> Option<Command> {
     Some(c)
 }
 
+/// The lines of a viewer's `--log` file (frames, and the script's
+/// commands), as JSON.
+fn log_lines(log: &Path) -> Vec<serde_json::Value> {
+    std::fs::read_to_string(log)
+        .unwrap()
+        .lines()
+        .map(|l| serde_json::from_str(l).unwrap())
+        .collect()
+}
+
 /// `brickyard generate mandelbulb DIR/m.ome.zarr --size SIZE` and `extra`.
 fn mandelbulb(dir: &Path, size: &str, extra: &[&str]) -> PathBuf {
     let store = dir.join("m.ome.zarr");
@@ -260,11 +270,9 @@ quit
     }
     // Frames kept coming while bricks loaded: partial frames of the first
     // view, no long gap between them, then a complete one.
-    let text = std::fs::read_to_string(&log).unwrap();
-    let frames: Vec<serde_json::Value> = text
-        .lines()
-        .map(|l| serde_json::from_str(l).unwrap())
-        .filter(|v: &serde_json::Value| v["view"] == "3d" && v["version"] == 1)
+    let frames: Vec<serde_json::Value> = log_lines(&log)
+        .into_iter()
+        .filter(|v| v["view"] == "3d" && v["version"] == 1)
         .collect();
     let first_complete = frames
         .iter()
@@ -812,11 +820,7 @@ quit
     );
     // The edit was re-blended from the kept samples, and the view then
     // settled with all 8 frames.
-    let lines: Vec<serde_json::Value> = std::fs::read_to_string(&log)
-        .unwrap()
-        .lines()
-        .map(|l| serde_json::from_str(l).unwrap())
-        .collect();
+    let lines = log_lines(&log);
     let three_d = |l: &&serde_json::Value| l["view"] == "3d";
     assert!(
         lines.iter().filter(three_d).any(|l| l["reblended"] == true),
@@ -954,11 +958,7 @@ quit
     );
     // Bytes read by the loader, frame by frame: none after the first
     // complete view (the script's lines mark where each command ran).
-    let lines: Vec<serde_json::Value> = std::fs::read_to_string(&log)
-        .unwrap()
-        .lines()
-        .map(|l| serde_json::from_str(l).unwrap())
-        .collect();
+    let lines = log_lines(&log);
     let hidden = lines
         .iter()
         .position(|v| v["command"] == "Channel(1, false)")
@@ -1188,11 +1188,7 @@ quit
     assert!(!xy.contains("--traversal"), "{xy}");
     equals_render(&store, d.path(), "xy");
     // The octree drew the 3D view (nodes visited), never a slice view.
-    let text = std::fs::read_to_string(&log).unwrap();
-    let frames: Vec<serde_json::Value> = text
-        .lines()
-        .map(|l| serde_json::from_str(l).unwrap())
-        .collect();
+    let frames = log_lines(&log);
     let nodes = |view: &str| -> Vec<u64> {
         frames
             .iter()
