@@ -32,5 +32,15 @@ cargo test --workspace --release ${FEATURES[@]+"${FEATURES[@]}"}
 echo "== interop"
 bash scripts/interop/run.sh target/release/brickyard
 
+# The browser's side: the renderers, the device driver, the residency
+# octree and the virtual memory build for wasm32-unknown-unknown (WebGPU),
+# without the loader's threads and files. A build check: they run in
+# the browser only once the web client exists.
+echo "== wasm32 build (brickyard-render without the loader)"
+if command -v rustup >/dev/null 2>&1; then
+    rustup target add wasm32-unknown-unknown >/dev/null
+fi
+cargo build --release --target wasm32-unknown-unknown -p brickyard-render --no-default-features
+
 echo "== python bindings"
 bash scripts/python-bindings.sh

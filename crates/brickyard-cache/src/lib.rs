@@ -29,13 +29,17 @@
 //! [`bookkeeping`] holds the cache-management passes as plain functions:
 //! what the virtual memory runs, and the CPU twins of the device kernels.
 //!
-//! This crate never depends on a GPU API.
+//! This crate never depends on a GPU API. The loader and the session sit
+//! behind the default feature `loader` (threads, files, HTTP); the rest
+//! builds for `wasm32-unknown-unknown` without it.
 
 pub mod bookkeeping;
 pub mod brick;
 pub mod cells;
 pub mod host_cache;
+#[cfg(feature = "loader")]
 pub mod loader;
 pub mod ranges;
+#[cfg(feature = "loader")]
 pub mod session;
 pub mod vm;

@@ -68,10 +68,15 @@
 use crate::image::Image;
 use brickyard_core::camera::{intersect_box, world_extent, world_to_normalized, Ray, Vec3};
 use brickyard_core::views::{ViewRays, Views};
-use brickyard_core::{dispatch_dtype, trilinear_of, Sample, Shading, TransferFunction};
+#[cfg(feature = "loader")]
+use brickyard_core::{dispatch_dtype, Sample};
+use brickyard_core::{trilinear_of, Shading, TransferFunction};
+#[cfg(feature = "loader")]
 use brickyard_store::import::zarr;
+#[cfg(feature = "loader")]
 use brickyard_store::{StoreError, VolumeSource};
 use rayon::prelude::*;
+#[cfg(feature = "loader")]
 use std::path::Path;
 
 // What to render is the same for every renderer; named here too, as
@@ -129,6 +134,7 @@ impl Volume {
     /// Channel `channel` of a source, whole. Spacing from the source
     /// (1 on every axis when it has none). Values are converted as the
     /// virtual memory converts them (`to_f64() as f32`).
+    #[cfg(feature = "loader")]
     pub fn from_source(src: &dyn VolumeSource, channel: usize) -> Result<Volume, StoreError> {
         let m = src.meta();
         if channel >= m.channels {
@@ -177,6 +183,7 @@ impl Volume {
     /// position `p` means the same point at every level; it differs from the
     /// level's own OME-Zarr scale by less than one level-`l` voxel when a
     /// dimension is odd. Level 0 keeps its spacing exactly.
+    #[cfg(feature = "loader")]
     pub fn from_store(path: &Path, level: usize, channel: usize) -> Result<Volume, StoreError> {
         let src = zarr::open(path, level)?;
         let mut v = Volume::from_source(&src, channel)?;

@@ -59,10 +59,10 @@ pub struct Setup {
 
 pub enum Msg {
     /// View `i` now shows `spec` (`None`: hidden), version `v`.
-    View(usize, u64, Option<Spec>),
+    View(usize, u64, Option<Box<Spec>>),
     /// New budgets or a derived channel: the session and back end are
     /// made again.
-    Reopen(Setup),
+    Reopen(Box<Setup>),
     Quit,
 }
 
@@ -247,6 +247,7 @@ pub fn run(setup: Setup, mut scene: Scene, rx: Receiver<Msg>, tx: Sender<Reply>,
             match m {
                 Msg::Quit => return,
                 Msg::View(i, version, spec) => {
+                    let spec = spec.map(|s| *s);
                     while views.len() <= i {
                         views.push(View {
                             version: 0,

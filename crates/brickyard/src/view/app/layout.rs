@@ -209,7 +209,7 @@ impl ViewerApp {
                 self.views[v].sent = Some(spec.clone());
                 let _ = self
                     .tx
-                    .send(Msg::View(v, self.views[v].version, Some(spec)));
+                    .send(Msg::View(v, self.views[v].version, Some(Box::new(spec))));
             }
         }
     }

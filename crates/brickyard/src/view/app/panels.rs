@@ -179,7 +179,7 @@ impl ViewerApp {
                 s.memory_budget = (s.memory_budget + s.cfg.pool_bytes + s.host_bytes)
                     .saturating_sub(self.setup.cfg.pool_bytes + self.setup.host_bytes);
                 self.setup = s.clone();
-                let _ = self.tx.send(Msg::Reopen(s));
+                let _ = self.tx.send(Msg::Reopen(Box::new(s)));
                 for vs in &mut self.views {
                     vs.sent = None;
                 }

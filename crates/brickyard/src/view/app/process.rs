@@ -69,7 +69,7 @@ impl ViewerApp {
             }
         }
         self.setup = setup.clone();
-        let _ = self.tx.send(Msg::Reopen(setup));
+        let _ = self.tx.send(Msg::Reopen(Box::new(setup)));
         for vs in &mut self.views {
             vs.sent = None;
             vs.last = None;
