@@ -170,9 +170,11 @@ const COMFORTABLE: u64 = 384 << 20;
 
 /// A pass goes on to coarser levels only while its columns (see
 /// [`columns`]) number at least this many, or as many as its first level
-/// has: beyond, another pass reads the level back, so that several
-/// processes can share the finer levels.
-pub const MIN_COLUMNS: u64 = 4;
+/// has: beyond, another pass reads the level back, so that up to this many
+/// processes share the finer levels. (One process then reads back at most
+/// an eighth of the data more than a single pass would; volumes of fewer
+/// shard columns plan as before.)
+pub const MIN_COLUMNS: u64 = 64;
 
 fn gcd(a: u64, b: u64) -> u64 {
     if b == 0 {
@@ -1092,6 +1094,10 @@ fn cascade<T: Sample>(
     Ok(())
 }
 
+/// A brick ready for its shard: statistics index, `(min, max)`, chunk key,
+/// encoded bytes (`None`: all fill value), bricks expected in its shard.
+type Encoded = (usize, [f64; 2], Vec<u64>, Option<Vec<u8>>, u64);
+
 /// Cut a slab into bricks, compute their statistics, encode and write them.
 fn write_bricks<T: Sample>(ctx: &Ctx, k: usize, ch: usize, s: &Slab<T>) -> Result<()> {
     let out = &ctx.outs[k];
@@ -1109,7 +1115,7 @@ fn write_bricks<T: Sample>(ctx: &Ctx, k: usize, ch: usize, s: &Slab<T>) -> Resul
     let batch = 2 * rayon::current_num_threads().max(1);
     let mut st = out.stats.lock().unwrap();
     for part in list.chunks(batch) {
-        let encoded: Vec<(usize, [f64; 2], Vec<u64>, Option<Vec<u8>>, u64)> = part
+        let encoded: Vec<Encoded> = part
             .par_iter()
             .map(|&(byi, bxi)| {
                 let (oy, ox) = (byi * b[1] - s.y0, bxi * b[2] - s.x0);
@@ -1255,14 +1261,14 @@ mod column_tests {
         let shard = [32; 3];
         let plan = plan_levels([64, 256, 256], [1.0; 3], [0.0; 3], brick);
         let passes = plan_passes(&plan.levels, brick, shard, 2, 1 << 30, false).unwrap();
-        // Level 0 has 8×8 columns of 32; levels up to 2 keep at least 4
-        // (columns of 128: 2×2); level 3's shards (32 of its voxels, 256
-        // of level 0's) cover everything: a later pass.
-        assert_eq!(passes[0].from, 0);
-        assert_eq!(passes[0].to, 2, "{passes:?}");
-        // The rest (one column) in one pass reading level 2 back.
-        assert_eq!(passes.len(), 2, "{passes:?}");
-        assert_eq!(passes[1].from, 2);
+        // Level 0 has 8×8 columns of 32, level 1 4×4 (columns of 64),
+        // level 2 2×2, level 3 one: the first pass keeps level 0's 64
+        // columns only with level 0 itself; its level 1 (16 columns) is
+        // as many as a pass including it can have, so pass 0 makes
+        // levels 0 and 1; pass 1 reads level 1 back and makes level 2 (4
+        // columns); the last reads level 2 back for the rest.
+        let spans: Vec<(usize, usize)> = passes.iter().map(|p| (p.from, p.to)).collect();
+        assert_eq!(spans, vec![(0, 1), (1, 2), (2, 4)], "{passes:?}");
         assert_eq!(passes.last().unwrap().to, plan.levels.len() - 1);
         // One shard column: one pass as before.
         let plan = plan_levels([64, 100, 100], [1.0; 3], [0.0; 3], brick);

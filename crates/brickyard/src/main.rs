@@ -437,7 +437,8 @@ fn main() {
             1
         }
     };
-    // MPI_Finalize before leaving.
+    // MPI_Finalize before leaving (process::exit runs no destructors).
+    #[cfg(feature = "mpi")]
     drop(cluster);
     std::process::exit(code);
 }
