@@ -405,7 +405,7 @@ pub fn convert(
 /// [`convert`] shared by the ranks of `team` (each with the same source
 /// and options): the same store, byte for byte. Every rank returns the
 /// report of the whole conversion (counts summed) or the first rank's
-/// failure; `bytes_in` and the progress are the rank's own share.
+/// failure; the progress is the rank's own share.
 pub fn convert_team(
     src: &dyn VolumeSource,
     output: &Path,
@@ -812,7 +812,7 @@ pub fn convert_team(
         channels: c,
         dtype: meta.dtype,
         passes,
-        bytes_in: meta.channel_bytes() * c as u64 / team.size() as u64,
+        bytes_in: meta.channel_bytes() * c as u64,
         bytes_written,
         bricks: sums[1],
         bricks_empty: sums[2],

@@ -336,7 +336,7 @@ fn run_convert(
         if size > 1 {
             j["ranks"] = size.into();
         }
-        j["input_mb_s"] = ((r.bytes_in * size as u64) as f64 / 1e6 / r.seconds).into();
+        j["input_mb_s"] = (r.bytes_in as f64 / 1e6 / r.seconds).into();
         println!("{}", serde_json::to_string(&j)?);
     } else {
         println!(
@@ -348,9 +348,9 @@ fn run_convert(
             r.bricks_empty,
             r.bricks_constant,
             r.seconds,
-            human_bytes(r.bytes_in * size as u64),
+            human_bytes(r.bytes_in),
             human_bytes(r.bytes_written),
-            (r.bytes_in * size as u64) as f64 / 1e6 / r.seconds,
+            r.bytes_in as f64 / 1e6 / r.seconds,
             human_bytes(rss)
         );
         for n in &r.notes {

@@ -152,9 +152,11 @@ fn distributed_conversion_is_byte_identical() {
     for (name, input) in [("gen", raw.as_path()), ("mni", nii.as_path())] {
         let single = dir.path().join(format!("{name}-1.ome.zarr"));
         let args = ["--brick", "16", "--shard", "32", "--quiet"];
-        let mut a = vec!["convert", s(input), s(&single)];
+        let mut a = vec!["convert", s(input), s(&single), "--json"];
         a.extend(args);
-        ok(&run(&a), "single-process convert");
+        let o = run(&a);
+        ok(&o, "single-process convert");
+        let one: serde_json::Value = serde_json::from_slice(&o.stdout).unwrap();
         for n in [2usize, 3, 4] {
             let out = dir.path().join(format!("{name}-{n}.ome.zarr"));
             let mut a = vec!["convert", s(input), s(&out), "--json"];
@@ -166,6 +168,16 @@ fn distributed_conversion_is_byte_identical() {
             assert_eq!(stdout.lines().count(), 1, "{stdout}");
             let j: serde_json::Value = serde_json::from_str(stdout.trim()).unwrap();
             assert_eq!(j["ranks"], n, "{stdout}");
+            // The report is the whole conversion's: counts summed over ranks.
+            for k in [
+                "bytes_in",
+                "bytes_written",
+                "bricks",
+                "bricks_empty",
+                "bricks_constant",
+            ] {
+                assert_eq!(j[k], one[k], "{k} on {n} ranks");
+            }
             same_store(&single, &out);
         }
     }
