@@ -67,7 +67,7 @@ def median_of(fn):
 raw = os.path.join(WORK, "m1024.raw")
 if not os.path.exists(raw):
     run([B, "generate", "mandelbulb", raw, "--size", "1024", "--dtype", "u8", "--quiet"])
-conv = ["--brick", "64", "--shard", "256", "--quiet", "--json", "--overwrite"]
+conv = ["--brick", "64", "--shard", "256", "--columns", "4", "--quiet", "--json", "--overwrite"]
 
 
 def convert(prefix, out):

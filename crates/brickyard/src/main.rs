@@ -164,6 +164,13 @@ struct PyramidArgs {
     /// No progress bar.
     #[arg(long)]
     quiet: bool,
+    /// Under mpirun: end a pass before a level that leaves fewer than N
+    /// columns of whole shards (a later pass reads that level back), so
+    /// that N ranks can share the finer levels (e.g. 64; 1, the default:
+    /// the fewest passes). The store depends on it: a single process given
+    /// the same --columns writes the same bytes.
+    #[arg(long, default_value_t = 1, value_name = "N")]
+    columns: u64,
 }
 
 #[derive(Args)]
@@ -294,6 +301,7 @@ fn convert_options(p: &PyramidArgs) -> Result<ConvertOptions> {
             .map(|s| parse_triple(s, "origin"))
             .transpose()?),
         unit: p.unit.clone(),
+        columns: p.columns.max(1),
     })
 }
 
@@ -619,6 +627,7 @@ fn convert_demo(out: &Path, size: &str) -> Result<PathBuf> {
         unit: Some("micrometer".into()),
         json: false,
         quiet: false,
+        columns: 1,
     };
     run_convert(&src, &store, &args, None)?;
     Ok(store)

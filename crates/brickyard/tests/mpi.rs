@@ -151,7 +151,17 @@ fn distributed_conversion_is_byte_identical() {
     let nii = shared_data("mni152-t1-u8.nii.gz");
     for (name, input) in [("gen", raw.as_path()), ("mni", nii.as_path())] {
         let single = dir.path().join(format!("{name}-1.ome.zarr"));
-        let args = ["--brick", "16", "--shard", "32", "--quiet"];
+        // --columns 4: passes that 4 ranks can share (the single process
+        // plans the same passes).
+        let args = [
+            "--brick",
+            "16",
+            "--shard",
+            "32",
+            "--quiet",
+            "--columns",
+            "4",
+        ];
         let mut a = vec!["convert", s(input), s(&single), "--json"];
         a.extend(args);
         let o = run(&a);
@@ -180,6 +190,46 @@ fn distributed_conversion_is_byte_identical() {
             }
             same_store(&single, &out);
         }
+        // Without --columns: the fewest passes, whose first has one column
+        // here; the ranks still write the single-process store, and the
+        // report says that the other ranks had nothing to do.
+        let plain = dir.path().join(format!("{name}-plain-1.ome.zarr"));
+        ok(
+            &run(&[
+                "convert",
+                s(input),
+                s(&plain),
+                "--brick",
+                "16",
+                "--shard",
+                "32",
+                "--quiet",
+            ]),
+            "single-process convert",
+        );
+        let out = dir.path().join(format!("{name}-plain-2.ome.zarr"));
+        let o = mpirun(
+            2,
+            &[
+                "convert",
+                s(input),
+                s(&out),
+                "--brick",
+                "16",
+                "--shard",
+                "32",
+                "--quiet",
+                "--json",
+            ],
+            &[],
+        );
+        ok(&o, "convert on 2 ranks without --columns");
+        let stdout = String::from_utf8_lossy(&o.stdout);
+        assert!(
+            stdout.contains("1 of 2 ranks had nothing to do"),
+            "{stdout}"
+        );
+        same_store(&plain, &out);
     }
 }
 
