@@ -46,7 +46,10 @@ fn mpirun(n: usize, args: &[&str], env: &[(&str, &str)]) -> Output {
         .args(args)
         .env("OMPI_ALLOW_RUN_AS_ROOT", "1")
         .env("OMPI_ALLOW_RUN_AS_ROOT_CONFIRM", "1")
-        .env("OMPI_MCA_rmaps_base_oversubscribe", "1");
+        .env("OMPI_MCA_rmaps_base_oversubscribe", "1")
+        // Containers often forbid the cross-memory attach OpenMPI's shared
+        // memory transport tries first: copy through the segment instead.
+        .env("OMPI_MCA_btl_vader_single_copy_mechanism", "none");
     for (k, v) in env {
         c.env(k, v);
     }
