@@ -13,6 +13,7 @@ cores, threads) is measured beside it for reference.
 """
 import json
 import os
+import resource
 import re
 import statistics
 import subprocess
@@ -25,10 +26,18 @@ ENV = dict(os.environ, OMPI_ALLOW_RUN_AS_ROOT="1", OMPI_ALLOW_RUN_AS_ROOT_CONFIR
 os.makedirs(WORK, exist_ok=True)
 
 
+CPU = [0.0]
+
+
 def run(cmd):
+    """Wall time and stdout; CPU[0] gets the CPU seconds (user + system) of
+    the command and everything it started (the ranks)."""
+    r0 = resource.getrusage(resource.RUSAGE_CHILDREN)
     t = time.perf_counter()
     p = subprocess.run(cmd, env=ENV, capture_output=True, text=True)
     wall = time.perf_counter() - t
+    r1 = resource.getrusage(resource.RUSAGE_CHILDREN)
+    CPU[0] = (r1.ru_utime - r0.ru_utime) + (r1.ru_stime - r0.ru_stime)
     if p.returncode != 0:
         sys.exit(f"failed: {' '.join(cmd)}\n{p.stdout}\n{p.stderr}")
     return wall, p.stdout
@@ -43,16 +52,22 @@ def emit(**kw):
 
 
 def median_of(fn):
-    vals = [fn() for _ in range(REPEATS)]
-    return {k: statistics.median(v[k] for v in vals) for k in vals[0]}
+    def with_cpu():
+        v = fn()
+        v["cpu_s"] = CPU[0]
+        return v
+    vals = [with_cpu() for _ in range(REPEATS)]
+    out = {k: statistics.median(v[k] for v in vals) for k in vals[0]}
+    out["load_avg"] = os.getloadavg()[0]
+    return out
 
 
-# The volume: a 512³ u16 Mandelbulb (256 MiB), shards of 128 so that level 0
-# has 4×4 shard columns and the first pass 2×2 columns of equal size.
-raw = os.path.join(WORK, "m512.raw")
+# The volume: a 1024³ u8 Mandelbulb (1 GiB), shards of 256: level 0 has 4×4
+# shard columns, the first pass (levels 0 and 1) 2×2 columns of equal size.
+raw = os.path.join(WORK, "m1024.raw")
 if not os.path.exists(raw):
-    run([B, "generate", "mandelbulb", raw, "--size", "512", "--dtype", "u16", "--quiet"])
-conv = ["--brick", "64", "--shard", "128", "--quiet", "--json", "--overwrite"]
+    run([B, "generate", "mandelbulb", raw, "--size", "1024", "--dtype", "u8", "--quiet"])
+conv = ["--brick", "64", "--shard", "256", "--columns", "4", "--quiet", "--json", "--overwrite"]
 
 
 def convert(prefix, out):
@@ -70,7 +85,8 @@ for n in (1, 2):
     by_n[n] = r
     emit(what="convert", ranks=n, **r)
 emit(what="convert", efficiency_builder=by_n[1]["builder_s"] / (2 * by_n[2]["builder_s"]),
-     efficiency_wall=by_n[1]["wall_s"] / (2 * by_n[2]["wall_s"]))
+     efficiency_wall=by_n[1]["wall_s"] / (2 * by_n[2]["wall_s"]),
+     work_ratio_cpu=by_n[1]["cpu_s"] / by_n[2]["cpu_s"])
 same = subprocess.run(["diff", "-rq", os.path.join(WORK, "c-single.ome.zarr"), os.path.join(WORK, "c-2.ome.zarr")],
                       capture_output=True, text=True)
 emit(what="convert", byte_identical_1_process_vs_2_ranks=same.returncode == 0)
@@ -103,7 +119,8 @@ for mode in ("dvr", "mip"):
             emit(what="render", split=split, mode=mode, ranks=n, **res[n])
         emit(what="render", split=split, mode=mode,
              efficiency_wall=res[1]["wall_s"] / (2 * res[2]["wall_s"]),
-             efficiency_draw=res[1]["draw_s"] / (2 * res[2]["draw_s"]))
+             efficiency_draw=res[1]["draw_s"] / (2 * res[2]["draw_s"]),
+             work_ratio_cpu=res[1]["cpu_s"] / res[2]["cpu_s"])
 
 # Compositing per frame: a small store (rendering is quick), DVR sort-last.
 small = os.path.join(WORK, "m128.ome.zarr")

@@ -373,6 +373,7 @@ impl PyConvertOptions {
             spacing: self.spacing,
             origin: self.origin,
             unit: self.unit.clone(),
+            columns: 1,
         })
     }
 }

@@ -45,6 +45,10 @@ pub struct RenderShare<'c> {
     told: usize,
     /// Data-parallel: the tree of regions and how cuts map to the world.
     tree: Option<(KdTree, u64, [f64; 3])>,
+    /// Other ranks: a request for the next band is out (asked before
+    /// drawing the current one, so that rank 0's answer, which comes
+    /// between its own frames, arrives while this rank draws).
+    asked: bool,
 }
 
 impl<'c> RenderShare<'c> {
@@ -57,6 +61,7 @@ impl<'c> RenderShare<'c> {
             next: 0,
             told: 0,
             tree: None,
+            asked: false,
         }
     }
 
@@ -170,10 +175,19 @@ impl Share for RenderShare<'_> {
             return Ok(None);
         }
         let root = self.c.world().process_at_rank(0);
-        root.send_with_tag(&[view, 0][..], TAG_ASK);
+        if !self.asked {
+            root.send_with_tag(&[view, 0][..], TAG_ASK);
+        }
         let mut band = [0u32; 2];
         root.receive_into_with_tag(&mut band[..], TAG_BAND);
-        Ok((band[0] != NONE).then_some((band[0], band[1])))
+        self.asked = false;
+        if band[0] == NONE {
+            return Ok(None);
+        }
+        // Ask for the next one now: it is answered while this one is drawn.
+        root.send_with_tag(&[view, 0][..], TAG_ASK);
+        self.asked = true;
+        Ok(Some((band[0], band[1])))
     }
 
     fn serve(&mut self) {
@@ -190,6 +204,17 @@ impl Share for RenderShare<'_> {
             }
         } else {
             let root = self.c.world().process_at_rank(0);
+            if self.asked {
+                // The band asked for ahead goes back undrawn (the run fails
+                // anyway): take the answer, then say this rank stops (rank 0
+                // counts either a "none" answer or the stop, never both).
+                let mut band = [0u32; 2];
+                root.receive_into_with_tag(&mut band[..], TAG_BAND);
+                self.asked = false;
+                if band[0] == NONE {
+                    return;
+                }
+            }
             root.send_with_tag(&[view, 1][..], TAG_ASK);
         }
     }

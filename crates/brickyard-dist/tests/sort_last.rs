@@ -120,7 +120,7 @@ fn regions_composited_in_visibility_order_equal_the_whole_render() {
                     .iter()
                     .map(|r| {
                         let mut q = p.clone();
-                        q.clip = Some(world_box(r, brick, dims, spacing));
+                        q.clip = Some(Box::new(world_box(r, brick, dims, spacing)));
                         q.mip_values = mip;
                         q.validate().unwrap();
                         complete(&mut s, &scene, &q, lod).rgba
@@ -177,7 +177,7 @@ fn regions_composited_in_visibility_order_equal_the_whole_render() {
         .iter()
         .map(|r| {
             let mut q = p.clone();
-            q.clip = Some(world_box(r, brick, dims, spacing));
+            q.clip = Some(Box::new(world_box(r, brick, dims, spacing)));
             complete(&mut s, &scene, &q, lod).rgba
         })
         .collect();

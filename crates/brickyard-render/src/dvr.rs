@@ -29,9 +29,9 @@ impl<'f, 'a, T: Sample> Walker<'f, 'a, T> {
         };
         // A region (sort-last): the whole ray's step grid, samples in
         // [c0, c1) only.
-        let (c0, t1) = match f.params.clip {
+        let (c0, t1) = match f.params.clip.as_deref() {
             None => (t0, t1),
-            Some([lo, hi]) => match intersect_box_inv(ray, inv_dir, lo, hi) {
+            Some(&[lo, hi]) => match intersect_box_inv(ray, inv_dir, lo, hi) {
                 Some((c0, c1)) => (c0, t1.min(c1)),
                 None => return acc,
             },

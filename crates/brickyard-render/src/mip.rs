@@ -47,10 +47,10 @@ impl<'f, 'a, T: Sample> Walker<'f, 'a, T> {
         let Some(span) = intersect_box(ray, [0.0; 3], self.f.scene.extent) else {
             return [0.0; 4];
         };
-        let best = match self.f.params.clip {
+        let best = match self.f.params.clip.as_deref() {
             None => self.mip_max(ray, span, req, st),
             // A region: samples of the whole ray's grid in [c0, c1) only.
-            Some([lo, hi]) => match intersect_box(ray, lo, hi) {
+            Some(&[lo, hi]) => match intersect_box(ray, lo, hi) {
                 Some((c0, c1)) => self.mip_max_in(ray, span, (c0, c1), req, st),
                 None => None,
             },

@@ -123,7 +123,8 @@ pub struct RenderParams {
     /// regions of a partition of the volume split every ray's samples
     /// between them (sort-last rendering). `None`: the whole volume.
     #[serde(default, skip_serializing_if = "Option::is_none")]
-    pub clip: Option<[[f64; 3]; 2]>,
+    /// (Boxed: most renders have none, and the parameters travel by value.)
+    pub clip: Option<Box<[[f64; 3]; 2]>>,
     /// DVR: end a ray once its opacity reaches 0.99 (the default). Off:
     /// every sample is composited, which the compositing of regions
     /// reproduces exactly.
@@ -249,7 +250,7 @@ impl RenderParams {
     /// Check everything the renderers rely on.
     pub fn validate(&self) -> Result<(), ConfigError> {
         let bad = |f: &str, m: String| Err(ConfigError::new("render parameters", f, m));
-        if let Some([lo, hi]) = self.clip {
+        if let Some(&[lo, hi]) = self.clip.as_deref() {
             if !(0..3).all(|a| lo[a].is_finite() && hi[a].is_finite() && lo[a] <= hi[a]) {
                 return bad(
                     "clip",

@@ -416,6 +416,7 @@ pub fn run(
         spacing: meta.spacing,
         origin: meta.origin,
         unit: meta.unit.clone(),
+        columns: 1,
     };
     if let (Some(d), false) = (&on, c.quiet) {
         eprintln!("filter stages on the GPU: {d}");

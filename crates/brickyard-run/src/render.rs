@@ -882,7 +882,7 @@ fn run_with(
         params.traversal = traversal;
         params.early_termination = !(c.no_early_termination || data_split);
         if let Some(r) = region {
-            params.clip = Some(r);
+            params.clip = Some(Box::new(r));
             params.mip_values = mode == RenderMode::Mip;
         }
         params.validate().map_err(|e| anyhow::anyhow!("{e}"))?;

@@ -164,6 +164,13 @@ struct PyramidArgs {
     /// No progress bar.
     #[arg(long)]
     quiet: bool,
+    /// Under mpirun: end a pass before a level that leaves fewer than N
+    /// columns of whole shards (a later pass reads that level back), so
+    /// that N ranks can share the finer levels (e.g. 64; 1, the default:
+    /// the fewest passes). The store depends on it: a single process given
+    /// the same --columns writes the same bytes.
+    #[arg(long, default_value_t = 1, value_name = "N")]
+    columns: u64,
 }
 
 #[derive(Args)]
@@ -294,6 +301,7 @@ fn convert_options(p: &PyramidArgs) -> Result<ConvertOptions> {
             .map(|s| parse_triple(s, "origin"))
             .transpose()?),
         unit: p.unit.clone(),
+        columns: p.columns.max(1),
     })
 }
 
@@ -336,7 +344,7 @@ fn run_convert(
         if size > 1 {
             j["ranks"] = size.into();
         }
-        j["input_mb_s"] = ((r.bytes_in * size as u64) as f64 / 1e6 / r.seconds).into();
+        j["input_mb_s"] = (r.bytes_in as f64 / 1e6 / r.seconds).into();
         println!("{}", serde_json::to_string(&j)?);
     } else {
         println!(
@@ -348,9 +356,9 @@ fn run_convert(
             r.bricks_empty,
             r.bricks_constant,
             r.seconds,
-            human_bytes(r.bytes_in * size as u64),
+            human_bytes(r.bytes_in),
             human_bytes(r.bytes_written),
-            (r.bytes_in * size as u64) as f64 / 1e6 / r.seconds,
+            r.bytes_in as f64 / 1e6 / r.seconds,
             human_bytes(rss)
         );
         for n in &r.notes {
@@ -437,7 +445,8 @@ fn main() {
             1
         }
     };
-    // MPI_Finalize before leaving.
+    // MPI_Finalize before leaving (process::exit runs no destructors).
+    #[cfg(feature = "mpi")]
     drop(cluster);
     std::process::exit(code);
 }
@@ -618,6 +627,7 @@ fn convert_demo(out: &Path, size: &str) -> Result<PathBuf> {
         unit: Some("micrometer".into()),
         json: false,
         quiet: false,
+        columns: 1,
     };
     run_convert(&src, &store, &args, None)?;
     Ok(store)

@@ -46,7 +46,10 @@ fn mpirun(n: usize, args: &[&str], env: &[(&str, &str)]) -> Output {
         .args(args)
         .env("OMPI_ALLOW_RUN_AS_ROOT", "1")
         .env("OMPI_ALLOW_RUN_AS_ROOT_CONFIRM", "1")
-        .env("OMPI_MCA_rmaps_base_oversubscribe", "1");
+        .env("OMPI_MCA_rmaps_base_oversubscribe", "1")
+        // Containers often forbid the cross-memory attach OpenMPI's shared
+        // memory transport tries first: copy through the segment instead.
+        .env("OMPI_MCA_btl_vader_single_copy_mechanism", "none");
     for (k, v) in env {
         c.env(k, v);
     }
@@ -151,10 +154,22 @@ fn distributed_conversion_is_byte_identical() {
     let nii = shared_data("mni152-t1-u8.nii.gz");
     for (name, input) in [("gen", raw.as_path()), ("mni", nii.as_path())] {
         let single = dir.path().join(format!("{name}-1.ome.zarr"));
-        let args = ["--brick", "16", "--shard", "32", "--quiet"];
-        let mut a = vec!["convert", s(input), s(&single)];
+        // --columns 4: passes that 4 ranks can share (the single process
+        // plans the same passes).
+        let args = [
+            "--brick",
+            "16",
+            "--shard",
+            "32",
+            "--quiet",
+            "--columns",
+            "4",
+        ];
+        let mut a = vec!["convert", s(input), s(&single), "--json"];
         a.extend(args);
-        ok(&run(&a), "single-process convert");
+        let o = run(&a);
+        ok(&o, "single-process convert");
+        let one: serde_json::Value = serde_json::from_slice(&o.stdout).unwrap();
         for n in [2usize, 3, 4] {
             let out = dir.path().join(format!("{name}-{n}.ome.zarr"));
             let mut a = vec!["convert", s(input), s(&out), "--json"];
@@ -166,8 +181,58 @@ fn distributed_conversion_is_byte_identical() {
             assert_eq!(stdout.lines().count(), 1, "{stdout}");
             let j: serde_json::Value = serde_json::from_str(stdout.trim()).unwrap();
             assert_eq!(j["ranks"], n, "{stdout}");
+            // The report is the whole conversion's: counts summed over ranks.
+            for k in [
+                "bytes_in",
+                "bytes_written",
+                "bricks",
+                "bricks_empty",
+                "bricks_constant",
+            ] {
+                assert_eq!(j[k], one[k], "{k} on {n} ranks");
+            }
             same_store(&single, &out);
         }
+        // Without --columns: the fewest passes, whose first has one column
+        // here; the ranks still write the single-process store, and the
+        // report says that the other ranks had nothing to do.
+        let plain = dir.path().join(format!("{name}-plain-1.ome.zarr"));
+        ok(
+            &run(&[
+                "convert",
+                s(input),
+                s(&plain),
+                "--brick",
+                "16",
+                "--shard",
+                "32",
+                "--quiet",
+            ]),
+            "single-process convert",
+        );
+        let out = dir.path().join(format!("{name}-plain-2.ome.zarr"));
+        let o = mpirun(
+            2,
+            &[
+                "convert",
+                s(input),
+                s(&out),
+                "--brick",
+                "16",
+                "--shard",
+                "32",
+                "--quiet",
+                "--json",
+            ],
+            &[],
+        );
+        ok(&o, "convert on 2 ranks without --columns");
+        let stdout = String::from_utf8_lossy(&o.stdout);
+        assert!(
+            stdout.contains("1 of 2 ranks had nothing to do"),
+            "{stdout}"
+        );
+        same_store(&plain, &out);
     }
 }
 
