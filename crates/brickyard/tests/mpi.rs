@@ -34,6 +34,14 @@ fn have_mpirun() -> bool {
     ok
 }
 
+/// `brickyard generate mandelbulb OUT ARGS --quiet`, which must succeed.
+fn generate(out: &Path, args: &[&str]) {
+    let mut a = vec!["generate", "mandelbulb", s(out)];
+    a.extend_from_slice(args);
+    a.push("--quiet");
+    ok(&run(&a), "generate");
+}
+
 /// One `mpirun` at a time: concurrent launchers race for their session
 /// directory, and the ranks of one already fill the cores.
 static MPIRUN: std::sync::Mutex<()> = std::sync::Mutex::new(());
@@ -138,19 +146,7 @@ fn distributed_conversion_is_byte_identical() {
     }
     let dir = tempfile::tempdir().unwrap();
     let raw = dir.path().join("m.raw");
-    ok(
-        &run(&[
-            "generate",
-            "mandelbulb",
-            s(&raw),
-            "--size",
-            "150x130x70",
-            "--dtype",
-            "u16",
-            "--quiet",
-        ]),
-        "generate",
-    );
+    generate(&raw, &["--size", "150x130x70", "--dtype", "u16"]);
     let nii = shared_data("mni152-t1-u8.nii.gz");
     for (name, input) in [("gen", raw.as_path()), ("mni", nii.as_path())] {
         let single = dir.path().join(format!("{name}-1.ome.zarr"));
@@ -246,19 +242,7 @@ fn a_failing_rank_leaves_no_complete_store() {
     }
     let dir = tempfile::tempdir().unwrap();
     let raw = dir.path().join("m.raw");
-    ok(
-        &run(&[
-            "generate",
-            "mandelbulb",
-            s(&raw),
-            "--size",
-            "150x130x70",
-            "--dtype",
-            "u16",
-            "--quiet",
-        ]),
-        "generate",
-    );
+    generate(&raw, &["--size", "150x130x70", "--dtype", "u16"]);
     // An error reported by rank 1 after the first pass (meeting 3): rank 0
     // removes the partial output.
     let out = dir.path().join("e.ome.zarr");
@@ -340,11 +324,9 @@ fn close(a: &Path, b: &Path, tol: f32, what: &str) {
 /// Two stores: a generated Mandelbulb and the MNI152 T1 scan.
 fn stores(dir: &Path) -> Vec<PathBuf> {
     let gen = dir.join("gen.ome.zarr");
-    ok(
-        &run(&[
-            "generate",
-            "mandelbulb",
-            s(&gen),
+    generate(
+        &gen,
+        &[
             "--size",
             "112x96x80",
             "--dtype",
@@ -353,9 +335,7 @@ fn stores(dir: &Path) -> Vec<PathBuf> {
             "32",
             "--shard",
             "64",
-            "--quiet",
-        ]),
-        "generate",
+        ],
     );
     let mni = dir.join("mni.ome.zarr");
     let nii = shared_data("mni152-t1-u8.nii.gz");
@@ -514,21 +494,7 @@ fn a_failing_rank_stops_the_render() {
     }
     let dir = tempfile::tempdir().unwrap();
     let store = dir.path().join("g.ome.zarr");
-    ok(
-        &run(&[
-            "generate",
-            "mandelbulb",
-            s(&store),
-            "--size",
-            "64",
-            "--brick",
-            "32",
-            "--shard",
-            "64",
-            "--quiet",
-        ]),
-        "generate",
-    );
+    generate(&store, &["--size", "64", "--brick", "32", "--shard", "64"]);
     for split in ["image", "data"] {
         let out = dir.path().join(format!("{split}.png"));
         let o = mpirun(
