@@ -684,3 +684,93 @@ fn per_channel_level_ranges_read_each_channel_at_its_level() {
         }
     }
 }
+
+#[test]
+fn kept_tables_follow_transfer_functions_and_the_octree() {
+    // The traversal's per-frame tables are kept in the octree between
+    // frames: a frame after a transfer-function change, after evictions
+    // (a small pool) and back again must equal the page tables' frame of
+    // the same parameters, never a frame of stale tables.
+    let dir = tempfile::tempdir().unwrap();
+    let (store, extent, levels) = banded_store(dir.path(), 3);
+    let mut p = dvr_params(extent, 3);
+    let top = TransferFunction::from_json(
+        r#"{"window": [0, 255], "opacity": [[0, 0], [0.94, 0], [1, 0.9]], "colormap": "grayscale"}"#,
+    )
+    .unwrap();
+    let soft = p.channels[0].dvr_tf();
+    let mut scene = Scene::new(extent, levels.clone());
+    let mut s = open(&store, &mut scene, 2 * 3 * DIMS.iter().product::<u64>(), 4);
+    let mut images = vec![];
+    // The hiding transfer function first: its tables kept for the soft one
+    // would hide what it shows.
+    for (i, tf) in [&top, &soft, &top, &soft].into_iter().enumerate() {
+        for c in &mut p.channels {
+            c.tf = Some(tf.clone());
+        }
+        p.traversal = Traversal::Octree;
+        let (oc, st) = converge(&mut s, &scene, &p, Lod::Fixed(0));
+        p.traversal = Traversal::PageTable;
+        let (pt, _) = converge(&mut s, &scene, &p, Lod::Fixed(0));
+        let d = oc.max_abs_diff(&pt);
+        eprintln!(
+            "step {i}: octree vs page tables {d}, {} nodes skipped",
+            st.skipped_nodes
+        );
+        assert!(d <= TOLERANCE, "step {i}: {d}");
+        // The hiding one's own tables: nodes crossed unsampled.
+        assert_eq!(
+            st.skipped_nodes > 0,
+            i % 2 == 0,
+            "step {i}: {} skipped",
+            st.skipped_nodes
+        );
+        images.push(oc);
+    }
+    assert!(
+        images[0].max_abs_diff(&images[1]) > 0.05,
+        "the transfer functions look alike"
+    );
+    assert!(images[0].max_abs_diff(&images[2]) <= TOLERANCE);
+    // A generation bump (an octree change) with the same parameters: the
+    // tables are made again and still agree.
+    let gen = scene.octree.as_ref().unwrap().read().unwrap().generation();
+    let mut small = Scene::new(extent, levels);
+    small.ranges = scene.ranges.clone();
+    let mut s2 = open(&store, &mut small, 3 * DIMS.iter().product::<u64>() / 4, 4);
+    p.traversal = Traversal::Octree;
+    for _ in 0..40 {
+        s2.begin_frame();
+        let (_, _, reqs) = render_frame(s2.vm(), &small, &p, Lod::Fixed(0));
+        s2.finish_frame(reqs.iter());
+        small
+            .octree
+            .as_ref()
+            .unwrap()
+            .write()
+            .unwrap()
+            .sync(s2.vm_mut());
+        // Whatever is resident now: the kept tables equal fresh ones.
+        let o = small.octree.as_ref().unwrap().read().unwrap();
+        let fresh = o.clone(); // a clone starts with no kept tables
+        drop(o);
+        let mut fs = Scene::new(extent, small.levels.clone());
+        fs.ranges = small.ranges.clone();
+        fs.octree = Some(Arc::new(RwLock::new(fresh)));
+        let (a, sa, _) = render_frame(s2.vm(), &small, &p, Lod::Fixed(0));
+        let (b, sb, _) = render_frame(s2.vm(), &fs, &p, Lod::Fixed(0));
+        assert_eq!(a.rgba, b.rgba, "kept tables differ from fresh ones");
+        // The same nodes crossed unsampled: tables of an older octree
+        // (ranges from fewer voxels) would skip fewer.
+        assert_eq!(
+            (sa.skipped_nodes, sa.octree_nodes),
+            (sb.skipped_nodes, sb.octree_nodes),
+            "kept tables differ from fresh ones"
+        );
+    }
+    assert!(gen > 0);
+    assert!(
+        small.octree.as_ref().unwrap().read().unwrap().generation() > 0,
+        "the small pool's octree never changed"
+    );
+}
