@@ -191,7 +191,9 @@ def test_ctrl_c_leaves_the_store_as_it_was(tmp_path, pipe, phase):
 
 def test_process_releases_the_gil(tmp_path):
     dst = tmp_path / "gil.ome.zarr"
-    brickyard.from_numpy(volume((96, 128, 128), "float32", seed=9), dst, brick=32, progress=False)
+    # Large enough that the job lasts well over the 0.1 s this test needs
+    # to tell anything (96x128x128 took 0.09 s on an idle 2-core machine).
+    brickyard.from_numpy(volume((192, 256, 256), "float32", seed=9), dst, brick=32, progress=False)
     done = threading.Event()
     result = {}
 
