@@ -255,6 +255,84 @@ pub fn render_tiles(
     dispatch_dtype!(vm.dtype(), T => { render_typed::<T>(vm, scene, params, lod, img, tiles) })
 }
 
+/// A DVR of several channels: per channel shown, the scene of that
+/// channel and the parameters of a one-channel DVR through its transfer
+/// function, over the same geometry.
+pub(crate) fn channel_parts(
+    scene: &Scene,
+    params: &RenderParams,
+) -> (Vec<Scene>, Vec<RenderParams>) {
+    params
+        .channels
+        .iter()
+        .map(|c| {
+            let sc = Scene {
+                channel: c.channel,
+                ..scene.clone()
+            };
+            let p = RenderParams {
+                tf: c.dvr_tf(),
+                channels: vec![],
+                ..params.clone()
+            };
+            (sc, p)
+        })
+        .unzip()
+}
+
+/// The frames of [`channel_parts`], each with its channel's level range
+/// (`params.channels`).
+pub(crate) fn channel_frames<'a>(
+    vm: &'a VirtualMemory,
+    scenes: &'a [Scene],
+    ch_params: &'a [RenderParams],
+    params: &RenderParams,
+    lod: Lod,
+) -> Vec<Frame<'a>> {
+    scenes
+        .iter()
+        .zip(ch_params)
+        .zip(&params.channels)
+        .map(|((sc, p), c)| {
+            let mut f = Frame::new(vm, sc, p, lod);
+            f.channel_levels = c.levels;
+            f
+        })
+        .collect()
+}
+
+/// The scene's residency octree, or one made from what `vm` holds now
+/// (at the default depth) when the scene has none.
+pub(crate) enum SceneOctree<'a> {
+    Kept(std::sync::RwLockReadGuard<'a, Octree>),
+    Made(Box<Octree>),
+}
+
+impl std::ops::Deref for SceneOctree<'_> {
+    type Target = Octree;
+    fn deref(&self) -> &Octree {
+        match self {
+            SceneOctree::Kept(g) => g,
+            SceneOctree::Made(o) => o,
+        }
+    }
+}
+
+pub(crate) fn scene_octree<'a>(scene: &'a Scene, vm: &VirtualMemory) -> SceneOctree<'a> {
+    match &scene.octree {
+        Some(o) => SceneOctree::Kept(o.read().expect("octree lock")),
+        None => SceneOctree::Made(Box::new(
+            Octree::of_vm(
+                octree::DEFAULT_DEPTH,
+                &scene.levels,
+                vm,
+                scene.ranges.as_deref(),
+            )
+            .expect("the default depth fits"),
+        )),
+    }
+}
+
 fn render_typed<T: Sample>(
     vm: &VirtualMemory,
     scene: &Scene,
@@ -270,55 +348,16 @@ fn render_typed<T: Sample>(
     // DVR of several channels: a frame per channel (its transfer function's
     // transparent bricks), over the same geometry.
     let dvr_multi = matches!(params.mode, RenderMode::Dvr) && !params.channels.is_empty();
-    let (ch_scenes, ch_params): (Vec<Scene>, Vec<RenderParams>) = if dvr_multi {
-        params
-            .channels
-            .iter()
-            .map(|c| {
-                let sc = Scene {
-                    channel: c.channel,
-                    ..scene.clone()
-                };
-                let p = RenderParams {
-                    tf: c.dvr_tf(),
-                    channels: vec![],
-                    ..params.clone()
-                };
-                (sc, p)
-            })
-            .unzip()
+    let (ch_scenes, ch_params) = if dvr_multi {
+        channel_parts(scene, params)
     } else {
         (vec![], vec![])
     };
-    let ch_frames: Vec<Frame> = ch_scenes
-        .iter()
-        .zip(&ch_params)
-        .zip(&params.channels)
-        .map(|((sc, p), c)| {
-            let mut f = Frame::new(vm, sc, p, lod);
-            f.channel_levels = c.levels;
-            f
-        })
-        .collect();
+    let ch_frames = channel_frames(vm, &ch_scenes, &ch_params, params, lod);
     // DVR through the residency octree: its tables for this frame.
     let by_octree = matches!(params.mode, RenderMode::Dvr) && params.traversal == Traversal::Octree;
-    let (built, guard);
-    let tree: Option<&Octree> = if !by_octree {
-        None
-    } else if let Some(o) = &scene.octree {
-        guard = o.read().expect("octree lock");
-        Some(&*guard)
-    } else {
-        built = Octree::of_vm(
-            octree::DEFAULT_DEPTH,
-            &scene.levels,
-            vm,
-            scene.ranges.as_deref(),
-        )
-        .expect("the default depth fits");
-        Some(&built)
-    };
-    let oct_frame = tree.map(|t| {
+    let tree = by_octree.then(|| scene_octree(scene, vm));
+    let oct_frame = tree.as_deref().map(|t| {
         let frames: Vec<&Frame> = if dvr_multi {
             ch_frames.iter().collect()
         } else {

@@ -15,12 +15,13 @@
 //! range the transfer function hides and MIP rays cells whose maximum
 //! cannot raise theirs.
 
-use crate::cpu::{FrameStats, Lod, Scene};
+use crate::cpu::{channel_frames, channel_parts, scene_octree, FrameStats, Lod, Scene};
 use crate::image::Image;
 use crate::octree::device::DeviceOctree;
 use crate::octree::dvr::{OctFrame, TableKey};
 use crate::octree::Octree;
 use crate::params::{ChannelStyle, RenderMode, RenderParams, Traversal, MAX_DVR_CHANNELS};
+use crate::walk::Frame;
 use brickyard_cache::bookkeeping::BrickIds;
 use brickyard_cache::brick::BrickKey;
 use brickyard_cache::ranges::BrickRanges;
@@ -765,53 +766,15 @@ fn octree_tables(
     params: &RenderParams,
     lod: Lod,
 ) -> Result<(Vec<u32>, u32, u32), GpuError> {
-    use crate::walk::Frame;
-    let (built, guard);
-    let tree: &Octree = if let Some(o) = &scene.octree {
-        guard = o.read().expect("octree lock");
-        &guard
-    } else {
-        built = Octree::of_vm(
-            crate::octree::DEFAULT_DEPTH,
-            &scene.levels,
-            vm,
-            scene.ranges.as_deref(),
-        )
-        .expect("the default depth fits");
-        &built
-    };
+    let tree = scene_octree(scene, vm);
+    let tree = &*tree;
     let nl = scene.levels.len();
-    let (ch_scenes, ch_params): (Vec<Scene>, Vec<RenderParams>) = if params.channels.is_empty() {
-        (vec![scene.clone()], vec![params.clone()])
-    } else {
-        params
-            .channels
-            .iter()
-            .map(|c| {
-                (
-                    Scene {
-                        channel: c.channel,
-                        ..scene.clone()
-                    },
-                    RenderParams {
-                        tf: c.dvr_tf(),
-                        channels: vec![],
-                        ..params.clone()
-                    },
-                )
-            })
-            .unzip()
+    // One frame per channel shown (one for a one-channel DVR).
+    let parts = (!params.channels.is_empty()).then(|| channel_parts(scene, params));
+    let frames: Vec<Frame> = match &parts {
+        Some((scenes, ps)) => channel_frames(vm, scenes, ps, params, lod),
+        None => vec![Frame::new(vm, scene, params, lod)],
     };
-    let frames: Vec<Frame> = ch_scenes
-        .iter()
-        .zip(&ch_params)
-        .enumerate()
-        .map(|(i, (sc, p))| {
-            let mut f = Frame::new(vm, sc, p, lod);
-            f.channel_levels = params.channels.get(i).and_then(|c| c.levels);
-            f
-        })
-        .collect();
     let refs: Vec<&Frame> = frames.iter().collect();
     let key = TableKey::new(tree, scene, params, lod);
     let of = OctFrame::cached(tree, &refs, &key.used.clone(), key);
