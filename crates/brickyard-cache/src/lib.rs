@@ -33,6 +33,7 @@
 //! behind the default feature `loader` (threads, files, HTTP); the rest
 //! builds for `wasm32-unknown-unknown` without it.
 
+pub mod assemble;
 pub mod bookkeeping;
 pub mod brick;
 pub mod cells;

@@ -30,10 +30,11 @@
 //! never takes a worker down: it is reported by [`Loader::take_failures`]
 //! and the key is not loaded again until [`Loader::retry_failed`].
 
+use crate::assemble::{brick_buffer, finish_brick, uniform_brick, PaddedRegion};
 use crate::brick::{BrickContent, BrickGeometry, BrickKey, LoadedBrick};
 use crate::host_cache::HostCache;
 use crate::ranges::BrickRanges;
-use brickyard_core::{dispatch_dtype, Dims3, Sample};
+use brickyard_core::Dims3;
 use brickyard_store::error::{Result, StoreError};
 use brickyard_store::import::zarr::open;
 use brickyard_store::omezarr::{read_multiscale, STATS_DIR};
@@ -264,56 +265,6 @@ fn lock<T>(m: &Mutex<T>) -> MutexGuard<'_, T> {
     m.lock().unwrap_or_else(|e| e.into_inner())
 }
 
-/// A zeroed byte buffer of `n` bytes, aligned for every sample type.
-fn zeroed_bytes(n: usize) -> Arc<[u8]> {
-    let mut a = Arc::<[u8]>::new_uninit_slice(n);
-    let s = Arc::get_mut(&mut a).expect("a new buffer is not shared");
-    // SAFETY: every byte is written before the buffer is taken as
-    // initialized `u8`s.
-    unsafe {
-        std::ptr::write_bytes(s.as_mut_ptr(), 0, n);
-        a.assume_init()
-    }
-}
-
-/// Fill the part of a padded brick of `p` voxels (`es` bytes each) outside
-/// the box of `r` voxels at `at` by repeating the box's edge voxels
-/// (clamp to edge): along x within the box's rows, then whole rows along y
-/// within its planes, then whole planes along z.
-fn replicate_edges(buf: &mut [u8], p: Dims3, at: Dims3, r: Dims3, es: usize) {
-    let [pz, py, px] = p.map(|v| v as usize);
-    let [az, ay, ax] = at.map(|v| v as usize);
-    let [rz, ry, rx] = r.map(|v| v as usize);
-    let row = px * es;
-    let plane = py * row;
-    for z in az..az + rz {
-        for y in ay..ay + ry {
-            let o = z * plane + y * row;
-            let line = &mut buf[o..o + row];
-            let (first, last) = (ax * es, (ax + rx - 1) * es);
-            for x in 0..ax {
-                line.copy_within(first..first + es, x * es);
-            }
-            for x in ax + rx..px {
-                line.copy_within(last..last + es, x * es);
-            }
-        }
-        let pl = z * plane;
-        for y in 0..ay {
-            buf.copy_within(pl + ay * row..pl + (ay + 1) * row, pl + y * row);
-        }
-        for y in ay + ry..py {
-            buf.copy_within(pl + (ay + ry - 1) * row..pl + (ay + ry) * row, pl + y * row);
-        }
-    }
-    for z in 0..az {
-        buf.copy_within(az * plane..(az + 1) * plane, z * plane);
-    }
-    for z in az + rz..pz {
-        buf.copy_within((az + rz - 1) * plane..(az + rz) * plane, z * plane);
-    }
-}
-
 impl Shared {
     /// Load one brick (called by the workers, or directly).
     fn load(&self, key: &BrickKey) -> Result<LoadedBrick> {
@@ -326,90 +277,50 @@ impl Shared {
             ));
         }
         let level = &self.levels[key.level as usize];
-        let dims = g.levels[key.level as usize];
         let c = key.channel as u64;
-        let po = g.padded_origin_of(key);
-        let p = g.padded();
-        // The padded region clamped to the level (never empty: it holds
-        // the brick's first voxel).
-        let lo: Dims3 = [0, 1, 2].map(|a| po[a].max(0) as u64);
-        let hi: Dims3 = [0, 1, 2].map(|a| ((po[a] + p[a] as i64) as u64).min(dims[a]));
+        let reg = PaddedRegion::of(g, key);
+        let (lo, hi) = (reg.lo, reg.hi);
         if let Some(v) = level.stats.as_ref().and_then(|s| s.uniform(c, lo, hi)) {
             return Ok(uniform_brick(*key, v, 0));
         }
-        let ext = g.extent_of(key);
-        let a = g.apron as usize;
-        let es = g.dtype.size();
-        let r: Dims3 = [0, 1, 2].map(|a| hi[a] - lo[a]);
         // The brick's final buffer: the level's voxels are read straight
         // into it, then the apron outside the level repeats the edge.
-        let mut data: Arc<[u8]> = zeroed_bytes(g.voxels_per_brick() as usize * es);
+        let mut data = brick_buffer(g);
         let buf = Arc::get_mut(&mut data).expect("a new buffer is not shared");
-        let at: Dims3 = [0, 1, 2].map(|a| (lo[a] as i64 - po[a]) as u64);
         let read = level.src.read_region_into(
             key.channel as usize,
             [lo[0]..hi[0], lo[1]..hi[1], lo[2]..hi[2]],
             buf,
-            p,
-            at,
+            g.padded(),
+            reg.at,
         );
         self.simulated_delay();
         read?;
-        let bytes_read = r.iter().product::<u64>() * es as u64;
-        if r != p {
-            replicate_edges(buf, p, at, r, es);
-        }
-        dispatch_dtype!(g.dtype, T => {
-            let out: &[T] = brickyard_core::cast_slice(&data);
-            // Min / max of the brick proper.
-            let (p1, p2) = (p[1] as usize, p[2] as usize);
-            let (mut mn, mut mx) = (f64::NAN, f64::NAN);
-            for z in a..a + ext[0] as usize {
-                for y in a..a + ext[1] as usize {
-                    let s = (z * p1 + y) * p2 + a;
-                    let (rmn, rmx) = T::min_max(&out[s..s + ext[2] as usize]);
-                    // f64::min / max ignore a NaN operand.
-                    mn = mn.min(rmn.to_f64());
-                    mx = mx.max(rmx.to_f64());
-                }
-            }
-            let v0 = out[0].to_f64();
-            // Uniform only if the brick proper is (a pass over the apron
-            // only then). Every voxel has the first one's bits exactly when
-            // the buffer equals itself shifted by one voxel (one memcmp).
-            if !v0.is_nan() && mn == mx && data[es..] == data[..data.len() - es] {
-                if v0 == 0.0 {
-                    if let Some(st) = &level.stats {
-                        // Zeros where the statistics say there is data: the
-                        // store lost it (a shard file removed, a chunk
-                        // dropped from its index), which a Zarr reader
-                        // cannot tell from the fill value.
-                        let o = g.origin_of(key);
-                        let e = [0, 1, 2].map(|a| o[a] + ext[a]);
-                        for (b, mn, mx) in st.data_in(c, o, e) {
-                            let v = [0, 1, 2].map(|a| b[a] * st.brick[a]);
-                            if let Some((f, why)) = level.src.chunk_absent(c as usize, v) {
-                                return Err(StoreError::invalid(
-                                    f,
-                                    format!("channel {c} store brick {b:?}"),
-                                    format!(
-                                        "{why}, but the statistics say this brick holds values in [{mn}, {mx}]"
-                                    ),
-                                ));
-                            }
-                        }
+        let brick = finish_brick(g, *key, data, &reg);
+        if brick.content == BrickContent::Empty {
+            if let Some(st) = &level.stats {
+                // Zeros where the statistics say there is data: the store
+                // lost it (a shard file removed, a chunk dropped from its
+                // index), which a Zarr reader cannot tell from the fill
+                // value.
+                let o = g.origin_of(key);
+                let ext = g.extent_of(key);
+                let e = [0, 1, 2].map(|a| o[a] + ext[a]);
+                for (b, mn, mx) in st.data_in(c, o, e) {
+                    let v = [0, 1, 2].map(|a| b[a] * st.brick[a]);
+                    if let Some((f, why)) = level.src.chunk_absent(c as usize, v) {
+                        return Err(StoreError::invalid(
+                            f,
+                            format!("channel {c} store brick {b:?}"),
+                            format!(
+                                "{why}, but the statistics say this brick holds values in [{mn}, {mx}]"
+                            ),
+                        ));
                     }
                 }
-                return Ok(uniform_brick(*key, v0, bytes_read));
             }
-            Ok(LoadedBrick {
-                key: *key,
-                content: BrickContent::Data(data.clone()),
-                min: mn,
-                max: mx,
-                bytes_read,
-            })
-        })
+        }
+        Ok(brick)
     }
 
     /// Sleep for the delay set by [`Loader::set_read_delay`], if any.
@@ -483,20 +394,6 @@ impl Shared {
             drop(st);
             self.finished.notify_all();
         }
-    }
-}
-
-fn uniform_brick(key: BrickKey, v: f64, bytes_read: u64) -> LoadedBrick {
-    LoadedBrick {
-        key,
-        content: if v == 0.0 {
-            BrickContent::Empty
-        } else {
-            BrickContent::Constant(v)
-        },
-        min: v,
-        max: v,
-        bytes_read,
     }
 }
 
@@ -1022,6 +919,7 @@ impl Drop for Loader {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::assemble::replicate_edges;
 
     #[test]
     fn procedural_bricks_are_the_function_at_each_level() {

@@ -14,6 +14,7 @@
 //! only reads per-frame counts.
 
 use crate::cpu::Lod;
+#[cfg(feature = "loader")]
 use brickyard_cache::session::{FrameStats, Session};
 
 /// What one frame tells the controller.
@@ -38,6 +39,7 @@ pub struct FrameSignals {
 }
 
 impl FrameSignals {
+    #[cfg(feature = "loader")]
     /// The signals of a frame: `fs` is what the session said of it
     /// ([`Session::finish_frame`]), `complete` whether every sample was
     /// served at its own level, `exact_slots` the slots used at their own

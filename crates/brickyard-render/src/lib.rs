@@ -30,7 +30,6 @@
 //! transfer}`. **World coordinates are `[x, y, z]`**; volumes, spacing and
 //! normalized positions are `[z, y, x]` (see `brickyard_core::camera`).
 
-#[cfg(feature = "loader")]
 pub mod budget;
 pub mod cpu;
 mod dvr;

@@ -77,6 +77,15 @@ pub struct ServeCmd {
     /// Host cache of each store, shared by its render sessions.
     #[arg(long, default_value = "1GiB")]
     pub render_host: String,
+    /// The web client: its page and WebAssembly bundle at /web/ (open
+    /// `/web/#store=../NAME/`), reading the stores in the browser.
+    #[arg(long)]
+    pub web: bool,
+    /// The web client's built bundle (default: BRICKYARD_WEB_DIST, else
+    /// `web/` beside the executable's directory, where
+    /// `scripts/build-web.sh` puts it).
+    #[arg(long, requires = "web")]
+    pub web_dist: Option<PathBuf>,
     /// Who renders: auto (a hardware GPU when there is one), gpu or cpu.
     #[arg(long, default_value = "auto")]
     pub backend: String,
@@ -90,6 +99,43 @@ struct Site {
     log: bool,
     /// The render endpoint's port (`--render`), for the /remote page.
     render_port: Option<u16>,
+    /// The web client's bundle (`--web`), served at /web/ (it holds no
+    /// data: no token needed).
+    web: Option<PathBuf>,
+}
+
+/// The web client's bundle directory: `--web-dist`, BRICKYARD_WEB_DIST,
+/// else `web/` beside the executable's directory; it must hold the page
+/// and the WebAssembly module.
+fn web_dist(c: &ServeCmd) -> Result<PathBuf> {
+    let (dir, how) = match (&c.web_dist, std::env::var_os("BRICKYARD_WEB_DIST")) {
+        (Some(d), _) => (d.clone(), "--web-dist"),
+        (None, Some(d)) => (PathBuf::from(d), "BRICKYARD_WEB_DIST"),
+        (None, None) => {
+            let exe = std::env::current_exe().context("--web: cannot find this executable")?;
+            let d = exe
+                .parent()
+                .and_then(|p| p.parent())
+                .map(|p| p.join("web"))
+                .context("--web: the executable has no parent directory")?;
+            (d, "the default location")
+        }
+    };
+    for f in [
+        "index.html",
+        "app.js",
+        "brickyard_web.js",
+        "brickyard_web_bg.wasm",
+    ] {
+        if !dir.join(f).is_file() {
+            bail!(
+                "--web: {} ({how}) has no {f}: the web client is not built there; run `bash scripts/build-web.sh` (or give --web-dist DIR)",
+                dir.display()
+            );
+        }
+    }
+    dir.canonicalize()
+        .with_context(|| format!("--web: {}: cannot serve it", dir.display()))
 }
 
 fn is_loopback(ip: IpAddr) -> bool {
@@ -152,11 +198,22 @@ fn site(c: &ServeCmd) -> Result<Site> {
             );
         }
     }
+    let web = if c.web {
+        if roots.contains_key("web") {
+            bail!("--web: a store named `web` would hide the web client at /web/; serve it from a directory of another name");
+        }
+        let d = web_dist(c)?;
+        roots.insert("web".to_string(), d.clone());
+        Some(d)
+    } else {
+        None
+    };
     Ok(Site {
         roots,
         token,
         log: !c.quiet,
         render_port: None,
+        web,
     })
 }
 
@@ -179,7 +236,12 @@ pub fn run(c: ServeCmd) -> Result<()> {
         let port = l.local_addr()?.port();
         site.render_port = Some(port);
         let rs = Arc::new(crate::remote::RenderSite {
-            roots: site.roots.clone(),
+            roots: site
+                .roots
+                .iter()
+                .filter(|(n, _)| site.web.is_none() || n.as_str() != "web")
+                .map(|(n, r)| (n.clone(), r.clone()))
+                .collect(),
             token: site.token.clone(),
             backend: c.backend.clone(),
             sessions: c.render_sessions,
@@ -208,7 +270,11 @@ pub fn run(c: ServeCmd) -> Result<()> {
         .server_addr()
         .to_ip()
         .context("the server has no IP address")?;
-    let mut names: Vec<&String> = site.roots.keys().collect();
+    let mut names: Vec<&String> = site
+        .roots
+        .keys()
+        .filter(|n| site.web.is_none() || n.as_str() != "web")
+        .collect();
     names.sort();
     // The first line says where (tests and scripts read the port from it).
     eprintln!(
@@ -225,6 +291,13 @@ pub fn run(c: ServeCmd) -> Result<()> {
             ""
         }
     );
+    if site.web.is_some() {
+        let first = names.iter().find(|n| n.as_str() != "web");
+        eprintln!(
+            "the web client at http://{local}/web/{}",
+            first.map_or(String::new(), |n| format!("#store=../{n}/"))
+        );
+    }
     if let Some((msg, l, rs)) = render {
         eprintln!("{msg}");
         std::thread::spawn(move || crate::remote::serve(l, rs));
@@ -530,15 +603,32 @@ fn respond(site: &Site, rq: Request) -> (u16, u64, Option<String>) {
         let e = rq.respond(r).err().and_then(send_err);
         return (200, n as u64, e);
     }
-    if !token_ok(site, &rq) {
+    // The web client's page and bundle hold no data either.
+    let path = rq.url().split(['?', '#']).next().unwrap_or("").to_string();
+    let web_page = site.web.is_some() && (path == "/web" || path.starts_with("/web/"));
+    if web_page && path == "/web" {
+        let r = empty(301, vec![header("Location", "/web/")]);
+        let e = rq.respond(r).err().and_then(send_err);
+        return (301, 0, e);
+    }
+    if !web_page && !token_ok(site, &rq) {
         let r = text(401, "a valid bearer token is needed")
             .with_header(header("WWW-Authenticate", "Bearer"));
         let e = rq.respond(r).err().and_then(send_err);
         return (401, 0, e);
     }
-    let file = match resolve(site, rq.url()) {
+    let url = if web_page && path.ends_with('/') {
+        format!("{path}index.html")
+    } else {
+        rq.url().to_string()
+    };
+    let file = match resolve(site, &url) {
         Target::Index => {
-            let mut names: Vec<&String> = site.roots.keys().collect();
+            let mut names: Vec<&String> = site
+                .roots
+                .keys()
+                .filter(|n| site.web.is_none() || n.as_str() != "web")
+                .collect();
             names.sort();
             let body = serde_json::json!({ "stores": names })
                 .to_string()
@@ -592,7 +682,14 @@ fn respond(site: &Site, rq: Request) -> (u16, u64, Option<String>) {
             return (304, 0, e);
         }
     }
-    let ctype = if file.extension().is_some_and(|e| e == "json")
+    let ext = file.extension().and_then(|e| e.to_str()).unwrap_or("");
+    let ctype = if web_page && ext == "html" {
+        "text/html; charset=utf-8"
+    } else if web_page && ext == "js" {
+        "text/javascript"
+    } else if web_page && ext == "wasm" {
+        "application/wasm"
+    } else if ext == "json"
         || file
             .file_name()
             .is_some_and(|n| n == ".zarray" || n == ".zgroup" || n == ".zattrs")

@@ -1,0 +1,367 @@
+//! The browser's streaming session: the virtual memory fed by asynchronous
+//! brick loads, frame by frame, as the native session does with its loader
+//! threads. A frame never waits: it draws what is resident (coarser bricks
+//! stand in for missing ones), sends its capped request list, and takes in
+//! what arrived since the last one.
+
+use crate::source::{LocalFuture, WebSource};
+use brickyard_cache::brick::{BrickKey, LoadedBrick};
+use brickyard_cache::vm::{FrameReport, InsertReport, VirtualMemory, VmConfig};
+use brickyard_render::budget::{Decision, FrameSignals, LodBudget};
+use brickyard_render::cpu::{render_tiles, FrameStats, Lod, Scene, Tiles};
+use brickyard_render::{Image, RenderParams};
+use std::cell::RefCell;
+use std::collections::{HashSet, VecDeque};
+use std::rc::Rc;
+use std::sync::Arc;
+
+/// Runs a task to its end beside the caller (the page's event loop, or a
+/// test's executor).
+pub type Spawn = Rc<dyn Fn(LocalFuture<()>)>;
+
+#[derive(Default)]
+struct LoadState {
+    /// Wanted bricks not yet started, most wanted first.
+    queue: VecDeque<BrickKey>,
+    in_flight: HashSet<BrickKey>,
+    arrived: Vec<Arc<LoadedBrick>>,
+    failed: Vec<(BrickKey, String)>,
+    loaded: u64,
+}
+
+/// Brick loads in flight, at most `max` at a time.
+#[derive(Clone)]
+pub struct Loads {
+    pub src: Rc<WebSource>,
+    st: Rc<RefCell<LoadState>>,
+    spawn: Spawn,
+    max: usize,
+}
+
+impl Loads {
+    pub fn new(src: Rc<WebSource>, spawn: Spawn, max: usize) -> Loads {
+        Loads {
+            src,
+            st: Rc::default(),
+            spawn,
+            max: max.max(1),
+        }
+    }
+
+    /// Want these bricks (most wanted first) and no others: queued ones no
+    /// longer wanted are dropped, loads in flight finish.
+    pub fn request(&self, wanted: &[BrickKey]) {
+        {
+            let mut st = self.st.borrow_mut();
+            let busy = st.in_flight.clone();
+            st.queue = wanted
+                .iter()
+                .filter(|k| !busy.contains(k))
+                .copied()
+                .collect();
+        }
+        self.pump();
+    }
+
+    fn pump(&self) {
+        loop {
+            let key = {
+                let mut st = self.st.borrow_mut();
+                if st.in_flight.len() >= self.max {
+                    return;
+                }
+                let Some(k) = st.queue.pop_front() else {
+                    return;
+                };
+                st.in_flight.insert(k);
+                k
+            };
+            let me = self.clone();
+            (self.spawn)(Box::pin(async move {
+                let r = me.src.load(key).await;
+                {
+                    let mut st = me.st.borrow_mut();
+                    st.in_flight.remove(&key);
+                    match r {
+                        Ok(b) => {
+                            st.loaded += 1;
+                            st.arrived.push(Arc::new(b));
+                        }
+                        Err(e) => st.failed.push((key, e)),
+                    }
+                }
+                me.pump();
+            }));
+        }
+    }
+
+    /// Bricks that arrived, and loads that failed, since the last call.
+    pub fn take(&self) -> (Vec<Arc<LoadedBrick>>, Vec<(BrickKey, String)>) {
+        let mut st = self.st.borrow_mut();
+        (
+            std::mem::take(&mut st.arrived),
+            std::mem::take(&mut st.failed),
+        )
+    }
+
+    /// Loads queued and in flight.
+    pub fn pending(&self) -> (usize, usize) {
+        let st = self.st.borrow();
+        (st.queue.len(), st.in_flight.len())
+    }
+
+    pub fn loaded(&self) -> u64 {
+        self.st.borrow().loaded
+    }
+}
+
+/// What one frame did.
+#[derive(Debug, Clone, Default)]
+pub struct FrameOut {
+    pub stats: FrameStats,
+    pub frame: FrameReport,
+    pub insert: InsertReport,
+    /// Every sample was served at its own level (or only failed bricks
+    /// are missing) and nothing is left to load.
+    pub complete: bool,
+    pub queued: usize,
+    pub in_flight: usize,
+    pub failed: usize,
+    /// The LOD bias drawn with (above the user's when the pool is too
+    /// small for the view).
+    pub bias: f64,
+}
+
+/// Virtual memory + loads + the scene it draws.
+pub struct WebSession {
+    pub vm: VirtualMemory,
+    pub loads: Loads,
+    pub scene: Scene,
+    waiting: VecDeque<Arc<LoadedBrick>>,
+    /// Every load failure so far, oldest first.
+    pub failures: Vec<(BrickKey, String)>,
+    /// The coarsest levels' bricks still to arrive before they are pinned.
+    pin: Option<HashSet<BrickKey>>,
+    pinned: Vec<Arc<LoadedBrick>>,
+    budget: Option<LodBudget>,
+    /// The view and level of detail of the last frame, for its settled
+    /// tiles.
+    drawn: Option<(RenderParams, Lod)>,
+    image: Image,
+    tiles: Tiles,
+}
+
+impl WebSession {
+    /// A session over `src` with a pool of `cfg.pool_bytes`; starts
+    /// loading the coarsest level (and finer ones while they stay within
+    /// an eighth of the pool), which stays resident for good once in.
+    pub fn new(
+        src: Rc<WebSource>,
+        cfg: VmConfig,
+        spawn: Spawn,
+        max_loads: usize,
+    ) -> Result<WebSession, String> {
+        let g = src.geometry.clone();
+        let vm = VirtualMemory::new(&g.levels, g.channels, g.dtype, cfg);
+        let nl = g.levels.len();
+        let per_level =
+            |l: usize| g.bricks_per_level(l).iter().product::<u64>() as usize * g.channels;
+        let slots = vm.pool_slots();
+        if slots < 2 * per_level(nl - 1) {
+            let slot = vm.pool_bytes() as u64 / slots.max(1) as u64;
+            return Err(format!(
+                "pool: holds {slots} bricks, the coarsest level alone needs {} plus as many to work with; give it at least {:.1} MiB",
+                per_level(nl - 1),
+                (2 * per_level(nl - 1)) as f64 * slot as f64 / 1048576.0
+            ));
+        }
+        let limit = (slots / 8).min(512).max(per_level(nl - 1));
+        let mut levels = vec![nl - 1];
+        let mut total = per_level(nl - 1);
+        for l in (1..nl - 1).rev() {
+            if total + per_level(l) > limit {
+                break;
+            }
+            total += per_level(l);
+            levels.push(l);
+        }
+        let mut keys = vec![];
+        for &l in &levels {
+            for c in 0..g.channels {
+                keys.extend(g.keys(l, c));
+            }
+        }
+        let ms = &src.meta;
+        let extent = brickyard_core::camera::world_extent(g.levels[0], ms.spacing);
+        let scene = Scene::new(extent, g.levels.clone());
+        let loads = Loads::new(src, spawn, max_loads);
+        loads.request(&keys);
+        Ok(WebSession {
+            vm,
+            loads,
+            scene,
+            waiting: VecDeque::new(),
+            failures: vec![],
+            pin: Some(keys.into_iter().collect()),
+            pinned: vec![],
+            budget: None,
+            drawn: None,
+            image: Image::new(0, 0),
+            tiles: Tiles::all(0, 0),
+        })
+    }
+
+    /// Whether the coarsest levels are in (every sample finds data).
+    pub fn ready(&self) -> bool {
+        self.pin.is_none()
+    }
+
+    fn collect(&mut self) -> usize {
+        let (arrived, failed) = self.loads.take();
+        for (k, _) in &failed {
+            self.vm.mark_failed(*k);
+        }
+        let n = failed.len();
+        if let Some(pin) = &mut self.pin {
+            for b in &arrived {
+                pin.remove(&b.key);
+            }
+            for (k, _) in &failed {
+                pin.remove(k);
+            }
+            self.pinned.extend(arrived);
+            if pin.is_empty() {
+                let mut rest = &self.pinned[..];
+                while !rest.is_empty() {
+                    let r = self.vm.insert(rest);
+                    if r.processed == 0 {
+                        break;
+                    }
+                    rest = &rest[r.processed..];
+                }
+                for b in std::mem::take(&mut self.pinned) {
+                    self.vm.pin(b.key);
+                }
+                self.pin = None;
+            }
+        } else {
+            self.waiting.extend(arrived);
+        }
+        self.failures.extend(failed);
+        n
+    }
+
+    /// Draw a frame of the view `p` at `lod` (the user's level of detail)
+    /// on the CPU into [`image`](Self::image), then end it: requests out,
+    /// arrivals in. The same view as the last frame redraws only the tiles
+    /// not settled then; a pool too small for the view raises its LOD bias
+    /// (detail is lost, never completeness), and lowers it again when room
+    /// is back.
+    pub fn frame_cpu(&mut self, p: &RenderParams, lod: Lod) -> FrameOut {
+        let failed = self.collect();
+        let nl = self.scene.levels.len();
+        let base = match lod {
+            Lod::Auto { bias } => bias,
+            Lod::Fixed(_) => 0.0,
+        };
+        if self.budget.as_ref().is_none_or(|b| b.base != base) {
+            self.budget = Some(LodBudget::new(base, nl, true));
+        }
+        let budget = self.budget.as_mut().expect("set above");
+        let drawn = budget.apply(lod, nl);
+        let same = self
+            .drawn
+            .as_ref()
+            .is_some_and(|(q, l)| q == p && *l == drawn);
+        if !same {
+            if self.drawn.as_ref().is_some_and(|(q, _)| q != p) {
+                budget.view_changed();
+            }
+            self.image = Image::new(p.width, p.height);
+            self.tiles = Tiles::all(p.width, p.height);
+            self.drawn = Some((p.clone(), drawn));
+        }
+        if !self.ready() {
+            let (q, f) = self.loads.pending();
+            return FrameOut {
+                queued: q,
+                in_flight: f,
+                failed,
+                bias: base,
+                ..Default::default()
+            };
+        }
+        self.vm.begin_frame();
+        let (stats, reqs) = render_tiles(
+            &self.vm,
+            &self.scene,
+            p,
+            drawn,
+            &mut self.image,
+            &mut self.tiles,
+        );
+        let arrived_before = self.waiting.len();
+        let mut out = self.end_frame(reqs.iter());
+        let failed_in_list = out
+            .frame
+            .requests
+            .iter()
+            .filter(|k| self.vm.is_failed(**k))
+            .count();
+        let sig = FrameSignals {
+            complete: stats.completeness() >= 1.0,
+            requests: out.frame.requests.len() - failed_in_list,
+            requested: out.frame.requested.saturating_sub(failed_in_list),
+            deferred: out.insert.deferred,
+            exact_slots: Some(out.frame.exact_slots),
+            free_slots: self.vm.pool_slots() - self.vm.pinned_bricks(),
+            progress: out.insert.inserted + out.insert.flagged + arrived_before > 0
+                || out.queued + out.in_flight > 0,
+        };
+        let budget = self.budget.as_mut().expect("set above");
+        let decision = budget.update(&sig);
+        out.bias = budget.bias;
+        out.failed = failed;
+        // Complete: every sample at its own level, or nothing left to ask
+        // for but bricks that failed (drawn from coarser data).
+        out.complete = matches!(decision, Decision::Continue)
+            && (sig.complete || (sig.requests == 0 && !sig.progress && stats.unserved == 0));
+        out.stats = stats;
+        out
+    }
+
+    /// The last image drawn.
+    pub fn image(&self) -> &Image {
+        &self.image
+    }
+
+    /// End a frame whose requests are in `reqs`.
+    pub fn end_frame<'a>(
+        &mut self,
+        reqs: impl IntoIterator<Item = &'a brickyard_cache::vm::Requests>,
+    ) -> FrameOut {
+        let frame = self.vm.end_frame(reqs);
+        let wanted: Vec<BrickKey> = frame
+            .requests
+            .iter()
+            .filter(|k| !self.vm.is_resident(**k) && !self.vm.is_failed(**k))
+            .copied()
+            .collect();
+        self.loads.request(&wanted);
+        let batch: Vec<Arc<LoadedBrick>> = self.waiting.iter().cloned().collect();
+        let insert = self.vm.insert(&batch);
+        self.waiting.drain(..insert.processed);
+        let keep = self.vm.config().request_cap * 2;
+        while self.waiting.len() > keep {
+            self.waiting.pop_back();
+        }
+        let (queued, in_flight) = self.loads.pending();
+        FrameOut {
+            frame,
+            insert,
+            queued,
+            in_flight,
+            ..Default::default()
+        }
+    }
+}

@@ -1,0 +1,517 @@
+//! Bricks over HTTP: a store's metadata and its bricks read with `GET`s
+//! (byte ranges for shard indexes and inner chunks), decoded here and cut
+//! into the same padded bricks the native loader hands out
+//! ([`brickyard_cache::assemble`]). Shard indexes and decoded chunks are
+//! kept in bounded caches, so the aprons of neighbouring bricks do not
+//! fetch or decode their chunks again.
+//!
+//! Nothing here knows the browser: reads go through [`Fetch`], which the
+//! page implements over `fetch()` and tests over files.
+
+use crate::codec::{decode_chain, swap_bytes};
+use crate::zarr::{self, Codec, Multiscale};
+use brickyard_cache::assemble::{brick_buffer, finish_brick, PaddedRegion};
+use brickyard_cache::brick::{BrickGeometry, BrickKey, LoadedBrick};
+use brickyard_core::Dims3;
+use std::cell::RefCell;
+use std::collections::{HashMap, VecDeque};
+use std::future::Future;
+use std::pin::Pin;
+use std::rc::Rc;
+use std::sync::Arc;
+
+/// A future that stays on its thread (the browser has one).
+pub type LocalFuture<T> = Pin<Box<dyn Future<Output = T>>>;
+
+/// Which bytes of an object to get.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Range {
+    All,
+    /// `len` bytes from `start`.
+    Span {
+        start: u64,
+        len: u64,
+    },
+    /// The last `len` bytes.
+    Suffix(u64),
+}
+
+/// Reads objects of one store by path below its root. `Ok(None)`: the
+/// object does not exist (a chunk never written: the fill value).
+pub trait Fetch {
+    fn get(&self, path: &str, range: Range) -> LocalFuture<Result<Option<Vec<u8>>, String>>;
+}
+
+/// Counters of what a source fetched.
+#[derive(Clone, Copy, Debug, Default)]
+pub struct SourceStats {
+    pub requests: u64,
+    pub bytes: u64,
+    pub chunks_decoded: u64,
+    pub chunk_cache_hits: u64,
+}
+
+/// A cache of values with a byte size, least recently used out first.
+struct Lru<K, V> {
+    map: HashMap<K, (V, usize, u64)>,
+    order: VecDeque<(K, u64)>,
+    bytes: usize,
+    budget: usize,
+    tick: u64,
+}
+
+impl<K: std::hash::Hash + Eq + Clone, V: Clone> Lru<K, V> {
+    fn new(budget: usize) -> Self {
+        Lru {
+            map: HashMap::new(),
+            order: VecDeque::new(),
+            bytes: 0,
+            budget,
+            tick: 0,
+        }
+    }
+    fn get(&mut self, k: &K) -> Option<V> {
+        self.tick += 1;
+        let t = self.tick;
+        let e = self.map.get_mut(k)?;
+        e.2 = t;
+        self.order.push_back((k.clone(), t));
+        Some(e.0.clone())
+    }
+    fn put(&mut self, k: K, v: V, size: usize) {
+        self.tick += 1;
+        if let Some(old) = self.map.insert(k.clone(), (v, size, self.tick)) {
+            self.bytes -= old.1;
+        }
+        self.bytes += size;
+        self.order.push_back((k, self.tick));
+        while self.bytes > self.budget {
+            let Some((k, t)) = self.order.pop_front() else {
+                break;
+            };
+            if self.map.get(&k).is_some_and(|e| e.2 == t) {
+                let e = self.map.remove(&k).expect("present");
+                self.bytes -= e.1;
+            }
+        }
+        // Stale order entries of keys used again: keep the queue bounded.
+        if self.order.len() > 4 * self.map.len() + 64 {
+            let map = &self.map;
+            self.order
+                .retain(|(k, t)| map.get(k).is_some_and(|e| e.2 == *t));
+        }
+    }
+}
+
+/// A shard's index: (offset, length) per inner chunk, `None` when the
+/// shard does not exist.
+type ShardIndex = Option<Rc<Vec<[u64; 2]>>>;
+
+/// An OME-Zarr store read over [`Fetch`].
+pub struct WebSource {
+    fetch: Rc<dyn Fetch>,
+    pub meta: Multiscale,
+    pub geometry: BrickGeometry,
+    indexes: RefCell<Lru<(usize, Vec<u64>), ShardIndex>>,
+    chunks: RefCell<Lru<(usize, Vec<u64>, usize), Rc<Vec<u8>>>>,
+    pub stats: RefCell<SourceStats>,
+}
+
+async fn get_json(fetch: &dyn Fetch, path: &str) -> Result<Option<Vec<u8>>, String> {
+    fetch.get(path, Range::All).await
+}
+
+impl WebSource {
+    /// Open the store: its root metadata, then every level's array.
+    /// `brick` is the engine's brick edge, `chunk_budget` the bytes of
+    /// decoded chunks kept.
+    pub async fn open(
+        fetch: Rc<dyn Fetch>,
+        brick: u64,
+        apron: u64,
+        chunk_budget: usize,
+    ) -> Result<WebSource, String> {
+        let (mut ms, paths) = match get_json(&*fetch, "zarr.json").await? {
+            Some(t) => zarr::parse_root(3, &t).map_err(|e| e.to_string())?,
+            None => match get_json(&*fetch, ".zattrs").await? {
+                Some(t) => zarr::parse_root(2, &t).map_err(|e| e.to_string())?,
+                None => {
+                    return Err(
+                        "zarr.json: not found (nor .zattrs): not a Zarr store, or the URL does not name its root"
+                            .into(),
+                    )
+                }
+            },
+        };
+        if ms.incomplete {
+            return Err("zarr.json: brickyard.complete is false: the store is incomplete (an interrupted conversion)".into());
+        }
+        for p in &paths {
+            let a = if ms.zarr_format == 3 {
+                let doc = format!("{p}/zarr.json");
+                let t = get_json(&*fetch, &doc)
+                    .await?
+                    .ok_or(format!("{doc}: not found"))?;
+                zarr::parse_v3_array(p, &t)
+            } else {
+                let doc = format!("{p}/.zarray");
+                let t = get_json(&*fetch, &doc)
+                    .await?
+                    .ok_or(format!("{doc}: not found"))?;
+                zarr::parse_v2_array(p, &t)
+            }
+            .map_err(|e| e.to_string())?;
+            ms.levels.push(a);
+        }
+        zarr::check_levels(&ms).map_err(|e| e.to_string())?;
+        let geometry = BrickGeometry {
+            brick: [brick; 3],
+            apron,
+            levels: (0..ms.levels.len()).map(|l| ms.dims(l)).collect(),
+            channels: ms.n_channels(),
+            dtype: ms.levels[0].dtype,
+        };
+        if !geometry.keys_fit() {
+            return Err(format!("the volume has too many bricks of {brick}³ per axis for brick keys; use larger bricks"));
+        }
+        Ok(WebSource {
+            fetch,
+            meta: ms,
+            geometry,
+            indexes: RefCell::new(Lru::new(8 << 20)),
+            chunks: RefCell::new(Lru::new(chunk_budget)),
+            stats: RefCell::new(SourceStats::default()),
+        })
+    }
+
+    async fn get(&self, path: &str, range: Range) -> Result<Option<Vec<u8>>, String> {
+        let r = self.fetch.get(path, range).await;
+        let mut s = self.stats.borrow_mut();
+        s.requests += 1;
+        if let Ok(Some(b)) = &r {
+            s.bytes += b.len() as u64;
+        }
+        r.map_err(|e| format!("{path}: {e}"))
+    }
+
+    /// The index of shard `idx` of level `l`.
+    async fn shard_index(
+        &self,
+        l: usize,
+        idx: &[u64],
+        inner: usize,
+        codecs: &[Codec],
+        at_end: bool,
+    ) -> Result<ShardIndex, String> {
+        let k = (l, idx.to_vec());
+        if let Some(v) = self.indexes.borrow_mut().get(&k) {
+            return Ok(v);
+        }
+        let a = &self.meta.levels[l];
+        let key = a.chunk_key(idx);
+        let checksum = codecs.iter().any(|c| matches!(c, Codec::Crc32c));
+        let len = inner as u64 * 16 + if checksum { 4 } else { 0 };
+        let range = if at_end {
+            Range::Suffix(len)
+        } else {
+            Range::Span { start: 0, len }
+        };
+        let v = match self.get(&key, range).await? {
+            None => None,
+            Some(b) => {
+                if b.len() as u64 != len {
+                    return Err(format!(
+                        "{key}: shard index of {} bytes, expected {len}",
+                        b.len()
+                    ));
+                }
+                let (b, _) =
+                    decode_chain(codecs, b).map_err(|e| format!("{key}: shard index: {e}"))?;
+                Some(Rc::new(
+                    b.chunks_exact(16)
+                        .map(|e| {
+                            [
+                                u64::from_le_bytes(e[..8].try_into().unwrap()),
+                                u64::from_le_bytes(e[8..].try_into().unwrap()),
+                            ]
+                        })
+                        .collect(),
+                ))
+            }
+        };
+        self.indexes
+            .borrow_mut()
+            .put(k, v.clone(), len as usize + 64);
+        Ok(v)
+    }
+
+    /// Chunk `inner` of (shard or chunk) `idx` of level `l`, decoded to
+    /// native-endian values (`None`: not stored; the fill value).
+    async fn chunk(
+        &self,
+        l: usize,
+        idx: &[u64],
+        inner: Option<usize>,
+    ) -> Result<Option<Rc<Vec<u8>>>, String> {
+        let ck = (l, idx.to_vec(), inner.unwrap_or(usize::MAX));
+        if let Some(v) = self.chunks.borrow_mut().get(&ck) {
+            self.stats.borrow_mut().chunk_cache_hits += 1;
+            return Ok(Some(v));
+        }
+        let a = &self.meta.levels[l];
+        let key = a.chunk_key(idx);
+        let es = a.dtype.size();
+        let (bytes, codecs, shape): (Option<Vec<u8>>, &[Codec], &[u64]) =
+            match (a.sharding(), inner) {
+                (Some((ishape, icodecs, index_codecs, at_end)), Some(i)) => {
+                    let n: usize = a
+                        .chunk
+                        .iter()
+                        .zip(ishape)
+                        .map(|(s, c)| s.div_ceil(*c) as usize)
+                        .product();
+                    let Some(index) = self.shard_index(l, idx, n, index_codecs, at_end).await?
+                    else {
+                        return Ok(None);
+                    };
+                    let [off, len] = index[i];
+                    if off == u64::MAX && len == u64::MAX {
+                        (None, icodecs, ishape)
+                    } else {
+                        let b = self.get(&key, Range::Span { start: off, len }).await?;
+                        match b {
+                            Some(b) if b.len() as u64 == len => (Some(b), icodecs, ishape),
+                            Some(b) => {
+                                return Err(format!(
+                                    "{key}: inner chunk {i}: {} bytes read, the index says {len}",
+                                    b.len()
+                                ))
+                            }
+                            None => {
+                                return Err(format!("{key}: the shard vanished while being read"))
+                            }
+                        }
+                    }
+                }
+                _ => (
+                    self.get(&key, Range::All).await?,
+                    &a.codecs[..],
+                    &a.chunk[..],
+                ),
+            };
+        let Some(bytes) = bytes else { return Ok(None) };
+        let (mut v, big) = decode_chain(codecs, bytes).map_err(|e| format!("{key}: {e}"))?;
+        let want = shape.iter().product::<u64>() as usize * es;
+        if v.len() != want {
+            return Err(format!(
+                "{key}: decoded to {} bytes, a chunk of {shape:?} is {want}",
+                v.len()
+            ));
+        }
+        if big || a.big_endian {
+            swap_bytes(&mut v, es);
+        }
+        self.stats.borrow_mut().chunks_decoded += 1;
+        let v = Rc::new(v);
+        let size = v.len();
+        self.chunks.borrow_mut().put(ck, v.clone(), size);
+        Ok(Some(v))
+    }
+
+    /// Load one padded brick.
+    pub async fn load(&self, key: BrickKey) -> Result<LoadedBrick, String> {
+        let g = &self.geometry;
+        if !g.contains(&key) {
+            return Err(format!("{key:?} is outside the volume"));
+        }
+        let l = key.level as usize;
+        let a = &self.meta.levels[l];
+        let reg = PaddedRegion::of(g, &key);
+        let mut data = brick_buffer(g);
+        let buf = Arc::get_mut(&mut data).expect("new buffer");
+        let p = g.padded();
+        let es = g.dtype.size();
+        let nd = a.shape.len();
+        // The region on every array axis.
+        let mut lo = vec![0u64; nd];
+        let mut hi = vec![1u64; nd];
+        for (s, ax) in self.meta.space.iter().enumerate() {
+            if let Some(ax) = *ax {
+                lo[ax] = reg.lo[s];
+                hi[ax] = reg.hi[s];
+            }
+        }
+        if let Some(c) = self.meta.channel_axis {
+            lo[c] = key.channel as u64;
+            hi[c] = key.channel as u64 + 1;
+        }
+        // Unit grid: shards or chunks, and inside shards inner chunks.
+        let (unit, inner_shape) = match a.sharding() {
+            Some((ishape, ..)) => (a.chunk.clone(), Some(ishape.to_vec())),
+            None => (a.chunk.clone(), None),
+        };
+        let piece = inner_shape.clone().unwrap_or_else(|| unit.clone());
+        // Every piece (inner chunk or chunk) the region touches, by its
+        // array-wide piece index.
+        let first: Vec<u64> = (0..nd).map(|d| lo[d] / piece[d]).collect();
+        let last: Vec<u64> = (0..nd).map(|d| (hi[d] - 1) / piece[d]).collect();
+        let mut pi = first.clone();
+        loop {
+            let porig: Vec<u64> = (0..nd).map(|d| pi[d] * piece[d]).collect();
+            let (outer, inner) = match &inner_shape {
+                Some(is) => {
+                    let outer: Vec<u64> = (0..nd).map(|d| porig[d] / unit[d]).collect();
+                    let per: Vec<u64> = (0..nd).map(|d| unit[d].div_ceil(is[d])).collect();
+                    let mut i = 0u64;
+                    for d in 0..nd {
+                        i = i * per[d] + (porig[d] - outer[d] * unit[d]) / is[d];
+                    }
+                    (outer, Some(i as usize))
+                }
+                None => (pi.clone(), None),
+            };
+            let chunk = self.chunk(l, &outer, inner).await?;
+            copy_piece(
+                buf,
+                p,
+                &reg,
+                &self.meta.space,
+                &lo,
+                &hi,
+                &porig,
+                &piece,
+                chunk.as_deref().map(|v| &v[..]),
+                &a.fill,
+                es,
+            );
+            // Next piece index (odometer, last axis fastest).
+            let mut d = nd;
+            loop {
+                if d == 0 {
+                    return Ok(finish_brick(g, key, data, &reg));
+                }
+                d -= 1;
+                if pi[d] < last[d] {
+                    pi[d] += 1;
+                    break;
+                }
+                pi[d] = first[d];
+            }
+        }
+    }
+}
+
+/// Copy the part of one decoded piece (`porig`, `shape`, C order; `None`:
+/// the fill value) inside the region `lo..hi` into the padded brick
+/// buffer (`p` voxels, `[z, y, x]`).
+#[allow(clippy::too_many_arguments)]
+fn copy_piece(
+    buf: &mut [u8],
+    p: Dims3,
+    reg: &PaddedRegion,
+    space: &[Option<usize>; 3],
+    lo: &[u64],
+    hi: &[u64],
+    porig: &[u64],
+    shape: &[u64],
+    data: Option<&[u8]>,
+    fill: &[u8],
+    es: usize,
+) {
+    let nd = shape.len();
+    let s: Vec<u64> = (0..nd).map(|d| lo[d].max(porig[d])).collect();
+    let e: Vec<u64> = (0..nd).map(|d| hi[d].min(porig[d] + shape[d])).collect();
+    if (0..nd).any(|d| s[d] >= e[d]) {
+        return;
+    }
+    // Strides of the piece (C order) and of the brick per array axis.
+    let mut pstride = vec![0usize; nd];
+    let mut acc = 1usize;
+    for d in (0..nd).rev() {
+        pstride[d] = acc;
+        acc *= shape[d] as usize;
+    }
+    let bstride_zyx = [(p[1] * p[2]) as usize, p[2] as usize, 1usize];
+    let mut bstride = vec![0usize; nd];
+    let mut boff = vec![0i64; nd];
+    for (k, ax) in space.iter().enumerate() {
+        if let Some(ax) = *ax {
+            bstride[ax] = bstride_zyx[k];
+            boff[ax] = reg.at[k] as i64 - reg.lo[k] as i64;
+        }
+    }
+    let last = nd - 1;
+    let run = (e[last] - s[last]) as usize;
+    let contiguous = bstride[last] == 1;
+    let mut i = s.clone();
+    loop {
+        let mut src = 0usize;
+        let mut dst = 0usize;
+        for d in 0..nd {
+            src += (i[d] - porig[d]) as usize * pstride[d];
+            dst += (i[d] as i64 + boff[d]) as usize * bstride[d];
+        }
+        if contiguous {
+            let out = &mut buf[dst * es..(dst + run) * es];
+            match data {
+                Some(v) => out.copy_from_slice(&v[src * es..(src + run) * es]),
+                None => {
+                    for o in out.chunks_exact_mut(es) {
+                        o.copy_from_slice(fill);
+                    }
+                }
+            }
+        } else {
+            for k in 0..run {
+                let o = (dst + k * bstride[last]) * es;
+                match data {
+                    Some(v) => {
+                        buf[o..o + es].copy_from_slice(&v[(src + k) * es..(src + k + 1) * es])
+                    }
+                    None => buf[o..o + es].copy_from_slice(fill),
+                }
+            }
+        }
+        // Next row.
+        let mut d = last;
+        loop {
+            if d == 0 {
+                return;
+            }
+            d -= 1;
+            i[d] += 1;
+            if i[d] < e[d] {
+                break;
+            }
+            i[d] = s[d];
+        }
+    }
+}
+
+/// Reads a store's objects from a directory (tests and native tools).
+pub struct FileFetch(pub std::path::PathBuf);
+
+impl Fetch for FileFetch {
+    fn get(&self, path: &str, range: Range) -> LocalFuture<Result<Option<Vec<u8>>, String>> {
+        let p = self.0.join(path);
+        let r = (|| {
+            let b = match std::fs::read(&p) {
+                Ok(b) => b,
+                Err(e) if e.kind() == std::io::ErrorKind::NotFound => return Ok(None),
+                Err(e) => return Err(e.to_string()),
+            };
+            let n = b.len() as u64;
+            Ok(Some(match range {
+                Range::All => b,
+                Range::Span { start, len } => {
+                    if start + len > n {
+                        return Err(format!("range {start}+{len} past the end ({n} bytes)"));
+                    }
+                    b[start as usize..(start + len) as usize].to_vec()
+                }
+                Range::Suffix(len) => b[n.saturating_sub(len) as usize..].to_vec(),
+            }))
+        })();
+        Box::pin(async move { r })
+    }
+}

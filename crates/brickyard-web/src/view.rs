@@ -1,0 +1,280 @@
+//! What the page shows, as a small state that lives in the page's URL
+//! (`#store=…&mode=dvr&az=30…`): parsed, checked, written back, and
+//! turned into the renderers' parameters exactly as `brickyard render`
+//! turns its flags into them, so that a link and a command line with the
+//! same values draw the same image.
+
+use brickyard_core::camera::{Camera, Projection};
+use brickyard_core::TransferFunction;
+use brickyard_render::cpu::{Lod, Scene};
+use brickyard_render::{RenderMode, RenderParams};
+
+/// The view: every field has a default, and the URL carries only what
+/// differs from it.
+#[derive(Clone, Debug, PartialEq)]
+pub struct ViewState {
+    pub mode: String,
+    pub azimuth: f64,
+    pub elevation: f64,
+    /// 1 frames the whole volume; 2 is twice as close.
+    pub zoom: f64,
+    pub fov: f64,
+    pub tf: String,
+    /// Data window; `None`: the channel's `omero` window, else the data
+    /// type's range (0–1 for floats).
+    pub window: Option<[f64; 2]>,
+    pub channel: usize,
+    pub width: u32,
+    pub height: u32,
+    pub lod_bias: f64,
+    pub slice_z: f64,
+}
+
+impl Default for ViewState {
+    fn default() -> Self {
+        ViewState {
+            mode: "dvr".into(),
+            azimuth: 30.0,
+            elevation: 20.0,
+            zoom: 1.0,
+            fov: 35.0,
+            tf: "soft".into(),
+            window: None,
+            channel: 0,
+            width: 512,
+            height: 512,
+            lod_bias: 0.0,
+            slice_z: 0.5,
+        }
+    }
+}
+
+fn num(k: &str, v: &str) -> Result<f64, String> {
+    v.parse::<f64>()
+        .ok()
+        .filter(|x| x.is_finite())
+        .ok_or_else(|| format!("{k}: expected a number, found {v:?}"))
+}
+
+impl ViewState {
+    /// Read `k=v` pairs (`&`-separated; unknown keys such as `store` are
+    /// left to the caller). Errors name the key.
+    pub fn from_query(q: &str) -> Result<ViewState, String> {
+        let mut s = ViewState::default();
+        for kv in q
+            .trim_start_matches(['#', '?'])
+            .split('&')
+            .filter(|x| !x.is_empty())
+        {
+            let (k, v) = kv.split_once('=').unwrap_or((kv, ""));
+            let v = decode(v);
+            match k {
+                "mode" => {
+                    if !["dvr", "mip", "slice"].contains(&v.as_str()) {
+                        return Err(format!("mode: expected dvr, mip or slice, found {v:?}"));
+                    }
+                    s.mode = v;
+                }
+                "az" => s.azimuth = num(k, &v)?,
+                "el" => s.elevation = num(k, &v)?.clamp(-90.0, 90.0),
+                "zoom" => {
+                    s.zoom = num(k, &v)?;
+                    if s.zoom <= 0.0 {
+                        return Err(format!("zoom: expected a positive number, found {v:?}"));
+                    }
+                }
+                "fov" => {
+                    s.fov = num(k, &v)?;
+                    if !(1.0..=170.0).contains(&s.fov) {
+                        return Err(format!("fov: expected 1 to 170 degrees, found {v:?}"));
+                    }
+                }
+                "tf" => {
+                    TransferFunction::preset(&v, [0.0, 1.0]).map_err(|e| format!("tf: {e}"))?;
+                    s.tf = v;
+                }
+                "window" => {
+                    let p: Vec<&str> = v.split(',').collect();
+                    if p.len() != 2 {
+                        return Err(format!("window: expected LO,HI, found {v:?}"));
+                    }
+                    let (a, b) = (num(k, p[0])?, num(k, p[1])?);
+                    if b <= a {
+                        return Err(format!("window: expected LO < HI, found {v:?}"));
+                    }
+                    s.window = Some([a, b]);
+                }
+                "channel" => {
+                    s.channel = v
+                        .parse()
+                        .map_err(|_| format!("channel: expected a channel number, found {v:?}"))?
+                }
+                "size" => {
+                    let (w, h) = v.split_once('x').unwrap_or((&v, &v));
+                    let p = |x: &str| x.parse::<u32>().ok().filter(|n| (16..=4096).contains(n));
+                    match (p(w), p(h)) {
+                        (Some(w), Some(h)) => (s.width, s.height) = (w, h),
+                        _ => {
+                            return Err(format!(
+                                "size: expected WxH, 16 to 4096 pixels each, found {v:?}"
+                            ))
+                        }
+                    }
+                }
+                "bias" => s.lod_bias = num(k, &v)?.clamp(-8.0, 8.0),
+                "slice" => s.slice_z = num(k, &v)?.clamp(0.0, 1.0),
+                _ => {}
+            }
+        }
+        Ok(s)
+    }
+
+    /// The state as `k=v&…`, only what differs from the defaults.
+    pub fn to_query(&self) -> String {
+        let d = ViewState::default();
+        let mut q = vec![];
+        if self.mode != d.mode {
+            q.push(format!("mode={}", self.mode));
+        }
+        if self.azimuth != d.azimuth {
+            q.push(format!("az={}", round(self.azimuth)));
+        }
+        if self.elevation != d.elevation {
+            q.push(format!("el={}", round(self.elevation)));
+        }
+        if self.zoom != d.zoom {
+            q.push(format!("zoom={}", round(self.zoom)));
+        }
+        if self.fov != d.fov {
+            q.push(format!("fov={}", self.fov));
+        }
+        if self.tf != d.tf {
+            q.push(format!("tf={}", self.tf));
+        }
+        if let Some([a, b]) = self.window {
+            q.push(format!("window={a},{b}"));
+        }
+        if self.channel != d.channel {
+            q.push(format!("channel={}", self.channel));
+        }
+        if (self.width, self.height) != (d.width, d.height) {
+            q.push(format!("size={}x{}", self.width, self.height));
+        }
+        if self.lod_bias != d.lod_bias {
+            q.push(format!("bias={}", self.lod_bias));
+        }
+        if self.slice_z != d.slice_z {
+            q.push(format!("slice={}", self.slice_z));
+        }
+        q.join("&")
+    }
+
+    /// The renderers' parameters and level of detail for `scene`
+    /// (`window`: the default data window), as `brickyard render` with
+    /// `--mode --azimuth --elevation --fov --tf --window --channel --size
+    /// --lod-bias --slice-z` makes them.
+    pub fn params(&self, scene: &Scene, window: [f64; 2]) -> Result<(RenderParams, Lod), String> {
+        let [lo, hi] = self.window.unwrap_or(window);
+        let tf = TransferFunction::preset(&self.tf, [lo as f32, hi as f32])
+            .map_err(|e| format!("tf: {e}"))?;
+        let e = scene.extent;
+        let mode = match self.mode.as_str() {
+            "dvr" => RenderMode::Dvr,
+            "mip" => RenderMode::Mip,
+            _ => RenderMode::Slice {
+                origin: [e[0] / 2.0, e[1] / 2.0, e[2] * self.slice_z],
+                normal: [0.0, 0.0, 1.0],
+            },
+        };
+        let mut camera = match &mode {
+            RenderMode::Slice { origin, normal } => {
+                Camera::facing_plane(*origin, *normal, e[0].max(e[1]) * 1.05)
+            }
+            _ => Camera::fit(
+                e,
+                self.azimuth,
+                self.elevation,
+                Projection::Perspective {
+                    fov_y_deg: self.fov,
+                },
+            ),
+        };
+        if self.zoom != 1.0 {
+            let d = brickyard_core::camera::sub(camera.eye, camera.target);
+            camera.eye = brickyard_core::camera::add(
+                camera.target,
+                brickyard_core::camera::scale(d, 1.0 / self.zoom),
+            );
+        }
+        let mut p = RenderParams::new(self.width, self.height, camera, tf, mode);
+        p.reference_step = Some(scene.voxel(0));
+        p.validate().map_err(|e| e.to_string())?;
+        Ok((
+            p,
+            Lod::Auto {
+                bias: self.lod_bias,
+            },
+        ))
+    }
+}
+
+fn round(v: f64) -> f64 {
+    (v * 1000.0).round() / 1000.0
+}
+
+/// Undo `%XX` escapes (and `+` for space).
+pub fn decode(s: &str) -> String {
+    let b = s.as_bytes();
+    let mut out = Vec::with_capacity(b.len());
+    let mut i = 0;
+    while i < b.len() {
+        match b[i] {
+            b'%' if i + 2 < b.len() + 0 && i + 2 <= b.len() - 1 => {
+                match u8::from_str_radix(&s[i + 1..i + 3], 16) {
+                    Ok(v) => {
+                        out.push(v);
+                        i += 3;
+                        continue;
+                    }
+                    Err(_) => out.push(b'%'),
+                }
+            }
+            b'+' => out.push(b' '),
+            c => out.push(c),
+        }
+        i += 1;
+    }
+    String::from_utf8_lossy(&out).into_owned()
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn the_query_round_trips_and_names_bad_keys() {
+        let s = ViewState::from_query("#store=x&mode=mip&az=12.5&el=-30&zoom=2&tf=hot&window=0,200&channel=1&size=640x480&bias=-1&slice=0.25").unwrap();
+        assert_eq!(
+            (s.mode.as_str(), s.azimuth, s.elevation, s.zoom),
+            ("mip", 12.5, -30.0, 2.0)
+        );
+        assert_eq!(
+            (s.width, s.height, s.window),
+            (640, 480, Some([0.0, 200.0]))
+        );
+        assert_eq!(ViewState::from_query(&s.to_query()).unwrap(), s);
+        assert_eq!(ViewState::default().to_query(), "");
+        for (q, key) in [
+            ("mode=xyz", "mode"),
+            ("az=abc", "az"),
+            ("window=5,1", "window"),
+            ("size=3x3", "size"),
+            ("tf=nope", "tf"),
+            ("zoom=0", "zoom"),
+        ] {
+            let e = ViewState::from_query(q).unwrap_err();
+            assert!(e.starts_with(key), "{q}: {e}");
+        }
+        assert_eq!(decode("a%2Cb+c"), "a,b c");
+    }
+}

@@ -1,0 +1,280 @@
+//! The web client's data path against the native one, natively: every
+//! brick read over `Fetch` (here from files, byte ranges and all) equals
+//! the native loader's, and a streamed view equals `brickyard render`.
+
+use brickyard_cache::brick::{BrickContent, BrickKey, LoadedBrick};
+use brickyard_cache::host_cache::HostCache;
+use brickyard_cache::loader::Loader;
+use brickyard_cache::vm::VmConfig;
+use brickyard_render::Image;
+use brickyard_store::builder::{convert, ConvertOptions, NoProgress};
+use brickyard_store::codec::Compression;
+use brickyard_store::import::{open_input, ImportOptions};
+use brickyard_web::session::{Spawn, WebSession};
+use brickyard_web::source::{FileFetch, WebSource};
+use brickyard_web::view::ViewState;
+use futures_executor::LocalPool;
+use futures_util_spawn::spawn_local;
+use std::path::{Path, PathBuf};
+use std::rc::Rc;
+use std::sync::atomic::AtomicBool;
+use std::sync::Arc;
+
+mod futures_util_spawn {
+    pub fn spawn_local(
+        s: &futures_executor::LocalSpawner,
+        f: std::pin::Pin<Box<dyn std::future::Future<Output = ()>>>,
+    ) {
+        use futures_task::LocalSpawn;
+        s.spawn_local_obj(f.into()).expect("spawn");
+    }
+}
+
+fn data(name: &str) -> PathBuf {
+    Path::new(env!("CARGO_MANIFEST_DIR"))
+        .join("../../../shared/data")
+        .join(name)
+}
+
+fn convert_file(
+    dir: &Path,
+    input: &str,
+    compression: Compression,
+    brick: u64,
+    shard: u64,
+) -> PathBuf {
+    let src = open_input(&data(input), &ImportOptions::default()).expect("input");
+    let out = dir.join(format!("{input}.ome.zarr"));
+    let opts = ConvertOptions {
+        brick: [brick; 3],
+        shard: [shard; 3],
+        compression,
+        ..Default::default()
+    };
+    convert(&*src, &out, &opts, &NoProgress, &AtomicBool::new(false)).expect("convert");
+    out
+}
+
+fn open_web(store: &Path, brick: u64) -> WebSource {
+    futures_executor::block_on(WebSource::open(
+        Rc::new(FileFetch(store.into())),
+        brick,
+        1,
+        1 << 20,
+    ))
+    .expect("open")
+}
+
+fn same(a: &LoadedBrick, b: &LoadedBrick) -> bool {
+    a.content == b.content
+        && (a.min.to_bits() == b.min.to_bits() || (a.min.is_nan() && b.min.is_nan()))
+        && (a.max.to_bits() == b.max.to_bits() || (a.max.is_nan() && b.max.is_nan()))
+}
+
+/// Every brick of every level and channel, web against native.
+fn check_store(store: &Path, brick: u64) -> (usize, usize) {
+    let web = open_web(store, brick);
+    let native =
+        Loader::open(store, [brick; 3], 1, 1, Arc::new(HostCache::new(1 << 26))).expect("loader");
+    assert_eq!(&web.geometry, native.geometry());
+    let g = web.geometry.clone();
+    let (mut data, mut uniform) = (0, 0);
+    for l in 0..g.levels.len() {
+        for c in 0..g.channels {
+            for key in g.keys(l, c) {
+                let w = futures_executor::block_on(web.load(key))
+                    .unwrap_or_else(|e| panic!("{key:?}: {e}"));
+                let n = native.load_now(&key).expect("native");
+                assert!(same(&w, &n), "{}: {key:?} differs", store.display());
+                match w.content {
+                    BrickContent::Data(_) => data += 1,
+                    _ => uniform += 1,
+                }
+            }
+        }
+    }
+    (data, uniform)
+}
+
+#[test]
+fn bricks_equal_the_native_loaders_on_real_volumes() {
+    let dir = tempfile::tempdir().unwrap();
+    // u8 (blosc LZ4), u16 (blosc LZ4 with byte shuffle), f32 (zstd), with
+    // engine bricks that cut across store chunks and shards.
+    for (input, comp, brick, shard, b) in [
+        ("mni152-t1-u8.nii.gz", Compression::Lz4, 64, 128, 32),
+        ("nuclei-confocal-u16.tif", Compression::Lz4, 32, 64, 24),
+        ("tomo-cryoet-f32.tif", Compression::Zstd(3), 32, 64, 40),
+    ] {
+        let store = convert_file(dir.path(), input, comp, brick, shard);
+        let (d, u) = check_store(&store, b);
+        eprintln!("{input}: {d} data bricks and {u} uniform ones equal");
+        assert!(d > 10, "{input}: a check of {d} data bricks is too small");
+    }
+}
+
+#[test]
+fn damaged_chunks_fail_their_bricks_with_the_file_named() {
+    let dir = tempfile::tempdir().unwrap();
+    let store = convert_file(dir.path(), "mni152-t1-u8.nii.gz", Compression::Lz4, 64, 128);
+    let shard = store.join("0/c/0/0/0");
+    let b = std::fs::read(&shard).unwrap();
+    // A shard cut short: its index (read from the end) fails its checksum.
+    std::fs::write(&shard, &b[..b.len() / 2]).unwrap();
+    let web = open_web(&store, 32);
+    let g = web.geometry.clone();
+    let mut failed = 0;
+    for key in g.keys(0, 0) {
+        if let Err(e) = futures_executor::block_on(web.load(key)) {
+            assert!(e.contains("0/c/0/0/0"), "{e}");
+            failed += 1;
+        }
+    }
+    assert!(failed > 0, "a damaged shard must fail some bricks");
+    // A chunk cut short inside an intact shard fails too.
+    let shard1 = store.join("1/c/0/0/0");
+    let mut b = std::fs::read(&shard1).unwrap();
+    let n = b.len();
+    // The first inner chunk's length in the index (at the end) made longer
+    // than the file.
+    let idx = n - 4 - 16 * 8;
+    let len = u64::from_le_bytes(b[idx + 8..idx + 16].try_into().unwrap());
+    if len != u64::MAX {
+        b[idx + 8..idx + 16].copy_from_slice(&(n as u64 * 2).to_le_bytes());
+        let crc = crc32c_of(&b[idx..n - 4]);
+        b[n - 4..].copy_from_slice(&crc.to_le_bytes());
+        std::fs::write(&shard1, &b).unwrap();
+        let web = open_web(&store, 32);
+        let e = futures_executor::block_on(web.load(BrickKey::new(1, 0, [0, 0, 0]))).unwrap_err();
+        assert!(e.contains("1/c/0/0/0"), "{e}");
+    }
+    // A store that is not there: a clear error.
+    let e = futures_executor::block_on(WebSource::open(
+        Rc::new(FileFetch(dir.path().join("nothing"))),
+        32,
+        1,
+        1 << 20,
+    ))
+    .err()
+    .unwrap();
+    assert!(e.contains("zarr.json: not found"), "{e}");
+}
+
+/// Stream a view to complete through the web session on one thread.
+fn stream(store: &Path, state: &ViewState, window: [f64; 2], pool: u64) -> (Image, u32) {
+    let src = Rc::new(open_web(store, 32));
+    let mut exec = LocalPool::new();
+    let sp = exec.spawner();
+    let spawn: Spawn = Rc::new(move |f| spawn_local(&sp, f));
+    let cfg = VmConfig {
+        brick: [32; 3],
+        pool_bytes: pool,
+        ..Default::default()
+    };
+    let mut s = WebSession::new(src, cfg, spawn, 6).expect("session");
+    let (p, lod) = state.params(&s.scene, window).unwrap();
+    for frame in 0..500 {
+        exec.run_until_stalled();
+        let out = s.frame_cpu(&p, lod);
+        if out.complete {
+            eprintln!(
+                "complete at LOD bias {} after {} frames, {} bricks loaded",
+                out.bias,
+                frame,
+                s.loads.loaded()
+            );
+            return (s.image().clone(), frame);
+        }
+    }
+    panic!("the view did not complete in 500 frames");
+}
+
+fn render_cli(store: &Path, args: &[&str]) -> Image {
+    let mut a: Vec<String> = ["brickyard", "render", store.to_str().unwrap()]
+        .map(String::from)
+        .to_vec();
+    a.extend(args.iter().map(|s| s.to_string()));
+    a.extend(["--backend", "cpu", "--brick", "32"].map(String::from));
+    let c = brickyard_run::render::RenderCmd::try_parse_from(&a).expect("args");
+    brickyard_run::render::images(c).expect("render").remove(0)
+}
+
+#[test]
+fn a_streamed_view_equals_brickyard_render() {
+    let dir = tempfile::tempdir().unwrap();
+    let store = convert_file(dir.path(), "mni152-t1-u8.nii.gz", Compression::Lz4, 64, 128);
+    for q in [
+        "size=400x300&az=40&el=25&tf=soft&window=0,255",
+        "mode=mip&size=300x300&az=-70&el=10&tf=hot&window=20,200",
+        "mode=slice&size=320x320&slice=0.4&window=0,255&tf=linear",
+    ] {
+        let st = ViewState::from_query(q).unwrap();
+        let (web, frames) = stream(&store, &st, [0.0, 255.0], 64 << 20);
+        let [lo, hi] = st.window.unwrap();
+        let cli = render_cli(
+            &store,
+            &[
+                "--mode",
+                &st.mode,
+                "--size",
+                &format!("{}x{}", st.width, st.height),
+                &format!("--azimuth={}", st.azimuth),
+                &format!("--elevation={}", st.elevation),
+                "--tf",
+                &st.tf,
+                "--window",
+                &format!("{lo},{hi}"),
+                "--slice-z",
+                &st.slice_z.to_string(),
+            ],
+        );
+        let lit = cli.rgba.iter().filter(|p| p[3] > 0.05).count();
+        assert!(
+            lit > cli.rgba.len() / 10,
+            "{q}: the reference image is nearly blank ({lit} lit pixels)"
+        );
+        let d = web
+            .rgba
+            .iter()
+            .zip(&cli.rgba)
+            .flat_map(|(a, b)| (0..4).map(move |i| (a[i] - b[i]).abs()))
+            .fold(0f32, f32::max);
+        eprintln!("{q}: complete after {frames} frames, max difference {d:e}");
+        assert!(
+            d <= 1e-5,
+            "{q}: the streamed view differs from brickyard render by {d}"
+        );
+    }
+}
+
+#[test]
+fn a_pool_smaller_than_the_view_still_completes() {
+    let dir = tempfile::tempdir().unwrap();
+    let store = convert_file(dir.path(), "mni152-t1-u8.nii.gz", Compression::Lz4, 64, 128);
+    let st = ViewState::from_query("size=200x200&window=0,255").unwrap();
+    // Room for the coarse levels and a few dozen bricks: the view ends,
+    // complete at the detail the pool holds... or at least ends.
+    let (img, frames) = stream_small(&store, &st);
+    let lit = img.rgba.iter().filter(|p| p[3] > 0.05).count();
+    assert!(lit > 1000, "{lit} lit pixels after {frames} frames");
+}
+
+fn stream_small(store: &Path, st: &ViewState) -> (Image, u32) {
+    stream(store, st, [0.0, 255.0], 2 << 20)
+}
+
+fn crc32c_of(b: &[u8]) -> u32 {
+    // The index codec's checksum (Castagnoli), bit by bit.
+    let mut c = !0u32;
+    for &x in b {
+        c ^= x as u32;
+        for _ in 0..8 {
+            c = if c & 1 != 0 {
+                (c >> 1) ^ 0x82F6_3B78
+            } else {
+                c >> 1
+            };
+        }
+    }
+    !c
+}

@@ -1,0 +1,165 @@
+// The page: the view lives in the URL (#store=…&mode=…), the viewer
+// (WebAssembly) draws into the canvas each animation frame while
+// anything is left to load, and the controls edit the URL's view.
+import init, { Viewer } from './brickyard_web.js';
+
+const $ = (id) => document.getElementById(id);
+const hashParams = () => new URLSearchParams(location.hash.slice(1));
+const state = { viewer: null, store: null, status: null, error: null, webgpu: null };
+window.brickyard = state;
+
+function showError(msg) {
+  state.error = String(msg);
+  $('error').textContent = state.error;
+}
+
+async function webgpuAvailable() {
+  if (!navigator.gpu) return false;
+  try { return !!(await navigator.gpu.requestAdapter()); } catch { return false; }
+}
+
+async function remoteOffered() {
+  try { const r = await fetch(new URL('../remote', location.href), { method: 'HEAD' }); return r.ok; } catch { return false; }
+}
+
+function viewQuery() {
+  const p = hashParams();
+  p.delete('store');
+  p.delete('pool');
+  return p.toString();
+}
+
+function writeUrl(query) {
+  const pool = hashParams().get('pool');
+  const h = 'store=' + encodeURIComponent(state.store) + (pool ? '&pool=' + pool : '') + (query ? '&' + query : '');
+  if (location.hash.slice(1) !== h) history.replaceState(null, '', '#' + h);
+}
+
+function syncControls(q) {
+  const p = new URLSearchParams(q);
+  $('mode').value = p.get('mode') || 'dvr';
+  $('tf').value = p.get('tf') || 'soft';
+  $('slice').value = p.get('slice') || '0.5';
+  $('bias').value = p.get('bias') || '0';
+  if (p.get('channel')) $('channel').value = p.get('channel');
+  const info = JSON.parse(state.viewer.info());
+  const w = (p.get('window') || '').split(',').map(Number);
+  const [lo, hi] = w.length === 2 && w.every(Number.isFinite) ? w : info.window;
+  $('wlo').value = lo; $('whi').value = hi;
+  $('wtext').textContent = `${lo} – ${hi}`;
+}
+
+function setView(changes) {
+  const p = new URLSearchParams(state.viewer.query());
+  for (const [k, v] of Object.entries(changes)) {
+    if (v === null) p.delete(k); else p.set(k, v);
+  }
+  try {
+    state.viewer.set_query(p.toString());
+    state.error = null; $('error').textContent = '';
+  } catch (e) { showError(e); }
+  writeUrl(state.viewer.query());
+  syncControls(state.viewer.query());
+  wake();
+}
+
+let histAt = 0;
+function drawHistogram() {
+  const c = $('hist'), g = c.getContext('2d');
+  const h = state.viewer.histogram();
+  const info = JSON.parse(state.viewer.info());
+  g.fillStyle = '#000'; g.fillRect(0, 0, c.width, c.height);
+  let max = 1;
+  for (let i = 1; i < h.length; i++) max = Math.max(max, h[i]);
+  g.fillStyle = '#888';
+  for (let i = 0; i < h.length; i++) {
+    const v = Math.log1p(h[i]) / Math.log1p(max) * c.height;
+    g.fillRect(i * c.width / h.length, c.height - v, c.width / h.length, v);
+  }
+  const [d0, d1] = info.window;
+  const x = (v) => (v - d0) / (d1 - d0) * c.width;
+  const lo = Number($('wlo').value), hi = Number($('whi').value);
+  g.strokeStyle = '#fc6'; g.beginPath();
+  g.moveTo(x(lo), c.height); g.lineTo(x(hi), 0); g.stroke();
+}
+
+let running = false;
+function wake() { if (!running) { running = true; requestAnimationFrame(tick); } }
+
+function tick() {
+  let st;
+  try { st = JSON.parse(state.viewer.frame()); } catch (e) { showError(e); running = false; return; }
+  state.status = st;
+  writeUrl(st.query);
+  $('status').textContent =
+    `${st.complete ? 'complete' : 'loading'}  ${(100 * st.completeness).toFixed(1)} % exact` +
+    `${st.bias > 0 ? `  (LOD bias +${st.bias}: the pool is too small for full detail)` : ''}\n` +
+    `bricks: ${st.resident} resident of ${st.pool_slots}, ${st.loaded} loaded, ${st.in_flight} in flight, ${st.queued} queued\n` +
+    `read: ${(st.bytes / 1048576).toFixed(1)} MiB at ${st.mib_s.toFixed(1)} MiB/s\n` +
+    `frame: ${st.frame_ms.toFixed(0)} ms` +
+    (st.first_complete_ms ? `, first complete after ${(st.first_complete_ms / 1000).toFixed(2)} s` : '') +
+    (st.failed ? `\nfailed bricks: ${st.failed} (drawn from coarser data)\nlast: ${st.last_failure}` : '');
+  const now = performance.now();
+  if (now - histAt > 1000) { histAt = now; drawHistogram(); }
+  if (st.complete && !dragging) { running = false; return; }
+  requestAnimationFrame(tick);
+}
+
+let dragging = false;
+function wireControls() {
+  const view = $('view');
+  let last = null;
+  view.addEventListener('pointerdown', (e) => { dragging = true; last = [e.clientX, e.clientY]; view.setPointerCapture(e.pointerId); wake(); });
+  view.addEventListener('pointermove', (e) => {
+    if (!dragging) return;
+    state.viewer.orbit(-(e.clientX - last[0]) * 0.4, (e.clientY - last[1]) * 0.4);
+    last = [e.clientX, e.clientY];
+    wake();
+  });
+  view.addEventListener('pointerup', () => { dragging = false; wake(); });
+  view.addEventListener('wheel', (e) => { e.preventDefault(); state.viewer.zoom(e.deltaY < 0 ? 1.1 : 1 / 1.1); wake(); }, { passive: false });
+  $('mode').onchange = () => setView({ mode: $('mode').value === 'dvr' ? null : $('mode').value });
+  $('tf').onchange = () => setView({ tf: $('tf').value === 'soft' ? null : $('tf').value });
+  const win = () => setView({ window: `${$('wlo').value},${$('whi').value}` });
+  $('wlo').onchange = win; $('whi').onchange = win;
+  $('channel').onchange = () => setView({ channel: $('channel').value === '0' ? null : $('channel').value, window: null });
+  $('slice').oninput = () => setView({ slice: $('slice').value });
+  $('bias').oninput = () => setView({ bias: $('bias').value === '0' ? null : $('bias').value });
+  window.addEventListener('hashchange', () => {
+    if (hashParams().get('store') !== state.store) { location.reload(); return; }
+    try { state.viewer.set_query(viewQuery()); syncControls(state.viewer.query()); wake(); } catch (e) { showError(e); }
+  });
+}
+
+async function main() {
+  await init();
+  state.webgpu = await webgpuAvailable();
+  const store = hashParams().get('store');
+  if (!store) {
+    $('open').style.display = 'block';
+    $('open').onsubmit = (e) => { e.preventDefault(); location.hash = 'store=' + encodeURIComponent($('url').value); location.reload(); };
+    return;
+  }
+  state.store = store;
+  let notice = state.webgpu
+    ? 'WebGPU is available; this build draws on the CPU in WebAssembly.'
+    : 'WebGPU is not available in this browser: drawing on the CPU in WebAssembly.';
+  if (!state.webgpu && await remoteOffered()) notice += '\nThe server also renders remotely: ';
+  $('notice').textContent = notice;
+  if (!state.webgpu && await remoteOffered()) {
+    const a = document.createElement('a'); a.href = new URL('../remote', location.href).href; a.textContent = 'open the remote-rendering client';
+    $('notice').appendChild(a);
+  }
+  const pool = Number(hashParams().get('pool') || 256);
+  try {
+    state.viewer = await Viewer.open(new URL(store, location.href).href, $('view'), viewQuery(), pool);
+  } catch (e) { showError(e); return; }
+  const info = JSON.parse(state.viewer.info());
+  info.channels.forEach((label, i) => { const o = document.createElement('option'); o.value = String(i); o.textContent = `${i}: ${label}`; $('channel').appendChild(o); });
+  if (info.channels.length === 0) { const o = document.createElement('option'); o.value = '0'; o.textContent = '0'; $('channel').appendChild(o); }
+  syncControls(state.viewer.query());
+  wireControls();
+  wake();
+}
+
+main().catch(showError);

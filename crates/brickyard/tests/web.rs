@@ -1,0 +1,238 @@
+//! The web client end to end: `brickyard serve --web` serves the page and
+//! a real volume, headless Chromium opens a link to a DVR view, and the
+//! canvas must equal `brickyard render` of the same view within 2/255;
+//! the link the page writes reopens the same view; without WebGPU the
+//! page says so and still draws; a bad view in the link is an error that
+//! names its key. Also `serve --web` without a built client: a clear
+//! error. Needs the bundle (`scripts/build-web.sh`, run by
+//! `scripts/test.sh`), Node.js with the pinned playwright-core, and
+//! Debian's chromium; `BRICKYARD_SKIP_BROWSER=1` opts out explicitly.
+
+use std::io::{BufRead, BufReader};
+use std::path::{Path, PathBuf};
+use std::process::{Child, Command, Output, Stdio};
+
+fn bin() -> Command {
+    Command::new(env!("CARGO_BIN_EXE_brickyard"))
+}
+
+fn ok(o: &Output) -> String {
+    assert!(
+        o.status.success(),
+        "failed: {}\n{}",
+        String::from_utf8_lossy(&o.stderr),
+        String::from_utf8_lossy(&o.stdout)
+    );
+    String::from_utf8_lossy(&o.stdout).into_owned()
+}
+
+fn repo() -> PathBuf {
+    Path::new(env!("CARGO_MANIFEST_DIR")).join("../..")
+}
+
+/// The built web client (`scripts/build-web.sh`): beside the binary's
+/// directory, as `serve --web` looks for it.
+fn dist() -> PathBuf {
+    Path::new(env!("CARGO_BIN_EXE_brickyard"))
+        .parent()
+        .unwrap()
+        .parent()
+        .unwrap()
+        .join("web")
+}
+
+struct Served(Child, u16, String);
+
+impl Drop for Served {
+    fn drop(&mut self) {
+        let _ = self.0.kill();
+        let _ = self.0.wait();
+    }
+}
+
+fn serve_web(store: &Path) -> Served {
+    let mut child = bin()
+        .args(["serve", "--web", "--quiet", "--port", "0"])
+        .arg(store)
+        .stderr(Stdio::piped())
+        .spawn()
+        .unwrap();
+    let mut err = BufReader::new(child.stderr.take().unwrap());
+    let (mut first, mut second) = (String::new(), String::new());
+    err.read_line(&mut first).unwrap();
+    err.read_line(&mut second).unwrap();
+    let port: u16 = first
+        .split("127.0.0.1:")
+        .nth(1)
+        .and_then(|r| r.split('/').next())
+        .and_then(|p| p.parse().ok())
+        .unwrap_or_else(|| panic!("no address in {first:?}"));
+    std::thread::spawn(move || {
+        let mut l = String::new();
+        while err.read_line(&mut l).unwrap_or(0) > 0 {
+            l.clear();
+        }
+    });
+    Served(child, port, second)
+}
+
+fn needs_browser() -> Option<()> {
+    let have = Command::new("chromium")
+        .arg("--version")
+        .output()
+        .is_ok_and(|o| o.status.success())
+        && Command::new("node")
+            .arg("--version")
+            .output()
+            .is_ok_and(|o| o.status.success())
+        && repo()
+            .join("crates/brickyard-web/browser/node_modules/playwright-core")
+            .is_dir()
+        && dist().join("brickyard_web_bg.wasm").is_file();
+    if have {
+        return Some(());
+    }
+    if std::env::var("BRICKYARD_SKIP_BROWSER").as_deref() == Ok("1") {
+        eprintln!("skipped: BRICKYARD_SKIP_BROWSER=1");
+        return None;
+    }
+    panic!(
+        "this test needs chromium, node, the web client built and its test driver installed \
+         (bash scripts/build-web.sh); BRICKYARD_SKIP_BROWSER=1 opts out"
+    );
+}
+
+fn read_png(p: &Path) -> (u32, u32, Vec<u8>) {
+    let d = png::Decoder::new(std::io::BufReader::new(std::fs::File::open(p).unwrap()));
+    let mut r = d.read_info().unwrap();
+    let mut buf = vec![0; r.output_buffer_size().unwrap()];
+    let info = r.next_frame(&mut buf).unwrap();
+    buf.truncate(info.buffer_size());
+    (info.width, info.height, buf)
+}
+
+#[test]
+fn the_web_client_draws_what_render_draws_in_a_headless_browser() {
+    if needs_browser().is_none() {
+        return;
+    }
+    let d = tempfile::tempdir().unwrap();
+    let store = d.path().join("mni.ome.zarr");
+    let input = repo().join("../shared/data/mni152-t1-u8.nii.gz");
+    ok(&bin()
+        .arg("convert")
+        .arg(&input)
+        .arg(&store)
+        .arg("--quiet")
+        .output()
+        .unwrap());
+    let srv = serve_web(&store);
+    assert!(srv.2.contains("/web/#store=../mni.ome.zarr/"), "{}", srv.2);
+    let view = "az=40&el=25&size=320x240&tf=soft&window=0,255";
+    let url = format!(
+        "http://127.0.0.1:{}/web/#store=..%2Fmni.ome.zarr%2F&{view}",
+        srv.1
+    );
+    let out = d.path().join("out");
+    std::fs::create_dir_all(&out).unwrap();
+    let o = Command::new("node")
+        .arg(repo().join("crates/brickyard-web/browser/e2e.mjs"))
+        .args(["chromium", &url])
+        .arg(&out)
+        .output()
+        .unwrap();
+    let report = std::fs::read_to_string(out.join("report.json")).unwrap_or_default();
+    assert!(
+        o.status.success(),
+        "the browser check failed:\n{}\n{report}",
+        String::from_utf8_lossy(&o.stderr)
+    );
+    eprintln!("{report}");
+    let r: serde_json::Value = serde_json::from_str(&report).unwrap();
+    // The same view by the command line.
+    let png = d.path().join("cli.png");
+    ok(&bin()
+        .arg("render")
+        .arg(&store)
+        .args([
+            "--size",
+            "320x240",
+            "--azimuth",
+            "40",
+            "--elevation",
+            "25",
+            "--tf",
+            "soft",
+            "--window",
+            "0,255",
+            "--brick",
+            "32",
+            "--backend",
+            "cpu",
+            "--quiet",
+            "-o",
+        ])
+        .arg(&png)
+        .output()
+        .unwrap());
+    let (w, h, cli) = read_png(&png);
+    assert_eq!(
+        (r["width"].as_u64(), r["height"].as_u64()),
+        (Some(w as u64), Some(h as u64))
+    );
+    let canvas = std::fs::read(out.join("canvas.rgba")).unwrap();
+    assert_eq!(canvas.len(), cli.len());
+    let max = canvas
+        .iter()
+        .zip(&cli)
+        .map(|(a, b)| a.abs_diff(*b))
+        .max()
+        .unwrap();
+    let lit = cli
+        .chunks_exact(4)
+        .filter(|p| p[0].max(p[1]).max(p[2]) > 20)
+        .count();
+    eprintln!(
+        "canvas vs render: max difference {max}/255; {lit} lit pixels of {}",
+        w * h
+    );
+    assert!(
+        lit as u32 > w * h / 10,
+        "the reference is nearly black ({lit} lit pixels)"
+    );
+    assert!(
+        max <= 2,
+        "the canvas differs from brickyard render by {max}/255"
+    );
+    // The link reopens the same view; without WebGPU the page says so and draws the same.
+    assert_eq!(r["reload_same_pixels"], true, "{report}");
+    assert_eq!(r["reload_url"], r["url"]);
+    assert!(r["url"].as_str().unwrap().contains("az=40"), "{report}");
+    assert_eq!(r["fallback_webgpu"], false, "{report}");
+    assert!(
+        r["fallback_notice"]
+            .as_str()
+            .unwrap()
+            .contains("WebGPU is not available"),
+        "{report}"
+    );
+    assert_eq!(r["fallback_same_pixels"], true, "{report}");
+    assert!(
+        r["bad_query_error"].as_str().unwrap().starts_with("mode:"),
+        "{report}"
+    );
+}
+
+#[test]
+fn serve_web_without_a_built_client_says_how_to_build_it() {
+    let d = tempfile::tempdir().unwrap();
+    let o = bin()
+        .args(["serve", "--web", "--port", "0", "--web-dist"])
+        .arg(d.path())
+        .arg(d.path())
+        .output()
+        .unwrap();
+    assert!(!o.status.success());
+    let e = String::from_utf8_lossy(&o.stderr);
+    assert!(e.contains("--web") && e.contains("build-web.sh"), "{e}");
+}
