@@ -113,6 +113,12 @@ impl Loads {
     pub fn loaded(&self) -> u64 {
         self.st.borrow().loaded
     }
+
+    /// Bricks arrived (or failed) and not yet taken.
+    pub fn arrived(&self) -> usize {
+        let st = self.st.borrow();
+        st.arrived.len() + st.failed.len()
+    }
 }
 
 /// What one frame did.
@@ -209,6 +215,11 @@ impl WebSession {
             image: Image::new(0, 0),
             tiles: Tiles::all(0, 0),
         })
+    }
+
+    /// Bricks that arrived and wait to be drawn with.
+    pub fn news(&self) -> usize {
+        self.loads.arrived() + self.waiting.len()
     }
 
     /// Whether the coarsest levels are in (every sample finds data).

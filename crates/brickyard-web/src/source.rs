@@ -13,6 +13,7 @@ use crate::zarr::{self, Codec, Multiscale};
 use brickyard_cache::assemble::{brick_buffer, finish_brick, PaddedRegion};
 use brickyard_cache::brick::{BrickGeometry, BrickKey, LoadedBrick};
 use brickyard_core::Dims3;
+use futures_util::future::{FutureExt, Shared};
 use std::cell::RefCell;
 use std::collections::{HashMap, VecDeque};
 use std::future::Future;
@@ -24,7 +25,7 @@ use std::sync::Arc;
 pub type LocalFuture<T> = Pin<Box<dyn Future<Output = T>>>;
 
 /// Which bytes of an object to get.
-#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]
 pub enum Range {
     All,
     /// `len` bytes from `start`.
@@ -115,7 +116,10 @@ pub struct WebSource {
     indexes: RefCell<Lru<(usize, Vec<u64>), ShardIndex>>,
     chunks: RefCell<Lru<(usize, Vec<u64>, usize), Rc<Vec<u8>>>>,
     pub stats: RefCell<SourceStats>,
+    inflight: RefCell<HashMap<(String, Range), SharedFetch>>,
 }
+
+type SharedFetch = Shared<LocalFuture<Result<Option<Rc<Vec<u8>>>, String>>>;
 
 async fn get_json(fetch: &dyn Fetch, path: &str) -> Result<Option<Vec<u8>>, String> {
     fetch.get(path, Range::All).await
@@ -181,17 +185,36 @@ impl WebSource {
             indexes: RefCell::new(Lru::new(8 << 20)),
             chunks: RefCell::new(Lru::new(chunk_budget)),
             stats: RefCell::new(SourceStats::default()),
+            inflight: RefCell::new(HashMap::new()),
         })
     }
 
+    /// One read; reads of the same bytes already under way are joined,
+    /// not sent again (neighbouring bricks ask for the same chunks).
     async fn get(&self, path: &str, range: Range) -> Result<Option<Vec<u8>>, String> {
-        let r = self.fetch.get(path, range).await;
-        let mut s = self.stats.borrow_mut();
-        s.requests += 1;
-        if let Ok(Some(b)) = &r {
-            s.bytes += b.len() as u64;
-        }
-        r.map_err(|e| format!("{path}: {e}"))
+        let k = (path.to_string(), range);
+        let shared = self.inflight.borrow().get(&k).cloned();
+        let fut = match shared {
+            Some(f) => f,
+            None => {
+                let f = self.fetch.get(path, range);
+                let f: LocalFuture<Result<Option<Rc<Vec<u8>>>, String>> =
+                    Box::pin(async move { f.await.map(|o| o.map(Rc::new)) });
+                let f: SharedFetch = f.shared();
+                self.inflight.borrow_mut().insert(k.clone(), f.clone());
+                let r = f.clone().await;
+                self.inflight.borrow_mut().remove(&k);
+                let mut s = self.stats.borrow_mut();
+                s.requests += 1;
+                if let Ok(Some(b)) = &r {
+                    s.bytes += b.len() as u64;
+                }
+                f
+            }
+        };
+        fut.await
+            .map(|o| o.map(|b| Rc::try_unwrap(b).unwrap_or_else(|b| (*b).clone())))
+            .map_err(|e| format!("{path}: {e}"))
     }
 
     /// The index of shard `idx` of level `l`.

@@ -29,8 +29,8 @@ impl Fetch for HttpFetch {
     fn get(&self, path: &str, range: Range) -> LocalFuture<Result<Option<Vec<u8>>, String>> {
         let url = format!("{}/{}", self.base.trim_end_matches('/'), path);
         Box::pin(async move {
-            // A request that stalls (a lost connection) is abandoned after
-            // 20 s and tried again, twice; then the brick fails.
+            // A request that stalls (a lost connection) is abandoned and
+            // tried again, twice; then the brick fails.
             let mut last = String::new();
             for _ in 0..3 {
                 match get_once(&url, range).await {
@@ -53,14 +53,32 @@ async fn get_once(url: &str, range: Range) -> Result<Option<Vec<u8>>, (String, b
     let fatal = |e: JsValue| (js_err(e), false);
     let opts = web_sys::RequestInit::new();
     opts.set_method("GET");
-    opts.set_signal(Some(&web_sys::AbortSignal::timeout_with_u32(20_000)));
+    // The answer's head must come within 4 s and its body within 30 s,
+    // else the request is abandoned (and tried again): a request that
+    // stalled on loopback was seen now and then in headless Chromium.
+    let ctl = web_sys::AbortController::new().map_err(fatal)?;
+    opts.set_signal(Some(&ctl.signal()));
     if range != Range::All {
         // Byte ranges bypass the HTTP cache: Chromium's answers to ranges
         // of a partly cached object came back empty (its sparse entries);
         // bricks have caches of their own.
         opts.set_cache(web_sys::RequestCache::NoStore);
     }
-    let req = web_sys::Request::new_with_str_and_init(url, &opts).map_err(fatal)?;
+    // Each range gets a URL of its own: Chromium lets one request per URL
+    // through its HTTP cache at a time and holds the others up to 20 s
+    // (its cache lock), which parallel reads of one shard would hit.
+    let addr = match range {
+        Range::All => url.to_string(),
+        Range::Span { start, len } => format!(
+            "{url}{}bytes={start}-{len}",
+            if url.contains('?') { '&' } else { '?' }
+        ),
+        Range::Suffix(n) => format!(
+            "{url}{}bytes=-{n}",
+            if url.contains('?') { '&' } else { '?' }
+        ),
+    };
+    let req = web_sys::Request::new_with_str_and_init(&addr, &opts).map_err(fatal)?;
     let header = match range {
         Range::All => None,
         Range::Span { start, len } => Some(format!("bytes={}-{}", start, start + len - 1)),
@@ -70,8 +88,17 @@ async fn get_once(url: &str, range: Range) -> Result<Option<Vec<u8>>, (String, b
         req.headers().set("Range", h).map_err(fatal)?;
     }
     let window = web_sys::window().ok_or(("no window".to_string(), false))?;
-    let resp: web_sys::Response = JsFuture::from(window.fetch_with_request(&req))
-        .await
+    let abort_after = |ms: i32| -> Result<i32, (String, bool)> {
+        let c = ctl.clone();
+        let cb = Closure::once_into_js(move || c.abort());
+        window
+            .set_timeout_with_callback_and_timeout_and_arguments_0(cb.unchecked_ref(), ms)
+            .map_err(fatal)
+    };
+    let timer = abort_after(4_000)?;
+    let resp = JsFuture::from(window.fetch_with_request(&req)).await;
+    window.clear_timeout_with_handle(timer);
+    let resp: web_sys::Response = resp
         .map_err(|e| (format!("{url}: {}", js_err(e)), true))?
         .dyn_into()
         .map_err(fatal)?;
@@ -83,9 +110,10 @@ async fn get_once(url: &str, range: Range) -> Result<Option<Vec<u8>>, (String, b
         }
         s => return Err((format!("{url}: HTTP {s} {}", resp.status_text()), false)),
     }
-    let buf = JsFuture::from(resp.array_buffer().map_err(fatal)?)
-        .await
-        .map_err(|e| (format!("{url}: {}", js_err(e)), true))?;
+    let timer = abort_after(30_000)?;
+    let buf = JsFuture::from(resp.array_buffer().map_err(fatal)?).await;
+    window.clear_timeout_with_handle(timer);
+    let buf = buf.map_err(|e| (format!("{url}: {}", js_err(e)), true))?;
     let bytes = js_sys::Uint8Array::new(&buf).to_vec();
     // A server that ignores ranges answers 200 with the whole file.
     Ok(Some(match (resp.status(), range) {
@@ -120,6 +148,8 @@ struct Inner {
     first_complete_ms: Option<f64>,
     /// The view of the last frame drawn.
     drawn_state: Option<ViewState>,
+    /// When the last frame was drawn (ms).
+    drawn_at: f64,
 }
 
 fn now() -> f64 {
@@ -167,7 +197,7 @@ impl Viewer {
         };
         let spawn: Spawn = Rc::new(wasm_bindgen_futures::spawn_local);
         let mut session =
-            WebSession::new(Rc::new(src), cfg, spawn, 8).map_err(|e| JsValue::from_str(&e))?;
+            WebSession::new(Rc::new(src), cfg, spawn, 32).map_err(|e| JsValue::from_str(&e))?;
         session.scene.channel = state.channel;
         let ctx = canvas
             .get_context("2d")?
@@ -188,6 +218,7 @@ impl Viewer {
                 started,
                 first_complete_ms: None,
                 drawn_state: None,
+                drawn_at: 0.0,
             })),
         })
     }
@@ -202,15 +233,20 @@ impl Viewer {
             .state
             .params(&inner.session.scene, inner.window)
             .map_err(|e| JsValue::from_str(&e))?;
-        let was_complete = inner.last.complete;
-        let same_view =
-            inner.session.image().width == p.width && inner.session.image().height == p.height;
-        if !(was_complete
-            && same_view
-            && inner.last.queued + inner.last.in_flight == 0
-            && inner.frames > 0
-            && !inner.dirty())
-        {
+        // Draw when the view changed, or when enough bricks arrived to be
+        // worth a frame: a frame holds the page's only thread, and loads
+        // (decoding included) move on between frames.
+        let news = inner.session.news();
+        let (queued, in_flight) = inner.session.loads.pending();
+        let idle = queued + in_flight == 0;
+        let waited = t - inner.drawn_at >= 250.0;
+        let draw = inner.frames == 0
+            || inner.dirty()
+            || (news > 0 && (news >= 64 || idle || waited))
+            || (!inner.last.complete && idle && waited);
+        if draw {
+            inner.drawn_at = t;
+            inner.drawn_state = Some(inner.state.clone());
             inner.last = inner.session.frame_cpu(&p, lod);
             inner.frames += 1;
             let img = inner.session.image();
@@ -239,7 +275,6 @@ impl Viewer {
         if inner.last.complete && inner.first_complete_ms.is_none() {
             inner.first_complete_ms = Some(tn - inner.started);
         }
-        inner.drawn_state = Some(inner.state.clone());
         Ok(inner.status(bytes))
     }
 
