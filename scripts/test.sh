@@ -26,21 +26,18 @@ fi
 echo "== cargo build --release -p brickyard ${FEATURES[*]}"
 cargo build --release -p brickyard ${FEATURES[@]+"${FEATURES[@]}"}
 
+# The web client (brickyard-web for wasm32, its glue and page in
+# target/web/, the headless-browser test's driver): before the tests, whose
+# browser test opens it in Chromium. Its wasm build is the check that the
+# renderers, the device driver and the virtual memory build for the web.
+echo "== web client"
+bash scripts/build-web.sh
+
 echo "== cargo test --workspace --release ${FEATURES[*]}"
 cargo test --workspace --release ${FEATURES[@]+"${FEATURES[@]}"}
 
 echo "== interop"
 bash scripts/interop/run.sh target/release/brickyard
-
-# The browser's side: the renderers, the device driver, the residency
-# octree and the virtual memory build for wasm32-unknown-unknown (WebGPU),
-# without the loader's threads and files. A build check: they run in
-# the browser only once the web client exists.
-echo "== wasm32 build (brickyard-render without the loader)"
-if command -v rustup >/dev/null 2>&1; then
-    rustup target add wasm32-unknown-unknown >/dev/null
-fi
-cargo build --release --target wasm32-unknown-unknown -p brickyard-render --no-default-features
 
 echo "== python bindings"
 bash scripts/python-bindings.sh

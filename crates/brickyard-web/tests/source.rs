@@ -278,3 +278,115 @@ fn crc32c_of(b: &[u8]) -> u32 {
     }
     !c
 }
+
+/// An OME-Zarr 0.4 (Zarr v2) image written here by hand: `c, z, y, x`
+/// axes, gzip chunks of 5×7×6 in big- or little-endian u16, `.` or `/`
+/// keys, some chunks absent (the fill value). Every brick must equal a
+/// clamped crop of the array computed here.
+#[test]
+fn zarr_v2_stores_read_as_the_array_they_hold() {
+    use std::io::Write;
+    let dims = [2u64, 19, 23, 17]; // c z y x
+    let chunk = [1u64, 5, 7, 6];
+    let val = |c: u64, z: u64, y: u64, x: u64| -> u16 {
+        ((c * 7919 + z * 131 + y * 17 + x * 3) % 60000) as u16 + 1
+    };
+    for (big, sep, fill) in [(false, ".", 0u16), (true, "/", 9)] {
+        let dir = tempfile::tempdir().unwrap();
+        let root = dir.path();
+        std::fs::write(root.join(".zgroup"), r#"{"zarr_format":2}"#).unwrap();
+        std::fs::write(
+            root.join(".zattrs"),
+            r#"{"multiscales":[{"version":"0.4","axes":[{"name":"c","type":"channel"},{"name":"z","type":"space"},{"name":"y","type":"space"},{"name":"x","type":"space"}],
+               "datasets":[{"path":"0","coordinateTransformations":[{"type":"scale","scale":[1,2.0,0.5,0.5]}]}]}]}"#,
+        )
+        .unwrap();
+        std::fs::create_dir_all(root.join("0")).unwrap();
+        std::fs::write(
+            root.join("0/.zarray"),
+            format!(
+                r#"{{"zarr_format":2,"shape":{dims:?},"chunks":{chunk:?},"dtype":"{}u2","compressor":{{"id":"gzip","level":1}},"fill_value":{fill},"order":"C","filters":null,"dimension_separator":"{sep}"}}"#,
+                if big { ">" } else { "<" }
+            ),
+        )
+        .unwrap();
+        let n: Vec<u64> = (0..4).map(|d| dims[d].div_ceil(chunk[d])).collect();
+        let mut absent = std::collections::HashSet::new();
+        for c in 0..n[0] {
+            for z in 0..n[1] {
+                for y in 0..n[2] {
+                    for x in 0..n[3] {
+                        let idx = [c, z, y, x];
+                        if (c + z + y + x) % 5 == 3 {
+                            absent.insert(idx);
+                            continue;
+                        }
+                        let mut raw = vec![];
+                        for i in 0..chunk[1] {
+                            for j in 0..chunk[2] {
+                                for k in 0..chunk[3] {
+                                    let (zz, yy, xx) =
+                                        (z * chunk[1] + i, y * chunk[2] + j, x * chunk[3] + k);
+                                    let v = if zz < dims[1] && yy < dims[2] && xx < dims[3] {
+                                        val(c, zz, yy, xx)
+                                    } else {
+                                        0
+                                    };
+                                    raw.extend(if big {
+                                        v.to_be_bytes()
+                                    } else {
+                                        v.to_le_bytes()
+                                    });
+                                }
+                            }
+                        }
+                        let mut e =
+                            flate2::write::GzEncoder::new(vec![], flate2::Compression::fast());
+                        e.write_all(&raw).unwrap();
+                        let key = format!("{c}{sep}{z}{sep}{y}{sep}{x}");
+                        let path = root.join("0").join(&key);
+                        std::fs::create_dir_all(path.parent().unwrap()).unwrap();
+                        std::fs::write(path, e.finish().unwrap()).unwrap();
+                    }
+                }
+            }
+        }
+        let web = open_web(root, 8);
+        assert_eq!(web.geometry.levels, vec![[19, 23, 17]]);
+        assert_eq!(web.geometry.channels, 2);
+        assert_eq!(web.meta.spacing, [2.0, 0.5, 0.5]);
+        let truth = |c: u64, z: u64, y: u64, x: u64| -> u16 {
+            let idx = [c, z / chunk[1], y / chunk[2], x / chunk[3]];
+            if absent.contains(&idx) {
+                fill
+            } else {
+                val(c, z, y, x)
+            }
+        };
+        let g = web.geometry.clone();
+        let p = g.padded();
+        for c in 0..2 {
+            for key in g.keys(0, c) {
+                let b = futures_executor::block_on(web.load(key)).unwrap();
+                let dense = b.content.to_dense(g.voxels_per_brick() as usize, g.dtype);
+                let po = g.padded_origin_of(&key);
+                for i in 0..p[0] as i64 {
+                    for j in 0..p[1] as i64 {
+                        for k in 0..p[2] as i64 {
+                            let cl = |v: i64, n: u64| v.clamp(0, n as i64 - 1) as u64;
+                            let want = truth(
+                                c as u64,
+                                cl(po[0] + i, dims[1]),
+                                cl(po[1] + j, dims[2]),
+                                cl(po[2] + k, dims[3]),
+                            );
+                            let o = (((i * p[1] as i64 + j) * p[2] as i64 + k) * 2) as usize;
+                            let got = u16::from_ne_bytes([dense[o], dense[o + 1]]);
+                            assert_eq!(got, want, "{key:?} voxel ({i},{j},{k}), big-endian {big}");
+                        }
+                    }
+                }
+            }
+        }
+    }
+}
