@@ -9,7 +9,7 @@ use crate::composite::{binary_swap, split_even, Operator};
 use crate::kd::{eye_side, KdTree};
 use anyhow::Result;
 use brickyard_render::Image;
-use brickyard_run::share::{Agreed, Share, Split};
+use brickyard_run::share::{Agreed, BrickBox, Share, Split};
 use brickyard_store::builder::Team;
 use mpi::datatype::{Partition, PartitionMut};
 use mpi::point_to_point::send_receive_into;
@@ -230,28 +230,21 @@ impl Share for RenderShare<'_> {
         Ok((self.c.rank() == 0).then_some(img))
     }
 
-    fn region(
+    fn regions(
         &mut self,
-        dims: [u64; 3],
-        spacing: [f64; 3],
+        bricks: [u64; 3],
         brick: u64,
-    ) -> Option<([f64; 3], [f64; 3])> {
-        let nb = dims.map(|d| d.div_ceil(brick));
-        let tree = KdTree::build(nb, self.c.size(), &|_| 1.0);
-        let r = tree.regions()[self.c.rank()];
+        spacing: [f64; 3],
+        weight: &dyn Fn([u64; 3]) -> f64,
+    ) -> Vec<BrickBox> {
+        let tree = KdTree::build(bricks, self.c.size(), weight);
+        let out = tree
+            .regions()
+            .iter()
+            .map(|r| BrickBox { lo: r.lo, hi: r.hi })
+            .collect();
         self.tree = Some((tree, brick, spacing));
-        if r.is_empty() {
-            return None;
-        }
-        let (lo, hi) = r.voxels([brick; 3], dims);
-        let world = |v: [u64; 3]| {
-            [
-                v[2] as f64 * spacing[2],
-                v[1] as f64 * spacing[1],
-                v[0] as f64 * spacing[0],
-            ]
-        };
-        Some((world(lo), world(hi)))
+        out
     }
 
     fn composite(&mut self, img: Image, mip: bool, eye: [f64; 3]) -> Result<(Option<Image>, f64)> {

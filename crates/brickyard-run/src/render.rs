@@ -215,13 +215,20 @@ pub struct RenderCmd {
     /// tiles handed out on demand, the default) or data (sort-last: each
     /// rank draws its k-d region of the volume, the partial images are
     /// composited in visibility order; DVR and MIP of one channel, no early
-    /// ray termination). Both draw on the CPU.
+    /// ray termination). Both draw on the CPU, or with --backend gpu each
+    /// rank on a device of its own (adapter rank modulo the adapters).
     #[arg(long, value_name = "image|data")]
     pub distribute: Option<String>,
     /// DVR: composite every sample of a ray (no early termination at an
     /// opacity of 0.99): the image `--distribute data` composites exactly.
     #[arg(long)]
     pub no_early_termination: bool,
+    /// --distribute data: what the k-d split balances among the ranks:
+    /// data (the default: a brick holding data weighs 1, a uniform one,
+    /// empty or constant by the store's statistics, 1/16) or uniform
+    /// (every brick the same).
+    #[arg(long, value_name = "data|uniform", default_value = "data")]
+    pub region_weights: String,
     /// Also write each image as premultiplied linear RGBA in 32-bit floats
     /// (little-endian, row-major, top row first, width × height × 4) beside
     /// its PNG, with the extension .f32: what the renderer computed, before
@@ -453,12 +460,15 @@ fn run_with(
         if c.progressive.is_some() || c.debug.is_some() {
             bail!("distribute: --progressive and --debug draw on one process");
         }
-        if c.backend == "gpu" {
-            bail!("distribute: the ranks draw their parts on the CPU; use --backend cpu or auto");
-        }
         if c.derive.is_some() {
             bail!("distribute: live derived channels draw on one process");
         }
+    }
+    if !matches!(c.region_weights.as_str(), "data" | "uniform") {
+        bail!(
+            "region-weights: expected data or uniform, found {:?}",
+            c.region_weights
+        );
     }
     let data_split = shared == Some(Split::Data);
     if data_split && (c.views.is_some() || c.stereo.is_some() || c.multiplex.is_some()) {
@@ -493,11 +503,14 @@ fn run_with(
         backend: backend_choice,
         gpu_update,
     } = traversal_options(&c)?;
-    let backend_choice = if shared.is_some() {
-        "cpu".to_string()
-    } else {
-        backend_choice
+    // Shared: each rank draws on the CPU, or with --backend gpu on a
+    // device of its own (adapter `rank` modulo the adapters).
+    let backend_choice = match shared {
+        Some(_) if c.backend == "gpu" => "gpu".to_string(),
+        Some(_) => "cpu".to_string(),
+        None => backend_choice,
     };
+    let adapter = share.as_ref().map_or(0, |s| s.rank());
     if backend_choice != c.backend && shared.is_none() {
         say_err!(silent, "{}", auto_takes_cpu());
     }
@@ -745,7 +758,13 @@ fn run_with(
         let pinned = s
             .pin_coarsest(512, std::time::Duration::from_secs(120))
             .map_err(|e| anyhow::anyhow!("pool: {e}"))?;
-        match crate::backend::Backend::choose(&backend_choice, gpu_update, &mut s, shown) {
+        match crate::backend::Backend::choose_on(
+            &backend_choice,
+            gpu_update,
+            &mut s,
+            shown,
+            adapter,
+        ) {
             Ok(b) => break (s, pinned, b),
             Err(e)
                 if c.pool.is_none()
@@ -845,9 +864,30 @@ fn run_with(
             if traversal != Traversal::PageTable {
                 bail!("distribute data: --traversal page-table (regions clip the rays)");
             }
+            let nb = m.dims.map(|d| d.div_ceil(c.brick));
+            let ranges = scene.ranges.as_deref().and_then(|r| r.level(0));
+            let by_data = c.region_weights == "data";
+            let data = crate::share::brick_weight(ranges, scene.channel);
+            let weight = |b: [u64; 3]| if by_data { data(b) } else { 1.0 };
+            let boxes = sh.regions(nb, c.brick, spacing, &weight);
+            // How the split shares out the bricks holding data.
+            let holding = |b: [u64; 3]| (data(b) == 1.0) as u8 as f64;
+            let counts: Vec<u64> = boxes.iter().map(|r| r.load(&holding) as u64).collect();
+            say!(
+                silent,
+                "regions of {} ranks, split by {}: bricks with data {:?}",
+                boxes.len(),
+                match (by_data, ranges.is_some()) {
+                    (true, true) => "the store's statistics",
+                    (true, false) => "brick counts (no statistics)",
+                    (false, _) => "brick counts (--region-weights uniform)",
+                },
+                counts
+            );
             Some(
-                sh.region(m.dims, spacing, c.brick)
-                    .map_or([[0.0; 3]; 2], |(lo, hi)| [lo, hi]),
+                boxes[sh.rank()]
+                    .world(m.dims, spacing, c.brick)
+                    .unwrap_or([[0.0; 3]; 2]),
             )
         }
         _ => None,
