@@ -225,6 +225,18 @@ impl Share for RenderShare<'_> {
             .map_err(|e| Agreed(e).into())
     }
 
+    fn gather_times(&mut self, mine: f64) -> Vec<f64> {
+        let root = self.c.world().process_at_rank(0);
+        if self.c.rank() == 0 {
+            let mut all = vec![0.0f64; self.c.size()];
+            root.gather_into_root(&mine, &mut all[..]);
+            all
+        } else {
+            root.gather_into(&mine);
+            vec![]
+        }
+    }
+
     fn sum(&mut self, mut img: Image) -> Result<Option<Image>> {
         self.c.sum_f32_to_root(img.rgba.as_flattened_mut());
         Ok((self.c.rank() == 0).then_some(img))

@@ -224,8 +224,9 @@ pub struct RenderCmd {
     #[arg(long)]
     pub no_early_termination: bool,
     /// --distribute data: what the k-d split balances among the ranks:
-    /// data (the default: a brick holding data weighs 1, a uniform one,
-    /// empty or constant by the store's statistics, 1/16) or uniform
+    /// data (the default: by the store's per-brick statistics, a brick the
+    /// rays draw weighs 1, one they cross without drawing (DVR: hidden by
+    /// the transfer function; MIP: empty or constant) 1/16) or uniform
     /// (every brick the same).
     #[arg(long, value_name = "data|uniform", default_value = "data")]
     pub region_weights: String,
@@ -867,15 +868,25 @@ fn run_with(
             let nb = m.dims.map(|d| d.div_ceil(c.brick));
             let ranges = scene.ranges.as_deref().and_then(|r| r.level(0));
             let by_data = c.region_weights == "data";
-            let data = crate::share::brick_weight(ranges, scene.channel);
+            // DVR draws what the transfer function shows (a brick it
+            // hides is crossed in one jump, a uniform one it shows is
+            // sampled at every step); MIP draws bricks holding data (a
+            // uniform one is crossed once the ray's maximum reaches it).
+            let drawn_dvr = |lo: f32, hi: f32| tf.max_opacity(lo, hi) > 0.0;
+            let drawn_mip = |lo: f32, hi: f32| lo < hi;
+            let drawn: &dyn Fn(f32, f32) -> bool = match mode {
+                RenderMode::Mip => &drawn_mip,
+                _ => &drawn_dvr,
+            };
+            let data = crate::share::brick_weight(ranges, scene.channel, drawn);
             let weight = |b: [u64; 3]| if by_data { data(b) } else { 1.0 };
             let boxes = sh.regions(nb, c.brick, spacing, &weight);
-            // How the split shares out the bricks holding data.
+            // How the split shares out the bricks drawn.
             let holding = |b: [u64; 3]| (data(b) == 1.0) as u8 as f64;
             let counts: Vec<u64> = boxes.iter().map(|r| r.load(&holding) as u64).collect();
             say!(
                 silent,
-                "regions of {} ranks, split by {}: bricks with data {:?}",
+                "regions of {} ranks, split by {}: bricks drawn {:?}",
                 boxes.len(),
                 match (by_data, ranges.is_some()) {
                     (true, true) => "the store's statistics",
@@ -985,7 +996,18 @@ fn run_with(
                     .map(|_| ())
                     .map_err(|e| anyhow::anyhow!("{e:#}"));
                 sh.agree(mine)?;
-                drawn?
+                let out = drawn?;
+                // How long each rank drew its part (the balance).
+                let secs = sh.gather_times(out.seconds);
+                say!(
+                    silent,
+                    "view {v}: ranks drew their parts in {} s",
+                    secs.iter()
+                        .map(|t| format!("{t:.2}"))
+                        .collect::<Vec<_>>()
+                        .join(" / ")
+                );
+                out
             }
             _ => drawn?,
         };

@@ -39,6 +39,9 @@ pub trait Share {
     fn stop_asking(&mut self, view: u32);
     /// Every rank's outcome; all get the first failure (naming its rank).
     fn agree(&mut self, mine: Result<()>) -> Result<()>;
+    /// Every rank's `mine` (a time, say), in rank order, on rank 0; empty
+    /// on the others.
+    fn gather_times(&mut self, mine: f64) -> Vec<f64>;
     /// Image-parallel: the sum of the ranks' images, on rank 0.
     fn sum(&mut self, img: Image) -> Result<Option<Image>>;
     /// Data-parallel: the k-d split of the grid of `bricks` level-0
@@ -102,28 +105,29 @@ impl BrickBox {
     }
 }
 
-/// What a brick whose values are all the same (by the store's per-brick
-/// statistics: an empty or constant brick) weighs against one holding
-/// data (1): nothing of it is read, and rays cross it in one jump where
-/// the transfer function hides its value, or sample a constant.
-pub const UNIFORM_WEIGHT: f64 = 1.0 / 16.0;
+/// What a brick costs a rank that draws nothing of it, against one it
+/// draws (1): rays cross it in one jump and nothing of it is read.
+pub const SKIPPED_WEIGHT: f64 = 1.0 / 16.0;
 
-/// The weight of level-0 brick `b` of channel `channel` for the k-d split
-/// from the bricks' value ranges (the store's statistics, apron
-/// included): 1 for a brick holding data (its smallest and largest value
-/// differ) or whose range is unknown, [`UNIFORM_WEIGHT`] for a uniform one.
-/// Without ranges (no statistics) every brick weighs 1.
-pub fn brick_weight(
-    ranges: Option<&brickyard_cache::ranges::LevelRanges>,
+/// The weight of level-0 brick `b` of channel `channel` for the k-d split,
+/// from the bricks' value ranges (the store's per-brick statistics, apron
+/// included): 1 for a brick the rays draw (`drawn(lo, hi)`: for DVR, the
+/// transfer function gives its range some opacity; for MIP, it holds data,
+/// `lo < hi`) or whose range is unknown, [`SKIPPED_WEIGHT`] for the others
+/// (empty or constant bricks that draw nothing, hidden ones). Without
+/// ranges (no statistics) every brick weighs 1. The same on every rank.
+pub fn brick_weight<'a>(
+    ranges: Option<&'a brickyard_cache::ranges::LevelRanges>,
     channel: usize,
-) -> impl Fn([u64; 3]) -> f64 + '_ {
+    drawn: &'a dyn Fn(f32, f32) -> bool,
+) -> impl Fn([u64; 3]) -> f64 + 'a {
     move |b| match ranges {
         Some(r) if channel < r.channels && (0..3).all(|a| b[a] < r.bricks[a]) => {
             let [lo, hi] = r.get(channel, b);
-            if lo == hi {
-                UNIFORM_WEIGHT
-            } else {
+            if lo.is_nan() || hi.is_nan() || drawn(lo, hi) {
                 1.0
+            } else {
+                SKIPPED_WEIGHT
             }
         }
         _ => 1.0,

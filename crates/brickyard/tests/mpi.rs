@@ -582,7 +582,7 @@ fn skewed_store(dir: &Path) -> PathBuf {
     store
 }
 
-/// The bricks with data in each rank's region, as rank 0 reports them.
+/// The bricks drawn in each rank's region, as rank 0 reports them.
 fn data_bricks(stdout: &str) -> Vec<u64> {
     let line = stdout
         .lines()
@@ -593,9 +593,12 @@ fn data_bricks(stdout: &str) -> Vec<u64> {
 }
 
 /// Data-parallel regions weighted by the store's statistics share out the
-/// bricks holding data more evenly than regions of equal brick counts, on
-/// a volume mostly empty, and the images still equal the single-process
-/// one within 1e-5 (DVR without early termination, MIP), by either split.
+/// bricks drawn (DVR: shown by the transfer function; MIP: holding data)
+/// more evenly than regions of equal brick counts, on a volume mostly
+/// empty, and the images still equal the single-process one within 1e-5
+/// (DVR without early termination, MIP), by either split. Where the
+/// transfer function shows the empty space, every brick is drawn and the
+/// weighted split is the uniform one.
 #[test]
 fn data_weights_balance_a_volume_with_empty_space() {
     if !have_mpirun() {
@@ -666,7 +669,7 @@ fn data_weights_balance_a_volume_with_empty_space() {
             );
             let most = |c: &Vec<u64>| *c.iter().max().unwrap();
             let total: u64 = by_data.iter().sum();
-            eprintln!("{mode} on {n} ranks: bricks with data by statistics {by_data:?}, uniform {uniform:?}");
+            eprintln!("{mode} on {n} ranks: bricks drawn, split by statistics {by_data:?}, uniform {uniform:?}");
             assert!(
                 most(by_data) < most(uniform),
                 "{mode} on {n} ranks: the weighted split is not better balanced: {spread:?}"
@@ -678,6 +681,38 @@ fn data_weights_balance_a_volume_with_empty_space() {
             );
         }
     }
+    // A transfer function that shows every value (empty bricks too): DVR
+    // draws every brick, so the weights are those of the uniform split.
+    let mut counts = vec![];
+    for weights in ["data", "uniform"] {
+        let o = mpirun(
+            2,
+            &[
+                "render",
+                s(&store),
+                "--distribute",
+                "data",
+                "--region-weights",
+                weights,
+                "--tf",
+                "opaque",
+                "--brick",
+                "16",
+                "--size",
+                "64x48",
+                "--quiet",
+                "--out",
+                s(&dir.path().join(format!("opaque-{weights}.png"))),
+            ],
+            &[],
+        );
+        ok(&o, "opaque DVR on 2 ranks");
+        let stdout = String::from_utf8_lossy(&o.stdout);
+        assert!(stdout.contains("ranks drew their parts in "), "{stdout}");
+        counts.push(data_bricks(&stdout));
+    }
+    assert_eq!(counts[0], vec![36, 36], "{counts:?}");
+    assert_eq!(counts[0], counts[1]);
 }
 
 /// Several devices in one node: with --backend gpu each rank opens a
