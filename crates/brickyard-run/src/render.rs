@@ -862,6 +862,11 @@ fn run_with(
             if !matches!(mode, RenderMode::Dvr | RenderMode::Mip) || styles.len() > 1 {
                 bail!("distribute data: DVR or MIP of one channel (sort-last compositing)");
             }
+            if mode == RenderMode::Mip && !styles.is_empty() {
+                // The channels' mix (--channel C:colour) draws every
+                // sample of the ray; regions clip one channel through --tf.
+                bail!("distribute data: MIP of the first channel through --tf (no --channel)");
+            }
             if traversal != Traversal::PageTable {
                 bail!("distribute data: --traversal page-table (regions clip the rays)");
             }

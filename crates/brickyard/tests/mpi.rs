@@ -537,6 +537,28 @@ fn a_failing_rank_stops_the_render() {
     assert!(
         err.contains("distribute: expected image or data, found \"pixels\""),
         "{err}"
+    ); // A MIP of channels mixed by colour draws whole rays: not by regions.
+    let o = mpirun(
+        2,
+        &[
+            "render",
+            s(&store),
+            "--distribute",
+            "data",
+            "--mode",
+            "mip",
+            "--channel",
+            "0:white",
+            "--out",
+            s(&dir.path().join("x.png")),
+        ],
+        &[],
+    );
+    assert!(!o.status.success());
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(
+        err.contains("distribute data: MIP of the first channel through --tf (no --channel)"),
+        "{err}"
     );
 }
 
