@@ -367,6 +367,11 @@ fn parse_pair(s: &str, what: &str) -> Result<[f64; 2]> {
 
 impl RenderCmd {
     /// Parse from a full argument list (`brickyard render …`).
+    /// `--backend` as given (auto, gpu or cpu).
+    pub fn backend(&self) -> &str {
+        &self.backend
+    }
+
     pub fn try_parse_from(args: &[String]) -> Result<RenderCmd, clap::Error> {
         use clap::{Args as _, FromArgMatches as _};
         let cmd = RenderCmd::augment_args(clap::Command::new("render")).no_binary_name(false);
