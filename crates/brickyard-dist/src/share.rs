@@ -9,7 +9,7 @@ use crate::composite::{binary_swap, split_even, Operator};
 use crate::kd::{eye_side, KdTree};
 use anyhow::Result;
 use brickyard_render::Image;
-use brickyard_run::share::{Agreed, Share, Split};
+use brickyard_run::share::{Agreed, BrickBox, Share, Split};
 use brickyard_store::builder::Team;
 use mpi::datatype::{Partition, PartitionMut};
 use mpi::point_to_point::send_receive_into;
@@ -20,13 +20,18 @@ const TAG_ASK: i32 = 11;
 const TAG_BAND: i32 = 12;
 const NONE: u32 = u32::MAX;
 
-/// Bands of tile rows per rank: more than one, so that a rank that
-/// finishes early takes work a slower one would otherwise do.
+/// Bands of tile rows per rank on the CPU: more than one, so that a rank
+/// that finishes early takes work a slower one would otherwise do.
 pub const BANDS_PER_RANK: u32 = 4;
 
-/// The `n` bands of `rows` tile rows for `ranks` ranks: `[start, end)`.
-pub fn bands(rows: u32, ranks: usize) -> Vec<(u32, u32)> {
-    let n = rows.min(BANDS_PER_RANK * ranks as u32).max(1);
+/// Bands per rank on a device: one, since every band costs a whole
+/// device frame's fixed part (dispatch, counters, request table, read-back).
+pub const DEVICE_BANDS_PER_RANK: u32 = 1;
+
+/// The bands of `rows` tile rows for `ranks` ranks, `per_rank` each (fewer
+/// where there are fewer rows): `[start, end)`.
+pub fn bands(rows: u32, ranks: usize, per_rank: u32) -> Vec<(u32, u32)> {
+    let n = rows.min(per_rank.max(1) * ranks as u32).max(1);
     (0..n)
         .map(|i| (rows * i / n, rows * (i + 1) / n))
         .filter(|(a, b)| b > a)
@@ -43,6 +48,8 @@ pub struct RenderShare<'c> {
     queue: Vec<(u32, u32)>,
     next: usize,
     told: usize,
+    /// Image-parallel: bands per rank.
+    per_rank: u32,
     /// Data-parallel: the tree of regions and how cuts map to the world.
     tree: Option<(KdTree, u64, [f64; 3])>,
     /// Other ranks: a request for the next band is out (asked before
@@ -60,16 +67,24 @@ impl<'c> RenderShare<'c> {
             queue: vec![],
             next: 0,
             told: 0,
+            per_rank: BANDS_PER_RANK,
             tree: None,
             asked: false,
         }
+    }
+
+    /// Image-parallel: `n` bands per rank (default [`BANDS_PER_RANK`]; the
+    /// same on every rank, though rank 0 alone cuts the bands).
+    pub fn bands_per_rank(mut self, n: u32) -> Self {
+        self.per_rank = n.max(1);
+        self
     }
 
     /// Rank 0: start handing out view `v` (once).
     fn open_view(&mut self, v: u32, rows: u32) {
         if self.view != Some(v) {
             self.view = Some(v);
-            self.queue = bands(rows, self.c.size());
+            self.queue = bands(rows, self.c.size(), self.per_rank);
             self.next = 0;
             self.told = 0;
         }
@@ -225,33 +240,38 @@ impl Share for RenderShare<'_> {
             .map_err(|e| Agreed(e).into())
     }
 
+    fn gather_times(&mut self, mine: f64) -> Vec<f64> {
+        let root = self.c.world().process_at_rank(0);
+        if self.c.rank() == 0 {
+            let mut all = vec![0.0f64; self.c.size()];
+            root.gather_into_root(&mine, &mut all[..]);
+            all
+        } else {
+            root.gather_into(&mine);
+            vec![]
+        }
+    }
+
     fn sum(&mut self, mut img: Image) -> Result<Option<Image>> {
         self.c.sum_f32_to_root(img.rgba.as_flattened_mut());
         Ok((self.c.rank() == 0).then_some(img))
     }
 
-    fn region(
+    fn regions(
         &mut self,
-        dims: [u64; 3],
-        spacing: [f64; 3],
+        bricks: [u64; 3],
         brick: u64,
-    ) -> Option<([f64; 3], [f64; 3])> {
-        let nb = dims.map(|d| d.div_ceil(brick));
-        let tree = KdTree::build(nb, self.c.size(), &|_| 1.0);
-        let r = tree.regions()[self.c.rank()];
+        spacing: [f64; 3],
+        weight: &dyn Fn([u64; 3]) -> f64,
+    ) -> Vec<BrickBox> {
+        let tree = KdTree::build(bricks, self.c.size(), weight);
+        let out = tree
+            .regions()
+            .iter()
+            .map(|r| BrickBox { lo: r.lo, hi: r.hi })
+            .collect();
         self.tree = Some((tree, brick, spacing));
-        if r.is_empty() {
-            return None;
-        }
-        let (lo, hi) = r.voxels([brick; 3], dims);
-        let world = |v: [u64; 3]| {
-            [
-                v[2] as f64 * spacing[2],
-                v[1] as f64 * spacing[1],
-                v[0] as f64 * spacing[0],
-            ]
-        };
-        Some((world(lo), world(hi)))
+        out
     }
 
     fn composite(&mut self, img: Image, mip: bool, eye: [f64; 3]) -> Result<(Option<Image>, f64)> {

@@ -73,6 +73,14 @@ impl Gpu {
     /// `WGPU_ADAPTER_NAME` (a substring of the adapter's name) narrows the
     /// choice, as in every wgpu program.
     pub fn new(choice: AdapterChoice) -> Result<Gpu, GpuError> {
+        Gpu::new_nth(choice, 0)
+    }
+
+    /// [`Gpu::new`] on adapter `n` modulo the count of the adapters of the
+    /// preferred kind (several discrete GPUs, say) in the order the back
+    /// ends list them: one process per device in a node (`n` = the MPI
+    /// rank). With one adapter every `n` opens it (a device of its own).
+    pub fn new_nth(choice: AdapterChoice, n: usize) -> Result<Gpu, GpuError> {
         let instance =
             wgpu::Instance::new(wgpu::InstanceDescriptor::new_without_display_handle_from_env());
         let adapters = pollster::block_on(instance.enumerate_adapters(wgpu::Backends::PRIMARY));
@@ -91,7 +99,7 @@ impl Gpu {
         let wanted = std::env::var("WGPU_ADAPTER_NAME")
             .ok()
             .map(|s| s.to_lowercase());
-        let adapter = adapters
+        let accepted: Vec<wgpu::Adapter> = adapters
             .into_iter()
             .filter(|a| {
                 let i = a.get_info();
@@ -101,8 +109,20 @@ impl Gpu {
                         .as_ref()
                         .is_none_or(|w| i.name.to_lowercase().contains(w))
             })
-            .min_by_key(|a| rank(a.get_info().device_type))
-            .ok_or(GpuError::NoAdapter { looked })?;
+            .collect();
+        let best = accepted
+            .iter()
+            .map(|a| rank(a.get_info().device_type))
+            .min();
+        let mut preferred: Vec<wgpu::Adapter> = accepted
+            .into_iter()
+            .filter(|a| Some(rank(a.get_info().device_type)) == best)
+            .collect();
+        if preferred.is_empty() {
+            return Err(GpuError::NoAdapter { looked });
+        }
+        let count = preferred.len();
+        let adapter = preferred.swap_remove(n % count);
         let info = adapter.get_info();
         let have = adapter.limits();
         // The WebGPU defaults, raised only where volumes need more: buffer

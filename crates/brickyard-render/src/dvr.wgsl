@@ -4,7 +4,8 @@
 // bricks the transfer function hides crossed in one jump, cells of
 // resident bricks it hides crossed the same way, the fallback to coarser
 // levels, gradient shading (shading.wgsl), and compositing with opacity
-// correction and early termination.
+// correction and early termination (unless a sort-last region turns it
+// off: `R.region`).
 
 // The pixel of `ray` in a DVR of the scene's channel; adds its counts.
 fn dvr_pixel(ray: Ray) -> vec4<f32> {
@@ -15,8 +16,16 @@ fn dvr_pixel(ray: Ray) -> vec4<f32> {
     var unserved = 0u;
     var jumps = 0u;
     var cells_crossed = 0u;
-    if (span.y > span.x) {
-        let t1 = span.y;
+    // A region (sort-last): the whole ray's step grid, samples in
+    // [c0, t1) only.
+    var c0 = span.x;
+    var t1 = span.y;
+    if (R.region.x == 1u) {
+        let c = region_span(ray);
+        c0 = c.x;
+        t1 = select(min(t1, c.y), c0, c.y <= c.x);
+    }
+    if (span.y > span.x && t1 > c0) {
         var level = level_at(span.x);
         var base_t = span.x;
         var k = 0u;
@@ -33,6 +42,10 @@ fn dvr_pixel(ray: Ray) -> vec4<f32> {
                 level = l;
                 base_t = t - 0.5 * R.step[level].x;
                 k = 1u;
+            }
+            if (t < c0) {
+                // Before the region: another rank's samples.
+                continue;
             }
             let w = ray.o + ray.d * t;
             let q = coords(level, w).xyz;
@@ -88,7 +101,7 @@ fn dvr_pixel(ray: Ray) -> vec4<f32> {
                 }
                 let wt = (1.0 - acc.w) * a;
                 acc = acc + vec4<f32>(c * wt, wt);
-                if (acc.w >= EARLY_TERMINATION) {
+                if (acc.w >= EARLY_TERMINATION && R.region.y == 0u) {
                     break;
                 }
             }

@@ -134,6 +134,13 @@ struct Uniform {
     qmax: [[f32; 4]; MAX_LEVELS],
     step: [[f32; 4]; MAX_LEVELS],
     bricks: [[u32; 4]; MAX_LEVELS],
+    /// A sort-last region ([`RenderParams::clip`]): its world box; on (1),
+    /// no early termination (1), MIP raw maxima (1), 0.
+    clip_lo: [f32; 4],
+    clip_hi: [f32; 4],
+    region: [u32; 4],
+    /// Only pixel rows `[y, z)` drawn (`x` = 1; [`GpuRenderer::rows`]).
+    rows: [u32; 4],
 }
 
 const EXACT_BIT: u32 = 0x8000_0000;
@@ -178,6 +185,10 @@ pub struct GpuRenderer {
     /// Read the image back to the host after each frame (on by default;
     /// off for benchmarks and for views that present it on the device).
     pub read_image: bool,
+    /// Draw only the pixel rows `[a, b)`, the others transparent (an
+    /// image-parallel band of a render shared by several processes);
+    /// `None` (the default): every row.
+    pub rows: Option<(u32, u32)>,
     kernel: Kernel,
     /// Per slot of every set: frame stamps, with the slot count they were
     /// made for (with the update on the device, its stamps are used).
@@ -261,6 +272,7 @@ impl GpuRenderer {
         );
         GpuRenderer {
             read_image: true,
+            rows: None,
             kernel,
             stamps: None,
             counters: None,
@@ -681,6 +693,16 @@ impl GpuRenderer {
             u.shading = [sh.ambient, sh.diffuse, sh.specular, sh.shininess];
         }
         u.clear_off = *off;
+        if let Some(&[lo, hi]) = params.clip.as_deref() {
+            u.clip_lo = f4(lo);
+            u.clip_hi = f4(hi);
+            u.region[0] = 1;
+            u.region[2] = params.mip_values as u32;
+        }
+        u.region[1] = !params.early_termination as u32;
+        if let Some((a, b)) = self.rows {
+            u.rows = [1, a, b, 0];
+        }
         let uniform = gpu.uniform_buffer("render", &u);
         let res = dvm.resources(gpu, 0);
         let [keys, counts, dropped] = table.buffers();

@@ -92,6 +92,17 @@ struct Render {
     step: array<vec4<f32>, 16>,
     // Per level: bricks per axis (z, y, x); w: first brick id of the level.
     bricks: array<vec4<u32>, 16>,
+    // A sort-last region (DVR and MIP of one channel): the world box
+    // (x, y, z) whose samples the rays take (walk.wgsl's `region_span`).
+    clip_lo: vec4<f32>,
+    clip_hi: vec4<f32>,
+    // x: the box applies (1); y: no early ray termination (1); z: MIP
+    // pixels are (raw maximum, 0, 0, 1), (NaN, 0, 0, 1) when no sample
+    // was served, 0 where the ray takes no sample (1); w: 0.
+    region: vec4<u32>,
+    // x: only pixel rows [y, z) are drawn, the others transparent (1): an
+    // image-parallel band; w: 0.
+    rows: vec4<u32>,
 }
 
 @group(0) @binding(3) var<uniform> R: Render;
@@ -204,6 +215,11 @@ fn begin_invocation() {
 @compute @workgroup_size(8, 8)
 fn render(@builtin(global_invocation_id) g: vec3<u32>) {
     if (g.x >= R.width || g.y >= R.height) {
+        return;
+    }
+    if (R.rows.x == 1u && (g.y < R.rows.y || g.y >= R.rows.z)) {
+        // Another rank's band.
+        put_pixel(g.y * R.width + g.x, vec4<f32>(0.0));
         return;
     }
     begin_invocation();

@@ -8,7 +8,15 @@
 // was one; crossing cells whose maximum cannot raise it; as the CPU's
 // `mip_max`.
 fn mip_max(ray: Ray, span: vec2<f32>) -> vec2<f32> {
-    let t1 = span.y;
+    return mip_max_in(ray, span, span).xy;
+}
+
+// `mip_max` over the samples of the grid of `span` that lie in
+// [clip.x, clip.y) (a sort-last region, as the CPU's `mip_max_in`); z: 1
+// when the ray took a step there (served or not), 0 otherwise.
+fn mip_max_in(ray: Ray, span: vec2<f32>, clip: vec2<f32>) -> vec3<f32> {
+    let t1 = min(span.y, clip.y);
+    var hit = false;
     let level = level_at(span.x);
     var best = 0.0;
     var found = false;
@@ -23,6 +31,11 @@ fn mip_max(ray: Ray, span: vec2<f32>) -> vec2<f32> {
             break;
         }
         k = k + 1u;
+        if (t < clip.x) {
+            // Before the region: another rank's samples.
+            continue;
+        }
+        hit = true;
         let w = ray.o + ray.d * t;
         let q = coords(level, w).xyz;
         let b = vec3<u32>(q);
@@ -55,7 +68,7 @@ fn mip_max(ray: Ray, span: vec2<f32>) -> vec2<f32> {
     atomicAdd(&counters[1], exact);
     atomicAdd(&counters[2], unserved);
     atomicAdd(&counters[5], crossed);
-    return vec2<f32>(best, f32(found));
+    return vec3<f32>(best, f32(found), f32(hit));
 }
 
 // The pixel of `ray` in a MIP of one channel: the maximum along the ray,
@@ -63,6 +76,26 @@ fn mip_max(ray: Ray, span: vec2<f32>) -> vec2<f32> {
 fn mip_pixel(ray: Ray) -> vec4<f32> {
     let span = intersect(ray);
     var px = vec4<f32>(0.0);
+    if (R.region.x == 1u) {
+        // A region (sort-last): its samples of the whole ray's grid.
+        let c = region_span(ray);
+        if (span.y > span.x && c.y > c.x) {
+            let m = mip_max_in(ray, span, c);
+            if (m.z > 0.0) {
+                if (R.region.z == 1u) {
+                    // The raw maximum, for the regions' maxima to meet
+                    // before the transfer function (NaN: none served).
+                    px = vec4<f32>(select(nan_f32(), m.x, m.y > 0.0), 0.0, 0.0, 1.0);
+                } else {
+                    px = vec4<f32>(0.0, 0.0, 0.0, 1.0);
+                    if (m.y > 0.0) {
+                        px = vec4<f32>(color_at(windowed(m.x)), 1.0);
+                    }
+                }
+            }
+        }
+        return px;
+    }
     if (span.y > span.x && span.x + 0.5 * R.step[level_at(span.x)].x < span.y) {
         let m = mip_max(ray, span);
         px = vec4<f32>(0.0, 0.0, 0.0, 1.0);
@@ -92,4 +125,9 @@ fn mip_channels(ray: Ray) -> vec4<f32> {
         px = mix(v, have);
     }
     return px;
+}
+
+// A quiet NaN, made at run time (a NaN constant is not valid WGSL).
+fn nan_f32() -> f32 {
+    return bitcast<f32>(0x7fc00000u | (R.region.w & 0u));
 }

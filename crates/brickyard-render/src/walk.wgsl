@@ -194,6 +194,36 @@ fn intersect(r: Ray) -> vec2<f32> {
     return vec2<f32>(t0, t1);
 }
 
+// A sort-last region (`R.region.x == 1`): the span of the ray inside the
+// box [R.clip_lo, R.clip_hi] (x, y, z; empty when y <= x), as the CPU's
+// `intersect_box`; the samples of the whole ray's step grid in [x, y)
+// are this region's. The same planes give the same t on both sides of a
+// cut, so neighbouring regions split the samples exactly.
+fn region_span(r: Ray) -> vec2<f32> {
+    var t0 = 0.0;
+    var t1 = 3.0e38;
+    for (var a = 0u; a < 3u; a = a + 1u) {
+        let o = r.o[a];
+        let d = r.d[a];
+        if (d == 0.0) {
+            if (o < R.clip_lo[a] || o > R.clip_hi[a]) {
+                return vec2<f32>(1.0, 0.0);
+            }
+            continue;
+        }
+        var ta = (R.clip_lo[a] - o) / d;
+        var tb = (R.clip_hi[a] - o) / d;
+        if (ta > tb) {
+            let x = ta;
+            ta = tb;
+            tb = x;
+        }
+        t0 = max(t0, ta);
+        t1 = min(t1, tb);
+    }
+    return vec2<f32>(t0, t1);
+}
+
 // Where the level changes after `level` (automatic LOD; a huge value when
 // it never does).
 fn next_level_t(level: u32) -> f32 {

@@ -122,14 +122,28 @@ impl Backend {
         s: &mut Session,
         channels: usize,
     ) -> Result<Backend> {
+        Backend::choose_on(choice, update, s, channels, 0)
+    }
+
+    /// [`Backend::choose`] on adapter `adapter` (modulo the adapters of the
+    /// preferred kind: [`Gpu::new_nth`]): one MPI rank per device.
+    pub fn choose_on(
+        choice: &str,
+        update: GpuUpdate,
+        s: &mut Session,
+        channels: usize,
+        adapter: usize,
+    ) -> Result<Backend> {
         let most = brickyard_render::params::MAX_DVR_CHANNELS;
         if channels > most {
             bail!("at most {most} channels at once (16 added up in mip and slice), {channels} asked for");
         }
         let gpu = match choice {
             "cpu" => return Ok(Backend::Cpu),
-            "gpu" => quietly(|| Gpu::new(AdapterChoice::Best)).context("--backend gpu")?,
-            "auto" => match quietly(|| Gpu::new(AdapterChoice::Best)) {
+            "gpu" => {
+                quietly(|| Gpu::new_nth(AdapterChoice::Best, adapter)).context("--backend gpu")?
+            }
+            "auto" => match quietly(|| Gpu::new_nth(AdapterChoice::Best, adapter)) {
                 Ok(g) if g.info.device_type != wgpu::DeviceType::Cpu => g,
                 _ => return Ok(Backend::Cpu),
             },
@@ -232,6 +246,32 @@ impl Backend {
             return self.frame(s, scene, p, lod);
         }
         cpu_frame(s, scene, p, lod, image, tiles)
+    }
+
+    /// A frame of the tile rows `rows` only (an image-parallel band), the
+    /// other pixels transparent: the CPU draws their tiles, the device
+    /// their pixel rows.
+    pub fn frame_band(
+        &mut self,
+        s: &mut Session,
+        scene: &Scene,
+        p: &RenderParams,
+        lod: Lod,
+        rows: std::ops::Range<u32>,
+    ) -> Result<Frame> {
+        let (w, h) = (p.width, p.height);
+        match self {
+            Backend::Cpu => cpu_frame(s, scene, p, lod, Image::new(w, h), Tiles::band(w, h, rows)),
+            Backend::Gpu(g) => {
+                let px = Tiles::pixel_rows(h, rows);
+                g.renderer.rows = Some((px.start, px.end));
+                let f = self.frame(s, scene, p, lod);
+                if let Backend::Gpu(g) = self {
+                    g.renderer.rows = None;
+                }
+                f
+            }
+        }
     }
 }
 

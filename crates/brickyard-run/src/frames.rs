@@ -139,12 +139,10 @@ pub fn drive(
             }
             _ => match opt.band {
                 Some((a, b)) => {
-                    let (w, h) = (p.width, p.height);
                     // The pass's tile row r covers the image's rows 2r and
                     // 2r + 1 (half the pixels, tiles of the same size).
                     let rows = if pass { a / 2..b.div_ceil(2) } else { a..b };
-                    let tiles = Tiles::band(w, h, rows);
-                    backend.frame_again(s, scene, p, l, Image::new(w, h), tiles)?
+                    backend.frame_band(s, scene, p, l, rows)?
                 }
                 None => backend.frame(s, scene, p, l)?,
             },

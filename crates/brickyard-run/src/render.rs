@@ -215,13 +215,21 @@ pub struct RenderCmd {
     /// tiles handed out on demand, the default) or data (sort-last: each
     /// rank draws its k-d region of the volume, the partial images are
     /// composited in visibility order; DVR and MIP of one channel, no early
-    /// ray termination). Both draw on the CPU.
+    /// ray termination). Both draw on the CPU, or with --backend gpu each
+    /// rank on a device of its own (adapter rank modulo the adapters).
     #[arg(long, value_name = "image|data")]
     pub distribute: Option<String>,
     /// DVR: composite every sample of a ray (no early termination at an
     /// opacity of 0.99): the image `--distribute data` composites exactly.
     #[arg(long)]
     pub no_early_termination: bool,
+    /// --distribute data: what the k-d split balances among the ranks:
+    /// data (the default: by the store's per-brick statistics, a brick the
+    /// rays draw weighs 1, one they cross without drawing (DVR: hidden by
+    /// the transfer function; MIP: empty or constant) 1/16) or uniform
+    /// (every brick the same).
+    #[arg(long, value_name = "data|uniform", default_value = "data")]
+    pub region_weights: String,
     /// Also write each image as premultiplied linear RGBA in 32-bit floats
     /// (little-endian, row-major, top row first, width × height × 4) beside
     /// its PNG, with the extension .f32: what the renderer computed, before
@@ -359,6 +367,11 @@ fn parse_pair(s: &str, what: &str) -> Result<[f64; 2]> {
 
 impl RenderCmd {
     /// Parse from a full argument list (`brickyard render …`).
+    /// `--backend` as given (auto, gpu or cpu).
+    pub fn backend(&self) -> &str {
+        &self.backend
+    }
+
     pub fn try_parse_from(args: &[String]) -> Result<RenderCmd, clap::Error> {
         use clap::{Args as _, FromArgMatches as _};
         let cmd = RenderCmd::augment_args(clap::Command::new("render")).no_binary_name(false);
@@ -453,12 +466,15 @@ fn run_with(
         if c.progressive.is_some() || c.debug.is_some() {
             bail!("distribute: --progressive and --debug draw on one process");
         }
-        if c.backend == "gpu" {
-            bail!("distribute: the ranks draw their parts on the CPU; use --backend cpu or auto");
-        }
         if c.derive.is_some() {
             bail!("distribute: live derived channels draw on one process");
         }
+    }
+    if !matches!(c.region_weights.as_str(), "data" | "uniform") {
+        bail!(
+            "region-weights: expected data or uniform, found {:?}",
+            c.region_weights
+        );
     }
     let data_split = shared == Some(Split::Data);
     if data_split && (c.views.is_some() || c.stereo.is_some() || c.multiplex.is_some()) {
@@ -493,11 +509,14 @@ fn run_with(
         backend: backend_choice,
         gpu_update,
     } = traversal_options(&c)?;
-    let backend_choice = if shared.is_some() {
-        "cpu".to_string()
-    } else {
-        backend_choice
+    // Shared: each rank draws on the CPU, or with --backend gpu on a
+    // device of its own (adapter `rank` modulo the adapters).
+    let backend_choice = match shared {
+        Some(_) if c.backend == "gpu" => "gpu".to_string(),
+        Some(_) => "cpu".to_string(),
+        None => backend_choice,
     };
+    let adapter = share.as_ref().map_or(0, |s| s.rank());
     if backend_choice != c.backend && shared.is_none() {
         say_err!(silent, "{}", auto_takes_cpu());
     }
@@ -745,7 +764,13 @@ fn run_with(
         let pinned = s
             .pin_coarsest(512, std::time::Duration::from_secs(120))
             .map_err(|e| anyhow::anyhow!("pool: {e}"))?;
-        match crate::backend::Backend::choose(&backend_choice, gpu_update, &mut s, shown) {
+        match crate::backend::Backend::choose_on(
+            &backend_choice,
+            gpu_update,
+            &mut s,
+            shown,
+            adapter,
+        ) {
             Ok(b) => break (s, pinned, b),
             Err(e)
                 if c.pool.is_none()
@@ -842,12 +867,48 @@ fn run_with(
             if !matches!(mode, RenderMode::Dvr | RenderMode::Mip) || styles.len() > 1 {
                 bail!("distribute data: DVR or MIP of one channel (sort-last compositing)");
             }
+            if mode == RenderMode::Mip && !styles.is_empty() {
+                // The channels' mix (--channel C:colour) draws every
+                // sample of the ray; regions clip one channel through --tf.
+                bail!("distribute data: MIP of the first channel through --tf (no --channel)");
+            }
             if traversal != Traversal::PageTable {
                 bail!("distribute data: --traversal page-table (regions clip the rays)");
             }
+            let nb = m.dims.map(|d| d.div_ceil(c.brick));
+            let ranges = scene.ranges.as_deref().and_then(|r| r.level(0));
+            let by_data = c.region_weights == "data";
+            // DVR draws what the transfer function shows (a brick it
+            // hides is crossed in one jump, a uniform one it shows is
+            // sampled at every step); MIP draws bricks holding data (a
+            // uniform one is crossed once the ray's maximum reaches it).
+            let drawn_dvr = |lo: f32, hi: f32| tf.max_opacity(lo, hi) > 0.0;
+            let drawn_mip = |lo: f32, hi: f32| lo < hi;
+            let drawn: &dyn Fn(f32, f32) -> bool = match mode {
+                RenderMode::Mip => &drawn_mip,
+                _ => &drawn_dvr,
+            };
+            let data = crate::share::brick_weight(ranges, scene.channel, drawn);
+            let weight = |b: [u64; 3]| if by_data { data(b) } else { 1.0 };
+            let boxes = sh.regions(nb, c.brick, spacing, &weight);
+            // How the split shares out the bricks drawn.
+            let holding = |b: [u64; 3]| (data(b) == 1.0) as u8 as f64;
+            let counts: Vec<u64> = boxes.iter().map(|r| r.load(&holding) as u64).collect();
+            say!(
+                silent,
+                "regions of {} ranks, split by {}: bricks drawn {:?}",
+                boxes.len(),
+                match (by_data, ranges.is_some()) {
+                    (true, true) => "the store's statistics",
+                    (true, false) => "brick counts (no statistics)",
+                    (false, _) => "brick counts (--region-weights uniform)",
+                },
+                counts
+            );
             Some(
-                sh.region(m.dims, spacing, c.brick)
-                    .map_or([[0.0; 3]; 2], |(lo, hi)| [lo, hi]),
+                boxes[sh.rank()]
+                    .world(m.dims, spacing, c.brick)
+                    .unwrap_or([[0.0; 3]; 2]),
             )
         }
         _ => None,
@@ -945,7 +1006,18 @@ fn run_with(
                     .map(|_| ())
                     .map_err(|e| anyhow::anyhow!("{e:#}"));
                 sh.agree(mine)?;
-                drawn?
+                let out = drawn?;
+                // How long each rank drew its part (the balance).
+                let secs = sh.gather_times(out.seconds);
+                say!(
+                    silent,
+                    "view {v}: ranks drew their parts in {} s",
+                    secs.iter()
+                        .map(|t| format!("{t:.2}"))
+                        .collect::<Vec<_>>()
+                        .join(" / ")
+                );
+                out
             }
             _ => drawn?,
         };

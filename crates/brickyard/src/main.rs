@@ -575,7 +575,13 @@ fn run(cmd: Cmd, cluster: Option<&dist::Cluster>) -> Result<()> {
                     Some("data") => brickyard_run::share::Split::Data,
                     Some(d) => bail!("distribute: expected image or data, found {d:?}"),
                 };
-                let mut share = brickyard_dist::share::RenderShare::new(c, split);
+                use brickyard_dist::share::{RenderShare, BANDS_PER_RANK, DEVICE_BANDS_PER_RANK};
+                // On devices each band is a whole frame: one band a rank.
+                let per_rank = match r.backend() {
+                    "gpu" => DEVICE_BANDS_PER_RANK,
+                    _ => BANDS_PER_RANK,
+                };
+                let mut share = RenderShare::new(c, split).bands_per_rank(per_rank);
                 render::run_shared(*r, Some(&mut share)).map(|_| ())
             }
             _ => render::run(*r).map(|_| ()),

@@ -104,4 +104,19 @@ fn distribute_flags_on_one_process() {
         err.contains("distribute: expected image or data, found \"pixels\""),
         "{err}"
     );
+    let o = run(&[
+        "render",
+        s(&store),
+        "--region-weights",
+        "bricks",
+        "--out",
+        s(&dir.path().join("x.png")),
+    ]);
+    assert!(!o.status.success());
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(
+        err.contains("region-weights: expected data or uniform, found \"bricks\""),
+        "{err}"
+    );
+    assert!(!err.contains("panicked"), "{err}");
 }

@@ -537,5 +537,305 @@ fn a_failing_rank_stops_the_render() {
     assert!(
         err.contains("distribute: expected image or data, found \"pixels\""),
         "{err}"
+    ); // A MIP of channels mixed by colour draws whole rays: not by regions.
+    let o = mpirun(
+        2,
+        &[
+            "render",
+            s(&store),
+            "--distribute",
+            "data",
+            "--mode",
+            "mip",
+            "--channel",
+            "0:white",
+            "--out",
+            s(&dir.path().join("x.png")),
+        ],
+        &[],
     );
+    assert!(!o.status.success());
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(
+        err.contains("distribute data: MIP of the first channel through --tf (no --channel)"),
+        "{err}"
+    );
+}
+
+/// A u8 volume 128×48×48 whose low 88 columns (x) are empty, the rest a
+/// smooth pattern, converted with bricks of 16: most of the volume's
+/// bricks hold nothing.
+fn skewed_store(dir: &Path) -> PathBuf {
+    let (nx, ny, nz) = (128usize, 48usize, 48usize);
+    let mut bytes = vec![0u8; nx * ny * nz];
+    for z in 0..nz {
+        for y in 0..ny {
+            for x in 88..nx {
+                let v = ((x as f64 * 0.31).sin()
+                    + (y as f64 * 0.43).sin()
+                    + (z as f64 * 0.57).sin()
+                    + 3.0)
+                    / 6.0
+                    * 255.0;
+                bytes[(z * ny + y) * nx + x] = v as u8;
+            }
+        }
+    }
+    let raw = dir.join("skew.raw");
+    std::fs::write(&raw, &bytes).unwrap();
+    let store = dir.join("skew.ome.zarr");
+    ok(
+        &run(&[
+            "convert",
+            s(&raw),
+            s(&store),
+            "--dims",
+            "128x48x48",
+            "--dtype",
+            "u8",
+            "--brick",
+            "16",
+            "--shard",
+            "32",
+            "--quiet",
+        ]),
+        "convert",
+    );
+    store
+}
+
+/// The bricks drawn in each rank's region, as rank 0 reports them.
+fn data_bricks(stdout: &str) -> Vec<u64> {
+    let line = stdout
+        .lines()
+        .find(|l| l.starts_with("regions of "))
+        .unwrap_or_else(|| panic!("no regions line: {stdout}"));
+    let list = &line[line.rfind('[').unwrap() + 1..line.rfind(']').unwrap()];
+    list.split(", ").map(|x| x.parse().unwrap()).collect()
+}
+
+/// Data-parallel regions weighted by the store's statistics share out the
+/// bricks drawn (DVR: shown by the transfer function; MIP: holding data)
+/// more evenly than regions of equal brick counts, on a volume mostly
+/// empty, and the images still equal the single-process one within 1e-5
+/// (DVR without early termination, MIP), by either split. Where the
+/// transfer function shows the empty space, every brick is drawn and the
+/// weighted split is the uniform one.
+#[test]
+fn data_weights_balance_a_volume_with_empty_space() {
+    if !have_mpirun() {
+        return;
+    }
+    let dir = tempfile::tempdir().unwrap();
+    let store = skewed_store(dir.path());
+    for mode in ["dvr", "mip"] {
+        let view = [
+            "--size",
+            "160x120",
+            "--mode",
+            mode,
+            "--brick",
+            "16",
+            "--azimuth=-70",
+            "--elevation",
+            "35",
+            "--quiet",
+            "--raw-f32",
+        ];
+        let all = dir.path().join(format!("{mode}-all.png"));
+        let mut a = vec![
+            "render",
+            s(&store),
+            "--backend",
+            "cpu",
+            "--no-early-termination",
+            "--out",
+            s(&all),
+        ];
+        a.extend(view);
+        ok(&run(&a), "single-process render");
+        for n in [2usize, 3] {
+            let mut spread = vec![];
+            for weights in ["data", "uniform"] {
+                let out = dir.path().join(format!("{mode}-{weights}-{n}.png"));
+                let mut a = vec![
+                    "render",
+                    s(&store),
+                    "--distribute",
+                    "data",
+                    "--region-weights",
+                    weights,
+                    "--out",
+                    s(&out),
+                ];
+                a.extend(view);
+                let o = mpirun(n, &a, &[]);
+                ok(&o, &format!("{mode} {weights} on {n} ranks"));
+                let stdout = String::from_utf8_lossy(&o.stdout);
+                let counts = data_bricks(&stdout);
+                assert_eq!(counts.len(), n, "{stdout}");
+                spread.push(counts);
+                close(
+                    &all,
+                    &out,
+                    1e-5,
+                    &format!("{mode} data-parallel, {weights} weights, on {n} ranks"),
+                );
+            }
+            let (by_data, uniform) = (&spread[0], &spread[1]);
+            // The same bricks in all, shared out differently.
+            assert_eq!(
+                by_data.iter().sum::<u64>(),
+                uniform.iter().sum::<u64>(),
+                "{spread:?}"
+            );
+            let most = |c: &Vec<u64>| *c.iter().max().unwrap();
+            let total: u64 = by_data.iter().sum();
+            eprintln!("{mode} on {n} ranks: bricks drawn, split by statistics {by_data:?}, uniform {uniform:?}");
+            assert!(
+                most(by_data) < most(uniform),
+                "{mode} on {n} ranks: the weighted split is not better balanced: {spread:?}"
+            );
+            // Within a brick slab of an even share.
+            assert!(
+                most(by_data) as f64 <= total as f64 / n as f64 * 1.5,
+                "{mode} on {n} ranks: {by_data:?}"
+            );
+        }
+    }
+    // A transfer function that shows every value (empty bricks too): DVR
+    // draws every brick, so the weights are those of the uniform split.
+    let mut counts = vec![];
+    for weights in ["data", "uniform"] {
+        let o = mpirun(
+            2,
+            &[
+                "render",
+                s(&store),
+                "--distribute",
+                "data",
+                "--region-weights",
+                weights,
+                "--tf",
+                "opaque",
+                "--brick",
+                "16",
+                "--size",
+                "64x48",
+                "--quiet",
+                "--out",
+                s(&dir.path().join(format!("opaque-{weights}.png"))),
+            ],
+            &[],
+        );
+        ok(&o, "opaque DVR on 2 ranks");
+        let stdout = String::from_utf8_lossy(&o.stdout);
+        assert!(stdout.contains("ranks drew their parts in "), "{stdout}");
+        counts.push(data_bricks(&stdout));
+    }
+    assert_eq!(counts[0], vec![36, 36], "{counts:?}");
+    assert_eq!(counts[0], counts[1]);
+}
+
+/// Several devices in one node: with --backend gpu each rank opens a
+/// device of its own (on lavapipe, several logical devices of one
+/// adapter); image-parallel renders equal the single-process device image
+/// within 1e-5 and data-parallel ones the single-process device image
+/// without early termination within 1e-5 (the same f32 arithmetic on the
+/// same device kind, only the compositing's order differs), DVR and MIP.
+/// A --backend gpu where no adapter matches is a clear error.
+#[test]
+fn device_ranks_equal_one_process() {
+    if !have_mpirun() {
+        return;
+    }
+    if brickyard_gpu::context::test_gpu().is_none() {
+        return;
+    }
+    let dir = tempfile::tempdir().unwrap();
+    let store = skewed_store(dir.path());
+    for mode in ["dvr", "mip"] {
+        let view = [
+            "--size",
+            "128x96",
+            "--mode",
+            mode,
+            "--brick",
+            "16",
+            "--azimuth=-70",
+            "--elevation",
+            "35",
+            "--memory",
+            "256M",
+            "--quiet",
+            "--raw-f32",
+            "--backend",
+            "gpu",
+        ];
+        let plain = dir.path().join(format!("{mode}-plain.png"));
+        let mut a = vec!["render", s(&store), "--out", s(&plain)];
+        a.extend(view);
+        ok(&run(&a), "single-process device render");
+        let all = dir.path().join(format!("{mode}-all.png"));
+        let mut a = vec![
+            "render",
+            s(&store),
+            "--no-early-termination",
+            "--out",
+            s(&all),
+        ];
+        a.extend(view);
+        ok(
+            &run(&a),
+            "single-process device render without early termination",
+        );
+        if mode == "dvr" {
+            // Early termination matters in this view (on the device too).
+            let (x, y) = (floats(&plain), floats(&all));
+            let d = x
+                .iter()
+                .zip(&y)
+                .map(|(p, q)| (p - q).abs())
+                .fold(0.0, f32::max);
+            assert!(d > 1e-4, "early termination changed nothing: {d}");
+        }
+        for split in ["image", "data"] {
+            let out = dir.path().join(format!("{mode}-{split}-2.png"));
+            let mut a = vec!["render", s(&store), "--distribute", split, "--out", s(&out)];
+            a.extend(view);
+            let o = mpirun(2, &a, &[]);
+            ok(&o, &format!("{mode} {split} on 2 ranks, each on a device"));
+            let stdout = String::from_utf8_lossy(&o.stdout);
+            assert!(stdout.contains("rendering on GPU"), "{stdout}");
+            let want = if split == "image" { &plain } else { &all };
+            close(
+                want,
+                &out,
+                1e-5,
+                &format!("{mode} {split}-parallel on 2 ranks, each on a device"),
+            );
+        }
+    }
+    let o = mpirun(
+        2,
+        &[
+            "render",
+            s(&store),
+            "--distribute",
+            "data",
+            "--backend",
+            "gpu",
+            "--out",
+            s(&dir.path().join("x.png")),
+        ],
+        &[("WGPU_ADAPTER_NAME", "no such adapter anywhere")],
+    );
+    assert!(!o.status.success());
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(
+        err.contains("--backend gpu") && err.contains("no GPU adapter found"),
+        "{err}"
+    );
+    assert!(!err.contains("panicked"), "{err}");
+    assert!(!dir.path().join("x.png").exists());
 }
