@@ -33,6 +33,23 @@ cargo build --release -p brickyard ${FEATURES[@]+"${FEATURES[@]}"}
 echo "== web client"
 bash scripts/build-web.sh
 
+# Its data path, virtual memory and CPU renderer compiled to WebAssembly,
+# tested in headless Chromium (wasm-bindgen-test-runner drives it through
+# chromedriver; webdriver.json in the crate gives Chromium its flags).
+echo "== web client tests in headless Chromium"
+if command -v chromedriver >/dev/null 2>&1; then
+    TD="${CARGO_TARGET_DIR:-target}"
+    case "$TD" in /*) ;; *) TD="$PWD/$TD" ;; esac
+    CARGO_TARGET_WASM32_UNKNOWN_UNKNOWN_RUNNER="$TD/tools/bin/wasm-bindgen-test-runner" \
+        CHROMEDRIVER="$(command -v chromedriver)" \
+        cargo test --release --target wasm32-unknown-unknown -p brickyard-web --test browser
+elif [ "${BRICKYARD_SKIP_BROWSER:-}" = 1 ]; then
+    echo "skipped: no chromedriver and BRICKYARD_SKIP_BROWSER=1"
+else
+    echo "chromedriver is missing (apt-get install chromium-driver); BRICKYARD_SKIP_BROWSER=1 opts out" >&2
+    exit 1
+fi
+
 echo "== cargo test --workspace --release ${FEATURES[*]}"
 cargo test --workspace --release ${FEATURES[@]+"${FEATURES[@]}"}
 

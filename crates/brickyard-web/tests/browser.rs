@@ -26,7 +26,8 @@ const DIMS: [u64; 3] = [40, 36, 44];
 fn value(z: u64, y: u64, x: u64) -> u16 {
     let (fz, fy, fx) = (z as f64 / 40.0, y as f64 / 36.0, x as f64 / 44.0);
     let r = ((fz - 0.5).powi(2) + (fy - 0.45).powi(2) + (fx - 0.55).powi(2)).sqrt();
-    (60000.0 * (1.0 - (r / 0.6).min(1.0)).powi(2) + 300.0 * ((x * 7 + y * 3 + z) % 11) as f64) as u16
+    (60000.0 * (1.0 - (r / 0.6).min(1.0)).powi(2) + 300.0 * ((x * 7 + y * 3 + z) % 11) as f64)
+        as u16
 }
 
 struct MemFetch(HashMap<String, Vec<u8>>);
@@ -74,12 +75,19 @@ fn store() -> MemFetch {
                                 for z in o[0]..o[0] + 16 {
                                     for y in o[1]..o[1] + 16 {
                                         for x in o[2]..o[2] + 16 {
-                                            let v = if z < d[0] && y < d[1] && x < d[2] { at(z, y, x) } else { 0 };
+                                            let v = if z < d[0] && y < d[1] && x < d[2] {
+                                                at(z, y, x)
+                                            } else {
+                                                0
+                                            };
                                             raw.extend(v.to_le_bytes());
                                         }
                                     }
                                 }
-                                let mut e = flate2::write::GzEncoder::new(vec![], flate2::Compression::fast());
+                                let mut e = flate2::write::GzEncoder::new(
+                                    vec![],
+                                    flate2::Compression::fast(),
+                                );
                                 e.write_all(&raw).unwrap();
                                 let c = e.finish().unwrap();
                                 index.extend((body.len() as u64).to_le_bytes());
@@ -100,7 +108,9 @@ fn store() -> MemFetch {
 }
 
 async fn open() -> WebSource {
-    WebSource::open(Rc::new(store()), 16, 1, 1 << 20).await.expect("open")
+    WebSource::open(Rc::new(store()), 16, 1, 1 << 20)
+        .await
+        .expect("open")
 }
 
 #[wasm_bindgen_test]
@@ -118,9 +128,17 @@ async fn bricks_in_the_browser_equal_clamped_crops() {
             for j in 0..p[1] as i64 {
                 for k in 0..p[2] as i64 {
                     let cl = |v: i64, n: u64| v.clamp(0, n as i64 - 1) as u64;
-                    let want = value(cl(po[0] + i, DIMS[0]), cl(po[1] + j, DIMS[1]), cl(po[2] + k, DIMS[2]));
+                    let want = value(
+                        cl(po[0] + i, DIMS[0]),
+                        cl(po[1] + j, DIMS[1]),
+                        cl(po[2] + k, DIMS[2]),
+                    );
                     let o = (((i * p[1] as i64 + j) * p[2] as i64 + k) * 2) as usize;
-                    assert_eq!(u16::from_ne_bytes([dense[o], dense[o + 1]]), want, "{key:?} ({i},{j},{k})");
+                    assert_eq!(
+                        u16::from_ne_bytes([dense[o], dense[o + 1]]),
+                        want,
+                        "{key:?} ({i},{j},{k})"
+                    );
                 }
             }
         }
@@ -153,7 +171,13 @@ async fn a_streamed_dvr_in_the_browser_equals_the_reference() {
     let mut s = WebSession::new(src, cfg, spawn, 8).expect("session");
     let e = s.scene.extent;
     let tf = TransferFunction::preset("soft", [0.0, 60000.0]).unwrap();
-    let mut p = RenderParams::new(96, 80, Camera::fit(e, 30.0, 20.0, Projection::Perspective { fov_y_deg: 35.0 }), tf, RenderMode::Dvr);
+    let mut p = RenderParams::new(
+        96,
+        80,
+        Camera::fit(e, 30.0, 20.0, Projection::Perspective { fov_y_deg: 35.0 }),
+        tf,
+        RenderMode::Dvr,
+    );
     p.reference_step = Some(s.scene.voxel(0));
     let mut frames = 0;
     loop {
@@ -166,12 +190,27 @@ async fn a_streamed_dvr_in_the_browser_equals_the_reference() {
         }
         assert!(frames < 400, "not complete after 400 frames");
     }
-    assert!(s.loads.loaded() > 8, "the view streamed only {} bricks", s.loads.loaded());
+    assert!(
+        s.loads.loaded() > 8,
+        "the view streamed only {} bricks",
+        s.loads.loaded()
+    );
     let vol = Volume::from_fn(DIMS, [1.0; 3], |z, y, x| value(z, y, x) as f32);
     let want = brickyard_render::render(&vol, &p);
     let got = s.image();
     let lit = want.rgba.iter().filter(|px| px[3] > 0.05).count();
-    assert!(lit > 96 * 80 / 10, "the reference is nearly blank ({lit} lit pixels)");
-    let d = got.rgba.iter().zip(&want.rgba).flat_map(|(a, b)| (0..4).map(move |i| (a[i] - b[i]).abs())).fold(0f32, f32::max);
-    assert!(d <= 1e-4, "the browser's image differs from the reference by {d} after {frames} frames");
+    assert!(
+        lit > 96 * 80 / 10,
+        "the reference is nearly blank ({lit} lit pixels)"
+    );
+    let d = got
+        .rgba
+        .iter()
+        .zip(&want.rgba)
+        .flat_map(|(a, b)| (0..4).map(move |i| (a[i] - b[i]).abs()))
+        .fold(0f32, f32::max);
+    assert!(
+        d <= 1e-4,
+        "the browser's image differs from the reference by {d} after {frames} frames"
+    );
 }
