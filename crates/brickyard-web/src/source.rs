@@ -114,10 +114,13 @@ pub struct WebSource {
     pub meta: Multiscale,
     pub geometry: BrickGeometry,
     indexes: RefCell<Lru<(usize, Vec<u64>), ShardIndex>>,
-    chunks: RefCell<Lru<(usize, Vec<u64>, usize), Rc<Vec<u8>>>>,
+    chunks: RefCell<Lru<ChunkKey, Rc<Vec<u8>>>>,
     pub stats: RefCell<SourceStats>,
     inflight: RefCell<HashMap<(String, Range), SharedFetch>>,
 }
+
+/// (level, chunk or shard index, inner chunk or `usize::MAX`).
+type ChunkKey = (usize, Vec<u64>, usize);
 
 type SharedFetch = Shared<LocalFuture<Result<Option<Rc<Vec<u8>>>, String>>>;
 

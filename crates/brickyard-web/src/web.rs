@@ -411,7 +411,7 @@ fn histogram(s: &WebSession, [lo, hi]: [f64; 2]) -> Vec<u32> {
             for x in vals.iter().step_by(7) {
                 use brickyard_core::Sample;
                 let b = ((x.to_f64() - lo) * k).floor();
-                if b >= 0.0 && b < 256.0 {
+                if (0.0..256.0).contains(&b) {
                     h[b as usize] += 1;
                 }
             }

@@ -101,7 +101,7 @@ impl ArrayMeta {
     }
 
     /// The sharding codec, if the chunks are shards.
-    pub fn sharding(&self) -> Option<(&[u64], &[Codec], &[Codec], bool)> {
+    pub fn sharding(&self) -> Option<Sharding<'_>> {
         self.codecs.iter().find_map(|c| match c {
             Codec::Sharding {
                 chunk,
@@ -118,6 +118,10 @@ impl ArrayMeta {
         })
     }
 }
+
+/// A sharding codec's inner chunk shape, inner codecs, index codecs and
+/// whether the index is at the end.
+pub type Sharding<'a> = (&'a [u64], &'a [Codec], &'a [Codec], bool);
 
 /// A channel's defaults from `omero`.
 #[derive(Debug, Clone, PartialEq)]
