@@ -2,6 +2,8 @@
 //! brick read over `Fetch` (here from files, byte ranges and all) equals
 //! the native loader's, and a streamed view equals `brickyard render`.
 
+#![cfg(not(target_arch = "wasm32"))]
+
 use brickyard_cache::brick::{BrickContent, BrickKey, LoadedBrick};
 use brickyard_cache::host_cache::HostCache;
 use brickyard_cache::loader::Loader;
