@@ -160,6 +160,50 @@ impl Gpu {
         })
     }
 
+    /// The browser's WebGPU device (`wasm32`): the adapter the browser
+    /// offers, with the WebGPU default limits raised only where the
+    /// adapter allows (buffer and binding sizes, 3D texture edge), as
+    /// [`Gpu::new`] does natively. Asynchronous: a page cannot block.
+    #[cfg(target_arch = "wasm32")]
+    pub async fn new_web() -> Result<Gpu, GpuError> {
+        let mut desc = wgpu::InstanceDescriptor::new_without_display_handle();
+        desc.backends = wgpu::Backends::BROWSER_WEBGPU;
+        let instance = wgpu::Instance::new(desc);
+        let adapter = instance
+            .request_adapter(&wgpu::RequestAdapterOptions::default())
+            .await
+            .map_err(|e| GpuError::NoAdapter {
+                looked: format!("WebGPU (navigator.gpu): {e}"),
+            })?;
+        let info = adapter.get_info();
+        let have = adapter.limits();
+        let mut limits = wgpu::Limits::defaults();
+        limits.max_buffer_size = have.max_buffer_size;
+        limits.max_storage_buffer_binding_size = have.max_storage_buffer_binding_size;
+        limits.max_texture_dimension_3d = have.max_texture_dimension_3d;
+        let (device, queue) = adapter
+            .request_device(&wgpu::DeviceDescriptor {
+                label: Some("brickyard"),
+                required_features: wgpu::Features::empty(),
+                required_limits: limits.clone(),
+                experimental_features: wgpu::ExperimentalFeatures::disabled(),
+                memory_hints: wgpu::MemoryHints::Performance,
+                trace: wgpu::Trace::Off,
+            })
+            .await
+            .map_err(|source| GpuError::Device {
+                adapter: info.name.clone(),
+                source,
+            })?;
+        Ok(Gpu {
+            device,
+            queue,
+            info,
+            r16_unorm: false,
+            limits,
+        })
+    }
+
     /// One line for logs and reports: name, kind and back end.
     pub fn describe(&self) -> String {
         format!(

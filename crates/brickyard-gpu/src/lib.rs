@@ -30,3 +30,24 @@ pub mod update;
 pub mod vm;
 
 pub use context::{AdapterChoice, Gpu, GpuError};
+
+/// Every WGSL module of this crate's kernels, by name, as they are
+/// compiled (for checks by other shader compilers, e.g. a browser's).
+pub fn shaders() -> Vec<(&'static str, String)> {
+    vec![
+        ("lru", include_str!("shaders/lru.wgsl").to_string()),
+        (
+            "requests",
+            format!(
+                "{}\n{}",
+                include_str!("shaders/requests.wgsl"),
+                requests::REQUEST_INSERT_WGSL
+            ),
+        ),
+        (
+            "update",
+            vm::with_vm_common(include_str!("shaders/update.wgsl")),
+        ),
+        ("vm", vm::with_vm_common(include_str!("shaders/vm.wgsl"))),
+    ]
+}

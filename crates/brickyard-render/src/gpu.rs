@@ -256,10 +256,15 @@ fn clear_bits(
     bits
 }
 
+/// The render kernel's WGSL module as it is compiled.
+pub fn render_source() -> String {
+    format!("{}\n{}", with_vm_common(RENDER_WGSL), REQUEST_INSERT_WGSL)
+}
+
 impl GpuRenderer {
     pub fn new(gpu: &Gpu) -> GpuRenderer {
         use Binding::*;
-        let source = format!("{}\n{}", with_vm_common(RENDER_WGSL), REQUEST_INSERT_WGSL);
+        let source = render_source();
         let kernel = Kernel::new(
             gpu,
             "render",

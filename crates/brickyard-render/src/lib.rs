@@ -52,6 +52,16 @@ pub use image::Image;
 pub use params::{RenderMode, RenderParams};
 pub use reference::{render, Volume};
 
+/// This crate's WGSL modules, by name, as they are compiled: the render
+/// kernel (DVR, MIP, slices, octree traversal, accumulation) and the
+/// residency octree's update passes.
+pub fn device_shaders() -> Vec<(&'static str, String)> {
+    vec![
+        ("render", gpu::render_source()),
+        ("octree", include_str!("octree.wgsl").to_string()),
+    ]
+}
+
 /// The oracle stands alone: the reference renderer names no module of the
 /// product renderers, and they do not name it, so that no rule is shared
 /// between what is tested and what it is tested against.

@@ -40,8 +40,10 @@ fn is_nan(x: f32) -> bool {
     return (bitcast<u32>(x) & 0x7fffffffu) > 0x7f800000u;
 }
 
+// A quiet NaN, made at run time: browsers' WGSL compilers refuse a NaN
+// constant.
 fn nan() -> f32 {
-    return bitcast<f32>(0x7fc00000u);
+    return bitcast<f32>(0x7fc00000u | (params.pad2 & 0u));
 }
 
 // The union of two ranges; NaN (unknown) wins.
@@ -170,7 +172,7 @@ fn leaf_ranges(@builtin(workgroup_id) wg: vec3<u32>, @builtin(local_invocation_i
         lo[a] = (q[a] * dl[a]) / (bs * n);
         hi[a] = min(((q[a] + 1u) * dl[a] + bs * n - 1u) / (bs * n), nb[a]);
     }
-    let inf = bitcast<f32>(0x7f800000u);
+    let inf = bitcast<f32>(0x7f800000u | (params.pad2 & 0u));
     var acc = vec2<f32>(inf, -inf);
     for (var z = lo.x; z < hi.x; z++) {
         for (var y = lo.y; y < hi.y; y++) {
@@ -196,7 +198,7 @@ fn union_up(@builtin(workgroup_id) wg: vec3<u32>, @builtin(local_invocation_inde
     let p = i / per;
     let r = i % per;
     let d = params.d;
-    let inf = bitcast<f32>(0x7f800000u);
+    let inf = bitcast<f32>(0x7f800000u | (params.pad2 & 0u));
     var acc = vec2<f32>(inf, -inf);
     for (var k = 0u; k < 8u; k++) {
         acc = union2(acc, ranges[(node_offset(d + 1u) + child(p, d, k)) * per + r]);

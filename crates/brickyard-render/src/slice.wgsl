@@ -51,7 +51,7 @@ fn plane_value(hit: vec4<f32>) -> f32 {
     }
     if (s.y == 0.0) {
         atomicAdd(&counters[2], 1u);
-        return bitcast<f32>(0x7fc00000u);
+        return nan_f32();
     }
     return s.x;
 }

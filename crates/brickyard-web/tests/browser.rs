@@ -214,3 +214,48 @@ async fn a_streamed_dvr_in_the_browser_equals_the_reference() {
         "the browser's image differs from the reference by {d} after {frames} frames"
     );
 }
+
+/// The device side in the browser: WebGPU's adapter (SwiftShader in
+/// headless Chromium, `--enable-unsafe-webgpu`) opens through the same
+/// `Gpu` type, and the renderer's WGSL module (DVR, MIP, slices, the
+/// octree traversal, accumulation) passes the browser's own shader
+/// compiler, not only naga's validation: a step toward drawing through
+/// WebGPU in the page, which waits on read-backs that do not block.
+#[wasm_bindgen_test]
+async fn the_renderers_wgsl_compiles_in_the_browsers_webgpu() {
+    let gpu = brickyard_gpu::Gpu::new_web()
+        .await
+        .expect("a WebGPU adapter (run Chromium with --enable-unsafe-webgpu)");
+    let scope = gpu.device.push_error_scope(wgpu::ErrorFilter::Validation);
+    let _r = brickyard_render::gpu::GpuRenderer::new(&gpu);
+    let err = scope.pop().await;
+    assert!(
+        err.is_none(),
+        "the browser refused the render kernel on {}: {err:?}",
+        gpu.describe()
+    );
+}
+
+/// The other device kernels pass the browser's compiler too: the cache's
+/// (LRU compaction, request lists, update step, page tables) and the
+/// residency octree's update passes.
+#[wasm_bindgen_test]
+async fn the_cache_and_octree_kernels_compile_in_the_browsers_webgpu() {
+    let gpu = brickyard_gpu::Gpu::new_web()
+        .await
+        .expect("a WebGPU adapter");
+    for (name, src) in brickyard_gpu::shaders()
+        .into_iter()
+        .chain(brickyard_render::device_shaders())
+    {
+        let scope = gpu.device.push_error_scope(wgpu::ErrorFilter::Validation);
+        let _m = gpu
+            .device
+            .create_shader_module(wgpu::ShaderModuleDescriptor {
+                label: Some(name),
+                source: wgpu::ShaderSource::Wgsl(src.into()),
+            });
+        let err = scope.pop().await;
+        assert!(err.is_none(), "the browser refused {name}: {err:?}");
+    }
+}
