@@ -147,15 +147,28 @@ impl RequestTableGpu {
     /// first (see [`brickyard_cache::bookkeeping::prioritize`]), and the
     /// number of misses dropped because the table was full.
     pub fn list(&mut self, gpu: &Gpu, cap: usize) -> Result<(Vec<(u32, u32)>, u64), GpuError> {
+        pollster::block_on(self.list_async(gpu, cap))
+    }
+
+    /// [`list`](Self::list) without blocking (the browser's read-backs).
+    pub async fn list_async(
+        &mut self,
+        gpu: &Gpu,
+        cap: usize,
+    ) -> Result<(Vec<(u32, u32)>, u64), GpuError> {
         let params = self.params(gpu, 0);
         let bind = self.bind(gpu, &params, &self.no_misses);
         let mut enc = gpu.device.create_command_encoder(&Default::default());
         self.kernel.dispatch(&mut enc, "sort", &bind, [1, 1, 1]);
         gpu.queue.submit([enc.finish()]);
-        let head = gpu.read_u32("dropped requests", &self.dropped, 2)?;
+        let head = gpu
+            .read_u32_async("dropped requests", &self.dropped, 2)
+            .await?;
         let (dropped, occupied) = (head[0] as u64, head[1] as usize);
         let n = cap.min(occupied);
-        let words = gpu.read_u32("request list", &self.sorted, n * 2)?;
+        let words = gpu
+            .read_u32_async("request list", &self.sorted, n * 2)
+            .await?;
         self.downloaded = (n * 8 + 8) as u64;
         let list = words.chunks_exact(2).map(|w| (w[0], w[1])).collect();
         Ok((list, dropped))

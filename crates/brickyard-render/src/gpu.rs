@@ -327,6 +327,22 @@ impl GpuRenderer {
         self.draw(gpu, dvm, vm, cache, scene, params, lod, None)
     }
 
+    /// [`render`](Self::render) without blocking on the device's answers:
+    /// the browser's frame (its read-backs complete on the page's event
+    /// loop). The same frame as `render`.
+    pub async fn render_async(
+        &mut self,
+        gpu: &Gpu,
+        dvm: &DeviceVm,
+        vm: &VirtualMemory,
+        scene: &Scene,
+        params: &RenderParams,
+        lod: Lod,
+    ) -> Result<GpuFrame, GpuError> {
+        self.draw_async(gpu, dvm, vm, None, scene, params, lod, None)
+            .await
+    }
+
     /// A frame of `render_with`, or a pass of a sample accumulation.
     #[allow(clippy::too_many_arguments)]
     pub(crate) fn draw(
@@ -339,6 +355,22 @@ impl GpuRenderer {
         params: &RenderParams,
         lod: Lod,
         pass: Option<AccPass>,
+    ) -> Result<GpuFrame, GpuError> {
+        // Natively every read-back inside is ready when polled.
+        pollster::block_on(self.draw_async(gpu, dvm, vm, cache, scene, params, lod, pass))
+    }
+
+    #[allow(clippy::too_many_arguments)]
+    async fn draw_async(
+        &mut self,
+        gpu: &Gpu,
+        dvm: &DeviceVm,
+        vm: &VirtualMemory,
+        cache: Option<&DeviceCache>,
+        scene: &Scene,
+        params: &RenderParams,
+        lod: Lod,
+        pass: Option<AccPass<'_>>,
     ) -> Result<GpuFrame, GpuError> {
         let (mode, plane) = match params.mode {
             RenderMode::Dvr => (0, ([0.0; 3], [0.0; 3])),
@@ -737,10 +769,12 @@ impl GpuRenderer {
             .dispatch(&mut enc, entry, &bind, [w.div_ceil(8), h.div_ceil(8), 1]);
         gpu.queue.submit([enc.finish()]);
 
-        let head = gpu.read_u32("frame counters", counters, 8)?;
+        let head = gpu.read_u32_async("frame counters", counters, 8).await?;
         let used_n = head[4].min(used_cap) as usize;
         let used: Vec<u32> = if used_n > 0 {
-            let used = gpu.read_back("used slots", counters, (8 + used_n as u64) * 4)?;
+            let used = gpu
+                .read_back_async("used slots", counters, (8 + used_n as u64) * 4)
+                .await?;
             bytemuck::pod_collect_to_vec(&used[32..])
         } else {
             vec![]
@@ -748,14 +782,16 @@ impl GpuRenderer {
         for &s in &used {
             vm.mark_used(s & !EXACT_BIT, s & EXACT_BIT != 0);
         }
-        let (list, dropped) = table.list(gpu, vm.config().request_cap)?;
+        let (list, dropped) = table.list_async(gpu, vm.config().request_cap).await?;
         let mut requests = vm.requests();
         for &(id, n) in &list {
             requests.add(ids.key(id), n);
         }
         let list = list.into_iter().map(|(id, _)| ids.key(id)).collect();
         let img = if self.read_image {
-            let pixels = gpu.read_back("image", image, w as u64 * h as u64 * 16)?;
+            let pixels = gpu
+                .read_back_async("image", image, w as u64 * h as u64 * 16)
+                .await?;
             let mut img = Image::new(w, h);
             img.rgba = bytemuck::pod_collect_to_vec(&pixels);
             img

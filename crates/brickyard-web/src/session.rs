@@ -269,6 +269,28 @@ impl WebSession {
     /// (detail is lost, never completeness), and lowers it again when room
     /// is back.
     pub fn frame_cpu(&mut self, p: &RenderParams, lod: Lod) -> FrameOut {
+        let (drawn, failed) = match self.prepare(p, lod) {
+            Ok(x) => x,
+            Err(out) => return out,
+        };
+        self.vm.begin_frame();
+        let (stats, reqs) = render_tiles(
+            &self.vm,
+            &self.scene,
+            p,
+            drawn,
+            &mut self.image,
+            &mut self.tiles,
+        );
+        self.finish(stats, reqs.iter(), failed)
+    }
+
+    /// Start a frame of `p` at the user's `lod`: arrivals taken in, the
+    /// LOD budget applied. `Ok((level of detail to draw, failures taken))`,
+    /// or the frame's figures when the coarsest levels are not in yet.
+    /// Between this and [`finish`](Self::finish) a renderer draws from
+    /// [`vm`](Self::vm) (begun with `begin_frame`).
+    pub fn prepare(&mut self, p: &RenderParams, lod: Lod) -> Result<(Lod, usize), FrameOut> {
         let failed = self.collect();
         let nl = self.scene.levels.len();
         let base = match lod {
@@ -294,25 +316,27 @@ impl WebSession {
         }
         if !self.ready() {
             let (q, f) = self.loads.pending();
-            return FrameOut {
+            return Err(FrameOut {
                 queued: q,
                 in_flight: f,
                 failed,
                 bias: base,
                 ..Default::default()
-            };
+            });
         }
-        self.vm.begin_frame();
-        let (stats, reqs) = render_tiles(
-            &self.vm,
-            &self.scene,
-            p,
-            drawn,
-            &mut self.image,
-            &mut self.tiles,
-        );
+        Ok((drawn, failed))
+    }
+
+    /// End a frame drawn after [`prepare`](Self::prepare) with these
+    /// figures and requests.
+    pub fn finish<'a>(
+        &mut self,
+        stats: FrameStats,
+        reqs: impl IntoIterator<Item = &'a brickyard_cache::vm::Requests>,
+        failed: usize,
+    ) -> FrameOut {
         let arrived_before = self.waiting.len();
-        let mut out = self.end_frame(reqs.iter());
+        let mut out = self.end_frame(reqs);
         let failed_in_list = out
             .frame
             .requests
@@ -329,7 +353,7 @@ impl WebSession {
             progress: out.insert.inserted + out.insert.flagged + arrived_before > 0
                 || out.queued + out.in_flight > 0,
         };
-        let budget = self.budget.as_mut().expect("set above");
+        let budget = self.budget.as_mut().expect("set by prepare");
         let decision = budget.update(&sig);
         out.bias = budget.bias;
         out.failed = failed;
