@@ -120,6 +120,11 @@ pub(crate) struct TfTable {
     inv_width: f32,
     bins: Box<[u16; BINS]>,
     pieces: Vec<Pieces>,
+    /// The evaluator's result where the windowed value is exactly 0 and
+    /// exactly 1 (values at or past the window's ends: saturated data,
+    /// which the end bins, holding the first and last control points,
+    /// would otherwise send to the search); `None` if no value gave it.
+    ends: [Option<Option<F4>>; 2],
 }
 
 /// [`TfTable::lookup_visible`] in a bin with a control point: the
@@ -186,8 +191,15 @@ impl TfTable {
                 inv_width,
                 bins,
                 pieces,
+                ends: [None; 2],
             };
         }
+        // The evaluator depends on the windowed value only (after NaN):
+        // any value whose `x` is exactly 0 (1) gives the result for all.
+        let ends = [(w0 - (w1 - w0), 0.0f32), (w1 + (w1 - w0), 1.0)].map(|(v, want)| {
+            let x = ((v - w0) * inv_width).clamp(0.0, 1.0);
+            (v.is_finite() && x == want).then(|| search(eval, v))
+        });
         for (b, slot) in bins.iter_mut().enumerate() {
             // Transparent bins: where the evaluator says so of a value in
             // the bin's middle (its `range_visible` of one value is its bin).
@@ -226,6 +238,7 @@ impl TfTable {
             inv_width,
             bins,
             pieces,
+            ends,
         }
     }
 
@@ -239,7 +252,16 @@ impl TfTable {
         let x = ((value - self.w0) * self.inv_width).clamp(0.0, 1.0);
         match self.bins[bin_of(x)] {
             CLEAR => None,
-            SEARCH => search(eval, value),
+            SEARCH => {
+                let end = if x == 1.0 {
+                    self.ends[1]
+                } else if x == 0.0 {
+                    self.ends[0]
+                } else {
+                    None
+                };
+                end.unwrap_or_else(|| search(eval, value))
+            }
             i => {
                 // SAFETY: every index in `bins` below `SEARCH` is one of
                 // `pieces`.
