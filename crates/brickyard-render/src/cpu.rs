@@ -73,6 +73,11 @@ pub struct Scene {
     /// maps to zero opacity without sampling them (the image is the same
     /// either way; off only to measure or test the saving).
     pub skip_cells: bool,
+    /// DVR: the per-sample work of runs through resident bricks in four
+    /// f32 lanes (trilinear lerps, transfer function, compositing); `false`
+    /// takes the scalar twin, which gives the same bits (tests compare
+    /// the two).
+    pub lanes: bool,
     /// The residency octree kept beside the virtual memory, for
     /// [`Traversal::Octree`](crate::params::Traversal) (`None`: a frame
     /// that asks for it builds one from the virtual memory, of depth
@@ -92,6 +97,7 @@ impl Scene {
             channel: 0,
             ranges: None,
             skip_cells: true,
+            lanes: true,
             octree: None,
         }
     }

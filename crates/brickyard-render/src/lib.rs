@@ -35,6 +35,7 @@ pub mod cpu;
 mod dvr;
 pub mod gpu;
 pub mod image;
+mod lanes;
 mod mip;
 pub mod multi;
 pub mod octree;

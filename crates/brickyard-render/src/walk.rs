@@ -21,12 +21,14 @@ pub(crate) use cells::Run;
 pub(crate) use landing::{clear_blocks, Grid, Track};
 
 use crate::cpu::{Lod, Scene};
+use crate::lanes::F4;
+use crate::optics::TfTable;
 use crate::params::{RenderMode, RenderParams};
 use brickyard_cache::cells::CellGrid;
 use brickyard_cache::vm::VirtualMemory;
 use brickyard_core::camera::{Projection, Vec3};
 use brickyard_core::transfer::TfEval;
-use brickyard_core::{Dims3, Sample, TransferFunction};
+use brickyard_core::{DType, Dims3, Sample, TransferFunction};
 
 /// Per-frame constants.
 pub(crate) struct Frame<'a> {
@@ -36,6 +38,8 @@ pub(crate) struct Frame<'a> {
     pub(crate) tf: &'a TransferFunction,
     /// The transfer function prepared for this frame's lookups.
     pub(crate) tf_eval: TfEval<'a>,
+    /// The same in four lanes, for the DVR's runs through resident bricks.
+    pub(crate) tf_table: TfTable,
     pub(crate) lod: Lod,
     /// Voxels per level `[z, y, x]`.
     pub(crate) dims: Vec<Dims3>,
@@ -127,7 +131,9 @@ impl<'a> Frame<'a> {
                 None => vec![],
             })
             .collect();
+        let tf_eval = params.tf.evaluator();
         let mut frame = Frame {
+            tf_table: TfTable::new(&params.tf, &tf_eval),
             clear_blocks,
             next_t: vec![],
             step: (0..nl)
@@ -145,7 +151,7 @@ impl<'a> Frame<'a> {
             scene,
             params,
             tf: &params.tf,
-            tf_eval: params.tf.evaluator(),
+            tf_eval,
             lod,
             dims: scene.levels.clone(),
             scale: scene
@@ -349,12 +355,69 @@ pub(crate) fn trilinear<T: Sample>(v: &[T], i: usize, sz: usize, sy: usize, f: [
     )
 }
 
+/// [`trilinear`] with the lerps in lanes ([`F4::trilinear`]) for 8- and
+/// 16-bit unsigned volumes, the corners gathered in four loads; the same
+/// bits as [`trilinear`] (tested). Other types take [`trilinear`].
+#[inline(always)]
+pub(crate) fn trilinear_lanes<T: Sample>(
+    v: &[T],
+    i: usize,
+    sz: usize,
+    sy: usize,
+    f: [f32; 3],
+) -> f32 {
+    let w = &v[i..i + sz + sy + 2];
+    // SAFETY: the corners lie in `w` (its last element is the farthest),
+    // and `T` is the type named by its `DTYPE`.
+    let (lo, hi) = match T::DTYPE {
+        DType::U8 => unsafe { F4::corners_u8(w.as_ptr().cast::<u8>(), sz, sy) },
+        DType::U16 => unsafe { F4::corners_u16(w.as_ptr().cast::<u16>(), sz, sy) },
+        _ => return trilinear(v, i, sz, sy, f),
+    };
+    F4::trilinear(lo, hi, f)
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
     use brickyard_cache::vm::VmConfig;
     use brickyard_core::camera::Camera;
-    use brickyard_core::DType;
+
+    /// `trilinear_lanes` equals `trilinear` bit for bit on random bricks
+    /// of u8, u16 and f32 (the scalar path) at random fractions, including
+    /// 0 and just below 1.
+    #[test]
+    fn trilinear_lanes_equal_the_scalar_kernel() {
+        fn check<T: Sample>(make: impl Fn(u64) -> T) {
+            let (sz, sy) = (18 * 18, 18);
+            let mut s = 99u64;
+            let mut rnd = move || {
+                s = s
+                    .wrapping_mul(6364136223846793005)
+                    .wrapping_add(1442695040888963407);
+                s >> 11
+            };
+            let vox: Vec<T> = (0..18 * 18 * 18).map(|_| make(rnd())).collect();
+            for n in 0..50_000 {
+                let i = (rnd() % (17 * 17 * 17)) as usize;
+                let [z, y, x] = [i / (17 * 17), i / 17 % 17, i % 17];
+                let i = z * sz + y * sy + x;
+                let f = [0; 3].map(|_| match rnd() % 4 {
+                    0 => 0.0,
+                    1 => 1.0 - f32::EPSILON / 2.0,
+                    _ => (rnd() % (1 << 24)) as f32 / (1 << 24) as f32,
+                });
+                let want = trilinear(&vox, i, sz, sy, f);
+                let got = trilinear_lanes(&vox, i, sz, sy, f);
+                assert_eq!(got.to_bits(), want.to_bits(), "{:?} {n} {f:?}", T::DTYPE);
+            }
+        }
+        check(|r| r as u8);
+        check(|r| r as u16);
+        check(|r| {
+            f32::from_bits(r as u32 & 0x7f7f_ffff) * if r & 1 << 40 != 0 { -1.0 } else { 1.0 }
+        });
+    }
 
     /// `level_at`'s shortcut before the first threshold gives the level
     /// of the footprint formula, in perspective and orthographic views

@@ -1,0 +1,259 @@
+//! The CPU DVR's per-sample work in four lanes (`Scene::lanes`, the
+//! default) against its scalar twin (`lanes = false`) on random scenes:
+//! random volumes (u8, u16, f32; random sizes, smooth fields plus noise,
+//! some NaN in f32), transfer functions (random points, steps, clear
+//! stretches, random colour maps and presets), cameras (perspective and
+//! orthographic, any direction), sampling rates and engine bricks. Every
+//! complete frame equals the twin's within 1e-6 (the lanes do the scalar
+//! operations, so in fact bit for bit).
+
+use brickyard_cache::session::Session;
+use brickyard_cache::vm::VmConfig;
+use brickyard_core::camera::{world_extent, Camera, Projection};
+use brickyard_core::transfer::{ColorMap, Preset};
+use brickyard_core::{DType, TransferFunction};
+use brickyard_render::cpu::{render_frame, Lod, Scene};
+use brickyard_render::image::Image;
+use brickyard_render::reference::{RenderMode, RenderParams, Volume};
+use brickyard_store::builder::{convert, ConvertOptions, NoProgress};
+use brickyard_store::import::raw::{self, RawOptions};
+use std::path::Path;
+use std::sync::atomic::AtomicBool;
+
+struct Rng(u64);
+
+impl Rng {
+    /// Uniform in `[0, 1)`.
+    fn next(&mut self) -> f64 {
+        self.0 = self
+            .0
+            .wrapping_mul(6364136223846793005)
+            .wrapping_add(1442695040888963407);
+        (self.0 >> 11) as f64 / (1u64 << 53) as f64
+    }
+    fn range(&mut self, lo: f64, hi: f64) -> f64 {
+        lo + (hi - lo) * self.next()
+    }
+    fn int(&mut self, lo: u64, hi: u64) -> u64 {
+        lo + (self.next() * (hi - lo + 1) as f64) as u64
+    }
+}
+
+/// A random volume of `dims` (`[x, y, z]`) in `dtype` as a store in `dir`;
+/// returns the store and the data's range.
+fn random_store(
+    dir: &Path,
+    rng: &mut Rng,
+    dims: [u64; 3],
+    dtype: DType,
+) -> (std::path::PathBuf, [f32; 2]) {
+    let (max, bytes): (f64, usize) = match dtype {
+        DType::U8 => (255.0, 1),
+        DType::U16 => (65535.0, 2),
+        _ => (1.0, 4),
+    };
+    // A few random blobs and waves plus noise, scaled to the type's range.
+    let blobs: Vec<[f64; 5]> = (0..4)
+        .map(|_| {
+            [
+                rng.next(),
+                rng.next(),
+                rng.next(),
+                rng.range(0.1, 0.4),
+                rng.range(0.3, 1.0),
+            ]
+        })
+        .collect();
+    let freq = [
+        rng.range(2.0, 12.0),
+        rng.range(2.0, 12.0),
+        rng.range(2.0, 12.0),
+    ];
+    let noise = rng.range(0.0, 0.2);
+    let mut data = Vec::with_capacity((dims[0] * dims[1] * dims[2]) as usize * bytes);
+    for z in 0..dims[2] {
+        for y in 0..dims[1] {
+            for x in 0..dims[0] {
+                let p = [
+                    x as f64 / dims[0] as f64,
+                    y as f64 / dims[1] as f64,
+                    z as f64 / dims[2] as f64,
+                ];
+                let mut v = 0.15
+                    * ((p[0] * freq[0]).sin() * (p[1] * freq[1]).cos() + (p[2] * freq[2]).sin());
+                for b in &blobs {
+                    let d2 = (p[0] - b[0]).powi(2) + (p[1] - b[1]).powi(2) + (p[2] - b[2]).powi(2);
+                    v += b[4] * (-d2 / (b[3] * b[3])).exp();
+                }
+                v += noise * (rng.next() - 0.5);
+                let v = v.clamp(0.0, 1.0) * max;
+                match dtype {
+                    DType::U8 => data.push(v.round() as u8),
+                    DType::U16 => data.extend_from_slice(&(v.round() as u16).to_le_bytes()),
+                    _ => {
+                        let f = if rng.next() < 0.001 {
+                            f32::NAN
+                        } else {
+                            v as f32 * 3.0 - 1.0
+                        };
+                        data.extend_from_slice(&f.to_le_bytes());
+                    }
+                }
+            }
+        }
+    }
+    let path = dir.join(format!("v-{}.raw", rng.0 % 1_000_000));
+    std::fs::write(&path, &data).unwrap();
+    let opts = RawOptions {
+        dims,
+        dtype,
+        endian: "little".into(),
+        spacing: Some([1.0, rng.range(0.7, 1.4), rng.range(0.7, 1.4)]),
+        origin: None,
+        unit: None,
+        channels: 1,
+        header_bytes: 0,
+    };
+    let src = raw::open(&path, &opts).unwrap();
+    let store = path.with_extension("ome.zarr");
+    let o = ConvertOptions {
+        brick: [16; 3],
+        shard: [32; 3],
+        ..Default::default()
+    };
+    convert(&src, &store, &o, &NoProgress, &AtomicBool::new(false)).unwrap();
+    let range = match dtype {
+        DType::U8 | DType::U16 => [0.0, max as f32],
+        _ => [-1.0, 2.0],
+    };
+    (store, range)
+}
+
+/// A random transfer function over about the data's range `r`.
+fn random_tf(rng: &mut Rng, r: [f32; 2]) -> TransferFunction {
+    let w = (r[1] - r[0]) as f64;
+    let w0 = r[0] as f64 + w * rng.range(-0.1, 0.4);
+    let w1 = w0 + w * rng.range(0.2, 1.0);
+    let n = rng.int(1, 7) as usize;
+    let mut xs: Vec<f32> = (0..n).map(|_| rng.next() as f32).collect();
+    xs.sort_by(f32::total_cmp);
+    if n > 2 && rng.next() < 0.3 {
+        // A step: two points at the same x.
+        xs[1] = xs[2];
+    }
+    let opacity: Vec<[f32; 2]> = xs
+        .iter()
+        .map(|&x| {
+            let a = if rng.next() < 0.3 {
+                0.0
+            } else {
+                rng.range(0.0, 0.9) as f32
+            };
+            [x, a]
+        })
+        .collect();
+    let colormap = if rng.next() < 0.5 {
+        let p = [
+            Preset::Grayscale,
+            Preset::Hot,
+            Preset::Viridis,
+            Preset::Coolwarm,
+            Preset::Bone,
+        ];
+        ColorMap::Preset(p[rng.int(0, 4) as usize])
+    } else {
+        let m = rng.int(1, 5) as usize;
+        let mut xs: Vec<f32> = (0..m).map(|_| rng.next() as f32).collect();
+        xs.sort_by(f32::total_cmp);
+        ColorMap::Points(
+            xs.iter()
+                .map(|&x| [x, rng.next() as f32, rng.next() as f32, rng.next() as f32])
+                .collect(),
+        )
+    };
+    TransferFunction::new([w0 as f32, w1 as f32], opacity, colormap).unwrap()
+}
+
+/// Frames until complete.
+fn converge(s: &mut Session, scene: &Scene, p: &RenderParams, lod: Lod) -> Image {
+    for _ in 0..400 {
+        s.begin_frame();
+        let (img, st, reqs) = render_frame(s.vm(), scene, p, lod);
+        s.finish_frame(reqs.iter());
+        if st.completeness() == 1.0 {
+            return img;
+        }
+        std::thread::sleep(std::time::Duration::from_millis(1));
+    }
+    panic!("never complete");
+}
+
+#[test]
+fn lanes_equal_the_scalar_twin_on_random_scenes() {
+    let dir = tempfile::tempdir().unwrap();
+    let mut rng = Rng(0x1a7e_5eed);
+    let mut lit_scenes = 0;
+    for scene_no in 0..12 {
+        let dtype = [DType::U8, DType::U16, DType::F32][scene_no % 3];
+        let dims = [0; 3].map(|_| rng.int(20, 56));
+        let (store, range) = random_store(dir.path(), &mut rng, dims, dtype);
+        let brick = [8, 16][rng.int(0, 1) as usize];
+        let cfg = VmConfig {
+            brick: [brick; 3],
+            apron: 1,
+            pool_bytes: 64 << 20,
+            ..Default::default()
+        };
+        let mut s = Session::open(&store, cfg, 16 << 20, 2).unwrap();
+        let pyramid: Vec<Volume> = (0..)
+            .map_while(|l| Volume::from_store(&store, l, 0).ok())
+            .collect();
+        let extent = world_extent(dims, pyramid[0].spacing);
+        let mut scene = Scene::new(extent, pyramid.iter().map(|v| v.dims).collect());
+        if rng.next() < 0.7 {
+            scene.ranges = Some(std::sync::Arc::new(s.loader().brick_ranges(1 << 20)));
+        }
+        let tf = random_tf(&mut rng, range);
+        let proj = if rng.next() < 0.7 {
+            Projection::Perspective {
+                fov_y_deg: rng.range(20.0, 60.0),
+            }
+        } else {
+            Projection::Orthographic {
+                height: extent.iter().cloned().fold(0.0, f64::max) * rng.range(0.8, 1.6),
+            }
+        };
+        let cam = Camera::fit(
+            extent,
+            rng.range(-180.0, 180.0),
+            rng.range(-80.0, 80.0),
+            proj,
+        );
+        let mut p = RenderParams::new(64, 48, cam, tf, RenderMode::Dvr);
+        p.samples_per_voxel = [1.0, 0.5, 2.0, 1.7][rng.int(0, 3) as usize];
+        let lod = if rng.next() < 0.7 {
+            Lod::Fixed(0)
+        } else {
+            Lod::Auto {
+                bias: rng.range(-1.0, 1.0),
+            }
+        };
+        let img = converge(&mut s, &scene, &p, lod);
+        let mut twin = scene.clone();
+        twin.lanes = false;
+        s.begin_frame();
+        let (want, st, reqs) = render_frame(s.vm(), &twin, &p, lod);
+        s.finish_frame(reqs.iter());
+        assert_eq!(st.completeness(), 1.0);
+        let diff = img.max_abs_diff(&want);
+        assert!(
+            diff <= 1e-6,
+            "scene {scene_no} ({dtype:?}, {dims:?}, {lod:?}): max abs diff {diff}"
+        );
+        lit_scenes += (img.coverage(0.01) > 0.02) as u32;
+    }
+    assert!(
+        lit_scenes >= 8,
+        "only {lit_scenes} of 12 scenes show something"
+    );
+}
