@@ -128,7 +128,17 @@ impl DevicePool {
                 | wgpu::TextureUsages::COPY_SRC,
             view_formats: &[],
         });
-        if let Some(e) = pollster::block_on(scope.pop()) {
+        // In the browser an error scope resolves on the page's event loop,
+        // which cannot be waited for here: a pool the device cannot hold
+        // shows up there as a validation error of the first frame.
+        #[cfg(not(target_arch = "wasm32"))]
+        let refused = pollster::block_on(scope.pop());
+        #[cfg(target_arch = "wasm32")]
+        let refused: Option<wgpu::Error> = {
+            drop(scope);
+            None
+        };
+        if let Some(e) = refused {
             let voxels =
                 (gx * padded[2]) as u64 * (gy * padded[1]) as u64 * (gz * padded[0]) as u64;
             return Err(GpuError::OutOfMemory {

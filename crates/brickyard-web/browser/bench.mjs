@@ -9,7 +9,7 @@ import { execFileSync } from 'node:child_process';
 const [exe0, url, runs] = process.argv.slice(2);
 const exe = exe0.includes('/') ? exe0 : execFileSync('which', [exe0]).toString().trim();
 const browser = await chromium.launch({ executablePath: exe, headless: true,
-  args: ['--no-sandbox', '--disable-background-networking', '--disable-component-update', '--no-first-run'] });
+  args: ['--no-sandbox', '--enable-unsafe-webgpu', '--disable-background-networking', '--disable-component-update', '--no-first-run'] });
 for (let i = 0; i < Number(runs || 3); i++) {
   const page = await browser.newPage();
   const t0 = Date.now();
@@ -18,7 +18,7 @@ for (let i = 0; i < Number(runs || 3); i++) {
   const first = Date.now() - t0;
   await page.waitForFunction(() => window.brickyard?.error || window.brickyard?.status?.complete, null, { timeout: 300000, polling: 20 });
   const complete = Date.now() - t0;
-  const r = await page.evaluate(() => {
+  const r = await page.evaluate(async () => {
     const b = window.brickyard;
     if (b.error) return { error: b.error };
     const st = b.status;
@@ -28,12 +28,12 @@ for (let i = 0; i < Number(runs || 3); i++) {
     for (let k = 1; k <= 5; k++) {
       v.set_query(q + (q ? '&' : '') + `zoom=${1 + k * 1e-6}`);
       const t = performance.now();
-      v.frame();
+      await v.frame();
       times.push(performance.now() - t);
     }
     v.set_query(q);
     const res = performance.getEntriesByType('resource').filter((e) => /\/c\//.test(e.name)).length;
-    return { status: st, redraw_ms: times, chunk_requests: res };
+    return { status: st, redraw_ms: times, chunk_requests: res, device: b.device || null };
   });
   console.log(JSON.stringify({ run: i, first_frame_ms: first, complete_ms: complete, ...r,
     bytes: r.status?.bytes, bias: r.status?.bias, loaded: r.status?.loaded, resident: r.status?.resident, pool_slots: r.status?.pool_slots }));

@@ -24,7 +24,7 @@ async function waitComplete(page, what) {
   await page.waitForFunction(() => {
     const b = window.brickyard;
     return b && (b.error || (b.status && b.status.complete));
-  }, null, { timeout: 90000, polling: 100 });
+  }, null, { timeout: 180000, polling: 100 });
   const b = await page.evaluate(() => ({ error: window.brickyard.error, status: window.brickyard.status, webgpu: window.brickyard.webgpu }));
   if (b.error) throw new Error(`${what}: the page reports: ${b.error}`);
   b.wall_ms = Date.now() - t0;
@@ -52,19 +52,19 @@ try {
   report.complete_ms = Date.now() - t0;
   report.status = first.status;
   report.webgpu = first.webgpu;
+  report.device = await page.evaluate(() => window.brickyard.device || null);
   // Frame times of a full redraw: turn the view by a little, five times.
   const times = [];
   for (let i = 0; i < 5; i++) {
-    const ms = await page.evaluate(() => {
+    const ms = await page.evaluate(async () => {
       const v = window.brickyard.viewer;
-      v.orbit(0.0, 0.0);
       const q = v.query();
       v.set_query(q + (q ? '&' : '') + 'zoom=1.0001');
       const t = performance.now();
-      v.frame();
+      await v.frame();
       const ms = performance.now() - t;
       v.set_query(q);
-      v.frame();
+      await v.frame();
       return ms;
     });
     times.push(ms);
@@ -81,7 +81,7 @@ try {
   const second = await waitComplete(again, 'reload');
   const px2 = await canvasPixels(again);
   report.reload_url = again.url();
-  report.reload_same_pixels = px2.w === px.w && px2.h === px.h && px2.data.every((v, i) => v === px.data[i]);
+  report.reload_max_diff = px2.w === px.w && px2.h === px.h ? px2.data.reduce((m, v, i) => Math.max(m, Math.abs(v - px.data[i])), 0) : 999;
   report.reload_status = second.status;
   // 3. No WebGPU.
   const ctx = await browser.newContext();
@@ -92,7 +92,8 @@ try {
   report.fallback_notice = await nogpu.evaluate(() => document.getElementById('notice').textContent);
   report.fallback_webgpu = third.webgpu;
   const px3 = await canvasPixels(nogpu);
-  report.fallback_same_pixels = px3.data.every((v, i) => v === px.data[i]);
+  report.fallback_max_diff = px3.w === px.w && px3.h === px.h ? px3.data.reduce((m, v, i) => Math.max(m, Math.abs(v - px.data[i])), 0) : 999;
+  writeFileSync(`${out}/canvas-cpu.rgba`, Buffer.from(px3.data));
   // A bad view in the URL: an error naming the key, no crash.
   const bad = await browser.newPage();
   await bad.goto(report.url.replace(/#.*/, '#store=' + encodeURIComponent(new URL(report.url).hash.match(/store=([^&]*)/)[1] ? decodeURIComponent(new URL(report.url).hash.match(/store=([^&]*)/)[1]) : '') + '&mode=volume'));

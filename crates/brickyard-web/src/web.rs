@@ -129,11 +129,21 @@ async fn get_once(url: &str, range: Range) -> Result<Option<Vec<u8>>, (String, b
     }))
 }
 
+/// The device path: WebGPU's device, the page tables and pool on it, and
+/// the renderer (updates decided on the host, as `--gpu-update host`).
+struct DeviceDraw {
+    gpu: brickyard_gpu::Gpu,
+    dvm: brickyard_gpu::vm::DeviceVm,
+    renderer: brickyard_render::gpu::GpuRenderer,
+}
+
 struct Inner {
     session: WebSession,
-    state: ViewState,
-    /// The default data window (the channel's `omero` window, else the
-    /// data type's range).
+    device: Option<DeviceDraw>,
+    /// The device's last image (the CPU's is the session's).
+    device_image: Option<brickyard_render::Image>,
+    /// The channel and default data window the scene is set up for.
+    channel: usize,
     window: [f64; 2],
     ctx: web_sys::CanvasRenderingContext2d,
     canvas: web_sys::HtmlCanvasElement,
@@ -150,6 +160,8 @@ struct Inner {
     drawn_state: Option<ViewState>,
     /// When the last frame was drawn (ms).
     drawn_at: f64,
+    /// Why the device is not used, when it was asked for.
+    device_note: Option<String>,
 }
 
 fn now() -> f64 {
@@ -158,21 +170,27 @@ fn now() -> f64 {
         .map_or(0.0, |p| p.now())
 }
 
-/// The web viewer: one store, one canvas.
+/// The web viewer: one store, one canvas. The view lives in its own cell,
+/// so the page may change it while a frame is being drawn.
 #[wasm_bindgen]
 pub struct Viewer {
     inner: Rc<RefCell<Inner>>,
+    state: Rc<RefCell<ViewState>>,
+    channels: usize,
+    info: String,
 }
 
 #[wasm_bindgen]
 impl Viewer {
     /// Open the OME-Zarr store at `url` and draw into `canvas`, with the
-    /// view of `query` (the page's `#…`); `pool_mib` is the brick pool.
+    /// view of `query` (the page's `#…`); `pool_mib` is the brick pool;
+    /// `device`: draw through WebGPU (when the browser has it).
     pub async fn open(
         url: String,
         canvas: web_sys::HtmlCanvasElement,
         query: String,
         pool_mib: u32,
+        device: bool,
     ) -> Result<Viewer, JsValue> {
         console_error_panic_hook();
         let started = now();
@@ -199,14 +217,38 @@ impl Viewer {
         let mut session =
             WebSession::new(Rc::new(src), cfg, spawn, 32).map_err(|e| JsValue::from_str(&e))?;
         session.scene.channel = state.channel;
+        let (device, device_note) = if device {
+            match open_device(&mut session).await {
+                Ok(d) => (Some(d), None),
+                Err(e) => (None, Some(e)),
+            }
+        } else {
+            (None, None)
+        };
         let ctx = canvas
             .get_context("2d")?
             .ok_or("the canvas has no 2D context")?
             .dyn_into::<web_sys::CanvasRenderingContext2d>()?;
+        let src = &session.loads.src;
+        let info = serde_json::json!({
+            "levels": src.geometry.levels,
+            "channels": src.meta.channels.iter().map(|c| &c.label).collect::<Vec<_>>(),
+            "n_channels": src.geometry.channels,
+            "dtype": format!("{:?}", src.geometry.dtype),
+            "spacing": src.meta.spacing,
+            "window": window,
+            "pool_slots": session.vm.pool_slots(),
+            "device": device.as_ref().map(|d| d.gpu.describe()),
+            "device_note": device_note,
+        })
+        .to_string();
+        let channels = src.geometry.channels;
         Ok(Viewer {
             inner: Rc::new(RefCell::new(Inner {
                 session,
-                state,
+                device,
+                device_image: None,
+                channel: state.channel,
                 window,
                 ctx,
                 canvas,
@@ -219,146 +261,191 @@ impl Viewer {
                 first_complete_ms: None,
                 drawn_state: None,
                 drawn_at: 0.0,
+                device_note,
             })),
+            state: Rc::new(RefCell::new(state)),
+            channels,
+            info,
         })
     }
 
-    /// Draw one frame (only what is not settled yet) and put it on the
-    /// canvas; returns the status as JSON.
-    pub fn frame(&self) -> Result<String, JsValue> {
-        let mut g = self.inner.borrow_mut();
-        let inner = &mut *g;
-        let t = now();
-        let (p, lod) = inner
-            .state
-            .params(&inner.session.scene, inner.window)
-            .map_err(|e| JsValue::from_str(&e))?;
-        // Draw when the view changed, or when enough bricks arrived to be
-        // worth a frame: a frame holds the page's only thread, and loads
-        // (decoding included) move on between frames.
-        let news = inner.session.news();
-        let (queued, in_flight) = inner.session.loads.pending();
-        let idle = queued + in_flight == 0;
-        let waited = t - inner.drawn_at >= 250.0;
-        let draw = inner.frames == 0
-            || inner.dirty()
-            || (news > 0 && (news >= 64 || idle || waited))
-            || (!inner.last.complete && idle && waited);
-        if draw {
-            inner.drawn_at = t;
-            inner.drawn_state = Some(inner.state.clone());
-            inner.last = inner.session.frame_cpu(&p, lod);
-            inner.frames += 1;
-            let img = inner.session.image();
-            if img.width > 0 {
-                if inner.canvas.width() != img.width || inner.canvas.height() != img.height {
-                    inner.canvas.set_width(img.width);
-                    inner.canvas.set_height(img.height);
-                }
-                let rgba = img.to_rgba8([0.0, 0.0, 0.0, 1.0]);
-                let data = web_sys::ImageData::new_with_u8_clamped_array_and_sh(
-                    wasm_bindgen::Clamped(&rgba),
-                    img.width,
-                    img.height,
-                )?;
-                inner.ctx.put_image_data(&data, 0.0, 0.0)?;
-            }
-            inner.frame_ms = now() - t;
-        }
-        let bytes = inner.session.loads.src.stats.borrow().bytes;
-        let tn = now();
-        if tn - inner.rate_at.0 >= 500.0 {
-            inner.mib_s =
-                (bytes - inner.rate_at.1) as f64 / 1048576.0 / ((tn - inner.rate_at.0) / 1000.0);
-            inner.rate_at = (tn, bytes);
-        }
-        if inner.last.complete && inner.first_complete_ms.is_none() {
-            inner.first_complete_ms = Some(tn - inner.started);
-        }
-        Ok(inner.status(bytes))
+    /// Draw one frame (only what is not settled yet, on the CPU) and put
+    /// it on the canvas; resolves to the status as JSON. One frame at a
+    /// time: await each before asking for the next.
+    pub fn frame(&self) -> js_sys::Promise {
+        let inner = self.inner.clone();
+        let state = self.state.borrow().clone();
+        wasm_bindgen_futures::future_to_promise(async move {
+            let mut g = inner
+                .try_borrow_mut()
+                .map_err(|_| JsValue::from_str("a frame is being drawn: await it first"))?;
+            g.frame(state).await.map(JsValue::from)
+        })
     }
 
     /// The view as the page's `#…` (without the store).
     pub fn query(&self) -> String {
-        self.inner.borrow().state.to_query()
+        self.state.borrow().to_query()
     }
 
     /// Set the view from a `#…` query; a bad value is an error naming
     /// its key, and the view stays as it was.
     pub fn set_query(&self, q: &str) -> Result<(), JsValue> {
         let s = ViewState::from_query(q).map_err(|e| JsValue::from_str(&e))?;
-        let mut g = self.inner.borrow_mut();
-        if s.channel >= g.session.vm.channels() {
+        if s.channel >= self.channels {
             return Err(JsValue::from_str(&format!(
                 "channel: the store has {} channels, found {}",
-                g.session.vm.channels(),
-                s.channel
+                self.channels, s.channel
             )));
         }
-        if s.channel != g.state.channel {
-            g.session.scene.channel = s.channel;
-            g.window = default_window(&g.session.loads.src, s.channel);
-        }
-        g.state = s;
+        *self.state.borrow_mut() = s;
         Ok(())
     }
 
     /// Turn the camera by `daz`, `del` degrees.
     pub fn orbit(&self, daz: f64, del: f64) {
-        let mut g = self.inner.borrow_mut();
-        g.state.azimuth = ((g.state.azimuth + daz) % 360.0 * 1000.0).round() / 1000.0;
-        g.state.elevation =
-            ((g.state.elevation + del).clamp(-89.0, 89.0) * 1000.0).round() / 1000.0;
+        let mut g = self.state.borrow_mut();
+        g.azimuth = ((g.azimuth + daz) % 360.0 * 1000.0).round() / 1000.0;
+        g.elevation = ((g.elevation + del).clamp(-89.0, 89.0) * 1000.0).round() / 1000.0;
     }
 
     /// Move closer (`f` > 1) or away.
     pub fn zoom(&self, f: f64) {
-        let mut g = self.inner.borrow_mut();
-        g.state.zoom = ((g.state.zoom * f).clamp(0.2, 20.0) * 1000.0).round() / 1000.0;
+        let mut g = self.state.borrow_mut();
+        g.zoom = ((g.zoom * f).clamp(0.2, 20.0) * 1000.0).round() / 1000.0;
     }
 
     /// The last image as straight 8-bit RGBA over black (what the canvas
-    /// shows), for checks.
+    /// shows), for checks; empty while a frame is being drawn.
     pub fn pixels(&self) -> Vec<u8> {
-        self.inner
-            .borrow()
-            .session
-            .image()
-            .to_rgba8([0.0, 0.0, 0.0, 1.0])
+        match self.inner.try_borrow() {
+            Ok(g) => g.image().to_rgba8([0.0, 0.0, 0.0, 1.0]),
+            Err(_) => vec![],
+        }
     }
 
     /// A histogram (256 bins over the default window) of the resident
     /// voxels of the shown channel: what the transfer-function editor
-    /// draws under its window.
+    /// draws under its window (empty while a frame is being drawn).
     pub fn histogram(&self) -> Vec<u32> {
-        let g = self.inner.borrow();
-        histogram(&g.session, g.window)
+        match self.inner.try_borrow() {
+            Ok(g) => histogram(&g.session, g.window),
+            Err(_) => vec![],
+        }
     }
 
-    /// The store: levels, channels, data type and default window, as JSON.
+    /// The store: levels, channels, data type, default window and the
+    /// device drawing, as JSON.
     pub fn info(&self) -> String {
-        let g = self.inner.borrow();
-        let src = &g.session.loads.src;
-        serde_json::json!({
-            "levels": src.geometry.levels,
-            "channels": src.meta.channels.iter().map(|c| &c.label).collect::<Vec<_>>(),
-            "n_channels": src.geometry.channels,
-            "dtype": format!("{:?}", src.geometry.dtype),
-            "spacing": src.meta.spacing,
-            "window": g.window,
-            "pool_slots": g.session.vm.pool_slots(),
-        })
-        .to_string()
+        self.info.clone()
     }
 }
 
+/// WebGPU's device and a mirror of the session's virtual memory on it.
+async fn open_device(session: &mut WebSession) -> Result<DeviceDraw, String> {
+    let gpu = brickyard_gpu::Gpu::new_web()
+        .await
+        .map_err(|e| e.to_string())?;
+    let scope = gpu.device.push_error_scope(wgpu::ErrorFilter::Validation);
+    let (dvm, _) =
+        brickyard_gpu::vm::DeviceVm::new(&gpu, &mut session.vm).map_err(|e| e.to_string())?;
+    let renderer = brickyard_render::gpu::GpuRenderer::new(&gpu);
+    if let Some(e) = scope.pop().await {
+        return Err(format!("WebGPU refused the renderer: {e}"));
+    }
+    Ok(DeviceDraw { gpu, dvm, renderer })
+}
+
 impl Inner {
-    /// Whether the view changed since the last frame drawn.
-    fn dirty(&self) -> bool {
-        self.drawn_state.as_ref() != Some(&self.state)
+    fn image(&self) -> &brickyard_render::Image {
+        match (&self.device, &self.device_image) {
+            (Some(_), Some(i)) => i,
+            _ => self.session.image(),
+        }
     }
 
-    fn status(&self, bytes: u64) -> String {
+    async fn frame(&mut self, state: ViewState) -> Result<String, JsValue> {
+        let t = now();
+        if state.channel != self.channel {
+            self.channel = state.channel;
+            self.session.scene.channel = state.channel;
+            self.window = default_window(&self.session.loads.src, state.channel);
+        }
+        let (p, lod) = state
+            .params(&self.session.scene, self.window)
+            .map_err(|e| JsValue::from_str(&e))?;
+        // Draw when the view changed, or when enough bricks arrived to be
+        // worth a frame: a frame holds the page's only thread, and loads
+        // (decoding included) move on between frames.
+        let news = self.session.news();
+        let (queued, in_flight) = self.session.loads.pending();
+        let idle = queued + in_flight == 0;
+        let waited = t - self.drawn_at >= 250.0;
+        let dirty = self.drawn_state.as_ref() != Some(&state);
+        let draw = self.frames == 0
+            || dirty
+            || (news > 0 && (news >= 64 || idle || waited))
+            || (!self.last.complete && idle && waited);
+        if draw {
+            self.drawn_at = t;
+            self.drawn_state = Some(state.clone());
+            self.last = match &mut self.device {
+                None => self.session.frame_cpu(&p, lod),
+                Some(d) => match self.session.prepare(&p, lod) {
+                    Err(out) => out,
+                    Ok((drawn, failed)) => {
+                        self.session.vm.begin_frame();
+                        let f = d
+                            .renderer
+                            .render_async(
+                                &d.gpu,
+                                &d.dvm,
+                                &self.session.vm,
+                                &self.session.scene,
+                                &p,
+                                drawn,
+                            )
+                            .await
+                            .map_err(|e| JsValue::from_str(&e.to_string()))?;
+                        let out = self.session.finish(f.stats, [&f.requests], failed);
+                        d.dvm.sync(&d.gpu, &mut self.session.vm);
+                        self.device_image = Some(f.image);
+                        out
+                    }
+                },
+            };
+            self.frames += 1;
+            let img = self.image();
+            if img.width > 0 && img.width == p.width {
+                let (w, h) = (img.width, img.height);
+                let rgba = img.to_rgba8([0.0, 0.0, 0.0, 1.0]);
+                if self.canvas.width() != w || self.canvas.height() != h {
+                    self.canvas.set_width(w);
+                    self.canvas.set_height(h);
+                }
+                let data = web_sys::ImageData::new_with_u8_clamped_array_and_sh(
+                    wasm_bindgen::Clamped(&rgba),
+                    w,
+                    h,
+                )?;
+                self.ctx.put_image_data(&data, 0.0, 0.0)?;
+            }
+            self.frame_ms = now() - t;
+        }
+        let bytes = self.session.loads.src.stats.borrow().bytes;
+        let tn = now();
+        if tn - self.rate_at.0 >= 500.0 {
+            self.mib_s =
+                (bytes - self.rate_at.1) as f64 / 1048576.0 / ((tn - self.rate_at.0) / 1000.0);
+            self.rate_at = (tn, bytes);
+        }
+        if self.last.complete && self.first_complete_ms.is_none() {
+            self.first_complete_ms = Some(tn - self.started);
+        }
+        Ok(self.status(bytes, &state))
+    }
+
+    fn status(&self, bytes: u64, state: &ViewState) -> String {
         let l = &self.last;
         serde_json::json!({
             "ready": self.session.ready(),
@@ -377,7 +464,9 @@ impl Inner {
             "frame_ms": self.frame_ms,
             "frames": self.frames,
             "first_complete_ms": self.first_complete_ms,
-            "query": self.state.to_query(),
+            "query": state.to_query(),
+            "device": self.device.as_ref().map(|d| d.gpu.describe()),
+            "device_note": self.device_note,
         })
         .to_string()
     }

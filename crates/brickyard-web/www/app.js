@@ -26,12 +26,15 @@ function viewQuery() {
   const p = hashParams();
   p.delete('store');
   p.delete('pool');
+  p.delete('backend');
   return p.toString();
 }
 
 function writeUrl(query) {
   const pool = hashParams().get('pool');
-  const h = 'store=' + encodeURIComponent(state.store) + (pool ? '&pool=' + pool : '') + (query ? '&' + query : '');
+  const backend = hashParams().get('backend');
+  const h = 'store=' + encodeURIComponent(state.store) + (pool ? '&pool=' + pool : '') +
+    (backend ? '&backend=' + backend : '') + (query ? '&' + query : '');
   if (location.hash.slice(1) !== h) history.replaceState(null, '', '#' + h);
 }
 
@@ -86,9 +89,9 @@ function drawHistogram() {
 let running = false;
 function wake() { if (!running) { running = true; requestAnimationFrame(tick); } }
 
-function tick() {
+async function tick() {
   let st;
-  try { st = JSON.parse(state.viewer.frame()); } catch (e) { showError(e); running = false; return; }
+  try { st = JSON.parse(await state.viewer.frame()); } catch (e) { showError(e); running = false; return; }
   state.status = st;
   writeUrl(st.query);
   $('status').textContent =
@@ -141,8 +144,9 @@ async function main() {
     return;
   }
   state.store = store;
+  const backend = hashParams().get('backend') || 'auto';
   let notice = state.webgpu
-    ? 'WebGPU is available; this build draws on the CPU in WebAssembly.'
+    ? ''
     : 'WebGPU is not available in this browser: drawing on the CPU in WebAssembly.';
   if (!state.webgpu && await remoteOffered()) notice += '\nThe server also renders remotely: ';
   $('notice').textContent = notice;
@@ -152,9 +156,14 @@ async function main() {
   }
   const pool = Number(hashParams().get('pool') || 256);
   try {
-    state.viewer = await Viewer.open(new URL(store, location.href).href, $('view'), viewQuery(), pool);
+    state.viewer = await Viewer.open(new URL(store, location.href).href, $('view'), viewQuery(), pool,
+      state.webgpu && backend !== 'cpu');
   } catch (e) { showError(e); return; }
   const info = JSON.parse(state.viewer.info());
+  state.device = info.device;
+  if (info.device) $('notice').textContent = `Drawing through WebGPU (${info.device}).`;
+  else if (state.webgpu && info.device_note) $('notice').textContent = `WebGPU could not be used (${info.device_note}): drawing on the CPU in WebAssembly.`;
+  else if (state.webgpu) $('notice').textContent = 'Drawing on the CPU in WebAssembly (backend=cpu).';
   info.channels.forEach((label, i) => { const o = document.createElement('option'); o.value = String(i); o.textContent = `${i}: ${label}`; $('channel').appendChild(o); });
   if (info.channels.length === 0) { const o = document.createElement('option'); o.value = '0'; o.textContent = '0'; $('channel').appendChild(o); }
   syncControls(state.viewer.query());
