@@ -271,7 +271,7 @@ impl WebSession {
     pub fn frame_cpu(&mut self, p: &RenderParams, lod: Lod) -> FrameOut {
         let (drawn, failed) = match self.prepare(p, lod) {
             Ok(x) => x,
-            Err(out) => return out,
+            Err(out) => return *out,
         };
         self.vm.begin_frame();
         let (stats, reqs) = render_tiles(
@@ -290,7 +290,7 @@ impl WebSession {
     /// or the frame's figures when the coarsest levels are not in yet.
     /// Between this and [`finish`](Self::finish) a renderer draws from
     /// [`vm`](Self::vm) (begun with `begin_frame`).
-    pub fn prepare(&mut self, p: &RenderParams, lod: Lod) -> Result<(Lod, usize), FrameOut> {
+    pub fn prepare(&mut self, p: &RenderParams, lod: Lod) -> Result<(Lod, usize), Box<FrameOut>> {
         let failed = self.collect();
         let nl = self.scene.levels.len();
         let base = match lod {
@@ -316,13 +316,13 @@ impl WebSession {
         }
         if !self.ready() {
             let (q, f) = self.loads.pending();
-            return Err(FrameOut {
+            return Err(Box::new(FrameOut {
                 queued: q,
                 in_flight: f,
                 failed,
                 bias: base,
                 ..Default::default()
-            });
+            }));
         }
         Ok((drawn, failed))
     }

@@ -272,6 +272,11 @@ impl Viewer {
     /// Draw one frame (only what is not settled yet, on the CPU) and put
     /// it on the canvas; resolves to the status as JSON. One frame at a
     /// time: await each before asking for the next.
+    // The frame holds the viewer's state across the device's read-backs
+    // on purpose: a second frame asked for meanwhile is refused
+    // (`try_borrow_mut`), and everything else the page calls uses the view's
+    // own cell or `try_borrow`.
+    #[allow(clippy::await_holding_refcell_ref)]
     pub fn frame(&self) -> js_sys::Promise {
         let inner = self.inner.clone();
         let state = self.state.borrow().clone();
@@ -392,7 +397,7 @@ impl Inner {
             self.last = match &mut self.device {
                 None => self.session.frame_cpu(&p, lod),
                 Some(d) => match self.session.prepare(&p, lod) {
-                    Err(out) => out,
+                    Err(out) => *out,
                     Ok((drawn, failed)) => {
                         self.session.vm.begin_frame();
                         let f = d
