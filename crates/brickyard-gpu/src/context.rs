@@ -260,6 +260,19 @@ impl Gpu {
         src: &wgpu::Buffer,
         bytes: u64,
     ) -> Result<Vec<u8>, GpuError> {
+        pollster::block_on(self.read_back_async(what, src, bytes))
+    }
+
+    /// [`read_back`](Self::read_back) without blocking: in the browser the
+    /// mapping completes on the page's event loop while this waits;
+    /// natively the device is polled until it has, so the future is
+    /// ready when first polled.
+    pub async fn read_back_async(
+        &self,
+        what: &str,
+        src: &wgpu::Buffer,
+        bytes: u64,
+    ) -> Result<Vec<u8>, GpuError> {
         let size = bytes.max(4).next_multiple_of(4);
         let staging = self.device.create_buffer(&wgpu::BufferDescriptor {
             label: Some("read-back"),
@@ -270,7 +283,7 @@ impl Gpu {
         let mut enc = self.device.create_command_encoder(&Default::default());
         enc.copy_buffer_to_buffer(src, 0, &staging, 0, size);
         self.queue.submit([enc.finish()]);
-        let (tx, rx) = std::sync::mpsc::channel();
+        let (tx, rx) = futures_channel::oneshot::channel();
         staging.map_async(wgpu::MapMode::Read, .., move |r| {
             let _ = tx.send(r);
         });
@@ -278,10 +291,11 @@ impl Gpu {
             what: what.to_string(),
             reason,
         };
+        #[cfg(not(target_arch = "wasm32"))]
         self.device
             .poll(wgpu::PollType::wait_indefinitely())
             .map_err(|e| fail(e.to_string()))?;
-        rx.recv()
+        rx.await
             .map_err(|e| fail(e.to_string()))?
             .map_err(|e| fail(e.to_string()))?;
         let view = staging
@@ -291,52 +305,6 @@ impl Gpu {
         drop(view);
         staging.unmap();
         Ok(out)
-    }
-
-    /// [`read_back`](Self::read_back) without blocking: in the browser the
-    /// mapping completes on the page's event loop while this waits;
-    /// natively it is the blocking read (ready when first polled).
-    pub async fn read_back_async(
-        &self,
-        what: &str,
-        src: &wgpu::Buffer,
-        bytes: u64,
-    ) -> Result<Vec<u8>, GpuError> {
-        #[cfg(not(target_arch = "wasm32"))]
-        {
-            self.read_back(what, src, bytes)
-        }
-        #[cfg(target_arch = "wasm32")]
-        {
-            let size = bytes.max(4).next_multiple_of(4);
-            let staging = self.device.create_buffer(&wgpu::BufferDescriptor {
-                label: Some("read-back"),
-                size,
-                usage: wgpu::BufferUsages::MAP_READ | wgpu::BufferUsages::COPY_DST,
-                mapped_at_creation: false,
-            });
-            let mut enc = self.device.create_command_encoder(&Default::default());
-            enc.copy_buffer_to_buffer(src, 0, &staging, 0, size);
-            self.queue.submit([enc.finish()]);
-            let (tx, rx) = futures_channel::oneshot::channel();
-            staging.map_async(wgpu::MapMode::Read, .., move |r| {
-                let _ = tx.send(r);
-            });
-            let fail = |reason: String| GpuError::ReadBack {
-                what: what.to_string(),
-                reason,
-            };
-            rx.await
-                .map_err(|e| fail(e.to_string()))?
-                .map_err(|e| fail(e.to_string()))?;
-            let view = staging
-                .get_mapped_range(..)
-                .map_err(|e| fail(format!("{e:?}")))?;
-            let out = view[..bytes as usize].to_vec();
-            drop(view);
-            staging.unmap();
-            Ok(out)
-        }
     }
 
     /// [`read_back_async`](Self::read_back_async) as `u32` words.
