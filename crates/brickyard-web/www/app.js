@@ -121,6 +121,30 @@ function wireControls() {
   });
   view.addEventListener('pointerup', () => { dragging = false; wake(); });
   view.addEventListener('wheel', (e) => { e.preventDefault(); state.viewer.zoom(e.deltaY < 0 ? 1.1 : 1 / 1.1); wake(); }, { passive: false });
+  // The transfer function's window, dragged on the histogram: the nearer
+  // end follows the pointer.
+  const hist = $('hist');
+  let histDrag = null;
+  const histValue = (e) => {
+    const info = JSON.parse(state.viewer.info());
+    const [d0, d1] = info.window;
+    const r = hist.getBoundingClientRect();
+    return d0 + (e.clientX - r.left) / r.width * (d1 - d0);
+  };
+  hist.addEventListener('pointerdown', (e) => {
+    const v = histValue(e);
+    const lo = Number($('wlo').value), hi = Number($('whi').value);
+    histDrag = Math.abs(v - lo) < Math.abs(v - hi) ? 'wlo' : 'whi';
+    hist.setPointerCapture(e.pointerId);
+  });
+  hist.addEventListener('pointermove', (e) => {
+    if (!histDrag) return;
+    const v = Number(histValue(e).toPrecision(6));
+    const lo = histDrag === 'wlo' ? v : Number($('wlo').value);
+    const hi = histDrag === 'whi' ? v : Number($('whi').value);
+    if (hi > lo) { $(histDrag).value = v; setView({ window: `${lo},${hi}` }); histAt = 0; }
+  });
+  hist.addEventListener('pointerup', () => { histDrag = null; });
   $('mode').onchange = () => setView({ mode: $('mode').value === 'dvr' ? null : $('mode').value });
   $('tf').onchange = () => setView({ tf: $('tf').value === 'soft' ? null : $('tf').value });
   const win = () => setView({ window: `${$('wlo').value},${$('whi').value}` });
