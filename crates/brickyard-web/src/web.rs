@@ -17,6 +17,8 @@ use wasm_bindgen_futures::JsFuture;
 /// `fetch()` below a base URL.
 struct HttpFetch {
     base: String,
+    /// A bearer token for stores behind one (`brickyard serve --token`).
+    token: Option<String>,
 }
 
 fn js_err(e: JsValue) -> String {
@@ -28,12 +30,13 @@ fn js_err(e: JsValue) -> String {
 impl Fetch for HttpFetch {
     fn get(&self, path: &str, range: Range) -> LocalFuture<Result<Option<Vec<u8>>, String>> {
         let url = format!("{}/{}", self.base.trim_end_matches('/'), path);
+        let token = self.token.clone();
         Box::pin(async move {
             // A request that stalls (a lost connection) is abandoned and
             // tried again, twice; then the brick fails.
             let mut last = String::new();
             for _ in 0..3 {
-                match get_once(&url, range).await {
+                match get_once(&url, range, token.as_deref()).await {
                     Ok(r) => return Ok(r),
                     Err((e, retry)) => {
                         if !retry {
@@ -49,7 +52,11 @@ impl Fetch for HttpFetch {
 }
 
 /// One `GET`; errors say whether trying again may help.
-async fn get_once(url: &str, range: Range) -> Result<Option<Vec<u8>>, (String, bool)> {
+async fn get_once(
+    url: &str,
+    range: Range,
+    token: Option<&str>,
+) -> Result<Option<Vec<u8>>, (String, bool)> {
     let fatal = |e: JsValue| (js_err(e), false);
     let opts = web_sys::RequestInit::new();
     opts.set_method("GET");
@@ -87,6 +94,11 @@ async fn get_once(url: &str, range: Range) -> Result<Option<Vec<u8>>, (String, b
     if let Some(h) = &header {
         req.headers().set("Range", h).map_err(fatal)?;
     }
+    if let Some(t) = token {
+        req.headers()
+            .set("Authorization", &format!("Bearer {t}"))
+            .map_err(fatal)?;
+    }
     let window = web_sys::window().ok_or(("no window".to_string(), false))?;
     let abort_after = |ms: i32| -> Result<i32, (String, bool)> {
         let c = ctl.clone();
@@ -105,6 +117,12 @@ async fn get_once(url: &str, range: Range) -> Result<Option<Vec<u8>>, (String, b
     match resp.status() {
         404 => return Ok(None),
         200 | 206 => {}
+        401 => {
+            return Err((
+                format!("{url}: HTTP 401: the store needs a token (token=… in the page's URL)"),
+                false,
+            ))
+        }
         s @ (500..=599 | 408 | 429) => {
             return Err((format!("{url}: HTTP {s} {}", resp.status_text()), true))
         }
@@ -191,11 +209,15 @@ impl Viewer {
         query: String,
         pool_mib: u32,
         device: bool,
+        token: Option<String>,
     ) -> Result<Viewer, JsValue> {
         console_error_panic_hook();
         let started = now();
         let state = ViewState::from_query(&query).map_err(|e| JsValue::from_str(&e))?;
-        let fetch: Rc<dyn Fetch> = Rc::new(HttpFetch { base: url.clone() });
+        let fetch: Rc<dyn Fetch> = Rc::new(HttpFetch {
+            base: url.clone(),
+            token: token.filter(|t| !t.is_empty()),
+        });
         let src = WebSource::open(fetch, 32, 1, 32 << 20)
             .await
             .map_err(|e| JsValue::from_str(&format!("{url}: {e}")))?;

@@ -27,14 +27,17 @@ function viewQuery() {
   p.delete('store');
   p.delete('pool');
   p.delete('backend');
+  p.delete('token');
   return p.toString();
 }
 
 function writeUrl(query) {
   const pool = hashParams().get('pool');
   const backend = hashParams().get('backend');
+  const token = hashParams().get('token');
   const h = 'store=' + encodeURIComponent(state.store) + (pool ? '&pool=' + pool : '') +
-    (backend ? '&backend=' + backend : '') + (query ? '&' + query : '');
+    (backend ? '&backend=' + backend : '') + (token ? '&token=' + encodeURIComponent(token) : '') +
+    (query ? '&' + query : '');
   if (location.hash.slice(1) !== h) history.replaceState(null, '', '#' + h);
 }
 
@@ -181,7 +184,7 @@ async function main() {
   const pool = Number(hashParams().get('pool') || 256);
   try {
     state.viewer = await Viewer.open(new URL(store, location.href).href, $('view'), viewQuery(), pool,
-      state.webgpu && backend !== 'cpu');
+      state.webgpu && backend !== 'cpu', hashParams().get('token'));
   } catch (e) { showError(e); return; }
   const info = JSON.parse(state.viewer.info());
   state.device = info.device;
