@@ -4,9 +4,11 @@
 //! turns its flags into them, so that a link and a command line with the
 //! same values draw the same image.
 
+use crate::zarr::ChannelMeta;
 use brickyard_core::camera::{Camera, Projection};
 use brickyard_core::TransferFunction;
 use brickyard_render::cpu::{Lod, Scene};
+use brickyard_render::params::ChannelStyle;
 use brickyard_render::{RenderMode, RenderParams};
 
 /// The view: every field has a default, and the URL carries only what
@@ -24,6 +26,11 @@ pub struct ViewState {
     /// type's range (0–1 for floats).
     pub window: Option<[f64; 2]>,
     pub channel: usize,
+    /// Several channels at once (`channels=0,2`): composited per sample in
+    /// DVR, added up in MIP and slices, each in its `omero` colour and
+    /// window. Empty: one channel (`channel`), or for a store of several
+    /// channels its active `omero` ones, as `brickyard render` does.
+    pub channels: Vec<usize>,
     pub width: u32,
     pub height: u32,
     pub lod_bias: f64,
@@ -41,6 +48,7 @@ impl Default for ViewState {
             tf: "soft".into(),
             window: None,
             channel: 0,
+            channels: vec![],
             width: 512,
             height: 512,
             lod_bias: 0.0,
@@ -109,6 +117,19 @@ impl ViewState {
                         .parse()
                         .map_err(|_| format!("channel: expected a channel number, found {v:?}"))?
                 }
+                "channels" => {
+                    s.channels = v
+                        .split(',')
+                        .filter(|x| !x.is_empty())
+                        .map(|x| x.trim().parse::<usize>())
+                        .collect::<Result<_, _>>()
+                        .map_err(|_| {
+                            format!("channels: expected channel numbers C,C,…, found {v:?}")
+                        })?;
+                    if s.channels.len() > 64 {
+                        return Err(format!("channels: at most 64, found {}", s.channels.len()));
+                    }
+                }
                 "size" => {
                     let (w, h) = v.split_once('x').unwrap_or((&v, &v));
                     let p = |x: &str| x.parse::<u32>().ok().filter(|n| (16..=4096).contains(n));
@@ -157,6 +178,10 @@ impl ViewState {
         if self.channel != d.channel {
             q.push(format!("channel={}", self.channel));
         }
+        if !self.channels.is_empty() {
+            let c: Vec<String> = self.channels.iter().map(|c| c.to_string()).collect();
+            q.push(format!("channels={}", c.join(",")));
+        }
         if (self.width, self.height) != (d.width, d.height) {
             q.push(format!("size={}x{}", self.width, self.height));
         }
@@ -173,10 +198,46 @@ impl ViewState {
     /// (`window`: the default data window), as `brickyard render` with
     /// `--mode --azimuth --elevation --fov --tf --window --channel --size
     /// --lod-bias --slice-z` makes them.
-    pub fn params(&self, scene: &Scene, window: [f64; 2]) -> Result<(RenderParams, Lod), String> {
+    pub fn params(
+        &self,
+        scene: &Scene,
+        window: [f64; 2],
+        meta: &[ChannelMeta],
+        n_channels: usize,
+    ) -> Result<View, String> {
         let [lo, hi] = self.window.unwrap_or(window);
         let tf = TransferFunction::preset(&self.tf, [lo as f32, hi as f32])
             .map_err(|e| format!("tf: {e}"))?;
+        // The channels shown: as asked, else a store's active channels
+        // when it has several (as `render` without --channel).
+        let shown: Vec<usize> = if !self.channels.is_empty() {
+            self.channels.clone()
+        } else if n_channels > 1 && !meta.is_empty() {
+            (0..n_channels.min(meta.len()))
+                .filter(|&c| meta[c].active)
+                .collect()
+        } else {
+            vec![]
+        };
+        if let Some(c) = shown.iter().find(|&&c| c >= n_channels) {
+            return Err(format!(
+                "channels: {c} asked for but the store has {n_channels} channel(s)"
+            ));
+        }
+        let styles: Vec<ChannelStyle> = shown
+            .iter()
+            .map(|&c| ChannelStyle {
+                channel: c,
+                color: meta.get(c).map_or([1.0; 3], |m| m.color),
+                window: meta
+                    .get(c)
+                    .and_then(|m| m.window)
+                    .filter(|_| self.window.is_none())
+                    .map_or([lo as f32, hi as f32], |w| [w[0] as f32, w[1] as f32]),
+                tf: None,
+                levels: None,
+            })
+            .collect();
         let e = scene.extent;
         let mode = match self.mode.as_str() {
             "dvr" => RenderMode::Dvr,
@@ -206,16 +267,35 @@ impl ViewState {
                 brickyard_core::camera::scale(d, 1.0 / self.zoom),
             );
         }
+        let dvr = mode == RenderMode::Dvr;
         let mut p = RenderParams::new(self.width, self.height, camera, tf, mode);
         p.reference_step = Some(scene.voxel(0));
+        // DVR of one channel goes through the transfer function.
+        let channel = match styles.as_slice() {
+            [one] if dvr => one.channel,
+            _ => self.channel,
+        };
+        if !dvr || styles.len() > 1 {
+            p.channels = styles;
+        }
         p.validate().map_err(|e| e.to_string())?;
-        Ok((
-            p,
-            Lod::Auto {
+        Ok(View {
+            params: p,
+            lod: Lod::Auto {
                 bias: self.lod_bias,
             },
-        ))
+            channel,
+        })
     }
+}
+
+/// What a frame draws: the parameters, the level of detail, and the
+/// scene's channel (DVR of one channel).
+#[derive(Clone, Debug)]
+pub struct View {
+    pub params: RenderParams,
+    pub lod: Lod,
+    pub channel: usize,
 }
 
 fn round(v: f64) -> f64 {

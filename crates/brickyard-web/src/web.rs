@@ -180,6 +180,8 @@ struct Inner {
     drawn_at: f64,
     /// Why the device is not used, when it was asked for.
     device_note: Option<String>,
+    /// The last frame was drawn on the device.
+    on_device: bool,
 }
 
 fn now() -> f64 {
@@ -284,6 +286,7 @@ impl Viewer {
                 drawn_state: None,
                 drawn_at: 0.0,
                 device_note,
+                on_device: false,
             })),
             state: Rc::new(RefCell::new(state)),
             channels,
@@ -385,22 +388,32 @@ async fn open_device(session: &mut WebSession) -> Result<DeviceDraw, String> {
 
 impl Inner {
     fn image(&self) -> &brickyard_render::Image {
-        match (&self.device, &self.device_image) {
-            (Some(_), Some(i)) => i,
+        match (self.on_device, &self.device_image) {
+            (true, Some(i)) => i,
             _ => self.session.image(),
         }
     }
 
     async fn frame(&mut self, state: ViewState) -> Result<String, JsValue> {
         let t = now();
-        if state.channel != self.channel {
-            self.channel = state.channel;
-            self.session.scene.channel = state.channel;
-            self.window = default_window(&self.session.loads.src, state.channel);
-        }
-        let (p, lod) = state
-            .params(&self.session.scene, self.window)
+        let src = self.session.loads.src.clone();
+        let view = state
+            .params(
+                &self.session.scene,
+                self.window,
+                &src.meta.channels,
+                src.geometry.channels,
+            )
             .map_err(|e| JsValue::from_str(&e))?;
+        if view.channel != self.channel {
+            self.channel = view.channel;
+            self.session.scene.channel = view.channel;
+            if state.window.is_none() {
+                self.window = default_window(&src, view.channel);
+            }
+            return Box::pin(self.frame(state)).await;
+        }
+        let (p, lod) = (view.params, view.lod);
         // Draw when the view changed, or when enough bricks arrived to be
         // worth a frame: a frame holds the page's only thread, and loads
         // (decoding included) move on between frames.
@@ -416,7 +429,15 @@ impl Inner {
         if draw {
             self.drawn_at = t;
             self.drawn_state = Some(state.clone());
-            self.last = match &mut self.device {
+            // Several channels go to the CPU: through WebGPU in Chromium
+            // (SwiftShader) they came out wrong, while the same device code
+            // is right natively; not found why yet.
+            let device = match &mut self.device {
+                Some(d) if p.channels.is_empty() => Some(d),
+                _ => None,
+            };
+            self.on_device = device.is_some();
+            self.last = match device {
                 None => self.session.frame_cpu(&p, lod),
                 Some(d) => match self.session.prepare(&p, lod) {
                     Err(out) => *out,
@@ -494,6 +515,7 @@ impl Inner {
             "query": state.to_query(),
             "device": self.device.as_ref().map(|d| d.gpu.describe()),
             "device_note": self.device_note,
+            "on_device": self.on_device,
         })
         .to_string()
     }

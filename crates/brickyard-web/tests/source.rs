@@ -173,8 +173,11 @@ fn stream(store: &Path, state: &ViewState, window: [f64; 2], pool: u64) -> (Imag
         pool_bytes: pool,
         ..Default::default()
     };
+    let (meta, n) = (src.meta.channels.clone(), src.geometry.channels);
     let mut s = WebSession::new(src, cfg, spawn, 6).expect("session");
-    let (p, lod) = state.params(&s.scene, window).unwrap();
+    let v = state.params(&s.scene, window, &meta, n).unwrap();
+    s.scene.channel = v.channel;
+    let (p, lod) = (v.params, v.lod);
     for frame in 0..500 {
         exec.run_until_stalled();
         let out = s.frame_cpu(&p, lod);
@@ -390,5 +393,72 @@ fn zarr_v2_stores_read_as_the_array_they_hold() {
                 }
             }
         }
+    }
+}
+
+/// A store of three channels (MNI152 T1, grey and white matter): its
+/// active channels composited in DVR by default, and two added up in a
+/// MIP, each in its `omero` colour and window, equal `brickyard render`
+/// with the same (default) channels.
+#[test]
+fn several_channels_equal_brickyard_render() {
+    let dir = tempfile::tempdir().unwrap();
+    let inputs: Vec<std::path::PathBuf> = [
+        "mni152-t1-u8.nii.gz",
+        "mni152-gm-u8.nii.gz",
+        "mni152-wm-u8.nii.gz",
+    ]
+    .iter()
+    .map(|f| data(f))
+    .collect();
+    let sources = inputs
+        .iter()
+        .map(|p| open_input(p, &ImportOptions::default()).expect("input"))
+        .collect();
+    let src: Box<dyn brickyard_store::source::VolumeSource> =
+        Box::new(brickyard_store::import::stack::ChannelStack::new(sources).expect("stack"));
+    let store = dir.path().join("mni3.ome.zarr");
+    convert(
+        &*src,
+        &store,
+        &ConvertOptions::default(),
+        &NoProgress,
+        &AtomicBool::new(false),
+    )
+    .expect("convert");
+    for (q, args) in [
+        ("size=200x160&az=40&el=25", vec![]),
+        (
+            "mode=mip&size=160x160&channels=1,2",
+            vec!["--mode", "mip", "--channel", "1", "--channel", "2"],
+        ),
+    ] {
+        let st = ViewState::from_query(q).unwrap();
+        let (web, frames) = stream(&store, &st, [0.0, 255.0], 64 << 20);
+        let mut a: Vec<String> = vec![
+            "--size".into(),
+            format!("{}x{}", st.width, st.height),
+            "--azimuth=40".into(),
+            "--elevation=25".into(),
+        ];
+        if st.mode == "mip" {
+            a = vec!["--size".into(), format!("{}x{}", st.width, st.height)];
+        }
+        a.extend(args.iter().map(|s| s.to_string()));
+        let a: Vec<&str> = a.iter().map(|s| s.as_str()).collect();
+        let cli = render_cli(&store, &a);
+        let lit = cli.rgba.iter().filter(|p| p[3] > 0.05).count();
+        assert!(
+            lit > cli.rgba.len() / 10,
+            "{q}: the reference is nearly blank"
+        );
+        let d = web
+            .rgba
+            .iter()
+            .zip(&cli.rgba)
+            .flat_map(|(a, b)| (0..4).map(move |i| (a[i] - b[i]).abs()))
+            .fold(0f32, f32::max);
+        eprintln!("{q}: complete after {frames} frames, max difference {d:e}");
+        assert!(d <= 1e-5, "{q}: differs from brickyard render by {d}");
     }
 }

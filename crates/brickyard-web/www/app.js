@@ -47,7 +47,8 @@ function syncControls(q) {
   $('tf').value = p.get('tf') || 'soft';
   $('slice').value = p.get('slice') || '0.5';
   $('bias').value = p.get('bias') || '0';
-  if (p.get('channel')) $('channel').value = p.get('channel');
+  if (state.multi) $('channel').value = p.get('channels') || 'all';
+  else if (p.get('channel')) $('channel').value = p.get('channel');
   const info = JSON.parse(state.viewer.info());
   const w = (p.get('window') || '').split(',').map(Number);
   const [lo, hi] = w.length === 2 && w.every(Number.isFinite) ? w : info.window;
@@ -102,7 +103,7 @@ async function tick() {
     `${st.bias > 0 ? `  (LOD bias +${st.bias}: the pool is too small for full detail)` : ''}\n` +
     `bricks: ${st.resident} resident of ${st.pool_slots}, ${st.loaded} loaded, ${st.in_flight} in flight, ${st.queued} queued\n` +
     `read: ${(st.bytes / 1048576).toFixed(1)} MiB at ${st.mib_s.toFixed(1)} MiB/s\n` +
-    `frame: ${st.frame_ms.toFixed(0)} ms` +
+    `frame: ${st.frame_ms.toFixed(0)} ms${st.device && !st.on_device ? ' (several channels: on the CPU)' : ''}` +
     (st.first_complete_ms ? `, first complete after ${(st.first_complete_ms / 1000).toFixed(2)} s` : '') +
     (st.failed ? `\nfailed bricks: ${st.failed} (drawn from coarser data)\nlast: ${st.last_failure}` : '');
   const now = performance.now();
@@ -152,7 +153,9 @@ function wireControls() {
   $('tf').onchange = () => setView({ tf: $('tf').value === 'soft' ? null : $('tf').value });
   const win = () => setView({ window: `${$('wlo').value},${$('whi').value}` });
   $('wlo').onchange = win; $('whi').onchange = win;
-  $('channel').onchange = () => setView({ channel: $('channel').value === '0' ? null : $('channel').value, window: null });
+  $('channel').onchange = () => state.multi
+    ? setView({ channels: $('channel').value === 'all' ? null : $('channel').value, window: null })
+    : setView({ channel: $('channel').value === '0' ? null : $('channel').value, window: null });
   $('slice').oninput = () => setView({ slice: $('slice').value });
   $('bias').oninput = () => setView({ bias: $('bias').value === '0' ? null : $('bias').value });
   window.addEventListener('hashchange', () => {
@@ -191,6 +194,8 @@ async function main() {
   if (info.device) $('notice').textContent = `Drawing through WebGPU (${info.device}).`;
   else if (state.webgpu && info.device_note) $('notice').textContent = `WebGPU could not be used (${info.device_note}): drawing on the CPU in WebAssembly.`;
   else if (state.webgpu) $('notice').textContent = 'Drawing on the CPU in WebAssembly (backend=cpu).';
+  state.multi = info.n_channels > 1;
+  if (state.multi) { const o = document.createElement('option'); o.value = 'all'; o.textContent = 'all active (composited)'; $('channel').appendChild(o); }
   info.channels.forEach((label, i) => { const o = document.createElement('option'); o.value = String(i); o.textContent = `${i}: ${label}`; $('channel').appendChild(o); });
   if (info.channels.length === 0) { const o = document.createElement('option'); o.value = '0'; o.textContent = '0'; $('channel').appendChild(o); }
   syncControls(state.viewer.query());
