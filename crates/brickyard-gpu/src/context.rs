@@ -123,10 +123,16 @@ impl Gpu {
         }
         let count = preferred.len();
         let adapter = preferred.swap_remove(n % count);
+        pollster::block_on(Self::open(adapter))
+    }
+
+    /// Open a device on `adapter`: the WebGPU defaults, raised only where
+    /// volumes need more (buffer and binding sizes for brick pools and page
+    /// tables, 3D textures) and the adapter allows; `R16Unorm` textures
+    /// where the adapter has them.
+    async fn open(adapter: wgpu::Adapter) -> Result<Gpu, GpuError> {
         let info = adapter.get_info();
         let have = adapter.limits();
-        // The WebGPU defaults, raised only where volumes need more: buffer
-        // and binding sizes (brick pools, page tables) and 3D textures.
         let mut limits = wgpu::Limits::defaults();
         limits.max_buffer_size = have.max_buffer_size;
         limits.max_storage_buffer_binding_size = have.max_storage_buffer_binding_size;
@@ -139,18 +145,20 @@ impl Gpu {
         } else {
             wgpu::Features::empty()
         };
-        let (device, queue) = pollster::block_on(adapter.request_device(&wgpu::DeviceDescriptor {
-            label: Some("brickyard"),
-            required_features: features,
-            required_limits: limits.clone(),
-            experimental_features: wgpu::ExperimentalFeatures::disabled(),
-            memory_hints: wgpu::MemoryHints::Performance,
-            trace: wgpu::Trace::Off,
-        }))
-        .map_err(|source| GpuError::Device {
-            adapter: info.name.clone(),
-            source,
-        })?;
+        let (device, queue) = adapter
+            .request_device(&wgpu::DeviceDescriptor {
+                label: Some("brickyard"),
+                required_features: features,
+                required_limits: limits.clone(),
+                experimental_features: wgpu::ExperimentalFeatures::disabled(),
+                memory_hints: wgpu::MemoryHints::Performance,
+                trace: wgpu::Trace::Off,
+            })
+            .await
+            .map_err(|source| GpuError::Device {
+                adapter: info.name.clone(),
+                source,
+            })?;
         Ok(Gpu {
             device,
             queue,
@@ -175,33 +183,7 @@ impl Gpu {
             .map_err(|e| GpuError::NoAdapter {
                 looked: format!("WebGPU (navigator.gpu): {e}"),
             })?;
-        let info = adapter.get_info();
-        let have = adapter.limits();
-        let mut limits = wgpu::Limits::defaults();
-        limits.max_buffer_size = have.max_buffer_size;
-        limits.max_storage_buffer_binding_size = have.max_storage_buffer_binding_size;
-        limits.max_texture_dimension_3d = have.max_texture_dimension_3d;
-        let (device, queue) = adapter
-            .request_device(&wgpu::DeviceDescriptor {
-                label: Some("brickyard"),
-                required_features: wgpu::Features::empty(),
-                required_limits: limits.clone(),
-                experimental_features: wgpu::ExperimentalFeatures::disabled(),
-                memory_hints: wgpu::MemoryHints::Performance,
-                trace: wgpu::Trace::Off,
-            })
-            .await
-            .map_err(|source| GpuError::Device {
-                adapter: info.name.clone(),
-                source,
-            })?;
-        Ok(Gpu {
-            device,
-            queue,
-            info,
-            r16_unorm: false,
-            limits,
-        })
+        Self::open(adapter).await
     }
 
     /// One line for logs and reports: name, kind and back end.
