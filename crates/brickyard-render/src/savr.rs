@@ -24,8 +24,16 @@
 //! costs 5 bytes: the value (`f32`) and a flag byte (taken from a coarser
 //! stand-in; nothing resident at all). The depth order is a traversal, not
 //! a sort: for `j = 0, 1, …`, the runs in the order of their offsets. A
-//! pixel also keeps its step and a length and end flag per run (8 bytes a
-//! frame) and about 80 bytes of header.
+//! pixel also keeps its step and a first step, length and end flag per run
+//! (12 bytes a frame) and about 120 bytes of header.
+//!
+//! # Regions and bands
+//!
+//! A sort-last rank keeps only the samples of the whole ray's positions
+//! that fall in its region (`RenderParams::clip`, `[c0, c1)` along the ray)
+//! and blends without early termination when the parameters say so; a run
+//! then starts at the first step in the region. [`Accumulation::rows`]
+//! keeps a band of an image's rows (image-parallel ranks).
 //!
 //! # Opacity correction and early termination
 //!
@@ -99,6 +107,9 @@ pub fn offset(k: u32) -> f64 {
 
 #[derive(Debug, Clone, Copy)]
 struct RunInfo {
+    /// The step index `j` of the run's first sample (0 but in a region,
+    /// whose runs start at its entry).
+    first: u32,
     len: u32,
     /// Taken to the ray's end (else open: more may be taken).
     ended: bool,
@@ -111,6 +122,10 @@ struct Pixel {
     dt: f64,
     t0: f64,
     t1: f64,
+    /// The part of the ray whose samples are kept, `[lo, hi)`: the whole
+    /// ray, or its part in the region (sort-last).
+    lo: f64,
+    hi: f64,
     values: Vec<f32>,
     flags: Vec<u8>,
     /// With shading: per sample the cosine `|ĝ·d̂|` between its gradient
@@ -161,6 +176,9 @@ pub struct AccumStats {
 pub struct Accumulation {
     width: u32,
     height: u32,
+    /// The image rows kept: `row0 .. row0 + rows` of the `height` rows.
+    row0: u32,
+    rows: u32,
     target: u32,
     budget: usize,
     pixels: Vec<Pixel>,
@@ -173,6 +191,9 @@ pub struct Accumulation {
     /// Whether samples keep their normal's cosine (fixed by the first
     /// frame: whether its transfer function shades).
     shaded: Option<bool>,
+    /// Blends stop at an opacity of 0.99 (`RenderParams::early_termination`
+    /// of the last frame; regions of a sort-last render blend everything).
+    early: bool,
 }
 
 /// The result of a blend from kept samples.
@@ -187,6 +208,21 @@ impl Accumulation {
     /// for images of `width × height`, keeping at most `budget` samples per
     /// pixel (see the module notes).
     pub fn new(width: u32, height: u32, target: u32, budget: usize) -> Accumulation {
+        Accumulation::rows(width, height, 0..height, target, budget)
+    }
+
+    /// An accumulation of the image rows `rows` only of a `width × height`
+    /// view (a band of an image shared by several processes): its
+    /// [`image`](Self::image) holds those rows.
+    pub fn rows(
+        width: u32,
+        height: u32,
+        rows: std::ops::Range<u32>,
+        target: u32,
+        budget: usize,
+    ) -> Accumulation {
+        let row0 = rows.start.min(height);
+        let n_rows = rows.end.min(height).saturating_sub(row0);
         let target = target.clamp(1, MAX_FRAMES);
         let orders = (1..=target)
             .map(|n| {
@@ -198,18 +234,22 @@ impl Accumulation {
         Accumulation {
             width,
             height,
+            row0,
+            rows: n_rows,
             target,
             budget,
-            pixels: vec![Pixel::default(); width as usize * height as usize],
+            pixels: vec![Pixel::default(); width as usize * n_rows as usize],
             orders,
             reference: 0.0,
-            image: Image::new(width, height),
+            image: Image::new(width, n_rows),
             drawn: 0,
             shaded: None,
+            early: true,
         }
     }
 
-    /// The image of the samples kept so far.
+    /// The image of the samples kept so far (of the rows kept, see
+    /// [`rows`](Self::rows)).
     pub fn image(&self) -> &Image {
         &self.image
     }
@@ -285,6 +325,11 @@ impl Accumulation {
         self.frame_rows(vm, scene, params, lod, 0..self.height)
     }
 
+    /// The image rows this accumulation keeps.
+    pub fn kept_rows(&self) -> std::ops::Range<u32> {
+        self.row0..self.row0 + self.rows
+    }
+
     /// [`frame`](Self::frame) for the image rows `rows` only (pixels are
     /// independent: a view can spread a frame over several calls and
     /// answer input between them). A frame counts as drawn when its part
@@ -313,7 +358,9 @@ impl Accumulation {
             shaded || !on,
             "the samples of this accumulation keep no normals: start a new one to shade"
         );
-        let rows = rows.start.min(self.height)..rows.end.min(self.height);
+        self.early = params.early_termination;
+        let end = self.row0 + self.rows;
+        let rows = rows.start.clamp(self.row0, end)..rows.end.clamp(self.row0, end);
         dispatch_dtype!(vm.dtype(), T => { self.frame_typed::<T>(vm, scene, params, lod, rows) })
     }
 
@@ -341,8 +388,9 @@ impl Accumulation {
         let room = move |p: &Pixel, k: u32| room(target, budget, p, k);
         let mut pixels = std::mem::take(&mut self.pixels);
         let mut image = std::mem::replace(&mut self.image, Image::new(1, 1));
-        let span = rows.start as usize * w..rows.end as usize * w;
+        let span = (rows.start - self.row0) as usize * w..(rows.end - self.row0) as usize * w;
         let first = rows.start as usize;
+        let (clip, early) = (params.clip.as_deref().copied(), self.early);
         let parts: Vec<(AccumStats, Requests)> = pixels[span.clone()]
             .par_chunks_mut(w * BAND)
             .zip(image.rgba[span].par_chunks_mut(w * BAND))
@@ -366,6 +414,8 @@ impl Accumulation {
                             req: &mut req,
                             st: &mut st,
                             normals,
+                            clip,
+                            early,
                         };
                         *o = s.pixel(p, (&tf, shading.as_ref()), orders, reference, &room);
                     }
@@ -394,7 +444,7 @@ impl Accumulation {
         }
         self.pixels = pixels;
         self.image = image;
-        if rows.end == self.height {
+        if rows.end == self.row0 + self.rows {
             self.drawn += 1;
         }
         (stats, reqs)
@@ -413,7 +463,7 @@ impl Accumulation {
         }
         let eval = tf.evaluator();
         let shading = tf.shading.as_ref();
-        let (orders, reference) = (&self.orders, self.reference);
+        let (orders, reference, early) = (&self.orders, self.reference, self.early);
         self.pixels
             .par_iter_mut()
             .zip(self.image.rgba.par_iter_mut())
@@ -424,7 +474,7 @@ impl Accumulation {
                 }
                 let n = p.runs.len();
                 let e = exponent(p, reference);
-                let (c, short) = match blend(p, &orders[n - 1], (&eval, shading), e) {
+                let (c, short) = match blend(p, &orders[n - 1], (&eval, shading), e, early) {
                     Blend::Done(c) => (c, false),
                     Blend::Short(_, c) => (c, true),
                 };
@@ -442,18 +492,37 @@ fn room(target: u32, budget: usize, p: &Pixel, k: u32) -> bool {
     k == 0 || (k < target && (k as usize + 1) * p.max_run() <= budget)
 }
 
+/// The first step `j` of a run with offset `o` whose position
+/// `t0 + (j + o)·Δ` lies at or past `p.lo` (0 for the whole ray).
+fn first_step(p: &Pixel, o: f64) -> u32 {
+    if p.lo <= p.t0 {
+        return 0;
+    }
+    let at = |j: u64| p.t0 + (j as f64 + o) * p.dt;
+    let mut j = ((p.lo - p.t0) / p.dt - o).floor().max(0.0) as u64;
+    // The estimate is within a step; settle it with the positions taken.
+    while j > 0 && at(j - 1) >= p.lo {
+        j -= 1;
+    }
+    while at(j) < p.lo {
+        j += 1;
+    }
+    j as u32
+}
+
 /// The opacity-correction exponent of pixel `p`'s blend: `(Δ/n)/Δ_ref`.
 fn exponent(p: &Pixel, reference: f64) -> f32 {
     ((p.dt / p.runs.len() as f64) / reference) as f32
 }
 
 /// Blend pixel `p`'s kept samples in depth order (`order`: its runs by
-/// offset).
+/// offset), stopping at an opacity of 0.99 when `early`.
 fn blend(
     p: &Pixel,
     order: &[u8],
     (tf, shading): (&TfEval, Option<&Shading>),
     exponent: f32,
+    early: bool,
 ) -> Blend {
     let shading = shading.filter(|_| !p.cos.is_empty());
     let mut starts = [0usize; MAX_FRAMES as usize];
@@ -463,20 +532,26 @@ fn blend(
         s += r.len as usize;
     }
     let mut acc = [0.0f32; 4];
-    let mut j = 0usize;
+    // Step by step along the ray (runs of a region start at its entry,
+    // within one step of each other).
+    let mut j = p.runs.iter().map(|r| r.first as usize).min().unwrap_or(0);
     loop {
         let mut any = false;
         for &k in order {
             let k = k as usize;
             let r = p.runs[k];
-            if j >= r.len as usize {
+            let Some(jr) = j.checked_sub(r.first as usize) else {
+                any = true;
+                continue;
+            };
+            if jr >= r.len as usize {
                 if !r.ended {
                     return Blend::Short(k, acc);
                 }
                 continue;
             }
             any = true;
-            let i = starts[k] + j;
+            let i = starts[k] + jr;
             if p.flags[i] & UNSERVED != 0 {
                 continue;
             }
@@ -487,7 +562,7 @@ fn blend(
                         c = lit(sh, c, x as f64);
                     }
                 }
-                if composite_visible(&mut acc, c, exponent) {
+                if composite_visible(&mut acc, c, exponent) && early {
                     return Blend::Done(acc);
                 }
             }
@@ -508,6 +583,10 @@ struct Sampler<'w, 'f, 'a, T> {
     st: &'w mut AccumStats,
     /// Keep each sample's normal cosine.
     normals: bool,
+    /// The region whose samples are kept (sort-last), or the whole ray.
+    clip: Option<[[f64; 3]; 2]>,
+    /// Runs stop where they alone would stop a ray.
+    early: bool,
 }
 
 impl<T: Sample> Sampler<'_, '_, '_, T> {
@@ -559,12 +638,12 @@ impl<T: Sample> Sampler<'_, '_, '_, T> {
             false => (Vec::new(), Vec::new(), Vec::new()),
         };
         let base = if last { vals.len() } else { 0 };
-        let mut j = p.runs[k].len as usize;
+        let mut j = (p.runs[k].first + p.runs[k].len) as usize;
         let mut acc = [0.0f32; 4];
         let mut ended = false;
         while vals.len() - base < limit {
             let t = p.t0 + (j as f64 + o) * p.dt;
-            if t >= p.t1 {
+            if t >= p.hi {
                 ended = true;
                 break;
             }
@@ -605,7 +684,8 @@ impl<T: Sample> Sampler<'_, '_, '_, T> {
         let mut i = 0;
         for k in 0..p.runs.len() {
             let o = offset(k as u32);
-            for j in 0..p.runs[k].len as usize {
+            let first = p.runs[k].first as usize;
+            for j in first..first + p.runs[k].len as usize {
                 if p.flags[i] & STAND_IN != 0 {
                     let t = p.t0 + (j as f64 + o) * p.dt;
                     let (v, fl, cos) = self.sample(t);
@@ -644,8 +724,20 @@ impl<T: Sample> Sampler<'_, '_, '_, T> {
             else {
                 return [0.0; 4];
             };
+            // A region (sort-last): the samples of the whole ray's grid in
+            // `[c0, c1)`, split between neighbouring regions exactly (the
+            // same face gives the same `t` on both sides).
+            let (lo, hi) = match self.clip {
+                None => (t0, t1),
+                Some([lo, hi]) => match intersect_box_inv(self.ray, inv, lo, hi) {
+                    Some((c0, c1)) if c0.max(t0) < c1.min(t1) => (c0.max(t0), c1.min(t1)),
+                    _ => return [0.0; 4],
+                },
+            };
             p.t0 = t0;
             p.t1 = t1;
+            p.lo = lo;
+            p.hi = hi;
             p.dt = self.f.step[self.f.level_at(t0)].0;
         }
         if p.dt == 0.0 {
@@ -657,16 +749,18 @@ impl<T: Sample> Sampler<'_, '_, '_, T> {
         let k = p.frames();
         if room(p, k) {
             p.runs.push(RunInfo {
+                first: first_step(p, offset(k)),
                 len: 0,
                 ended: false,
             });
             let e = (p.dt / reference) as f32;
-            self.take(p, k as usize, usize::MAX, Some((look.0, e)));
+            let own = self.early.then_some((look.0, e));
+            self.take(p, k as usize, usize::MAX, own);
         }
         let order = &orders[p.runs.len() - 1];
         let e = exponent(p, reference);
         loop {
-            match blend(p, order, look, e) {
+            match blend(p, order, look, e, self.early) {
                 Blend::Done(c) => {
                     p.short = false;
                     return c;
@@ -718,15 +812,19 @@ mod tests {
             dt: 1.0,
             t0: 0.0,
             t1: 2.0,
+            lo: 0.0,
+            hi: 2.0,
             values: vec![1.0, 2.0, 3.0, 4.0],
             flags: vec![0; 4],
             cos: vec![],
             runs: vec![
                 RunInfo {
+                    first: 0,
                     len: 2,
                     ended: true,
                 },
                 RunInfo {
+                    first: 0,
                     len: 2,
                     ended: true,
                 },
@@ -737,10 +835,11 @@ mod tests {
         let a = Accumulation::new(1, 1, 2, 100);
         assert_eq!(a.orders[1], [1, 0]);
         let lin = TransferFunction::preset("linear", [0.0, 16.0]).unwrap();
-        let eval_blend = |p: &Pixel| match blend(p, &a.orders[1], (&lin.evaluator(), None), 1.0) {
-            Blend::Done(c) => c,
-            Blend::Short(..) => panic!("short"),
-        };
+        let eval_blend =
+            |p: &Pixel| match blend(p, &a.orders[1], (&lin.evaluator(), None), 1.0, true) {
+                Blend::Done(c) => c,
+                Blend::Short(..) => panic!("short"),
+            };
         // Under a linear ramp the first sample in depth order (value 3)
         // has the largest weight: A after it is its own opacity.
         let c = eval_blend(&p);
@@ -759,7 +858,7 @@ mod tests {
         q.values.remove(1);
         q.flags.remove(1);
         assert!(matches!(
-            blend(&q, &a.orders[1], (&lin.evaluator(), None), 1.0),
+            blend(&q, &a.orders[1], (&lin.evaluator(), None), 1.0, true),
             Blend::Short(0, _)
         ));
     }

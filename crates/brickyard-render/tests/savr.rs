@@ -28,6 +28,18 @@ use std::sync::atomic::AtomicBool;
 /// composited front to back with opacity corrected by `(Δ/rate)/Δ_ref`
 /// and stopped at opacity 0.99.
 fn single_pass(vol: &Volume, f: &Fixture, tf: &TransferFunction, level: usize, rate: u32) -> Image {
+    single_pass_to(vol, f, tf, level, rate, true)
+}
+
+/// [`single_pass`], stopping at opacity 0.99 only when `early`.
+fn single_pass_to(
+    vol: &Volume,
+    f: &Fixture,
+    tf: &TransferFunction,
+    level: usize,
+    rate: u32,
+    early: bool,
+) -> Image {
     let p = &f.params;
     let extent = f.scene.extent;
     let dt = f.scene.voxel(level) / p.samples_per_voxel / rate as f64;
@@ -63,7 +75,7 @@ fn single_pass(vol: &Volume, f: &Fixture, tf: &TransferFunction, level: usize, r
                     acc[ch] += w * c[ch];
                 }
                 acc[3] += w;
-                if acc[3] >= 0.99 {
+                if early && acc[3] >= 0.99 {
                     break;
                 }
             }
@@ -244,6 +256,104 @@ fn a_reblend_equals_a_fresh_accumulation() {
         assert!(d <= 1e-6, "{cmap}: re-blend vs fresh: {d}");
         let want = single_pass(&f.levels[0], &f, &tf, 0, 8);
         assert!(acc.image().max_abs_diff(&want) <= 1e-5);
+    }
+}
+
+/// Sort-last accumulation (data-parallel ranks): three regions of a k-d
+/// split, each keeping only its samples of the whole ray's grid and
+/// blending all of them, composited per pixel in the order the ray enters
+/// them, equal the whole view's accumulation without early termination,
+/// which equals the single pass without it. Image-parallel ranks: the
+/// accumulations of bands of rows equal the whole image's rows bit for
+/// bit.
+#[test]
+fn regions_and_bands_equal_the_whole_accumulation() {
+    let mut f = fixture();
+    let (w, h) = (f.params.width, f.params.height);
+    let e = f.scene.extent;
+    let (cx, cy) = (0.45 * e[0], 0.6 * e[1]);
+    let regions = [
+        [[0.0, 0.0, 0.0], [cx, e[1], e[2]]],
+        [[cx, 0.0, 0.0], [e[0], cy, e[2]]],
+        [[cx, cy, 0.0], [e[0], e[1], e[2]]],
+    ];
+    for (n, lod) in [(8u32, Lod::Fixed(0)), (4, Lod::Auto { bias: 0.0 })] {
+        f.params.early_termination = false;
+        f.params.clip = None;
+        let mut s = session(&f.store, 64 << 20);
+        let mut whole = Accumulation::new(w, h, n, 1 << 20);
+        accumulate(&mut s, &f, &mut whole, lod);
+        if let Lod::Fixed(level) = lod {
+            let want = single_pass_to(&f.levels[level], &f, &f.params.tf, level, n, false);
+            let d = whole.image().max_abs_diff(&want);
+            assert!(
+                d <= 1e-5,
+                "whole without early termination vs single pass: {d}"
+            );
+            let stopped = single_pass(&f.levels[level], &f, &f.params.tf, level, n);
+            assert!(
+                whole.image().max_abs_diff(&stopped) > 1e-3,
+                "early termination must matter in this view"
+            );
+        }
+        let parts: Vec<Image> = regions
+            .iter()
+            .map(|r| {
+                f.params.clip = Some(Box::new(*r));
+                let mut acc = Accumulation::new(w, h, n, 1 << 20);
+                accumulate(&mut s, &f, &mut acc, lod);
+                assert!(
+                    acc.image().coverage(0.01) > 0.05,
+                    "region {r:?} drew nothing"
+                );
+                acc.image().clone()
+            })
+            .collect();
+        f.params.clip = None;
+        let rg = brickyard_core::views::ViewRays::new(&f.params.camera, None, w, h);
+        let mut img = Image::new(w, h);
+        for j in 0..h {
+            for i in 0..w {
+                let ray = rg.pixel_ray(i, j);
+                let inv = ray.dir.map(|d| 1.0 / d);
+                let mut order: Vec<(f64, usize)> = regions
+                    .iter()
+                    .enumerate()
+                    .filter_map(|(k, r)| Some((intersect_box_inv(&ray, inv, r[0], r[1])?.0, k)))
+                    .collect();
+                order.sort_by(|a, b| a.0.total_cmp(&b.0));
+                let px = (j * w + i) as usize;
+                let mut acc = [0.0f32; 4];
+                for (_, k) in order {
+                    let c = parts[k].rgba[px];
+                    let t = 1.0 - acc[3];
+                    for ch in 0..4 {
+                        acc[ch] += t * c[ch];
+                    }
+                }
+                img.rgba[px] = acc;
+            }
+        }
+        let d = img.max_abs_diff(whole.image());
+        assert!(
+            d <= 1e-5,
+            "{n} frames, {lod:?}: regions composited vs whole: {d}"
+        );
+        assert!(whole.image().coverage(0.01) > 0.2, "image nearly empty");
+        // Bands of rows, with early termination as one process draws.
+        f.params.early_termination = true;
+        let mut whole = Accumulation::new(w, h, n, 1 << 20);
+        accumulate(&mut s, &f, &mut whole, lod);
+        for rows in [0..7, 7..19, 19..h] {
+            let mut band = Accumulation::rows(w, h, rows.clone(), n, 1 << 20);
+            accumulate(&mut s, &f, &mut band, lod);
+            assert_eq!(band.kept_rows(), rows);
+            let (a, b) = (
+                rows.start as usize * w as usize,
+                rows.end as usize * w as usize,
+            );
+            assert_eq!(band.image().rgba, whole.image().rgba[a..b], "rows {rows:?}");
+        }
     }
 }
 

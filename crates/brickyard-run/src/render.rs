@@ -463,8 +463,11 @@ fn run_with(
         _ => None,
     };
     if shared.is_some() {
-        if c.progressive.is_some() || c.debug.is_some() {
-            bail!("distribute: --progressive and --debug draw on one process");
+        if c.debug.is_some() {
+            bail!("distribute: --debug draws on one process");
+        }
+        if c.progressive.is_some() && c.backend == "gpu" {
+            bail!("distribute: --progressive accumulates on the CPU of each rank (the device's accumulation draws whole frames of the whole ray); use --backend cpu");
         }
         if c.derive.is_some() {
             bail!("distribute: live derived channels draw on one process");
@@ -820,6 +823,9 @@ fn run_with(
                 brickyard_render::savr::MAX_FRAMES
             );
         }
+        if c.no_early_termination && !matches!(backend, crate::backend::Backend::Cpu) {
+            bail!("no-early-termination: the device's accumulation ends rays at an opacity of 0.99; use --backend cpu for --progressive without early termination");
+        }
     }
     if !c.json {
         say!(
@@ -882,7 +888,10 @@ fn run_with(
             // hides is crossed in one jump, a uniform one it shows is
             // sampled at every step); MIP draws bricks holding data (a
             // uniform one is crossed once the ray's maximum reaches it).
-            let drawn_dvr = |lo: f32, hi: f32| tf.max_opacity(lo, hi) > 0.0;
+            // Accumulation samples every brick a ray crosses (a later
+            // transfer function may show what this one hides).
+            let accumulating = c.progressive.is_some();
+            let drawn_dvr = |lo: f32, hi: f32| accumulating || tf.max_opacity(lo, hi) > 0.0;
             let drawn_mip = |lo: f32, hi: f32| lo < hi;
             let drawn: &dyn Fn(f32, f32) -> bool = match mode {
                 RenderMode::Mip => &drawn_mip,
@@ -987,6 +996,7 @@ fn run_with(
                 opt,
                 &mut budget,
                 &mut on_frame,
+                c.progressive.map(|n| (n, c.json || c.quiet || silent)),
             ),
             _ => crate::frames::drive(
                 &mut backend,
@@ -1132,22 +1142,45 @@ fn run_with(
             continue;
         }
         let img = match c.progressive {
-            Some(n) => {
+            // Image-parallel bands accumulated band by band.
+            Some(n) if shared != Some(Split::Image) => {
                 let lod = match lod {
                     Lod::Auto { .. } => Lod::Auto { bias: b.bias },
                     fixed => fixed,
                 };
-                accumulate(
+                let t = std::time::Instant::now();
+                let acc = accumulate(
                     &mut backend,
                     &mut s,
                     &scene,
                     &params,
-                    lod,
-                    n,
+                    (lod, n, None),
                     c.json || c.quiet || silent,
-                )?
+                    &mut || {},
+                );
+                match share.as_deref_mut() {
+                    // Data-parallel: every rank says how its region went.
+                    Some(sh) if shared.is_some() => {
+                        sh.agree(
+                            acc.as_ref()
+                                .map(|_| ())
+                                .map_err(|e| anyhow::anyhow!("{e:#}")),
+                        )?;
+                        let secs = sh.gather_times(t.elapsed().as_secs_f64());
+                        say!(
+                            silent,
+                            "view {v}: ranks accumulated their regions in {} s",
+                            secs.iter()
+                                .map(|t| format!("{t:.2}"))
+                                .collect::<Vec<_>>()
+                                .join(" / ")
+                        );
+                        acc?
+                    }
+                    _ => acc?,
+                }
             }
-            None => out.image,
+            _ => out.image,
         };
         // Shared: the ranks' parts become one image on rank 0.
         let img = match (shared, share.as_deref_mut()) {
@@ -1433,14 +1466,18 @@ const DEVICE_STORE_BYTES: u64 = 512 << 20;
 /// the drive has just loaded) until `n` frames are blended and no stand-in
 /// is left. The per-pixel store holds `n` whole rays of samples (on the
 /// device: as many as one of its buffers holds).
+///
+/// `rows`: only these image rows (a band of an image-parallel render, on
+/// the CPU); the image returned is then theirs. `between` runs after every
+/// frame (rank 0 answers the other ranks there).
 fn accumulate(
     backend: &mut crate::backend::Backend,
     s: &mut Session,
     scene: &Scene,
     params: &RenderParams,
-    lod: Lod,
-    n: u32,
+    (lod, n, rows): (Lod, u32, Option<std::ops::Range<u32>>),
     quiet: bool,
+    between: &mut dyn FnMut(),
 ) -> Result<brickyard_render::Image> {
     use crate::backend::Accumulating;
     let e = scene.extent;
@@ -1459,16 +1496,30 @@ fn accumulate(
         );
         budget = budget.min(cap as usize);
     }
-    let mut acc = Accumulating::new(backend, params, n, budget);
+    let mut acc = match &rows {
+        Some(r) => Accumulating::Cpu(brickyard_render::savr::Accumulation::rows(
+            params.width,
+            params.height,
+            r.clone(),
+            n,
+            budget,
+        )),
+        None => Accumulating::new(backend, params, n, budget),
+    };
     let t = std::time::Instant::now();
     let mut left = 0;
+    let band = rows
+        .as_ref()
+        .map(|r| format!(" rows {}..{}", r.start, r.end))
+        .unwrap_or_default();
     for frame in 1..=4 * n as usize + 64 {
         let f0 = std::time::Instant::now();
         let st = acc.frame(backend, s, scene, params, lod)?;
+        between();
         left = st.stand_ins;
         if !quiet {
             println!(
-                "accumulate {}/{n}: {:8.1} ms, {} samples taken, {} stand-ins left, {} kept",
+                "accumulate{band} {}/{n}: {:8.1} ms, {} samples taken, {} stand-ins left, {} kept",
                 acc.frames(),
                 f0.elapsed().as_secs_f64() * 1e3,
                 st.samples,
@@ -1479,7 +1530,7 @@ fn accumulate(
         if acc.complete() {
             if !quiet {
                 println!(
-                    "accumulated {n} frames in {frame} passes, {:.2} s",
+                    "accumulated{band} {n} frames in {frame} passes, {:.2} s",
                     t.elapsed().as_secs_f64()
                 );
             }
@@ -1509,6 +1560,9 @@ fn order_eye(cam: &Camera, extent: [f64; 3]) -> [f64; 3] {
 /// Image-parallel: draw bands of tile rows of view `v` as `share` hands
 /// them out, each until it is complete, into one image (the other pixels
 /// transparent). Rank 0 answers the others between its frames.
+/// `progressive`: `(N, quiet)`, each band then accumulates `N` frames once
+/// its plain frames are complete, and its pixels are the accumulation's.
+#[allow(clippy::too_many_arguments)]
 fn draw_bands(
     share: &mut dyn Share,
     v: u32,
@@ -1521,6 +1575,7 @@ fn draw_bands(
     opt: crate::frames::DriveOptions,
     budget: &mut brickyard_render::budget::LodBudget,
     on_frame: &mut dyn FnMut(&crate::frames::FrameInfo),
+    progressive: Option<(u32, bool)>,
 ) -> Result<crate::frames::Outcome> {
     use brickyard_render::cpu::Tiles;
     let t0 = std::time::Instant::now();
@@ -1547,7 +1602,27 @@ fn draw_bands(
             )?;
             let px = Tiles::pixel_rows(h, a..b);
             let span = px.start as usize * w as usize..px.end as usize * w as usize;
-            image.rgba[span.clone()].copy_from_slice(&o.image.rgba[span]);
+            match progressive {
+                Some((n, quiet)) => {
+                    let lod = match opt.lod {
+                        Lod::Auto { .. } => Lod::Auto {
+                            bias: o.budget.bias,
+                        },
+                        fixed => fixed,
+                    };
+                    let band = accumulate(
+                        backend,
+                        s,
+                        scene,
+                        params,
+                        (lod, n, Some(px)),
+                        quiet,
+                        &mut || share.serve(),
+                    )?;
+                    image.rgba[span].copy_from_slice(&band.rgba);
+                }
+                None => image.rgba[span.clone()].copy_from_slice(&o.image.rgba[span]),
+            }
             frames += o.frames;
             completeness = completeness.min(o.completeness);
             if o.stop != Some(Stop::Complete) {
