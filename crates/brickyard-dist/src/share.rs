@@ -4,6 +4,7 @@
 //! (a power-of-two count of ranks) or direct send (any other count), then
 //! gathered on rank 0.
 
+pub use crate::bands::{bands, Sections};
 use crate::cluster::Cluster;
 use crate::composite::{binary_swap, split_even, Operator};
 use crate::kd::{eye_side, KdTree};
@@ -28,16 +29,6 @@ pub const BANDS_PER_RANK: u32 = 4;
 /// device frame's fixed part (dispatch, counters, request table, read-back).
 pub const DEVICE_BANDS_PER_RANK: u32 = 1;
 
-/// The bands of `rows` tile rows for `ranks` ranks, `per_rank` each (fewer
-/// where there are fewer rows): `[start, end)`.
-pub fn bands(rows: u32, ranks: usize, per_rank: u32) -> Vec<(u32, u32)> {
-    let n = rows.min(per_rank.max(1) * ranks as u32).max(1);
-    (0..n)
-        .map(|i| (rows * i / n, rows * (i + 1) / n))
-        .filter(|(a, b)| b > a)
-        .collect()
-}
-
 /// The ranks of `mpirun` drawing one render.
 pub struct RenderShare<'c> {
     c: &'c Cluster,
@@ -45,8 +36,7 @@ pub struct RenderShare<'c> {
     /// Rank 0: the view being handed out, its bands, the next one, and how
     /// many other ranks were told there are none left.
     view: Option<u32>,
-    queue: Vec<(u32, u32)>,
-    next: usize,
+    queue: Sections,
     told: usize,
     /// Image-parallel: bands per rank.
     per_rank: u32,
@@ -64,8 +54,7 @@ impl<'c> RenderShare<'c> {
             c,
             split,
             view: None,
-            queue: vec![],
-            next: 0,
+            queue: Sections::default(),
             told: 0,
             per_rank: BANDS_PER_RANK,
             tree: None,
@@ -84,8 +73,7 @@ impl<'c> RenderShare<'c> {
     fn open_view(&mut self, v: u32, rows: u32) {
         if self.view != Some(v) {
             self.view = Some(v);
-            self.queue = bands(rows, self.c.size(), self.per_rank);
-            self.next = 0;
+            self.queue = Sections::new(bands(rows, self.c.size(), self.per_rank), self.c.size());
             self.told = 0;
         }
     }
@@ -98,12 +86,12 @@ impl<'c> RenderShare<'c> {
             self.told += 1;
             return;
         }
-        let band = if self.next < self.queue.len() {
-            self.next += 1;
-            self.queue[self.next - 1]
-        } else {
-            self.told += 1;
-            (NONE, NONE)
+        let band = match self.queue.take(from as usize) {
+            Some(b) => b,
+            None => {
+                self.told += 1;
+                (NONE, NONE)
+            }
         };
         p.send_with_tag(&[band.0, band.1][..], TAG_BAND);
     }
@@ -182,9 +170,8 @@ impl Share for RenderShare<'_> {
         if self.c.rank() == 0 {
             self.open_view(view, rows);
             self.answer_waiting();
-            if self.next < self.queue.len() {
-                self.next += 1;
-                return Ok(Some(self.queue[self.next - 1]));
+            if let Some(b) = self.queue.take(0) {
+                return Ok(Some(b));
             }
             self.answer_until_all_told();
             return Ok(None);
