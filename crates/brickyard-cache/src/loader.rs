@@ -36,7 +36,7 @@ use crate::host_cache::HostCache;
 use crate::ranges::BrickRanges;
 use brickyard_core::Dims3;
 use brickyard_store::error::{Result, StoreError};
-use brickyard_store::import::zarr::open;
+use brickyard_store::import::zarr::{open, SharedChunkCache};
 use brickyard_store::omezarr::{read_multiscale, STATS_DIR};
 use brickyard_store::source::VolumeSource;
 use brickyard_store::storage::{self, StoreAt};
@@ -191,10 +191,9 @@ impl LevelStats {
     }
 }
 
-/// Decoded-chunk cache of the loader for level 0 by default
-/// ([`Loader::open`]); level `l` gets this halved `l` times (at least half
-/// a MiB), so all levels together stay under twice this plus half a MiB
-/// per level. [`Loader::open_with_chunk_cache`] sets the total.
+/// Half the decoded-chunk cache of the loader by default ([`Loader::open`]
+/// keeps twice this, shared by all levels, in one least-recently-used
+/// order). [`Loader::open_with_chunk_cache`] sets the total.
 pub const CHUNK_CACHE_BYTES: u64 = 64 << 20;
 
 struct Level {
@@ -430,9 +429,9 @@ impl Loader {
         )
     }
 
-    /// Like [`Loader::open`], with the decoded-chunk caches of all levels
-    /// together bounded by `chunk_bytes` plus half a MiB per level: level
-    /// `l` keeps `chunk_bytes / 2^(l+1)`, at least half a MiB.
+    /// Like [`Loader::open`], with the decoded-chunk cache of all levels
+    /// together bounded by `chunk_bytes` (at least half a MiB): one cache
+    /// for all levels, so the level being read may use all of it.
     pub fn open_with_chunk_cache(
         store_path: &Path,
         brick: Dims3,
@@ -508,14 +507,17 @@ impl Loader {
         );
         let mut levels = Vec::with_capacity(nlevels);
         let mut dims = Vec::with_capacity(nlevels);
+        let mut chunks: Option<SharedChunkCache> = None;
         for l in 0..nlevels {
             let mut stored = open(store_path, l)?;
             // Neighbouring bricks share the chunks their aprons reach into:
-            // keep decoded chunks so each is decoded about once.
-            stored.enable_chunk_cache_with_shells(
-                (chunk_bytes >> (l + 1).min(63)).max(512 << 10),
-                apron,
-            );
+            // keep decoded chunks so each is decoded about once. One
+            // budget for all levels: the level being read uses the room
+            // the others leave.
+            let cc = chunks.get_or_insert_with(|| {
+                SharedChunkCache::new(chunk_bytes.max(512 << 10), apron, stored.meta().dtype)
+            });
+            stored.share_chunk_cache(cc);
             let src: Arc<dyn VolumeSource> = match &derive {
                 None => Arc::new(stored),
                 Some(d) => d(l, Arc::new(stored))
