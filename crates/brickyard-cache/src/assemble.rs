@@ -37,14 +37,15 @@ impl PaddedRegion {
 }
 
 /// A zeroed byte buffer of `n` bytes, aligned for every sample type.
-///
-/// Allocated zeroed (`calloc`): memory fresh from the system is zero
-/// already and is not written twice (a brick's first write then only
-/// faults its pages in).
 pub fn zeroed_bytes(n: usize) -> Arc<[u8]> {
-    let a = Arc::<[u8]>::new_zeroed_slice(n);
-    // SAFETY: zero bytes are valid `u8`s.
-    unsafe { a.assume_init() }
+    let mut a = Arc::<[u8]>::new_uninit_slice(n);
+    let s = Arc::get_mut(&mut a).expect("a new buffer is not shared");
+    // SAFETY: every byte is written before the buffer is taken as
+    // initialized `u8`s.
+    unsafe {
+        std::ptr::write_bytes(s.as_mut_ptr(), 0, n);
+        a.assume_init()
+    }
 }
 
 /// A new (zeroed) buffer for one padded brick of `g`.

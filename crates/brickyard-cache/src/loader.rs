@@ -352,9 +352,13 @@ impl Shared {
         }
         let es = g.dtype.size();
         let mut first = vec![0u8; es];
-        level
-            .src
-            .read_region(c, o[0]..o[0] + 1, o[1]..o[1] + 1, o[2]..o[2] + 1, &mut first)?;
+        level.src.read_region(
+            c,
+            o[0]..o[0] + 1,
+            o[1]..o[1] + 1,
+            o[2]..o[2] + 1,
+            &mut first,
+        )?;
         let v = dispatch_dtype!(g.dtype, T => {
             <T as Sample>::from_le(&first).to_f64()
         });

@@ -879,7 +879,9 @@ mod tests {
         };
         let all = |k: u64| (vec![64 * k, 0], vec![64 * k + 64, 64]);
         for k in 0..3 {
-            cache.get_or_load(0, &[vec![k, 0]], &[all(k)], load).unwrap();
+            cache
+                .get_or_load(0, &[vec![k, 0]], &[all(k)], load)
+                .unwrap();
             assert!(cache.bytes() <= budget);
         }
         assert_eq!(loads.load(Ordering::Relaxed), 3);
@@ -890,7 +892,9 @@ mod tests {
         assert!(matches!(got[0].body, Body::Shell(_)));
         assert_eq!(loads.load(Ordering::Relaxed), 3);
         // Its middle is not: loaded again.
-        let got = cache.get_or_load(0, &[vec![0, 0]], &[all(0)], load).unwrap();
+        let got = cache
+            .get_or_load(0, &[vec![0, 0]], &[all(0)], load)
+            .unwrap();
         assert_eq!(first(&got[0]), 0);
         assert_eq!(loads.load(Ordering::Relaxed), 4);
         assert!(cache.bytes() <= budget);
