@@ -347,9 +347,9 @@ impl Shared {
         let o = g.origin_of(key);
         let ext = g.extent_of(key);
         let e: Dims3 = [0, 1, 2].map(|a| o[a] + ext[a]);
-        if g.apron == 0 || st.uniform(c as u64, o, e).is_none() {
+        let Some(want) = st.uniform(c as u64, o, e).filter(|_| g.apron > 0) else {
             return Ok(None);
-        }
+        };
         let es = g.dtype.size();
         let mut first = vec![0u8; es];
         level.src.read_region(
@@ -362,7 +362,10 @@ impl Shared {
         let v = dispatch_dtype!(g.dtype, T => {
             <T as Sample>::from_le(&first).to_f64()
         });
-        if v.is_nan() {
+        if v.is_nan() || v != want {
+            // Not the statistics' value: the store lost the brick (a
+            // removed shard reads as the fill value) or they are stale;
+            // the full read tells which, and reports a loss.
             return Ok(None);
         }
         let mut read = es as u64;
