@@ -129,17 +129,7 @@ pub fn finish_brick(
     let ext = g.extent_of(&key);
     dispatch_dtype!(g.dtype, T => {
         let out: &[T] = brickyard_core::cast_slice(&data);
-        let (p1, p2) = (p[1] as usize, p[2] as usize);
-        let (mut mn, mut mx) = (f64::NAN, f64::NAN);
-        for z in a..a + ext[0] as usize {
-            for y in a..a + ext[1] as usize {
-                let s = (z * p1 + y) * p2 + a;
-                let (rmn, rmx) = T::min_max(&out[s..s + ext[2] as usize]);
-                // f64::min / max ignore a NaN operand.
-                mn = mn.min(rmn.to_f64());
-                mx = mx.max(rmx.to_f64());
-            }
-        }
+        let (mn, mx) = brick_min_max(out, p, a, ext);
         let v0 = out[0].to_f64();
         // Uniform only if the brick proper is (a pass over the apron only
         // then). Every voxel has the first one's bits exactly when the
@@ -155,6 +145,83 @@ pub fn finish_brick(
             bytes_read,
         }
     })
+}
+
+/// Element-wise minimum and maximum for the lanes of [`brick_min_max`]:
+/// NaN is ignored (the other operand wins), as by `f64::min` / `max`.
+trait Lanes: Sample {
+    const LO: Self;
+    const HI: Self;
+    fn lmin(a: Self, b: Self) -> Self;
+    fn lmax(a: Self, b: Self) -> Self;
+}
+
+macro_rules! int_lanes {
+    ($($t:ty),*) => {$(
+        impl Lanes for $t {
+            const LO: Self = <$t>::MAX;
+            const HI: Self = <$t>::MIN;
+            #[inline(always)]
+            fn lmin(a: Self, b: Self) -> Self {
+                a.min(b)
+            }
+            #[inline(always)]
+            fn lmax(a: Self, b: Self) -> Self {
+                a.max(b)
+            }
+        }
+    )*};
+}
+int_lanes!(u8, i8, u16, i16, u32, i32);
+
+macro_rules! float_lanes {
+    ($($t:ty),*) => {$(
+        impl Lanes for $t {
+            const LO: Self = <$t>::NAN;
+            const HI: Self = <$t>::NAN;
+            #[inline(always)]
+            fn lmin(a: Self, b: Self) -> Self {
+                a.min(b)
+            }
+            #[inline(always)]
+            fn lmax(a: Self, b: Self) -> Self {
+                a.max(b)
+            }
+        }
+    )*};
+}
+float_lanes!(f32, f64);
+
+/// (min, max) of the brick proper (`ext` voxels at `a, a, a` in a padded
+/// brick of `p` voxels), NaN ignored (both NaN when every voxel is).
+/// Lane-wise over 32 columns at a time, reduced once at the end, so that
+/// the rows (as short as 64 voxels) cost no reduction each.
+fn brick_min_max<T: Lanes>(out: &[T], p: Dims3, a: usize, ext: Dims3) -> (f64, f64) {
+    const L: usize = 32;
+    let (p1, p2) = (p[1] as usize, p[2] as usize);
+    let mut mn = [T::LO; L];
+    let mut mx = [T::HI; L];
+    for z in a..a + ext[0] as usize {
+        for y in a..a + ext[1] as usize {
+            let s = (z * p1 + y) * p2 + a;
+            let row = &out[s..s + ext[2] as usize];
+            let mut it = row.chunks_exact(L);
+            for c in &mut it {
+                for i in 0..L {
+                    mn[i] = T::lmin(mn[i], c[i]);
+                    mx[i] = T::lmax(mx[i], c[i]);
+                }
+            }
+            for (i, &v) in it.remainder().iter().enumerate() {
+                mn[i] = T::lmin(mn[i], v);
+                mx[i] = T::lmax(mx[i], v);
+            }
+        }
+    }
+    // f64::min / max ignore a NaN operand.
+    let lo = mn.iter().fold(f64::NAN, |m, v| m.min(v.to_f64()));
+    let hi = mx.iter().fold(f64::NAN, |m, v| m.max(v.to_f64()));
+    (lo, hi)
 }
 
 #[cfg(test)]

@@ -34,9 +34,9 @@ use crate::assemble::{brick_buffer, finish_brick, uniform_brick, PaddedRegion};
 use crate::brick::{BrickContent, BrickGeometry, BrickKey, LoadedBrick};
 use crate::host_cache::HostCache;
 use crate::ranges::BrickRanges;
-use brickyard_core::Dims3;
+use brickyard_core::{dispatch_dtype, Dims3, Sample};
 use brickyard_store::error::{Result, StoreError};
-use brickyard_store::import::zarr::open;
+use brickyard_store::import::zarr::{open, SharedChunkCache};
 use brickyard_store::omezarr::{read_multiscale, STATS_DIR};
 use brickyard_store::source::VolumeSource;
 use brickyard_store::storage::{self, StoreAt};
@@ -191,10 +191,9 @@ impl LevelStats {
     }
 }
 
-/// Decoded-chunk cache of the loader for level 0 by default
-/// ([`Loader::open`]); level `l` gets this halved `l` times (at least half
-/// a MiB), so all levels together stay under twice this plus half a MiB
-/// per level. [`Loader::open_with_chunk_cache`] sets the total.
+/// Half the decoded-chunk cache of the loader by default ([`Loader::open`]
+/// keeps twice this, shared by all levels, in one least-recently-used
+/// order). [`Loader::open_with_chunk_cache`] sets the total.
 pub const CHUNK_CACHE_BYTES: u64 = 64 << 20;
 
 struct Level {
@@ -283,6 +282,10 @@ impl Shared {
         if let Some(v) = level.stats.as_ref().and_then(|s| s.uniform(c, lo, hi)) {
             return Ok(uniform_brick(*key, v, 0));
         }
+        if let Some(b) = self.uniform_by_apron(level, key, &reg)? {
+            self.simulated_delay();
+            return Ok(b);
+        }
         // The brick's final buffer: the level's voxels are read straight
         // into it, then the apron outside the level repeats the edge.
         let mut data = brick_buffer(g);
@@ -321,6 +324,77 @@ impl Shared {
             }
         }
         Ok(brick)
+    }
+
+    /// A brick whose brick proper the statistics say is uniform, while its
+    /// padded region touches store bricks with other values (data next
+    /// door): it is uniform exactly when the apron's voxels inside the
+    /// level all have the bits of the brick proper's. Only those voxels
+    /// (and one of the brick proper) are read, not the padded brick:
+    /// `Some(brick)` when uniform, `None` when the whole brick must be
+    /// read (or the statistics cannot tell).
+    fn uniform_by_apron(
+        &self,
+        level: &Level,
+        key: &BrickKey,
+        reg: &PaddedRegion,
+    ) -> Result<Option<LoadedBrick>> {
+        let g = &self.geometry;
+        let Some(st) = &level.stats else {
+            return Ok(None);
+        };
+        let c = key.channel as usize;
+        let o = g.origin_of(key);
+        let ext = g.extent_of(key);
+        let e: Dims3 = [0, 1, 2].map(|a| o[a] + ext[a]);
+        let Some(want) = st.uniform(c as u64, o, e).filter(|_| g.apron > 0) else {
+            return Ok(None);
+        };
+        let es = g.dtype.size();
+        let mut first = vec![0u8; es];
+        level.src.read_region(
+            c,
+            o[0]..o[0] + 1,
+            o[1]..o[1] + 1,
+            o[2]..o[2] + 1,
+            &mut first,
+        )?;
+        let v = dispatch_dtype!(g.dtype, T => {
+            <T as Sample>::from_le(&first).to_f64()
+        });
+        if v.is_nan() || v != want {
+            // Not the statistics' value: the store lost the brick (a
+            // removed shard reads as the fill value) or they are stale;
+            // the full read tells which, and reports a loss.
+            return Ok(None);
+        }
+        let mut read = es as u64;
+        let mut buf = vec![];
+        for a in 0..3 {
+            for (s, t) in [(reg.lo[a], o[a]), (e[a], reg.hi[a])] {
+                if s >= t {
+                    continue;
+                }
+                // Whole padded rows on the axes after `a`; the axes before
+                // it had their apron slabs read already.
+                let r: [std::ops::Range<u64>; 3] = [0, 1, 2].map(|b| match b.cmp(&a) {
+                    std::cmp::Ordering::Less => o[b]..e[b],
+                    std::cmp::Ordering::Equal => s..t,
+                    std::cmp::Ordering::Greater => reg.lo[b]..reg.hi[b],
+                });
+                let n = r.iter().map(|r| r.end - r.start).product::<u64>() as usize * es;
+                buf.clear();
+                buf.resize(n, 0);
+                let [rz, ry, rx] = r;
+                level.src.read_region(c, rz, ry, rx, &mut buf)?;
+                read += n as u64;
+                // Every voxel equals the next and the first equals `first`.
+                if buf[..es] != first[..] || buf[es..] != buf[..n - es] {
+                    return Ok(None);
+                }
+            }
+        }
+        Ok(Some(uniform_brick(*key, v, read)))
     }
 
     /// Sleep for the delay set by [`Loader::set_read_delay`], if any.
@@ -430,9 +504,9 @@ impl Loader {
         )
     }
 
-    /// Like [`Loader::open`], with the decoded-chunk caches of all levels
-    /// together bounded by `chunk_bytes` plus half a MiB per level: level
-    /// `l` keeps `chunk_bytes / 2^(l+1)`, at least half a MiB.
+    /// Like [`Loader::open`], with the decoded-chunk cache of all levels
+    /// together bounded by `chunk_bytes` (at least half a MiB): one cache
+    /// for all levels, so the level being read may use all of it.
     pub fn open_with_chunk_cache(
         store_path: &Path,
         brick: Dims3,
@@ -508,14 +582,17 @@ impl Loader {
         );
         let mut levels = Vec::with_capacity(nlevels);
         let mut dims = Vec::with_capacity(nlevels);
+        let mut chunks: Option<SharedChunkCache> = None;
         for l in 0..nlevels {
             let mut stored = open(store_path, l)?;
             // Neighbouring bricks share the chunks their aprons reach into:
-            // keep decoded chunks so each is decoded about once.
-            stored.enable_chunk_cache_with_shells(
-                (chunk_bytes >> (l + 1).min(63)).max(512 << 10),
-                apron,
-            );
+            // keep decoded chunks so each is decoded about once. One
+            // budget for all levels: the level being read uses the room
+            // the others leave.
+            let cc = chunks.get_or_insert_with(|| {
+                SharedChunkCache::new(chunk_bytes.max(512 << 10), apron, stored.meta().dtype)
+            });
+            stored.share_chunk_cache(cc);
             let src: Arc<dyn VolumeSource> = match &derive {
                 None => Arc::new(stored),
                 Some(d) => d(l, Arc::new(stored))

@@ -756,6 +756,49 @@ fn a_deleted_shard_where_statistics_say_data_is_a_failure_naming_the_file() {
     assert!(e.contains("missing") && e.contains("store brick"), "{e}");
 }
 
+#[test]
+fn a_deleted_shard_under_a_constant_brick_next_to_data_is_a_failure() {
+    // Store bricks of 8³ in shards of 16³. z 24..32: constant 9 (the brick
+    // proper of engine bricks [3, y, x], which the statistics say is
+    // uniform); its apron planes z = 23 and z = 32 are zeros inside store
+    // bricks that hold noise. With the shard of z 16..32 gone, the whole
+    // padded brick reads as zeros: the statistics say 9, so the loader
+    // must name the file, not hand out an empty brick (whether it reads
+    // the apron alone or the whole brick).
+    let dir = tempfile::tempdir().unwrap();
+    let dims = [48, 16, 16];
+    let src = mem_source(dims, 1, DType::U8, |_, z, y, x| {
+        let noise = || {
+            let mut s = (z * 1000 + y) * 1000 + x + 11;
+            lcg(&mut s);
+            (lcg(&mut s) % 250) as f64 + 1.0
+        };
+        match z {
+            16..=22 | 33..=39 => noise(),
+            24..=31 => 9.0,
+            _ => 0.0,
+        }
+    });
+    let store = convert_to(dir.path(), "c.ome.zarr", &src, 8, 16);
+    let k = BrickKey::new(0, 0, [3, 0, 0]);
+    let loader = Loader::open(&store, [8; 3], 1, 1, Arc::new(HostCache::new(1 << 30))).unwrap();
+    let b = loader.load_now(&k).unwrap();
+    assert!(matches!(b.content, BrickContent::Data(_)));
+    assert_eq!((b.min, b.max), (9.0, 9.0));
+    drop(loader);
+    let mut shards = vec![];
+    shard_files(&store.join("0"), &mut shards);
+    let gone = shards
+        .into_iter()
+        .find(|p| p.to_str().unwrap().ends_with("/1/0/0"))
+        .expect("the shard of z 16..32");
+    std::fs::remove_file(&gone).unwrap();
+    let loader = Loader::open(&store, [8; 3], 1, 1, Arc::new(HostCache::new(1 << 30))).unwrap();
+    let e = loader.load_now(&k).unwrap_err().to_string();
+    assert!(e.contains(gone.to_str().unwrap()), "{e}");
+    assert!(e.contains("missing") && e.contains("store brick"), "{e}");
+}
+
 /// The shard file of level 0 holding store brick `[0, 0, 0]`.
 fn first_shard(store: &Path) -> PathBuf {
     let mut shards = vec![];

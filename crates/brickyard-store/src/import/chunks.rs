@@ -279,13 +279,20 @@ impl ChunkCache {
     /// threads never wait for each other).
     ///
     /// `need[i]`: the box (`lo`, `hi`) of chunk `i` the caller reads; a
-    /// shell that does not hold it counts as missing.
+    /// shell that does not hold it counts as missing. `source` tells the
+    /// chunks of the sources sharing the cache apart (`load` gets the
+    /// chunk indices without it).
     pub fn get_or_load(
         &self,
-        keys: &[Vec<u64>],
+        source: u64,
+        chunk_keys: &[Vec<u64>],
         need: &[(Vec<u64>, Vec<u64>)],
         load: impl Fn(&[Vec<u64>]) -> Result<Vec<Decoded>>,
     ) -> Result<Vec<Arc<Decoded>>> {
+        let keys: Vec<Vec<u64>> = chunk_keys
+            .iter()
+            .map(|k| std::iter::once(source).chain(k.iter().copied()).collect())
+            .collect();
         let mut out: Vec<Option<Arc<Decoded>>> = vec![None; keys.len()];
         loop {
             let mut mine = vec![];
@@ -329,7 +336,9 @@ impl ChunkCache {
                     cache: self,
                     keys: mine.iter().map(|&i| keys[i].clone()).collect(),
                 };
-                let loaded = load(&claim.keys)?;
+                let mine_keys: Vec<Vec<u64>> =
+                    mine.iter().map(|&i| chunk_keys[i].clone()).collect();
+                let loaded = load(&mine_keys)?;
                 debug_assert_eq!(loaded.len(), mine.len());
                 let mut st = lock(&self.state);
                 let mut evicted = vec![];
@@ -835,20 +844,20 @@ mod tests {
                 .collect())
         };
         let keys: Vec<Vec<u64>> = (0..3).map(|i| vec![i, 0]).collect();
-        let got = cache.get_or_load(&keys, &whole(&keys), load).unwrap();
+        let got = cache.get_or_load(0, &keys, &whole(&keys), load).unwrap();
         assert_eq!(first(&got[2]), 2);
-        cache.get_or_load(&keys, &whole(&keys), load).unwrap();
+        cache.get_or_load(0, &keys, &whole(&keys), load).unwrap();
         assert_eq!(loads.load(Ordering::Relaxed), 3);
         // A fourth chunk evicts the least recently used (chunk 0).
         let k3 = [vec![3, 0]];
-        cache.get_or_load(&k3, &whole(&k3), load).unwrap();
+        cache.get_or_load(0, &k3, &whole(&k3), load).unwrap();
         assert!(cache.bytes() <= budget);
         cache
-            .get_or_load(&keys[1..], &whole(&keys[1..]), load)
+            .get_or_load(0, &keys[1..], &whole(&keys[1..]), load)
             .unwrap();
         assert_eq!(loads.load(Ordering::Relaxed), 4);
         cache
-            .get_or_load(&keys[..1], &whole(&keys[..1]), load)
+            .get_or_load(0, &keys[..1], &whole(&keys[..1]), load)
             .unwrap();
         assert_eq!(loads.load(Ordering::Relaxed), 5);
         assert!(cache.bytes() <= budget);
@@ -870,18 +879,22 @@ mod tests {
         };
         let all = |k: u64| (vec![64 * k, 0], vec![64 * k + 64, 64]);
         for k in 0..3 {
-            cache.get_or_load(&[vec![k, 0]], &[all(k)], load).unwrap();
+            cache
+                .get_or_load(0, &[vec![k, 0]], &[all(k)], load)
+                .unwrap();
             assert!(cache.bytes() <= budget);
         }
         assert_eq!(loads.load(Ordering::Relaxed), 3);
         // Chunk 0 was evicted whole: its last row is still there.
         let got = cache
-            .get_or_load(&[vec![0, 0]], &[(vec![63, 0], vec![64, 64])], load)
+            .get_or_load(0, &[vec![0, 0]], &[(vec![63, 0], vec![64, 64])], load)
             .unwrap();
         assert!(matches!(got[0].body, Body::Shell(_)));
         assert_eq!(loads.load(Ordering::Relaxed), 3);
         // Its middle is not: loaded again.
-        let got = cache.get_or_load(&[vec![0, 0]], &[all(0)], load).unwrap();
+        let got = cache
+            .get_or_load(0, &[vec![0, 0]], &[all(0)], load)
+            .unwrap();
         assert_eq!(first(&got[0]), 0);
         assert_eq!(loads.load(Ordering::Relaxed), 4);
         assert!(cache.bytes() <= budget);
@@ -892,17 +905,17 @@ mod tests {
         let cache = ChunkCache::new(1 << 20, 0, 1);
         let k = vec![vec![0, 0]];
         let need = whole(&k);
-        let e = cache.get_or_load(&k, &need, |_| {
+        let e = cache.get_or_load(0, &k, &need, |_| {
             Err(StoreError::invalid(Path::new("x"), "chunk", "bad"))
         });
         assert!(e.is_err());
         let r = std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| {
-            let _ = cache.get_or_load(&k, &need, |_| panic!("codec"));
+            let _ = cache.get_or_load(0, &k, &need, |_| panic!("codec"));
         }));
         assert!(r.is_err());
         // Neither left the chunk marked as loading: this returns.
         let got = cache
-            .get_or_load(&k, &need, |ks| {
+            .get_or_load(0, &k, &need, |ks| {
                 Ok(ks.iter().map(|_| chunk([0, 0], [1, 4], 5)).collect())
             })
             .unwrap();
@@ -919,7 +932,7 @@ mod tests {
             for _ in 0..4 {
                 s.spawn(|| {
                     let got = cache
-                        .get_or_load(&keys, &need, |ks| {
+                        .get_or_load(0, &keys, &need, |ks| {
                             loads.fetch_add(ks.len(), Ordering::Relaxed);
                             std::thread::sleep(std::time::Duration::from_millis(5));
                             Ok(ks

@@ -43,6 +43,27 @@ pub fn chunks_decoded() -> u64 {
 /// cleared when it grows past this, so it stays small).
 const CHECKED_SHARDS_MAX: usize = 1 << 16;
 
+/// Source keys in shared decoded-chunk caches.
+static NEXT_SOURCE: std::sync::atomic::AtomicU64 = std::sync::atomic::AtomicU64::new(0);
+
+/// A cache of decoded chunks that several [`ZarrSource`]s read through
+/// ([`ZarrSource::share_chunk_cache`]): `bytes` in all, shells of evicted
+/// chunks `width` deep kept (0: none). The sources should share the voxel
+/// type.
+#[derive(Clone)]
+pub struct SharedChunkCache(Arc<ChunkCache>);
+
+impl SharedChunkCache {
+    pub fn new(bytes: u64, width: u64, dtype: DType) -> SharedChunkCache {
+        SharedChunkCache(Arc::new(ChunkCache::new(bytes, width, dtype.size())))
+    }
+
+    /// Bytes held now.
+    pub fn bytes(&self) -> u64 {
+        self.0.bytes()
+    }
+}
+
 /// A 3D (optionally multi-channel) view of one Zarr array.
 pub struct ZarrSource {
     meta: SourceMeta,
@@ -57,8 +78,9 @@ pub struct ZarrSource {
     /// [`SHARD_CACHE_MAX`] shards, to keep memory bounded.
     shards: ArrayShardedReadableExtCache,
     /// Optional cache of decoded read-granularity chunks (see
-    /// [`ZarrSource::enable_chunk_cache`]).
-    chunk_cache: Option<ChunkCache>,
+    /// [`ZarrSource::enable_chunk_cache`]), possibly shared with other
+    /// sources, and this source's key in it (prefixed to chunk indices).
+    chunk_cache: Option<(Arc<ChunkCache>, u64)>,
     /// The read granularity: inner chunks of a sharded array, chunks
     /// otherwise (array axis order).
     grain: Vec<u64>,
@@ -498,13 +520,23 @@ impl ZarrSource {
     /// aprons of neighbouring bricks `width` deep read, for a tenth of the
     /// chunk's bytes (64³ chunks, width 1).
     pub fn enable_chunk_cache_with_shells(&mut self, bytes: u64, width: u64) {
-        self.chunk_cache = Some(ChunkCache::new(bytes, width, self.meta.dtype.size()));
+        let cc = SharedChunkCache::new(bytes, width, self.meta.dtype);
+        self.share_chunk_cache(&cc);
     }
 
-    /// Bytes held by the decoded-chunk cache now (0 without one): never
-    /// more than its budget.
+    /// Read through `cache`, a decoded-chunk cache shared with other
+    /// sources (the levels of one image): one budget and one
+    /// least-recently-used order for all of them, so that the level being
+    /// read gets the room the others do not use.
+    pub fn share_chunk_cache(&mut self, cache: &SharedChunkCache) {
+        let id = NEXT_SOURCE.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
+        self.chunk_cache = Some((cache.0.clone(), id));
+    }
+
+    /// Bytes held by the decoded-chunk cache now (0 without one), for all
+    /// the sources sharing it: never more than its budget.
     pub fn chunk_cache_bytes(&self) -> u64 {
-        self.chunk_cache.as_ref().map_or(0, ChunkCache::bytes)
+        self.chunk_cache.as_ref().map_or(0, |(c, _)| c.bytes())
     }
 
     /// Read and decode the read-granularity chunks `keys` (chunk grid
@@ -558,7 +590,7 @@ impl ZarrSource {
     /// stride[a]`.
     fn read_cached(
         &self,
-        cc: &ChunkCache,
+        (cc, id): (&ChunkCache, u64),
         ranges: &[Range<u64>],
         out: &mut [u8],
         base: usize,
@@ -598,7 +630,7 @@ impl ZarrSource {
                 idx[a] = first[a];
             }
         }
-        let chunks = cc.get_or_load(&keys, &need, |ks| self.load_chunks(ks))?;
+        let chunks = cc.get_or_load(id, &keys, &need, |ks| self.load_chunks(ks))?;
         for c in &chunks {
             copy_into(c, ranges, &self.fill, out, base, stride);
         }
@@ -610,7 +642,7 @@ impl ZarrSource {
     /// first voxel at `at`.
     fn read_box(
         &self,
-        cc: &ChunkCache,
+        cc: (&ChunkCache, u64),
         c: usize,
         rs: [Range<u64>; 3],
         out: &mut [u8],
@@ -750,7 +782,8 @@ impl VolumeSource for ZarrSource {
         out: &mut [u8],
     ) -> Result<()> {
         check_region(&self.meta, c, &z, &y, &x, out);
-        if let Some(cc) = &self.chunk_cache {
+        if let Some((cc, id)) = &self.chunk_cache {
+            let cc = (&**cc, *id);
             let dims = [z.end - z.start, y.end - y.start, x.end - x.start];
             return self.read_box(cc, c, [z, y, x], out, dims, [0; 3]);
         }
@@ -820,7 +853,8 @@ impl VolumeSource for ZarrSource {
         at: Dims3,
     ) -> Result<()> {
         match &self.chunk_cache {
-            Some(cc) => {
+            Some((cc, id)) => {
+                let cc = (&**cc, *id);
                 check_box(&self.meta, c, &region, out, dims, at);
                 self.read_box(cc, c, region, out, dims, at)
             }
