@@ -224,11 +224,12 @@ pub struct RenderCmd {
     #[arg(long)]
     pub no_early_termination: bool,
     /// --distribute data: what the k-d split balances among the ranks:
-    /// data (the default: by the store's per-brick statistics, a brick the
-    /// rays draw weighs 1, one they cross without drawing (DVR: hidden by
-    /// the transfer function; MIP: empty or constant) 1/16) or uniform
-    /// (every brick the same).
-    #[arg(long, value_name = "data|uniform", default_value = "data")]
+    /// view (the default: the length of the view's rays in each brick,
+    /// times its data weight), data (by the store's per-brick statistics, a
+    /// brick the rays draw weighs 1, one they cross without drawing (DVR:
+    /// hidden by the transfer function; MIP: empty or constant) 1/16) or
+    /// uniform (every brick the same).
+    #[arg(long, value_name = "view|data|uniform", default_value = "view")]
     pub region_weights: String,
     /// Also write each image as premultiplied linear RGBA in 32-bit floats
     /// (little-endian, row-major, top row first, width × height × 4) beside
@@ -473,9 +474,9 @@ fn run_with(
             bail!("distribute: live derived channels draw on one process");
         }
     }
-    if !matches!(c.region_weights.as_str(), "data" | "uniform") {
+    if !matches!(c.region_weights.as_str(), "view" | "data" | "uniform") {
         bail!(
-            "region-weights: expected data or uniform, found {:?}",
+            "region-weights: expected view, data or uniform, found {:?}",
             c.region_weights
         );
     }
@@ -883,7 +884,8 @@ fn run_with(
             }
             let nb = m.dims.map(|d| d.div_ceil(c.brick));
             let ranges = scene.ranges.as_deref().and_then(|r| r.level(0));
-            let by_data = c.region_weights == "data";
+            let by_data = c.region_weights != "uniform";
+            let by_view = c.region_weights == "view";
             // DVR draws what the transfer function shows (a brick it
             // hides is crossed in one jump, a uniform one it shows is
             // sampled at every step); MIP draws bricks holding data (a
@@ -898,7 +900,28 @@ fn run_with(
                 _ => &drawn_dvr,
             };
             let data = crate::share::brick_weight(ranges, scene.channel, drawn);
-            let weight = |b: [u64; 3]| if by_data { data(b) } else { 1.0 };
+            // The view's rays per brick (a floor of a thousandth of the
+            // mean, so that bricks no ray meets still count a little).
+            let lengths = by_view.then(|| {
+                let l = crate::share::ray_lengths(
+                    &camera,
+                    (n_views * w, h),
+                    128,
+                    (m.dims, spacing, c.brick),
+                    nb,
+                );
+                let floor = 1e-3 * l.iter().sum::<f64>() / l.len().max(1) as f64;
+                (l, floor)
+            });
+            let weight = |b: [u64; 3]| {
+                let d = if by_data { data(b) } else { 1.0 };
+                match &lengths {
+                    Some((l, floor)) => {
+                        d * (l[((b[0] * nb[1] + b[1]) * nb[2] + b[2]) as usize] + floor)
+                    }
+                    None => d,
+                }
+            };
             let boxes = sh.regions(nb, c.brick, spacing, &weight);
             // How the split shares out the bricks drawn.
             let holding = |b: [u64; 3]| (data(b) == 1.0) as u8 as f64;
@@ -908,6 +931,8 @@ fn run_with(
                 "regions of {} ranks, split by {}: bricks drawn {:?}",
                 boxes.len(),
                 match (by_data, ranges.is_some()) {
+                    (true, true) if by_view => "the view's rays and the store's statistics",
+                    (true, false) if by_view => "the view's rays (no statistics)",
                     (true, true) => "the store's statistics",
                     (true, false) => "brick counts (no statistics)",
                     (false, _) => "brick counts (--region-weights uniform)",

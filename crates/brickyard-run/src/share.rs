@@ -134,6 +134,57 @@ pub fn brick_weight<'a>(
     }
 }
 
+/// How far the rays of a view run through each level-0 brick: the rays of
+/// a `grid × grid·h/w` lattice over a `width × height` image of `camera`,
+/// stepped at a quarter of a brick, their length summed per brick
+/// (`[z, y, x]`, index `(z·ny + y)·nx + x`, of `bricks` bricks of `brick`
+/// voxels over `dims` voxels of `spacing`). A brick's samples in the view
+/// are in proportion (every ray steps evenly), so this weighs the work a
+/// brick gives a rank that draws it, which its statistics alone do not:
+/// a brick at the rim of the view is crossed by few rays, one in its
+/// middle by many, and the regions behind each other along the rays share
+/// their samples unevenly. The same on every rank.
+pub fn ray_lengths(
+    camera: &brickyard_core::Camera,
+    (width, height): (u32, u32),
+    grid: u32,
+    (dims, spacing, brick): ([u64; 3], [f64; 3], u64),
+    bricks: [u64; 3],
+) -> Vec<f64> {
+    use brickyard_core::camera::intersect_box_inv;
+    let rays = brickyard_core::views::ViewRays::new(camera, None, width, height);
+    let extent = brickyard_core::camera::world_extent(dims, spacing);
+    let gx = grid.clamp(1, width.max(1));
+    let gy = ((grid as u64 * height as u64 / width.max(1) as u64) as u32).clamp(1, height.max(1));
+    let n = (bricks[0] * bricks[1] * bricks[2]) as usize;
+    let mut len = vec![0.0f64; n];
+    // World x, y, z: spacing and bricks are [z, y, x].
+    let sp = [spacing[2], spacing[1], spacing[0]];
+    let nb = [bricks[2], bricks[1], bricks[0]];
+    let dt = 0.25 * brick as f64 * sp.iter().cloned().fold(f64::INFINITY, f64::min);
+    for j in 0..gy {
+        for i in 0..gx {
+            let px = ((i as u64 * 2 + 1) * width as u64 / (2 * gx as u64)) as u32;
+            let py = ((j as u64 * 2 + 1) * height as u64 / (2 * gy as u64)) as u32;
+            let ray = rays.pixel_ray(px, py);
+            let inv = ray.dir.map(|d| 1.0 / d);
+            let Some((t0, t1)) = intersect_box_inv(&ray, inv, [0.0; 3], extent) else {
+                continue;
+            };
+            let mut t = t0 + 0.5 * dt;
+            while t < t1 {
+                let w = ray.at(t);
+                let b = [0, 1, 2].map(|a| {
+                    ((w[a] / sp[a] / brick as f64).floor().max(0.0) as u64).min(nb[a] - 1)
+                });
+                len[((b[2] * nb[1] + b[1]) * nb[0] + b[0]) as usize] += dt;
+                t += dt;
+            }
+        }
+    }
+    len
+}
+
 /// A failure every rank agreed on at a meeting point (the message names
 /// the rank that failed and why).
 #[derive(Debug, Clone)]
@@ -146,3 +197,84 @@ impl std::fmt::Display for Agreed {
 }
 
 impl std::error::Error for Agreed {}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use brickyard_core::camera::{intersect_box_inv, world_extent, Camera, Projection};
+
+    /// The lengths add up to the rays' lengths inside the volume (within a
+    /// step per ray), and the bricks in the middle of the view are crossed
+    /// by more ray length than its corners.
+    #[test]
+    fn ray_lengths_follow_the_rays() {
+        let (dims, spacing, brick) = ([64u64, 48, 80], [1.0, 1.5, 0.8], 16u64);
+        let nb = dims.map(|d| d.div_ceil(brick));
+        let extent = world_extent(dims, spacing);
+        let cam = Camera::fit(
+            extent,
+            30.0,
+            20.0,
+            Projection::Perspective { fov_y_deg: 35.0 },
+        );
+        let (w, h, grid) = (320u32, 240u32, 64u32);
+        let l = ray_lengths(&cam, (w, h), grid, (dims, spacing, brick), nb);
+        assert_eq!(l.len() as u64, nb.iter().product::<u64>());
+        assert!(l.iter().all(|x| *x >= 0.0));
+        let rays = brickyard_core::views::ViewRays::new(&cam, None, w, h);
+        let (gy, mut want, mut n) = (grid * h / w, 0.0, 0u32);
+        for j in 0..gy {
+            for i in 0..grid {
+                let r = rays.pixel_ray((2 * i + 1) * w / (2 * grid), (2 * j + 1) * h / (2 * gy));
+                if let Some((t0, t1)) =
+                    intersect_box_inv(&r, r.dir.map(|d| 1.0 / d), [0.0; 3], extent)
+                {
+                    want += t1 - t0;
+                    n += 1;
+                }
+            }
+        }
+        let dt = 0.25 * brick as f64 * 0.8;
+        let got: f64 = l.iter().sum();
+        assert!(
+            n > 100 && (got - want).abs() <= n as f64 * dt,
+            "{got} vs {want}"
+        );
+        // Per brick against the exact lengths of the same rays in its box
+        // (within one step per ray that meets it, at each end).
+        let mut worst = 0.0f64;
+        for z in 0..nb[0] {
+            for y in 0..nb[1] {
+                for x in 0..nb[2] {
+                    let v = |b: [u64; 3]| {
+                        [2, 1, 0].map(|a| (b[a] * brick).min(dims[a]) as f64 * spacing[a])
+                    };
+                    let (lo, hi) = (v([z, y, x]), v([z + 1, y + 1, x + 1]));
+                    let (mut exact, mut met) = (0.0, 0u32);
+                    for j in 0..gy {
+                        for i in 0..grid {
+                            let r = rays.pixel_ray(
+                                (2 * i + 1) * w / (2 * grid),
+                                (2 * j + 1) * h / (2 * gy),
+                            );
+                            if let Some((t0, t1)) =
+                                intersect_box_inv(&r, r.dir.map(|d| 1.0 / d), lo, hi)
+                            {
+                                exact += t1 - t0;
+                                met += 1;
+                            }
+                        }
+                    }
+                    let got = l[((z * nb[1] + y) * nb[2] + x) as usize];
+                    assert!(
+                        (got - exact).abs() <= 2.0 * dt * met as f64,
+                        "brick {:?}: {got} vs {exact}",
+                        [z, y, x]
+                    );
+                    worst = worst.max(exact);
+                }
+            }
+        }
+        assert!(worst > 100.0 * dt, "the view meets the bricks");
+    }
+}

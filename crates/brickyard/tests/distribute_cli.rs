@@ -115,7 +115,7 @@ fn distribute_flags_on_one_process() {
     assert!(!o.status.success());
     let err = String::from_utf8_lossy(&o.stderr);
     assert!(
-        err.contains("region-weights: expected data or uniform, found \"bricks\""),
+        err.contains("region-weights: expected view, data or uniform, found \"bricks\""),
         "{err}"
     );
     assert!(!err.contains("panicked"), "{err}");
