@@ -102,7 +102,14 @@ impl<'f, 'a, T: Sample> Walker<'f, 'a, T> {
                 }
             }
             if t < c0 {
-                // Before the region: another rank's samples.
+                // Before the region: another rank's samples. Jump to a step
+                // or so short of the region or the next level change,
+                // whichever comes first (the steps skipped would all end
+                // here), so that a region far along the rays costs no walk.
+                let to = ((c0.min(next_t) - base_t) * inv_dt - 0.5).floor() - 1.0;
+                if to > k as f64 {
+                    k = to as u64;
+                }
                 continue;
             }
             st.steps += 1;

@@ -97,7 +97,9 @@ impl<'f, 'a, T: Sample> Walker<'f, 'a, T> {
         let track = f.track(level, ray, ray.dir.map(|d| 1.0 / d), t1);
         let mut best = f32::NAN;
         let mut hit = false;
-        let mut k = 0u64;
+        // A region far along the ray: start a step or so before it (the
+        // steps skipped lie before `c0`).
+        let mut k = ((c0 - t0) * inv_dt - 0.5).floor().max(1.0) as u64 - 1;
         loop {
             let t = step_t(t0, k, dt);
             if t >= t1 {
