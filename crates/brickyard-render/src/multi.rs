@@ -44,6 +44,16 @@ pub(crate) fn dvr_pixel<T: Sample>(
     let Some((t0, t1)) = intersect_box_inv(ray, inv_dir, [0.0; 3], f.scene.extent) else {
         return acc;
     };
+    // A region (sort-last), as in `dvr.rs`: the whole ray's step grid,
+    // samples in [c0, c1) only.
+    let (c0, t1) = match f.params.clip.as_deref() {
+        None => (t0, t1),
+        Some(&[lo, hi]) => match intersect_box_inv(ray, inv_dir, lo, hi) {
+            Some((c0, c1)) => (c0, t1.min(c1)),
+            None => return acc,
+        },
+    };
+    let terminate = f.params.early_termination;
     // The step grid and level changes of `dvr.rs`.
     let mut level = f.level_at(t0);
     let mut next_t = f.next_level_t(level);
@@ -70,6 +80,15 @@ pub(crate) fn dvr_pixel<T: Sample>(
             if next_t <= t {
                 next_t = t + dt;
             }
+        }
+        if t < c0 {
+            // Another rank's samples: on to a step or so short of the
+            // region or the next level change (see `dvr.rs`).
+            let to = ((c0.min(next_t) - base_t) * inv_dt - 0.5).floor() - 1.0;
+            if to > k as f64 {
+                k = to as u64;
+            }
+            continue;
         }
         st.steps += 1;
         let w = ray.at(t);
@@ -129,7 +148,7 @@ pub(crate) fn dvr_pixel<T: Sample>(
         if weight > 0.0 {
             let inv = 1.0 / weight;
             let c = [rgb[0] * inv, rgb[1] * inv, rgb[2] * inv, 1.0 - keep];
-            if composite_visible(&mut acc, c, exponent) {
+            if composite_visible(&mut acc, c, exponent) && terminate {
                 break;
             }
         }

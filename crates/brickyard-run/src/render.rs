@@ -871,8 +871,13 @@ fn run_with(
     // Data-parallel: this rank's region of the volume.
     let region = match (shared, share.as_deref_mut()) {
         (Some(Split::Data), Some(sh)) => {
-            if !matches!(mode, RenderMode::Dvr | RenderMode::Mip) || styles.len() > 1 {
-                bail!("distribute data: DVR or MIP of one channel (sort-last compositing)");
+            if !matches!(mode, RenderMode::Dvr | RenderMode::Mip)
+                || (mode == RenderMode::Mip && styles.len() > 1)
+            {
+                bail!("distribute data: DVR (one or several channels) or MIP of one channel (sort-last compositing)");
+            }
+            if dvr_multi && c.backend == "gpu" {
+                bail!("distribute data: several channels draw on the CPU of each rank (the device's channel mix takes no region); use --backend cpu");
             }
             if mode == RenderMode::Mip && !styles.is_empty() {
                 // The channels' mix (--channel C:colour) draws every
@@ -899,7 +904,29 @@ fn run_with(
                 RenderMode::Mip => &drawn_mip,
                 _ => &drawn_dvr,
             };
-            let data = crate::share::brick_weight(ranges, scene.channel, drawn);
+            // Several channels: a brick weighs what its most costly channel
+            // does (any visible channel makes the step sample them all).
+            let tfs: Vec<(usize, brickyard_core::TransferFunction)> = match dvr_multi {
+                true => styles.iter().map(|st| (st.channel, st.dvr_tf())).collect(),
+                false => vec![],
+            };
+            let per_channel: Vec<Box<dyn Fn(f32, f32) -> bool + '_>> = tfs
+                .iter()
+                .map(|(_, t)| {
+                    Box::new(move |lo: f32, hi: f32| accumulating || t.max_opacity(lo, hi) > 0.0)
+                        as Box<dyn Fn(f32, f32) -> bool>
+                })
+                .collect();
+            let one = crate::share::brick_weight(ranges, scene.channel, drawn);
+            let channels: Vec<_> = tfs
+                .iter()
+                .zip(&per_channel)
+                .map(|((ch, _), d)| crate::share::brick_weight(ranges, *ch, d.as_ref()))
+                .collect();
+            let data = |b: [u64; 3]| match channels.is_empty() {
+                true => one(b),
+                false => channels.iter().map(|w| w(b)).fold(0.0, f64::max),
+            };
             // The view's rays per brick (a floor of a thousandth of the
             // mean, so that bricks no ray meets still count a little).
             let lengths = by_view.then(|| {
