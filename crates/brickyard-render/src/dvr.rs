@@ -10,9 +10,9 @@
 use crate::cpu::FrameStats;
 use crate::lanes::F4;
 use crate::optics::{composite_visible, Acc};
-use crate::walk::{step_t, trilinear, trilinear_lanes, Content, Grid, Run, Walker};
+use crate::walk::{jump_before, step_t, trilinear, trilinear_lanes, Content, Grid, Run, Walker};
 use brickyard_cache::vm::Requests;
-use brickyard_core::camera::{intersect_box_inv, Ray};
+use brickyard_core::camera::Ray;
 use brickyard_core::Sample;
 
 impl<'f, 'a, T: Sample> Walker<'f, 'a, T> {
@@ -52,20 +52,12 @@ impl<'f, 'a, T: Sample> Walker<'f, 'a, T> {
         let f = self.f;
         self.ray_serial += 1;
         let shading = f.tf.shading;
-        let extent = f.scene.extent;
         let d = ray.dir;
         let inv_dir = [1.0 / d[0], 1.0 / d[1], 1.0 / d[2]];
-        let Some((t0, t1)) = intersect_box_inv(ray, inv_dir, [0.0; 3], extent) else {
-            return acc;
-        };
         // A region (sort-last): the whole ray's step grid, samples in
-        // [c0, c1) only.
-        let (c0, t1) = match f.params.clip.as_deref() {
-            None => (t0, t1),
-            Some(&[lo, hi]) => match intersect_box_inv(ray, inv_dir, lo, hi) {
-                Some((c0, c1)) => (c0, t1.min(c1)),
-                None => return acc,
-            },
+        // [c0, t1) only.
+        let Some((t0, c0, t1)) = f.span(ray, inv_dir) else {
+            return acc;
         };
         let terminate = f.params.early_termination;
         // Steps keep the reference renderer's positions while the level
@@ -102,14 +94,9 @@ impl<'f, 'a, T: Sample> Walker<'f, 'a, T> {
                 }
             }
             if t < c0 {
-                // Before the region: another rank's samples. Jump to a step
-                // or so short of the region or the next level change,
-                // whichever comes first (the steps skipped would all end
-                // here), so that a region far along the rays costs no walk.
-                let to = ((c0.min(next_t) - base_t) * inv_dt - 0.5).floor() - 1.0;
-                if to > k as f64 {
-                    k = to as u64;
-                }
+                // Before the region: another rank's samples, jumped over
+                // (a region far along the rays costs no walk).
+                k = jump_before(k, c0, next_t, base_t, inv_dt);
                 continue;
             }
             st.steps += 1;

@@ -24,9 +24,9 @@
 
 use crate::cpu::FrameStats;
 use crate::optics::composite_visible;
-use crate::walk::{step_t, Grid, Walker};
+use crate::walk::{jump_before, step_t, Grid, Walker};
 use brickyard_cache::vm::Requests;
-use brickyard_core::camera::{intersect_box_inv, Ray};
+use brickyard_core::camera::Ray;
 use brickyard_core::Sample;
 
 /// The pixel of `ray` in a DVR of several channels, one walker (and frame)
@@ -41,17 +41,10 @@ pub(crate) fn dvr_pixel<T: Sample>(
     let f = walkers[0].f;
     let d = ray.dir;
     let inv_dir = [1.0 / d[0], 1.0 / d[1], 1.0 / d[2]];
-    let Some((t0, t1)) = intersect_box_inv(ray, inv_dir, [0.0; 3], f.scene.extent) else {
+    // A region (sort-last): the whole ray's step grid, samples in
+    // [c0, t1) only.
+    let Some((t0, c0, t1)) = f.span(ray, inv_dir) else {
         return acc;
-    };
-    // A region (sort-last), as in `dvr.rs`: the whole ray's step grid,
-    // samples in [c0, c1) only.
-    let (c0, t1) = match f.params.clip.as_deref() {
-        None => (t0, t1),
-        Some(&[lo, hi]) => match intersect_box_inv(ray, inv_dir, lo, hi) {
-            Some((c0, c1)) => (c0, t1.min(c1)),
-            None => return acc,
-        },
     };
     let terminate = f.params.early_termination;
     // The step grid and level changes of `dvr.rs`.
@@ -82,12 +75,9 @@ pub(crate) fn dvr_pixel<T: Sample>(
             }
         }
         if t < c0 {
-            // Another rank's samples: on to a step or so short of the
-            // region or the next level change (see `dvr.rs`).
-            let to = ((c0.min(next_t) - base_t) * inv_dt - 0.5).floor() - 1.0;
-            if to > k as f64 {
-                k = to as u64;
-            }
+            // Before the region: another rank's samples, jumped over
+            // (a region far along the rays costs no walk).
+            k = jump_before(k, c0, next_t, base_t, inv_dt);
             continue;
         }
         st.steps += 1;

@@ -26,7 +26,7 @@ use crate::optics::TfTable;
 use crate::params::{RenderMode, RenderParams};
 use brickyard_cache::cells::CellGrid;
 use brickyard_cache::vm::VirtualMemory;
-use brickyard_core::camera::{Projection, Vec3};
+use brickyard_core::camera::{intersect_box_inv, Projection, Ray, Vec3};
 use brickyard_core::transfer::TfEval;
 use brickyard_core::{DType, Dims3, Sample, TransferFunction};
 
@@ -238,6 +238,21 @@ impl<'a> Frame<'a> {
     }
 
     /// The level a sample at distance `t` asks for.
+    /// A ray's span in the volume and its part in the frame's region
+    /// (sort-last): `(t0, c0, t1)`, samples of the grid from `t0` taken in
+    /// `[c0, t1)` (`c0 = t0` without a region); `None` when the ray misses
+    /// either. Neighbouring regions share the face's `t` exactly.
+    pub(crate) fn span(&self, ray: &Ray, inv_dir: [f64; 3]) -> Option<(f64, f64, f64)> {
+        let (t0, t1) = intersect_box_inv(ray, inv_dir, [0.0; 3], self.scene.extent)?;
+        match self.params.clip.as_deref() {
+            None => Some((t0, t0, t1)),
+            Some(&[lo, hi]) => {
+                let (c0, c1) = intersect_box_inv(ray, inv_dir, lo, hi)?;
+                Some((t0, c0, t1.min(c1)))
+            }
+        }
+    }
+
     pub(crate) fn level_at(&self, t: f64) -> usize {
         let n = self.levels();
         match self.lod {
@@ -313,6 +328,20 @@ impl<'a> Frame<'a> {
                 (qx - bx as f64) as f32,
             ],
         )
+    }
+}
+
+/// The step to go on from, before a region beginning at `c0` on a grid
+/// from `base_t` of step `1/inv_dt`, stepping at `k`: a step or so short of
+/// `c0` (or of `until`, a level change, whichever comes first), never back.
+/// The steps passed over all lie before both.
+#[inline]
+pub(crate) fn jump_before(k: u64, c0: f64, until: f64, base_t: f64, inv_dt: f64) -> u64 {
+    let to = ((c0.min(until) - base_t) * inv_dt - 0.5).floor() - 1.0;
+    if to > k as f64 {
+        to as u64
+    } else {
+        k
     }
 }
 

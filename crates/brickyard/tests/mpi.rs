@@ -484,6 +484,28 @@ fn data_parallel_equals_one_process() {
     }
 }
 
+/// `render STORE --backend cpu --out OUT VIEW… EXTRA…` in one process,
+/// which must succeed; returns `out`.
+fn one_process(store: &Path, out: &Path, view: &[&str], extra: &[&str]) -> PathBuf {
+    let mut a = vec!["render", s(store), "--backend", "cpu", "--out", s(out)];
+    a.extend(view);
+    a.extend(extra);
+    ok(
+        &run(&a),
+        &format!("single-process render {}", out.display()),
+    );
+    out.to_path_buf()
+}
+
+/// The largest difference between the floats of two renders.
+fn max_diff(a: &Path, b: &Path) -> f32 {
+    floats(a)
+        .iter()
+        .zip(floats(b))
+        .map(|(p, q)| (p - q).abs())
+        .fold(0.0f32, f32::max)
+}
+
 /// Progressive DVR (sample accumulation) shared by ranks: image-parallel
 /// bands each accumulate their rows, equal to the single-process
 /// accumulation within 1e-5 on 1 to 4 ranks; data-parallel regions each
@@ -510,21 +532,17 @@ fn progressive_accumulation_equals_one_process() {
             "--raw-f32",
         ];
         let single = |extra: &[&str], tag: &str| {
-            let out = dir.path().join(format!("{name}-{tag}.png"));
-            let mut a = vec!["render", s(&store), "--backend", "cpu", "--out", s(&out)];
-            a.extend(view);
-            a.extend(extra);
-            ok(&run(&a), &format!("single-process render {tag}"));
-            out
+            one_process(
+                &store,
+                &dir.path().join(format!("{name}-{tag}.png")),
+                &view,
+                extra,
+            )
         };
         let plain = single(&[], "plain");
         let acc = single(&["--progressive", "4"], "acc");
         let all = single(&["--progressive", "4", "--no-early-termination"], "acc-all");
-        let d = floats(&plain)
-            .iter()
-            .zip(floats(&acc))
-            .map(|(p, q)| (p - q).abs())
-            .fold(0.0f32, f32::max);
+        let d = max_diff(&plain, &acc);
         assert!(
             d > 1e-3,
             "{name}: accumulation equals the plain frame ({d})"
@@ -610,20 +628,11 @@ fn several_channels_data_parallel_equal_one_process() {
         "--raw-f32",
     ];
     let single = |extra: &[&str], tag: &str| {
-        let out = dir.path().join(format!("{tag}.png"));
-        let mut a = vec!["render", s(&store), "--backend", "cpu", "--out", s(&out)];
-        a.extend(view);
-        a.extend(extra);
-        ok(&run(&a), &format!("single-process render {tag}"));
-        out
+        one_process(&store, &dir.path().join(format!("{tag}.png")), &view, extra)
     };
     let stopped = single(&[], "stopped");
     let all = single(&["--no-early-termination"], "all");
-    let d = floats(&stopped)
-        .iter()
-        .zip(floats(&all))
-        .map(|(p, q)| (p - q).abs())
-        .fold(0.0f32, f32::max);
+    let d = max_diff(&stopped, &all);
     assert!(d > 1e-3, "early termination must show in this view ({d})");
     for n in 2..=4usize {
         let out = dir.path().join(format!("d{n}.png"));
