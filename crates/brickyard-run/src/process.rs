@@ -332,8 +332,7 @@ pub fn run(
         );
     }
     if !store.exists() {
-        return Err(std::io::Error::from(std::io::ErrorKind::NotFound))
-            .with_context(|| format!("{}: no such file or directory", store.display()));
+        bail!("{}: no such file or directory", store.display());
     }
     if !zarr::is_zarr(store) {
         bail!(

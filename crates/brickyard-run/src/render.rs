@@ -767,7 +767,17 @@ fn run_with(
         // level, whatever the pool's pressure.
         let pinned = s
             .pin_coarsest(512, std::time::Duration::from_secs(120))
-            .map_err(|e| anyhow::anyhow!("pool: {e}"))?;
+            .map_err(|e| {
+                if c.pool.is_some() {
+                    anyhow::anyhow!("pool: {e} (--pool)")
+                } else {
+                    // The pool was a share of --memory: say which knob moves it.
+                    anyhow::anyhow!(
+                        "pool: {e}; the pool is a share of --memory ({}): raise --memory, or set --pool",
+                        human_bytes(split.total)
+                    )
+                }
+            })?;
         match crate::backend::Backend::choose_on(
             &backend_choice,
             gpu_update,

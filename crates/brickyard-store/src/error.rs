@@ -50,6 +50,14 @@ impl StoreError {
             error: source,
         }
     }
+    /// `path` does not exist (an I/O error of kind `NotFound` that says so
+    /// in words, not as the bare kind's "entity not found").
+    pub fn not_found(path: impl Into<PathBuf>) -> Self {
+        StoreError::io(
+            path,
+            std::io::Error::new(std::io::ErrorKind::NotFound, "no such file or directory"),
+        )
+    }
     pub fn invalid(
         path: impl Into<PathBuf>,
         field: impl Into<String>,

@@ -237,10 +237,7 @@ fn brick_summary(root: &Path, level: usize) -> Option<BrickSummary> {
 /// `labels/zarr.json` are found.
 pub fn inspect(path: &Path) -> Result<StoreInfo> {
     if !path.exists() && !storage::is_remote(path) {
-        return Err(StoreError::io(
-            path,
-            std::io::Error::from(std::io::ErrorKind::NotFound),
-        ));
+        return Err(StoreError::not_found(path));
     }
     if !is_zarr(path) {
         return Err(StoreError::invalid(

@@ -172,8 +172,7 @@ pub fn write_json(path: &Path, v: &Value) -> Result<()> {
 
 /// Read a JSON document (a file or a URL, see [`crate::storage`]).
 pub fn read_json(path: &Path) -> Result<Value> {
-    let bytes = crate::storage::read(path)?
-        .ok_or_else(|| StoreError::io(path, std::io::Error::from(std::io::ErrorKind::NotFound)))?;
+    let bytes = crate::storage::read(path)?.ok_or_else(|| StoreError::not_found(path))?;
     parse_json(path, &bytes)
 }
 

@@ -44,6 +44,18 @@ fn bad_inputs_give_clear_errors() {
         &run(&["convert", s(&d.path().join("nope.tif")), s(&out)]),
         &["nope.tif"],
     );
+    // A missing store, whatever reads it: named, in words.
+    let gone = d.path().join("gone.ome.zarr");
+    let png = d.path().join("x.png");
+    for args in [
+        vec!["info", s(&gone)],
+        vec!["render", s(&gone), "--out", s(&png)],
+        vec!["process", s(&gone), "gauss(1)", "--out", "g"],
+    ] {
+        let o = run(&args);
+        fails_with(&o, &["gone.ome.zarr", "no such file or directory"]);
+        assert!(!stderr(&o).contains("entity not found"), "{}", stderr(&o));
+    }
     // Dims that do not match the file size.
     let raw = d.path().join("v.raw");
     std::fs::write(&raw, vec![0u8; 1000]).unwrap();
@@ -331,6 +343,21 @@ fn render_writes_pngs_and_rejects_bad_options() {
     fails_with(
         &run(&["render", s(&d.path().join("missing.zarr"))]),
         &["missing.zarr"],
+    );
+    // A pool too small for the coarsest level names the flag that sets it.
+    let png = d.path().join("small.png");
+    fails_with(
+        &run(&[
+            "render",
+            s(&store),
+            "--out",
+            s(&png),
+            "--brick",
+            "8",
+            "--pool",
+            "4KiB",
+        ]),
+        &["pool", "coarsest level", "--pool"],
     );
 }
 

@@ -127,10 +127,7 @@ pub fn open(path: &Path, level: usize) -> Result<ZarrSource> {
             ));
         }
     } else if !path.exists() {
-        return Err(StoreError::io(
-            path,
-            std::io::Error::from(std::io::ErrorKind::NotFound),
-        ));
+        return Err(StoreError::not_found(path));
     }
     if is_array_dir(path) {
         return open_array(path, None, None);

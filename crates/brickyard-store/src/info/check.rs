@@ -116,10 +116,7 @@ fn arrays_of(path: &Path) -> Result<Vec<(String, PathBuf, Option<usize>)>> {
         ));
     }
     if !path.exists() {
-        return Err(StoreError::io(
-            path,
-            std::io::Error::from(std::io::ErrorKind::NotFound),
-        ));
+        return Err(StoreError::not_found(path));
     }
     if !is_zarr(path) {
         return Err(StoreError::invalid(
