@@ -85,6 +85,11 @@ pub struct BenchCmd {
     /// loader: decoded-chunk cache of the loader, all levels together.
     #[arg(long, default_value = "128MiB")]
     chunk_cache: String,
+    /// loader: host-cache budget (default: the whole level fits). A budget
+    /// smaller than the level makes the scan evict as a flight through a
+    /// volume does: the steady state of a long session.
+    #[arg(long)]
+    host_cache: Option<String>,
     /// render: cpu, gpu, auto, both (CPU then GPU, side by side) or all
     /// (CPU, GPU with updates on the device, GPU with updates on the
     /// host); `gpu-host` and `auto-host` have the host decide updates.
@@ -141,6 +146,7 @@ pub fn run(b: BenchCmd) -> Result<()> {
                 repeat: b.repeat,
                 cold: b.cold,
                 chunk_cache: crate::parse_bytes(&b.chunk_cache)?,
+                host_cache: b.host_cache.as_deref().map(crate::parse_bytes).transpose()?,
             };
             crate::vmbench::loader(&b.dir, dims, dtype, &o)
         }

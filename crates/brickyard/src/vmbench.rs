@@ -293,6 +293,18 @@ pub struct LoaderBench {
     pub cold: bool,
     /// Decoded-chunk cache of the loader (all levels).
     pub chunk_cache: u64,
+    /// Host-cache budget (`None`: the whole level fits).
+    pub host_cache: Option<u64>,
+}
+
+/// This process's CPU time so far (user, system, in seconds) and its minor
+/// page faults (fresh pages the kernel provided).
+fn usage() -> (f64, f64, u64) {
+    // SAFETY: getrusage writes the struct it is given.
+    let mut u: libc::rusage = unsafe { std::mem::zeroed() };
+    unsafe { libc::getrusage(libc::RUSAGE_SELF, &mut u) };
+    let s = |t: libc::timeval| t.tv_sec as f64 + t.tv_usec as f64 * 1e-6;
+    (s(u.ru_utime), s(u.ru_stime), u.ru_minflt as u64)
 }
 
 /// Drop every file of `dir` from the page cache with posix_fadvise
@@ -336,11 +348,20 @@ pub fn loader(dir: &Path, dims: Dims3, dtype: DType, o: &LoaderBench) -> Result<
                 fadvise_dont_need(&st);
                 "fadvise"
             };
-            let cache = Arc::new(HostCache::new(4 * level_bytes + (256 << 20)));
-            let l =
-                Loader::open_with_chunk_cache(&st, [o.brick; 3], 1, threads, cache, o.chunk_cache)?;
+            let cache = Arc::new(HostCache::new(
+                o.host_cache.unwrap_or(4 * level_bytes + (256 << 20)),
+            ));
+            let l = Loader::open_with_chunk_cache(
+                &st,
+                [o.brick; 3],
+                1,
+                threads,
+                cache.clone(),
+                o.chunk_cache,
+            )?;
             let keys: Vec<(BrickKey, u32)> = l.geometry().keys(0, 0).map(|k| (k, 1)).collect();
             let decodes = zarr::chunks_decoded();
+            let u0 = usage();
             let t = Instant::now();
             l.request(&keys);
             let mut got = 0;
@@ -353,6 +374,7 @@ pub fn loader(dir: &Path, dims: Dims3, dtype: DType, o: &LoaderBench) -> Result<
                 std::thread::sleep(Duration::from_micros(200));
             }
             let s = t.elapsed().as_secs_f64();
+            let u1 = usage();
             let failed = l.take_failures();
             anyhow::ensure!(
                 failed.is_empty(),
@@ -369,7 +391,9 @@ pub fn loader(dir: &Path, dims: Dims3, dtype: DType, o: &LoaderBench) -> Result<
                     "brick": o.brick, "threads": threads, "cold": cold, "bricks": keys.len(), "data_bricks": data_bricks,
                     "seconds": s, "decoded_gb_s": decoded as f64 / 1e9 / s, "read_gb_s": bytes as f64 / 1e9 / s,
                     "level_gb_s": level_bytes as f64 / 1e9 / s,
-                    "chunks_decoded": zarr::chunks_decoded() - decodes})
+                    "chunks_decoded": zarr::chunks_decoded() - decodes,
+                    "host_cache_bytes": cache.budget(), "evictions": cache.evictions(),
+                    "cpu_user_s": u1.0 - u0.0, "cpu_sys_s": u1.1 - u0.1, "minor_faults": u1.2 - u0.2})
             );
         }
     }
