@@ -13,7 +13,9 @@
 use crate::error::{Result, StoreError};
 use crate::shard::{self, IndexLayout};
 use crate::storage::{self, Span, StoreAt};
+use rustc_hash::FxHashMap;
 use serde_json::Value;
+use smallvec::SmallVec;
 use std::borrow::Cow;
 use std::collections::{BTreeMap, HashMap};
 use std::num::NonZeroU64;
@@ -41,6 +43,11 @@ const ENTRY_COST: u64 = 128;
 /// Chunks decoded by direct shard reads in this process (all arrays): for
 /// benchmarks, to tell decodes from cache hits.
 pub static CHUNKS_DECODED: AtomicU64 = AtomicU64::new(0);
+
+/// A chunk's grid position (array axis order), or one prefixed with its
+/// source in the cache: inline up to six axes, so that the lookups of a
+/// brick's chunks allocate nothing.
+pub(crate) type Idx = SmallVec<[u64; 6]>;
 
 fn lock<T>(m: &Mutex<T>) -> MutexGuard<'_, T> {
     // Decoding runs outside the lock; a panic inside it leaves consistent
@@ -161,9 +168,9 @@ enum Entry {
 
 #[derive(Default)]
 struct CacheState {
-    map: HashMap<Vec<u64>, Entry>,
+    map: FxHashMap<Idx, Entry>,
     /// Ready entries by last use.
-    lru: BTreeMap<u64, Vec<u64>>,
+    lru: BTreeMap<u64, Idx>,
     bytes: u64,
     tick: u64,
 }
@@ -187,7 +194,7 @@ pub(crate) struct ChunkCache {
 /// waiting threads are woken.
 struct Claim<'a> {
     cache: &'a ChunkCache,
-    keys: Vec<Vec<u64>>,
+    keys: Vec<Idx>,
 }
 
 impl Drop for Claim<'_> {
@@ -226,9 +233,9 @@ impl ChunkCache {
     fn insert(
         &self,
         st: &mut CacheState,
-        key: Vec<u64>,
+        key: Idx,
         chunk: Arc<Decoded>,
-    ) -> Vec<(Vec<u64>, Arc<Decoded>)> {
+    ) -> Vec<(Idx, Arc<Decoded>)> {
         let mut evicted = vec![];
         let n = chunk.cost();
         if n > self.budget {
@@ -255,11 +262,11 @@ impl ChunkCache {
     }
 
     /// Keep the shells of evicted chunks that nobody loaded again since.
-    fn keep_shells(&self, evicted: Vec<(Vec<u64>, Arc<Decoded>)>) {
+    fn keep_shells(&self, evicted: Vec<(Idx, Arc<Decoded>)>) {
         if self.shell == 0 || evicted.is_empty() {
             return;
         }
-        let shells: Vec<(Vec<u64>, Decoded)> = evicted
+        let shells: Vec<(Idx, Decoded)> = evicted
             .into_iter()
             .filter_map(|(k, c)| Some((k, c.shell(self.shell, self.elem)?)))
             .collect();
@@ -285,11 +292,11 @@ impl ChunkCache {
     pub fn get_or_load(
         &self,
         source: u64,
-        chunk_keys: &[Vec<u64>],
-        need: &[(Vec<u64>, Vec<u64>)],
+        chunk_keys: &[Idx],
+        need: &[(Idx, Idx)],
         load: impl Fn(&[Vec<u64>]) -> Result<Vec<Decoded>>,
     ) -> Result<Vec<Arc<Decoded>>> {
-        let keys: Vec<Vec<u64>> = chunk_keys
+        let keys: Vec<Idx> = chunk_keys
             .iter()
             .map(|k| std::iter::once(source).chain(k.iter().copied()).collect())
             .collect();
@@ -337,7 +344,7 @@ impl ChunkCache {
                     keys: mine.iter().map(|&i| keys[i].clone()).collect(),
                 };
                 let mine_keys: Vec<Vec<u64>> =
-                    mine.iter().map(|&i| chunk_keys[i].clone()).collect();
+                    mine.iter().map(|&i| chunk_keys[i].to_vec()).collect();
                 let loaded = load(&mine_keys)?;
                 debug_assert_eq!(loaded.len(), mine.len());
                 let mut st = lock(&self.state);
@@ -664,14 +671,14 @@ fn copy_box(
 ) {
     let n = ranges.len();
     let es = fill.len();
-    let lo: Vec<u64> = (0..n).map(|a| ranges[a].start.max(origin[a])).collect();
-    let hi: Vec<u64> = (0..n)
+    let lo: Idx = (0..n).map(|a| ranges[a].start.max(origin[a])).collect();
+    let hi: Idx = (0..n)
         .map(|a| ranges[a].end.min(origin[a] + dims[a]))
         .collect();
     if (0..n).any(|a| lo[a] >= hi[a]) {
         return;
     }
-    let mut cstride = vec![1usize; n];
+    let mut cstride: SmallVec<[usize; 6]> = smallvec::smallvec![1usize; n];
     for a in (0..n - 1).rev() {
         cstride[a] = cstride[a + 1] * dims[a + 1] as usize;
     }
@@ -771,9 +778,14 @@ mod tests {
     }
 
     /// Whole boxes wanted of keys `[i, 0]` (chunks of 1×4 at row i).
-    fn whole(keys: &[Vec<u64>]) -> Vec<(Vec<u64>, Vec<u64>)> {
+    fn whole(keys: &[Idx]) -> Vec<(Idx, Idx)> {
         keys.iter()
-            .map(|k| (vec![k[0], 0], vec![k[0] + 1, 4]))
+            .map(|k| {
+                (
+                    smallvec::smallvec![k[0], 0],
+                    smallvec::smallvec![k[0] + 1, 4],
+                )
+            })
             .collect()
     }
 
@@ -843,13 +855,13 @@ mod tests {
                 .map(|k| chunk([k[0], 0], [1, 4], k[0] as u8))
                 .collect())
         };
-        let keys: Vec<Vec<u64>> = (0..3).map(|i| vec![i, 0]).collect();
+        let keys: Vec<Idx> = (0..3).map(|i| smallvec::smallvec![i, 0]).collect();
         let got = cache.get_or_load(0, &keys, &whole(&keys), load).unwrap();
         assert_eq!(first(&got[2]), 2);
         cache.get_or_load(0, &keys, &whole(&keys), load).unwrap();
         assert_eq!(loads.load(Ordering::Relaxed), 3);
         // A fourth chunk evicts the least recently used (chunk 0).
-        let k3 = [vec![3, 0]];
+        let k3: [Idx; 1] = [smallvec::smallvec![3, 0]];
         cache.get_or_load(0, &k3, &whole(&k3), load).unwrap();
         assert!(cache.bytes() <= budget);
         cache
@@ -877,23 +889,33 @@ mod tests {
                 .map(|k| chunk([64 * k[0], 0], [64, 64], k[0] as u8))
                 .collect())
         };
-        let all = |k: u64| (vec![64 * k, 0], vec![64 * k + 64, 64]);
+        let all = |k: u64| -> (Idx, Idx) {
+            (
+                smallvec::smallvec![64 * k, 0],
+                smallvec::smallvec![64 * k + 64, 64],
+            )
+        };
         for k in 0..3 {
             cache
-                .get_or_load(0, &[vec![k, 0]], &[all(k)], load)
+                .get_or_load(0, &[smallvec::smallvec![k, 0]], &[all(k)], load)
                 .unwrap();
             assert!(cache.bytes() <= budget);
         }
         assert_eq!(loads.load(Ordering::Relaxed), 3);
         // Chunk 0 was evicted whole: its last row is still there.
         let got = cache
-            .get_or_load(0, &[vec![0, 0]], &[(vec![63, 0], vec![64, 64])], load)
+            .get_or_load(
+                0,
+                &[smallvec::smallvec![0, 0]],
+                &[(smallvec::smallvec![63, 0], smallvec::smallvec![64, 64])],
+                load,
+            )
             .unwrap();
         assert!(matches!(got[0].body, Body::Shell(_)));
         assert_eq!(loads.load(Ordering::Relaxed), 3);
         // Its middle is not: loaded again.
         let got = cache
-            .get_or_load(0, &[vec![0, 0]], &[all(0)], load)
+            .get_or_load(0, &[smallvec::smallvec![0, 0]], &[all(0)], load)
             .unwrap();
         assert_eq!(first(&got[0]), 0);
         assert_eq!(loads.load(Ordering::Relaxed), 4);
@@ -903,7 +925,7 @@ mod tests {
     #[test]
     fn failed_and_panicking_loads_release_their_claims() {
         let cache = ChunkCache::new(1 << 20, 0, 1);
-        let k = vec![vec![0, 0]];
+        let k: Vec<Idx> = vec![smallvec::smallvec![0, 0]];
         let need = whole(&k);
         let e = cache.get_or_load(0, &k, &need, |_| {
             Err(StoreError::invalid(Path::new("x"), "chunk", "bad"))
@@ -926,7 +948,7 @@ mod tests {
     fn threads_share_a_chunk_being_loaded() {
         let cache = ChunkCache::new(1 << 20, 0, 1);
         let loads = AtomicUsize::new(0);
-        let keys: Vec<Vec<u64>> = (0..8).map(|i| vec![i, 0]).collect();
+        let keys: Vec<Idx> = (0..8).map(|i| smallvec::smallvec![i, 0]).collect();
         let need = whole(&keys);
         std::thread::scope(|s| {
             for _ in 0..4 {

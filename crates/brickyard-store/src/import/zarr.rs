@@ -3,7 +3,7 @@
 //!
 //! Over 800 lines: with its tests: 0.84k lines of code, 0.1k of tests.
 
-use super::chunks::{copy_into, Body, ChunkCache, Decoded, ShardReader};
+use super::chunks::{copy_into, Body, ChunkCache, Decoded, Idx, ShardReader};
 use crate::error::{Result, StoreError};
 use crate::omezarr::{read_json, read_multiscale, Multiscale};
 use crate::shard::{self, IndexLayout};
@@ -597,12 +597,12 @@ impl ZarrSource {
         if self.shards.len() > SHARD_CACHE_MAX {
             self.shards.clear();
         }
-        let first: Vec<u64> = (0..n).map(|a| ranges[a].start / self.grain[a]).collect();
-        let last: Vec<u64> = (0..n)
+        let first: Idx = (0..n).map(|a| ranges[a].start / self.grain[a]).collect();
+        let last: Idx = (0..n)
             .map(|a| (ranges[a].end - 1) / self.grain[a])
             .collect();
-        let mut keys = vec![];
-        let mut need = vec![];
+        let mut keys: Vec<Idx> = vec![];
+        let mut need: Vec<(Idx, Idx)> = vec![];
         let mut idx = first.clone();
         'all: loop {
             keys.push(idx.clone());
