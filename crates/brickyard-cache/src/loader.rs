@@ -256,6 +256,8 @@ struct Shared {
     /// Artificial delay of every load that reads the store, in
     /// nanoseconds ([`Loader::set_read_delay`]).
     read_delay_ns: AtomicU64,
+    /// Worker threads.
+    workers: usize,
 }
 
 fn lock<T>(m: &Mutex<T>) -> MutexGuard<'_, T> {
@@ -405,71 +407,132 @@ impl Shared {
         }
     }
 
+    /// Take the next bricks to load: the first of the queue and, with
+    /// several threads and enough work queued for each, the bricks after it
+    /// along x with the same priority (at most [`RUN_MAX`] in all). A thread
+    /// that builds neighbours along x one after the other finds the chunk
+    /// rows of each one's apron column in its own caches, where the
+    /// neighbour's body was just copied from; threads taking turns along a
+    /// row each fetched them from memory. One thread serves in the queue's
+    /// order.
+    fn claim(&self, st: &mut State) -> Vec<QueueEntry> {
+        let Some(e) = st.queue.pop_first() else {
+            return vec![];
+        };
+        st.queued.remove(&e.key);
+        st.in_flight.insert(e.key);
+        let mut run = vec![e];
+        let room = if self.workers > 1 {
+            (st.queue.len() / self.workers).min(RUN_MAX - 1)
+        } else {
+            0
+        };
+        let mut k = e.key;
+        while run.len() <= room {
+            k.brick[2] += 1;
+            match st.queued.get(&k) {
+                Some(n) if n.priority == e.priority => {
+                    let n = *n;
+                    st.queue.remove(&n);
+                    st.queued.remove(&k);
+                    st.in_flight.insert(k);
+                    run.push(n);
+                }
+                _ => break,
+            }
+        }
+        run
+    }
+
     fn worker(&self) {
         loop {
-            let key = {
+            let run = {
                 let mut st = lock(&self.state);
                 loop {
                     if st.shutdown {
                         return;
                     }
                     if !st.paused {
-                        if let Some(e) = st.queue.pop_first() {
-                            st.queued.remove(&e.key);
-                            st.in_flight.insert(e.key);
-                            break e.key;
+                        let run = self.claim(&mut st);
+                        if !run.is_empty() {
+                            break run;
                         }
                     }
                     st = self.work.wait(st).unwrap_or_else(|e| e.into_inner());
                 }
             };
-            let result = catch_unwind(AssertUnwindSafe(|| self.load(&key)));
-            let result = match result {
-                Ok(Ok(b)) => Ok(Arc::new(b)),
-                Ok(Err(e)) => Err(e.to_string()),
-                Err(panic) => Err(format!(
-                    "panic while loading: {}",
-                    panic
-                        .downcast_ref::<String>()
-                        .map(String::as_str)
-                        .or_else(|| panic.downcast_ref::<&str>().copied())
-                        .unwrap_or("(no message)")
-                )),
-            };
-            let c = &self.counters;
-            match &result {
-                Ok(b) => {
-                    c.bytes_read.fetch_add(b.bytes_read, Ordering::Relaxed);
-                    c.loaded.fetch_add(1, Ordering::Relaxed);
-                    match b.content {
-                        BrickContent::Empty => c.empty.fetch_add(1, Ordering::Relaxed),
-                        BrickContent::Constant(_) => c.constant.fetch_add(1, Ordering::Relaxed),
-                        BrickContent::Data(_) => 0,
-                    };
-                    self.cache.insert(b.clone());
+            let mut rest = run.into_iter();
+            while let Some(e) = rest.next() {
+                self.load_one(e.key);
+                if rest.len() == 0 {
+                    break;
                 }
-                Err(_) => {
-                    c.failed.fetch_add(1, Ordering::Relaxed);
-                }
-            }
-            let mut st = lock(&self.state);
-            st.in_flight.remove(&key);
-            match result {
-                Ok(b) => {
-                    if st.done_keys.insert(key) {
-                        st.done.push(b);
+                // Paused or shutting down: the rest of the run goes back to
+                // the queue, as if never taken.
+                let mut st = lock(&self.state);
+                if st.paused || st.shutdown {
+                    for e in rest {
+                        st.in_flight.remove(&e.key);
+                        st.queue.insert(e);
+                        st.queued.insert(e.key, e);
                     }
-                }
-                Err(message) => {
-                    st.failed_keys.insert(key);
-                    st.failures.push(LoadFailure { key, message });
+                    break;
                 }
             }
-            drop(st);
-            self.finished.notify_all();
         }
     }
+
+    /// Load a claimed brick and hand out the result.
+    fn load_one(&self, key: BrickKey) {
+        let result = catch_unwind(AssertUnwindSafe(|| self.load(&key)));
+        let result = match result {
+            Ok(Ok(b)) => Ok(Arc::new(b)),
+            Ok(Err(e)) => Err(e.to_string()),
+            Err(panic) => Err(format!(
+                "panic while loading: {}",
+                panic
+                    .downcast_ref::<String>()
+                    .map(String::as_str)
+                    .or_else(|| panic.downcast_ref::<&str>().copied())
+                    .unwrap_or("(no message)")
+            )),
+        };
+        let c = &self.counters;
+        match &result {
+            Ok(b) => {
+                c.bytes_read.fetch_add(b.bytes_read, Ordering::Relaxed);
+                c.loaded.fetch_add(1, Ordering::Relaxed);
+                match b.content {
+                    BrickContent::Empty => c.empty.fetch_add(1, Ordering::Relaxed),
+                    BrickContent::Constant(_) => c.constant.fetch_add(1, Ordering::Relaxed),
+                    BrickContent::Data(_) => 0,
+                };
+                self.cache.insert(b.clone());
+            }
+            Err(_) => {
+                c.failed.fetch_add(1, Ordering::Relaxed);
+            }
+        }
+        let mut st = lock(&self.state);
+        st.in_flight.remove(&key);
+        match result {
+            Ok(b) => {
+                if st.done_keys.insert(key) {
+                    st.done.push(b);
+                }
+            }
+            Err(message) => {
+                st.failed_keys.insert(key);
+                st.failures.push(LoadFailure { key, message });
+            }
+        }
+        drop(st);
+        self.finished.notify_all();
+    }
 }
+
+/// The most bricks one thread claims at a time ([`Shared::claim`]).
+const RUN_MAX: usize = 4;
 
 /// Reads bricks of one store on a pool of I/O threads.
 ///
@@ -715,6 +778,7 @@ impl Loader {
             finished: Condvar::new(),
             counters: Counters::default(),
             read_delay_ns: AtomicU64::new(0),
+            workers: threads.max(1),
         });
         let mut handles = Vec::new();
         for i in 0..threads.max(1) {
@@ -763,7 +827,9 @@ impl Loader {
     /// - A brick whose load failed is skipped until [`Loader::retry_failed`].
     /// - A key outside the volume is reported as a failure.
     ///
-    /// Ties in priority go to the coarser level, then to the earlier request.
+    /// Ties in priority go to the coarser level, then to the earlier request;
+    /// with several threads, each takes with its brick the next few of the
+    /// same priority along x (see `Shared::claim`).
     pub fn request(&self, keys: &[(BrickKey, u32)]) {
         let mut st = lock(&self.shared.state);
         let mut added = false;
@@ -820,7 +886,8 @@ impl Loader {
     }
 
     /// Drop every queued request whose key is not in `wanted` (bricks being
-    /// read are not interrupted). Returns the number of requests dropped.
+    /// read, and those a thread took with them, are not interrupted).
+    /// Returns the number of requests dropped.
     pub fn cancel_except(&self, wanted: &[BrickKey]) -> usize {
         let wanted: HashSet<BrickKey> = wanted.iter().copied().collect();
         let mut st = lock(&self.shared.state);

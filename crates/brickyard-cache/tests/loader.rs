@@ -572,6 +572,47 @@ fn one_thread_serves_by_priority_then_coarser_level() {
 }
 
 #[test]
+fn threads_taking_runs_along_x_stop_at_a_pause_and_lose_nothing() {
+    // Three threads take runs of neighbours along x; a pause stops them
+    // after the brick each is loading (the rest of a run goes back to the
+    // queue), and on resuming every brick arrives once.
+    let dir = tempfile::tempdir().unwrap();
+    let store = noise_store(dir.path());
+    let loader = Loader::open(&store, [4; 3], 1, 3, Arc::new(HostCache::new(1 << 30))).unwrap();
+    let keys: Vec<BrickKey> = loader.geometry().keys(0, 0).collect();
+    assert!(keys.len() > 200, "{}", keys.len());
+    loader.set_read_delay(Duration::from_millis(2));
+    loader.request(&keys.iter().map(|&k| (k, 1)).collect::<Vec<_>>());
+    std::thread::sleep(Duration::from_millis(30));
+    loader.set_paused(true);
+    let at_pause = loader.bricks_loaded();
+    // The loads in progress (one per thread) finish; nothing starts after
+    // them, not even the rest of a thread's run.
+    let t = std::time::Instant::now();
+    while loader.in_flight() > 0 && t.elapsed() < WAIT {
+        std::thread::sleep(Duration::from_millis(1));
+    }
+    assert_eq!(loader.in_flight(), 0);
+    let loaded = loader.bricks_loaded();
+    assert!(
+        loaded <= at_pause + 3,
+        "{at_pause} loaded at the pause, {loaded} after it"
+    );
+    std::thread::sleep(Duration::from_millis(50));
+    assert_eq!(loader.bricks_loaded(), loaded);
+    assert!(loaded > 0 && (loaded as usize) < keys.len(), "{loaded}");
+    assert_eq!(loader.pending() + loaded as usize, keys.len());
+    loader.set_read_delay(Duration::ZERO);
+    loader.set_paused(false);
+    assert!(loader.wait_idle(WAIT));
+    let mut got: Vec<BrickKey> = loader.poll().iter().map(|b| b.key).collect();
+    got.sort();
+    let mut want = keys.clone();
+    want.sort();
+    assert_eq!(got, want, "every brick once");
+}
+
+#[test]
 fn raising_a_priority_moves_the_request_forward() {
     let dir = tempfile::tempdir().unwrap();
     let store = noise_store(dir.path());
