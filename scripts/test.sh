@@ -40,7 +40,11 @@ echo "== web client tests in headless Chromium"
 if command -v chromedriver >/dev/null 2>&1; then
     TD="${CARGO_TARGET_DIR:-target}"
     case "$TD" in /*) ;; *) TD="$PWD/$TD" ;; esac
+    # The runner's default limit is 20 s for the whole run; a cold Chromium
+    # (first start, empty shader cache, software WebGPU) on a busy 2-core
+    # machine has been seen to take longer for the first WGSL compile.
     CARGO_TARGET_WASM32_UNKNOWN_UNKNOWN_RUNNER="$TD/tools/bin/wasm-bindgen-test-runner" \
+        WASM_BINDGEN_TEST_TIMEOUT="${WASM_BINDGEN_TEST_TIMEOUT:-180}" \
         CHROMEDRIVER="$(command -v chromedriver)" \
         cargo test --release --target wasm32-unknown-unknown -p brickyard-web --test browser
 elif [ "${BRICKYARD_SKIP_BROWSER:-}" = 1 ]; then
