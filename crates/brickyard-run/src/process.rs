@@ -332,7 +332,13 @@ pub fn run(
         );
     }
     if !store.exists() {
-        bail!("{}: no such file or directory", store.display());
+        // An I/O error of kind NotFound (the Python binding raises
+        // FileNotFoundError for it), worded once.
+        return Err(std::io::Error::new(
+            std::io::ErrorKind::NotFound,
+            format!("{}: no such file or directory", store.display()),
+        )
+        .into());
     }
     if !zarr::is_zarr(store) {
         bail!(
