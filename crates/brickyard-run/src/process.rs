@@ -332,13 +332,7 @@ pub fn run(
         );
     }
     if !store.exists() {
-        // An I/O error of kind NotFound (the Python binding raises
-        // FileNotFoundError for it), worded once.
-        return Err(std::io::Error::new(
-            std::io::ErrorKind::NotFound,
-            format!("{}: no such file or directory", store.display()),
-        )
-        .into());
+        return Err(brickyard_store::StoreError::not_found(store).into());
     }
     if !zarr::is_zarr(store) {
         bail!(
