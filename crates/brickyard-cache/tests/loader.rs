@@ -612,6 +612,53 @@ fn threads_taking_runs_along_x_stop_at_a_pause_and_lose_nothing() {
     assert_eq!(got, want, "every brick once");
 }
 
+/// The loader hints the store's bytes of the bricks it claims and of the
+/// next ones queued (only once it serves them: none while paused), and the
+/// bricks are the same with the hints off.
+#[test]
+#[cfg(target_os = "linux")]
+fn read_ahead_hints_the_bricks_queued_next_and_can_be_turned_off() {
+    let dir = tempfile::tempdir().unwrap();
+    let store = noise_store(dir.path());
+    let mut runs = vec![];
+    for ahead in [None, Some(0), Some(3)] {
+        let loader = Loader::open(&store, [8; 3], 1, 1, Arc::new(HostCache::new(1 << 30))).unwrap();
+        if let Some(n) = ahead {
+            loader.set_read_ahead(n);
+        }
+        let keys: Vec<BrickKey> = loader.geometry().keys(0, 0).collect();
+        loader.set_paused(true);
+        loader.request(&keys.iter().map(|&k| (k, 1)).collect::<Vec<_>>());
+        std::thread::sleep(Duration::from_millis(20));
+        assert_eq!(loader.stats().ranges_hinted, 0, "hints while paused");
+        loader.set_paused(false);
+        assert!(loader.wait_idle(WAIT));
+        assert!(loader.take_failures().is_empty());
+        let mut got: Vec<(BrickKey, Vec<u8>)> = loader
+            .poll()
+            .iter()
+            .map(|b| match &b.content {
+                BrickContent::Data(d) => (b.key, d.to_vec()),
+                _ => (b.key, vec![]),
+            })
+            .collect();
+        got.sort_by_key(|(k, _)| *k);
+        assert_eq!(got.len(), keys.len());
+        let hinted = loader.stats().ranges_hinted;
+        match ahead {
+            // The noise store's every chunk is stored: every brick's are
+            // hinted, at least one range each.
+            None | Some(3) => assert!(hinted >= keys.len() as u64, "{ahead:?}: {hinted}"),
+            _ => assert_eq!(hinted, 0),
+        }
+        runs.push(got);
+    }
+    assert!(
+        runs[0] == runs[1] && runs[1] == runs[2],
+        "bricks differ with read-ahead"
+    );
+}
+
 #[test]
 fn raising_a_priority_moves_the_request_forward() {
     let dir = tempfile::tempdir().unwrap();

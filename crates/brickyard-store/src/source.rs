@@ -115,6 +115,17 @@ pub trait VolumeSource: Send + Sync {
     fn chunk_absent(&self, _c: usize, _v: Dims3) -> Option<(std::path::PathBuf, String)> {
         None
     }
+
+    /// A hint that `region` (`[z, y, x]` ranges) of channel `c` will be
+    /// read soon: sources on disk ask the system to start reading its
+    /// stored bytes now, without waiting, so that the read finds them in
+    /// memory. The loader hints the bricks queued next while it decodes
+    /// the current ones, which keeps the disk busy beside the cores.
+    /// Returns how many byte ranges were hinted (0: nothing to do, the
+    /// default). Only a hint: errors surface when the region is read.
+    fn prefetch(&self, _c: usize, _region: [Range<u64>; 3]) -> usize {
+        0
+    }
 }
 
 /// Check that a region request is inside the volume and that the buffer has

@@ -6,6 +6,7 @@ use brickyard_core::{DType, Sample};
 use brickyard_store::downsample::downsample;
 use brickyard_store::generate::{parse_size, Kind, Procedural};
 use brickyard_store::import::raw::RawOptions;
+use brickyard_store::Compression;
 use clap::Args;
 use serde_json::json;
 use std::path::PathBuf;
@@ -22,7 +23,7 @@ pub struct BenchCmd {
     /// beside their CPU twins; process-filters: gauss(2) and sobel of a
     /// generated volume on the CPU and the device (--backend cpu, gpu or
     /// both); loader: decoded GB/s of every level-0 brick (--brick: engine
-    /// brick size, store chunks stay 64³); remote: brick reads from disk and over
+    /// brick size, --compression: the store's, whose chunks stay 64³); remote: brick reads from disk and over
     /// HTTP on loopback (a `serve` child); latency: one brick and one full
     /// view from an empty cache (paper Table 2); render: DVR (or --mode mip or slice) frame times
     /// through the virtual memory beside the in-core reference; views: an
@@ -90,6 +91,11 @@ pub struct BenchCmd {
     /// volume does: the steady state of a long session.
     #[arg(long)]
     host_cache: Option<String>,
+    /// loader: queued bricks whose store bytes are hinted to the system
+    /// ahead of their loads (default 32; 0: no hints, each read waits for
+    /// the disk).
+    #[arg(long)]
+    read_ahead: Option<usize>,
     /// render: cpu, gpu, auto, both (CPU then GPU, side by side) or all
     /// (CPU, GPU with updates on the device, GPU with updates on the
     /// host); `gpu-host` and `auto-host` have the host decide updates.
@@ -147,6 +153,8 @@ pub fn run(b: BenchCmd) -> Result<()> {
                 cold: b.cold,
                 chunk_cache: crate::parse_bytes(&b.chunk_cache)?,
                 host_cache: b.host_cache.as_deref().map(crate::parse_bytes).transpose()?,
+                compression: loader_compression(&b.compression)?,
+                read_ahead: b.read_ahead,
             };
             crate::vmbench::loader(&b.dir, dims, dtype, &o)
         }
@@ -325,4 +333,17 @@ fn bench_downsample(b: &BenchCmd, dims: [u64; 3], dtype: DType) -> Result<()> {
         let _ = <T as Sample>::DTYPE;
     });
     Ok(())
+}
+
+/// The loader bench's store compression, and the tag its store's name gets
+/// (none for lz4, the default, so that existing stores are reused).
+fn loader_compression(s: &str) -> Result<(Compression, String)> {
+    let c = Compression::parse(s).with_context(|| {
+        format!("--compression: expected lz4, zstd, zstd:LEVEL or none, found {s:?}")
+    })?;
+    let tag = match c {
+        Compression::Lz4 => String::new(),
+        _ => format!("-{}", s.replace(':', "")),
+    };
+    Ok((c, tag))
 }

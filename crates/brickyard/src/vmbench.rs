@@ -11,7 +11,7 @@ use brickyard_core::{DType, Dims3};
 use brickyard_store::builder::{convert, ConvertOptions};
 use brickyard_store::generate::{Kind, Procedural};
 use brickyard_store::import::zarr;
-use brickyard_store::{NoProgress, VolumeSource};
+use brickyard_store::{Compression, NoProgress, VolumeSource};
 use rayon::prelude::*;
 use serde_json::json;
 use std::path::{Path, PathBuf};
@@ -21,16 +21,29 @@ use std::time::{Duration, Instant};
 
 /// A Mandelbulb store in `dir` (made once).
 pub(crate) fn store(dir: &Path, dims: Dims3, dtype: DType) -> Result<PathBuf> {
+    store_with(dir, dims, dtype, Compression::Lz4, "")
+}
+
+/// The benchmark store with the given compression; `tag` names it when the
+/// compression is not the default (a store of each kind is kept).
+fn store_with(
+    dir: &Path,
+    dims: Dims3,
+    dtype: DType,
+    compression: Compression,
+    tag: &str,
+) -> Result<PathBuf> {
     std::fs::create_dir_all(dir)?;
     let p = dir.join(format!(
-        "mandelbulb-{}x{}x{}-{}.ome.zarr",
-        dims[2], dims[1], dims[0], dtype
+        "mandelbulb-{}x{}x{}-{}{}.ome.zarr",
+        dims[2], dims[1], dims[0], dtype, tag
     ));
     if !p.exists() {
         eprintln!("bench: writing {}", p.display());
         let src = Procedural::new(Kind::Mandelbulb, dims, dtype);
         let o = ConvertOptions {
             shard: [256; 3],
+            compression,
             ..Default::default()
         };
         convert(&src, &p, &o, &NoProgress, &AtomicBool::new(false))?;
@@ -295,6 +308,10 @@ pub struct LoaderBench {
     pub chunk_cache: u64,
     /// Host-cache budget (`None`: the whole level fits).
     pub host_cache: Option<u64>,
+    /// The store's compression and its name's tag ("" for the default).
+    pub compression: (Compression, String),
+    /// Bricks hinted ahead of the loads (`None`: the loader's default).
+    pub read_ahead: Option<usize>,
 }
 
 /// This process's CPU time so far (user, system, in seconds) and its minor
@@ -336,7 +353,7 @@ fn fadvise_dont_need(dir: &Path) -> u64 {
 /// (empty and constant ones come from the statistics without a read),
 /// level GB/s the level's bytes (what a reader of the whole array gets).
 pub fn loader(dir: &Path, dims: Dims3, dtype: DType, o: &LoaderBench) -> Result<()> {
-    let st = store(dir, dims, dtype)?;
+    let st = store_with(dir, dims, dtype, o.compression.0, &o.compression.1)?;
     let level_bytes = dims.iter().product::<u64>() * dtype.size() as u64;
     for &threads in &o.threads {
         for _ in 0..o.repeat.max(1) {
@@ -359,6 +376,9 @@ pub fn loader(dir: &Path, dims: Dims3, dtype: DType, o: &LoaderBench) -> Result<
                 cache.clone(),
                 o.chunk_cache,
             )?;
+            if let Some(n) = o.read_ahead {
+                l.set_read_ahead(n);
+            }
             let keys: Vec<(BrickKey, u32)> = l.geometry().keys(0, 0).map(|k| (k, 1)).collect();
             let decodes = zarr::chunks_decoded();
             let u0 = usage();
@@ -393,6 +413,7 @@ pub fn loader(dir: &Path, dims: Dims3, dtype: DType, o: &LoaderBench) -> Result<
                     "level_gb_s": level_bytes as f64 / 1e9 / s,
                     "chunks_decoded": zarr::chunks_decoded() - decodes,
                     "host_cache_bytes": cache.budget(), "evictions": cache.evictions(),
+                    "ranges_hinted": l.stats().ranges_hinted,
                     "cpu_user_s": u1.0 - u0.0, "cpu_sys_s": u1.1 - u0.1, "minor_faults": u1.2 - u0.2})
             );
         }

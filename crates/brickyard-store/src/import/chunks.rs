@@ -20,7 +20,7 @@ use std::borrow::Cow;
 use std::collections::{BTreeMap, HashMap};
 use std::num::NonZeroU64;
 use std::ops::Range;
-use std::path::Path;
+use std::path::{Path, PathBuf};
 use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::{Arc, Condvar, Mutex, MutexGuard};
 use zarrs::array::codec::api::CodecOptions;
@@ -279,6 +279,26 @@ impl ChunkCache {
         }
     }
 
+    /// The positions of the chunks `chunk_keys` of `source` that the cache
+    /// neither holds (whole, or as a shell with the part `need`) nor is
+    /// loading now.
+    pub fn missing(&self, source: u64, chunk_keys: &[Idx], need: &[(Idx, Idx)]) -> Vec<usize> {
+        let st = lock(&self.state);
+        let mut key = Idx::new();
+        (0..chunk_keys.len())
+            .filter(|&i| {
+                key.clear();
+                key.push(source);
+                key.extend(chunk_keys[i].iter().copied());
+                match st.map.get(&key) {
+                    Some(Entry::Ready { chunk, .. }) => !chunk.covers(&need[i].0, &need[i].1),
+                    Some(Entry::Loading) => false,
+                    None => true,
+                }
+            })
+            .collect()
+    }
+
     /// The chunks `keys`: from the cache, or by `load` (called outside the
     /// lock with the keys this thread claimed, each at most once, returning
     /// their chunks in that order). Chunks another thread is loading are
@@ -383,6 +403,14 @@ type ShardIndex = Option<Arc<Vec<[u64; 2]>>>;
 /// in it as `(offset, bytes, position in the request)`.
 type Run = (Range<u64>, Vec<(u64, u64, usize)>);
 
+/// One shard's part of a read ([`ShardReader::plan`]).
+struct ShardPlan {
+    file: PathBuf,
+    /// Positions of the keys the shard's index has no entry for.
+    absent: Vec<usize>,
+    runs: Vec<Run>,
+}
+
 /// The direct reader of a sharded array whose shard index layout is known
 /// (`sharding_indexed` first among the array's codecs).
 pub(crate) struct ShardReader {
@@ -457,28 +485,32 @@ impl ShardReader {
         Ok(ix)
     }
 
-    /// Read and decode the inner chunks `keys` (inner chunk grid indices)
-    /// of `array` (stored at `dir`), in the order given.
-    pub fn load(
+    /// Where the inner chunks `keys` (inner chunk grid indices) of `array`
+    /// (stored at `dir`) lie: per shard, its file, the positions in `keys`
+    /// of the chunks its index has no entry for (they read as the fill
+    /// value), and the byte ranges to read for the others, neighbouring
+    /// ranges joined into one.
+    fn plan(
         &self,
         array: &Array<StoreAt>,
         dir: &Path,
         keys: &[Vec<u64>],
-    ) -> Result<Vec<Decoded>> {
+    ) -> Result<Vec<ShardPlan>> {
         let n = self.inner.len();
         let per: Vec<u64> = (0..n).map(|a| self.shard[a] / self.inner[a]).collect();
-        let mut out: Vec<Option<Decoded>> = keys.iter().map(|_| None).collect();
         // Group by shard.
         let mut by_shard: BTreeMap<Vec<u64>, Vec<usize>> = BTreeMap::new();
         for (i, k) in keys.iter().enumerate() {
             let s: Vec<u64> = (0..n).map(|a| k[a] / per[a]).collect();
             by_shard.entry(s).or_default().push(i);
         }
+        let mut plans = Vec::with_capacity(by_shard.len());
         for (s, members) in by_shard {
             let file = dir.join(array.chunk_key(&s).as_str());
             let index = self.index(&file, &s)?;
             // Present chunks: (offset, bytes, key position).
             let mut present = vec![];
+            let mut absent = vec![];
             for &i in &members {
                 let k = &keys[i];
                 let mut entry = 0u64;
@@ -491,13 +523,10 @@ impl ShardReader {
                     .copied()
                     .unwrap_or([u64::MAX, u64::MAX]);
                 if e == [u64::MAX, u64::MAX] {
-                    out[i] = Some(self.fill(k));
+                    absent.push(i);
                 } else {
                     present.push((e[0], e[1], i));
                 }
-            }
-            if present.is_empty() {
-                continue;
             }
             present.sort_unstable();
             // Runs of neighbouring ranges, one read each.
@@ -514,6 +543,27 @@ impl ShardReader {
                     }
                     _ => runs.push((p.0..end, vec![p])),
                 }
+            }
+            plans.push(ShardPlan { file, absent, runs });
+        }
+        Ok(plans)
+    }
+
+    /// Read and decode the inner chunks `keys` (inner chunk grid indices)
+    /// of `array` (stored at `dir`), in the order given.
+    pub fn load(
+        &self,
+        array: &Array<StoreAt>,
+        dir: &Path,
+        keys: &[Vec<u64>],
+    ) -> Result<Vec<Decoded>> {
+        let mut out: Vec<Option<Decoded>> = keys.iter().map(|_| None).collect();
+        for ShardPlan { file, absent, runs } in self.plan(array, dir, keys)? {
+            for i in absent {
+                out[i] = Some(self.fill(&keys[i]));
+            }
+            if runs.is_empty() {
+                continue;
             }
             let spans: Vec<Span> = runs.iter().map(|(r, _)| Span::Range(r.clone())).collect();
             let Some(bufs) = storage::read_spans(&file, &spans)? else {
@@ -536,6 +586,27 @@ impl ShardReader {
             .into_iter()
             .map(|d| d.expect("every key read"))
             .collect())
+    }
+
+    /// Ask the system to start reading the stored bytes of the inner
+    /// chunks `keys` (as [`ShardReader::load`] would read them), without
+    /// waiting for them: a later `load` of these chunks then finds them in
+    /// memory. Reads the shard indexes it does not hold yet. Returns the
+    /// byte ranges hinted (empty where the store gives no such hint).
+    pub fn prefetch(
+        &self,
+        array: &Array<StoreAt>,
+        dir: &Path,
+        keys: &[Vec<u64>],
+    ) -> Result<Vec<(PathBuf, Range<u64>)>> {
+        let mut hinted = vec![];
+        for plan in self.plan(array, dir, keys)? {
+            let ranges: Vec<Range<u64>> = plan.runs.iter().map(|(r, _)| r.clone()).collect();
+            if storage::will_need(&plan.file, &ranges) == ranges.len() {
+                hinted.extend(ranges.into_iter().map(|r| (plan.file.clone(), r)));
+            }
+        }
+        Ok(hinted)
     }
 
     fn origin(&self, k: &[u64]) -> Vec<u64> {

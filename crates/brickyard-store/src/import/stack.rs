@@ -215,6 +215,11 @@ impl VolumeSource for ChannelStack {
         let (s, sc) = self.map[c];
         self.sources[s].chunk_absent(sc, v)
     }
+
+    fn prefetch(&self, c: usize, region: [Range<u64>; 3]) -> usize {
+        let (s, sc) = self.map[c];
+        self.sources[s].prefetch(sc, region)
+    }
 }
 
 #[cfg(test)]

@@ -593,10 +593,22 @@ impl ZarrSource {
         base: usize,
         stride: &[usize],
     ) -> Result<()> {
-        let n = ranges.len();
         if self.shards.len() > SHARD_CACHE_MAX {
             self.shards.clear();
         }
+        let (keys, need) = self.chunks_of(ranges);
+        let chunks = cc.get_or_load(id, &keys, &need, |ks| self.load_chunks(ks))?;
+        for c in &chunks {
+            copy_into(c, ranges, &self.fill, out, base, stride);
+        }
+        Ok(())
+    }
+
+    /// The chunks (indices over the grain) that the box `ranges` (array
+    /// axis order) touches, in C order, and the part of each inside it
+    /// (`lo`, `hi`).
+    fn chunks_of(&self, ranges: &[Range<u64>]) -> (Vec<Idx>, Vec<(Idx, Idx)>) {
+        let n = ranges.len();
         let first: Idx = (0..n).map(|a| ranges[a].start / self.grain[a]).collect();
         let last: Idx = (0..n)
             .map(|a| (ranges[a].end - 1) / self.grain[a])
@@ -627,11 +639,32 @@ impl ZarrSource {
                 idx[a] = first[a];
             }
         }
-        let chunks = cc.get_or_load(id, &keys, &need, |ks| self.load_chunks(ks))?;
-        for c in &chunks {
-            copy_into(c, ranges, &self.fill, out, base, stride);
+        (keys, need)
+    }
+
+    /// The array-order ranges of the region `rs` (`[z, y, x]`) of channel
+    /// `c`, and each array axis's stride in a box of `dims` voxels (z, y,
+    /// x order).
+    fn array_ranges(
+        &self,
+        c: usize,
+        rs: [Range<u64>; 3],
+        dims: Dims3,
+    ) -> (Vec<Range<u64>>, Vec<usize>) {
+        let n = self.array.shape().len();
+        let mut ranges: Vec<Range<u64>> = vec![0..1; n];
+        let mut stride = vec![0usize; n];
+        let bstride = [(dims[1] * dims[2]) as usize, dims[2] as usize, 1];
+        for (a, r) in rs.into_iter().enumerate() {
+            if let Some(i) = self.zyx[a] {
+                ranges[i] = r;
+                stride[i] = bstride[a];
+            }
         }
-        Ok(())
+        if let Some(i) = self.caxis {
+            ranges[i] = c as u64..c as u64 + 1;
+        }
+        (ranges, stride)
     }
 
     /// Read the region `rs` (`[z, y, x]`) of channel `c` through the chunk
@@ -646,19 +679,7 @@ impl ZarrSource {
         dims: Dims3,
         at: Dims3,
     ) -> Result<()> {
-        let n = self.array.shape().len();
-        let mut ranges: Vec<Range<u64>> = vec![0..1; n];
-        let mut stride = vec![0usize; n];
-        let bstride = [(dims[1] * dims[2]) as usize, dims[2] as usize, 1];
-        for (a, r) in rs.iter().enumerate() {
-            if let Some(i) = self.zyx[a] {
-                ranges[i] = r.clone();
-                stride[i] = bstride[a];
-            }
-        }
-        if let Some(i) = self.caxis {
-            ranges[i] = c as u64..c as u64 + 1;
-        }
+        let (ranges, stride) = self.array_ranges(c, rs, dims);
         let base = ((at[0] * dims[1] + at[1]) * dims[2] + at[2]) as usize;
         self.read_cached(cc, &ranges, out, base, &stride)
     }
@@ -857,6 +878,32 @@ impl VolumeSource for ZarrSource {
             }
             None => crate::source::read_region_into_by_copy(self, c, region, out, dims, at),
         }
+    }
+
+    /// Hints the stored bytes of the region's chunks that the decoded-chunk
+    /// cache does not hold, for sharded arrays read directly.
+    fn prefetch(&self, c: usize, region: [Range<u64>; 3]) -> usize {
+        let (Some(direct), Some((cc, id))) = (&self.direct, &self.chunk_cache) else {
+            return 0;
+        };
+        // Remote stores take no hint: reading their shard indexes here
+        // would only move requests ahead of the load that needs them.
+        if storage::is_remote(&self.dir) || region.iter().any(|r| r.is_empty()) {
+            return 0;
+        }
+        let (ranges, _) = self.array_ranges(c, region, [1; 3]);
+        let (keys, need) = self.chunks_of(&ranges);
+        let missing: Vec<Vec<u64>> = cc
+            .missing(*id, &keys, &need)
+            .into_iter()
+            .map(|i| keys[i].to_vec())
+            .collect();
+        if missing.is_empty() {
+            return 0;
+        }
+        direct
+            .prefetch(&self.array, &self.dir, &missing)
+            .map_or(0, |h| h.len())
     }
 
     fn preferred_read(&self) -> Dims3 {

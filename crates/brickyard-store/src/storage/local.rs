@@ -52,6 +52,34 @@ pub(super) fn read_spans(p: &Path, spans: &[Span]) -> Result<Option<Vec<Vec<u8>>
         .map(Some)
 }
 
+#[cfg(target_os = "linux")]
+pub(super) fn will_need(p: &Path, ranges: &[std::ops::Range<u64>]) -> usize {
+    use std::os::fd::AsRawFd;
+    let Ok(f) = File::open(p) else {
+        return 0;
+    };
+    ranges
+        .iter()
+        .filter(|r| {
+            let (Ok(at), Ok(len)) = (
+                libc::off_t::try_from(r.start),
+                libc::off_t::try_from(r.end.saturating_sub(r.start)),
+            ) else {
+                return false;
+            };
+            // SAFETY: a plain system call on an open descriptor.
+            len > 0
+                && unsafe { libc::posix_fadvise(f.as_raw_fd(), at, len, libc::POSIX_FADV_WILLNEED) }
+                    == 0
+        })
+        .count()
+}
+
+#[cfg(not(target_os = "linux"))]
+pub(super) fn will_need(_p: &Path, _ranges: &[std::ops::Range<u64>]) -> usize {
+    0
+}
+
 #[cfg(unix)]
 fn read_exact_at(f: &File, buf: &mut [u8], at: u64) -> std::io::Result<()> {
     std::os::unix::fs::FileExt::read_exact_at(f, buf, at)

@@ -95,6 +95,20 @@ pub fn read_suffix(p: &Path, n: u64) -> Result<Option<(Vec<u8>, u64)>> {
     Ok(Some((v.swap_remove(0), len)))
 }
 
+/// Tell the system that `ranges` of the value at `p` will be read soon,
+/// so that it starts reading them while the caller works on other data
+/// (on Linux, `posix_fadvise(WILLNEED)`: the kernel queues the reads and
+/// returns at once). Returns how many ranges were handed over; 0 where
+/// there is no such hint (remote stores, other systems) or no such file.
+/// Only a hint: nothing depends on it but speed, so errors are ignored.
+pub fn will_need(p: &Path, ranges: &[Range<u64>]) -> usize {
+    if is_remote(p) {
+        0
+    } else {
+        local::will_need(p, ranges)
+    }
+}
+
 /// The size of the value at `p`; `Ok(None)` when there is none.
 pub fn size(p: &Path) -> Result<Option<u64>> {
     if is_remote(p) {
