@@ -127,6 +127,9 @@ fn hinted_chunks_come_into_memory_and_held_or_absent_chunks_are_not_hinted() {
     }
     let observable = files.iter().all(|f| resident(f, &ranges_of(f)).0 == 0);
     let hinted = src.prefetch(0, region.clone());
+    // Hinted once: a second hint of the same chunks before their load is
+    // not made.
+    assert_eq!(src.prefetch(0, region.clone()), 0);
     // One range per run of neighbouring chunks in a shard: at least one
     // per shard, at most one per chunk.
     assert!(

@@ -13,7 +13,7 @@
 use crate::error::{Result, StoreError};
 use crate::shard::{self, IndexLayout};
 use crate::storage::{self, Span, StoreAt};
-use rustc_hash::FxHashMap;
+use rustc_hash::{FxHashMap, FxHashSet};
 use serde_json::Value;
 use smallvec::SmallVec;
 use std::borrow::Cow;
@@ -173,7 +173,14 @@ struct CacheState {
     lru: BTreeMap<u64, Idx>,
     bytes: u64,
     tick: u64,
+    /// Chunks hinted for read-ahead ([`ChunkCache::to_hint`]) and not
+    /// loaded since: a chunk is hinted once however many bricks touch it.
+    hinted: FxHashSet<Idx>,
 }
+
+/// The most chunks remembered as hinted; past it the memory starts over
+/// (a chunk may then be hinted twice, which costs a system call).
+const HINTED_MAX: usize = 1 << 14;
 
 /// Decoded chunks, least recently used evicted first, at most `budget`
 /// bytes held (chunks being read by a thread, and those handed out, are
@@ -255,6 +262,7 @@ impl ChunkCache {
         }
         st.tick += 1;
         let tick = st.tick;
+        st.hinted.remove(&key);
         st.lru.insert(tick, key.clone());
         st.bytes += n;
         st.map.insert(key, Entry::Ready { chunk, tick });
@@ -279,22 +287,28 @@ impl ChunkCache {
         }
     }
 
-    /// The positions of the chunks `chunk_keys` of `source` that the cache
-    /// neither holds (whole, or as a shell with the part `need`) nor is
-    /// loading now.
-    pub fn missing(&self, source: u64, chunk_keys: &[Idx], need: &[(Idx, Idx)]) -> Vec<usize> {
-        let st = lock(&self.state);
+    /// The positions of the chunks `chunk_keys` of `source` worth a
+    /// read-ahead hint: those the cache neither holds (whole, or as a shell
+    /// with the part `need`) nor is loading now, and that were not hinted
+    /// since they were last loaded. They count as hinted from now on.
+    pub fn to_hint(&self, source: u64, chunk_keys: &[Idx], need: &[(Idx, Idx)]) -> Vec<usize> {
+        let mut st = lock(&self.state);
+        let st = &mut *st;
+        if st.hinted.len() > HINTED_MAX {
+            st.hinted.clear();
+        }
         let mut key = Idx::new();
         (0..chunk_keys.len())
             .filter(|&i| {
                 key.clear();
                 key.push(source);
                 key.extend(chunk_keys[i].iter().copied());
-                match st.map.get(&key) {
+                let absent = match st.map.get(&key) {
                     Some(Entry::Ready { chunk, .. }) => !chunk.covers(&need[i].0, &need[i].1),
                     Some(Entry::Loading) => false,
                     None => true,
-                }
+                };
+                absent && st.hinted.insert(key.clone())
             })
             .collect()
     }

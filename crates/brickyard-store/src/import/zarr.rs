@@ -881,7 +881,8 @@ impl VolumeSource for ZarrSource {
     }
 
     /// Hints the stored bytes of the region's chunks that the decoded-chunk
-    /// cache does not hold, for sharded arrays read directly.
+    /// cache does not hold and that were not hinted since their last load,
+    /// for sharded arrays read directly.
     fn prefetch(&self, c: usize, region: [Range<u64>; 3]) -> usize {
         let (Some(direct), Some((cc, id))) = (&self.direct, &self.chunk_cache) else {
             return 0;
@@ -894,7 +895,7 @@ impl VolumeSource for ZarrSource {
         let (ranges, _) = self.array_ranges(c, region, [1; 3]);
         let (keys, need) = self.chunks_of(&ranges);
         let missing: Vec<Vec<u64>> = cc
-            .missing(*id, &keys, &need)
+            .to_hint(*id, &keys, &need)
             .into_iter()
             .map(|i| keys[i].to_vec())
             .collect();
