@@ -730,15 +730,35 @@ pub(crate) fn copy_into(
     }
 }
 
-/// Copy the first `es` bytes of `src` to `dst` with fixed-size moves.
+/// Copy `rows` runs of `n` units of `B` bytes: run `r` from byte
+/// `so + r·cs` of `src` to byte `oo + r·os` of `dst`, unit by unit with
+/// moves of a fixed size (a unit is an element of an apron column, or a
+/// whole row). The bounds are checked once for all the rows.
 #[inline(always)]
-fn copy_element(dst: &mut [u8], src: &[u8], es: usize) {
-    match es {
-        1 => dst[0] = src[0],
-        2 => dst[..2].copy_from_slice(&src[..2]),
-        4 => dst[..4].copy_from_slice(&src[..4]),
-        8 => dst[..8].copy_from_slice(&src[..8]),
-        _ => dst[..es].copy_from_slice(&src[..es]),
+fn copy_runs<const B: usize>(
+    dst: &mut [u8],
+    src: &[u8],
+    (so, cs): (usize, usize),
+    (oo, os): (usize, usize),
+    rows: usize,
+    n: usize,
+) {
+    if rows == 0 || n == 0 {
+        return;
+    }
+    let (last, len) = (rows - 1, n * B);
+    assert!(so + last * cs + len <= src.len() && oo + last * os + len <= dst.len());
+    let (src, dst) = (src.as_ptr(), dst.as_mut_ptr());
+    for r in 0..rows {
+        let (s, o) = (so + r * cs, oo + r * os);
+        for i in 0..n {
+            // SAFETY: every byte moved lies within the bounds asserted
+            // above (the offsets grow with `r` and `i`), and `src` and
+            // `dst` are distinct slices.
+            unsafe {
+                std::ptr::copy_nonoverlapping(src.add(s + i * B), dst.add(o + i * B), B);
+            }
+        }
     }
 }
 
@@ -795,35 +815,49 @@ fn copy_box(
             oo += (p[a] - ranges[a].start) as usize * stride[a];
         }
         let (mut so, mut oo) = (so * es, oo * es);
-        for _ in 0..rows {
-            match (data, contiguous) {
-                // Runs of a voxel or two (an apron one deep, a shell's
-                // face across the last axis): element stores, not a
-                // `memcpy` call each.
-                (Some(d), true) if run <= 2 => {
-                    for i in 0..run {
-                        copy_element(&mut out[oo + i * es..], &d[so + i * es..], es);
-                    }
-                }
-                (Some(d), true) => {
-                    out[oo..oo + run * es].copy_from_slice(&d[so..so + run * es]);
-                }
-                (Some(d), false) => {
-                    for i in 0..run {
-                        let o = oo + i * os_el;
-                        out[o..o + es].copy_from_slice(&d[so + i * es..so + (i + 1) * es]);
-                    }
-                }
-                (None, true) if uniform_fill => out[oo..oo + run * es].fill(fill[0]),
-                (None, _) => {
-                    for i in 0..run {
-                        let o = oo + i * os_el;
-                        out[o..o + es].copy_from_slice(fill);
+        if let (Some(d), true) = (data, contiguous) {
+            // Rows of the chunk into rows of the output. Runs of a voxel
+            // or two (an apron one deep, a shell's face across the last
+            // axis) element by element, and rows of the usual brick widths
+            // in moves of a fixed size: no `memcpy` call per row, the
+            // bounds checked once per column of rows.
+            let (s, o) = ((so, cs_row), (oo, os_row));
+            match (run * es, es) {
+                (_, 1) if run <= 2 => copy_runs::<1>(out, d, s, o, rows, run),
+                (_, 2) if run <= 2 => copy_runs::<2>(out, d, s, o, rows, run),
+                (_, 4) if run <= 2 => copy_runs::<4>(out, d, s, o, rows, run),
+                (_, 8) if run <= 2 => copy_runs::<8>(out, d, s, o, rows, run),
+                (32, _) => copy_runs::<32>(out, d, s, o, rows, 1),
+                (64, _) => copy_runs::<64>(out, d, s, o, rows, 1),
+                (128, _) => copy_runs::<128>(out, d, s, o, rows, 1),
+                (256, _) => copy_runs::<256>(out, d, s, o, rows, 1),
+                (b, _) => {
+                    for r in 0..rows {
+                        let (s, o) = (so + r * cs_row, oo + r * os_row);
+                        out[o..o + b].copy_from_slice(&d[s..s + b]);
                     }
                 }
             }
-            so += cs_row;
-            oo += os_row;
+        } else {
+            for _ in 0..rows {
+                match data {
+                    Some(d) => {
+                        for i in 0..run {
+                            let o = oo + i * os_el;
+                            out[o..o + es].copy_from_slice(&d[so + i * es..so + (i + 1) * es]);
+                        }
+                    }
+                    None if contiguous && uniform_fill => out[oo..oo + run * es].fill(fill[0]),
+                    None => {
+                        for i in 0..run {
+                            let o = oo + i * os_el;
+                            out[o..o + es].copy_from_slice(fill);
+                        }
+                    }
+                }
+                so += cs_row;
+                oo += os_row;
+            }
         }
         // Next position over the outer axes.
         let mut a = outer;
@@ -897,6 +931,88 @@ mod tests {
         want[6 + 3] = 7;
         want[6 + 4] = 7;
         assert_eq!(out, want);
+    }
+
+    /// `copy_into` equals a copy element by element from the chunk's C
+    /// order, for elements of 1, 2, 4, 8 and 3 bytes, rows whose bytes
+    /// are and are not one of the fixed-size moves (32, 64, 128, 256),
+    /// apron columns one and two deep, into a larger box (contiguous rows)
+    /// and with a stride along the last axis.
+    #[test]
+    fn copies_equal_an_element_by_element_copy() {
+        let mut seed = 7u64;
+        let mut rnd = |n: u64| {
+            seed = seed
+                .wrapping_mul(6364136223846793005)
+                .wrapping_add(1442695040888963407);
+            (seed >> 33) % n
+        };
+        let mut checked = 0;
+        for es in [1usize, 2, 3, 4, 8] {
+            for width in [8u64, 16, 32, 64, 5, 24] {
+                // A 3-D chunk of `width` along x at (4, 6, 8·width).
+                let dims = [5u64, 7, width];
+                let origin = [4u64, 6, 8 * width];
+                let n = dims.iter().product::<u64>() as usize * es;
+                let data: Vec<u8> = (0..n).map(|_| rnd(256) as u8).collect();
+                let c = Decoded {
+                    origin: origin.to_vec(),
+                    dims: dims.to_vec(),
+                    body: Body::Data(data.clone()),
+                };
+                for trial in 0..40 {
+                    // The read box: around the chunk, or one or two deep
+                    // along x at one of its faces.
+                    let mut ranges: Vec<Range<u64>> = (0..3)
+                        .map(|a| {
+                            let lo = origin[a] - 1 + rnd(dims[a] + 1);
+                            lo..(lo + 1 + rnd(dims[a] + 2)).min(origin[a] + dims[a] + 2)
+                        })
+                        .collect();
+                    let deep = 1 + rnd(2);
+                    match trial % 3 {
+                        0 => ranges[2] = origin[2] + width - deep..origin[2] + width + 3,
+                        1 => ranges[2] = origin[2] - 3..origin[2] + deep,
+                        _ => {}
+                    }
+                    let box_dims: Vec<u64> = ranges.iter().map(|r| r.end - r.start + 2).collect();
+                    let sx = 1 + (trial % 5 == 4) as usize;
+                    let stride = [
+                        (box_dims[1] * box_dims[2]) as usize * sx,
+                        box_dims[2] as usize * sx,
+                        sx,
+                    ];
+                    let base = stride[0] + stride[1] + stride[2];
+                    let total = box_dims.iter().product::<u64>() as usize * sx * es + 8 * es;
+                    let mut got = vec![0xAAu8; total];
+                    copy_into(&c, &ranges, &vec![0; es], &mut got, base, &stride);
+                    let mut want = vec![0xAAu8; total];
+                    for z in ranges[0].clone() {
+                        for y in ranges[1].clone() {
+                            for x in ranges[2].clone() {
+                                let p = [z, y, x];
+                                if (0..3).any(|a| p[a] < origin[a] || p[a] >= origin[a] + dims[a]) {
+                                    continue;
+                                }
+                                let si = (((z - origin[0]) * dims[1] + y - origin[1]) * dims[2]
+                                    + x
+                                    - origin[2]) as usize
+                                    * es;
+                                let oi = (base
+                                    + (z - ranges[0].start) as usize * stride[0]
+                                    + (y - ranges[1].start) as usize * stride[1]
+                                    + (x - ranges[2].start) as usize * stride[2])
+                                    * es;
+                                want[oi..oi + es].copy_from_slice(&data[si..si + es]);
+                            }
+                        }
+                    }
+                    assert_eq!(got, want, "es {es} width {width} trial {trial} {ranges:?}");
+                    checked += 1;
+                }
+            }
+        }
+        assert_eq!(checked, 5 * 6 * 40);
     }
 
     #[test]
