@@ -730,10 +730,10 @@ pub(crate) fn copy_into(
     }
 }
 
-/// Copy `rows` runs of `n` units of `B` bytes: run `r` from byte
-/// `so + r·cs` of `src` to byte `oo + r·os` of `dst`, unit by unit with
-/// moves of a fixed size (a unit is an element of an apron column, or a
-/// whole row). The bounds are checked once for all the rows.
+/// Copy `rows` runs of `B` bytes: run `r` from byte `so + r·cs` of `src`
+/// to byte `oo + r·os` of `dst`, each in one move of a fixed size (an
+/// element of an apron column, or a whole row). The bounds are checked once
+/// for all the rows.
 #[inline(always)]
 fn copy_runs<const B: usize>(
     dst: &mut [u8],
@@ -741,24 +741,38 @@ fn copy_runs<const B: usize>(
     (so, cs): (usize, usize),
     (oo, os): (usize, usize),
     rows: usize,
-    n: usize,
 ) {
-    if rows == 0 || n == 0 {
+    if rows == 0 {
         return;
     }
-    let (last, len) = (rows - 1, n * B);
-    assert!(so + last * cs + len <= src.len() && oo + last * os + len <= dst.len());
+    let last = rows - 1;
+    assert!(so + last * cs + B <= src.len() && oo + last * os + B <= dst.len());
     let (src, dst) = (src.as_ptr(), dst.as_mut_ptr());
     for r in 0..rows {
-        let (s, o) = (so + r * cs, oo + r * os);
-        for i in 0..n {
-            // SAFETY: every byte moved lies within the bounds asserted
-            // above (the offsets grow with `r` and `i`), and `src` and
-            // `dst` are distinct slices.
-            unsafe {
-                std::ptr::copy_nonoverlapping(src.add(s + i * B), dst.add(o + i * B), B);
-            }
+        // SAFETY: every byte moved lies within the bounds asserted above
+        // (the offsets grow with `r`), and `src` and `dst` are distinct
+        // slices.
+        unsafe {
+            std::ptr::copy_nonoverlapping(src.add(so + r * cs), dst.add(oo + r * os), B);
         }
+    }
+}
+
+/// [`copy_runs`] of `run` (one or two) elements of `B` bytes per row, one
+/// column at a time (not a loop over the elements of a row, which the
+/// compiler turns into a `memcpy` call per row).
+#[inline(always)]
+fn copy_columns<const B: usize>(
+    dst: &mut [u8],
+    src: &[u8],
+    (so, cs): (usize, usize),
+    (oo, os): (usize, usize),
+    rows: usize,
+    run: usize,
+) {
+    copy_runs::<B>(dst, src, (so, cs), (oo, os), rows);
+    if run == 2 {
+        copy_runs::<B>(dst, src, (so + B, cs), (oo + B, os), rows);
     }
 }
 
@@ -823,14 +837,14 @@ fn copy_box(
             // bounds checked once per column of rows.
             let (s, o) = ((so, cs_row), (oo, os_row));
             match (run * es, es) {
-                (_, 1) if run <= 2 => copy_runs::<1>(out, d, s, o, rows, run),
-                (_, 2) if run <= 2 => copy_runs::<2>(out, d, s, o, rows, run),
-                (_, 4) if run <= 2 => copy_runs::<4>(out, d, s, o, rows, run),
-                (_, 8) if run <= 2 => copy_runs::<8>(out, d, s, o, rows, run),
-                (32, _) => copy_runs::<32>(out, d, s, o, rows, 1),
-                (64, _) => copy_runs::<64>(out, d, s, o, rows, 1),
-                (128, _) => copy_runs::<128>(out, d, s, o, rows, 1),
-                (256, _) => copy_runs::<256>(out, d, s, o, rows, 1),
+                (_, 1) if run <= 2 => copy_columns::<1>(out, d, s, o, rows, run),
+                (_, 2) if run <= 2 => copy_columns::<2>(out, d, s, o, rows, run),
+                (_, 4) if run <= 2 => copy_columns::<4>(out, d, s, o, rows, run),
+                (_, 8) if run <= 2 => copy_columns::<8>(out, d, s, o, rows, run),
+                (32, _) => copy_runs::<32>(out, d, s, o, rows),
+                (64, _) => copy_runs::<64>(out, d, s, o, rows),
+                (128, _) => copy_runs::<128>(out, d, s, o, rows),
+                (256, _) => copy_runs::<256>(out, d, s, o, rows),
                 (b, _) => {
                     for r in 0..rows {
                         let (s, o) = (so + r * cs_row, oo + r * os_row);
@@ -994,8 +1008,7 @@ mod tests {
                                 if (0..3).any(|a| p[a] < origin[a] || p[a] >= origin[a] + dims[a]) {
                                     continue;
                                 }
-                                let si = (((z - origin[0]) * dims[1] + y - origin[1]) * dims[2]
-                                    + x
+                                let si = (((z - origin[0]) * dims[1] + y - origin[1]) * dims[2] + x
                                     - origin[2]) as usize
                                     * es;
                                 let oi = (base
