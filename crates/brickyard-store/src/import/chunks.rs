@@ -178,9 +178,11 @@ struct CacheState {
     hinted: FxHashSet<Idx>,
 }
 
-/// The most chunks remembered as hinted; past it the memory starts over
-/// (a chunk may then be hinted twice, which costs a system call).
-const HINTED_MAX: usize = 1 << 14;
+/// The most chunks remembered as hinted (about 64 bytes each, outside the
+/// cache's budget; the loader's hints keep under a thousand waiting for
+/// their load); past it the memory starts over (a chunk may then be
+/// hinted twice, which costs a system call).
+const HINTED_MAX: usize = 1 << 12;
 
 /// Decoded chunks, least recently used evicted first, at most `budget`
 /// bytes held (chunks being read by a thread, and those handed out, are
