@@ -609,6 +609,28 @@ const RUN_MAX: usize = 4;
 /// the host cache.
 pub const READ_AHEAD: usize = 32;
 
+/// The environment variable that sets [`READ_AHEAD`] for every loader of
+/// the process (0 to 4096 bricks; 0 turns the hints off).
+pub const READ_AHEAD_VAR: &str = "BRICKYARD_READ_AHEAD";
+
+/// The read-ahead from [`READ_AHEAD_VAR`], or [`READ_AHEAD`] when it is
+/// not set; a value that is not a number of bricks from 0 to 4096 is an
+/// error saying what was expected.
+fn read_ahead_from_env() -> std::result::Result<usize, String> {
+    match std::env::var(READ_AHEAD_VAR) {
+        Err(_) => Ok(READ_AHEAD),
+        Ok(v) if v.trim().is_empty() => Ok(READ_AHEAD),
+        Ok(v) => v
+            .trim()
+            .parse::<usize>()
+            .ok()
+            .filter(|&n| n <= 4096)
+            .ok_or(format!(
+                "expected a number of bricks from 0 to 4096 (0: no read-ahead hints), found {v:?}"
+            )),
+    }
+}
+
 /// Reads bricks of one store on a pool of I/O threads.
 ///
 /// One loader per store and one store per [`HostCache`]: keys do not name
@@ -830,6 +852,8 @@ impl Loader {
             channels: m0.channels,
             dtype: m0.dtype,
         };
+        let read_ahead = read_ahead_from_env()
+            .map_err(|msg| StoreError::invalid(store_path, READ_AHEAD_VAR, msg))?;
         if !geometry.keys_fit() {
             return Err(StoreError::unsupported(
                 store_path,
@@ -853,7 +877,7 @@ impl Loader {
             finished: Condvar::new(),
             counters: Counters::default(),
             read_delay_ns: AtomicU64::new(0),
-            read_ahead: AtomicUsize::new(READ_AHEAD),
+            read_ahead: AtomicUsize::new(read_ahead),
             workers: threads.max(1),
         });
         let mut handles = Vec::new();
@@ -1051,8 +1075,8 @@ impl Loader {
     }
 
     /// Hint the store's bytes of the next `bricks` queued bricks to the
-    /// system ahead of their loads ([`READ_AHEAD`] by default; 0 turns
-    /// the hints off). On local stores the kernel then reads them while
+    /// system ahead of their loads ([`READ_AHEAD`] by default, or
+    /// [`READ_AHEAD_VAR`] from the environment; 0 turns the hints off). On local stores the kernel then reads them while
     /// the workers decode; a slow or deep device (network file systems,
     /// disk arrays) gains from more.
     pub fn set_read_ahead(&self, bricks: usize) {

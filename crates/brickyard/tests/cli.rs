@@ -361,6 +361,39 @@ fn render_writes_pngs_and_rejects_bad_options() {
     );
 }
 
+/// `BRICKYARD_READ_AHEAD` sets how far the loader hints ahead: the image
+/// is the same with hints off, many or the default; a value that is not a
+/// number of bricks from 0 to 4096 is an error naming the variable.
+#[test]
+fn read_ahead_comes_from_the_environment() {
+    let d = tempfile::tempdir().unwrap();
+    let store = mandelbulb_48(d.path(), "ra.ome.zarr");
+    let render = |value: Option<&str>, name: &str| {
+        let png = d.path().join(name);
+        let mut c = bin();
+        c.args(["render", s(&store), "--size", "40x32", "--brick", "8"]);
+        c.args(["--out", s(&png)]);
+        match value {
+            Some(v) => c.env("BRICKYARD_READ_AHEAD", v),
+            None => c.env_remove("BRICKYARD_READ_AHEAD"),
+        };
+        (c.output().unwrap(), png)
+    };
+    let (o, png) = render(None, "default.png");
+    assert!(o.status.success(), "{}", stderr(&o));
+    let want = std::fs::read(&png).unwrap();
+    has_content(&png_pixels(&png), "default read-ahead");
+    for v in ["0", "4096", " 7 ", ""] {
+        let (o, png) = render(Some(v), "other.png");
+        assert!(o.status.success(), "{v:?}: {}", stderr(&o));
+        assert_eq!(std::fs::read(&png).unwrap(), want, "read-ahead {v:?}");
+    }
+    for v in ["abc", "-1", "4097", "1.5"] {
+        let (o, _) = render(Some(v), "bad.png");
+        fails_with(&o, &["BRICKYARD_READ_AHEAD", "0 to 4096", v]);
+    }
+}
+
 /// Decoded RGBA8 pixels of a PNG.
 fn png_pixels(p: &Path) -> Vec<u8> {
     let dec = png::Decoder::new(std::io::BufReader::new(std::fs::File::open(p).unwrap()));
