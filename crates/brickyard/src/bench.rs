@@ -338,9 +338,7 @@ fn bench_downsample(b: &BenchCmd, dims: [u64; 3], dtype: DType) -> Result<()> {
 /// The loader bench's store compression, and the tag its store's name gets
 /// (none for lz4, the default, so that existing stores are reused).
 fn loader_compression(s: &str) -> Result<(Compression, String)> {
-    let c = Compression::parse(s).with_context(|| {
-        format!("--compression: expected lz4, zstd, zstd:LEVEL or none, found {s:?}")
-    })?;
+    let c = crate::parse_compression(s)?;
     let tag = match c {
         Compression::Lz4 => String::new(),
         _ => format!("-{}", s.replace(':', "")),

@@ -253,13 +253,15 @@ pub fn peak_rss() -> u64 {
         .unwrap_or(0)
 }
 
+/// A `--compression` value (`convert`, `bench`).
+pub(crate) fn parse_compression(s: &str) -> Result<Compression> {
+    Compression::parse(s).with_context(|| {
+        format!("compression: expected lz4, zstd, zstd:LEVEL or none, found {s:?}")
+    })
+}
+
 fn convert_options(p: &PyramidArgs) -> Result<ConvertOptions> {
-    let compression = Compression::parse(&p.compression).with_context(|| {
-        format!(
-            "compression: expected lz4, zstd, zstd:LEVEL or none, found {:?}",
-            p.compression
-        )
-    })?;
+    let compression = parse_compression(&p.compression)?;
     if p.brick < 2 || !p.brick.is_multiple_of(2) {
         bail!(
             "brick: expected an even number of voxels >= 2, found {}",

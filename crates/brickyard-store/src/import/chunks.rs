@@ -607,20 +607,16 @@ impl ShardReader {
     /// Ask the system to start reading the stored bytes of the inner
     /// chunks `keys` (as [`ShardReader::load`] would read them), without
     /// waiting for them: a later `load` of these chunks then finds them in
-    /// memory. Reads the shard indexes it does not hold yet. Returns the
-    /// byte ranges hinted (empty where the store gives no such hint).
-    pub fn prefetch(
-        &self,
-        array: &Array<StoreAt>,
-        dir: &Path,
-        keys: &[Vec<u64>],
-    ) -> Result<Vec<(PathBuf, Range<u64>)>> {
-        let mut hinted = vec![];
+    /// memory. Reads the shard indexes it does not hold yet. Returns how
+    /// many byte ranges were hinted (0 where the store gives no such hint).
+    pub fn prefetch(&self, array: &Array<StoreAt>, dir: &Path, keys: &[Vec<u64>]) -> Result<usize> {
+        let mut hinted = 0;
         for plan in self.plan(array, dir, keys)? {
-            let ranges: Vec<Range<u64>> = plan.runs.iter().map(|(r, _)| r.clone()).collect();
-            if storage::will_need(&plan.file, &ranges) == ranges.len() {
-                hinted.extend(ranges.into_iter().map(|r| (plan.file.clone(), r)));
+            if plan.runs.is_empty() {
+                continue;
             }
+            let ranges: Vec<Range<u64>> = plan.runs.iter().map(|(r, _)| r.clone()).collect();
+            hinted += storage::will_need(&plan.file, &ranges);
         }
         Ok(hinted)
     }

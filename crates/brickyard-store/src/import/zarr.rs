@@ -643,28 +643,18 @@ impl ZarrSource {
     }
 
     /// The array-order ranges of the region `rs` (`[z, y, x]`) of channel
-    /// `c`, and each array axis's stride in a box of `dims` voxels (z, y,
-    /// x order).
-    fn array_ranges(
-        &self,
-        c: usize,
-        rs: [Range<u64>; 3],
-        dims: Dims3,
-    ) -> (Vec<Range<u64>>, Vec<usize>) {
-        let n = self.array.shape().len();
-        let mut ranges: Vec<Range<u64>> = vec![0..1; n];
-        let mut stride = vec![0usize; n];
-        let bstride = [(dims[1] * dims[2]) as usize, dims[2] as usize, 1];
+    /// `c`.
+    fn array_ranges(&self, c: usize, rs: [Range<u64>; 3]) -> Vec<Range<u64>> {
+        let mut ranges: Vec<Range<u64>> = vec![0..1; self.array.shape().len()];
         for (a, r) in rs.into_iter().enumerate() {
             if let Some(i) = self.zyx[a] {
                 ranges[i] = r;
-                stride[i] = bstride[a];
             }
         }
         if let Some(i) = self.caxis {
             ranges[i] = c as u64..c as u64 + 1;
         }
-        (ranges, stride)
+        ranges
     }
 
     /// Read the region `rs` (`[z, y, x]`) of channel `c` through the chunk
@@ -679,7 +669,15 @@ impl ZarrSource {
         dims: Dims3,
         at: Dims3,
     ) -> Result<()> {
-        let (ranges, stride) = self.array_ranges(c, rs, dims);
+        let ranges = self.array_ranges(c, rs);
+        // Each array axis's stride in the box (the channel axis: none).
+        let bstride = [(dims[1] * dims[2]) as usize, dims[2] as usize, 1];
+        let mut stride = vec![0usize; ranges.len()];
+        for (a, i) in self.zyx.iter().enumerate() {
+            if let Some(i) = i {
+                stride[*i] = bstride[a];
+            }
+        }
         let base = ((at[0] * dims[1] + at[1]) * dims[2] + at[2]) as usize;
         self.read_cached(cc, &ranges, out, base, &stride)
     }
@@ -892,8 +890,7 @@ impl VolumeSource for ZarrSource {
         if storage::is_remote(&self.dir) || region.iter().any(|r| r.is_empty()) {
             return 0;
         }
-        let (ranges, _) = self.array_ranges(c, region, [1; 3]);
-        let (keys, need) = self.chunks_of(&ranges);
+        let (keys, need) = self.chunks_of(&self.array_ranges(c, region));
         let missing: Vec<Vec<u64>> = cc
             .to_hint(*id, &keys, &need)
             .into_iter()
@@ -904,7 +901,7 @@ impl VolumeSource for ZarrSource {
         }
         direct
             .prefetch(&self.array, &self.dir, &missing)
-            .map_or(0, |h| h.len())
+            .unwrap_or(0)
     }
 
     fn preferred_read(&self) -> Dims3 {
