@@ -459,16 +459,13 @@ impl Shared {
     /// thread decodes; without them a thread reads, then decodes, and the
     /// disk waits in between.
     fn ahead(&self, st: &mut State, run: &[QueueEntry]) -> Vec<BrickKey> {
+        let n = self.read_ahead.load(Ordering::Relaxed);
         let mut keys: Vec<BrickKey> = run
             .iter()
-            .filter(|e| !st.hinted.remove(&e.key))
+            .filter(|e| !st.hinted.remove(&e.key) && n > 0)
             .map(|e| e.key)
             .collect();
         let State { queue, hinted, .. } = st;
-        let n = self.read_ahead.load(Ordering::Relaxed);
-        if n == 0 {
-            return vec![];
-        }
         for e in queue.iter().take(n) {
             if hinted.insert(e.key) {
                 keys.push(e.key);
