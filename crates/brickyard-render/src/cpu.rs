@@ -23,6 +23,10 @@
 //!   a brick whose maximum cannot raise the ray's maximum is skipped the
 //!   same way. Skipping never changes a complete frame: every skipped
 //!   sample would have contributed nothing.
+//! - **Entry depths.** Before a one-channel DVR frame's rays are walked,
+//!   the cells and bricks that may show are projected and every pixel's
+//!   nearest hit found (`entry.rs`); each ray starts its walk there,
+//!   past the clear space in front of what it shows.
 //! - **Tiles.** Work is split into 32×16-pixel tiles (rows of tiles in
 //!   parallel on all cores) so that neighbouring rays share bricks.
 //! - The level of detail is re-evaluated only where the pixel footprint
@@ -38,6 +42,7 @@
 //! memo and fallback) is `walk`; the modes are `dvr`, `mip` and `slice`;
 //! what a sample becomes on screen is `optics`. Each has its WGSL twin
 //! beside it (`gpu.rs` is the device's frame driver).
+use crate::entry::Entries;
 use crate::image::Image;
 use crate::octree::dvr::{OctFrame, TableKey};
 use crate::octree::{self, Octree};
@@ -78,6 +83,11 @@ pub struct Scene {
     /// takes the scalar twin, which gives the same bits (tests compare
     /// the two).
     pub lanes: bool,
+    /// DVR through the page tables, one channel: start each ray at its
+    /// entry depth (`entry.rs`: where it first meets a cell or brick
+    /// that may show), found for the frame before the rays are walked;
+    /// the image is the same either way (off only to measure or test).
+    pub entry_depths: bool,
     /// The residency octree kept beside the virtual memory, for
     /// [`Traversal::Octree`](crate::params::Traversal) (`None`: a frame
     /// that asks for it builds one from the virtual memory, of depth
@@ -98,6 +108,7 @@ impl Scene {
             ranges: None,
             skip_cells: true,
             lanes: true,
+            entry_depths: true,
             octree: None,
         }
     }
@@ -380,6 +391,18 @@ fn render_typed<T: Sample>(
         params.width,
         params.height,
     );
+    // One-channel DVR through the page tables: every ray's entry depth,
+    // and the bricks rays now pass before it marked as the walk would.
+    let entries = (matches!(params.mode, RenderMode::Dvr)
+        && params.channels.is_empty()
+        && !by_octree
+        && params.views.is_none()
+        && scene.entry_depths)
+        .then(|| Entries::new(&frame, &rg, tiles))
+        .flatten();
+    if let Some(e) = &entries {
+        e.mark_passed(&frame, &rg);
+    }
     let parts: Vec<(FrameStats, Requests)> = img
         .rgba
         .par_chunks_mut(w * TILE_H)
@@ -430,7 +453,11 @@ fn render_typed<T: Sample>(
                                 RenderMode::Dvr if multi => {
                                     multi::dvr_pixel(&mut walkers, &ray, (&mut req, &mut st))
                                 }
-                                RenderMode::Dvr => walkers[0].dvr(&ray, &mut req, &mut st),
+                                RenderMode::Dvr => {
+                                    let entry =
+                                        entries.as_ref().map(|e| (e.level, e.at(i, j as usize)));
+                                    walkers[0].dvr(&ray, entry, &mut req, &mut st)
+                                }
                                 RenderMode::Mip if multi => mip::channels_pixel(
                                     &mut walkers,
                                     &ray,

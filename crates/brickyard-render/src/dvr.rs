@@ -4,8 +4,10 @@
 //! function hides crossed in one landing, fixed-point runs through
 //! resident bricks that cross clear cells, and the fallback to coarser
 //! levels for bricks not resident, crossing the regions where the
-//! stand-in hides every sample. `dvr.wgsl` is the device twin (it samples
-//! every step of a stand-in's region; the images are the same).
+//! stand-in hides every sample. A ray may start at its entry depth
+//! (`entry.rs`), past clear space the walk would cross without sampling.
+//! `dvr.wgsl` is the device twin (it samples every step of a stand-in's
+//! region and starts at the volume's face; the images are the same).
 
 use crate::cpu::FrameStats;
 use crate::lanes::F4;
@@ -16,12 +18,21 @@ use brickyard_core::camera::Ray;
 use brickyard_core::Sample;
 
 impl<'f, 'a, T: Sample> Walker<'f, 'a, T> {
-    /// The pixel of `ray` in a DVR of the scene's channel.
-    pub(crate) fn dvr(&mut self, ray: &Ray, req: &mut Requests, st: &mut FrameStats) -> [f32; 4] {
+    /// The pixel of `ray` in a DVR of the scene's channel. `entry`: the
+    /// ray's entry depth at a level ([`crate::entry`]): when the ray
+    /// starts at that level, no sample before the entry may show, and the
+    /// walk starts a step or so before it.
+    pub(crate) fn dvr(
+        &mut self,
+        ray: &Ray,
+        entry: Option<(usize, f64)>,
+        req: &mut Requests,
+        st: &mut FrameStats,
+    ) -> [f32; 4] {
         if self.f.scene.lanes {
-            self.dvr_in::<true>(ray, req, st)
+            self.dvr_in::<true>(ray, entry, req, st)
         } else {
-            self.dvr_in::<false>(ray, req, st)
+            self.dvr_in::<false>(ray, entry, req, st)
         }
     }
 
@@ -35,6 +46,7 @@ impl<'f, 'a, T: Sample> Walker<'f, 'a, T> {
     fn dvr_in<const LANES: bool>(
         &mut self,
         ray: &Ray,
+        entry: Option<(usize, f64)>,
         req: &mut Requests,
         st: &mut FrameStats,
     ) -> [f32; 4] {
@@ -56,7 +68,7 @@ impl<'f, 'a, T: Sample> Walker<'f, 'a, T> {
         let inv_dir = [1.0 / d[0], 1.0 / d[1], 1.0 / d[2]];
         // A region (sort-last): the whole ray's step grid, samples in
         // [c0, t1) only.
-        let Some((t0, c0, t1)) = f.span(ray, inv_dir) else {
+        let Some((t0, mut c0, t1)) = f.span(ray, inv_dir) else {
             return acc;
         };
         let terminate = f.params.early_termination;
@@ -65,6 +77,17 @@ impl<'f, 'a, T: Sample> Walker<'f, 'a, T> {
         // of the new level's grid.
         let mut level = f.level_at(t0);
         let mut next_t = f.next_level_t(level);
+        if let Some((el, e)) = entry {
+            if el == level && e > c0 {
+                // Nothing before the entry shows at this level: start
+                // there (as a region would), or not at all when the ray
+                // ends first.
+                if e >= t1 && next_t >= t1 {
+                    return acc;
+                }
+                c0 = e.min(next_t);
+            }
+        }
         let (mut dt, mut inv_dt, mut exponent) = f.step[level];
         let mut track = f.track(level, ray, inv_dir, t1);
         let mut base_t = t0;

@@ -33,6 +33,7 @@
 pub mod budget;
 pub mod cpu;
 mod dvr;
+mod entry;
 pub mod gpu;
 pub mod image;
 mod lanes;

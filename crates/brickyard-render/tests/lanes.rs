@@ -1,11 +1,17 @@
-//! The CPU DVR's per-sample work in four lanes (`Scene::lanes`, the
-//! default) against its scalar twin (`lanes = false`) on random scenes:
-//! random volumes (u8, u16, f32; random sizes, smooth fields plus noise,
-//! some NaN in f32), transfer functions (random points, steps, clear
-//! stretches, random colour maps and presets), cameras (perspective and
-//! orthographic, any direction), sampling rates and engine bricks. Every
-//! complete frame equals the twin's within 1e-6 (the lanes do the scalar
-//! operations, so in fact bit for bit).
+//! Two switches of the CPU DVR that must not change the image, against
+//! their twins on random scenes:
+//!
+//! - the per-sample work in four lanes (`Scene::lanes`, the default)
+//!   against the scalar twin (`lanes = false`): random volumes (u8, u16,
+//!   f32; random sizes, smooth fields plus noise, some NaN in f32),
+//!   transfer functions (random points, steps, clear stretches, random
+//!   colour maps and presets), cameras (perspective and orthographic, any
+//!   direction), sampling rates and engine bricks. Every complete frame
+//!   equals the twin's within 1e-6 (the lanes do the scalar operations, so
+//!   in fact bit for bit);
+//! - entry depths (`Scene::entry_depths`, the default) against the walk
+//!   from the volume's face, on sparse random volumes with cameras outside
+//!   and inside them.
 
 use brickyard_cache::session::Session;
 use brickyard_cache::vm::VmConfig;
@@ -47,11 +53,6 @@ fn random_store(
     dims: [u64; 3],
     dtype: DType,
 ) -> (std::path::PathBuf, [f32; 2]) {
-    let (max, bytes): (f64, usize) = match dtype {
-        DType::U8 => (255.0, 1),
-        DType::U16 => (65535.0, 2),
-        _ => (1.0, 4),
-    };
     // A few random blobs and waves plus noise, scaled to the type's range.
     let blobs: Vec<[f64; 5]> = (0..4)
         .map(|_| {
@@ -70,6 +71,34 @@ fn random_store(
         rng.range(2.0, 12.0),
     ];
     let noise = rng.range(0.0, 0.2);
+    let field = move |p: [f64; 3], rng: &mut Rng| {
+        let mut v =
+            0.15 * ((p[0] * freq[0]).sin() * (p[1] * freq[1]).cos() + (p[2] * freq[2]).sin());
+        for b in &blobs {
+            let d2 = (p[0] - b[0]).powi(2) + (p[1] - b[1]).powi(2) + (p[2] - b[2]).powi(2);
+            v += b[4] * (-d2 / (b[3] * b[3])).exp();
+        }
+        v + noise * (rng.next() - 0.5)
+    };
+    store_of(dir, rng, dims, dtype, field)
+}
+
+/// A volume of `dims` (`[x, y, z]`) in `dtype` whose voxel at `p` (in
+/// `[0, 1)³`) is `field(p)` in `[0, 1]` scaled to the type's range, as a
+/// store in `dir` (random spacing, 16³ chunks); returns the store and the
+/// data's range.
+fn store_of(
+    dir: &Path,
+    rng: &mut Rng,
+    dims: [u64; 3],
+    dtype: DType,
+    mut field: impl FnMut([f64; 3], &mut Rng) -> f64,
+) -> (std::path::PathBuf, [f32; 2]) {
+    let (max, bytes): (f64, usize) = match dtype {
+        DType::U8 => (255.0, 1),
+        DType::U16 => (65535.0, 2),
+        _ => (1.0, 4),
+    };
     let mut data = Vec::with_capacity((dims[0] * dims[1] * dims[2]) as usize * bytes);
     for z in 0..dims[2] {
         for y in 0..dims[1] {
@@ -79,14 +108,7 @@ fn random_store(
                     y as f64 / dims[1] as f64,
                     z as f64 / dims[2] as f64,
                 ];
-                let mut v = 0.15
-                    * ((p[0] * freq[0]).sin() * (p[1] * freq[1]).cos() + (p[2] * freq[2]).sin());
-                for b in &blobs {
-                    let d2 = (p[0] - b[0]).powi(2) + (p[1] - b[1]).powi(2) + (p[2] - b[2]).powi(2);
-                    v += b[4] * (-d2 / (b[3] * b[3])).exp();
-                }
-                v += noise * (rng.next() - 0.5);
-                let v = v.clamp(0.0, 1.0) * max;
+                let v = field(p, rng).clamp(0.0, 1.0) * max;
                 match dtype {
                     DType::U8 => data.push(v.round() as u8),
                     DType::U16 => data.extend_from_slice(&(v.round() as u16).to_le_bytes()),
@@ -255,5 +277,139 @@ fn lanes_equal_the_scalar_twin_on_random_scenes() {
     assert!(
         lit_scenes >= 8,
         "only {lit_scenes} of 12 scenes show something"
+    );
+}
+
+/// A sparse random volume: a few small balls whose value falls from the
+/// centre, on a faint noisy background.
+fn sparse_store(
+    dir: &Path,
+    rng: &mut Rng,
+    dims: [u64; 3],
+    dtype: DType,
+) -> (std::path::PathBuf, [f32; 2]) {
+    let balls: Vec<[f64; 4]> = (0..rng.int(2, 6))
+        .map(|_| [rng.next(), rng.next(), rng.next(), rng.range(0.1, 0.3)])
+        .collect();
+    let field = move |p: [f64; 3], rng: &mut Rng| {
+        let mut v = 0.1 * rng.next();
+        for b in &balls {
+            let d = ((p[0] - b[0]).powi(2) + (p[1] - b[1]).powi(2) + (p[2] - b[2]).powi(2)).sqrt();
+            v = v.max(1.0 - d / b[3]);
+        }
+        v
+    };
+    store_of(dir, rng, dims, dtype, field)
+}
+
+/// Entry depths (`Scene::entry_depths`, the default) change no pixel: on
+/// random scenes, cameras outside and inside the volume, fixed and
+/// automatic levels, complete frames with and without them are equal
+/// within 1e-6 (runs start at other steps, so positions differ by the
+/// fixed point's rounding), rays walk fewer steps with them, and a frame
+/// with them marks at least the pool slots the walk marks (the bricks rays
+/// now pass before their entry are marked by the pre-pass).
+#[test]
+fn entry_depths_change_no_pixel_on_random_scenes() {
+    let dir = tempfile::tempdir().unwrap();
+    let mut rng = Rng(0x0e47_12d5);
+    let (mut lit_scenes, mut steps_with, mut steps_without) = (0, 0u64, 0u64);
+    for scene_no in 0..12 {
+        let dtype = [DType::U8, DType::U16, DType::F32][scene_no % 3];
+        let dims = [0; 3].map(|_| rng.int(40, 90));
+        let (store, range) = sparse_store(dir.path(), &mut rng, dims, dtype);
+        let brick = [16, 32][rng.int(0, 1) as usize];
+        let cfg = VmConfig {
+            brick: [brick; 3],
+            apron: 1,
+            pool_bytes: 64 << 20,
+            ..Default::default()
+        };
+        let mut s = Session::open(&store, cfg, 16 << 20, 2).unwrap();
+        let pyramid: Vec<Volume> = (0..)
+            .map_while(|l| Volume::from_store(&store, l, 0).ok())
+            .collect();
+        let extent = world_extent(dims, pyramid[0].spacing);
+        let mut scene = Scene::new(extent, pyramid.iter().map(|v| v.dims).collect());
+        if rng.next() < 0.7 {
+            scene.ranges = Some(std::sync::Arc::new(s.loader().brick_ranges(1 << 20)));
+        }
+        // Only the blobs' cores show: space to skip around them.
+        let (lo, width) = (range[0] as f64, (range[1] - range[0]) as f64);
+        let w0 = lo + width * rng.range(0.15, 0.5);
+        let tf = TransferFunction::new(
+            [w0 as f32, (w0 + width * rng.range(0.1, 0.5)) as f32],
+            vec![
+                [0.0, 0.0],
+                [rng.range(0.02, 0.2) as f32, 0.0],
+                [rng.range(0.2, 0.6) as f32, rng.range(0.3, 0.9) as f32],
+                [1.0, rng.range(0.2, 1.0) as f32],
+            ],
+            ColorMap::Preset([Preset::Hot, Preset::Viridis][scene_no % 2]),
+        )
+        .unwrap();
+        let proj = if scene_no % 4 == 3 {
+            Projection::Orthographic {
+                height: extent.iter().cloned().fold(0.0, f64::max) * rng.range(0.8, 1.6),
+            }
+        } else {
+            Projection::Perspective {
+                fov_y_deg: rng.range(20.0, 60.0),
+            }
+        };
+        let cam = if scene_no % 4 == 1 {
+            // The eye inside the volume: boxes behind it and beside it.
+            let eye = [0, 1, 2].map(|a| extent[a] * rng.range(0.2, 0.8));
+            let target = [0, 1, 2].map(|a| extent[a] * rng.next());
+            Camera::look_at(eye, target, [0.0, 0.0, 1.0], proj)
+        } else {
+            Camera::fit(
+                extent,
+                rng.range(-180.0, 180.0),
+                rng.range(-80.0, 80.0),
+                proj,
+            )
+        };
+        let mut p = RenderParams::new(64, 48, cam, tf, RenderMode::Dvr);
+        p.samples_per_voxel = [1.0, 0.5, 2.0, 1.7][rng.int(0, 3) as usize];
+        let lod = if rng.next() < 0.6 {
+            Lod::Fixed(0)
+        } else {
+            Lod::Auto {
+                bias: rng.range(-1.0, 1.5),
+            }
+        };
+        let img = converge(&mut s, &scene, &p, lod);
+        let mut walk = scene.clone();
+        walk.entry_depths = false;
+        let mut frame = |sc: &Scene| {
+            s.begin_frame();
+            let (img, st, reqs) = render_frame(s.vm(), sc, &p, lod);
+            let slots = s.finish_frame(reqs.iter()).frame.exact_slots;
+            assert_eq!(st.completeness(), 1.0);
+            (img, st, slots)
+        };
+        let (want, st_walk, slots_walk) = frame(&walk);
+        let (got, st, slots) = frame(&scene);
+        let diff = got.max_abs_diff(&want).max(img.max_abs_diff(&want));
+        assert!(
+            diff <= 1e-6,
+            "scene {scene_no} ({dtype:?}, {dims:?}, {lod:?}): max abs diff {diff}"
+        );
+        assert!(
+            slots >= slots_walk,
+            "scene {scene_no}: {slots} slots marked, the walk marks {slots_walk}"
+        );
+        steps_with += st.steps;
+        steps_without += st_walk.steps;
+        lit_scenes += (img.coverage(0.01) > 0.02) as u32;
+    }
+    assert!(
+        lit_scenes >= 8,
+        "only {lit_scenes} of 12 scenes show something"
+    );
+    assert!(
+        steps_with * 2 < steps_without,
+        "{steps_with} steps with entry depths, {steps_without} without"
     );
 }

@@ -1,0 +1,431 @@
+//! Entry depths for the CPU DVR: per pixel, the ray parameter before which
+//! its ray meets nothing that could show, found for the whole frame at
+//! once before any ray is walked.
+//!
+//! A DVR ray spends most of its walk getting to where the volume shows:
+//! landing past transparent bricks and jumping clear cells, one brick and
+//! one cell at a time, before the handful of samples that end it. Here the
+//! parts of the level rays start at that may show something — each cell of
+//! a resident brick that the transfer function does not hide, each brick
+//! that is not resident (the walk falls back to stand-ins and requests it
+//! there), never a brick its value range hides — become boxes in world
+//! space. Each box is projected to the screen and binned by tile; per pixel
+//! the nearest hit over the boxes of its tile is its *entry*. The walk then
+//! starts a step or so before the entry (see `Walker::dvr`): every step
+//! before it has its voxel base in a clear cell or a hidden brick, which
+//! the walk would have crossed without sampling anyway, so the image is
+//! the same bits. A ray that meets no box over its whole span at that
+//! level is done at once.
+//!
+//! Boxes are the sampler's: the samples whose voxel base lies in a cell's
+//! voxels `[lo, hi)` are the world points with `q = w·scale − ½` in that
+//! range, widened by a thousandth of a voxel for rounding and to the
+//! volume's faces where the sampler clamps. Rays are the renderer's own
+//! (`ViewRays::pixel_ray`), so entries are on the same parameter.
+//!
+//! The walk marks the bricks it passes through as used this frame (the
+//! pool's replacement keeps them). Bricks that rays now pass before their
+//! entry — resident ones crossed through clear cells, and bricks of one
+//! hidden value — are marked here instead ([`Entries::mark_passed`]), as
+//! the walk would, so that a pool smaller than the view still converges.
+
+use crate::cpu::{Tiles, TILE_H, TILE_W};
+use crate::walk::Frame;
+use brickyard_cache::brick::BrickKey;
+use brickyard_cache::vm::BrickRef;
+use brickyard_core::camera::{intersect_box_inv, Projection, Ray, Vec3};
+use brickyard_core::views::ViewRays;
+use brickyard_core::Dims3;
+use rayon::prelude::*;
+
+/// Most bricks of the level rays start at that a frame looks at; beyond,
+/// rays walk from the volume's face as before.
+const MAX_BRICKS: u64 = 1 << 15;
+/// Most boxes (cells and bricks) a frame bins; beyond, the same.
+const MAX_BOXES: usize = 1 << 18;
+/// Widening of each box, in voxels, for the rounding of the sampler's
+/// coordinates (far below it: 1e-7 voxel for runs of 1000 steps).
+const MARGIN: f64 = 1e-3;
+
+/// A box in world coordinates `[x, y, z]` and the pixels it may cover.
+struct Box3 {
+    lo: Vec3,
+    hi: Vec3,
+    /// No ray parameter in the box is smaller.
+    near: f64,
+    /// Pixel rectangle `[x0, y0, x1, y1)`, clipped to the image.
+    rect: [u32; 4],
+}
+
+/// A brick that rays may pass through before their entry and that the
+/// walk would have marked as used: its box and pixels.
+struct Passable {
+    brick: Dims3,
+    bx: Box3,
+}
+
+/// Entry depths of a frame's pixels at one level.
+pub(crate) struct Entries {
+    /// The level the boxes are of; rays starting at another level walk from
+    /// their start.
+    pub(crate) level: usize,
+    width: usize,
+    /// Per pixel, row-major: the entry rounded down to f32 (`+∞`: nothing
+    /// on the ray; `−∞`: not computed, the tile is not drawn).
+    depth: Vec<f32>,
+    passable: Vec<Passable>,
+}
+
+impl Entries {
+    /// The entry of pixel `(i, j)`: no sample before it may show.
+    #[inline]
+    pub(crate) fn at(&self, i: usize, j: usize) -> f64 {
+        self.depth[j * self.width + i] as f64
+    }
+
+    /// Entries of the pixels of `tiles` still to draw, for a one-channel
+    /// DVR through the page tables of frame `f` with rays `rg`; `None`
+    /// when the level rays start at has too many bricks or boxes for a
+    /// pre-pass to pay.
+    pub(crate) fn new(f: &Frame, rg: &ViewRays, tiles: &Tiles) -> Option<Entries> {
+        let params = f.params;
+        let (w, h) = (params.width as usize, params.height as usize);
+        let level = f.level_at(near_distance(f));
+        let nb = f.bricks[level];
+        if nb.iter().product::<u64>() > MAX_BRICKS {
+            return None;
+        }
+        let proj = Projector::new(f);
+        let hidden = f.transparent[level].as_deref();
+        let scale = f.scale[level];
+        let dims = f.dims[level];
+        let extent = f.scene.extent;
+        // The sampler's world box of the voxel bases `[lo, hi)`.
+        let world = |lo: Dims3, hi: Dims3| -> (Vec3, Vec3) {
+            let mut a = [0.0; 3];
+            let mut b = [0.0; 3];
+            for ax in 0..3 {
+                let z = 2 - ax;
+                let s = scale[z];
+                a[ax] = if lo[z] == 0 {
+                    -MARGIN / s
+                } else {
+                    (lo[z] as f64 + 0.5 - MARGIN) / s
+                };
+                b[ax] = if hi[z] >= dims[z] {
+                    extent[ax] + MARGIN / s
+                } else {
+                    (hi[z] as f64 + 0.5 + MARGIN) / s
+                };
+            }
+            (a, b)
+        };
+        // The box of voxel bases `[lo, hi)` placed on the screen.
+        let place = |lo: Dims3, hi: Dims3| {
+            let (a, c) = world(lo, hi);
+            proj.place(a, c)
+        };
+        // Per slab of bricks along z, in parallel.
+        let slab = |bz: u64| {
+            let mut boxes: Vec<Box3> = Vec::new();
+            let mut passable = Vec::new();
+            for by in 0..nb[1] {
+                for bx in 0..nb[2] {
+                    let b = [bz, by, bx];
+                    let i = ((bz * nb[1] + by) * nb[2] + bx) as usize;
+                    if hidden.is_some_and(|t| t[i]) {
+                        continue;
+                    }
+                    let lo = [0, 1, 2].map(|a| b[a] * f.brick[a]);
+                    let hi = [0, 1, 2].map(|a| (lo[a] + f.brick[a]).min(dims[a]));
+                    let key = BrickKey::new(
+                        level as u8,
+                        f.scene.channel as u16,
+                        [bz as u32, by as u32, bx as u32],
+                    );
+                    // Whether rays may pass through the brick without
+                    // sampling it (clear cells, or one hidden value).
+                    let pass = match f.vm.peek(key) {
+                        BrickRef::Data { slot, .. } if f.scene.skip_cells => {
+                            let cells = f.vm.cell_ranges(slot);
+                            let shows = |&[vlo, vhi]: &[f32; 2]| f.tf_eval.range_visible(vlo, vhi);
+                            if cells.iter().all(shows) {
+                                // One box for the brick, not one per cell.
+                                boxes.extend(place(lo, hi));
+                                false
+                            } else {
+                                for (c, r) in cells.iter().enumerate() {
+                                    let (clo, chi) = f.cell_box(c, lo, hi);
+                                    // (Cells past a brick cut by the
+                                    // volume's faces hold no voxels.)
+                                    if shows(r) && (0..3).all(|a| clo[a] < chi[a]) {
+                                        boxes.extend(place(clo, chi));
+                                    }
+                                }
+                                true
+                            }
+                        }
+                        r @ (BrickRef::Empty | BrickRef::Constant(_)) => {
+                            let v = match r {
+                                BrickRef::Constant(v) => v,
+                                _ => 0.0,
+                            };
+                            let hides = f.tf.lookup_visible(v).is_none();
+                            if !hides {
+                                boxes.extend(place(lo, hi));
+                            }
+                            hides
+                        }
+                        _ => {
+                            boxes.extend(place(lo, hi));
+                            false
+                        }
+                    };
+                    if pass {
+                        if let Some(bx) = place(lo, hi) {
+                            passable.push(Passable { brick: b, bx });
+                        }
+                    }
+                }
+            }
+            (boxes, passable)
+        };
+        let slabs: Vec<(Vec<Box3>, Vec<Passable>)> = (0..nb[0]).into_par_iter().map(slab).collect();
+        if slabs.iter().map(|s| s.0.len()).sum::<usize>() > MAX_BOXES {
+            return None;
+        }
+        let (mut boxes, mut passable) = (Vec::new(), Vec::new());
+        for (b, p) in slabs {
+            boxes.extend(b);
+            passable.extend(p);
+        }
+        // Nearest first: a pixel whose entry is already nearer than a
+        // box's nearest point skips its test.
+        boxes.sort_unstable_by(|a, b| a.near.total_cmp(&b.near));
+        // Boxes by tile (tiles to draw only).
+        let tiles_x = w.div_ceil(TILE_W);
+        let tiles_y = h.div_ceil(TILE_H);
+        let mut bins: Vec<Vec<u32>> = vec![Vec::new(); tiles_x * tiles_y];
+        for (n, b) in boxes.iter().enumerate() {
+            let [x0, y0, x1, y1] = b.rect;
+            for ty in y0 as usize / TILE_H..=(y1 as usize - 1) / TILE_H {
+                for tx in x0 as usize / TILE_W..=(x1 as usize - 1) / TILE_W {
+                    let t = ty * tiles_x + tx;
+                    if tiles.redo[t] {
+                        bins[t].push(n as u32);
+                    }
+                }
+            }
+        }
+        let mut depth = vec![f32::NEG_INFINITY; w * h];
+        depth
+            .par_chunks_mut(w * TILE_H)
+            .enumerate()
+            .for_each(|(ty, rows)| {
+                let nrows = rows.len() / w;
+                let mut rays: Vec<(Ray, Vec3, f64)> = Vec::with_capacity(TILE_W * TILE_H);
+                for tx in 0..tiles_x {
+                    let t = ty * tiles_x + tx;
+                    if !tiles.redo[t] {
+                        continue;
+                    }
+                    let x0 = tx * TILE_W;
+                    let tw = TILE_W.min(w - x0);
+                    rays.clear();
+                    for r in 0..nrows {
+                        for i in x0..x0 + tw {
+                            let ray = rg.pixel_ray(i as u32, (ty * TILE_H + r) as u32);
+                            let d = ray.dir;
+                            rays.push((ray, [1.0 / d[0], 1.0 / d[1], 1.0 / d[2]], f64::INFINITY));
+                        }
+                    }
+                    for (m, &n) in bins[t].iter().enumerate() {
+                        let b = &boxes[n as usize];
+                        // Every pixel's entry nearer than this box (and so
+                        // than every box after it): the tile is done.
+                        if m % 8 == 7 && rays.iter().all(|r| r.2 <= b.near) {
+                            break;
+                        }
+                        let [bx0, by0, bx1, by1] = b.rect;
+                        let (px0, px1) = ((bx0 as usize).max(x0), (bx1 as usize).min(x0 + tw));
+                        let y_lo = (by0 as usize).max(ty * TILE_H);
+                        let y_hi = (by1 as usize).min(ty * TILE_H + nrows);
+                        for y in y_lo..y_hi {
+                            let row = (y - ty * TILE_H) * tw;
+                            for x in px0..px1 {
+                                let (ray, inv, best) = &mut rays[row + x - x0];
+                                if *best <= b.near {
+                                    continue;
+                                }
+                                if let Some((tn, _)) = intersect_box_inv(ray, *inv, b.lo, b.hi) {
+                                    if tn < *best {
+                                        *best = tn;
+                                    }
+                                }
+                            }
+                        }
+                    }
+                    for r in 0..nrows {
+                        for x in 0..tw {
+                            rows[r * w + x0 + x] = down(rays[r * tw + x].2);
+                        }
+                    }
+                }
+            });
+        Some(Entries {
+            level,
+            width: w,
+            depth,
+            passable,
+        })
+    }
+
+    /// Mark as used, as the walk would have, every brick that some drawn
+    /// pixel's ray passes through before its entry. Bricks of one value
+    /// and resident bricks crossed through their clear cells are the ones
+    /// the walk looked up there and rays now skip.
+    pub(crate) fn mark_passed(&self, f: &Frame, rg: &ViewRays) {
+        self.passable.par_iter().for_each(|p| {
+            let near = p.bx.near;
+            let [x0, y0, x1, y1] = p.bx.rect;
+            'px: for j in y0..y1 {
+                for i in x0..x1 {
+                    let e = self.at(i as usize, j as usize);
+                    if e <= near {
+                        continue;
+                    }
+                    let ray = rg.pixel_ray(i, j);
+                    let d = ray.dir;
+                    let inv = [1.0 / d[0], 1.0 / d[1], 1.0 / d[2]];
+                    if let Some((tn, _)) = intersect_box_inv(&ray, inv, p.bx.lo, p.bx.hi) {
+                        if tn < e {
+                            f.vm.brick(self.level, f.scene.channel, p.brick, true);
+                            break 'px;
+                        }
+                    }
+                }
+            }
+        });
+    }
+}
+
+/// Corner `c` (bits x, y, z: 0 low, 1 high) of the box `[lo, hi]`.
+fn corner(lo: Vec3, hi: Vec3, c: usize) -> Vec3 {
+    [
+        if c & 1 == 0 { lo[0] } else { hi[0] },
+        if c & 2 == 0 { lo[1] } else { hi[1] },
+        if c & 4 == 0 { lo[2] } else { hi[2] },
+    ]
+}
+
+/// Distance from `p` to the box `[lo, hi]` (0 inside).
+fn distance(p: Vec3, lo: Vec3, hi: Vec3) -> f64 {
+    let mut d2 = 0.0;
+    for a in 0..3 {
+        let c = p[a].clamp(lo[a], hi[a]);
+        d2 += (p[a] - c) * (p[a] - c);
+    }
+    d2.sqrt()
+}
+
+/// `t` rounded down to an f32 (an entry may come early, never late).
+fn down(t: f64) -> f32 {
+    let e = t as f32;
+    if e as f64 > t {
+        e.next_down()
+    } else {
+        e
+    }
+}
+
+/// Distance from the eye to the volume's box (0 inside): the smallest ray
+/// parameter of any sample, where the level rays start at is decided.
+fn near_distance(f: &Frame) -> f64 {
+    distance(f.params.camera.eye, [0.0; 3], f.scene.extent)
+}
+
+/// The camera's projection to pixel positions (as `Camera::project`, with
+/// the frame computed once).
+struct Projector {
+    eye: Vec3,
+    right: Vec3,
+    up: Vec3,
+    forward: Vec3,
+    /// Perspective: `tan(fov_y / 2)`; orthographic: half the view height.
+    half_h: f64,
+    perspective: bool,
+    w: f64,
+    h: f64,
+}
+
+impl Projector {
+    fn new(f: &Frame) -> Projector {
+        let cam = &f.params.camera;
+        let b = cam.basis();
+        let (half_h, perspective) = match cam.projection {
+            Projection::Perspective { fov_y_deg } => ((fov_y_deg * 0.5).to_radians().tan(), true),
+            Projection::Orthographic { height } => (height * 0.5, false),
+        };
+        Projector {
+            eye: cam.eye,
+            right: b.right,
+            up: b.up,
+            forward: b.forward,
+            half_h,
+            perspective,
+            w: f.params.width as f64,
+            h: f.params.height as f64,
+        }
+    }
+
+    /// The box `[lo, hi]` on the screen: the pixels whose centres may
+    /// see it, the rectangle of its projected corners a pixel wider on
+    /// each side, clipped to the image (the whole image when a corner lies
+    /// on or behind the eye's plane), and the smallest ray parameter in it
+    /// (perspective: its distance from the eye; orthographic: from the
+    /// eye's plane); `None` when no pixel may see it.
+    fn place(&self, lo: Vec3, hi: Vec3) -> Option<Box3> {
+        let mut near = f64::INFINITY;
+        let (mut x0, mut y0, mut x1, mut y1) = (f64::MAX, f64::MAX, f64::MIN, f64::MIN);
+        for c in 0..8 {
+            let p = corner(lo, hi, c);
+            let v = [p[0] - self.eye[0], p[1] - self.eye[1], p[2] - self.eye[2]];
+            let dot = |b: Vec3| v[0] * b[0] + v[1] * b[1] + v[2] * b[2];
+            let (x, y, z) = (dot(self.right), dot(self.up), dot(self.forward));
+            near = near.min(z);
+            let (sx, sy) = if self.perspective {
+                if z <= 1e-9 {
+                    (x0, y0, x1, y1) = (f64::MIN, f64::MIN, f64::MAX, f64::MAX);
+                    break;
+                }
+                (x / z, y / z)
+            } else {
+                (x, y)
+            };
+            let px = (sx / (self.half_h * self.w / self.h) + 1.0) * 0.5 * self.w;
+            let py = (1.0 - sy / self.half_h) * 0.5 * self.h;
+            x0 = x0.min(px);
+            x1 = x1.max(px);
+            y0 = y0.min(py);
+            y1 = y1.max(py);
+        }
+        // Pixel i's centre is i + ½: i from ⌈x0 − ½⌉ to ⌊x1 − ½⌋, a pixel
+        // more each way.
+        let clip = |v: f64, n: f64| v.clamp(0.0, n) as u32;
+        let r = [
+            clip((x0 - 0.5).ceil() - 1.0, self.w),
+            clip((y0 - 0.5).ceil() - 1.0, self.h),
+            clip((x1 - 0.5).floor() + 2.0, self.w),
+            clip((y1 - 0.5).floor() + 2.0, self.h),
+        ];
+        if self.perspective {
+            near = distance(self.eye, lo, hi);
+        }
+        (r[0] < r[2] && r[1] < r[3]).then_some(Box3 {
+            lo,
+            hi,
+            near,
+            rect: r,
+        })
+    }
+}
