@@ -154,11 +154,17 @@ impl Entries {
                                 boxes.extend(place(lo, hi));
                                 false
                             } else {
+                                let mut show = 0u64;
                                 for (c, r) in cells.iter().enumerate() {
-                                    let (clo, chi) = f.cell_box(c, lo, hi);
+                                    show |= (shows(r) as u64) << c;
+                                }
+                                let (n, e) = (f.cells.count, f.cells.edge);
+                                for (c0, c1) in merge_cells(n, show) {
+                                    let clo = [0, 1, 2].map(|a| lo[a] + c0[a] * e[a]);
+                                    let chi = [0, 1, 2].map(|a| (lo[a] + c1[a] * e[a]).min(hi[a]));
                                     // (Cells past a brick cut by the
                                     // volume's faces hold no voxels.)
-                                    if shows(r) && (0..3).all(|a| clo[a] < chi[a]) {
+                                    if (0..3).all(|a| clo[a] < chi[a]) {
                                         boxes.extend(place(clo, chi));
                                     }
                                 }
@@ -309,6 +315,52 @@ impl Entries {
     }
 }
 
+/// The cells whose bit is set in `show` (cells of a brick, `count` per
+/// axis `[z, y, x]`, in [`CellGrid`] order) as fewer boxes, each the union
+/// of the cells in it: from each cell not yet taken, a run along x, grown
+/// along y while whole rows of cells not yet taken follow, then along z
+/// while whole such rectangles follow. Returns cell ranges `[c0, c1)`.
+///
+/// [`CellGrid`]: brickyard_cache::cells::CellGrid
+fn merge_cells(count: Dims3, show: u64) -> Vec<(Dims3, Dims3)> {
+    let [nz, ny, nx] = count;
+    let bit = |z: u64, y: u64, x: u64| (z * ny + y) * nx + x;
+    let mut left = show;
+    let has = |left: u64, z: u64, y: u64, x: u64| left >> bit(z, y, x) & 1 != 0;
+    let mut out = Vec::new();
+    for z in 0..nz {
+        for y in 0..ny {
+            for x in 0..nx {
+                if !has(left, z, y, x) {
+                    continue;
+                }
+                let mut x1 = x + 1;
+                while x1 < nx && has(left, z, y, x1) {
+                    x1 += 1;
+                }
+                let row = |left: u64, z: u64, y: u64| (x..x1).all(|i| has(left, z, y, i));
+                let mut y1 = y + 1;
+                while y1 < ny && row(left, z, y1) {
+                    y1 += 1;
+                }
+                let mut z1 = z + 1;
+                while z1 < nz && (y..y1).all(|j| row(left, z1, j)) {
+                    z1 += 1;
+                }
+                for k in z..z1 {
+                    for j in y..y1 {
+                        for i in x..x1 {
+                            left &= !(1 << bit(k, j, i));
+                        }
+                    }
+                }
+                out.push(([z, y, x], [z1, y1, x1]));
+            }
+        }
+    }
+    out
+}
+
 /// Corner `c` (bits x, y, z: 0 low, 1 high) of the box `[lo, hi]`.
 fn corner(lo: Vec3, hi: Vec3, c: usize) -> Vec3 {
     [
@@ -427,5 +479,51 @@ impl Projector {
             near,
             rect: r,
         })
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// Merged boxes cover exactly the cells set, each once, for random
+    /// masks on grids of 1–4 cells per axis.
+    #[test]
+    fn merged_cells_cover_the_cells_set_once() {
+        let mut r = 0x9e37_79b9_7f4a_7c15u64;
+        let mut merged_some = 0;
+        for n in 0..4000 {
+            r ^= r << 13;
+            r ^= r >> 7;
+            r ^= r << 17;
+            let count = [1 + r % 4, 1 + (r >> 8) % 4, 1 + (r >> 16) % 4];
+            let cells = count.iter().product::<u64>();
+            let dense = n % 3;
+            let mut show = 0u64;
+            for c in 0..cells {
+                r ^= r << 13;
+                r ^= r >> 7;
+                r ^= r << 17;
+                if r % 4 < 1 + dense {
+                    show |= 1 << c;
+                }
+            }
+            let boxes = merge_cells(count, show);
+            let mut covered = 0u64;
+            for (c0, c1) in &boxes {
+                for z in c0[0]..c1[0] {
+                    for y in c0[1]..c1[1] {
+                        for x in c0[2]..c1[2] {
+                            let b = 1u64 << ((z * count[1] + y) * count[2] + x);
+                            assert_eq!(covered & b, 0, "{count:?} {show:#x}: cell twice");
+                            covered |= b;
+                        }
+                    }
+                }
+            }
+            assert_eq!(covered, show, "{count:?}");
+            merged_some += (boxes.len() < show.count_ones() as usize) as u32;
+        }
+        assert!(merged_some > 1000, "{merged_some}");
     }
 }
