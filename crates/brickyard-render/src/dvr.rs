@@ -145,11 +145,19 @@ impl<'f, 'a, T: Sample> Walker<'f, 'a, T> {
                 let mut run = Run::new(f, level, &track, w, lo, hi);
                 let (mut n, mut passed) = (0u64, 0u64);
                 let mut j = k - 1;
+                // Every step of the run inside the clamp's bounds (most
+                // runs; rounding may put a face step just outside): no
+                // clamps per step.
+                let interior = run.interior(end.saturating_sub(j));
                 let done = loop {
                     if j >= end {
                         break false;
                     }
-                    let (u, fr) = run.current();
+                    let (u, fr) = if interior {
+                        run.current_unclamped()
+                    } else {
+                        run.current()
+                    };
                     let cell = f.cell_of(u);
                     if clear >> cell & 1 != 0 {
                         // A cell whose samples are all transparent: on to

@@ -113,6 +113,33 @@ impl Run {
         }
     }
 
+    /// Whether the next `steps` steps (from the current one) all lie within
+    /// the clamp's bounds, so that [`current_unclamped`](Self::current_unclamped)
+    /// gives what [`current`](Self::current) does for each (the coordinate
+    /// moves monotonically along each axis: its ends decide).
+    #[inline(always)]
+    pub(crate) fn interior(&self, steps: u64) -> bool {
+        let n = steps.saturating_sub(1).min(1 << 20) as i64;
+        (0..3).all(|a| {
+            let (q0, q1) = (self.q[a], self.q[a] + self.dq[a] * n);
+            q0 >= 0 && q0 <= self.qhi[a] && q1 >= 0 && q1 <= self.qhi[a]
+        })
+    }
+
+    /// [`current`](Self::current) for a step known to lie within the
+    /// clamp's bounds ([`interior`](Self::interior)).
+    #[inline(always)]
+    pub(crate) fn current_unclamped(&self) -> (Dims3, [f32; 3]) {
+        let mut u = [0u64; 3];
+        let mut fr = [0f32; 3];
+        for a in 0..3 {
+            let q = self.q[a];
+            u[a] = (q >> 32) as u64;
+            fr[a] = (q & FRAC) as f32 * (1.0 / FIX as f32);
+        }
+        (u, fr)
+    }
+
     /// The current step's voxel base in the brick (apron excluded) and its
     /// fractions.
     #[inline(always)]
@@ -249,6 +276,39 @@ mod tests {
                 assert_eq!(run.current(), want, "brick {b:?} q {qa:?}");
             }
         }
+    }
+
+    /// Where `Run::interior` says a run's steps lie within the clamp's
+    /// bounds, `current_unclamped` equals `current` at every one of them;
+    /// runs that start or end just outside a face are not interior.
+    #[test]
+    fn interior_runs_need_no_clamp() {
+        let mut rnd = uniform(41);
+        let (mut interior, mut outside) = (0, 0);
+        for _ in 0..20_000 {
+            let last = [31i64, 31, 15];
+            let qhi = last.map(|l| (l << 32) | FRAC);
+            let steps = 1 + (rnd() * 60.0) as u64;
+            let mut run = Run {
+                q: [0, 1, 2].map(|a| ((rnd() * 1.1 - 0.05) * (qhi[a] as f64)) as i64),
+                dq: [0; 3].map(|_| ((rnd() - 0.5) * 0.6 * FIX) as i64),
+                qhi,
+                last,
+            };
+            if !run.interior(steps) {
+                outside += 1;
+                continue;
+            }
+            interior += 1;
+            for _ in 0..steps {
+                assert_eq!(run.current_unclamped(), run.current(), "{:?}", run.q);
+                run.advance(1);
+            }
+        }
+        assert!(
+            interior > 5_000 && outside > 5_000,
+            "{interior} / {outside}"
+        );
     }
 
     /// `Run::cross_cell` against stepping where the fixed-point coordinate
