@@ -456,7 +456,7 @@ fn render_typed<T: Sample>(
                                 RenderMode::Dvr => {
                                     let entry =
                                         entries.as_ref().map(|e| (e.level, e.at(i, j as usize)));
-                                    walkers[0].dvr(&ray, entry, &mut req, &mut st)
+                                    walkers[0].dvr((&ray, entry), (&mut req, &mut st))
                                 }
                                 RenderMode::Mip if multi => mip::channels_pixel(
                                     &mut walkers,

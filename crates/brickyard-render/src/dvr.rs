@@ -24,10 +24,8 @@ impl<'f, 'a, T: Sample> Walker<'f, 'a, T> {
     /// walk starts a step or so before it.
     pub(crate) fn dvr(
         &mut self,
-        ray: &Ray,
-        entry: Option<(usize, f64)>,
-        req: &mut Requests,
-        st: &mut FrameStats,
+        (ray, entry): (&Ray, Option<(usize, f64)>),
+        (req, st): (&mut Requests, &mut FrameStats),
     ) -> [f32; 4] {
         if self.f.scene.lanes {
             self.dvr_in::<true>(ray, entry, req, st)

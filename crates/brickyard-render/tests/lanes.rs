@@ -196,6 +196,64 @@ fn random_tf(rng: &mut Rng, r: [f32; 2]) -> TransferFunction {
     TransferFunction::new([w0 as f32, w1 as f32], opacity, colormap).unwrap()
 }
 
+/// A session on `store` (`dims` voxels, `[x, y, z]`) with engine bricks of
+/// `brick`, and its scene: with the brick ranges seven times in ten.
+fn open_scene(
+    store: &Path,
+    dims: [u64; 3],
+    brick: u64,
+    rng: &mut Rng,
+) -> (Session, Scene, [f64; 3]) {
+    let cfg = VmConfig {
+        brick: [brick; 3],
+        apron: 1,
+        pool_bytes: 64 << 20,
+        ..Default::default()
+    };
+    let s = Session::open(store, cfg, 16 << 20, 2).unwrap();
+    let pyramid: Vec<Volume> = (0..)
+        .map_while(|l| Volume::from_store(store, l, 0).ok())
+        .collect();
+    let extent = world_extent(dims, pyramid[0].spacing);
+    let mut scene = Scene::new(extent, pyramid.iter().map(|v| v.dims).collect());
+    if rng.next() < 0.7 {
+        scene.ranges = Some(std::sync::Arc::new(s.loader().brick_ranges(1 << 20)));
+    }
+    (s, scene, extent)
+}
+
+/// A camera fitted to `extent` from a random direction.
+fn orbit(rng: &mut Rng, extent: [f64; 3], proj: Projection) -> Camera {
+    Camera::fit(
+        extent,
+        rng.range(-180.0, 180.0),
+        rng.range(-80.0, 80.0),
+        proj,
+    )
+}
+
+/// A 64×48 DVR through `cam` and `tf` at a random sampling rate, and its
+/// level of detail: level 0 with probability `fixed`, else automatic with
+/// a bias from −1 to `bias_hi`.
+fn random_view(
+    rng: &mut Rng,
+    cam: Camera,
+    tf: TransferFunction,
+    fixed: f64,
+    bias_hi: f64,
+) -> (RenderParams, Lod) {
+    let mut p = RenderParams::new(64, 48, cam, tf, RenderMode::Dvr);
+    p.samples_per_voxel = [1.0, 0.5, 2.0, 1.7][rng.int(0, 3) as usize];
+    let lod = if rng.next() < fixed {
+        Lod::Fixed(0)
+    } else {
+        Lod::Auto {
+            bias: rng.range(-1.0, bias_hi),
+        }
+    };
+    (p, lod)
+}
+
 /// Frames until complete.
 fn converge(s: &mut Session, scene: &Scene, p: &RenderParams, lod: Lod) -> Image {
     for _ in 0..400 {
@@ -220,21 +278,7 @@ fn lanes_equal_the_scalar_twin_on_random_scenes() {
         let dims = [0; 3].map(|_| rng.int(20, 56));
         let (store, range) = random_store(dir.path(), &mut rng, dims, dtype);
         let brick = [8, 16][rng.int(0, 1) as usize];
-        let cfg = VmConfig {
-            brick: [brick; 3],
-            apron: 1,
-            pool_bytes: 64 << 20,
-            ..Default::default()
-        };
-        let mut s = Session::open(&store, cfg, 16 << 20, 2).unwrap();
-        let pyramid: Vec<Volume> = (0..)
-            .map_while(|l| Volume::from_store(&store, l, 0).ok())
-            .collect();
-        let extent = world_extent(dims, pyramid[0].spacing);
-        let mut scene = Scene::new(extent, pyramid.iter().map(|v| v.dims).collect());
-        if rng.next() < 0.7 {
-            scene.ranges = Some(std::sync::Arc::new(s.loader().brick_ranges(1 << 20)));
-        }
+        let (mut s, scene, extent) = open_scene(&store, dims, brick, &mut rng);
         let tf = random_tf(&mut rng, range);
         let proj = if rng.next() < 0.7 {
             Projection::Perspective {
@@ -245,21 +289,8 @@ fn lanes_equal_the_scalar_twin_on_random_scenes() {
                 height: extent.iter().cloned().fold(0.0, f64::max) * rng.range(0.8, 1.6),
             }
         };
-        let cam = Camera::fit(
-            extent,
-            rng.range(-180.0, 180.0),
-            rng.range(-80.0, 80.0),
-            proj,
-        );
-        let mut p = RenderParams::new(64, 48, cam, tf, RenderMode::Dvr);
-        p.samples_per_voxel = [1.0, 0.5, 2.0, 1.7][rng.int(0, 3) as usize];
-        let lod = if rng.next() < 0.7 {
-            Lod::Fixed(0)
-        } else {
-            Lod::Auto {
-                bias: rng.range(-1.0, 1.0),
-            }
-        };
+        let cam = orbit(&mut rng, extent, proj);
+        let (p, lod) = random_view(&mut rng, cam, tf, 0.7, 1.0);
         let img = converge(&mut s, &scene, &p, lod);
         let mut twin = scene.clone();
         twin.lanes = false;
@@ -319,21 +350,7 @@ fn entry_depths_change_no_pixel_on_random_scenes() {
         let dims = [0; 3].map(|_| rng.int(40, 90));
         let (store, range) = sparse_store(dir.path(), &mut rng, dims, dtype);
         let brick = [16, 32][rng.int(0, 1) as usize];
-        let cfg = VmConfig {
-            brick: [brick; 3],
-            apron: 1,
-            pool_bytes: 64 << 20,
-            ..Default::default()
-        };
-        let mut s = Session::open(&store, cfg, 16 << 20, 2).unwrap();
-        let pyramid: Vec<Volume> = (0..)
-            .map_while(|l| Volume::from_store(&store, l, 0).ok())
-            .collect();
-        let extent = world_extent(dims, pyramid[0].spacing);
-        let mut scene = Scene::new(extent, pyramid.iter().map(|v| v.dims).collect());
-        if rng.next() < 0.7 {
-            scene.ranges = Some(std::sync::Arc::new(s.loader().brick_ranges(1 << 20)));
-        }
+        let (mut s, scene, extent) = open_scene(&store, dims, brick, &mut rng);
         // Only the blobs' cores show: space to skip around them.
         let (lo, width) = (range[0] as f64, (range[1] - range[0]) as f64);
         let w0 = lo + width * rng.range(0.15, 0.5);
@@ -363,22 +380,9 @@ fn entry_depths_change_no_pixel_on_random_scenes() {
             let target = [0, 1, 2].map(|a| extent[a] * rng.next());
             Camera::look_at(eye, target, [0.0, 0.0, 1.0], proj)
         } else {
-            Camera::fit(
-                extent,
-                rng.range(-180.0, 180.0),
-                rng.range(-80.0, 80.0),
-                proj,
-            )
+            orbit(&mut rng, extent, proj)
         };
-        let mut p = RenderParams::new(64, 48, cam, tf, RenderMode::Dvr);
-        p.samples_per_voxel = [1.0, 0.5, 2.0, 1.7][rng.int(0, 3) as usize];
-        let lod = if rng.next() < 0.6 {
-            Lod::Fixed(0)
-        } else {
-            Lod::Auto {
-                bias: rng.range(-1.0, 1.5),
-            }
-        };
+        let (p, lod) = random_view(&mut rng, cam, tf, 0.6, 1.5);
         let img = converge(&mut s, &scene, &p, lod);
         let mut walk = scene.clone();
         walk.entry_depths = false;
