@@ -156,7 +156,7 @@ impl<'f, 'a, T: Sample> Walker<'f, 'a, T> {
                     } else {
                         run.current()
                     };
-                    let cell = f.cell_of(u);
+                    let cell = f.cell_in_run(u);
                     if clear >> cell & 1 != 0 {
                         // A cell whose samples are all transparent: on to
                         // the step where the ray leaves it.

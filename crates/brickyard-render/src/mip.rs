@@ -142,7 +142,7 @@ impl<'f, 'a, T: Sample> Walker<'f, 'a, T> {
                 let (mut n, mut j) = (0u64, k - 1);
                 while j < end {
                     let (u, fr) = run.current();
-                    let cell = f.cell_of(u);
+                    let cell = f.cell_in_run(u);
                     // NaN bound or best: no skip.
                     if ranges.is_some_and(|r| r[cell][1] <= best) {
                         st.skipped_cells += 1;

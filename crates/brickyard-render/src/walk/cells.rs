@@ -165,6 +165,24 @@ impl Frame<'_> {
         (z[u[0] as usize] + y[u[1] as usize] + x[u[2] as usize]) as usize
     }
 
+    /// [`cell_of`](Self::cell_of) for a voxel base from a [`Run`]'s
+    /// [`current`](Run::current) or, for an interior run,
+    /// [`current_unclamped`](Run::current_unclamped), without bounds checks
+    /// (the hot loop of DVR and MIP runs).
+    #[inline(always)]
+    pub(crate) fn cell_in_run(&self, u: Dims3) -> usize {
+        let [z, y, x] = &self.cell_part;
+        let u = u.map(|v| v as usize);
+        debug_assert!(u[0] < z.len() && u[1] < y.len() && u[2] < x.len());
+        // SAFETY: a run's voxel base lies in its brick (apron excluded):
+        // `current` clamps it to the brick's last voxel, and an interior
+        // run's steps lie within that clamp; the tables have an entry per
+        // voxel of a brick along their axis.
+        unsafe {
+            (*z.get_unchecked(u[0]) + *y.get_unchecked(u[1]) + *x.get_unchecked(u[2])) as usize
+        }
+    }
+
     /// The cell coordinate along axis `a` of brick coordinate `x`.
     #[inline(always)]
     pub(crate) fn cell_coord(&self, a: usize, x: u64) -> u64 {
