@@ -215,8 +215,8 @@ impl Session {
     /// every sample finds data at some level whatever the pool's pressure:
     /// the coarsest level always, and finer ones (never level 0) while all
     /// pinned bricks stay within an eighth of the pool and `max_bricks`. Loads them now
-    /// (waiting up to `timeout`). Fails when the pool cannot hold twice the
-    /// coarsest level.
+    /// (waiting up to `timeout`). Fails when the pool can hold neither
+    /// twice the coarsest level nor the whole volume.
     pub fn pin_coarsest(
         &mut self,
         max_bricks: usize,
@@ -228,7 +228,8 @@ impl Session {
             |l: usize| g.bricks_per_level(l).iter().product::<u64>() as usize * g.channels;
         let slots = self.vm.pool_slots();
         let coarsest = per_level(nl - 1);
-        if slots < 2 * coarsest {
+        let all: usize = (0..nl).map(per_level).sum();
+        if slots < 2 * coarsest && slots < all {
             let slot_bytes = self.vm.pool_bytes() as u64 / slots.max(1) as u64;
             return Err(PoolTooSmall {
                 slots,

@@ -44,7 +44,8 @@ pub struct VmConfig {
     /// Largest directory (entries per channel) before another page-table
     /// level is added.
     pub max_dir_entries: u64,
-    /// Bytes of the brick pool.
+    /// Bytes of the brick pool: at most; a pool never has more slots than
+    /// the volume has bricks (all levels and channels).
     pub pool_bytes: u64,
     /// Blocks in each intermediate page-table cache.
     pub pt_cache_blocks: u64,
@@ -405,7 +406,11 @@ impl VirtualMemory {
         let brick_bytes = padded.iter().product::<usize>() * dtype.size();
         let cell_grid = CellGrid::new(cfg.brick);
         let cell_bytes = cell_grid.len() * std::mem::size_of::<[f32; 2]>();
-        let slots = SlotSet::new(cfg.pool_bytes / (brick_bytes + cell_bytes) as u64);
+        // Slots beyond one per brick of the volume would never be used: a
+        // small volume takes a small pool (on a device, too), whatever
+        // the budget.
+        let bricks = layout.brick_count() * channels.max(1) as u64;
+        let slots = SlotSet::new((cfg.pool_bytes / (brick_bytes + cell_bytes) as u64).min(bricks));
         VirtualMemory {
             merged: Requests::with_capacity(cfg.request_cap * 8),
             layout,

@@ -293,6 +293,36 @@ fn the_pool_gets_every_slot_its_budget_pays_for() {
 }
 
 #[test]
+fn a_pool_has_no_more_slots_than_the_volume_has_bricks() {
+    // 40×24×17 in 8³ bricks: 5·3·3 = 45 at level 0, 3·2·2 = 12 at level 1
+    // (20×12×9), 2·1·1 = 2 at level 2 (10×6×5): 59 bricks per channel.
+    let levels: Vec<Dims3> = vec![[17, 24, 40], [9, 12, 20], [5, 6, 10]];
+    let slot = 1000 + 8;
+    for (channels, budget, want) in [
+        (1usize, 1u64 << 30, 59u64),
+        (3, 1 << 30, 177),
+        (1, 59 * slot, 59),
+        (1, 58 * slot, 58),
+        (2, 100 * slot + 7, 100),
+    ] {
+        let cfg = VmConfig {
+            brick: [8; 3],
+            apron: 1,
+            pool_bytes: budget,
+            ..Default::default()
+        };
+        let vm = VirtualMemory::new(&levels, channels, DType::U8, cfg);
+        assert_eq!(
+            vm.pool_slots() as u64,
+            want,
+            "{channels} channel(s), a budget of {budget} bytes"
+        );
+        assert_eq!(vm.pool_bytes() as u64, want * slot);
+        vm.check_invariants().unwrap();
+    }
+}
+
+#[test]
 fn bricks_over_the_upload_budget_wait_and_the_rest_are_consumed() {
     let levels: Vec<Dims3> = vec![[64, 64, 64], [32, 32, 32]];
     let cfg = VmConfig {

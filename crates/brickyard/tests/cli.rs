@@ -519,7 +519,33 @@ fn a_pool_larger_than_the_device_can_hold_is_an_error_not_a_panic() {
         return; // BRICKYARD_SKIP_GPU=1
     }
     let d = tempfile::tempdir().unwrap();
-    let store = mandelbulb_48(d.path(), "m.zarr");
+    // A pool never has more slots than the volume has bricks: the volume
+    // must be large enough to want a pool of 12 GiB. 2048³ u8 (8 GiB
+    // stored, 10.7 GiB of padded 32³ bricks at level 0), of metadata only:
+    // every chunk is missing, so every brick is empty.
+    let store = d.path().join("big.ome.zarr");
+    let plan = brickyard_core::plan_levels([2048; 3], [1.0; 3], [0.0; 3], [256; 3]);
+    let omz = brickyard_store::omezarr::multiscales_json(&plan.levels, 1, None, "big");
+    brickyard_store::omezarr::write_json(
+        &store.join("zarr.json"),
+        &serde_json::json!({"zarr_format": 3, "node_type": "group",
+            "attributes": {"ome": {"version": "0.5", "multiscales": omz}}}),
+    )
+    .unwrap();
+    for (i, l) in plan.levels.iter().enumerate() {
+        brickyard_store::omezarr::write_json(
+            &store.join(i.to_string()).join("zarr.json"),
+            &brickyard_store::omezarr::level_array_json(
+                &l.dims,
+                &[256; 3],
+                &[64; 3],
+                brickyard_core::DType::U8,
+                brickyard_store::codec::Compression::Lz4,
+                &["z", "y", "x"],
+            ),
+        )
+        .unwrap();
+    }
     let out = d.path().join("x.png");
     // Beyond the software device's largest allocation (or, on a machine
     // with less RAM, beyond the machine: refused before any device work).
