@@ -274,6 +274,47 @@ impl RayGen {
     pub fn pixel_ray(&self, i: u32, j: u32) -> Ray {
         self.ray(i as f64 + 0.5, j as f64 + 0.5)
     }
+
+    /// `point` in the camera's frame: its offset from the eye along
+    /// `right`, `up` and `forward`. The last is the ray parameter of its
+    /// depth: perspective, the distance from the eye along the view
+    /// direction; orthographic, from the eye's plane.
+    #[inline]
+    pub fn eye_coords(&self, point: Vec3) -> Vec3 {
+        let v = sub(point, self.eye);
+        let b = &self.basis;
+        [dot(v, b.right), dot(v, b.up), dot(v, b.forward)]
+    }
+
+    /// The continuous image position of a point given by its
+    /// [`eye_coords`](Self::eye_coords); perspective needs `z > 0`.
+    #[inline]
+    pub fn image_of(&self, [x, y, z]: Vec3) -> [f64; 2] {
+        let (sx, sy) = if self.perspective {
+            (x / z, y / z)
+        } else {
+            (x, y)
+        };
+        let nx = sx / (self.half_h * self.width / self.height);
+        let ny = sy / self.half_h;
+        [
+            (nx + 1.0) * 0.5 * self.width,
+            (1.0 - ny) * 0.5 * self.height,
+        ]
+    }
+
+    /// The continuous image position `(px, py)` (pixel centres at `+0.5`,
+    /// y down) where the world point `point` appears, or `None` when it
+    /// lies on or behind the eye's plane (perspective only). Inverse of
+    /// [`RayGen::ray`]: the ray through the returned position passes
+    /// through `point`.
+    pub fn project(&self, point: Vec3) -> Option<[f64; 2]> {
+        let v = self.eye_coords(point);
+        if self.perspective && v[2] <= 0.0 {
+            return None;
+        }
+        Some(self.image_of(v))
+    }
 }
 
 impl Camera {
@@ -398,22 +439,7 @@ impl Camera {
     /// (perspective only). Inverse of [`Camera::ray`]: the ray through the
     /// returned position passes through `point`.
     pub fn project(&self, point: Vec3, width: u32, height: u32) -> Option<[f64; 2]> {
-        let b = self.basis();
-        let v = sub(point, self.eye);
-        let (x, y, z) = (dot(v, b.right), dot(v, b.up), dot(v, b.forward));
-        let (w, h) = (width as f64, height as f64);
-        let (half_h, sx, sy) = match self.projection {
-            Projection::Perspective { fov_y_deg } => {
-                if z <= 0.0 {
-                    return None;
-                }
-                ((fov_y_deg * 0.5).to_radians().tan(), x / z, y / z)
-            }
-            Projection::Orthographic { height } => (height * 0.5, x, y),
-        };
-        let nx = sx / (half_h * w / h);
-        let ny = sy / half_h;
-        Some([(nx + 1.0) * 0.5 * w, (1.0 - ny) * 0.5 * h])
+        self.ray_gen(width, height).project(point)
     }
 
     /// World size of one pixel (its height) at distance `distance_along_ray`
@@ -869,6 +895,12 @@ mod tests {
         }
         let cam = Camera::orbit([0.0; 3], 10.0, 0.0, 0.0, PERSP);
         assert!(cam.project([0.0, -20.0, 0.0], 8, 8).is_none());
+        // The depth of a point on the central ray is its ray parameter.
+        for cam in cameras() {
+            let rg = cam.ray_gen(64, 48);
+            let z = rg.eye_coords(rg.ray(32.0, 24.0).at(37.0))[2];
+            assert!((z - 37.0).abs() < 1e-9, "{z}");
+        }
     }
 
     #[test]

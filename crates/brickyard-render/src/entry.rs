@@ -33,7 +33,7 @@ use crate::cpu::{Tiles, TILE_H, TILE_W};
 use crate::walk::Frame;
 use brickyard_cache::brick::BrickKey;
 use brickyard_cache::vm::BrickRef;
-use brickyard_core::camera::{intersect_box_inv, Projection, Ray, Vec3};
+use brickyard_core::camera::{intersect_box_inv, Projection, Ray, RayGen, Vec3};
 use brickyard_core::views::ViewRays;
 use brickyard_core::Dims3;
 use rayon::prelude::*;
@@ -396,15 +396,11 @@ fn near_distance(f: &Frame) -> f64 {
     distance(f.params.camera.eye, [0.0; 3], f.scene.extent)
 }
 
-/// The camera's projection to pixel positions (as `Camera::project`, with
-/// the frame computed once).
+/// The camera's projection to pixel positions, with the frame computed
+/// once ([`RayGen::eye_coords`], [`RayGen::image_of`]).
 struct Projector {
+    rays: RayGen,
     eye: Vec3,
-    right: Vec3,
-    up: Vec3,
-    forward: Vec3,
-    /// Perspective: `tan(fov_y / 2)`; orthographic: half the view height.
-    half_h: f64,
     perspective: bool,
     w: f64,
     h: f64,
@@ -413,18 +409,10 @@ struct Projector {
 impl Projector {
     fn new(f: &Frame) -> Projector {
         let cam = &f.params.camera;
-        let b = cam.basis();
-        let (half_h, perspective) = match cam.projection {
-            Projection::Perspective { fov_y_deg } => ((fov_y_deg * 0.5).to_radians().tan(), true),
-            Projection::Orthographic { height } => (height * 0.5, false),
-        };
         Projector {
+            rays: cam.ray_gen(f.params.width, f.params.height),
             eye: cam.eye,
-            right: b.right,
-            up: b.up,
-            forward: b.forward,
-            half_h,
-            perspective,
+            perspective: matches!(cam.projection, Projection::Perspective { .. }),
             w: f.params.width as f64,
             h: f.params.height as f64,
         }
@@ -440,22 +428,13 @@ impl Projector {
         let mut near = f64::INFINITY;
         let (mut x0, mut y0, mut x1, mut y1) = (f64::MAX, f64::MAX, f64::MIN, f64::MIN);
         for c in 0..8 {
-            let p = corner(lo, hi, c);
-            let v = [p[0] - self.eye[0], p[1] - self.eye[1], p[2] - self.eye[2]];
-            let dot = |b: Vec3| v[0] * b[0] + v[1] * b[1] + v[2] * b[2];
-            let (x, y, z) = (dot(self.right), dot(self.up), dot(self.forward));
-            near = near.min(z);
-            let (sx, sy) = if self.perspective {
-                if z <= 1e-9 {
-                    (x0, y0, x1, y1) = (f64::MIN, f64::MIN, f64::MAX, f64::MAX);
-                    break;
-                }
-                (x / z, y / z)
-            } else {
-                (x, y)
-            };
-            let px = (sx / (self.half_h * self.w / self.h) + 1.0) * 0.5 * self.w;
-            let py = (1.0 - sy / self.half_h) * 0.5 * self.h;
+            let v = self.rays.eye_coords(corner(lo, hi, c));
+            near = near.min(v[2]);
+            if self.perspective && v[2] <= 1e-9 {
+                (x0, y0, x1, y1) = (f64::MIN, f64::MIN, f64::MAX, f64::MAX);
+                break;
+            }
+            let [px, py] = self.rays.image_of(v);
             x0 = x0.min(px);
             x1 = x1.max(px);
             y0 = y0.min(py);
