@@ -35,12 +35,13 @@ fn to_py(e: anyhow::Error) -> PyErr {
         if cause.downcast_ref::<Interrupted>().is_some() {
             return PyKeyboardInterrupt::new_err(msg);
         }
-        let io = cause.downcast_ref::<std::io::Error>().or_else(|| {
-            match cause.downcast_ref::<brickyard_store::StoreError>() {
-                Some(brickyard_store::StoreError::Io { error, .. }) => Some(error),
-                _ => None,
-            }
-        });
+        let io =
+            cause.downcast_ref::<std::io::Error>().or_else(|| {
+                match cause.downcast_ref::<brickyard_store::StoreError>() {
+                    Some(brickyard_store::StoreError::Io { error, .. }) => Some(error),
+                    _ => None,
+                }
+            });
         if let Some(io) = io {
             return match io.kind() {
                 std::io::ErrorKind::NotFound => PyFileNotFoundError::new_err(msg),
