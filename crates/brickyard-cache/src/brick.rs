@@ -246,11 +246,105 @@ impl BrickGeometry {
                     .all(|&n| n <= MAX_BRICKS_PER_AXIS)
             })
     }
+
+    /// Bricks of level `l`, all channels.
+    pub fn bricks_at(&self, l: usize) -> usize {
+        self.bricks_per_level(l).iter().product::<u64>() as usize * self.channels
+    }
+
+    /// The levels to keep resident for good in a pool of `slots` slots of
+    /// `slot_bytes`, coarsest first: the coarsest level always, and finer
+    /// ones (never level 0) while all of them stay within an eighth of the
+    /// pool and `max_bricks`. A pool that holds neither twice the coarsest
+    /// level nor the whole volume is too small.
+    pub fn pinned_levels(
+        &self,
+        slots: usize,
+        slot_bytes: u64,
+        max_bricks: usize,
+    ) -> Result<Vec<usize>, PoolTooSmall> {
+        let nl = self.levels.len();
+        let coarsest = self.bricks_at(nl - 1);
+        let all: usize = (0..nl).map(|l| self.bricks_at(l)).sum();
+        if slots < 2 * coarsest && slots < all {
+            return Err(PoolTooSmall {
+                slots,
+                needed: coarsest,
+                minimum_bytes: 2 * coarsest as u64 * slot_bytes.max(1),
+            });
+        }
+        let limit = (slots / 8).min(max_bricks).max(coarsest);
+        let mut levels = vec![nl - 1];
+        let mut total = coarsest;
+        // Never level 0: pinning it would only keep the view's own data,
+        // which the LRU does anyway while it fits.
+        for l in (1..nl - 1).rev() {
+            let n = self.bricks_at(l);
+            if total + n > limit {
+                break;
+            }
+            total += n;
+            levels.push(l);
+        }
+        Ok(levels)
+    }
 }
+
+/// The pool cannot hold the coarsest level (plus room to work).
+#[derive(Debug, Clone)]
+pub struct PoolTooSmall {
+    /// Bricks the pool holds.
+    pub slots: usize,
+    /// Bricks the coarsest level needs (all channels).
+    pub needed: usize,
+    /// Pool bytes that would be enough.
+    pub minimum_bytes: u64,
+}
+
+impl std::fmt::Display for PoolTooSmall {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        write!(
+            f,
+            "the pool holds {} bricks, but the coarsest level alone needs {} (kept resident so that every part of the volume can be drawn) plus as many to work with; give the pool at least {:.1} MiB",
+            self.slots,
+            self.needed,
+            self.minimum_bytes as f64 / (1u64 << 20) as f64
+        )
+    }
+}
+
+impl std::error::Error for PoolTooSmall {}
 
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn pinned_levels_fit_the_pool_or_the_whole_volume() {
+        let geometry = |levels: Vec<Dims3>, channels| BrickGeometry {
+            brick: [8; 3],
+            apron: 1,
+            levels,
+            channels,
+            dtype: DType::U8,
+        };
+        // One level of 2·2·2 bricks: a pool of its 8 bricks holds the whole
+        // volume, though not twice the coarsest level.
+        let one = geometry(vec![[16; 3]], 1);
+        assert_eq!(one.pinned_levels(8, 1000, 512).unwrap(), vec![0]);
+        let e = one.pinned_levels(7, 1000, 512).unwrap_err();
+        assert_eq!((e.slots, e.needed, e.minimum_bytes), (7, 8, 16_000));
+        // 64³, 32³, 16³, 8³ in 8³ bricks: 512, 64, 8, 1 bricks per channel.
+        let four = geometry(vec![[64; 3], [32; 3], [16; 3], [8; 3]], 2);
+        assert_eq!(four.pinned_levels(3, 1, 512).unwrap_err().needed, 2);
+        assert_eq!(four.pinned_levels(4, 1, 512).unwrap(), vec![3]);
+        // An eighth of the pool: 18 bricks for levels 3 and 2.
+        assert_eq!(four.pinned_levels(143, 1, 512).unwrap(), vec![3]);
+        assert_eq!(four.pinned_levels(144, 1, 512).unwrap(), vec![3, 2]);
+        // Never level 0, and never past `max_bricks`.
+        assert_eq!(four.pinned_levels(1 << 20, 1, 512).unwrap(), vec![3, 2, 1]);
+        assert_eq!(four.pinned_levels(1 << 20, 1, 100).unwrap(), vec![3, 2]);
+    }
 
     #[test]
     fn pack_round_trips_and_keeps_order() {

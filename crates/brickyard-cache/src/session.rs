@@ -46,30 +46,7 @@ pub struct PinReport {
     pub failed: usize,
 }
 
-/// The pool cannot hold the coarsest level (plus room to work).
-#[derive(Debug, Clone)]
-pub struct PoolTooSmall {
-    /// Bricks the pool holds.
-    pub slots: usize,
-    /// Bricks the coarsest level needs (all channels).
-    pub needed: usize,
-    /// Pool bytes that would be enough.
-    pub minimum_bytes: u64,
-}
-
-impl std::fmt::Display for PoolTooSmall {
-    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        write!(
-            f,
-            "the pool holds {} bricks, but the coarsest level alone needs {} (kept resident so that every part of the volume can be drawn) plus as many to work with; give the pool at least {:.1} MiB",
-            self.slots,
-            self.needed,
-            self.minimum_bytes as f64 / (1u64 << 20) as f64
-        )
-    }
-}
-
-impl std::error::Error for PoolTooSmall {}
+pub use crate::brick::PoolTooSmall;
 
 /// Virtual memory + loader + host cache for one store.
 pub struct Session {
@@ -223,33 +200,9 @@ impl Session {
         timeout: Duration,
     ) -> Result<PinReport, PoolTooSmall> {
         let g = self.loader.geometry().clone();
-        let nl = g.levels.len();
-        let per_level =
-            |l: usize| g.bricks_per_level(l).iter().product::<u64>() as usize * g.channels;
         let slots = self.vm.pool_slots();
-        let coarsest = per_level(nl - 1);
-        let all: usize = (0..nl).map(per_level).sum();
-        if slots < 2 * coarsest && slots < all {
-            let slot_bytes = self.vm.pool_bytes() as u64 / slots.max(1) as u64;
-            return Err(PoolTooSmall {
-                slots,
-                needed: coarsest,
-                minimum_bytes: 2 * coarsest as u64 * slot_bytes.max(1),
-            });
-        }
-        let limit = (slots / 8).min(max_bricks).max(coarsest);
-        let mut levels = vec![nl - 1];
-        let mut total = coarsest;
-        // Never level 0: pinning it would only keep the view's own data,
-        // which the LRU does anyway while it fits.
-        for l in (1..nl - 1).rev() {
-            let n = per_level(l);
-            if total + n > limit {
-                break;
-            }
-            total += n;
-            levels.push(l);
-        }
+        let slot_bytes = self.vm.pool_bytes() as u64 / slots.max(1) as u64;
+        let levels = g.pinned_levels(slots, slot_bytes, max_bricks)?;
         let mut keys: Vec<BrickKey> = vec![];
         for &l in &levels {
             for c in 0..g.channels {
@@ -284,7 +237,7 @@ impl Session {
                 }
             }
         }
-        report.bytes = report.bricks as u64 * (self.vm.pool_bytes() / slots.max(1)) as u64;
+        report.bytes = report.bricks as u64 * slot_bytes;
         Ok(report)
     }
 

@@ -275,6 +275,21 @@ impl RayGen {
         self.ray(i as f64 + 0.5, j as f64 + 0.5)
     }
 
+    /// The eye: where perspective rays start.
+    pub fn eye(&self) -> Vec3 {
+        self.eye
+    }
+
+    /// Whether rays fan out from the eye (else they are parallel).
+    pub fn is_perspective(&self) -> bool {
+        self.perspective
+    }
+
+    /// The image's width and height in pixels.
+    pub fn size(&self) -> [f64; 2] {
+        [self.width, self.height]
+    }
+
     /// `point` in the camera's frame: its offset from the eye along
     /// `right`, `up` and `forward`. The last is the ray parameter of its
     /// depth: perspective, the distance from the eye along the view

@@ -33,7 +33,7 @@ use crate::cpu::{Tiles, TILE_H, TILE_W};
 use crate::walk::Frame;
 use brickyard_cache::brick::BrickKey;
 use brickyard_cache::vm::BrickRef;
-use brickyard_core::camera::{intersect_box_inv, Projection, Ray, RayGen, Vec3};
+use brickyard_core::camera::{intersect_box_inv, Ray, RayGen, Vec3};
 use brickyard_core::views::ViewRays;
 use brickyard_core::Dims3;
 use rayon::prelude::*;
@@ -398,24 +398,11 @@ fn near_distance(f: &Frame) -> f64 {
 
 /// The camera's projection to pixel positions, with the frame computed
 /// once ([`RayGen::eye_coords`], [`RayGen::image_of`]).
-struct Projector {
-    rays: RayGen,
-    eye: Vec3,
-    perspective: bool,
-    w: f64,
-    h: f64,
-}
+struct Projector(RayGen);
 
 impl Projector {
     fn new(f: &Frame) -> Projector {
-        let cam = &f.params.camera;
-        Projector {
-            rays: cam.ray_gen(f.params.width, f.params.height),
-            eye: cam.eye,
-            perspective: matches!(cam.projection, Projection::Perspective { .. }),
-            w: f.params.width as f64,
-            h: f.params.height as f64,
-        }
+        Projector(f.params.camera.ray_gen(f.params.width, f.params.height))
     }
 
     /// The box `[lo, hi]` on the screen: the pixels whose centres may
@@ -428,13 +415,13 @@ impl Projector {
         let mut near = f64::INFINITY;
         let (mut x0, mut y0, mut x1, mut y1) = (f64::MAX, f64::MAX, f64::MIN, f64::MIN);
         for c in 0..8 {
-            let v = self.rays.eye_coords(corner(lo, hi, c));
+            let v = self.0.eye_coords(corner(lo, hi, c));
             near = near.min(v[2]);
-            if self.perspective && v[2] <= 1e-9 {
+            if self.0.is_perspective() && v[2] <= 1e-9 {
                 (x0, y0, x1, y1) = (f64::MIN, f64::MIN, f64::MAX, f64::MAX);
                 break;
             }
-            let [px, py] = self.rays.image_of(v);
+            let [px, py] = self.0.image_of(v);
             x0 = x0.min(px);
             x1 = x1.max(px);
             y0 = y0.min(py);
@@ -443,14 +430,15 @@ impl Projector {
         // Pixel i's centre is i + ½: i from ⌈x0 − ½⌉ to ⌊x1 − ½⌋, a pixel
         // more each way.
         let clip = |v: f64, n: f64| v.clamp(0.0, n) as u32;
+        let [w, h] = self.0.size();
         let r = [
-            clip((x0 - 0.5).ceil() - 1.0, self.w),
-            clip((y0 - 0.5).ceil() - 1.0, self.h),
-            clip((x1 - 0.5).floor() + 2.0, self.w),
-            clip((y1 - 0.5).floor() + 2.0, self.h),
+            clip((x0 - 0.5).ceil() - 1.0, w),
+            clip((y0 - 0.5).ceil() - 1.0, h),
+            clip((x1 - 0.5).floor() + 2.0, w),
+            clip((y1 - 0.5).floor() + 2.0, h),
         ];
-        if self.perspective {
-            near = distance(self.eye, lo, hi);
+        if self.0.is_perspective() {
+            near = distance(self.0.eye(), lo, hi);
         }
         (r[0] < r[2] && r[1] < r[3]).then_some(Box3 {
             lo,

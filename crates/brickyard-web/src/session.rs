@@ -169,28 +169,11 @@ impl WebSession {
     ) -> Result<WebSession, String> {
         let g = src.geometry.clone();
         let vm = VirtualMemory::new(&g.levels, g.channels, g.dtype, cfg);
-        let nl = g.levels.len();
-        let per_level =
-            |l: usize| g.bricks_per_level(l).iter().product::<u64>() as usize * g.channels;
         let slots = vm.pool_slots();
-        if slots < 2 * per_level(nl - 1) {
-            let slot = vm.pool_bytes() as u64 / slots.max(1) as u64;
-            return Err(format!(
-                "pool: holds {slots} bricks, the coarsest level alone needs {} plus as many to work with; give it at least {:.1} MiB",
-                per_level(nl - 1),
-                (2 * per_level(nl - 1)) as f64 * slot as f64 / 1048576.0
-            ));
-        }
-        let limit = (slots / 8).min(512).max(per_level(nl - 1));
-        let mut levels = vec![nl - 1];
-        let mut total = per_level(nl - 1);
-        for l in (1..nl - 1).rev() {
-            if total + per_level(l) > limit {
-                break;
-            }
-            total += per_level(l);
-            levels.push(l);
-        }
+        let slot_bytes = vm.pool_bytes() as u64 / slots.max(1) as u64;
+        let levels = g
+            .pinned_levels(slots, slot_bytes, 512)
+            .map_err(|e| format!("pool: {e}"))?;
         let mut keys = vec![];
         for &l in &levels {
             for c in 0..g.channels {

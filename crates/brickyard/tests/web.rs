@@ -2,9 +2,9 @@
 //! a real volume, headless Chromium opens a link to a DVR view, and the
 //! canvas must equal `brickyard render` of the same view within 2/255;
 //! the link the page writes, opened without WebGPU, reopens the same view,
-//! and the page says WebGPU is missing and still draws it; a bad view in the link is an error that
-//! names its key. Also `serve --web` without a built client: a clear
-//! error. Needs the bundle (`scripts/build-web.sh`, run by
+//! and the page says WebGPU is missing and still draws it; a bad view in
+//! the link is an error that names its key. Also `serve --web` without a
+//! built client: a clear error. Needs the bundle (`scripts/build-web.sh`, run by
 //! `scripts/test.sh`), Node.js with the pinned playwright-core, and
 //! Debian's chromium; `BRICKYARD_SKIP_BROWSER=1` opts out explicitly.
 
