@@ -23,8 +23,14 @@ elif [ "${BRICKYARD_REQUIRE_MPI:-}" = 1 ]; then
     exit 1
 fi
 
-echo "== cargo build --release -p brickyard ${FEATURES[*]}"
-cargo build --release -p brickyard ${FEATURES[@]+"${FEATURES[@]}"}
+# One native build for everything: the workspace's tests, which also build
+# the CLI (target/release/brickyard, used by the interop test below) and
+# whose resolution of shared dependencies the Python bindings mirror
+# (python/Cargo.toml). A separate `cargo build -p brickyard` would resolve
+# features without the tests' dev-dependencies and compile zarrs, the
+# window system crates and every brickyard crate twice.
+echo "== cargo test --workspace --release --no-run ${FEATURES[*]}"
+cargo test --workspace --release --no-run ${FEATURES[@]+"${FEATURES[@]}"}
 
 # The web client (brickyard-web for wasm32, its glue and page in
 # target/web/, the headless-browser test's driver): before the tests, whose
