@@ -7,7 +7,9 @@
 # (playwright-core, pinned in crates/brickyard-web/browser/package-lock.json)
 # when npm is there.
 #
-# Usage: bash scripts/build-web.sh
+# Usage: bash scripts/build-web.sh [--tools-only]
+#   --tools-only: install the tools (the wasm target, wasm-bindgen-cli) and
+#   stop (scripts/test.sh runs this in the background during its build).
 set -euo pipefail
 cd "$(dirname "${BASH_SOURCE[0]}")/.."
 
@@ -25,6 +27,9 @@ if ! "$TOOLS/bin/wasm-bindgen" --version 2>/dev/null | grep -q " $WASM_BINDGEN_V
     # chromedriver on loopback over plain HTTP. A fifth less to compile.
     cargo install wasm-bindgen-cli --version "$WASM_BINDGEN_VERSION" --root "$TOOLS" \
         --target-dir "$TARGET_DIR/tools-build" --no-default-features --quiet
+fi
+if [ "${1:-}" = --tools-only ]; then
+    exit 0
 fi
 
 echo "== cargo build --release --target wasm32-unknown-unknown -p brickyard-web"

@@ -7,8 +7,13 @@
 set -euo pipefail
 cd "$(dirname "${BASH_SOURCE[0]}")/.."
 
-echo "== python environment"
-bash scripts/setup-python.sh
+# The Python environment (interop and bindings tests, at the end) is set up
+# in the background while Cargo builds: the download and install of its
+# packages is mostly waiting for the network and the disk.
+SETUP_LOG="$(mktemp)"
+echo "== python environment (in the background, log in $SETUP_LOG)"
+bash scripts/setup-python.sh > "$SETUP_LOG" 2>&1 &
+SETUP_PYTHON=$!
 
 # MPI (`mpirun -n N brickyard …`, the `mpi` feature) where the system has
 # it (OpenMPI: libopenmpi-dev, openmpi-bin; libclang for the binding's
@@ -23,6 +28,13 @@ elif [ "${BRICKYARD_REQUIRE_MPI:-}" = 1 ]; then
     exit 1
 fi
 
+# The web client's tools (the wasm target, wasm-bindgen-cli from crates.io)
+# are installed at a lower priority beside the native build: they take the
+# cores that build leaves idle (its serial stretches and links).
+TOOLS_LOG="$(mktemp)"
+nice -n 10 bash scripts/build-web.sh --tools-only > "$TOOLS_LOG" 2>&1 &
+WEB_TOOLS=$!
+
 # One native build for everything: the workspace's tests, which also build
 # the CLI (target/release/brickyard, used by the interop test below) and
 # whose resolution of shared dependencies the Python bindings mirror
@@ -36,6 +48,14 @@ cargo test --workspace --release --no-run ${FEATURES[@]+"${FEATURES[@]}"}
 # target/web/, the headless-browser test's driver): before the tests, whose
 # browser test opens it in Chromium. Its wasm build is the check that the
 # renderers, the device driver and the virtual memory build for the web.
+echo "== web client tools"
+if ! wait "$WEB_TOOLS"; then
+    cat "$TOOLS_LOG" >&2
+    echo "installing the web client's tools failed (log above)" >&2
+    exit 1
+fi
+cat "$TOOLS_LOG"
+
 echo "== web client"
 bash scripts/build-web.sh
 
@@ -62,6 +82,14 @@ fi
 
 echo "== cargo test --workspace --release ${FEATURES[*]}"
 cargo test --workspace --release ${FEATURES[@]+"${FEATURES[@]}"}
+
+echo "== python environment"
+if ! wait "$SETUP_PYTHON"; then
+    cat "$SETUP_LOG" >&2
+    echo "setup-python failed (log above)" >&2
+    exit 1
+fi
+cat "$SETUP_LOG"
 
 echo "== interop"
 bash scripts/interop/run.sh target/release/brickyard
