@@ -88,6 +88,12 @@ pub struct Scene {
     /// that may show), found for the frame before the rays are walked;
     /// the image is the same either way (off only to measure or test).
     pub entry_depths: bool,
+    /// DVR: on x86-64 processors with the x86-64-v3 instructions (AVX2,
+    /// FMA, BMI1/2, LZCNT, MOVBE, F16C; detected at run time), walk the
+    /// rays in a copy of the ray loop compiled for them ([`crate::isa`]);
+    /// elsewhere, or `false`, the baseline build of the same code. The
+    /// same bits either way (tests compare the two).
+    pub x86_v3: bool,
     /// The residency octree kept beside the virtual memory, for
     /// [`Traversal::Octree`](crate::params::Traversal) (`None`: a frame
     /// that asks for it builds one from the virtual memory, of depth
@@ -109,6 +115,7 @@ impl Scene {
             skip_cells: true,
             lanes: true,
             entry_depths: true,
+            x86_v3: true,
             octree: None,
         }
     }

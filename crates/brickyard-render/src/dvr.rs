@@ -27,6 +27,18 @@ impl<'f, 'a, T: Sample> Walker<'f, 'a, T> {
         (ray, entry): (&Ray, Option<(usize, f64)>),
         (req, st): (&mut Requests, &mut FrameStats),
     ) -> [f32; 4] {
+        #[cfg(target_arch = "x86_64")]
+        if self.f.x86_v3 {
+            // SAFETY: `Frame::x86_v3` holds only where the processor has
+            // every feature the copy is compiled with (`isa::x86_64_v3`).
+            return unsafe {
+                if self.f.scene.lanes {
+                    self.dvr_v3::<true>(ray, entry, req, st)
+                } else {
+                    self.dvr_v3::<false>(ray, entry, req, st)
+                }
+            };
+        }
         if self.f.scene.lanes {
             self.dvr_in::<true>(ray, entry, req, st)
         } else {
@@ -34,14 +46,44 @@ impl<'f, 'a, T: Sample> Walker<'f, 'a, T> {
         }
     }
 
+    /// [`dvr_at`](Self::dvr_at), baseline x86-64 (or whatever the build
+    /// targets). Out of line, one function per path: with both inlined
+    /// into `dvr` the frame took 7 % more instructions (callgrind,
+    /// BENCHMARKS.md).
+    #[inline(never)]
+    fn dvr_in<const LANES: bool>(
+        &mut self,
+        ray: &Ray,
+        entry: Option<(usize, f64)>,
+        req: &mut Requests,
+        st: &mut FrameStats,
+    ) -> [f32; 4] {
+        self.dvr_at::<LANES>(ray, entry, req, st)
+    }
+
+    /// [`dvr_at`](Self::dvr_at) compiled for x86-64-v3 ([`crate::isa`]):
+    /// the same source, the same bits.
+    #[cfg(target_arch = "x86_64")]
+    #[target_feature(
+        enable = "avx,avx2,bmi1,bmi2,f16c,fma,lzcnt,movbe,popcnt,sse3,ssse3,sse4.1,sse4.2"
+    )]
+    #[inline(never)]
+    unsafe fn dvr_v3<const LANES: bool>(
+        &mut self,
+        ray: &Ray,
+        entry: Option<(usize, f64)>,
+        req: &mut Requests,
+        st: &mut FrameStats,
+    ) -> [f32; 4] {
+        self.dvr_at::<LANES>(ray, entry, req, st)
+    }
+
     /// [`dvr`](Self::dvr) with the samples of runs through resident
     /// bricks worked in four lanes (`LANES`: [`trilinear_lanes`],
     /// [`TfTable`](crate::optics::TfTable), [`Acc`]) or by the scalar twin;
-    /// the same bits either way. Out of line, one function per path: with
-    /// both inlined into `dvr` the frame took 7 % more instructions
-    /// (callgrind, BENCHMARKS.md).
-    #[inline(never)]
-    fn dvr_in<const LANES: bool>(
+    /// the same bits either way. Inlined into each instruction set's copy.
+    #[inline(always)]
+    fn dvr_at<const LANES: bool>(
         &mut self,
         ray: &Ray,
         entry: Option<(usize, f64)>,

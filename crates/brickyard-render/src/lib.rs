@@ -36,6 +36,7 @@ mod dvr;
 mod entry;
 pub mod gpu;
 pub mod image;
+pub mod isa;
 mod lanes;
 mod mip;
 pub mod multi;

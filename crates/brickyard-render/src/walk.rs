@@ -86,6 +86,9 @@ pub(crate) struct Frame<'a> {
     /// ([`ChannelStyle::levels`](crate::params::ChannelStyle::levels));
     /// `None`: the levels the steps ask for.
     pub(crate) channel_levels: Option<[usize; 2]>,
+    /// DVR: walk the rays in the ray loop's x86-64-v3 copy
+    /// ([`Scene::x86_v3`] and the processor has the instructions).
+    pub(crate) x86_v3: bool,
 }
 
 impl<'a> Frame<'a> {
@@ -198,6 +201,7 @@ impl<'a> Frame<'a> {
                 .all(|e| e.is_power_of_two())
                 .then(|| vm.cell_grid().edge.map(|e| e.trailing_zeros())),
             channel_levels: None,
+            x86_v3: scene.x86_v3 && crate::isa::x86_64_v3(),
         };
         frame.next_t = (0..nl).map(|l| frame.compute_next_level_t(l)).collect();
         frame

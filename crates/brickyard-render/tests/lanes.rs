@@ -11,7 +11,10 @@
 //!   in fact bit for bit);
 //! - entry depths (`Scene::entry_depths`, the default) against the walk
 //!   from the volume's face, on sparse random volumes with cameras outside
-//!   and inside them.
+//!   and inside them;
+//! - the ray loop's copy compiled for x86-64-v3 (`Scene::x86_v3`, the
+//!   default where the processor has it) against the baseline build, bit
+//!   for bit, with lanes and scalar.
 
 use brickyard_cache::session::Session;
 use brickyard_cache::vm::VmConfig;
@@ -308,6 +311,78 @@ fn lanes_equal_the_scalar_twin_on_random_scenes() {
     assert!(
         lit_scenes >= 8,
         "only {lit_scenes} of 12 scenes show something"
+    );
+}
+
+/// The x86-64-v3 copy of the ray loop (`brickyard_render::isa`) gives the
+/// baseline build's bits, lanes and scalar, on the random scenes of
+/// `lanes_equal_the_scalar_twin_on_random_scenes`. On an x86-64 processor
+/// without those instructions both would be the baseline: the test says so
+/// rather than compare a build with itself.
+#[test]
+fn the_x86_64_v3_copy_gives_the_baseline_bits() {
+    if cfg!(target_arch = "x86_64") {
+        assert!(
+            brickyard_render::isa::x86_64_v3(),
+            "this processor lacks x86-64-v3 (AVX2, FMA, BMI1/2, LZCNT, MOVBE, F16C): \
+             only the baseline ray loop can run here, so there is nothing to compare"
+        );
+    } else {
+        assert!(!brickyard_render::isa::x86_64_v3());
+        return;
+    }
+    let dir = tempfile::tempdir().unwrap();
+    let mut rng = Rng(0x5e30_fa11);
+    let mut lit_scenes = 0;
+    for scene_no in 0..10 {
+        let dtype = [DType::U8, DType::U16, DType::F32][scene_no % 3];
+        let dims = [0; 3].map(|_| rng.int(20, 56));
+        let (store, range) = random_store(dir.path(), &mut rng, dims, dtype);
+        let brick = [8, 16][rng.int(0, 1) as usize];
+        let (mut s, scene, extent) = open_scene(&store, dims, brick, &mut rng);
+        let tf = random_tf(&mut rng, range);
+        let proj = if rng.next() < 0.7 {
+            Projection::Perspective {
+                fov_y_deg: rng.range(20.0, 60.0),
+            }
+        } else {
+            Projection::Orthographic {
+                height: extent.iter().cloned().fold(0.0, f64::max) * rng.range(0.8, 1.6),
+            }
+        };
+        let cam = orbit(&mut rng, extent, proj);
+        let (p, lod) = random_view(&mut rng, cam, tf, 0.7, 1.0);
+        let img = converge(&mut s, &scene, &p, lod);
+        for lanes in [true, false] {
+            let mut base = scene.clone();
+            base.x86_v3 = false;
+            base.lanes = lanes;
+            let mut v3 = base.clone();
+            v3.x86_v3 = true;
+            let mut frame = |sc: &Scene| {
+                s.begin_frame();
+                let (img, st, reqs) = render_frame(s.vm(), sc, &p, lod);
+                s.finish_frame(reqs.iter());
+                assert_eq!(st.completeness(), 1.0);
+                img
+            };
+            let (want, got) = (frame(&base), frame(&v3));
+            let differ = want
+                .rgba
+                .iter()
+                .zip(&got.rgba)
+                .filter(|(a, b)| a.map(f32::to_bits) != b.map(f32::to_bits))
+                .count();
+            assert_eq!(
+                differ, 0,
+                "scene {scene_no} ({dtype:?}, {dims:?}, lanes {lanes}): {differ} pixels differ"
+            );
+        }
+        lit_scenes += (img.coverage(0.01) > 0.02) as u32;
+    }
+    assert!(
+        lit_scenes >= 7,
+        "only {lit_scenes} of 10 scenes show something"
     );
 }
 
