@@ -87,7 +87,9 @@ pub(crate) struct Frame<'a> {
     /// `None`: the levels the steps ask for.
     pub(crate) channel_levels: Option<[usize; 2]>,
     /// DVR: walk the rays in the ray loop's x86-64-v3 copy
-    /// ([`Scene::x86_v3`] and the processor has the instructions).
+    /// ([`Scene::x86_v3`] and the processor has the instructions; never
+    /// on other architectures, which have no such copy).
+    #[cfg_attr(not(target_arch = "x86_64"), allow(dead_code))]
     pub(crate) x86_v3: bool,
 }
 
