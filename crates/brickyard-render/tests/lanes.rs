@@ -271,6 +271,33 @@ fn converge(s: &mut Session, scene: &Scene, p: &RenderParams, lod: Lod) -> Image
     panic!("never complete");
 }
 
+/// A random scene of `dtype` and `dims` (`[x, y, z]`) as a store in `dir`:
+/// its session, scene, view (perspective or orthographic, from any
+/// direction, random transfer function and sampling rate) and LOD.
+fn random_scene(
+    dir: &Path,
+    rng: &mut Rng,
+    dtype: DType,
+    dims: [u64; 3],
+) -> (Session, Scene, RenderParams, Lod) {
+    let (store, range) = random_store(dir, rng, dims, dtype);
+    let brick = [8, 16][rng.int(0, 1) as usize];
+    let (s, scene, extent) = open_scene(&store, dims, brick, rng);
+    let tf = random_tf(rng, range);
+    let proj = if rng.next() < 0.7 {
+        Projection::Perspective {
+            fov_y_deg: rng.range(20.0, 60.0),
+        }
+    } else {
+        Projection::Orthographic {
+            height: extent.iter().cloned().fold(0.0, f64::max) * rng.range(0.8, 1.6),
+        }
+    };
+    let cam = orbit(rng, extent, proj);
+    let (p, lod) = random_view(rng, cam, tf, 0.7, 1.0);
+    (s, scene, p, lod)
+}
+
 #[test]
 fn lanes_equal_the_scalar_twin_on_random_scenes() {
     let dir = tempfile::tempdir().unwrap();
@@ -279,21 +306,7 @@ fn lanes_equal_the_scalar_twin_on_random_scenes() {
     for scene_no in 0..12 {
         let dtype = [DType::U8, DType::U16, DType::F32][scene_no % 3];
         let dims = [0; 3].map(|_| rng.int(20, 56));
-        let (store, range) = random_store(dir.path(), &mut rng, dims, dtype);
-        let brick = [8, 16][rng.int(0, 1) as usize];
-        let (mut s, scene, extent) = open_scene(&store, dims, brick, &mut rng);
-        let tf = random_tf(&mut rng, range);
-        let proj = if rng.next() < 0.7 {
-            Projection::Perspective {
-                fov_y_deg: rng.range(20.0, 60.0),
-            }
-        } else {
-            Projection::Orthographic {
-                height: extent.iter().cloned().fold(0.0, f64::max) * rng.range(0.8, 1.6),
-            }
-        };
-        let cam = orbit(&mut rng, extent, proj);
-        let (p, lod) = random_view(&mut rng, cam, tf, 0.7, 1.0);
+        let (mut s, scene, p, lod) = random_scene(dir.path(), &mut rng, dtype, dims);
         let img = converge(&mut s, &scene, &p, lod);
         let mut twin = scene.clone();
         twin.lanes = false;
@@ -337,21 +350,7 @@ fn the_x86_64_v3_copy_gives_the_baseline_bits() {
     for scene_no in 0..10 {
         let dtype = [DType::U8, DType::U16, DType::F32][scene_no % 3];
         let dims = [0; 3].map(|_| rng.int(20, 56));
-        let (store, range) = random_store(dir.path(), &mut rng, dims, dtype);
-        let brick = [8, 16][rng.int(0, 1) as usize];
-        let (mut s, scene, extent) = open_scene(&store, dims, brick, &mut rng);
-        let tf = random_tf(&mut rng, range);
-        let proj = if rng.next() < 0.7 {
-            Projection::Perspective {
-                fov_y_deg: rng.range(20.0, 60.0),
-            }
-        } else {
-            Projection::Orthographic {
-                height: extent.iter().cloned().fold(0.0, f64::max) * rng.range(0.8, 1.6),
-            }
-        };
-        let cam = orbit(&mut rng, extent, proj);
-        let (p, lod) = random_view(&mut rng, cam, tf, 0.7, 1.0);
+        let (mut s, scene, p, lod) = random_scene(dir.path(), &mut rng, dtype, dims);
         let img = converge(&mut s, &scene, &p, lod);
         for lanes in [true, false] {
             let mut base = scene.clone();
