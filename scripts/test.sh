@@ -7,6 +7,20 @@
 set -euo pipefail
 cd "$(dirname "${BASH_SOURCE[0]}")/.."
 
+# Background setup steps: each writes to its own log, which is shown when it
+# is waited for (on failure to stderr, and the test run stops). Whatever
+# is still running when this script ends is stopped with it.
+trap 'kill $(jobs -p) 2>/dev/null || true' EXIT
+await() { # NAME PID LOG
+    echo "== $1"
+    if ! wait "$2"; then
+        cat "$3" >&2
+        echo "$1 failed (log above)" >&2
+        exit 1
+    fi
+    cat "$3"
+}
+
 # The Python environment (interop and bindings tests, at the end) is set up
 # in the background while Cargo builds: the download and install of its
 # packages is mostly waiting for the network and the disk.
@@ -48,13 +62,7 @@ cargo test --workspace --release --no-run ${FEATURES[@]+"${FEATURES[@]}"}
 # target/web/, the headless-browser test's driver): before the tests, whose
 # browser test opens it in Chromium. Its wasm build is the check that the
 # renderers, the device driver and the virtual memory build for the web.
-echo "== web client tools"
-if ! wait "$WEB_TOOLS"; then
-    cat "$TOOLS_LOG" >&2
-    echo "installing the web client's tools failed (log above)" >&2
-    exit 1
-fi
-cat "$TOOLS_LOG"
+await "web client tools" "$WEB_TOOLS" "$TOOLS_LOG"
 
 echo "== web client"
 bash scripts/build-web.sh
@@ -83,13 +91,7 @@ fi
 echo "== cargo test --workspace --release ${FEATURES[*]}"
 cargo test --workspace --release ${FEATURES[@]+"${FEATURES[@]}"}
 
-echo "== python environment"
-if ! wait "$SETUP_PYTHON"; then
-    cat "$SETUP_LOG" >&2
-    echo "setup-python failed (log above)" >&2
-    exit 1
-fi
-cat "$SETUP_LOG"
+await "python environment" "$SETUP_PYTHON" "$SETUP_LOG"
 
 echo "== interop"
 bash scripts/interop/run.sh target/release/brickyard
