@@ -448,6 +448,14 @@ fn render_typed<T: Sample>(
                     for r in 0..nrows {
                         let j = (band * TILE_H + r) as u32;
                         for i in x0..(x0 + TILE_W).min(w) {
+                            if entries
+                                .as_ref()
+                                .is_some_and(|e| e.shows_nothing(i, j as usize))
+                            {
+                                // What the walk would return, without a ray.
+                                rows[r * w + i] = [0.0; 4];
+                                continue;
+                            }
                             let ray = rg.pixel_ray(i as u32, j);
                             let before = params.debug.map(|d| counts(d, &st, &walkers));
                             rows[r * w + i] = match &params.mode {

@@ -69,6 +69,9 @@ pub(crate) struct Entries {
     /// The level the boxes are of; rays starting at another level walk from
     /// their start.
     pub(crate) level: usize,
+    /// Every ray stays at `level` through the whole volume (the level
+    /// never changes before the volume's farthest point).
+    whole: bool,
     width: usize,
     /// Per pixel, row-major: the entry rounded down to f32 (`+∞`: nothing
     /// on the ray; `−∞`: not computed, the tile is not drawn).
@@ -81,6 +84,14 @@ impl Entries {
     #[inline]
     pub(crate) fn at(&self, i: usize, j: usize) -> f64 {
         self.depth[j * self.width + i] as f64
+    }
+
+    /// Whether pixel `(i, j)` shows nothing: its ray meets no box and
+    /// stays at the boxes' level, so the walk would return a clear pixel
+    /// without a sample (the ray need not be made).
+    #[inline]
+    pub(crate) fn shows_nothing(&self, i: usize, j: usize) -> bool {
+        self.whole && self.depth[j * self.width + i] == f32::INFINITY
     }
 
     /// Entries of the pixels of `tiles` still to draw, for a one-channel
@@ -237,10 +248,28 @@ impl Entries {
                     }
                     let x0 = tx * TILE_W;
                     let tw = TILE_W.min(w - x0);
-                    rays.clear();
+                    let y0 = ty * TILE_H;
                     for r in 0..nrows {
-                        for i in x0..x0 + tw {
-                            let ray = rg.pixel_ray(i as u32, (ty * TILE_H + r) as u32);
+                        rows[r * w + x0..r * w + x0 + tw].fill(f32::INFINITY);
+                    }
+                    // The pixels of the tile that some box may cover: rays
+                    // for these only (the others meet no box).
+                    let (mut rx0, mut ry0, mut rx1, mut ry1) = (x0 + tw, y0 + nrows, x0, y0);
+                    for &n in &bins[t] {
+                        let [bx0, by0, bx1, by1] = boxes[n as usize].rect.map(|v| v as usize);
+                        rx0 = rx0.min(bx0.max(x0));
+                        ry0 = ry0.min(by0.max(y0));
+                        rx1 = rx1.max(bx1.min(x0 + tw));
+                        ry1 = ry1.max(by1.min(y0 + nrows));
+                    }
+                    if rx0 >= rx1 || ry0 >= ry1 {
+                        continue;
+                    }
+                    let rw = rx1 - rx0;
+                    rays.clear();
+                    for y in ry0..ry1 {
+                        for x in rx0..rx1 {
+                            let ray = rg.pixel_ray(x as u32, y as u32);
                             let d = ray.dir;
                             rays.push((ray, [1.0 / d[0], 1.0 / d[1], 1.0 / d[2]], f64::INFINITY));
                         }
@@ -253,13 +282,12 @@ impl Entries {
                             break;
                         }
                         let [bx0, by0, bx1, by1] = b.rect;
-                        let (px0, px1) = ((bx0 as usize).max(x0), (bx1 as usize).min(x0 + tw));
-                        let y_lo = (by0 as usize).max(ty * TILE_H);
-                        let y_hi = (by1 as usize).min(ty * TILE_H + nrows);
+                        let (px0, px1) = ((bx0 as usize).max(rx0), (bx1 as usize).min(rx1));
+                        let (y_lo, y_hi) = ((by0 as usize).max(ry0), (by1 as usize).min(ry1));
                         for y in y_lo..y_hi {
-                            let row = (y - ty * TILE_H) * tw;
+                            let row = (y - ry0) * rw;
                             for x in px0..px1 {
-                                let (ray, inv, best) = &mut rays[row + x - x0];
+                                let (ray, inv, best) = &mut rays[row + x - rx0];
                                 if *best <= b.near {
                                     continue;
                                 }
@@ -271,15 +299,19 @@ impl Entries {
                             }
                         }
                     }
-                    for r in 0..nrows {
-                        for x in 0..tw {
-                            rows[r * w + x0 + x] = down(rays[r * tw + x].2);
+                    for y in ry0..ry1 {
+                        for x in rx0..rx1 {
+                            rows[(y - y0) * w + x] = down(rays[(y - ry0) * rw + x - rx0].2);
                         }
                     }
                 }
             });
+        // Every sample of every ray lies before the level changes: a ray
+        // with no entry has nothing to show at all.
+        let whole = f.next_level_t(level) > far_distance(f) * (1.0 + 1e-6);
         Some(Entries {
             level,
+            whole,
             width: w,
             depth,
             passable,
@@ -394,6 +426,19 @@ fn down(t: f64) -> f32 {
 /// parameter of any sample, where the level rays start at is decided.
 fn near_distance(f: &Frame) -> f64 {
     distance(f.params.camera.eye, [0.0; 3], f.scene.extent)
+}
+
+/// Distance from the eye to the volume's farthest corner: no ray
+/// parameter of a sample is larger (perspective; orthographic views do not
+/// change level along a ray).
+fn far_distance(f: &Frame) -> f64 {
+    let (eye, hi) = (f.params.camera.eye, f.scene.extent);
+    (0..8)
+        .map(|c| {
+            let p = corner([0.0; 3], hi, c);
+            (0..3).map(|a| (p[a] - eye[a]).powi(2)).sum::<f64>().sqrt()
+        })
+        .fold(0.0, f64::max)
 }
 
 /// The camera's projection to pixel positions, with the frame computed

@@ -11,7 +11,8 @@
 //!   in fact bit for bit);
 //! - entry depths (`Scene::entry_depths`, the default) against the walk
 //!   from the volume's face, on sparse random volumes with cameras outside
-//!   and inside them;
+//!   and inside them, and on lone bright voxels seen through levels that
+//!   turn coarser along the rays;
 //! - the ray loop's copy compiled for x86-64-v3 (`Scene::x86_v3`, the
 //!   default where the processor has it) against the baseline build, bit
 //!   for bit, with lanes and scalar.
@@ -490,4 +491,70 @@ fn entry_depths_change_no_pixel_on_random_scenes() {
         steps_with * 2 < steps_without,
         "{steps_with} steps with entry depths, {steps_without} without"
     );
+}
+
+/// A ray that meets no entry box at the level rays start at may still
+/// show something where the level turns coarser along it: a coarse
+/// voxel's average spreads a lone bright voxel over more space than the
+/// fine cells that hold it. Frames with entry depths equal the walk's on
+/// such volumes (lone bright voxels, a transfer function that shows
+/// faint values) under automatic levels that change inside the volume;
+/// the rays with no entry are skipped only where no level change follows.
+#[test]
+fn rays_without_an_entry_still_walk_where_the_level_changes() {
+    let dir = tempfile::tempdir().unwrap();
+    let mut rng = Rng(0x5eed_0f1a);
+    let (mut differs_from_level_0, mut lit) = (0, 0);
+    for scene_no in 0..8 {
+        let dims = [64, 64, 64];
+        // Each spot the second voxel of an 8³ cell: a neighbouring cell's
+        // range (its voxels and the next one) misses it, and the coarse
+        // voxels holding it reach past its cell's low faces.
+        let spots: Vec<[u64; 3]> = (0..20)
+            .map(|_| [0; 3].map(|_| 8 * rng.int(1, 6) + 1))
+            .collect();
+        let (store, _) = store_of(dir.path(), &mut rng, dims, DType::U8, |p, _| {
+            let v = p.map(|c| (c * 64.0).round() as u64);
+            spots.contains(&v) as u8 as f64
+        });
+        let (mut s, mut scene, extent) = open_scene(&store, dims, 16, &mut rng);
+        scene.ranges = Some(std::sync::Arc::new(s.loader().brick_ranges(1 << 20)));
+        let tf = TransferFunction::new(
+            [0.0, 255.0],
+            vec![[0.0, 0.0], [0.003, 0.0], [0.03, 0.9], [1.0, 1.0]],
+            ColorMap::Preset(Preset::Hot),
+        )
+        .unwrap();
+        let proj = Projection::Perspective {
+            fov_y_deg: rng.range(25.0, 50.0),
+        };
+        // The eye inside the volume: level 0 near it, coarser levels
+        // (whose voxels spread a spot over several cells) farther on.
+        let eye = [0, 1, 2].map(|a| extent[a] * rng.range(0.3, 0.7));
+        // Looking at a spot (`[x, y, z]` voxel, world `[x, y, z]`).
+        let spot = spots[rng.int(0, 9) as usize];
+        let target = [0, 1, 2].map(|a| (spot[a] as f64 + 0.5) / dims[a] as f64 * extent[a]);
+        let cam = Camera::look_at(eye, target, [0.0, 0.0, 1.0], proj);
+        let p = RenderParams::new(128, 96, cam, tf, RenderMode::Dvr);
+        let lod = Lod::Auto {
+            bias: [3.5, 4.0, 4.5][scene_no % 3],
+        };
+        let mut walk = scene.clone();
+        walk.entry_depths = false;
+        // Level 0 first: its bricks resident, so that the entries are
+        // the cells', not whole bricks' that are not resident.
+        let level_0 = converge(&mut s, &scene, &p, Lod::Fixed(0));
+        let want = converge(&mut s, &walk, &p, lod);
+        let got = converge(&mut s, &scene, &p, lod);
+        let diff = got.max_abs_diff(&want);
+        assert!(
+            diff <= 1e-6,
+            "scene {scene_no} ({lod:?}): max abs diff {diff}"
+        );
+        differs_from_level_0 += (level_0.max_abs_diff(&want) > 0.05) as u32;
+        lit += (want.coverage(0.01) > 0.005) as u32;
+    }
+    // The levels do change inside these views, and the spots show.
+    assert!(differs_from_level_0 >= 5, "{differs_from_level_0} of 8");
+    assert!(lit >= 6, "{lit} of 8");
 }
