@@ -219,9 +219,30 @@ impl RayGen {
     /// `(i, j)` has its centre at `(i + 0.5, j + 0.5)`; y grows downwards.
     #[inline]
     pub fn ray(&self, px: f64, py: f64) -> Ray {
+        self.ray_at(self.column(px), self.row(py))
+    }
+
+    /// The part of [`ray`](Self::ray) that depends on `px` alone: the
+    /// offset along the right vector (per unit of forward distance in
+    /// perspective). A renderer computes it once per column.
+    #[inline]
+    pub fn column(&self, px: f64) -> f64 {
         let aspect = self.width / self.height;
-        let sx = (2.0 * px / self.width - 1.0) * self.half_h * aspect;
-        let sy = (1.0 - 2.0 * py / self.height) * self.half_h;
+        (2.0 * px / self.width - 1.0) * self.half_h * aspect
+    }
+
+    /// The part of [`ray`](Self::ray) that depends on `py` alone: the
+    /// offset along the up vector.
+    #[inline]
+    pub fn row(&self, py: f64) -> f64 {
+        (1.0 - 2.0 * py / self.height) * self.half_h
+    }
+
+    /// The ray at the offsets [`column`](Self::column) and
+    /// [`row`](Self::row) give: `ray(px, py)` is `ray_at(column(px),
+    /// row(py))`, bit for bit.
+    #[inline]
+    pub fn ray_at(&self, sx: f64, sy: f64) -> Ray {
         let b = &self.basis;
         let off = add(scale(b.right, sx), scale(b.up, sy));
         if self.perspective {

@@ -865,6 +865,20 @@ impl TfEval<'_> {
         self.open_before[b1 + 1] > self.open_before[b0]
     }
 
+    /// The colour `[r, g, b]` of [`TransferFunction::lookup`] for a value
+    /// that is not NaN, exactly (a slice's pixel).
+    #[inline(always)]
+    pub fn color(&self, value: f32) -> [f32; 3] {
+        let tf = self.tf;
+        let x = ((value - tf.window[0]) * self.inv_width).clamp(0.0, 1.0);
+        let i = match self.bins[bin_of(x)].color_seg {
+            u16::MAX => tf.colormap.points().partition_point(|p| p[0] <= x),
+            s => s as usize,
+        };
+        let [r, g, b] = &self.color_pieces[i];
+        [r.at(x), g.at(x), b.at(x)]
+    }
+
     /// Exactly [`TransferFunction::lookup_visible`].
     #[inline(always)]
     pub fn lookup_visible(&self, value: f32) -> Option<[f32; 4]> {
@@ -914,7 +928,7 @@ mod tests {
     }
 
     #[test]
-    fn evaluator_equals_lookup_visible_bit_for_bit() {
+    fn evaluator_equals_lookup_visible_and_lookup_bit_for_bit() {
         let mut tfs: Vec<TransferFunction> = TransferFunction::PRESETS
             .iter()
             .map(|p| TransferFunction::preset(p, [-3.0, 1000.0]).unwrap())
@@ -970,6 +984,15 @@ mod tests {
                     b.map(|c| c.map(f32::to_bits)),
                     "{v}"
                 );
+                // The colour alone, also where the opacity is 0.
+                if !v.is_nan() {
+                    let [r, g, b, _] = tf.lookup(v);
+                    assert_eq!(
+                        ev.color(v).map(f32::to_bits),
+                        [r, g, b].map(f32::to_bits),
+                        "{v}"
+                    );
+                }
             }
         }
     }

@@ -180,6 +180,13 @@ impl ViewRays {
         self.gen.shifted_ray(px, py, shift, self.distance)
     }
 
+    /// The one view's ray generator when there is one view (pixel `(i,
+    /// j)`'s ray is then its [`RayGen::pixel_ray`]).
+    #[inline]
+    pub fn single(&self) -> Option<&RayGen> {
+        (self.count == 1).then_some(&self.gen)
+    }
+
     /// The ray through the centre of pixel `(i, j)` of the whole image.
     #[inline]
     pub fn pixel_ray(&self, i: u32, j: u32) -> Ray {

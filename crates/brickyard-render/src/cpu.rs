@@ -51,7 +51,7 @@ use crate::walk::{Frame, Walker};
 use crate::{mip, multi, slice, superslice};
 use brickyard_cache::ranges::BrickRanges;
 use brickyard_cache::vm::{Requests, VirtualMemory};
-use brickyard_core::camera::Vec3;
+use brickyard_core::camera::{normalize, Vec3};
 use brickyard_core::views::ViewRays;
 use brickyard_core::{dispatch_dtype, Dims3, Sample};
 use rayon::prelude::*;
@@ -410,6 +410,12 @@ fn render_typed<T: Sample>(
     if let Some(e) = &entries {
         e.mark_passed(&frame, &rg);
     }
+    let one = rg.single();
+    // A slice's unit normal, once per frame.
+    let slice_unit = match params.mode {
+        RenderMode::Slice { normal, .. } => normalize(normal),
+        _ => [0.0; 3],
+    };
     let parts: Vec<(FrameStats, Requests)> = img
         .rgba
         .par_chunks_mut(w * TILE_H)
@@ -445,9 +451,19 @@ fn render_typed<T: Sample>(
                         continue;
                     }
                     let (samples, exact) = (st.samples, st.exact);
+                    let x1 = (x0 + TILE_W).min(w);
+                    // One view: the rays' offsets per column once per
+                    // tile, per row once per row (the same rays).
+                    let mut cols = [0.0; TILE_W];
+                    if let Some(g) = one {
+                        for i in x0..x1 {
+                            cols[i - x0] = g.column(i as f64 + 0.5);
+                        }
+                    }
                     for r in 0..nrows {
                         let j = (band * TILE_H + r) as u32;
-                        for i in x0..(x0 + TILE_W).min(w) {
+                        let sy = one.map(|g| g.row(j as f64 + 0.5));
+                        for i in x0..x1 {
                             if entries
                                 .as_ref()
                                 .is_some_and(|e| e.shows_nothing(i, j as usize))
@@ -456,7 +472,10 @@ fn render_typed<T: Sample>(
                                 rows[r * w + i] = [0.0; 4];
                                 continue;
                             }
-                            let ray = rg.pixel_ray(i as u32, j);
+                            let ray = match (one, sy) {
+                                (Some(g), Some(sy)) => g.ray_at(cols[i - x0], sy),
+                                _ => rg.pixel_ray(i as u32, j),
+                            };
                             let before = params.debug.map(|d| counts(d, &st, &walkers));
                             rows[r * w + i] = match &params.mode {
                                 RenderMode::Dvr if oct_frame.is_some() => octree::dvr::dvr_pixel(
@@ -481,10 +500,10 @@ fn render_typed<T: Sample>(
                                     (&mut req, &mut st),
                                 ),
                                 RenderMode::Mip => walkers[0].mip(&ray, &mut req, &mut st),
-                                RenderMode::Slice { origin, normal } => slice::pixel(
+                                RenderMode::Slice { origin, .. } => slice::pixel(
                                     &mut walkers,
                                     &ray,
-                                    (*origin, *normal),
+                                    (*origin, slice_unit),
                                     params,
                                     scene.extent,
                                     (&mut req, &mut st),

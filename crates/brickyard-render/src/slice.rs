@@ -5,24 +5,21 @@
 //! channel) or the channels' mix, opaque. `slice.wgsl` is the device twin.
 
 use crate::cpu::FrameStats;
-use crate::optics::{mix_channels, slice_color};
+use crate::optics::mix_channels;
+#[cfg(doc)]
+use crate::optics::slice_color;
 use crate::params::{RenderParams, MAX_CHANNELS};
 use crate::walk::Walker;
 use brickyard_cache::vm::Requests;
-use brickyard_core::camera::{dot, normalize, sub, Ray, Vec3};
+use brickyard_core::camera::{dot, sub, Ray, Vec3};
 use brickyard_core::Sample;
 
-/// Where `ray` meets the plane through `origin` with `normal`, if that is
-/// in front of the ray and inside the box `[0, extent]`: the world point
-/// and the ray parameter.
+/// Where `ray` meets the plane through `origin` with the unit normal `n`
+/// (normalized once per frame by the caller), if that is in front of the
+/// ray and inside the box `[0, extent]`: the world point and the ray
+/// parameter.
 #[inline]
-pub(crate) fn slice_point(
-    ray: &Ray,
-    origin: Vec3,
-    normal: Vec3,
-    extent: Vec3,
-) -> Option<(Vec3, f64)> {
-    let n = normalize(normal);
+pub(crate) fn slice_point(ray: &Ray, origin: Vec3, n: Vec3, extent: Vec3) -> Option<(Vec3, f64)> {
     let denom = dot(ray.dir, n);
     if denom == 0.0 {
         return None;
@@ -32,29 +29,39 @@ pub(crate) fn slice_point(
         return None;
     }
     let w = ray.at(t);
-    if (0..3).any(|a| !(w[a] >= 0.0 && w[a] <= extent[a])) {
+    // (Written out: a closure over the axes cost a call per pixel.)
+    let inside = |a: usize| w[a] >= 0.0 && w[a] <= extent[a];
+    if !(inside(0) && inside(1) && inside(2)) {
         return None;
     }
     Some((w, t))
 }
 
-/// The pixel of `ray` in a slice through `plane` (origin, normal): one
-/// walker per channel shown (`params.channels`, or one channel through the
-/// transfer function).
+/// The pixel of `ray` in a slice through the plane `(origin, n)` (`n` of
+/// unit length): one walker per channel shown (`params.channels`, or one
+/// channel through the transfer function, by the frame's evaluator: the
+/// colour [`slice_color`] gives, bit for bit).
 #[inline]
 pub(crate) fn pixel<T: Sample>(
     walkers: &mut [Walker<'_, '_, T>],
     ray: &Ray,
-    (origin, normal): (Vec3, Vec3),
+    (origin, n): (Vec3, Vec3),
     params: &RenderParams,
     extent: Vec3,
     (req, st): (&mut Requests, &mut FrameStats),
 ) -> [f32; 4] {
-    let Some((wp, t)) = slice_point(ray, origin, normal, extent) else {
+    let Some((wp, t)) = slice_point(ray, origin, n, extent) else {
         return [0.0; 4];
     };
     if params.channels.is_empty() {
-        return slice_color(&params.tf, walkers[0].slice_value(wp, t, req, st));
+        let wk = &mut walkers[0];
+        return match wk.slice_value(wp, t, req, st) {
+            Some(v) if !v.is_nan() => {
+                let [r, g, b] = wk.f.tf_eval.color(v);
+                [r, g, b, 1.0]
+            }
+            _ => [0.0; 4],
+        };
     }
     let mut v = [f32::NAN; MAX_CHANNELS];
     for (x, wk) in v.iter_mut().zip(walkers.iter_mut()) {

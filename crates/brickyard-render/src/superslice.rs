@@ -65,6 +65,8 @@ pub(crate) fn draw<T: Sample>(
     let vw = rays.view_width() as usize;
     // Slices step towards the camera.
     let mut towards = normalize(normal);
+    // The plane's unit normal, for every pixel's `slice_point`.
+    let unit = normalize(normal);
     if dot(towards, params.camera.basis().forward) > 0.0 {
         towards = scale(towards, -1.0);
     }
@@ -136,7 +138,7 @@ pub(crate) fn draw<T: Sample>(
                     for (col, out) in scratch[l.at..l.at + l.width].iter_mut().enumerate() {
                         let px = (col as i64 + l.lo) as f64 + l.frac + 0.5;
                         let ray = rays.ray(0, px, py);
-                        *out = match slice_point(&ray, l.origin, normal, scene.extent) {
+                        *out = match slice_point(&ray, l.origin, unit, scene.extent) {
                             Some((p, t)) => match walker.slice_value(p, t, &mut req, &mut st) {
                                 Some(value) if !value.is_nan() => params.tf.lookup(value),
                                 _ => [0.0; 4],
