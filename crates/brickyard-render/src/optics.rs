@@ -118,6 +118,11 @@ struct Pieces {
 pub(crate) struct TfTable {
     w0: f32,
     inv_width: f32,
+    /// Windowed values (before the clamp) below this lie in bins that are
+    /// all clear: the lower edge of the first bin that is not (`−∞` when
+    /// bin 0 is not, `+∞` when none is). Most transparent samples of a
+    /// DVR stop at this one comparison.
+    clear_below: f32,
     bins: Box<[u16; BINS]>,
     pieces: Vec<Pieces>,
     /// The evaluator's result where the windowed value is exactly 0 and
@@ -189,6 +194,7 @@ impl TfTable {
             return TfTable {
                 w0,
                 inv_width,
+                clear_below: f32::NEG_INFINITY,
                 bins,
                 pieces,
                 ends: [None; 2],
@@ -233,9 +239,17 @@ impl TfTable {
                 }
             };
         }
+        let clear_below = match bins.iter().position(|&b| b != CLEAR) {
+            Some(0) => f32::NEG_INFINITY,
+            // A windowed value below b / BINS has its bin below b (the
+            // product with BINS, a power of two, is exact).
+            Some(b) => b as f32 / BINS as f32,
+            None => f32::INFINITY,
+        };
         TfTable {
             w0,
             inv_width,
+            clear_below,
             bins,
             pieces,
             ends,
@@ -246,10 +260,12 @@ impl TfTable {
     /// `[α, r, g, b]`.
     #[inline(always)]
     pub(crate) fn lookup_visible(&self, eval: &TfEval, value: f32) -> Option<F4> {
-        if value.is_nan() {
+        let y = (value - self.w0) * self.inv_width;
+        // Below every bin that may show (NaN fails this and the next).
+        if y < self.clear_below || value.is_nan() {
             return None;
         }
-        let x = ((value - self.w0) * self.inv_width).clamp(0.0, 1.0);
+        let x = y.clamp(0.0, 1.0);
         match self.bins[bin_of(x)] {
             CLEAR => None,
             SEARCH => {
