@@ -6,6 +6,23 @@
 
 use std::path::{Path, PathBuf};
 use std::process::{Command, Output};
+use std::sync::{RwLock, RwLockReadGuard, RwLockWriteGuard};
+
+/// The viewer sessions of this file run side by side, except the one on
+/// the device: with no GPU its Vulkan is Mesa's software rasterizer, and
+/// beside other sessions on a 2-core machine its frames came more than 2 s
+/// apart while loading (the limit it checks). It runs alone.
+static SESSIONS: RwLock<()> = RwLock::new(());
+
+/// A session that may run beside others.
+fn shared() -> RwLockReadGuard<'static, ()> {
+    SESSIONS.read().unwrap_or_else(|e| e.into_inner())
+}
+
+/// A session that runs alone.
+fn alone() -> RwLockWriteGuard<'static, ()> {
+    SESSIONS.write().unwrap_or_else(|e| e.into_inner())
+}
 
 fn bin() -> &'static str {
     env!("CARGO_BIN_EXE_brickyard")
@@ -117,11 +134,13 @@ fn viewer(store: &Path, script: &Path, log: Option<&Path>, extra: &[&str]) -> Op
 
 #[test]
 fn viewer_views_equal_render_and_stream_while_loading() {
+    let _session = shared();
     viewer_case("cpu");
 }
 
 #[test]
 fn viewer_on_the_device_equals_render() {
+    let _session = alone();
     // The same script with the viewer drawing on the GPU back end (lavapipe
     // in CI), against `render` on the CPU.
     if brickyard_gpu::context::test_gpu().is_none() {
@@ -298,6 +317,7 @@ quit
 
 #[test]
 fn viewer_adds_channels_up_as_render_does() {
+    let _session = shared();
     let d = tempfile::tempdir().unwrap();
     let p = |n: &str| d.path().join(n);
     // Two channels, one after the other in one raw file.
@@ -421,6 +441,7 @@ fn shard_files(dir: &Path, out: &mut Vec<PathBuf>) {
 
 #[test]
 fn viewer_survives_a_store_damaged_before_and_during_the_session() {
+    let _session = shared();
     // One level-0 shard scrambled before the viewer opens the store; then,
     // while it shows level 1, another truncated and a third deleted. The
     // script then asks for level 0: the views settle, the unreadable
@@ -570,6 +591,7 @@ quit
 
 #[test]
 fn viewer_stays_within_its_memory_budget() {
+    let _session = shared();
     // The whole viewer process (window, software OpenGL, pool, caches,
     // images) against `--memory`, for a small and a larger budget: the
     // peak resident set (VmHWM, logged with every frame) stays within the
@@ -647,6 +669,7 @@ fn viewer_stays_within_its_memory_budget() {
 
 #[test]
 fn viewer_shows_a_live_derived_channel_as_render_derive_does() {
+    let _session = shared();
     let d = tempfile::tempdir().unwrap();
     let store = mandelbulb(d.path(), "48", &["--brick", "16", "--shard", "32"]);
     let p = |n: &str| d.path().join(n);
@@ -750,6 +773,7 @@ quit
 /// the new function.
 #[test]
 fn viewer_accumulates_a_still_view_and_reblends_tf_edits() {
+    let _session = shared();
     let d = tempfile::tempdir().unwrap();
     let store = mandelbulb(d.path(), "48", &["--brick", "16", "--shard", "32"]);
     let p = |n: &str| d.path().join(n);
@@ -840,11 +864,13 @@ quit
 
 #[test]
 fn viewer_composites_channels_in_dvr_and_switches_them_as_render_does() {
+    let _session = shared();
     switch_channels(&[]);
 }
 
 #[test]
 fn viewer_switches_channels_through_the_residency_octree() {
+    let _session = shared();
     switch_channels(&["--traversal", "octree", "--octree-depth", "3"]);
 }
 
@@ -1005,6 +1031,7 @@ quit
 /// stereo image is not the mono one.
 #[test]
 fn viewer_shows_stereo_and_super_slices_as_render_does() {
+    let _session = shared();
     let d = tempfile::tempdir().unwrap();
     let store = mandelbulb(d.path(), "48", &["--brick", "16", "--shard", "32"]);
     let p = |n: &str| d.path().join(n);
@@ -1089,6 +1116,7 @@ quit
 
 #[test]
 fn viewer_draws_dvr_through_the_residency_octree_as_render_does() {
+    let _session = shared();
     let d = tempfile::tempdir().unwrap();
     let store = mandelbulb(d.path(), "40", &["--brick", "16"]);
     let p = |n: &str| d.path().join(n);
@@ -1206,6 +1234,7 @@ quit
 
 #[test]
 fn viewer_refuses_octree_flags_it_cannot_honour() {
+    let _session = shared();
     // Checked before the window opens: no display needed.
     let d = tempfile::tempdir().unwrap();
     let store = mandelbulb(d.path(), "24", &[]);
