@@ -859,9 +859,7 @@ impl TfEval<'_> {
             return true;
         }
         let (lo, hi) = if lo <= hi { (lo, hi) } else { (hi, lo) };
-        let w0 = self.tf.window[0];
-        let b0 = bin_of(((lo - w0) * self.inv_width).clamp(0.0, 1.0));
-        let b1 = bin_of(((hi - w0) * self.inv_width).clamp(0.0, 1.0));
+        let (b0, b1) = (bin_of(self.windowed(lo)), bin_of(self.windowed(hi)));
         self.open_before[b1 + 1] > self.open_before[b0]
     }
 
@@ -869,10 +867,22 @@ impl TfEval<'_> {
     /// that is not NaN, exactly (a slice's pixel).
     #[inline(always)]
     pub fn color(&self, value: f32) -> [f32; 3] {
-        let tf = self.tf;
-        let x = ((value - tf.window[0]) * self.inv_width).clamp(0.0, 1.0);
-        let i = match self.bins[bin_of(x)].color_seg {
-            u16::MAX => tf.colormap.points().partition_point(|p| p[0] <= x),
+        let x = self.windowed(value);
+        self.color_at(x, self.bins[bin_of(x)])
+    }
+
+    /// The windowed value `x ∈ [0, 1]` of a data value, as
+    /// [`TransferFunction::normalize`] computes it.
+    #[inline(always)]
+    fn windowed(&self, value: f32) -> f32 {
+        ((value - self.tf.window[0]) * self.inv_width).clamp(0.0, 1.0)
+    }
+
+    /// The colour map at the windowed value `x`, whose bin is `bin`.
+    #[inline(always)]
+    fn color_at(&self, x: f32, bin: Bin) -> [f32; 3] {
+        let i = match bin.color_seg {
+            u16::MAX => self.tf.colormap.points().partition_point(|p| p[0] <= x),
             s => s as usize,
         };
         let [r, g, b] = &self.color_pieces[i];
@@ -885,26 +895,21 @@ impl TfEval<'_> {
         if value.is_nan() {
             return None;
         }
-        let tf = self.tf;
-        let x = ((value - tf.window[0]) * self.inv_width).clamp(0.0, 1.0);
+        let x = self.windowed(value);
         let bin = self.bins[bin_of(x)];
         if bin.clear {
             return None;
         }
         let i = match bin.opacity_seg {
-            u16::MAX => tf.opacity.partition_point(|p| p[0] <= x),
+            u16::MAX => self.tf.opacity.partition_point(|p| p[0] <= x),
             s => s as usize,
         };
         let a = self.opacity_pieces[i].at(x);
         if a <= 0.0 {
             return None;
         }
-        let i = match bin.color_seg {
-            u16::MAX => tf.colormap.points().partition_point(|p| p[0] <= x),
-            s => s as usize,
-        };
-        let [r, g, b] = &self.color_pieces[i];
-        Some([r.at(x), g.at(x), b.at(x), a])
+        let [r, g, b] = self.color_at(x, bin);
+        Some([r, g, b, a])
     }
 }
 

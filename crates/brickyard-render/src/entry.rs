@@ -33,7 +33,7 @@ use crate::cpu::{Tiles, TILE_H, TILE_W};
 use crate::walk::Frame;
 use brickyard_cache::brick::BrickKey;
 use brickyard_cache::vm::BrickRef;
-use brickyard_core::camera::{intersect_box_inv, Ray, RayGen, Vec3};
+use brickyard_core::camera::{intersect_box_inv, length, sub, Ray, RayGen, Vec3};
 use brickyard_core::views::ViewRays;
 use brickyard_core::Dims3;
 use rayon::prelude::*;
@@ -434,10 +434,7 @@ fn near_distance(f: &Frame) -> f64 {
 fn far_distance(f: &Frame) -> f64 {
     let (eye, hi) = (f.params.camera.eye, f.scene.extent);
     (0..8)
-        .map(|c| {
-            let p = corner([0.0; 3], hi, c);
-            (0..3).map(|a| (p[a] - eye[a]).powi(2)).sum::<f64>().sqrt()
-        })
+        .map(|c| length(sub(corner([0.0; 3], hi, c), eye)))
         .fold(0.0, f64::max)
 }
 

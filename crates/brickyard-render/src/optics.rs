@@ -308,14 +308,15 @@ pub fn mip_color(tf: &TransferFunction, hit: bool, best: f32) -> [f32; 4] {
 }
 
 /// The pixel of a slice of one channel: the transfer function's colour of
-/// the value, opaque; transparent where nothing served the sample or the
-/// value is NaN.
+/// the value (by the frame's evaluator: `TransferFunction::lookup`'s colour,
+/// bit for bit), opaque; transparent where nothing served the sample or
+/// the value is NaN.
 #[inline]
-pub fn slice_color(tf: &TransferFunction, value: Option<f32>) -> [f32; 4] {
+pub fn slice_color(tf: &TfEval, value: Option<f32>) -> [f32; 4] {
     match value {
         Some(v) if !v.is_nan() => {
-            let c = tf.lookup(v);
-            [c[0], c[1], c[2], 1.0]
+            let [r, g, b] = tf.color(v);
+            [r, g, b, 1.0]
         }
         _ => [0.0; 4],
     }
@@ -517,9 +518,10 @@ mod tests {
         // stays transparent.
         assert_eq!(mip_color(&tf, true, f32::NAN), [0.0, 0.0, 0.0, 1.0]);
         assert_eq!(mip_color(&tf, false, 5.0), [0.0; 4]);
-        assert_eq!(slice_color(&tf, Some(2.5)), [0.25, 0.25, 0.25, 1.0]);
-        assert_eq!(slice_color(&tf, Some(f32::NAN)), [0.0; 4]);
-        assert_eq!(slice_color(&tf, None), [0.0; 4]);
+        let ev = tf.evaluator();
+        assert_eq!(slice_color(&ev, Some(2.5)), [0.25, 0.25, 0.25, 1.0]);
+        assert_eq!(slice_color(&ev, Some(f32::NAN)), [0.0; 4]);
+        assert_eq!(slice_color(&ev, None), [0.0; 4]);
     }
 
     #[test]

@@ -5,9 +5,7 @@
 //! channel) or the channels' mix, opaque. `slice.wgsl` is the device twin.
 
 use crate::cpu::FrameStats;
-use crate::optics::mix_channels;
-#[cfg(doc)]
-use crate::optics::slice_color;
+use crate::optics::{mix_channels, slice_color};
 use crate::params::{RenderParams, MAX_CHANNELS};
 use crate::walk::Walker;
 use brickyard_cache::vm::Requests;
@@ -29,7 +27,8 @@ pub(crate) fn slice_point(ray: &Ray, origin: Vec3, n: Vec3, extent: Vec3) -> Opt
         return None;
     }
     let w = ray.at(t);
-    // (Written out: a closure over the axes cost a call per pixel.)
+    // (Three tests, not an iterator over the axes: that cost a call per
+    // pixel.)
     let inside = |a: usize| w[a] >= 0.0 && w[a] <= extent[a];
     if !(inside(0) && inside(1) && inside(2)) {
         return None;
@@ -39,8 +38,7 @@ pub(crate) fn slice_point(ray: &Ray, origin: Vec3, n: Vec3, extent: Vec3) -> Opt
 
 /// The pixel of `ray` in a slice through the plane `(origin, n)` (`n` of
 /// unit length): one walker per channel shown (`params.channels`, or one
-/// channel through the transfer function, by the frame's evaluator: the
-/// colour [`slice_color`] gives, bit for bit).
+/// channel through the frame's transfer-function evaluator).
 #[inline]
 pub(crate) fn pixel<T: Sample>(
     walkers: &mut [Walker<'_, '_, T>],
@@ -55,13 +53,7 @@ pub(crate) fn pixel<T: Sample>(
     };
     if params.channels.is_empty() {
         let wk = &mut walkers[0];
-        return match wk.slice_value(wp, t, req, st) {
-            Some(v) if !v.is_nan() => {
-                let [r, g, b] = wk.f.tf_eval.color(v);
-                [r, g, b, 1.0]
-            }
-            _ => [0.0; 4],
-        };
+        return slice_color(&wk.f.tf_eval, wk.slice_value(wp, t, req, st));
     }
     let mut v = [f32::NAN; MAX_CHANNELS];
     for (x, wk) in v.iter_mut().zip(walkers.iter_mut()) {

@@ -64,9 +64,9 @@ pub(crate) fn draw<T: Sample>(
     let rays = ViewRays::new(&params.camera, Some(views), params.width, params.height);
     let vw = rays.view_width() as usize;
     // Slices step towards the camera.
-    let mut towards = normalize(normal);
     // The plane's unit normal, for every pixel's `slice_point`.
     let unit = normalize(normal);
+    let mut towards = unit;
     if dot(towards, params.camera.basis().forward) > 0.0 {
         towards = scale(towards, -1.0);
     }
