@@ -416,6 +416,17 @@ fn render_typed<T: Sample>(
         RenderMode::Slice { normal, .. } => normalize(normal),
         _ => [0.0; 3],
     };
+    // One view, one channel, no debug counts: a slice's pixels by its own
+    // loop, without the per-pixel choices of the general one.
+    let plane = match (&params.mode, one) {
+        (RenderMode::Slice { origin, .. }, Some(g))
+            if params.channels.is_empty() && params.debug.is_none() =>
+        {
+            let eye = g.is_perspective().then(|| g.eye());
+            Some(slice::Plane::new(*origin, slice_unit, scene.extent, eye))
+        }
+        _ => None,
+    };
     let parts: Vec<(FrameStats, Requests)> = img
         .rgba
         .par_chunks_mut(w * TILE_H)
@@ -459,6 +470,18 @@ fn render_typed<T: Sample>(
                         for i in x0..x1 {
                             cols[i - x0] = g.column(i as f64 + 0.5);
                         }
+                    }
+                    if let (Some(pl), Some(g)) = (&plane, one) {
+                        for r in 0..nrows {
+                            let sy = g.row((band * TILE_H + r) as f64 + 0.5);
+                            let row = &mut rows[r * w + x0..r * w + x1];
+                            for (px, &sx) in row.iter_mut().zip(&cols) {
+                                let ray = g.ray_at(sx, sy);
+                                *px = pl.pixel_one(&mut walkers[0], &ray, (&mut req, &mut st));
+                            }
+                        }
+                        redo[tx] = st.exact - exact != st.samples - samples;
+                        continue;
                     }
                     for r in 0..nrows {
                         let j = (band * TILE_H + r) as u32;

@@ -18,11 +18,17 @@ use brickyard_core::Sample;
 /// parameter.
 #[inline]
 pub(crate) fn slice_point(ray: &Ray, origin: Vec3, n: Vec3, extent: Vec3) -> Option<(Vec3, f64)> {
+    meet(ray, dot(sub(origin, ray.origin), n), n, extent)
+}
+
+/// [`slice_point`] given its numerator `num = (origin − ray.origin)·n`.
+#[inline(always)]
+fn meet(ray: &Ray, num: f64, n: Vec3, extent: Vec3) -> Option<(Vec3, f64)> {
     let denom = dot(ray.dir, n);
     if denom == 0.0 {
         return None;
     }
-    let t = dot(sub(origin, ray.origin), n) / denom;
+    let t = num / denom;
     if t.is_nan() || t < 0.0 {
         return None;
     }
@@ -34,6 +40,48 @@ pub(crate) fn slice_point(ray: &Ray, origin: Vec3, n: Vec3, extent: Vec3) -> Opt
         return None;
     }
     Some((w, t))
+}
+
+/// A frame's slice plane for one view and one channel: the plane through
+/// `origin` with unit normal `n`, and, where every ray starts at the eye
+/// (perspective), [`slice_point`]'s numerator, the same for all pixels.
+pub(crate) struct Plane {
+    pub(crate) origin: Vec3,
+    pub(crate) n: Vec3,
+    pub(crate) extent: Vec3,
+    /// `(origin − eye)·n` for rays from `eye`.
+    pub(crate) from_eye: Option<(Vec3, f64)>,
+}
+
+impl Plane {
+    pub(crate) fn new(origin: Vec3, n: Vec3, extent: Vec3, eye: Option<Vec3>) -> Plane {
+        Plane {
+            origin,
+            n,
+            extent,
+            from_eye: eye.map(|e| (e, dot(sub(origin, e), n))),
+        }
+    }
+
+    /// [`pixel`] of one channel: the same colour, bit for bit (the
+    /// numerator is the one [`slice_point`] computes for a ray from the
+    /// eye).
+    #[inline(always)]
+    pub(crate) fn pixel_one<T: Sample>(
+        &self,
+        wk: &mut Walker<'_, '_, T>,
+        ray: &Ray,
+        (req, st): (&mut Requests, &mut FrameStats),
+    ) -> [f32; 4] {
+        let num = match self.from_eye {
+            Some((e, num)) if e == ray.origin => num,
+            _ => dot(sub(self.origin, ray.origin), self.n),
+        };
+        let Some((wp, t)) = meet(ray, num, self.n, self.extent) else {
+            return [0.0; 4];
+        };
+        slice_color(&wk.f.tf_eval, wk.slice_value(wp, t, req, st))
+    }
 }
 
 /// The pixel of `ray` in a slice through the plane `(origin, n)` (`n` of
