@@ -4,6 +4,26 @@
 //! (`process`). Shared by the CLI and the Python bindings, so that both
 //! draw the same image of the same view and write the same results.
 
+/// `println!` that never fails: standard output closed early (`| head`)
+/// drops the text instead of ending the run, so images and stores are
+/// still written.
+#[macro_export]
+macro_rules! outln {
+    ($($t:tt)*) => {{
+        use std::io::Write as _;
+        let _ = writeln!(std::io::stdout(), $($t)*);
+    }};
+}
+
+/// [`outln!`] without the line break.
+#[macro_export]
+macro_rules! out {
+    ($($t:tt)*) => {{
+        use std::io::Write as _;
+        let _ = write!(std::io::stdout(), $($t)*);
+    }};
+}
+
 pub mod backend;
 pub mod derive;
 pub mod frames;

@@ -410,9 +410,10 @@ pub fn run_shared(mut c: RenderCmd, share: Option<&mut dyn Share>) -> Result<Vec
                 .collect();
             std::fs::write(&f, bytes).with_context(|| format!("{}: cannot write", f.display()))?;
         }
+        // (The error names the path.)
         img.write_png(path, [0.0, 0.0, 0.0, 1.0])
-            .map_err(|e| anyhow::anyhow!("{}: {e}", path.display()))?;
-        println!("wrote {}", path.display());
+            .map_err(|e| anyhow::anyhow!("{e}"))?;
+        outln!("wrote {}", path.display());
         Ok(())
     })
 }
@@ -433,7 +434,7 @@ pub fn images(mut c: RenderCmd) -> Result<Vec<brickyard_render::Image>> {
 macro_rules! say {
     ($silent:expr, $($t:tt)*) => {
         if !$silent {
-            println!($($t)*);
+            outln!($($t)*);
         }
     };
 }
@@ -472,6 +473,21 @@ fn run_with(
         }
         if c.derive.is_some() {
             bail!("distribute: live derived channels draw on one process");
+        }
+    }
+    if !c.lod_bias.is_finite() {
+        bail!(
+            "lod-bias: expected a finite number of levels (negative: finer), found {}",
+            c.lod_bias
+        );
+    }
+    if let Some(parent) = c.out.parent().filter(|p| !p.as_os_str().is_empty()) {
+        if !parent.is_dir() {
+            bail!(
+                "{}: cannot write the image there: {} is not an existing folder",
+                c.out.display(),
+                parent.display()
+            );
         }
     }
     if !matches!(c.region_weights.as_str(), "view" | "data" | "uniform") {
@@ -558,6 +574,9 @@ fn run_with(
     let (lo, hi) = match &c.window {
         Some(wd) => {
             let p = parse_pair(wd, "window")?;
+            if !(p[0] < p[1]) {
+                bail!("window: expected LO,HI with LO < HI, found {wd:?}");
+            }
             (p[0], p[1])
         }
         None if derived.is_some() => {
@@ -573,6 +592,9 @@ fn run_with(
                         .iter()
                         .rev()
                         .find_map(|l| l.stats.as_ref().map(|s| (s.min, s.max)))
+                        // One value everywhere (a blank or constant volume)
+                        // has no range: the unit window, as the viewer.
+                        .filter(|(lo, hi)| hi > lo)
                 })
                 .unwrap_or((0.0, 1.0))
         }
@@ -651,6 +673,10 @@ fn run_with(
         brick: [c.brick; 3],
         pool_bytes: split.pool,
         upload_bytes_per_frame: match opt_bytes(&c.upload)? {
+            Some(u) if u < (c.brick + 2).pow(3) * dtype.size() as u64 => bail!(
+                "upload: {u} bytes per frame is less than one padded brick ({} bytes): no brick could ever be written into the pool",
+                (c.brick + 2).pow(3) * dtype.size() as u64
+            ),
             Some(u) => u,
             None if batch => split.pool,
             None => 64 << 20,
@@ -1580,7 +1606,7 @@ fn accumulate(
         between();
         left = st.stand_ins;
         if !quiet {
-            println!(
+            outln!(
                 "accumulate{band} {}/{n}: {:8.1} ms, {} samples taken, {} stand-ins left, {} kept",
                 acc.frames(),
                 f0.elapsed().as_secs_f64() * 1e3,
@@ -1591,7 +1617,7 @@ fn accumulate(
         }
         if acc.complete() {
             if !quiet {
-                println!(
+                outln!(
                     "accumulated{band} {n} frames in {frame} passes, {:.2} s",
                     t.elapsed().as_secs_f64()
                 );

@@ -462,6 +462,14 @@ pub fn convert_team(
             msg: "output exists; pass --overwrite to replace it".into(),
         });
     }
+    if output.exists() && !replaceable(output) {
+        return Err(StoreError::Refused {
+            path: output.into(),
+            msg: "exists and is not a Zarr store (no zarr.json, .zgroup or .zarray in it): \
+                  --overwrite replaces stores only; remove it yourself or choose another output"
+                .into(),
+        });
+    }
     if let (Ok(a), Ok(b)) = (output.canonicalize(), meta.path.canonicalize()) {
         if b.starts_with(&a) || a.starts_with(&b) {
             return Err(StoreError::Refused {
@@ -472,6 +480,20 @@ pub fn convert_team(
     }
     let spacing = opts.spacing.or(meta.spacing).unwrap_or([1.0; 3]);
     let origin = opts.origin.or(meta.origin).unwrap_or([0.0; 3]);
+    // A unit the user names must be one OME-Zarr knows; one from the
+    // input's header that is not is left out.
+    if let Some(u) = &opts.unit {
+        if omezarr::normalize_unit(u).is_none() {
+            return Err(StoreError::invalid(
+                output,
+                "unit",
+                format!(
+                    "unknown unit {u:?}; expected one of OME-Zarr's space units ({}) or mm, um, nm, cm, m",
+                    omezarr::SPACE_UNITS.join(", ")
+                ),
+            ));
+        }
+    }
     let unit = opts
         .unit
         .clone()
@@ -901,6 +923,22 @@ fn finish_store(
         std::fs::rename(partial, output).at(output)?;
     }
     Ok(())
+}
+
+/// Whether `--overwrite` may replace `path`: an empty directory or a
+/// Zarr store (v3 `zarr.json`, v2 `.zgroup` or `.zarray` at its top), never
+/// a file or a folder of other things.
+pub fn replaceable(path: &Path) -> bool {
+    if !path.is_dir() {
+        return false;
+    }
+    let marked = ["zarr.json", ".zgroup", ".zarray"]
+        .iter()
+        .any(|m| path.join(m).is_file());
+    marked
+        || std::fs::read_dir(path)
+            .map(|mut d| d.next().is_none())
+            .unwrap_or(false)
 }
 
 /// Where an unfinished conversion of `output` is written.

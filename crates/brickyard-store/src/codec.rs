@@ -28,8 +28,10 @@ impl Compression {
             "zstd" => Some(Compression::Zstd(3)),
             "none" | "raw" => Some(Compression::None),
             _ => {
-                let l = s.strip_prefix("zstd:")?.parse().ok()?;
-                Some(Compression::Zstd(l))
+                // zstd's levels: negative (fast) ones down to -131072, up
+                // to 22 (what Zarr readers accept in the metadata).
+                let l: i32 = s.strip_prefix("zstd:")?.parse().ok()?;
+                (-131072..=22).contains(&l).then_some(Compression::Zstd(l))
             }
         }
     }

@@ -292,7 +292,7 @@ fn bench_convert(b: &BenchCmd, dims: [u64; 3], dtype: DType) -> Result<()> {
         .cloned()
         .unwrap();
     let bytes_in = r["bytes_in"].as_u64().unwrap_or(0);
-    println!(
+    outln!(
         "{}",
         json!({
             "scenario": "convert",
@@ -328,7 +328,7 @@ fn bench_downsample(b: &BenchCmd, dims: [u64; 3], dtype: DType) -> Result<()> {
             best = best.min(t.elapsed().as_secs_f64());
         }
         let bytes = (n * std::mem::size_of::<T>()) as f64;
-        println!("{}", json!({"scenario": "downsample", "size": [dims[2], dims[1], dims[0]], "dtype": dtype.short_name(),
+        outln!("{}", json!({"scenario": "downsample", "size": [dims[2], dims[1], dims[0]], "dtype": dtype.short_name(),
             "seconds": best, "input_gb_s": bytes / 1e9 / best, "threads": rayon::current_num_threads()}));
         let _ = <T as Sample>::DTYPE;
     });

@@ -62,7 +62,7 @@ pub fn cache_kernels(repeat: usize) -> Result<()> {
             lru.run(&gpu, &b, frame);
             let _ = gpu.device.poll(wgpu::PollType::wait_indefinitely());
         });
-        println!(
+        outln!(
             "{}",
             json!({"scenario": "cache-kernels", "kernel": "lru-compaction", "slots": n,
                    "cpu_ms": cpu_ms, "device_ms": dev_ms, "adapter": adapter})
@@ -104,7 +104,7 @@ pub fn cache_kernels(repeat: usize) -> Result<()> {
         let _ = t.list(&gpu, cap);
         list_ms = list_ms.min(s.elapsed().as_secs_f64() * 1e3);
     });
-    println!(
+    outln!(
         "{}",
         json!({"scenario": "cache-kernels", "kernel": "requests", "misses": misses.len(),
                "distinct": 3000, "buckets": buckets, "cap": cap,
@@ -179,7 +179,7 @@ fn update_step(gpu: &Gpu, repeat: usize, adapter: &str) -> Result<()> {
                 dev_ms = dev_ms.min(t.elapsed().as_secs_f64() * 1e3);
             }
         }
-        println!(
+        outln!(
             "{}",
             json!({"scenario": "cache-kernels", "kernel": "update-step", "volume": "4096^3 u8",
                    "pool_slots": slots, "page_table_levels": vm.layout().nmax(), "bricks": k,
@@ -298,7 +298,7 @@ pub fn process_filters(
                 runs.push(t.elapsed().as_secs_f64());
             }
             let best_s = runs.iter().cloned().fold(f64::INFINITY, f64::min);
-            println!(
+            outln!(
                 "{}",
                 json!({"scenario": "process-filters", "filter": text, "size": dims,
                        "dtype": dtype.short_name(), "backend": b, "best_s": best_s, "runs_s": runs,
@@ -319,7 +319,7 @@ pub fn process_filters(
                 "sobel" => Filter::Sobel,
                 _ => Filter::Gauss([2.0; 3]),
             };
-            println!(
+            outln!(
                 "{}",
                 json!({"scenario": "process-filters", "filter": text, "size": dims,
                        "max_abs_diff_device_vs_cpu": worst,

@@ -1,5 +1,7 @@
 //! The `brickyard` command line.
 
+#[macro_use]
+extern crate brickyard_run;
 mod bench;
 mod dist;
 mod gpubench;
@@ -256,7 +258,7 @@ pub fn peak_rss() -> u64 {
 /// A `--compression` value (`convert`, `bench`).
 pub(crate) fn parse_compression(s: &str) -> Result<Compression> {
     Compression::parse(s).with_context(|| {
-        format!("compression: expected lz4, zstd, zstd:LEVEL or none, found {s:?}")
+        format!("compression: expected lz4, zstd, zstd:LEVEL (LEVEL from -131072 to 22) or none, found {s:?}")
     })
 }
 
@@ -347,9 +349,9 @@ fn run_convert(
             j["ranks"] = size.into();
         }
         j["input_mb_s"] = (r.bytes_in as f64 / 1e6 / r.seconds).into();
-        println!("{}", serde_json::to_string(&j)?);
+        outln!("{}", serde_json::to_string(&j)?);
     } else {
-        println!(
+        outln!(
             "wrote {}{} ({} levels, {} bricks: {} empty, {} constant) in {:.2} s: {} in, {} out, {:.0} MB/s, peak RSS {}",
             output.display(),
             if size > 1 { format!(" on {size} ranks") } else { String::new() },
@@ -364,7 +366,7 @@ fn run_convert(
             human_bytes(rss)
         );
         for n in &r.notes {
-            println!("  {n}");
+            outln!("  {n}");
         }
     }
     Ok(())
@@ -514,11 +516,11 @@ fn run(cmd: Cmd, cluster: Option<&dist::Cluster>) -> Result<()> {
                 if let Some(r) = &checked {
                     v["check"] = serde_json::to_value(r)?;
                 }
-                println!("{}", serde_json::to_string_pretty(&v)?);
+                outln!("{}", serde_json::to_string_pretty(&v)?);
             } else {
-                print!("{}", format_info(&i));
+                out!("{}", format_info(&i));
                 if let Some(r) = &checked {
-                    print!("{}", brickyard_store::info::check::format_check(r));
+                    out!("{}", brickyard_store::info::check::format_check(r));
                 }
             }
             if checked.as_ref().is_some_and(|r| !r.ok()) {
@@ -556,7 +558,7 @@ fn run(cmd: Cmd, cluster: Option<&dist::Cluster>) -> Result<()> {
                 let bar = progress::Bar::new(pyramid.quiet, "generating");
                 brickyard_store::generate::write_raw(&src, &output, &bar)?;
                 bar.finish();
-                println!(
+                outln!(
                     "wrote {} ({}x{}x{} {dt}) and {}",
                     output.display(),
                     dims[2],
@@ -616,7 +618,7 @@ fn convert_demo(out: &Path, size: &str) -> Result<PathBuf> {
     let dims = parse_size(size).map_err(|e| anyhow::anyhow!("size: {e}"))?;
     let store = out.join("mandelbulb.ome.zarr");
     let src = Procedural::new(Kind::Mandelbulb, dims, DType::U16);
-    println!(
+    outln!(
         "demo: converting a {}x{}x{} u16 Mandelbulb into {}",
         dims[2],
         dims[1],
@@ -643,10 +645,10 @@ fn convert_demo(out: &Path, size: &str) -> Result<PathBuf> {
 
 fn demo(out: &Path, size: &str) -> Result<()> {
     let store = convert_demo(out, size)?;
-    print!("{}", format_info(&inspect(&store)?));
+    out!("{}", format_info(&inspect(&store)?));
     stream_demo(&store)?;
     render_demo(&store, out)?;
-    println!(
+    outln!(
         "demo: done; inspect it with `brickyard info {}`",
         store.display()
     );
@@ -693,7 +695,7 @@ fn render_demo(store: &Path, out: &Path) -> Result<()> {
     let mut summary = vec![];
     for (args, name, what) in jobs {
         let path = out.join(name);
-        println!("demo: rendering {what} ({})", args.join(" "));
+        outln!("demo: rendering {what} ({})", args.join(" "));
         let mut all: Vec<String> = vec![
             "brickyard".into(),
             "render".into(),
@@ -715,12 +717,12 @@ fn render_demo(store: &Path, out: &Path) -> Result<()> {
                 .join("\n")
         ));
     }
-    println!("demo: summary");
+    outln!("demo: summary");
     for s in &summary {
-        println!("{s}");
+        outln!("{s}");
     }
     if let Some(p) = memory::peak_rss() {
-        println!("demo: peak memory {}", human_bytes(p));
+        outln!("demo: peak memory {}", human_bytes(p));
     }
     Ok(())
 }
@@ -743,7 +745,7 @@ fn stream_demo(store: &Path) -> Result<()> {
     };
     let mut s = Session::open(store, cfg, 32 << 20, 2)?;
     let (w, h) = (1920usize, 1080usize);
-    println!(
+    outln!(
         "demo: streaming a {w}x{h} slice at level 0 through a {} pool ({} slots, {} page-table level(s))",
         human_bytes(s.vm().pool_bytes() as u64),
         s.vm().pool_slots(),
@@ -775,7 +777,7 @@ fn stream_demo(store: &Path) -> Result<()> {
             .collect();
         let exact: usize = parts.iter().map(|p| p.0).sum();
         let st = s.finish_frame(parts.iter().map(|p| &p.1));
-        println!(
+        outln!(
             "  frame {frame:3}: {:5.1}% complete, {:3} requests, {:3} bricks in ({} uploaded), {} resident, {:.0} ms",
             100.0 * exact as f64 / (w * h) as f64,
             st.frame.requests.len(),
@@ -785,7 +787,7 @@ fn stream_demo(store: &Path) -> Result<()> {
             ft.elapsed().as_secs_f64() * 1e3
         );
         if exact == w * h {
-            println!(
+            outln!(
                 "demo: view complete after {frame} frames, {:.2} s",
                 t0.elapsed().as_secs_f64()
             );

@@ -62,7 +62,7 @@ pub fn remote(dir: &Path, dims: Dims3, dtype: DType) -> Result<()> {
                     }
                 }
                 let s = t.elapsed().as_secs_f64();
-                println!(
+                outln!(
                     "{}",
                     json!({"scenario": "remote", "source": source, "size": [dims[2], dims[1], dims[0]],
                         "dtype": dtype.short_name(), "threads": threads, "bricks": keys.len(),

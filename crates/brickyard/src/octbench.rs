@@ -327,7 +327,7 @@ pub fn run(dir: &Path, o: &OctreeBench) -> Result<()> {
             o.dims[2], o.dims[1], o.dims[0], o.chunk
         ),
     };
-    println!(
+    outln!(
         "bench octree: {what}; image {}x{}, engine bricks 32³, octree depth {}, CPU {} threads, DVR with automatic level of detail, pool holding every brick; back ends: {}",
         o.image[0],
         o.image[1],
@@ -335,8 +335,8 @@ pub fn run(dir: &Path, o: &OctreeBench) -> Result<()> {
         rayon::current_num_threads(),
         o.backends.join(", ")
     );
-    println!("per ray: over all {} pixels' rays; frame: the render of a complete, warm frame (best and median of {})", o.image[0] as u64 * o.image[1] as u64, o.repeat.max(3));
-    println!(
+    outln!("per ray: over all {} pixels' rays; frame: the render of a complete, warm frame (best and median of {})", o.image[0] as u64 * o.image[1] as u64, o.repeat.max(3));
+    outln!(
         "{:>8} {:>7} {:>10} {:>10} {:>10} {:>9} {:>9} {:>9} {:>10} {:>10} {:>9} {:>13} {:>9}",
         "channels",
         "backend",
@@ -364,7 +364,7 @@ pub fn run(dir: &Path, o: &OctreeBench) -> Result<()> {
             let diff = pt.image.max_abs_diff(&oc.image);
             for (name, r) in [("page-table", &pt), ("octree", &oc)] {
                 let st = &r.stats;
-                println!(
+                outln!(
                 "{:>8} {:>7} {:>10} {:>10.1} {:>10.1} {:>9.1} {:>9} {:>9.1} {:>10.1} {:>10} {:>9} {:>13} {:>9.1e}",
                 n,
                 backend,

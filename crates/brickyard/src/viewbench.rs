@@ -181,7 +181,7 @@ pub fn views(
                 }
                 best = best.min(ms);
             }
-            println!(
+            outln!(
                 "{}",
                 json!({"scenario": "views", "backend": backend.describe(), "case": case.name,
                     "size": [dims[2], dims[1], dims[0]], "dtype": dtype.short_name(), "view": [w, h],
@@ -192,7 +192,7 @@ pub fn views(
             results.push((case.name.clone(), best, bytes_read));
         }
         let t = |i: usize| results[i].1;
-        println!(
+        outln!(
             "{}",
             json!({"scenario": "views", "summary": true, "backend": name,
                 "super_slice_views_in_one_frame_over_one_view_alone": t(2) / t(1),

@@ -186,7 +186,7 @@ pub fn sample(dir: &Path, dims: Dims3, dtype: DType, repeat: usize) -> Result<()
             let _ = sum_par;
         }
         let n = pts.len() as f64;
-        println!(
+        outln!(
             "{}",
             json!({"scenario": "vm-sample", "size": [dims[2], dims[1], dims[0]], "dtype": dtype.short_name(),
                 "samples": pts.len(), "pt_levels": s.vm().layout().pt_levels(),
@@ -284,7 +284,7 @@ pub fn update(repeat: usize) -> Result<()> {
             times.push(t.elapsed().as_secs_f64() * 1e3);
         }
         times.sort_by(|a, b| a.partial_cmp(b).unwrap());
-        println!(
+        outln!(
             "{}",
             json!({"scenario": "vm-update", "pool_slots": vm.pool_slots(), "pt_levels": vm.layout().pt_levels(),
                 "median_ms_per_frame": times[times.len() / 2], "max_ms": times[times.len() - 1],
@@ -405,7 +405,7 @@ pub fn loader(dir: &Path, dims: Dims3, dtype: DType, o: &LoaderBench) -> Result<
             let bytes = l.bytes_read();
             let padded = (o.brick + 2).pow(3);
             let decoded = (data_bricks as u64) * padded * dtype.size() as u64;
-            println!(
+            outln!(
                 "{}",
                 json!({"scenario": "loader", "size": [dims[2], dims[1], dims[0]], "dtype": dtype.short_name(),
                     "brick": o.brick, "threads": threads, "cold": cold, "bricks": keys.len(), "data_bricks": data_bricks,
@@ -490,7 +490,7 @@ pub fn latency(dir: &Path, dims: Dims3, dtype: DType, cold: bool) -> Result<()> 
                 host.insert(x);
             }
         }
-        println!(
+        outln!(
             "{}",
             json!({"scenario": "latency", "size": [dims[2], dims[1], dims[0]], "dtype": dtype.short_name(), "from": source,
                 "cold": dropped, "one_brick_ms": one, "full_view_s": full, "frames": frames,
@@ -754,7 +754,7 @@ pub fn render(dir: &Path, dims: Dims3, dtype: DType, o: &RenderBench) -> Result<
         let (host_s, host_frames, .., host_done) = runs[1];
         let bytes_read = s.loader().bytes_read();
         let pool_bytes = s.vm().pool_bytes();
-        println!(
+        outln!(
             "{}",
             json!({"scenario": "render", "procedural": procedural, "backend": backend.describe(), "mode": mode_name, "size": [dims[2], dims[1], dims[0]], "dtype": dtype.short_name(),
                 "image": image, "zoom": zoom, "pool_bytes": pool_bytes, "volume_bytes": vox_bytes,

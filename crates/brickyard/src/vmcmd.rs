@@ -90,14 +90,14 @@ pub fn footprint(c: FootprintCmd) -> Result<()> {
         &pt_caches,
     );
     if c.json {
-        println!(
+        outln!(
             "{}",
             serde_json::json!({"levels": levels.len(), "pt_levels": layout.pt_levels(), "dir_entries": layout.dir_entries(),
                 "bricks": layout.brick_count(), "pool_slots": slots, "ours": ours, "paper": paper})
         );
         return Ok(());
     }
-    println!(
+    outln!(
         "{} levels, {} bricks of {}³ ({} with apron {}), {} page-table level(s) of {}³ blocks, directory {} entries ({:?})",
         levels.len(),
         layout.brick_count(),
@@ -109,26 +109,27 @@ pub fn footprint(c: FootprintCmd) -> Result<()> {
         layout.dir_entries(),
         layout.dir_dims
     );
-    println!("pool {} = {} slots\n", human_bytes(pool), slots);
-    println!("{:<40} {:>14}", "brickyard", "bytes");
+    outln!("pool {} = {} slots\n", human_bytes(pool), slots);
+    outln!("{:<40} {:>14}", "brickyard", "bytes");
     for (k, v) in &ours.lines {
-        println!("{k:<40} {:>14}  {}", v, human_bytes(*v));
+        outln!("{k:<40} {:>14}  {}", v, human_bytes(*v));
     }
     let mgmt = ours.total() - ours.get("pool").unwrap_or(0) - ours.sum_prefix("pt cache");
-    println!(
+    outln!(
         "{:<40} {:>14}  {}\n",
         "management (no pool, no PT data)",
         mgmt,
         human_bytes(mgmt)
     );
-    println!(
+    outln!(
         "{:<40} {:>14}",
-        "paper's accounting (thesis Tables 6.2-6.4)", "bytes"
+        "paper's accounting (thesis Tables 6.2-6.4)",
+        "bytes"
     );
     for (k, v) in &paper.lines {
-        println!("{k:<40} {:>14}  {}", v, human_bytes(*v));
+        outln!("{k:<40} {:>14}  {}", v, human_bytes(*v));
     }
-    println!(
+    outln!(
         "{:<40} {:>14}  {}",
         "total",
         paper.total(),

@@ -361,6 +361,166 @@ fn render_writes_pngs_and_rejects_bad_options() {
     );
 }
 
+/// Flags a user may get wrong name themselves and stop before any work:
+/// non-finite LOD biases, an upload budget below one brick, an empty
+/// window, an image in a folder that does not exist.
+#[test]
+fn render_rejects_flags_that_cannot_work() {
+    let d = tempfile::tempdir().unwrap();
+    let store = mandelbulb_48(d.path(), "f.ome.zarr");
+    let png = d.path().join("f.png");
+    let base = ["render", s(&store), "--size", "16", "--out", s(&png)];
+    for (extra, needles) in [
+        (vec!["--lod-bias", "inf"], vec!["lod-bias", "inf"]),
+        (vec!["--lod-bias", "NaN"], vec!["lod-bias", "NaN"]),
+        (
+            vec!["--upload", "0"],
+            vec!["upload", "less than one padded brick"],
+        ),
+        (vec!["--window", "5,5"], vec!["window", "LO < HI"]),
+    ] {
+        let args: Vec<&str> = base.iter().copied().chain(extra).collect();
+        fails_with(&run(&args), &needles);
+        assert!(!png.exists(), "{args:?} wrote an image");
+    }
+    let deep = d.path().join("no/such/folder/x.png");
+    fails_with(
+        &run(&["render", s(&store), "--size", "16", "--out", s(&deep)]),
+        &["no/such/folder", "not an existing folder"],
+    );
+}
+
+/// Standard output closed early (`render … | head -1`): the run still
+/// writes its image and exits 0, without a panic.
+#[test]
+fn a_closed_standard_output_does_not_stop_a_render() {
+    let d = tempfile::tempdir().unwrap();
+    let store = mandelbulb_48(d.path(), "p.ome.zarr");
+    let png = d.path().join("p.png");
+    let mut child = bin()
+        .args(["render", s(&store), "--size", "24", "--out", s(&png)])
+        .stdout(std::process::Stdio::piped())
+        .stderr(std::process::Stdio::piped())
+        .spawn()
+        .unwrap();
+    // The reading end closed before the first line is written.
+    drop(child.stdout.take());
+    let o = child.wait_with_output().unwrap();
+    assert!(o.status.success(), "{}", stderr(&o));
+    assert!(!stderr(&o).contains("panicked"), "{}", stderr(&o));
+    has_content(&png_pixels(&png), "render with stdout closed");
+}
+
+/// A volume of one value has no data range: it renders with the unit
+/// window (as the viewer does) instead of failing on an empty window.
+#[test]
+fn a_constant_volume_renders() {
+    let d = tempfile::tempdir().unwrap();
+    let raw = d.path().join("c.raw");
+    std::fs::write(&raw, vec![7u8; 20 * 20 * 20]).unwrap();
+    let store = d.path().join("c.ome.zarr");
+    let o = run(&[
+        "convert",
+        s(&raw),
+        s(&store),
+        "--dims",
+        "20x20x20",
+        "--dtype",
+        "u8",
+        "--quiet",
+    ]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    for mode in ["dvr", "slice"] {
+        let png = d.path().join(format!("c-{mode}.png"));
+        let o = run(&[
+            "render",
+            s(&store),
+            "--mode",
+            mode,
+            "--size",
+            "24",
+            "--out",
+            s(&png),
+        ]);
+        assert!(o.status.success(), "{mode}: {}", stderr(&o));
+        // Value 7 above the unit window: the volume shows (a quarter of
+        // the image or more is lit; the rest is background).
+        let px = png_pixels(&png);
+        let lit = px
+            .chunks(4)
+            .filter(|p| p[..3].iter().any(|&c| c > 0))
+            .count();
+        assert!(
+            lit * 4 >= px.len() / 4,
+            "{mode}: {lit} of {} pixels lit",
+            px.len() / 4
+        );
+    }
+}
+
+/// `convert --overwrite` replaces a store (or an empty folder), never a
+/// file or a folder of other things; bad units and zstd levels are named.
+#[test]
+fn overwrite_replaces_stores_only() {
+    let d = tempfile::tempdir().unwrap();
+    let raw = d.path().join("v.raw");
+    std::fs::write(
+        &raw,
+        (0..16u32 * 16 * 16)
+            .map(|i| (i % 251) as u8)
+            .collect::<Vec<_>>(),
+    )
+    .unwrap();
+    let conv = |out: &Path, extra: &[&str]| {
+        let mut a = vec![
+            "convert",
+            s(&raw),
+            s(out),
+            "--dims",
+            "16x16x16",
+            "--dtype",
+            "u8",
+        ];
+        a.extend_from_slice(extra);
+        a.push("--quiet");
+        run(&a)
+    };
+    let folder = d.path().join("notes");
+    std::fs::create_dir(&folder).unwrap();
+    std::fs::write(folder.join("important.txt"), "keep me").unwrap();
+    let file = d.path().join("afile");
+    std::fs::write(&file, "hi").unwrap();
+    for p in [&folder, &file] {
+        fails_with(
+            &conv(p, &["--overwrite"]),
+            &["not a Zarr store", "--overwrite"],
+        );
+    }
+    assert_eq!(
+        std::fs::read_to_string(folder.join("important.txt")).unwrap(),
+        "keep me"
+    );
+    assert_eq!(std::fs::read_to_string(&file).unwrap(), "hi");
+    assert!(!d.path().join("afile.old").exists());
+    // An empty folder and an existing store are replaced.
+    let empty = d.path().join("empty");
+    std::fs::create_dir(&empty).unwrap();
+    let o = conv(&empty, &["--overwrite"]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    assert!(empty.join("zarr.json").is_file());
+    let o = conv(&empty, &["--overwrite"]);
+    assert!(o.status.success(), "a store is replaced: {}", stderr(&o));
+    fails_with(
+        &conv(&d.path().join("u.zarr"), &["--unit", "bananas"]),
+        &["unit", "bananas", "micrometer"],
+    );
+    fails_with(
+        &conv(&d.path().join("z.zarr"), &["--compression", "zstd:99"]),
+        &["compression", "zstd:99", "22"],
+    );
+    assert!(!d.path().join("u.zarr").exists() && !d.path().join("z.zarr").exists());
+}
+
 /// `BRICKYARD_READ_AHEAD` sets how far the loader hints ahead: the image
 /// is the same with hints off, many or the default; a value that is not a
 /// number of bricks from 0 to 4096 is an error naming the variable.
