@@ -475,6 +475,19 @@ fn run_with(
             bail!("distribute: live derived channels draw on one process");
         }
     }
+    if c.max_frames == 0 {
+        bail!("max-frames: expected at least 1 frame, found 0");
+    }
+    if c.turntable == Some(0) {
+        bail!("turntable: expected at least 1 view, found 0");
+    }
+    if let Some(e) = c.out.extension().filter(|e| !e.eq_ignore_ascii_case("png")) {
+        bail!(
+            "{}: images are written as PNG; expected a name ending in .png, found .{}",
+            c.out.display(),
+            e.to_string_lossy()
+        );
+    }
     if !c.lod_bias.is_finite() {
         bail!(
             "lod-bias: expected a finite number of levels (negative: finer), found {}",

@@ -379,6 +379,10 @@ fn main() {
         .with_writer(std::io::stderr)
         .init();
     if let Some(t) = cli.threads {
+        if !(1..=1024).contains(&t) {
+            eprintln!("error: threads: expected 1 to 1024 worker threads, found {t}");
+            std::process::exit(2);
+        }
         let _ = rayon::ThreadPoolBuilder::new()
             .num_threads(t)
             .build_global();

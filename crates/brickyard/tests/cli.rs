@@ -378,11 +378,23 @@ fn render_rejects_flags_that_cannot_work() {
             vec!["upload", "less than one padded brick"],
         ),
         (vec!["--window", "5,5"], vec!["window", "LO < HI"]),
+        (vec!["--max-frames", "0"], vec!["max-frames", "at least 1"]),
+        (vec!["--turntable", "0"], vec!["turntable", "at least 1"]),
     ] {
         let args: Vec<&str> = base.iter().copied().chain(extra).collect();
         fails_with(&run(&args), &needles);
         assert!(!png.exists(), "{args:?} wrote an image");
     }
+    let jpg = d.path().join("x.jpg");
+    fails_with(
+        &run(&["render", s(&store), "--size", "16", "--out", s(&jpg)]),
+        &["x.jpg", "PNG", ".png"],
+    );
+    assert!(!jpg.exists());
+    fails_with(
+        &run(&["--threads", "100000", "info", s(&store)]),
+        &["threads", "1024"],
+    );
     let deep = d.path().join("no/such/folder/x.png");
     fails_with(
         &run(&["render", s(&store), "--size", "16", "--out", s(&deep)]),
