@@ -201,7 +201,9 @@ impl Session {
     ) -> Result<PinReport, PoolTooSmall> {
         let g = self.loader.geometry().clone();
         let slots = self.vm.pool_slots();
-        let slot_bytes = self.vm.pool_bytes() as u64 / slots.max(1) as u64;
+        // (Of the configuration, not the pool's bytes over its slots: a
+        // pool too small for one slot has neither.)
+        let slot_bytes = self.vm.slot_bytes() as u64;
         let levels = g.pinned_levels(slots, slot_bytes, max_bricks)?;
         let mut keys: Vec<BrickKey> = vec![];
         for &l in &levels {

@@ -575,7 +575,12 @@ impl VirtualMemory {
     /// Bytes of the pool: its slots, each a padded brick and the value
     /// ranges of its cells.
     pub fn pool_bytes(&self) -> usize {
-        self.slots.len() * (self.brick_bytes + self.cell_grid.len() * 8)
+        self.slots.len() * self.slot_bytes()
+    }
+
+    /// Bytes of one pool slot: a padded brick and its cells' value ranges.
+    pub fn slot_bytes(&self) -> usize {
+        self.brick_bytes + self.cell_grid.len() * 8
     }
 
     /// Bytes of the bricks in the pool.

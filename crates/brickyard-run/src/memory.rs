@@ -108,6 +108,12 @@ pub fn split_with(
     levels: usize,
     extra: u64,
 ) -> Result<Split> {
+    if pool == Some(0) {
+        bail!("pool: expected a size above 0 (e.g. 256MiB)");
+    }
+    if host == Some(0) {
+        bail!("host: expected a size above 0 (e.g. 256MiB)");
+    }
     let images = pixels * IMAGE_BYTES_PER_PIXEL;
     // Each level's chunk cache keeps at least half a MiB.
     let fixed = FIXED_BYTES + extra + levels as u64 * (512 << 10);

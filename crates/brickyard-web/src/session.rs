@@ -170,7 +170,7 @@ impl WebSession {
         let g = src.geometry.clone();
         let vm = VirtualMemory::new(&g.levels, g.channels, g.dtype, cfg);
         let slots = vm.pool_slots();
-        let slot_bytes = vm.pool_bytes() as u64 / slots.max(1) as u64;
+        let slot_bytes = vm.slot_bytes() as u64;
         let levels = g
             .pinned_levels(slots, slot_bytes, 512)
             .map_err(|e| format!("pool: {e}"))?;

@@ -379,10 +379,18 @@ fn render_rejects_flags_that_cannot_work() {
         ),
         (vec!["--window", "5,5"], vec!["window", "LO < HI"]),
         (vec!["--max-frames", "0"], vec!["max-frames", "at least 1"]),
+        (vec!["--pool", "0"], vec!["pool", "above 0"]),
+        // A pool too small for one brick: the least that works, not 0 MiB.
+        (
+            vec!["--pool", "1KiB"],
+            vec!["pool", "holds 0 bricks", "at least 0."],
+        ),
         (vec!["--turntable", "0"], vec!["turntable", "at least 1"]),
     ] {
         let args: Vec<&str> = base.iter().copied().chain(extra).collect();
-        fails_with(&run(&args), &needles);
+        let o = run(&args);
+        fails_with(&o, &needles);
+        assert!(!stderr(&o).contains("at least 0.0 MiB"), "{}", stderr(&o));
         assert!(!png.exists(), "{args:?} wrote an image");
     }
     let jpg = d.path().join("x.jpg");
