@@ -488,6 +488,17 @@ fn run_with(
             e.to_string_lossy()
         );
     }
+    for (flag, v) in [("azimuth", c.azimuth), ("elevation", c.elevation)] {
+        if !v.is_finite() {
+            bail!("{flag}: expected a finite angle in degrees, found {v}");
+        }
+    }
+    if !(c.fov > 0.0 && c.fov < 180.0) {
+        bail!(
+            "fov: expected a vertical field of view between 0 and 180 degrees (exclusive), found {}",
+            c.fov
+        );
+    }
     if !c.lod_bias.is_finite() {
         bail!(
             "lod-bias: expected a finite number of levels (negative: finer), found {}",

@@ -380,6 +380,9 @@ fn render_rejects_flags_that_cannot_work() {
         (vec!["--window", "5,5"], vec!["window", "LO < HI"]),
         (vec!["--max-frames", "0"], vec!["max-frames", "at least 1"]),
         (vec!["--pool", "0"], vec!["pool", "above 0"]),
+        (vec!["--azimuth", "inf"], vec!["azimuth", "finite"]),
+        (vec!["--elevation", "NaN"], vec!["elevation", "finite"]),
+        (vec!["--fov", "0"], vec!["fov", "between 0 and 180"]),
         // A pool too small for one brick: the least that works, not 0 MiB.
         (
             vec!["--pool", "1KiB"],
