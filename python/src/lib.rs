@@ -523,7 +523,9 @@ fn process(
 ) -> PyResult<(PathBuf, Option<u32>, String)> {
     // The CLI's order: the pipeline text is checked first.
     brickyard_run::process::parse(&pipeline).map_err(to_py)?;
-    let memory = brickyard_run::memory::parse_bytes(&memory).map_err(to_py)?;
+    let memory = brickyard_run::memory::parse_bytes(&memory)
+        .map_err(|e| e.context("memory"))
+        .map_err(to_py)?;
     let args = brickyard_run::process::ProcessArgs {
         store,
         pipeline,

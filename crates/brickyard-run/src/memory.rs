@@ -190,7 +190,11 @@ pub fn parse_bytes(s: &str) -> Result<u64> {
     let (num, unit) = t.split_at(idx);
     let v: f64 = num
         .parse()
-        .with_context(|| format!("memory: expected a size like 1GiB, found {s:?}"))?;
+        .ok()
+        .filter(|v: &f64| v.is_finite())
+        .with_context(|| {
+            format!("expected a size like 512MiB, 2GiB or 4096 (bytes), found {s:?}")
+        })?;
     let mul: f64 = match unit.trim().to_ascii_lowercase().as_str() {
         "" | "b" => 1.0,
         "k" | "kib" => 1024.0,
@@ -201,7 +205,9 @@ pub fn parse_bytes(s: &str) -> Result<u64> {
         "gb" => 1e9,
         "t" | "tib" => 1024f64.powi(4),
         "tb" => 1e12,
-        u => bail!("memory: unknown unit {u:?} in {s:?} (use KiB, MiB, GiB)"),
+        u => {
+            bail!("unknown unit {u:?} in {s:?}; expected B, KiB, MiB, GiB, TiB (or KB, MB, GB, TB)")
+        }
     };
     Ok((v * mul) as u64)
 }

@@ -677,12 +677,16 @@ fn run_with(
         std::fs::write(p, camera.to_json())
             .with_context(|| format!("{}: cannot write", p.display()))?;
     }
-    let opt_bytes = |v: &Option<String>| v.as_deref().map(crate::memory::parse_bytes).transpose();
+    let opt_bytes = |v: &Option<String>, flag: &str| {
+        v.as_deref()
+            .map(|x| crate::memory::parse_bytes(x).with_context(|| format!("--{flag}")))
+            .transpose()
+    };
     let batch = !c.stream;
     let split = crate::memory::split(
-        opt_bytes(&c.memory)?,
-        opt_bytes(&c.pool)?,
-        opt_bytes(&c.host)?,
+        opt_bytes(&c.memory, "memory")?,
+        opt_bytes(&c.pool, "pool")?,
+        opt_bytes(&c.host, "host")?,
         n_views as u64 * w as u64 * h as u64,
         info.levels.len(),
     )?;
@@ -696,7 +700,7 @@ fn run_with(
     let cfg = VmConfig {
         brick: [c.brick; 3],
         pool_bytes: split.pool,
-        upload_bytes_per_frame: match opt_bytes(&c.upload)? {
+        upload_bytes_per_frame: match opt_bytes(&c.upload, "upload")? {
             Some(u) if u < (c.brick + 2).pow(3) * dtype.size() as u64 => bail!(
                 "upload: {u} bytes per frame is less than one padded brick ({} bytes): no brick could ever be written into the pool",
                 (c.brick + 2).pow(3) * dtype.size() as u64

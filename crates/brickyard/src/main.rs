@@ -296,7 +296,7 @@ fn convert_options(p: &PyramidArgs) -> Result<ConvertOptions> {
         shard: [p.shard; 3],
         compression,
         labels: p.labels,
-        memory: parse_bytes(&p.memory)?,
+        memory: parse_bytes(&p.memory).context("--memory")?,
         overwrite: p.overwrite,
         spacing,
         origin: xyz(p

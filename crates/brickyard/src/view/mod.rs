@@ -220,8 +220,16 @@ pub fn run(c: ViewCmd, demo_store: impl FnOnce() -> Result<PathBuf>) -> Result<i
         None => None,
     };
     let [ww, wh] = crate::render::parse_image_size(&c.window_size, "window-size")?;
-    let opt = |v: &Option<String>| v.as_deref().map(crate::parse_bytes).transpose();
-    let (memory, mut pool, mut host) = (opt(&c.memory)?, opt(&c.pool)?, opt(&c.host)?);
+    let opt = |v: &Option<String>, flag: &str| {
+        v.as_deref()
+            .map(|x| crate::parse_bytes(x).with_context(|| format!("--{flag}")))
+            .transpose()
+    };
+    let (memory, mut pool, mut host) = (
+        opt(&c.memory, "memory")?,
+        opt(&c.pool, "pool")?,
+        opt(&c.host, "host")?,
+    );
     if memory.is_none() {
         pool.get_or_insert(256 << 20);
         host.get_or_insert(1 << 30);
@@ -252,7 +260,7 @@ pub fn run(c: ViewCmd, demo_store: impl FnOnce() -> Result<PathBuf>) -> Result<i
     let cfg = VmConfig {
         brick: [c.brick; 3],
         pool_bytes: split.pool,
-        upload_bytes_per_frame: crate::parse_bytes(&c.upload)?,
+        upload_bytes_per_frame: crate::parse_bytes(&c.upload).context("--upload")?,
         ..Default::default()
     };
     let setup = worker::Setup {
