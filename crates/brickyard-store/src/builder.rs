@@ -470,7 +470,21 @@ pub fn convert_team(
                 .into(),
         });
     }
-    if let (Ok(a), Ok(b)) = (output.canonicalize(), meta.path.canonicalize()) {
+    // (An output that does not exist yet: its folder's real path and name.)
+    let out_real = output
+        .canonicalize()
+        .or_else(|e| match (output.parent(), output.file_name()) {
+            (Some(p), Some(n)) => {
+                let p = if p.as_os_str().is_empty() {
+                    Path::new(".")
+                } else {
+                    p
+                };
+                p.canonicalize().map(|p| p.join(n))
+            }
+            _ => Err(e),
+        });
+    if let (Ok(a), Ok(b)) = (out_real, meta.path.canonicalize()) {
         if b.starts_with(&a) || a.starts_with(&b) {
             return Err(StoreError::Refused {
                 path: output.into(),

@@ -533,6 +533,13 @@ fn overwrite_replaces_stores_only() {
     assert!(empty.join("zarr.json").is_file());
     let o = conv(&empty, &["--overwrite"]);
     assert!(o.status.success(), "a store is replaced: {}", stderr(&o));
+    // Never into the input itself, even where the output does not exist yet.
+    let inner = empty.join("inner.zarr");
+    fails_with(
+        &run(&["convert", s(&empty), s(&inner), "--quiet"]),
+        &["overlap"],
+    );
+    assert!(!inner.exists());
     fails_with(
         &conv(&d.path().join("u.zarr"), &["--unit", "bananas"]),
         &["unit", "bananas", "micrometer"],
