@@ -88,7 +88,10 @@ pub fn derive_level(
             Op::Window(a, b) => Filter::Window(*a, *b),
             Op::Label(_) => unreachable!("checked by check_live"),
         };
-        src = Arc::new(FilterSource::new(src, ch, f, &op.text(), block));
+        let name = op.text();
+        src = Arc::new(
+            FilterSource::try_new(src, ch, f, &name, block).map_err(|e| format!("{name}: {e}"))?,
+        );
         if matches!(op, Op::GradMag(_) | Op::Sobel) && (mean_factor - 1.0).abs() > 1e-12 {
             src = Arc::new(Scaled::new(src, 1.0 / mean_factor));
         }

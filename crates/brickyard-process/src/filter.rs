@@ -12,7 +12,8 @@
 
 use crate::gpu::{DeviceFilter, FilterKernels};
 use crate::kernels::{
-    gaussian_weights, magnitude, separable, threshold, window, Real, SOBEL_D, SOBEL_S,
+    fold_weights, gaussian_radius, gaussian_weights, gaussian_weights_folded, magnitude_nearest,
+    max_sigma, separable_nearest, threshold, window, Real, MAX_RADIUS, SOBEL_D, SOBEL_S,
 };
 use brickyard_core::{as_bytes_mut, dispatch_dtype, DType, Dims3, Sample};
 use brickyard_store::source::check_region;
@@ -37,6 +38,13 @@ pub enum Filter {
     Threshold(f64),
     /// `lo <= x <= hi`, as u8 0/1.
     Window(f64, f64),
+    /// A float filter on a volume of `dims` `[z, y, x]` whose kernels reach
+    /// past the volume: the weights beyond `dims − 1` voxels from the
+    /// centre summed onto the taps `±(dims − 1)` (boundary mode "nearest"
+    /// reads the edge voxel there whatever voxel is computed, so the result
+    /// is the filter's), the halo at most `dims − 1`. Made by
+    /// [`Filter::on_volume`].
+    Folded(Box<Filter>, [u64; 3]),
 }
 
 impl Filter {
@@ -45,6 +53,35 @@ impl Filter {
         match self {
             Filter::Gauss(_) | Filter::GradMag(_) | Filter::Sobel => DType::F32,
             Filter::Threshold(_) | Filter::Window(..) => DType::U8,
+            Filter::Folded(f, _) => f.out_dtype(),
+        }
+    }
+
+    /// The filter as computed on a volume of `dims` `[z, y, x]`: itself, or
+    /// [`Filter::Folded`] when a kernel reaches farther than the volume
+    /// (the same result, a halo of at most the volume's extent). An error
+    /// for σ past [`max_sigma`] (its weights would take too long to sum),
+    /// naming σ and the largest allowed.
+    pub fn on_volume(self, dims: Dims3) -> std::result::Result<Filter, String> {
+        if let Filter::Gauss(s) | Filter::GradMag(s) = &self {
+            if let Some(v) = s
+                .iter()
+                .find(|&&v| gaussian_radius(v, TRUNCATE) > MAX_RADIUS)
+            {
+                return Err(format!(
+                    "σ {v} voxels is too large: its kernel would reach {} voxels; σ may be at \
+                     most {} voxels (a kernel that reaches past the volume is folded onto its \
+                     edge voxels, so a wider one gives the same result)",
+                    gaussian_radius(*v, TRUNCATE),
+                    max_sigma(TRUNCATE)
+                ));
+            }
+        }
+        let h = self.halo();
+        if (0..3).any(|a| h[a] as u64 >= dims[a].max(1)) && self.components().is_some() {
+            Ok(Filter::Folded(Box::new(self), dims))
+        } else {
+            Ok(self)
         }
     }
 
@@ -60,6 +97,10 @@ impl Filter {
             }),
             Filter::Sobel => [1; 3],
             Filter::Threshold(_) | Filter::Window(..) => [0; 3],
+            Filter::Folded(f, d) => {
+                let h = f.halo();
+                [0, 1, 2].map(|a| h[a].min(d[a].max(1) as usize - 1))
+            }
         }
     }
 
@@ -94,6 +135,35 @@ impl Filter {
                 ))
             }
             Filter::Threshold(_) | Filter::Window(..) => None,
+            Filter::Folded(f, d) => {
+                let (cs, mag) = match &**f {
+                    Filter::Gauss(s) => (
+                        vec![[0, 1, 2].map(|a| gaussian_weights_folded(s[a], 0, TRUNCATE, d[a]))],
+                        false,
+                    ),
+                    Filter::GradMag(s) => {
+                        let g = |a: usize| gaussian_weights_folded(s[a], 0, TRUNCATE, d[a]);
+                        let dv = |a: usize| gaussian_weights_folded(s[a], 1, TRUNCATE, d[a]);
+                        (
+                            vec![
+                                [dv(0), g(1), g(2)],
+                                [g(0), dv(1), g(2)],
+                                [g(0), g(1), dv(2)],
+                            ],
+                            true,
+                        )
+                    }
+                    other => {
+                        let (cs, mag) = other.components()?;
+                        let cs = cs
+                            .into_iter()
+                            .map(|c| [0, 1, 2].map(|a| fold_weights(&c[a], d[a])))
+                            .collect();
+                        (cs, mag)
+                    }
+                };
+                Some((cs, mag))
+            }
         }
     }
 
@@ -102,7 +172,42 @@ impl Filter {
     /// filter; in f32 it is the twin of [`crate::gpu::DeviceFilter::apply`]
     /// (the same kernels in the same order, weights rounded to f32).
     pub fn apply<R: Real>(&self, data: Vec<R>, dims: [usize; 3]) -> Vec<R> {
-        match (self, self.components()) {
+        let h = self.halo();
+        for a in 0..3 {
+            assert!(dims[a] >= 2 * h[a], "block thinner than the halo");
+        }
+        let first = h.map(|v| v as i64);
+        let len = [0, 1, 2].map(|a| dims[a] - 2 * h[a]);
+        self.apply_nearest(data, dims, first, len)
+    }
+
+    /// Compute at positions `first..first + len` (per axis) of `data`
+    /// (`dims`), a tap outside `data` reading its nearest end: on a block's
+    /// box grown by the halo and clamped to the volume, the boundary mode
+    /// "nearest" without padding (the same values as [`Filter::apply`] on
+    /// the padded box, bit for bit).
+    pub fn apply_nearest<R: Real>(
+        &self,
+        data: Vec<R>,
+        dims: [usize; 3],
+        first: [i64; 3],
+        len: [usize; 3],
+    ) -> Vec<R> {
+        self.apply_with(self.components(), data, dims, first, len)
+    }
+
+    /// [`Filter::apply_nearest`] with the filter's
+    /// [`Filter::components`] computed once beforehand.
+    #[allow(clippy::type_complexity)]
+    fn apply_with<R: Real>(
+        &self,
+        components: Option<(Vec<[Vec<f64>; 3]>, bool)>,
+        data: Vec<R>,
+        dims: [usize; 3],
+        first: [i64; 3],
+        len: [usize; 3],
+    ) -> Vec<R> {
+        match (self, components) {
             (_, Some((cs, mag))) => {
                 let cs: Vec<[Vec<R>; 3]> = cs
                     .iter()
@@ -115,9 +220,10 @@ impl Filter {
                     [&c[0], &c[1], &c[2]]
                 }
                 if mag {
-                    magnitude(&data, dims, [refs(&cs[0]), refs(&cs[1]), refs(&cs[2])]).0
+                    let ws = [refs(&cs[0]), refs(&cs[1]), refs(&cs[2])];
+                    magnitude_nearest(&data, dims, ws, first, len).0
                 } else {
-                    separable(data, dims, refs(&cs[0])).0
+                    separable_nearest(data, dims, refs(&cs[0]), first, len).0
                 }
             }
             (Filter::Threshold(t), None) => threshold(&data, *t),
@@ -138,6 +244,12 @@ pub struct FilterSource {
     block: Dims3,
     /// Set by [`FilterSource::with_device`]: reads compute on the device.
     device: Option<DeviceStage>,
+    /// Most blocks computed at once on the CPU (the memory budget's share,
+    /// see [`FilterSource::with_parallel`]).
+    parallel: usize,
+    /// The filter's weights ([`Filter::components`]), computed once.
+    #[allow(clippy::type_complexity)]
+    components: Option<(Vec<[Vec<f64>; 3]>, bool)>,
 }
 
 /// A stage's filter on the device, and the most voxels of a padded piece.
@@ -146,7 +258,30 @@ struct DeviceStage {
     max_voxels: u64,
 }
 
+/// Bytes that computing one block of `filter` on the CPU holds at its peak
+/// (an upper bound): the block's box grown by the halo and clamped to the
+/// volume `dims`, read as `in_size`-byte values and converted to f64, the
+/// passes' results (one more f64 box for a separable filter, two for a
+/// magnitude, which keeps its input), and the block's values (f64 and their
+/// output type). Blocks are at most 1.5 `block` long (see [`split`]).
+pub fn block_bytes(filter: &Filter, dims: Dims3, block: Dims3, in_size: usize) -> u64 {
+    let h = filter.halo();
+    let b = [0, 1, 2].map(|a| (block[a].max(1) * 3).div_ceil(2).min(dims[a]));
+    let read: u64 = (0..3)
+        .map(|a| (b[a] + 2 * h[a] as u64).min(dims[a]))
+        .product();
+    let out: u64 = b.iter().product();
+    let boxes = match filter.components() {
+        None => 0,
+        Some((_, false)) => 1,
+        Some((_, true)) => 2,
+    };
+    read * (in_size as u64 + 8 + 8 * boxes) + out * (8 + filter.out_dtype().size() as u64)
+}
+
 impl FilterSource {
+    /// A stage of `filter` over `inner` (see [`FilterSource::try_new`]);
+    /// panics where that is an error.
     pub fn new(
         inner: Arc<dyn VolumeSource>,
         channel: usize,
@@ -154,6 +289,22 @@ impl FilterSource {
         name: &str,
         block: Dims3,
     ) -> FilterSource {
+        FilterSource::try_new(inner, channel, filter, name, block).unwrap_or_else(|e| panic!("{e}"))
+    }
+
+    /// A stage of `filter` over channel `channel` of `inner`, computed in
+    /// blocks of at most `block` voxels. A kernel that reaches past the
+    /// volume is folded ([`Filter::on_volume`]); an error for σ too large
+    /// to compute (the message names σ and the largest allowed).
+    pub fn try_new(
+        inner: Arc<dyn VolumeSource>,
+        channel: usize,
+        filter: Filter,
+        name: &str,
+        block: Dims3,
+    ) -> std::result::Result<FilterSource, String> {
+        let filter = filter.on_volume(inner.meta().dims)?;
+        let components = filter.components();
         let im = inner.meta();
         let mut meta = SourceMeta::new(im.path.join(name), im.dims, 1, filter.out_dtype());
         meta.spacing = im.spacing;
@@ -161,14 +312,33 @@ impl FilterSource {
         meta.unit = im.unit.clone();
         meta.labels = matches!(filter, Filter::Threshold(_) | Filter::Window(..));
         meta.notes = im.notes.clone();
-        FilterSource {
+        Ok(FilterSource {
             inner,
             channel,
             filter,
             meta,
             block: block.map(|b| b.max(1)),
             device: None,
-        }
+            parallel: usize::MAX,
+            components,
+        })
+    }
+
+    /// Compute at most `n` blocks at once on the CPU (at least 1), so that
+    /// `n` times [`FilterSource::block_bytes`] stays in a memory budget.
+    pub fn with_parallel(mut self, n: usize) -> FilterSource {
+        self.parallel = n.max(1);
+        self
+    }
+
+    /// [`block_bytes`] of this stage.
+    pub fn block_bytes(&self) -> u64 {
+        block_bytes(
+            &self.filter,
+            self.meta.dims,
+            self.block,
+            self.inner.meta().dtype.size(),
+        )
     }
 
     /// Compute this stage's reads on the device of `k`, in f32 (see
@@ -234,10 +404,25 @@ impl FilterSource {
         Ok((p, pd))
     }
 
-    /// Values of one block, computed from the inner source on the CPU.
+    /// Values of one block, computed from the inner source on the CPU: the
+    /// block's box grown by the halo is read as far as it lies in the
+    /// volume, and taps beyond it read the edge voxel (boundary mode
+    /// "nearest", without padding the box: a halo as wide as the volume
+    /// costs no more than the volume).
     fn compute(&self, b: &[Range<u64>; 3]) -> Result<Vec<f64>> {
-        let (padded, pd) = self.padded::<f64>(b)?;
-        Ok(self.filter.apply(padded, pd))
+        let h = self.filter.halo();
+        let d = self.meta.dims;
+        let rlo: [u64; 3] = [0, 1, 2].map(|a| b[a].start.saturating_sub(h[a] as u64));
+        let rhi: [u64; 3] = [0, 1, 2].map(|a| (b[a].end + h[a] as u64).min(d[a]));
+        let rd: [usize; 3] = [0, 1, 2].map(|a| (rhi[a] - rlo[a]) as usize);
+        let read: Vec<f64> = dispatch_dtype!(self.inner.meta().dtype, T => {
+            read_as::<T, f64>(self.inner.as_ref(), self.channel, [rlo[0]..rhi[0], rlo[1]..rhi[1], rlo[2]..rhi[2]], rd)?
+        });
+        let first = [0, 1, 2].map(|a| (b[a].start - rlo[a]) as i64);
+        let len = [0, 1, 2].map(|a| (b[a].end - b[a].start) as usize);
+        Ok(self
+            .filter
+            .apply_with(self.components.clone(), read, rd, first, len))
     }
 
     /// Values of one piece, computed on the device.
@@ -389,34 +574,37 @@ impl VolumeSource for FilterSource {
         }
         let blocks = split(&r, self.block);
         // Each block is cast to the output type as soon as it is computed
-        // (the f64 values of a whole region are never held at once).
-        match self.meta.dtype {
-            DType::F32 => {
-                let vals: Vec<Result<Vec<f32>>> = blocks
-                    .par_iter()
-                    .map(|b| {
-                        let v = self.compute(b)?;
-                        Ok(v.into_iter().map(|x| x as f32).collect())
-                    })
-                    .collect();
-                let o = brickyard_core::cast_slice_mut::<f32>(out);
-                for (b, v) in blocks.iter().zip(vals) {
-                    place(o, &r, b, &v?);
+        // (the f64 values of a whole region are never held at once), and at
+        // most `parallel` blocks are computed at once.
+        for group in blocks.chunks(self.parallel) {
+            match self.meta.dtype {
+                DType::F32 => {
+                    let vals: Vec<Result<Vec<f32>>> = group
+                        .par_iter()
+                        .map(|b| {
+                            let v = self.compute(b)?;
+                            Ok(v.into_iter().map(|x| x as f32).collect())
+                        })
+                        .collect();
+                    let o = brickyard_core::cast_slice_mut::<f32>(out);
+                    for (b, v) in group.iter().zip(vals) {
+                        place(o, &r, b, &v?);
+                    }
                 }
-            }
-            DType::U8 => {
-                let vals: Vec<Result<Vec<u8>>> = blocks
-                    .par_iter()
-                    .map(|b| {
-                        let v = self.compute(b)?;
-                        Ok(v.into_iter().map(|x| x as u8).collect())
-                    })
-                    .collect();
-                for (b, v) in blocks.iter().zip(vals) {
-                    place(out, &r, b, &v?);
+                DType::U8 => {
+                    let vals: Vec<Result<Vec<u8>>> = group
+                        .par_iter()
+                        .map(|b| {
+                            let v = self.compute(b)?;
+                            Ok(v.into_iter().map(|x| x as u8).collect())
+                        })
+                        .collect();
+                    for (b, v) in group.iter().zip(vals) {
+                        place(out, &r, b, &v?);
+                    }
                 }
+                t => unreachable!("filters write f32 or u8, not {t}"),
             }
-            t => unreachable!("filters write f32 or u8, not {t}"),
         }
         Ok(())
     }

@@ -95,6 +95,82 @@ pub fn gaussian_weights(sigma: f64, order: u32, truncate: f64) -> Vec<f64> {
         .collect()
 }
 
+/// The largest kernel radius computed: the weights of a Gaussian are summed
+/// over its whole radius (the normalisation), so σ is bounded by
+/// `(MAX_RADIUS + 0.5) / truncate` voxels (about a million at `truncate = 4`,
+/// far wider than any volume: such a kernel is folded to the volume's
+/// extent, see [`gaussian_weights_folded`]).
+pub const MAX_RADIUS: u64 = 1 << 22;
+
+/// The kernel radius of σ at `truncate`: scipy's `int(truncate · σ + 0.5)`
+/// (0 for σ ≤ 0), saturating.
+pub fn gaussian_radius(sigma: f64, truncate: f64) -> u64 {
+    if sigma > 0.0 {
+        (truncate * sigma + 0.5) as u64
+    } else {
+        0
+    }
+}
+
+/// The largest σ whose radius at `truncate` is at most [`MAX_RADIUS`].
+pub fn max_sigma(truncate: f64) -> f64 {
+    MAX_RADIUS as f64 / truncate
+}
+
+/// [`gaussian_weights`] on an axis of `n` voxels with boundary mode
+/// "nearest" (the edge voxel repeated): every tap farther than `n − 1` from
+/// the centre reads an edge voxel whatever voxel is computed, so the weights
+/// beyond `reach = min(radius, n − 1)` are summed onto the taps `±reach`
+/// (the same result; the halo needed is at most `n − 1`). Equal to
+/// [`gaussian_weights`] when the radius is at most `n − 1`. The full kernel
+/// is never held: its normalisation is summed in the order
+/// [`gaussian_weights`] sums it. The radius must be at most [`MAX_RADIUS`].
+pub fn gaussian_weights_folded(sigma: f64, order: u32, truncate: f64, n: u64) -> Vec<f64> {
+    assert!(order <= 1, "only orders 0 and 1");
+    let radius = gaussian_radius(sigma, truncate);
+    assert!(radius <= MAX_RADIUS, "radius {radius} over MAX_RADIUS");
+    let reach = radius.min(n.max(1) - 1);
+    if reach == radius {
+        return gaussian_weights(sigma, order, truncate);
+    }
+    let (radius, reach) = (radius as i64, reach as i64);
+    let s2 = sigma * sigma;
+    let phi = |x: i64| (-0.5 / s2 * (x * x) as f64).exp();
+    let sum: f64 = (-radius..=radius).map(phi).sum();
+    let weight = |x: i64| {
+        let p = phi(x) / sum;
+        if order == 0 {
+            p
+        } else {
+            x as f64 / s2 * p
+        }
+    };
+    // The folded tail beyond +reach; the one beyond −reach is its mirror
+    // (order 0) or its negative (order 1).
+    let tail: f64 = (reach..=radius).map(weight).sum();
+    let mut w: Vec<f64> = (-reach..=reach).map(weight).collect();
+    let last = w.len() - 1;
+    w[last] = tail;
+    w[0] = if order == 0 { tail } else { -tail };
+    w
+}
+
+/// `w` on an axis of `n` voxels with boundary mode "nearest": the weights
+/// farther than `n − 1` from the centre summed onto the taps `±(n − 1)`
+/// (see [`gaussian_weights_folded`]); `w` itself when it is not wider.
+pub fn fold_weights(w: &[f64], n: u64) -> Vec<f64> {
+    let r = radius(w);
+    let reach = (r as u64).min(n.max(1) - 1) as usize;
+    if reach == r {
+        return w.to_vec();
+    }
+    let mut f = w[r - reach..=r + reach].to_vec();
+    let last = f.len() - 1;
+    f[0] = w[..=r - reach].iter().sum();
+    f[last] = w[r + reach..].iter().sum();
+    f
+}
+
 /// Radius of a weight vector of odd length.
 pub fn radius<R>(w: &[R]) -> usize {
     debug_assert!(w.len() % 2 == 1);
@@ -112,33 +188,85 @@ pub fn correlate_valid<R: Real>(
 ) -> (Vec<R>, [usize; 3]) {
     let r = radius(w);
     assert!(dims[axis] >= 2 * r, "block thinner than the kernel");
+    correlate_nearest(data, dims, axis, w, r as i64, dims[axis] - 2 * r)
+}
+
+/// Correlate `data` (`dims`) along `axis` with `w`, boundary mode
+/// "nearest" applied at the ends of `data`: result `j` (of `len` along the
+/// axis) is centred on position `first + j` of `data` along the axis, and a
+/// tap outside `data` reads its nearest end. This is [`correlate_valid`] on
+/// `data` padded by repeating its end voxels, with the same operations in
+/// the same order (the same bits), without the padding: when `data` is a
+/// block's box grown by the halo and clamped to the volume, the ends of
+/// `data` beyond which taps fall are the volume's.
+pub fn correlate_nearest<R: Real>(
+    data: &[R],
+    dims: [usize; 3],
+    axis: usize,
+    w: &[R],
+    first: i64,
+    len: usize,
+) -> (Vec<R>, [usize; 3]) {
+    let r = radius(w);
+    let n = dims[axis];
+    assert!(n > 0 || len == 0, "no data along the axis");
     let mut od = dims;
-    od[axis] -= 2 * r;
+    od[axis] = len;
     let [nz, ny, nx] = od;
     let mut out = vec![R::default(); nz * ny * nx];
+    if out.is_empty() {
+        return (out, od);
+    }
+    // Position in `data` (along the axis) read by tap position `q`: output
+    // `j`'s tap `k` is `q = j + k`.
+    let lo = first - r as i64;
+    let taps = len + 2 * r;
+    let idx: Vec<usize> = (0..taps)
+        .map(|q| (lo + q as i64).clamp(0, n as i64 - 1) as usize)
+        .collect();
+    let inside = lo >= 0 && lo + taps as i64 <= n as i64;
     // Input strides.
     let sy = dims[2];
     let sz = dims[1] * dims[2];
-    let step = [sz, sy, 1][axis];
     // Gaussians are symmetric and their derivatives antisymmetric: pair
     // the taps `r − k` and `r + k` (one multiplication for two), centre
     // tap first, then the pairs outwards.
     let sym = R::PAIR_TAPS && (0..r).all(|k| w[k] == w[2 * r - k]);
     let anti =
         R::PAIR_TAPS && !sym && w[r] == R::default() && (0..r).all(|k| w[k] == -w[2 * r - k]);
+    let mut scratch: Vec<R> = vec![];
     for z in 0..nz {
         for y in 0..ny {
             let o = (z * ny + y) * nx;
             let orow = &mut out[o..o + nx];
-            let base = z * sz + y * sy;
+            // Along x, the taps of a row are one padded row (in place when
+            // no tap leaves `data`).
+            let xrow: &[R] = if axis == 2 {
+                let base = z * sz + y * sy;
+                if inside {
+                    &data[base + lo as usize..][..taps]
+                } else {
+                    scratch.clear();
+                    scratch.extend(idx.iter().map(|&i| data[base + i]));
+                    &scratch
+                }
+            } else {
+                &[]
+            };
+            // The input row of tap `k` (nx values).
+            let row = |k: usize| -> &[R] {
+                match axis {
+                    0 => &data[idx[z + k] * sz + y * sy..][..nx],
+                    1 => &data[z * sz + idx[y + k] * sy..][..nx],
+                    _ => &xrow[k..k + nx],
+                }
+            };
             if sym || anti {
-                let c = &data[base + r * step..][..nx];
-                for (a, &b) in orow.iter_mut().zip(c) {
+                for (a, &b) in orow.iter_mut().zip(row(r)) {
                     *a = w[r] * b;
                 }
                 for k in 1..=r {
-                    let lo = &data[base + (r - k) * step..][..nx];
-                    let hi = &data[base + (r + k) * step..][..nx];
+                    let (lo, hi) = (row(r - k), row(r + k));
                     let wk = w[r + k];
                     if sym {
                         for ((a, &l), &h) in orow.iter_mut().zip(lo).zip(hi) {
@@ -153,9 +281,7 @@ pub fn correlate_valid<R: Real>(
                 continue;
             }
             for (k, &wk) in w.iter().enumerate() {
-                let s = base + k * step;
-                let irow = &data[s..s + nx];
-                for (a, &b) in orow.iter_mut().zip(irow) {
+                for (a, &b) in orow.iter_mut().zip(row(k)) {
                     *a += wk * b;
                 }
             }
@@ -173,12 +299,38 @@ pub fn is_identity<R: Real>(w: &[R]) -> bool {
 /// Apply one weight vector per axis (z, then y, then x — the order in which
 /// scipy processes axes 0, 1, 2).
 pub fn separable<R: Real>(data: Vec<R>, dims: [usize; 3], w: [&[R]; 3]) -> (Vec<R>, [usize; 3]) {
+    let (first, len) = valid_part(dims, w);
+    separable_nearest(data, dims, w, first, len)
+}
+
+/// Where the valid part of a block padded by the radii of `w` lies: the
+/// first position and the length per axis.
+pub fn valid_part<R>(dims: [usize; 3], w: [&[R]; 3]) -> ([i64; 3], [usize; 3]) {
+    let r = w.map(radius);
+    for a in 0..3 {
+        assert!(dims[a] >= 2 * r[a], "block thinner than the kernel");
+    }
+    (r.map(|v| v as i64), [0, 1, 2].map(|a| dims[a] - 2 * r[a]))
+}
+
+/// [`separable`] with [`correlate_nearest`]: the results at positions
+/// `first..first + len` (per axis) of `data`, taps outside `data` reading
+/// its nearest end. An identity pass (skipped) must have `first` 0 and
+/// `len` the whole axis.
+pub fn separable_nearest<R: Real>(
+    data: Vec<R>,
+    dims: [usize; 3],
+    w: [&[R]; 3],
+    first: [i64; 3],
+    len: [usize; 3],
+) -> (Vec<R>, [usize; 3]) {
     let (mut d, mut dd) = (data, dims);
     for (axis, wa) in w.iter().enumerate() {
         if is_identity(wa) {
+            debug_assert!(first[axis] == 0 && len[axis] == dims[axis]);
             continue;
         }
-        (d, dd) = correlate_valid(&d, dd, axis, wa);
+        (d, dd) = correlate_nearest(&d, dd, axis, wa, first[axis], len[axis]);
     }
     (d, dd)
 }
@@ -211,9 +363,21 @@ pub fn magnitude<R: Real>(
     dims: [usize; 3],
     ws: [[&[R]; 3]; 3],
 ) -> (Vec<R>, [usize; 3]) {
+    let (first, len) = valid_part(dims, ws[0]);
+    magnitude_nearest(data, dims, ws, first, len)
+}
+
+/// [`magnitude`] with [`separable_nearest`] passes.
+pub fn magnitude_nearest<R: Real>(
+    data: &[R],
+    dims: [usize; 3],
+    ws: [[&[R]; 3]; 3],
+    first: [i64; 3],
+    len: [usize; 3],
+) -> (Vec<R>, [usize; 3]) {
     let mut acc: Option<(Vec<R>, [usize; 3])> = None;
     for w in ws {
-        let (d, od) = separable(data.to_vec(), dims, w);
+        let (d, od) = separable_nearest(data.to_vec(), dims, w, first, len);
         match &mut acc {
             None => {
                 let mut a = vec![R::default(); d.len()];
@@ -373,6 +537,80 @@ mod tests {
             .sum();
         assert!((slope - 1.0).abs() < 1e-3, "{slope}");
         assert!(d.iter().zip(d.iter().rev()).all(|(a, b)| a == &-b));
+    }
+
+    #[test]
+    fn folded_weights_sum_the_taps_past_the_volume() {
+        for (sigma, order, n) in [
+            (3.0, 0, 5),
+            (3.0, 1, 5),
+            (7.3, 0, 1),
+            (7.3, 1, 2),
+            (2.0, 0, 40),
+        ] {
+            let w = gaussian_weights(sigma, order, 4.0);
+            let f = gaussian_weights_folded(sigma, order, 4.0, n);
+            let g = fold_weights(&w, n);
+            assert_eq!(f.len(), g.len());
+            assert_eq!(f.len() as u64, (w.len() as u64).min(2 * n - 1));
+            for (a, b) in f.iter().zip(&g) {
+                assert!(
+                    (a - b).abs() < 1e-15,
+                    "σ {sigma} order {order} n {n}: {a} vs {b}"
+                );
+            }
+        }
+        assert_eq!(
+            gaussian_weights_folded(2.0, 0, 4.0, 40),
+            gaussian_weights(2.0, 0, 4.0)
+        );
+    }
+
+    #[test]
+    fn correlate_nearest_is_correlate_valid_on_the_padded_data() {
+        // Random data, padded by repeating its ends along each axis in
+        // turn: the same bits, for symmetric, antisymmetric and other
+        // weights, and for outputs that need more padding than the data.
+        let dims = [5, 4, 6];
+        let mut s = 7u64;
+        let data: Vec<f64> = (0..120)
+            .map(|_| {
+                s = s.wrapping_mul(6364136223846793005).wrapping_add(1);
+                (s >> 11) as f64 / (1u64 << 53) as f64
+            })
+            .collect();
+        for w in [
+            gaussian_weights(2.0, 0, 4.0),
+            gaussian_weights(2.0, 1, 4.0),
+            vec![0.5, 0.25, -1.0],
+        ] {
+            let r = radius(&w);
+            for axis in 0..3 {
+                let n = dims[axis];
+                for (first, len) in [(0i64, n), (-3, 2), (2, n + 1), (r as i64, 1)] {
+                    let (got, gd) = correlate_nearest(&data, dims, axis, &w, first, len);
+                    // Pad: positions first − r .. first + len + r, clamped.
+                    let mut pd = dims;
+                    pd[axis] = len + 2 * r;
+                    let mut padded = vec![];
+                    for z in 0..pd[0] {
+                        for y in 0..pd[1] {
+                            for x in 0..pd[2] {
+                                let mut p = [z as i64, y as i64, x as i64];
+                                p[axis] = (p[axis] + first - r as i64).clamp(0, n as i64 - 1);
+                                padded.push(
+                                    data[((p[0] as usize * dims[1]) + p[1] as usize) * dims[2]
+                                        + p[2] as usize],
+                                );
+                            }
+                        }
+                    }
+                    let (want, wd) = correlate_valid(&padded, pd, axis, &w);
+                    assert_eq!(gd, wd);
+                    assert_eq!(got, want, "axis {axis} first {first} len {len}");
+                }
+            }
+        }
     }
 
     #[test]

@@ -91,6 +91,95 @@ pub fn build_on(
     block: Dims3,
     device: Option<&Arc<FilterKernels>>,
 ) -> Result<Built, String> {
+    build_stages(p, input, channel, block, device, usize::MAX).map(|(b, _)| b)
+}
+
+/// What [`build_within`] plans for the filters' memory.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct FilterMemory {
+    /// Most blocks each filter stage computes at once on the CPU.
+    pub parallel: usize,
+    /// The most bytes the filter stages' blocks hold at once (an upper
+    /// bound; what the pipeline's reads take beyond the regions asked for).
+    pub bytes: u64,
+}
+
+/// [`build_on`] within a memory budget: each filter stage computes at most
+/// as many blocks at once (up to `threads`) as keep the blocks in flight of
+/// all stages within `budget` bytes, counting a block's box grown by its
+/// halo ([`filter::block_bytes`]; an inner stage's blocks are computed
+/// inside each of the outer stage's blocks, so `n` blocks at once per stage
+/// can mean `n^k` of the k-th stage from the end). An error, before
+/// anything is computed, naming the stage, when even one block at a time
+/// per stage does not fit.
+pub fn build_within(
+    p: &Pipeline,
+    input: Arc<dyn VolumeSource>,
+    channel: usize,
+    block: Dims3,
+    device: Option<&Arc<FilterKernels>>,
+    budget: u64,
+    threads: usize,
+) -> Result<(Built, FilterMemory), String> {
+    // The stages' blocks, innermost first.
+    let (_, stages) = build_stages(p, input.clone(), channel, block, device, 1)?;
+    let need = |n: usize| -> u64 {
+        let k = stages.len();
+        stages
+            .iter()
+            .enumerate()
+            .map(|(i, (_, b))| {
+                let depth = (k - i) as u32;
+                (n as u64).saturating_pow(depth).saturating_mul(*b)
+            })
+            .fold(0u64, u64::saturating_add)
+    };
+    if need(1) > budget {
+        let (name, b) = stages.iter().max_by_key(|(_, b)| *b).cloned().unwrap();
+        return Err(format!(
+            "{name}: one block with its halo takes {} MiB and the stages together {} MiB, over \
+             the {} MiB the memory budget leaves for filtering",
+            b.div_ceil(1 << 20),
+            need(1).div_ceil(1 << 20),
+            budget >> 20,
+        ));
+    }
+    let n = (1..=threads.max(1))
+        .take_while(|&n| need(n) <= budget)
+        .last()
+        .unwrap_or(1);
+    let (built, _) = build_stages(p, input, channel, block, device, n)?;
+    Ok((
+        built,
+        FilterMemory {
+            parallel: n,
+            bytes: need(n),
+        },
+    ))
+}
+
+/// The most bytes the filter stages of `p` hold at once when each computes
+/// one block at a time: the least budget [`build_within`] accepts.
+pub fn filter_bytes_at_least(
+    p: &Pipeline,
+    input: Arc<dyn VolumeSource>,
+    channel: usize,
+    block: Dims3,
+) -> Result<u64, String> {
+    let (_, stages) = build_stages(p, input, channel, block, None, 1)?;
+    Ok(stages.iter().map(|(_, b)| b).sum())
+}
+
+/// The chained stages, each computing at most `parallel` blocks at once;
+/// and per filter stage its name and [`FilterSource::block_bytes`].
+fn build_stages(
+    p: &Pipeline,
+    input: Arc<dyn VolumeSource>,
+    channel: usize,
+    block: Dims3,
+    device: Option<&Arc<FilterKernels>>,
+    parallel: usize,
+) -> Result<(Built, Vec<(String, u64)>), String> {
     let m = input.meta();
     if channel >= m.channels {
         return Err(format!(
@@ -102,6 +191,7 @@ pub fn build_on(
     let mut src = input;
     let mut ch = channel;
     let mut label = None;
+    let mut stages = vec![];
     for op in &p.ops {
         let f = match op {
             Op::Gauss(s) => Filter::Gauss(sigma_voxels(s, spacing, unit.as_deref())?),
@@ -114,16 +204,23 @@ pub fn build_on(
                 continue;
             }
         };
-        let mut stage = FilterSource::new(src, ch, f, &op.text(), block);
+        let name = op.text();
+        let mut stage = FilterSource::try_new(src, ch, f, &name, block)
+            .map_err(|e| format!("{name}: {e}"))?
+            .with_parallel(parallel);
+        stages.push((name, stage.block_bytes()));
         if let Some(k) = device {
             stage = stage.with_device(k);
         }
         src = Arc::new(stage);
         ch = 0;
     }
-    Ok(Built {
-        source: src,
-        channel: ch,
-        label,
-    })
+    Ok((
+        Built {
+            source: src,
+            channel: ch,
+            label,
+        },
+        stages,
+    ))
 }

@@ -758,3 +758,49 @@ fn label_has_no_live_form() {
         .expect("label refused");
     assert!(e.contains("brickyard process"), "{e}");
 }
+
+#[test]
+fn kernels_wider_than_the_volume_equal_direct_convolution() {
+    // Radii 16, 24 and 40 on a 13 × 11 × 17 volume: folded onto the edge
+    // voxels on y and z, whole on x; blocks and regions much smaller.
+    let (v, got, _) = run_filter::<u16>("gauss(4,6,10)", DIMS, 41, [4, 5, 3], [5, 3, 7]);
+    assert_close(&got, &gauss_ref(&v, DIMS, [10.0, 6.0, 4.0]), "wide gauss");
+    let (v, got, _) = run_filter::<f32>("gradmag(2,6,9)", DIMS, 42, [3, 4, 6], [13, 11, 17]);
+    assert_close(
+        &got,
+        &gradmag_ref(&v, DIMS, [9.0, 6.0, 2.0]),
+        "wide gradmag",
+    );
+}
+
+#[test]
+fn an_impossible_sigma_or_budget_is_an_error_not_a_panic() {
+    let v: Vec<f32> = volume(DIMS, 5);
+    let src: Arc<dyn VolumeSource> = Arc::new(Mem::new(DIMS, &v));
+    for pipe in ["gauss(1e9)", "sobel|gradmag(2e6,1,1)"] {
+        let p = Pipeline::parse(pipe).unwrap();
+        let e = build(&p, src.clone(), 0, [8; 3]).err().expect(pipe);
+        assert!(e.contains("1048576") && e.contains('σ'), "{pipe}: {e}");
+        let e = brickyard_process::derive_level(&p, src.clone(), 0, [1.0; 3], [8; 3])
+            .err()
+            .expect(pipe);
+        assert!(e.contains("1048576"), "{pipe}: {e}");
+    }
+    let p = Pipeline::parse("gauss(1)|gradmag(3)").unwrap();
+    let e = brickyard_process::build_within(&p, src.clone(), 0, [8; 3], None, 1000, 4)
+        .err()
+        .unwrap();
+    assert!(e.starts_with("gradmag(3): ") && e.contains("budget"), "{e}");
+    // A budget for one block at a time per stage computes one at a time,
+    // and the same values.
+    let need = brickyard_process::filter_bytes_at_least(&p, src.clone(), 0, [8; 3]).unwrap();
+    let (b, m) =
+        brickyard_process::build_within(&p, src.clone(), 0, [8; 3], None, need, 4).unwrap();
+    assert_eq!(m.parallel, 1);
+    assert!(m.bytes <= need);
+    let free = build(&p, src, 0, [8; 3]).unwrap();
+    assert_eq!(
+        read_all_regions(b.source.as_ref(), [5, 6, 7]),
+        read_all_regions(free.source.as_ref(), [5, 6, 7])
+    );
+}

@@ -9,10 +9,11 @@
 
 use anyhow::{bail, Context, Result};
 use brickyard_process::{
-    build_on, label_pass1, stats_csv, stats_json, FilterKernels, LabelSource, Op, Pipeline,
+    build_within, label_pass1, stats_csv, stats_json, FilterKernels, LabelSource, Op, Pipeline,
 };
 use brickyard_store::builder::Progress;
 use brickyard_store::import::zarr::{self, ZarrSource};
+use brickyard_store::info::human_bytes;
 use brickyard_store::omezarr::{read_json, write_json};
 use brickyard_store::{convert, Compression, ConvertOptions, VolumeSource};
 use serde_json::{json, Value};
@@ -341,6 +342,14 @@ pub fn run(
             caller.convert
         );
     }
+    // An interrupted conversion's store is refused, as `render` does.
+    if brickyard_store::info::inspect(store)?.complete == Some(false) {
+        bail!(
+            "{}: the store is incomplete (an interrupted conversion); convert the volume again with {}",
+            store.display(),
+            caller.convert
+        );
+    }
     let mut src = zarr::open(store, c.level)?;
     let ms = src.multiscale.clone().with_context(|| {
         format!(
@@ -368,8 +377,38 @@ pub fn run(
     let input: Arc<ZarrSource> = Arc::new(src);
     let kernels = device(&c.backend, f)?;
     let on = kernels.as_ref().map(|k| k.gpu.describe());
-    let built = build_on(&pipe, input.clone(), c.channel, brick, kernels.as_ref())
-        .map_err(|e| anyhow::anyhow!("pipeline {:?}: {e}", c.pipeline))?;
+    // The filter stages' blocks (with their halos) get a quarter of the
+    // budget, or half when one block at a time needs more; the pyramid
+    // writer what they leave. Checked before anything is written.
+    let threads = rayon::current_num_threads();
+    let build = |share: u64| {
+        build_within(
+            &pipe,
+            input.clone(),
+            c.channel,
+            brick,
+            kernels.as_ref(),
+            share,
+            threads,
+        )
+    };
+    let (built, filter_memory) = build(memory / 4)
+        .or_else(|_| build(memory / 2))
+        .map_err(|e| {
+            // A σ that cannot be computed fails the same way without a
+            // budget; otherwise the budget was too small.
+            match brickyard_process::filter_bytes_at_least(&pipe, input.clone(), c.channel, brick) {
+                Err(_) => anyhow::anyhow!("pipeline {:?}: {e}", c.pipeline),
+                Ok(b) => anyhow::anyhow!(
+                    "pipeline {:?}: {e} (half of {f}memory {}); give more {f}memory (the \
+                     filters need at least {} of it, one block at a time per stage, besides \
+                     what the pyramid writer needs) or a smaller σ",
+                    c.pipeline,
+                    human_bytes(memory),
+                    human_bytes(b.div_ceil(1 << 20) << 20)
+                ),
+            }
+        })?;
     let is_label = pipe.is_label_output();
     let dir = store.join(if is_label { "labels" } else { "derived" });
     let paths = Paths::new(dir, &c.out);
@@ -410,7 +449,7 @@ pub fn run(
         shard: [512; 3].map(|s: u64| s.max(brick[0]).div_ceil(brick[0]) * brick[0]),
         compression: Compression::Lz4,
         labels: is_label,
-        memory: memory - memory / 8,
+        memory: memory - memory / 8 - filter_memory.bytes,
         overwrite: false,
         spacing: meta.spacing,
         origin: meta.origin,

@@ -598,7 +598,7 @@ fn run_with(
     let (lo, hi) = match &c.window {
         Some(wd) => {
             let p = parse_pair(wd, "window")?;
-            if !(p[0] < p[1]) {
+            if p[0].partial_cmp(&p[1]) != Some(std::cmp::Ordering::Less) {
                 bail!("window: expected LO,HI with LO < HI, found {wd:?}");
             }
             (p[0], p[1])

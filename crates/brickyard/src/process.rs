@@ -21,7 +21,7 @@
 //! too); this file holds the options, the progress bars and the report.
 
 use crate::{install_ctrl_c, parse_bytes, peak_rss, progress, CANCEL};
-use anyhow::Result;
+use anyhow::{Context, Result};
 use brickyard_run::process::{Caller, Phases, ProcessArgs};
 use brickyard_store::info::human_bytes;
 use brickyard_store::Progress;
@@ -110,7 +110,7 @@ pub fn run(c: ProcessCmd) -> Result<()> {
         store: c.store,
         pipeline: c.pipeline,
         out: c.out,
-        memory: parse_bytes(&c.memory)?,
+        memory: parse_bytes(&c.memory).context("--memory")?,
         level: c.level,
         channel: c.channel,
         stats: c.stats,
@@ -126,7 +126,7 @@ pub fn run(c: ProcessCmd) -> Result<()> {
     let r = brickyard_run::process::run(&job, &CLI, &bars, &CANCEL)?;
     let rss = peak_rss();
     if c.json {
-        println!(
+        outln!(
             "{}",
             json!({
                 "output": r.output,
@@ -141,7 +141,7 @@ pub fn run(c: ProcessCmd) -> Result<()> {
             })
         );
     } else {
-        println!("{}, peak RSS {}", r.summary(), human_bytes(rss));
+        outln!("{}, peak RSS {}", r.summary(), human_bytes(rss));
     }
     Ok(())
 }

@@ -731,3 +731,151 @@ fn the_device_backend_writes_what_the_cpu_writes() {
     assert!(String::from_utf8_lossy(&o.stderr).contains("expected cpu, gpu or auto"));
     assert!(!store.join("derived/x").exists());
 }
+
+/// scipy's `gaussian_filter(v, σ, mode="nearest", truncate=4)` written out
+/// here: one 1D pass per axis over the whole kernel, clamped indices.
+fn gauss_nearest_ref(v: &[f64], d: Dims3, sigma: f64) -> Vec<f64> {
+    let r = (4.0 * sigma + 0.5) as i64;
+    let phi: Vec<f64> = (-r..=r)
+        .map(|m| (-((m * m) as f64) / (2.0 * sigma * sigma)).exp())
+        .collect();
+    let sum: f64 = phi.iter().sum();
+    let w: Vec<f64> = phi.iter().map(|p| p / sum).collect();
+    let d = d.map(|v| v as i64);
+    let mut cur = v.to_vec();
+    for axis in 0..3 {
+        let mut next = vec![0.0; cur.len()];
+        for z in 0..d[0] {
+            for y in 0..d[1] {
+                for x in 0..d[2] {
+                    let p = [z, y, x];
+                    let mut s = 0.0;
+                    for (k, wk) in w.iter().enumerate() {
+                        let mut q = p;
+                        q[axis] = (p[axis] + k as i64 - r).clamp(0, d[axis] - 1);
+                        s += wk * cur[((q[0] * d[1] + q[1]) * d[2] + q[2]) as usize];
+                    }
+                    next[((z * d[1] + y) * d[2] + x) as usize] = s;
+                }
+            }
+        }
+        cur = next;
+    }
+    cur
+}
+
+#[test]
+fn a_sigma_wider_than_the_volume_is_computed_and_an_impossible_one_refused() {
+    let d = tempfile::tempdir().unwrap();
+    let store = make_store(d.path(), "20");
+    // σ 40: a kernel of radius 160, eight times the volume.
+    ok(run(&[
+        "process",
+        s(&store),
+        "gauss(40)",
+        "--out",
+        "wide",
+        "--memory",
+        "256MiB",
+        "--quiet",
+    ]));
+    let (got, dims) = read_level0::<f32>(&store.join("derived/wide"));
+    let (v, vd) = read_level0::<u16>(&store);
+    assert_eq!(dims, vd);
+    let v: Vec<f64> = v.iter().map(|&x| x as f64).collect();
+    let want = gauss_nearest_ref(&v, vd, 40.0);
+    let scale = want.iter().fold(0.0f64, |m, x| m.max(x.abs()));
+    for (i, (g, w)) in got.iter().zip(&want).enumerate() {
+        assert!(
+            (*g as f64 - w).abs() <= 1e-6 * scale,
+            "voxel {i}: {g} vs {w}"
+        );
+    }
+    // σ whose kernel cannot be summed, and a budget that cannot hold one
+    // block with its halo: errors naming the stage, nothing written.
+    for (pipe, memory, want) in [
+        ("gauss(1e9)", "256MiB", "1048576"),
+        ("gauss(1)|gradmag(1e7)", "256MiB", "gradmag(10000000)"),
+        ("gauss(8)", "2MiB", "memory"),
+    ] {
+        let o = run(&[
+            "process",
+            s(&store),
+            pipe,
+            "--out",
+            "big",
+            "--memory",
+            memory,
+            "--quiet",
+        ]);
+        let e = String::from_utf8_lossy(&o.stderr);
+        assert_eq!(o.status.code(), Some(1), "{pipe}: {e}");
+        assert!(!e.contains("panicked"), "{pipe}: {e}");
+        assert!(e.contains(want), "{pipe}: {e:?} should mention {want:?}");
+        let left: Vec<_> = std::fs::read_dir(store.join("derived"))
+            .unwrap()
+            .map(|e| e.unwrap().file_name().to_string_lossy().into_owned())
+            .filter(|n| n.contains("big"))
+            .collect();
+        assert!(left.is_empty(), "{pipe}: left {left:?}");
+    }
+    // The live derived channel refuses the same σ.
+    let o = run(&[
+        "render",
+        s(&store),
+        "--backend",
+        "cpu",
+        "--size",
+        "32",
+        "--derive",
+        "gauss(1e9)",
+        "--out",
+        s(&d.path().join("x.png")),
+    ]);
+    let e = String::from_utf8_lossy(&o.stderr);
+    assert!(!o.status.success() && !e.contains("panicked"), "{e}");
+    assert!(e.contains("1048576"), "{e}");
+}
+
+#[test]
+fn an_interrupted_conversion_is_refused() {
+    let d = tempfile::tempdir().unwrap();
+    let store = make_store(d.path(), "20");
+    // What a crash leaves: the partial folder, whose root says incomplete.
+    let partial = d.path().join("v.zarr.partial");
+    std::fs::rename(&store, &partial).unwrap();
+    let root = partial.join("zarr.json");
+    let text = std::fs::read_to_string(&root).unwrap();
+    assert!(text.contains("\"complete\": true"), "{text}");
+    std::fs::write(
+        &root,
+        text.replace("\"complete\": true", "\"complete\": false"),
+    )
+    .unwrap();
+    let before = snapshot(&partial);
+    for args in [
+        vec!["process", s(&partial), "threshold(10)", "--out", "m"],
+        vec![
+            "render",
+            s(&partial),
+            "--backend",
+            "cpu",
+            "--size",
+            "32",
+            "--derive",
+            "gauss(1)",
+            "--out",
+            s(&d.path().join("x.png")),
+        ],
+    ] {
+        let o = run(&args);
+        let e = String::from_utf8_lossy(&o.stderr);
+        assert_eq!(o.status.code(), Some(1), "{args:?}: {e}");
+        assert!(
+            e.contains("the store is incomplete (an interrupted conversion)"),
+            "{args:?}: {e}"
+        );
+    }
+    assert_eq!(snapshot(&partial), before, "the store was changed");
+    assert!(!partial.join("labels").exists(), "labels were written");
+}
