@@ -106,9 +106,12 @@ pub fn drive(
         p
     });
     // First the request pass (while it finds bricks to ask for), then full
-    // frames until the budget says stop; at least one full frame. On the
-    // CPU a frame like the last (same pass, same level of detail) draws
-    // again only the tiles that were not settled.
+    // frames until the budget says stop; at least one full frame. Passes
+    // count among `max_frames`: the last frame it allows is always a full
+    // one, so that a run draws at most `max_frames` frames (one when
+    // `max_frames` is 0 or 1). On the CPU a frame like the last (same
+    // pass, same level of detail) draws again only the tiles that were not
+    // settled.
     let mut pass = small.is_some();
     let mut full_drawn = false;
     let mut keep: Option<(bool, Lod, Image, Tiles)> = None;
@@ -116,10 +119,10 @@ pub fn drive(
     let mut stop = None;
     let mut completeness = 0.0;
     loop {
-        if frames >= opt.max_frames {
-            if full_drawn {
-                break;
-            }
+        if frames >= opt.max_frames && full_drawn {
+            break;
+        }
+        if frames + 1 >= opt.max_frames {
             pass = false;
         }
         let (p, l) = match (&small, pass) {

@@ -172,7 +172,9 @@ pub struct RenderCmd {
     #[arg(long, default_value_t = 0)]
     read_delay_ms: u64,
     /// A safety net: stop (and write what there is) after this many
-    /// frames. Runs end by themselves: complete at the finest detail the
+    /// frames of a view, its quarter-size request passes included (the
+    /// last frame is always the full image; with --distribute image, per
+    /// band). Runs end by themselves: complete at the finest detail the
     /// pool holds, or when nothing more can arrive.
     #[arg(long, default_value_t = 2000)]
     max_frames: usize,

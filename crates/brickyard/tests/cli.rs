@@ -413,6 +413,72 @@ fn render_rejects_flags_that_cannot_work() {
     );
 }
 
+/// `--max-frames N` bounds the frames a view draws, its request passes
+/// (a quarter of the pixels, from 128² up) included, and the report counts
+/// the frames drawn: `--max-frames 1` draws the image alone, once.
+#[test]
+fn max_frames_bounds_the_frames_drawn_and_reported() {
+    let d = tempfile::tempdir().unwrap();
+    let store = mandelbulb_48(d.path(), "m.ome.zarr");
+    let png = d.path().join("m.png");
+    let render = |extra: &[&str]| {
+        let mut a = vec![
+            "render",
+            s(&store),
+            "--size",
+            "128",
+            "--backend",
+            "cpu",
+            "--out",
+            s(&png),
+        ];
+        a.extend_from_slice(extra);
+        let o = run(&a);
+        assert!(o.status.success(), "{extra:?}: {}", stderr(&o));
+        String::from_utf8_lossy(&o.stdout).into_owned()
+    };
+    // (frame lines with their pass, the summary's frame count)
+    let frames = |extra: &[&str]| {
+        let mut a = vec!["--json"];
+        a.extend_from_slice(extra);
+        let out = render(&a);
+        let mut passes = Vec::new();
+        let mut summary = None;
+        // (The JSON lines; `wrote …` is not one.)
+        for l in out.lines().filter(|l| l.starts_with('{')) {
+            let v: serde_json::Value = serde_json::from_str(l).unwrap();
+            if v["summary"] == true {
+                summary = v["frames"].as_u64();
+            } else if v.get("frame").is_some() {
+                passes.push(v["pass"].as_str().unwrap().to_string());
+            }
+        }
+        (passes, summary.expect("a summary line"))
+    };
+    // Unbounded, the view starts with request passes: the bound has
+    // something to cut.
+    let (all, n) = frames(&[]);
+    assert_eq!(all.len() as u64, n, "{all:?}");
+    assert!(all[0] == "requests" && all.len() >= 2, "{all:?}");
+    for max in 1..=3usize {
+        let m = max.to_string();
+        let (drawn, n) = frames(&["--max-frames", &m]);
+        assert_eq!(drawn.len() as u64, n, "--max-frames {max}: {drawn:?}");
+        assert!(
+            !drawn.is_empty() && drawn.len() <= max,
+            "--max-frames {max}: {drawn:?}"
+        );
+        assert_eq!(
+            drawn.last().map(String::as_str),
+            Some("image"),
+            "--max-frames {max}: the last frame is the image"
+        );
+    }
+    let out = render(&["--max-frames", "1"]);
+    assert!(out.contains("; 1 frames,"), "{out}");
+    has_content(&png_pixels(&png), "--max-frames 1");
+}
+
 /// Standard output closed early (`render … | head -1`): the run still
 /// writes its image and exits 0, without a panic.
 #[test]
