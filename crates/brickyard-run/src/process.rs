@@ -324,6 +324,11 @@ pub fn run(
             ),
         },
     };
+    // The statistics file is written last: a folder that is not there
+    // fails now, before any work.
+    if let Some(p) = &c.stats {
+        brickyard_store::builder::check_parent(p).map_err(|e| anyhow::anyhow!("{f}stats: {e}"))?;
+    }
     let store = &c.store;
     if brickyard_store::storage::is_remote(store) {
         bail!(

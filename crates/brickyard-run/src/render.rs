@@ -507,13 +507,20 @@ fn run_with(
             c.lod_bias
         );
     }
-    if let Some(parent) = c.out.parent().filter(|p| !p.as_os_str().is_empty()) {
-        if !parent.is_dir() {
-            bail!(
-                "{}: cannot write the image there: {} is not an existing folder",
-                c.out.display(),
-                parent.display()
-            );
+    let files = [
+        (Some(&c.out), "the image"),
+        (c.save_camera.as_ref(), "the camera (--save-camera)"),
+    ];
+    for (file, what) in files {
+        let Some(file) = file else { continue };
+        if let Some(parent) = file.parent().filter(|p| !p.as_os_str().is_empty()) {
+            if !parent.is_dir() {
+                bail!(
+                    "{}: cannot write {what} there: {} is not an existing folder",
+                    file.display(),
+                    parent.display()
+                );
+            }
         }
     }
     if !matches!(c.region_weights.as_str(), "view" | "data" | "uniform") {

@@ -455,6 +455,8 @@ pub fn convert_team(
             ));
         }
     }
+    // Nothing is created above the output: its folder must exist.
+    check_parent(output)?;
     // Refuse to touch existing data unless asked; never convert onto the input.
     if output.exists() && !opts.overwrite {
         return Err(StoreError::Refused {
@@ -937,6 +939,37 @@ fn finish_store(
         std::fs::rename(partial, output).at(output)?;
     }
     Ok(())
+}
+
+/// Refuse an output whose parent folder does not exist (or is not a
+/// folder): writers create the output itself, never the folders above it,
+/// so a mistyped path is an error rather than a new tree of folders. A
+/// path without a parent (a bare name) is in the working directory.
+pub fn check_parent(output: &Path) -> Result<()> {
+    if crate::storage::is_remote(output) {
+        return Err(StoreError::Refused {
+            path: output.into(),
+            msg: "cannot write there: outputs are local paths (remote stores are read-only)".into(),
+        });
+    }
+    let Some(parent) = output.parent().filter(|p| !p.as_os_str().is_empty()) else {
+        return Ok(());
+    };
+    if parent.is_dir() {
+        return Ok(());
+    }
+    let why = if parent.exists() {
+        "is not a folder"
+    } else {
+        "does not exist (create it first)"
+    };
+    Err(StoreError::Refused {
+        path: output.into(),
+        msg: format!(
+            "cannot write there: the parent folder {} {why}",
+            parent.display()
+        ),
+    })
 }
 
 /// Whether `--overwrite` may replace `path`: an empty directory or a

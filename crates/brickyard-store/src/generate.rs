@@ -184,6 +184,7 @@ pub fn write_raw(src: &Procedural, path: &Path, progress: &dyn crate::Progress) 
             .map(|s| s.to_string_lossy().into_owned())
             .unwrap_or_default()
     ));
+    crate::builder::check_parent(path)?;
     let mut f = std::io::BufWriter::new(std::fs::File::create(&tmp).at(&tmp)?);
     progress.start(dz * dy * dx * es);
     // Slabs of about 64 MiB.

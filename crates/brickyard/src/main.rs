@@ -618,6 +618,8 @@ fn demo_store(out: &Path, size: &str) -> Result<PathBuf> {
 }
 
 fn convert_demo(out: &Path, size: &str) -> Result<PathBuf> {
+    // The demo folder itself is made, never the folders above it.
+    brickyard_store::builder::check_parent(out)?;
     std::fs::create_dir_all(out).with_context(|| format!("{}: cannot create", out.display()))?;
     let dims = parse_size(size).map_err(|e| anyhow::anyhow!("size: {e}"))?;
     let store = out.join("mandelbulb.ome.zarr");

@@ -547,6 +547,84 @@ fn a_constant_volume_renders() {
     }
 }
 
+/// Writers make their output, never the folders above it: an output
+/// whose parent folder is missing (or is a file) is an error naming both,
+/// before anything is created.
+#[test]
+fn writers_refuse_an_output_whose_folder_is_missing() {
+    let d = tempfile::tempdir().unwrap();
+    let raw = d.path().join("v.raw");
+    std::fs::write(&raw, vec![9u8; 16 * 16 * 16]).unwrap();
+    let file = d.path().join("afile");
+    std::fs::write(&file, "hi").unwrap();
+    let deep = d.path().join("deep");
+    let missing = deep.join("missing");
+    for (out, why) in [
+        (missing.join("x.ome.zarr"), "does not exist"),
+        (file.join("x.ome.zarr"), "is not a folder"),
+    ] {
+        let parent = out.parent().unwrap();
+        let o = run(&[
+            "convert",
+            s(&raw),
+            s(&out),
+            "--dims",
+            "16x16x16",
+            "--dtype",
+            "u8",
+            "--quiet",
+        ]);
+        fails_with(&o, &[s(&out), "parent folder", s(parent), why]);
+    }
+    for out in ["g.ome.zarr", "g.raw"] {
+        let out = missing.join(out);
+        fails_with(
+            &run(&["generate", "mandelbulb", s(&out), "--size", "16", "--quiet"]),
+            &[s(&out), "parent folder", s(&missing), "does not exist"],
+        );
+    }
+    fails_with(
+        &run(&["demo", "--out", s(&missing.join("demo")), "--size", "16"]),
+        &["parent folder", s(&missing), "does not exist"],
+    );
+    assert!(!deep.exists(), "a failed writer created {}", deep.display());
+    // A bare name is in the working directory, whose folder exists.
+    let o = bin()
+        .current_dir(d.path())
+        .args([
+            "convert",
+            s(&raw),
+            "here.ome.zarr",
+            "--dims",
+            "16x16x16",
+            "--dtype",
+            "u8",
+            "--quiet",
+        ])
+        .output()
+        .unwrap();
+    assert!(o.status.success(), "{}", stderr(&o));
+    let store = d.path().join("here.ome.zarr");
+    assert!(store.join("zarr.json").is_file());
+    // The render's camera file, like its image, before any work.
+    let png = d.path().join("r.png");
+    let cam = missing.join("cam.json");
+    fails_with(
+        &run(&[
+            "render",
+            s(&store),
+            "--size",
+            "16",
+            "--out",
+            s(&png),
+            "--save-camera",
+            s(&cam),
+        ]),
+        &["cam.json", "save-camera", "not an existing folder"],
+    );
+    assert!(!png.exists() && !deep.exists());
+}
+
 /// `convert --overwrite` replaces a store (or an empty folder), never a
 /// file or a folder of other things; bad units and zstd levels are named.
 #[test]

@@ -356,7 +356,14 @@ fn a_second_job_on_the_same_name_is_refused_while_the_first_runs() {
 fn bad_process_inputs_give_clear_errors() {
     let d = tempfile::tempdir().unwrap();
     let store = make_store(d.path(), "20");
+    // A statistics file in a folder that is not there: refused before any
+    // work (it is written last).
+    let stats = d.path().join("no/such/s.csv");
     for (args, want) in [
+        (
+            vec!["threshold(1)|label(6)", "--out", "x", "--stats", s(&stats)],
+            "no/such does not exist",
+        ),
         (vec!["gauss(1)|treshold(3)", "--out", "x"], "treshold"),
         (
             vec!["gauss(1)|label(8)", "--out", "x"],
