@@ -2,7 +2,11 @@
 //! `info`, `render`, `view` and `convert` elsewhere can read them by URL.
 //!
 //! Each store is served under `/<its directory name>/`; `/` lists them as
-//! JSON. GET and HEAD with a single byte range (`Range: bytes=a-b`, `a-`,
+//! JSON. A directory given is a Zarr store (`zarr.json`, `.zgroup` or
+//! `.zarray` at its top) or a folder of such stores (served as
+//! `/<folder>/<store>/`); a path that does not exist, is not a directory or
+//! holds no store is refused at start, naming it. GET and HEAD with a
+//! single byte range (`Range: bytes=a-b`, `a-`,
 //! `-n`; 416 when unsatisfiable, several ranges answered with the whole
 //! file), `Content-Length`, a strong `ETag` (size and modification time)
 //! with `If-None-Match` (304), CORS for any origin with the preflight
@@ -26,7 +30,7 @@ use std::collections::HashMap;
 use std::fs::File;
 use std::io::{Read, Seek, SeekFrom};
 use std::net::{IpAddr, SocketAddr};
-use std::path::PathBuf;
+use std::path::{Path, PathBuf};
 use std::sync::atomic::Ordering;
 use std::sync::Arc;
 use std::time::{Duration, Instant, UNIX_EPOCH};
@@ -37,7 +41,8 @@ const REMOTE_PAGE: &str = include_str!("remote.html");
 
 #[derive(Args, Clone, Debug)]
 pub struct ServeCmd {
-    /// Store directories to serve (each under /<directory name>/).
+    /// Store directories to serve (each under /<directory name>/), or
+    /// folders of stores (each store under /<folder>/<store>/).
     #[arg(required = true)]
     pub stores: Vec<PathBuf>,
     /// Address to bind. Anything but loopback needs a token.
@@ -138,6 +143,20 @@ fn web_dist(c: &ServeCmd) -> Result<PathBuf> {
         .with_context(|| format!("--web: {}: cannot serve it", dir.display()))
 }
 
+/// Whether `dir` is something `serve` can serve: a Zarr store (a group or
+/// an array at its top) or a folder with at least one store directly in it.
+fn holds_a_store(dir: &Path) -> bool {
+    let is_store = |d: &Path| {
+        d.is_dir()
+            && ["zarr.json", ".zgroup", ".zarray"]
+                .iter()
+                .any(|m| d.join(m).is_file())
+    };
+    is_store(dir)
+        || std::fs::read_dir(dir)
+            .is_ok_and(|entries| entries.filter_map(|e| e.ok()).any(|e| is_store(&e.path())))
+}
+
 fn is_loopback(ip: IpAddr) -> bool {
     ip.is_loopback()
 }
@@ -173,14 +192,30 @@ fn site(c: &ServeCmd) -> Result<Site> {
             c.bind
         );
     }
+    // The web client's bundle first: its errors say how to build it.
+    let web = if c.web { Some(web_dist(c)?) } else { None };
     let mut roots = HashMap::new();
     for s in &c.stores {
+        if !s.exists() {
+            bail!(
+                "{}: no such folder: expected a store folder (or a folder of stores) to serve",
+                s.display()
+            );
+        }
         let root = s
             .canonicalize()
             .with_context(|| format!("{}: cannot serve it", s.display()))?;
         if !root.is_dir() {
             bail!(
-                "{}: not a directory (a store is served as its directory)",
+                "{}: not a folder: expected a store folder (or a folder of stores) to serve",
+                s.display()
+            );
+        }
+        if !holds_a_store(&root) {
+            bail!(
+                "{}: holds no Zarr store: expected a store folder (zarr.json, .zgroup or \
+                 .zarray at its top, as `brickyard convert` writes) or a folder with such \
+                 stores in it",
                 s.display()
             );
         }
@@ -198,16 +233,12 @@ fn site(c: &ServeCmd) -> Result<Site> {
             );
         }
     }
-    let web = if c.web {
+    if let Some(d) = &web {
         if roots.contains_key("web") {
             bail!("--web: a store named `web` would hide the web client at /web/; serve it from a directory of another name");
         }
-        let d = web_dist(c)?;
         roots.insert("web".to_string(), d.clone());
-        Some(d)
-    } else {
-        None
-    };
+    }
     Ok(Site {
         roots,
         token,

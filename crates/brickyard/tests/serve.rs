@@ -491,6 +491,82 @@ fn missing_stores_and_unreachable_servers_are_clear_errors() {
     assert!(String::from_utf8_lossy(&o.stderr).contains("BRICKYARD_HTTP_RETRIES"));
 }
 
+/// `serve` refuses at start, naming it, a path it could serve nothing
+/// from: one that does not exist, a file, an empty folder, a folder of
+/// other things (also beside a good store); a store and a folder of stores
+/// are served.
+#[test]
+fn serve_refuses_folders_without_a_store() {
+    let dir = tempfile::tempdir().unwrap();
+    let d = dir.path();
+    let coll = d.join("coll");
+    std::fs::create_dir(&coll).unwrap();
+    let st = coll.join("a.ome.zarr");
+    ok(&run(&[
+        "generate",
+        "mandelbulb",
+        s(&st),
+        "--size",
+        "16",
+        "--brick",
+        "8",
+        "--shard",
+        "16",
+        "--quiet",
+    ]));
+    let empty = d.join("empty");
+    std::fs::create_dir(&empty).unwrap();
+    let notes = d.join("notes");
+    std::fs::create_dir_all(notes.join("sub")).unwrap();
+    std::fs::write(notes.join("a.txt"), "not a store").unwrap();
+    let file = d.join("afile");
+    std::fs::write(&file, "hi").unwrap();
+    let gone = d.join("gone");
+    for (paths, named, why) in [
+        (vec![&gone], &gone, "no such folder"),
+        (vec![&file], &file, "not a folder"),
+        (vec![&empty], &empty, "holds no Zarr store"),
+        (vec![&notes], &notes, "holds no Zarr store"),
+        (vec![&st, &empty], &empty, "holds no Zarr store"),
+    ] {
+        // A server that starts anyway would run until killed: wait a while.
+        let mut child = bin()
+            .arg("serve")
+            .args(&paths)
+            .args(["--port", "0"])
+            .stderr(Stdio::piped())
+            .spawn()
+            .unwrap();
+        let t0 = std::time::Instant::now();
+        while child.try_wait().unwrap().is_none() {
+            if t0.elapsed() > std::time::Duration::from_secs(30) {
+                let _ = child.kill();
+                let _ = child.wait();
+                panic!("serve {paths:?} started");
+            }
+            std::thread::sleep(std::time::Duration::from_millis(20));
+        }
+        let o = child.wait_with_output().unwrap();
+        let e = String::from_utf8_lossy(&o.stderr);
+        assert!(!o.status.success(), "serve {paths:?}: {e}");
+        assert!(!e.contains("panicked"), "{e}");
+        assert!(
+            e.contains(s(named)) && e.contains(why),
+            "{e:?}: {named:?}, {why:?}"
+        );
+    }
+    // The store itself, and the folder it is in.
+    for (served, path) in [
+        (&st, "/a.ome.zarr/zarr.json"),
+        (&coll, "/coll/a.ome.zarr/zarr.json"),
+    ] {
+        let sv = serve(&[served], &["--quiet"]);
+        let (status, _, body) = http(sv.port, "GET", path, &[]);
+        assert_eq!(status, 200, "{path}");
+        assert_eq!(body, std::fs::read(st.join("zarr.json")).unwrap());
+    }
+}
+
 /// The viewer on a URL: a view it saves, once complete, equals `render`
 /// of the local store with the same camera and transfer function.
 #[test]
