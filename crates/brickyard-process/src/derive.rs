@@ -21,7 +21,7 @@
 
 use crate::filter::{Filter, FilterSource};
 use crate::pipeline::{Op, Pipeline, Sigma};
-use crate::sigma_voxels;
+use crate::{sigma_voxels, FilterMemory};
 use brickyard_core::{as_bytes_mut, Dims3};
 use brickyard_store::source::check_region;
 use brickyard_store::{Result, SourceMeta, VolumeSource};
@@ -61,6 +61,78 @@ pub fn derive_level(
     factor: [f64; 3],
     block: Dims3,
 ) -> std::result::Result<Arc<dyn VolumeSource>, String> {
+    derive_stages(p, level, channel, factor, block, usize::MAX).map(|(src, _)| src)
+}
+
+/// [`derive_level`] for readers that each ask for regions of at most `read`
+/// voxels at once, `readers` of them at the same time (a loader's threads
+/// reading padded bricks): each filter stage computes at most as many
+/// blocks at once (up to `threads`) as keep the blocks in flight of all
+/// readers within `budget` bytes, a block counted with its halo and no
+/// larger than the region its stage is asked for (see
+/// [`crate::filter::region_block_bytes`]; the region of an inner stage is
+/// the outer block grown by the outer halo). An error, before anything is
+/// computed, naming the stage, when even one block at a time per stage
+/// does not fit; the plan's bytes are those of all readers together.
+#[allow(clippy::too_many_arguments)]
+pub fn derive_level_within(
+    p: &Pipeline,
+    level: Arc<dyn VolumeSource>,
+    channel: usize,
+    factor: [f64; 3],
+    block: Dims3,
+    read: Dims3,
+    readers: usize,
+    budget: u64,
+    threads: usize,
+) -> std::result::Result<(Arc<dyn VolumeSource>, FilterMemory), String> {
+    let readers = readers.max(1) as u64;
+    let (_, stages) = derive_stages(p, level.clone(), channel, factor, block, 1)?;
+    // One block of each stage for a read of `read` voxels, outermost first
+    // (the region each stage is asked for comes from the stage after it);
+    // a rescaled stage's values are copied once more (f32).
+    let mut region = read;
+    let mut bytes = Vec::with_capacity(stages.len());
+    for st in stages.iter().rev() {
+        let (b, inner) = st.source.region_block_bytes(region);
+        let scaled = if st.scaled {
+            4 * region.iter().product::<u64>()
+        } else {
+            0
+        };
+        bytes.push((st.name.clone(), b + scaled));
+        region = inner;
+    }
+    bytes.reverse();
+    let plan = crate::plan_parallel(&bytes, budget / readers, threads)?;
+    let (src, _) = derive_stages(p, level, channel, factor, block, plan.parallel)?;
+    Ok((
+        src,
+        FilterMemory {
+            parallel: plan.parallel,
+            bytes: plan.bytes * readers,
+        },
+    ))
+}
+
+/// A filter stage of a derived level, for its memory plan.
+struct Stage {
+    name: String,
+    source: Arc<FilterSource>,
+    /// Followed by a [`Scaled`] copy (gradients per level-0 voxel).
+    scaled: bool,
+}
+
+/// The derived level's chained stages, each computing at most `parallel`
+/// blocks at once; and its filter stages, innermost first.
+fn derive_stages(
+    p: &Pipeline,
+    level: Arc<dyn VolumeSource>,
+    channel: usize,
+    factor: [f64; 3],
+    block: Dims3,
+    parallel: usize,
+) -> std::result::Result<(Arc<dyn VolumeSource>, Vec<Stage>), String> {
     check_live(p)?;
     let m = level.meta();
     if channel >= m.channels {
@@ -79,6 +151,7 @@ pub fn derive_level(
     let mean_factor = factor.iter().product::<f64>().cbrt();
     let mut src = level;
     let mut ch = channel;
+    let mut stages = Vec::with_capacity(p.ops.len());
     for op in &p.ops {
         let f = match op {
             Op::Gauss(s) => Filter::Gauss(sigma(s)?),
@@ -89,15 +162,24 @@ pub fn derive_level(
             Op::Label(_) => unreachable!("checked by check_live"),
         };
         let name = op.text();
-        src = Arc::new(
-            FilterSource::try_new(src, ch, f, &name, block).map_err(|e| format!("{name}: {e}"))?,
+        let stage = Arc::new(
+            FilterSource::try_new(src, ch, f, &name, block)
+                .map_err(|e| format!("{name}: {e}"))?
+                .with_parallel(parallel),
         );
-        if matches!(op, Op::GradMag(_) | Op::Sobel) && (mean_factor - 1.0).abs() > 1e-12 {
+        src = stage.clone();
+        let scaled = matches!(op, Op::GradMag(_) | Op::Sobel) && (mean_factor - 1.0).abs() > 1e-12;
+        if scaled {
             src = Arc::new(Scaled::new(src, 1.0 / mean_factor));
         }
+        stages.push(Stage {
+            name,
+            source: stage,
+            scaled,
+        });
         ch = 0;
     }
-    Ok(src)
+    Ok((src, stages))
 }
 
 /// An f32 source with every value multiplied by a constant.

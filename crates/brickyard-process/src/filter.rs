@@ -265,18 +265,39 @@ struct DeviceStage {
 /// magnitude, which keeps its input), and the block's values (f64 and their
 /// output type). Blocks are at most 1.5 `block` long (see [`split`]).
 pub fn block_bytes(filter: &Filter, dims: Dims3, block: Dims3, in_size: usize) -> u64 {
+    region_block_bytes(filter, dims, block, dims, in_size).0
+}
+
+/// [`block_bytes`] of a stage that is asked for regions of at most
+/// `region` voxels per axis at once (its blocks are no larger than the
+/// region), and the largest region such a block asks the stage before it
+/// for: the block grown by the halo, clamped to the volume.
+pub fn region_block_bytes(
+    filter: &Filter,
+    dims: Dims3,
+    block: Dims3,
+    region: Dims3,
+    in_size: usize,
+) -> (u64, Dims3) {
     let h = filter.halo();
-    let b = [0, 1, 2].map(|a| (block[a].max(1) * 3).div_ceil(2).min(dims[a]));
-    let read: u64 = (0..3)
-        .map(|a| (b[a] + 2 * h[a] as u64).min(dims[a]))
-        .product();
+    let b = [0, 1, 2].map(|a| {
+        (block[a].max(1) * 3)
+            .div_ceil(2)
+            .min(region[a].max(1))
+            .min(dims[a])
+    });
+    let inner = [0, 1, 2].map(|a| (b[a] + 2 * h[a] as u64).min(dims[a]));
+    let read: u64 = inner.iter().product();
     let out: u64 = b.iter().product();
     let boxes = match filter.components() {
         None => 0,
         Some((_, false)) => 1,
         Some((_, true)) => 2,
     };
-    read * (in_size as u64 + 8 + 8 * boxes) + out * (8 + filter.out_dtype().size() as u64)
+    (
+        read * (in_size as u64 + 8 + 8 * boxes) + out * (8 + filter.out_dtype().size() as u64),
+        inner,
+    )
 }
 
 impl FilterSource {
@@ -337,6 +358,19 @@ impl FilterSource {
             &self.filter,
             self.meta.dims,
             self.block,
+            self.inner.meta().dtype.size(),
+        )
+    }
+
+    /// [`region_block_bytes`] of this stage: one block's bytes when it is
+    /// asked for regions of at most `region` voxels, and the largest
+    /// region it then asks the stage before it for.
+    pub fn region_block_bytes(&self, region: Dims3) -> (u64, Dims3) {
+        region_block_bytes(
+            &self.filter,
+            self.meta.dims,
+            self.block,
+            region,
             self.inner.meta().dtype.size(),
         )
     }

@@ -19,7 +19,7 @@ pub mod kernels;
 pub mod label;
 pub mod pipeline;
 
-pub use derive::{check_live, derive_level, level_factor};
+pub use derive::{check_live, derive_level, derive_level_within, level_factor};
 pub use filter::{Filter, FilterSource};
 pub use gpu::{DeviceFilter, FilterKernels};
 pub use label::{label_pass1, stats_csv, stats_json, LabelSource, LabelStats, Labeling};
@@ -123,6 +123,23 @@ pub fn build_within(
 ) -> Result<(Built, FilterMemory), String> {
     // The stages' blocks, innermost first.
     let (_, stages) = build_stages(p, input.clone(), channel, block, device, 1)?;
+    let plan = plan_parallel(&stages, budget, threads)?;
+    let (built, _) = build_stages(p, input, channel, block, device, plan.parallel)?;
+    Ok((built, plan))
+}
+
+/// How many blocks at once (up to `threads`) each filter stage may compute
+/// so that the blocks in flight of all `stages` (name and bytes of one
+/// block, innermost first) stay within `budget`: an inner stage's blocks
+/// are computed inside each of the outer stage's blocks, so `n` blocks at
+/// once per stage can mean `n^k` of the k-th stage from the end. An error
+/// naming the stage of the largest block when even one block at a time
+/// per stage does not fit.
+pub(crate) fn plan_parallel(
+    stages: &[(String, u64)],
+    budget: u64,
+    threads: usize,
+) -> Result<FilterMemory, String> {
     let need = |n: usize| -> u64 {
         let k = stages.len();
         stages
@@ -148,14 +165,10 @@ pub fn build_within(
         .take_while(|&n| need(n) <= budget)
         .last()
         .unwrap_or(1);
-    let (built, _) = build_stages(p, input, channel, block, device, n)?;
-    Ok((
-        built,
-        FilterMemory {
-            parallel: n,
-            bytes: need(n),
-        },
-    ))
+    Ok(FilterMemory {
+        parallel: n,
+        bytes: need(n),
+    })
 }
 
 /// The most bytes the filter stages of `p` hold at once when each computes

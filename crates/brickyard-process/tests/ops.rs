@@ -773,6 +773,53 @@ fn kernels_wider_than_the_volume_equal_direct_convolution() {
     );
 }
 
+/// A live derived level held to a budget: a stage's blocks are counted no
+/// larger than the region it is asked for (a small read needs less than a
+/// whole block), `readers` reads at once take `readers` times as much, a
+/// budget that holds not one block per stage for each reader is an error
+/// naming the stage, and the values are those of the unbounded level.
+#[test]
+fn a_derived_level_within_a_budget_counts_its_reads() {
+    let v: Vec<f32> = volume(DIMS, 6);
+    let src: Arc<dyn VolumeSource> = Arc::new(Mem::new(DIMS, &v));
+    // At a level of twice the voxel size: σ halved, the gradient rescaled.
+    let p = Pipeline::parse("gauss(1)|sobel").unwrap();
+    let within = |read: Dims3, readers: usize, budget: u64, threads: usize| {
+        brickyard_process::derive_level_within(
+            &p,
+            src.clone(),
+            0,
+            [2.0; 3],
+            [8; 3],
+            read,
+            readers,
+            budget,
+            threads,
+        )
+    };
+    let (_, small) = within([4; 3], 1, u64::MAX, 1).unwrap();
+    let (_, whole) = within(DIMS, 1, u64::MAX, 1).unwrap();
+    assert_eq!(small.parallel, 1);
+    assert!(
+        0 < small.bytes && small.bytes < whole.bytes,
+        "{small:?} {whole:?}"
+    );
+    let (_, three) = within([4; 3], 3, u64::MAX, 1).unwrap();
+    assert_eq!(three.bytes, 3 * small.bytes);
+    let e = within([4; 3], 3, 3 * small.bytes - 1, 4).err().unwrap();
+    assert!(
+        (e.starts_with("gauss(1): ") || e.starts_with("sobel: ")) && e.contains("budget"),
+        "{e}"
+    );
+    let (held, m) = within([4; 3], 3, 3 * small.bytes, 4).unwrap();
+    assert_eq!((m.parallel, m.bytes), (1, 3 * small.bytes));
+    let free = brickyard_process::derive_level(&p, src.clone(), 0, [2.0; 3], [8; 3]).unwrap();
+    assert_eq!(
+        read_all_regions(held.as_ref(), [5, 6, 7]),
+        read_all_regions(free.as_ref(), [5, 6, 7])
+    );
+}
+
 #[test]
 fn an_impossible_sigma_or_budget_is_an_error_not_a_panic() {
     let v: Vec<f32> = volume(DIMS, 5);

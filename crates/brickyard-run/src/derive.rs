@@ -5,7 +5,7 @@
 use anyhow::{anyhow, Result};
 use brickyard_cache::session::Session;
 use brickyard_cache::vm::VmConfig;
-use brickyard_process::{derive_level, level_factor, Pipeline};
+use brickyard_process::{derive_level, derive_level_within, level_factor, Pipeline};
 use brickyard_store::import::zarr;
 use brickyard_store::{SourceMeta, VolumeSource};
 use std::path::{Path, PathBuf};
@@ -25,6 +25,21 @@ pub struct Derived {
     level0: SourceMeta,
     /// Voxel type of the derived channel (the last stage's).
     pub dtype: brickyard_core::DType,
+    /// Set by [`Derived::within`]: the filters' blocks held to a budget.
+    within: Option<Within>,
+}
+
+/// What the filters' blocks are held to (see [`Derived::within`]).
+#[derive(Clone, Copy, Debug)]
+struct Within {
+    /// Bytes for all readers together.
+    budget: u64,
+    /// Brick reads at once (the loader's threads).
+    readers: usize,
+    /// The largest region a read asks for (a padded brick).
+    read: [u64; 3],
+    /// Blocks a stage may compute at once, at most.
+    threads: usize,
 }
 
 impl Derived {
@@ -48,17 +63,63 @@ impl Derived {
             store: store.to_path_buf(),
             level0,
             dtype: brickyard_core::DType::F32,
+            within: None,
         };
         // Fail now, naming the stage, rather than on the first brick.
         d.dtype = d.level(stored)?.meta().dtype;
         Ok(d)
     }
 
+    /// Hold the filters' blocks to `budget` bytes while `readers` brick
+    /// reads (the loader's threads) of at most `read` voxels run at once:
+    /// each stage computes only as many blocks at once as fit (see
+    /// [`derive_level_within`]). Checked now on level 0, whose blocks are
+    /// the largest: an error naming the stage when even one block at a time
+    /// does not fit. Returns the bytes the filters may then hold at once.
+    pub fn within(&mut self, budget: u64, readers: usize, read: [u64; 3]) -> Result<u64> {
+        self.within = Some(Within {
+            budget,
+            readers: readers.max(1),
+            read,
+            threads: rayon::current_num_threads(),
+        });
+        let stored: Arc<dyn VolumeSource> = Arc::new(zarr::open(&self.store, 0)?);
+        Ok(self.planned(stored)?.1)
+    }
+
+    /// The derived source of one level's stored array, and the most bytes
+    /// its filters hold at once (0 when not held to a budget).
+    fn planned(&self, stored: Arc<dyn VolumeSource>) -> Result<(Arc<dyn VolumeSource>, u64)> {
+        let f = level_factor(&self.level0, stored.meta());
+        let name = self.pipeline.text();
+        match self.within {
+            None => derive_level(&self.pipeline, stored, self.channel, f, BLOCK)
+                .map(|s| (s, 0))
+                .map_err(|e| anyhow!("derive {name}: {e}")),
+            Some(w) => derive_level_within(
+                &self.pipeline,
+                stored,
+                self.channel,
+                f,
+                BLOCK,
+                w.read,
+                w.readers,
+                w.budget,
+                w.threads,
+            )
+            .map(|(s, m)| (s, m.bytes))
+            .map_err(|e| {
+                anyhow!(
+                    "derive {name}: {e} per brick read ({} at once, one per loader thread)",
+                    w.readers
+                )
+            }),
+        }
+    }
+
     /// The derived source of one level's stored array.
     pub fn level(&self, stored: Arc<dyn VolumeSource>) -> Result<Arc<dyn VolumeSource>> {
-        let f = level_factor(&self.level0, stored.meta());
-        derive_level(&self.pipeline, stored, self.channel, f, BLOCK)
-            .map_err(|e| anyhow!("derive {}: {e}", self.pipeline.text()))
+        Ok(self.planned(stored)?.0)
     }
 
     /// The derived source of level `l`, opened from the store.

@@ -62,6 +62,9 @@ pub struct Split {
     pub chunks: u64,
     pub images: u64,
     pub fixed: u64,
+    /// The filters of a live derived channel (`--derive`): the most their
+    /// blocks hold at once.
+    pub filters: u64,
     /// Whether the total was given (`--memory`) rather than the default.
     pub explicit: bool,
 }
@@ -69,7 +72,7 @@ pub struct Split {
 impl Split {
     pub fn describe(&self) -> String {
         format!(
-            "memory budget {}{}: pool {}, host cache {}, decoded chunks {}, images {}, program {}",
+            "memory budget {}{}: pool {}, host cache {}, decoded chunks {}, images {}, {}program {}",
             human_bytes(self.total),
             if self.explicit {
                 ""
@@ -80,6 +83,11 @@ impl Split {
             human_bytes(self.host),
             human_bytes(self.chunks),
             human_bytes(self.images),
+            if self.filters > 0 {
+                format!("derived channel's filters {}, ", human_bytes(self.filters))
+            } else {
+                String::new()
+            },
             human_bytes(self.fixed)
         )
     }
@@ -108,6 +116,20 @@ pub fn split_with(
     levels: usize,
     extra: u64,
 ) -> Result<Split> {
+    split_with_filters(total, pool, host, pixels, levels, extra, 0)
+}
+
+/// [`split_with`] with `filters` bytes set aside for the filters of a live
+/// derived channel (see [`crate::derive::Derived::within`]).
+pub fn split_with_filters(
+    total: Option<u64>,
+    pool: Option<u64>,
+    host: Option<u64>,
+    pixels: u64,
+    levels: usize,
+    extra: u64,
+    filters: u64,
+) -> Result<Split> {
     if pool == Some(0) {
         bail!("pool: expected a size above 0 (e.g. 256MiB)");
     }
@@ -119,7 +141,7 @@ pub fn split_with(
     let fixed = FIXED_BYTES + extra + levels as u64 * (512 << 10);
     let explicit = total.is_some();
     let want_total = total.unwrap_or_else(default_memory);
-    let rest = want_total.saturating_sub(fixed + images);
+    let rest = want_total.saturating_sub(fixed + images + filters);
     let min_chunks = 4u64 << 20;
     let (pool, host, chunks) = match (pool, host) {
         (None, None) => {
@@ -142,16 +164,21 @@ pub fn split_with(
             (p, h, left.clamp(min_chunks, 256 << 20))
         }
     };
-    let need = pool + host + chunks + images + fixed;
+    let need = pool + host + chunks + images + fixed + filters;
     if explicit && (need > want_total || pool == 0 || host == 0) {
         bail!(
-            "memory: {} does not hold this split: pool {}, host cache {}, decoded chunks {} (at least {}), images {} and {} for the program; raise --memory or lower --pool/--host",
+            "memory: {} does not hold this split: pool {}, host cache {}, decoded chunks {} (at least {}), images {}{} and {} for the program; raise --memory or lower --pool/--host",
             human_bytes(want_total),
             human_bytes(pool),
             human_bytes(host),
             human_bytes(chunks),
             human_bytes(min_chunks),
             human_bytes(images),
+            if filters > 0 {
+                format!(", the derived channel's filters {}", human_bytes(filters))
+            } else {
+                String::new()
+            },
             human_bytes(fixed)
         );
     }
@@ -177,6 +204,7 @@ pub fn split_with(
         chunks,
         images,
         fixed,
+        filters,
         explicit,
     })
 }
@@ -251,6 +279,35 @@ mod tests {
             .unwrap_err()
             .to_string();
         assert!(e.contains("of RAM"), "{e}");
+    }
+
+    #[test]
+    fn the_filters_share_comes_out_of_the_budget() {
+        let plain = split(Some(512 << 20), None, None, 1 << 16, 4).unwrap();
+        let s = split_with_filters(Some(512 << 20), None, None, 1 << 16, 4, 0, 64 << 20).unwrap();
+        assert_eq!(s.filters, 64 << 20);
+        assert_eq!(
+            s.pool + s.host + s.chunks + s.images + s.fixed + s.filters,
+            s.total
+        );
+        assert!(s.pool < plain.pool && s.host < plain.host);
+        assert!(
+            s.describe().contains("filters 64.0 MiB"),
+            "{}",
+            s.describe()
+        );
+        let e = split_with_filters(
+            Some(256 << 20),
+            Some(100 << 20),
+            Some(60 << 20),
+            0,
+            4,
+            0,
+            64 << 20,
+        )
+        .unwrap_err()
+        .to_string();
+        assert!(e.contains("does not hold") && e.contains("filters"), "{e}");
     }
 
     #[test]

@@ -595,12 +595,42 @@ fn run_with(
         .first()
         .and_then(|x| x.split(':').next()?.trim().parse::<usize>().ok())
         .unwrap_or(0);
+    let opt_bytes = |v: &Option<String>, flag: &str| {
+        v.as_deref()
+            .map(|x| crate::memory::parse_bytes(x).with_context(|| format!("--{flag}")))
+            .transpose()
+    };
+    let memory = opt_bytes(&c.memory, "memory")?;
+    // A live derived channel's filters get at most a quarter of --memory
+    // (as `process` gives its filters), for the loader threads' brick
+    // reads at once; what they take comes out of the pool's and the host
+    // cache's shares. Checked before any brick is computed.
+    let mut filter_bytes = 0;
     let derived = match &c.derive {
         Some(p) => {
             if c.channels.len() > 1 {
                 bail!("derive: a derived channel is computed from one channel; give at most one --channel");
             }
-            Some(crate::derive::Derived::new(&c.store, p, first_channel)?)
+            let mut d = crate::derive::Derived::new(&c.store, p, first_channel)?;
+            let total = memory.unwrap_or_else(crate::memory::default_memory);
+            let share = total / 4;
+            let padded = c.brick + 2 * VmConfig::default().apron;
+            filter_bytes = d
+                .within(share, c.loader_threads, [padded; 3])
+                .map_err(|e| {
+                    anyhow::anyhow!(
+                        "{e:#}; the filters of --derive get a quarter of --memory ({} of {}{}): \
+                         raise --memory, lower --loader-threads or use a smaller σ",
+                        human_bytes(share),
+                        human_bytes(total),
+                        if memory.is_some() {
+                            ""
+                        } else {
+                            ", the default: a quarter of RAM"
+                        }
+                    )
+                })?;
+            Some(d)
         }
         None => None,
     };
@@ -686,18 +716,15 @@ fn run_with(
         std::fs::write(p, camera.to_json())
             .with_context(|| format!("{}: cannot write", p.display()))?;
     }
-    let opt_bytes = |v: &Option<String>, flag: &str| {
-        v.as_deref()
-            .map(|x| crate::memory::parse_bytes(x).with_context(|| format!("--{flag}")))
-            .transpose()
-    };
     let batch = !c.stream;
-    let split = crate::memory::split(
-        opt_bytes(&c.memory, "memory")?,
+    let split = crate::memory::split_with_filters(
+        memory,
         opt_bytes(&c.pool, "pool")?,
         opt_bytes(&c.host, "host")?,
         n_views as u64 * w as u64 * h as u64,
         info.levels.len(),
+        0,
+        filter_bytes,
     )?;
     // A padded brick of the pool (its cell ranges included), to size the
     // batch's requests and uploads.

@@ -844,6 +844,57 @@ fn a_sigma_wider_than_the_volume_is_computed_and_an_impossible_one_refused() {
     assert!(e.contains("1048576"), "{e}");
 }
 
+/// `render --derive` holds its filters to a quarter of --memory, for the
+/// loader threads' brick reads at once: a Gaussian whose block with its
+/// halo (the whole 128³ volume per brick read here) does not fit is
+/// refused before any work, naming the stage and --memory; one loader
+/// thread, or more memory, fits.
+#[test]
+fn a_live_derived_channel_is_held_to_its_share_of_memory() {
+    let d = tempfile::tempdir().unwrap();
+    let store = make_store(d.path(), "128");
+    let png = d.path().join("x.png");
+    let render = |extra: &[&str]| {
+        let mut a = vec![
+            "render",
+            s(&store),
+            "--backend",
+            "cpu",
+            "--size",
+            "32",
+            "--level",
+            "3",
+            "--window",
+            "0,40000",
+            "--max-frames",
+            "1",
+            "--derive",
+            "gauss(40)",
+            "--out",
+            s(&png),
+        ];
+        a.extend_from_slice(extra);
+        run(&a)
+    };
+    // About 38 MiB a read: two reads at once exceed 64 MiB.
+    let o = render(&["--memory", "256MiB"]);
+    let e = String::from_utf8_lossy(&o.stderr);
+    assert_eq!(o.status.code(), Some(1), "{e}");
+    assert!(!e.contains("panicked"), "{e}");
+    for want in ["gauss(40)", "--memory", "loader"] {
+        assert!(e.contains(want), "{e:?} should mention {want:?}");
+    }
+    assert!(!png.exists(), "an image after a refused run");
+    for extra in [
+        &["--memory", "256MiB", "--loader-threads", "1"][..],
+        &["--memory", "1GiB"][..],
+    ] {
+        ok(render(extra));
+        assert!(png.exists(), "{extra:?}: no image");
+        std::fs::remove_file(&png).unwrap();
+    }
+}
+
 #[test]
 fn an_interrupted_conversion_is_refused() {
     let d = tempfile::tempdir().unwrap();
