@@ -244,6 +244,10 @@ impl Requests {
     pub fn is_empty(&self) -> bool {
         self.map.is_empty()
     }
+    /// The bricks recorded and their samples, in no particular order.
+    pub fn iter(&self) -> impl Iterator<Item = (BrickKey, u32)> + '_ {
+        self.map.iter().map(|(&k, &n)| (BrickKey::unpack(k), n))
+    }
     /// Bytes this collector may use at most.
     pub fn max_bytes(&self) -> u64 {
         // hashbrown: key + value + control byte per bucket, buckets ≤ 2 × cap.

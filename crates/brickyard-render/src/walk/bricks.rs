@@ -74,6 +74,22 @@ const _: () = assert!(cells::MAX_CELLS <= 64);
 /// Entries of a walker's brick memo (a power of two).
 pub(crate) const MEMO: usize = 1024;
 
+/// Entries of a walker's table of pending misses (a power of two).
+const PENDING: usize = 256;
+
+/// A brick of level `l` as one number (the memo's and the pending
+/// misses' key): four bits of level, twenty of brick index per axis.
+#[inline(always)]
+fn brick_code(l: usize, brick: Dims3) -> u64 {
+    ((l as u64) << 60) | (brick[0] << 40) | (brick[1] << 20) | brick[2]
+}
+
+/// The slot of `code` in a direct-mapped table of `n` (a power of two).
+#[inline(always)]
+fn code_slot(code: u64, n: usize) -> usize {
+    (code.wrapping_mul(0x9E37_79B9_7F4A_7C15) >> (64 - n.trailing_zeros())) as usize
+}
+
 /// One thread's view of one channel: the current brick per level, and a
 /// memo of every brick resolved this frame (direct-mapped by level and
 /// brick), so that the rays of a tile, which enter the same bricks one
@@ -90,6 +106,14 @@ pub(crate) struct Walker<'f, 'a, T> {
     /// when a jump over a hidden stand-in first needs them.
     pub(crate) ray_serial: u64,
     pub(crate) tracks: Vec<(u64, Option<Track>)>,
+    /// Misses handed over by bricks the walker left, summed per brick
+    /// (direct-mapped by [`brick_code`], `u64::MAX`: free) and passed to
+    /// the request collector when a slot is taken by another brick or at
+    /// [`flush`](Self::flush): the rays of a tile leave the same few
+    /// bricks over and over, and a first frame drawn from stand-ins
+    /// leaves one every few steps.
+    pending_code: Vec<u64>,
+    pending_misses: Vec<u32>,
 }
 
 impl<'f, 'a, T: Sample> Walker<'f, 'a, T> {
@@ -103,6 +127,8 @@ impl<'f, 'a, T: Sample> Walker<'f, 'a, T> {
             touched: 0,
             ray_serial: 1,
             tracks: vec![(0, None); f.levels()],
+            pending_code: vec![u64::MAX; PENDING],
+            pending_misses: vec![0; PENDING],
         }
     }
 
@@ -125,6 +151,9 @@ impl<'f, 'a, T: Sample> Walker<'f, 'a, T> {
         for l in 0..self.cache.len() {
             self.flush_level(l, req);
         }
+        for slot in 0..PENDING {
+            self.spill(slot, req);
+        }
     }
 
     #[inline]
@@ -134,19 +163,33 @@ impl<'f, 'a, T: Sample> Walker<'f, 'a, T> {
         }
     }
 
+    /// Move the misses of the cached brick of level `l` to the pending
+    /// table.
     #[cold]
     pub(crate) fn flush_misses(&mut self, l: usize, req: &mut Requests) {
         let c = &mut self.cache[l];
-        let b = c.brick;
-        req.add(
-            BrickKey::new(
-                l as u8,
-                self.channel as u16,
-                [b[0] as u32, b[1] as u32, b[2] as u32],
-            ),
-            c.missed,
-        );
-        c.missed = 0;
+        let n = std::mem::take(&mut c.missed);
+        let code = brick_code(l, c.brick);
+        let slot = code_slot(code, PENDING);
+        if self.pending_code[slot] == code {
+            self.pending_misses[slot] = self.pending_misses[slot].saturating_add(n);
+            return;
+        }
+        self.spill(slot, req);
+        self.pending_code[slot] = code;
+        self.pending_misses[slot] = n;
+    }
+
+    /// Hand the misses of pending slot `slot` (if any) to the collector.
+    fn spill(&mut self, slot: usize, req: &mut Requests) {
+        let code = std::mem::replace(&mut self.pending_code[slot], u64::MAX);
+        if code == u64::MAX {
+            return;
+        }
+        let m = (1 << 20) - 1;
+        let brick = [(code >> 40) & m, (code >> 20) & m, code & m].map(|b| b as u32);
+        let key = BrickKey::new((code >> 60) as u8, self.channel as u16, brick);
+        req.add(key, self.pending_misses[slot]);
     }
 
     /// Make the cache of level `l` hold the brick of voxel `v`.
@@ -173,9 +216,8 @@ impl<'f, 'a, T: Sample> Walker<'f, 'a, T> {
         self.touched += 1;
         let f = self.f;
         let brick = f.brick_of(v);
-        let key = ((l as u64) << 60) | (brick[0] << 40) | (brick[1] << 20) | brick[2];
-        let slot =
-            (key.wrapping_mul(0x9E37_79B9_7F4A_7C15) >> (64 - MEMO.trailing_zeros())) as usize;
+        let key = brick_code(l, brick);
+        let slot = code_slot(key, MEMO);
         if self.memo_key[slot] == key {
             self.cache[l] = self.memo[slot];
             if exact && !self.cache[l].marked {
@@ -437,5 +479,46 @@ impl<'f, 'a, T: Sample> Walker<'f, 'a, T> {
         st.steps += n;
         c.missed = c.missed.saturating_add(n as u32);
         kn
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::super::testing::*;
+    use super::*;
+    use crate::cpu::Lod;
+    use std::collections::HashMap;
+
+    /// Misses handed over brick by brick reach the collector with the
+    /// same sum per brick as adding each at once: bricks seen again and
+    /// again (hits in the pending table), many bricks colliding in it
+    /// (spills), and what is still pending at the end (`flush`).
+    #[test]
+    fn pending_misses_reach_the_collector_summed_per_brick() {
+        let (vm, scene, params) = fixture([64, 64, 64], [8, 8, 8], [1.0; 3]);
+        let f = Frame::new(&vm, &scene, &params, Lod::Fixed(0));
+        let mut wk = Walker::<u8>::new(&f, 0);
+        let mut req = Requests::with_capacity(1 << 16);
+        let mut model: HashMap<BrickKey, u32> = HashMap::new();
+        let mut rnd = uniform(11);
+        for i in 0..40_000 {
+            // Alternately from 27 bricks and from 4096 (over the table's
+            // size: slots taken by other bricks).
+            let n = if i % 2 == 0 { 3.0 } else { 16.0 };
+            let b = [0, 1, 2].map(|_| (rnd() * n) as u64);
+            let m = 1 + (rnd() * 9.0) as u32;
+            // Leaving a brick with misses, as `refill` does.
+            wk.cache[0].brick = b;
+            wk.cache[0].missed = m;
+            wk.flush_level(0, &mut req);
+            assert_eq!(wk.cache[0].missed, 0);
+            let key = BrickKey::new(0, 0, b.map(|v| v as u32));
+            *model.entry(key).or_default() += m;
+        }
+        wk.flush(&mut req);
+        let got: HashMap<BrickKey, u32> = req.iter().collect();
+        assert_eq!(got.len(), model.len());
+        assert_eq!(got, model);
+        assert_eq!(req.dropped, 0);
     }
 }
