@@ -270,8 +270,53 @@ impl<'f, 'a, T: Sample> Walker<'f, 'a, T> {
                 if let Some(kn) = self.skip_hidden_stand_in(level, ray, inv_dir, w, (g, k), lim, st)
                 {
                     k = kn;
+                    continue;
                 }
             }
+            if shading.is_some() {
+                // (Gradients look up bricks around each sample: the
+                // bricks a run relies on may change under it.)
+                continue;
+            }
+            // Served by a resident stand-in: the next steps that the same
+            // stand-in brick serves, sampled there without the lookups
+            // (the same positions, voxels and kernel as `value`).
+            let g = Grid { base_t, dt, inv_dt };
+            let lim = (t1.min(next_t), t1);
+            let Some((lv, vox, lo, end)) = self.stand_in_run(level, ray, inv_dir, (g, k), lim)
+            else {
+                continue;
+            };
+            let [sz, sy] = f.stride;
+            let (mut j, mut jumped, mut done) = (k, None, false);
+            while j < end {
+                let w = ray.at(step_t(base_t, j, dt));
+                j += 1;
+                let (b, fr) = f.coords(lv, w);
+                let v = trilinear(vox, f.local_index(b, lo), sz, sy, fr);
+                if let Some(c) = f.tf_eval.lookup_visible(v) {
+                    if composite(&mut acc, &mut lanes, c, exponent) && terminate {
+                        done = true;
+                        break;
+                    }
+                } else if let Some(kn) =
+                    self.skip_hidden_stand_in(level, ray, inv_dir, w, (g, j), lim, st)
+                {
+                    jumped = Some(kn);
+                    break;
+                }
+            }
+            // Each step a sample served by the stand-in and a miss of the
+            // brick of `level`, as `value` counts them.
+            let n = j - k;
+            st.steps += n;
+            st.samples += n;
+            let c = &mut self.cache[level];
+            c.missed = c.missed.saturating_add(n as u32);
+            if done {
+                break;
+            }
+            k = jumped.unwrap_or(j);
         }
         if LANES {
             lanes.rgba()

@@ -517,6 +517,44 @@ fn stand_ins_hide_empty_space_without_changing_a_pixel() {
     );
 }
 
+/// A first frame drawn from stand-ins alone (level 0 not resident, the
+/// finest pinned level resident whole) is the reference renderer's image
+/// of that level sampled at the view's steps (level 0's), with and
+/// without the stand-ins' clear cells crossed: what the walk samples from
+/// a stand-in, by the sample or along a run through its brick, is that
+/// level's value at each step.
+#[test]
+fn a_frame_of_stand_ins_is_the_reference_image_of_their_level() {
+    let dir = tempfile::tempdir().unwrap();
+    let (store, levels, plain, skipping, tf, cam) = skipping_setup(dir.path());
+    let mut p = RenderParams::new(64, 64, cam, tf, RenderMode::Dvr);
+    p.reference_step = Some(plain.voxel(0));
+    for scene in [&plain, &skipping] {
+        let mut s = session_with(&store, 8 << 20, 8);
+        let pin = s
+            .pin_coarsest(4096, std::time::Duration::from_secs(60))
+            .unwrap();
+        let finest = *pin.levels.iter().min().unwrap();
+        assert!(finest >= 1, "level 0 pinned");
+        s.begin_frame();
+        let (img, st, _) = render_frame(s.vm(), scene, &p, Lod::Fixed(0));
+        assert_eq!(st.exact, 0, "level 0 was resident: no stand-ins");
+        assert_eq!(st.unserved, 0, "a sample found no stand-in");
+        assert!(img.coverage(0.01) > 0.05, "image nearly empty");
+        // The reference at level 0's step: samples per voxel of the
+        // stand-ins' level scaled by its voxel size.
+        let mut q = p.clone();
+        q.samples_per_voxel *= levels[finest].voxel_size() / levels[0].voxel_size();
+        let want = render(&levels[finest], &q);
+        let diff = img.max_abs_diff(&want);
+        assert!(
+            diff <= 1e-5,
+            "skip cells {}: stand-ins of level {finest} differ from its reference by {diff}",
+            scene.skip_cells
+        );
+    }
+}
+
 #[test]
 fn several_channels_add_up_in_slices_and_mips() {
     use brickyard_render::reference::render_channels;

@@ -455,6 +455,44 @@ impl<'f, 'a, T: Sample> Walker<'f, 'a, T> {
         Some(kn.max(k))
     }
 
+    /// After a sample at `level` that a resident stand-in served (the
+    /// brick of `level` not resident; the finest coarser level that is
+    /// holds data): the stand-in's level, voxels and box, and the step a
+    /// run through it ends at, the first from `k` whose voxel base may
+    /// leave the brick of `level`, of the stand-in or of any level between
+    /// (not resident either), or whose parameter reaches `limit`. Every
+    /// step before it would be served by the same stand-in brick, the
+    /// way [`value`](Self::value) serves it, so a run may sample it there
+    /// without the lookups. `None` when the sample was not served so, or
+    /// the run would be empty.
+    #[allow(clippy::type_complexity)]
+    pub(crate) fn stand_in_run(
+        &mut self,
+        level: usize,
+        ray: &Ray,
+        inv_dir: Vec3,
+        (g, k): (Grid, u64),
+        (limit, t_end): (f64, f64),
+    ) -> Option<(usize, &'a [T], Dims3, u64)> {
+        if !matches!(self.cache[level].content, Content::Unmapped) {
+            return None;
+        }
+        let lv = (level + 1..self.cache.len())
+            .find(|&m| matches!(self.cache[m].content, Content::Data(_) | Content::Value(_)))?;
+        let Content::Data(vox) = self.cache[lv].content else {
+            return None;
+        };
+        let lo = self.cache[lv].lo;
+        let f = self.f;
+        let mut end = u64::MAX;
+        for m in level..=lv {
+            let (blo, bhi) = (self.cache[m].lo, self.cache[m].hi);
+            let track = self.track_of(m, ray, inv_dir, t_end);
+            end = end.min(f.land(ray, &track, g, k, (blo, bhi), limit));
+        }
+        (end > k).then_some((lv, vox, lo, end))
+    }
+
     /// After a sample that nothing resident could serve: cross the rest of
     /// the level's brick in one jump (first frames would otherwise walk
     /// the whole fallback chain for every sample of a region with nothing
