@@ -183,63 +183,44 @@ impl<'f, 'a, T: Sample> Walker<'f, 'a, T> {
                 // see `Run`).
                 let end = track.run_end(g, (lo, hi), limit).max(k);
                 let mut run = Run::new(f, level, &track, w, lo, hi);
-                let (mut n, mut passed) = (0u64, 0u64);
-                let mut j = k - 1;
+                let j = k - 1;
                 // Every step of the run inside the clamp's bounds (most
                 // runs; rounding may put a face step just outside): no
                 // clamps per step.
                 let interior = run.interior(end.saturating_sub(j));
-                let done = loop {
-                    if j >= end {
-                        break false;
-                    }
-                    let (u, fr) = if interior {
-                        run.current_unclamped()
-                    } else {
-                        run.current()
-                    };
-                    let cell = f.cell_in_run(u);
-                    if clear >> cell & 1 != 0 {
-                        // A cell whose samples are all transparent: on to
-                        // the step where the ray leaves it.
-                        passed += 1;
-                        j = run.cross_cell(f, u, (j, end));
-                        continue;
-                    }
-                    run.advance(1);
-                    j += 1;
-                    n += 1;
-                    let i = f.local_index(u, [0; 3]);
-                    if LANES {
-                        let v = trilinear_lanes(vox, i, f.stride[0], f.stride[1], fr);
-                        if let Some(mut c) = f.tf_table.lookup_visible(&f.tf_eval, v) {
-                            if let Some(sh) = &shading {
-                                let w = ray.at(step_t(base_t, j - 1, dt));
-                                let [a, r, g, b] = c.to_array();
-                                let [r, g, b, a] =
-                                    self.shade(sh, [r, g, b, a], (level, w, d), req, st);
-                                c = F4::new([a, r, g, b]);
-                            }
-                            if lanes.composite_visible(c, exponent) && terminate {
-                                break true;
-                            }
-                        } else {
-                            st.transparent += 1;
-                        }
-                        continue;
-                    }
-                    let v = trilinear(vox, i, f.stride[0], f.stride[1], fr);
-                    if let Some(mut c) = f.tf_eval.lookup_visible(v) {
-                        if let Some(sh) = &shading {
-                            let w = ray.at(step_t(base_t, j - 1, dt));
-                            c = self.shade(sh, c, (level, w, d), req, st);
-                        }
-                        if composite_visible(&mut acc, c, exponent) && terminate {
-                            break true;
-                        }
-                    } else {
-                        st.transparent += 1;
-                    }
+                let r = RunSteps {
+                    steps: (j, end),
+                    vox,
+                    clear,
+                    exponent,
+                    terminate,
+                    at: (base_t, dt, level),
+                };
+                let (done, n, passed) = match (&shading, interior) {
+                    (None, true) => self.run_steps::<LANES, false, true>(
+                        &mut run,
+                        &r,
+                        ray,
+                        (&mut acc, &mut lanes),
+                        req,
+                        st,
+                    ),
+                    (None, false) => self.run_steps::<LANES, false, false>(
+                        &mut run,
+                        &r,
+                        ray,
+                        (&mut acc, &mut lanes),
+                        req,
+                        st,
+                    ),
+                    (Some(_), _) => self.run_steps::<LANES, true, false>(
+                        &mut run,
+                        &r,
+                        ray,
+                        (&mut acc, &mut lanes),
+                        req,
+                        st,
+                    ),
                 };
                 st.samples += n;
                 st.exact += n;
@@ -324,4 +305,103 @@ impl<'f, 'a, T: Sample> Walker<'f, 'a, T> {
             acc
         }
     }
+
+    /// The steps of a run through a resident brick (`r`), from the run's
+    /// current step: clear cells crossed, the others sampled, shaded
+    /// (`SHADE`) and composited into `acc` or `lanes` (`LANES`). Returns
+    /// whether the ray ended (early termination), the samples taken and
+    /// the cells crossed. `INTERIOR`: every step lies within the clamp's
+    /// bounds ([`Run::interior`]). Apart from shading, nothing in the
+    /// loop writes through a reference (transparent samples are counted
+    /// here, added to `st` at the end), so the frame's tables stay in
+    /// registers or are loaded once rather than reloaded every step; and
+    /// each variant is a loop of its own.
+    #[inline(always)]
+    fn run_steps<const LANES: bool, const SHADE: bool, const INTERIOR: bool>(
+        &mut self,
+        run: &mut Run,
+        r: &RunSteps<'a, T>,
+        ray: &Ray,
+        (acc, lanes): (&mut [f32; 4], &mut Acc),
+        req: &mut Requests,
+        st: &mut FrameStats,
+    ) -> (bool, u64, u64) {
+        let f = self.f;
+        let (mut j, end) = r.steps;
+        let (vox, clear, exponent) = (r.vox, r.clear, r.exponent);
+        let (base_t, dt, level) = r.at;
+        let [sz, sy] = f.stride;
+        let (mut n, mut passed, mut transparent) = (0u64, 0u64, 0u64);
+        let done = loop {
+            if j >= end {
+                break false;
+            }
+            let (u, fr) = if INTERIOR {
+                run.current_unclamped()
+            } else {
+                run.current()
+            };
+            let cell = f.cell_in_run(u);
+            if clear >> cell & 1 != 0 {
+                // A cell whose samples are all transparent: on to the step
+                // where the ray leaves it.
+                passed += 1;
+                j = run.cross_cell(f, u, (j, end));
+                continue;
+            }
+            run.advance(1);
+            j += 1;
+            n += 1;
+            let i = f.local_index(u, [0; 3]);
+            if LANES {
+                let v = trilinear_lanes(vox, i, sz, sy, fr);
+                if let Some(mut c) = f.tf_table.lookup_visible(&f.tf_eval, v) {
+                    if SHADE {
+                        if let Some(sh) = &f.tf.shading {
+                            let w = ray.at(step_t(base_t, j - 1, dt));
+                            let [a, r, g, b] = c.to_array();
+                            let [r, g, b, a] =
+                                self.shade(sh, [r, g, b, a], (level, w, ray.dir), req, st);
+                            c = F4::new([a, r, g, b]);
+                        }
+                    }
+                    if lanes.composite_visible(c, exponent) && r.terminate {
+                        break true;
+                    }
+                } else {
+                    transparent += 1;
+                }
+                continue;
+            }
+            let v = trilinear(vox, i, sz, sy, fr);
+            if let Some(mut c) = f.tf_eval.lookup_visible(v) {
+                if SHADE {
+                    if let Some(sh) = &f.tf.shading {
+                        let w = ray.at(step_t(base_t, j - 1, dt));
+                        c = self.shade(sh, c, (level, w, ray.dir), req, st);
+                    }
+                }
+                if composite_visible(acc, c, exponent) && r.terminate {
+                    break true;
+                }
+            } else {
+                transparent += 1;
+            }
+        };
+        st.transparent += transparent;
+        (done, n, passed)
+    }
+}
+
+/// What a run through a resident brick needs besides the walker and the
+/// ray: its steps `j .. end`, the brick's voxels and clear cells, the
+/// level's opacity exponent, whether rays end early, and the step grid
+/// (`base_t`, `dt`) and level (for shading).
+pub(crate) struct RunSteps<'a, T> {
+    pub(crate) steps: (u64, u64),
+    pub(crate) vox: &'a [T],
+    pub(crate) clear: u64,
+    pub(crate) exponent: f32,
+    pub(crate) terminate: bool,
+    pub(crate) at: (f64, f64, usize),
 }
