@@ -7,6 +7,7 @@ use brickyard_cache::session::Session;
 use brickyard_cache::vm::VmConfig;
 use brickyard_process::{derive_level, derive_level_within, level_factor, Pipeline};
 use brickyard_store::import::zarr;
+use brickyard_store::info::human_bytes;
 use brickyard_store::{SourceMeta, VolumeSource};
 use std::path::{Path, PathBuf};
 use std::sync::Arc;
@@ -68,6 +69,42 @@ impl Derived {
         // Fail now, naming the stage, rather than on the first brick.
         d.dtype = d.level(stored)?.meta().dtype;
         Ok(d)
+    }
+
+    /// [`new`](Self::new) with the filters held to a quarter of the
+    /// memory budget (`memory`, or the default when `None`; as `process`
+    /// gives its filters) for `loader_threads` reads at once of padded
+    /// bricks of `brick` voxels: see [`within`](Self::within). Returns the
+    /// derived channel and the bytes its filters may hold at once (to be
+    /// set aside in the memory split); an error naming the stage, the
+    /// share of `--memory` and the loader threads when even one block at a
+    /// time does not fit.
+    pub fn new_within(
+        store: &Path,
+        text: &str,
+        channel: usize,
+        memory: Option<u64>,
+        loader_threads: usize,
+        brick: u64,
+    ) -> Result<(Derived, u64)> {
+        let mut d = Derived::new(store, text, channel)?;
+        let total = memory.unwrap_or_else(crate::memory::default_memory);
+        let share = total / 4;
+        let padded = brick + 2 * VmConfig::default().apron;
+        let bytes = d.within(share, loader_threads, [padded; 3]).map_err(|e| {
+            anyhow!(
+                "{e:#}; the filters of --derive get a quarter of --memory ({} of {}{}): \
+                     raise --memory, lower --loader-threads or use a smaller σ",
+                human_bytes(share),
+                human_bytes(total),
+                if memory.is_some() {
+                    ""
+                } else {
+                    ", the default: a quarter of RAM"
+                }
+            )
+        })?;
+        Ok((d, bytes))
     }
 
     /// Hold the filters' blocks to `budget` bytes while `readers` brick

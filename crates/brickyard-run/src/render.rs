@@ -611,25 +611,15 @@ fn run_with(
             if c.channels.len() > 1 {
                 bail!("derive: a derived channel is computed from one channel; give at most one --channel");
             }
-            let mut d = crate::derive::Derived::new(&c.store, p, first_channel)?;
-            let total = memory.unwrap_or_else(crate::memory::default_memory);
-            let share = total / 4;
-            let padded = c.brick + 2 * VmConfig::default().apron;
-            filter_bytes = d
-                .within(share, c.loader_threads, [padded; 3])
-                .map_err(|e| {
-                    anyhow::anyhow!(
-                        "{e:#}; the filters of --derive get a quarter of --memory ({} of {}{}): \
-                         raise --memory, lower --loader-threads or use a smaller σ",
-                        human_bytes(share),
-                        human_bytes(total),
-                        if memory.is_some() {
-                            ""
-                        } else {
-                            ", the default: a quarter of RAM"
-                        }
-                    )
-                })?;
+            let (d, bytes) = crate::derive::Derived::new_within(
+                &c.store,
+                p,
+                first_channel,
+                memory,
+                c.loader_threads,
+                c.brick,
+            )?;
+            filter_bytes = bytes;
             Some(d)
         }
         None => None,

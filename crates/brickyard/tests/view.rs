@@ -1233,6 +1233,43 @@ quit
 }
 
 #[test]
+fn viewer_holds_a_derived_channel_to_its_share_of_memory() {
+    let _session = shared();
+    // Checked before the window opens: no display needed.
+    let d = tempfile::tempdir().unwrap();
+    let store = mandelbulb(d.path(), "128", &[]);
+    let view = |memory: &str| {
+        let o = Command::new(bin())
+            .args([
+                "view",
+                s(&store),
+                "--derive",
+                "gauss(40)",
+                "--memory",
+                memory,
+            ])
+            .env_remove("DISPLAY")
+            .env_remove("WAYLAND_DISPLAY")
+            .output()
+            .unwrap();
+        assert!(!o.status.success(), "{memory}: a window without a display");
+        stderr(&o)
+    };
+    // Two brick reads at once of about 38 MiB each do not fit a quarter of
+    // 256 MiB: refused, naming the stage, the budget and the threads.
+    let e = view("256MiB");
+    assert!(!e.contains("panicked"), "{e}");
+    for want in ["gauss(40)", "--memory", "loader"] {
+        assert!(e.contains(want), "{e:?} should mention {want:?}");
+    }
+    assert!(!e.contains("cannot open a window"), "{e}");
+    // With 1 GiB they fit: the viewer goes on to open its window.
+    let e = view("1GiB");
+    assert!(!e.contains("quarter of --memory"), "{e}");
+    assert!(e.contains("cannot open a window"), "{e}");
+}
+
+#[test]
 fn viewer_refuses_octree_flags_it_cannot_honour() {
     let _session = shared();
     // Checked before the window opens: no display needed.

@@ -249,13 +249,29 @@ pub fn run(c: ViewCmd, demo_store: impl FnOnce() -> Result<PathBuf>) -> Result<i
         0 => 0,
         _ => (memory.unwrap_or_else(crate::memory::default_memory) / 8).min(256 << 20),
     };
-    let split = crate::memory::split_with(
+    // `--derive`: the filters get at most a quarter of --memory (as
+    // `render --derive` and `process` give theirs), set aside before the
+    // pool and host cache take their shares; refused now when even one
+    // block per stage at a time does not fit.
+    let derived_within = match &c.derive {
+        Some(p) => Some(crate::derive::Derived::new_within(
+            &store,
+            p,
+            0,
+            memory,
+            c.loader_threads,
+            c.brick,
+        )?),
+        None => None,
+    };
+    let split = crate::memory::split_with_filters(
         memory,
         pool,
         host,
         ww as u64 * wh as u64,
         levels.len(),
         crate::memory::WINDOW_BYTES + accum_bytes,
+        derived_within.as_ref().map_or(0, |(_, b)| *b),
     )?;
     let cfg = VmConfig {
         brick: [c.brick; 3],
@@ -301,9 +317,8 @@ pub fn run(c: ViewCmd, demo_store: impl FnOnce() -> Result<PathBuf>) -> Result<i
     let mut setup = setup;
     let mut tf = tf;
     // `--derive`: the window starts on the derived channel.
-    let (ds, derived) = match &c.derive {
-        Some(p) => {
-            let d = crate::derive::Derived::new(&store, p, 0)?;
+    let (ds, derived) = match derived_within {
+        Some((d, _)) => {
             let dds = app::derived_dataset(&ds, &d)?;
             let stored_window = tf.window;
             if !c.tf.ends_with(".json") {
