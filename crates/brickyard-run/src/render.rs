@@ -293,6 +293,9 @@ fn parse_channel(
         None => window,
         Some(w) => {
             let p = parse_pair(w, "channel window")?;
+            if !(p[0].is_finite() && p[1].is_finite() && p[0] < p[1]) {
+                bail!("channel: window in {s:?}: expected LO,HI with LO < HI, both finite");
+            }
             [p[0] as f32, p[1] as f32]
         }
     };
@@ -674,7 +677,15 @@ fn run_with(
         "slice" => {
             let origin = match &c.slice_origin {
                 Some(o) => parse_vec3(o, "slice-origin")?,
-                None => [extent[0] / 2.0, extent[1] / 2.0, extent[2] * c.slice_z],
+                None => {
+                    if !(0.0..=1.0).contains(&c.slice_z) {
+                        bail!(
+                            "slice-z: expected a fraction of the depth from 0 to 1, found {}",
+                            c.slice_z
+                        );
+                    }
+                    [extent[0] / 2.0, extent[1] / 2.0, extent[2] * c.slice_z]
+                }
             };
             let normal = match &c.slice_normal {
                 Some(n) => parse_vec3(n, "slice-normal")?,

@@ -288,12 +288,28 @@ pub fn inspect(path: &Path) -> Result<StoreInfo> {
                 .collect()
         }
         None => {
-            // A bare array.
             info.zarr_format = if storage::exists(&path.join("zarr.json")) {
                 3
             } else {
                 2
             };
+            let group = if info.zarr_format == 3 {
+                read_json(&path.join("zarr.json"))
+                    .is_ok_and(|j| j.get("node_type").and_then(Value::as_str) == Some("group"))
+            } else {
+                !storage::exists(&path.join(".zarray"))
+            };
+            if group {
+                // A plain group (such as a store's `labels/`): the images
+                // in it, no levels of its own.
+                info.inner_images = child_images(path);
+                if info.inner_images.is_empty() && !storage::is_remote(path) {
+                    problems.push("a Zarr group with no multiscale image in it".into());
+                }
+                info.problems = problems;
+                return Ok(info);
+            }
+            // A bare array.
             vec![(String::new(), None, None)]
         }
     };
@@ -337,6 +353,26 @@ pub fn inspect(path: &Path) -> Result<StoreInfo> {
     info.inner_images = inner_images(path, &mut problems);
     info.problems = problems;
     Ok(info)
+}
+
+/// The multiscale images directly inside a local group folder.
+fn child_images(path: &Path) -> Vec<(String, String)> {
+    let Ok(rd) = std::fs::read_dir(path) else {
+        return vec![];
+    };
+    let mut names: Vec<String> = rd
+        .flatten()
+        .filter(|e| e.path().is_dir())
+        .map(|e| e.file_name().to_string_lossy().into_owned())
+        .collect();
+    names.sort();
+    names
+        .into_iter()
+        .filter_map(|name| {
+            let ms = read_multiscale(&path.join(&name)).ok()??;
+            Some((name, format!("{} levels", ms.datasets.len())))
+        })
+        .collect()
 }
 
 /// The images under `labels/` and `derived/` (what `brickyard process`
@@ -507,7 +543,9 @@ pub fn format_info(i: &StoreInfo) -> String {
     } else {
         f64::INFINITY
     };
-    if storage::is_remote(&i.path) {
+    if i.levels.is_empty() {
+        // A group: nothing of its own to count.
+    } else if storage::is_remote(&i.path) {
         let _ = writeln!(s, "  total: {} raw", human_bytes(raw));
     } else {
         let _ = writeln!(
@@ -517,7 +555,7 @@ pub fn format_info(i: &StoreInfo) -> String {
             human_bytes(raw)
         );
     }
-    if i.levels.iter().all(|l| l.stats.is_none()) {
+    if !i.levels.is_empty() && i.levels.iter().all(|l| l.stats.is_none()) {
         let _ = writeln!(s, "  brick statistics: none stored");
     }
     for (rel, summary) in &i.inner_images {

@@ -282,6 +282,30 @@ fn mandelbulb_48(dir: &Path, name: &str) -> std::path::PathBuf {
     store
 }
 
+/// `info` on the `labels/` group `process` writes lists the label images
+/// in it: no level of its own to fail on, no "infx" ratio of nothing.
+#[test]
+fn info_on_a_labels_group_lists_its_images() {
+    let d = tempfile::tempdir().unwrap();
+    let store = mandelbulb_48(d.path(), "g.ome.zarr");
+    let o = run(&[
+        "process",
+        s(&store),
+        "threshold(100)",
+        "--out",
+        "mask",
+        "--quiet",
+    ]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    let o = run(&["info", s(&store.join("labels"))]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    let out = String::from_utf8_lossy(&o.stdout);
+    assert!(out.contains("image inside: mask (3 levels)"), "{out}");
+    for bad in ["infx", "problem", "shape"] {
+        assert!(!out.contains(bad), "{bad}: {out}");
+    }
+}
+
 #[test]
 fn render_writes_pngs_and_rejects_bad_options() {
     let d = tempfile::tempdir().unwrap();
@@ -389,6 +413,18 @@ fn render_rejects_flags_that_cannot_work() {
             vec!["pool", "holds 0 bricks", "at least 0."],
         ),
         (vec!["--turntable", "0"], vec!["turntable", "at least 1"]),
+        // A channel's window as --window's: not reversed, not NaN.
+        (vec!["--channel", "0:red:5,1"], vec!["channel", "LO < HI"]),
+        (vec!["--channel", "0:red:NaN,1"], vec!["channel", "finite"]),
+        // A slice outside the volume would draw nothing.
+        (
+            vec!["--mode", "slice", "--slice-z", "1.5"],
+            vec!["slice-z", "from 0 to 1", "1.5"],
+        ),
+        (
+            vec!["--mode", "slice", "--slice-z", "NaN"],
+            vec!["slice-z", "from 0 to 1"],
+        ),
     ] {
         let args: Vec<&str> = base.iter().copied().chain(extra).collect();
         let o = run(&args);
