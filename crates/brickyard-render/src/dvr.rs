@@ -195,32 +195,15 @@ impl<'f, 'a, T: Sample> Walker<'f, 'a, T> {
                     exponent,
                     terminate,
                     at: (base_t, dt, level),
+                    ray,
                 };
+                let io = (&mut acc, &mut lanes);
                 let (done, n, passed) = match (&shading, interior) {
-                    (None, true) => self.run_steps::<LANES, false, true>(
-                        &mut run,
-                        &r,
-                        ray,
-                        (&mut acc, &mut lanes),
-                        req,
-                        st,
-                    ),
-                    (None, false) => self.run_steps::<LANES, false, false>(
-                        &mut run,
-                        &r,
-                        ray,
-                        (&mut acc, &mut lanes),
-                        req,
-                        st,
-                    ),
-                    (Some(_), _) => self.run_steps::<LANES, true, false>(
-                        &mut run,
-                        &r,
-                        ray,
-                        (&mut acc, &mut lanes),
-                        req,
-                        st,
-                    ),
+                    (None, true) => self.run_steps::<LANES, false, true>(&mut run, &r, io, req, st),
+                    (None, false) => {
+                        self.run_steps::<LANES, false, false>(&mut run, &r, io, req, st)
+                    }
+                    (Some(_), _) => self.run_steps::<LANES, true, false>(&mut run, &r, io, req, st),
                 };
                 st.samples += n;
                 st.exact += n;
@@ -320,13 +303,12 @@ impl<'f, 'a, T: Sample> Walker<'f, 'a, T> {
     fn run_steps<const LANES: bool, const SHADE: bool, const INTERIOR: bool>(
         &mut self,
         run: &mut Run,
-        r: &RunSteps<'a, T>,
-        ray: &Ray,
+        r: &RunSteps<'a, '_, T>,
         (acc, lanes): (&mut [f32; 4], &mut Acc),
         req: &mut Requests,
         st: &mut FrameStats,
     ) -> (bool, u64, u64) {
-        let f = self.f;
+        let (f, ray) = (self.f, r.ray);
         let (mut j, end) = r.steps;
         let (vox, clear, exponent) = (r.vox, r.clear, r.exponent);
         let (base_t, dt, level) = r.at;
@@ -395,13 +377,14 @@ impl<'f, 'a, T: Sample> Walker<'f, 'a, T> {
 
 /// What a run through a resident brick needs besides the walker and the
 /// ray: its steps `j .. end`, the brick's voxels and clear cells, the
-/// level's opacity exponent, whether rays end early, and the step grid
-/// (`base_t`, `dt`) and level (for shading).
-pub(crate) struct RunSteps<'a, T> {
+/// level's opacity exponent, whether rays end early, the step grid
+/// (`base_t`, `dt`) and level, and the ray (for shading).
+pub(crate) struct RunSteps<'a, 'r, T> {
     pub(crate) steps: (u64, u64),
     pub(crate) vox: &'a [T],
     pub(crate) clear: u64,
     pub(crate) exponent: f32,
     pub(crate) terminate: bool,
     pub(crate) at: (f64, f64, usize),
+    pub(crate) ray: &'r Ray,
 }
