@@ -423,6 +423,18 @@ pub fn convert_team(
     // A failure of any rank at a meeting point, as this rank's error.
     let team_err = |e: String| StoreError::Team(e);
     let meta = src.meta().clone();
+    if opts.labels && meta.dtype.is_float() {
+        // Labels are integers (OME-Zarr's image-label); the mode of
+        // float voxels would stand in for no object.
+        return Err(StoreError::invalid(
+            output,
+            "labels",
+            format!(
+                "a label volume holds integers, this one holds {}: convert it without --labels",
+                meta.dtype
+            ),
+        ));
+    }
     let with_labels;
     let opts = if meta.labels && !opts.labels {
         with_labels = ConvertOptions {

@@ -306,6 +306,27 @@ fn info_on_a_labels_group_lists_its_images() {
     }
 }
 
+/// `--labels` on float voxels is refused before anything is written: a
+/// label image holds integers.
+#[test]
+fn labels_of_float_voxels_are_refused() {
+    let d = tempfile::tempdir().unwrap();
+    let store = d.path().join("f.ome.zarr");
+    let o = run(&[
+        "generate",
+        "mandelbulb",
+        s(&store),
+        "--size",
+        "16",
+        "--dtype",
+        "f32",
+        "--labels",
+        "--quiet",
+    ]);
+    fails_with(&o, &["labels", "integers", "f32"]);
+    assert!(!store.exists());
+}
+
 #[test]
 fn render_writes_pngs_and_rejects_bad_options() {
     let d = tempfile::tempdir().unwrap();
