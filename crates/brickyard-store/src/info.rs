@@ -240,10 +240,16 @@ pub fn inspect(path: &Path) -> Result<StoreInfo> {
         return Err(StoreError::not_found(path));
     }
     if !is_zarr(path) {
+        // A volume file given where a store is read: say what to do.
+        let hint = if !storage::is_remote(path) && path.is_file() {
+            "; a file, not a store: convert it first with `brickyard convert FILE STORE`"
+        } else {
+            ""
+        };
         return Err(StoreError::invalid(
             path,
             "zarr.json",
-            "not a Zarr store (no zarr.json, .zgroup or .zarray)",
+            format!("not a Zarr store (no zarr.json, .zgroup or .zarray){hint}"),
         ));
     }
     let mut problems = vec![];

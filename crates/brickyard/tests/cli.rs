@@ -304,6 +304,15 @@ fn info_on_a_labels_group_lists_its_images() {
     for bad in ["infx", "problem", "shape"] {
         assert!(!out.contains(bad), "{bad}: {out}");
     }
+    // A volume file where a store is read: what to do with it.
+    let file = d.path().join("scan.nii.gz");
+    std::fs::write(&file, b"not a store").unwrap();
+    for cmd in ["info", "render"] {
+        fails_with(
+            &run(&[cmd, s(&file)]),
+            &["not a Zarr store", "convert it first", "brickyard convert"],
+        );
+    }
 }
 
 /// `--labels` on float voxels is refused before anything is written: a
