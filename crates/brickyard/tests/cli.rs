@@ -1047,6 +1047,35 @@ fn render_progressive_accumulates_frames() {
     );
 }
 
+/// A copy of a multi-channel store (`convert STORE COPY`, to rechunk it)
+/// keeps the channels' names.
+#[test]
+fn a_copy_of_a_store_keeps_its_channel_names() {
+    let d = tempfile::tempdir().unwrap();
+    let (a, b) = (d.path().join("a.raw"), d.path().join("b.raw"));
+    std::fs::write(&a, vec![7u8; 8 * 8 * 8]).unwrap();
+    std::fs::write(&b, vec![9u8; 8 * 8 * 8]).unwrap();
+    let store = d.path().join("two.ome.zarr");
+    let flags = ["--dims", "8x8x8", "--dtype", "u8", "--quiet"];
+    let mut args = vec!["convert", s(&a), s(&b), s(&store)];
+    args.extend(flags);
+    args.extend(["--channel-names", "dapi,gfp"]);
+    let o = run(&args);
+    assert!(o.status.success(), "{}", stderr(&o));
+    let copy = d.path().join("copy.ome.zarr");
+    let o = run(&["convert", s(&store), s(&copy), "--brick", "4", "--quiet"]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    let root: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(copy.join("zarr.json")).unwrap()).unwrap();
+    let labels: Vec<&str> = root["attributes"]["ome"]["omero"]["channels"]
+        .as_array()
+        .expect("omero channels")
+        .iter()
+        .map(|c| c["label"].as_str().unwrap())
+        .collect();
+    assert_eq!(labels, ["dapi", "gfp"], "{root}");
+}
+
 /// The three MNI152 files of `../shared/data` (T1, grey and white
 /// matter), or `None` (said on stderr) when the folder is absent.
 fn mni_files() -> Option<[std::path::PathBuf; 3]> {

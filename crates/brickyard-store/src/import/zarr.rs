@@ -454,6 +454,12 @@ fn open_array(
         if let Some(b) = &m.brickyard {
             meta.labels = b.get("labels").and_then(Value::as_bool).unwrap_or(false);
         }
+        // The channels' names from `omero`, so a copy keeps them.
+        if let Ok(Some(om)) = crate::omezarr::read_omero(&meta.path) {
+            if channels > 1 && om.len() == channels {
+                meta.channel_names = om.into_iter().map(|c| c.label).collect();
+            }
+        }
     }
     let chunk: Vec<u64> = array
         .chunk_shape(&vec![0; n])
