@@ -554,15 +554,21 @@ pub fn convert_team(
         opts.columns,
     )
     .ok_or_else(|| {
-        let need = pass_bytes(
-            &levels,
-            0,
-            0,
-            opts.brick,
-            [opts.brick[1], opts.brick[2]],
-            esize,
-            true,
-        ) + fixed;
+        // Enough for the smallest pass from each level to the next (one
+        // alignment unit of that level tall and wide), as plan_passes
+        // needs it: level 0 alone understated it.
+        let min_pass = |m: usize, t: usize| {
+            let (b, l) = (&levels[m], &levels[t]);
+            let tile =
+                [1, 2].map(|a| (opts.brick[a] * (l.cum_ratio[a] / b.cum_ratio[a])).min(b.dims[a]));
+            pass_bytes(&levels, m, t, opts.brick, tile, esize, zarr_copy || m > 0)
+        };
+        let need = (0..levels.len().saturating_sub(1))
+            .map(|m| min_pass(m, m + 1))
+            .chain([min_pass(0, 0)])
+            .max()
+            .unwrap_or(0)
+            + fixed;
         StoreError::invalid(
             output,
             "memory",

@@ -1047,6 +1047,34 @@ fn render_progressive_accumulates_frames() {
     );
 }
 
+/// A budget too small for the pyramid names one that is enough.
+#[test]
+fn the_memory_a_conversion_asks_for_is_enough() {
+    let d = tempfile::tempdir().unwrap();
+    let store = d.path().join("m.ome.zarr");
+    let gen = |memory: &str| {
+        run(&[
+            "generate",
+            "mandelbulb",
+            s(&store),
+            "--size",
+            "256",
+            "--dtype",
+            "u16",
+            "--memory",
+            memory,
+            "--quiet",
+        ])
+    };
+    let o = gen("40MiB");
+    fails_with(&o, &["memory", "need at least"]);
+    let e = stderr(&o);
+    let need = e.split("need at least ").nth(1).unwrap();
+    let need: u64 = need.split(' ').next().unwrap().parse().unwrap();
+    let o = gen(&format!("{need}MiB"));
+    assert!(o.status.success(), "{need} MiB, as asked: {}", stderr(&o));
+}
+
 /// A copy of a multi-channel store (`convert STORE COPY`, to rechunk it)
 /// keeps the channels' names.
 #[test]
