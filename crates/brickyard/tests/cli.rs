@@ -304,6 +304,11 @@ fn info_on_a_labels_group_lists_its_images() {
     for bad in ["infx", "problem", "shape"] {
         assert!(!out.contains(bad), "{bad}: {out}");
     }
+    // --check has no array of the group's own to read: it says where to look.
+    fails_with(
+        &run(&["info", "--check", s(&store.join("labels"))]),
+        &["group", "check the images in it"],
+    );
     // A volume file where a store is read: what to do with it.
     let file = d.path().join("scan.nii.gz");
     std::fs::write(&file, b"not a store").unwrap();

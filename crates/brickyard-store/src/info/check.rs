@@ -127,7 +127,22 @@ fn arrays_of(path: &Path) -> Result<Vec<(String, PathBuf, Option<usize>)>> {
     }
     let levels: Vec<PathBuf> = match read_multiscale(path)? {
         Some(m) => m.datasets.iter().map(|d| path.join(&d.path)).collect(),
-        None => vec![path.to_path_buf()],
+        None => {
+            let group = match crate::omezarr::read_json(&path.join("zarr.json")) {
+                Ok(j) => j.get("node_type").and_then(|t| t.as_str()) == Some("group"),
+                Err(_) => path.join(".zgroup").exists() && !path.join(".zarray").exists(),
+            };
+            if group {
+                // A plain group (a store's `labels/`): no array to read.
+                return Err(StoreError::invalid(
+                    path,
+                    "zarr.json",
+                    "a Zarr group with no image of its own: check the images in it one by one \
+                     (`brickyard info --check GROUP/NAME`)",
+                ));
+            }
+            vec![path.to_path_buf()]
+        }
     };
     let mut out = vec![];
     for (k, dir) in levels.iter().enumerate() {
