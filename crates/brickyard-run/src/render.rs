@@ -504,6 +504,20 @@ fn run_with(
             c.fov
         );
     }
+    if !(c.samples_per_voxel > 0.0 && c.samples_per_voxel <= 64.0) {
+        bail!(
+            "samples-per-voxel: expected a number of samples per voxel above 0 and at most 64, found {}",
+            c.samples_per_voxel
+        );
+    }
+    // (A simulated slow disk: beyond a minute a read, a render would not
+    // end in any useful time.)
+    if c.read_delay_ms > 60_000 {
+        bail!(
+            "read-delay-ms: expected at most 60000 (a minute per brick read), found {}",
+            c.read_delay_ms
+        );
+    }
     if !c.lod_bias.is_finite() {
         bail!(
             "lod-bias: expected a finite number of levels (negative: finer), found {}",

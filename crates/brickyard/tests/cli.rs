@@ -460,6 +460,24 @@ fn render_rejects_flags_that_cannot_work() {
             vec!["--mode", "slice", "--slice-z", "NaN"],
             vec!["slice-z", "from 0 to 1"],
         ),
+        // Checked before the memory split is printed, naming the flag.
+        (
+            vec!["--samples-per-voxel", "0"],
+            vec!["samples-per-voxel", "above 0"],
+        ),
+        (
+            vec!["--samples-per-voxel", "NaN"],
+            vec!["samples-per-voxel", "above 0"],
+        ),
+        (
+            vec!["--samples-per-voxel", "1e9"],
+            vec!["samples-per-voxel", "at most 64"],
+        ),
+        // (A huge delay used to hang the render.)
+        (
+            vec!["--read-delay-ms", "999999999999"],
+            vec!["read-delay-ms", "at most 60000"],
+        ),
     ] {
         let args: Vec<&str> = base.iter().copied().chain(extra).collect();
         let o = run(&args);
