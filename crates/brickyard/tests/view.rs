@@ -1285,6 +1285,7 @@ fn viewer_refuses_octree_flags_it_cannot_honour() {
             "octree-depth:",
         ),
         (&["--octree-depth", "3"][..], "octree-depth:"),
+        (&["--read-delay-ms", "99999999"][..], "read-delay-ms:"),
         (
             &["--traversal", "octree", "--accumulate", "8"][..],
             "--accumulate",

@@ -236,6 +236,12 @@ pub fn run(c: ViewCmd, demo_store: impl FnOnce() -> Result<PathBuf>) -> Result<i
     }
     // The views' images, their textures and the window's frame buffers:
     // together about the window's pixels.
+    if c.read_delay_ms > 60_000 {
+        bail!(
+            "read-delay-ms: expected at most 60000 (a minute per brick read), found {}",
+            c.read_delay_ms
+        );
+    }
     if accumulate > brickyard_render::savr::MAX_FRAMES {
         bail!(
             "accumulate: N frames between 0 and {}, got {}",
