@@ -420,8 +420,7 @@ impl<'f, 'a, T: Sample> Walker<'f, 'a, T> {
         {
             return None;
         }
-        let lv = (level + 1..self.cache.len())
-            .find(|&m| matches!(self.cache[m].content, Content::Data(_) | Content::Value(_)))?;
+        let lv = self.stand_in_level(level)?;
         let c = &self.cache[lv];
         let whole = c.transparent;
         let (lo, hi) = if whole {
@@ -437,12 +436,9 @@ impl<'f, 'a, T: Sample> Walker<'f, 'a, T> {
             return None;
         };
         let track = self.track_of(lv, ray, inv_dir, t_end);
-        let mut kn = f.land(ray, &track, g, k, (lo, hi), limit);
-        for m in level..lv {
-            let (blo, bhi) = (self.cache[m].lo, self.cache[m].hi);
-            let track = self.track_of(m, ray, inv_dir, t_end);
-            kn = kn.min(f.land(ray, &track, g, k, (blo, bhi), limit));
-        }
+        let kn = f
+            .land(ray, &track, g, k, (lo, hi), limit)
+            .min(self.land_in_bricks(level..lv, ray, inv_dir, (g, k), (limit, t_end)));
         let n = kn.saturating_sub(k);
         st.steps += n;
         if whole {
@@ -477,20 +473,41 @@ impl<'f, 'a, T: Sample> Walker<'f, 'a, T> {
         if !matches!(self.cache[level].content, Content::Unmapped) {
             return None;
         }
-        let lv = (level + 1..self.cache.len())
-            .find(|&m| matches!(self.cache[m].content, Content::Data(_) | Content::Value(_)))?;
+        let lv = self.stand_in_level(level)?;
         let Content::Data(vox) = self.cache[lv].content else {
             return None;
         };
         let lo = self.cache[lv].lo;
+        let end = self.land_in_bricks(level..lv + 1, ray, inv_dir, (g, k), (limit, t_end));
+        (end > k).then_some((lv, vox, lo, end))
+    }
+
+    /// The finest level coarser than `level` whose cached brick holds data
+    /// or one value: the stand-in that served the last sample of `level`.
+    fn stand_in_level(&self, level: usize) -> Option<usize> {
+        (level + 1..self.cache.len())
+            .find(|&m| matches!(self.cache[m].content, Content::Data(_) | Content::Value(_)))
+    }
+
+    /// The first step from `k` that may leave the cached brick of any of
+    /// `levels` (step `k − 1` lies in each) or reach `limit`: the smallest
+    /// of their landings; `u64::MAX` for no level.
+    fn land_in_bricks(
+        &mut self,
+        levels: std::ops::Range<usize>,
+        ray: &Ray,
+        inv_dir: Vec3,
+        (g, k): (Grid, u64),
+        (limit, t_end): (f64, f64),
+    ) -> u64 {
         let f = self.f;
         let mut end = u64::MAX;
-        for m in level..=lv {
-            let (blo, bhi) = (self.cache[m].lo, self.cache[m].hi);
+        for m in levels {
+            let (lo, hi) = (self.cache[m].lo, self.cache[m].hi);
             let track = self.track_of(m, ray, inv_dir, t_end);
-            end = end.min(f.land(ray, &track, g, k, (blo, bhi), limit));
+            end = end.min(f.land(ray, &track, g, k, (lo, hi), limit));
         }
-        (end > k).then_some((lv, vox, lo, end))
+        end
     }
 
     /// After a sample that nothing resident could serve: cross the rest of
