@@ -244,6 +244,18 @@ pub struct RenderCmd {
     silent: bool,
 }
 
+/// How a view's frames ended, as `--json` gives it: `complete`,
+/// `complete_but_failed` (drawn from coarser data where bricks could not be
+/// loaded), `no_progress` or `max_frames` (stopped by `--max-frames`).
+pub fn stop_name(stop: Option<&Stop>) -> &'static str {
+    match stop {
+        Some(Stop::Complete) => "complete",
+        Some(Stop::CompleteButFailed) => "complete_but_failed",
+        Some(Stop::NoProgress) => "no_progress",
+        None => "max_frames",
+    }
+}
+
 /// `C[:COLOR[:LO,HI]]`.
 fn parse_channel(
     s: &str,
@@ -1241,12 +1253,12 @@ fn run_with(
             say!(
                 silent,
                 "{}",
-                serde_json::json!({"view": v, "summary": true, "stop": format!("{:?}", out.stop),
+                serde_json::json!({"view": v, "summary": true, "stop": stop_name(out.stop.as_ref()),
                     "completeness": out.completeness, "frames": out.frames, "seconds": out.seconds,
                     "lod_bias": b.bias, "lod_bias_asked": b.base,
                     "needed_bytes_at_full_detail": b.needed_at_base.map(|n| n as u64 * slot_bytes),
                     "pool_bytes": s.vm().pool_bytes(), "bytes_read_total": read,
-                    "failed_bricks": failures.iter().map(|f| serde_json::json!({"key": format!("{:?}", f.key), "error": f.message})).collect::<Vec<_>>(),
+                    "failed_bricks": failures.iter().map(|f| serde_json::json!({"key": {"level": f.key.level, "channel": f.key.channel, "brick": f.key.brick}, "error": f.message})).collect::<Vec<_>>(),
                     "peak_rss_bytes": peak, "memory_budget_bytes": split.total})
             );
         }

@@ -104,7 +104,7 @@ fn pools_complete_at_the_detail_that_fits(backend: &str) {
     let store = store(d.path());
     let full_png = d.path().join("full.png");
     let full = render(&store, &full_png, backend, &["--pool", "64MiB"]);
-    assert_eq!(full["stop"], "Some(Complete)", "{full}");
+    assert_eq!(full["stop"], "complete", "{full}");
     assert_eq!(full["lod_bias"], 0.0, "{full}");
     let full_px = png_rgba(&full_png);
     assert!(lit(&full_px) > full_px.len() / 4 / 10, "too little content");
@@ -115,7 +115,7 @@ fn pools_complete_at_the_detail_that_fits(backend: &str) {
     for pool in ["2MiB", "600KiB", "256KiB", "160KiB"] {
         let png = d.path().join(format!("{pool}.png"));
         let v = render(&store, &png, backend, &["--pool", pool]);
-        assert_eq!(v["stop"], "Some(Complete)", "{pool}: {v}");
+        assert_eq!(v["stop"], "complete", "{pool}: {v}");
         let frames = v["frames"].as_u64().unwrap();
         assert!(frames <= 30, "{pool}: {frames} frames");
         let bias = v["lod_bias"].as_f64().unwrap();
@@ -214,7 +214,7 @@ fn the_process_stays_within_its_memory_budget() {
             extra.extend(["--pool", p]);
         }
         let v = render(&store, &d.path().join("m.png"), "cpu", &extra);
-        assert_eq!(v["stop"], "Some(Complete)", "{memory}: {v}");
+        assert_eq!(v["stop"], "complete", "{memory}: {v}");
         let peak = v["peak_rss_bytes"].as_u64().unwrap();
         let budget = v["memory_budget_bytes"].as_u64().unwrap();
         // The budget, plus a constant for what is not split (the
@@ -286,12 +286,19 @@ fn damaged_chunks_are_drawn_coarser_and_reported() {
     let png = d.path().join("damaged.png");
     let v = render(&store, &png, "cpu", &[]);
     let stop = v["stop"].as_str().unwrap();
-    assert!(
-        stop == "Some(CompleteButFailed)" || stop == "Some(Complete)",
-        "{v}"
-    );
+    assert!(stop == "complete_but_failed" || stop == "complete", "{v}");
     let failed = v["failed_bricks"].as_array().unwrap();
     assert!(!failed.is_empty(), "{v}");
+    // Each brick's key as JSON (not Rust's `BrickKey { … }`).
+    for f in failed {
+        let k = &f["key"];
+        assert!(
+            k["level"].is_u64()
+                && k["channel"].is_u64()
+                && k["brick"].as_array().unwrap().len() == 3,
+            "{f}"
+        );
+    }
     assert!(
         failed
             .iter()
@@ -367,10 +374,7 @@ fn a_store_damaged_during_a_render_is_drawn_coarser_and_reported() {
     assert!(status.success(), "{out}");
     let v = summary(&out);
     let stop = v["stop"].as_str().unwrap();
-    assert!(
-        stop == "Some(CompleteButFailed)" || stop == "Some(Complete)",
-        "{v}"
-    );
+    assert!(stop == "complete_but_failed" || stop == "complete", "{v}");
     let failed = v["failed_bricks"].as_array().unwrap();
     assert!(!failed.is_empty(), "no brick failed: {v}");
     assert!(v["frames"].as_u64().unwrap() > 2, "{v}");

@@ -526,7 +526,8 @@ fn max_frames_bounds_the_frames_drawn_and_reported() {
         assert!(o.status.success(), "{extra:?}: {}", stderr(&o));
         String::from_utf8_lossy(&o.stdout).into_owned()
     };
-    // (frame lines with their pass, the summary's frame count)
+    // (frame lines with their pass, the summary's frame count and how
+    // the view ended)
     let frames = |extra: &[&str]| {
         let mut a = vec!["--json"];
         a.extend_from_slice(extra);
@@ -537,21 +538,26 @@ fn max_frames_bounds_the_frames_drawn_and_reported() {
         for l in out.lines().filter(|l| l.starts_with('{')) {
             let v: serde_json::Value = serde_json::from_str(l).unwrap();
             if v["summary"] == true {
-                summary = v["frames"].as_u64();
+                summary = Some((v["frames"].as_u64().unwrap(), v["stop"].clone()));
             } else if v.get("frame").is_some() {
                 passes.push(v["pass"].as_str().unwrap().to_string());
             }
         }
-        (passes, summary.expect("a summary line"))
+        let (n, stop) = summary.expect("a summary line");
+        (passes, n, stop)
     };
     // Unbounded, the view starts with request passes: the bound has
-    // something to cut.
-    let (all, n) = frames(&[]);
+    // something to cut. How it ended is a JSON string (not Rust's
+    // `Some(Complete)`).
+    let (all, n, stop) = frames(&[]);
     assert_eq!(all.len() as u64, n, "{all:?}");
     assert!(all[0] == "requests" && all.len() >= 2, "{all:?}");
+    assert_eq!(stop, "complete");
+    let (_, _, stop) = frames(&["--max-frames", "1"]);
+    assert_eq!(stop, "max_frames");
     for max in 1..=3usize {
         let m = max.to_string();
-        let (drawn, n) = frames(&["--max-frames", &m]);
+        let (drawn, n, _) = frames(&["--max-frames", &m]);
         assert_eq!(drawn.len() as u64, n, "--max-frames {max}: {drawn:?}");
         assert!(
             !drawn.is_empty() && drawn.len() <= max,

@@ -131,7 +131,7 @@ fn render(store: &Path, dir: &Path, name: &str, args: &[&str]) -> (Vec<u8>, u64,
     }
     a.extend_from_slice(args);
     let out = ok(&run(&a), name);
-    assert!(out.contains(r#""stop":"Some(Complete)""#), "{name}: {out}");
+    assert!(out.contains(r#""stop":"complete""#), "{name}: {out}");
     let lines: Vec<serde_json::Value> = out
         .lines()
         .filter_map(|l| serde_json::from_str(l).ok())
