@@ -35,14 +35,19 @@ pub struct RenderCmd {
     /// Camera JSON file (as written by `--save-camera` or the viewer).
     #[arg(long)]
     camera: Option<PathBuf>,
-    #[arg(long, default_value_t = 30.0)]
-    azimuth: f64,
-    #[arg(long, default_value_t = 20.0)]
-    elevation: f64,
-    /// Vertical field of view in degrees (perspective).
-    #[arg(long, default_value_t = 35.0)]
-    fov: f64,
-    /// Orthographic projection.
+    /// dvr, mip: the camera's angle around the volume in degrees
+    /// (default 30).
+    #[arg(long)]
+    azimuth: Option<f64>,
+    /// dvr, mip: the camera's angle above the volume in degrees (default
+    /// 20).
+    #[arg(long)]
+    elevation: Option<f64>,
+    /// dvr, mip: vertical field of view in degrees (perspective; default
+    /// 35).
+    #[arg(long)]
+    fov: Option<f64>,
+    /// dvr, mip: orthographic projection.
     #[arg(long)]
     ortho: bool,
     /// Write the camera used to this JSON file.
@@ -86,10 +91,11 @@ pub struct RenderCmd {
     /// `--channel C` names the channel it is computed from.
     #[arg(long)]
     derive: Option<String>,
-    /// Slice: position of the plane along z as a fraction of the depth.
-    #[arg(long, default_value_t = 0.5)]
-    slice_z: f64,
-    /// Slice: a point of the plane in world coordinates X,Y,Z (overrides
+    /// Slice: position of the plane along z as a fraction of the depth
+    /// (default 0.5).
+    #[arg(long)]
+    slice_z: Option<f64>,
+    /// Slice: a point of the plane in world coordinates X,Y,Z (instead of
     /// --slice-z; as the viewer's saved views give it).
     #[arg(long)]
     slice_origin: Option<String>,
@@ -102,8 +108,9 @@ pub struct RenderCmd {
     /// Automatic level of detail: shift by this many levels (negative = finer).
     #[arg(long, default_value_t = 0.0)]
     lod_bias: f64,
-    #[arg(long, default_value_t = 1.0)]
-    samples_per_voxel: f64,
+    /// dvr, mip: samples per voxel along a ray (default 1).
+    #[arg(long)]
+    samples_per_voxel: Option<f64>,
     /// Memory for the whole process: the brick pool, host cache, decoded
     /// chunks and images are split out of it (default: a quarter of RAM).
     #[arg(long)]
@@ -242,6 +249,80 @@ pub struct RenderCmd {
     /// Print nothing (a caller that takes the images, not the PNG files).
     #[arg(skip)]
     silent: bool,
+}
+
+/// Flags that hold for some modes only, refused in the others (they would
+/// change nothing), and flags that the camera of `--camera` replaces;
+/// `--mode` itself.
+fn check_mode_flags(c: &RenderCmd) -> Result<()> {
+    let mode = c.mode.as_str();
+    match mode {
+        "dvr" | "mip" => {
+            for (flag, given) in [
+                ("slice-z", c.slice_z.is_some()),
+                ("slice-origin", c.slice_origin.is_some()),
+                ("slice-normal", c.slice_normal.is_some()),
+            ] {
+                if given {
+                    bail!(
+                        "{flag}: applies to --mode slice only (it places the slice's plane); \
+                         --mode {mode} draws the whole volume"
+                    );
+                }
+            }
+        }
+        "slice" => {
+            for (flag, given) in [
+                ("azimuth", c.azimuth.is_some()),
+                ("elevation", c.elevation.is_some()),
+                ("fov", c.fov.is_some()),
+                ("ortho", c.ortho),
+            ] {
+                if given {
+                    bail!(
+                        "{flag}: applies to --mode dvr and mip only; a slice is seen face on \
+                         (move its plane with --slice-z, --slice-origin or --slice-normal, or \
+                         give the camera with --camera)"
+                    );
+                }
+            }
+            if c.samples_per_voxel.is_some() {
+                bail!(
+                    "samples-per-voxel: applies to --mode dvr and mip only (their rays take \
+                     samples; a slice takes one per pixel)"
+                );
+            }
+            if c.no_early_termination {
+                bail!(
+                    "no-early-termination: applies to --mode dvr only (a slice composites no \
+                     samples along rays)"
+                );
+            }
+            if c.slice_z.is_some() && c.slice_origin.is_some() {
+                bail!(
+                    "slice-z: give --slice-z or --slice-origin, not both (either places the plane)"
+                );
+            }
+        }
+        m => bail!("mode: expected dvr, mip or slice, found {m:?}"),
+    }
+    if let Some(cam) = &c.camera {
+        for (flag, given) in [
+            ("azimuth", c.azimuth.is_some()),
+            ("elevation", c.elevation.is_some()),
+            ("fov", c.fov.is_some()),
+            ("ortho", c.ortho),
+        ] {
+            if given {
+                bail!(
+                    "{flag}: the camera comes from --camera {} (its position and projection); \
+                     give one or the other",
+                    cam.display()
+                );
+            }
+        }
+    }
+    Ok(())
 }
 
 /// How a view's frames ended, as `--json` gives it: `complete`,
@@ -505,21 +586,23 @@ fn run_with(
             e.to_string_lossy()
         );
     }
-    for (flag, v) in [("azimuth", c.azimuth), ("elevation", c.elevation)] {
+    check_mode_flags(&c)?;
+    let (azimuth, elevation) = (c.azimuth.unwrap_or(30.0), c.elevation.unwrap_or(20.0));
+    let fov = c.fov.unwrap_or(35.0);
+    let samples_per_voxel = c.samples_per_voxel.unwrap_or(1.0);
+    for (flag, v) in [("azimuth", azimuth), ("elevation", elevation)] {
         if !v.is_finite() {
             bail!("{flag}: expected a finite angle in degrees, found {v}");
         }
     }
-    if !(c.fov > 0.0 && c.fov < 180.0) {
+    if !(fov > 0.0 && fov < 180.0) {
         bail!(
-            "fov: expected a vertical field of view between 0 and 180 degrees (exclusive), found {}",
-            c.fov
+            "fov: expected a vertical field of view between 0 and 180 degrees (exclusive), found {fov}"
         );
     }
-    if !(c.samples_per_voxel > 0.0 && c.samples_per_voxel <= 64.0) {
+    if !(samples_per_voxel > 0.0 && samples_per_voxel <= 64.0) {
         bail!(
-            "samples-per-voxel: expected a number of samples per voxel above 0 and at most 64, found {}",
-            c.samples_per_voxel
+            "samples-per-voxel: expected a number of samples per voxel above 0 and at most 64, found {samples_per_voxel}"
         );
     }
     // (A simulated slow disk: beyond a minute a read, a render would not
@@ -695,7 +778,7 @@ fn run_with(
             height: extent.iter().cloned().fold(0.0, f64::max) * 1.2,
         }
     } else {
-        Projection::Perspective { fov_y_deg: c.fov }
+        Projection::Perspective { fov_y_deg: fov }
     };
     let mode = match c.mode.as_str() {
         "dvr" => RenderMode::Dvr,
@@ -704,13 +787,11 @@ fn run_with(
             let origin = match &c.slice_origin {
                 Some(o) => parse_vec3(o, "slice-origin")?,
                 None => {
-                    if !(0.0..=1.0).contains(&c.slice_z) {
-                        bail!(
-                            "slice-z: expected a fraction of the depth from 0 to 1, found {}",
-                            c.slice_z
-                        );
+                    let z = c.slice_z.unwrap_or(0.5);
+                    if !(0.0..=1.0).contains(&z) {
+                        bail!("slice-z: expected a fraction of the depth from 0 to 1, found {z}");
                     }
-                    [extent[0] / 2.0, extent[1] / 2.0, extent[2] * c.slice_z]
+                    [extent[0] / 2.0, extent[1] / 2.0, extent[2] * z]
                 }
             };
             let normal = match &c.slice_normal {
@@ -736,7 +817,7 @@ fn run_with(
             RenderMode::Slice { origin, normal } => {
                 Camera::facing_plane(*origin, *normal, extent[0].max(extent[1]) * 1.05)
             }
-            _ => Camera::fit(extent, c.azimuth, c.elevation, projection),
+            _ => Camera::fit(extent, azimuth, elevation, projection),
         },
     };
     if let Some(p) = &c.save_camera {
@@ -1108,7 +1189,7 @@ fn run_with(
             camera
         };
         let mut params = RenderParams::new(n_views * w, h, cam, tf.clone(), mode.clone());
-        params.samples_per_voxel = c.samples_per_voxel;
+        params.samples_per_voxel = samples_per_voxel;
         if n_views > 1 {
             let slices = matches!(mode, RenderMode::Slice { .. });
             let distance =

@@ -216,23 +216,26 @@ fn a_streamed_view_equals_brickyard_render() {
         let st = ViewState::from_query(q).unwrap();
         let (web, frames) = stream(&store, &st, [0.0, 255.0], 64 << 20);
         let [lo, hi] = st.window.unwrap();
-        let cli = render_cli(
-            &store,
-            &[
-                "--mode",
-                &st.mode,
-                "--size",
-                &format!("{}x{}", st.width, st.height),
-                &format!("--azimuth={}", st.azimuth),
-                &format!("--elevation={}", st.elevation),
-                "--tf",
-                &st.tf,
-                "--window",
-                &format!("{lo},{hi}"),
-                "--slice-z",
-                &st.slice_z.to_string(),
-            ],
-        );
+        let mut args = vec![
+            "--mode".to_string(),
+            st.mode.clone(),
+            "--size".into(),
+            format!("{}x{}", st.width, st.height),
+            "--tf".into(),
+            st.tf.clone(),
+            "--window".into(),
+            format!("{lo},{hi}"),
+        ];
+        // (The CLI takes the flags of the mode drawn only.)
+        if st.mode == "slice" {
+            args.extend(["--slice-z".into(), st.slice_z.to_string()]);
+        } else {
+            args.extend([
+                format!("--azimuth={}", st.azimuth),
+                format!("--elevation={}", st.elevation),
+            ]);
+        }
+        let cli = render_cli(&store, &args.iter().map(String::as_str).collect::<Vec<_>>());
         let lit = cli.rgba.iter().filter(|p| p[3] > 0.05).count();
         assert!(
             lit > cli.rgba.len() / 10,

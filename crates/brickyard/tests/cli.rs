@@ -478,6 +478,60 @@ fn render_rejects_flags_that_cannot_work() {
             vec!["--read-delay-ms", "999999999999"],
             vec!["read-delay-ms", "at most 60000"],
         ),
+        // Flags of one mode given to another would change nothing: they
+        // used to be taken silently.
+        (
+            vec!["--mode", "mip", "--slice-z", "0.3"],
+            vec!["slice-z", "--mode slice only", "--mode mip"],
+        ),
+        (
+            vec!["--slice-origin", "1,2,3"],
+            vec!["slice-origin", "--mode slice only", "--mode dvr"],
+        ),
+        (
+            vec!["--mode", "dvr", "--slice-normal", "0,1,0"],
+            vec!["slice-normal", "--mode slice only"],
+        ),
+        (
+            vec!["--mode", "slice", "--azimuth", "40"],
+            vec!["azimuth", "dvr and mip only", "--slice-normal"],
+        ),
+        (
+            vec!["--mode", "slice", "--ortho"],
+            vec!["ortho", "dvr and mip only"],
+        ),
+        (
+            vec!["--mode", "slice", "--fov", "20"],
+            vec!["fov", "dvr and mip only"],
+        ),
+        (
+            vec!["--mode", "slice", "--samples-per-voxel", "2"],
+            vec!["samples-per-voxel", "dvr and mip only"],
+        ),
+        (
+            vec!["--mode", "slice", "--no-early-termination"],
+            vec!["no-early-termination", "dvr only"],
+        ),
+        (
+            vec![
+                "--mode",
+                "slice",
+                "--slice-z",
+                "0.3",
+                "--slice-origin",
+                "1,1,1",
+            ],
+            vec!["slice-z", "slice-origin", "not both"],
+        ),
+        // The camera of --camera has its angles and projection.
+        (
+            vec!["--camera", "view.camera.json", "--elevation", "10"],
+            vec!["elevation", "--camera view.camera.json"],
+        ),
+        (
+            vec!["--mode", "sideways"],
+            vec!["mode", "dvr, mip or slice", "sideways"],
+        ),
     ] {
         let args: Vec<&str> = base.iter().copied().chain(extra).collect();
         let o = run(&args);

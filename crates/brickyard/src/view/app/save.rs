@@ -31,9 +31,14 @@ impl ViewerApp {
             cam_path.display().to_string(),
             "--tf".into(),
             tf_path.display().to_string(),
-            "--samples-per-voxel".into(),
-            format!("{}", p.samples_per_voxel),
         ];
+        // (Rays take samples in dvr and mip; a slice one per pixel.)
+        if !matches!(p.mode, RenderMode::Slice { .. }) {
+            a.extend([
+                "--samples-per-voxel".into(),
+                format!("{}", p.samples_per_voxel),
+            ]);
+        }
         match &p.mode {
             RenderMode::Dvr if p.channels.is_empty() && self.setup.accumulate > 0 => a.extend([
                 "--mode".into(),
