@@ -401,6 +401,21 @@ fn parse_channel(
     })
 }
 
+/// A per-channel flag (`--channel-tf`, `--channel-levels`) given at most
+/// once per channel: `seen` holds the flags, channels and values so far.
+fn once<'a>(
+    seen: &mut Vec<(&'a str, usize, &'a String)>,
+    flag: &'a str,
+    ch: usize,
+    value: &'a String,
+) -> Result<()> {
+    if let Some((_, _, first)) = seen.iter().find(|(f, c, _)| *f == flag && *c == ch) {
+        bail!("{flag}: channel {ch} given twice (--{flag} {first} and --{flag} {value}); give each channel once");
+    }
+    seen.push((flag, ch, value));
+    Ok(())
+}
+
 /// `C=LO-HI` or `C=L` of `--channel-levels`: the channel and its level
 /// range, checked against the store's `levels`.
 pub fn parse_channel_levels(t: &str, levels: usize) -> Result<(usize, [usize; 2])> {
@@ -885,6 +900,20 @@ fn run_with(
         .iter()
         .map(|x| parse_channel(x, [lo as f32, hi as f32], m.channels, omero.as_deref()))
         .collect::<Result<Vec<_>>>()?;
+    // A channel shown twice would be drawn twice (added up twice in mip and
+    // slice); a second transfer function or level range for one channel
+    // would silently replace the first.
+    for (i, st) in styles.iter().enumerate() {
+        if let Some(j) = styles[..i].iter().position(|o| o.channel == st.channel) {
+            bail!(
+                "channel: channel {} given twice (--channel {} and --channel {}); give each channel once",
+                st.channel,
+                channel_args[j],
+                channel_args[i]
+            );
+        }
+    }
+    let mut per_channel_seen: Vec<(&str, usize, &String)> = vec![];
     for t in &c.channel_tfs {
         let (ch, file) = t
             .split_once('=')
@@ -893,6 +922,7 @@ fn run_with(
             .trim()
             .parse()
             .with_context(|| format!("channel-tf: {ch:?} in {t:?} is not a channel number"))?;
+        once(&mut per_channel_seen, "channel-tf", ch, t)?;
         let text = std::fs::read_to_string(file).with_context(|| format!("{file}: cannot read"))?;
         let tf = TransferFunction::from_json(&text).map_err(|e| anyhow::anyhow!("{file}: {e}"))?;
         let Some(st) = styles.iter_mut().find(|s| s.channel == ch) else {
@@ -902,6 +932,7 @@ fn run_with(
     }
     for t in &c.channel_levels {
         let (ch, range) = parse_channel_levels(t, info.levels.len())?;
+        once(&mut per_channel_seen, "channel-levels", ch, t)?;
         let Some(st) = styles.iter_mut().find(|s| s.channel == ch) else {
             bail!("channel-levels: channel {ch} is not shown (give it with --channel)");
         };

@@ -488,7 +488,15 @@ fn run(cmd: Cmd, cluster: Option<&dist::Cluster>) -> Result<()> {
                 zarr_level: c.level,
                 raw_values: c.raw_values,
             };
-            let src: Box<dyn VolumeSource> = if inputs.len() == 1 && c.channel_names.is_none() {
+            // (Checked before any input is opened.)
+            let names: Option<Vec<String>> = c
+                .channel_names
+                .as_ref()
+                .map(|n| n.split(',').map(|s| s.trim().to_string()).collect());
+            if let (Some(n), Some(names)) = (&c.channel_names, &names) {
+                check_channel_names(n, names)?;
+            }
+            let src: Box<dyn VolumeSource> = if inputs.len() == 1 && names.is_none() {
                 open_input(&inputs[0], &opts)?
             } else {
                 let sources = inputs
@@ -496,9 +504,8 @@ fn run(cmd: Cmd, cluster: Option<&dist::Cluster>) -> Result<()> {
                     .map(|p| open_input(p, &opts))
                     .collect::<std::result::Result<Vec<_>, _>>()?;
                 let mut stack = ChannelStack::new(sources)?;
-                if let Some(n) = &c.channel_names {
-                    let names: Vec<String> = n.split(',').map(|s| s.trim().to_string()).collect();
-                    stack = stack.with_names(&names)?;
+                if let Some(names) = &names {
+                    stack = stack.with_names(names)?;
                 }
                 Box::new(stack)
             };
@@ -658,6 +665,26 @@ fn demo(out: &Path, size: &str) -> Result<()> {
         "demo: done; inspect it with `brickyard info {}`",
         store.display()
     );
+    Ok(())
+}
+
+/// `--channel-names`: one name per channel, none empty, none twice.
+fn check_channel_names(given: &str, names: &[String]) -> Result<()> {
+    for (i, n) in names.iter().enumerate() {
+        if n.is_empty() {
+            bail!(
+                "channel-names: name {} of {given:?} is empty; expected one name per channel, comma-separated",
+                i + 1
+            );
+        }
+        if let Some(j) = names[..i].iter().position(|m| m == n) {
+            bail!(
+                "channel-names: {n:?} given twice (names {} and {} of {given:?}); each channel needs a name of its own",
+                j + 1,
+                i + 1
+            );
+        }
+    }
     Ok(())
 }
 

@@ -1187,6 +1187,110 @@ fn a_copy_of_a_store_keeps_its_channel_names() {
     assert_eq!(labels, ["dapi", "gfp"], "{root}");
 }
 
+/// Each channel is named once by `convert --channel-names` and shown once
+/// by `render --channel` (with at most one --channel-tf and one
+/// --channel-levels): a second one used to be taken silently (a channel
+/// added up twice, a transfer function replaced).
+#[test]
+fn channels_and_their_names_are_given_once() {
+    let d = tempfile::tempdir().unwrap();
+    let (a, b) = (d.path().join("a.raw"), d.path().join("b.raw"));
+    std::fs::write(
+        &a,
+        (0..16 * 16 * 16)
+            .map(|i| (i % 200) as u8)
+            .collect::<Vec<_>>(),
+    )
+    .unwrap();
+    std::fs::write(&b, vec![9u8; 16 * 16 * 16]).unwrap();
+    let store = d.path().join("two.ome.zarr");
+    let convert = |names: &str| {
+        run(&[
+            "convert",
+            s(&a),
+            s(&b),
+            s(&store),
+            "--dims",
+            "16x16x16",
+            "--dtype",
+            "u8",
+            "--brick",
+            "8",
+            "--quiet",
+            "--channel-names",
+            names,
+        ])
+    };
+    fails_with(
+        &convert("gfp, gfp"),
+        &["channel-names", "\"gfp\" given twice", "names 1 and 2"],
+    );
+    fails_with(&convert("gfp,"), &["channel-names", "name 2", "empty"]);
+    assert!(!store.exists());
+    let o = convert("dapi,gfp");
+    assert!(o.status.success(), "{}", stderr(&o));
+    let png = d.path().join("x.png");
+    let tf = d.path().join("tf.json");
+    std::fs::write(
+        &tf,
+        r#"{"window": [0, 200], "opacity": [[0, 0], [1, 0.5]]}"#,
+    )
+    .unwrap();
+    let tf_arg = format!("1={}", s(&tf));
+    for (extra, needles) in [
+        (
+            vec![
+                "--mode",
+                "mip",
+                "--channel",
+                "0:red",
+                "--channel",
+                "0:green",
+            ],
+            vec![
+                "channel 0 given twice",
+                "--channel 0:red",
+                "--channel 0:green",
+            ],
+        ),
+        (
+            vec!["--channel", "1", "--channel", "0", "--channel", "1:blue"],
+            vec!["channel 1 given twice"],
+        ),
+        (
+            vec![
+                "--channel",
+                "0",
+                "--channel",
+                "1",
+                "--channel-tf",
+                &tf_arg,
+                "--channel-tf",
+                &tf_arg,
+            ],
+            vec!["channel-tf", "channel 1 given twice"],
+        ),
+        (
+            vec![
+                "--channel",
+                "0",
+                "--channel",
+                "1",
+                "--channel-levels",
+                "0=0",
+                "--channel-levels",
+                "0=0-1",
+            ],
+            vec!["channel-levels", "channel 0 given twice", "0=0-1"],
+        ),
+    ] {
+        let mut args = vec!["render", s(&store), "--size", "16", "--out", s(&png)];
+        args.extend(extra);
+        fails_with(&run(&args), &needles);
+        assert!(!png.exists(), "{args:?} wrote an image");
+    }
+}
+
 /// The three MNI152 files of `../shared/data` (T1, grey and white
 /// matter), or `None` (said on stderr) when the folder is absent.
 fn mni_files() -> Option<[std::path::PathBuf; 3]> {
