@@ -72,9 +72,10 @@ pub struct RenderCmd {
     /// 0 through the transfer function.
     #[arg(long = "channel")]
     channels: Vec<String>,
-    /// DVR of several channels: channel C's transfer function, `C=FILE`
-    /// (a JSON file as for --tf; repeat for several).
-    #[arg(long = "channel-tf", value_name = "C=FILE")]
+    /// DVR of several channels: channel C's transfer function, `C=PRESET`
+    /// (a preset as for --tf, over the channel's window) or `C=FILE` (a
+    /// JSON file as for --tf); repeat for several.
+    #[arg(long = "channel-tf", value_name = "C=PRESET|FILE")]
     channel_tfs: Vec<String>,
     /// DVR of several channels: channel C drawn only at pyramid levels LO
     /// to HI, `C=LO-HI` (`C=L`: level L alone; repeat for several). A
@@ -399,6 +400,30 @@ fn parse_channel(
         tf: None,
         levels: None,
     })
+}
+
+/// A transfer function as `--tf` and `--channel-tf` name it: a preset
+/// (`TransferFunction::PRESETS`) over `window`, or a JSON file (a name
+/// ending in `.json`, or any existing file that is not named like a
+/// preset).
+pub fn transfer_function(spec: &str, window: [f32; 2], flag: &str) -> Result<TransferFunction> {
+    let name = spec.trim();
+    let preset = TransferFunction::PRESETS
+        .iter()
+        .any(|p| p.eq_ignore_ascii_case(name));
+    if !preset && (name.ends_with(".json") || std::path::Path::new(name).is_file()) {
+        let text = std::fs::read_to_string(name)
+            .with_context(|| format!("{flag}: {name}: cannot read"))?;
+        return TransferFunction::from_json(&text)
+            .map_err(|e| anyhow::anyhow!("{flag}: {name}: {e}"));
+    }
+    if !preset {
+        bail!(
+            "{flag}: {name:?} is neither a preset ({}) nor a transfer-function file (JSON, a name ending in .json)",
+            TransferFunction::PRESETS.join(", ")
+        );
+    }
+    TransferFunction::preset(name, window).map_err(|e| anyhow::anyhow!("{flag}: {e}"))
 }
 
 /// A per-channel flag (`--channel-tf`, `--channel-levels`) given at most
@@ -779,14 +804,7 @@ fn run_with(
                 .unwrap_or((0.0, 1.0))
         }
     };
-    let tf = if c.tf.ends_with(".json") {
-        let text =
-            std::fs::read_to_string(&c.tf).with_context(|| format!("{}: cannot read", c.tf))?;
-        TransferFunction::from_json(&text).map_err(|e| anyhow::anyhow!("{}: {e}", c.tf))?
-    } else {
-        TransferFunction::preset(&c.tf, [lo as f32, hi as f32])
-            .map_err(|e| anyhow::anyhow!("tf: {e}"))?
-    };
+    let tf = transfer_function(&c.tf, [lo as f32, hi as f32], "tf")?;
     check_octree_shading(traversal, &tf, &c.tf, c.channels.len() <= 1)?;
     let projection = if c.ortho {
         Projection::Orthographic {
@@ -915,20 +933,19 @@ fn run_with(
     }
     let mut per_channel_seen: Vec<(&str, usize, &String)> = vec![];
     for t in &c.channel_tfs {
-        let (ch, file) = t
+        let (ch, spec) = t
             .split_once('=')
-            .with_context(|| format!("channel-tf: expected C=FILE, found {t:?}"))?;
+            .with_context(|| format!("channel-tf: expected C=PRESET or C=FILE, found {t:?}"))?;
         let ch: usize = ch
             .trim()
             .parse()
             .with_context(|| format!("channel-tf: {ch:?} in {t:?} is not a channel number"))?;
         once(&mut per_channel_seen, "channel-tf", ch, t)?;
-        let text = std::fs::read_to_string(file).with_context(|| format!("{file}: cannot read"))?;
-        let tf = TransferFunction::from_json(&text).map_err(|e| anyhow::anyhow!("{file}: {e}"))?;
         let Some(st) = styles.iter_mut().find(|s| s.channel == ch) else {
             bail!("channel-tf: channel {ch} is not shown (give it with --channel)");
         };
-        st.tf = Some(tf);
+        // A preset spans the channel's window, as --tf spans --window.
+        st.tf = Some(transfer_function(spec, st.window, "channel-tf")?);
     }
     for t in &c.channel_levels {
         let (ch, range) = parse_channel_levels(t, info.levels.len())?;

@@ -1291,6 +1291,84 @@ fn channels_and_their_names_are_given_once() {
     }
 }
 
+/// `--channel-tf C=PRESET` takes the presets of --tf (over the channel's
+/// window): it used to take files only, and read a preset's name as one.
+#[test]
+fn channel_tf_takes_the_presets_of_tf() {
+    let d = tempfile::tempdir().unwrap();
+    let (a, b) = (d.path().join("a.raw"), d.path().join("b.raw"));
+    let n = 24 * 24 * 24;
+    std::fs::write(&a, (0..n).map(|i| (i % 200) as u8).collect::<Vec<_>>()).unwrap();
+    std::fs::write(&b, (0..n).map(|i| (i * 7 % 251) as u8).collect::<Vec<_>>()).unwrap();
+    let store = d.path().join("two.ome.zarr");
+    let o = run(&[
+        "convert",
+        s(&a),
+        s(&b),
+        s(&store),
+        "--dims",
+        "24x24x24",
+        "--dtype",
+        "u8",
+        "--brick",
+        "8",
+        "--quiet",
+    ]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    let render = |name: &str, extra: &[&str]| {
+        let png = d.path().join(name);
+        let mut args = vec![
+            "render",
+            s(&store),
+            "--size",
+            "32",
+            "--backend",
+            "cpu",
+            "--quiet",
+            "--channel",
+            "0",
+            "--channel",
+            "1:white:0,200",
+            "--out",
+            s(&png),
+        ];
+        args.extend_from_slice(extra);
+        let o = run(&args);
+        (o, png)
+    };
+    // The preset, and the same transfer function as a file.
+    let (o, hot) = render("hot.png", &["--channel-tf", "1=hot"]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    let tf = d.path().join("hot.json");
+    std::fs::write(
+        &tf,
+        r#"{"window": [0, 200], "colormap": "hot", "opacity": [[0, 0], [0.1, 0], [1, 0.8]]}"#,
+    )
+    .unwrap();
+    let (o, file) = render("file.png", &["--channel-tf", &format!("1={}", s(&tf))]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    let (o, plain) = render("plain.png", &[]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    let (hot, file, plain) = (png_pixels(&hot), png_pixels(&file), png_pixels(&plain));
+    has_content(&hot, "--channel-tf 1=hot");
+    assert_eq!(hot, file, "the preset differs from its JSON");
+    assert_ne!(hot, plain, "--channel-tf 1=hot changed nothing");
+    // Neither a preset nor a file: both named, and what is accepted.
+    let (o, png) = render("bad.png", &["--channel-tf", "1=hott"]);
+    fails_with(
+        &o,
+        &[
+            "channel-tf",
+            "\"hott\"",
+            "linear, soft, hot, viridis, coolwarm, opaque",
+            ".json",
+        ],
+    );
+    assert!(!png.exists());
+    let (o, _) = render("bad.png", &["--tf", "hott"]);
+    fails_with(&o, &["tf", "\"hott\"", "linear, soft, hot"]);
+}
+
 /// The three MNI152 files of `../shared/data` (T1, grey and white
 /// matter), or `None` (said on stderr) when the folder is absent.
 fn mni_files() -> Option<[std::path::PathBuf; 3]> {
