@@ -953,20 +953,35 @@ fn gpu_and_cpu_backends_draw_the_same_pngs() {
             .unwrap();
         assert!(worst <= 1, "{mode}: 8-bit images differ by {worst}");
     }
-    // Channels added up (here one channel twice, with different windows
-    // and colours) on both back ends.
+    // Channels added up (here the volume twice, as two channels, with
+    // different windows and colours) on both back ends.
+    let two = d.path().join("two.ome.zarr");
+    let o = run(&[
+        "convert",
+        s(&store),
+        s(&store),
+        s(&two),
+        "--channel-names",
+        "a,b",
+        "--brick",
+        "16",
+        "--shard",
+        "32",
+        "--quiet",
+    ]);
+    assert!(o.status.success(), "{}", stderr(&o));
     let mut pixels = vec![];
     for backend in ["cpu", "gpu"] {
         let png = d.path().join(format!("channels-{backend}.png"));
         let o = run(&[
             "render",
-            s(&store),
+            s(&two),
             "--mode",
             "mip",
             "--channel",
             "0:green:0,200",
             "--channel",
-            "0:ff4000:60,255",
+            "1:ff4000:60,255",
             "--size",
             "48x40",
             "--out",
