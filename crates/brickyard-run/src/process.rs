@@ -293,6 +293,60 @@ fn labels_list(dir: &Path) -> Result<(Value, Vec<String>)> {
     Ok((j, list))
 }
 
+/// The least `--memory` a job takes whose filters hold `filters` bytes
+/// (one block at a time per stage) and whose result's pyramid writer needs
+/// `writer`: the filters get at most half of it, the input's chunk cache
+/// an eighth, and the writer what is left.
+fn least_memory(filters: u64, writer: u64) -> u64 {
+    let fits = |m: u64| m / 2 >= filters && m - m / 8 >= writer.saturating_add(filters);
+    let (mut lo, mut hi) = (0u64, (1u64 << 20).max(filters.saturating_mul(2)));
+    while !fits(hi) {
+        if hi > u64::MAX / 4 {
+            return u64::MAX;
+        }
+        (lo, hi) = (hi, hi * 2);
+    }
+    while hi - lo > 1 {
+        let mid = lo + (hi - lo) / 2;
+        if fits(mid) {
+            hi = mid;
+        } else {
+            lo = mid;
+        }
+    }
+    hi.max(1 << 20)
+}
+
+/// What the pyramid writer is given: the last filter stage's volume, or
+/// for a labelling the labels (u32) of its mask, as `LabelSource` has it.
+fn result_meta(
+    pipe: &brickyard_process::Pipeline,
+    input: Arc<ZarrSource>,
+    channel: usize,
+    brick: [u64; 3],
+) -> Result<brickyard_store::SourceMeta> {
+    // (The stages as built under any budget; only their output is read.)
+    let (probe, _) = build_within(pipe, input, channel, brick, None, u64::MAX, 1)
+        .map_err(|e| anyhow::anyhow!("pipeline {:?}: {e}", pipe.text()))?;
+    let m = probe.source.meta();
+    Ok(match probe.label {
+        None => m.clone(),
+        Some(conn) => {
+            let mut l = brickyard_store::SourceMeta::new(
+                m.path.join(format!("label({conn})")),
+                m.dims,
+                1,
+                brickyard_core::DType::U32,
+            );
+            l.spacing = m.spacing;
+            l.origin = m.origin;
+            l.unit = m.unit.clone();
+            l.labels = true;
+            l
+        }
+    })
+}
+
 /// Run the pipeline and publish its result; `cancel` stops the job between
 /// pieces of work, leaving the store as it was (the error is then
 /// [`Interrupted`] with what to do in its context).
@@ -382,9 +436,23 @@ pub fn run(
     let input: Arc<ZarrSource> = Arc::new(src);
     let kernels = device(&c.backend, f)?;
     let on = kernels.as_ref().map(|k| k.gpu.describe());
-    // The filter stages' blocks (with their halos) get a quarter of the
-    // budget, or half when one block at a time needs more; the pyramid
-    // writer what they leave. Checked before anything is written.
+    let is_label = pipe.is_label_output();
+    let mut opts = ConvertOptions {
+        brick,
+        shard: [512; 3].map(|s: u64| s.max(brick[0]).div_ceil(brick[0]) * brick[0]),
+        compression: Compression::Lz4,
+        labels: is_label,
+        memory: 0,
+        overwrite: false,
+        spacing: meta.spacing,
+        origin: meta.origin,
+        unit: meta.unit.clone(),
+        columns: 1,
+    };
+    // --memory: an eighth for the input's chunk cache; the filter stages'
+    // blocks (with their halos) a quarter, or half when one block at a
+    // time needs more, but never what the pyramid writer needs; the
+    // writer the rest. Checked before anything is written.
     let threads = rayon::current_num_threads();
     let build = |share: u64| {
         build_within(
@@ -397,24 +465,44 @@ pub fn run(
             threads,
         )
     };
-    let (built, filter_memory) = build(memory / 4)
-        .or_else(|_| build(memory / 2))
-        .map_err(|e| {
-            // A σ that cannot be computed fails the same way without a
-            // budget; otherwise the budget was too small.
-            match brickyard_process::filter_bytes_at_least(&pipe, input.clone(), c.channel, brick) {
-                Err(_) => anyhow::anyhow!("pipeline {:?}: {e}", c.pipeline),
-                Ok(b) => anyhow::anyhow!(
-                    "pipeline {:?}: {e} (half of {f}memory {}); give more {f}memory (the \
-                     filters need at least {} of it, one block at a time per stage, besides \
-                     what the pyramid writer needs) or a smaller σ",
-                    c.pipeline,
-                    human_bytes(memory),
-                    human_bytes(b.div_ceil(1 << 20) << 20)
-                ),
+    // (A σ that cannot be computed fails here, whatever the budget.)
+    let filters_least =
+        brickyard_process::filter_bytes_at_least(&pipe, input.clone(), c.channel, brick)
+            .map_err(|e| anyhow::anyhow!("pipeline {:?}: {e}", c.pipeline))?;
+    let writer_least = brickyard_store::builder::memory_needed(
+        &result_meta(&pipe, input.clone(), c.channel, brick)?,
+        &opts,
+    );
+    let least = least_memory(filters_least, writer_least);
+    if memory < least {
+        let sigma = pipe
+            .ops
+            .iter()
+            .any(|o| matches!(o, Op::Gauss(_) | Op::GradMag(_)));
+        bail!(
+            "{f}memory: {} is too small for {:?} on level {} of {}: give {f}memory {}MiB or \
+             more (the filters hold {} at once, one block with its halo per stage, and take \
+             at most half of {f}memory; writing the result's pyramid takes {}, and reading the \
+             input an eighth of {f}memory){}",
+            human_bytes(memory),
+            pipe.text(),
+            c.level,
+            store.display(),
+            least.div_ceil(1 << 20),
+            human_bytes(filters_least),
+            human_bytes(writer_least),
+            if sigma {
+                "; a smaller σ needs less"
+            } else {
+                ""
             }
-        })?;
-    let is_label = pipe.is_label_output();
+        );
+    }
+    let left = memory - memory / 8 - writer_least;
+    let (built, filter_memory) = build((memory / 4).min(left))
+        .or_else(|_| build((memory / 2).min(left)))
+        .map_err(|e| anyhow::anyhow!("pipeline {:?}: {e}", c.pipeline))?;
+    opts.memory = memory - memory / 8 - filter_memory.bytes;
     let dir = store.join(if is_label { "labels" } else { "derived" });
     let paths = Paths::new(dir, &c.out);
     let made_dir = !paths.dir.exists();
@@ -449,18 +537,6 @@ pub fn run(
     } else {
         None
     };
-    let opts = ConvertOptions {
-        brick,
-        shard: [512; 3].map(|s: u64| s.max(brick[0]).div_ceil(brick[0]) * brick[0]),
-        compression: Compression::Lz4,
-        labels: is_label,
-        memory: memory - memory / 8 - filter_memory.bytes,
-        overwrite: false,
-        spacing: meta.spacing,
-        origin: meta.origin,
-        unit: meta.unit.clone(),
-        columns: 1,
-    };
     if let (Some(d), false) = (&on, c.quiet) {
         eprintln!("filter stages on the GPU: {d}");
     }
@@ -478,7 +554,17 @@ pub fn run(
                 caller.again
             ))
         } else {
-            e
+            // The result is written aside first; say it by its own name.
+            let text = format!("{e:#}");
+            let mut named = text.clone();
+            for p in [&paths.partial, &paths.staged] {
+                named = named.replace(&p.display().to_string(), &paths.fin.display().to_string());
+            }
+            if named == text {
+                e
+            } else {
+                anyhow::anyhow!("{named}")
+            }
         }
     };
     let mut labeling = None;

@@ -31,7 +31,7 @@ use crate::omezarr::{
     STATS_DIR,
 };
 use crate::shard::ShardSetWriter;
-use crate::source::VolumeSource;
+use crate::source::{SourceMeta, VolumeSource};
 use brickyard_core::{as_bytes, dispatch_dtype, plan_levels, DType, Dims3, LevelPlan, Sample};
 use rayon::prelude::*;
 use serde::Serialize;
@@ -393,6 +393,91 @@ struct Counters {
     constant: AtomicU64,
 }
 
+/// What the memory plan of a conversion depends on.
+struct MemoryPlan {
+    levels: Vec<LevelPlan>,
+    /// Bytes per voxel.
+    esize: u64,
+    /// Memory outside the slabs: [`OVERHEAD`], three bricks per thread, 16
+    /// bytes of statistics per brick.
+    fixed: u64,
+    /// Whether a later pass's read-back is a copy (the input is a store).
+    zarr_copy: bool,
+}
+
+impl MemoryPlan {
+    fn of(meta: &SourceMeta, opts: &ConvertOptions) -> MemoryPlan {
+        let spacing = opts.spacing.or(meta.spacing).unwrap_or([1.0; 3]);
+        let origin = opts.origin.or(meta.origin).unwrap_or([0.0; 3]);
+        let levels = plan_levels(meta.dims, spacing, origin, opts.brick).levels;
+        let esize = meta.dtype.size() as u64;
+        let threads = rayon::current_num_threads() as u64;
+        let brick_bytes = opts.brick.iter().product::<u64>() * esize;
+        let nbricks_total: u64 = levels
+            .iter()
+            .map(|l| {
+                (0..3)
+                    .map(|a| l.dims[a].div_ceil(opts.brick[a]))
+                    .product::<u64>()
+            })
+            .sum::<u64>()
+            * meta.channels as u64;
+        MemoryPlan {
+            esize,
+            fixed: OVERHEAD + threads * brick_bytes * 3 + nbricks_total * 16,
+            zarr_copy: meta.path.is_dir() || crate::storage::is_remote(&meta.path),
+            levels,
+        }
+    }
+}
+
+/// The least `opts.memory` with which [`convert`] plans the conversion of
+/// a source described by `meta` (on this thread pool): the fixed allowance
+/// and the smallest slab memory whose passes fit. For callers that take
+/// the converter's share out of a budget of their own (`brickyard
+/// process`) and must say what that budget needs.
+pub fn memory_needed(meta: &SourceMeta, opts: &ConvertOptions) -> u64 {
+    let MemoryPlan {
+        levels,
+        esize,
+        fixed,
+        zarr_copy,
+    } = MemoryPlan::of(meta, opts);
+    let fits = |budget: u64| {
+        plan_passes(
+            &levels,
+            opts.brick,
+            opts.shard,
+            esize,
+            budget,
+            zarr_copy,
+            opts.columns,
+        )
+        .is_some()
+    };
+    if fits(0) {
+        return fixed;
+    }
+    // More slab memory never makes a plan fail: bisect between a budget
+    // that fails and one that fits.
+    let (mut lo, mut hi) = (0u64, 1u64 << 20);
+    while !fits(hi) {
+        if hi > u64::MAX / 4 {
+            return u64::MAX;
+        }
+        (lo, hi) = (hi, hi * 2);
+    }
+    while hi - lo > 1 {
+        let mid = lo + (hi - lo) / 2;
+        if fits(mid) {
+            hi = mid;
+        } else {
+            lo = mid;
+        }
+    }
+    fixed.saturating_add(hi)
+}
+
 /// Convert `src` into an OME-Zarr 0.5 pyramid at `output`. The volume is
 /// treated as labels when `opts.labels` is set or the source says so
 /// ([`SourceMeta::labels`](crate::SourceMeta::labels)).
@@ -506,8 +591,6 @@ pub fn convert_team(
             });
         }
     }
-    let spacing = opts.spacing.or(meta.spacing).unwrap_or([1.0; 3]);
-    let origin = opts.origin.or(meta.origin).unwrap_or([0.0; 3]);
     // A unit the user names must be one OME-Zarr knows; one from the
     // input's header that is not is left out.
     if let Some(u) = &opts.unit {
@@ -527,23 +610,13 @@ pub fn convert_team(
         .clone()
         .or(meta.unit.clone())
         .and_then(|u| omezarr::normalize_unit(&u));
-    let plan = plan_levels(meta.dims, spacing, origin, opts.brick);
-    let levels = plan.levels;
-    let esize = meta.dtype.size() as u64;
-    let threads = rayon::current_num_threads() as u64;
-    let brick_bytes = opts.brick.iter().product::<u64>() * esize;
-    let nbricks_total: u64 = levels
-        .iter()
-        .map(|l| {
-            (0..3)
-                .map(|a| l.dims[a].div_ceil(opts.brick[a]))
-                .product::<u64>()
-        })
-        .sum::<u64>()
-        * meta.channels as u64;
-    let fixed = OVERHEAD + threads * brick_bytes * 3 + nbricks_total * 16;
+    let MemoryPlan {
+        levels,
+        esize,
+        fixed,
+        zarr_copy,
+    } = MemoryPlan::of(&meta, opts);
     let budget = opts.memory.saturating_sub(fixed);
-    let zarr_copy = meta.path.is_dir() || crate::storage::is_remote(&meta.path);
     let passes = plan_passes(
         &levels,
         opts.brick,

@@ -110,6 +110,32 @@ fn small_budget_uses_tiles_and_passes_and_stays_exact() {
     check_store(&src, &out, false);
 }
 
+/// `memory_needed` is the least budget a conversion takes: with it the
+/// conversion runs, a byte less is refused (before anything is written).
+#[test]
+fn memory_needed_is_the_least_budget_that_converts() {
+    for (dims, dtype, brick, shard) in [
+        ([70, 150, 260], DType::U16, 8, 32),
+        ([40, 33, 90], DType::F32, 16, 32),
+        ([9, 200, 20], DType::U8, 4, 8),
+    ] {
+        let dir = tempfile::tempdir().unwrap();
+        let out = dir.path().join("m.ome.zarr");
+        let src = make_source(dims, 1, dtype, 7);
+        let mut o = opts(brick, shard);
+        let need = brickyard_store::builder::memory_needed(&src.meta, &o);
+        o.memory = need - 1;
+        let e = convert(&src, &out, &o, &NoProgress, &AtomicBool::new(false)).unwrap_err();
+        assert!(e.to_string().contains("too small"), "{dims:?}: {e}");
+        assert!(!out.exists() && !partial_path(&out).exists());
+        o.memory = need;
+        let r = convert(&src, &out, &o, &NoProgress, &AtomicBool::new(false))
+            .unwrap_or_else(|e| panic!("{dims:?} with {need} bytes: {e}"));
+        assert!(r.planned_bytes <= need, "{dims:?}");
+        check_store(&src, &out, false);
+    }
+}
+
 #[test]
 fn brick_statistics_are_stored() {
     let dir = tempfile::tempdir().unwrap();

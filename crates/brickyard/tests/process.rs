@@ -771,6 +771,68 @@ fn gauss_nearest_ref(v: &[f64], d: Dims3, sigma: f64) -> Vec<f64> {
     cur
 }
 
+/// A --memory too small is refused with the least --memory that works:
+/// with it the job runs, with 1 MiB less it is refused again, and every
+/// smaller budget asks for the same. (The message used to quote the
+/// filters' own minimum, half of the --memory they need since they get at
+/// most half of it; at budgets where the filters fit but the pyramid
+/// writer did not, the writer's refusal named the result's temporary
+/// folder, `.small.new`.)
+#[test]
+fn a_refusal_for_memory_asks_for_the_least_that_works() {
+    let d = tempfile::tempdir().unwrap();
+    let store = d.path().join("b.ome.zarr");
+    ok(run(&[
+        "generate",
+        "mandelbulb",
+        s(&store),
+        "--size",
+        "128",
+        "--quiet",
+    ]));
+    for pipe in ["gauss(2)", "threshold(50)|label(26)", "sobel"] {
+        let job = |memory: u64| {
+            run(&[
+                "process",
+                s(&store),
+                pipe,
+                "--out",
+                "small",
+                "--memory",
+                &format!("{memory}MiB"),
+                "--quiet",
+                "--overwrite",
+            ])
+        };
+        // The --memory a refusal asks for.
+        let refused = |memory: u64| -> u64 {
+            let o = job(memory);
+            let e = String::from_utf8_lossy(&o.stderr).into_owned();
+            assert_eq!(o.status.code(), Some(1), "{pipe} in {memory} MiB: {e}");
+            assert!(!e.contains("panicked"), "{e}");
+            assert!(
+                !e.contains(".new") && !e.contains(".partial"),
+                "{pipe} in {memory} MiB: a temporary path: {e}"
+            );
+            assert!(
+                e.contains(&format!("--memory: {memory}.0 MiB is too small")),
+                "{e}"
+            );
+            e.split("give --memory ")
+                .nth(1)
+                .and_then(|t| t.split("MiB or more").next())
+                .and_then(|n| n.parse().ok())
+                .unwrap_or_else(|| panic!("{pipe} in {memory} MiB: no --memory asked for: {e}"))
+        };
+        let need = refused(1);
+        for m in [need / 2, need / 2 + 1, need * 3 / 4, need - 1] {
+            assert_eq!(refused(m), need, "{pipe} in {m} MiB");
+        }
+        ok(job(need));
+        ok(job(need + need / 3));
+    }
+}
+
 #[test]
 fn a_sigma_wider_than_the_volume_is_computed_and_an_impossible_one_refused() {
     let d = tempfile::tempdir().unwrap();
