@@ -313,6 +313,10 @@ impl<'f, 'a, T: Sample> Walker<'f, 'a, T> {
         let (vox, clear, exponent) = (r.vox, r.clear, r.exponent);
         let (base_t, dt, level) = r.at;
         let [sz, sy] = f.stride;
+        // The brick's voxels from its first voxel past the apron: a step's
+        // index is then its base's offset alone (`local_index` less the
+        // apron's part, the same index into `vox`).
+        let vox = &vox[f.local_index([0; 3], [0; 3])..];
         let (mut n, mut passed, mut transparent) = (0u64, 0u64, 0u64);
         let done = loop {
             if j >= end {
@@ -334,10 +338,13 @@ impl<'f, 'a, T: Sample> Walker<'f, 'a, T> {
             run.advance(1);
             j += 1;
             n += 1;
-            let i = f.local_index(u, [0; 3]);
+            let i = u[0] as usize * sz + u[1] as usize * sy + u[2] as usize;
             if LANES {
                 let v = trilinear_lanes(vox, i, sz, sy, fr);
-                if let Some(mut c) = f.tf_table.lookup_visible(&f.tf_eval, v) {
+                if let Some(mut c) = f
+                    .tf_table
+                    .lookup_visible(&f.tf_eval, v, T::DTYPE.is_float())
+                {
                     if SHADE {
                         if let Some(sh) = &f.tf.shading {
                             let w = ray.at(step_t(base_t, j - 1, dt));

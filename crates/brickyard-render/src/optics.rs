@@ -257,12 +257,14 @@ impl TfTable {
     }
 
     /// [`TfEval::lookup_visible`] of `value` (the same bits), as lanes
-    /// `[α, r, g, b]`.
+    /// `[α, r, g, b]`. `may_nan`: whether `value` may be NaN (samples of
+    /// float voxels; a constant where inlined); a sample of integer voxels
+    /// never is, and skips the test.
     #[inline(always)]
-    pub(crate) fn lookup_visible(&self, eval: &TfEval, value: f32) -> Option<F4> {
+    pub(crate) fn lookup_visible(&self, eval: &TfEval, value: f32, may_nan: bool) -> Option<F4> {
         let y = (value - self.w0) * self.inv_width;
         // Below every bin that may show (NaN fails this and the next).
-        if y < self.clear_below || value.is_nan() {
+        if y < self.clear_below || (may_nan && value.is_nan()) {
             return None;
         }
         let x = y.clamp(0.0, 1.0);
@@ -413,10 +415,19 @@ mod tests {
             values.extend([f32::NAN, w0, w1, f32::INFINITY, f32::NEG_INFINITY]);
             for &v in &values {
                 let want = eval.lookup_visible(v);
-                let got = table.lookup_visible(&eval, v).map(|c| {
+                let got = table.lookup_visible(&eval, v, true).map(|c| {
                     let [a, r, g, b] = c.to_array();
                     [r, g, b, a]
                 });
+                if !v.is_nan() {
+                    // Without the NaN test (samples of integer voxels).
+                    let plain = table.lookup_visible(&eval, v, false);
+                    assert_eq!(
+                        plain.map(|c| c.to_array().map(f32::to_bits)),
+                        got.map(|[r, g, b, a]| [a, r, g, b].map(f32::to_bits)),
+                        "trial {trial} value {v}"
+                    );
+                }
                 assert_eq!(
                     got.map(|c| c.map(f32::to_bits)),
                     want.map(|c| c.map(f32::to_bits)),
