@@ -90,6 +90,14 @@ fn code_slot(code: u64, n: usize) -> usize {
     (code.wrapping_mul(0x9E37_79B9_7F4A_7C15) >> (64 - n.trailing_zeros())) as usize
 }
 
+/// A boxed table of `N` copies of `x` (made on the heap, not the stack).
+fn table<X: Clone, const N: usize>(x: X) -> Box<[X; N]> {
+    vec![x; N]
+        .into_boxed_slice()
+        .try_into()
+        .unwrap_or_else(|_| unreachable!("a vector of N elements"))
+}
+
 /// One thread's view of one channel: the current brick per level, and a
 /// memo of every brick resolved this frame (direct-mapped by level and
 /// brick), so that the rays of a tile, which enter the same bricks one
@@ -98,8 +106,10 @@ pub(crate) struct Walker<'f, 'a, T> {
     pub(crate) f: &'f Frame<'a>,
     pub(crate) channel: usize,
     pub(crate) cache: Vec<Cached<'a, T>>,
-    pub(crate) memo_key: Vec<u64>,
-    pub(crate) memo: Vec<Cached<'a, T>>,
+    /// (Arrays of the tables' fixed sizes: a slot from [`code_slot`] is
+    /// in bounds without a check.)
+    pub(crate) memo_key: Box<[u64; MEMO]>,
+    pub(crate) memo: Box<[Cached<'a, T>; MEMO]>,
     /// Bricks entered (a change of brick at some level), for debug images.
     pub(crate) touched: u64,
     /// The ray being drawn (a serial number) and its tracks per level, made
@@ -112,8 +122,8 @@ pub(crate) struct Walker<'f, 'a, T> {
     /// [`flush`](Self::flush): the rays of a tile leave the same few
     /// bricks over and over, and a first frame drawn from stand-ins
     /// leaves one every few steps.
-    pending_code: Vec<u64>,
-    pending_misses: Vec<u32>,
+    pending_code: Box<[u64; PENDING]>,
+    pending_misses: Box<[u32; PENDING]>,
 }
 
 impl<'f, 'a, T: Sample> Walker<'f, 'a, T> {
@@ -122,13 +132,13 @@ impl<'f, 'a, T: Sample> Walker<'f, 'a, T> {
             f,
             channel,
             cache: vec![Cached::NONE; f.levels()],
-            memo_key: vec![u64::MAX; MEMO],
-            memo: vec![Cached::NONE; MEMO],
+            memo_key: Box::new([u64::MAX; MEMO]),
+            memo: table(Cached::NONE),
             touched: 0,
             ray_serial: 1,
             tracks: vec![(0, None); f.levels()],
-            pending_code: vec![u64::MAX; PENDING],
-            pending_misses: vec![0; PENDING],
+            pending_code: Box::new([u64::MAX; PENDING]),
+            pending_misses: Box::new([0; PENDING]),
         }
     }
 
