@@ -299,22 +299,8 @@ fn labels_list(dir: &Path) -> Result<(Value, Vec<String>)> {
 /// an eighth, and the writer what is left.
 fn least_memory(filters: u64, writer: u64) -> u64 {
     let fits = |m: u64| m / 2 >= filters && m - m / 8 >= writer.saturating_add(filters);
-    let (mut lo, mut hi) = (0u64, (1u64 << 20).max(filters.saturating_mul(2)));
-    while !fits(hi) {
-        if hi > u64::MAX / 4 {
-            return u64::MAX;
-        }
-        (lo, hi) = (hi, hi * 2);
-    }
-    while hi - lo > 1 {
-        let mid = lo + (hi - lo) / 2;
-        if fits(mid) {
-            hi = mid;
-        } else {
-            lo = mid;
-        }
-    }
-    hi.max(1 << 20)
+    let start = (1u64 << 20).max(filters.saturating_mul(2));
+    brickyard_store::builder::least_budget(start, fits).max(1 << 20)
 }
 
 /// What the pyramid writer is given: the last filter stage's volume, or

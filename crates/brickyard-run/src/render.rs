@@ -257,6 +257,13 @@ pub struct RenderCmd {
 /// `--mode` itself.
 fn check_mode_flags(c: &RenderCmd) -> Result<()> {
     let mode = c.mode.as_str();
+    // The flags that place and shape the camera.
+    let camera_flags = [
+        ("azimuth", c.azimuth.is_some()),
+        ("elevation", c.elevation.is_some()),
+        ("fov", c.fov.is_some()),
+        ("ortho", c.ortho),
+    ];
     match mode {
         "dvr" | "mip" => {
             for (flag, given) in [
@@ -273,12 +280,7 @@ fn check_mode_flags(c: &RenderCmd) -> Result<()> {
             }
         }
         "slice" => {
-            for (flag, given) in [
-                ("azimuth", c.azimuth.is_some()),
-                ("elevation", c.elevation.is_some()),
-                ("fov", c.fov.is_some()),
-                ("ortho", c.ortho),
-            ] {
+            for (flag, given) in camera_flags {
                 if given {
                     bail!(
                         "{flag}: applies to --mode dvr and mip only; a slice is seen face on \
@@ -308,12 +310,7 @@ fn check_mode_flags(c: &RenderCmd) -> Result<()> {
         m => bail!("mode: expected dvr, mip or slice, found {m:?}"),
     }
     if let Some(cam) = &c.camera {
-        for (flag, given) in [
-            ("azimuth", c.azimuth.is_some()),
-            ("elevation", c.elevation.is_some()),
-            ("fov", c.fov.is_some()),
-            ("ortho", c.ortho),
-        ] {
+        for (flag, given) in camera_flags {
             if given {
                 bail!(
                     "{flag}: the camera comes from --camera {} (its position and projection); \

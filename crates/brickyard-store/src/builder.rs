@@ -406,6 +406,19 @@ struct MemoryPlan {
 }
 
 impl MemoryPlan {
+    /// The conversion's passes with `budget` bytes of slabs, if any fit.
+    fn passes(&self, opts: &ConvertOptions, budget: u64) -> Option<Vec<PassPlan>> {
+        plan_passes(
+            &self.levels,
+            opts.brick,
+            opts.shard,
+            self.esize,
+            budget,
+            self.zarr_copy,
+            opts.columns,
+        )
+    }
+
     fn of(meta: &SourceMeta, opts: &ConvertOptions) -> MemoryPlan {
         let spacing = opts.spacing.or(meta.spacing).unwrap_or([1.0; 3]);
         let origin = opts.origin.or(meta.origin).unwrap_or([0.0; 3]);
@@ -437,30 +450,22 @@ impl MemoryPlan {
 /// the converter's share out of a budget of their own (`brickyard
 /// process`) and must say what that budget needs.
 pub fn memory_needed(meta: &SourceMeta, opts: &ConvertOptions) -> u64 {
-    let MemoryPlan {
-        levels,
-        esize,
-        fixed,
-        zarr_copy,
-    } = MemoryPlan::of(meta, opts);
-    let fits = |budget: u64| {
-        plan_passes(
-            &levels,
-            opts.brick,
-            opts.shard,
-            esize,
-            budget,
-            zarr_copy,
-            opts.columns,
-        )
-        .is_some()
-    };
+    let plan = MemoryPlan::of(meta, opts);
+    let fits = |budget: u64| plan.passes(opts, budget).is_some();
+    let fixed = plan.fixed;
     if fits(0) {
         return fixed;
     }
-    // More slab memory never makes a plan fail: bisect between a budget
-    // that fails and one that fits.
-    let (mut lo, mut hi) = (0u64, 1u64 << 20);
+    // More slab memory never makes a plan fail.
+    fixed.saturating_add(least_budget(1 << 20, fits))
+}
+
+/// The least budget of at least 1 that `fits`, for a `fits` that stays
+/// true for every budget above one it holds for: doubling from `start`
+/// to a budget that fits, then bisecting between it and the last that
+/// did not. `u64::MAX` when none up to a quarter of that fits.
+pub fn least_budget(start: u64, fits: impl Fn(u64) -> bool) -> u64 {
+    let (mut lo, mut hi) = (0u64, start.max(1));
     while !fits(hi) {
         if hi > u64::MAX / 4 {
             return u64::MAX;
@@ -475,7 +480,7 @@ pub fn memory_needed(meta: &SourceMeta, opts: &ConvertOptions) -> u64 {
             lo = mid;
         }
     }
-    fixed.saturating_add(hi)
+    hi
 }
 
 /// Convert `src` into an OME-Zarr 0.5 pyramid at `output`. The volume is
@@ -610,23 +615,16 @@ pub fn convert_team(
         .clone()
         .or(meta.unit.clone())
         .and_then(|u| omezarr::normalize_unit(&u));
+    let plan = MemoryPlan::of(&meta, opts);
+    let budget = opts.memory.saturating_sub(plan.fixed);
+    let planned = plan.passes(opts, budget);
     let MemoryPlan {
         levels,
         esize,
         fixed,
         zarr_copy,
-    } = MemoryPlan::of(&meta, opts);
-    let budget = opts.memory.saturating_sub(fixed);
-    let passes = plan_passes(
-        &levels,
-        opts.brick,
-        opts.shard,
-        esize,
-        budget,
-        zarr_copy,
-        opts.columns,
-    )
-    .ok_or_else(|| {
+    } = plan;
+    let passes = planned.ok_or_else(|| {
         // Enough for the smallest pass from each level to the next (one
         // alignment unit of that level tall and wide), as plan_passes
         // needs it: level 0 alone understated it.
