@@ -91,20 +91,32 @@ impl Derived {
         let total = memory.unwrap_or_else(crate::memory::default_memory);
         let share = total / 4;
         let padded = brick + 2 * VmConfig::default().apron;
-        let bytes = d.within(share, loader_threads, [padded; 3]).map_err(|e| {
-            anyhow!(
-                "{e:#}; the filters of --derive get a quarter of --memory ({} of {}{}): \
-                     raise --memory, lower --loader-threads or use a smaller σ",
-                human_bytes(share),
-                human_bytes(total),
-                if memory.is_some() {
-                    ""
-                } else {
-                    ", the default: a quarter of RAM"
-                }
-            )
-        })?;
-        Ok((d, bytes))
+        let e = match d.within(share, loader_threads, [padded; 3]) {
+            Ok(bytes) => return Ok((d, bytes)),
+            Err(e) => e,
+        };
+        // The least --memory whose quarter holds the filters' blocks (in
+        // whole MiB), when some does.
+        let mib = 1u64 << 20;
+        let least = brickyard_store::builder::least_budget(total.saturating_add(1), |m| {
+            d.within(m / 4, loader_threads, [padded; 3]).is_ok()
+        });
+        let raise = if least < u64::MAX / 4 {
+            format!("--memory {}MiB runs it", least.div_ceil(mib))
+        } else {
+            "raise --memory".into()
+        };
+        Err(anyhow!(
+            "{e:#}; the filters of --derive get a quarter of --memory ({} of {}{}): \
+             {raise}; or lower --loader-threads or use a smaller σ",
+            human_bytes(share),
+            human_bytes(total),
+            if memory.is_some() {
+                ""
+            } else {
+                ", the default: a quarter of RAM"
+            }
+        ))
     }
 
     /// Hold the filters' blocks to `budget` bytes while `readers` brick

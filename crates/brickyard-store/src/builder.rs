@@ -464,7 +464,7 @@ pub fn memory_needed(meta: &SourceMeta, opts: &ConvertOptions) -> u64 {
 /// true for every budget above one it holds for: doubling from `start`
 /// to a budget that fits, then bisecting between it and the last that
 /// did not. `u64::MAX` when none up to a quarter of that fits.
-pub fn least_budget(start: u64, fits: impl Fn(u64) -> bool) -> u64 {
+pub fn least_budget(start: u64, mut fits: impl FnMut(u64) -> bool) -> u64 {
     let (mut lo, mut hi) = (0u64, start.max(1));
     while !fits(hi) {
         if hi > u64::MAX / 4 {

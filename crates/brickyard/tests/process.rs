@@ -947,8 +947,22 @@ fn a_live_derived_channel_is_held_to_its_share_of_memory() {
         assert!(e.contains(want), "{e:?} should mention {want:?}");
     }
     assert!(!png.exists(), "an image after a refused run");
+    // The least --memory it names runs; a MiB less is refused.
+    let least = e
+        .split("--memory ")
+        .find_map(|t| t.strip_prefix(|c: char| c.is_ascii_digit()).map(|_| t))
+        .and_then(|t| t.split("MiB runs it").next())
+        .and_then(|n| n.parse::<u64>().ok())
+        .unwrap_or_else(|| panic!("no least --memory in {e:?}"));
+    assert!(least > 256, "{e}");
+    let below = format!("{}MiB", least - 1);
+    let o = render(&["--memory", &below]);
+    assert_eq!(o.status.code(), Some(1), "{below}");
+    assert!(!png.exists(), "an image at {below}");
+    let least = format!("{least}MiB");
     for extra in [
         &["--memory", "256MiB", "--loader-threads", "1"][..],
+        &["--memory", &least][..],
         &["--memory", "1GiB"][..],
     ] {
         ok(render(extra));
