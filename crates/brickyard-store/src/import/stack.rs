@@ -23,6 +23,27 @@ pub struct ChannelStack {
     map: Vec<(usize, usize)>,
 }
 
+/// Channel names made unique: a name that several channels share (files
+/// of the same name in different folders) takes its file's folder in front
+/// (`folder/name`, `folders[i]` for channel `i`), and one still shared
+/// after that its channel number after (`name#3`). Names that occur once
+/// stay as they are.
+fn unique_names(names: &mut [String], folders: &[Option<String>]) {
+    let count = |names: &[String], n: &str| names.iter().filter(|m| *m == n).count();
+    let shared: Vec<bool> = names.iter().map(|n| count(names, n) > 1).collect();
+    for (i, n) in names.iter_mut().enumerate() {
+        if let (true, Some(f)) = (shared[i], &folders[i]) {
+            *n = format!("{f}/{n}");
+        }
+    }
+    let shared: Vec<bool> = names.iter().map(|n| count(names, n) > 1).collect();
+    for (i, n) in names.iter_mut().enumerate() {
+        if shared[i] {
+            *n = format!("{n}#{i}");
+        }
+    }
+}
+
 /// A file's name without the volume extensions (`mni152-t1-u8.nii.gz` →
 /// `mni152-t1-u8`).
 pub fn channel_label(path: &Path) -> String {
@@ -59,6 +80,8 @@ impl ChannelStack {
         let m0 = first.meta().clone();
         let mut meta = SourceMeta::new(m0.path.clone(), m0.dims, 0, m0.dtype);
         let mut map = vec![];
+        // The folder of each channel's file (for names that files share).
+        let mut folders = vec![];
         let mut spacing = None;
         let mut origin = None;
         let mut unit = None;
@@ -134,8 +157,14 @@ impl ChannelStack {
                 _ => labels = Some(m.labels),
             }
             let stem = channel_label(&m.path);
+            let folder = m
+                .path
+                .parent()
+                .and_then(|p| p.file_name())
+                .map(|f| f.to_string_lossy().into_owned());
             for c in 0..m.channels {
                 map.push((i, c));
+                folders.push(folder.clone());
                 let name = match m.channel_names.get(c) {
                     Some(n) if m.channels > 1 => format!("{stem}:{n}"),
                     Some(n) => n.clone(),
@@ -159,6 +188,7 @@ impl ChannelStack {
                 ));
             }
         }
+        unique_names(&mut meta.channel_names, &folders);
         meta.channels = map.len();
         meta.spacing = spacing.map(|(s, _)| s);
         meta.origin = origin.map(|(o, _)| o);
@@ -270,6 +300,33 @@ mod tests {
         assert_eq!(read_all(&s, 0), read_all(&a, 0));
         assert_eq!(read_all(&s, 1), read_all(&b, 0));
         assert_ne!(read_all(&s, 0), read_all(&s, 1));
+    }
+
+    #[test]
+    fn names_that_files_share_are_made_unique() {
+        let d = [6, 7, 9];
+        let names = |paths: &[&str]| {
+            let s = ChannelStack::new(
+                paths
+                    .iter()
+                    .map(|p| src(Kind::Mandelbulb, d, p, [1.0; 3]))
+                    .collect(),
+            )
+            .unwrap();
+            s.meta().channel_names.clone()
+        };
+        // Files of one name in different folders: the folder in front; a
+        // name of its own stays.
+        assert_eq!(
+            names(&["/d/ch1/img.tif", "/d/ch2/img.tif", "/d/dapi.tif"]),
+            ["ch1/img", "ch2/img", "dapi"]
+        );
+        // The same file twice: the channel number after.
+        assert_eq!(
+            names(&["/d/a/v.nii", "/d/a/v.nii", "/d/b/v.nii"]),
+            ["a/v#0", "a/v#1", "b/v"]
+        );
+        assert_eq!(names(&["t1.nii", "t1.nii.gz"]), ["t1#0", "t1#1"]);
     }
 
     #[test]
