@@ -480,10 +480,21 @@ pub struct LabelSource {
 
 impl LabelSource {
     pub fn new(mask: Arc<dyn VolumeSource>, channel: usize, lab: Arc<Labeling>) -> LabelSource {
-        let im = mask.meta();
-        assert_eq!(im.dims, lab.dims, "labelling of another volume");
+        assert_eq!(mask.meta().dims, lab.dims, "labelling of another volume");
+        let meta = LabelSource::meta_of(mask.meta(), lab.conn);
+        LabelSource {
+            mask,
+            channel,
+            lab,
+            meta,
+        }
+    }
+
+    /// What the labels (u32) of a mask of `im` with connectivity `conn`
+    /// look like as a volume: its grid, one channel, marked as labels.
+    pub fn meta_of(im: &SourceMeta, conn: u8) -> SourceMeta {
         let mut meta = SourceMeta::new(
-            im.path.join(format!("label({})", lab.conn)),
+            im.path.join(format!("label({conn})")),
             im.dims,
             1,
             DType::U32,
@@ -492,12 +503,7 @@ impl LabelSource {
         meta.origin = im.origin;
         meta.unit = im.unit.clone();
         meta.labels = true;
-        LabelSource {
-            mask,
-            channel,
-            lab,
-            meta,
-        }
+        meta
     }
 
     pub fn labeling(&self) -> &Labeling {

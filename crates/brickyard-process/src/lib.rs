@@ -179,8 +179,25 @@ pub fn filter_bytes_at_least(
     channel: usize,
     block: Dims3,
 ) -> Result<u64, String> {
-    let (_, stages) = build_stages(p, input, channel, block, None, 1)?;
-    Ok(stages.iter().map(|(_, b)| b).sum())
+    Ok(plan_result(p, input, channel, block)?.0)
+}
+
+/// [`filter_bytes_at_least`] and what the pipeline's result is as a
+/// volume (what a writer is given): the last filter stage's, or for a
+/// labelling the labels (u32) of its mask ([`LabelSource::meta_of`]).
+pub fn plan_result(
+    p: &Pipeline,
+    input: Arc<dyn VolumeSource>,
+    channel: usize,
+    block: Dims3,
+) -> Result<(u64, brickyard_store::SourceMeta), String> {
+    let (built, stages) = build_stages(p, input, channel, block, None, 1)?;
+    let m = built.source.meta();
+    let meta = match built.label {
+        None => m.clone(),
+        Some(conn) => LabelSource::meta_of(m, conn),
+    };
+    Ok((stages.iter().map(|(_, b)| b).sum(), meta))
 }
 
 /// The chained stages, each computing at most `parallel` blocks at once;

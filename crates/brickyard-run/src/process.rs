@@ -303,36 +303,6 @@ fn least_memory(filters: u64, writer: u64) -> u64 {
     brickyard_store::builder::least_budget(start, fits).max(1 << 20)
 }
 
-/// What the pyramid writer is given: the last filter stage's volume, or
-/// for a labelling the labels (u32) of its mask, as `LabelSource` has it.
-fn result_meta(
-    pipe: &brickyard_process::Pipeline,
-    input: Arc<ZarrSource>,
-    channel: usize,
-    brick: [u64; 3],
-) -> Result<brickyard_store::SourceMeta> {
-    // (The stages as built under any budget; only their output is read.)
-    let (probe, _) = build_within(pipe, input, channel, brick, None, u64::MAX, 1)
-        .map_err(|e| anyhow::anyhow!("pipeline {:?}: {e}", pipe.text()))?;
-    let m = probe.source.meta();
-    Ok(match probe.label {
-        None => m.clone(),
-        Some(conn) => {
-            let mut l = brickyard_store::SourceMeta::new(
-                m.path.join(format!("label({conn})")),
-                m.dims,
-                1,
-                brickyard_core::DType::U32,
-            );
-            l.spacing = m.spacing;
-            l.origin = m.origin;
-            l.unit = m.unit.clone();
-            l.labels = true;
-            l
-        }
-    })
-}
-
 /// Run the pipeline and publish its result; `cancel` stops the job between
 /// pieces of work, leaving the store as it was (the error is then
 /// [`Interrupted`] with what to do in its context).
@@ -452,13 +422,10 @@ pub fn run(
         )
     };
     // (A σ that cannot be computed fails here, whatever the budget.)
-    let filters_least =
-        brickyard_process::filter_bytes_at_least(&pipe, input.clone(), c.channel, brick)
+    let (filters_least, result) =
+        brickyard_process::plan_result(&pipe, input.clone(), c.channel, brick)
             .map_err(|e| anyhow::anyhow!("pipeline {:?}: {e}", c.pipeline))?;
-    let writer_least = brickyard_store::builder::memory_needed(
-        &result_meta(&pipe, input.clone(), c.channel, brick)?,
-        &opts,
-    );
+    let writer_least = brickyard_store::builder::memory_needed(&result, &opts);
     let least = least_memory(filters_least, writer_least);
     if memory < least {
         let sigma = pipe
@@ -540,17 +507,7 @@ pub fn run(
                 caller.again
             ))
         } else {
-            // The result is written aside first; say it by its own name.
-            let text = format!("{e:#}");
-            let mut named = text.clone();
-            for p in [&paths.partial, &paths.staged] {
-                named = named.replace(&p.display().to_string(), &paths.fin.display().to_string());
-            }
-            if named == text {
-                e
-            } else {
-                anyhow::anyhow!("{named}")
-            }
+            e
         }
     };
     let mut labeling = None;

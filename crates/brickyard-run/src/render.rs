@@ -323,6 +323,16 @@ fn check_mode_flags(c: &RenderCmd) -> Result<()> {
     Ok(())
 }
 
+/// `--read-delay-ms` (a simulated slow disk, for `render` and `view`): at
+/// most a minute a read, beyond which a view would not come in any useful
+/// time.
+pub fn check_read_delay(ms: u64) -> Result<()> {
+    if ms > 60_000 {
+        bail!("read-delay-ms: expected at most 60000 (a minute per brick read), found {ms}");
+    }
+    Ok(())
+}
+
 /// How a view's frames ended, as `--json` gives it: `complete`,
 /// `complete_but_failed` (drawn from coarser data where bricks could not be
 /// loaded), `no_progress` or `max_frames` (stopped by `--max-frames`).
@@ -423,8 +433,8 @@ pub fn transfer_function(spec: &str, window: [f32; 2], flag: &str) -> Result<Tra
     TransferFunction::preset(name, window).map_err(|e| anyhow::anyhow!("{flag}: {e}"))
 }
 
-/// A per-channel flag (`--channel-tf`, `--channel-levels`) given at most
-/// once per channel: `seen` holds the flags, channels and values so far.
+/// A per-channel flag (`--channel`, `--channel-tf`, `--channel-levels`)
+/// given at most once per channel: `seen` holds the flags, channels and values so far.
 fn once<'a>(
     seen: &mut Vec<(&'a str, usize, &'a String)>,
     flag: &'a str,
@@ -642,14 +652,7 @@ fn run_with(
             "samples-per-voxel: expected a number of samples per voxel above 0 and at most 64, found {samples_per_voxel}"
         );
     }
-    // (A simulated slow disk: beyond a minute a read, a render would not
-    // end in any useful time.)
-    if c.read_delay_ms > 60_000 {
-        bail!(
-            "read-delay-ms: expected at most 60000 (a minute per brick read), found {}",
-            c.read_delay_ms
-        );
-    }
+    check_read_delay(c.read_delay_ms)?;
     if !c.lod_bias.is_finite() {
         bail!(
             "lod-bias: expected a finite number of levels (negative: finer), found {}",
@@ -918,17 +921,10 @@ fn run_with(
     // A channel shown twice would be drawn twice (added up twice in mip and
     // slice); a second transfer function or level range for one channel
     // would silently replace the first.
-    for (i, st) in styles.iter().enumerate() {
-        if let Some(j) = styles[..i].iter().position(|o| o.channel == st.channel) {
-            bail!(
-                "channel: channel {} given twice (--channel {} and --channel {}); give each channel once",
-                st.channel,
-                channel_args[j],
-                channel_args[i]
-            );
-        }
-    }
     let mut per_channel_seen: Vec<(&str, usize, &String)> = vec![];
+    for (st, arg) in styles.iter().zip(&channel_args) {
+        once(&mut per_channel_seen, "channel", st.channel, arg)?;
+    }
     for t in &c.channel_tfs {
         let (ch, spec) = t
             .split_once('=')

@@ -299,13 +299,7 @@ pub fn inspect(path: &Path) -> Result<StoreInfo> {
             } else {
                 2
             };
-            let group = if info.zarr_format == 3 {
-                read_json(&path.join("zarr.json"))
-                    .is_ok_and(|j| j.get("node_type").and_then(Value::as_str) == Some("group"))
-            } else {
-                !storage::exists(&path.join(".zarray"))
-            };
-            if group {
+            if is_plain_group(path) {
                 // A plain group (such as a store's `labels/`): the images
                 // in it, no levels of its own.
                 info.inner_images = child_images(path);
@@ -359,6 +353,17 @@ pub fn inspect(path: &Path) -> Result<StoreInfo> {
     info.inner_images = inner_images(path, &mut problems);
     info.problems = problems;
     Ok(info)
+}
+
+/// Whether the Zarr node at `path` is a group, not an array: a v3
+/// `zarr.json` of `node_type` group, or a v2 `.zgroup` without `.zarray`.
+pub(crate) fn is_plain_group(path: &Path) -> bool {
+    let v3 = path.join("zarr.json");
+    if storage::exists(&v3) {
+        read_json(&v3).is_ok_and(|j| j.get("node_type").and_then(Value::as_str) == Some("group"))
+    } else {
+        storage::exists(&path.join(".zgroup")) && !storage::exists(&path.join(".zarray"))
+    }
 }
 
 /// The multiscale images directly inside a local group folder.

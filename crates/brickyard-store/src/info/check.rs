@@ -128,11 +128,7 @@ fn arrays_of(path: &Path) -> Result<Vec<(String, PathBuf, Option<usize>)>> {
     let levels: Vec<PathBuf> = match read_multiscale(path)? {
         Some(m) => m.datasets.iter().map(|d| path.join(&d.path)).collect(),
         None => {
-            let group = match crate::omezarr::read_json(&path.join("zarr.json")) {
-                Ok(j) => j.get("node_type").and_then(|t| t.as_str()) == Some("group"),
-                Err(_) => path.join(".zgroup").exists() && !path.join(".zarray").exists(),
-            };
-            if group {
+            if super::is_plain_group(path) {
                 // A plain group (a store's `labels/`): no array to read.
                 return Err(StoreError::invalid(
                     path,

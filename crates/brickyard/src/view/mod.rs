@@ -234,14 +234,7 @@ pub fn run(c: ViewCmd, demo_store: impl FnOnce() -> Result<PathBuf>) -> Result<i
         pool.get_or_insert(256 << 20);
         host.get_or_insert(1 << 30);
     }
-    // The views' images, their textures and the window's frame buffers:
-    // together about the window's pixels.
-    if c.read_delay_ms > 60_000 {
-        bail!(
-            "read-delay-ms: expected at most 60000 (a minute per brick read), found {}",
-            c.read_delay_ms
-        );
-    }
+    crate::render::check_read_delay(c.read_delay_ms)?;
     if accumulate > brickyard_render::savr::MAX_FRAMES {
         bail!(
             "accumulate: N frames between 0 and {}, got {}",
@@ -274,6 +267,8 @@ pub fn run(c: ViewCmd, demo_store: impl FnOnce() -> Result<PathBuf>) -> Result<i
         memory,
         pool,
         host,
+        // The views' images, their textures and the window's frame
+        // buffers: together about the window's pixels.
         ww as u64 * wh as u64,
         levels.len(),
         crate::memory::WINDOW_BYTES + accum_bytes,
