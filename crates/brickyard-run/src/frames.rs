@@ -3,8 +3,8 @@
 //!
 //! - **Batch** (the default of `render`): the session waits for each
 //!   frame's requests to load before inserting them, requests and uploads
-//!   are sized to the pool, and a first pass at a quarter of the pixels
-//!   and a quarter of the samples along each ray (with the level of detail
+//!   are sized to the pool, and a first pass at a fraction of the pixels
+//!   ([`pass_divisor`]) and a quarter of the samples along each ray (with the level of detail
 //!   of the full image) finds most of the working set cheaply. The full
 //!   image is drawn once that pass asks for nothing; what the pass missed
 //!   the full image's next frames ask for, and they draw again only the
@@ -43,7 +43,7 @@ pub struct DriveOptions {
     pub lod: Lod,
     /// Draw only the tile rows `[start, end)` (CPU; see
     /// [`Tiles::band`]): one rank's share of an image-parallel render; the
-    /// request pass draws the rows of its half-size image that cover the
+    /// request pass draws the rows of its smaller image that cover the
     /// band. The other pixels stay transparent.
     pub band: Option<(u32, u32)>,
 }
@@ -51,7 +51,8 @@ pub struct DriveOptions {
 /// One frame as the loop saw it (for progress lines).
 pub struct FrameInfo<'a> {
     pub frame: usize,
-    /// The request pass (a quarter of the pixels) rather than the image.
+    /// The request pass (a fraction of the pixels, [`pass_divisor`])
+    /// rather than the image.
     pub pass: bool,
     pub ms: f64,
     pub bias: f64,
@@ -69,6 +70,14 @@ pub struct Outcome {
     pub budget: LodBudget,
     pub completeness: f64,
     pub seconds: f64,
+}
+
+/// The request pass's width and height are the image's divided by this:
+/// the largest of 2, 4 and 8 that leaves the pass at least 256 pixels on
+/// its shorter side (2 for smaller images).
+pub fn pass_divisor(width: u32, height: u32) -> u32 {
+    let short = width.min(height);
+    [8, 4].into_iter().find(|d| short / d >= 256).unwrap_or(2)
 }
 
 /// The signals of a frame for the LOD budget.
@@ -90,21 +99,27 @@ pub fn drive(
     let lod = opt.lod;
     let levels = scene.levels.len();
     let mut frames = 0;
-    // The request pass: half the width and height, one level finer than
-    // the automatic rule would pick for that size, which is the level the
-    // full image asks for (the pixel footprint doubles), and a quarter of
-    // the samples along each ray: rays cross the same bricks and, with the
-    // opacity corrected for the longer step, end about where they would
-    // (at 512³ and 1024² the full frames then asked for 25 bricks more
-    // than the pass's 1915, against 22 more than 1917 at the full rate;
-    // the pass drew 4.2 M samples instead of 16.9 M).
+    // The request pass: the image's width and height divided by
+    // `pass_divisor` (2, 4 or 8), as many levels finer than the automatic
+    // rule would pick for that size as the divisor's log2, which is the
+    // level the full image asks for (the pixel footprint grows by the
+    // divisor), and a quarter of the samples along each ray: rays cross
+    // the same bricks and, with the opacity corrected for the longer step,
+    // end about where they would. A brick of the level the image draws
+    // spans tens of its pixels, so pass rays a few pixels apart still
+    // cross every brick that shows; the few they pass between, the full
+    // image asks for (at 512³ and 1920×1080: 35 bricks more than the
+    // pass's 1915 at a quarter of the width, 16 at half of it, while the
+    // first pass took a third of the time; BENCHMARKS.md).
+    let div = pass_divisor(params.width, params.height);
     let small = (opt.batch && params.width >= 128 && params.height >= 128).then(|| {
         let mut p = params.clone();
-        p.width = params.width / 2;
-        p.height = params.height / 2;
+        p.width = params.width / div;
+        p.height = params.height / div;
         p.samples_per_voxel = params.samples_per_voxel * 0.25;
         p
     });
+    let pass_bias = f64::from(div).log2();
     // First the request pass (while it finds bricks to ask for), then full
     // frames until the budget says stop; at least one full frame. Passes
     // count among `max_frames`: the last frame it allows is always a full
@@ -129,7 +144,9 @@ pub fn drive(
             (Some(sp), true) => (
                 sp,
                 match budget.apply(lod, levels) {
-                    Lod::Auto { bias } => Lod::Auto { bias: bias - 1.0 },
+                    Lod::Auto { bias } => Lod::Auto {
+                        bias: bias - pass_bias,
+                    },
                     fixed => fixed,
                 },
             ),
@@ -142,9 +159,9 @@ pub fn drive(
             }
             _ => match opt.band {
                 Some((a, b)) => {
-                    // The pass's tile row r covers the image's rows 2r and
-                    // 2r + 1 (half the pixels, tiles of the same size).
-                    let rows = if pass { a / 2..b.div_ceil(2) } else { a..b };
+                    // The pass's tile row r covers the image's rows
+                    // div·r to div·r + div − 1 (tiles of the same size).
+                    let rows = if pass { a / div..b.div_ceil(div) } else { a..b };
                     backend.frame_band(s, scene, p, l, rows)?
                 }
                 None => backend.frame(s, scene, p, l)?,
@@ -200,4 +217,30 @@ pub fn drive(
         completeness,
         seconds: t0.elapsed().as_secs_f64(),
     })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::pass_divisor;
+
+    /// The pass keeps at least 256 pixels on its shorter side, and takes
+    /// the largest divisor that does (up to 8).
+    #[test]
+    fn pass_divisor_keeps_256_pixels_on_the_shorter_side() {
+        assert_eq!(pass_divisor(512, 512), 2);
+        assert_eq!(pass_divisor(800, 600), 2);
+        assert_eq!(pass_divisor(1024, 1024), 4);
+        assert_eq!(pass_divisor(1920, 1080), 4);
+        assert_eq!(pass_divisor(3840, 2160), 8);
+        assert_eq!(pass_divisor(8192, 8192), 8);
+        assert_eq!(pass_divisor(200, 4000), 2);
+        for w in (128..5000).step_by(37) {
+            for h in (128..5000).step_by(41) {
+                let d = pass_divisor(w, h);
+                assert!([2, 4, 8].contains(&d));
+                assert!(d == 2 || w.min(h) / d >= 256, "{w}x{h}: {d}");
+                assert!(d == 8 || w.min(h) / (2 * d) < 256, "{w}x{h}: {d}");
+            }
+        }
+    }
 }

@@ -10,7 +10,8 @@ use brickyard_store::info::human_bytes;
 pub const FIXED_BYTES: u64 = 48 << 20;
 
 /// Bytes of image buffers per pixel of a render: the frame (RGBA f32)
-/// twice (the one drawn and the last kept), the request pass (a quarter),
+/// twice (the one drawn and the last kept), the request pass (at most a
+/// quarter),
 /// and the 8-bit copy written to PNG.
 pub const IMAGE_BYTES_PER_PIXEL: u64 = 16 * 2 + 4 + 4;
 
