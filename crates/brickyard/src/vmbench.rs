@@ -702,12 +702,25 @@ pub fn render(dir: &Path, dims: Dims3, dtype: DType, o: &RenderBench) -> Result<
             warm_session = Some((s, backend));
         }
         // From the warm host cache again, the way `render` draws a view:
-        // batch mode (a quarter-size request pass, frames waiting for
+        // requests and uploads sized to the pool and host cache, the
+        // coarsest levels pinned (loaded first, timed), then batch mode
+        // (a request pass at a fraction of the pixels, frames waiting for
         // their bricks), to a complete view.
         let batch_s = match &st {
             Some(st) => {
-                let mut s = Session::with_cache(st, cfg.clone(), host.clone(), 2)?;
+                let t = Instant::now();
+                let slot =
+                    brick.map(|b| b + 2 * cfg.apron).iter().product::<u64>() * dtype.size() as u64;
+                let batch_cfg = VmConfig {
+                    request_cap: (cfg.pool_bytes.min(host.budget()) / slot).clamp(256, 4096)
+                        as usize,
+                    upload_bytes_per_frame: cfg.pool_bytes,
+                    ..cfg.clone()
+                };
+                let mut s = Session::with_cache(st, batch_cfg, host.clone(), 2)?;
                 s.set_batch(Some(Duration::from_secs(30)));
+                s.pin_coarsest(512, Duration::from_secs(120))
+                    .map_err(|e| anyhow::anyhow!("pool: {e}"))?;
                 let (choice, update) = match name.strip_suffix("-host") {
                     Some(c) => (c, crate::backend::GpuUpdate::Host),
                     None => (name.as_str(), crate::backend::GpuUpdate::Device),
@@ -722,7 +735,6 @@ pub fn render(dir: &Path, dims: Dims3, dtype: DType, o: &RenderBench) -> Result<
                     lod: Lod::Auto { bias: 0.0 },
                     band: None,
                 };
-                let t = Instant::now();
                 let out = crate::frames::drive(
                     &mut backend,
                     &mut s,
