@@ -301,7 +301,16 @@ impl Session {
         &mut self,
         collectors: impl IntoIterator<Item = &'a Requests>,
     ) -> FrameStats {
-        let frame = self.vm.end_frame(collectors);
+        // Bricks that arrived while the frame was drawn are inserted below:
+        // they are not asked for again, and the cap goes to the next most
+        // wanted. (Asked for again, they took the cap's places: a streamed
+        // view without waits then loaded nothing every other frame.)
+        let early = self.loader.poll();
+        let mut delivered = early.len();
+        self.waiting.extend(early);
+        let here: std::collections::HashSet<BrickKey> =
+            self.waiting.iter().map(|b| b.key).collect();
+        let frame = self.vm.end_frame_without(collectors, |k| here.contains(&k));
         let n = frame.requests.len() as u32;
         let wanted: Vec<(BrickKey, u32)> = frame
             .requests
@@ -320,7 +329,7 @@ impl Session {
         }
         let arrived = self.loader.poll();
         let failed = self.collect_failures();
-        let delivered = arrived.len();
+        delivered += arrived.len();
         self.waiting.extend(arrived);
         let batch: Vec<Arc<LoadedBrick>> = self.waiting.iter().cloned().collect();
         let insert = self.vm.insert(&batch);

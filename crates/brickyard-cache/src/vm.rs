@@ -920,6 +920,18 @@ impl VirtualMemory {
         &mut self,
         collectors: impl IntoIterator<Item = &'a Requests>,
     ) -> FrameReport {
+        self.end_frame_without(collectors, |_| false)
+    }
+
+    /// [`end_frame`](Self::end_frame), leaving out of the request list,
+    /// before it is capped, the bricks for which `here` is true (bricks
+    /// that have arrived and are about to be inserted): the cap goes to
+    /// the next most wanted.
+    pub fn end_frame_without<'a>(
+        &mut self,
+        collectors: impl IntoIterator<Item = &'a Requests>,
+        here: impl Fn(BrickKey) -> bool,
+    ) -> FrameReport {
         let mut dropped = 0;
         for r in collectors {
             dropped += r.dropped;
@@ -940,6 +952,7 @@ impl VirtualMemory {
                 !f
             })
             .map(|(&k, &n)| (BrickKey::unpack(k), n))
+            .filter(|(k, _)| !here(*k))
             .collect();
         let requested = list.len();
         let list = crate::bookkeeping::prioritize(list, self.cfg.request_cap);

@@ -3,6 +3,7 @@
 //! equals clamp-to-edge sampling of the level that served it (read whole
 //! from the store), and a still view completes.
 
+use brickyard_cache::brick::BrickKey;
 use brickyard_cache::session::Session;
 use brickyard_cache::vm::VmConfig;
 use brickyard_core::{dispatch_dtype, DType, Dims3, Sample};
@@ -166,4 +167,67 @@ fn streamed_samples_are_exact_and_a_still_view_completes() {
         "{checked} of {} samples served",
         300 * 30
     );
+}
+
+/// Bricks that arrived while a frame was drawn are inserted at its end and
+/// not asked for again: each frame's capped request list goes to bricks
+/// not here yet. A view of eight caps' worth of bricks then fills in about
+/// eight frames, each inserting bricks, where asking again for the bricks
+/// just arrived took two frames a cap (every other frame loaded nothing).
+#[test]
+fn bricks_that_arrived_are_not_asked_for_again() {
+    let dir = tempfile::tempdir().unwrap();
+    let store = dir.path().join("v.ome.zarr");
+    let src = Procedural::new(Kind::Mandelbulb, [64; 3], DType::U8);
+    let opts = ConvertOptions {
+        brick: [16; 3],
+        shard: [32; 3],
+        ..Default::default()
+    };
+    convert(&src, &store, &opts, &NoProgress, &AtomicBool::new(false)).unwrap();
+    let cap = 64;
+    let cfg = VmConfig {
+        brick: [8; 3],
+        apron: 1,
+        pool_bytes: 1024 * (10 * 10 * 10 + 64 * 8),
+        request_cap: cap,
+        upload_bytes_per_frame: 64 << 20,
+        ..Default::default()
+    };
+    let mut s = Session::open(&store, cfg, 64 << 20, 2).unwrap();
+    // The view: every brick of level 0 (8³ = 512, eight caps), most
+    // wanted first in a fixed order.
+    let keys: Vec<BrickKey> = (0..512u32)
+        .map(|i| BrickKey::new(0, 0, [i / 64, i / 8 % 8, i % 8]))
+        .collect();
+    let mut inserting_frames = 0;
+    let mut frames = 0;
+    while keys.iter().any(|k| !s.vm().is_resident(*k)) {
+        frames += 1;
+        assert!(frames <= 40, "the view did not fill in 40 frames");
+        s.begin_frame();
+        let mut req = s.vm().requests();
+        for (i, k) in keys.iter().enumerate() {
+            if !s.vm().is_resident(*k) {
+                req.add(*k, 1000 - i as u32);
+            }
+        }
+        // Whatever was asked for before has arrived by the frame's end
+        // (a frame drawn slower than the loader loads).
+        assert!(s.loader().wait_idle(std::time::Duration::from_secs(20)));
+        let st = s.finish_frame([&req]);
+        assert!(st.frame.requests.len() <= cap);
+        // No request for a brick that is here now.
+        for k in &st.frame.requests {
+            assert!(
+                !s.vm().is_resident(*k),
+                "frame {frames}: asked for {k:?}, which arrived"
+            );
+        }
+        inserting_frames += usize::from(st.insert.inserted > 0);
+    }
+    // The first frame only asks; each after it inserts a cap's worth.
+    assert_eq!(inserting_frames, frames - 1);
+    assert!(frames <= 512 / cap + 2, "{frames} frames");
+    s.vm().check_invariants().unwrap();
 }
