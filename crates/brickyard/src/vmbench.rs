@@ -671,8 +671,23 @@ pub fn render(dir: &Path, dims: Dims3, dtype: DType, o: &RenderBench) -> Result<
             let (mut frames, mut first_frame_ms) = (0, 0.0);
             let (mut up, mut down, mut upload_ms) = (0u64, 0u64, 0.0);
             let mut completeness: f64;
+            // As the viewer streams a view: on the CPU each frame after the
+            // first draws again only the tiles that were not settled.
+            let mut last = None;
+            let lod = Lod::Auto { bias: 0.0 };
             loop {
-                let f = backend.frame(&mut s, &scene, &p, Lod::Auto { bias: 0.0 })?;
+                let mut f = match last.take() {
+                    Some((img, tiles)) => {
+                        backend.frame_again(&mut s, &scene, &p, lod, img, tiles)?
+                    }
+                    None => backend.frame(&mut s, &scene, &p, lod)?,
+                };
+                if let Some(tiles) = f.tiles.take() {
+                    last = Some((
+                        std::mem::replace(&mut f.image, brickyard_render::Image::new(0, 0)),
+                        tiles,
+                    ));
+                }
                 (up, down, upload_ms) = (up + f.up, down + f.down, upload_ms + f.upload_ms);
                 if frames == 0 {
                     first_frame_ms = t.elapsed().as_secs_f64() * 1e3;
