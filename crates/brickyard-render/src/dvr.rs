@@ -3,11 +3,15 @@
 //! sample there is step 0 of the new level's grid), bricks the transfer
 //! function hides crossed in one landing, fixed-point runs through
 //! resident bricks that cross clear cells, and the fallback to coarser
-//! levels for bricks not resident, crossing the regions where the
-//! stand-in hides every sample. A ray may start at its entry depth
-//! (`entry.rs`), past clear space the walk would cross without sampling.
-//! `dvr.wgsl` is the device twin (it samples every step of a stand-in's
-//! region and starts at the volume's face; the images are the same).
+//! levels for bricks not resident: after a sample a resident stand-in
+//! served, the same kind of run through the stand-in's brick at the
+//! finer level's steps (crossing the stand-in's clear cells), and where
+//! the stand-in is one value that hides every sample, one landing past
+//! its region. A ray may start at its entry depth (`entry.rs`), past
+//! clear space the walk would cross without sampling. `dvr.wgsl` is the
+//! device twin (it samples every step of a stand-in's region from the
+//! ray parameter and starts at the volume's face; the images are the
+//! same, within the runs' rounding of positions).
 
 use crate::cpu::FrameStats;
 use crate::lanes::F4;
@@ -198,7 +202,7 @@ impl<'f, 'a, T: Sample> Walker<'f, 'a, T> {
                     ray,
                 };
                 let io = (&mut acc, &mut lanes);
-                let (done, n, passed) = match (&shading, interior) {
+                let (done, n, passed, _) = match (&shading, interior) {
                     (None, true) => self.run_steps::<LANES, false, true>(&mut run, &r, io, req, st),
                     (None, false) => {
                         self.run_steps::<LANES, false, false>(&mut run, &r, io, req, st)
@@ -220,67 +224,73 @@ impl<'f, 'a, T: Sample> Walker<'f, 'a, T> {
                 k = self.skip_unserved(level, ray, &track, (g, k), t1.min(next_t), st);
                 continue;
             };
-            if let Some(mut c) = f.tf_eval.lookup_visible(v) {
-                if let Some(sh) = &shading {
-                    c = self.shade(sh, c, (level, w, d), req, st);
-                }
-                if composite(&mut acc, &mut lanes, c, exponent) && terminate {
-                    break;
-                }
-            } else {
-                // Hidden: a stand-in may hide the samples after it too.
-                let g = Grid { base_t, dt, inv_dt };
-                let lim = (t1.min(next_t), t1);
-                if let Some(kn) = self.skip_hidden_stand_in(level, ray, inv_dir, w, (g, k), lim, st)
-                {
-                    k = kn;
-                    continue;
-                }
-            }
-            if shading.is_some() {
-                // (Gradients look up bricks around each sample: the
-                // bricks a run relies on may change under it.)
-                continue;
-            }
-            // Served by a resident stand-in: the next steps that the same
-            // stand-in brick serves, sampled there without the lookups
-            // (the same positions, voxels and kernel as `value`).
-            let g = Grid { base_t, dt, inv_dt };
-            let lim = (t1.min(next_t), t1);
-            let Some((lv, vox, lo, end)) = self.stand_in_run(level, ray, inv_dir, (g, k), lim)
-            else {
-                continue;
-            };
-            let [sz, sy] = f.stride;
-            let (mut j, mut jumped, mut done) = (k, None, false);
-            while j < end {
-                let w = ray.at(step_t(base_t, j, dt));
-                j += 1;
-                let (b, fr) = f.coords(lv, w);
-                let v = trilinear(vox, f.local_index(b, lo), sz, sy, fr);
-                if let Some(c) = f.tf_eval.lookup_visible(v) {
+            let hidden = match f.tf_eval.lookup_visible(v) {
+                Some(mut c) => {
+                    if let Some(sh) = &shading {
+                        c = self.shade(sh, c, (level, w, d), req, st);
+                    }
                     if composite(&mut acc, &mut lanes, c, exponent) && terminate {
-                        done = true;
                         break;
                     }
-                } else if let Some(kn) =
-                    self.skip_hidden_stand_in(level, ray, inv_dir, w, (g, j), lim, st)
-                {
-                    jumped = Some(kn);
-                    break;
+                    false
                 }
-            }
-            // Each step a sample served by the stand-in and a miss of the
-            // brick of `level`, as `value` counts them.
-            let n = j - k;
-            st.steps += n;
+                None => true,
+            };
+            let g = Grid { base_t, dt, inv_dt };
+            let lim = (t1.min(next_t), t1);
+            // Served by a resident stand-in: the next steps that the same
+            // stand-in brick serves, taken there without the lookups by a
+            // fixed-point run at this level's step, as through a resident
+            // brick (the same kernel, lanes and exact crossing of clear
+            // cells; positions within `Run`'s rounding of `value`'s). Not
+            // with shading: gradients look up bricks around each sample,
+            // and the bricks a run relies on may change under it.
+            let run = match shading {
+                None => self.stand_in_run(level, ray, inv_dir, (g, k), lim),
+                Some(_) => None,
+            };
+            let Some((lv, vox, lo, end)) = run else {
+                // Hidden: a stand-in may hide the samples after it too.
+                if hidden {
+                    if let Some(kn) =
+                        self.skip_hidden_stand_in(level, ray, inv_dir, w, (g, k), lim, st)
+                    {
+                        k = kn;
+                    }
+                }
+                continue;
+            };
+            let (hi, clear) = (self.cache[lv].hi, self.cache[lv].clear_cells);
+            let track_lv = self.track_of(lv, ray, inv_dir, t1);
+            let mut run = Run::new(f, lv, &track_lv, ray.at(step_t(base_t, k, dt)), lo, hi);
+            run.dq = track_lv.dq_at(dt);
+            let interior = run.interior(end - k);
+            let r = RunSteps {
+                steps: (k, end),
+                vox,
+                clear,
+                exponent,
+                terminate,
+                at: (base_t, dt, level),
+                ray,
+            };
+            let io = (&mut acc, &mut lanes);
+            let (done, n, passed, stop) = if interior {
+                self.run_steps::<LANES, false, true>(&mut run, &r, io, req, st)
+            } else {
+                self.run_steps::<LANES, false, false>(&mut run, &r, io, req, st)
+            };
+            // Each step walked a miss of the brick of `level`; each taken
+            // a sample served by the stand-in, as `value` counts them.
             st.samples += n;
+            st.skipped_cells += passed;
+            st.steps += stop - k;
             let c = &mut self.cache[level];
-            c.missed = c.missed.saturating_add(n as u32);
+            c.missed = c.missed.saturating_add((stop - k) as u32);
             if done {
                 break;
             }
-            k = jumped.unwrap_or(j);
+            k = end;
         }
         if LANES {
             lanes.rgba()
@@ -292,8 +302,8 @@ impl<'f, 'a, T: Sample> Walker<'f, 'a, T> {
     /// The steps of a run through a resident brick (`r`), from the run's
     /// current step: clear cells crossed, the others sampled, shaded
     /// (`SHADE`) and composited into `acc` or `lanes` (`LANES`). Returns
-    /// whether the ray ended (early termination), the samples taken and
-    /// the cells crossed. `INTERIOR`: every step lies within the clamp's
+    /// whether the ray ended (early termination), the samples taken, the
+    /// cells crossed and the step it stopped before. `INTERIOR`: every step lies within the clamp's
     /// bounds ([`Run::interior`]). Apart from shading, nothing in the
     /// loop writes through a reference (transparent samples are counted
     /// here, added to `st` at the end), so the frame's tables stay in
@@ -307,7 +317,7 @@ impl<'f, 'a, T: Sample> Walker<'f, 'a, T> {
         (acc, lanes): (&mut [f32; 4], &mut Acc),
         req: &mut Requests,
         st: &mut FrameStats,
-    ) -> (bool, u64, u64) {
+    ) -> (bool, u64, u64, u64) {
         let (f, ray) = (self.f, r.ray);
         let (mut j, end) = r.steps;
         let (vox, clear, exponent) = (r.vox, r.clear, r.exponent);
@@ -378,7 +388,7 @@ impl<'f, 'a, T: Sample> Walker<'f, 'a, T> {
             }
         };
         st.transparent += transparent;
-        (done, n, passed)
+        (done, n, passed, j)
     }
 }
 

@@ -143,7 +143,7 @@ impl<'f, 'a, T: Sample> Walker<'f, 'a, T> {
     }
 
     /// The track of the current ray at level `l` (see `ray_serial`).
-    fn track_of(&mut self, l: usize, ray: &Ray, inv_dir: Vec3, t_end: f64) -> Track {
+    pub(crate) fn track_of(&mut self, l: usize, ray: &Ray, inv_dir: Vec3, t_end: f64) -> Track {
         let (serial, t) = &mut self.tracks[l];
         match t {
             Some(t) if *serial == self.ray_serial => *t,

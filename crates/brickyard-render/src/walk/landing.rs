@@ -36,6 +36,14 @@ pub(crate) struct Track {
 }
 
 impl Track {
+    /// [`Run`](super::Run)'s fixed-point increment for steps of `dt` (the
+    /// track's own level's step gives [`dq`](Self::dq); a stand-in's run
+    /// takes the steps of the finer level it serves).
+    #[inline]
+    pub(crate) fn dq_at(&self, dt: f64) -> [i64; 3] {
+        self.beta.map(|b| (b * dt * FIX) as i64)
+    }
+
     /// The first grid step at or after where the ray leaves the box
     /// `[lo, hi)` or reaches `limit`, moved early by `margin` steps and a
     /// thousandth of a step (ties land before; the rounding of the exit,
