@@ -131,8 +131,8 @@ pub struct RenderCmd {
     /// renders, 64MiB with --stream).
     #[arg(long)]
     upload: Option<String>,
-    /// Requests per frame (default: what the pool and host cache hold in
-    /// batch renders, 256 with --stream).
+    /// Requests per frame (default: what the pool and host cache hold,
+    /// 256 to 4096 in batch renders, 256 to 1024 with --stream).
     #[arg(long)]
     requests: Option<usize>,
     /// Draw a frame for each batch of arriving bricks, as a viewer does,
@@ -888,11 +888,16 @@ fn run_with(
         },
         // A batch asks for as much as the pool and the host cache can take
         // at once (bricks waiting to be written are held by the host cache).
-        request_cap: c.requests.unwrap_or(if batch {
-            (split.pool.min(split.host) / slot_bytes).clamp(256, 4096) as usize
-        } else {
-            256
-        }),
+        request_cap: c.requests.unwrap_or(crate::frames::requests_per_frame(
+            split.pool,
+            split.host,
+            slot_bytes,
+            if batch {
+                4096
+            } else {
+                crate::frames::STREAM_REQUESTS
+            },
+        )),
         ..Default::default()
     };
     // The store's channel defaults (names, colours, windows); an explicit

@@ -246,11 +246,17 @@ fn open(site: &RenderSite, caches: &Caches, name: &str) -> Result<Open> {
         .entry(name.to_string())
         .or_insert_with(|| Arc::new(HostCache::new(site.host)))
         .clone();
+    let slot_bytes = 34u64.pow(3) * m.dtype.size() as u64 + 64 * 8;
     let cfg = VmConfig {
         brick: [32; 3],
         pool_bytes: site.pool,
         upload_bytes_per_frame: 64 << 20,
-        request_cap: 256,
+        request_cap: crate::frames::requests_per_frame(
+            site.pool,
+            site.host,
+            slot_bytes,
+            crate::frames::STREAM_REQUESTS,
+        ),
         ..Default::default()
     };
     let mut s = Session::with_cache(root, cfg, host, 2)?;

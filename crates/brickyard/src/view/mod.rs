@@ -274,10 +274,17 @@ pub fn run(c: ViewCmd, demo_store: impl FnOnce() -> Result<PathBuf>) -> Result<i
         crate::memory::WINDOW_BYTES + accum_bytes,
         derived_within.as_ref().map_or(0, |(_, b)| *b),
     )?;
+    let slot_bytes = (c.brick + 2).pow(3) * m.dtype.size() as u64 + 64 * 8;
     let cfg = VmConfig {
         brick: [c.brick; 3],
         pool_bytes: split.pool,
         upload_bytes_per_frame: crate::parse_bytes(&c.upload).context("--upload")?,
+        request_cap: crate::frames::requests_per_frame(
+            split.pool,
+            split.host,
+            slot_bytes,
+            crate::frames::STREAM_REQUESTS,
+        ),
         ..Default::default()
     };
     let setup = worker::Setup {
