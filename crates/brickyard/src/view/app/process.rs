@@ -152,8 +152,7 @@ impl ViewerApp {
         if name.trim().is_empty() {
             anyhow::bail!("apply: give the result a name");
         }
-        // A quarter of the viewer's budget, at least 256 MiB.
-        let memory = (self.setup.memory_budget / 4).max(256 << 20);
+        let memory = job_memory(self.setup.memory_budget);
         self.job = Some(Job::start(
             &self.stored.store,
             &pipeline,
@@ -176,6 +175,25 @@ impl ViewerApp {
         self.last_job = Some(end.clone());
         Some(end)
     }
+}
+
+/// A job's refusal for its memory ("give --memory NMiB or more") in the
+/// viewer's terms: the job's budget is a quarter of the viewer's (see
+/// [`job_memory`]), which is what a user can change.
+fn for_the_viewer(err: &str) -> Option<String> {
+    let rest = err.split("give --memory ").nth(1)?;
+    let mib: u64 = rest.split("MiB").next()?.trim().parse().ok()?;
+    Some(format!(
+        "; a job started from the viewer gets a quarter of the viewer's --memory \
+         (at least 256 MiB): start the viewer with --memory {}MiB or more",
+        mib.saturating_mul(4)
+    ))
+}
+
+/// The memory budget of a job started from the viewer: a quarter of the
+/// viewer's, at least 256 MiB.
+pub fn job_memory(viewer_budget: u64) -> u64 {
+    (viewer_budget / 4).max(256 << 20)
 }
 
 /// A whole-volume processing job started from the viewer: `brickyard
@@ -254,7 +272,11 @@ impl Job {
                 .rev()
                 .find(|l| !l.trim().is_empty())
                 .unwrap_or("");
-            JobEnd::Failed(format!("{} failed ({status}): {last}", self.pipeline))
+            let advice = for_the_viewer(last).unwrap_or_default();
+            JobEnd::Failed(format!(
+                "{} failed ({status}): {last}{advice}",
+                self.pipeline
+            ))
         })
     }
 
@@ -267,5 +289,24 @@ impl Job {
         let _ = self.child.kill();
         let _ = self.child.wait();
         let _ = std::fs::remove_file(&self.stderr_path);
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::{for_the_viewer, job_memory};
+
+    /// A job's memory refusal names the viewer's --memory that gives the
+    /// job what it asked for; other errors get no advice.
+    #[test]
+    fn a_memory_refusal_names_the_viewers_memory() {
+        let err = "error: --memory: 256.0 MiB is too small for \"gauss(40)\" on level 0 of \
+                   /data/x.ome.zarr: give --memory 292MiB or more (the filters hold …)";
+        let advice = for_the_viewer(err).unwrap();
+        assert!(advice.contains("--memory 1168MiB"), "{advice}");
+        // That viewer budget gives the job the memory it asked for.
+        assert!(job_memory(1168 << 20) >= 292 << 20);
+        assert_eq!(for_the_viewer("error: no such channel 3"), None);
+        assert_eq!(for_the_viewer("give --memory lots"), None);
     }
 }
