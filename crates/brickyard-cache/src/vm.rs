@@ -70,6 +70,16 @@ impl Default for VmConfig {
     }
 }
 
+impl VmConfig {
+    /// Bytes of one pool slot for voxels of `dtype`: the brick with its
+    /// apron and its cells' value ranges.
+    pub fn slot_bytes(&self, dtype: DType) -> u64 {
+        let padded: u64 = self.brick.iter().map(|b| b + 2 * self.apron).product();
+        let cells = CellGrid::new(self.brick).len() * std::mem::size_of::<[f32; 2]>();
+        padded * dtype.size() as u64 + cells as u64
+    }
+}
+
 /// Which entry references a slot or block (so that evicting it can unmap
 /// that entry).
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -409,12 +419,11 @@ impl VirtualMemory {
         let padded = cfg.brick.map(|b| (b + 2 * cfg.apron) as usize);
         let brick_bytes = padded.iter().product::<usize>() * dtype.size();
         let cell_grid = CellGrid::new(cfg.brick);
-        let cell_bytes = cell_grid.len() * std::mem::size_of::<[f32; 2]>();
         // Slots beyond one per brick of the volume would never be used: a
         // small volume takes a small pool (on a device, too), whatever
         // the budget.
         let bricks = layout.brick_count() * channels.max(1) as u64;
-        let slots = SlotSet::new((cfg.pool_bytes / (brick_bytes + cell_bytes) as u64).min(bricks));
+        let slots = SlotSet::new((cfg.pool_bytes / cfg.slot_bytes(dtype)).min(bricks));
         VirtualMemory {
             merged: Requests::with_capacity(cfg.request_cap * 8),
             layout,
@@ -582,9 +591,10 @@ impl VirtualMemory {
         self.slots.len() * self.slot_bytes()
     }
 
-    /// Bytes of one pool slot: a padded brick and its cells' value ranges.
+    /// Bytes of one pool slot: a padded brick and its cells' value ranges
+    /// ([`VmConfig::slot_bytes`]).
     pub fn slot_bytes(&self) -> usize {
-        self.brick_bytes + self.cell_grid.len() * 8
+        self.cfg.slot_bytes(self.dtype) as usize
     }
 
     /// Bytes of the bricks in the pool.

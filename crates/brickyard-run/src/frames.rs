@@ -35,12 +35,15 @@ use std::time::Instant;
 pub const STREAM_LOAD_WAIT: std::time::Duration = std::time::Duration::from_millis(100);
 
 /// Requests per frame: as many bricks as both the pool and the host cache
-/// hold (slots of `slot_bytes`), at least 256 and at most `most`. Batch
-/// renders take up to 4096; streamed views (`render --stream`, the viewer,
-/// remote sessions) up to [`STREAM_REQUESTS`].
+/// hold (slots of `slot_bytes`), at least 256 and at most `most`: batch
+/// renders up to [`BATCH_REQUESTS`], streamed views (`render --stream`,
+/// the viewer, remote sessions) up to [`STREAM_REQUESTS`].
 pub fn requests_per_frame(pool: u64, host: u64, slot_bytes: u64, most: usize) -> usize {
     (pool.min(host) / slot_bytes.max(1)).clamp(256, most.max(256) as u64) as usize
 }
+
+/// The most requests a frame of a batch render makes.
+pub const BATCH_REQUESTS: usize = 4096;
 
 /// The most requests a frame of a streamed view makes. Its frames take
 /// longer than the loader takes for a few hundred bricks: with 256 a frame,
@@ -235,7 +238,7 @@ pub fn drive(
 
 #[cfg(test)]
 mod tests {
-    use super::{pass_divisor, requests_per_frame, STREAM_REQUESTS};
+    use super::{pass_divisor, requests_per_frame, BATCH_REQUESTS, STREAM_REQUESTS};
 
     /// Requests per frame: what the smaller of pool and host cache holds,
     /// between 256 and the mode's most.
@@ -243,15 +246,24 @@ mod tests {
     fn requests_per_frame_follow_the_pool_and_host_cache() {
         let slot = 40 << 10;
         // A small pool: the floor.
-        assert_eq!(requests_per_frame(4 << 20, 1 << 30, slot, 4096), 256);
+        assert_eq!(
+            requests_per_frame(4 << 20, 1 << 30, slot, BATCH_REQUESTS),
+            256
+        );
         // 20 MiB: 512 slots, under either cap.
-        assert_eq!(requests_per_frame(20 << 20, 2 << 30, slot, 4096), 512);
+        assert_eq!(
+            requests_per_frame(20 << 20, 2 << 30, slot, BATCH_REQUESTS),
+            512
+        );
         assert_eq!(
             requests_per_frame(2 << 30, 20 << 20, slot, STREAM_REQUESTS),
             512
         );
         // Large budgets: the mode's cap.
-        assert_eq!(requests_per_frame(1 << 30, 1 << 30, slot, 4096), 4096);
+        assert_eq!(
+            requests_per_frame(1 << 30, 1 << 30, slot, BATCH_REQUESTS),
+            4096
+        );
         assert_eq!(
             requests_per_frame(1 << 30, 1 << 30, slot, STREAM_REQUESTS),
             1024

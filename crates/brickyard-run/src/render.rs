@@ -873,7 +873,11 @@ fn run_with(
         Some(d) => d.dtype,
         None => m.dtype,
     };
-    let slot_bytes = (c.brick + 2).pow(3) * dtype.size() as u64 + 64 * 8;
+    let slot_bytes = VmConfig {
+        brick: [c.brick; 3],
+        ..Default::default()
+    }
+    .slot_bytes(dtype);
     let cfg = VmConfig {
         brick: [c.brick; 3],
         pool_bytes: split.pool,
@@ -893,7 +897,7 @@ fn run_with(
             split.host,
             slot_bytes,
             if batch {
-                4096
+                crate::frames::BATCH_REQUESTS
             } else {
                 crate::frames::STREAM_REQUESTS
             },

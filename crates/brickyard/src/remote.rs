@@ -246,19 +246,18 @@ fn open(site: &RenderSite, caches: &Caches, name: &str) -> Result<Open> {
         .entry(name.to_string())
         .or_insert_with(|| Arc::new(HostCache::new(site.host)))
         .clone();
-    let slot_bytes = 34u64.pow(3) * m.dtype.size() as u64 + 64 * 8;
-    let cfg = VmConfig {
+    let mut cfg = VmConfig {
         brick: [32; 3],
         pool_bytes: site.pool,
         upload_bytes_per_frame: 64 << 20,
-        request_cap: crate::frames::requests_per_frame(
-            site.pool,
-            site.host,
-            slot_bytes,
-            crate::frames::STREAM_REQUESTS,
-        ),
         ..Default::default()
     };
+    cfg.request_cap = crate::frames::requests_per_frame(
+        site.pool,
+        site.host,
+        cfg.slot_bytes(m.dtype),
+        crate::frames::STREAM_REQUESTS,
+    );
     let mut s = Session::with_cache(root, cfg, host, 2)?;
     // A frame waits a little for the bricks it asked for (the session's
     // messages wait meanwhile).

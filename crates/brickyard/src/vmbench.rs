@@ -724,11 +724,13 @@ pub fn render(dir: &Path, dims: Dims3, dtype: DType, o: &RenderBench) -> Result<
         let batch_s = match &st {
             Some(st) => {
                 let t = Instant::now();
-                let slot =
-                    brick.map(|b| b + 2 * cfg.apron).iter().product::<u64>() * dtype.size() as u64;
                 let batch_cfg = VmConfig {
-                    request_cap: (cfg.pool_bytes.min(host.budget()) / slot).clamp(256, 4096)
-                        as usize,
+                    request_cap: crate::frames::requests_per_frame(
+                        cfg.pool_bytes,
+                        host.budget(),
+                        cfg.slot_bytes(dtype),
+                        crate::frames::BATCH_REQUESTS,
+                    ),
                     upload_bytes_per_frame: cfg.pool_bytes,
                     ..cfg.clone()
                 };

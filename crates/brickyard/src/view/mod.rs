@@ -274,19 +274,18 @@ pub fn run(c: ViewCmd, demo_store: impl FnOnce() -> Result<PathBuf>) -> Result<i
         crate::memory::WINDOW_BYTES + accum_bytes,
         derived_within.as_ref().map_or(0, |(_, b)| *b),
     )?;
-    let slot_bytes = (c.brick + 2).pow(3) * m.dtype.size() as u64 + 64 * 8;
-    let cfg = VmConfig {
+    let mut cfg = VmConfig {
         brick: [c.brick; 3],
         pool_bytes: split.pool,
         upload_bytes_per_frame: crate::parse_bytes(&c.upload).context("--upload")?,
-        request_cap: crate::frames::requests_per_frame(
-            split.pool,
-            split.host,
-            slot_bytes,
-            crate::frames::STREAM_REQUESTS,
-        ),
         ..Default::default()
     };
+    cfg.request_cap = crate::frames::requests_per_frame(
+        split.pool,
+        split.host,
+        cfg.slot_bytes(m.dtype),
+        crate::frames::STREAM_REQUESTS,
+    );
     let setup = worker::Setup {
         store: store.clone(),
         cfg,
