@@ -56,6 +56,12 @@
 //! and later frames leave it alone. Memory never exceeds
 //! `max(budget, S)·5` bytes a pixel.
 //!
+//! Run 0 must fit too: where the longest ray of the view would take more
+//! samples than the budget at the level of detail asked for, the
+//! accumulation samples coarser levels ([`lod_within`]), whose larger step
+//! takes fewer samples. A small budget thus costs detail, never the ray's
+//! end (the device's store, fixed per pixel, cannot hold more).
+//!
 //! # Out of core
 //!
 //! Samples are looked up through the virtual memory like the plain
@@ -359,6 +365,10 @@ impl Accumulation {
             "the samples of this accumulation keep no normals: start a new one to shade"
         );
         self.early = params.early_termination;
+        // The first run always fits the store (the CPU could grow it, but
+        // keeps the device's rule: its twin).
+        let lod = lod_within(scene, params, lod, self.budget as u64)
+            .unwrap_or(Lod::Fixed(scene.levels.len() - 1));
         let end = self.row0 + self.rows;
         let rows = rows.start.clamp(self.row0, end)..rows.end.clamp(self.row0, end);
         dispatch_dtype!(vm.dtype(), T => { self.frame_typed::<T>(vm, scene, params, lod, rows) })
@@ -485,6 +495,54 @@ impl Accumulation {
             .sum::<usize>()
             .into()
     }
+}
+
+/// Samples of the longest run a ray can take at `level`'s step: a ray's
+/// span in the volume is at most the box's diagonal.
+pub fn longest_run(scene: &Scene, params: &RenderParams, level: usize) -> u64 {
+    let e = scene.extent;
+    let diagonal = (e[0] * e[0] + e[1] * e[1] + e[2] * e[2]).sqrt();
+    (diagonal / (scene.voxel(level) / params.samples_per_voxel)).ceil() as u64 + 2
+}
+
+/// The level of detail at which every ray's first run of samples fits
+/// `budget` samples: `lod` itself where it does, else `lod` moved to the
+/// finest level `F` whose longest run fits (a fixed level no finer than
+/// `F`; an automatic one with its bias raised so that the nearest point of
+/// the volume asks for `F` or coarser, or fixed at `F` when the eye is
+/// inside the volume). `None` when not even the coarsest level's run fits.
+pub fn lod_within(scene: &Scene, params: &RenderParams, lod: Lod, budget: u64) -> Option<Lod> {
+    let n = scene.levels.len();
+    let finest = (0..n).find(|&l| longest_run(scene, params, l) <= budget)?;
+    if finest == 0 {
+        return Some(lod);
+    }
+    Some(match lod {
+        Lod::Fixed(l) => Lod::Fixed(l.max(finest)),
+        Lod::Auto { bias } => {
+            // The footprint grows with the distance (perspective) or is
+            // the same everywhere (orthographic): the nearest point of the
+            // box asks for the finest level.
+            let eye = params.camera.eye;
+            let near = (0..3)
+                .map(|a| {
+                    let d = (0.0 - eye[a]).max(eye[a] - scene.extent[a]).max(0.0);
+                    d * d
+                })
+                .sum::<f64>()
+                .sqrt();
+            let fp = params.camera.pixel_footprint(near, params.height);
+            let x = (fp / scene.voxel(0)).log2();
+            // A hundredth of a level above the threshold: the device
+            // computes in f32.
+            let want = finest as f64 + 0.01;
+            match x.is_finite() {
+                true if x + bias >= want => lod,
+                true => Lod::Auto { bias: want - x },
+                false => Lod::Fixed(finest),
+            }
+        }
+    })
 }
 
 /// Whether pixel `p` may begin run `k` of `target` with `budget` samples.

@@ -181,6 +181,13 @@ fn acc_take(px: u32, ray: Ray, k: u32, limit: u32, own: bool, e_own: f32) -> u32
             ended = true;
             break;
         }
+        // Never past the pixel's region of the store (the host chooses a
+        // level whose runs fit): a cut ray keeps the pixel incomplete.
+        if (k * cap + j >= R.acc.y) {
+            ended = true;
+            stand_ins = stand_ins + 1u;
+            break;
+        }
         let s = acc_sample(ray, t);
         let i = k * cap + j;
         set_val(px, i, s.v);

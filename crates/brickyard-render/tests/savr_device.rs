@@ -249,3 +249,76 @@ fn device_budget_and_reblend_follow_the_cpu() {
         );
     }
 }
+
+/// A store too small for one run of the view's rays at the level asked
+/// for: the accumulation samples the finest level whose runs fit, on the
+/// device as on the CPU, and completes. Before, the device wrote the runs
+/// past each pixel's region into its neighbour's samples, and the view
+/// never completed (stand-ins counted but lost).
+#[test]
+fn a_store_too_small_for_a_ray_samples_a_coarser_level() {
+    use brickyard_render::savr::{lod_within, longest_run};
+    let Some(gpu) = test_gpu() else { return };
+    let f = fixture();
+    let p = &f.params;
+    let [need0, need1] = [0, 1].map(|l| longest_run(&f.scene, p, l));
+    assert!(
+        need1 < need0,
+        "level 1 takes fewer samples: {need1} vs {need0}"
+    );
+    // The rule: level 1 where only its runs fit, the level asked for where
+    // level 0's fit, nothing where not even the coarsest level's fit.
+    let coarsest = f.scene.levels.len() - 1;
+    assert!(matches!(
+        lod_within(&f.scene, p, Lod::Fixed(0), need1),
+        Some(Lod::Fixed(1))
+    ));
+    assert!(matches!(
+        lod_within(&f.scene, p, Lod::Fixed(0), need0),
+        Some(Lod::Fixed(0))
+    ));
+    assert!(lod_within(
+        &f.scene,
+        p,
+        Lod::Fixed(0),
+        longest_run(&f.scene, p, coarsest) - 1
+    )
+    .is_none());
+    match lod_within(&f.scene, p, Lod::Auto { bias: -3.0 }, need1) {
+        Some(Lod::Auto { bias }) => assert!(bias > -3.0, "bias {bias} not raised"),
+        other => panic!("automatic level of detail became {other:?}"),
+    }
+
+    let mut r = GpuRenderer::new(&gpu);
+    let budget = need1 as usize;
+    let mut s = session(&f.store, 64 << 20);
+    let (mut dvm, _) = DeviceVm::new(&gpu, s.vm_mut()).unwrap();
+    let mut dacc = DeviceAccumulation::new(&gpu, 40, 30, 4, budget);
+    assert_eq!(dacc.budget(), budget);
+    accumulate_device(
+        &gpu,
+        &mut r,
+        &mut dvm,
+        &mut s,
+        &f,
+        p,
+        &mut dacc,
+        Lod::Fixed(0),
+    );
+    // The CPU twin under the same budget, and the CPU asked for level 1
+    // under it (the level's runs fit: the level is kept as asked).
+    let mut acc = Accumulation::new(40, 30, 4, budget);
+    accumulate(&mut s, &f, p, &mut acc, Lod::Fixed(0));
+    twins("small store", dacc.image(), acc.image());
+    let mut level1 = Accumulation::new(40, 30, 4, budget);
+    accumulate(&mut s, &f, p, &mut level1, Lod::Fixed(1));
+    twins("small store vs level 1", dacc.image(), level1.image());
+    assert!(level1.image().coverage(0.01) > 0.2, "image nearly empty");
+    // Level 0 (room to spare) draws another image.
+    let mut level0 = Accumulation::new(40, 30, 4, 1 << 16);
+    accumulate(&mut s, &f, p, &mut level0, Lod::Fixed(0));
+    assert!(
+        level0.image().max_abs_diff(level1.image()) > 1e-3,
+        "levels 0 and 1 draw the same image: the check says nothing"
+    );
+}

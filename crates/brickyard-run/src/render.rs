@@ -1767,9 +1767,11 @@ fn view_layout(c: &RenderCmd) -> Result<(u32, Option<brickyard_render::views::La
     }
 }
 
-/// The most device memory a sample store takes (the device allocates a
-/// pixel's whole budget up front; pixels whose rays need more stop at the
-/// rate it allows).
+/// The device memory a sample store may take at least (the device
+/// allocates a pixel's whole budget up front; pixels whose rays need more
+/// stop at the rate it allows, and views whose rays need more for one run
+/// are sampled at a coarser level). The pool's budget that its bricks
+/// leave unused raises it, up to what one buffer of the device holds.
 const DEVICE_STORE_BYTES: u64 = 512 << 20;
 
 /// `--progressive N`: accumulation frames of the view (whose working set
@@ -1797,8 +1799,13 @@ fn accumulate(
     let mut budget = n as usize * steps;
     if !matches!(backend, crate::backend::Backend::Cpu) {
         // The device's store is allocated whole: at most this much.
+        let vm = s.vm();
+        let spare = vm
+            .config()
+            .pool_bytes
+            .saturating_sub(vm.pool_slots() as u64 * vm.slot_bytes() as u64);
         let cap = brickyard_render::savr::device::DeviceAccumulation::budget_within(
-            DEVICE_STORE_BYTES,
+            DEVICE_STORE_BYTES.max(spare),
             params.width,
             params.height,
             n,
@@ -1816,6 +1823,23 @@ fn accumulate(
         )),
         None => Accumulating::new(backend, params, n, budget),
     };
+    // A store too small for one run of the view's rays costs detail: say so.
+    let kept = acc.budget() as u64;
+    match brickyard_render::savr::lod_within(scene, params, lod, kept) {
+        Some(fit) if fit != lod && !quiet => outln!(
+            "progressive: a pixel keeps {kept} samples, fewer than one run of the longest ray takes at the level asked for ({}); accumulating at {} (a smaller image keeps more detail)",
+            brickyard_render::savr::longest_run(scene, params, lod_finest(lod)),
+            match fit {
+                Lod::Fixed(l) => format!("level {l}"),
+                Lod::Auto { bias } => format!("a level-of-detail bias of {bias:+.2}"),
+            }
+        ),
+        None => bail!(
+            "progressive: a pixel keeps {kept} samples, fewer than one run of the longest ray takes even at the coarsest level ({}): a smaller image",
+            brickyard_render::savr::longest_run(scene, params, scene.levels.len() - 1)
+        ),
+        _ => {}
+    }
     let t = std::time::Instant::now();
     let mut left = 0;
     let band = rows
@@ -1850,6 +1874,15 @@ fn accumulate(
     bail!(
         "progressive: the accumulation did not complete ({left} stand-in samples left): the pool cannot hold the view's bricks"
     )
+}
+
+/// The finest level `lod` asks for anywhere (an automatic one: level 0,
+/// near the eye).
+fn lod_finest(lod: Lod) -> usize {
+    match lod {
+        Lod::Fixed(l) => l,
+        Lod::Auto { .. } => 0,
+    }
 }
 
 /// Where the eye is for the visibility order of regions: the camera's eye

@@ -238,6 +238,19 @@ impl DeviceAccumulation {
                 * Self::words(self.target, self.budget, true);
             self.store = Some(gpu.storage_buffer_zeroed("sample store", words * 4));
         }
+        // Every pixel's first run fits its region of the store: coarser
+        // levels where the view's rays are too long for it.
+        let coarsest = scene.levels.len() - 1;
+        let lod = super::lod_within(scene, params, lod, self.budget as u64).ok_or_else(|| {
+            GpuError::Limit {
+                what: format!(
+                    "samples of a ray at the coarsest level against the {} a pixel's store keeps (a smaller image, or fewer frames)",
+                    self.budget
+                ),
+                got: super::longest_run(scene, params, coarsest),
+                limit: self.budget as u64,
+            }
+        })?;
         let reference = params.reference_step.unwrap_or(scene.voxel(0));
         let pass = self.pass("accumulate", reference);
         let f = renderer.draw(gpu, dvm, vm, cache, scene, params, lod, Some(pass))?;
