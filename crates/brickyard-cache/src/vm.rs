@@ -412,7 +412,15 @@ impl VirtualMemory {
         for n in 1..nmax {
             let b = layout.pt_blocks[n - 1];
             let len = b.iter().product::<u64>() as usize;
-            let slots = SlotSet::new(cfg.pt_cache_blocks);
+            // No more blocks than the entries of the level above can point
+            // to in every channel (a small volume under a large cache).
+            let most: u64 = layout
+                .real
+                .iter()
+                .map(|r| r[n - 1].iter().product::<u64>())
+                .sum::<u64>()
+                * channels.max(1) as u64;
+            let slots = SlotSet::new(cfg.pt_cache_blocks.min(most.max(1)));
             pt.push((vec![PageEntry::unmapped(); slots.len() * len], slots));
             pt_block_len.push(len);
         }

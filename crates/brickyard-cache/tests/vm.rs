@@ -358,3 +358,50 @@ fn bricks_over_the_upload_budget_wait_and_the_rest_are_consumed() {
     assert_eq!(vm.resident_bricks(), 5);
     vm.check_invariants().unwrap();
 }
+
+/// The page-table caches hold no more blocks than the volume's entries can
+/// point to: a 1024³ volume of 32³ bricks under a cache of 4096 blocks per
+/// level (the benchmarks' setting) takes the few blocks its 32³ bricks
+/// need, not 4096 blocks of 16³ entries (128 MiB of tables, over a
+/// software device's buffer limit).
+#[test]
+fn page_table_caches_hold_no_more_blocks_than_the_volume_needs() {
+    let levels: Vec<_> = (0..6).map(|l| [1024u64 >> l; 3]).collect();
+    for channels in [1usize, 3] {
+        let vm = VirtualMemory::new(
+            &levels,
+            channels,
+            DType::U8,
+            VmConfig {
+                brick: [32; 3],
+                max_dir_entries: 8,
+                pt_cache_blocks: 4096,
+                ..Default::default()
+            },
+        );
+        assert!(vm.layout().pt_levels() >= 1, "the layout has page tables");
+        let lay = vm.layout();
+        for n in 1..lay.nmax() {
+            // Blocks of level n: one per entry of level n - 1, every level
+            // and channel.
+            let most: u64 = lay
+                .real
+                .iter()
+                .map(|r| r[n - 1].iter().product::<u64>())
+                .sum::<u64>()
+                * channels as u64;
+            let blocks = vm.tables()[n].len() / vm.pt_block_len(n);
+            assert_eq!(
+                blocks as u64,
+                most.min(4096),
+                "level {n}, {channels} channels"
+            );
+            assert!(
+                most < 4096,
+                "the volume needs fewer blocks than the cache holds"
+            );
+        }
+        let entries: usize = vm.tables().iter().map(|t| t.len()).sum();
+        assert!(entries * 8 < 4 << 20, "{entries} entries");
+    }
+}

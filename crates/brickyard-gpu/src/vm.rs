@@ -186,6 +186,17 @@ impl DeviceVm {
             .iter()
             .flat_map(|t| t.iter().map(|e| [e.word, e.value]))
             .collect();
+        let limit = gpu
+            .limits
+            .max_storage_buffer_binding_size
+            .min(gpu.limits.max_buffer_size);
+        if words.len() as u64 * 8 > limit {
+            return Err(GpuError::Limit {
+                what: "page tables (bytes; fewer page-table cache blocks)".into(),
+                got: words.len() as u64 * 8,
+                limit,
+            });
+        }
         let entries = gpu.storage_buffer("page tables", &words);
         let mut bytes = words.len() as u64 * 8;
         let resident = vm.resident_slots();
