@@ -442,9 +442,23 @@ impl GpuRenderer {
                 self.images.push(x);
             }
             None => {
+                let bytes = w as u64 * h as u64 * 16;
+                let limit = gpu
+                    .limits
+                    .max_storage_buffer_binding_size
+                    .min(gpu.limits.max_buffer_size);
+                if bytes > limit {
+                    return Err(GpuError::Limit {
+                        what: format!(
+                            "the image of {w}x{h} pixels (bytes, four floats a pixel; a smaller image or fewer views)"
+                        ),
+                        got: bytes,
+                        limit,
+                    });
+                }
                 // Every invocation writes its pixel: no clearing between
                 // frames.
-                let b = gpu.storage_buffer_zeroed("image", w as u64 * h as u64 * 16);
+                let b = gpu.storage_buffer_zeroed("image", bytes);
                 if self.images.len() >= KEPT {
                     self.images.remove(0);
                 }

@@ -146,50 +146,66 @@ pub fn views(
     for name in backends {
         let mut results = vec![];
         for case in &cases {
-            // From cold: a fresh session (bricks read for this case only).
-            let mut s = Session::open(&st, cfg.clone(), 1 << 30, 2)?;
-            scene.ranges = Some(std::sync::Arc::new(s.loader().brick_ranges(1 << 24)));
-            let mut backend = crate::backend::Backend::choose(
-                name,
-                crate::backend::GpuUpdate::Device,
-                &mut s,
-                1,
-            )?;
-            backend.set_read_image(false);
-            let mut frames = 0;
-            for p in &case.params {
-                loop {
-                    let f = backend.frame(&mut s, &scene, p, Lod::Fixed(0))?;
-                    frames += 1;
-                    if f.stats.completeness() >= 1.0 || frames > 2000 {
-                        break;
+            // A case the device cannot draw (its image over a buffer limit,
+            // say) is reported and the others go on.
+            let mut run = || -> anyhow::Result<(String, f64, u64)> {
+                // From cold: a fresh session (bricks read for this case only).
+                let mut s = Session::open(&st, cfg.clone(), 1 << 30, 2)?;
+                scene.ranges = Some(std::sync::Arc::new(s.loader().brick_ranges(1 << 24)));
+                let mut backend = crate::backend::Backend::choose(
+                    name,
+                    crate::backend::GpuUpdate::Device,
+                    &mut s,
+                    1,
+                )?;
+                backend.set_read_image(false);
+                let mut frames = 0;
+                for p in &case.params {
+                    loop {
+                        let f = backend.frame(&mut s, &scene, p, Lod::Fixed(0))?;
+                        frames += 1;
+                        if f.stats.completeness() >= 1.0 || frames > 2000 {
+                            break;
+                        }
                     }
                 }
-            }
-            let bytes_read = s.loader().bytes_read();
-            let resident = s.vm().resident_bricks();
-            // Warm: the best of `repeat` passes over the case's frames.
-            let mut best = f64::INFINITY;
-            let mut samples = 0;
-            for _ in 0..repeat.max(1) {
-                let mut ms = 0.0;
-                samples = 0;
-                for p in &case.params {
-                    let f = backend.frame(&mut s, &scene, p, Lod::Fixed(0))?;
-                    ms += f.render_ms;
-                    samples += f.stats.samples;
+                let bytes_read = s.loader().bytes_read();
+                let resident = s.vm().resident_bricks();
+                // Warm: the best of `repeat` passes over the case's frames.
+                let mut best = f64::INFINITY;
+                let mut samples = 0;
+                for _ in 0..repeat.max(1) {
+                    let mut ms = 0.0;
+                    samples = 0;
+                    for p in &case.params {
+                        let f = backend.frame(&mut s, &scene, p, Lod::Fixed(0))?;
+                        ms += f.render_ms;
+                        samples += f.stats.samples;
+                    }
+                    best = best.min(ms);
                 }
-                best = best.min(ms);
+                let describe = backend.describe();
+                outln!(
+                    "{}",
+                    json!({"scenario": "views", "backend": describe, "case": case.name,
+                        "size": [dims[2], dims[1], dims[0]], "dtype": dtype.short_name(), "view": [w, h],
+                        "views": count, "warm_ms": best, "samples": samples,
+                        "bytes_read_from_cold": bytes_read, "resident_bricks": resident,
+                        "threads": rayon::current_num_threads()})
+                );
+                Ok((case.name.clone(), best, bytes_read))
+            };
+            match run() {
+                Ok(r) => results.push(r),
+                Err(e) => {
+                    outln!(
+                        "{}",
+                        json!({"scenario": "views", "backend": name, "case": case.name,
+                            "error": format!("{e:#}")})
+                    );
+                    results.push((case.name.clone(), f64::NAN, 0));
+                }
             }
-            outln!(
-                "{}",
-                json!({"scenario": "views", "backend": backend.describe(), "case": case.name,
-                    "size": [dims[2], dims[1], dims[0]], "dtype": dtype.short_name(), "view": [w, h],
-                    "views": count, "warm_ms": best, "samples": samples,
-                    "bytes_read_from_cold": bytes_read, "resident_bricks": resident,
-                    "threads": rayon::current_num_threads()})
-            );
-            results.push((case.name.clone(), best, bytes_read));
         }
         let t = |i: usize| results[i].1;
         outln!(
