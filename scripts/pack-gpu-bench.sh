@@ -10,7 +10,7 @@ cd "$(dirname "${BASH_SOURCE[0]}")/.."
 cargo build --release -p brickyard
 mkdir -p dist/vulkan
 strip -o dist/brickyard target/release/brickyard
-loader=$(ldconfig -p | awk '/libvulkan\.so\.1 / {print $NF; exit}')
+loader=$(ldconfig -p | awk '/libvulkan\.so\.1 / && !p {p = $NF} END {print p}')
 if [ -n "$loader" ]; then
     cp -L "$loader" dist/vulkan/libvulkan.so.1
 else
