@@ -4,7 +4,8 @@
 # (dist/brickyard), brings the Vulkan loader along when the machine has
 # none, generates its data locally, and prints one JSON line per scenario:
 #   - the adapter and the cache-management kernels (LRU compaction,
-#     request list) beside their CPU twins;
+#     request list) beside their CPU twins, and brick uploads one call
+#     each against all in one staging buffer;
 #   - DVR at 1920x1080 of a 1024^3 Mandelbulb, full view and zoomed in, on
 #     the GPU: warm frame time, cache management per frame, upload GB/s,
 #     time to a complete view from disk (page cache dropped when root) and

@@ -54,6 +54,10 @@ pub fn pool_format(dtype: DType, r16_unorm: bool) -> PoolFormat {
     }
 }
 
+/// A brick for [`DevicePool::write_many`]: its slot, its padded voxels
+/// and its cell ranges (empty where the pool keeps none).
+pub type BrickWrite<'a> = (u32, &'a [u8], &'a [[f32; 2]]);
+
 /// The brick pool texture: `slots` padded bricks in a grid of slots
 /// (`[z, y, x]`, x fastest: slot `s` is at `(s mod gx, s / gx mod gy,
 /// s / (gx·gy))`).
@@ -332,6 +336,101 @@ impl DevicePool {
         self.uploaded += texels.len() as u64;
     }
 
+    /// Write many padded bricks at once, each with its cell ranges when
+    /// the pool keeps them (`cells` empty otherwise): `(slot, voxels,
+    /// cells)` as [`write`](Self::write) and
+    /// [`write_cells`](Self::write_cells) take them, in one staging buffer
+    /// and one submission. [`write`](Self::write) goes through
+    /// `Queue::write_texture`, which makes a staging buffer per call: two
+    /// per brick, and a frame writes thousands of bricks. Counts the bytes
+    /// moved (the bricks', not the staging buffer's padding).
+    pub fn write_many(&mut self, gpu: &Gpu, bricks: &[BrickWrite]) {
+        if bricks.is_empty() {
+            return;
+        }
+        let n: u32 = self.padded.iter().product();
+        let texels: Vec<Vec<u8>> = bricks
+            .iter()
+            .map(|&(s, voxels, _)| {
+                assert!(s < self.slots, "slot {s} of {}", self.slots);
+                assert_eq!(
+                    voxels.len(),
+                    n as usize * self.dtype.size(),
+                    "a padded brick of {:?} voxels",
+                    self.padded
+                );
+                self.texels(voxels)
+            })
+            .collect();
+        let mut items: Vec<(&wgpu::Texture, wgpu::Origin3d, &[u8])> = vec![];
+        let voxel_size = Staged::new(self.padded, self.format.texel_bytes);
+        for ((s, _, _), t) in bricks.iter().zip(&texels) {
+            items.push((&self.texture, self.origin(*s), t));
+        }
+        let mut copies = vec![(voxel_size, items)];
+        if let Some((t, c)) = &self.cells {
+            let g = self.grid;
+            let mut items = vec![];
+            for &(s, _, ranges) in bricks.iter().filter(|b| !b.2.is_empty()) {
+                assert_eq!(
+                    ranges.len(),
+                    c.iter().product::<u32>() as usize,
+                    "one range per cell"
+                );
+                let slot = [s / (g[2] * g[1]), (s / g[2]) % g[1], s % g[2]];
+                let origin = wgpu::Origin3d {
+                    x: slot[2] * c[2],
+                    y: slot[1] * c[1],
+                    z: slot[0] * c[0],
+                };
+                items.push((t, origin, bytemuck::cast_slice::<_, u8>(ranges)));
+            }
+            copies.push((Staged::new(*c, 8), items));
+        }
+        let total: u64 = copies.iter().map(|(st, it)| st.bytes(it.len())).sum();
+        let buf = gpu.device.create_buffer(&wgpu::BufferDescriptor {
+            label: Some("brick uploads"),
+            size: total,
+            usage: wgpu::BufferUsages::COPY_SRC | wgpu::BufferUsages::MAP_WRITE,
+            mapped_at_creation: true,
+        });
+        let mut enc = gpu.device.create_command_encoder(&Default::default());
+        {
+            let mut map = buf
+                .slice(..)
+                .get_mapped_range_mut()
+                .expect("a buffer mapped at creation");
+            let mut base = 0u64;
+            for (st, items) in &copies {
+                for (i, (texture, origin, bytes)) in items.iter().enumerate() {
+                    let at = base + st.offset(i);
+                    st.put(&mut map, at as usize, bytes);
+                    enc.copy_buffer_to_texture(
+                        wgpu::TexelCopyBufferInfo {
+                            buffer: &buf,
+                            layout: wgpu::TexelCopyBufferLayout {
+                                offset: at,
+                                bytes_per_row: Some(st.line),
+                                rows_per_image: Some(st.dims[1]),
+                            },
+                        },
+                        wgpu::TexelCopyTextureInfo {
+                            texture,
+                            mip_level: 0,
+                            origin: *origin,
+                            aspect: wgpu::TextureAspect::All,
+                        },
+                        st.extent(),
+                    );
+                    self.uploaded += bytes.len() as u64;
+                }
+                base += st.bytes(items.len());
+            }
+        }
+        buf.unmap();
+        gpu.queue.submit([enc.finish()]);
+    }
+
     /// Bytes written since the last call.
     pub fn take_uploaded(&mut self) -> u64 {
         std::mem::take(&mut self.uploaded)
@@ -421,5 +520,74 @@ mod tests {
         assert_eq!(f32_to_f16(1.0), 0x3c00);
         assert_eq!(f32_to_f16(-2.0), 0xc000);
         assert_eq!(f32_to_f16(100.0), 0x5640);
+    }
+}
+
+/// How boxes of `dims` texels (`[z, y, x]`) of `texel` bytes lie in a
+/// staging buffer for `copy_buffer_to_texture`, whose rows must start 256
+/// bytes apart: the rows of several boxes side by side in each 256-byte
+/// line (lanes 4-byte aligned), `lanes` boxes to a slab of `y·z` lines.
+#[derive(Debug, Clone, Copy)]
+struct Staged {
+    dims: [u32; 3],
+    /// Bytes of one row of a box.
+    row: u32,
+    /// Bytes between boxes in a line.
+    lane: u32,
+    lanes: u32,
+    /// Bytes between lines.
+    line: u32,
+}
+
+impl Staged {
+    fn new(dims: [u32; 3], texel: u32) -> Staged {
+        let align = wgpu::COPY_BYTES_PER_ROW_ALIGNMENT;
+        let row = dims[2] * texel;
+        let lane = row.next_multiple_of(4);
+        let line = lane.next_multiple_of(align);
+        Staged {
+            dims,
+            row,
+            lane,
+            lanes: (line / lane).max(1),
+            line,
+        }
+    }
+
+    fn slab(&self) -> u64 {
+        self.line as u64 * self.dims[1] as u64 * self.dims[0] as u64
+    }
+
+    /// Bytes for `n` boxes.
+    fn bytes(&self, n: usize) -> u64 {
+        (n as u64).div_ceil(self.lanes as u64) * self.slab()
+    }
+
+    /// Where box `i` begins.
+    fn offset(&self, i: usize) -> u64 {
+        let i = i as u64;
+        i / self.lanes as u64 * self.slab() + i % self.lanes as u64 * self.lane as u64
+    }
+
+    /// Box `bytes` (rows of `row` bytes, x fastest) into the mapped
+    /// staging buffer `out` at `at`, where the box begins.
+    fn put(&self, out: &mut wgpu::BufferViewMut, at: usize, bytes: &[u8]) {
+        let (row, line) = (self.row as usize, self.line as usize);
+        debug_assert_eq!(
+            bytes.len(),
+            row * self.dims[1] as usize * self.dims[0] as usize
+        );
+        for (r, src) in bytes.chunks_exact(row).enumerate() {
+            let o = at + r * line;
+            out.slice(o..o + row).copy_from_slice(src);
+        }
+    }
+
+    fn extent(&self) -> wgpu::Extent3d {
+        wgpu::Extent3d {
+            width: self.dims[2],
+            height: self.dims[1],
+            depth_or_array_layers: self.dims[0],
+        }
     }
 }

@@ -200,10 +200,11 @@ impl DeviceVm {
         let entries = gpu.storage_buffer("page tables", &words);
         let mut bytes = words.len() as u64 * 8;
         let resident = vm.resident_slots();
-        for &s in &resident {
-            pool.write(gpu, s, vm.slot_voxels(s));
-            pool.write_cells(gpu, s, vm.cell_ranges(s));
-        }
+        let bricks: Vec<_> = resident
+            .iter()
+            .map(|&s| (s, vm.slot_voxels(s), vm.cell_ranges(s)))
+            .collect();
+        pool.write_many(gpu, &bricks);
         bytes += pool.take_uploaded();
         vm.track_changes();
         use Binding::*;
@@ -298,10 +299,12 @@ impl DeviceVm {
     /// written into the pool and the page-table entries set.
     pub fn sync(&mut self, gpu: &Gpu, vm: &mut VirtualMemory) -> SyncReport {
         let ch = vm.take_changes();
-        for &s in &ch.slots {
-            self.pool.write(gpu, s, vm.slot_voxels(s));
-            self.pool.write_cells(gpu, s, vm.cell_ranges(s));
-        }
+        let bricks: Vec<_> = ch
+            .slots
+            .iter()
+            .map(|&s| (s, vm.slot_voxels(s), vm.cell_ranges(s)))
+            .collect();
+        self.pool.write_many(gpu, &bricks);
         let mut bytes = self.pool.take_uploaded();
         if !ch.entries.is_empty() {
             let ups: Vec<[u32; 4]> = ch

@@ -66,6 +66,29 @@ fn pool_holds_what_was_written_for_every_dtype() {
             5 * n as u64 * fmt.texel_bytes as u64,
             "{dtype:?}"
         );
+        // Written together: 23 bricks (several to a staging line, several
+        // slabs), some over bricks written one by one above.
+        let order: Vec<u32> = (0..23u32).map(|i| (i * 7 + 3) % 40).collect();
+        let together: Vec<(u32, Vec<u8>, Vec<f64>)> = order
+            .iter()
+            .map(|&s| {
+                let (bytes, values) = random_brick(dtype, n, 1000 + s as u64 + dtype as u64);
+                (s, bytes, values)
+            })
+            .collect();
+        let items: Vec<brickyard_gpu::pool::BrickWrite> = together
+            .iter()
+            .map(|(s, b, _)| (*s, &b[..], &[][..]))
+            .collect();
+        pool.write_many(&gpu, &items);
+        assert_eq!(
+            pool.take_uploaded(),
+            23 * n as u64 * fmt.texel_bytes as u64,
+            "{dtype:?}"
+        );
+        written.retain(|(s, _)| !order.contains(s));
+        assert!(!written.is_empty(), "some bricks written one by one remain");
+        written.extend(together.into_iter().map(|(s, _, v)| (s, v)));
         for (s, values) in &written {
             let got = pool.read_slot(&gpu, *s).unwrap();
             assert_eq!(

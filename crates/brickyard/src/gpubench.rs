@@ -2,7 +2,8 @@
 //! beside their CPU twins, in one run: LRU compaction of pools of 16k–1M
 //! slots, request collection + the capped list for a frame's misses, and
 //! the whole update step (every LRU order, slot reservation, referencing)
-//! for batches of bricks.
+//! for batches of bricks, and bricks written into the pool one call each
+//! against all in one staging buffer.
 //! Device times are wall times from submission to completion (read-back of
 //! the request list included), on whatever adapter `Gpu::new` picks.
 //!
@@ -185,6 +186,55 @@ fn update_step(gpu: &Gpu, repeat: usize, adapter: &str) -> Result<()> {
                    "pool_slots": slots, "page_table_levels": vm.layout().nmax(), "bricks": k,
                    "cpu_twin_ms": cpu_ms, "device_ms": dev_ms,
                    "readback_bytes": 32 + 4 * k, "upload_bytes": 48 * k, "adapter": adapter})
+        );
+    }
+    brick_uploads(gpu, repeat, adapter)
+}
+
+/// Padded 34³ u8 bricks (with their cell ranges) written into a device
+/// pool one call per brick (`DevicePool::write`, `write_cells`: a staging
+/// buffer each) and all in one staging buffer (`write_many`), to the
+/// device's completion.
+fn brick_uploads(gpu: &Gpu, repeat: usize, adapter: &str) -> Result<()> {
+    use brickyard_gpu::pool::DevicePool;
+    let padded = [34u32; 3];
+    let voxels = padded.iter().product::<u32>() as usize;
+    let cells = [4u32; 3];
+    let slots = 4096u32;
+    let mut pool = DevicePool::new(gpu, brickyard_core::DType::U8, padded, slots)?;
+    pool.enable_cells(gpu, cells);
+    let mut rng = Lcg(11);
+    for &k in &[64usize, 1024, 4096] {
+        let bricks: Vec<(u32, Vec<u8>, Vec<[f32; 2]>)> = (0..k)
+            .map(|i| {
+                let v: Vec<u8> = (0..voxels).map(|_| rng.below(256) as u8).collect();
+                (i as u32 % slots, v, vec![[0.0, 255.0]; 64])
+            })
+            .collect();
+        let one_by_one = best(repeat, || {
+            for (s, v, c) in &bricks {
+                pool.write(gpu, *s, v);
+                pool.write_cells(gpu, *s, c);
+            }
+            gpu.queue.submit([]);
+            let _ = gpu.device.poll(wgpu::PollType::wait_indefinitely());
+        });
+        let items: Vec<brickyard_gpu::pool::BrickWrite> = bricks
+            .iter()
+            .map(|(s, v, c)| (*s, &v[..], &c[..]))
+            .collect();
+        let together = best(repeat, || {
+            pool.write_many(gpu, &items);
+            let _ = gpu.device.poll(wgpu::PollType::wait_indefinitely());
+        });
+        let bytes = k as u64 * (voxels as u64 + 64 * 8);
+        pool.take_uploaded();
+        outln!(
+            "{}",
+            json!({"scenario": "cache-kernels", "kernel": "brick-upload", "bricks": k,
+                   "bytes": bytes, "one_by_one_ms": one_by_one, "together_ms": together,
+                   "one_by_one_gb_s": bytes as f64 / one_by_one / 1e6,
+                   "together_gb_s": bytes as f64 / together / 1e6, "adapter": adapter})
         );
     }
     Ok(())

@@ -70,6 +70,9 @@ pub fn update_on_device(
         .peekable();
     let mut done = vec![false; s.waiting().len()];
     let mut items = vec![];
+    // The bricks given slots, written into the pool together.
+    let mut writes: Vec<(u32, &[u8])> = vec![];
+    let mut cells_of: Vec<Vec<[f32; 2]>> = vec![];
     let dtype = s.vm().dtype();
     let (brick, apron, padded) = (
         s.vm().config().brick,
@@ -85,9 +88,9 @@ pub fn update_on_device(
             BrickContent::Data(v) => match given.peek() {
                 Some(&(j, slot)) if j == i => {
                     given.next();
-                    dvm.pool.write(gpu, slot, v);
                     let cells = cell_ranges_of_bytes(dtype, v, padded, brick, apron);
-                    dvm.pool.write_cells(gpu, slot, &cells);
+                    writes.push((slot, &v[..]));
+                    cells_of.push(cells);
                     Item::data(b.key, slot)
                 }
                 _ => continue,
@@ -96,6 +99,12 @@ pub fn update_on_device(
         done[i] = true;
         items.push(item);
     }
+    let writes: Vec<brickyard_gpu::pool::BrickWrite> = writes
+        .iter()
+        .zip(&cells_of)
+        .map(|(&(s, v), c)| (s, v, &c[..]))
+        .collect();
+    dvm.pool.write_many(gpu, &writes);
     let mut up = dvm.pool.take_uploaded();
     up += cache.reference(gpu, dvm, frame, &items);
     s.hand_over(&done);
