@@ -248,27 +248,49 @@ impl Session {
         self.vm.begin_frame();
     }
 
-    /// For a device that decides its updates itself (the host's virtual
-    /// memory stays empty): send the device's capped request list (most
-    /// wanted first; the device asks only for bricks it lacks) to the
-    /// loader, cancelling queued requests no longer wanted, and collect
-    /// the bricks that arrived into [`waiting`](Self::waiting) (each key
-    /// once). Returns (delivered, cancelled).
-    pub fn exchange(&mut self, requests: &[BrickKey]) -> (usize, usize) {
-        let n = requests.len() as u32;
-        let wanted: Vec<(BrickKey, u32)> = requests
+    /// A frame's end when a device decides updates (the host's virtual
+    /// memory stays empty): collect the bricks that arrived into
+    /// [`waiting`](Self::waiting) (each key once), then send the device's
+    /// request list (most wanted first; the device asks only for bricks it
+    /// lacks) to the loader without the bricks already here, capped at the
+    /// configuration's `request_cap`, cancelling queued requests no longer
+    /// wanted. A device list longer than the cap lets the cap go to bricks
+    /// not here yet (asked for again, bricks that had just arrived took the
+    /// cap's places, and every other frame loaded nothing). Returns
+    /// (delivered, cancelled, the list sent).
+    pub fn exchange(&mut self, requests: &[BrickKey]) -> (usize, usize, Vec<BrickKey>) {
+        let early = self.loader.poll();
+        let mut delivered = early.len();
+        self.take_arrivals(early);
+        let here: std::collections::HashSet<BrickKey> =
+            self.waiting.iter().map(|b| b.key).collect();
+        let sent: Vec<BrickKey> = requests
+            .iter()
+            .filter(|k| !here.contains(k))
+            .take(self.vm.config().request_cap)
+            .copied()
+            .collect();
+        let n = sent.len() as u32;
+        let wanted: Vec<(BrickKey, u32)> = sent
             .iter()
             .enumerate()
             .map(|(i, k)| (*k, n - i as u32))
             .collect();
-        let cancelled = self.loader.cancel_except(requests);
+        let cancelled = self.loader.cancel_except(&sent);
         self.loader.request(&wanted);
         if let Some(limit) = self.batch {
             self.loader.wait_idle(limit);
         }
         let arrived = self.loader.poll();
+        delivered += arrived.len();
+        self.take_arrivals(arrived);
+        (delivered, cancelled, sent)
+    }
+
+    /// Bricks arrived for a device: into [`waiting`](Self::waiting), each
+    /// key once, and no more than twice the request cap.
+    fn take_arrivals(&mut self, arrived: Vec<Arc<LoadedBrick>>) {
         self.collect_failures();
-        let delivered = arrived.len();
         let have: std::collections::HashSet<BrickKey> =
             self.waiting.iter().map(|b| b.key).collect();
         self.waiting
@@ -278,7 +300,6 @@ impl Session {
         while self.waiting.len() > keep {
             self.waiting.pop_back();
         }
-        (delivered, cancelled)
     }
 
     /// Bricks that arrived and wait to be handed to a device, oldest first.

@@ -232,3 +232,64 @@ fn bricks_that_arrived_are_not_asked_for_again() {
     assert!(frames <= 512 / cap + 2, "{frames} frames");
     s.vm().check_invariants().unwrap();
 }
+
+/// The same for a device that decides its updates (`Session::exchange`):
+/// the device's list, longer than the cap, still names the bricks that
+/// arrived since it was drawn; the cap goes to bricks not asked for yet.
+#[test]
+fn a_device_list_leaves_out_the_bricks_that_arrived() {
+    let dir = tempfile::tempdir().unwrap();
+    let store = dir.path().join("v.ome.zarr");
+    let src = Procedural::new(Kind::Mandelbulb, [64; 3], DType::U8);
+    let opts = ConvertOptions {
+        brick: [16; 3],
+        shard: [32; 3],
+        ..Default::default()
+    };
+    convert(&src, &store, &opts, &NoProgress, &AtomicBool::new(false)).unwrap();
+    let cap = 64;
+    let cfg = VmConfig {
+        brick: [8; 3],
+        apron: 1,
+        pool_bytes: 1024 * (10 * 10 * 10 + 64 * 8),
+        request_cap: cap,
+        upload_bytes_per_frame: 64 << 20,
+        ..Default::default()
+    };
+    let mut s = Session::open(&store, cfg, 64 << 20, 2).unwrap();
+    let keys: Vec<BrickKey> = (0..512u32)
+        .map(|i| BrickKey::new(0, 0, [i / 64, i / 8 % 8, i % 8]))
+        .collect();
+    // What the device holds: bricks handed over at the end of a frame.
+    let mut on_device = std::collections::HashSet::new();
+    let mut asked = std::collections::HashSet::new();
+    let mut frames = 0;
+    while on_device.len() < keys.len() {
+        frames += 1;
+        assert!(frames <= 40, "the view did not fill in 40 frames");
+        // The device's list: twice the cap of the bricks it lacks, most
+        // wanted first, drawn before the last requests arrived.
+        let list: Vec<BrickKey> = keys
+            .iter()
+            .filter(|k| !on_device.contains(*k))
+            .take(2 * cap)
+            .copied()
+            .collect();
+        assert!(s.loader().wait_idle(std::time::Duration::from_secs(20)));
+        let (_, _, sent) = s.exchange(&list);
+        assert_eq!(sent.len(), cap.min(keys.len() - asked.len()));
+        for k in &sent {
+            assert!(
+                asked.insert(*k),
+                "frame {frames}: asked again for {k:?}, which had arrived"
+            );
+        }
+        // Every brick here is handed to the device.
+        for b in s.waiting() {
+            on_device.insert(b.key);
+        }
+        let all = vec![true; s.waiting().len()];
+        s.hand_over(&all);
+    }
+    assert!(frames <= 512 / cap + 2, "{frames} frames");
+}

@@ -152,9 +152,11 @@ pub struct GpuFrame {
     /// Samples, exact samples, unserved samples and bricks crossed in one
     /// jump (the other counts of [`FrameStats`] stay 0).
     pub stats: FrameStats,
-    /// The capped request list as a collector, for `Session::finish_frame`.
+    /// The device's request list as a collector, for
+    /// `Session::finish_frame`: up to twice the cap, so that the cap can
+    /// go to bricks not here yet once those that arrived are left out.
     pub requests: Requests,
-    /// The same list, most wanted first.
+    /// The same list, most wanted first (for `Session::exchange`).
     pub list: Vec<BrickKey>,
     /// Misses dropped because the device's request table was full.
     pub dropped: u64,
@@ -796,7 +798,9 @@ impl GpuRenderer {
         for &s in &used {
             vm.mark_used(s & !EXACT_BIT, s & EXACT_BIT != 0);
         }
-        let (list, dropped) = table.list_async(gpu, vm.config().request_cap).await?;
+        // Twice the cap: the host leaves out bricks that arrived while the
+        // frame was drawn, and the cap goes to the next most wanted.
+        let (list, dropped) = table.list_async(gpu, 2 * vm.config().request_cap).await?;
         let mut requests = vm.requests();
         for &(id, n) in &list {
             requests.add(ids.key(id), n);

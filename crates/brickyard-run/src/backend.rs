@@ -357,7 +357,7 @@ impl GpuBackend {
         // Deciding and carrying over are one step here.
         let upload_ms = c.elapsed().as_secs_f64() * 1e3;
         let now = x.counts;
-        let failed_requested = f.list.iter().filter(|k| s.vm().is_failed(**k)).count();
+        let failed_requested = x.requested.iter().filter(|k| s.vm().is_failed(**k)).count();
         // Slots used at their own level, as the CPU counts them: the
         // pinned ones are stamped so at every frame's end, whether used or
         // not, and are left out.
@@ -368,8 +368,8 @@ impl GpuBackend {
                 exact_slots,
                 failed_requested,
                 frame,
-                requests: f.list.clone(),
-                requested: f.list.len(),
+                requested: x.requested.len(),
+                requests: x.requested,
                 dropped: f.dropped,
                 resident_bricks: now.resident_bricks() as usize,
                 resident_pt_blocks: vec![

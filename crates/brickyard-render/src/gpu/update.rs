@@ -12,11 +12,14 @@ use brickyard_gpu::update::{DeviceCache, Item, UpdateCounts, NONE};
 use brickyard_gpu::vm::DeviceVm;
 
 /// What one [`update_on_device`] did.
-#[derive(Debug, Clone, Copy, Default)]
+#[derive(Debug, Clone, Default)]
 pub struct DeviceUpdate {
     /// Bricks the loader delivered, and queued requests it cancelled.
     pub delivered: usize,
     pub cancelled: usize,
+    /// The requests sent to the loader: the device's list without the
+    /// bricks already here, capped (see `Session::exchange`).
+    pub requested: Vec<BrickKey>,
     /// Data bricks written, empty or constant bricks sent.
     pub inserted: usize,
     pub flagged: usize,
@@ -45,7 +48,7 @@ pub fn update_on_device(
     frame: u32,
     list: &[BrickKey],
 ) -> Result<DeviceUpdate, GpuError> {
-    let (delivered, cancelled) = s.exchange(list);
+    let (delivered, cancelled, requested) = s.exchange(list);
     // Every empty or constant brick goes; data bricks up to the upload
     // budget, oldest first.
     let budget = s.vm().config().upload_bytes_per_frame;
@@ -112,6 +115,7 @@ pub fn update_on_device(
     Ok(DeviceUpdate {
         delivered,
         cancelled,
+        requested,
         inserted,
         flagged: items.len() - inserted,
         deferred: data.len() - inserted,
