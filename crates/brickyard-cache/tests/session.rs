@@ -169,13 +169,9 @@ fn streamed_samples_are_exact_and_a_still_view_completes() {
     );
 }
 
-/// Bricks that arrived while a frame was drawn are inserted at its end and
-/// not asked for again: each frame's capped request list goes to bricks
-/// not here yet. A view of eight caps' worth of bricks then fills in about
-/// eight frames, where asking again for the bricks just arrived took two
-/// frames a cap (every other frame loaded nothing).
-#[test]
-fn bricks_that_arrived_are_not_asked_for_again() {
+/// A session over a 64³ store of 8³ bricks (512 at level 0: eight caps of
+/// `cap`), with a pool that holds them all.
+fn eight_caps_session(cap: usize) -> (tempfile::TempDir, Session) {
     let dir = tempfile::tempdir().unwrap();
     let store = dir.path().join("v.ome.zarr");
     let src = Procedural::new(Kind::Mandelbulb, [64; 3], DType::U8);
@@ -185,7 +181,6 @@ fn bricks_that_arrived_are_not_asked_for_again() {
         ..Default::default()
     };
     convert(&src, &store, &opts, &NoProgress, &AtomicBool::new(false)).unwrap();
-    let cap = 64;
     let cfg = VmConfig {
         brick: [8; 3],
         apron: 1,
@@ -194,7 +189,19 @@ fn bricks_that_arrived_are_not_asked_for_again() {
         upload_bytes_per_frame: 64 << 20,
         ..Default::default()
     };
-    let mut s = Session::open(&store, cfg, 64 << 20, 2).unwrap();
+    let s = Session::open(&store, cfg, 64 << 20, 2).unwrap();
+    (dir, s)
+}
+
+/// Bricks that arrived while a frame was drawn are inserted at its end and
+/// not asked for again: each frame's capped request list goes to bricks
+/// not here yet. A view of eight caps' worth of bricks then fills in about
+/// eight frames, where asking again for the bricks just arrived took two
+/// frames a cap (every other frame loaded nothing).
+#[test]
+fn bricks_that_arrived_are_not_asked_for_again() {
+    let cap = 64;
+    let (_dir, mut s) = eight_caps_session(cap);
     // The view: every brick of level 0 (8³ = 512, eight caps), most
     // wanted first in a fixed order.
     let keys: Vec<BrickKey> = (0..512u32)
@@ -238,25 +245,8 @@ fn bricks_that_arrived_are_not_asked_for_again() {
 /// arrived since it was drawn; the cap goes to bricks not asked for yet.
 #[test]
 fn a_device_list_leaves_out_the_bricks_that_arrived() {
-    let dir = tempfile::tempdir().unwrap();
-    let store = dir.path().join("v.ome.zarr");
-    let src = Procedural::new(Kind::Mandelbulb, [64; 3], DType::U8);
-    let opts = ConvertOptions {
-        brick: [16; 3],
-        shard: [32; 3],
-        ..Default::default()
-    };
-    convert(&src, &store, &opts, &NoProgress, &AtomicBool::new(false)).unwrap();
     let cap = 64;
-    let cfg = VmConfig {
-        brick: [8; 3],
-        apron: 1,
-        pool_bytes: 1024 * (10 * 10 * 10 + 64 * 8),
-        request_cap: cap,
-        upload_bytes_per_frame: 64 << 20,
-        ..Default::default()
-    };
-    let mut s = Session::open(&store, cfg, 64 << 20, 2).unwrap();
+    let (_dir, mut s) = eight_caps_session(cap);
     let keys: Vec<BrickKey> = (0..512u32)
         .map(|i| BrickKey::new(0, 0, [i / 64, i / 8 % 8, i % 8]))
         .collect();
