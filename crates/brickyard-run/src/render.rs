@@ -1835,7 +1835,7 @@ fn accumulate(
             }
         ),
         None => bail!(
-            "progressive: a pixel keeps {kept} samples, fewer than one run of the longest ray takes even at the coarsest level ({}): a smaller image",
+            "progressive: a pixel keeps {kept} samples (what the device's largest buffer holds over the image), fewer than one run of the longest ray takes even at the coarsest level ({}): a smaller image, or --backend cpu",
             brickyard_render::savr::longest_run(scene, params, scene.levels.len() - 1)
         ),
         _ => {}

@@ -675,6 +675,7 @@ pub fn render(dir: &Path, dims: Dims3, dtype: DType, o: &RenderBench) -> Result<
             // first draws again only the tiles that were not settled.
             let mut last = None;
             let lod = Lod::Auto { bias: 0.0 };
+            let mut next_note = Duration::from_secs(5);
             loop {
                 let mut f = match last.take() {
                     Some((img, tiles)) => {
@@ -694,6 +695,19 @@ pub fn render(dir: &Path, dims: Dims3, dtype: DType, o: &RenderBench) -> Result<
                 }
                 frames += 1;
                 completeness = f.stats.completeness();
+                // Where a long run is (a run stopped by a time limit
+                // otherwise says nothing).
+                if t.elapsed() >= next_note {
+                    next_note += Duration::from_secs(5);
+                    eprintln!(
+                        "bench render: {name}, run {}: frame {frames}, {:.2} % complete, {:.1} s, {} requests, {} bricks in",
+                        runs.len() + 1,
+                        completeness * 100.0,
+                        t.elapsed().as_secs_f64(),
+                        f.session.frame.requested,
+                        f.session.insert.inserted
+                    );
+                }
                 // A procedural volume's bricks are computed, which takes
                 // long on few cores: give up after 90 s (reported).
                 let out_of_time = if procedural {
@@ -752,6 +766,7 @@ pub fn render(dir: &Path, dims: Dims3, dtype: DType, o: &RenderBench) -> Result<
                     lod: Lod::Auto { bias: 0.0 },
                     band: None,
                 };
+                let mut next_note = Duration::from_secs(5);
                 let out = crate::frames::drive(
                     &mut backend,
                     &mut s,
@@ -759,7 +774,18 @@ pub fn render(dir: &Path, dims: Dims3, dtype: DType, o: &RenderBench) -> Result<
                     &p,
                     opt,
                     &mut budget,
-                    |_| {},
+                    |fi| {
+                        if t.elapsed() >= next_note {
+                            next_note += Duration::from_secs(5);
+                            eprintln!(
+                                "bench render: {name}, batch: frame {}, {:.2} % complete, {:.1} s, bias {:+.1}",
+                                fi.frame,
+                                fi.f.stats.completeness() * 100.0,
+                                t.elapsed().as_secs_f64(),
+                                fi.bias
+                            );
+                        }
+                    },
                 )?;
                 (out.completeness >= 1.0).then(|| t.elapsed().as_secs_f64())
             }
