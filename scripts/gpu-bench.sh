@@ -89,6 +89,10 @@ if [ -n "${ADAPTER:-}" ] && ! grep -qi "\"adapter\":\"[^\"]*$ADAPTER" "$DATA/cac
 fi
 # Data: generated and converted here (kept between runs).
 step small "$SMALL^3, CPU, GPU, GPU with host updates" 120 bench render --size "$SMALL" --dtype u8 --dir "$DATA" --image 1920x1080 --zoom 1 --repeat 5 --backend all --no-reference
+# Sample accumulation, shaded, on the store the $SMALL^3 step made: 16
+# frames on the GPU (each frame's time on stdout).
+echo '{"preset": "soft", "window": [0, 255], "shading": true}' > "$DATA/shaded.json"
+step prog "progressive 16 frames, shaded, $SMALL^3 at 1024^2, GPU" 30 render "$DATA/mandelbulb-${SMALL}x${SMALL}x${SMALL}-u8.ome.zarr" --out "$DATA/progressive.png" --size 1024x1024 --tf "$DATA/shaded.json" --progressive 16 --backend gpu
 step big "$BIG^3 full view, GPU" 160 bench render --size "$BIG" --dtype u8 --dir "$DATA" --image 1920x1080 --zoom 1 --repeat 20 --backend gpu --no-reference --cold
 # A one-shot render of the big store from the host's page cache, frame by
 # frame (what a user runs first).
@@ -97,10 +101,6 @@ step oneshot "$BIG^3 one-shot render at 1920x1080, GPU" 60 render "$DATA/mandelb
 # paper's Table 1: 4.6-14 ms for one channel, 25.7 ms for 16 on a GTX 1080).
 step octree "octree vs page tables, 1-64 channels of $OCT^3 at 1920x1080, GPU" 90 bench octree --size "$OCT" --dir "$DATA" --image 1920x1080 --channels 1,4,16,64 --repeat 5 --backend gpu
 step filters "process filters $PROC^3, CPU and GPU" 35 bench process-filters --size "$PROC" --dtype u16 --backend both --repeat 2
-# Sample accumulation, shaded, on the store the $SMALL^3 step made: 16
-# frames on the GPU (each frame's time on stdout).
-echo '{"preset": "soft", "window": [0, 255], "shading": true}' > "$DATA/shaded.json"
-step prog "progressive 16 frames, shaded, $SMALL^3 at 1024^2, GPU" 30 render "$DATA/mandelbulb-${SMALL}x${SMALL}x${SMALL}-u8.ome.zarr" --out "$DATA/progressive.png" --size 1024x1024 --tf "$DATA/shaded.json" --progressive 16 --backend gpu
 # Multi-view: an 8-view super-slice (Δx = 4, Δz = 1) at 1920x1080 per view
 # against one view alone and the 8 views one by one; stereo against mono
 # DVR (the thesis: 30 ms per 8-view image on a Titan X).
