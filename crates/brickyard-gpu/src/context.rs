@@ -186,6 +186,14 @@ impl Gpu {
         Self::open(adapter).await
     }
 
+    /// The most bytes one storage binding can take: the binding limit, and
+    /// no more than one buffer holds.
+    pub fn max_storage_binding(&self) -> u64 {
+        self.limits
+            .max_storage_buffer_binding_size
+            .min(self.limits.max_buffer_size)
+    }
+
     /// One line for logs and reports: name, kind and back end.
     pub fn describe(&self) -> String {
         format!(

@@ -186,10 +186,7 @@ impl DeviceVm {
             .iter()
             .flat_map(|t| t.iter().map(|e| [e.word, e.value]))
             .collect();
-        let limit = gpu
-            .limits
-            .max_storage_buffer_binding_size
-            .min(gpu.limits.max_buffer_size);
+        let limit = gpu.max_storage_binding();
         if words.len() as u64 * 8 > limit {
             return Err(GpuError::Limit {
                 what: "page tables (bytes; fewer page-table cache blocks)".into(),

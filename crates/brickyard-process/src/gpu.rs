@@ -209,9 +209,7 @@ impl FilterKernels {
             &ENTRIES,
             &[Uniform, Read, Read, ReadWrite],
         );
-        let l = &gpu.limits;
-        let limit =
-            (l.max_storage_buffer_binding_size.min(l.max_buffer_size) / 4).min(u32::MAX as u64);
+        let limit = (gpu.max_storage_binding() / 4).min(u32::MAX as u64);
         let max_voxels = voxels.clamp(1, limit);
         Arc::new(FilterKernels {
             gpu,
@@ -264,9 +262,7 @@ impl FilterKernels {
 
     /// Check that a block of `voxels` f32 values fits this device.
     fn check_size(&self, voxels: usize) -> Result<(), GpuError> {
-        let l = &self.gpu.limits;
-        let limit =
-            (l.max_storage_buffer_binding_size.min(l.max_buffer_size) / 4).min(u32::MAX as u64);
+        let limit = (self.gpu.max_storage_binding() / 4).min(u32::MAX as u64);
         if voxels as u64 > limit {
             return Err(GpuError::Limit {
                 what: "filter block (f32 voxels)".into(),

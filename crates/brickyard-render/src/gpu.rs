@@ -445,10 +445,7 @@ impl GpuRenderer {
             }
             None => {
                 let bytes = w as u64 * h as u64 * 16;
-                let limit = gpu
-                    .limits
-                    .max_storage_buffer_binding_size
-                    .min(gpu.limits.max_buffer_size);
+                let limit = gpu.max_storage_binding();
                 if bytes > limit {
                     return Err(GpuError::Limit {
                         what: format!(
@@ -678,7 +675,7 @@ impl GpuRenderer {
                 words.extend(std::iter::repeat_n(0, o[2]));
             }
             let bytes = words.len() as u64 * 4;
-            let limit = gpu.limits.max_storage_buffer_binding_size;
+            let limit = gpu.max_storage_binding();
             if bytes > limit {
                 return Err(GpuError::Limit {
                     what: "the transfer functions and the octree's tables (bytes; a smaller --octree-depth or fewer channels)".into(),

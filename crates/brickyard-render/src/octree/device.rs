@@ -58,7 +58,7 @@ impl DeviceOctree {
         ranges: Option<&BrickRanges>,
     ) -> Result<DeviceOctree, GpuError> {
         let nl = tree.levels();
-        let limit = gpu.limits.max_storage_buffer_binding_size;
+        let limit = gpu.max_storage_binding();
         let nodes = node_count(tree.depth) as u64;
         let leaves = 1u64 << (3 * tree.depth);
         let (ch, l) = (tree.channels as u64, nl as u64);

@@ -70,11 +70,7 @@ impl DeviceAccumulation {
     /// The largest per-pixel budget one storage binding of `gpu` holds for
     /// `width × height` pixels and `target` frames (with normals: shading).
     pub fn max_budget(gpu: &Gpu, width: u32, height: u32, target: u32, normals: bool) -> u32 {
-        let limit = gpu
-            .limits
-            .max_storage_buffer_binding_size
-            .min(gpu.limits.max_buffer_size);
-        Self::budget_within(limit, width, height, target, normals)
+        Self::budget_within(gpu.max_storage_binding(), width, height, target, normals)
     }
 
     /// The largest per-pixel budget whose store takes at most `bytes`.
