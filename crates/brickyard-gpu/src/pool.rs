@@ -19,6 +19,7 @@
 
 use crate::context::{Gpu, GpuError};
 use brickyard_core::{dispatch_dtype, DType, Sample};
+use std::borrow::Cow;
 
 /// How a data type is stored in the device pool.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -220,17 +221,11 @@ impl DevicePool {
             c.iter().product::<u32>() as usize,
             "one range per cell"
         );
-        let g = self.grid;
-        let slot = [s / (g[2] * g[1]), (s / g[2]) % g[1], s % g[2]];
         gpu.queue.write_texture(
             wgpu::TexelCopyTextureInfo {
                 texture: t,
                 mip_level: 0,
-                origin: wgpu::Origin3d {
-                    x: slot[2] * c[2],
-                    y: slot[1] * c[1],
-                    z: slot[0] * c[0],
-                },
+                origin: self.cell_origin(s, *c),
                 aspect: wgpu::TextureAspect::All,
             },
             bytemuck::cast_slice(ranges),
@@ -246,6 +241,17 @@ impl DevicePool {
             },
         );
         self.uploaded += ranges.len() as u64 * 8;
+    }
+
+    /// Where slot `s`'s cell ranges begin in the cell texture of `c`
+    /// cells per axis.
+    fn cell_origin(&self, s: u32, c: [u32; 3]) -> wgpu::Origin3d {
+        let g = self.grid;
+        wgpu::Origin3d {
+            x: s % g[2] * c[2],
+            y: s / g[2] % g[1] * c[1],
+            z: s / (g[2] * g[1]) * c[0],
+        }
     }
 
     pub fn slots(&self) -> u32 {
@@ -284,13 +290,23 @@ impl DevicePool {
         }
     }
 
-    /// Texel bytes of a padded brick given as native-endian voxels of the
-    /// pool's data type (converted where the format differs).
-    fn texels(&self, voxels: &[u8]) -> Vec<u8> {
+    /// Texel bytes of the padded brick for slot `s`, given as
+    /// native-endian voxels of the pool's data type (the voxels
+    /// themselves where the format stores them as they are, else
+    /// converted).
+    fn texels<'v>(&self, s: u32, voxels: &'v [u8]) -> Cow<'v, [u8]> {
         use wgpu::TextureFormat as F;
+        assert!(s < self.slots, "slot {s} of {}", self.slots);
+        let n: u32 = self.padded.iter().product();
+        assert_eq!(
+            voxels.len(),
+            n as usize * self.dtype.size(),
+            "a padded brick of {:?} voxels",
+            self.padded
+        );
         match (self.dtype, self.format.format) {
             (DType::U8, F::R8Unorm) | (DType::U16, F::R16Unorm) | (DType::F32, F::R32Float) => {
-                voxels.to_vec()
+                Cow::Borrowed(voxels)
             }
             (DType::I8, F::R16Float) => voxels
                 .iter()
@@ -309,15 +325,7 @@ impl DevicePool {
     /// Write the padded brick `voxels` (native-endian voxels of the pool's
     /// data type, `[z, y, x]`) into slot `s`. Counts the bytes moved.
     pub fn write(&mut self, gpu: &Gpu, s: u32, voxels: &[u8]) {
-        assert!(s < self.slots, "slot {s} of {}", self.slots);
-        let n: u32 = self.padded.iter().product();
-        assert_eq!(
-            voxels.len(),
-            n as usize * self.dtype.size(),
-            "a padded brick of {:?} voxels",
-            self.padded
-        );
-        let texels = self.texels(voxels);
+        let texels = self.texels(s, voxels);
         gpu.queue.write_texture(
             wgpu::TexelCopyTextureInfo {
                 texture: &self.texture,
@@ -348,28 +356,19 @@ impl DevicePool {
         if bricks.is_empty() {
             return;
         }
-        let n: u32 = self.padded.iter().product();
-        let texels: Vec<Vec<u8>> = bricks
+        let texels: Vec<Cow<[u8]>> = bricks
             .iter()
-            .map(|&(s, voxels, _)| {
-                assert!(s < self.slots, "slot {s} of {}", self.slots);
-                assert_eq!(
-                    voxels.len(),
-                    n as usize * self.dtype.size(),
-                    "a padded brick of {:?} voxels",
-                    self.padded
-                );
-                self.texels(voxels)
-            })
+            .map(|&(s, voxels, _)| self.texels(s, voxels))
             .collect();
-        let mut items: Vec<(&wgpu::Texture, wgpu::Origin3d, &[u8])> = vec![];
-        let voxel_size = Staged::new(self.padded, self.format.texel_bytes);
-        for ((s, _, _), t) in bricks.iter().zip(&texels) {
-            items.push((&self.texture, self.origin(*s), t));
-        }
-        let mut copies = vec![(voxel_size, items)];
+        // Per texture: how its boxes lie in the staging buffer, and each
+        // box's texture, origin and bytes.
+        let items: Vec<(&wgpu::Texture, wgpu::Origin3d, &[u8])> = bricks
+            .iter()
+            .zip(&texels)
+            .map(|((s, _, _), t)| (&self.texture, self.origin(*s), &t[..]))
+            .collect();
+        let mut copies = vec![(Staged::new(self.padded, self.format.texel_bytes), items)];
         if let Some((t, c)) = &self.cells {
-            let g = self.grid;
             let mut items = vec![];
             for &(s, _, ranges) in bricks.iter().filter(|b| !b.2.is_empty()) {
                 assert_eq!(
@@ -377,13 +376,11 @@ impl DevicePool {
                     c.iter().product::<u32>() as usize,
                     "one range per cell"
                 );
-                let slot = [s / (g[2] * g[1]), (s / g[2]) % g[1], s % g[2]];
-                let origin = wgpu::Origin3d {
-                    x: slot[2] * c[2],
-                    y: slot[1] * c[1],
-                    z: slot[0] * c[0],
-                };
-                items.push((t, origin, bytemuck::cast_slice::<_, u8>(ranges)));
+                items.push((
+                    t,
+                    self.cell_origin(s, *c),
+                    bytemuck::cast_slice::<_, u8>(ranges),
+                ));
             }
             copies.push((Staged::new(*c, 8), items));
         }
@@ -395,6 +392,7 @@ impl DevicePool {
             mapped_at_creation: true,
         });
         let mut enc = gpu.device.create_command_encoder(&Default::default());
+        let mut uploaded = 0;
         {
             let mut map = buf
                 .slice(..)
@@ -422,13 +420,14 @@ impl DevicePool {
                         },
                         st.extent(),
                     );
-                    self.uploaded += bytes.len() as u64;
+                    uploaded += bytes.len() as u64;
                 }
                 base += st.bytes(items.len());
             }
         }
         buf.unmap();
         gpu.queue.submit([enc.finish()]);
+        self.uploaded += uploaded;
     }
 
     /// Bytes written since the last call.
