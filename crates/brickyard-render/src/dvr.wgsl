@@ -69,17 +69,32 @@ fn dvr_pixel(ray: Ray) -> vec4<f32> {
                     continue;
                 }
             }
-            if (R.skip_cells == 1u && f == MAPPED) {
-                // Inside a resident brick: a cell whose values the transfer
-                // function hides is crossed in one jump. Its brick is still
-                // in use.
-                let slot = slot_id(e, lay.brick_grid);
-                let r = cell_range(slot, b);
-                if (range_clear(r.x, r.y)) {
-                    mark(slot, true);
-                    cells_crossed = cells_crossed + 1u;
-                    k = land_cell(ray, level, b, base_t, k, t1);
-                    continue;
+            if (R.skip_cells == 1u && f != EMPTY && f != CONSTANT) {
+                // A cell whose values the transfer function hides is
+                // crossed in one jump: a cell of this level's resident
+                // brick, or else of the finest resident brick standing in
+                // (then never past a brick not resident on the way to it:
+                // another may serve there). The brick is still in use; each
+                // step crossed in a stand-in is a miss of this level's
+                // brick, as a sampled one is.
+                var c = Serving(level, b, NONE, min(t1, next_level_t(level)));
+                if (f == MAPPED) {
+                    c.slot = slot_id(e, lay.brick_grid);
+                } else {
+                    c = stand_in(ray, level, w, b, c.limit);
+                }
+                if (c.slot != NONE) {
+                    let r = cell_range(c.slot, c.base);
+                    if (range_clear(r.x, r.y)) {
+                        mark(c.slot, c.level == level);
+                        cells_crossed = cells_crossed + 1u;
+                        let kn = land_at(cell_exit_t(ray, c), base_t, k, level);
+                        if (c.level != level) {
+                            misses(brick_id(level, b), kn + 1u - k);
+                        }
+                        k = kn;
+                        continue;
+                    }
                 }
             }
             let s = sample_from(w, level, q, e);
@@ -87,8 +102,15 @@ fn dvr_pixel(ray: Ray) -> vec4<f32> {
             if (s.y == 2.0) {
                 exact = exact + 1u;
             }
-            if (s.y == 0.0 || is_nan(s.x)) {
-                unserved = unserved + u32(s.y == 0.0);
+            if (s.y == 0.0) {
+                // Nothing resident serves it: on past the brick, as the CPU.
+                let kn = skip_unserved(ray, level, b, base_t, k, min(t1, next_level_t(level)));
+                samples = samples + kn - k;
+                unserved = unserved + 1u + kn - k;
+                k = kn;
+                continue;
+            }
+            if (is_nan(s.x)) {
                 continue;
             }
             let x = windowed(s.x);

@@ -143,6 +143,12 @@ var<private> last_mark: u32;
 var<private> memo_level: array<u32, 64>;
 var<private> memo_brick: array<vec3<u32>, 64>;
 var<private> memo_entry: array<vec2<u32>, 64>;
+// The last coarser brick walked to for a stand-in (`coarse_entry_at`):
+// channel index × 32 + level, brick, entry. Kept apart from the memo
+// above, which stays on the brick of the sample's own level.
+var<private> cmemo_key: u32;
+var<private> cmemo_brick: vec3<u32>;
+var<private> cmemo_entry: vec2<u32>;
 // The channel being sampled and its index among those shown.
 var<private> cur_ch: u32;
 var<private> cur_idx: u32;
@@ -206,6 +212,7 @@ fn begin_invocation() {
     for (var i = 0u; i < max(R.n_channels, 1u); i = i + 1u) {
         memo_level[i] = AUTO;
     }
+    cmemo_key = AUTO;
     cur_ch = R.channel;
     cur_idx = 0u;
     miss_id = AUTO;

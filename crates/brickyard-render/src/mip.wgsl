@@ -55,8 +55,15 @@ fn mip_max_in(ray: Ray, span: vec2<f32>, clip: vec2<f32>) -> vec3<f32> {
         if (s.y == 2.0) {
             exact = exact + 1u;
         }
-        if (s.y == 0.0 || is_nan(s.x)) {
-            unserved = unserved + u32(s.y == 0.0);
+        if (s.y == 0.0) {
+            // Nothing resident serves it: on past the brick, as the CPU.
+            let kn = skip_unserved(ray, level, b, span.x, k, t1);
+            samples = samples + kn - k;
+            unserved = unserved + 1u + kn - k;
+            k = kn;
+            continue;
+        }
+        if (is_nan(s.x)) {
             continue;
         }
         if (!found || s.x > best) {

@@ -41,11 +41,17 @@ fn flush_misses() {
 }
 
 fn miss(id: u32) {
+    misses(id, 1u);
+}
+
+// `n` misses of brick `id` (consecutive misses of one brick go into the
+// request table together).
+fn misses(id: u32, n: u32) {
     if (id != miss_id) {
         flush_misses();
         miss_id = id;
     }
-    miss_n = miss_n + 1u;
+    miss_n = miss_n + n;
 }
 
 // Brick id (as brickyard_cache::bookkeeping::BrickIds numbers them) of
@@ -85,7 +91,7 @@ fn sample_masked(w: vec3<f32>, level: u32, q: vec3<f32>, e: vec2<u32>, mask: u32
                 continue;
             }
             lq = coords(lv, w).xyz;
-            le = entry_at(lv, vec3<u32>(lq));
+            le = coarse_entry_at(lv, vec3<u32>(lq));
         }
         let b = vec3<u32>(lq);
         let r = value_of(le, b, lq - vec3<f32>(b));
@@ -140,6 +146,20 @@ fn entry_at(level: u32, v: vec3<u32>) -> vec2<u32> {
         memo_entry[i] = walk_marking(level, cur_ch, v);
     }
     return memo_entry[i];
+}
+
+// `entry_at` for a coarser level standing in, remembered apart: the
+// samples of a ray served by a stand-in walk neither their own level's
+// brick nor the stand-in's again at every step.
+fn coarse_entry_at(level: u32, v: vec3<u32>) -> vec2<u32> {
+    let b = v / lay.block[lay.nmax].xyz;
+    let key = cur_idx * 32u + level;
+    if (key != cmemo_key || any(b != cmemo_brick)) {
+        cmemo_key = key;
+        cmemo_brick = b;
+        cmemo_entry = walk_marking(level, cur_ch, v);
+    }
+    return cmemo_entry;
 }
 
 fn sample_at(w: vec3<f32>, level: u32) -> vec2<f32> {
@@ -271,9 +291,80 @@ fn land_cell(r: Ray, level: u32, b: vec3<u32>, base_t: f32, k: u32, t1: f32) -> 
     return land_box(r, level, lo, hi, base_t, k, t1);
 }
 
+// After an unserved sample at step `k − 1` (base voxel `b` at `level`),
+// as the CPU's `skip_unserved`: the step to go on from, the first past the
+// brick (never past `limit`); the steps jumped are unserved samples and
+// misses of the brick, added to the table at once. Without it, every step
+// through a brick with nothing resident walks all levels and adds a miss
+// per level: a first frame from cold did a few atomic adds per sample on
+// a handful of table entries.
+fn skip_unserved(r: Ray, level: u32, b: vec3<u32>, base_t: f32, k: u32, limit: f32) -> u32 {
+    let bs = lay.block[lay.nmax].xyz;
+    let lo = (b / bs) * bs;
+    let hi = min(lo + bs, lay.dims[level].xyz);
+    let kn = land_at(exit_t(r, level, lo, hi, limit), base_t, k, level);
+    if (kn > k) {
+        misses(brick_id(level, b), kn - k);
+    }
+    return kn;
+}
+
+// The resident brick that serves a sample, for crossing its cells: its
+// level, the sample's base voxel there, its pool slot (NONE: none serves)
+// and the ray parameter no jump may pass.
+struct Serving {
+    level: u32,
+    base: vec3<u32>,
+    slot: u32,
+    limit: f32,
+}
+
+// The finest resident brick standing in for the sample at `w` (base voxel
+// `b` at `level`, whose brick is not resident), as the CPU's runs through
+// a stand-in find it; its limit is also where the ray leaves the bricks
+// not resident on the way (this level's and those between). Slot NONE
+// when nothing resident stands in, or one value does (sampled as it is).
+fn stand_in(r: Ray, level: u32, w: vec3<f32>, b: vec3<u32>, limit: f32) -> Serving {
+    let bs = lay.block[lay.nmax].xyz;
+    var c = Serving(level, b, NONE, limit);
+    for (var lv = level; lv < R.levels; lv = lv + 1u) {
+        if (lv > level) {
+            c.level = lv;
+            c.base = vec3<u32>(coords(lv, w).xyz);
+            let le = coarse_entry_at(lv, c.base);
+            let fl = flag(le);
+            if (fl == MAPPED) {
+                c.slot = slot_id(le, lay.brick_grid);
+                return c;
+            }
+            if (fl == EMPTY || fl == CONSTANT) {
+                return c;
+            }
+        }
+        let lo = (c.base / bs) * bs;
+        c.limit = exit_t(r, lv, lo, min(lo + bs, lay.dims[lv].xyz), c.limit);
+    }
+    return c;
+}
+
+// Where the ray leaves the cell of `c` (base voxels at its level), or its
+// limit if that comes first.
+fn cell_exit_t(r: Ray, c: Serving) -> f32 {
+    let bs = lay.block[lay.nmax].xyz;
+    let b0 = (c.base / bs) * bs;
+    let lo = b0 + ((c.base - b0) / R.cell_edge.xyz) * R.cell_edge.xyz;
+    let hi = min(min(lo + R.cell_edge.xyz, b0 + bs), lay.dims[c.level].xyz);
+    return exit_t(r, c.level, lo, hi, c.limit);
+}
+
 // `land` for the box [lo, hi) of voxel bases (a brick or a cell).
 fn land_box(r: Ray, level: u32, lo: vec3<u32>, hi: vec3<u32>, base_t: f32, k: u32, t1: f32) -> u32 {
-    let te = exit_t(r, level, lo, hi, min(t1, next_level_t(level)));
+    return land_at(exit_t(r, level, lo, hi, min(t1, next_level_t(level))), base_t, k, level);
+}
+
+// The first step of `level`'s grid from `base_t` past ray parameter `te`
+// (a hundredth of a step early), and never before step `k`.
+fn land_at(te: f32, base_t: f32, k: u32, level: u32) -> u32 {
     let kn = ceil((te - base_t) / R.step[level].x - 0.5 - 0.01);
     if (kn > f32(k)) {
         return u32(kn);

@@ -570,3 +570,222 @@ fn gpu_channels_add_up_in_slices_and_mips() {
         );
     }
 }
+
+/// The first frame from cold (nothing resident, nothing pinned) asks for
+/// what the CPU twin asks for, brick by brick and with the same counts:
+/// both go on past a brick that nothing serves, adding its steps as misses
+/// of that brick at once, and ask for each coarser brick once per brick
+/// crossed. (Before, the device sampled every step of such a brick, walked
+/// every level and added a miss per level per step: a coarse brick's count
+/// was tens of times the CPU's, and a first frame of a 1024³ volume on
+/// lavapipe took ten warm frames.)
+#[test]
+fn a_cold_frame_asks_for_what_the_cpu_asks_for() {
+    use std::collections::HashMap;
+    let Some(gpu) = test_gpu() else {
+        return; // BRICKYARD_SKIP_GPU=1, reported by `test_gpu`
+    };
+    let dir = tempfile::tempdir().unwrap();
+    let store = dir.path().join("v.ome.zarr");
+    let o = ConvertOptions {
+        brick: [16; 3],
+        shard: [32; 3],
+        ..Default::default()
+    };
+    let src = Procedural::new(Kind::Mandelbulb, [96, 96, 96], DType::U8);
+    convert(&src, &store, &o, &NoProgress, &AtomicBool::new(false)).unwrap();
+    let nlev = (0..)
+        .take_while(|&l| Volume::from_store(&store, l, 0).is_ok())
+        .count();
+    assert!(nlev >= 3, "{nlev} levels");
+    let levels: Vec<Volume> = (0..nlev)
+        .map(|l| Volume::from_store(&store, l, 0).unwrap())
+        .collect();
+    let extent = world_extent([96; 3], levels[0].spacing);
+    let scene = Scene::new(extent, levels.iter().map(|v| v.dims).collect());
+    let cfg = VmConfig {
+        brick: [16; 3],
+        apron: 1,
+        pt_block: [4; 3],
+        max_dir_entries: 64,
+        pool_bytes: 96 * 96 * 96,
+        pt_cache_blocks: 256,
+        // The device hands back twice the cap: every brick asked for.
+        request_cap: 4096,
+        upload_bytes_per_frame: 1 << 20,
+    };
+    let tf = TransferFunction::preset("soft", [0.0, 255.0]).unwrap();
+    let cam = Camera::fit(
+        extent,
+        30.0,
+        20.0,
+        Projection::Perspective { fov_y_deg: 40.0 },
+    );
+    let mut renderer = GpuRenderer::new(&gpu);
+    for mode in [RenderMode::Dvr, RenderMode::Mip] {
+        for lod in [Lod::Fixed(0), Lod::Auto { bias: 0.0 }] {
+            let mut s = Session::open(&store, cfg.clone(), 8 << 20, 2).unwrap();
+            let p = RenderParams::new(96, 80, cam, tf.clone(), mode.clone());
+            let (dvm, _) = DeviceVm::new(&gpu, s.vm_mut()).unwrap();
+            s.begin_frame();
+            let f = renderer
+                .render(&gpu, &dvm, s.vm(), &scene, &p, lod)
+                .unwrap();
+            let (_, st, reqs) = render_frame(s.vm(), &scene, &p, lod);
+            let what = format!("{mode:?} {lod:?}");
+            assert_eq!(st.exact, 0, "{what}: nothing is resident");
+            assert_eq!(f.stats.exact, 0, "{what}: nothing is resident");
+            assert_eq!(f.dropped, 0, "{what}");
+            let mut cpu: HashMap<_, u32> = HashMap::new();
+            for r in &reqs {
+                for (k, n) in r.iter() {
+                    *cpu.entry(k).or_default() += n;
+                }
+            }
+            let dev: HashMap<_, u32> = f.requests.iter().collect();
+            assert!(cpu.len() > 20, "{what}: {} bricks asked for", cpu.len());
+            assert!(
+                cpu.keys().any(|k| k.level > 0) && cpu.keys().any(|k| k.level == 0),
+                "{what}: coarse and fine bricks"
+            );
+            let mut keys: Vec<_> = cpu.keys().collect();
+            keys.sort();
+            let mut dk: Vec<_> = dev.keys().collect();
+            dk.sort();
+            assert_eq!(dk, keys, "{what}: the bricks asked for");
+            // Positions are f32 on the device: a ray may land a step
+            // apart, or take one more sample, near a brick's face.
+            let mut off = 0u64;
+            for (k, &n) in &cpu {
+                let d = dev[k];
+                off += d.abs_diff(n) as u64;
+                assert!(
+                    d.abs_diff(n) <= 2 + n / 20,
+                    "{what}: brick {k:?}: the device asks {d} times, the CPU {n}"
+                );
+            }
+            let total: u64 = cpu.values().map(|&n| n as u64).sum();
+            assert!(
+                off * 50 <= total,
+                "{what}: the counts differ by {off} in all, of {total}"
+            );
+            let (sd, sc) = (f.stats.unserved as f64, st.unserved as f64);
+            assert!(
+                (sd - sc).abs() <= 0.01 * sc,
+                "{what}: unserved samples {sd} on the device, {sc} on the CPU"
+            );
+            eprintln!(
+                "{what}: {} bricks, {total} misses on the CPU, {} on the device, {off} apart",
+                cpu.len(),
+                dev.values().sum::<u32>()
+            );
+        }
+    }
+}
+
+/// A first frame drawn from stand-ins alone (level 0 never resident, the
+/// coarse levels pinned) on the device: the stand-ins' clear cells are
+/// crossed without changing a pixel, with far fewer samples, and the image
+/// is the CPU twin's (which crosses them in its runs through stand-ins).
+#[test]
+fn gpu_crosses_the_clear_cells_of_stand_ins() {
+    let Some(gpu) = test_gpu() else {
+        return; // BRICKYARD_SKIP_GPU=1, reported by `test_gpu`
+    };
+    let dir = tempfile::tempdir().unwrap();
+    let store = dir.path().join("m.ome.zarr");
+    let dims = [64, 64, 64];
+    let o = ConvertOptions {
+        brick: [16; 3],
+        shard: [32; 3],
+        ..Default::default()
+    };
+    let src = Procedural::new(Kind::Mandelbulb, dims, DType::U16);
+    convert(&src, &store, &o, &NoProgress, &AtomicBool::new(false)).unwrap();
+    let nlev = (0..)
+        .take_while(|&l| Volume::from_store(&store, l, 0).is_ok())
+        .count();
+    let levels: Vec<Volume> = (0..nlev)
+        .map(|l| Volume::from_store(&store, l, 0).unwrap())
+        .collect();
+    let extent = world_extent(dims, levels[0].spacing);
+    let mut scene = Scene::new(extent, levels.iter().map(|v| v.dims).collect());
+    // No store statistics: only the stand-ins' cells can hide anything.
+    scene.ranges = None;
+    let cfg = VmConfig {
+        brick: [8; 3],
+        apron: 1,
+        pt_block: [4; 3],
+        max_dir_entries: 64,
+        pool_bytes: 8 << 20,
+        pt_cache_blocks: 256,
+        request_cap: 64,
+        upload_bytes_per_frame: 48 * 18 * 18 * 18 * 2,
+    };
+    let mut s = Session::open(&store, cfg, 8 << 20, 2).unwrap();
+    let pin = s
+        .pin_coarsest(4096, std::time::Duration::from_secs(60))
+        .unwrap();
+    assert!(
+        *pin.levels.iter().min().unwrap() >= 1,
+        "level 0 pinned: no stand-ins"
+    );
+    let (dvm, _) = DeviceVm::new(&gpu, s.vm_mut()).unwrap();
+    let tf = TransferFunction::new(
+        [0.0, 65535.0],
+        vec![[0.0, 0.0], [0.3, 0.0], [1.0, 0.6]],
+        brickyard_core::transfer::ColorMap::Preset(brickyard_core::transfer::Preset::Hot),
+    )
+    .unwrap();
+    let cam = Camera::fit(
+        extent,
+        35.0,
+        25.0,
+        Projection::Perspective { fov_y_deg: 40.0 },
+    );
+    let p = RenderParams::new(64, 64, cam, tf, RenderMode::Dvr);
+    let mut renderer = GpuRenderer::new(&gpu);
+    let mut frame = |sc: &Scene| {
+        s.begin_frame();
+        let f = renderer
+            .render(&gpu, &dvm, s.vm(), sc, &p, Lod::Fixed(0))
+            .unwrap();
+        let (cpu, st, _) = render_frame(s.vm(), sc, &p, Lod::Fixed(0));
+        (f, cpu, st)
+    };
+    let (with, cpu, st) = frame(&scene);
+    scene.skip_cells = false;
+    let (without, _, _) = frame(&scene);
+    for f in [&with, &without] {
+        assert_eq!(f.stats.exact, 0, "level 0 was resident: no stand-ins");
+        assert_eq!(f.stats.unserved, 0, "a sample found no stand-in");
+    }
+    assert!(with.image.coverage(0.01) > 0.05, "image nearly empty");
+    let d = with.image.max_abs_diff(&without.image);
+    let c = with.image.max_abs_diff(&cpu);
+    eprintln!(
+        "samples {} with cells ({} crossed), {} without, {} on the CPU ({} cells); \
+         max abs diff {d}, to the CPU {c}",
+        with.stats.samples,
+        with.stats.skipped_cells,
+        without.stats.samples,
+        st.samples,
+        st.skipped_cells
+    );
+    assert!(
+        d <= 1e-6,
+        "crossing stand-ins' cells changed the image by {d}"
+    );
+    assert!(c <= TOLERANCE, "the device differs from the CPU by {c}");
+    assert_eq!(without.stats.skipped_cells, 0);
+    assert!(
+        with.stats.skipped_cells > 0,
+        "no clear cell of a stand-in crossed"
+    );
+    assert!(
+        (with.stats.samples as f64) < 0.9 * without.stats.samples as f64,
+        "stand-ins' clear cells saved too few samples ({} → {})",
+        without.stats.samples,
+        with.stats.samples
+    );
+}
