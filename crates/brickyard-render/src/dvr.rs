@@ -9,8 +9,9 @@
 //! the stand-in is one value that hides every sample, one landing past
 //! its region. A ray may start at its entry depth (`entry.rs`), past
 //! clear space the walk would cross without sampling. `dvr.wgsl` is the
-//! device twin (it samples every step of a stand-in's region from the
-//! ray parameter and starts at the volume's face; the images are the
+//! device twin (it crosses the same cells and bricks, a stand-in's clear
+//! cells included, but samples from the ray parameter at each step rather
+//! than along runs, and starts at the volume's face; the images are the
 //! same, within the runs' rounding of positions).
 
 use crate::cpu::FrameStats;
