@@ -89,10 +89,15 @@ pub(crate) fn dvr_pixel<T: Sample>(
         // while every channel so far is.
         let mut land = u64::MAX;
         let mut all_clear = true;
+        // Whether every channel so far is either transparent or found
+        // nothing resident, both at the step's level (then the ray may
+        // jump), and the channels that found nothing.
+        let mut passable = true;
+        let mut unserved = 0u64;
         let mut keep = 1.0f32;
         let mut rgb = [0.0f32; 3];
         let mut weight = 0.0f32;
-        for wk in walkers.iter_mut() {
+        for (i, wk) in walkers.iter_mut().enumerate() {
             // The channel's own level (its level range), usually the step's.
             let lc = wk.f.channel_level(level);
             let (cb, cf) = if lc == level {
@@ -105,20 +110,30 @@ pub(crate) fn dvr_pixel<T: Sample>(
                 (c.transparent, c.brick, c.lo, c.hi)
             };
             if clear {
-                if all_clear && lc == level {
-                    let bx = wk.f.clear_box(level, brick, lo, hi);
-                    land = land.min(wk.f.land(ray, &track, g, k, bx, limit));
+                if lc == level {
+                    if passable {
+                        let bx = wk.f.clear_box(level, brick, lo, hi);
+                        land = land.min(wk.f.land(ray, &track, g, k, bx, limit));
+                    }
                 } else {
                     // A brick of another level than the step's: no landing
                     // from it; the ray steps on.
                     all_clear = false;
+                    passable = false;
                 }
                 continue;
             }
             all_clear = false;
             let Some(v) = wk.value(lc, w, cb, cf, req, st) else {
+                if lc == level && passable {
+                    unserved |= 1 << i;
+                    land = land.min(wk.f.land(ray, &track, g, k, (lo, hi), limit));
+                } else {
+                    passable = false;
+                }
                 continue;
             };
+            passable = false;
             match wk.f.tf_eval.lookup_visible(v) {
                 Some(c) => {
                     keep *= 1.0 - c[3];
@@ -133,6 +148,26 @@ pub(crate) fn dvr_pixel<T: Sample>(
         if all_clear {
             st.skipped_bricks += 1;
             k = land.max(k);
+            continue;
+        }
+        if passable && unserved != 0 {
+            // No channel shows here and some found nothing resident: on
+            // past their brick (or a nearer landing) in one jump, as
+            // single-channel DVR does; the steps jumped are unserved
+            // samples and misses of each such channel's brick.
+            let kn = land.max(k);
+            let n = kn - k;
+            let u = unserved.count_ones() as u64;
+            for (i, wk) in walkers.iter_mut().enumerate() {
+                if unserved >> i & 1 == 1 {
+                    let c = &mut wk.cache[level];
+                    c.missed = c.missed.saturating_add(n as u32);
+                }
+            }
+            st.samples += n * u;
+            st.unserved += n * u;
+            st.steps += n;
+            k = kn;
             continue;
         }
         if weight > 0.0 {

@@ -59,6 +59,9 @@ fn ch_color(i: u32, x: f32) -> vec3<f32> {
     );
 }
 
+// α of a channel's sample that nothing resident served at the step's level.
+const UNSERVED_HERE: f32 = -2.0;
+
 // Samples, exact samples and unserved samples of the channels shown (this
 // invocation's, added to the counters at the ray's end).
 var<private> ch_samples: u32;
@@ -76,8 +79,10 @@ fn ch_level(i: u32, level: u32) -> u32 {
 // (α·colour, α) through its transfer function, α 0 where nothing shows;
 // α −1 when `skip` and the channel hides the brick there (known clear, or
 // an EMPTY/CONSTANT entry it maps to zero opacity) and that brick is of the
-// step's level (a brick of another level gives no landing: α 0). On a
-// miss, only the coarser levels whose bit `mask` has substitute.
+// step's level (a brick of another level gives no landing: α 0); α −2
+// (`UNSERVED_HERE`) when nothing resident serves it and its level is the
+// step's. On a miss, only the coarser levels whose bit `mask` has
+// substitute.
 fn channel_sample(i: u32, step_level: u32, w: vec3<f32>, step_q: vec3<f32>, mask: u32, skip: bool) -> vec4<f32> {
     use_channel(i);
     let level = ch_level(i, step_level);
@@ -109,8 +114,14 @@ fn channel_sample(i: u32, step_level: u32, w: vec3<f32>, step_q: vec3<f32>, mask
     if (s.y == 2.0) {
         ch_exact = ch_exact + 1u;
     }
-    if (s.y == 0.0 || is_nan(s.x)) {
-        ch_unserved = ch_unserved + u32(s.y == 0.0);
+    if (s.y == 0.0) {
+        ch_unserved = ch_unserved + 1u;
+        if (level == step_level) {
+            return vec4<f32>(0.0, 0.0, 0.0, UNSERVED_HERE);
+        }
+        return vec4<f32>(0.0);
+    }
+    if (is_nan(s.x)) {
         return vec4<f32>(0.0);
     }
     let x = ch_windowed(i, s.x);
@@ -150,15 +161,24 @@ fn dvr_channels(ray: Ray) -> vec4<f32> {
             let q = coords(level, w).xyz;
             let b = vec3<u32>(q);
             var all_clear = true;
+            // Every channel either hides the brick or found nothing
+            // resident (then the ray may jump), and which found nothing.
+            var passable = true;
+            var unserved = vec2<u32>(0u);
             var keep = 1.0;
             var rgb = vec3<f32>(0.0);
             var weight = 0.0;
             for (var i = 0u; i < R.n_channels; i = i + 1u) {
                 let c = channel_sample(i, level, w, q, ALL_LEVELS, R.skip == 1u);
-                if (c.w < 0.0) {
+                if (c.w == -1.0) {
                     continue;
                 }
                 all_clear = false;
+                if (c.w == UNSERVED_HERE) {
+                    unserved[i / 32u] = unserved[i / 32u] | (1u << (i % 32u));
+                    continue;
+                }
+                passable = false;
                 if (c.w > 0.0) {
                     keep = keep * (1.0 - c.w);
                     rgb = rgb + c.xyz;
@@ -170,6 +190,24 @@ fn dvr_channels(ray: Ray) -> vec4<f32> {
                 // all, as the brick is).
                 jumps = jumps + 1u;
                 k = land(ray, level, b, base_t, k, t1);
+                continue;
+            }
+            if (passable && any(unserved != vec2<u32>(0u))) {
+                // No channel shows here and some found nothing resident: on
+                // past the brick in one jump, as the CPU; the steps jumped
+                // are unserved samples and misses of each such channel's
+                // brick.
+                let kn = land(ray, level, b, base_t, k, t1);
+                let n = kn - k;
+                for (var i = 0u; i < R.n_channels; i = i + 1u) {
+                    if (((unserved[i / 32u] >> (i % 32u)) & 1u) == 1u) {
+                        use_channel(i);
+                        misses(brick_id(level, b), n);
+                        ch_samples = ch_samples + n;
+                        ch_unserved = ch_unserved + n;
+                    }
+                }
+                k = kn;
                 continue;
             }
             if (weight > 0.0) {

@@ -375,6 +375,82 @@ fn gpu_multichannel_dvr_equals_the_cpu_and_the_reference() {
     }
 }
 
+/// A first frame of several channels from cold (nothing resident) asks
+/// for what the CPU twin asks for, brick by brick with the same counts
+/// (the bricks the store's statistics hide asked for by neither): on both,
+/// where no channel shows and some found nothing resident, the ray goes
+/// on past the brick in one jump, adding the steps as misses of each such
+/// channel's brick. (Before, the device added a miss per level and
+/// channel at every step, the CPU walked every step.)
+#[test]
+fn a_cold_frame_of_channels_asks_for_what_the_cpu_asks_for() {
+    use std::collections::HashMap;
+    let Some(gpu) = test_gpu() else { return };
+    let dir = tempfile::tempdir().unwrap();
+    let n = 3;
+    let (store, extent, levels) = banded_store_of(dir.path(), n, [64, 64, 64]);
+    let mut renderer = GpuRenderer::new(&gpu);
+    for shown in [vec![0, 1, 2], vec![2, 0]] {
+        let p = dvr_params(extent, &shown, n);
+        let ranges = format!("channels {shown:?}");
+        let mut scene = Scene::new(extent, levels.clone());
+        let mut c = cfg(1 << 20);
+        c.request_cap = 4096;
+        let mut s = Session::open(&store, c, 8 << 20, 2).unwrap();
+        scene.ranges = Some(Arc::new(s.loader().brick_ranges(1 << 20)));
+        let (dvm, _) = DeviceVm::new(&gpu, s.vm_mut()).unwrap();
+        s.begin_frame();
+        let f = renderer
+            .render(&gpu, &dvm, s.vm(), &scene, &p, Lod::Fixed(0))
+            .unwrap();
+        let (_, st, reqs) = render_frame(s.vm(), &scene, &p, Lod::Fixed(0));
+        assert_eq!(st.exact + f.stats.exact, 0, "nothing is resident");
+        assert_eq!(f.dropped, 0);
+        let mut cpu: HashMap<BrickKey, u32> = HashMap::new();
+        for r in &reqs {
+            for (k, m) in r.iter() {
+                *cpu.entry(k).or_default() += m;
+            }
+        }
+        let dev: HashMap<BrickKey, u32> = f.requests.iter().collect();
+        assert!(cpu.len() > 30, "{} bricks asked for", cpu.len());
+        for &ch in &shown {
+            let ch = ch as u16;
+            assert!(
+                cpu.keys().any(|k| k.channel == ch && k.level == 0)
+                    && cpu.keys().any(|k| k.channel == ch && k.level > 0),
+                "channel {ch}: fine and coarse bricks"
+            );
+        }
+        let mut a: Vec<_> = cpu.keys().collect();
+        let mut b: Vec<_> = dev.keys().collect();
+        a.sort();
+        b.sort();
+        assert_eq!(b, a, "{ranges}: the bricks asked for");
+        let mut off = 0u64;
+        for (k, &m) in &cpu {
+            let d = dev[k];
+            off += d.abs_diff(m) as u64;
+            assert!(
+                d.abs_diff(m) <= 2 + m / 20,
+                "{ranges}: brick {k:?}: the device asks {d} times, the CPU {m}"
+            );
+        }
+        let total: u64 = cpu.values().map(|&m| m as u64).sum();
+        eprintln!(
+            "{ranges}: {} bricks, {total} misses on the CPU, {} on the device, {off} apart",
+            cpu.len(),
+            dev.values().sum::<u32>()
+        );
+        assert!(off * 50 <= total, "{ranges}: {off} apart of {total}");
+        let (ud, uc) = (f.stats.unserved as f64, st.unserved as f64);
+        assert!(
+            (ud - uc).abs() <= 0.01 * uc,
+            "{ranges}: unserved samples {ud} on the device, {uc} on the CPU"
+        );
+    }
+}
+
 /// The three MNI152 files (T1, grey matter, white matter) as one
 /// three-channel store, or `None` (said on stderr) when the shared data
 /// folder is absent.
