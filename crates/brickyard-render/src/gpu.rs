@@ -633,6 +633,11 @@ impl GpuRenderer {
                     bits
                 }
                 (Some(r), 0) => clear_bits(&ids, r, tf, scene.channel),
+                // No statistics: no brick is known clear. A bit for every
+                // brick all the same, as DVR tests them all (one word
+                // here let the shader read the words after it as bits,
+                // and skip bricks that showed).
+                (None, 0) => vec![0; (ids.len() as usize).div_ceil(32).max(1)],
                 _ => vec![0],
             };
             words.extend(bits);
