@@ -88,7 +88,7 @@ fn dvr_pixel(ray: Ray) -> vec4<f32> {
                     if (range_clear(r.x, r.y)) {
                         mark(c.slot, c.level == level);
                         cells_crossed = cells_crossed + 1u;
-                        let kn = land_at(cell_exit_t(ray, c), base_t, k, level);
+                        let kn = land_at(cell_exit_t(ray, c.level, c.base, c.limit), base_t, k, level);
                         if (c.level != level) {
                             misses(brick_id(level, b), kn + 1u - k);
                         }

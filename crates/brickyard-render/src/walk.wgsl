@@ -277,18 +277,30 @@ fn exit_t(r: Ray, level: u32, lo: vec3<u32>, hi: vec3<u32>, limit: f32) -> f32 {
 // and never past a change of level (whose restart of the step grid must
 // stay where it is without the jump).
 fn land(r: Ray, level: u32, b: vec3<u32>, base_t: f32, k: u32, t1: f32) -> u32 {
-    let bs = lay.block[lay.nmax].xyz;
-    let lo = (b / bs) * bs;
-    return land_box(r, level, lo, min(lo + bs, lay.dims[level].xyz), base_t, k, t1);
+    return land_at(brick_exit_t(r, level, b, min(t1, next_level_t(level))), base_t, k, level);
 }
 
 // `land` past the cell of base voxel `b` (inside its brick).
 fn land_cell(r: Ray, level: u32, b: vec3<u32>, base_t: f32, k: u32, t1: f32) -> u32 {
+    return land_at(cell_exit_t(r, level, b, min(t1, next_level_t(level))), base_t, k, level);
+}
+
+// Where the ray's voxel base at `level` leaves the brick of base voxel
+// `b`, or `limit` if that comes first.
+fn brick_exit_t(r: Ray, level: u32, b: vec3<u32>, limit: f32) -> f32 {
+    let bs = lay.block[lay.nmax].xyz;
+    let lo = (b / bs) * bs;
+    return exit_t(r, level, lo, min(lo + bs, lay.dims[level].xyz), limit);
+}
+
+// Where it leaves the cell of base voxel `b` (inside its brick), or
+// `limit` if that comes first.
+fn cell_exit_t(r: Ray, level: u32, b: vec3<u32>, limit: f32) -> f32 {
     let bs = lay.block[lay.nmax].xyz;
     let b0 = (b / bs) * bs;
     let lo = b0 + ((b - b0) / R.cell_edge.xyz) * R.cell_edge.xyz;
     let hi = min(min(lo + R.cell_edge.xyz, b0 + bs), lay.dims[level].xyz);
-    return land_box(r, level, lo, hi, base_t, k, t1);
+    return exit_t(r, level, lo, hi, limit);
 }
 
 // After an unserved sample at step `k − 1` (base voxel `b` at `level`),
@@ -299,10 +311,7 @@ fn land_cell(r: Ray, level: u32, b: vec3<u32>, base_t: f32, k: u32, t1: f32) -> 
 // per level: a first frame from cold did a few atomic adds per sample on
 // a handful of table entries.
 fn skip_unserved(r: Ray, level: u32, b: vec3<u32>, base_t: f32, k: u32, limit: f32) -> u32 {
-    let bs = lay.block[lay.nmax].xyz;
-    let lo = (b / bs) * bs;
-    let hi = min(lo + bs, lay.dims[level].xyz);
-    let kn = land_at(exit_t(r, level, lo, hi, limit), base_t, k, level);
+    let kn = land_at(brick_exit_t(r, level, b, limit), base_t, k, level);
     if (kn > k) {
         misses(brick_id(level, b), kn - k);
     }
@@ -325,7 +334,6 @@ struct Serving {
 // not resident on the way (this level's and those between). Slot NONE
 // when nothing resident stands in, or one value does (sampled as it is).
 fn stand_in(r: Ray, level: u32, w: vec3<f32>, b: vec3<u32>, limit: f32) -> Serving {
-    let bs = lay.block[lay.nmax].xyz;
     var c = Serving(level, b, NONE, limit);
     for (var lv = level; lv < R.levels; lv = lv + 1u) {
         if (lv > level) {
@@ -341,25 +349,9 @@ fn stand_in(r: Ray, level: u32, w: vec3<f32>, b: vec3<u32>, limit: f32) -> Servi
                 return c;
             }
         }
-        let lo = (c.base / bs) * bs;
-        c.limit = exit_t(r, lv, lo, min(lo + bs, lay.dims[lv].xyz), c.limit);
+        c.limit = brick_exit_t(r, lv, c.base, c.limit);
     }
     return c;
-}
-
-// Where the ray leaves the cell of `c` (base voxels at its level), or its
-// limit if that comes first.
-fn cell_exit_t(r: Ray, c: Serving) -> f32 {
-    let bs = lay.block[lay.nmax].xyz;
-    let b0 = (c.base / bs) * bs;
-    let lo = b0 + ((c.base - b0) / R.cell_edge.xyz) * R.cell_edge.xyz;
-    let hi = min(min(lo + R.cell_edge.xyz, b0 + bs), lay.dims[c.level].xyz);
-    return exit_t(r, c.level, lo, hi, c.limit);
-}
-
-// `land` for the box [lo, hi) of voxel bases (a brick or a cell).
-fn land_box(r: Ray, level: u32, lo: vec3<u32>, hi: vec3<u32>, base_t: f32, k: u32, t1: f32) -> u32 {
-    return land_at(exit_t(r, level, lo, hi, min(t1, next_level_t(level))), base_t, k, level);
 }
 
 // The first step of `level`'s grid from `base_t` past ray parameter `te`
