@@ -18,7 +18,7 @@ mod testing;
 
 pub(crate) use bricks::{Content, Walker};
 pub(crate) use cells::Run;
-pub(crate) use landing::{clear_blocks, Grid, Track};
+pub(crate) use landing::{clear_blocks, first_step, Grid, Track};
 
 use crate::cpu::{Lod, Scene};
 use crate::lanes::F4;

@@ -5,7 +5,7 @@
 //! to the request collector when the walker leaves it, and the general
 //! sample path that falls back to the finest resident coarser level.
 
-use super::{inside, trilinear, Frame, Grid, Track};
+use super::{first_step, inside, trilinear, Frame, Grid, Track};
 use crate::cpu::FrameStats;
 use crate::params::RenderMode;
 use brickyard_cache::brick::BrickKey;
@@ -116,6 +116,12 @@ pub(crate) struct Walker<'f, 'a, T> {
     /// when a jump over a hidden stand-in first needs them.
     pub(crate) ray_serial: u64,
     pub(crate) tracks: Vec<(u64, Option<Track>)>,
+    /// Per level, where the current ray leaves the cached brick: (ray
+    /// serial, the brick's first voxel, the exit's parameter with no limit
+    /// ([`Track::exit_t`]), the track's slack). A first frame drawn from
+    /// stand-ins ends a run at the first exit of three or more bricks a
+    /// few times per ray; the coarser ones stay the same over many runs.
+    exits: Vec<(u64, Dims3, f64, f64)>,
     /// Misses handed over by bricks the walker left, summed per brick
     /// (direct-mapped by [`brick_code`], `u64::MAX`: free) and passed to
     /// the request collector when a slot is taken by another brick or at
@@ -137,6 +143,7 @@ impl<'f, 'a, T: Sample> Walker<'f, 'a, T> {
             touched: 0,
             ray_serial: 1,
             tracks: vec![(0, None); f.levels()],
+            exits: vec![(0, [0; 3], 0.0, 0.0); f.levels()],
             pending_code: Box::new([u64::MAX; PENDING]),
             pending_misses: Box::new([0; PENDING]),
         }
@@ -144,16 +151,18 @@ impl<'f, 'a, T: Sample> Walker<'f, 'a, T> {
 
     /// The track of the current ray at level `l` (see `ray_serial`).
     pub(crate) fn track_of(&mut self, l: usize, ray: &Ray, inv_dir: Vec3, t_end: f64) -> Track {
+        *self.track_ref(l, ray, inv_dir, t_end)
+    }
+
+    /// [`track_of`](Self::track_of), not copied.
+    #[inline(always)]
+    fn track_ref(&mut self, l: usize, ray: &Ray, inv_dir: Vec3, t_end: f64) -> &Track {
         let (serial, t) = &mut self.tracks[l];
-        match t {
-            Some(t) if *serial == self.ray_serial => *t,
-            _ => {
-                let made = self.f.track(l, ray, inv_dir, t_end);
-                *serial = self.ray_serial;
-                *t = Some(made);
-                made
-            }
+        if *serial != self.ray_serial || t.is_none() {
+            *t = Some(self.f.track(l, ray, inv_dir, t_end));
+            *serial = self.ray_serial;
         }
+        t.as_ref().expect("made above")
     }
 
     /// Hand every pending miss to the collector.
@@ -445,9 +454,9 @@ impl<'f, 'a, T: Sample> Walker<'f, 'a, T> {
         } else {
             return None;
         };
-        let track = self.track_of(lv, ray, inv_dir, t_end);
+        let track = self.track_ref(lv, ray, inv_dir, t_end);
         let kn = f
-            .land(ray, &track, g, k, (lo, hi), limit)
+            .land(ray, track, g, k, (lo, hi), limit)
             .min(self.land_in_bricks(level..lv, ray, inv_dir, (g, k), (limit, t_end)));
         let n = kn.saturating_sub(k);
         st.steps += n;
@@ -514,8 +523,27 @@ impl<'f, 'a, T: Sample> Walker<'f, 'a, T> {
         let mut end = u64::MAX;
         for m in levels {
             let (lo, hi) = (self.cache[m].lo, self.cache[m].hi);
-            let track = self.track_of(m, ray, inv_dir, t_end);
-            end = end.min(f.land(ray, &track, g, k, (lo, hi), limit));
+            let (serial, at, exit, slack) = self.exits[m];
+            let (exit, slack) = if serial == self.ray_serial && at == lo {
+                (exit, slack)
+            } else {
+                let track = self.track_ref(m, ray, inv_dir, t_end);
+                let (exit, slack) = (track.exit_t(lo, hi, f64::INFINITY), track.slack);
+                self.exits[m] = (self.ray_serial, lo, exit, slack);
+                (exit, slack)
+            };
+            // `Frame::land`: the estimate where the margin is under a
+            // quarter step (`exit_t` with the limit is the smaller of the
+            // two, the limit when it is NaN, as here).
+            let margin = slack * g.inv_dt;
+            let kn = if margin < 0.25 {
+                let te = if exit < limit { exit } else { limit };
+                first_step(g, te, margin).max(k)
+            } else {
+                let track = self.track_of(m, ray, inv_dir, t_end);
+                f.land(ray, &track, g, k, (lo, hi), limit)
+            };
+            end = end.min(kn);
         }
         end
     }
@@ -585,5 +613,93 @@ mod tests {
         assert_eq!(got.len(), model.len());
         assert_eq!(got, model);
         assert_eq!(req.dropped, 0);
+    }
+
+    /// The landing in the bricks of several levels at once, with their
+    /// exits remembered per ray and brick, is the first of the bricks' own
+    /// landings (`Frame::land`): over rays, steps and limits, with the
+    /// cached bricks changing under one ray and staying over several
+    /// calls, and rays nearly parallel to a voxel plane.
+    #[test]
+    fn landing_in_several_bricks_is_the_first_of_their_landings() {
+        use crate::params::{RenderMode, RenderParams};
+        use brickyard_cache::vm::{VirtualMemory, VmConfig};
+        use brickyard_core::camera::{Camera, Projection};
+        use brickyard_core::{DType, TransferFunction};
+        let levels = vec![[40u64, 56, 48], [20, 28, 24], [10, 14, 12]];
+        let extent = [1.3, 0.9, 1.7];
+        let cfg = VmConfig {
+            brick: [8; 3],
+            pool_bytes: 1 << 22,
+            ..Default::default()
+        };
+        let vm = VirtualMemory::new(&levels, 1, DType::U8, cfg);
+        let scene = crate::cpu::Scene::new(extent, levels.clone());
+        let cam = Camera::fit(
+            extent,
+            30.0,
+            20.0,
+            Projection::Perspective { fov_y_deg: 35.0 },
+        );
+        let tf = TransferFunction::preset("soft", [0.0, 255.0]).unwrap();
+        let params = RenderParams::new(4, 4, cam, tf, RenderMode::Dvr);
+        let f = Frame::new(&vm, &scene, &params, Lod::Fixed(0));
+        let mut wk = Walker::<u8>::new(&f, 0);
+        let mut rnd = uniform(0x5eed);
+        let (mut calls, mut parallel) = (0, 0);
+        for trial in 0..3000 {
+            let target = [0, 1, 2].map(|a| rnd() * extent[a]);
+            let mut dir = [0, 1, 2].map(|_| rnd() - 0.5);
+            if trial % 7 == 0 {
+                dir[trial % 3] = 1e-13 * (rnd() - 0.5);
+            }
+            let dt = f.voxel[0] * (0.3 + 1.2 * rnd());
+            let Some((ray, (_, t1), g, _, _)) =
+                random_step(&f, extent, (target, dir, 3.0), dt, rnd())
+            else {
+                continue;
+            };
+            wk.ray_serial += 1;
+            let inv_dir = ray.dir.map(|d| 1.0 / d);
+            parallel += (f.track(0, &ray, inv_dir, t1).slack * g.inv_dt >= 0.25) as u32;
+            // Several calls along the ray, from steps further and further
+            // on: the bricks of the step before at every level, or (one
+            // call in four) the brick of another step at one level.
+            let steps = ((t1 - g.base_t) * g.inv_dt) as u64;
+            let mut k = 1 + (rnd() * steps as f64 / 2.0) as u64;
+            while k < steps {
+                for m in 0..3 {
+                    let kk = if rnd() < 0.25 {
+                        (rnd() * steps as f64) as u64
+                    } else {
+                        k - 1
+                    };
+                    let (v, _) = f.coords(m, ray.at(super::super::step_t(g.base_t, kk, dt)));
+                    let b = f.brick_of(v);
+                    let lo = [0, 1, 2].map(|a| b[a] * 8);
+                    let hi = [0, 1, 2].map(|a| (lo[a] + 8).min(levels[m][a]));
+                    (wk.cache[m].lo, wk.cache[m].hi) = (lo, hi);
+                }
+                let limit = if rnd() < 0.3 {
+                    g.base_t + rnd() * (t1 - g.base_t)
+                } else {
+                    t1
+                };
+                let want = (0..3)
+                    .map(|m| {
+                        let track = f.track(m, &ray, inv_dir, t1);
+                        let (lo, hi) = (wk.cache[m].lo, wk.cache[m].hi);
+                        f.land(&ray, &track, g, k, (lo, hi), limit)
+                    })
+                    .min()
+                    .unwrap();
+                let got = wk.land_in_bricks(0..3, &ray, inv_dir, (g, k), (limit, t1));
+                assert_eq!(got, want, "trial {trial}, step {k}");
+                calls += 1;
+                k += 1 + (rnd() * 6.0) as u64;
+            }
+        }
+        assert!(calls > 20_000, "{calls} landings checked");
+        assert!(parallel > 50, "{parallel} rays nearly parallel to a plane");
     }
 }

@@ -59,11 +59,7 @@ impl Track {
         limit: f64,
     ) -> (impl Fn(f64) -> u64, f64) {
         let te = self.exit_t(lo, hi, limit);
-        let first = move |margin: f64| {
-            let x = (te - g.base_t) * g.inv_dt - 0.5 - margin - 1e-3;
-            let i = x as i64; // finite; the cast saturates
-            (if (i as f64) < x { i + 1 } else { i }).max(0) as u64
-        };
+        let first = move |margin: f64| first_step(g, te, margin);
         (first, self.slack * g.inv_dt)
     }
 
@@ -100,6 +96,16 @@ impl Track {
         }
         t
     }
+}
+
+/// The first step of grid `g` at or after parameter `te`, moved early by
+/// `margin` steps and a thousandth of a step (never before step 0): the
+/// rule of [`Track::first_out`].
+#[inline(always)]
+pub(crate) fn first_step(g: Grid, te: f64, margin: f64) -> u64 {
+    let x = (te - g.base_t) * g.inv_dt - 0.5 - margin - 1e-3;
+    let i = x as i64; // finite; the cast saturates
+    (if (i as f64) < x { i + 1 } else { i }).max(0) as u64
 }
 
 impl Frame<'_> {
