@@ -668,7 +668,7 @@ mod tests {
             let steps = ((t1 - g.base_t) * g.inv_dt) as u64;
             let mut k = 1 + (rnd() * steps as f64 / 2.0) as u64;
             while k < steps {
-                for m in 0..3 {
+                for (m, dims) in levels.iter().enumerate() {
                     let kk = if rnd() < 0.25 {
                         (rnd() * steps as f64) as u64
                     } else {
@@ -677,7 +677,7 @@ mod tests {
                     let (v, _) = f.coords(m, ray.at(super::super::step_t(g.base_t, kk, dt)));
                     let b = f.brick_of(v);
                     let lo = [0, 1, 2].map(|a| b[a] * 8);
-                    let hi = [0, 1, 2].map(|a| (lo[a] + 8).min(levels[m][a]));
+                    let hi = [0, 1, 2].map(|a| (lo[a] + 8).min(dims[a]));
                     (wk.cache[m].lo, wk.cache[m].hi) = (lo, hi);
                 }
                 let limit = if rnd() < 0.3 {
