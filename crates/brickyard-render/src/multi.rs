@@ -21,13 +21,32 @@
 //! there and is not looked up; the ray jumps only when every visible
 //! channel's brick is transparent, to the nearest of their landings, so a
 //! brick is crossed only if all visible channels hide it.
+//!
+//! # Runs
+//!
+//! Where every channel shown reads the step's level and has its brick
+//! there resident or hidden, the steps through that brick are taken in
+//! one fixed-point run (`Run`, as one-channel DVR's): no lookups per step,
+//! the cells every channel hides crossed at once, and a channel whose own
+//! cell is clear left out of the step. After a step every channel took
+//! from a stand-in of one level (or hid), the next steps the same
+//! stand-in bricks serve are taken the same way at this level's step,
+//! each a miss of every such channel's brick. Elsewhere (level ranges of
+//! their own, constant bricks, stand-ins of different levels, more than
+//! 16 channels) the step is sampled channel by channel. The device twin
+//! samples step by step; the positions agree within the runs' rounding.
 
 use crate::cpu::FrameStats;
 use crate::optics::composite_visible;
-use crate::walk::{jump_before, step_t, Grid, Walker};
+use crate::walk::{jump_before, step_t, trilinear, Content, Frame, Grid, Run, Walker};
 use brickyard_cache::vm::Requests;
 use brickyard_core::camera::Ray;
-use brickyard_core::Sample;
+use brickyard_core::transfer::TfEval;
+use brickyard_core::{Dims3, Sample};
+
+/// Most channels a run through resident bricks takes (more are sampled
+/// step by step).
+const RUN_CHANNELS: usize = 16;
 
 /// The pixel of `ray` in a DVR of several channels, one walker (and frame)
 /// per visible channel, all frames of the same geometry and level of
@@ -39,6 +58,10 @@ pub(crate) fn dvr_pixel<T: Sample>(
 ) -> [f32; 4] {
     let mut acc = [0.0f32; 4];
     let f = walkers[0].f;
+    // A new ray: the walkers' tracks and exits of the last are stale.
+    for wk in walkers.iter_mut() {
+        wk.ray_serial += 1;
+    }
     let d = ray.dir;
     let inv_dir = [1.0 / d[0], 1.0 / d[1], 1.0 / d[2]];
     // A region (sort-last): the whole ray's step grid, samples in
@@ -85,6 +108,29 @@ pub(crate) fn dvr_pixel<T: Sample>(
         let (vb, frac) = f.coords(level, w);
         let g = Grid { base_t, dt, inv_dt };
         let limit = t1.min(next_t);
+        // Every channel resident at the step's level here (or its brick
+        // hidden): the steps through this brick in one run.
+        if let Some(r) = resident_run(walkers, level, vb, req) {
+            let end = track.run_end(g, (r.lo, r.hi), limit).max(k);
+            let run = Run::new(f, level, &track, w, r.lo, r.hi);
+            let (done, stop, n) = run_steps(
+                f,
+                &r,
+                run,
+                (k - 1, end),
+                (exponent, terminate),
+                &mut acc,
+                st,
+            );
+            st.samples += n;
+            st.exact += n;
+            st.steps += stop - k;
+            if done {
+                break;
+            }
+            k = end;
+            continue;
+        }
         // The nearest landing of the channels whose brick is transparent,
         // while every channel so far is.
         let mut land = u64::MAX;
@@ -177,6 +223,232 @@ pub(crate) fn dvr_pixel<T: Sample>(
                 break;
             }
         }
+        // Every channel shown served by a stand-in of one level (or its
+        // brick hidden): the next steps the same stand-in bricks serve,
+        // taken there by one run at this level's step, as one-channel DVR
+        // does; each step a miss of every such channel's brick.
+        let Some((lv, first, r)) = stand_in_run(walkers, level) else {
+            continue;
+        };
+        let wk = &mut walkers[first];
+        let end = wk.land_in_bricks(level..lv + 1, ray, inv_dir, (g, k), (limit, t1));
+        if end <= k {
+            continue;
+        }
+        let track_lv = wk.track_of(lv, ray, inv_dir, t1);
+        let mut run = Run::new(f, lv, &track_lv, ray.at(step_t(base_t, k, dt)), r.lo, r.hi);
+        run.dq = track_lv.dq_at(dt);
+        let (done, stop, n) = run_steps(f, &r, run, (k, end), (exponent, terminate), &mut acc, st);
+        st.samples += n;
+        st.steps += stop - k;
+        for wk in walkers.iter_mut() {
+            let c = &mut wk.cache[level];
+            if !c.transparent {
+                c.missed = c.missed.saturating_add((stop - k) as u32);
+            }
+        }
+        if done {
+            break;
+        }
+        k = end;
     }
     acc
+}
+
+/// The bricks of a run through one brick of every channel shown, all at
+/// the step's level: each resident (its voxels, clear cells and transfer
+/// function) or hidden by its value range (left out), at least one
+/// resident. The channels share the brick's box.
+struct ResidentRun<'a, 'f, T> {
+    lo: Dims3,
+    hi: Dims3,
+    n: usize,
+    vox: [&'a [T]; RUN_CHANNELS],
+    clear: [u64; RUN_CHANNELS],
+    tf: [Option<&'f TfEval<'a>>; RUN_CHANNELS],
+    /// The cells every channel hides (resident ones by their cells, the
+    /// others whole).
+    all_clear: u64,
+}
+
+/// The run's bricks when every channel shown reads the step's level
+/// (no level range of its own there) and has its brick at voxel base
+/// `vb` resident or hidden, some resident; `None` otherwise (the step is
+/// sampled channel by channel).
+#[inline]
+fn resident_run<'a, 'f, T: Sample>(
+    walkers: &mut [Walker<'f, 'a, T>],
+    level: usize,
+    vb: Dims3,
+    req: &mut Requests,
+) -> Option<ResidentRun<'a, 'f, T>> {
+    if walkers.len() > RUN_CHANNELS {
+        return None;
+    }
+    // First whether the step qualifies (most steps that do not leave at
+    // once), then the run's tables.
+    let mut resident = false;
+    for wk in walkers.iter_mut() {
+        if wk.f.channel_level(level) != level {
+            return None;
+        }
+        let c = wk.enter(level, vb, req, true);
+        if c.transparent {
+            continue;
+        }
+        if !matches!(c.content, Content::Data(_)) {
+            return None;
+        }
+        resident = true;
+    }
+    if !resident {
+        return None;
+    }
+    let mut r = ResidentRun::empty();
+    for wk in walkers.iter() {
+        let c = &wk.cache[level];
+        (r.lo, r.hi) = (c.lo, c.hi);
+        if let (false, Content::Data(vox)) = (c.transparent, c.content) {
+            r.push(vox, c.clear_cells, &wk.f.tf_eval);
+        }
+    }
+    Some(r)
+}
+
+impl<'a, 'f, T> ResidentRun<'a, 'f, T> {
+    fn empty() -> Self {
+        ResidentRun {
+            lo: [0; 3],
+            hi: [0; 3],
+            n: 0,
+            vox: [&[][..]; RUN_CHANNELS],
+            clear: [0; RUN_CHANNELS],
+            tf: [None; RUN_CHANNELS],
+            all_clear: u64::MAX,
+        }
+    }
+
+    /// A channel's brick: its voxels, clear cells and transfer function.
+    fn push(&mut self, vox: &'a [T], clear: u64, tf: &'f TfEval<'a>) {
+        self.vox[self.n] = vox;
+        self.clear[self.n] = clear;
+        self.tf[self.n] = Some(tf);
+        self.all_clear &= clear;
+        self.n += 1;
+    }
+}
+
+/// The steps `j .. end` of a run through the bricks of `r`: cells every
+/// channel hides crossed, each other step's channels sampled from their
+/// voxels (a channel whose cell is clear adds nothing and is left out),
+/// mixed as [`dvr_pixel`] mixes them and composited into `acc`. The
+/// positions are the run's (fixed point, `Run`), the step path's within
+/// rounding. Returns whether the ray ended (early termination), the step
+/// it stopped before and the samples taken (channels sampled at a step).
+/// Adds the cells crossed and the transparent samples to `st`.
+fn run_steps<T: Sample>(
+    f: &Frame,
+    r: &ResidentRun<'_, '_, T>,
+    mut run: Run,
+    (mut j, end): (u64, u64),
+    (exponent, terminate): (f32, bool),
+    acc: &mut [f32; 4],
+    st: &mut FrameStats,
+) -> (bool, u64, u64) {
+    let [sz, sy] = f.stride;
+    let first = f.local_index([0; 3], [0; 3]);
+    let (mut samples, mut transparent, mut passed) = (0u64, 0u64, 0u64);
+    let done = loop {
+        if j >= end {
+            break false;
+        }
+        let (u, fr) = run.current();
+        let cell = f.cell_in_run(u);
+        if r.all_clear >> cell & 1 != 0 {
+            passed += 1;
+            j = run.cross_cell(f, u, (j, end));
+            continue;
+        }
+        run.advance(1);
+        j += 1;
+        let i = first + u[0] as usize * sz + u[1] as usize * sy + u[2] as usize;
+        let mut keep = 1.0f32;
+        let mut rgb = [0.0f32; 3];
+        let mut weight = 0.0f32;
+        for c in 0..r.n {
+            if r.clear[c] >> cell & 1 != 0 {
+                continue;
+            }
+            samples += 1;
+            let v = trilinear(r.vox[c], i, sz, sy, fr);
+            let tf = r.tf[c].expect("set with the voxels");
+            match tf.lookup_visible(v) {
+                Some(c) => {
+                    keep *= 1.0 - c[3];
+                    rgb[0] += c[3] * c[0];
+                    rgb[1] += c[3] * c[1];
+                    rgb[2] += c[3] * c[2];
+                    weight += c[3];
+                }
+                None => transparent += 1,
+            }
+        }
+        if weight > 0.0 {
+            let inv = 1.0 / weight;
+            let c = [rgb[0] * inv, rgb[1] * inv, rgb[2] * inv, 1.0 - keep];
+            if composite_visible(acc, c, exponent) && terminate {
+                break true;
+            }
+        }
+    };
+    st.transparent += transparent;
+    st.skipped_cells += passed;
+    (done, j, samples)
+}
+
+/// After a step every channel shown took from a stand-in of one level
+/// (its brick at the step's level `level` not resident, the finest
+/// resident coarser one holding data, of the same level `lv` for all) or
+/// hid by its value range, some from a stand-in: `lv`, the index of the
+/// first such channel and the run's bricks (the stand-ins', which share
+/// their box). `None` otherwise.
+fn stand_in_run<'a, 'f, T: Sample>(
+    walkers: &[Walker<'f, 'a, T>],
+    level: usize,
+) -> Option<(usize, usize, ResidentRun<'a, 'f, T>)> {
+    if walkers.len() > RUN_CHANNELS {
+        return None;
+    }
+    let mut at: Option<(usize, usize)> = None;
+    for (i, wk) in walkers.iter().enumerate() {
+        let c = &wk.cache[level];
+        if wk.f.channel_level(level) != level {
+            return None;
+        }
+        if c.transparent {
+            continue;
+        }
+        if !matches!(c.content, Content::Unmapped) {
+            return None;
+        }
+        let lv = wk.stand_in_level(level)?;
+        if !matches!(wk.cache[lv].content, Content::Data(_)) {
+            return None;
+        }
+        match at {
+            None => at = Some((lv, i)),
+            Some((l, _)) if l != lv => return None,
+            Some(_) => {}
+        }
+    }
+    let (lv, first) = at?;
+    let mut r = ResidentRun::empty();
+    for wk in walkers {
+        let s = &wk.cache[lv];
+        if let (false, Content::Data(vox)) = (wk.cache[level].transparent, s.content) {
+            (r.lo, r.hi) = (s.lo, s.hi);
+            r.push(vox, s.clear_cells, &wk.f.tf_eval);
+        }
+    }
+    Some((lv, first, r))
 }

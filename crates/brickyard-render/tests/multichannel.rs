@@ -447,6 +447,79 @@ fn a_cold_frame_of_channels_asks_for_what_the_cpu_asks_for() {
     }
 }
 
+/// A first frame of channels drawn from stand-ins alone (level 0 never
+/// resident, the coarse levels pinned): the CPU's runs through the
+/// stand-ins' bricks give the reference image of the finest pinned level
+/// sampled at level 0's steps, and ask for the bricks the device asks for
+/// sampling step by step (each step of a run a miss of every channel
+/// drawn from a stand-in); with and without the store's statistics, and
+/// with a channel hidden by its transfer function.
+#[test]
+fn a_first_frame_of_channels_from_stand_ins_is_their_level_and_asks_as_the_device() {
+    let dir = tempfile::tempdir().unwrap();
+    let n = 3;
+    let (store, extent, levels) = banded_store_of(dir.path(), n, [64, 64, 64]);
+    let gpu = test_gpu();
+    let mut renderer = gpu.as_ref().map(GpuRenderer::new);
+    let hidden = TransferFunction::from_json(
+        r#"{"window": [0, 255], "opacity": [[0, 0], [1, 0]], "colormap": "grayscale"}"#,
+    )
+    .unwrap();
+    for (shown, ranges, hide) in [
+        (vec![0, 1, 2], true, false),
+        (vec![2, 0], false, false),
+        (vec![0, 1, 2], true, true),
+    ] {
+        let mut p = dvr_params(extent, &shown, n);
+        if hide {
+            p.channels[1].tf = Some(hidden.clone());
+        }
+        let what = format!("channels {shown:?}, statistics {ranges}, one hidden {hide}");
+        let mut scene = Scene::new(extent, levels.clone());
+        let mut c = cfg(4 << 20);
+        c.request_cap = 4096;
+        let mut s = Session::open(&store, c, 8 << 20, 2).unwrap();
+        if ranges {
+            scene.ranges = Some(Arc::new(s.loader().brick_ranges(1 << 20)));
+        }
+        let pin = s
+            .pin_coarsest(4096, std::time::Duration::from_secs(60))
+            .unwrap();
+        let finest = *pin.levels.iter().min().unwrap();
+        assert!(finest >= 1, "{what}: level 0 pinned");
+        let voxel = |l: usize| Volume::from_store(&store, l, 0).unwrap().voxel_size();
+        p.reference_step = Some(voxel(0));
+        s.begin_frame();
+        let (img, st, reqs) = render_frame(s.vm(), &scene, &p, Lod::Fixed(0));
+        assert_eq!(st.exact, 0, "{what}: level 0 was resident");
+        assert_eq!(st.unserved, 0, "{what}: a sample found no stand-in");
+        not_blank(&img, &what);
+        // The reference at level 0's step from the stand-ins' level.
+        let mut q = p.clone();
+        q.samples_per_voxel *= voxel(finest) / voxel(0);
+        let want = reference(&store, &q, finest);
+        let d = img.max_abs_diff(&want);
+        assert!(
+            d <= TOLERANCE,
+            "{what}: {d} from level {finest}'s reference"
+        );
+        let (Some(gpu), Some(renderer)) = (&gpu, renderer.as_mut()) else {
+            continue; // BRICKYARD_SKIP_GPU=1, reported by `test_gpu`
+        };
+        let (dvm, _) = DeviceVm::new(gpu, s.vm_mut()).unwrap();
+        s.begin_frame();
+        let f = renderer
+            .render(gpu, &dvm, s.vm(), &scene, &p, Lod::Fixed(0))
+            .unwrap();
+        let (_, st2, reqs2) = render_frame(s.vm(), &scene, &p, Lod::Fixed(0));
+        assert_eq!(st2.samples, st.samples, "{what}: the same frame again");
+        assert_eq!(reqs2.len(), reqs.len());
+        assert_eq!(f.stats.exact, 0);
+        let cpu = same_requests(&reqs2, &f.requests, &what);
+        assert!(cpu.len() > 10, "{what}: {} bricks asked for", cpu.len());
+    }
+}
+
 /// The three MNI152 files (T1, grey matter, white matter) as one
 /// three-channel store, or `None` (said on stderr) when the shared data
 /// folder is absent.

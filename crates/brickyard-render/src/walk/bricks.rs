@@ -503,7 +503,7 @@ impl<'f, 'a, T: Sample> Walker<'f, 'a, T> {
 
     /// The finest level coarser than `level` whose cached brick holds data
     /// or one value: the stand-in that served the last sample of `level`.
-    fn stand_in_level(&self, level: usize) -> Option<usize> {
+    pub(crate) fn stand_in_level(&self, level: usize) -> Option<usize> {
         (level + 1..self.cache.len())
             .find(|&m| matches!(self.cache[m].content, Content::Data(_) | Content::Value(_)))
     }
@@ -511,7 +511,7 @@ impl<'f, 'a, T: Sample> Walker<'f, 'a, T> {
     /// The first step from `k` that may leave the cached brick of any of
     /// `levels` (step `k − 1` lies in each) or reach `limit`: the smallest
     /// of their landings; `u64::MAX` for no level.
-    fn land_in_bricks(
+    pub(crate) fn land_in_bricks(
         &mut self,
         levels: std::ops::Range<usize>,
         ray: &Ray,
