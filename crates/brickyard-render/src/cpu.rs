@@ -401,11 +401,16 @@ fn render_typed<T: Sample>(
     // One-channel DVR through the page tables: every ray's entry depth,
     // and the bricks rays now pass before it marked as the walk would.
     let entries = (matches!(params.mode, RenderMode::Dvr)
-        && params.channels.is_empty()
         && !by_octree
         && params.views.is_none()
         && scene.entry_depths)
-        .then(|| Entries::new(&frame, &rg, tiles))
+        .then(|| {
+            if dvr_multi {
+                Entries::of_channels(&ch_frames, &rg, tiles)
+            } else {
+                Entries::new(&frame, &rg, tiles)
+            }
+        })
         .flatten();
     if let Some(e) = &entries {
         e.mark_passed(&frame, &rg);
@@ -508,7 +513,13 @@ fn render_typed<T: Sample>(
                                     (&mut req, &mut st),
                                 ),
                                 RenderMode::Dvr if multi => {
-                                    multi::dvr_pixel(&mut walkers, &ray, (&mut req, &mut st))
+                                    let entry =
+                                        entries.as_ref().map(|e| (e.level, e.at(i, j as usize)));
+                                    multi::dvr_pixel(
+                                        &mut walkers,
+                                        (&ray, entry),
+                                        (&mut req, &mut st),
+                                    )
                                 }
                                 RenderMode::Dvr => {
                                     let entry =

@@ -60,6 +60,7 @@ struct Box3 {
 /// A brick that rays may pass through before their entry and that the
 /// walk would have marked as used: its box and pixels.
 struct Passable {
+    channel: usize,
     brick: Dims3,
     bx: Box3,
 }
@@ -200,7 +201,11 @@ impl Entries {
                     };
                     if pass {
                         if let Some(bx) = place(lo, hi) {
-                            passable.push(Passable { brick: b, bx });
+                            passable.push(Passable {
+                                channel: f.scene.channel,
+                                brick: b,
+                                bx,
+                            });
                         }
                     }
                 }
@@ -318,10 +323,39 @@ impl Entries {
         })
     }
 
+    /// DVR of several channels (`frames`, one per channel shown, none with
+    /// a level range of its own): per pixel the nearest of the channels'
+    /// entries (before it every channel hides every sample), each
+    /// channel's passed bricks marked as its walk would. `None` when a
+    /// channel has none (see [`new`](Self::new)) or their levels differ.
+    pub(crate) fn of_channels(frames: &[Frame], rg: &ViewRays, tiles: &Tiles) -> Option<Entries> {
+        if frames.iter().any(|f| f.channel_levels.is_some()) {
+            return None;
+        }
+        let mut all: Option<Entries> = None;
+        for f in frames {
+            let e = Entries::new(f, rg, tiles)?;
+            all = Some(match all {
+                None => e,
+                Some(a) if a.level != e.level => return None,
+                Some(mut a) => {
+                    a.whole &= e.whole;
+                    for (x, y) in a.depth.iter_mut().zip(&e.depth) {
+                        *x = x.min(*y);
+                    }
+                    a.passable.extend(e.passable);
+                    a
+                }
+            });
+        }
+        all
+    }
+
     /// Mark as used, as the walk would have, every brick that some drawn
     /// pixel's ray passes through before its entry. Bricks of one value
     /// and resident bricks crossed through their clear cells are the ones
-    /// the walk looked up there and rays now skip.
+    /// the walk looked up there and rays now skip (of each channel, for
+    /// [`of_channels`](Self::of_channels)).
     pub(crate) fn mark_passed(&self, f: &Frame, rg: &ViewRays) {
         self.passable.par_iter().for_each(|p| {
             let near = p.bx.near;
@@ -337,7 +371,7 @@ impl Entries {
                     let inv = [1.0 / d[0], 1.0 / d[1], 1.0 / d[2]];
                     if let Some((tn, _)) = intersect_box_inv(&ray, inv, p.bx.lo, p.bx.hi) {
                         if tn < e {
-                            f.vm.brick(self.level, f.scene.channel, p.brick, true);
+                            f.vm.brick(self.level, p.channel, p.brick, true);
                             break 'px;
                         }
                     }

@@ -50,10 +50,11 @@ const RUN_CHANNELS: usize = 16;
 
 /// The pixel of `ray` in a DVR of several channels, one walker (and frame)
 /// per visible channel, all frames of the same geometry and level of
-/// detail.
+/// detail. `entry`: the ray's entry depth over all channels at a level
+/// ([`crate::entry`]).
 pub(crate) fn dvr_pixel<T: Sample>(
     walkers: &mut [Walker<'_, '_, T>],
-    ray: &Ray,
+    (ray, entry): (&Ray, Option<(usize, f64)>),
     (req, st): (&mut Requests, &mut FrameStats),
 ) -> [f32; 4] {
     let mut acc = [0.0f32; 4];
@@ -66,13 +67,23 @@ pub(crate) fn dvr_pixel<T: Sample>(
     let inv_dir = [1.0 / d[0], 1.0 / d[1], 1.0 / d[2]];
     // A region (sort-last): the whole ray's step grid, samples in
     // [c0, t1) only.
-    let Some((t0, c0, t1)) = f.span(ray, inv_dir) else {
+    let Some((t0, mut c0, t1)) = f.span(ray, inv_dir) else {
         return acc;
     };
     let terminate = f.params.early_termination;
     // The step grid and level changes of `dvr.rs`.
     let mut level = f.level_at(t0);
     let mut next_t = f.next_level_t(level);
+    if let Some((el, e)) = entry {
+        if el == level && e > c0 {
+            // No channel shows anything before the entry at this level
+            // (`entry.rs`): start there, as one-channel DVR does.
+            if e >= t1 && next_t >= t1 {
+                return acc;
+            }
+            c0 = e.min(next_t);
+        }
+    }
     let (mut dt, mut inv_dt, mut exponent) = f.step[level];
     let mut track = f.track(level, ray, inv_dir, t1);
     let mut base_t = t0;
