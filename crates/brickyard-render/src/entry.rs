@@ -100,9 +100,16 @@ impl Entries {
     /// when the level rays start at has too many bricks or boxes for a
     /// pre-pass to pay.
     pub(crate) fn new(f: &Frame, rg: &ViewRays, tiles: &Tiles) -> Option<Entries> {
-        let params = f.params;
-        let (w, h) = (params.width as usize, params.height as usize);
         let level = f.level_at(near_distance(f));
+        let (boxes, passable) = Self::boxes(f, level)?;
+        Self::from_boxes(f, level, (boxes, passable), rg, tiles)
+    }
+
+    /// The boxes of frame `f`'s level `level` that may show something
+    /// (cells of resident bricks, bricks not resident, bricks of one value
+    /// that shows) and the bricks rays may pass without sampling; `None`
+    /// when the level has too many bricks or boxes.
+    fn boxes(f: &Frame, level: usize) -> Option<(Vec<Box3>, Vec<Passable>)> {
         let nb = f.bricks[level];
         if nb.iter().product::<u64>() > MAX_BRICKS {
             return None;
@@ -221,6 +228,20 @@ impl Entries {
             boxes.extend(b);
             passable.extend(p);
         }
+        Some((boxes, passable))
+    }
+
+    /// Entries at `level` from the boxes that may show (`boxes`, of one
+    /// channel or of several) for the pixels of `tiles`; `f`: a frame of
+    /// the view (its geometry and size).
+    fn from_boxes(
+        f: &Frame,
+        level: usize,
+        (mut boxes, passable): (Vec<Box3>, Vec<Passable>),
+        rg: &ViewRays,
+        tiles: &Tiles,
+    ) -> Option<Entries> {
+        let (w, h) = (f.params.width as usize, f.params.height as usize);
         // Nearest first: a pixel whose entry is already nearer than a
         // box's nearest point skips its test.
         boxes.sort_unstable_by(|a, b| a.near.total_cmp(&b.near));
@@ -329,26 +350,22 @@ impl Entries {
     /// channel's passed bricks marked as its walk would. `None` when a
     /// channel has none (see [`new`](Self::new)) or their levels differ.
     pub(crate) fn of_channels(frames: &[Frame], rg: &ViewRays, tiles: &Tiles) -> Option<Entries> {
+        let f = frames.first()?;
         if frames.iter().any(|f| f.channel_levels.is_some()) {
             return None;
         }
-        let mut all: Option<Entries> = None;
-        for f in frames {
-            let e = Entries::new(f, rg, tiles)?;
-            all = Some(match all {
-                None => e,
-                Some(a) if a.level != e.level => return None,
-                Some(mut a) => {
-                    a.whole &= e.whole;
-                    for (x, y) in a.depth.iter_mut().zip(&e.depth) {
-                        *x = x.min(*y);
-                    }
-                    a.passable.extend(e.passable);
-                    a
-                }
-            });
+        // The channels' boxes together, one pass over the pixels.
+        let level = f.level_at(near_distance(f));
+        let (mut boxes, mut passable) = (Vec::new(), Vec::new());
+        for fc in frames {
+            let (b, p) = Self::boxes(fc, level)?;
+            boxes.extend(b);
+            passable.extend(p);
+            if boxes.len() > MAX_BOXES {
+                return None;
+            }
         }
-        all
+        Self::from_boxes(f, level, (boxes, passable), rg, tiles)
     }
 
     /// Mark as used, as the walk would have, every brick that some drawn

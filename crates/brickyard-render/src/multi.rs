@@ -43,6 +43,7 @@ use brickyard_cache::vm::Requests;
 use brickyard_core::camera::Ray;
 use brickyard_core::transfer::TfEval;
 use brickyard_core::{Dims3, Sample};
+use smallvec::SmallVec;
 
 /// Most channels a run through resident bricks takes (more are sampled
 /// step by step).
@@ -266,26 +267,36 @@ pub(crate) fn dvr_pixel<T: Sample>(
     acc
 }
 
-/// The bricks of a run through one brick of every channel shown, all at
-/// the step's level: each resident (its voxels, clear cells and transfer
-/// function) or hidden by its value range (left out), at least one
-/// resident. The channels share the brick's box.
+/// The bricks of a run through one brick of every channel shown, all of
+/// one level: each resident (its voxels, clear cells and transfer
+/// function), of one value that shows (its colour, the same at every
+/// step), or hidden (left out), at least one not hidden. The channels
+/// share the brick's box.
 struct ResidentRun<'a, 'f, T> {
     lo: Dims3,
     hi: Dims3,
-    n: usize,
-    vox: [&'a [T]; RUN_CHANNELS],
-    clear: [u64; RUN_CHANNELS],
-    tf: [Option<&'f TfEval<'a>>; RUN_CHANNELS],
+    /// The channels not hidden, in the order of those shown.
+    slots: SmallVec<[Slot<'a, 'f, T>; RUN_CHANNELS]>,
     /// The cells every channel hides (resident ones by their cells, the
     /// others whole).
     all_clear: u64,
 }
 
+/// One channel's brick in a run.
+struct Slot<'a, 'f, T> {
+    /// Its voxels (none for a brick of one value).
+    vox: &'a [T],
+    /// The cells whose samples it hides.
+    clear: u64,
+    tf: &'f TfEval<'a>,
+    /// A brick of one value that shows: its colour (straight alpha).
+    konst: Option<[f32; 4]>,
+}
+
 /// The run's bricks when every channel shown reads the step's level
 /// (no level range of its own there) and has its brick at voxel base
-/// `vb` resident or hidden, some resident; `None` otherwise (the step is
-/// sampled channel by channel).
+/// `vb` resident (data or one value) or hidden, some not hidden; `None`
+/// otherwise (the step is sampled channel by channel).
 #[inline]
 fn resident_run<'a, 'f, T: Sample>(
     walkers: &mut [Walker<'f, 'a, T>],
@@ -307,7 +318,7 @@ fn resident_run<'a, 'f, T: Sample>(
         if c.transparent {
             continue;
         }
-        if !matches!(c.content, Content::Data(_)) {
+        if !matches!(c.content, Content::Data(_) | Content::Value(_)) {
             return None;
         }
         resident = true;
@@ -319,8 +330,8 @@ fn resident_run<'a, 'f, T: Sample>(
     for wk in walkers.iter() {
         let c = &wk.cache[level];
         (r.lo, r.hi) = (c.lo, c.hi);
-        if let (false, Content::Data(vox)) = (c.transparent, c.content) {
-            r.push(vox, c.clear_cells, &wk.f.tf_eval);
+        if !c.transparent {
+            r.push(c.content, c.clear_cells, &wk.f.tf_eval);
         }
     }
     Some(r)
@@ -331,21 +342,35 @@ impl<'a, 'f, T> ResidentRun<'a, 'f, T> {
         ResidentRun {
             lo: [0; 3],
             hi: [0; 3],
-            n: 0,
-            vox: [&[][..]; RUN_CHANNELS],
-            clear: [0; RUN_CHANNELS],
-            tf: [None; RUN_CHANNELS],
+            slots: SmallVec::new(),
             all_clear: u64::MAX,
         }
     }
 
-    /// A channel's brick: its voxels, clear cells and transfer function.
-    fn push(&mut self, vox: &'a [T], clear: u64, tf: &'f TfEval<'a>) {
-        self.vox[self.n] = vox;
-        self.clear[self.n] = clear;
-        self.tf[self.n] = Some(tf);
-        self.all_clear &= clear;
-        self.n += 1;
+    /// A channel's brick (data or one value), its clear cells and transfer
+    /// function. A value the function hides adds nothing at any step; one
+    /// it shows, the same colour at every step (no cell is clear).
+    fn push(&mut self, content: Content<'a, T>, clear: u64, tf: &'f TfEval<'a>) {
+        let slot = match content {
+            Content::Data(vox) => Slot {
+                vox,
+                clear,
+                tf,
+                konst: None,
+            },
+            Content::Value(v) => {
+                let konst = tf.lookup_visible(v);
+                Slot {
+                    vox: &[],
+                    clear: if konst.is_some() { 0 } else { u64::MAX },
+                    tf,
+                    konst,
+                }
+            }
+            Content::Unresolved | Content::Unmapped => unreachable!("a brick that serves"),
+        };
+        self.all_clear &= slot.clear;
+        self.slots.push(slot);
     }
 }
 
@@ -386,14 +411,16 @@ fn run_steps<T: Sample>(
         let mut keep = 1.0f32;
         let mut rgb = [0.0f32; 3];
         let mut weight = 0.0f32;
-        for c in 0..r.n {
-            if r.clear[c] >> cell & 1 != 0 {
+        for ch in &r.slots {
+            if ch.clear >> cell & 1 != 0 {
                 continue;
             }
             samples += 1;
-            let v = trilinear(r.vox[c], i, sz, sy, fr);
-            let tf = r.tf[c].expect("set with the voxels");
-            match tf.lookup_visible(v) {
+            let found = match ch.konst {
+                Some(k) => Some(k),
+                None => ch.tf.lookup_visible(trilinear(ch.vox, i, sz, sy, fr)),
+            };
+            match found {
                 Some(c) => {
                     keep *= 1.0 - c[3];
                     rgb[0] += c[3] * c[0];
@@ -419,7 +446,7 @@ fn run_steps<T: Sample>(
 
 /// After a step every channel shown took from a stand-in of one level
 /// (its brick at the step's level `level` not resident, the finest
-/// resident coarser one holding data, of the same level `lv` for all) or
+/// resident coarser one, data or one value, of the same level `lv` for all) or
 /// hid by its value range, some from a stand-in: `lv`, the index of the
 /// first such channel and the run's bricks (the stand-ins', which share
 /// their box). `None` otherwise.
@@ -443,9 +470,6 @@ fn stand_in_run<'a, 'f, T: Sample>(
             return None;
         }
         let lv = wk.stand_in_level(level)?;
-        if !matches!(wk.cache[lv].content, Content::Data(_)) {
-            return None;
-        }
         match at {
             None => at = Some((lv, i)),
             Some((l, _)) if l != lv => return None,
@@ -456,9 +480,9 @@ fn stand_in_run<'a, 'f, T: Sample>(
     let mut r = ResidentRun::empty();
     for wk in walkers {
         let s = &wk.cache[lv];
-        if let (false, Content::Data(vox)) = (wk.cache[level].transparent, s.content) {
+        if !wk.cache[level].transparent {
             (r.lo, r.hi) = (s.lo, s.hi);
-            r.push(vox, s.clear_cells, &wk.f.tf_eval);
+            r.push(s.content, s.clear_cells, &wk.f.tf_eval);
         }
     }
     Some((lv, first, r))
