@@ -2,7 +2,9 @@
 // channel shown (`use_channel`: its own page-table walk memo, its own clear
 // bits) through its own transfer function, mixed as coincident media
 // (opacity 1 − Π(1 − α_i), colour Σ α_i·c_i / Σ α_i) and composited front to
-// back. The ray jumps over a brick only when every channel hides it.
+// back. The ray jumps over a brick only when every channel hides it, and
+// over a cell of resident bricks when every channel hides the cell (or its
+// brick).
 //
 // Per channel i shown, 8 words of `aux` from R.styles_off + 8·i: channel,
 // window start (f32 bits), 1 / window width (f32 bits), index of its first
@@ -57,6 +59,64 @@ fn ch_color(i: u32, x: f32) -> vec3<f32> {
         piece_at(x, a.xz, b.xz),
         piece_at(x, a.xw, b.xw),
     );
+}
+
+// Channel i's transfer function hides every value in [lo, hi] (as
+// `range_clear` for the one-channel function).
+fn ch_range_clear(i: u32, lo: f32, hi: f32) -> bool {
+    if (is_nan(lo) || is_nan(hi)) {
+        return false;
+    }
+    let x0 = ch_windowed(i, lo);
+    let x1 = ch_windowed(i, hi);
+    if (ch_opacity(i, x0) > 0.0 || ch_opacity(i, x1) > 0.0) {
+        return false;
+    }
+    let o = ch_word(i, 3u);
+    let n = ch_word(i, 4u);
+    for (var j = 0u; j < n; j = j + 1u) {
+        let p = tf(o + j);
+        if (p.x >= x0 && p.x <= x1 && p.y > 0.0) {
+            return false;
+        }
+    }
+    return true;
+}
+
+// Whether channel i adds nothing anywhere in the cell of voxel base `b` of
+// the step's level `level`: it reads that level there and hides its brick
+// (`skip`, as `channel_sample`: 2), or the brick is resident there and the
+// cell's value range is hidden (1; its slot marked as used); 0 otherwise.
+fn ch_cell_clear(i: u32, level: u32, b: vec3<u32>, skip: bool) -> u32 {
+    use_channel(i);
+    if (ch_level(i, level) != level) {
+        return 0u;
+    }
+    let e = entry_at(level, b);
+    let f = flag(e);
+    if (skip) {
+        var hidden = is_clear(brick_id(level, b));
+        if (!hidden && (f == EMPTY || f == CONSTANT)) {
+            var v = 0.0;
+            if (f == CONSTANT) {
+                v = constant_value(e.y);
+            }
+            hidden = is_nan(v) || ch_opacity(i, ch_windowed(i, v)) <= 0.0;
+        }
+        if (hidden) {
+            return 2u;
+        }
+    }
+    if (f != MAPPED) {
+        return 0u;
+    }
+    let slot = slot_id(e, lay.brick_grid);
+    let r = cell_range(slot, b);
+    if (!ch_range_clear(i, r.x, r.y)) {
+        return 0u;
+    }
+    mark(slot, true);
+    return 1u;
 }
 
 // α of a channel's sample that nothing resident served at the step's level.
@@ -140,6 +200,7 @@ fn dvr_channels(ray: Ray) -> vec4<f32> {
     ch_exact = 0u;
     ch_unserved = 0u;
     var jumps = 0u;
+    var cells_crossed = 0u;
     if (span.y > span.x) {
         let t1 = span.y;
         var level = level_at(span.x);
@@ -160,6 +221,25 @@ fn dvr_channels(ray: Ray) -> vec4<f32> {
             let w = ray.o + ray.d * t;
             let q = coords(level, w).xyz;
             let b = vec3<u32>(q);
+            if (R.skip_cells == 1u) {
+                // Every channel resident here with the cell clear, or
+                // hiding its brick (some resident): on past the cell in one
+                // jump, as the CPU's runs cross it.
+                var clear = 2u;
+                for (var i = 0u; i < R.n_channels; i = i + 1u) {
+                    let c = ch_cell_clear(i, level, b, R.skip == 1u);
+                    if (c == 0u) {
+                        clear = 0u;
+                        break;
+                    }
+                    clear = min(clear, c);
+                }
+                if (clear == 1u) {
+                    cells_crossed = cells_crossed + 1u;
+                    k = land_cell(ray, level, b, base_t, k, t1);
+                    continue;
+                }
+            }
             var all_clear = true;
             // Every channel either hides the brick or found nothing
             // resident (then the ray may jump), and which found nothing.
@@ -224,5 +304,6 @@ fn dvr_channels(ray: Ray) -> vec4<f32> {
     atomicAdd(&counters[1], ch_exact);
     atomicAdd(&counters[2], ch_unserved);
     atomicAdd(&counters[3], jumps);
+    atomicAdd(&counters[5], cells_crossed);
     return acc;
 }

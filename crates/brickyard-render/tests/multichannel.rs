@@ -331,7 +331,7 @@ fn gpu_converge(
     scene: &Scene,
     p: &RenderParams,
     pool: u64,
-) -> Option<Image> {
+) -> Option<(Image, brickyard_render::cpu::FrameStats)> {
     let mut renderer = GpuRenderer::new(gpu);
     let mut s = Session::open(store, cfg(pool), 8 << 20, 2).unwrap();
     let (mut dvm, _) = DeviceVm::new(gpu, s.vm_mut()).unwrap();
@@ -344,7 +344,7 @@ fn gpu_converge(
             .unwrap();
         update_on_device(gpu, &mut dvm, &mut cache, &mut s, n, &f.list).unwrap();
         if f.stats.completeness() == 1.0 && f.stats.samples > 0 {
-            return Some(f.image);
+            return Some((f.image, f.stats));
         }
         std::thread::sleep(std::time::Duration::from_millis(1));
     }
@@ -367,7 +367,7 @@ fn gpu_multichannel_dvr_equals_the_cpu_and_the_reference() {
         let mut s = Session::open(&store, cfg(2 * vol_bytes), 8 << 20, 2).unwrap();
         scene.ranges = Some(Arc::new(s.loader().brick_ranges(1 << 20)));
         let (cpu, _) = converge(&mut s, &scene, &p, Lod::Fixed(0));
-        let img = gpu_converge(&gpu, &store, &scene, &p, 2 * vol_bytes).unwrap();
+        let (img, _) = gpu_converge(&gpu, &store, &scene, &p, 2 * vol_bytes).unwrap();
         not_blank(&img, &format!("{n} channels, device"));
         let want = reference(&store, &p, 0);
         let (dc, dr) = (img.max_abs_diff(&cpu), img.max_abs_diff(&want));
@@ -377,10 +377,45 @@ fn gpu_multichannel_dvr_equals_the_cpu_and_the_reference() {
             "{n} channels: device vs CPU {dc}, vs reference {dr}"
         );
         if n == 3 {
+            // The cells every channel hides are crossed (as the CPU's runs
+            // cross them): the same image as sampling them, fewer samples.
+            // (Transfer functions that hide the bands' background, 60, so
+            // that cells of it are clear for every channel.)
+            let mut pc = p.clone();
+            for c in &mut pc.channels {
+                c.tf = Some(
+                    TransferFunction::from_json(
+                        r#"{"window": [100, 255], "opacity": [[0, 0], [0.1, 0], [1, 0.6]],
+                            "colormap": "hot"}"#,
+                    )
+                    .unwrap(),
+                );
+            }
+            let (crossed, st) = gpu_converge(&gpu, &store, &scene, &pc, 2 * vol_bytes).unwrap();
+            scene.skip_cells = false;
+            let (every, st_every) = gpu_converge(&gpu, &store, &scene, &pc, 2 * vol_bytes).unwrap();
+            scene.skip_cells = true;
+            not_blank(&crossed, "cells crossed");
+            let d = crossed.max_abs_diff(&every);
+            eprintln!(
+                "{n} channels: {} samples, {} cells crossed; {} samples crossing none; diff {d}",
+                st.samples, st.skipped_cells, st_every.samples
+            );
+            assert_eq!(st_every.skipped_cells, 0);
+            assert!(st.skipped_cells > 0, "no cell crossed");
+            assert!(
+                st.samples < st_every.samples * 9 / 10,
+                "{} samples crossing cells, {} without",
+                st.samples,
+                st_every.samples
+            );
+            assert!(d <= 1e-6, "crossing cells changed the image by {d}");
+            let dr = crossed.max_abs_diff(&reference(&store, &pc, 0));
+            assert!(dr <= TOLERANCE, "cells crossed: {dr} from the reference");
             // Without the store's statistics (as the web client draws): no
             // brick is known clear, none may be skipped as one.
             scene.ranges = None;
-            let img = gpu_converge(&gpu, &store, &scene, &p, 2 * vol_bytes).unwrap();
+            let (img, _) = gpu_converge(&gpu, &store, &scene, &p, 2 * vol_bytes).unwrap();
             let dr = img.max_abs_diff(&want);
             eprintln!("{n} channels without statistics: device vs reference {dr}");
             assert!(
