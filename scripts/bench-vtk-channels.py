@@ -37,6 +37,8 @@ import vtk
 import zarr
 from vtk.util import numpy_support
 
+from vtk_view import frames, mapper_of, window, write_png
+
 
 def main():
     ap = argparse.ArgumentParser()
@@ -93,56 +95,11 @@ def main():
     prop.SetInterpolationTypeToLinear()
     prop.ShadeOff()
 
-    mapper = vtk.vtkFixedPointVolumeRayCastMapper()
-    mapper.SetInputData(img)
-    mapper.AutoAdjustSampleDistancesOff()
-    if a.threads > 0:
-        mapper.SetNumberOfThreads(a.threads)
-    mapper.SetSampleDistance(1.0)
-    mapper.SetImageSampleDistance(1.0)
-    mapper.SetInteractiveSampleDistance(1.0)
-
-    volume = vtk.vtkVolume()
-    volume.SetMapper(mapper)
-    volume.SetProperty(prop)
-    ren = vtk.vtkRenderer()
-    ren.AddVolume(volume)
-    ren.SetBackground(0, 0, 0)
-    win = vtk.vtkRenderWindow()
-    win.SetOffScreenRendering(1)
-    win.AddRenderer(ren)
-    win.SetSize(a.size, a.size)
-
-    cam = json.load(open(a.camera))
-    cm = ren.GetActiveCamera()
-    cm.SetPosition(*cam["eye"])
-    cm.SetFocalPoint(*cam["target"])
-    cm.SetViewUp(*cam["up"])
-    proj = cam["projection"]
-    if proj.get("type") == "orthographic":
-        cm.ParallelProjectionOn()
-        cm.SetParallelScale(proj["height"] / 2.0)
-    else:
-        cm.SetViewAngle(proj["fov_y_deg"])
-    ren.ResetCameraClippingRange()
-
-    t_first = time.perf_counter()
-    win.Render()
-    first_ms = (time.perf_counter() - t_first) * 1e3
-    times = []
-    for _ in range(a.repeat):
-        cm.Modified()
-        t = time.perf_counter()
-        win.Render()
-        times.append((time.perf_counter() - t) * 1e3)
+    mapper = mapper_of(img, a.threads)
+    win = window(mapper, prop, a.camera, a.size)
+    first_ms, times = frames(win, a.repeat)
     if a.png:
-        grab = vtk.vtkWindowToImageFilter()
-        grab.SetInput(win)
-        grab.Update()
-        out = vtk.vtkPNGWriter()
-        out.SetFileName(a.png)
-        out.SetInputConnection(grab.GetOutputPort())
-        out.Write()
+        write_png(win, a.png)
     print(
         json.dumps(
             {

@@ -17,7 +17,9 @@
 use crate::cpu::FrameStats;
 use crate::lanes::F4;
 use crate::optics::{composite_visible, Acc};
-use crate::walk::{jump_before, step_t, trilinear, trilinear_lanes, Content, Grid, Run, Walker};
+use crate::walk::{
+    jump_before, start_at_entry, step_t, trilinear, trilinear_lanes, Content, Grid, Run, Walker,
+};
 use brickyard_cache::vm::Requests;
 use brickyard_core::camera::Ray;
 use brickyard_core::Sample;
@@ -113,7 +115,7 @@ impl<'f, 'a, T: Sample> Walker<'f, 'a, T> {
         let inv_dir = [1.0 / d[0], 1.0 / d[1], 1.0 / d[2]];
         // A region (sort-last): the whole ray's step grid, samples in
         // [c0, t1) only.
-        let Some((t0, mut c0, t1)) = f.span(ray, inv_dir) else {
+        let Some((t0, c0, t1)) = f.span(ray, inv_dir) else {
             return acc;
         };
         let terminate = f.params.early_termination;
@@ -122,17 +124,11 @@ impl<'f, 'a, T: Sample> Walker<'f, 'a, T> {
         // of the new level's grid.
         let mut level = f.level_at(t0);
         let mut next_t = f.next_level_t(level);
-        if let Some((el, e)) = entry {
-            if el == level && e > c0 {
-                // Nothing before the entry shows at this level: start
-                // there (as a region would), or not at all when the ray
-                // ends first.
-                if e >= t1 && next_t >= t1 {
-                    return acc;
-                }
-                c0 = e.min(next_t);
-            }
-        }
+        // Nothing before the entry shows at this level: start there (as a
+        // region would), or not at all when the ray ends first.
+        let Some(c0) = start_at_entry(entry, level, c0, (t1, next_t)) else {
+            return acc;
+        };
         let (mut dt, mut inv_dt, mut exponent) = f.step[level];
         let mut track = f.track(level, ray, inv_dir, t1);
         let mut base_t = t0;

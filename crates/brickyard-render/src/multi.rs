@@ -37,8 +37,10 @@
 //! samples step by step; the positions agree within the runs' rounding.
 
 use crate::cpu::FrameStats;
-use crate::optics::composite_visible;
-use crate::walk::{jump_before, step_t, trilinear, Content, Frame, Grid, Run, Walker};
+use crate::optics::{composite_visible, Media};
+use crate::walk::{
+    jump_before, start_at_entry, step_t, trilinear, Content, Frame, Grid, Run, Walker,
+};
 use brickyard_cache::vm::Requests;
 use brickyard_core::camera::Ray;
 use brickyard_core::transfer::TfEval;
@@ -68,23 +70,18 @@ pub(crate) fn dvr_pixel<T: Sample>(
     let inv_dir = [1.0 / d[0], 1.0 / d[1], 1.0 / d[2]];
     // A region (sort-last): the whole ray's step grid, samples in
     // [c0, t1) only.
-    let Some((t0, mut c0, t1)) = f.span(ray, inv_dir) else {
+    let Some((t0, c0, t1)) = f.span(ray, inv_dir) else {
         return acc;
     };
     let terminate = f.params.early_termination;
     // The step grid and level changes of `dvr.rs`.
     let mut level = f.level_at(t0);
     let mut next_t = f.next_level_t(level);
-    if let Some((el, e)) = entry {
-        if el == level && e > c0 {
-            // No channel shows anything before the entry at this level
-            // (`entry.rs`): start there, as one-channel DVR does.
-            if e >= t1 && next_t >= t1 {
-                return acc;
-            }
-            c0 = e.min(next_t);
-        }
-    }
+    // No channel shows anything before the entry at this level: start
+    // there, as one-channel DVR does.
+    let Some(c0) = start_at_entry(entry, level, c0, (t1, next_t)) else {
+        return acc;
+    };
     let (mut dt, mut inv_dt, mut exponent) = f.step[level];
     let mut track = f.track(level, ray, inv_dir, t1);
     let mut base_t = t0;
@@ -152,9 +149,7 @@ pub(crate) fn dvr_pixel<T: Sample>(
         // jump), and the channels that found nothing.
         let mut passable = true;
         let mut unserved = 0u64;
-        let mut keep = 1.0f32;
-        let mut rgb = [0.0f32; 3];
-        let mut weight = 0.0f32;
+        let mut mix = Media::NONE;
         for (i, wk) in walkers.iter_mut().enumerate() {
             // The channel's own level (its level range), usually the step's.
             let lc = wk.f.channel_level(level);
@@ -194,11 +189,7 @@ pub(crate) fn dvr_pixel<T: Sample>(
             passable = false;
             match wk.f.tf_eval.lookup_visible(v) {
                 Some(c) => {
-                    keep *= 1.0 - c[3];
-                    rgb[0] += c[3] * c[0];
-                    rgb[1] += c[3] * c[1];
-                    rgb[2] += c[3] * c[2];
-                    weight += c[3];
+                    mix.add(c);
                 }
                 None => st.transparent += 1,
             }
@@ -228,9 +219,7 @@ pub(crate) fn dvr_pixel<T: Sample>(
             k = kn;
             continue;
         }
-        if weight > 0.0 {
-            let inv = 1.0 / weight;
-            let c = [rgb[0] * inv, rgb[1] * inv, rgb[2] * inv, 1.0 - keep];
+        if let Some(c) = mix.sample() {
             if composite_visible(&mut acc, c, exponent) && terminate {
                 break;
             }
@@ -408,9 +397,7 @@ fn run_steps<T: Sample>(
         run.advance(1);
         j += 1;
         let i = first + u[0] as usize * sz + u[1] as usize * sy + u[2] as usize;
-        let mut keep = 1.0f32;
-        let mut rgb = [0.0f32; 3];
-        let mut weight = 0.0f32;
+        let mut mix = Media::NONE;
         for ch in &r.slots {
             if ch.clear >> cell & 1 != 0 {
                 continue;
@@ -422,18 +409,12 @@ fn run_steps<T: Sample>(
             };
             match found {
                 Some(c) => {
-                    keep *= 1.0 - c[3];
-                    rgb[0] += c[3] * c[0];
-                    rgb[1] += c[3] * c[1];
-                    rgb[2] += c[3] * c[2];
-                    weight += c[3];
+                    mix.add(c);
                 }
                 None => transparent += 1,
             }
         }
-        if weight > 0.0 {
-            let inv = 1.0 / weight;
-            let c = [rgb[0] * inv, rgb[1] * inv, rgb[2] * inv, 1.0 - keep];
+        if let Some(c) = mix.sample() {
             if composite_visible(acc, c, exponent) && terminate {
                 break true;
             }

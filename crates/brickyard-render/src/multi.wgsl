@@ -83,6 +83,24 @@ fn ch_range_clear(i: u32, lo: f32, hi: f32) -> bool {
     return true;
 }
 
+// Whether channel i hides the brick of voxel base `b` at `level`, whose
+// page entry is `e`: known clear (the store's statistics), or an EMPTY or
+// CONSTANT entry its transfer function maps to zero opacity.
+fn ch_hides_brick(i: u32, level: u32, b: vec3<u32>, e: vec2<u32>) -> bool {
+    let f = flag(e);
+    if (is_clear(brick_id(level, b))) {
+        return true;
+    }
+    if (f != EMPTY && f != CONSTANT) {
+        return false;
+    }
+    var v = 0.0;
+    if (f == CONSTANT) {
+        v = constant_value(e.y);
+    }
+    return is_nan(v) || ch_opacity(i, ch_windowed(i, v)) <= 0.0;
+}
+
 // Whether channel i adds nothing anywhere in the cell of voxel base `b` of
 // the step's level `level`: it reads that level there and hides its brick
 // (`skip`, as `channel_sample`: 2), or the brick is resident there and the
@@ -93,21 +111,10 @@ fn ch_cell_clear(i: u32, level: u32, b: vec3<u32>, skip: bool) -> u32 {
         return 0u;
     }
     let e = entry_at(level, b);
-    let f = flag(e);
-    if (skip) {
-        var hidden = is_clear(brick_id(level, b));
-        if (!hidden && (f == EMPTY || f == CONSTANT)) {
-            var v = 0.0;
-            if (f == CONSTANT) {
-                v = constant_value(e.y);
-            }
-            hidden = is_nan(v) || ch_opacity(i, ch_windowed(i, v)) <= 0.0;
-        }
-        if (hidden) {
-            return 2u;
-        }
+    if (skip && ch_hides_brick(i, level, b, e)) {
+        return 2u;
     }
-    if (f != MAPPED) {
+    if (flag(e) != MAPPED) {
         return 0u;
     }
     let slot = slot_id(e, lay.brick_grid);
@@ -152,22 +159,11 @@ fn channel_sample(i: u32, step_level: u32, w: vec3<f32>, step_q: vec3<f32>, mask
     }
     let b = vec3<u32>(q);
     let e = entry_at(level, b);
-    if (skip) {
-        let f = flag(e);
-        var hidden = is_clear(brick_id(level, b));
-        if (!hidden && (f == EMPTY || f == CONSTANT)) {
-            var v = 0.0;
-            if (f == CONSTANT) {
-                v = constant_value(e.y);
-            }
-            hidden = is_nan(v) || ch_opacity(i, ch_windowed(i, v)) <= 0.0;
+    if (skip && ch_hides_brick(i, level, b, e)) {
+        if (level != step_level) {
+            return vec4<f32>(0.0);
         }
-        if (hidden) {
-            if (level != step_level) {
-                return vec4<f32>(0.0);
-            }
-            return vec4<f32>(0.0, 0.0, 0.0, -1.0);
-        }
+        return vec4<f32>(0.0, 0.0, 0.0, -1.0);
     }
     let s = sample_masked(w, level, q, e, mask);
     ch_samples = ch_samples + 1u;

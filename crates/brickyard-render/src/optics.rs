@@ -337,6 +337,45 @@ pub fn channel_intensity(style: &ChannelStyle, value: f32) -> f32 {
     }
 }
 
+/// Several channels' samples at one point mixed as coincident media
+/// (`multi.rs`): opacity `1 − Π(1 − α_i)`, colour `Σ α_i·c_i / Σ α_i`.
+#[derive(Clone, Copy)]
+pub(crate) struct Media {
+    keep: f32,
+    rgb: [f32; 3],
+    weight: f32,
+}
+
+impl Media {
+    /// No channel yet.
+    pub(crate) const NONE: Media = Media {
+        keep: 1.0,
+        rgb: [0.0; 3],
+        weight: 0.0,
+    };
+
+    /// Add a channel's sample `[r, g, b, α]` (straight colour).
+    #[inline(always)]
+    pub(crate) fn add(&mut self, c: [f32; 4]) {
+        self.keep *= 1.0 - c[3];
+        self.rgb[0] += c[3] * c[0];
+        self.rgb[1] += c[3] * c[1];
+        self.rgb[2] += c[3] * c[2];
+        self.weight += c[3];
+    }
+
+    /// The mixed sample (straight colour and opacity); `None` when no
+    /// channel shows.
+    #[inline(always)]
+    pub(crate) fn sample(&self) -> Option<[f32; 4]> {
+        (self.weight > 0.0).then(|| {
+            let inv = 1.0 / self.weight;
+            let [r, g, b] = self.rgb;
+            [r * inv, g * inv, b * inv, 1.0 - self.keep]
+        })
+    }
+}
+
 /// Additive mix of channel intensities: `Σ colour·intensity`, clamped to 1,
 /// opaque.
 #[inline]

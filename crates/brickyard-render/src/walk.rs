@@ -351,6 +351,24 @@ pub(crate) fn jump_before(k: u64, c0: f64, until: f64, base_t: f64, inv_dt: f64)
     }
 }
 
+/// Where a DVR ray whose samples lie in `[c0, t1)` starts at `level`, given
+/// its entry depth (`entry.rs`: no sample of that level before it shows):
+/// the entry when it is of this level and later (never past the level's
+/// end `next_t`, whose restart of the step grid must stay), else `c0`;
+/// `None` when nothing is left to sample.
+#[inline]
+pub(crate) fn start_at_entry(
+    entry: Option<(usize, f64)>,
+    level: usize,
+    c0: f64,
+    (t1, next_t): (f64, f64),
+) -> Option<f64> {
+    match entry {
+        Some((el, e)) if el == level && e > c0 => (e < t1 || next_t < t1).then(|| e.min(next_t)),
+        _ => Some(c0),
+    }
+}
+
 /// The parameter of step `k` on a ray entering the volume at `t0`.
 #[inline]
 pub(crate) fn step_t(t0: f64, k: u64, dt: f64) -> f64 {

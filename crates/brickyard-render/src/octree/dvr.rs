@@ -14,7 +14,7 @@
 
 use super::Octree;
 use crate::cpu::{FrameStats, Lod, Scene};
-use crate::optics::composite_visible;
+use crate::optics::{composite_visible, Media};
 use crate::params::{ChannelStyle, RenderParams};
 use crate::walk::{step_t, Frame, Walker};
 use brickyard_cache::vm::Requests;
@@ -363,9 +363,7 @@ pub(crate) fn dvr_pixel<T: Sample>(
         };
         // Sample every channel the node does not hide.
         let (vb, frac) = f.coords(level, w);
-        let mut keep = 1.0f32;
-        let mut rgb = [0.0f32; 3];
-        let mut weight = 0.0f32;
+        let mut mix = Media::NONE;
         for (i, wk) in walkers.iter_mut().enumerate() {
             if cur.clear >> i & 1 != 0 {
                 continue;
@@ -386,18 +384,12 @@ pub(crate) fn dvr_pixel<T: Sample>(
             };
             match wk.f.tf_eval.lookup_visible(v) {
                 Some(c) => {
-                    keep *= 1.0 - c[3];
-                    rgb[0] += c[3] * c[0];
-                    rgb[1] += c[3] * c[1];
-                    rgb[2] += c[3] * c[2];
-                    weight += c[3];
+                    mix.add(c);
                 }
                 None => st.transparent += 1,
             }
         }
-        if weight > 0.0 {
-            let inv = 1.0 / weight;
-            let c = [rgb[0] * inv, rgb[1] * inv, rgb[2] * inv, 1.0 - keep];
+        if let Some(c) = mix.sample() {
             if composite_visible(&mut acc, c, exponent) {
                 break;
             }
@@ -428,9 +420,7 @@ impl OctFrame<'_> {
         level: usize,
     ) -> Option<[f32; 4]> {
         let clear = self.tables.clear[node * self.tree.levels() + level];
-        let mut keep = 1.0f32;
-        let mut rgb = [0.0f32; 3];
-        let mut weight = 0.0f32;
+        let mut mix = Media::NONE;
         for (i, f) in frames.enumerate() {
             if clear >> i & 1 != 0 {
                 continue;
@@ -439,17 +429,10 @@ impl OctFrame<'_> {
                 .tree
                 .range_of(node, self.channels[i], f.channel_level(level))[0];
             if let Some(c) = f.tf_eval.lookup_visible(v) {
-                keep *= 1.0 - c[3];
-                rgb[0] += c[3] * c[0];
-                rgb[1] += c[3] * c[1];
-                rgb[2] += c[3] * c[2];
-                weight += c[3];
+                mix.add(c);
             }
         }
-        (weight > 0.0).then(|| {
-            let inv = 1.0 / weight;
-            [rgb[0] * inv, rgb[1] * inv, rgb[2] * inv, 1.0 - keep]
-        })
+        mix.sample()
     }
 
     /// This frame's tables for the device's traversal (`octree/dvr.wgsl`),

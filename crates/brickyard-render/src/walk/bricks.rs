@@ -622,27 +622,9 @@ mod tests {
     /// calls, and rays nearly parallel to a voxel plane.
     #[test]
     fn landing_in_several_bricks_is_the_first_of_their_landings() {
-        use crate::params::{RenderMode, RenderParams};
-        use brickyard_cache::vm::{VirtualMemory, VmConfig};
-        use brickyard_core::camera::{Camera, Projection};
-        use brickyard_core::{DType, TransferFunction};
         let levels = vec![[40u64, 56, 48], [20, 28, 24], [10, 14, 12]];
         let extent = [1.3, 0.9, 1.7];
-        let cfg = VmConfig {
-            brick: [8; 3],
-            pool_bytes: 1 << 22,
-            ..Default::default()
-        };
-        let vm = VirtualMemory::new(&levels, 1, DType::U8, cfg);
-        let scene = crate::cpu::Scene::new(extent, levels.clone());
-        let cam = Camera::fit(
-            extent,
-            30.0,
-            20.0,
-            Projection::Perspective { fov_y_deg: 35.0 },
-        );
-        let tf = TransferFunction::preset("soft", [0.0, 255.0]).unwrap();
-        let params = RenderParams::new(4, 4, cam, tf, RenderMode::Dvr);
+        let (vm, scene, params) = fixture_of(levels.clone(), [8; 3], extent);
         let f = Frame::new(&vm, &scene, &params, Lod::Fixed(0));
         let mut wk = Walker::<u8>::new(&f, 0);
         let mut rnd = uniform(0x5eed);

@@ -19,7 +19,15 @@ pub(crate) fn fixture(
     brick: Dims3,
     extent: Vec3,
 ) -> (VirtualMemory, Scene, RenderParams) {
-    let levels = vec![dims];
+    fixture_of(vec![dims], brick, extent)
+}
+
+/// [`fixture`] of several levels (voxels per level).
+pub(crate) fn fixture_of(
+    levels: Vec<Dims3>,
+    brick: Dims3,
+    extent: Vec3,
+) -> (VirtualMemory, Scene, RenderParams) {
     let cfg = VmConfig {
         brick,
         pool_bytes: 1 << 22,
