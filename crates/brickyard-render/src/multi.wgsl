@@ -149,10 +149,8 @@ fn ch_level(i: u32, level: u32) -> u32 {
 // step's level (a brick of another level gives no landing: α 0); α −2
 // (`UNSERVED_HERE`) when nothing resident serves it and its level is the
 // step's. On a miss, only the coarser levels whose bit `mask` has
-// substitute. `cells`: a resident brick whose cell there the channel hides
-// is not sampled (α 0, no sample counted), as the CPU's runs leave the
-// channel out.
-fn channel_sample(i: u32, step_level: u32, w: vec3<f32>, step_q: vec3<f32>, mask: u32, skip: bool, cells: bool) -> vec4<f32> {
+// substitute.
+fn channel_sample(i: u32, step_level: u32, w: vec3<f32>, step_q: vec3<f32>, mask: u32, skip: bool) -> vec4<f32> {
     use_channel(i);
     let level = ch_level(i, step_level);
     var q = step_q;
@@ -166,16 +164,6 @@ fn channel_sample(i: u32, step_level: u32, w: vec3<f32>, step_q: vec3<f32>, mask
             return vec4<f32>(0.0);
         }
         return vec4<f32>(0.0, 0.0, 0.0, -1.0);
-    }
-    if (cells && flag(e) == MAPPED) {
-        // Resident, its cell hidden by the channel's transfer function:
-        // nothing to sample (as the CPU's runs leave such a channel out).
-        let slot = slot_id(e, lay.brick_grid);
-        let r = cell_range(slot, b);
-        if (ch_range_clear(i, r.x, r.y)) {
-            mark(slot, true);
-            return vec4<f32>(0.0);
-        }
     }
     let s = sample_masked(w, level, q, e, mask);
     ch_samples = ch_samples + 1u;
@@ -257,7 +245,7 @@ fn dvr_channels(ray: Ray) -> vec4<f32> {
             var rgb = vec3<f32>(0.0);
             var weight = 0.0;
             for (var i = 0u; i < R.n_channels; i = i + 1u) {
-                let c = channel_sample(i, level, w, q, ALL_LEVELS, R.skip == 1u, R.skip_cells == 1u);
+                let c = channel_sample(i, level, w, q, ALL_LEVELS, R.skip == 1u);
                 if (c.w == -1.0) {
                     continue;
                 }

@@ -229,7 +229,7 @@ fn dvr_octree(ray: Ray) -> vec4<f32> {
                 if (oct_bit(in_clear, i)) {
                     continue;
                 }
-                let c = channel_sample(i, level, w, q, oct_mask(in_node, i), true, false);
+                let c = channel_sample(i, level, w, q, oct_mask(in_node, i), true);
                 if (c.w > 0.0) {
                     keep = keep * (1.0 - c.w);
                     rgb = rgb + c.xyz;
