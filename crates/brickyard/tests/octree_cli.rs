@@ -415,9 +415,18 @@ fn bench_octree_measures_both_traversals() {
         // Nodes per ray: none through page tables, some through the octree.
         assert_eq!(num(7) > 0.0, w[2] == "octree", "{w:?}");
     }
-    // The same samples per ray on both back ends.
+    // The same samples per ray on both back ends, but for several channels
+    // through the page tables: there the CPU's runs leave out a channel
+    // whose resident cell it hides, where the device samples it (and adds
+    // nothing), so the CPU takes fewer.
     for pair in rows.chunks(4) {
-        assert_eq!(pair[0][5], pair[2][5], "{out}");
+        let (cpu, dev) = (pair[0][5], pair[2][5]);
+        if pair[0][0] == "1" {
+            assert_eq!(cpu, dev, "{out}");
+        } else {
+            let (c, d) = (cpu.parse::<f64>().unwrap(), dev.parse::<f64>().unwrap());
+            assert!(c <= d && c > 0.5 * d, "{out}");
+        }
         assert_eq!(pair[1][5], pair[3][5], "{out}");
     }
     fails_with(
