@@ -37,9 +37,10 @@
 //! samples step by step; the positions agree within the runs' rounding.
 
 use crate::cpu::FrameStats;
-use crate::optics::{composite_visible, Media};
+use crate::optics::{composite_visible, Media, TfTable};
 use crate::walk::{
-    jump_before, start_at_entry, step_t, trilinear, Content, Frame, Grid, Run, Walker,
+    jump_before, start_at_entry, step_t, trilinear, trilinear_lanes, Content, Frame, Grid, Run,
+    Walker,
 };
 use brickyard_cache::vm::Requests;
 use brickyard_core::camera::Ray;
@@ -278,6 +279,8 @@ struct Slot<'a, 'f, T> {
     /// The cells whose samples it hides.
     clear: u64,
     tf: &'f TfEval<'a>,
+    /// The same function in bins ([`TfTable`]), for the voxels' samples.
+    table: &'f TfTable,
     /// A brick of one value that shows: its colour (straight alpha).
     konst: Option<[f32; 4]>,
 }
@@ -320,7 +323,7 @@ fn resident_run<'a, 'f, T: Sample>(
         let c = &wk.cache[level];
         (r.lo, r.hi) = (c.lo, c.hi);
         if !c.transparent {
-            r.push(c.content, c.clear_cells, &wk.f.tf_eval);
+            r.push(c.content, c.clear_cells, wk.f);
         }
     }
     Some(r)
@@ -339,12 +342,14 @@ impl<'a, 'f, T> ResidentRun<'a, 'f, T> {
     /// A channel's brick (data or one value), its clear cells and transfer
     /// function. A value the function hides adds nothing at any step; one
     /// it shows, the same colour at every step (no cell is clear).
-    fn push(&mut self, content: Content<'a, T>, clear: u64, tf: &'f TfEval<'a>) {
+    fn push(&mut self, content: Content<'a, T>, clear: u64, f: &'f Frame<'a>) {
+        let (tf, table) = (&f.tf_eval, &f.tf_table);
         let slot = match content {
             Content::Data(vox) => Slot {
                 vox,
                 clear,
                 tf,
+                table,
                 konst: None,
             },
             Content::Value(v) => {
@@ -353,6 +358,7 @@ impl<'a, 'f, T> ResidentRun<'a, 'f, T> {
                     vox: &[],
                     clear: if konst.is_some() { 0 } else { u64::MAX },
                     tf,
+                    table,
                     konst,
                 }
             }
@@ -381,6 +387,7 @@ fn run_steps<T: Sample>(
     st: &mut FrameStats,
 ) -> (bool, u64, u64) {
     let [sz, sy] = f.stride;
+    let lanes = f.scene.lanes;
     let first = f.local_index([0; 3], [0; 3]);
     let (mut samples, mut transparent, mut passed) = (0u64, 0u64, 0u64);
     let done = loop {
@@ -405,6 +412,18 @@ fn run_steps<T: Sample>(
             samples += 1;
             let found = match ch.konst {
                 Some(k) => Some(k),
+                // Four lanes (`Scene::lanes`): the scalar twin's bits.
+                None if lanes => ch
+                    .table
+                    .lookup_visible(
+                        ch.tf,
+                        trilinear_lanes(ch.vox, i, sz, sy, fr),
+                        T::DTYPE.is_float(),
+                    )
+                    .map(|c| {
+                        let [a, r, g, b] = c.to_array();
+                        [r, g, b, a]
+                    }),
                 None => ch.tf.lookup_visible(trilinear(ch.vox, i, sz, sy, fr)),
             };
             match found {
@@ -463,7 +482,7 @@ fn stand_in_run<'a, 'f, T: Sample>(
         let s = &wk.cache[lv];
         if !wk.cache[level].transparent {
             (r.lo, r.hi) = (s.lo, s.hi);
-            r.push(s.content, s.clear_cells, &wk.f.tf_eval);
+            r.push(s.content, s.clear_cells, wk.f);
         }
     }
     Some((lv, first, r))

@@ -228,6 +228,37 @@ fn cpu_multichannel_dvr_equals_the_reference() {
     }
 }
 
+/// The runs of several channels in four lanes (`Scene::lanes`) give the
+/// scalar twin's bits, for u8 channels (the lanes' own kernel) with and
+/// without the store's statistics.
+#[test]
+fn channels_in_four_lanes_are_the_scalar_twin() {
+    let dir = tempfile::tempdir().unwrap();
+    let n = 3;
+    let (store, extent, levels) = banded_store(dir.path(), n);
+    let p = dvr_params(extent, &[0, 1, 2], n);
+    let vol_bytes = n as u64 * DIMS.iter().product::<u64>();
+    for ranges in [false, true] {
+        let mut scene = Scene::new(extent, levels.clone());
+        let mut s = Session::open(&store, cfg(2 * vol_bytes), 8 << 20, 2).unwrap();
+        scene.ranges = ranges.then(|| Arc::new(s.loader().brick_ranges(1 << 20)));
+        let (lanes, _) = converge(&mut s, &scene, &p, Lod::Fixed(0));
+        scene.lanes = false;
+        let (scalar, _) = converge(&mut s, &scene, &p, Lod::Fixed(0));
+        not_blank(&lanes, "lanes");
+        let bits = |img: &Image| -> Vec<u32> {
+            img.rgba
+                .iter()
+                .flat_map(|px| px.map(f32::to_bits))
+                .collect()
+        };
+        assert!(
+            bits(&lanes) == bits(&scalar),
+            "statistics {ranges}: the lanes' image differs"
+        );
+    }
+}
+
 #[test]
 fn a_brick_is_skipped_only_when_every_visible_channel_hides_it() {
     // Channel 0 is hidden everywhere by its transfer function (opacity 0
