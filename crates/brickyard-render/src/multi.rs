@@ -31,9 +31,10 @@
 //! cell is clear left out of the step. After a step every channel took
 //! from a stand-in of one level (or hid), the next steps the same
 //! stand-in bricks serve are taken the same way at this level's step,
-//! each a miss of every such channel's brick. Elsewhere (level ranges of
-//! their own, constant bricks, stand-ins of different levels, more than
-//! 16 channels) the step is sampled channel by channel. The device twin
+//! each a miss of every such channel's brick. A brick of one value that
+//! shows adds its colour at every step of a run. Elsewhere (level ranges
+//! of their own, stand-ins of different levels, a channel with nothing
+//! resident, more than 16 channels) the step is sampled channel by channel. The device twin
 //! samples step by step; the positions agree within the runs' rounding.
 
 use crate::cpu::FrameStats;

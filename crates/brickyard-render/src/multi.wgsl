@@ -23,42 +23,12 @@ fn ch_windowed(i: u32, v: f32) -> f32 {
 
 // Channel i's opacity at the windowed value x (as `opacity_at`).
 fn ch_opacity(i: u32, x: f32) -> f32 {
-    let o = ch_word(i, 3u);
-    let n = ch_word(i, 4u);
-    var j = 0u;
-    while (j < n && tf(o + j).x <= x) {
-        j = j + 1u;
-    }
-    if (j == 0u) {
-        return tf(o).y;
-    }
-    if (j == n) {
-        return tf(o + n - 1u).y;
-    }
-    return piece_at(x, tf(o + j - 1u).xy, tf(o + j).xy);
+    return opacity_in(ch_word(i, 3u), ch_word(i, 4u), x);
 }
 
 // Channel i's colour at the windowed value x (as `color_at`).
 fn ch_color(i: u32, x: f32) -> vec3<f32> {
-    let o = ch_word(i, 3u) + ch_word(i, 4u);
-    let n = ch_word(i, 5u);
-    var j = 0u;
-    while (j < n && tf(o + j).x <= x) {
-        j = j + 1u;
-    }
-    if (j == 0u) {
-        return tf(o).yzw;
-    }
-    if (j == n) {
-        return tf(o + n - 1u).yzw;
-    }
-    let a = tf(o + j - 1u);
-    let b = tf(o + j);
-    return vec3<f32>(
-        piece_at(x, a.xy, b.xy),
-        piece_at(x, a.xz, b.xz),
-        piece_at(x, a.xw, b.xw),
-    );
+    return color_in(ch_word(i, 3u) + ch_word(i, 4u), ch_word(i, 5u), x);
 }
 
 // Channel i's transfer function hides every value in [lo, hi] (as
@@ -67,20 +37,7 @@ fn ch_range_clear(i: u32, lo: f32, hi: f32) -> bool {
     if (is_nan(lo) || is_nan(hi)) {
         return false;
     }
-    let x0 = ch_windowed(i, lo);
-    let x1 = ch_windowed(i, hi);
-    if (ch_opacity(i, x0) > 0.0 || ch_opacity(i, x1) > 0.0) {
-        return false;
-    }
-    let o = ch_word(i, 3u);
-    let n = ch_word(i, 4u);
-    for (var j = 0u; j < n; j = j + 1u) {
-        let p = tf(o + j);
-        if (p.x >= x0 && p.x <= x1 && p.y > 0.0) {
-            return false;
-        }
-    }
-    return true;
+    return opacity_clear(ch_word(i, 3u), ch_word(i, 4u), ch_windowed(i, lo), ch_windowed(i, hi));
 }
 
 // Whether channel i hides the brick of voxel base `b` at `level`, whose

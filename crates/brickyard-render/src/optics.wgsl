@@ -21,26 +21,25 @@ fn piece_at(x: f32, a: vec2<f32>, b: vec2<f32>) -> f32 {
     return clamp(v, min(a.y, b.y), max(a.y, b.y));
 }
 
-// Piecewise-linear opacity at the windowed value x (constant outside the
-// points, right-continuous at steps).
-fn opacity_at(x: f32) -> f32 {
-    let n = R.n_opacity;
+// Piecewise-linear opacity at the windowed value x of the `n` opacity
+// points from point `o` (constant outside the points, right-continuous at
+// steps).
+fn opacity_in(o: u32, n: u32, x: f32) -> f32 {
     var i = 0u;
-    while (i < n && tf(i).x <= x) {
+    while (i < n && tf(o + i).x <= x) {
         i = i + 1u;
     }
     if (i == 0u) {
-        return tf(0).y;
+        return tf(o).y;
     }
     if (i == n) {
-        return tf(n - 1u).y;
+        return tf(o + n - 1u).y;
     }
-    return piece_at(x, tf(i - 1u).xy, tf(i).xy);
+    return piece_at(x, tf(o + i - 1u).xy, tf(o + i).xy);
 }
 
-fn color_at(x: f32) -> vec3<f32> {
-    let o = R.n_opacity;
-    let n = R.n_color;
+// The colour map of the `n` colour points from point `o` at x.
+fn color_in(o: u32, n: u32, x: f32) -> vec3<f32> {
     var i = 0u;
     while (i < n && tf(o + i).x <= x) {
         i = i + 1u;
@@ -60,6 +59,31 @@ fn color_at(x: f32) -> vec3<f32> {
     );
 }
 
+// Whether the `n` opacity points from point `o` give zero opacity to every
+// windowed value in [x0, x1]: the piecewise-linear opacity is largest at
+// the ends or at a point inside.
+fn opacity_clear(o: u32, n: u32, x0: f32, x1: f32) -> bool {
+    if (opacity_in(o, n, x0) > 0.0 || opacity_in(o, n, x1) > 0.0) {
+        return false;
+    }
+    for (var i = 0u; i < n; i = i + 1u) {
+        let p = tf(o + i);
+        if (p.x >= x0 && p.x <= x1 && p.y > 0.0) {
+            return false;
+        }
+    }
+    return true;
+}
+
+// The one-channel transfer function's opacity (its points first in `aux`).
+fn opacity_at(x: f32) -> f32 {
+    return opacity_in(0u, R.n_opacity, x);
+}
+
+fn color_at(x: f32) -> vec3<f32> {
+    return color_in(R.n_opacity, R.n_color, x);
+}
+
 fn windowed(v: f32) -> f32 {
     return clamp((v - R.window0) * R.inv_width, 0.0, 1.0);
 }
@@ -71,18 +95,7 @@ fn range_clear(lo: f32, hi: f32) -> bool {
     if (is_nan(lo) || is_nan(hi)) {
         return false;
     }
-    let x0 = windowed(lo);
-    let x1 = windowed(hi);
-    if (opacity_at(x0) > 0.0 || opacity_at(x1) > 0.0) {
-        return false;
-    }
-    for (var i = 0u; i < R.n_opacity; i = i + 1u) {
-        let p = tf(i);
-        if (p.x >= x0 && p.x <= x1 && p.y > 0.0) {
-            return false;
-        }
-    }
-    return true;
+    return opacity_clear(0u, R.n_opacity, windowed(lo), windowed(hi));
 }
 
 fn correct_opacity(a: f32, e: f32) -> f32 {

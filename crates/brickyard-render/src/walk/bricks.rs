@@ -540,8 +540,14 @@ impl<'f, 'a, T: Sample> Walker<'f, 'a, T> {
                 let te = if exit < limit { exit } else { limit };
                 first_step(g, te, margin).max(k)
             } else {
-                let track = self.track_of(m, ray, inv_dir, t_end);
-                f.land(ray, &track, g, k, (lo, hi), limit)
+                f.land(
+                    ray,
+                    self.track_ref(m, ray, inv_dir, t_end),
+                    g,
+                    k,
+                    (lo, hi),
+                    limit,
+                )
             };
             end = end.min(kn);
         }
