@@ -320,6 +320,7 @@ pub(crate) fn channel_frames<'a>(
         .map(|((sc, p), c)| {
             let mut f = Frame::new(vm, sc, p, lod);
             f.channel_levels = c.levels;
+            f.mip_stop = crate::mip::stop_of_channel(params, c);
             f
         })
         .collect()

@@ -752,8 +752,10 @@ impl GpuRenderer {
             u.clip_lo = f4(lo);
             u.clip_hi = f4(hi);
             u.region[0] = 1;
-            u.region[2] = params.mip_values as u32;
         }
+        // MIP: raw maxima (a region's, to meet the others' before the
+        // transfer function) or, outside regions, no ray ended early.
+        u.region[2] = params.mip_values as u32;
         u.region[1] = !params.early_termination as u32;
         if let Some((a, b)) = self.rows {
             u.rows = [1, a, b, 0];

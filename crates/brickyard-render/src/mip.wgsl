@@ -1,20 +1,37 @@
 // Maximum intensity projections on the device, twin of `mip.rs`: each
 // channel's largest value along the ray at the entry level, crossing cells
 // whose maximum cannot raise it, then the transfer function's colour or
-// the channels' mix.
+// the channels' mix. A ray ends once its maximum saturates the window (any
+// larger value has the same colour), unless the raw maxima are wanted.
 
 // The largest value of the current channel along the ray in `span` at the
 // entry level (NaN samples and unserved ones left out), and whether there
 // was one; crossing cells whose maximum cannot raise it; as the CPU's
-// `mip_max`.
-fn mip_max(ray: Ray, span: vec2<f32>) -> vec2<f32> {
-    return mip_max_in(ray, span, span).xy;
+// `mip_max`. `multi`: the current channel is one of several (its window
+// is its style's).
+fn mip_max(ray: Ray, span: vec2<f32>, multi: bool) -> vec2<f32> {
+    return mip_max_in(ray, span, span, multi).xy;
+}
+
+// Whether the maximum `v` saturates the window of the channel shown (its
+// colour is that of every larger value: the ray may end); never where
+// the raw maxima are wanted (regions' values meet before the transfer
+// function). The CPU's `saturation`.
+fn mip_saturated(v: f32, multi: bool) -> bool {
+    if (R.region.z == 1u) {
+        return false;
+    }
+    if (multi) {
+        let st = style(cur_idx);
+        return st.z > st.y && (v - st.y) / (st.z - st.y) >= 1.0;
+    }
+    return R.inv_width > 0.0 && R.inv_width < 3.0e38 && windowed(v) >= 1.0;
 }
 
 // `mip_max` over the samples of the grid of `span` that lie in
 // [clip.x, clip.y) (a sort-last region, as the CPU's `mip_max_in`); z: 1
 // when the ray took a step there (served or not), 0 otherwise.
-fn mip_max_in(ray: Ray, span: vec2<f32>, clip: vec2<f32>) -> vec3<f32> {
+fn mip_max_in(ray: Ray, span: vec2<f32>, clip: vec2<f32>, multi: bool) -> vec3<f32> {
     let t1 = min(span.y, clip.y);
     var hit = false;
     let level = level_at(span.x);
@@ -69,6 +86,9 @@ fn mip_max_in(ray: Ray, span: vec2<f32>, clip: vec2<f32>) -> vec3<f32> {
         if (!found || s.x > best) {
             best = s.x;
             found = true;
+            if (mip_saturated(best, multi)) {
+                break;
+            }
         }
     }
     atomicAdd(&counters[0], samples);
@@ -87,7 +107,7 @@ fn mip_pixel(ray: Ray) -> vec4<f32> {
         // A region (sort-last): its samples of the whole ray's grid.
         let c = region_span(ray);
         if (span.y > span.x && c.y > c.x) {
-            let m = mip_max_in(ray, span, c);
+            let m = mip_max_in(ray, span, c, false);
             if (m.z > 0.0) {
                 if (R.region.z == 1u) {
                     // The raw maximum, for the regions' maxima to meet
@@ -104,7 +124,7 @@ fn mip_pixel(ray: Ray) -> vec4<f32> {
         return px;
     }
     if (span.y > span.x && span.x + 0.5 * R.step[level_at(span.x)].x < span.y) {
-        let m = mip_max(ray, span);
+        let m = mip_max(ray, span, false);
         px = vec4<f32>(0.0, 0.0, 0.0, 1.0);
         if (m.y > 0.0) {
             px = vec4<f32>(color_at(windowed(m.x)), 1.0);
@@ -123,7 +143,7 @@ fn mip_channels(ray: Ray) -> vec4<f32> {
         var have = 0u;
         for (var i = 0u; i < R.n_channels; i = i + 1u) {
             use_channel(i);
-            let m = mip_max(ray, span);
+            let m = mip_max(ray, span, true);
             v[i] = m.x;
             if (m.y > 0.0) {
                 have = have | (1u << i);

@@ -18,7 +18,7 @@ mod testing;
 
 pub(crate) use bricks::{Content, Walker};
 pub(crate) use cells::Run;
-pub(crate) use landing::{clear_blocks, first_step, Grid, Track};
+pub(crate) use landing::{clear_blocks, first_step, max_blocks, Grid, Track};
 
 use crate::cpu::{Lod, Scene};
 use crate::lanes::F4;
@@ -68,6 +68,9 @@ pub(crate) struct Frame<'a> {
     /// [`MACRO_LEVELS`](landing::MACRO_LEVELS)), whether every brick of the block is transparent:
     /// `[level][m − 1]`, blocks `[z][y][x]` with their counts per axis.
     pub(crate) clear_blocks: Vec<Vec<(Dims3, Vec<bool>)>>,
+    /// MIP: per level, the largest value of blocks of 2ᵐ×2ᵐ×2ᵐ bricks as
+    /// `clear_blocks` has them (from the ranges; empty without them).
+    pub(crate) max_blocks: Vec<Vec<(Dims3, Vec<f32>)>>,
     /// Per level, [`next_level_t`](Self::next_level_t).
     pub(crate) next_t: Vec<f64>,
     /// Per level, DVR and MIP steps: `dt` (world units), `1/dt` and the
@@ -86,6 +89,9 @@ pub(crate) struct Frame<'a> {
     /// ([`ChannelStyle::levels`](crate::params::ChannelStyle::levels));
     /// `None`: the levels the steps ask for.
     pub(crate) channel_levels: Option<[usize; 2]>,
+    /// MIP: a ray ends at its first value of at least this (the window's
+    /// [`saturation`](crate::mip::saturation); infinite: never).
+    pub(crate) mip_stop: f32,
     /// DVR: walk the rays in the ray loop's x86-64-v3 copy
     /// ([`Scene::x86_v3`] and the processor has the instructions; never
     /// on other architectures, which have no such copy).
@@ -136,8 +142,27 @@ impl<'a> Frame<'a> {
                 None => vec![],
             })
             .collect();
+        let max_blocks = if matches!(params.mode, RenderMode::Mip) {
+            (0..nl)
+                .map(|l| {
+                    let Some(r) = scene.ranges.as_ref().and_then(|r| r.level(l)) else {
+                        return vec![];
+                    };
+                    if scene.channel >= r.channels {
+                        return vec![];
+                    }
+                    let n = r.bricks.iter().product::<u64>() as usize;
+                    let off = scene.channel * n;
+                    let max: Vec<f32> = r.range[off..off + n].iter().map(|x| x[1]).collect();
+                    max_blocks(bricks[l], &max)
+                })
+                .collect()
+        } else {
+            vec![]
+        };
         let tf_eval = params.tf.evaluator();
         let mut frame = Frame {
+            max_blocks,
             tf_table: TfTable::new(&params.tf, &tf_eval),
             clear_blocks,
             next_t: vec![],
@@ -203,6 +228,7 @@ impl<'a> Frame<'a> {
                 .all(|e| e.is_power_of_two())
                 .then(|| vm.cell_grid().edge.map(|e| e.trailing_zeros())),
             channel_levels: None,
+            mip_stop: crate::mip::stop_of_tf(params),
             x86_v3: scene.x86_v3 && crate::isa::x86_64_v3(),
         };
         frame.next_t = (0..nl).map(|l| frame.compute_next_level_t(l)).collect();

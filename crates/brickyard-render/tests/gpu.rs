@@ -511,6 +511,102 @@ fn gpu_cells_are_crossed_without_changing_the_image() {
     }
 }
 
+/// A device MIP ray ends once its maximum saturates the window, as on the
+/// CPU: a Mandelbulb whose window ends below its maximum gives the same
+/// complete image as rays that walk on (`mip_values`, which outside a
+/// region only turns the early end off), with fewer samples, and the
+/// reference's image.
+#[test]
+fn gpu_mip_rays_end_where_the_window_saturates() {
+    let Some(gpu) = test_gpu() else { return };
+    let dir = tempfile::tempdir().unwrap();
+    let store = dir.path().join("v.ome.zarr");
+    let dims = [64, 64, 64];
+    let src = Procedural::new(Kind::Mandelbulb, dims, DType::U8);
+    let o = ConvertOptions {
+        brick: [16; 3],
+        shard: [32; 3],
+        ..Default::default()
+    };
+    convert(&src, &store, &o, &NoProgress, &AtomicBool::new(false)).unwrap();
+    let level0 = Volume::from_store(&store, 0, 0).unwrap();
+    let extent = world_extent(dims, level0.spacing);
+    let cfg = VmConfig {
+        brick: [16; 3],
+        pool_bytes: 64 << 20,
+        ..Default::default()
+    };
+    let mut s = Session::open(&store, cfg, 64 << 20, 2).unwrap();
+    let (mut dvm, _) = DeviceVm::new(&gpu, s.vm_mut()).unwrap();
+    let mut cache = DeviceCache::new(&gpu, &dvm, s.vm()).unwrap();
+    let mut renderer = GpuRenderer::new(&gpu);
+    let levels: Vec<_> = (0..)
+        .map_while(|l| Volume::from_store(&store, l, 0).ok())
+        .map(|v| v.dims)
+        .collect();
+    let mut scene = Scene::new(extent, levels);
+    scene.ranges = Some(std::sync::Arc::new(s.loader().brick_ranges(1 << 20)));
+    let cam = Camera::fit(
+        extent,
+        30.0,
+        20.0,
+        Projection::Perspective { fov_y_deg: 40.0 },
+    );
+    let tf = TransferFunction::preset("hot", [0.0, 160.0]).unwrap();
+    let p = RenderParams::new(96, 80, cam, tf, RenderMode::Mip);
+    let mut frame = |s: &mut Session, p: &RenderParams| {
+        s.begin_frame();
+        let n = s.vm().frame();
+        let f = renderer
+            .render_with(&gpu, &dvm, s.vm(), Some(&cache), &scene, p, Lod::Fixed(0))
+            .unwrap();
+        update_on_device(&gpu, &mut dvm, &mut cache, s, n, &f.list).unwrap();
+        f
+    };
+    let mut done = None;
+    for _ in 0..100 {
+        let f = frame(&mut s, &p);
+        if f.stats.completeness() == 1.0 && f.stats.samples > 0 {
+            done = Some(f);
+            break;
+        }
+        std::thread::sleep(std::time::Duration::from_millis(2));
+    }
+    let ended = done.expect("the view completes");
+    let mut walk_on = p.clone();
+    walk_on.mip_values = true;
+    let walked = frame(&mut s, &walk_on);
+    assert_eq!(walked.stats.completeness(), 1.0);
+    let d = ended.image.max_abs_diff(&walked.image);
+    eprintln!(
+        "samples {} ending at saturation, {} walking on; max abs diff {d}",
+        ended.stats.samples, walked.stats.samples
+    );
+    assert!(d <= 1e-6, "ending rays early changed the image by {d}");
+    assert!(
+        (ended.stats.samples as f64) < 0.8 * walked.stats.samples as f64,
+        "too few samples saved: {} against {}",
+        ended.stats.samples,
+        walked.stats.samples
+    );
+    let r = ended.image.max_abs_diff(&render(&level0, &p));
+    assert!(r <= TOLERANCE, "max abs diff {r} to the reference");
+    // Saturated and unsaturated pixels both: the check is not vacuous.
+    let top = ended
+        .image
+        .rgba
+        .iter()
+        .filter(|px| px[0] >= 0.999 && px[1] >= 0.999)
+        .count();
+    let mid = ended
+        .image
+        .rgba
+        .iter()
+        .filter(|px| px[0] > 0.05 && px[0] < 0.95)
+        .count();
+    assert!(top > 100 && mid > 100, "{top} saturated, {mid} in between");
+}
+
 #[test]
 fn gpu_channels_add_up_in_slices_and_mips() {
     // Two channels (a Mandelbulb and a Marschner–Lobb), each windowed and

@@ -558,3 +558,124 @@ fn rays_without_an_entry_still_walk_where_the_level_changes() {
     assert!(differs_from_level_0 >= 5, "{differs_from_level_0} of 8");
     assert!(lit >= 6, "{lit} of 8");
 }
+
+/// MIP: the switches and shortcuts that must not change a pixel, on random
+/// scenes (dense and sparse volumes of u8, u16 and f32, random transfer
+/// functions whose windows often end below the data's maximum, any camera,
+/// fixed and automatic levels, ranges or none):
+///
+/// - a ray ends once its maximum saturates the window: the complete frame
+///   equals, bit for bit, the transfer function's colours of the raw maxima
+///   (`RenderParams::mip_values`, where no ray ends early), with fewer
+///   samples over the scenes;
+/// - blocks of bricks that cannot raise a ray's maximum are crossed in one
+///   landing: the frame equals the one without the store's ranges (no brick
+///   crossed at all) within 1e-6;
+/// - the runs' samples in lanes, and the x86-64-v3 copy, give the scalar
+///   baseline's bits.
+#[test]
+fn mip_shortcuts_change_no_pixel_on_random_scenes() {
+    use brickyard_render::optics::mip_color;
+    let dir = tempfile::tempdir().unwrap();
+    let mut rng = Rng(0x31b0_57a7);
+    let (mut lit, mut saturated, mut cut) = (0, 0, 0);
+    let (mut samples_stop, mut samples_raw) = (0u64, 0u64);
+    for scene_no in 0..12 {
+        let dtype = [DType::U8, DType::U16, DType::F32][scene_no % 3];
+        let dims = [0; 3].map(|_| rng.int(24, 64));
+        let (store, range) = if scene_no % 2 == 0 {
+            random_store(dir.path(), &mut rng, dims, dtype)
+        } else {
+            sparse_store(dir.path(), &mut rng, dims, dtype)
+        };
+        let brick = [8, 16][rng.int(0, 1) as usize];
+        let (mut s, scene, extent) = open_scene(&store, dims, brick, &mut rng);
+        let tf = random_tf(&mut rng, range);
+        let proj = if rng.next() < 0.7 {
+            Projection::Perspective {
+                fov_y_deg: rng.range(20.0, 60.0),
+            }
+        } else {
+            Projection::Orthographic {
+                height: extent.iter().cloned().fold(0.0, f64::max) * rng.range(0.8, 1.6),
+            }
+        };
+        let cam = orbit(&mut rng, extent, proj);
+        let (mut p, lod) = random_view(&mut rng, cam, tf.clone(), 0.6, 1.0);
+        p.mode = RenderMode::Mip;
+        let img = converge(&mut s, &scene, &p, lod);
+        let mut frame = |sc: &Scene, p: &RenderParams| {
+            s.begin_frame();
+            let (img, st, reqs) = render_frame(s.vm(), sc, p, lod);
+            s.finish_frame(reqs.iter());
+            assert_eq!(st.completeness(), 1.0, "scene {scene_no}");
+            (img, st)
+        };
+        let what = format!("scene {scene_no} ({dtype:?}, {dims:?}, {lod:?})");
+        let (got, st) = frame(&scene, &p);
+        // The raw maxima, coloured here.
+        let mut raw_p = p.clone();
+        raw_p.mip_values = true;
+        let (raw, st_raw) = frame(&scene, &raw_p);
+        let mut differ = 0;
+        for (i, (px, r)) in got.rgba.iter().zip(&raw.rgba).enumerate() {
+            let want = if r[3] == 0.0 {
+                [0.0; 4]
+            } else {
+                mip_color(&tf, true, r[0])
+            };
+            if px.map(f32::to_bits) != want.map(f32::to_bits) {
+                differ += 1;
+                if differ < 4 {
+                    eprintln!("{what}: pixel {i}: {px:?}, the raw maximum's colour {want:?}");
+                }
+            }
+            saturated += (r[0] >= tf.window[1]) as u32;
+        }
+        assert_eq!(
+            differ, 0,
+            "{what}: {differ} pixels differ from the raw maxima's colours"
+        );
+        assert!(st.samples <= st_raw.samples, "{what}");
+        samples_stop += st.samples;
+        cut += ((st.samples as f64) < 0.9 * st_raw.samples as f64) as u32;
+        samples_raw += st_raw.samples;
+        // Without ranges: no brick crossed, no block.
+        let mut bare = scene.clone();
+        bare.ranges = None;
+        let (want, _) = frame(&bare, &p);
+        let d = got.max_abs_diff(&want).max(img.max_abs_diff(&want));
+        assert!(
+            d <= 1e-6,
+            "{what}: max abs diff {d} to the frame without ranges"
+        );
+        // Lanes and the x86-64-v3 copy: the scalar baseline's bits.
+        let mut base = scene.clone();
+        base.lanes = false;
+        base.x86_v3 = false;
+        let (want, _) = frame(&base, &p);
+        let differ = want
+            .rgba
+            .iter()
+            .zip(&got.rgba)
+            .filter(|(a, b)| a.map(f32::to_bits) != b.map(f32::to_bits))
+            .count();
+        assert_eq!(
+            differ, 0,
+            "{what}: {differ} pixels differ from the scalar baseline"
+        );
+        lit += (img.coverage(0.5) > 0.05) as u32;
+    }
+    assert!(lit >= 8, "only {lit} of 12 scenes show something");
+    assert!(
+        saturated > 1000,
+        "only {saturated} pixels saturate: nothing ends early"
+    );
+    // Behind a saturated maximum most cells and bricks are crossed anyway
+    // (their maxima cannot raise it); ending the ray saves the rest.
+    assert!(
+        (samples_stop as f64) < 0.97 * samples_raw as f64 && cut >= 3,
+        "{samples_stop} samples with rays ending at saturation, {samples_raw} without; \
+         {cut} scenes with a tenth fewer"
+    );
+}

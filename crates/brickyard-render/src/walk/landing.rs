@@ -129,6 +129,38 @@ impl Frame<'_> {
         found
     }
 
+    /// The voxel box `[lo, hi)` of the largest block of bricks (see
+    /// `max_blocks`) around brick `b` of level `l` (box `[lo, hi)`) whose
+    /// largest value is at most `best` (MIP: a block that cannot raise the
+    /// ray's maximum); `b`'s own box when there is none or the frame has
+    /// no blocks.
+    #[inline]
+    pub(crate) fn max_box(
+        &self,
+        l: usize,
+        b: Dims3,
+        (lo, hi): (Dims3, Dims3),
+        best: f32,
+    ) -> (Dims3, Dims3) {
+        let mut found = (lo, hi);
+        let Some(blocks) = self.max_blocks.get(l) else {
+            return found;
+        };
+        for (m, (n, max)) in blocks.iter().enumerate() {
+            let s = m as u32 + 1;
+            let c = b.map(|x| x >> s);
+            // NaN (unknown): no.
+            if !(max[((c[0] * n[1] + c[1]) * n[2] + c[2]) as usize] <= best) {
+                break;
+            }
+            let d = self.dims[l];
+            let blo = [0, 1, 2].map(|a| (c[a] << s) * self.brick[a]);
+            let bhi = [0, 1, 2].map(|a| (blo[a] + (self.brick[a] << s)).min(d[a]));
+            found = (blo, bhi);
+        }
+        found
+    }
+
     /// After step `k − 1`, which lies in the box `[lo, hi)` (voxels) of the
     /// track's level, the box is crossed without sampling: the step to go
     /// on from, the first from `k` on whose voxel base may lie outside the
@@ -227,6 +259,34 @@ pub(crate) fn clear_blocks(n: Dims3, t: &[bool]) -> Vec<(Dims3, Vec<bool>)> {
     out
 }
 
+/// For `m = 1 ..= MACRO_LEVELS`: the block counts per axis and the
+/// largest value of each block of 2ᵐ bricks per axis (NaN when a brick's
+/// is unknown), from the per-brick maxima `max` (`[z][y][x]`, `n` bricks
+/// per axis).
+pub(crate) fn max_blocks(n: Dims3, max: &[f32]) -> Vec<(Dims3, Vec<f32>)> {
+    let mut out: Vec<(Dims3, Vec<f32>)> = Vec::with_capacity(MACRO_LEVELS);
+    let (mut prev_n, mut prev) = (n, max.to_vec());
+    for _ in 0..MACRO_LEVELS {
+        let nn = prev_n.map(|x| x.div_ceil(2));
+        let mut cur = vec![f32::NEG_INFINITY; (nn[0] * nn[1] * nn[2]) as usize];
+        for z in 0..prev_n[0] {
+            for y in 0..prev_n[1] {
+                for x in 0..prev_n[2] {
+                    let v = prev[((z * prev_n[1] + y) * prev_n[2] + x) as usize];
+                    let c = &mut cur[(((z / 2) * nn[1] + y / 2) * nn[2] + x / 2) as usize];
+                    // A NaN stays (f32::max would drop it).
+                    if v.is_nan() || v > *c {
+                        *c = if c.is_nan() { *c } else { v };
+                    }
+                }
+            }
+        }
+        out.push((nn, cur.clone()));
+        (prev_n, prev) = (nn, cur);
+    }
+    out
+}
+
 #[cfg(test)]
 mod tests {
     use super::super::testing::*;
@@ -238,6 +298,66 @@ mod tests {
     /// parallel to the voxel planes and ones from far away. The fast path's
     /// fixed-point run through a brick takes the same steps at the same
     /// positions (to 1e-6 voxel).
+    /// `max_box` gives the largest aligned block of 2ᵐ bricks around the
+    /// brick whose every brick's maximum is at most `best` (by the bricks'
+    /// own maxima, worked out here), the brick's own box where even the
+    /// smallest block has a larger or unknown maximum; on random maxima
+    /// with unknown ones, and grids whose sizes are not powers of two.
+    #[test]
+    fn max_box_is_the_largest_block_that_cannot_raise_the_maximum() {
+        let dims = [70u64, 45, 96];
+        let (vm, scene, params) = fixture(dims, [8, 8, 16], [1.0, 1.0, 1.0]);
+        let mut f = Frame::new(&vm, &scene, &params, Lod::Fixed(0));
+        let n = f.bricks[0];
+        let mut rnd = uniform(0xb10c_0005);
+        let count = (n[0] * n[1] * n[2]) as usize;
+        // Mostly low maxima, so that large blocks qualify.
+        let max: Vec<f32> = (0..count)
+            .map(|_| match rnd() {
+                r if r < 0.02 => f32::NAN,
+                r if r < 0.1 => (rnd() * 100.0) as f32,
+                _ => (rnd() * 5.0) as f32,
+            })
+            .collect();
+        f.max_blocks = vec![max_blocks(n, &max)];
+        let brick_max = |b: Dims3| max[((b[0] * n[1] + b[1]) * n[2] + b[2]) as usize];
+        let (mut grown, mut kept) = (0, 0);
+        for _ in 0..5000 {
+            let b = [0, 1, 2].map(|a| (rnd() * n[a] as f64) as u64);
+            let lo = [0, 1, 2].map(|a| b[a] * f.brick[a]);
+            let hi = [0, 1, 2].map(|a| (lo[a] + f.brick[a]).min(dims[a]));
+            let best = (rnd() * 8.0) as f32;
+            let (blo, bhi) = f.max_box(0, b, (lo, hi), best);
+            // The block whose every brick is at most `best`, largest first.
+            let mut want = (lo, hi);
+            for s in 1..=super::MACRO_LEVELS as u32 {
+                let c = b.map(|x| x >> s);
+                let (mut ok, mut any) = (true, false);
+                for z in c[0] << s..((c[0] + 1) << s).min(n[0]) {
+                    for y in c[1] << s..((c[1] + 1) << s).min(n[1]) {
+                        for x in c[2] << s..((c[2] + 1) << s).min(n[2]) {
+                            ok &= brick_max([z, y, x]) <= best;
+                            any = true;
+                        }
+                    }
+                }
+                if !(ok && any) {
+                    break;
+                }
+                let wlo = [0, 1, 2].map(|a| (c[a] << s) * f.brick[a]);
+                let whi = [0, 1, 2].map(|a| (wlo[a] + (f.brick[a] << s)).min(dims[a]));
+                want = (wlo, whi);
+            }
+            assert_eq!((blo, bhi), want, "brick {b:?}, best {best}");
+            if want.0 != lo || want.1 != hi {
+                grown += 1;
+            } else {
+                kept += 1;
+            }
+        }
+        assert!(grown > 500 && kept > 500, "{grown} blocks, {kept} bricks");
+    }
+
     #[test]
     fn landing_equals_stepping_through_the_box() {
         let dims = [40u64, 56, 48];
