@@ -5,7 +5,7 @@ volume, camera and transfer function as `brickyard bench render`.
 Usage:
     bench-vtk-render.py RAWFILE --dims X Y Z --camera CAMERA.json
                         [--size 512] [--repeat 5] [--window 0 255]
-                        [--png OUT.png]
+                        [--png OUT.png] [--mip]
 
 What it does:
   * reads RAWFILE (uint8, x fastest) whole into a vtkImageData (the volume is
@@ -55,6 +55,8 @@ def main():
     ap.add_argument("--repeat", type=int, default=5)
     ap.add_argument("--window", type=float, nargs=2, default=[0.0, 255.0])
     ap.add_argument("--png")
+    ap.add_argument("--mip", action="store_true",
+                    help="maximum intensity projection (VTK's MaximumIntensityBlend) instead of DVR")
     ap.add_argument("--threads", type=int, default=0, help="worker threads (0: VTK's default, all cores)")
     a = ap.parse_args()
 
@@ -86,13 +88,15 @@ def main():
     prop.SetScalarOpacityUnitDistance(1.0)
 
     mapper = mapper_of(img, a.threads)
+    if a.mip:
+        mapper.SetBlendModeToMaximumIntensity()
     win = window(mapper, prop, a.camera, a.size)
     first_ms, times = frames(win, a.repeat)
     if a.png:
         write_png(win, a.png)
     print(json.dumps({
         "tool": "vtk", "vtk": vtk.vtkVersion.GetVTKVersion(),
-        "mapper": "vtkFixedPointVolumeRayCastMapper",
+        "mapper": "vtkFixedPointVolumeRayCastMapper", "blend": "mip" if a.mip else "composite",
         "size": [x, y, z], "image": [a.size, a.size],
         "threads": mapper.GetNumberOfThreads(),
         "frame_ms": min(times) if times else None, "all_ms": times,

@@ -8,7 +8,7 @@
 //! is the device twin.
 
 use crate::cpu::FrameStats;
-use crate::optics::{channel_intensity, mip_color, mix_channels};
+use crate::optics::{channel_intensity, mix_channels};
 use crate::params::{ChannelStyle, RenderMode, RenderParams, MAX_CHANNELS};
 use crate::walk::{step_t, trilinear, trilinear_lanes, Content, Grid, Run, Walker};
 use brickyard_cache::vm::Requests;
@@ -66,8 +66,13 @@ impl<'f, 'a, T: Sample> Walker<'f, 'a, T> {
             };
         }
         match best {
-            Some(best) => mip_color(self.f.tf, true, best),
-            None => mip_color(self.f.tf, false, f32::NAN),
+            // `mip_color`'s colour, by the frame's evaluator (the same bits).
+            Some(b) if !b.is_nan() => {
+                let [r, g, b] = self.f.tf_eval.color(b);
+                [r, g, b, 1.0]
+            }
+            Some(_) => [0.0, 0.0, 0.0, 1.0],
+            None => [0.0; 4],
         }
     }
 

@@ -61,6 +61,10 @@ pub struct BenchCmd {
     /// (zoomed in: most rays cross dense data, more bricks per pixel).
     #[arg(long, default_value_t = 1.0)]
     zoom: f64,
+    /// render: the transfer function's data window LO,HI (default: the
+    /// type's range, 0 to 1 for floats).
+    #[arg(long)]
+    window: Option<String>,
     /// loader, latency, render: drop the page cache first, for cold-disk
     /// figures (needs root; loader: without root, the store's files are
     /// dropped with posix_fadvise instead).
@@ -177,6 +181,7 @@ pub fn run(b: BenchCmd) -> Result<()> {
             let o = crate::vmbench::RenderBench {
                 image,
                 zoom: b.zoom,
+                window: b.window.as_deref().map(parse_window).transpose()?,
                 repeat: b.repeat,
                 cold: b.cold,
                 pool,
@@ -344,4 +349,17 @@ fn loader_compression(s: &str) -> Result<(Compression, String)> {
         _ => format!("-{}", s.replace(':', "")),
     };
     Ok((c, tag))
+}
+
+/// `LO,HI` with `LO < HI`, both finite.
+fn parse_window(s: &str) -> Result<[f32; 2]> {
+    let v: Vec<f32> = s
+        .split(',')
+        .map(|p| p.trim().parse::<f32>())
+        .collect::<std::result::Result<_, _>>()
+        .map_err(|e| anyhow::anyhow!("--window {s:?}: {e} (expected LO,HI)"))?;
+    match v[..] {
+        [lo, hi] if lo.is_finite() && hi.is_finite() && lo < hi => Ok([lo, hi]),
+        _ => anyhow::bail!("--window {s:?}: expected LO,HI with LO < HI, both finite"),
+    }
 }

@@ -513,6 +513,8 @@ pub struct RenderBench {
     pub image: [u32; 2],
     /// Camera this many times closer than the full view.
     pub zoom: f64,
+    /// The transfer function's data window (default: the type's range).
+    pub window: Option<[f32; 2]>,
     pub repeat: usize,
     /// Drop the page cache first.
     pub cold: bool,
@@ -534,6 +536,7 @@ pub fn render(dir: &Path, dims: Dims3, dtype: DType, o: &RenderBench) -> Result<
     let RenderBench {
         image,
         zoom,
+        window,
         repeat,
         cold,
         pool,
@@ -579,7 +582,7 @@ pub fn render(dir: &Path, dims: Dims3, dtype: DType, o: &RenderBench) -> Result<
         DType::U16 => 65535.0,
         _ => 1.0,
     };
-    let tf = TransferFunction::preset("soft", [0.0, max])?;
+    let tf = TransferFunction::preset("soft", window.unwrap_or([0.0, max]))?;
     let full = Camera::fit(
         extent,
         30.0,
@@ -812,7 +815,7 @@ pub fn render(dir: &Path, dims: Dims3, dtype: DType, o: &RenderBench) -> Result<
         outln!(
             "{}",
             json!({"scenario": "render", "procedural": procedural, "backend": backend.describe(), "mode": mode_name, "size": [dims[2], dims[1], dims[0]], "dtype": dtype.short_name(),
-                "image": image, "zoom": zoom, "pool_bytes": pool_bytes, "volume_bytes": vox_bytes,
+                "image": image, "zoom": zoom, "window": p.tf.window, "pool_bytes": pool_bytes, "volume_bytes": vox_bytes,
                 "cold": dropped, "first_frame_ms": first_frame_ms, "cold_to_complete_s": cold_s, "cold_frames": frames,
                 "cold_completeness": cold_done, "host_cache_completeness": host_done,
                 "host_cache_to_complete_s": host_s, "host_cache_frames": host_frames, "host_cache_batch_to_complete_s": batch_s, "bytes_read": bytes_read,
