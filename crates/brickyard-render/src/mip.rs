@@ -10,7 +10,7 @@
 use crate::cpu::FrameStats;
 use crate::optics::{channel_intensity, mix_channels};
 use crate::params::{ChannelStyle, RenderMode, RenderParams, MAX_CHANNELS};
-use crate::walk::{step_t, trilinear, trilinear_lanes, Content, Grid, Run, Walker};
+use crate::walk::{step_t, trilinear, trilinear_lanes, Content, Frame, Grid, Run, Walker};
 use brickyard_cache::vm::Requests;
 use brickyard_core::camera::{intersect_box, Ray, Vec3};
 use brickyard_core::Sample;
@@ -202,32 +202,13 @@ impl<'f, 'a, T: Sample> Walker<'f, 'a, T> {
                 let end = track.run_end(g, (lo, hi), t1).max(k);
                 let ranges = f.scene.skip_cells.then(|| f.vm.cell_ranges(slot));
                 let mut run = Run::new(f, level, &track, w, lo, hi);
-                let (mut n, mut j) = (0u64, k - 1);
-                let [sz, sy] = f.stride;
-                while j < end {
-                    let (u, fr) = run.current();
-                    let cell = f.cell_in_run(u);
-                    // NaN bound or best: no skip.
-                    if ranges.is_some_and(|r| r[cell][1] <= best) {
-                        st.skipped_cells += 1;
-                        j = run.cross_cell(f, u, (j, end));
-                        continue;
-                    }
-                    run.advance(1);
-                    j += 1;
-                    n += 1;
-                    let i = f.local_index(u, [0; 3]);
-                    let v = if LANES {
-                        trilinear_lanes(vox, i, sz, sy, fr)
-                    } else {
-                        trilinear(vox, i, sz, sy, fr)
-                    };
-                    // f32::max ignores NaN.
-                    best = best.max(v);
-                    if best >= stop {
-                        break;
-                    }
-                }
+                let steps = (k - 1, end);
+                let (n, passed, j) = if run.interior(end - (k - 1)) {
+                    mip_run::<T, LANES, true>(f, &mut run, vox, ranges, steps, (&mut best, stop))
+                } else {
+                    mip_run::<T, LANES, false>(f, &mut run, vox, ranges, steps, (&mut best, stop))
+                };
+                st.skipped_cells += passed;
                 st.samples += n;
                 st.exact += n;
                 st.steps += j - (k - 1) - 1;
@@ -257,6 +238,59 @@ impl<'f, 'a, T: Sample> Walker<'f, 'a, T> {
         }
         hit.then_some(best)
     }
+}
+
+/// The steps `j .. end` of a MIP run through a resident brick's voxels
+/// `vox`: cells whose maximum (`ranges`, `None`: no cells crossed) cannot
+/// raise `best` crossed, the others sampled into `best`, until `best`
+/// reaches `stop`. Returns the samples taken, the cells crossed and the
+/// step it stopped before. `INTERIOR`: every step lies within the clamp's
+/// bounds ([`Run::interior`]); nothing in the loop writes through a
+/// reference but `best`'s local copy, as in the DVR's runs.
+#[inline(always)]
+fn mip_run<T: Sample, const LANES: bool, const INTERIOR: bool>(
+    f: &Frame,
+    run: &mut Run,
+    vox: &[T],
+    ranges: Option<&[[f32; 2]]>,
+    (mut j, end): (u64, u64),
+    (best_out, stop): (&mut f32, f32),
+) -> (u64, u64, u64) {
+    let [sz, sy] = f.stride;
+    // The voxels from the brick's first past the apron: a step's index is
+    // its base's offset alone.
+    let vox = &vox[f.local_index([0; 3], [0; 3])..];
+    let (mut n, mut passed, mut best) = (0u64, 0u64, *best_out);
+    while j < end {
+        let (u, fr) = if INTERIOR {
+            run.current_unclamped()
+        } else {
+            run.current()
+        };
+        let cell = f.cell_in_run(u);
+        // NaN bound or best: no skip.
+        if ranges.is_some_and(|r| r[cell][1] <= best) {
+            passed += 1;
+            j = run.cross_cell(f, u, (j, end));
+            continue;
+        }
+        run.advance(1);
+        j += 1;
+        n += 1;
+        let i = u[0] as usize * sz + u[1] as usize * sy + u[2] as usize;
+        let v = if LANES {
+            trilinear_lanes(vox, i, sz, sy, fr)
+        } else {
+            trilinear(vox, i, sz, sy, fr)
+        };
+        // f32::max ignores NaN.
+        best = best.max(v);
+        if best >= stop {
+            break;
+        }
+    }
+    *best_out = best;
+    (n, passed, j)
 }
 
 /// Where a MIP ray of one channel (`params.tf`) ends: the window's
