@@ -320,7 +320,6 @@ pub(crate) fn channel_frames<'a>(
         .map(|((sc, p), c)| {
             let mut f = Frame::new(vm, sc, p, lod);
             f.channel_levels = c.levels;
-            f.mip_stop = crate::mip::stop_of_channel(params, c);
             f
         })
         .collect()
@@ -455,7 +454,11 @@ fn render_typed<T: Sample>(
                     params
                         .channels
                         .iter()
-                        .map(|c| Walker::new(&frame, c.channel))
+                        .map(|c| {
+                            let mut wk = Walker::new(&frame, c.channel);
+                            wk.mip_stop = crate::mip::stop_of_channel(params, c);
+                            wk
+                        })
                         .collect()
                 };
                 (walkers, vm.requests(), FrameStats::default())

@@ -32,7 +32,7 @@ pub(crate) fn channels_pixel<T: Sample>(
     let mut best = [f32::NAN; MAX_CHANNELS];
     let mut hit = false;
     for (b, wk) in best.iter_mut().zip(walkers.iter_mut()) {
-        if let Some(m) = wk.mip_max(ray, span, wk.f.mip_stop, req, st) {
+        if let Some(m) = wk.mip_max(ray, span, wk.mip_stop, req, st) {
             hit = true;
             *b = m;
         }
@@ -50,7 +50,7 @@ impl<'f, 'a, T: Sample> Walker<'f, 'a, T> {
         let Some(span) = intersect_box(ray, [0.0; 3], self.f.scene.extent) else {
             return [0.0; 4];
         };
-        let stop = self.f.mip_stop;
+        let stop = self.mip_stop;
         let best = match self.f.params.clip.as_deref() {
             None => self.mip_max(ray, span, stop, req, st),
             // A region: samples of the whole ray's grid in [c0, c1) only.
@@ -152,7 +152,7 @@ impl<'f, 'a, T: Sample> Walker<'f, 'a, T> {
         req: &mut Requests,
         st: &mut FrameStats,
     ) -> Option<f32> {
-        let f = self.f;
+        let (f, channel) = (self.f, self.channel);
         let t1 = t1.min(c1);
         let level = f.level_at(t0);
         let (dt, inv_dt, _) = f.step[level];
@@ -180,7 +180,7 @@ impl<'f, 'a, T: Sample> Walker<'f, 'a, T> {
             // NaN range or best: no skip.
             if c.range[1] <= best {
                 // Past the largest block of bricks that cannot raise it.
-                let (lo, hi) = f.max_box(level, c.brick, (c.lo, c.hi), best);
+                let (lo, hi) = f.max_box((channel, level), c.brick, (c.lo, c.hi), best);
                 st.skipped_bricks += 1;
                 let g = Grid {
                     base_t: t0,

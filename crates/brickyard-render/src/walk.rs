@@ -68,9 +68,10 @@ pub(crate) struct Frame<'a> {
     /// [`MACRO_LEVELS`](landing::MACRO_LEVELS)), whether every brick of the block is transparent:
     /// `[level][m − 1]`, blocks `[z][y][x]` with their counts per axis.
     pub(crate) clear_blocks: Vec<Vec<(Dims3, Vec<bool>)>>,
-    /// MIP: per level, the largest value of blocks of 2ᵐ×2ᵐ×2ᵐ bricks as
-    /// `clear_blocks` has them (from the ranges; empty without them).
-    pub(crate) max_blocks: Vec<Vec<(Dims3, Vec<f32>)>>,
+    /// MIP: per channel of the ranges and per level, the largest value of
+    /// blocks of 2ᵐ×2ᵐ×2ᵐ bricks as `clear_blocks` has them (empty without
+    /// ranges).
+    pub(crate) max_blocks: Vec<Vec<Vec<(Dims3, Vec<f32>)>>>,
     /// Per level, [`next_level_t`](Self::next_level_t).
     pub(crate) next_t: Vec<f64>,
     /// Per level, DVR and MIP steps: `dt` (world units), `1/dt` and the
@@ -142,23 +143,31 @@ impl<'a> Frame<'a> {
                 None => vec![],
             })
             .collect();
-        let max_blocks = if matches!(params.mode, RenderMode::Mip) {
-            (0..nl)
-                .map(|l| {
-                    let Some(r) = scene.ranges.as_ref().and_then(|r| r.level(l)) else {
-                        return vec![];
-                    };
-                    if scene.channel >= r.channels {
-                        return vec![];
-                    }
-                    let n = r.bricks.iter().product::<u64>() as usize;
-                    let off = scene.channel * n;
-                    let max: Vec<f32> = r.range[off..off + n].iter().map(|x| x[1]).collect();
-                    max_blocks(bricks[l], &max)
-                })
-                .collect()
-        } else {
-            vec![]
+        // Every channel's: a MIP of several channels walks them through
+        // this one frame.
+        let max_blocks = match scene.ranges.as_ref() {
+            Some(r) if matches!(params.mode, RenderMode::Mip) => {
+                let channels = (0..nl)
+                    .filter_map(|l| r.level(l).map(|x| x.channels))
+                    .max()
+                    .unwrap_or(0);
+                (0..channels)
+                    .map(|c| {
+                        (0..nl)
+                            .map(|l| match r.level(l) {
+                                Some(r) if c < r.channels => {
+                                    let n = r.bricks.iter().product::<u64>() as usize;
+                                    let max: Vec<f32> =
+                                        r.range[c * n..(c + 1) * n].iter().map(|x| x[1]).collect();
+                                    max_blocks(bricks[l], &max)
+                                }
+                                _ => vec![],
+                            })
+                            .collect()
+                    })
+                    .collect()
+            }
+            _ => vec![],
         };
         let tf_eval = params.tf.evaluator();
         let mut frame = Frame {

@@ -679,3 +679,126 @@ fn mip_shortcuts_change_no_pixel_on_random_scenes() {
          {cut} scenes with a tenth fewer"
     );
 }
+
+/// A MIP of two channels walks both through one frame: each channel's
+/// rays end where its own window saturates and cross blocks of bricks by
+/// its own maxima. Channel 0 is dark but for a few balls (its blocks
+/// mostly zero), channel 1 a field that is bright everywhere; windows end
+/// below the data's top. Complete frames equal the in-core reference of
+/// the channels added up, and the frame whose rays walk on (`mip_values`).
+#[test]
+fn mip_of_channels_ends_and_crosses_by_each_channels_own_window_and_maxima() {
+    use brickyard_render::reference::{render_channels, ChannelStyle};
+    let dir = tempfile::tempdir().unwrap();
+    let mut rng = Rng(0xc4a2_e1b5);
+    let dims = [48u64, 40, 56];
+    let n = (dims[0] * dims[1] * dims[2]) as usize;
+    for scene_no in 0..6 {
+        let (sparse, _) = sparse_store(dir.path(), &mut rng, dims, DType::U8);
+        // Two channels, channel-major: the balls (their faint background
+        // zero), then planes across x every 16 voxels, brighter further
+        // on, over a grey background (its bricks between the planes
+        // cannot raise a ray's maximum; channel 0's blocks there could).
+        let mut bytes: Vec<u8> = Volume::from_store(&sparse, 0, 0)
+            .unwrap()
+            .data
+            .iter()
+            .map(|&x| if x < 40.0 { 0 } else { x as u8 })
+            .collect();
+        let phase = rng.int(0, 15);
+        for _z in 0..dims[2] {
+            for _y in 0..dims[1] {
+                for x in 0..dims[0] {
+                    bytes.push(if (x + phase) % 16 == 0 {
+                        (120 + 2 * x) as u8
+                    } else {
+                        50
+                    });
+                }
+            }
+        }
+        assert_eq!(bytes.len(), 2 * n);
+        let raw_path = dir.path().join(format!("two-{scene_no}.raw"));
+        std::fs::write(&raw_path, &bytes).unwrap();
+        let opts = RawOptions {
+            dims,
+            dtype: DType::U8,
+            endian: "little".into(),
+            spacing: None,
+            origin: None,
+            unit: None,
+            channels: 2,
+            header_bytes: 0,
+        };
+        let src = raw::open(&raw_path, &opts).unwrap();
+        let store = raw_path.with_extension("ome.zarr");
+        let o = ConvertOptions {
+            brick: [16; 3],
+            shard: [32; 3],
+            ..Default::default()
+        };
+        convert(&src, &store, &o, &NoProgress, &AtomicBool::new(false)).unwrap();
+        let cfg = VmConfig {
+            brick: [8; 3],
+            apron: 1,
+            pool_bytes: 64 << 20,
+            ..Default::default()
+        };
+        let mut s = Session::open(&store, cfg, 16 << 20, 2).unwrap();
+        let vols: Vec<Volume> = (0..2)
+            .map(|c| Volume::from_store(&store, 0, c).unwrap())
+            .collect();
+        let extent = vols[0].extent();
+        let levels = (0..)
+            .map_while(|l| Volume::from_store(&store, l, 0).ok())
+            .map(|v| v.dims)
+            .collect();
+        let mut scene = Scene::new(extent, levels);
+        scene.ranges = Some(std::sync::Arc::new(s.loader().brick_ranges(1 << 20)));
+        let cam = orbit(
+            &mut rng,
+            extent,
+            Projection::Perspective { fov_y_deg: 40.0 },
+        );
+        // The transfer function is not used with channels: its window is
+        // below both channels' tops.
+        let tf = TransferFunction::preset("linear", [0.0, 60.0]).unwrap();
+        let mut p = RenderParams::new(64, 48, cam, tf, RenderMode::Mip);
+        p.channels = vec![
+            ChannelStyle::new(0, [1.0, 0.3, 0.0], [0.0, rng.range(150.0, 255.0) as f32]),
+            // Half the scenes: channel 1 never saturates, its rays cross
+            // the most blocks.
+            ChannelStyle::new(
+                1,
+                [0.0, 0.6, 1.0],
+                [20.0, [255.0, rng.range(90.0, 200.0) as f32][scene_no % 2]],
+            ),
+        ];
+        let img = converge(&mut s, &scene, &p, Lod::Fixed(0));
+        let want = render_channels(&vols, &p);
+        let d = img.max_abs_diff(&want);
+        assert!(
+            d <= 1e-5,
+            "scene {scene_no}: max abs diff {d} to the reference"
+        );
+        let mut walk_on = p.clone();
+        walk_on.mip_values = true;
+        let walked = converge(&mut s, &scene, &walk_on, Lod::Fixed(0));
+        let differ = walked
+            .rgba
+            .iter()
+            .zip(&img.rgba)
+            .filter(|(a, b)| a.map(f32::to_bits) != b.map(f32::to_bits))
+            .count();
+        assert_eq!(
+            differ, 0,
+            "scene {scene_no}: {differ} pixels differ from walking on"
+        );
+        // Both channels show.
+        let sum = |c: usize| img.rgba.iter().map(|px| px[c] as f64).sum::<f64>();
+        assert!(
+            sum(0) > 5.0 && sum(2) > 5.0,
+            "scene {scene_no}: a channel is missing"
+        );
+    }
+}

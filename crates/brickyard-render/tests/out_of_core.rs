@@ -574,7 +574,14 @@ fn several_channels_add_up_in_slices_and_mips() {
     // Two channels, channel-major: a Mandelbulb and a Marschner–Lobb.
     let (store, extent, levels) = common::two_channel_store(dir.path());
     let mut scene = Scene::new(extent, levels);
-    for (p, level, pool) in common::two_channel_views(extent) {
+    // And a MIP at level 0 whose transfer function (unused with channels)
+    // ends below channel 0's window: each channel's rays end where its own
+    // window saturates, and cross blocks of bricks by its own maxima.
+    let mut views = common::two_channel_views(extent);
+    let mut mip0 = views[1].0.clone();
+    mip0.tf = TransferFunction::preset("linear", [0.0, 100.0]).unwrap();
+    views.push((mip0, 0, 2 * 40 * 48 * 64 * 4));
+    for (p, level, pool) in views {
         let mode = p.mode.clone();
         let vols: Vec<_> = (0..2)
             .map(|c| Volume::from_store(&store, level, c).unwrap())

@@ -115,6 +115,9 @@ pub(crate) struct Walker<'f, 'a, T> {
     /// The ray being drawn (a serial number) and its tracks per level, made
     /// when a jump over a hidden stand-in first needs them.
     pub(crate) ray_serial: u64,
+    /// MIP: the ray ends at its first value of at least this (the frame's
+    /// [`Frame::mip_stop`]; a channel of several: its window's).
+    pub(crate) mip_stop: f32,
     pub(crate) tracks: Vec<(u64, Option<Track>)>,
     /// Per level, where the current ray leaves the cached brick: (ray
     /// serial, the brick's first voxel, the exit's parameter with no limit
@@ -142,6 +145,7 @@ impl<'f, 'a, T: Sample> Walker<'f, 'a, T> {
             memo: table(Cached::NONE),
             touched: 0,
             ray_serial: 1,
+            mip_stop: f.mip_stop,
             tracks: vec![(0, None); f.levels()],
             exits: vec![(0, [0; 3], 0.0, 0.0); f.levels()],
             pending_code: Box::new([u64::MAX; PENDING]),

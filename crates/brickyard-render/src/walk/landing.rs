@@ -130,20 +130,20 @@ impl Frame<'_> {
     }
 
     /// The voxel box `[lo, hi)` of the largest block of bricks (see
-    /// `max_blocks`) around brick `b` of level `l` (box `[lo, hi)`) whose
-    /// largest value is at most `best` (MIP: a block that cannot raise the
-    /// ray's maximum); `b`'s own box when there is none or the frame has
-    /// no blocks.
+    /// `max_blocks`) of channel `c` around brick `b` of level `l` (box
+    /// `[lo, hi)`) whose largest value is at most `best` (MIP: a block that
+    /// cannot raise the ray's maximum); `b`'s own box when there is none or
+    /// the frame has no blocks.
     #[inline]
     pub(crate) fn max_box(
         &self,
-        l: usize,
+        (c, l): (usize, usize),
         b: Dims3,
         (lo, hi): (Dims3, Dims3),
         best: f32,
     ) -> (Dims3, Dims3) {
         let mut found = (lo, hi);
-        let Some(blocks) = self.max_blocks.get(l) else {
+        let Some(blocks) = self.max_blocks.get(c).and_then(|x| x.get(l)) else {
             return found;
         };
         for (m, (n, max)) in blocks.iter().enumerate() {
@@ -319,7 +319,7 @@ mod tests {
                 _ => (rnd() * 5.0) as f32,
             })
             .collect();
-        f.max_blocks = vec![max_blocks(n, &max)];
+        f.max_blocks = vec![vec![max_blocks(n, &max)]];
         let brick_max = |b: Dims3| max[((b[0] * n[1] + b[1]) * n[2] + b[2]) as usize];
         let (mut grown, mut kept) = (0, 0);
         for _ in 0..5000 {
@@ -327,7 +327,7 @@ mod tests {
             let lo = [0, 1, 2].map(|a| b[a] * f.brick[a]);
             let hi = [0, 1, 2].map(|a| (lo[a] + f.brick[a]).min(dims[a]));
             let best = (rnd() * 8.0) as f32;
-            let (blo, bhi) = f.max_box(0, b, (lo, hi), best);
+            let (blo, bhi) = f.max_box((0, 0), b, (lo, hi), best);
             // The block whose every brick is at most `best`, largest first.
             let mut want = (lo, hi);
             for s in 1..=super::MACRO_LEVELS as u32 {
