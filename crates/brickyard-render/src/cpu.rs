@@ -83,11 +83,18 @@ pub struct Scene {
     /// takes the scalar twin, which gives the same bits (tests compare
     /// the two).
     pub lanes: bool,
-    /// DVR through the page tables, one channel: start each ray at its
-    /// entry depth (`entry.rs`: where it first meets a cell or brick
+    /// DVR (page tables or the residency octree, one channel or several):
+    /// start each ray at its entry depth (`entry.rs`: where it first meets a cell or brick
     /// that may show), found for the frame before the rays are walked;
     /// the image is the same either way (off only to measure or test).
     pub entry_depths: bool,
+    /// DVR through the residency octree: where every channel shown has
+    /// its brick at the step's level resident (or hidden), the steps
+    /// through it in one fixed-point run, as through the page tables (the
+    /// node's residency masks serve misses only); the image is the same
+    /// within the runs' rounding. Off only to compare the octree's descent
+    /// with the device's, which samples step by step.
+    pub octree_runs: bool,
     /// DVR: on x86-64 processors with the x86-64-v3 instructions (AVX2,
     /// FMA, BMI1/2, LZCNT, MOVBE, F16C; detected at run time), walk the
     /// rays in a copy of the ray loop compiled for them ([`crate::isa`]);
@@ -115,6 +122,7 @@ impl Scene {
             skip_cells: true,
             lanes: true,
             entry_depths: true,
+            octree_runs: true,
             x86_v3: true,
             octree: None,
         }
@@ -398,20 +406,18 @@ fn render_typed<T: Sample>(
         params.width,
         params.height,
     );
-    // One-channel DVR through the page tables: every ray's entry depth,
+    // DVR (page tables or octree, one channel or several): every ray's entry depth,
     // and the bricks rays now pass before it marked as the walk would.
-    let entries = (matches!(params.mode, RenderMode::Dvr)
-        && !by_octree
-        && params.views.is_none()
-        && scene.entry_depths)
-        .then(|| {
-            if dvr_multi {
-                Entries::of_channels(&ch_frames, &rg, tiles)
-            } else {
-                Entries::new(&frame, &rg, tiles)
-            }
-        })
-        .flatten();
+    let entries =
+        (matches!(params.mode, RenderMode::Dvr) && params.views.is_none() && scene.entry_depths)
+            .then(|| {
+                if dvr_multi {
+                    Entries::of_channels(&ch_frames, &rg, tiles)
+                } else {
+                    Entries::new(&frame, &rg, tiles)
+                }
+            })
+            .flatten();
     if let Some(e) = &entries {
         e.mark_passed(&frame, &rg);
     }
@@ -510,12 +516,16 @@ fn render_typed<T: Sample>(
                             };
                             let before = params.debug.map(|d| counts(d, &st, &walkers));
                             rows[r * w + i] = match &params.mode {
-                                RenderMode::Dvr if oct_frame.is_some() => octree::dvr::dvr_pixel(
-                                    &mut walkers,
-                                    oct_frame.as_ref().expect("checked"),
-                                    &ray,
-                                    (&mut req, &mut st),
-                                ),
+                                RenderMode::Dvr if oct_frame.is_some() => {
+                                    let entry =
+                                        entries.as_ref().map(|e| (e.level, e.at(i, j as usize)));
+                                    octree::dvr::dvr_pixel(
+                                        &mut walkers,
+                                        oct_frame.as_ref().expect("checked"),
+                                        (&ray, entry),
+                                        (&mut req, &mut st),
+                                    )
+                                }
                                 RenderMode::Dvr if multi => {
                                     let entry =
                                         entries.as_ref().map(|e| (e.level, e.at(i, j as usize)));

@@ -263,9 +263,9 @@ pub(crate) fn dvr_pixel<T: Sample>(
 /// function), of one value that shows (its colour, the same at every
 /// step), or hidden (left out), at least one not hidden. The channels
 /// share the brick's box.
-struct ResidentRun<'a, 'f, T> {
-    lo: Dims3,
-    hi: Dims3,
+pub(crate) struct ResidentRun<'a, 'f, T> {
+    pub(crate) lo: Dims3,
+    pub(crate) hi: Dims3,
     /// The channels not hidden, in the order of those shown.
     slots: SmallVec<[Slot<'a, 'f, T>; RUN_CHANNELS]>,
     /// The cells every channel hides (resident ones by their cells, the
@@ -291,7 +291,7 @@ struct Slot<'a, 'f, T> {
 /// `vb` resident (data or one value) or hidden, some not hidden; `None`
 /// otherwise (the step is sampled channel by channel).
 #[inline]
-fn resident_run<'a, 'f, T: Sample>(
+pub(crate) fn resident_run<'a, 'f, T: Sample>(
     walkers: &mut [Walker<'f, 'a, T>],
     level: usize,
     vb: Dims3,
@@ -378,7 +378,7 @@ impl<'a, 'f, T> ResidentRun<'a, 'f, T> {
 /// rounding. Returns whether the ray ended (early termination), the step
 /// it stopped before and the samples taken (channels sampled at a step).
 /// Adds the cells crossed and the transparent samples to `st`.
-fn run_steps<T: Sample>(
+pub(crate) fn run_steps<T: Sample>(
     f: &Frame,
     r: &ResidentRun<'_, '_, T>,
     mut run: Run,

@@ -415,19 +415,26 @@ fn bench_octree_measures_both_traversals() {
         // Nodes per ray: none through page tables, some through the octree.
         assert_eq!(num(7) > 0.0, w[2] == "octree", "{w:?}");
     }
-    // The same samples per ray on both back ends, but for several channels
-    // through the page tables: there the CPU's runs leave out a channel
+    // The same samples per ray on both back ends through the page tables
+    // for one channel. For several, the CPU's runs leave out a channel
     // whose resident cell it hides, where the device samples it (and adds
-    // nothing), so the CPU takes fewer.
+    // nothing): the CPU takes fewer, and more than half. Through the
+    // octree the CPU's runs cross the cells every channel hides, but
+    // sample the channels a node hides, where the device samples step by
+    // step and leaves those out: within a factor of two either way (the
+    // descent itself is compared with the device's in the renderer's
+    // tests, runs off).
+    let ratio = |cpu: &str, dev: &str| cpu.parse::<f64>().unwrap() / dev.parse::<f64>().unwrap();
     for pair in rows.chunks(4) {
         let (cpu, dev) = (pair[0][5], pair[2][5]);
         if pair[0][0] == "1" {
             assert_eq!(cpu, dev, "{out}");
         } else {
-            let (c, d) = (cpu.parse::<f64>().unwrap(), dev.parse::<f64>().unwrap());
-            assert!(c <= d && c > 0.5 * d, "{out}");
+            let r = ratio(cpu, dev);
+            assert!(r <= 1.0 && r > 0.5, "{out}");
         }
-        assert_eq!(pair[1][5], pair[3][5], "{out}");
+        let r = ratio(pair[1][5], pair[3][5]);
+        assert!(r > 0.5 && r < 2.0, "{out}");
     }
     fails_with(
         &run(&["bench", "octree", "--channels", "0", "--dir", s(d.path())]),
