@@ -576,7 +576,7 @@ fn device_octree_frames_equal_the_cpu_octree_page_tables_and_the_reference() {
         let mut cpu_scene = Scene::new(extent, levels.clone());
         let mut cs = open(&store, &mut cpu_scene, pool, 4);
         p.traversal = Traversal::Octree;
-        let (cpu, _) = converge(&mut cs, &cpu_scene, &p, Lod::Fixed(0));
+        let (cpu, run_st) = converge(&mut cs, &cpu_scene, &p, Lod::Fixed(0));
         // The descent the device takes: no runs through resident bricks,
         // rays from the volume's face. The same image.
         let mut walk_scene = cpu_scene.clone();
@@ -587,6 +587,13 @@ fn device_octree_frames_equal_the_cpu_octree_page_tables_and_the_reference() {
         assert!(
             d_runs <= 1e-5,
             "{n} channels: runs and entry depths change the image by {d_runs}"
+        );
+        // And they save descents: far fewer nodes visited.
+        assert!(
+            2 * run_st.octree_nodes < cst.octree_nodes,
+            "{n} channels: {} nodes with runs, {} without",
+            run_st.octree_nodes,
+            cst.octree_nodes
         );
         let mut pt_scene = Scene::new(extent, levels.clone());
         let mut ps = open(&store, &mut pt_scene, pool, 4);
