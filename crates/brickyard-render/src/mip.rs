@@ -14,6 +14,7 @@ use crate::walk::{step_t, trilinear, trilinear_lanes, Content, Frame, Grid, Run,
 use brickyard_cache::vm::Requests;
 use brickyard_core::camera::{intersect_box, Ray, Vec3};
 use brickyard_core::Sample;
+use std::cmp::Ordering;
 
 /// The pixel of `ray` in a MIP of several channels added up (`styles`,
 /// one walker each): each channel's maximum along the ray, then their mix;
@@ -299,7 +300,10 @@ fn mip_run<T: Sample, const LANES: bool, const INTERIOR: bool>(
 /// empty or inverted window.
 pub(crate) fn stop_of_tf(params: &RenderParams) -> f32 {
     let [w0, w1] = params.tf.window;
-    if params.mip_values || params.mode != RenderMode::Mip || !(w1 > w0) {
+    if params.mip_values
+        || params.mode != RenderMode::Mip
+        || w1.partial_cmp(&w0) != Some(Ordering::Greater)
+    {
         return f32::INFINITY;
     }
     saturation(|v| params.tf.normalize(v), w1)
@@ -309,7 +313,10 @@ pub(crate) fn stop_of_tf(params: &RenderParams) -> f32 {
 /// its window's intensity ([`channel_intensity`]).
 pub(crate) fn stop_of_channel(params: &RenderParams, style: &ChannelStyle) -> f32 {
     let [lo, hi] = style.window;
-    if params.mip_values || params.mode != RenderMode::Mip || !(hi > lo) {
+    if params.mip_values
+        || params.mode != RenderMode::Mip
+        || hi.partial_cmp(&lo) != Some(Ordering::Greater)
+    {
         return f32::INFINITY;
     }
     saturation(|v| channel_intensity(style, v), hi)
@@ -392,7 +399,7 @@ mod tests {
             let scale = 10f64.powf(rnd() * 12.0 - 6.0);
             let lo = ((rnd() - 0.5) * scale) as f32;
             let hi = lo + ((rnd() + 1e-3) * scale) as f32;
-            if !(hi > lo) {
+            if hi <= lo || hi.is_nan() || lo.is_nan() {
                 continue;
             }
             let tf = TransferFunction::preset("linear", [lo, hi]).unwrap();

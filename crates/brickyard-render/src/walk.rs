@@ -18,7 +18,7 @@ mod testing;
 
 pub(crate) use bricks::{Content, Walker};
 pub(crate) use cells::Run;
-pub(crate) use landing::{clear_blocks, first_step, max_blocks, Grid, Track};
+pub(crate) use landing::{clear_blocks, first_step, max_blocks, Grid, MaxBlocks, Track};
 
 use crate::cpu::{Lod, Scene};
 use crate::lanes::F4;
@@ -71,7 +71,7 @@ pub(crate) struct Frame<'a> {
     /// MIP: per channel of the ranges and per level, the largest value of
     /// blocks of 2ᵐ×2ᵐ×2ᵐ bricks as `clear_blocks` has them (empty without
     /// ranges).
-    pub(crate) max_blocks: Vec<Vec<Vec<(Dims3, Vec<f32>)>>>,
+    pub(crate) max_blocks: Vec<Vec<MaxBlocks>>,
     /// Per level, [`next_level_t`](Self::next_level_t).
     pub(crate) next_t: Vec<f64>,
     /// Per level, DVR and MIP steps: `dt` (world units), `1/dt` and the

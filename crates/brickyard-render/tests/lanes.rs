@@ -709,7 +709,7 @@ fn mip_of_channels_ends_and_crosses_by_each_channels_own_window_and_maxima() {
         for _z in 0..dims[2] {
             for _y in 0..dims[1] {
                 for x in 0..dims[0] {
-                    bytes.push(if (x + phase) % 16 == 0 {
+                    bytes.push(if (x + phase).is_multiple_of(16) {
                         (120 + 2 * x) as u8
                     } else {
                         50

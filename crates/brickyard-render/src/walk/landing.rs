@@ -150,7 +150,8 @@ impl Frame<'_> {
             let s = m as u32 + 1;
             let c = b.map(|x| x >> s);
             // NaN (unknown): no.
-            if !(max[((c[0] * n[1] + c[1]) * n[2] + c[2]) as usize] <= best) {
+            let m = max[((c[0] * n[1] + c[1]) * n[2] + c[2]) as usize];
+            if m.is_nan() || m > best {
                 break;
             }
             let d = self.dims[l];
@@ -259,11 +260,14 @@ pub(crate) fn clear_blocks(n: Dims3, t: &[bool]) -> Vec<(Dims3, Vec<bool>)> {
     out
 }
 
+/// A level's [`max_blocks`].
+pub(crate) type MaxBlocks = Vec<(Dims3, Vec<f32>)>;
+
 /// For `m = 1 ..= MACRO_LEVELS`: the block counts per axis and the
 /// largest value of each block of 2ᵐ bricks per axis (NaN when a brick's
 /// is unknown), from the per-brick maxima `max` (`[z][y][x]`, `n` bricks
 /// per axis).
-pub(crate) fn max_blocks(n: Dims3, max: &[f32]) -> Vec<(Dims3, Vec<f32>)> {
+pub(crate) fn max_blocks(n: Dims3, max: &[f32]) -> MaxBlocks {
     let mut out: Vec<(Dims3, Vec<f32>)> = Vec::with_capacity(MACRO_LEVELS);
     let (mut prev_n, mut prev) = (n, max.to_vec());
     for _ in 0..MACRO_LEVELS {
