@@ -41,10 +41,10 @@ use crate::cpu::FrameStats;
 use crate::optics::{composite_visible, Media, TfTable};
 use crate::walk::{
     jump_before, start_at_entry, step_t, trilinear, trilinear_lanes, Content, Frame, Grid, Run,
-    Walker,
+    Track, Walker,
 };
 use brickyard_cache::vm::Requests;
-use brickyard_core::camera::Ray;
+use brickyard_core::camera::{Ray, Vec3};
 use brickyard_core::transfer::TfEval;
 use brickyard_core::{Dims3, Sample};
 use smallvec::SmallVec;
@@ -122,20 +122,16 @@ pub(crate) fn dvr_pixel<T: Sample>(
         // Every channel resident at the step's level here (or its brick
         // hidden): the steps through this brick in one run.
         if let Some(r) = resident_run(walkers, level, vb, req) {
-            let end = track.run_end(g, (r.lo, r.hi), limit).max(k);
-            let run = Run::new(f, level, &track, w, r.lo, r.hi);
-            let (done, stop, n) = run_steps(
+            let at = (&track, g, level);
+            let (done, end) = take_run(
                 f,
                 &r,
-                run,
-                (k - 1, end),
+                at,
+                (w, k, limit),
                 (exponent, terminate),
                 &mut acc,
                 st,
             );
-            st.samples += n;
-            st.exact += n;
-            st.steps += stop - k;
             if done {
                 break;
             }
@@ -368,6 +364,28 @@ impl<'a, 'f, T> ResidentRun<'a, 'f, T> {
         self.all_clear &= slot.clear;
         self.slots.push(slot);
     }
+}
+
+/// The run through the bricks of `r` from step `k − 1` (at `w`, the
+/// step's position on `track` of grid `g` at `level`) to where the ray
+/// leaves them or reaches `limit`: [`run_steps`], its samples and steps
+/// added to `st`. Returns whether the ray ended and the step to go on from.
+pub(crate) fn take_run<T: Sample>(
+    f: &Frame,
+    r: &ResidentRun<'_, '_, T>,
+    (track, g, level): (&Track, Grid, usize),
+    (w, k, limit): (Vec3, u64, f64),
+    (exponent, terminate): (f32, bool),
+    acc: &mut [f32; 4],
+    st: &mut FrameStats,
+) -> (bool, u64) {
+    let end = track.run_end(g, (r.lo, r.hi), limit).max(k);
+    let run = Run::new(f, level, track, w, r.lo, r.hi);
+    let (done, stop, n) = run_steps(f, r, run, (k - 1, end), (exponent, terminate), acc, st);
+    st.samples += n;
+    st.exact += n;
+    st.steps += stop - k;
+    (done, end)
 }
 
 /// The steps `j .. end` of a run through the bricks of `r`: cells every

@@ -414,6 +414,39 @@ fn device_updates_evict_and_every_view_completes_correctly() {
     );
 }
 
+/// A 64³ u8 Mandelbulb store in `dir` (chunks of `brick`³ in shards of
+/// twice that): the store, its level 0, world extent and levels.
+fn mandelbulb_64(
+    dir: &std::path::Path,
+    brick: u64,
+) -> (std::path::PathBuf, Volume, [f64; 3], Vec<[u64; 3]>) {
+    let store = dir.join("v.ome.zarr");
+    let dims = [64, 64, 64];
+    let src = Procedural::new(Kind::Mandelbulb, dims, DType::U8);
+    let o = ConvertOptions {
+        brick: [brick; 3],
+        shard: [2 * brick; 3],
+        ..Default::default()
+    };
+    convert(&src, &store, &o, &NoProgress, &AtomicBool::new(false)).unwrap();
+    let level0 = Volume::from_store(&store, 0, 0).unwrap();
+    let extent = world_extent(dims, level0.spacing);
+    let levels = (0..)
+        .map_while(|l| Volume::from_store(&store, l, 0).ok())
+        .map(|v| v.dims)
+        .collect();
+    (store, level0, extent, levels)
+}
+
+/// A virtual memory of `brick`³ engine bricks in a 64 MiB pool.
+fn vm_config(brick: u64) -> VmConfig {
+    VmConfig {
+        brick: [brick; 3],
+        pool_bytes: 64 << 20,
+        ..Default::default()
+    }
+}
+
 #[test]
 fn gpu_cells_are_crossed_without_changing_the_image() {
     // Cells of resident bricks that the transfer function hides (DVR), or
@@ -421,32 +454,11 @@ fn gpu_cells_are_crossed_without_changing_the_image() {
     // fewer samples, the same complete image, with updates on the device.
     let Some(gpu) = test_gpu() else { return };
     let dir = tempfile::tempdir().unwrap();
-    let store = dir.path().join("v.ome.zarr");
-    let dims = [64, 64, 64];
-    let src = Procedural::new(Kind::Mandelbulb, dims, DType::U8);
-    let o = ConvertOptions {
-        brick: [32; 3],
-        shard: [64; 3],
-        ..Default::default()
-    };
-    convert(&src, &store, &o, &NoProgress, &AtomicBool::new(false)).unwrap();
-    let level0 = Volume::from_store(&store, 0, 0).unwrap();
-    let extent = world_extent(dims, level0.spacing);
-    let cfg = VmConfig {
-        brick: [32; 3],
-        pool_bytes: 64 << 20,
-        ..Default::default()
-    };
-    let mut s = Session::open(&store, cfg, 64 << 20, 2).unwrap();
+    let (store, level0, extent, levels) = mandelbulb_64(dir.path(), 32);
+    let mut s = Session::open(&store, vm_config(32), 64 << 20, 2).unwrap();
     let (mut dvm, _) = DeviceVm::new(&gpu, s.vm_mut()).unwrap();
     let mut cache = DeviceCache::new(&gpu, &dvm, s.vm()).unwrap();
     let mut renderer = GpuRenderer::new(&gpu);
-    let nlev = (0..)
-        .take_while(|&l| Volume::from_store(&store, l, 0).is_ok())
-        .count();
-    let levels: Vec<_> = (0..nlev)
-        .map(|l| Volume::from_store(&store, l, 0).unwrap().dims)
-        .collect();
     let mut scene = Scene::new(extent, levels);
     // No store statistics: only cells (ranges computed from the bricks as
     // they arrive) can hide anything.
@@ -520,30 +532,11 @@ fn gpu_cells_are_crossed_without_changing_the_image() {
 fn gpu_mip_rays_end_where_the_window_saturates() {
     let Some(gpu) = test_gpu() else { return };
     let dir = tempfile::tempdir().unwrap();
-    let store = dir.path().join("v.ome.zarr");
-    let dims = [64, 64, 64];
-    let src = Procedural::new(Kind::Mandelbulb, dims, DType::U8);
-    let o = ConvertOptions {
-        brick: [16; 3],
-        shard: [32; 3],
-        ..Default::default()
-    };
-    convert(&src, &store, &o, &NoProgress, &AtomicBool::new(false)).unwrap();
-    let level0 = Volume::from_store(&store, 0, 0).unwrap();
-    let extent = world_extent(dims, level0.spacing);
-    let cfg = VmConfig {
-        brick: [16; 3],
-        pool_bytes: 64 << 20,
-        ..Default::default()
-    };
-    let mut s = Session::open(&store, cfg, 64 << 20, 2).unwrap();
+    let (store, level0, extent, levels) = mandelbulb_64(dir.path(), 16);
+    let mut s = Session::open(&store, vm_config(16), 64 << 20, 2).unwrap();
     let (mut dvm, _) = DeviceVm::new(&gpu, s.vm_mut()).unwrap();
     let mut cache = DeviceCache::new(&gpu, &dvm, s.vm()).unwrap();
     let mut renderer = GpuRenderer::new(&gpu);
-    let levels: Vec<_> = (0..)
-        .map_while(|l| Volume::from_store(&store, l, 0).ok())
-        .map(|v| v.dims)
-        .collect();
     let mut scene = Scene::new(extent, levels);
     scene.ranges = Some(std::sync::Arc::new(s.loader().brick_ranges(1 << 20)));
     let cam = Camera::fit(

@@ -129,18 +129,36 @@ fn store_of(
         }
     }
     let path = dir.join(format!("v-{}.raw", rng.0 % 1_000_000));
-    std::fs::write(&path, &data).unwrap();
+    let spacing = [1.0, rng.range(0.7, 1.4), rng.range(0.7, 1.4)];
+    let store = raw_store(&path, &data, (dims, dtype, 1), Some(spacing));
+    let range = match dtype {
+        DType::U8 | DType::U16 => [0.0, max as f32],
+        _ => [-1.0, 2.0],
+    };
+    (store, range)
+}
+
+/// `data` (`channels` channels of `dims` voxels, `[x, y, z]`, in `dtype`,
+/// channel-major) written to `path` and converted beside it to a store of
+/// 16³ chunks in 32³ shards, which is returned.
+fn raw_store(
+    path: &Path,
+    data: &[u8],
+    (dims, dtype, channels): ([u64; 3], DType, usize),
+    spacing: Option<[f64; 3]>,
+) -> std::path::PathBuf {
+    std::fs::write(path, data).unwrap();
     let opts = RawOptions {
         dims,
         dtype,
         endian: "little".into(),
-        spacing: Some([1.0, rng.range(0.7, 1.4), rng.range(0.7, 1.4)]),
+        spacing,
         origin: None,
         unit: None,
-        channels: 1,
+        channels,
         header_bytes: 0,
     };
-    let src = raw::open(&path, &opts).unwrap();
+    let src = raw::open(path, &opts).unwrap();
     let store = path.with_extension("ome.zarr");
     let o = ConvertOptions {
         brick: [16; 3],
@@ -148,11 +166,7 @@ fn store_of(
         ..Default::default()
     };
     convert(&src, &store, &o, &NoProgress, &AtomicBool::new(false)).unwrap();
-    let range = match dtype {
-        DType::U8 | DType::U16 => [0.0, max as f32],
-        _ => [-1.0, 2.0],
-    };
-    (store, range)
+    store
 }
 
 /// A random transfer function over about the data's range `r`.
@@ -256,6 +270,15 @@ fn random_view(
         }
     };
     (p, lod)
+}
+
+/// Pixels of `a` and `b` whose bits differ.
+fn bits_differ(a: &Image, b: &Image) -> usize {
+    a.rgba
+        .iter()
+        .zip(&b.rgba)
+        .filter(|(a, b)| a.map(f32::to_bits) != b.map(f32::to_bits))
+        .count()
 }
 
 /// Frames until complete.
@@ -367,12 +390,7 @@ fn the_x86_64_v3_copy_gives_the_baseline_bits() {
                 img
             };
             let (want, got) = (frame(&base), frame(&v3));
-            let differ = want
-                .rgba
-                .iter()
-                .zip(&got.rgba)
-                .filter(|(a, b)| a.map(f32::to_bits) != b.map(f32::to_bits))
-                .count();
+            let differ = bits_differ(&want, &got);
             assert_eq!(
                 differ, 0,
                 "scene {scene_no} ({dtype:?}, {dims:?}, lanes {lanes}): {differ} pixels differ"
@@ -654,12 +672,7 @@ fn mip_shortcuts_change_no_pixel_on_random_scenes() {
         base.lanes = false;
         base.x86_v3 = false;
         let (want, _) = frame(&base, &p);
-        let differ = want
-            .rgba
-            .iter()
-            .zip(&got.rgba)
-            .filter(|(a, b)| a.map(f32::to_bits) != b.map(f32::to_bits))
-            .count();
+        let differ = bits_differ(&want, &got);
         assert_eq!(
             differ, 0,
             "{what}: {differ} pixels differ from the scalar baseline"
@@ -719,25 +732,7 @@ fn mip_of_channels_ends_and_crosses_by_each_channels_own_window_and_maxima() {
         }
         assert_eq!(bytes.len(), 2 * n);
         let raw_path = dir.path().join(format!("two-{scene_no}.raw"));
-        std::fs::write(&raw_path, &bytes).unwrap();
-        let opts = RawOptions {
-            dims,
-            dtype: DType::U8,
-            endian: "little".into(),
-            spacing: None,
-            origin: None,
-            unit: None,
-            channels: 2,
-            header_bytes: 0,
-        };
-        let src = raw::open(&raw_path, &opts).unwrap();
-        let store = raw_path.with_extension("ome.zarr");
-        let o = ConvertOptions {
-            brick: [16; 3],
-            shard: [32; 3],
-            ..Default::default()
-        };
-        convert(&src, &store, &o, &NoProgress, &AtomicBool::new(false)).unwrap();
+        let store = raw_store(&raw_path, &bytes, (dims, DType::U8, 2), None);
         let cfg = VmConfig {
             brick: [8; 3],
             apron: 1,
@@ -784,12 +779,7 @@ fn mip_of_channels_ends_and_crosses_by_each_channels_own_window_and_maxima() {
         let mut walk_on = p.clone();
         walk_on.mip_values = true;
         let walked = converge(&mut s, &scene, &walk_on, Lod::Fixed(0));
-        let differ = walked
-            .rgba
-            .iter()
-            .zip(&img.rgba)
-            .filter(|(a, b)| a.map(f32::to_bits) != b.map(f32::to_bits))
-            .count();
+        let differ = bits_differ(&walked, &img);
         assert_eq!(
             differ, 0,
             "scene {scene_no}: {differ} pixels differ from walking on"

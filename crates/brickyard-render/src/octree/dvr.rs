@@ -14,10 +14,10 @@
 
 use super::Octree;
 use crate::cpu::{FrameStats, Lod, Scene};
-use crate::multi::{resident_run, run_steps};
+use crate::multi::{resident_run, take_run};
 use crate::optics::{composite_visible, Media};
 use crate::params::{ChannelStyle, RenderParams};
-use crate::walk::{jump_before, start_at_entry, step_t, Frame, Grid, Run, Track, Walker};
+use crate::walk::{jump_before, start_at_entry, step_t, Frame, Grid, Track, Walker};
 use brickyard_cache::vm::Requests;
 use brickyard_core::camera::{intersect_box_inv, Ray, Vec3};
 use brickyard_core::Sample;
@@ -392,13 +392,8 @@ pub(crate) fn dvr_pixel<T: Sample>(
             let g = Grid { base_t, dt, inv_dt };
             // To the brick's exit: its cells stand in for the nodes inside
             // (ending at each node's exit instead took 1.6–2× the time).
-            let end = tr.run_end(g, (r.lo, r.hi), limit).max(k);
-            let run = Run::new(f, level, tr, w, r.lo, r.hi);
-            let (done, stop, n) =
-                run_steps(f, &r, run, (k - 1, end), (exponent, true), &mut acc, st);
-            st.samples += n;
-            st.exact += n;
-            st.steps += stop - k;
+            let at = (tr, g, level);
+            let (done, end) = take_run(f, &r, at, (w, k, limit), (exponent, true), &mut acc, st);
             if done {
                 break;
             }

@@ -121,12 +121,19 @@ impl Frame<'_> {
             if !clear[((c[0] * n[1] + c[1]) * n[2] + c[2]) as usize] {
                 break;
             }
-            let d = self.dims[l];
-            let blo = [0, 1, 2].map(|a| (c[a] << s) * self.brick[a]);
-            let bhi = [0, 1, 2].map(|a| (blo[a] + (self.brick[a] << s)).min(d[a]));
-            found = (blo, bhi);
+            found = self.block_box(l, c, s);
         }
         found
+    }
+
+    /// The voxel box `[lo, hi)` of block `c` of 2ˢ bricks per axis at
+    /// level `l` (clipped to the level).
+    #[inline]
+    fn block_box(&self, l: usize, c: Dims3, s: u32) -> (Dims3, Dims3) {
+        let d = self.dims[l];
+        let blo = [0, 1, 2].map(|a| (c[a] << s) * self.brick[a]);
+        let bhi = [0, 1, 2].map(|a| (blo[a] + (self.brick[a] << s)).min(d[a]));
+        (blo, bhi)
     }
 
     /// The voxel box `[lo, hi)` of the largest block of bricks (see
@@ -154,10 +161,7 @@ impl Frame<'_> {
             if m.is_nan() || m > best {
                 break;
             }
-            let d = self.dims[l];
-            let blo = [0, 1, 2].map(|a| (c[a] << s) * self.brick[a]);
-            let bhi = [0, 1, 2].map(|a| (blo[a] + (self.brick[a] << s)).min(d[a]));
-            found = (blo, bhi);
+            found = self.block_box(l, c, s);
         }
         found
     }
