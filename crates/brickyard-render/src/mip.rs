@@ -154,6 +154,8 @@ impl<'f, 'a, T: Sample> Walker<'f, 'a, T> {
         st: &mut FrameStats,
     ) -> Option<f32> {
         let (f, channel) = (self.f, self.channel);
+        // A new ray: the tracks and exits kept for the last are stale.
+        self.ray_serial += 1;
         let t1 = t1.min(c1);
         let level = f.level_at(t0);
         let (dt, inv_dt, _) = f.step[level];
@@ -226,6 +228,42 @@ impl<'f, 'a, T: Sample> Walker<'f, 'a, T> {
                     if best >= stop {
                         break;
                     }
+                    // Served by a resident stand-in: the next steps the same
+                    // stand-in brick serves, in a run through its voxels at
+                    // this level's step (as the DVR's), crossing its cells
+                    // that cannot raise `best`; each step a miss of the
+                    // brick of `level`, as `value` counts them.
+                    let g = Grid {
+                        base_t: t0,
+                        dt,
+                        inv_dt,
+                    };
+                    let inv_dir = ray.dir.map(|d| 1.0 / d);
+                    let Some((lv, vox, lo, end)) =
+                        self.stand_in_run(level, ray, inv_dir, (g, k), (t1, t1))
+                    else {
+                        continue;
+                    };
+                    let (hi, slot) = (self.cache[lv].hi, self.cache[lv].slot);
+                    let ranges = f.scene.skip_cells.then(|| f.vm.cell_ranges(slot));
+                    let track_lv = self.track_of(lv, ray, inv_dir, t1);
+                    let mut run = Run::new(f, lv, &track_lv, ray.at(step_t(t0, k, dt)), lo, hi);
+                    run.dq = track_lv.dq_at(dt);
+                    let at = (&mut best, stop);
+                    let (n, passed, j) = if run.interior(end - k) {
+                        mip_run::<T, LANES, true>(f, &mut run, vox, ranges, (k, end), at)
+                    } else {
+                        mip_run::<T, LANES, false>(f, &mut run, vox, ranges, (k, end), at)
+                    };
+                    st.samples += n;
+                    st.skipped_cells += passed;
+                    st.steps += j - k;
+                    let c = &mut self.cache[level];
+                    c.missed = c.missed.saturating_add((j - k) as u32);
+                    if best >= stop {
+                        break;
+                    }
+                    k = end;
                 }
                 None => {
                     let g = Grid {
