@@ -386,6 +386,12 @@ fn render_typed<T: Sample>(
         (vec![], vec![])
     };
     let ch_frames = channel_frames(vm, &ch_scenes, &ch_params, params, lod);
+    // MIP of several channels: where each channel's rays end (its window's).
+    let ch_stops: Vec<f32> = params
+        .channels
+        .iter()
+        .map(|c| crate::mip::stop_of_channel(params, c))
+        .collect();
     // DVR through the residency octree: its tables for this frame.
     let by_octree = matches!(params.mode, RenderMode::Dvr) && params.traversal == Traversal::Octree;
     let tree = by_octree.then(|| scene_octree(scene, vm));
@@ -460,9 +466,10 @@ fn render_typed<T: Sample>(
                     params
                         .channels
                         .iter()
-                        .map(|c| {
+                        .zip(&ch_stops)
+                        .map(|(c, &stop)| {
                             let mut wk = Walker::new(&frame, c.channel);
-                            wk.mip_stop = crate::mip::stop_of_channel(params, c);
+                            wk.mip_stop = stop;
                             wk
                         })
                         .collect()

@@ -33,7 +33,7 @@ pub(crate) fn channels_pixel<T: Sample>(
     let mut best = [f32::NAN; MAX_CHANNELS];
     let mut hit = false;
     for (b, wk) in best.iter_mut().zip(walkers.iter_mut()) {
-        if let Some(m) = wk.mip_max(ray, span, wk.mip_stop, req, st) {
+        if let Some(m) = wk.mip_max(ray, span, req, st) {
             hit = true;
             *b = m;
         }
@@ -51,12 +51,11 @@ impl<'f, 'a, T: Sample> Walker<'f, 'a, T> {
         let Some(span) = intersect_box(ray, [0.0; 3], self.f.scene.extent) else {
             return [0.0; 4];
         };
-        let stop = self.mip_stop;
         let best = match self.f.params.clip.as_deref() {
-            None => self.mip_max(ray, span, stop, req, st),
+            None => self.mip_max(ray, span, req, st),
             // A region: samples of the whole ray's grid in [c0, c1) only.
             Some(&[lo, hi]) => match intersect_box(ray, lo, hi) {
-                Some((c0, c1)) => self.mip_max_in(ray, span, (c0, c1), stop, req, st),
+                Some((c0, c1)) => self.mip_max_in(ray, span, (c0, c1), req, st),
                 None => None,
             },
         };
@@ -79,17 +78,17 @@ impl<'f, 'a, T: Sample> Walker<'f, 'a, T> {
 
     /// The largest value along the ray inside `(t0, t1)` (NaN ignored; NaN
     /// if every sample was NaN or unserved), `None` when the ray takes no
-    /// sample. The ray ends at the first sample of at least `stop` (the
-    /// window's [`saturation`]; infinite: never), which it returns.
+    /// sample. The ray ends at the first sample of at least the walker's
+    /// `mip_stop` (the window's [`saturation`]; infinite: never), which it
+    /// returns.
     pub(crate) fn mip_max(
         &mut self,
         ray: &Ray,
         span: (f64, f64),
-        stop: f32,
         req: &mut Requests,
         st: &mut FrameStats,
     ) -> Option<f32> {
-        self.mip_max_in(ray, span, span, stop, req, st)
+        self.mip_max_in(ray, span, span, req, st)
     }
 
     /// [`mip_max`](Self::mip_max) over the samples of the grid of
@@ -99,7 +98,6 @@ impl<'f, 'a, T: Sample> Walker<'f, 'a, T> {
         ray: &Ray,
         span: (f64, f64),
         clip: (f64, f64),
-        stop: f32,
         req: &mut Requests,
         st: &mut FrameStats,
     ) -> Option<f32> {
@@ -109,16 +107,16 @@ impl<'f, 'a, T: Sample> Walker<'f, 'a, T> {
             // every feature the copy is compiled with (`isa::x86_64_v3`).
             return unsafe {
                 if self.f.scene.lanes {
-                    self.mip_v3::<true>(ray, span, clip, stop, req, st)
+                    self.mip_v3::<true>(ray, span, clip, req, st)
                 } else {
-                    self.mip_v3::<false>(ray, span, clip, stop, req, st)
+                    self.mip_v3::<false>(ray, span, clip, req, st)
                 }
             };
         }
         if self.f.scene.lanes {
-            self.mip_at::<true>(ray, span, clip, stop, req, st)
+            self.mip_at::<true>(ray, span, clip, req, st)
         } else {
-            self.mip_at::<false>(ray, span, clip, stop, req, st)
+            self.mip_at::<false>(ray, span, clip, req, st)
         }
     }
 
@@ -134,11 +132,10 @@ impl<'f, 'a, T: Sample> Walker<'f, 'a, T> {
         ray: &Ray,
         span: (f64, f64),
         clip: (f64, f64),
-        stop: f32,
         req: &mut Requests,
         st: &mut FrameStats,
     ) -> Option<f32> {
-        self.mip_at::<LANES>(ray, span, clip, stop, req, st)
+        self.mip_at::<LANES>(ray, span, clip, req, st)
     }
 
     /// [`mip_max_in`](Self::mip_max_in)'s walk; `LANES`: the runs'
@@ -149,17 +146,23 @@ impl<'f, 'a, T: Sample> Walker<'f, 'a, T> {
         ray: &Ray,
         (t0, t1): (f64, f64),
         (c0, c1): (f64, f64),
-        stop: f32,
         req: &mut Requests,
         st: &mut FrameStats,
     ) -> Option<f32> {
-        let (f, channel) = (self.f, self.channel);
+        let (f, channel, stop) = (self.f, self.channel, self.mip_stop);
         // A new ray: the tracks and exits kept for the last are stale.
         self.ray_serial += 1;
         let t1 = t1.min(c1);
         let level = f.level_at(t0);
         let (dt, inv_dt, _) = f.step[level];
-        let track = f.track(level, ray, ray.dir.map(|d| 1.0 / d), t1);
+        // One level and step grid for the whole ray.
+        let g = Grid {
+            base_t: t0,
+            dt,
+            inv_dt,
+        };
+        let inv_dir = ray.dir.map(|d| 1.0 / d);
+        let track = f.track(level, ray, inv_dir, t1);
         let mut best = f32::NAN;
         let mut hit = false;
         // A region far along the ray: start a step or so before it (the
@@ -185,11 +188,6 @@ impl<'f, 'a, T: Sample> Walker<'f, 'a, T> {
                 // Past the largest block of bricks that cannot raise it.
                 let (lo, hi) = f.max_box((channel, level), c.brick, (c.lo, c.hi), best);
                 st.skipped_bricks += 1;
-                let g = Grid {
-                    base_t: t0,
-                    dt,
-                    inv_dt,
-                };
                 k = f.land(ray, &track, g, k, (lo, hi), t1);
                 continue;
             }
@@ -197,20 +195,10 @@ impl<'f, 'a, T: Sample> Walker<'f, 'a, T> {
                 // Resident: a fixed-point run through the brick (as in
                 // DVR), crossing cells whose maximum cannot raise `best`.
                 let (lo, hi, slot) = (c.lo, c.hi, c.slot);
-                let g = Grid {
-                    base_t: t0,
-                    dt,
-                    inv_dt,
-                };
                 let end = track.run_end(g, (lo, hi), t1).max(k);
-                let ranges = f.scene.skip_cells.then(|| f.vm.cell_ranges(slot));
-                let mut run = Run::new(f, level, &track, w, lo, hi);
-                let steps = (k - 1, end);
-                let (n, passed, j) = if run.interior(end - (k - 1)) {
-                    mip_run::<T, LANES, true>(f, &mut run, vox, ranges, steps, (&mut best, stop))
-                } else {
-                    mip_run::<T, LANES, false>(f, &mut run, vox, ranges, steps, (&mut best, stop))
-                };
+                let run = Run::new(f, level, &track, w, lo, hi);
+                let (n, passed, j) =
+                    mip_run::<T, LANES>(f, run, (vox, slot), (k - 1, end), (&mut best, stop));
                 st.skipped_cells += passed;
                 st.samples += n;
                 st.exact += n;
@@ -233,28 +221,17 @@ impl<'f, 'a, T: Sample> Walker<'f, 'a, T> {
                     // this level's step (as the DVR's), crossing its cells
                     // that cannot raise `best`; each step a miss of the
                     // brick of `level`, as `value` counts them.
-                    let g = Grid {
-                        base_t: t0,
-                        dt,
-                        inv_dt,
-                    };
-                    let inv_dir = ray.dir.map(|d| 1.0 / d);
                     let Some((lv, vox, lo, end)) =
                         self.stand_in_run(level, ray, inv_dir, (g, k), (t1, t1))
                     else {
                         continue;
                     };
                     let (hi, slot) = (self.cache[lv].hi, self.cache[lv].slot);
-                    let ranges = f.scene.skip_cells.then(|| f.vm.cell_ranges(slot));
                     let track_lv = self.track_of(lv, ray, inv_dir, t1);
                     let mut run = Run::new(f, lv, &track_lv, ray.at(step_t(t0, k, dt)), lo, hi);
                     run.dq = track_lv.dq_at(dt);
-                    let at = (&mut best, stop);
-                    let (n, passed, j) = if run.interior(end - k) {
-                        mip_run::<T, LANES, true>(f, &mut run, vox, ranges, (k, end), at)
-                    } else {
-                        mip_run::<T, LANES, false>(f, &mut run, vox, ranges, (k, end), at)
-                    };
+                    let (n, passed, j) =
+                        mip_run::<T, LANES>(f, run, (vox, slot), (k, end), (&mut best, stop));
                     st.samples += n;
                     st.skipped_cells += passed;
                     st.steps += j - k;
@@ -265,29 +242,40 @@ impl<'f, 'a, T: Sample> Walker<'f, 'a, T> {
                     }
                     k = end;
                 }
-                None => {
-                    let g = Grid {
-                        base_t: t0,
-                        dt,
-                        inv_dt,
-                    };
-                    k = self.skip_unserved(level, ray, &track, (g, k), t1, st)
-                }
+                None => k = self.skip_unserved(level, ray, &track, (g, k), t1, st),
             }
         }
         hit.then_some(best)
     }
 }
 
-/// The steps `j .. end` of a MIP run through a resident brick's voxels
-/// `vox`: cells whose maximum (`ranges`, `None`: no cells crossed) cannot
-/// raise `best` crossed, the others sampled into `best`, until `best`
+/// The steps `j .. end` of a MIP run through a resident brick (its voxels
+/// and pool slot): cells whose maximum cannot raise `best` crossed (with
+/// `Scene::skip_cells`), the others sampled into `best`, until `best`
 /// reaches `stop`. Returns the samples taken, the cells crossed and the
-/// step it stopped before. `INTERIOR`: every step lies within the clamp's
-/// bounds ([`Run::interior`]); nothing in the loop writes through a
-/// reference but `best`'s local copy, as in the DVR's runs.
+/// step it stopped before. The loop's copy for runs whose every step lies
+/// within the clamp's bounds ([`Run::interior`]) takes them unclamped.
 #[inline(always)]
-fn mip_run<T: Sample, const LANES: bool, const INTERIOR: bool>(
+fn mip_run<T: Sample, const LANES: bool>(
+    f: &Frame,
+    mut run: Run,
+    (vox, slot): (&[T], u32),
+    (j, end): (u64, u64),
+    at: (&mut f32, f32),
+) -> (u64, u64, u64) {
+    let ranges = f.scene.skip_cells.then(|| f.vm.cell_ranges(slot));
+    if run.interior(end - j) {
+        mip_steps::<T, LANES, true>(f, &mut run, vox, ranges, (j, end), at)
+    } else {
+        mip_steps::<T, LANES, false>(f, &mut run, vox, ranges, (j, end), at)
+    }
+}
+
+/// [`mip_run`]'s loop. `INTERIOR`: every step lies within the clamp's
+/// bounds; nothing in the loop writes through a reference but `best`'s
+/// local copy, as in the DVR's runs.
+#[inline(always)]
+fn mip_steps<T: Sample, const LANES: bool, const INTERIOR: bool>(
     f: &Frame,
     run: &mut Run,
     vox: &[T],

@@ -143,8 +143,9 @@ impl<'a> Frame<'a> {
                 None => vec![],
             })
             .collect();
-        // Every channel's: a MIP of several channels walks them through
-        // this one frame.
+        // Every channel's shown: a MIP of several channels walks them
+        // through this one frame.
+        let shown = |c: usize| c == scene.channel || params.channels.iter().any(|s| s.channel == c);
         let max_blocks = match scene.ranges.as_ref() {
             Some(r) if matches!(params.mode, RenderMode::Mip) => {
                 let channels = (0..nl)
@@ -155,7 +156,7 @@ impl<'a> Frame<'a> {
                     .map(|c| {
                         (0..nl)
                             .map(|l| match r.level(l) {
-                                Some(r) if c < r.channels => {
+                                Some(r) if c < r.channels && shown(c) => {
                                     let n = r.bricks.iter().product::<u64>() as usize;
                                     let max: Vec<f32> =
                                         r.range[c * n..(c + 1) * n].iter().map(|x| x[1]).collect();

@@ -499,6 +499,15 @@ pub fn parse_vec3(s: &str, what: &str) -> Result<[f64; 3]> {
     }
 }
 
+/// A data window `LO,HI` with `LO < HI` (the error names `what`).
+pub fn parse_window(s: &str, what: &str) -> Result<[f64; 2]> {
+    let p = parse_pair(s, what)?;
+    if p[0].partial_cmp(&p[1]) != Some(std::cmp::Ordering::Less) {
+        bail!("{what}: expected LO,HI with LO < HI, found {s:?}");
+    }
+    Ok(p)
+}
+
 fn parse_pair(s: &str, what: &str) -> Result<[f64; 2]> {
     let v: Vec<f64> = s
         .split([',', 'x'])
@@ -778,11 +787,8 @@ fn run_with(
     };
     let (lo, hi) = match &c.window {
         Some(wd) => {
-            let p = parse_pair(wd, "window")?;
-            if p[0].partial_cmp(&p[1]) != Some(std::cmp::Ordering::Less) {
-                bail!("window: expected LO,HI with LO < HI, found {wd:?}");
-            }
-            (p[0], p[1])
+            let [lo, hi] = parse_window(wd, "window")?;
+            (lo, hi)
         }
         None if derived.is_some() => {
             let d = derived.as_ref().unwrap();

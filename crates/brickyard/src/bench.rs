@@ -181,7 +181,12 @@ pub fn run(b: BenchCmd) -> Result<()> {
             let o = crate::vmbench::RenderBench {
                 image,
                 zoom: b.zoom,
-                window: b.window.as_deref().map(parse_window).transpose()?,
+                window: b
+                    .window
+                    .as_deref()
+                    .map(|w| crate::render::parse_window(w, "--window"))
+                    .transpose()?
+                    .map(|w| w.map(|x| x as f32)),
                 repeat: b.repeat,
                 cold: b.cold,
                 pool,
@@ -349,17 +354,4 @@ fn loader_compression(s: &str) -> Result<(Compression, String)> {
         _ => format!("-{}", s.replace(':', "")),
     };
     Ok((c, tag))
-}
-
-/// `LO,HI` with `LO < HI`, both finite.
-fn parse_window(s: &str) -> Result<[f32; 2]> {
-    let v: Vec<f32> = s
-        .split(',')
-        .map(|p| p.trim().parse::<f32>())
-        .collect::<std::result::Result<_, _>>()
-        .map_err(|e| anyhow::anyhow!("--window {s:?}: {e} (expected LO,HI)"))?;
-    match v[..] {
-        [lo, hi] if lo.is_finite() && hi.is_finite() && lo < hi => Ok([lo, hi]),
-        _ => anyhow::bail!("--window {s:?}: expected LO,HI with LO < HI, both finite"),
-    }
 }
