@@ -381,21 +381,24 @@ pub fn loader(dir: &Path, dims: Dims3, dtype: DType, o: &LoaderBench) -> Result<
             }
             let keys: Vec<(BrickKey, u32)> = l.geometry().keys(0, 0).map(|k| (k, 1)).collect();
             let decodes = zarr::chunks_decoded();
+            let d0 = brickyard_store::storage::direct_read_counts();
             let u0 = usage();
             let t = Instant::now();
             l.request(&keys);
             let mut got = 0;
             let mut data_bricks = 0;
-            while got < keys.len() {
+            let mut failed = vec![];
+            while got + failed.len() < keys.len() {
                 for b in l.poll() {
                     got += 1;
                     data_bricks += matches!(b.content, BrickContent::Data(_)) as usize;
                 }
+                // A brick that failed never arrives.
+                failed.extend(l.take_failures());
                 std::thread::sleep(Duration::from_micros(200));
             }
             let s = t.elapsed().as_secs_f64();
             let u1 = usage();
-            let failed = l.take_failures();
             anyhow::ensure!(
                 failed.is_empty(),
                 "{} bricks failed: {}",
@@ -408,12 +411,16 @@ pub fn loader(dir: &Path, dims: Dims3, dtype: DType, o: &LoaderBench) -> Result<
             outln!(
                 "{}",
                 json!({"scenario": "loader", "size": [dims[2], dims[1], dims[0]], "dtype": dtype.short_name(),
+                    "store": st.file_name().map(|n| n.to_string_lossy().into_owned()),
                     "brick": o.brick, "threads": threads, "cold": cold, "bricks": keys.len(), "data_bricks": data_bricks,
                     "seconds": s, "decoded_gb_s": decoded as f64 / 1e9 / s, "read_gb_s": bytes as f64 / 1e9 / s,
                     "level_gb_s": level_bytes as f64 / 1e9 / s,
                     "chunks_decoded": zarr::chunks_decoded() - decodes,
                     "host_cache_bytes": cache.budget(), "evictions": cache.evictions(),
                     "ranges_hinted": l.stats().ranges_hinted,
+                    "direct_io": brickyard_store::storage::direct_reads(),
+                    "direct_ranges_read": brickyard_store::storage::direct_read_counts().read - d0.read,
+                    "direct_ranges_staged": brickyard_store::storage::direct_read_counts().staged - d0.staged,
                     "cpu_user_s": u1.0 - u0.0, "cpu_sys_s": u1.1 - u0.1, "minor_faults": u1.2 - u0.2})
             );
         }

@@ -282,6 +282,75 @@ fn mandelbulb_48(dir: &Path, name: &str) -> std::path::PathBuf {
     store
 }
 
+/// `--direct-io`: the same image, its chunks read around the page cache
+/// (where the disk takes it), and the loader's bench says how they came.
+#[test]
+#[cfg(target_os = "linux")]
+fn direct_io_renders_the_same_image() {
+    // On the build's disk: a RAM file system takes no O_DIRECT.
+    let d = tempfile::tempdir_in(env!("CARGO_TARGET_TMPDIR")).unwrap();
+    let store = mandelbulb_48(d.path(), "d.ome.zarr");
+    let mut images = vec![];
+    for direct in [false, true] {
+        let png = d.path().join(format!("{direct}.png"));
+        let mut args = vec![];
+        if direct {
+            args.push("--direct-io");
+        }
+        args.extend([
+            "render",
+            s(&store),
+            "--size",
+            "48x40",
+            "--out",
+            s(&png),
+            "--pool",
+            "1MiB",
+            "--brick",
+            "8",
+        ]);
+        let o = run(&args);
+        assert!(o.status.success(), "direct {direct}: {}", stderr(&o));
+        images.push(png_pixels(&png));
+    }
+    has_content(&images[0], "dvr");
+    assert!(images[0] == images[1], "the same image with --direct-io");
+
+    let o = run(&[
+        "--direct-io",
+        "bench",
+        "loader",
+        "--size",
+        "256",
+        "--dtype",
+        "u8",
+        "--dir",
+        s(d.path()),
+        "--loader-threads",
+        "2",
+        "--repeat",
+        "1",
+    ]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    let line = String::from_utf8_lossy(&o.stdout);
+    let j: serde_json::Value = serde_json::from_str(line.lines().last().unwrap()).unwrap();
+    assert_eq!(j["direct_io"], true, "{j}");
+    let ranges =
+        j["direct_ranges_read"].as_u64().unwrap() + j["direct_ranges_staged"].as_u64().unwrap();
+    use std::os::unix::fs::OpenOptionsExt;
+    let takes_direct = std::fs::OpenOptions::new()
+        .read(true)
+        .custom_flags(libc::O_DIRECT)
+        .open(d.path().join("true.png"))
+        .is_ok();
+    if takes_direct {
+        assert!(ranges > 0, "no chunk read around the page cache: {j}");
+    } else {
+        eprintln!("note: this disk takes no O_DIRECT; the reads went through the page cache");
+        assert_eq!(ranges, 0, "{j}");
+    }
+}
+
 /// `info` on the `labels/` group `process` writes lists the label images
 /// in it: no level of its own to fail on, no "infx" ratio of nothing.
 #[test]

@@ -582,20 +582,22 @@ impl ShardReader {
                 continue;
             }
             let spans: Vec<Span> = runs.iter().map(|(r, _)| Span::Range(r.clone())).collect();
-            let Some(bufs) = storage::read_spans(&file, &spans)? else {
+            let found = storage::read_spans_with(&file, &spans, |j, buf| {
+                let (r, m) = &runs[j];
+                for &(off, len, i) in m {
+                    let at = (off - r.start) as usize;
+                    let bytes = &buf[at..at + len as usize];
+                    out[i] = Some(self.decode(&file, &keys[i], bytes)?);
+                }
+                Ok(())
+            })?;
+            if !found {
                 // The shard vanished after its index was read.
                 return Err(StoreError::invalid(
                     &file,
                     "shard",
                     "the shard file is gone (it held chunks when its index was read)",
                 ));
-            };
-            for ((r, m), buf) in runs.iter().zip(&bufs) {
-                for &(off, len, i) in m {
-                    let at = (off - r.start) as usize;
-                    let bytes = &buf[at..at + len as usize];
-                    out[i] = Some(self.decode(&file, &keys[i], bytes)?);
-                }
             }
         }
         Ok(out
