@@ -10,7 +10,7 @@
 #   DIR        where the 1024³ u8 Mandelbulb stores are made once (default /tmp/bench-loader)
 #   PYTHON     a Python with tensorstore and numpy (default python3; "" to leave it out)
 #   ROUNDS     alternating rounds (default 3)
-#   THREADS    loader thread counts for the direct reads (default "2 4")
+#   THREADS    loader thread counts, each read both ways (default "2 4")
 set -euo pipefail
 BY=${1:?usage: bench-loader-direct.sh BRICKYARD [DIR] [PYTHON] [ROUNDS] [THREADS]}
 DIR=${2:-/tmp/bench-loader}
@@ -39,9 +39,9 @@ for round in $(seq "$ROUNDS"); do
         for host in "" 64MiB; do
             H=()
             [ -n "$host" ] && H=(--host-cache "$host")
-            "$BY" bench loader --size 1024 --dtype u8 --dir "$DIR" --compression "$comp" \
-                --loader-threads "$(nproc)" --repeat 1 --cold "${H[@]}" | tag "$round"
             for t in $THREADS; do
+                "$BY" bench loader --size 1024 --dtype u8 --dir "$DIR" --compression "$comp" \
+                    --loader-threads "$t" --repeat 1 --cold "${H[@]}" | tag "$round"
                 "$BY" --direct-io bench loader --size 1024 --dtype u8 --dir "$DIR" --compression "$comp" \
                     --loader-threads "$t" --repeat 1 --cold "${H[@]}" | tag "$round"
             done
