@@ -6,10 +6,7 @@ use anyhow::{bail, Context, Result};
 use brickyard_store::info::human_bytes;
 
 /// The program itself: code, allocator, thread stacks (rayon, loader),
-/// codec and read buffers (up to 4 MiB kept per loader thread), request
-/// collectors and the store's metadata. With reads around the page cache
-/// (`--direct-io`), the read-ahead's staging area comes on top
-/// (`storage::DIRECT_STAGE_BYTES`).
+/// codec buffers, request collectors and the store's metadata.
 pub const FIXED_BYTES: u64 = 48 << 20;
 
 /// Bytes of image buffers per pixel of a render: the frame (RGBA f32)
@@ -142,13 +139,7 @@ pub fn split_with_filters(
     }
     let images = pixels * IMAGE_BYTES_PER_PIXEL;
     // Each level's chunk cache keeps at least half a MiB.
-    // Reads around the page cache read ahead into buffers of their own.
-    let staging = if brickyard_store::storage::direct_reads() {
-        brickyard_store::storage::DIRECT_STAGE_BYTES
-    } else {
-        0
-    };
-    let fixed = FIXED_BYTES + extra + levels as u64 * (512 << 10) + staging;
+    let fixed = FIXED_BYTES + extra + levels as u64 * (512 << 10);
     let explicit = total.is_some();
     let want_total = total.unwrap_or_else(default_memory);
     let rest = want_total.saturating_sub(fixed + images + filters);

@@ -40,13 +40,6 @@ struct Cli {
     /// Worker threads (default: all cores).
     #[arg(long, global = true)]
     threads: Option<usize>,
-    /// Read local stores' chunks around the page cache (O_DIRECT, Linux;
-    /// through it where the file system refuses): for volumes much larger
-    /// than memory, read once each. The loader's read-ahead then goes to
-    /// four background readers and a 64 MiB staging area (counted in
-    /// --memory); nothing read is kept in the page cache for a later read.
-    #[arg(long, global = true)]
-    direct_io: bool,
     /// s3:// stores: an S3-compatible endpoint (http(s)://host:port),
     /// addressed path style; default AWS_ENDPOINT_URL_S3 or
     /// AWS_ENDPOINT_URL, else Amazon's regional endpoint. Credentials come
@@ -394,7 +387,6 @@ fn main() {
             .num_threads(t)
             .build_global();
     }
-    brickyard_store::storage::set_direct_reads(cli.direct_io);
     match brickyard_store::storage::http::HttpConfig::from_env() {
         Ok(c) => brickyard_store::storage::http::configure(c),
         Err(e) => {

@@ -381,7 +381,6 @@ pub fn loader(dir: &Path, dims: Dims3, dtype: DType, o: &LoaderBench) -> Result<
             }
             let keys: Vec<(BrickKey, u32)> = l.geometry().keys(0, 0).map(|k| (k, 1)).collect();
             let decodes = zarr::chunks_decoded();
-            let d0 = brickyard_store::storage::direct_read_counts();
             let u0 = usage();
             let t = Instant::now();
             l.request(&keys);
@@ -418,9 +417,6 @@ pub fn loader(dir: &Path, dims: Dims3, dtype: DType, o: &LoaderBench) -> Result<
                     "chunks_decoded": zarr::chunks_decoded() - decodes,
                     "host_cache_bytes": cache.budget(), "evictions": cache.evictions(),
                     "ranges_hinted": l.stats().ranges_hinted,
-                    "direct_io": brickyard_store::storage::direct_reads(),
-                    "direct_ranges_read": brickyard_store::storage::direct_read_counts().read - d0.read,
-                    "direct_ranges_staged": brickyard_store::storage::direct_read_counts().staged - d0.staged,
                     "cpu_user_s": u1.0 - u0.0, "cpu_sys_s": u1.1 - u0.1, "minor_faults": u1.2 - u0.2})
             );
         }

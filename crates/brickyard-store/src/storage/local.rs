@@ -1,4 +1,4 @@
-//! Local files: positioned reads, through the page cache or around it.
+//! Local files: positioned reads.
 
 use super::Span;
 use crate::error::{IoContext, Result, StoreError};
@@ -6,7 +6,6 @@ use std::cell::RefCell;
 use std::fs::File;
 use std::io::ErrorKind;
 use std::path::Path;
-use std::sync::atomic::{AtomicU64, Ordering};
 
 fn open(p: &Path) -> Result<Option<File>> {
     match File::open(p) {
@@ -25,7 +24,8 @@ pub(super) fn size(p: &Path) -> Result<Option<u64>> {
     }
 }
 
-pub(super) fn read_spans(p: &Path, spans: &[Span]) -> Result<Option<Vec<Vec<u8>>>> {
+/// `p` opened, and its length; `None` when there is no such file.
+fn open_file(p: &Path) -> Result<Option<(File, u64)>> {
     let Some(f) = open(p)? else {
         return Ok(None);
     };
@@ -33,7 +33,13 @@ pub(super) fn read_spans(p: &Path, spans: &[Span]) -> Result<Option<Vec<Vec<u8>>
     if meta.is_dir() {
         return Ok(None);
     }
-    let len = meta.len();
+    Ok(Some((f, meta.len())))
+}
+
+pub(super) fn read_spans(p: &Path, spans: &[Span]) -> Result<Option<Vec<Vec<u8>>>> {
+    let Some((f, len)) = open_file(p)? else {
+        return Ok(None);
+    };
     spans
         .iter()
         .map(|s| {
@@ -46,38 +52,22 @@ pub(super) fn read_spans(p: &Path, spans: &[Span]) -> Result<Option<Vec<Vec<u8>>
         .map(Some)
 }
 
-/// The alignment of reads that bypass the page cache (offset, length and
-/// buffer address): the largest logical block size of common disks.
-pub(super) const DIRECT_ALIGN: usize = 4096;
-
 /// A read buffer a thread keeps between reads up to this size (larger ones
 /// are freed after their read), so that reads do not each take fresh memory.
 const KEEP_BUFFER: usize = 4 << 20;
-
-static DIRECT_READ: AtomicU64 = AtomicU64::new(0);
-static DIRECT_STAGED: AtomicU64 = AtomicU64::new(0);
-
-pub(super) fn direct_read_counts() -> super::DirectReads {
-    super::DirectReads {
-        read: DIRECT_READ.load(Ordering::Relaxed),
-        staged: DIRECT_STAGED.load(Ordering::Relaxed),
-    }
-}
 
 thread_local! {
     static READ_BUF: RefCell<Vec<u8>> = const { RefCell::new(Vec::new()) };
 }
 
-/// Run `f` with a slice of at least `len` bytes of this thread's read
-/// buffer that starts at an address aligned to [`DIRECT_ALIGN`].
+/// Run `f` with `len` bytes of this thread's read buffer.
 fn with_buffer<R>(len: usize, f: impl FnOnce(&mut [u8]) -> R) -> R {
     READ_BUF.with(|b| {
         let mut b = b.borrow_mut();
-        if b.len() < len + DIRECT_ALIGN {
-            *b = vec![0u8; len + DIRECT_ALIGN];
+        if b.len() < len {
+            *b = vec![0u8; len];
         }
-        let skip = b.as_ptr().align_offset(DIRECT_ALIGN);
-        let r = f(&mut b[skip..skip + len]);
+        let r = f(&mut b[..len]);
         if b.len() > KEEP_BUFFER {
             *b = Vec::new();
         }
@@ -85,86 +75,22 @@ fn with_buffer<R>(len: usize, f: impl FnOnce(&mut [u8]) -> R) -> R {
     })
 }
 
-/// Open `p` for reads that bypass the page cache; `None` where the file
-/// system does not take them (the caller then reads through the cache).
-#[cfg(target_os = "linux")]
-pub(super) fn open_direct(p: &Path) -> Result<Option<Option<File>>> {
-    use std::os::unix::fs::OpenOptionsExt;
-    match std::fs::OpenOptions::new()
-        .read(true)
-        .custom_flags(libc::O_DIRECT)
-        .open(p)
-    {
-        Ok(f) => Ok(Some(Some(f))),
-        Err(e) if e.kind() == ErrorKind::NotFound => Ok(Some(None)),
-        Err(e) if e.raw_os_error() == Some(libc::EINVAL) => Ok(None),
-        Err(e) => Err(StoreError::io(p, e)),
-    }
-}
-
-#[cfg(not(target_os = "linux"))]
-pub(super) fn open_direct(_p: &Path) -> Result<Option<Option<File>>> {
-    Ok(None)
-}
-
 /// Read `spans` of `p` and hand each to `f` (its position in `spans`, its
-/// bytes) in turn, from one read buffer this thread keeps. `direct`: read
-/// around the page cache (`O_DIRECT`, whole aligned blocks) where the file
-/// system allows it. `Ok(false)`: no such file.
+/// bytes) in turn, from one read buffer this thread keeps. `Ok(false)`: no
+/// such file.
 pub(super) fn read_spans_with(
     p: &Path,
     spans: &[Span],
-    direct: bool,
     mut f: impl FnMut(usize, &[u8]) -> Result<()>,
 ) -> Result<bool> {
-    let (f_in, direct) = match direct.then(|| open_direct(p)).transpose()?.flatten() {
-        Some(None) => return Ok(false),
-        Some(Some(file)) => (file, true),
-        None => match open(p)? {
-            Some(file) => (file, false),
-            None => return Ok(false),
-        },
-    };
-    let meta = f_in.metadata().at(p)?;
-    if meta.is_dir() {
+    let Some((file, len)) = open_file(p)? else {
         return Ok(false);
-    }
-    let len = meta.len();
+    };
     for (i, s) in spans.iter().enumerate() {
         let r = s.within(len).ok_or_else(|| past_end(p, s, len))?;
-        let (start, end) = if direct {
-            let a = DIRECT_ALIGN as u64;
-            (r.start / a * a, r.end.div_ceil(a) * a)
-        } else {
-            (r.start, r.end)
-        };
-        let skip = (r.start - start) as usize;
-        let want = (r.end - r.start) as usize;
-        #[cfg(target_os = "linux")]
-        if direct {
-            // Read ahead by a hint ([`super::staged`]): taken from there.
-            let staged = super::staged::global().take(p, start..end, |b| {
-                (b.len() >= skip + want).then(|| f(i, &b[skip..skip + want]))
-            });
-            if let Some(Some(done)) = staged {
-                DIRECT_STAGED.fetch_add(1, Ordering::Relaxed);
-                done?;
-                continue;
-            }
-        }
-        with_buffer((end - start) as usize, |buf| -> Result<()> {
-            if direct {
-                // The last block may reach past the end of the file: a short
-                // read there is expected, short of the span is not.
-                let got = read_up_to(&f_in, buf, start).at(p)?;
-                DIRECT_READ.fetch_add(1, Ordering::Relaxed);
-                if got < skip + want {
-                    return Err(past_end(p, s, start + got as u64));
-                }
-            } else {
-                read_exact_at(&f_in, buf, start).at(p)?;
-            }
-            f(i, &buf[skip..skip + want])
+        with_buffer((r.end - r.start) as usize, |buf| -> Result<()> {
+            read_exact_at(&file, buf, r.start).at(p)?;
+            f(i, buf)
         })?;
     }
     Ok(true)
@@ -178,38 +104,6 @@ fn past_end(p: &Path, s: &Span, len: u64) -> StoreError {
             format!("bytes {s:?} asked for, but the file holds {len}"),
         ),
     )
-}
-
-/// Read into `buf` from `at` until it is full or the file ends; the bytes read.
-#[cfg(unix)]
-pub(super) fn read_up_to(f: &File, buf: &mut [u8], at: u64) -> std::io::Result<usize> {
-    use std::os::unix::fs::FileExt;
-    let mut got = 0;
-    while got < buf.len() {
-        match f.read_at(&mut buf[got..], at + got as u64) {
-            Ok(0) => break,
-            Ok(n) => got += n,
-            Err(e) if e.kind() == ErrorKind::Interrupted => {}
-            Err(e) => return Err(e),
-        }
-    }
-    Ok(got)
-}
-
-#[cfg(not(unix))]
-pub(super) fn read_up_to(f: &File, buf: &mut [u8], at: u64) -> std::io::Result<usize> {
-    read_exact_at(f, buf, at).map(|()| buf.len())
-}
-
-/// Read `ranges` of `p` ahead, around the page cache ([`super::staged`]).
-#[cfg(target_os = "linux")]
-pub(super) fn stage(p: &Path, ranges: &[std::ops::Range<u64>]) -> usize {
-    super::staged::global().hint(p, ranges, DIRECT_ALIGN as u64)
-}
-
-#[cfg(not(target_os = "linux"))]
-pub(super) fn stage(_p: &Path, _ranges: &[std::ops::Range<u64>]) -> usize {
-    0
 }
 
 #[cfg(target_os = "linux")]

@@ -13,8 +13,6 @@
 pub mod http;
 mod local;
 pub mod s3;
-#[cfg(target_os = "linux")]
-mod staged;
 mod zarr;
 
 pub use zarr::StoreAt;
@@ -22,47 +20,6 @@ pub use zarr::StoreAt;
 use crate::error::Result;
 use std::ops::Range;
 use std::path::Path;
-use std::sync::atomic::{AtomicBool, Ordering};
-
-static DIRECT_READS: AtomicBool = AtomicBool::new(false);
-
-/// The staging area of reads ahead around the page cache
-/// ([`set_direct_reads`], [`will_need`]): the most bytes of buffers it
-/// holds.
-pub const DIRECT_STAGE_BYTES: u64 = 64 << 20;
-
-/// Read the chunks of local stores around the page cache (`O_DIRECT` on
-/// Linux, where the file system allows it; elsewhere this changes
-/// nothing), for this whole process. For volumes much larger than memory,
-/// read once each: the page cache then only costs time (on some machines
-/// more than the disk) and memory beside the host cache. Read-ahead hints
-/// ([`will_need`]) then go to background readers and a staging area of
-/// [`DIRECT_STAGE_BYTES`]. Off by default, because what is read around the
-/// page cache is not kept there for a later read. Shard indexes and
-/// metadata are read through the cache either way.
-pub fn set_direct_reads(on: bool) {
-    DIRECT_READS.store(on, Ordering::Relaxed);
-}
-
-/// Whether chunks of local stores are read around the page cache
-/// ([`set_direct_reads`]).
-pub fn direct_reads() -> bool {
-    DIRECT_READS.load(Ordering::Relaxed)
-}
-
-/// Reads around the page cache so far in this process.
-#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
-pub struct DirectReads {
-    /// Ranges a reader read itself.
-    pub read: u64,
-    /// Ranges taken from what was read ahead ([`will_need`]).
-    pub staged: u64,
-}
-
-/// The reads around the page cache so far ([`set_direct_reads`]).
-pub fn direct_read_counts() -> DirectReads {
-    local::direct_read_counts()
-}
 
 /// A part of a value (file) to read.
 #[derive(Clone, Debug, PartialEq, Eq)]
@@ -122,9 +79,8 @@ pub fn read_spans(p: &Path, spans: &[Span]) -> Result<Option<Vec<Vec<u8>>>> {
 
 /// Read `spans` of the value at `p` in order and hand each to `f` (its
 /// position in `spans`, its bytes), which must not keep them: local reads
-/// go into one buffer the thread keeps, not into new memory each, and
-/// around the page cache when [`direct_reads`] is on. `Ok(false)` when
-/// there is no such value.
+/// go into one buffer the thread keeps, not into new memory each.
+/// `Ok(false)` when there is no such value.
 pub fn read_spans_with(
     p: &Path,
     spans: &[Span],
@@ -139,7 +95,7 @@ pub fn read_spans_with(
         }
         return Ok(true);
     }
-    local::read_spans_with(p, spans, direct_reads(), f)
+    local::read_spans_with(p, spans, f)
 }
 
 /// The last `n` bytes of the value at `p` (all of it when it is shorter)
@@ -166,14 +122,9 @@ pub fn read_suffix(p: &Path, n: u64) -> Result<Option<(Vec<u8>, u64)>> {
 /// returns at once). Returns how many ranges were handed over; 0 where
 /// there is no such hint (remote stores, other systems) or no such file.
 /// Only a hint: nothing depends on it but speed, so errors are ignored.
-/// While chunks are read around the page cache ([`set_direct_reads`]),
-/// the ranges are read by background threads into a bounded staging area
-/// of this process instead, which the reads that follow take them from.
 pub fn will_need(p: &Path, ranges: &[Range<u64>]) -> usize {
     if is_remote(p) {
         0
-    } else if direct_reads() {
-        local::stage(p, ranges)
     } else {
         local::will_need(p, ranges)
     }
