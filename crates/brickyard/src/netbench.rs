@@ -50,8 +50,11 @@ pub fn remote(dir: &Path, dims: Dims3, dtype: DType) -> Result<()> {
                 let keys: Vec<(BrickKey, u32)> = l.geometry().keys(0, 0).map(|k| (k, 1)).collect();
                 let t = Instant::now();
                 l.request(&keys);
-                let (mut got, mut data) = (0, 0);
-                while got + l.take_failures().len() < keys.len() {
+                let (mut got, mut data, mut failed) = (0, 0, vec![]);
+                // A brick that failed never arrives: counted once, as it is
+                // taken from the loader.
+                while got + failed.len() < keys.len() {
+                    failed.extend(l.take_failures());
                     for b in l.poll() {
                         got += 1;
                         data += matches!(b.content, BrickContent::Data(_)) as usize;
@@ -62,6 +65,9 @@ pub fn remote(dir: &Path, dims: Dims3, dtype: DType) -> Result<()> {
                     }
                 }
                 let s = t.elapsed().as_secs_f64();
+                if let Some(f) = failed.first() {
+                    anyhow::bail!("{source}: {} bricks failed: {}", failed.len(), f.message);
+                }
                 outln!(
                     "{}",
                     json!({"scenario": "remote", "source": source, "size": [dims[2], dims[1], dims[0]],
