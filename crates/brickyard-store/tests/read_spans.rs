@@ -57,7 +57,7 @@ fn spans_read_with_one_buffer_are_the_files_bytes() {
         .collect();
     assert_eq!(read_with(&p, &spans).unwrap().unwrap(), want);
     assert_eq!(storage::read_spans(&p, &spans).unwrap().unwrap(), want);
-    // A span larger than the buffer a thread keeps (4 MiB), then small ones.
+    // A span larger than the buffer a thread keeps (1 MiB), then small ones.
     let big: Vec<u8> = (0..5_000_000u32).map(|i| (i % 253) as u8).collect();
     let q = dir.path().join("big.bin");
     std::fs::write(&q, &big).unwrap();

@@ -54,7 +54,7 @@ pub(super) fn read_spans(p: &Path, spans: &[Span]) -> Result<Option<Vec<Vec<u8>>
 
 /// A read buffer a thread keeps between reads up to this size (larger ones
 /// are freed after their read), so that reads do not each take fresh memory.
-const KEEP_BUFFER: usize = 4 << 20;
+const KEEP_BUFFER: usize = 1 << 20;
 
 thread_local! {
     static READ_BUF: RefCell<Vec<u8>> = const { RefCell::new(Vec::new()) };
