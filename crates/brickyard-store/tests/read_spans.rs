@@ -66,6 +66,18 @@ fn spans_read_with_one_buffer_are_the_files_bytes() {
         .unwrap();
     assert!(got[0] == big && got[1] == big[10..20] && got[2] == big[big.len() - 3..]);
 
+    // A read within the handler (the thread's buffer in use) reads too.
+    let mut inner = vec![];
+    storage::read_spans_with(&p, &[Span::Range(0..100)], |_, outer| {
+        storage::read_spans_with(&p, &[Span::Range(50..150)], |_, b| {
+            inner = [outer, b].concat();
+            Ok(())
+        })
+        .map(|_| ())
+    })
+    .unwrap();
+    assert_eq!(inner, [&data[..100], &data[50..150]].concat());
+
     // No file, a folder, and a span past the end: as `read_spans`.
     assert!(read_with(&dir.path().join("none.bin"), &spans)
         .unwrap()

@@ -4,7 +4,7 @@
 //! threads.
 
 use anyhow::{Context, Result};
-use brickyard_cache::brick::{BrickContent, BrickKey};
+use brickyard_cache::brick::BrickKey;
 use brickyard_cache::host_cache::HostCache;
 use brickyard_cache::loader::Loader;
 use brickyard_core::{DType, Dims3};
@@ -13,7 +13,7 @@ use std::io::{BufRead, BufReader};
 use std::path::{Path, PathBuf};
 use std::process::{Command, Stdio};
 use std::sync::Arc;
-use std::time::{Duration, Instant};
+use std::time::Instant;
 
 pub fn remote(dir: &Path, dims: Dims3, dtype: DType) -> Result<()> {
     let st = crate::vmbench::store(dir, dims, dtype)?;
@@ -50,24 +50,9 @@ pub fn remote(dir: &Path, dims: Dims3, dtype: DType) -> Result<()> {
                 let keys: Vec<(BrickKey, u32)> = l.geometry().keys(0, 0).map(|k| (k, 1)).collect();
                 let t = Instant::now();
                 l.request(&keys);
-                let (mut got, mut data, mut failed) = (0, 0, vec![]);
-                // A brick that failed never arrives: counted once, as it is
-                // taken from the loader.
-                while got + failed.len() < keys.len() {
-                    failed.extend(l.take_failures());
-                    for b in l.poll() {
-                        got += 1;
-                        data += matches!(b.content, BrickContent::Data(_)) as usize;
-                    }
-                    std::thread::sleep(Duration::from_micros(200));
-                    if t.elapsed() > Duration::from_secs(600) {
-                        anyhow::bail!("{source}: bricks still missing after 600 s");
-                    }
-                }
+                let (got, data) =
+                    crate::vmbench::await_bricks(&l, keys.len()).with_context(|| source)?;
                 let s = t.elapsed().as_secs_f64();
-                if let Some(f) = failed.first() {
-                    anyhow::bail!("{source}: {} bricks failed: {}", failed.len(), f.message);
-                }
                 outln!(
                     "{}",
                     json!({"scenario": "remote", "source": source, "size": [dims[2], dims[1], dims[0]],

@@ -348,6 +348,31 @@ fn fadvise_dont_need(dir: &Path) -> u64 {
     n
 }
 
+/// Wait until `n` requested bricks came back from `l` (polled every 200
+/// µs, so that the time around it measures the loads); `(bricks, data
+/// bricks)`. A brick that failed never arrives: an error with the
+/// failures, as one bricks still missing after 600 s.
+pub fn await_bricks(l: &Loader, n: usize) -> Result<(usize, usize)> {
+    let t = Instant::now();
+    let (mut got, mut data, mut failed) = (0, 0, vec![]);
+    while got + failed.len() < n {
+        for b in l.poll() {
+            got += 1;
+            data += matches!(b.content, BrickContent::Data(_)) as usize;
+        }
+        // Each call empties the loader's list: kept here.
+        failed.extend(l.take_failures());
+        if let Some(f) = failed.first() {
+            anyhow::bail!("{} bricks failed: {}", failed.len(), f.message);
+        }
+        if t.elapsed() > Duration::from_secs(600) {
+            anyhow::bail!("{} of {n} bricks still missing after 600 s", n - got);
+        }
+        std::thread::sleep(Duration::from_micros(200));
+    }
+    Ok((got, data))
+}
+
 /// Every brick of level 0, loaded by the loader's threads into a host
 /// cache that holds them all; decoded GB/s counts the padded data bricks
 /// (empty and constant ones come from the statistics without a read),
@@ -384,26 +409,9 @@ pub fn loader(dir: &Path, dims: Dims3, dtype: DType, o: &LoaderBench) -> Result<
             let u0 = usage();
             let t = Instant::now();
             l.request(&keys);
-            let mut got = 0;
-            let mut data_bricks = 0;
-            let mut failed = vec![];
-            while got + failed.len() < keys.len() {
-                for b in l.poll() {
-                    got += 1;
-                    data_bricks += matches!(b.content, BrickContent::Data(_)) as usize;
-                }
-                // A brick that failed never arrives.
-                failed.extend(l.take_failures());
-                std::thread::sleep(Duration::from_micros(200));
-            }
+            let (_, data_bricks) = await_bricks(&l, keys.len())?;
             let s = t.elapsed().as_secs_f64();
             let u1 = usage();
-            anyhow::ensure!(
-                failed.is_empty(),
-                "{} bricks failed: {}",
-                failed.len(),
-                failed[0].message
-            );
             let bytes = l.bytes_read();
             let padded = (o.brick + 2).pow(3);
             let decoded = (data_bricks as u64) * padded * dtype.size() as u64;

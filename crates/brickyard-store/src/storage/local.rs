@@ -60,10 +60,13 @@ thread_local! {
     static READ_BUF: RefCell<Vec<u8>> = const { RefCell::new(Vec::new()) };
 }
 
-/// Run `f` with `len` bytes of this thread's read buffer.
+/// Run `f` with `len` bytes of this thread's read buffer (of a new one
+/// when a read within `f` asks while the thread's is in use).
 fn with_buffer<R>(len: usize, f: impl FnOnce(&mut [u8]) -> R) -> R {
     READ_BUF.with(|b| {
-        let mut b = b.borrow_mut();
+        let Ok(mut b) = b.try_borrow_mut() else {
+            return f(&mut vec![0u8; len]);
+        };
         if b.len() < len {
             *b = vec![0u8; len];
         }
