@@ -39,8 +39,20 @@ pub fn next_ratio(dims: Dims3, spacing: [f64; 3]) -> [u32; 3] {
         .fold(f64::INFINITY, f64::min);
     let mut r = [1u32; 3];
     for a in 0..3 {
-        if dims[a] > 1 && spacing[a] < smin * std::f64::consts::SQRT_2 * (1.0 - 1e-9) {
+        // As a ratio, which stays exact for spacings at either end of the
+        // floating-point range (`smin * √2` rounds back to `smin` for the
+        // smallest subnormals).
+        if dims[a] > 1 && spacing[a] / smin < std::f64::consts::SQRT_2 * (1.0 - 1e-9) {
             r[a] = 2;
+        }
+    }
+    // Spacings that do not compare (infinite ones): halve every axis
+    // longer than a voxel, so that each level is smaller than the last.
+    if r == [1; 3] {
+        for a in 0..3 {
+            if dims[a] > 1 {
+                r[a] = 2;
+            }
         }
     }
     r
@@ -90,6 +102,22 @@ pub fn plan_levels(dims: Dims3, spacing: [f64; 3], origin: [f64; 3], brick: Dims
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn spacings_at_the_ends_of_the_range_still_shrink_each_level() {
+        for s in [1e308, f64::MAX, 5e-324, f64::MIN_POSITIVE] {
+            let p = plan_levels([256; 3], [s; 3], [0.0; 3], [64; 3]);
+            let dims: Vec<_> = p.levels.iter().map(|l| l.dims[0]).collect();
+            assert_eq!(dims, vec![256, 128, 64], "spacing {s:e}");
+        }
+        // One axis so coarse that its ratio to the others is infinite.
+        let p = plan_levels([256; 3], [f64::MAX, 1e-300, 1e-300], [0.0; 3], [64; 3]);
+        // The thick axis waits until the others are one voxel wide.
+        assert_eq!(p.levels.last().unwrap().dims, [64, 1, 1]);
+        assert_eq!(p.levels.len(), 11);
+        let p = plan_levels([256; 3], [f64::INFINITY; 3], [0.0; 3], [64; 3]);
+        assert_eq!(p.levels.len(), 3);
+    }
 
     #[test]
     fn isotropic_cube() {

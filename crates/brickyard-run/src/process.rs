@@ -14,6 +14,7 @@ use brickyard_process::{
 use brickyard_store::builder::Progress;
 use brickyard_store::import::zarr::{self, ZarrSource};
 use brickyard_store::info::human_bytes;
+use brickyard_store::lock::PidLock;
 use brickyard_store::omezarr::{read_json, write_json};
 use brickyard_store::{convert, Compression, ConvertOptions, VolumeSource};
 use serde_json::{json, Value};
@@ -133,6 +134,10 @@ fn check_name(name: &str, flag: &str) -> Result<()> {
     {
         bail!("{flag}out: expected a plain name (no '/', not starting with '.'), found {name:?}");
     }
+    // The group's own metadata lives beside the results.
+    if name.eq_ignore_ascii_case("zarr.json") {
+        bail!("{flag}out: {name:?} is the name of the group's metadata; choose another name");
+    }
     Ok(())
 }
 
@@ -203,58 +208,6 @@ fn note(s: &str) {
     eprintln!("note: {s}");
 }
 
-/// The lock of one result name: one job at a time writes it (a second one
-/// would take the first one's work in progress for an interrupted run's
-/// leftovers). Removed when dropped; a killed job's lock names a process
-/// that is gone, and the next job takes it over.
-struct NameLock(PathBuf);
-
-impl NameLock {
-    fn take(path: &Path, name: &str) -> Result<NameLock> {
-        use std::io::Write;
-        for _ in 0..2 {
-            match std::fs::OpenOptions::new()
-                .write(true)
-                .create_new(true)
-                .open(path)
-            {
-                Ok(mut f) => {
-                    let _ = writeln!(f, "{}", std::process::id());
-                    return Ok(NameLock(path.to_path_buf()));
-                }
-                Err(e) if e.kind() == std::io::ErrorKind::AlreadyExists => {
-                    let pid = std::fs::read_to_string(path)
-                        .ok()
-                        .and_then(|t| t.trim().parse::<u32>().ok());
-                    let alive = pid.is_some_and(|p| Path::new(&format!("/proc/{p}")).exists());
-                    if alive {
-                        bail!(
-                            "{}: another job (pid {}) is writing {name}; wait for it to end or stop it",
-                            path.display(),
-                            pid.unwrap()
-                        );
-                    }
-                    note(&format!(
-                        "removing {} (left by an interrupted run)",
-                        path.display()
-                    ));
-                    let _ = std::fs::remove_file(path);
-                }
-                Err(e) => {
-                    return Err(e).with_context(|| format!("{}: cannot create", path.display()))
-                }
-            }
-        }
-        bail!("{}: cannot take the lock", path.display())
-    }
-}
-
-impl Drop for NameLock {
-    fn drop(&mut self) {
-        let _ = std::fs::remove_file(&self.0);
-    }
-}
-
 /// The `labels` group's list of label images.
 fn labels_list(dir: &Path) -> Result<(Value, Vec<String>)> {
     let f = dir.join("zarr.json");
@@ -291,6 +244,25 @@ fn labels_list(dir: &Path) -> Result<(Value, Vec<String>)> {
         ),
     };
     Ok((j, list))
+}
+
+/// Add `name` to the `labels` group's list in `dir`: read anew and written
+/// under the group's lock, so that jobs publishing other names at the same
+/// time keep each other's entries.
+fn add_label(dir: &Path, name: &str) -> Result<()> {
+    let _lock = PidLock::wait(
+        &dir.join(".zarr.json.lock"),
+        "updating the list of label images",
+        std::time::Duration::from_secs(60),
+    )?;
+    let (mut j, mut list) = labels_list(dir)?;
+    if !list.iter().any(|n| n == name) {
+        list.push(name.to_string());
+        j["attributes"]["ome"]["version"] = json!("0.5");
+        j["attributes"]["ome"]["labels"] = json!(list);
+        write_json(&dir.join("zarr.json"), &j)?;
+    }
+    Ok(())
 }
 
 /// The least `--memory` a job takes whose filters hold `filters` bytes
@@ -461,13 +433,13 @@ pub fn run(
     let made_dir = !paths.dir.exists();
     std::fs::create_dir_all(&paths.dir)
         .with_context(|| format!("{}: cannot create", paths.dir.display()))?;
-    let _lock = match NameLock::take(&paths.lock, &c.out) {
+    let _lock = match PidLock::take(&paths.lock, &format!("writing {}", c.out)) {
         Ok(l) => l,
         Err(e) => {
             if made_dir {
                 let _ = std::fs::remove_dir(&paths.dir);
             }
-            return Err(e);
+            return Err(e.into());
         }
     };
     let leave = |e: anyhow::Error| -> anyhow::Error {
@@ -597,13 +569,8 @@ pub fn run(
         std::fs::rename(&paths.staged, &paths.fin)
             .with_context(|| format!("{}: cannot publish", paths.fin.display()))?;
     }
-    if let Some((mut j, mut list)) = listed {
-        if !list.contains(&paths.name) {
-            list.push(paths.name.clone());
-            j["attributes"]["ome"]["version"] = json!("0.5");
-            j["attributes"]["ome"]["labels"] = json!(list);
-            write_json(&paths.dir.join("zarr.json"), &j)?;
-        }
+    if listed.is_some() {
+        add_label(&paths.dir, &paths.name)?;
     } else {
         let g = paths.dir.join("zarr.json");
         if !g.exists() {

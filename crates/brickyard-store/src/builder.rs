@@ -616,6 +616,7 @@ pub fn convert_team(
         .or(meta.unit.clone())
         .and_then(|u| omezarr::normalize_unit(&u));
     let plan = MemoryPlan::of(&meta, opts);
+    check_geometry(&plan.levels, &meta, opts, output)?;
     let budget = opts.memory.saturating_sub(plan.fixed);
     let planned = plan.passes(opts, budget);
     let MemoryPlan {
@@ -673,8 +674,16 @@ pub fn convert_team(
 
     // Prepare the partial output next to the final one.
     let partial = partial_path(output);
+    // One writer of `output` at a time: a second one would take the
+    // first's partial output for a stale one and remove it.
+    let mut _lock = None;
     let prepared = (|| -> Result<()> {
         if root_rank {
+            _lock = Some(crate::lock::PidLock::take(
+                &lock_path(output),
+                &format!("writing {}", output.display()),
+            )?);
+            check_old(output)?;
             if partial.exists() {
                 std::fs::remove_dir_all(&partial).at(&partial)?;
             }
@@ -1017,10 +1026,7 @@ fn finish_store(
     // Swap into place: the old output (if any) is removed only after the new
     // one is complete.
     if output.exists() {
-        let old = output.with_file_name(format!(
-            "{}.old",
-            output.file_name().unwrap().to_string_lossy()
-        ));
+        let old = old_path(output);
         std::fs::rename(output, &old).at(output)?;
         std::fs::rename(partial, output).at(output)?;
         std::fs::remove_dir_all(&old).at(&old)?;
@@ -1039,6 +1045,16 @@ pub fn check_parent(output: &Path) -> Result<()> {
         return Err(StoreError::Refused {
             path: output.into(),
             msg: "cannot write there: outputs are local paths (remote stores are read-only)".into(),
+        });
+    }
+    // The output is made under its own name (and swapped into place by
+    // renames): `.`, `..` or `/` name no new entry.
+    if output.file_name().is_none() {
+        return Err(StoreError::Refused {
+            path: output.into(),
+            msg: "expected a path that names the output to create (such as out.zarr), \
+                  not a folder like `.` or `..`"
+                .into(),
         });
     }
     let Some(parent) = output.parent().filter(|p| !p.as_os_str().is_empty()) else {
@@ -1061,6 +1077,65 @@ pub fn check_parent(output: &Path) -> Result<()> {
     })
 }
 
+/// Refuse voxel spacings and origins that do not stay finite numbers at
+/// every level: OME-Zarr's `scale` and `translation` hold numbers only.
+/// The error names where they came from: the options or the input.
+fn check_geometry(
+    levels: &[LevelPlan],
+    meta: &SourceMeta,
+    opts: &ConvertOptions,
+    output: &Path,
+) -> Result<()> {
+    let (spacing_at, spacing_fix): (&Path, &str) = if opts.spacing.is_some() {
+        (output, "choose smaller ones")
+    } else {
+        (&meta.path, "pass --spacing to set others")
+    };
+    let (origin_at, origin_fix): (&Path, &str) = if opts.origin.is_some() {
+        (output, "expected finite numbers")
+    } else {
+        (&meta.path, "pass --origin to set another")
+    };
+    let xyz = |v: [f64; 3]| [v[2], v[1], v[0]];
+    if let Some(o) = opts.origin.or(meta.origin) {
+        if o.iter().any(|v| !v.is_finite()) {
+            return Err(StoreError::invalid(
+                origin_at,
+                "origin",
+                format!("{:?} (x, y, z) is not finite; {origin_fix}", xyz(o)),
+            ));
+        }
+    }
+    for (n, l) in levels.iter().enumerate() {
+        if l.scale.iter().any(|v| !v.is_finite()) {
+            return Err(StoreError::invalid(
+                spacing_at,
+                "spacing",
+                format!(
+                    "{:?} (x, y, z) is too large: level {n}'s voxel spacing {:?} is not a finite \
+                     number; {spacing_fix}",
+                    xyz(levels[0].scale),
+                    xyz(l.scale)
+                ),
+            ));
+        }
+        if l.translation.iter().any(|v| !v.is_finite()) {
+            return Err(StoreError::invalid(
+                origin_at,
+                "origin",
+                format!(
+                    "level {n}'s origin {:?} (x, y, z) is not a finite number (origin {:?}, \
+                     spacing {:?})",
+                    xyz(l.translation),
+                    xyz(levels[0].translation),
+                    xyz(levels[0].scale)
+                ),
+            ));
+        }
+    }
+    Ok(())
+}
+
 /// Whether `--overwrite` may replace `path`: an empty directory or a
 /// Zarr store (v3 `zarr.json`, v2 `.zgroup` or `.zarray` at its top), never
 /// a file or a folder of other things.
@@ -1079,13 +1154,54 @@ pub fn replaceable(path: &Path) -> bool {
 
 /// Where an unfinished conversion of `output` is written.
 pub fn partial_path(output: &Path) -> PathBuf {
+    beside(output, "partial")
+}
+
+/// Where a replaced store stays while its replacement is swapped in.
+pub fn old_path(output: &Path) -> PathBuf {
+    beside(output, "old")
+}
+
+/// The lock that keeps `output` to one writer at a time.
+pub fn lock_path(output: &Path) -> PathBuf {
+    beside(output, "lock")
+}
+
+/// `output`'s name with `.ext` appended, in its folder.
+fn beside(output: &Path, ext: &str) -> PathBuf {
     output.with_file_name(format!(
-        "{}.partial",
+        "{}.{ext}",
         output
             .file_name()
             .map(|s| s.to_string_lossy().into_owned())
             .unwrap_or_default()
     ))
+}
+
+/// Refuse to start when `OUTPUT.old` is in the way: the swap at the end
+/// moves the old store there. One is left when a run is killed during its
+/// swap: beside the new store (the old one half removed), or instead of
+/// it (the old store whole: it is all there is of `output`).
+pub fn check_old(output: &Path) -> Result<()> {
+    let old = old_path(output);
+    if std::fs::symlink_metadata(&old).is_err() {
+        return Ok(());
+    }
+    let msg = if output.exists() {
+        format!(
+            "is in the way of replacing {}: left by a run stopped while it swapped in a new \
+             store? remove it (or rename it) and run again",
+            output.display()
+        )
+    } else {
+        format!(
+            "exists while {} does not: a run was stopped while it replaced that store, and this \
+             is the store it replaced; rename it back to {} (or remove it) and run again",
+            output.display(),
+            output.display()
+        )
+    };
+    Err(StoreError::Refused { path: old, msg })
 }
 
 struct Ctx<'a> {

@@ -178,13 +178,12 @@ pub fn write_raw(src: &Procedural, path: &Path, progress: &dyn crate::Progress) 
     let m = src.meta();
     let [dz, dy, dx] = m.dims;
     let es = m.dtype.size() as u64;
-    let tmp = path.with_file_name(format!(
-        "{}.partial",
-        path.file_name()
-            .map(|s| s.to_string_lossy().into_owned())
-            .unwrap_or_default()
-    ));
     crate::builder::check_parent(path)?;
+    let tmp = crate::builder::partial_path(path);
+    let _lock = crate::lock::PidLock::take(
+        &crate::builder::lock_path(path),
+        &format!("writing {}", path.display()),
+    )?;
     let mut f = std::io::BufWriter::new(std::fs::File::create(&tmp).at(&tmp)?);
     progress.start(dz * dy * dx * es);
     // Slabs of about 64 MiB.

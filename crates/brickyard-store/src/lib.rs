@@ -8,6 +8,7 @@ pub mod error;
 pub mod generate;
 pub mod import;
 pub mod info;
+pub mod lock;
 pub mod omezarr;
 pub mod shard;
 pub mod source;

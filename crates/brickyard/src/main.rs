@@ -291,6 +291,17 @@ fn convert_options(p: &PyramidArgs) -> Result<ConvertOptions> {
             );
         }
     }
+    let origin = xyz(p
+        .origin
+        .as_deref()
+        .map(|s| parse_triple(s, "origin"))
+        .transpose()?);
+    if origin.is_some_and(|o| o.iter().any(|v| !v.is_finite())) {
+        bail!(
+            "origin: expected finite numbers, found {:?}",
+            p.origin.as_deref().unwrap_or("")
+        );
+    }
     Ok(ConvertOptions {
         brick: [p.brick; 3],
         shard: [p.shard; 3],
@@ -299,11 +310,7 @@ fn convert_options(p: &PyramidArgs) -> Result<ConvertOptions> {
         memory: parse_bytes(&p.memory).context("--memory")?,
         overwrite: p.overwrite,
         spacing,
-        origin: xyz(p
-            .origin
-            .as_deref()
-            .map(|s| parse_triple(s, "origin"))
-            .transpose()?),
+        origin,
         unit: p.unit.clone(),
         columns: p.columns.max(1),
     })
@@ -560,11 +567,15 @@ fn run(cmd: Cmd, cluster: Option<&dist::Cluster>) -> Result<()> {
             if s.ends_with(".zarr") || s.ends_with(".zarr/") {
                 run_convert(&src, &output, &pyramid, cluster)
             } else {
-                if output.exists() && !pyramid.overwrite {
-                    bail!(
-                        "{}: output exists; pass --overwrite to replace it",
-                        output.display()
-                    );
+                // The raw file and its sidecar: neither is replaced unasked.
+                let sidecar = RawOptions::sidecar_path(&output);
+                for p in [&output, &sidecar] {
+                    if p.exists() && !pyramid.overwrite {
+                        bail!("{}: exists; pass --overwrite to replace it", p.display());
+                    }
+                    if p.is_dir() {
+                        bail!("{}: is a folder; expected a file to write", p.display());
+                    }
                 }
                 let bar = progress::Bar::new(pyramid.quiet, "generating");
                 brickyard_store::generate::write_raw(&src, &output, &bar)?;

@@ -844,6 +844,148 @@ fn overwrite_replaces_stores_only() {
     assert!(!d.path().join("u.zarr").exists() && !d.path().join("z.zarr").exists());
 }
 
+/// What a user can get wrong about where a store goes: `.` as the
+/// output, spacings or origins that are no numbers at the coarse levels,
+/// a second writer of the same output, a leftover `OUTPUT.old`, a
+/// generated raw file's sidecar. Each is refused before any work, with the
+/// path and field named, and nothing is left behind.
+#[test]
+fn outputs_and_geometry_a_store_cannot_have_are_refused() {
+    let d = tempfile::tempdir().unwrap();
+    let raw = d.path().join("v.raw");
+    std::fs::write(
+        &raw,
+        (0..16u32 * 16 * 16)
+            .map(|i| (i % 251) as u8)
+            .collect::<Vec<_>>(),
+    )
+    .unwrap();
+    let conv = |dir: &Path, out: &str, extra: &[&str]| {
+        let mut a = vec![
+            "convert",
+            s(&raw),
+            out,
+            "--dims",
+            "16x16x16",
+            "--dtype",
+            "u8",
+        ];
+        a.extend_from_slice(extra);
+        a.push("--quiet");
+        bin().current_dir(dir).args(&a).output().unwrap()
+    };
+    let listing = |dir: &Path| {
+        let mut v: Vec<String> = std::fs::read_dir(dir)
+            .unwrap()
+            .map(|e| e.unwrap().file_name().to_string_lossy().into_owned())
+            .collect();
+        v.sort();
+        v
+    };
+    // `.` and `..` name no new folder (this used to panic after the work).
+    let empty = d.path().join("empty");
+    std::fs::create_dir(&empty).unwrap();
+    for out in [".", "..", "./"] {
+        fails_with(&conv(&empty, out, &["--overwrite"]), &["names the output"]);
+        let o = bin()
+            .current_dir(&empty)
+            .args([
+                "generate",
+                "mandelbulb",
+                out,
+                "--size",
+                "8",
+                "--overwrite",
+                "--quiet",
+            ])
+            .output()
+            .unwrap();
+        fails_with(&o, &[]);
+    }
+    assert!(listing(&empty).is_empty(), "{:?}", listing(&empty));
+    assert_eq!(listing(d.path()), ["empty", "v.raw"]);
+    // Spacings whose coarse levels overflow (this used to plan levels
+    // until memory ran out), tiny ones (fine), origins that are no numbers.
+    let out = d.path().join("g.zarr");
+    fails_with(
+        &conv(
+            d.path(),
+            s(&out),
+            &["--spacing", "1e308,1e308,1e308", "--brick", "4"],
+        ),
+        &["spacing", "too large", "not a finite number"],
+    );
+    for o in ["nan,1,1", "1e400,1,1", "1,inf,1"] {
+        fails_with(
+            &conv(d.path(), s(&out), &["--origin", o]),
+            &["origin", "finite"],
+        );
+    }
+    assert!(!out.exists());
+    let o = conv(
+        d.path(),
+        s(&out),
+        &["--spacing", "5e-324,5e-324,5e-324", "--brick", "4"],
+    );
+    assert!(o.status.success(), "{}", stderr(&o));
+    let info = run(&["info", s(&out), "--json"]);
+    assert!(info.status.success(), "{}", stderr(&info));
+    // A second writer of the same output: the lock names the first one
+    // (here the test itself, a live process), and nothing is touched.
+    let lock = d.path().join("g.zarr.lock");
+    std::fs::write(&lock, format!("{}\n", std::process::id())).unwrap();
+    fails_with(
+        &conv(d.path(), s(&out), &["--overwrite"]),
+        &[
+            "g.zarr.lock",
+            &format!("pid {}", std::process::id()),
+            "writing",
+        ],
+    );
+    assert!(!d.path().join("g.zarr.partial").exists());
+    // A lock whose process is gone is taken over, and removed at the end.
+    std::fs::write(&lock, "4000000000\n").unwrap();
+    let o = conv(d.path(), s(&out), &["--overwrite"]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    assert!(
+        stderr(&o).contains("process that is gone"),
+        "{}",
+        stderr(&o)
+    );
+    assert!(!lock.exists());
+    // A leftover `.old` beside the store: refused up front, naming it.
+    let old = d.path().join("g.zarr.old");
+    std::fs::create_dir(&old).unwrap();
+    std::fs::write(old.join("f"), "x").unwrap();
+    fails_with(
+        &conv(d.path(), s(&out), &["--overwrite"]),
+        &["g.zarr.old", "in the way"],
+    );
+    // ... or instead of it: the store a stopped swap moved aside.
+    std::fs::remove_dir_all(&old).unwrap();
+    std::fs::rename(&out, &old).unwrap();
+    fails_with(
+        &conv(d.path(), s(&out), &[]),
+        &["g.zarr.old", "rename it back"],
+    );
+    assert!(!out.exists() && old.join("zarr.json").is_file());
+    // `generate` keeps an existing sidecar unless told to replace it.
+    let side = d.path().join("m.raw.json");
+    std::fs::write(&side, "mine").unwrap();
+    let gen = |extra: &[&str]| {
+        let m = d.path().join("m.raw");
+        let mut a = vec!["generate", "mandelbulb", s(&m), "--size", "8", "--quiet"];
+        a.extend_from_slice(extra);
+        run(&a)
+    };
+    fails_with(&gen(&[]), &["m.raw.json", "--overwrite"]);
+    assert_eq!(std::fs::read_to_string(&side).unwrap(), "mine");
+    assert!(!d.path().join("m.raw").exists());
+    let o = gen(&["--overwrite"]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    assert!(std::fs::read_to_string(&side).unwrap().contains("\"dims\""));
+}
+
 /// `BRICKYARD_READ_AHEAD` sets how far the loader hints ahead: the image
 /// is the same with hints off, many or the default; a value that is not a
 /// number of bricks from 0 to 4096 is an error naming the variable.

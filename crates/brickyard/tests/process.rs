@@ -331,7 +331,12 @@ fn a_second_job_on_the_same_name_is_refused_while_the_first_runs() {
     if !first_done {
         assert!(!o.status.success(), "a second job ran beside the first");
         let e = String::from_utf8_lossy(&o.stderr);
-        assert!(e.contains("another job") && !e.contains("panicked"), "{e}");
+        assert!(
+            e.contains("another process")
+                && e.contains("is writing cells")
+                && !e.contains("panicked"),
+            "{e}"
+        );
     }
     assert!(first.wait().unwrap().success(), "the first job failed");
     assert!(!lock.exists(), "the lock outlived its job");
@@ -348,8 +353,62 @@ fn a_second_job_on_the_same_name_is_refused_while_the_first_runs() {
         "--overwrite",
         "--quiet",
     ]));
-    assert!(String::from_utf8_lossy(&o.stderr).contains("interrupted run"));
+    assert!(String::from_utf8_lossy(&o.stderr).contains("the lock of a process that is gone"));
     assert!(!lock.exists());
+}
+
+/// Jobs that publish different label images into the same store at the
+/// same time each add their name to the labels group's list: none is lost
+/// (the list was read at the start and written at the end, so the last
+/// job to finish kept only its own name).
+#[test]
+fn concurrent_jobs_keep_every_label_image_listed() {
+    let d = tempfile::tempdir().unwrap();
+    let store = make_store(d.path(), "24");
+    let names = ["r1", "r2", "r3", "r4"];
+    let jobs: Vec<_> = names
+        .iter()
+        .enumerate()
+        .map(|(i, n)| {
+            bin()
+                .args([
+                    "process",
+                    s(&store),
+                    &format!("threshold({})", 10000 * (i + 1)),
+                    "--out",
+                    n,
+                    "--quiet",
+                ])
+                .stderr(std::process::Stdio::piped())
+                .spawn()
+                .unwrap()
+        })
+        .collect();
+    for j in jobs {
+        let o = j.wait_with_output().unwrap();
+        assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    }
+    let j: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(store.join("labels/zarr.json")).unwrap())
+            .unwrap();
+    let mut listed: Vec<&str> = j["attributes"]["ome"]["labels"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|v| v.as_str().unwrap())
+        .collect();
+    listed.sort();
+    assert_eq!(listed, names);
+    for n in names {
+        assert!(store.join("labels").join(n).join("zarr.json").is_file());
+    }
+    // No lock or temporary file stays.
+    let hidden: Vec<_> = std::fs::read_dir(store.join("labels"))
+        .unwrap()
+        .map(|e| e.unwrap().file_name().to_string_lossy().into_owned())
+        .filter(|n| n.starts_with('.'))
+        .collect();
+    assert!(hidden.is_empty(), "{hidden:?}");
 }
 
 #[test]
@@ -370,6 +429,16 @@ fn bad_process_inputs_give_clear_errors() {
             "connectivity 6 or 26",
         ),
         (vec!["sobel", "--out", "a/b"], "--out"),
+        // The group's metadata, not a result name (this once replaced
+        // derived/zarr.json by a folder).
+        (
+            vec!["sobel", "--out", "zarr.json", "--overwrite"],
+            "group's metadata",
+        ),
+        (
+            vec!["threshold(1)", "--out", "ZARR.JSON"],
+            "group's metadata",
+        ),
         (vec!["sobel", "--out", "x", "--level", "7"], "level 7"),
         (vec!["sobel", "--out", "x", "--channel", "2"], "channel"),
         (

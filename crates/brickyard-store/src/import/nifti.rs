@@ -241,6 +241,15 @@ impl NiftiSource {
                 Err(e) => return Err(self.gz_error(e, cur.pos)),
             }
         }
+        // The last voxel read: decompress to the end of the stream, where
+        // gzip checks its CRC and length (a flipped bit in the data is
+        // caught only there).
+        let end = self.data_offset + self.stored_channel_bytes() * self.meta.channels as u64;
+        if cur.pos == end {
+            let pos = cur.pos;
+            cur.drain(&mut pool.scratch)
+                .map_err(|e| self.gz_error(e, pos))?;
+        }
         pool.put(cur);
         Ok(())
     }
@@ -986,6 +995,13 @@ impl GzCursor {
             }
         }
         Ok(true)
+    }
+
+    /// Decompress to the end of the stream (the gzip trailer's checks run
+    /// there), whatever follows the voxels.
+    fn drain(&mut self, scratch: &mut [u8]) -> io::Result<()> {
+        while self.read_fully(scratch)? == scratch.len() {}
+        Ok(())
     }
 
     /// Fill `buf`; returns fewer bytes than asked only at end of stream.
@@ -1890,6 +1906,45 @@ mod tests {
         }
         let p = write(dir.path(), "corrupt.nii.gz", &gz);
         assert_err(open(&p), "corrupt.nii.gz", "gzip");
+    }
+
+    /// A gzip stream whose bytes decompress but whose CRC (or length) in
+    /// the trailer does not match: an error once the last voxel is read,
+    /// not a volume with a flipped voxel.
+    #[test]
+    fn gzip_checksum_is_checked() {
+        let dir = tempfile::tempdir().unwrap();
+        let mut file = header(&Synth::default());
+        file.extend(i16_bytes(&ramp_i16(60), false));
+        let read_all = |p: &Path| {
+            open(p).and_then(|src| {
+                let mut out = vec![0u8; src.meta().channel_bytes() as usize];
+                src.read_region(0, 0..3, 0..4, 0..5, &mut out).map(|_| out)
+            })
+        };
+        let gz = gzip(&file);
+        let good = read_all(&write(dir.path(), "good.nii.gz", &gz)).unwrap();
+        assert_eq!(good, i16_bytes(&ramp_i16(60), false));
+        // The trailer's CRC, then its length, off by one bit.
+        for (name, at) in [("crc.nii.gz", gz.len() - 8), ("len.nii.gz", gz.len() - 4)] {
+            let mut bad = gz.clone();
+            bad[at] ^= 1;
+            let msg = assert_err(read_all(&write(dir.path(), name, &bad)), name, "gzip");
+            assert!(msg.contains("checksum"), "{msg}");
+        }
+        // A voxel flipped in a stored (uncompressed) deflate block: it
+        // decompresses, and only the CRC tells.
+        let mut e = GzEncoder::new(Vec::new(), flate2::Compression::none());
+        e.write_all(&file).unwrap();
+        let mut stored = e.finish().unwrap();
+        let voxel = stored.len() - 8 - 10;
+        stored[voxel] ^= 0x40;
+        let msg = assert_err(
+            read_all(&write(dir.path(), "flip.nii.gz", &stored)),
+            "flip.nii.gz",
+            "gzip",
+        );
+        assert!(msg.contains("checksum"), "{msg}");
     }
 
     #[test]

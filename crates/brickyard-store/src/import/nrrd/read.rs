@@ -525,8 +525,35 @@ impl NrrdSource {
             self.gz_fill(cur, &mut buf[done..done + n])?;
             done += n;
             off += n as u64;
+            if cur.pos == self.gz_skip + self.per_file {
+                self.gz_drain(cur)?;
+            }
         }
         Ok(())
+    }
+
+    /// After a file's last payload byte: decompress to the end of its
+    /// stream, where gzip checks its CRC and length (a flipped bit in the
+    /// data is caught only there).
+    fn gz_drain(&self, cur: &mut GzCursor) -> Result<()> {
+        let mut scratch = vec![0u8; GZ_BUF_BYTES];
+        loop {
+            match cur.dec.read(&mut scratch) {
+                Ok(0) => return Ok(()),
+                Ok(_) => {}
+                Err(e) if e.kind() == ErrorKind::Interrupted => {}
+                Err(e) => {
+                    return Err(StoreError::invalid(
+                        &self.meta.path,
+                        "data",
+                        format!(
+                            "gzip stream{} fails its check at the end: {e}",
+                            self.where_(cur.file)
+                        ),
+                    ))
+                }
+            }
+        }
     }
 
     fn gz_open(&self, k: usize) -> Result<GzCursor> {

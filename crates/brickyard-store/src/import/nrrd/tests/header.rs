@@ -182,6 +182,30 @@ fn bad_inputs_name_file_and_field() {
         &[gzh.as_bytes(), &cut_gz[..cut_gz.len() / 2]],
     );
     assert_error(&p, "cutgz.nrrd", "data");
+    // Bytes that decompress but do not match the trailer's CRC or length:
+    // the CRC's first byte, the length's, and a voxel inside a stored
+    // (uncompressed) deflate block.
+    let good = gz(&v);
+    let mut e = GzEncoder::new(Vec::new(), Compression::none());
+    e.write_all(&v).unwrap();
+    let mut flipped = e.finish().unwrap();
+    let at = flipped.len() - 8 - 3;
+    flipped[at] ^= 0x10;
+    for (name, mut bytes, at) in [
+        ("crc.nrrd", good.clone(), Some(good.len() - 8)),
+        ("len.nrrd", good.clone(), Some(good.len() - 4)),
+        ("flip.nrrd", flipped, None),
+    ] {
+        if let Some(at) = at {
+            bytes[at] ^= 1;
+        }
+        let p = write(d, name, &[gzh.as_bytes(), &bytes]);
+        let e = assert_error(&p, name, "data");
+        assert!(
+            e.contains("fails its check") && e.contains("checksum"),
+            "{e}"
+        );
+    }
 
     let p = write(
         d,

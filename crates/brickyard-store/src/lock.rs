@@ -1,0 +1,253 @@
+//! Locks between processes that write the same output: a file beside it
+//! holding the writer's process id.
+//!
+//! The file appears with its content in one step (written under a
+//! temporary name, then hard-linked into place, which fails when the lock
+//! exists), so a reader never sees an empty lock. A lock whose process is
+//! gone (a killed writer) is taken over; the file is removed when the
+//! [`PidLock`] is dropped.
+
+use crate::error::{IoContext, Result, StoreError};
+use std::io::ErrorKind;
+use std::path::{Path, PathBuf};
+use std::time::{Duration, Instant};
+
+/// A lock held by this process; released when dropped.
+#[derive(Debug)]
+pub struct PidLock(PathBuf);
+
+/// Who holds an existing lock.
+enum Holder {
+    /// A live process (its id).
+    Alive(u32),
+    /// A process that is gone, or a file that names none.
+    Gone,
+}
+
+impl PidLock {
+    /// Take the lock at `path`, or fail naming the process that holds it.
+    /// `what`: what the lock keeps to one writer, for the message
+    /// ("another process (pid N) is {what}").
+    pub fn take(path: &Path, what: &str) -> Result<PidLock> {
+        Self::acquire(path, what, None)
+    }
+
+    /// Take the lock at `path`, waiting up to `patience` while a live
+    /// process holds it (for short critical sections, such as updating a
+    /// shared list).
+    pub fn wait(path: &Path, what: &str, patience: Duration) -> Result<PidLock> {
+        Self::acquire(path, what, Some(Instant::now() + patience))
+    }
+
+    /// The lock file's path.
+    pub fn path(&self) -> &Path {
+        &self.0
+    }
+
+    fn acquire(path: &Path, what: &str, until: Option<Instant>) -> Result<PidLock> {
+        // Locks of processes that are gone, removed so far.
+        let mut removed = 0;
+        loop {
+            if create_with_pid(path)? {
+                return Ok(PidLock(path.to_path_buf()));
+            }
+            match holder(path) {
+                // Released between the attempt and the look: try again.
+                None => {}
+                Some(Holder::Alive(pid)) => match until {
+                    Some(t) if Instant::now() < t => {
+                        std::thread::sleep(Duration::from_millis(20));
+                    }
+                    _ => {
+                        let who = match pid {
+                            0 => "another process".to_string(),
+                            p => format!("another process (pid {p})"),
+                        };
+                        return Err(StoreError::Refused {
+                            path: path.into(),
+                            msg: format!("{who} is {what}; wait for it to end or stop it"),
+                        });
+                    }
+                },
+                Some(Holder::Gone) => {
+                    if removed == 100 {
+                        return Err(StoreError::Refused {
+                            path: path.into(),
+                            msg: format!(
+                                "cannot take the lock for {what}: it names no running process, \
+                                 yet it keeps coming back when removed"
+                            ),
+                        });
+                    }
+                    eprintln!(
+                        "note: removing {} (the lock of a process that is gone)",
+                        path.display()
+                    );
+                    match std::fs::remove_file(path) {
+                        Err(e) if e.kind() != ErrorKind::NotFound => return Err(e).at(path),
+                        _ => {}
+                    }
+                    removed += 1;
+                }
+            }
+        }
+    }
+}
+
+impl Drop for PidLock {
+    fn drop(&mut self) {
+        let _ = std::fs::remove_file(&self.0);
+    }
+}
+
+/// Create `path` holding this process's id; `Ok(false)` when it exists.
+fn create_with_pid(path: &Path) -> Result<bool> {
+    use std::sync::atomic::{AtomicU64, Ordering};
+    static SERIAL: AtomicU64 = AtomicU64::new(0);
+    let pid = std::process::id();
+    let name = path
+        .file_name()
+        .map(|n| n.to_string_lossy().into_owned())
+        .unwrap_or_default();
+    let tmp = path.with_file_name(format!(
+        ".{name}.{pid}.{}.tmp",
+        SERIAL.fetch_add(1, Ordering::Relaxed)
+    ));
+    std::fs::write(&tmp, format!("{pid}\n")).at(&tmp)?;
+    let linked = std::fs::hard_link(&tmp, path);
+    let _ = std::fs::remove_file(&tmp);
+    match linked {
+        Ok(()) => Ok(true),
+        Err(e) if e.kind() == ErrorKind::AlreadyExists => Ok(false),
+        // A file system without hard links: create it in place (a reader
+        // may then see it empty for a moment, which counts as held).
+        Err(_) => match std::fs::OpenOptions::new()
+            .write(true)
+            .create_new(true)
+            .open(path)
+        {
+            Ok(mut f) => {
+                use std::io::Write;
+                writeln!(f, "{pid}").at(path)?;
+                Ok(true)
+            }
+            Err(e) if e.kind() == ErrorKind::AlreadyExists => Ok(false),
+            Err(e) => Err(e).at(path),
+        },
+    }
+}
+
+/// Who holds the lock at `path`; `None` when it is gone.
+fn holder(path: &Path) -> Option<Holder> {
+    let text = match std::fs::read_to_string(path) {
+        Ok(t) => t,
+        Err(e) if e.kind() == ErrorKind::NotFound => return None,
+        // Unreadable: held by someone this process cannot see into.
+        Err(_) => return Some(Holder::Alive(0)),
+    };
+    let Ok(pid) = text.trim().parse::<u32>() else {
+        // Empty: being written in place (no hard links), unless old.
+        let young = std::fs::metadata(path)
+            .and_then(|m| m.modified())
+            .ok()
+            .and_then(|t| t.elapsed().ok())
+            .is_some_and(|age| age < Duration::from_secs(5));
+        return Some(if young && text.is_empty() {
+            Holder::Alive(0)
+        } else {
+            Holder::Gone
+        });
+    };
+    Some(if alive(pid) {
+        Holder::Alive(pid)
+    } else {
+        Holder::Gone
+    })
+}
+
+/// Whether process `pid` runs (without a process table to look at, every
+/// process counts as running: a lock is never taken from a live writer).
+fn alive(pid: u32) -> bool {
+    if pid == std::process::id() {
+        return true;
+    }
+    if !Path::new("/proc/self").exists() {
+        return true;
+    }
+    Path::new(&format!("/proc/{pid}")).exists()
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn dir(name: &str) -> PathBuf {
+        let d = std::env::temp_dir().join(format!("brickyard-lock-{name}-{}", std::process::id()));
+        let _ = std::fs::remove_dir_all(&d);
+        std::fs::create_dir_all(&d).unwrap();
+        d
+    }
+
+    #[test]
+    fn one_holder_at_a_time_and_released_on_drop() {
+        let d = dir("one");
+        let p = d.join("x.lock");
+        let a = PidLock::take(&p, "writing x").unwrap();
+        assert_eq!(
+            std::fs::read_to_string(&p).unwrap().trim(),
+            std::process::id().to_string()
+        );
+        let e = PidLock::take(&p, "writing x").unwrap_err().to_string();
+        assert!(
+            e.contains("x.lock") && e.contains(&format!("pid {}", std::process::id())),
+            "{e}"
+        );
+        assert!(e.contains("is writing x"), "{e}");
+        drop(a);
+        assert!(!p.exists());
+        let _b = PidLock::take(&p, "writing x").unwrap();
+        // No temporary files stay beside it.
+        assert_eq!(std::fs::read_dir(&d).unwrap().count(), 1);
+        drop(_b);
+        std::fs::remove_dir_all(&d).unwrap();
+    }
+
+    #[test]
+    fn a_gone_process_lock_is_taken_over() {
+        let d = dir("gone");
+        let p = d.join("x.lock");
+        // A pid above the kernel's largest (4194304) names no process.
+        std::fs::write(&p, "4294967\n").unwrap();
+        let l = PidLock::take(&p, "writing x").unwrap();
+        assert_eq!(
+            std::fs::read_to_string(l.path()).unwrap().trim(),
+            std::process::id().to_string()
+        );
+        drop(l);
+        // Garbage that names no process is taken over too.
+        std::fs::write(&p, "not a pid\n").unwrap();
+        drop(PidLock::take(&p, "writing x").unwrap());
+        std::fs::remove_dir_all(&d).unwrap();
+    }
+
+    #[test]
+    fn waiting_takes_it_when_released() {
+        let d = dir("wait");
+        let p = d.join("list.lock");
+        let held = PidLock::take(&p, "updating the list").unwrap();
+        let p2 = p.clone();
+        let t = std::thread::spawn(move || {
+            PidLock::wait(&p2, "updating the list", Duration::from_secs(30)).map(|_| ())
+        });
+        std::thread::sleep(Duration::from_millis(100));
+        assert!(!t.is_finished(), "waited while the lock was held");
+        drop(held);
+        t.join().unwrap().unwrap();
+        // A short patience gives up with the holder named.
+        let _held = PidLock::take(&p, "updating the list").unwrap();
+        let e = PidLock::wait(&p, "updating the list", Duration::from_millis(50)).unwrap_err();
+        assert!(e.to_string().contains("updating the list"), "{e}");
+        drop(_held);
+        std::fs::remove_dir_all(&d).unwrap();
+    }
+}
