@@ -28,6 +28,11 @@ use serde::{Deserialize, Serialize};
 use serde_json::Value;
 use std::fmt;
 
+/// The largest coordinate a camera takes (world units; 1e15 µm is a
+/// thousand kilometres): squared distances stay far from overflowing, and a
+/// volume's size stays far above the rounding of positions around it.
+pub const MAX_COORD: f64 = 1e15;
+
 /// A 3-vector in world coordinates `[x, y, z]`.
 pub type Vec3 = [f64; 3];
 
@@ -521,6 +526,14 @@ impl Camera {
         for (name, v) in [("eye", self.eye), ("target", self.target), ("up", self.up)] {
             if v.iter().any(|x| !x.is_finite()) {
                 return err(name, format!("must be finite numbers, got {v:?}"));
+            }
+            // Beyond this, distances and their squares overflow (or lose
+            // every digit of a volume's size), and rays get no direction.
+            if v.iter().any(|x| x.abs() > MAX_COORD) {
+                return err(
+                    name,
+                    format!("must be within ±{MAX_COORD:e} (world units), got {v:?}"),
+                );
             }
         }
         match self.projection {
@@ -1107,6 +1120,12 @@ mod tests {
             (r#"{"projection": "perspective", "eye": [0, 0, 1], "target": [0, 0, 0]}"#.into(), "`projection`", "expected an object"),
             (r#"{"projection": {"type": "perspective", "fov_y_deg": 30}, "eye": [0, 0, 1],"#.into(), "", "invalid JSON"),
             ("[1, 2]".into(), "", "expected a JSON object"),
+            // Far apart: the distance overflowed to infinity, the tests of
+            // the direction compared NaN, and rays had none (renders hung).
+            (format!(r#"{{{p}, "eye": [1e308, 0, 0], "target": [-1e308, 0, 0]}}"#), "`eye`", "within ±1e15"),
+            (format!(r#"{{{p}, "eye": [1e154, 0, 0], "target": [0, 0, 0]}}"#), "`eye`", "within ±1e15"),
+            (format!(r#"{{{p}, "eye": [0, 0, 1], "target": [0, -2e15, 0]}}"#), "`target`", "within ±1e15"),
+            (format!(r#"{{{p}, "eye": [0, 0, 1], "target": [0, 0, 0], "up": [1e300, 0, 0]}}"#), "`up`", "within ±1e15"),
         ];
         for (json, field, msg) in cases {
             let e = Camera::from_json(&json).unwrap_err().to_string();

@@ -81,6 +81,17 @@ impl Gpu {
     /// ends list them: one process per device in a node (`n` = the MPI
     /// rank). With one adapter every `n` opens it (a device of its own).
     pub fn new_nth(choice: AdapterChoice, n: usize) -> Result<Gpu, GpuError> {
+        pollster::block_on(Self::open(Self::pick(choice, n)?))
+    }
+
+    /// The adapter [`Gpu::new_nth`] would open, without opening a device
+    /// on it (the driver is loaded, no device memory is taken): what a
+    /// caller needs to know before it budgets memory for one.
+    pub fn adapter_info(choice: AdapterChoice, n: usize) -> Result<wgpu::AdapterInfo, GpuError> {
+        Self::pick(choice, n).map(|a| a.get_info())
+    }
+
+    fn pick(choice: AdapterChoice, n: usize) -> Result<wgpu::Adapter, GpuError> {
         let instance =
             wgpu::Instance::new(wgpu::InstanceDescriptor::new_without_display_handle_from_env());
         let adapters = pollster::block_on(instance.enumerate_adapters(wgpu::Backends::PRIMARY));
@@ -122,8 +133,7 @@ impl Gpu {
             return Err(GpuError::NoAdapter { looked });
         }
         let count = preferred.len();
-        let adapter = preferred.swap_remove(n % count);
-        pollster::block_on(Self::open(adapter))
+        Ok(preferred.swap_remove(n % count))
     }
 
     /// Open a device on `adapter`: the WebGPU defaults, raised only where

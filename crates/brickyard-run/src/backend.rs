@@ -20,6 +20,7 @@ use brickyard_render::reference::RenderParams;
 use brickyard_render::savr::device::DeviceAccumulation;
 use brickyard_render::savr::Accumulation;
 use brickyard_render::Image;
+use brickyard_store::info::human_bytes;
 
 /// One frame, whoever drew it.
 pub struct Frame {
@@ -109,6 +110,115 @@ pub fn quietly<T>(f: impl FnOnce() -> T) -> T {
 pub enum Backend {
     Cpu,
     Gpu(Box<GpuBackend>),
+}
+
+/// What a device back end takes of the memory budget, decided before the
+/// budget is split (the driver lives in this process too).
+#[derive(Debug, Clone, PartialEq)]
+pub struct DevicePlan {
+    /// The back end to open: `--backend`, or `cpu` where `auto` finds no
+    /// hardware device or the budget leaves no room for one.
+    pub choice: String,
+    /// Bytes set aside for it: [`crate::memory::DEVICE_BYTES`] for a
+    /// device; for `auto` that found only a software one, what loading
+    /// its driver took.
+    pub bytes: u64,
+    /// A software adapter: its device memory is host memory, so the
+    /// device's copy of the pool counts too.
+    pub mirror_pool: bool,
+    /// What to tell the user of a choice made for them.
+    pub note: Option<String>,
+}
+
+impl DevicePlan {
+    /// Record the device's share in `split` (made with [`Self::bytes`] as
+    /// its extra): a software device's copy of the pool comes out of the
+    /// pool's share when the budget chose it (half each), or out of the
+    /// host cache's when `--pool` gave it (`pool_given`), or is refused.
+    pub fn take_from(
+        &self,
+        split: &mut crate::memory::Split,
+        pool_given: Option<u64>,
+    ) -> Result<()> {
+        split.device = self.bytes;
+        if !self.mirror_pool {
+            return Ok(());
+        }
+        let copy = match pool_given {
+            None => {
+                let half = split.pool / 2;
+                split.pool -= half;
+                half
+            }
+            Some(p) => {
+                if split.host >= p + (1 << 20) {
+                    split.host -= p;
+                } else if split.explicit {
+                    bail!(
+                        "memory: the device is a software one, whose memory is host memory: \
+                         its copy of the {} pool does not fit beside the host cache of {} in {}; \
+                         raise --memory, lower --pool or use --backend cpu",
+                        human_bytes(p),
+                        human_bytes(split.host),
+                        human_bytes(split.total)
+                    );
+                } else {
+                    split.total += p;
+                }
+                p
+            }
+        };
+        split.device += copy;
+        split.fixed += copy;
+        Ok(())
+    }
+}
+
+/// The [`DevicePlan`] for `--backend choice` on adapter `adapter` under
+/// `--memory` `memory` (`None`: the default budget).
+pub fn plan_device(choice: &str, adapter: usize, memory: Option<u64>) -> DevicePlan {
+    use crate::memory::{rss, DEVICE_BYTES, FIXED_BYTES};
+    let plan = |choice: &str, bytes, mirror_pool| DevicePlan {
+        choice: choice.into(),
+        bytes,
+        mirror_pool,
+        note: None,
+    };
+    let probe = || quietly(|| Gpu::adapter_info(AdapterChoice::Best, adapter));
+    match choice {
+        "auto" => {
+            // Room for a driver and at least 64 MiB of data besides.
+            if let Some(m) = memory.filter(|&m| m < FIXED_BYTES + DEVICE_BYTES + (64 << 20)) {
+                return DevicePlan {
+                    note: Some(format!(
+                        "note: --memory {} leaves no room for a device driver (about {}): \
+                         --backend auto takes the CPU",
+                        human_bytes(m),
+                        human_bytes(DEVICE_BYTES)
+                    )),
+                    ..plan("cpu", 0, false)
+                };
+            }
+            let before = rss();
+            match probe() {
+                Ok(i) if i.device_type != wgpu::DeviceType::Cpu => {
+                    plan("auto", DEVICE_BYTES, false)
+                }
+                // The driver looked at stays loaded: its share is what
+                // it took.
+                _ => {
+                    let took = before.zip(rss()).map_or(0, |(a, b)| b.saturating_sub(a));
+                    plan("cpu", took, false)
+                }
+            }
+        }
+        "gpu" => match probe() {
+            Ok(i) => plan("gpu", DEVICE_BYTES, i.device_type == wgpu::DeviceType::Cpu),
+            // Opening it says why it cannot be.
+            Err(_) => plan("gpu", 0, false),
+        },
+        c => plan(c, 0, false),
+    }
 }
 
 impl Backend {

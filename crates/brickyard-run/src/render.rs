@@ -824,7 +824,14 @@ fn run_with(
         "mip" => RenderMode::Mip,
         "slice" => {
             let origin = match &c.slice_origin {
-                Some(o) => parse_vec3(o, "slice-origin")?,
+                Some(o) => {
+                    let v = parse_vec3(o, "slice-origin")?;
+                    let max = brickyard_core::camera::MAX_COORD;
+                    if v.iter().any(|a| a.abs() > max) {
+                        bail!("slice-origin: expected coordinates within ±{max:e}, found {o:?}");
+                    }
+                    v
+                }
                 None => {
                     let z = c.slice_z.unwrap_or(0.5);
                     if !(0.0..=1.0).contains(&z) {
@@ -837,10 +844,11 @@ fn run_with(
                 Some(n) => parse_vec3(n, "slice-normal")?,
                 None => [0.0, 0.0, 1.0],
             };
-            if brickyard_core::camera::length(normal) < 1e-12
-                || !normal.iter().all(|v| v.is_finite())
-            {
-                bail!("slice-normal: expected a non-zero vector, found {normal:?}");
+            let ln = brickyard_core::camera::length(normal);
+            if !(1e-12..=f64::MAX).contains(&ln) {
+                bail!(
+                    "slice-normal: expected a non-zero vector of finite length, found {normal:?}"
+                );
             }
             RenderMode::Slice { origin, normal }
         }
@@ -864,15 +872,36 @@ fn run_with(
             .with_context(|| format!("{}: cannot write", p.display()))?;
     }
     let batch = !c.stream;
-    let split = crate::memory::split_with_filters(
+    // A device back end's driver lives in this process: its share comes
+    // off the budget before the split (and `auto` takes the CPU where the
+    // budget leaves no room for it).
+    let device = crate::backend::plan_device(&backend_choice, adapter, memory);
+    if let Some(n) = &device.note {
+        say_err!(silent, "{n}");
+    }
+    let backend_choice = device.choice.clone();
+    let pool_given = opt_bytes(&c.pool, "pool")?;
+    let mut split = crate::memory::split_with_filters(
         memory,
-        opt_bytes(&c.pool, "pool")?,
+        pool_given,
         opt_bytes(&c.host, "host")?,
         n_views as u64 * w as u64 * h as u64,
         info.levels.len(),
-        0,
+        device.bytes,
         filter_bytes,
-    )?;
+    )
+    .map_err(|e| {
+        if device.bytes > 0 {
+            e.context(format!(
+                "--backend {backend_choice}: the device back end takes {} of --memory for its \
+                 driver (--backend cpu does without)",
+                human_bytes(device.bytes)
+            ))
+        } else {
+            e
+        }
+    })?;
+    device.take_from(&mut split, pool_given)?;
     // A padded brick of the pool (its cell ranges included), to size the
     // batch's requests and uploads.
     let dtype = match &derived {
@@ -996,7 +1025,6 @@ fn run_with(
     // DVR of several channels composites them; one goes through --tf.
     let dvr_multi = mode == RenderMode::Dvr && styles.len() > 1;
     let mut cfg = cfg;
-    let mut split = split;
     let shown = if mode == RenderMode::Dvr && !dvr_multi {
         1
     } else {

@@ -113,6 +113,7 @@ fn create_with_pid(path: &Path) -> Result<bool> {
         ".{name}.{pid}.{}.tmp",
         SERIAL.fetch_add(1, Ordering::Relaxed)
     ));
+    remove_stale_temporaries(path, &name);
     std::fs::write(&tmp, format!("{pid}\n")).at(&tmp)?;
     let linked = std::fs::hard_link(&tmp, path);
     let _ = std::fs::remove_file(&tmp);
@@ -134,6 +135,30 @@ fn create_with_pid(path: &Path) -> Result<bool> {
             Err(e) if e.kind() == ErrorKind::AlreadyExists => Ok(false),
             Err(e) => Err(e).at(path),
         },
+    }
+}
+
+/// Remove the temporary files of lock attempts by processes that are gone
+/// (killed between writing one and linking it into place).
+fn remove_stale_temporaries(path: &Path, name: &str) {
+    let dir = match path.parent() {
+        Some(d) if !d.as_os_str().is_empty() => d,
+        _ => Path::new("."),
+    };
+    let Ok(entries) = std::fs::read_dir(dir) else {
+        return;
+    };
+    let prefix = format!(".{name}.");
+    for e in entries.flatten() {
+        let f = e.file_name();
+        let f = f.to_string_lossy();
+        let Some(rest) = f.strip_prefix(&prefix).and_then(|r| r.strip_suffix(".tmp")) else {
+            continue;
+        };
+        let pid = rest.split('.').next().and_then(|p| p.parse::<u32>().ok());
+        if pid.is_some_and(|p| !alive(p)) {
+            let _ = std::fs::remove_file(e.path());
+        }
     }
 }
 
@@ -224,6 +249,11 @@ mod tests {
             std::process::id().to_string()
         );
         drop(l);
+        // A temporary of a killed attempt goes with the next one.
+        let stale = d.join(".x.lock.4294967.0.tmp");
+        std::fs::write(&stale, "4294967\n").unwrap();
+        drop(PidLock::take(&p, "writing x").unwrap());
+        assert!(!stale.exists());
         // Garbage that names no process is taken over too.
         std::fs::write(&p, "not a pid\n").unwrap();
         drop(PidLock::take(&p, "writing x").unwrap());

@@ -413,6 +413,16 @@ fn traversal_writes_and_tokens_are_refused() {
         &[("Authorization", "Bearer s3cret-tokem")],
     );
     assert_eq!(code, 401);
+    // The scheme's name in any case; another scheme is not a token.
+    for (v, want) in [
+        ("bearer s3cret-token", 200),
+        ("BEARER  s3cret-token ", 200),
+        ("Basic s3cret-token", 401),
+        ("Bearers3cret-token", 401),
+    ] {
+        let (code, _, _) = http(p, "GET", "/m.ome.zarr/zarr.json", &[("Authorization", v)]);
+        assert_eq!(code, want, "{v:?}");
+    }
 
     // Reading through brickyard: without the token it says 401, with it it reads.
     let url = format!("http://127.0.0.1:{p}/m.ome.zarr");
@@ -424,6 +434,10 @@ fn traversal_writes_and_tokens_are_refused() {
     assert!(!o.status.success());
     let e = String::from_utf8_lossy(&o.stderr);
     assert!(e.contains("401") && e.contains(&url), "{e}");
+    assert!(
+        e.contains("BRICKYARD_TOKEN") && !e.contains("--token"),
+        "{e}"
+    );
     assert_eq!(
         info_json(&url, &[("BRICKYARD_TOKEN", "s3cret-token")]),
         info_json(s(&st), &[])

@@ -16,7 +16,7 @@ use std::collections::{HashMap, VecDeque};
 use std::io::Read;
 use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::{Arc, Condvar, Mutex, RwLock};
-use std::time::Duration;
+use std::time::{Duration, Instant};
 
 /// How remote stores are read.
 #[derive(Clone, Debug)]
@@ -204,6 +204,9 @@ impl IndexCache {
 /// One failed attempt.
 struct Failure {
     retry: bool,
+    /// No connection could be made (refused, unreachable, connect timed
+    /// out): counts toward the host being down.
+    unreachable: bool,
     what: String,
 }
 
@@ -211,15 +214,56 @@ impl Failure {
     fn retry(what: impl Into<String>) -> Self {
         Failure {
             retry: true,
+            unreachable: false,
             what: what.into(),
         }
     }
     fn fatal(what: impl Into<String>) -> Self {
         Failure {
             retry: false,
+            unreachable: false,
             what: what.into(),
         }
     }
+    fn unreachable(what: impl Into<String>) -> Self {
+        Failure {
+            retry: true,
+            unreachable: true,
+            what: what.into(),
+        }
+    }
+}
+
+/// Connection attempts that failed in a row, over all requests to a host,
+/// after which it counts as down.
+const HOST_DOWN_AFTER: u32 = 6;
+/// How long requests to a host that is down fail without trying; doubled
+/// each time a try after the pause fails too, up to [`HOST_PAUSE_MAX`].
+const HOST_PAUSE: Duration = Duration::from_secs(5);
+const HOST_PAUSE_MAX: Duration = Duration::from_secs(60);
+
+/// What the client knows of a host's health. A server that went away
+/// would otherwise cost every value read from it its whole schedule of
+/// retries (a render of a few hundred bricks took half an hour to give
+/// up): once `HOST_DOWN_AFTER` connection attempts in a row failed, its
+/// requests fail at once for a pause, then one attempt tries again. Any
+/// answer (of any HTTP status) makes it healthy again.
+#[derive(Default)]
+struct HostHealth {
+    fails_in_a_row: u32,
+    down_until: Option<Instant>,
+    pause: Duration,
+    last: String,
+}
+
+/// The `scheme://host:port` part of a URL.
+fn host_of(url: &str) -> &str {
+    let start = url.find("://").map(|i| i + 3).unwrap_or(0);
+    let end = url[start..]
+        .find('/')
+        .map(|i| start + i)
+        .unwrap_or(url.len());
+    &url[..end]
 }
 
 /// The HTTP client of remote stores.
@@ -237,6 +281,8 @@ pub struct Client {
     /// Metadata documents (`zarr.json`, `.zarray`, …) and whether they
     /// exist, read once per process: remote stores are read-only here.
     meta: Mutex<MetaCache>,
+    /// Hosts by `scheme://host:port`.
+    hosts: Mutex<HashMap<String, HostHealth>>,
 }
 
 /// Whole metadata documents by URL (`None`: not there), bounded in bytes.
@@ -314,6 +360,7 @@ impl Client {
             index_hits: AtomicU64::new(0),
             seed: AtomicU64::new(0x9e37_79b9_7f4a_7c15),
             meta: Mutex::new(MetaCache::default()),
+            hosts: Mutex::new(HashMap::new()),
         }
     }
 
@@ -532,10 +579,15 @@ impl Client {
     ) -> Result<Option<T>> {
         let mut attempt = 0u32;
         loop {
-            let res = {
-                let _permit = self.slots.acquire();
-                self.requests.fetch_add(1, Ordering::Relaxed);
-                self.once(url, method, range, &take)
+            let res = match self.host_down(url) {
+                Some(why) => Err(Failure::fatal(why)),
+                None => {
+                    let _permit = self.slots.acquire();
+                    self.requests.fetch_add(1, Ordering::Relaxed);
+                    let r = self.once(url, method, range, &take);
+                    self.host_seen(url, r.as_ref().err());
+                    r
+                }
             };
             match res {
                 Ok(v) => return Ok(v),
@@ -557,6 +609,45 @@ impl Client {
                         std::io::Error::other(format!("{method}{bytes}: {}{tries}", f.what)),
                     ));
                 }
+            }
+        }
+    }
+
+    /// Why requests to `url`'s host fail without trying, if they do.
+    fn host_down(&self, url: &str) -> Option<String> {
+        let hosts = self.hosts.lock().unwrap_or_else(|e| e.into_inner());
+        let h = hosts.get(host_of(url))?;
+        let left = h.down_until?.checked_duration_since(Instant::now())?;
+        Some(format!(
+            "{} is not answering: {} connection attempts in a row failed (last: {}); \
+             requests to it fail without trying for {:.0} s more",
+            host_of(url),
+            h.fails_in_a_row,
+            h.last,
+            left.as_secs_f64().ceil()
+        ))
+    }
+
+    /// Note how an attempt on `url` ended (`None`: it succeeded).
+    fn host_seen(&self, url: &str, failure: Option<&Failure>) {
+        let mut hosts = self.hosts.lock().unwrap_or_else(|e| e.into_inner());
+        match failure {
+            Some(f) if f.unreachable => {
+                let h = hosts.entry(host_of(url).to_string()).or_default();
+                h.fails_in_a_row += 1;
+                h.last = f.what.clone();
+                if h.fails_in_a_row >= HOST_DOWN_AFTER {
+                    h.pause = if h.down_until.is_some() {
+                        (h.pause * 2).min(HOST_PAUSE_MAX)
+                    } else {
+                        HOST_PAUSE
+                    };
+                    h.down_until = Some(Instant::now() + h.pause);
+                }
+            }
+            // An answer: the host is there.
+            _ => {
+                hosts.remove(host_of(url));
             }
         }
     }
@@ -630,7 +721,7 @@ impl Client {
                 } else if self.cfg.token.is_some() {
                     " (the bearer token was not accepted)"
                 } else {
-                    " (a token may be needed: --token or BRICKYARD_TOKEN)"
+                    " (a token may be needed: set BRICKYARD_TOKEN)"
                 }
             ))),
             408 | 429 | 500..=599 => {
@@ -642,13 +733,30 @@ impl Client {
 
     fn classify(&self, e: ureq::Error) -> Failure {
         match e {
+            ureq::Error::Timeout(t @ (ureq::Timeout::Connect | ureq::Timeout::Resolve)) => {
+                Failure::unreachable(format!(
+                    "timed out ({t}) after at most {:.1} s",
+                    self.cfg.connect_timeout.as_secs_f64()
+                ))
+            }
             ureq::Error::Timeout(t) => Failure::retry(format!(
                 "timed out ({t}) after at most {:.1} s",
                 self.cfg.timeout.as_secs_f64()
             )),
             ureq::Error::HostNotFound => Failure::fatal("host not found"),
             ureq::Error::BadUri(u) => Failure::fatal(format!("not a valid URL: {u}")),
-            ureq::Error::ConnectionFailed => Failure::retry("connection failed"),
+            ureq::Error::ConnectionFailed => Failure::unreachable("connection failed"),
+            ureq::Error::Io(e)
+                if matches!(
+                    e.kind(),
+                    std::io::ErrorKind::ConnectionRefused
+                        | std::io::ErrorKind::HostUnreachable
+                        | std::io::ErrorKind::NetworkUnreachable
+                        | std::io::ErrorKind::AddrNotAvailable
+                ) =>
+            {
+                Failure::unreachable(format!("connection error: {e}"))
+            }
             ureq::Error::Io(e) => Failure::retry(format!("connection error: {e}")),
             ureq::Error::BodyStalled => Failure::retry("the body stalled"),
             e @ ureq::Error::Protocol(_) => Failure::retry(format!("protocol error: {e}")),
@@ -744,6 +852,71 @@ fn read_body(
 
 #[cfg(test)]
 mod tests {
+    use std::io::Write as _;
+    use std::net::TcpListener;
+
+    /// A port with nothing listening on it.
+    fn dead_port() -> u16 {
+        let l = TcpListener::bind("127.0.0.1:0").unwrap();
+        l.local_addr().unwrap().port()
+    }
+
+    /// A server that was there, went away and came back: its requests stop
+    /// costing each a whole schedule of retries once the host counts as
+    /// down, say why, and it is used again after the pause.
+    #[test]
+    fn a_host_that_went_away_fails_fast_then_is_tried_again() {
+        let port = dead_port();
+        let c = Client::new(HttpConfig {
+            retries: 4,
+            backoff: Duration::from_millis(100),
+            connect_timeout: Duration::from_secs(2),
+            ..HttpConfig::default()
+        });
+        let url = |i: usize| format!("http://127.0.0.1:{port}/s.zarr/c/0/0/{i}");
+        let t0 = Instant::now();
+        let errors: Vec<String> = (0..12)
+            .map(|i| c.size(&url(i)).unwrap_err().to_string())
+            .collect();
+        // Each alone: 5 attempts and 0.1 + 0.2 + 0.4 + 0.8 s of backoff,
+        // 18 s for the twelve.
+        let took = t0.elapsed();
+        assert!(took < Duration::from_secs(6), "{took:?}");
+        assert!(errors[0].contains("after 5 attempts"), "{}", errors[0]);
+        for e in &errors[2..] {
+            assert!(
+                e.contains(&format!("127.0.0.1:{port} is not answering"))
+                    && e.contains("connection attempts in a row failed"),
+                "{e}"
+            );
+        }
+        // Another host is not affected.
+        let other = dead_port();
+        let e = c
+            .size(&format!("http://127.0.0.1:{other}/x/c/0"))
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("after 5 attempts"), "{e}");
+        // The server comes back (an answer of any status will do): within
+        // the pause requests still fail without trying, after it they go
+        // through and the host is healthy again.
+        let l = TcpListener::bind(("127.0.0.1", port)).unwrap();
+        std::thread::spawn(move || {
+            for mut s in l.incoming().flatten() {
+                let mut buf = [0u8; 4096];
+                let _ = std::io::Read::read(&mut s, &mut buf);
+                let _ = s.write_all(b"HTTP/1.1 404 Not Found\r\nContent-Length: 0\r\n\r\n");
+            }
+        });
+        let e = c.size(&url(0)).unwrap_err().to_string();
+        assert!(e.contains("not answering"), "{e}");
+        std::thread::sleep(HOST_PAUSE);
+        assert_eq!(c.size(&url(0)).unwrap(), None);
+        let hosts = c.hosts.lock().unwrap();
+        assert!(!hosts.contains_key(&format!("http://127.0.0.1:{port}")));
+        assert_eq!(hosts.len(), 1, "the other host's failures stay counted");
+    }
+
     use super::*;
 
     #[test]

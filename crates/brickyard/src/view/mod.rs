@@ -263,7 +263,13 @@ pub fn run(c: ViewCmd, demo_store: impl FnOnce() -> Result<PathBuf>) -> Result<i
         )?),
         None => None,
     };
-    let split = crate::memory::split_with_filters(
+    // A device back end's driver lives in this process too.
+    let device = crate::backend::plan_device(&backend, 0, memory);
+    if let Some(n) = &device.note {
+        eprintln!("{n}");
+    }
+    let backend = device.choice.clone();
+    let mut split = crate::memory::split_with_filters(
         memory,
         pool,
         host,
@@ -271,9 +277,10 @@ pub fn run(c: ViewCmd, demo_store: impl FnOnce() -> Result<PathBuf>) -> Result<i
         // buffers: together about the window's pixels.
         ww as u64 * wh as u64,
         levels.len(),
-        crate::memory::WINDOW_BYTES + accum_bytes,
+        crate::memory::WINDOW_BYTES + accum_bytes + device.bytes,
         derived_within.as_ref().map_or(0, |(_, b)| *b),
     )?;
+    device.take_from(&mut split, pool)?;
     let mut cfg = VmConfig {
         brick: [c.brick; 3],
         pool_bytes: split.pool,
