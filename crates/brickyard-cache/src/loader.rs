@@ -92,6 +92,11 @@ struct LevelStats {
     /// covers are treated as unknown). At most the size of the statistics
     /// array, 16 bytes per store brick and channel.
     chunks: Mutex<HashMap<[u64; 4], StatsChunk>>,
+    /// The statistics array's folder, for reports.
+    dir: PathBuf,
+    /// What made chunks unreadable, once each (reported by
+    /// [`Loader::stats_problems`]).
+    problems: Mutex<Vec<String>>,
 }
 
 /// A decoded chunk of the statistics array, `None` when unreadable.
@@ -123,6 +128,8 @@ impl LevelStats {
             brick,
             chunk: [cs[0], cs[1], cs[2], cs[3]],
             chunks: Mutex::new(HashMap::new()),
+            dir: dir.to_path_buf(),
+            problems: Mutex::new(vec![]),
         })
     }
 
@@ -136,12 +143,22 @@ impl LevelStats {
             None => {
                 let idx = [ci[0], ci[1], ci[2], ci[3], 0];
                 let n = self.chunk.iter().product::<u64>() as usize * 2;
-                let ch = self
-                    .array
-                    .retrieve_chunk::<Vec<f64>>(&idx)
-                    .ok()
-                    .filter(|v| v.len() == n)
-                    .map(Arc::new);
+                let ch = match self.array.retrieve_chunk::<Vec<f64>>(&idx) {
+                    Ok(v) if v.len() == n => Some(Arc::new(v)),
+                    got => {
+                        let why = match got {
+                            Ok(v) => format!("{} values, {n} expected", v.len()),
+                            Err(e) => e.to_string(),
+                        };
+                        lock(&self.problems).push(format!(
+                            "{}: chunk {:?} cannot be read ({why}): its bricks are loaded to \
+                             learn what they hold, none is skipped as empty",
+                            self.dir.display(),
+                            &idx[..4]
+                        ));
+                        None
+                    }
+                };
                 lock(&self.chunks).insert(ci, ch.clone());
                 ch
             }
@@ -1049,6 +1066,19 @@ impl Loader {
             |l| sh.levels[l].stats.is_some(),
             |l, c, b| sh.levels[l].stats.as_ref()?.get(c as u64, b),
         )
+    }
+
+    /// Chunks of the brick statistics found unreadable since the last
+    /// call (a damaged or truncated file), each once: the view does not
+    /// change (their bricks are loaded instead of skipped), but the store
+    /// is damaged and the user should hear of it.
+    pub fn take_stats_problems(&self) -> Vec<String> {
+        self.shared
+            .levels
+            .iter()
+            .filter_map(|l| l.stats.as_ref())
+            .flat_map(|s| std::mem::take(&mut *lock(&s.problems)))
+            .collect()
     }
 
     /// Stop (`true`) or resume (`false`) starting new loads; loads in

@@ -1449,6 +1449,9 @@ fn run_with(
                 say!(silent, "  … and {} more", failures.len() - 10);
             }
         }
+        for p in s.loader().take_stats_problems() {
+            say_err!(silent, "warning: brick statistics {p}");
+        }
         if let Some(d) = debug {
             // The debug image of the complete view: one more whole frame
             // at the level of detail the view ended with, counting.

@@ -11,6 +11,11 @@ use std::path::Path;
 
 /// Voxels read at most: the finest level at or under this is read whole.
 const MAX_VOXELS: u64 = 1 << 22;
+/// Values kept at most (every k-th voxel of the level, in its order): 8 MiB
+/// of `f64`s.
+const MAX_SAMPLES: u64 = 1 << 20;
+/// Voxels read at once (whole planes, at least one).
+const SLAB_VOXELS: u64 = 1 << 18;
 
 /// The window of `values`: the 0.5th and 99.5th percentiles of the finite
 /// values, leaving out a value that fills more than 5 % of the volume at
@@ -80,11 +85,30 @@ pub fn window_of_levels(
         if z * y * x > MAX_VOXELS {
             continue;
         }
+        // Read in slabs of whole planes and keep every `stride`-th value:
+        // what this takes stays a few MiB (the level whole as `f64`s beside
+        // its own copy went over small budgets by up to 64 MiB).
+        let n = z * y * x;
+        let stride = n.div_ceil(MAX_SAMPLES).max(1);
+        let planes = (SLAB_VOXELS / (y * x).max(1)).max(1);
         let values: Option<Vec<f64>> = dispatch_dtype!(m.dtype, T => {
-            let mut buf = vec![T::default(); (z * y * x) as usize];
-            src.read_region(c, 0..z, 0..y, 0..x, as_bytes_mut(&mut buf))
-                .ok()
-                .map(|_| buf.iter().map(|v| v.to_f64()).collect())
+            let mut values = Vec::with_capacity(n.div_ceil(stride) as usize);
+            let mut buf = vec![];
+            let mut z0 = 0;
+            let mut ok = true;
+            while z0 < z && ok {
+                let z1 = (z0 + planes).min(z);
+                buf.clear();
+                buf.resize(((z1 - z0) * y * x) as usize, T::default());
+                ok = src.read_region(c, z0..z1, 0..y, 0..x, as_bytes_mut(&mut buf)).is_ok();
+                let first = z0 * y * x;
+                // The first index at or after `first` that is a multiple of
+                // the stride.
+                let skip = (first.div_ceil(stride) * stride - first) as usize;
+                values.extend(buf.iter().skip(skip).step_by(stride as usize).map(|v| v.to_f64()));
+                z0 = z1;
+            }
+            ok.then_some(values)
         });
         if let Some(v) = values {
             return Ok(robust_window(v));
@@ -108,6 +132,35 @@ mod tests {
         let (lo, hi) = robust_window(v).unwrap();
         assert!((-1000.0..=-990.0).contains(&lo), "{lo}");
         assert!((90.0..=99.0).contains(&hi), "{hi}");
+    }
+
+    /// A level of more than [`MAX_SAMPLES`] voxels is read in slabs and
+    /// every k-th voxel kept: the same values as taking every k-th voxel
+    /// of the level read whole.
+    #[test]
+    fn large_levels_are_sampled_slab_by_slab() {
+        use brickyard_store::generate::{Kind, Procedural};
+        let dims = [150, 161, 170]; // 4.1 M voxels: every 4th kept
+        let src = Procedural::new(Kind::Mandelbulb, dims, brickyard_core::DType::F32);
+        let mut all = vec![0f32; (dims[0] * dims[1] * dims[2]) as usize];
+        src.read_region(
+            0,
+            0..dims[0],
+            0..dims[1],
+            0..dims[2],
+            as_bytes_mut(&mut all),
+        )
+        .unwrap();
+        let every4: Vec<f64> = all.iter().step_by(4).map(|&v| v as f64).collect();
+        let want = robust_window(every4).unwrap();
+        let src: std::sync::Arc<dyn VolumeSource> = std::sync::Arc::new(src);
+        let got = window_of_levels(1, 0, |_| Ok(src.clone()))
+            .unwrap()
+            .unwrap();
+        assert_eq!(got, want);
+        // And close to the window of every voxel.
+        let full = robust_window(all.iter().map(|&v| v as f64).collect()).unwrap();
+        assert!((full.0 - got.0).abs() < 0.01 && (full.1 - got.1).abs() < 0.01);
     }
 
     #[test]

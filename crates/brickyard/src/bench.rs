@@ -134,6 +134,15 @@ pub fn run(b: BenchCmd) -> Result<()> {
         "--image",
     )?;
     let dtype = DType::parse(&b.dtype).with_context(|| format!("dtype: unknown {:?}", b.dtype))?;
+    if b.repeat == 0 {
+        bail!("repeat: expected at least 1 repetition, found 0");
+    }
+    if !(b.zoom.is_finite() && b.zoom > 0.0) {
+        bail!("zoom: expected a factor above 0, found {}", b.zoom);
+    }
+    if b.scenario == "views" && !(2..=16).contains(&b.views) {
+        bail!("views: expected 2 to 16 views, found {}", b.views);
+    }
     match b.scenario.as_str() {
         "convert" => bench_convert(&b, dims, dtype),
         "downsample" => bench_downsample(&b, dims, dtype),

@@ -389,6 +389,33 @@ fn damaged_chunks_are_drawn_coarser_and_reported() {
     ]);
     let out = ok(&o);
     assert!(out.contains("could not load level 0"), "{out}");
+    // Damaged brick statistics change nothing in the image (their bricks
+    // are loaded instead of skipped) but are reported, not passed over.
+    let stats = store.join("_brickyard/stats/0/c/0/0/0/0/0");
+    let mut b = std::fs::read(&stats).unwrap();
+    let n = b.len();
+    for x in &mut b[n / 4..n / 2] {
+        *x ^= 0xa5;
+    }
+    std::fs::write(&stats, &b).unwrap();
+    let o = run(&[
+        "render",
+        s(&store),
+        "--size",
+        "160",
+        "--brick",
+        "16",
+        "--backend",
+        "cpu",
+        "--out",
+        s(&png),
+    ]);
+    ok(&o);
+    let e = String::from_utf8_lossy(&o.stderr);
+    assert!(
+        e.contains("warning: brick statistics") && e.contains("_brickyard/stats/0"),
+        "{e}"
+    );
 }
 
 #[test]

@@ -56,6 +56,15 @@ fn bad_inputs_give_clear_errors() {
         fails_with(&o, &["gone.ome.zarr", "no such file or directory"]);
         assert!(!stderr(&o).contains("entity not found"), "{}", stderr(&o));
     }
+    // Benchmark options outside their ranges: refused before any work.
+    for (args, want) in [
+        (["bench", "views", "--views", "17"], "2 to 16 views"),
+        (["bench", "views", "--views", "1"], "2 to 16 views"),
+        (["bench", "render", "--zoom", "0"], "zoom"),
+        (["bench", "render", "--repeat", "0"], "repeat"),
+    ] {
+        fails_with(&run(&args), &[want]);
+    }
     // Dims that do not match the file size.
     let raw = d.path().join("v.raw");
     std::fs::write(&raw, vec![0u8; 1000]).unwrap();
