@@ -176,6 +176,15 @@ impl Session {
         &self.failures
     }
 
+    /// Let every brick that failed be asked for again (a server back, a
+    /// file repaired): the virtual memory and the loader forget them. The
+    /// failures stay in [`Session::failures`]; those of a new try are added.
+    pub fn retry_failed(&mut self) {
+        self.collect_failures();
+        self.vm.clear_failed();
+        self.loader.retry_failed();
+    }
+
     /// Take the loader's new failures: the bricks are marked failed in the
     /// virtual memory (never requested again; drawn from coarser data).
     fn collect_failures(&mut self) -> usize {

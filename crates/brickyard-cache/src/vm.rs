@@ -1264,6 +1264,11 @@ impl VirtualMemory {
         self.failed.contains(&key.pack())
     }
 
+    /// Forget which bricks failed: they may be requested again.
+    pub fn clear_failed(&mut self) {
+        self.failed.clear();
+    }
+
     /// Bricks marked failed.
     pub fn failed_count(&self) -> usize {
         self.failed.len()

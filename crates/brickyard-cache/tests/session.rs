@@ -283,3 +283,53 @@ fn a_device_list_leaves_out_the_bricks_that_arrived() {
     }
     assert!(frames <= 512 / cap + 2, "{frames} frames");
 }
+
+/// Bricks that failed (their shard gone for a while) are asked for again
+/// after [`Session::retry_failed`], and load once the shard is back; until
+/// then they stay out of the request lists.
+#[test]
+fn failed_bricks_load_after_a_retry_once_they_can_be_read() {
+    let (dir, mut s) = eight_caps_session(512);
+    let shard = dir.path().join("v.ome.zarr/0/c/0/0/0");
+    assert!(shard.is_file());
+    let aside = dir.path().join("aside");
+    std::fs::rename(&shard, &aside).unwrap();
+    // The bricks of that shard with data, by the statistics: level-0
+    // bricks of 8³ in the store's 32³ shard at the origin.
+    let keys: Vec<BrickKey> = (0..64u32)
+        .map(|i| BrickKey::new(0, 0, [i / 16, i / 4 % 4, i % 4]))
+        .collect();
+    let frame = |s: &mut Session| {
+        s.begin_frame();
+        let mut req = s.vm().requests();
+        for k in &keys {
+            if !s.vm().is_resident(*k) {
+                req.add(*k, 1);
+            }
+        }
+        assert!(s.loader().wait_idle(std::time::Duration::from_secs(20)));
+        s.finish_frame([&req])
+    };
+    for _ in 0..4 {
+        frame(&mut s);
+    }
+    let failed = s.vm().failed_count();
+    assert!(failed > 0, "no brick of the missing shard failed");
+    assert!(keys.iter().any(|k| s.vm().is_failed(*k)));
+    // Failed bricks are not asked for again.
+    let st = frame(&mut s);
+    assert!(st.frame.requests.iter().all(|k| !s.vm().is_failed(*k)));
+    // The shard is back: after a retry every brick of the view arrives.
+    std::fs::rename(&aside, &shard).unwrap();
+    s.retry_failed();
+    assert_eq!(s.vm().failed_count(), 0);
+    for _ in 0..6 {
+        frame(&mut s);
+    }
+    assert!(
+        keys.iter().all(|k| s.vm().is_resident(*k)),
+        "bricks still missing after the retry"
+    );
+    assert_eq!(s.vm().failed_count(), 0);
+    assert_eq!(s.failures().len(), failed, "the first failures stay listed");
+}

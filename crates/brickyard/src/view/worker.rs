@@ -208,6 +208,9 @@ fn open(setup: &Setup, scene: &mut Scene) -> anyhow::Result<(Session, Backend)> 
 
 /// Run the worker until [`Msg::Quit`] or the window goes away. `wake` is
 /// called after each frame sent (the window repaints).
+/// How often bricks that failed to load are tried again while viewing.
+const RETRY_FAILED_AFTER: Duration = Duration::from_secs(20);
+
 pub fn run(setup: Setup, mut scene: Scene, rx: Receiver<Msg>, tx: Sender<Reply>, wake: impl Fn()) {
     let (mut s, mut backend) = match open(&setup, &mut scene) {
         Ok(x) => x,
@@ -224,7 +227,22 @@ pub fn run(setup: Setup, mut scene: Scene, rx: Receiver<Msg>, tx: Sender<Reply>,
     let mut idle_since = Instant::now();
     // Failures of the session already sent to the window.
     let mut reported = 0;
+    let mut last_retry = Instant::now();
     loop {
+        // Bricks that failed (a server gone for a while, a file being
+        // replaced) are asked for again now and then: the view picks them
+        // up once they can be read. Views that accumulate samples were
+        // complete without them.
+        if s.vm().failed_count() > 0 && last_retry.elapsed() >= RETRY_FAILED_AFTER {
+            last_retry = Instant::now();
+            s.retry_failed();
+            for v in views
+                .iter_mut()
+                .filter(|v| v.spec.is_some() && v.acc.is_none())
+            {
+                v.complete = false;
+            }
+        }
         // Take every message; wait for one only when nothing is left to do.
         let busy = views.iter().any(|v| v.spec.is_some() && !v.complete);
         let first = if busy {
