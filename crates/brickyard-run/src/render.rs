@@ -37,11 +37,11 @@ pub struct RenderCmd {
     camera: Option<PathBuf>,
     /// dvr, mip: the camera's angle around the volume in degrees
     /// (default 30).
-    #[arg(long)]
+    #[arg(long, allow_hyphen_values = true)]
     azimuth: Option<f64>,
     /// dvr, mip: the camera's angle above the volume in degrees (default
     /// 20).
-    #[arg(long)]
+    #[arg(long, allow_hyphen_values = true)]
     elevation: Option<f64>,
     /// dvr, mip: vertical field of view in degrees (perspective; default
     /// 35).
@@ -58,7 +58,7 @@ pub struct RenderCmd {
     #[arg(long, default_value = "soft")]
     tf: String,
     /// Data window LO,HI (default: the data range from the brick statistics).
-    #[arg(long)]
+    #[arg(long, allow_hyphen_values = true)]
     window: Option<String>,
     /// A channel to show, `C[:COLOR[:LO,HI]]` (repeat for several). In mip
     /// and slice modes the channels are added up, each windowed to LO,HI
@@ -70,7 +70,7 @@ pub struct RenderCmd {
     /// the store's `omero` metadata, then white and --window. Default: the
     /// store's active `omero` channels when it has several, else channel
     /// 0 through the transfer function.
-    #[arg(long = "channel")]
+    #[arg(long = "channel", allow_hyphen_values = true)]
     channels: Vec<String>,
     /// DVR of several channels: channel C's transfer function, `C=PRESET`
     /// (a preset as for --tf, over the channel's window) or `C=FILE` (a
@@ -98,10 +98,10 @@ pub struct RenderCmd {
     slice_z: Option<f64>,
     /// Slice: a point of the plane in world coordinates X,Y,Z (instead of
     /// --slice-z; as the viewer's saved views give it).
-    #[arg(long)]
+    #[arg(long, allow_hyphen_values = true)]
     slice_origin: Option<String>,
     /// Slice: the plane's normal X,Y,Z (default 0,0,1).
-    #[arg(long)]
+    #[arg(long, allow_hyphen_values = true)]
     slice_normal: Option<String>,
     /// Render this level only (default: automatic level of detail).
     #[arg(long)]

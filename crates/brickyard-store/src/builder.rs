@@ -718,7 +718,7 @@ pub fn convert_team(
         })
         .collect();
     let root = |complete: bool, omero: Option<Value>| {
-        let mut ome = json!({"version": "0.5", "multiscales": multiscales_json(&levels, c, unit.as_deref(), &name)});
+        let mut ome = json!({"version": "0.5", "multiscales": multiscales_json(&levels, c, unit.as_deref(), &name, opts.labels)});
         if let Some(o) = omero {
             ome["omero"] = o;
         }

@@ -123,6 +123,7 @@ pub fn multiscales_json(
     channels: usize,
     unit: Option<&str>,
     name: &str,
+    labels: bool,
 ) -> Value {
     let mut axes = vec![];
     if channels > 1 {
@@ -156,7 +157,9 @@ pub fn multiscales_json(
         "name": name,
         "axes": axes,
         "datasets": datasets,
-        "type": "mean"
+        // How coarser levels were made: box means, or the most frequent
+        // value for labels.
+        "type": if labels { "mode" } else { "mean" }
     }])
 }
 

@@ -63,7 +63,7 @@ pub struct BenchCmd {
     zoom: f64,
     /// render: the transfer function's data window LO,HI (default: the
     /// type's range, 0 to 1 for floats).
-    #[arg(long)]
+    #[arg(long, allow_hyphen_values = true)]
     window: Option<String>,
     /// loader, latency, render: drop the page cache first, for cold-disk
     /// figures (needs root; loader: without root, the store's files are

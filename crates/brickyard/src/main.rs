@@ -155,7 +155,7 @@ struct PyramidArgs {
     #[arg(long)]
     spacing: Option<String>,
     /// Position X,Y,Z of the first voxel's centre (overrides the file's).
-    #[arg(long)]
+    #[arg(long, allow_hyphen_values = true)]
     origin: Option<String>,
     /// Unit of spacing and origin (micrometer, millimeter, ...).
     #[arg(long)]

@@ -995,6 +995,63 @@ fn outputs_and_geometry_a_store_cannot_have_are_refused() {
     assert!(std::fs::read_to_string(&side).unwrap().contains("\"dims\""));
 }
 
+/// Values that start with a minus sign are values, not flags: windows of
+/// signed data, angles, slice planes, origins.
+#[test]
+fn negative_values_are_taken_as_values() {
+    let d = tempfile::tempdir().unwrap();
+    let raw = d.path().join("v.raw");
+    std::fs::write(
+        &raw,
+        (0..16u32 * 16 * 16)
+            .map(|i| (i % 251) as u8)
+            .collect::<Vec<_>>(),
+    )
+    .unwrap();
+    let store = d.path().join("v.zarr");
+    let o = run(&[
+        "convert",
+        s(&raw),
+        s(&store),
+        "--dims",
+        "16x16x16",
+        "--dtype",
+        "u8",
+        "--origin",
+        "-1.5,-2,3",
+        "--quiet",
+    ]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    let png = d.path().join("n.png");
+    for extra in [
+        &["--window", "-0.05,200"][..],
+        &["--azimuth", "-30", "--elevation", "-10"],
+        &[
+            "--mode",
+            "slice",
+            "--slice-normal",
+            "-1,0,0",
+            "--slice-origin",
+            "-1,8,8",
+        ],
+        &["--mode", "mip", "--channel", "0:red:-1,200"],
+    ] {
+        let mut a = vec![
+            "render",
+            s(&store),
+            "--size",
+            "16",
+            "--backend",
+            "cpu",
+            "--out",
+            s(&png),
+        ];
+        a.extend_from_slice(extra);
+        let o = run(&a);
+        assert!(o.status.success(), "{extra:?}: {}", stderr(&o));
+    }
+}
+
 /// `BRICKYARD_READ_AHEAD` sets how far the loader hints ahead: the image
 /// is the same with hints off, many or the default; a value that is not a
 /// number of bricks from 0 to 4096 is an error naming the variable.
@@ -1174,7 +1231,7 @@ fn a_pool_larger_than_the_device_can_hold_is_an_error_not_a_panic() {
     // every chunk is missing, so every brick is empty.
     let store = d.path().join("big.ome.zarr");
     let plan = brickyard_core::plan_levels([2048; 3], [1.0; 3], [0.0; 3], [256; 3]);
-    let omz = brickyard_store::omezarr::multiscales_json(&plan.levels, 1, None, "big");
+    let omz = brickyard_store::omezarr::multiscales_json(&plan.levels, 1, None, "big", false);
     brickyard_store::omezarr::write_json(
         &store.join("zarr.json"),
         &serde_json::json!({"zarr_format": 3, "node_type": "group",

@@ -196,6 +196,8 @@ fn labels_equal_an_in_core_flood_fill_and_follow_the_labels_spec() {
     )
     .unwrap();
     assert!(ij["attributes"]["ome"]["image-label"].is_object());
+    // Coarser levels hold the most frequent label, and say so.
+    assert_eq!(ij["attributes"]["ome"]["multiscales"][0]["type"], "mode");
     assert_eq!(ij["attributes"]["brickyard"]["labels"], true);
     assert!(store.join("labels/cells/_brickyard/labels.csv").exists());
     // A second label image is added to the list, the first kept.
