@@ -78,7 +78,10 @@ impl Filter {
             }
         }
         let h = self.halo();
-        if (0..3).any(|a| h[a] as u64 >= dims[a].max(1)) && self.components().is_some() {
+        // (Whether it is separable, without making its kernels: unfolded,
+        // a σ of a million voxels has eight million taps per axis.)
+        let separable = matches!(self, Filter::Gauss(_) | Filter::GradMag(_) | Filter::Sobel);
+        if (0..3).any(|a| h[a] as u64 >= dims[a].max(1)) && separable {
             Ok(Filter::Folded(Box::new(self), dims))
         } else {
             Ok(self)

@@ -413,6 +413,32 @@ fn concurrent_jobs_keep_every_label_image_listed() {
     assert!(hidden.is_empty(), "{hidden:?}");
 }
 
+/// A σ far wider than the volume folds its kernel onto the volume without
+/// making the unfolded one first (eight million taps per axis at σ = 1e6:
+/// 260 MiB for a job given 100 MiB).
+#[test]
+fn a_huge_sigma_stays_within_the_memory_budget() {
+    let d = tempfile::tempdir().unwrap();
+    let store = make_store(d.path(), "24");
+    let o = ok(run(&[
+        "process",
+        s(&store),
+        "gauss(1e6)",
+        "--out",
+        "wide",
+        "--memory",
+        "64MiB",
+    ]));
+    let out = String::from_utf8_lossy(&o.stdout);
+    let peak: f64 = out
+        .split("peak RSS ")
+        .nth(1)
+        .and_then(|t| t.split(" MiB").next())
+        .and_then(|v| v.parse().ok())
+        .unwrap_or_else(|| panic!("no peak RSS in {out:?}"));
+    assert!(peak <= 64.0, "peak RSS {peak} MiB over a 64 MiB budget");
+}
+
 #[test]
 fn bad_process_inputs_give_clear_errors() {
     let d = tempfile::tempdir().unwrap();
