@@ -37,9 +37,15 @@ pub const STREAM_LOAD_WAIT: std::time::Duration = std::time::Duration::from_mill
 /// Requests per frame: as many bricks as both the pool and the host cache
 /// hold (slots of `slot_bytes`), at least 256 and at most `most`: batch
 /// renders up to [`BATCH_REQUESTS`], streamed views (`render --stream`,
-/// the viewer, remote sessions) up to [`STREAM_REQUESTS`].
+/// the viewer, remote sessions) up to [`STREAM_REQUESTS`]. The floor is
+/// lower where the host cache holds fewer than 256 bricks (not under 16):
+/// the bricks a frame asks for are in memory at once, loaded and waiting
+/// for the pool, and 256 bricks of 4-byte voxels (154 KiB each) went
+/// 40 MiB past a 64 MiB budget.
 pub fn requests_per_frame(pool: u64, host: u64, slot_bytes: u64, most: usize) -> usize {
-    (pool.min(host) / slot_bytes.max(1)).clamp(256, most.max(256) as u64) as usize
+    let slot = slot_bytes.max(1);
+    let floor = (host / slot).clamp(16, 256);
+    (pool.min(host) / slot).clamp(floor, (most as u64).max(floor)) as usize
 }
 
 /// The most requests a frame of a batch render makes.
@@ -273,7 +279,13 @@ mod tests {
             requests_per_frame(1 << 30, 1 << 30, 0, STREAM_REQUESTS),
             1024
         );
-        assert_eq!(requests_per_frame(0, 0, slot, 100), 256);
+        assert_eq!(requests_per_frame(0, 0, slot, 100), 16);
+        // A host cache of fewer than 256 bricks lowers the floor to what
+        // it holds.
+        assert_eq!(
+            requests_per_frame(5 << 20, 4 << 20, 154 << 10, BATCH_REQUESTS),
+            26
+        );
     }
 
     /// The pass keeps at least 256 pixels on its shorter side, and takes
