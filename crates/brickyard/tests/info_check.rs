@@ -422,3 +422,64 @@ fn info_check_lists_damaged_chunks_and_shards() {
     );
     assert!(text.contains("; 2 bad"), "{text}");
 }
+
+/// The images `process` writes into a store (`labels/NAME`,
+/// `derived/NAME`) are checked with it: a truncated shard or damaged
+/// metadata of a result makes the store's check fail, naming the image.
+/// (They were left out: the store passed with exit 0.)
+#[test]
+fn info_check_covers_the_images_inside_a_store() {
+    let d = tempfile::tempdir().unwrap();
+    let store = clean_store(d.path());
+    for (pipe, out) in [("gauss(1)", "g"), ("threshold(100)|label(6)", "cells")] {
+        let o = run(&["process", s(&store), pipe, "--out", out, "--quiet"]);
+        assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    }
+    let (code, j, _) = check(&store);
+    assert_eq!(code, Some(0), "{j}");
+    // Levels and statistics of the store and of both images.
+    let arrays = j["arrays"].as_u64().unwrap();
+    let mut alone = d.path().join("alone.ome.zarr");
+    copy_dir(&store, &alone);
+    std::fs::remove_dir_all(alone.join("labels")).unwrap();
+    std::fs::remove_dir_all(alone.join("derived")).unwrap();
+    let (_, j0, _) = check(&alone);
+    assert!(arrays > j0["arrays"].as_u64().unwrap(), "{j}");
+    // A truncated shard of the derived image.
+    let bad = d.path().join("bad.ome.zarr");
+    copy_dir(&store, &bad);
+    let shard = bad.join("derived/g/0/c/0/0/0");
+    let len = std::fs::metadata(&shard).unwrap().len();
+    std::fs::OpenOptions::new()
+        .write(true)
+        .open(&shard)
+        .unwrap()
+        .set_len(len / 3)
+        .unwrap();
+    let (code, j, _) = check(&bad);
+    assert_eq!(code, Some(1), "{j}");
+    let arrays_named = |j: &serde_json::Value| -> Vec<String> {
+        j["problems"]
+            .as_array()
+            .unwrap()
+            .iter()
+            .map(|p| p["array"].as_str().unwrap().to_string())
+            .collect()
+    };
+    assert!(
+        arrays_named(&j).iter().any(|a| a == "derived/g level 0"),
+        "{j}"
+    );
+    // Damaged metadata of a level of the label image.
+    alone = d.path().join("bad2.ome.zarr");
+    copy_dir(&store, &alone);
+    std::fs::write(alone.join("labels/cells/0/zarr.json"), "{\"zarr_for").unwrap();
+    let (code, j, _) = check(&alone);
+    assert_eq!(code, Some(1), "{j}");
+    assert!(
+        arrays_named(&j)
+            .iter()
+            .any(|a| a.starts_with("labels/cells")),
+        "{j}"
+    );
+}

@@ -692,83 +692,144 @@ fn collect_stats(t: &Target, values: &[(Vec<u64>, Vec<f64>)]) -> Option<LevelSta
 /// its statistics arrays, in parallel (rayon's pool); `progress` counts
 /// chunks. `Err` only when `path` is not a store at all.
 pub fn check(path: &Path, progress: &dyn Progress) -> Result<CheckReport> {
-    let arrays = arrays_of(path)?;
-    let opts = CodecOptions::default();
-    let mut report = CheckReport::default();
+    // The store's own arrays, then those of the images `brickyard process`
+    // wrote into it (`labels/NAME`, `derived/NAME`): a damaged result is
+    // as much a damaged store.
+    let mut images: Vec<(PathBuf, Vec<(String, PathBuf, Option<usize>)>)> =
+        vec![(path.to_path_buf(), arrays_of(path)?)];
     let mut problems = vec![];
-    // Open everything first (the progress bar needs the total).
-    let mut levels = vec![];
-    let mut stats_targets = vec![];
-    for (name, dir, level) in &arrays {
-        match (open_target(name, dir), level) {
-            (Ok(t), Some(k)) => levels.push((*k, t)),
-            (Ok(t), None) => stats_targets.push(t),
-            (Err(e), _) => problems.push(CheckProblem {
-                array: name.clone(),
+    for (rel, dir) in inner_images(path) {
+        match arrays_of(&dir) {
+            Ok(a) => images.push((
+                dir,
+                a.into_iter()
+                    .map(|(n, d, l)| (format!("{rel} {n}"), d, l))
+                    .collect(),
+            )),
+            Err(e) => problems.push(CheckProblem {
+                array: rel,
                 chunk: None,
                 shard: vec![],
-                path: dir.clone(),
-                error: e,
+                path: dir,
+                error: e.to_string(),
             }),
         }
     }
-    let positions: u64 = levels.iter().map(|(_, t)| t.positions()).sum::<u64>()
-        + stats_targets.iter().map(Target::positions).sum::<u64>();
+    let opts = CodecOptions::default();
+    let mut report = CheckReport::default();
+    // Open everything first (the progress bar needs the total).
+    let mut opened = vec![];
+    for (dir, arrays) in &images {
+        let mut levels = vec![];
+        let mut stats_targets = vec![];
+        for (name, adir, level) in arrays {
+            match (open_target(name, adir), level) {
+                (Ok(t), Some(k)) => levels.push((*k, t)),
+                (Ok(t), None) => stats_targets.push(t),
+                (Err(e), _) => problems.push(CheckProblem {
+                    array: name.clone(),
+                    chunk: None,
+                    shard: vec![],
+                    path: adir.clone(),
+                    error: e,
+                }),
+            }
+        }
+        let nlev = arrays.iter().filter(|a| a.2.is_some()).count();
+        opened.push((dir, levels, stats_targets, nlev));
+    }
+    let positions: u64 = opened
+        .iter()
+        .map(|(_, levels, stats_targets, _)| {
+            levels.iter().map(|(_, t)| t.positions()).sum::<u64>()
+                + stats_targets.iter().map(Target::positions).sum::<u64>()
+        })
+        .sum();
     progress.start(positions);
     report.chunks = positions;
-    report.arrays = levels.len() + stats_targets.len();
-    // Statistics first: they say which bricks must be there.
-    let nlev = arrays.iter().filter(|a| a.2.is_some()).count();
-    let mut stats: Vec<Option<LevelStats>> = (0..nlev).map(|_| None).collect();
-    for t in &stats_targets {
-        let tally = run_target(t, progress, &opts);
-        let k: Option<usize> = t
-            .name
-            .strip_prefix("statistics of level ")
-            .and_then(|k| k.parse().ok());
-        if let Some(k) = k.filter(|&k| k < nlev) {
-            stats[k] = collect_stats(t, &tally.values);
-        }
-        report.stored += tally.stored;
-        report.absent += tally.absent;
-        problems.extend(tally.problems);
-    }
-    for (k, t) in levels {
-        // The statistics apply when their grid is this level's grid of
-        // inner chunks (bricks).
-        let st = stats[k].as_ref().filter(|st| {
-            let g = &t.subgrid;
-            match g.len() {
-                3 => st.channels == 1 && g[..] == st.grid[..],
-                4 => t.sub[0] == 1 && g[0] == st.channels && g[1..] == st.grid[..],
-                _ => false,
+    for (dir, levels, stats_targets, nlev) in opened {
+        report.arrays += levels.len() + stats_targets.len();
+        // Statistics first: they say which bricks must be there.
+        let mut stats: Vec<Option<LevelStats>> = (0..nlev).map(|_| None).collect();
+        for t in &stats_targets {
+            let tally = run_target(t, progress, &opts);
+            let k: Option<usize> = t
+                .name
+                .rsplit("statistics of level ")
+                .next()
+                .filter(|_| t.name.contains("statistics of level "))
+                .and_then(|k| k.parse().ok());
+            if let Some(k) = k.filter(|&k| k < nlev) {
+                stats[k] = collect_stats(t, &tally.values);
             }
-        });
-        if stats[k].is_some() && st.is_none() {
-            problems.push(CheckProblem {
-                array: t.name.to_string(),
-                chunk: None,
-                shard: vec![],
-                path: path.join(STATS_DIR).join(k.to_string()),
-                error: format!(
-                    "the statistics do not match the level's grid of bricks {:?}: not used",
-                    t.subgrid
-                ),
-            });
+            report.stored += tally.stored;
+            report.absent += tally.absent;
+            problems.extend(tally.problems);
         }
-        let t = Target { stats: st, ..t };
-        let tally = run_target(&t, progress, &opts);
-        report.stored += tally.stored;
-        report.absent += tally.absent;
-        problems.extend(tally.problems);
+        for (k, t) in levels {
+            // The statistics apply when their grid is this level's grid of
+            // inner chunks (bricks).
+            let st = stats[k].as_ref().filter(|st| {
+                let g = &t.subgrid;
+                match g.len() {
+                    3 => st.channels == 1 && g[..] == st.grid[..],
+                    4 => t.sub[0] == 1 && g[0] == st.channels && g[1..] == st.grid[..],
+                    _ => false,
+                }
+            });
+            if stats[k].is_some() && st.is_none() {
+                problems.push(CheckProblem {
+                    array: t.name.to_string(),
+                    chunk: None,
+                    shard: vec![],
+                    path: dir.join(STATS_DIR).join(k.to_string()),
+                    error: format!(
+                        "the statistics do not match the level's grid of bricks {:?}: not used",
+                        t.subgrid
+                    ),
+                });
+            }
+            let t = Target { stats: st, ..t };
+            let tally = run_target(&t, progress, &opts);
+            report.stored += tally.stored;
+            report.absent += tally.absent;
+            problems.extend(tally.problems);
+        }
     }
     // A stable order: by array as listed, then shard, then chunk.
-    let order = |a: &str| arrays.iter().position(|x| x.0 == a).unwrap_or(usize::MAX);
+    let listed: Vec<&str> = images
+        .iter()
+        .flat_map(|(_, a)| a.iter().map(|x| x.0.as_str()))
+        .collect();
+    let order = |a: &str| listed.iter().position(|x| *x == a).unwrap_or(usize::MAX);
     problems.sort_by(|a, b| {
         (order(&a.array), &a.shard, &a.chunk).cmp(&(order(&b.array), &b.shard, &b.chunk))
     });
     report.problems = problems;
     Ok(report)
+}
+
+/// The images under a local store's `labels/` and `derived/` groups (what
+/// `brickyard process` writes), as `(group/name, folder)`, by name; hidden
+/// leftovers of interrupted jobs are not images (`info` names them).
+fn inner_images(path: &Path) -> Vec<(String, PathBuf)> {
+    let mut out = vec![];
+    for group in ["labels", "derived"] {
+        let Ok(rd) = std::fs::read_dir(path.join(group)) else {
+            continue;
+        };
+        let mut names: Vec<String> = rd
+            .flatten()
+            .filter(|e| e.path().is_dir())
+            .map(|e| e.file_name().to_string_lossy().into_owned())
+            .filter(|n| !n.starts_with('.'))
+            .collect();
+        names.sort();
+        for n in names {
+            out.push((format!("{group}/{n}"), path.join(group).join(&n)));
+        }
+    }
+    out
 }
 
 #[cfg(test)]
