@@ -137,6 +137,8 @@ class Store:
                 "bytes_read": self._native.bytes_read()}
 
     def level(self, level: int) -> "Level":
+        if not isinstance(level, (int, np.integer)) or isinstance(level, bool):
+            raise TypeError(f"level: expected an integer, found {level!r}")
         if not 0 <= level < self.levels:
             raise IndexError(f"level: {level} asked for but the store has {self.levels} level(s)")
         return Level(self, level)
@@ -160,10 +162,7 @@ class Store:
         if not isinstance(key, tuple):
             key = (key,)
         if len(key) == 4:
-            c = key[0]
-            if not isinstance(c, (int, np.integer)):
-                raise TypeError("store[c, z, y, x]: the channel must be an integer")
-            return self.read(0, int(c) % self.channels if c < 0 else int(c), key[1:])
+            return self.read(0, _channel_index(key[0], self.channels, "store"), key[1:])
         return self.read(0, 0, key)
 
     def __repr__(self) -> str:
@@ -193,11 +192,22 @@ class Level:
         if not isinstance(key, tuple):
             key = (key,)
         if len(key) == 4:
-            return self.store.read(self.index, int(key[0]), key[1:])
+            c = _channel_index(key[0], self.store.channels, "level")
+            return self.store.read(self.index, c, key[1:])
         return self.store.read(self.index, 0, key)
 
     def __repr__(self) -> str:
         return f"<brickyard.Level {self.index} of {self.store.path!r}: {self.shape}>"
+
+
+def _channel_index(c: Any, channels: int, what: str) -> int:
+    """Channel `c` of `channels` as NumPy indexes: an integer, negative
+    from the end, IndexError out of range."""
+    if not isinstance(c, (int, np.integer)) or isinstance(c, bool):
+        raise TypeError(f"{what}[c, z, y, x]: the channel must be an integer, found {c!r}")
+    if not -channels <= c < channels:
+        raise IndexError(f"channel: {c} asked for but the store has {channels} channel(s)")
+    return int(c) % channels
 
 
 def open(path: Union[str, os.PathLike], cache: int = 256 << 20, chunk_cache: int = 64 << 20,

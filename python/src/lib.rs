@@ -68,6 +68,10 @@ fn interrupted() -> bool {
 struct NativeStore {
     path: PathBuf,
     loader: Loader,
+    /// One read at a time: a read takes what the loader hands out and its
+    /// failures, so two at once took each other's bricks (and one then
+    /// failed, "never arrived"). Each read keeps the loader's threads busy.
+    reads: std::sync::Mutex<()>,
     scales: Vec<Option<Vec<f64>>>,
     translations: Vec<Option<Vec<f64>>>,
     axes: Vec<String>,
@@ -133,6 +137,7 @@ impl NativeStore {
                 units: info.units.clone(),
                 path: path.clone(),
                 loader,
+                reads: std::sync::Mutex::new(()),
             })
         })
         .map_err(to_py)
@@ -208,6 +213,7 @@ impl NativeStore {
         let n = read::region_len(&self.loader, level, channel, lo, hi).map_err(to_py)?;
         PyByteArray::new_with(py, n, |buf| {
             py.detach(|| {
+                let _one = self.reads.lock().unwrap_or_else(|e| e.into_inner());
                 read::read_region_into(&self.loader, level, channel, lo, hi, &interrupted, buf)
             })
             .map_err(to_py)
@@ -345,24 +351,15 @@ struct PyConvertOptions {
 
 impl PyConvertOptions {
     fn to_options(&self) -> PyResult<ConvertOptions> {
-        let compression = match self.compression.as_str() {
-            "lz4" => Compression::Lz4,
-            "none" => Compression::None,
-            z if z.starts_with("zstd") => {
-                let level = z
-                    .strip_prefix("zstd")
-                    .unwrap()
-                    .trim_start_matches(':')
-                    .parse::<i32>()
-                    .unwrap_or(3);
-                Compression::Zstd(level)
-            }
-            other => {
-                return Err(PyValueError::new_err(format!(
-                    "compression: expected lz4, zstd, zstd:LEVEL or none, found {other:?}"
-                )))
-            }
-        };
+        // The command line's parser (zstd levels checked, `zstd:abc`
+        // refused rather than taken as level 3).
+        let compression = Compression::parse(&self.compression).ok_or_else(|| {
+            PyValueError::new_err(format!(
+                "compression: expected lz4, zstd, zstd:LEVEL (LEVEL from -131072 to 22) or none, \
+                 found {:?}",
+                self.compression
+            ))
+        })?;
         for (what, v) in [("brick", self.brick), ("shard", self.shard)] {
             if v.contains(&0) {
                 return Err(PyValueError::new_err(format!(
@@ -429,7 +426,8 @@ fn convert(
     zarr_level: usize,
     progress: Option<Py<PyAny>>,
 ) -> PyResult<String> {
-    if !src.exists() {
+    // (A remote store is there or not as its server says, when opened.)
+    if !brickyard_store::storage::is_remote(&src) && !src.exists() {
         return Err(missing(&src));
     }
     let opts = options.to_options()?;

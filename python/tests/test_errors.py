@@ -64,9 +64,22 @@ def test_wrong_dtype_and_shape(tmp_path):
         _native.from_bytes(b"\0" * 8, (1, 4, 16, 16), "uint8", str(tmp_path / "x"),
                            {"brick": (16,) * 3, "shard": (32,) * 3, "compression": "lz4", "labels": False,
                             "memory": 1 << 28, "overwrite": False, "spacing": None, "origin": None, "unit": None})
-    with pytest.raises(ValueError, match="compression: expected lz4"):
-        brickyard.from_numpy(np.zeros((4, 4, 4), np.uint8), tmp_path / "z.ome.zarr", compression="gzip",
-                             progress=False)
+    for bad in ("gzip", "zstd:abc", "zstd:99"):
+        with pytest.raises(ValueError, match="compression: expected lz4"):
+            brickyard.from_numpy(np.zeros((4, 4, 4), np.uint8), tmp_path / "z.ome.zarr", compression=bad,
+                                 progress=False)
+
+
+def test_spacing_and_origin_that_are_no_geometry(tmp_path):
+    # Spacings not positive and origins not finite were written as 1 and as
+    # null (invalid OME-Zarr); nothing is left behind.
+    a = np.zeros((4, 4, 4), np.uint8)
+    for kw, field in [({"spacing": 0}, "spacing"), ({"spacing": (-1, 1, 1)}, "spacing"),
+                      ({"spacing": float("nan")}, "spacing"), ({"origin": float("inf")}, "origin")]:
+        dst = tmp_path / f"{field}.ome.zarr"
+        with pytest.raises(ValueError, match=field):
+            brickyard.from_numpy(a, dst, progress=False, **kw)
+        assert not dst.exists()
 
 
 def test_existing_output_is_refused(store, tmp_path):

@@ -60,6 +60,20 @@ def test_store_slicing_and_metadata(tmp_path):
     for c in range(2):
         np.testing.assert_array_equal(s.read(0, c), zarr_level(dst, 0, c)[...])
         np.testing.assert_array_equal(s.read(1, c), zarr_level(dst, 1, c)[...])
+    # Channels index as NumPy does: negative from the end, out of range an
+    # IndexError (a channel of -4 of 2 wrapped around), floats a TypeError,
+    # the same through a Level.
+    np.testing.assert_array_equal(s[-1, 3, :, :], a[-1, 3])
+    np.testing.assert_array_equal(s.level(0)[-2, 3, :, :], a[0, 3])
+    for bad in (-3, 2, -7):
+        with pytest.raises(IndexError, match="channel"):
+            s[bad, 0, 0, :]
+        with pytest.raises(IndexError, match="channel"):
+            s.level(0)[bad, 0, 0, :]
+    with pytest.raises(TypeError, match="channel"):
+        s.level(0)[1.9, 0, 0, :]
+    with pytest.raises(TypeError, match="level"):
+        s.level(1.5)
 
 
 def test_convert_from_zarr_equals_source(tmp_path):

@@ -1097,6 +1097,17 @@ fn check_geometry(
         (&meta.path, "pass --origin to set another")
     };
     let xyz = |v: [f64; 3]| [v[2], v[1], v[0]];
+    // Spacings given here must be positive numbers (a header's that are
+    // not are taken as 1, with the input's other oddities).
+    if let Some(sp) = opts.spacing {
+        if sp.iter().any(|v| !(v.is_finite() && *v > 0.0)) {
+            return Err(StoreError::invalid(
+                output,
+                "spacing",
+                format!("expected positive numbers, found {:?} (x, y, z)", xyz(sp)),
+            ));
+        }
+    }
     if let Some(o) = opts.origin.or(meta.origin) {
         if o.iter().any(|v| !v.is_finite()) {
             return Err(StoreError::invalid(

@@ -106,7 +106,11 @@ pub fn format_check(r: &CheckReport) -> String {
 
 /// The arrays of a store: `(name, directory)`, levels first, then the
 /// statistics of each level that has them.
-fn arrays_of(path: &Path) -> Result<Vec<(String, PathBuf, Option<usize>)>> {
+/// An array to check: its name in reports, its folder, and the level it is
+/// (`None`: statistics).
+type ArrayAt = (String, PathBuf, Option<usize>);
+
+fn arrays_of(path: &Path) -> Result<Vec<ArrayAt>> {
     if crate::storage::is_remote(path) {
         return Err(StoreError::unsupported(
             path,
@@ -695,8 +699,7 @@ pub fn check(path: &Path, progress: &dyn Progress) -> Result<CheckReport> {
     // The store's own arrays, then those of the images `brickyard process`
     // wrote into it (`labels/NAME`, `derived/NAME`): a damaged result is
     // as much a damaged store.
-    let mut images: Vec<(PathBuf, Vec<(String, PathBuf, Option<usize>)>)> =
-        vec![(path.to_path_buf(), arrays_of(path)?)];
+    let mut images: Vec<(PathBuf, Vec<ArrayAt>)> = vec![(path.to_path_buf(), arrays_of(path)?)];
     let mut problems = vec![];
     for (rel, dir) in inner_images(path) {
         match arrays_of(&dir) {

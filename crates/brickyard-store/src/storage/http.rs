@@ -25,6 +25,10 @@ pub struct HttpConfig {
     pub timeout: Duration,
     /// Longest time to connect.
     pub connect_timeout: Duration,
+    /// Longest wait for the answer's headers once the request is sent (a
+    /// server that accepts connections but never answers); used where
+    /// shorter than `timeout`.
+    pub response_timeout: Duration,
     /// Attempts after the first for a failure worth retrying.
     pub retries: u32,
     /// Wait before the first retry; doubled for each further one (with
@@ -43,6 +47,7 @@ impl Default for HttpConfig {
         HttpConfig {
             timeout: Duration::from_secs(30),
             connect_timeout: Duration::from_secs(10),
+            response_timeout: Duration::from_secs(10),
             retries: 4,
             backoff: Duration::from_millis(200),
             max_in_flight: 16,
@@ -234,8 +239,9 @@ impl Failure {
     }
 }
 
-/// Connection attempts that failed in a row, over all requests to a host,
-/// after which it counts as down.
+/// Attempts that found nobody there (no connection, or no answer to a
+/// request sent) in a row, over all requests to a host, after which it
+/// counts as down.
 const HOST_DOWN_AFTER: u32 = 6;
 /// How long requests to a host that is down fail without trying; doubled
 /// each time a try after the pause fails too, up to [`HOST_PAUSE_MAX`].
@@ -341,6 +347,7 @@ impl Client {
             .http_status_as_error(false)
             .timeout_global(Some(cfg.timeout))
             .timeout_connect(Some(cfg.connect_timeout))
+            .timeout_recv_response(Some(cfg.response_timeout).filter(|t| *t < cfg.timeout))
             .max_redirects(4)
             .max_idle_connections_per_host(cfg.max_in_flight.max(1))
             .build()
@@ -619,7 +626,7 @@ impl Client {
         let h = hosts.get(host_of(url))?;
         let left = h.down_until?.checked_duration_since(Instant::now())?;
         Some(format!(
-            "{} is not answering: {} connection attempts in a row failed (last: {}); \
+            "{} is not answering: {} attempts in a row got no connection or no answer (last: {}); \
              requests to it fail without trying for {:.0} s more",
             host_of(url),
             h.fails_in_a_row,
@@ -739,6 +746,11 @@ impl Client {
                     self.cfg.connect_timeout.as_secs_f64()
                 ))
             }
+            // Connected, asked, and no answer: as good as nobody there.
+            ureq::Error::Timeout(t @ ureq::Timeout::RecvResponse) => Failure::unreachable(format!(
+                "no answer ({t}) within {:.1} s",
+                self.cfg.response_timeout.as_secs_f64()
+            )),
             ureq::Error::Timeout(t) => Failure::retry(format!(
                 "timed out ({t}) after at most {:.1} s",
                 self.cfg.timeout.as_secs_f64()
@@ -861,6 +873,41 @@ mod tests {
         l.local_addr().unwrap().port()
     }
 
+    /// A server that accepts connections and never answers (hung, or
+    /// stopped): each request waits for the answer's headers at most
+    /// `response_timeout`, and the host soon counts as down. `open` of
+    /// such a store waited out 30 s × 5 attempts per document, ten minutes.
+    #[test]
+    fn a_host_that_never_answers_counts_as_down() {
+        let l = TcpListener::bind("127.0.0.1:0").unwrap();
+        let port = l.local_addr().unwrap().port();
+        // Accept and hold every connection, answer nothing.
+        std::thread::spawn(move || {
+            let mut held = vec![];
+            for s in l.incoming().flatten() {
+                held.push(s);
+            }
+        });
+        let c = Client::new(HttpConfig {
+            retries: 4,
+            backoff: Duration::from_millis(10),
+            timeout: Duration::from_secs(30),
+            response_timeout: Duration::from_millis(200),
+            ..HttpConfig::default()
+        });
+        let t0 = Instant::now();
+        let errors: Vec<String> = (0..6)
+            .map(|i| {
+                c.size(&format!("http://127.0.0.1:{port}/s.zarr/c/{i}"))
+                    .unwrap_err()
+                    .to_string()
+            })
+            .collect();
+        assert!(t0.elapsed() < Duration::from_secs(5), "{:?}", t0.elapsed());
+        assert!(errors[0].contains("no answer"), "{}", errors[0]);
+        assert!(errors[5].contains("is not answering"), "{}", errors[5]);
+    }
+
     /// A server that was there, went away and came back: its requests stop
     /// costing each a whole schedule of retries once the host counts as
     /// down, say why, and it is used again after the pause.
@@ -886,7 +933,7 @@ mod tests {
         for e in &errors[2..] {
             assert!(
                 e.contains(&format!("127.0.0.1:{port} is not answering"))
-                    && e.contains("connection attempts in a row failed"),
+                    && e.contains("attempts in a row got no connection or no answer"),
                 "{e}"
             );
         }
