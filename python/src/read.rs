@@ -106,6 +106,11 @@ pub fn read_region_into(
                     .into_iter()
                     .find(|f| want.contains(&f.key))
                 {
+                    // The store could not be read: an OSError in Python,
+                    // as at `open`; what it holds is wrong: a ValueError.
+                    if f.io {
+                        return Err(std::io::Error::other(f.message).into());
+                    }
                     bail!("{}", f.message);
                 }
                 if want.is_empty() {

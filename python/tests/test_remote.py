@@ -65,3 +65,27 @@ def test_missing_url_names_it(served):
     bad = url.replace("remote.ome.zarr", "nowhere.ome.zarr")
     with pytest.raises(FileNotFoundError, match=re.escape(bad) + ".*404"):
         brickyard.open(bad)
+
+
+def test_a_server_gone_mid_session_is_an_os_error(tmp_path):
+    # The store cannot be read any more: OSError, as when `open` cannot
+    # reach it (a read raised ValueError), within a bounded time.
+    import time
+
+    local = tmp_path / "gone.ome.zarr"
+    a = volume((40, 48, 64), "uint16", seed=5)
+    brickyard.from_numpy(a, local, brick=16, shard=32, progress=False)
+    p = subprocess.Popen([str(brickyard_bin()), "serve", str(local), "--port", "0", "--quiet"],
+                         stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+    try:
+        m = re.search(r"at (http://127\.0\.0\.1:\d+)/", p.stderr.readline())
+        assert m
+        s = brickyard.open(f"{m.group(1)}/gone.ome.zarr", brick=16, cache=1 << 20)
+        np.testing.assert_array_equal(s.read(0, 0, np.s_[0:8, 0:8, 0:8]), a[0:8, 0:8, 0:8])
+    finally:
+        p.terminate()
+        p.wait(timeout=10)
+    t0 = time.monotonic()
+    with pytest.raises(OSError, match="gone.ome.zarr"):
+        s.read(0, 0, np.s_[30:40, 40:48, 48:64])
+    assert time.monotonic() - t0 < 30

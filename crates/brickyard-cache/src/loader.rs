@@ -55,6 +55,9 @@ use zarrs::array::Array;
 pub struct LoadFailure {
     pub key: BrickKey,
     pub message: String,
+    /// The store could not be read (a file or a server: an I/O error),
+    /// as opposed to what it holds being wrong.
+    pub io: bool,
 }
 
 /// A snapshot of the loader's counters.
@@ -570,14 +573,17 @@ impl Shared {
         let result = catch_unwind(AssertUnwindSafe(|| self.load(&key)));
         let result = match result {
             Ok(Ok(b)) => Ok(Arc::new(b)),
-            Ok(Err(e)) => Err(e.to_string()),
-            Err(panic) => Err(format!(
-                "panic while loading: {}",
-                panic
-                    .downcast_ref::<String>()
-                    .map(String::as_str)
-                    .or_else(|| panic.downcast_ref::<&str>().copied())
-                    .unwrap_or("(no message)")
+            Ok(Err(e)) => Err((e.to_string(), matches!(e, StoreError::Io { .. }))),
+            Err(panic) => Err((
+                format!(
+                    "panic while loading: {}",
+                    panic
+                        .downcast_ref::<String>()
+                        .map(String::as_str)
+                        .or_else(|| panic.downcast_ref::<&str>().copied())
+                        .unwrap_or("(no message)")
+                ),
+                false,
             )),
         };
         let c = &self.counters;
@@ -604,9 +610,9 @@ impl Shared {
                     st.done.push(b);
                 }
             }
-            Err(message) => {
+            Err((message, io)) => {
                 st.failed_keys.insert(key);
-                st.failures.push(LoadFailure { key, message });
+                st.failures.push(LoadFailure { key, message, io });
             }
         }
         drop(st);
@@ -959,6 +965,7 @@ impl Loader {
                         "{}: {key:?} is outside the volume",
                         self.shared.path.display()
                     ),
+                    io: false,
                 });
                 self.shared.counters.failed.fetch_add(1, Ordering::Relaxed);
                 continue;

@@ -80,7 +80,7 @@ impl PidLock {
                         });
                     }
                     eprintln!(
-                        "note: removing {} (the lock of a process that is gone)",
+                        "note: removing {} (left by an interrupted run: the lock of a process that is gone)",
                         path.display()
                     );
                     match std::fs::remove_file(path) {
