@@ -355,8 +355,8 @@ impl PyConvertOptions {
         // refused rather than taken as level 3).
         let compression = Compression::parse(&self.compression).ok_or_else(|| {
             PyValueError::new_err(format!(
-                "compression: expected lz4, zstd, zstd:LEVEL (LEVEL from -131072 to 22) or none, \
-                 found {:?}",
+                "compression: expected {}, found {:?}",
+                Compression::EXPECTED,
                 self.compression
             ))
         })?;

@@ -98,7 +98,7 @@ struct LevelStats {
     /// The statistics array's folder, for reports.
     dir: PathBuf,
     /// What made chunks unreadable, once each (reported by
-    /// [`Loader::stats_problems`]).
+    /// [`Loader::take_stats_problems`]).
     problems: Mutex<Vec<String>>,
 }
 

@@ -457,11 +457,11 @@ pub fn run(
             caller.overwrite
         )));
     }
-    let listed = if is_label {
-        Some(labels_list(&paths.dir).map_err(leave)?)
-    } else {
-        None
-    };
+    // A damaged list of label images is refused before any work (it is
+    // read again, under its lock, when the result is added to it).
+    if is_label {
+        labels_list(&paths.dir).map_err(leave)?;
+    }
     if let (Some(d), false) = (&on, c.quiet) {
         eprintln!("filter stages on the GPU: {d}");
     }
@@ -569,7 +569,7 @@ pub fn run(
         std::fs::rename(&paths.staged, &paths.fin)
             .with_context(|| format!("{}: cannot publish", paths.fin.display()))?;
     }
-    if listed.is_some() {
+    if is_label {
         add_label(&paths.dir, &paths.name)?;
     } else {
         let g = paths.dir.join("zarr.json");

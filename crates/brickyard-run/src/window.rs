@@ -9,12 +9,13 @@ use brickyard_store::import::zarr;
 use brickyard_store::VolumeSource;
 use std::path::Path;
 
-/// Voxels read at most: the finest level at or under this is read whole.
+/// Voxels looked at most: the finest level at or under this is read.
 const MAX_VOXELS: u64 = 1 << 22;
 /// Values kept at most (every k-th voxel of the level, in its order): 8 MiB
 /// of `f64`s.
 const MAX_SAMPLES: u64 = 1 << 20;
-/// Voxels read at once (whole planes, at least one).
+/// Voxels read at once: whole planes, as many as the source reads at once
+/// (a store's chunk depth, so that no chunk is decoded twice) or more.
 const SLAB_VOXELS: u64 = 1 << 18;
 
 /// The window of `values`: the 0.5th and 99.5th percentiles of the finite
@@ -62,7 +63,8 @@ pub fn robust_window(mut values: Vec<f64>) -> Option<(f64, f64)> {
 }
 
 /// The default window of channel `c` of `store`, from the finest level of
-/// at most four million voxels (read whole). A level that cannot be read
+/// at most four million voxels (every voxel, or every k-th beyond a million,
+/// read slab by slab). A level that cannot be read
 /// (a damaged chunk) gives way to the next coarser one; `None` when none
 /// can be read.
 pub fn auto_window(store: &Path, levels: usize, c: usize) -> Result<Option<(f64, f64)>> {
@@ -90,7 +92,8 @@ pub fn window_of_levels(
         // its own copy went over small budgets by up to 64 MiB).
         let n = z * y * x;
         let stride = n.div_ceil(MAX_SAMPLES).max(1);
-        let planes = (SLAB_VOXELS / (y * x).max(1)).max(1);
+        let depth = src.preferred_read()[0].max(1);
+        let planes = (SLAB_VOXELS / (y * x).max(1)).div_ceil(depth).max(1) * depth;
         let values: Option<Vec<f64>> = dispatch_dtype!(m.dtype, T => {
             let mut values = Vec::with_capacity(n.div_ceil(stride) as usize);
             let mut buf = vec![];

@@ -1169,12 +1169,12 @@ pub fn partial_path(output: &Path) -> PathBuf {
 }
 
 /// Where a replaced store stays while its replacement is swapped in.
-pub fn old_path(output: &Path) -> PathBuf {
+fn old_path(output: &Path) -> PathBuf {
     beside(output, "old")
 }
 
 /// The lock that keeps `output` to one writer at a time.
-pub fn lock_path(output: &Path) -> PathBuf {
+pub(crate) fn lock_path(output: &Path) -> PathBuf {
     beside(output, "lock")
 }
 
@@ -1193,7 +1193,7 @@ fn beside(output: &Path, ext: &str) -> PathBuf {
 /// moves the old store there. One is left when a run is killed during its
 /// swap: beside the new store (the old one half removed), or instead of
 /// it (the old store whole: it is all there is of `output`).
-pub fn check_old(output: &Path) -> Result<()> {
+fn check_old(output: &Path) -> Result<()> {
     let old = old_path(output);
     if std::fs::symlink_metadata(&old).is_err() {
         return Ok(());

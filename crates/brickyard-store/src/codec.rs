@@ -22,6 +22,9 @@ pub enum Compression {
 }
 
 impl Compression {
+    /// What [`Compression::parse`] takes, for messages.
+    pub const EXPECTED: &'static str = "lz4, zstd, zstd:LEVEL (LEVEL from -131072 to 22) or none";
+
     pub fn parse(s: &str) -> Option<Compression> {
         match s {
             "lz4" | "blosc" | "blosc-lz4" => Some(Compression::Lz4),

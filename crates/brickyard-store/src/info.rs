@@ -410,13 +410,7 @@ fn inner_images(path: &Path, problems: &mut Vec<String>) -> Vec<(String, String)
                 })
                 .unwrap_or_default()
         } else {
-            let Ok(rd) = std::fs::read_dir(path.join(group)) else {
-                continue;
-            };
-            rd.flatten()
-                .filter(|e| e.path().is_dir())
-                .map(|e| e.file_name().to_string_lossy().into_owned())
-                .collect()
+            group_folders(path, group)
         };
         names.sort();
         for name in names {
@@ -444,6 +438,21 @@ fn inner_images(path: &Path, problems: &mut Vec<String>) -> Vec<(String, String)
         }
     }
     out
+}
+
+/// The folders in a local store's group `group` (`labels`, `derived`),
+/// by name, hidden ones (leftovers of interrupted jobs) included.
+fn group_folders(path: &Path, group: &str) -> Vec<String> {
+    let Ok(rd) = std::fs::read_dir(path.join(group)) else {
+        return vec![];
+    };
+    let mut names: Vec<String> = rd
+        .flatten()
+        .filter(|e| e.path().is_dir())
+        .map(|e| e.file_name().to_string_lossy().into_owned())
+        .collect();
+    names.sort();
+    names
 }
 
 /// Human-readable byte count.

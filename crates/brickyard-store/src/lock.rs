@@ -45,6 +45,9 @@ impl PidLock {
     }
 
     fn acquire(path: &Path, what: &str, until: Option<Instant>) -> Result<PidLock> {
+        // Temporaries of attempts killed between writing and linking:
+        // cleared once, before the attempts of this call.
+        remove_stale_temporaries(path);
         // Locks of processes that are gone, removed so far.
         let mut removed = 0;
         loop {
@@ -113,7 +116,6 @@ fn create_with_pid(path: &Path) -> Result<bool> {
         ".{name}.{pid}.{}.tmp",
         SERIAL.fetch_add(1, Ordering::Relaxed)
     ));
-    remove_stale_temporaries(path, &name);
     std::fs::write(&tmp, format!("{pid}\n")).at(&tmp)?;
     let linked = std::fs::hard_link(&tmp, path);
     let _ = std::fs::remove_file(&tmp);
@@ -140,7 +142,11 @@ fn create_with_pid(path: &Path) -> Result<bool> {
 
 /// Remove the temporary files of lock attempts by processes that are gone
 /// (killed between writing one and linking it into place).
-fn remove_stale_temporaries(path: &Path, name: &str) {
+fn remove_stale_temporaries(path: &Path) {
+    let name = path
+        .file_name()
+        .map(|n| n.to_string_lossy().into_owned())
+        .unwrap_or_default();
     let dir = match path.parent() {
         Some(d) if !d.as_os_str().is_empty() => d,
         _ => Path::new("."),

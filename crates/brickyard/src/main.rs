@@ -258,7 +258,10 @@ pub fn peak_rss() -> u64 {
 /// A `--compression` value (`convert`, `bench`).
 pub(crate) fn parse_compression(s: &str) -> Result<Compression> {
     Compression::parse(s).with_context(|| {
-        format!("compression: expected lz4, zstd, zstd:LEVEL (LEVEL from -131072 to 22) or none, found {s:?}")
+        format!(
+            "compression: expected {}, found {s:?}",
+            Compression::EXPECTED
+        )
     })
 }
 
@@ -291,17 +294,6 @@ fn convert_options(p: &PyramidArgs) -> Result<ConvertOptions> {
             );
         }
     }
-    let origin = xyz(p
-        .origin
-        .as_deref()
-        .map(|s| parse_triple(s, "origin"))
-        .transpose()?);
-    if origin.is_some_and(|o| o.iter().any(|v| !v.is_finite())) {
-        bail!(
-            "origin: expected finite numbers, found {:?}",
-            p.origin.as_deref().unwrap_or("")
-        );
-    }
     Ok(ConvertOptions {
         brick: [p.brick; 3],
         shard: [p.shard; 3],
@@ -310,7 +302,12 @@ fn convert_options(p: &PyramidArgs) -> Result<ConvertOptions> {
         memory: parse_bytes(&p.memory).context("--memory")?,
         overwrite: p.overwrite,
         spacing,
-        origin,
+        // (Checked with the spacings the input gives, by the builder.)
+        origin: xyz(p
+            .origin
+            .as_deref()
+            .map(|s| parse_triple(s, "origin"))
+            .transpose()?),
         unit: p.unit.clone(),
         columns: p.columns.max(1),
     })

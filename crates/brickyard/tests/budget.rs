@@ -375,18 +375,21 @@ fn damaged_chunks_are_drawn_coarser_and_reported() {
     let lost = holes(&clean, &png_rgba(&png));
     assert!(lost * 200 <= lit(&clean), "{lost} pixels lost");
     // The text report lists them too, and exits 0.
-    let o = run(&[
-        "render",
-        s(&store),
-        "--size",
-        "160",
-        "--brick",
-        "16",
-        "--backend",
-        "cpu",
-        "--out",
-        s(&png),
-    ]);
+    let text_render = || {
+        run(&[
+            "render",
+            s(&store),
+            "--size",
+            "160",
+            "--brick",
+            "16",
+            "--backend",
+            "cpu",
+            "--out",
+            s(&png),
+        ])
+    };
+    let o = text_render();
     let out = ok(&o);
     assert!(out.contains("could not load level 0"), "{out}");
     // Damaged brick statistics change nothing in the image (their bricks
@@ -398,18 +401,7 @@ fn damaged_chunks_are_drawn_coarser_and_reported() {
         *x ^= 0xa5;
     }
     std::fs::write(&stats, &b).unwrap();
-    let o = run(&[
-        "render",
-        s(&store),
-        "--size",
-        "160",
-        "--brick",
-        "16",
-        "--backend",
-        "cpu",
-        "--out",
-        s(&png),
-    ]);
+    let o = text_render();
     ok(&o);
     let e = String::from_utf8_lossy(&o.stderr);
     assert!(

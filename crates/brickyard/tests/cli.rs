@@ -783,19 +783,21 @@ fn writers_refuse_an_output_whose_folder_is_missing() {
     assert!(!png.exists() && !deep.exists());
 }
 
+/// A 16³ u8 ramp (`v.raw` in `dir`; no sidecar: give `--dims 16x16x16
+/// --dtype u8`).
+fn ramp_raw(dir: &Path) -> std::path::PathBuf {
+    let raw = dir.join("v.raw");
+    let v: Vec<u8> = (0..16u32 * 16 * 16).map(|i| (i % 251) as u8).collect();
+    std::fs::write(&raw, v).unwrap();
+    raw
+}
+
 /// `convert --overwrite` replaces a store (or an empty folder), never a
 /// file or a folder of other things; bad units and zstd levels are named.
 #[test]
 fn overwrite_replaces_stores_only() {
     let d = tempfile::tempdir().unwrap();
-    let raw = d.path().join("v.raw");
-    std::fs::write(
-        &raw,
-        (0..16u32 * 16 * 16)
-            .map(|i| (i % 251) as u8)
-            .collect::<Vec<_>>(),
-    )
-    .unwrap();
+    let raw = ramp_raw(d.path());
     let conv = |out: &Path, extra: &[&str]| {
         let mut a = vec![
             "convert",
@@ -861,14 +863,7 @@ fn overwrite_replaces_stores_only() {
 #[test]
 fn outputs_and_geometry_a_store_cannot_have_are_refused() {
     let d = tempfile::tempdir().unwrap();
-    let raw = d.path().join("v.raw");
-    std::fs::write(
-        &raw,
-        (0..16u32 * 16 * 16)
-            .map(|i| (i % 251) as u8)
-            .collect::<Vec<_>>(),
-    )
-    .unwrap();
+    let raw = ramp_raw(d.path());
     let conv = |dir: &Path, out: &str, extra: &[&str]| {
         let mut a = vec![
             "convert",
@@ -1000,14 +995,7 @@ fn outputs_and_geometry_a_store_cannot_have_are_refused() {
 #[test]
 fn negative_values_are_taken_as_values() {
     let d = tempfile::tempdir().unwrap();
-    let raw = d.path().join("v.raw");
-    std::fs::write(
-        &raw,
-        (0..16u32 * 16 * 16)
-            .map(|i| (i % 251) as u8)
-            .collect::<Vec<_>>(),
-    )
-    .unwrap();
+    let raw = ramp_raw(d.path());
     let store = d.path().join("v.zarr");
     let o = run(&[
         "convert",

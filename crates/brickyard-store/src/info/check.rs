@@ -758,10 +758,8 @@ pub fn check(path: &Path, progress: &dyn Progress) -> Result<CheckReport> {
             let tally = run_target(t, progress, &opts);
             let k: Option<usize> = t
                 .name
-                .rsplit("statistics of level ")
-                .next()
-                .filter(|_| t.name.contains("statistics of level "))
-                .and_then(|k| k.parse().ok());
+                .rsplit_once("statistics of level ")
+                .and_then(|(_, k)| k.parse().ok());
             if let Some(k) = k.filter(|&k| k < nlev) {
                 stats[k] = collect_stats(t, &tally.values);
             }
@@ -813,26 +811,18 @@ pub fn check(path: &Path, progress: &dyn Progress) -> Result<CheckReport> {
 }
 
 /// The images under a local store's `labels/` and `derived/` groups (what
-/// `brickyard process` writes), as `(group/name, folder)`, by name; hidden
+/// `brickyard process` writes), as `(group/name, folder)`; hidden
 /// leftovers of interrupted jobs are not images (`info` names them).
 fn inner_images(path: &Path) -> Vec<(String, PathBuf)> {
-    let mut out = vec![];
-    for group in ["labels", "derived"] {
-        let Ok(rd) = std::fs::read_dir(path.join(group)) else {
-            continue;
-        };
-        let mut names: Vec<String> = rd
-            .flatten()
-            .filter(|e| e.path().is_dir())
-            .map(|e| e.file_name().to_string_lossy().into_owned())
-            .filter(|n| !n.starts_with('.'))
-            .collect();
-        names.sort();
-        for n in names {
-            out.push((format!("{group}/{n}"), path.join(group).join(&n)));
-        }
-    }
-    out
+    ["labels", "derived"]
+        .into_iter()
+        .flat_map(|g| {
+            super::group_folders(path, g)
+                .into_iter()
+                .filter(|n| !n.starts_with('.'))
+                .map(move |n| (format!("{g}/{n}"), path.join(g).join(n)))
+        })
+        .collect()
 }
 
 #[cfg(test)]

@@ -209,8 +209,9 @@ impl IndexCache {
 /// One failed attempt.
 struct Failure {
     retry: bool,
-    /// No connection could be made (refused, unreachable, connect timed
-    /// out): counts toward the host being down.
+    /// Nobody there: no connection (refused, unreachable, connect timed
+    /// out) or no answer to the request sent; counts toward the host
+    /// being down.
     unreachable: bool,
     what: String,
 }
@@ -251,7 +252,7 @@ const HOST_PAUSE_MAX: Duration = Duration::from_secs(60);
 /// What the client knows of a host's health. A server that went away
 /// would otherwise cost every value read from it its whole schedule of
 /// retries (a render of a few hundred bricks took half an hour to give
-/// up): once `HOST_DOWN_AFTER` connection attempts in a row failed, its
+/// up): once `HOST_DOWN_AFTER` attempts in a row found nobody there, its
 /// requests fail at once for a pause, then one attempt tries again. Any
 /// answer (of any HTTP status) makes it healthy again.
 #[derive(Default)]
@@ -864,6 +865,7 @@ fn read_body(
 
 #[cfg(test)]
 mod tests {
+    use super::*;
     use std::io::Write as _;
     use std::net::TcpListener;
 
@@ -963,8 +965,6 @@ mod tests {
         assert!(!hosts.contains_key(&format!("http://127.0.0.1:{port}")));
         assert_eq!(hosts.len(), 1, "the other host's failures stay counted");
     }
-
-    use super::*;
 
     #[test]
     fn content_ranges_parse() {
