@@ -135,7 +135,8 @@ struct Uniform {
     step: [[f32; 4]; MAX_LEVELS],
     bricks: [[u32; 4]; MAX_LEVELS],
     /// A sort-last region ([`RenderParams::clip`]): its world box; on (1),
-    /// no early termination (1), MIP raw maxima (1), 0.
+    /// no early termination (1), MIP raw maxima (1), a slice of a label
+    /// image (1, [`RenderParams::labels`]).
     clip_lo: [f32; 4],
     clip_hi: [f32; 4],
     region: [u32; 4],
@@ -757,6 +758,7 @@ impl GpuRenderer {
         // transfer function) or, outside regions, no ray ended early.
         u.region[2] = params.mip_values as u32;
         u.region[1] = !params.early_termination as u32;
+        u.region[3] = params.labels as u32;
         if let Some((a, b)) = self.rows {
             u.rows = [1, a, b, 0];
         }

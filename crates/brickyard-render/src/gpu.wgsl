@@ -98,7 +98,8 @@ struct Render {
     clip_hi: vec4<f32>,
     // x: the box applies (1); y: no early ray termination (1); z: MIP
     // pixels are (raw maximum, 0, 0, 1), (NaN, 0, 0, 1) when no sample
-    // was served, 0 where the ray takes no sample (1); w: 0.
+    // was served, 0 where the ray takes no sample (1); w: a slice of a
+    // label image (1): nearest voxels, a colour per label.
     region: vec4<u32>,
     // x: only pixel rows [y, z) are drawn, the others transparent (1): an
     // image-parallel band; w: 0.

@@ -324,6 +324,66 @@ pub fn slice_color(tf: &TfEval, value: Option<f32>) -> [f32; 4] {
     }
 }
 
+/// A label's 32-bit hash (the finalizer of MurmurHash3): labels next to
+/// each other get unrelated colours. `optics.wgsl`'s `label_hash` is its
+/// twin.
+#[inline]
+pub fn label_hash(id: u32) -> u32 {
+    let mut h = id;
+    h ^= h >> 16;
+    h = h.wrapping_mul(0x85eb_ca6b);
+    h ^= h >> 13;
+    h = h.wrapping_mul(0xc2b2_ae35);
+    h ^ (h >> 16)
+}
+
+/// The label a sample of a label image holds: its value rounded to the
+/// nearest integer (`⌊v + ½⌋`, saturating at the ends of `i32`); `None`
+/// for NaN. (Labels beyond 2²⁴ are sampled as `f32` and share their
+/// rounded value, on the CPU and the device alike.)
+#[inline]
+pub fn label_of(v: f32) -> Option<i32> {
+    (!v.is_nan()).then(|| (v + 0.5).floor() as i32)
+}
+
+/// Linear RGB of the colour with hue `h6` (in sixths of the circle,
+/// `[0, 6)`), saturation `s` and value `v`.
+#[inline]
+fn hsv(h6: f32, s: f32, v: f32) -> [f32; 3] {
+    let i = h6.floor();
+    let f = h6 - i;
+    let p = v * (1.0 - s);
+    let q = v * (1.0 - s * f);
+    let t = v * (1.0 - s * (1.0 - f));
+    match i as i32 {
+        0 => [v, t, p],
+        1 => [q, v, p],
+        2 => [p, v, t],
+        3 => [p, q, v],
+        4 => [t, p, v],
+        _ => [v, p, q],
+    }
+}
+
+/// The pixel of a slice of a label image ([`RenderParams::labels`](crate::params::RenderParams::labels)):
+/// the colour of the sample's label, opaque; transparent for label 0 (the
+/// background), where nothing served the sample, and for NaN. The colour
+/// comes from the label's hash: a hue anywhere on the circle, saturation
+/// 0.6–1 and value 0.75–1, so that every label stands out from black and
+/// from its neighbours. `optics.wgsl`'s `label_color` is its twin.
+#[inline]
+pub fn label_color(value: Option<f32>) -> [f32; 4] {
+    let Some(id) = value.and_then(label_of).filter(|&id| id != 0) else {
+        return [0.0; 4];
+    };
+    let h = label_hash(id as u32);
+    let hue = (h & 0xffff) as f32 * (6.0 / 65536.0);
+    let sat = 0.6 + 0.4 * ((h >> 16) & 0xff) as f32 * (1.0 / 255.0);
+    let val = 0.75 + 0.25 * (h >> 24) as f32 * (1.0 / 255.0);
+    let [r, g, b] = hsv(hue, sat, val);
+    [r, g, b, 1.0]
+}
+
 /// Intensity of `value` for a channel shown with `style`: its window
 /// mapped to `[0, 1]`, clamped (NaN: 0).
 #[inline]
@@ -572,6 +632,53 @@ mod tests {
         assert_eq!(slice_color(&ev, Some(2.5)), [0.25, 0.25, 0.25, 1.0]);
         assert_eq!(slice_color(&ev, Some(f32::NAN)), [0.0; 4]);
         assert_eq!(slice_color(&ev, None), [0.0; 4]);
+    }
+
+    #[test]
+    fn label_colours() {
+        // MurmurHash3's finalizer on known inputs.
+        assert_eq!(label_hash(0), 0);
+        assert_eq!(label_hash(1), 0x514e_28b7);
+        // Background, NaN and unserved samples are transparent.
+        assert_eq!(label_color(Some(0.0)), [0.0; 4]);
+        assert_eq!(label_color(Some(0.4)), [0.0; 4]);
+        assert_eq!(label_color(Some(f32::NAN)), [0.0; 4]);
+        assert_eq!(label_color(None), [0.0; 4]);
+        // A value within half of a label is that label.
+        assert_eq!(label_color(Some(6.6)), label_color(Some(7.0)));
+        assert_eq!(label_color(Some(-3.4)), label_color(Some(-3.0)));
+        // Every label of 1..2000 is opaque and bright (its largest
+        // component at least 0.75, within [0, 1]), and neighbouring labels
+        // differ clearly.
+        let mut prev = label_color(Some(1.0));
+        for id in 1..2000 {
+            let c = label_color(Some(id as f32));
+            assert_eq!(c[3], 1.0);
+            assert!(
+                c[..3].iter().all(|x| (0.0..=1.0).contains(x)),
+                "{id}: {c:?}"
+            );
+            assert!(
+                c[..3].iter().cloned().fold(0.0, f32::max) >= 0.75 - 1e-6,
+                "{id}"
+            );
+            if id > 1 {
+                let d: f32 = (0..3).map(|i| (c[i] - prev[i]).abs()).sum();
+                assert!(d > 0.0, "{id} looks like {}", id - 1);
+            }
+            prev = c;
+        }
+        // Hues cover the circle: all six sectors among the first 100.
+        let mut sectors = [false; 6];
+        for id in 1..100u32 {
+            sectors[((label_hash(id) & 0xffff) * 6 / 65536) as usize] = true;
+        }
+        assert!(sectors.iter().all(|&s| s));
+        // The colour from hue, saturation and value: pure red, grey.
+        assert_eq!(hsv(0.0, 1.0, 1.0), [1.0, 0.0, 0.0]);
+        assert_eq!(hsv(2.0, 1.0, 1.0), [0.0, 1.0, 0.0]);
+        assert_eq!(hsv(4.0, 1.0, 1.0), [0.0, 0.0, 1.0]);
+        assert_eq!(hsv(3.5, 0.0, 0.5), [0.5, 0.5, 0.5]);
     }
 
     #[test]

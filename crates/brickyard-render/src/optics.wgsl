@@ -105,6 +105,63 @@ fn correct_opacity(a: f32, e: f32) -> f32 {
     return 1.0 - pow(1.0 - a, e);
 }
 
+// A label's 32-bit hash (optics.rs's `label_hash`).
+fn label_hash(id: u32) -> u32 {
+    var h = id;
+    h = h ^ (h >> 16u);
+    h = h * 0x85ebca6bu;
+    h = h ^ (h >> 13u);
+    h = h * 0xc2b2ae35u;
+    return h ^ (h >> 16u);
+}
+
+// Linear RGB of hue `h6` (sixths of the circle), saturation `s`, value `v`.
+fn hsv(h6: f32, s: f32, v: f32) -> vec3<f32> {
+    let i = floor(h6);
+    let f = h6 - i;
+    let p = v * (1.0 - s);
+    let q = v * (1.0 - s * f);
+    let t = v * (1.0 - s * (1.0 - f));
+    switch i32(i) {
+        case 0: {
+            return vec3<f32>(v, t, p);
+        }
+        case 1: {
+            return vec3<f32>(q, v, p);
+        }
+        case 2: {
+            return vec3<f32>(p, v, t);
+        }
+        case 3: {
+            return vec3<f32>(p, q, v);
+        }
+        case 4: {
+            return vec3<f32>(t, p, v);
+        }
+        default: {
+            return vec3<f32>(v, p, q);
+        }
+    }
+}
+
+// The pixel of a label image's slice sample `v` (optics.rs's
+// `label_color`): the label's colour, opaque; label 0 and NaN (nothing
+// served) transparent.
+fn label_color(v: f32) -> vec4<f32> {
+    if (is_nan(v)) {
+        return vec4<f32>(0.0);
+    }
+    let id = i32(floor(v + 0.5));
+    if (id == 0) {
+        return vec4<f32>(0.0);
+    }
+    let h = label_hash(bitcast<u32>(id));
+    let hue = f32(h & 0xffffu) * (6.0 / 65536.0);
+    let sat = 0.6 + 0.4 * f32((h >> 16u) & 0xffu) * (1.0 / 255.0);
+    let val = 0.75 + 0.25 * f32(h >> 24u) * (1.0 / 255.0);
+    return vec4<f32>(hsv(hue, sat, val), 1.0);
+}
+
 // Channel `i` of those added up: (channel, lo, hi) and colour.
 fn style(i: u32) -> vec4<f32> {
     let o = R.styles_off + 8u * i;

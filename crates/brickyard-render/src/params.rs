@@ -136,6 +136,13 @@ pub struct RenderParams {
     /// function ([`crate::optics::mip_color`]).
     #[serde(default, skip_serializing_if = "is_default")]
     pub mip_values: bool,
+    /// Slices of a label image (one channel, one view): each pixel takes the
+    /// nearest voxel's label (no interpolation between labels, at every
+    /// level) and shows it in the label's own colour
+    /// ([`crate::optics::label_color`]), label 0 transparent; `tf` is not
+    /// used.
+    #[serde(default, skip_serializing_if = "is_default")]
+    pub labels: bool,
 }
 
 fn yes() -> bool {
@@ -244,6 +251,7 @@ impl RenderParams {
             clip: None,
             early_termination: true,
             mip_values: false,
+            labels: false,
         }
     }
 
@@ -321,6 +329,18 @@ impl RenderParams {
             }
         }
         let dvr = matches!(self.mode, RenderMode::Dvr);
+        if self.labels
+            && (!matches!(self.mode, RenderMode::Slice { .. })
+                || !self.channels.is_empty()
+                || self.views.is_some())
+        {
+            return bad(
+                "labels",
+                "label colours are drawn in slices of one channel, one view (DVR and MIP draw \
+                 a label image's values)"
+                    .into(),
+            );
+        }
         if self.traversal == Traversal::Octree {
             if !dvr {
                 return bad("traversal", "the octree traversal draws DVR only".into());

@@ -37,7 +37,8 @@
 //!   mapped through the transfer function's *colour*; alpha is 1 for every
 //!   ray that took at least one sample, 0 otherwise (the TF's opacity is not
 //!   used).
-//! - **Slice**: see [`RenderMode::Slice`].
+//! - **Slice**: see [`RenderMode::Slice`]; of a label image
+//!   ([`RenderParams::labels`]): the nearest voxel's label colour.
 //! - **Several views** ([`RenderParams::views`], `brickyard_core::views`):
 //!   DVR and MIP rays from each view's camera; slices become super-slices
 //!   (`render_super_slices` says how they are composited).
@@ -66,6 +67,7 @@
 //! `lib.rs` checks that this file names no product module.
 
 use crate::image::Image;
+use crate::optics::label_color;
 use brickyard_core::camera::{intersect_box, world_extent, world_to_normalized, Ray, Vec3};
 use brickyard_core::views::{ViewRays, Views};
 #[cfg(feature = "loader")]
@@ -257,6 +259,19 @@ impl Volume {
     #[inline]
     pub fn sample_world(&self, world: Vec3, extent: Vec3) -> f32 {
         self.sample(world_to_normalized(world, extent))
+    }
+
+    /// The voxel nearest to the normalized position `p = [z, y, x]`: the
+    /// voxel coordinate `p·dims − 0.5` clamped to `[0, dims − 1]` as for
+    /// [`sample`](Self::sample), rounded by `⌊q + ½⌋` (how label images are
+    /// sampled).
+    pub fn nearest(&self, p: [f64; 3]) -> f32 {
+        let d = self.dims;
+        let q = [0, 1, 2].map(|a| {
+            let q = (p[a] * d[a] as f64 - 0.5).clamp(0.0, (d[a] - 1) as f64);
+            (q + 0.5).floor() as u64
+        });
+        self.voxel(q[0], q[1], q[2])
     }
 }
 
@@ -460,6 +475,12 @@ pub fn render(volume: &Volume, params: &RenderParams) -> Image {
     per_pixel(params, |ray| match &params.mode {
         RenderMode::Dvr => dvr_ray(volume, &params.tf, ray, extent, dt, exponent),
         RenderMode::Mip => mip_ray(volume, &params.tf, ray, extent, dt),
+        RenderMode::Slice { origin, normal } if params.labels => {
+            match plane_hit(ray, *origin, *normal, extent) {
+                Some((w, _)) => label_color(Some(volume.nearest(world_to_normalized(w, extent)))),
+                None => [0.0; 4],
+            }
+        }
         RenderMode::Slice { origin, normal } => {
             slice_ray(volume, &params.tf, ray, extent, *origin, *normal)
         }

@@ -2,10 +2,12 @@
 //! meets the plane (`t ≥ 0`, inside the closed world box); the walker
 //! samples every channel shown there at the level the footprint at `t`
 //! asks for, and the pixel is the transfer function's colour (one
-//! channel) or the channels' mix, opaque. `slice.wgsl` is the device twin.
+//! channel) or the channels' mix, opaque; a label image's slice takes the
+//! nearest voxel and shows each label in its own colour. `slice.wgsl` is
+//! the device twin.
 
 use crate::cpu::FrameStats;
-use crate::optics::{mix_channels, slice_color};
+use crate::optics::{label_color, mix_channels, slice_color};
 use crate::params::{RenderParams, MAX_CHANNELS};
 use crate::walk::Walker;
 use brickyard_cache::vm::Requests;
@@ -80,7 +82,11 @@ impl Plane {
         let Some((wp, t)) = meet(ray, num, self.n, self.extent) else {
             return [0.0; 4];
         };
-        slice_color(&wk.f.tf_eval, wk.slice_value(wp, t, req, st))
+        let v = wk.slice_value(wp, t, req, st);
+        if wk.f.params.labels {
+            return label_color(v);
+        }
+        slice_color(&wk.f.tf_eval, v)
     }
 }
 
@@ -101,7 +107,11 @@ pub(crate) fn pixel<T: Sample>(
     };
     if params.channels.is_empty() {
         let wk = &mut walkers[0];
-        return slice_color(&wk.f.tf_eval, wk.slice_value(wp, t, req, st));
+        let v = wk.slice_value(wp, t, req, st);
+        if params.labels {
+            return label_color(v);
+        }
+        return slice_color(&wk.f.tf_eval, v);
     }
     let mut v = [f32::NAN; MAX_CHANNELS];
     for (x, wk) in v.iter_mut().zip(walkers.iter_mut()) {
@@ -121,7 +131,7 @@ impl<'f, 'a, T: Sample> Walker<'f, 'a, T> {
     ) -> Option<f32> {
         let f = self.f;
         let level = f.level_at(t);
-        let (vb, frac) = f.coords(level, w);
+        let (vb, frac) = f.sample_coords(level, w);
         self.enter(level, vb, req, true);
         self.value(level, w, vb, frac, req, st)
     }

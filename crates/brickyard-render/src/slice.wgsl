@@ -1,7 +1,7 @@
 // Slices on the device, twin of `slice.rs`: the plane as the camera sees
 // it, sampled where the pixel's ray meets it inside the closed world box,
-// opaque there; one channel through the transfer function's colours, or
-// several added up.
+// opaque there; one channel through the transfer function's colours (a
+// label image: the nearest voxel's label colour), or several added up.
 
 // Where the pixel's ray meets the slice plane inside the closed world box:
 // (point, t), or w = −1 when it does not.
@@ -35,6 +35,9 @@ fn slice_pixel(ray: Ray) -> vec4<f32> {
         return vec4<f32>(0.0);
     }
     let v = plane_value(hit);
+    if (R.region.w == 1u) {
+        return label_color(v);
+    }
     if (is_nan(v)) {
         return vec4<f32>(0.0);
     }

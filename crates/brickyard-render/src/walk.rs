@@ -371,6 +371,38 @@ impl<'a> Frame<'a> {
             ],
         )
     }
+
+    /// The nearest voxel of level `l` to the world point `w`, as a voxel
+    /// base with zero fractions (the interpolation then gives that voxel's
+    /// value as it is): `⌊q + ½⌋` of [`coords`](Self::coords)' clamped
+    /// coordinate `q`. Label images are sampled so: an interpolated label
+    /// would be another label. `walk.wgsl`'s `coords` is its twin.
+    pub(crate) fn nearest(&self, l: usize, w: Vec3) -> (Dims3, [f32; 3]) {
+        let s = &self.scale[l];
+        let m = &self.qmax[l];
+        // q + ½ ≥ ½: truncation is floor.
+        let n = |x: f64, hi: f64| (clamp(x - 0.5, hi) + 0.5) as u64;
+        (
+            [
+                n(w[2] * s[0], m[0]),
+                n(w[1] * s[1], m[1]),
+                n(w[0] * s[2], m[2]),
+            ],
+            [0.0; 3],
+        )
+    }
+
+    /// The voxel base and fractions a slice samples `w` at on level `l`:
+    /// [`nearest`](Self::nearest) for label images, else
+    /// [`coords`](Self::coords).
+    #[inline(always)]
+    pub(crate) fn sample_coords(&self, l: usize, w: Vec3) -> (Dims3, [f32; 3]) {
+        if self.params.labels {
+            self.nearest(l, w)
+        } else {
+            self.coords(l, w)
+        }
+    }
 }
 
 /// The step to go on from, before a region beginning at `c0` on a grid

@@ -66,6 +66,11 @@ fn brick_id(l: u32, v: vec3<u32>) -> u32 {
 fn coords(l: u32, w: vec3<f32>) -> vec4<f32> {
     let s = R.scale[l];
     let q = clamp(vec3<f32>(w.z * s.x, w.y * s.y, w.x * s.z) - vec3<f32>(0.5), vec3<f32>(0.0), R.qmax[l].xyz);
+    if (R.region.w == 1u) {
+        // A label image: the nearest voxel, with zero fractions (walk.rs's
+        // `nearest`).
+        return vec4<f32>(floor(q + vec3<f32>(0.5)), 0.0);
+    }
     return vec4<f32>(q, 0.0);
 }
 

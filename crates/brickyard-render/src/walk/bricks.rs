@@ -369,7 +369,7 @@ impl<'f, 'a, T: Sample> Walker<'f, 'a, T> {
                 if mask >> lv & 1 == 0 {
                     continue;
                 }
-                (base, frac) = self.f.coords(lv, w);
+                (base, frac) = self.f.sample_coords(lv, w);
                 self.enter(lv, base, req, false);
             }
             if matches!(self.cache[lv].content, Content::Unresolved) {

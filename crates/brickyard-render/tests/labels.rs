@@ -1,0 +1,217 @@
+//! Slices of a label image (`RenderParams::labels`): the nuclei stack's
+//! instance labels, converted with label pyramids (the mode of each 2×2×2
+//! block), drawn through a pool half the volume on the CPU and the device.
+//! Every pixel must show the colour of a label that exists at the level
+//! drawn (an interpolated label would be a colour of no label, or of the
+//! wrong one), and the image must equal the in-core reference's nearest
+//! samples.
+
+use brickyard_cache::session::Session;
+use brickyard_cache::vm::VmConfig;
+use brickyard_core::camera::{world_extent, Camera};
+use brickyard_core::{DType, TransferFunction};
+use brickyard_gpu::vm::DeviceVm;
+use brickyard_render::cpu::{render_frame, Lod, Scene};
+use brickyard_render::gpu::GpuRenderer;
+use brickyard_render::image::Image;
+use brickyard_render::optics::label_color;
+use brickyard_render::reference::{render, RenderMode, RenderParams, Volume};
+use brickyard_store::builder::{convert, ConvertOptions, NoProgress};
+use std::collections::HashSet;
+use std::path::{Path, PathBuf};
+use std::sync::atomic::AtomicBool;
+use std::time::{Duration, Instant};
+
+fn shared_data(name: &str) -> PathBuf {
+    let path = Path::new(env!("CARGO_MANIFEST_DIR"))
+        .join("../../../shared/data")
+        .join(name);
+    assert!(
+        path.exists(),
+        "{} is missing: this test needs the shared data folder",
+        path.display()
+    );
+    path
+}
+
+fn session(store: &Path, dtype: DType, pool_bytes: u64) -> Session {
+    let cfg = VmConfig {
+        brick: [16; 3],
+        apron: 1,
+        pt_block: [4; 3],
+        max_dir_entries: 64,
+        pool_bytes,
+        pt_cache_blocks: 256,
+        request_cap: 256,
+        upload_bytes_per_frame: 256 * 18 * 18 * 18 * dtype.size() as u64,
+    };
+    Session::open(store, cfg, 64 << 20, 2).unwrap()
+}
+
+/// The colours of the labels `level` holds, as RGBA bits.
+fn label_colours(level: &Volume) -> HashSet<[u32; 4]> {
+    let ids: HashSet<u32> = level.data.iter().map(|&v| v as u32).collect();
+    ids.into_iter()
+        .map(|id| label_color(Some(id as f32)).map(f32::to_bits))
+        .collect()
+}
+
+/// Every pixel is transparent or the colour of one of `colours`; returns
+/// how many distinct label colours the image shows.
+fn only_label_colours(img: &Image, colours: &HashSet<[u32; 4]>, what: &str, tol: f32) -> usize {
+    let mut shown = HashSet::new();
+    for (i, px) in img.rgba.iter().enumerate() {
+        if px[3] == 0.0 {
+            assert_eq!(*px, [0.0; 4], "{what}: pixel {i}");
+            continue;
+        }
+        let found = colours.iter().find(|c| {
+            c.iter()
+                .zip(px)
+                .all(|(&c, &p)| (f32::from_bits(c) - p).abs() <= tol)
+        });
+        let Some(c) = found else {
+            panic!("{what}: pixel {i} {px:?} is the colour of no label of the level");
+        };
+        shown.insert(*c);
+    }
+    shown.len()
+}
+
+/// Pixels whose colours differ by more than `tol` in any channel.
+fn differing(a: &Image, b: &Image, tol: f32) -> usize {
+    a.rgba
+        .iter()
+        .zip(&b.rgba)
+        .filter(|(p, q)| p.iter().zip(q.iter()).any(|(x, y)| (x - y).abs() > tol))
+        .count()
+}
+
+#[test]
+fn label_slices_show_whole_labels_on_the_cpu_and_the_device() {
+    let input = shared_data("nuclei-labels-u32.tif");
+    let src = brickyard_store::import::open_input(&input, &Default::default()).unwrap();
+    assert_eq!(src.meta().dtype, DType::U32);
+    let dir = tempfile::tempdir().unwrap();
+    let store = dir.path().join("labels.ome.zarr");
+    let o = ConvertOptions {
+        brick: [16; 3],
+        shard: [64; 3],
+        labels: true,
+        spacing: Some([1.0, 0.25, 0.25]),
+        ..Default::default()
+    };
+    convert(
+        src.as_ref(),
+        &store,
+        &o,
+        &NoProgress,
+        &AtomicBool::new(false),
+    )
+    .unwrap();
+    let n = (0..)
+        .take_while(|&l| Volume::from_store(&store, l, 0).is_ok())
+        .count();
+    let levels: Vec<Volume> = (0..n)
+        .map(|l| Volume::from_store(&store, l, 0).unwrap())
+        .collect();
+    let extent = world_extent(levels[0].dims, levels[0].spacing);
+    let scene = Scene::new(extent, levels.iter().map(|v| v.dims).collect());
+    let vol_bytes = levels[0].dims.iter().product::<u64>() * 4;
+    let gpu = brickyard_gpu::context::test_gpu();
+    // An oblique plane through the nuclei, face on; the transfer function
+    // is not used.
+    let origin = [extent[0] * 0.5, extent[1] * 0.5, extent[2] * 0.45];
+    let normal = [0.15, -0.1, 1.0];
+    let cam = Camera::facing_plane(origin, normal, extent[0].max(extent[1]) * 1.05);
+    let tf = TransferFunction::preset("linear", [0.0, 20.0]).unwrap();
+    let mut p = RenderParams::new(96, 96, cam, tf, RenderMode::Slice { origin, normal });
+    p.labels = true;
+    p.validate().unwrap();
+    for level in [0usize, 1] {
+        let colours = label_colours(&levels[level]);
+        assert!(
+            colours.len() >= 15,
+            "level {level}: {} labels",
+            colours.len()
+        );
+        let want = render(&levels[level], &p);
+        let shown = only_label_colours(&want, &colours, "reference", 0.0);
+        assert!(shown >= 8, "reference, level {level}: {shown} labels shown");
+        assert!(want.coverage(0.01) > 0.1, "reference nearly empty");
+        // The CPU through a pool half the volume.
+        let mut s = session(&store, DType::U32, vol_bytes / 2);
+        assert!((s.vm().pool_bytes() as u64) < vol_bytes);
+        let start = Instant::now();
+        let img = loop {
+            s.begin_frame();
+            let (img, st, reqs) = render_frame(s.vm(), &scene, &p, Lod::Fixed(level));
+            s.finish_frame(reqs.iter());
+            if st.completeness() == 1.0 {
+                break img;
+            }
+            assert!(
+                start.elapsed() < Duration::from_secs(60),
+                "CPU view incomplete"
+            );
+        };
+        let shown_cpu = only_label_colours(&img, &colours, "CPU", 0.0);
+        let d = differing(&img, &want, 1e-6);
+        eprintln!(
+            "level {level}: CPU shows {shown_cpu} labels, {d} pixels differ from the reference"
+        );
+        // The same rule in f64 on both sides: at most a pixel whose point
+        // lies on a voxel boundary to rounding.
+        assert!(
+            d <= 2,
+            "level {level}: {d} pixels differ from the reference"
+        );
+        s.vm().check_invariants().unwrap();
+        let Some(gpu) = &gpu else { continue };
+        let mut s = session(&store, DType::U32, vol_bytes / 2);
+        let (mut dvm, _) = DeviceVm::new(gpu, s.vm_mut()).unwrap();
+        let mut r = GpuRenderer::new(gpu);
+        let start = Instant::now();
+        let dev = loop {
+            s.begin_frame();
+            let f = r
+                .render(gpu, &dvm, s.vm(), &scene, &p, Lod::Fixed(level))
+                .unwrap();
+            s.finish_frame([&f.requests]);
+            dvm.sync(gpu, s.vm_mut());
+            if f.stats.completeness() == 1.0 {
+                break f.image;
+            }
+            assert!(
+                start.elapsed() < Duration::from_secs(60),
+                "device view incomplete"
+            );
+        };
+        // The device's colours are its own arithmetic's (within 1e-6 of
+        // the CPU's); its points are f32, so a few pixels on voxel
+        // boundaries may take the neighbouring voxel.
+        let shown_dev = only_label_colours(&dev, &colours, "device", 1e-6);
+        let d = differing(&dev, &img, 1e-6);
+        eprintln!(
+            "level {level}: the device shows {shown_dev} labels, {d} pixels differ from the CPU"
+        );
+        assert!(
+            d * 100 <= img.rgba.len(),
+            "level {level}: {d} pixels of {} differ between the device and the CPU",
+            img.rgba.len()
+        );
+        s.vm().check_invariants().unwrap();
+    }
+}
+
+#[test]
+fn label_colours_are_for_slices_of_one_channel() {
+    let cam = Camera::facing_plane([1.0; 3], [0.0, 0.0, 1.0], 2.0);
+    let tf = TransferFunction::preset("linear", [0.0, 1.0]).unwrap();
+    for mode in [RenderMode::Dvr, RenderMode::Mip] {
+        let mut p = RenderParams::new(8, 8, cam.clone(), tf.clone(), mode);
+        p.labels = true;
+        let e = p.validate().unwrap_err().to_string();
+        assert!(e.contains("labels") && e.contains("slices"), "{e}");
+    }
+}
