@@ -209,7 +209,7 @@ fn label_colours_are_for_slices_of_one_channel() {
     let cam = Camera::facing_plane([1.0; 3], [0.0, 0.0, 1.0], 2.0);
     let tf = TransferFunction::preset("linear", [0.0, 1.0]).unwrap();
     for mode in [RenderMode::Dvr, RenderMode::Mip] {
-        let mut p = RenderParams::new(8, 8, cam.clone(), tf.clone(), mode);
+        let mut p = RenderParams::new(8, 8, cam, tf.clone(), mode);
         p.labels = true;
         let e = p.validate().unwrap_err().to_string();
         assert!(e.contains("labels") && e.contains("slices"), "{e}");

@@ -19,7 +19,7 @@ use brickyard_store::VolumeSource;
 use clap::Args;
 use std::path::PathBuf;
 
-#[derive(Args)]
+#[derive(Args, Clone)]
 pub struct RenderCmd {
     /// An OME-Zarr store (convert other formats first).
     store: PathBuf,
@@ -54,9 +54,23 @@ pub struct RenderCmd {
     #[arg(long)]
     save_camera: Option<PathBuf>,
     /// Transfer function: a preset (linear, soft, hot, viridis, coolwarm,
-    /// opaque) or a JSON file.
-    #[arg(long, default_value = "soft")]
-    tf: String,
+    /// opaque) or a JSON file; `labels` for a slice of a label image: the
+    /// nearest voxel's label, each label in its own colour, 0 transparent
+    /// (the default for slices of label images: a store's `labels/NAME`,
+    /// or one converted with --labels). Default: soft.
+    #[arg(long)]
+    tf: Option<String>,
+    /// Slice: draw the store's label image `labels/NAME` (as `brickyard
+    /// process ... label(...) --out NAME` writes it) over the slice, each
+    /// label in its own colour at --label-opacity, label 0 clear. The
+    /// labels are read through a pool of their own, after the image, under
+    /// the same --memory.
+    #[arg(long, value_name = "NAME")]
+    labels: Option<String>,
+    /// --labels: the labels' opacity over the image, above 0 and at most 1
+    /// (default 0.5).
+    #[arg(long, value_name = "A")]
+    label_opacity: Option<f32>,
     /// Data window LO,HI (default: the data range from the brick statistics).
     #[arg(long, allow_hyphen_values = true)]
     window: Option<String>,
@@ -606,6 +620,92 @@ macro_rules! say_err {
 /// image and the file it is meant for.
 fn run_with(
     c: RenderCmd,
+    share: Option<&mut dyn Share>,
+    sink: &mut dyn FnMut(&std::path::Path, brickyard_render::Image) -> Result<()>,
+) -> Result<Vec<String>> {
+    if c.labels.is_some() || c.label_opacity.is_some() {
+        return run_with_labels(c, share, sink);
+    }
+    run_one(c, share, sink)
+}
+
+/// `--labels NAME`: the slice of the store's label image `labels/NAME` in
+/// the labels' colours, then the image's slice with it laid over
+/// ([`crate::labels::overlay`]). The two runs come one after the other,
+/// each within `--memory` less the labels' image, which waits for the
+/// second.
+fn run_with_labels(
+    mut c: RenderCmd,
+    share: Option<&mut dyn Share>,
+    sink: &mut dyn FnMut(&std::path::Path, brickyard_render::Image) -> Result<()>,
+) -> Result<Vec<String>> {
+    let Some(name) = c.labels.take() else {
+        bail!("label-opacity: applies with --labels NAME (the label image drawn over the slice)");
+    };
+    let opacity = c.label_opacity.take().unwrap_or(0.5);
+    if !(opacity > 0.0 && opacity <= 1.0) {
+        bail!("label-opacity: expected an opacity above 0 and at most 1, found {opacity}");
+    }
+    if c.mode != "slice" {
+        bail!(
+            "labels: label images are drawn over slices (--mode slice); --mode {} draws the image alone",
+            c.mode
+        );
+    }
+    if c.tf.as_deref() == Some("labels") {
+        bail!("labels: --tf labels draws a label image alone; with --labels NAME the labels come over the image, drawn through --tf");
+    }
+    if share.as_ref().is_some_and(|s| s.size() > 1) {
+        bail!("labels: a slice with labels draws on one process");
+    }
+    if c.turntable.is_some() || c.views.is_some() || c.stereo.is_some() || c.multiplex.is_some() {
+        bail!("labels: one view at a time (no --turntable, --views, --stereo or --multiplex)");
+    }
+    let dir = crate::labels::label_store(&c.store, &name)?;
+    let [w, h] = parse_image_size(&c.size, "size")?;
+    let held = w as u64 * h as u64 * std::mem::size_of::<[f32; 4]>() as u64;
+    let mut lc = c.clone();
+    lc.store = dir;
+    lc.tf = Some("labels".into());
+    lc.window = None;
+    lc.channels.clear();
+    lc.derive = None;
+    lc.save_camera = None;
+    lc.silent = true;
+    if let Some(m) = &c.memory {
+        let m = crate::memory::parse_bytes(m).context("--memory")?;
+        if m <= held {
+            bail!(
+                "memory: {} cannot hold the labels' image ({}) beside the render",
+                human_bytes(m),
+                human_bytes(held)
+            );
+        }
+        c.memory = Some((m - held).to_string());
+    }
+    let mut labels = vec![];
+    let lines = run_one(lc, None, &mut |_, img| {
+        labels.push(img);
+        Ok(())
+    })?;
+    if !c.silent && !c.json {
+        for l in &lines {
+            let detail = l.split_once(": ").map_or(l.as_str(), |(_, d)| d);
+            outln!("labels {name}: {detail}");
+        }
+    }
+    let [lab] = <[_; 1]>::try_from(labels).map_err(|v| {
+        anyhow::anyhow!("labels: expected one image of the labels, got {}", v.len())
+    })?;
+    run_one(c, share, &mut |path, mut img| {
+        crate::labels::overlay(&mut img, &lab, opacity)?;
+        sink(path, img)
+    })
+}
+
+/// [`run_with`] of one store.
+fn run_one(
+    c: RenderCmd,
     mut share: Option<&mut dyn Share>,
     sink: &mut dyn FnMut(&std::path::Path, brickyard_render::Image) -> Result<()>,
 ) -> Result<Vec<String>> {
@@ -734,6 +834,38 @@ fn run_with(
     if backend_choice != c.backend && shared.is_none() {
         say_err!(silent, "{}", auto_takes_cpu());
     }
+    // A label image's slices show its labels unless --tf says otherwise.
+    let tf_name = match c.tf.as_deref() {
+        Some(t) => t,
+        None if c.mode == "slice"
+            && c.channels.is_empty()
+            && c.derive.is_none()
+            && n_views == 1
+            && brickyard_store::omezarr::is_label_image(&c.store)? =>
+        {
+            "labels"
+        }
+        None => "soft",
+    };
+    let labels = tf_name == "labels";
+    if labels {
+        let why = if c.mode != "slice" {
+            Some(format!("--mode {} draws a label image's values through another transfer function; labels are coloured in slices (--mode slice)", c.mode))
+        } else if !c.channels.is_empty() {
+            Some("a label image has one channel (no --channel)".to_string())
+        } else if c.derive.is_some() {
+            Some("labels are drawn as stored (no --derive)".to_string())
+        } else if n_views > 1 {
+            Some("one view (no --views, --stereo or --multiplex)".to_string())
+        } else if c.window.is_some() {
+            Some("label colours take no --window".to_string())
+        } else {
+            None
+        };
+        if let Some(why) = why {
+            bail!("tf: labels: {why}");
+        }
+    }
     let info = inspect(&c.store)?;
     if info.complete == Some(false) {
         bail!(
@@ -786,6 +918,8 @@ fn run_with(
         None => None,
     };
     let (lo, hi) = match &c.window {
+        // Label colours take no window.
+        None if labels => (0.0, 1.0),
         Some(wd) => {
             let [lo, hi] = parse_window(wd, "window")?;
             (lo, hi)
@@ -810,8 +944,11 @@ fn run_with(
                 .unwrap_or((0.0, 1.0))
         }
     };
-    let tf = transfer_function(&c.tf, [lo as f32, hi as f32], "tf")?;
-    check_octree_shading(traversal, &tf, &c.tf, c.channels.len() <= 1)?;
+    let tf = match labels {
+        true => TransferFunction::preset("linear", [lo as f32, hi as f32])?,
+        false => transfer_function(tf_name, [lo as f32, hi as f32], "tf")?,
+    };
+    check_octree_shading(traversal, &tf, tf_name, c.channels.len() <= 1)?;
     let projection = if c.ortho {
         Projection::Orthographic {
             height: extent.iter().cloned().fold(0.0, f64::max) * 1.2,
@@ -1293,6 +1430,7 @@ fn run_with(
             params.channels = styles.clone();
         }
         params.reference_step = Some(scene.voxel(0));
+        params.labels = labels;
         params.traversal = traversal;
         params.early_termination = !(c.no_early_termination || data_split);
         if let Some(r) = region {

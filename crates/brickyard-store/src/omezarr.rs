@@ -260,6 +260,41 @@ pub fn read_group_attributes(dir: &Path) -> Result<Option<(u8, Value)>> {
     Ok(None)
 }
 
+/// Whether the group at `dir` is a label image: its OME attributes hold
+/// `image-label` (as a store's `labels/NAME` does), or its multiscales say
+/// coarser levels took the most frequent value (`"type": "mode"`, as
+/// `convert --labels` writes).
+pub fn is_label_image(dir: &Path) -> Result<bool> {
+    let Some((_, attrs)) = read_group_attributes(dir)? else {
+        return Ok(false);
+    };
+    let ome = attrs.get("ome").unwrap_or(&attrs);
+    let mode = ome
+        .pointer("/multiscales/0/type")
+        .and_then(Value::as_str)
+        .is_some_and(|t| t == "mode");
+    Ok(ome.get("image-label").is_some() || mode)
+}
+
+/// The label images a store's `labels` group lists (none without the
+/// group).
+pub fn label_names(store: &Path) -> Result<Vec<String>> {
+    let Some((_, attrs)) = read_group_attributes(&store.join("labels"))? else {
+        return Ok(vec![]);
+    };
+    let ome = attrs.get("ome").unwrap_or(&attrs);
+    Ok(ome
+        .get("labels")
+        .and_then(Value::as_array)
+        .map(|a| {
+            a.iter()
+                .filter_map(Value::as_str)
+                .map(str::to_string)
+                .collect()
+        })
+        .unwrap_or_default())
+}
+
 /// Parse the OME multiscales of the group at `dir`, if it has any.
 pub fn read_multiscale(dir: &Path) -> Result<Option<Multiscale>> {
     let Some((zarr_format, attrs)) = read_group_attributes(dir)? else {

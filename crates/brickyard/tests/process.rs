@@ -1110,3 +1110,232 @@ fn an_interrupted_conversion_is_refused() {
     assert_eq!(snapshot(&partial), before, "the store was changed");
     assert!(!partial.join("labels").exists(), "labels were written");
 }
+
+/// The nuclei stack converted (z 4× coarser than x and y) and its nuclei
+/// labelled by `process` into `labels/cells`.
+fn nuclei_with_labels(dir: &Path) -> std::path::PathBuf {
+    let tif =
+        Path::new(env!("CARGO_MANIFEST_DIR")).join("../../../shared/data/nuclei-confocal-u16.tif");
+    assert!(
+        tif.exists(),
+        "{} is missing: this test needs the shared data folder",
+        tif.display()
+    );
+    let store = dir.join("nuclei.ome.zarr");
+    ok(run(&[
+        "convert",
+        s(&tif),
+        s(&store),
+        "--spacing",
+        "0.5,0.5,2",
+        "--quiet",
+    ]));
+    ok(run(&[
+        "process",
+        s(&store),
+        "gauss(1)|threshold(12000)|label(26)",
+        "--out",
+        "cells",
+        "--quiet",
+    ]));
+    store
+}
+
+#[test]
+fn labels_are_drawn_in_their_colours_alone_and_over_the_image() {
+    use brickyard_render::optics::label_color;
+    let d = tempfile::tempdir().unwrap();
+    let store = nuclei_with_labels(d.path());
+    let cells = store.join("labels").join("cells");
+    let render = |src: &Path, extra: &[&str], out: &str| {
+        let out = d.path().join(out);
+        let mut a = vec![
+            "render",
+            s(src),
+            "--mode",
+            "slice",
+            "--slice-z",
+            "0.45",
+            "--level",
+            "0",
+            "--size",
+            "128",
+            "--quiet",
+            "--out",
+            s(&out),
+        ];
+        a.extend(extra);
+        ok(run(&a));
+        png_rgba(&out)
+    };
+    // The label image alone: its slices take label colours without being
+    // asked (the group says `image-label`). Every pixel is black (label 0)
+    // or, within rounding, the colour of a label the image holds.
+    let ids: std::collections::BTreeSet<u32> = read_level0::<u32>(&cells).0.into_iter().collect();
+    assert!(ids.len() > 20, "{} labels", ids.len());
+    let colours: Vec<[u8; 3]> = ids
+        .iter()
+        .filter(|&&i| i != 0)
+        .map(|&i| {
+            let c = label_color(Some(i as f32));
+            [0, 1, 2].map(|k| (c[k] * 255.0).round() as u8)
+        })
+        .collect();
+    let lab = render(&cells, &[], "labels.png");
+    let mut shown = std::collections::BTreeSet::new();
+    for p in lab.chunks(4) {
+        assert_eq!(p[3], 255);
+        if p[..3] == [0, 0, 0] {
+            continue;
+        }
+        let k = colours
+            .iter()
+            .position(|c| (0..3).all(|i| c[i].abs_diff(p[i]) <= 1))
+            .unwrap_or_else(|| panic!("{p:?} is the colour of no label"));
+        shown.insert(k);
+    }
+    let lit = lab.chunks(4).filter(|p| p[..3] != [0, 0, 0]).count();
+    assert!(
+        shown.len() >= 10 && lit > 128 * 128 / 10,
+        "{} labels, {lit} pixels",
+        shown.len()
+    );
+    // `--tf labels` is the same; a grey ramp through the ids is not.
+    assert_eq!(render(&cells, &["--tf", "labels"], "labels-tf.png"), lab);
+    assert_ne!(
+        render(&cells, &["--tf", "linear"], "labels-linear.png"),
+        lab
+    );
+    // Over the image: at opacity 1 the labels replace the image where they
+    // are and leave it alone elsewhere; at 0.5 they meet halfway.
+    let grey = ["--tf", "linear", "--window", "0,40000"];
+    let plain = render(&store, &grey, "plain.png");
+    let lit_plain = plain.chunks(4).filter(|p| p[0] > 8).count();
+    assert!(
+        lit_plain > 128 * 128 / 4,
+        "{lit_plain} pixels of the image lit"
+    );
+    let mut args = grey.to_vec();
+    args.extend(["--labels", "cells", "--label-opacity", "1"]);
+    let full = render(&store, &args, "over-1.png");
+    args.pop();
+    args.push("0.5");
+    let half = render(&store, &args, "over-half.png");
+    let default = render(&store, &args[..args.len() - 2], "over-default.png");
+    assert_eq!(default, half, "the default opacity is 0.5");
+    for (i, ((p, l), (f, h))) in plain
+        .chunks(4)
+        .zip(lab.chunks(4))
+        .zip(full.chunks(4).zip(half.chunks(4)))
+        .enumerate()
+    {
+        let labelled = l[..3] != [0, 0, 0];
+        assert_eq!(f, if labelled { l } else { p }, "pixel {i} at opacity 1");
+        for k in 0..3 {
+            let want = if labelled {
+                (p[k] as f32 + l[k] as f32) / 2.0
+            } else {
+                p[k] as f32
+            };
+            assert!(
+                (h[k] as f32 - want).abs() <= 1.0,
+                "pixel {i} at 0.5: {h:?}, {p:?} under {l:?}"
+            );
+        }
+    }
+}
+
+#[test]
+fn bad_label_overlays_give_clear_errors() {
+    let d = tempfile::tempdir().unwrap();
+    let store = nuclei_with_labels(d.path());
+    let fails = |extra: &[&str], want: &[&str]| {
+        let mut a = vec!["render", s(&store), "--mode", "slice", "--quiet", "--out"];
+        let out = d.path().join("x.png");
+        a.push(s(&out));
+        a.extend(extra);
+        let o = run(&a);
+        let err = String::from_utf8_lossy(&o.stderr).to_string();
+        assert!(!o.status.success(), "{extra:?} succeeded");
+        for w in want {
+            assert!(err.contains(w), "{extra:?}: {err:?} lacks {w:?}");
+        }
+        assert!(!out.exists(), "{extra:?} wrote an image");
+    };
+    fails(
+        &["--labels", "nuclei"],
+        &["no label image \"nuclei\"", "it has cells"],
+    );
+    fails(&["--labels", "../cells"], &["expected the name"]);
+    fails(
+        &["--labels", "cells", "--label-opacity", "0"],
+        &["label-opacity", "above 0"],
+    );
+    fails(
+        &["--labels", "cells", "--label-opacity", "1.5"],
+        &["label-opacity", "at most 1"],
+    );
+    fails(&["--label-opacity", "0.3"], &["applies with --labels"]);
+    fails(
+        &["--labels", "cells", "--tf", "labels"],
+        &["--tf labels draws a label image alone"],
+    );
+    fails(
+        &["--labels", "cells", "--turntable", "4"],
+        &["one view at a time"],
+    );
+    // Label colours are for slices.
+    let o = run(&[
+        "render",
+        s(&store.join("labels/cells")),
+        "--tf",
+        "labels",
+        "--out",
+        s(&d.path().join("y.png")),
+    ]);
+    assert!(String::from_utf8_lossy(&o.stderr).contains("--mode dvr draws a label image's values"));
+    // A label image on another grid: the nuclei labels of the shared data
+    // converted with the TIFF's own spacing (1 in every axis), listed.
+    let tif =
+        Path::new(env!("CARGO_MANIFEST_DIR")).join("../../../shared/data/nuclei-labels-u32.tif");
+    let other = store.join("labels").join("truth");
+    ok(run(&["convert", s(&tif), s(&other), "--labels", "--quiet"]));
+    let list = store.join("labels").join("zarr.json");
+    let mut j: serde_json::Value = serde_json::from_slice(&std::fs::read(&list).unwrap()).unwrap();
+    j["attributes"]["ome"]["labels"]
+        .as_array_mut()
+        .unwrap()
+        .push("truth".into());
+    std::fs::write(&list, j.to_string()).unwrap();
+    fails(
+        &["--labels", "truth"],
+        &[
+            "labels/truth",
+            "[2.0, 0.5, 0.5]",
+            "label images are drawn over the grid",
+        ],
+    );
+    // With the image's spacing it is drawn.
+    ok(run(&[
+        "convert",
+        s(&tif),
+        s(&other),
+        "--labels",
+        "--spacing",
+        "0.5,0.5,2",
+        "--overwrite",
+        "--quiet",
+    ]));
+    let out = d.path().join("truth.png");
+    ok(run(&[
+        "render",
+        s(&store),
+        "--mode",
+        "slice",
+        "--labels",
+        "truth",
+        "--quiet",
+        "--out",
+        s(&out),
+    ]));
+}

@@ -1303,3 +1303,81 @@ fn viewer_refuses_octree_flags_it_cannot_honour() {
         assert!(!e.contains("cannot open a window"), "{extra:?}: {e}");
     }
 }
+
+#[test]
+fn viewer_shows_label_images_in_their_colours_as_render_does() {
+    let _session = shared();
+    let d = tempfile::tempdir().unwrap();
+    let p = |n: &str| d.path().join(n);
+    let tif =
+        Path::new(env!("CARGO_MANIFEST_DIR")).join("../../../shared/data/nuclei-labels-u32.tif");
+    assert!(
+        tif.exists(),
+        "{} is missing: this test needs the shared data folder",
+        tif.display()
+    );
+    let store = p("labels.ome.zarr");
+    let o = Command::new(bin())
+        .args([
+            "convert",
+            s(&tif),
+            s(&store),
+            "--labels",
+            "--spacing",
+            "0.5,0.5,2",
+        ])
+        .args(["--brick", "16", "--quiet"])
+        .output()
+        .unwrap();
+    assert!(o.status.success(), "{}", stderr(&o));
+    let script = format!(
+        "size xy 64 64
+size xz 64 40
+wait-complete 300
+screenshot xy {xy}.png
+save-view xy {xy}
+screenshot xz {xz}.png
+save-view xz {xz}
+quit
+",
+        xy = s(&p("xy")),
+        xz = s(&p("xz")),
+    );
+    std::fs::write(p("s.txt"), script).unwrap();
+    let Some(mut cmd) = viewer(
+        &store,
+        &p("s.txt"),
+        None,
+        &[
+            "--pool",
+            "8MiB",
+            "--brick",
+            "8",
+            "--backend",
+            "cpu",
+            "--window-size",
+            "900x600",
+        ],
+    ) else {
+        return;
+    };
+    let o = cmd.output().unwrap();
+    assert!(o.status.success(), "viewer: {}", stderr(&o));
+    for name in ["xy", "xz"] {
+        let args = std::fs::read_to_string(p(&format!("{name}.args"))).unwrap();
+        assert!(args.contains("--tf\nlabels\n"), "{name}: {args}");
+        let a = equals_render(&store, d.path(), name);
+        // Label colours: several, each bright (a label's value is at least
+        // 0.75), not a grey ramp through the ids.
+        let lit: Vec<&[u8]> = a.chunks(4).filter(|c| c[..3] != [0, 0, 0]).collect();
+        let colours: std::collections::HashSet<&[u8]> = lit.iter().map(|c| &c[..3]).collect();
+        // (The xz plane through the middle meets fewer nuclei.)
+        let least = if name == "xy" { 8 } else { 2 };
+        assert!(colours.len() >= least, "{name}: {} colours", colours.len());
+        assert!(
+            lit.iter()
+                .all(|c| *c[..3].iter().max().unwrap() >= 190 && c[..3].iter().any(|&x| x != c[0])),
+            "{name}: a pixel that is no label's colour"
+        );
+    }
+}

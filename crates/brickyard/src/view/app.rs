@@ -46,6 +46,9 @@ pub struct Dataset {
     /// Brick counts per value bin over `range`, from the bricks' value
     /// ranges (each brick spread evenly over its range).
     pub histogram: Vec<f32>,
+    /// A label image (`omezarr::is_label_image`): its slices show each
+    /// label in its own colour.
+    pub labels: bool,
 }
 
 const N_VIEWS: usize = 5;

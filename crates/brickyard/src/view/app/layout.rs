@@ -141,6 +141,10 @@ impl ViewerApp {
         if mode != RenderMode::Dvr || self.dvr_composites() {
             params.channels = self.styles();
         }
+        // A label image's slices (one view each): its labels' colours.
+        params.labels = self.ds.labels
+            && matches!(mode, RenderMode::Slice { .. })
+            && params.channels.is_empty();
         if v == 0 && self.octree_draws(&params) {
             params.traversal = Traversal::Octree;
         }
@@ -172,6 +176,8 @@ impl ViewerApp {
                 spacing: self.voxel0(),
                 alone: None,
             });
+            // (Super-slices composite through the transfer function.)
+            params.labels = false;
             layout = Some(l);
         }
         Spec {

@@ -22,6 +22,7 @@ pub fn derived_dataset(stored: &Dataset, d: &Derived) -> Result<Dataset> {
         dtype: d.dtype,
         range: window,
         histogram: vec![0.0; stored.histogram.len()],
+        labels: false,
         ..stored.clone()
     })
 }

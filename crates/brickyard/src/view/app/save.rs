@@ -30,7 +30,11 @@ impl ViewerApp {
             "--camera".into(),
             cam_path.display().to_string(),
             "--tf".into(),
-            tf_path.display().to_string(),
+            // A label image's slice: its labels' colours.
+            match p.labels {
+                true => "labels".into(),
+                false => tf_path.display().to_string(),
+            },
         ];
         // (Rays take samples in dvr and mip; a slice one per pixel.)
         if !matches!(p.mode, RenderMode::Slice { .. }) {

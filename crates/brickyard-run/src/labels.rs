@@ -1,0 +1,114 @@
+//! Label images drawn over a slice (`render --labels NAME`): the store's
+//! `labels/NAME` must lie on the image's grid, and its slice, in the
+//! labels' colours, is laid over the image's at an opacity.
+
+use anyhow::{bail, Result};
+use brickyard_render::Image;
+use brickyard_store::import::zarr;
+use brickyard_store::omezarr::label_names;
+use brickyard_store::VolumeSource;
+use std::path::{Path, PathBuf};
+
+/// The folder of the store's label image `name`, once the store lists it
+/// and its level 0 has the image's voxels and spacing (the same world box:
+/// one camera shows both the same).
+pub fn label_store(store: &Path, name: &str) -> Result<PathBuf> {
+    if name.is_empty() || name == "." || name == ".." || name.contains(['/', '\\']) {
+        bail!("labels: expected the name of one of the store's label images (labels/NAME), found {name:?}");
+    }
+    let names = label_names(store)?;
+    if !names.iter().any(|n| n == name) {
+        bail!(
+            "labels: {} has no label image {name:?} ({}); `brickyard process {} PIPELINE --out {name}` \
+             with a label(...) stage writes one",
+            store.display(),
+            match names.is_empty() {
+                true => "it has none".to_string(),
+                false => format!("it has {}", names.join(", ")),
+            },
+            store.display()
+        );
+    }
+    let dir = store.join("labels").join(name);
+    let image = zarr::open(store, 0)?.meta().clone();
+    let labels = zarr::open(&dir, 0)?.meta().clone();
+    let spacing = |s: Option<[f64; 3]>| s.unwrap_or([1.0; 3]);
+    let (si, sl) = (spacing(image.spacing), spacing(labels.spacing));
+    let same_spacing = (0..3).all(|a| (si[a] - sl[a]).abs() <= 1e-9 * si[a].abs().max(sl[a].abs()));
+    if image.dims != labels.dims || !same_spacing {
+        bail!(
+            "{}: its level 0 is {:?} voxels of {:?} (z, y, x), the image's {:?} of {:?}: label \
+             images are drawn over the grid they were made on",
+            dir.display(),
+            labels.dims,
+            sl,
+            image.dims,
+            si
+        );
+    }
+    if labels.channels > 1 {
+        bail!(
+            "{}: a label image has one channel, this one {}",
+            dir.display(),
+            labels.channels
+        );
+    }
+    Ok(dir)
+}
+
+/// Lay `labels` (a slice of labels: premultiplied, each pixel a label's
+/// opaque colour or clear) over `img` at `opacity`: where a label is, the
+/// image keeps `1 − opacity` of itself and takes `opacity` of the label's
+/// colour; elsewhere it is unchanged.
+pub fn overlay(img: &mut Image, labels: &Image, opacity: f32) -> Result<()> {
+    if (img.width, img.height) != (labels.width, labels.height) {
+        bail!(
+            "labels: the label image's slice is {}×{}, the image's {}×{}",
+            labels.width,
+            labels.height,
+            img.width,
+            img.height
+        );
+    }
+    for (p, q) in img.rgba.iter_mut().zip(&labels.rgba) {
+        let a = opacity * q[3];
+        for i in 0..3 {
+            p[i] = p[i] * (1.0 - a) + opacity * q[i];
+        }
+        p[3] = p[3] * (1.0 - a) + a;
+    }
+    Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn labels_lie_over_the_image_at_their_opacity() {
+        let img = |px: Vec<[f32; 4]>| Image {
+            width: px.len() as u32,
+            height: 1,
+            rgba: px,
+        };
+        // Grey image; a red label on the first pixel, clear on the second;
+        // the third pixel outside the image's slice (clear) under a label.
+        let mut base = img(vec![
+            [0.5, 0.5, 0.5, 1.0],
+            [0.25, 0.25, 0.25, 1.0],
+            [0.0; 4],
+        ]);
+        let lab = img(vec![[1.0, 0.0, 0.0, 1.0], [0.0; 4], [0.0, 0.0, 1.0, 1.0]]);
+        overlay(&mut base, &lab, 0.25).unwrap();
+        assert_eq!(base.rgba[0], [0.625, 0.375, 0.375, 1.0]);
+        assert_eq!(base.rgba[1], [0.25, 0.25, 0.25, 1.0]);
+        assert_eq!(base.rgba[2], [0.0, 0.0, 0.25, 0.25]);
+        // Opacity 1: the label's colour alone.
+        let mut base = img(vec![[0.5, 0.5, 0.5, 1.0]]);
+        overlay(&mut base, &img(vec![[0.0, 1.0, 0.0, 1.0]]), 1.0).unwrap();
+        assert_eq!(base.rgba[0], [0.0, 1.0, 0.0, 1.0]);
+        // Sizes must agree.
+        let e = overlay(&mut base, &lab, 0.5).unwrap_err().to_string();
+        assert!(e.contains("3×1") && e.contains("1×1"), "{e}");
+    }
+}
