@@ -15,8 +15,11 @@ region of a store larger than memory can be read. `render` draws exactly what
 from __future__ import annotations
 
 import builtins
+import contextlib
 import json
 import os
+import re
+import sys
 import tempfile
 from typing import Any, Optional, Sequence, Tuple, Union
 
@@ -210,6 +213,105 @@ def _channel_index(c: Any, channels: int, what: str) -> int:
     return int(c) % channels
 
 
+def _index_option(value: Any, what: str) -> int:
+    """A level or channel option of `process`, `render` or `convert`: an
+    integer (TypeError otherwise); a negative one, or one beyond any store,
+    is an IndexError here (the native layer's unsigned numbers would raise
+    OverflowError)."""
+    if not isinstance(value, (int, np.integer)) or isinstance(value, bool):
+        raise TypeError(f"{what}: expected an integer, found {value!r}")
+    value = int(value)
+    if not 0 <= value <= sys.maxsize:
+        raise IndexError(f"{what}: {value} is outside the store (the first {what} is 0)")
+    return value
+
+
+# The command line's flags, as `brickyard render`, `convert` and `process`
+# name them in messages (each is a keyword argument here, `-` as `_`), and
+# those that are switches, per command (`--overwrite` is `overwrite=True`;
+# render's `--labels` takes a name, convert's is a switch).
+_FLAGS = frozenset((
+    "azimuth", "backend", "brick", "camera", "channel", "channel-levels", "channel-tf", "compression", "debug",
+    "derive", "distribute", "elevation", "eye-separation", "fov", "gpu-update", "host", "json", "label-opacity",
+    "labels", "level", "loader-threads", "lod-bias", "max-frames", "memory", "mode", "multiplex",
+    "no-early-termination", "octree-depth", "origin", "ortho", "out", "overwrite", "parallax", "pool",
+    "progressive", "quiet", "raw-f32", "read-delay-ms", "region-weights", "requests", "samples-per-voxel",
+    "save-camera", "shard", "size", "slice-normal", "slice-origin", "slice-z", "spacing", "stats", "stereo",
+    "stream", "tf", "traversal", "turntable", "unit", "upload", "views", "window"))
+_SWITCHES = {
+    "render": frozenset(("json", "no-early-termination", "ortho", "quiet", "raw-f32", "stream")),
+    "convert": frozenset(("labels", "overwrite")),
+    "process": frozenset(("overwrite",)),
+}
+# Words that are a flag's value when they follow it ("use --backend cpu").
+_CHOICES = {"backend": ("auto", "cpu", "gpu"), "mode": ("dvr", "mip", "slice")}
+# A flag in a message: as clap quotes it ('--level <LEVEL>'), or in the
+# text, with the value that follows it if there is one (a number, with or
+# without a unit: "--memory 56MiB").
+_FLAG_RE = re.compile(r"'--(?P<quoted>[a-z][a-z0-9-]*)(?: <[A-Z_]+>)?'"
+                      r"|--(?P<flag>[a-z][a-z0-9]*(?:-[a-z0-9]+)*)(?P<value> [0-9][\w.]*| [a-z]+)?")
+
+
+def _keywords(message: str, command: str) -> str:
+    """A message of the CLI's code with its flags as this module's keyword
+    arguments (of `command`: render, convert or process): `--overwrite` is
+    `overwrite=True`, `--memory` `memory=`,
+    `--memory 56MiB` `memory="56MiB"`, `'--level <LEVEL>'` `'level'`. Only
+    known flags that stand as words, and flags quoted as the command line's
+    parser quotes them, are changed (not a path's `a--b`); of
+    the command line parser's messages, only the first paragraph is kept
+    (its usage line and advice about --help are the CLI's)."""
+    if message.startswith("error: "):
+        message = message.split("\n\n", 1)[0]
+
+    def word(m: "re.Match") -> str:
+        at = m.start()
+        before = message[at - 1] if at else " "
+        name = m.group("quoted") or m.group("flag")
+        # "--pool/--host": a flag after a flag and a slash.
+        after_flag = before == "/" and re.search(r"--[a-z0-9-]+/$", message[:at])
+        key = name.replace("-", "_")
+        # (Quoted, the parser's unknown flags too: "unexpected argument '--x'".)
+        if m.group("quoted"):
+            return f"'{key}'"
+        if name not in _FLAGS or not (before in " \t\n(\"'" or after_flag):
+            return m.group(0)
+        value = (m.group("value") or "").strip()
+        if name in _SWITCHES[command]:
+            return f"{key}=True" + (m.group("value") or "")
+        if value and (value[0].isdigit() or value in _CHOICES.get(name, ())):
+            return f"{key}={value}" if re.fullmatch(r"[0-9]+(\.[0-9]+)?", value) else f'{key}="{value}"'
+        return f"{key}=" + (m.group("value") or "")
+
+    return _FLAG_RE.sub(word, message)
+
+
+# The CLI's messages for a level or channel outside the store (raised as
+# ValueError by the shared code): IndexError here, as for reads.
+_OUT_OF_RANGE = re.compile(
+    r"^level: the store has \d+ levels$"
+    r"|^(derive: )?channel:? \d+ asked for but .* has \d+ channel\(s\)$"
+    r"|: level \d+ asked for but the image has \d+ levels$"
+    r"|^channel-levels: .*\(the store has \d+ levels\)$", re.S)
+
+
+@contextlib.contextmanager
+def _cli_errors(command: str):
+    """Errors of the CLI's shared code (that of `brickyard COMMAND`) as
+    Python gives them: flags named as keyword arguments (`_keywords`), a
+    level or channel outside the store an IndexError."""
+    try:
+        yield
+    except Exception as e:
+        if len(e.args) != 1 or not isinstance(e.args[0], str):
+            raise
+        message = _keywords(e.args[0], command)
+        if type(e) is ValueError and _OUT_OF_RANGE.search(message):
+            raise IndexError(message).with_traceback(e.__traceback__) from e.__cause__
+        e.args = (message,)
+        raise
+
+
 def open(path: Union[str, os.PathLike], cache: int = 256 << 20, chunk_cache: int = 64 << 20,
          brick: int = 64, threads: Optional[int] = None) -> Store:
     """Open an OME-Zarr store: a directory, or an `http://` / `https://` URL
@@ -289,23 +391,49 @@ def render_args(store: Union[Store, str, os.PathLike], mode: str = "dvr", camera
     return args
 
 
+def _channel_options(channel: Any) -> None:
+    """The channels of render's `channel` (an int, "C[:COLOR[:LO,HI]]" or a
+    list of them): a negative one, or one beyond any store, is an
+    IndexError (the CLI parses them as unsigned numbers)."""
+    for c in channel if isinstance(channel, (list, tuple)) else (channel,):
+        if isinstance(c, str) and re.fullmatch(r"\s*[+-]?[0-9]+\s*", c.split(":", 1)[0]):
+            c = int(c.split(":", 1)[0])
+        if isinstance(c, (int, np.integer)) and not isinstance(c, bool):
+            _index_option(c, "channel")
+
+
 def render(store: Union[Store, str, os.PathLike], mode: str = "dvr", camera: Any = None, tf: Any = "soft",
            size: Union[int, Tuple[int, int]] = (512, 512), backend: str = "auto", dtype: str = "uint8",
-           **options: Any) -> np.ndarray:
-    """Render one view, exactly as `brickyard render` does with the same options.
+           out: Union[str, os.PathLike, None] = None, **options: Any) -> np.ndarray:
+    """Render one view, or a turntable's views, exactly as `brickyard render` does with the same options.
 
     `camera` and `tf` are dicts, JSON text or JSON files as the CLI writes them
     (`tf` may also name a preset: linear, soft, hot, viridis, coolwarm, opaque).
     Further options are the CLI's, with `_` for `-` (`window=(0, 1000)`,
     `level=2`, `memory="1GiB"`, `channel=["0:red", "1:green"]`, ...).
     Returns `(h, w, 4)` RGBA: uint8 over black as the PNG holds it, or with
-    `dtype="float32"` the premultiplied linear image."""
+    `dtype="float32"` the premultiplied linear image. With `turntable=N`,
+    all N views: `(N, h, w, 4)`, view 0 the camera's own. `out` also writes
+    the PNG the CLI writes (`--out`; a turntable's views as
+    `STEM-0000.png`, `STEM-0001.png`, ... beside it)."""
     if dtype not in ("uint8", "float32"):
         raise ValueError(f"dtype: expected uint8 or float32, found {dtype!r}")
+    level = options.get("level")
+    if isinstance(level, (int, np.integer)) and not isinstance(level, bool):
+        _index_option(level, "level")
+    if options.get("channel") is not None:
+        _channel_options(options["channel"])
+    turntable = options.get("turntable")
+    numbered = turntable is not None and turntable is not False
+    if out is not None:
+        out = os.fspath(out)
+        options["out"] = out
     with tempfile.TemporaryDirectory(prefix="brickyard-render-") as tmp:
         args = render_args(store, mode, camera, tf, size, backend, tmp, **options)
-        w, h, buf = _native.render(args, dtype == "float32")
-    return np.frombuffer(buf, dtype=np.dtype(dtype)).reshape(h, w, 4)
+        with _cli_errors("render"):
+            n, w, h, buf = _native.render(args, dtype == "float32", out, numbered)
+    views = np.frombuffer(buf, dtype=np.dtype(dtype)).reshape(n, h, w, 4)
+    return views if numbered else views[0]
 
 
 class _Bars:
@@ -375,11 +503,14 @@ def convert(src: Union[str, os.PathLike], dst: Union[str, os.PathLike], *, brick
             spacing=None, origin=None, unit: Optional[str] = None, level: int = 0, progress: Any = True) -> str:
     """Convert any input `brickyard convert` reads into a brickyard OME-Zarr
     pyramid at `dst`. Returns a one-line report."""
+    level = _index_option(level, "level")
     cb, bar = _progress_callback(progress, "convert")
     try:
-        return _native.convert(os.fspath(src), os.fspath(dst),
-                               _options(brick, shard, compression, labels, memory, overwrite, spacing, origin, unit),
-                               int(level), cb)
+        with _cli_errors("convert"):
+            return _native.convert(os.fspath(src), os.fspath(dst),
+                                   _options(brick, shard, compression, labels, memory, overwrite, spacing, origin,
+                                            unit),
+                                   level, cb)
     finally:
         if bar is not None:
             bar.close()
@@ -414,16 +545,24 @@ def from_numpy(array: Any, dst: Union[str, os.PathLike], *, spacing=None, origin
                overwrite: bool = False, progress: Any = True) -> str:
     """Write a `(z, y, x)` or `(c, z, y, x)` array as a brickyard OME-Zarr pyramid.
 
-    A NumPy array is handed over as it is. A lazy array (dask, zarr, h5py,
-    `np.memmap`, anything with `shape`, `dtype` and `__getitem__`) is never
-    materialised whole: the builder asks for one region at a time (slabs of
-    `brick` planes, at most what `memory` allows) and each is fetched with
-    `array[c, z0:z1, y0:y1, x0:x1]` (a dask region is computed then). Other
-    inputs go through `np.asarray`."""
+    A C-contiguous NumPy array in the machine's byte order is read where it
+    lies (no copy); any other NumPy array (a strided view, a transposed or
+    byte-swapped one) region by region, as a lazy array is. A lazy array
+    (dask, zarr, h5py, `np.memmap`, anything with `shape`, `dtype` and
+    `__getitem__`) is never materialised whole: the builder asks for one
+    region at a time (slabs of `brick` planes, at most what `memory`
+    allows) and each is fetched with `array[c, z0:z1, y0:y1, x0:x1]` (a dask
+    region is computed then). Other inputs go through `np.asarray`."""
+    options = _options(brick, shard, compression, labels, memory, overwrite, spacing, origin, unit)
     dt = _lazy_dtype(array)
     if dt is None:
-        return _from_memory(np.asarray(array), dst, spacing, origin, unit, brick, shard, compression, labels, memory,
-                            overwrite, progress)
+        return _from_memory(np.asarray(array), dst, options, progress)
+    name = f"<{type(array).__module__}.{type(array).__name__} of shape {tuple(int(n) for n in array.shape)}>"
+    return _from_regions(array, dt, name, dst, options, progress)
+
+
+def _from_regions(array: Any, dt: np.dtype, name: str, dst, options: dict, progress) -> str:
+    """The conversion of an array read region by region (`from_numpy`)."""
     shape = tuple(int(n) for n in array.shape)
     if len(shape) not in (3, 4):
         raise ValueError(f"array: expected (z, y, x) or (c, z, y, x), got {len(shape)} dimension(s) of shape {shape}")
@@ -440,32 +579,31 @@ def from_numpy(array: Any, dst: Union[str, os.PathLike], *, spacing=None, origin
             raise ValueError(f"array: [{z0}:{z1}, {y0}:{y1}, {x0}:{x1}] of channel {c} has shape {block.shape}")
         return np.ascontiguousarray(block, dtype=native).tobytes()
 
-    name = f"<{type(array).__module__}.{type(array).__name__} of shape {shape}>"
     c4 = shape if four else (1,) + shape
     cb, bar = _progress_callback(progress, "from_numpy")
     try:
-        return _native.from_lazy(read, name, c4, native.name, _chunk_of(array), os.fspath(dst),
-                                 _options(brick, shard, compression, labels, memory, overwrite, spacing, origin, unit),
-                                 cb)
+        with _cli_errors("convert"):
+            return _native.from_lazy(read, name, c4, native.name, _chunk_of(array), os.fspath(dst), options, cb)
     finally:
         if bar is not None:
             bar.close()
 
 
-def _from_memory(a: np.ndarray, dst, spacing, origin, unit, brick, shard, compression, labels, memory, overwrite,
-                 progress) -> str:
+def _from_memory(a: np.ndarray, dst, options: dict, progress) -> str:
     if a.ndim == 3:
         a = a[np.newaxis]
     if a.ndim != 4:
         raise ValueError(f"array: expected (z, y, x) or (c, z, y, x), got {a.ndim} dimension(s) of shape {a.shape}")
     if a.dtype.name not in _DTYPES:
         raise TypeError(f"array: dtype {a.dtype} is not stored by brickyard (one of {', '.join(_DTYPES)})")
-    a = np.ascontiguousarray(a, dtype=a.dtype.newbyteorder("="))
+    if not (a.flags.c_contiguous and a.dtype.isnative):
+        # Read region by region (each converted to C order and the native
+        # byte order as it is read): a whole copy would double the memory.
+        return _from_regions(a, a.dtype, "<numpy array>", dst, options, progress)
     cb, bar = _progress_callback(progress, "from_numpy")
     try:
-        return _native.from_bytes(a.tobytes(), tuple(int(x) for x in a.shape), a.dtype.name, os.fspath(dst),
-                                  _options(brick, shard, compression, labels, memory, overwrite, spacing, origin, unit),
-                                  cb)
+        with _cli_errors("convert"):
+            return _native.from_array(a, a.dtype.name, os.fspath(dst), options, cb)
     finally:
         if bar is not None:
             bar.close()
@@ -486,8 +624,9 @@ def process(store: Union[Store, str, os.PathLike], pipeline: str, out: str, *, l
     a labelling to a .csv or .json file. `backend` is cpu, gpu or auto (the
     filter stages; labelling runs on the CPU). Returns the result opened
     (a `Store`), or its path with `open_result=False`. Bad pipeline text
-    raises ValueError with the CLI's message; Ctrl-C stops the job and
-    leaves the store as it was."""
+    raises ValueError with the CLI's message, a level or channel outside
+    the store IndexError; Ctrl-C stops the job and leaves the store as it
+    was."""
     path = store.path if isinstance(store, Store) else os.fspath(store)
     if not isinstance(pipeline, str):
         raise TypeError(f"pipeline: expected text such as \"gauss(1.5)|sobel\", got {type(pipeline).__name__}")
@@ -497,11 +636,14 @@ def process(store: Union[Store, str, os.PathLike], pipeline: str, out: str, *, l
         raise TypeError(f"memory: expected bytes or a size such as \"1GiB\", got {memory!r}")
     if backend not in ("cpu", "gpu", "auto"):
         raise ValueError(f"backend: expected cpu, gpu or auto, found {backend!r}")
+    level = _index_option(level, "level")
+    channel = _index_option(channel, "channel")
     cb, bar = _progress_callback(progress, "process")
     try:
-        result, _labels, _line = _native.process(path, pipeline, out, str(memory), int(level), int(channel),
-                                                 None if stats is None else os.fspath(stats), bool(overwrite),
-                                                 backend, cb)
+        with _cli_errors("process"):
+            result, _labels, _line = _native.process(path, pipeline, out, str(memory), level, channel,
+                                                     None if stats is None else os.fspath(stats), bool(overwrite),
+                                                     backend, cb)
     finally:
         if bar is not None:
             bar.close()

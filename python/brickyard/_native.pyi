@@ -2,7 +2,7 @@
 
 from os import PathLike
 from pathlib import Path
-from typing import Callable, Optional, Sequence, Tuple, TypedDict, Union
+from typing import Any, Callable, Optional, Sequence, Tuple, TypedDict, Union
 
 class ConvertOptions(TypedDict):
     brick: Tuple[int, int, int]
@@ -43,11 +43,16 @@ class NativeStore:
     def bytes_read(self) -> int: ...
     def read(self, level: int, channel: int, lo: Sequence[int], hi: Sequence[int]) -> bytearray: ...
 
-def render(args: Sequence[str], float: bool = False) -> Tuple[int, int, bytearray]: ...
+# (views, width, height, pixels): every view's pixels one after the other; with out, each view written as a PNG
+def render(args: Sequence[str], float: bool = False, out: Union[str, PathLike, None] = None,
+           numbered: bool = False) -> Tuple[int, int, int, bytearray]: ...
 def convert(src: Union[str, PathLike], dst: Union[str, PathLike], options: ConvertOptions, zarr_level: int = 0,
             progress: Optional[Progress] = None) -> str: ...
 def from_bytes(data: bytes, shape: Tuple[int, int, int, int], dtype: str, dst: Union[str, PathLike],
                options: ConvertOptions, progress: Optional[Progress] = None) -> str: ...
+# array: a C-contiguous, native-endian NumPy array (c, z, y, x), read in place
+def from_array(array: Any, dtype: str, dst: Union[str, PathLike], options: ConvertOptions,
+               progress: Optional[Progress] = None) -> str: ...
 def from_lazy(read: Callable[[int, int, int, int, int, int, int], bytes], name: str,
               shape: Tuple[int, int, int, int], dtype: str, chunk: Optional[Tuple[int, int, int]],
               dst: Union[str, PathLike], options: ConvertOptions, progress: Optional[Progress] = None) -> str: ...

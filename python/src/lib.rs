@@ -100,47 +100,31 @@ impl NativeStore {
                 "brick: expected an edge between 1 and 1024 voxels, got {brick}"
             )));
         }
-        py.detach(|| -> anyhow::Result<NativeStore> {
-            // Only a 404 makes a URL "not a Zarr store" (other failures
-            // count as present and are reported by the reads that follow).
-            if brickyard_store::storage::is_remote(&path)
-                && !brickyard_store::import::zarr::is_zarr(&path)
-            {
-                return Err(anyhow::Error::new(std::io::Error::new(
-                    std::io::ErrorKind::NotFound,
-                    format!(
-                        "{}: not found (HTTP 404 for zarr.json, .zgroup and .zarray)",
-                        path.display()
-                    ),
-                )));
-            }
-            let info = inspect(&path)?;
-            if info.complete == Some(false) {
-                anyhow::bail!(
-                    "{}: the store is incomplete (an interrupted conversion)",
-                    path.display()
-                );
-            }
-            let cache = Arc::new(HostCache::new(cache_bytes));
-            let loader = Loader::open_with_chunk_cache(
-                &path,
-                [brick; 3],
-                0,
-                threads.max(1),
-                cache,
-                chunk_bytes,
-            )?;
-            Ok(NativeStore {
-                scales: info.levels.iter().map(|l| l.scale.clone()).collect(),
-                translations: info.levels.iter().map(|l| l.translation.clone()).collect(),
-                axes: info.axes.clone(),
-                units: info.units.clone(),
-                path: path.clone(),
-                loader,
-                reads: std::sync::Mutex::new(()),
+        // Opened on a thread of its own while this one watches for Ctrl-C:
+        // a server that takes the connection and never answers holds the
+        // open for a minute (its retries). When a signal's handler raises,
+        // that exception is raised here at once and the thread is left to
+        // end by itself (what it opened is dropped then).
+        let (tx, rx) = std::sync::mpsc::channel();
+        std::thread::Builder::new()
+            .name("brickyard-open".into())
+            .spawn(move || {
+                let _ = tx.send(open_store(path, cache_bytes, chunk_bytes, brick, threads));
             })
+            .map_err(|e| PyOSError::new_err(format!("open: cannot start a thread: {e}")))?;
+        py.detach(move || loop {
+            match rx.recv_timeout(std::time::Duration::from_millis(20)) {
+                Ok(r) => return r.map_err(to_py),
+                Err(std::sync::mpsc::RecvTimeoutError::Timeout) => {
+                    Python::attach(|py| py.check_signals())?
+                }
+                Err(std::sync::mpsc::RecvTimeoutError::Disconnected) => {
+                    return Err(PyValueError::new_err(
+                        "open: the thread opening the store panicked",
+                    ))
+                }
+            }
         })
-        .map_err(to_py)
     }
 
     #[getter]
@@ -221,6 +205,47 @@ impl NativeStore {
     }
 }
 
+/// Open a store for [`NativeStore::new`] (without the GIL).
+fn open_store(
+    path: PathBuf,
+    cache_bytes: u64,
+    chunk_bytes: u64,
+    brick: u64,
+    threads: usize,
+) -> anyhow::Result<NativeStore> {
+    // Only a 404 makes a URL "not a Zarr store" (other failures count as
+    // present and are reported by the reads that follow).
+    if brickyard_store::storage::is_remote(&path) && !brickyard_store::import::zarr::is_zarr(&path)
+    {
+        return Err(anyhow::Error::new(std::io::Error::new(
+            std::io::ErrorKind::NotFound,
+            format!(
+                "{}: not found (HTTP 404 for zarr.json, .zgroup and .zarray)",
+                path.display()
+            ),
+        )));
+    }
+    let info = inspect(&path)?;
+    if info.complete == Some(false) {
+        anyhow::bail!(
+            "{}: the store is incomplete (an interrupted conversion)",
+            path.display()
+        );
+    }
+    let cache = Arc::new(HostCache::new(cache_bytes));
+    let loader =
+        Loader::open_with_chunk_cache(&path, [brick; 3], 0, threads.max(1), cache, chunk_bytes)?;
+    Ok(NativeStore {
+        scales: info.levels.iter().map(|l| l.scale.clone()).collect(),
+        translations: info.levels.iter().map(|l| l.translation.clone()).collect(),
+        axes: info.axes.clone(),
+        units: info.units.clone(),
+        path,
+        loader,
+        reads: std::sync::Mutex::new(()),
+    })
+}
+
 fn numpy_name(d: brickyard_core::DType) -> &'static str {
     use brickyard_core::DType::*;
     match d {
@@ -235,18 +260,24 @@ fn numpy_name(d: brickyard_core::DType) -> &'static str {
     }
 }
 
-/// Render one view exactly as `brickyard render ARGS…` does (the same
-/// options, the same code); `args` is the whole command line, starting
-/// `brickyard render STORE`. Returns
-/// `(width, height, pixels)`: RGBA8 over black as the PNG holds it, or the
-/// premultiplied RGBA f32 image when `float`.
+/// Render exactly as `brickyard render ARGS…` does (the same options, the
+/// same code); `args` is the whole command line, starting `brickyard
+/// render STORE`. Returns `(views, width, height, pixels)`: every view (a
+/// turntable's, in order; else one) one after the other, each RGBA8 over
+/// black as the PNG holds it, or the premultiplied RGBA f32 image when
+/// `float`. With `out`, each view is also written where the CLI writes it
+/// (`out` itself, or `STEM-0000.png`, `STEM-0001.png`, ... beside it when
+/// `numbered`, for a turntable); `args` should then hold `--out` too, so
+/// that the CLI's checks of the name apply.
 #[pyfunction]
-#[pyo3(signature = (args, float = false))]
+#[pyo3(signature = (args, float = false, out = None, numbered = false))]
 fn render<'py>(
     py: Python<'py>,
     args: Vec<String>,
     float: bool,
-) -> PyResult<(u32, u32, Bound<'py, PyByteArray>)> {
+    out: Option<PathBuf>,
+    numbered: bool,
+) -> PyResult<(usize, u32, u32, Bound<'py, PyByteArray>)> {
     let cmd = brickyard_run::render::RenderCmd::try_parse_from(&args)
         .map_err(|e| PyValueError::new_err(e.to_string().trim().to_string()))?;
     if let Some(store) = args.get(2).map(PathBuf::from) {
@@ -254,21 +285,68 @@ fn render<'py>(
             return Err(missing(&store));
         }
     }
-    let img = py
-        .detach(|| brickyard_run::render::images(cmd))
-        .map_err(to_py)?
-        .into_iter()
-        .next()
-        .ok_or_else(|| PyValueError::new_err("render: no view was drawn"))?;
-    let bytes: Vec<u8> = if float {
-        img.rgba
-            .iter()
-            .flat_map(|p| p.iter().flat_map(|v| v.to_ne_bytes()))
-            .collect()
-    } else {
-        img.to_rgba8([0.0, 0.0, 0.0, 1.0])
+    let raw = cmd.raw_f32;
+    let images = py
+        .detach(|| -> anyhow::Result<_> {
+            let images = brickyard_run::render::images(cmd)?;
+            if let Some(out) = &out {
+                for (v, img) in images.iter().enumerate() {
+                    write_view(img, &view_path(out, numbered, v), raw)?;
+                }
+            }
+            Ok(images)
+        })
+        .map_err(to_py)?;
+    let (w, h) = match images.first() {
+        Some(img) => (img.width, img.height),
+        None => return Err(PyValueError::new_err("render: no view was drawn")),
     };
-    Ok((img.width, img.height, PyByteArray::new(py, &bytes)))
+    let mut bytes = Vec::new();
+    for img in &images {
+        if float {
+            bytes.extend(
+                img.rgba
+                    .iter()
+                    .flat_map(|p| p.iter().flat_map(|v| v.to_ne_bytes())),
+            );
+        } else {
+            bytes.extend(img.to_rgba8([0.0, 0.0, 0.0, 1.0]));
+        }
+    }
+    Ok((images.len(), w, h, PyByteArray::new(py, &bytes)))
+}
+
+/// The file of view `v` as `brickyard render --out OUT` names it: `OUT`,
+/// or for a turntable `STEM-0000.png`, `STEM-0001.png`, ... beside it.
+fn view_path(out: &Path, numbered: bool, v: usize) -> PathBuf {
+    if !numbered {
+        return out.to_path_buf();
+    }
+    let stem = out
+        .file_stem()
+        .map(|s| s.to_string_lossy().into_owned())
+        .unwrap_or_default();
+    out.with_file_name(format!("{stem}-{v:04}.png"))
+}
+
+/// Write one view as `brickyard render` does: the PNG over black, and with
+/// `--raw-f32` the premultiplied image beside it (`.f32`, little-endian).
+/// A file that cannot be written is an `OSError`.
+fn write_view(img: &brickyard_render::Image, path: &Path, raw: bool) -> anyhow::Result<()> {
+    let io = |msg: String| anyhow::Error::new(std::io::Error::other(msg));
+    if raw {
+        let f = path.with_extension("f32");
+        let bytes: Vec<u8> = img
+            .rgba
+            .as_flattened()
+            .iter()
+            .flat_map(|v| v.to_le_bytes())
+            .collect();
+        std::fs::write(&f, bytes).map_err(|e| io(format!("{}: cannot write: {e}", f.display())))?;
+    }
+    // (The error names the path.)
+    img.write_png(path, [0.0, 0.0, 0.0, 1.0])
+        .map_err(|e| io(e.to_string()))
 }
 
 /// The builder's progress, handed to a Python callable `progress(kind,
@@ -463,6 +541,29 @@ fn from_bytes(
     run_convert(py, &src, &dst, &opts, progress)
 }
 
+/// Convert a NumPy array (C-contiguous, native-endian, `[c, z, y, x]` of
+/// `dtype`) into a brickyard OME-Zarr pyramid, read where it lies: the
+/// array's memory is handed to the builder without a copy, and the array
+/// is held until the conversion ends.
+#[pyfunction]
+#[pyo3(signature = (array, dtype, dst, options, progress = None))]
+fn from_array(
+    py: Python<'_>,
+    array: Bound<'_, PyAny>,
+    dtype: &str,
+    dst: PathBuf,
+    options: PyConvertOptions,
+    progress: Option<Py<PyAny>>,
+) -> PyResult<String> {
+    let opts = options.to_options()?;
+    let view = source::ArrayView::of(&array, dtype)?;
+    // SAFETY: `array` is borrowed for this whole call, and a NumPy array
+    // keeps its memory while it is referenced (it cannot be resized then).
+    let data = unsafe { view.bytes() };
+    let src = source::MemorySource::new(data, view.shape, dtype).map_err(to_py)?;
+    run_convert(py, &src, &dst, &opts, progress)
+}
+
 /// Convert a lazy array into a brickyard OME-Zarr pyramid, region by
 /// region: `read(c, z0, z1, y0, y1, x0, x1)` returns the bytes of one box
 /// (C order, native-endian `dtype`); `chunk` is the box `[z, y, x]` the
@@ -578,6 +679,7 @@ fn _native(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_function(wrap_pyfunction!(render, m)?)?;
     m.add_function(wrap_pyfunction!(convert, m)?)?;
     m.add_function(wrap_pyfunction!(from_bytes, m)?)?;
+    m.add_function(wrap_pyfunction!(from_array, m)?)?;
     m.add_function(wrap_pyfunction!(from_lazy, m)?)?;
     m.add_function(wrap_pyfunction!(process, m)?)?;
     Ok(())

@@ -77,6 +77,97 @@ impl VolumeSource for MemorySource<'_> {
     }
 }
 
+/// Where a NumPy array's voxels lie, from its `__array_interface__`: a
+/// C-contiguous, native-endian `[c, z, y, x]` array of one of the stored
+/// types (anything else is refused; `brickyard.from_numpy` reads such
+/// arrays region by region instead).
+pub struct ArrayView {
+    ptr: usize,
+    len: usize,
+    pub shape: [u64; 4],
+}
+
+impl ArrayView {
+    pub fn of(array: &Bound<'_, PyAny>, dtype: &str) -> PyResult<ArrayView> {
+        let bad = |msg: String| PyValueError::new_err(format!("array: {msg}"));
+        let d = DType::parse(dtype)
+            .ok_or_else(|| bad(format!("dtype {dtype:?} is not stored by brickyard")))?;
+        let iface = array.getattr("__array_interface__")?;
+        let shape: Vec<u64> = iface.get_item("shape")?.extract()?;
+        let shape: [u64; 4] = shape.try_into().map_err(|s: Vec<u64>| {
+            bad(format!(
+                "expected 4 dimensions (c, z, y, x), got {} of shape {s:?}",
+                s.len()
+            ))
+        })?;
+        // `typestr` is byte order, kind and size: "<u2", "|u1", ">f4".
+        let typestr: String = iface.get_item("typestr")?.extract()?;
+        let native = if cfg!(target_endian = "little") {
+            '<'
+        } else {
+            '>'
+        };
+        let kind = match d {
+            DType::U8 | DType::U16 | DType::U32 => 'u',
+            DType::I8 | DType::I16 | DType::I32 => 'i',
+            DType::F32 | DType::F64 => 'f',
+        };
+        let mut t = typestr.chars();
+        let (order, k, size) = (t.next(), t.next(), t.as_str());
+        let order_ok = order == Some(native) || (order == Some('|') && d.size() == 1);
+        if !order_ok || k != Some(kind) || size != d.size().to_string() {
+            return Err(bad(format!(
+                "expected native-endian {dtype} voxels, found type {typestr:?}"
+            )));
+        }
+        // `strides` is None for a C-contiguous array, or the C-order
+        // strides themselves.
+        let strides = iface.get_item("strides")?;
+        if !strides.is_none() {
+            let strides: Vec<i64> = strides.extract()?;
+            let mut want = [0i64; 4];
+            let mut step = d.size() as i64;
+            for a in (0..4).rev() {
+                want[a] = step;
+                step = step.saturating_mul(shape[a] as i64);
+            }
+            let same = strides
+                .iter()
+                .zip(want)
+                .zip(shape)
+                .all(|((&s, w), n)| n <= 1 || s == w);
+            if strides.len() != 4 || !same {
+                return Err(bad(format!(
+                    "expected a C-contiguous array, found strides {strides:?}"
+                )));
+            }
+        }
+        let (ptr, _readonly): (usize, bool) = iface.get_item("data")?.extract()?;
+        let len = shape
+            .iter()
+            .try_fold(d.size() as u64, |n, &s| n.checked_mul(s))
+            .and_then(|n| usize::try_from(n).ok())
+            .ok_or_else(|| bad(format!("shape {shape:?} is too large")))?;
+        if ptr == 0 && len > 0 {
+            return Err(bad("the array has no data".into()));
+        }
+        Ok(ArrayView { ptr, len, shape })
+    }
+
+    /// The voxels, in place.
+    ///
+    /// # Safety
+    ///
+    /// The array this view was taken of must stay alive, unresized and
+    /// unwritten while the bytes are used.
+    pub unsafe fn bytes<'a>(&self) -> &'a [u8] {
+        if self.len == 0 {
+            return &[];
+        }
+        std::slice::from_raw_parts(self.ptr as *const u8, self.len)
+    }
+}
+
 /// A lazy array (dask, zarr, h5py, anything with `__getitem__`, `shape` and
 /// `dtype`) as a [`VolumeSource`], for `brickyard.from_numpy`: each region
 /// the builder asks for is fetched by calling the Python function

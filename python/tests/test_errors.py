@@ -98,7 +98,101 @@ def test_bad_render_options(store):
         brickyard.render(store, tf={"window": [0, 1], "opacity": [[2.0, 1.0]]}, backend="cpu")
     with pytest.raises(ValueError, match="size"):
         brickyard.render(store, size=(0, 10), backend="cpu")
-    with pytest.raises(ValueError, match="level: the store has"):
+    with pytest.raises(IndexError, match="level: the store has"):
         brickyard.render(store, level=40, backend="cpu")
     with pytest.raises(ValueError, match="unexpected argument"):
         brickyard.render(store, backend="cpu", no_such_option=3)
+
+
+def test_level_and_channel_outside_the_store_are_index_errors(store, tmp_path):
+    # As for reads: IndexError with the CLI's message in `process` and
+    # `render` too (they raised ValueError), and for negative or huge
+    # numbers also (they raised OverflowError, or a parse error of the
+    # flag), naming the option.
+    def proc(**kw):
+        brickyard.process(store, "sobel", out="s", progress=False, **kw)
+
+    with pytest.raises(IndexError, match="level 2 asked for but the image has 2 levels"):
+        proc(level=2)
+    with pytest.raises(IndexError, match="channel: 1 asked for but .* has 1 channel"):
+        proc(channel=1)
+    with pytest.raises(IndexError, match="channel: 1 asked for but the store has 1 channel"):
+        brickyard.render(store, channel=1, backend="cpu")
+    with pytest.raises(IndexError, match="channel: 3 asked for but the store has 1 channel"):
+        brickyard.render(store, channel=["0:red", "3:green"], backend="cpu")
+    with pytest.raises(IndexError, match="channel-levels: .*the store has 2 levels"):
+        brickyard.render(store, channel=[0], channel_levels={0: (0, 5)}, backend="cpu")
+    with pytest.raises(IndexError, match="level 7 asked for but the image has 2 levels"):
+        brickyard.convert(store, tmp_path / "c.ome.zarr", level=7, progress=False)
+    for bad in (-1, -(2**70), 2**64, 2**70):
+        for what, call in [("level", lambda v: proc(level=v)), ("channel", lambda v: proc(channel=v)),
+                           ("level", lambda v: brickyard.render(store, level=v, backend="cpu")),
+                           ("channel", lambda v: brickyard.render(store, channel=v, backend="cpu")),
+                           ("channel", lambda v: brickyard.render(store, channel=[f"{v}:red"], backend="cpu")),
+                           ("level", lambda v: brickyard.convert(store, tmp_path / "c.ome.zarr", level=v,
+                                                                 progress=False))]:
+            with pytest.raises(IndexError, match=f"^{what}: {bad} is outside the store"):
+                call(bad)
+    # Not integers at all: TypeError, as for reads.
+    with pytest.raises(TypeError, match="level: expected an integer"):
+        proc(level=1.5)
+    with pytest.raises(TypeError, match="channel: expected an integer"):
+        proc(channel="0")
+    assert not (store / "derived").exists() and not (tmp_path / "c.ome.zarr").exists()
+
+
+def test_messages_name_python_keywords(store, tmp_path):
+    # The CLI's messages name its flags; from Python they name the
+    # keyword arguments instead (the rest of the text is the CLI's).
+    with pytest.raises(ValueError) as e:
+        brickyard.from_numpy(np.zeros((4, 4, 4), np.uint8), store, progress=False)
+    assert str(e.value) == f"{store}: output exists; pass overwrite=True to replace it"
+    brickyard.from_numpy(np.zeros((4, 4, 4), np.uint8), tmp_path / "a--b.ome.zarr", progress=False)
+    with pytest.raises(ValueError) as e:
+        brickyard.convert(tmp_path / "a--b.ome.zarr", tmp_path / "a--b.ome.zarr", progress=False)
+    # (A path is left as it is.)
+    assert str(e.value).endswith("a--b.ome.zarr: output exists; pass overwrite=True to replace it"), e.value
+    with pytest.raises(ValueError) as e:
+        brickyard.render(store, memory="10MiB", pool="9MiB", backend="cpu")
+    assert str(e.value).endswith("; raise memory= or lower pool=/host="), e.value
+    with pytest.raises(ValueError) as e:
+        brickyard.render(store, channel=[0], channel_tf={1: "hot"}, backend="cpu")
+    assert str(e.value) == "channel-tf: channel 1 is not shown (give it with channel=)"
+    with pytest.raises(ValueError) as e:
+        brickyard.render(store, derive="gauss(1)", channel=[0, 0], backend="cpu")
+    assert str(e.value) == "derive: a derived channel is computed from one channel; give at most one channel="
+    # The command line's parser: the option by its keyword, no advice about --help.
+    with pytest.raises(ValueError) as e:
+        brickyard.render(store, size=16, backend="cpu", level="x")
+    assert str(e.value) == "error: invalid value 'x' for 'level': invalid digit found in string", e.value
+    with pytest.raises(ValueError) as e:
+        brickyard.render(store, backend="cpu", no_such_option=3)
+    assert str(e.value) == "error: unexpected argument 'no_such_option' found", e.value
+    # A flag with its value: the keyword with that value.
+    with pytest.raises(ValueError) as e:
+        brickyard.render(store, mode="slice", ortho=True, backend="cpu")
+    assert str(e.value).startswith('ortho: applies to mode="dvr" and mip only; a slice is seen face on (move '
+                                   'its plane with slice_z=, slice_origin= or slice_normal=, or give the camera '
+                                   'with camera=)'), e.value
+
+
+def test_every_render_flag_is_translated(cli):
+    # Messages name flags by the table of brickyard/__init__.py: each of
+    # `brickyard render`'s flags (every one a keyword of `render`) is in
+    # it, as are those of `convert` and `process` that are keywords there.
+    import re
+
+    text = cli("render", "--help")
+    flags = set(re.findall(r"^\s+(?:-\w, )?--([a-z][a-z0-9-]*)", text, re.M))
+    assert {"mode", "out", "memory", "raw-f32"} <= flags, flags
+    # (The command line's own, global flags are not `render`'s.)
+    flags -= {"help", "threads", "s3-endpoint", "s3-region", "s3-anonymous"}
+    assert flags <= brickyard._FLAGS, sorted(flags - brickyard._FLAGS)
+    keywords = {"brick", "shard", "compression", "labels", "memory", "overwrite", "spacing", "origin", "unit",
+                "level", "out", "channel", "stats", "backend"}
+    assert keywords <= brickyard._FLAGS
+    # The switches: the flags that `--help` shows without a value.
+    switches = set(re.findall(r"^\s+--([a-z][a-z0-9-]*)\s*$", text, re.M))
+    assert {"ortho", "raw-f32"} <= switches == brickyard._SWITCHES["render"] <= flags, switches
+    assert brickyard._SWITCHES["convert"] == {"overwrite", "labels"}
+    assert brickyard._SWITCHES["process"] == {"overwrite"}

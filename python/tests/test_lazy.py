@@ -127,3 +127,30 @@ def test_lazy_errors(tmp_path):
     with pytest.raises(TypeError, match="dtype complex64 is not stored"):
         brickyard.from_numpy(c, tmp_path / "c.ome.zarr", progress=False)
     assert c.calls == []
+
+
+def test_numpy_arrays_not_in_c_order_or_native_bytes(tmp_path):
+    # A strided, transposed, reversed or byte-swapped NumPy array is read
+    # region by region (a C-contiguous one in place): each gives the
+    # pyramid of its C-ordered, native copy, level by level.
+    a = np.stack([volume((30, 34, 38), "float32", seed=6), volume((30, 34, 38), "float32", seed=7)])
+    ref = tmp_path / "ref.ome.zarr"
+    brickyard.from_numpy(np.ascontiguousarray(a), ref, brick=16, shard=32, progress=False)
+    e = brickyard.open(ref)
+    cases = {
+        "fortran": np.asfortranarray(a),
+        "reversed": a[:, ::-1, :, ::-1].copy()[:, ::-1, :, ::-1],
+        "big-endian": a.astype(a.dtype.newbyteorder(">")),
+        "transposed": np.ascontiguousarray(a.transpose(0, 3, 2, 1)).transpose(0, 3, 2, 1),
+    }
+    for name, x in cases.items():
+        assert not (x.flags.c_contiguous and x.dtype.isnative), name
+        np.testing.assert_array_equal(x, a)
+        dst = tmp_path / f"{name}.ome.zarr"
+        brickyard.from_numpy(x, dst, brick=16, shard=32, progress=False)
+        s = brickyard.open(dst)
+        assert s.dtype == np.float32 and s.shapes == e.shapes, name
+        for level in range(s.levels):
+            for c in range(2):
+                np.testing.assert_array_equal(s.read(level, c), e.read(level, c), err_msg=name)
+        np.testing.assert_array_equal(s.read(0, 1), a[1], err_msg=name)

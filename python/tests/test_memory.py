@@ -48,3 +48,56 @@ def test_reading_more_than_the_cache_stays_bounded(tmp_path):
     # Caches (12 MiB) + one slab (2 MiB) + slack: well under the 48 MiB
     # volume (a cache that kept every brick would grow by more than that).
     assert growth < 20 << 20, f"RSS grew by {growth / 2**20:.1f} MiB reading a {volume_bytes / 2**20:.0f} MiB volume"
+
+
+WRITER = textwrap.dedent("""
+    import sys, numpy as np, brickyard
+
+    def rss(field):
+        for line in open("/proc/self/status"):
+            if line.startswith(field):
+                return int(line.split()[1]) * 1024
+
+    def reset_peak():
+        # The peak so far is forgotten (Linux: 5 > clear_refs), so that
+        # VmHWM is the peak of what follows.
+        with open("/proc/self/clear_refs", "w") as f:
+            f.write("5")
+
+    def check(a, dst):
+        s = brickyard.open(dst, cache=8 << 20, chunk_cache=4 << 20)
+        assert s.shape == (1,) + a.shape and s.dtype == a.dtype, (s.shape, s.dtype)
+        for z in range(0, a.shape[0], 32):
+            np.testing.assert_array_equal(s.read(0, 0, np.s_[z:z + 32]), a[z:z + 32])
+
+    # 256 MiB of uint16, written a plane at a time (no temporary of its size).
+    a = np.empty((128, 1024, 1024), np.uint16)
+    plane = np.arange(1024 * 1024, dtype=np.uint32).reshape(1024, 1024)
+    for z in range(a.shape[0]):
+        a[z] = (plane * 31 + z * 7919) % 65521
+    del plane
+    out = []
+    # A C-contiguous array, and a view that is not (every other column of
+    # a 256 MiB array, byte-swapped: 128 MiB read through that view).
+    b = a.view(a.dtype.newbyteorder()).reshape(128, 1024, 1024)[:, :, ::2]
+    for name, x in [("contiguous", a), ("strided", b)]:
+        reset_peak()
+        base = rss("VmRSS:")
+        brickyard.from_numpy(x, sys.argv[1] + "/" + name + ".ome.zarr", brick=32, shard=128, memory=64 << 20,
+                             progress=False)
+        out.append(rss("VmHWM:") - base)
+        check(x.astype(x.dtype.newbyteorder("=")) if name == "strided" else x, sys.argv[1] + "/" + name + ".ome.zarr")
+    print(a.nbytes, b.nbytes, *out)
+""")
+
+
+def test_from_numpy_does_not_copy_the_array(tmp_path):
+    # The array was copied whole (`tobytes`) before the conversion: the
+    # peak was twice the array. The builder's own memory is 64 MiB here.
+    out = subprocess.run([sys.executable, "-c", WRITER, str(tmp_path)], capture_output=True, text=True)
+    assert out.returncode == 0, out.stderr
+    nbytes, view_bytes, growth, view_growth = map(int, out.stdout.split())
+    assert nbytes == 256 << 20 and view_bytes == 128 << 20
+    assert growth < nbytes // 2, f"RSS grew by {growth / 2**20:.0f} MiB converting a {nbytes >> 20} MiB array"
+    assert view_growth < view_bytes // 2, (
+        f"RSS grew by {view_growth / 2**20:.0f} MiB converting a {view_bytes >> 20} MiB strided view")

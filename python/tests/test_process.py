@@ -141,7 +141,7 @@ def test_bad_arguments(two_stores, tmp_path):
         brickyard.process(b, "sobel", out="a/b", progress=False)
     with pytest.raises(ValueError, match="stats: only a pipeline that ends in label"):
         brickyard.process(b, "sobel", out="s", stats=tmp_path / "s.csv", progress=False)
-    with pytest.raises(ValueError, match="channel: 3 asked for"):
+    with pytest.raises(IndexError, match="channel: 3 asked for"):
         brickyard.process(b, "sobel", out="s", channel=3, progress=False)
     with pytest.raises(ValueError, match="memory: unknown unit"):
         brickyard.process(b, "sobel", out="s", memory="2 parsecs", progress=False)

@@ -89,3 +89,49 @@ def test_a_server_gone_mid_session_is_an_os_error(tmp_path):
     with pytest.raises(OSError, match="gone.ome.zarr"):
         s.read(0, 0, np.s_[30:40, 40:48, 48:64])
     assert time.monotonic() - t0 < 30
+
+
+def test_open_of_a_server_that_never_answers_is_interruptible():
+    # A server that takes connections and never answers: `open` waited for
+    # it (about 65 s) and Ctrl-C did nothing meanwhile.
+    import signal
+    import socket
+    import threading
+    import time
+    import _thread
+
+    server = socket.socket()
+    server.bind(("127.0.0.1", 0))
+    server.listen(16)
+    held = []
+
+    def accept():
+        while True:
+            try:
+                held.append(server.accept()[0])
+            except OSError:
+                return
+
+    threading.Thread(target=accept, daemon=True).start()
+    url = f"http://127.0.0.1:{server.getsockname()[1]}/hung.ome.zarr"
+    # Python's own SIGINT handler, whatever the test runner inherited.
+    old = signal.signal(signal.SIGINT, signal.default_int_handler)
+    timer = threading.Timer(1.0, _thread.interrupt_main)
+    t0 = time.monotonic()
+    try:
+        timer.start()
+        with pytest.raises(KeyboardInterrupt):
+            brickyard.open(url)
+        seconds = time.monotonic() - t0
+    finally:
+        timer.cancel()
+        signal.signal(signal.SIGINT, old)
+        try:
+            server.shutdown(socket.SHUT_RDWR)
+        except OSError:
+            pass
+        server.close()
+        for c in held:
+            c.close()
+    assert held, "open never reached the server: the test would prove nothing"
+    assert 0.9 < seconds < 5, f"KeyboardInterrupt after {seconds:.1f} s"

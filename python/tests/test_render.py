@@ -96,3 +96,43 @@ def test_render_per_channel_options_equal_cli(tmp_path, cli):
     full = brickyard.render(dst, size=(48, 40), backend="cpu", channel=["0:green", "1:magenta"],
                             channel_tf={1: tf})
     assert (full != want).any()
+
+
+def test_render_out_writes_the_png(store, cli, tmp_path):
+    # `out` writes the file `brickyard render --out` writes (it was passed
+    # on and nothing was written), and the array returned is its pixels.
+    out = tmp_path / "py.png"
+    got = brickyard.render(store, mode="mip", tf="hot", size=(40, 32), backend="cpu", out=out)
+    assert out.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    np.testing.assert_array_equal(read_png(out), got)
+    assert got.any(), "a black image: the test would prove nothing"
+    cli("render", store, "--mode", "mip", "--tf", "hot", "--size", "40x32", "--backend", "cpu", "--quiet",
+        "--out", tmp_path / "cli.png")
+    assert out.read_bytes() == (tmp_path / "cli.png").read_bytes()
+    # The CLI's checks of the name hold.
+    with pytest.raises(ValueError, match="expected a name ending in .png"):
+        brickyard.render(store, size=16, backend="cpu", out=tmp_path / "x.jpg")
+    with pytest.raises(ValueError, match="is not an existing folder"):
+        brickyard.render(store, size=16, backend="cpu", out=tmp_path / "nowhere" / "x.png")
+
+
+def test_turntable_returns_every_view(store, cli, tmp_path):
+    n = 3
+    kw = dict(mode="dvr", tf="hot", size=(36, 28), backend="cpu")
+    frames = brickyard.render(store, turntable=n, out=tmp_path / "py.png", **kw)
+    assert frames.shape == (n, 28, 36, 4) and frames.dtype == np.uint8
+    for i in range(n):
+        for j in range(i):
+            assert (frames[i] != frames[j]).any(), f"views {j} and {i} are the same image"
+    # The first view is the camera's own view; each is what the CLI writes.
+    np.testing.assert_array_equal(frames[0], brickyard.render(store, **kw))
+    cli("render", store, "--mode", "dvr", "--tf", "hot", "--size", "36x28", "--backend", "cpu", "--quiet",
+        "--turntable", n, "--out", tmp_path / "cli.png")
+    for i in range(n):
+        np.testing.assert_array_equal(frames[i], read_png(tmp_path / f"cli-{i:04}.png"))
+        np.testing.assert_array_equal(frames[i], read_png(tmp_path / f"py-{i:04}.png"))
+    assert not (tmp_path / "py.png").exists()
+    f = brickyard.render(store, turntable=n, dtype="float32", **kw)
+    assert f.shape == (n, 28, 36, 4) and f.dtype == np.float32
+    # One view asked for is still a sequence of views.
+    assert brickyard.render(store, turntable=1, **kw).shape == (1, 28, 36, 4)
