@@ -643,6 +643,7 @@ fn run_with_labels(
         bail!("label-opacity: applies with --labels NAME (the label image drawn over the slice)");
     };
     let opacity = c.label_opacity.take().unwrap_or(0.5);
+    let (silent, json) = (c.silent, c.json);
     if !(opacity > 0.0 && opacity <= 1.0) {
         bail!("label-opacity: expected an opacity above 0 and at most 1, found {opacity}");
     }
@@ -672,35 +673,62 @@ fn run_with_labels(
     lc.derive = None;
     lc.save_camera = None;
     lc.silent = true;
+    let mut why_less = None;
     if let Some(m) = &c.memory {
         let m = crate::memory::parse_bytes(m).context("--memory")?;
         if m <= held {
             bail!(
-                "memory: {} cannot hold the labels' image ({}) beside the render",
+                "memory: {} cannot hold the labels' slice ({}) beside the image's",
                 human_bytes(m),
                 human_bytes(held)
             );
         }
         c.memory = Some((m - held).to_string());
+        lc.memory = c.memory.clone();
+        why_less = Some(format!(
+            "labels: each of the two slices (the image's, the labels') is drawn within --memory \
+             {} less the other's image ({}): {}",
+            human_bytes(m),
+            human_bytes(held),
+            human_bytes(m - held)
+        ));
     }
+    let with_why = |e: anyhow::Error| match &why_less {
+        Some(w) => e.context(w.clone()),
+        None => e,
+    };
+    // The image's slice first (a budget too small for it is refused
+    // before any work), then the labels', laid over it.
+    let mut shown = vec![];
+    let lines = run_one(c, share, &mut |path, img| {
+        shown.push((path.to_path_buf(), img));
+        Ok(())
+    })
+    .map_err(with_why)?;
     let mut labels = vec![];
-    let lines = run_one(lc, None, &mut |_, img| {
+    let label_lines = run_one(lc, None, &mut |_, img| {
         labels.push(img);
         Ok(())
-    })?;
-    if !c.silent && !c.json {
-        for l in &lines {
+    })
+    .map_err(with_why)?;
+    if !silent && !json {
+        for l in &label_lines {
             let detail = l.split_once(": ").map_or(l.as_str(), |(_, d)| d);
             outln!("labels {name}: {detail}");
         }
     }
-    let [lab] = <[_; 1]>::try_from(labels).map_err(|v| {
-        anyhow::anyhow!("labels: expected one image of the labels, got {}", v.len())
-    })?;
-    run_one(c, share, &mut |path, mut img| {
-        crate::labels::overlay(&mut img, &lab, opacity)?;
-        sink(path, img)
-    })
+    if shown.len() != labels.len() {
+        bail!(
+            "labels: {} image(s) of the slice, {} of the labels",
+            shown.len(),
+            labels.len()
+        );
+    }
+    for ((path, mut img), lab) in shown.into_iter().zip(&labels) {
+        crate::labels::overlay(&mut img, lab, opacity)?;
+        sink(&path, img)?;
+    }
+    Ok(lines)
 }
 
 /// [`run_with`] of one store.
