@@ -343,7 +343,7 @@ _REPEATED = ("channel", "channel_tf", "channel_levels")
 _PER_CHANNEL = ("channel_tf", "channel_levels")
 
 
-def render_args(store: Union[Store, str, os.PathLike], mode: str = "dvr", camera: Any = None, tf: Any = "soft",
+def render_args(store: Union[Store, str, os.PathLike], mode: str = "dvr", camera: Any = None, tf: Any = None,
                 size: Union[int, Tuple[int, int]] = (512, 512), backend: str = "auto", tmpdir: str = ".",
                 **options: Any) -> list:
     """The `brickyard render` arguments for these options (files for dicts are written in `tmpdir`)."""
@@ -402,13 +402,17 @@ def _channel_options(channel: Any) -> None:
             _index_option(c, "channel")
 
 
-def render(store: Union[Store, str, os.PathLike], mode: str = "dvr", camera: Any = None, tf: Any = "soft",
+def render(store: Union[Store, str, os.PathLike], mode: str = "dvr", camera: Any = None, tf: Any = None,
            size: Union[int, Tuple[int, int]] = (512, 512), backend: str = "auto", dtype: str = "uint8",
            out: Union[str, os.PathLike, None] = None, **options: Any) -> np.ndarray:
     """Render one view, or a turntable's views, exactly as `brickyard render` does with the same options.
 
     `camera` and `tf` are dicts, JSON text or JSON files as the CLI writes them
-    (`tf` may also name a preset: linear, soft, hot, viridis, coolwarm, opaque).
+    (`tf` may also name a preset: linear, soft, hot, viridis, coolwarm, opaque;
+    `labels` for a slice of a label image in its labels' colours). Without
+    `tf`: soft, or `labels` for slices of a label image (a store's
+    `labels/NAME`); `labels="NAME"` lays the store's `labels/NAME` over a
+    slice (`label_opacity`, default 0.5).
     Further options are the CLI's, with `_` for `-` (`window=(0, 1000)`,
     `level=2`, `memory="1GiB"`, `channel=["0:red", "1:green"]`, ...).
     Returns `(h, w, 4)` RGBA: uint8 over black as the PNG holds it, or with

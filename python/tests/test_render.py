@@ -136,3 +136,37 @@ def test_turntable_returns_every_view(store, cli, tmp_path):
     assert f.shape == (n, 28, 36, 4) and f.dtype == np.float32
     # One view asked for is still a sequence of views.
     assert brickyard.render(store, turntable=1, **kw).shape == (1, 28, 36, 4)
+
+
+def test_label_images_render_as_the_cli_draws_them(tmp_path, cli):
+    # Five balls over noise, labelled by `process`.
+    z, y, x = np.mgrid[0:24, 0:32, 0:40]
+    img = np.random.default_rng(3).integers(0, 8000, (24, 32, 40)).astype(np.uint16)
+    for cz, cy, cx in [(12, 8, 8), (12, 8, 30), (12, 24, 10), (12, 24, 30), (6, 16, 20)]:
+        img[(z - cz) ** 2 + (y - cy) ** 2 + (x - cx) ** 2 <= 25] = 50000
+    dst = tmp_path / "img.ome.zarr"
+    brickyard.from_numpy(img, dst, brick=16, shard=32, progress=False)
+    brickyard.process(brickyard.open(dst), "threshold(25000)|label(26)", out="blobs")
+    labels = brickyard.open(dst / "labels" / "blobs")
+    n = int(labels.read(level=0).max())
+    assert n >= 3, f"{n} labels: the test would prove little"
+    for what, store, extra, opts in [
+        ("labels alone", dst / "labels" / "blobs", [], {}),
+        ("over the image", dst, ["--labels", "blobs", "--label-opacity", "0.7"],
+         {"labels": "blobs", "label_opacity": 0.7}),
+    ]:
+        out = tmp_path / "cli.png"
+        cli("render", store, "--mode", "slice", "--size", "48x40", "--backend", "cpu", "--quiet",
+            "--out", out, *extra)
+        want = read_png(out)
+        got = brickyard.render(str(store), mode="slice", size=(48, 40), backend="cpu", **opts)
+        np.testing.assert_array_equal(got, want, err_msg=what)
+    # Without `tf` a label image's slice takes its labels' colours: few
+    # distinct colours (the labels and black), unlike a grey ramp.
+    alone = brickyard.render(labels, mode="slice", size=(48, 40), backend="cpu")
+    colours = {tuple(p) for p in alone.reshape(-1, 4)}
+    assert 3 <= len(colours) <= n + 1, len(colours)
+    ramp = brickyard.render(labels, mode="slice", size=(48, 40), backend="cpu", tf="linear")
+    assert (ramp != alone).any()
+    with pytest.raises(ValueError, match="no label image"):
+        brickyard.render(str(dst), mode="slice", labels="nope", size=16)

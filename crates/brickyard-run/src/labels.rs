@@ -19,14 +19,13 @@ pub fn label_store(store: &Path, name: &str) -> Result<PathBuf> {
     let names = label_names(store)?;
     if !names.iter().any(|n| n == name) {
         bail!(
-            "labels: {} has no label image {name:?} ({}); `brickyard process {} PIPELINE --out {name}` \
-             with a label(...) stage writes one",
+            "labels: {} has no label image {name:?} ({}); processing it with a pipeline that \
+             ends in label(...) writes one",
             store.display(),
             match names.is_empty() {
                 true => "it has none".to_string(),
                 false => format!("it has {}", names.join(", ")),
-            },
-            store.display()
+            }
         );
     }
     let dir = store.join("labels").join(name);
