@@ -21,7 +21,9 @@ pub struct ViewState {
     /// 1 frames the whole volume; 2 is twice as close.
     pub zoom: f64,
     pub fov: f64,
-    pub tf: String,
+    /// A preset, or `labels` (a label image's slice in its labels'
+    /// colours); `None`: soft, or `labels` for slices of a label image.
+    pub tf: Option<String>,
     /// Data window; `None`: the channel's `omero` window, else the data
     /// type's range (0–1 for floats).
     pub window: Option<[f64; 2]>,
@@ -45,7 +47,7 @@ impl Default for ViewState {
             elevation: 20.0,
             zoom: 1.0,
             fov: 35.0,
-            tf: "soft".into(),
+            tf: None,
             window: None,
             channel: 0,
             channels: vec![],
@@ -98,8 +100,11 @@ impl ViewState {
                     }
                 }
                 "tf" => {
-                    TransferFunction::preset(&v, [0.0, 1.0]).map_err(|e| format!("tf: {e}"))?;
-                    s.tf = v;
+                    if v != "labels" {
+                        TransferFunction::preset(&v, [0.0, 1.0])
+                            .map_err(|e| format!("tf: {e} (or labels)"))?;
+                    }
+                    s.tf = Some(v);
                 }
                 "window" => {
                     let p: Vec<&str> = v.split(',').collect();
@@ -169,8 +174,8 @@ impl ViewState {
         if self.fov != d.fov {
             q.push(format!("fov={}", self.fov));
         }
-        if self.tf != d.tf {
-            q.push(format!("tf={}", self.tf));
+        if let Some(tf) = &self.tf {
+            q.push(format!("tf={tf}"));
         }
         if let Some([a, b]) = self.window {
             q.push(format!("window={a},{b}"));
@@ -195,19 +200,39 @@ impl ViewState {
     }
 
     /// The renderers' parameters and level of detail for `scene`
-    /// (`window`: the default data window), as `brickyard render` with
-    /// `--mode --azimuth --elevation --fov --tf --window --channel --size
-    /// --lod-bias --slice-z` makes them.
+    /// (`window`: the default data window; `label_image`: the store is a
+    /// label image), as `brickyard render` with `--mode --azimuth
+    /// --elevation --fov --tf --window --channel --size --lod-bias
+    /// --slice-z` makes them.
     pub fn params(
         &self,
         scene: &Scene,
         window: [f64; 2],
         meta: &[ChannelMeta],
         n_channels: usize,
+        label_image: bool,
     ) -> Result<View, String> {
         let [lo, hi] = self.window.unwrap_or(window);
-        let tf = TransferFunction::preset(&self.tf, [lo as f32, hi as f32])
-            .map_err(|e| format!("tf: {e}"))?;
+        let tf_name = match self.tf.as_deref() {
+            Some(t) => t,
+            None if label_image && self.mode == "slice" && self.channels.is_empty() => "labels",
+            None => "soft",
+        };
+        let labels = tf_name == "labels";
+        if labels && self.mode != "slice" {
+            return Err(format!(
+                "tf: labels colours slices of a label image (mode=slice); mode={} draws its values through another transfer function",
+                self.mode
+            ));
+        }
+        if labels && !self.channels.is_empty() {
+            return Err("tf: labels draws one channel (no channels=)".into());
+        }
+        let tf = TransferFunction::preset(
+            if labels { "linear" } else { tf_name },
+            [lo as f32, hi as f32],
+        )
+        .map_err(|e| format!("tf: {e}"))?;
         // The channels shown: as asked, else a store's active channels
         // when it has several (as `render` without --channel).
         let shown: Vec<usize> = if !self.channels.is_empty() {
@@ -270,6 +295,7 @@ impl ViewState {
         let dvr = mode == RenderMode::Dvr;
         let mut p = RenderParams::new(self.width, self.height, camera, tf, mode);
         p.reference_step = Some(scene.voxel(0));
+        p.labels = labels;
         // DVR of one channel goes through the transfer function.
         let channel = match styles.as_slice() {
             [one] if dvr => one.channel,
@@ -354,5 +380,10 @@ mod tests {
             assert!(e.starts_with(key), "{q}: {e}");
         }
         assert_eq!(decode("a%2Cb+c"), "a,b c");
+        // `tf=labels` is kept as asked; no tf stays the default.
+        let s = ViewState::from_query("mode=slice&tf=labels").unwrap();
+        assert_eq!(s.tf.as_deref(), Some("labels"));
+        assert_eq!(ViewState::from_query(&s.to_query()).unwrap(), s);
+        assert_eq!(ViewState::from_query("mode=slice").unwrap().tf, None);
     }
 }

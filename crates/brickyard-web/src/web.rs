@@ -403,6 +403,7 @@ impl Inner {
                 self.window,
                 &src.meta.channels,
                 src.geometry.channels,
+                src.meta.labels,
             )
             .map_err(|e| JsValue::from_str(&e))?;
         if view.channel != self.channel {

@@ -153,6 +153,9 @@ pub struct Multiscale {
     pub stats: Option<String>,
     /// brickyard's statistics brick edge `[z, y, x]`.
     pub stats_brick: Option<Dims3>,
+    /// A label image: `image-label` in its attributes (a store's
+    /// `labels/NAME`) or coarser levels by the mode (`"type": "mode"`).
+    pub labels: bool,
 }
 
 impl Multiscale {
@@ -551,6 +554,8 @@ pub fn parse_root(zarr_format: u8, text: &[u8]) -> Result<(Multiscale, Vec<Strin
         })
         .unwrap_or_default();
     let by = attrs.get("brickyard");
+    let labels =
+        ome.get("image-label").is_some() || ms.get("type").and_then(Value::as_str) == Some("mode");
     let ms = Multiscale {
         zarr_format,
         levels: vec![],
@@ -571,6 +576,7 @@ pub fn parse_root(zarr_format: u8, text: &[u8]) -> Result<(Multiscale, Vec<Strin
                 let v: Vec<u64> = a.iter().filter_map(Value::as_u64).collect();
                 (v.len() == 3).then(|| [v[0], v[1], v[2]])
             }),
+        labels,
     };
     Ok((ms, paths))
 }

@@ -173,9 +173,13 @@ fn stream(store: &Path, state: &ViewState, window: [f64; 2], pool: u64) -> (Imag
         pool_bytes: pool,
         ..Default::default()
     };
-    let (meta, n) = (src.meta.channels.clone(), src.geometry.channels);
+    let (meta, n, labels) = (
+        src.meta.channels.clone(),
+        src.geometry.channels,
+        src.meta.labels,
+    );
     let mut s = WebSession::new(src, cfg, spawn, 6).expect("session");
-    let v = state.params(&s.scene, window, &meta, n).unwrap();
+    let v = state.params(&s.scene, window, &meta, n, labels).unwrap();
     s.scene.channel = v.channel;
     let (p, lod) = (v.params, v.lod);
     for frame in 0..500 {
@@ -222,7 +226,7 @@ fn a_streamed_view_equals_brickyard_render() {
             "--size".into(),
             format!("{}x{}", st.width, st.height),
             "--tf".into(),
-            st.tf.clone(),
+            st.tf.clone().unwrap(),
             "--window".into(),
             format!("{lo},{hi}"),
         ];
@@ -464,4 +468,49 @@ fn several_channels_equal_brickyard_render() {
         eprintln!("{q}: complete after {frames} frames, max difference {d:e}");
         assert!(d <= 1e-5, "{q}: differs from brickyard render by {d}");
     }
+}
+
+#[test]
+fn a_label_image_streams_in_its_labels_colours_as_brickyard_render_draws_it() {
+    let dir = tempfile::tempdir().unwrap();
+    let src = open_input(&data("nuclei-labels-u32.tif"), &ImportOptions::default()).expect("input");
+    let store = dir.path().join("labels.ome.zarr");
+    let opts = ConvertOptions {
+        brick: [32; 3],
+        shard: [64; 3],
+        labels: true,
+        spacing: Some([2.0, 0.5, 0.5]),
+        ..Default::default()
+    };
+    convert(&*src, &store, &opts, &NoProgress, &AtomicBool::new(false)).expect("convert");
+    assert!(
+        open_web(&store, 32).meta.labels,
+        "the store reads as a label image"
+    );
+    // No tf: a label image's slice takes its labels' colours, in the page
+    // as in `brickyard render`.
+    let q = "mode=slice&size=160x160&slice=0.5";
+    let st = ViewState::from_query(q).unwrap();
+    let (web, _) = stream(&store, &st, [0.0, 20.0], 64 << 20);
+    let cli = render_cli(
+        &store,
+        &["--mode", "slice", "--size", "160x160", "--slice-z", "0.5"],
+    );
+    let d = web.max_abs_diff(&cli);
+    assert!(d <= 1e-6, "web and CLI differ by {d}");
+    let colours: std::collections::HashSet<[u32; 4]> =
+        web.rgba.iter().map(|p| p.map(f32::to_bits)).collect();
+    assert!(
+        (6..=21).contains(&colours.len()),
+        "{} colours: not the labels' (20 labels and the background)",
+        colours.len()
+    );
+    // Asked for elsewhere: refused, naming the key.
+    let st = ViewState::from_query("mode=dvr&tf=labels").unwrap();
+    let s = open_web(&store, 32);
+    let scene = brickyard_render::cpu::Scene::new([1.0; 3], vec![[1, 1, 1]]);
+    let e = st
+        .params(&scene, [0.0, 1.0], &s.meta.channels, 1, true)
+        .unwrap_err();
+    assert!(e.starts_with("tf: labels"), "{e}");
 }

@@ -44,7 +44,7 @@ function writeUrl(query) {
 function syncControls(q) {
   const p = new URLSearchParams(q);
   $('mode').value = p.get('mode') || 'dvr';
-  $('tf').value = p.get('tf') || 'soft';
+  $('tf').value = p.get('tf') || '';
   $('slice').value = p.get('slice') || '0.5';
   $('bias').value = p.get('bias') || '0';
   if (state.multi) $('channel').value = p.get('channels') || 'all';
@@ -150,7 +150,7 @@ function wireControls() {
   });
   hist.addEventListener('pointerup', () => { histDrag = null; });
   $('mode').onchange = () => setView({ mode: $('mode').value === 'dvr' ? null : $('mode').value });
-  $('tf').onchange = () => setView({ tf: $('tf').value === 'soft' ? null : $('tf').value });
+  $('tf').onchange = () => setView({ tf: $('tf').value || null });
   const win = () => setView({ window: `${$('wlo').value},${$('whi').value}` });
   $('wlo').onchange = win; $('whi').onchange = win;
   $('channel').onchange = () => state.multi
