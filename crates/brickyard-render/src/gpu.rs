@@ -64,6 +64,8 @@ const RENDER_WGSL: &str = concat!(
     include_str!("multi.wgsl"),
     "\n",
     include_str!("octree/dvr.wgsl"),
+    "\n",
+    include_str!("labels.wgsl"),
 );
 
 /// The render uniform (see `gpu.wgsl`).

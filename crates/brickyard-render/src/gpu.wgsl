@@ -98,8 +98,9 @@ struct Render {
     clip_hi: vec4<f32>,
     // x: the box applies (1); y: no early ray termination (1); z: MIP
     // pixels are (raw maximum, 0, 0, 1), (NaN, 0, 0, 1) when no sample
-    // was served, 0 where the ray takes no sample (1); w: a slice of a
-    // label image (1): nearest voxels, a colour per label.
+    // was served, 0 where the ray takes no sample (1); w: a label image
+    // (1): nearest voxels, a colour per label (slices; DVR mode: the
+    // first label along the ray, labels.wgsl).
     region: vec4<u32>,
     // x: only pixel rows [y, z) are drawn, the others transparent (1): an
     // image-parallel band; w: 0.
@@ -249,6 +250,8 @@ fn render(@builtin(global_invocation_id) g: vec3<u32>) {
         px = slice_pixel(ray);
     } else if (R.mode == 1u) {
         px = mip_pixel(ray);
+    } else if (R.region.w == 1u) {
+        px = label_surface(ray);
     } else {
         px = dvr_pixel(ray);
     }

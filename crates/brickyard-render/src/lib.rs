@@ -37,6 +37,7 @@ mod entry;
 pub mod gpu;
 pub mod image;
 pub mod isa;
+pub mod labels;
 mod lanes;
 mod mip;
 pub mod multi;

@@ -136,11 +136,12 @@ pub struct RenderParams {
     /// function ([`crate::optics::mip_color`]).
     #[serde(default, skip_serializing_if = "is_default")]
     pub mip_values: bool,
-    /// Slices of a label image (one channel, one view): each pixel takes the
-    /// nearest voxel's label (no interpolation between labels, at every
-    /// level) and shows it in the label's own colour
-    /// ([`crate::optics::label_color`]), label 0 transparent; `tf` is not
-    /// used.
+    /// A label image (one channel, one view): samples take the nearest
+    /// voxel's label (no interpolation between labels, at every level),
+    /// shown in the label's own colour ([`crate::optics::label_color`]),
+    /// label 0 transparent; `tf` is not used. A slice shows the plane's
+    /// labels; DVR mode the first label along each ray, shaded by its
+    /// surface ([`crate::labels`]).
     #[serde(default, skip_serializing_if = "is_default")]
     pub labels: bool,
 }
@@ -330,14 +331,19 @@ impl RenderParams {
         }
         let dvr = matches!(self.mode, RenderMode::Dvr);
         if self.labels
-            && (!matches!(self.mode, RenderMode::Slice { .. })
+            && (matches!(self.mode, RenderMode::Mip)
                 || !self.channels.is_empty()
-                || self.views.is_some())
+                || self.views.is_some()
+                || self.clip.is_some()
+                || self.debug.is_some()
+                || self.traversal != Traversal::PageTable
+                || self.tf.shading.is_some())
         {
             return bad(
                 "labels",
-                "label colours are drawn in slices of one channel, one view (DVR and MIP draw \
-                 a label image's values)"
+                "label colours are drawn in slices and in 3D (DVR mode) of one channel, one \
+                 view, through the page tables, unshaded by the transfer function (a MIP \
+                 draws a label image's values)"
                     .into(),
             );
         }

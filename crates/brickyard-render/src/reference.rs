@@ -67,7 +67,8 @@
 //! `lib.rs` checks that this file names no product module.
 
 use crate::image::Image;
-use crate::optics::label_color;
+use crate::labels::{indicator_gradient, surface_color, surface_shade};
+use crate::optics::{label_color, label_of};
 use brickyard_core::camera::{intersect_box, world_extent, world_to_normalized, Ray, Vec3};
 use brickyard_core::views::{ViewRays, Views};
 #[cfg(feature = "loader")]
@@ -261,16 +262,21 @@ impl Volume {
         self.sample(world_to_normalized(world, extent))
     }
 
+    /// The index `[z, y, x]` of [`nearest`](Self::nearest)'s voxel.
+    pub fn nearest_index(&self, p: [f64; 3]) -> [u64; 3] {
+        let d = self.dims;
+        [0, 1, 2].map(|a| {
+            let q = (p[a] * d[a] as f64 - 0.5).clamp(0.0, (d[a] - 1) as f64);
+            (q + 0.5).floor() as u64
+        })
+    }
+
     /// The voxel nearest to the normalized position `p = [z, y, x]`: the
     /// voxel coordinate `p·dims − 0.5` clamped to `[0, dims − 1]` as for
     /// [`sample`](Self::sample), rounded by `⌊q + ½⌋` (how label images are
     /// sampled).
     pub fn nearest(&self, p: [f64; 3]) -> f32 {
-        let d = self.dims;
-        let q = [0, 1, 2].map(|a| {
-            let q = (p[a] * d[a] as f64 - 0.5).clamp(0.0, (d[a] - 1) as f64);
-            (q + 0.5).floor() as u64
-        });
+        let q = self.nearest_index(p);
         self.voxel(q[0], q[1], q[2])
     }
 }
@@ -473,6 +479,7 @@ pub fn render(volume: &Volume, params: &RenderParams) -> Image {
         return render_super_slices(volume, params, views, (*origin, *normal));
     }
     per_pixel(params, |ray| match &params.mode {
+        RenderMode::Dvr if params.labels => label_surface_ray(volume, ray, extent, dt),
         RenderMode::Dvr => dvr_ray(volume, &params.tf, ray, extent, dt, exponent),
         RenderMode::Mip => mip_ray(volume, &params.tf, ray, extent, dt),
         RenderMode::Slice { origin, normal } if params.labels => {
@@ -739,6 +746,40 @@ fn max_along(vol: &Volume, ray: &Ray, (t0, t1): (f64, f64), extent: Vec3, dt: f6
         best = best.max(vol.sample_world(ray.at(t), extent));
     }
     best
+}
+
+/// A label image in 3D (`RenderParams::labels`, DVR mode; `labels.rs`):
+/// the first step `t0 + (k + ½)·Δ` whose nearest voxel holds a label (not
+/// 0), in that label's colour shaded by its indicator's gradient over the
+/// voxel's 3×3×3 neighbourhood (0 outside the volume).
+fn label_surface_ray(vol: &Volume, ray: &Ray, extent: Vec3, dt: f64) -> [f32; 4] {
+    let Some((t0, t1)) = intersect_box(ray, [0.0; 3], extent) else {
+        return [0.0; 4];
+    };
+    let d = vol.dims;
+    for k in 0.. {
+        let t = step_t(t0, k, dt);
+        if t >= t1 {
+            break;
+        }
+        let q = vol.nearest_index(world_to_normalized(ray.at(t), extent));
+        let Some(id) = label_of(vol.voxel(q[0], q[1], q[2])).filter(|&id| id != 0) else {
+            continue;
+        };
+        let mut ind = [0f32; 27];
+        for (i, x) in ind.iter_mut().enumerate() {
+            let n = [i / 9, i / 3 % 3, i % 3].map(|o| o as i64 - 1);
+            let n = [0, 1, 2].map(|a| q[a] as i64 + n[a]);
+            if (0..3).all(|a| n[a] >= 0 && n[a] < d[a] as i64) {
+                let v = vol.voxel(n[0] as u64, n[1] as u64, n[2] as u64);
+                *x = (label_of(v) == Some(id)) as u8 as f32;
+            }
+        }
+        let g = indicator_gradient(&ind);
+        let scale = vol.spacing.map(|s| 1.0 / s);
+        return surface_color(id, surface_shade(g, scale, ray.dir));
+    }
+    [0.0; 4]
 }
 
 fn slice_ray(

@@ -8,12 +8,13 @@
 
 use brickyard_cache::session::Session;
 use brickyard_cache::vm::VmConfig;
-use brickyard_core::camera::{world_extent, Camera};
+use brickyard_core::camera::{world_extent, Camera, Projection};
 use brickyard_core::{DType, TransferFunction};
 use brickyard_gpu::vm::DeviceVm;
 use brickyard_render::cpu::{render_frame, Lod, Scene};
 use brickyard_render::gpu::GpuRenderer;
 use brickyard_render::image::Image;
+use brickyard_render::labels::AMBIENT;
 use brickyard_render::optics::label_color;
 use brickyard_render::reference::{render, RenderMode, RenderParams, Volume};
 use brickyard_store::builder::{convert, ConvertOptions, NoProgress};
@@ -205,13 +206,247 @@ fn label_slices_show_whole_labels_on_the_cpu_and_the_device() {
 }
 
 #[test]
-fn label_colours_are_for_slices_of_one_channel() {
+fn label_colours_are_not_for_mips() {
     let cam = Camera::facing_plane([1.0; 3], [0.0, 0.0, 1.0], 2.0);
     let tf = TransferFunction::preset("linear", [0.0, 1.0]).unwrap();
-    for mode in [RenderMode::Dvr, RenderMode::Mip] {
-        let mut p = RenderParams::new(8, 8, cam, tf.clone(), mode);
-        p.labels = true;
-        let e = p.validate().unwrap_err().to_string();
-        assert!(e.contains("labels") && e.contains("slices"), "{e}");
+    let mut p = RenderParams::new(8, 8, cam, tf.clone(), RenderMode::Mip);
+    p.labels = true;
+    let e = p.validate().unwrap_err().to_string();
+    assert!(e.contains("labels") && e.contains("MIP"), "{e}");
+}
+
+/// The nuclei labels converted with label pyramids (z 4× coarser), and
+/// every level whole.
+fn nuclei_labels(dir: &Path) -> (PathBuf, Vec<Volume>) {
+    let input = shared_data("nuclei-labels-u32.tif");
+    let src = brickyard_store::import::open_input(&input, &Default::default()).unwrap();
+    let store = dir.join("labels.ome.zarr");
+    let o = ConvertOptions {
+        brick: [16; 3],
+        shard: [64; 3],
+        labels: true,
+        spacing: Some([1.0, 0.25, 0.25]),
+        ..Default::default()
+    };
+    convert(
+        src.as_ref(),
+        &store,
+        &o,
+        &NoProgress,
+        &AtomicBool::new(false),
+    )
+    .unwrap();
+    let n = (0..)
+        .take_while(|&l| Volume::from_store(&store, l, 0).is_ok())
+        .count();
+    let levels = (0..n)
+        .map(|l| Volume::from_store(&store, l, 0).unwrap())
+        .collect();
+    (store, levels)
+}
+
+/// Every lit pixel is some label's colour times a shade in `[AMBIENT, 1]`
+/// (within `tol`); returns how many labels show and the range of shades.
+fn shaded_label_colours(img: &Image, ids: &HashSet<u32>, tol: f32) -> (usize, f32, f32) {
+    let mut shown = HashSet::new();
+    let (mut lo, mut hi) = (f32::INFINITY, 0f32);
+    for (i, px) in img.rgba.iter().enumerate() {
+        if px[3] == 0.0 {
+            assert_eq!(*px, [0.0; 4], "pixel {i}");
+            continue;
+        }
+        assert_eq!(px[3], 1.0, "pixel {i}");
+        let found = ids.iter().filter(|&&id| id != 0).find_map(|&id| {
+            let c = label_color(Some(id as f32));
+            let k = c[..3].iter().cloned().fold(0.0, f32::max);
+            let shade = px[..3].iter().cloned().fold(0.0, f32::max) / k;
+            let fits = (AMBIENT - tol..=1.0 + tol).contains(&shade)
+                && (0..3).all(|a| (c[a] * shade - px[a]).abs() <= tol);
+            fits.then_some((id, shade))
+        });
+        let Some((id, shade)) = found else {
+            panic!("pixel {i} {px:?} is no label's colour, shaded");
+        };
+        shown.insert(id);
+        lo = lo.min(shade);
+        hi = hi.max(shade);
     }
+    (shown.len(), lo, hi)
+}
+
+#[test]
+fn label_surfaces_in_3d_on_the_cpu_and_the_device() {
+    let dir = tempfile::tempdir().unwrap();
+    let (store, levels) = nuclei_labels(dir.path());
+    let extent = world_extent(levels[0].dims, levels[0].spacing);
+    let mut scene = Scene::new(extent, levels.iter().map(|v| v.dims).collect());
+    let vol_bytes = levels[0].dims.iter().product::<u64>() * 4;
+    let gpu = brickyard_gpu::context::test_gpu();
+    let cam = Camera::fit(
+        extent,
+        35.0,
+        40.0,
+        Projection::Perspective { fov_y_deg: 35.0 },
+    );
+    let tf = TransferFunction::preset("linear", [0.0, 1.0]).unwrap();
+    let mut p = RenderParams::new(96, 80, cam, tf, RenderMode::Dvr);
+    p.labels = true;
+    p.reference_step = Some(scene.voxel(0));
+    p.validate().unwrap();
+    for level in [0usize, 1] {
+        let ids: HashSet<u32> = levels[level].data.iter().map(|&v| v as u32).collect();
+        let want = render(&levels[level], &p);
+        let (shown, lo, hi) = shaded_label_colours(&want, &ids, 1e-6);
+        eprintln!("level {level}: the reference shows {shown} labels, shades {lo}..{hi}");
+        assert!(
+            shown >= 8 && hi - lo > 0.3,
+            "level {level}: {shown} labels, shades {lo}..{hi}"
+        );
+        assert!(want.coverage(0.01) > 0.1, "reference nearly empty");
+        // The CPU, with the store's brick statistics (background bricks
+        // crossed) and without. (Rays that meet no label cross the whole
+        // volume: a fixed level-0 view needs every brick they pass, more
+        // than half the volume's.)
+        let pool = vol_bytes * 5 / 4;
+        for stats in [true, false] {
+            let mut s = session(&store, DType::U32, pool);
+            scene.ranges = stats.then(|| std::sync::Arc::new(s.loader().brick_ranges(1 << 24)));
+            let start = Instant::now();
+            let (img, skipped) = loop {
+                s.begin_frame();
+                let (img, st, reqs) = render_frame(s.vm(), &scene, &p, Lod::Fixed(level));
+                s.finish_frame(reqs.iter());
+                if st.completeness() == 1.0 {
+                    break (img, st.skipped_bricks);
+                }
+                assert!(
+                    start.elapsed() < Duration::from_secs(60),
+                    "level {level}, statistics {stats}: CPU view incomplete at {} ({} resident)",
+                    st.completeness(),
+                    s.vm().resident_bricks()
+                );
+            };
+            let d = differing(&img, &want, 1e-5);
+            eprintln!("level {level}, statistics {stats}: {d} pixels differ from the reference, {skipped} bricks crossed");
+            assert!(
+                d <= 3,
+                "level {level}, statistics {stats}: {d} pixels differ from the reference"
+            );
+            // (Without statistics, bricks the pool holds as empty are
+            // crossed too.)
+            assert!(skipped > 0, "no background brick crossed");
+            s.vm().check_invariants().unwrap();
+        }
+        let Some(gpu) = &gpu else { continue };
+        let mut s = session(&store, DType::U32, pool);
+        let (mut dvm, _) = DeviceVm::new(gpu, s.vm_mut()).unwrap();
+        let mut r = GpuRenderer::new(gpu);
+        let start = Instant::now();
+        let dev = loop {
+            s.begin_frame();
+            let f = r
+                .render(gpu, &dvm, s.vm(), &scene, &p, Lod::Fixed(level))
+                .unwrap();
+            s.finish_frame([&f.requests]);
+            dvm.sync(gpu, s.vm_mut());
+            if f.stats.completeness() == 1.0 {
+                break f.image;
+            }
+            assert!(
+                start.elapsed() < Duration::from_secs(60),
+                "device view incomplete"
+            );
+        };
+        shaded_label_colours(&dev, &ids, 1e-5);
+        // f32 steps on the device: a ray grazing a voxel may stop a step
+        // earlier or later.
+        let d = differing(&dev, &want, 1e-5);
+        eprintln!("level {level}: {d} pixels on the device differ from the reference");
+        assert!(
+            d * 50 <= want.rgba.len(),
+            "level {level}: {d} pixels of {} differ between the device and the reference",
+            want.rgba.len()
+        );
+        s.vm().check_invariants().unwrap();
+    }
+}
+
+#[test]
+fn sheets_of_labels_behind_background_bricks_are_met_where_the_reference_meets_them() {
+    // Background everywhere but sheets one voxel thick across x, at x = 20
+    // and x = 32 (the first layer of the third brick of 16). Rays along +x
+    // cross the first brick (background, its apron too) without sampling
+    // and meet the first sheet at every phase of the step grid.
+    let dir = tempfile::tempdir().unwrap();
+    let (nx, ny, nz) = (48usize, 16usize, 16usize);
+    let mut v = vec![0u8; nx * ny * nz];
+    for z in 0..nz {
+        for y in 0..ny {
+            v[(z * ny + y) * nx + 20] = 5;
+            v[(z * ny + y) * nx + 32] = 9;
+        }
+    }
+    let raw = dir.path().join("sheets.raw");
+    std::fs::write(&raw, &v).unwrap();
+    std::fs::write(
+        dir.path().join("sheets.raw.json"),
+        r#"{"dims": [48, 16, 16], "dtype": "u8"}"#,
+    )
+    .unwrap();
+    let src = brickyard_store::import::open_input(&raw, &Default::default()).unwrap();
+    let store = dir.path().join("sheets.ome.zarr");
+    let o = ConvertOptions {
+        brick: [16; 3],
+        shard: [64; 3],
+        labels: true,
+        ..Default::default()
+    };
+    convert(
+        src.as_ref(),
+        &store,
+        &o,
+        &NoProgress,
+        &AtomicBool::new(false),
+    )
+    .unwrap();
+    let level0 = Volume::from_store(&store, 0, 0).unwrap();
+    let extent = world_extent(level0.dims, level0.spacing);
+    let mut scene = Scene::new(extent, vec![level0.dims]);
+    let mut s = session(&store, DType::U8, 1 << 20);
+    scene.ranges = Some(std::sync::Arc::new(s.loader().brick_ranges(1 << 24)));
+    // From x < 0 towards +x, slightly off axis: rays meet the sheet at
+    // every phase of the step grid.
+    let cam = Camera::look_at(
+        [-20.0, 7.3, 8.1],
+        [24.0, 8.0, 8.0],
+        [0.0, 0.0, 1.0],
+        Projection::Perspective { fov_y_deg: 20.0 },
+    );
+    let tf = TransferFunction::preset("linear", [0.0, 1.0]).unwrap();
+    let mut p = RenderParams::new(64, 64, cam, tf, RenderMode::Dvr);
+    p.labels = true;
+    let want = render(&level0, &p);
+    let sheet = label_color(Some(5.0));
+    let on_sheet = want
+        .rgba
+        .iter()
+        .filter(|px| px[3] == 1.0 && (0..3).all(|a| px[a] <= sheet[a] + 1e-6))
+        .count();
+    assert!(
+        on_sheet > 64 * 64 / 4,
+        "the reference shows the first sheet on {on_sheet} pixels"
+    );
+    let start = Instant::now();
+    let (img, skipped) = loop {
+        s.begin_frame();
+        let (img, st, reqs) = render_frame(s.vm(), &scene, &p, Lod::Fixed(0));
+        s.finish_frame(reqs.iter());
+        if st.completeness() == 1.0 {
+            break (img, st.skipped_bricks);
+        }
+        assert!(start.elapsed() < Duration::from_secs(30), "view incomplete");
+    };
+    assert!(skipped > 0, "the background brick was sampled step by step");
+    let d = differing(&img, &want, 1e-5);
+    assert_eq!(d, 0, "{d} pixels differ from the reference");
 }

@@ -865,7 +865,7 @@ fn run_one(
     // A label image's slices show its labels unless --tf says otherwise.
     let tf_name = match c.tf.as_deref() {
         Some(t) => t,
-        None if c.mode == "slice"
+        None if c.mode != "mip"
             && c.channels.is_empty()
             && c.derive.is_none()
             && n_views == 1
@@ -877,8 +877,14 @@ fn run_one(
     };
     let labels = tf_name == "labels";
     if labels {
-        let why = if c.mode != "slice" {
-            Some(format!("--mode {} draws a label image's values through another transfer function; labels are coloured in slices (--mode slice)", c.mode))
+        let why = if c.mode == "mip" {
+            Some("--mode mip draws a label image's values through another transfer function; labels are coloured in slices and in 3D (--mode slice or dvr)".to_string())
+        } else if c.progressive.is_some() {
+            Some("label surfaces are drawn whole in each frame (no --progressive)".to_string())
+        } else if c.traversal != "page-table" || c.debug.is_some() {
+            Some("labels are drawn through the page tables (no --traversal octree or --debug)".to_string())
+        } else if shared.is_some() {
+            Some("labels draw on one process".to_string())
         } else if !c.channels.is_empty() {
             Some("a label image has one channel (no --channel)".to_string())
         } else if c.derive.is_some() {

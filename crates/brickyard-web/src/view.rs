@@ -21,8 +21,9 @@ pub struct ViewState {
     /// 1 frames the whole volume; 2 is twice as close.
     pub zoom: f64,
     pub fov: f64,
-    /// A preset, or `labels` (a label image's slice in its labels'
-    /// colours); `None`: soft, or `labels` for slices of a label image.
+    /// A preset, or `labels` (a label image's slices and surfaces in its
+    /// labels' colours); `None`: soft, or `labels` for a label image's
+    /// slices and DVR.
     pub tf: Option<String>,
     /// Data window; `None`: the channel's `omero` window, else the data
     /// type's range (0–1 for floats).
@@ -215,15 +216,15 @@ impl ViewState {
         let [lo, hi] = self.window.unwrap_or(window);
         let tf_name = match self.tf.as_deref() {
             Some(t) => t,
-            None if label_image && self.mode == "slice" && self.channels.is_empty() => "labels",
+            None if label_image && self.mode != "mip" && self.channels.is_empty() => "labels",
             None => "soft",
         };
         let labels = tf_name == "labels";
-        if labels && self.mode != "slice" {
-            return Err(format!(
-                "tf: labels colours slices of a label image (mode=slice); mode={} draws its values through another transfer function",
-                self.mode
-            ));
+        if labels && self.mode == "mip" {
+            return Err(
+                "tf: labels colours a label image's slices and surfaces (mode=slice or dvr); mode=mip draws its values through another transfer function"
+                    .into(),
+            );
         }
         if labels && !self.channels.is_empty() {
             return Err("tf: labels draws one channel (no channels=)".into());

@@ -505,8 +505,18 @@ fn a_label_image_streams_in_its_labels_colours_as_brickyard_render_draws_it() {
         "{} colours: not the labels' (20 labels and the background)",
         colours.len()
     );
-    // Asked for elsewhere: refused, naming the key.
-    let st = ViewState::from_query("mode=dvr&tf=labels").unwrap();
+    // Its surfaces in 3D, as `brickyard render` draws them.
+    let st = ViewState::from_query("mode=dvr&size=120x100&az=35&el=40").unwrap();
+    let (web, _) = stream(&store, &st, [0.0, 20.0], 64 << 20);
+    let cli = render_cli(
+        &store,
+        &["--size", "120x100", "--azimuth", "35", "--elevation", "40"],
+    );
+    let d = web.max_abs_diff(&cli);
+    assert!(d <= 1e-6, "3D: web and CLI differ by {d}");
+    assert!(web.coverage(0.01) > 0.1, "3D: nearly empty");
+    // Asked for in a MIP: refused, naming the key.
+    let st = ViewState::from_query("mode=mip&tf=labels").unwrap();
     let s = open_web(&store, 32);
     let scene = brickyard_render::cpu::Scene::new([1.0; 3], vec![[1, 1, 1]]);
     let e = st

@@ -1206,6 +1206,37 @@ fn labels_are_drawn_in_their_colours_alone_and_over_the_image() {
         render(&cells, &["--tf", "linear"], "labels-linear.png"),
         lab
     );
+    // In 3D (the default mode, dvr) the labels' surfaces: each lit pixel a
+    // label's colour shaded (by a quarter to all of it).
+    let d3 = |extra: &[&str], out: &str| {
+        let out = d.path().join(out);
+        let mut a = vec![
+            "render",
+            s(&cells),
+            "--size",
+            "96",
+            "--quiet",
+            "--out",
+            s(&out),
+        ];
+        a.extend(extra);
+        ok(run(&a));
+        png_rgba(&out)
+    };
+    let surf = d3(&[], "surfaces.png");
+    assert_eq!(d3(&["--tf", "labels"], "surfaces-tf.png"), surf);
+    let mut lit = 0;
+    for p in surf.chunks(4).filter(|p| p[..3] != [0, 0, 0]) {
+        lit += 1;
+        let fits = colours.iter().any(|c| {
+            let k = p[..3].iter().copied().max().unwrap() as f32
+                / c.iter().copied().max().unwrap() as f32;
+            (0.24..=1.01).contains(&k)
+                && (0..3).all(|i| (c[i] as f32 * k - p[i] as f32).abs() <= 2.0)
+        });
+        assert!(fits, "{p:?} is no label's colour, shaded");
+    }
+    assert!(lit > 96 * 96 / 10, "{lit} pixels of label surfaces");
     // Over the image: at opacity 1 the labels replace the image where they
     // are and leave it alone elsewhere; at 0.5 they meet halfway.
     let grey = ["--tf", "linear", "--window", "0,40000"];
@@ -1284,16 +1315,28 @@ fn bad_label_overlays_give_clear_errors() {
         &["--labels", "cells", "--turntable", "4"],
         &["one view at a time"],
     );
-    // Label colours are for slices.
-    let o = run(&[
-        "render",
-        s(&store.join("labels/cells")),
-        "--tf",
-        "labels",
-        "--out",
-        s(&d.path().join("y.png")),
-    ]);
-    assert!(String::from_utf8_lossy(&o.stderr).contains("--mode dvr draws a label image's values"));
+    // Label colours are for slices and 3D views, drawn whole each frame.
+    let cells = store.join("labels/cells");
+    for (extra, want) in [
+        (
+            &["--mode", "mip"][..],
+            "--mode mip draws a label image's values",
+        ),
+        (&["--progressive", "8"][..], "no --progressive"),
+        (&["--traversal", "octree"][..], "through the page tables"),
+    ] {
+        let mut a = vec!["render", s(&cells), "--tf", "labels", "--out"];
+        let out = d.path().join("y.png");
+        a.push(s(&out));
+        a.extend(extra);
+        let o = run(&a);
+        let err = String::from_utf8_lossy(&o.stderr);
+        assert!(
+            !o.status.success() && err.contains(want),
+            "{extra:?}: {err}"
+        );
+        assert!(!out.exists());
+    }
     // A label image on another grid: the nuclei labels of the shared data
     // converted with the TIFF's own spacing (1 in every axis), listed.
     let tif =

@@ -1305,7 +1305,7 @@ fn viewer_refuses_octree_flags_it_cannot_honour() {
 }
 
 #[test]
-fn viewer_shows_label_images_in_their_colours_as_render_does() {
+fn viewer_shows_label_images_in_their_colours_and_surfaces_as_render_does() {
     let _session = shared();
     let d = tempfile::tempdir().unwrap();
     let p = |n: &str| d.path().join(n);
@@ -1331,17 +1331,21 @@ fn viewer_shows_label_images_in_their_colours_as_render_does() {
         .unwrap();
     assert!(o.status.success(), "{}", stderr(&o));
     let script = format!(
-        "size xy 64 64
+        "size 3d 80 64
+size xy 64 64
 size xz 64 40
 wait-complete 300
 screenshot xy {xy}.png
 save-view xy {xy}
 screenshot xz {xz}.png
 save-view xz {xz}
+screenshot 3d {d3}.png
+save-view 3d {d3}
 quit
 ",
         xy = s(&p("xy")),
         xz = s(&p("xz")),
+        d3 = s(&p("d3")),
     );
     std::fs::write(p("s.txt"), script).unwrap();
     let Some(mut cmd) = viewer(
@@ -1363,7 +1367,7 @@ quit
     };
     let o = cmd.output().unwrap();
     assert!(o.status.success(), "viewer: {}", stderr(&o));
-    for name in ["xy", "xz"] {
+    for name in ["xy", "xz", "d3"] {
         let args = std::fs::read_to_string(p(&format!("{name}.args"))).unwrap();
         assert!(args.contains("--tf\nlabels\n"), "{name}: {args}");
         let a = equals_render(&store, d.path(), name);
@@ -1372,11 +1376,14 @@ quit
         let lit: Vec<&[u8]> = a.chunks(4).filter(|c| c[..3] != [0, 0, 0]).collect();
         let colours: std::collections::HashSet<&[u8]> = lit.iter().map(|c| &c[..3]).collect();
         // (The xz plane through the middle meets fewer nuclei.)
-        let least = if name == "xy" { 8 } else { 2 };
+        let least = if name == "xz" { 2 } else { 8 };
         assert!(colours.len() >= least, "{name}: {} colours", colours.len());
+        // (3D: shaded by the surface, at least a quarter of the colour.)
+        let bright = if name == "d3" { 40 } else { 190 };
         assert!(
             lit.iter()
-                .all(|c| *c[..3].iter().max().unwrap() >= 190 && c[..3].iter().any(|&x| x != c[0])),
+                .all(|c| *c[..3].iter().max().unwrap() >= bright
+                    && c[..3].iter().any(|&x| x != c[0])),
             "{name}: a pixel that is no label's colour"
         );
     }

@@ -399,6 +399,8 @@ pub fn run(setup: Setup, mut scene: Scene, rx: Receiver<Msg>, tx: Sender<Reply>,
             && setup_accumulate.0 > 0
             && spec.params.mode == brickyard_render::reference::RenderMode::Dvr
             && spec.params.channels.is_empty()
+            // (A label image's surfaces are whole in every frame.)
+            && !spec.params.labels
         {
             let n = setup_accumulate.0;
             let budget = acc_budget(&sc, &spec.params, n, setup_accumulate.1);

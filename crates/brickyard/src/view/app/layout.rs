@@ -141,11 +141,13 @@ impl ViewerApp {
         if mode != RenderMode::Dvr || self.dvr_composites() {
             params.channels = self.styles();
         }
-        // A label image's slices (one view each): its labels' colours.
+        // A label image (one view each): its labels' colours in slices,
+        // its labels' surfaces in DVR (through the page tables).
         params.labels = self.ds.labels
-            && matches!(mode, RenderMode::Slice { .. })
-            && params.channels.is_empty();
-        if v == 0 && self.octree_draws(&params) {
+            && matches!(mode, RenderMode::Slice { .. } | RenderMode::Dvr)
+            && params.channels.is_empty()
+            && !(mode == RenderMode::Dvr && self.setup.octree.is_some());
+        if v == 0 && self.octree_draws(&params) && !params.labels {
             params.traversal = Traversal::Octree;
         }
         let mut layout = None;

@@ -44,12 +44,13 @@ impl ViewerApp {
             ]);
         }
         match &p.mode {
-            RenderMode::Dvr if p.channels.is_empty() && self.setup.accumulate > 0 => a.extend([
-                "--mode".into(),
-                "dvr".into(),
-                "--progressive".into(),
-                self.setup.accumulate.to_string(),
-            ]),
+            RenderMode::Dvr if p.channels.is_empty() && self.setup.accumulate > 0 && !p.labels => a
+                .extend([
+                    "--mode".into(),
+                    "dvr".into(),
+                    "--progressive".into(),
+                    self.setup.accumulate.to_string(),
+                ]),
             RenderMode::Dvr => a.extend(["--mode".into(), "dvr".into()]),
             RenderMode::Mip => a.extend(["--mode".into(), "mip".into()]),
             RenderMode::Slice { origin, normal } => {
