@@ -220,14 +220,15 @@ pub struct GpuRenderer {
 }
 
 /// Transfer function, value ranges (by address), channel, brick grid, DVR
-/// (the clear bits are for DVR only), channels, the words of the octree's
+/// (the clear bits are for DVR only: 1, and 2 for a label image's, whose
+/// clear bricks hold only label 0), channels, the words of the octree's
 /// tables (0: no octree).
 type AuxKey = (
     TransferFunction,
     usize,
     usize,
     Vec<[u64; 3]>,
-    bool,
+    u8,
     Vec<ChannelStyle>,
     usize,
 );
@@ -243,6 +244,17 @@ fn clear_bits(
     tf: &TransferFunction,
     channel: usize,
 ) -> Vec<u32> {
+    clear_bits_by(ids, ranges, channel, |lo, hi| tf.max_opacity(lo, hi) <= 0.0)
+}
+
+/// One bit per brick id: set where `clear` holds for the brick's value
+/// range (from `ranges`, for `channel`).
+fn clear_bits_by(
+    ids: &BrickIds,
+    ranges: &BrickRanges,
+    channel: usize,
+    clear: impl Fn(f32, f32) -> bool,
+) -> Vec<u32> {
     let mut bits = vec![0u32; (ids.len() as usize).div_ceil(32).max(1)];
     let starts = ids.level_starts();
     for (l, &first) in starts.iter().enumerate().take(starts.len() - 1) {
@@ -252,7 +264,7 @@ fn clear_bits(
         let n = r.bricks.iter().product::<u64>() as usize;
         let off = channel * n;
         for (i, &[lo, hi]) in r.range[off..off + n].iter().enumerate() {
-            if tf.max_opacity(lo, hi) <= 0.0 {
+            if clear(lo, hi) {
                 let id = first as usize + off + i;
                 bits[id / 32] |= 1 << (id % 32);
             }
@@ -583,7 +595,11 @@ impl GpuRenderer {
                 .map_or(0, |r| std::sync::Arc::as_ptr(r) as usize),
             scene.channel,
             grid.clone(),
-            mode == 0,
+            match (mode, params.labels) {
+                (0, true) => 2,
+                (0, false) => 1,
+                _ => 0,
+            },
             params.channels.clone(),
             oct_layout.map_or(0, |o| o[2]),
         );
@@ -634,6 +650,11 @@ impl GpuRenderer {
                         }
                     }
                     bits
+                }
+                // A label image: bricks of background alone (its
+                // surfaces take no transfer function).
+                (Some(r), 0) if params.labels => {
+                    clear_bits_by(&ids, r, scene.channel, |lo, hi| lo == 0.0 && hi == 0.0)
                 }
                 (Some(r), 0) => clear_bits(&ids, r, tf, scene.channel),
                 // No statistics: no brick is known clear. A bit for every

@@ -78,6 +78,7 @@ fn label_surface(ray: Ray) -> vec4<f32> {
     var samples = 0u;
     var exact = 0u;
     var unserved = 0u;
+    var jumps = 0u;
     var px = vec4<f32>(0.0);
     loop {
         let t = span.x + (f32(k) + 0.5) * dt;
@@ -88,7 +89,32 @@ fn label_surface(ray: Ray) -> vec4<f32> {
         let w = ray.o + ray.d * t;
         let q = coords(level, w).xyz;
         let b = vec3<u32>(q);
-        let s = sample_from(w, level, q, entry_at(level, b));
+        let e = entry_at(level, b);
+        if (R.skip == 1u) {
+            // Background alone (by the statistics' clear bits, or an EMPTY
+            // or CONSTANT 0 entry): cross the steps whose interpolating
+            // voxel base lies in the brick less its last voxel per axis
+            // (their nearest voxels lie in the brick), as the CPU does.
+            let f = flag(e);
+            var clear = is_clear(brick_id(level, b)) || f == EMPTY;
+            if (!clear && f == CONSTANT) {
+                let v = constant_value(e.y);
+                clear = !is_nan(v) && label_id(v) == 0;
+            }
+            if (clear) {
+                let bs = lay.block[lay.nmax].xyz;
+                let lo = (b / bs) * bs;
+                let hi = min(lo + bs, lay.dims[level].xyz) - vec3<u32>(1u);
+                let s = R.scale[level];
+                let base = vec3<u32>(clamp(vec3<f32>(w.z * s.x, w.y * s.y, w.x * s.z) - vec3<f32>(0.5), vec3<f32>(0.0), R.qmax[level].xyz));
+                if (all(base >= lo) && all(base < hi)) {
+                    jumps = jumps + 1u;
+                    k = land_at(exit_t(ray, level, lo, hi, span.y), span.x, k, level);
+                    continue;
+                }
+            }
+        }
+        let s = sample_from(w, level, q, e);
         samples = samples + 1u;
         if (s.y == 2.0) {
             exact = exact + 1u;
@@ -115,5 +141,6 @@ fn label_surface(ray: Ray) -> vec4<f32> {
     atomicAdd(&counters[0], samples);
     atomicAdd(&counters[1], exact);
     atomicAdd(&counters[2], unserved);
+    atomicAdd(&counters[3], jumps);
     return px;
 }
