@@ -13,7 +13,7 @@
 
 use crate::cpu::FrameStats;
 use crate::optics::{label_color, label_of};
-use crate::walk::{step_t, Grid, Walker};
+use crate::walk::{step_t, Content, Grid, Walker};
 use brickyard_cache::vm::Requests;
 use brickyard_core::camera::{intersect_box, Ray, Vec3};
 use brickyard_core::{Dims3, Sample};
@@ -119,8 +119,9 @@ impl<'f, 'a, T: Sample> Walker<'f, 'a, T> {
     }
 
     /// [`indicator_gradient`] of label `id` around the voxel `v` of
-    /// `level`: its 26 neighbours looked up (one outside the volume is
-    /// background; one that nothing resident serves counts as the label).
+    /// `level`: its 26 neighbours looked up at `level` (one outside the
+    /// volume is background; one whose brick is not resident counts as the
+    /// label).
     fn indicator_around(
         &mut self,
         level: usize,
@@ -129,7 +130,7 @@ impl<'f, 'a, T: Sample> Walker<'f, 'a, T> {
         req: &mut Requests,
         st: &mut FrameStats,
     ) -> [f32; 3] {
-        let (d, s) = (self.f.dims[level], self.f.scale[level]);
+        let d = self.f.dims[level];
         let mut ind = [0f32; 27];
         for (i, x) in ind.iter_mut().enumerate() {
             let o = [i / 9, i / 3 % 3, i % 3].map(|x| x as i64 - 1);
@@ -141,17 +142,49 @@ impl<'f, 'a, T: Sample> Walker<'f, 'a, T> {
             if (0..3).any(|a| q[a] < 0 || q[a] >= d[a] as i64) {
                 continue;
             }
-            let q = q.map(|x| x as u64);
-            // The neighbour's centre, in world `[x, y, z]`.
-            let w = [2, 1, 0].map(|b| (q[b] as f64 + 0.5) / s[b]);
-            self.enter(level, q, req, true);
-            let holds = match self.value(level, w, q, [0.0; 3], req, st) {
+            let holds = match self.voxel_at_level(level, q.map(|x| x as u64), req, st) {
                 Some(x) => label_of(x) == Some(id),
                 None => true,
             };
             *x = holds as u8 as f32;
         }
         indicator_gradient(&ind)
+    }
+
+    /// The value of voxel `q` of `level` from its own brick: `None` where
+    /// that brick is not resident (no coarser level stands in: the
+    /// neighbours only shade), counted as an unserved sample and a miss of
+    /// the brick.
+    fn voxel_at_level(
+        &mut self,
+        level: usize,
+        q: Dims3,
+        req: &mut Requests,
+        st: &mut FrameStats,
+    ) -> Option<f32> {
+        st.samples += 1;
+        self.enter(level, q, req, true);
+        if matches!(self.cache[level].content, Content::Unresolved) {
+            self.resolve(level, true);
+        }
+        let f = self.f;
+        let c = &mut self.cache[level];
+        match c.content {
+            Content::Data(vox) => {
+                st.exact += 1;
+                Some(vox[f.local_index(q, c.lo)].to_f32())
+            }
+            Content::Value(v) => {
+                st.exact += 1;
+                Some(v)
+            }
+            Content::Unmapped => {
+                c.missed += 1;
+                st.unserved += 1;
+                None
+            }
+            Content::Unresolved => unreachable!("resolved above"),
+        }
     }
 }
 

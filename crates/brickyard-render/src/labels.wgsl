@@ -11,23 +11,26 @@ fn label_id(v: f32) -> i32 {
 }
 
 // Whether voxel `q` ([z, y, x]) of `level` holds label `id` (1) or not
-// (0): outside the volume, not; nothing resident serving it, yes (as the
-// CPU). Counted as a sample.
+// (0), from its own brick: outside the volume, not; its brick not
+// resident, yes, and a miss of it (labels.rs's `voxel_at_level`). Counted
+// as a sample.
 fn label_holds(level: u32, q: vec3<i32>, id: i32) -> f32 {
     if (any(q < vec3<i32>(0)) || any(vec3<f32>(q) > R.qmax[level].xyz)) {
         return 0.0;
     }
-    let s = R.scale[level];
-    let w = vec3<f32>((f32(q.z) + 0.5) / s.z, (f32(q.y) + 0.5) / s.y, (f32(q.x) + 0.5) / s.x);
-    let r = sample_at(w, level);
+    let b = vec3<u32>(q);
+    let e = entry_at(level, b);
+    let r = value_of(e, b, vec3<f32>(0.0));
     atomicAdd(&counters[0], 1u);
-    if (r.y == 2.0) {
-        atomicAdd(&counters[1], 1u);
-    }
     if (r.y == 0.0) {
+        miss(brick_id(level, b));
         atomicAdd(&counters[2], 1u);
         return 1.0;
     }
+    if (flag(e) == MAPPED) {
+        mark(slot_id(e, lay.brick_grid), true);
+    }
+    atomicAdd(&counters[1], 1u);
     return select(0.0, 1.0, !is_nan(r.x) && label_id(r.x) == id);
 }
 

@@ -120,8 +120,10 @@ pub struct DevicePlan {
     /// hardware device or the budget leaves no room for one.
     pub choice: String,
     /// Bytes set aside for it: [`crate::memory::DEVICE_BYTES`] for a
-    /// device; for `auto` that found only a software one, what loading
-    /// its driver took.
+    /// hardware device, [`crate::memory::SOFTWARE_DEVICE_BYTES`] for a
+    /// software one, each with twice [`crate::memory::STAGING_BYTES`] for
+    /// the upload staging buffer; for `auto` that found only a software
+    /// one, what loading its driver took.
     pub bytes: u64,
     /// A software adapter: its device memory is host memory, so the
     /// device's copy of the pool counts too.
@@ -131,6 +133,13 @@ pub struct DevicePlan {
 }
 
 impl DevicePlan {
+    /// Bricks written into the pool per frame at most: a device's staging
+    /// buffer is set aside for [`crate::memory::STAGING_BYTES`] of them;
+    /// the CPU back end has none (`None`).
+    pub fn upload_cap(&self) -> Option<u64> {
+        (self.choice != "cpu" && self.bytes > 0).then_some(crate::memory::STAGING_BYTES)
+    }
+
     /// Record the device's share in `split` (made with [`Self::bytes`] as
     /// its extra): a software device's copy of the pool comes out of the
     /// pool's share when the budget chose it (half each), or out of the
@@ -177,7 +186,7 @@ impl DevicePlan {
 /// The [`DevicePlan`] for `--backend choice` on adapter `adapter` under
 /// `--memory` `memory` (`None`: the default budget).
 pub fn plan_device(choice: &str, adapter: usize, memory: Option<u64>) -> DevicePlan {
-    use crate::memory::{rss, DEVICE_BYTES, FIXED_BYTES};
+    use crate::memory::{rss, DEVICE_BYTES, FIXED_BYTES, SOFTWARE_DEVICE_BYTES, STAGING_BYTES};
     let plan = |choice: &str, bytes, mirror_pool| DevicePlan {
         choice: choice.into(),
         bytes,
@@ -185,25 +194,28 @@ pub fn plan_device(choice: &str, adapter: usize, memory: Option<u64>) -> DeviceP
         note: None,
     };
     let probe = || quietly(|| Gpu::adapter_info(AdapterChoice::Best, adapter));
+    // The driver's share and the upload staging buffer's.
+    let (hardware, software) = (
+        DEVICE_BYTES + 2 * STAGING_BYTES,
+        SOFTWARE_DEVICE_BYTES + 2 * STAGING_BYTES,
+    );
     match choice {
         "auto" => {
             // Room for a driver and at least 64 MiB of data besides.
-            if let Some(m) = memory.filter(|&m| m < FIXED_BYTES + DEVICE_BYTES + (64 << 20)) {
+            if let Some(m) = memory.filter(|&m| m < FIXED_BYTES + hardware + (64 << 20)) {
                 return DevicePlan {
                     note: Some(format!(
                         "note: --memory {} leaves no room for a device driver (about {}): \
                          --backend auto takes the CPU",
                         human_bytes(m),
-                        human_bytes(DEVICE_BYTES)
+                        human_bytes(hardware)
                     )),
                     ..plan("cpu", 0, false)
                 };
             }
             let before = rss();
             match probe() {
-                Ok(i) if i.device_type != wgpu::DeviceType::Cpu => {
-                    plan("auto", DEVICE_BYTES, false)
-                }
+                Ok(i) if i.device_type != wgpu::DeviceType::Cpu => plan("auto", hardware, false),
                 // The driver looked at stays loaded: its share is what
                 // it took.
                 _ => {
@@ -213,7 +225,8 @@ pub fn plan_device(choice: &str, adapter: usize, memory: Option<u64>) -> DeviceP
             }
         }
         "gpu" => match probe() {
-            Ok(i) => plan("gpu", DEVICE_BYTES, i.device_type == wgpu::DeviceType::Cpu),
+            Ok(i) if i.device_type == wgpu::DeviceType::Cpu => plan("gpu", software, true),
+            Ok(_) => plan("gpu", hardware, false),
             // Opening it says why it cannot be.
             Err(_) => plan("gpu", 0, false),
         },

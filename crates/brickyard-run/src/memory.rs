@@ -19,13 +19,30 @@ pub const IMAGE_BYTES_PER_PIXEL: u64 = 16 * 2 + 4 + 4;
 /// libraries (a software OpenGL included), egui, and the views' textures.
 pub const WINDOW_BYTES: u64 = 96 << 20;
 
-/// What a device back end adds to the process beyond [`FIXED_BYTES`]: the
-/// driver's libraries, its shader compiler at work, staging and readback
-/// buffers. Measured with Mesa's software Vulkan (lavapipe): 168 MiB more
-/// than the CPU back end for the same 256² render with a 5 MiB pool, its
-/// libraries alone 54 MiB. A software adapter's device memory (the pool's
-/// copy) is host memory besides, counted apart.
+/// What a hardware device back end adds to the process beyond
+/// [`FIXED_BYTES`]: the driver's libraries, its shader compiler at work,
+/// staging and readback buffers (a hardware driver compiles the render
+/// kernel on the device's own compiler; its host share was not measured
+/// here, for want of such a device).
 pub const DEVICE_BYTES: u64 = 192 << 20;
+
+/// Bricks a device back end writes into its pool per frame at most. They
+/// go through one staging buffer, host memory on every device, whose rows
+/// start 256 bytes apart: for 32³ bricks of 4-byte voxels (136-byte rows
+/// of padded bricks) nearly twice the bricks' bytes. Twice this is set
+/// aside besides the driver's share ([`DEVICE_BYTES`],
+/// [`SOFTWARE_DEVICE_BYTES`]); a pool larger than it fills over several
+/// frames.
+pub const STAGING_BYTES: u64 = 32 << 20;
+
+/// The same for a software adapter (Mesa's lavapipe), whose compiler is
+/// LLVM in this process: a 256² render of a 7.5 MiB store with a 16 MiB
+/// pool and the shader cache empty (`MESA_SHADER_CACHE_DISABLE=true`, as
+/// on a fresh machine) peaked at 481 MiB against the CPU back end's 64 MiB:
+/// 401 MiB for the driver beside the pool's copy (168 MiB more than the
+/// CPU back end with the cache warm). A software adapter's device memory
+/// (the pool's copy) is host memory besides, counted apart.
+pub const SOFTWARE_DEVICE_BYTES: u64 = 448 << 20;
 
 /// Physical memory (from /proc/meminfo; 8 GiB where unknown).
 pub fn physical_ram() -> u64 {

@@ -54,10 +54,11 @@ pub struct RenderCmd {
     #[arg(long)]
     save_camera: Option<PathBuf>,
     /// Transfer function: a preset (linear, soft, hot, viridis, coolwarm,
-    /// opaque) or a JSON file; `labels` for a slice of a label image: the
-    /// nearest voxel's label, each label in its own colour, 0 transparent
-    /// (the default for slices of label images: a store's `labels/NAME`,
-    /// or one converted with --labels). Default: soft.
+    /// opaque) or a JSON file; `labels` for a label image: each label in
+    /// its own colour (nearest voxels, 0 clear), in a slice the plane's
+    /// labels, in dvr the first label along each ray shaded by its surface
+    /// (the default in these modes for label images: a store's
+    /// `labels/NAME`, or one converted with --labels). Default: soft.
     #[arg(long)]
     tf: Option<String>,
     /// Slice: draw the store's label image `labels/NAME` (as `brickyard
@@ -629,10 +630,10 @@ fn run_with(
     run_one(c, share, sink)
 }
 
-/// `--labels NAME`: the slice of the store's label image `labels/NAME` in
-/// the labels' colours, then the image's slice with it laid over
+/// `--labels NAME`: the image's slice, then the slice of the store's label
+/// image `labels/NAME` in the labels' colours, laid over it
 /// ([`crate::labels::overlay`]). The two runs come one after the other,
-/// each within `--memory` less the labels' image, which waits for the
+/// each within `--memory` less the other's image, which waits for the
 /// second.
 fn run_with_labels(
     mut c: RenderCmd,
@@ -882,7 +883,10 @@ fn run_one(
         } else if c.progressive.is_some() {
             Some("label surfaces are drawn whole in each frame (no --progressive)".to_string())
         } else if c.traversal != "page-table" || c.debug.is_some() {
-            Some("labels are drawn through the page tables (no --traversal octree or --debug)".to_string())
+            Some(
+                "labels are drawn through the page tables (no --traversal octree or --debug)"
+                    .to_string(),
+            )
         } else if shared.is_some() {
             Some("labels draw on one process".to_string())
         } else if !c.channels.is_empty() {
@@ -1092,9 +1096,19 @@ fn run_one(
                 "upload: {u} bytes per frame is less than one padded brick ({} bytes): no brick could ever be written into the pool",
                 (c.brick + 2).pow(3) * dtype.size() as u64
             ),
-            Some(u) => u,
-            None if batch => split.pool,
-            None => 64 << 20,
+            Some(u) => match device.upload_cap() {
+                Some(cap) if u > cap => bail!(
+                    "upload: a device back end writes at most {} of bricks per frame (its \
+                     staging buffer is host memory, set aside in --memory); found {}",
+                    human_bytes(cap),
+                    human_bytes(u)
+                ),
+                _ => u,
+            },
+            None => {
+                let u = if batch { split.pool } else { 64 << 20 };
+                u.min(device.upload_cap().unwrap_or(u64::MAX))
+            }
         },
         // A batch asks for as much as the pool and the host cache can take
         // at once (bricks waiting to be written are held by the host cache).

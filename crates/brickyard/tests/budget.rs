@@ -8,8 +8,14 @@ use std::path::{Path, PathBuf};
 use std::process::{Command, Output};
 
 fn run(args: &[&str]) -> Output {
+    run_env(&[], args)
+}
+
+/// [`run`] with environment variables set.
+fn run_env(env: &[(&str, &str)], args: &[&str]) -> Output {
     Command::new(env!("CARGO_BIN_EXE_brickyard"))
         .args(args)
+        .envs(env.iter().copied())
         .output()
         .unwrap()
 }
@@ -245,7 +251,7 @@ fn the_process_stays_within_its_memory_budget() {
 /// it aside (on a software adapter the device's copy of the pool besides),
 /// refuses a budget that cannot hold it, and `auto` takes the CPU rather
 /// than go over (lavapipe took 168 MiB beyond the CPU back end, uncounted:
-/// 208 MiB peak for a 64 MiB budget).
+/// 208 MiB peak for a 64 MiB budget; with its shader cache empty, 401 MiB).
 #[test]
 fn device_back_ends_stay_within_the_memory_budget() {
     if brickyard_gpu::context::test_gpu().is_none() {
@@ -271,22 +277,27 @@ fn device_back_ends_stay_within_the_memory_budget() {
         e.contains("--backend gpu") && e.contains("driver") && e.contains("--backend cpu"),
         "{e}"
     );
-    for (backend, memory) in [("auto", "96MiB"), ("gpu", "512MiB"), ("auto", "512MiB")] {
-        let o = run(&[
-            "render",
-            s(&store),
-            "--size",
-            "160",
-            "--window",
-            "0,255",
-            "--backend",
-            backend,
-            "--memory",
-            memory,
-            "--json",
-            "--out",
-            s(&png),
-        ]);
+    for (backend, memory) in [("auto", "96MiB"), ("gpu", "768MiB"), ("auto", "512MiB")] {
+        // (The driver's compiler at its largest: no shader cache, as on a
+        // fresh machine.)
+        let o = run_env(
+            &[("MESA_SHADER_CACHE_DISABLE", "true")],
+            &[
+                "render",
+                s(&store),
+                "--size",
+                "160",
+                "--window",
+                "0,255",
+                "--backend",
+                backend,
+                "--memory",
+                memory,
+                "--json",
+                "--out",
+                s(&png),
+            ],
+        );
         let v = summary(&ok(&o));
         assert_eq!(v["stop"], "complete", "{backend} {memory}: {v}");
         if memory == "96MiB" {

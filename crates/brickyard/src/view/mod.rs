@@ -52,7 +52,8 @@ pub struct ViewCmd {
     /// Engine brick edge.
     #[arg(long, default_value_t = 32)]
     brick: u64,
-    /// Bytes written into the pool per frame.
+    /// Bytes written into the pool per frame (a device back end writes at
+    /// most 32 MiB: its staging buffer is set aside in --memory).
     #[arg(long, default_value = "64MiB")]
     upload: String,
     #[arg(long, default_value_t = 2)]
@@ -284,7 +285,10 @@ pub fn run(c: ViewCmd, demo_store: impl FnOnce() -> Result<PathBuf>) -> Result<i
     let mut cfg = VmConfig {
         brick: [c.brick; 3],
         pool_bytes: split.pool,
-        upload_bytes_per_frame: crate::parse_bytes(&c.upload).context("--upload")?,
+        // A device's staging buffer holds at most its cap of bricks.
+        upload_bytes_per_frame: crate::parse_bytes(&c.upload)
+            .context("--upload")?
+            .min(device.upload_cap().unwrap_or(u64::MAX)),
         ..Default::default()
     };
     cfg.request_cap = crate::frames::requests_per_frame(
