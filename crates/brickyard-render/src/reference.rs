@@ -38,7 +38,9 @@
 //!   ray that took at least one sample, 0 otherwise (the TF's opacity is not
 //!   used).
 //! - **Slice**: see [`RenderMode::Slice`]; of a label image
-//!   ([`RenderParams::labels`]): the nearest voxel's label colour.
+//!   ([`RenderParams::labels`]): the nearest voxel's label colour, and in
+//!   DVR mode the label surfaces (`label_rgb`, `label_surface_ray`: the
+//!   rules written out here, not the renderers' `optics` and `labels`).
 //! - **Several views** ([`RenderParams::views`], `brickyard_core::views`):
 //!   DVR and MIP rays from each view's camera; slices become super-slices
 //!   (`render_super_slices` says how they are composited).
@@ -67,8 +69,6 @@
 //! `lib.rs` checks that this file names no product module.
 
 use crate::image::Image;
-use crate::labels::{indicator_gradient, surface_color, surface_shade};
-use crate::optics::{label_color, label_of};
 use brickyard_core::camera::{intersect_box, world_extent, world_to_normalized, Ray, Vec3};
 use brickyard_core::views::{ViewRays, Views};
 #[cfg(feature = "loader")]
@@ -484,7 +484,10 @@ pub fn render(volume: &Volume, params: &RenderParams) -> Image {
         RenderMode::Mip => mip_ray(volume, &params.tf, ray, extent, dt),
         RenderMode::Slice { origin, normal } if params.labels => {
             match plane_hit(ray, *origin, *normal, extent) {
-                Some((w, _)) => label_color(Some(volume.nearest(world_to_normalized(w, extent)))),
+                Some((w, _)) => match label_rgb(volume.nearest(world_to_normalized(w, extent))) {
+                    Some(c) => [c[0] as f32, c[1] as f32, c[2] as f32, 1.0],
+                    None => [0.0; 4],
+                },
                 None => [0.0; 4],
             }
         }
@@ -748,10 +751,53 @@ fn max_along(vol: &Volume, ray: &Ray, (t0, t1): (f64, f64), extent: Vec3, dt: f6
     best
 }
 
-/// A label image in 3D (`RenderParams::labels`, DVR mode; `labels.rs`):
-/// the first step `t0 + (k + ½)·Δ` whose nearest voxel holds a label (not
-/// 0), in that label's colour shaded by its indicator's gradient over the
-/// voxel's 3×3×3 neighbourhood (0 outside the volume).
+// ---- label images (`RenderParams::labels`), from their definitions -----
+
+/// The label a value stands for, `⌊v + ½⌋`; `None` for NaN.
+fn label(v: f32) -> Option<i64> {
+    (!v.is_nan()).then(|| (v as f64 + 0.5).floor() as i64)
+}
+
+/// A label's colour in linear RGB, `None` for label 0 (the background) and
+/// NaN: the 32 bits of MurmurHash3's finalizer of the label give the hue
+/// (low 16 bits, of the whole circle), the saturation (`0.6 + 0.4·b/255`,
+/// bits 16–23) and the value (`0.75 + 0.25·b/255`, bits 24–31), turned
+/// into RGB by the six sectors of the hue.
+fn label_rgb(v: f32) -> Option<[f64; 3]> {
+    let id = label(v).filter(|&id| id != 0)?;
+    let mut h = id as i32 as u32;
+    h ^= h >> 16;
+    h = h.wrapping_mul(0x85eb_ca6b);
+    h ^= h >> 13;
+    h = h.wrapping_mul(0xc2b2_ae35);
+    h ^= h >> 16;
+    let hue = (h & 0xffff) as f64 / 65536.0 * 6.0;
+    let sat = 0.6 + 0.4 * ((h >> 16) & 0xff) as f64 / 255.0;
+    let val = 0.75 + 0.25 * (h >> 24) as f64 / 255.0;
+    let sector = hue.floor();
+    let f = hue - sector;
+    let (p, q, t) = (
+        val * (1.0 - sat),
+        val * (1.0 - sat * f),
+        val * (1.0 - sat * (1.0 - f)),
+    );
+    Some(match sector as u32 {
+        0 => [val, t, p],
+        1 => [q, val, p],
+        2 => [p, val, t],
+        3 => [p, q, val],
+        4 => [t, p, val],
+        _ => [val, p, q],
+    })
+}
+
+/// A label image in 3D (DVR mode): the first step `t0 + (k + ½)·Δ` whose
+/// nearest voxel holds a label (not 0), in that label's colour times
+/// `0.25 + 0.75·|cos|` of the angle between the ray and the label's
+/// surface normal there: the gradient of the label's indicator (1 where a
+/// voxel holds it, 0 elsewhere and outside the volume) by Sobel's 3×3×3
+/// operator (central differences across each axis, weighted `1 2 1` along
+/// the other two), per world unit; 1 where that gradient is 0.
 fn label_surface_ray(vol: &Volume, ray: &Ray, extent: Vec3, dt: f64) -> [f32; 4] {
     let Some((t0, t1)) = intersect_box(ray, [0.0; 3], extent) else {
         return [0.0; 4];
@@ -763,21 +809,57 @@ fn label_surface_ray(vol: &Volume, ray: &Ray, extent: Vec3, dt: f64) -> [f32; 4]
             break;
         }
         let q = vol.nearest_index(world_to_normalized(ray.at(t), extent));
-        let Some(id) = label_of(vol.voxel(q[0], q[1], q[2])).filter(|&id| id != 0) else {
+        let v = vol.voxel(q[0], q[1], q[2]);
+        let Some(rgb) = label_rgb(v) else {
             continue;
         };
-        let mut ind = [0f32; 27];
-        for (i, x) in ind.iter_mut().enumerate() {
-            let n = [i / 9, i / 3 % 3, i % 3].map(|o| o as i64 - 1);
-            let n = [0, 1, 2].map(|a| q[a] as i64 + n[a]);
-            if (0..3).all(|a| n[a] >= 0 && n[a] < d[a] as i64) {
-                let v = vol.voxel(n[0] as u64, n[1] as u64, n[2] as u64);
-                *x = (label_of(v) == Some(id)) as u8 as f32;
+        let id = label(v);
+        // The indicator at offset `o` ([z, y, x], each −1, 0 or 1).
+        let holds = |o: [i64; 3]| {
+            let n = [0, 1, 2].map(|a| q[a] as i64 + o[a]);
+            let inside = (0..3).all(|a| n[a] >= 0 && n[a] < d[a] as i64);
+            let held = inside && label(vol.voxel(n[0] as u64, n[1] as u64, n[2] as u64)) == id;
+            held as u8 as f64
+        };
+        let weight = |o: i64| if o == 0 { 2.0 } else { 1.0 };
+        let mut g = [0.0f64; 3];
+        for a in 0..3 {
+            let (b, c) = ((a + 1) % 3, (a + 2) % 3);
+            for ob in -1..=1 {
+                for oc in -1..=1 {
+                    let mut lo = [0i64; 3];
+                    lo[a] = -1;
+                    lo[b] = ob;
+                    lo[c] = oc;
+                    let mut hi = lo;
+                    hi[a] = 1;
+                    g[a] += weight(ob) * weight(oc) * (holds(lo) - holds(hi));
+                }
             }
         }
-        let g = indicator_gradient(&ind);
-        let scale = vol.spacing.map(|s| 1.0 / s);
-        return surface_color(id, surface_shade(g, scale, ray.dir));
+        // Per world unit, in [x, y, z].
+        let n = [
+            g[2] / vol.spacing[2],
+            g[1] / vol.spacing[1],
+            g[0] / vol.spacing[0],
+        ];
+        let dir = ray.dir;
+        let nn = (n[0] * n[0] + n[1] * n[1] + n[2] * n[2]).sqrt();
+        let dd = (dir[0] * dir[0] + dir[1] * dir[1] + dir[2] * dir[2]).sqrt();
+        let shade = if nn == 0.0 {
+            1.0
+        } else {
+            0.25 + 0.75
+                * ((n[0] * dir[0] + n[1] * dir[1] + n[2] * dir[2]) / (nn * dd))
+                    .abs()
+                    .min(1.0)
+        };
+        return [
+            (rgb[0] * shade) as f32,
+            (rgb[1] * shade) as f32,
+            (rgb[2] * shade) as f32,
+            1.0,
+        ];
     }
     [0.0; 4]
 }

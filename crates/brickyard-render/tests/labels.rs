@@ -137,7 +137,7 @@ fn label_slices_show_whole_labels_on_the_cpu_and_the_device() {
             colours.len()
         );
         let want = render(&levels[level], &p);
-        let shown = only_label_colours(&want, &colours, "reference", 0.0);
+        let shown = only_label_colours(&want, &colours, "reference", 1e-6);
         assert!(shown >= 8, "reference, level {level}: {shown} labels shown");
         assert!(want.coverage(0.01) > 0.1, "reference nearly empty");
         // The CPU through a pool half the volume.
@@ -157,6 +157,7 @@ fn label_slices_show_whole_labels_on_the_cpu_and_the_device() {
             );
         };
         let shown_cpu = only_label_colours(&img, &colours, "CPU", 0.0);
+        // (The reference's colours are its own f64 arithmetic's.)
         let d = differing(&img, &want, 1e-6);
         eprintln!(
             "level {level}: CPU shows {shown_cpu} labels, {d} pixels differ from the reference"
@@ -296,7 +297,7 @@ fn label_surfaces_in_3d_on_the_cpu_and_the_device() {
     for level in [0usize, 1] {
         let ids: HashSet<u32> = levels[level].data.iter().map(|&v| v as u32).collect();
         let want = render(&levels[level], &p);
-        let (shown, lo, hi) = shaded_label_colours(&want, &ids, 1e-6);
+        let (shown, lo, hi) = shaded_label_colours(&want, &ids, 1e-5);
         eprintln!("level {level}: the reference shows {shown} labels, shades {lo}..{hi}");
         assert!(
             shown >= 8 && hi - lo > 0.3,

@@ -956,7 +956,7 @@ fn device_ranks_equal_one_process() {
             "--elevation",
             "35",
             "--memory",
-            "256M",
+            "768M",
             "--quiet",
             "--raw-f32",
             "--backend",
