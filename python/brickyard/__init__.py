@@ -435,7 +435,7 @@ def render(store: Union[Store, str, os.PathLike], mode: str = "dvr", camera: Any
     with tempfile.TemporaryDirectory(prefix="brickyard-render-") as tmp:
         args = render_args(store, mode, camera, tf, size, backend, tmp, **options)
         with _cli_errors("render"):
-            n, w, h, buf = _native.render(args, dtype == "float32", out, numbered)
+            n, w, h, buf = _native.render(args, dtype == "float32", out is not None)
     views = np.frombuffer(buf, dtype=np.dtype(dtype)).reshape(n, h, w, 4)
     return views if numbered else views[0]
 

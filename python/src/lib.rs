@@ -265,18 +265,16 @@ fn numpy_name(d: brickyard_core::DType) -> &'static str {
 /// render STORE`. Returns `(views, width, height, pixels)`: every view (a
 /// turntable's, in order; else one) one after the other, each RGBA8 over
 /// black as the PNG holds it, or the premultiplied RGBA f32 image when
-/// `float`. With `out`, each view is also written where the CLI writes it
-/// (`out` itself, or `STEM-0000.png`, `STEM-0001.png`, ... beside it when
-/// `numbered`, for a turntable); `args` should then hold `--out` too, so
-/// that the CLI's checks of the name apply.
+/// `float`. With `write`, each view is also written where and as the CLI
+/// writes it (`--out`, or for a turntable `STEM-0000.png`,
+/// `STEM-0001.png`, ... beside it).
 #[pyfunction]
-#[pyo3(signature = (args, float = false, out = None, numbered = false))]
+#[pyo3(signature = (args, float = false, write = false))]
 fn render<'py>(
     py: Python<'py>,
     args: Vec<String>,
     float: bool,
-    out: Option<PathBuf>,
-    numbered: bool,
+    write: bool,
 ) -> PyResult<(usize, u32, u32, Bound<'py, PyByteArray>)> {
     let cmd = brickyard_run::render::RenderCmd::try_parse_from(&args)
         .map_err(|e| PyValueError::new_err(e.to_string().trim().to_string()))?;
@@ -288,13 +286,15 @@ fn render<'py>(
     let raw = cmd.raw_f32;
     let images = py
         .detach(|| -> anyhow::Result<_> {
-            let images = brickyard_run::render::images(cmd)?;
-            if let Some(out) = &out {
-                for (v, img) in images.iter().enumerate() {
-                    write_view(img, &view_path(out, numbered, v), raw)?;
+            let views = brickyard_run::render::views(cmd)?;
+            if write {
+                for (path, img) in &views {
+                    // A file that cannot be written is an `OSError`.
+                    brickyard_run::render::write_view(path, img, raw)
+                        .map_err(|e| anyhow::Error::new(std::io::Error::other(format!("{e:#}"))))?;
                 }
             }
-            Ok(images)
+            Ok(views.into_iter().map(|(_, img)| img).collect::<Vec<_>>())
         })
         .map_err(to_py)?;
     let (w, h) = match images.first() {
@@ -314,39 +314,6 @@ fn render<'py>(
         }
     }
     Ok((images.len(), w, h, PyByteArray::new(py, &bytes)))
-}
-
-/// The file of view `v` as `brickyard render --out OUT` names it: `OUT`,
-/// or for a turntable `STEM-0000.png`, `STEM-0001.png`, ... beside it.
-fn view_path(out: &Path, numbered: bool, v: usize) -> PathBuf {
-    if !numbered {
-        return out.to_path_buf();
-    }
-    let stem = out
-        .file_stem()
-        .map(|s| s.to_string_lossy().into_owned())
-        .unwrap_or_default();
-    out.with_file_name(format!("{stem}-{v:04}.png"))
-}
-
-/// Write one view as `brickyard render` does: the PNG over black, and with
-/// `--raw-f32` the premultiplied image beside it (`.f32`, little-endian).
-/// A file that cannot be written is an `OSError`.
-fn write_view(img: &brickyard_render::Image, path: &Path, raw: bool) -> anyhow::Result<()> {
-    let io = |msg: String| anyhow::Error::new(std::io::Error::other(msg));
-    if raw {
-        let f = path.with_extension("f32");
-        let bytes: Vec<u8> = img
-            .rgba
-            .as_flattened()
-            .iter()
-            .flat_map(|v| v.to_le_bytes())
-            .collect();
-        std::fs::write(&f, bytes).map_err(|e| io(format!("{}: cannot write: {e}", f.display())))?;
-    }
-    // (The error names the path.)
-    img.write_png(path, [0.0, 0.0, 0.0, 1.0])
-        .map_err(|e| io(e.to_string()))
 }
 
 /// The builder's progress, handed to a Python callable `progress(kind,
@@ -523,24 +490,6 @@ fn convert(
     run_convert(py, source.as_ref(), &dst, &opts, progress)
 }
 
-/// Convert an in-memory array (C order `[c, z, y, x]`, native-endian
-/// `dtype`) into a brickyard OME-Zarr pyramid.
-#[pyfunction]
-#[pyo3(signature = (data, shape, dtype, dst, options, progress = None))]
-fn from_bytes(
-    py: Python<'_>,
-    data: &[u8],
-    shape: [u64; 4],
-    dtype: &str,
-    dst: PathBuf,
-    options: PyConvertOptions,
-    progress: Option<Py<PyAny>>,
-) -> PyResult<String> {
-    let opts = options.to_options()?;
-    let src = source::MemorySource::new(data, shape, dtype).map_err(to_py)?;
-    run_convert(py, &src, &dst, &opts, progress)
-}
-
 /// Convert a NumPy array (C-contiguous, native-endian, `[c, z, y, x]` of
 /// `dtype`) into a brickyard OME-Zarr pyramid, read where it lies: the
 /// array's memory is handed to the builder without a copy, and the array
@@ -678,7 +627,6 @@ fn _native(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_class::<NativeStore>()?;
     m.add_function(wrap_pyfunction!(render, m)?)?;
     m.add_function(wrap_pyfunction!(convert, m)?)?;
-    m.add_function(wrap_pyfunction!(from_bytes, m)?)?;
     m.add_function(wrap_pyfunction!(from_array, m)?)?;
     m.add_function(wrap_pyfunction!(from_lazy, m)?)?;
     m.add_function(wrap_pyfunction!(process, m)?)?;

@@ -10,6 +10,7 @@ use brickyard_cache::session::Session;
 use brickyard_cache::vm::VmConfig;
 use brickyard_core::camera::{world_extent, Camera, Projection};
 use brickyard_core::{DType, TransferFunction};
+use brickyard_gpu::context::Gpu;
 use brickyard_gpu::vm::DeviceVm;
 use brickyard_render::cpu::{render_frame, Lod, Scene};
 use brickyard_render::gpu::GpuRenderer;
@@ -88,34 +89,58 @@ fn differing(a: &Image, b: &Image, tol: f32) -> usize {
         .count()
 }
 
+/// CPU frames until the view at `level` is complete: the image and the
+/// bricks crossed in the last frame.
+fn converge_cpu(s: &mut Session, scene: &Scene, p: &RenderParams, level: usize) -> (Image, u64) {
+    let start = Instant::now();
+    loop {
+        s.begin_frame();
+        let (img, st, reqs) = render_frame(s.vm(), scene, p, Lod::Fixed(level));
+        s.finish_frame(reqs.iter());
+        if st.completeness() == 1.0 {
+            return (img, st.skipped_bricks);
+        }
+        assert!(
+            start.elapsed() < Duration::from_secs(60),
+            "level {level}: CPU view incomplete at {} ({} resident)",
+            st.completeness(),
+            s.vm().resident_bricks()
+        );
+    }
+}
+
+/// The same on the device, through a device copy of `s`'s virtual memory.
+fn converge_device(
+    gpu: &Gpu,
+    s: &mut Session,
+    scene: &Scene,
+    p: &RenderParams,
+    level: usize,
+) -> (Image, u64) {
+    let (mut dvm, _) = DeviceVm::new(gpu, s.vm_mut()).unwrap();
+    let mut r = GpuRenderer::new(gpu);
+    let start = Instant::now();
+    loop {
+        s.begin_frame();
+        let f = r
+            .render(gpu, &dvm, s.vm(), scene, p, Lod::Fixed(level))
+            .unwrap();
+        s.finish_frame([&f.requests]);
+        dvm.sync(gpu, s.vm_mut());
+        if f.stats.completeness() == 1.0 {
+            return (f.image, f.stats.skipped_bricks);
+        }
+        assert!(
+            start.elapsed() < Duration::from_secs(60),
+            "level {level}: device view incomplete"
+        );
+    }
+}
+
 #[test]
 fn label_slices_show_whole_labels_on_the_cpu_and_the_device() {
-    let input = shared_data("nuclei-labels-u32.tif");
-    let src = brickyard_store::import::open_input(&input, &Default::default()).unwrap();
-    assert_eq!(src.meta().dtype, DType::U32);
     let dir = tempfile::tempdir().unwrap();
-    let store = dir.path().join("labels.ome.zarr");
-    let o = ConvertOptions {
-        brick: [16; 3],
-        shard: [64; 3],
-        labels: true,
-        spacing: Some([1.0, 0.25, 0.25]),
-        ..Default::default()
-    };
-    convert(
-        src.as_ref(),
-        &store,
-        &o,
-        &NoProgress,
-        &AtomicBool::new(false),
-    )
-    .unwrap();
-    let n = (0..)
-        .take_while(|&l| Volume::from_store(&store, l, 0).is_ok())
-        .count();
-    let levels: Vec<Volume> = (0..n)
-        .map(|l| Volume::from_store(&store, l, 0).unwrap())
-        .collect();
+    let (store, levels) = nuclei_labels(dir.path());
     let extent = world_extent(levels[0].dims, levels[0].spacing);
     let scene = Scene::new(extent, levels.iter().map(|v| v.dims).collect());
     let vol_bytes = levels[0].dims.iter().product::<u64>() * 4;
@@ -143,19 +168,7 @@ fn label_slices_show_whole_labels_on_the_cpu_and_the_device() {
         // The CPU through a pool half the volume.
         let mut s = session(&store, DType::U32, vol_bytes / 2);
         assert!((s.vm().pool_bytes() as u64) < vol_bytes);
-        let start = Instant::now();
-        let img = loop {
-            s.begin_frame();
-            let (img, st, reqs) = render_frame(s.vm(), &scene, &p, Lod::Fixed(level));
-            s.finish_frame(reqs.iter());
-            if st.completeness() == 1.0 {
-                break img;
-            }
-            assert!(
-                start.elapsed() < Duration::from_secs(60),
-                "CPU view incomplete"
-            );
-        };
+        let (img, _) = converge_cpu(&mut s, &scene, &p, level);
         let shown_cpu = only_label_colours(&img, &colours, "CPU", 0.0);
         // (The reference's colours are its own f64 arithmetic's.)
         let d = differing(&img, &want, 1e-6);
@@ -171,24 +184,7 @@ fn label_slices_show_whole_labels_on_the_cpu_and_the_device() {
         s.vm().check_invariants().unwrap();
         let Some(gpu) = &gpu else { continue };
         let mut s = session(&store, DType::U32, vol_bytes / 2);
-        let (mut dvm, _) = DeviceVm::new(gpu, s.vm_mut()).unwrap();
-        let mut r = GpuRenderer::new(gpu);
-        let start = Instant::now();
-        let dev = loop {
-            s.begin_frame();
-            let f = r
-                .render(gpu, &dvm, s.vm(), &scene, &p, Lod::Fixed(level))
-                .unwrap();
-            s.finish_frame([&f.requests]);
-            dvm.sync(gpu, s.vm_mut());
-            if f.stats.completeness() == 1.0 {
-                break f.image;
-            }
-            assert!(
-                start.elapsed() < Duration::from_secs(60),
-                "device view incomplete"
-            );
-        };
+        let (dev, _) = converge_device(gpu, &mut s, &scene, &p, level);
         // The device's colours are its own arithmetic's (within 1e-6 of
         // the CPU's); its points are f32, so a few pixels on voxel
         // boundaries may take the neighbouring voxel.
@@ -312,21 +308,7 @@ fn label_surfaces_in_3d_on_the_cpu_and_the_device() {
         for stats in [true, false] {
             let mut s = session(&store, DType::U32, pool);
             scene.ranges = stats.then(|| std::sync::Arc::new(s.loader().brick_ranges(1 << 24)));
-            let start = Instant::now();
-            let (img, skipped) = loop {
-                s.begin_frame();
-                let (img, st, reqs) = render_frame(s.vm(), &scene, &p, Lod::Fixed(level));
-                s.finish_frame(reqs.iter());
-                if st.completeness() == 1.0 {
-                    break (img, st.skipped_bricks);
-                }
-                assert!(
-                    start.elapsed() < Duration::from_secs(60),
-                    "level {level}, statistics {stats}: CPU view incomplete at {} ({} resident)",
-                    st.completeness(),
-                    s.vm().resident_bricks()
-                );
-            };
+            let (img, skipped) = converge_cpu(&mut s, &scene, &p, level);
             let d = differing(&img, &want, 1e-5);
             eprintln!("level {level}, statistics {stats}: {d} pixels differ from the reference, {skipped} bricks crossed");
             assert!(
@@ -340,24 +322,7 @@ fn label_surfaces_in_3d_on_the_cpu_and_the_device() {
         }
         let Some(gpu) = &gpu else { continue };
         let mut s = session(&store, DType::U32, pool);
-        let (mut dvm, _) = DeviceVm::new(gpu, s.vm_mut()).unwrap();
-        let mut r = GpuRenderer::new(gpu);
-        let start = Instant::now();
-        let dev = loop {
-            s.begin_frame();
-            let f = r
-                .render(gpu, &dvm, s.vm(), &scene, &p, Lod::Fixed(level))
-                .unwrap();
-            s.finish_frame([&f.requests]);
-            dvm.sync(gpu, s.vm_mut());
-            if f.stats.completeness() == 1.0 {
-                break f.image;
-            }
-            assert!(
-                start.elapsed() < Duration::from_secs(60),
-                "device view incomplete"
-            );
-        };
+        let (dev, _) = converge_device(gpu, &mut s, &scene, &p, level);
         shaded_label_colours(&dev, &ids, 1e-5);
         // f32 steps on the device: a ray grazing a voxel may stop a step
         // earlier or later.
@@ -441,16 +406,7 @@ fn sheets_of_labels_behind_background_bricks_are_met_where_the_reference_meets_t
         on_sheet > 64 * 64 / 4,
         "the reference shows the first sheet on {on_sheet} pixels"
     );
-    let start = Instant::now();
-    let (img, skipped) = loop {
-        s.begin_frame();
-        let (img, st, reqs) = render_frame(s.vm(), &scene, &p, Lod::Fixed(0));
-        s.finish_frame(reqs.iter());
-        if st.completeness() == 1.0 {
-            break (img, st.skipped_bricks);
-        }
-        assert!(start.elapsed() < Duration::from_secs(30), "view incomplete");
-    };
+    let (img, skipped) = converge_cpu(&mut s, &scene, &p, 0);
     assert!(skipped > 0, "the background brick was sampled step by step");
     let d = differing(&img, &want, 1e-5);
     assert_eq!(d, 0, "{d} pixels differ from the reference");
@@ -460,24 +416,7 @@ fn sheets_of_labels_behind_background_bricks_are_met_where_the_reference_meets_t
         return;
     };
     let mut s = session(&store, DType::U8, 1 << 20);
-    let (mut dvm, _) = DeviceVm::new(&gpu, s.vm_mut()).unwrap();
-    let mut r = GpuRenderer::new(&gpu);
-    let start = Instant::now();
-    let (dev, jumped) = loop {
-        s.begin_frame();
-        let f = r
-            .render(&gpu, &dvm, s.vm(), &scene, &p, Lod::Fixed(0))
-            .unwrap();
-        s.finish_frame([&f.requests]);
-        dvm.sync(&gpu, s.vm_mut());
-        if f.stats.completeness() == 1.0 {
-            break (f.image, f.stats.skipped_bricks);
-        }
-        assert!(
-            start.elapsed() < Duration::from_secs(30),
-            "device view incomplete"
-        );
-    };
+    let (dev, jumped) = converge_device(&gpu, &mut s, &scene, &p, 0);
     let d = differing(&dev, &want, 1e-5);
     eprintln!("the device crossed {jumped} bricks; {d} pixels differ from the reference");
     assert!(

@@ -569,34 +569,51 @@ pub fn run_shared(mut c: RenderCmd, share: Option<&mut dyn Share>) -> Result<Vec
     }
     let raw = c.raw_f32;
     run_with(c, share, &mut |path, img| {
-        if raw {
-            let f = path.with_extension("f32");
-            let bytes: Vec<u8> = img
-                .rgba
-                .as_flattened()
-                .iter()
-                .flat_map(|v| v.to_le_bytes())
-                .collect();
-            std::fs::write(&f, bytes).with_context(|| format!("{}: cannot write", f.display()))?;
-        }
-        // (The error names the path.)
-        img.write_png(path, [0.0, 0.0, 0.0, 1.0])
-            .map_err(|e| anyhow::anyhow!("{e}"))?;
+        write_view(path, &img, raw)?;
         outln!("wrote {}", path.display());
         Ok(())
     })
 }
 
-/// Render without printing or writing anything: the image of each view
-/// (as `run` would write it), in view order.
-pub fn images(mut c: RenderCmd) -> Result<Vec<brickyard_render::Image>> {
+/// Write one view as `run` does: the PNG over black at `path`, and with
+/// `raw_f32` the premultiplied image beside it (`.f32`: RGBA, little-endian
+/// f32, rows top to bottom). Errors name the file.
+pub fn write_view(
+    path: &std::path::Path,
+    img: &brickyard_render::Image,
+    raw_f32: bool,
+) -> Result<()> {
+    if raw_f32 {
+        let f = path.with_extension("f32");
+        let bytes: Vec<u8> = img
+            .rgba
+            .as_flattened()
+            .iter()
+            .flat_map(|v| v.to_le_bytes())
+            .collect();
+        std::fs::write(&f, bytes).with_context(|| format!("{}: cannot write", f.display()))?;
+    }
+    // (The error names the path.)
+    img.write_png(path, [0.0, 0.0, 0.0, 1.0])
+        .map_err(|e| anyhow::anyhow!("{e}"))
+}
+
+/// Render without printing or writing anything: each view's image (in
+/// view order) with the file `run` would write it to (`--out`, or a
+/// turntable's numbered files beside it).
+pub fn views(mut c: RenderCmd) -> Result<Vec<(PathBuf, brickyard_render::Image)>> {
     c.silent = true;
     let mut out = vec![];
-    run_with(c, None, &mut |_, img| {
-        out.push(img);
+    run_with(c, None, &mut |path, img| {
+        out.push((path.to_path_buf(), img));
         Ok(())
     })?;
     Ok(out)
+}
+
+/// [`views`]' images alone.
+pub fn images(c: RenderCmd) -> Result<Vec<brickyard_render::Image>> {
+    Ok(views(c)?.into_iter().map(|(_, img)| img).collect())
 }
 
 /// Print unless the run is silent.
