@@ -1,6 +1,7 @@
 """brickyard.process against the CLI (bit for bit) and scipy.ndimage (within tolerance)."""
 
 import os
+import re
 import shutil
 import signal
 import subprocess
@@ -246,3 +247,18 @@ def test_tqdm_bars_per_phase(two_stores, vol, monkeypatch):
     assert bars[0].total == bars[0].n == vol.size
     assert bars[1].total == bars[1].n > 0
     assert all(x.closed for x in bars)
+
+
+def test_too_little_memory_names_the_keyword_and_the_least_that_runs(tmp_path):
+    dst = tmp_path / "m.ome.zarr"
+    brickyard.from_numpy(volume((48, 48, 48), "uint16", seed=2), dst, brick=16, shard=32, progress=False)
+    store = brickyard.open(dst)
+    with pytest.raises(ValueError, match=r'give memory="\d+MiB" or more') as e:
+        brickyard.process(store, "gauss(6)", out="g", memory=2 << 20, progress=False)
+    least = int(re.search(r'memory="(\d+)MiB"', str(e.value)).group(1))
+    assert "--" not in str(e.value), str(e.value)
+    # The size it names runs; a MiB less does not.
+    with pytest.raises(ValueError, match="too small"):
+        brickyard.process(store, "gauss(6)", out="g", memory=f"{least - 1}MiB", progress=False)
+    r = brickyard.process(store, "gauss(6)", out="g", memory=f"{least}MiB", progress=False)
+    assert r.levels >= 1

@@ -404,8 +404,14 @@ pub fn run(
             .ops
             .iter()
             .any(|o| matches!(o, Op::Gauss(_) | Op::GradMag(_)));
+        // How the caller gives a size: `--memory 56MiB`, `memory="56MiB"`.
+        let least_mib = least.div_ceil(1 << 20);
+        let give = match f {
+            "" => format!("memory=\"{least_mib}MiB\""),
+            _ => format!("{f}memory {least_mib}MiB"),
+        };
         bail!(
-            "{f}memory: {} is too small for {:?} on level {} of {}: give {f}memory {}MiB or \
+            "{f}memory: {} is too small for {:?} on level {} of {}: give {give} or \
              more (the filters hold {} at once, one block with its halo per stage, and take \
              at most half of {f}memory; writing the result's pyramid takes {}, and reading the \
              input an eighth of {f}memory){}",
@@ -413,7 +419,6 @@ pub fn run(
             pipe.text(),
             c.level,
             store.display(),
-            least.div_ceil(1 << 20),
             human_bytes(filters_least),
             human_bytes(writer_least),
             if sigma {
