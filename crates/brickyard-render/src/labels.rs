@@ -13,7 +13,7 @@
 
 use crate::cpu::FrameStats;
 use crate::optics::{label_color, label_of};
-use crate::walk::{step_t, Content, Grid, Walker};
+use crate::walk::{inside, step_t, Content, Grid, Walker};
 use brickyard_cache::vm::Requests;
 use brickyard_core::camera::{intersect_box, Ray, Vec3};
 use brickyard_core::{Dims3, Sample};
@@ -51,12 +51,6 @@ pub fn surface_shade(g: [f32; 3], scale: [f64; 3], dir: Vec3) -> f32 {
 pub fn surface_color(id: i32, shade: f32) -> [f32; 4] {
     let c = label_color(Some(id as f32));
     [c[0] * shade, c[1] * shade, c[2] * shade, 1.0]
-}
-
-/// Whether voxel base `b` lies in `[lo, hi)` on every axis.
-#[inline]
-fn inside(b: Dims3, lo: Dims3, hi: Dims3) -> bool {
-    (0..3).all(|a| b[a] >= lo[a] && b[a] < hi[a])
 }
 
 impl<'f, 'a, T: Sample> Walker<'f, 'a, T> {

@@ -880,14 +880,21 @@ fn run_one(
     if backend_choice != c.backend && shared.is_none() {
         say_err!(silent, "{}", auto_takes_cpu());
     }
-    // A label image's slices show its labels unless --tf says otherwise.
+    let info = inspect(&c.store)?;
+    if info.complete == Some(false) {
+        bail!(
+            "{}: the store is incomplete (an interrupted conversion)",
+            c.store.display()
+        );
+    }
+    // A label image shows its labels unless --tf says otherwise.
     let tf_name = match c.tf.as_deref() {
         Some(t) => t,
         None if c.mode != "mip"
             && c.channels.is_empty()
             && c.derive.is_none()
             && n_views == 1
-            && brickyard_store::omezarr::is_label_image(&c.store)? =>
+            && info.label_image =>
         {
             "labels"
         }
@@ -920,13 +927,6 @@ fn run_one(
         if let Some(why) = why {
             bail!("tf: labels: {why}");
         }
-    }
-    let info = inspect(&c.store)?;
-    if info.complete == Some(false) {
-        bail!(
-            "{}: the store is incomplete (an interrupted conversion)",
-            c.store.display()
-        );
     }
     let l0 = zarr::open(&c.store, 0)?;
     let m = l0.meta().clone();

@@ -57,6 +57,8 @@ pub struct StoreInfo {
     pub axes: Vec<String>,
     pub units: Vec<Option<String>>,
     pub labels: bool,
+    /// A label image ([`Multiscale::label_image`](crate::omezarr::Multiscale::label_image)).
+    pub label_image: bool,
     /// What the importer did with the source's header fields (brickyard
     /// stores: the root attribute `brickyard.source_notes`).
     pub source_notes: Vec<String>,
@@ -262,6 +264,7 @@ pub fn inspect(path: &Path) -> Result<StoreInfo> {
         axes: vec![],
         units: vec![],
         labels: false,
+        label_image: false,
         source_notes: vec![],
         levels: vec![],
         inner_images: vec![],
@@ -272,6 +275,7 @@ pub fn inspect(path: &Path) -> Result<StoreInfo> {
         Some(m) => {
             info.zarr_format = m.zarr_format;
             info.ome_version = Some(m.version.clone());
+            info.label_image = m.label_image;
             info.axes = m.axes.iter().map(|a| a.name.clone()).collect();
             info.units = m.axes.iter().map(|a| a.unit.clone()).collect();
             if let Some(b) = &m.brickyard {

@@ -212,6 +212,10 @@ pub struct Multiscale {
     pub zarr_format: u8,
     /// The root's `brickyard` attribute block, if any.
     pub brickyard: Option<Value>,
+    /// A label image: its OME attributes hold `image-label` (as a store's
+    /// `labels/NAME` does), or its multiscales say coarser levels took the
+    /// most frequent value (`"type": "mode"`, as `convert --labels` writes).
+    pub label_image: bool,
 }
 
 /// The `scale` and `translation` of an object's `coordinateTransformations`
@@ -258,22 +262,6 @@ pub fn read_group_attributes(dir: &Path) -> Result<Option<(u8, Value)>> {
         return Ok(Some((2, a)));
     }
     Ok(None)
-}
-
-/// Whether the group at `dir` is a label image: its OME attributes hold
-/// `image-label` (as a store's `labels/NAME` does), or its multiscales say
-/// coarser levels took the most frequent value (`"type": "mode"`, as
-/// `convert --labels` writes).
-pub fn is_label_image(dir: &Path) -> Result<bool> {
-    let Some((_, attrs)) = read_group_attributes(dir)? else {
-        return Ok(false);
-    };
-    let ome = attrs.get("ome").unwrap_or(&attrs);
-    let mode = ome
-        .pointer("/multiscales/0/type")
-        .and_then(Value::as_str)
-        .is_some_and(|t| t == "mode");
-    Ok(ome.get("image-label").is_some() || mode)
 }
 
 /// The label images a store's `labels` group lists (none without the
@@ -438,12 +426,15 @@ pub fn parse_multiscale(
             Ok(d)
         })
         .collect::<Result<Vec<_>>>()?;
+    let label_image =
+        ome.get("image-label").is_some() || ms0.get("type").and_then(Value::as_str) == Some("mode");
     Ok(Some(Multiscale {
         version,
         axes,
         datasets,
         zarr_format,
         brickyard,
+        label_image,
     }))
 }
 

@@ -46,8 +46,8 @@ pub struct Dataset {
     /// Brick counts per value bin over `range`, from the bricks' value
     /// ranges (each brick spread evenly over its range).
     pub histogram: Vec<f32>,
-    /// A label image (`omezarr::is_label_image`): its slices show each
-    /// label in its own colour.
+    /// A label image (`StoreInfo::label_image`): its slices and 3D view
+    /// show each label in its own colour.
     pub labels: bool,
 }
 

@@ -331,7 +331,7 @@ pub fn run(c: ViewCmd, demo_store: impl FnOnce() -> Result<PathBuf>) -> Result<i
         dtype: m.dtype,
         channels: m.channels,
         range,
-        labels: m.channels == 1 && brickyard_store::omezarr::is_label_image(&store)?,
+        labels: m.channels == 1 && info.label_image,
     });
     let mut setup = setup;
     let mut tf = tf;
