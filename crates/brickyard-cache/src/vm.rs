@@ -149,12 +149,18 @@ impl SlotSet {
     fn id(&self, c: [u32; 3]) -> u32 {
         (c[0] * self.grid[1] + c[1]) * self.grid[2] + c[2]
     }
-    /// Order-preserving compaction: slots used in `frame` first, then the
-    /// others, each group in its previous order.
+    /// Order-preserving compaction: slots used in `frame` first, then
+    /// those stamped in the frame before, then the others, each group in
+    /// its previous order. (A brick written after the previous frame's
+    /// compaction, stamped with that frame, still sits where the slot it
+    /// took was, at the tail: without the middle group it would be the
+    /// next to go, and a view drawn in turn with others would lose its
+    /// bricks to theirs before it is drawn again.)
     fn compact(&mut self, frame: u32) {
-        self.lru = crate::bookkeeping::compact_lru(&self.lru, |s| {
-            self.usage[s as usize].load(Ordering::Relaxed) == frame
-        });
+        let before = frame.wrapping_sub(1);
+        let stamp = |s: u32| self.usage[s as usize].load(Ordering::Relaxed);
+        let lru = crate::bookkeeping::compact_lru(&self.lru, |s| stamp(s) == before);
+        self.lru = crate::bookkeeping::compact_lru(&lru, |s| stamp(s) == frame);
         self.cursor = 0;
         self.stand_in_failed = u8::MAX;
     }

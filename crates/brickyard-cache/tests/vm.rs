@@ -405,3 +405,71 @@ fn page_table_caches_hold_no_more_blocks_than_the_volume_needs() {
         assert!(entries * 8 < 4 << 20, "{entries} entries");
     }
 }
+
+/// Two views drawn in turn from one pool (the viewer's slices), whose
+/// working sets fit it together, after a third view filled the pool with
+/// bricks neither needs: both complete. A brick written after a frame's
+/// LRU compaction sits where the slot it took was, at the tail; had the
+/// next compaction left it there, each view's bricks would be the first
+/// the other evicts, and neither would ever complete.
+#[test]
+fn views_drawn_in_turn_keep_each_others_bricks_when_together_they_fit() {
+    let mut rng = Lcg(7);
+    let model = Model::new([16, 16, 64], &mut rng);
+    let brick = [4u64; 3];
+    let padded_bytes = 6 * 6 * 6 * 2;
+    let cfg = VmConfig {
+        brick,
+        apron: 1,
+        pool_bytes: 40 * padded_bytes,
+        request_cap: 1000,
+        upload_bytes_per_frame: 1000 * padded_bytes,
+        ..Default::default()
+    };
+    let mut vm = VirtualMemory::new(&model.levels, 1, DType::U16, cfg);
+    // Points of level 0 (nearest voxel: one brick each) with x in `x0..x1`
+    // and y, z anywhere.
+    let mut view = |n: usize, x0: f64, x1: f64| -> Vec<[f64; 3]> {
+        (0..n)
+            .map(|_| [rng.unit(), rng.unit(), x0 + (x1 - x0) * rng.unit()])
+            .collect()
+    };
+    let filler = view(200, 0.0, 1.0);
+    let a = view(12, 0.0, 0.5);
+    let b = view(12, 0.5, 1.0);
+    // One frame of `points`: whether every point was served at level 0.
+    let frame = |vm: &mut VirtualMemory, points: &[[f64; 3]]| -> bool {
+        vm.begin_frame();
+        let mut req = vm.requests();
+        let mut exact = 0;
+        for &p in points {
+            let r = vm.sample(0, 0, p, false, &mut req);
+            if let Some(lv) = r.level {
+                let want = model.sample(lv as usize, p, false);
+                assert_eq!(r.value, want, "level {lv} at {p:?}");
+                exact += usize::from(lv == 0);
+            }
+        }
+        let rep = vm.end_frame([&req]);
+        let bricks: Vec<_> = rep
+            .requests
+            .iter()
+            .map(|&k| model.brick(k, brick, 1))
+            .collect();
+        vm.insert(&bricks);
+        vm.check_invariants().unwrap();
+        exact == points.len()
+    };
+    for _ in 0..20 {
+        frame(&mut vm, &filler);
+    }
+    let mut done = (false, false);
+    for turn in 0..40 {
+        done = (frame(&mut vm, &a), frame(&mut vm, &b));
+        if done == (true, true) {
+            assert!(turn <= 3, "complete only after {turn} turns");
+            break;
+        }
+    }
+    assert_eq!(done, (true, true), "the views never completed");
+}

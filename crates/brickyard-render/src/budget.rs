@@ -70,6 +70,35 @@ impl FrameSignals {
     }
 }
 
+impl FrameSignals {
+    /// Slots this view needs: those it used at their own level and the
+    /// bricks it still asks for.
+    pub fn need(&self) -> usize {
+        self.exact_slots.unwrap_or(self.free_slots) + self.requested.max(self.requests)
+    }
+
+    /// The signals of one of several views drawn in turn from one pool,
+    /// where the other views still drawing need `others` slots, the
+    /// largest of them `largest`. When together they do not fit, each
+    /// view's arrivals evict the others' bricks and theirs its own, frame
+    /// after frame, every view making progress and none completing: the
+    /// view that needs the most (this one, when it needs at least
+    /// `largest`) counts the pool as saturated, with what the others leave
+    /// as its room, and its budget coarsens; the next largest follows in
+    /// a later turn while they still do not fit.
+    pub fn shared_with(mut self, others: usize, largest: usize) -> FrameSignals {
+        let need = self.need();
+        if others == 0 || self.requests == 0 || need < largest {
+            return self;
+        }
+        if need + others > self.free_slots {
+            self.deferred = self.deferred.max(1);
+            self.free_slots = self.free_slots.saturating_sub(others).max(1);
+        }
+        self
+    }
+}
+
 /// Why a non-interactive render stops.
 #[derive(Debug, Clone, PartialEq)]
 pub enum Stop {
@@ -254,6 +283,31 @@ mod tests {
             free_slots: 100,
             progress: deferred > 0 || requests > 0,
         }
+    }
+
+    #[test]
+    fn views_that_share_a_pool_coarsen_when_together_they_do_not_fit() {
+        // 30 slots used and 20 asked for: 50 needed. Alone (100 slots) it
+        // fits, and its arrivals find room (nothing deferred).
+        let alone = sig(false, 20, 0, 30);
+        assert_eq!(alone.need(), 50);
+        assert_eq!(alone.shared_with(0, 0), alone);
+        assert_eq!(alone.shared_with(50, 30), alone);
+        // Beside views needing 60 slots (the largest 40) it does not fit:
+        // saturated, with the 40 slots they leave as its room; the budget
+        // coarsens.
+        let shared = alone.shared_with(60, 40);
+        assert_eq!((shared.deferred, shared.free_slots), (1, 40));
+        let mut b = LodBudget::new(0.0, 5, true);
+        assert!(matches!(b.update(&shared), Decision::Changed { .. }));
+        assert!(b.extra() > 0.0);
+        // Another view needs more: that one coarsens first.
+        assert_eq!(alone.shared_with(60, 55), alone);
+        // Nothing left of the pool for it: a room of one slot.
+        assert_eq!(alone.shared_with(120, 50).free_slots, 1);
+        // A view that asks for nothing more is left alone.
+        let done = sig(true, 0, 0, 30);
+        assert_eq!(done.shared_with(90, 10), done);
     }
 
     #[test]

@@ -124,6 +124,9 @@ struct View {
     keep: Option<(Lod, Image, Tiles)>,
     /// The samples a still DVR view accumulates.
     acc: Option<Acc>,
+    /// Pool slots its last frame needed: used at their own level, and
+    /// asked for.
+    need: usize,
 }
 
 /// A view's sample accumulation: what it was begun for (the view but its
@@ -275,6 +278,7 @@ pub fn run(setup: Setup, mut scene: Scene, rx: Receiver<Msg>, tx: Sender<Reply>,
                             budget: LodBudget::new(0.0, scene.levels.len(), true),
                             keep: None,
                             acc: None,
+                            need: 0,
                         });
                     }
                     let v = &mut views[i];
@@ -388,7 +392,18 @@ pub fn run(setup: Setup, mut scene: Scene, rx: Receiver<Msg>, tx: Sender<Reply>,
             }
         };
         let completeness = f.stats.completeness();
+        // The pool is shared by the views still drawing: together they
+        // must fit, or the one that needs the most coarsens until they do.
+        let (others, largest) = views
+            .iter()
+            .enumerate()
+            .filter(|(k, v)| *k != i && v.spec.is_some() && !v.complete && v.acc.is_none())
+            .fold((0, 0), |(sum, most), (_, v)| {
+                (sum + v.need, most.max(v.need))
+            });
         let sig = crate::frames::signals(&s, &f);
+        views[i].need = sig.need();
+        let sig = sig.shared_with(others, largest);
         let changed = matches!(views[i].budget.update(&sig), Decision::Changed { .. });
         // Complete, or nothing left to ask for but bricks that failed.
         let mut done = !changed && (completeness >= 1.0 || (sig.requests == 0 && !sig.progress));
