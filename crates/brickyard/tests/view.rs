@@ -1388,3 +1388,212 @@ quit
         );
     }
 }
+
+#[test]
+fn viewer_lays_label_images_over_its_slices_as_render_does() {
+    let _session = shared();
+    let d = tempfile::tempdir().unwrap();
+    let p = |n: &str| d.path().join(n);
+    let tif =
+        Path::new(env!("CARGO_MANIFEST_DIR")).join("../../../shared/data/nuclei-confocal-u16.tif");
+    assert!(
+        tif.exists(),
+        "{} is missing: this test needs the shared data folder",
+        tif.display()
+    );
+    let store = p("nuclei.ome.zarr");
+    let run = |args: &[&str]| {
+        let o = Command::new(bin()).args(args).output().unwrap();
+        assert!(o.status.success(), "{args:?}: {}", stderr(&o));
+    };
+    run(&[
+        "convert",
+        s(&tif),
+        s(&store),
+        "--spacing",
+        "0.5,0.5,2",
+        "--brick",
+        "16",
+        "--quiet",
+    ]);
+    run(&[
+        "process",
+        s(&store),
+        "gauss(1)|threshold(12000)|label(26)",
+        "--out",
+        "cells",
+        "--quiet",
+    ]);
+    // The labels over xy, xz and the 3D view's slice at opacity 0.5; xz at
+    // opacity 1; the three without labels; then, turned on again, xy after
+    // a drag that moves the cursor.
+    let mut script = String::from(
+        "size 3d 80 64
+size xy 64 64
+size xz 64 40
+mode slice
+wait-complete 300
+",
+    );
+    let shoot = |views: &[(&str, &str)]| {
+        views
+            .iter()
+            .map(|(v, name)| {
+                let f = s(&p(name)).to_string();
+                format!("screenshot {v} {f}.png\nsave-view {v} {f}\n")
+            })
+            .collect::<String>()
+    };
+    script += &shoot(&[("xy", "xy"), ("3d", "d3"), ("xz", "xz")]);
+    script += "label-opacity 1\nwait-complete 300\n";
+    script += &shoot(&[("xz", "xz1")]);
+    script += "labels off\nwait-complete 300\n";
+    script += &shoot(&[("xy", "xy-off"), ("3d", "d3-off"), ("xz", "xz-off")]);
+    script += "labels on\ndrag xy left 6 -4\nwait-complete 300\n";
+    script += &shoot(&[("xy", "xy2")]);
+    script += "quit\n";
+    std::fs::write(p("s.txt"), script).unwrap();
+    let Some(mut cmd) = viewer(
+        &store,
+        &p("s.txt"),
+        None,
+        &[
+            "--labels",
+            "cells",
+            "--pool",
+            "8MiB",
+            "--brick",
+            "8",
+            "--backend",
+            "cpu",
+            "--window-size",
+            "900x600",
+        ],
+    ) else {
+        return;
+    };
+    let o = cmd.output().unwrap();
+    assert!(o.status.success(), "viewer: {}", stderr(&o));
+    let args = |name: &str| std::fs::read_to_string(p(&format!("{name}.args"))).unwrap();
+    for (name, opacity) in [
+        ("xy", "0.5"),
+        ("d3", "0.5"),
+        ("xz", "0.5"),
+        ("xz1", "1"),
+        ("xy2", "1"),
+    ] {
+        let a = args(name);
+        assert!(
+            a.contains(&format!("--labels\ncells\n--label-opacity\n{opacity}\n")),
+            "{name}: {a}"
+        );
+    }
+    for name in ["xy-off", "d3-off", "xz-off"] {
+        assert!(!args(name).contains("--labels"), "{name}: {}", args(name));
+    }
+    // Each equals `render` of the same view (with --labels: the image's
+    // slice with the labels laid over it), and the labels are there: each
+    // view with them differs from itself without them on many pixels, and
+    // has many more strongly coloured ones (the image's colour map, bone,
+    // is a grey with a little blue).
+    let image = |n: &str| equals_render(&store, d.path(), n);
+    let coloured = |img: &[u8]| {
+        img.chunks(4)
+            .filter(|c| c[0].abs_diff(c[1]) > 30 || c[1].abs_diff(c[2]) > 30)
+            .count()
+    };
+    for (on, off) in [
+        ("xy", "xy-off"),
+        ("d3", "d3-off"),
+        ("xz", "xz-off"),
+        ("xz1", "xz-off"),
+    ] {
+        let (a, b) = (image(on), image(off));
+        let differ = a.chunks(4).zip(b.chunks(4)).filter(|(x, y)| x != y).count();
+        assert!(differ > 50, "{on}: {differ} pixels changed by labels");
+        assert!(
+            coloured(&a) > coloured(&b) + 20,
+            "{on}: {} coloured pixels, {} without labels",
+            coloured(&a),
+            coloured(&b)
+        );
+    }
+    // After the drag the labels still lie over the image (render agrees).
+    let moved = image("xy2");
+    assert_ne!(moved, image("xy"), "the drag moved nothing");
+}
+
+#[test]
+fn viewer_completes_every_view_when_their_bricks_together_overflow_the_pool() {
+    let _session = shared();
+    // Five views drawn in turn from a pool of 1 MiB (about 500 bricks of
+    // 8³ u16 with their aprons): alone each fits, together they do not.
+    // Before, each view's arrivals evicted the others' bricks frame after
+    // frame and no view ever completed; now the views that need the most
+    // coarsen until the views fit together, and they complete, also after
+    // the cursor moves.
+    let d = tempfile::tempdir().unwrap();
+    let p = |n: &str| d.path().join(n);
+    let tif =
+        Path::new(env!("CARGO_MANIFEST_DIR")).join("../../../shared/data/nuclei-confocal-u16.tif");
+    assert!(
+        tif.exists(),
+        "{} is missing: this test needs the shared data folder",
+        tif.display()
+    );
+    let store = p("nuclei.ome.zarr");
+    let o = Command::new(bin())
+        .args(["convert", s(&tif), s(&store), "--spacing", "0.5,0.5,2"])
+        .args(["--brick", "16", "--quiet"])
+        .output()
+        .unwrap();
+    assert!(o.status.success(), "{}", stderr(&o));
+    let script = format!(
+        "size 3d 80 64
+size xy 64 64
+size xz 64 40
+mode slice
+wait-complete 60
+screenshot xy {a}
+drag xy left 6 -4
+wait-complete 60
+screenshot xy {b}
+quit
+",
+        a = s(&p("a.png")),
+        b = s(&p("b.png")),
+    );
+    std::fs::write(p("s.txt"), script).unwrap();
+    let Some(mut cmd) = viewer(
+        &store,
+        &p("s.txt"),
+        Some(&p("log.jsonl")),
+        &[
+            "--pool",
+            "1MiB",
+            "--brick",
+            "8",
+            "--backend",
+            "cpu",
+            "--window-size",
+            "900x600",
+        ],
+    ) else {
+        return;
+    };
+    let o = cmd.output().unwrap();
+    assert!(o.status.success(), "viewer: {}", stderr(&o));
+    // Some view paid in detail (a coarser level), and the slices show the
+    // nuclei, not a blank.
+    let log = std::fs::read_to_string(p("log.jsonl")).unwrap();
+    assert!(
+        log.lines()
+            .any(|l| l.contains("\"settled\":true") && !l.contains("\"lod_extra\":0.0")),
+        "no view was coarsened to fit"
+    );
+    for name in ["a.png", "b.png"] {
+        let (_, _, px) = png_pixels(&p(name));
+        let lit = px.chunks(4).filter(|c| c[0] > 40).count();
+        assert!(lit > 64 * 64 / 10, "{name}: {lit} lit pixels");
+    }
+}

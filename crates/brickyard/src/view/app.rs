@@ -23,6 +23,7 @@ use super::script::{Cmd, VIEWS};
 use super::worker::{Msg, Out, Reply, Setup, Spec};
 use brickyard_core::camera::{scale, Camera, Projection};
 use brickyard_core::{DType, Dims3, TransferFunction};
+use brickyard_render::Image;
 use eframe::egui;
 use std::io::Write;
 use std::path::PathBuf;
@@ -89,6 +90,50 @@ struct ViewState {
     pan: [f64; 2],
 }
 
+/// A label image laid over the slice views (`view --labels NAME`): its
+/// own render thread and session draw each slice view's labels, which the
+/// window lays over the image's frame at `opacity`.
+pub struct LabelLayer {
+    name: String,
+    tx: Sender<Msg>,
+    rx: Receiver<Reply>,
+    opacity: f32,
+    shown: bool,
+    /// The label image's levels (a fixed level beyond them takes its
+    /// coarsest).
+    levels: usize,
+    views: Vec<LabelView>,
+}
+
+/// What the label thread was asked to draw for one view, and its last
+/// frame.
+#[derive(Default)]
+struct LabelView {
+    version: u64,
+    sent: Option<Spec>,
+    last: Option<Box<Out>>,
+}
+
+impl LabelLayer {
+    pub fn new(
+        name: String,
+        tx: Sender<Msg>,
+        rx: Receiver<Reply>,
+        opacity: f32,
+        levels: usize,
+    ) -> LabelLayer {
+        LabelLayer {
+            name,
+            tx,
+            rx,
+            opacity,
+            shown: true,
+            levels: levels.max(1),
+            views: (0..N_VIEWS).map(|_| LabelView::default()).collect(),
+        }
+    }
+}
+
 pub struct ViewerApp {
     ds: Arc<Dataset>,
     setup: Setup,
@@ -148,6 +193,8 @@ pub struct ViewerApp {
     job: Option<process::Job>,
     job_name: String,
     last_job: Option<process::JobEnd>,
+    /// `--labels NAME`: the label image over the slices.
+    labels: Option<LabelLayer>,
 }
 
 /// A live derived channel shown: its pipeline, the store's channel it is
@@ -168,6 +215,7 @@ impl ViewerApp {
         log: Option<std::fs::File>,
         exit: Arc<AtomicI32>,
         derived: Option<(Arc<Dataset>, Shown)>,
+        labels: Option<LabelLayer>,
     ) -> ViewerApp {
         // Started on a derived channel: `ds` is its dataset, and the
         // store's comes with it.
@@ -257,6 +305,7 @@ impl ViewerApp {
             camera_path: String::new(),
             failures_seen: 0,
             last_failure: None,
+            labels,
         }
     }
 
@@ -273,6 +322,43 @@ impl ViewerApp {
                     }
                 }
                 Reply::Frame(out) => self.show_frame(ctx, out),
+            }
+        }
+        // The labels' frames: each view's latest is laid over the image's.
+        let mut got = vec![];
+        if let Some(l) = &mut self.labels {
+            while let Ok(r) = l.rx.try_recv() {
+                got.push(r);
+            }
+        }
+        for r in got {
+            match r {
+                Reply::Error(e) => {
+                    let e = format!("labels: {e}");
+                    self.message = format!("error: {e}");
+                    if !self.script.is_empty() {
+                        eprintln!("view: {e}");
+                        self.fail(ctx, &e);
+                    }
+                }
+                Reply::Frame(out) => {
+                    let v = out.view;
+                    if self.log.is_some() {
+                        self.log_line(serde_json::json!({
+                            "t": self.started.elapsed().as_secs_f64(),
+                            "view": VIEWS[v], "layer": "labels", "version": out.version,
+                            "completeness": out.completeness, "render_ms": out.render_ms,
+                            "settled": out.settled, "new_failures": out.new_failures,
+                        }));
+                    }
+                    for f in &out.new_failures {
+                        eprintln!("view: labels: cannot load {f} (drawn from coarser data)");
+                    }
+                    if let Some(l) = &mut self.labels {
+                        l.views[v].last = Some(out);
+                    }
+                    self.refresh_texture(ctx, v);
+                }
             }
         }
     }
@@ -328,13 +414,46 @@ impl ViewerApp {
         if out.completeness < 1.0 {
             vs.streaming += 1;
         }
-        let shown = laid_out(vs.sent.as_ref(), &out);
-        let img = shown.as_ref().unwrap_or(&out.image);
+        vs.last = Some(out);
+        self.refresh_texture(ctx, v);
+    }
+
+    /// View `v` as shown: its last frame (laid out when it holds several
+    /// views), with the labels' last frame of the same size over it while
+    /// labels are drawn for it.
+    pub(super) fn shown_image(&self, v: usize) -> Option<std::borrow::Cow<'_, Image>> {
+        use std::borrow::Cow;
+        let vs = &self.views[v];
+        let o = vs.last.as_ref()?;
+        let mut img = match laid_out(vs.sent.as_ref(), o) {
+            Some(i) => Cow::Owned(i),
+            None => Cow::Borrowed(&o.image),
+        };
+        let over = self.labels.as_ref().filter(|l| l.shown).and_then(|l| {
+            let lv = &l.views[v];
+            lv.sent.as_ref()?;
+            let lo = lv.last.as_ref()?;
+            ((lo.image.width, lo.image.height) == (img.width, img.height))
+                .then_some((&lo.image, l.opacity))
+        });
+        if let Some((labels, opacity)) = over {
+            brickyard_run::labels::overlay(img.to_mut(), labels, opacity).ok()?;
+        }
+        Some(img)
+    }
+
+    /// Upload view `v`'s shown image into its texture.
+    pub(super) fn refresh_texture(&mut self, ctx: &egui::Context, v: usize) {
+        let Some(img) = self.shown_image(v) else {
+            return;
+        };
         let rgba = img.to_rgba8([0.0, 0.0, 0.0, 1.0]);
         let ci = egui::ColorImage::from_rgba_unmultiplied(
             [img.width as usize, img.height as usize],
             &rgba,
         );
+        drop(img);
+        let vs = &mut self.views[v];
         match &mut vs.texture {
             Some(t) => t.set(ci, egui::TextureOptions::LINEAR),
             None => {
@@ -342,15 +461,20 @@ impl ViewerApp {
                     Some(ctx.load_texture(format!("view-{v}"), ci, egui::TextureOptions::LINEAR))
             }
         }
-        vs.last = Some(out);
     }
 
     fn complete(&self, v: usize) -> bool {
-        let vs = &self.views[v];
-        vs.last.as_ref().is_some_and(|o| {
-            o.version == vs.version
+        let done = |o: &Out, version: u64| {
+            o.version == version
                 && (o.settled || (o.completeness >= 1.0 && o.accumulated.is_none()))
-        })
+        };
+        let vs = &self.views[v];
+        // With labels over it, their frame must be complete too.
+        let labels_done = self.labels.as_ref().is_none_or(|l| {
+            let lv = &l.views[v];
+            lv.sent.is_none() || lv.last.as_ref().is_some_and(|o| done(o, lv.version))
+        });
+        labels_done && vs.last.as_ref().is_some_and(|o| done(o, vs.version))
     }
 }
 
@@ -377,6 +501,9 @@ impl eframe::App for ViewerApp {
 
     fn on_exit(&mut self, _gl: Option<&eframe::glow::Context>) {
         let _ = self.tx.send(Msg::Quit);
+        if let Some(l) = &self.labels {
+            let _ = l.tx.send(Msg::Quit);
+        }
         if let Some(mut j) = self.job.take() {
             j.stop();
             eprintln!(

@@ -105,6 +105,16 @@ pub struct ViewCmd {
     /// --traversal octree: the octree's depth, 1 to 7 (default 4).
     #[arg(long, value_name = "D")]
     octree_depth: Option<u32>,
+    /// Lay the store's label image labels/NAME over the slice views (and
+    /// the 3D view in slice mode), each label in its own colour; the
+    /// controls turn it off and on. Its session, on the CPU, takes a
+    /// quarter of the pool, host cache and decoded chunks.
+    #[arg(long, value_name = "NAME")]
+    labels: Option<String>,
+    /// --labels: how opaque the labels are over the image (above 0, at
+    /// most 1; default 0.5).
+    #[arg(long, value_name = "A")]
+    label_opacity: Option<f32>,
 }
 
 /// Histogram of brick value ranges over `range`: each brick adds one,
@@ -169,6 +179,28 @@ pub fn run(c: ViewCmd, demo_store: impl FnOnce() -> Result<PathBuf>) -> Result<i
             store.display()
         );
     }
+    // `--labels NAME`: checked before any window opens.
+    let label_dir = match (&c.labels, c.label_opacity) {
+        (None, Some(_)) => {
+            bail!(
+                "label-opacity: applies with --labels NAME (the label image laid over the slices)"
+            )
+        }
+        (None, None) => None,
+        (Some(name), opacity) => {
+            if let Some(a) = opacity.filter(|a| !(*a > 0.0 && *a <= 1.0)) {
+                bail!("label-opacity: expected an opacity above 0 and at most 1, found {a}");
+            }
+            if info.label_image {
+                bail!(
+                    "labels: {} is itself a label image (its views show its labels); --labels \
+                     lays a label image over an image",
+                    store.display()
+                );
+            }
+            Some(brickyard_run::labels::label_store(&store, name)?)
+        }
+    };
     let l0 = zarr::open(&store, 0)?;
     let m = l0.meta().clone();
     let extent = world_extent(m.dims, m.spacing.unwrap_or([1.0; 3]));
@@ -275,13 +307,23 @@ pub fn run(c: ViewCmd, demo_store: impl FnOnce() -> Result<PathBuf>) -> Result<i
         pool,
         host,
         // The views' images, their textures and the window's frame
-        // buffers: together about the window's pixels.
-        ww as u64 * wh as u64,
+        // buffers: together about the window's pixels; the labels' slices
+        // add half as many again.
+        ww as u64 * wh as u64 * if label_dir.is_some() { 3 } else { 2 } / 2,
         levels.len(),
         crate::memory::WINDOW_BYTES + accum_bytes + device.bytes,
         derived_within.as_ref().map_or(0, |(_, b)| *b),
     )?;
     device.take_from(&mut split, pool)?;
+    // The label image's session: a quarter of the pool, the host cache
+    // and the decoded chunks (it draws slices only).
+    let label_bytes = label_dir.as_ref().map(|_| {
+        let q = [split.pool / 4, split.host / 4, split.chunks / 4];
+        split.pool -= q[0];
+        split.host -= q[1];
+        split.chunks -= q[2];
+        q
+    });
     let mut cfg = VmConfig {
         brick: [c.brick; 3],
         pool_bytes: split.pool,
@@ -333,6 +375,41 @@ pub fn run(c: ViewCmd, demo_store: impl FnOnce() -> Result<PathBuf>) -> Result<i
         range,
         labels: m.channels == 1 && info.label_image,
     });
+    // The label image's session and scene (its own pyramid on the same
+    // grid), drawn on the CPU by a render thread of its own.
+    let labels = match (&label_dir, label_bytes) {
+        (Some(dir), Some([lpool, lhost, lchunks])) => {
+            let linfo = inspect(dir)?;
+            let lmeta = zarr::open(dir, 0)?.meta().clone();
+            let llevels = (0..linfo.levels.len())
+                .map(|l| Ok(zarr::open(dir, l)?.meta().dims))
+                .collect::<Result<Vec<_>>>()?;
+            let mut lcfg = setup.cfg.clone();
+            lcfg.pool_bytes = lpool;
+            lcfg.request_cap = crate::frames::requests_per_frame(
+                lpool,
+                lhost,
+                lcfg.slot_bytes(lmeta.dtype),
+                crate::frames::STREAM_REQUESTS,
+            );
+            let lsetup = worker::Setup {
+                store: dir.clone(),
+                cfg: lcfg,
+                host_bytes: lhost,
+                chunk_bytes: lchunks,
+                backend: "cpu".into(),
+                channels: 1,
+                derive: None,
+                accumulate: 0,
+                accum_bytes: 0,
+                octree: None,
+                ..setup.clone()
+            };
+            let name = c.labels.clone().unwrap_or_default();
+            Some((lsetup, Scene::new(extent, llevels), name))
+        }
+        _ => None,
+    };
     let mut setup = setup;
     let mut tf = tf;
     // `--derive`: the window starts on the derived channel.
@@ -370,6 +447,9 @@ pub fn run(c: ViewCmd, demo_store: impl FnOnce() -> Result<PathBuf>) -> Result<i
     // libraries' exit-time teardown.
     let render_thread = Arc::new(std::sync::Mutex::new(None));
     let render_thread2 = render_thread.clone();
+    let label_thread = Arc::new(std::sync::Mutex::new(None));
+    let label_thread2 = label_thread.clone();
+    let opacity = c.label_opacity.unwrap_or(0.5);
     let r = eframe::run_native(
         "brickyard view",
         opts,
@@ -385,6 +465,23 @@ pub fn run(c: ViewCmd, demo_store: impl FnOnce() -> Result<PathBuf>) -> Result<i
                 })
                 .map_err(|e| format!("render thread: {e}"))?;
             *render_thread2.lock().unwrap() = Some(handle);
+            let layer = match labels {
+                Some((lsetup, lscene, name)) => {
+                    let (ltx, lrx) = std::sync::mpsc::channel();
+                    let (lwtx, lfrom) = std::sync::mpsc::channel();
+                    let ctx = cc.egui_ctx.clone();
+                    let levels = lscene.levels.len();
+                    let h = std::thread::Builder::new()
+                        .name("render-labels".into())
+                        .spawn(move || {
+                            worker::run(lsetup, lscene, lrx, lwtx, move || ctx.request_repaint())
+                        })
+                        .map_err(|e| format!("label render thread: {e}"))?;
+                    *label_thread2.lock().unwrap() = Some(h);
+                    Some(app::LabelLayer::new(name, ltx, lfrom, opacity, levels))
+                }
+                None => None,
+            };
             Ok(Box::new(app::ViewerApp::new(
                 ds,
                 setup,
@@ -397,15 +494,18 @@ pub fn run(c: ViewCmd, demo_store: impl FnOnce() -> Result<PathBuf>) -> Result<i
                 log,
                 exit2,
                 derived,
+                layer,
             )))
         }),
     );
     // The window is gone and with it the sender of the worker's messages:
     // the worker sees that (or the `Quit` sent on exit) and returns.
-    let handle = render_thread.lock().unwrap().take();
-    if let Some(h) = handle {
-        if h.join().is_err() {
-            eprintln!("view: the render thread panicked");
+    for (thread, what) in [(&render_thread, "render"), (&label_thread, "label render")] {
+        let handle = thread.lock().unwrap().take();
+        if let Some(h) = handle {
+            if h.join().is_err() {
+                eprintln!("view: the {what} thread panicked");
+            }
         }
     }
     if let Err(e) = r {

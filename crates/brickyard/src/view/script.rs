@@ -22,6 +22,7 @@
 //! | `apply NAME` | write the derived channel shown into the store as NAME, at every level, in the background (the panel's "Apply to whole volume") |
 //! | `wait-job [SECONDS]` | wait until the job ends (default 600 s); fail if it failed |
 //! | `derive PIPELINE` / `derive off` | show the live derived channel of PIPELINE (as the processing panel does) over the DVR channel; `off`: the stored data |
+//! | `labels on\|off` / `label-opacity A` | the label image of `--labels NAME` over the slices, and how opaque it is |
 //! | `oblique AZIMUTH ELEVATION` | the oblique plane's normal, in degrees |
 //! | `lod-bias B` / `level L\|auto` / `quality S` | level of detail; samples per voxel |
 //! | `wait-complete [SECONDS]` | wait until every view is complete (default 120 s) |
@@ -63,6 +64,8 @@ pub enum Cmd {
     Apply(String),
     WaitJob(f64),
     Oblique(f64, f64),
+    Labels(bool),
+    LabelOpacity(f32),
     LodBias(f64),
     Level(Option<usize>),
     Quality(f64),
@@ -191,6 +194,22 @@ fn parse_line(w: &[&str]) -> Result<Cmd> {
         "channel-window" => {
             arity(3)?;
             Cmd::ChannelWindow(num(w[1])?, num(w[2])?, num(w[3])?)
+        }
+        "labels" => {
+            arity(1)?;
+            Cmd::Labels(match w[1] {
+                "on" => true,
+                "off" => false,
+                x => bail!("labels: expected on or off, found {x:?}"),
+            })
+        }
+        "label-opacity" => {
+            arity(1)?;
+            let a: f32 = num(w[1])?;
+            if !(a > 0.0 && a <= 1.0) {
+                bail!("label-opacity: expected an opacity above 0 and at most 1, found {a}");
+            }
+            Cmd::LabelOpacity(a)
         }
         "channel-levels" => match w.len() {
             3 if w[2] == "all" => Cmd::ChannelLevels(num(w[1])?, None),

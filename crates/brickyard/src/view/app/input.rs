@@ -317,6 +317,22 @@ impl ViewerApp {
                         self.dvr_channel = *c;
                         true
                     }
+                    Cmd::Labels(on) => {
+                        let Some(l) = &mut self.labels else {
+                            bail!("labels: the viewer was started without --labels NAME");
+                        };
+                        l.shown = *on;
+                        self.labels_changed(ctx);
+                        true
+                    }
+                    Cmd::LabelOpacity(a) => {
+                        let Some(l) = &mut self.labels else {
+                            bail!("label-opacity: the viewer was started without --labels NAME");
+                        };
+                        l.opacity = *a;
+                        self.labels_changed(ctx);
+                        true
+                    }
                     Cmd::DvrChannels(on) => {
                         self.dvr_channels = *on;
                         true

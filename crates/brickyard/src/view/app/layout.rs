@@ -209,15 +209,52 @@ impl ViewerApp {
             .fold(f64::INFINITY, f64::min)
     }
 
+    /// What the label image draws under view `v`'s `spec` (`None`: no
+    /// labels there): a slice of one view, the image's plane, camera, size
+    /// and level of detail, in the labels' colours.
+    pub(super) fn label_spec(&self, spec: &Spec) -> Option<Spec> {
+        let l = self.labels.as_ref().filter(|l| l.shown)?;
+        let p = &spec.params;
+        if !matches!(p.mode, RenderMode::Slice { .. }) || p.views.is_some() || p.labels {
+            return None;
+        }
+        let mut params = p.clone();
+        params.labels = true;
+        params.channels = vec![];
+        // (Label colours take nothing from the transfer function: one
+        // fixed here, so that its edits draw no labels again.)
+        params.tf = TransferFunction::preset("linear", [0.0, 1.0]).expect("a preset");
+        params.traversal = Traversal::PageTable;
+        let lod = match spec.lod {
+            Lod::Fixed(x) => Lod::Fixed(x.min(l.levels - 1)),
+            auto => auto,
+        };
+        Some(Spec {
+            params,
+            lod,
+            channel: 0,
+            layout: None,
+        })
+    }
+
     pub(super) fn send_specs(&mut self) {
         for v in 0..N_VIEWS {
             let spec = self.spec(v);
+            let labels = self.label_spec(&spec);
             if self.views[v].sent.as_ref() != Some(&spec) {
                 self.views[v].version += 1;
                 self.views[v].sent = Some(spec.clone());
                 let _ = self
                     .tx
                     .send(Msg::View(v, self.views[v].version, Some(Box::new(spec))));
+            }
+            if let Some(l) = &mut self.labels {
+                let lv = &mut l.views[v];
+                if lv.sent != labels {
+                    lv.version += 1;
+                    lv.sent = labels.clone();
+                    let _ = l.tx.send(Msg::View(v, lv.version, labels.map(Box::new)));
+                }
             }
         }
     }

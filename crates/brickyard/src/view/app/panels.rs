@@ -15,6 +15,34 @@ use eframe::egui;
 use std::path::PathBuf;
 
 impl ViewerApp {
+    /// `--labels NAME`: shown or not, and how opaque.
+    fn label_controls(&mut self, ui: &mut egui::Ui) {
+        let Some(l) = &mut self.labels else {
+            return;
+        };
+        let mut changed = false;
+        ui.horizontal(|ui| {
+            changed |= ui
+                .checkbox(&mut l.shown, format!("labels/{}", l.name))
+                .on_hover_text("The label image over the slice views, each label in its colour")
+                .changed();
+            changed |= ui
+                .add(egui::Slider::new(&mut l.opacity, 0.05..=1.0).text("opacity"))
+                .changed();
+        });
+        if changed {
+            self.labels_changed(&ui.ctx().clone());
+        }
+    }
+
+    /// The labels were turned on or off or their opacity changed: the
+    /// views show it at once (the specs follow with the next frame).
+    pub(super) fn labels_changed(&mut self, ctx: &egui::Context) {
+        for v in 0..super::N_VIEWS {
+            self.refresh_texture(ctx, v);
+        }
+    }
+
     pub(super) fn controls(&mut self, ui: &mut egui::Ui) {
         ui.heading("brickyard");
         ui.label(self.ds.store.display().to_string());
@@ -92,6 +120,7 @@ impl ViewerApp {
                 });
             }
         }
+        self.label_controls(ui);
         ui.separator();
         self.processing_panel(ui);
         ui.separator();

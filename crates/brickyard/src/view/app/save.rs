@@ -91,6 +91,14 @@ impl ViewerApp {
                 depth.to_string(),
             ]);
         }
+        if let (Some(l), Some(_)) = (&self.labels, self.label_spec(&spec)) {
+            a.extend([
+                "--labels".into(),
+                l.name.clone(),
+                "--label-opacity".into(),
+                format!("{}", l.opacity),
+            ]);
+        }
         match spec.lod {
             Lod::Fixed(l) => a.extend(["--level".into(), l.to_string()]),
             Lod::Auto { bias } => a.extend(["--lod-bias".into(), format!("{bias}")]),
@@ -141,15 +149,10 @@ impl ViewerApp {
     }
 
     pub(super) fn screenshot(&self, v: usize, path: &Path) -> Result<()> {
-        let vs = &self.views[v];
-        let Some(o) = &vs.last else {
+        let Some(img) = self.shown_image(v) else {
             bail!("screenshot {}: no frame yet", VIEWS[v]);
         };
-        let shown = super::laid_out(vs.sent.as_ref(), o);
-        shown
-            .as_ref()
-            .unwrap_or(&o.image)
-            .write_png(path, [0.0, 0.0, 0.0, 1.0])
+        img.write_png(path, [0.0, 0.0, 0.0, 1.0])
             .map_err(|e| anyhow::anyhow!("{e}"))
     }
 
