@@ -327,6 +327,11 @@ pub struct InsertReport {
     /// Bricks consumed from the front of the input; the rest did not fit
     /// this frame's upload budget and should be offered again next frame.
     pub processed: usize,
+    /// Evicted bricks that a frame among the last
+    /// [`set_in_use_frames`](VirtualMemory::set_in_use_frames) used at
+    /// their own level: views drawn in turn whose bricks together do not
+    /// fit the pool take each other's.
+    pub evicted_in_use: usize,
 }
 
 /// The virtual memory.
@@ -336,6 +341,8 @@ pub struct VirtualMemory {
     channels: usize,
     dtype: DType,
     frame: u32,
+    /// Frames whose exact use makes an evicted brick count as in use.
+    in_use_frames: u32,
     uploaded: u64,
     /// Channel-major directory.
     dir: Vec<PageEntry>,
@@ -444,6 +451,7 @@ impl VirtualMemory {
             channels,
             dtype,
             frame: 1,
+            in_use_frames: 1,
             uploaded: 0,
             dir: vec![PageEntry::unmapped(); dir_len * channels],
             dir_len,
@@ -753,6 +761,13 @@ impl VirtualMemory {
     /// A request collector sized for this virtual memory.
     pub fn requests(&self) -> Requests {
         Requests::with_capacity(self.cfg.request_cap * 8)
+    }
+
+    /// How many frames, this one included, count for
+    /// [`InsertReport::evicted_in_use`]: the views drawn in turn (at
+    /// least 1).
+    pub fn set_in_use_frames(&mut self, n: u32) {
+        self.in_use_frames = n.max(1);
     }
 
     /// Start a new frame.
@@ -1136,6 +1151,10 @@ impl VirtualMemory {
                     if old != Owner::None {
                         self.unmap_owner(old);
                         report.evicted_bricks += 1;
+                        let used = self.slots.exact[s as usize].load(Ordering::Relaxed);
+                        if used != 0 && frame.wrapping_sub(used) < self.in_use_frames {
+                            report.evicted_in_use += 1;
+                        }
                     }
                     // 2. write
                     let bb = self.brick_bytes;

@@ -36,6 +36,9 @@ pub struct FrameSignals {
     pub free_slots: usize,
     /// Something changed this frame: a brick arrived or loads are pending.
     pub progress: bool,
+    /// Bricks evicted that one of the views drawn in turn used at their
+    /// own level in its latest frame (see [`FrameSignals::shared_with`]).
+    pub evicted_in_use: usize,
 }
 
 impl FrameSignals {
@@ -66,6 +69,7 @@ impl FrameSignals {
             free_slots: s.vm().pool_slots() - s.vm().pinned_bricks(),
             progress: fs.insert.inserted + fs.insert.flagged + fs.delivered > 0
                 || fs.pending + fs.in_flight + fs.waiting_upload > 0,
+            evicted_in_use: fs.insert.evicted_in_use,
         }
     }
 }
@@ -79,16 +83,20 @@ impl FrameSignals {
 
     /// The signals of one of several views drawn in turn from one pool,
     /// where the other views still drawing need `others` slots, the
-    /// largest of them `largest`. When together they do not fit, each
-    /// view's arrivals evict the others' bricks and theirs its own, frame
-    /// after frame, every view making progress and none completing: the
-    /// view that needs the most (this one, when it needs at least
-    /// `largest`) counts the pool as saturated, with what the others leave
-    /// as its room, and its budget coarsens; the next largest follows in
-    /// a later turn while they still do not fit.
-    pub fn shared_with(mut self, others: usize, largest: usize) -> FrameSignals {
+    /// largest of them `largest`, and `contended` says that bricks one of
+    /// them used at their own level in its latest frame were evicted
+    /// since (their bricks together do not fit: each view's arrivals
+    /// evict the others' bricks and theirs its own, frame after frame,
+    /// every view making progress and none completing). Then the view
+    /// that needs the most (this one, when it needs at least `largest`)
+    /// counts the pool as saturated, with what the others leave as its
+    /// room, and its budget coarsens; the next largest follows in a later
+    /// turn while the contention lasts. (The needs are summed: bricks two
+    /// views share count twice, which is why contention must be seen
+    /// first.)
+    pub fn shared_with(mut self, others: usize, largest: usize, contended: bool) -> FrameSignals {
         let need = self.need();
-        if others == 0 || self.requests == 0 || need < largest {
+        if !contended || others == 0 || self.requests == 0 || need < largest {
             return self;
         }
         if need + others > self.free_slots {
@@ -282,6 +290,7 @@ mod tests {
             exact_slots: Some(exact),
             free_slots: 100,
             progress: deferred > 0 || requests > 0,
+            evicted_in_use: 0,
         }
     }
 
@@ -291,23 +300,25 @@ mod tests {
         // fits, and its arrivals find room (nothing deferred).
         let alone = sig(false, 20, 0, 30);
         assert_eq!(alone.need(), 50);
-        assert_eq!(alone.shared_with(0, 0), alone);
-        assert_eq!(alone.shared_with(50, 30), alone);
+        assert_eq!(alone.shared_with(0, 0, true), alone);
+        assert_eq!(alone.shared_with(50, 30, true), alone);
         // Beside views needing 60 slots (the largest 40) it does not fit:
         // saturated, with the 40 slots they leave as its room; the budget
         // coarsens.
-        let shared = alone.shared_with(60, 40);
+        // Without contention seen (the views may share bricks) nothing changes.
+        assert_eq!(alone.shared_with(60, 40, false), alone);
+        let shared = alone.shared_with(60, 40, true);
         assert_eq!((shared.deferred, shared.free_slots), (1, 40));
         let mut b = LodBudget::new(0.0, 5, true);
         assert!(matches!(b.update(&shared), Decision::Changed { .. }));
         assert!(b.extra() > 0.0);
         // Another view needs more: that one coarsens first.
-        assert_eq!(alone.shared_with(60, 55), alone);
+        assert_eq!(alone.shared_with(60, 55, true), alone);
         // Nothing left of the pool for it: a room of one slot.
-        assert_eq!(alone.shared_with(120, 50).free_slots, 1);
+        assert_eq!(alone.shared_with(120, 50, true).free_slots, 1);
         // A view that asks for nothing more is left alone.
         let done = sig(true, 0, 0, 30);
-        assert_eq!(done.shared_with(90, 10), done);
+        assert_eq!(done.shared_with(90, 10, true), done);
     }
 
     #[test]
@@ -344,6 +355,7 @@ mod tests {
         // No progress: nothing arrives, nothing pending, requests remain.
         let stuck = FrameSignals {
             progress: false,
+            evicted_in_use: 0,
             deferred: 0,
             ..sig(false, 50, 0, 100)
         };
@@ -359,6 +371,7 @@ mod tests {
         let mut b = LodBudget::new(0.0, 4, false);
         let s = FrameSignals {
             progress: false,
+            evicted_in_use: 0,
             ..sig(false, 0, 0, 10)
         };
         assert_eq!(b.update(&s), Decision::Stop(Stop::CompleteButFailed));

@@ -335,6 +335,7 @@ impl WebSession {
             free_slots: self.vm.pool_slots() - self.vm.pinned_bricks(),
             progress: out.insert.inserted + out.insert.flagged + arrived_before > 0
                 || out.queued + out.in_flight > 0,
+            evicted_in_use: out.insert.evicted_in_use,
         };
         let budget = self.budget.as_mut().expect("set by prepare");
         let decision = budget.update(&sig);

@@ -231,6 +231,9 @@ pub fn run(setup: Setup, mut scene: Scene, rx: Receiver<Msg>, tx: Sender<Reply>,
     // Failures of the session already sent to the window.
     let mut reported = 0;
     let mut last_retry = Instant::now();
+    // Frames left in which the views drawing in turn are known to take
+    // each other's bricks.
+    let mut contended = 0;
     loop {
         // Bricks that failed (a server gone for a while, a file being
         // replaced) are asked for again now and then: the view picks them
@@ -350,6 +353,13 @@ pub fn run(setup: Setup, mut scene: Scene, rx: Receiver<Msg>, tx: Sender<Reply>,
         let spec = v.spec.clone().expect("chosen above");
         let mut sc = scene.clone();
         sc.channel = spec.channel;
+        // A brick evicted that a view still drawing used at its own level
+        // in its latest frame is one the views take from each other.
+        let drawing = views
+            .iter()
+            .filter(|v| v.spec.is_some() && !v.complete && v.acc.is_none())
+            .count();
+        s.vm_mut().set_in_use_frames(drawing as u32);
         let lod = views[i].budget.apply(spec.lod, sc.levels.len());
         if views[i].acc.is_some() {
             match accumulate(&mut views[i], &mut backend, &mut s, &sc, &spec) {
@@ -392,8 +402,9 @@ pub fn run(setup: Setup, mut scene: Scene, rx: Receiver<Msg>, tx: Sender<Reply>,
             }
         };
         let completeness = f.stats.completeness();
-        // The pool is shared by the views still drawing: together they
-        // must fit, or the one that needs the most coarsens until they do.
+        // The pool is shared by the views still drawing: when they take
+        // each other's bricks, the one that needs the most coarsens until
+        // they fit.
         let (others, largest) = views
             .iter()
             .enumerate()
@@ -403,7 +414,12 @@ pub fn run(setup: Setup, mut scene: Scene, rx: Receiver<Msg>, tx: Sender<Reply>,
             });
         let sig = crate::frames::signals(&s, &f);
         views[i].need = sig.need();
-        let sig = sig.shared_with(others, largest);
+        // Contention seen lasts a round of the views drawing.
+        if sig.evicted_in_use > 0 {
+            contended = drawing;
+        }
+        let sig = sig.shared_with(others, largest, contended > 0);
+        contended = contended.saturating_sub(1);
         let changed = matches!(views[i].budget.update(&sig), Decision::Changed { .. });
         // Complete, or nothing left to ask for but bricks that failed.
         let mut done = !changed && (completeness >= 1.0 || (sig.requests == 0 && !sig.progress));
