@@ -770,6 +770,11 @@ impl VirtualMemory {
         self.in_use_frames = n.max(1);
     }
 
+    /// See [`set_in_use_frames`](Self::set_in_use_frames).
+    pub fn in_use_frames(&self) -> u32 {
+        self.in_use_frames
+    }
+
     /// Start a new frame.
     pub fn begin_frame(&mut self) {
         self.frame += 1;

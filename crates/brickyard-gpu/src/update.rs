@@ -95,6 +95,10 @@ pub struct UpdateCounts {
     /// Not cumulative: pool slots used at their own level in the frame
     /// last ended, pinned slots included (they are stamped so).
     pub exact_pool_slots: u32,
+    /// Not cumulative: bricks the frame last ended evicted that a frame
+    /// among the last `in_use_frames` used at their own level (views
+    /// drawn in turn taking each other's bricks).
+    pub evicted_in_use: u32,
 }
 
 impl UpdateCounts {
@@ -107,6 +111,7 @@ impl UpdateCounts {
             failed: w[4],
             blocks_mapped: w[5],
             exact_pool_slots: w[6],
+            evicted_in_use: w[15],
         }
     }
     /// Bricks resident now (orphans two levels down are not subtracted).
@@ -122,6 +127,10 @@ struct Params {
     k: u32,
     n: u32,
     h: u32,
+    /// Frames, this one included, whose use at its own level makes an
+    /// evicted brick count as in use (word 15 of the output).
+    in_use: u32,
+    pad: [u32; 3],
 }
 
 /// Which of a slot's two stamps orders its set: for the pool, the frame
@@ -221,6 +230,8 @@ pub struct UpdateModel {
     /// Pinned slots (`set_base` index + slot): stamped as used at their
     /// own level at every frame's end, so they are never taken.
     pub pinned: Vec<u32>,
+    /// See [`UpdateCounts::evicted_in_use`] (at least 1).
+    pub in_use_frames: u32,
 }
 
 impl UpdateModel {
@@ -244,6 +255,7 @@ impl UpdateModel {
             order,
             counts: UpdateCounts::default(),
             pinned: pinned_indices(&lay, &vm.pinned_slots()),
+            in_use_frames: 1,
         }
     }
 
@@ -288,6 +300,7 @@ impl UpdateModel {
 
     /// Compact every set, then reserve `k` pool slots (NONE where none).
     pub fn end_frame(&mut self, frame: u32, k: usize) -> Vec<u32> {
+        self.counts.evicted_in_use = 0;
         for &i in &self.pinned {
             self.stamps[2 * i as usize] = frame;
             self.stamps[2 * i as usize + 1] = frame;
@@ -322,6 +335,10 @@ impl UpdateModel {
                     if flag(e) == MAPPED && slot_id(e, self.lay.brick_grid) == s {
                         self.entries[o as usize] = [0, 0];
                         self.counts.bricks_unmapped += 1;
+                        let used = self.stamps[2 * s as usize + 1];
+                        if used != 0 && frame.wrapping_sub(used) < self.in_use_frames {
+                            self.counts.evicted_in_use += 1;
+                        }
                     }
                 }
                 self.owner[s as usize] = NONE;
@@ -576,6 +593,8 @@ pub struct DeviceCache {
     counts: UpdateCounts,
     /// Pinned slots as runs `(first stamp-table index, count)`.
     pinned: Vec<(u32, u32)>,
+    /// See [`UpdateCounts::evicted_in_use`] (at least 1).
+    in_use_frames: u32,
 }
 
 impl DeviceCache {
@@ -628,6 +647,7 @@ impl DeviceCache {
             sets: m.order.len(),
             counts: UpdateCounts::default(),
             pinned: runs_of(&m.pinned),
+            in_use_frames: 1,
         })
     }
 
@@ -674,6 +694,12 @@ impl DeviceCache {
         }
     }
 
+    /// How many frames, this one included, count for
+    /// [`UpdateCounts::evicted_in_use`] (the views drawn in turn).
+    pub fn set_in_use_frames(&mut self, n: u32) {
+        self.in_use_frames = n.max(1);
+    }
+
     /// End frame `frame` (the renderer has stamped what it used): compact
     /// every set's LRU order and reserve `k` pool slots for bricks to
     /// come, unmapping what they held. Returns the slots (`NONE` where
@@ -715,6 +741,8 @@ impl DeviceCache {
                 k: k as u32,
                 n: 0,
                 h: 1,
+                in_use: self.in_use_frames,
+                pad: [0; 3],
             };
             let bind = self.bind(gpu, dvm, params, &self.orders[0].order);
             self.kernel
@@ -746,6 +774,8 @@ impl DeviceCache {
             k: 0,
             n: set as u32,
             h: 1,
+            in_use: self.in_use_frames,
+            pad: [0; 3],
         };
         let bind = self.bind(gpu, dvm, params, &o.order);
         self.kernel
@@ -779,6 +809,8 @@ impl DeviceCache {
             k: k as u32,
             n,
             h: h as u32,
+            in_use: self.in_use_frames,
+            pad: [0; 3],
         };
         let bind0 = self.bind(gpu, dvm, p(0), &self.orders[0].order);
         self.kernel.dispatch(&mut enc, "start", &bind0, groups);

@@ -96,6 +96,11 @@ fn update_step_equals_cpu_twin_frame_after_frame() {
         let (dvm, _) = DeviceVm::new(&gpu, &mut vm).unwrap();
         let mut cache = DeviceCache::new(&gpu, &dvm, &vm).unwrap();
         let mut model = UpdateModel::new(&dvm, &vm);
+        // Evicted bricks used at their own level in the last 4 frames
+        // count as in use (views drawn in turn).
+        model.in_use_frames = 4;
+        cache.set_in_use_frames(4);
+        let mut in_use = 0;
         let keys = all_keys(dims, channels);
         let slots = vm.pool_slots();
         assert!(
@@ -131,6 +136,7 @@ fn update_step_equals_cpu_twin_frame_after_frame() {
             let got = cache.end_frame(&gpu, &dvm, frame, k).unwrap();
             assert_eq!(got, want, "reserved slots, frame {frame}");
             assert_eq!(cache.counts(), model.counts, "counts, frame {frame}");
+            in_use += model.counts.evicted_in_use;
             assert_eq!(
                 cache.counts().exact_pool_slots as usize,
                 exact.len(),
@@ -194,6 +200,11 @@ fn update_step_equals_cpu_twin_frame_after_frame() {
         assert!(
             most_exact > 1,
             "slots used at their own level: at most {most_exact}"
+        );
+        assert!(
+            in_use > 0 && in_use < c.bricks_unmapped,
+            "evicted in use: {in_use} of {}",
+            c.bricks_unmapped
         );
         if pt_blocks < 10 {
             assert!(failed_some, "some items found no page-table block: {c:?}");

@@ -475,6 +475,7 @@ impl GpuBackend {
         let render_ms = t.elapsed().as_secs_f64() * 1e3;
         let c = std::time::Instant::now();
         let before = cache.counts();
+        cache.set_in_use_frames(s.vm().in_use_frames());
         let x = update_on_device(&self.gpu, &mut self.dvm, cache, s, frame, &f.list)?;
         let _ = self.gpu.device.poll(wgpu::PollType::wait_indefinitely());
         // Deciding and carrying over are one step here.
@@ -507,6 +508,7 @@ impl GpuBackend {
                 evicted_pt_blocks: (now.blocks_unmapped - before.blocks_unmapped) as usize,
                 deferred: x.deferred,
                 processed: x.inserted + x.flagged,
+                evicted_in_use: now.evicted_in_use as usize,
                 ..Default::default()
             },
             delivered: x.delivered,

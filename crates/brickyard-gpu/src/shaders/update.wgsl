@@ -40,6 +40,12 @@ struct Params {
     n: u32,
     // Buckets of the claim table (a power of two).
     h: u32,
+    // Frames, this one included, whose use at its own level makes an
+    // evicted brick count as in use (word 15 of `out`).
+    in_use: u32,
+    pad0: u32,
+    pad1: u32,
+    pad2: u32,
 }
 
 struct Item {
@@ -65,9 +71,10 @@ struct Item {
 @group(0) @binding(7) var<storage, read_write> items: array<Item>;
 @group(0) @binding(8) var<storage, read_write> claims: array<atomic<u32>>;
 // Counters (cumulative): 0 bricks unmapped, 1 blocks unmapped, 2 bricks
-// mapped, 3 flags set, 4 items failed, 5 blocks mapped; this frame: 7 pool
-// slots reserved, 8 + n blocks taken at level n; from 16 on the reserved
-// slots.
+// mapped, 3 flags set, 4 items failed, 5 blocks mapped; this frame: 6 pool
+// slots used at their own level, 7 pool slots reserved, 8 + n blocks taken
+// at level n (n < 7), 15 bricks evicted that a frame among the last
+// `P.in_use` used at their own level; from 16 on the reserved slots.
 @group(0) @binding(9) var<storage, read_write> out: array<atomic<u32>>;
 
 const RESERVED: u32 = 16u;
@@ -118,6 +125,10 @@ fn reserve(@builtin(global_invocation_id) gid: vec3<u32>) {
     if (o != NONE && maps(entries[o], s, lay.brick_grid)) {
         entries[o] = vec2<u32>(0u, 0u);
         atomicAdd(&out[0], 1u);
+        let used = stamps[2u * s + 1u];
+        if (used != 0u && P.frame - used < P.in_use) {
+            atomicAdd(&out[15], 1u);
+        }
     }
     owner[s] = NONE;
     stamps[2u * s] = P.frame;
