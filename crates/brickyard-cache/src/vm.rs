@@ -106,6 +106,8 @@ struct SlotSet {
     stand_in_failed: u8,
     /// Most recently used first.
     lru: Vec<u32>,
+    /// Buffers of the compaction, kept between frames.
+    spare: [Vec<u32>; 3],
     owner: Vec<Owner>,
     /// Slots whose owner disappeared (orphans) or that were never used.
     free: Vec<u32>,
@@ -133,6 +135,7 @@ impl SlotSet {
             level: vec![0; n as usize],
             stand_in_failed: u8::MAX,
             lru: (0..n).collect(),
+            spare: Default::default(),
             owner: vec![Owner::None; n as usize],
             free: (0..n).rev().collect(),
             cursor: 0,
@@ -157,10 +160,23 @@ impl SlotSet {
     /// next to go, and a view drawn in turn with others would lose its
     /// bricks to theirs before it is drawn again.)
     fn compact(&mut self, frame: u32) {
+        // One pass; the buffers are kept from frame to frame.
         let before = frame.wrapping_sub(1);
-        let stamp = |s: u32| self.usage[s as usize].load(Ordering::Relaxed);
-        let lru = crate::bookkeeping::compact_lru(&self.lru, |s| stamp(s) == before);
-        self.lru = crate::bookkeeping::compact_lru(&lru, |s| stamp(s) == frame);
+        let [mut out, mut mid, mut rest] = std::mem::take(&mut self.spare);
+        out.clear();
+        mid.clear();
+        rest.clear();
+        for &s in &self.lru {
+            match self.usage[s as usize].load(Ordering::Relaxed) {
+                u if u == frame => out.push(s),
+                u if u == before => mid.push(s),
+                _ => rest.push(s),
+            }
+        }
+        out.extend_from_slice(&mid);
+        out.extend_from_slice(&rest);
+        let old = std::mem::replace(&mut self.lru, out);
+        self.spare = [old, mid, rest];
         self.cursor = 0;
         self.stand_in_failed = u8::MAX;
     }
