@@ -103,6 +103,9 @@ pub struct LabelLayer {
     /// coarsest).
     levels: usize,
     views: Vec<LabelView>,
+    /// The label session's figures from its latest frame: bricks
+    /// resident, pool slots, requests pending, bricks unreadable.
+    figures: [usize; 4],
 }
 
 /// What the label thread was asked to draw for one view, and its last
@@ -130,6 +133,7 @@ impl LabelLayer {
             shown: true,
             levels: levels.max(1),
             views: (0..N_VIEWS).map(|_| LabelView::default()).collect(),
+            figures: [0; 4],
         }
     }
 }
@@ -355,6 +359,7 @@ impl ViewerApp {
                         eprintln!("view: labels: cannot load {f} (drawn from coarser data)");
                     }
                     if let Some(l) = &mut self.labels {
+                        l.figures = [out.resident_bricks, out.pool_slots, out.pending, out.failed];
                         l.views[v].last = Some(out);
                     }
                     self.refresh_texture(ctx, v);

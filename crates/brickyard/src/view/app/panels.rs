@@ -522,8 +522,23 @@ impl ViewerApp {
                 human_bytes(self.setup.memory_budget)
             )
         });
+        // The label image's session (`--labels`), while shown.
+        let labels = match self.labels.as_ref().filter(|l| l.shown) {
+            Some(l) => {
+                let [resident, slots, pending, failed] = l.figures;
+                let unreadable = match failed {
+                    0 => String::new(),
+                    n => format!(" · {n} unreadable"),
+                };
+                format!(
+                    "\nlabels/{}: {resident} bricks resident of {slots} slots · {pending} pending{unreadable}",
+                    l.name
+                )
+            }
+            None => String::new(),
+        };
         format!(
-            "{:.1} ms/frame · {:.1}% complete{detail}\n{} bricks resident of {} slots · {} pending\nhost cache {} of {} · {:.1} MiB/s read{peak}\n{}",
+            "{:.1} ms/frame · {:.1}% complete{detail}\n{} bricks resident of {} slots · {} pending{labels}\nhost cache {} of {} · {:.1} MiB/s read{peak}\n{}",
             o.render_ms,
             100.0 * o.completeness,
             o.resident_bricks,
