@@ -100,6 +100,39 @@ impl<'f, 'a, T: Sample> Walker<'f, 'a, T> {
                 }
                 continue;
             }
+            if matches!(self.cache[level].content, Content::Unresolved) {
+                self.resolve(level, true);
+            }
+            if let Content::Data(vox) = self.cache[level].content {
+                // A resident brick of voxels: step through it reading each
+                // step's nearest voxel straight from the brick (what
+                // `value` reads there, without its per-sample lookups),
+                // until a label or the brick's end.
+                let (lo, hi) = (self.cache[level].lo, self.cache[level].hi);
+                let mut q = vb;
+                loop {
+                    st.samples += 1;
+                    st.exact += 1;
+                    let v = vox[f.local_index(q, lo)].to_f32();
+                    if let Some(id) = label_of(v).filter(|&id| id != 0) {
+                        let gr = self.indicator_around(level, q, id, req, st);
+                        return surface_color(id, surface_shade(gr, f.scale[level], ray.dir));
+                    }
+                    let t = step_t(t0, k, dt);
+                    if t >= t1 {
+                        return [0.0; 4];
+                    }
+                    let (next, _) = f.nearest(level, ray.at(t));
+                    if !inside(next, lo, hi) {
+                        // The next brick: the outer loop takes step k.
+                        break;
+                    }
+                    k += 1;
+                    st.steps += 1;
+                    q = next;
+                }
+                continue;
+            }
             match self.value(level, w, vb, frac, req, st) {
                 Some(v) => {
                     if let Some(id) = label_of(v).filter(|&id| id != 0) {

@@ -112,7 +112,8 @@ pub struct BenchCmd {
     #[arg(long, default_value = "1,4,16,64")]
     channels: String,
     /// octree: measure this store's first channels instead of generated
-    /// volumes.
+    /// volumes; render: this store's channel 0 (a label image drawn as
+    /// `render` draws it: label colours in slices, surfaces in DVR).
     #[arg(long)]
     store: Option<PathBuf>,
     /// octree: the octree's depth (1 to 7).
@@ -206,6 +207,7 @@ pub fn run(b: BenchCmd) -> Result<()> {
                     x => vec![x.into()],
                 },
                 procedural: b.procedural,
+                store: b.store.clone(),
                 mode: match b.mode.as_str() {
                     "dvr" => "dvr",
                     "mip" => "mip",

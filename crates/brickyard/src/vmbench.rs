@@ -1,7 +1,7 @@
 //! Benchmarks of the virtual memory: sampling through the hierarchy, the
 //! per-frame update, the loader, and load latencies.
 
-use anyhow::Result;
+use anyhow::{bail, Result};
 use brickyard_cache::brick::{BrickContent, BrickKey, LoadedBrick};
 use brickyard_cache::host_cache::HostCache;
 use brickyard_cache::loader::Loader;
@@ -541,6 +541,10 @@ pub struct RenderBench {
     /// A procedural Mandelbulb computed brick by brick as it is asked for
     /// (no store: any size, e.g. 4096³ = 64 GiB of u8).
     pub procedural: bool,
+    /// This store's channel 0 instead of a generated one (its size and
+    /// type; a label image is drawn as `render` draws it: label colours
+    /// in slices, label surfaces in DVR).
+    pub store: Option<std::path::PathBuf>,
 }
 
 pub fn render(dir: &Path, dims: Dims3, dtype: DType, o: &RenderBench) -> Result<()> {
@@ -561,11 +565,21 @@ pub fn render(dir: &Path, dims: Dims3, dtype: DType, o: &RenderBench) -> Result<
     use brickyard_render::cpu::{Lod, Scene};
     use brickyard_render::reference::{render as render_ref, RenderMode, RenderParams, Volume};
     let brick = [32u64; 3];
-    let st = if procedural {
-        None
-    } else {
-        Some(store(dir, dims, dtype)?)
+    let (st, dims, dtype, labels) = match (&o.store, procedural) {
+        (Some(_), true) => bail!("bench render: --store or --procedural, not both"),
+        (Some(st), false) => {
+            let info = brickyard_store::info::inspect(st)?;
+            let m = zarr::open(st, 0)?.meta().clone();
+            (Some(st.clone()), m.dims, m.dtype, info.label_image)
+        }
+        (None, true) => (None, dims, dtype, false),
+        (None, false) => (Some(store(dir, dims, dtype)?), dims, dtype, false),
     };
+    if labels && mode_name == "mip" {
+        bail!(
+            "bench render: a label image is drawn in slices and DVR (--mode slice or dvr), not mip"
+        );
+    }
     let (extent, levels) = match &st {
         Some(st) => {
             let spacing = zarr::open(st, 0)?.meta().spacing.unwrap_or([1.0; 3]);
@@ -618,6 +632,11 @@ pub fn render(dir: &Path, dims: Dims3, dtype: DType, o: &RenderBench) -> Result<
     };
     let mut p = RenderParams::new(image[0], image[1], cam, tf, mode);
     p.reference_step = Some(scene.voxel(0));
+    if labels {
+        // As `render` draws a label image (the window unused).
+        p.tf = TransferFunction::preset("linear", [0.0, 1.0])?;
+        p.labels = true;
+    }
     let vox: u64 = dims.iter().product();
     let default_pool = vox * dtype.size() as u64 / 2 + (32 << 20);
     let cfg = VmConfig {
@@ -825,7 +844,7 @@ pub fn render(dir: &Path, dims: Dims3, dtype: DType, o: &RenderBench) -> Result<
         let pool_bytes = s.vm().pool_bytes();
         outln!(
             "{}",
-            json!({"scenario": "render", "procedural": procedural, "backend": backend.describe(), "mode": mode_name, "size": [dims[2], dims[1], dims[0]], "dtype": dtype.short_name(),
+            json!({"scenario": "render", "procedural": procedural, "store": o.store, "labels": labels, "backend": backend.describe(), "mode": mode_name, "size": [dims[2], dims[1], dims[0]], "dtype": dtype.short_name(),
                 "image": image, "zoom": zoom, "window": p.tf.window, "pool_bytes": pool_bytes, "volume_bytes": vox_bytes,
                 "cold": dropped, "first_frame_ms": first_frame_ms, "cold_to_complete_s": cold_s, "cold_frames": frames,
                 "cold_completeness": cold_done, "host_cache_completeness": host_done,
