@@ -105,24 +105,41 @@ impl<'f, 'a, T: Sample> Walker<'f, 'a, T> {
             }
             if let Content::Data(vox) = self.cache[level].content {
                 // A resident brick of voxels: step through it reading each
-                // step's nearest voxel straight from the brick (what
-                // `value` reads there, without its per-sample lookups),
-                // until a label or the brick's end.
-                let (lo, hi) = (self.cache[level].lo, self.cache[level].hi);
-                let mut q = vb;
+                // step's nearest voxel straight from it (what `value` reads
+                // there, without its per-sample lookups), crossing cells
+                // that hold only background, until a label or the brick's
+                // end.
+                let c = &self.cache[level];
+                let (lo, hi, clear) = (c.lo, c.hi, c.clear_cells);
+                let (mut w, mut q) = (w, vb);
                 loop {
-                    st.samples += 1;
-                    st.exact += 1;
-                    let v = vox[f.local_index(q, lo)].to_f32();
-                    if let Some(id) = label_of(v).filter(|&id| id != 0) {
-                        let gr = self.indicator_around(level, q, id, req, st);
-                        return surface_color(id, surface_shade(gr, f.scale[level], ray.dir));
+                    // Step k − 1 is at `w`, its nearest voxel `q` in the
+                    // brick. A cell of background alone holds the voxels
+                    // of every step whose voxel base lies in it (its range
+                    // covers each base and the voxel after it on every
+                    // axis, the nearest voxel among them): cross it.
+                    let (u, _) = f.coords(level, w);
+                    let cell = (clear != 0 && inside(u, lo, hi))
+                        .then(|| f.cell_of([0, 1, 2].map(|a| u[a] - lo[a])))
+                        .filter(|&cell| clear >> cell & 1 == 1);
+                    if let Some(cell) = cell {
+                        st.skipped_cells += 1;
+                        k = f.land(ray, &track, g, k, f.cell_box(cell, lo, hi), t1);
+                    } else {
+                        st.samples += 1;
+                        st.exact += 1;
+                        let v = vox[f.local_index(q, lo)].to_f32();
+                        if let Some(id) = label_of(v).filter(|&id| id != 0) {
+                            let gr = self.indicator_around(level, q, id, req, st);
+                            return surface_color(id, surface_shade(gr, f.scale[level], ray.dir));
+                        }
                     }
                     let t = step_t(t0, k, dt);
                     if t >= t1 {
                         return [0.0; 4];
                     }
-                    let (next, _) = f.nearest(level, ray.at(t));
+                    w = ray.at(t);
+                    let (next, _) = f.nearest(level, w);
                     if !inside(next, lo, hi) {
                         // The next brick: the outer loop takes step k.
                         break;

@@ -91,14 +91,21 @@ fn differing(a: &Image, b: &Image, tol: f32) -> usize {
 
 /// CPU frames until the view at `level` is complete: the image and the
 /// bricks crossed in the last frame.
-fn converge_cpu(s: &mut Session, scene: &Scene, p: &RenderParams, level: usize) -> (Image, u64) {
+/// The view on the CPU, complete; with the background bricks and cells
+/// crossed in its last frame.
+fn converge_cpu(
+    s: &mut Session,
+    scene: &Scene,
+    p: &RenderParams,
+    level: usize,
+) -> (Image, (u64, u64)) {
     let start = Instant::now();
     loop {
         s.begin_frame();
         let (img, st, reqs) = render_frame(s.vm(), scene, p, Lod::Fixed(level));
         s.finish_frame(reqs.iter());
         if st.completeness() == 1.0 {
-            return (img, st.skipped_bricks);
+            return (img, (st.skipped_bricks, st.skipped_cells));
         }
         assert!(
             start.elapsed() < Duration::from_secs(60),
@@ -308,9 +315,9 @@ fn label_surfaces_in_3d_on_the_cpu_and_the_device() {
         for stats in [true, false] {
             let mut s = session(&store, DType::U32, pool);
             scene.ranges = stats.then(|| std::sync::Arc::new(s.loader().brick_ranges(1 << 24)));
-            let (img, skipped) = converge_cpu(&mut s, &scene, &p, level);
+            let (img, (skipped, cells)) = converge_cpu(&mut s, &scene, &p, level);
             let d = differing(&img, &want, 1e-5);
-            eprintln!("level {level}, statistics {stats}: {d} pixels differ from the reference, {skipped} bricks crossed");
+            eprintln!("level {level}, statistics {stats}: {d} pixels differ from the reference, {skipped} bricks and {cells} cells crossed");
             assert!(
                 d <= 3,
                 "level {level}, statistics {stats}: {d} pixels differ from the reference"
@@ -318,6 +325,9 @@ fn label_surfaces_in_3d_on_the_cpu_and_the_device() {
             // (Without statistics, bricks the pool holds as empty are
             // crossed too.)
             assert!(skipped > 0, "no background brick crossed");
+            // (Bricks of 16³ hold 8 cells: the background ones of bricks
+            // with labels are crossed too.)
+            assert!(cells > 0, "no background cell crossed");
             s.vm().check_invariants().unwrap();
         }
         let Some(gpu) = &gpu else { continue };
@@ -406,7 +416,7 @@ fn sheets_of_labels_behind_background_bricks_are_met_where_the_reference_meets_t
         on_sheet > 64 * 64 / 4,
         "the reference shows the first sheet on {on_sheet} pixels"
     );
-    let (img, skipped) = converge_cpu(&mut s, &scene, &p, 0);
+    let (img, (skipped, _)) = converge_cpu(&mut s, &scene, &p, 0);
     assert!(skipped > 0, "the background brick was sampled step by step");
     let d = differing(&img, &want, 1e-5);
     assert_eq!(d, 0, "{d} pixels differ from the reference");

@@ -314,7 +314,14 @@ impl<'f, 'a, T: Sample> Walker<'f, 'a, T> {
                 {
                     let mut m = 0u64;
                     for (i, &[lo, hi]) in f.vm.cell_ranges(slot).iter().enumerate() {
-                        if !f.tf_eval.range_visible(lo, hi) {
+                        // A label image's rays cross background alone
+                        // (label 0); others what the transfer function
+                        // hides.
+                        let clear = match f.params.labels {
+                            true => lo == 0.0 && hi == 0.0,
+                            false => !f.tf_eval.range_visible(lo, hi),
+                        };
+                        if clear {
                             m |= 1 << i;
                         }
                     }
