@@ -414,18 +414,16 @@ fn render_typed<T: Sample>(
     );
     // DVR (page tables or octree, one channel or several): every ray's entry depth,
     // and the bricks rays now pass before it marked as the walk would.
-    let entries = (matches!(params.mode, RenderMode::Dvr)
-        && params.views.is_none()
-        && scene.entry_depths
-        && !params.labels)
-        .then(|| {
-            if dvr_multi {
-                Entries::of_channels(&ch_frames, &rg, tiles)
-            } else {
-                Entries::new(&frame, &rg, tiles)
-            }
-        })
-        .flatten();
+    let entries =
+        (matches!(params.mode, RenderMode::Dvr) && params.views.is_none() && scene.entry_depths)
+            .then(|| {
+                if dvr_multi {
+                    Entries::of_channels(&ch_frames, &rg, tiles)
+                } else {
+                    Entries::new(&frame, &rg, tiles)
+                }
+            })
+            .flatten();
     if let Some(e) = &entries {
         e.mark_passed(&frame, &rg);
     }
@@ -526,7 +524,9 @@ fn render_typed<T: Sample>(
                             let before = params.debug.map(|d| counts(d, &st, &walkers));
                             rows[r * w + i] = match &params.mode {
                                 RenderMode::Dvr if params.labels => {
-                                    walkers[0].label_surface(&ray, &mut req, &mut st)
+                                    let entry =
+                                        entries.as_ref().map(|e| (e.level, e.at(i, j as usize)));
+                                    walkers[0].label_surface((&ray, entry), &mut req, &mut st)
                                 }
                                 RenderMode::Dvr if oct_frame.is_some() => {
                                     let entry =

@@ -167,7 +167,11 @@ impl Entries {
                     let pass = match f.vm.peek(key) {
                         BrickRef::Data { slot, .. } if f.scene.skip_cells => {
                             let cells = f.vm.cell_ranges(slot);
-                            let shows = |&[vlo, vhi]: &[f32; 2]| f.tf_eval.range_visible(vlo, vhi);
+                            // (A label image shows every label but 0.)
+                            let shows = |&[vlo, vhi]: &[f32; 2]| match f.params.labels {
+                                true => !(vlo == 0.0 && vhi == 0.0),
+                                false => f.tf_eval.range_visible(vlo, vhi),
+                            };
                             if cells.iter().all(shows) {
                                 // One box for the brick, not one per cell.
                                 boxes.extend(place(lo, hi));
@@ -195,7 +199,10 @@ impl Entries {
                                 BrickRef::Constant(v) => v,
                                 _ => 0.0,
                             };
-                            let hides = f.tf.lookup_visible(v).is_none();
+                            let hides = match f.params.labels {
+                                true => v == 0.0,
+                                false => f.tf.lookup_visible(v).is_none(),
+                            };
                             if !hides {
                                 boxes.extend(place(lo, hi));
                             }

@@ -13,7 +13,7 @@
 
 use crate::cpu::FrameStats;
 use crate::optics::{label_color, label_of};
-use crate::walk::{inside, step_t, Content, Grid, Walker};
+use crate::walk::{inside, jump_before, step_t, Content, Grid, Walker};
 use brickyard_cache::vm::Requests;
 use brickyard_core::camera::{intersect_box, Ray, Vec3};
 use brickyard_core::{Dims3, Sample};
@@ -55,10 +55,13 @@ pub fn surface_color(id: i32, shade: f32) -> [f32; 4] {
 
 impl<'f, 'a, T: Sample> Walker<'f, 'a, T> {
     /// The pixel of `ray` through a label image in 3D (see the module);
-    /// transparent where the ray meets no label.
+    /// transparent where the ray meets no label. `entry`: the ray's entry
+    /// depth at a level ([`crate::entry`]): when the ray is of that level,
+    /// no step before it meets a label, and the walk starts a step or so
+    /// before it.
     pub(crate) fn label_surface(
         &mut self,
-        ray: &Ray,
+        (ray, entry): (&Ray, Option<(usize, f64)>),
         req: &mut Requests,
         st: &mut FrameStats,
     ) -> [f32; 4] {
@@ -77,7 +80,15 @@ impl<'f, 'a, T: Sample> Walker<'f, 'a, T> {
         };
         let inv_dir = ray.dir.map(|d| 1.0 / d);
         let track = f.track(level, ray, inv_dir, t1);
-        let mut k = 0u64;
+        let mut k = match entry {
+            Some((el, e)) if el == level && e > t0 => {
+                if e >= t1 {
+                    return [0.0; 4];
+                }
+                jump_before(0, e, t1, t0, inv_dt)
+            }
+            _ => 0,
+        };
         loop {
             let t = step_t(t0, k, dt);
             if t >= t1 {

@@ -125,7 +125,11 @@ impl<'a> Frame<'a> {
                 Some(
                     r.range[off..off + n]
                         .iter()
-                        .map(|&[lo, hi]| params.tf.max_opacity(lo, hi) <= 0.0)
+                        .map(|&[lo, hi]| match params.labels {
+                            // A label image's rays cross background alone.
+                            true => lo == 0.0 && hi == 0.0,
+                            false => params.tf.max_opacity(lo, hi) <= 0.0,
+                        })
                         .collect(),
                 )
             })

@@ -416,10 +416,21 @@ fn sheets_of_labels_behind_background_bricks_are_met_where_the_reference_meets_t
         on_sheet > 64 * 64 / 4,
         "the reference shows the first sheet on {on_sheet} pixels"
     );
+    // The walk alone (no entry depths, which start rays near the sheet).
+    scene.entry_depths = false;
     let (img, (skipped, _)) = converge_cpu(&mut s, &scene, &p, 0);
     assert!(skipped > 0, "the background brick was sampled step by step");
     let d = differing(&img, &want, 1e-5);
     assert_eq!(d, 0, "{d} pixels differ from the reference");
+    // With entry depths: the same pixels (a ray started a step too late
+    // passes a sheet one voxel thick).
+    scene.entry_depths = true;
+    let (img, _) = converge_cpu(&mut s, &scene, &p, 0);
+    let d = differing(&img, &want, 1e-5);
+    assert_eq!(
+        d, 0,
+        "with entry depths, {d} pixels differ from the reference"
+    );
     // The device crosses them too (f32 steps: a ray may meet a sheet a
     // step off).
     let Some(gpu) = brickyard_gpu::context::test_gpu() else {
