@@ -36,6 +36,28 @@ fn stderr(o: &Output) -> String {
     String::from_utf8_lossy(&o.stderr).into_owned()
 }
 
+/// `../shared/data/NAME` (a TIFF stack of 0.5 × 0.5 × 2 µm voxels)
+/// converted into `dir/STORE` with bricks of 16 and the `extra` flags.
+fn shared_stack(dir: &Path, name: &str, store: &str, extra: &[&str]) -> PathBuf {
+    let tif = Path::new(env!("CARGO_MANIFEST_DIR"))
+        .join("../../../shared/data")
+        .join(name);
+    assert!(
+        tif.exists(),
+        "{} is missing: this test needs the shared data folder",
+        tif.display()
+    );
+    let out = dir.join(store);
+    let o = Command::new(bin())
+        .args(["convert", s(&tif), s(&out), "--spacing", "0.5,0.5,2"])
+        .args(["--brick", "16", "--quiet"])
+        .args(extra)
+        .output()
+        .unwrap();
+    assert!(o.status.success(), "convert {name}: {}", stderr(&o));
+    out
+}
+
 fn png_pixels(p: &Path) -> (u32, u32, Vec<u8>) {
     let d = png::Decoder::new(std::io::BufReader::new(std::fs::File::open(p).unwrap()));
     let mut r = d.read_info().unwrap();
@@ -1309,27 +1331,12 @@ fn viewer_shows_label_images_in_their_colours_and_surfaces_as_render_does() {
     let _session = shared();
     let d = tempfile::tempdir().unwrap();
     let p = |n: &str| d.path().join(n);
-    let tif =
-        Path::new(env!("CARGO_MANIFEST_DIR")).join("../../../shared/data/nuclei-labels-u32.tif");
-    assert!(
-        tif.exists(),
-        "{} is missing: this test needs the shared data folder",
-        tif.display()
+    let store = shared_stack(
+        d.path(),
+        "nuclei-labels-u32.tif",
+        "labels.ome.zarr",
+        &["--labels"],
     );
-    let store = p("labels.ome.zarr");
-    let o = Command::new(bin())
-        .args([
-            "convert",
-            s(&tif),
-            s(&store),
-            "--labels",
-            "--spacing",
-            "0.5,0.5,2",
-        ])
-        .args(["--brick", "16", "--quiet"])
-        .output()
-        .unwrap();
-    assert!(o.status.success(), "{}", stderr(&o));
     let script = format!(
         "size 3d 80 64
 size xy 64 64
@@ -1394,36 +1401,13 @@ fn viewer_lays_label_images_over_its_slices_as_render_does() {
     let _session = shared();
     let d = tempfile::tempdir().unwrap();
     let p = |n: &str| d.path().join(n);
-    let tif =
-        Path::new(env!("CARGO_MANIFEST_DIR")).join("../../../shared/data/nuclei-confocal-u16.tif");
-    assert!(
-        tif.exists(),
-        "{} is missing: this test needs the shared data folder",
-        tif.display()
-    );
-    let store = p("nuclei.ome.zarr");
-    let run = |args: &[&str]| {
-        let o = Command::new(bin()).args(args).output().unwrap();
-        assert!(o.status.success(), "{args:?}: {}", stderr(&o));
-    };
-    run(&[
-        "convert",
-        s(&tif),
-        s(&store),
-        "--spacing",
-        "0.5,0.5,2",
-        "--brick",
-        "16",
-        "--quiet",
-    ]);
-    run(&[
-        "process",
-        s(&store),
-        "gauss(1)|threshold(12000)|label(26)",
-        "--out",
-        "cells",
-        "--quiet",
-    ]);
+    let store = shared_stack(d.path(), "nuclei-confocal-u16.tif", "nuclei.ome.zarr", &[]);
+    let o = Command::new(bin())
+        .args(["process", s(&store), "gauss(1)|threshold(12000)|label(26)"])
+        .args(["--out", "cells", "--quiet"])
+        .output()
+        .unwrap();
+    assert!(o.status.success(), "process: {}", stderr(&o));
     // The labels over xy, xz and the 3D view's slice at opacity 0.5; xz at
     // opacity 1; the three without labels; then, turned on again, xy after
     // a drag that moves the cursor.
@@ -1534,20 +1518,7 @@ fn viewer_completes_every_view_when_their_bricks_together_overflow_the_pool() {
     // the cursor moves.
     let d = tempfile::tempdir().unwrap();
     let p = |n: &str| d.path().join(n);
-    let tif =
-        Path::new(env!("CARGO_MANIFEST_DIR")).join("../../../shared/data/nuclei-confocal-u16.tif");
-    assert!(
-        tif.exists(),
-        "{} is missing: this test needs the shared data folder",
-        tif.display()
-    );
-    let store = p("nuclei.ome.zarr");
-    let o = Command::new(bin())
-        .args(["convert", s(&tif), s(&store), "--spacing", "0.5,0.5,2"])
-        .args(["--brick", "16", "--quiet"])
-        .output()
-        .unwrap();
-    assert!(o.status.success(), "{}", stderr(&o));
+    let store = shared_stack(d.path(), "nuclei-confocal-u16.tif", "nuclei.ome.zarr", &[]);
     let script = format!(
         "size 3d 80 64
 size xy 64 64
