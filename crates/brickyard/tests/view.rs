@@ -1568,3 +1568,54 @@ quit
         assert!(lit > 64 * 64 / 10, "{name}: {lit} lit pixels");
     }
 }
+
+#[test]
+fn unreadable_label_chunks_are_drawn_coarser_and_reported_briefly() {
+    let _session = shared();
+    let d = tempfile::tempdir().unwrap();
+    let p = |n: &str| d.path().join(n);
+    let store = shared_stack(d.path(), "nuclei-confocal-u16.tif", "nuclei.ome.zarr", &[]);
+    let o = Command::new(bin())
+        .args(["process", s(&store), "gauss(1)|threshold(12000)|label(26)"])
+        .args(["--out", "cells", "--quiet"])
+        .output()
+        .unwrap();
+    assert!(o.status.success(), "process: {}", stderr(&o));
+    // The first shard of the labels' level 0 overwritten with 200 bytes.
+    let shard = store.join("labels/cells/0/c/0/0/0");
+    assert!(shard.exists(), "{} is missing", shard.display());
+    std::fs::write(&shard, [7u8; 200]).unwrap();
+    std::fs::write(
+        p("s.txt"),
+        format!(
+            "size xy 128 128\nwait-complete 120\nscreenshot xy {}\nquit\n",
+            s(&p("xy.png"))
+        ),
+    )
+    .unwrap();
+    let Some(mut cmd) = viewer(
+        &store,
+        &p("s.txt"),
+        None,
+        &["--labels", "cells", "--backend", "cpu", "--brick", "16"],
+    ) else {
+        return;
+    };
+    let o = cmd.output().unwrap();
+    // The session goes on: the views complete from coarser labels.
+    assert!(o.status.success(), "viewer: {}", stderr(&o));
+    let e = stderr(&o);
+    let lines = e
+        .lines()
+        .filter(|l| l.starts_with("view: cannot load labels/cells: "))
+        .count();
+    // (More than 20 bricks fail; the rest are counted in the status line.)
+    assert!(
+        lines == 20 && e.contains("view: more bricks cannot be loaded"),
+        "{lines} lines name unreadable label bricks:\n{e}"
+    );
+    assert!(e.contains("0/c/0/0/0"), "the shard is not named: {e}");
+    let (_, _, px) = png_pixels(&p("xy.png"));
+    let lit = px.chunks(4).filter(|c| c[..3] != [0, 0, 0]).count();
+    assert!(lit > 128 * 128 / 10, "{lit} lit pixels");
+}

@@ -355,9 +355,13 @@ impl ViewerApp {
                             "settled": out.settled, "new_failures": out.new_failures,
                         }));
                     }
-                    for f in &out.new_failures {
-                        eprintln!("view: labels: cannot load {f} (drawn from coarser data)");
-                    }
+                    let name = self.labels.as_ref().map_or("", |l| l.name.as_str());
+                    let failures: Vec<String> = out
+                        .new_failures
+                        .iter()
+                        .map(|f| format!("labels/{name}: {f}"))
+                        .collect();
+                    self.report_failures(&failures);
                     if let Some(l) = &mut self.labels {
                         l.figures = [out.resident_bricks, out.pool_slots, out.pending, out.failed];
                         l.views[v].last = Some(out);
@@ -395,19 +399,7 @@ impl ViewerApp {
                     "memory_budget_bytes": self.setup.memory_budget,
             }));
         }
-        // Unreadable bricks: reported on stderr (the first ones; a store
-        // removed under the view fails every brick it still needed) and in
-        // the status line; the view goes on with coarser data.
-        const SHOWN: usize = 20;
-        for f in &out.new_failures {
-            self.failures_seen += 1;
-            if self.failures_seen <= SHOWN {
-                eprintln!("view: cannot load {f} (drawn from coarser data)");
-            } else if self.failures_seen == SHOWN + 1 {
-                eprintln!("view: more bricks cannot be loaded; the status line counts them");
-            }
-            self.last_failure = Some(f.clone());
-        }
+        self.report_failures(&out.new_failures);
         if v == 0 && [out.image.width, out.image.height] == self.views[0].size {
             self.full_ms = out.render_ms;
         }
@@ -465,6 +457,23 @@ impl ViewerApp {
                 vs.texture =
                     Some(ctx.load_texture(format!("view-{v}"), ci, egui::TextureOptions::LINEAR))
             }
+        }
+    }
+
+    /// Unreadable bricks (of the image, or of the labels over it):
+    /// reported on stderr (the first ones; a store removed under the view
+    /// fails every brick it still needed) and in the status line; the view
+    /// goes on with coarser data.
+    fn report_failures(&mut self, failures: &[String]) {
+        const SHOWN: usize = 20;
+        for f in failures {
+            self.failures_seen += 1;
+            if self.failures_seen <= SHOWN {
+                eprintln!("view: cannot load {f} (drawn from coarser data)");
+            } else if self.failures_seen == SHOWN + 1 {
+                eprintln!("view: more bricks cannot be loaded; the status line counts them");
+            }
+            self.last_failure = Some(f.clone());
         }
     }
 
