@@ -72,9 +72,7 @@ impl FrameSignals {
             evicted_in_use: fs.insert.evicted_in_use,
         }
     }
-}
 
-impl FrameSignals {
     /// Slots this view needs: those it used at their own level and the
     /// bricks it still asks for.
     pub fn need(&self) -> usize {
@@ -302,10 +300,10 @@ mod tests {
         assert_eq!(alone.need(), 50);
         assert_eq!(alone.shared_with(0, 0, true), alone);
         assert_eq!(alone.shared_with(50, 30, true), alone);
-        // Beside views needing 60 slots (the largest 40) it does not fit:
-        // saturated, with the 40 slots they leave as its room; the budget
-        // coarsens.
-        // Without contention seen (the views may share bricks) nothing changes.
+        // Beside views needing 60 slots (the largest 40) it does not fit.
+        // Without contention seen (the views may share bricks) nothing
+        // changes; with it: saturated, with the 40 slots they leave as its
+        // room, and the budget coarsens.
         assert_eq!(alone.shared_with(60, 40, false), alone);
         let shared = alone.shared_with(60, 40, true);
         assert_eq!((shared.deferred, shared.free_slots), (1, 40));
@@ -355,7 +353,6 @@ mod tests {
         // No progress: nothing arrives, nothing pending, requests remain.
         let stuck = FrameSignals {
             progress: false,
-            evicted_in_use: 0,
             deferred: 0,
             ..sig(false, 50, 0, 100)
         };
@@ -371,7 +368,6 @@ mod tests {
         let mut b = LodBudget::new(0.0, 4, false);
         let s = FrameSignals {
             progress: false,
-            evicted_in_use: 0,
             ..sig(false, 0, 0, 10)
         };
         assert_eq!(b.update(&s), Decision::Stop(Stop::CompleteButFailed));

@@ -30,6 +30,7 @@
 //! the walk would, so that a pool smaller than the view still converges.
 
 use crate::cpu::{Tiles, TILE_H, TILE_W};
+use crate::optics::label_background;
 use crate::walk::Frame;
 use brickyard_cache::brick::BrickKey;
 use brickyard_cache::vm::BrickRef;
@@ -167,9 +168,8 @@ impl Entries {
                     let pass = match f.vm.peek(key) {
                         BrickRef::Data { slot, .. } if f.scene.skip_cells => {
                             let cells = f.vm.cell_ranges(slot);
-                            // (A label image shows every label but 0.)
                             let shows = |&[vlo, vhi]: &[f32; 2]| match f.params.labels {
-                                true => !(vlo == 0.0 && vhi == 0.0),
+                                true => !label_background(vlo, vhi),
                                 false => f.tf_eval.range_visible(vlo, vhi),
                             };
                             if cells.iter().all(shows) {
@@ -200,7 +200,7 @@ impl Entries {
                                 _ => 0.0,
                             };
                             let hides = match f.params.labels {
-                                true => v == 0.0,
+                                true => label_background(v, v),
                                 false => f.tf.lookup_visible(v).is_none(),
                             };
                             if !hides {

@@ -654,7 +654,7 @@ impl GpuRenderer {
                 // A label image: bricks of background alone (its
                 // surfaces take no transfer function).
                 (Some(r), 0) if params.labels => {
-                    clear_bits_by(&ids, r, scene.channel, |lo, hi| lo == 0.0 && hi == 0.0)
+                    clear_bits_by(&ids, r, scene.channel, crate::optics::label_background)
                 }
                 (Some(r), 0) => clear_bits(&ids, r, tf, scene.channel),
                 // No statistics: no brick is known clear. A bit for every

@@ -346,6 +346,14 @@ pub fn label_of(v: f32) -> Option<i32> {
     (!v.is_nan()).then(|| (v + 0.5).floor() as i32)
 }
 
+/// Whether a brick or cell whose values lie in `[lo, hi]` holds background
+/// alone (label 0 and nothing else): what a label image's rays cross
+/// without sampling, on the CPU and the device.
+#[inline]
+pub fn label_background(lo: f32, hi: f32) -> bool {
+    lo == 0.0 && hi == 0.0
+}
+
 /// Linear RGB of the colour with hue `h6` (in sixths of the circle,
 /// `[0, 6)`), saturation `s` and value `v`.
 #[inline]

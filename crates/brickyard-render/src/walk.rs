@@ -126,8 +126,7 @@ impl<'a> Frame<'a> {
                     r.range[off..off + n]
                         .iter()
                         .map(|&[lo, hi]| match params.labels {
-                            // A label image's rays cross background alone.
-                            true => lo == 0.0 && hi == 0.0,
+                            true => crate::optics::label_background(lo, hi),
                             false => params.tf.max_opacity(lo, hi) <= 0.0,
                         })
                         .collect(),

@@ -314,11 +314,9 @@ impl<'f, 'a, T: Sample> Walker<'f, 'a, T> {
                 {
                     let mut m = 0u64;
                     for (i, &[lo, hi]) in f.vm.cell_ranges(slot).iter().enumerate() {
-                        // A label image's rays cross background alone
-                        // (label 0); others what the transfer function
-                        // hides.
+                        // (A label image's rays cross background alone.)
                         let clear = match f.params.labels {
-                            true => lo == 0.0 && hi == 0.0,
+                            true => crate::optics::label_background(lo, hi),
                             false => !f.tf_eval.range_visible(lo, hi),
                         };
                         if clear {

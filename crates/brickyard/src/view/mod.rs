@@ -379,9 +379,11 @@ pub fn run(c: ViewCmd, demo_store: impl FnOnce() -> Result<PathBuf>) -> Result<i
     // grid), drawn on the CPU by a render thread of its own.
     let labels = match (&label_dir, label_bytes) {
         (Some(dir), Some([lpool, lhost, lchunks])) => {
-            let linfo = inspect(dir)?;
+            // (Its levels' sizes only: the worker reads its statistics.)
+            let nl = brickyard_store::omezarr::read_multiscale(dir)?
+                .map_or(1, |m| m.datasets.len());
             let lmeta = zarr::open(dir, 0)?.meta().clone();
-            let llevels = (0..linfo.levels.len())
+            let llevels = (0..nl)
                 .map(|l| Ok(zarr::open(dir, l)?.meta().dims))
                 .collect::<Result<Vec<_>>>()?;
             let mut lcfg = setup.cfg.clone();

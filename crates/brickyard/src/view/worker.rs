@@ -129,6 +129,14 @@ struct View {
     need: usize,
 }
 
+impl View {
+    /// Shown, not complete, and drawn in plain frames (not accumulating):
+    /// its bricks are wanted in the pool beside the other such views'.
+    fn drawing(&self) -> bool {
+        self.spec.is_some() && !self.complete && self.acc.is_none()
+    }
+}
+
 /// A view's sample accumulation: what it was begun for (the view but its
 /// transfer function), the passes drawn, and whether a transfer-function
 /// edit waits to be re-blended.
@@ -355,10 +363,7 @@ pub fn run(setup: Setup, mut scene: Scene, rx: Receiver<Msg>, tx: Sender<Reply>,
         sc.channel = spec.channel;
         // A brick evicted that a view still drawing used at its own level
         // in its latest frame is one the views take from each other.
-        let drawing = views
-            .iter()
-            .filter(|v| v.spec.is_some() && !v.complete && v.acc.is_none())
-            .count();
+        let drawing = views.iter().filter(|v| v.drawing()).count();
         s.vm_mut().set_in_use_frames(drawing as u32);
         let lod = views[i].budget.apply(spec.lod, sc.levels.len());
         if views[i].acc.is_some() {
@@ -408,7 +413,7 @@ pub fn run(setup: Setup, mut scene: Scene, rx: Receiver<Msg>, tx: Sender<Reply>,
         let (others, largest) = views
             .iter()
             .enumerate()
-            .filter(|(k, v)| *k != i && v.spec.is_some() && !v.complete && v.acc.is_none())
+            .filter(|(k, v)| *k != i && v.drawing())
             .fold((0, 0), |(sum, most), (_, v)| {
                 (sum + v.need, most.max(v.need))
             });
