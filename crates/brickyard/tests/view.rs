@@ -1588,7 +1588,8 @@ fn unreadable_label_chunks_are_drawn_coarser_and_reported_briefly() {
     std::fs::write(
         p("s.txt"),
         format!(
-            "size xy 128 128\nwait-complete 120\nscreenshot xy {}\nquit\n",
+            "size xy 128 128\nwait-complete 120\nscreenshot xy {}\n\
+             cursor 0.01 0.01 0.01\nwait-probe\nquit\n",
             s(&p("xy.png"))
         ),
     )
@@ -1596,7 +1597,7 @@ fn unreadable_label_chunks_are_drawn_coarser_and_reported_briefly() {
     let Some(mut cmd) = viewer(
         &store,
         &p("s.txt"),
-        None,
+        Some(&p("log.jsonl")),
         &["--labels", "cells", "--backend", "cpu", "--brick", "16"],
     ) else {
         return;
@@ -1618,4 +1619,160 @@ fn unreadable_label_chunks_are_drawn_coarser_and_reported_briefly() {
     let (_, _, px) = png_pixels(&p("xy.png"));
     let lit = px.chunks(4).filter(|c| c[..3] != [0, 0, 0]).count();
     assert!(lit > 128 * 128 / 10, "{lit} lit pixels");
+    // The voxel readout at a voxel of the damaged shard: the image's value,
+    // and the label's read error naming the shard.
+    let last = probes(&p("log.jsonl"))
+        .pop()
+        .expect("no voxel readout in the log");
+    assert_eq!(last["voxel_zyx"], serde_json::json!([0, 2, 2]), "{last}");
+    assert!(last["values"][0].is_number(), "{last}");
+    let err = last["label"]["error"].as_str().unwrap_or_default();
+    assert!(err.contains("0/c/0/0/0"), "the label's error: {last}");
+}
+
+/// The voxel readout's answers in a viewer's `--log`, in order.
+fn probes(log: &Path) -> Vec<serde_json::Value> {
+    std::fs::read_to_string(log)
+        .unwrap()
+        .lines()
+        .filter_map(|l| serde_json::from_str::<serde_json::Value>(l).ok())
+        .filter_map(|v| v.get("probe").cloned())
+        .collect()
+}
+
+#[test]
+fn viewer_reads_out_the_voxel_and_label_under_the_cursor_and_the_pointer() {
+    use brickyard_store::VolumeSource;
+    let _session = shared();
+    let d = tempfile::tempdir().unwrap();
+    let p = |n: &str| d.path().join(n);
+    let store = shared_stack(d.path(), "nuclei-confocal-u16.tif", "nuclei.ome.zarr", &[]);
+    let o = Command::new(bin())
+        .args(["process", s(&store), "gauss(1)|threshold(12000)|label(26)"])
+        .args(["--out", "cells", "--quiet"])
+        .output()
+        .unwrap();
+    assert!(o.status.success(), "process: {}", stderr(&o));
+    // References read apart from the viewer: the TIFF through its
+    // importer, the labels' level 0 whole, their statistics as text.
+    let tif =
+        Path::new(env!("CARGO_MANIFEST_DIR")).join("../../../shared/data/nuclei-confocal-u16.tif");
+    let read = |src: &dyn VolumeSource| {
+        let dm = src.meta().dims;
+        let mut b = vec![0u8; dm.iter().product::<u64>() as usize * src.meta().dtype.size()];
+        src.read_region(0, 0..dm[0], 0..dm[1], 0..dm[2], &mut b)
+            .unwrap();
+        (b, dm)
+    };
+    let (image, dims) = read(&brickyard_store::import::tiff::open(&tif).unwrap());
+    let (labels, ldims) =
+        read(&brickyard_store::import::zarr::open(&store.join("labels/cells"), 0).unwrap());
+    assert_eq!(dims, ldims);
+    let at = |v: [u64; 3]| ((v[0] * dims[1] + v[1]) * dims[2] + v[2]) as usize;
+    let value = |v: [u64; 3]| u16::from_ne_bytes([image[2 * at(v)], image[2 * at(v) + 1]]) as f64;
+    let label = |v: [u64; 3]| {
+        let i = 4 * at(v);
+        u32::from_ne_bytes(labels[i..i + 4].try_into().unwrap()) as u64
+    };
+    let csv = std::fs::read_to_string(store.join("labels/cells/_brickyard/labels.csv")).unwrap();
+    let rows: std::collections::HashMap<u64, Vec<String>> = csv
+        .lines()
+        .skip(1)
+        .map(|l| {
+            let f: Vec<String> = l.split(',').map(String::from).collect();
+            (f[0].parse().unwrap(), f)
+        })
+        .collect();
+    assert!(rows.len() > 20, "{} labels", rows.len());
+    // Voxels to read: the first voxel (raster order) of three labels far
+    // apart in the file, a background voxel, and the volume's corners.
+    let mut ids: Vec<u64> = rows.keys().copied().collect();
+    ids.sort();
+    let pick = [ids[0], ids[ids.len() / 2], ids[ids.len() - 1]];
+    let mut voxels: Vec<[u64; 3]> = pick
+        .iter()
+        .map(|&id| {
+            let i = (0..labels.len() / 4)
+                .find(|&i| label_at_index(&labels, i) == id)
+                .unwrap();
+            let i = i as u64;
+            [i / (dims[1] * dims[2]), i / dims[2] % dims[1], i % dims[2]]
+        })
+        .collect();
+    let background = (0..labels.len() / 4)
+        .find(|&i| label_at_index(&labels, i) == 0 && i % 97 == 3)
+        .unwrap() as u64;
+    voxels.push([
+        background / (dims[1] * dims[2]),
+        background / dims[2] % dims[1],
+        background % dims[2],
+    ]);
+    voxels.push([0, 0, 0]);
+    voxels.push(dims.map(|n| n - 1));
+    // The cursor at each voxel's centre (fractions x, y, z), then the
+    // pointer over the xy view.
+    let mut script = String::from("size xy 96 96\n");
+    for v in &voxels {
+        let f = |a: usize| (v[a] as f64 + 0.5) / dims[a] as f64;
+        script += &format!("cursor {} {} {}\nwait-probe 60\n", f(2), f(1), f(0));
+    }
+    script += "hover xy 30 61\nwait-probe 60\nquit\n";
+    std::fs::write(p("s.txt"), script).unwrap();
+    let Some(mut cmd) = viewer(
+        &store,
+        &p("s.txt"),
+        Some(&p("log.jsonl")),
+        &["--labels", "cells", "--backend", "cpu", "--brick", "16"],
+    ) else {
+        return;
+    };
+    let o = cmd.output().unwrap();
+    assert!(o.status.success(), "viewer: {}", stderr(&o));
+    let answers = probes(&p("log.jsonl"));
+    let check = |a: &serde_json::Value| -> [u64; 3] {
+        let v: Vec<u64> = a["voxel_zyx"]
+            .as_array()
+            .unwrap()
+            .iter()
+            .map(|x| x.as_u64().unwrap())
+            .collect();
+        let v = [v[0], v[1], v[2]];
+        assert_eq!(a["values"], serde_json::json!([value(v)]), "{v:?}: {a}");
+        let l = &a["label"];
+        assert_eq!(l["voxel_zyx"], serde_json::json!(v), "{a}");
+        assert_eq!(l["label"].as_u64(), Some(label(v)), "{v:?}: {a}");
+        match rows.get(&label(v)) {
+            Some(r) => {
+                let st = &l["stats"];
+                assert_eq!(st["voxels"].as_u64().unwrap().to_string(), r[1], "{a}");
+                for k in 0..3 {
+                    let c: f64 = r[8 + k].parse().unwrap();
+                    assert_eq!(st["centroid_zyx"][k].as_f64().unwrap(), c, "{a}");
+                    assert!(st["min_zyx"][k].as_u64().unwrap() <= v[k]);
+                    assert!(st["max_zyx"][k].as_u64().unwrap() >= v[k]);
+                }
+            }
+            None => assert!(l["stats"].is_null(), "{a}"),
+        }
+        v
+    };
+    for v in &voxels {
+        let a = answers
+            .iter()
+            .find(|a| a["voxel_zyx"] == serde_json::json!(v))
+            .unwrap_or_else(|| panic!("no readout of {v:?}: {answers:?}"));
+        check(a);
+    }
+    // Three of them inside labels.
+    assert_eq!(voxels.iter().filter(|v| label(**v) != 0).count(), 3);
+    // The pointer over xy: a voxel of the plane through the cursor (the
+    // last corner's), away from the cursor itself.
+    let last = answers.last().unwrap();
+    let v = check(last);
+    assert_eq!(v[0], dims[0] - 1, "{last}");
+    assert_ne!(v, voxels[voxels.len() - 1], "{last}");
+}
+
+fn label_at_index(labels: &[u8], i: usize) -> u64 {
+    u32::from_ne_bytes(labels[4 * i..4 * i + 4].try_into().unwrap()) as u64
 }

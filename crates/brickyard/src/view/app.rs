@@ -19,6 +19,7 @@ mod save;
 
 pub use process::derived_dataset;
 
+use super::probe::Probe;
 use super::script::{Cmd, VIEWS};
 use super::worker::{Msg, Out, Reply, Setup, Spec};
 use brickyard_core::camera::{scale, Camera, Projection};
@@ -199,6 +200,15 @@ pub struct ViewerApp {
     last_job: Option<process::JobEnd>,
     /// `--labels NAME`: the label image over the slices.
     labels: Option<LabelLayer>,
+    /// The voxel readout (`None`: its readers could not be opened).
+    probe: Option<Probe>,
+    /// The world point under the pointer in a slice view, this frame.
+    hover: Option<Vec3>,
+    /// A script's pointer: slice view and render pixel (`hover`).
+    script_hover: Option<(usize, f64, f64)>,
+    /// Whether the latest question was about the pointer (else the
+    /// cursor).
+    probe_pointer: bool,
 }
 
 /// A live derived channel shown: its pipeline, the store's channel it is
@@ -220,6 +230,7 @@ impl ViewerApp {
         exit: Arc<AtomicI32>,
         derived: Option<(Arc<Dataset>, Shown)>,
         labels: Option<LabelLayer>,
+        probe: Option<Probe>,
     ) -> ViewerApp {
         // Started on a derived channel: `ds` is its dataset, and the
         // store's comes with it.
@@ -310,6 +321,10 @@ impl ViewerApp {
             failures_seen: 0,
             last_failure: None,
             labels,
+            probe,
+            hover: None,
+            script_hover: None,
+            probe_pointer: false,
         }
     }
 
@@ -370,6 +385,46 @@ impl ViewerApp {
                 }
             }
         }
+    }
+
+    /// The voxel readout: ask about the point under the pointer (a
+    /// script's, else the mouse's over a slice view), else the cursor, and
+    /// log the answers that came.
+    fn probe(&mut self) {
+        let pointer = match self.script_hover {
+            Some((v, x, y)) => Some(self.slice_point(v, x, y)),
+            None => self.hover,
+        };
+        let Some(p) = &mut self.probe else {
+            return;
+        };
+        self.probe_pointer = pointer.is_some();
+        p.ask(pointer.unwrap_or(self.cursor));
+        let got = p.take();
+        for a in got {
+            let t = self.started.elapsed().as_secs_f64();
+            self.log_line(serde_json::json!({ "t": t, "probe": a.to_json() }));
+        }
+    }
+
+    /// The voxel readout's line of the status bar.
+    pub(super) fn probe_line(&self) -> Option<String> {
+        let a = self.probe.as_ref()?.answer.as_ref()?;
+        let name = self.labels.as_ref().map_or("", |l| l.name.as_str());
+        let at = if self.probe_pointer {
+            "pointer"
+        } else {
+            "cursor"
+        };
+        let stored = if self.derived.is_some() {
+            ", stored"
+        } else {
+            ""
+        };
+        Some(format!(
+            "{at}{stored}: {}",
+            a.describe(self.stored.dtype, name)
+        ))
     }
 
     /// One line of the `--log` file (JSON), if there is one.
@@ -500,7 +555,9 @@ impl eframe::App for ViewerApp {
         self.take_window_shot(&ctx);
         self.run_script(&ctx);
         self.keys(&ctx);
+        self.hover = None;
         self.lay_out(ui);
+        self.probe();
         self.send_specs();
         // Keep polling while frames are due; the worker also wakes the
         // window when one arrives.

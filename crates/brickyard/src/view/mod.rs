@@ -7,6 +7,7 @@
 //! `--script` drives it from a file of input events (tests, recordings).
 
 mod app;
+mod probe;
 pub mod script;
 mod worker;
 
@@ -302,6 +303,14 @@ pub fn run(c: ViewCmd, demo_store: impl FnOnce() -> Result<PathBuf>) -> Result<i
         eprintln!("{n}");
     }
     let backend = device.choice.clone();
+    // The voxel readout's readers (the image's channels, and the labels).
+    let label_levels = match &label_dir {
+        Some(dir) => {
+            Some(brickyard_store::omezarr::read_multiscale(dir)?.map_or(1, |m| m.datasets.len()))
+        }
+        None => None,
+    };
+    let probe_bytes = probe::bytes(levels.len(), m.channels, label_levels);
     let mut split = crate::memory::split_with_filters(
         memory,
         pool,
@@ -311,7 +320,7 @@ pub fn run(c: ViewCmd, demo_store: impl FnOnce() -> Result<PathBuf>) -> Result<i
         // add half as many again.
         ww as u64 * wh as u64 * if label_dir.is_some() { 3 } else { 2 } / 2,
         levels.len(),
-        crate::memory::WINDOW_BYTES + accum_bytes + device.bytes,
+        crate::memory::WINDOW_BYTES + accum_bytes + device.bytes + probe_bytes,
         derived_within.as_ref().map_or(0, |(_, b)| *b),
     )?;
     device.take_from(&mut split, pool)?;
@@ -380,8 +389,7 @@ pub fn run(c: ViewCmd, demo_store: impl FnOnce() -> Result<PathBuf>) -> Result<i
     let labels = match (&label_dir, label_bytes) {
         (Some(dir), Some([lpool, lhost, lchunks])) => {
             // (Its levels' sizes only: the worker reads its statistics.)
-            let nl = brickyard_store::omezarr::read_multiscale(dir)?
-                .map_or(1, |m| m.datasets.len());
+            let nl = label_levels.unwrap_or(1);
             let lmeta = zarr::open(dir, 0)?.meta().clone();
             let llevels = (0..nl)
                 .map(|l| Ok(zarr::open(dir, l)?.meta().dims))
@@ -452,6 +460,12 @@ pub fn run(c: ViewCmd, demo_store: impl FnOnce() -> Result<PathBuf>) -> Result<i
     let label_thread = Arc::new(std::sync::Mutex::new(None));
     let label_thread2 = label_thread.clone();
     let opacity = c.label_opacity.unwrap_or(0.5);
+    let probe_setup = probe::Setup {
+        store: store.clone(),
+        labels: label_dir.clone(),
+        extent,
+        read_delay: Duration::from_millis(c.read_delay_ms),
+    };
     let r = eframe::run_native(
         "brickyard view",
         opts,
@@ -484,6 +498,11 @@ pub fn run(c: ViewCmd, demo_store: impl FnOnce() -> Result<PathBuf>) -> Result<i
                 }
                 None => None,
             };
+            // The voxel under the pointer, read by a thread of its own.
+            let ctx = cc.egui_ctx.clone();
+            let probe = probe::Probe::start(probe_setup, move || ctx.request_repaint())
+                .map_err(|e| eprintln!("view: no voxel readout: {e:#}"))
+                .ok();
             Ok(Box::new(app::ViewerApp::new(
                 ds,
                 setup,
@@ -497,6 +516,7 @@ pub fn run(c: ViewCmd, demo_store: impl FnOnce() -> Result<PathBuf>) -> Result<i
                 exit2,
                 derived,
                 layer,
+                probe,
             )))
         }),
     );

@@ -9,6 +9,8 @@
 //! | `drag VIEW BUTTON DX DY` | a drag by (DX, DY) pixels with `left`, `right` or `middle` (3D: orbit, pan; slices: cursor, pan) |
 //! | `scroll VIEW STEPS` | the mouse wheel (zoom; positive: in) |
 //! | `click VIEW X Y` | a click at pixel (X, Y) of the view (slices: move the cursor there) |
+//! | `hover VIEW X Y` / `hover off` | the pointer at pixel (X, Y) of slice view VIEW (the voxel readout reads the voxel there), or gone (it reads the voxel at the cursor) |
+//! | `wait-probe [SECONDS]` | wait until the voxel readout answered for the voxel it reads now (default 60 s) |
 //! | `key NAME` | a key: `left`, `right`, `up`, `down` (orbit), `plus`, `minus` (zoom), `r` (reset) |
 //! | `tf PRESET` | a transfer-function preset |
 //! | `colormap NAME` | a colour map |
@@ -45,6 +47,9 @@ pub enum Cmd {
     Drag(usize, String, f32, f32),
     Scroll(usize, f32),
     Click(usize, f32, f32),
+    /// `hover VIEW X Y` (`None`: `hover off`).
+    Hover(Option<(usize, f64, f64)>),
+    WaitProbe(f64),
     Key(String),
     Tf(String),
     Colormap(String),
@@ -146,6 +151,22 @@ fn parse_line(w: &[&str]) -> Result<Cmd> {
             arity(3)?;
             Cmd::Click(view(w[1])?, num(w[2])?, num(w[3])?)
         }
+        "hover" => match w.len() {
+            2 if w[1] == "off" => Cmd::Hover(None),
+            4 => {
+                let v = view(w[1])?;
+                if v == 0 {
+                    bail!("hover: the readout reads slice views (xy, xz, yz, oblique), not 3d");
+                }
+                Cmd::Hover(Some((v, num(w[2])?, num(w[3])?)))
+            }
+            _ => bail!("hover takes a view and X Y, or off"),
+        },
+        "wait-probe" => match w.len() {
+            1 => Cmd::WaitProbe(60.0),
+            2 => Cmd::WaitProbe(num(w[1])?),
+            _ => bail!("wait-probe takes at most 1 argument"),
+        },
         "key" => {
             arity(1)?;
             if !["left", "right", "up", "down", "plus", "minus", "r"].contains(&w[1]) {

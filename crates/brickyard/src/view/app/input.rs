@@ -243,6 +243,26 @@ impl ViewerApp {
                         self.key(k);
                         true
                     }
+                    Cmd::Hover(h) => {
+                        self.script_hover = *h;
+                        true
+                    }
+                    Cmd::WaitProbe(secs) => {
+                        let since = *self.waiting.get_or_insert_with(Instant::now);
+                        // The question for the point read now goes out first.
+                        self.probe();
+                        let Some(p) = &self.probe else {
+                            bail!("wait-probe: the viewer has no voxel readout");
+                        };
+                        if p.answered() {
+                            self.waiting = None;
+                            true
+                        } else if since.elapsed().as_secs_f64() > *secs {
+                            bail!("wait-probe: no answer in {secs} s");
+                        } else {
+                            false
+                        }
+                    }
                     Cmd::Tf(p) => {
                         self.set_tf_preset(p)?;
                         true

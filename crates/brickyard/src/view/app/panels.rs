@@ -431,6 +431,11 @@ impl ViewerApp {
             let d = resp.drag_delta() * k;
             self.drag(v, "right", d.x as f64, d.y as f64);
         }
+        // The voxel readout follows the pointer over a slice view.
+        if let Some(pos) = resp.hover_pos().filter(|p| v > 0 && rect.contains(*p)) {
+            let q = (pos - rect.min) * k;
+            self.hover = Some(self.slice_point(v, q.x as f64, q.y as f64));
+        }
         if resp.hovered() {
             let s = ui.input(|i| i.smooth_scroll_delta.y);
             if s != 0.0 {
@@ -537,8 +542,11 @@ impl ViewerApp {
             }
             None => String::new(),
         };
+        let probe = self
+            .probe_line()
+            .map_or(String::new(), |p| format!("\n{p}"));
         format!(
-            "{:.1} ms/frame · {:.1}% complete{detail}\n{} bricks resident of {} slots · {} pending{labels}\nhost cache {} of {} · {:.1} MiB/s read{peak}\n{}",
+            "{:.1} ms/frame · {:.1}% complete{detail}\n{} bricks resident of {} slots · {} pending{labels}\nhost cache {} of {} · {:.1} MiB/s read{peak}\n{}{probe}",
             o.render_ms,
             100.0 * o.completeness,
             o.resident_bricks,

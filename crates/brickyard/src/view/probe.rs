@@ -1,0 +1,554 @@
+//! The voxel under the pointer: where it is, its stored value in every
+//! channel and, with `--labels NAME`, the label there with its row of the
+//! label image's statistics (`_brickyard/labels.csv`, written by
+//! `process`).
+//!
+//! A thread of its own reads the full-resolution brick that holds the
+//! voxel (through a small cache of decoded chunks and the last few bricks),
+//! so the window never waits for it. The window asks again only when the
+//! pointer enters another voxel, and the thread answers only the latest
+//! question. Reads that fail are answered with their error; the viewer goes
+//! on.
+
+use anyhow::{Context, Result};
+use brickyard_cache::brick::{BrickContent, BrickKey, LoadedBrick};
+use brickyard_cache::host_cache::HostCache;
+use brickyard_cache::loader::Loader;
+use brickyard_core::camera::world_to_normalized;
+use brickyard_core::{cast_slice, dispatch_dtype, DType, Dims3, Sample};
+use brickyard_store::storage::{self, Span};
+use std::path::{Path, PathBuf};
+use std::sync::mpsc::{Receiver, Sender};
+use std::sync::Arc;
+use std::time::{Duration, Instant};
+
+type Vec3 = [f64; 3];
+
+/// Edge of the bricks the probe reads (voxels; no apron).
+const BRICK: u64 = 32;
+/// Decoded chunks each of the probe's readers keeps.
+const CHUNK_BYTES: u64 = 4 << 20;
+/// Bricks each reader keeps, newest last.
+const KEPT: usize = 8;
+/// Bytes of a statistics file read per step of the search.
+const WINDOW: usize = 4096;
+
+/// Memory the probe may hold for an image of `levels` levels (and a label
+/// image of `label_levels`): each reader's decoded chunks (plus the half
+/// MiB per level the loader adds), its kept bricks (at most 8-byte voxels)
+/// and a search window.
+pub fn bytes(levels: usize, channels: usize, label_levels: Option<usize>) -> u64 {
+    let reader = |levels: usize, channels: usize| {
+        CHUNK_BYTES + levels as u64 * (1 << 19) + (KEPT * channels.max(1)) as u64 * BRICK.pow(3) * 8
+    };
+    reader(levels, channels) + label_levels.map_or(0, |l| reader(l, 1) + WINDOW as u64)
+}
+
+/// The level-0 voxel `[z, y, x]` that holds world point `world` of a
+/// volume of `dims` voxels spanning `extent` (clamped into the volume).
+pub fn voxel_of(world: Vec3, extent: Vec3, dims: Dims3) -> [u64; 3] {
+    let p = world_to_normalized(world, extent);
+    [0, 1, 2].map(|a| ((p[a] * dims[a] as f64).floor().max(0.0) as u64).min(dims[a] - 1))
+}
+
+/// A question: the voxel at world point `world`.
+pub struct Ask {
+    pub id: u64,
+    pub world: Vec3,
+}
+
+/// A label's row of the label image's statistics (coordinates in voxels
+/// of the level it was labelled at, `[z, y, x]`).
+#[derive(Clone, Debug, PartialEq)]
+pub struct LabelRow {
+    pub voxels: u64,
+    pub min: [u64; 3],
+    pub max: [u64; 3],
+    pub centroid: [f64; 3],
+    /// Mean intensity of the image under the label, where recorded.
+    pub mean: Option<f64>,
+}
+
+/// What the label image has at the voxel.
+#[derive(Clone, Debug, PartialEq)]
+pub struct LabelAt {
+    /// The label image's voxel `[z, y, x]` (its own level 0).
+    pub voxel: [u64; 3],
+    /// 0: background.
+    pub label: u64,
+    /// Its statistics: `Ok(None)` when the image has none or no row for
+    /// this label.
+    pub row: std::result::Result<Option<LabelRow>, String>,
+}
+
+/// The answer to an [`Ask`].
+#[derive(Clone, Debug)]
+pub struct Answer {
+    pub id: u64,
+    pub world: Vec3,
+    /// The image's level-0 voxel `[z, y, x]`.
+    pub voxel: [u64; 3],
+    /// The stored value of every channel, or why it could not be read.
+    pub values: std::result::Result<Vec<f64>, String>,
+    pub label: Option<std::result::Result<LabelAt, String>>,
+    pub ms: f64,
+}
+
+impl Answer {
+    /// One line for the status bar.
+    pub fn describe(&self, dtype: DType, label_name: &str) -> String {
+        let [z, y, x] = self.voxel;
+        let fmt = |v: f64| match dtype {
+            DType::F32 | DType::F64 => format!("{v:.6}"),
+            _ => format!("{v}"),
+        };
+        let mut s = format!("voxel x {x} y {y} z {z}: ");
+        match &self.values {
+            Ok(v) if v.len() == 1 => s += &fmt(v[0]),
+            Ok(v) => {
+                let each: Vec<String> = v
+                    .iter()
+                    .enumerate()
+                    .map(|(c, v)| format!("ch{c} {}", fmt(*v)))
+                    .collect();
+                s += &each.join(", ");
+            }
+            Err(e) => s += &format!("unreadable ({e})"),
+        }
+        match &self.label {
+            None => {}
+            Some(Err(e)) => s += &format!(" · labels/{label_name}: unreadable ({e})"),
+            Some(Ok(l)) if l.label == 0 => s += &format!(" · labels/{label_name}: background"),
+            Some(Ok(l)) => {
+                s += &format!(" · labels/{label_name}: {}", l.label);
+                match &l.row {
+                    Ok(Some(r)) => {
+                        let [cz, cy, cx] = r.centroid;
+                        s += &format!(
+                            " ({} voxels, centroid x {cx:.1} y {cy:.1} z {cz:.1}",
+                            r.voxels
+                        );
+                        if let Some(m) = r.mean {
+                            s += &format!(", mean {m:.4}");
+                        }
+                        s += ")";
+                    }
+                    Ok(None) => {}
+                    Err(e) => s += &format!(" (statistics unreadable: {e})"),
+                }
+            }
+        }
+        s
+    }
+
+    /// The answer as JSON (the viewer's `--log`).
+    pub fn to_json(&self) -> serde_json::Value {
+        let label = match &self.label {
+            None => serde_json::Value::Null,
+            Some(Err(e)) => serde_json::json!({ "error": e }),
+            Some(Ok(l)) => {
+                let row = match &l.row {
+                    Ok(Some(r)) => serde_json::json!({
+                        "voxels": r.voxels, "min_zyx": r.min, "max_zyx": r.max,
+                        "centroid_zyx": r.centroid, "mean": r.mean,
+                    }),
+                    Ok(None) => serde_json::Value::Null,
+                    Err(e) => serde_json::json!({ "error": e }),
+                };
+                serde_json::json!({ "voxel_zyx": l.voxel, "label": l.label, "stats": row })
+            }
+        };
+        let values = match &self.values {
+            Ok(v) => serde_json::json!(v),
+            Err(e) => serde_json::json!({ "error": e }),
+        };
+        serde_json::json!({
+            "world": self.world, "voxel_zyx": self.voxel, "values": values,
+            "label": label, "ms": self.ms,
+        })
+    }
+}
+
+/// Reads single voxels of one image's level 0.
+struct Reader {
+    loader: Loader,
+    dims: Dims3,
+    channels: usize,
+    dtype: DType,
+    kept: Vec<(BrickKey, Arc<LoadedBrick>)>,
+}
+
+impl Reader {
+    fn open(store: &Path, read_delay: Duration) -> Result<Reader> {
+        let loader = Loader::open_with_chunk_cache(
+            store,
+            [BRICK; 3],
+            0,
+            1,
+            Arc::new(HostCache::new(0)),
+            CHUNK_BYTES,
+        )
+        .with_context(|| format!("{}: cannot open", store.display()))?;
+        loader.set_read_delay(read_delay);
+        let g = loader.geometry();
+        let (dims, channels, dtype) = (g.levels[0], g.channels, g.dtype);
+        Ok(Reader {
+            loader,
+            dims,
+            channels,
+            dtype,
+            kept: vec![],
+        })
+    }
+
+    /// Channel `c` of voxel `v` (`[z, y, x]`, level 0).
+    fn value(&mut self, v: [u64; 3], c: usize) -> Result<f64> {
+        let key = BrickKey::new(0, c as u16, v.map(|i| (i / BRICK) as u32));
+        let brick = match self.kept.iter().position(|(k, _)| *k == key) {
+            Some(i) => {
+                let b = self.kept.remove(i);
+                self.kept.push(b.clone());
+                b.1
+            }
+            None => {
+                let b = Arc::new(self.loader.load_now(&key).map_err(anyhow::Error::from)?);
+                if self.kept.len() == KEPT * self.channels.max(1) {
+                    self.kept.remove(0);
+                }
+                self.kept.push((key, b.clone()));
+                b
+            }
+        };
+        Ok(match &brick.content {
+            BrickContent::Data(d) => {
+                let [pz, py, px] = self.loader.geometry().padded();
+                let [z, y, x] = v.map(|i| i % BRICK);
+                let i = ((z * py + y) * px + x) as usize;
+                debug_assert!(z < pz);
+                dispatch_dtype!(self.dtype, T => { cast_slice::<T>(d)[i].to_f64() })
+            }
+            uniform => uniform.uniform_value().unwrap_or(0.0),
+        })
+    }
+}
+
+/// A label image's statistics file, searched by label (its rows are in
+/// increasing label order, as `process` writes them). Read in ranges
+/// through the store's storage, so remote label images have theirs too.
+struct Stats {
+    path: PathBuf,
+    /// Where the rows begin (after the header).
+    start: u64,
+    len: u64,
+}
+
+impl Stats {
+    fn open(label_dir: &Path) -> Result<Option<Stats>> {
+        let path = label_dir.join("_brickyard").join("labels.csv");
+        let Some(len) = storage::size(&path)? else {
+            return Ok(None);
+        };
+        let mut st = Stats {
+            path,
+            start: 0,
+            len,
+        };
+        let head = st.bytes(0, WINDOW as u64)?;
+        let end = head.iter().position(|&b| b == b'\n').with_context(|| {
+            format!(
+                "{}: expected a header line within {WINDOW} bytes",
+                st.path.display()
+            )
+        })?;
+        let header = String::from_utf8_lossy(&head[..end]);
+        if !header.starts_with("label,voxels,min_z,min_y,min_x,max_z,max_y,max_x,centroid_z") {
+            anyhow::bail!(
+                "{}: expected the header `label,voxels,min_z,...`, found {header:?}",
+                st.path.display()
+            );
+        }
+        st.start = end as u64 + 1;
+        Ok(Some(st))
+    }
+
+    /// Bytes `from..from + n` (fewer at the end of the file).
+    fn bytes(&self, from: u64, n: u64) -> Result<Vec<u8>> {
+        let r = from..(from + n).min(self.len);
+        let mut got = storage::read_spans(&self.path, &[Span::Range(r)])?
+            .with_context(|| format!("{}: gone", self.path.display()))?;
+        Ok(got.swap_remove(0))
+    }
+
+    /// The first whole line that starts at or after `pos`: its start, the
+    /// start of the next one and its text (`None`: no line starts there).
+    /// Rows are at most `WINDOW` bytes long.
+    fn line_at(&mut self, pos: u64) -> Result<Option<(u64, u64, String)>> {
+        // A line starts at `pos` when the byte before it ends a line.
+        let from = pos.max(self.start) - 1;
+        if from + 1 >= self.len {
+            return Ok(None);
+        }
+        let buf = self.bytes(from, 2 * WINDOW as u64)?;
+        let nl = |b: &[u8]| b.iter().position(|&c| c == b'\n');
+        let long = || anyhow::anyhow!("a row longer than {WINDOW} bytes");
+        let s = nl(&buf[..buf.len().min(WINDOW + 1)]).ok_or_else(long)?;
+        let begin = from + s as u64 + 1;
+        if begin >= self.len {
+            return Ok(None);
+        }
+        let rest = &buf[s + 1..];
+        let (line, next) = match nl(rest) {
+            Some(e) => (&rest[..e], begin + e as u64 + 1),
+            None if from + buf.len() as u64 == self.len => (rest, self.len),
+            None => return Err(long()),
+        };
+        Ok(Some((
+            begin,
+            next,
+            String::from_utf8_lossy(line).into_owned(),
+        )))
+    }
+
+    /// The row of `label`, if the file has one: a binary search over byte
+    /// positions for the first row whose label is not below it.
+    fn row(&mut self, label: u64) -> Result<Option<LabelRow>> {
+        let label_of = |line: &str| -> Result<u64> {
+            let f = line.split(',').next().unwrap_or("");
+            f.parse()
+                .with_context(|| format!("expected a label in the first column, found {f:?}"))
+        };
+        let (mut lo, mut hi) = (self.start, self.len);
+        while lo < hi {
+            let mid = lo + (hi - lo) / 2;
+            match self.line_at(mid)? {
+                None => hi = mid,
+                Some((_, next, line)) if label_of(&line)? < label => lo = next,
+                Some(_) => hi = mid,
+            }
+        }
+        let Some((_, _, line)) = self.line_at(lo)? else {
+            return Ok(None);
+        };
+        if label_of(&line)? != label {
+            return Ok(None);
+        }
+        let f: Vec<&str> = line.split(',').collect();
+        if f.len() < 11 {
+            anyhow::bail!("expected at least 11 columns, found {}: {line:?}", f.len());
+        }
+        let int = |i: usize| -> Result<u64> {
+            f[i].parse()
+                .with_context(|| format!("column {}: expected a count, found {:?}", i + 1, f[i]))
+        };
+        let real = |i: usize| -> Result<f64> {
+            f[i].parse()
+                .with_context(|| format!("column {}: expected a number, found {:?}", i + 1, f[i]))
+        };
+        Ok(Some(LabelRow {
+            voxels: int(1)?,
+            min: [int(2)?, int(3)?, int(4)?],
+            max: [int(5)?, int(6)?, int(7)?],
+            centroid: [real(8)?, real(9)?, real(10)?],
+            mean: f
+                .get(11)
+                .filter(|s| !s.is_empty())
+                .map(|_| real(11))
+                .transpose()?,
+        }))
+    }
+}
+
+/// The probe's thread: the image, and the label image over it if any.
+pub struct Setup {
+    pub store: PathBuf,
+    pub labels: Option<PathBuf>,
+    pub extent: Vec3,
+    pub read_delay: Duration,
+}
+
+/// The window's side: asks, and keeps the latest answer.
+pub struct Probe {
+    tx: Sender<Ask>,
+    rx: Receiver<Answer>,
+    /// The image's level-0 size, to tell voxels apart.
+    dims: Dims3,
+    extent: Vec3,
+    next: u64,
+    /// The last question: its id and voxel.
+    asked: Option<(u64, [u64; 3])>,
+    pub answer: Option<Answer>,
+}
+
+impl Probe {
+    /// Open the readers (errors name the store) and start the thread;
+    /// `wake` tells the window an answer came.
+    pub fn start(setup: Setup, wake: impl Fn() + Send + 'static) -> Result<Probe> {
+        let image = Reader::open(&setup.store, setup.read_delay)?;
+        let labels = match &setup.labels {
+            Some(dir) => Some((Reader::open(dir, setup.read_delay)?, Stats::open(dir))),
+            None => None,
+        };
+        let dims = image.dims;
+        let (tx, ask_rx) = std::sync::mpsc::channel();
+        let (answer_tx, rx) = std::sync::mpsc::channel();
+        let extent = setup.extent;
+        std::thread::Builder::new()
+            .name("probe".into())
+            .spawn(move || run(image, labels, extent, ask_rx, answer_tx, wake))
+            .context("probe thread")?;
+        Ok(Probe {
+            tx,
+            rx,
+            dims,
+            extent,
+            next: 0,
+            asked: None,
+            answer: None,
+        })
+    }
+
+    /// Ask for the voxel at `world` unless it is the one asked for last.
+    pub fn ask(&mut self, world: Vec3) {
+        let v = voxel_of(world, self.extent, self.dims);
+        if self.asked.is_some_and(|(_, a)| a == v) {
+            return;
+        }
+        self.next += 1;
+        self.asked = Some((self.next, v));
+        let _ = self.tx.send(Ask {
+            id: self.next,
+            world,
+        });
+    }
+
+    /// Answers that came (the latest is kept in `answer`).
+    pub fn take(&mut self) -> Vec<Answer> {
+        let got: Vec<Answer> = self.rx.try_iter().collect();
+        if let Some(a) = got.last() {
+            self.answer = Some(a.clone());
+        }
+        got
+    }
+
+    /// Whether the latest answer is for the latest question.
+    pub fn answered(&self) -> bool {
+        matches!((&self.answer, self.asked), (Some(a), Some((id, _))) if a.id == id)
+    }
+}
+
+fn run(
+    mut image: Reader,
+    mut labels: Option<(Reader, Result<Option<Stats>>)>,
+    extent: Vec3,
+    rx: Receiver<Ask>,
+    tx: Sender<Answer>,
+    wake: impl Fn(),
+) {
+    while let Ok(mut ask) = rx.recv() {
+        // Only the latest question matters.
+        while let Ok(a) = rx.try_recv() {
+            ask = a;
+        }
+        let t0 = Instant::now();
+        let voxel = voxel_of(ask.world, extent, image.dims);
+        let values = (0..image.channels)
+            .map(|c| image.value(voxel, c))
+            .collect::<Result<Vec<f64>>>()
+            .map_err(|e| format!("{e:#}"));
+        let label = labels.as_mut().map(|(r, stats)| {
+            let lv = voxel_of(ask.world, extent, r.dims);
+            let label = r.value(lv, 0).map_err(|e| format!("{e:#}"))? as u64;
+            let row = match stats {
+                _ if label == 0 => Ok(None),
+                Ok(Some(s)) => s
+                    .row(label)
+                    .map_err(|e| format!("{}: {e:#}", s.path.display())),
+                Ok(None) => Ok(None),
+                Err(e) => Err(format!("{e:#}")),
+            };
+            Ok(LabelAt {
+                voxel: lv,
+                label,
+                row,
+            })
+        });
+        let answer = Answer {
+            id: ask.id,
+            world: ask.world,
+            voxel,
+            values,
+            label,
+            ms: t0.elapsed().as_secs_f64() * 1e3,
+        };
+        if tx.send(answer).is_err() {
+            return;
+        }
+        wake();
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn stats_file(rows: &[(u64, u64)]) -> (tempfile::TempDir, Stats) {
+        let d = tempfile::tempdir().unwrap();
+        std::fs::create_dir_all(d.path().join("_brickyard")).unwrap();
+        let mut s = String::from(
+            "label,voxels,min_z,min_y,min_x,max_z,max_y,max_x,centroid_z,centroid_y,centroid_x,mean\n",
+        );
+        for (l, n) in rows {
+            // Rows of different lengths, as real ones are.
+            s += &format!("{l},{n},1,2,3,4,5,6,{}.25,2.5,3.5,{}\n", l % 7, l * 10);
+        }
+        std::fs::write(d.path().join("_brickyard/labels.csv"), s).unwrap();
+        let st = Stats::open(d.path()).unwrap().unwrap();
+        (d, st)
+    }
+
+    #[test]
+    fn rows_are_found_by_label_in_files_of_any_length() {
+        // Labels with gaps: every present one is found, every absent one
+        // is not, in files of 1 to 3000 rows (the search windows of 4 KiB
+        // then hold many rows, or part of the file).
+        for n in [1u64, 2, 3, 10, 257, 3000] {
+            let rows: Vec<(u64, u64)> = (0..n).map(|i| (3 * i + 2, 1000 + i * i)).collect();
+            let (_d, mut st) = stats_file(&rows);
+            for (l, v) in &rows {
+                let r = st
+                    .row(*l)
+                    .unwrap()
+                    .unwrap_or_else(|| panic!("{n} rows: label {l}"));
+                assert_eq!(r.voxels, *v);
+                assert_eq!(r.centroid[0], (l % 7) as f64 + 0.25);
+                assert_eq!(r.mean, Some((l * 10) as f64));
+            }
+            for l in [0, 1, 3, 4, 3 * n + 2, u64::MAX] {
+                assert_eq!(st.row(l).unwrap(), None, "{n} rows: label {l}");
+            }
+        }
+    }
+
+    #[test]
+    fn a_statistics_file_of_another_shape_is_refused_by_name() {
+        let d = tempfile::tempdir().unwrap();
+        std::fs::create_dir_all(d.path().join("_brickyard")).unwrap();
+        std::fs::write(d.path().join("_brickyard/labels.csv"), "id,size\n1,2\n").unwrap();
+        let e = format!("{:#}", Stats::open(d.path()).err().unwrap());
+        assert!(
+            e.contains("labels.csv") && e.contains("expected the header"),
+            "{e}"
+        );
+        assert!(Stats::open(&d.path().join("none")).unwrap().is_none());
+    }
+
+    #[test]
+    fn world_points_map_to_the_voxels_that_hold_them() {
+        let (extent, dims) = ([20.0, 10.0, 5.0], [5, 10, 20]);
+        assert_eq!(voxel_of([0.0; 3], extent, dims), [0, 0, 0]);
+        assert_eq!(voxel_of([19.99, 0.5, 4.99], extent, dims), [4, 0, 19]);
+        // The far faces belong to the last voxels; points outside clamp.
+        assert_eq!(voxel_of(extent, extent, dims), [4, 9, 19]);
+        assert_eq!(voxel_of([-3.0, 11.0, 2.5], extent, dims), [2, 9, 0]);
+    }
+}
