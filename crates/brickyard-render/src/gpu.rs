@@ -144,6 +144,11 @@ struct Uniform {
     region: [u32; 4],
     /// Only pixel rows `[y, z)` drawn (`x` = 1; [`GpuRenderer::rows`]).
     rows: [u32; 4],
+    /// A label image's selection ([`RenderParams::label_select`]): every
+    /// label (0), only the labels listed (1) or all but them (2); where
+    /// the list starts in the aux buffer (increasing, `i32` bits); its
+    /// length; 0.
+    label_sel: [u32; 4],
 }
 
 const EXACT_BIT: u32 = 0x8000_0000;
@@ -231,6 +236,7 @@ type AuxKey = (
     u8,
     Vec<ChannelStyle>,
     usize,
+    Option<crate::params::LabelSelect>,
 );
 
 /// Image and transfer-function buffers kept for reuse.
@@ -602,6 +608,7 @@ impl GpuRenderer {
             },
             params.channels.clone(),
             oct_layout.map_or(0, |o| o[2]),
+            params.label_select.clone().filter(|_| params.labels),
         );
         if let Some(i) = self.aux.iter().position(|(k, ..)| *k == key) {
             let x = self.aux.remove(i);
@@ -697,6 +704,11 @@ impl GpuRenderer {
                     0,
                 ]);
             }
+            // A label image's selection: its labels, right before the
+            // octree's tables.
+            if let Some(sel) = &key.7 {
+                words.extend(sel.ids.iter().map(|&id| id as u32));
+            }
             // The octree's tables follow, rewritten when what they are made
             // of changes.
             let oct_off = words.len() as u32;
@@ -718,7 +730,12 @@ impl GpuRenderer {
             }
             self.aux.push((key, buf, off, styles_off, oct_off, None));
         }
-        let (_, aux, off, styles_off, oct_off, written) = self.aux.last_mut().expect("made above");
+        let (key, aux, off, styles_off, oct_off, written) =
+            self.aux.last_mut().expect("made above");
+        if let Some(sel) = &key.7 {
+            let n = sel.ids.len() as u32;
+            u.label_sel = [1 + sel.hide as u32, *oct_off - n, n, 0];
+        }
         u.n_channels = if by_octree {
             params.channels.len().max(1) as u32
         } else {

@@ -105,6 +105,10 @@ struct Render {
     // x: only pixel rows [y, z) are drawn, the others transparent (1): an
     // image-parallel band; w: 0.
     rows: vec4<u32>,
+    // A label image's selection: every label (x = 0), only those listed
+    // (1) or all but them (2); the list's start in `aux` (increasing,
+    // i32 bits) and length; 0.
+    label_sel: vec4<u32>,
 }
 
 @group(0) @binding(3) var<uniform> R: Render;

@@ -12,7 +12,7 @@
 //! [`RenderParams::labels`]: crate::params::RenderParams::labels
 
 use crate::cpu::FrameStats;
-use crate::optics::{label_background, label_color, label_of};
+use crate::optics::{label_background, label_color, label_drawn, label_of};
 use crate::walk::{inside, jump_before, step_t, Content, Grid, Walker};
 use brickyard_cache::vm::Requests;
 use brickyard_core::camera::{intersect_box, Ray, Vec3};
@@ -66,6 +66,7 @@ impl<'f, 'a, T: Sample> Walker<'f, 'a, T> {
         st: &mut FrameStats,
     ) -> [f32; 4] {
         let f = self.f;
+        let select = f.params.label_select.as_ref();
         let Some((t0, t1)) = intersect_box(ray, [0.0; 3], f.scene.extent) else {
             return [0.0; 4];
         };
@@ -140,7 +141,7 @@ impl<'f, 'a, T: Sample> Walker<'f, 'a, T> {
                         st.samples += 1;
                         st.exact += 1;
                         let v = vox[f.local_index(q, lo)].to_f32();
-                        if let Some(id) = label_of(v).filter(|&id| id != 0) {
+                        if let Some(id) = label_drawn(Some(v), select) {
                             let gr = self.indicator_around(level, q, id, req, st);
                             return surface_color(id, surface_shade(gr, f.scale[level], ray.dir));
                         }
@@ -163,7 +164,7 @@ impl<'f, 'a, T: Sample> Walker<'f, 'a, T> {
             }
             match self.value(level, w, vb, frac, req, st) {
                 Some(v) => {
-                    if let Some(id) = label_of(v).filter(|&id| id != 0) {
+                    if let Some(id) = label_drawn(Some(v), select) {
                         let gr = self.indicator_around(level, vb, id, req, st);
                         return surface_color(id, surface_shade(gr, f.scale[level], ray.dir));
                     }

@@ -134,7 +134,7 @@ fn label_surface(ray: Ray) -> vec4<f32> {
             continue;
         }
         let id = label_id(s.x);
-        if (id != 0) {
+        if (id != 0 && label_shown(id)) {
             let g = label_gradient(level, vec3<i32>(b), id);
             let c = label_color(s.x);
             px = vec4<f32>(c.xyz * label_shade(level, g, ray.d), 1.0);

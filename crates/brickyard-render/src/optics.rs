@@ -6,7 +6,7 @@
 //! The in-core reference has its own implementation of the same rules.
 
 use crate::lanes::F4;
-use crate::params::ChannelStyle;
+use crate::params::{ChannelStyle, LabelSelect};
 use brickyard_core::transfer::TfEval;
 use brickyard_core::TransferFunction;
 
@@ -390,6 +390,25 @@ pub fn label_color(value: Option<f32>) -> [f32; 4] {
     let val = 0.75 + 0.25 * (h >> 24) as f32 * (1.0 / 255.0);
     let [r, g, b] = hsv(hue, sat, val);
     [r, g, b, 1.0]
+}
+
+/// The label drawn for a sample of a label image: its label
+/// ([`label_of`]) when that is not 0 and `select` (if any) shows it.
+#[inline]
+pub fn label_drawn(value: Option<f32>, select: Option<&LabelSelect>) -> Option<i32> {
+    value
+        .and_then(label_of)
+        .filter(|&id| id != 0 && select.is_none_or(|s| s.shows(id)))
+}
+
+/// [`label_color`] of the labels `select` shows; the others are
+/// transparent, as the background.
+#[inline]
+pub fn label_color_of(value: Option<f32>, select: Option<&LabelSelect>) -> [f32; 4] {
+    match label_drawn(value, select) {
+        Some(id) => label_color(Some(id as f32)),
+        None => [0.0; 4],
+    }
 }
 
 /// Intensity of `value` for a channel shown with `style`: its window

@@ -144,15 +144,38 @@ fn hsv(h6: f32, s: f32, v: f32) -> vec3<f32> {
     }
 }
 
+// Whether label `id` is drawn under the frame's selection (`R.label_sel`;
+// optics.rs's `LabelSelect::shows`): a binary search of its list.
+fn label_shown(id: i32) -> bool {
+    let mode = R.label_sel.x;
+    if (mode == 0u) {
+        return true;
+    }
+    let base = R.label_sel.y;
+    let n = R.label_sel.z;
+    var lo = 0u;
+    var hi = n;
+    while (lo < hi) {
+        let mid = (lo + hi) / 2u;
+        if (bitcast<i32>(aux[base + mid]) < id) {
+            lo = mid + 1u;
+        } else {
+            hi = mid;
+        }
+    }
+    let listed = lo < n && bitcast<i32>(aux[base + lo]) == id;
+    return listed != (mode == 2u);
+}
+
 // The pixel of a label image's slice sample `v` (optics.rs's
-// `label_color`): the label's colour, opaque; label 0 and NaN (nothing
-// served) transparent.
+// `label_color_of`): the label's colour, opaque; label 0, labels the
+// selection hides and NaN (nothing served) transparent.
 fn label_color(v: f32) -> vec4<f32> {
     if (is_nan(v)) {
         return vec4<f32>(0.0);
     }
     let id = i32(floor(v + 0.5));
-    if (id == 0) {
+    if (id == 0 || !label_shown(id)) {
         return vec4<f32>(0.0);
     }
     let h = label_hash(bitcast<u32>(id));

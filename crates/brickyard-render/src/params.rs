@@ -144,6 +144,69 @@ pub struct RenderParams {
     /// surface ([`crate::labels`]).
     #[serde(default, skip_serializing_if = "is_default")]
     pub labels: bool,
+    /// With [`labels`](Self::labels): which labels are drawn (`None`:
+    /// all). The others are background: transparent in a slice, and a
+    /// ray goes on through them in 3D.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub label_select: Option<LabelSelect>,
+}
+
+/// The most labels a [`LabelSelect`] names.
+pub const MAX_SELECTED_LABELS: usize = 1 << 16;
+
+/// Which labels of a label image are drawn: only those named, or all but
+/// those named.
+#[derive(Debug, Clone, PartialEq, Eq, Hash, Serialize, Deserialize)]
+pub struct LabelSelect {
+    /// The labels named, in increasing order, each once, none 0.
+    pub ids: Vec<i32>,
+    /// Every label but `ids` (else only `ids`).
+    #[serde(default, skip_serializing_if = "is_default")]
+    pub hide: bool,
+}
+
+impl LabelSelect {
+    /// A selection of `ids` (any order, repeats allowed).
+    pub fn new(mut ids: Vec<i32>, hide: bool) -> LabelSelect {
+        ids.sort_unstable();
+        ids.dedup();
+        LabelSelect { ids, hide }
+    }
+
+    /// Whether label `id` is drawn.
+    #[inline]
+    pub fn shows(&self, id: i32) -> bool {
+        self.ids.binary_search(&id).is_ok() != self.hide
+    }
+
+    /// Parse a list such as `3,17,40-45` (labels and inclusive ranges).
+    pub fn parse_ids(text: &str) -> Result<Vec<i32>, String> {
+        let mut ids = vec![];
+        for part in text.split(',').map(str::trim).filter(|p| !p.is_empty()) {
+            let num = |s: &str| {
+                s.trim()
+                    .parse::<i32>()
+                    .map_err(|_| format!("expected labels such as 3,17,40-45, found {part:?}"))
+            };
+            let (a, b) = match part.split_once('-').filter(|(a, _)| !a.is_empty()) {
+                Some((a, b)) => (num(a)?, num(b)?),
+                None => (num(part)?, num(part)?),
+            };
+            if a > b {
+                return Err(format!("the range {part:?} runs backwards"));
+            }
+            if (b as i64 - a as i64) as usize + ids.len() >= MAX_SELECTED_LABELS {
+                return Err(format!("at most {MAX_SELECTED_LABELS} labels"));
+            }
+            ids.extend(a..=b);
+        }
+        if ids.is_empty() {
+            return Err(format!(
+                "expected labels such as 3,17,40-45, found {text:?}"
+            ));
+        }
+        Ok(ids)
+    }
 }
 
 fn yes() -> bool {
@@ -253,6 +316,7 @@ impl RenderParams {
             early_termination: true,
             mip_values: false,
             labels: false,
+            label_select: None,
         }
     }
 
@@ -346,6 +410,26 @@ impl RenderParams {
                  draws a label image's values)"
                     .into(),
             );
+        }
+        if let Some(sel) = &self.label_select {
+            if !self.labels {
+                return bad(
+                    "label_select",
+                    "a selection of labels applies to a label image's colours".into(),
+                );
+            }
+            if sel.ids.len() > MAX_SELECTED_LABELS
+                || sel.ids.windows(2).any(|w| w[0] >= w[1])
+                || sel.ids.contains(&0)
+            {
+                return bad(
+                    "label_select",
+                    format!(
+                        "expected at most {MAX_SELECTED_LABELS} labels in increasing order, \
+                         each once, none 0 (the background)"
+                    ),
+                );
+            }
         }
         if self.traversal == Traversal::Octree {
             if !dvr {

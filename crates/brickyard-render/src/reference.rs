@@ -84,7 +84,7 @@ use std::path::Path;
 
 // What to render is the same for every renderer; named here too, as
 // callers have always named it.
-pub use crate::params::{ChannelStyle, RenderMode, RenderParams, MAX_CHANNELS};
+pub use crate::params::{ChannelStyle, LabelSelect, RenderMode, RenderParams, MAX_CHANNELS};
 
 /// DVR stops a ray once its accumulated opacity reaches this.
 pub const EARLY_TERMINATION: f32 = 0.99;
@@ -478,16 +478,19 @@ pub fn render(volume: &Volume, params: &RenderParams) -> Image {
     if let (RenderMode::Slice { origin, normal }, Some(views)) = (&params.mode, &params.views) {
         return render_super_slices(volume, params, views, (*origin, *normal));
     }
+    let sel = params.label_select.as_ref();
     per_pixel(params, |ray| match &params.mode {
-        RenderMode::Dvr if params.labels => label_surface_ray(volume, ray, extent, dt),
+        RenderMode::Dvr if params.labels => label_surface_ray(volume, ray, extent, dt, sel),
         RenderMode::Dvr => dvr_ray(volume, &params.tf, ray, extent, dt, exponent),
         RenderMode::Mip => mip_ray(volume, &params.tf, ray, extent, dt),
         RenderMode::Slice { origin, normal } if params.labels => {
             match plane_hit(ray, *origin, *normal, extent) {
-                Some((w, _)) => match label_rgb(volume.nearest(world_to_normalized(w, extent))) {
-                    Some(c) => [c[0] as f32, c[1] as f32, c[2] as f32, 1.0],
-                    None => [0.0; 4],
-                },
+                Some((w, _)) => {
+                    match label_rgb(volume.nearest(world_to_normalized(w, extent)), sel) {
+                        Some(c) => [c[0] as f32, c[1] as f32, c[2] as f32, 1.0],
+                        None => [0.0; 4],
+                    }
+                }
                 None => [0.0; 4],
             }
         }
@@ -763,8 +766,13 @@ fn label(v: f32) -> Option<i64> {
 /// (low 16 bits, of the whole circle), the saturation (`0.6 + 0.4·b/255`,
 /// bits 16–23) and the value (`0.75 + 0.25·b/255`, bits 24–31), turned
 /// into RGB by the six sectors of the hue.
-fn label_rgb(v: f32) -> Option<[f64; 3]> {
+fn label_rgb(v: f32, sel: Option<&LabelSelect>) -> Option<[f64; 3]> {
     let id = label(v).filter(|&id| id != 0)?;
+    // A selection: only the labels it names, or all but those (a plain
+    // search of its list).
+    if sel.is_some_and(|s| s.ids.iter().any(|&x| x as i64 == id) == s.hide) {
+        return None;
+    }
     let mut h = id as i32 as u32;
     h ^= h >> 16;
     h = h.wrapping_mul(0x85eb_ca6b);
@@ -798,7 +806,13 @@ fn label_rgb(v: f32) -> Option<[f64; 3]> {
 /// voxel holds it, 0 elsewhere and outside the volume) by Sobel's 3×3×3
 /// operator (central differences across each axis, weighted `1 2 1` along
 /// the other two), per world unit; 1 where that gradient is 0.
-fn label_surface_ray(vol: &Volume, ray: &Ray, extent: Vec3, dt: f64) -> [f32; 4] {
+fn label_surface_ray(
+    vol: &Volume,
+    ray: &Ray,
+    extent: Vec3,
+    dt: f64,
+    sel: Option<&LabelSelect>,
+) -> [f32; 4] {
     let Some((t0, t1)) = intersect_box(ray, [0.0; 3], extent) else {
         return [0.0; 4];
     };
@@ -810,7 +824,7 @@ fn label_surface_ray(vol: &Volume, ray: &Ray, extent: Vec3, dt: f64) -> [f32; 4]
         }
         let q = vol.nearest_index(world_to_normalized(ray.at(t), extent));
         let v = vol.voxel(q[0], q[1], q[2]);
-        let Some(rgb) = label_rgb(v) else {
+        let Some(rgb) = label_rgb(v, sel) else {
             continue;
         };
         let id = label(v);

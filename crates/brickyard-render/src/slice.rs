@@ -7,7 +7,7 @@
 //! the device twin.
 
 use crate::cpu::FrameStats;
-use crate::optics::{label_color, mix_channels, slice_color};
+use crate::optics::{label_color_of, mix_channels, slice_color};
 use crate::params::{RenderParams, MAX_CHANNELS};
 use crate::walk::Walker;
 use brickyard_cache::vm::Requests;
@@ -84,7 +84,7 @@ impl Plane {
         };
         let v = wk.slice_value(wp, t, req, st);
         if wk.f.params.labels {
-            return label_color(v);
+            return label_color_of(v, wk.f.params.label_select.as_ref());
         }
         slice_color(&wk.f.tf_eval, v)
     }
@@ -109,7 +109,7 @@ pub(crate) fn pixel<T: Sample>(
         let wk = &mut walkers[0];
         let v = wk.slice_value(wp, t, req, st);
         if params.labels {
-            return label_color(v);
+            return label_color_of(v, params.label_select.as_ref());
         }
         return slice_color(&wk.f.tf_eval, v);
     }

@@ -449,3 +449,162 @@ fn sheets_of_labels_behind_background_bricks_are_met_where_the_reference_meets_t
         "{d} pixels differ on the device"
     );
 }
+
+/// Pixels of each label's colour, shaded or not (`ids`: the labels to
+/// look for): the label each lit pixel shows, by the hue of its colour.
+fn labels_shown(img: &Image, ids: &HashSet<u32>) -> std::collections::HashMap<u32, usize> {
+    let mut n = std::collections::HashMap::new();
+    for px in img.rgba.iter().filter(|px| px[3] > 0.0) {
+        let k = px[..3].iter().cloned().fold(0.0, f32::max);
+        let id = ids.iter().copied().filter(|&id| id != 0).find(|&id| {
+            let c = label_color(Some(id as f32));
+            let m = c[..3].iter().cloned().fold(0.0, f32::max);
+            (0..3).all(|a| (c[a] / m - px[a] / k).abs() <= 1e-4)
+        });
+        *n.entry(id.unwrap_or(0)).or_insert(0) += 1;
+    }
+    n
+}
+
+#[test]
+fn label_selections_draw_only_or_all_but_the_labels_named_on_the_cpu_and_the_device() {
+    use brickyard_render::params::LabelSelect;
+    let dir = tempfile::tempdir().unwrap();
+    let (store, levels) = nuclei_labels(dir.path());
+    let extent = world_extent(levels[0].dims, levels[0].spacing);
+    let mut scene = Scene::new(extent, levels.iter().map(|v| v.dims).collect());
+    let vol_bytes = levels[0].dims.iter().product::<u64>() * 4;
+    let gpu = brickyard_gpu::context::test_gpu();
+    let ids: HashSet<u32> = levels[0].data.iter().map(|&v| v as u32).collect();
+    let tf = TransferFunction::preset("linear", [0.0, 1.0]).unwrap();
+    let origin = [extent[0] * 0.5, extent[1] * 0.5, extent[2] * 0.45];
+    let normal = [0.15, -0.1, 1.0];
+    let slice_cam = Camera::facing_plane(origin, normal, extent[0].max(extent[1]) * 1.05);
+    let mut slice = RenderParams::new(
+        96,
+        96,
+        slice_cam,
+        tf.clone(),
+        RenderMode::Slice { origin, normal },
+    );
+    let cam = Camera::fit(
+        extent,
+        35.0,
+        40.0,
+        Projection::Perspective { fov_y_deg: 35.0 },
+    );
+    let mut dvr = RenderParams::new(96, 80, cam, tf, RenderMode::Dvr);
+    dvr.reference_step = Some(scene.voxel(0));
+    for (what, p) in [("slice", &mut slice), ("3D", &mut dvr)] {
+        p.labels = true;
+        // The three labels the view shows most of, by the reference.
+        let all = render(&levels[0], p);
+        let mut seen: Vec<(usize, u32)> = labels_shown(&all, &ids)
+            .into_iter()
+            .map(|(id, n)| (n, id))
+            .collect();
+        seen.sort_unstable_by(|a, b| b.cmp(a));
+        assert!(
+            seen.len() >= 8 && seen.iter().all(|s| s.1 != 0),
+            "{what}: {seen:?}"
+        );
+        let named: Vec<i32> = seen[..3].iter().map(|s| s.1 as i32).collect();
+        for hide in [false, true] {
+            p.label_select = Some(LabelSelect::new(named.clone(), hide));
+            p.validate().unwrap();
+            let want = render(&levels[0], p);
+            let shown = labels_shown(&want, &ids);
+            let named_px: usize = named
+                .iter()
+                .map(|id| shown.get(&(*id as u32)).copied().unwrap_or(0))
+                .sum();
+            let other_px: usize = shown
+                .iter()
+                .filter(|(id, _)| !named.contains(&(**id as i32)))
+                .map(|(_, n)| n)
+                .sum();
+            eprintln!(
+                "{what}, hide {hide}: {named_px} pixels of the labels named, {other_px} of others"
+            );
+            if hide {
+                assert_eq!(named_px, 0, "{what}: hidden labels drawn");
+                // The rest as before, and (in 3D) labels behind the hidden
+                // ones come to light.
+                let before: usize = seen[3..].iter().map(|s| s.0).sum();
+                if what == "3D" {
+                    assert!(
+                        other_px > before + 50,
+                        "{what}: {other_px} against {before}"
+                    );
+                } else {
+                    assert_eq!(other_px, before, "{what}");
+                }
+            } else {
+                assert_eq!(other_px, 0, "{what}: labels not named drawn");
+                assert!(
+                    named.iter().all(|id| shown.contains_key(&(*id as u32))),
+                    "{what}: {shown:?}"
+                );
+            }
+            // The CPU against the reference, the device against the CPU.
+            let mut s = session(&store, DType::U32, vol_bytes * 5 / 4);
+            scene.ranges = Some(std::sync::Arc::new(s.loader().brick_ranges(1 << 24)));
+            let (img, _) = converge_cpu(&mut s, &scene, p, 0);
+            let d = differing(&img, &want, 1e-5);
+            assert!(
+                d <= 3,
+                "{what}, hide {hide}: {d} pixels differ from the reference"
+            );
+            let Some(gpu) = &gpu else { continue };
+            let mut s = session(&store, DType::U32, vol_bytes * 5 / 4);
+            let (dev, _) = converge_device(gpu, &mut s, &scene, p, 0);
+            let d = differing(&dev, &img, 1e-5);
+            eprintln!("{what}, hide {hide}: {d} pixels on the device differ from the CPU");
+            assert!(
+                d * 50 <= img.rgba.len(),
+                "{what}, hide {hide}: {d} pixels differ on the device"
+            );
+            assert_eq!(
+                labels_shown(&dev, &ids).contains_key(&(named[0] as u32)),
+                !hide,
+                "{what}"
+            );
+        }
+        p.label_select = None;
+    }
+}
+
+#[test]
+fn label_selections_are_refused_where_they_mean_nothing() {
+    use brickyard_render::params::LabelSelect;
+    let cam = Camera::facing_plane([1.0; 3], [0.0, 0.0, 1.0], 2.0);
+    let tf = TransferFunction::preset("linear", [0.0, 1.0]).unwrap();
+    let mode = RenderMode::Slice {
+        origin: [1.0; 3],
+        normal: [0.0, 0.0, 1.0],
+    };
+    let mut p = RenderParams::new(8, 8, cam, tf, mode);
+    p.label_select = Some(LabelSelect::new(vec![3], false));
+    let e = p.validate().unwrap_err().to_string();
+    assert!(
+        e.contains("label_select") && e.contains("label image"),
+        "{e}"
+    );
+    p.labels = true;
+    p.validate().unwrap();
+    p.label_select = Some(LabelSelect {
+        ids: vec![5, 3],
+        hide: false,
+    });
+    assert!(p.validate().unwrap_err().to_string().contains("increasing"));
+    p.label_select = Some(LabelSelect::new(vec![0, 3], true));
+    assert!(p.validate().unwrap_err().to_string().contains("background"));
+    assert_eq!(
+        LabelSelect::parse_ids("3, 17,40-42").unwrap(),
+        vec![3, 17, 40, 41, 42]
+    );
+    assert_eq!(LabelSelect::parse_ids("-2").unwrap(), vec![-2]);
+    for bad in ["", "x", "5-3", "1-999999"] {
+        assert!(LabelSelect::parse_ids(bad).is_err(), "{bad}");
+    }
+}

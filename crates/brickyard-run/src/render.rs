@@ -10,7 +10,7 @@ use brickyard_core::TransferFunction;
 use brickyard_render::budget::Stop;
 use brickyard_render::cpu::{Lod, Scene};
 use brickyard_render::octree::{DEFAULT_DEPTH, MAX_DEPTH, MIN_DEPTH};
-use brickyard_render::params::{DebugCounts, Traversal};
+use brickyard_render::params::{DebugCounts, LabelSelect, Traversal};
 use brickyard_render::reference::{RenderMode, RenderParams};
 use brickyard_store::import::zarr;
 use brickyard_store::info::{human_bytes, inspect};
@@ -72,6 +72,13 @@ pub struct RenderCmd {
     /// (default 0.5).
     #[arg(long, value_name = "A")]
     label_opacity: Option<f32>,
+    /// Label images: draw only these labels (e.g. `3,17,40-45`); the others
+    /// are background (clear in slices; rays go on through them in 3D).
+    #[arg(long, value_name = "IDS", conflicts_with = "hide_labels")]
+    only_labels: Option<String>,
+    /// Label images: draw every label but these (e.g. `3,17,40-45`).
+    #[arg(long, value_name = "IDS", allow_hyphen_values = true)]
+    hide_labels: Option<String>,
     /// Data window LO,HI (default: the data range from the brick statistics).
     #[arg(long, allow_hyphen_values = true)]
     window: Option<String>,
@@ -634,6 +641,27 @@ macro_rules! say_err {
     };
 }
 
+/// `--only-labels` / `--hide-labels`: the selection of labels drawn, for
+/// a run that draws a label image's colours (`labels`).
+fn label_select(c: &RenderCmd, labels: bool) -> Result<Option<LabelSelect>> {
+    let (text, hide, flag) = match (&c.only_labels, &c.hide_labels) {
+        (Some(t), _) => (t, false, "only-labels"),
+        (None, Some(t)) => (t, true, "hide-labels"),
+        (None, None) => return Ok(None),
+    };
+    if !labels {
+        bail!(
+            "{flag}: applies to a label image's colours (a store's labels/NAME, --tf labels, \
+             or --labels NAME over a slice)"
+        );
+    }
+    let ids = LabelSelect::parse_ids(text).map_err(|e| anyhow::anyhow!("{flag}: {e}"))?;
+    if ids.contains(&0) {
+        bail!("{flag}: 0 is the background, never drawn; expected labels other than 0");
+    }
+    Ok(Some(LabelSelect::new(ids, hide)))
+}
+
 /// The render of [`run`] and [`images`]: `sink` receives each view's
 /// image and the file it is meant for.
 fn run_with(
@@ -684,6 +712,7 @@ fn run_with_labels(
     let [w, h] = parse_image_size(&c.size, "size")?;
     let held = w as u64 * h as u64 * std::mem::size_of::<[f32; 4]>() as u64;
     let mut lc = c.clone();
+    (c.only_labels, c.hide_labels) = (None, None);
     lc.store = dir;
     lc.tf = Some("labels".into());
     lc.window = None;
@@ -901,6 +930,7 @@ fn run_one(
         None => "soft",
     };
     let labels = tf_name == "labels";
+    let select = label_select(&c, labels)?;
     if labels {
         let why = if c.mode == "mip" {
             Some("--mode mip draws a label image's values through another transfer function; labels are coloured in slices and in 3D (--mode slice or dvr)".to_string())
@@ -1496,6 +1526,7 @@ fn run_one(
         }
         params.reference_step = Some(scene.voxel(0));
         params.labels = labels;
+        params.label_select = select.clone();
         params.traversal = traversal;
         params.early_termination = !(c.no_early_termination || data_split);
         if let Some(r) = region {

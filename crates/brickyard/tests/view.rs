@@ -1776,3 +1776,127 @@ fn viewer_reads_out_the_voxel_and_label_under_the_cursor_and_the_pointer() {
 fn label_at_index(labels: &[u8], i: usize) -> u64 {
     u32::from_ne_bytes(labels[4 * i..4 * i + 4].try_into().unwrap()) as u64
 }
+
+#[test]
+fn viewer_picks_labels_and_draws_only_them_or_all_but_them_as_render_does() {
+    let _session = shared();
+    let d = tempfile::tempdir().unwrap();
+    let p = |n: &str| d.path().join(n);
+    let store = shared_stack(d.path(), "nuclei-confocal-u16.tif", "nuclei.ome.zarr", &[]);
+    let o = Command::new(bin())
+        .args(["process", s(&store), "gauss(1)|threshold(12000)|label(26)"])
+        .args(["--out", "cells", "--quiet"])
+        .output()
+        .unwrap();
+    assert!(o.status.success(), "process: {}", stderr(&o));
+    let flags = [
+        "--labels",
+        "cells",
+        "--backend",
+        "cpu",
+        "--brick",
+        "16",
+        "--window-size",
+        "900x600",
+    ];
+    // (At level 0: the readout reads full-resolution voxels, which a
+    // coarser level may show as another label.)
+    let head = "size xy 96 96\nlevel 0\nlabel-opacity 1\nwait-complete 120\n";
+    // First the labels as they are, to find a pixel inside a label: one
+    // whose 5 × 5 neighbours all have its strong colour.
+    std::fs::write(
+        p("a.txt"),
+        format!("{head}screenshot xy {}\nquit\n", s(&p("all.png"))),
+    )
+    .unwrap();
+    let Some(mut cmd) = viewer(&store, &p("a.txt"), None, &flags) else {
+        return;
+    };
+    let o = cmd.output().unwrap();
+    assert!(o.status.success(), "viewer: {}", stderr(&o));
+    let (w, h, all) = png_pixels(&p("all.png"));
+    let px = |img: &[u8], x: u32, y: u32| {
+        let i = 4 * (y * w + x) as usize;
+        [img[i], img[i + 1], img[i + 2]]
+    };
+    let strong = |c: [u8; 3]| c[0].abs_diff(c[1]) > 60 || c[1].abs_diff(c[2]) > 60;
+    let (x, y): (u32, u32) = (2..h - 2)
+        .flat_map(|y| (2..w - 2).map(move |x| (x, y)))
+        .find(|&(x, y)| {
+            let c = px(&all, x, y);
+            strong(c) && (0..25).all(|k| px(&all, x + k % 5 - 2, y + k / 5 - 2) == c)
+        })
+        .expect("no pixel inside a label");
+    let shoot = |name: &str| {
+        let f = s(&p(name)).to_string();
+        format!("wait-complete 120\nscreenshot xy {f}.png\nsave-view xy {f}\n")
+    };
+    let script = format!(
+        "{head}pick xy {x} {y}\nlabel-mode only\n{}label-mode hide\n{}label-select none\n{}quit\n",
+        shoot("only"),
+        shoot("hide"),
+        shoot("none")
+    );
+    std::fs::write(p("s.txt"), script).unwrap();
+    let Some(mut cmd) = viewer(&store, &p("s.txt"), Some(&p("log.jsonl")), &flags) else {
+        return;
+    };
+    let o = cmd.output().unwrap();
+    assert!(o.status.success(), "viewer: {}", stderr(&o));
+    // The label picked is the readout's label at that pixel.
+    let log = std::fs::read_to_string(p("log.jsonl")).unwrap();
+    let lines: Vec<serde_json::Value> = log
+        .lines()
+        .filter_map(|l| serde_json::from_str::<serde_json::Value>(l).ok())
+        .collect();
+    let at: Vec<usize> = (0..lines.len())
+        .filter(|&i| lines[i].get("picked").is_some())
+        .collect();
+    assert_eq!(at.len(), 1, "{log}");
+    let picked = &lines[at[0]]["picked"];
+    assert_eq!(picked.as_array().unwrap().len(), 1, "{picked}");
+    let id = picked[0].as_u64().unwrap();
+    // (The answer it took is the last before it.)
+    let answer = lines[..at[0]]
+        .iter()
+        .rev()
+        .find_map(|v| v.get("probe"))
+        .unwrap();
+    assert_eq!(answer["label"]["label"].as_u64(), Some(id), "{answer}");
+    let args = |n: &str| std::fs::read_to_string(p(&format!("{n}.args"))).unwrap();
+    assert!(
+        args("only").contains(&format!("--only-labels\n{id}\n")),
+        "{}",
+        args("only")
+    );
+    assert!(
+        args("hide").contains(&format!("--hide-labels\n{id}\n")),
+        "{}",
+        args("hide")
+    );
+    let none_args = args("none");
+    assert!(
+        !none_args.contains("--only-labels") && !none_args.contains("--hide-labels"),
+        "{none_args}"
+    );
+    // Each equals `render` of its saved arguments; the label picked shows
+    // alone, then all the others without it.
+    let only = equals_render(&store, d.path(), "only");
+    let hide = equals_render(&store, d.path(), "hide");
+    let none = equals_render(&store, d.path(), "none");
+    assert_eq!(none, all, "with nothing picked, every label is drawn");
+    let coloured = |img: &[u8]| {
+        (0..w * h)
+            .filter(|&i| strong(px(img, i % w, i / w)))
+            .count()
+    };
+    let (n_all, n_only, n_hide) = (coloured(&all), coloured(&only), coloured(&hide));
+    eprintln!("label {id}: coloured pixels {n_all} (all), {n_only} (only), {n_hide} (all but)");
+    assert_eq!(px(&only, x, y), px(&all, x, y));
+    assert!(!strong(px(&hide, x, y)), "the label hidden is drawn");
+    assert!(n_only >= 25 && n_only < n_all / 2, "{n_only} of {n_all}");
+    assert!(
+        n_hide > n_all / 2 && n_hide + 25 <= n_all,
+        "{n_hide} of {n_all}"
+    );
+}

@@ -209,6 +209,15 @@ pub struct ViewerApp {
     /// Whether the latest question was about the pointer (else the
     /// cursor).
     probe_pointer: bool,
+    /// Labels picked (Ctrl+click, the controls, scripts) and what is drawn
+    /// of a label image: every label (0), only those picked (1) or all but
+    /// them (2).
+    picked: Vec<i32>,
+    label_mode: u8,
+    /// The controls' text of the labels picked.
+    picked_text: String,
+    /// A pick waiting for the readout: the world point clicked.
+    pick: Option<Vec3>,
 }
 
 /// A live derived channel shown: its pipeline, the store's channel it is
@@ -325,6 +334,10 @@ impl ViewerApp {
             hover: None,
             script_hover: None,
             probe_pointer: false,
+            picked: vec![],
+            label_mode: 0,
+            picked_text: String::new(),
+            pick: None,
         }
     }
 
@@ -391,9 +404,10 @@ impl ViewerApp {
     /// script's, else the mouse's over a slice view), else the cursor, and
     /// log the answers that came.
     fn probe(&mut self) {
-        let pointer = match self.script_hover {
-            Some((v, x, y)) => Some(self.slice_point(v, x, y)),
-            None => self.hover,
+        let pointer = match (self.pick, self.script_hover) {
+            (Some(w), _) => Some(w),
+            (None, Some((v, x, y))) => Some(self.slice_point(v, x, y)),
+            (None, None) => self.hover,
         };
         let Some(p) = &mut self.probe else {
             return;
@@ -401,10 +415,61 @@ impl ViewerApp {
         self.probe_pointer = pointer.is_some();
         p.ask(pointer.unwrap_or(self.cursor));
         let got = p.take();
+        let picked = self.pick.is_some() && p.answered();
         for a in got {
             let t = self.started.elapsed().as_secs_f64();
             self.log_line(serde_json::json!({ "t": t, "probe": a.to_json() }));
         }
+        if picked {
+            self.pick = None;
+            self.take_pick();
+        }
+    }
+
+    /// The readout answered about the point picked: its label joins the
+    /// labels picked, or leaves them.
+    fn take_pick(&mut self) {
+        let Some(a) = self.probe.as_ref().and_then(|p| p.answer.as_ref()) else {
+            return;
+        };
+        // A label image shown itself: its value; else the label image
+        // over it.
+        let id = match (&a.label, &a.values) {
+            (Some(Ok(l)), _) => Ok(l.label as i64),
+            (Some(Err(e)), _) => Err(e.clone()),
+            (None, Ok(v)) if self.ds.labels => Ok((v[0] + 0.5).floor() as i64),
+            (None, Err(e)) => Err(e.clone()),
+            (None, _) => Err("no label image is shown".into()),
+        };
+        self.message = match id {
+            Ok(0) => "the background is not a label: nothing picked".into(),
+            Ok(id) => {
+                let id = id as i32;
+                match self.picked.iter().position(|&x| x == id) {
+                    Some(i) => {
+                        self.picked.remove(i);
+                    }
+                    None => self.picked.push(id),
+                }
+                self.picked_text = picked_text(&self.picked);
+                if self.label_mode == 0 {
+                    self.label_mode = 1;
+                }
+                format!("labels picked: {}", self.picked_text)
+            }
+            Err(e) => format!("pick: {e}"),
+        };
+        let t = self.started.elapsed().as_secs_f64();
+        self.log_line(
+            serde_json::json!({ "t": t, "picked": self.picked, "label_mode": self.label_mode }),
+        );
+    }
+
+    /// What the label image draws (`None`: every label).
+    pub(super) fn label_selection(&self) -> Option<brickyard_render::params::LabelSelect> {
+        (self.label_mode != 0 && !self.picked.is_empty()).then(|| {
+            brickyard_render::params::LabelSelect::new(self.picked.clone(), self.label_mode == 2)
+        })
     }
 
     /// The voxel readout's line of the status bar.
@@ -583,6 +648,14 @@ impl eframe::App for ViewerApp {
             );
         }
     }
+}
+
+/// Labels as `render --only-labels` takes them: `3,17,40`.
+pub(super) fn picked_text(ids: &[i32]) -> String {
+    ids.iter()
+        .map(|i| i.to_string())
+        .collect::<Vec<_>>()
+        .join(",")
 }
 
 /// A frame of several views laid out for the screen as the view's spec

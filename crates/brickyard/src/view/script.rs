@@ -10,6 +10,8 @@
 //! | `scroll VIEW STEPS` | the mouse wheel (zoom; positive: in) |
 //! | `click VIEW X Y` | a click at pixel (X, Y) of the view (slices: move the cursor there) |
 //! | `hover VIEW X Y` / `hover off` | the pointer at pixel (X, Y) of slice view VIEW (the voxel readout reads the voxel there), or gone (it reads the voxel at the cursor) |
+//! | `pick VIEW X Y` | Ctrl+click at pixel (X, Y) of slice view VIEW: the label there joins the labels picked, or leaves them (waits for the readout) |
+//! | `label-select IDS\|none` / `label-mode all\|only\|hide` | the labels picked (`3,17,40-45`); which labels a label image draws: all, only those picked, all but them |
 //! | `wait-probe [SECONDS]` | wait until the voxel readout answered for the voxel it reads now (default 60 s) |
 //! | `key NAME` | a key: `left`, `right`, `up`, `down` (orbit), `plus`, `minus` (zoom), `r` (reset) |
 //! | `tf PRESET` | a transfer-function preset |
@@ -49,6 +51,9 @@ pub enum Cmd {
     Click(usize, f32, f32),
     /// `hover VIEW X Y` (`None`: `hover off`).
     Hover(Option<(usize, f64, f64)>),
+    Pick(usize, f64, f64),
+    LabelSelect(String),
+    LabelMode(u8),
     WaitProbe(f64),
     Key(String),
     Tf(String),
@@ -162,6 +167,27 @@ fn parse_line(w: &[&str]) -> Result<Cmd> {
             }
             _ => bail!("hover takes a view and X Y, or off"),
         },
+        "pick" => {
+            arity(3)?;
+            let v = view(w[1])?;
+            if v == 0 {
+                bail!("pick: labels are picked in slice views (xy, xz, yz, oblique), not 3d");
+            }
+            Cmd::Pick(v, num(w[2])?, num(w[3])?)
+        }
+        "label-select" => {
+            arity(1)?;
+            Cmd::LabelSelect(w[1].into())
+        }
+        "label-mode" => {
+            arity(1)?;
+            Cmd::LabelMode(match w[1] {
+                "all" => 0,
+                "only" => 1,
+                "hide" => 2,
+                x => bail!("label-mode: expected all, only or hide, found {x:?}"),
+            })
+        }
         "wait-probe" => match w.len() {
             1 => Cmd::WaitProbe(60.0),
             2 => Cmd::WaitProbe(num(w[1])?),

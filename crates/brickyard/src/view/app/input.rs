@@ -247,6 +247,47 @@ impl ViewerApp {
                         self.script_hover = *h;
                         true
                     }
+                    Cmd::Pick(v, x, y) => {
+                        // Until the readout answers and the pick is taken.
+                        if self.probe.is_none() {
+                            bail!("pick: the viewer has no voxel readout");
+                        }
+                        match (self.waiting, self.pick) {
+                            (None, _) => {
+                                self.waiting = Some(Instant::now());
+                                self.pick = Some(self.slice_point(*v, *x, *y));
+                                self.message.clear();
+                                false
+                            }
+                            (Some(since), Some(_)) => {
+                                if since.elapsed() > Duration::from_secs(60) {
+                                    bail!("pick: no answer in 60 s");
+                                }
+                                false
+                            }
+                            (Some(_), None) => {
+                                self.waiting = None;
+                                if !self.message.starts_with("labels picked") {
+                                    bail!("pick: {}", self.message);
+                                }
+                                true
+                            }
+                        }
+                    }
+                    Cmd::LabelSelect(t) => {
+                        if self.labels.is_none() && !self.ds.labels {
+                            bail!("label-select: no label image is shown");
+                        }
+                        self.set_picked(t)?;
+                        true
+                    }
+                    Cmd::LabelMode(m) => {
+                        if self.labels.is_none() && !self.ds.labels {
+                            bail!("label-mode: no label image is shown");
+                        }
+                        self.label_mode = *m;
+                        true
+                    }
                     Cmd::WaitProbe(secs) => {
                         let since = *self.waiting.get_or_insert_with(Instant::now);
                         // The question for the point read now goes out first.

@@ -147,6 +147,9 @@ impl ViewerApp {
             && matches!(mode, RenderMode::Slice { .. } | RenderMode::Dvr)
             && params.channels.is_empty()
             && !(mode == RenderMode::Dvr && self.setup.octree.is_some());
+        if params.labels {
+            params.label_select = self.label_selection();
+        }
         if v == 0 && self.octree_draws(&params) && !params.labels {
             params.traversal = Traversal::Octree;
         }
@@ -180,6 +183,7 @@ impl ViewerApp {
             });
             // (Super-slices composite through the transfer function.)
             params.labels = false;
+            params.label_select = None;
             layout = Some(l);
         }
         Spec {
@@ -220,6 +224,7 @@ impl ViewerApp {
         }
         let mut params = p.clone();
         params.labels = true;
+        params.label_select = self.label_selection();
         params.channels = vec![];
         // (Label colours take nothing from the transfer function: one
         // fixed here, so that its edits draw no labels again.)

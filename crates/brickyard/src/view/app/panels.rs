@@ -35,6 +35,54 @@ impl ViewerApp {
         }
     }
 
+    /// Which labels a label image draws: all, only those picked, or all
+    /// but them; the list picked (Ctrl+click in a slice view adds or
+    /// removes the label under the pointer).
+    fn selection_controls(&mut self, ui: &mut egui::Ui) {
+        if self.labels.is_none() && !self.ds.labels {
+            return;
+        }
+        ui.horizontal(|ui| {
+            ui.label("draw");
+            for (m, name) in [(0u8, "all"), (1, "only picked"), (2, "all but picked")] {
+                ui.selectable_value(&mut self.label_mode, m, name);
+            }
+        });
+        ui.horizontal(|ui| {
+            let edit = ui
+                .add(egui::TextEdit::singleline(&mut self.picked_text).desired_width(150.0))
+                .on_hover_text("Labels picked, e.g. 3,17,40-45; Ctrl+click a label in a slice view adds or removes it");
+            let enter = edit.lost_focus() && ui.input(|i| i.key_pressed(egui::Key::Enter));
+            if ui.button("Set").clicked() || enter {
+                self.message = match self.set_picked(&self.picked_text.clone()) {
+                    Ok(()) => String::new(),
+                    Err(e) => format!("{e:#}"),
+                };
+            }
+            if ui.button("Clear").clicked() {
+                self.picked.clear();
+                self.picked_text.clear();
+            }
+        });
+    }
+
+    /// The labels picked, from text as `render --only-labels` takes it
+    /// (empty or `none`: none).
+    pub(super) fn set_picked(&mut self, text: &str) -> anyhow::Result<()> {
+        let ids = match text.trim() {
+            "" | "none" => vec![],
+            t => brickyard_render::params::LabelSelect::parse_ids(t)
+                .map_err(|e| anyhow::anyhow!("labels picked: {e}"))?,
+        };
+        if ids.contains(&0) {
+            anyhow::bail!("labels picked: 0 is the background, never drawn");
+        }
+        let sel = brickyard_render::params::LabelSelect::new(ids, false);
+        self.picked = sel.ids;
+        self.picked_text = super::picked_text(&self.picked);
+        Ok(())
+    }
+
     /// The labels were turned on or off or their opacity changed: the
     /// views show it at once (the specs follow with the next frame).
     pub(super) fn labels_changed(&mut self, ctx: &egui::Context) {
@@ -121,6 +169,7 @@ impl ViewerApp {
             }
         }
         self.label_controls(ui);
+        self.selection_controls(ui);
         ui.separator();
         self.processing_panel(ui);
         ui.separator();
@@ -422,7 +471,14 @@ impl ViewerApp {
         } else if resp.clicked() && v > 0 {
             if let Some(pos) = resp.interact_pointer_pos() {
                 let q = (pos - rect.min) * k;
-                self.cursor = self.slice_point(v, q.x as f64, q.y as f64);
+                let w = self.slice_point(v, q.x as f64, q.y as f64);
+                // Ctrl+click picks the label there; a click moves the
+                // cursor.
+                if ui.input(|i| i.modifiers.command) {
+                    self.pick = Some(w);
+                } else {
+                    self.cursor = w;
+                }
             }
         }
         if resp.dragged_by(egui::PointerButton::Secondary)
@@ -542,9 +598,22 @@ impl ViewerApp {
             }
             None => String::new(),
         };
-        let probe = self
+        let mut probe = self
             .probe_line()
             .map_or(String::new(), |p| format!("\n{p}"));
+        if let Some(sel) = self.label_selection() {
+            let what = if sel.hide {
+                "all labels but"
+            } else {
+                "only labels"
+            };
+            let mut ids = super::picked_text(&sel.ids);
+            if ids.len() > 80 {
+                let cut = ids[..80].rfind(',').unwrap_or(0);
+                ids = format!("{}… ({} labels)", &ids[..cut], sel.ids.len());
+            }
+            probe += &format!("\ndrawing {what} {ids}");
+        }
         format!(
             "{:.1} ms/frame · {:.1}% complete{detail}\n{} bricks resident of {} slots · {} pending{labels}\nhost cache {} of {} · {:.1} MiB/s read{peak}\n{}{probe}",
             o.render_ms,

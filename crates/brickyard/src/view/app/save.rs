@@ -99,6 +99,19 @@ impl ViewerApp {
                 format!("{}", l.opacity),
             ]);
         }
+        // The labels drawn, of the label image shown or laid over it.
+        let select = match p.labels {
+            true => p.label_select.clone(),
+            false => self.label_spec(&spec).and_then(|s| s.params.label_select),
+        };
+        if let Some(sel) = select {
+            let flag = if sel.hide {
+                "--hide-labels"
+            } else {
+                "--only-labels"
+            };
+            a.extend([flag.into(), super::picked_text(&sel.ids)]);
+        }
         match spec.lod {
             Lod::Fixed(l) => a.extend(["--level".into(), l.to_string()]),
             Lod::Auto { bias } => a.extend(["--lod-bias".into(), format!("{bias}")]),
