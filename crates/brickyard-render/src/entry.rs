@@ -30,7 +30,7 @@
 //! the walk would, so that a pool smaller than the view still converges.
 
 use crate::cpu::{Tiles, TILE_H, TILE_W};
-use crate::optics::label_background;
+use crate::optics::label_clear;
 use crate::walk::Frame;
 use brickyard_cache::brick::BrickKey;
 use brickyard_cache::vm::BrickRef;
@@ -169,7 +169,7 @@ impl Entries {
                         BrickRef::Data { slot, .. } if f.scene.skip_cells => {
                             let cells = f.vm.cell_ranges(slot);
                             let shows = |&[vlo, vhi]: &[f32; 2]| match f.params.labels {
-                                true => !label_background(vlo, vhi),
+                                true => !label_clear(vlo, vhi, f.params.label_select.as_ref()),
                                 false => f.tf_eval.range_visible(vlo, vhi),
                             };
                             if cells.iter().all(shows) {
@@ -200,7 +200,7 @@ impl Entries {
                                 _ => 0.0,
                             };
                             let hides = match f.params.labels {
-                                true => label_background(v, v),
+                                true => label_clear(v, v, f.params.label_select.as_ref()),
                                 false => f.tf.lookup_visible(v).is_none(),
                             };
                             if !hides {

@@ -661,7 +661,10 @@ impl GpuRenderer {
                 // A label image: bricks of background alone (its
                 // surfaces take no transfer function).
                 (Some(r), 0) if params.labels => {
-                    clear_bits_by(&ids, r, scene.channel, crate::optics::label_background)
+                    let sel = key.7.as_ref();
+                    clear_bits_by(&ids, r, scene.channel, |lo, hi| {
+                        crate::optics::label_clear(lo, hi, sel)
+                    })
                 }
                 (Some(r), 0) => clear_bits(&ids, r, tf, scene.channel),
                 // No statistics: no brick is known clear. A bit for every

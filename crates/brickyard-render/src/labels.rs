@@ -12,7 +12,7 @@
 //! [`RenderParams::labels`]: crate::params::RenderParams::labels
 
 use crate::cpu::FrameStats;
-use crate::optics::{label_background, label_color, label_drawn, label_of};
+use crate::optics::{label_clear, label_color, label_drawn, label_of};
 use crate::walk::{inside, jump_before, step_t, Content, Grid, Walker};
 use brickyard_cache::vm::Requests;
 use brickyard_core::camera::{intersect_box, Ray, Vec3};
@@ -100,7 +100,7 @@ impl<'f, 'a, T: Sample> Walker<'f, 'a, T> {
             let w = ray.at(t);
             let (vb, frac) = f.nearest(level, w);
             let c = self.enter(level, vb, req, true);
-            if label_background(c.range[0], c.range[1]) {
+            if label_clear(c.range[0], c.range[1], select) {
                 // Background alone. A step whose voxel base (the
                 // interpolating sampler's, which the landing follows) lies
                 // in the brick less its last voxel on each axis has its

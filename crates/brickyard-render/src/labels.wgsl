@@ -102,7 +102,7 @@ fn label_surface(ray: Ray) -> vec4<f32> {
             var clear = is_clear(brick_id(level, b)) || f == EMPTY;
             if (!clear && f == CONSTANT) {
                 let v = constant_value(e.y);
-                clear = !is_nan(v) && label_id(v) == 0;
+                clear = !is_nan(v) && (label_id(v) == 0 || !label_shown(label_id(v)));
             }
             if (clear) {
                 let bs = lay.block[lay.nmax].xyz;

@@ -354,6 +354,15 @@ pub fn label_background(lo: f32, hi: f32) -> bool {
     lo == 0.0 && hi == 0.0
 }
 
+/// Whether a brick or cell whose values lie in `[lo, hi]` draws nothing
+/// under `select`: background alone ([`label_background`]), or only
+/// labels the selection leaves out. What a label image's rays cross
+/// without sampling, on the CPU and the device.
+#[inline]
+pub fn label_clear(lo: f32, hi: f32, select: Option<&LabelSelect>) -> bool {
+    label_background(lo, hi) || select.is_some_and(|s| !s.draws_any(lo, hi))
+}
+
 /// Linear RGB of the colour with hue `h6` (in sixths of the circle,
 /// `[0, 6)`), saturation `s` and value `v`.
 #[inline]

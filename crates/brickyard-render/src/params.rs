@@ -179,6 +179,28 @@ impl LabelSelect {
         self.ids.binary_search(&id).is_ok() != self.hide
     }
 
+    /// Whether any label it draws may lie among values `[lo, hi]` (a
+    /// brick's or cell's range; labels are values rounded to the nearest
+    /// integer, 0 is never drawn). `true` where the range is not a range
+    /// of labels (NaN).
+    pub fn draws_any(&self, lo: f32, hi: f32) -> bool {
+        if lo.is_nan() || hi.is_nan() {
+            return true;
+        }
+        let [a, b] = [lo, hi].map(|v| (v as f64 + 0.5).floor() as i64);
+        if a > b {
+            return true;
+        }
+        let from = self.ids.partition_point(|&x| (x as i64) < a);
+        let to = self.ids.partition_point(|&x| (x as i64) <= b);
+        let listed = (to - from) as i64;
+        match self.hide {
+            false => listed > 0,
+            // Every label of the range but 0 hidden?
+            true => b - a + 1 - (a <= 0 && b >= 0) as i64 > listed,
+        }
+    }
+
     /// Parse a list such as `3,17,40-45` (labels and inclusive ranges).
     pub fn parse_ids(text: &str) -> Result<Vec<i32>, String> {
         let mut ids = vec![];

@@ -126,7 +126,9 @@ impl<'a> Frame<'a> {
                     r.range[off..off + n]
                         .iter()
                         .map(|&[lo, hi]| match params.labels {
-                            true => crate::optics::label_background(lo, hi),
+                            true => {
+                                crate::optics::label_clear(lo, hi, params.label_select.as_ref())
+                            }
                             false => params.tf.max_opacity(lo, hi) <= 0.0,
                         })
                         .collect(),

@@ -509,6 +509,12 @@ fn label_selections_draw_only_or_all_but_the_labels_named_on_the_cpu_and_the_dev
             "{what}: {seen:?}"
         );
         let named: Vec<i32> = seen[..3].iter().map(|s| s.1 as i32).collect();
+        // Bricks and cells crossed without a selection.
+        let crossed = {
+            let mut s = session(&store, DType::U32, vol_bytes * 5 / 4);
+            scene.ranges = Some(std::sync::Arc::new(s.loader().brick_ranges(1 << 24)));
+            converge_cpu(&mut s, &scene, p, 0).1
+        };
         for hide in [false, true] {
             p.label_select = Some(LabelSelect::new(named.clone(), hide));
             p.validate().unwrap();
@@ -549,7 +555,18 @@ fn label_selections_draw_only_or_all_but_the_labels_named_on_the_cpu_and_the_dev
             // The CPU against the reference, the device against the CPU.
             let mut s = session(&store, DType::U32, vol_bytes * 5 / 4);
             scene.ranges = Some(std::sync::Arc::new(s.loader().brick_ranges(1 << 24)));
-            let (img, _) = converge_cpu(&mut s, &scene, p, 0);
+            let (img, (bricks, cells)) = converge_cpu(&mut s, &scene, p, 0);
+            eprintln!(
+                "{what}, hide {hide}: {bricks} bricks and {cells} cells crossed, {crossed:?} without a selection"
+            );
+            if what == "3D" && !hide {
+                // Bricks and cells without the labels drawn are crossed
+                // too (their ranges name none of them).
+                assert!(
+                    bricks > crossed.0 && cells > crossed.1,
+                    "{bricks} bricks and {cells} cells crossed, {crossed:?} without a selection"
+                );
+            }
             let d = differing(&img, &want, 1e-5);
             assert!(
                 d <= 3,
@@ -607,4 +624,31 @@ fn label_selections_are_refused_where_they_mean_nothing() {
     for bad in ["", "x", "5-3", "1-999999"] {
         assert!(LabelSelect::parse_ids(bad).is_err(), "{bad}");
     }
+}
+
+#[test]
+fn selections_tell_the_value_ranges_that_draw_nothing_as_a_label_by_label_search_does() {
+    use brickyard_render::optics::label_clear;
+    use brickyard_render::params::LabelSelect;
+    for ids in [vec![3], vec![-2, 1, 2, 3, 9], vec![4, 5, 6, 7]] {
+        for hide in [false, true] {
+            let sel = LabelSelect::new(ids.clone(), hide);
+            for lo in -4..12 {
+                for hi in lo..12 {
+                    // Values a little off the integers round to them.
+                    let (flo, fhi) = (lo as f32 - 0.3, hi as f32 + 0.2);
+                    let naive = (lo..=hi).any(|k| k != 0 && ids.contains(&k) != hide);
+                    assert_eq!(
+                        sel.draws_any(flo, fhi),
+                        naive,
+                        "{ids:?} hide {hide}: [{lo}, {hi}]"
+                    );
+                    assert_eq!(label_clear(flo, fhi, Some(&sel)), !naive);
+                }
+            }
+            assert!(sel.draws_any(f32::NAN, 3.0));
+        }
+    }
+    // Without a selection: background alone.
+    assert!(label_clear(0.0, 0.0, None) && !label_clear(0.0, 1.0, None));
 }

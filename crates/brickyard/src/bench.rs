@@ -119,6 +119,10 @@ pub struct BenchCmd {
     /// octree: the octree's depth (1 to 7).
     #[arg(long, default_value_t = 4)]
     octree_depth: u32,
+    /// render, with --store of a label image: draw only these labels (as
+    /// `render --only-labels` does).
+    #[arg(long, value_name = "IDS")]
+    only_labels: Option<String>,
 }
 
 pub fn run(b: BenchCmd) -> Result<()> {
@@ -208,6 +212,13 @@ pub fn run(b: BenchCmd) -> Result<()> {
                 },
                 procedural: b.procedural,
                 store: b.store.clone(),
+                only_labels: match &b.only_labels {
+                    Some(t) => Some(
+                        brickyard_render::params::LabelSelect::parse_ids(t)
+                            .map_err(|e| anyhow::anyhow!("only-labels: {e}"))?,
+                    ),
+                    None => None,
+                },
                 mode: match b.mode.as_str() {
                     "dvr" => "dvr",
                     "mip" => "mip",

@@ -545,6 +545,8 @@ pub struct RenderBench {
     /// type; a label image is drawn as `render` draws it: label colours
     /// in slices, label surfaces in DVR).
     pub store: Option<std::path::PathBuf>,
+    /// A label image's labels drawn (`None`: all).
+    pub only_labels: Option<Vec<i32>>,
 }
 
 pub fn render(dir: &Path, dims: Dims3, dtype: DType, o: &RenderBench) -> Result<()> {
@@ -636,6 +638,13 @@ pub fn render(dir: &Path, dims: Dims3, dtype: DType, o: &RenderBench) -> Result<
         // As `render` draws a label image (the window unused).
         p.tf = TransferFunction::preset("linear", [0.0, 1.0])?;
         p.labels = true;
+    }
+    if let Some(ids) = &o.only_labels {
+        if !labels {
+            bail!("bench render: --only-labels takes a label image (--store STORE/labels/NAME)");
+        }
+        p.label_select = Some(brickyard_render::params::LabelSelect::new(ids.clone(), false));
+        p.validate().map_err(|e| anyhow::anyhow!("{e}"))?;
     }
     let vox: u64 = dims.iter().product();
     let default_pool = vox * dtype.size() as u64 / 2 + (32 << 20);

@@ -316,7 +316,9 @@ impl<'f, 'a, T: Sample> Walker<'f, 'a, T> {
                     for (i, &[lo, hi]) in f.vm.cell_ranges(slot).iter().enumerate() {
                         // (A label image's rays cross background alone.)
                         let clear = match f.params.labels {
-                            true => crate::optics::label_background(lo, hi),
+                            true => {
+                                crate::optics::label_clear(lo, hi, f.params.label_select.as_ref())
+                            }
                             false => !f.tf_eval.range_visible(lo, hi),
                         };
                         if clear {
