@@ -41,6 +41,28 @@ fn to_u8(v: f32) -> u8 {
 }
 
 impl Image {
+    /// Lay `labels` (a slice of labels: premultiplied, each pixel a
+    /// label's opaque colour or clear) over this image at `opacity`: where
+    /// a label is, the image keeps `1 − opacity` of itself and takes
+    /// `opacity` of the label's colour; elsewhere it is unchanged. The
+    /// viewer, the web page and `render --labels` all lay labels so.
+    pub fn lay_labels_over(&mut self, labels: &Image, opacity: f32) -> Result<(), String> {
+        if (self.width, self.height) != (labels.width, labels.height) {
+            return Err(format!(
+                "the label image's slice is {}×{}, the image's {}×{}",
+                labels.width, labels.height, self.width, self.height
+            ));
+        }
+        for (p, q) in self.rgba.iter_mut().zip(&labels.rgba) {
+            let a = opacity * q[3];
+            for i in 0..3 {
+                p[i] = p[i] * (1.0 - a) + opacity * q[i];
+            }
+            p[3] = p[3] * (1.0 - a) + a;
+        }
+        Ok(())
+    }
+
     /// A fully transparent image.
     pub fn new(width: u32, height: u32) -> Image {
         Image {

@@ -201,6 +201,26 @@ impl LabelSelect {
         }
     }
 
+    /// The labels as [`LabelSelect::parse_ids`] reads them, runs of
+    /// consecutive labels as ranges (`3,17,40-45`).
+    pub fn ids_text(&self) -> String {
+        let mut out: Vec<String> = vec![];
+        let mut i = 0;
+        while i < self.ids.len() {
+            let mut j = i;
+            while j + 1 < self.ids.len() && self.ids[j + 1] == self.ids[j] + 1 {
+                j += 1;
+            }
+            out.push(match j - i {
+                0 => self.ids[i].to_string(),
+                1 => format!("{},{}", self.ids[i], self.ids[j]),
+                _ => format!("{}-{}", self.ids[i], self.ids[j]),
+            });
+            i = j + 1;
+        }
+        out.join(",")
+    }
+
     /// Parse a list such as `3,17,40-45` (labels and inclusive ranges).
     pub fn parse_ids(text: &str) -> Result<Vec<i32>, String> {
         let mut ids = vec![];

@@ -55,28 +55,11 @@ pub fn label_store(store: &Path, name: &str) -> Result<PathBuf> {
     Ok(dir)
 }
 
-/// Lay `labels` (a slice of labels: premultiplied, each pixel a label's
-/// opaque colour or clear) over `img` at `opacity`: where a label is, the
-/// image keeps `1 − opacity` of itself and takes `opacity` of the label's
-/// colour; elsewhere it is unchanged.
+/// Lay `labels` (a slice of labels) over `img` at `opacity`
+/// ([`Image::lay_labels_over`]).
 pub fn overlay(img: &mut Image, labels: &Image, opacity: f32) -> Result<()> {
-    if (img.width, img.height) != (labels.width, labels.height) {
-        bail!(
-            "labels: the label image's slice is {}×{}, the image's {}×{}",
-            labels.width,
-            labels.height,
-            img.width,
-            img.height
-        );
-    }
-    for (p, q) in img.rgba.iter_mut().zip(&labels.rgba) {
-        let a = opacity * q[3];
-        for i in 0..3 {
-            p[i] = p[i] * (1.0 - a) + opacity * q[i];
-        }
-        p[3] = p[3] * (1.0 - a) + a;
-    }
-    Ok(())
+    img.lay_labels_over(labels, opacity)
+        .map_err(|e| anyhow::anyhow!("labels: {e}"))
 }
 
 #[cfg(test)]

@@ -8,7 +8,7 @@ use crate::zarr::ChannelMeta;
 use brickyard_core::camera::{Camera, Projection};
 use brickyard_core::TransferFunction;
 use brickyard_render::cpu::{Lod, Scene};
-use brickyard_render::params::ChannelStyle;
+use brickyard_render::params::{ChannelStyle, LabelSelect, Traversal};
 use brickyard_render::{RenderMode, RenderParams};
 
 /// The view: every field has a default, and the URL carries only what
@@ -38,6 +38,13 @@ pub struct ViewState {
     pub height: u32,
     pub lod_bias: f64,
     pub slice_z: f64,
+    /// `labels=NAME`: the store's label image `labels/NAME` laid over the
+    /// slice at `label_opacity` (as `render --labels NAME`).
+    pub labels: Option<String>,
+    pub label_opacity: f64,
+    /// `only_labels=IDS` / `hide_labels=IDS`: the labels drawn (of a
+    /// label image shown, or of `labels=NAME`).
+    pub label_select: Option<LabelSelect>,
 }
 
 impl Default for ViewState {
@@ -56,6 +63,9 @@ impl Default for ViewState {
             height: 512,
             lod_bias: 0.0,
             slice_z: 0.5,
+            labels: None,
+            label_opacity: 0.5,
+            label_select: None,
         }
     }
 }
@@ -150,6 +160,37 @@ impl ViewState {
                 }
                 "bias" => s.lod_bias = num(k, &v)?.clamp(-8.0, 8.0),
                 "slice" => s.slice_z = num(k, &v)?.clamp(0.0, 1.0),
+                "labels" => {
+                    let ok = !v.is_empty()
+                        && v != "."
+                        && v != ".."
+                        && v.chars()
+                            .all(|c| c.is_ascii_alphanumeric() || "._-".contains(c));
+                    if !ok {
+                        return Err(format!(
+                            "labels: expected the name of a label image (letters, digits, . _ -), found {v:?}"
+                        ));
+                    }
+                    s.labels = Some(v);
+                }
+                "label_opacity" => {
+                    s.label_opacity = num(k, &v)?;
+                    if !(s.label_opacity > 0.0 && s.label_opacity <= 1.0) {
+                        return Err(format!(
+                            "label_opacity: expected an opacity above 0 and at most 1, found {v:?}"
+                        ));
+                    }
+                }
+                "only_labels" | "hide_labels" => {
+                    if s.label_select.is_some() {
+                        return Err(format!("{k}: only_labels or hide_labels, not both"));
+                    }
+                    let ids = LabelSelect::parse_ids(&v).map_err(|e| format!("{k}: {e}"))?;
+                    if ids.contains(&0) {
+                        return Err(format!("{k}: 0 is the background, never drawn"));
+                    }
+                    s.label_select = Some(LabelSelect::new(ids, k == "hide_labels"));
+                }
                 _ => {}
             }
         }
@@ -196,6 +237,20 @@ impl ViewState {
         }
         if self.slice_z != d.slice_z {
             q.push(format!("slice={}", self.slice_z));
+        }
+        if let Some(n) = &self.labels {
+            q.push(format!("labels={n}"));
+        }
+        if self.label_opacity != d.label_opacity {
+            q.push(format!("label_opacity={}", self.label_opacity));
+        }
+        if let Some(sel) = &self.label_select {
+            let k = if sel.hide {
+                "hide_labels"
+            } else {
+                "only_labels"
+            };
+            q.push(format!("{k}={}", sel.ids_text()));
         }
         q.join("&")
     }
@@ -297,6 +352,26 @@ impl ViewState {
         let mut p = RenderParams::new(self.width, self.height, camera, tf, mode);
         p.reference_step = Some(scene.voxel(0));
         p.labels = labels;
+        if let Some(sel) = &self.label_select {
+            if labels {
+                p.label_select = Some(sel.clone());
+            } else if self.labels.is_none() {
+                return Err(
+                    "only_labels: applies to a label image's colours (a label image shown, or labels=NAME)"
+                        .into(),
+                );
+            }
+        }
+        if self.labels.is_some() && (labels || self.mode != "slice") {
+            return Err(format!(
+                "labels: label images are laid over an image's slices (mode=slice), not over {}",
+                if labels {
+                    "a label image"
+                } else {
+                    "mode=dvr or mip"
+                }
+            ));
+        }
         // DVR of one channel goes through the transfer function.
         let channel = match styles.as_slice() {
             [one] if dvr => one.channel,
@@ -312,6 +387,26 @@ impl ViewState {
                 bias: self.lod_bias,
             },
             channel,
+        })
+    }
+}
+
+impl ViewState {
+    /// What the label image of `labels=NAME` draws under the image's
+    /// `view` (`None`: no labels): the same slice, camera, size and level
+    /// of detail, in the labels' colours (as `render --labels NAME`).
+    pub fn label_view(&self, view: &View) -> Option<View> {
+        self.labels.as_ref()?;
+        let mut p = view.params.clone();
+        p.labels = true;
+        p.label_select = self.label_select.clone();
+        p.channels = vec![];
+        p.tf = TransferFunction::preset("linear", [0.0, 1.0]).expect("a preset");
+        p.traversal = Traversal::PageTable;
+        Some(View {
+            params: p,
+            lod: view.lod,
+            channel: 0,
         })
     }
 }

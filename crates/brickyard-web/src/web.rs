@@ -182,6 +182,17 @@ struct Inner {
     device_note: Option<String>,
     /// The last frame was drawn on the device.
     on_device: bool,
+    /// `labels=NAME`: the label image laid over the slice.
+    labels: Option<LabelLayer>,
+}
+
+/// The label image of `labels=NAME`: its own session (drawn on the CPU)
+/// and the image shown, the image's slice with the labels over it.
+struct LabelLayer {
+    session: WebSession,
+    name: String,
+    last: FrameOut,
+    shown: Option<brickyard_render::Image>,
 }
 
 fn now() -> f64 {
@@ -218,7 +229,7 @@ impl Viewer {
         let state = ViewState::from_query(&query).map_err(|e| JsValue::from_str(&e))?;
         let fetch: Rc<dyn Fetch> = Rc::new(HttpFetch {
             base: url.clone(),
-            token: token.filter(|t| !t.is_empty()),
+            token: token.clone().filter(|t| !t.is_empty()),
         });
         let src = WebSource::open(fetch, 32, 1, 32 << 20)
             .await
@@ -230,14 +241,46 @@ impl Viewer {
             )));
         }
         let window = default_window(&src, state.channel);
+        // The label image takes a quarter of the pool, as in the viewer.
+        let pool = pool_mib as u64 * (1 << 20);
+        let label_pool = state.labels.as_ref().map_or(0, |_| pool / 4);
         let cfg = VmConfig {
             brick: [32; 3],
-            pool_bytes: pool_mib as u64 * (1 << 20),
+            pool_bytes: pool - label_pool,
             request_cap: 256,
             upload_bytes_per_frame: 64 << 20,
             ..Default::default()
         };
         let spawn: Spawn = Rc::new(wasm_bindgen_futures::spawn_local);
+        let labels = match &state.labels {
+            Some(name) => {
+                let fetch: Rc<dyn Fetch> = Rc::new(HttpFetch {
+                    base: format!("{}/labels/{name}", url.trim_end_matches('/')),
+                    token: token.clone().filter(|t| !t.is_empty()),
+                });
+                let lsrc = WebSource::open(fetch, 32, 1, 8 << 20)
+                    .await
+                    .map_err(|e| JsValue::from_str(&format!("labels: {url}/labels/{name}: {e}")))?;
+                if !lsrc.meta.labels || lsrc.geometry.channels != 1 {
+                    return Err(JsValue::from_str(&format!(
+                        "labels: {url}/labels/{name} is not a label image of one channel"
+                    )));
+                }
+                let lcfg = VmConfig {
+                    pool_bytes: label_pool,
+                    ..cfg.clone()
+                };
+                let session = WebSession::new(Rc::new(lsrc), lcfg, spawn.clone(), 16)
+                    .map_err(|e| JsValue::from_str(&format!("labels: {e}")))?;
+                Some(LabelLayer {
+                    session,
+                    name: name.clone(),
+                    last: FrameOut::default(),
+                    shown: None,
+                })
+            }
+            None => None,
+        };
         let mut session =
             WebSession::new(Rc::new(src), cfg, spawn, 32).map_err(|e| JsValue::from_str(&e))?;
         session.scene.channel = state.channel;
@@ -287,6 +330,7 @@ impl Viewer {
                 drawn_at: 0.0,
                 device_note,
                 on_device: false,
+                labels,
             })),
             state: Rc::new(RefCell::new(state)),
             channels,
@@ -327,6 +371,11 @@ impl Viewer {
                 "channel: the store has {} channels, found {}",
                 self.channels, s.channel
             )));
+        }
+        if s.labels != self.state.borrow().labels {
+            return Err(JsValue::from_str(
+                "labels: the label image is chosen when the page opens (reload it with the new labels=)",
+            ));
         }
         *self.state.borrow_mut() = s;
         Ok(())
@@ -387,7 +436,16 @@ async fn open_device(session: &mut WebSession) -> Result<DeviceDraw, String> {
 }
 
 impl Inner {
+    /// What the canvas shows: the image, with the labels over it.
     fn image(&self) -> &brickyard_render::Image {
+        if let Some(img) = self.labels.as_ref().and_then(|l| l.shown.as_ref()) {
+            return img;
+        }
+        self.drawn_image()
+    }
+
+    /// The image's last frame.
+    fn drawn_image(&self) -> &brickyard_render::Image {
         match (self.on_device, &self.device_image) {
             (true, Some(i)) => i,
             _ => self.session.image(),
@@ -414,6 +472,7 @@ impl Inner {
             }
             return Box::pin(self.frame(state)).await;
         }
+        let label_view = state.label_view(&view);
         let (p, lod) = (view.params, view.lod);
         // Draw when the view changed, or when enough bricks arrived to be
         // worth a frame: a frame holds the page's only thread, and loads
@@ -464,6 +523,30 @@ impl Inner {
                 },
             };
             self.frames += 1;
+        }
+        // The labels: drawn with the image, and when their bricks come.
+        let mut shown = draw;
+        if let (Some(l), Some(lv)) = (&mut self.labels, &label_view) {
+            let news = l.session.news();
+            let (q, f) = l.session.loads.pending();
+            if draw || news > 0 || (!l.last.complete && q + f == 0) {
+                l.last = l.session.frame_cpu(&lv.params, lv.lod);
+                shown = true;
+            }
+        }
+        if shown {
+            let lay = match (&self.labels, &label_view) {
+                (Some(l), Some(_)) => {
+                    let mut img = self.drawn_image().clone();
+                    img.lay_labels_over(l.session.image(), state.label_opacity as f32)
+                        .ok()
+                        .map(|_| img)
+                }
+                _ => None,
+            };
+            if let Some(l) = &mut self.labels {
+                l.shown = lay;
+            }
             let img = self.image();
             if img.width > 0 && img.width == p.width {
                 let (w, h) = (img.width, img.height);
@@ -488,17 +571,32 @@ impl Inner {
                 (bytes - self.rate_at.1) as f64 / 1048576.0 / ((tn - self.rate_at.0) / 1000.0);
             self.rate_at = (tn, bytes);
         }
-        if self.last.complete && self.first_complete_ms.is_none() {
+        if self.complete() && self.first_complete_ms.is_none() {
             self.first_complete_ms = Some(tn - self.started);
         }
         Ok(self.status(bytes, &state))
     }
 
+    /// The image's view and the labels over it are complete.
+    fn complete(&self) -> bool {
+        self.last.complete && self.labels.as_ref().is_none_or(|l| l.last.complete)
+    }
+
     fn status(&self, bytes: u64, state: &ViewState) -> String {
         let l = &self.last;
+        let labels = self.labels.as_ref().map(|x| {
+            serde_json::json!({
+                "name": x.name, "complete": x.last.complete,
+                "completeness": x.last.stats.completeness(),
+                "resident": x.session.vm.resident_bricks(),
+                "failed": x.session.failures.len(),
+                "last_failure": x.session.failures.last().map(|(k, e)| format!("{k:?}: {e}")),
+            })
+        });
         serde_json::json!({
             "ready": self.session.ready(),
-            "complete": l.complete,
+            "complete": self.complete(),
+            "labels": labels,
             "completeness": l.stats.completeness(),
             "bias": l.bias,
             "resident": self.session.vm.resident_bricks(),

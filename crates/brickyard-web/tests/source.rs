@@ -164,6 +164,24 @@ fn damaged_chunks_fail_their_bricks_with_the_file_named() {
 
 /// Stream a view to complete through the web session on one thread.
 fn stream(store: &Path, state: &ViewState, window: [f64; 2], pool: u64) -> (Image, u32) {
+    let (img, frames, _) = stream_view(store, pool, |s, src| {
+        let (meta, n, labels) = (
+            src.meta.channels.clone(),
+            src.geometry.channels,
+            src.meta.labels,
+        );
+        state.params(&s.scene, window, &meta, n, labels).unwrap()
+    });
+    (img, frames)
+}
+
+/// Stream the view `view` makes of the session to complete; returns the
+/// image, the frames it took and the view.
+fn stream_view(
+    store: &Path,
+    pool: u64,
+    view: impl FnOnce(&WebSession, &WebSource) -> brickyard_web::view::View,
+) -> (Image, u32, brickyard_web::view::View) {
     let src = Rc::new(open_web(store, 32));
     let mut exec = LocalPool::new();
     let sp = exec.spawner();
@@ -173,13 +191,9 @@ fn stream(store: &Path, state: &ViewState, window: [f64; 2], pool: u64) -> (Imag
         pool_bytes: pool,
         ..Default::default()
     };
-    let (meta, n, labels) = (
-        src.meta.channels.clone(),
-        src.geometry.channels,
-        src.meta.labels,
-    );
-    let mut s = WebSession::new(src, cfg, spawn, 6).expect("session");
-    let v = state.params(&s.scene, window, &meta, n, labels).unwrap();
+    let mut s = WebSession::new(src.clone(), cfg, spawn, 6).expect("session");
+    let v = view(&s, &src);
+    let kept = v.clone();
     s.scene.channel = v.channel;
     let (p, lod) = (v.params, v.lod);
     for frame in 0..500 {
@@ -192,7 +206,7 @@ fn stream(store: &Path, state: &ViewState, window: [f64; 2], pool: u64) -> (Imag
                 frame,
                 s.loads.loaded()
             );
-            return (s.image().clone(), frame);
+            return (s.image().clone(), frame, kept);
         }
     }
     panic!("the view did not complete in 500 frames");
@@ -523,4 +537,128 @@ fn a_label_image_streams_in_its_labels_colours_as_brickyard_render_draws_it() {
         .params(&scene, [0.0, 1.0], &s.meta.channels, 1, true)
         .unwrap_err();
     assert!(e.starts_with("tf: labels"), "{e}");
+}
+
+struct Quiet;
+
+impl brickyard_run::process::Phases for Quiet {
+    fn labelling(&self) -> &dyn brickyard_store::Progress {
+        &NoProgress
+    }
+    fn writing(&self) -> &dyn brickyard_store::Progress {
+        &NoProgress
+    }
+}
+
+#[test]
+fn label_images_laid_over_slices_stream_as_brickyard_render_lays_them() {
+    let dir = tempfile::tempdir().unwrap();
+    let store = convert_file(
+        dir.path(),
+        "nuclei-confocal-u16.tif",
+        Compression::Lz4,
+        32,
+        64,
+    );
+    let args = brickyard_run::process::ProcessArgs {
+        store: store.clone(),
+        pipeline: "gauss(1)|threshold(12000)|label(26)".into(),
+        out: "cells".into(),
+        memory: 256 << 20,
+        level: 0,
+        channel: 0,
+        stats: None,
+        overwrite: false,
+        backend: "cpu".into(),
+        quiet: true,
+    };
+    let caller = brickyard_run::process::Caller {
+        flag: "--",
+        convert: "",
+        remote: "",
+        overwrite: "",
+        again: "command",
+    };
+    brickyard_run::process::run(&args, &caller, &Quiet, &AtomicBool::new(false)).expect("process");
+    let view = "mode=slice&size=180x160&slice=0.45&tf=linear&window=0,40000";
+    let cli_base = [
+        "--mode",
+        "slice",
+        "--size",
+        "180x160",
+        "--slice-z",
+        "0.45",
+        "--tf",
+        "linear",
+        "--window",
+        "0,40000",
+        "--labels",
+        "cells",
+    ];
+    let plain = render_cli(&store, &cli_base[..10]);
+    for (extra, flags) in [
+        ("", vec![]),
+        (
+            "&label_opacity=0.8&only_labels=2,4-6",
+            vec!["--label-opacity", "0.8", "--only-labels", "2,4-6"],
+        ),
+        ("&hide_labels=3", vec!["--hide-labels", "3"]),
+    ] {
+        let q = format!("{view}&labels=cells{extra}");
+        let st = ViewState::from_query(&q).unwrap();
+        assert_eq!(ViewState::from_query(&st.to_query()).unwrap(), st, "{q}");
+        // The image's slice, then the labels' under the same view, laid
+        // over it as the page does.
+        let (mut web, _, v) = stream_view(&store, 64 << 20, |s, src| {
+            st.params(&s.scene, [0.0, 40000.0], &src.meta.channels, 1, false)
+                .unwrap()
+        });
+        let lv = st.label_view(&v).expect("a label view");
+        let (labels, _, _) = stream_view(&store.join("labels/cells"), 16 << 20, |_, src| {
+            assert!(src.meta.labels, "labels/cells reads as a label image");
+            lv.clone()
+        });
+        web.lay_labels_over(&labels, st.label_opacity as f32)
+            .unwrap();
+        let mut a: Vec<&str> = cli_base.to_vec();
+        a.extend(flags.iter().copied());
+        let cli = render_cli(&store, &a);
+        let d = web.max_abs_diff(&cli);
+        // The labels are there: pixels the plain slice does not have.
+        let changed = web
+            .rgba
+            .iter()
+            .zip(&plain.rgba)
+            .filter(|(p, q)| (0..3).any(|i| (p[i] - q[i]).abs() > 0.05))
+            .count();
+        eprintln!("{q}: {changed} pixels coloured by labels, {d:e} from render");
+        assert!(d <= 1e-6, "{q}: web and CLI differ by {d}");
+        assert!(changed > 200, "{q}: {changed} pixels show labels");
+    }
+    // Refused, naming the key: labels over a 3D view, a bad name.
+    let e = ViewState::from_query("labels=cells")
+        .unwrap()
+        .params(
+            &brickyard_render::cpu::Scene::new([1.0; 3], vec![[1, 1, 1]]),
+            [0.0, 1.0],
+            &[],
+            1,
+            false,
+        )
+        .unwrap_err();
+    assert!(e.starts_with("labels:") && e.contains("mode=slice"), "{e}");
+    for q in [
+        "labels=../x",
+        "labels=",
+        "label_opacity=0",
+        "only_labels=0",
+        "only_labels=1&hide_labels=2",
+    ] {
+        let e = ViewState::from_query(q).unwrap_err();
+        let key = q.split('=').next().unwrap();
+        assert!(
+            e.starts_with(key) || e.starts_with("hide_labels"),
+            "{q}: {e}"
+        );
+    }
 }

@@ -105,7 +105,9 @@ async function tick() {
     `read: ${(st.bytes / 1048576).toFixed(1)} MiB at ${st.mib_s.toFixed(1)} MiB/s\n` +
     `frame: ${st.frame_ms.toFixed(0)} ms${st.device && !st.on_device ? ' (several channels: on the CPU)' : ''}` +
     (st.first_complete_ms ? `, first complete after ${(st.first_complete_ms / 1000).toFixed(2)} s` : '') +
-    (st.failed ? `\nfailed bricks: ${st.failed} (drawn from coarser data)\nlast: ${st.last_failure}` : '');
+    (st.failed ? `\nfailed bricks: ${st.failed} (drawn from coarser data)\nlast: ${st.last_failure}` : '') +
+    (st.labels ? `\nlabels/${st.labels.name}: ${st.labels.complete ? 'complete' : 'loading'}, ${st.labels.resident} bricks resident` +
+      (st.labels.failed ? `, ${st.labels.failed} failed (last: ${st.labels.last_failure})` : '') : '');
   const now = performance.now();
   if (now - histAt > 1000) { histAt = now; drawHistogram(); }
   if (st.complete && !dragging) { running = false; return; }
@@ -159,7 +161,7 @@ function wireControls() {
   $('slice').oninput = () => setView({ slice: $('slice').value });
   $('bias').oninput = () => setView({ bias: $('bias').value === '0' ? null : $('bias').value });
   window.addEventListener('hashchange', () => {
-    if (hashParams().get('store') !== state.store) { location.reload(); return; }
+    if (hashParams().get('store') !== state.store || hashParams().get('labels') !== state.labels) { location.reload(); return; }
     try { state.viewer.set_query(viewQuery()); syncControls(state.viewer.query()); wake(); } catch (e) { showError(e); }
   });
 }
@@ -174,6 +176,7 @@ async function main() {
     return;
   }
   state.store = store;
+  state.labels = hashParams().get('labels');
   const backend = hashParams().get('backend') || 'auto';
   let notice = state.webgpu
     ? ''

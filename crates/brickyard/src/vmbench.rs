@@ -643,7 +643,10 @@ pub fn render(dir: &Path, dims: Dims3, dtype: DType, o: &RenderBench) -> Result<
         if !labels {
             bail!("bench render: --only-labels takes a label image (--store STORE/labels/NAME)");
         }
-        p.label_select = Some(brickyard_render::params::LabelSelect::new(ids.clone(), false));
+        p.label_select = Some(brickyard_render::params::LabelSelect::new(
+            ids.clone(),
+            false,
+        ));
         p.validate().map_err(|e| anyhow::anyhow!("{e}"))?;
     }
     let vox: u64 = dims.iter().product();

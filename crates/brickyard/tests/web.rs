@@ -255,3 +255,111 @@ fn serve_web_without_a_built_client_says_how_to_build_it() {
     let e = String::from_utf8_lossy(&o.stderr);
     assert!(e.contains("--web") && e.contains("build-web.sh"), "{e}");
 }
+
+#[test]
+fn the_web_client_lays_label_images_over_slices_as_render_does() {
+    if needs_browser().is_none() {
+        return;
+    }
+    let d = tempfile::tempdir().unwrap();
+    let store = d.path().join("nuclei.ome.zarr");
+    let input = repo().join("../shared/data/nuclei-confocal-u16.tif");
+    ok(&bin()
+        .arg("convert")
+        .arg(&input)
+        .arg(&store)
+        .arg("--quiet")
+        .output()
+        .unwrap());
+    ok(&bin()
+        .arg("process")
+        .arg(&store)
+        .args([
+            "gauss(1)|threshold(12000)|label(26)",
+            "--out",
+            "cells",
+            "--quiet",
+        ])
+        .output()
+        .unwrap());
+    let srv = serve_web(&store);
+    let view = "mode=slice&size=200x180&slice=0.45&tf=linear&window=0,40000&labels=cells&label_opacity=0.7&only_labels=2,4-6";
+    let url = format!(
+        "http://127.0.0.1:{}/web/#store=..%2Fnuclei.ome.zarr%2F&{view}",
+        srv.1
+    );
+    let out = d.path().join("out");
+    std::fs::create_dir_all(&out).unwrap();
+    let o = Command::new("node")
+        .arg(repo().join("crates/brickyard-web/browser/e2e.mjs"))
+        .args(["chromium", &url])
+        .arg(&out)
+        .output()
+        .unwrap();
+    let report = std::fs::read_to_string(out.join("report.json")).unwrap_or_default();
+    assert!(
+        o.status.success(),
+        "the browser check failed:\n{}\n{report}",
+        String::from_utf8_lossy(&o.stderr)
+    );
+    let r: serde_json::Value = serde_json::from_str(&report).unwrap();
+    assert_eq!(r["status"]["labels"]["complete"], true, "{report}");
+    assert!(
+        r["url"].as_str().unwrap().contains("only_labels=2,4-6"),
+        "{report}"
+    );
+    // The image's slice with the labels over it, and the image alone, by
+    // the command line.
+    let render = |name: &str, labels: bool| {
+        let png = d.path().join(name);
+        let mut c = bin();
+        c.arg("render").arg(&store).args([
+            "--mode",
+            "slice",
+            "--size",
+            "200x180",
+            "--slice-z",
+            "0.45",
+            "--tf",
+            "linear",
+            "--window",
+            "0,40000",
+            "--brick",
+            "32",
+            "--backend",
+            "cpu",
+            "--quiet",
+        ]);
+        if labels {
+            c.args([
+                "--labels",
+                "cells",
+                "--label-opacity",
+                "0.7",
+                "--only-labels",
+                "2,4-6",
+            ]);
+        }
+        ok(&c.arg("-o").arg(&png).output().unwrap());
+        read_png(&png).2
+    };
+    let (cli, plain) = (render("cli.png", true), render("plain.png", false));
+    let coloured = cli
+        .chunks_exact(4)
+        .zip(plain.chunks_exact(4))
+        .filter(|(a, b)| (0..3).any(|i| a[i].abs_diff(b[i]) > 12))
+        .count();
+    assert!(coloured > 500, "the labels change {coloured} pixels");
+    for file in ["canvas.rgba", "canvas-cpu.rgba"] {
+        let canvas = std::fs::read(out.join(file)).unwrap();
+        assert_eq!(canvas.len(), cli.len());
+        let max = canvas
+            .iter()
+            .zip(&cli)
+            .map(|(a, b)| a.abs_diff(*b))
+            .max()
+            .unwrap();
+        eprintln!("{file}: max difference {max}/255 from render --labels; labels change {coloured} pixels");
+        assert!(max <= 2, "{file} differs from render --labels by {max}/255");
+    }
+}
