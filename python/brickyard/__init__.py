@@ -232,9 +232,9 @@ def _index_option(value: Any, what: str) -> int:
 # render's `--labels` takes a name, convert's is a switch).
 _FLAGS = frozenset((
     "azimuth", "backend", "brick", "camera", "channel", "channel-levels", "channel-tf", "compression", "debug",
-    "derive", "distribute", "elevation", "eye-separation", "fov", "gpu-update", "host", "json", "label-opacity",
-    "labels", "level", "loader-threads", "lod-bias", "max-frames", "memory", "mode", "multiplex",
-    "no-early-termination", "octree-depth", "origin", "ortho", "out", "overwrite", "parallax", "pool",
+    "derive", "distribute", "elevation", "eye-separation", "fov", "gpu-update", "hide-labels", "host", "json",
+    "label-opacity", "labels", "level", "loader-threads", "lod-bias", "max-frames", "memory", "mode", "multiplex",
+    "no-early-termination", "octree-depth", "only-labels", "origin", "ortho", "out", "overwrite", "parallax", "pool",
     "progressive", "quiet", "raw-f32", "read-delay-ms", "region-weights", "requests", "samples-per-voxel",
     "save-camera", "shard", "size", "slice-normal", "slice-origin", "slice-z", "spacing", "stats", "stereo",
     "stream", "tf", "traversal", "turntable", "unit", "upload", "views", "window"))
@@ -412,7 +412,9 @@ def render(store: Union[Store, str, os.PathLike], mode: str = "dvr", camera: Any
     `labels` for a slice of a label image in its labels' colours). Without
     `tf`: soft, or `labels` for slices of a label image (a store's
     `labels/NAME`); `labels="NAME"` lays the store's `labels/NAME` over a
-    slice (`label_opacity`, default 0.5).
+    slice (`label_opacity`, default 0.5); `only_labels=[3, 17]` or
+    `hide_labels=[5]` draw only those labels of a label image, or all but
+    them (in 3D the rays pass through the others).
     Further options are the CLI's, with `_` for `-` (`window=(0, 1000)`,
     `level=2`, `memory="1GiB"`, `channel=["0:red", "1:green"]`, ...).
     Returns `(h, w, 4)` RGBA: uint8 over black as the PNG holds it, or with

@@ -154,6 +154,10 @@ def test_label_images_render_as_the_cli_draws_them(tmp_path, cli):
         ("labels alone", dst / "labels" / "blobs", [], {}),
         ("over the image", dst, ["--labels", "blobs", "--label-opacity", "0.7"],
          {"labels": "blobs", "label_opacity": 0.7}),
+        ("some labels over the image", dst, ["--labels", "blobs", "--only-labels", "1,3"],
+         {"labels": "blobs", "only_labels": [1, 3]}),
+        ("all labels but one", dst / "labels" / "blobs", ["--hide-labels", "2"],
+         {"hide_labels": 2}),
     ]:
         out = tmp_path / "cli.png"
         cli("render", store, "--mode", "slice", "--size", "48x40", "--backend", "cpu", "--quiet",
@@ -166,6 +170,13 @@ def test_label_images_render_as_the_cli_draws_them(tmp_path, cli):
     alone = brickyard.render(labels, mode="slice", size=(48, 40), backend="cpu")
     colours = {tuple(p) for p in alone.reshape(-1, 4)}
     assert 3 <= len(colours) <= n + 1, len(colours)
+    # One label drawn: its colour and black, on fewer pixels than all.
+    # (a label of the middle plane, which the slice shows)
+    k = int(labels.read(level=0)[..., 12, :, :].max())
+    one = brickyard.render(labels, mode="slice", size=(48, 40), backend="cpu", only_labels=[k])
+    lit = lambda im: int((im[..., :3].max(axis=-1) > 0).sum())
+    assert len({tuple(p) for p in one.reshape(-1, 4)}) == 2
+    assert 0 < lit(one) < lit(alone)
     ramp = brickyard.render(labels, mode="slice", size=(48, 40), backend="cpu", tf="linear")
     assert (ramp != alone).any()
     with pytest.raises(ValueError, match="no label image"):
