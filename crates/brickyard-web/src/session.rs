@@ -158,6 +158,16 @@ pub struct WebSession {
 }
 
 impl WebSession {
+    /// Channel `c` at world point `w` from what is resident: the value and
+    /// the level that served it, the finest there is (`None`: nothing
+    /// resident there). Asks for no brick.
+    pub fn value_at(&self, w: [f64; 3], c: usize) -> Option<(f32, u8)> {
+        let p = brickyard_core::camera::world_to_normalized(w, self.scene.extent);
+        let mut req = brickyard_cache::vm::Requests::with_capacity(1);
+        let l = self.vm.sample(0, c, p, false, &mut req);
+        l.level.map(|lv| (l.value, lv))
+    }
+
     /// A session over `src` with a pool of `cfg.pool_bytes`; starts
     /// loading the coarsest level (and finer ones while they stay within
     /// an eighth of the pool), which stays resident for good once in.
@@ -383,4 +393,40 @@ impl WebSession {
             ..Default::default()
         }
     }
+}
+
+/// The readout under pixel position `(x, y)` of a slice `view`: the world
+/// point, the image's level-0 voxel there, each channel's value with the
+/// level that served it (from what is resident: the finest level there
+/// is), and with `labels` the label there (its value rounded). `None` for
+/// other modes and off the volume.
+pub fn probe(
+    view: &crate::view::View,
+    image: &WebSession,
+    labels: Option<&WebSession>,
+    x: f64,
+    y: f64,
+) -> Option<serde_json::Value> {
+    let w = view.slice_point(image.scene.extent, x, y)?;
+    let p = brickyard_core::camera::world_to_normalized(w, image.scene.extent);
+    let d = image.vm.layout().levels[0];
+    let voxel: Vec<u64> = (0..3)
+        .map(|a| ((p[a] * d[a] as f64).floor().max(0.0) as u64).min(d[a] - 1))
+        .collect();
+    let values: Vec<serde_json::Value> = (0..image.vm.channels())
+        .map(|c| match image.value_at(w, c) {
+            Some((v, l)) => serde_json::json!({ "value": v, "level": l }),
+            None => serde_json::Value::Null,
+        })
+        .collect();
+    let label = labels.map(|s| match s.value_at(w, 0) {
+        Some((v, l)) => serde_json::json!({ "label": (v as f64 + 0.5).floor(), "level": l }),
+        None => serde_json::Value::Null,
+    });
+    let mut j = serde_json::json!({ "world": w, "voxel_zyx": voxel, "values": values });
+    // (No `labels` key without a label image; null where none is loaded.)
+    if let Some(l) = label {
+        j["labels"] = l;
+    }
+    Some(j)
 }

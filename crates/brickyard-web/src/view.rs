@@ -420,6 +420,29 @@ pub struct View {
     pub channel: usize,
 }
 
+impl View {
+    /// The world point under pixel position `(x, y)` (pixel `(i, j)` spans
+    /// `[i, i + 1) × [j, j + 1)`) of a slice view: where the pixel's ray
+    /// meets the plane; `None` for other modes and off the volume
+    /// (`extent`).
+    pub fn slice_point(&self, extent: [f64; 3], x: f64, y: f64) -> Option<[f64; 3]> {
+        use brickyard_core::camera::{dot, sub};
+        let RenderMode::Slice { origin, normal } = self.params.mode else {
+            return None;
+        };
+        let p = &self.params;
+        let ray = p.camera.ray(x, y, p.width, p.height);
+        let dn = dot(ray.dir, normal);
+        if dn.abs() < 1e-12 {
+            return None;
+        }
+        let w = ray.at(dot(sub(origin, ray.origin), normal) / dn);
+        (0..3)
+            .all(|a| w[a] >= 0.0 && w[a] <= extent[a])
+            .then_some(w)
+    }
+}
+
 fn round(v: f64) -> f64 {
     (v * 1000.0).round() / 1000.0
 }

@@ -184,6 +184,8 @@ struct Inner {
     on_device: bool,
     /// `labels=NAME`: the label image laid over the slice.
     labels: Option<LabelLayer>,
+    /// The view of the last frame drawn (the readout's).
+    view: Option<crate::view::View>,
 }
 
 /// The label image of `labels=NAME`: its own session (drawn on the CPU)
@@ -331,6 +333,7 @@ impl Viewer {
                 device_note,
                 on_device: false,
                 labels,
+                view: None,
             })),
             state: Rc::new(RefCell::new(state)),
             channels,
@@ -413,6 +416,21 @@ impl Viewer {
         }
     }
 
+    /// The readout under pixel position `(x, y)` of the canvas (a slice):
+    /// world point, level-0 voxel, each channel's value and the level that
+    /// served it, the label there with `labels=`; JSON, empty for other
+    /// modes, off the volume and while a frame is being drawn.
+    pub fn probe(&self, x: f64, y: f64) -> String {
+        let Ok(g) = self.inner.try_borrow() else {
+            return String::new();
+        };
+        let Some(v) = &g.view else {
+            return String::new();
+        };
+        let labels = g.labels.as_ref().map(|l| &l.session);
+        crate::session::probe(v, &g.session, labels, x, y).map_or(String::new(), |j| j.to_string())
+    }
+
     /// The store: levels, channels, data type, default window and the
     /// device drawing, as JSON.
     pub fn info(&self) -> String {
@@ -473,6 +491,7 @@ impl Inner {
             return Box::pin(self.frame(state)).await;
         }
         let label_view = state.label_view(&view);
+        self.view = Some(view.clone());
         let (p, lod) = (view.params, view.lod);
         // Draw when the view changed, or when enough bricks arrived to be
         // worth a frame: a frame holds the page's only thread, and loads

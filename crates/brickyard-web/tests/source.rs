@@ -182,6 +182,16 @@ fn stream_view(
     pool: u64,
     view: impl FnOnce(&WebSession, &WebSource) -> brickyard_web::view::View,
 ) -> (Image, u32, brickyard_web::view::View) {
+    let (img, frames, v, _) = stream_session(store, pool, view);
+    (img, frames, v)
+}
+
+/// [`stream_view`], with the session kept.
+fn stream_session(
+    store: &Path,
+    pool: u64,
+    view: impl FnOnce(&WebSession, &WebSource) -> brickyard_web::view::View,
+) -> (Image, u32, brickyard_web::view::View, WebSession) {
     let src = Rc::new(open_web(store, 32));
     let mut exec = LocalPool::new();
     let sp = exec.spawner();
@@ -206,7 +216,7 @@ fn stream_view(
                 frame,
                 s.loads.loaded()
             );
-            return (s.image().clone(), frame, kept);
+            return (s.image().clone(), frame, kept, s);
         }
     }
     panic!("the view did not complete in 500 frames");
@@ -550,16 +560,10 @@ impl brickyard_run::process::Phases for Quiet {
     }
 }
 
-#[test]
-fn label_images_laid_over_slices_stream_as_brickyard_render_lays_them() {
-    let dir = tempfile::tempdir().unwrap();
-    let store = convert_file(
-        dir.path(),
-        "nuclei-confocal-u16.tif",
-        Compression::Lz4,
-        32,
-        64,
-    );
+/// The nuclei stack converted into `dir`, with `labels/cells` from
+/// `process`.
+fn nuclei_with_cells(dir: &Path) -> PathBuf {
+    let store = convert_file(dir, "nuclei-confocal-u16.tif", Compression::Lz4, 32, 64);
     let args = brickyard_run::process::ProcessArgs {
         store: store.clone(),
         pipeline: "gauss(1)|threshold(12000)|label(26)".into(),
@@ -580,6 +584,13 @@ fn label_images_laid_over_slices_stream_as_brickyard_render_lays_them() {
         again: "command",
     };
     brickyard_run::process::run(&args, &caller, &Quiet, &AtomicBool::new(false)).expect("process");
+    store
+}
+
+#[test]
+fn label_images_laid_over_slices_stream_as_brickyard_render_lays_them() {
+    let dir = tempfile::tempdir().unwrap();
+    let store = nuclei_with_cells(dir.path());
     let view = "mode=slice&size=180x160&slice=0.45&tf=linear&window=0,40000";
     let cli_base = [
         "--mode",
@@ -661,4 +672,69 @@ fn label_images_laid_over_slices_stream_as_brickyard_render_lays_them() {
             "{q}: {e}"
         );
     }
+}
+
+#[test]
+fn the_readout_reads_the_voxel_and_label_under_a_pixel_of_a_slice() {
+    use brickyard_store::VolumeSource;
+    let dir = tempfile::tempdir().unwrap();
+    let store = nuclei_with_cells(dir.path());
+    let st = ViewState::from_query(
+        "mode=slice&size=480x440&slice=0.45&tf=linear&window=0,40000&labels=cells",
+    )
+    .unwrap();
+    let (_, _, v, image) = stream_session(&store, 64 << 20, |s, src| {
+        st.params(&s.scene, [0.0, 40000.0], &src.meta.channels, 1, false)
+            .unwrap()
+    });
+    let lv = st.label_view(&v).unwrap();
+    let (_, _, _, labels) = stream_session(&store.join("labels/cells"), 32 << 20, |_, _| lv);
+    // References read apart: the TIFF through its importer, the labels'
+    // level 0 whole.
+    let read = |src: &dyn VolumeSource| {
+        let d = src.meta().dims;
+        let mut b = vec![0u8; d.iter().product::<u64>() as usize * src.meta().dtype.size()];
+        src.read_region(0, 0..d[0], 0..d[1], 0..d[2], &mut b)
+            .unwrap();
+        (b, d)
+    };
+    let (tif, d) =
+        read(&*open_input(&data("nuclei-confocal-u16.tif"), &ImportOptions::default()).unwrap());
+    let (lab, _) =
+        read(&brickyard_store::import::zarr::open(&store.join("labels/cells"), 0).unwrap());
+    let at = |v: [u64; 3]| ((v[0] * d[1] + v[1]) * d[2] + v[2]) as usize;
+    let (mut hits, mut in_labels) = (0, 0);
+    for j in 0..12 {
+        for i in 0..12 {
+            let (x, y) = (20.0 + i as f64 * 38.3, 15.0 + j as f64 * 35.9);
+            let Some(p) = brickyard_web::session::probe(&v, &image, Some(&labels), x, y) else {
+                continue;
+            };
+            hits += 1;
+            let q: Vec<u64> = p["voxel_zyx"]
+                .as_array()
+                .unwrap()
+                .iter()
+                .map(|x| x.as_u64().unwrap())
+                .collect();
+            let q = [q[0], q[1], q[2]];
+            // The view is complete at level 0: the readout reads it there.
+            assert_eq!(p["values"][0]["level"], 0, "{p}");
+            let want = u16::from_ne_bytes([tif[2 * at(q)], tif[2 * at(q) + 1]]) as f64;
+            assert_eq!(p["values"][0]["value"].as_f64(), Some(want), "{x} {y}: {p}");
+            let l = u32::from_ne_bytes(lab[4 * at(q)..4 * at(q) + 4].try_into().unwrap()) as f64;
+            assert_eq!(p["labels"]["label"].as_f64(), Some(l), "{x} {y}: {p}");
+            in_labels += (l != 0.0) as usize;
+        }
+    }
+    eprintln!("{hits} pixels read out, {in_labels} inside labels");
+    assert!(
+        hits > 100 && in_labels >= 5,
+        "{hits} pixels, {in_labels} in labels"
+    );
+    // Off the volume, and not a slice: nothing.
+    assert!(brickyard_web::session::probe(&v, &image, None, -50.0, 5.0).is_none());
+    let mut dvr = v.clone();
+    dvr.params.mode = brickyard_render::RenderMode::Dvr;
+    assert!(brickyard_web::session::probe(&dvr, &image, None, 240.0, 220.0).is_none());
 }

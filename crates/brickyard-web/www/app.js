@@ -114,13 +114,25 @@ async function tick() {
   requestAnimationFrame(tick);
 }
 
+// The readout under the pointer (slices): position, values, label.
+function showProbe(e) {
+  const c = $('view'), r = c.getBoundingClientRect();
+  const x = (e.clientX - r.left) * c.width / r.width, y = (e.clientY - r.top) * c.height / r.height;
+  const t = state.viewer.probe(x, y);
+  if (!t) { $('probe').textContent = ''; return; }
+  const p = JSON.parse(t), [vz, vy, vx] = p.voxel_zyx;
+  const vals = p.values.map((v, i) => v ? `${p.values.length > 1 ? `ch${i} ` : ''}${+v.value.toPrecision(6)}${v.level ? ` (level ${v.level})` : ''}` : 'not loaded');
+  const lab = p.labels === undefined ? '' : p.labels ? ` · label ${p.labels.label}${p.labels.level ? ` (level ${p.labels.level})` : ''}` : ' · label not loaded';
+  $('probe').textContent = `voxel x ${vx} y ${vy} z ${vz}: ${vals.join(', ')}${lab}`;
+}
+
 let dragging = false;
 function wireControls() {
   const view = $('view');
   let last = null;
   view.addEventListener('pointerdown', (e) => { dragging = true; last = [e.clientX, e.clientY]; view.setPointerCapture(e.pointerId); wake(); });
   view.addEventListener('pointermove', (e) => {
-    if (!dragging) return;
+    if (!dragging) { showProbe(e); return; }
     state.viewer.orbit(-(e.clientX - last[0]) * 0.4, (e.clientY - last[1]) * 0.4);
     last = [e.clientX, e.clientY];
     wake();
