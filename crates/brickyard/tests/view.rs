@@ -1716,7 +1716,10 @@ fn viewer_reads_out_the_voxel_and_label_under_the_cursor_and_the_pointer() {
         let f = |a: usize| (v[a] as f64 + 0.5) / dims[a] as f64;
         script += &format!("cursor {} {} {}\nwait-probe 60\n", f(2), f(1), f(0));
     }
-    script += "hover xy 30 61\nwait-probe 60\nquit\n";
+    script += "hover xy 30 61\nwait-probe 60\n";
+    // Then to a label's centroid, by the statistics, and read out there.
+    let goto = ids[ids.len() / 3];
+    script += &format!("hover off\ngoto-label {goto}\nwait-probe 60\nquit\n");
     std::fs::write(p("s.txt"), script).unwrap();
     let Some(mut cmd) = viewer(
         &store,
@@ -1767,10 +1770,26 @@ fn viewer_reads_out_the_voxel_and_label_under_the_cursor_and_the_pointer() {
     assert_eq!(voxels.iter().filter(|v| label(**v) != 0).count(), 3);
     // The pointer over xy: a voxel of the plane through the cursor (the
     // last corner's), away from the cursor itself.
+    let corner = serde_json::json!(voxels[voxels.len() - 1]);
+    let pointer = answers
+        .iter()
+        .rev()
+        .skip(1)
+        .find(|a| a["voxel_zyx"] != corner)
+        .expect("no readout of the pointer");
+    let v = check(pointer);
+    assert_eq!(v[0], dims[0] - 1, "{pointer}");
+    // The cursor went to the label's centroid: the voxel read out last is
+    // the centroid's (rounded to the voxel that holds it).
+    let row = &rows[&goto];
+    let c: Vec<f64> = (8..11).map(|k| row[k].parse().unwrap()).collect();
     let last = answers.last().unwrap();
     let v = check(last);
-    assert_eq!(v[0], dims[0] - 1, "{last}");
-    assert_ne!(v, voxels[voxels.len() - 1], "{last}");
+    assert_eq!(
+        v,
+        [0, 1, 2].map(|a| (c[a] + 0.5).floor() as u64),
+        "label {goto}: {last}"
+    );
 }
 
 fn label_at_index(labels: &[u8], i: usize) -> u64 {

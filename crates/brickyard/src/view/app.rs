@@ -218,6 +218,9 @@ pub struct ViewerApp {
     picked_text: String,
     /// A pick waiting for the readout: the world point clicked.
     pick: Option<Vec3>,
+    /// A label whose centroid the cursor is to go to, once its row of the
+    /// statistics is found.
+    goto: Option<u64>,
 }
 
 /// A live derived channel shown: its pipeline, the store's channel it is
@@ -338,6 +341,7 @@ impl ViewerApp {
             label_mode: 0,
             picked_text: String::new(),
             pick: None,
+            goto: None,
         }
     }
 
@@ -424,6 +428,50 @@ impl ViewerApp {
             self.pick = None;
             self.take_pick();
         }
+        self.take_goto();
+    }
+
+    /// Move the cursor to label `id`'s centroid (by the label statistics),
+    /// once the readout's thread has found its row.
+    pub(super) fn goto_label(&mut self, id: u64) -> Result<(), String> {
+        let Some(p) = &mut self.probe else {
+            return Err("the viewer has no voxel readout".into());
+        };
+        if p.stats_dims.is_none() {
+            return Err("no label image is shown (--labels NAME, or a label image)".into());
+        }
+        p.find(id);
+        self.goto = Some(id);
+        self.message.clear();
+        Ok(())
+    }
+
+    fn take_goto(&mut self) {
+        let (Some(id), Some(p)) = (self.goto, &self.probe) else {
+            return;
+        };
+        let (Some((fid, r)), Some(dims)) = (&p.found, p.stats_dims) else {
+            return;
+        };
+        if *fid != id {
+            return;
+        }
+        self.message = match r {
+            Ok(Some(row)) => {
+                self.cursor = super::probe::centroid_world(row, dims, self.ds.extent);
+                let [z, y, x] = row.centroid;
+                format!(
+                    "label {id}: at its centroid, voxel x {x:.1} y {y:.1} z {z:.1} ({} voxels)",
+                    row.voxels
+                )
+            }
+            Ok(None) => format!("label {id}: not in the label statistics"),
+            Err(e) => format!("label {id}: {e}"),
+        };
+        self.goto = None;
+        let t = self.started.elapsed().as_secs_f64();
+        let (m, c) = (self.message.clone(), self.cursor);
+        self.log_line(serde_json::json!({ "t": t, "goto": id, "message": m, "cursor": c }));
     }
 
     /// The readout answered about the point picked: its label joins the

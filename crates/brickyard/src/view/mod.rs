@@ -463,6 +463,9 @@ pub fn run(c: ViewCmd, demo_store: impl FnOnce() -> Result<PathBuf>) -> Result<i
     let probe_setup = probe::Setup {
         store: store.clone(),
         labels: label_dir.clone(),
+        stats: label_dir
+            .clone()
+            .or_else(|| (m.channels == 1 && info.label_image).then(|| store.clone())),
         extent,
         read_delay: Duration::from_millis(c.read_delay_ms),
     };

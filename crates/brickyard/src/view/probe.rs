@@ -51,10 +51,19 @@ pub fn voxel_of(world: Vec3, extent: Vec3, dims: Dims3) -> [u64; 3] {
     [0, 1, 2].map(|a| ((p[a] * dims[a] as f64).floor().max(0.0) as u64).min(dims[a] - 1))
 }
 
-/// A question: the voxel at world point `world`.
-pub struct Ask {
-    pub id: u64,
-    pub world: Vec3,
+/// A question: the voxel at world point `world`, or a label's row of the
+/// statistics.
+pub enum Ask {
+    Voxel { id: u64, world: Vec3 },
+    Row(u64),
+}
+
+/// A label's row of the statistics, looked up ([`Probe::find`]).
+pub type Found = (u64, std::result::Result<Option<LabelRow>, String>);
+
+enum Reply {
+    Voxel(Answer),
+    Row(Found),
 }
 
 /// A label's row of the label image's statistics (coordinates in voxels
@@ -362,6 +371,9 @@ impl Stats {
 pub struct Setup {
     pub store: PathBuf,
     pub labels: Option<PathBuf>,
+    /// Where the label statistics are (`_brickyard/labels.csv` below it):
+    /// the label image laid over, or the store when it is a label image.
+    pub stats: Option<PathBuf>,
     pub extent: Vec3,
     pub read_delay: Duration,
 }
@@ -369,7 +381,7 @@ pub struct Setup {
 /// The window's side: asks, and keeps the latest answer.
 pub struct Probe {
     tx: Sender<Ask>,
-    rx: Receiver<Answer>,
+    rx: Receiver<Reply>,
     /// The image's level-0 size, to tell voxels apart.
     dims: Dims3,
     extent: Vec3,
@@ -377,6 +389,12 @@ pub struct Probe {
     /// The last question: its id and voxel.
     asked: Option<(u64, [u64; 3])>,
     pub answer: Option<Answer>,
+    /// The last label looked up, and its row once found.
+    pub finding: Option<u64>,
+    pub found: Option<Found>,
+    /// The level-0 size of the image the statistics describe (the label
+    /// image's, or the store's when it is a label image).
+    pub stats_dims: Option<Dims3>,
 }
 
 impl Probe {
@@ -385,16 +403,21 @@ impl Probe {
     pub fn start(setup: Setup, wake: impl Fn() + Send + 'static) -> Result<Probe> {
         let image = Reader::open(&setup.store, setup.read_delay)?;
         let labels = match &setup.labels {
-            Some(dir) => Some((Reader::open(dir, setup.read_delay)?, Stats::open(dir))),
+            Some(dir) => Some(Reader::open(dir, setup.read_delay)?),
             None => None,
         };
+        let stats = setup.stats.as_deref().map(Stats::open);
         let dims = image.dims;
+        let stats_dims = setup
+            .stats
+            .as_ref()
+            .map(|_| labels.as_ref().map_or(dims, |l| l.dims));
         let (tx, ask_rx) = std::sync::mpsc::channel();
         let (answer_tx, rx) = std::sync::mpsc::channel();
         let extent = setup.extent;
         std::thread::Builder::new()
             .name("probe".into())
-            .spawn(move || run(image, labels, extent, ask_rx, answer_tx, wake))
+            .spawn(move || run(image, labels, stats, extent, ask_rx, answer_tx, wake))
             .context("probe thread")?;
         Ok(Probe {
             tx,
@@ -404,7 +427,18 @@ impl Probe {
             next: 0,
             asked: None,
             answer: None,
+            finding: None,
+            found: None,
+            stats_dims,
         })
+    }
+
+    /// Look up `label`'s row of the statistics (the answer comes into
+    /// `found`).
+    pub fn find(&mut self, label: u64) {
+        self.finding = Some(label);
+        self.found = None;
+        let _ = self.tx.send(Ask::Row(label));
     }
 
     /// Ask for the voxel at `world` unless it is the one asked for last.
@@ -415,15 +449,23 @@ impl Probe {
         }
         self.next += 1;
         self.asked = Some((self.next, v));
-        let _ = self.tx.send(Ask {
+        let _ = self.tx.send(Ask::Voxel {
             id: self.next,
             world,
         });
     }
 
-    /// Answers that came (the latest is kept in `answer`).
+    /// Answers that came (the latest is kept in `answer`; a row looked up
+    /// goes into `found`).
     pub fn take(&mut self) -> Vec<Answer> {
-        let got: Vec<Answer> = self.rx.try_iter().collect();
+        let mut got = vec![];
+        for r in self.rx.try_iter() {
+            match r {
+                Reply::Voxel(a) => got.push(a),
+                Reply::Row(f) if Some(f.0) == self.finding => self.found = Some(f),
+                Reply::Row(_) => {}
+            }
+        }
         if let Some(a) = got.last() {
             self.answer = Some(a.clone());
         }
@@ -438,53 +480,83 @@ impl Probe {
 
 fn run(
     mut image: Reader,
-    mut labels: Option<(Reader, Result<Option<Stats>>)>,
+    mut labels: Option<Reader>,
+    mut stats: Option<Result<Option<Stats>>>,
     extent: Vec3,
     rx: Receiver<Ask>,
-    tx: Sender<Answer>,
+    tx: Sender<Reply>,
     wake: impl Fn(),
 ) {
-    while let Ok(mut ask) = rx.recv() {
-        // Only the latest question matters.
-        while let Ok(a) = rx.try_recv() {
-            ask = a;
+    // A label's row of the statistics.
+    let row = |stats: &mut Option<Result<Option<Stats>>>, label: u64| match stats {
+        _ if label == 0 => Ok(None),
+        Some(Ok(Some(s))) => s
+            .row(label)
+            .map_err(|e| format!("{}: {e:#}", s.path.display())),
+        Some(Err(e)) => Err(format!("{e:#}")),
+        _ => Ok(None),
+    };
+    while let Ok(first) = rx.recv() {
+        // Only the latest question about a voxel matters; every label
+        // looked up is answered.
+        let mut voxel = None;
+        let mut rows = vec![];
+        for a in std::iter::once(first).chain(rx.try_iter()) {
+            match a {
+                Ask::Voxel { id, world } => voxel = Some((id, world)),
+                Ask::Row(l) => rows.push(l),
+            }
         }
+        for l in rows {
+            let r = row(&mut stats, l);
+            if tx.send(Reply::Row((l, r))).is_err() {
+                return;
+            }
+            wake();
+        }
+        let Some((id, world)) = voxel else {
+            continue;
+        };
         let t0 = Instant::now();
-        let voxel = voxel_of(ask.world, extent, image.dims);
+        let voxel = voxel_of(world, extent, image.dims);
         let values = (0..image.channels)
             .map(|c| image.value(voxel, c))
             .collect::<Result<Vec<f64>>>()
             .map_err(|e| format!("{e:#}"));
-        let label = labels.as_mut().map(|(r, stats)| {
-            let lv = voxel_of(ask.world, extent, r.dims);
+        let label = labels.as_mut().map(|r| {
+            let lv = voxel_of(world, extent, r.dims);
             let label = r.value(lv, 0).map_err(|e| format!("{e:#}"))? as u64;
-            let row = match stats {
-                _ if label == 0 => Ok(None),
-                Ok(Some(s)) => s
-                    .row(label)
-                    .map_err(|e| format!("{}: {e:#}", s.path.display())),
-                Ok(None) => Ok(None),
-                Err(e) => Err(format!("{e:#}")),
-            };
             Ok(LabelAt {
                 voxel: lv,
                 label,
-                row,
+                row: row(&mut stats, label),
             })
         });
         let answer = Answer {
-            id: ask.id,
-            world: ask.world,
+            id,
+            world,
             voxel,
             values,
             label,
             ms: t0.elapsed().as_secs_f64() * 1e3,
         };
-        if tx.send(answer).is_err() {
+        if tx.send(Reply::Voxel(answer)).is_err() {
             return;
         }
         wake();
     }
+}
+
+/// The world point of a statistics row's centroid (voxels `[z, y, x]` of
+/// an image of level-0 size `dims` spanning `extent`).
+pub fn centroid_world(r: &LabelRow, dims: Dims3, extent: Vec3) -> Vec3 {
+    let [cz, cy, cx] = r.centroid;
+    let f = |c: f64, n: u64, e: f64| ((c + 0.5) / n as f64 * e).clamp(0.0, e);
+    [
+        f(cx, dims[2], extent[0]),
+        f(cy, dims[1], extent[1]),
+        f(cz, dims[0], extent[2]),
+    ]
 }
 
 #[cfg(test)]

@@ -274,6 +274,27 @@ impl ViewerApp {
                             }
                         }
                     }
+                    Cmd::GotoLabel(id) => match (self.waiting, self.goto) {
+                        (None, _) => {
+                            self.waiting = Some(Instant::now());
+                            self.goto_label(*id)
+                                .map_err(|e| anyhow::anyhow!("goto-label: {e}"))?;
+                            false
+                        }
+                        (Some(since), Some(_)) => {
+                            if since.elapsed() > Duration::from_secs(60) {
+                                bail!("goto-label: no answer in 60 s");
+                            }
+                            false
+                        }
+                        (Some(_), None) => {
+                            self.waiting = None;
+                            if !self.message.starts_with(&format!("label {id}: at")) {
+                                bail!("goto-label: {}", self.message);
+                            }
+                            true
+                        }
+                    },
                     Cmd::LabelSelect(t) => {
                         if self.labels.is_none() && !self.ds.labels {
                             bail!("label-select: no label image is shown");

@@ -63,6 +63,20 @@ impl ViewerApp {
                 self.picked.clear();
                 self.picked_text.clear();
             }
+            // The cursor to the centroid of the label typed first (or the
+            // last picked).
+            let first = self.picked_text.split([',', '-']).next().and_then(|t| t.trim().parse::<u64>().ok());
+            if let Some(id) = first.or(self.picked.last().map(|&i| i as u64)) {
+                if ui
+                    .button(format!("Go to {id}"))
+                    .on_hover_text("Move the cursor to the label's centroid (by the label statistics)")
+                    .clicked()
+                {
+                    if let Err(e) = self.goto_label(id) {
+                        self.message = e;
+                    }
+                }
+            }
         });
     }
 
