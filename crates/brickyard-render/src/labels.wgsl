@@ -82,6 +82,7 @@ fn label_surface(ray: Ray) -> vec4<f32> {
     var exact = 0u;
     var unserved = 0u;
     var jumps = 0u;
+    var cells_crossed = 0u;
     var px = vec4<f32>(0.0);
     loop {
         let t = span.x + (f32(k) + 0.5) * dt;
@@ -117,6 +118,27 @@ fn label_surface(ray: Ray) -> vec4<f32> {
                 }
             }
         }
+        if (R.skip_cells == 1u && flag(e) == MAPPED) {
+            // A cell of this level's resident brick that draws nothing
+            // (its value range: background alone, or no label drawn):
+            // cross the steps whose interpolating voxel base lies in it,
+            // as the CPU's run loop does.
+            let s = R.scale[level];
+            let base = vec3<u32>(clamp(vec3<f32>(w.z * s.x, w.y * s.y, w.x * s.z) - vec3<f32>(0.5), vec3<f32>(0.0), R.qmax[level].xyz));
+            let bs = lay.block[lay.nmax].xyz;
+            let lo = (b / bs) * bs;
+            let hi = min(lo + bs, lay.dims[level].xyz);
+            if (all(base >= lo) && all(base < hi)) {
+                let slot = slot_id(e, lay.brick_grid);
+                let r = cell_range(slot, base);
+                if (label_range_clear(r.x, r.y)) {
+                    mark(slot, true);
+                    cells_crossed = cells_crossed + 1u;
+                    k = land_at(cell_exit_t(ray, level, base, span.y), span.x, k, level);
+                    continue;
+                }
+            }
+        }
         let s = sample_from(w, level, q, e);
         samples = samples + 1u;
         if (s.y == 2.0) {
@@ -145,5 +167,6 @@ fn label_surface(ray: Ray) -> vec4<f32> {
     atomicAdd(&counters[1], exact);
     atomicAdd(&counters[2], unserved);
     atomicAdd(&counters[3], jumps);
+    atomicAdd(&counters[5], cells_crossed);
     return px;
 }

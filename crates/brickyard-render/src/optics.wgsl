@@ -167,6 +167,55 @@ fn label_shown(id: i32) -> bool {
     return listed != (mode == 2u);
 }
 
+// The first position of the selection's list whose label is not below
+// `id` (`above`: above `id`).
+fn label_bound(id: i32, above: bool) -> u32 {
+    let base = R.label_sel.y;
+    var lo = 0u;
+    var hi = R.label_sel.z;
+    while (lo < hi) {
+        let mid = (lo + hi) / 2u;
+        let x = bitcast<i32>(aux[base + mid]);
+        if (x < id || (above && x == id)) {
+            lo = mid + 1u;
+        } else {
+            hi = mid;
+        }
+    }
+    return lo;
+}
+
+// Whether values in [lo, hi] (a cell's range) draw nothing: background
+// alone, or no label the selection draws (optics.rs's `label_clear`).
+fn label_range_clear(lo: f32, hi: f32) -> bool {
+    if (is_nan(lo) || is_nan(hi)) {
+        return false;
+    }
+    if (lo == 0.0 && hi == 0.0) {
+        return true;
+    }
+    let mode = R.label_sel.x;
+    if (mode == 0u) {
+        return false;
+    }
+    let a = i32(floor(lo + 0.5));
+    let b = i32(floor(hi + 0.5));
+    if (a > b) {
+        return false;
+    }
+    let listed = label_bound(b, true) - label_bound(a, false);
+    if (mode == 1u) {
+        return listed == 0u;
+    }
+    // All but the listed: clear when every label of the range but 0 is
+    // listed (the count wraps only for ranges no list can cover).
+    var n = bitcast<u32>(b) - bitcast<u32>(a) + 1u;
+    if (a <= 0 && b >= 0) {
+        n = n - 1u;
+    }
+    return n == listed;
+}
+
 // The pixel of a label image's slice sample `v` (optics.rs's
 // `label_color_of`): the label's colour, opaque; label 0, labels the
 // selection hides and NaN (nothing served) transparent.

@@ -123,7 +123,7 @@ fn converge_device(
     scene: &Scene,
     p: &RenderParams,
     level: usize,
-) -> (Image, u64) {
+) -> (Image, (u64, u64)) {
     let (mut dvm, _) = DeviceVm::new(gpu, s.vm_mut()).unwrap();
     let mut r = GpuRenderer::new(gpu);
     let start = Instant::now();
@@ -135,7 +135,7 @@ fn converge_device(
         s.finish_frame([&f.requests]);
         dvm.sync(gpu, s.vm_mut());
         if f.stats.completeness() == 1.0 {
-            return (f.image, f.stats.skipped_bricks);
+            return (f.image, (f.stats.skipped_bricks, f.stats.skipped_cells));
         }
         assert!(
             start.elapsed() < Duration::from_secs(60),
@@ -332,7 +332,14 @@ fn label_surfaces_in_3d_on_the_cpu_and_the_device() {
         }
         let Some(gpu) = &gpu else { continue };
         let mut s = session(&store, DType::U32, pool);
-        let (dev, _) = converge_device(gpu, &mut s, &scene, &p, level);
+        // (With the statistics: background bricks and cells crossed.)
+        scene.ranges = Some(std::sync::Arc::new(s.loader().brick_ranges(1 << 24)));
+        let (dev, (bricks, cells)) = converge_device(gpu, &mut s, &scene, &p, level);
+        eprintln!("level {level}: the device crossed {bricks} bricks and {cells} cells");
+        assert!(
+            bricks > 0 && cells > 0,
+            "level {level}: {bricks} bricks, {cells} cells crossed on the device"
+        );
         shaded_label_colours(&dev, &ids, 1e-5);
         // f32 steps on the device: a ray grazing a voxel may stop a step
         // earlier or later.
@@ -437,7 +444,7 @@ fn sheets_of_labels_behind_background_bricks_are_met_where_the_reference_meets_t
         return;
     };
     let mut s = session(&store, DType::U8, 1 << 20);
-    let (dev, jumped) = converge_device(&gpu, &mut s, &scene, &p, 0);
+    let (dev, (jumped, _)) = converge_device(&gpu, &mut s, &scene, &p, 0);
     let d = differing(&dev, &want, 1e-5);
     eprintln!("the device crossed {jumped} bricks; {d} pixels differ from the reference");
     assert!(
@@ -574,7 +581,14 @@ fn label_selections_draw_only_or_all_but_the_labels_named_on_the_cpu_and_the_dev
             );
             let Some(gpu) = &gpu else { continue };
             let mut s = session(&store, DType::U32, vol_bytes * 5 / 4);
-            let (dev, _) = converge_device(gpu, &mut s, &scene, p, 0);
+            let (dev, (_, dev_cells)) = converge_device(gpu, &mut s, &scene, p, 0);
+            if what == "3D" {
+                eprintln!("{what}, hide {hide}: the device crossed {dev_cells} cells");
+                assert!(
+                    dev_cells > 0,
+                    "{what}, hide {hide}: no cell crossed on the device"
+                );
+            }
             let d = differing(&dev, &img, 1e-5);
             eprintln!("{what}, hide {hide}: {d} pixels on the device differ from the CPU");
             assert!(
