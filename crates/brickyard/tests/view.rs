@@ -58,6 +58,18 @@ fn shared_stack(dir: &Path, name: &str, store: &str, extra: &[&str]) -> PathBuf 
     out
 }
 
+/// The nuclei stack (`shared_stack`) with `labels/cells` from `process`.
+fn stack_with_cells(dir: &Path) -> PathBuf {
+    let store = shared_stack(dir, "nuclei-confocal-u16.tif", "nuclei.ome.zarr", &[]);
+    let o = Command::new(bin())
+        .args(["process", s(&store), "gauss(1)|threshold(12000)|label(26)"])
+        .args(["--out", "cells", "--quiet"])
+        .output()
+        .unwrap();
+    assert!(o.status.success(), "process: {}", stderr(&o));
+    store
+}
+
 fn png_pixels(p: &Path) -> (u32, u32, Vec<u8>) {
     let d = png::Decoder::new(std::io::BufReader::new(std::fs::File::open(p).unwrap()));
     let mut r = d.read_info().unwrap();
@@ -1401,13 +1413,7 @@ fn viewer_lays_label_images_over_its_slices_as_render_does() {
     let _session = shared();
     let d = tempfile::tempdir().unwrap();
     let p = |n: &str| d.path().join(n);
-    let store = shared_stack(d.path(), "nuclei-confocal-u16.tif", "nuclei.ome.zarr", &[]);
-    let o = Command::new(bin())
-        .args(["process", s(&store), "gauss(1)|threshold(12000)|label(26)"])
-        .args(["--out", "cells", "--quiet"])
-        .output()
-        .unwrap();
-    assert!(o.status.success(), "process: {}", stderr(&o));
+    let store = stack_with_cells(d.path());
     // The labels over xy, xz and the 3D view's slice at opacity 0.5; xz at
     // opacity 1; the three without labels; then, turned on again, xy after
     // a drag that moves the cursor.
@@ -1574,13 +1580,7 @@ fn unreadable_label_chunks_are_drawn_coarser_and_reported_briefly() {
     let _session = shared();
     let d = tempfile::tempdir().unwrap();
     let p = |n: &str| d.path().join(n);
-    let store = shared_stack(d.path(), "nuclei-confocal-u16.tif", "nuclei.ome.zarr", &[]);
-    let o = Command::new(bin())
-        .args(["process", s(&store), "gauss(1)|threshold(12000)|label(26)"])
-        .args(["--out", "cells", "--quiet"])
-        .output()
-        .unwrap();
-    assert!(o.status.success(), "process: {}", stderr(&o));
+    let store = stack_with_cells(d.path());
     // The first shard of the labels' level 0 overwritten with 200 bytes.
     let shard = store.join("labels/cells/0/c/0/0/0");
     assert!(shard.exists(), "{} is missing", shard.display());
@@ -1646,13 +1646,7 @@ fn viewer_reads_out_the_voxel_and_label_under_the_cursor_and_the_pointer() {
     let _session = shared();
     let d = tempfile::tempdir().unwrap();
     let p = |n: &str| d.path().join(n);
-    let store = shared_stack(d.path(), "nuclei-confocal-u16.tif", "nuclei.ome.zarr", &[]);
-    let o = Command::new(bin())
-        .args(["process", s(&store), "gauss(1)|threshold(12000)|label(26)"])
-        .args(["--out", "cells", "--quiet"])
-        .output()
-        .unwrap();
-    assert!(o.status.success(), "process: {}", stderr(&o));
+    let store = stack_with_cells(d.path());
     // References read apart from the viewer: the TIFF through its
     // importer, the labels' level 0 whole, their statistics as text.
     let tif =
@@ -1801,13 +1795,7 @@ fn viewer_picks_labels_and_draws_only_them_or_all_but_them_as_render_does() {
     let _session = shared();
     let d = tempfile::tempdir().unwrap();
     let p = |n: &str| d.path().join(n);
-    let store = shared_stack(d.path(), "nuclei-confocal-u16.tif", "nuclei.ome.zarr", &[]);
-    let o = Command::new(bin())
-        .args(["process", s(&store), "gauss(1)|threshold(12000)|label(26)"])
-        .args(["--out", "cells", "--quiet"])
-        .output()
-        .unwrap();
-    assert!(o.status.success(), "process: {}", stderr(&o));
+    let store = stack_with_cells(d.path());
     let flags = [
         "--labels",
         "cells",

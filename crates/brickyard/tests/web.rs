@@ -102,6 +102,25 @@ fn needs_browser() -> Option<()> {
     );
 }
 
+/// The headless-browser check (`browser/e2e.mjs`) of the page at `url`,
+/// its files in `out`; returns its report (JSON text).
+fn e2e(url: &str, out: &Path) -> String {
+    std::fs::create_dir_all(out).unwrap();
+    let o = Command::new("node")
+        .arg(repo().join("crates/brickyard-web/browser/e2e.mjs"))
+        .args(["chromium", url])
+        .arg(out)
+        .output()
+        .unwrap();
+    let report = std::fs::read_to_string(out.join("report.json")).unwrap_or_default();
+    assert!(
+        o.status.success(),
+        "the browser check failed:\n{}\n{report}",
+        String::from_utf8_lossy(&o.stderr)
+    );
+    report
+}
+
 fn read_png(p: &Path) -> (u32, u32, Vec<u8>) {
     let d = png::Decoder::new(std::io::BufReader::new(std::fs::File::open(p).unwrap()));
     let mut r = d.read_info().unwrap();
@@ -134,19 +153,7 @@ fn the_web_client_draws_what_render_draws_in_a_headless_browser() {
         srv.1
     );
     let out = d.path().join("out");
-    std::fs::create_dir_all(&out).unwrap();
-    let o = Command::new("node")
-        .arg(repo().join("crates/brickyard-web/browser/e2e.mjs"))
-        .args(["chromium", &url])
-        .arg(&out)
-        .output()
-        .unwrap();
-    let report = std::fs::read_to_string(out.join("report.json")).unwrap_or_default();
-    assert!(
-        o.status.success(),
-        "the browser check failed:\n{}\n{report}",
-        String::from_utf8_lossy(&o.stderr)
-    );
+    let report = e2e(&url, &out);
     eprintln!("{report}");
     let r: serde_json::Value = serde_json::from_str(&report).unwrap();
     // The same view by the command line.
@@ -289,19 +296,7 @@ fn the_web_client_lays_label_images_over_slices_as_render_does() {
         srv.1
     );
     let out = d.path().join("out");
-    std::fs::create_dir_all(&out).unwrap();
-    let o = Command::new("node")
-        .arg(repo().join("crates/brickyard-web/browser/e2e.mjs"))
-        .args(["chromium", &url])
-        .arg(&out)
-        .output()
-        .unwrap();
-    let report = std::fs::read_to_string(out.join("report.json")).unwrap_or_default();
-    assert!(
-        o.status.success(),
-        "the browser check failed:\n{}\n{report}",
-        String::from_utf8_lossy(&o.stderr)
-    );
+    let report = e2e(&url, &out);
     let r: serde_json::Value = serde_json::from_str(&report).unwrap();
     assert_eq!(r["status"]["labels"]["complete"], true, "{report}");
     assert!(

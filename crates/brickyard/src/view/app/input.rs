@@ -208,6 +208,35 @@ impl ViewerApp {
         ctx.send_viewport_cmd(egui::ViewportCommand::Close);
     }
 
+    /// A script command answered by the readout's thread (`pick`,
+    /// `goto-label`): `start` asks, then it waits until the answer is taken
+    /// (`pick` and `goto` cleared); done when the message then starts with
+    /// `ok`, else an error with the message.
+    fn await_answer(
+        &mut self,
+        what: &str,
+        ok: &str,
+        start: impl FnOnce(&mut Self) -> Result<()>,
+    ) -> Result<bool> {
+        let Some(since) = self.waiting else {
+            self.waiting = Some(Instant::now());
+            self.message.clear();
+            start(self).with_context(|| what.to_string())?;
+            return Ok(false);
+        };
+        if self.pick.is_some() || self.goto.is_some() {
+            if since.elapsed() > Duration::from_secs(60) {
+                bail!("{what}: no answer in 60 s");
+            }
+            return Ok(false);
+        }
+        self.waiting = None;
+        if !self.message.starts_with(ok) {
+            bail!("{what}: {}", self.message);
+        }
+        Ok(true)
+    }
+
     /// Run script commands until one has to wait.
     pub(super) fn run_script(&mut self, ctx: &egui::Context) {
         while self.pc < self.script.len() {
@@ -248,53 +277,21 @@ impl ViewerApp {
                         true
                     }
                     Cmd::Pick(v, x, y) => {
-                        // Until the readout answers and the pick is taken.
                         if self.probe.is_none() {
                             bail!("pick: the viewer has no voxel readout");
                         }
-                        match (self.waiting, self.pick) {
-                            (None, _) => {
-                                self.waiting = Some(Instant::now());
-                                self.pick = Some(self.slice_point(*v, *x, *y));
-                                self.message.clear();
-                                false
-                            }
-                            (Some(since), Some(_)) => {
-                                if since.elapsed() > Duration::from_secs(60) {
-                                    bail!("pick: no answer in 60 s");
-                                }
-                                false
-                            }
-                            (Some(_), None) => {
-                                self.waiting = None;
-                                if !self.message.starts_with("labels picked") {
-                                    bail!("pick: {}", self.message);
-                                }
-                                true
-                            }
-                        }
+                        let at = self.slice_point(*v, *x, *y);
+                        self.await_answer("pick", "labels picked", |a| {
+                            a.pick = Some(at);
+                            Ok(())
+                        })?
                     }
-                    Cmd::GotoLabel(id) => match (self.waiting, self.goto) {
-                        (None, _) => {
-                            self.waiting = Some(Instant::now());
-                            self.goto_label(*id)
-                                .map_err(|e| anyhow::anyhow!("goto-label: {e}"))?;
-                            false
-                        }
-                        (Some(since), Some(_)) => {
-                            if since.elapsed() > Duration::from_secs(60) {
-                                bail!("goto-label: no answer in 60 s");
-                            }
-                            false
-                        }
-                        (Some(_), None) => {
-                            self.waiting = None;
-                            if !self.message.starts_with(&format!("label {id}: at")) {
-                                bail!("goto-label: {}", self.message);
-                            }
-                            true
-                        }
-                    },
+                    Cmd::GotoLabel(id) => {
+                        let id = *id;
+                        self.await_answer("goto-label", &format!("label {id}: at"), |a| {
+                            a.goto_label(id).map_err(|e| anyhow::anyhow!("{e}"))
+                        })?
+                    }
                     Cmd::LabelSelect(t) => {
                         if self.labels.is_none() && !self.ds.labels {
                             bail!("label-select: no label image is shown");
