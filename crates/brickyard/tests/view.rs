@@ -1713,7 +1713,7 @@ fn viewer_reads_out_the_voxel_and_label_under_the_cursor_and_the_pointer() {
     script += "hover xy 30 61\nwait-probe 60\n";
     // Then to a label's centroid, by the statistics, and read out there.
     let goto = ids[ids.len() / 3];
-    script += &format!("hover off\ngoto-label {goto}\nwait-probe 60\nquit\n");
+    script += &format!("hover off\ngoto-label {goto}\nwait-probe 60\nlargest-labels 5\nquit\n");
     std::fs::write(p("s.txt"), script).unwrap();
     let Some(mut cmd) = viewer(
         &store,
@@ -1784,6 +1784,20 @@ fn viewer_reads_out_the_voxel_and_label_under_the_cursor_and_the_pointer() {
         [0, 1, 2].map(|a| (c[a] + 0.5).floor() as u64),
         "label {goto}: {last}"
     );
+    // The five labels of most voxels, as the statistics sorted say.
+    let mut by_size: Vec<(u64, u64)> = rows
+        .iter()
+        .map(|(id, r)| (*id, r[1].parse().unwrap()))
+        .collect();
+    by_size.sort_by(|a, b| b.1.cmp(&a.1).then(a.0.cmp(&b.0)));
+    let largest = std::fs::read_to_string(p("log.jsonl"))
+        .unwrap()
+        .lines()
+        .filter_map(|l| serde_json::from_str::<serde_json::Value>(l).ok())
+        .find_map(|v| v.get("largest").cloned())
+        .expect("no largest labels in the log");
+    let want: Vec<[u64; 2]> = by_size[..5].iter().map(|&(id, n)| [id, n]).collect();
+    assert_eq!(largest, serde_json::json!(want));
 }
 
 fn label_at_index(labels: &[u8], i: usize) -> u64 {

@@ -221,6 +221,8 @@ pub struct ViewerApp {
     /// A label whose centroid the cursor is to go to, once its row of the
     /// statistics is found.
     goto: Option<u64>,
+    /// The largest labels were asked for.
+    largest_asked: bool,
 }
 
 /// A live derived channel shown: its pipeline, the store's channel it is
@@ -342,6 +344,7 @@ impl ViewerApp {
             picked_text: String::new(),
             pick: None,
             goto: None,
+            largest_asked: false,
         }
     }
 
@@ -492,17 +495,7 @@ impl ViewerApp {
         self.message = match id {
             Ok(0) => "the background is not a label: nothing picked".into(),
             Ok(id) => {
-                let id = id as i32;
-                match self.picked.iter().position(|&x| x == id) {
-                    Some(i) => {
-                        self.picked.remove(i);
-                    }
-                    None => self.picked.push(id),
-                }
-                self.picked_text = picked_text(&self.picked);
-                if self.label_mode == 0 {
-                    self.label_mode = 1;
-                }
+                self.toggle_picked(id as i32);
                 format!("labels picked: {}", self.picked_text)
             }
             Err(e) => format!("pick: {e}"),
@@ -511,6 +504,21 @@ impl ViewerApp {
         self.log_line(
             serde_json::json!({ "t": t, "picked": self.picked, "label_mode": self.label_mode }),
         );
+    }
+
+    /// Label `id` joins the labels picked, or leaves them; picking the
+    /// first draws only those picked.
+    pub(super) fn toggle_picked(&mut self, id: i32) {
+        match self.picked.iter().position(|&x| x == id) {
+            Some(i) => {
+                self.picked.remove(i);
+            }
+            None => self.picked.push(id),
+        }
+        self.picked_text = picked_text(&self.picked);
+        if self.label_mode == 0 {
+            self.label_mode = 1;
+        }
     }
 
     /// What the label image draws (`None`: every label).

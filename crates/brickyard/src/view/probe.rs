@@ -54,9 +54,17 @@ pub fn voxel_of(world: Vec3, extent: Vec3, dims: Dims3) -> [u64; 3] {
 /// A question: the voxel at world point `world`, or a label's row of the
 /// statistics.
 pub enum Ask {
-    Voxel { id: u64, world: Vec3 },
+    Voxel {
+        id: u64,
+        world: Vec3,
+    },
     Row(u64),
+    /// The labels of most voxels, this many.
+    Largest(usize),
 }
+
+/// The labels of most voxels ([`Probe::largest`]), most first.
+pub type Largest = std::result::Result<Vec<(u64, LabelRow)>, String>;
 
 /// A label's row of the statistics, looked up ([`Probe::find`]).
 pub type Found = (u64, std::result::Result<Option<LabelRow>, String>);
@@ -64,6 +72,7 @@ pub type Found = (u64, std::result::Result<Option<LabelRow>, String>);
 enum Reply {
     Voxel(Answer),
     Row(Found),
+    Largest(Largest),
 }
 
 /// A label's row of the label image's statistics (coordinates in voxels
@@ -341,19 +350,67 @@ impl Stats {
         if label_of(&line)? != label {
             return Ok(None);
         }
-        let f: Vec<&str> = line.split(',').collect();
-        if f.len() < 11 {
-            anyhow::bail!("expected at least 11 columns, found {}: {line:?}", f.len());
+        parse_row(&line).map(|(_, r)| Some(r))
+    }
+
+    /// The `n` labels of most voxels (most first; ties by label), read
+    /// through the whole file `chunk` bytes at a time, keeping `n` rows.
+    fn largest(&mut self, n: usize, chunk: u64) -> Result<Vec<(u64, LabelRow)>> {
+        use std::cmp::Reverse;
+        use std::collections::BinaryHeap;
+        let mut heap: BinaryHeap<Reverse<(u64, Reverse<u64>)>> = BinaryHeap::new();
+        let mut rows: std::collections::HashMap<u64, LabelRow> = Default::default();
+        let (mut pos, mut rest) = (self.start, Vec::<u8>::new());
+        while pos < self.len {
+            let got = self.bytes(pos, chunk)?;
+            pos += got.len() as u64;
+            rest.extend_from_slice(&got);
+            let end = match rest.iter().rposition(|&b| b == b'\n') {
+                Some(e) => e + 1,
+                None if pos >= self.len => rest.len(),
+                None => continue,
+            };
+            for line in String::from_utf8_lossy(&rest[..end])
+                .lines()
+                .filter(|l| !l.is_empty())
+            {
+                let (id, r) = parse_row(line)?;
+                heap.push(Reverse((r.voxels, Reverse(id))));
+                rows.insert(id, r);
+                if heap.len() > n {
+                    if let Some(Reverse((_, Reverse(out)))) = heap.pop() {
+                        rows.remove(&out);
+                    }
+                }
+            }
+            rest.drain(..end);
         }
-        let int = |i: usize| -> Result<u64> {
-            f[i].parse()
-                .with_context(|| format!("column {}: expected a count, found {:?}", i + 1, f[i]))
-        };
-        let real = |i: usize| -> Result<f64> {
-            f[i].parse()
-                .with_context(|| format!("column {}: expected a number, found {:?}", i + 1, f[i]))
-        };
-        Ok(Some(LabelRow {
+        let mut out: Vec<(u64, LabelRow)> = heap
+            .into_iter()
+            .map(|Reverse((_, Reverse(id)))| (id, rows.remove(&id).expect("kept")))
+            .collect();
+        out.sort_by(|a, b| b.1.voxels.cmp(&a.1.voxels).then(a.0.cmp(&b.0)));
+        Ok(out)
+    }
+}
+
+/// A row of the statistics: its label and the rest.
+fn parse_row(line: &str) -> Result<(u64, LabelRow)> {
+    let f: Vec<&str> = line.split(',').collect();
+    if f.len() < 11 {
+        anyhow::bail!("expected at least 11 columns, found {}: {line:?}", f.len());
+    }
+    let int = |i: usize| -> Result<u64> {
+        f[i].parse()
+            .with_context(|| format!("column {}: expected a count, found {:?}", i + 1, f[i]))
+    };
+    let real = |i: usize| -> Result<f64> {
+        f[i].parse()
+            .with_context(|| format!("column {}: expected a number, found {:?}", i + 1, f[i]))
+    };
+    Ok((
+        int(0)?,
+        LabelRow {
             voxels: int(1)?,
             min: [int(2)?, int(3)?, int(4)?],
             max: [int(5)?, int(6)?, int(7)?],
@@ -363,8 +420,8 @@ impl Stats {
                 .filter(|s| !s.is_empty())
                 .map(|_| real(11))
                 .transpose()?,
-        }))
-    }
+        },
+    ))
 }
 
 /// The probe's thread: the image, and the label image over it if any.
@@ -395,6 +452,8 @@ pub struct Probe {
     /// The level-0 size of the image the statistics describe (the label
     /// image's, or the store's when it is a label image).
     pub stats_dims: Option<Dims3>,
+    /// The labels of most voxels, once asked for and read.
+    pub largest: Option<Largest>,
 }
 
 impl Probe {
@@ -430,7 +489,15 @@ impl Probe {
             finding: None,
             found: None,
             stats_dims,
+            largest: None,
         })
+    }
+
+    /// Read the `n` labels of most voxels from the statistics (the answer
+    /// comes into `largest`).
+    pub fn largest(&mut self, n: usize) {
+        self.largest = None;
+        let _ = self.tx.send(Ask::Largest(n));
     }
 
     /// Look up `label`'s row of the statistics (the answer comes into
@@ -464,6 +531,7 @@ impl Probe {
                 Reply::Voxel(a) => got.push(a),
                 Reply::Row(f) if Some(f.0) == self.finding => self.found = Some(f),
                 Reply::Row(_) => {}
+                Reply::Largest(l) => self.largest = Some(l),
             }
         }
         if let Some(a) = got.last() {
@@ -501,11 +569,26 @@ fn run(
         // looked up is answered.
         let mut voxel = None;
         let mut rows = vec![];
+        let mut largest = None;
         for a in std::iter::once(first).chain(rx.try_iter()) {
             match a {
                 Ask::Voxel { id, world } => voxel = Some((id, world)),
                 Ask::Row(l) => rows.push(l),
+                Ask::Largest(n) => largest = Some(n),
             }
+        }
+        if let Some(n) = largest {
+            let r = match &mut stats {
+                Some(Ok(Some(s))) => s
+                    .largest(n, 1 << 20)
+                    .map_err(|e| format!("{}: {e:#}", s.path.display())),
+                Some(Err(e)) => Err(format!("{e:#}")),
+                _ => Err("the label image has no statistics (_brickyard/labels.csv)".into()),
+            };
+            if tx.send(Reply::Largest(r)).is_err() {
+                return;
+            }
+            wake();
         }
         for l in rows {
             let r = row(&mut stats, l);
@@ -599,6 +682,20 @@ mod tests {
                 assert_eq!(st.row(l).unwrap(), None, "{n} rows: label {l}");
             }
         }
+    }
+
+    #[test]
+    fn the_largest_labels_are_kept_while_the_file_is_read() {
+        // 3000 rows, sizes in a scrambled order with ties.
+        let rows: Vec<(u64, u64)> = (1..=3000u64).map(|i| (i, i * 7919 % 1013)).collect();
+        let (_d, mut st) = stats_file(&rows);
+        // (Reads of 4000 bytes: lines cross their ends.)
+        let got = st.largest(25, 4000).unwrap();
+        let mut want = rows.clone();
+        want.sort_by(|a, b| b.1.cmp(&a.1).then(a.0.cmp(&b.0)));
+        let got: Vec<(u64, u64)> = got.iter().map(|(id, r)| (*id, r.voxels)).collect();
+        assert_eq!(got, want[..25].to_vec());
+        assert_eq!(st.largest(5000, 1 << 20).unwrap().len(), 3000);
     }
 
     #[test]

@@ -12,6 +12,7 @@
 //! | `hover VIEW X Y` / `hover off` | the pointer at pixel (X, Y) of slice view VIEW (the voxel readout reads the voxel there), or gone (it reads the voxel at the cursor) |
 //! | `pick VIEW X Y` | Ctrl+click at pixel (X, Y) of slice view VIEW: the label there joins the labels picked, or leaves them (waits for the readout) |
 //! | `label-select IDS\|none` / `label-mode all\|only\|hide` | the labels picked (`3,17,40-45`); which labels a label image draws: all, only those picked, all but them |
+//! | `largest-labels N` | read the N labels of most voxels from the label statistics (the controls' table; logged as `"largest"`) |
 //! | `goto-label ID` | the cursor to the label's centroid, by the label statistics (waits for them) |
 //! | `wait-probe [SECONDS]` | wait until the voxel readout answered for the voxel it reads now (default 60 s) |
 //! | `key NAME` | a key: `left`, `right`, `up`, `down` (orbit), `plus`, `minus` (zoom), `r` (reset) |
@@ -56,6 +57,7 @@ pub enum Cmd {
     LabelSelect(String),
     LabelMode(u8),
     GotoLabel(u64),
+    LargestLabels(usize),
     WaitProbe(f64),
     Key(String),
     Tf(String),
@@ -176,6 +178,10 @@ fn parse_line(w: &[&str]) -> Result<Cmd> {
                 bail!("pick: labels are picked in slice views (xy, xz, yz, oblique), not 3d");
             }
             Cmd::Pick(v, num(w[2])?, num(w[3])?)
+        }
+        "largest-labels" => {
+            arity(1)?;
+            Cmd::LargestLabels(num(w[1])?)
         }
         "goto-label" => {
             arity(1)?;

@@ -292,6 +292,37 @@ impl ViewerApp {
                             a.goto_label(id).map_err(|e| anyhow::anyhow!("{e}"))
                         })?
                     }
+                    Cmd::LargestLabels(n) => {
+                        let Some(p) = &mut self.probe else {
+                            bail!("largest-labels: the viewer has no voxel readout");
+                        };
+                        if p.stats_dims.is_none() {
+                            bail!("largest-labels: no label image is shown");
+                        }
+                        let since = match self.waiting {
+                            Some(t) => t,
+                            None => {
+                                p.largest(*n);
+                                self.largest_asked = true;
+                                *self.waiting.insert(Instant::now())
+                            }
+                        };
+                        match &p.largest {
+                            None if since.elapsed() > Duration::from_secs(120) => {
+                                bail!("largest-labels: no answer in 120 s")
+                            }
+                            None => false,
+                            Some(Err(e)) => bail!("largest-labels: {e}"),
+                            Some(Ok(rows)) => {
+                                let rows: Vec<[u64; 2]> =
+                                    rows.iter().map(|(id, r)| [*id, r.voxels]).collect();
+                                self.waiting = None;
+                                let t = self.started.elapsed().as_secs_f64();
+                                self.log_line(serde_json::json!({ "t": t, "largest": rows }));
+                                true
+                            }
+                        }
+                    }
                     Cmd::LabelSelect(t) => {
                         if self.labels.is_none() && !self.ds.labels {
                             bail!("label-select: no label image is shown");

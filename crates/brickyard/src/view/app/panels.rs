@@ -14,6 +14,9 @@ use brickyard_store::info::human_bytes;
 use eframe::egui;
 use std::path::PathBuf;
 
+/// Rows of the largest-labels table.
+pub(super) const LARGEST: usize = 50;
+
 impl ViewerApp {
     /// `--labels NAME`: shown or not, and how opaque.
     fn label_controls(&mut self, ui: &mut egui::Ui) {
@@ -78,6 +81,63 @@ impl ViewerApp {
                 }
             }
         });
+    }
+
+    /// The labels of most voxels, from the label statistics: each with
+    /// its size and mean, a button to pick it and one to go to it.
+    fn largest_labels(&mut self, ui: &mut egui::Ui) {
+        let Some(p) = &mut self.probe else {
+            return;
+        };
+        if p.stats_dims.is_none() {
+            return;
+        }
+        let open = egui::CollapsingHeader::new("Largest labels").show(ui, |ui| {
+            let mut pick = None;
+            let mut goto = None;
+            match &p.largest {
+                None => {
+                    ui.label("reading the label statistics…");
+                }
+                Some(Err(e)) => {
+                    ui.label(e.as_str());
+                }
+                Some(Ok(rows)) => {
+                    egui::ScrollArea::vertical()
+                        .max_height(160.0)
+                        .show(ui, |ui| {
+                            for (id, r) in rows {
+                                ui.horizontal(|ui| {
+                                    let mean =
+                                        r.mean.map_or(String::new(), |m| format!(" mean {m:.4}"));
+                                    ui.monospace(format!("{id:>7} {:>10} vx{mean}", r.voxels));
+                                    if ui.small_button("pick").clicked() {
+                                        pick = Some(*id);
+                                    }
+                                    if ui.small_button("go to").clicked() {
+                                        goto = Some(*id);
+                                    }
+                                });
+                            }
+                        });
+                }
+            }
+            (pick, goto)
+        });
+        if open.body_returned.is_some() && p.largest.is_none() && !self.largest_asked {
+            p.largest(LARGEST);
+            self.largest_asked = true;
+        }
+        if let Some((pick, goto)) = open.body_returned {
+            if let Some(id) = pick {
+                self.toggle_picked(id as i32);
+            }
+            if let Some(id) = goto {
+                if let Err(e) = self.goto_label(id) {
+                    self.message = e;
+                }
+            }
+        }
     }
 
     /// The labels picked, from text as `render --only-labels` takes it
@@ -184,6 +244,7 @@ impl ViewerApp {
         }
         self.label_controls(ui);
         self.selection_controls(ui);
+        self.largest_labels(ui);
         ui.separator();
         self.processing_panel(ui);
         ui.separator();
