@@ -309,6 +309,7 @@ impl Viewer {
             "pool_slots": session.vm.pool_slots(),
             "device": device.as_ref().map(|d| d.gpu.describe()),
             "device_note": device_note,
+            "label_image": src.meta.labels,
         })
         .to_string();
         let channels = src.geometry.channels;

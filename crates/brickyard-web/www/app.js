@@ -126,18 +126,52 @@ function showProbe(e) {
   $('probe').textContent = `voxel x ${vx} y ${vy} z ${vz}: ${vals.join(', ')}${lab}`;
 }
 
+// The labels of an `only_labels` list (`3,17,40-45`), one by one.
+function labelList(text) {
+  const out = [];
+  for (const part of (text || '').split(',').filter((x) => x)) {
+    const m = part.match(/^(-?\d+)-(-?\d+)$/);
+    if (m) { for (let i = +m[1]; i <= +m[2] && out.length < 65536; i++) out.push(i); } else out.push(+part);
+  }
+  return out;
+}
+
+function pickAt(e) {
+  const c = $('view'), r = c.getBoundingClientRect();
+  const t = state.viewer.probe((e.clientX - r.left) * c.width / r.width, (e.clientY - r.top) * c.height / r.height);
+  if (!t) return;
+  const p = JSON.parse(t), info = JSON.parse(state.viewer.info());
+  const id = p.labels !== undefined ? (p.labels && p.labels.label)
+    : (info.label_image && p.values[0] ? Math.floor(p.values[0].value + 0.5) : 0);
+  if (!id) return;
+  const q = new URLSearchParams(state.viewer.query());
+  if (q.get('hide_labels')) return;
+  const ids = labelList(q.get('only_labels'));
+  const i = ids.indexOf(id);
+  if (i >= 0) ids.splice(i, 1); else ids.push(id);
+  ids.sort((a, b) => a - b);
+  setView({ only_labels: ids.length ? ids.join(',') : null });
+}
+
 let dragging = false;
 function wireControls() {
   const view = $('view');
   let last = null;
-  view.addEventListener('pointerdown', (e) => { dragging = true; last = [e.clientX, e.clientY]; view.setPointerCapture(e.pointerId); wake(); });
+  let down = null;
+  view.addEventListener('pointerdown', (e) => { dragging = true; last = down = [e.clientX, e.clientY]; view.setPointerCapture(e.pointerId); wake(); });
   view.addEventListener('pointermove', (e) => {
     if (!dragging) { showProbe(e); return; }
     state.viewer.orbit(-(e.clientX - last[0]) * 0.4, (e.clientY - last[1]) * 0.4);
     last = [e.clientX, e.clientY];
     wake();
   });
-  view.addEventListener('pointerup', () => { dragging = false; wake(); });
+  view.addEventListener('pointerup', (e) => {
+    dragging = false;
+    // A click (no drag) on a label of a slice picks it: only_labels gains
+    // it, or loses it.
+    if (down && Math.hypot(e.clientX - down[0], e.clientY - down[1]) < 3) pickAt(e);
+    wake();
+  });
   view.addEventListener('wheel', (e) => { e.preventDefault(); state.viewer.zoom(e.deltaY < 0 ? 1.1 : 1 / 1.1); wake(); }, { passive: false });
   // The transfer function's window, dragged on the histogram: the nearer
   // end follows the pointer.
