@@ -358,3 +358,92 @@ fn the_web_client_lays_label_images_over_slices_as_render_does() {
         assert!(max <= 2, "{file} differs from render --labels by {max}/255");
     }
 }
+
+#[test]
+fn the_web_pages_readout_names_the_voxel_and_a_click_picks_its_label() {
+    use brickyard_store::VolumeSource;
+    if needs_browser().is_none() {
+        return;
+    }
+    let d = tempfile::tempdir().unwrap();
+    let store = d.path().join("nuclei.ome.zarr");
+    let input = repo().join("../shared/data/nuclei-confocal-u16.tif");
+    ok(&bin()
+        .arg("convert")
+        .arg(&input)
+        .arg(&store)
+        .arg("--quiet")
+        .output()
+        .unwrap());
+    ok(&bin()
+        .arg("process")
+        .arg(&store)
+        .args([
+            "gauss(1)|threshold(12000)|label(26)",
+            "--out",
+            "cells",
+            "--quiet",
+        ])
+        .output()
+        .unwrap());
+    let srv = serve_web(&store);
+    // Level 0 everywhere (a slice larger than the volume's 256 × 256): the
+    // readout reads the voxels themselves.
+    let url = format!(
+        "http://127.0.0.1:{}/web/#store=..%2Fnuclei.ome.zarr%2F&mode=slice&size=560x540&slice=0.45&tf=linear&window=0,40000&labels=cells",
+        srv.1
+    );
+    let out = d.path().join("out");
+    std::fs::create_dir_all(&out).unwrap();
+    let o = Command::new("node")
+        .arg(repo().join("crates/brickyard-web/browser/readout.mjs"))
+        .args(["chromium", &url])
+        .arg(&out)
+        .output()
+        .unwrap();
+    let report = std::fs::read_to_string(out.join("readout.json")).unwrap_or_default();
+    assert!(
+        o.status.success(),
+        "the browser check failed:\n{}\n{report}",
+        String::from_utf8_lossy(&o.stderr)
+    );
+    let r: serde_json::Value = serde_json::from_str(&report).unwrap();
+    // Every readout line names the voxel's value and label as the files
+    // hold them.
+    let read = |src: &dyn VolumeSource| {
+        let dm = src.meta().dims;
+        let mut b = vec![0u8; dm.iter().product::<u64>() as usize * src.meta().dtype.size()];
+        src.read_region(0, 0..dm[0], 0..dm[1], 0..dm[2], &mut b)
+            .unwrap();
+        (b, dm)
+    };
+    let (tif, dm) = read(&brickyard_store::import::tiff::open(&input).unwrap());
+    let (lab, _) =
+        read(&brickyard_store::import::zarr::open(&store.join("labels/cells"), 0).unwrap());
+    let mut checked = 0;
+    for l in r["lines"].as_array().unwrap() {
+        let t = l["text"].as_str().unwrap();
+        if t.is_empty() {
+            continue;
+        }
+        // "voxel x X y Y z Z: V · label L"
+        let n: Vec<f64> = t
+            .split(|c: char| !(c.is_ascii_digit() || c == '.'))
+            .filter(|x| !x.is_empty())
+            .map(|x| x.parse().unwrap())
+            .collect();
+        assert_eq!(n.len(), 5, "{t}");
+        let (x, y, z) = (n[0] as u64, n[1] as u64, n[2] as u64);
+        let i = ((z * dm[1] + y) * dm[2] + x) as usize;
+        let v = u16::from_ne_bytes([tif[2 * i], tif[2 * i + 1]]) as f64;
+        let id = u32::from_ne_bytes(lab[4 * i..4 * i + 4].try_into().unwrap()) as f64;
+        assert_eq!((n[3], n[4]), (v, id), "{t}");
+        checked += 1;
+    }
+    assert!(checked > 10, "{checked} readout lines checked: {report}");
+    let id = r["label"].as_u64().unwrap();
+    let after = r["hash_after_click"].as_str().unwrap();
+    assert!(after.contains(&format!("only_labels={id}")), "{report}");
+    let again = r["hash_after_second_click"].as_str().unwrap();
+    assert!(!again.contains("only_labels"), "{report}");
+}
