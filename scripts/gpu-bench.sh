@@ -12,6 +12,8 @@
 #     from the host cache;
 #   - the same at 512^3 on the CPU and the GPU side by side;
 #   - 16 frames of shaded sample accumulation on the GPU;
+#   - label surfaces of the $SMALL^3 store's parts (all, and one alone) on
+#     the CPU and the GPU;
 #   - the processing filters gauss(2) and sobel of a generated PROC^3 u16
 #     volume (default 512) on the CPU and the GPU side by side, with the
 #     largest difference beside the stated tolerance;
@@ -93,6 +95,14 @@ step small "$SMALL^3, CPU, GPU, GPU with host updates" 120 bench render --size "
 # frames on the GPU (each frame's time on stdout).
 echo '{"preset": "soft", "window": [0, 255], "shading": true}' > "$DATA/shaded.json"
 step prog "progressive 16 frames, shaded, $SMALL^3 at 1024^2, GPU" 30 render "$DATA/mandelbulb-${SMALL}x${SMALL}x${SMALL}-u8.ome.zarr" --out "$DATA/progressive.png" --size 1024x1024 --tf "$DATA/shaded.json" --progressive 16 --backend gpu
+# Label images in 3D: the $SMALL^3 store's parts (threshold(100)|label(26),
+# written by `process` into its labels/parts), their surfaces at 1920x1080
+# on the CPU and the GPU, all labels and one alone (--only-labels: the rays
+# pass through the others, crossing the bricks and cells that hold none).
+SMALL_STORE="$DATA/mandelbulb-${SMALL}x${SMALL}x${SMALL}-u8.ome.zarr"
+step labels "labels of $SMALL^3: process" 90 process "$SMALL_STORE" "threshold(100)|label(26)" --out parts --overwrite --quiet
+step labels "label surfaces of $SMALL^3 at 1920x1080, CPU and GPU" 120 bench render --store "$SMALL_STORE/labels/parts" --image 1920x1080 --repeat 5 --backend both --no-reference
+step labels "one label (11) of $SMALL^3 at 1920x1080, CPU and GPU" 120 bench render --store "$SMALL_STORE/labels/parts" --only-labels 11 --image 1920x1080 --repeat 5 --backend both --no-reference
 step big "$BIG^3 full view, GPU" 160 bench render --size "$BIG" --dtype u8 --dir "$DATA" --image 1920x1080 --zoom 1 --repeat 20 --backend gpu --no-reference --cold
 # A one-shot render of the big store from the host's page cache, frame by
 # frame (what a user runs first).
