@@ -1921,3 +1921,102 @@ fn viewer_picks_labels_and_draws_only_them_or_all_but_them_as_render_does() {
         "{n_hide} of {n_all}"
     );
 }
+
+#[test]
+fn viewer_picks_the_label_a_3d_view_shows_under_the_pointer() {
+    let _session = shared();
+    let d = tempfile::tempdir().unwrap();
+    let p = |n: &str| d.path().join(n);
+    // The label image itself, in 3D (its labels' surfaces).
+    let labels = stack_with_cells(d.path()).join("labels/cells");
+    let flags = [
+        "--backend",
+        "cpu",
+        "--brick",
+        "16",
+        "--window-size",
+        "900x600",
+    ];
+    let head = "size 3d 120 100\nmode dvr\nlevel 0\nwait-complete 120\n";
+    std::fs::write(
+        p("a.txt"),
+        format!("{head}screenshot 3d {}\nquit\n", s(&p("all.png"))),
+    )
+    .unwrap();
+    let Some(mut cmd) = viewer(&labels, &p("a.txt"), None, &flags) else {
+        return;
+    };
+    let o = cmd.output().unwrap();
+    assert!(o.status.success(), "viewer: {}", stderr(&o));
+    let (w, h, all) = png_pixels(&p("all.png"));
+    let px = |img: &[u8], x: u32, y: u32| {
+        let i = 4 * (y * w + x) as usize;
+        [img[i], img[i + 1], img[i + 2]]
+    };
+    let lit = |c: [u8; 3]| c.iter().any(|&v| v > 20);
+    // A pixel well inside a surface: its 5 × 5 neighbours all lit.
+    let (x, y): (u32, u32) = (2..h - 2)
+        .flat_map(|y| (2..w - 2).map(move |x| (x, y)))
+        .filter(|&(x, y)| (0..25).all(|k| lit(px(&all, x + k % 5 - 2, y + k / 5 - 2))))
+        .nth(40)
+        .expect("no pixel inside a surface");
+    let script = format!(
+        "{head}pick 3d {x}.5 {y}.5\nlabel-mode only\nwait-complete 120\nscreenshot 3d {}\nsave-view 3d {}\nquit\n",
+        s(&p("only.png")),
+        s(&p("only"))
+    );
+    std::fs::write(p("s.txt"), script).unwrap();
+    let Some(mut cmd) = viewer(&labels, &p("s.txt"), Some(&p("log.jsonl")), &flags) else {
+        return;
+    };
+    let o = cmd.output().unwrap();
+    assert!(o.status.success(), "viewer: {}", stderr(&o));
+    let log = std::fs::read_to_string(p("log.jsonl")).unwrap();
+    let picked: Vec<serde_json::Value> = log
+        .lines()
+        .filter_map(|l| serde_json::from_str::<serde_json::Value>(l).ok())
+        .filter(|v| v.get("in_3d").is_some())
+        .collect();
+    assert_eq!(picked.len(), 1, "{log}");
+    let id = picked[0]["picked"][0].as_u64().expect("a label picked");
+    // The label picked is the one the pixel showed: alone, it shows the
+    // same colour there, and far fewer pixels are lit.
+    // (The view's own pool: level 0 of the label picked fits it, not the
+    // 4 MiB `equals_render` gives.)
+    let args = std::fs::read_to_string(p("only.args")).unwrap();
+    let o = Command::new(bin())
+        .args(["render", s(&labels)])
+        .args(args.lines())
+        .args([
+            "--out",
+            s(&p("only-render.png")),
+            "--brick",
+            "16",
+            "--backend",
+            "cpu",
+            "--quiet",
+        ])
+        .output()
+        .unwrap();
+    assert!(o.status.success(), "render: {}", stderr(&o));
+    let (_, _, only) = png_pixels(&p("only.png"));
+    let (_, _, reference) = png_pixels(&p("only-render.png"));
+    let worst = only
+        .iter()
+        .zip(&reference)
+        .map(|(a, b)| a.abs_diff(*b))
+        .max()
+        .unwrap();
+    assert!(
+        worst <= 1,
+        "the viewer's 3D view and render differ by {worst}"
+    );
+    assert!(std::fs::read_to_string(p("only.args"))
+        .unwrap()
+        .contains(&format!("--only-labels\n{id}\n")));
+    assert_eq!(px(&only, x, y), px(&all, x, y), "label {id} at ({x}, {y})");
+    let count = |img: &[u8]| (0..w * h).filter(|&i| lit(px(img, i % w, i / w))).count();
+    let (n_all, n_only) = (count(&all), count(&only));
+    eprintln!("label {id}: {n_only} lit pixels alone, {n_all} with all labels");
+    assert!(n_only >= 25 && n_only * 2 < n_all, "{n_only} of {n_all}");
+}

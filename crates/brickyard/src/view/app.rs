@@ -223,6 +223,8 @@ pub struct ViewerApp {
     goto: Option<u64>,
     /// The largest labels were asked for.
     largest_asked: bool,
+    /// A pick in the 3D view waiting for the first label along its ray.
+    pick3d: bool,
 }
 
 /// A live derived channel shown: its pipeline, the store's channel it is
@@ -345,6 +347,7 @@ impl ViewerApp {
             pick: None,
             goto: None,
             largest_asked: false,
+            pick3d: false,
         }
     }
 
@@ -432,6 +435,47 @@ impl ViewerApp {
             self.take_pick();
         }
         self.take_goto();
+        self.take_pick3d();
+    }
+
+    /// Pick the label the 3D view shows at render pixel `(x, y)`: the first
+    /// label drawn along the pixel's ray (a label image in DVR mode).
+    pub(super) fn pick_3d(&mut self, x: f64, y: f64) -> Result<(), String> {
+        if !self.ds.labels || self.mode != "dvr" || self.stereo != "off" {
+            return Err(
+                "labels are picked in 3D on a label image shown in DVR mode, one view".into(),
+            );
+        }
+        let [w, h] = self.render_size(0);
+        let ray = self.cam.ray(x, y, w, h);
+        let sel = self.label_selection();
+        let Some(p) = &mut self.probe else {
+            return Err("the viewer has no voxel readout".into());
+        };
+        p.ray(ray, sel);
+        self.pick3d = true;
+        self.message.clear();
+        Ok(())
+    }
+
+    fn take_pick3d(&mut self) {
+        if !self.pick3d {
+            return;
+        }
+        let Some(hit) = self.probe.as_ref().and_then(|p| p.hit.clone()) else {
+            return;
+        };
+        self.pick3d = false;
+        self.message = match hit {
+            Ok(0) => "no label along that ray: nothing picked".into(),
+            Ok(id) => {
+                self.toggle_picked(id as i32);
+                format!("labels picked: {}", self.picked_text)
+            }
+            Err(e) => format!("pick: {e}"),
+        };
+        let t = self.started.elapsed().as_secs_f64();
+        self.log_line(serde_json::json!({ "t": t, "picked": self.picked, "label_mode": self.label_mode, "in_3d": true }));
     }
 
     /// Move the cursor to label `id`'s centroid (by the label statistics),

@@ -14,8 +14,9 @@ use anyhow::{Context, Result};
 use brickyard_cache::brick::{BrickContent, BrickKey, LoadedBrick};
 use brickyard_cache::host_cache::HostCache;
 use brickyard_cache::loader::Loader;
-use brickyard_core::camera::world_to_normalized;
+use brickyard_core::camera::{intersect_box, length, world_to_normalized, Ray};
 use brickyard_core::{cast_slice, dispatch_dtype, DType, Dims3, Sample};
+use brickyard_render::params::LabelSelect;
 use brickyard_store::storage::{self, Span};
 use std::path::{Path, PathBuf};
 use std::sync::mpsc::{Receiver, Sender};
@@ -61,6 +62,8 @@ pub enum Ask {
     Row(u64),
     /// The labels of most voxels, this many.
     Largest(usize),
+    /// The first label drawn along a ray (a pick in 3D).
+    Ray(Ray, Option<LabelSelect>),
 }
 
 /// The labels of most voxels ([`Probe::largest`]), most first.
@@ -73,6 +76,7 @@ enum Reply {
     Voxel(Answer),
     Row(Found),
     Largest(Largest),
+    Hit(std::result::Result<u64, String>),
 }
 
 /// A label's row of the label image's statistics (coordinates in voxels
@@ -454,6 +458,8 @@ pub struct Probe {
     pub stats_dims: Option<Dims3>,
     /// The labels of most voxels, once asked for and read.
     pub largest: Option<Largest>,
+    /// The first label drawn along the last ray asked about (0: none).
+    pub hit: Option<std::result::Result<u64, String>>,
 }
 
 impl Probe {
@@ -490,7 +496,15 @@ impl Probe {
             found: None,
             stats_dims,
             largest: None,
+            hit: None,
         })
+    }
+
+    /// Find the first label along `ray` that `select` draws, in the
+    /// image's full-resolution voxels (the answer comes into `hit`).
+    pub fn ray(&mut self, ray: Ray, select: Option<LabelSelect>) {
+        self.hit = None;
+        let _ = self.tx.send(Ask::Ray(ray, select));
     }
 
     /// Read the `n` labels of most voxels from the statistics (the answer
@@ -532,6 +546,7 @@ impl Probe {
                 Reply::Row(f) if Some(f.0) == self.finding => self.found = Some(f),
                 Reply::Row(_) => {}
                 Reply::Largest(l) => self.largest = Some(l),
+                Reply::Hit(h) => self.hit = Some(h),
             }
         }
         if let Some(a) = got.last() {
@@ -570,12 +585,22 @@ fn run(
         let mut voxel = None;
         let mut rows = vec![];
         let mut largest = None;
+        let mut ray = None;
         for a in std::iter::once(first).chain(rx.try_iter()) {
             match a {
                 Ask::Voxel { id, world } => voxel = Some((id, world)),
                 Ask::Row(l) => rows.push(l),
                 Ask::Largest(n) => largest = Some(n),
+                Ask::Ray(r, sel) => ray = Some((r, sel)),
             }
+        }
+        if let Some((r, sel)) = ray {
+            let hit =
+                first_label(&mut image, extent, &r, sel.as_ref()).map_err(|e| format!("{e:#}"));
+            if tx.send(Reply::Hit(hit)).is_err() {
+                return;
+            }
+            wake();
         }
         if let Some(n) = largest {
             let r = match &mut stats {
@@ -628,6 +653,37 @@ fn run(
         }
         wake();
     }
+}
+
+/// The first label along `ray` through a label image (`r`, spanning
+/// `extent`) that `select` draws: steps of half its smallest voxel from
+/// where the ray enters the volume, each reading the full-resolution voxel
+/// there (0: none met).
+fn first_label(
+    r: &mut Reader,
+    extent: Vec3,
+    ray: &Ray,
+    select: Option<&LabelSelect>,
+) -> Result<u64> {
+    let Some((t0, t1)) = intersect_box(ray, [0.0; 3], extent) else {
+        return Ok(0);
+    };
+    let d = r.dims;
+    let voxel = [0, 1, 2]
+        .map(|a| extent[a] / d[2 - a] as f64)
+        .into_iter()
+        .fold(f64::INFINITY, f64::min);
+    let dt = 0.5 * voxel / length(ray.dir);
+    let mut t = t0 + 0.5 * dt;
+    while t < t1 {
+        let v = r.value(voxel_of(ray.at(t), extent, d), 0)?;
+        let id = (v + 0.5).floor();
+        if id != 0.0 && !id.is_nan() && select.is_none_or(|s| s.shows(id as i32)) {
+            return Ok(id as u64);
+        }
+        t += dt;
+    }
+    Ok(0)
 }
 
 /// The world point of a statistics row's centroid (voxels `[z, y, x]` of

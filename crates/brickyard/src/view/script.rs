@@ -10,7 +10,7 @@
 //! | `scroll VIEW STEPS` | the mouse wheel (zoom; positive: in) |
 //! | `click VIEW X Y` | a click at pixel (X, Y) of the view (slices: move the cursor there) |
 //! | `hover VIEW X Y` / `hover off` | the pointer at pixel (X, Y) of slice view VIEW (the voxel readout reads the voxel there), or gone (it reads the voxel at the cursor) |
-//! | `pick VIEW X Y` | Ctrl+click at pixel (X, Y) of slice view VIEW: the label there joins the labels picked, or leaves them (waits for the readout) |
+//! | `pick VIEW X Y` | Ctrl+click at pixel (X, Y) of VIEW: the label there (in `3d`, of a label image in DVR mode: the first label drawn along the pixel's ray) joins the labels picked, or leaves them (waits for the readout) |
 //! | `label-select IDS\|none` / `label-mode all\|only\|hide` | the labels picked (`3,17,40-45`); which labels a label image draws: all, only those picked, all but them |
 //! | `largest-labels N` | read the N labels of most voxels from the label statistics (the controls' table; logged as `"largest"`) |
 //! | `goto-label ID` | the cursor to the label's centroid, by the label statistics (waits for them) |
@@ -173,11 +173,7 @@ fn parse_line(w: &[&str]) -> Result<Cmd> {
         },
         "pick" => {
             arity(3)?;
-            let v = view(w[1])?;
-            if v == 0 {
-                bail!("pick: labels are picked in slice views (xy, xz, yz, oblique), not 3d");
-            }
-            Cmd::Pick(v, num(w[2])?, num(w[3])?)
+            Cmd::Pick(view(w[1])?, num(w[2])?, num(w[3])?)
         }
         "largest-labels" => {
             arity(1)?;

@@ -224,7 +224,7 @@ impl ViewerApp {
             start(self).with_context(|| what.to_string())?;
             return Ok(false);
         };
-        if self.pick.is_some() || self.goto.is_some() {
+        if self.pick.is_some() || self.goto.is_some() || self.pick3d {
             if since.elapsed() > Duration::from_secs(60) {
                 bail!("{what}: no answer in 60 s");
             }
@@ -280,10 +280,14 @@ impl ViewerApp {
                         if self.probe.is_none() {
                             bail!("pick: the viewer has no voxel readout");
                         }
-                        let at = self.slice_point(*v, *x, *y);
-                        self.await_answer("pick", "labels picked", |a| {
-                            a.pick = Some(at);
-                            Ok(())
+                        let (v, x, y) = (*v, *x, *y);
+                        let at = self.slice_point(v.max(1), x, y);
+                        self.await_answer("pick", "labels picked", |a| match v {
+                            0 => a.pick_3d(x, y).map_err(|e| anyhow::anyhow!("{e}")),
+                            _ => {
+                                a.pick = Some(at);
+                                Ok(())
+                            }
                         })?
                     }
                     Cmd::GotoLabel(id) => {

@@ -535,6 +535,15 @@ impl ViewerApp {
         // Input: the same handlers as scripts, in render pixels.
         let k = rs[0] as f32 / img.width();
         let rect = img;
+        if v == 0 && resp.clicked() && ui.input(|i| i.modifiers.command) {
+            // Ctrl+click in 3D picks the label shown there.
+            if let Some(pos) = resp.interact_pointer_pos() {
+                let q = (pos - rect.min) * k;
+                if let Err(e) = self.pick_3d(q.x as f64, q.y as f64) {
+                    self.message = e;
+                }
+            }
+        }
         if resp.dragged_by(egui::PointerButton::Primary) {
             let d = resp.drag_delta() * k;
             if v == 0 {
