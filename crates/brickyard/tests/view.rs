@@ -70,6 +70,47 @@ fn stack_with_cells(dir: &Path) -> PathBuf {
     store
 }
 
+/// A first viewer run on `store` that shoots `view` after `head` into
+/// `dir/all.png`: its size and pixels (`None`: no display).
+fn first_shot(
+    store: &Path,
+    dir: &Path,
+    head: &str,
+    view: &str,
+    flags: &[&str],
+) -> Option<(u32, u32, Vec<u8>)> {
+    let (script, png) = (dir.join("a.txt"), dir.join("all.png"));
+    std::fs::write(
+        &script,
+        format!("{head}screenshot {view} {}\nquit\n", s(&png)),
+    )
+    .unwrap();
+    let o = viewer(store, &script, None, flags)?.output().unwrap();
+    assert!(o.status.success(), "viewer: {}", stderr(&o));
+    Some(png_pixels(&png))
+}
+
+/// The RGB of pixel `(x, y)` of an image `w` wide.
+fn rgb(img: &[u8], w: u32, x: u32, y: u32) -> [u8; 3] {
+    let i = 4 * (y * w + x) as usize;
+    [img[i], img[i + 1], img[i + 2]]
+}
+
+/// Pixels of a `w` × `h` image whose 5 × 5 neighbours (and themselves)
+/// all pass `inside` with the pixel's colour, in raster order.
+fn inner_pixels<'a>(
+    img: &'a [u8],
+    (w, h): (u32, u32),
+    inside: impl Fn([u8; 3], [u8; 3]) -> bool + 'a,
+) -> impl Iterator<Item = (u32, u32)> + 'a {
+    (2..h - 2)
+        .flat_map(move |y| (2..w - 2).map(move |x| (x, y)))
+        .filter(move |&(x, y)| {
+            let c = rgb(img, w, x, y);
+            (0..25).all(|k| inside(c, rgb(img, w, x + k % 5 - 2, y + k / 5 - 2)))
+        })
+}
+
 fn png_pixels(p: &Path) -> (u32, u32, Vec<u8>) {
     let d = png::Decoder::new(std::io::BufReader::new(std::fs::File::open(p).unwrap()));
     let mut r = d.read_info().unwrap();
@@ -1825,28 +1866,13 @@ fn viewer_picks_labels_and_draws_only_them_or_all_but_them_as_render_does() {
     let head = "size xy 96 96\nlevel 0\nlabel-opacity 1\nwait-complete 120\n";
     // First the labels as they are, to find a pixel inside a label: one
     // whose 5 × 5 neighbours all have its strong colour.
-    std::fs::write(
-        p("a.txt"),
-        format!("{head}screenshot xy {}\nquit\n", s(&p("all.png"))),
-    )
-    .unwrap();
-    let Some(mut cmd) = viewer(&store, &p("a.txt"), None, &flags) else {
+    let Some((w, h, all)) = first_shot(&store, d.path(), head, "xy", &flags) else {
         return;
     };
-    let o = cmd.output().unwrap();
-    assert!(o.status.success(), "viewer: {}", stderr(&o));
-    let (w, h, all) = png_pixels(&p("all.png"));
-    let px = |img: &[u8], x: u32, y: u32| {
-        let i = 4 * (y * w + x) as usize;
-        [img[i], img[i + 1], img[i + 2]]
-    };
+    let px = |img: &[u8], x: u32, y: u32| rgb(img, w, x, y);
     let strong = |c: [u8; 3]| c[0].abs_diff(c[1]) > 60 || c[1].abs_diff(c[2]) > 60;
-    let (x, y): (u32, u32) = (2..h - 2)
-        .flat_map(|y| (2..w - 2).map(move |x| (x, y)))
-        .find(|&(x, y)| {
-            let c = px(&all, x, y);
-            strong(c) && (0..25).all(|k| px(&all, x + k % 5 - 2, y + k / 5 - 2) == c)
-        })
+    let (x, y) = inner_pixels(&all, (w, h), |c, n| strong(c) && n == c)
+        .next()
         .expect("no pixel inside a label");
     let shoot = |name: &str| {
         let f = s(&p(name)).to_string();
@@ -1938,26 +1964,13 @@ fn viewer_picks_the_label_a_3d_view_shows_under_the_pointer() {
         "900x600",
     ];
     let head = "size 3d 120 100\nmode dvr\nlevel 0\nwait-complete 120\n";
-    std::fs::write(
-        p("a.txt"),
-        format!("{head}screenshot 3d {}\nquit\n", s(&p("all.png"))),
-    )
-    .unwrap();
-    let Some(mut cmd) = viewer(&labels, &p("a.txt"), None, &flags) else {
+    let Some((w, h, all)) = first_shot(&labels, d.path(), head, "3d", &flags) else {
         return;
     };
-    let o = cmd.output().unwrap();
-    assert!(o.status.success(), "viewer: {}", stderr(&o));
-    let (w, h, all) = png_pixels(&p("all.png"));
-    let px = |img: &[u8], x: u32, y: u32| {
-        let i = 4 * (y * w + x) as usize;
-        [img[i], img[i + 1], img[i + 2]]
-    };
+    let px = |img: &[u8], x: u32, y: u32| rgb(img, w, x, y);
     let lit = |c: [u8; 3]| c.iter().any(|&v| v > 20);
     // A pixel well inside a surface: its 5 × 5 neighbours all lit.
-    let (x, y): (u32, u32) = (2..h - 2)
-        .flat_map(|y| (2..w - 2).map(move |x| (x, y)))
-        .filter(|&(x, y)| (0..25).all(|k| lit(px(&all, x + k % 5 - 2, y + k / 5 - 2))))
+    let (x, y) = inner_pixels(&all, (w, h), |_, n| lit(n))
         .nth(40)
         .expect("no pixel inside a surface");
     let script = format!(

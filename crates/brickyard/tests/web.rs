@@ -121,6 +121,32 @@ fn e2e(url: &str, out: &Path) -> String {
     report
 }
 
+/// The nuclei stack converted into `dir` with `labels/cells` from
+/// `process`; and the TIFF it came from.
+fn nuclei_with_cells(dir: &Path) -> (PathBuf, PathBuf) {
+    let store = dir.join("nuclei.ome.zarr");
+    let input = repo().join("../shared/data/nuclei-confocal-u16.tif");
+    ok(&bin()
+        .arg("convert")
+        .arg(&input)
+        .arg(&store)
+        .arg("--quiet")
+        .output()
+        .unwrap());
+    ok(&bin()
+        .arg("process")
+        .arg(&store)
+        .args([
+            "gauss(1)|threshold(12000)|label(26)",
+            "--out",
+            "cells",
+            "--quiet",
+        ])
+        .output()
+        .unwrap());
+    (store, input)
+}
+
 fn read_png(p: &Path) -> (u32, u32, Vec<u8>) {
     let d = png::Decoder::new(std::io::BufReader::new(std::fs::File::open(p).unwrap()));
     let mut r = d.read_info().unwrap();
@@ -269,26 +295,7 @@ fn the_web_client_lays_label_images_over_slices_as_render_does() {
         return;
     }
     let d = tempfile::tempdir().unwrap();
-    let store = d.path().join("nuclei.ome.zarr");
-    let input = repo().join("../shared/data/nuclei-confocal-u16.tif");
-    ok(&bin()
-        .arg("convert")
-        .arg(&input)
-        .arg(&store)
-        .arg("--quiet")
-        .output()
-        .unwrap());
-    ok(&bin()
-        .arg("process")
-        .arg(&store)
-        .args([
-            "gauss(1)|threshold(12000)|label(26)",
-            "--out",
-            "cells",
-            "--quiet",
-        ])
-        .output()
-        .unwrap());
+    let (store, _) = nuclei_with_cells(d.path());
     let srv = serve_web(&store);
     let view = "mode=slice&size=200x180&slice=0.45&tf=linear&window=0,40000&labels=cells&label_opacity=0.7&only_labels=2,4-6";
     let url = format!(
@@ -366,26 +373,7 @@ fn the_web_pages_readout_names_the_voxel_and_a_click_picks_its_label() {
         return;
     }
     let d = tempfile::tempdir().unwrap();
-    let store = d.path().join("nuclei.ome.zarr");
-    let input = repo().join("../shared/data/nuclei-confocal-u16.tif");
-    ok(&bin()
-        .arg("convert")
-        .arg(&input)
-        .arg(&store)
-        .arg("--quiet")
-        .output()
-        .unwrap());
-    ok(&bin()
-        .arg("process")
-        .arg(&store)
-        .args([
-            "gauss(1)|threshold(12000)|label(26)",
-            "--out",
-            "cells",
-            "--quiet",
-        ])
-        .output()
-        .unwrap());
+    let (store, input) = nuclei_with_cells(d.path());
     let srv = serve_web(&store);
     // Level 0 everywhere (a slice larger than the volume's 256 × 256): the
     // readout reads the voxels themselves.
