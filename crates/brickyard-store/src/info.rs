@@ -432,7 +432,10 @@ fn inner_images(path: &Path, problems: &mut Vec<String>) -> Vec<(String, String)
                 let first = ms.datasets.first()?;
                 let meta = read_json(&dir.join(&first.path).join("zarr.json")).ok()?;
                 let dtype = meta.get("data_type")?.as_str()?.to_string();
-                Some(format!("{dtype}, {} levels", ms.datasets.len()))
+                let count = label_count(&dir).map_or(String::new(), |n| {
+                    format!(", {n} labels with statistics (_brickyard/labels.csv)")
+                });
+                Some(format!("{dtype}, {} levels{count}", ms.datasets.len()))
             });
             match summary {
                 Ok(Some(s)) => out.push((rel, s)),
@@ -442,6 +445,23 @@ fn inner_images(path: &Path, problems: &mut Vec<String>) -> Vec<(String, String)
         }
     }
     out
+}
+
+/// The number of labels a label image's statistics hold (`process`
+/// writes `"count"` at the head of `_brickyard/labels.json`; only the
+/// first KiB is read).
+fn label_count(dir: &Path) -> Option<u64> {
+    let p = dir.join("_brickyard").join("labels.json");
+    let len = storage::size(&p).ok()??;
+    let head = storage::read_spans(&p, &[storage::Span::Range(0..len.min(1024))]).ok()??;
+    let text = String::from_utf8_lossy(&head[0]).into_owned();
+    let rest = &text[text.find("\"count\":")? + 8..];
+    let digits: String = rest
+        .trim_start()
+        .chars()
+        .take_while(char::is_ascii_digit)
+        .collect();
+    digits.parse().ok()
 }
 
 /// The folders in a local store's group `group` (`labels`, `derived`),

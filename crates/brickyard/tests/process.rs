@@ -225,6 +225,15 @@ fn labels_equal_an_in_core_flood_fill_and_follow_the_labels_spec() {
     ] {
         assert!(text.contains(l), "{l:?} not in {text}");
     }
+    // With the number of labels the statistics hold, as their JSON says.
+    let lj: serde_json::Value = serde_json::from_str(
+        &std::fs::read_to_string(store.join("labels/cells/_brickyard/labels.json")).unwrap(),
+    )
+    .unwrap();
+    let n = lj["count"].as_u64().unwrap();
+    let want = format!(", {n} labels with statistics (_brickyard/labels.csv))");
+    let line = text.lines().find(|l| l.contains("labels/cells")).unwrap();
+    assert!(line.ends_with(&want), "{line:?} does not end with {want:?}");
 }
 
 #[test]
