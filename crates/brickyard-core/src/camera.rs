@@ -46,6 +46,14 @@ pub fn world_extent(dims: [u64; 3], spacing: [f64; 3]) -> Vec3 {
     ]
 }
 
+/// The voxel `[z, y, x]` of a volume of `dims` voxels spanning `extent`
+/// that holds the world point `world` (points outside are clamped to the
+/// nearest voxel).
+pub fn world_to_voxel(world: Vec3, extent: Vec3, dims: [u64; 3]) -> [u64; 3] {
+    let p = world_to_normalized(world, extent);
+    [0, 1, 2].map(|a| ((p[a] * dims[a] as f64).floor().max(0.0) as u64).min(dims[a] - 1))
+}
+
 /// Normalized real position `p = [z, y, x]` of the world point `world`
 /// (`[x, y, z]`) in a volume of world extent `extent` (`[X, Y, Z]`):
 /// `p[a] = world[axis] / extent[axis]`. Not clamped: points outside the box
@@ -790,6 +798,16 @@ impl<'a> Fields<'a> {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn world_points_map_to_the_voxels_that_hold_them() {
+        let (extent, dims) = ([20.0, 10.0, 5.0], [5, 10, 20]);
+        assert_eq!(world_to_voxel([0.0; 3], extent, dims), [0, 0, 0]);
+        assert_eq!(world_to_voxel([19.99, 0.5, 4.99], extent, dims), [4, 0, 19]);
+        // The far faces belong to the last voxels; points outside clamp.
+        assert_eq!(world_to_voxel(extent, extent, dims), [4, 9, 19]);
+        assert_eq!(world_to_voxel([-3.0, 11.0, 2.5], extent, dims), [2, 9, 0]);
+    }
 
     fn close(a: Vec3, b: Vec3, eps: f64) -> bool {
         (0..3).all(|i| (a[i] - b[i]).abs() <= eps)

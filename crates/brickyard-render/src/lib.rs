@@ -55,6 +55,7 @@ mod walk;
 pub use image::Image;
 pub use params::{RenderMode, RenderParams};
 pub use reference::{render, Volume};
+pub use slice::slice_point;
 
 /// This crate's WGSL modules, by name, as they are compiled: the render
 /// kernel (DVR, MIP, slices, octree traversal, accumulation) and the

@@ -221,7 +221,8 @@ impl LabelSelect {
         out.join(",")
     }
 
-    /// Parse a list such as `3,17,40-45` (labels and inclusive ranges).
+    /// Parse a list such as `3,17,40-45` (labels and inclusive ranges;
+    /// 0, the background, is refused).
     pub fn parse_ids(text: &str) -> Result<Vec<i32>, String> {
         let mut ids = vec![];
         for part in text.split(',').map(str::trim).filter(|p| !p.is_empty()) {
@@ -246,6 +247,9 @@ impl LabelSelect {
             return Err(format!(
                 "expected labels such as 3,17,40-45, found {text:?}"
             ));
+        }
+        if ids.contains(&0) {
+            return Err("0 is the background, never drawn; expected labels other than 0".into());
         }
         Ok(ids)
     }
@@ -360,6 +364,21 @@ impl RenderParams {
             labels: false,
             label_select: None,
         }
+    }
+
+    /// What a label image draws over the slice these parameters draw (as
+    /// `render --labels NAME` lays it): the same plane, camera and size,
+    /// in the labels' colours (`select`: the labels drawn), one channel,
+    /// through the page tables, with a fixed transfer function (label
+    /// colours take nothing from it).
+    pub fn labels_over(&self, select: Option<LabelSelect>) -> RenderParams {
+        let mut p = self.clone();
+        p.labels = true;
+        p.label_select = select;
+        p.channels = vec![];
+        p.tf = TransferFunction::preset("linear", [0.0, 1.0]).expect("a preset");
+        p.traversal = Traversal::PageTable;
+        p
     }
 
     /// Check everything the renderers rely on.

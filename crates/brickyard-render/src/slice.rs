@@ -19,7 +19,7 @@ use brickyard_core::Sample;
 /// ray and inside the box `[0, extent]`: the world point and the ray
 /// parameter.
 #[inline]
-pub(crate) fn slice_point(ray: &Ray, origin: Vec3, n: Vec3, extent: Vec3) -> Option<(Vec3, f64)> {
+pub fn slice_point(ray: &Ray, origin: Vec3, n: Vec3, extent: Vec3) -> Option<(Vec3, f64)> {
     meet(ray, dot(sub(origin, ray.origin), n), n, extent)
 }
 

@@ -656,9 +656,6 @@ fn label_select(c: &RenderCmd, labels: bool) -> Result<Option<LabelSelect>> {
         );
     }
     let ids = LabelSelect::parse_ids(text).map_err(|e| anyhow::anyhow!("{flag}: {e}"))?;
-    if ids.contains(&0) {
-        bail!("{flag}: 0 is the background, never drawn; expected labels other than 0");
-    }
     Ok(Some(LabelSelect::new(ids, hide)))
 }
 

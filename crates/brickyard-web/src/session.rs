@@ -408,11 +408,8 @@ pub fn probe(
     y: f64,
 ) -> Option<serde_json::Value> {
     let w = view.slice_point(image.scene.extent, x, y)?;
-    let p = brickyard_core::camera::world_to_normalized(w, image.scene.extent);
-    let d = image.vm.layout().levels[0];
-    let voxel: Vec<u64> = (0..3)
-        .map(|a| ((p[a] * d[a] as f64).floor().max(0.0) as u64).min(d[a] - 1))
-        .collect();
+    let voxel =
+        brickyard_core::camera::world_to_voxel(w, image.scene.extent, image.vm.layout().levels[0]);
     let values: Vec<serde_json::Value> = (0..image.vm.channels())
         .map(|c| match image.value_at(w, c) {
             Some((v, l)) => serde_json::json!({ "value": v, "level": l }),

@@ -5,10 +5,10 @@
 //! same values draw the same image.
 
 use crate::zarr::ChannelMeta;
-use brickyard_core::camera::{Camera, Projection};
+use brickyard_core::camera::{normalize, Camera, Projection};
 use brickyard_core::TransferFunction;
 use brickyard_render::cpu::{Lod, Scene};
-use brickyard_render::params::{ChannelStyle, LabelSelect, Traversal};
+use brickyard_render::params::{ChannelStyle, LabelSelect};
 use brickyard_render::{RenderMode, RenderParams};
 
 /// The view: every field has a default, and the URL carries only what
@@ -186,9 +186,6 @@ impl ViewState {
                         return Err(format!("{k}: only_labels or hide_labels, not both"));
                     }
                     let ids = LabelSelect::parse_ids(&v).map_err(|e| format!("{k}: {e}"))?;
-                    if ids.contains(&0) {
-                        return Err(format!("{k}: 0 is the background, never drawn"));
-                    }
                     s.label_select = Some(LabelSelect::new(ids, k == "hide_labels"));
                 }
                 _ => {}
@@ -397,14 +394,8 @@ impl ViewState {
     /// of detail, in the labels' colours (as `render --labels NAME`).
     pub fn label_view(&self, view: &View) -> Option<View> {
         self.labels.as_ref()?;
-        let mut p = view.params.clone();
-        p.labels = true;
-        p.label_select = self.label_select.clone();
-        p.channels = vec![];
-        p.tf = TransferFunction::preset("linear", [0.0, 1.0]).expect("a preset");
-        p.traversal = Traversal::PageTable;
         Some(View {
-            params: p,
+            params: view.params.labels_over(self.label_select.clone()),
             lod: view.lod,
             channel: 0,
         })
@@ -426,20 +417,13 @@ impl View {
     /// meets the plane; `None` for other modes and off the volume
     /// (`extent`).
     pub fn slice_point(&self, extent: [f64; 3], x: f64, y: f64) -> Option<[f64; 3]> {
-        use brickyard_core::camera::{dot, sub};
         let RenderMode::Slice { origin, normal } = self.params.mode else {
             return None;
         };
         let p = &self.params;
         let ray = p.camera.ray(x, y, p.width, p.height);
-        let dn = dot(ray.dir, normal);
-        if dn.abs() < 1e-12 {
-            return None;
-        }
-        let w = ray.at(dot(sub(origin, ray.origin), normal) / dn);
-        (0..3)
-            .all(|a| w[a] >= 0.0 && w[a] <= extent[a])
-            .then_some(w)
+        // (The point the slice renderer samples for that pixel.)
+        brickyard_render::slice_point(&ray, origin, normalize(normal), extent).map(|(w, _)| w)
     }
 }
 

@@ -1988,7 +1988,7 @@ fn viewer_picks_the_label_a_3d_view_shows_under_the_pointer() {
     let picked: Vec<serde_json::Value> = log
         .lines()
         .filter_map(|l| serde_json::from_str::<serde_json::Value>(l).ok())
-        .filter(|v| v.get("in_3d").is_some())
+        .filter(|v| v["in_3d"] == true)
         .collect();
     assert_eq!(picked.len(), 1, "{log}");
     let id = picked[0]["picked"][0].as_u64().expect("a label picked");

@@ -466,16 +466,8 @@ impl ViewerApp {
             return;
         };
         self.pick3d = false;
-        self.message = match hit {
-            Ok(0) => "no label along that ray: nothing picked".into(),
-            Ok(id) => {
-                self.toggle_picked(id as i32);
-                format!("labels picked: {}", self.picked_text)
-            }
-            Err(e) => format!("pick: {e}"),
-        };
-        let t = self.started.elapsed().as_secs_f64();
-        self.log_line(serde_json::json!({ "t": t, "picked": self.picked, "label_mode": self.label_mode, "in_3d": true }));
+        let hit = hit.map(|id| id as i64);
+        self.take_picked(hit, "no label along that ray: nothing picked", true);
     }
 
     /// Move the cursor to label `id`'s centroid (by the label statistics),
@@ -536,8 +528,14 @@ impl ViewerApp {
             (None, Err(e)) => Err(e.clone()),
             (None, _) => Err("no label image is shown".into()),
         };
+        self.take_picked(id, "the background is not a label: nothing picked", false);
+    }
+
+    /// A pick's label (in a slice, or along a ray in 3D): toggled among the
+    /// labels picked (0: `nothing` said), said and logged.
+    fn take_picked(&mut self, id: Result<i64, String>, nothing: &str, in_3d: bool) {
         self.message = match id {
-            Ok(0) => "the background is not a label: nothing picked".into(),
+            Ok(0) => nothing.into(),
             Ok(id) => {
                 self.toggle_picked(id as i32);
                 format!("labels picked: {}", self.picked_text)
@@ -545,24 +543,32 @@ impl ViewerApp {
             Err(e) => format!("pick: {e}"),
         };
         let t = self.started.elapsed().as_secs_f64();
-        self.log_line(
-            serde_json::json!({ "t": t, "picked": self.picked, "label_mode": self.label_mode }),
-        );
+        self.log_line(serde_json::json!({
+            "t": t, "picked": self.picked, "label_mode": self.label_mode, "in_3d": in_3d,
+        }));
     }
 
     /// Label `id` joins the labels picked, or leaves them; picking the
     /// first draws only those picked.
     pub(super) fn toggle_picked(&mut self, id: i32) {
-        match self.picked.iter().position(|&x| x == id) {
-            Some(i) => {
-                self.picked.remove(i);
+        let mut ids = std::mem::take(&mut self.picked);
+        match ids.binary_search(&id) {
+            Ok(i) => {
+                ids.remove(i);
             }
-            None => self.picked.push(id),
+            Err(i) => ids.insert(i, id),
         }
-        self.picked_text = picked_text(&self.picked);
+        self.set_picked_ids(ids);
         if self.label_mode == 0 {
             self.label_mode = 1;
         }
+    }
+
+    /// The labels picked (any order), and the controls' text of them.
+    pub(super) fn set_picked_ids(&mut self, ids: Vec<i32>) {
+        let sel = brickyard_render::params::LabelSelect::new(ids, false);
+        self.picked_text = sel.ids_text();
+        self.picked = sel.ids;
     }
 
     /// What the label image draws (`None`: every label).
@@ -748,14 +754,6 @@ impl eframe::App for ViewerApp {
             );
         }
     }
-}
-
-/// Labels as `render --only-labels` takes them: `3,17,40`.
-pub(super) fn picked_text(ids: &[i32]) -> String {
-    ids.iter()
-        .map(|i| i.to_string())
-        .collect::<Vec<_>>()
-        .join(",")
 }
 
 /// A frame of several views laid out for the screen as the view's spec

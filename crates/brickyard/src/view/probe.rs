@@ -14,7 +14,7 @@ use anyhow::{Context, Result};
 use brickyard_cache::brick::{BrickContent, BrickKey, LoadedBrick};
 use brickyard_cache::host_cache::HostCache;
 use brickyard_cache::loader::Loader;
-use brickyard_core::camera::{intersect_box, length, world_to_normalized, Ray};
+use brickyard_core::camera::{intersect_box, length, world_to_voxel, Ray};
 use brickyard_core::{cast_slice, dispatch_dtype, DType, Dims3, Sample};
 use brickyard_render::params::LabelSelect;
 use brickyard_store::storage::{self, Span};
@@ -43,13 +43,6 @@ pub fn bytes(levels: usize, channels: usize, label_levels: Option<usize>) -> u64
         CHUNK_BYTES + levels as u64 * (1 << 19) + (KEPT * channels.max(1)) as u64 * BRICK.pow(3) * 8
     };
     reader(levels, channels) + label_levels.map_or(0, |l| reader(l, 1) + WINDOW as u64)
-}
-
-/// The level-0 voxel `[z, y, x]` that holds world point `world` of a
-/// volume of `dims` voxels spanning `extent` (clamped into the volume).
-pub fn voxel_of(world: Vec3, extent: Vec3, dims: Dims3) -> [u64; 3] {
-    let p = world_to_normalized(world, extent);
-    [0, 1, 2].map(|a| ((p[a] * dims[a] as f64).floor().max(0.0) as u64).min(dims[a] - 1))
 }
 
 /// A question: the voxel at world point `world`, or a label's row of the
@@ -524,7 +517,7 @@ impl Probe {
 
     /// Ask for the voxel at `world` unless it is the one asked for last.
     pub fn ask(&mut self, world: Vec3) {
-        let v = voxel_of(world, self.extent, self.dims);
+        let v = world_to_voxel(world, self.extent, self.dims);
         if self.asked.is_some_and(|(_, a)| a == v) {
             return;
         }
@@ -626,13 +619,13 @@ fn run(
             continue;
         };
         let t0 = Instant::now();
-        let voxel = voxel_of(world, extent, image.dims);
+        let voxel = world_to_voxel(world, extent, image.dims);
         let values = (0..image.channels)
             .map(|c| image.value(voxel, c))
             .collect::<Result<Vec<f64>>>()
             .map_err(|e| format!("{e:#}"));
         let label = labels.as_mut().map(|r| {
-            let lv = voxel_of(world, extent, r.dims);
+            let lv = world_to_voxel(world, extent, r.dims);
             let label = r.value(lv, 0).map_err(|e| format!("{e:#}"))? as u64;
             Ok(LabelAt {
                 voxel: lv,
@@ -676,7 +669,7 @@ fn first_label(
     let dt = 0.5 * voxel / length(ray.dir);
     let mut t = t0 + 0.5 * dt;
     while t < t1 {
-        let v = r.value(voxel_of(ray.at(t), extent, d), 0)?;
+        let v = r.value(world_to_voxel(ray.at(t), extent, d), 0)?;
         let id = (v + 0.5).floor();
         if id != 0.0 && !id.is_nan() && select.is_none_or(|s| s.shows(id as i32)) {
             return Ok(id as u64);
@@ -765,15 +758,5 @@ mod tests {
             "{e}"
         );
         assert!(Stats::open(&d.path().join("none")).unwrap().is_none());
-    }
-
-    #[test]
-    fn world_points_map_to_the_voxels_that_hold_them() {
-        let (extent, dims) = ([20.0, 10.0, 5.0], [5, 10, 20]);
-        assert_eq!(voxel_of([0.0; 3], extent, dims), [0, 0, 0]);
-        assert_eq!(voxel_of([19.99, 0.5, 4.99], extent, dims), [4, 0, 19]);
-        // The far faces belong to the last voxels; points outside clamp.
-        assert_eq!(voxel_of(extent, extent, dims), [4, 9, 19]);
-        assert_eq!(voxel_of([-3.0, 11.0, 2.5], extent, dims), [2, 9, 0]);
     }
 }

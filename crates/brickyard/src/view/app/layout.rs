@@ -222,14 +222,9 @@ impl ViewerApp {
         if !matches!(p.mode, RenderMode::Slice { .. }) || p.views.is_some() || p.labels {
             return None;
         }
-        let mut params = p.clone();
-        params.labels = true;
-        params.label_select = self.label_selection();
-        params.channels = vec![];
-        // (Label colours take nothing from the transfer function: one
-        // fixed here, so that its edits draw no labels again.)
-        params.tf = TransferFunction::preset("linear", [0.0, 1.0]).expect("a preset");
-        params.traversal = Traversal::PageTable;
+        // (Its transfer function is fixed: edits of the image's draw no
+        // labels again.)
+        let params = p.labels_over(self.label_selection());
         let lod = match spec.lod {
             Lod::Fixed(x) => Lod::Fixed(x.min(l.levels - 1)),
             auto => auto,

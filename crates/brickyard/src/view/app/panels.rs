@@ -63,8 +63,7 @@ impl ViewerApp {
                 };
             }
             if ui.button("Clear").clicked() {
-                self.picked.clear();
-                self.picked_text.clear();
+                self.set_picked_ids(vec![]);
             }
             // The cursor to the centroid of the label typed first (or the
             // last picked).
@@ -148,12 +147,7 @@ impl ViewerApp {
             t => brickyard_render::params::LabelSelect::parse_ids(t)
                 .map_err(|e| anyhow::anyhow!("labels picked: {e}"))?,
         };
-        if ids.contains(&0) {
-            anyhow::bail!("labels picked: 0 is the background, never drawn");
-        }
-        let sel = brickyard_render::params::LabelSelect::new(ids, false);
-        self.picked = sel.ids;
-        self.picked_text = super::picked_text(&self.picked);
+        self.set_picked_ids(ids);
         Ok(())
     }
 
@@ -691,7 +685,7 @@ impl ViewerApp {
             } else {
                 "only labels"
             };
-            let mut ids = super::picked_text(&sel.ids);
+            let mut ids = sel.ids_text();
             if ids.len() > 80 {
                 let cut = ids[..80].rfind(',').unwrap_or(0);
                 ids = format!("{}… ({} labels)", &ids[..cut], sel.ids.len());

@@ -110,7 +110,7 @@ impl ViewerApp {
             } else {
                 "--only-labels"
             };
-            a.extend([flag.into(), super::picked_text(&sel.ids)]);
+            a.extend([flag.into(), sel.ids_text()]);
         }
         match spec.lod {
             Lod::Fixed(l) => a.extend(["--level".into(), l.to_string()]),
