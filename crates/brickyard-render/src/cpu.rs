@@ -148,6 +148,27 @@ pub enum Lod {
     Auto { bias: f64 },
 }
 
+impl Lod {
+    /// The level a sample asks for where one pixel spans `footprint`
+    /// world units, in a volume of `levels` levels whose level-0 voxel is
+    /// `voxel0` (its smallest edge, [`Scene::voxel`]). Renderers and the
+    /// viewer's readout (which reads what a view draws) share it.
+    #[inline]
+    pub fn level_for(self, footprint: f64, voxel0: f64, levels: usize) -> usize {
+        match self {
+            Lod::Fixed(l) => l.min(levels.max(1) - 1),
+            Lod::Auto { bias } => {
+                let l = (footprint / voxel0).log2() + bias;
+                if l.is_finite() && l > 0.0 {
+                    (l.floor() as usize).min(levels.max(1) - 1)
+                } else {
+                    0
+                }
+            }
+        }
+    }
+}
+
 /// Figures of one frame.
 #[derive(Debug, Clone, Default)]
 pub struct FrameStats {

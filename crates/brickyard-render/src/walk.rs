@@ -301,9 +301,8 @@ impl<'a> Frame<'a> {
     }
 
     pub(crate) fn level_at(&self, t: f64) -> usize {
-        let n = self.levels();
         match self.lod {
-            Lod::Fixed(l) => l.min(n - 1),
+            Lod::Fixed(l) => l.min(self.levels() - 1),
             // In perspective, before the first threshold (which lies
             // slightly early) the level is 0 without a logarithm: most
             // rays start there.
@@ -312,17 +311,12 @@ impl<'a> Frame<'a> {
             {
                 0
             }
-            Lod::Auto { bias } => {
+            lod => {
                 let fp = match self.fp_slope {
                     0.0 => self.params.camera.pixel_footprint(t, self.params.height),
                     slope => slope * t,
                 };
-                let l = (fp / self.voxel[0]).log2() + bias;
-                if l.is_finite() && l > 0.0 {
-                    (l.floor() as usize).min(n - 1)
-                } else {
-                    0
-                }
+                lod.level_for(fp, self.voxel[0], self.levels())
             }
         }
     }

@@ -1745,8 +1745,9 @@ fn viewer_reads_out_the_voxel_and_label_under_the_cursor_and_the_pointer() {
     voxels.push([0, 0, 0]);
     voxels.push(dims.map(|n| n - 1));
     // The cursor at each voxel's centre (fractions x, y, z), then the
-    // pointer over the xy view.
-    let mut script = String::from("size xy 96 96\n");
+    // pointer over the xy view (drawn at level 0: labels are read at the
+    // level drawn, which the test below takes coarser).
+    let mut script = String::from("size xy 96 96\nlevel 0\n");
     for v in &voxels {
         let f = |a: usize| (v[a] as f64 + 0.5) / dims[a] as f64;
         script += &format!("cursor {} {} {}\nwait-probe 60\n", f(2), f(1), f(0));
@@ -1841,6 +1842,350 @@ fn viewer_reads_out_the_voxel_and_label_under_the_cursor_and_the_pointer() {
     assert_eq!(largest, serde_json::json!(want));
 }
 
+#[test]
+fn viewer_reads_out_and_picks_the_labels_a_coarser_level_draws() {
+    use brickyard_store::VolumeSource;
+    let _session = shared();
+    let d = tempfile::tempdir().unwrap();
+    let p = |n: &str| d.path().join(n);
+    let store = stack_with_cells(d.path());
+    let flags = [
+        "--labels",
+        "cells",
+        "--backend",
+        "cpu",
+        "--brick",
+        "16",
+        "--window-size",
+        "900x600",
+    ];
+    // The slices drawn at level 2 (a quarter of the resolution in x and
+    // y): pixels on the edges of the labels as that level draws them (a
+    // label's colour, with the image beside), where full resolution may
+    // have another label or none.
+    let head = "size xy 96 96\nlevel 2\nlabel-opacity 1\nwait-complete 120\n";
+    let Some((w, h, all)) = first_shot(&store, d.path(), head, "xy", &flags) else {
+        return;
+    };
+    let strong = |c: [u8; 3]| c[0].abs_diff(c[1]) > 60 || c[1].abs_diff(c[2]) > 60;
+    let edges: Vec<(u32, u32)> = (1..h - 1)
+        .flat_map(|y| (1..w - 1).map(move |x| (x, y)))
+        .filter(|&(x, y)| {
+            strong(rgb(&all, w, x, y))
+                && (0..9).any(|k| !strong(rgb(&all, w, x + k % 3 - 1, y + k / 3 - 1)))
+        })
+        .collect();
+    assert!(
+        edges.len() >= 120,
+        "{} pixels on labels' edges",
+        edges.len()
+    );
+    let cand: Vec<(u32, u32)> = edges.iter().step_by(edges.len() / 120).copied().collect();
+    let mut script = head.to_string();
+    for (x, y) in &cand {
+        // (Pixel centres.)
+        script += &format!("hover xy {x}.5 {y}.5\nwait-probe 60\n");
+    }
+    script += "quit\n";
+    std::fs::write(p("s.txt"), script).unwrap();
+    let Some(mut cmd) = viewer(&store, &p("s.txt"), Some(&p("log.jsonl")), &flags) else {
+        return;
+    };
+    let o = cmd.output().unwrap();
+    assert!(o.status.success(), "viewer: {}", stderr(&o));
+    // References apart from the viewer: the label image's levels 0 and 2
+    // read whole, and the world box from level 0's spacing.
+    let level = |l: usize| {
+        let src = brickyard_store::import::zarr::open(&store.join("labels/cells"), l).unwrap();
+        let m = src.meta().clone();
+        let dm = m.dims;
+        let mut b = vec![0u8; dm.iter().product::<u64>() as usize * 4];
+        src.read_region(0, 0..dm[0], 0..dm[1], 0..dm[2], &mut b)
+            .unwrap();
+        (b, m)
+    };
+    let ((l0, m0), (l2, m2)) = (level(0), level(2));
+    let sp = m0.spacing.expect("the label image's spacing");
+    let extent = [0, 1, 2].map(|a| m0.dims[2 - a] as f64 * sp[2 - a]);
+    let label_of = |b: &[u8], dm: [u64; 3], world: [f64; 3]| {
+        let v = [0, 1, 2].map(|a| {
+            let f = world[2 - a] / extent[2 - a];
+            ((f * dm[a] as f64).floor() as u64).min(dm[a] - 1)
+        });
+        let i = ((v[0] * dm[1] + v[1]) * dm[2] + v[2]) as usize;
+        (v, label_at_index(b, i))
+    };
+    // The cursor's answer first (a script's session reads the script's
+    // pointer only), then one per pixel hovered.
+    let answers = probes(&p("log.jsonl"));
+    assert_eq!(answers.len(), 1 + cand.len(), "{answers:?}");
+    assert_eq!(answers[0]["label"]["level"], 0, "{}", answers[0]);
+    let mut differ = vec![];
+    for (a, &(x, y)) in answers[answers.len() - cand.len()..].iter().zip(&cand) {
+        let world: Vec<f64> = (0..3).map(|k| a["world"][k].as_f64().unwrap()).collect();
+        let world = [world[0], world[1], world[2]];
+        let l = &a["label"];
+        // The label read is level 2's there, the one drawn: never the
+        // background, as the pixel is inside a label's colour.
+        assert_eq!(l["level"], 2, "({x}, {y}): {a}");
+        let (v2, id2) = label_of(&l2, m2.dims, world);
+        assert_eq!(l["voxel_zyx"], serde_json::json!(v2), "({x}, {y}): {a}");
+        assert_eq!(l["label"].as_u64(), Some(id2), "({x}, {y}): {a}");
+        assert_ne!(id2, 0, "({x}, {y}): {a}");
+        // The values stay full resolution.
+        let (v0, id0) = label_of(&l0, m0.dims, world);
+        assert_eq!(a["voxel_zyx"], serde_json::json!(v0), "{a}");
+        if id0 != id2 {
+            differ.push((x, y, id0, id2));
+        }
+    }
+    // Where full resolution has another label (or none), the readout and
+    // the pick must follow what is drawn.
+    eprintln!(
+        "{} of {} pixels show a label that level 0 does not have there",
+        differ.len(),
+        cand.len()
+    );
+    let &(x, y, id0, id2) = differ.first().expect("no pixel where the levels differ");
+    let script = format!(
+        "{head}pick xy {x}.5 {y}.5\nlabel-mode only\nwait-complete 120\nscreenshot xy {}\nsave-view xy {}\nquit\n",
+        s(&p("only.png")),
+        s(&p("only"))
+    );
+    std::fs::write(p("s2.txt"), script).unwrap();
+    let Some(mut cmd) = viewer(&store, &p("s2.txt"), Some(&p("log2.jsonl")), &flags) else {
+        return;
+    };
+    let o = cmd.output().unwrap();
+    assert!(o.status.success(), "viewer: {}", stderr(&o));
+    let log = std::fs::read_to_string(p("log2.jsonl")).unwrap();
+    let picked: Vec<serde_json::Value> = log
+        .lines()
+        .filter_map(|l| serde_json::from_str::<serde_json::Value>(l).ok())
+        .filter_map(|v| v.get("picked").cloned())
+        .collect();
+    assert_eq!(
+        picked,
+        vec![serde_json::json!([id2])],
+        "({x}, {y}): level 2 draws {id2}, level 0 has {id0}: {log}"
+    );
+    // Drawn alone, the label picked keeps its colour at that pixel.
+    let only = equals_render(&store, d.path(), "only");
+    assert_eq!(rgb(&only, w, x, y), rgb(&all, w, x, y), "({x}, {y})");
+}
+
+#[test]
+fn viewer_reads_out_what_the_3d_view_shows_and_a_double_click_moves_the_cursor_there() {
+    use brickyard_core::camera::Camera;
+    use brickyard_store::VolumeSource;
+    let _session = shared();
+    let d = tempfile::tempdir().unwrap();
+    let p = |n: &str| d.path().join(n);
+    let store = shared_stack(d.path(), "nuclei-confocal-u16.tif", "nuclei.ome.zarr", &[]);
+    let flags = [
+        "--backend",
+        "cpu",
+        "--brick",
+        "16",
+        "--window-size",
+        "900x600",
+    ];
+    let (w, h) = (120u32, 100u32);
+    let head = format!("size 3d {w} {h}\nmode mip\nlevel 0\nwait-complete 120\n");
+    // Pixels on a grid, and the brightest of the MIP among them: the
+    // double-click goes there.
+    let grid: Vec<(u32, u32)> = (2..h)
+        .step_by(9)
+        .flat_map(|y| (3..w).step_by(11).map(move |x| (x, y)))
+        .collect();
+    let Some((_, _, mip)) = first_shot(&store, d.path(), &head, "3d", &flags) else {
+        return;
+    };
+    let bright = *grid
+        .iter()
+        .max_by_key(|&&(x, y)| rgb(&mip, w, x, y)[0])
+        .unwrap();
+    let hovers = |script: &mut String| {
+        for (x, y) in &grid {
+            *script += &format!("hover 3d {x}.5 {y}.5\nwait-probe 60\n");
+        }
+    };
+    let mut script = head.clone();
+    hovers(&mut script);
+    script += &format!(
+        "click 3d {}.5 {}.5\nsave-view 3d {}\nmode dvr\nwait-complete 120\nscreenshot 3d {}\n",
+        bright.0,
+        bright.1,
+        s(&p("mip")),
+        s(&p("dvr.png"))
+    );
+    hovers(&mut script);
+    script += "quit\n";
+    std::fs::write(p("s.txt"), script).unwrap();
+    let Some(mut cmd) = viewer(&store, &p("s.txt"), Some(&p("log.jsonl")), &flags) else {
+        return;
+    };
+    let o = cmd.output().unwrap();
+    assert!(o.status.success(), "viewer: {}", stderr(&o));
+    // References apart from the viewer: the stack's level 0 read whole,
+    // its world box, the camera and transfer function saved.
+    let src = brickyard_store::import::zarr::open(&store, 0).unwrap();
+    let m = src.meta().clone();
+    let dims = m.dims;
+    let mut vol = vec![0u8; dims.iter().product::<u64>() as usize * 2];
+    src.read_region(0, 0..dims[0], 0..dims[1], 0..dims[2], &mut vol)
+        .unwrap();
+    let value = |v: [u64; 3]| {
+        let i = 2 * ((v[0] * dims[1] + v[1]) * dims[2] + v[2]) as usize;
+        u16::from_ne_bytes([vol[i], vol[i + 1]]) as f64
+    };
+    let sp = m.spacing.expect("the stack's spacing");
+    let extent = [0, 1, 2].map(|a| dims[2 - a] as f64 * sp[2 - a]);
+    let camera: Camera =
+        serde_json::from_str(&std::fs::read_to_string(p("mip.camera.json")).unwrap()).unwrap();
+    let tf = brickyard_core::TransferFunction::from_json(
+        &std::fs::read_to_string(p("mip.tf.json")).unwrap(),
+    )
+    .unwrap();
+    let voxel_of = |x: [f64; 3]| {
+        [0, 1, 2].map(|a| {
+            let f = x[2 - a] / extent[2 - a];
+            ((f * dims[a] as f64).floor().max(0.0) as u64).min(dims[a] - 1)
+        })
+    };
+    // The greatest voxel the pixel's ray passes through, voxel by voxel
+    // (`None`: the ray misses the volume).
+    let ray_max = |x: u32, y: u32| {
+        let r = camera.ray(x as f64 + 0.5, y as f64 + 0.5, w, h);
+        let size = [sp[2], sp[1], sp[0]];
+        let (mut t0, mut t1) = (0.0f64, f64::INFINITY);
+        for (a, e) in extent.iter().enumerate() {
+            let (lo, hi) = (-r.origin[a] / r.dir[a], (e - r.origin[a]) / r.dir[a]);
+            t0 = t0.max(lo.min(hi));
+            t1 = t1.min(lo.max(hi));
+        }
+        if t0 >= t1 {
+            return None;
+        }
+        let q = r.at(t0 + 1e-9);
+        let n = [dims[2], dims[1], dims[0]];
+        let mut i =
+            [0, 1, 2].map(|a| ((q[a] / size[a]).floor().max(0.0) as i64).min(n[a] as i64 - 1));
+        let step = [0, 1, 2].map(|a| if r.dir[a] > 0.0 { 1 } else { -1 });
+        let mut next = [0, 1, 2].map(|a| {
+            let edge = (i[a] + (step[a] > 0) as i64) as f64 * size[a];
+            (edge - r.origin[a]) / r.dir[a]
+        });
+        let delta = [0, 1, 2].map(|a| size[a] / r.dir[a].abs());
+        let mut best = 0.0f64;
+        while (0..3).all(|a| i[a] >= 0 && i[a] < n[a] as i64) {
+            best = best.max(value([i[2] as u64, i[1] as u64, i[0] as u64]));
+            let a = (0..3).min_by(|&a, &b| next[a].total_cmp(&next[b])).unwrap();
+            if next[a] >= t1 {
+                break;
+            }
+            i[a] += step[a];
+            next[a] += delta[a];
+        }
+        Some(best)
+    };
+    let lines: Vec<serde_json::Value> = std::fs::read_to_string(p("log.jsonl"))
+        .unwrap()
+        .lines()
+        .filter_map(|l| serde_json::from_str(l).ok())
+        .collect();
+    // The answers about each pixel hovered, in MIP (before the
+    // double-click) and in DVR (after it), known by their rays.
+    let at_seek = lines
+        .iter()
+        .position(|v| v.get("seek").is_some())
+        .expect("no seek");
+    let answers_of = |lines: &[serde_json::Value]| -> Vec<serde_json::Value> {
+        grid.iter()
+            .map(|&(x, y)| {
+                let r = camera.ray(x as f64 + 0.5, y as f64 + 0.5, w, h);
+                lines
+                    .iter()
+                    .filter_map(|v| v.get("probe"))
+                    .find(|a| {
+                        (0..3).all(|k| {
+                            (a["seen"]["ray"][1][k].as_f64().unwrap_or(f64::NAN) - r.dir[k]).abs()
+                                < 1e-9
+                        })
+                    })
+                    .unwrap_or_else(|| panic!("no answer about pixel ({x}, {y})"))
+                    .clone()
+            })
+            .collect()
+    };
+    let mip_answers = answers_of(&lines[..at_seek]);
+    let dvr_answers = answers_of(&lines[at_seek..]);
+    let on_ray = |a: &serde_json::Value, x: u32, y: u32| {
+        let q: Vec<f64> = (0..3).map(|k| a["world"][k].as_f64().unwrap()).collect();
+        let px = camera.project([q[0], q[1], q[2]], w, h).unwrap();
+        assert!(
+            (px[0] - x as f64 - 0.5).abs() < 1e-3 && (px[1] - y as f64 - 0.5).abs() < 1e-3,
+            "({x}, {y}): the point shown projects to {px:?}: {a}"
+        );
+        let v: Vec<u64> = (0..3)
+            .map(|k| a["voxel_zyx"][k].as_u64().unwrap())
+            .collect();
+        let v = [v[0], v[1], v[2]];
+        assert_eq!(v, voxel_of([q[0], q[1], q[2]]), "{a}");
+        assert_eq!(a["values"][0].as_f64(), Some(value(v)), "{a}");
+        value(v)
+    };
+    let (mut hits, mut exact) = (0, 0);
+    for (a, &(x, y)) in mip_answers.iter().zip(&grid) {
+        let want = ray_max(x, y);
+        assert_eq!(a["seen"]["hit"], want.is_some(), "({x}, {y}): {a}");
+        let Some(want) = want else { continue };
+        hits += 1;
+        let got = on_ray(a, x, y);
+        assert!(
+            got <= want,
+            "({x}, {y}): {got} above the ray's maximum {want}"
+        );
+        exact += (got == want) as usize;
+    }
+    eprintln!("MIP: {exact} of {hits} pixels read the ray's greatest voxel");
+    assert!(hits >= grid.len() / 3, "{hits} of {} pixels", grid.len());
+    // (The readout samples points along the ray, a quarter of a voxel
+    // apart: a voxel the ray only grazes may be missed.)
+    assert!(exact * 10 >= hits * 8, "{exact} of {hits}");
+    // The double-click moved the cursor to the brightest pixel's point.
+    let seek = &lines[at_seek];
+    assert!(
+        seek["seek"].as_str().unwrap().starts_with("cursor at"),
+        "{seek}"
+    );
+    let at = grid.iter().position(|&g| g == bright).unwrap();
+    assert_eq!(seek["cursor"], mip_answers[at]["world"], "{seek}");
+    // DVR: where the pixel is lit, a point on its ray where the transfer
+    // function is not clear; where it is black, nothing.
+    let (_, _, dvr) = png_pixels(&p("dvr.png"));
+    let mut lit = 0;
+    for (a, &(x, y)) in dvr_answers.iter().zip(&grid) {
+        let c = rgb(&dvr, w, x, y);
+        if c.iter().all(|&v| v == 0) {
+            assert_eq!(a["seen"]["hit"], false, "({x}, {y}) is black: {a}");
+            continue;
+        }
+        if a["seen"]["hit"] == false {
+            // (Faint: the opacity along the ray stays below one half.)
+            continue;
+        }
+        lit += 1;
+        let v = on_ray(a, x, y);
+        assert!(
+            tf.lookup(v as f32)[3] > 0.0,
+            "({x}, {y}): {v} is clear: {a}"
+        );
+    }
+    eprintln!("DVR: {lit} of {} pixels show a point", grid.len());
+    assert!(lit >= 20, "{lit} of {}", grid.len());
+}
+
 fn label_at_index(labels: &[u8], i: usize) -> u64 {
     u32::from_ne_bytes(labels[4 * i..4 * i + 4].try_into().unwrap()) as u64
 }
@@ -1861,8 +2206,6 @@ fn viewer_picks_labels_and_draws_only_them_or_all_but_them_as_render_does() {
         "--window-size",
         "900x600",
     ];
-    // (At level 0: the readout reads full-resolution voxels, which a
-    // coarser level may show as another label.)
     let head = "size xy 96 96\nlevel 0\nlabel-opacity 1\nwait-complete 120\n";
     // First the labels as they are, to find a pixel inside a label: one
     // whose 5 × 5 neighbours all have its strong colour.
@@ -1963,7 +2306,8 @@ fn viewer_picks_the_label_a_3d_view_shows_under_the_pointer() {
         "--window-size",
         "900x600",
     ];
-    let head = "size 3d 120 100\nmode dvr\nlevel 0\nwait-complete 120\n";
+    // (At level 1: the pick reads the level the view draws.)
+    let head = "size 3d 120 100\nmode dvr\nlevel 1\nwait-complete 120\n";
     let Some((w, h, all)) = first_shot(&labels, d.path(), head, "3d", &flags) else {
         return;
     };

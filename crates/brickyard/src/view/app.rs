@@ -19,7 +19,7 @@ mod save;
 
 pub use process::derived_dataset;
 
-use super::probe::Probe;
+use super::probe::{Look, Probe};
 use super::script::{Cmd, VIEWS};
 use super::worker::{Msg, Out, Reply, Setup, Spec};
 use brickyard_core::camera::{scale, Camera, Projection};
@@ -103,6 +103,8 @@ pub struct LabelLayer {
     /// The label image's levels (a fixed level beyond them takes its
     /// coarsest).
     levels: usize,
+    /// Its level-0 voxel (smallest edge, world units).
+    voxel0: f64,
     views: Vec<LabelView>,
     /// The label session's figures from its latest frame: bricks
     /// resident, pool slots, requests pending, bricks unreadable.
@@ -125,6 +127,7 @@ impl LabelLayer {
         rx: Receiver<Reply>,
         opacity: f32,
         levels: usize,
+        voxel0: f64,
     ) -> LabelLayer {
         LabelLayer {
             name,
@@ -133,6 +136,7 @@ impl LabelLayer {
             opacity,
             shown: true,
             levels: levels.max(1),
+            voxel0,
             views: (0..N_VIEWS).map(|_| LabelView::default()).collect(),
             figures: [0; 4],
         }
@@ -202,10 +206,22 @@ pub struct ViewerApp {
     labels: Option<LabelLayer>,
     /// The voxel readout (`None`: its readers could not be opened).
     probe: Option<Probe>,
-    /// The world point under the pointer in a slice view, this frame.
-    hover: Option<Vec3>,
-    /// A script's pointer: slice view and render pixel (`hover`).
+    /// The world point under the pointer in a slice view this frame, and
+    /// the level the labels drawn there come from.
+    hover: Option<(Vec3, usize)>,
+    /// The render pixel under the pointer in the 3D view, this frame.
+    hover_3d: Option<(f64, f64)>,
+    /// A script's pointer: view and render pixel (`hover`).
     script_hover: Option<(usize, f64, f64)>,
+    /// A double-click (script: `click 3d`) in the 3D view waiting for the
+    /// point it shows there, to move the cursor to: the render pixel, and
+    /// the question's id once asked.
+    seek: Option<((f64, f64), Option<u64>)>,
+    /// Why the readout cannot follow the pointer over the 3D view.
+    seen_note: Option<String>,
+    /// Whether the display's pointer is read out (not in a script's
+    /// session until it moves after the script).
+    display_pointer: bool,
     /// Whether the latest question was about the pointer (else the
     /// cursor).
     probe_pointer: bool,
@@ -216,8 +232,9 @@ pub struct ViewerApp {
     label_mode: u8,
     /// The controls' text of the labels picked.
     picked_text: String,
-    /// A pick waiting for the readout: the world point clicked.
-    pick: Option<Vec3>,
+    /// A pick waiting for the readout: the world point clicked, and the
+    /// level the labels drawn there come from.
+    pick: Option<(Vec3, usize)>,
     /// A label whose centroid the cursor is to go to, once its row of the
     /// statistics is found.
     goto: Option<u64>,
@@ -248,6 +265,7 @@ impl ViewerApp {
         labels: Option<LabelLayer>,
         probe: Option<Probe>,
     ) -> ViewerApp {
+        let display_pointer = script.is_empty();
         // Started on a derived channel: `ds` is its dataset, and the
         // store's comes with it.
         let (stored, derived) = match derived {
@@ -340,6 +358,10 @@ impl ViewerApp {
             probe,
             hover: None,
             script_hover: None,
+            hover_3d: None,
+            seek: None,
+            seen_note: None,
+            display_pointer,
             probe_pointer: false,
             picked: vec![],
             label_mode: 0,
@@ -414,16 +436,43 @@ impl ViewerApp {
     /// script's, else the mouse's over a slice view), else the cursor, and
     /// log the answers that came.
     fn probe(&mut self) {
-        let pointer = match (self.pick, self.script_hover) {
-            (Some(w), _) => Some(w),
-            (None, Some((v, x, y))) => Some(self.slice_point(v, x, y)),
-            (None, None) => self.hover,
+        // A point in a slice view, or a pixel of the 3D view.
+        let pointer = match (self.pick, self.seek, self.script_hover) {
+            (Some(w), ..) => Some(Ok(w)),
+            (None, Some((px, _)), _) => Some(Err(px)),
+            (None, None, Some((0, x, y))) => Some(Err((x, y))),
+            (None, None, Some((v, x, y))) => Some(Ok(self.slice_pixel(v, x, y))),
+            // (A script's session: its pointer only, not the display's,
+            // until that moves after the script.)
+            (None, None, None) if !self.display_pointer => None,
+            (None, None, None) => self.hover.map(Ok).or(self.hover_3d.map(Err)),
+        };
+        let seen = match pointer {
+            Some(Err((x, y))) => Some(self.seen_question(x, y)),
+            _ => None,
         };
         let Some(p) = &mut self.probe else {
             return;
         };
         self.probe_pointer = pointer.is_some();
-        p.ask(pointer.unwrap_or(self.cursor));
+        self.seen_note = None;
+        match (pointer, seen) {
+            (Some(Ok((at, level))), _) => p.ask(at, level),
+            (_, Some(Ok((ray, drawn, look)))) => {
+                let id = p.ask_seen(ray, drawn, look);
+                if let Some((_, asked)) = &mut self.seek {
+                    asked.get_or_insert(id);
+                }
+            }
+            (_, Some(Err(e))) => {
+                // The 3D view draws nothing the readout can follow.
+                if self.seek.take().is_some() {
+                    self.message = format!("click 3d: {e}");
+                }
+                self.seen_note = Some(e);
+            }
+            _ => p.ask(self.cursor, 0),
+        }
         let got = p.take();
         let picked = self.pick.is_some() && p.answered();
         for a in got {
@@ -436,6 +485,84 @@ impl ViewerApp {
         }
         self.take_goto();
         self.take_pick3d();
+        self.take_seek();
+    }
+
+    /// What to ask about render pixel `(x, y)` of the 3D view: its ray,
+    /// how the view chose its levels and what it draws; or why the
+    /// readout cannot follow it.
+    fn seen_question(
+        &self,
+        x: f64,
+        y: f64,
+    ) -> Result<(brickyard_core::camera::Ray, super::probe::Drawn, Look), String> {
+        if self.stereo != "off" {
+            return Err("the 3D view shows several views: no readout".into());
+        }
+        if self.derived.is_some() {
+            return Err("the 3D view shows a derived channel: no readout".into());
+        }
+        let look = match self.mode.as_str() {
+            "dvr" if self.ds.labels => Look::Labels(self.label_selection()),
+            "dvr" => {
+                let tfs = if self.dvr_composites() {
+                    self.styles()
+                        .iter()
+                        .map(|s| (s.channel, s.dvr_tf()))
+                        .collect()
+                } else {
+                    vec![(self.dvr_channel, self.tf.clone())]
+                };
+                Look::Dvr {
+                    tfs,
+                    samples: self.quality,
+                    reference: self.voxel0(),
+                }
+            }
+            "mip" => Look::Mip {
+                // (Several channels: the first shown.)
+                channel: self
+                    .styles()
+                    .first()
+                    .map_or(self.dvr_channel, |s| s.channel),
+            },
+            _ => return Err("the 3D view shows a slice: read it out in the slice views".into()),
+        };
+        let [w, h] = self.render_size(0);
+        let drawn = super::probe::Drawn {
+            camera: self.cam,
+            height: h,
+            lod: self.drawn_lod(0, None),
+        };
+        Ok((self.cam.ray(x, y, w, h), drawn, look))
+    }
+
+    /// A double-click in the 3D view was answered: the cursor (and with it
+    /// the slices) moves to the point shown there.
+    fn take_seek(&mut self) {
+        let Some((_, Some(id))) = self.seek else {
+            return;
+        };
+        let Some(a) = self.probe.as_ref().and_then(|p| p.answer.as_ref()) else {
+            return;
+        };
+        if a.id != id {
+            return;
+        }
+        self.message = match (a.seen.map(|s| (s.how, s.hit)), &a.values) {
+            (Some((how, true)), Ok(_)) => {
+                self.cursor = a.world;
+                let [z, y, x] = a.voxel;
+                format!("cursor at {how}: voxel x {x} y {y} z {z}")
+            }
+            (Some((how, false)), _) => format!("click 3d: nothing drawn there ({how})"),
+            (_, Err(e)) => format!("click 3d: {e}"),
+            (None, _) => "click 3d: no answer about the 3D view".into(),
+        };
+        self.seek = None;
+        let t = self.started.elapsed().as_secs_f64();
+        let (m, c) = (self.message.clone(), self.cursor);
+        self.log_line(serde_json::json!({ "t": t, "seek": m, "cursor": c }));
     }
 
     /// Pick the label the 3D view shows at render pixel `(x, y)`: the first
@@ -449,10 +576,15 @@ impl ViewerApp {
         let [w, h] = self.render_size(0);
         let ray = self.cam.ray(x, y, w, h);
         let sel = self.label_selection();
+        let drawn = super::probe::Drawn {
+            camera: self.cam,
+            height: h,
+            lod: self.drawn_lod(0, None),
+        };
         let Some(p) = &mut self.probe else {
             return Err("the viewer has no voxel readout".into());
         };
-        p.ray(ray, sel);
+        p.ray(ray, sel, drawn);
         self.pick3d = true;
         self.message.clear();
         Ok(())
@@ -519,14 +651,12 @@ impl ViewerApp {
         let Some(a) = self.probe.as_ref().and_then(|p| p.answer.as_ref()) else {
             return;
         };
-        // A label image shown itself: its value; else the label image
-        // over it.
-        let id = match (&a.label, &a.values) {
-            (Some(Ok(l)), _) => Ok(l.label as i64),
-            (Some(Err(e)), _) => Err(e.clone()),
-            (None, Ok(v)) if self.ds.labels => Ok((v[0] + 0.5).floor() as i64),
-            (None, Err(e)) => Err(e.clone()),
-            (None, _) => Err("no label image is shown".into()),
+        // The label drawn there: of the label image laid over, or of the
+        // label image shown itself.
+        let id = match &a.label {
+            Some(Ok(l)) => Ok(l.label as i64),
+            Some(Err(e)) => Err(e.clone()),
+            None => Err("no label image is shown".into()),
         };
         self.take_picked(id, "the background is not a label: nothing picked", false);
     }
@@ -580,12 +710,15 @@ impl ViewerApp {
 
     /// The voxel readout's line of the status bar.
     pub(super) fn probe_line(&self) -> Option<String> {
+        if let Some(n) = &self.seen_note {
+            return Some(format!("pointer (3D): {n}"));
+        }
         let a = self.probe.as_ref()?.answer.as_ref()?;
         let name = self.labels.as_ref().map_or("", |l| l.name.as_str());
-        let at = if self.probe_pointer {
-            "pointer"
-        } else {
-            "cursor"
+        let at = match (a.seen.is_some(), self.probe_pointer) {
+            (true, _) => "pointer (3D)",
+            (false, true) => "pointer",
+            (false, false) => "cursor",
         };
         let stored = if self.derived.is_some() {
             ", stored"
@@ -727,6 +860,10 @@ impl eframe::App for ViewerApp {
         self.run_script(&ctx);
         self.keys(&ctx);
         self.hover = None;
+        self.hover_3d = None;
+        if !self.display_pointer && self.pc >= self.script.len() {
+            self.display_pointer = ctx.input(|i| i.pointer.is_moving());
+        }
         self.lay_out(ui);
         self.probe();
         self.send_specs();

@@ -466,6 +466,7 @@ pub fn run(c: ViewCmd, demo_store: impl FnOnce() -> Result<PathBuf>) -> Result<i
         stats: label_dir
             .clone()
             .or_else(|| (m.channels == 1 && info.label_image).then(|| store.clone())),
+        image_labels: m.channels == 1 && info.label_image,
         extent,
         read_delay: Duration::from_millis(c.read_delay_ms),
     };
@@ -489,7 +490,7 @@ pub fn run(c: ViewCmd, demo_store: impl FnOnce() -> Result<PathBuf>) -> Result<i
                     let (ltx, lrx) = std::sync::mpsc::channel();
                     let (lwtx, lfrom) = std::sync::mpsc::channel();
                     let ctx = cc.egui_ctx.clone();
-                    let levels = lscene.levels.len();
+                    let (levels, voxel0) = (lscene.levels.len(), lscene.voxel(0));
                     let h = std::thread::Builder::new()
                         .name("render-labels".into())
                         .spawn(move || {
@@ -497,7 +498,9 @@ pub fn run(c: ViewCmd, demo_store: impl FnOnce() -> Result<PathBuf>) -> Result<i
                         })
                         .map_err(|e| format!("label render thread: {e}"))?;
                     *label_thread2.lock().unwrap() = Some(h);
-                    Some(app::LabelLayer::new(name, ltx, lfrom, opacity, levels))
+                    Some(app::LabelLayer::new(
+                        name, ltx, lfrom, opacity, levels, voxel0,
+                    ))
                 }
                 None => None,
             };

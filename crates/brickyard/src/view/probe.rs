@@ -5,7 +5,10 @@
 //!
 //! A thread of its own reads the full-resolution brick that holds the
 //! voxel (through a small cache of decoded chunks and the last few bricks),
-//! so the window never waits for it. The window asks again only when the
+//! so the window never waits for it. Labels are read at the level the view
+//! draws at that point (by its footprint and level of detail), so what is
+//! read out and picked is what is seen, also in a zoomed-out view that
+//! draws a coarser level. The window asks again only when the
 //! pointer enters another voxel, and the thread answers only the latest
 //! question. Reads that fail are answered with their error; the viewer goes
 //! on.
@@ -14,8 +17,9 @@ use anyhow::{Context, Result};
 use brickyard_cache::brick::{BrickContent, BrickKey, LoadedBrick};
 use brickyard_cache::host_cache::HostCache;
 use brickyard_cache::loader::Loader;
-use brickyard_core::camera::{intersect_box, length, world_to_voxel, Ray};
-use brickyard_core::{cast_slice, dispatch_dtype, DType, Dims3, Sample};
+use brickyard_core::camera::{intersect_box, length, world_to_voxel, Camera, Ray};
+use brickyard_core::{cast_slice, dispatch_dtype, DType, Dims3, Sample, TransferFunction};
+use brickyard_render::cpu::Lod;
 use brickyard_render::params::LabelSelect;
 use brickyard_store::storage::{self, Span};
 use std::path::{Path, PathBuf};
@@ -45,18 +49,76 @@ pub fn bytes(levels: usize, channels: usize, label_levels: Option<usize>) -> u64
     reader(levels, channels) + label_levels.map_or(0, |l| reader(l, 1) + WINDOW as u64)
 }
 
-/// A question: the voxel at world point `world`, or a label's row of the
-/// statistics.
+/// How a view chose levels along its pixels' rays: its camera, its
+/// frame's height and the level of detail it was drawn with.
+#[derive(Clone, Copy, Debug)]
+pub struct Drawn {
+    pub camera: Camera,
+    pub height: u32,
+    pub lod: Lod,
+}
+
+impl Drawn {
+    /// The level drawn at distance `t` along a ray of a volume of `levels`
+    /// levels whose level-0 voxel is `voxel0` (as the renderers choose).
+    fn level(&self, t: f64, voxel0: f64, levels: usize) -> usize {
+        let fp = self.camera.pixel_footprint(t, self.height);
+        self.lod.level_for(fp, voxel0, levels)
+    }
+}
+
+/// What a 3D view draws along its pixels' rays, to find the point a
+/// pixel shows ([`Ask::Seen`]).
+#[derive(Clone, Debug, PartialEq)]
+pub enum Look {
+    /// MIP of one channel: the sample of greatest value.
+    Mip { channel: usize },
+    /// DVR: the first sample where the opacity gathered along the ray
+    /// reaches one half, through each channel's transfer function (several
+    /// channels: their opacities combined), at `samples` per voxel of the
+    /// level drawn, opacities corrected to steps of `reference`.
+    Dvr {
+        tfs: Vec<(usize, TransferFunction)>,
+        samples: f64,
+        reference: f64,
+    },
+    /// A label image's surfaces: the first label drawn.
+    Labels(Option<LabelSelect>),
+}
+
+impl Look {
+    /// How the point was found, for the readout's line and its log.
+    pub fn name(&self) -> &'static str {
+        match self {
+            Look::Mip { .. } => "the MIP's maximum",
+            Look::Dvr { .. } => "where the DVR's opacity reaches 1/2",
+            Look::Labels(_) => "the first label drawn",
+        }
+    }
+}
+
+/// A question: the voxel at world point `world` (with the label drawn
+/// there read at `label_level`), or a label's row of the statistics.
 pub enum Ask {
     Voxel {
         id: u64,
         world: Vec3,
+        label_level: usize,
+    },
+    /// The point a 3D view shows along `ray` (its pixel's), then read out
+    /// as a voxel.
+    Seen {
+        id: u64,
+        ray: Ray,
+        drawn: Drawn,
+        look: Look,
     },
     Row(u64),
     /// The labels of most voxels, this many.
     Largest(usize),
-    /// The first label drawn along a ray (a pick in 3D).
-    Ray(Ray, Option<LabelSelect>),
+    /// The first label drawn along a ray (a pick in 3D) by a view that
+    /// chose its levels so.
+    Ray(Ray, Option<LabelSelect>, Drawn),
 }
 
 /// The labels of most voxels ([`Probe::largest`]), most first.
@@ -87,7 +149,9 @@ pub struct LabelRow {
 /// What the label image has at the voxel.
 #[derive(Clone, Debug, PartialEq)]
 pub struct LabelAt {
-    /// The label image's voxel `[z, y, x]` (its own level 0).
+    /// The level read: the one the view draws there (0: full resolution).
+    pub level: usize,
+    /// The label image's voxel `[z, y, x]` of that level.
     pub voxel: [u64; 3],
     /// 0: background.
     pub label: u64,
@@ -96,10 +160,24 @@ pub struct LabelAt {
     pub row: std::result::Result<Option<LabelRow>, String>,
 }
 
+/// What an answer about a 3D view's pixel says of it.
+#[derive(Clone, Copy, Debug)]
+pub struct Seen {
+    /// How the point was found ([`Look::name`]).
+    pub how: &'static str,
+    /// Whether anything is drawn along the ray.
+    pub hit: bool,
+    /// The pixel's ray.
+    pub ray: Ray,
+}
+
 /// The answer to an [`Ask`].
 #[derive(Clone, Debug)]
 pub struct Answer {
     pub id: u64,
+    /// A 3D view's pixel: how its point was found, and whether anything is
+    /// drawn along its ray (if not, the rest says nothing).
+    pub seen: Option<Seen>,
     pub world: Vec3,
     /// The image's level-0 voxel `[z, y, x]`.
     pub voxel: [u64; 3],
@@ -117,7 +195,16 @@ impl Answer {
             DType::F32 | DType::F64 => format!("{v:.6}"),
             _ => format!("{v}"),
         };
-        let mut s = format!("voxel x {x} y {y} z {z}: ");
+        let mut s = String::new();
+        match (self.seen.map(|s| (s.how, s.hit)), &self.values) {
+            (Some((how, false)), _) => return format!("nothing drawn along the ray ({how})"),
+            (Some((how, true)), Err(e)) if self.label.is_none() => {
+                return format!("{how}: unreadable ({e})")
+            }
+            (Some((how, true)), _) => s += &format!("{how}, "),
+            (None, _) => {}
+        }
+        s += &format!("voxel x {x} y {y} z {z}: ");
         match &self.values {
             Ok(v) if v.len() == 1 => s += &fmt(v[0]),
             Ok(v) => {
@@ -130,12 +217,21 @@ impl Answer {
             }
             Err(e) => s += &format!("unreadable ({e})"),
         }
+        // (A label image shown itself: its label, with its statistics.)
+        let name = match label_name {
+            "" => "label".to_string(),
+            n => format!("labels/{n}"),
+        };
+        let level = |l: &LabelAt| match l.level {
+            0 => String::new(),
+            n => format!(" at level {n}"),
+        };
         match &self.label {
             None => {}
-            Some(Err(e)) => s += &format!(" · labels/{label_name}: unreadable ({e})"),
-            Some(Ok(l)) if l.label == 0 => s += &format!(" · labels/{label_name}: background"),
+            Some(Err(e)) => s += &format!(" · {name}: unreadable ({e})"),
+            Some(Ok(l)) if l.label == 0 => s += &format!(" · {name}{}: background", level(l)),
             Some(Ok(l)) => {
-                s += &format!(" · labels/{label_name}: {}", l.label);
+                s += &format!(" · {name}{}: {}", level(l), l.label);
                 match &l.row {
                     Ok(Some(r)) => {
                         let [cz, cy, cx] = r.centroid;
@@ -170,23 +266,32 @@ impl Answer {
                     Ok(None) => serde_json::Value::Null,
                     Err(e) => serde_json::json!({ "error": e }),
                 };
-                serde_json::json!({ "voxel_zyx": l.voxel, "label": l.label, "stats": row })
+                serde_json::json!({
+                    "level": l.level, "voxel_zyx": l.voxel, "label": l.label, "stats": row,
+                })
             }
         };
         let values = match &self.values {
             Ok(v) => serde_json::json!(v),
             Err(e) => serde_json::json!({ "error": e }),
         };
+        let seen = match self.seen {
+            Some(s) => serde_json::json!({
+                "how": s.how, "hit": s.hit, "ray": [s.ray.origin, s.ray.dir],
+            }),
+            None => serde_json::Value::Null,
+        };
         serde_json::json!({
             "world": self.world, "voxel_zyx": self.voxel, "values": values,
-            "label": label, "ms": self.ms,
+            "label": label, "seen": seen, "ms": self.ms,
         })
     }
 }
 
-/// Reads single voxels of one image's level 0.
+/// Reads single voxels of one image, at any of its levels.
 struct Reader {
     loader: Loader,
+    /// Level 0's size.
     dims: Dims3,
     channels: usize,
     dtype: DType,
@@ -216,9 +321,18 @@ impl Reader {
         })
     }
 
-    /// Channel `c` of voxel `v` (`[z, y, x]`, level 0).
-    fn value(&mut self, v: [u64; 3], c: usize) -> Result<f64> {
-        let key = BrickKey::new(0, c as u16, v.map(|i| (i / BRICK) as u32));
+    /// Level `level`'s size.
+    fn dims_at(&self, level: usize) -> Dims3 {
+        self.loader.geometry().levels[level]
+    }
+
+    fn levels(&self) -> usize {
+        self.loader.geometry().levels.len()
+    }
+
+    /// Channel `c` of voxel `v` (`[z, y, x]`) of level `level`.
+    fn value(&mut self, level: usize, v: [u64; 3], c: usize) -> Result<f64> {
+        let key = BrickKey::new(level as u8, c as u16, v.map(|i| (i / BRICK) as u32));
         let brick = match self.kept.iter().position(|(k, _)| *k == key) {
             Some(i) => {
                 let b = self.kept.remove(i);
@@ -430,6 +544,9 @@ pub struct Setup {
     pub stats: Option<PathBuf>,
     pub extent: Vec3,
     pub read_delay: Duration,
+    /// The image is a label image (its labels are read out, picked and
+    /// looked up in `stats`).
+    pub image_labels: bool,
 }
 
 /// The window's side: asks, and keeps the latest answer.
@@ -440,8 +557,11 @@ pub struct Probe {
     dims: Dims3,
     extent: Vec3,
     next: u64,
-    /// The last question: its id and voxel.
-    asked: Option<(u64, [u64; 3])>,
+    /// The last question: its id, voxel and level of the labels.
+    asked: Option<(u64, [u64; 3], usize)>,
+    /// The last question about a 3D view's pixel: its ray, how the view
+    /// chose its levels and what it draws.
+    asked_seen: Option<(Ray, Drawn, Look)>,
     pub answer: Option<Answer>,
     /// The last label looked up, and its row once found.
     pub finding: Option<u64>,
@@ -472,10 +592,21 @@ impl Probe {
             .map(|_| labels.as_ref().map_or(dims, |l| l.dims));
         let (tx, ask_rx) = std::sync::mpsc::channel();
         let (answer_tx, rx) = std::sync::mpsc::channel();
-        let extent = setup.extent;
+        let (extent, image_labels) = (setup.extent, setup.image_labels);
         std::thread::Builder::new()
             .name("probe".into())
-            .spawn(move || run(image, labels, stats, extent, ask_rx, answer_tx, wake))
+            .spawn(move || {
+                run(
+                    image,
+                    labels,
+                    image_labels,
+                    stats,
+                    extent,
+                    ask_rx,
+                    answer_tx,
+                    wake,
+                )
+            })
             .context("probe thread")?;
         Ok(Probe {
             tx,
@@ -484,6 +615,7 @@ impl Probe {
             extent,
             next: 0,
             asked: None,
+            asked_seen: None,
             answer: None,
             finding: None,
             found: None,
@@ -493,11 +625,12 @@ impl Probe {
         })
     }
 
-    /// Find the first label along `ray` that `select` draws, in the
-    /// image's full-resolution voxels (the answer comes into `hit`).
-    pub fn ray(&mut self, ray: Ray, select: Option<LabelSelect>) {
+    /// Find the first label along `ray` that `select` draws, at the
+    /// levels a view `drawn` so reads along it (the answer comes into
+    /// `hit`).
+    pub fn ray(&mut self, ray: Ray, select: Option<LabelSelect>, drawn: Drawn) {
         self.hit = None;
-        let _ = self.tx.send(Ask::Ray(ray, select));
+        let _ = self.tx.send(Ask::Ray(ray, select, drawn));
     }
 
     /// Read the `n` labels of most voxels from the statistics (the answer
@@ -515,18 +648,50 @@ impl Probe {
         let _ = self.tx.send(Ask::Row(label));
     }
 
-    /// Ask for the voxel at `world` unless it is the one asked for last.
-    pub fn ask(&mut self, world: Vec3) {
+    /// Ask for the voxel at `world`, with the label there read at
+    /// `label_level` (the level the view draws there), unless that is what
+    /// was asked last.
+    pub fn ask(&mut self, world: Vec3, label_level: usize) {
         let v = world_to_voxel(world, self.extent, self.dims);
-        if self.asked.is_some_and(|(_, a)| a == v) {
+        if self
+            .asked
+            .is_some_and(|(_, a, l)| a == v && l == label_level)
+        {
             return;
         }
         self.next += 1;
-        self.asked = Some((self.next, v));
+        self.asked = Some((self.next, v, label_level));
+        self.asked_seen = None;
         let _ = self.tx.send(Ask::Voxel {
             id: self.next,
             world,
+            label_level,
         });
+    }
+
+    /// Ask for the point a 3D view (`drawn`, drawing `look`) shows along
+    /// a pixel's `ray`, unless that is what was asked last. Returns the
+    /// question's id.
+    pub fn ask_seen(&mut self, ray: Ray, drawn: Drawn, look: Look) -> u64 {
+        let same = self.asked_seen.as_ref().is_some_and(|(r, d, l)| {
+            *r == ray
+                && d.camera == drawn.camera
+                && d.height == drawn.height
+                && d.lod == drawn.lod
+                && *l == look
+        });
+        if !same {
+            self.next += 1;
+            self.asked = Some((self.next, [u64::MAX; 3], usize::MAX));
+            self.asked_seen = Some((ray, drawn, look.clone()));
+            let _ = self.tx.send(Ask::Seen {
+                id: self.next,
+                ray,
+                drawn,
+                look,
+            });
+        }
+        self.next
     }
 
     /// Answers that came (the latest is kept in `answer`; a row looked up
@@ -550,13 +715,15 @@ impl Probe {
 
     /// Whether the latest answer is for the latest question.
     pub fn answered(&self) -> bool {
-        matches!((&self.answer, self.asked), (Some(a), Some((id, _))) if a.id == id)
+        matches!((&self.answer, self.asked), (Some(a), Some((id, ..))) if a.id == id)
     }
 }
 
+#[allow(clippy::too_many_arguments)]
 fn run(
     mut image: Reader,
     mut labels: Option<Reader>,
+    image_labels: bool,
     mut stats: Option<Result<Option<Stats>>>,
     extent: Vec3,
     rx: Receiver<Ask>,
@@ -581,15 +748,25 @@ fn run(
         let mut ray = None;
         for a in std::iter::once(first).chain(rx.try_iter()) {
             match a {
-                Ask::Voxel { id, world } => voxel = Some((id, world)),
+                Ask::Voxel {
+                    id,
+                    world,
+                    label_level,
+                } => voxel = Some((id, Some(world), label_level, None)),
+                Ask::Seen {
+                    id,
+                    ray,
+                    drawn,
+                    look,
+                } => voxel = Some((id, None, 0, Some((ray, drawn, look)))),
                 Ask::Row(l) => rows.push(l),
                 Ask::Largest(n) => largest = Some(n),
-                Ask::Ray(r, sel) => ray = Some((r, sel)),
+                Ask::Ray(r, sel, d) => ray = Some((r, sel, d)),
             }
         }
-        if let Some((r, sel)) = ray {
-            let hit =
-                first_label(&mut image, extent, &r, sel.as_ref()).map_err(|e| format!("{e:#}"));
+        if let Some((r, sel, drawn)) = ray {
+            let hit = first_label(&mut image, extent, &r, sel.as_ref(), &drawn)
+                .map_err(|e| format!("{e:#}"));
             if tx.send(Reply::Hit(hit)).is_err() {
                 return;
             }
@@ -615,19 +792,69 @@ fn run(
             }
             wake();
         }
-        let Some((id, world)) = voxel else {
+        let Some((id, world, label_level, seen)) = voxel else {
             continue;
         };
         let t0 = Instant::now();
+        // A 3D view's pixel: the point it shows, and the level drawn there.
+        let (world, label_level, seen) = match (world, seen) {
+            (Some(w), _) => (w, label_level, None),
+            (None, Some((ray, drawn, look))) => {
+                match seen_point(&mut image, extent, &ray, &drawn, &look) {
+                    Ok(Some((w, level, _))) => (
+                        w,
+                        level,
+                        Some(Seen {
+                            how: look.name(),
+                            hit: true,
+                            ray,
+                        }),
+                    ),
+                    r => {
+                        // Nothing drawn along the ray, or a read failed.
+                        let values = r.map(|_| vec![]).map_err(|e| format!("{e:#}"));
+                        let answer = Answer {
+                            id,
+                            seen: Some(Seen {
+                                how: look.name(),
+                                hit: values.is_err(),
+                                ray,
+                            }),
+                            world: ray.origin,
+                            voxel: [0; 3],
+                            values,
+                            label: None,
+                            ms: t0.elapsed().as_secs_f64() * 1e3,
+                        };
+                        if tx.send(Reply::Voxel(answer)).is_err() {
+                            return;
+                        }
+                        wake();
+                        continue;
+                    }
+                }
+            }
+            (None, None) => unreachable!("a voxel or a pixel is asked about"),
+        };
         let voxel = world_to_voxel(world, extent, image.dims);
         let values = (0..image.channels)
-            .map(|c| image.value(voxel, c))
+            .map(|c| image.value(0, voxel, c))
             .collect::<Result<Vec<f64>>>()
             .map_err(|e| format!("{e:#}"));
-        let label = labels.as_mut().map(|r| {
-            let lv = world_to_voxel(world, extent, r.dims);
-            let label = r.value(lv, 0).map_err(|e| format!("{e:#}"))? as u64;
+        // The label drawn there: of the label image laid over, or of the
+        // image itself when it is one.
+        let reader = match &mut labels {
+            Some(r) => Some(r),
+            None if image_labels => Some(&mut image),
+            None => None,
+        };
+        let label = reader.map(|r| {
+            let level = label_level.min(r.levels() - 1);
+            let lv = world_to_voxel(world, extent, r.dims_at(level));
+            let v = r.value(level, lv, 0).map_err(|e| format!("{e:#}"))?;
+            let label = label_id(v);
             Ok(LabelAt {
+                level,
                 voxel: lv,
                 label,
                 row: row(&mut stats, label),
@@ -635,6 +862,7 @@ fn run(
         });
         let answer = Answer {
             id,
+            seen,
             world,
             voxel,
             values,
@@ -648,35 +876,115 @@ fn run(
     }
 }
 
+/// A label image's stored value as a label (0 for what is no label).
+fn label_id(v: f64) -> u64 {
+    let id = (v + 0.5).floor();
+    if id >= 1.0 {
+        id as u64
+    } else {
+        0
+    }
+}
+
+/// The smallest voxel edge of a level of size `d` spanning `extent`.
+fn voxel_edge(d: Dims3, extent: Vec3) -> f64 {
+    [0, 1, 2]
+        .map(|a| extent[a] / d[2 - a] as f64)
+        .into_iter()
+        .fold(f64::INFINITY, f64::min)
+}
+
 /// The first label along `ray` through a label image (`r`, spanning
-/// `extent`) that `select` draws: steps of half its smallest voxel from
-/// where the ray enters the volume, each reading the full-resolution voxel
-/// there (0: none met).
+/// `extent`) that `select` draws, at the levels a view `drawn` so reads
+/// (0: none met).
 fn first_label(
     r: &mut Reader,
     extent: Vec3,
     ray: &Ray,
     select: Option<&LabelSelect>,
+    drawn: &Drawn,
 ) -> Result<u64> {
+    let look = Look::Labels(select.cloned());
+    Ok(seen_point(r, extent, ray, drawn, &look)?.map_or(0, |(_, _, v)| label_id(v)))
+}
+
+/// The point a 3D view (`drawn`, drawing `look`) shows along its pixel's
+/// `ray` through the image `r` spanning `extent`: its world position, the
+/// level drawn there and the value read (`None`: nothing drawn along it).
+/// Steps from where the ray enters the volume, each reading the nearest
+/// voxel of the level the view draws at that distance: half a voxel of
+/// that level long (MIP: a quarter), or the DVR's own sampling rate.
+fn seen_point(
+    r: &mut Reader,
+    extent: Vec3,
+    ray: &Ray,
+    drawn: &Drawn,
+    look: &Look,
+) -> Result<Option<(Vec3, usize, f64)>> {
     let Some((t0, t1)) = intersect_box(ray, [0.0; 3], extent) else {
-        return Ok(0);
+        return Ok(None);
     };
-    let d = r.dims;
-    let voxel = [0, 1, 2]
-        .map(|a| extent[a] / d[2 - a] as f64)
-        .into_iter()
-        .fold(f64::INFINITY, f64::min);
-    let dt = 0.5 * voxel / length(ray.dir);
-    let mut t = t0 + 0.5 * dt;
-    while t < t1 {
-        let v = r.value(world_to_voxel(ray.at(t), extent, d), 0)?;
-        let id = (v + 0.5).floor();
-        if id != 0.0 && !id.is_nan() && select.is_none_or(|s| s.shows(id as i32)) {
-            return Ok(id as u64);
+    let (voxel0, levels) = (voxel_edge(r.dims, extent), r.levels());
+    let per_voxel = match look {
+        Look::Dvr { samples, .. } => samples.max(0.25),
+        // (A maximum may lie in a voxel the ray only grazes.)
+        Look::Mip { .. } => 4.0,
+        Look::Labels(_) => 2.0,
+    };
+    let (mut t, mut first) = (t0, true);
+    // DVR: the opacity gathered; MIP: the greatest sample.
+    let mut gathered = 0.0;
+    let mut best: Option<(f64, Vec3, usize)> = None;
+    loop {
+        let level = drawn.level(t, voxel0, levels);
+        let d = r.dims_at(level);
+        let dt = voxel_edge(d, extent) / per_voxel / length(ray.dir);
+        if first {
+            // (The first sample half a step in, or half-way through a
+            // shorter chord.)
+            t = (t0 + 0.5 * dt).min(0.5 * (t0 + t1));
+            first = false;
+        }
+        if t >= t1 {
+            break;
+        }
+        let w = ray.at(t);
+        let v = world_to_voxel(w, extent, d);
+        match look {
+            Look::Mip { channel } => {
+                let x = r.value(level, v, *channel)?;
+                if best.is_none_or(|b| x > b.0) {
+                    best = Some((x, w, level));
+                }
+            }
+            Look::Dvr { tfs, reference, .. } => {
+                // The channels' opacities combined, corrected to this
+                // step's length.
+                let mut through = 1.0;
+                let mut first_value = None;
+                for (c, tf) in tfs {
+                    let x = r.value(level, v, *c)?;
+                    first_value.get_or_insert(x);
+                    let a = tf.lookup(x as f32)[3].clamp(0.0, 1.0) as f64;
+                    through *= 1.0 - a;
+                }
+                let a = 1.0 - through.powf(dt * length(ray.dir) / reference);
+                gathered += (1.0 - gathered) * a;
+                if gathered >= 0.5 {
+                    return Ok(Some((w, level, first_value.unwrap_or(0.0))));
+                }
+            }
+            Look::Labels(select) => {
+                let x = r.value(level, v, 0)?;
+                let id = label_id(x);
+                if id != 0 && select.as_ref().is_none_or(|s| s.shows(id as i32)) {
+                    return Ok(Some((w, level, x)));
+                }
+            }
         }
         t += dt;
     }
-    Ok(0)
+    Ok(best.map(|(x, w, l)| (w, l, x)))
 }
 
 /// The world point of a statistics row's centroid (voxels `[z, y, x]` of

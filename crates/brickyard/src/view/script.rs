@@ -8,8 +8,8 @@
 //! | `mode dvr\|mip\|slice` | the 3D view's mode |
 //! | `drag VIEW BUTTON DX DY` | a drag by (DX, DY) pixels with `left`, `right` or `middle` (3D: orbit, pan; slices: cursor, pan) |
 //! | `scroll VIEW STEPS` | the mouse wheel (zoom; positive: in) |
-//! | `click VIEW X Y` | a click at pixel (X, Y) of the view (slices: move the cursor there) |
-//! | `hover VIEW X Y` / `hover off` | the pointer at pixel (X, Y) of slice view VIEW (the voxel readout reads the voxel there), or gone (it reads the voxel at the cursor) |
+//! | `click VIEW X Y` | a click at pixel (X, Y) of the view: slices move the cursor there; `3d`, as a double-click, moves it to the point the pixel shows (the MIP's maximum, where the DVR's opacity reaches 1/2, or the first label drawn; waits for the readout) |
+//! | `hover VIEW X Y` / `hover off` | the pointer at pixel (X, Y) of VIEW (the voxel readout reads the voxel there; in `3d`, at the point the pixel shows), or gone (it reads the voxel at the cursor) |
 //! | `pick VIEW X Y` | Ctrl+click at pixel (X, Y) of VIEW: the label there (in `3d`, of a label image in DVR mode: the first label drawn along the pixel's ray) joins the labels picked, or leaves them (waits for the readout) |
 //! | `label-select IDS\|none` / `label-mode all\|only\|hide` | the labels picked (`3,17,40-45`); which labels a label image draws: all, only those picked, all but them |
 //! | `largest-labels N` | read the N labels of most voxels from the label statistics (the controls' table; logged as `"largest"`) |
@@ -162,13 +162,7 @@ fn parse_line(w: &[&str]) -> Result<Cmd> {
         }
         "hover" => match w.len() {
             2 if w[1] == "off" => Cmd::Hover(None),
-            4 => {
-                let v = view(w[1])?;
-                if v == 0 {
-                    bail!("hover: the readout reads slice views (xy, xz, yz, oblique), not 3d");
-                }
-                Cmd::Hover(Some((v, num(w[2])?, num(w[3])?)))
-            }
+            4 => Cmd::Hover(Some((view(w[1])?, num(w[2])?, num(w[3])?))),
             _ => bail!("hover takes a view and X Y, or off"),
         },
         "pick" => {

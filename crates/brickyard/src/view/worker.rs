@@ -85,6 +85,9 @@ pub struct Out {
     pub backend: String,
     /// The LOD bias this view's pool budget added (0: full detail).
     pub lod_extra: f64,
+    /// The level of detail the frame was drawn with (the budget's bias
+    /// included): the readout reads the levels it drew.
+    pub lod: Lod,
     /// Bricks that could not be loaded (drawn from coarser data).
     pub failed: usize,
     /// Load failures new since the last frame sent: "brick: error".
@@ -487,6 +490,7 @@ pub fn run(setup: Setup, mut scene: Scene, rx: Receiver<Msg>, tx: Sender<Reply>,
             host_budget: loader.cache().budget(),
             backend: backend.describe(),
             lod_extra: views[i].budget.extra(),
+            lod,
             failed: s.vm().failed_count(),
             new_failures,
             settled: done,
@@ -519,6 +523,7 @@ struct AccOut {
     accumulated: (u32, u32),
     reblended: bool,
     settled: bool,
+    lod: Lod,
 }
 
 /// One pass of view `v`'s accumulation: a re-blend when its transfer
@@ -546,6 +551,7 @@ fn accumulate(
                 accumulated: (a.acc.frames(), a.acc.target()),
                 reblended: true,
                 settled: done,
+                lod,
             };
             return Ok((out, done));
         }
@@ -585,6 +591,7 @@ fn accumulate(
         accumulated: (a.acc.frames(), a.acc.target()),
         reblended: false,
         settled: done,
+        lod,
     };
     Ok((out, done))
 }
@@ -609,6 +616,7 @@ fn status(s: &Session, a: AccOut) -> Out {
         host_budget: loader.cache().budget(),
         backend: String::new(),
         lod_extra: 0.0,
+        lod: a.lod,
         failed: s.vm().failed_count(),
         new_failures: vec![],
         settled: a.settled,

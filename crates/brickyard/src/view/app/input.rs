@@ -4,10 +4,12 @@
 
 use super::{ChannelUi, Vec3, ViewerApp, N_VIEWS};
 use crate::view::script::{Cmd, VIEWS};
+use crate::view::worker::Out;
 use anyhow::{bail, Context, Result};
 use brickyard_core::camera::{add, dot, length, normalize, scale, sub, Camera, Projection};
 use brickyard_core::transfer::{ColorMap, Preset};
 use brickyard_core::TransferFunction;
+use brickyard_render::cpu::Lod;
 use eframe::egui;
 use std::sync::atomic::Ordering;
 use std::time::{Duration, Instant};
@@ -93,6 +95,40 @@ impl ViewerApp {
         let p = ray.at(t);
         let e = self.ds.extent;
         [0, 1, 2].map(|a| p[a].clamp(0.0, e[a]))
+    }
+
+    /// [`Self::slice_point`], and the level the labels drawn at that pixel
+    /// come from (the label image laid over, or the label image shown
+    /// itself): the level the view's frame read there, by its footprint
+    /// and its level of detail, so the readout and picks read what the
+    /// view draws, also where it draws a coarser level.
+    pub(super) fn slice_pixel(&self, v: usize, px: f64, py: f64) -> (Vec3, usize) {
+        let size = self.render_size(v);
+        let cam = self.slice_camera(v, size);
+        let ray = cam.ray(px, py, size[0], size[1]);
+        let n = normalize(self.plane_normal(v));
+        let t = dot(n, sub(self.cursor, ray.origin)) / dot(n, ray.dir);
+        let fp = cam.pixel_footprint(t, size[1]);
+        let (voxel0, levels) = match &self.labels {
+            Some(l) => (l.voxel0, l.levels),
+            None => (self.voxel0(), self.ds.levels.len()),
+        };
+        let lod = self.drawn_lod(v, self.labels.as_ref().map(|l| l.views[v].last.as_deref()));
+        (
+            self.slice_point(v, px, py),
+            lod.level_for(fp, voxel0, levels),
+        )
+    }
+
+    /// The level of detail view `v`'s latest frame was drawn with (of the
+    /// labels laid over it when `layer` is given: their latest frame), or,
+    /// before there is one, what the controls ask for.
+    pub(super) fn drawn_lod(&self, v: usize, layer: Option<Option<&Out>>) -> Lod {
+        let last = match layer {
+            Some(l) => l,
+            None => self.views[v].last.as_deref(),
+        };
+        last.map_or(self.asked_lod(), |o| o.lod)
     }
 
     /// Where the cursor is in slice view `v`, in render pixels.
@@ -224,7 +260,7 @@ impl ViewerApp {
             start(self).with_context(|| what.to_string())?;
             return Ok(false);
         };
-        if self.pick.is_some() || self.goto.is_some() || self.pick3d {
+        if self.pick.is_some() || self.goto.is_some() || self.pick3d || self.seek.is_some() {
             if since.elapsed() > Duration::from_secs(60) {
                 bail!("{what}: no answer in 60 s");
             }
@@ -262,10 +298,19 @@ impl ViewerApp {
                         self.scroll(*v, *s as f64);
                         true
                     }
-                    Cmd::Click(v, x, y) => {
-                        if *v > 0 {
-                            self.cursor = self.slice_point(*v, *x as f64, *y as f64);
+                    Cmd::Click(0, x, y) => {
+                        // As a double-click: the cursor to the point shown.
+                        let (x, y) = (*x as f64, *y as f64);
+                        if self.probe.is_none() {
+                            bail!("click 3d: the viewer has no voxel readout");
                         }
+                        self.await_answer("click 3d", "cursor at", |a| {
+                            a.seek = Some(((x, y), None));
+                            Ok(())
+                        })?
+                    }
+                    Cmd::Click(v, x, y) => {
+                        self.cursor = self.slice_point(*v, *x as f64, *y as f64);
                         true
                     }
                     Cmd::Key(k) => {
@@ -281,7 +326,7 @@ impl ViewerApp {
                             bail!("pick: the viewer has no voxel readout");
                         }
                         let (v, x, y) = (*v, *x, *y);
-                        let at = self.slice_point(v.max(1), x, y);
+                        let at = self.slice_pixel(v.max(1), x, y);
                         self.await_answer("pick", "labels picked", |a| match v {
                             0 => a.pick_3d(x, y).map_err(|e| anyhow::anyhow!("{e}")),
                             _ => {

@@ -103,14 +103,19 @@ impl ViewerApp {
             .collect()
     }
 
-    pub(super) fn spec(&self, v: usize) -> Spec {
-        let [w, h] = self.render_size(v);
-        let lod = match self.level {
+    /// The level of detail the controls ask for.
+    pub(super) fn asked_lod(&self) -> Lod {
+        match self.level {
             Some(l) => Lod::Fixed(l),
             None => Lod::Auto {
                 bias: self.lod_bias,
             },
-        };
+        }
+    }
+
+    pub(super) fn spec(&self, v: usize) -> Spec {
+        let [w, h] = self.render_size(v);
+        let lod = self.asked_lod();
         let (camera, tf, mode) = if v == 0 {
             let mode = match self.mode.as_str() {
                 "mip" => RenderMode::Mip,

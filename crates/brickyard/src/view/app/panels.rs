@@ -529,7 +529,13 @@ impl ViewerApp {
         // Input: the same handlers as scripts, in render pixels.
         let k = rs[0] as f32 / img.width();
         let rect = img;
-        if v == 0 && resp.clicked() && ui.input(|i| i.modifiers.command) {
+        if v == 0 && resp.double_clicked() {
+            // A double-click in 3D moves the cursor to the point shown.
+            if let Some(pos) = resp.interact_pointer_pos() {
+                let q = (pos - rect.min) * k;
+                self.seek = Some(((q.x as f64, q.y as f64), None));
+            }
+        } else if v == 0 && resp.clicked() && ui.input(|i| i.modifiers.command) {
             // Ctrl+click in 3D picks the label shown there.
             if let Some(pos) = resp.interact_pointer_pos() {
                 let q = (pos - rect.min) * k;
@@ -549,13 +555,13 @@ impl ViewerApp {
         } else if resp.clicked() && v > 0 {
             if let Some(pos) = resp.interact_pointer_pos() {
                 let q = (pos - rect.min) * k;
-                let w = self.slice_point(v, q.x as f64, q.y as f64);
+                let at = self.slice_pixel(v, q.x as f64, q.y as f64);
                 // Ctrl+click picks the label there; a click moves the
                 // cursor.
                 if ui.input(|i| i.modifiers.command) {
-                    self.pick = Some(w);
+                    self.pick = Some(at);
                 } else {
-                    self.cursor = w;
+                    self.cursor = at.0;
                 }
             }
         }
@@ -565,10 +571,14 @@ impl ViewerApp {
             let d = resp.drag_delta() * k;
             self.drag(v, "right", d.x as f64, d.y as f64);
         }
-        // The voxel readout follows the pointer over a slice view.
-        if let Some(pos) = resp.hover_pos().filter(|p| v > 0 && rect.contains(*p)) {
+        // The voxel readout follows the pointer over a slice view, and over
+        // the 3D view (the point it shows there).
+        if let Some(pos) = resp.hover_pos().filter(|p| rect.contains(*p)) {
             let q = (pos - rect.min) * k;
-            self.hover = Some(self.slice_point(v, q.x as f64, q.y as f64));
+            match v {
+                0 => self.hover_3d = Some((q.x as f64, q.y as f64)),
+                _ => self.hover = Some(self.slice_pixel(v, q.x as f64, q.y as f64)),
+            }
         }
         if resp.hovered() {
             let s = ui.input(|i| i.smooth_scroll_delta.y);
