@@ -159,13 +159,21 @@ pub struct WebSession {
 
 impl WebSession {
     /// Channel `c` at world point `w` from what is resident: the value and
-    /// the level that served it, the finest there is (`None`: nothing
-    /// resident there). Asks for no brick.
-    pub fn value_at(&self, w: [f64; 3], c: usize) -> Option<(f32, u8)> {
+    /// the level that served it, the finest there is from `level` on
+    /// (`None`: nothing resident there). Asks for no brick.
+    pub fn value_at(&self, w: [f64; 3], c: usize, level: usize) -> Option<(f32, u8)> {
         let p = brickyard_core::camera::world_to_normalized(w, self.scene.extent);
         let mut req = brickyard_cache::vm::Requests::with_capacity(1);
-        let l = self.vm.sample(0, c, p, false, &mut req);
+        let l = self.vm.sample(level, c, p, false, &mut req);
         l.level.map(|lv| (l.value, lv))
+    }
+
+    /// The level this session's frames draw where a pixel spans
+    /// `footprint`: by the level of detail of its last frame (the budget's
+    /// bias included), or `lod` before there is one.
+    pub fn level_drawn(&self, footprint: f64, lod: Lod) -> usize {
+        let lod = self.drawn.as_ref().map_or(lod, |(_, l)| *l);
+        lod.level_for(footprint, self.scene.voxel(0), self.scene.levels.len())
     }
 
     /// A session over `src` with a pool of `cfg.pool_bytes`; starts
@@ -398,8 +406,10 @@ impl WebSession {
 /// The readout under pixel position `(x, y)` of a slice `view`: the world
 /// point, the image's level-0 voxel there, each channel's value with the
 /// level that served it (from what is resident: the finest level there
-/// is), and with `labels` the label there (its value rounded). `None` for
-/// other modes and off the volume.
+/// is), and with `labels` the label drawn there (its value rounded, read
+/// at the level the labels' frames draw there, or the finest resident
+/// coarser one, as they draw it). `None` for other modes and off the
+/// volume.
 pub fn probe(
     view: &crate::view::View,
     image: &WebSession,
@@ -407,19 +417,22 @@ pub fn probe(
     x: f64,
     y: f64,
 ) -> Option<serde_json::Value> {
-    let w = view.slice_point(image.scene.extent, x, y)?;
+    let (w, footprint) = view.slice_point(image.scene.extent, x, y)?;
     let voxel =
         brickyard_core::camera::world_to_voxel(w, image.scene.extent, image.vm.layout().levels[0]);
     let values: Vec<serde_json::Value> = (0..image.vm.channels())
-        .map(|c| match image.value_at(w, c) {
+        .map(|c| match image.value_at(w, c, 0) {
             Some((v, l)) => serde_json::json!({ "value": v, "level": l }),
             None => serde_json::Value::Null,
         })
         .collect();
-    let label = labels.map(|s| match s.value_at(w, 0) {
-        Some((v, l)) => serde_json::json!({ "label": (v as f64 + 0.5).floor(), "level": l }),
-        None => serde_json::Value::Null,
-    });
+    // The label drawn there: read at the level the labels' frames draw.
+    let label = labels.map(
+        |s| match s.value_at(w, 0, s.level_drawn(footprint, view.lod)) {
+            Some((v, l)) => serde_json::json!({ "label": (v as f64 + 0.5).floor(), "level": l }),
+            None => serde_json::Value::Null,
+        },
+    );
     let mut j = serde_json::json!({ "world": w, "voxel_zyx": voxel, "values": values });
     // (No `labels` key without a label image; null where none is loaded.)
     if let Some(l) = label {

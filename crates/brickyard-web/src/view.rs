@@ -415,15 +415,17 @@ impl View {
     /// The world point under pixel position `(x, y)` (pixel `(i, j)` spans
     /// `[i, i + 1) × [j, j + 1)`) of a slice view: where the pixel's ray
     /// meets the plane; `None` for other modes and off the volume
-    /// (`extent`).
-    pub fn slice_point(&self, extent: [f64; 3], x: f64, y: f64) -> Option<[f64; 3]> {
+    /// (`extent`). Also the world length one pixel spans there (its
+    /// footprint, by which the renderers choose the level).
+    pub fn slice_point(&self, extent: [f64; 3], x: f64, y: f64) -> Option<([f64; 3], f64)> {
         let RenderMode::Slice { origin, normal } = self.params.mode else {
             return None;
         };
         let p = &self.params;
         let ray = p.camera.ray(x, y, p.width, p.height);
         // (The point the slice renderer samples for that pixel.)
-        brickyard_render::slice_point(&ray, origin, normalize(normal), extent).map(|(w, _)| w)
+        brickyard_render::slice_point(&ray, origin, normalize(normal), extent)
+            .map(|(w, t)| (w, p.camera.pixel_footprint(t, p.height)))
     }
 }
 

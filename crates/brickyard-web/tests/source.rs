@@ -203,12 +203,20 @@ fn stream_session(
     };
     let mut s = WebSession::new(src.clone(), cfg, spawn, 6).expect("session");
     let v = view(&s, &src);
-    let kept = v.clone();
+    let (image, frames) = frames_until_complete(&mut s, &mut exec, &v);
+    (image, frames, v, s)
+}
+
+/// Frames of `v` until one is complete: its image and the frames it took.
+fn frames_until_complete(
+    s: &mut WebSession,
+    exec: &mut LocalPool,
+    v: &brickyard_web::view::View,
+) -> (Image, u32) {
     s.scene.channel = v.channel;
-    let (p, lod) = (v.params, v.lod);
     for frame in 0..500 {
         exec.run_until_stalled();
-        let out = s.frame_cpu(&p, lod);
+        let out = s.frame_cpu(&v.params, v.lod);
         if out.complete {
             eprintln!(
                 "complete at LOD bias {} after {} frames, {} bricks loaded",
@@ -216,7 +224,7 @@ fn stream_session(
                 frame,
                 s.loads.loaded()
             );
-            return (s.image().clone(), frame, kept, s);
+            return (s.image().clone(), frame);
         }
     }
     panic!("the view did not complete in 500 frames");
@@ -688,7 +696,19 @@ fn the_readout_reads_the_voxel_and_label_under_a_pixel_of_a_slice() {
             .unwrap()
     });
     let lv = st.label_view(&v).unwrap();
-    let (_, _, _, labels) = stream_session(&store.join("labels/cells"), 32 << 20, |_, _| lv);
+    // (The label session streams the label view in a pool of its own,
+    // kept to stream it again at another level of detail below.)
+    let lsrc = Rc::new(open_web(&store.join("labels/cells"), 32));
+    let mut lexec = LocalPool::new();
+    let sp = lexec.spawner();
+    let cfg = VmConfig {
+        brick: [32; 3],
+        pool_bytes: 32 << 20,
+        ..Default::default()
+    };
+    let spawn: Spawn = Rc::new(move |f| spawn_local(&sp, f));
+    let mut labels = WebSession::new(lsrc, cfg, spawn, 6).expect("label session");
+    frames_until_complete(&mut labels, &mut lexec, &lv);
     // References read apart: the TIFF through its importer, the labels'
     // level 0 whole.
     let read = |src: &dyn VolumeSource| {
@@ -732,6 +752,45 @@ fn the_readout_reads_the_voxel_and_label_under_a_pixel_of_a_slice() {
         hits > 100 && in_labels >= 5,
         "{hits} pixels, {in_labels} in labels"
     );
+    // The labels drawn at level 2 (a LOD bias of 3: unbiased, this view
+    // would draw level -0.8), their level 0 still resident: the label read
+    // out is the one drawn, level 2's.
+    let mut lv2 = lv.clone();
+    lv2.lod = brickyard_render::cpu::Lod::Auto { bias: 3.0 };
+    frames_until_complete(&mut labels, &mut lexec, &lv2);
+    let (lab2, d2) =
+        read(&brickyard_store::import::zarr::open(&store.join("labels/cells"), 2).unwrap());
+    let extent = image.scene.extent;
+    let (mut differ, mut n) = (0, 0);
+    for j in 0..12 {
+        for i in 0..12 {
+            let (x, y) = (20.0 + i as f64 * 38.3, 15.0 + j as f64 * 35.9);
+            let Some(p) = brickyard_web::session::probe(&v, &image, Some(&labels), x, y) else {
+                continue;
+            };
+            n += 1;
+            assert_eq!(p["labels"]["level"], 2, "{x} {y}: {p}");
+            let w: Vec<f64> = (0..3).map(|k| p["world"][k].as_f64().unwrap()).collect();
+            let q2 = [0, 1, 2].map(|a| {
+                let f = w[2 - a] / extent[2 - a];
+                ((f * d2[a] as f64).floor() as u64).min(d2[a] - 1)
+            });
+            let i2 = ((q2[0] * d2[1] + q2[1]) * d2[2] + q2[2]) as usize;
+            let l2 = u32::from_ne_bytes(lab2[4 * i2..4 * i2 + 4].try_into().unwrap()) as f64;
+            assert_eq!(p["labels"]["label"].as_f64(), Some(l2), "{x} {y}: {p}");
+            let q: Vec<u64> = (0..3)
+                .map(|k| p["voxel_zyx"][k].as_u64().unwrap())
+                .collect();
+            let l0 = u32::from_ne_bytes(
+                lab[4 * at([q[0], q[1], q[2]])..4 * at([q[0], q[1], q[2]]) + 4]
+                    .try_into()
+                    .unwrap(),
+            ) as f64;
+            differ += (l0 != l2) as usize;
+        }
+    }
+    eprintln!("at level 2: {differ} of {n} pixels show another label than level 0 has there");
+    assert!(n > 100 && differ > 0, "{differ} of {n}");
     // Off the volume, and not a slice: nothing.
     assert!(brickyard_web::session::probe(&v, &image, None, -50.0, 5.0).is_none());
     let mut dvr = v.clone();
