@@ -44,6 +44,7 @@ pub mod multi;
 pub mod octree;
 pub mod optics;
 pub mod params;
+pub mod readout;
 pub mod reference;
 pub mod savr;
 mod shading;

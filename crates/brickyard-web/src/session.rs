@@ -9,7 +9,7 @@ use brickyard_cache::brick::{BrickKey, LoadedBrick};
 use brickyard_cache::vm::{FrameReport, InsertReport, VirtualMemory, VmConfig};
 use brickyard_render::budget::{Decision, FrameSignals, LodBudget};
 use brickyard_render::cpu::{render_tiles, FrameStats, Lod, Scene, Tiles};
-use brickyard_render::{Image, RenderParams};
+use brickyard_render::{readout, Image, RenderMode, RenderParams};
 use std::cell::RefCell;
 use std::collections::{HashSet, VecDeque};
 use std::rc::Rc;
@@ -168,12 +168,17 @@ impl WebSession {
         l.level.map(|lv| (l.value, lv))
     }
 
+    /// The level of detail of this session's last frame (the budget's bias
+    /// included), or `lod` before there is one.
+    pub fn drawn_lod(&self, lod: Lod) -> Lod {
+        self.drawn.as_ref().map_or(lod, |(_, l)| *l)
+    }
+
     /// The level this session's frames draw where a pixel spans
-    /// `footprint`: by the level of detail of its last frame (the budget's
-    /// bias included), or `lod` before there is one.
+    /// `footprint` ([`drawn_lod`](Self::drawn_lod) of `lod`).
     pub fn level_drawn(&self, footprint: f64, lod: Lod) -> usize {
-        let lod = self.drawn.as_ref().map_or(lod, |(_, l)| *l);
-        lod.level_for(footprint, self.scene.voxel(0), self.scene.levels.len())
+        self.drawn_lod(lod)
+            .level_for(footprint, self.scene.voxel(0), self.scene.levels.len())
     }
 
     /// A session over `src` with a pool of `cfg.pool_bytes`; starts
@@ -403,13 +408,17 @@ impl WebSession {
     }
 }
 
-/// The readout under pixel position `(x, y)` of a slice `view`: the world
-/// point, the image's level-0 voxel there, each channel's value with the
-/// level that served it (from what is resident: the finest level there
-/// is), and with `labels` the label drawn there (its value rounded, read
-/// at the level the labels' frames draw there, or the finest resident
-/// coarser one, as they draw it). `None` for other modes and off the
-/// volume.
+/// The readout under pixel position `(x, y)` of `view`: the world point,
+/// the image's level-0 voxel there, each channel's value with the level
+/// that served it (from what is resident: the finest level there is), and
+/// the label drawn there (its value rounded) where labels are drawn: of
+/// `labels` laid over a slice, or of the image when it is a label image,
+/// read at the level the frames draw there (or the finest resident coarser
+/// one, as they draw it). A slice's point is where the pixel's ray meets
+/// the plane; a 3D view's, the point it shows along the ray
+/// ([`readout::seen_point`]: the MIP's maximum, the DVR's half-opacity
+/// point, the first label drawn), named under `"seen"`. `None` off the
+/// volume, where nothing is drawn along the ray, and for several views.
 pub fn probe(
     view: &crate::view::View,
     image: &WebSession,
@@ -417,26 +426,86 @@ pub fn probe(
     x: f64,
     y: f64,
 ) -> Option<serde_json::Value> {
-    let (w, footprint) = view.slice_point(image.scene.extent, x, y)?;
-    let voxel =
-        brickyard_core::camera::world_to_voxel(w, image.scene.extent, image.vm.layout().levels[0]);
+    let p = &view.params;
+    let extent = image.scene.extent;
+    // A label image shown itself is its own labels.
+    let labels = labels.or(p.labels.then_some(image));
+    let (w, label_level, seen) = match view.slice_point(extent, x, y) {
+        Some((w, footprint)) => {
+            let level = labels.map(|s| s.level_drawn(footprint, view.lod));
+            (w, level, None)
+        }
+        None if matches!(p.mode, RenderMode::Slice { .. }) || p.views.is_some() => return None,
+        None => {
+            let look = match p.mode {
+                RenderMode::Mip => readout::Look::Mip {
+                    // (Several channels: the first shown.)
+                    channel: p.channels.first().map_or(view.channel, |s| s.channel),
+                },
+                _ if p.labels => readout::Look::Labels(p.label_select.clone()),
+                _ => readout::Look::Dvr {
+                    tfs: match p.channels.is_empty() {
+                        true => vec![(view.channel, p.tf.clone())],
+                        false => p.channels.iter().map(|s| (s.channel, s.dvr_tf())).collect(),
+                    },
+                    samples: p.samples_per_voxel,
+                    reference: p.reference_step,
+                },
+            };
+            let drawn = readout::Drawn {
+                camera: p.camera,
+                height: p.height,
+                lod: image.drawn_lod(view.lod),
+            };
+            let ray = p.camera.ray(x, y, p.width, p.height);
+            let found = readout::seen_point::<()>(
+                &ray,
+                extent,
+                &image.scene.levels,
+                &drawn,
+                &look,
+                |l, w, c| Ok(image.value_at(w, c, l).map(|(v, _)| v as f64)),
+            );
+            let (w, level, value) = found.ok()??;
+            let served = image
+                .value_at(w, look_channel(&look), level)
+                .map(|(_, l)| l);
+            let seen = serde_json::json!({
+                "how": look.name(), "value": value, "level": served.unwrap_or(level as u8),
+            });
+            (w, labels.map(|_| level), Some(seen))
+        }
+    };
+    let voxel = brickyard_core::camera::world_to_voxel(w, extent, image.vm.layout().levels[0]);
     let values: Vec<serde_json::Value> = (0..image.vm.channels())
         .map(|c| match image.value_at(w, c, 0) {
             Some((v, l)) => serde_json::json!({ "value": v, "level": l }),
             None => serde_json::Value::Null,
         })
         .collect();
-    // The label drawn there: read at the level the labels' frames draw.
-    let label = labels.map(
-        |s| match s.value_at(w, 0, s.level_drawn(footprint, view.lod)) {
+    // The label drawn there.
+    let label = labels
+        .zip(label_level)
+        .map(|(s, level)| match s.value_at(w, 0, level) {
             Some((v, l)) => serde_json::json!({ "label": (v as f64 + 0.5).floor(), "level": l }),
             None => serde_json::Value::Null,
-        },
-    );
+        });
     let mut j = serde_json::json!({ "world": w, "voxel_zyx": voxel, "values": values });
-    // (No `labels` key without a label image; null where none is loaded.)
+    // (No `labels` key without labels drawn; null where none is loaded.)
     if let Some(l) = label {
         j["labels"] = l;
     }
+    if let Some(s) = seen {
+        j["seen"] = s;
+    }
     Some(j)
+}
+
+/// The channel a readout's look reads first.
+fn look_channel(look: &readout::Look) -> usize {
+    match look {
+        readout::Look::Mip { channel } => *channel,
+        readout::Look::Dvr { tfs, .. } => tfs.first().map_or(0, |t| t.0),
+        readout::Look::Labels(_) => 0,
+    }
 }

@@ -570,6 +570,124 @@ impl brickyard_run::process::Phases for Quiet {
 
 /// The nuclei stack converted into `dir`, with `labels/cells` from
 /// `process`.
+#[test]
+fn the_readout_names_the_point_a_3d_view_shows() {
+    use brickyard_store::VolumeSource;
+    let dir = tempfile::tempdir().unwrap();
+    let store = nuclei_with_cells(dir.path());
+    let (w, h) = (200u32, 160u32);
+    let grid: Vec<(f64, f64)> = (0..10)
+        .flat_map(|j| (0..12).map(move |i| (8.5 + i as f64 * 16.0, 6.5 + j as f64 * 15.0)))
+        .collect();
+    // References read apart: the stack's and the labels' level 0 whole.
+    let read = |src: &dyn VolumeSource| {
+        let d = src.meta().dims;
+        let mut b = vec![0u8; d.iter().product::<u64>() as usize * src.meta().dtype.size()];
+        src.read_region(0, 0..d[0], 0..d[1], 0..d[2], &mut b)
+            .unwrap();
+        (b, d)
+    };
+    let (tif, d) =
+        read(&*open_input(&data("nuclei-confocal-u16.tif"), &ImportOptions::default()).unwrap());
+    // (Every level of the labels.)
+    let lab: Vec<(Vec<u8>, [u64; 3])> = (0..)
+        .map_while(|l| brickyard_store::import::zarr::open(&store.join("labels/cells"), l).ok())
+        .map(|src| read(&src))
+        .collect();
+    assert!(lab.len() >= 2, "{} levels", lab.len());
+    let at = |v: &serde_json::Value| {
+        let q: Vec<u64> = (0..3).map(|k| v[k].as_u64().unwrap()).collect();
+        ((q[0] * d[1] + q[1]) * d[2] + q[2]) as usize
+    };
+    // Every answer's point lies on its pixel's ray, and what it reads at
+    // level 0 is the file's voxel there.
+    let on_ray = |v: &brickyard_web::view::View, p: &serde_json::Value, (x, y): (f64, f64)| {
+        let q: Vec<f64> = (0..3).map(|k| p["world"][k].as_f64().unwrap()).collect();
+        let px = v.params.camera.project([q[0], q[1], q[2]], w, h).unwrap();
+        assert!(
+            (px[0] - x).abs() < 1e-3 && (px[1] - y).abs() < 1e-3,
+            "({x}, {y}) shows a point at {px:?}: {p}"
+        );
+    };
+    // MIP of the stack, complete: its greatest samples.
+    let st =
+        ViewState::from_query(&format!("mode=mip&size={w}x{h}&tf=linear&window=0,40000")).unwrap();
+    let (_, _, v, image) = stream_session(&store, 64 << 20, |s, src| {
+        st.params(&s.scene, [0.0, 40000.0], &src.meta.channels, 1, false)
+            .unwrap()
+    });
+    let (mut hits, mut checked) = (0, 0);
+    for &(x, y) in &grid {
+        let Some(p) = brickyard_web::session::probe(&v, &image, None, x, y) else {
+            continue;
+        };
+        hits += 1;
+        on_ray(&v, &p, (x, y));
+        assert_eq!(p["seen"]["how"], "the MIP's maximum", "{p}");
+        assert!(p.get("labels").is_none(), "{p}");
+        if p["values"][0]["level"] == 0 {
+            let want = u16::from_ne_bytes([
+                tif[2 * at(&p["voxel_zyx"])],
+                tif[2 * at(&p["voxel_zyx"]) + 1],
+            ]);
+            assert_eq!(p["values"][0]["value"].as_f64(), Some(want as f64), "{p}");
+            checked += 1;
+            if p["seen"]["level"] == 0 {
+                assert_eq!(p["seen"]["value"], p["values"][0]["value"], "{p}");
+            }
+        }
+    }
+    eprintln!(
+        "MIP: {hits} of {} pixels show a point, {checked} read at level 0",
+        grid.len()
+    );
+    assert!(
+        hits >= 20 && checked * 2 >= hits,
+        "{hits} of {}, {checked}",
+        grid.len()
+    );
+    // The label image itself in DVR: its surfaces, the first label drawn,
+    // is the label read out (and picked by a click).
+    let st = ViewState::from_query(&format!("mode=dvr&size={w}x{h}&tf=labels")).unwrap();
+    let (_, _, v, labels) = stream_session(&store.join("labels/cells"), 64 << 20, |s, src| {
+        st.params(&s.scene, [0.0, 60.0], &src.meta.channels, 1, false)
+            .unwrap()
+    });
+    assert!(v.params.labels, "a label image's DVR draws its labels");
+    let (mut found, mut checked) = (0, 0);
+    for &(x, y) in &grid {
+        let Some(p) = brickyard_web::session::probe(&v, &labels, None, x, y) else {
+            continue;
+        };
+        found += 1;
+        on_ray(&v, &p, (x, y));
+        assert_eq!(p["seen"]["how"], "the first label drawn", "{p}");
+        let id = p["labels"]["label"].as_f64().unwrap();
+        assert!(id >= 1.0, "{p}");
+        assert_eq!(p["seen"]["value"].as_f64(), Some(id), "{p}");
+        // The label image's level that served it, read whole, at the point.
+        let l = p["labels"]["level"].as_u64().unwrap() as usize;
+        let (b, dl) = &lab[l];
+        let q: Vec<f64> = (0..3).map(|k| p["world"][k].as_f64().unwrap()).collect();
+        let e = labels.scene.extent;
+        let v =
+            [0, 1, 2].map(|a| ((q[2 - a] / e[2 - a] * dl[a] as f64).floor() as u64).min(dl[a] - 1));
+        let i = ((v[0] * dl[1] + v[1]) * dl[2] + v[2]) as usize;
+        let want = u32::from_ne_bytes(b[4 * i..4 * i + 4].try_into().unwrap());
+        assert_eq!(id, want as f64, "level {l}: {p}");
+        checked += (l == 0) as usize;
+    }
+    eprintln!(
+        "labels: {found} of {} pixels show a label, {checked} read at level 0",
+        grid.len()
+    );
+    assert!(
+        found > 10 && checked >= 3,
+        "{found} of {}, {checked}",
+        grid.len()
+    );
+}
+
 fn nuclei_with_cells(dir: &Path) -> PathBuf {
     let store = convert_file(dir, "nuclei-confocal-u16.tif", Compression::Lz4, 32, 64);
     let args = brickyard_run::process::ProcessArgs {

@@ -114,7 +114,9 @@ async function tick() {
   requestAnimationFrame(tick);
 }
 
-// The readout under the pointer (slices): position, values, label.
+// The readout under the pointer: in a slice, the voxel there; in 3D, the
+// point the pixel shows (the MIP's maximum, the DVR's half-opacity point,
+// the first label drawn). Position, values, label.
 function showProbe(e) {
   const c = $('view'), r = c.getBoundingClientRect();
   const x = (e.clientX - r.left) * c.width / r.width, y = (e.clientY - r.top) * c.height / r.height;
@@ -123,7 +125,8 @@ function showProbe(e) {
   const p = JSON.parse(t), [vz, vy, vx] = p.voxel_zyx;
   const vals = p.values.map((v, i) => v ? `${p.values.length > 1 ? `ch${i} ` : ''}${+v.value.toPrecision(6)}${v.level ? ` (level ${v.level})` : ''}` : 'not loaded');
   const lab = p.labels === undefined ? '' : p.labels ? ` · label ${p.labels.label}${p.labels.level ? ` (level ${p.labels.level})` : ''}` : ' · label not loaded';
-  $('probe').textContent = `voxel x ${vx} y ${vy} z ${vz}: ${vals.join(', ')}${lab}`;
+  const seen = p.seen ? `${p.seen.how}${p.seen.level ? ` (level ${p.seen.level})` : ''}, ` : '';
+  $('probe').textContent = `${seen}voxel x ${vx} y ${vy} z ${vz}: ${vals.join(', ')}${lab}`;
 }
 
 // The labels of an `only_labels` list (`3,17,40-45`), one by one.
@@ -140,9 +143,8 @@ function pickAt(e) {
   const c = $('view'), r = c.getBoundingClientRect();
   const t = state.viewer.probe((e.clientX - r.left) * c.width / r.width, (e.clientY - r.top) * c.height / r.height);
   if (!t) return;
-  const p = JSON.parse(t), info = JSON.parse(state.viewer.info());
-  const id = p.labels !== undefined ? (p.labels && p.labels.label)
-    : (info.label_image && p.values[0] ? Math.floor(p.values[0].value + 0.5) : 0);
+  // (The label drawn there: of the labels laid over, or of a label image.)
+  const p = JSON.parse(t), id = p.labels && p.labels.label;
   if (!id) return;
   const q = new URLSearchParams(state.viewer.query());
   if (q.get('hide_labels')) return;
@@ -167,8 +169,8 @@ function wireControls() {
   });
   view.addEventListener('pointerup', (e) => {
     dragging = false;
-    // A click (no drag) on a label of a slice picks it: only_labels gains
-    // it, or loses it.
+    // A click (no drag) on a label (of a slice, or a label image's
+    // surface in 3D) picks it: only_labels gains it, or loses it.
     if (down && Math.hypot(e.clientX - down[0], e.clientY - down[1]) < 3) pickAt(e);
     wake();
   });

@@ -381,21 +381,31 @@ fn the_web_pages_readout_names_the_voxel_and_a_click_picks_its_label() {
         "http://127.0.0.1:{}/web/#store=..%2Fnuclei.ome.zarr%2F&mode=slice&size=560x540&slice=0.45&tf=linear&window=0,40000&labels=cells",
         srv.1
     );
-    let out = d.path().join("out");
-    std::fs::create_dir_all(&out).unwrap();
-    let o = Command::new("node")
-        .arg(repo().join("crates/brickyard-web/browser/readout.mjs"))
-        .args(["chromium", &url])
-        .arg(&out)
-        .output()
-        .unwrap();
-    let report = std::fs::read_to_string(out.join("readout.json")).unwrap_or_default();
-    assert!(
-        o.status.success(),
-        "the browser check failed:\n{}\n{report}",
-        String::from_utf8_lossy(&o.stderr)
-    );
-    let r: serde_json::Value = serde_json::from_str(&report).unwrap();
+    let run = |url: &str, name: &str| {
+        let out = d.path().join(name);
+        std::fs::create_dir_all(&out).unwrap();
+        let o = Command::new("node")
+            .arg(repo().join("crates/brickyard-web/browser/readout.mjs"))
+            .args(["chromium", url])
+            .arg(&out)
+            .output()
+            .unwrap();
+        let report = std::fs::read_to_string(out.join("readout.json")).unwrap_or_default();
+        assert!(
+            o.status.success(),
+            "the browser check failed:\n{}\n{report}",
+            String::from_utf8_lossy(&o.stderr)
+        );
+        let r: serde_json::Value = serde_json::from_str(&report).unwrap();
+        // A click on the label read out picks it; a second unpicks it.
+        let id = r["label"].as_u64().unwrap();
+        let after = r["hash_after_click"].as_str().unwrap();
+        assert!(after.contains(&format!("only_labels={id}")), "{report}");
+        let again = r["hash_after_second_click"].as_str().unwrap();
+        assert!(!again.contains("only_labels"), "{report}");
+        (r, report)
+    };
+    let (r, report) = run(&url, "slice");
     // Every readout line names the voxel's value and label as the files
     // hold them.
     let read = |src: &dyn VolumeSource| {
@@ -429,9 +439,25 @@ fn the_web_pages_readout_names_the_voxel_and_a_click_picks_its_label() {
         checked += 1;
     }
     assert!(checked > 10, "{checked} readout lines checked: {report}");
-    let id = r["label"].as_u64().unwrap();
-    let after = r["hash_after_click"].as_str().unwrap();
-    assert!(after.contains(&format!("only_labels={id}")), "{report}");
-    let again = r["hash_after_second_click"].as_str().unwrap();
-    assert!(!again.contains("only_labels"), "{report}");
+    // The label image itself in 3D: the readout names the first label its
+    // surfaces draw along the pointer's ray, and a click picks it.
+    let url = format!(
+        "http://127.0.0.1:{}/web/#store=..%2Fnuclei.ome.zarr%2Flabels%2Fcells%2F&mode=dvr&size=400x320&tf=labels",
+        srv.1
+    );
+    let (r, report) = run(&url, "3d");
+    let lines: Vec<&str> = r["lines"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .filter_map(|l| l["text"].as_str())
+        .filter(|t| !t.is_empty())
+        .collect();
+    assert!(lines.len() >= 5, "{report}");
+    for t in &lines {
+        assert!(
+            t.starts_with("the first label drawn") && t.contains(" · label "),
+            "{t}"
+        );
+    }
 }

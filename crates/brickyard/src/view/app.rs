@@ -516,7 +516,7 @@ impl ViewerApp {
                 Look::Dvr {
                     tfs,
                     samples: self.quality,
-                    reference: self.voxel0(),
+                    reference: Some(self.voxel0()),
                 }
             }
             "mip" => Look::Mip {

@@ -17,10 +17,11 @@ use anyhow::{Context, Result};
 use brickyard_cache::brick::{BrickContent, BrickKey, LoadedBrick};
 use brickyard_cache::host_cache::HostCache;
 use brickyard_cache::loader::Loader;
-use brickyard_core::camera::{intersect_box, length, world_to_voxel, Camera, Ray};
-use brickyard_core::{cast_slice, dispatch_dtype, DType, Dims3, Sample, TransferFunction};
-use brickyard_render::cpu::Lod;
+use brickyard_core::camera::{world_to_voxel, Ray};
+use brickyard_core::{cast_slice, dispatch_dtype, DType, Dims3, Sample};
 use brickyard_render::params::LabelSelect;
+use brickyard_render::readout::{self, label_id};
+pub use brickyard_render::readout::{Drawn, Look};
 use brickyard_store::storage::{self, Span};
 use std::path::{Path, PathBuf};
 use std::sync::mpsc::{Receiver, Sender};
@@ -47,54 +48,6 @@ pub fn bytes(levels: usize, channels: usize, label_levels: Option<usize>) -> u64
         CHUNK_BYTES + levels as u64 * (1 << 19) + (KEPT * channels.max(1)) as u64 * BRICK.pow(3) * 8
     };
     reader(levels, channels) + label_levels.map_or(0, |l| reader(l, 1) + WINDOW as u64)
-}
-
-/// How a view chose levels along its pixels' rays: its camera, its
-/// frame's height and the level of detail it was drawn with.
-#[derive(Clone, Copy, Debug)]
-pub struct Drawn {
-    pub camera: Camera,
-    pub height: u32,
-    pub lod: Lod,
-}
-
-impl Drawn {
-    /// The level drawn at distance `t` along a ray of a volume of `levels`
-    /// levels whose level-0 voxel is `voxel0` (as the renderers choose).
-    fn level(&self, t: f64, voxel0: f64, levels: usize) -> usize {
-        let fp = self.camera.pixel_footprint(t, self.height);
-        self.lod.level_for(fp, voxel0, levels)
-    }
-}
-
-/// What a 3D view draws along its pixels' rays, to find the point a
-/// pixel shows ([`Ask::Seen`]).
-#[derive(Clone, Debug, PartialEq)]
-pub enum Look {
-    /// MIP of one channel: the sample of greatest value.
-    Mip { channel: usize },
-    /// DVR: the first sample where the opacity gathered along the ray
-    /// reaches one half, through each channel's transfer function (several
-    /// channels: their opacities combined), at `samples` per voxel of the
-    /// level drawn, opacities corrected to steps of `reference`.
-    Dvr {
-        tfs: Vec<(usize, TransferFunction)>,
-        samples: f64,
-        reference: f64,
-    },
-    /// A label image's surfaces: the first label drawn.
-    Labels(Option<LabelSelect>),
-}
-
-impl Look {
-    /// How the point was found, for the readout's line and its log.
-    pub fn name(&self) -> &'static str {
-        match self {
-            Look::Mip { .. } => "the MIP's maximum",
-            Look::Dvr { .. } => "where the DVR's opacity reaches 1/2",
-            Look::Labels(_) => "the first label drawn",
-        }
-    }
 }
 
 /// A question: the voxel at world point `world` (with the label drawn
@@ -876,24 +829,6 @@ fn run(
     }
 }
 
-/// A label image's stored value as a label (0 for what is no label).
-fn label_id(v: f64) -> u64 {
-    let id = (v + 0.5).floor();
-    if id >= 1.0 {
-        id as u64
-    } else {
-        0
-    }
-}
-
-/// The smallest voxel edge of a level of size `d` spanning `extent`.
-fn voxel_edge(d: Dims3, extent: Vec3) -> f64 {
-    [0, 1, 2]
-        .map(|a| extent[a] / d[2 - a] as f64)
-        .into_iter()
-        .fold(f64::INFINITY, f64::min)
-}
-
 /// The first label along `ray` through a label image (`r`, spanning
 /// `extent`) that `select` draws, at the levels a view `drawn` so reads
 /// (0: none met).
@@ -908,12 +843,7 @@ fn first_label(
     Ok(seen_point(r, extent, ray, drawn, &look)?.map_or(0, |(_, _, v)| label_id(v)))
 }
 
-/// The point a 3D view (`drawn`, drawing `look`) shows along its pixel's
-/// `ray` through the image `r` spanning `extent`: its world position, the
-/// level drawn there and the value read (`None`: nothing drawn along it).
-/// Steps from where the ray enters the volume, each reading the nearest
-/// voxel of the level the view draws at that distance: half a voxel of
-/// that level long (MIP: a quarter), or the DVR's own sampling rate.
+/// [`seen_point`] through reader `r` (nearest voxels of each level).
 fn seen_point(
     r: &mut Reader,
     extent: Vec3,
@@ -921,70 +851,10 @@ fn seen_point(
     drawn: &Drawn,
     look: &Look,
 ) -> Result<Option<(Vec3, usize, f64)>> {
-    let Some((t0, t1)) = intersect_box(ray, [0.0; 3], extent) else {
-        return Ok(None);
-    };
-    let (voxel0, levels) = (voxel_edge(r.dims, extent), r.levels());
-    let per_voxel = match look {
-        Look::Dvr { samples, .. } => samples.max(0.25),
-        // (A maximum may lie in a voxel the ray only grazes.)
-        Look::Mip { .. } => 4.0,
-        Look::Labels(_) => 2.0,
-    };
-    let (mut t, mut first) = (t0, true);
-    // DVR: the opacity gathered; MIP: the greatest sample.
-    let mut gathered = 0.0;
-    let mut best: Option<(f64, Vec3, usize)> = None;
-    loop {
-        let level = drawn.level(t, voxel0, levels);
-        let d = r.dims_at(level);
-        let dt = voxel_edge(d, extent) / per_voxel / length(ray.dir);
-        if first {
-            // (The first sample half a step in, or half-way through a
-            // shorter chord.)
-            t = (t0 + 0.5 * dt).min(0.5 * (t0 + t1));
-            first = false;
-        }
-        if t >= t1 {
-            break;
-        }
-        let w = ray.at(t);
-        let v = world_to_voxel(w, extent, d);
-        match look {
-            Look::Mip { channel } => {
-                let x = r.value(level, v, *channel)?;
-                if best.is_none_or(|b| x > b.0) {
-                    best = Some((x, w, level));
-                }
-            }
-            Look::Dvr { tfs, reference, .. } => {
-                // The channels' opacities combined, corrected to this
-                // step's length.
-                let mut through = 1.0;
-                let mut first_value = None;
-                for (c, tf) in tfs {
-                    let x = r.value(level, v, *c)?;
-                    first_value.get_or_insert(x);
-                    let a = tf.lookup(x as f32)[3].clamp(0.0, 1.0) as f64;
-                    through *= 1.0 - a;
-                }
-                let a = 1.0 - through.powf(dt * length(ray.dir) / reference);
-                gathered += (1.0 - gathered) * a;
-                if gathered >= 0.5 {
-                    return Ok(Some((w, level, first_value.unwrap_or(0.0))));
-                }
-            }
-            Look::Labels(select) => {
-                let x = r.value(level, v, 0)?;
-                let id = label_id(x);
-                if id != 0 && select.as_ref().is_none_or(|s| s.shows(id as i32)) {
-                    return Ok(Some((w, level, x)));
-                }
-            }
-        }
-        t += dt;
-    }
-    Ok(best.map(|(x, w, l)| (w, l, x)))
+    let dims: Vec<Dims3> = (0..r.levels()).map(|l| r.dims_at(l)).collect();
+    readout::seen_point(ray, extent, &dims, drawn, look, |l, w, c| {
+        r.value(l, world_to_voxel(w, extent, dims[l]), c).map(Some)
+    })
 }
 
 /// The world point of a statistics row's centroid (voxels `[z, y, x]` of
