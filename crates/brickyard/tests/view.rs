@@ -1755,7 +1755,9 @@ fn viewer_reads_out_the_voxel_and_label_under_the_cursor_and_the_pointer() {
     script += "hover xy 30 61\nwait-probe 60\n";
     // Then to a label's centroid, by the statistics, and read out there.
     let goto = ids[ids.len() / 3];
-    script += &format!("hover off\ngoto-label {goto}\nwait-probe 60\nlargest-labels 5\nquit\n");
+    script += &format!(
+        "hover off\ngoto-label {goto}\nwait-probe 60\nlargest-labels 5\nlabels-table 6 mean asc 20000\nquit\n"
+    );
     std::fs::write(p("s.txt"), script).unwrap();
     let Some(mut cmd) = viewer(
         &store,
@@ -1832,14 +1834,32 @@ fn viewer_reads_out_the_voxel_and_label_under_the_cursor_and_the_pointer() {
         .map(|(id, r)| (*id, r[1].parse().unwrap()))
         .collect();
     by_size.sort_by(|a, b| b.1.cmp(&a.1).then(a.0.cmp(&b.0)));
-    let largest = std::fs::read_to_string(p("log.jsonl"))
+    let tables: Vec<serde_json::Value> = std::fs::read_to_string(p("log.jsonl"))
         .unwrap()
         .lines()
         .filter_map(|l| serde_json::from_str::<serde_json::Value>(l).ok())
-        .find_map(|v| v.get("largest").cloned())
-        .expect("no largest labels in the log");
+        .filter(|v| v.get("largest").is_some())
+        .collect();
+    assert_eq!(tables.len(), 2, "{tables:?}");
     let want: Vec<[u64; 2]> = by_size[..5].iter().map(|&(id, n)| [id, n]).collect();
-    assert_eq!(largest, serde_json::json!(want));
+    assert_eq!(tables[0]["largest"], serde_json::json!(want));
+    // The six labels of least mean intensity among those of at least
+    // 20 000 voxels.
+    let mut by_mean: Vec<(u64, u64, f64)> = rows
+        .iter()
+        .map(|(id, r)| (*id, r[1].parse().unwrap(), r[11].parse().unwrap()))
+        .filter(|r| r.1 >= 20_000)
+        .collect();
+    by_mean.sort_by(|a, b| a.2.total_cmp(&b.2).then(a.0.cmp(&b.0)));
+    assert!(
+        by_mean.len() > 6,
+        "{} labels of 20 000 voxels",
+        by_mean.len()
+    );
+    let want: Vec<[u64; 2]> = by_mean[..6].iter().map(|&(id, n, _)| [id, n]).collect();
+    assert_eq!(tables[1]["largest"], serde_json::json!(want));
+    let means: Vec<f64> = by_mean[..6].iter().map(|r| r.2).collect();
+    assert_eq!(tables[1]["means"], serde_json::json!(means));
 }
 
 #[test]

@@ -238,8 +238,9 @@ pub struct ViewerApp {
     /// A label whose centroid the cursor is to go to, once its row of the
     /// statistics is found.
     goto: Option<u64>,
-    /// The largest labels were asked for.
+    /// The label table was asked for, and its order.
     largest_asked: bool,
+    table_order: super::probe::TableOrder,
     /// A pick in the 3D view waiting for the first label along its ray.
     pick3d: bool,
 }
@@ -369,6 +370,7 @@ impl ViewerApp {
             pick: None,
             goto: None,
             largest_asked: false,
+            table_order: super::probe::TableOrder::LARGEST,
             pick3d: false,
         }
     }

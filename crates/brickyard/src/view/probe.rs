@@ -67,15 +67,73 @@ pub enum Ask {
         look: Look,
     },
     Row(u64),
-    /// The labels of most voxels, this many.
-    Largest(usize),
+    /// The first labels of the statistics in an order, this many.
+    Largest(usize, TableOrder),
     /// The first label drawn along a ray (a pick in 3D) by a view that
     /// chose its levels so.
     Ray(Ray, Option<LabelSelect>, Drawn),
 }
 
-/// The labels of most voxels ([`Probe::largest`]), most first.
+/// The first labels of the statistics in a [`TableOrder`]
+/// ([`Probe::largest`]).
 pub type Largest = std::result::Result<Vec<(u64, LabelRow)>, String>;
+
+/// What the label table lists first: the rows of labels of at least
+/// `min_voxels` voxels, by `by` (most first when `descending`; ties by
+/// label).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct TableOrder {
+    pub by: SortBy,
+    pub descending: bool,
+    pub min_voxels: u64,
+}
+
+/// The column the label table is sorted by.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum SortBy {
+    Voxels,
+    /// Mean intensity (rows without one are left out).
+    Mean,
+    Label,
+}
+
+impl SortBy {
+    pub const ALL: [SortBy; 3] = [SortBy::Voxels, SortBy::Mean, SortBy::Label];
+
+    pub fn name(self) -> &'static str {
+        match self {
+            SortBy::Voxels => "voxels",
+            SortBy::Mean => "mean",
+            SortBy::Label => "label",
+        }
+    }
+
+    pub fn parse(s: &str) -> Option<SortBy> {
+        Self::ALL.into_iter().find(|b| b.name() == s)
+    }
+}
+
+impl TableOrder {
+    /// The labels of most voxels.
+    pub const LARGEST: TableOrder = TableOrder {
+        by: SortBy::Voxels,
+        descending: true,
+        min_voxels: 0,
+    };
+
+    /// The row's sort key (larger first when descending), `None`: left out.
+    fn key(&self, id: u64, r: &LabelRow) -> Option<f64> {
+        if r.voxels < self.min_voxels {
+            return None;
+        }
+        let k = match self.by {
+            SortBy::Voxels => r.voxels as f64,
+            SortBy::Mean => r.mean.filter(|m| !m.is_nan())?,
+            SortBy::Label => id as f64,
+        };
+        Some(if self.descending { k } else { -k })
+    }
+}
 
 /// A label's row of the statistics, looked up ([`Probe::find`]).
 pub type Found = (u64, std::result::Result<Option<LabelRow>, String>);
@@ -417,12 +475,30 @@ impl Stats {
         parse_row(&line).map(|(_, r)| Some(r))
     }
 
-    /// The `n` labels of most voxels (most first; ties by label), read
-    /// through the whole file `chunk` bytes at a time, keeping `n` rows.
-    fn largest(&mut self, n: usize, chunk: u64) -> Result<Vec<(u64, LabelRow)>> {
+    /// The first `n` labels in `order` (ties by label), read through the
+    /// whole file `chunk` bytes at a time, keeping `n` rows.
+    fn top(&mut self, n: usize, order: TableOrder, chunk: u64) -> Result<Vec<(u64, LabelRow)>> {
         use std::cmp::Reverse;
         use std::collections::BinaryHeap;
-        let mut heap: BinaryHeap<Reverse<(u64, Reverse<u64>)>> = BinaryHeap::new();
+        /// A sort key in the heap's total order.
+        struct Key(f64);
+        impl PartialEq for Key {
+            fn eq(&self, o: &Self) -> bool {
+                self.cmp(o).is_eq()
+            }
+        }
+        impl Eq for Key {}
+        impl PartialOrd for Key {
+            fn partial_cmp(&self, o: &Self) -> Option<std::cmp::Ordering> {
+                Some(self.cmp(o))
+            }
+        }
+        impl Ord for Key {
+            fn cmp(&self, o: &Self) -> std::cmp::Ordering {
+                self.0.total_cmp(&o.0)
+            }
+        }
+        let mut heap: BinaryHeap<Reverse<(Key, Reverse<u64>)>> = BinaryHeap::new();
         let mut rows: std::collections::HashMap<u64, LabelRow> = Default::default();
         let (mut pos, mut rest) = (self.start, Vec::<u8>::new());
         while pos < self.len {
@@ -439,7 +515,10 @@ impl Stats {
                 .filter(|l| !l.is_empty())
             {
                 let (id, r) = parse_row(line)?;
-                heap.push(Reverse((r.voxels, Reverse(id))));
+                let Some(k) = order.key(id, &r) else {
+                    continue;
+                };
+                heap.push(Reverse((Key(k), Reverse(id))));
                 rows.insert(id, r);
                 if heap.len() > n {
                     if let Some(Reverse((_, Reverse(out)))) = heap.pop() {
@@ -449,12 +528,15 @@ impl Stats {
             }
             rest.drain(..end);
         }
-        let mut out: Vec<(u64, LabelRow)> = heap
+        let mut out: Vec<(f64, u64)> = heap
             .into_iter()
-            .map(|Reverse((_, Reverse(id)))| (id, rows.remove(&id).expect("kept")))
+            .map(|Reverse((Key(k), Reverse(id)))| (k, id))
             .collect();
-        out.sort_by(|a, b| b.1.voxels.cmp(&a.1.voxels).then(a.0.cmp(&b.0)));
-        Ok(out)
+        out.sort_by(|a, b| b.0.total_cmp(&a.0).then(a.1.cmp(&b.1)));
+        Ok(out
+            .into_iter()
+            .map(|(_, id)| (id, rows.remove(&id).expect("kept")))
+            .collect())
     }
 }
 
@@ -586,11 +668,11 @@ impl Probe {
         let _ = self.tx.send(Ask::Ray(ray, select, drawn));
     }
 
-    /// Read the `n` labels of most voxels from the statistics (the answer
+    /// Read the first `n` labels of the statistics in `order` (the answer
     /// comes into `largest`).
-    pub fn largest(&mut self, n: usize) {
+    pub fn largest(&mut self, n: usize, order: TableOrder) {
         self.largest = None;
-        let _ = self.tx.send(Ask::Largest(n));
+        let _ = self.tx.send(Ask::Largest(n, order));
     }
 
     /// Look up `label`'s row of the statistics (the answer comes into
@@ -713,7 +795,7 @@ fn run(
                     look,
                 } => voxel = Some((id, None, 0, Some((ray, drawn, look)))),
                 Ask::Row(l) => rows.push(l),
-                Ask::Largest(n) => largest = Some(n),
+                Ask::Largest(n, order) => largest = Some((n, order)),
                 Ask::Ray(r, sel, d) => ray = Some((r, sel, d)),
             }
         }
@@ -725,10 +807,10 @@ fn run(
             }
             wake();
         }
-        if let Some(n) = largest {
+        if let Some((n, order)) = largest {
             let r = match &mut stats {
                 Some(Ok(Some(s))) => s
-                    .largest(n, 1 << 20)
+                    .top(n, order, 1 << 20)
                     .map_err(|e| format!("{}: {e:#}", s.path.display())),
                 Some(Err(e)) => Err(format!("{e:#}")),
                 _ => Err("the label image has no statistics (_brickyard/labels.csv)".into()),
@@ -917,12 +999,53 @@ mod tests {
         let rows: Vec<(u64, u64)> = (1..=3000u64).map(|i| (i, i * 7919 % 1013)).collect();
         let (_d, mut st) = stats_file(&rows);
         // (Reads of 4000 bytes: lines cross their ends.)
-        let got = st.largest(25, 4000).unwrap();
+        let got = st.top(25, TableOrder::LARGEST, 4000).unwrap();
         let mut want = rows.clone();
         want.sort_by(|a, b| b.1.cmp(&a.1).then(a.0.cmp(&b.0)));
         let got: Vec<(u64, u64)> = got.iter().map(|(id, r)| (*id, r.voxels)).collect();
         assert_eq!(got, want[..25].to_vec());
-        assert_eq!(st.largest(5000, 1 << 20).unwrap().len(), 3000);
+        assert_eq!(
+            st.top(5000, TableOrder::LARGEST, 1 << 20).unwrap().len(),
+            3000
+        );
+        // Other orders, against the rows sorted here: the smallest of at
+        // least 500 voxels; the least and greatest means (the file's mean
+        // is ten times the label: by label, in effect); the last labels.
+        let order = |by, descending, min_voxels| TableOrder {
+            by,
+            descending,
+            min_voxels,
+        };
+        let ids = |got: Vec<(u64, LabelRow)>| got.into_iter().map(|(id, _)| id).collect::<Vec<_>>();
+        let mut want: Vec<(u64, u64)> = rows.iter().filter(|r| r.1 >= 500).copied().collect();
+        want.sort_by(|a, b| a.1.cmp(&b.1).then(a.0.cmp(&b.0)));
+        let want_ids: Vec<u64> = want[..10].iter().map(|r| r.0).collect();
+        assert_eq!(
+            ids(st.top(10, order(SortBy::Voxels, false, 500), 4000).unwrap()),
+            want_ids
+        );
+        assert_eq!(
+            ids(st.top(4, order(SortBy::Mean, false, 0), 4000).unwrap()),
+            vec![1, 2, 3, 4]
+        );
+        assert_eq!(
+            ids(st.top(3, order(SortBy::Mean, true, 0), 4000).unwrap()),
+            vec![3000, 2999, 2998]
+        );
+        assert_eq!(
+            ids(st.top(3, order(SortBy::Label, true, 0), 4000).unwrap()),
+            vec![3000, 2999, 2998]
+        );
+        let big: Vec<u64> = rows
+            .iter()
+            .filter(|r| r.1 >= 1000)
+            .map(|r| r.0)
+            .take(5)
+            .collect();
+        assert_eq!(
+            ids(st.top(5, order(SortBy::Label, false, 1000), 4000).unwrap()),
+            big
+        );
     }
 
     #[test]

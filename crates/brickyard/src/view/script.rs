@@ -13,6 +13,7 @@
 //! | `pick VIEW X Y` | Ctrl+click at pixel (X, Y) of VIEW: the label there (in `3d`, of a label image in DVR mode: the first label drawn along the pixel's ray) joins the labels picked, or leaves them (waits for the readout) |
 //! | `label-select IDS\|none` / `label-mode all\|only\|hide` | the labels picked (`3,17,40-45`); which labels a label image draws: all, only those picked, all but them |
 //! | `largest-labels N` | read the N labels of most voxels from the label statistics (the controls' table; logged as `"largest"`) |
+//! | `labels-table N voxels\|mean\|label asc\|desc [MIN]` | the table's first N rows sorted so, of labels of at least MIN voxels (logged as `"largest"`, with `"means"`) |
 //! | `goto-label ID` | the cursor to the label's centroid, by the label statistics (waits for them) |
 //! | `wait-probe [SECONDS]` | wait until the voxel readout answered for the voxel it reads now (default 60 s) |
 //! | `key NAME` | a key: `left`, `right`, `up`, `down` (orbit), `plus`, `minus` (zoom), `r` (reset) |
@@ -57,7 +58,8 @@ pub enum Cmd {
     LabelSelect(String),
     LabelMode(u8),
     GotoLabel(u64),
-    LargestLabels(usize),
+    /// The label table: its first N rows in an order.
+    LargestLabels(usize, crate::view::probe::TableOrder),
     WaitProbe(f64),
     Key(String),
     Tf(String),
@@ -171,7 +173,36 @@ fn parse_line(w: &[&str]) -> Result<Cmd> {
         }
         "largest-labels" => {
             arity(1)?;
-            Cmd::LargestLabels(num(w[1])?)
+            Cmd::LargestLabels(num(w[1])?, crate::view::probe::TableOrder::LARGEST)
+        }
+        "labels-table" => {
+            use crate::view::probe::{SortBy, TableOrder};
+            if !(4..=5).contains(&w.len()) {
+                bail!("labels-table takes N, voxels|mean|label, asc|desc and a least voxel count");
+            }
+            let by = SortBy::parse(w[2]).with_context(|| {
+                format!(
+                    "labels-table: expected voxels, mean or label, found {:?}",
+                    w[2]
+                )
+            })?;
+            let descending = match w[3] {
+                "asc" => false,
+                "desc" => true,
+                o => bail!("labels-table: expected asc or desc, found {o:?}"),
+            };
+            let min_voxels = match w.get(4) {
+                Some(m) => num(m)?,
+                None => 0,
+            };
+            Cmd::LargestLabels(
+                num(w[1])?,
+                TableOrder {
+                    by,
+                    descending,
+                    min_voxels,
+                },
+            )
         }
         "goto-label" => {
             arity(1)?;

@@ -341,7 +341,7 @@ impl ViewerApp {
                             a.goto_label(id).map_err(|e| anyhow::anyhow!("{e}"))
                         })?
                     }
-                    Cmd::LargestLabels(n) => {
+                    Cmd::LargestLabels(n, order) => {
                         let Some(p) = &mut self.probe else {
                             bail!("largest-labels: the viewer has no voxel readout");
                         };
@@ -351,7 +351,8 @@ impl ViewerApp {
                         let since = match self.waiting {
                             Some(t) => t,
                             None => {
-                                p.largest(*n);
+                                self.table_order = *order;
+                                p.largest(*n, *order);
                                 self.largest_asked = true;
                                 *self.waiting.insert(Instant::now())
                             }
@@ -363,11 +364,15 @@ impl ViewerApp {
                             None => false,
                             Some(Err(e)) => bail!("largest-labels: {e}"),
                             Some(Ok(rows)) => {
+                                let means: Vec<Option<f64>> =
+                                    rows.iter().map(|(_, r)| r.mean).collect();
                                 let rows: Vec<[u64; 2]> =
                                     rows.iter().map(|(id, r)| [*id, r.voxels]).collect();
                                 self.waiting = None;
                                 let t = self.started.elapsed().as_secs_f64();
-                                self.log_line(serde_json::json!({ "t": t, "largest": rows }));
+                                self.log_line(
+                                    serde_json::json!({ "t": t, "largest": rows, "means": means }),
+                                );
                                 true
                             }
                         }

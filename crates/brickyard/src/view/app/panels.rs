@@ -4,6 +4,7 @@
 //! cursor lines, and the status line.
 
 use super::ViewerApp;
+use crate::view::probe::SortBy;
 use crate::view::script::VIEWS;
 use crate::view::worker::Msg;
 use brickyard_core::camera::Camera;
@@ -82,8 +83,9 @@ impl ViewerApp {
         });
     }
 
-    /// The labels of most voxels, from the label statistics: each with
-    /// its size and mean, a button to pick it and one to go to it.
+    /// The label table, from the label statistics: the first labels by
+    /// size, mean or label (of at least so many voxels), each with its size
+    /// and mean, a button to pick it and one to go to it.
     fn largest_labels(&mut self, ui: &mut egui::Ui) {
         let Some(p) = &mut self.probe else {
             return;
@@ -91,9 +93,26 @@ impl ViewerApp {
         if p.stats_dims.is_none() {
             return;
         }
-        let open = egui::CollapsingHeader::new("Largest labels").show(ui, |ui| {
+        let order = &mut self.table_order;
+        let open = egui::CollapsingHeader::new("Labels").show(ui, |ui| {
             let mut pick = None;
             let mut goto = None;
+            let was = *order;
+            ui.horizontal(|ui| {
+                egui::ComboBox::from_id_salt("table-by")
+                    .selected_text(order.by.name())
+                    .show_ui(ui, |ui| {
+                        for b in SortBy::ALL {
+                            ui.selectable_value(&mut order.by, b, b.name());
+                        }
+                    });
+                ui.checkbox(&mut order.descending, "most first");
+                ui.label("at least");
+                ui.add(egui::DragValue::new(&mut order.min_voxels).suffix(" vx"));
+            });
+            if *order != was {
+                p.largest(LARGEST, *order);
+            }
             match &p.largest {
                 None => {
                     ui.label("reading the label statistics…");
@@ -124,7 +143,7 @@ impl ViewerApp {
             (pick, goto)
         });
         if open.body_returned.is_some() && p.largest.is_none() && !self.largest_asked {
-            p.largest(LARGEST);
+            p.largest(LARGEST, self.table_order);
             self.largest_asked = true;
         }
         if let Some((pick, goto)) = open.body_returned {
