@@ -250,16 +250,19 @@ fn clear_bits(
     tf: &TransferFunction,
     channel: usize,
 ) -> Vec<u32> {
-    clear_bits_by(ids, ranges, channel, |lo, hi| tf.max_opacity(lo, hi) <= 0.0)
+    clear_bits_by(ids, ranges, channel, |lo, hi, _, _| {
+        tf.max_opacity(lo, hi) <= 0.0
+    })
 }
 
-/// One bit per brick id: set where `clear` holds for the brick's value
-/// range (from `ranges`, for `channel`).
+/// One bit per brick id: set where `clear(lo, hi, level, i)` holds for
+/// the brick's value range (from `ranges`, for `channel`; `i`: the brick's
+/// index in its level, raster order).
 fn clear_bits_by(
     ids: &BrickIds,
     ranges: &BrickRanges,
     channel: usize,
-    clear: impl Fn(f32, f32) -> bool,
+    clear: impl Fn(f32, f32, usize, usize) -> bool,
 ) -> Vec<u32> {
     let mut bits = vec![0u32; (ids.len() as usize).div_ceil(32).max(1)];
     let starts = ids.level_starts();
@@ -270,7 +273,7 @@ fn clear_bits_by(
         let n = r.bricks.iter().product::<u64>() as usize;
         let off = channel * n;
         for (i, &[lo, hi]) in r.range[off..off + n].iter().enumerate() {
-            if clear(lo, hi) {
+            if clear(lo, hi, l, i) {
                 let id = first as usize + off + i;
                 bits[id / 32] |= 1 << (id % 32);
             }
@@ -661,9 +664,14 @@ impl GpuRenderer {
                 // A label image: bricks of background alone (its
                 // surfaces take no transfer function).
                 (Some(r), 0) if params.labels => {
+                    // (Also bricks no label of a selection reaches.)
                     let sel = key.7.as_ref();
-                    clear_bits_by(&ids, r, scene.channel, |lo, hi| {
+                    let cfg = vm.config();
+                    clear_bits_by(&ids, r, scene.channel, |lo, hi, l, i| {
                         crate::optics::label_clear(lo, hi, sel)
+                            || sel.is_some_and(|s| {
+                                !s.may_reach_brick(i, scene.levels[l], cfg.brick, cfg.apron)
+                            })
                     })
                 }
                 (Some(r), 0) => clear_bits(&ids, r, tf, scene.channel),

@@ -163,6 +163,29 @@ pub struct LabelSelect {
     /// Every label but `ids` (else only `ids`).
     #[serde(default, skip_serializing_if = "is_default")]
     pub hide: bool,
+    /// Where the labels drawn lie (only `ids`): bricks outside every box
+    /// are crossed as background. `None`: not known.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub boxes: Option<LabelBoxes>,
+}
+
+/// The bounding boxes of a selection's labels, from the label image's
+/// statistics: voxels `[z, y, x]` of its level 0 (of size `dims`), each
+/// box `[min_z, min_y, min_x, max_z, max_y, max_x]`, inclusive.
+#[derive(Debug, Clone, PartialEq, Eq, Hash, Serialize, Deserialize)]
+pub struct LabelBoxes {
+    pub dims: [u64; 3],
+    pub boxes: Vec<[u64; 6]>,
+}
+
+impl LabelBoxes {
+    /// Whether the region `[lo, hi)` (normalized `[z, y, x]`) meets a box.
+    pub fn meet(&self, lo: [f64; 3], hi: [f64; 3]) -> bool {
+        let d = self.dims.map(|n| n.max(1) as f64);
+        self.boxes.iter().any(|b| {
+            (0..3).all(|a| (b[a] as f64) / d[a] < hi[a] && (b[3 + a] as f64 + 1.0) / d[a] > lo[a])
+        })
+    }
 }
 
 impl LabelSelect {
@@ -170,7 +193,29 @@ impl LabelSelect {
     pub fn new(mut ids: Vec<i32>, hide: bool) -> LabelSelect {
         ids.sort_unstable();
         ids.dedup();
-        LabelSelect { ids, hide }
+        LabelSelect {
+            ids,
+            hide,
+            boxes: None,
+        }
+    }
+
+    /// Whether a label it draws may lie in brick `i` (raster order
+    /// `[z, y, x]`) of a level of size `dims` cut into bricks of `brick`
+    /// voxels, padded by `apron`: `false` only where its label boxes say
+    /// that none reaches the padded brick (widened by a voxel of the level
+    /// each way, as coarser levels' voxels only roughly cover level 0's).
+    pub fn may_reach_brick(&self, i: usize, dims: [u64; 3], brick: [u64; 3], apron: u64) -> bool {
+        let Some(boxes) = self.boxes.as_ref().filter(|_| !self.hide) else {
+            return true;
+        };
+        let n = [0, 1, 2].map(|a| dims[a].div_ceil(brick[a]).max(1));
+        let i = i as u64;
+        let b = [i / (n[1] * n[2]), i / n[2] % n[1], i % n[2]];
+        let margin = apron as f64 + 1.0;
+        let lo = [0, 1, 2].map(|a| ((b[a] * brick[a]) as f64 - margin) / dims[a] as f64);
+        let hi = [0, 1, 2].map(|a| (((b[a] + 1) * brick[a]) as f64 + margin) / dims[a] as f64);
+        boxes.meet(lo, hi)
     }
 
     /// Whether label `id` is drawn.

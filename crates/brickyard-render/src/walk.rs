@@ -122,12 +122,18 @@ impl<'a> Frame<'a> {
                 }
                 let n = r.bricks.iter().product::<u64>() as usize;
                 let off = scene.channel * n;
+                let sel = params.label_select.as_ref();
                 Some(
                     r.range[off..off + n]
                         .iter()
-                        .map(|&[lo, hi]| match params.labels {
+                        .enumerate()
+                        .map(|(i, &[lo, hi])| match params.labels {
+                            // (Also bricks no label of a selection reaches.)
                             true => {
-                                crate::optics::label_clear(lo, hi, params.label_select.as_ref())
+                                crate::optics::label_clear(lo, hi, sel)
+                                    || sel.is_some_and(|s| {
+                                        !s.may_reach_brick(i, scene.levels[l], cfg.brick, cfg.apron)
+                                    })
                             }
                             false => params.tf.max_opacity(lo, hi) <= 0.0,
                         })

@@ -579,6 +579,52 @@ fn label_selections_draw_only_or_all_but_the_labels_named_on_the_cpu_and_the_dev
                 d <= 3,
                 "{what}, hide {hide}: {d} pixels differ from the reference"
             );
+            let loaded = s.loader().bricks_loaded();
+            let boxed = (!hide).then(|| {
+                // Where the labels named lie (their bounding boxes, found in
+                // the volume here): bricks none of them reaches are crossed,
+                // and the images stay the same.
+                let d0 = levels[0].dims;
+                let boxes: Vec<[u64; 6]> = named
+                    .iter()
+                    .map(|&id| {
+                        let mut b = [u64::MAX, u64::MAX, u64::MAX, 0, 0, 0];
+                        for (i, &v) in levels[0].data.iter().enumerate() {
+                            if v as i32 == id {
+                                let i = i as u64;
+                                let q = [i / (d0[1] * d0[2]), i / d0[2] % d0[1], i % d0[2]];
+                                for a in 0..3 {
+                                    b[a] = b[a].min(q[a]);
+                                    b[3 + a] = b[3 + a].max(q[a]);
+                                }
+                            }
+                        }
+                        b
+                    })
+                    .collect();
+                let mut pb = p.clone();
+                pb.label_select.as_mut().unwrap().boxes =
+                    Some(brickyard_render::params::LabelBoxes { dims: d0, boxes });
+                let mut s = session(&store, DType::U32, vol_bytes * 5 / 4);
+                scene.ranges = Some(std::sync::Arc::new(s.loader().brick_ranges(1 << 24)));
+                let (img_b, _) = converge_cpu(&mut s, &scene, &pb, 0);
+                let loaded_b = s.loader().bricks_loaded();
+                eprintln!(
+                    "{what}: {loaded_b} bricks loaded with the labels' boxes, {loaded} without"
+                );
+                assert_eq!(
+                    differing(&img_b, &img, 0.0),
+                    0,
+                    "{what}: the boxes changed the image"
+                );
+                if what == "3D" {
+                    assert!(
+                        loaded_b * 5 < loaded * 4,
+                        "{loaded_b} bricks loaded, {loaded} without boxes"
+                    );
+                }
+                pb
+            });
             let Some(gpu) = &gpu else { continue };
             let mut s = session(&store, DType::U32, vol_bytes * 5 / 4);
             let (dev, (_, dev_cells)) = converge_device(gpu, &mut s, &scene, p, 0);
@@ -600,6 +646,12 @@ fn label_selections_draw_only_or_all_but_the_labels_named_on_the_cpu_and_the_dev
                 !hide,
                 "{what}"
             );
+            let Some(pb) = &boxed else { continue };
+            let mut s = session(&store, DType::U32, vol_bytes * 5 / 4);
+            let (dev_b, _) = converge_device(gpu, &mut s, &scene, pb, 0);
+            let d = differing(&dev_b, &dev, 0.0);
+            eprintln!("{what}: {d} pixels on the device differ with the labels' boxes");
+            assert_eq!(d, 0, "{what}: the boxes changed the device's image");
         }
         p.label_select = None;
     }
@@ -626,6 +678,7 @@ fn label_selections_are_refused_where_they_mean_nothing() {
     p.label_select = Some(LabelSelect {
         ids: vec![5, 3],
         hide: false,
+        boxes: None,
     });
     assert!(p.validate().unwrap_err().to_string().contains("increasing"));
     p.label_select = Some(LabelSelect::new(vec![0, 3], true));

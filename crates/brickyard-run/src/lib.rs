@@ -27,6 +27,7 @@ macro_rules! out {
 pub mod backend;
 pub mod derive;
 pub mod frames;
+pub mod label_stats;
 pub mod labels;
 pub mod memory;
 pub mod process;

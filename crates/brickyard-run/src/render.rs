@@ -957,6 +957,21 @@ fn run_one(
     }
     let l0 = zarr::open(&c.store, 0)?;
     let m = l0.meta().clone();
+    // Only some labels drawn: where they lie, from the label statistics
+    // (bricks none of them reaches are crossed). Unreadable statistics
+    // only cost that.
+    let select = match select {
+        Some(s) if labels && !s.hide => {
+            match crate::label_stats::with_boxes(s.clone(), &c.store, m.dims) {
+                Ok(s) => Some(s),
+                Err(e) => {
+                    say_err!(silent, "render: label statistics not used: {e:#}");
+                    Some(s)
+                }
+            }
+        }
+        s => s,
+    };
     let spacing = m.spacing.unwrap_or([1.0; 3]);
     let extent = world_extent(m.dims, spacing);
     let mut levels = vec![];

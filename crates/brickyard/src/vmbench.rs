@@ -643,10 +643,14 @@ pub fn render(dir: &Path, dims: Dims3, dtype: DType, o: &RenderBench) -> Result<
         if !labels {
             bail!("bench render: --only-labels takes a label image (--store STORE/labels/NAME)");
         }
-        p.label_select = Some(brickyard_render::params::LabelSelect::new(
-            ids.clone(),
-            false,
-        ));
+        let sel = brickyard_render::params::LabelSelect::new(ids.clone(), false);
+        // (Where the labels lie, from the statistics, as `render` takes
+        // them.)
+        let sel = match &st {
+            Some(dir) => brickyard_run::label_stats::with_boxes(sel, dir, dims)?,
+            None => sel,
+        };
+        p.label_select = Some(sel);
         p.validate().map_err(|e| anyhow::anyhow!("{e}"))?;
     }
     let vox: u64 = dims.iter().product();

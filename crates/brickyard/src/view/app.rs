@@ -701,12 +701,32 @@ impl ViewerApp {
         let sel = brickyard_render::params::LabelSelect::new(ids, false);
         self.picked_text = sel.ids_text();
         self.picked = sel.ids;
+        // Where they lie, from the label statistics, for a label image
+        // shown itself in 3D: bricks none of them reaches are crossed.
+        if self.ds.labels && !self.picked.is_empty() {
+            if let Some(p) = &mut self.probe {
+                p.boxes(self.picked.clone());
+            }
+        }
     }
 
     /// What the label image draws (`None`: every label).
     pub(super) fn label_selection(&self) -> Option<brickyard_render::params::LabelSelect> {
         (self.label_mode != 0 && !self.picked.is_empty()).then(|| {
-            brickyard_render::params::LabelSelect::new(self.picked.clone(), self.label_mode == 2)
+            let mut s = brickyard_render::params::LabelSelect::new(
+                self.picked.clone(),
+                self.label_mode == 2,
+            );
+            // (With their boxes once the readout's thread has found them.)
+            if !s.hide {
+                s.boxes = self
+                    .probe
+                    .as_ref()
+                    .and_then(|p| p.boxes.as_ref())
+                    .filter(|(ids, _)| *ids == s.ids)
+                    .and_then(|(_, b)| b.clone().ok().flatten());
+            }
+            s
         })
     }
 

@@ -19,10 +19,12 @@ use brickyard_cache::host_cache::HostCache;
 use brickyard_cache::loader::Loader;
 use brickyard_core::camera::{world_to_voxel, Ray};
 use brickyard_core::{cast_slice, dispatch_dtype, DType, Dims3, Sample};
+use brickyard_render::params::LabelBoxes;
 use brickyard_render::params::LabelSelect;
 use brickyard_render::readout::{self, label_id};
 pub use brickyard_render::readout::{Drawn, Look};
-use brickyard_store::storage::{self, Span};
+pub use brickyard_run::label_stats::{LabelRow, SortBy, TableOrder};
+use brickyard_run::label_stats::{Stats, WINDOW};
 use std::path::{Path, PathBuf};
 use std::sync::mpsc::{Receiver, Sender};
 use std::sync::Arc;
@@ -36,8 +38,6 @@ const BRICK: u64 = 32;
 const CHUNK_BYTES: u64 = 4 << 20;
 /// Bricks each reader keeps, newest last.
 const KEPT: usize = 8;
-/// Bytes of a statistics file read per step of the search.
-const WINDOW: usize = 4096;
 
 /// Memory the probe may hold for an image of `levels` levels (and a label
 /// image of `label_levels`): each reader's decoded chunks (plus the half
@@ -69,6 +69,8 @@ pub enum Ask {
     Row(u64),
     /// The first labels of the statistics in an order, this many.
     Largest(usize, TableOrder),
+    /// Where these labels lie (their bounding boxes).
+    Boxes(Vec<i32>),
     /// The first label drawn along a ray (a pick in 3D) by a view that
     /// chose its levels so.
     Ray(Ray, Option<LabelSelect>, Drawn),
@@ -78,62 +80,8 @@ pub enum Ask {
 /// ([`Probe::largest`]).
 pub type Largest = std::result::Result<Vec<(u64, LabelRow)>, String>;
 
-/// What the label table lists first: the rows of labels of at least
-/// `min_voxels` voxels, by `by` (most first when `descending`; ties by
-/// label).
-#[derive(Clone, Copy, Debug, PartialEq)]
-pub struct TableOrder {
-    pub by: SortBy,
-    pub descending: bool,
-    pub min_voxels: u64,
-}
-
-/// The column the label table is sorted by.
-#[derive(Clone, Copy, Debug, PartialEq, Eq)]
-pub enum SortBy {
-    Voxels,
-    /// Mean intensity (rows without one are left out).
-    Mean,
-    Label,
-}
-
-impl SortBy {
-    pub const ALL: [SortBy; 3] = [SortBy::Voxels, SortBy::Mean, SortBy::Label];
-
-    pub fn name(self) -> &'static str {
-        match self {
-            SortBy::Voxels => "voxels",
-            SortBy::Mean => "mean",
-            SortBy::Label => "label",
-        }
-    }
-
-    pub fn parse(s: &str) -> Option<SortBy> {
-        Self::ALL.into_iter().find(|b| b.name() == s)
-    }
-}
-
-impl TableOrder {
-    /// The labels of most voxels.
-    pub const LARGEST: TableOrder = TableOrder {
-        by: SortBy::Voxels,
-        descending: true,
-        min_voxels: 0,
-    };
-
-    /// The row's sort key (larger first when descending), `None`: left out.
-    fn key(&self, id: u64, r: &LabelRow) -> Option<f64> {
-        if r.voxels < self.min_voxels {
-            return None;
-        }
-        let k = match self.by {
-            SortBy::Voxels => r.voxels as f64,
-            SortBy::Mean => r.mean.filter(|m| !m.is_nan())?,
-            SortBy::Label => id as f64,
-        };
-        Some(if self.descending { k } else { -k })
-    }
-}
+/// Where some labels lie ([`Probe::boxes`]; `Ok(None)`: no statistics).
+pub type Boxes = std::result::Result<Option<LabelBoxes>, String>;
 
 /// A label's row of the statistics, looked up ([`Probe::find`]).
 pub type Found = (u64, std::result::Result<Option<LabelRow>, String>);
@@ -143,18 +91,7 @@ enum Reply {
     Row(Found),
     Largest(Largest),
     Hit(std::result::Result<u64, String>),
-}
-
-/// A label's row of the label image's statistics (coordinates in voxels
-/// of the level it was labelled at, `[z, y, x]`).
-#[derive(Clone, Debug, PartialEq)]
-pub struct LabelRow {
-    pub voxels: u64,
-    pub min: [u64; 3],
-    pub max: [u64; 3],
-    pub centroid: [f64; 3],
-    /// Mean intensity of the image under the label, where recorded.
-    pub mean: Option<f64>,
+    Boxes(Vec<i32>, Boxes),
 }
 
 /// What the label image has at the voxel.
@@ -372,204 +309,6 @@ impl Reader {
     }
 }
 
-/// A label image's statistics file, searched by label (its rows are in
-/// increasing label order, as `process` writes them). Read in ranges
-/// through the store's storage, so remote label images have theirs too.
-struct Stats {
-    path: PathBuf,
-    /// Where the rows begin (after the header).
-    start: u64,
-    len: u64,
-}
-
-impl Stats {
-    fn open(label_dir: &Path) -> Result<Option<Stats>> {
-        let path = label_dir.join("_brickyard").join("labels.csv");
-        let Some(len) = storage::size(&path)? else {
-            return Ok(None);
-        };
-        let mut st = Stats {
-            path,
-            start: 0,
-            len,
-        };
-        let head = st.bytes(0, WINDOW as u64)?;
-        let end = head.iter().position(|&b| b == b'\n').with_context(|| {
-            format!(
-                "{}: expected a header line within {WINDOW} bytes",
-                st.path.display()
-            )
-        })?;
-        let header = String::from_utf8_lossy(&head[..end]);
-        if !header.starts_with("label,voxels,min_z,min_y,min_x,max_z,max_y,max_x,centroid_z") {
-            anyhow::bail!(
-                "{}: expected the header `label,voxels,min_z,...`, found {header:?}",
-                st.path.display()
-            );
-        }
-        st.start = end as u64 + 1;
-        Ok(Some(st))
-    }
-
-    /// Bytes `from..from + n` (fewer at the end of the file).
-    fn bytes(&self, from: u64, n: u64) -> Result<Vec<u8>> {
-        let r = from..(from + n).min(self.len);
-        let mut got = storage::read_spans(&self.path, &[Span::Range(r)])?
-            .with_context(|| format!("{}: gone", self.path.display()))?;
-        Ok(got.swap_remove(0))
-    }
-
-    /// The first whole line that starts at or after `pos`: its start, the
-    /// start of the next one and its text (`None`: no line starts there).
-    /// Rows are at most `WINDOW` bytes long.
-    fn line_at(&mut self, pos: u64) -> Result<Option<(u64, u64, String)>> {
-        // A line starts at `pos` when the byte before it ends a line.
-        let from = pos.max(self.start) - 1;
-        if from + 1 >= self.len {
-            return Ok(None);
-        }
-        let buf = self.bytes(from, 2 * WINDOW as u64)?;
-        let nl = |b: &[u8]| b.iter().position(|&c| c == b'\n');
-        let long = || anyhow::anyhow!("a row longer than {WINDOW} bytes");
-        let s = nl(&buf[..buf.len().min(WINDOW + 1)]).ok_or_else(long)?;
-        let begin = from + s as u64 + 1;
-        if begin >= self.len {
-            return Ok(None);
-        }
-        let rest = &buf[s + 1..];
-        let (line, next) = match nl(rest) {
-            Some(e) => (&rest[..e], begin + e as u64 + 1),
-            None if from + buf.len() as u64 == self.len => (rest, self.len),
-            None => return Err(long()),
-        };
-        Ok(Some((
-            begin,
-            next,
-            String::from_utf8_lossy(line).into_owned(),
-        )))
-    }
-
-    /// The row of `label`, if the file has one: a binary search over byte
-    /// positions for the first row whose label is not below it.
-    fn row(&mut self, label: u64) -> Result<Option<LabelRow>> {
-        let label_of = |line: &str| -> Result<u64> {
-            let f = line.split(',').next().unwrap_or("");
-            f.parse()
-                .with_context(|| format!("expected a label in the first column, found {f:?}"))
-        };
-        let (mut lo, mut hi) = (self.start, self.len);
-        while lo < hi {
-            let mid = lo + (hi - lo) / 2;
-            match self.line_at(mid)? {
-                None => hi = mid,
-                Some((_, next, line)) if label_of(&line)? < label => lo = next,
-                Some(_) => hi = mid,
-            }
-        }
-        let Some((_, _, line)) = self.line_at(lo)? else {
-            return Ok(None);
-        };
-        if label_of(&line)? != label {
-            return Ok(None);
-        }
-        parse_row(&line).map(|(_, r)| Some(r))
-    }
-
-    /// The first `n` labels in `order` (ties by label), read through the
-    /// whole file `chunk` bytes at a time, keeping `n` rows.
-    fn top(&mut self, n: usize, order: TableOrder, chunk: u64) -> Result<Vec<(u64, LabelRow)>> {
-        use std::cmp::Reverse;
-        use std::collections::BinaryHeap;
-        /// A sort key in the heap's total order.
-        struct Key(f64);
-        impl PartialEq for Key {
-            fn eq(&self, o: &Self) -> bool {
-                self.cmp(o).is_eq()
-            }
-        }
-        impl Eq for Key {}
-        impl PartialOrd for Key {
-            fn partial_cmp(&self, o: &Self) -> Option<std::cmp::Ordering> {
-                Some(self.cmp(o))
-            }
-        }
-        impl Ord for Key {
-            fn cmp(&self, o: &Self) -> std::cmp::Ordering {
-                self.0.total_cmp(&o.0)
-            }
-        }
-        let mut heap: BinaryHeap<Reverse<(Key, Reverse<u64>)>> = BinaryHeap::new();
-        let mut rows: std::collections::HashMap<u64, LabelRow> = Default::default();
-        let (mut pos, mut rest) = (self.start, Vec::<u8>::new());
-        while pos < self.len {
-            let got = self.bytes(pos, chunk)?;
-            pos += got.len() as u64;
-            rest.extend_from_slice(&got);
-            let end = match rest.iter().rposition(|&b| b == b'\n') {
-                Some(e) => e + 1,
-                None if pos >= self.len => rest.len(),
-                None => continue,
-            };
-            for line in String::from_utf8_lossy(&rest[..end])
-                .lines()
-                .filter(|l| !l.is_empty())
-            {
-                let (id, r) = parse_row(line)?;
-                let Some(k) = order.key(id, &r) else {
-                    continue;
-                };
-                heap.push(Reverse((Key(k), Reverse(id))));
-                rows.insert(id, r);
-                if heap.len() > n {
-                    if let Some(Reverse((_, Reverse(out)))) = heap.pop() {
-                        rows.remove(&out);
-                    }
-                }
-            }
-            rest.drain(..end);
-        }
-        let mut out: Vec<(f64, u64)> = heap
-            .into_iter()
-            .map(|Reverse((Key(k), Reverse(id)))| (k, id))
-            .collect();
-        out.sort_by(|a, b| b.0.total_cmp(&a.0).then(a.1.cmp(&b.1)));
-        Ok(out
-            .into_iter()
-            .map(|(_, id)| (id, rows.remove(&id).expect("kept")))
-            .collect())
-    }
-}
-
-/// A row of the statistics: its label and the rest.
-fn parse_row(line: &str) -> Result<(u64, LabelRow)> {
-    let f: Vec<&str> = line.split(',').collect();
-    if f.len() < 11 {
-        anyhow::bail!("expected at least 11 columns, found {}: {line:?}", f.len());
-    }
-    let int = |i: usize| -> Result<u64> {
-        f[i].parse()
-            .with_context(|| format!("column {}: expected a count, found {:?}", i + 1, f[i]))
-    };
-    let real = |i: usize| -> Result<f64> {
-        f[i].parse()
-            .with_context(|| format!("column {}: expected a number, found {:?}", i + 1, f[i]))
-    };
-    Ok((
-        int(0)?,
-        LabelRow {
-            voxels: int(1)?,
-            min: [int(2)?, int(3)?, int(4)?],
-            max: [int(5)?, int(6)?, int(7)?],
-            centroid: [real(8)?, real(9)?, real(10)?],
-            mean: f
-                .get(11)
-                .filter(|s| !s.is_empty())
-                .map(|_| real(11))
-                .transpose()?,
-        },
-    ))
-}
-
 /// The probe's thread: the image, and the label image over it if any.
 pub struct Setup {
     pub store: PathBuf,
@@ -608,6 +347,9 @@ pub struct Probe {
     pub largest: Option<Largest>,
     /// The first label drawn along the last ray asked about (0: none).
     pub hit: Option<std::result::Result<u64, String>>,
+    /// The labels whose boxes were asked for last, and the boxes
+    /// (`Ok(None)`: no statistics).
+    pub boxes: Option<(Vec<i32>, Boxes)>,
 }
 
 impl Probe {
@@ -657,6 +399,7 @@ impl Probe {
             stats_dims,
             largest: None,
             hit: None,
+            boxes: None,
         })
     }
 
@@ -666,6 +409,12 @@ impl Probe {
     pub fn ray(&mut self, ray: Ray, select: Option<LabelSelect>, drawn: Drawn) {
         self.hit = None;
         let _ = self.tx.send(Ask::Ray(ray, select, drawn));
+    }
+
+    /// Find where labels `ids` lie, from the statistics (the answer comes
+    /// into `boxes`).
+    pub fn boxes(&mut self, ids: Vec<i32>) {
+        let _ = self.tx.send(Ask::Boxes(ids));
     }
 
     /// Read the first `n` labels of the statistics in `order` (the answer
@@ -740,6 +489,7 @@ impl Probe {
                 Reply::Row(_) => {}
                 Reply::Largest(l) => self.largest = Some(l),
                 Reply::Hit(h) => self.hit = Some(h),
+                Reply::Boxes(ids, b) => self.boxes = Some((ids, b)),
             }
         }
         if let Some(a) = got.last() {
@@ -765,6 +515,8 @@ fn run(
     tx: Sender<Reply>,
     wake: impl Fn(),
 ) {
+    // The level-0 size of the image the statistics describe.
+    let stats_dims = labels.as_ref().map_or(image.dims, |l| l.dims);
     // A label's row of the statistics.
     let row = |stats: &mut Option<Result<Option<Stats>>>, label: u64| match stats {
         _ if label == 0 => Ok(None),
@@ -781,6 +533,7 @@ fn run(
         let mut rows = vec![];
         let mut largest = None;
         let mut ray = None;
+        let mut boxes = None;
         for a in std::iter::once(first).chain(rx.try_iter()) {
             match a {
                 Ask::Voxel {
@@ -796,6 +549,7 @@ fn run(
                 } => voxel = Some((id, None, 0, Some((ray, drawn, look)))),
                 Ask::Row(l) => rows.push(l),
                 Ask::Largest(n, order) => largest = Some((n, order)),
+                Ask::Boxes(ids) => boxes = Some(ids),
                 Ask::Ray(r, sel, d) => ray = Some((r, sel, d)),
             }
         }
@@ -803,6 +557,20 @@ fn run(
             let hit = first_label(&mut image, extent, &r, sel.as_ref(), &drawn)
                 .map_err(|e| format!("{e:#}"));
             if tx.send(Reply::Hit(hit)).is_err() {
+                return;
+            }
+            wake();
+        }
+        if let Some(ids) = boxes {
+            let r = match &mut stats {
+                Some(Ok(Some(s))) => s
+                    .boxes(&ids, stats_dims)
+                    .map(Some)
+                    .map_err(|e| format!("{}: {e:#}", s.path.display())),
+                Some(Err(e)) => Err(format!("{e:#}")),
+                _ => Ok(None),
+            };
+            if tx.send(Reply::Boxes(ids, r)).is_err() {
                 return;
             }
             wake();
@@ -949,115 +717,4 @@ pub fn centroid_world(r: &LabelRow, dims: Dims3, extent: Vec3) -> Vec3 {
         f(cy, dims[1], extent[1]),
         f(cz, dims[0], extent[2]),
     ]
-}
-
-#[cfg(test)]
-mod tests {
-    use super::*;
-
-    fn stats_file(rows: &[(u64, u64)]) -> (tempfile::TempDir, Stats) {
-        let d = tempfile::tempdir().unwrap();
-        std::fs::create_dir_all(d.path().join("_brickyard")).unwrap();
-        let mut s = String::from(
-            "label,voxels,min_z,min_y,min_x,max_z,max_y,max_x,centroid_z,centroid_y,centroid_x,mean\n",
-        );
-        for (l, n) in rows {
-            // Rows of different lengths, as real ones are.
-            s += &format!("{l},{n},1,2,3,4,5,6,{}.25,2.5,3.5,{}\n", l % 7, l * 10);
-        }
-        std::fs::write(d.path().join("_brickyard/labels.csv"), s).unwrap();
-        let st = Stats::open(d.path()).unwrap().unwrap();
-        (d, st)
-    }
-
-    #[test]
-    fn rows_are_found_by_label_in_files_of_any_length() {
-        // Labels with gaps: every present one is found, every absent one
-        // is not, in files of 1 to 3000 rows (the search windows of 4 KiB
-        // then hold many rows, or part of the file).
-        for n in [1u64, 2, 3, 10, 257, 3000] {
-            let rows: Vec<(u64, u64)> = (0..n).map(|i| (3 * i + 2, 1000 + i * i)).collect();
-            let (_d, mut st) = stats_file(&rows);
-            for (l, v) in &rows {
-                let r = st
-                    .row(*l)
-                    .unwrap()
-                    .unwrap_or_else(|| panic!("{n} rows: label {l}"));
-                assert_eq!(r.voxels, *v);
-                assert_eq!(r.centroid[0], (l % 7) as f64 + 0.25);
-                assert_eq!(r.mean, Some((l * 10) as f64));
-            }
-            for l in [0, 1, 3, 4, 3 * n + 2, u64::MAX] {
-                assert_eq!(st.row(l).unwrap(), None, "{n} rows: label {l}");
-            }
-        }
-    }
-
-    #[test]
-    fn the_largest_labels_are_kept_while_the_file_is_read() {
-        // 3000 rows, sizes in a scrambled order with ties.
-        let rows: Vec<(u64, u64)> = (1..=3000u64).map(|i| (i, i * 7919 % 1013)).collect();
-        let (_d, mut st) = stats_file(&rows);
-        // (Reads of 4000 bytes: lines cross their ends.)
-        let got = st.top(25, TableOrder::LARGEST, 4000).unwrap();
-        let mut want = rows.clone();
-        want.sort_by(|a, b| b.1.cmp(&a.1).then(a.0.cmp(&b.0)));
-        let got: Vec<(u64, u64)> = got.iter().map(|(id, r)| (*id, r.voxels)).collect();
-        assert_eq!(got, want[..25].to_vec());
-        assert_eq!(
-            st.top(5000, TableOrder::LARGEST, 1 << 20).unwrap().len(),
-            3000
-        );
-        // Other orders, against the rows sorted here: the smallest of at
-        // least 500 voxels; the least and greatest means (the file's mean
-        // is ten times the label: by label, in effect); the last labels.
-        let order = |by, descending, min_voxels| TableOrder {
-            by,
-            descending,
-            min_voxels,
-        };
-        let ids = |got: Vec<(u64, LabelRow)>| got.into_iter().map(|(id, _)| id).collect::<Vec<_>>();
-        let mut want: Vec<(u64, u64)> = rows.iter().filter(|r| r.1 >= 500).copied().collect();
-        want.sort_by(|a, b| a.1.cmp(&b.1).then(a.0.cmp(&b.0)));
-        let want_ids: Vec<u64> = want[..10].iter().map(|r| r.0).collect();
-        assert_eq!(
-            ids(st.top(10, order(SortBy::Voxels, false, 500), 4000).unwrap()),
-            want_ids
-        );
-        assert_eq!(
-            ids(st.top(4, order(SortBy::Mean, false, 0), 4000).unwrap()),
-            vec![1, 2, 3, 4]
-        );
-        assert_eq!(
-            ids(st.top(3, order(SortBy::Mean, true, 0), 4000).unwrap()),
-            vec![3000, 2999, 2998]
-        );
-        assert_eq!(
-            ids(st.top(3, order(SortBy::Label, true, 0), 4000).unwrap()),
-            vec![3000, 2999, 2998]
-        );
-        let big: Vec<u64> = rows
-            .iter()
-            .filter(|r| r.1 >= 1000)
-            .map(|r| r.0)
-            .take(5)
-            .collect();
-        assert_eq!(
-            ids(st.top(5, order(SortBy::Label, false, 1000), 4000).unwrap()),
-            big
-        );
-    }
-
-    #[test]
-    fn a_statistics_file_of_another_shape_is_refused_by_name() {
-        let d = tempfile::tempdir().unwrap();
-        std::fs::create_dir_all(d.path().join("_brickyard")).unwrap();
-        std::fs::write(d.path().join("_brickyard/labels.csv"), "id,size\n1,2\n").unwrap();
-        let e = format!("{:#}", Stats::open(d.path()).err().unwrap());
-        assert!(
-            e.contains("labels.csv") && e.contains("expected the header"),
-            "{e}"
-        );
-        assert!(Stats::open(&d.path().join("none")).unwrap().is_none());
-    }
 }
