@@ -572,7 +572,6 @@ impl brickyard_run::process::Phases for Quiet {
 /// `process`.
 #[test]
 fn the_readout_names_the_point_a_3d_view_shows() {
-    use brickyard_store::VolumeSource;
     let dir = tempfile::tempdir().unwrap();
     let store = nuclei_with_cells(dir.path());
     let (w, h) = (200u32, 160u32);
@@ -580,19 +579,13 @@ fn the_readout_names_the_point_a_3d_view_shows() {
         .flat_map(|j| (0..12).map(move |i| (8.5 + i as f64 * 16.0, 6.5 + j as f64 * 15.0)))
         .collect();
     // References read apart: the stack's and the labels' level 0 whole.
-    let read = |src: &dyn VolumeSource| {
-        let d = src.meta().dims;
-        let mut b = vec![0u8; d.iter().product::<u64>() as usize * src.meta().dtype.size()];
-        src.read_region(0, 0..d[0], 0..d[1], 0..d[2], &mut b)
-            .unwrap();
-        (b, d)
-    };
-    let (tif, d) =
-        read(&*open_input(&data("nuclei-confocal-u16.tif"), &ImportOptions::default()).unwrap());
+    let (tif, d) = read_whole(
+        &*open_input(&data("nuclei-confocal-u16.tif"), &ImportOptions::default()).unwrap(),
+    );
     // (Every level of the labels.)
     let lab: Vec<(Vec<u8>, [u64; 3])> = (0..)
         .map_while(|l| brickyard_store::import::zarr::open(&store.join("labels/cells"), l).ok())
-        .map(|src| read(&src))
+        .map(|src| read_whole(&src))
         .collect();
     assert!(lab.len() >= 2, "{} levels", lab.len());
     let at = |v: &serde_json::Value| {
@@ -686,6 +679,15 @@ fn the_readout_names_the_point_a_3d_view_shows() {
         "{found} of {}, {checked}",
         grid.len()
     );
+}
+
+/// A source's channel 0 read whole, and its size.
+fn read_whole(src: &dyn brickyard_store::VolumeSource) -> (Vec<u8>, [u64; 3]) {
+    let d = src.meta().dims;
+    let mut b = vec![0u8; d.iter().product::<u64>() as usize * src.meta().dtype.size()];
+    src.read_region(0, 0..d[0], 0..d[1], 0..d[2], &mut b)
+        .unwrap();
+    (b, d)
 }
 
 fn nuclei_with_cells(dir: &Path) -> PathBuf {
@@ -802,7 +804,6 @@ fn label_images_laid_over_slices_stream_as_brickyard_render_lays_them() {
 
 #[test]
 fn the_readout_reads_the_voxel_and_label_under_a_pixel_of_a_slice() {
-    use brickyard_store::VolumeSource;
     let dir = tempfile::tempdir().unwrap();
     let store = nuclei_with_cells(dir.path());
     let st = ViewState::from_query(
@@ -829,17 +830,11 @@ fn the_readout_reads_the_voxel_and_label_under_a_pixel_of_a_slice() {
     frames_until_complete(&mut labels, &mut lexec, &lv);
     // References read apart: the TIFF through its importer, the labels'
     // level 0 whole.
-    let read = |src: &dyn VolumeSource| {
-        let d = src.meta().dims;
-        let mut b = vec![0u8; d.iter().product::<u64>() as usize * src.meta().dtype.size()];
-        src.read_region(0, 0..d[0], 0..d[1], 0..d[2], &mut b)
-            .unwrap();
-        (b, d)
-    };
-    let (tif, d) =
-        read(&*open_input(&data("nuclei-confocal-u16.tif"), &ImportOptions::default()).unwrap());
+    let (tif, d) = read_whole(
+        &*open_input(&data("nuclei-confocal-u16.tif"), &ImportOptions::default()).unwrap(),
+    );
     let (lab, _) =
-        read(&brickyard_store::import::zarr::open(&store.join("labels/cells"), 0).unwrap());
+        read_whole(&brickyard_store::import::zarr::open(&store.join("labels/cells"), 0).unwrap());
     let at = |v: [u64; 3]| ((v[0] * d[1] + v[1]) * d[2] + v[2]) as usize;
     let (mut hits, mut in_labels) = (0, 0);
     for j in 0..12 {
@@ -877,7 +872,7 @@ fn the_readout_reads_the_voxel_and_label_under_a_pixel_of_a_slice() {
     lv2.lod = brickyard_render::cpu::Lod::Auto { bias: 3.0 };
     frames_until_complete(&mut labels, &mut lexec, &lv2);
     let (lab2, d2) =
-        read(&brickyard_store::import::zarr::open(&store.join("labels/cells"), 2).unwrap());
+        read_whole(&brickyard_store::import::zarr::open(&store.join("labels/cells"), 2).unwrap());
     let extent = image.scene.extent;
     let (mut differ, mut n) = (0, 0);
     for j in 0..12 {
@@ -911,7 +906,10 @@ fn the_readout_reads_the_voxel_and_label_under_a_pixel_of_a_slice() {
     assert!(n > 100 && differ > 0, "{differ} of {n}");
     // Off the volume, and not a slice: nothing.
     assert!(brickyard_web::session::probe(&v, &image, None, -50.0, 5.0).is_none());
-    let mut dvr = v.clone();
-    dvr.params.mode = brickyard_render::RenderMode::Dvr;
-    assert!(brickyard_web::session::probe(&dvr, &image, None, 240.0, 220.0).is_none());
+    // A MIP of the same camera: the point it shows there, named so (the
+    // 3D readout is tested below).
+    let mut mip = v.clone();
+    mip.params.mode = brickyard_render::RenderMode::Mip;
+    let p = brickyard_web::session::probe(&mip, &image, None, 240.0, 220.0).expect("a MIP point");
+    assert_eq!(p["seen"]["how"], "the MIP's maximum", "{p}");
 }

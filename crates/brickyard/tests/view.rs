@@ -70,6 +70,19 @@ fn stack_with_cells(dir: &Path) -> PathBuf {
     store
 }
 
+/// The viewer's flags of the label tests: the nuclei stack's `labels/cells`
+/// over it, drawn on the CPU in 16³ bricks, in a window of 900 × 600.
+const CELLS_ON_CPU: [&str; 8] = [
+    "--labels",
+    "cells",
+    "--backend",
+    "cpu",
+    "--brick",
+    "16",
+    "--window-size",
+    "900x600",
+];
+
 /// A first viewer run on `store` that shoots `view` after `head` into
 /// `dir/all.png`: its size and pixels (`None`: no display).
 fn first_shot(
@@ -1869,16 +1882,7 @@ fn viewer_reads_out_and_picks_the_labels_a_coarser_level_draws() {
     let d = tempfile::tempdir().unwrap();
     let p = |n: &str| d.path().join(n);
     let store = stack_with_cells(d.path());
-    let flags = [
-        "--labels",
-        "cells",
-        "--backend",
-        "cpu",
-        "--brick",
-        "16",
-        "--window-size",
-        "900x600",
-    ];
+    let flags = CELLS_ON_CPU;
     // The slices drawn at level 2 (a quarter of the resolution in x and
     // y): pixels on the edges of the labels as that level draws them (a
     // label's colour, with the image beside), where full resolution may
@@ -2216,16 +2220,7 @@ fn viewer_picks_labels_and_draws_only_them_or_all_but_them_as_render_does() {
     let d = tempfile::tempdir().unwrap();
     let p = |n: &str| d.path().join(n);
     let store = stack_with_cells(d.path());
-    let flags = [
-        "--labels",
-        "cells",
-        "--backend",
-        "cpu",
-        "--brick",
-        "16",
-        "--window-size",
-        "900x600",
-    ];
+    let flags = CELLS_ON_CPU;
     let head = "size xy 96 96\nlevel 0\nlabel-opacity 1\nwait-complete 120\n";
     // First the labels as they are, to find a pixel inside a label: one
     // whose 5 × 5 neighbours all have its strong colour.
