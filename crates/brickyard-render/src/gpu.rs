@@ -675,6 +675,30 @@ impl GpuRenderer {
                     })
                 }
                 (Some(r), 0) => clear_bits(&ids, r, tf, scene.channel),
+                // No statistics, a label image drawing only some labels:
+                // the bricks their boxes miss.
+                (None, 0)
+                    if params.labels
+                        && key.7.as_ref().is_some_and(|s| !s.hide && s.boxes.is_some()) =>
+                {
+                    let sel = key.7.as_ref().expect("tested above");
+                    let cfg = vm.config();
+                    let mut bits = vec![0u32; (ids.len() as usize).div_ceil(32).max(1)];
+                    let starts = ids.level_starts();
+                    for (l, &first) in starts.iter().enumerate().take(starts.len() - 1) {
+                        let d = scene.levels[l];
+                        let n =
+                            (0..3).map(|a| d[a].div_ceil(cfg.brick[a])).product::<u64>() as usize;
+                        let off = scene.channel * n;
+                        for i in
+                            (0..n).filter(|&i| !sel.may_reach_brick(i, d, cfg.brick, cfg.apron))
+                        {
+                            let id = first as usize + off + i;
+                            bits[id / 32] |= 1 << (id % 32);
+                        }
+                    }
+                    bits
+                }
                 // No statistics: no brick is known clear. A bit for every
                 // brick all the same, as DVR tests them all (one word
                 // here let the shader read the words after it as bits,

@@ -116,13 +116,29 @@ impl<'a> Frame<'a> {
         };
         let transparent: Vec<Option<Vec<bool>>> = (0..nl)
             .map(|l| {
-                let r = scene.ranges.as_ref()?.level(l)?;
+                let sel = params.label_select.as_ref();
+                let Some(r) = scene.ranges.as_ref().and_then(|r| r.level(l)) else {
+                    // No statistics: a label image drawing only some
+                    // labels still crosses the bricks their boxes miss.
+                    let boxed = sel.is_some_and(|s| !s.hide && s.boxes.is_some());
+                    if !(params.labels && boxed && matches!(params.mode, RenderMode::Dvr)) {
+                        return None;
+                    }
+                    let d = scene.levels[l];
+                    let n: u64 = (0..3).map(|a| d[a].div_ceil(cfg.brick[a])).product();
+                    return Some(
+                        (0..n as usize)
+                            .map(|i| {
+                                !sel.is_some_and(|s| s.may_reach_brick(i, d, cfg.brick, cfg.apron))
+                            })
+                            .collect(),
+                    );
+                };
                 if !matches!(params.mode, RenderMode::Dvr) || scene.channel >= r.channels {
                     return None;
                 }
                 let n = r.bricks.iter().product::<u64>() as usize;
                 let off = scene.channel * n;
-                let sel = params.label_select.as_ref();
                 Some(
                     r.range[off..off + n]
                         .iter()

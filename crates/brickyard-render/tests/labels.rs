@@ -652,6 +652,24 @@ fn label_selections_draw_only_or_all_but_the_labels_named_on_the_cpu_and_the_dev
             let d = differing(&dev_b, &dev, 0.0);
             eprintln!("{what}: {d} pixels on the device differ with the labels' boxes");
             assert_eq!(d, 0, "{what}: the boxes changed the device's image");
+            // Without the store's brick statistics (as the web client
+            // draws), the boxes alone: the same images.
+            let mut bare = scene.clone();
+            bare.ranges = None;
+            let mut s = session(&store, DType::U32, vol_bytes * 5 / 4);
+            let (cpu_bare, _) = converge_cpu(&mut s, &bare, pb, 0);
+            assert_eq!(
+                differing(&cpu_bare, &img, 0.0),
+                0,
+                "{what}: CPU, boxes alone"
+            );
+            let mut s = session(&store, DType::U32, vol_bytes * 5 / 4);
+            let (dev_bare, _) = converge_device(gpu, &mut s, &bare, pb, 0);
+            assert_eq!(
+                differing(&dev_bare, &dev, 0.0),
+                0,
+                "{what}: device, boxes alone"
+            );
         }
         p.label_select = None;
     }

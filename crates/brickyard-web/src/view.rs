@@ -412,6 +412,29 @@ pub struct View {
 }
 
 impl View {
+    /// A label image's view drawing only some labels, with where they lie
+    /// (`table`: every label's bounding box, from the statistics, in the
+    /// voxels of level 0 of size `dims`): bricks none of them reaches are
+    /// crossed. Other views are left as they are.
+    pub fn with_label_boxes(
+        mut self,
+        table: &std::collections::HashMap<u64, [u64; 6]>,
+        dims: [u64; 3],
+    ) -> View {
+        if let Some(s) = self.params.label_select.as_mut().filter(|s| !s.hide) {
+            if self.params.labels {
+                let boxes = s
+                    .ids
+                    .iter()
+                    .filter(|&&id| id > 0)
+                    .filter_map(|&id| table.get(&(id as u64)).copied())
+                    .collect();
+                s.boxes = Some(brickyard_render::params::LabelBoxes { dims, boxes });
+            }
+        }
+        self
+    }
+
     /// The world point under pixel position `(x, y)` (pixel `(i, j)` spans
     /// `[i, i + 1) × [j, j + 1)`) of a slice view: where the pixel's ray
     /// meets the plane; `None` for other modes and off the volume

@@ -176,6 +176,9 @@ struct Inner {
     first_complete_ms: Option<f64>,
     /// The view of the last frame drawn.
     drawn_state: Option<ViewState>,
+    /// The label image's bounding boxes by label, once fetched (`Some(None)`:
+    /// it has none to use).
+    label_boxes: Option<Option<std::collections::HashMap<u64, [u64; 6]>>>,
     /// When the last frame was drawn (ms).
     drawn_at: f64,
     /// Why the device is not used, when it was asked for.
@@ -330,6 +333,7 @@ impl Viewer {
                 started,
                 first_complete_ms: None,
                 drawn_state: None,
+                label_boxes: None,
                 drawn_at: 0.0,
                 device_note,
                 on_device: false,
@@ -483,6 +487,23 @@ impl Inner {
                 src.meta.labels,
             )
             .map_err(|e| JsValue::from_str(&e))?;
+        // A label image drawing only some labels: where they lie, from its
+        // statistics (fetched once), so bricks none of them reaches are
+        // crossed. Without them (none, too large, unreadable), as before.
+        let only = view.params.labels && view.params.label_select.as_ref().is_some_and(|s| !s.hide);
+        if only && self.label_boxes.is_none() {
+            let table = src.label_boxes(32 << 20).await.unwrap_or_else(|e| {
+                web_sys::console::warn_1(&JsValue::from_str(&format!(
+                    "label statistics not used: {e}"
+                )));
+                None
+            });
+            self.label_boxes = Some(table);
+        }
+        let view = match self.label_boxes.as_ref().and_then(|t| t.as_ref()) {
+            Some(t) if only => view.with_label_boxes(t, src.geometry.levels[0]),
+            _ => view,
+        };
         if view.channel != self.channel {
             self.channel = view.channel;
             self.session.scene.channel = view.channel;

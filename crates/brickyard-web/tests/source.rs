@@ -681,6 +681,59 @@ fn the_readout_names_the_point_a_3d_view_shows() {
     );
 }
 
+#[test]
+fn a_label_selection_crosses_the_bricks_its_labels_do_not_reach() {
+    let dir = tempfile::tempdir().unwrap();
+    let labels = nuclei_with_cells(dir.path()).join("labels/cells");
+    // Every label's box, from the statistics, and the label of most voxels.
+    let table = futures_executor::block_on(open_web(&labels, 32).label_boxes(32 << 20))
+        .unwrap()
+        .expect("statistics");
+    let csv = std::fs::read_to_string(labels.join("_brickyard/labels.csv")).unwrap();
+    let (id, _) = csv
+        .lines()
+        .skip(1)
+        .map(|l| {
+            let f: Vec<u64> = l.split(',').take(2).map(|x| x.parse().unwrap()).collect();
+            (f[0], f[1])
+        })
+        .max_by_key(|r| r.1)
+        .unwrap();
+    assert_eq!(table.len(), csv.lines().count() - 1);
+    let st = ViewState::from_query(&format!("mode=dvr&size=512x400&tf=labels&only_labels={id}"))
+        .unwrap();
+    let (plain, _, v0, s0) = stream_session(&labels, 64 << 20, |s, src| {
+        st.params(&s.scene, [0.0, 60.0], &src.meta.channels, 1, true)
+            .unwrap()
+    });
+    let (boxed, _, v1, s1) = stream_session(&labels, 64 << 20, |s, src| {
+        st.params(&s.scene, [0.0, 60.0], &src.meta.channels, 1, true)
+            .unwrap()
+            .with_label_boxes(&table, src.geometry.levels[0])
+    });
+    assert!(v0.params.label_select.as_ref().unwrap().boxes.is_none());
+    let b = v1
+        .params
+        .label_select
+        .as_ref()
+        .unwrap()
+        .boxes
+        .as_ref()
+        .unwrap();
+    assert_eq!(b.boxes, vec![table[&id]]);
+    // The same image, the label in it, from fewer bricks.
+    let lit = plain
+        .rgba
+        .iter()
+        .filter(|p| p[..3].iter().any(|&c| c > 0.05))
+        .count();
+    assert!(lit > 100, "{lit} pixels show label {id}");
+    assert_eq!(plain.rgba, boxed.rgba, "the boxes changed the image");
+    let (n0, n1) = (s0.loads.loaded(), s1.loads.loaded());
+    eprintln!("label {id}: {n1} bricks loaded with its box, {n0} without");
+    assert!(n1 < n0, "{n1} bricks loaded with the box, {n0} without");
+}
+
 /// A source's channel 0 read whole, and its size.
 fn read_whole(src: &dyn brickyard_store::VolumeSource) -> (Vec<u8>, [u64; 3]) {
     let d = src.meta().dims;
