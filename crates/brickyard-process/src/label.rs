@@ -583,9 +583,7 @@ impl VolumeSource for LabelSource {
 /// The statistics as CSV: one row per label; coordinates in voxels of the
 /// labelled level, `[z, y, x]` columns, box bounds inclusive.
 pub fn stats_csv(stats: &[LabelStats]) -> String {
-    let mut s = String::from(
-        "label,voxels,min_z,min_y,min_x,max_z,max_y,max_x,centroid_z,centroid_y,centroid_x,mean\n",
-    );
+    let mut s = format!("{}\n", brickyard_core::label_table::HEADER);
     for l in stats {
         s += &format!(
             "{},{},{},{},{},{},{},{},{},{},{},{}\n",

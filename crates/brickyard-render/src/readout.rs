@@ -7,6 +7,7 @@
 
 use crate::cpu::Lod;
 use crate::params::LabelSelect;
+use crate::reference::{RenderMode, RenderParams};
 use brickyard_core::camera::{intersect_box, length, Camera, Ray, Vec3};
 use brickyard_core::{Dims3, TransferFunction};
 
@@ -48,6 +49,31 @@ pub enum Look {
 }
 
 impl Look {
+    /// What a view drawing `p` looks for along its rays (`channel`: the
+    /// channel a DVR of one channel shows): `None` for slices and several
+    /// views at once.
+    pub fn of(p: &RenderParams, channel: usize) -> Option<Look> {
+        if p.views.is_some() {
+            return None;
+        }
+        Some(match p.mode {
+            RenderMode::Mip => Look::Mip {
+                // (Several channels: the first shown.)
+                channel: p.channels.first().map_or(channel, |s| s.channel),
+            },
+            RenderMode::Dvr if p.labels => Look::Labels(p.label_select.clone()),
+            RenderMode::Dvr => Look::Dvr {
+                tfs: match p.channels.is_empty() {
+                    true => vec![(channel, p.tf.clone())],
+                    false => p.channels.iter().map(|s| (s.channel, s.dvr_tf())).collect(),
+                },
+                samples: p.samples_per_voxel,
+                reference: p.reference_step,
+            },
+            _ => return None,
+        })
+    }
+
     /// How the point is found, for readouts.
     pub fn name(&self) -> &'static str {
         match self {

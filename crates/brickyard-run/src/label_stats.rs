@@ -7,6 +7,8 @@
 //! crossing of bricks that no label of a selection reaches use it.
 
 use anyhow::{Context, Result};
+use brickyard_core::label_table;
+pub use brickyard_core::label_table::LabelRow;
 use brickyard_render::params::{LabelBoxes, LabelSelect};
 use brickyard_store::storage::{self, Span};
 use std::path::{Path, PathBuf};
@@ -72,18 +74,6 @@ impl TableOrder {
     }
 }
 
-/// A label's row of the label image's statistics (coordinates in voxels
-/// of the level it was labelled at, `[z, y, x]`).
-#[derive(Clone, Debug, PartialEq)]
-pub struct LabelRow {
-    pub voxels: u64,
-    pub min: [u64; 3],
-    pub max: [u64; 3],
-    pub centroid: [f64; 3],
-    /// Mean intensity of the image under the label, where recorded.
-    pub mean: Option<f64>,
-}
-
 /// A label image's statistics file, searched by label (its rows are in
 /// increasing label order, as `process` writes them). Read in ranges
 /// through the store's storage, so remote label images have theirs too.
@@ -98,7 +88,7 @@ impl Stats {
     /// The statistics of the label image at `label_dir` (`None`: it has
     /// none).
     pub fn open(label_dir: &Path) -> Result<Option<Stats>> {
-        let path = label_dir.join("_brickyard").join("labels.csv");
+        let path = label_dir.join(label_table::PATH);
         let Some(len) = storage::size(&path)? else {
             return Ok(None);
         };
@@ -114,13 +104,8 @@ impl Stats {
                 st.path.display()
             )
         })?;
-        let header = String::from_utf8_lossy(&head[..end]);
-        if !header.starts_with("label,voxels,min_z,min_y,min_x,max_z,max_y,max_x,centroid_z") {
-            anyhow::bail!(
-                "{}: expected the header `label,voxels,min_z,...`, found {header:?}",
-                st.path.display()
-            );
-        }
+        label_table::check_header(&String::from_utf8_lossy(&head[..end]))
+            .map_err(|e| anyhow::anyhow!("{}: {e}", st.path.display()))?;
         st.start = end as u64 + 1;
         Ok(Some(st))
     }
@@ -261,29 +246,24 @@ impl Stats {
         Ok(())
     }
 
-    /// The bounding boxes of labels `ids` (of a label image whose level 0
+    /// The bounding boxes of labels `ids` (increasing, as a [`LabelSelect`]
+    /// keeps them; of a label image whose level 0
     /// is `dims`; the statistics' coordinates are its voxels): labels
     /// without a row have no voxels and no box. Up to 64 labels are found
     /// one by one; more, in one read through the file.
     pub fn boxes(&mut self, ids: &[i32], dims: [u64; 3]) -> Result<LabelBoxes> {
         let mut boxes = vec![];
-        let mut add = |r: &LabelRow| {
-            let [a, b, c] = r.min;
-            let [d, e, f] = r.max;
-            boxes.push([a, b, c, d, e, f]);
-        };
         if ids.len() <= 64 {
             for &id in ids.iter().filter(|&&i| i > 0) {
                 if let Some(r) = self.row(id as u64)? {
-                    add(&r);
+                    boxes.push(r.bounds());
                 }
             }
         } else {
-            let mut want: Vec<u64> = ids.iter().filter(|&&i| i > 0).map(|&i| i as u64).collect();
-            want.sort_unstable();
+            // (`ids` are in increasing order, as a selection keeps them.)
             self.each_row(1 << 20, |id, r| {
-                if want.binary_search(&id).is_ok() {
-                    add(&r);
+                if i32::try_from(id).is_ok_and(|i| ids.binary_search(&i).is_ok()) {
+                    boxes.push(r.bounds());
                 }
             })?;
         }
@@ -313,32 +293,7 @@ pub fn with_boxes(
 
 /// A row of the statistics: its label and the rest.
 fn parse_row(line: &str) -> Result<(u64, LabelRow)> {
-    let f: Vec<&str> = line.split(',').collect();
-    if f.len() < 11 {
-        anyhow::bail!("expected at least 11 columns, found {}: {line:?}", f.len());
-    }
-    let int = |i: usize| -> Result<u64> {
-        f[i].parse()
-            .with_context(|| format!("column {}: expected a count, found {:?}", i + 1, f[i]))
-    };
-    let real = |i: usize| -> Result<f64> {
-        f[i].parse()
-            .with_context(|| format!("column {}: expected a number, found {:?}", i + 1, f[i]))
-    };
-    Ok((
-        int(0)?,
-        LabelRow {
-            voxels: int(1)?,
-            min: [int(2)?, int(3)?, int(4)?],
-            max: [int(5)?, int(6)?, int(7)?],
-            centroid: [real(8)?, real(9)?, real(10)?],
-            mean: f
-                .get(11)
-                .filter(|s| !s.is_empty())
-                .map(|_| real(11))
-                .transpose()?,
-        },
-    ))
+    label_table::parse_row(line).map_err(anyhow::Error::msg)
 }
 
 #[cfg(test)]

@@ -9,7 +9,7 @@ use brickyard_cache::brick::{BrickKey, LoadedBrick};
 use brickyard_cache::vm::{FrameReport, InsertReport, VirtualMemory, VmConfig};
 use brickyard_render::budget::{Decision, FrameSignals, LodBudget};
 use brickyard_render::cpu::{render_tiles, FrameStats, Lod, Scene, Tiles};
-use brickyard_render::{readout, Image, RenderMode, RenderParams};
+use brickyard_render::{readout, Image, RenderParams};
 use std::cell::RefCell;
 use std::collections::{HashSet, VecDeque};
 use std::rc::Rc;
@@ -435,23 +435,9 @@ pub fn probe(
             let level = labels.map(|s| s.level_drawn(footprint, view.lod));
             (w, level, None)
         }
-        None if matches!(p.mode, RenderMode::Slice { .. }) || p.views.is_some() => return None,
         None => {
-            let look = match p.mode {
-                RenderMode::Mip => readout::Look::Mip {
-                    // (Several channels: the first shown.)
-                    channel: p.channels.first().map_or(view.channel, |s| s.channel),
-                },
-                _ if p.labels => readout::Look::Labels(p.label_select.clone()),
-                _ => readout::Look::Dvr {
-                    tfs: match p.channels.is_empty() {
-                        true => vec![(view.channel, p.tf.clone())],
-                        false => p.channels.iter().map(|s| (s.channel, s.dvr_tf())).collect(),
-                    },
-                    samples: p.samples_per_voxel,
-                    reference: p.reference_step,
-                },
-            };
+            // (Slices off the volume, several views: nothing.)
+            let look = readout::Look::of(p, view.channel)?;
             let drawn = readout::Drawn {
                 camera: p.camera,
                 height: p.height,

@@ -193,15 +193,15 @@ impl WebSource {
     }
 
     /// The bounding box of every label in the label image's statistics
-    /// (`_brickyard/labels.csv`, as `process` writes it: label, voxels,
-    /// then min and max `[z, y, x]`), read whole in one request: `None`
-    /// where the store has none or it is larger than `max_bytes`.
+    /// ([`label_table`]), read whole in one request: `None` where the
+    /// store has none or it is larger than `max_bytes`.
     pub async fn label_boxes(
         &self,
         max_bytes: usize,
     ) -> Result<Option<std::collections::HashMap<u64, [u64; 6]>>, String> {
-        const PATH: &str = "_brickyard/labels.csv";
-        let Some(b) = self.fetch.get(PATH, Range::All).await? else {
+        use brickyard_core::label_table;
+        let path = label_table::PATH;
+        let Some(b) = self.fetch.get(path, Range::All).await? else {
             return Ok(None);
         };
         if b.len() > max_bytes {
@@ -209,24 +209,13 @@ impl WebSource {
         }
         let text = String::from_utf8_lossy(&b);
         let mut lines = text.lines();
-        let header = lines.next().unwrap_or("");
-        if !header.starts_with("label,voxels,min_z,min_y,min_x,max_z,max_y,max_x") {
-            return Err(format!(
-                "{PATH}: expected the header `label,voxels,min_z,...`, found {header:?}"
-            ));
-        }
+        label_table::check_header(lines.next().unwrap_or(""))
+            .map_err(|e| format!("{path}: {e}"))?;
         let mut out = std::collections::HashMap::new();
         for (i, line) in lines.enumerate().filter(|(_, l)| !l.is_empty()) {
-            let f: Vec<&str> = line.split(',').take(8).collect();
-            let num = |k: usize| -> Result<u64, String> {
-                f.get(k).and_then(|x| x.parse().ok()).ok_or_else(|| {
-                    format!("{PATH}: row {}: column {}: expected a count", i + 2, k + 1)
-                })
-            };
-            out.insert(
-                num(0)?,
-                [num(2)?, num(3)?, num(4)?, num(5)?, num(6)?, num(7)?],
-            );
+            let (id, r) =
+                label_table::parse_row(line).map_err(|e| format!("{path}: row {}: {e}", i + 2))?;
+            out.insert(id, r.bounds());
         }
         Ok(Some(out))
     }

@@ -504,39 +504,24 @@ impl ViewerApp {
         if self.derived.is_some() {
             return Err("the 3D view shows a derived channel: no readout".into());
         }
-        let look = match self.mode.as_str() {
-            "dvr" if self.ds.labels => Look::Labels(self.label_selection()),
-            "dvr" => {
-                let tfs = if self.dvr_composites() {
-                    self.styles()
-                        .iter()
-                        .map(|s| (s.channel, s.dvr_tf()))
-                        .collect()
-                } else {
-                    vec![(self.dvr_channel, self.tf.clone())]
-                };
-                Look::Dvr {
-                    tfs,
-                    samples: self.quality,
-                    reference: Some(self.voxel0()),
-                }
-            }
-            "mip" => Look::Mip {
-                // (Several channels: the first shown.)
-                channel: self
-                    .styles()
-                    .first()
-                    .map_or(self.dvr_channel, |s| s.channel),
-            },
-            _ => return Err("the 3D view shows a slice: read it out in the slice views".into()),
-        };
+        // What the 3D view's frames draw.
+        let spec = self.spec(0);
+        let look = Look::of(&spec.params, spec.channel)
+            .ok_or("the 3D view shows a slice: read it out in the slice views")?;
+        let (ray, drawn) = self.ray_3d(x, y);
+        Ok((ray, drawn, look))
+    }
+
+    /// The ray of render pixel `(x, y)` of the 3D view, and how the view
+    /// chose levels along it.
+    fn ray_3d(&self, x: f64, y: f64) -> (brickyard_core::camera::Ray, super::probe::Drawn) {
         let [w, h] = self.render_size(0);
         let drawn = super::probe::Drawn {
             camera: self.cam,
             height: h,
             lod: self.drawn_lod(0, None),
         };
-        Ok((self.cam.ray(x, y, w, h), drawn, look))
+        (self.cam.ray(x, y, w, h), drawn)
     }
 
     /// A double-click in the 3D view was answered: the cursor (and with it
@@ -575,14 +560,8 @@ impl ViewerApp {
                 "labels are picked in 3D on a label image shown in DVR mode, one view".into(),
             );
         }
-        let [w, h] = self.render_size(0);
-        let ray = self.cam.ray(x, y, w, h);
+        let (ray, drawn) = self.ray_3d(x, y);
         let sel = self.label_selection();
-        let drawn = super::probe::Drawn {
-            camera: self.cam,
-            height: h,
-            lod: self.drawn_lod(0, None),
-        };
         let Some(p) = &mut self.probe else {
             return Err("the viewer has no voxel readout".into());
         };

@@ -1,0 +1,74 @@
+//! A label image's statistics table (`_brickyard/labels.csv`): one row per
+//! label, in increasing label order, with its voxel count, bounding box
+//! (inclusive), centroid and mean intensity, in voxels `[z, y, x]` of the
+//! level it was labelled at. `process` writes it; the viewer, `render` and
+//! the web client read it.
+
+/// Where the table lies in a label image.
+pub const PATH: &str = "_brickyard/labels.csv";
+
+/// The table's header line (without its line end).
+pub const HEADER: &str =
+    "label,voxels,min_z,min_y,min_x,max_z,max_y,max_x,centroid_z,centroid_y,centroid_x,mean";
+
+/// A label's row of the table.
+#[derive(Clone, Debug, PartialEq)]
+pub struct LabelRow {
+    pub voxels: u64,
+    pub min: [u64; 3],
+    pub max: [u64; 3],
+    pub centroid: [f64; 3],
+    /// Mean intensity of the image under the label, where recorded.
+    pub mean: Option<f64>,
+}
+
+impl LabelRow {
+    /// The bounding box, `[min_z, min_y, min_x, max_z, max_y, max_x]`.
+    pub fn bounds(&self) -> [u64; 6] {
+        let ([a, b, c], [d, e, f]) = (self.min, self.max);
+        [a, b, c, d, e, f]
+    }
+}
+
+/// Whether `line` is the table's header (the mean column may be absent).
+pub fn check_header(line: &str) -> Result<(), String> {
+    match line.starts_with(&HEADER[..HEADER.len() - ",mean".len()]) {
+        true => Ok(()),
+        false => Err(format!(
+            "expected the header `label,voxels,min_z,...`, found {line:?}"
+        )),
+    }
+}
+
+/// A row of the table: its label and the rest.
+pub fn parse_row(line: &str) -> Result<(u64, LabelRow), String> {
+    let f: Vec<&str> = line.split(',').collect();
+    if f.len() < 11 {
+        return Err(format!(
+            "expected at least 11 columns, found {}: {line:?}",
+            f.len()
+        ));
+    }
+    let int = |i: usize| -> Result<u64, String> {
+        f[i].parse()
+            .map_err(|e| format!("column {}: expected a count, found {:?}: {e}", i + 1, f[i]))
+    };
+    let real = |i: usize| -> Result<f64, String> {
+        f[i].parse()
+            .map_err(|e| format!("column {}: expected a number, found {:?}: {e}", i + 1, f[i]))
+    };
+    Ok((
+        int(0)?,
+        LabelRow {
+            voxels: int(1)?,
+            min: [int(2)?, int(3)?, int(4)?],
+            max: [int(5)?, int(6)?, int(7)?],
+            centroid: [real(8)?, real(9)?, real(10)?],
+            mean: f
+                .get(11)
+                .filter(|s| !s.is_empty())
+                .map(|_| real(11))
+                .transpose()?,
+        },
+    ))
+}
