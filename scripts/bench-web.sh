@@ -26,7 +26,7 @@ for pool in 256 4; do
     node crates/brickyard-web/browser/bench.mjs chromium "http://127.0.0.1:$PORT/web/#store=..%2Fmni.ome.zarr%2F&pool=$pool&backend=cpu&$VIEW" 3
 done
 echo "== browser, WebGPU (the browser's adapter), pool 32 MiB"
-node crates/brickyard-web/browser/bench.mjs chromium "http://127.0.0.1:$PORT/web/#store=..%2Fmni.ome.zarr%2F&pool=32&$VIEW" 1
+node crates/brickyard-web/browser/bench.mjs chromium "http://127.0.0.1:$PORT/web/#store=..%2Fmni.ome.zarr%2F&pool=32&backend=gpu&$VIEW" 1
 for threads in 1 2; do
     echo "== native render, CPU, $threads thread(s)"
     "$BIN" --threads "$threads" render "$STORE" --size 512x512 --azimuth 40 --elevation 25 --tf soft --window 0,255 \

@@ -456,6 +456,32 @@ fn round(v: f64) -> f64 {
     (v * 1000.0).round() / 1000.0
 }
 
+/// Who draws the page's frames (its `backend=`, which stays out of the
+/// view's state: it changes how a view is drawn, not what it shows).
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Backend {
+    /// WebGPU where the browser offers a hardware adapter; the CPU in
+    /// WebAssembly where there is none or only a software one (its
+    /// frames take hundreds of times the CPU renderer's there).
+    Auto,
+    /// WebGPU whenever the browser has it, a software adapter included.
+    Gpu,
+    /// The CPU in WebAssembly.
+    Cpu,
+}
+
+impl Backend {
+    /// `auto` (also the empty value), `gpu` or `cpu`.
+    pub fn parse(v: &str) -> Result<Backend, String> {
+        match v {
+            "" | "auto" => Ok(Backend::Auto),
+            "gpu" => Ok(Backend::Gpu),
+            "cpu" => Ok(Backend::Cpu),
+            _ => Err(format!("backend: expected auto, gpu or cpu, found {v:?}")),
+        }
+    }
+}
+
 /// Undo `%XX` escapes (and `+` for space).
 pub fn decode(s: &str) -> String {
     let b = s.as_bytes();
@@ -482,6 +508,16 @@ pub fn decode(s: &str) -> String {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn backends_are_auto_gpu_or_cpu() {
+        assert_eq!(Backend::parse(""), Ok(Backend::Auto));
+        assert_eq!(Backend::parse("auto"), Ok(Backend::Auto));
+        assert_eq!(Backend::parse("gpu"), Ok(Backend::Gpu));
+        assert_eq!(Backend::parse("cpu"), Ok(Backend::Cpu));
+        let e = Backend::parse("webgpu").unwrap_err();
+        assert!(e.starts_with("backend:") && e.contains("\"webgpu\""), "{e}");
+    }
 
     #[test]
     fn the_query_round_trips_and_names_bad_keys() {

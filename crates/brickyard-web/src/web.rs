@@ -6,7 +6,7 @@
 
 use crate::session::{FrameOut, Spawn, WebSession};
 use crate::source::{Fetch, LocalFuture, Range, WebSource};
-use crate::view::ViewState;
+use crate::view::{Backend, ViewState};
 use brickyard_cache::vm::VmConfig;
 use std::cell::RefCell;
 use std::rc::Rc;
@@ -220,17 +220,19 @@ pub struct Viewer {
 impl Viewer {
     /// Open the OME-Zarr store at `url` and draw into `canvas`, with the
     /// view of `query` (the page's `#…`); `pool_mib` is the brick pool;
-    /// `device`: draw through WebGPU (when the browser has it).
+    /// `backend` who draws ([`Backend::parse`]: `auto`, `gpu` or `cpu`;
+    /// the page passes `cpu` where the browser has no WebGPU).
     pub async fn open(
         url: String,
         canvas: web_sys::HtmlCanvasElement,
         query: String,
         pool_mib: u32,
-        device: bool,
+        backend: String,
         token: Option<String>,
     ) -> Result<Viewer, JsValue> {
         console_error_panic_hook();
         let started = now();
+        let backend = Backend::parse(&backend).map_err(|e| JsValue::from_str(&e))?;
         let state = ViewState::from_query(&query).map_err(|e| JsValue::from_str(&e))?;
         let fetch: Rc<dyn Fetch> = Rc::new(HttpFetch {
             base: url.clone(),
@@ -289,8 +291,8 @@ impl Viewer {
         let mut session =
             WebSession::new(Rc::new(src), cfg, spawn, 32).map_err(|e| JsValue::from_str(&e))?;
         session.scene.channel = state.channel;
-        let (device, device_note) = if device {
-            match open_device(&mut session).await {
+        let (device, device_note) = if backend != Backend::Cpu {
+            match open_device(&mut session, backend).await {
                 Ok(d) => (Some(d), None),
                 Err(e) => (None, Some(e)),
             }
@@ -444,10 +446,20 @@ impl Viewer {
 }
 
 /// WebGPU's device and a mirror of the session's virtual memory on it.
-async fn open_device(session: &mut WebSession) -> Result<DeviceDraw, String> {
+async fn open_device(session: &mut WebSession, backend: Backend) -> Result<DeviceDraw, String> {
     let gpu = brickyard_gpu::Gpu::new_web()
         .await
         .map_err(|e| e.to_string())?;
+    if backend == Backend::Auto && gpu.info.device_type == wgpu::DeviceType::Cpu {
+        return Err(format!(
+            "the browser's WebGPU adapter is a software one{}, slower here than the page's own \
+             CPU renderer; backend=gpu uses it anyway",
+            Some(gpu.info.name.as_str())
+                .filter(|n| !n.is_empty())
+                .map(|n| format!(" ({n})"))
+                .unwrap_or_default()
+        ));
+    }
     let scope = gpu.device.push_error_scope(wgpu::ErrorFilter::Validation);
     let (dvm, _) =
         brickyard_gpu::vm::DeviceVm::new(&gpu, &mut session.vm).map_err(|e| e.to_string())?;
@@ -530,13 +542,7 @@ impl Inner {
         if draw {
             self.drawn_at = t;
             self.drawn_state = Some(state.clone());
-            // Several channels go to the CPU: through WebGPU in Chromium
-            // (SwiftShader) they came out wrong, while the same device code
-            // is right natively; not found why yet.
-            let device = match &mut self.device {
-                Some(d) if p.channels.is_empty() => Some(d),
-                _ => None,
-            };
+            let device = self.device.as_mut();
             self.on_device = device.is_some();
             self.last = match device {
                 None => self.session.frame_cpu(&p, lod),

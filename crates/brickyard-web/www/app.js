@@ -103,7 +103,7 @@ async function tick() {
     `${st.bias > 0 ? `  (LOD bias +${st.bias}: the pool is too small for full detail)` : ''}\n` +
     `bricks: ${st.resident} resident of ${st.pool_slots}, ${st.loaded} loaded, ${st.in_flight} in flight, ${st.queued} queued\n` +
     `read: ${(st.bytes / 1048576).toFixed(1)} MiB at ${st.mib_s.toFixed(1)} MiB/s\n` +
-    `frame: ${st.frame_ms.toFixed(0)} ms${st.device && !st.on_device ? ' (several channels: on the CPU)' : ''}` +
+    `frame: ${st.frame_ms.toFixed(0)} ms${st.on_device ? ' (WebGPU)' : ' (CPU)'}` +
     (st.first_complete_ms ? `, first complete after ${(st.first_complete_ms / 1000).toFixed(2)} s` : '') +
     (st.failed ? `\nfailed bricks: ${st.failed} (drawn from coarser data)\nlast: ${st.last_failure}` : '') +
     (st.labels ? `\nlabels/${st.labels.name}: ${st.labels.complete ? 'complete' : 'loading'}, ${st.labels.resident} bricks resident` +
@@ -238,12 +238,12 @@ async function main() {
   const pool = Number(hashParams().get('pool') || 256);
   try {
     state.viewer = await Viewer.open(new URL(store, location.href).href, $('view'), viewQuery(), pool,
-      state.webgpu && backend !== 'cpu', hashParams().get('token'));
+      state.webgpu || !['auto', 'gpu'].includes(backend) ? backend : 'cpu', hashParams().get('token'));
   } catch (e) { showError(e); return; }
   const info = JSON.parse(state.viewer.info());
   state.device = info.device;
   if (info.device) $('notice').textContent = `Drawing through WebGPU (${info.device}).`;
-  else if (state.webgpu && info.device_note) $('notice').textContent = `WebGPU could not be used (${info.device_note}): drawing on the CPU in WebAssembly.`;
+  else if (state.webgpu && info.device_note) $('notice').textContent = `WebGPU not used: ${info.device_note}. Drawing on the CPU in WebAssembly.`;
   else if (state.webgpu) $('notice').textContent = 'Drawing on the CPU in WebAssembly (backend=cpu).';
   state.multi = info.n_channels > 1;
   if (state.multi) { const o = document.createElement('option'); o.value = 'all'; o.textContent = 'all active (composited)'; $('channel').appendChild(o); }

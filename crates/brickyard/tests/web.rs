@@ -173,9 +173,11 @@ fn the_web_client_draws_what_render_draws_in_a_headless_browser() {
         .unwrap());
     let srv = serve_web(&store);
     assert!(srv.2.contains("/web/#store=../mni.ome.zarr/"), "{}", srv.2);
+    // backend=gpu: WebGPU also on a software adapter (SwiftShader here),
+    // which the default (auto) leaves for the CPU.
     let view = "az=40&el=25&size=320x240&tf=soft&window=0,255";
     let url = format!(
-        "http://127.0.0.1:{}/web/#store=..%2Fmni.ome.zarr%2F&{view}",
+        "http://127.0.0.1:{}/web/#store=..%2Fmni.ome.zarr%2F&backend=gpu&{view}",
         srv.1
     );
     let out = d.path().join("out");
@@ -275,6 +277,141 @@ fn the_web_client_draws_what_render_draws_in_a_headless_browser() {
     );
 }
 
+/// Pages drawn in headless Chromium (`browser/canvas.mjs`), each `(name,
+/// url)`; their canvases as `out/NAME.rgba`; returns the report.
+fn canvases(out: &Path, pages: &[(&str, String)]) -> serde_json::Value {
+    std::fs::create_dir_all(out).unwrap();
+    let o = Command::new("node")
+        .arg(repo().join("crates/brickyard-web/browser/canvas.mjs"))
+        .arg("chromium")
+        .arg(out)
+        .args(pages.iter().map(|(n, u)| format!("{n}={u}")))
+        .output()
+        .unwrap();
+    let report = std::fs::read_to_string(out.join("canvas.json")).unwrap_or_default();
+    assert!(
+        o.status.success(),
+        "the browser check failed:\n{}\n{report}",
+        String::from_utf8_lossy(&o.stderr)
+    );
+    serde_json::from_str(&report).unwrap()
+}
+
+#[test]
+fn the_web_client_draws_several_channels_through_webgpu_as_render_does() {
+    if needs_browser().is_none() {
+        return;
+    }
+    // The three-channel MNI152 (T1, grey and white matter), its channels
+    // composited per sample in the `omero` colours and windows.
+    let d = tempfile::tempdir().unwrap();
+    let store = d.path().join("mni3.ome.zarr");
+    let data = repo().join("../shared/data");
+    ok(&bin()
+        .arg("convert")
+        .args(["t1", "gm", "wm"].map(|c| data.join(format!("mni152-{c}-u8.nii.gz"))))
+        .arg(&store)
+        .args(["--channel-names", "t1,gm,wm", "--quiet"])
+        .output()
+        .unwrap());
+    let srv = serve_web(&store);
+    let base = format!(
+        "http://127.0.0.1:{}/web/#store=..%2Fmni3.ome.zarr%2F",
+        srv.1
+    );
+    let view = "az=40&el=25&size=160x120";
+    let out = d.path().join("out");
+    let r = canvases(
+        &out,
+        &[
+            ("gpu", format!("{base}&backend=gpu&{view}")),
+            ("auto", format!("{base}&{view}")),
+        ],
+    );
+    let png = d.path().join("cli.png");
+    ok(&bin()
+        .arg("render")
+        .arg(&store)
+        .args([
+            "--size",
+            "160x120",
+            "--azimuth",
+            "40",
+            "--elevation",
+            "25",
+            "--brick",
+            "32",
+            "--backend",
+            "cpu",
+            "--quiet",
+            "-o",
+        ])
+        .arg(&png)
+        .output()
+        .unwrap());
+    let (w, h, cli) = read_png(&png);
+    let lit = cli
+        .chunks_exact(4)
+        .filter(|p| p[0].max(p[1]).max(p[2]) > 20)
+        .count();
+    assert!(
+        lit as u32 > w * h / 10,
+        "the reference is nearly black ({lit} lit pixels)"
+    );
+    // Each channel shows: neither grey (T1 alone) nor one hue.
+    let hue = |k: usize| {
+        cli.chunks_exact(4)
+            .filter(|p| p[k] > p[(k + 1) % 3] + 30)
+            .count()
+    };
+    assert!(
+        hue(1) > 50 && (hue(0) > 50 || hue(2) > 50),
+        "one channel only?"
+    );
+    for name in ["gpu", "auto"] {
+        let canvas = std::fs::read(out.join(format!("{name}.rgba"))).unwrap();
+        assert_eq!(canvas.len(), cli.len());
+        let max = canvas
+            .iter()
+            .zip(&cli)
+            .map(|(a, b)| a.abs_diff(*b))
+            .max()
+            .unwrap();
+        eprintln!(
+            "{name} page, drawn on {}: max difference {max}/255",
+            r[name]["device"]
+        );
+        assert!(
+            max <= 2,
+            "the {name} page differs from brickyard render by {max}/255: {r}"
+        );
+    }
+    let gpu = r["gpu"]["device"].as_str();
+    if std::env::var("BRICKYARD_REQUIRE_GPU").as_deref() == Ok("1") {
+        assert!(
+            gpu.is_some(),
+            "CI requires the WebGPU path to be checked: {r}"
+        );
+    }
+    // The frame compared was the device's, not a CPU fallback's.
+    assert_eq!(r["gpu"]["status"]["on_device"], gpu.is_some(), "{r}");
+    // The default leaves a software adapter (isFallbackAdapter: "Cpu") for
+    // the CPU in WebAssembly, and says why; a hardware one it uses.
+    match gpu {
+        Some(g) if g.contains("(Cpu,") => {
+            assert!(r["auto"]["device"].is_null(), "{r}");
+            assert_eq!(r["auto"]["status"]["on_device"], false, "{r}");
+            let notice = r["auto"]["notice"].as_str().unwrap();
+            assert!(
+                notice.contains("software") && notice.contains("backend=gpu"),
+                "{notice}"
+            );
+        }
+        Some(g) => assert_eq!(r["auto"]["device"].as_str(), Some(g), "{r}"),
+        None => assert!(r["auto"]["device"].is_null(), "{r}"),
+    }
+}
+
 #[test]
 fn serve_web_without_a_built_client_says_how_to_build_it() {
     let d = tempfile::tempdir().unwrap();
@@ -299,7 +436,7 @@ fn the_web_client_lays_label_images_over_slices_as_render_does() {
     let srv = serve_web(&store);
     let view = "mode=slice&size=200x180&slice=0.45&tf=linear&window=0,40000&labels=cells&label_opacity=0.7&only_labels=2,4-6";
     let url = format!(
-        "http://127.0.0.1:{}/web/#store=..%2Fnuclei.ome.zarr%2F&{view}",
+        "http://127.0.0.1:{}/web/#store=..%2Fnuclei.ome.zarr%2F&backend=gpu&{view}",
         srv.1
     );
     let out = d.path().join("out");
@@ -378,7 +515,7 @@ fn the_web_pages_readout_names_the_voxel_and_a_click_picks_its_label() {
     // Level 0 everywhere (a slice larger than the volume's 256 × 256): the
     // readout reads the voxels themselves.
     let url = format!(
-        "http://127.0.0.1:{}/web/#store=..%2Fnuclei.ome.zarr%2F&mode=slice&size=560x540&slice=0.45&tf=linear&window=0,40000&labels=cells",
+        "http://127.0.0.1:{}/web/#store=..%2Fnuclei.ome.zarr%2F&backend=gpu&mode=slice&size=560x540&slice=0.45&tf=linear&window=0,40000&labels=cells",
         srv.1
     );
     let run = |url: &str, name: &str| {
