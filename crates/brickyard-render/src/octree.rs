@@ -216,23 +216,17 @@ impl LeafRanges {
 }
 
 impl Octree {
-    /// An octree of depth `depth` for a volume of `dims` per level and
-    /// `channels`, bricks of `brick` voxels, node ranges from `ranges`
-    /// (`None`: unknown), nothing mapped.
-    pub fn new(
-        depth: u32,
-        dims: &[Dims3],
-        brick: Dims3,
-        channels: usize,
-        ranges: Option<&BrickRanges>,
-    ) -> Result<Octree, ConfigError> {
+    /// Whether an octree of `depth` over `levels` levels of `channels`
+    /// channels can be made: the depth in range, one mask bit per level,
+    /// and its tables within `MAX_BYTES`.
+    pub fn check(depth: u32, levels: usize, channels: usize) -> Result<(), ConfigError> {
         let bad = |m: String| Err(ConfigError::new("residency octree", "octree_depth", m));
         if !(MIN_DEPTH..=MAX_DEPTH).contains(&depth) {
             return bad(format!(
                 "depth must be {MIN_DEPTH} to {MAX_DEPTH}, got {depth}"
             ));
         }
-        let nl = dims.len();
+        let nl = levels;
         if nl == 0 || nl > 32 {
             return bad(format!("1 to 32 levels (one mask bit each), got {nl}"));
         }
@@ -247,6 +241,23 @@ impl Octree {
                 MAX_BYTES >> 20
             ));
         }
+        Ok(())
+    }
+
+    /// An octree of depth `depth` for a volume of `dims` per level and
+    /// `channels`, bricks of `brick` voxels, node ranges from `ranges`
+    /// (`None`: unknown), nothing mapped.
+    pub fn new(
+        depth: u32,
+        dims: &[Dims3],
+        brick: Dims3,
+        channels: usize,
+        ranges: Option<&BrickRanges>,
+    ) -> Result<Octree, ConfigError> {
+        Octree::check(depth, dims.len(), channels)?;
+        let nodes = node_count(depth) as u64;
+        let leaves = 1u64 << (3 * depth);
+        let nl = dims.len();
         let mut o = Octree {
             depth,
             channels,

@@ -3,7 +3,8 @@
 // Each page opens in turn and is waited for until its view is complete;
 // OUT_DIR/NAME.rgba gets its canvas's pixels (straight RGBA) and
 // OUT_DIR/canvas.json, per NAME, its size, status, the device it drew on
-// (null: the CPU) and the notice it showed. Exits non-zero on any failure
+// (null: the CPU), the notice it showed, the URL it wrote and its
+// traversal control's value. Exits non-zero on any failure
 // (a page's error included).
 import { chromium } from 'playwright-core';
 import { writeFileSync } from 'node:fs';
@@ -34,7 +35,8 @@ try {
       return {
         error: window.brickyard.error || null, status: window.brickyard.status,
         device: window.brickyard.device || null, notice: document.getElementById('notice').textContent,
-        width: c.width, height: c.height, data: Array.from(px),
+        width: c.width, height: c.height, data: Array.from(px), url: location.href,
+        traversal: document.getElementById('traversal').value,
       };
     });
     if (r.error) throw new Error(`${name}: the page reports: ${r.error}`);

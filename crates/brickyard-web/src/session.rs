@@ -9,11 +9,13 @@ use brickyard_cache::brick::{BrickKey, LoadedBrick};
 use brickyard_cache::vm::{FrameReport, InsertReport, VirtualMemory, VmConfig};
 use brickyard_render::budget::{Decision, FrameSignals, LodBudget};
 use brickyard_render::cpu::{render_tiles, FrameStats, Lod, Scene, Tiles};
+use brickyard_render::octree::{Octree, DEFAULT_DEPTH};
+use brickyard_render::params::Traversal;
 use brickyard_render::{readout, Image, RenderParams};
 use std::cell::RefCell;
 use std::collections::{HashSet, VecDeque};
 use std::rc::Rc;
-use std::sync::Arc;
+use std::sync::{Arc, RwLock};
 
 /// Runs a task to its end beside the caller (the page's event loop, or a
 /// test's executor).
@@ -330,7 +332,28 @@ impl WebSession {
                 ..Default::default()
             }));
         }
+        if p.traversal == Traversal::Octree && self.scene.octree.is_none() {
+            self.attach_octree();
+        }
         Ok((drawn, failed))
+    }
+
+    /// The residency octree over the virtual memory as it is now, kept in
+    /// the scene for DVR through it (`traversal=octree`): from here on
+    /// every frame's end brings it up to date with what was mapped and
+    /// evicted (as `render --traversal octree` keeps its own). Attached by
+    /// the first frame that asks for it and kept: views through the page
+    /// tables ignore it. (`ViewState::params` refused the views whose
+    /// octree cannot be made.)
+    fn attach_octree(&mut self) {
+        let o = Octree::attach(
+            DEFAULT_DEPTH,
+            &self.scene.levels,
+            &mut self.vm,
+            self.scene.ranges.as_deref(),
+        )
+        .expect("the default depth suits every volume");
+        self.scene.octree = Some(Arc::new(RwLock::new(o)));
     }
 
     /// End a frame drawn after [`prepare`](Self::prepare) with these
@@ -393,6 +416,9 @@ impl WebSession {
         let batch: Vec<Arc<LoadedBrick>> = self.waiting.iter().cloned().collect();
         let insert = self.vm.insert(&batch);
         self.waiting.drain(..insert.processed);
+        if let Some(o) = &self.scene.octree {
+            o.write().expect("octree lock").sync(&mut self.vm);
+        }
         let keep = self.vm.config().request_cap * 2;
         while self.waiting.len() > keep {
             self.waiting.pop_back();

@@ -8,7 +8,8 @@ use crate::zarr::ChannelMeta;
 use brickyard_core::camera::{normalize, Camera, Projection};
 use brickyard_core::TransferFunction;
 use brickyard_render::cpu::{Lod, Scene};
-use brickyard_render::params::{ChannelStyle, LabelSelect};
+use brickyard_render::octree::{Octree, DEFAULT_DEPTH};
+use brickyard_render::params::{ChannelStyle, LabelSelect, Traversal};
 use brickyard_render::{RenderMode, RenderParams};
 
 /// The view: every field has a default, and the URL carries only what
@@ -45,6 +46,10 @@ pub struct ViewState {
     /// `only_labels=IDS` / `hide_labels=IDS`: the labels drawn (of a
     /// label image shown, or of `labels=NAME`).
     pub label_select: Option<LabelSelect>,
+    /// `traversal=octree`: DVR through the residency octree (of the
+    /// default depth), as `render --traversal octree`; else the page
+    /// tables.
+    pub traversal: Traversal,
 }
 
 impl Default for ViewState {
@@ -66,6 +71,7 @@ impl Default for ViewState {
             labels: None,
             label_opacity: 0.5,
             label_select: None,
+            traversal: Traversal::PageTable,
         }
     }
 }
@@ -188,6 +194,7 @@ impl ViewState {
                     let ids = LabelSelect::parse_ids(&v).map_err(|e| format!("{k}: {e}"))?;
                     s.label_select = Some(LabelSelect::new(ids, k == "hide_labels"));
                 }
+                "traversal" => s.traversal = v.parse()?,
                 _ => {}
             }
         }
@@ -248,6 +255,9 @@ impl ViewState {
                 "only_labels"
             };
             q.push(format!("{k}={}", sel.ids_text()));
+        }
+        if self.traversal == Traversal::Octree {
+            q.push("traversal=octree".into());
         }
         q.join("&")
     }
@@ -377,7 +387,12 @@ impl ViewState {
         if !dvr || styles.len() > 1 {
             p.channels = styles;
         }
+        p.traversal = self.traversal;
         p.validate().map_err(|e| e.to_string())?;
+        if self.traversal == Traversal::Octree {
+            Octree::check(DEFAULT_DEPTH, scene.levels.len(), n_channels)
+                .map_err(|e| format!("traversal: {e}"))?;
+        }
         Ok(View {
             params: p,
             lod: Lod::Auto {
@@ -539,6 +554,7 @@ mod tests {
             ("size=3x3", "size"),
             ("tf=nope", "tf"),
             ("zoom=0", "zoom"),
+            ("traversal=kd", "traversal"),
         ] {
             let e = ViewState::from_query(q).unwrap_err();
             assert!(e.starts_with(key), "{q}: {e}");
@@ -549,5 +565,29 @@ mod tests {
         assert_eq!(s.tf.as_deref(), Some("labels"));
         assert_eq!(ViewState::from_query(&s.to_query()).unwrap(), s);
         assert_eq!(ViewState::from_query("mode=slice").unwrap().tf, None);
+        let s = ViewState::from_query("traversal=octree&az=10").unwrap();
+        assert_eq!(s.traversal, Traversal::Octree);
+        assert_eq!(s.to_query(), "az=10&traversal=octree");
+    }
+
+    #[test]
+    fn the_octree_traversal_draws_dvr_and_says_so_elsewhere() {
+        let scene = Scene::new([1.0; 3], vec![[64, 64, 64], [32, 32, 32]]);
+        let view = |q: &str, channels: usize| {
+            ViewState::from_query(q)
+                .unwrap()
+                .params(&scene, [0.0, 255.0], &[], channels, false)
+        };
+        let v = view("traversal=octree", 1).unwrap();
+        assert_eq!(v.params.traversal, Traversal::Octree);
+        assert_eq!(view("", 1).unwrap().params.traversal, Traversal::PageTable);
+        for q in ["mode=mip&traversal=octree", "mode=slice&traversal=octree"] {
+            let e = view(q, 1).unwrap_err();
+            assert!(e.contains("`traversal`") && e.contains("DVR"), "{q}: {e}");
+        }
+        // An octree too large for its tables: refused up front, not when
+        // a frame attaches it.
+        let e = view("traversal=octree&channels=0", 1 << 16).unwrap_err();
+        assert!(e.starts_with("traversal:") && e.contains("depth"), "{e}");
     }
 }

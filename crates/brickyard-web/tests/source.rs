@@ -292,6 +292,84 @@ fn a_streamed_view_equals_brickyard_render() {
 }
 
 #[test]
+fn a_view_through_the_residency_octree_streams_as_brickyard_render_draws_it() {
+    let dir = tempfile::tempdir().unwrap();
+    let store = convert_file(dir.path(), "mni152-t1-u8.nii.gz", Compression::Lz4, 64, 128);
+    let q = "size=240x200&az=-50&el=30&window=0,255";
+    let mut images = vec![];
+    for traversal in ["page-table", "octree"] {
+        let st = ViewState::from_query(&format!("{q}&traversal={traversal}")).unwrap();
+        let (img, frames, v, mut s) = stream_session(&store, 64 << 20, |s, src| {
+            st.params(&s.scene, [0.0, 255.0], &src.meta.channels, 1, false)
+                .unwrap()
+        });
+        assert_eq!(s.scene.octree.is_some(), traversal == "octree");
+        if let Some(o) = &s.scene.octree {
+            // The octree followed the session: what it holds is what the
+            // virtual memory maps, and a redraw of the whole view walks it.
+            let fresh = brickyard_render::octree::Octree::of_vm(
+                brickyard_render::octree::DEFAULT_DEPTH,
+                &s.scene.levels,
+                &s.vm,
+                None,
+            )
+            .unwrap();
+            let o = o.read().unwrap();
+            assert_eq!(o.mask, fresh.mask, "the octree's masks fell behind");
+            let bits = |r: &[[f32; 2]]| -> Vec<[u32; 2]> {
+                r.iter().map(|x| x.map(f32::to_bits)).collect()
+            };
+            assert_eq!(bits(&o.range), bits(&fresh.range), "ranges kept vs fresh");
+            drop(o);
+            let nudged = ViewState::from_query(&format!("{q}&zoom=1.0001&traversal=octree"))
+                .unwrap()
+                .params(&s.scene, [0.0, 255.0], &[], 1, false)
+                .unwrap();
+            let out = s.frame_cpu(&nudged.params, nudged.lod);
+            assert!(out.stats.octree_nodes > 0, "{:?}", out.stats);
+        }
+        let cli = render_cli(
+            &store,
+            &[
+                "--size",
+                "240x200",
+                "--azimuth=-50",
+                "--elevation=30",
+                "--window",
+                "0,255",
+                "--traversal",
+                traversal,
+            ],
+        );
+        let lit = cli.rgba.iter().filter(|p| p[3] > 0.05).count();
+        assert!(lit > cli.rgba.len() / 10, "the reference is nearly blank");
+        let d = img
+            .rgba
+            .iter()
+            .zip(&cli.rgba)
+            .flat_map(|(a, b)| (0..4).map(move |i| (a[i] - b[i]).abs()))
+            .fold(0f32, f32::max);
+        eprintln!(
+            "{traversal}: complete after {frames} frames, max difference {d:e}; {:?}",
+            v.lod
+        );
+        assert!(
+            d <= 1e-5,
+            "{traversal}: differs from brickyard render by {d}"
+        );
+        images.push(img);
+    }
+    let d = images[0]
+        .rgba
+        .iter()
+        .zip(&images[1].rgba)
+        .flat_map(|(a, b)| (0..4).map(move |i| (a[i] - b[i]).abs()))
+        .fold(0f32, f32::max);
+    eprintln!("octree vs page tables: max difference {d:e}");
+    assert!(d <= 1e-5, "octree vs page tables: {d}");
+}
+
+#[test]
 fn a_pool_smaller_than_the_view_still_completes() {
     let dir = tempfile::tempdir().unwrap();
     let store = convert_file(dir.path(), "mni152-t1-u8.nii.gz", Compression::Lz4, 64, 128);
@@ -467,6 +545,10 @@ fn several_channels_equal_brickyard_render() {
     .expect("convert");
     for (q, args) in [
         ("size=200x160&az=40&el=25", vec![]),
+        (
+            "size=200x160&az=40&el=25&traversal=octree",
+            vec!["--traversal", "octree"],
+        ),
         (
             "mode=mip&size=160x160&channels=1,2",
             vec!["--mode", "mip", "--channel", "1", "--channel", "2"],

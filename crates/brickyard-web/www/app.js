@@ -47,6 +47,8 @@ function syncControls(q) {
   $('tf').value = p.get('tf') || '';
   $('slice').value = p.get('slice') || '0.5';
   $('bias').value = p.get('bias') || '0';
+  $('traversal').value = p.get('traversal') || '';
+  $('traversal').disabled = (p.get('mode') || 'dvr') !== 'dvr';
   if (state.multi) $('channel').value = p.get('channels') || 'all';
   else if (p.get('channel')) $('channel').value = p.get('channel');
   const info = JSON.parse(state.viewer.info());
@@ -199,7 +201,9 @@ function wireControls() {
     if (hi > lo) { $(histDrag).value = v; setView({ window: `${lo},${hi}` }); histAt = 0; }
   });
   hist.addEventListener('pointerup', () => { histDrag = null; });
-  $('mode').onchange = () => setView({ mode: $('mode').value === 'dvr' ? null : $('mode').value });
+  // The octree draws DVR: other modes go through the page tables.
+  $('mode').onchange = () => setView($('mode').value === 'dvr' ? { mode: null } : { mode: $('mode').value, traversal: null });
+  $('traversal').onchange = () => setView({ traversal: $('traversal').value || null });
   $('tf').onchange = () => setView({ tf: $('tf').value || null });
   const win = () => setView({ window: `${$('wlo').value},${$('whi').value}` });
   $('wlo').onchange = win; $('whi').onchange = win;

@@ -298,7 +298,7 @@ fn canvases(out: &Path, pages: &[(&str, String)]) -> serde_json::Value {
 }
 
 #[test]
-fn the_web_client_draws_several_channels_through_webgpu_as_render_does() {
+fn the_web_client_draws_several_channels_through_webgpu_and_the_octree_as_render_does() {
     if needs_browser().is_none() {
         return;
     }
@@ -326,30 +326,45 @@ fn the_web_client_draws_several_channels_through_webgpu_as_render_does() {
         &[
             ("gpu", format!("{base}&backend=gpu&{view}")),
             ("auto", format!("{base}&{view}")),
+            // The residency octree, through WebGPU and on the CPU.
+            (
+                "gpu-octree",
+                format!("{base}&backend=gpu&{view}&traversal=octree"),
+            ),
+            (
+                "cpu-octree",
+                format!("{base}&backend=cpu&{view}&traversal=octree"),
+            ),
         ],
     );
-    let png = d.path().join("cli.png");
-    ok(&bin()
-        .arg("render")
-        .arg(&store)
-        .args([
-            "--size",
-            "160x120",
-            "--azimuth",
-            "40",
-            "--elevation",
-            "25",
-            "--brick",
-            "32",
-            "--backend",
-            "cpu",
-            "--quiet",
-            "-o",
-        ])
-        .arg(&png)
-        .output()
-        .unwrap());
-    let (w, h, cli) = read_png(&png);
+    let cli_render = |traversal: &str| {
+        let png = d.path().join(format!("cli-{traversal}.png"));
+        ok(&bin()
+            .arg("render")
+            .arg(&store)
+            .args([
+                "--size",
+                "160x120",
+                "--azimuth",
+                "40",
+                "--elevation",
+                "25",
+                "--brick",
+                "32",
+                "--traversal",
+                traversal,
+                "--backend",
+                "cpu",
+                "--quiet",
+                "-o",
+            ])
+            .arg(&png)
+            .output()
+            .unwrap());
+        read_png(&png)
+    };
+    let (w, h, cli) = cli_render("page-table");
+    let (_, _, cli_octree) = cli_render("octree");
     let lit = cli
         .chunks_exact(4)
         .filter(|p| p[0].max(p[1]).max(p[2]) > 20)
@@ -368,12 +383,26 @@ fn the_web_client_draws_several_channels_through_webgpu_as_render_does() {
         hue(1) > 50 && (hue(0) > 50 || hue(2) > 50),
         "one channel only?"
     );
-    for name in ["gpu", "auto"] {
+    for name in ["gpu", "auto", "gpu-octree", "cpu-octree"] {
         let canvas = std::fs::read(out.join(format!("{name}.rgba"))).unwrap();
+        let cli = if name.ends_with("octree") {
+            // The page wrote the traversal into its link and its control.
+            assert!(
+                r[name]["url"]
+                    .as_str()
+                    .unwrap()
+                    .contains("traversal=octree"),
+                "{r}"
+            );
+            assert_eq!(r[name]["traversal"], "octree", "{r}");
+            &cli_octree
+        } else {
+            &cli
+        };
         assert_eq!(canvas.len(), cli.len());
         let max = canvas
             .iter()
-            .zip(&cli)
+            .zip(cli)
             .map(|(a, b)| a.abs_diff(*b))
             .max()
             .unwrap();
@@ -393,8 +422,10 @@ fn the_web_client_draws_several_channels_through_webgpu_as_render_does() {
             "CI requires the WebGPU path to be checked: {r}"
         );
     }
-    // The frame compared was the device's, not a CPU fallback's.
+    // The frames compared were the device's, not a CPU fallback's.
     assert_eq!(r["gpu"]["status"]["on_device"], gpu.is_some(), "{r}");
+    assert_eq!(r["gpu-octree"]["status"]["on_device"], gpu.is_some(), "{r}");
+    assert_eq!(r["cpu-octree"]["status"]["on_device"], false, "{r}");
     // The default leaves a software adapter (isFallbackAdapter: "Cpu") for
     // the CPU in WebAssembly, and says why; a hardware one it uses.
     match gpu {
