@@ -338,6 +338,18 @@ impl WebSession {
         Ok((drawn, failed))
     }
 
+    /// Take in the store's brick statistics ([`WebSource::brick_ranges`],
+    /// levels of up to `max_bricks` bricks × channels): frames then cross
+    /// the bricks their transfer function hides without asking for them,
+    /// as `render` does. Returns what could not be read, for the page to
+    /// report.
+    pub async fn read_ranges(&mut self, max_bricks: u64) -> Vec<String> {
+        let src = self.loads.src.clone();
+        let (ranges, problems) = src.brick_ranges(max_bricks).await;
+        self.scene.ranges = Some(Arc::new(ranges));
+        problems
+    }
+
     /// The residency octree over the virtual memory as it is now, kept in
     /// the scene for DVR through it (`traversal=octree`): from here on
     /// every frame's end brings it up to date with what was mapped and

@@ -12,6 +12,7 @@ use crate::codec::{decode_chain, swap_bytes};
 use crate::zarr::{self, Codec, Multiscale};
 use brickyard_cache::assemble::{brick_buffer, finish_brick, PaddedRegion};
 use brickyard_cache::brick::{BrickGeometry, BrickKey, LoadedBrick};
+use brickyard_cache::ranges::BrickRanges;
 use brickyard_core::Dims3;
 use futures_util::future::{FutureExt, Shared};
 use std::cell::RefCell;
@@ -119,6 +120,29 @@ pub struct WebSource {
     inflight: RefCell<HashMap<(String, Range), SharedFetch>>,
 }
 
+/// One level's brick statistics, decoded: per chunk of the array (by its
+/// first four indexes), its values, `None` where the chunk could not be
+/// read.
+struct LevelStats {
+    chunk: [u64; 4],
+    chunks: HashMap<[u64; 4], Option<Vec<f64>>>,
+}
+
+impl LevelStats {
+    /// (min, max) of store brick `b` of channel `c`, `None` if unknown.
+    fn get(&self, c: u64, b: Dims3) -> Option<(f64, f64)> {
+        let p = [c, b[0], b[1], b[2]];
+        let ch = self.chunk;
+        let values = self
+            .chunks
+            .get(&[0, 1, 2, 3].map(|a| p[a] / ch[a]))?
+            .as_ref()?;
+        let r = [0, 1, 2, 3].map(|a| p[a] % ch[a]);
+        let e = ((((r[0] * ch[1] + r[1]) * ch[2] + r[2]) * ch[3] + r[3]) * 2) as usize;
+        Some((values[e], values[e + 1]))
+    }
+}
+
 /// (level, chunk or shard index, inner chunk or `usize::MAX`).
 type ChunkKey = (usize, Vec<u64>, usize);
 
@@ -190,6 +214,148 @@ impl WebSource {
             stats: RefCell::new(SourceStats::default()),
             inflight: RefCell::new(HashMap::new()),
         })
+    }
+
+    /// The store's per-brick statistics (`brickyard.stats`: per level an
+    /// array `[channel, brick z, y, x, 2]` of (min, max) per store brick
+    /// of `brickyard.brick` voxels) as the value ranges of the engine's
+    /// padded bricks, as the native loader makes them
+    /// ([`Loader::brick_ranges`](brickyard_cache::loader)): the renderers
+    /// cross bricks their transfer function hides without loading them,
+    /// and the residency octree knows what nodes hold before their bricks
+    /// arrive. A level without statistics, with an array of another shape
+    /// or type, or of more than `max_bricks` engine bricks × channels is
+    /// left out; a chunk that cannot be read leaves its bricks unknown
+    /// (loaded to learn what they hold). What went wrong comes back, one
+    /// line each, for the page to report; a store without statistics is
+    /// not a problem.
+    pub async fn brick_ranges(&self, max_bricks: u64) -> (BrickRanges, Vec<String>) {
+        let g = &self.geometry;
+        let none = || BrickRanges {
+            levels: vec![None; g.levels.len()],
+        };
+        let (Some(dir), Some(sb)) = (&self.meta.stats, self.meta.stats_brick) else {
+            return (none(), vec![]);
+        };
+        if sb.contains(&0) || self.meta.zarr_format != 3 {
+            return (none(), vec![]);
+        }
+        let mut problems = vec![];
+        let mut levels: Vec<Option<LevelStats>> = vec![];
+        for (l, dims) in g.levels.iter().enumerate() {
+            let count = g.bricks_per_level(l).iter().product::<u64>() * g.channels as u64;
+            let stats = if count > max_bricks {
+                None
+            } else {
+                self.level_stats(&format!("{dir}/{l}"), sb, *dims, &mut problems)
+                    .await
+            };
+            levels.push(stats);
+        }
+        let r = BrickRanges::build(
+            g,
+            sb,
+            max_bricks,
+            |l| levels[l].is_some(),
+            |l, c, b| levels[l].as_ref()?.get(c as u64, b),
+        );
+        (r, problems)
+    }
+
+    /// One level's statistics array at `path`, read whole (its chunks at
+    /// once): `None` when absent, or (with a line in `problems`) when it
+    /// is not the array expected.
+    async fn level_stats(
+        &self,
+        path: &str,
+        sb: Dims3,
+        dims: Dims3,
+        problems: &mut Vec<String>,
+    ) -> Option<LevelStats> {
+        let doc = format!("{path}/zarr.json");
+        let text = match self.fetch.get(&doc, Range::All).await {
+            Ok(Some(t)) => t,
+            Ok(None) => return None,
+            Err(e) => {
+                problems.push(format!("{doc}: {e}"));
+                return None;
+            }
+        };
+        let a = match zarr::parse_v3_array(path, &text) {
+            Ok(a) => a,
+            Err(e) => {
+                problems.push(e.to_string());
+                return None;
+            }
+        };
+        let nb = [0, 1, 2].map(|i| dims[i].div_ceil(sb[i]));
+        let want = vec![self.geometry.channels as u64, nb[0], nb[1], nb[2], 2];
+        if a.shape != want
+            || a.dtype != brickyard_core::DType::F64
+            || a.chunk[4] != 2
+            || a.sharding().is_some()
+        {
+            problems.push(format!(
+                "{doc}: expected an unsharded float64 array of shape {want:?} with chunks \
+                 ending in 2, found {:?} {:?} chunks {:?}: the level's bricks are loaded to \
+                 learn what they hold",
+                a.dtype, a.shape, a.chunk
+            ));
+            return None;
+        }
+        let ch = [a.chunk[0], a.chunk[1], a.chunk[2], a.chunk[3]];
+        let grid = [0, 1, 2, 3].map(|i| a.shape[i].div_ceil(ch[i]));
+        let mut idx = vec![];
+        for c in 0..grid[0] {
+            for z in 0..grid[1] {
+                for y in 0..grid[2] {
+                    for x in 0..grid[3] {
+                        idx.push([c, z, y, x]);
+                    }
+                }
+            }
+        }
+        let n = ch.iter().product::<u64>() as usize * 2;
+        let reads = idx.iter().map(|i| {
+            let key = a.chunk_key(&[i[0], i[1], i[2], i[3], 0]);
+            async move { (key.clone(), self.fetch.get(&key, Range::All).await) }
+        });
+        let mut chunks = HashMap::new();
+        for (i, (key, got)) in idx.iter().zip(futures_util::future::join_all(reads).await) {
+            let values = match got {
+                // Never written: the fill value (NaN: nothing but NaN),
+                // as Zarr and the native loader read it.
+                Ok(None) => {
+                    let fill = f64::from_ne_bytes(a.fill[..8].try_into().expect("f64 fill"));
+                    Ok(vec![fill; n])
+                }
+                Ok(Some(b)) => decode_chain(&a.codecs, b).and_then(|(mut b, big)| {
+                    if big {
+                        swap_bytes(&mut b, 8);
+                    }
+                    if b.len() != n * 8 {
+                        return Err(format!("{} bytes, {} expected", b.len(), n * 8));
+                    }
+                    Ok(b.chunks_exact(8)
+                        .map(|v| f64::from_le_bytes(v.try_into().expect("8 bytes")))
+                        .collect())
+                }),
+                Err(e) => Err(e),
+            };
+            match values {
+                Ok(v) => {
+                    chunks.insert(*i, Some(v));
+                }
+                Err(e) => {
+                    problems.push(format!(
+                        "{key}: cannot be read ({e}): its bricks are loaded to learn what \
+                         they hold, none is skipped as empty"
+                    ));
+                    chunks.insert(*i, None);
+                }
+            }
+        }
+        Some(LevelStats { chunk: ch, chunks })
     }
 
     /// The bounding box of every label in the label image's statistics

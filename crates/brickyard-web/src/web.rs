@@ -216,6 +216,11 @@ pub struct Viewer {
     info: String,
 }
 
+/// The most bricks × channels of a level whose statistics the page reads
+/// (16 MiB of value ranges at most): finer levels of larger volumes are
+/// loaded to learn what their bricks hold.
+const MAX_RANGES: u64 = 1 << 21;
+
 #[wasm_bindgen]
 impl Viewer {
     /// Open the OME-Zarr store at `url` and draw into `canvas`, with the
@@ -259,6 +264,7 @@ impl Viewer {
             ..Default::default()
         };
         let spawn: Spawn = Rc::new(wasm_bindgen_futures::spawn_local);
+        let mut stats_problems = vec![];
         let labels = match &state.labels {
             Some(name) => {
                 let fetch: Rc<dyn Fetch> = Rc::new(HttpFetch {
@@ -277,8 +283,9 @@ impl Viewer {
                     pool_bytes: label_pool,
                     ..cfg.clone()
                 };
-                let session = WebSession::new(Rc::new(lsrc), lcfg, spawn.clone(), 16)
+                let mut session = WebSession::new(Rc::new(lsrc), lcfg, spawn.clone(), 16)
                     .map_err(|e| JsValue::from_str(&format!("labels: {e}")))?;
+                stats_problems.extend(session.read_ranges(MAX_RANGES).await);
                 Some(LabelLayer {
                     session,
                     name: name.clone(),
@@ -290,6 +297,10 @@ impl Viewer {
         };
         let mut session =
             WebSession::new(Rc::new(src), cfg, spawn, 32).map_err(|e| JsValue::from_str(&e))?;
+        stats_problems.extend(session.read_ranges(MAX_RANGES).await);
+        for p in &stats_problems {
+            web_sys::console::warn_1(&JsValue::from_str(&format!("brick statistics: {p}")));
+        }
         session.scene.channel = state.channel;
         let (device, device_note) = if backend != Backend::Cpu {
             match open_device(&mut session, backend).await {
@@ -315,6 +326,7 @@ impl Viewer {
             "device": device.as_ref().map(|d| d.gpu.describe()),
             "device_note": device_note,
             "label_image": src.meta.labels,
+            "stats_problems": stats_problems,
         })
         .to_string();
         let channels = src.geometry.channels;

@@ -115,6 +115,76 @@ fn bricks_equal_the_native_loaders_on_real_volumes() {
     }
 }
 
+/// The value ranges of every engine brick, as bits (NaN: unknown).
+fn range_bits(r: &brickyard_cache::ranges::BrickRanges) -> Vec<Option<Vec<[u32; 2]>>> {
+    r.levels
+        .iter()
+        .map(|l| {
+            l.as_ref()
+                .map(|l| l.range.iter().map(|x| x.map(f32::to_bits)).collect())
+        })
+        .collect()
+}
+
+#[test]
+fn brick_statistics_read_over_fetch_equal_the_native_loaders() {
+    let dir = tempfile::tempdir().unwrap();
+    for (input, brick) in [
+        ("mni152-t1-u8.nii.gz", 32),
+        ("nuclei-confocal-u16.tif", 16),
+        ("tomo-cryoet-f32.tif", 32),
+    ] {
+        let store = convert_file(dir.path(), input, Compression::Lz4, 64, 128);
+        let web = open_web(&store, brick);
+        let native = Loader::open(&store, [brick; 3], 1, 1, Arc::new(HostCache::new(1 << 26)))
+            .expect("loader");
+        let (w, problems) = futures_executor::block_on(web.brick_ranges(1 << 24));
+        assert!(problems.is_empty(), "{problems:?}");
+        let n = native.brick_ranges(1 << 24);
+        let (wb, nb) = (range_bits(&w), range_bits(&n));
+        assert!(
+            wb.iter().all(Option::is_some),
+            "{input}: a level without statistics"
+        );
+        assert_eq!(
+            wb, nb,
+            "{input}: the page's brick ranges differ from the native loader's"
+        );
+        // Not a vacuous check: some bricks have known, finite ranges.
+        let known = wb[0]
+            .as_ref()
+            .unwrap()
+            .iter()
+            .filter(|r| f32::from_bits(r[0]).is_finite())
+            .count();
+        assert!(known > 0, "{input}: no brick of level 0 has a known range");
+        // A level of more bricks than allowed is left out, as natively.
+        let (few, _) = futures_executor::block_on(web.brick_ranges(1));
+        assert_eq!(range_bits(&few), range_bits(&native.brick_ranges(1)));
+    }
+    // A damaged chunk of the statistics: reported by name, its bricks
+    // unknown, the other levels as before.
+    let dir = tempfile::tempdir().unwrap();
+    let store = convert_file(dir.path(), "mni152-t1-u8.nii.gz", Compression::Lz4, 64, 128);
+    let web = open_web(&store, 32);
+    let (before, _) = futures_executor::block_on(web.brick_ranges(1 << 24));
+    let chunk = store.join("_brickyard/stats/0/c/0/0/0/0/0");
+    assert!(chunk.is_file(), "{}", chunk.display());
+    std::fs::write(&chunk, b"not zstd").unwrap();
+    let (after, problems) = futures_executor::block_on(web.brick_ranges(1 << 24));
+    assert!(
+        problems.len() == 1 && problems[0].contains("stats/0/c/0/0/0/0/0"),
+        "{problems:?}"
+    );
+    let (a, b) = (range_bits(&after), range_bits(&before));
+    assert!(a[0]
+        .as_ref()
+        .unwrap()
+        .iter()
+        .all(|r| f32::from_bits(r[0]).is_nan()));
+    assert_eq!(a[1..], b[1..]);
+}
+
 #[test]
 fn damaged_chunks_fail_their_bricks_with_the_file_named() {
     let dir = tempfile::tempdir().unwrap();
@@ -202,6 +272,9 @@ fn stream_session(
         ..Default::default()
     };
     let mut s = WebSession::new(src.clone(), cfg, spawn, 6).expect("session");
+    // The store's brick statistics, as the page reads them.
+    let problems = exec.run_until(s.read_ranges(1 << 21));
+    assert!(problems.is_empty(), "{problems:?}");
     let v = view(&s, &src);
     let (image, frames) = frames_until_complete(&mut s, &mut exec, &v);
     (image, frames, v, s)
@@ -311,7 +384,7 @@ fn a_view_through_the_residency_octree_streams_as_brickyard_render_draws_it() {
                 brickyard_render::octree::DEFAULT_DEPTH,
                 &s.scene.levels,
                 &s.vm,
-                None,
+                s.scene.ranges.as_deref(),
             )
             .unwrap();
             let o = o.read().unwrap();
@@ -367,6 +440,78 @@ fn a_view_through_the_residency_octree_streams_as_brickyard_render_draws_it() {
         .fold(0f32, f32::max);
     eprintln!("octree vs page tables: max difference {d:e}");
     assert!(d <= 1e-5, "octree vs page tables: {d}");
+}
+
+#[test]
+fn brick_statistics_spare_the_loads_of_bricks_the_view_hides() {
+    // Only the brightest tissue shows: bricks whose statistics stay below
+    // the window are crossed without being asked for. (Statistics per 16³
+    // store brick, finer than the engine's 32³ bricks.)
+    let dir = tempfile::tempdir().unwrap();
+    let store = convert_file(dir.path(), "mni152-t1-u8.nii.gz", Compression::Lz4, 16, 64);
+    let st = ViewState::from_query("size=240x200&az=20&el=10&window=160,255&tf=hot").unwrap();
+    let mut runs = vec![];
+    for ranges in [false, true] {
+        let src = Rc::new(open_web(&store, 32));
+        let mut exec = LocalPool::new();
+        let sp = exec.spawner();
+        let spawn: Spawn = Rc::new(move |f| spawn_local(&sp, f));
+        let cfg = VmConfig {
+            brick: [32; 3],
+            pool_bytes: 16 << 20,
+            ..Default::default()
+        };
+        let mut s = WebSession::new(src.clone(), cfg, spawn, 6).expect("session");
+        if ranges {
+            assert!(exec.run_until(s.read_ranges(1 << 21)).is_empty());
+        }
+        let v = st
+            .params(&s.scene, [0.0, 255.0], &src.meta.channels, 1, false)
+            .unwrap();
+        let (img, frames) = frames_until_complete(&mut s, &mut exec, &v);
+        // Level 0 is not pinned: its bricks come in only when asked for.
+        let level0 = src
+            .geometry
+            .keys(0, 0)
+            .filter(|k| s.vm.is_resident(*k))
+            .count();
+        eprintln!(
+            "statistics {ranges}: {level0} bricks of level 0 resident, {} loaded in all, \
+             {frames} frames",
+            s.loads.loaded()
+        );
+        runs.push((img, level0));
+    }
+    let cli = render_cli(
+        &store,
+        &[
+            "--size",
+            "240x200",
+            "--azimuth=20",
+            "--elevation=10",
+            "--window",
+            "160,255",
+            "--tf",
+            "hot",
+        ],
+    );
+    let lit = cli.rgba.iter().filter(|p| p[3] > 0.05).count();
+    assert!(lit > 1000, "the reference is nearly blank ({lit})");
+    for (img, _) in &runs {
+        let d = img
+            .rgba
+            .iter()
+            .zip(&cli.rgba)
+            .flat_map(|(a, b)| (0..4).map(move |i| (a[i] - b[i]).abs()))
+            .fold(0f32, f32::max);
+        assert!(d <= 1e-5, "differs from brickyard render by {d}");
+    }
+    assert!(
+        runs[1].1 < runs[0].1,
+        "with statistics {} bricks of level 0 loaded, without {}",
+        runs[1].1,
+        runs[0].1
+    );
 }
 
 #[test]

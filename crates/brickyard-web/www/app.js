@@ -249,6 +249,9 @@ async function main() {
   if (info.device) $('notice').textContent = `Drawing through WebGPU (${info.device}).`;
   else if (state.webgpu && info.device_note) $('notice').textContent = `WebGPU not used: ${info.device_note}. Drawing on the CPU in WebAssembly.`;
   else if (state.webgpu) $('notice').textContent = 'Drawing on the CPU in WebAssembly (backend=cpu).';
+  // A damaged statistics array costs speed (its bricks are loaded to learn
+  // what they hold), not the view: say so.
+  if (info.stats_problems.length) $('notice').textContent += `\nBrick statistics: ${info.stats_problems.length} problem(s), e.g. ${info.stats_problems[0]}`;
   state.multi = info.n_channels > 1;
   if (state.multi) { const o = document.createElement('option'); o.value = 'all'; o.textContent = 'all active (composited)'; $('channel').appendChild(o); }
   info.channels.forEach((label, i) => { const o = document.createElement('option'); o.value = String(i); o.textContent = `${i}: ${label}`; $('channel').appendChild(o); });
