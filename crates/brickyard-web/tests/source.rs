@@ -303,6 +303,15 @@ fn frames_until_complete(
     panic!("the view did not complete in 500 frames");
 }
 
+/// The largest difference of any component of any pixel.
+fn max_diff(a: &Image, b: &Image) -> f32 {
+    a.rgba
+        .iter()
+        .zip(&b.rgba)
+        .flat_map(|(a, b)| (0..4).map(move |i| (a[i] - b[i]).abs()))
+        .fold(0f32, f32::max)
+}
+
 fn render_cli(store: &Path, args: &[&str]) -> Image {
     let mut a: Vec<String> = ["brickyard", "render", store.to_str().unwrap()]
         .map(String::from)
@@ -350,12 +359,7 @@ fn a_streamed_view_equals_brickyard_render() {
             lit > cli.rgba.len() / 10,
             "{q}: the reference image is nearly blank ({lit} lit pixels)"
         );
-        let d = web
-            .rgba
-            .iter()
-            .zip(&cli.rgba)
-            .flat_map(|(a, b)| (0..4).map(move |i| (a[i] - b[i]).abs()))
-            .fold(0f32, f32::max);
+        let d = max_diff(&web, &cli);
         eprintln!("{q}: complete after {frames} frames, max difference {d:e}");
         assert!(
             d <= 1e-5,
@@ -416,12 +420,7 @@ fn a_view_through_the_residency_octree_streams_as_brickyard_render_draws_it() {
         );
         let lit = cli.rgba.iter().filter(|p| p[3] > 0.05).count();
         assert!(lit > cli.rgba.len() / 10, "the reference is nearly blank");
-        let d = img
-            .rgba
-            .iter()
-            .zip(&cli.rgba)
-            .flat_map(|(a, b)| (0..4).map(move |i| (a[i] - b[i]).abs()))
-            .fold(0f32, f32::max);
+        let d = max_diff(&img, &cli);
         eprintln!(
             "{traversal}: complete after {frames} frames, max difference {d:e}; {:?}",
             v.lod
@@ -432,12 +431,7 @@ fn a_view_through_the_residency_octree_streams_as_brickyard_render_draws_it() {
         );
         images.push(img);
     }
-    let d = images[0]
-        .rgba
-        .iter()
-        .zip(&images[1].rgba)
-        .flat_map(|(a, b)| (0..4).map(move |i| (a[i] - b[i]).abs()))
-        .fold(0f32, f32::max);
+    let d = max_diff(&images[0], &images[1]);
     eprintln!("octree vs page tables: max difference {d:e}");
     assert!(d <= 1e-5, "octree vs page tables: {d}");
 }
@@ -498,12 +492,7 @@ fn brick_statistics_spare_the_loads_of_bricks_the_view_hides() {
     let lit = cli.rgba.iter().filter(|p| p[3] > 0.05).count();
     assert!(lit > 1000, "the reference is nearly blank ({lit})");
     for (img, _) in &runs {
-        let d = img
-            .rgba
-            .iter()
-            .zip(&cli.rgba)
-            .flat_map(|(a, b)| (0..4).map(move |i| (a[i] - b[i]).abs()))
-            .fold(0f32, f32::max);
+        let d = max_diff(img, &cli);
         assert!(d <= 1e-5, "differs from brickyard render by {d}");
     }
     assert!(
@@ -718,12 +707,7 @@ fn several_channels_equal_brickyard_render() {
             lit > cli.rgba.len() / 10,
             "{q}: the reference is nearly blank"
         );
-        let d = web
-            .rgba
-            .iter()
-            .zip(&cli.rgba)
-            .flat_map(|(a, b)| (0..4).map(move |i| (a[i] - b[i]).abs()))
-            .fold(0f32, f32::max);
+        let d = max_diff(&web, &cli);
         eprintln!("{q}: complete after {frames} frames, max difference {d:e}");
         assert!(d <= 1e-5, "{q}: differs from brickyard render by {d}");
     }

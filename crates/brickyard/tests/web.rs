@@ -147,6 +147,18 @@ fn nuclei_with_cells(dir: &Path) -> (PathBuf, PathBuf) {
     (store, input)
 }
 
+/// The largest difference between two RGBA buffers' bytes.
+fn max_abs_diff(a: &[u8], b: &[u8]) -> u8 {
+    a.iter().zip(b).map(|(a, b)| a.abs_diff(*b)).max().unwrap()
+}
+
+/// Pixels of an RGBA buffer brighter than 20 in some colour.
+fn lit_pixels(rgba: &[u8]) -> usize {
+    rgba.chunks_exact(4)
+        .filter(|p| p[0].max(p[1]).max(p[2]) > 20)
+        .count()
+}
+
 fn read_png(p: &Path) -> (u32, u32, Vec<u8>) {
     let d = png::Decoder::new(std::io::BufReader::new(std::fs::File::open(p).unwrap()));
     let mut r = d.read_info().unwrap();
@@ -215,10 +227,7 @@ fn the_web_client_draws_what_render_draws_in_a_headless_browser() {
         (r["width"].as_u64(), r["height"].as_u64()),
         (Some(w as u64), Some(h as u64))
     );
-    let lit = cli
-        .chunks_exact(4)
-        .filter(|p| p[0].max(p[1]).max(p[2]) > 20)
-        .count();
+    let lit = lit_pixels(&cli);
     assert!(
         lit as u32 > w * h / 10,
         "the reference is nearly black ({lit} lit pixels)"
@@ -236,12 +245,7 @@ fn the_web_client_draws_what_render_draws_in_a_headless_browser() {
     ] {
         let canvas = std::fs::read(out.join(file)).unwrap();
         assert_eq!(canvas.len(), cli.len());
-        let max = canvas
-            .iter()
-            .zip(&cli)
-            .map(|(a, b)| a.abs_diff(*b))
-            .max()
-            .unwrap();
+        let max = max_abs_diff(&canvas, &cli);
         eprintln!(
             "canvas drawn on {what} vs render: max difference {max}/255; {lit} lit pixels of {}",
             w * h
@@ -365,10 +369,7 @@ fn the_web_client_draws_several_channels_through_webgpu_and_the_octree_as_render
     };
     let (w, h, cli) = cli_render("page-table");
     let (_, _, cli_octree) = cli_render("octree");
-    let lit = cli
-        .chunks_exact(4)
-        .filter(|p| p[0].max(p[1]).max(p[2]) > 20)
-        .count();
+    let lit = lit_pixels(&cli);
     assert!(
         lit as u32 > w * h / 10,
         "the reference is nearly black ({lit} lit pixels)"
@@ -400,12 +401,7 @@ fn the_web_client_draws_several_channels_through_webgpu_and_the_octree_as_render
             &cli
         };
         assert_eq!(canvas.len(), cli.len());
-        let max = canvas
-            .iter()
-            .zip(cli)
-            .map(|(a, b)| a.abs_diff(*b))
-            .max()
-            .unwrap();
+        let max = max_abs_diff(&canvas, cli);
         eprintln!(
             "{name} page, drawn on {}: max difference {max}/255",
             r[name]["device"]
@@ -523,12 +519,7 @@ fn the_web_client_lays_label_images_over_slices_as_render_does() {
     for file in ["canvas.rgba", "canvas-cpu.rgba"] {
         let canvas = std::fs::read(out.join(file)).unwrap();
         assert_eq!(canvas.len(), cli.len());
-        let max = canvas
-            .iter()
-            .zip(&cli)
-            .map(|(a, b)| a.abs_diff(*b))
-            .max()
-            .unwrap();
+        let max = max_abs_diff(&canvas, &cli);
         eprintln!("{file}: max difference {max}/255 from render --labels; labels change {coloured} pixels");
         assert!(max <= 2, "{file} differs from render --labels by {max}/255");
     }
