@@ -157,6 +157,9 @@ pub struct WebSession {
     drawn: Option<(RenderParams, Lod)>,
     image: Image,
     tiles: Tiles,
+    /// The depth of the residency octree frames through it attach
+    /// ([`View::octree_depth`](crate::view::View)).
+    pub octree_depth: u32,
 }
 
 impl WebSession {
@@ -222,6 +225,7 @@ impl WebSession {
             drawn: None,
             image: Image::new(0, 0),
             tiles: Tiles::all(0, 0),
+            octree_depth: DEFAULT_DEPTH,
         })
     }
 
@@ -332,7 +336,14 @@ impl WebSession {
                 ..Default::default()
             }));
         }
-        if p.traversal == Traversal::Octree && self.scene.octree.is_none() {
+        let depth = self.octree_depth;
+        if p.traversal == Traversal::Octree
+            && self
+                .scene
+                .octree
+                .as_ref()
+                .is_none_or(|o| o.read().expect("octree lock").depth != depth)
+        {
             self.attach_octree();
         }
         Ok((drawn, failed))
@@ -350,21 +361,22 @@ impl WebSession {
         problems
     }
 
-    /// The residency octree over the virtual memory as it is now, kept in
-    /// the scene for DVR through it (`traversal=octree`): from here on
-    /// every frame's end brings it up to date with what was mapped and
-    /// evicted (as `render --traversal octree` keeps its own). Attached by
-    /// the first frame that asks for it and kept: views through the page
-    /// tables ignore it. (`ViewState::params` refused the views whose
-    /// octree cannot be made.)
+    /// The residency octree of depth [`octree_depth`](Self::octree_depth)
+    /// over the virtual memory as it is now, kept in the scene for DVR
+    /// through it (`traversal=octree`): from here on every frame's end
+    /// brings it up to date with what was mapped and evicted (as `render
+    /// --traversal octree` keeps its own). Attached by the first frame
+    /// that asks for it, again when the depth changes, and kept: views
+    /// through the page tables ignore it. (`ViewState::params` refused the
+    /// views whose octree cannot be made.)
     fn attach_octree(&mut self) {
         let o = Octree::attach(
-            DEFAULT_DEPTH,
+            self.octree_depth,
             &self.scene.levels,
             &mut self.vm,
             self.scene.ranges.as_deref(),
         )
-        .expect("the default depth suits every volume");
+        .expect("ViewState::params checked that this octree can be made");
         self.scene.octree = Some(Arc::new(RwLock::new(o)));
     }
 

@@ -8,7 +8,7 @@ use crate::zarr::ChannelMeta;
 use brickyard_core::camera::{normalize, Camera, Projection};
 use brickyard_core::TransferFunction;
 use brickyard_render::cpu::{Lod, Scene};
-use brickyard_render::octree::{Octree, DEFAULT_DEPTH};
+use brickyard_render::octree::{Octree, DEFAULT_DEPTH, MAX_DEPTH, MIN_DEPTH};
 use brickyard_render::params::{ChannelStyle, LabelSelect, Traversal};
 use brickyard_render::{RenderMode, RenderParams};
 
@@ -46,10 +46,12 @@ pub struct ViewState {
     /// `only_labels=IDS` / `hide_labels=IDS`: the labels drawn (of a
     /// label image shown, or of `labels=NAME`).
     pub label_select: Option<LabelSelect>,
-    /// `traversal=octree`: DVR through the residency octree (of the
-    /// default depth), as `render --traversal octree`; else the page
-    /// tables.
+    /// `traversal=octree`: DVR through the residency octree, as `render
+    /// --traversal octree`; else the page tables.
     pub traversal: Traversal,
+    /// `octree_depth=D` (with `traversal=octree`): the octree's depth, as
+    /// `render --octree-depth D`; `None`: the default.
+    pub octree_depth: Option<u32>,
 }
 
 impl Default for ViewState {
@@ -72,6 +74,7 @@ impl Default for ViewState {
             label_opacity: 0.5,
             label_select: None,
             traversal: Traversal::PageTable,
+            octree_depth: None,
         }
     }
 }
@@ -195,6 +198,15 @@ impl ViewState {
                     s.label_select = Some(LabelSelect::new(ids, k == "hide_labels"));
                 }
                 "traversal" => s.traversal = v.parse()?,
+                "octree_depth" => {
+                    let d = v
+                        .parse::<u32>()
+                        .ok()
+                        .filter(|d| (MIN_DEPTH..=MAX_DEPTH).contains(d));
+                    s.octree_depth = Some(d.ok_or_else(|| {
+                        format!("octree_depth: expected {MIN_DEPTH} to {MAX_DEPTH}, found {v:?}")
+                    })?);
+                }
                 _ => {}
             }
         }
@@ -258,6 +270,9 @@ impl ViewState {
         }
         if self.traversal == Traversal::Octree {
             q.push("traversal=octree".into());
+        }
+        if let Some(d) = self.octree_depth {
+            q.push(format!("octree_depth={d}"));
         }
         q.join("&")
     }
@@ -389,9 +404,12 @@ impl ViewState {
         }
         p.traversal = self.traversal;
         p.validate().map_err(|e| e.to_string())?;
+        let octree_depth = self.octree_depth.unwrap_or(DEFAULT_DEPTH);
         if self.traversal == Traversal::Octree {
-            Octree::check(DEFAULT_DEPTH, scene.levels.len(), n_channels)
+            Octree::check(octree_depth, scene.levels.len(), n_channels)
                 .map_err(|e| format!("traversal: {e}"))?;
+        } else if self.octree_depth.is_some() {
+            return Err("octree_depth: only with traversal=octree".into());
         }
         Ok(View {
             params: p,
@@ -399,6 +417,7 @@ impl ViewState {
                 bias: self.lod_bias,
             },
             channel,
+            octree_depth,
         })
     }
 }
@@ -413,6 +432,7 @@ impl ViewState {
             params: view.params.labels_over(self.label_select.clone()),
             lod: view.lod,
             channel: 0,
+            octree_depth: view.octree_depth,
         })
     }
 }
@@ -424,6 +444,8 @@ pub struct View {
     pub params: RenderParams,
     pub lod: Lod,
     pub channel: usize,
+    /// The residency octree's depth, where the DVR goes through it.
+    pub octree_depth: u32,
 }
 
 impl View {
@@ -555,6 +577,8 @@ mod tests {
             ("tf=nope", "tf"),
             ("zoom=0", "zoom"),
             ("traversal=kd", "traversal"),
+            ("octree_depth=9", "octree_depth"),
+            ("octree_depth=x", "octree_depth"),
         ] {
             let e = ViewState::from_query(q).unwrap_err();
             assert!(e.starts_with(key), "{q}: {e}");
@@ -568,6 +592,8 @@ mod tests {
         let s = ViewState::from_query("traversal=octree&az=10").unwrap();
         assert_eq!(s.traversal, Traversal::Octree);
         assert_eq!(s.to_query(), "az=10&traversal=octree");
+        let s = ViewState::from_query("traversal=octree&octree_depth=2").unwrap();
+        assert_eq!(ViewState::from_query(&s.to_query()).unwrap(), s);
     }
 
     #[test]
@@ -580,6 +606,18 @@ mod tests {
         };
         let v = view("traversal=octree", 1).unwrap();
         assert_eq!(v.params.traversal, Traversal::Octree);
+        assert_eq!(v.octree_depth, DEFAULT_DEPTH);
+        assert_eq!(
+            view("traversal=octree&octree_depth=2", 1)
+                .unwrap()
+                .octree_depth,
+            2
+        );
+        let e = view("octree_depth=2", 1).unwrap_err();
+        assert!(
+            e.starts_with("octree_depth:") && e.contains("traversal=octree"),
+            "{e}"
+        );
         assert_eq!(view("", 1).unwrap().params.traversal, Traversal::PageTable);
         for q in ["mode=mip&traversal=octree", "mode=slice&traversal=octree"] {
             let e = view(q, 1).unwrap_err();

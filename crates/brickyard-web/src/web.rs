@@ -537,6 +537,7 @@ impl Inner {
             return Box::pin(self.frame(state)).await;
         }
         let label_view = state.label_view(&view);
+        self.session.octree_depth = view.octree_depth;
         self.view = Some(view.clone());
         let (p, lod) = (view.params, view.lod);
         // Draw when the view changed, or when enough bricks arrived to be

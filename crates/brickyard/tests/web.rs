@@ -333,19 +333,20 @@ fn the_web_client_draws_several_channels_through_webgpu_and_the_octree_as_render
             // The residency octree, through WebGPU and on the CPU.
             (
                 "gpu-octree",
-                format!("{base}&backend=gpu&{view}&traversal=octree"),
+                format!("{base}&backend=gpu&{view}&traversal=octree&octree_depth=3"),
             ),
             (
                 "cpu-octree",
-                format!("{base}&backend=cpu&{view}&traversal=octree"),
+                format!("{base}&backend=cpu&{view}&traversal=octree&octree_depth=3"),
             ),
         ],
     );
-    let cli_render = |traversal: &str| {
+    let cli_render = |traversal: &str, more: &[&str]| {
         let png = d.path().join(format!("cli-{traversal}.png"));
         ok(&bin()
             .arg("render")
             .arg(&store)
+            .args(more)
             .args([
                 "--size",
                 "160x120",
@@ -367,8 +368,8 @@ fn the_web_client_draws_several_channels_through_webgpu_and_the_octree_as_render
             .unwrap());
         read_png(&png)
     };
-    let (w, h, cli) = cli_render("page-table");
-    let (_, _, cli_octree) = cli_render("octree");
+    let (w, h, cli) = cli_render("page-table", &[]);
+    let (_, _, cli_octree) = cli_render("octree", &["--octree-depth", "3"]);
     let lit = lit_pixels(&cli);
     assert!(
         lit as u32 > w * h / 10,
@@ -392,7 +393,7 @@ fn the_web_client_draws_several_channels_through_webgpu_and_the_octree_as_render
                 r[name]["url"]
                     .as_str()
                     .unwrap()
-                    .contains("traversal=octree"),
+                    .contains("traversal=octree&octree_depth=3"),
                 "{r}"
             );
             assert_eq!(r[name]["traversal"], "octree", "{r}");
