@@ -74,6 +74,16 @@ impl Look {
         })
     }
 
+    /// The channel whose value the point is read from first (a label
+    /// image's: 0).
+    pub fn first_channel(&self) -> usize {
+        match self {
+            Look::Mip { channel } => *channel,
+            Look::Dvr { tfs, .. } => tfs.first().map_or(0, |t| t.0),
+            Look::Labels(_) => 0,
+        }
+    }
+
     /// How the point is found, for readouts.
     pub fn name(&self) -> &'static str {
         match self {

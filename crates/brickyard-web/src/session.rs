@@ -504,7 +504,7 @@ pub fn probe(
             );
             let (w, level, value) = found.ok()??;
             let served = image
-                .value_at(w, look_channel(&look), level)
+                .value_at(w, look.first_channel(), level)
                 .map(|(_, l)| l);
             let seen = serde_json::json!({
                 "how": look.name(), "value": value, "level": served.unwrap_or(level as u8),
@@ -535,13 +535,4 @@ pub fn probe(
         j["seen"] = s;
     }
     Some(j)
-}
-
-/// The channel a readout's look reads first.
-fn look_channel(look: &readout::Look) -> usize {
-    match look {
-        readout::Look::Mip { channel } => *channel,
-        readout::Look::Dvr { tfs, .. } => tfs.first().map_or(0, |t| t.0),
-        readout::Look::Labels(_) => 0,
-    }
 }

@@ -2006,14 +2006,8 @@ fn viewer_reads_out_what_the_3d_view_shows_and_a_double_click_moves_the_cursor_t
     let d = tempfile::tempdir().unwrap();
     let p = |n: &str| d.path().join(n);
     let store = shared_stack(d.path(), "nuclei-confocal-u16.tif", "nuclei.ome.zarr", &[]);
-    let flags = [
-        "--backend",
-        "cpu",
-        "--brick",
-        "16",
-        "--window-size",
-        "900x600",
-    ];
+    // The label tests' viewer without the labels.
+    let flags = &CELLS_ON_CPU[2..];
     let (w, h) = (120u32, 100u32);
     let head = format!("size 3d {w} {h}\nmode mip\nlevel 0\nwait-complete 120\n");
     // Pixels on a grid, and the brightest of the MIP among them: the
@@ -2022,7 +2016,7 @@ fn viewer_reads_out_what_the_3d_view_shows_and_a_double_click_moves_the_cursor_t
         .step_by(9)
         .flat_map(|y| (3..w).step_by(11).map(move |x| (x, y)))
         .collect();
-    let Some((_, _, mip)) = first_shot(&store, d.path(), &head, "3d", &flags) else {
+    let Some((_, _, mip)) = first_shot(&store, d.path(), &head, "3d", flags) else {
         return;
     };
     let bright = *grid
@@ -2046,7 +2040,7 @@ fn viewer_reads_out_what_the_3d_view_shows_and_a_double_click_moves_the_cursor_t
     hovers(&mut script);
     script += "quit\n";
     std::fs::write(p("s.txt"), script).unwrap();
-    let Some(mut cmd) = viewer(&store, &p("s.txt"), Some(&p("log.jsonl")), &flags) else {
+    let Some(mut cmd) = viewer(&store, &p("s.txt"), Some(&p("log.jsonl")), flags) else {
         return;
     };
     let o = cmd.output().unwrap();
