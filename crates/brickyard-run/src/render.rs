@@ -129,7 +129,7 @@ pub struct RenderCmd {
     #[arg(long)]
     level: Option<usize>,
     /// Automatic level of detail: shift by this many levels (negative = finer).
-    #[arg(long, default_value_t = 0.0)]
+    #[arg(long, default_value_t = 0.0, allow_negative_numbers = true)]
     lod_bias: f64,
     /// dvr, mip: samples per voxel along a ray (default 1).
     #[arg(long)]
@@ -176,7 +176,7 @@ pub struct RenderCmd {
     views: Option<u32>,
     /// Super-slices: pixels of shift between neighbouring views per slice
     /// away from the reference slice (Δx; default 1).
-    #[arg(long, value_name = "DX")]
+    #[arg(long, value_name = "DX", allow_negative_numbers = true)]
     parallax: Option<f64>,
     /// Super-slices: slices between the stack's slices, in voxels of
     /// level 0 (Δz; default 1).
@@ -834,6 +834,9 @@ fn run_one(
         );
     }
     check_read_delay(c.read_delay_ms)?;
+    if c.requests == Some(0) {
+        bail!("requests: expected at least 1 request per frame, found 0: no brick could ever be asked for");
+    }
     if !c.lod_bias.is_finite() {
         bail!(
             "lod-bias: expected a finite number of levels (negative: finer), found {}",

@@ -429,6 +429,35 @@ fn render_writes_pngs_and_rejects_bad_options() {
     );
 }
 
+/// Negative numbers are values, as the help's "negative = finer" says, not
+/// flags: `--lod-bias -1` used to stop at "unexpected argument '-1'".
+#[test]
+fn render_takes_negative_numbers_as_values() {
+    let d = tempfile::tempdir().unwrap();
+    let store = mandelbulb_48(d.path(), "n.ome.zarr");
+    let png = d.path().join("n.png");
+    for (extra, says) in [
+        (vec!["--lod-bias", "-1"], "LOD bias -1.0"),
+        (
+            vec!["--mode", "slice", "--views", "2", "--parallax", "-2"],
+            "complete",
+        ),
+    ] {
+        let _ = std::fs::remove_file(&png);
+        let mut args = vec!["render", s(&store), "--size", "16", "--out", s(&png)];
+        args.extend(extra.iter().copied());
+        let out = run(&args);
+        assert!(
+            out.status.success(),
+            "{extra:?}: {}",
+            String::from_utf8_lossy(&out.stderr)
+        );
+        let said = format!("{}{}", String::from_utf8_lossy(&out.stdout), stderr(&out));
+        assert!(said.contains(says), "{extra:?}: {said}");
+        assert!(png.exists(), "{extra:?}: no image");
+    }
+}
+
 /// Flags a user may get wrong name themselves and stop before any work:
 /// non-finite LOD biases, an upload budget below one brick, an empty
 /// window, an image in a folder that does not exist.
@@ -446,6 +475,9 @@ fn render_rejects_flags_that_cannot_work() {
             vec!["upload", "less than one padded brick"],
         ),
         (vec!["--window", "5,5"], vec!["window", "LO < HI"]),
+        // No request a frame: nothing could ever load (it used to end
+        // "complete" at 0 %).
+        (vec!["--requests", "0"], vec!["requests", "at least 1"]),
         (vec!["--max-frames", "0"], vec!["max-frames", "at least 1"]),
         (vec!["--pool", "0"], vec!["pool", "above 0"]),
         (vec!["--azimuth", "inf"], vec!["azimuth", "finite"]),
