@@ -275,9 +275,53 @@ impl LodBudget {
     }
 }
 
+/// The time a frame of a moving view aims at (ms).
+pub const MOVING_FRAME_MS: f64 = 40.0;
+
+/// While a 3D view moves (the camera dragged or zoomed), the fraction of its
+/// size per axis its frames are drawn at, from what a full-size redraw took
+/// (`full_ms`): full size where that keeps up with [`MOVING_FRAME_MS`], else
+/// the size that should (pixels cost alike), from half to a quarter. The
+/// viewer and the web page share it; once the view rests it is drawn at
+/// full size again.
+pub fn moving_scale(full_ms: f64) -> f64 {
+    if full_ms.is_nan() || full_ms <= MOVING_FRAME_MS {
+        return 1.0;
+    }
+    (MOVING_FRAME_MS / full_ms).sqrt().clamp(0.25, 0.5)
+}
+
+/// `size` (width, height) at [`moving_scale`]'s fraction `k`, at least 8
+/// pixels a side.
+pub fn scaled_size(size: [u32; 2], k: f64) -> [u32; 2] {
+    if k >= 1.0 {
+        return size;
+    }
+    size.map(|s| ((s as f64 * k) as u32).max(8).min(s))
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn moving_views_shrink_only_when_full_frames_are_slow() {
+        // Fast enough at full size (or not measured): full size.
+        for ms in [0.0, 5.0, 40.0, f64::NAN] {
+            assert_eq!(moving_scale(ms), 1.0, "{ms}");
+        }
+        // Slower: half size from just above the target up to 4x it,
+        // then the size that keeps up, down to a quarter.
+        assert_eq!(moving_scale(41.0), 0.5);
+        assert_eq!(moving_scale(160.0), 0.5);
+        assert!((moving_scale(360.0) - 1.0 / 3.0).abs() < 1e-12);
+        assert_eq!(moving_scale(640.0), 0.25);
+        assert_eq!(moving_scale(1e6), 0.25);
+        assert_eq!(scaled_size([512, 300], 1.0), [512, 300]);
+        assert_eq!(scaled_size([512, 300], 0.5), [256, 150]);
+        assert_eq!(scaled_size([20, 12], 0.25), [8, 8]);
+        assert_eq!(scaled_size([6, 20], 0.25), [6, 8]);
+    }
 
     fn sig(complete: bool, requests: usize, deferred: usize, exact: usize) -> FrameSignals {
         FrameSignals {

@@ -187,8 +187,21 @@ struct Inner {
     on_device: bool,
     /// `labels=NAME`: the label image laid over the slice.
     labels: Option<LabelLayer>,
-    /// The view of the last frame drawn (the readout's).
+    /// The view of the last frame drawn, at the canvas's size (the
+    /// readout's).
     view: Option<crate::view::View>,
+    /// Milliseconds the last full-size redraw of a changed 3D view took
+    /// (0: none yet): a moving view is drawn smaller when that is too slow
+    /// (`budget::moving_scale`).
+    full_ms: f64,
+    /// The fraction of the canvas's size per axis the last frame was drawn
+    /// at (1: full size), and a canvas to draw such frames into before
+    /// they are scaled onto the page's.
+    drawn_scale: f64,
+    scratch: Option<(
+        web_sys::HtmlCanvasElement,
+        web_sys::CanvasRenderingContext2d,
+    )>,
 }
 
 /// The label image of `labels=NAME`: its own session (drawn on the CPU)
@@ -212,9 +225,14 @@ fn now() -> f64 {
 pub struct Viewer {
     inner: Rc<RefCell<Inner>>,
     state: Rc<RefCell<ViewState>>,
+    /// When the camera last moved (`orbit`, `zoom`; ms).
+    moved_at: Rc<std::cell::Cell<f64>>,
     channels: usize,
     info: String,
 }
+
+/// How long after the camera's last move (ms) the view counts as moving.
+const MOVING_FOR_MS: f64 = 200.0;
 
 /// The most bricks × channels of a level whose statistics the page reads
 /// (16 MiB of value ranges at most): finer levels of larger volumes are
@@ -353,8 +371,12 @@ impl Viewer {
                 on_device: false,
                 labels,
                 view: None,
+                full_ms: 0.0,
+                drawn_scale: 1.0,
+                scratch: None,
             })),
             state: Rc::new(RefCell::new(state)),
+            moved_at: Rc::new(std::cell::Cell::new(f64::NEG_INFINITY)),
             channels,
             info,
         })
@@ -371,11 +393,12 @@ impl Viewer {
     pub fn frame(&self) -> js_sys::Promise {
         let inner = self.inner.clone();
         let state = self.state.borrow().clone();
+        let moving = now() - self.moved_at.get() < MOVING_FOR_MS;
         wasm_bindgen_futures::future_to_promise(async move {
             let mut g = inner
                 .try_borrow_mut()
                 .map_err(|_| JsValue::from_str("a frame is being drawn: await it first"))?;
-            g.frame(state).await.map(JsValue::from)
+            g.frame(state, moving).await.map(JsValue::from)
         })
     }
 
@@ -403,15 +426,18 @@ impl Viewer {
         Ok(())
     }
 
-    /// Turn the camera by `daz`, `del` degrees.
+    /// Turn the camera by `daz`, `del` degrees. The view counts as moving
+    /// for a moment: its frames may be drawn smaller meanwhile.
     pub fn orbit(&self, daz: f64, del: f64) {
+        self.moved_at.set(now());
         let mut g = self.state.borrow_mut();
         g.azimuth = ((g.azimuth + daz) % 360.0 * 1000.0).round() / 1000.0;
         g.elevation = ((g.elevation + del).clamp(-89.0, 89.0) * 1000.0).round() / 1000.0;
     }
 
-    /// Move closer (`f` > 1) or away.
+    /// Move closer (`f` > 1) or away (the view moving, as with `orbit`).
     pub fn zoom(&self, f: f64) {
+        self.moved_at.set(now());
         let mut g = self.state.borrow_mut();
         g.zoom = ((g.zoom * f).clamp(0.2, 20.0) * 1000.0).round() / 1000.0;
     }
@@ -499,7 +525,7 @@ impl Inner {
         }
     }
 
-    async fn frame(&mut self, state: ViewState) -> Result<String, JsValue> {
+    async fn frame(&mut self, state: ViewState, moving: bool) -> Result<String, JsValue> {
         let t = now();
         let src = self.session.loads.src.clone();
         let view = state
@@ -534,11 +560,24 @@ impl Inner {
             if state.window.is_none() {
                 self.window = default_window(&src, view.channel);
             }
-            return Box::pin(self.frame(state)).await;
+            return Box::pin(self.frame(state, moving)).await;
         }
-        let label_view = state.label_view(&view);
         self.session.octree_depth = view.octree_depth;
         self.view = Some(view.clone());
+        let (full_w, full_h) = (view.params.width, view.params.height);
+        // While the camera moves, a 3D view whose full-size redraws are
+        // slow is drawn smaller and scaled up, as in the viewer; at rest
+        // it is drawn at full size again.
+        let three_d = !matches!(view.params.mode, brickyard_render::RenderMode::Slice { .. });
+        let scale = if moving && three_d {
+            brickyard_render::budget::moving_scale(self.full_ms)
+        } else {
+            1.0
+        };
+        let mut view = view;
+        [view.params.width, view.params.height] =
+            brickyard_render::budget::scaled_size([full_w, full_h], scale);
+        let label_view = state.label_view(&view);
         let (p, lod) = (view.params, view.lod);
         // Draw when the view changed, or when enough bricks arrived to be
         // worth a frame: a frame holds the page's only thread, and loads
@@ -547,7 +586,7 @@ impl Inner {
         let (queued, in_flight) = self.session.loads.pending();
         let idle = queued + in_flight == 0;
         let waited = t - self.drawn_at >= 250.0;
-        let dirty = self.drawn_state.as_ref() != Some(&state);
+        let dirty = self.drawn_state.as_ref() != Some(&state) || self.drawn_scale != scale;
         let draw = self.frames == 0
             || dirty
             || (news > 0 && (news >= 64 || idle || waited))
@@ -555,6 +594,7 @@ impl Inner {
         if draw {
             self.drawn_at = t;
             self.drawn_state = Some(state.clone());
+            self.drawn_scale = scale;
             let device = self.device.as_mut();
             self.on_device = device.is_some();
             self.last = match device {
@@ -583,6 +623,13 @@ impl Inner {
                 },
             };
             self.frames += 1;
+            // A changed 3D view at full size is redrawn whole: what a
+            // moving view would cost at full size. (Not the page's first
+            // frame: it also pays for setting up, and took 10-20 times a
+            // later redraw.)
+            if dirty && scale == 1.0 && three_d && self.frames > 1 {
+                self.full_ms = now() - t;
+            }
         }
         // The labels: drawn with the image, and when their bricks come.
         let mut shown = draw;
@@ -611,16 +658,49 @@ impl Inner {
             if img.width > 0 && img.width == p.width {
                 let (w, h) = (img.width, img.height);
                 let rgba = img.to_rgba8([0.0, 0.0, 0.0, 1.0]);
-                if self.canvas.width() != w || self.canvas.height() != h {
-                    self.canvas.set_width(w);
-                    self.canvas.set_height(h);
+                if self.canvas.width() != full_w || self.canvas.height() != full_h {
+                    self.canvas.set_width(full_w);
+                    self.canvas.set_height(full_h);
                 }
                 let data = web_sys::ImageData::new_with_u8_clamped_array_and_sh(
                     wasm_bindgen::Clamped(&rgba),
                     w,
                     h,
                 )?;
-                self.ctx.put_image_data(&data, 0.0, 0.0)?;
+                if (w, h) == (full_w, full_h) {
+                    self.ctx.put_image_data(&data, 0.0, 0.0)?;
+                } else {
+                    // A smaller frame: through a canvas of its size,
+                    // scaled onto the page's (smoothed).
+                    let (sc, sctx) = match self.scratch.take() {
+                        Some(x) => x,
+                        None => {
+                            let c = web_sys::window()
+                                .and_then(|w| w.document())
+                                .ok_or("no document")?
+                                .create_element("canvas")?
+                                .dyn_into::<web_sys::HtmlCanvasElement>()?;
+                            let x = c
+                                .get_context("2d")?
+                                .ok_or("no 2D context")?
+                                .dyn_into::<web_sys::CanvasRenderingContext2d>()?;
+                            (c, x)
+                        }
+                    };
+                    if sc.width() != w || sc.height() != h {
+                        sc.set_width(w);
+                        sc.set_height(h);
+                    }
+                    sctx.put_image_data(&data, 0.0, 0.0)?;
+                    self.ctx.draw_image_with_html_canvas_element_and_dw_and_dh(
+                        &sc,
+                        0.0,
+                        0.0,
+                        full_w as f64,
+                        full_h as f64,
+                    )?;
+                    self.scratch = Some((sc, sctx));
+                }
             }
             self.frame_ms = now() - t;
         }
@@ -637,9 +717,12 @@ impl Inner {
         Ok(self.status(bytes, &state))
     }
 
-    /// The image's view and the labels over it are complete.
+    /// The image's view and the labels over it are complete, at full
+    /// size (a moving view's smaller frame is not).
     fn complete(&self) -> bool {
-        self.last.complete && self.labels.as_ref().is_none_or(|l| l.last.complete)
+        self.drawn_scale == 1.0
+            && self.last.complete
+            && self.labels.as_ref().is_none_or(|l| l.last.complete)
     }
 
     fn status(&self, bytes: u64, state: &ViewState) -> String {
@@ -669,6 +752,8 @@ impl Inner {
             "bytes": bytes,
             "mib_s": self.mib_s,
             "frame_ms": self.frame_ms,
+            "scale": self.drawn_scale,
+            "full_ms": self.full_ms,
             "frames": self.frames,
             "first_complete_ms": self.first_complete_ms,
             "query": state.to_query(),

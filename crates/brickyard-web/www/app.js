@@ -106,6 +106,7 @@ async function tick() {
     `bricks: ${st.resident} resident of ${st.pool_slots}, ${st.loaded} loaded, ${st.in_flight} in flight, ${st.queued} queued\n` +
     `read: ${(st.bytes / 1048576).toFixed(1)} MiB at ${st.mib_s.toFixed(1)} MiB/s\n` +
     `frame: ${st.frame_ms.toFixed(0)} ms${st.on_device ? ' (WebGPU)' : ' (CPU)'}` +
+    (st.scale < 1 ? ` at ${Math.round(100 * st.scale)} % size while moving` : '') +
     (st.first_complete_ms ? `, first complete after ${(st.first_complete_ms / 1000).toFixed(2)} s` : '') +
     (st.failed ? `\nfailed bricks: ${st.failed} (drawn from coarser data)\nlast: ${st.last_failure}` : '') +
     (st.labels ? `\nlabels/${st.labels.name}: ${st.labels.complete ? 'complete' : 'loading'}, ${st.labels.resident} bricks resident` +

@@ -281,6 +281,147 @@ fn the_web_client_draws_what_render_draws_in_a_headless_browser() {
     );
 }
 
+/// A view turned with the mouse, as a user does: while it moves, frames
+/// whose full-size redraw is slow are drawn smaller (the viewer's rule,
+/// `budget::moving_scale`) and scaled onto the canvas, which keeps its
+/// size and shows the volume; the moving view does not count as complete;
+/// at rest the page draws it at full size again, equal to `render` of the
+/// view it ended at.
+#[test]
+fn a_moving_view_is_drawn_smaller_and_at_rest_as_render_draws_it() {
+    if needs_browser().is_none() {
+        return;
+    }
+    let d = tempfile::tempdir().unwrap();
+    let store = d.path().join("mni.ome.zarr");
+    let input = repo().join("../shared/data/mni152-t1-u8.nii.gz");
+    ok(&bin()
+        .arg("convert")
+        .arg(&input)
+        .arg(&store)
+        .arg("--quiet")
+        .output()
+        .unwrap());
+    let srv = serve_web(&store);
+    // On the CPU (WebAssembly, one thread), large enough that a full
+    // redraw takes longer than a moving frame may.
+    let (w, h) = (960u32, 720u32);
+    let url = format!(
+        "http://127.0.0.1:{}/web/#store=..%2Fmni.ome.zarr%2F&backend=cpu&az=40&el=25&size={w}x{h}&tf=soft&window=0,255",
+        srv.1
+    );
+    let out = d.path().join("out");
+    std::fs::create_dir_all(&out).unwrap();
+    let o = Command::new("node")
+        .arg(repo().join("crates/brickyard-web/browser/moving.mjs"))
+        .arg("chromium")
+        .arg(&out)
+        .arg(&url)
+        .output()
+        .unwrap();
+    let report = std::fs::read_to_string(out.join("moving.json")).unwrap_or_default();
+    assert!(
+        o.status.success(),
+        "the browser check failed:\n{}\n{report}",
+        String::from_utf8_lossy(&o.stderr)
+    );
+    let r: serde_json::Value = serde_json::from_str(&report).unwrap();
+    // The first frame of the drag is drawn at full size and measured (the
+    // page's first frame, which also sets up, is not); the later ones at
+    // the rule's fraction of it.
+    assert_eq!(r["before"]["scale"], 1.0, "{report}");
+    let during = r["during"].as_array().unwrap();
+    let smaller: Vec<_> = during
+        .iter()
+        .filter(|s| s["scale"].as_f64().unwrap() < 1.0)
+        .collect();
+    assert!(
+        smaller.len() >= during.len() / 2,
+        "few frames of the drag were drawn smaller: {report}"
+    );
+    for s in &smaller {
+        let full_ms = s["full_ms"].as_f64().unwrap();
+        let k = brickyard_render::budget::moving_scale(full_ms);
+        assert!(full_ms > 40.0, "{s}");
+        assert!((s["scale"].as_f64().unwrap() - k).abs() < 1e-9, "{s}");
+        assert_eq!(
+            s["complete"], false,
+            "a smaller frame counted as complete: {s}"
+        );
+    }
+    eprintln!(
+        "full-size redraw {:.1} ms: moving frames at {:.3} of the size",
+        smaller[0]["full_ms"].as_f64().unwrap(),
+        smaller[0]["scale"].as_f64().unwrap()
+    );
+    // Mid-drag the canvas keeps its size and shows the volume.
+    let mid = &r["mid_canvas"];
+    assert_eq!(
+        (mid["width"].as_u64(), mid["height"].as_u64()),
+        (Some(w as u64), Some(h as u64)),
+        "{report}"
+    );
+    assert!(
+        mid["lit"].as_u64().unwrap() > (w * h / 20) as u64,
+        "the canvas mid-drag is nearly black: {report}"
+    );
+    assert!(
+        mid["text"].as_str().unwrap().contains("while moving"),
+        "{report}"
+    );
+    // At rest: full size, complete, the view it ended at as render draws it.
+    assert_eq!(r["end"]["scale"], 1.0, "{report}");
+    let end_url = r["url"].as_str().unwrap();
+    let key = |k: &str| {
+        end_url
+            .split(['#', '&'])
+            .find_map(|p| p.strip_prefix(&format!("{k}=")))
+            .unwrap_or_else(|| panic!("no {k}= in {end_url}"))
+            .to_string()
+    };
+    let (az, el) = (key("az"), key("el"));
+    assert_ne!(az, "40", "the drag did not turn the view: {end_url}");
+    let png = d.path().join("cli.png");
+    ok(&bin()
+        .arg("render")
+        .arg(&store)
+        .args([
+            "--size",
+            &format!("{w}x{h}"),
+            "--azimuth",
+            &az,
+            "--elevation",
+            &el,
+        ])
+        .args([
+            "--tf",
+            "soft",
+            "--window",
+            "0,255",
+            "--brick",
+            "32",
+            "--backend",
+            "cpu",
+        ])
+        .args(["--quiet", "-o"])
+        .arg(&png)
+        .output()
+        .unwrap());
+    let (cw, ch, cli) = read_png(&png);
+    assert_eq!((cw, ch), (w, h));
+    assert!(
+        lit_pixels(&cli) as u32 > w * h / 20,
+        "the reference is nearly black"
+    );
+    let end = std::fs::read(out.join("end.rgba")).unwrap();
+    let max = max_abs_diff(&end, &cli);
+    eprintln!("the view at rest (az {az}, el {el}) vs render: max difference {max}/255");
+    assert!(
+        max <= 2,
+        "the view at rest differs from render by {max}/255"
+    );
+}
+
 /// Pages drawn in headless Chromium (`browser/canvas.mjs`), each `(name,
 /// url)`; their canvases as `out/NAME.rgba`; returns the report.
 fn canvases(out: &Path, pages: &[(&str, String)]) -> serde_json::Value {

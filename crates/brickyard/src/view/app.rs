@@ -181,8 +181,11 @@ pub struct ViewerApp {
     interacting: Instant,
     read_history: Vec<(Instant, u64)>,
     drag_point: Option<usize>,
-    /// Milliseconds of the last full-size frame of the 3D view.
+    /// Milliseconds of the last full-size redraw of the 3D view (the first
+    /// frame of a version of the view: later frames draw only the tiles
+    /// still missing data), and that version.
     full_ms: f64,
+    full_ms_version: Option<u64>,
     counter: u32,
     camera_path: String,
     /// Load failures reported so far, and the latest (the status line).
@@ -351,6 +354,7 @@ impl ViewerApp {
             read_history: vec![],
             drag_point: None,
             full_ms: 40.0,
+            full_ms_version: None,
             counter: 0,
             camera_path: String::new(),
             failures_seen: 0,
@@ -760,8 +764,14 @@ impl ViewerApp {
             }));
         }
         self.report_failures(&out.new_failures);
-        if v == 0 && [out.image.width, out.image.height] == self.views[0].size {
+        if v == 0
+            && [out.image.width, out.image.height] == self.views[0].size
+            && !out.reblended
+            && out.accumulated.is_none_or(|(k, _)| k == 0)
+            && self.full_ms_version != Some(out.version)
+        {
             self.full_ms = out.render_ms;
+            self.full_ms_version = Some(out.version);
         }
         self.read_history.push((Instant::now(), out.bytes_read));
         let cut = Instant::now() - Duration::from_secs(2);

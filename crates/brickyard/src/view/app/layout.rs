@@ -46,11 +46,11 @@ impl ViewerApp {
         if let Some(f) = vs.forced {
             return f;
         }
-        // While the 3D view moves, fewer pixels, so that frames keep up:
-        // aim at about 40 ms a frame from what full-size frames took.
+        // While the 3D view moves, fewer pixels where full-size frames
+        // would not keep up (the page draws by the same rule).
         if v == 0 && self.interacting.elapsed() < Duration::from_millis(200) {
-            let k = (40.0 / self.full_ms.max(1.0)).sqrt().clamp(0.25, 0.5);
-            return vs.size.map(|s| ((s as f64 * k) as u32).max(8));
+            let k = brickyard_render::budget::moving_scale(self.full_ms);
+            return brickyard_render::budget::scaled_size(vs.size, k);
         }
         vs.size
     }

@@ -1,0 +1,74 @@
+// A view dragged in headless Chromium, as a user turns it:
+//   node moving.mjs CHROMIUM OUT_DIR PAGE_URL
+// Opens PAGE_URL, waits until its view is complete, then drags across the
+// canvas with the mouse (small steps, a frame's time apart) and records
+// the page's status after each step and the canvas once mid-drag; lets go
+// and waits until the view is complete again. OUT_DIR/moving.json gets
+// the status before the drag, the statuses during it, the canvas's size
+// and lit pixels mid-drag, the status and URL at the end; OUT_DIR/end.rgba
+// the final canvas (straight RGBA). Exits non-zero on any failure.
+import { chromium } from 'playwright-core';
+import { writeFileSync } from 'node:fs';
+import { execFileSync } from 'node:child_process';
+
+const [exe0, out, url] = process.argv.slice(2);
+const exe = exe0.includes('/') ? exe0 : execFileSync('which', [exe0]).toString().trim();
+const args = ['--no-sandbox', '--enable-unsafe-webgpu', '--disable-background-networking',
+  '--disable-component-update', '--no-first-run', '--use-angle=swiftshader', '--enable-features=Vulkan'];
+const browser = await chromium.launch({ executablePath: exe, args, headless: true });
+const report = {};
+const sleep = (ms) => new Promise((r) => setTimeout(r, ms));
+
+async function waitComplete(page) {
+  await page.waitForFunction(() => {
+    const b = window.brickyard;
+    return b && (b.error || (b.status && b.status.complete));
+  }, null, { timeout: 300000, polling: 50 });
+  const e = await page.evaluate(() => window.brickyard.error);
+  if (e) throw new Error(`the page reports: ${e}`);
+  return await page.evaluate(() => window.brickyard.status);
+}
+
+try {
+  const page = await browser.newPage({ viewport: { width: 1400, height: 1000 } });
+  const logs = [];
+  page.on('pageerror', (e) => logs.push('pageerror: ' + e.message));
+  await page.goto(url);
+  report.before = await waitComplete(page);
+  const box = await page.locator('#view').boundingBox();
+  const [x0, y] = [box.x + box.width * 0.3, box.y + box.height * 0.5];
+  await page.mouse.move(x0, y);
+  await page.mouse.down();
+  report.during = [];
+  for (let i = 1; i <= 12; i++) {
+    await page.mouse.move(x0 + 6 * i, y);
+    await sleep(60);
+    report.during.push(await page.evaluate(() => window.brickyard.status));
+    if (i === 8) {
+      report.mid_canvas = await page.evaluate(() => {
+        const c = document.getElementById('view');
+        const px = c.getContext('2d').getImageData(0, 0, c.width, c.height).data;
+        let lit = 0;
+        for (let k = 0; k < px.length; k += 4) if (px[k] + px[k + 1] + px[k + 2] > 24) lit++;
+        return { width: c.width, height: c.height, lit, text: document.getElementById('status').textContent };
+      });
+    }
+  }
+  await page.mouse.up();
+  report.end = await waitComplete(page);
+  const r = await page.evaluate(() => {
+    const c = document.getElementById('view');
+    return { width: c.width, height: c.height, data: Array.from(c.getContext('2d').getImageData(0, 0, c.width, c.height).data), url: location.href };
+  });
+  writeFileSync(`${out}/end.rgba`, Buffer.from(r.data));
+  report.width = r.width; report.height = r.height; report.url = r.url;
+  report.logs = logs;
+  writeFileSync(`${out}/moving.json`, JSON.stringify(report, null, 1));
+  await browser.close();
+} catch (e) {
+  report.failure = String(e && e.stack || e);
+  writeFileSync(`${out}/moving.json`, JSON.stringify(report, null, 1));
+  await browser.close();
+  console.error(report.failure);
+  process.exit(1);
+}
