@@ -519,6 +519,29 @@ impl Backend {
     }
 }
 
+/// The brick pool of the page's `pool=` (MiB) when none is given.
+pub const DEFAULT_POOL_MIB: u64 = 256;
+/// The largest `pool=` (MiB): a page's WebAssembly memory holds 4 GiB at
+/// most, and decoded chunks, images and the page's own data need room too.
+pub const MAX_POOL_MIB: u64 = 2048;
+
+/// The brick pool in bytes from the page's `pool=` (MiB; absent or empty:
+/// [`DEFAULT_POOL_MIB`]): a whole number from 1 to [`MAX_POOL_MIB`], else
+/// an error naming the key and what was found.
+pub fn pool_bytes(v: Option<&str>) -> Result<u64, String> {
+    let v = v.unwrap_or("").trim();
+    if v.is_empty() {
+        return Ok(DEFAULT_POOL_MIB << 20);
+    }
+    match v.parse::<u64>() {
+        Ok(m) if (1..=MAX_POOL_MIB).contains(&m) => Ok(m << 20),
+        _ => Err(format!(
+            "pool: expected the brick pool in MiB, a whole number from 1 to {MAX_POOL_MIB} \
+             (a page's WebAssembly memory holds 4 GiB at most), found {v:?}"
+        )),
+    }
+}
+
 /// Undo `%XX` escapes (and `+` for space).
 pub fn decode(s: &str) -> String {
     let b = s.as_bytes();
@@ -545,6 +568,21 @@ pub fn decode(s: &str) -> String {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn pools_are_whole_mib_within_what_a_page_can_hold() {
+        assert_eq!(pool_bytes(None), Ok(256 << 20));
+        assert_eq!(pool_bytes(Some("")), Ok(256 << 20));
+        assert_eq!(pool_bytes(Some("16")), Ok(16 << 20));
+        assert_eq!(pool_bytes(Some("2048")), Ok(2048 << 20));
+        for bad in ["0", "-5", "abc", "1.5", "2049", "99999999", "NaN"] {
+            let e = pool_bytes(Some(bad)).unwrap_err();
+            assert!(
+                e.starts_with("pool:") && e.contains(&format!("{bad:?}")) && e.contains("2048"),
+                "{e}"
+            );
+        }
+    }
 
     #[test]
     fn backends_are_auto_gpu_or_cpu() {

@@ -242,14 +242,15 @@ const MAX_RANGES: u64 = 1 << 21;
 #[wasm_bindgen]
 impl Viewer {
     /// Open the OME-Zarr store at `url` and draw into `canvas`, with the
-    /// view of `query` (the page's `#…`); `pool_mib` is the brick pool;
+    /// view of `query` (the page's `#…`); `pool` is the brick pool in MiB
+    /// as the page's `pool=` gives it ([`crate::view::pool_bytes`]);
     /// `backend` who draws ([`Backend::parse`]: `auto`, `gpu` or `cpu`;
     /// the page passes `cpu` where the browser has no WebGPU).
     pub async fn open(
         url: String,
         canvas: web_sys::HtmlCanvasElement,
         query: String,
-        pool_mib: u32,
+        pool: Option<String>,
         backend: String,
         token: Option<String>,
     ) -> Result<Viewer, JsValue> {
@@ -272,7 +273,7 @@ impl Viewer {
         }
         let window = default_window(&src, state.channel);
         // The label image takes a quarter of the pool, as in the viewer.
-        let pool = pool_mib as u64 * (1 << 20);
+        let pool = crate::view::pool_bytes(pool.as_deref()).map_err(|e| JsValue::from_str(&e))?;
         let label_pool = state.labels.as_ref().map_or(0, |_| pool / 4);
         let cfg = VmConfig {
             brick: [32; 3],

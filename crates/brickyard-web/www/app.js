@@ -240,7 +240,7 @@ async function main() {
     const a = document.createElement('a'); a.href = new URL('../remote', location.href).href; a.textContent = 'open the remote-rendering client';
     $('notice').appendChild(a);
   }
-  const pool = Number(hashParams().get('pool') || 256);
+  const pool = hashParams().get('pool');
   try {
     state.viewer = await Viewer.open(new URL(store, location.href).href, $('view'), viewQuery(), pool,
       state.webgpu || !['auto', 'gpu'].includes(backend) ? backend : 'cpu', hashParams().get('token'));
