@@ -427,7 +427,7 @@ impl Accumulation {
                             clip,
                             early,
                         };
-                        *o = s.pixel(p, (&tf, shading.as_ref()), orders, reference, &room);
+                        *o = s.pixel(p, (&tf, shading.as_ref()), orders, reference, &room, *o);
                     }
                     (wk, req, st)
                 },
@@ -766,7 +766,8 @@ impl<T: Sample> Sampler<'_, '_, '_, T> {
         }
     }
 
-    /// One frame of pixel `p`: its colour.
+    /// One frame of pixel `p`: its colour (`shown`: its colour after the
+    /// frame before).
     fn pixel(
         &mut self,
         p: &mut Pixel,
@@ -774,6 +775,7 @@ impl<T: Sample> Sampler<'_, '_, '_, T> {
         orders: &[Vec<u8>],
         reference: f64,
         room: &impl Fn(&Pixel, u32) -> bool,
+        shown: [f32; 4],
     ) -> [f32; 4] {
         if p.runs.is_empty() {
             let d = self.ray.dir;
@@ -801,10 +803,19 @@ impl<T: Sample> Sampler<'_, '_, '_, T> {
         if p.dt == 0.0 {
             return [0.0; 4];
         }
-        if p.stand_ins > 0 {
+        let retaken = p.stand_ins > 0;
+        if retaken {
             self.retake(p);
         }
         let k = p.frames();
+        if !retaken && !p.short && !room(p, k) {
+            // Nothing new to blend (no run to add, no stand-in replaced,
+            // the last blend reached its end): `shown`, the last blend of
+            // the same samples, stays. (Re-blending every kept sample of
+            // such pixels each frame took most of a frame once the
+            // budget was full.)
+            return shown;
+        }
         if room(p, k) {
             p.runs.push(RunInfo {
                 first: first_step(p, offset(k)),

@@ -382,6 +382,10 @@ impl ViewerApp {
     // ---- frames from the worker ----------------------------------------
 
     fn take_frames(&mut self, ctx: &egui::Context) {
+        // Every frame that came is taken in (logged, counted), but only
+        // each view's latest is turned into its texture: the conversion
+        // costs a few milliseconds of a core that the renderer shares.
+        let mut shown = [false; N_VIEWS];
         while let Ok(r) = self.rx.try_recv() {
             match r {
                 Reply::Error(e) => {
@@ -391,8 +395,14 @@ impl ViewerApp {
                         self.fail(ctx, &e);
                     }
                 }
-                Reply::Frame(out) => self.show_frame(ctx, out),
+                Reply::Frame(out) => {
+                    shown[out.view] = true;
+                    self.show_frame(out);
+                }
             }
+        }
+        for v in (0..N_VIEWS).filter(|&v| shown[v]) {
+            self.refresh_texture(ctx, v);
         }
         // The labels' frames: each view's latest is laid over the image's.
         let mut got = vec![];
@@ -743,7 +753,8 @@ impl ViewerApp {
         }
     }
 
-    fn show_frame(&mut self, ctx: &egui::Context, out: Box<Out>) {
+    /// Take in a frame of a view (its texture is refreshed by the caller).
+    fn show_frame(&mut self, out: Box<Out>) {
         let v = out.view;
         if self.log.is_some() {
             self.log_line(serde_json::json!({
@@ -782,7 +793,6 @@ impl ViewerApp {
             vs.streaming += 1;
         }
         vs.last = Some(out);
-        self.refresh_texture(ctx, v);
     }
 
     /// View `v` as shown: its last frame (laid out when it holds several
@@ -815,7 +825,10 @@ impl ViewerApp {
             return;
         };
         let rgba = img.to_rgba8([0.0, 0.0, 0.0, 1.0]);
-        let ci = egui::ColorImage::from_rgba_unmultiplied(
+        // Over an opaque background every pixel is opaque, where
+        // premultiplied and straight colours agree (and egui skips a
+        // conversion per pixel).
+        let ci = egui::ColorImage::from_rgba_premultiplied(
             [img.width as usize, img.height as usize],
             &rgba,
         );

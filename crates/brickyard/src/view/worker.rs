@@ -154,10 +154,18 @@ struct Acc {
     /// between them.
     next_row: u32,
     part: u32,
+    /// When a part of it was last sent to the window.
+    sent_at: Instant,
 }
 
 /// The time an accumulation part should take.
 const PART_MS: f64 = 20.0;
+
+/// The least time between accumulation parts sent to the window (a pass's
+/// last part is always sent): each sent image is converted for display on
+/// a core the renderer shares, and sending every 20 ms part made parts
+/// shrink to a row and a 16-frame accumulation take 5-18 s.
+const SEND_MS: f64 = 100.0;
 
 /// What an accumulation is valid for: the view without its transfer
 /// function.
@@ -371,7 +379,8 @@ pub fn run(setup: Setup, mut scene: Scene, rx: Receiver<Msg>, tx: Sender<Reply>,
         let lod = views[i].budget.apply(spec.lod, sc.levels.len());
         if views[i].acc.is_some() {
             match accumulate(&mut views[i], &mut backend, &mut s, &sc, &spec) {
-                Ok((out, done)) => {
+                Ok((None, _)) => {}
+                Ok((Some(out), done)) => {
                     views[i].complete = done;
                     let out = Out {
                         view: i,
@@ -451,6 +460,7 @@ pub fn run(setup: Setup, mut scene: Scene, rx: Receiver<Msg>, tx: Sender<Reply>,
                     reblend: false,
                     next_row: 0,
                     part: 8,
+                    sent_at: Instant::now(),
                 });
                 accumulated = Some((0, n));
                 done = false;
@@ -528,22 +538,24 @@ struct AccOut {
 
 /// One pass of view `v`'s accumulation: a re-blend when its transfer
 /// function changed, else an accumulation frame (on the CPU, the next
-/// part of one). Returns what to send and
-/// whether the view is done (the accumulation complete, or given up after
-/// as many passes as `render --progressive` allows).
+/// part of one). Returns what to send (`None`: a part within a pass, less
+/// than [`SEND_MS`] after the last one sent) and whether the view is done
+/// (the accumulation complete, or given up after as many passes as
+/// `render --progressive` allows).
 fn accumulate(
     v: &mut View,
     backend: &mut Backend,
     s: &mut Session,
     scene: &Scene,
     spec: &Spec,
-) -> anyhow::Result<(AccOut, bool)> {
+) -> anyhow::Result<(Option<AccOut>, bool)> {
     let a = v.acc.as_mut().expect("an accumulating view");
     let lod = a.key.1;
     let t = Instant::now();
     if std::mem::take(&mut a.reblend) {
         if let Some(short) = a.acc.reblend(backend, s, scene, &spec.params)? {
             let done = short == 0 && a.acc.complete();
+            a.sent_at = Instant::now();
             let out = AccOut {
                 image: a.acc.image().clone(),
                 completeness: 1.0,
@@ -553,7 +565,7 @@ fn accumulate(
                 settled: done,
                 lod,
             };
-            return Ok((out, done));
+            return Ok((Some(out), done));
         }
         // Shading asked of samples kept without normals: start over.
         a.acc = Accumulating::new(backend, &spec.params, a.acc.target(), a.acc.budget());
@@ -580,6 +592,10 @@ fn accumulate(
         a.passes += 1;
     }
     let done = (rows.end >= h && a.acc.complete()) || a.passes >= 4 * a.acc.target() + 64;
+    if rows.end < h && !done && a.sent_at.elapsed().as_secs_f64() * 1e3 < SEND_MS {
+        return Ok((None, false));
+    }
+    a.sent_at = Instant::now();
     let out = AccOut {
         image: a.acc.image().clone(),
         completeness: if f.samples == 0 {
@@ -593,7 +609,7 @@ fn accumulate(
         settled: done,
         lod,
     };
-    Ok((out, done))
+    Ok((Some(out), done))
 }
 
 /// An [`Out`] of an accumulation pass, with the session's figures.
