@@ -334,10 +334,18 @@ fn acc_pixel(px: u32, ray: Ray) -> vec4<f32> {
     if (dt == 0.0) {
         return vec4<f32>(0.0);
     }
-    if (hdr(px, 4u) > 0u) {
+    let retaken = hdr(px, 4u) > 0u;
+    if (retaken) {
         acc_retake(px, ray);
     }
     let k = hdr(px, 3u);
+    // Nothing new to blend (no room for a run, no stand-in retaken, the
+    // last blend not short): the colour it shows stays (the CPU twin's
+    // rule; the image is this accumulation's own, at the store's head).
+    if (!retaken && hdr(px, 5u) == 0u && !room(px, k)) {
+        return vec4<f32>(bitcast<f32>(image[4u * px]), bitcast<f32>(image[4u * px + 1u]),
+                         bitcast<f32>(image[4u * px + 2u]), bitcast<f32>(image[4u * px + 3u]));
+    }
     if (room(px, k)) {
         set_hdr(px, 3u, k + 1u);
         set_run_word(px, k, 0u);
