@@ -189,7 +189,8 @@ fn holder(path: &Path) -> Option<Holder> {
             Holder::Gone
         });
     };
-    Some(if alive(pid) {
+    let written = std::fs::metadata(path).and_then(|m| m.modified()).ok();
+    Some(if alive_since(pid, written) {
         Holder::Alive(pid)
     } else {
         Holder::Gone
@@ -199,13 +200,58 @@ fn holder(path: &Path) -> Option<Holder> {
 /// Whether process `pid` runs (without a process table to look at, every
 /// process counts as running: a lock is never taken from a live writer).
 fn alive(pid: u32) -> bool {
+    alive_since(pid, None)
+}
+
+/// Whether process `pid` runs and, given when its lock was written, is the
+/// process that wrote it. Gone: no entry in the process table; a zombie
+/// (killed or ended, not yet reaped by its parent: a killed writer's lock
+/// used to hold until then); or a process that started well after the lock
+/// was written (another one given the writer's recycled id). Where the
+/// table cannot be read, every process counts as running.
+fn alive_since(pid: u32, written: Option<std::time::SystemTime>) -> bool {
     if pid == std::process::id() {
         return true;
     }
     if !Path::new("/proc/self").exists() {
         return true;
     }
-    Path::new(&format!("/proc/{pid}")).exists()
+    let Ok(stat) = std::fs::read_to_string(format!("/proc/{pid}/stat")) else {
+        return Path::new(&format!("/proc/{pid}")).exists();
+    };
+    // "PID (COMM) STATE …": the name may hold spaces and parentheses, so
+    // the fields are counted from the last ')'.
+    let Some((_, rest)) = stat.rsplit_once(')') else {
+        return true;
+    };
+    let fields: Vec<&str> = rest.split_whitespace().collect();
+    if matches!(fields.first(), Some(&("Z" | "X" | "x"))) {
+        return false;
+    }
+    // Field 22, the start in clock ticks after boot (USER_HZ: 100 on
+    // Linux's every architecture), is the 20th after the state.
+    let start = fields.get(19).and_then(|v| v.parse::<u64>().ok());
+    match (written, start, boot_time()) {
+        (Some(w), Some(ticks), Some(boot)) => {
+            let started = boot + Duration::from_millis(ticks * 10);
+            // (Seconds of slack: the boot time is whole seconds, and
+            // clocks are adjusted.)
+            started <= w + Duration::from_secs(5)
+        }
+        _ => true,
+    }
+}
+
+/// When the machine booted (`btime` of `/proc/stat`).
+fn boot_time() -> Option<std::time::SystemTime> {
+    let stat = std::fs::read_to_string("/proc/stat").ok()?;
+    let secs = stat
+        .lines()
+        .find_map(|l| l.strip_prefix("btime "))?
+        .trim()
+        .parse::<u64>()
+        .ok()?;
+    Some(std::time::UNIX_EPOCH + Duration::from_secs(secs))
 }
 
 #[cfg(test)]
@@ -217,6 +263,51 @@ mod tests {
         let _ = std::fs::remove_dir_all(&d);
         std::fs::create_dir_all(&d).unwrap();
         d
+    }
+
+    /// A killed writer not yet reaped by its parent (a zombie) holds no
+    /// lock; nor does a process given a writer's id after the lock was
+    /// written.
+    #[test]
+    fn zombies_and_processes_newer_than_the_lock_hold_nothing() {
+        let d = dir("zombie");
+        let p = d.join("z.lock");
+        let mut child = std::process::Command::new("sleep")
+            .arg("30")
+            .spawn()
+            .unwrap();
+        let pid = child.id();
+        std::fs::write(&p, pid.to_string()).unwrap();
+        // Running, and started before its lock was written: it holds it.
+        assert!(matches!(holder(&p), Some(Holder::Alive(x)) if x == pid));
+        let e = PidLock::take(&p, "writing z").unwrap_err().to_string();
+        assert!(e.contains(&format!("pid {pid}")), "{e}");
+        // The same process, but the lock written an hour before it
+        // started: another writer's, whose id it was given.
+        let f = std::fs::File::options().write(true).open(&p).unwrap();
+        f.set_modified(std::time::SystemTime::now() - Duration::from_secs(3600))
+            .unwrap();
+        drop(f);
+        assert!(matches!(holder(&p), Some(Holder::Gone)));
+        // Killed and not reaped: a zombie, gone.
+        std::fs::write(&p, pid.to_string()).unwrap();
+        child.kill().unwrap();
+        let until = Instant::now() + Duration::from_secs(10);
+        while std::fs::read_to_string(format!("/proc/{pid}/stat")).is_ok_and(|s| {
+            !s.rsplit_once(')')
+                .is_some_and(|(_, r)| r.trim_start().starts_with('Z'))
+        }) && Instant::now() < until
+        {
+            std::thread::sleep(Duration::from_millis(10));
+        }
+        assert!(
+            std::path::Path::new(&format!("/proc/{pid}")).exists(),
+            "the killed child should stay in the table until reaped"
+        );
+        assert!(matches!(holder(&p), Some(Holder::Gone)));
+        let lock = PidLock::take(&p, "writing z").unwrap();
+        drop(lock);
+        child.wait().unwrap();
     }
 
     #[test]
