@@ -429,6 +429,22 @@ fn render_writes_pngs_and_rejects_bad_options() {
     );
 }
 
+/// The viewer refuses an upload budget below one brick before it opens a
+/// window (with it, no brick ever reached the pool and the views waited
+/// for ever), as `render` does.
+#[test]
+fn view_rejects_an_upload_budget_below_one_brick() {
+    let d = tempfile::tempdir().unwrap();
+    let store = mandelbulb_48(d.path(), "u.ome.zarr");
+    let out = bin()
+        .args(["view", s(&store), "--upload", "0", "--backend", "cpu"])
+        .env_remove("DISPLAY")
+        .env_remove("WAYLAND_DISPLAY")
+        .output()
+        .unwrap();
+    fails_with(&out, &["upload", "less than one padded brick"]);
+}
+
 /// Negative numbers are values, as the help's "negative = finer" says, not
 /// flags: `--lod-bias -1` used to stop at "unexpected argument '-1'".
 #[test]

@@ -342,6 +342,15 @@ pub fn run(c: ViewCmd, demo_store: impl FnOnce() -> Result<PathBuf>) -> Result<i
             .min(device.upload_cap().unwrap_or(u64::MAX)),
         ..Default::default()
     };
+    // Less than a brick a frame: nothing could ever reach the pool, and
+    // the views would wait for ever (as `render` refuses it).
+    let padded = (c.brick + 2).pow(3) * m.dtype.size() as u64;
+    if cfg.upload_bytes_per_frame < padded {
+        anyhow::bail!(
+            "upload: {} bytes per frame is less than one padded brick ({padded} bytes): no brick could ever be written into the pool",
+            cfg.upload_bytes_per_frame
+        );
+    }
     cfg.request_cap = crate::frames::requests_per_frame(
         split.pool,
         split.host,
