@@ -11,15 +11,7 @@ set -euo pipefail
 cd "$(dirname "${BASH_SOURCE[0]}")/.."
 BIN="$(realpath "${1:-target/release/brickyard}")"
 WORK="${2:-/tmp/bench-web-backends}"
-D="$(realpath ../shared/data)"
-mkdir -p "$WORK/stores" "$WORK/out"
-[ -d "$WORK/stores/mni3.ome.zarr" ] || "$BIN" convert "$D"/mni152-{t1,gm,wm}-u8.nii.gz \
-    "$WORK/stores/mni3.ome.zarr" --channel-names t1,gm,wm --quiet
-"$BIN" serve --web --quiet --port 0 "$WORK/stores" 2> "$WORK/serve.log" &
-SRV=$!
-trap 'kill $SRV' EXIT
-sleep 1
-PORT=$(head -1 "$WORK/serve.log" | sed -E 's/.*127\.0\.0\.1:([0-9]+).*/\1/')
+. scripts/web-mni3-served.sh
 B="http://127.0.0.1:$PORT/web/#store=..%2Fstores%2Fmni3.ome.zarr%2F"
 V="az=40&el=25&size=320x240"
 node crates/brickyard-web/browser/canvas.mjs chromium "$WORK/out" \

@@ -106,33 +106,54 @@ fn needs_browser() -> Option<()> {
 /// its files in `out`; returns its report (JSON text).
 fn e2e(url: &str, out: &Path) -> String {
     std::fs::create_dir_all(out).unwrap();
+    browser_driver(
+        "e2e",
+        &["chromium".as_ref(), url.as_ref(), out.as_os_str()],
+        &out.join("report.json"),
+    )
+}
+
+/// `node browser/SCRIPT.mjs ARGS…` run to its end (a test driver in
+/// headless Chromium), which writes its report `report` (JSON): the
+/// report's text, the driver's failure with it when it failed.
+fn browser_driver(script: &str, args: &[&std::ffi::OsStr], report: &Path) -> String {
     let o = Command::new("node")
-        .arg(repo().join("crates/brickyard-web/browser/e2e.mjs"))
-        .args(["chromium", url])
-        .arg(out)
+        .arg(repo().join(format!("crates/brickyard-web/browser/{script}.mjs")))
+        .args(args)
         .output()
         .unwrap();
-    let report = std::fs::read_to_string(out.join("report.json")).unwrap_or_default();
+    let text = std::fs::read_to_string(report).unwrap_or_default();
     assert!(
         o.status.success(),
-        "the browser check failed:\n{}\n{report}",
+        "the browser check failed:\n{}\n{text}",
         String::from_utf8_lossy(&o.stderr)
     );
-    report
+    text
+}
+
+/// `../shared/data/FILE` converted into `dir/NAME`.
+fn converted(dir: &Path, file: &str, name: &str) -> PathBuf {
+    let store = dir.join(name);
+    ok(&bin()
+        .arg("convert")
+        .arg(repo().join("../shared/data").join(file))
+        .arg(&store)
+        .arg("--quiet")
+        .output()
+        .unwrap());
+    store
+}
+
+/// The MNI152 T1 converted into `dir/mni.ome.zarr`.
+fn mni_t1(dir: &Path) -> PathBuf {
+    converted(dir, "mni152-t1-u8.nii.gz", "mni.ome.zarr")
 }
 
 /// The nuclei stack converted into `dir` with `labels/cells` from
 /// `process`; and the TIFF it came from.
 fn nuclei_with_cells(dir: &Path) -> (PathBuf, PathBuf) {
-    let store = dir.join("nuclei.ome.zarr");
+    let store = converted(dir, "nuclei-confocal-u16.tif", "nuclei.ome.zarr");
     let input = repo().join("../shared/data/nuclei-confocal-u16.tif");
-    ok(&bin()
-        .arg("convert")
-        .arg(&input)
-        .arg(&store)
-        .arg("--quiet")
-        .output()
-        .unwrap());
     ok(&bin()
         .arg("process")
         .arg(&store)
@@ -168,21 +189,52 @@ fn read_png(p: &Path) -> (u32, u32, Vec<u8>) {
     (info.width, info.height, buf)
 }
 
+/// `brickyard render` of `store` at `w`×`h` from azimuth `az` and
+/// elevation `el` with the page's `tf=soft&window=0,255` (its bricks, on
+/// the CPU) into `png`; the image read back.
+fn render_soft(
+    store: &Path,
+    w: u32,
+    h: u32,
+    az: &str,
+    el: &str,
+    png: &Path,
+) -> (u32, u32, Vec<u8>) {
+    ok(&bin()
+        .arg("render")
+        .arg(store)
+        .args([
+            "--size",
+            &format!("{w}x{h}"),
+            "--azimuth",
+            az,
+            "--elevation",
+            el,
+        ])
+        .args([
+            "--tf",
+            "soft",
+            "--window",
+            "0,255",
+            "--brick",
+            "32",
+            "--backend",
+            "cpu",
+        ])
+        .args(["--quiet", "-o"])
+        .arg(png)
+        .output()
+        .unwrap());
+    read_png(png)
+}
+
 #[test]
 fn the_web_client_draws_what_render_draws_in_a_headless_browser() {
     if needs_browser().is_none() {
         return;
     }
     let d = tempfile::tempdir().unwrap();
-    let store = d.path().join("mni.ome.zarr");
-    let input = repo().join("../shared/data/mni152-t1-u8.nii.gz");
-    ok(&bin()
-        .arg("convert")
-        .arg(&input)
-        .arg(&store)
-        .arg("--quiet")
-        .output()
-        .unwrap());
+    let store = mni_t1(d.path());
     let srv = serve_web(&store);
     assert!(srv.2.contains("/web/#store=../mni.ome.zarr/"), "{}", srv.2);
     // backend=gpu: WebGPU also on a software adapter (SwiftShader here),
@@ -197,32 +249,7 @@ fn the_web_client_draws_what_render_draws_in_a_headless_browser() {
     eprintln!("{report}");
     let r: serde_json::Value = serde_json::from_str(&report).unwrap();
     // The same view by the command line.
-    let png = d.path().join("cli.png");
-    ok(&bin()
-        .arg("render")
-        .arg(&store)
-        .args([
-            "--size",
-            "320x240",
-            "--azimuth",
-            "40",
-            "--elevation",
-            "25",
-            "--tf",
-            "soft",
-            "--window",
-            "0,255",
-            "--brick",
-            "32",
-            "--backend",
-            "cpu",
-            "--quiet",
-            "-o",
-        ])
-        .arg(&png)
-        .output()
-        .unwrap());
-    let (w, h, cli) = read_png(&png);
+    let (w, h, cli) = render_soft(&store, 320, 240, "40", "25", &d.path().join("cli.png"));
     assert_eq!(
         (r["width"].as_u64(), r["height"].as_u64()),
         (Some(w as u64), Some(h as u64))
@@ -293,15 +320,7 @@ fn a_moving_view_is_drawn_smaller_and_at_rest_as_render_draws_it() {
         return;
     }
     let d = tempfile::tempdir().unwrap();
-    let store = d.path().join("mni.ome.zarr");
-    let input = repo().join("../shared/data/mni152-t1-u8.nii.gz");
-    ok(&bin()
-        .arg("convert")
-        .arg(&input)
-        .arg(&store)
-        .arg("--quiet")
-        .output()
-        .unwrap());
+    let store = mni_t1(d.path());
     let srv = serve_web(&store);
     // On the CPU (WebAssembly, one thread), large enough that a full
     // redraw takes longer than a moving frame may.
@@ -312,18 +331,10 @@ fn a_moving_view_is_drawn_smaller_and_at_rest_as_render_draws_it() {
     );
     let out = d.path().join("out");
     std::fs::create_dir_all(&out).unwrap();
-    let o = Command::new("node")
-        .arg(repo().join("crates/brickyard-web/browser/moving.mjs"))
-        .arg("chromium")
-        .arg(&out)
-        .arg(&url)
-        .output()
-        .unwrap();
-    let report = std::fs::read_to_string(out.join("moving.json")).unwrap_or_default();
-    assert!(
-        o.status.success(),
-        "the browser check failed:\n{}\n{report}",
-        String::from_utf8_lossy(&o.stderr)
+    let report = browser_driver(
+        "moving",
+        &["chromium".as_ref(), out.as_os_str(), url.as_ref()],
+        &out.join("moving.json"),
     );
     let r: serde_json::Value = serde_json::from_str(&report).unwrap();
     // The first frame of the drag is drawn at full size and measured (the
@@ -381,33 +392,7 @@ fn a_moving_view_is_drawn_smaller_and_at_rest_as_render_draws_it() {
     };
     let (az, el) = (key("az"), key("el"));
     assert_ne!(az, "40", "the drag did not turn the view: {end_url}");
-    let png = d.path().join("cli.png");
-    ok(&bin()
-        .arg("render")
-        .arg(&store)
-        .args([
-            "--size",
-            &format!("{w}x{h}"),
-            "--azimuth",
-            &az,
-            "--elevation",
-            &el,
-        ])
-        .args([
-            "--tf",
-            "soft",
-            "--window",
-            "0,255",
-            "--brick",
-            "32",
-            "--backend",
-            "cpu",
-        ])
-        .args(["--quiet", "-o"])
-        .arg(&png)
-        .output()
-        .unwrap());
-    let (cw, ch, cli) = read_png(&png);
+    let (cw, ch, cli) = render_soft(&store, w, h, &az, &el, &d.path().join("cli.png"));
     assert_eq!((cw, ch), (w, h));
     assert!(
         lit_pixels(&cli) as u32 > w * h / 20,
@@ -426,19 +411,10 @@ fn a_moving_view_is_drawn_smaller_and_at_rest_as_render_draws_it() {
 /// url)`; their canvases as `out/NAME.rgba`; returns the report.
 fn canvases(out: &Path, pages: &[(&str, String)]) -> serde_json::Value {
     std::fs::create_dir_all(out).unwrap();
-    let o = Command::new("node")
-        .arg(repo().join("crates/brickyard-web/browser/canvas.mjs"))
-        .arg("chromium")
-        .arg(out)
-        .args(pages.iter().map(|(n, u)| format!("{n}={u}")))
-        .output()
-        .unwrap();
-    let report = std::fs::read_to_string(out.join("canvas.json")).unwrap_or_default();
-    assert!(
-        o.status.success(),
-        "the browser check failed:\n{}\n{report}",
-        String::from_utf8_lossy(&o.stderr)
-    );
+    let specs: Vec<String> = pages.iter().map(|(n, u)| format!("{n}={u}")).collect();
+    let mut args: Vec<&std::ffi::OsStr> = vec!["chromium".as_ref(), out.as_os_str()];
+    args.extend(specs.iter().map(|x| std::ffi::OsStr::new(x)));
+    let report = browser_driver("canvas", &args, &out.join("canvas.json"));
     serde_json::from_str(&report).unwrap()
 }
 
@@ -685,17 +661,10 @@ fn the_web_pages_readout_names_the_voxel_and_a_click_picks_its_label() {
     let run = |url: &str, name: &str| {
         let out = d.path().join(name);
         std::fs::create_dir_all(&out).unwrap();
-        let o = Command::new("node")
-            .arg(repo().join("crates/brickyard-web/browser/readout.mjs"))
-            .args(["chromium", url])
-            .arg(&out)
-            .output()
-            .unwrap();
-        let report = std::fs::read_to_string(out.join("readout.json")).unwrap_or_default();
-        assert!(
-            o.status.success(),
-            "the browser check failed:\n{}\n{report}",
-            String::from_utf8_lossy(&o.stderr)
+        let report = browser_driver(
+            "readout",
+            &["chromium".as_ref(), url.as_ref(), out.as_os_str()],
+            &out.join("readout.json"),
         );
         let r: serde_json::Value = serde_json::from_str(&report).unwrap();
         // A click on the label read out picks it; a second unpicks it.
