@@ -431,9 +431,10 @@ fn render_writes_pngs_and_rejects_bad_options() {
 
 /// The viewer refuses an upload budget below one brick before it opens a
 /// window (with it, no brick ever reached the pool and the views waited
-/// for ever), as `render` does.
+/// for ever), and a pool too small for the coarsest level, as `render`
+/// does.
 #[test]
-fn view_rejects_an_upload_budget_below_one_brick() {
+fn view_rejects_budgets_that_cannot_work_before_its_window() {
     let d = tempfile::tempdir().unwrap();
     let store = mandelbulb_48(d.path(), "u.ome.zarr");
     let out = bin()
@@ -443,6 +444,15 @@ fn view_rejects_an_upload_budget_below_one_brick() {
         .output()
         .unwrap();
     fails_with(&out, &["upload", "less than one padded brick"]);
+    // A pool that cannot hold the coarsest level: named before the window
+    // (it used to be said in the window).
+    let out = bin()
+        .args(["view", s(&store), "--pool", "1KiB", "--backend", "cpu"])
+        .env_remove("DISPLAY")
+        .env_remove("WAYLAND_DISPLAY")
+        .output()
+        .unwrap();
+    fails_with(&out, &["pool", "coarsest level", "at least"]);
 }
 
 /// Negative numbers are values, as the help's "negative = finer" says, not

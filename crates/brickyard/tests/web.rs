@@ -413,7 +413,7 @@ fn canvases(out: &Path, pages: &[(&str, String)]) -> serde_json::Value {
     std::fs::create_dir_all(out).unwrap();
     let specs: Vec<String> = pages.iter().map(|(n, u)| format!("{n}={u}")).collect();
     let mut args: Vec<&std::ffi::OsStr> = vec!["chromium".as_ref(), out.as_os_str()];
-    args.extend(specs.iter().map(|x| std::ffi::OsStr::new(x)));
+    args.extend(specs.iter().map(std::ffi::OsStr::new));
     let report = browser_driver("canvas", &args, &out.join("canvas.json"));
     serde_json::from_str(&report).unwrap()
 }

@@ -351,6 +351,21 @@ pub fn run(c: ViewCmd, demo_store: impl FnOnce() -> Result<PathBuf>) -> Result<i
             cfg.upload_bytes_per_frame
         );
     }
+    // A pool too small for the coarsest level: said now, as `render`
+    // says it, not in the window once it opens (the session's own rule).
+    let geometry = brickyard_cache::brick::BrickGeometry {
+        brick: [c.brick; 3],
+        apron: cfg.apron,
+        levels: levels.clone(),
+        channels: m.channels,
+        dtype: m.dtype,
+    };
+    let bricks: usize = (0..levels.len()).map(|l| geometry.bricks_at(l)).sum();
+    let slot = cfg.slot_bytes(m.dtype);
+    let slots = ((cfg.pool_bytes / slot) as usize).min(bricks);
+    geometry
+        .pinned_levels(slots, slot, 512)
+        .map_err(|e| anyhow::anyhow!("pool: {e} (--pool)"))?;
     cfg.request_cap = crate::frames::requests_per_frame(
         split.pool,
         split.host,
