@@ -190,6 +190,11 @@ impl BrickGeometry {
         self.voxels_per_brick() * self.dtype.size() as u64
     }
 
+    /// Bricks of every level and channel.
+    pub fn total_bricks(&self) -> usize {
+        (0..self.levels.len()).map(|l| self.bricks_at(l)).sum()
+    }
+
     /// Number of bricks `[z, y, x]` covering level `l`.
     pub fn bricks_per_level(&self, l: usize) -> Dims3 {
         let d = self.levels[l];
@@ -265,7 +270,7 @@ impl BrickGeometry {
     ) -> Result<Vec<usize>, PoolTooSmall> {
         let nl = self.levels.len();
         let coarsest = self.bricks_at(nl - 1);
-        let all: usize = (0..nl).map(|l| self.bricks_at(l)).sum();
+        let all = self.total_bricks();
         if slots < 2 * coarsest && slots < all {
             return Err(PoolTooSmall {
                 slots,

@@ -78,6 +78,14 @@ impl VmConfig {
         let cells = CellGrid::new(self.brick).len() * std::mem::size_of::<[f32; 2]>();
         padded * dtype.size() as u64 + cells as u64
     }
+
+    /// Slots of the pool for a volume of `bricks` bricks (all levels and
+    /// channels) of `dtype`: its bytes over a slot's, and no more than one
+    /// per brick (more would never be used: a small volume takes a small
+    /// pool, on a device too, whatever the budget).
+    pub fn pool_slots(&self, dtype: DType, bricks: u64) -> u64 {
+        (self.pool_bytes / self.slot_bytes(dtype)).min(bricks)
+    }
 }
 
 /// Which entry references a slot or block (so that evicting it can unmap
@@ -456,11 +464,8 @@ impl VirtualMemory {
         let padded = cfg.brick.map(|b| (b + 2 * cfg.apron) as usize);
         let brick_bytes = padded.iter().product::<usize>() * dtype.size();
         let cell_grid = CellGrid::new(cfg.brick);
-        // Slots beyond one per brick of the volume would never be used: a
-        // small volume takes a small pool (on a device, too), whatever
-        // the budget.
         let bricks = layout.brick_count() * channels.max(1) as u64;
-        let slots = SlotSet::new((cfg.pool_bytes / cfg.slot_bytes(dtype)).min(bricks));
+        let slots = SlotSet::new(cfg.pool_slots(dtype, bricks));
         VirtualMemory {
             merged: Requests::with_capacity(cfg.request_cap * 8),
             layout,

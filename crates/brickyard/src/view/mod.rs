@@ -342,17 +342,10 @@ pub fn run(c: ViewCmd, demo_store: impl FnOnce() -> Result<PathBuf>) -> Result<i
             .min(device.upload_cap().unwrap_or(u64::MAX)),
         ..Default::default()
     };
-    // Less than a brick a frame: nothing could ever reach the pool, and
-    // the views would wait for ever (as `render` refuses it).
-    let padded = (c.brick + 2).pow(3) * m.dtype.size() as u64;
-    if cfg.upload_bytes_per_frame < padded {
-        anyhow::bail!(
-            "upload: {} bytes per frame is less than one padded brick ({padded} bytes): no brick could ever be written into the pool",
-            cfg.upload_bytes_per_frame
-        );
-    }
-    // A pool too small for the coarsest level: said now, as `render`
-    // says it, not in the window once it opens (the session's own rule).
+    // Budgets that cannot work, said now as `render` says them, not in
+    // the window once it opens: less than a brick a frame (nothing could
+    // ever reach the pool, and the views waited for ever), and a pool too
+    // small for the coarsest level (the session's own rule).
     let geometry = brickyard_cache::brick::BrickGeometry {
         brick: [c.brick; 3],
         apron: cfg.apron,
@@ -360,11 +353,16 @@ pub fn run(c: ViewCmd, demo_store: impl FnOnce() -> Result<PathBuf>) -> Result<i
         channels: m.channels,
         dtype: m.dtype,
     };
-    let bricks: usize = (0..levels.len()).map(|l| geometry.bricks_at(l)).sum();
-    let slot = cfg.slot_bytes(m.dtype);
-    let slots = ((cfg.pool_bytes / slot) as usize).min(bricks);
+    let brick_bytes = geometry.bytes_per_brick();
+    if cfg.upload_bytes_per_frame < brick_bytes {
+        anyhow::bail!(
+            "upload: {} bytes per frame is less than one padded brick ({brick_bytes} bytes): no brick could ever be written into the pool",
+            cfg.upload_bytes_per_frame
+        );
+    }
+    let slots = cfg.pool_slots(m.dtype, geometry.total_bricks() as u64) as usize;
     geometry
-        .pinned_levels(slots, slot, 512)
+        .pinned_levels(slots, cfg.slot_bytes(m.dtype), 512)
         .map_err(|e| anyhow::anyhow!("pool: {e} (--pool)"))?;
     cfg.request_cap = crate::frames::requests_per_frame(
         split.pool,

@@ -163,8 +163,8 @@ const PART_MS: f64 = 20.0;
 
 /// The least time between accumulation parts sent to the window (a pass's
 /// last part is always sent): each sent image is converted for display on
-/// a core the renderer shares, and sending every 20 ms part made parts
-/// shrink to a row and a 16-frame accumulation take 5-18 s.
+/// a core the renderer shares, and a part every 20 ms showed no more than
+/// one every 100 ms does.
 const SEND_MS: f64 = 100.0;
 
 /// What an accumulation is valid for: the view without its transfer
