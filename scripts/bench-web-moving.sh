@@ -4,7 +4,10 @@
 # of three (T1 + grey + white matter) at 512x512 and 800x600. Prints per
 # page the full-size redraw the drag's first frame measured (what each
 # frame of a moving view cost when it was drawn at full size), the size the moving frames
-# were drawn at and their times, and the view at rest afterwards.
+# were drawn at and their times, and the view at rest afterwards: its
+# redraw's time and parts, and the page's long tasks (over 50 ms) from
+# letting go until it is complete. BRICKYARD_WEB_DIST picks the web client
+# served (default: target/web).
 #
 # Usage: bash scripts/bench-web-moving.sh [BRICKYARD] [WORKDIR]
 set -euo pipefail
@@ -28,6 +31,8 @@ scale = moving[0]["scale"] if moving else 1.0
 full = moving[0]["full_ms"] if moving else b["full_ms"]
 print(f"{name}: full-size redraw {full:.0f} ms; while moving {len(moving)}/{len(d)} samples at "
       f"{100 * scale:.0f} % size, frames {min(ms):.0f}-{max(ms):.0f} ms (median {statistics.median(ms):.0f}); "
-      f"at rest again: scale {e['scale']}, complete {e['complete']}, last frame {e['frame_ms']:.0f} ms")
+      f"at rest again: scale {e['scale']}, complete {e['complete']}, last frame {e['frame_ms']:.0f} ms "
+      f"in {e.get('full_parts', 1)} part(s); the page's tasks over 50 ms from letting go to complete: "
+      f"{[round(x) for x in r.get('rest_long_tasks', [])]}")
 PY
 done

@@ -284,8 +284,19 @@ pub const MOVING_FRAME_MS: f64 = 40.0;
 /// the size that should (pixels cost alike), from half to a quarter. The
 /// viewer and the web page share it; once the view rests it is drawn at
 /// full size again.
-pub fn moving_scale(full_ms: f64) -> f64 {
-    if full_ms.is_nan() || full_ms <= MOVING_FRAME_MS {
+///
+/// `last` is the fraction the view's last moving frame was drawn at (1:
+/// full size, or none yet). Once smaller, a moving view returns to full
+/// size only where full-size redraws take at most three quarters of the
+/// target, so that redraws timed near the line do not switch its size back
+/// and forth from one drag (or one frame) to the next.
+pub fn moving_scale(full_ms: f64, last: f64) -> f64 {
+    let line = if last < 1.0 {
+        0.75 * MOVING_FRAME_MS
+    } else {
+        MOVING_FRAME_MS
+    };
+    if full_ms.is_nan() || full_ms <= line {
         return 1.0;
     }
     (MOVING_FRAME_MS / full_ms).sqrt().clamp(0.25, 0.5)
@@ -308,15 +319,25 @@ mod tests {
     fn moving_views_shrink_only_when_full_frames_are_slow() {
         // Fast enough at full size (or not measured): full size.
         for ms in [0.0, 5.0, 40.0, f64::NAN] {
-            assert_eq!(moving_scale(ms), 1.0, "{ms}");
+            assert_eq!(moving_scale(ms, 1.0), 1.0, "{ms}");
         }
         // Slower: half size from just above the target up to 4x it,
         // then the size that keeps up, down to a quarter.
-        assert_eq!(moving_scale(41.0), 0.5);
-        assert_eq!(moving_scale(160.0), 0.5);
-        assert!((moving_scale(360.0) - 1.0 / 3.0).abs() < 1e-12);
-        assert_eq!(moving_scale(640.0), 0.25);
-        assert_eq!(moving_scale(1e6), 0.25);
+        assert_eq!(moving_scale(41.0, 1.0), 0.5);
+        assert_eq!(moving_scale(160.0, 1.0), 0.5);
+        assert!((moving_scale(360.0, 1.0) - 1.0 / 3.0).abs() < 1e-12);
+        assert_eq!(moving_scale(640.0, 1.0), 0.25);
+        assert_eq!(moving_scale(1e6, 1.0), 0.25);
+        // Once smaller, full size again only well under the line: redraws
+        // timed at 38-42 ms keep the size they had.
+        for ms in [31.0, 38.0, 40.0] {
+            assert_eq!(moving_scale(ms, 0.5), 0.5, "{ms}");
+        }
+        assert_eq!(moving_scale(42.0, 0.5), 0.5);
+        assert_eq!(moving_scale(38.0, 1.0), 1.0);
+        assert_eq!(moving_scale(30.0, 0.5), 1.0);
+        assert_eq!(moving_scale(f64::NAN, 0.5), 1.0);
+        assert!((moving_scale(360.0, 0.25) - 1.0 / 3.0).abs() < 1e-12);
         assert_eq!(scaled_size([512, 300], 1.0), [512, 300]);
         assert_eq!(scaled_size([512, 300], 0.5), [256, 150]);
         assert_eq!(scaled_size([20, 12], 0.25), [8, 8]);

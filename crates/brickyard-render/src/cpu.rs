@@ -207,7 +207,8 @@ impl FrameStats {
         }
     }
 
-    pub(crate) fn add(&mut self, o: &FrameStats) {
+    /// Add another frame's (or a part's) figures to these.
+    pub fn add(&mut self, o: &FrameStats) {
         self.samples += o.samples;
         self.exact += o.exact;
         self.unserved += o.unserved;

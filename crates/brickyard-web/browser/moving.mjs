@@ -6,7 +6,9 @@
 // and waits until the view is complete again. OUT_DIR/moving.json gets
 // the status before the drag, the statuses during it, the canvas's size
 // and lit pixels mid-drag, the status and URL at the end; OUT_DIR/end.rgba
-// the final canvas (straight RGBA). Exits non-zero on any failure.
+// the final canvas (straight RGBA); `rest_long_tasks` the durations (ms) of
+// the page's tasks over 50 ms from letting go until the view is complete
+// (the browser's long-task timing). Exits non-zero on any failure.
 import { chromium } from 'playwright-core';
 import { writeFileSync } from 'node:fs';
 import { execFileSync } from 'node:child_process';
@@ -33,6 +35,11 @@ try {
   const page = await browser.newPage({ viewport: { width: 1400, height: 1000 } });
   const logs = [];
   page.on('pageerror', (e) => logs.push('pageerror: ' + e.message));
+  await page.addInitScript(() => {
+    window.longTasks = [];
+    new PerformanceObserver((l) => { for (const e of l.getEntries()) window.longTasks.push(e.duration); })
+      .observe({ type: 'longtask' });
+  });
   await page.goto(url);
   report.before = await waitComplete(page);
   const box = await page.locator('#view').boundingBox();
@@ -54,8 +61,11 @@ try {
       });
     }
   }
+  await page.evaluate(() => { window.longTasks = []; });
   await page.mouse.up();
   report.end = await waitComplete(page);
+  await sleep(100);
+  report.rest_long_tasks = await page.evaluate(() => window.longTasks);
   const r = await page.evaluate(() => {
     const c = document.getElementById('view');
     return { width: c.width, height: c.height, data: Array.from(c.getContext('2d').getImageData(0, 0, c.width, c.height).data), url: location.href };

@@ -138,6 +138,24 @@ pub struct FrameOut {
     /// The LOD bias drawn with (above the user's when the pool is too
     /// small for the view).
     pub bias: f64,
+    /// Tiles drawn by this call, and tiles of its frame still to draw
+    /// (a frame drawn in parts: [`WebSession::frame_cpu_part`]).
+    pub tiles_drawn: usize,
+    pub tiles_left: usize,
+}
+
+/// A frame on the CPU drawn in parts, one per call, so that no call holds
+/// the page's thread for long: its tiles still to draw, and what the parts
+/// drawn so far gathered. The virtual memory's frame spans the parts (no
+/// brick enters or leaves it between them), so the image is the one a
+/// single call would draw.
+#[derive(Default)]
+struct Pass {
+    /// Tile indices still to draw, in the order they are drawn.
+    left: VecDeque<usize>,
+    stats: FrameStats,
+    reqs: Vec<brickyard_cache::vm::Requests>,
+    failed: usize,
 }
 
 /// Virtual memory + loads + the scene it draws.
@@ -157,6 +175,11 @@ pub struct WebSession {
     drawn: Option<(RenderParams, Lod)>,
     image: Image,
     tiles: Tiles,
+    /// A frame drawn in parts, begun and not finished.
+    pass: Option<Pass>,
+    /// Every tile of the image was drawn for its view (false while the
+    /// first frame of a new view is drawn in parts).
+    whole: bool,
     /// The depth of the residency octree frames through it attach
     /// ([`View::octree_depth`](crate::view::View)).
     pub octree_depth: u32,
@@ -225,6 +248,8 @@ impl WebSession {
             drawn: None,
             image: Image::new(0, 0),
             tiles: Tiles::all(0, 0),
+            pass: None,
+            whole: false,
             octree_depth: DEFAULT_DEPTH,
         })
     }
@@ -281,11 +306,57 @@ impl WebSession {
     /// (detail is lost, never completeness), and lowers it again when room
     /// is back.
     pub fn frame_cpu(&mut self, p: &RenderParams, lod: Lod) -> FrameOut {
+        self.frame_cpu_part(p, lod, None)
+    }
+
+    /// [`frame_cpu`](Self::frame_cpu), drawing at most `max_tiles` of the
+    /// frame's tiles per call (`None`: all): a call that leaves tiles to
+    /// draw ends nothing (no requests out, no arrivals in, never complete;
+    /// [`FrameOut::tiles_left`] says how many), and the next call of the
+    /// same view goes on with them; the call that draws the last ends the
+    /// frame with the figures of all its parts. A changed view drops a
+    /// frame begun. Each part takes tiles spread over the whole frame, so
+    /// that parts cost alike.
+    pub fn frame_cpu_part(
+        &mut self,
+        p: &RenderParams,
+        lod: Lod,
+        max_tiles: Option<usize>,
+    ) -> FrameOut {
         let (drawn, failed) = match self.prepare(p, lod) {
             Ok(x) => x,
             Err(out) => return *out,
         };
-        self.vm.begin_frame();
+        let mut pass = match self.pass.take() {
+            Some(pass) => pass,
+            None => {
+                self.vm.begin_frame();
+                Pass {
+                    left: (0..self.tiles.redo.len())
+                        .filter(|&i| self.tiles.redo[i])
+                        .collect(),
+                    ..Pass::default()
+                }
+            }
+        };
+        pass.failed += failed;
+        // This part's tiles: every k-th of those left, k so that at most
+        // `max_tiles` are taken.
+        let n = pass.left.len();
+        let step = max_tiles.map_or(1, |m| n.div_ceil(m.max(1)).max(1));
+        let mut now = vec![false; self.tiles.redo.len()];
+        let mut rest = VecDeque::with_capacity(n);
+        for (j, i) in pass.left.drain(..).enumerate() {
+            if j % step == 0 {
+                now[i] = true;
+            } else {
+                rest.push_back(i);
+            }
+        }
+        pass.left = rest;
+        let drawn_now = n - pass.left.len();
+        // Draw those tiles only; the others keep their marks.
+        let marks = std::mem::replace(&mut self.tiles.redo, now.clone());
         let (stats, reqs) = render_tiles(
             &self.vm,
             &self.scene,
@@ -294,7 +365,43 @@ impl WebSession {
             &mut self.image,
             &mut self.tiles,
         );
-        self.finish(stats, reqs.iter(), failed)
+        for (i, m) in marks.into_iter().enumerate() {
+            if !now[i] {
+                self.tiles.redo[i] = m;
+            }
+        }
+        pass.stats.add(&stats);
+        pass.reqs.extend(reqs);
+        if !pass.left.is_empty() {
+            let tiles_left = pass.left.len();
+            self.pass = Some(pass);
+            let (queued, in_flight) = self.loads.pending();
+            return FrameOut {
+                stats,
+                queued,
+                in_flight,
+                failed,
+                bias: self.budget.as_ref().map_or(0.0, |b| b.bias),
+                tiles_drawn: drawn_now,
+                tiles_left,
+                ..Default::default()
+            };
+        }
+        let mut out = self.finish(pass.stats, pass.reqs.iter(), pass.failed);
+        out.tiles_drawn = drawn_now;
+        out
+    }
+
+    /// A frame is being drawn in parts ([`frame_cpu_part`](Self::frame_cpu_part)).
+    pub fn in_parts(&self) -> bool {
+        self.pass.is_some()
+    }
+
+    /// Every tile of [`image`](Self::image) was drawn for the last view
+    /// drawn: it may be shown (it is not while the first frame of a new
+    /// view is drawn in parts).
+    pub fn whole(&self) -> bool {
+        self.whole
     }
 
     /// Start a frame of `p` at the user's `lod`: arrivals taken in, the
@@ -325,6 +432,8 @@ impl WebSession {
             self.image = Image::new(p.width, p.height);
             self.tiles = Tiles::all(p.width, p.height);
             self.drawn = Some((p.clone(), drawn));
+            self.pass = None;
+            self.whole = false;
         }
         if !self.ready() {
             let (q, f) = self.loads.pending();
@@ -389,6 +498,7 @@ impl WebSession {
         failed: usize,
     ) -> FrameOut {
         let arrived_before = self.waiting.len();
+        self.whole = true;
         let mut out = self.end_frame(reqs);
         let failed_in_list = out
             .frame

@@ -198,6 +198,24 @@ struct Inner {
     /// at (1: full size), and a canvas to draw such frames into before
     /// they are scaled onto the page's.
     drawn_scale: f64,
+    /// The fraction of the size the last frame while moving was drawn at
+    /// (1: full size, or none yet): `budget::moving_scale`'s `last`.
+    moving_last: f64,
+    /// Milliseconds a tile of a frame on the CPU takes (a running mean;
+    /// NaN until measured): a frame at rest is drawn in parts of about
+    /// [`PART_MS`] each.
+    ms_per_tile: f64,
+    /// The frame being drawn (in one part or several): its milliseconds
+    /// so far, its parts, and whether it redraws a changed 3D view at full
+    /// size (then it sets `full_ms`). The last finished frame's parts and
+    /// its longest part.
+    pass_ms: f64,
+    pass_parts: u32,
+    pass_full: bool,
+    parts: u32,
+    part_ms_max: f64,
+    /// The parts the last full-size redraw (of `full_ms`) was drawn in.
+    full_parts: u32,
     scratch: Option<(
         web_sys::HtmlCanvasElement,
         web_sys::CanvasRenderingContext2d,
@@ -233,6 +251,11 @@ pub struct Viewer {
 
 /// How long after the camera's last move (ms) the view counts as moving.
 const MOVING_FOR_MS: f64 = 200.0;
+
+/// The time a part of a frame on the CPU at rest aims at (ms): a frame that
+/// takes longer is drawn over several calls, so that the page's thread is
+/// never held much longer (a pointer or key waits at most about this).
+const PART_MS: f64 = 40.0;
 
 /// The most bricks × channels of a level whose statistics the page reads
 /// (16 MiB of value ranges at most): finer levels of larger volumes are
@@ -374,6 +397,14 @@ impl Viewer {
                 view: None,
                 full_ms: 0.0,
                 drawn_scale: 1.0,
+                moving_last: 1.0,
+                ms_per_tile: f64::NAN,
+                pass_ms: 0.0,
+                pass_parts: 0,
+                pass_full: false,
+                parts: 0,
+                part_ms_max: 0.0,
+                full_parts: 0,
                 scratch: None,
             })),
             state: Rc::new(RefCell::new(state)),
@@ -434,6 +465,13 @@ impl Viewer {
         let mut g = self.state.borrow_mut();
         g.azimuth = ((g.azimuth + daz) % 360.0 * 1000.0).round() / 1000.0;
         g.elevation = ((g.elevation + del).clamp(-89.0, 89.0) * 1000.0).round() / 1000.0;
+    }
+
+    /// The view is being changed by a drag on a control (the transfer
+    /// function's window, the LOD bias): for a moment its frames may be
+    /// drawn smaller, as while the camera moves.
+    pub fn moving(&self) {
+        self.moved_at.set(now());
     }
 
     /// Move closer (`f` > 1) or away (the view moving, as with `orbit`).
@@ -571,7 +609,7 @@ impl Inner {
         // it is drawn at full size again.
         let three_d = !matches!(view.params.mode, brickyard_render::RenderMode::Slice { .. });
         let scale = if moving && three_d {
-            brickyard_render::budget::moving_scale(self.full_ms)
+            brickyard_render::budget::moving_scale(self.full_ms, self.moving_last)
         } else {
             1.0
         };
@@ -588,18 +626,51 @@ impl Inner {
         let idle = queued + in_flight == 0;
         let waited = t - self.drawn_at >= 250.0;
         let dirty = self.drawn_state.as_ref() != Some(&state) || self.drawn_scale != scale;
+        // (A frame begun in parts goes on.)
+        let in_parts = self.session.in_parts();
         let draw = self.frames == 0
             || dirty
+            || in_parts
             || (news > 0 && (news >= 64 || idle || waited))
             || (!self.last.complete && idle && waited);
+        let mut earlier_parts_ms = 0.0;
         if draw {
+            if dirty || !in_parts {
+                // A new frame (a changed view drops one begun).
+                self.pass_ms = 0.0;
+                self.pass_parts = 0;
+                self.part_ms_max = 0.0;
+                // A changed 3D view at full size is redrawn whole: what a
+                // moving view would cost at full size. (Not the page's
+                // first frame: it also pays for setting up, and took 10-20
+                // times a later redraw.)
+                self.pass_full = dirty && scale == 1.0 && three_d && self.frames > 0;
+            }
+            if moving && three_d {
+                self.moving_last = scale;
+            }
             self.drawn_at = t;
             self.drawn_state = Some(state.clone());
             self.drawn_scale = scale;
             let device = self.device.as_mut();
             self.on_device = device.is_some();
             self.last = match device {
-                None => self.session.frame_cpu(&p, lod),
+                // At rest, a frame slower than a part's time is drawn in
+                // parts (a moving view's frames are drawn whole, small).
+                None => {
+                    let max_tiles = (!moving && self.frames > 0 && self.ms_per_tile > 0.0)
+                        .then(|| ((PART_MS / self.ms_per_tile) as usize).max(1));
+                    let out = self.session.frame_cpu_part(&p, lod, max_tiles);
+                    if out.tiles_drawn > 0 && self.frames > 0 {
+                        let ms = (now() - t) / out.tiles_drawn as f64;
+                        self.ms_per_tile = if self.ms_per_tile.is_nan() {
+                            ms
+                        } else {
+                            0.5 * (self.ms_per_tile + ms)
+                        };
+                    }
+                    out
+                }
                 Some(d) => match self.session.prepare(&p, lod) {
                     Err(out) => *out,
                     Ok((drawn, failed)) => {
@@ -623,23 +694,30 @@ impl Inner {
                     }
                 },
             };
-            self.frames += 1;
-            // A changed 3D view at full size is redrawn whole: what a
-            // moving view would cost at full size. (Not the page's first
-            // frame: it also pays for setting up, and took 10-20 times a
-            // later redraw.)
-            if dirty && scale == 1.0 && three_d && self.frames > 1 {
-                self.full_ms = now() - t;
+            let ms = now() - t;
+            earlier_parts_ms = self.pass_ms;
+            self.pass_ms += ms;
+            self.pass_parts += 1;
+            self.part_ms_max = self.part_ms_max.max(ms);
+            if !self.session.in_parts() {
+                self.frames += 1;
+                self.parts = self.pass_parts;
+                if self.pass_full {
+                    self.full_ms = self.pass_ms;
+                    self.full_parts = self.pass_parts;
+                }
             }
         }
         // The labels: drawn with the image, and when their bricks come.
-        let mut shown = draw;
+        // (A frame in parts is shown once its last part is drawn.)
+        let whole = !self.session.in_parts();
+        let mut shown = draw && whole;
         if let (Some(l), Some(lv)) = (&mut self.labels, &label_view) {
             let news = l.session.news();
             let (q, f) = l.session.loads.pending();
             if draw || news > 0 || (!l.last.complete && q + f == 0) {
                 l.last = l.session.frame_cpu(&lv.params, lv.lod);
-                shown = true;
+                shown = whole;
             }
         }
         if shown {
@@ -703,7 +781,8 @@ impl Inner {
                     self.scratch = Some((sc, sctx));
                 }
             }
-            self.frame_ms = now() - t;
+            // (A frame in parts: all its parts.)
+            self.frame_ms = now() - t + earlier_parts_ms;
         }
         let bytes = self.session.loads.src.stats.borrow().bytes;
         let tn = now();
@@ -755,6 +834,10 @@ impl Inner {
             "frame_ms": self.frame_ms,
             "scale": self.drawn_scale,
             "full_ms": self.full_ms,
+            "parts": self.parts,
+            "full_parts": self.full_parts,
+            "part_ms_max": self.part_ms_max,
+            "tiles_left": self.last.tiles_left,
             "frames": self.frames,
             "first_complete_ms": self.first_complete_ms,
             "query": state.to_query(),

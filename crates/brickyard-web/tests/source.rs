@@ -524,6 +524,109 @@ fn a_pool_smaller_than_the_view_still_completes() {
     assert!(lit > 1000, "{lit} lit pixels after {frames} frames");
 }
 
+/// A session over `store` (32³ bricks, a pool of `pool` bytes, the brick
+/// statistics read) and its executor.
+fn session(store: &Path, pool: u64) -> (WebSession, LocalPool, Rc<WebSource>) {
+    let src = Rc::new(open_web(store, 32));
+    let exec = LocalPool::new();
+    let sp = exec.spawner();
+    let spawn: Spawn = Rc::new(move |f| spawn_local(&sp, f));
+    let cfg = VmConfig {
+        brick: [32; 3],
+        pool_bytes: pool,
+        ..Default::default()
+    };
+    let mut exec = exec;
+    let mut s = WebSession::new(src.clone(), cfg, spawn, 6).expect("session");
+    let problems = exec.run_until(s.read_ranges(1 << 21));
+    assert!(problems.is_empty(), "{problems:?}");
+    (s, exec, src)
+}
+
+#[test]
+fn a_frame_drawn_in_parts_equals_one_drawn_at_once() {
+    let dir = tempfile::tempdir().unwrap();
+    let store = convert_file(dir.path(), "mni152-t1-u8.nii.gz", Compression::Lz4, 64, 128);
+    for (q, pool) in [
+        ("size=400x300&az=40&el=25&tf=soft&window=0,255", 64 << 20),
+        (
+            "mode=mip&size=300x300&az=-70&el=10&tf=hot&window=20,200",
+            64 << 20,
+        ),
+        (
+            "traversal=octree&size=320x240&az=120&el=-15&tf=soft&window=0,255",
+            64 << 20,
+        ),
+        // A pool too small for the view: the LOD budget sees whole frames.
+        ("size=200x200&window=0,255", 2 << 20),
+    ] {
+        let st = ViewState::from_query(q).unwrap();
+        // Each frame at once, and in parts of at most 13 tiles.
+        let mut runs = vec![];
+        for max in [None, Some(13)] {
+            let (mut s, mut exec, src) = session(&store, pool);
+            let v = st
+                .params(
+                    &s.scene,
+                    [0.0, 255.0],
+                    &src.meta.channels,
+                    src.geometry.channels,
+                    src.meta.labels,
+                )
+                .unwrap();
+            s.scene.channel = v.channel;
+            s.octree_depth = v.octree_depth;
+            let tiles =
+                (v.params.width as usize).div_ceil(32) * (v.params.height as usize).div_ceil(16);
+            let (mut frames, mut calls) = (0, 0);
+            let img = loop {
+                assert!(calls < 5000, "{q}: no end");
+                exec.run_until_stalled();
+                let out = s.frame_cpu_part(&v.params, v.lod, max);
+                calls += 1;
+                if !s.ready() {
+                    continue;
+                }
+                if let Some(m) = max {
+                    assert!(
+                        out.tiles_drawn <= m,
+                        "{q}: {} tiles in a part",
+                        out.tiles_drawn
+                    );
+                }
+                if out.tiles_left > 0 {
+                    // A part: nothing ended, nothing shown of a new view.
+                    // (A changed level of detail is a new view too.)
+                    assert!(!out.complete && s.in_parts(), "{q}");
+                    if frames == 0 {
+                        assert!(!s.whole(), "{q}");
+                    }
+                    continue;
+                }
+                assert!(!s.in_parts() && s.whole(), "{q}");
+                frames += 1;
+                if out.complete {
+                    break s.image().clone();
+                }
+            };
+            let lit = img.rgba.iter().filter(|p| p[3] > 0.05).count();
+            assert!(lit > 1000, "{q}: {lit} lit pixels");
+            eprintln!(
+                "{q}: {max:?} tiles a part: {frames} frames in {calls} calls ({tiles} tiles)"
+            );
+            runs.push((img, frames, calls));
+        }
+        let (whole, parts) = (&runs[0], &runs[1]);
+        // The same frames, the same image, bit for bit; more calls.
+        assert_eq!(parts.1, whole.1, "{q}: frames");
+        assert!(
+            parts.2 > whole.2 + 1,
+            "{q}: the frames were not drawn in parts"
+        );
+        assert_eq!(parts.0.rgba, whole.0.rgba, "{q}: the images differ");
+    }
+}
+
 fn stream_small(store: &Path, st: &ViewState) -> (Image, u32) {
     stream(store, st, [0.0, 255.0], 2 << 20)
 }

@@ -94,6 +94,10 @@ function drawHistogram() {
 
 let running = false;
 function wake() { if (!running) { running = true; requestAnimationFrame(tick); } }
+// The next part of a frame drawn in parts: at once, as a task of its own
+// (input and painting go between tasks), not a display frame later.
+const partChannel = new MessageChannel();
+partChannel.port1.onmessage = () => tick();
 
 async function tick() {
   let st;
@@ -106,6 +110,7 @@ async function tick() {
     `bricks: ${st.resident} resident of ${st.pool_slots}, ${st.loaded} loaded, ${st.in_flight} in flight, ${st.queued} queued\n` +
     `read: ${(st.bytes / 1048576).toFixed(1)} MiB at ${st.mib_s.toFixed(1)} MiB/s\n` +
     `frame: ${st.frame_ms.toFixed(0)} ms${st.on_device ? ' (WebGPU)' : ' (CPU)'}` +
+    (st.parts > 1 ? ` in ${st.parts} parts` : '') +
     (st.scale < 1 ? ` at ${Math.round(100 * st.scale)} % size while moving` : '') +
     (st.first_complete_ms ? `, first complete after ${(st.first_complete_ms / 1000).toFixed(2)} s` : '') +
     (st.failed ? `\nfailed bricks: ${st.failed} (drawn from coarser data)\nlast: ${st.last_failure}` : '') +
@@ -114,7 +119,8 @@ async function tick() {
   const now = performance.now();
   if (now - histAt > 1000) { histAt = now; drawHistogram(); }
   if (st.complete && !dragging) { running = false; return; }
-  requestAnimationFrame(tick);
+  if (st.tiles_left > 0) partChannel.port2.postMessage(0);
+  else requestAnimationFrame(tick);
 }
 
 // The readout under the pointer: in a slice, the voxel there; in 3D, the
@@ -199,7 +205,7 @@ function wireControls() {
     const v = Number(histValue(e).toPrecision(6));
     const lo = histDrag === 'wlo' ? v : Number($('wlo').value);
     const hi = histDrag === 'whi' ? v : Number($('whi').value);
-    if (hi > lo) { $(histDrag).value = v; setView({ window: `${lo},${hi}` }); histAt = 0; }
+    if (hi > lo) { state.viewer.moving(); $(histDrag).value = v; setView({ window: `${lo},${hi}` }); histAt = 0; }
   });
   hist.addEventListener('pointerup', () => { histDrag = null; });
   // The octree draws DVR: other modes go through the page tables.
@@ -212,7 +218,7 @@ function wireControls() {
     ? setView({ channels: $('channel').value === 'all' ? null : $('channel').value, window: null })
     : setView({ channel: $('channel').value === '0' ? null : $('channel').value, window: null });
   $('slice').oninput = () => setView({ slice: $('slice').value });
-  $('bias').oninput = () => setView({ bias: $('bias').value === '0' ? null : $('bias').value });
+  $('bias').oninput = () => state.viewer.moving() || setView({ bias: $('bias').value === '0' ? null : $('bias').value });
   window.addEventListener('hashchange', () => {
     if (hashParams().get('store') !== state.store || hashParams().get('labels') !== state.labels) { location.reload(); return; }
     try { state.viewer.set_query(viewQuery()); syncControls(state.viewer.query()); wake(); } catch (e) { showError(e); }

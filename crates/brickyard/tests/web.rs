@@ -352,7 +352,7 @@ fn a_moving_view_is_drawn_smaller_and_at_rest_as_render_draws_it() {
     );
     for s in &smaller {
         let full_ms = s["full_ms"].as_f64().unwrap();
-        let k = brickyard_render::budget::moving_scale(full_ms);
+        let k = brickyard_render::budget::moving_scale(full_ms, 1.0);
         assert!(full_ms > 40.0, "{s}");
         assert!((s["scale"].as_f64().unwrap() - k).abs() < 1e-9, "{s}");
         assert_eq!(
@@ -380,8 +380,22 @@ fn a_moving_view_is_drawn_smaller_and_at_rest_as_render_draws_it() {
         mid["text"].as_str().unwrap().contains("while moving"),
         "{report}"
     );
-    // At rest: full size, complete, the view it ended at as render draws it.
+    // At rest: full size, complete, the view it ended at as render draws it,
+    // redrawn in parts (slower than a part may take: the page's thread is
+    // let go between them).
     assert_eq!(r["end"]["scale"], 1.0, "{report}");
+    let (full_ms, parts) = (
+        r["end"]["full_ms"].as_f64().unwrap(),
+        r["end"]["full_parts"].as_u64().unwrap(),
+    );
+    assert!(
+        full_ms > 80.0 && parts >= 2,
+        "the redraw at rest ({full_ms} ms) was not drawn in parts: {report}"
+    );
+    eprintln!(
+        "at rest: redrawn in {full_ms:.1} ms in {parts} parts; the page's tasks over 50 ms meanwhile: {}",
+        r["rest_long_tasks"]
+    );
     let end_url = r["url"].as_str().unwrap();
     let key = |k: &str| {
         end_url

@@ -186,6 +186,9 @@ pub struct ViewerApp {
     /// still missing data), and that version.
     full_ms: f64,
     full_ms_version: Option<u64>,
+    /// The fraction of its size the 3D view's last frame while moving was
+    /// drawn at (1: full size, or none yet).
+    moving_last: f64,
     counter: u32,
     camera_path: String,
     /// Load failures reported so far, and the latest (the status line).
@@ -355,6 +358,7 @@ impl ViewerApp {
             drag_point: None,
             full_ms: 40.0,
             full_ms_version: None,
+            moving_last: 1.0,
             counter: 0,
             camera_path: String::new(),
             failures_seen: 0,
@@ -783,6 +787,12 @@ impl ViewerApp {
         {
             self.full_ms = out.render_ms;
             self.full_ms_version = Some(out.version);
+        }
+        if v == 0
+            && out.version == self.views[0].version
+            && self.interacting.elapsed() < Duration::from_millis(200)
+        {
+            self.moving_last = out.image.width as f64 / self.views[0].size[0].max(1) as f64;
         }
         self.read_history.push((Instant::now(), out.bytes_read));
         let cut = Instant::now() - Duration::from_secs(2);

@@ -49,7 +49,7 @@ impl ViewerApp {
         // While the 3D view moves, fewer pixels where full-size frames
         // would not keep up (the page draws by the same rule).
         if v == 0 && self.interacting.elapsed() < Duration::from_millis(200) {
-            let k = brickyard_render::budget::moving_scale(self.full_ms);
+            let k = brickyard_render::budget::moving_scale(self.full_ms, self.moving_last);
             return brickyard_render::budget::scaled_size(vs.size, k);
         }
         vs.size
