@@ -35,11 +35,11 @@ use crate::brick::{BrickContent, BrickGeometry, BrickKey, LoadedBrick};
 use crate::host_cache::HostCache;
 use crate::ranges::BrickRanges;
 use brickyard_core::{dispatch_dtype, Dims3, Sample};
+use brickyard_store::brick_stats::LevelStats;
 use brickyard_store::error::{Result, StoreError};
 use brickyard_store::import::zarr::{open, SharedChunkCache};
 use brickyard_store::omezarr::{read_multiscale, STATS_DIR};
 use brickyard_store::source::VolumeSource;
-use brickyard_store::storage::{self, StoreAt};
 use std::cmp::Reverse;
 use std::collections::{BTreeSet, HashMap, HashSet};
 use std::panic::{catch_unwind, AssertUnwindSafe};
@@ -48,7 +48,6 @@ use std::sync::atomic::{AtomicU64, AtomicUsize, Ordering};
 use std::sync::{Arc, Condvar, Mutex, MutexGuard};
 use std::thread::JoinHandle;
 use std::time::{Duration, Instant};
-use zarrs::array::Array;
 
 /// A brick that could not be loaded.
 #[derive(Clone, Debug, PartialEq)]
@@ -81,137 +80,6 @@ pub struct LoaderStats {
     pub pending: usize,
     /// Bricks being read now.
     pub in_flight: usize,
-}
-
-/// Per-brick statistics of one level: `[C, bz, by, bx, 2]` float64 (min,
-/// max), read lazily one Zarr chunk at a time.
-struct LevelStats {
-    array: Array<StoreAt>,
-    /// Store brick size.
-    brick: Dims3,
-    /// Chunk shape of the statistics array (first four axes).
-    chunk: [u64; 4],
-    /// Decoded chunks (`None`: the chunk could not be read; the bricks it
-    /// covers are treated as unknown). At most the size of the statistics
-    /// array, 16 bytes per store brick and channel.
-    chunks: Mutex<HashMap<[u64; 4], StatsChunk>>,
-    /// The statistics array's folder, for reports.
-    dir: PathBuf,
-    /// What made chunks unreadable, once each (reported by
-    /// [`Loader::take_stats_problems`]).
-    problems: Mutex<Vec<String>>,
-}
-
-/// A decoded chunk of the statistics array, `None` when unreadable.
-type StatsChunk = Option<Arc<Vec<f64>>>;
-
-impl LevelStats {
-    fn open(dir: &Path, brick: Dims3, dims: Dims3, channels: usize) -> Option<LevelStats> {
-        if !storage::exists(&dir.join("zarr.json")) {
-            return None;
-        }
-        let store = Arc::new(StoreAt::new(dir));
-        let array = Array::open(store, "/").ok()?;
-        let nb = [0, 1, 2].map(|a| dims[a].div_ceil(brick[a]));
-        let want = [channels as u64, nb[0], nb[1], nb[2], 2];
-        if array.shape() != want {
-            return None;
-        }
-        let cs: Vec<u64> = array
-            .chunk_shape(&[0; 5])
-            .ok()?
-            .iter()
-            .map(|c| c.get())
-            .collect();
-        if cs.len() != 5 || cs[4] != 2 {
-            return None;
-        }
-        Some(LevelStats {
-            array,
-            brick,
-            chunk: [cs[0], cs[1], cs[2], cs[3]],
-            chunks: Mutex::new(HashMap::new()),
-            dir: dir.to_path_buf(),
-            problems: Mutex::new(vec![]),
-        })
-    }
-
-    /// (min, max) of store brick `b` of channel `c`, `None` if unknown.
-    fn get(&self, c: u64, b: Dims3) -> Option<(f64, f64)> {
-        let p = [c, b[0], b[1], b[2]];
-        let ci = [0, 1, 2, 3].map(|a| p[a] / self.chunk[a]);
-        let cached = lock(&self.chunks).get(&ci).cloned();
-        let chunk = match cached {
-            Some(ch) => ch,
-            None => {
-                let idx = [ci[0], ci[1], ci[2], ci[3], 0];
-                let n = self.chunk.iter().product::<u64>() as usize * 2;
-                let ch = match self.array.retrieve_chunk::<Vec<f64>>(&idx) {
-                    Ok(v) if v.len() == n => Some(Arc::new(v)),
-                    got => {
-                        let why = match got {
-                            Ok(v) => format!("{} values, {n} expected", v.len()),
-                            Err(e) => e.to_string(),
-                        };
-                        lock(&self.problems).push(format!(
-                            "{}: chunk {:?} cannot be read ({why}): its bricks are loaded to \
-                             learn what they hold, none is skipped as empty",
-                            self.dir.display(),
-                            &idx[..4]
-                        ));
-                        None
-                    }
-                };
-                lock(&self.chunks).insert(ci, ch.clone());
-                ch
-            }
-        }?;
-        let ch = self.chunk;
-        let r = [0, 1, 2, 3].map(|a| p[a] % ch[a]);
-        let e = ((((r[0] * ch[1] + r[1]) * ch[2] + r[2]) * ch[3] + r[3]) * 2) as usize;
-        Some((chunk[e], chunk[e + 1]))
-    }
-
-    /// The store bricks touching `[lo, hi)` whose statistics say they hold
-    /// something other than zeros: `(brick, min, max)` each.
-    fn data_in(&self, c: u64, lo: Dims3, hi: Dims3) -> Vec<(Dims3, f64, f64)> {
-        let sb = self.brick;
-        let r = [0, 1, 2].map(|a| lo[a] / sb[a]..=(hi[a] - 1) / sb[a]);
-        let mut out = vec![];
-        for z in r[0].clone() {
-            for y in r[1].clone() {
-                for x in r[2].clone() {
-                    if let Some((mn, mx)) = self.get(c, [z, y, x]) {
-                        if mn != 0.0 || mx != 0.0 {
-                            out.push(([z, y, x], mn, mx));
-                        }
-                    }
-                }
-            }
-        }
-        out
-    }
-
-    /// The common value of every store brick touching `[lo, hi)` if they
-    /// are all constant with the same value.
-    fn uniform(&self, c: u64, lo: Dims3, hi: Dims3) -> Option<f64> {
-        let sb = self.brick;
-        let r = [0, 1, 2].map(|a| lo[a] / sb[a]..=(hi[a] - 1) / sb[a]);
-        let mut val = None;
-        for z in r[0].clone() {
-            for y in r[1].clone() {
-                for x in r[2].clone() {
-                    let (mn, mx) = self.get(c, [z, y, x])?;
-                    // NaN fails both comparisons.
-                    if mn != mx || val.is_some_and(|v| v != mn) {
-                        return None;
-                    }
-                    val = Some(mn);
-                }
-            }
-        }
-        val
-    }
 }
 
 /// Half the decoded-chunk cache of the loader by default ([`Loader::open`]
@@ -793,6 +661,24 @@ impl Loader {
                     ));
                 }
             }
+            // Levels from the finest down: none larger than the one before
+            // on any axis (levels out of order, or a shape edited, would
+            // draw the wrong data at every level of detail).
+            if let Some(prev) = dims.last() {
+                let p: &Dims3 = prev;
+                if (0..3).any(|a| m.dims[a] > p[a]) {
+                    return Err(StoreError::invalid(
+                        store_path,
+                        "multiscales.datasets",
+                        format!(
+                            "level {l} is {:?} voxels (z, y, x) but level {} is {p:?}: expected \
+                             levels from the finest down, each no larger than the one before",
+                            m.dims,
+                            l - 1
+                        ),
+                    ));
+                }
+            }
             let stats = store_brick.filter(|_| derive.is_none()).and_then(|sb| {
                 LevelStats::open(&stats_dir.join(l.to_string()), sb, m.dims, m.channels)
             });
@@ -1084,7 +970,7 @@ impl Loader {
             .levels
             .iter()
             .filter_map(|l| l.stats.as_ref())
-            .flat_map(|s| std::mem::take(&mut *lock(&s.problems)))
+            .flat_map(|s| s.take_problems())
             .collect()
     }
 

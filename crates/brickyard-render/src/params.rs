@@ -272,9 +272,17 @@ impl LabelSelect {
         let mut ids = vec![];
         for part in text.split(',').map(str::trim).filter(|p| !p.is_empty()) {
             let num = |s: &str| {
-                s.trim()
-                    .parse::<i32>()
-                    .map_err(|_| format!("expected labels such as 3,17,40-45, found {part:?}"))
+                let v = s
+                    .trim()
+                    .parse::<i64>()
+                    .map_err(|_| format!("expected labels such as 3,17,40-45, found {part:?}"))?;
+                i32::try_from(v).map_err(|_| {
+                    format!(
+                        "labels from {} to {} can be chosen, found {v}",
+                        i32::MIN,
+                        i32::MAX
+                    )
+                })
             };
             let (a, b) = match part.split_once('-').filter(|(a, _)| !a.is_empty()) {
                 Some((a, b)) => (num(a)?, num(b)?),

@@ -338,6 +338,9 @@ pub fn run(
         );
     }
     let mut src = zarr::open(store, c.level)?;
+    // Lost chunks (a shard removed) fail the run instead of reading as
+    // zeros.
+    src.check_against_stats();
     let ms = src.multiscale.clone().with_context(|| {
         format!(
             "{}: expected an OME-Zarr multiscale image (a store written by `brickyard convert`), found a bare array",

@@ -146,8 +146,8 @@ pub struct RenderCmd {
     /// Host-cache budget (default: a share of --memory).
     #[arg(long)]
     host: Option<String>,
-    /// Engine brick edge.
-    #[arg(long, default_value_t = 32)]
+    /// Engine brick edge (2 to 512 voxels).
+    #[arg(long, default_value_t = 32, value_parser = clap::value_parser!(u64).range(2..=512))]
     brick: u64,
     /// Bytes written into the pool per frame (default: the pool in batch
     /// renders, 64MiB with --stream).
@@ -708,6 +708,9 @@ fn run_with_labels(
     let dir = crate::labels::label_store(&c.store, &name)?;
     let [w, h] = parse_image_size(&c.size, "size")?;
     let held = w as u64 * h as u64 * std::mem::size_of::<[f32; 4]>() as u64;
+    // The labels' selection is the second run's: checked before the first
+    // draws.
+    label_select(&c, true)?;
     let mut lc = c.clone();
     (c.only_labels, c.hide_labels) = (None, None);
     lc.store = dir;

@@ -41,6 +41,12 @@ use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
 use std::sync::Mutex;
 use std::time::Instant;
 
+/// The largest brick (inner chunk) edge a store may have, in voxels (a
+/// 1024³ brick of 8-byte voxels is 8 GiB).
+pub const MAX_BRICK: u64 = 1024;
+/// The largest shard edge a store may have, in voxels.
+pub const MAX_SHARD: u64 = 16384;
+
 /// Options of a conversion.
 #[derive(Debug, Clone)]
 pub struct ConvertOptions {
@@ -536,13 +542,23 @@ pub fn convert_team(
         opts
     };
     for a in 0..3 {
-        if opts.brick[a] < 2 || !opts.brick[a].is_multiple_of(2) {
+        if opts.brick[a] < 2 || !opts.brick[a].is_multiple_of(2) || opts.brick[a] > MAX_BRICK {
             return Err(StoreError::invalid(
                 output,
                 "brick",
                 format!(
-                    "brick sizes must be even and at least 2, got {:?}",
+                    "brick sizes must be even, from 2 to {MAX_BRICK}, got {:?}",
                     opts.brick
+                ),
+            ));
+        }
+        if opts.shard[a] > MAX_SHARD {
+            return Err(StoreError::invalid(
+                output,
+                "shard",
+                format!(
+                    "shard sizes must be at most {MAX_SHARD}, got {:?}",
+                    opts.shard
                 ),
             ));
         }
@@ -1114,6 +1130,31 @@ fn check_geometry(
                 origin_at,
                 "origin",
                 format!("{:?} (x, y, z) is not finite; {origin_fix}", xyz(o)),
+            ));
+        }
+    }
+    // The volume's size in world units, where viewers place their cameras
+    // (a renderer refuses one beyond 1e15 units, or one that cannot be
+    // told from its target).
+    if let Some(l0) = levels.first() {
+        let size = [0, 1, 2].map(|a| meta.dims[a] as f64 * l0.scale[a]);
+        let (lo, hi) = (1e-12, 1e13);
+        if size.iter().any(|v| v.is_finite() && !(lo..=hi).contains(v)) {
+            return Err(StoreError::invalid(
+                spacing_at,
+                "spacing",
+                format!(
+                    "{:?} (x, y, z) makes the volume {:?} units across: expected each axis \
+                     from {lo:e} to {hi:e} units (a store no viewer could place a camera \
+                     around); {}",
+                    xyz(l0.scale),
+                    xyz(size),
+                    if opts.spacing.is_some() {
+                        "choose others"
+                    } else {
+                        spacing_fix
+                    }
+                ),
             ));
         }
     }

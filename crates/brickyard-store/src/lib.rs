@@ -1,6 +1,7 @@
 //! brickyard-store: OME-Zarr read/write, importers and the streaming
 //! pyramid builder with per-brick statistics.
 
+pub mod brick_stats;
 pub mod builder;
 pub mod codec;
 pub mod downsample;

@@ -376,6 +376,24 @@ pub fn parse_multiscale(
                     StoreError::invalid(meta_path, "multiscales.datasets.path", "missing")
                 })?
                 .to_string();
+            // A level lies inside the image's group: a path out of it (up,
+            // absolute, empty) would read another store's (or any) files.
+            let inside = !path.is_empty()
+                && !path.starts_with('/')
+                && !path.contains('\\')
+                && path
+                    .split('/')
+                    .all(|c| !c.is_empty() && c != "." && c != "..");
+            if !inside {
+                return Err(StoreError::invalid(
+                    meta_path,
+                    "multiscales.datasets.path",
+                    format!(
+                        "expected a path inside the image's group (such as \"0\" or \"s1/a\"), \
+                         found {path:?}"
+                    ),
+                ));
+            }
             let (scale, translation) = scale_translation(d);
             Ok(Dataset {
                 path,

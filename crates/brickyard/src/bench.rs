@@ -44,9 +44,9 @@ pub struct BenchCmd {
     /// Memory budget handed to the converter.
     #[arg(long, default_value = "1GiB")]
     memory: String,
-    #[arg(long, default_value_t = 64)]
+    #[arg(long, default_value_t = 64, value_parser = clap::value_parser!(u64).range(2..=1024))]
     brick: u64,
-    #[arg(long, default_value_t = 256)]
+    #[arg(long, default_value_t = 256, value_parser = clap::value_parser!(u64).range(2..=16384))]
     shard: u64,
     #[arg(long, default_value = "lz4")]
     compression: String,

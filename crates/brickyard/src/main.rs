@@ -133,11 +133,11 @@ enum VmCmd {
 
 #[derive(Args, Clone)]
 struct PyramidArgs {
-    /// Brick (inner chunk) edge in voxels.
-    #[arg(long, default_value_t = 64)]
+    /// Brick (inner chunk) edge in voxels (2 to 1024).
+    #[arg(long, default_value_t = 64, value_parser = clap::value_parser!(u64).range(2..=1024))]
     brick: u64,
-    /// Shard edge in voxels (a multiple of the brick).
-    #[arg(long, default_value_t = 512)]
+    /// Shard edge in voxels (a multiple of the brick, at most 16384).
+    #[arg(long, default_value_t = 512, value_parser = clap::value_parser!(u64).range(2..=16384))]
     shard: u64,
     /// lz4 (blosc), zstd, zstd:LEVEL or none.
     #[arg(long, default_value = "lz4")]

@@ -22,7 +22,7 @@ pub struct FootprintCmd {
     /// Voxel type (for --dims): u8, u16, u32 (RGBA), f32 ...
     #[arg(long, default_value = "u8")]
     dtype: String,
-    #[arg(long, default_value_t = 64)]
+    #[arg(long, default_value_t = 64, value_parser = clap::value_parser!(u64).range(2..=1024))]
     brick: u64,
     #[arg(long, default_value_t = 1)]
     apron: u64,

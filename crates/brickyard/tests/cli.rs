@@ -965,7 +965,7 @@ fn outputs_and_geometry_a_store_cannot_have_are_refused() {
     assert!(listing(&empty).is_empty(), "{:?}", listing(&empty));
     assert_eq!(listing(d.path()), ["empty", "v.raw"]);
     // Spacings whose coarse levels overflow (this used to plan levels
-    // until memory ran out), tiny ones (fine), origins that are no numbers.
+    // until memory ran out), origins that are no numbers.
     let out = d.path().join("g.zarr");
     fails_with(
         &conv(
@@ -982,10 +982,19 @@ fn outputs_and_geometry_a_store_cannot_have_are_refused() {
         );
     }
     assert!(!out.exists());
+    // A volume no viewer could place a camera around: refused (render
+    // refused it only later, blaming a camera the user never gave).
+    for sp in ["5e-324,5e-324,5e-324", "1e14,1,1"] {
+        fails_with(
+            &conv(d.path(), s(&out), &["--spacing", sp, "--brick", "4"]),
+            &["spacing", "units across", "choose others"],
+        );
+    }
+    assert!(!out.exists());
     let o = conv(
         d.path(),
         s(&out),
-        &["--spacing", "5e-324,5e-324,5e-324", "--brick", "4"],
+        &["--spacing", "1e-9,1e-9,2e-9", "--brick", "4"],
     );
     assert!(o.status.success(), "{}", stderr(&o));
     let info = run(&["info", s(&out), "--json"]);
@@ -1769,4 +1778,72 @@ fn convert_takes_channels_from_several_files_and_render_shows_them() {
         ]),
         &["channel names", "3 names", "2 channels"],
     );
+}
+
+/// A store's metadata edited (by hand, or by another tool) so that its
+/// levels point out of it or come in the wrong order is refused with the
+/// field named, before anything is read.
+#[test]
+fn levels_out_of_the_store_or_out_of_order_are_refused() {
+    let d = tempfile::tempdir().unwrap();
+    let store = mandelbulb_48(d.path(), "m.ome.zarr");
+    let root = store.join("zarr.json");
+    let text = std::fs::read_to_string(&root).unwrap();
+    let png = d.path().join("x.png");
+    let render = |st: &Path| {
+        run(&[
+            "render",
+            s(st),
+            "--backend",
+            "cpu",
+            "--size",
+            "32",
+            "--out",
+            s(&png),
+        ])
+    };
+    ok_status(&render(&store));
+    for bad in ["../other.ome.zarr/0", "/etc", "", "0/../../x"] {
+        std::fs::write(
+            &root,
+            text.replacen("\"path\": \"0\"", &format!("\"path\": {bad:?}"), 1),
+        )
+        .unwrap();
+        for args in [
+            vec!["info", s(&store)],
+            vec!["render", s(&store), "--backend", "cpu", "--out", s(&png)],
+            vec!["convert", s(&store), s(&d.path().join("c.ome.zarr"))],
+        ] {
+            fails_with(
+                &run(&args),
+                &[
+                    "zarr.json",
+                    "multiscales.datasets.path",
+                    "inside the image's group",
+                ],
+            );
+        }
+    }
+    // Levels 0 and 1 swapped: the coarser first.
+    let swapped = text
+        .replacen("\"path\": \"0\"", "\"path\": \"@\"", 1)
+        .replacen("\"path\": \"1\"", "\"path\": \"0\"", 1)
+        .replacen("\"path\": \"@\"", "\"path\": \"1\"", 1);
+    assert_ne!(swapped, text);
+    std::fs::write(&root, swapped).unwrap();
+    fails_with(
+        &render(&store),
+        &[
+            "multiscales.datasets",
+            "level 1 is",
+            "each no larger than the one before",
+        ],
+    );
+    std::fs::write(&root, &text).unwrap();
+    ok_status(&render(&store));
+}
+
+#[track_caller]
+fn ok_status(o: &Output) {
+    assert!(o.status.success(), "{}", stderr(o));
 }

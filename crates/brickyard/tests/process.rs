@@ -1093,8 +1093,12 @@ fn an_interrupted_conversion_is_refused() {
     )
     .unwrap();
     let before = snapshot(&partial);
+    let converted = d.path().join("again.ome.zarr");
     for args in [
         vec!["process", s(&partial), "threshold(10)", "--out", "m"],
+        // (A conversion from it would write its lost chunks as zeros into
+        // a store marked complete.)
+        vec!["convert", s(&partial), s(&converted)],
         vec![
             "render",
             s(&partial),
@@ -1118,6 +1122,59 @@ fn an_interrupted_conversion_is_refused() {
     }
     assert_eq!(snapshot(&partial), before, "the store was changed");
     assert!(!partial.join("labels").exists(), "labels were written");
+    assert!(!converted.exists(), "a store was converted from it");
+}
+
+#[test]
+fn a_store_that_lost_a_shard_fails_process_and_convert_with_the_file_named() {
+    let d = tempfile::tempdir().unwrap();
+    let store = make_store(d.path(), "40");
+    // One shard of level 0 lost (the Marschner-Lobb signal has data in
+    // every brick).
+    let shard = store.join("0/c/0/0/0");
+    assert!(shard.is_file());
+    std::fs::remove_file(&shard).unwrap();
+    let before = snapshot(&store);
+    let converted = d.path().join("again.ome.zarr");
+    for args in [
+        vec![
+            "process",
+            s(&store),
+            "threshold(0.3)|label(6)",
+            "--out",
+            "m",
+        ],
+        vec!["process", s(&store), "gauss(1)", "--out", "g"],
+        vec!["convert", s(&store), s(&converted)],
+    ] {
+        let o = run(&args);
+        let e = String::from_utf8_lossy(&o.stderr);
+        assert_eq!(o.status.code(), Some(1), "{args:?}: {e}");
+        assert!(
+            e.contains("0/c/0/0/0")
+                && e.contains("the file is missing, but the store's statistics say"),
+            "{args:?}: {e}"
+        );
+    }
+    assert_eq!(snapshot(&store), before, "the store was changed");
+    assert!(!converted.exists(), "a store was converted from it");
+    assert!(
+        !store.join("labels/m").exists() && !store.join("derived/g").exists(),
+        "a result was written"
+    );
+    // The same store whole converts and processes (the check does not
+    // fail sound stores).
+    std::fs::create_dir(d.path().join("w")).unwrap();
+    let whole = make_store(&d.path().join("w"), "40");
+    ok(run(&["convert", s(&whole), s(&converted), "--quiet"]));
+    ok(run(&[
+        "process",
+        s(&whole),
+        "threshold(0.3)|label(6)",
+        "--out",
+        "m",
+        "--quiet",
+    ]));
 }
 
 /// The nuclei stack converted (z 4× coarser than x and y) and its nuclei
@@ -1316,6 +1373,31 @@ fn bad_label_overlays_give_clear_errors() {
         &["label-opacity", "at most 1"],
     );
     fails(&["--label-opacity", "0.3"], &["applies with --labels"]);
+    fails(
+        &["--labels", "cells", "--only-labels", "4294967295"],
+        &["only-labels", "labels from -2147483648 to 2147483647"],
+    );
+    // A selection of the labels is refused before the image under them
+    // is drawn (it used to be checked once the image was done).
+    let out = d.path().join("x.png");
+    let o = run(&[
+        "render",
+        s(&store),
+        "--mode",
+        "slice",
+        "--out",
+        s(&out),
+        "--labels",
+        "cells",
+        "--only-labels",
+        "5-3",
+    ]);
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(!o.status.success() && !out.exists());
+    assert!(
+        err.contains("only-labels: the range \"5-3\" runs backwards") && !err.contains("view 0"),
+        "{err}"
+    );
     fails(
         &["--labels", "cells", "--tf", "labels"],
         &["--tf labels draws a label image alone"],

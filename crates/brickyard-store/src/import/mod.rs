@@ -134,6 +134,12 @@ pub fn open_input(path: &Path, opts: &ImportOptions) -> Result<Box<dyn VolumeSou
         Format::TiffGlob => Box::new(tiff::open_glob(&path.to_string_lossy())?),
         Format::Nrrd => Box::new(nrrd::open(path)?),
         Format::Nifti => Box::new(nifti::open_with(path, opts.raw_values)?),
-        Format::Zarr => Box::new(zarr::open(path, opts.zarr_level)?),
+        Format::Zarr => {
+            // A brickyard store's lost chunks fail the conversion instead
+            // of passing for empty.
+            let mut src = zarr::open(path, opts.zarr_level)?;
+            src.check_against_stats();
+            Box::new(src)
+        }
     })
 }

@@ -4,8 +4,9 @@
 //! Over 800 lines: with its tests: 0.84k lines of code, 0.1k of tests.
 
 use super::chunks::{copy_into, Body, ChunkCache, Decoded, Idx, ShardReader};
+use crate::brick_stats::LevelStats;
 use crate::error::{Result, StoreError};
-use crate::omezarr::{read_json, read_multiscale, Multiscale};
+use crate::omezarr::{read_json, read_multiscale, Multiscale, STATS_DIR};
 use crate::shard::{self, IndexLayout};
 use crate::source::{check_box, check_region, SourceMeta, VolumeSource};
 use crate::storage::{self, StoreAt};
@@ -95,6 +96,11 @@ pub struct ZarrSource {
     pub multiscale: Option<Multiscale>,
     /// The array's directory (chunk keys are relative to it).
     dir: std::path::PathBuf,
+    /// The image's group and level, when opened through it.
+    group: Option<(PathBuf, usize)>,
+    /// Reads checked against the store's per-brick statistics
+    /// ([`ZarrSource::check_against_stats`]).
+    stats_check: Option<LevelStats>,
 }
 
 fn is_array_dir(p: &Path) -> bool {
@@ -139,6 +145,27 @@ pub fn open(path: &Path, level: usize) -> Result<ZarrSource> {
             "this Zarr group holds no OME multiscale image (and is not an array)",
         )
     })?;
+    // An interrupted conversion's store (or its folder while it is
+    // written): its missing chunks would read as the fill value.
+    let unfinished = ms
+        .brickyard
+        .as_ref()
+        .and_then(|b| b.get("complete"))
+        .and_then(Value::as_bool)
+        == Some(false);
+    if unfinished
+        || path
+            .to_string_lossy()
+            .trim_end_matches('/')
+            .ends_with(".partial")
+    {
+        return Err(StoreError::invalid(
+            path,
+            "attributes.brickyard.complete",
+            "the store is incomplete (an interrupted conversion): its missing chunks would \
+             read as zeros; convert the volume again",
+        ));
+    }
     let ds = ms.datasets.get(level).ok_or_else(|| {
         StoreError::invalid(
             path,
@@ -158,7 +185,9 @@ pub fn open(path: &Path, level: usize) -> Result<ZarrSource> {
         ));
     }
     let ds0 = ms.datasets[0].clone();
-    open_array(&apath, Some((ms, level)), Some(ds0.path))
+    let mut src = open_array(&apath, Some((ms, level)), Some(ds0.path))?;
+    src.group = Some((path.to_path_buf(), level));
+    Ok(src)
 }
 
 /// Shard index checking of one sharded array.
@@ -506,10 +535,99 @@ fn open_array(
         chunk,
         multiscale: ms.map(|(m, _)| m),
         dir: apath.to_path_buf(),
+        group: None,
+        stats_check: None,
     })
 }
 
 impl ZarrSource {
+    /// Check every read against the per-brick statistics a brickyard store
+    /// keeps (`_brickyard/stats/<level>`): a store brick that reads as all
+    /// zeros (the fill value) where the statistics say it holds data, and
+    /// whose chunk is absent from the store (its file missing, or its
+    /// shard's index without it), fails the read with the file named,
+    /// instead of passing for empty. A Zarr reader cannot tell such a
+    /// lost chunk from one that was never written; the statistics can.
+    /// Returns whether the store has such statistics (other stores are
+    /// read as before). Readers that do not check for themselves
+    /// (conversion, processing) turn it on; the loader checks its bricks
+    /// itself.
+    pub fn check_against_stats(&mut self) -> bool {
+        let (Some((root, level)), Some(ms)) = (&self.group, &self.multiscale) else {
+            return false;
+        };
+        let Some(b) = &ms.brickyard else {
+            return false;
+        };
+        let brick: Option<Dims3> = b
+            .get("brick")
+            .and_then(|v| serde_json::from_value(v.clone()).ok())
+            .filter(|b: &Dims3| b.iter().all(|&v| v > 0));
+        let dir = b.get("stats").and_then(Value::as_str).unwrap_or(STATS_DIR);
+        let fill_zero = self.fill.iter().all(|&x| x == 0);
+        self.stats_check = brick.filter(|_| fill_zero).and_then(|sb| {
+            LevelStats::open(
+                &root.join(dir).join(level.to_string()),
+                sb,
+                self.meta.dims,
+                self.meta.channels,
+            )
+        });
+        self.stats_check.is_some()
+    }
+
+    /// [`check_against_stats`](Self::check_against_stats) of a read of
+    /// `region` of channel `c` into a box of `dims` voxels at `at` of
+    /// `buf`.
+    fn verify(
+        &self,
+        c: usize,
+        region: &[Range<u64>; 3],
+        buf: &[u8],
+        dims: Dims3,
+        at: Dims3,
+    ) -> Result<()> {
+        let Some(st) = &self.stats_check else {
+            return Ok(());
+        };
+        if region.iter().any(|r| r.is_empty()) {
+            return Ok(());
+        }
+        let lo = region.clone().map(|r| r.start);
+        let hi = region.clone().map(|r| r.end);
+        let es = self.meta.dtype.size() as u64;
+        let sb = st.brick;
+        for (b, mn, mx) in st.data_in(c as u64, lo, hi) {
+            let blo = [0, 1, 2].map(|a| (b[a] * sb[a]).max(lo[a]));
+            let bhi = [0, 1, 2].map(|a| ((b[a] + 1) * sb[a]).min(hi[a]));
+            let row = ((bhi[2] - blo[2]) * es) as usize;
+            let zero = (blo[0]..bhi[0]).all(|z| {
+                (blo[1]..bhi[1]).all(|y| {
+                    let i = (((z - lo[0] + at[0]) * dims[1] + (y - lo[1] + at[1])) * dims[2]
+                        + (blo[2] - lo[2] + at[2]))
+                        * es;
+                    buf[i as usize..i as usize + row].iter().all(|&x| x == 0)
+                })
+            });
+            if !zero {
+                continue;
+            }
+            let v = [0, 1, 2].map(|a| b[a] * sb[a]);
+            if let Some((file, why)) = self.chunk_absent(c, v) {
+                return Err(StoreError::invalid(
+                    file,
+                    format!("channel {c} store brick {b:?}"),
+                    format!(
+                        "{why}, but the store's statistics say this brick holds values in \
+                         [{mn}, {mx}] (a damaged store: `brickyard info --check` lists what \
+                         else is lost)"
+                    ),
+                ));
+            }
+        }
+        Ok(())
+    }
+
     /// Keep up to `bytes` of decoded chunks, so that reads of overlapping
     /// regions (bricks with aprons) decode each chunk once; reads then go
     /// chunk by chunk through that cache, straight into the caller's
@@ -807,7 +925,9 @@ impl VolumeSource for ZarrSource {
         if let Some((cc, id)) = &self.chunk_cache {
             let cc = (&**cc, *id);
             let dims = [z.end - z.start, y.end - y.start, x.end - x.start];
-            return self.read_box(cc, c, [z, y, x], out, dims, [0; 3]);
+            let region = [z, y, x];
+            self.read_box(cc, c, region.clone(), out, dims, [0; 3])?;
+            return self.verify(c, &region, out, dims, [0; 3]);
         }
         let n = self.array.shape().len();
         let mut ranges: Vec<Range<u64>> = vec![0..1; n];
@@ -863,7 +983,8 @@ impl VolumeSource for ZarrSource {
                 }
             }
         });
-        Ok(())
+        let dims = rs.clone().map(|r| r.end - r.start);
+        self.verify(c, &rs, out, dims, [0; 3])
     }
 
     fn read_region_into(
@@ -878,7 +999,8 @@ impl VolumeSource for ZarrSource {
             Some((cc, id)) => {
                 let cc = (&**cc, *id);
                 check_box(&self.meta, c, &region, out, dims, at);
-                self.read_box(cc, c, region, out, dims, at)
+                self.read_box(cc, c, region.clone(), out, dims, at)?;
+                self.verify(c, &region, out, dims, at)
             }
             None => crate::source::read_region_into_by_copy(self, c, region, out, dims, at),
         }

@@ -50,8 +50,8 @@ pub struct ViewCmd {
     /// Host-cache budget (default: 1 GiB, or a share of --memory).
     #[arg(long)]
     host: Option<String>,
-    /// Engine brick edge.
-    #[arg(long, default_value_t = 32)]
+    /// Engine brick edge (2 to 512 voxels).
+    #[arg(long, default_value_t = 32, value_parser = clap::value_parser!(u64).range(2..=512))]
     brick: u64,
     /// Bytes written into the pool per frame (a device back end writes at
     /// most 32 MiB: its staging buffer is set aside in --memory).

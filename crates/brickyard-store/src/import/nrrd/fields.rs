@@ -498,10 +498,16 @@ pub(super) fn interpret(path: &Path, h: &Header) -> Result<Plan> {
                 format!("spatial axes need a non-zero spacing, found {v:?}"),
             ));
         }
+        if sp.iter().any(|s| s.is_infinite()) {
+            return Err(inv(
+                f,
+                format!("spatial axes need a finite spacing (nan: unknown), found {v:?}"),
+            ));
+        }
+        // (Unknown on a spatial axis: not applied, and said so by the
+        // header's notes.)
         if sp.iter().all(|s| s.is_finite()) {
             spacing_xyz = Some(sp);
-        } else {
-            tracing::debug!("{}: spacings {v:?} not all known; ignored", path.display());
         }
     }
 
@@ -650,6 +656,18 @@ fn header_notes(
             v(old.0),
             v(old.1)
         ));
+    }
+    if let (None, Some((_, v))) = (dirs, h.get("spacings")) {
+        let unknown = v
+            .split_whitespace()
+            .enumerate()
+            .any(|(i, t)| spatial.contains(&i) && t.parse::<f64>().is_ok_and(f64::is_nan));
+        if unknown {
+            notes.push(format!(
+                "spacings {} unknown (nan) on a spatial axis: not applied (1 on every axis)",
+                truncate(v, 80)
+            ));
+        }
     }
     if !has_origin && h.get("axis mins").is_some() {
         notes.push("axis mins not applied: no origin recorded".to_string());

@@ -152,23 +152,38 @@ fn locate(
     let len = f.metadata().map_err(io_err)?.len();
     let mut start = base;
     if plan.line_skip > 0 && plan.byte_skip != -1 {
+        // Lines are skipped as they stream by, none kept (a line may be
+        // as long as the file), and no further than the file's length (a
+        // device such as /dev/zero has none, and no end).
         let mut r = BufReader::new(f);
         r.seek(SeekFrom::Start(base)).map_err(io_err)?;
-        let mut line = Vec::new();
+        let mut r = r.take(len.saturating_sub(base));
         for k in 0..plan.line_skip {
-            line.clear();
-            let n = r.read_until(b'\n', &mut line).map_err(io_err)?;
-            if n == 0 || !line.ends_with(b"\n") {
-                return Err(StoreError::invalid(
-                    header,
-                    "line skip",
-                    format!(
-                        "{what} ends after {k} of the {} lines to skip",
-                        plan.line_skip
-                    ),
-                ));
+            loop {
+                let buf = r.fill_buf().map_err(io_err)?;
+                if buf.is_empty() {
+                    return Err(StoreError::invalid(
+                        header,
+                        "line skip",
+                        format!(
+                            "{what} ends after {k} of the {} lines to skip",
+                            plan.line_skip
+                        ),
+                    ));
+                }
+                match buf.iter().position(|&b| b == b'\n') {
+                    Some(i) => {
+                        r.consume(i + 1);
+                        start += i as u64 + 1;
+                        break;
+                    }
+                    None => {
+                        let n = buf.len();
+                        r.consume(n);
+                        start += n as u64;
+                    }
+                }
             }
-            start += n as u64;
         }
     }
     let after = if attached { " after the header" } else { "" };

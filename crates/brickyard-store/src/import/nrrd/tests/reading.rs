@@ -416,3 +416,48 @@ fn data_file_list_and_printf_forms() {
     assert_eq!(read_all(&s, 0), full);
     check_boxes(&s, 0, &full, 20, 61);
 }
+
+/// `line skip` streams past the lines without keeping them, and no
+/// further than the data file's length: a file of one endless line (here
+/// 8 MiB without a newline, and /dev/zero, which has no end) is refused
+/// at once, naming the field, without holding the line in memory.
+#[test]
+fn line_skip_past_a_line_without_end_is_refused() {
+    let dir = tempfile::tempdir().unwrap();
+    std::fs::write(dir.path().join("long.raw"), vec![7u8; 8 << 20]).unwrap();
+    for (data, ends) in [
+        ("long.raw", "ends after 0 of the 1 lines"),
+        ("/dev/zero", "ends after 0 of the 1000000000 lines"),
+    ] {
+        let skip = if data == "long.raw" { 1 } else { 1_000_000_000 };
+        let hdr = format!(
+            "NRRD0004\ntype: uint8\ndimension: 3\nsizes: 4 4 4\nencoding: raw\n\
+             line skip: {skip}\ndata file: {data}\n"
+        );
+        let p = write(dir.path(), "skip.nhdr", &[hdr.as_bytes()]);
+        let e = assert_error(&p, "skip.nhdr", "line skip");
+        assert!(e.contains(ends), "{e}");
+    }
+}
+
+/// Spacings: unknown (nan) on a spatial axis is not applied and said so;
+/// an infinite one is an error naming the field.
+#[test]
+fn spacings_unknown_are_noted_and_infinite_refused() {
+    let dir = tempfile::tempdir().unwrap();
+    let v = values(60);
+    let hdr = format!("{HDR_U16}endian: little\nencoding: raw\nspacings: nan 1 1\n\n");
+    let p = write(dir.path(), "nan.nrrd", &[hdr.as_bytes(), &le(&v)]);
+    let s = open(&p).unwrap();
+    assert_eq!(s.meta().spacing, None);
+    let n = &s.meta().notes;
+    assert!(
+        n.len() == 1
+            && n[0].contains("spacings nan 1 1 unknown (nan) on a spatial axis: not applied"),
+        "{n:?}"
+    );
+    let hdr = format!("{HDR_U16}endian: little\nencoding: raw\nspacings: 2 inf 3\n\n");
+    let p = write(dir.path(), "inf.nrrd", &[hdr.as_bytes(), &le(&v)]);
+    let e = assert_error(&p, "inf.nrrd", "spacings");
+    assert!(e.contains("finite spacing"), "{e}");
+}

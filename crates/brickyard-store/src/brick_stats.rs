@@ -1,0 +1,153 @@
+//! A level's per-brick statistics as the store keeps them
+//! (`_brickyard/stats/<level>`): what each store brick holds, read one
+//! Zarr chunk at a time. Readers use them to cross bricks they need not
+//! load, and to tell a lost chunk (read back as the fill value) from one
+//! that holds zeros.
+
+use crate::storage::{self, StoreAt};
+use brickyard_core::Dims3;
+use std::collections::HashMap;
+use std::path::{Path, PathBuf};
+use std::sync::{Arc, Mutex, MutexGuard};
+use zarrs::array::Array;
+
+fn lock<T>(m: &Mutex<T>) -> MutexGuard<'_, T> {
+    m.lock().unwrap_or_else(|e| e.into_inner())
+}
+
+/// Per-brick statistics of one level: `[C, bz, by, bx, 2]` float64 (min,
+/// max), read lazily one Zarr chunk at a time.
+pub struct LevelStats {
+    array: Array<StoreAt>,
+    /// Store brick size.
+    pub brick: Dims3,
+    /// Chunk shape of the statistics array (first four axes).
+    chunk: [u64; 4],
+    /// Decoded chunks (`None`: the chunk could not be read; the bricks it
+    /// covers are treated as unknown). At most the size of the statistics
+    /// array, 16 bytes per store brick and channel.
+    chunks: Mutex<HashMap<[u64; 4], StatsChunk>>,
+    /// The statistics array's folder, for reports.
+    dir: PathBuf,
+    /// What made chunks unreadable, once each (reported by
+    /// [`Loader::take_stats_problems`]).
+    problems: Mutex<Vec<String>>,
+}
+
+/// A decoded chunk of the statistics array, `None` when unreadable.
+type StatsChunk = Option<Arc<Vec<f64>>>;
+
+impl LevelStats {
+    pub fn open(dir: &Path, brick: Dims3, dims: Dims3, channels: usize) -> Option<LevelStats> {
+        if !storage::exists(&dir.join("zarr.json")) {
+            return None;
+        }
+        let store = Arc::new(StoreAt::new(dir));
+        let array = Array::open(store, "/").ok()?;
+        let nb = [0, 1, 2].map(|a| dims[a].div_ceil(brick[a]));
+        let want = [channels as u64, nb[0], nb[1], nb[2], 2];
+        if array.shape() != want {
+            return None;
+        }
+        let cs: Vec<u64> = array
+            .chunk_shape(&[0; 5])
+            .ok()?
+            .iter()
+            .map(|c| c.get())
+            .collect();
+        if cs.len() != 5 || cs[4] != 2 {
+            return None;
+        }
+        Some(LevelStats {
+            array,
+            brick,
+            chunk: [cs[0], cs[1], cs[2], cs[3]],
+            chunks: Mutex::new(HashMap::new()),
+            dir: dir.to_path_buf(),
+            problems: Mutex::new(vec![]),
+        })
+    }
+
+    /// (min, max) of store brick `b` of channel `c`, `None` if unknown.
+    pub fn get(&self, c: u64, b: Dims3) -> Option<(f64, f64)> {
+        let p = [c, b[0], b[1], b[2]];
+        let ci = [0, 1, 2, 3].map(|a| p[a] / self.chunk[a]);
+        let cached = lock(&self.chunks).get(&ci).cloned();
+        let chunk = match cached {
+            Some(ch) => ch,
+            None => {
+                let idx = [ci[0], ci[1], ci[2], ci[3], 0];
+                let n = self.chunk.iter().product::<u64>() as usize * 2;
+                let ch = match self.array.retrieve_chunk::<Vec<f64>>(&idx) {
+                    Ok(v) if v.len() == n => Some(Arc::new(v)),
+                    got => {
+                        let why = match got {
+                            Ok(v) => format!("{} values, {n} expected", v.len()),
+                            Err(e) => e.to_string(),
+                        };
+                        lock(&self.problems).push(format!(
+                            "{}: chunk {:?} cannot be read ({why}): its bricks are loaded to \
+                             learn what they hold, none is skipped as empty",
+                            self.dir.display(),
+                            &idx[..4]
+                        ));
+                        None
+                    }
+                };
+                lock(&self.chunks).insert(ci, ch.clone());
+                ch
+            }
+        }?;
+        let ch = self.chunk;
+        let r = [0, 1, 2, 3].map(|a| p[a] % ch[a]);
+        let e = ((((r[0] * ch[1] + r[1]) * ch[2] + r[2]) * ch[3] + r[3]) * 2) as usize;
+        Some((chunk[e], chunk[e + 1]))
+    }
+
+    /// The store bricks touching `[lo, hi)` whose statistics say they hold
+    /// something other than zeros: `(brick, min, max)` each.
+    pub fn data_in(&self, c: u64, lo: Dims3, hi: Dims3) -> Vec<(Dims3, f64, f64)> {
+        let sb = self.brick;
+        let r = [0, 1, 2].map(|a| lo[a] / sb[a]..=(hi[a] - 1) / sb[a]);
+        let mut out = vec![];
+        for z in r[0].clone() {
+            for y in r[1].clone() {
+                for x in r[2].clone() {
+                    if let Some((mn, mx)) = self.get(c, [z, y, x]) {
+                        if mn != 0.0 || mx != 0.0 {
+                            out.push(([z, y, x], mn, mx));
+                        }
+                    }
+                }
+            }
+        }
+        out
+    }
+
+    /// The common value of every store brick touching `[lo, hi)` if they
+    /// are all constant with the same value.
+    pub fn uniform(&self, c: u64, lo: Dims3, hi: Dims3) -> Option<f64> {
+        let sb = self.brick;
+        let r = [0, 1, 2].map(|a| lo[a] / sb[a]..=(hi[a] - 1) / sb[a]);
+        let mut val = None;
+        for z in r[0].clone() {
+            for y in r[1].clone() {
+                for x in r[2].clone() {
+                    let (mn, mx) = self.get(c, [z, y, x])?;
+                    // NaN fails both comparisons.
+                    if mn != mx || val.is_some_and(|v| v != mn) {
+                        return None;
+                    }
+                    val = Some(mn);
+                }
+            }
+        }
+        val
+    }
+
+    /// What made chunks of the statistics unreadable since the last call,
+    /// once each.
+    pub fn take_problems(&self) -> Vec<String> {
+        std::mem::take(&mut *lock(&self.problems))
+    }
+}
