@@ -12,7 +12,7 @@
 //! Integer types get `round(v · max)` with `max` the largest value of the
 //! type (for signed types, the positive range); float types get `v`.
 
-use crate::error::{IoContext, Result};
+use crate::error::{IoContext, Result, StoreError};
 use crate::import::raw::RawOptions;
 use crate::source::{check_region, SourceMeta, VolumeSource};
 use brickyard_core::{dispatch_dtype, DType, Dims3, Sample};
@@ -20,6 +20,7 @@ use rayon::prelude::*;
 use std::io::Write;
 use std::ops::Range;
 use std::path::{Path, PathBuf};
+use std::sync::atomic::{AtomicBool, Ordering};
 
 /// Which procedural volume.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -175,6 +176,20 @@ impl VolumeSource for Procedural {
 /// `progress` gets the bytes written. The file is written to a temporary
 /// name and renamed when complete.
 pub fn write_raw(src: &Procedural, path: &Path, progress: &dyn crate::Progress) -> Result<()> {
+    write_raw_within(src, path, progress, 64 << 20, &AtomicBool::new(false))
+}
+
+/// [`write_raw`], holding at most about `slab_bytes` of voxels at a time
+/// (slabs of slices, of rows of one slice, or of one row, as the volume's
+/// shape allows), and stopping when `cancel` is set: the temporary file is
+/// removed and the error is [`StoreError::Interrupted`].
+pub fn write_raw_within(
+    src: &Procedural,
+    path: &Path,
+    progress: &dyn crate::Progress,
+    slab_bytes: u64,
+    cancel: &AtomicBool,
+) -> Result<()> {
     let m = src.meta();
     let [dz, dy, dx] = m.dims;
     let es = m.dtype.size() as u64;
@@ -184,22 +199,58 @@ pub fn write_raw(src: &Procedural, path: &Path, progress: &dyn crate::Progress) 
         &crate::builder::lock_path(path),
         &format!("writing {}", path.display()),
     )?;
-    let mut f = std::io::BufWriter::new(std::fs::File::create(&tmp).at(&tmp)?);
-    progress.start(dz * dy * dx * es);
-    // Slabs of about 64 MiB.
-    let per = ((64u64 << 20) / (dy * dx * es).max(1)).clamp(1, dz);
-    let mut buf = vec![];
-    let mut z0 = 0;
-    while z0 < dz {
-        let h = per.min(dz - z0);
-        buf.resize((h * dy * dx * es) as usize, 0u8);
-        src.read_region(0, z0..z0 + h, 0..dy, 0..dx, &mut buf)?;
-        f.write_all(&buf).at(&tmp)?;
-        progress.inc(buf.len() as u64);
-        z0 += h;
+    let written = (|| -> Result<()> {
+        let mut f = std::io::BufWriter::new(std::fs::File::create(&tmp).at(&tmp)?);
+        progress.start(dz * dy * dx * es);
+        // Pieces in file order: whole slices, rows of a slice, or runs of
+        // one row, each within the slab.
+        let slab = slab_bytes.max(es);
+        let (row, slice) = (dx * es, dy * dx * es);
+        let mut buf = vec![];
+        let mut piece = |z: std::ops::Range<u64>,
+                         y: std::ops::Range<u64>,
+                         x: std::ops::Range<u64>|
+         -> Result<()> {
+            if cancel.load(Ordering::Relaxed) {
+                return Err(StoreError::Interrupted);
+            }
+            let n = (z.end - z.start) * (y.end - y.start) * (x.end - x.start) * es;
+            buf.resize(n as usize, 0u8);
+            src.read_region(0, z, y, x, &mut buf)?;
+            f.write_all(&buf).at(&tmp)?;
+            progress.inc(n);
+            Ok(())
+        };
+        if slice <= slab {
+            let per = (slab / slice).clamp(1, dz);
+            for z0 in (0..dz).step_by(per as usize) {
+                piece(z0..(z0 + per).min(dz), 0..dy, 0..dx)?;
+            }
+        } else if row <= slab {
+            let per = (slab / row).clamp(1, dy);
+            for z in 0..dz {
+                for y0 in (0..dy).step_by(per as usize) {
+                    piece(z..z + 1, y0..(y0 + per).min(dy), 0..dx)?;
+                }
+            }
+        } else {
+            let per = (slab / es).clamp(1, dx);
+            for z in 0..dz {
+                for y in 0..dy {
+                    for x0 in (0..dx).step_by(per as usize) {
+                        piece(z..z + 1, y..y + 1, x0..(x0 + per).min(dx))?;
+                    }
+                }
+            }
+        }
+        drop(piece);
+        f.flush().at(&tmp)
+    })();
+    if let Err(e) = written {
+        let _ = std::fs::remove_file(&tmp);
+        return Err(e);
     }
-    f.flush().at(&tmp)?;
-    drop(f);
+
     let opts = RawOptions {
         dims: [dx, dy, dz],
         dtype: m.dtype,
@@ -232,6 +283,51 @@ pub fn parse_size(s: &str) -> std::result::Result<Dims3, String> {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// Records the pieces a writer reports.
+    struct Pieces(std::sync::Mutex<Vec<u64>>);
+    impl crate::Progress for Pieces {
+        fn start(&self, _: u64) {}
+        fn inc(&self, n: u64) {
+            self.0.lock().unwrap().push(n);
+        }
+    }
+
+    #[test]
+    fn raw_files_are_written_in_pieces_within_the_slab() {
+        let d = tempfile::tempdir().unwrap();
+        let dims = [3, 20, 30];
+        let src = Procedural::new(Kind::MarschnerLobb, dims, DType::U16);
+        let whole = d.path().join("whole.raw");
+        write_raw(&src, &whole, &crate::NoProgress).unwrap();
+        let want = std::fs::read(&whole).unwrap();
+        assert_eq!(want.len(), 3 * 20 * 30 * 2);
+        // Slabs of several slices, of rows, of runs of a row: the same
+        // bytes, no piece larger than the slab.
+        for slab in [2400u64, 1200, 600, 100, 7] {
+            let p = d.path().join(format!("s{slab}.raw"));
+            let pieces = Pieces(Default::default());
+            write_raw_within(&src, &p, &pieces, slab, &AtomicBool::new(false)).unwrap();
+            assert_eq!(std::fs::read(&p).unwrap(), want, "slab {slab}");
+            let pieces = pieces.0.into_inner().unwrap();
+            assert!(
+                pieces.iter().all(|&n| n <= slab.max(2)),
+                "slab {slab}: {pieces:?}"
+            );
+            assert_eq!(pieces.iter().sum::<u64>(), want.len() as u64);
+        }
+        // Cancelled: an error, and neither the file nor its temporary
+        // one left.
+        let p = d.path().join("c.raw");
+        let e = write_raw_within(&src, &p, &crate::NoProgress, 600, &AtomicBool::new(true));
+        assert!(matches!(e, Err(StoreError::Interrupted)), "{e:?}");
+        let left: Vec<_> = std::fs::read_dir(d.path())
+            .unwrap()
+            .map(|e| e.unwrap().file_name().to_string_lossy().to_string())
+            .filter(|n| n.starts_with("c.raw"))
+            .collect();
+        assert!(left.is_empty(), "{left:?}");
+    }
 
     #[test]
     fn mandelbulb_has_inside_and_outside() {

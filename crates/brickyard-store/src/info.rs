@@ -575,10 +575,16 @@ pub fn format_info(i: &StoreInfo) -> String {
             );
         }
         if let Some(b) = &l.stats {
+            // (Bricks of NaN only have no range: none counted, none shown.)
+            let values = if b.min <= b.max {
+                format!("values {}..{}", b.min, b.max)
+            } else {
+                "no values but NaN".to_string()
+            };
             let _ = writeln!(
                 s,
-                "           bricks: {} ({} empty, {} constant incl. empty), values {}..{}",
-                b.bricks, b.empty, b.constant, b.min, b.max
+                "           bricks: {} ({} empty, {} constant incl. empty), {values}",
+                b.bricks, b.empty, b.constant
             );
         }
     }

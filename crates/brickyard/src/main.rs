@@ -574,8 +574,18 @@ fn run(cmd: Cmd, cluster: Option<&dist::Cluster>) -> Result<()> {
                         bail!("{}: is a folder; expected a file to write", p.display());
                     }
                 }
+                // Within --memory (a quarter of it for the slab, at most
+                // 64 MiB), and stopped cleanly by Ctrl-C.
+                let memory = parse_bytes(&pyramid.memory).context("--memory")?;
+                install_ctrl_c();
                 let bar = progress::Bar::new(pyramid.quiet, "generating");
-                brickyard_store::generate::write_raw(&src, &output, &bar)?;
+                brickyard_store::generate::write_raw_within(
+                    &src,
+                    &output,
+                    &bar,
+                    (memory / 4).clamp(1, 64 << 20),
+                    &CANCEL,
+                )?;
                 bar.finish();
                 outln!(
                     "wrote {} ({}x{}x{} {dt}) and {}",

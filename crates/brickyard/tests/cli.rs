@@ -265,6 +265,26 @@ fn sigint_leaves_no_store() {
         !d.path().join("int.ome.zarr.partial").exists(),
         "nor a partial store"
     );
+    // A raw file being generated: stopped as cleanly (it used to end by
+    // the signal, leaving its partial file and lock behind).
+    let raw = d.path().join("int.raw");
+    let mut child = bin()
+        .args(["generate", "mandelbulb", s(&raw), "--size", "1024"])
+        .stderr(std::process::Stdio::piped())
+        .spawn()
+        .unwrap();
+    std::thread::sleep(std::time::Duration::from_millis(1500));
+    unsafe {
+        libc_kill(child.id() as i32, 2);
+    }
+    let o = child.wait_with_output().unwrap();
+    assert_eq!(o.status.code(), Some(1), "{}", stderr(&o));
+    assert!(stderr(&o).contains("interrupted"), "{}", stderr(&o));
+    let left: Vec<_> = std::fs::read_dir(d.path())
+        .unwrap()
+        .map(|e| e.unwrap().file_name().to_string_lossy().to_string())
+        .collect();
+    assert!(left.is_empty(), "left behind: {left:?}");
 }
 
 extern "C" {
