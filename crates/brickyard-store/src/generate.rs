@@ -243,7 +243,6 @@ pub fn write_raw_within(
                 }
             }
         }
-        drop(piece);
         f.flush().at(&tmp)
     })();
     if let Err(e) = written {

@@ -268,7 +268,7 @@ fn sigint_leaves_no_store() {
     // A raw file being generated: stopped as cleanly (it used to end by
     // the signal, leaving its partial file and lock behind).
     let raw = d.path().join("int.raw");
-    let mut child = bin()
+    let child = bin()
         .args(["generate", "mandelbulb", s(&raw), "--size", "1024"])
         .stderr(std::process::Stdio::piped())
         .spawn()
