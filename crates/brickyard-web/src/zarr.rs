@@ -491,13 +491,23 @@ pub fn parse_root(zarr_format: u8, text: &[u8]) -> Result<(Multiscale, Vec<Strin
         .ok_or_else(|| err(doc, "multiscales.datasets", "a non-empty list of levels"))?;
     let mut paths = vec![];
     for (i, d) in datasets.iter().enumerate() {
-        paths.push(
-            d.get("path")
-                .and_then(Value::as_str)
-                .ok_or_else(|| err(doc, &format!("multiscales.datasets[{i}].path"), "a path"))?
-                .trim_matches('/')
-                .to_string(),
-        );
+        let field = format!("multiscales.datasets[{i}].path");
+        let p = d
+            .get("path")
+            .and_then(Value::as_str)
+            .ok_or_else(|| err(doc, &field, "a path"))?;
+        // A level lies inside the image's group, as the native reader has it.
+        let inside = !p.starts_with('/')
+            && !p.contains('\\')
+            && p.split('/').all(|c| !c.is_empty() && c != "." && c != "..");
+        if !inside {
+            return Err(err(
+                doc,
+                &field,
+                format!("a path inside the image's group (such as \"0\"), found {p:?}"),
+            ));
+        }
+        paths.push(p.to_string());
     }
     let scale_of = |o: &Value| -> Option<Vec<f64>> {
         o.get("coordinateTransformations")?
@@ -622,6 +632,27 @@ pub fn check_levels(ms: &Multiscale) -> Result<(), MetaError> {
             return Err(err(&doc, "shape", "no empty axis"));
         }
     }
+    // From the finest down: none larger than the one before.
+    for w in ms.levels.windows(2) {
+        if w[1].shape.iter().zip(&w[0].shape).any(|(a, b)| a > b) {
+            return Err(err(
+                &format!(
+                    "{}/{}",
+                    w[1].path,
+                    if ms.zarr_format == 3 {
+                        "zarr.json"
+                    } else {
+                        ".zarray"
+                    }
+                ),
+                "shape",
+                format!(
+                    "no axis larger than the level before ({:?} of {}), found {:?}",
+                    w[0].shape, w[0].path, w[1].shape
+                ),
+            ));
+        }
+    }
     Ok(())
 }
 
@@ -667,5 +698,13 @@ mod tests {
         )
         .unwrap_err();
         assert_eq!(e.field, "multiscales");
+        // Levels out of the image's group.
+        for bad in ["../x/0", "/etc", "", "0/./1"] {
+            let doc = format!(
+                r#"{{"zarr_format":3,"node_type":"group","attributes":{{"ome":{{"version":"0.5","multiscales":[{{"axes":[{{"name":"z"}},{{"name":"y"}},{{"name":"x"}}],"datasets":[{{"path":{bad:?}}}]}}]}}}}}}"#
+            );
+            let e = parse_root(3, doc.as_bytes()).unwrap_err();
+            assert_eq!(e.field, "multiscales.datasets[0].path", "{bad:?}: {e:?}");
+        }
     }
 }
