@@ -483,7 +483,10 @@ impl TransferFunction {
             return Err(ConfigError::new(
                 WHAT,
                 "window",
-                format!("must be finite numbers, got {:?}", self.window),
+                format!(
+                    "must be finite numbers within ±3.4e38 (single precision), got {:?}",
+                    self.window
+                ),
             ));
         }
         if w0 >= w1 {
