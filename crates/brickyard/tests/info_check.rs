@@ -376,6 +376,18 @@ fn info_check_lists_damaged_chunks_and_shards() {
         r.1
     );
 
+    // A chunk of the statistics lost (they are written whole).
+    let store = copy();
+    let path = store.join("_brickyard/stats/0/c/0/0/0/0/0");
+    std::fs::remove_file(&path).unwrap();
+    reported(
+        "missing statistics",
+        &check(&store),
+        &path,
+        None,
+        &["missing", "the statistics are written whole"],
+    );
+
     // A shard nobody may read.
     let store = copy();
     let (path, _, _) = full_shard(&store);

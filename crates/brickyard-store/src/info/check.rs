@@ -433,6 +433,23 @@ impl Target<'_> {
         // unreadable one is not.
         let mut file = match File::open(&path) {
             Ok(f) => f,
+            Err(e) if e.kind() == std::io::ErrorKind::NotFound && want_values => {
+                // The statistics are written whole, every chunk: one
+                // missing was lost (its bricks are loaded to learn what
+                // they hold, none is skipped as empty).
+                t.absent += inner.len() as u64;
+                t.problems.push(
+                    self.problem(
+                        None,
+                        s,
+                        &path,
+                        "the file is missing: the statistics are written whole, every chunk \
+                     (readers load the bricks it describes to learn what they hold)"
+                            .into(),
+                    ),
+                );
+                return t;
+            }
             Err(e) if e.kind() == std::io::ErrorKind::NotFound => {
                 t.absent += inner.len() as u64;
                 let data: Vec<&Vec<u64>> = inner
