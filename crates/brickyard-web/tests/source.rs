@@ -262,19 +262,7 @@ fn stream_session(
     pool: u64,
     view: impl FnOnce(&WebSession, &WebSource) -> brickyard_web::view::View,
 ) -> (Image, u32, brickyard_web::view::View, WebSession) {
-    let src = Rc::new(open_web(store, 32));
-    let mut exec = LocalPool::new();
-    let sp = exec.spawner();
-    let spawn: Spawn = Rc::new(move |f| spawn_local(&sp, f));
-    let cfg = VmConfig {
-        brick: [32; 3],
-        pool_bytes: pool,
-        ..Default::default()
-    };
-    let mut s = WebSession::new(src.clone(), cfg, spawn, 6).expect("session");
-    // The store's brick statistics, as the page reads them.
-    let problems = exec.run_until(s.read_ranges(1 << 21));
-    assert!(problems.is_empty(), "{problems:?}");
+    let (mut s, mut exec, src) = session(store, pool);
     let v = view(&s, &src);
     let (image, frames) = frames_until_complete(&mut s, &mut exec, &v);
     (image, frames, v, s)
@@ -525,10 +513,10 @@ fn a_pool_smaller_than_the_view_still_completes() {
 }
 
 /// A session over `store` (32³ bricks, a pool of `pool` bytes, the brick
-/// statistics read) and its executor.
+/// statistics read as the page reads them) and its executor.
 fn session(store: &Path, pool: u64) -> (WebSession, LocalPool, Rc<WebSource>) {
     let src = Rc::new(open_web(store, 32));
-    let exec = LocalPool::new();
+    let mut exec = LocalPool::new();
     let sp = exec.spawner();
     let spawn: Spawn = Rc::new(move |f| spawn_local(&sp, f));
     let cfg = VmConfig {
@@ -536,7 +524,6 @@ fn session(store: &Path, pool: u64) -> (WebSession, LocalPool, Rc<WebSource>) {
         pool_bytes: pool,
         ..Default::default()
     };
-    let mut exec = exec;
     let mut s = WebSession::new(src.clone(), cfg, spawn, 6).expect("session");
     let problems = exec.run_until(s.read_ranges(1 << 21));
     assert!(problems.is_empty(), "{problems:?}");
