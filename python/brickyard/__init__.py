@@ -21,6 +21,7 @@ import os
 import re
 import sys
 import tempfile
+import warnings
 from typing import Any, Optional, Sequence, Tuple, Union
 
 import numpy as np
@@ -348,12 +349,18 @@ def render_args(store: Union[Store, str, os.PathLike], mode: str = "dvr", camera
                 **options: Any) -> list:
     """The `brickyard render` arguments for these options (files for dicts are written in `tmpdir`)."""
     path = store.path if isinstance(store, Store) else os.fspath(store)
+    if path.startswith("-"):
+        # (A store named "-x.zarr" is a path, not an option.)
+        path = os.path.join(".", path)
     if mode not in _MODES:
         raise ValueError(f"mode: expected dvr, mip or slice, found {mode!r}")
     if backend not in _BACKENDS:
         raise ValueError(f"backend: expected auto, cpu or gpu, found {backend!r}")
-    if isinstance(size, (int, np.integer)):
+    if isinstance(size, (int, np.integer)) and not isinstance(size, bool):
         size = (int(size), int(size))
+    if not (isinstance(size, (tuple, list)) and len(size) == 2
+            and all(isinstance(v, (int, np.integer)) and not isinstance(v, bool) and v > 0 for v in size)):
+        raise ValueError(f"size: expected N or (width, height), positive whole numbers, found {size!r}")
     w, h = size
     args = ["brickyard", "render", path, "--mode", mode, "--size", f"{int(w)}x{int(h)}", "--backend", backend]
     if camera is not None:
@@ -437,7 +444,12 @@ def render(store: Union[Store, str, os.PathLike], mode: str = "dvr", camera: Any
     with tempfile.TemporaryDirectory(prefix="brickyard-render-") as tmp:
         args = render_args(store, mode, camera, tf, size, backend, tmp, **options)
         with _cli_errors("render"):
-            n, w, h, buf = _native.render(args, dtype == "float32", out is not None)
+            n, w, h, buf, notes = _native.render(args, dtype == "float32", out is not None)
+    # Views drawn without some of their data (bricks that could not be
+    # read: a damaged store, a server gone) are returned, and said so.
+    for note in notes:
+        if "could not be loaded" in note or "stopped at" in note:
+            warnings.warn(f"render: {note}", RuntimeWarning, stacklevel=2)
     views = np.frombuffer(buf, dtype=np.dtype(dtype)).reshape(n, h, w, 4)
     return views if numbered else views[0]
 

@@ -76,6 +76,39 @@ struct NativeStore {
     translations: Vec<Option<Vec<f64>>>,
     axes: Vec<String>,
     units: Vec<Option<String>>,
+    /// The root `zarr.json` (or `.zgroup`/`.zarray`) as it was opened (a
+    /// local store): a store replaced since (written again with
+    /// `overwrite`) is refused, not read half from what this handle
+    /// cached and half from the new files.
+    identity: Option<(PathBuf, (u64, u64, i64, i64))>,
+}
+
+/// What tells one file from its replacement: device, inode and change
+/// time.
+fn file_identity(p: &Path) -> Option<(u64, u64, i64, i64)> {
+    use std::os::unix::fs::MetadataExt;
+    let m = std::fs::metadata(p).ok()?;
+    Some((m.dev(), m.ino(), m.ctime(), m.ctime_nsec()))
+}
+
+impl NativeStore {
+    /// An error when the store was replaced or removed since it was
+    /// opened.
+    fn check_same(&self) -> PyResult<()> {
+        let Some((file, was)) = &self.identity else {
+            return Ok(());
+        };
+        if file_identity(file).as_ref() != Some(was) {
+            return Err(PyOSError::new_err(format!(
+                "{}: the store was replaced or removed since it was opened (its {} changed): \
+                 open it again",
+                self.path.display(),
+                file.file_name()
+                    .map_or(String::new(), |n| n.to_string_lossy().into())
+            )));
+        }
+        Ok(())
+    }
 }
 
 #[pymethods]
@@ -195,6 +228,7 @@ impl NativeStore {
         // GIL released straight into the bytearray returned (no one else
         // holds it yet).
         let n = read::region_len(&self.loader, level, channel, lo, hi).map_err(to_py)?;
+        self.check_same()?;
         PyByteArray::new_with(py, n, |buf| {
             py.detach(|| {
                 let _one = self.reads.lock().unwrap_or_else(|e| e.into_inner());
@@ -232,10 +266,19 @@ fn open_store(
             path.display()
         );
     }
+    let identity = (!brickyard_store::storage::is_remote(&path))
+        .then(|| {
+            ["zarr.json", ".zgroup", ".zarray"]
+                .iter()
+                .map(|n| path.join(n))
+                .find_map(|f| file_identity(&f).map(|id| (f, id)))
+        })
+        .flatten();
     let cache = Arc::new(HostCache::new(cache_bytes));
     let loader =
         Loader::open_with_chunk_cache(&path, [brick; 3], 0, threads.max(1), cache, chunk_bytes)?;
     Ok(NativeStore {
+        identity,
         scales: info.levels.iter().map(|l| l.scale.clone()).collect(),
         translations: info.levels.iter().map(|l| l.translation.clone()).collect(),
         axes: info.axes.clone(),
@@ -260,14 +303,18 @@ fn numpy_name(d: brickyard_core::DType) -> &'static str {
     }
 }
 
+/// What [`render`] returns: views, width, height, pixels, notes.
+type Rendered<'py> = (usize, u32, u32, Bound<'py, PyByteArray>, Vec<String>);
+
 /// Render exactly as `brickyard render ARGS…` does (the same options, the
 /// same code); `args` is the whole command line, starting `brickyard
-/// render STORE`. Returns `(views, width, height, pixels)`: every view (a
+/// render STORE`. Returns `(views, width, height, pixels, notes)`: every view (a
 /// turntable's, in order; else one) one after the other, each RGBA8 over
 /// black as the PNG holds it, or the premultiplied RGBA f32 image when
 /// `float`. With `write`, each view is also written where and as the CLI
 /// writes it (`--out`, or for a turntable `STEM-0000.png`,
-/// `STEM-0001.png`, ... beside it).
+/// `STEM-0001.png`, ... beside it). `notes` holds each view's closing
+/// line, as the CLI prints it (how the view ended).
 #[pyfunction]
 #[pyo3(signature = (args, float = false, write = false))]
 fn render<'py>(
@@ -275,7 +322,7 @@ fn render<'py>(
     args: Vec<String>,
     float: bool,
     write: bool,
-) -> PyResult<(usize, u32, u32, Bound<'py, PyByteArray>)> {
+) -> PyResult<Rendered<'py>> {
     let cmd = brickyard_run::render::RenderCmd::try_parse_from(&args)
         .map_err(|e| PyValueError::new_err(e.to_string().trim().to_string()))?;
     if let Some(store) = args.get(2).map(PathBuf::from) {
@@ -284,9 +331,9 @@ fn render<'py>(
         }
     }
     let raw = cmd.raw_f32;
-    let images = py
+    let (images, notes) = py
         .detach(|| -> anyhow::Result<_> {
-            let views = brickyard_run::render::views(cmd)?;
+            let (views, notes) = brickyard_run::render::views_noted(cmd)?;
             if write {
                 for (path, img) in &views {
                     // A file that cannot be written is an `OSError`.
@@ -294,7 +341,10 @@ fn render<'py>(
                         .map_err(|e| anyhow::Error::new(std::io::Error::other(format!("{e:#}"))))?;
                 }
             }
-            Ok(views.into_iter().map(|(_, img)| img).collect::<Vec<_>>())
+            Ok((
+                views.into_iter().map(|(_, img)| img).collect::<Vec<_>>(),
+                notes,
+            ))
         })
         .map_err(to_py)?;
     let (w, h) = match images.first() {
@@ -313,7 +363,7 @@ fn render<'py>(
             bytes.extend(img.to_rgba8([0.0, 0.0, 0.0, 1.0]));
         }
     }
-    Ok((images.len(), w, h, PyByteArray::new(py, &bytes)))
+    Ok((images.len(), w, h, PyByteArray::new(py, &bytes), notes))
 }
 
 /// The builder's progress, handed to a Python callable `progress(kind,
@@ -339,7 +389,15 @@ impl PyProgress<'_> {
             }
             if let Some(cb) = &self.callback {
                 if let Err(e) = cb.call1(py, (kind.as_str(), n)) {
-                    e.print(py);
+                    // Ctrl-C that arrived while the callback ran is the
+                    // user's: it cancels the job (raised again as the
+                    // job's KeyboardInterrupt). Other errors of the
+                    // callback are printed and the job goes on.
+                    if e.is_instance_of::<PyKeyboardInterrupt>(py) {
+                        self.cancel.store(true, Ordering::Relaxed);
+                    } else {
+                        e.print(py);
+                    }
                 }
             }
         })
@@ -442,8 +500,14 @@ fn run_convert(
     };
     let r = py.detach(|| brickyard_store::convert(src, dst, opts, &p, &cancel));
     if cancel.load(Ordering::Relaxed) {
+        // (Ctrl-C after the last piece: the store was written whole.)
+        let done = if r.is_ok() {
+            " after it had finished: the store is complete"
+        } else {
+            ""
+        };
         return Err(PyKeyboardInterrupt::new_err(format!(
-            "{}: conversion interrupted",
+            "{}: conversion interrupted{done}",
             dst.display()
         )));
     }

@@ -1,5 +1,7 @@
 """Bad inputs raise the right exceptions, with messages that say what is wrong."""
 
+import warnings
+
 import numpy as np
 import pytest
 
@@ -191,3 +193,78 @@ def test_every_render_flag_is_translated(cli):
     assert {"ortho", "raw-f32"} <= switches == brickyard._SWITCHES["render"] <= flags, switches
     assert brickyard._SWITCHES["convert"] == {"overwrite", "labels"}
     assert brickyard._SWITCHES["process"] == {"overwrite"}
+
+
+def test_a_store_replaced_since_it_was_opened_is_refused_not_mixed(tmp_path):
+    # A handle kept across `from_numpy(..., overwrite=True)`: its cached
+    # bricks were the old store's, the rest came from the new one (or
+    # failed as "corrupt" chunks). Now: an OSError saying to open it again.
+    p = tmp_path / "r.zarr"
+    a = np.random.default_rng(0).integers(0, 1000, (96, 96, 96), dtype=np.uint16)
+    brickyard.from_numpy(a, p, compression="none", progress=False)
+    s = brickyard.open(p)
+    assert (s.read(region=np.s_[0:1, 0:1, 0:1]) == a[0:1, 0:1, 0:1]).all()
+    brickyard.from_numpy(a + 5000, p, compression="none", overwrite=True, progress=False)
+    with pytest.raises(OSError, match="replaced or removed since it was opened"):
+        s.read()
+    # Opened again: the new store, whole.
+    assert (brickyard.open(p).read() == a + 5000).all()
+
+
+def test_render_says_when_bricks_could_not_be_loaded(tmp_path):
+    # A damaged store: the image comes back (drawn from what could be
+    # read), with a RuntimeWarning saying what is missing; it used to come
+    # back silently.
+    p = tmp_path / "d.zarr"
+    v = (np.random.default_rng(0).random((96, 96, 96)) * 255).astype(np.uint8)
+    brickyard.from_numpy(v, p, progress=False)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        brickyard.render(p, backend="cpu", size=32, level=0)
+    for f in (p / "0").rglob("*"):
+        if f.is_file() and f.name != "zarr.json":
+            with open(f, "r+b") as fh:
+                fh.truncate(10)
+    with pytest.warns(RuntimeWarning, match="could not be loaded"):
+        brickyard.render(p, backend="cpu", size=32, level=0)
+
+
+def test_render_takes_paths_that_start_with_a_dash_and_checks_its_size(tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    brickyard.from_numpy(np.full((24, 24, 24), 200, np.uint8), "-dash.zarr", progress=False)
+    img = brickyard.render("-dash.zarr", backend="cpu", size=16)
+    assert img.shape == (16, 16, 4)
+    for bad in ["64x64", (1, 2, 3), (-5, 10), (16.5, 16), True]:
+        with pytest.raises(ValueError, match="size: expected N or"):
+            brickyard.render("-dash.zarr", backend="cpu", size=bad)
+
+
+def test_ctrl_c_in_a_progress_callback_stops_the_conversion(tmp_path):
+    # A KeyboardInterrupt raised while the callback runs (here: raised by
+    # it) used to be printed and the conversion went on to the end.
+    v = np.random.default_rng(1).integers(0, 60000, (128, 256, 256), dtype=np.uint16)
+    dst = tmp_path / "c.zarr"
+    calls = []
+
+    def progress(kind, n):
+        calls.append(kind)
+        if kind == "inc":
+            raise KeyboardInterrupt
+
+    with pytest.raises(KeyboardInterrupt, match="conversion interrupted$"):
+        brickyard.from_numpy(v, dst, progress=progress, memory=64 << 20)
+    assert calls.count("inc") == 1, calls
+    assert not dst.exists() and not (tmp_path / "c.zarr.partial").exists()
+
+
+def test_a_shard_file_gone_is_an_oserror(tmp_path):
+    # As the README says for a file gone (it was a ValueError).
+    p = tmp_path / "g.zarr"
+    v = np.random.default_rng(2).integers(1, 200, (64, 64, 64), dtype=np.uint8)
+    brickyard.from_numpy(v, p, progress=False)
+    s = brickyard.open(p)
+    for f in (p / "0" / "c").rglob("*"):
+        if f.is_file():
+            f.unlink()
+    with pytest.raises(OSError, match="the file is missing, but the statistics say"):
+        s.read()

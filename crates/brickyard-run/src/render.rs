@@ -608,14 +608,24 @@ pub fn write_view(
 /// Render without printing or writing anything: each view's image (in
 /// view order) with the file `run` would write it to (`--out`, or a
 /// turntable's numbered files beside it).
-pub fn views(mut c: RenderCmd) -> Result<Vec<(PathBuf, brickyard_render::Image)>> {
+pub fn views(c: RenderCmd) -> Result<Vec<(PathBuf, brickyard_render::Image)>> {
+    Ok(views_noted(c)?.0)
+}
+
+/// [`views`], with each view's closing line (its file and how it ended:
+/// "complete", or "complete but for N brick(s) that could not be
+/// loaded …", "stopped at …"), as `run` prints them.
+#[allow(clippy::type_complexity)]
+pub fn views_noted(
+    mut c: RenderCmd,
+) -> Result<(Vec<(PathBuf, brickyard_render::Image)>, Vec<String>)> {
     c.silent = true;
     let mut out = vec![];
-    run_with(c, None, &mut |path, img| {
+    let lines = run_with(c, None, &mut |path, img| {
         out.push((path.to_path_buf(), img));
         Ok(())
     })?;
-    Ok(out)
+    Ok((out, lines))
 }
 
 /// [`views`]' images alone.

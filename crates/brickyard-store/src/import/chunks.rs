@@ -592,11 +592,14 @@ impl ShardReader {
                 Ok(())
             })?;
             if !found {
-                // The shard vanished after its index was read.
-                return Err(StoreError::invalid(
+                // The shard vanished after its index was read: the store
+                // cannot be read (an I/O failure, not bad content).
+                return Err(StoreError::io(
                     &file,
-                    "shard",
-                    "the shard file is gone (it held chunks when its index was read)",
+                    std::io::Error::new(
+                        std::io::ErrorKind::NotFound,
+                        "shard: the shard file is gone (it held chunks when its index was read)",
+                    ),
                 ));
             }
         }
