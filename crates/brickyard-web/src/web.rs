@@ -201,10 +201,12 @@ struct Inner {
     /// The fraction of the size the last frame while moving was drawn at
     /// (1: full size, or none yet): `budget::moving_scale`'s `last`.
     moving_last: f64,
-    /// Milliseconds a tile of a frame on the CPU takes (a running mean;
-    /// NaN until measured): a frame at rest is drawn in parts of about
-    /// [`PART_MS`] each.
-    ms_per_tile: f64,
+    /// Milliseconds and tiles of the frames on the CPU at rest, older ones
+    /// halved at each new one: their ratio is what a tile takes, and a
+    /// frame at rest is drawn in parts of about [`PART_MS`] each. (A ratio
+    /// of sums: calls of many tiles weigh more than the few-tile ones,
+    /// whose fixed cost per call would make the parts ever smaller.)
+    tile_cost: (f64, f64),
     /// The frame being drawn (in one part or several): its milliseconds
     /// so far, its parts, and whether it redraws a changed 3D view at full
     /// size (then it sets `full_ms`). The last finished frame's parts and
@@ -398,7 +400,7 @@ impl Viewer {
                 full_ms: 0.0,
                 drawn_scale: 1.0,
                 moving_last: 1.0,
-                ms_per_tile: f64::NAN,
+                tile_cost: (0.0, 0.0),
                 pass_ms: 0.0,
                 pass_parts: 0,
                 pass_full: false,
@@ -658,16 +660,13 @@ impl Inner {
                 // At rest, a frame slower than a part's time is drawn in
                 // parts (a moving view's frames are drawn whole, small).
                 None => {
-                    let max_tiles = (!moving && self.frames > 0 && self.ms_per_tile > 0.0)
-                        .then(|| ((PART_MS / self.ms_per_tile) as usize).max(1));
+                    let (ms, tiles) = self.tile_cost;
+                    let max_tiles = (!moving && self.frames > 0 && ms > 0.0 && tiles > 0.0)
+                        .then(|| ((PART_MS * tiles / ms) as usize).max(1));
                     let out = self.session.frame_cpu_part(&p, lod, max_tiles);
-                    if out.tiles_drawn > 0 && self.frames > 0 {
-                        let ms = (now() - t) / out.tiles_drawn as f64;
-                        self.ms_per_tile = if self.ms_per_tile.is_nan() {
-                            ms
-                        } else {
-                            0.5 * (self.ms_per_tile + ms)
-                        };
+                    if out.tiles_drawn > 0 && self.frames > 0 && !moving {
+                        self.tile_cost =
+                            (0.5 * ms + (now() - t), 0.5 * tiles + out.tiles_drawn as f64);
                     }
                     out
                 }
