@@ -325,7 +325,10 @@ def open(path: Union[str, os.PathLike], cache: int = 256 << 20, chunk_cache: int
 def _json_arg(value: Any, what: str, tmp: str) -> str:
     """A dict or JSON text written to a file for the CLI's options; a path as is."""
     if isinstance(value, dict):
-        text = json.dumps(value)
+        try:
+            text = json.dumps(value, allow_nan=False)
+        except ValueError as e:
+            raise ValueError(f"{what}: {e} (NaN and infinities are not numbers JSON holds)") from None
     elif isinstance(value, str) and value.lstrip().startswith("{"):
         text = value
     elif isinstance(value, (str, os.PathLike)):
@@ -443,8 +446,15 @@ def render(store: Union[Store, str, os.PathLike], mode: str = "dvr", camera: Any
         options["out"] = out
     with tempfile.TemporaryDirectory(prefix="brickyard-render-") as tmp:
         args = render_args(store, mode, camera, tf, size, backend, tmp, **options)
-        with _cli_errors("render"):
-            n, w, h, buf, notes = _native.render(args, dtype == "float32", out is not None)
+        try:
+            with _cli_errors("render"):
+                n, w, h, buf, notes = _native.render(args, dtype == "float32", out is not None)
+        except Exception as e:
+            # The files written for dicts and JSON text are named as what
+            # they were given as, not by their temporary names.
+            if len(e.args) == 1 and isinstance(e.args[0], str) and tmp in e.args[0]:
+                e.args = (re.sub(re.escape(tmp) + r"/([\w-]+)\.json", r"the \1 given", e.args[0]),)
+            raise
     # Views drawn without some of their data (bricks that could not be
     # read: a damaged store, a server gone) are returned, and said so.
     for note in notes:

@@ -268,3 +268,12 @@ def test_a_shard_file_gone_is_an_oserror(tmp_path):
             f.unlink()
     with pytest.raises(OSError, match="the file is missing, but the statistics say"):
         s.read()
+
+
+def test_render_names_dicts_as_given_not_by_their_temporary_files(store):
+    cam = {"eye": [float("nan"), 0, 0], "target": [0, 0, 0], "up": [0, 0, 1]}
+    with pytest.raises(ValueError, match="camera: Out of range float values"):
+        brickyard.render(store, backend="cpu", size=16, camera=cam)
+    with pytest.raises(ValueError) as e:
+        brickyard.render(store, backend="cpu", size=16, tf={"foo": 1})
+    assert "the tf given" in str(e.value) and "brickyard-render-" not in str(e.value), e.value
