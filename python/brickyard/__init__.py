@@ -83,6 +83,12 @@ class Store:
     def __init__(self, path: Union[str, os.PathLike], cache: int = 256 << 20, chunk_cache: int = 64 << 20,
                  brick: int = 64, threads: Optional[int] = None):
         threads = threads or min(8, os.cpu_count() or 1)
+        for what, v, least in (("cache", cache, 0), ("chunk_cache", chunk_cache, 0), ("brick", brick, 1),
+                               ("threads", threads, 1)):
+            if not isinstance(v, (int, np.integer)) or isinstance(v, bool):
+                raise TypeError(f"{what}: expected a whole number, got {type(v).__name__} {v!r}")
+            if v < least:
+                raise ValueError(f"{what}: expected at least {least}, got {v}")
         self._path = os.fspath(path)
         self._native = _native.NativeStore(self._path, int(cache), int(chunk_cache), int(brick), int(threads))
         # Fixed for the store's life: asked of the native side once, not per read.
@@ -151,9 +157,12 @@ class Store:
         """The region (`np.s_[z0:z1, y0:y1, x0:x1]`; None = the whole level) of
         one level and channel, through the loader and host cache."""
         shapes = self._shapes
-        if not isinstance(level, (int, np.integer)) or not 0 <= level < len(shapes):
+        for what, v in (("level", level), ("channel", channel)):
+            if not isinstance(v, (int, np.integer)) or isinstance(v, bool):
+                raise TypeError(f"{what}: expected a whole number, got {type(v).__name__} {v!r}")
+        if not 0 <= level < len(shapes):
             raise IndexError(f"level: {level} asked for but the store has {len(shapes)} level(s)")
-        if not isinstance(channel, (int, np.integer)) or not 0 <= channel < self._channels:
+        if not 0 <= channel < self._channels:
             raise IndexError(f"channel: {channel} asked for but the store has {self._channels} channel(s)")
         lo, hi, drop = _region(region, shapes[level])
         buf = self._native.read(int(level), int(channel), lo, hi)

@@ -277,3 +277,14 @@ def test_render_names_dicts_as_given_not_by_their_temporary_files(store):
     with pytest.raises(ValueError) as e:
         brickyard.render(store, backend="cpu", size=16, tf={"foo": 1})
     assert "the tf given" in str(e.value) and "brickyard-render-" not in str(e.value), e.value
+
+
+def test_open_and_read_name_arguments_of_the_wrong_kind(store):
+    for kw, exc in [({"cache": -1}, ValueError), ({"threads": -1}, ValueError), ({"brick": 0}, ValueError),
+                    ({"cache": "1GiB"}, TypeError), ({"brick": 32.5}, TypeError)]:
+        with pytest.raises(exc, match=next(iter(kw))):
+            brickyard.open(store, **kw)
+    s = brickyard.open(store)
+    for kw in [{"level": True}, {"level": "0"}, {"level": 1.0}, {"channel": False}]:
+        with pytest.raises(TypeError, match=f"{next(iter(kw))}: expected a whole number"):
+            s.read(**kw)
