@@ -525,10 +525,16 @@ def _options(brick, shard, compression, labels, memory, overwrite, spacing, orig
         v = tuple(kind(x) for x in v)
         if len(v) != 3:
             raise ValueError(f"{what}: expected three values (z, y, x), got {len(v)}")
+        if kind is int and any(x < 1 for x in v):
+            raise ValueError(f"{what}: expected sizes of at least 1 voxel, got {v}")
         return v
 
     if isinstance(memory, str):
         raise TypeError("memory: give a number of bytes")
+    if not isinstance(compression, str):
+        raise TypeError(f"compression: expected a name such as lz4, zstd or none, got {compression!r}")
+    if memory < 0:
+        raise ValueError(f"memory: expected a number of bytes, got {memory}")
     return {"brick": three(brick, "brick", int), "shard": three(shard, "shard", int),
             "compression": compression, "labels": bool(labels), "memory": int(memory),
             "overwrite": bool(overwrite), "spacing": three(spacing, "spacing", float),

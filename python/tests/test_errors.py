@@ -288,3 +288,12 @@ def test_open_and_read_name_arguments_of_the_wrong_kind(store):
     for kw in [{"level": True}, {"level": "0"}, {"level": 1.0}, {"channel": False}]:
         with pytest.raises(TypeError, match=f"{next(iter(kw))}: expected a whole number"):
             s.read(**kw)
+
+
+def test_conversion_options_of_the_wrong_sign_or_kind_are_named(tmp_path):
+    v = np.zeros((8, 8, 8), np.uint8)
+    for kw, exc, what in [({"brick": -64}, ValueError, "brick"), ({"shard": (0, 64, 64)}, ValueError, "shard"),
+                          ({"memory": -1}, ValueError, "memory"), ({"compression": None}, TypeError, "compression")]:
+        with pytest.raises(exc, match=f"^{what}: "):
+            brickyard.from_numpy(v, tmp_path / "o.zarr", progress=False, **kw)
+    assert not (tmp_path / "o.zarr").exists()
