@@ -128,9 +128,11 @@ impl NativeStore {
         if !path.exists() && !brickyard_store::storage::is_remote(&path) {
             return Err(missing(&path));
         }
-        if brick == 0 || brick > 1024 {
+        // (As `render --brick`: bricks of one voxel read a level a voxel
+        // at a time, for minutes.)
+        if !(2..=512).contains(&brick) {
             return Err(PyValueError::new_err(format!(
-                "brick: expected an edge between 1 and 1024 voxels, got {brick}"
+                "brick: expected an edge between 2 and 512 voxels, got {brick}"
             )));
         }
         // Opened on a thread of its own while this one watches for Ctrl-C:

@@ -281,6 +281,7 @@ def test_render_names_dicts_as_given_not_by_their_temporary_files(store):
 
 def test_open_and_read_name_arguments_of_the_wrong_kind(store):
     for kw, exc in [({"cache": -1}, ValueError), ({"threads": -1}, ValueError), ({"brick": 0}, ValueError),
+                    ({"brick": 1}, ValueError), ({"brick": 1024}, ValueError),
                     ({"cache": "1GiB"}, TypeError), ({"brick": 32.5}, TypeError)]:
         with pytest.raises(exc, match=next(iter(kw))):
             brickyard.open(store, **kw)
