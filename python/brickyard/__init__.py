@@ -165,6 +165,11 @@ class Store:
         if not 0 <= channel < self._channels:
             raise IndexError(f"channel: {channel} asked for but the store has {self._channels} channel(s)")
         lo, hi, drop = _region(region, shapes[level])
+        need = int(np.prod([h - l for l, h in zip(lo, hi)], dtype=object)) * np.dtype(self._dtype).itemsize
+        ram = _physical_memory()
+        if ram and need > ram:
+            raise MemoryError(f"region: {tuple(lo)}..{tuple(hi)} of level {level} is {need} bytes, more than this "
+                              f"machine's memory ({ram} bytes): read it in parts")
         buf = self._native.read(int(level), int(channel), lo, hi)
         a = np.frombuffer(buf, dtype=self._dtype).reshape((hi[0] - lo[0], hi[1] - lo[1], hi[2] - lo[2]))
         index = tuple(0 if d else slice(None) for d in drop)
@@ -211,6 +216,14 @@ class Level:
 
     def __repr__(self) -> str:
         return f"<brickyard.Level {self.index} of {self.store.path!r}: {self.shape}>"
+
+
+def _physical_memory() -> Optional[int]:
+    """The machine's memory in bytes, where the system says."""
+    try:
+        return os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES")
+    except (ValueError, OSError, AttributeError):
+        return None
 
 
 def _channel_index(c: Any, channels: int, what: str) -> int:

@@ -298,3 +298,25 @@ def test_conversion_options_of_the_wrong_sign_or_kind_are_named(tmp_path):
         with pytest.raises(exc, match=f"^{what}: "):
             brickyard.from_numpy(v, tmp_path / "o.zarr", progress=False, **kw)
     assert not (tmp_path / "o.zarr").exists()
+
+
+def test_a_region_larger_than_the_machine_is_refused_with_its_size(tmp_path):
+    # A 65536³ store (all fill value: its metadata alone): reading it whole
+    # would need 256 TiB; the MemoryError says so (it had no message).
+    import json as _json
+
+    p = tmp_path / "huge.zarr"
+    root = {"zarr_format": 3, "node_type": "group", "attributes": {"ome": {"version": "0.5", "multiscales": [
+        {"axes": [{"name": a, "type": "space"} for a in "zyx"],
+         "datasets": [{"path": "0", "coordinateTransformations": [{"type": "scale", "scale": [1, 1, 1]}]}]}]}}}
+    arr = {"zarr_format": 3, "node_type": "array", "shape": [65536, 65536, 65536], "data_type": "uint8",
+           "chunk_grid": {"name": "regular", "configuration": {"chunk_shape": [64, 64, 64]}},
+           "chunk_key_encoding": {"name": "default", "configuration": {"separator": "/"}},
+           "fill_value": 0, "codecs": [{"name": "bytes", "configuration": {"endian": "little"}}]}
+    (p / "0").mkdir(parents=True)
+    (p / "zarr.json").write_text(_json.dumps(root))
+    (p / "0" / "zarr.json").write_text(_json.dumps(arr))
+    s = brickyard.open(p)
+    with pytest.raises(MemoryError, match=r"region: \(0, 0, 0\)\.\.\(65536, 65536, 65536\) of level 0 is 281474976710656 bytes"):
+        s.read()
+    assert s.read(region=np.s_[0:2, 0:2, 0:2]).sum() == 0
