@@ -90,11 +90,33 @@ class Store:
             if v < least:
                 raise ValueError(f"{what}: expected at least {least}, got {v}")
         self._path = os.fspath(path)
-        self._native = _native.NativeStore(self._path, int(cache), int(chunk_cache), int(brick), int(threads))
+        self._args = (self._path, int(cache), int(chunk_cache), int(brick), int(threads))
+        self._native = _native.NativeStore(*self._args)
         # Fixed for the store's life: asked of the native side once, not per read.
         self._shapes = [tuple(s) for s in self._native.shapes]
         self._channels = self._native.channels
         self._dtype = np.dtype(self._native.dtype)
+
+    def _open(self):
+        if self._native is None:
+            raise ValueError(f"{self._path}: the store is closed")
+        return self._native
+
+    def close(self) -> None:
+        """Let the loader's threads and caches go; reads afterwards are a
+        ValueError. (`with brickyard.open(p) as s:` closes at the end.)"""
+        self._native = None
+
+    def __enter__(self) -> "Store":
+        return self
+
+    def __exit__(self, *exc: Any) -> None:
+        self.close()
+
+    def __reduce__(self):
+        # Pickled (for another process) or copied: opened again there from
+        # its path and budgets.
+        return (Store, self._args)
 
     @property
     def path(self) -> str:
@@ -126,25 +148,25 @@ class Store:
     @property
     def scales(self) -> list:
         """The OME `scale` of every level (one number per axis), None where absent."""
-        return self._native.scales
+        return self._open().scales
 
     @property
     def translations(self) -> list:
-        return self._native.translations
+        return self._open().translations
 
     @property
     def axes(self) -> list:
-        return self._native.axes
+        return self._open().axes
 
     @property
     def units(self) -> list:
-        return self._native.units
+        return self._open().units
 
     def cache_stats(self) -> dict:
         """The host cache: bytes held, budget, hits, misses; bytes read from the store."""
-        held, budget, hits, misses = self._native.cache_stats()
+        held, budget, hits, misses = self._open().cache_stats()
         return {"bytes": held, "budget": budget, "hits": hits, "misses": misses,
-                "bytes_read": self._native.bytes_read()}
+                "bytes_read": self._open().bytes_read()}
 
     def level(self, level: int) -> "Level":
         if not isinstance(level, (int, np.integer)) or isinstance(level, bool):
@@ -170,7 +192,7 @@ class Store:
         if ram and need > ram:
             raise MemoryError(f"region: {tuple(lo)}..{tuple(hi)} of level {level} is {need} bytes, more than this "
                               f"machine's memory ({ram} bytes): read it in parts")
-        buf = self._native.read(int(level), int(channel), lo, hi)
+        buf = self._open().read(int(level), int(channel), lo, hi)
         a = np.frombuffer(buf, dtype=self._dtype).reshape((hi[0] - lo[0], hi[1] - lo[1], hi[2] - lo[2]))
         index = tuple(0 if d else slice(None) for d in drop)
         return a[index]

@@ -88,3 +88,29 @@ def test_convert_from_zarr_equals_source(tmp_path):
     np.testing.assert_array_equal(s.read(0), a)
     for level in range(1, s.levels):
         np.testing.assert_array_equal(s.read(level), zarr_level(dst, level)[...])
+
+
+def test_a_store_closes_and_pickles_by_reopening(tmp_path):
+    import copy
+    import multiprocessing
+    import pickle
+
+    p = tmp_path / "p.zarr"
+    v = np.random.default_rng(3).integers(0, 255, (40, 40, 40), dtype=np.uint8)
+    brickyard.from_numpy(v, p, progress=False)
+    with brickyard.open(p, cache=8 << 20) as s:
+        assert (s.read() == v).all()
+        t = pickle.loads(pickle.dumps(s))
+        assert (t.read() == v).all() and t.path == s.path
+        assert (copy.deepcopy(s)[0:4, 0:4, 0:4] == v[0:4, 0:4, 0:4]).all()
+        # In another process (as a multiprocessing pool hands it out).
+        with multiprocessing.get_context("spawn").Pool(1) as pool:
+            got = pool.apply(_first_plane_sum, (s,))
+        assert got == int(v[0].astype(np.int64).sum())
+    with pytest.raises(ValueError, match="the store is closed"):
+        s.read()
+    assert (t.read(region=np.s_[0:1, 0:1, 0:2]) == v[0:1, 0:1, 0:2]).all()
+
+
+def _first_plane_sum(s):
+    return int(s.read(region=np.s_[0:1, :, :]).astype(np.int64).sum())
