@@ -83,6 +83,8 @@ class Store:
     def __init__(self, path: Union[str, os.PathLike], cache: int = 256 << 20, chunk_cache: int = 64 << 20,
                  brick: int = 64, threads: Optional[int] = None):
         threads = threads or min(8, os.cpu_count() or 1)
+        # Budgets as the CLI takes them ("512MiB") or in bytes.
+        cache, chunk_cache = (_bytes(v, what) for v, what in ((cache, "cache"), (chunk_cache, "chunk_cache")))
         for what, v, least in (("cache", cache, 0), ("chunk_cache", chunk_cache, 0), ("brick", brick, 1),
                                ("threads", threads, 1)):
             if not isinstance(v, (int, np.integer)) or isinstance(v, bool):
@@ -238,6 +240,16 @@ class Level:
 
     def __repr__(self) -> str:
         return f"<brickyard.Level {self.index} of {self.store.path!r}: {self.shape}>"
+
+
+def _bytes(value: Any, what: str) -> Any:
+    """A budget given as the CLI takes it (`"512MiB"`) in bytes; other values as they are."""
+    if isinstance(value, str):
+        try:
+            return _native.parse_bytes(value)
+        except ValueError as e:
+            raise ValueError(f"{what}: {e}") from None
+    return value
 
 
 def _physical_memory() -> Optional[int]:
@@ -564,8 +576,7 @@ def _options(brick, shard, compression, labels, memory, overwrite, spacing, orig
             raise ValueError(f"{what}: expected sizes of at least 1 voxel, got {v}")
         return v
 
-    if isinstance(memory, str):
-        raise TypeError("memory: give a number of bytes")
+    memory = _bytes(memory, "memory")
     if not isinstance(compression, str):
         raise TypeError(f"compression: expected a name such as lz4, zstd or none, got {compression!r}")
     if memory < 0:

@@ -688,10 +688,18 @@ fn process(
     Ok((r.output.clone(), r.labels, r.summary()))
 }
 
+/// A size as the CLI takes it (`512MiB`, `1GiB`, `1e9`, a number of
+/// bytes): bytes, or a ValueError saying what is expected.
+#[pyfunction]
+fn parse_bytes(text: &str) -> PyResult<u64> {
+    brickyard_run::memory::parse_bytes(text).map_err(|e| PyValueError::new_err(format!("{e:#}")))
+}
+
 #[pymodule]
 fn _native(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_class::<NativeStore>()?;
     m.add_function(wrap_pyfunction!(render, m)?)?;
+    m.add_function(wrap_pyfunction!(parse_bytes, m)?)?;
     m.add_function(wrap_pyfunction!(convert, m)?)?;
     m.add_function(wrap_pyfunction!(from_array, m)?)?;
     m.add_function(wrap_pyfunction!(from_lazy, m)?)?;

@@ -282,7 +282,7 @@ def test_render_names_dicts_as_given_not_by_their_temporary_files(store):
 def test_open_and_read_name_arguments_of_the_wrong_kind(store):
     for kw, exc in [({"cache": -1}, ValueError), ({"threads": -1}, ValueError), ({"brick": 0}, ValueError),
                     ({"brick": 1}, ValueError), ({"brick": 1024}, ValueError),
-                    ({"cache": "1GiB"}, TypeError), ({"brick": 32.5}, TypeError)]:
+                    ({"cache": "lots"}, ValueError), ({"brick": 32.5}, TypeError)]:
         with pytest.raises(exc, match=next(iter(kw))):
             brickyard.open(store, **kw)
     s = brickyard.open(store)
@@ -320,3 +320,11 @@ def test_a_region_larger_than_the_machine_is_refused_with_its_size(tmp_path):
     with pytest.raises(MemoryError, match=r"region: \(0, 0, 0\)\.\.\(65536, 65536, 65536\) of level 0 is 281474976710656 bytes"):
         s.read()
     assert s.read(region=np.s_[0:2, 0:2, 0:2]).sum() == 0
+
+
+def test_budgets_are_taken_as_the_cli_writes_them(store, tmp_path):
+    s = brickyard.open(store, cache="8MiB", chunk_cache="1MiB")
+    assert s.cache_stats()["budget"] == 8 << 20
+    brickyard.from_numpy(np.zeros((8, 8, 8), np.uint8), tmp_path / "m.zarr", memory="64MiB", progress=False)
+    with pytest.raises(ValueError, match="^memory: "):
+        brickyard.from_numpy(np.zeros((8, 8, 8), np.uint8), tmp_path / "n.zarr", memory="a lot", progress=False)
