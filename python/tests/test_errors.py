@@ -227,6 +227,14 @@ def test_render_says_when_bricks_could_not_be_loaded(tmp_path):
                 fh.truncate(10)
     with pytest.warns(RuntimeWarning, match="could not be loaded"):
         brickyard.render(p, backend="cpu", size=32, level=0)
+    # Every level damaged: nothing to draw from, an error (it was a black
+    # image).
+    for f in p.rglob("*"):
+        if f.is_file() and f.name != "zarr.json" and "_brickyard" not in f.parts:
+            with open(f, "r+b") as fh:
+                fh.truncate(10)
+    with pytest.raises(ValueError, match="no data at any level"):
+        brickyard.render(p, backend="cpu", size=32, level=0)
 
 
 def test_render_takes_paths_that_start_with_a_dash_and_checks_its_size(tmp_path, monkeypatch):

@@ -92,6 +92,9 @@ pub struct Outcome {
     /// The LOD budget as it ended (bias in force, working set estimate).
     pub budget: LodBudget,
     pub completeness: f64,
+    /// Samples of the last full frame that found no data at any level
+    /// (where even the coarsest level's bricks could not be read): holes.
+    pub unserved: u64,
     pub seconds: f64,
 }
 
@@ -156,6 +159,7 @@ pub fn drive(
     let mut shown: Option<Image> = None;
     let mut stop = None;
     let mut completeness = 0.0;
+    let mut unserved = 0;
     loop {
         if frames >= opt.max_frames && full_drawn {
             break;
@@ -215,6 +219,7 @@ pub fn drive(
         }
         full_drawn = true;
         completeness = f.stats.completeness();
+        unserved = f.stats.unserved;
         match tiles {
             Some(t) => keep = Some((false, l, f.image, t)),
             None => shown = Some(f.image),
@@ -238,6 +243,7 @@ pub fn drive(
         stop,
         budget: budget.clone(),
         completeness,
+        unserved,
         seconds: t0.elapsed().as_secs_f64(),
     })
 }

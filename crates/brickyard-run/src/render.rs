@@ -1639,6 +1639,23 @@ fn run_one(
         };
         let read = s.loader().bytes_read();
         let failures = s.failures();
+        // Parts of the view with no data at any level (the coarsest
+        // level's bricks could not be read either): no image of the view
+        // can be made; an image with holes is not written as if it were.
+        if out.unserved > 0 && !failures.is_empty() {
+            let first = &failures[0];
+            bail!(
+                "view {v}: {} brick(s) could not be loaded, the coarsest level's among them, so \
+                 part of the view has no data at any level ({} samples); no image written. \
+                 First: level {} channel {} brick {:?}: {}",
+                failures.len(),
+                out.unserved,
+                first.key.level,
+                first.key.channel,
+                first.key.brick,
+                first.message
+            );
+        }
         let why = match &out.stop {
             Some(Stop::Complete) => "complete".to_string(),
             Some(Stop::CompleteButFailed) => format!(
@@ -2225,6 +2242,7 @@ fn draw_bands(
     let rows = Tiles::rows_of(h);
     let mut image = brickyard_render::Image::new(w, h);
     let (mut frames, mut completeness, mut stop) = (0, 1.0f64, Some(Stop::Complete));
+    let mut unserved = 0;
     let r = (|| -> Result<()> {
         while let Some((a, b)) = share.next_band(v, rows)? {
             let o = crate::frames::drive(
@@ -2267,6 +2285,7 @@ fn draw_bands(
             }
             frames += o.frames;
             completeness = completeness.min(o.completeness);
+            unserved += o.unserved;
             if o.stop != Some(Stop::Complete) {
                 stop = o.stop;
             }
@@ -2284,6 +2303,7 @@ fn draw_bands(
         stop,
         budget: budget.clone(),
         completeness,
+        unserved,
         seconds: t0.elapsed().as_secs_f64(),
     })
 }

@@ -1867,3 +1867,68 @@ fn levels_out_of_the_store_or_out_of_order_are_refused() {
 fn ok_status(o: &Output) {
     assert!(o.status.success(), "{}", stderr(o));
 }
+
+/// A store whose every level is damaged, the coarsest included: no part
+/// of a view can be drawn from coarser data, and no image is written (a
+/// blank image used to be written, "complete but for N bricks", exit 0).
+/// Damage to the finer levels alone still draws from the coarser ones.
+#[test]
+fn a_view_with_no_data_at_any_level_writes_no_image() {
+    let d = tempfile::tempdir().unwrap();
+    let damage = |store: &Path, levels: &[&str]| {
+        for l in levels {
+            for e in walk(&store.join(l).join("c")) {
+                std::fs::OpenOptions::new()
+                    .write(true)
+                    .open(&e)
+                    .unwrap()
+                    .set_len(10)
+                    .unwrap();
+            }
+        }
+    };
+    let png = d.path().join("x.png");
+    let render = |st: &Path| {
+        run(&[
+            "render",
+            s(st),
+            "--backend",
+            "cpu",
+            "--size",
+            "48",
+            "--level",
+            "0",
+            "--out",
+            s(&png),
+        ])
+    };
+    let all = mandelbulb_48(d.path(), "all.ome.zarr");
+    damage(&all, &["0", "1", "2"]);
+    fails_with(
+        &render(&all),
+        &["no data at any level", "no image written", "shard"],
+    );
+    assert!(!png.exists());
+    let fine = mandelbulb_48(d.path(), "fine.ome.zarr");
+    damage(&fine, &["0"]);
+    let o = render(&fine);
+    ok_status(&o);
+    let out = String::from_utf8_lossy(&o.stdout);
+    assert!(
+        png.exists() && out.contains("could not be loaded (drawn from coarser data)"),
+        "{out}"
+    );
+}
+
+fn walk(dir: &Path) -> Vec<std::path::PathBuf> {
+    let mut out = vec![];
+    for e in std::fs::read_dir(dir).unwrap() {
+        let p = e.unwrap().path();
+        if p.is_dir() {
+            out.extend(walk(&p));
+        } else {
+            out.push(p);
+        }
+    }
+    out
+}
