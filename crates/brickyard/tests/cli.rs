@@ -1810,18 +1810,7 @@ fn levels_out_of_the_store_or_out_of_order_are_refused() {
     let root = store.join("zarr.json");
     let text = std::fs::read_to_string(&root).unwrap();
     let png = d.path().join("x.png");
-    let render = |st: &Path| {
-        run(&[
-            "render",
-            s(st),
-            "--backend",
-            "cpu",
-            "--size",
-            "32",
-            "--out",
-            s(&png),
-        ])
-    };
+    let render = |st: &Path| render_cpu(st, &png, &["--size", "32"]);
     ok_status(&render(&store));
     for bad in ["../other.ome.zarr/0", "/etc", "", "0/../../x"] {
         std::fs::write(
@@ -1888,20 +1877,7 @@ fn a_view_with_no_data_at_any_level_writes_no_image() {
         }
     };
     let png = d.path().join("x.png");
-    let render = |st: &Path| {
-        run(&[
-            "render",
-            s(st),
-            "--backend",
-            "cpu",
-            "--size",
-            "48",
-            "--level",
-            "0",
-            "--out",
-            s(&png),
-        ])
-    };
+    let render = |st: &Path| render_cpu(st, &png, &["--size", "48", "--level", "0"]);
     let all = mandelbulb_48(d.path(), "all.ome.zarr");
     damage(&all, &["0", "1", "2"]);
     fails_with(
@@ -1931,4 +1907,11 @@ fn walk(dir: &Path) -> Vec<std::path::PathBuf> {
         }
     }
     out
+}
+
+/// `render STORE --backend cpu --out PNG` with `extra` flags.
+fn render_cpu(store: &Path, png: &Path, extra: &[&str]) -> Output {
+    let mut a = vec!["render", s(store), "--backend", "cpu", "--out", s(png)];
+    a.extend_from_slice(extra);
+    run(&a)
 }
