@@ -208,31 +208,8 @@ impl Shared {
                 let o = g.origin_of(key);
                 let ext = g.extent_of(key);
                 let e = [0, 1, 2].map(|a| o[a] + ext[a]);
-                for (b, mn, mx) in st.data_in(c, o, e) {
-                    let v = [0, 1, 2].map(|a| b[a] * st.brick[a]);
-                    if let Some((f, why)) = level.src.chunk_absent(c as usize, v) {
-                        let msg = format!(
-                            "{why}, but the statistics say this brick holds values in [{mn}, {mx}]"
-                        );
-                        // A file gone: the store cannot be read (an I/O
-                        // failure); a chunk left out of its shard's index:
-                        // what it holds is wrong.
-                        if why.starts_with("the file is missing") {
-                            return Err(StoreError::io(
-                                f,
-                                std::io::Error::new(
-                                    std::io::ErrorKind::NotFound,
-                                    format!("channel {c} store brick {b:?}: {msg}"),
-                                ),
-                            ));
-                        }
-                        return Err(StoreError::invalid(
-                            f,
-                            format!("channel {c} store brick {b:?}"),
-                            msg,
-                        ));
-                    }
-                }
+                // (The whole brick read as zeros.)
+                st.check_lost(&*level.src, c, o, e, |_| true)?;
             }
         }
         Ok(brick)

@@ -4,6 +4,8 @@
 //! load, and to tell a lost chunk (read back as the fill value) from one
 //! that holds zeros.
 
+use crate::error::{Result, StoreError};
+use crate::source::{VolumeSource, FILE_MISSING};
 use crate::storage::{self, StoreAt};
 use brickyard_core::Dims3;
 use std::collections::HashMap;
@@ -143,6 +145,46 @@ impl LevelStats {
             }
         }
         val
+    }
+
+    /// Lost data among the store bricks of channel `c` touching `[lo,
+    /// hi)` that `src` read: a brick the statistics say holds data, that
+    /// read as all zeros (`zero(brick)`: the fill value), and whose chunk
+    /// `src` says is absent, is an error naming the chunk's file (an I/O
+    /// failure where the file is gone, bad content where its shard's
+    /// index left it out). A Zarr reader cannot tell such a chunk from one
+    /// never written; the statistics can. The loader asks this of bricks
+    /// that came out empty, conversion and processing of every read
+    /// (`ZarrSource::check_against_stats`).
+    pub fn check_lost(
+        &self,
+        src: &dyn VolumeSource,
+        c: u64,
+        lo: Dims3,
+        hi: Dims3,
+        mut zero: impl FnMut(Dims3) -> bool,
+    ) -> Result<()> {
+        for (b, mn, mx) in self.data_in(c, lo, hi) {
+            if !zero(b) {
+                continue;
+            }
+            let v = [0, 1, 2].map(|a| b[a] * self.brick[a]);
+            let Some((file, why)) = src.chunk_absent(c as usize, v) else {
+                continue;
+            };
+            let field = format!("channel {c} store brick {b:?}");
+            let msg =
+                format!("{why}, but the statistics say this brick holds values in [{mn}, {mx}]");
+            return Err(if why == FILE_MISSING {
+                StoreError::io(
+                    file,
+                    std::io::Error::new(std::io::ErrorKind::NotFound, format!("{field}: {msg}")),
+                )
+            } else {
+                StoreError::invalid(file, field, msg)
+            });
+        }
+        Ok(())
     }
 
     /// What made chunks of the statistics unreadable since the last call,

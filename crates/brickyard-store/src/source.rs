@@ -68,6 +68,9 @@ impl SourceMeta {
 /// `out.len()` equals the box's voxel count times the voxel size. Regions are
 /// always inside the volume. Implementations must be callable from several
 /// threads at once.
+/// [`VolumeSource::chunk_absent`]'s reason when the chunk's file is gone.
+pub const FILE_MISSING: &str = "the file is missing";
+
 pub trait VolumeSource: Send + Sync {
     fn meta(&self) -> &SourceMeta;
 
@@ -108,8 +111,8 @@ pub trait VolumeSource: Send + Sync {
 
     /// Whether the store has no data for the chunk that holds voxel `v`
     /// (`[z, y, x]`) of channel `c`, for sources stored as files of chunks
-    /// or shards: `Some((file, why))` when its file is missing or its shard's
-    /// index has no entry for it. A Zarr reader reads such a chunk as the
+    /// or shards: `Some((file, why))` when its file is missing (`why` is
+    /// then [`FILE_MISSING`]) or its shard's index has no entry for it. A Zarr reader reads such a chunk as the
     /// fill value; callers that know data should be there (the store's
     /// statistics say so) report it. `None`: present, or not such a source.
     fn chunk_absent(&self, _c: usize, _v: Dims3) -> Option<(std::path::PathBuf, String)> {

@@ -1151,8 +1151,7 @@ fn a_store_that_lost_a_shard_fails_process_and_convert_with_the_file_named() {
         let e = String::from_utf8_lossy(&o.stderr);
         assert_eq!(o.status.code(), Some(1), "{args:?}: {e}");
         assert!(
-            e.contains("0/c/0/0/0")
-                && e.contains("the file is missing, but the store's statistics say"),
+            e.contains("0/c/0/0/0") && e.contains("the file is missing, but the statistics say"),
             "{args:?}: {e}"
         );
     }

@@ -597,35 +597,21 @@ impl ZarrSource {
         let hi = region.clone().map(|r| r.end);
         let es = self.meta.dtype.size() as u64;
         let sb = st.brick;
-        for (b, mn, mx) in st.data_in(c as u64, lo, hi) {
+        // Whether the part of store brick `b` in the region read as zeros.
+        let zero = |b: Dims3| {
             let blo = [0, 1, 2].map(|a| (b[a] * sb[a]).max(lo[a]));
             let bhi = [0, 1, 2].map(|a| ((b[a] + 1) * sb[a]).min(hi[a]));
             let row = ((bhi[2] - blo[2]) * es) as usize;
-            let zero = (blo[0]..bhi[0]).all(|z| {
+            (blo[0]..bhi[0]).all(|z| {
                 (blo[1]..bhi[1]).all(|y| {
                     let i = (((z - lo[0] + at[0]) * dims[1] + (y - lo[1] + at[1])) * dims[2]
                         + (blo[2] - lo[2] + at[2]))
                         * es;
                     buf[i as usize..i as usize + row].iter().all(|&x| x == 0)
                 })
-            });
-            if !zero {
-                continue;
-            }
-            let v = [0, 1, 2].map(|a| b[a] * sb[a]);
-            if let Some((file, why)) = self.chunk_absent(c, v) {
-                return Err(StoreError::invalid(
-                    file,
-                    format!("channel {c} store brick {b:?}"),
-                    format!(
-                        "{why}, but the store's statistics say this brick holds values in \
-                         [{mn}, {mx}] (a damaged store: `brickyard info --check` lists what \
-                         else is lost)"
-                    ),
-                ));
-            }
-        }
-        Ok(())
+            })
+        };
+        st.check_lost(self, c as u64, lo, hi, zero)
     }
 
     /// Keep up to `bytes` of decoded chunks, so that reads of overlapping
@@ -881,7 +867,7 @@ impl VolumeSource for ZarrSource {
             .collect();
         let file = self.dir.join(self.array.chunk_key(&grid).as_str());
         if !storage::exists(&file) {
-            return Some((file, "the file is missing".into()));
+            return Some((file, crate::source::FILE_MISSING.into()));
         }
         // A shard whose index has no entry for the inner chunk (index in C
         // order over the shard's grid of inner chunks).
