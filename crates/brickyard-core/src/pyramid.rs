@@ -31,6 +31,19 @@ pub struct PyramidPlan {
     pub levels: Vec<LevelPlan>,
 }
 
+/// Whether `path`, a level's path in an OME-Zarr image's `datasets`, lies
+/// inside the image's group: relative, each part a name (no empty part,
+/// `.` or `..`, no backslash). A path out of it (`../other/0`, `/etc`)
+/// would read another store's files, or any.
+pub fn level_path_inside(path: &str) -> bool {
+    !path.is_empty()
+        && !path.starts_with('/')
+        && !path.contains('\\')
+        && path
+            .split('/')
+            .all(|c| !c.is_empty() && c != "." && c != "..")
+}
+
 /// Per-axis ratios for the next level, from the current spacing.
 pub fn next_ratio(dims: Dims3, spacing: [f64; 3]) -> [u32; 3] {
     let smin = (0..3)

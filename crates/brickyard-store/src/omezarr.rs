@@ -378,13 +378,7 @@ pub fn parse_multiscale(
                 .to_string();
             // A level lies inside the image's group: a path out of it (up,
             // absolute, empty) would read another store's (or any) files.
-            let inside = !path.is_empty()
-                && !path.starts_with('/')
-                && !path.contains('\\')
-                && path
-                    .split('/')
-                    .all(|c| !c.is_empty() && c != "." && c != "..");
-            if !inside {
+            if !brickyard_core::pyramid::level_path_inside(&path) {
                 return Err(StoreError::invalid(
                     meta_path,
                     "multiscales.datasets.path",

@@ -497,10 +497,7 @@ pub fn parse_root(zarr_format: u8, text: &[u8]) -> Result<(Multiscale, Vec<Strin
             .and_then(Value::as_str)
             .ok_or_else(|| err(doc, &field, "a path"))?;
         // A level lies inside the image's group, as the native reader has it.
-        let inside = !p.starts_with('/')
-            && !p.contains('\\')
-            && p.split('/').all(|c| !c.is_empty() && c != "." && c != "..");
-        if !inside {
+        if !brickyard_core::pyramid::level_path_inside(p) {
             return Err(err(
                 doc,
                 &field,
