@@ -152,7 +152,7 @@ pub struct FrameOut {
 #[derive(Default)]
 struct Pass {
     /// Tile indices still to draw, in the order they are drawn.
-    left: VecDeque<usize>,
+    left: Vec<usize>,
     stats: FrameStats,
     reqs: Vec<brickyard_cache::vm::Requests>,
     failed: usize,
@@ -177,9 +177,6 @@ pub struct WebSession {
     tiles: Tiles,
     /// A frame drawn in parts, begun and not finished.
     pass: Option<Pass>,
-    /// Every tile of the image was drawn for its view (false while the
-    /// first frame of a new view is drawn in parts).
-    whole: bool,
     /// The depth of the residency octree frames through it attach
     /// ([`View::octree_depth`](crate::view::View)).
     pub octree_depth: u32,
@@ -249,7 +246,6 @@ impl WebSession {
             image: Image::new(0, 0),
             tiles: Tiles::all(0, 0),
             pass: None,
-            whole: false,
             octree_depth: DEFAULT_DEPTH,
         })
     }
@@ -345,12 +341,12 @@ impl WebSession {
         let n = pass.left.len();
         let step = max_tiles.map_or(1, |m| n.div_ceil(m.max(1)).max(1));
         let mut now = vec![false; self.tiles.redo.len()];
-        let mut rest = VecDeque::with_capacity(n);
+        let mut rest = Vec::with_capacity(n);
         for (j, i) in pass.left.drain(..).enumerate() {
             if j % step == 0 {
                 now[i] = true;
             } else {
-                rest.push_back(i);
+                rest.push(i);
             }
         }
         pass.left = rest;
@@ -397,13 +393,6 @@ impl WebSession {
         self.pass.is_some()
     }
 
-    /// Every tile of [`image`](Self::image) was drawn for the last view
-    /// drawn: it may be shown (it is not while the first frame of a new
-    /// view is drawn in parts).
-    pub fn whole(&self) -> bool {
-        self.whole
-    }
-
     /// Start a frame of `p` at the user's `lod`: arrivals taken in, the
     /// LOD budget applied. `Ok((level of detail to draw, failures taken))`,
     /// or the frame's figures when the coarsest levels are not in yet.
@@ -433,7 +422,6 @@ impl WebSession {
             self.tiles = Tiles::all(p.width, p.height);
             self.drawn = Some((p.clone(), drawn));
             self.pass = None;
-            self.whole = false;
         }
         if !self.ready() {
             let (q, f) = self.loads.pending();
@@ -498,7 +486,6 @@ impl WebSession {
         failed: usize,
     ) -> FrameOut {
         let arrived_before = self.waiting.len();
-        self.whole = true;
         let mut out = self.end_frame(reqs);
         let failed_in_list = out
             .frame

@@ -209,13 +209,11 @@ struct Inner {
     tile_cost: (f64, f64),
     /// The frame being drawn (in one part or several): its milliseconds
     /// so far, its parts, and whether it redraws a changed 3D view at full
-    /// size (then it sets `full_ms`). The last finished frame's parts and
-    /// its longest part.
+    /// size (then it sets `full_ms`). The last finished frame's parts.
     pass_ms: f64,
     pass_parts: u32,
     pass_full: bool,
     parts: u32,
-    part_ms_max: f64,
     /// The parts the last full-size redraw (of `full_ms`) was drawn in.
     full_parts: u32,
     scratch: Option<(
@@ -405,7 +403,6 @@ impl Viewer {
                 pass_parts: 0,
                 pass_full: false,
                 parts: 0,
-                part_ms_max: 0.0,
                 full_parts: 0,
                 scratch: None,
             })),
@@ -641,7 +638,6 @@ impl Inner {
                 // A new frame (a changed view drops one begun).
                 self.pass_ms = 0.0;
                 self.pass_parts = 0;
-                self.part_ms_max = 0.0;
                 // A changed 3D view at full size is redrawn whole: what a
                 // moving view would cost at full size. (Not the page's
                 // first frame: it also pays for setting up, and took 10-20
@@ -697,7 +693,6 @@ impl Inner {
             earlier_parts_ms = self.pass_ms;
             self.pass_ms += ms;
             self.pass_parts += 1;
-            self.part_ms_max = self.part_ms_max.max(ms);
             if !self.session.in_parts() {
                 self.frames += 1;
                 self.parts = self.pass_parts;
@@ -835,7 +830,6 @@ impl Inner {
             "full_ms": self.full_ms,
             "parts": self.parts,
             "full_parts": self.full_parts,
-            "part_ms_max": self.part_ms_max,
             "tiles_left": self.last.tiles_left,
             "frames": self.frames,
             "first_complete_ms": self.first_complete_ms,
