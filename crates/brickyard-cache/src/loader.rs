@@ -198,20 +198,25 @@ impl Shared {
         );
         self.simulated_delay();
         read?;
-        let brick = finish_brick(g, *key, data, &reg);
-        if brick.content == BrickContent::Empty {
-            if let Some(st) = &level.stats {
-                // Zeros where the statistics say there is data: the store
-                // lost it (a shard file removed, a chunk dropped from its
-                // index), which a Zarr reader cannot tell from the fill
-                // value.
-                let o = g.origin_of(key);
-                let ext = g.extent_of(key);
-                let e = [0, 1, 2].map(|a| o[a] + ext[a]);
-                // (The whole brick read as zeros.)
-                st.check_lost(&*level.src, c, o, e, |_| true)?;
-            }
+        if let Some(st) = &level.stats {
+            // Zeros where the statistics say there is data: the store lost
+            // it (a shard file removed, a chunk dropped from its index),
+            // which a Zarr reader cannot tell from the fill value. Asked of
+            // every store brick the read touched, not only of bricks that
+            // came out empty: a lost chunk beside chunks that were read
+            // leaves a brick that is partly zeros.
+            st.check_lost_read(
+                &*level.src,
+                c,
+                lo,
+                hi,
+                buf,
+                g.padded(),
+                reg.at,
+                g.dtype.size() as u64,
+            )?;
         }
+        let brick = finish_brick(g, *key, data, &reg);
         Ok(brick)
     }
 

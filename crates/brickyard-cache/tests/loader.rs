@@ -853,6 +853,79 @@ fn a_deleted_shard_where_statistics_say_data_is_a_failure_naming_the_file() {
 }
 
 #[test]
+fn a_deleted_shard_beside_shards_that_were_read_is_a_failure() {
+    // Engine bricks of 32³ over shards of 16³: brick [0, 0, 0] reads eight
+    // shards (and an apron from the next ones). With one of them gone the
+    // brick comes out partly zeros, not empty; the statistics still say
+    // the lost store bricks held data, so the loader names the file
+    // instead of handing out a brick with a hole. A deleted shard that
+    // only the apron reads fails the brick too (its edge would blend with
+    // zeros).
+    let dir = tempfile::tempdir().unwrap();
+    let store = noise_store(dir.path());
+    let mut shards = vec![];
+    shard_files(&store.join("0"), &mut shards);
+    let shard = |s: &str| {
+        shards
+            .iter()
+            .find(|p| p.to_str().unwrap().ends_with(s))
+            .unwrap()
+            .clone()
+    };
+    let k = BrickKey::new(0, 0, [0, 0, 0]);
+    for (gone, apron) in [(shard("/1/0/1"), 0), (shard("/0/2/0"), 1)] {
+        let bytes = std::fs::read(&gone).unwrap();
+        std::fs::remove_file(&gone).unwrap();
+        let loader =
+            Loader::open(&store, [32; 3], apron, 1, Arc::new(HostCache::new(1 << 30))).unwrap();
+        let e = loader.load_now(&k).unwrap_err().to_string();
+        assert!(e.contains(gone.to_str().unwrap()), "{e}");
+        assert!(e.contains("missing") && e.contains("store brick"), "{e}");
+        // With the shard back the brick loads.
+        std::fs::write(&gone, bytes).unwrap();
+        let loader =
+            Loader::open(&store, [32; 3], apron, 1, Arc::new(HostCache::new(1 << 30))).unwrap();
+        assert!(matches!(
+            loader.load_now(&k).unwrap().content,
+            BrickContent::Data(_)
+        ));
+    }
+}
+
+#[cfg(unix)]
+#[test]
+fn a_fifo_in_place_of_a_shard_is_a_failure_not_a_hang() {
+    // Opening a FIFO for reading waits for a writer; the loader's threads
+    // must not: the file is refused by kind, naming it.
+    let dir = tempfile::tempdir().unwrap();
+    let store = noise_store(dir.path());
+    let shard = first_shard(&store);
+    std::fs::remove_file(&shard).unwrap();
+    let made = std::process::Command::new("mkfifo")
+        .arg(&shard)
+        .status()
+        .unwrap();
+    assert!(made.success());
+    let (tx, rx) = std::sync::mpsc::channel();
+    let s = store.clone();
+    std::thread::spawn(move || {
+        let loader = Loader::open(&s, [8; 3], 1, 1, Arc::new(HostCache::new(1 << 30))).unwrap();
+        let _ = tx.send(
+            loader
+                .load_now(&BrickKey::new(0, 0, [0, 0, 0]))
+                .map(|_| ())
+                .map_err(|e| e.to_string()),
+        );
+    });
+    let got = rx
+        .recv_timeout(std::time::Duration::from_secs(60))
+        .expect("the load returned");
+    let e = got.unwrap_err();
+    assert!(e.contains(shard.to_str().unwrap()), "{e}");
+    assert!(e.contains("not a regular file"), "{e}");
+}
+
+#[test]
 fn a_deleted_shard_under_a_constant_brick_next_to_data_is_a_failure() {
     // Store bricks of 8³ in shards of 16³. z 24..32: constant 9 (the brick
     // proper of engine bricks [3, y, x], which the statistics say is

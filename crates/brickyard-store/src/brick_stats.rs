@@ -36,6 +36,18 @@ pub struct LevelStats {
     problems: Mutex<Vec<String>>,
 }
 
+/// Whether every byte of `b` is 0, eight at a time (no early exit within
+/// the slice: a row is short, and the OR of its words runs without
+/// branches).
+fn all_zero(b: &[u8]) -> bool {
+    let words = b.chunks_exact(8);
+    let rest = words.remainder().iter().fold(0u8, |a, &x| a | x);
+    let or = words.fold(0u64, |a, w| {
+        a | u64::from_ne_bytes(w.try_into().expect("8 bytes"))
+    });
+    or == 0 && rest == 0
+}
+
 /// A decoded chunk of the statistics array, `None` when unreadable.
 type StatsChunk = Option<Arc<Vec<f64>>>;
 
@@ -185,6 +197,43 @@ impl LevelStats {
             });
         }
         Ok(())
+    }
+
+    /// [`check_lost`](Self::check_lost) of a read of `[lo, hi)` of
+    /// channel `c` into a box of `dims` voxels of `es` bytes each, placed
+    /// at `at` in `buf`: a store brick counts as read as zeros when every
+    /// byte of its part of the region is 0 (the scan stops at the first
+    /// other byte, so bricks holding data cost a few bytes' look).
+    #[allow(clippy::too_many_arguments)]
+    pub fn check_lost_read(
+        &self,
+        src: &dyn VolumeSource,
+        c: u64,
+        lo: Dims3,
+        hi: Dims3,
+        buf: &[u8],
+        dims: Dims3,
+        at: Dims3,
+        es: u64,
+    ) -> Result<()> {
+        if (0..3).any(|a| lo[a] >= hi[a]) {
+            return Ok(());
+        }
+        let sb = self.brick;
+        let zero = |b: Dims3| {
+            let blo = [0, 1, 2].map(|a| (b[a] * sb[a]).max(lo[a]));
+            let bhi = [0, 1, 2].map(|a| ((b[a] + 1) * sb[a]).min(hi[a]));
+            let row = ((bhi[2] - blo[2]) * es) as usize;
+            (blo[0]..bhi[0]).all(|z| {
+                (blo[1]..bhi[1]).all(|y| {
+                    let i = (((z - lo[0] + at[0]) * dims[1] + (y - lo[1] + at[1])) * dims[2]
+                        + (blo[2] - lo[2] + at[2]))
+                        * es;
+                    all_zero(&buf[i as usize..i as usize + row])
+                })
+            })
+        };
+        self.check_lost(src, c, lo, hi, zero)
     }
 
     /// What made chunks of the statistics unreadable since the last call,

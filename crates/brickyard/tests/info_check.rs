@@ -409,6 +409,40 @@ fn info_check_lists_damaged_chunks_and_shards() {
     }
     std::fs::set_permissions(&path, std::fs::Permissions::from_mode(0o644)).unwrap();
 
+    // A FIFO where a shard belongs: opening it would wait for a writer.
+    let store = copy();
+    let (path, _, _) = full_shard(&store);
+    std::fs::remove_file(&path).unwrap();
+    assert!(Command::new("mkfifo")
+        .arg(&path)
+        .status()
+        .unwrap()
+        .success());
+    let mut child = Command::new(env!("CARGO_BIN_EXE_brickyard"))
+        .args(["info", s(&store), "--check", "--json"])
+        .stdout(std::process::Stdio::piped())
+        .stderr(std::process::Stdio::piped())
+        .spawn()
+        .unwrap();
+    let t0 = std::time::Instant::now();
+    while child.try_wait().unwrap().is_none() {
+        if t0.elapsed().as_secs() > 60 {
+            child.kill().unwrap();
+            panic!("info --check waits on a FIFO in place of a shard");
+        }
+        std::thread::sleep(std::time::Duration::from_millis(50));
+    }
+    let o = child.wait_with_output().unwrap();
+    let stderr = String::from_utf8_lossy(&o.stderr).into_owned();
+    let j: serde_json::Value = serde_json::from_slice(&o.stdout).expect("JSON");
+    reported(
+        "fifo",
+        &(o.status.code(), j["check"].clone(), stderr),
+        &path,
+        None,
+        &["not a regular file"],
+    );
+
     // Several problems at once are all listed, in the text form too.
     let store = copy();
     let (a, _, _) = full_shard(&store);

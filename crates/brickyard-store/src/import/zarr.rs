@@ -596,22 +596,7 @@ impl ZarrSource {
         let lo = region.clone().map(|r| r.start);
         let hi = region.clone().map(|r| r.end);
         let es = self.meta.dtype.size() as u64;
-        let sb = st.brick;
-        // Whether the part of store brick `b` in the region read as zeros.
-        let zero = |b: Dims3| {
-            let blo = [0, 1, 2].map(|a| (b[a] * sb[a]).max(lo[a]));
-            let bhi = [0, 1, 2].map(|a| ((b[a] + 1) * sb[a]).min(hi[a]));
-            let row = ((bhi[2] - blo[2]) * es) as usize;
-            (blo[0]..bhi[0]).all(|z| {
-                (blo[1]..bhi[1]).all(|y| {
-                    let i = (((z - lo[0] + at[0]) * dims[1] + (y - lo[1] + at[1])) * dims[2]
-                        + (blo[2] - lo[2] + at[2]))
-                        * es;
-                    buf[i as usize..i as usize + row].iter().all(|&x| x == 0)
-                })
-            })
-        };
-        st.check_lost(self, c as u64, lo, hi, zero)
+        st.check_lost_read(self, c as u64, lo, hi, buf, dims, at, es)
     }
 
     /// Keep up to `bytes` of decoded chunks, so that reads of overlapping

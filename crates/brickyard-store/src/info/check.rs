@@ -29,7 +29,6 @@ use brickyard_core::{dispatch_dtype, DType, Sample};
 use rayon::prelude::*;
 use serde::Serialize;
 use serde_json::Value;
-use std::fs::File;
 use std::io::{Read, Seek, SeekFrom};
 use std::path::{Path, PathBuf};
 use std::sync::Arc;
@@ -431,7 +430,7 @@ impl Target<'_> {
         let want_values = self.stats.is_none() && self.name.starts_with("statistics");
         // Open the file first: a missing file is legal (fill value), an
         // unreadable one is not.
-        let mut file = match File::open(&path) {
+        let mut file = match crate::storage::open_regular(&path) {
             Ok(f) => f,
             Err(e) if e.kind() == std::io::ErrorKind::NotFound && want_values => {
                 // The statistics are written whole, every chunk: one

@@ -7,8 +7,36 @@ use std::fs::File;
 use std::io::ErrorKind;
 use std::path::Path;
 
+/// Open `p` for reading without waiting on it: a FIFO (or another special
+/// file) put where a store's file belongs would otherwise block the reader
+/// until something writes into it. A directory opens (the callers treat it
+/// as no file); anything else but a regular file is refused, by name.
+pub(crate) fn open_regular(p: &Path) -> std::io::Result<File> {
+    let mut o = std::fs::OpenOptions::new();
+    o.read(true);
+    #[cfg(unix)]
+    {
+        use std::os::unix::fs::OpenOptionsExt;
+        o.custom_flags(libc::O_NONBLOCK);
+    }
+    let f = o.open(p)?;
+    let kind = f.metadata()?.file_type();
+    if kind.is_file() || kind.is_dir() {
+        Ok(f)
+    } else {
+        Err(not_regular())
+    }
+}
+
+fn not_regular() -> std::io::Error {
+    std::io::Error::new(
+        ErrorKind::InvalidInput,
+        "not a regular file (a FIFO, socket or device stands where a store's file belongs)",
+    )
+}
+
 fn open(p: &Path) -> Result<Option<File>> {
-    match File::open(p) {
+    match open_regular(p) {
         Ok(f) => Ok(Some(f)),
         Err(e) if e.kind() == ErrorKind::NotFound => Ok(None),
         Err(e) => Err(StoreError::io(p, e)),
@@ -18,7 +46,8 @@ fn open(p: &Path) -> Result<Option<File>> {
 pub(super) fn size(p: &Path) -> Result<Option<u64>> {
     match std::fs::metadata(p) {
         Ok(m) if m.is_file() => Ok(Some(m.len())),
-        Ok(_) => Ok(None),
+        Ok(m) if m.is_dir() => Ok(None),
+        Ok(_) => Err(StoreError::io(p, not_regular())),
         Err(e) if e.kind() == ErrorKind::NotFound => Ok(None),
         Err(e) => Err(StoreError::io(p, e)),
     }
@@ -112,7 +141,7 @@ fn past_end(p: &Path, s: &Span, len: u64) -> StoreError {
 #[cfg(target_os = "linux")]
 pub(super) fn will_need(p: &Path, ranges: &[std::ops::Range<u64>]) -> usize {
     use std::os::fd::AsRawFd;
-    let Ok(f) = File::open(p) else {
+    let Ok(f) = open_regular(p) else {
         return 0;
     };
     ranges

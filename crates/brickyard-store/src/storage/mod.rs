@@ -12,6 +12,7 @@
 
 pub mod http;
 mod local;
+pub(crate) use local::open_regular;
 pub mod s3;
 mod zarr;
 
