@@ -46,6 +46,17 @@ pub fn world_extent(dims: [u64; 3], spacing: [f64; 3]) -> Vec3 {
     ]
 }
 
+/// Where a slice at `frac` (0 to 1) of an axis of `voxels` voxels spanning
+/// `extent` lies: at the centre of the voxel layer that holds that
+/// fraction (the last layer for 1), so that a slice shows one layer of
+/// the volume rather than a blend of two, and a label image's nearest
+/// voxel is never a tie (the middle of an even depth is a boundary).
+pub fn slice_centre(extent: f64, voxels: u64, frac: f64) -> f64 {
+    let n = voxels.max(1) as f64;
+    let layer = (frac * n).floor().clamp(0.0, n - 1.0);
+    (layer + 0.5) * extent / n
+}
+
 /// The voxel `[z, y, x]` of a volume of `dims` voxels spanning `extent`
 /// that holds the world point `world` (points outside are clamped to the
 /// nearest voxel).
@@ -797,6 +808,18 @@ impl<'a> Fields<'a> {
 
 #[cfg(test)]
 mod tests {
+
+    #[test]
+    fn a_slice_lies_at_the_centre_of_the_layer_holding_its_fraction() {
+        // 60 layers of 4 units: the middle (0.5) is layer 30's centre, not
+        // the boundary at 120; 1 is the last layer; 0 the first.
+        assert_eq!(slice_centre(240.0, 60, 0.5), 122.0);
+        assert_eq!(slice_centre(240.0, 60, 1.0), 238.0);
+        assert_eq!(slice_centre(240.0, 60, 0.0), 2.0);
+        assert_eq!(slice_centre(240.0, 60, 0.4999), 118.0);
+        assert_eq!(slice_centre(3.0, 1, 0.7), 1.5);
+    }
+
     use super::*;
 
     #[test]

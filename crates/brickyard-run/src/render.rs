@@ -115,8 +115,9 @@ pub struct RenderCmd {
     #[arg(long)]
     derive: Option<String>,
     /// Slice: position of the plane along z as a fraction of the depth
-    /// (default 0.5).
-    #[arg(long)]
+    /// (default 0.5): the plane goes through the centres of the voxel
+    /// layer that holds it (one layer, not a blend of two).
+    #[arg(long, allow_negative_numbers = true)]
     slice_z: Option<f64>,
     /// Slice: a point of the plane in world coordinates X,Y,Z (instead of
     /// --slice-z; as the viewer's saved views give it).
@@ -126,7 +127,7 @@ pub struct RenderCmd {
     #[arg(long, allow_hyphen_values = true)]
     slice_normal: Option<String>,
     /// Render this level only (default: automatic level of detail).
-    #[arg(long)]
+    #[arg(long, allow_negative_numbers = true)]
     level: Option<usize>,
     /// Automatic level of detail: shift by this many levels (negative = finer).
     #[arg(long, default_value_t = 0.0, allow_negative_numbers = true)]
@@ -574,10 +575,15 @@ pub fn run_shared(mut c: RenderCmd, share: Option<&mut dyn Share>) -> Result<Vec
     if share.as_ref().is_some_and(|s| s.rank() > 0) {
         c.silent = true;
     }
-    let raw = c.raw_f32;
+    let (raw, json) = (c.raw_f32, c.json);
     run_with(c, share, &mut |path, img| {
         write_view(path, &img, raw)?;
-        outln!("wrote {}", path.display());
+        // With --json, standard output holds JSON lines only.
+        if json {
+            eprintln!("wrote {}", path.display());
+        } else {
+            outln!("wrote {}", path.display());
+        }
         Ok(())
     })
 }
@@ -871,6 +877,35 @@ fn run_one(
                 );
             }
         }
+        // Found before the render, not after it.
+        if file.is_dir() {
+            bail!("{}: cannot write {what}: it is a folder", file.display());
+        }
+        let dir = file
+            .parent()
+            .filter(|p| !p.as_os_str().is_empty())
+            .unwrap_or(std::path::Path::new("."));
+        let probe = dir.join(format!(".brickyard-write-{}", std::process::id()));
+        match std::fs::OpenOptions::new()
+            .write(true)
+            .create_new(true)
+            .open(&probe)
+        {
+            Ok(_) => {
+                let _ = std::fs::remove_file(&probe);
+            }
+            Err(e) if e.kind() != std::io::ErrorKind::AlreadyExists => bail!(
+                "{}: cannot write {what}: cannot create a file in {} ({e})",
+                file.display(),
+                dir.display()
+            ),
+            Err(_) => {}
+        }
+        if file.exists() {
+            if let Err(e) = std::fs::OpenOptions::new().append(true).open(file) {
+                bail!("{}: cannot write {what}: {e}", file.display());
+            }
+        }
     }
     if !matches!(c.region_weights.as_str(), "view" | "data" | "uniform") {
         bail!(
@@ -1087,7 +1122,8 @@ fn run_one(
                     if !(0.0..=1.0).contains(&z) {
                         bail!("slice-z: expected a fraction of the depth from 0 to 1, found {z}");
                     }
-                    [extent[0] / 2.0, extent[1] / 2.0, extent[2] * z]
+                    let z = brickyard_core::camera::slice_centre(extent[2], m.dims[0], z);
+                    [extent[0] / 2.0, extent[1] / 2.0, z]
                 }
             };
             let normal = match &c.slice_normal {
@@ -1131,6 +1167,9 @@ fn run_one(
     }
     let backend_choice = device.choice.clone();
     let pool_given = opt_bytes(&c.pool, "pool")?;
+    if pool_given == Some(0) {
+        bail!("pool: expected a size above 0 (e.g. 256MiB)");
+    }
     let mut split = crate::memory::split_with_filters(
         memory,
         pool_given,
@@ -1141,7 +1180,15 @@ fn run_one(
         filter_bytes,
     )
     .map_err(|e| {
-        if device.bytes > 0 {
+        if device.bytes > 0 && backend_choice == "cpu" {
+            // `auto` looked for a device and drew on the CPU; the driver
+            // it loaded stays.
+            e.context(format!(
+                "--backend auto: the graphics driver loaded to look for a device holds {} of \
+                 --memory (--backend cpu does without)",
+                human_bytes(device.bytes)
+            ))
+        } else if device.bytes > 0 {
             e.context(format!(
                 "--backend {backend_choice}: the device back end takes {} of --memory for its \
                  driver (--backend cpu does without)",

@@ -346,7 +346,11 @@ impl ViewState {
             "dvr" => RenderMode::Dvr,
             "mip" => RenderMode::Mip,
             _ => RenderMode::Slice {
-                origin: [e[0] / 2.0, e[1] / 2.0, e[2] * self.slice_z],
+                origin: [
+                    e[0] / 2.0,
+                    e[1] / 2.0,
+                    brickyard_core::camera::slice_centre(e[2], scene.levels[0][0], self.slice_z),
+                ],
                 normal: [0.0, 0.0, 1.0],
             },
         };

@@ -33,3 +33,36 @@ pub fn agreed(e: &anyhow::Error) -> bool {
         ) || c.downcast_ref::<brickyard_run::share::Agreed>().is_some()
     })
 }
+
+/// How many processes an MPI launcher started with this one, from the
+/// variables Open MPI (`OMPI_COMM_WORLD_SIZE`) and MPICH's Hydra or PMI
+/// (`PMI_SIZE`) set; `None` when not under one.
+pub fn launcher_size() -> Option<usize> {
+    ["OMPI_COMM_WORLD_SIZE", "PMI_SIZE"]
+        .iter()
+        .find_map(|v| std::env::var(v).ok()?.trim().parse().ok())
+}
+
+/// Without the `mpi` feature: under `mpirun` with several processes each
+/// would run the whole command alone (N renders of one image into one
+/// file, N conversions racing for one lock), and `--distribute` shares
+/// nothing: both are refused, saying how to build a binary that shares.
+#[cfg(not(feature = "mpi"))]
+pub fn refuse_launcher(cmd: &crate::Cmd) -> anyhow::Result<()> {
+    const BUILD: &str = "cargo build --release -p brickyard --features brickyard/mpi";
+    if let Some(n) = launcher_size().filter(|&n| n > 1) {
+        anyhow::bail!(
+            "started as one of {n} MPI processes, but this brickyard was built without MPI: each \
+             would run the whole command alone. Run it without mpirun, or build it with MPI ({BUILD})"
+        );
+    }
+    if let crate::Cmd::Render(r) = cmd {
+        if r.distribute.is_some() {
+            anyhow::bail!(
+                "--distribute shares a render among the processes mpirun starts, but this \
+                 brickyard was built without MPI ({BUILD})"
+            );
+        }
+    }
+    Ok(())
+}

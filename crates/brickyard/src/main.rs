@@ -435,7 +435,13 @@ fn main() {
         }
     };
     #[cfg(not(feature = "mpi"))]
-    let cluster: Option<dist::Cluster> = None;
+    let cluster: Option<dist::Cluster> = {
+        if let Err(e) = dist::refuse_launcher(&cli.cmd) {
+            eprintln!("error: {e:#}");
+            std::process::exit(1);
+        }
+        None
+    };
     let (rank, size) = dist::rank_size(cluster.as_ref());
     let code = match run(cli.cmd, cluster.as_ref()) {
         Ok(()) => 0,

@@ -545,6 +545,11 @@ fn render_rejects_flags_that_cannot_work() {
             vec!["--mode", "slice", "--slice-z", "NaN"],
             vec!["slice-z", "from 0 to 1"],
         ),
+        // A negative value is the flag's value (it was read as a flag "-0").
+        (
+            vec!["--mode", "slice", "--slice-z", "-0.1"],
+            vec!["slice-z", "from 0 to 1", "-0.1"],
+        ),
         // Checked before the memory split is printed, naming the flag.
         (
             vec!["--samples-per-voxel", "0"],
@@ -622,6 +627,8 @@ fn render_rejects_flags_that_cannot_work() {
         let o = run(&args);
         fails_with(&o, &needles);
         assert!(!stderr(&o).contains("at least 0.0 MiB"), "{}", stderr(&o));
+        // (No back end was asked for: none is blamed.)
+        assert!(!stderr(&o).contains("--backend"), "{}", stderr(&o));
         assert!(!png.exists(), "{args:?} wrote an image");
     }
     let jpg = d.path().join("x.jpg");
@@ -639,6 +646,42 @@ fn render_rejects_flags_that_cannot_work() {
         &run(&["render", s(&store), "--size", "16", "--out", s(&deep)]),
         &["no/such/folder", "not an existing folder"],
     );
+    // An output that is a folder fails before the render, not after it.
+    let folder = d.path().join("folder.png");
+    std::fs::create_dir(&folder).unwrap();
+    let o = run(&["render", s(&store), "--size", "16", "--out", s(&folder)]);
+    fails_with(&o, &["folder.png", "is a folder"]);
+    assert!(
+        !String::from_utf8_lossy(&o.stdout).contains("frame"),
+        "rendered first"
+    );
+}
+
+/// Without the `mpi` feature, several processes under an MPI launcher
+/// would each run the whole command alone (two renders into one file):
+/// refused, as is `--distribute`, saying how to build one that shares.
+#[cfg(not(feature = "mpi"))]
+#[test]
+fn a_build_without_mpi_refuses_to_run_as_several_ranks() {
+    let d = tempfile::tempdir().unwrap();
+    let store = mandelbulb_48(d.path(), "m.ome.zarr");
+    let png = d.path().join("m.png");
+    let args = ["render", s(&store), "--size", "16", "--out", s(&png)];
+    for var in ["OMPI_COMM_WORLD_SIZE", "PMI_SIZE"] {
+        let o = bin().args(args).env(var, "2").output().unwrap();
+        fails_with(&o, &["one of 2 MPI processes", "without MPI", "--features"]);
+        assert!(!png.exists());
+    }
+    // One process under the launcher is the command alone.
+    let o = bin()
+        .args(args)
+        .env("OMPI_COMM_WORLD_SIZE", "1")
+        .output()
+        .unwrap();
+    assert!(o.status.success(), "{}", stderr(&o));
+    let mut a = args.to_vec();
+    a.extend(["--distribute", "data"]);
+    fails_with(&run(&a), &["--distribute", "without MPI"]);
 }
 
 /// `--max-frames N` bounds the frames a view draws, its request passes
@@ -673,8 +716,8 @@ fn max_frames_bounds_the_frames_drawn_and_reported() {
         let out = render(&a);
         let mut passes = Vec::new();
         let mut summary = None;
-        // (The JSON lines; `wrote …` is not one.)
-        for l in out.lines().filter(|l| l.starts_with('{')) {
+        // (JSON lines only: `wrote …` goes to standard error.)
+        for l in out.lines() {
             let v: serde_json::Value = serde_json::from_str(l).unwrap();
             if v["summary"] == true {
                 summary = Some((v["frames"].as_u64().unwrap(), v["stop"].clone()));
@@ -1914,4 +1957,67 @@ fn render_cpu(store: &Path, png: &Path, extra: &[&str]) -> Output {
     let mut a = vec!["render", s(store), "--backend", "cpu", "--out", s(png)];
     a.extend_from_slice(extra);
     run(&a)
+}
+
+/// A slice at a fraction of the depth shows the voxel layer holding it,
+/// through the layer's centres: the default (0.5) of a volume two layers
+/// deep is the upper layer, not their blend (the middle of an even depth
+/// is a boundary, where a label image's nearest voxel was a tie that the
+/// CPU and the device broke differently).
+#[test]
+fn a_slice_shows_one_layer_not_a_blend_of_two() {
+    let d = tempfile::tempdir().unwrap();
+    let raw = d.path().join("two.raw");
+    let mut v = vec![50u8; 16 * 16];
+    v.extend(vec![200u8; 16 * 16]);
+    std::fs::write(&raw, v).unwrap();
+    let store = d.path().join("two.ome.zarr");
+    let o = run(&[
+        "convert",
+        s(&raw),
+        s(&store),
+        "--dims",
+        "16x16x2",
+        "--dtype",
+        "u8",
+        "--quiet",
+    ]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    for (z, want) in [
+        (None, 200u8),
+        (Some("0.49"), 50),
+        (Some("0"), 50),
+        (Some("1"), 200),
+    ] {
+        let png = d.path().join("s.png");
+        let mut a = vec![
+            "render",
+            s(&store),
+            "--mode",
+            "slice",
+            "--size",
+            "16",
+            "--tf",
+            "linear",
+            "--window",
+            "0,255",
+            "--backend",
+            "cpu",
+            "--out",
+            s(&png),
+        ];
+        if let Some(z) = z {
+            a.extend(["--slice-z", z]);
+        }
+        let o = run(&a);
+        assert!(o.status.success(), "{}", stderr(&o));
+        let px = png_pixels(&png);
+        // The middle pixel (grey: the linear map's colour at the value).
+        let m = (8 * 16 + 8) * 4;
+        assert!(
+            px[m].abs_diff(want) <= 1,
+            "--slice-z {z:?}: {} where the layer holds {want}",
+            px[m]
+        );
+    }
 }
