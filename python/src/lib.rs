@@ -80,34 +80,19 @@ struct NativeStore {
     /// local store): a store replaced since (written again with
     /// `overwrite`) is refused, not read half from what this handle
     /// cached and half from the new files.
-    identity: Option<(PathBuf, (u64, u64, i64, i64))>,
-}
-
-/// What tells one file from its replacement: device, inode and change
-/// time.
-fn file_identity(p: &Path) -> Option<(u64, u64, i64, i64)> {
-    use std::os::unix::fs::MetadataExt;
-    let m = std::fs::metadata(p).ok()?;
-    Some((m.dev(), m.ino(), m.ctime(), m.ctime_nsec()))
+    identity: Option<brickyard_store::storage::StoreIdentity>,
 }
 
 impl NativeStore {
     /// An error when the store was replaced or removed since it was
     /// opened.
     fn check_same(&self) -> PyResult<()> {
-        let Some((file, was)) = &self.identity else {
-            return Ok(());
-        };
-        if file_identity(file).as_ref() != Some(was) {
-            return Err(PyOSError::new_err(format!(
-                "{}: the store was replaced or removed since it was opened (its {} changed): \
-                 open it again",
-                self.path.display(),
-                file.file_name()
-                    .map_or(String::new(), |n| n.to_string_lossy().into())
-            )));
+        match &self.identity {
+            Some(id) => id
+                .check()
+                .map_err(|m| PyOSError::new_err(format!("{}: {m}", self.path.display()))),
+            None => Ok(()),
         }
-        Ok(())
     }
 }
 
@@ -268,14 +253,7 @@ fn open_store(
             path.display()
         );
     }
-    let identity = (!brickyard_store::storage::is_remote(&path))
-        .then(|| {
-            ["zarr.json", ".zgroup", ".zarray"]
-                .iter()
-                .map(|n| path.join(n))
-                .find_map(|f| file_identity(&f).map(|id| (f, id)))
-        })
-        .flatten();
+    let identity = brickyard_store::storage::StoreIdentity::of(&path);
     let cache = Arc::new(HostCache::new(cache_bytes));
     let loader =
         Loader::open_with_chunk_cache(&path, [brick; 3], 0, threads.max(1), cache, chunk_bytes)?;

@@ -138,6 +138,10 @@ struct Counters {
 
 struct Shared {
     path: PathBuf,
+    /// The local store as opened: loads after it was replaced fail
+    /// instead of reading the new files through the old store's cached
+    /// shard indexes and statistics.
+    identity: Option<brickyard_store::storage::StoreIdentity>,
     geometry: BrickGeometry,
     store_brick: Option<Dims3>,
     levels: Vec<Level>,
@@ -173,6 +177,10 @@ impl Shared {
                 "brick key",
                 format!("{key:?} is outside the volume"),
             ));
+        }
+        if let Some(id) = &self.identity {
+            id.check()
+                .map_err(|m| StoreError::io(&self.path, std::io::Error::other(m)))?;
         }
         let level = &self.levels[key.level as usize];
         let c = key.channel as u64;
@@ -607,6 +615,9 @@ impl Loader {
                 format!("brick size {brick:?} must be at least 1 on every axis"),
             ));
         }
+        // Taken before any metadata is read: a store replaced from here on
+        // is refused by every load.
+        let identity = brickyard_store::storage::StoreIdentity::of(store_path);
         let ms = read_multiscale(store_path)?;
         let nlevels = ms.as_ref().map(|m| m.datasets.len()).unwrap_or(1);
         let by = ms.as_ref().and_then(|m| m.brickyard.as_ref());
@@ -682,6 +693,7 @@ impl Loader {
         }
         Self::start(
             store_path,
+            identity,
             store_brick.filter(|_| derive.is_none()),
             levels,
             dims,
@@ -731,12 +743,15 @@ impl Loader {
                 stats: None,
             })
             .collect();
-        Self::start(&name, None, levels, dims, brick, apron, threads, cache)
+        Self::start(
+            &name, None, None, levels, dims, brick, apron, threads, cache,
+        )
     }
 
     #[allow(clippy::too_many_arguments)]
     fn start(
         store_path: &Path,
+        identity: Option<brickyard_store::storage::StoreIdentity>,
         store_brick: Option<Dims3>,
         levels: Vec<Level>,
         dims: Vec<Dims3>,
@@ -769,6 +784,7 @@ impl Loader {
         }
         let shared = Arc::new(Shared {
             path: store_path.to_path_buf(),
+            identity,
             geometry,
             store_brick,
             levels,

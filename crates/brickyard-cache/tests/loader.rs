@@ -892,6 +892,28 @@ fn a_deleted_shard_beside_shards_that_were_read_is_a_failure() {
     }
 }
 
+#[test]
+fn a_store_replaced_while_open_fails_its_loads() {
+    // The loader caches shard indexes and statistics; a store written
+    // again in its place (`convert --overwrite` renames the new one in)
+    // has other offsets. Loads after the swap fail, naming the reason,
+    // instead of reading the new files at the old offsets.
+    let dir = tempfile::tempdir().unwrap();
+    let store = noise_store(dir.path());
+    let loader = Loader::open(&store, [8; 3], 1, 1, Arc::new(HostCache::new(0))).unwrap();
+    let k = BrickKey::new(0, 0, [0, 0, 0]);
+    loader.load_now(&k).unwrap();
+    let other = tempfile::tempdir().unwrap();
+    let fresh = noise_store(other.path());
+    std::fs::rename(&store, dir.path().join("old")).unwrap();
+    std::fs::rename(&fresh, &store).unwrap();
+    let e = loader.load_now(&k).unwrap_err().to_string();
+    assert!(e.contains("replaced or removed since it was opened"), "{e}");
+    // A loader opened on the new store reads it.
+    let loader = Loader::open(&store, [8; 3], 1, 1, Arc::new(HostCache::new(0))).unwrap();
+    loader.load_now(&k).unwrap();
+}
+
 #[cfg(unix)]
 #[test]
 fn a_fifo_in_place_of_a_shard_is_a_failure_not_a_hang() {

@@ -150,3 +150,63 @@ pub fn exists(p: &Path) -> bool {
         p.exists()
     }
 }
+
+/// What tells a local store from its replacement (written again with
+/// `--overwrite`, or moved away and another put in its place): its root
+/// metadata file (`zarr.json`, `.zgroup` or `.zarray`) and that file's
+/// device, inode and change time. A reader that caches shard indexes,
+/// statistics and bricks checks it before reading, so that it never
+/// reads half from what it cached and half from new files (at the old
+/// offsets).
+#[derive(Clone, Debug)]
+pub struct StoreIdentity {
+    file: std::path::PathBuf,
+    id: (u64, u64, i64, i64),
+}
+
+impl StoreIdentity {
+    /// The identity of the store at `root` now; `None` for a remote store
+    /// or one without root metadata.
+    pub fn of(root: &Path) -> Option<StoreIdentity> {
+        if is_remote(root) {
+            return None;
+        }
+        ["zarr.json", ".zgroup", ".zarray"]
+            .iter()
+            .map(|n| root.join(n))
+            .find_map(|file| file_id(&file).map(|id| StoreIdentity { file, id }))
+    }
+
+    /// `Err` saying what changed when the store was replaced or removed
+    /// since [`of`](Self::of) (the caller names the store).
+    pub fn check(&self) -> std::result::Result<(), String> {
+        if file_id(&self.file) == Some(self.id) {
+            return Ok(());
+        }
+        Err(format!(
+            "the store was replaced or removed since it was opened (its {} changed): open it \
+             again",
+            self.file
+                .file_name()
+                .map_or(String::new(), |n| n.to_string_lossy().into())
+        ))
+    }
+}
+
+#[cfg(unix)]
+fn file_id(p: &Path) -> Option<(u64, u64, i64, i64)> {
+    use std::os::unix::fs::MetadataExt;
+    let m = std::fs::metadata(p).ok()?;
+    Some((m.dev(), m.ino(), m.ctime(), m.ctime_nsec()))
+}
+
+#[cfg(not(unix))]
+fn file_id(p: &Path) -> Option<(u64, u64, i64, i64)> {
+    let m = std::fs::metadata(p).ok()?;
+    let t = m
+        .modified()
+        .ok()?
+        .duration_since(std::time::UNIX_EPOCH)
+        .ok()?;
+    Some((0, m.len(), t.as_secs() as i64, t.subsec_nanos() as i64))
+}
