@@ -372,6 +372,10 @@ pub fn label_pass1(
     let mut roots = vec![0usize; np];
     let mut comp: Vec<Option<Frag>> = vec![None; np];
     for (i, f) in frags.iter().enumerate() {
+        // (Millions of pieces take seconds: a Ctrl-C is seen meanwhile.)
+        if i % (1 << 18) == 0 && cancel.load(Ordering::Relaxed) {
+            return Err(StoreError::Interrupted);
+        }
         let r = uf.find(i);
         roots[i] = r;
         match &mut comp[r] {

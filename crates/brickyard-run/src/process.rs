@@ -16,7 +16,7 @@ use brickyard_store::import::zarr::{self, ZarrSource};
 use brickyard_store::info::human_bytes;
 use brickyard_store::lock::PidLock;
 use brickyard_store::omezarr::{read_json, write_json};
-use brickyard_store::{convert, Compression, ConvertOptions, VolumeSource};
+use brickyard_store::{convert, Compression, ConvertOptions, StoreError, VolumeSource};
 use serde_json::{json, Value};
 use std::path::{Path, PathBuf};
 use std::sync::atomic::{AtomicBool, Ordering};
@@ -133,6 +133,13 @@ fn check_name(name: &str, flag: &str) -> Result<()> {
         || name.ends_with(".partial")
     {
         bail!("{flag}out: expected a plain name (no '/', not starting with '.'), found {name:?}");
+    }
+    // (A line break would split `info`'s report; 255 bytes is what file
+    // systems take, less the staging names' additions.)
+    if name.chars().any(char::is_control) || name.len() > 200 {
+        bail!(
+            "{flag}out: expected a name of at most 200 bytes without control characters, found {name:?}"
+        );
     }
     // The group's own metadata lives beside the results.
     if name.eq_ignore_ascii_case("zarr.json") {
@@ -310,6 +317,36 @@ pub fn run(
     // fails now, before any work.
     if let Some(p) = &c.stats {
         brickyard_store::builder::check_parent(p).map_err(|e| anyhow::anyhow!("{f}stats: {e}"))?;
+        // Never into the store (its metadata, a chunk): it holds the
+        // statistics already. Never over a file unasked.
+        let inside = |p: &std::path::Path| {
+            let parent = p
+                .parent()
+                .filter(|d| !d.as_os_str().is_empty())
+                .unwrap_or(std::path::Path::new("."));
+            match (parent.canonicalize(), c.store.canonicalize()) {
+                (Ok(d), Ok(s)) => d.starts_with(s),
+                _ => false,
+            }
+        };
+        if !brickyard_store::storage::is_remote(&c.store) && inside(p) {
+            bail!(
+                "{f}stats: {} lies inside the store {}; the statistics are stored in the label \
+                 image already (_brickyard/labels.csv and labels.json): name a file outside it",
+                p.display(),
+                c.store.display()
+            );
+        }
+        if p.is_dir() {
+            bail!("{f}stats: {} is a folder", p.display());
+        }
+        if p.exists() && !c.overwrite {
+            bail!(
+                "{f}stats: {} exists; {} to replace it",
+                p.display(),
+                caller.overwrite
+            );
+        }
     }
     let store = &c.store;
     if brickyard_store::storage::is_remote(store) {
@@ -505,7 +542,11 @@ pub fn run(
                     cancel,
                 );
                 phases.done(true);
-                let lab = Arc::new(lab?);
+                let lab = lab?;
+                if cancel.load(Ordering::SeqCst) {
+                    return Err(StoreError::Interrupted.into());
+                }
+                let lab = Arc::new(lab);
                 labeling = Some(lab.clone());
                 Arc::new(LabelSource::new(built.source.clone(), built.channel, lab))
             }
@@ -519,7 +560,11 @@ pub fn run(
             cancel,
         );
         phases.done(false);
-        Ok(r?)
+        let r = r?;
+        if cancel.load(Ordering::SeqCst) {
+            return Err(StoreError::Interrupted.into());
+        }
+        Ok(r)
     })()
     .map_err(cleanup)?;
 
@@ -557,14 +602,33 @@ pub fn run(
             .and_then(|_| std::fs::write(dirs.join("labels.json"), stats_json(lab, &extra)))
             .with_context(|| format!("{}: cannot write statistics", dirs.display()))
             .map_err(cleanup)?;
+        if cancel.load(Ordering::SeqCst) {
+            return Err(cleanup(StoreError::Interrupted.into()));
+        }
         if let (Some(p), Some(is_json)) = (&c.stats, stats_fmt) {
             let text = if is_json {
                 stats_json(lab, &extra)
             } else {
                 stats_csv(&lab.stats)
             };
-            std::fs::write(p, text).with_context(|| format!("{}: cannot write", p.display()))?;
+            // Whole or not at all: written beside it, then renamed.
+            let tmp = p.with_file_name(format!(
+                ".{}.{}.tmp",
+                p.file_name().unwrap_or_default().to_string_lossy(),
+                std::process::id()
+            ));
+            std::fs::write(&tmp, text)
+                .and_then(|_| std::fs::rename(&tmp, p))
+                .map_err(|e| {
+                    let _ = std::fs::remove_file(&tmp);
+                    e
+                })
+                .with_context(|| format!("{}: cannot write", p.display()))?;
         }
+    }
+    // The last moment a Ctrl-C leaves the store as it was.
+    if cancel.load(Ordering::SeqCst) {
+        return Err(cleanup(StoreError::Interrupted.into()));
     }
     if paths.fin.exists() {
         std::fs::rename(&paths.fin, &paths.old)

@@ -455,7 +455,38 @@ fn bad_process_inputs_give_clear_errors() {
     // A statistics file in a folder that is not there: refused before any
     // work (it is written last).
     let stats = d.path().join("no/such/s.csv");
+    // A statistics file inside the store (its own metadata once) or over a
+    // file that exists: refused, the file untouched.
+    let meta = store.join("zarr.json");
+    let kept = std::fs::read(&meta).unwrap();
+    let precious = d.path().join("precious.csv");
+    std::fs::write(&precious, "precious").unwrap();
     for (args, want) in [
+        (
+            vec!["threshold(1)|label(6)", "--out", "x", "--stats", s(&meta)],
+            "inside the store",
+        ),
+        (
+            vec![
+                "threshold(1)|label(6)",
+                "--out",
+                "x",
+                "--stats",
+                s(&store.join("labels.json")),
+            ],
+            "inside the store",
+        ),
+        (
+            vec![
+                "threshold(1)|label(6)",
+                "--out",
+                "x",
+                "--stats",
+                s(&precious),
+            ],
+            "exists; pass --overwrite",
+        ),
+        (vec!["sobel", "--out", "a\nb"], "control characters"),
         (
             vec!["threshold(1)|label(6)", "--out", "x", "--stats", s(&stats)],
             "no/such does not exist",
@@ -492,6 +523,8 @@ fn bad_process_inputs_give_clear_errors() {
         assert!(!e.contains("panicked"), "{a:?}: {e}");
         assert!(e.contains(want), "{a:?}: {e:?} should mention {want:?}");
     }
+    assert_eq!(std::fs::read(&meta).unwrap(), kept);
+    assert_eq!(std::fs::read_to_string(&precious).unwrap(), "precious");
     let o = run(&[
         "process",
         s(&d.path().join("none.zarr")),
