@@ -44,6 +44,8 @@ pub struct RenderSite {
     /// Mount name → store root.
     pub roots: HashMap<String, PathBuf>,
     pub token: Option<String>,
+    /// `serve --allow-origin`.
+    pub origins: Vec<String>,
     pub backend: String,
     pub sessions: usize,
     pub max_fps: f64,
@@ -88,17 +90,24 @@ fn connection(
     caches: &Caches,
 ) -> Result<()> {
     let _ = stream.set_nodelay(true);
-    stream.set_read_timeout(Some(Duration::from_secs(10)))?;
-    // A slot, taken before the handshake so that the limit holds.
-    let taken = live.fetch_add(1, Ordering::SeqCst) < site.sessions;
-    struct Slot<'a>(&'a AtomicUsize);
+    // A client that connects and sends nothing is dropped after 5 s; it
+    // never holds a session's slot (taken once the handshake's request is
+    // checked).
+    stream.set_read_timeout(Some(Duration::from_secs(5)))?;
+    struct Slot<'a>(&'a AtomicUsize, std::cell::Cell<bool>);
     impl Drop for Slot<'_> {
         fn drop(&mut self) {
-            self.0.fetch_sub(1, Ordering::SeqCst);
+            if self.1.get() {
+                self.0.fetch_sub(1, Ordering::SeqCst);
+            }
         }
     }
-    let _slot = Slot(live);
+    let held = Slot(live, std::cell::Cell::new(false));
+    // (Borrowed by the handshake's check: held until the session ends.)
+    let slot = &held;
     let token = site.token.clone();
+    let origins = site.origins.clone();
+    let sessions = site.sessions;
     let check = move |rq: &Request, rs: Response| -> std::result::Result<Response, ErrorResponse> {
         let refuse = |code: u16, msg: &str| {
             let mut e = ErrorResponse::new(Some(msg.to_string()));
@@ -108,20 +117,46 @@ fn connection(
         if rq.uri().path() != "/render" {
             return Err(refuse(404, "the render endpoint is /render"));
         }
+        let header = |k: &str| rq.headers().get(k).and_then(|v| v.to_str().ok());
         if let Some(t) = &token {
+            // `?token=` (browsers cannot set headers on a WebSocket) or
+            // `Authorization: Bearer`, as the HTTP server takes it.
             let given = rq
                 .uri()
                 .query()
                 .unwrap_or("")
                 .split('&')
-                .find_map(|kv| kv.strip_prefix("token="));
+                .find_map(|kv| kv.strip_prefix("token="))
+                .or_else(|| {
+                    header("Authorization")
+                        .and_then(|v| v.trim().split_once(' '))
+                        .filter(|(s, _)| s.eq_ignore_ascii_case("bearer"))
+                        .map(|(_, t)| t.trim())
+                });
             if given != Some(t.as_str()) {
-                return Err(refuse(401, "a valid ?token= is required"));
+                return Err(refuse(
+                    401,
+                    "a valid ?token= (or Authorization: Bearer) is required",
+                ));
+            }
+        } else {
+            // No token: only pages of loopback origins (or those allowed)
+            // and clients that send no origin, on a loopback host name.
+            if header("Origin").is_some_and(|o| !crate::serve::origin_allowed(o, &origins)) {
+                return Err(refuse(
+                    403,
+                    "pages of this origin may not open render sessions (serve --allow-origin)",
+                ));
+            }
+            if header("Host").is_some_and(|h| !crate::serve::loopback_host(h)) {
+                return Err(refuse(421, "this server answers loopback host names only"));
             }
         }
-        if !taken {
+        if live.fetch_add(1, Ordering::SeqCst) >= sessions {
+            live.fetch_sub(1, Ordering::SeqCst);
             return Err(refuse(503, "too many render sessions; try again later"));
         }
+        slot.1.set(true);
         Ok(rs)
     };
     let mut ws = tungstenite::accept_hdr(stream, check)
@@ -373,7 +408,7 @@ fn session(ws: &mut WebSocket<TcpStream>, site: &RenderSite, caches: &Caches) ->
                     if let Some(r) = m.remove("report") {
                         eprintln!(
                             "render client reports: {}",
-                            r.as_str().unwrap_or(&r.to_string())
+                            crate::serve::loggable(r.as_str().unwrap_or(&r.to_string()))
                         );
                     }
                     if m.is_empty() {

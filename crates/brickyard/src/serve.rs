@@ -9,10 +9,16 @@
 //! single byte range (`Range: bytes=a-b`, `a-`,
 //! `-n`; 416 when unsatisfiable, several ranges answered with the whole
 //! file), `Content-Length`, a strong `ETag` (size and modification time)
-//! with `If-None-Match` (304), CORS for any origin with the preflight
-//! (`OPTIONS`) and `Content-Range`, `Accept-Ranges`, `Content-Length`,
-//! `ETag` exposed. Safe by default: loopback unless a bearer token is
-//! set (`--token`, `--token-file`; a wrong or missing one gets 401);
+//! with `If-None-Match` (304), `If-Match` (412) and `If-Range` (the whole
+//! file unless it names the current ETag), CORS for loopback origins and
+//! those `--allow-origin` names (`*`: any) with the preflight (`OPTIONS`)
+//! and `Content-Range`, `Accept-Ranges`, `Content-Length`, `ETag` exposed.
+//! Safe by default: loopback unless a bearer token is set (`--token`,
+//! `--token-file`; a wrong or missing one gets 401); without a token a
+//! request must name a loopback host (`Host`; 421 otherwise), so that a
+//! web page whose name is pointed at 127.0.0.1 (DNS rebinding) reads
+//! nothing, and pages of other origins cannot read across origins;
+//! the access log shows a `token=` parameter as `…`;
 //! a path is decoded once, and a segment that is `..`, `.`, empty, holds
 //! a `%` after decoding (double encoding), a backslash or a NUL is refused
 //! (403) before the file system is touched; the file found is then
@@ -57,6 +63,13 @@ pub struct ServeCmd {
     /// File holding the bearer token (first line).
     #[arg(long)]
     pub token_file: Option<PathBuf>,
+    /// A web origin (scheme://host[:port], or `*`) whose pages may read
+    /// the stores across origins (CORS), e.g. a viewer hosted elsewhere;
+    /// repeat for several. Without it, only pages from this server and
+    /// from other loopback servers may; without a token, requests must
+    /// also name a loopback host (DNS rebinding).
+    #[arg(long = "allow-origin", value_name = "ORIGIN")]
+    pub allow_origin: Vec<String>,
     /// Worker threads (requests answered at once).
     #[arg(long, default_value_t = 16)]
     pub workers: usize,
@@ -101,6 +114,9 @@ struct Site {
     /// Mount name → canonical root directory.
     roots: HashMap<String, PathBuf>,
     token: Option<String>,
+    /// `--allow-origin`: origins besides loopback ones that may read
+    /// across origins.
+    origins: Vec<String>,
     log: bool,
     /// The render endpoint's port (`--render`), for the /remote page.
     render_port: Option<u16>,
@@ -239,9 +255,15 @@ fn site(c: &ServeCmd) -> Result<Site> {
         }
         roots.insert("web".to_string(), d.clone());
     }
+    for o in &c.allow_origin {
+        if o != "*" && origin_host(o).is_none() {
+            bail!("--allow-origin: expected * or scheme://host[:port] (as a browser sends it), found {o:?}");
+        }
+    }
     Ok(Site {
         roots,
         token,
+        origins: c.allow_origin.clone(),
         log: !c.quiet,
         render_port: None,
         web,
@@ -274,6 +296,7 @@ pub fn run(c: ServeCmd) -> Result<()> {
                 .map(|(n, r)| (n.clone(), r.clone()))
                 .collect(),
             token: site.token.clone(),
+            origins: site.origins.clone(),
             backend: c.backend.clone(),
             sessions: c.render_sessions,
             max_fps: c.max_fps,
@@ -388,8 +411,62 @@ fn header(k: &str, v: &str) -> Header {
     Header::from_bytes(k.as_bytes(), v.as_bytes()).expect("valid header")
 }
 
+thread_local! {
+    /// The `Access-Control-Allow-Origin` of the request this worker is
+    /// answering (`None`: the requesting origin may not read across
+    /// origins).
+    static ALLOW_ORIGIN: std::cell::RefCell<Option<String>> = const { std::cell::RefCell::new(None) };
+}
+
+/// Whether `host` (a `Host` header's or an origin's host, with or without
+/// a port) names this machine's loopback: `localhost` (or a name under
+/// it), 127.0.0.0/8, `[::1]`.
+pub(crate) fn loopback_host(host: &str) -> bool {
+    let h = host.trim();
+    let name = if let Some(r) = h.strip_prefix('[') {
+        r.split(']').next().unwrap_or("")
+    } else {
+        match h.rsplit_once(':') {
+            Some((n, port)) if port.bytes().all(|b| b.is_ascii_digit()) => n,
+            _ => h,
+        }
+    };
+    let name = name.trim_end_matches('.').to_ascii_lowercase();
+    name == "localhost"
+        || name.ends_with(".localhost")
+        || name.parse::<IpAddr>().is_ok_and(|a| a.is_loopback())
+}
+
+/// The host part of an origin `scheme://host[:port]`; `None` when it is
+/// not one.
+pub(crate) fn origin_host(origin: &str) -> Option<&str> {
+    let (scheme, rest) = origin.split_once("://")?;
+    (!scheme.is_empty()
+        && scheme
+            .bytes()
+            .all(|b| b.is_ascii_alphanumeric() || b"+-.".contains(&b))
+        && !rest.is_empty()
+        && !rest.contains(['/', '?', '#', '@']))
+    .then_some(rest)
+}
+
+/// Whether a page of `origin` may use this server across origins: a
+/// loopback origin, or one `--allow-origin` names (`*`: any).
+pub(crate) fn origin_allowed(origin: &str, allowed: &[String]) -> bool {
+    origin_host(origin).is_some_and(loopback_host)
+        || allowed
+            .iter()
+            .any(|a| a == "*" || a.eq_ignore_ascii_case(origin))
+}
+
 fn cors(h: &mut Vec<Header>) {
-    h.push(header("Access-Control-Allow-Origin", "*"));
+    let Some(origin) = ALLOW_ORIGIN.with(|o| o.borrow().clone()) else {
+        return;
+    };
+    if origin != "*" {
+        h.push(header("Vary", "Origin"));
+    }
+    h.push(header("Access-Control-Allow-Origin", &origin));
     h.push(header(
         "Access-Control-Expose-Headers",
         "Content-Range, Accept-Ranges, Content-Length, ETag",
@@ -518,6 +595,40 @@ fn etag_of(m: &std::fs::Metadata) -> String {
     format!("\"{:x}-{:x}\"", m.len(), t)
 }
 
+/// `url` with the value of a `token=` query parameter replaced by `…`
+/// (the thin client's page takes its token so), and control characters
+/// escaped: what the access log may show.
+pub(crate) fn redact_token(url: &str) -> String {
+    let shown = match url.split_once('?') {
+        Some((path, query)) => {
+            let q: Vec<String> = query
+                .split('&')
+                .map(|kv| match kv.split_once('=') {
+                    Some(("token", _)) => "token=…".to_string(),
+                    _ => kv.to_string(),
+                })
+                .collect();
+            format!("{path}?{}", q.join("&"))
+        }
+        None => url.to_string(),
+    };
+    loggable(&shown)
+}
+
+/// `s` with control characters escaped, so that what a client sends
+/// cannot start a line of its own in the log.
+pub(crate) fn loggable(s: &str) -> String {
+    s.chars()
+        .flat_map(|c| {
+            if c.is_control() {
+                c.escape_default().collect::<Vec<char>>()
+            } else {
+                vec![c]
+            }
+        })
+        .collect()
+}
+
 fn token_ok(site: &Site, rq: &Request) -> bool {
     let Some(want) = &site.token else {
         return true;
@@ -551,7 +662,18 @@ fn req_header<'a>(rq: &'a Request, k: &'static str) -> Option<&'a str> {
 fn answer(site: &Site, rq: Request) {
     let t0 = Instant::now();
     let method = rq.method().clone();
-    let url = rq.url().to_string();
+    let url = redact_token(rq.url());
+    // Who may read this answer across origins: with `--allow-origin *`
+    // anyone; else the requesting page's origin when it is allowed (a
+    // page of this server sends none for its own reads).
+    let allow = if site.origins.iter().any(|o| o == "*") {
+        Some("*".to_string())
+    } else {
+        req_header(&rq, "Origin")
+            .filter(|o| origin_allowed(o, &site.origins))
+            .map(str::to_string)
+    };
+    ALLOW_ORIGIN.with(|o| *o.borrow_mut() = allow);
     let peer = rq
         .remote_addr()
         .map(|a| a.to_string())
@@ -601,7 +723,7 @@ fn respond(site: &Site, rq: Request) -> (u16, u64, Option<String>) {
                 header("Access-Control-Allow-Methods", "GET, HEAD, OPTIONS"),
                 header(
                     "Access-Control-Allow-Headers",
-                    "Range, Authorization, If-None-Match, Content-Type",
+                    "Range, Authorization, If-None-Match, If-Match, If-Range, Content-Type",
                 ),
                 header("Access-Control-Max-Age", "86400"),
                 header("Allow", "GET, HEAD, OPTIONS"),
@@ -614,6 +736,20 @@ fn respond(site: &Site, rq: Request) -> (u16, u64, Option<String>) {
                 .with_header(header("Allow", "GET, HEAD, OPTIONS"));
             let e = rq.respond(r).err().and_then(send_err);
             return (405, 0, e);
+        }
+    }
+    // Without a token the server answers only requests that name it by a
+    // loopback host: a page whose name an attacker points at 127.0.0.1
+    // (DNS rebinding) is refused. (HTTP/1.0 requests may omit Host.)
+    if site.token.is_none() {
+        if let Some(h) = req_header(&rq, "Host").filter(|h| !loopback_host(h)) {
+            let why =
+                format!("host {h:?} is not this machine's loopback (a token lets other names in)");
+            let e = rq
+                .respond(text(421, "this server answers loopback host names only"))
+                .err()
+                .and_then(send_err);
+            return (421, 0, e.or(Some(why)));
         }
     }
     // The thin client's page holds no data: it asks for the token itself.
@@ -733,7 +869,20 @@ fn respond(site: &Site, rq: Request) -> (u16, u64, Option<String>) {
     };
     h.push(header("Content-Type", ctype));
     cors(&mut h);
-    let range = match req_header(&rq, "Range") {
+    // A write-back client's precondition: the file must still be the one
+    // it knows (RFC 9110, 13.1.1; strong comparison).
+    let tag_matches = |v: &str| v.split(',').any(|t| t.trim() == "*" || t.trim() == etag);
+    if let Some(im) = req_header(&rq, "If-Match") {
+        if !tag_matches(im) {
+            let e = rq.respond(empty(412, h)).err().and_then(send_err);
+            return (412, 0, e);
+        }
+    }
+    // A range resumed from an older copy: the whole file instead, unless
+    // the validator is this file's ETag (dates are not strong validators
+    // here, so they never match).
+    let range_ok = req_header(&rq, "If-Range").is_none_or(|v| v.trim() == etag);
+    let range = match req_header(&rq, "Range").filter(|_| range_ok) {
         None => Ok(None),
         Some(v) => parse_range(v, len),
     };
@@ -770,6 +919,43 @@ fn respond(site: &Site, rq: Request) -> (u16, u64, Option<String>) {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn loopback_names_origins_and_what_the_log_shows() {
+        for h in [
+            "localhost",
+            "localhost:8000",
+            "127.0.0.1",
+            "127.1.2.3:9",
+            "[::1]:80",
+            "a.localhost",
+            "LocalHost.",
+        ] {
+            assert!(loopback_host(h), "{h}");
+        }
+        for h in [
+            "attacker.example",
+            "10.0.0.1:80",
+            "localhost.attacker.example",
+            "[::2]",
+            "127.0.0.1.nip.io",
+        ] {
+            assert!(!loopback_host(h), "{h}");
+        }
+        assert!(origin_allowed("http://localhost:5173", &[]));
+        assert!(!origin_allowed("http://example.org", &[]));
+        assert!(!origin_allowed("null", &[]));
+        assert!(origin_allowed(
+            "https://example.org",
+            &["https://example.org".into()]
+        ));
+        assert!(origin_allowed("https://x.org", &["*".into()]));
+        assert_eq!(
+            redact_token("/remote?store=a&token=s3cret&x=1"),
+            "/remote?store=a&token=…&x=1"
+        );
+        assert_eq!(loggable("a\nFAKE"), "a\\nFAKE");
+    }
 
     #[test]
     fn ranges() {

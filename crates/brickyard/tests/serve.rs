@@ -102,7 +102,13 @@ fn http(
     headers: &[(&str, &str)],
 ) -> (u16, Vec<(String, String)>, Vec<u8>) {
     let mut c = TcpStream::connect(("127.0.0.1", port)).unwrap();
-    let mut rq = format!("{method} {path} HTTP/1.1\r\nHost: localhost\r\nConnection: close\r\n");
+    // (Host: localhost unless the headers name another.)
+    let host = if headers.iter().any(|(k, _)| k.eq_ignore_ascii_case("host")) {
+        ""
+    } else {
+        "Host: localhost\r\n"
+    };
+    let mut rq = format!("{method} {path} HTTP/1.1\r\n{host}Connection: close\r\n");
     for (k, v) in headers {
         rq.push_str(&format!("{k}: {v}\r\n"));
     }
@@ -314,7 +320,24 @@ fn ranges_etags_and_cors() {
         ],
     );
     assert_eq!(st6, 204);
-    assert_eq!(get(&h, "access-control-allow-origin"), Some("*"));
+    // Pages of other origins may not read across origins (no token, no
+    // --allow-origin); loopback ones may.
+    assert_eq!(get(&h, "access-control-allow-origin"), None);
+    let (st6, h, _) = http(
+        p,
+        "OPTIONS",
+        "/m.ome.zarr/zarr.json",
+        &[
+            ("Origin", "http://localhost:5173"),
+            ("Access-Control-Request-Method", "GET"),
+            ("Access-Control-Request-Headers", "range"),
+        ],
+    );
+    assert_eq!(st6, 204);
+    assert_eq!(
+        get(&h, "access-control-allow-origin"),
+        Some("http://localhost:5173")
+    );
     assert!(get(&h, "access-control-allow-methods")
         .unwrap()
         .contains("GET"));
@@ -325,7 +348,7 @@ fn ranges_etags_and_cors() {
         p,
         "GET",
         "/m.ome.zarr/zarr.json",
-        &[("Origin", "http://example.org")],
+        &[("Origin", "http://127.0.0.1:9")],
     );
     let exposed = get(&h, "access-control-expose-headers").unwrap();
     for k in ["Content-Range", "Accept-Ranges", "Content-Length"] {
@@ -333,6 +356,70 @@ fn ranges_etags_and_cors() {
     }
     let (_, _, body) = http(p, "GET", "/", &[]);
     assert!(String::from_utf8_lossy(&body).contains("m.ome.zarr"));
+    let store_dir = st.clone();
+    // A name that is not loopback (a page's own name pointed at 127.0.0.1:
+    // DNS rebinding) is refused without a token; loopback names pass.
+    for (host, want) in [
+        ("attacker.example", 421),
+        ("attacker.example:8000", 421),
+        ("127.0.0.1:8000", 200),
+        ("[::1]:8000", 200),
+        ("LOCALHOST", 200),
+    ] {
+        let (st, _, body) = http(p, "GET", "/", &[("Host", host)]);
+        assert_eq!(st, want, "{host}");
+        assert_eq!(
+            String::from_utf8_lossy(&body).contains("m.ome.zarr"),
+            want == 200
+        );
+    }
+    // Preconditions: If-Match on another ETag is 412; If-Range on
+    // another ETag (or a date) gives the whole file, on this one the range.
+    let (st, _, _) = http(
+        p,
+        "GET",
+        "/m.ome.zarr/0/c/0/0/0",
+        &[("If-Match", "\"old\"")],
+    );
+    assert_eq!(st, 412);
+    let (st, _, _) = http(p, "GET", "/m.ome.zarr/0/c/0/0/0", &[("If-Match", &etag)]);
+    assert_eq!(st, 200);
+    for (validator, want, len) in [
+        ("\"old\"", 200, n),
+        ("Tue, 01 Dec 2026 00:00:00 GMT", 200, n),
+        (etag.as_str(), 206, 4),
+    ] {
+        let (st, _, body) = http(
+            p,
+            "GET",
+            "/m.ome.zarr/0/c/0/0/0",
+            &[("Range", "bytes=0-3"), ("If-Range", validator)],
+        );
+        assert_eq!((st, body.len()), (want, len), "If-Range {validator}");
+    }
+    // --allow-origin lets a named origin (or any, `*`) read across origins.
+    for (allow, origin, want) in [
+        (
+            "http://example.org",
+            "http://example.org",
+            Some("http://example.org"),
+        ),
+        ("http://example.org", "http://other.example", None),
+        ("*", "http://other.example", Some("*")),
+    ] {
+        let sv2 = serve(&[&store_dir], &["--quiet", "--allow-origin", allow]);
+        let (_, h, _) = http(
+            sv2.port,
+            "GET",
+            "/m.ome.zarr/zarr.json",
+            &[("Origin", origin)],
+        );
+        assert_eq!(
+            get(&h, "access-control-allow-origin"),
+            want,
+            "{allow} {origin}"
+        );
+    }
 
     // SIGTERM: the server stops by itself, with status 0.
     let mut sv = sv;
@@ -744,6 +831,18 @@ fn remote_rendering_streams_frames_equal_to_render() {
         port.unwrap_or_else(|| panic!("no render port in {}", log()))
     };
     let url = format!("ws://127.0.0.1:{port}/render");
+    // A connection that sends nothing holds no session (the one allowed
+    // used to be taken before the handshake, by anyone, token or not).
+    let _idle = TcpStream::connect(("127.0.0.1", port)).unwrap();
+    std::thread::sleep(std::time::Duration::from_millis(200));
+    // A page of another origin may not open a session (no token).
+    let mut rq = tungstenite::client::IntoClientRequest::into_client_request(url.as_str()).unwrap();
+    rq.headers_mut()
+        .insert("Origin", "http://attacker.example".parse().unwrap());
+    match tungstenite::connect(rq) {
+        Err(tungstenite::Error::Http(r)) => assert_eq!(r.status(), 403),
+        other => panic!("a cross-origin page was let in: {:?}", other.map(|_| ())),
+    }
     let (mut ws, _) = tungstenite::connect(url.as_str()).unwrap();
     let camera: serde_json::Value =
         serde_json::from_str(&std::fs::read_to_string(&cam).unwrap()).unwrap();
@@ -837,6 +936,14 @@ fn remote_rendering_streams_frames_equal_to_render() {
         tungstenite::connect(format!("ws://127.0.0.1:{port2}/render?token=sesame").as_str())
             .is_ok()
     );
+    // The token as the HTTP server takes it, in an Authorization header.
+    let mut rq = tungstenite::client::IntoClientRequest::into_client_request(
+        format!("ws://127.0.0.1:{port2}/render").as_str(),
+    )
+    .unwrap();
+    rq.headers_mut()
+        .insert("Authorization", "Bearer sesame".parse().unwrap());
+    assert!(tungstenite::connect(rq).is_ok());
 }
 
 /// The thin client in a headless browser (Debian's `chromium`): the page
