@@ -564,6 +564,10 @@ pub fn run_quiet(mut c: RenderCmd) -> Result<Vec<String>> {
     run(c)
 }
 
+/// How a view's line ends when bricks could not be loaded and coarser data
+/// stands in for them (the CLI then exits with status 3).
+pub const DEGRADED: &str = "that could not be loaded (drawn from coarser data)";
+
 /// Render; returns one line per view written (file, how it ended).
 pub fn run(c: RenderCmd) -> Result<Vec<String>> {
     run_shared(c, None)
@@ -1705,10 +1709,9 @@ fn run_one(
         }
         let why = match &out.stop {
             Some(Stop::Complete) => "complete".to_string(),
-            Some(Stop::CompleteButFailed) => format!(
-                "complete but for {} brick(s) that could not be loaded (drawn from coarser data)",
-                failures.len()
-            ),
+            Some(Stop::CompleteButFailed) => {
+                format!("complete but for {} brick(s) {DEGRADED}", failures.len())
+            }
             Some(Stop::NoProgress) => format!(
                 "stopped at {:.1}% complete: nothing more could arrive or be placed for several frames",
                 100.0 * out.completeness

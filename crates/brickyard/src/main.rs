@@ -109,6 +109,10 @@ enum Cmd {
         size: String,
     },
     /// Render a store (DVR, MIP or slice) to PNG through the virtual memory.
+    /// Exit status 0: every view complete; 3: images written, but bricks
+    /// could not be loaded (a damaged store, a lost server) and coarser
+    /// data stands in for them; 1: an error (no image where a view has no
+    /// data at any level).
     Render(Box<render::RenderCmd>),
     /// Open an interactive viewer (no STORE: the demo dataset, generated on
     /// first use).
@@ -444,7 +448,7 @@ fn main() {
     };
     let (rank, size) = dist::rank_size(cluster.as_ref());
     let code = match run(cli.cmd, cluster.as_ref()) {
-        Ok(()) => 0,
+        Ok(()) => EXIT_STATUS.load(std::sync::atomic::Ordering::SeqCst),
         Err(e) => {
             // What every rank agreed on is said once, by rank 0; a rank's
             // own failure by that rank.
@@ -467,6 +471,26 @@ fn main() {
     #[cfg(feature = "mpi")]
     drop(cluster);
     std::process::exit(code);
+}
+
+/// The exit status of a command that ended without an error (0 unless it
+/// says otherwise).
+static EXIT_STATUS: std::sync::atomic::AtomicI32 = std::sync::atomic::AtomicI32::new(0);
+
+/// `render`'s lines, one per view: views drawn in part from coarser data
+/// because bricks could not be loaded end the command with status 3, so
+/// that a script can tell such an image from a complete one.
+fn degraded(lines: Vec<String>) {
+    let n = lines
+        .iter()
+        .filter(|l| l.contains(render::DEGRADED))
+        .count();
+    if n > 0 {
+        eprintln!(
+            "note: {n} view(s) drawn in part from coarser data, bricks could not be loaded: exit status 3"
+        );
+        EXIT_STATUS.store(3, std::sync::atomic::Ordering::SeqCst);
+    }
 }
 
 fn run(cmd: Cmd, cluster: Option<&dist::Cluster>) -> Result<()> {
@@ -621,9 +645,9 @@ fn run(cmd: Cmd, cluster: Option<&dist::Cluster>) -> Result<()> {
                     _ => BANDS_PER_RANK,
                 };
                 let mut share = RenderShare::new(c, split).bands_per_rank(per_rank);
-                render::run_shared(*r, Some(&mut share)).map(|_| ())
+                render::run_shared(*r, Some(&mut share)).map(degraded)
             }
-            _ => render::run(*r).map(|_| ()),
+            _ => render::run(*r).map(degraded),
         },
         Cmd::View(v) => {
             let code = view::run(v, || demo_store(Path::new("brickyard-demo"), "384"))?;

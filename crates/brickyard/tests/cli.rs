@@ -1931,7 +1931,9 @@ fn a_view_with_no_data_at_any_level_writes_no_image() {
     let fine = mandelbulb_48(d.path(), "fine.ome.zarr");
     damage(&fine, &["0"]);
     let o = render(&fine);
-    ok_status(&o);
+    // Written, drawn from coarser data: status 3, said on stderr.
+    assert_eq!(o.status.code(), Some(3), "{}", stderr(&o));
+    assert!(stderr(&o).contains("exit status 3"), "{}", stderr(&o));
     let out = String::from_utf8_lossy(&o.stdout);
     assert!(
         png.exists() && out.contains("could not be loaded (drawn from coarser data)"),
