@@ -225,6 +225,36 @@ impl Shared {
             )?;
         }
         let brick = finish_brick(g, *key, data, &reg);
+        if let Some(st) = &level.stats {
+            // A chunk whose bytes changed decodes to values the statistics
+            // exclude: a failure (drawn coarser, reported), not a brick of
+            // wrong values. The brick proper's range against the range of
+            // the store bricks it lies in costs nothing; only a brick
+            // outside it is looked at store brick by store brick.
+            let o = g.origin_of(key);
+            let ext = g.extent_of(key);
+            let e = [0, 1, 2].map(|a| o[a] + ext[a]);
+            if let Some((lo_s, hi_s)) = st.range_over(c, o, e) {
+                if brick.min < lo_s || brick.max > hi_s {
+                    if let BrickContent::Data(d) = &brick.content {
+                        let at = [0, 1, 2].map(|a| reg.at[a] + o[a] - lo[a]);
+                        st.check_range_read(&*level.src, c, o, e, d, g.padded(), at, g.dtype)?;
+                    }
+                    return Err(StoreError::invalid(
+                        level
+                            .src
+                            .chunk_file(c as usize, o)
+                            .unwrap_or(self.path.clone()),
+                        format!("channel {c} brick at {o:?}"),
+                        format!(
+                            "values span {}..{}, but the statistics say {lo_s}..{hi_s}: a chunk's \
+                             bytes changed since it was written",
+                            brick.min, brick.max
+                        ),
+                    ));
+                }
+            }
+        }
         Ok(brick)
     }
 

@@ -1041,6 +1041,48 @@ fn a_chunk_dropped_from_its_shard_index_is_a_failure_naming_the_file() {
 }
 
 #[test]
+fn a_chunk_whose_bytes_changed_but_still_decode_is_a_failure() {
+    // Uncompressed chunks: bytes overwritten inside one decode without
+    // complaint (as any codec without a checksum may), to values (65535)
+    // the statistics of that brick (at most 59999) exclude.
+    let dir = tempfile::tempdir().unwrap();
+    let src = mem_source([40, 36, 44], 1, DType::U16, |_, z, y, x| {
+        let mut s = (z * 1000 + y) * 1000 + x + 5;
+        lcg(&mut s);
+        (lcg(&mut s) % 60000) as f64
+    });
+    let store = dir.path().join("raw.ome.zarr");
+    let opts = ConvertOptions {
+        brick: [8; 3],
+        shard: [16; 3],
+        compression: brickyard_store::Compression::None,
+        ..Default::default()
+    };
+    convert(&src, &store, &opts, &NoProgress, &AtomicBool::new(false)).unwrap();
+    let shard = first_shard(&store);
+    let mut bytes = std::fs::read(&shard).unwrap();
+    let at = bytes.len() - (8 * 16 + 4);
+    let off = u64::from_le_bytes(bytes[at..at + 8].try_into().unwrap()) as usize;
+    let len = u64::from_le_bytes(bytes[at + 8..at + 16].try_into().unwrap()) as usize;
+    assert!(len > 64, "{len}");
+    bytes[off..off + len].fill(0xff);
+    std::fs::write(&shard, &bytes).unwrap();
+    let loader = Loader::open(&store, [8; 3], 1, 1, Arc::new(HostCache::new(0))).unwrap();
+    let e = loader
+        .load_now(&BrickKey::new(0, 0, [0, 0, 0]))
+        .unwrap_err()
+        .to_string();
+    assert!(e.contains(shard.to_str().unwrap()), "{e}");
+    assert!(e.contains("statistics say"), "{e}");
+    // Bricks of other chunks load, with their values.
+    let levels = read_levels(&store, 1);
+    let g = loader.geometry().clone();
+    let k = BrickKey::new(0, 0, [1, 1, 1]);
+    let b = loader.load_now(&k).unwrap();
+    assert_eq!(brick_values(&b, &g), crop(&levels, &g, &k).0);
+}
+
+#[test]
 fn a_store_damaged_while_open_fails_bricks_and_keeps_serving_the_rest() {
     // Some bricks of each shard are read (the reader now holds their shard
     // indexes), then the store changes under the open loader: one shard

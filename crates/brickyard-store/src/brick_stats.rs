@@ -138,6 +138,27 @@ impl LevelStats {
         out
     }
 
+    /// The range of values the store bricks touching `[lo, hi)` hold
+    /// together (bricks of NaN alone passed over); `None` when any is
+    /// unknown.
+    pub fn range_over(&self, c: u64, lo: Dims3, hi: Dims3) -> Option<(f64, f64)> {
+        let sb = self.brick;
+        let r = [0, 1, 2].map(|a| lo[a] / sb[a]..=(hi[a] - 1) / sb[a]);
+        let mut out = (f64::INFINITY, f64::NEG_INFINITY);
+        for z in r[0].clone() {
+            for y in r[1].clone() {
+                for x in r[2].clone() {
+                    let (mn, mx) = self.get(c, [z, y, x])?;
+                    if mn.is_nan() || mx.is_nan() {
+                        continue;
+                    }
+                    out = (out.0.min(mn), out.1.max(mx));
+                }
+            }
+        }
+        Some(out)
+    }
+
     /// The common value of every store brick touching `[lo, hi)` if they
     /// are all constant with the same value.
     pub fn uniform(&self, c: u64, lo: Dims3, hi: Dims3) -> Option<f64> {
@@ -234,6 +255,97 @@ impl LevelStats {
             })
         };
         self.check_lost(src, c, lo, hi, zero)
+    }
+
+    /// Values outside the statistics' range among the store bricks of
+    /// channel `c` that a read of `[lo, hi)` into a box of `dims` voxels
+    /// at `at` of `buf` (native-endian `dtype`) touched: an error naming
+    /// the chunk's file. The codecs here carry no checksum, so a chunk
+    /// whose bytes changed can decode to other values; the statistics,
+    /// written from the stored voxels, tell (NaN is ignored).
+    #[allow(clippy::too_many_arguments)]
+    pub fn check_range_read(
+        &self,
+        src: &dyn VolumeSource,
+        c: u64,
+        lo: Dims3,
+        hi: Dims3,
+        buf: &[u8],
+        dims: Dims3,
+        at: Dims3,
+        dtype: brickyard_core::DType,
+    ) -> Result<()> {
+        use brickyard_core::Sample;
+        if (0..3).any(|a| lo[a] >= hi[a]) {
+            return Ok(());
+        }
+        let sb = self.brick;
+        let es = dtype.size() as u64;
+        let r = [0, 1, 2].map(|a| lo[a] / sb[a]..=(hi[a] - 1) / sb[a]);
+        for bz in r[0].clone() {
+            for by in r[1].clone() {
+                for bx in r[2].clone() {
+                    let b = [bz, by, bx];
+                    let Some((mn, mx)) = self.get(c, b) else {
+                        continue;
+                    };
+                    if mn.is_nan() || mx.is_nan() {
+                        continue;
+                    }
+                    let blo = [0, 1, 2].map(|a| (b[a] * sb[a]).max(lo[a]));
+                    let bhi = [0, 1, 2].map(|a| ((b[a] + 1) * sb[a]).min(hi[a]));
+                    let row = ((bhi[2] - blo[2]) * es) as usize;
+                    let (vmin, vmax) = brickyard_core::dispatch_dtype!(dtype, T => {
+                        // In the type itself, a row at a time (selects the
+                        // compiler turns into vector min/max); NaN fails
+                        // both comparisons and is passed over.
+                        let mut acc: Option<(T, T)> = None;
+                        for z in blo[0]..bhi[0] {
+                            for y in blo[1]..bhi[1] {
+                                let i = (((z - lo[0] + at[0]) * dims[1] + (y - lo[1] + at[1]))
+                                    * dims[2]
+                                    + (blo[2] - lo[2] + at[2]))
+                                    * es;
+                                // (The element size a constant of the type:
+                                // a dynamic one keeps the loop scalar.)
+                                let mut vals = buf[i as usize..i as usize + row]
+                                    .chunks_exact(std::mem::size_of::<T>())
+                                    .map(<T as Sample>::from_le);
+                                let Some(first) = vals.by_ref().find(|v| v == v) else {
+                                    continue;
+                                };
+                                let (a, b) = vals.fold((first, first), |(a, b), v| {
+                                    (if v < a { v } else { a }, if v > b { v } else { b })
+                                });
+                                acc = Some(match acc {
+                                    None => (a, b),
+                                    Some((x, y)) => {
+                                        (if a < x { a } else { x }, if b > y { b } else { y })
+                                    }
+                                });
+                            }
+                        }
+                        acc.map_or((mn, mx), |(a, b)| (a.to_f64(), b.to_f64()))
+                    });
+                    if vmin < mn || vmax > mx {
+                        let v = [0, 1, 2].map(|a| b[a] * sb[a]);
+                        let file = src
+                            .chunk_file(c as usize, v)
+                            .unwrap_or_else(|| self.dir.clone());
+                        return Err(StoreError::invalid(
+                            file,
+                            format!("channel {c} store brick {b:?}"),
+                            format!(
+                                "decoded values span {vmin}..{vmax}, but the statistics say \
+                                 {mn}..{mx}: the chunk's bytes changed since it was written \
+                                 (its codecs carry no checksum)"
+                            ),
+                        ));
+                    }
+                }
+            }
+        }
+        Ok(())
     }
 
     /// What made chunks of the statistics unreadable since the last call,

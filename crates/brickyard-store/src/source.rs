@@ -119,6 +119,13 @@ pub trait VolumeSource: Send + Sync {
         None
     }
 
+    /// The file that holds the chunk of voxel `v` of channel `c` (its
+    /// shard's, when sharded), for sources stored as files; `None`
+    /// otherwise. For reports.
+    fn chunk_file(&self, _c: usize, _v: Dims3) -> Option<std::path::PathBuf> {
+        None
+    }
+
     /// A hint that `region` (`[z, y, x]` ranges) of channel `c` will be
     /// read soon: sources on disk ask the system to start reading its
     /// stored bytes now, without waiting, so that the read finds them in

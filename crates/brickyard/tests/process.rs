@@ -1209,6 +1209,54 @@ fn a_store_that_lost_a_shard_fails_process_and_convert_with_the_file_named() {
     ]));
 }
 
+/// A chunk whose bytes changed in place still decodes (no codec here
+/// carries a checksum; uncompressed chunks decode whatever they hold) to
+/// values its statistics exclude: `process` and `convert` fail naming the
+/// file, where they used to compute from them (a user trial's flipped
+/// bytes gave 9496 labels instead of 9494, exit 0).
+#[test]
+fn a_chunk_whose_bytes_changed_fails_process_and_convert() {
+    let d = tempfile::tempdir().unwrap();
+    let store = d.path().join("f.ome.zarr");
+    ok(run(&[
+        "generate",
+        "marschner-lobb",
+        s(&store),
+        "--size",
+        "32",
+        "--dtype",
+        "f32",
+        "--brick",
+        "8",
+        "--shard",
+        "16",
+        "--compression",
+        "none",
+        "--quiet",
+    ]));
+    let shard = store.join("0/c/0/0/0");
+    let mut b = std::fs::read(&shard).unwrap();
+    // The first chunk (8³ f32, uncompressed, at the start of the shard):
+    // 3.4e38 in a row of it.
+    b[..64].fill(0x7f);
+    std::fs::write(&shard, &b).unwrap();
+    let converted = d.path().join("again.ome.zarr");
+    for args in [
+        vec!["process", s(&store), "gauss(1)", "--out", "g"],
+        vec!["convert", s(&store), s(&converted)],
+    ] {
+        let o = run(&args);
+        let e = String::from_utf8_lossy(&o.stderr);
+        assert_eq!(o.status.code(), Some(1), "{args:?}: {e}");
+        assert!(
+            e.contains("0/c/0/0/0") && e.contains("the statistics say"),
+            "{args:?}: {e}"
+        );
+    }
+    assert!(!converted.exists());
+    assert!(!store.join("derived/g").exists());
+}
+
 /// The nuclei stack converted (z 4× coarser than x and y) and its nuclei
 /// labelled by `process` into `labels/cells`.
 fn nuclei_with_labels(dir: &Path) -> std::path::PathBuf {

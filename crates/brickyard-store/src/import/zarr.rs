@@ -596,7 +596,8 @@ impl ZarrSource {
         let lo = region.clone().map(|r| r.start);
         let hi = region.clone().map(|r| r.end);
         let es = self.meta.dtype.size() as u64;
-        st.check_lost_read(self, c as u64, lo, hi, buf, dims, at, es)
+        st.check_lost_read(self, c as u64, lo, hi, buf, dims, at, es)?;
+        st.check_range_read(self, c as u64, lo, hi, buf, dims, at, self.meta.dtype)
     }
 
     /// Keep up to `bytes` of decoded chunks, so that reads of overlapping
@@ -843,6 +844,16 @@ impl ZarrSource {
 }
 
 impl VolumeSource for ZarrSource {
+    fn chunk_file(&self, c: usize, v: Dims3) -> Option<PathBuf> {
+        let grid: Vec<u64> = self
+            .array_coords(c, v)
+            .iter()
+            .zip(&self.chunk)
+            .map(|(&p, &n)| p / n.max(1))
+            .collect();
+        Some(self.dir.join(self.array.chunk_key(&grid).as_str()))
+    }
+
     fn chunk_absent(&self, c: usize, v: Dims3) -> Option<(PathBuf, String)> {
         let at = self.array_coords(c, v);
         let grid: Vec<u64> = at
