@@ -107,6 +107,14 @@ impl Labeling {
         self.map.len()
     }
 
+    /// Bytes it holds (the labels' statistics, the map of pieces, the
+    /// blocks' offsets): what pass 2 keeps beside the writer.
+    pub fn bytes(&self) -> u64 {
+        (self.stats.len() * std::mem::size_of::<LabelStats>()
+            + self.map.len() * 4
+            + self.offsets.len() * 8) as u64
+    }
+
     fn block_index(&self, b: [u64; 3]) -> usize {
         ((b[0] * self.nblocks[1] + b[1]) * self.nblocks[2] + b[2]) as usize
     }
@@ -256,6 +264,41 @@ pub fn label_pass1(
     progress: &dyn Progress,
     cancel: &AtomicBool,
 ) -> Result<Labeling> {
+    label_pass1_within(
+        mask,
+        channel,
+        conn,
+        block,
+        intensity,
+        progress,
+        cancel,
+        u64::MAX,
+    )
+}
+
+/// Bytes of bookkeeping a piece of a component (a component's part in one
+/// block) takes until the labels are numbered, beyond the growing lists of
+/// pieces and parents (counted at their capacity): its statistics merged
+/// per component, its root, its entry in the map, and at most one label's
+/// statistics.
+pub const BYTES_PER_PIECE: u64 =
+    (std::mem::size_of::<Option<Frag>>() + 8 + 4 + std::mem::size_of::<LabelStats>()) as u64;
+
+/// [`label_pass1`] keeping its bookkeeping within `max_bytes`
+/// ([`BYTES_PER_PIECE`] a piece): beyond it the pass stops with an error
+/// that says how much the volume's pieces so far need (a noisy mask has
+/// millions of components).
+#[allow(clippy::too_many_arguments)]
+pub fn label_pass1_within(
+    mask: &dyn VolumeSource,
+    channel: usize,
+    conn: u8,
+    block: Dims3,
+    intensity: Option<(&dyn VolumeSource, usize)>,
+    progress: &dyn Progress,
+    cancel: &AtomicBool,
+    max_bytes: u64,
+) -> Result<Labeling> {
     let meta = mask.meta();
     if conn != 6 && conn != 26 {
         return Err(StoreError::invalid(
@@ -363,6 +406,29 @@ pub fn label_pass1(
             .into_iter()
             .map(|mut o| (std::mem::take(&mut o.faces[0][1]), o.bdims))
             .collect();
+        let need = (frags.capacity() * std::mem::size_of::<Frag>() + uf.parent.capacity() * 8)
+            as u64
+            + frags.len() as u64 * BYTES_PER_PIECE;
+        if need > max_bytes {
+            let done = (bz + 1) as f64 / nb[0] as f64;
+            return Err(StoreError::invalid(
+                &meta.path,
+                "memory",
+                format!(
+                    "labelling: {} pieces of components in the first {:.0} % of the volume \
+                     already need {} MiB of bookkeeping (about {} bytes each), more \
+                     than the {} MiB the memory budget leaves it; about {} MiB for the whole \
+                     volume (a noisy mask has a component per few voxels: smooth or threshold \
+                     it first, or give more memory)",
+                    frags.len(),
+                    100.0 * done,
+                    need >> 20,
+                    need / frags.len().max(1) as u64,
+                    max_bytes >> 20,
+                    ((need as f64 / done) as u64) >> 20
+                ),
+            ));
+        }
     }
     if cancel.load(Ordering::Relaxed) {
         return Err(StoreError::Interrupted);
@@ -587,10 +653,19 @@ impl VolumeSource for LabelSource {
 /// The statistics as CSV: one row per label; coordinates in voxels of the
 /// labelled level, `[z, y, x]` columns, box bounds inclusive.
 pub fn stats_csv(stats: &[LabelStats]) -> String {
-    let mut s = format!("{}\n", brickyard_core::label_table::HEADER);
+    let mut v = vec![];
+    write_stats_csv(&mut v, stats).expect("writing to memory");
+    String::from_utf8(v).expect("UTF-8")
+}
+
+/// [`stats_csv`] written to `w` row by row (millions of labels make a
+/// table of hundreds of MB: not held in memory whole).
+pub fn write_stats_csv(w: &mut dyn std::io::Write, stats: &[LabelStats]) -> std::io::Result<()> {
+    writeln!(w, "{}", brickyard_core::label_table::HEADER)?;
     for l in stats {
-        s += &format!(
-            "{},{},{},{},{},{},{},{},{},{},{},{}\n",
+        writeln!(
+            w,
+            "{},{},{},{},{},{},{},{},{},{},{},{}",
             l.label,
             l.voxels,
             l.min[0],
@@ -603,9 +678,9 @@ pub fn stats_csv(stats: &[LabelStats]) -> String {
             l.centroid[1],
             l.centroid[2],
             l.mean.map(|m| m.to_string()).unwrap_or_default()
-        );
+        )?;
     }
-    s
+    Ok(())
 }
 
 fn json_num(v: f64) -> String {
@@ -618,21 +693,34 @@ fn json_num(v: f64) -> String {
 
 /// The statistics as JSON: `{"count": N, "connectivity": C, "labels": [{...}]}`.
 pub fn stats_json(lab: &Labeling, extra: &[(&str, String)]) -> String {
-    let mut s = format!(
+    let mut v = vec![];
+    write_stats_json(&mut v, lab, extra).expect("writing to memory");
+    String::from_utf8(v).expect("UTF-8")
+}
+
+/// [`stats_json`] written to `w` label by label.
+pub fn write_stats_json(
+    w: &mut dyn std::io::Write,
+    lab: &Labeling,
+    extra: &[(&str, String)],
+) -> std::io::Result<()> {
+    write!(
+        w,
         "{{\n  \"count\": {},\n  \"connectivity\": {},\n  \"dims_zyx\": [{}, {}, {}],\n",
         lab.count(),
         lab.conn,
         lab.dims[0],
         lab.dims[1],
         lab.dims[2]
-    );
+    )?;
     for (k, v) in extra {
-        s += &format!("  \"{k}\": {v},\n");
+        writeln!(w, "  \"{k}\": {v},")?;
     }
-    s += "  \"labels\": [";
+    write!(w, "  \"labels\": [")?;
     for (i, l) in lab.stats.iter().enumerate() {
-        s += if i == 0 { "\n" } else { ",\n" };
-        s += &format!(
+        w.write_all(if i == 0 { b"\n" } else { b",\n" })?;
+        write!(
+            w,
             "    {{\"label\": {}, \"voxels\": {}, \"min_zyx\": [{}, {}, {}], \"max_zyx\": [{}, {}, {}], \"centroid_zyx\": [{}, {}, {}], \"mean\": {}}}",
             l.label,
             l.voxels,
@@ -646,10 +734,9 @@ pub fn stats_json(lab: &Labeling, extra: &[(&str, String)]) -> String {
             json_num(l.centroid[1]),
             json_num(l.centroid[2]),
             l.mean.map(json_num).unwrap_or_else(|| "null".into())
-        );
+        )?;
     }
-    s += "\n  ]\n}\n";
-    s
+    w.write_all(b"\n  ]\n}\n")
 }
 
 /// A JSON string literal.

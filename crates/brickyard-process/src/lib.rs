@@ -22,7 +22,10 @@ pub mod pipeline;
 pub use derive::{check_live, derive_level, derive_level_within, level_factor};
 pub use filter::{Filter, FilterSource};
 pub use gpu::{DeviceFilter, FilterKernels};
-pub use label::{label_pass1, stats_csv, stats_json, LabelSource, LabelStats, Labeling};
+pub use label::{
+    label_pass1, label_pass1_within, stats_csv, stats_json, write_stats_csv, write_stats_json,
+    LabelSource, LabelStats, Labeling,
+};
 pub use pipeline::{Op, ParseError, Pipeline, Sigma};
 
 use brickyard_core::Dims3;

@@ -9,7 +9,8 @@
 
 use anyhow::{bail, Context, Result};
 use brickyard_process::{
-    build_within, label_pass1, stats_csv, stats_json, FilterKernels, LabelSource, Op, Pipeline,
+    build_within, label_pass1_within, write_stats_csv, write_stats_json, FilterKernels,
+    LabelSource, Op, Pipeline,
 };
 use brickyard_store::builder::Progress;
 use brickyard_store::import::zarr::{self, ZarrSource};
@@ -532,7 +533,9 @@ pub fn run(
         let out_src: Arc<dyn VolumeSource> = match built.label {
             Some(conn) => {
                 let inten: &dyn VolumeSource = input.as_ref();
-                let lab = label_pass1(
+                // The writer's share is idle during the labelling pass:
+                // its bookkeeping may use it.
+                let lab = label_pass1_within(
                     built.source.as_ref(),
                     built.channel,
                     conn,
@@ -540,12 +543,28 @@ pub fn run(
                     Some((inten, c.channel)),
                     phases.labelling(),
                     cancel,
+                    opts.memory,
                 );
                 phases.done(true);
                 let lab = lab?;
                 if cancel.load(Ordering::SeqCst) {
                     return Err(StoreError::Interrupted.into());
                 }
+                // What the labelling keeps stays beside the writer: its
+                // share shrinks by that much.
+                let kept = lab.bytes();
+                if opts.memory.saturating_sub(kept) < writer_least {
+                    bail!(
+                        "{f}memory: {} labels ({} of statistics and maps, kept while the result \
+                         is written) leave the writer less than the {} it needs within {}: give \
+                         more memory",
+                        lab.count(),
+                        human_bytes(kept),
+                        human_bytes(writer_least),
+                        human_bytes(memory)
+                    );
+                }
+                opts.memory -= kept;
                 let lab = Arc::new(lab);
                 labeling = Some(lab.clone());
                 Arc::new(LabelSource::new(built.source.clone(), built.channel, lab))
@@ -598,26 +617,37 @@ pub fn run(
             ("intensity_channel", c.channel.to_string()),
         ];
         let dirs = paths.staged.join("_brickyard");
-        std::fs::write(dirs.join("labels.csv"), stats_csv(&lab.stats))
-            .and_then(|_| std::fs::write(dirs.join("labels.json"), stats_json(lab, &extra)))
+        // Streamed to the files (millions of labels: hundreds of MB).
+        let to = |p: std::path::PathBuf,
+                  f: &dyn Fn(&mut dyn std::io::Write) -> std::io::Result<()>| {
+            let mut w = std::io::BufWriter::new(std::fs::File::create(p)?);
+            f(&mut w)?;
+            std::io::Write::flush(&mut w)
+        };
+        to(dirs.join("labels.csv"), &|w| write_stats_csv(w, &lab.stats))
+            .and_then(|_| {
+                to(dirs.join("labels.json"), &|w| {
+                    write_stats_json(w, lab, &extra)
+                })
+            })
             .with_context(|| format!("{}: cannot write statistics", dirs.display()))
             .map_err(cleanup)?;
         if cancel.load(Ordering::SeqCst) {
             return Err(cleanup(StoreError::Interrupted.into()));
         }
         if let (Some(p), Some(is_json)) = (&c.stats, stats_fmt) {
-            let text = if is_json {
-                stats_json(lab, &extra)
-            } else {
-                stats_csv(&lab.stats)
-            };
             // Whole or not at all: written beside it, then renamed.
             let tmp = p.with_file_name(format!(
                 ".{}.{}.tmp",
                 p.file_name().unwrap_or_default().to_string_lossy(),
                 std::process::id()
             ));
-            std::fs::write(&tmp, text)
+            let write: &dyn Fn(&mut dyn std::io::Write) -> std::io::Result<()> = if is_json {
+                &|w| write_stats_json(w, lab, &extra)
+            } else {
+                &|w| write_stats_csv(w, &lab.stats)
+            };
+            to(tmp.clone(), write)
                 .and_then(|_| std::fs::rename(&tmp, p))
                 .map_err(|e| {
                     let _ = std::fs::remove_file(&tmp);

@@ -1553,3 +1553,66 @@ fn bad_label_overlays_give_clear_errors() {
         s(&out),
     ]));
 }
+
+/// Labelling a noisy mask (a component per few voxels) within a small
+/// `--memory`: the bookkeeping of its pieces would exceed the budget, so
+/// the job stops with an error that says so and how much it would take,
+/// instead of growing past it (a user trial's 128 MiB job peaked at
+/// 2.6 GiB); the same job with room enough labels the volume.
+#[test]
+fn labelling_a_noisy_mask_keeps_to_the_memory_budget_or_says_why_not() {
+    let d = tempfile::tempdir().unwrap();
+    let raw = d.path().join("noise.raw");
+    let n = 160usize;
+    let mut seed = 7u64;
+    let v: Vec<u8> = (0..n * n * n)
+        .map(|_| {
+            seed = seed
+                .wrapping_mul(6364136223846793005)
+                .wrapping_add(1442695040888963407);
+            (seed >> 56) as u8
+        })
+        .collect();
+    std::fs::write(&raw, v).unwrap();
+    let store = d.path().join("noise.ome.zarr");
+    ok(run(&[
+        "convert",
+        s(&raw),
+        s(&store),
+        "--dims",
+        "160x160x160",
+        "--dtype",
+        "u8",
+        "--quiet",
+    ]));
+    let o = run(&[
+        "process",
+        s(&store),
+        "threshold(200)|label(6)",
+        "--out",
+        "n",
+        "--memory",
+        "96MiB",
+        "--quiet",
+    ]);
+    let e = String::from_utf8_lossy(&o.stderr);
+    assert_eq!(o.status.code(), Some(1), "{e}");
+    assert!(
+        e.contains("pieces of components") && e.contains("memory budget"),
+        "{e}"
+    );
+    assert!(!store.join("labels/n").exists());
+    let o = run(&[
+        "process",
+        s(&store),
+        "threshold(200)|label(6)",
+        "--out",
+        "n",
+        "--memory",
+        "1GiB",
+        "--quiet",
+    ]);
+    let out = String::from_utf8_lossy(&o.stdout);
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    assert!(out.contains(" labels)"), "{out}");
+}
