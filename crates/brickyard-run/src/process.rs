@@ -565,6 +565,21 @@ pub fn run(
                     );
                 }
                 opts.memory -= kept;
+                // A threshold in the wrong units leaves nothing, or
+                // everything, in the foreground: say so (the job is not
+                // wrong, but hardly what was meant).
+                let voxels: u64 = lab.dims.iter().product();
+                if lab.count() == 0 {
+                    eprintln!(
+                        "note: no voxel is in the mask, so there are no labels: threshold(t) keeps \
+                         values above t, in the image's own values (`brickyard info` shows them)"
+                    );
+                } else if lab.count() == 1 && lab.stats[0].voxels == voxels {
+                    eprintln!(
+                        "note: every voxel is in the mask, one label covers the volume: threshold(t) \
+                         keeps values above t, in the image's own values (`brickyard info` shows them)"
+                    );
+                }
                 let lab = Arc::new(lab);
                 labeling = Some(lab.clone());
                 Arc::new(LabelSource::new(built.source.clone(), built.channel, lab))

@@ -119,14 +119,17 @@ pub struct RenderCmd {
     /// layer that holds it (one layer, not a blend of two).
     #[arg(long, allow_negative_numbers = true)]
     slice_z: Option<f64>,
-    /// Slice: a point of the plane in world coordinates X,Y,Z (instead of
+    /// Slice: a point of the plane in world coordinates X,Y,Z (the
+    /// volume's corner at 0, voxels `spacing` apart: the store's
+    /// translation is not added; as cameras are given) (instead of
     /// --slice-z; as the viewer's saved views give it).
     #[arg(long, allow_hyphen_values = true)]
     slice_origin: Option<String>,
     /// Slice: the plane's normal X,Y,Z (default 0,0,1).
     #[arg(long, allow_hyphen_values = true)]
     slice_normal: Option<String>,
-    /// Render this level only (default: automatic level of detail).
+    /// Render this level only (default: automatic level of detail); a pool
+    /// too small for its bricks draws coarser and says so.
     #[arg(long, allow_negative_numbers = true)]
     level: Option<usize>,
     /// Automatic level of detail: shift by this many levels (negative = finer).

@@ -184,7 +184,9 @@ struct ConvertCmd {
     /// INPUT... OUTPUT: one input, or several inputs of one grid (same
     /// shape, voxel type, spacing and origin) stored as the channels of
     /// one volume, in order, named after the files.
-    #[arg(required = true, num_args = 2.., value_name = "INPUT... OUTPUT")]
+    // (Taken in any number of runs, options between them: `convert IN
+    // --spacing 1,1,4 OUT`; at least two are checked when run.)
+    #[arg(required = true, num_args = 1.., action = clap::ArgAction::Append, value_name = "INPUT... OUTPUT")]
     paths: Vec<PathBuf>,
     /// Channel names, comma-separated (one per channel; default: the input
     /// files' names), stored in the OME-Zarr `omero` metadata.
@@ -516,7 +518,13 @@ fn run(cmd: Cmd, cluster: Option<&dist::Cluster>) -> Result<()> {
                 }
                 _ => bail!("raw input needs both --dims and --dtype"),
             };
-            let (output, inputs) = c.paths.split_last().expect("clap asks for two paths");
+            if c.paths.len() < 2 {
+                bail!(
+                    "convert: expected INPUT... OUTPUT, found one path ({}): name the store to write",
+                    c.paths[0].display()
+                );
+            }
+            let (output, inputs) = c.paths.split_last().expect("two paths at least");
             let opts = ImportOptions {
                 raw,
                 zarr_level: c.level,

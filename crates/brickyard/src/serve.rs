@@ -51,8 +51,9 @@ pub struct ServeCmd {
     /// folders of stores (each store under /<folder>/<store>/).
     #[arg(required = true)]
     pub stores: Vec<PathBuf>,
-    /// Address to bind. Anything but loopback needs a token.
-    #[arg(long, default_value = "127.0.0.1")]
+    /// Address to bind (an IP address, or `localhost`). Anything but
+    /// loopback needs a token.
+    #[arg(long, default_value = "127.0.0.1", value_parser = parse_bind)]
     pub bind: IpAddr,
     /// Port (0: any free one; the address is printed on the first line).
     #[arg(long, default_value_t = 8000)]
@@ -177,6 +178,16 @@ fn is_loopback(ip: IpAddr) -> bool {
     ip.is_loopback()
 }
 
+/// `--bind`: an IP address, or `localhost` (127.0.0.1).
+fn parse_bind(s: &str) -> std::result::Result<IpAddr, String> {
+    if s.eq_ignore_ascii_case("localhost") {
+        return Ok(IpAddr::from([127, 0, 0, 1]));
+    }
+    s.parse().map_err(|_| {
+        format!("expected an IP address (e.g. 127.0.0.1, 0.0.0.0, ::1) or localhost, found {s:?}")
+    })
+}
+
 fn read_token(c: &ServeCmd) -> Result<Option<String>> {
     let t = match (&c.token, &c.token_file) {
         (Some(t), _) => Some(t.trim().to_string()),
@@ -200,6 +211,12 @@ fn read_token(c: &ServeCmd) -> Result<Option<String>> {
 
 fn site(c: &ServeCmd) -> Result<Site> {
     let token = read_token(c)?;
+    if let Some(t) = token.as_ref().filter(|t| t.len() < 16) {
+        eprintln!(
+            "note: a token of {} characters is easy to guess; use at least 16 (e.g. `openssl rand -hex 16`)",
+            t.len()
+        );
+    }
     if !is_loopback(c.bind) && token.is_none() {
         bail!(
             "--bind {}: serving beyond this machine (a non-loopback address) needs a bearer \

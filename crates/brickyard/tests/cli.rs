@@ -2023,3 +2023,32 @@ fn a_slice_shows_one_layer_not_a_blend_of_two() {
         );
     }
 }
+
+/// Options may stand between `convert`'s paths (`convert IN --spacing
+/// 1,1,4 OUT` was refused: "2 values required"); one path alone is named.
+#[test]
+fn options_may_stand_between_convert_paths() {
+    let d = tempfile::tempdir().unwrap();
+    let raw = d.path().join("v.raw");
+    std::fs::write(&raw, vec![9u8; 8 * 8 * 8]).unwrap();
+    let out = d.path().join("v.ome.zarr");
+    let o = run(&[
+        "convert",
+        s(&raw),
+        "--dims",
+        "8x8x8",
+        "--dtype",
+        "u8",
+        "--spacing",
+        "1,1,4",
+        s(&out),
+        "--quiet",
+    ]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    let meta = std::fs::read_to_string(out.join("zarr.json")).unwrap();
+    assert!(meta.contains("4.0"), "{meta}");
+    fails_with(
+        &run(&["convert", s(&raw), "--dims", "8x8x8", "--dtype", "u8"]),
+        &["INPUT... OUTPUT", "one path"],
+    );
+}

@@ -1601,6 +1601,21 @@ fn labelling_a_noisy_mask_keeps_to_the_memory_budget_or_says_why_not() {
         e.contains("pieces of components") && e.contains("memory budget"),
         "{e}"
     );
+    // A threshold above every value: no labels, and a note saying why.
+    let o = run(&[
+        "process",
+        s(&store),
+        "threshold(255)|label(6)",
+        "--out",
+        "none",
+        "--quiet",
+    ]);
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    assert!(
+        String::from_utf8_lossy(&o.stderr).contains("no voxel is in the mask"),
+        "{}",
+        String::from_utf8_lossy(&o.stderr)
+    );
     assert!(!store.join("labels/n").exists());
     let o = run(&[
         "process",
