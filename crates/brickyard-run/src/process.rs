@@ -664,9 +664,8 @@ pub fn run(
             };
             to(tmp.clone(), write)
                 .and_then(|_| std::fs::rename(&tmp, p))
-                .map_err(|e| {
+                .inspect_err(|_| {
                     let _ = std::fs::remove_file(&tmp);
-                    e
                 })
                 .with_context(|| format!("{}: cannot write", p.display()))?;
         }

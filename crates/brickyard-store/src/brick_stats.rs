@@ -311,6 +311,8 @@ impl LevelStats {
                                 let mut vals = buf[i as usize..i as usize + row]
                                     .chunks_exact(std::mem::size_of::<T>())
                                     .map(<T as Sample>::from_le);
+                                // (Not NaN: the one value unequal to itself.)
+                                #[allow(clippy::eq_op)]
                                 let Some(first) = vals.by_ref().find(|v| v == v) else {
                                     continue;
                                 };

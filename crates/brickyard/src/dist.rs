@@ -37,6 +37,7 @@ pub fn agreed(e: &anyhow::Error) -> bool {
 /// How many processes an MPI launcher started with this one, from the
 /// variables Open MPI (`OMPI_COMM_WORLD_SIZE`) and MPICH's Hydra or PMI
 /// (`PMI_SIZE`) set; `None` when not under one.
+#[cfg(not(feature = "mpi"))]
 pub fn launcher_size() -> Option<usize> {
     ["OMPI_COMM_WORLD_SIZE", "PMI_SIZE"]
         .iter()
