@@ -273,6 +273,35 @@ fn add_label(dir: &Path, name: &str) -> Result<()> {
     Ok(())
 }
 
+/// The `labels` group `output` lies in when it is `IMAGE/labels/NAME` of
+/// an OME-Zarr image (its `zarr.json` has `multiscales`): where a label
+/// image converted from a file is published as `process` publishes its.
+pub fn label_group_of(output: &Path) -> Option<PathBuf> {
+    let group = output
+        .parent()
+        .filter(|p| p.file_name().is_some_and(|n| n == "labels"))?;
+    let image = group.parent()?;
+    let j = read_json(&image.join("zarr.json")).ok()?;
+    j.pointer("/attributes/ome/multiscales")?;
+    Some(group.to_path_buf())
+}
+
+/// Mark the label image at `output` as its image's (`image-label`, source
+/// `../../`) and list it in `group` (`labels/zarr.json`, under the
+/// group's lock).
+pub fn publish_label_image(group: &Path, output: &Path) -> Result<()> {
+    let meta = output.join("zarr.json");
+    let mut j = read_json(&meta)?;
+    j["attributes"]["ome"]["image-label"] =
+        json!({"version": "0.5", "source": {"image": "../../"}});
+    write_json(&meta, &j)?;
+    let name = output
+        .file_name()
+        .and_then(|n| n.to_str())
+        .with_context(|| format!("{}: a label image needs a UTF-8 name", output.display()))?;
+    add_label(group, name)
+}
+
 /// The least `--memory` a job takes whose filters hold `filters` bytes
 /// (one block at a time per stage) and whose result's pyramid writer needs
 /// `writer`: the filters get at most half of it, the input's chunk cache

@@ -551,7 +551,35 @@ fn run(cmd: Cmd, cluster: Option<&dist::Cluster>) -> Result<()> {
                 }
                 Box::new(stack)
             };
-            run_convert(src.as_ref(), output, &c.pyramid, cluster)
+            // Labels written into an image's `labels` group: the group is
+            // made when missing, and once written the label image is
+            // marked as the image's and listed, as `process` publishes.
+            let group = c
+                .pyramid
+                .labels
+                .then(|| brickyard_run::process::label_group_of(output))
+                .flatten();
+            if let Some(g) = &group {
+                let image =
+                    brickyard_store::import::zarr::open(g.parent().expect("a store above"), 0)?
+                        .meta()
+                        .dims;
+                let dims = src.meta().dims;
+                if dims != image {
+                    eprintln!(
+                        "note: {} is {dims:?} voxels (z, y, x), the image {image:?}: it is listed, \
+                         but drawn over the image (render --labels) only on the image's grid",
+                        inputs[0].display()
+                    );
+                }
+                std::fs::create_dir_all(g)
+                    .with_context(|| format!("{}: cannot create", g.display()))?;
+            }
+            run_convert(src.as_ref(), output, &c.pyramid, cluster)?;
+            if let Some(g) = group.filter(|_| dist::rank_size(cluster).0 == 0) {
+                brickyard_run::process::publish_label_image(&g, output)?;
+            }
+            Ok(())
         }
         Cmd::Process(p) => process::run(p),
         Cmd::Info { path, json, check } => {

@@ -211,12 +211,6 @@ fn read_token(c: &ServeCmd) -> Result<Option<String>> {
 
 fn site(c: &ServeCmd) -> Result<Site> {
     let token = read_token(c)?;
-    if let Some(t) = token.as_ref().filter(|t| t.len() < 16) {
-        eprintln!(
-            "note: a token of {} characters is easy to guess; use at least 16 (e.g. `openssl rand -hex 16`)",
-            t.len()
-        );
-    }
     if !is_loopback(c.bind) && token.is_none() {
         bail!(
             "--bind {}: serving beyond this machine (a non-loopback address) needs a bearer \
@@ -362,6 +356,13 @@ pub fn run(c: ServeCmd) -> Result<()> {
             ""
         }
     );
+    // (After the address: the first line gives it.)
+    if let Some(t) = site.token.as_ref().filter(|t| t.len() < 16) {
+        eprintln!(
+            "note: a token of {} characters is easy to guess; use at least 16 (e.g. `openssl rand -hex 16`)",
+            t.len()
+        );
+    }
     if site.web.is_some() {
         let first = names.iter().find(|n| n.as_str() != "web");
         eprintln!(

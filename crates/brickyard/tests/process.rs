@@ -1512,15 +1512,24 @@ fn bad_label_overlays_give_clear_errors() {
     // converted with the TIFF's own spacing (1 in every axis), listed.
     let tif =
         Path::new(env!("CARGO_MANIFEST_DIR")).join("../../../shared/data/nuclei-labels-u32.tif");
+    // `convert --labels` into the store's labels group lists the image and
+    // marks it as the store's (it used to be written unlisted).
     let other = store.join("labels").join("truth");
     ok(run(&["convert", s(&tif), s(&other), "--labels", "--quiet"]));
     let list = store.join("labels").join("zarr.json");
-    let mut j: serde_json::Value = serde_json::from_slice(&std::fs::read(&list).unwrap()).unwrap();
-    j["attributes"]["ome"]["labels"]
-        .as_array_mut()
-        .unwrap()
-        .push("truth".into());
-    std::fs::write(&list, j.to_string()).unwrap();
+    let j: serde_json::Value = serde_json::from_slice(&std::fs::read(&list).unwrap()).unwrap();
+    let names = j["attributes"]["ome"]["labels"].as_array().unwrap();
+    assert_eq!(
+        names.iter().filter(|n| *n == "truth").count(),
+        1,
+        "{names:?}"
+    );
+    let m: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(other.join("zarr.json")).unwrap()).unwrap();
+    assert_eq!(
+        m["attributes"]["ome"]["image-label"]["source"]["image"],
+        "../../"
+    );
     fails(
         &["--labels", "truth"],
         &[
