@@ -36,6 +36,7 @@ use crate::host_cache::HostCache;
 use crate::ranges::BrickRanges;
 use brickyard_core::{dispatch_dtype, Dims3, Sample};
 use brickyard_store::brick_stats::LevelStats;
+use brickyard_store::brick_stats::ReadBox;
 use brickyard_store::error::{Result, StoreError};
 use brickyard_store::import::zarr::{open, SharedChunkCache};
 use brickyard_store::omezarr::{read_multiscale, STATS_DIR};
@@ -213,16 +214,15 @@ impl Shared {
             // every store brick the read touched, not only of bricks that
             // came out empty: a lost chunk beside chunks that were read
             // leaves a brick that is partly zeros.
-            st.check_lost_read(
-                &*level.src,
-                c,
+            let r = ReadBox {
                 lo,
                 hi,
                 buf,
-                g.padded(),
-                reg.at,
-                g.dtype.size() as u64,
-            )?;
+                dims: g.padded(),
+                at: reg.at,
+                es: g.dtype.size() as u64,
+            };
+            st.check_lost_read(&*level.src, c, &r)?;
         }
         let brick = finish_brick(g, *key, data, &reg);
         if let Some(st) = &level.stats {
@@ -238,7 +238,15 @@ impl Shared {
                 if brick.min < lo_s || brick.max > hi_s {
                     if let BrickContent::Data(d) = &brick.content {
                         let at = [0, 1, 2].map(|a| reg.at[a] + o[a] - lo[a]);
-                        st.check_range_read(&*level.src, c, o, e, d, g.padded(), at, g.dtype)?;
+                        let r = ReadBox {
+                            lo: o,
+                            hi: e,
+                            buf: d,
+                            dims: g.padded(),
+                            at,
+                            es: g.dtype.size() as u64,
+                        };
+                        st.check_range_read(&*level.src, c, &r, g.dtype)?;
                     }
                     return Err(StoreError::invalid(
                         level

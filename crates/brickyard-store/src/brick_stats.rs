@@ -48,6 +48,41 @@ fn all_zero(b: &[u8]) -> bool {
     or == 0 && rest == 0
 }
 
+/// A read as the checks see it: the voxels `[lo, hi)` of a level, placed
+/// at `at` in a box of `dims` voxels (`[z, y, x]`) of `es` bytes each,
+/// held in `buf`.
+pub struct ReadBox<'a> {
+    pub lo: Dims3,
+    pub hi: Dims3,
+    pub buf: &'a [u8],
+    pub dims: Dims3,
+    pub at: Dims3,
+    pub es: u64,
+}
+
+impl ReadBox<'_> {
+    fn is_empty(&self) -> bool {
+        (0..3).any(|a| self.lo[a] >= self.hi[a])
+    }
+
+    /// The part `[blo, bhi)` of store brick `b` (bricks of `sb`) inside
+    /// the read.
+    fn part(&self, b: Dims3, sb: Dims3) -> (Dims3, Dims3) {
+        (
+            [0, 1, 2].map(|a| (b[a] * sb[a]).max(self.lo[a])),
+            [0, 1, 2].map(|a| ((b[a] + 1) * sb[a]).min(self.hi[a])),
+        )
+    }
+
+    /// The bytes of voxels `x0..x1` of row `(z, y)` (level coordinates).
+    fn row(&self, z: u64, y: u64, x0: u64, x1: u64) -> &[u8] {
+        let (lo, at, d) = (self.lo, self.at, self.dims);
+        let i = (((z - lo[0] + at[0]) * d[1] + (y - lo[1] + at[1])) * d[2] + (x0 - lo[2] + at[2]))
+            * self.es;
+        &self.buf[i as usize..(i + (x1 - x0) * self.es) as usize]
+    }
+}
+
 /// A decoded chunk of the statistics array, `None` when unreadable.
 type StatsChunk = Option<Arc<Vec<f64>>>;
 
@@ -220,71 +255,44 @@ impl LevelStats {
         Ok(())
     }
 
-    /// [`check_lost`](Self::check_lost) of a read of `[lo, hi)` of
-    /// channel `c` into a box of `dims` voxels of `es` bytes each, placed
-    /// at `at` in `buf`: a store brick counts as read as zeros when every
+    /// [`check_lost`](Self::check_lost) of the read `r` of channel `c`: a
+    /// store brick counts as read as zeros when every
     /// byte of its part of the region is 0 (the scan stops at the first
     /// other byte, so bricks holding data cost a few bytes' look).
-    #[allow(clippy::too_many_arguments)]
-    pub fn check_lost_read(
-        &self,
-        src: &dyn VolumeSource,
-        c: u64,
-        lo: Dims3,
-        hi: Dims3,
-        buf: &[u8],
-        dims: Dims3,
-        at: Dims3,
-        es: u64,
-    ) -> Result<()> {
-        if (0..3).any(|a| lo[a] >= hi[a]) {
+    pub fn check_lost_read(&self, src: &dyn VolumeSource, c: u64, r: &ReadBox<'_>) -> Result<()> {
+        if r.is_empty() {
             return Ok(());
         }
-        let sb = self.brick;
         let zero = |b: Dims3| {
-            let blo = [0, 1, 2].map(|a| (b[a] * sb[a]).max(lo[a]));
-            let bhi = [0, 1, 2].map(|a| ((b[a] + 1) * sb[a]).min(hi[a]));
-            let row = ((bhi[2] - blo[2]) * es) as usize;
-            (blo[0]..bhi[0]).all(|z| {
-                (blo[1]..bhi[1]).all(|y| {
-                    let i = (((z - lo[0] + at[0]) * dims[1] + (y - lo[1] + at[1])) * dims[2]
-                        + (blo[2] - lo[2] + at[2]))
-                        * es;
-                    all_zero(&buf[i as usize..i as usize + row])
-                })
-            })
+            let (blo, bhi) = r.part(b, self.brick);
+            (blo[0]..bhi[0])
+                .all(|z| (blo[1]..bhi[1]).all(|y| all_zero(r.row(z, y, blo[2], bhi[2]))))
         };
-        self.check_lost(src, c, lo, hi, zero)
+        self.check_lost(src, c, r.lo, r.hi, zero)
     }
 
     /// Values outside the statistics' range among the store bricks of
-    /// channel `c` that a read of `[lo, hi)` into a box of `dims` voxels
-    /// at `at` of `buf` (native-endian `dtype`) touched: an error naming
+    /// channel `c` that the read `r` (native-endian `dtype`) touched: an
+    /// error naming
     /// the chunk's file. The codecs here carry no checksum, so a chunk
     /// whose bytes changed can decode to other values; the statistics,
     /// written from the stored voxels, tell (NaN is ignored).
-    #[allow(clippy::too_many_arguments)]
     pub fn check_range_read(
         &self,
         src: &dyn VolumeSource,
         c: u64,
-        lo: Dims3,
-        hi: Dims3,
-        buf: &[u8],
-        dims: Dims3,
-        at: Dims3,
+        r: &ReadBox<'_>,
         dtype: brickyard_core::DType,
     ) -> Result<()> {
         use brickyard_core::Sample;
-        if (0..3).any(|a| lo[a] >= hi[a]) {
+        if r.is_empty() {
             return Ok(());
         }
         let sb = self.brick;
-        let es = dtype.size() as u64;
-        let r = [0, 1, 2].map(|a| lo[a] / sb[a]..=(hi[a] - 1) / sb[a]);
-        for bz in r[0].clone() {
-            for by in r[1].clone() {
-                for bx in r[2].clone() {
+        let span = [0, 1, 2].map(|a| r.lo[a] / sb[a]..=(r.hi[a] - 1) / sb[a]);
+        for bz in span[0].clone() {
+            for by in span[1].clone() {
+                for bx in span[2].clone() {
                     let b = [bz, by, bx];
                     let Some((mn, mx)) = self.get(c, b) else {
                         continue;
@@ -292,9 +300,7 @@ impl LevelStats {
                     if mn.is_nan() || mx.is_nan() {
                         continue;
                     }
-                    let blo = [0, 1, 2].map(|a| (b[a] * sb[a]).max(lo[a]));
-                    let bhi = [0, 1, 2].map(|a| ((b[a] + 1) * sb[a]).min(hi[a]));
-                    let row = ((bhi[2] - blo[2]) * es) as usize;
+                    let (blo, bhi) = r.part(b, sb);
                     let (vmin, vmax) = brickyard_core::dispatch_dtype!(dtype, T => {
                         // In the type itself, a row at a time (selects the
                         // compiler turns into vector min/max); NaN fails
@@ -302,13 +308,10 @@ impl LevelStats {
                         let mut acc: Option<(T, T)> = None;
                         for z in blo[0]..bhi[0] {
                             for y in blo[1]..bhi[1] {
-                                let i = (((z - lo[0] + at[0]) * dims[1] + (y - lo[1] + at[1]))
-                                    * dims[2]
-                                    + (blo[2] - lo[2] + at[2]))
-                                    * es;
                                 // (The element size a constant of the type:
                                 // a dynamic one keeps the loop scalar.)
-                                let mut vals = buf[i as usize..i as usize + row]
+                                let mut vals = r
+                                    .row(z, y, blo[2], bhi[2])
                                     .chunks_exact(std::mem::size_of::<T>())
                                     .map(<T as Sample>::from_le);
                                 // (Not NaN: the one value unequal to itself.)

@@ -595,9 +595,16 @@ impl ZarrSource {
         }
         let lo = region.clone().map(|r| r.start);
         let hi = region.clone().map(|r| r.end);
-        let es = self.meta.dtype.size() as u64;
-        st.check_lost_read(self, c as u64, lo, hi, buf, dims, at, es)?;
-        st.check_range_read(self, c as u64, lo, hi, buf, dims, at, self.meta.dtype)
+        let r = crate::brick_stats::ReadBox {
+            lo,
+            hi,
+            buf,
+            dims,
+            at,
+            es: self.meta.dtype.size() as u64,
+        };
+        st.check_lost_read(self, c as u64, &r)?;
+        st.check_range_read(self, c as u64, &r, self.meta.dtype)
     }
 
     /// Keep up to `bytes` of decoded chunks, so that reads of overlapping
