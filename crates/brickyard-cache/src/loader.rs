@@ -198,6 +198,7 @@ impl Shared {
         // into it, then the apron outside the level repeats the edge.
         let mut data = brick_buffer(g);
         let buf = Arc::get_mut(&mut data).expect("a new buffer is not shared");
+        brickyard_store::import::zarr::take_fill_read();
         let read = level.src.read_region_into(
             key.channel as usize,
             [lo[0]..hi[0], lo[1]..hi[1], lo[2]..hi[2]],
@@ -207,7 +208,13 @@ impl Shared {
         );
         self.simulated_delay();
         read?;
-        if let Some(st) = &level.stats {
+        // (Only a read that met a chunk read as the fill value can have
+        // lost one: the others skip the look at their voxels.)
+        if let Some(st) = level
+            .stats
+            .as_ref()
+            .filter(|_| brickyard_store::import::zarr::take_fill_read())
+        {
             // Zeros where the statistics say there is data: the store lost
             // it (a shard file removed, a chunk dropped from its index),
             // which a Zarr reader cannot tell from the fill value. Asked of

@@ -488,7 +488,9 @@ impl ShardReader {
         &self.inner
     }
 
-    fn index(&self, file: &Path, shard_idx: &[u64]) -> Result<ShardIndex> {
+    /// The checked index of shard `shard_idx` (at `file`), read once and
+    /// kept.
+    pub(crate) fn index(&self, file: &Path, shard_idx: &[u64]) -> Result<ShardIndex> {
         if let Some(ix) = lock(&self.indexes).get(shard_idx) {
             return Ok(ix.clone());
         }
@@ -670,6 +672,27 @@ impl ShardReader {
     }
 }
 
+thread_local! {
+    /// Whether a read on this thread since the last [`take_fill_read`] may
+    /// have met a chunk the store does not hold (read as the fill value).
+    static FILL_READ: std::cell::Cell<bool> = const { std::cell::Cell::new(false) };
+}
+
+/// Note that a read met (or, through a path that cannot tell, may have
+/// met) a chunk read as the fill value.
+pub(crate) fn note_fill() {
+    FILL_READ.with(|f| f.set(true));
+}
+
+/// Whether the reads of this thread since the last call met a chunk read
+/// as the fill value (an absent chunk, or one not stored because it was
+/// all fill), or went through a path that cannot tell; cleared. A reader
+/// that checks for lost chunks need not look at a read for which this is
+/// false: none of its chunks was absent.
+pub fn take_fill_read() -> bool {
+    FILL_READ.with(|f| f.replace(false))
+}
+
 /// Copy the part of `chunk` inside `ranges` (array axis order) into `out`:
 /// the element at array position `p` goes to element
 /// `base + Σ_a (p[a] − ranges[a].start) · stride[a]` of `out`, whose
@@ -684,16 +707,19 @@ pub(crate) fn copy_into(
     stride: &[usize],
 ) {
     match &chunk.body {
-        Body::Fill => copy_box(
-            &chunk.origin,
-            &chunk.dims,
-            None,
-            ranges,
-            fill,
-            out,
-            base,
-            stride,
-        ),
+        Body::Fill => {
+            note_fill();
+            copy_box(
+                &chunk.origin,
+                &chunk.dims,
+                None,
+                ranges,
+                fill,
+                out,
+                base,
+                stride,
+            )
+        }
         Body::Data(d) => copy_box(
             &chunk.origin,
             &chunk.dims,

@@ -40,6 +40,8 @@ pub fn chunks_decoded() -> u64 {
     super::chunks::CHUNKS_DECODED.load(std::sync::atomic::Ordering::Relaxed)
 }
 
+pub use super::chunks::take_fill_read;
+
 /// Shards whose index was checked, remembered per source (the set is
 /// cleared when it grows past this, so it stays small).
 const CHECKED_SHARDS_MAX: usize = 1 << 16;
@@ -645,6 +647,9 @@ impl ZarrSource {
         if let Some(d) = &self.direct {
             return d.load(&self.array, &self.dir, keys);
         }
+        // (The Zarr library gives absent chunks as the fill value without
+        // saying so.)
+        super::chunks::note_fill();
         let n = self.grain.len();
         let shape = self.array.shape();
         keys.iter()
@@ -889,7 +894,12 @@ impl VolumeSource for ZarrSource {
             entry = entry * per + k;
             pos.push(k);
         }
-        let index = shard::read_index(&file, &sc.layout).ok()??;
+        // The index the reads used, kept by the direct reader (a lookup
+        // per brick checked, not a read of the shard's index each time).
+        let index = match &self.direct {
+            Some(d) => d.index(&file, &grid).ok()??,
+            None => std::sync::Arc::new(shard::read_index(&file, &sc.layout).ok()??),
+        };
         (index.get(entry as usize)? == &[u64::MAX, u64::MAX]).then(|| {
             (
                 file,
@@ -939,6 +949,7 @@ impl VolumeSource for ZarrSource {
         let order: Vec<usize> = self.zyx.iter().flatten().copied().collect();
         let natural = order.windows(2).all(|w| w[0] < w[1]);
         let path = &self.meta.path;
+        super::chunks::note_fill();
         dispatch_dtype!(self.meta.dtype, T => {
             if self.shards.len() > SHARD_CACHE_MAX {
                 self.shards.clear();
