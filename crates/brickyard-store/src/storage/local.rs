@@ -12,6 +12,11 @@ use std::path::Path;
 /// until something writes into it. A directory opens (the callers treat it
 /// as no file); anything else but a regular file is refused, by name.
 pub(crate) fn open_regular(p: &Path) -> std::io::Result<File> {
+    open_regular_with(p).map(|(f, _)| f)
+}
+
+/// [`open_regular`], with the metadata it looked at (one `fstat`).
+fn open_regular_with(p: &Path) -> std::io::Result<(File, std::fs::Metadata)> {
     let mut o = std::fs::OpenOptions::new();
     o.read(true);
     #[cfg(unix)]
@@ -20,9 +25,10 @@ pub(crate) fn open_regular(p: &Path) -> std::io::Result<File> {
         o.custom_flags(libc::O_NONBLOCK);
     }
     let f = o.open(p)?;
-    let kind = f.metadata()?.file_type();
+    let meta = f.metadata()?;
+    let kind = meta.file_type();
     if kind.is_file() || kind.is_dir() {
-        Ok(f)
+        Ok((f, meta))
     } else {
         Err(not_regular())
     }
@@ -33,14 +39,6 @@ fn not_regular() -> std::io::Error {
         ErrorKind::InvalidInput,
         "not a regular file (a FIFO, socket or device stands where a store's file belongs)",
     )
-}
-
-fn open(p: &Path) -> Result<Option<File>> {
-    match open_regular(p) {
-        Ok(f) => Ok(Some(f)),
-        Err(e) if e.kind() == ErrorKind::NotFound => Ok(None),
-        Err(e) => Err(StoreError::io(p, e)),
-    }
 }
 
 pub(super) fn size(p: &Path) -> Result<Option<u64>> {
@@ -55,14 +53,12 @@ pub(super) fn size(p: &Path) -> Result<Option<u64>> {
 
 /// `p` opened, and its length; `None` when there is no such file.
 fn open_file(p: &Path) -> Result<Option<(File, u64)>> {
-    let Some(f) = open(p)? else {
-        return Ok(None);
-    };
-    let meta = f.metadata().at(p)?;
-    if meta.is_dir() {
-        return Ok(None);
+    match open_regular_with(p) {
+        Ok((_, meta)) if meta.is_dir() => Ok(None),
+        Ok((f, meta)) => Ok(Some((f, meta.len()))),
+        Err(e) if e.kind() == ErrorKind::NotFound => Ok(None),
+        Err(e) => Err(StoreError::io(p, e)),
     }
-    Ok(Some((f, meta.len())))
 }
 
 pub(super) fn read_spans(p: &Path, spans: &[Span]) -> Result<Option<Vec<Vec<u8>>>> {
