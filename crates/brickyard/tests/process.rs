@@ -1158,6 +1158,17 @@ fn an_interrupted_conversion_is_refused() {
     assert!(!converted.exists(), "a store was converted from it");
 }
 
+/// `args` exits with status 1 and its stderr holds each of `words`.
+#[track_caller]
+fn fails_naming(args: &[&str], words: &[&str]) {
+    let o = run(args);
+    let e = String::from_utf8_lossy(&o.stderr);
+    assert_eq!(o.status.code(), Some(1), "{args:?}: {e}");
+    for w in words {
+        assert!(e.contains(w), "{args:?}: {e} should mention {w:?}");
+    }
+}
+
 #[test]
 fn a_store_that_lost_a_shard_fails_process_and_convert_with_the_file_named() {
     let d = tempfile::tempdir().unwrap();
@@ -1180,12 +1191,9 @@ fn a_store_that_lost_a_shard_fails_process_and_convert_with_the_file_named() {
         vec!["process", s(&store), "gauss(1)", "--out", "g"],
         vec!["convert", s(&store), s(&converted)],
     ] {
-        let o = run(&args);
-        let e = String::from_utf8_lossy(&o.stderr);
-        assert_eq!(o.status.code(), Some(1), "{args:?}: {e}");
-        assert!(
-            e.contains("0/c/0/0/0") && e.contains("the file is missing, but the statistics say"),
-            "{args:?}: {e}"
+        fails_naming(
+            &args,
+            &["0/c/0/0/0", "the file is missing, but the statistics say"],
         );
     }
     assert_eq!(snapshot(&store), before, "the store was changed");
@@ -1245,13 +1253,7 @@ fn a_chunk_whose_bytes_changed_fails_process_and_convert() {
         vec!["process", s(&store), "gauss(1)", "--out", "g"],
         vec!["convert", s(&store), s(&converted)],
     ] {
-        let o = run(&args);
-        let e = String::from_utf8_lossy(&o.stderr);
-        assert_eq!(o.status.code(), Some(1), "{args:?}: {e}");
-        assert!(
-            e.contains("0/c/0/0/0") && e.contains("the statistics say"),
-            "{args:?}: {e}"
-        );
+        fails_naming(&args, &["0/c/0/0/0", "the statistics say"]);
     }
     assert!(!converted.exists());
     assert!(!store.join("derived/g").exists());
