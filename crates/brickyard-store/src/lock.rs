@@ -308,6 +308,7 @@ mod tests {
         let lock = PidLock::take(&p, "writing z").unwrap();
         drop(lock);
         child.wait().unwrap();
+        std::fs::remove_dir_all(&d).unwrap();
     }
 
     #[test]

@@ -879,13 +879,11 @@ impl VolumeSource for ZarrSource {
         }
         // A shard whose index has no entry for the inner chunk (index in C
         // order over the shard's grid of inner chunks).
+        // The inner chunks are the grain (taken once when the store was
+        // opened: the library derives it from the codec's configuration
+        // through JSON on every call).
         let sc = self.shard_check.as_ref()?;
-        let inner: Vec<u64> = self
-            .array
-            .effective_subchunk_shape()?
-            .iter()
-            .map(|c| c.get())
-            .collect();
+        let inner = &self.grain;
         let mut entry = 0u64;
         let mut pos = vec![];
         for i in 0..at.len() {
