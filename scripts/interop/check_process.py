@@ -128,37 +128,49 @@ def check_labels(store, pipeline, name, mask, conn, intensity=None):
     if not np.array_equal(order, np.arange(1, n + 1)):
         fail(f"{pipeline}: labels are not numbered in raster order of their first voxel")
     # Statistics against numpy.
-    stats = read_stats(stats_file)
-    if len(stats) != n:
-        fail(f"{pipeline}: {len(stats)} rows of statistics for {n} labels")
-        return
-    counts = np.bincount(flat, minlength=n + 1)
-    boxes = ndi.find_objects(got)
-    bad = 0
-    for lab in range(1, n + 1):
-        r = stats[lab]
-        sl = boxes[lab - 1]
-        want = [counts[lab]] + [s.start for s in sl] + [s.stop - 1 for s in sl]
-        have = [int(r[k]) for k in ("voxels", "min_z", "min_y", "min_x", "max_z", "max_y", "max_x")]
-        if want != have:
-            bad += 1
-            if bad <= 3:
-                fail(f"{pipeline}: label {lab}: stats {have}, numpy {want}")
-    if intensity is not None:
-        means = ndi.mean(intensity.astype(np.float64), got, index=np.arange(1, n + 1))
-        worst = max(abs(float(stats[i + 1]["mean"]) - means[i]) / max(abs(means[i]), 1) for i in range(n))
-        if worst > 1e-9:
-            fail(f"{pipeline}: mean intensity differs from numpy by {worst:.3g} (relative)")
-    if bad:
-        fail(f"{pipeline}: {bad} labels with wrong statistics")
-    else:
-        print(f"{pipeline}: statistics of {n} labels equal numpy's")
+    compare_stats(pipeline, read_stats(stats_file), got, intensity)
     # Coarser levels are labels too: values taken from level 0 (mode).
     if len(g.attrs["ome"]["multiscales"][0]["datasets"]) > 1:
         l1 = g["1"][...]
         if not set(np.unique(l1)).issubset(set(np.unique(got))):
             fail(f"{pipeline}: level 1 holds values that level 0 does not (not a mode downsampling)")
     return got
+
+
+def compare_stats(what, stats, got, intensity=None):
+    """The statistics table's rows (voxels, box, centroid, mean) against
+    numpy and scipy.ndimage on the label volume `got`."""
+    ids = np.unique(got)
+    ids = ids[ids > 0]
+    n = len(ids)
+    if sorted(stats) != list(map(int, ids)):
+        fail(f"{what}: statistics of labels {sorted(stats)[:5]}..., the volume has {list(ids[:5])}...")
+        return
+    flat = got.ravel()
+    counts = np.bincount(flat)
+    boxes = ndi.find_objects(got)
+    centroids = ndi.center_of_mass(np.ones_like(got, dtype=np.float64), got, index=ids)
+    bad = 0
+    for i, lab in enumerate(map(int, ids)):
+        r = stats[lab]
+        sl = boxes[lab - 1]
+        want = [counts[lab]] + [s.start for s in sl] + [s.stop - 1 for s in sl]
+        have = [int(r[k]) for k in ("voxels", "min_z", "min_y", "min_x", "max_z", "max_y", "max_x")]
+        c = [float(r[k]) for k in ("centroid_z", "centroid_y", "centroid_x")]
+        if want != have or max(abs(a - b) for a, b in zip(c, centroids[i])) > 1e-9 * max(got.shape):
+            bad += 1
+            if bad <= 3:
+                fail(f"{what}: label {lab}: stats {have} {c}, numpy {want} {list(centroids[i])}")
+    if intensity is not None:
+        means = ndi.mean(intensity.astype(np.float64), got, index=ids)
+        worst = max(abs(float(stats[int(l)]["mean"]) - means[i]) / max(abs(means[i]), 1)
+                    for i, l in enumerate(ids))
+        if worst > 1e-9:
+            fail(f"{what}: mean intensity differs from numpy by {worst:.3g} (relative)")
+    if bad:
+        fail(f"{what}: {bad} labels with wrong statistics")
+    else:
+        print(f"{what}: statistics of {n} labels (voxels, box, centroid{', mean' if intensity is not None else ''}) equal numpy's")
 
 
 def smooth_volume(shape, seed):
@@ -232,8 +244,15 @@ def case_nuclei():
     got = check_labels(store, f"gauss(2)|threshold({t})|label(26)", "nuclei",
                        g.astype(np.float64) > t, 26, intensity=vol)
     check_labels(store, f"threshold({t})|label(6)", "raw6", vol > t, 6, intensity=vol)
-    # A sanity figure (not a test): against the published segmentation.
+    # The published segmentation converted into the store's labels: its
+    # statistics table is made from its voxels, with the image's means.
     gt_path = os.path.join(DATA, "nuclei-labels-u32.tif")
+    published = os.path.join(store, "labels", "published")
+    by("convert", "--labels", gt_path, published, "--brick", 32, "--shard", 64, "--quiet")
+    gt = tifffile.imread(gt_path)
+    compare_stats("convert --labels", read_stats(os.path.join(published, "_brickyard", "labels.csv")),
+                  gt, intensity=vol)
+    # A sanity figure (not a test): against the published segmentation.
     if got is not None and os.path.exists(gt_path):
         gt = tifffile.imread(gt_path)
         ious = []

@@ -30,6 +30,51 @@ impl LabelRow {
     }
 }
 
+/// Write `label`'s row of the table (with its line end).
+pub fn write_row(w: &mut dyn std::io::Write, label: u64, r: &LabelRow) -> std::io::Result<()> {
+    writeln!(
+        w,
+        "{},{},{},{},{},{},{},{},{},{},{},{}",
+        label,
+        r.voxels,
+        r.min[0],
+        r.min[1],
+        r.min[2],
+        r.max[0],
+        r.max[1],
+        r.max[2],
+        r.centroid[0],
+        r.centroid[1],
+        r.centroid[2],
+        r.mean.map(|m| m.to_string()).unwrap_or_default()
+    )
+}
+
+/// `label`'s row as the JSON object of the table's `.json` twin
+/// (non-finite numbers as `null`).
+pub fn write_json_row(w: &mut dyn std::io::Write, label: u64, r: &LabelRow) -> std::io::Result<()> {
+    let num = |v: f64| match v.is_finite() {
+        true => format!("{v}"),
+        false => "null".into(),
+    };
+    write!(
+        w,
+        "    {{\"label\": {}, \"voxels\": {}, \"min_zyx\": [{}, {}, {}], \"max_zyx\": [{}, {}, {}], \"centroid_zyx\": [{}, {}, {}], \"mean\": {}}}",
+        label,
+        r.voxels,
+        r.min[0],
+        r.min[1],
+        r.min[2],
+        r.max[0],
+        r.max[1],
+        r.max[2],
+        num(r.centroid[0]),
+        num(r.centroid[1]),
+        num(r.centroid[2]),
+        r.mean.map(num).unwrap_or_else(|| "null".into())
+    )
+}
+
 /// Whether `line` is the table's header (the mean column may be absent).
 pub fn check_header(line: &str) -> Result<(), String> {
     match line.starts_with(&HEADER[..HEADER.len() - ",mean".len()]) {

@@ -48,6 +48,19 @@ pub struct LabelStats {
     pub mean: Option<f64>,
 }
 
+impl LabelStats {
+    /// The row of the statistics table.
+    pub fn row(&self) -> brickyard_core::label_table::LabelRow {
+        brickyard_core::label_table::LabelRow {
+            voxels: self.voxels,
+            min: self.min,
+            max: self.max,
+            centroid: self.centroid,
+            mean: self.mean,
+        }
+    }
+}
+
 #[derive(Debug, Clone)]
 struct Frag {
     count: u64,
@@ -663,32 +676,9 @@ pub fn stats_csv(stats: &[LabelStats]) -> String {
 pub fn write_stats_csv(w: &mut dyn std::io::Write, stats: &[LabelStats]) -> std::io::Result<()> {
     writeln!(w, "{}", brickyard_core::label_table::HEADER)?;
     for l in stats {
-        writeln!(
-            w,
-            "{},{},{},{},{},{},{},{},{},{},{},{}",
-            l.label,
-            l.voxels,
-            l.min[0],
-            l.min[1],
-            l.min[2],
-            l.max[0],
-            l.max[1],
-            l.max[2],
-            l.centroid[0],
-            l.centroid[1],
-            l.centroid[2],
-            l.mean.map(|m| m.to_string()).unwrap_or_default()
-        )?;
+        brickyard_core::label_table::write_row(w, l.label as u64, &l.row())?;
     }
     Ok(())
-}
-
-fn json_num(v: f64) -> String {
-    if v.is_finite() {
-        format!("{v}")
-    } else {
-        "null".into()
-    }
 }
 
 /// The statistics as JSON: `{"count": N, "connectivity": C, "labels": [{...}]}`.
@@ -719,22 +709,7 @@ pub fn write_stats_json(
     write!(w, "  \"labels\": [")?;
     for (i, l) in lab.stats.iter().enumerate() {
         w.write_all(if i == 0 { b"\n" } else { b",\n" })?;
-        write!(
-            w,
-            "    {{\"label\": {}, \"voxels\": {}, \"min_zyx\": [{}, {}, {}], \"max_zyx\": [{}, {}, {}], \"centroid_zyx\": [{}, {}, {}], \"mean\": {}}}",
-            l.label,
-            l.voxels,
-            l.min[0],
-            l.min[1],
-            l.min[2],
-            l.max[0],
-            l.max[1],
-            l.max[2],
-            json_num(l.centroid[0]),
-            json_num(l.centroid[1]),
-            json_num(l.centroid[2]),
-            l.mean.map(json_num).unwrap_or_else(|| "null".into())
-        )?;
+        brickyard_core::label_table::write_json_row(w, l.label as u64, &l.row())?;
     }
     w.write_all(b"\n  ]\n}\n")
 }

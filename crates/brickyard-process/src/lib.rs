@@ -18,6 +18,7 @@ pub mod gpu;
 pub mod kernels;
 pub mod label;
 pub mod pipeline;
+pub mod tally;
 
 pub use derive::{check_live, derive_level, derive_level_within, level_factor};
 pub use filter::{Filter, FilterSource};

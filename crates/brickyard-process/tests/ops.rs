@@ -851,3 +851,102 @@ fn an_impossible_sigma_or_budget_is_an_error_not_a_panic() {
         read_all_regions(free.source.as_ref(), [5, 6, 7])
     );
 }
+
+/// The statistics table of a label volume, tallied in blocks smaller than
+/// the volume, against a naive tally voxel by voxel here: counts, boxes,
+/// centroids and means; and the two ways a volume gets no table.
+#[test]
+fn label_tables_from_voxels_equal_a_naive_tally() {
+    use brickyard_process::tally::{tally, NoTable};
+    use std::collections::BTreeMap;
+    let dims = [13, 17, 23];
+    let n = dims.iter().product::<u64>() as usize;
+    let mut r = rng(5);
+    // Runs of labels along x (as segmentations have), ids up to 40 with
+    // gaps, a third background.
+    let mut ids = vec![0u32; n];
+    let mut i = 0;
+    while i < n {
+        let id = if r() < 0.33 {
+            0
+        } else {
+            1 + (r() * 40.0) as u32 * 3
+        };
+        let run = 1 + (r() * 9.0) as usize;
+        ids[i..(i + run).min(n)].fill(id);
+        i += run;
+    }
+    let image: Vec<f32> = (0..n).map(|_| (r() * 1000.0 - 200.0) as f32).collect();
+    let (lab, im) = (Mem::new(dims, &ids), Mem::new(dims, &image));
+    let stop = AtomicBool::new(false);
+    let rows = tally(&lab, Some((&im, 0)), [4, 5, 6], 1 << 30, &NoProgress, &stop)
+        .unwrap()
+        .unwrap();
+    // The naive tally.
+    type Acc = (u64, [u64; 3], [u64; 3], [f64; 3], f64);
+    let mut want: BTreeMap<u64, Acc> = BTreeMap::new();
+    for (i, &id) in ids.iter().enumerate() {
+        if id == 0 {
+            continue;
+        }
+        let p = [
+            i as u64 / (dims[1] * dims[2]),
+            i as u64 / dims[2] % dims[1],
+            i as u64 % dims[2],
+        ];
+        let e = want
+            .entry(id as u64)
+            .or_insert((0, [u64::MAX; 3], [0; 3], [0.0; 3], 0.0));
+        e.0 += 1;
+        for a in 0..3 {
+            e.1[a] = e.1[a].min(p[a]);
+            e.2[a] = e.2[a].max(p[a]);
+            e.3[a] += p[a] as f64;
+        }
+        e.4 += image[i] as f64;
+    }
+    assert!(want.len() > 30, "a volume of many labels");
+    assert_eq!(
+        rows.iter().map(|r| r.0).collect::<Vec<_>>(),
+        want.keys().copied().collect::<Vec<_>>(),
+        "one row per label, in increasing order"
+    );
+    for (id, row) in &rows {
+        let w = &want[id];
+        assert_eq!(
+            (row.voxels, row.min, row.max),
+            (w.0, w.1, w.2),
+            "label {id}"
+        );
+        for a in 0..3 {
+            assert!(
+                (row.centroid[a] - w.3[a] / w.0 as f64).abs() < 1e-9,
+                "label {id}"
+            );
+        }
+        let mean = w.4 / w.0 as f64;
+        assert!(
+            (row.mean.unwrap() - mean).abs() < 1e-9 * mean.abs().max(1.0),
+            "label {id}"
+        );
+    }
+    // Without an image: no means.
+    let rows = tally(&lab, None, [13, 17, 23], 1 << 30, &NoProgress, &stop)
+        .unwrap()
+        .unwrap();
+    assert!(rows.iter().all(|r| r.1.mean.is_none()));
+    // A table beyond its bytes: none, saying how many labels were met.
+    let small = 10 * brickyard_process::tally::BYTES_PER_LABEL;
+    match tally(&lab, None, [4, 5, 6], small, &NoProgress, &stop).unwrap() {
+        Err(NoTable::TooMany { labels, .. }) => assert!(labels > 10),
+        other => panic!("expected too many labels, got {other:?}"),
+    }
+    // A negative value is not a label: named with its place.
+    let mut signed: Vec<i16> = ids.iter().map(|&v| v as i16).collect();
+    signed[3 * 17 * 23 + 2 * 23 + 7] = -4;
+    let neg = Mem::new(dims, &signed);
+    match tally(&neg, None, [4, 5, 6], 1 << 30, &NoProgress, &stop).unwrap() {
+        Err(NoTable::NotALabel { value, at }) => assert_eq!((value, at), (-4.0, [3, 2, 7])),
+        other => panic!("expected a value that is not a label, got {other:?}"),
+    }
+}

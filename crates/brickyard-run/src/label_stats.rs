@@ -291,6 +291,82 @@ pub fn with_boxes(
     Ok(select)
 }
 
+/// Write the statistics table of the label image at `label_dir` from its
+/// voxels (a label image converted from a file, which no labelling pass
+/// made here): `_brickyard/labels.csv` and its `.json` twin, each whole or
+/// not at all. `image`: the store it labels, whose channel 0 gives each
+/// label's mean intensity when its level 0 is on the labels' grid. The
+/// table may take `max_bytes`. `Ok(Some(why))`: no table, and why (too many
+/// labels, or a voxel that is not a label); the image stays usable.
+pub fn write_from_voxels(
+    label_dir: &Path,
+    image: Option<&Path>,
+    max_bytes: u64,
+    progress: &dyn brickyard_store::Progress,
+    cancel: &std::sync::atomic::AtomicBool,
+) -> Result<Option<String>> {
+    use brickyard_store::import::zarr;
+    use brickyard_store::VolumeSource;
+    let labels = zarr::open(label_dir, 0)?;
+    let dims = labels.meta().dims;
+    let image = match image {
+        Some(p) => {
+            let im = zarr::open(p, 0)?;
+            (im.meta().dims == dims).then_some(im)
+        }
+        None => None,
+    };
+    let intensity = image.as_ref().map(|im| (im as &dyn VolumeSource, 0));
+    let block = labels.preferred_read();
+    let rows = match brickyard_process::tally::tally(
+        &labels, intensity, block, max_bytes, progress, cancel,
+    )? {
+        Ok(rows) => rows,
+        Err(why) => return Ok(Some(why.to_string())),
+    };
+    let dir = label_dir.join("_brickyard");
+    std::fs::create_dir_all(&dir).with_context(|| format!("{}: cannot create", dir.display()))?;
+    let whole = |name: &str, f: &dyn Fn(&mut dyn std::io::Write) -> std::io::Result<()>| {
+        let path = dir.join(name);
+        let tmp = dir.join(format!(".{name}.{}.tmp", std::process::id()));
+        let write = || -> std::io::Result<()> {
+            let mut w = std::io::BufWriter::new(std::fs::File::create(&tmp)?);
+            f(&mut w)?;
+            std::io::Write::flush(&mut w)?;
+            std::fs::rename(&tmp, &path)
+        };
+        write()
+            .inspect_err(|_| {
+                let _ = std::fs::remove_file(&tmp);
+            })
+            .with_context(|| format!("{}: cannot write", path.display()))
+    };
+    whole("labels.csv", &|w| {
+        writeln!(w, "{}", label_table::HEADER)?;
+        for (id, r) in &rows {
+            label_table::write_row(w, *id, r)?;
+        }
+        Ok(())
+    })?;
+    whole("labels.json", &|w| {
+        write!(
+            w,
+            "{{\n  \"count\": {},\n  \"dims_zyx\": [{}, {}, {}],\n  \"from\": \"voxels\",\n  \"intensity_channel\": {},\n  \"labels\": [",
+            rows.len(),
+            dims[0],
+            dims[1],
+            dims[2],
+            if intensity.is_some() { "0" } else { "null" }
+        )?;
+        for (i, (id, r)) in rows.iter().enumerate() {
+            w.write_all(if i == 0 { b"\n" } else { b",\n" })?;
+            label_table::write_json_row(w, *id, r)?;
+        }
+        w.write_all(b"\n  ]\n}\n")
+    })?;
+    Ok(None)
+}
+
 /// A row of the statistics: its label and the rest.
 fn parse_row(line: &str) -> Result<(u64, LabelRow)> {
     label_table::parse_row(line).map_err(anyhow::Error::msg)

@@ -321,6 +321,34 @@ fn convert_options(p: &PyramidArgs) -> Result<ConvertOptions> {
 
 /// Convert with a progress bar and print the report; under `mpirun` the
 /// ranks share the conversion (rank 0 reports).
+/// The statistics table of a label image converted from a file (as
+/// `process` writes for the labels it makes): one more pass over its
+/// voxels, with the mean intensity of the image it is published under.
+/// Too many labels for half the memory budget, or values that are not
+/// labels, leave it without one, which is said; an interruption too.
+fn label_table(output: &Path, group: Option<&Path>, p: &PyramidArgs) -> Result<()> {
+    let memory = parse_bytes(&p.memory).context("--memory")?;
+    let bar = progress::Bar::new(p.quiet || p.json, "label statistics");
+    let image = group.and_then(Path::parent);
+    let r = brickyard_run::label_stats::write_from_voxels(output, image, memory / 2, &bar, &CANCEL);
+    bar.finish();
+    match r {
+        Ok(None) => Ok(()),
+        Ok(Some(why)) => {
+            eprintln!(
+                "note: {}: no table of label statistics ({why}); the label image is complete",
+                output.display()
+            );
+            Ok(())
+        }
+        Err(e) if CANCEL.load(Ordering::SeqCst) => Err(e.context(format!(
+            "{}: the label image is complete, its table of label statistics not written",
+            output.display()
+        ))),
+        Err(e) => Err(e.context(format!("{}: label statistics", output.display()))),
+    }
+}
+
 fn run_convert(
     src: &dyn VolumeSource,
     output: &Path,
@@ -576,8 +604,14 @@ fn run(cmd: Cmd, cluster: Option<&dist::Cluster>) -> Result<()> {
                     .with_context(|| format!("{}: cannot create", g.display()))?;
             }
             run_convert(src.as_ref(), output, &c.pyramid, cluster)?;
-            if let Some(g) = group.filter(|_| dist::rank_size(cluster).0 == 0) {
-                brickyard_run::process::publish_label_image(&g, output)?;
+            if dist::rank_size(cluster).0 != 0 {
+                return Ok(());
+            }
+            if let Some(g) = &group {
+                brickyard_run::process::publish_label_image(g, output)?;
+            }
+            if c.pyramid.labels {
+                label_table(output, group.as_deref(), &c.pyramid)?;
             }
             Ok(())
         }
