@@ -116,7 +116,18 @@ fn create_with_pid(path: &Path) -> Result<bool> {
         ".{name}.{pid}.{}.tmp",
         SERIAL.fetch_add(1, Ordering::Relaxed)
     ));
-    std::fs::write(&tmp, format!("{pid}\n")).at(&tmp)?;
+    if let Err(e) = std::fs::write(&tmp, format!("{pid}\n")) {
+        // Said of the folder: the temporary's name means nothing to a user.
+        let dir = path.parent().filter(|d| !d.as_os_str().is_empty());
+        let dir = dir.unwrap_or(Path::new("."));
+        return Err(StoreError::io(
+            dir,
+            std::io::Error::new(
+                e.kind(),
+                format!("cannot write in this folder (to take the lock {name}): {e}"),
+            ),
+        ));
+    }
     let linked = std::fs::hard_link(&tmp, path);
     let _ = std::fs::remove_file(&tmp);
     match linked {

@@ -20,12 +20,12 @@ mod vmcmd;
 pub use brickyard_run::{backend, derive, frames, memory, render, window};
 
 use anyhow::{bail, Context, Result};
-use brickyard_core::DType;
+use brickyard_core::{DType, Dims3};
 use brickyard_store::builder::partial_path;
 use brickyard_store::generate::{parse_size, Kind, Procedural};
 use brickyard_store::import::raw::RawOptions;
 use brickyard_store::import::stack::ChannelStack;
-use brickyard_store::import::{open_input, ImportOptions};
+use brickyard_store::import::{open_input, Format, ImportOptions};
 use brickyard_store::info::{format_info, human_bytes, inspect};
 use brickyard_store::{convert, Compression, ConvertOptions, VolumeSource};
 use clap::{Args, Parser, Subcommand};
@@ -198,18 +198,18 @@ struct ConvertCmd {
     /// Raw input: voxel type (u8, i8, u16, i16, u32, i32, f32, f64).
     #[arg(long)]
     dtype: Option<String>,
-    /// Raw input: little or big.
-    #[arg(long, default_value = "little")]
-    endian: String,
-    /// Raw input: number of channels (stored one after the other).
-    #[arg(long, default_value_t = 1)]
-    channels: usize,
-    /// Raw input: bytes to skip at the start of the file.
-    #[arg(long, default_value_t = 0)]
-    header_bytes: u64,
-    /// OME-Zarr input: level to convert.
-    #[arg(long, default_value_t = 0)]
-    level: usize,
+    /// Raw input: little (default) or big.
+    #[arg(long)]
+    endian: Option<String>,
+    /// Raw input: number of channels (stored one after the other; default 1).
+    #[arg(long)]
+    channels: Option<usize>,
+    /// Raw input: bytes to skip at the start of the file (default 0).
+    #[arg(long)]
+    header_bytes: Option<u64>,
+    /// OME-Zarr input: level to convert (default 0).
+    #[arg(long)]
+    level: Option<usize>,
     /// Keep the numbers as stored: do not apply the rescale the file asks
     /// for (NIfTI scl_slope/scl_inter).
     #[arg(long)]
@@ -319,8 +319,68 @@ fn convert_options(p: &PyramidArgs) -> Result<ConvertOptions> {
     })
 }
 
-/// Convert with a progress bar and print the report; under `mpirun` the
-/// ranks share the conversion (rank 0 reports).
+/// The description of the raw input `input`: its sidecar (`FILE.json`),
+/// if any, with the flags given laid over it (each flag that changes a
+/// sidecar's field is said); `None`: neither (opening it says what to
+/// give).
+fn raw_options(
+    input: &Path,
+    dims_dtype: Option<(Dims3, DType)>,
+    c: &ConvertCmd,
+) -> Result<Option<RawOptions>> {
+    let side = RawOptions::sidecar_path(input);
+    let sidecar = match side.exists() {
+        true => Some(RawOptions::read_sidecar(&side)?),
+        false => None,
+    };
+    let had = sidecar.is_some();
+    let Some(mut r) = sidecar.or_else(|| {
+        dims_dtype.map(|(dims, dtype)| RawOptions {
+            dims,
+            dtype,
+            endian: "little".into(),
+            spacing: None,
+            origin: None,
+            unit: None,
+            channels: 1,
+            header_bytes: 0,
+        })
+    }) else {
+        return Ok(None);
+    };
+    let mut changed = vec![];
+    let mut set = |name: &str, differs: bool| {
+        if had && differs {
+            changed.push(name.to_string());
+        }
+    };
+    if let Some((dims, dtype)) = dims_dtype {
+        set("dims", r.dims != dims);
+        set("dtype", r.dtype != dtype);
+        (r.dims, r.dtype) = (dims, dtype);
+    }
+    if let Some(e) = &c.endian {
+        set("endian", &r.endian != e);
+        r.endian = e.clone();
+    }
+    if let Some(n) = c.channels {
+        set("channels", r.channels != n);
+        r.channels = n;
+    }
+    if let Some(h) = c.header_bytes {
+        set("header_bytes", r.header_bytes != h);
+        r.header_bytes = h;
+    }
+    if !changed.is_empty() {
+        eprintln!(
+            "note: {}: the flags replace its {} (the sidecar's spacing, origin and unit are kept)",
+            side.display(),
+            changed.join(", ")
+        );
+    }
+    Ok(Some(r))
+}
+
 /// The statistics table of a label image converted from a file (as
 /// `process` writes for the labels it makes): one more pass over its
 /// voxels, with the mean intensity of the image it is published under.
@@ -349,6 +409,8 @@ fn label_table(output: &Path, group: Option<&Path>, p: &PyramidArgs) -> Result<(
     }
 }
 
+/// Convert with a progress bar and print the report; under `mpirun` the
+/// ranks share the conversion (rank 0 reports).
 fn run_convert(
     src: &dyn VolumeSource,
     output: &Path,
@@ -526,23 +588,14 @@ fn degraded(lines: Vec<String>) {
 fn run(cmd: Cmd, cluster: Option<&dist::Cluster>) -> Result<()> {
     match cmd {
         Cmd::Convert(c) => {
-            let raw = match (&c.dims, &c.dtype) {
+            let dims_dtype = match (&c.dims, &c.dtype) {
                 (None, None) => None,
                 (Some(d), Some(t)) => {
                     let zyx = parse_size(d).map_err(|e| anyhow::anyhow!("dims: {e}"))?;
                     let dtype = DType::parse(t).with_context(|| {
                         format!("dtype: expected one of u8, i8, u16, i16, u32, i32, f32, f64, found {t:?}")
                     })?;
-                    Some(RawOptions {
-                        dims: [zyx[2], zyx[1], zyx[0]],
-                        dtype,
-                        endian: c.endian.clone(),
-                        spacing: None,
-                        origin: None,
-                        unit: None,
-                        channels: c.channels,
-                        header_bytes: c.header_bytes,
-                    })
+                    Some(([zyx[2], zyx[1], zyx[0]], dtype))
                 }
                 _ => bail!("raw input needs both --dims and --dtype"),
             };
@@ -553,10 +606,57 @@ fn run(cmd: Cmd, cluster: Option<&dist::Cluster>) -> Result<()> {
                 );
             }
             let (output, inputs) = c.paths.split_last().expect("two paths at least");
-            let opts = ImportOptions {
-                raw,
-                zarr_level: c.level,
-                raw_values: c.raw_values,
+            // Each input's options: the flags that describe raw data, the
+            // level of a Zarr input and the NIfTI rescale are refused for
+            // inputs they do not apply to (not silently ignored).
+            let options = |input: &Path| -> Result<ImportOptions> {
+                let fmt = brickyard_store::import::detect(input)?;
+                let raw_flags = [
+                    (c.dims.is_some(), "--dims"),
+                    (c.dtype.is_some(), "--dtype"),
+                    (c.endian.is_some(), "--endian"),
+                    (c.channels.is_some(), "--channels"),
+                    (c.header_bytes.is_some(), "--header-bytes"),
+                ];
+                let kind = match fmt {
+                    Format::Raw => "raw data",
+                    Format::Tiff => "a TIFF file",
+                    Format::TiffGlob | Format::TiffDir => "a stack of TIFF slices",
+                    Format::Nrrd => "an NRRD file",
+                    Format::Nifti => "a NIfTI file",
+                    Format::Zarr => "a Zarr store",
+                };
+                if let (false, Some((_, flag))) =
+                    (fmt == Format::Raw, raw_flags.iter().find(|f| f.0))
+                {
+                    bail!(
+                        "{}: {flag} describes raw data, and this input is read as {kind} (its \
+                         header describes it): leave {flag} out",
+                        input.display()
+                    );
+                }
+                if c.level.is_some_and(|l| l > 0) && fmt != Format::Zarr {
+                    bail!(
+                        "{}: --level picks a level of a Zarr/OME-Zarr input, and this input is \
+                         read as {kind}",
+                        input.display()
+                    );
+                }
+                if c.raw_values && fmt != Format::Nifti {
+                    bail!(
+                        "{}: --raw-values keeps a NIfTI file's numbers without its \
+                         scl_slope/scl_inter, and this input is read as {kind}",
+                        input.display()
+                    );
+                }
+                Ok(ImportOptions {
+                    raw: (fmt == Format::Raw)
+                        .then(|| raw_options(input, dims_dtype, &c))
+                        .transpose()?
+                        .flatten(),
+                    zarr_level: c.level.unwrap_or(0),
+                    raw_values: c.raw_values,
+                })
             };
             // (Checked before any input is opened.)
             let names: Option<Vec<String>> = c
@@ -567,12 +667,12 @@ fn run(cmd: Cmd, cluster: Option<&dist::Cluster>) -> Result<()> {
                 check_channel_names(n, names)?;
             }
             let src: Box<dyn VolumeSource> = if inputs.len() == 1 && names.is_none() {
-                open_input(&inputs[0], &opts)?
+                open_input(&inputs[0], &options(&inputs[0])?)?
             } else {
                 let sources = inputs
                     .iter()
-                    .map(|p| open_input(p, &opts))
-                    .collect::<std::result::Result<Vec<_>, _>>()?;
+                    .map(|p| Ok(open_input(p, &options(p)?)?))
+                    .collect::<Result<Vec<_>>>()?;
                 let mut stack = ChannelStack::new(sources)?;
                 if let Some(names) = &names {
                     stack = stack.with_names(names)?;
@@ -582,17 +682,44 @@ fn run(cmd: Cmd, cluster: Option<&dist::Cluster>) -> Result<()> {
             // Labels written into an image's `labels` group: the group is
             // made when missing, and once written the label image is
             // marked as the image's and listed, as `process` publishes.
-            let group = c
-                .pyramid
-                .labels
-                .then(|| brickyard_run::process::label_group_of(output))
-                .flatten();
+            let group = brickyard_run::process::label_group_of(output);
+            if let (Some(g), false) = (&group, c.pyramid.labels) {
+                bail!(
+                    "{}: lies in {}, the label images of an image: give --labels (coarser \
+                     levels then take the mode of the labels, not their mean, and the image \
+                     lists it), or write it elsewhere",
+                    output.display(),
+                    g.display()
+                );
+            }
+            let mut pyramid = c.pyramid.clone();
             if let Some(g) = &group {
-                let image =
-                    brickyard_store::import::zarr::open(g.parent().expect("a store above"), 0)?
-                        .meta()
-                        .dims;
-                let dims = src.meta().dims;
+                let im =
+                    brickyard_store::import::zarr::open(g.parent().expect("a store above"), 0)?;
+                let (image, m) = (im.meta().dims, src.meta());
+                let dims = m.dims;
+                // A segmentation saved without geometry (TIFF) on the
+                // image's grid takes the image's, so that the two lie one
+                // over the other (flags given still win).
+                let geometry = [&pyramid.spacing, &pyramid.origin, &pyramid.unit];
+                if dims == image
+                    && m.spacing.is_none()
+                    && m.origin.is_none()
+                    && geometry.iter().all(|g| g.is_none())
+                {
+                    let xyz = |v: [f64; 3]| format!("{},{},{}", v[2], v[1], v[0]);
+                    let im = im.meta();
+                    pyramid.spacing = im.spacing.map(xyz);
+                    pyramid.origin = im.origin.map(xyz);
+                    pyramid.unit = im.unit.clone();
+                    if let Some(sp) = &pyramid.spacing {
+                        eprintln!(
+                            "note: {} gives no spacing: the image's ({sp}{}) taken, on the same grid",
+                            inputs[0].display(),
+                            pyramid.unit.as_deref().map(|u| format!(" {u}")).unwrap_or_default()
+                        );
+                    }
+                }
                 if dims != image {
                     eprintln!(
                         "note: {} is {dims:?} voxels (z, y, x), the image {image:?}: it is listed, \
@@ -603,7 +730,7 @@ fn run(cmd: Cmd, cluster: Option<&dist::Cluster>) -> Result<()> {
                 std::fs::create_dir_all(g)
                     .with_context(|| format!("{}: cannot create", g.display()))?;
             }
-            run_convert(src.as_ref(), output, &c.pyramid, cluster)?;
+            run_convert(src.as_ref(), output, &pyramid, cluster)?;
             if dist::rank_size(cluster).0 != 0 {
                 return Ok(());
             }
@@ -611,7 +738,7 @@ fn run(cmd: Cmd, cluster: Option<&dist::Cluster>) -> Result<()> {
                 brickyard_run::process::publish_label_image(g, output)?;
             }
             if c.pyramid.labels {
-                label_table(output, group.as_deref(), &c.pyramid)?;
+                label_table(output, group.as_deref(), &pyramid)?;
             }
             Ok(())
         }

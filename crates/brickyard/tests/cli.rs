@@ -2052,3 +2052,125 @@ fn options_may_stand_between_convert_paths() {
         &["INPUT... OUTPUT", "one path"],
     );
 }
+
+/// Flags that describe raw data, a Zarr input's level and NIfTI's rescale
+/// are refused for inputs they do not apply to, naming the flag; flags laid
+/// over a raw file's sidecar replace its fields and keep its geometry; a
+/// store under an image's `labels/` needs `--labels`.
+#[test]
+fn flags_that_do_not_apply_to_an_input_are_refused() {
+    let d = tempfile::tempdir().unwrap();
+    let raw = ramp_raw(d.path());
+    let store = d.path().join("s.ome.zarr");
+    let o = run(&[
+        "convert",
+        s(&raw),
+        s(&store),
+        "--dims",
+        "16x16x16",
+        "--dtype",
+        "u8",
+        "--brick",
+        "8",
+        "--shard",
+        "16",
+    ]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    // The store as input: raw flags, --raw-values refused; --level taken.
+    for (flag, val) in [
+        ("--endian", Some("big")),
+        ("--channels", Some("2")),
+        ("--header-bytes", Some("4")),
+        ("--raw-values", None),
+    ] {
+        let out = d.path().join("o.ome.zarr");
+        let mut args = vec!["convert", s(&store), s(&out), flag];
+        args.extend(val);
+        fails_with(&run(&args), &[s(&store), flag, "a Zarr store"]);
+        assert!(!out.exists());
+    }
+    let lvl = d.path().join("l1.ome.zarr");
+    let o = run(&["convert", s(&store), s(&lvl), "--level", "1"]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    // A raw file's sidecar (big-endian u16, with geometry), a flag over it.
+    let r16 = d.path().join("w.raw");
+    let vals: Vec<u16> = (0..4 * 5 * 6).map(|i| i as u16 * 3 + 1).collect();
+    let be: Vec<u8> = vals.iter().flat_map(|v| v.to_be_bytes()).collect();
+    std::fs::write(&r16, &be).unwrap();
+    std::fs::write(
+        d.path().join("w.raw.json"),
+        r#"{"dims":[6,5,4],"dtype":"u16","endian":"big","spacing":[0.5,0.25,3],"origin":[1,2,3],"unit":"micrometer"}"#,
+    )
+    .unwrap();
+    // The same bytes read little-endian: the flag wins, the geometry stays.
+    let le = d.path().join("le.ome.zarr");
+    let o = run(&["convert", s(&r16), s(&le), "--endian", "little"]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    assert!(stderr(&o).contains("replace its endian"), "{}", stderr(&o));
+    let j = std::fs::read_to_string(le.join("zarr.json")).unwrap();
+    assert!(j.contains("micrometer") && j.contains("0.25"), "{j}");
+    let first = u16::from_le_bytes([be[0], be[1]]);
+    let got = brickyard_store::import::zarr::open(&le, 0).unwrap();
+    let mut v = [0u8; 2];
+    brickyard_store::VolumeSource::read_region(&got, 0, 0..1, 0..1, 0..1, &mut v).unwrap();
+    assert_eq!(u16::from_ne_bytes(v), first, "read little-endian as asked");
+    // Under an image's labels/: --labels or nothing.
+    let lab = store.join("labels").join("seg");
+    fails_with(
+        &run(&[
+            "convert",
+            s(&raw),
+            s(&lab),
+            "--dims",
+            "16x16x16",
+            "--dtype",
+            "u8",
+        ]),
+        &["give --labels", "labels"],
+    );
+    assert!(!lab.exists());
+    // Labels without geometry on the grid of an image that has one take
+    // the image's, so that one lies over the other.
+    let sp = d.path().join("sp.ome.zarr");
+    let o = run(&[
+        "convert",
+        s(&raw),
+        s(&sp),
+        "--dims",
+        "16x16x16",
+        "--dtype",
+        "u8",
+        "--spacing",
+        "0.5,0.25,2",
+        "--unit",
+        "micrometer",
+    ]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    let seg = sp.join("labels").join("seg");
+    let o = run(&[
+        "convert",
+        s(&raw),
+        s(&seg),
+        "--dims",
+        "16x16x16",
+        "--dtype",
+        "u8",
+        "--labels",
+    ]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    assert!(
+        stderr(&o).contains("the image's (0.5,0.25,2 micrometer) taken"),
+        "{}",
+        stderr(&o)
+    );
+    let (a, b) = (
+        brickyard_store::import::zarr::open(&sp, 0).unwrap(),
+        brickyard_store::import::zarr::open(&seg, 0).unwrap(),
+    );
+    use brickyard_store::VolumeSource;
+    assert_eq!(a.meta().spacing, Some([2.0, 0.25, 0.5]));
+    assert_eq!(
+        (a.meta().spacing, &a.meta().unit),
+        (b.meta().spacing, &b.meta().unit)
+    );
+}
