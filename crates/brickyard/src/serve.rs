@@ -162,16 +162,34 @@ fn web_dist(c: &ServeCmd) -> Result<PathBuf> {
 
 /// Whether `dir` is something `serve` can serve: a Zarr store (a group or
 /// an array at its top) or a folder with at least one store directly in it.
-fn holds_a_store(dir: &Path) -> bool {
+/// The stores a served folder holds, as URL paths below it: `[""]` when
+/// it is a store itself, else its sub-folders that are stores (by name).
+fn stores_in(dir: &Path) -> Vec<String> {
     let is_store = |d: &Path| {
         d.is_dir()
             && ["zarr.json", ".zgroup", ".zarray"]
                 .iter()
                 .any(|m| d.join(m).is_file())
     };
-    is_store(dir)
-        || std::fs::read_dir(dir)
-            .is_ok_and(|entries| entries.filter_map(|e| e.ok()).any(|e| is_store(&e.path())))
+    if is_store(dir) {
+        return vec![String::new()];
+    }
+    let mut names: Vec<String> = std::fs::read_dir(dir)
+        .map(|entries| {
+            entries
+                .filter_map(|e| e.ok())
+                .filter(|e| is_store(&e.path()))
+                .filter_map(|e| e.file_name().to_str().map(str::to_string))
+                .filter(|n| segment_ok(n))
+                .collect()
+        })
+        .unwrap_or_default();
+    names.sort();
+    names
+}
+
+fn holds_a_store(dir: &Path) -> bool {
+    !stores_in(dir).is_empty()
 }
 
 fn is_loopback(ip: IpAddr) -> bool {
@@ -335,21 +353,36 @@ pub fn run(c: ServeCmd) -> Result<()> {
         .server_addr()
         .to_ip()
         .context("the server has no IP address")?;
-    let mut names: Vec<&String> = site
+    // Each store by its URL path (a served folder of stores lists those).
+    let mut names: Vec<String> = site
         .roots
-        .keys()
-        .filter(|n| site.web.is_none() || n.as_str() != "web")
+        .iter()
+        .filter(|(n, _)| site.web.is_none() || n.as_str() != "web")
+        .flat_map(|(n, root)| {
+            stores_in(root)
+                .into_iter()
+                .map(move |s| match s.is_empty() {
+                    true => n.clone(),
+                    false => format!("{n}/{s}"),
+                })
+        })
         .collect();
     names.sort();
+    const LISTED: usize = 8;
     // The first line says where (tests and scripts read the port from it).
     eprintln!(
-        "serving {} store(s) at http://{local}/ : {}{}",
+        "serving {} store(s) at http://{local}/ : {}{}{}",
         names.len(),
         names
             .iter()
+            .take(LISTED)
             .map(|n| format!("/{n}/"))
             .collect::<Vec<_>>()
             .join(" "),
+        match names.len() > LISTED {
+            true => format!(" and {} more", names.len() - LISTED),
+            false => String::new(),
+        },
         if site.token.is_some() {
             " (bearer token required)"
         } else {
@@ -364,10 +397,11 @@ pub fn run(c: ServeCmd) -> Result<()> {
         );
     }
     if site.web.is_some() {
-        let first = names.iter().find(|n| n.as_str() != "web");
         eprintln!(
             "the web client at http://{local}/web/{}",
-            first.map_or(String::new(), |n| format!("#store=../{n}/"))
+            names
+                .first()
+                .map_or(String::new(), |n| format!("#store=../{n}/"))
         );
     }
     if let Some((msg, l, rs)) = render {

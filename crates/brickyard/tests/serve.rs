@@ -8,6 +8,7 @@ use std::net::TcpStream;
 use std::path::{Path, PathBuf};
 use std::process::{Child, Command, Output, Stdio};
 use std::sync::{Arc, Mutex};
+use std::time::{Duration, Instant};
 
 fn bin() -> Command {
     Command::new(env!("CARGO_BIN_EXE_brickyard"))
@@ -81,7 +82,7 @@ fn serve(stores: &[&Path], extra: &[&str]) -> Served {
         .and_then(|r| r.split('/').next())
         .and_then(|p| p.parse().ok())
         .unwrap_or_else(|| panic!("no address in {first:?}"));
-    let log = Arc::new(Mutex::new(String::new()));
+    let log = Arc::new(Mutex::new(first));
     let l2 = log.clone();
     std::thread::spawn(move || {
         let mut line = String::new();
@@ -1141,4 +1142,51 @@ fn aws_bin() -> Command {
         }
     }
     c
+}
+
+/// A served folder of stores lists each store by its path, and the web
+/// client's link opens one of them (not the folder, which is no store).
+#[test]
+fn a_folder_of_stores_is_listed_store_by_store() {
+    let d = tempfile::tempdir().unwrap();
+    let folder = d.path().join("st");
+    std::fs::create_dir(&folder).unwrap();
+    for name in ["b.ome.zarr", "a.ome.zarr"] {
+        let store = folder.join(name);
+        std::fs::create_dir(&store).unwrap();
+        std::fs::write(
+            store.join("zarr.json"),
+            r#"{"zarr_format":3,"node_type":"group"}"#,
+        )
+        .unwrap();
+    }
+    // A stand-in bundle: the page is not opened here.
+    let dist = d.path().join("dist");
+    std::fs::create_dir(&dist).unwrap();
+    for f in [
+        "index.html",
+        "app.js",
+        "brickyard_web.js",
+        "brickyard_web_bg.wasm",
+    ] {
+        std::fs::write(dist.join(f), "x").unwrap();
+    }
+    let sv = serve(&[&folder], &["--web", "--web-dist", s(&dist)]);
+    let link = |log: &str| {
+        log.lines()
+            .find_map(|l| l.split("#store=../").nth(1).map(str::to_string))
+    };
+    let until = Instant::now() + Duration::from_secs(10);
+    while link(&sv.log.lock().unwrap()).is_none() && Instant::now() < until {
+        std::thread::sleep(Duration::from_millis(20));
+    }
+    let log = sv.log.lock().unwrap().clone();
+    assert!(
+        log.starts_with("serving 2 store(s)") && log.contains("/st/a.ome.zarr/ /st/b.ome.zarr/"),
+        "{log}"
+    );
+    let store = link(&log).unwrap_or_else(|| panic!("no link in {log}"));
+    assert_eq!(store, "st/a.ome.zarr/");
+    let (status, _, _) = http(sv.port, "GET", &format!("/{store}zarr.json"), &[]);
+    assert_eq!(status, 200, "the link's store is served");
 }
