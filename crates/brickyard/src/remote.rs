@@ -242,7 +242,13 @@ impl View {
                 }
                 "azimuth" => v.azimuth = num()?,
                 "elevation" => v.elevation = num()?.clamp(-89.9, 89.9),
-                "zoom" => v.zoom = num()?.clamp(0.05, 100.0),
+                "zoom" => {
+                    let z = num()?;
+                    if !(z > 0.0 && z <= 100.0) {
+                        bail!("zoom: expected a factor above 0 and at most 100, got {x}");
+                    }
+                    v.zoom = z.max(0.05);
+                }
                 "camera" => v.camera = if x.is_null() { None } else { Some(x.clone()) },
                 other => bail!("unknown field {other:?}; expected store, mode, tf, window, size, azimuth, elevation, zoom, camera or report"),
             }
@@ -405,13 +411,21 @@ fn session(ws: &mut WebSocket<TcpStream>, site: &RenderSite, caches: &Caches) ->
                         send_json(ws, json!({"error": "expected a JSON object"}))?;
                         continue;
                     };
-                    if let Some(r) = m.remove("report") {
+                    let report = m.remove("report");
+                    if let Some(r) = &report {
                         eprintln!(
                             "render client reports: {}",
                             crate::serve::loggable(r.as_str().unwrap_or(&r.to_string()))
                         );
                     }
                     if m.is_empty() {
+                        if report.is_none() {
+                            // Every message is answered: an empty one too.
+                            send_json(
+                                ws,
+                                json!({"error": "an empty message: expected fields of the view (store, mode, tf, window, size, azimuth, elevation, zoom, camera) or report"}),
+                            )?;
+                        }
                         continue;
                     }
                     match view.apply(&m) {

@@ -886,6 +886,23 @@ fn remote_rendering_streams_frames_equal_to_render() {
         tungstenite::Message::Text(t) => assert!(t.as_str().contains("mode"), "{t}"),
         other => panic!("expected an error, got {other:?}"),
     }
+    // An empty message and a zoom of nothing are answered, not drawn.
+    for (bad, word) in [
+        ("{}", "empty"),
+        (r#"{"zoom": 0}"#, "zoom"),
+        (r#"{"zoom": -1}"#, "zoom"),
+    ] {
+        ws.send(tungstenite::Message::Text(bad.into())).unwrap();
+        match ws.read().unwrap() {
+            tungstenite::Message::Text(t) => {
+                assert!(
+                    t.as_str().contains("error") && t.as_str().contains(word),
+                    "{bad}: {t}"
+                )
+            }
+            other => panic!("{bad}: expected an error, got {other:?}"),
+        }
+    }
     // Another view (orbit and a MIP) in the same session.
     let orbit = serde_json::json!({"camera": null, "azimuth": 120, "elevation": 10, "mode": "mip"});
     ws.send(tungstenite::Message::Text(orbit.to_string().into()))
