@@ -443,7 +443,7 @@ impl MemoryPlan {
             * meta.channels as u64;
         MemoryPlan {
             esize,
-            fixed: OVERHEAD + threads * brick_bytes * 3 + nbricks_total * 16,
+            fixed: OVERHEAD + threads * (brick_bytes * 3 + meta.read_bytes) + nbricks_total * 16,
             zarr_copy: meta.path.is_dir() || crate::storage::is_remote(&meta.path),
             levels,
         }
@@ -661,9 +661,16 @@ pub fn convert_team(
             output,
             "memory",
             format!(
-                "budget of {} MiB is too small for bricks of {:?}: need at least {} MiB",
+                "budget of {} MiB is too small for bricks of {:?}{}: need at least {} MiB",
                 opts.memory >> 20,
                 opts.brick,
+                match meta.read_bytes >= 1 << 20 {
+                    true => format!(
+                        " and the input's chunks, {} MiB a read holds decoded",
+                        meta.read_bytes >> 20
+                    ),
+                    false => String::new(),
+                },
                 need.div_ceil(1 << 20)
             ),
         )
@@ -1112,6 +1119,22 @@ fn check_geometry(
     } else {
         (&meta.path, "pass --origin to set another")
     };
+    // Bricks are stored whole (the edge ones padded), and blosc takes at
+    // most 2 GiB less its 16-byte header at once.
+    let brick_bytes = opts.brick.iter().product::<u64>() * meta.dtype.size() as u64;
+    if opts.compression == crate::Compression::Lz4 && brick_bytes > i32::MAX as u64 - 16 {
+        return Err(StoreError::invalid(
+            output,
+            "brick",
+            format!(
+                "bricks of {:?} {} hold {} MiB, and blosc compresses at most 2 GiB less 16 bytes \
+                 at once: a smaller --brick, or --compression zstd or none",
+                opts.brick,
+                meta.dtype,
+                brick_bytes >> 20
+            ),
+        ));
+    }
     let xyz = |v: [f64; 3]| [v[2], v[1], v[0]];
     // Spacings given here must be positive numbers (a header's that are
     // not are taken as 1, with the input's other oddities).

@@ -36,6 +36,10 @@ pub struct SourceMeta {
     /// that change what the values or positions mean: one sentence each,
     /// for the conversion report.
     pub notes: Vec<String>,
+    /// Bytes one read may hold besides its output: the chunks a read is
+    /// cut from, decoded whole (and their encoded bytes). The converter
+    /// plans this much per thread.
+    pub read_bytes: u64,
 }
 
 impl SourceMeta {
@@ -52,6 +56,7 @@ impl SourceMeta {
             labels: false,
             scaling: None,
             notes: Vec::new(),
+            read_bytes: 0,
         }
     }
 

@@ -2174,3 +2174,75 @@ fn flags_that_do_not_apply_to_an_input_are_refused() {
         (b.meta().spacing, &b.meta().unit)
     );
 }
+
+/// An input read in large chunks (a store of 256³ u16 chunks, 32 MiB
+/// each, decoded whole) counts them in the plan: a budget that cannot hold
+/// them is refused naming them, and the budget asked for holds the whole
+/// conversion (its peak RSS included). Bricks blosc cannot take whole are
+/// refused before anything is written.
+#[test]
+fn an_input_of_large_chunks_is_planned_with_them() {
+    let d = tempfile::tempdir().unwrap();
+    let big = d.path().join("big.ome.zarr");
+    let o = run(&[
+        "generate",
+        "mandelbulb",
+        s(&big),
+        "--size",
+        "256",
+        "--dtype",
+        "u16",
+        "--brick",
+        "256",
+        "--shard",
+        "256",
+        "--quiet",
+    ]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    let copy = d.path().join("copy.ome.zarr");
+    let conv = |memory: &str| {
+        run(&[
+            "convert",
+            s(&big),
+            s(&copy),
+            "--memory",
+            memory,
+            "--json",
+            "--overwrite",
+        ])
+    };
+    let o = conv("48MiB");
+    fails_with(&o, &["memory", "the input's chunks", "need at least"]);
+    let e = stderr(&o);
+    let need: u64 = e
+        .split("need at least ")
+        .nth(1)
+        .unwrap()
+        .split(' ')
+        .next()
+        .unwrap()
+        .parse()
+        .unwrap();
+    let o = conv(&format!("{need}MiB"));
+    assert!(o.status.success(), "{need} MiB, as asked: {}", stderr(&o));
+    let j: serde_json::Value = serde_json::from_slice(&o.stdout).unwrap();
+    let peak = j["peak_rss_bytes"].as_u64().unwrap();
+    assert!(
+        peak <= need << 20,
+        "peak {peak} over the {need} MiB asked for"
+    );
+    let huge = d.path().join("huge.ome.zarr");
+    fails_with(
+        &run(&[
+            "convert",
+            s(&big),
+            s(&huge),
+            "--brick",
+            "1024",
+            "--shard",
+            "1024",
+        ]),
+        &["brick", "blosc", "2 GiB"],
+    );
+    assert!(!huge.exists());
+}

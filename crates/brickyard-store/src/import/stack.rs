@@ -195,6 +195,11 @@ impl ChannelStack {
         meta.unit = unit;
         meta.labels = labels.unwrap_or(false);
         meta.scaling = m0.scaling.clone();
+        meta.read_bytes = sources
+            .iter()
+            .map(|s| s.meta().read_bytes)
+            .max()
+            .unwrap_or(0);
         Ok(ChannelStack { meta, sources, map })
     }
 }

@@ -523,6 +523,11 @@ fn open_array(
             .unwrap_or_else(|| chunk.clone()),
         None => chunk.clone(),
     };
+    // A chunk decoded whole, beside its encoded bytes.
+    meta.read_bytes = grain
+        .iter()
+        .fold(dtype.size() as u64, |a, &c| a.saturating_mul(c))
+        .saturating_mul(2);
     Ok(ZarrSource {
         chunk_cache: None,
         grain,
