@@ -113,11 +113,15 @@ fn check_pools(store: &Path, dtype: DType, tf_window: [f32; 2], pools: &[u64], s
         // Against full detail, coarser data may only thin out features
         // finer than its voxels at silhouettes (a hole would be a brick's
         // whole footprint).
+        // (Or no more than the in-core renderer loses at that bias: a
+        // scan of few thick slices thins out more at its coarse levels.)
         let content = full.rgba.iter().filter(|p| p[3] > 0.05).count();
         let lost = holes(full, &img);
+        let lost_in_core = holes(full, &want);
         assert!(
-            lost * 50 <= content,
-            "pool {pool} bricks, bias {bias}: {lost} of {content} pixels with content are empty"
+            lost * 50 <= content || lost <= lost_in_core,
+            "pool {pool} bricks, bias {bias}: {lost} of {content} pixels with content are empty \
+             ({lost_in_core} in core)"
         );
         s.vm().check_invariants().unwrap();
         biases.push(bias);

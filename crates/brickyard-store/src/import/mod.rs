@@ -1,6 +1,7 @@
 //! Importers: one module per input format, each returning a [`VolumeSource`].
 
 mod chunks;
+mod flip;
 pub mod nifti;
 pub mod nrrd;
 pub mod raw;
@@ -61,6 +62,14 @@ pub fn detect(path: &Path) -> Result<Format> {
     let s = path.to_string_lossy();
     if s.contains('*') || s.contains('?') {
         return Ok(Format::TiffGlob);
+    }
+    if s.contains(['[', '{']) && !path.exists() && !crate::storage::is_remote(path) {
+        return Err(StoreError::unsupported(
+            path,
+            "glob",
+            "patterns take * and ? (no file is named so, and [...] classes and {...} lists \
+             are not patterns here): e.g. 'slices/img_*.tif'",
+        ));
     }
     if crate::storage::is_remote(path) {
         if zarr::is_zarr(path) {

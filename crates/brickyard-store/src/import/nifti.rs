@@ -1,7 +1,8 @@
 //! NIfTI-1 and NIfTI-2 importer: `.nii`, `.nii.gz` and `.hdr`/`.img` pairs
 //! (either half of a pair may be gzip-compressed).
 //!
-//! Over 800 lines: 1.0k lines of importer (two headers, gzip, pairs), 0.9k of tests.
+//! Over 800 lines: 1.2k lines of importer (two headers, gzip, pairs, the
+//! geometry of sform and qform), 1.3k of tests.
 //!
 //! The header is parsed by hand rather than with the `nifti` crate: that
 //! crate (0.18) knows NIfTI-1 only and reads whole volumes into memory,
@@ -13,6 +14,16 @@
 //! `[z, y, x]` C order, so `dims = [dim[3], dim[2], dim[1]]`. A fourth
 //! dimension becomes channels (channel `c` is the `c`-th 3-D volume); more
 //! dimensions are unsupported.
+//!
+//! Orientation: when the sform (else the qform) only scales each axis, an
+//! axis it steps backwards along (a negative diagonal entry of the sform,
+//! `qfac` −1 or a 180° quaternion) is read reversed (`import::flip::Flip`)
+//! and its origin moved to the file's last voxel along it, so that OME-Zarr's
+//! positive scale and translation put every voxel where the file does.
+//! Rotations, shears and permuted axes are not applied (noted). Reversing
+//! z of gzip data reads the slices back to front, so each slab read
+//! decompresses the stream again from its start: such files convert
+//! correctly but more slowly.
 //!
 //! Values: `scl_slope`/`scl_inter` are applied (`value = slope · stored +
 //! inter`) unless raw values are asked for ([`open_with`]); a slope of 0 or
@@ -34,6 +45,7 @@
 //! when a read reaches it, not at [`open`].
 
 use crate::error::{IoContext, Result, StoreError};
+use crate::import::flip::{self, Flip};
 use crate::import::scale::{self, num, Choice, ValueScaling};
 use crate::import::{swap_bytes_in_place, MAX_DEFLATE_RATIO};
 use crate::source::{check_region, SourceMeta, VolumeSource};
@@ -75,6 +87,8 @@ pub struct NiftiSource {
     data_offset: u64,
     /// The data is big-endian and must be swapped.
     swap: bool,
+    /// Axes the sform/qform runs against the world's: read reversed.
+    flip: Flip,
     data: Data,
 }
 
@@ -95,6 +109,7 @@ impl std::fmt::Debug for NiftiSource {
             .field("data_path", &self.data_path)
             .field("data_offset", &self.data_offset)
             .field("gzip", &matches!(self.data, Data::Gz(_)))
+            .field("flip", &self.flip.axes)
             .finish()
     }
 }
@@ -272,17 +287,35 @@ impl VolumeSource for NiftiSource {
         if out.is_empty() {
             return Ok(());
         }
+        let size = self.meta.dtype.size();
+        self.flip.read(z, y, x, out, size, |z, y, x, out| {
+            self.read_values(c, &z, &y, &x, out)
+        })
+    }
+}
+
+impl NiftiSource {
+    /// Read a region of the file as stored (not reversed), rescaled when
+    /// the rescale is applied.
+    fn read_values(
+        &self,
+        c: usize,
+        z: &Range<u64>,
+        y: &Range<u64>,
+        x: &Range<u64>,
+        out: &mut [u8],
+    ) -> Result<()> {
         match self.meta.scaling.as_ref().filter(|s| s.applied) {
-            None => self.read_stored(c, &z, &y, &x, out),
+            None => self.read_stored(c, z, y, x, out),
             Some(s) if s.stored.size() == s.dtype.size() => {
-                self.read_stored(c, &z, &y, &x, out)?;
+                self.read_stored(c, z, y, x, out)?;
                 s.apply_in_place(out);
                 Ok(())
             }
             Some(s) => {
                 let n = out.len() / s.dtype.size();
                 let mut stored = vec![0u8; n * s.stored.size()];
-                self.read_stored(c, &z, &y, &x, &mut stored)?;
+                self.read_stored(c, z, y, x, &mut stored)?;
                 s.apply(&stored, out);
                 Ok(())
             }
@@ -303,11 +336,13 @@ pub fn open(path: &Path) -> Result<NiftiSource> {
 /// [module docs](self)).
 ///
 /// Supported voxel types: uint8, int8, uint16, int16, uint32, int32,
-/// float32, float64. Spacing comes from `pixdim[1..=3]` (unit from
-/// `xyzt_units`), the origin from the sform translation if `sform_code > 0`,
-/// else from the qform offsets if `qform_code > 0`; rotations, shears and
-/// flips of the sform/qform are not applied. With `raw_values` the stored
-/// numbers are returned as they are, without `scl_slope`/`scl_inter`.
+/// float32, float64. Spacing comes from `pixdim[1..=3]` or a diagonal
+/// sform (unit from `xyzt_units`), the origin from the sform translation if
+/// `sform_code > 0`, else from the qform offsets if `qform_code > 0`; axes
+/// that a diagonal sform or qform steps backwards along are read reversed
+/// (see `geometry`), rotations and shears are not applied. With
+/// `raw_values` the stored numbers are returned as they are, without
+/// `scl_slope`/`scl_inter`.
 pub fn open_with(path: &Path, raw_values: bool) -> Result<NiftiSource> {
     let (hdr_path, img_path) = locate(path)?;
     let (head, hdr_gz) = read_head(&hdr_path)?;
@@ -382,15 +417,16 @@ pub fn open_with(path: &Path, raw_values: bool) -> Result<NiftiSource> {
             ),
         )
     })?;
-    if h.bitpix != 8 * dtype.size() as i32 {
-        tracing::warn!(
-            "{}: bitpix is {} but datatype {} ({dtype}) has {} bits; using datatype",
-            hp.display(),
+    // (Noted below, once the notes exist.)
+    let bitpix_note = (h.bitpix != 8 * dtype.size() as i32).then(|| {
+        format!(
+            "bitpix {} disagrees with datatype {} ({dtype}, {} bits): read as {dtype}, as \
+             datatype says",
             h.bitpix,
             h.datatype,
             8 * dtype.size()
-        );
-    }
+        )
+    });
     let total = dims
         .iter()
         .chain([&d[4]])
@@ -435,16 +471,11 @@ pub fn open_with(path: &Path, raw_values: bool) -> Result<NiftiSource> {
 
     // Physical metadata.
     let mut meta = SourceMeta::new(path, dims, channels, dtype);
-    meta.spacing = spacing(&h, dims, hp);
-    meta.origin = if h.sform_code > 0 && h.srow_offset.iter().all(|v| v.is_finite()) {
-        let [ox, oy, oz] = h.srow_offset;
-        Some([oz, oy, ox])
-    } else if h.qform_code > 0 && h.qoffset.iter().all(|v| v.is_finite()) {
-        let [ox, oy, oz] = h.qoffset;
-        Some([oz, oy, ox])
-    } else {
-        None
-    };
+    meta.notes.extend(bitpix_note);
+    let geo = geometry(&h, dims);
+    meta.spacing = Some(geo.spacing);
+    meta.origin = geo.origin;
+    meta.notes.extend(geo.notes);
     meta.unit = match h.xyzt_units & 0x07 {
         1 => Some("meter".to_string()),
         2 => Some("millimeter".to_string()),
@@ -467,9 +498,6 @@ pub fn open_with(path: &Path, raw_values: bool) -> Result<NiftiSource> {
             "intent_code 1002 (label): the voxels are labels, coarser levels take the mode"
                 .to_string(),
         );
-    }
-    if let Some(n) = orientation_note(&h) {
-        meta.notes.push(n);
     }
     if channels > 1 {
         meta.notes.push(format!(
@@ -517,6 +545,7 @@ pub fn open_with(path: &Path, raw_values: bool) -> Result<NiftiSource> {
         data_path,
         data_offset,
         swap: h.big_endian,
+        flip: Flip::new(geo.flip, dims),
         data,
     };
     // The size of compressed data is only known once it is decompressed:
@@ -567,76 +596,217 @@ pub fn open_with(path: &Path, raw_values: bool) -> Result<NiftiSource> {
     Ok(src)
 }
 
-/// A report line when the transform that gives the origin (the sform if
-/// `sform_code > 0`, else the qform if `qform_code > 0`) also flips or
-/// rotates the axes, which brickyard does not apply.
-fn orientation_note(h: &Header) -> Option<String> {
-    let plain = |m: &[[f64; 3]; 3]| {
-        (0..3).all(|r| {
-            (0..3).all(|c| {
-                if r == c {
-                    m[r][c] > 0.0
-                } else {
-                    m[r][c] == 0.0
-                }
-            })
-        })
+/// Where the voxels lie, from `pixdim`, the sform and the qform.
+struct Geometry {
+    /// `[z, y, x]`.
+    spacing: [f64; 3],
+    /// `[z, y, x]`: the world position of the voxel that is index 0 once
+    /// the reversed axes are reversed.
+    origin: Option<[f64; 3]>,
+    /// Axes read reversed, `[z, y, x]`.
+    flip: [bool; 3],
+    notes: Vec<String>,
+}
+
+/// Spacing, origin and reversed axes of the transform that places the
+/// voxels: the sform if `sform_code > 0` (and its translation is finite),
+/// else the qform if `qform_code > 0`, else none (spacing from `pixdim`
+/// only).
+///
+/// When that transform only scales each axis, possibly by a negative
+/// number (a diagonal sform; a qform whose quaternion is a rotation by 0
+/// or 180° about x, y or z, with `qfac` flipping z), its axes are kept:
+/// an axis whose step is negative is read reversed and its origin moves to
+/// the file's last voxel along it, so that world positions are the file's.
+/// The spacing is then the sform's diagonal (pixdim is only noted where it
+/// disagrees) or, for a qform, `|pixdim|`. Other transforms (rotations,
+/// shears, permuted axes) are not applied: spacing from `pixdim`, origin =
+/// the translation, noted.
+///
+/// An invalid `pixdim` entry (zero, negative zero, NaN, infinite) of an
+/// axis longer than one voxel takes the length of the sform's column when
+/// there is an sform, else 1, for that axis only, noted.
+fn geometry(h: &Header, dims: Dims3) -> Geometry {
+    const NAMES: [&str; 3] = ["x", "y", "z"];
+    let n = [dims[2], dims[1], dims[0]];
+    let mut notes = Vec::new();
+    let sform = h.sform_code > 0 && h.srow_offset.iter().all(|v| v.is_finite());
+    let qform = !sform && h.qform_code > 0 && h.qoffset.iter().all(|v| v.is_finite());
+    let sdiag = if sform {
+        diagonal(&h.srow_linear)
+    } else {
+        None
     };
-    if h.sform_code > 0 && h.srow_offset.iter().all(|v| v.is_finite()) {
-        if plain(&h.srow_linear) {
-            return None;
-        }
+
+    // Spacing, x, y, z.
+    let mut sp = [1.0; 3];
+    for (a, s) in sp.iter_mut().enumerate() {
+        let i = a + 1;
+        let raw = h.pixdim[i];
+        let pix = Some(raw.abs()).filter(|p| p.is_finite() && *p > 0.0);
+        *s = match (sdiag, pix) {
+            (Some(d), pix) => {
+                let from_s = d[a].abs();
+                match pix {
+                    Some(p) if (p - from_s).abs() > 1e-4 * from_s => notes.push(format!(
+                        "pixdim[{i}] = {} disagrees with the sform's {}: {} spacing {} from \
+                         the sform",
+                        num(raw),
+                        num(from_s),
+                        NAMES[a],
+                        num(from_s)
+                    )),
+                    None if n[a] > 1 => notes.push(format!(
+                        "pixdim[{i}] = {} is not a valid spacing: {} spacing {} from the sform",
+                        num(raw),
+                        NAMES[a],
+                        num(from_s)
+                    )),
+                    _ => {}
+                }
+                from_s
+            }
+            (None, Some(p)) => p,
+            (None, None) if n[a] == 1 => 1.0,
+            (None, None) => {
+                let col = (0..3)
+                    .map(|r| h.srow_linear[r][a].powi(2))
+                    .sum::<f64>()
+                    .sqrt();
+                if h.sform_code > 0 && col.is_finite() && col > 0.0 {
+                    notes.push(format!(
+                        "pixdim[{i}] = {} is not a valid spacing: {} spacing {} from the sform \
+                         (the length of its column {i})",
+                        num(raw),
+                        NAMES[a],
+                        flip::short(col)
+                    ));
+                    col
+                } else {
+                    notes.push(format!(
+                        "pixdim[{i}] = {} is not a valid spacing and no sform gives one: {} \
+                         spacing 1",
+                        num(raw),
+                        NAMES[a]
+                    ));
+                    1.0
+                }
+            }
+        };
+    }
+
+    // The step of each axis along its own world axis, when the transform
+    // only scales the axes; the translation.
+    let qfac = if h.pixdim[0] < 0.0 { -1.0 } else { 1.0 };
+    let (steps, offset, what) = if sform {
         let rows: Vec<String> = h
             .srow_linear
             .iter()
             .map(|r| format!("[{} {} {}]", num(r[0]), num(r[1]), num(r[2])))
             .collect();
-        Some(format!(
-            "sform (code {}) {} flips or rotates the axes: not applied (spacing = pixdim, \
-             origin = sform translation)",
-            h.sform_code,
-            rows.join(" ")
-        ))
-    } else if h.qform_code > 0 && h.qoffset.iter().all(|v| v.is_finite()) {
+        let what = format!("sform (code {}) {}", h.sform_code, rows.join(" "));
+        (sdiag, Some(h.srow_offset), what)
+    } else if qform {
         let [b, c, d] = h.quatern;
-        let flip = h.pixdim[0] < 0.0;
-        if b == 0.0 && c == 0.0 && d == 0.0 && !flip {
-            return None;
-        }
-        Some(format!(
-            "qform (code {}) quaternion ({}, {}, {}){} rotates or flips the axes: not \
-             applied (spacing = pixdim, origin = qoffset)",
+        let what = format!(
+            "qform (code {}) quaternion ({}, {}, {}){}",
             h.qform_code,
             num(b),
             num(c),
             num(d),
-            if flip { " with qfac −1" } else { "" }
-        ))
+            if qfac < 0.0 { " with qfac -1" } else { "" }
+        );
+        let steps = quaternion_signs(h.quatern).map(|s| {
+            let mut st = [0, 1, 2].map(|a| s[a] * sp[a]);
+            st[2] *= qfac;
+            st
+        });
+        (steps, Some(h.qoffset), what)
     } else {
-        None
+        (None, None, String::new())
+    };
+
+    let mut flip = [false; 3];
+    let mut origin = offset;
+    match (steps, offset) {
+        (Some(st), Some(mut o)) => {
+            let mut said = Vec::new();
+            for a in 0..3 {
+                if st[a] < 0.0 && n[a] > 1 {
+                    flip[2 - a] = true;
+                    o[a] = flip::first_voxel(o[a], n[a], st[a]);
+                    said.push((NAMES[a], num(st[a]), Some(o[a])));
+                }
+            }
+            origin = Some(o);
+            if !said.is_empty() {
+                notes.push(format!("{what}: {}", flip::describe(&said)));
+            }
+        }
+        (None, Some(_)) => notes.push(if sform {
+            format!(
+                "{what} rotates, shears or permutes the axes: not applied (spacing = pixdim, \
+                 origin = sform translation)"
+            )
+        } else {
+            format!("{what} rotates the axes: not applied (spacing = pixdim, origin = qoffset)")
+        }),
+        _ => {}
+    }
+    Geometry {
+        spacing: [sp[2], sp[1], sp[0]],
+        origin: origin.map(|[x, y, z]| [z, y, x]),
+        flip,
+        notes,
     }
 }
 
-/// Voxel spacing `[z, y, x]` from `pixdim[1..=3]`. Axes of size 1 may have
-/// an unset pixdim (taken as 1); any other invalid value drops the spacing.
-fn spacing(h: &Header, dims: Dims3, path: &Path) -> Option<[f64; 3]> {
-    let mut s = [0.0; 3];
-    for (k, i) in [3usize, 2, 1].into_iter().enumerate() {
-        let p = h.pixdim[i].abs();
-        s[k] = if p.is_finite() && p > 0.0 {
-            p
-        } else if dims[k] == 1 {
-            1.0
-        } else {
-            tracing::warn!(
-                "{}: pixdim[{i}] = {} is not a valid spacing; ignoring pixdim",
-                path.display(),
-                h.pixdim[i]
-            );
-            return None;
-        };
+/// The diagonal of `m` when `m` only scales each axis (off-diagonal
+/// entries zero, up to float32 rounding: at most 1e-6 of the largest
+/// entry), with no zero or non-finite entry.
+fn diagonal(m: &[[f64; 3]; 3]) -> Option<[f64; 3]> {
+    let big = m.iter().flatten().fold(0.0f64, |a, v| a.max(v.abs()));
+    if !big.is_finite() || big == 0.0 {
+        return None;
     }
-    Some(s)
+    let d = [m[0][0], m[1][1], m[2][2]];
+    let off_zero = (0..3).all(|r| (0..3).all(|c| r == c || m[r][c].abs() <= 1e-6 * big));
+    (off_zero && d.iter().all(|v| *v != 0.0)).then_some(d)
+}
+
+/// The signs (±1 for x, y, z) of the rotation of a NIfTI quaternion
+/// `(b, c, d)` when it is a rotation by 0 or 180° about one axis (a
+/// diagonal matrix), as `nifti_quatern_to_mat44` computes it.
+fn quaternion_signs([b, c, d]: [f64; 3]) -> Option<[f64; 3]> {
+    if ![b, c, d].iter().all(|v| v.is_finite()) {
+        return None;
+    }
+    let aa = 1.0 - (b * b + c * c + d * d);
+    let (a, b, c, d) = if aa < 1e-7 {
+        // The standard's rule: a = 0 and (b, c, d) normalised.
+        let s = (b * b + c * c + d * d).sqrt();
+        (0.0, b / s, c / s, d / s)
+    } else {
+        (aa.sqrt(), b, c, d)
+    };
+    let r = [
+        [
+            a * a + b * b - c * c - d * d,
+            2.0 * (b * c - a * d),
+            2.0 * (b * d + a * c),
+        ],
+        [
+            2.0 * (b * c + a * d),
+            a * a + c * c - b * b - d * d,
+            2.0 * (c * d - a * b),
+        ],
+        [
+            2.0 * (b * d - a * c),
+            2.0 * (c * d + a * b),
+            a * a + d * d - c * c - b * b,
+        ],
+    ];
+    diagonal(&r).map(|d| d.map(f64::signum))
 }
 
 /// The brickyard type of a NIfTI datatype code, or the name of the code.
@@ -1250,7 +1420,7 @@ mod tests {
             if let Some(t) = s.sform {
                 p.i16(254, 2);
                 for (i, v) in t.iter().enumerate() {
-                    p.f32(280 + 16 * i + 4 * i, 1.0); // diagonal
+                    p.f32(280 + 16 * i + 4 * i, s.pixdim[i] as f32); // diagonal
                     p.f32(292 + 16 * i, *v as f32);
                 }
             }
@@ -1278,7 +1448,7 @@ mod tests {
             if let Some(t) = s.sform {
                 p.i32(348, 2);
                 for (i, v) in t.iter().enumerate() {
-                    p.f64(400 + 32 * i + 8 * i, 1.0);
+                    p.f64(400 + 32 * i + 8 * i, s.pixdim[i]);
                     p.f64(424 + 32 * i, *v);
                 }
             }
@@ -1629,8 +1799,8 @@ mod tests {
         assert_eq!(got[0], 100 - 1024);
     }
 
-    /// Flips and rotations of the sform/qform are not applied, and the
-    /// report says so; a plain sform adds no note.
+    /// A sform or qform that only scales the axes adds no note; one that
+    /// rotates or shears them is not applied, and the report says so.
     #[test]
     fn orientation_notes() {
         let dir = tempfile::tempdir().unwrap();
@@ -1638,22 +1808,26 @@ mod tests {
             sform: Some([1.0, 2.0, 3.0]),
             ..Default::default()
         };
-        let data = i16_bytes(&ramp_i16(60), false);
+        let vals = ramp_i16(60);
+        let data = i16_bytes(&vals, false);
         let mut file = header(&s);
         file.extend(&data);
         let p = write(dir.path(), "plain.nii", &file);
         assert!(open(&p).unwrap().meta().notes.is_empty());
-        file[280..284].copy_from_slice(&(-0.8f32).to_le_bytes()); // srow_x[0]
-        let p = write(dir.path(), "flip.nii", &file);
+        file[284..288].copy_from_slice(&0.3f32.to_le_bytes()); // srow_x[1]: a shear
+        let p = write(dir.path(), "shear.nii", &file);
         let src = open(&p).unwrap();
         assert_eq!(src.meta().origin, Some([3.0, 2.0, 1.0]));
-        assert_eq!(src.meta().spacing.unwrap()[2] as f32, 0.8);
+        assert_eq!(src.meta().spacing.unwrap()[2] as f32, 0.8, "pixdim");
         assert_eq!(src.meta().notes.len(), 1);
         assert!(
-            src.meta().notes[0].starts_with("sform (code 2) [-0.8 0 0]"),
+            src.meta().notes[0]
+                .starts_with("sform (code 2) [0.8 0.3 0] [0 0.9 0] [0 0 2.5] rotates"),
             "{:?}",
             src.meta().notes
         );
+        assert!(src.meta().notes[0].contains("not applied"));
+        assert_eq!(read_all(&src, 0), ne_i16(&vals), "as stored");
 
         let s = Synth {
             qoffset: Some([1.0, 2.0, 3.0]),
@@ -1665,11 +1839,382 @@ mod tests {
         assert!(open(&p).unwrap().meta().notes.is_empty());
         file[256..260].copy_from_slice(&0.5f32.to_le_bytes()); // quatern_b
         let p = write(dir.path(), "qrot.nii", &file);
-        let n = open(&p).unwrap().meta().notes.clone();
+        let src = open(&p).unwrap();
+        let n = src.meta().notes.clone();
         assert!(
-            n[0].starts_with("qform (code 1) quaternion (0.5, 0, 0)"),
+            n[0].starts_with("qform (code 1) quaternion (0.5, 0, 0) rotates"),
             "{n:?}"
         );
+        assert_eq!(src.meta().origin, Some([3.0, 2.0, 1.0]));
+        assert_eq!(read_all(&src, 0), ne_i16(&vals), "as stored");
+    }
+
+    /// The 4×4 affine of a NIfTI-1 header's sform (sform_code > 0) or else
+    /// qform, computed here from the header bytes as the standard defines
+    /// it (nibabel's `get_best_affine`).
+    fn affine_of(b: &[u8]) -> [[f64; 4]; 3] {
+        let f = |o: usize| f32::from_le_bytes(b[o..o + 4].try_into().unwrap()) as f64;
+        if i16::from_le_bytes([b[254], b[255]]) > 0 {
+            return std::array::from_fn(|r| std::array::from_fn(|c| f(280 + 16 * r + 4 * c)));
+        }
+        let (qb, qc, qd) = (f(256), f(260), f(264));
+        let qa = (1.0 - qb * qb - qc * qc - qd * qd).max(0.0).sqrt();
+        let rot = [
+            [
+                qa * qa + qb * qb - qc * qc - qd * qd,
+                2.0 * (qb * qc - qa * qd),
+                2.0 * (qb * qd + qa * qc),
+            ],
+            [
+                2.0 * (qb * qc + qa * qd),
+                qa * qa + qc * qc - qb * qb - qd * qd,
+                2.0 * (qc * qd - qa * qb),
+            ],
+            [
+                2.0 * (qb * qd - qa * qc),
+                2.0 * (qc * qd + qa * qb),
+                qa * qa + qd * qd - qc * qc - qb * qb,
+            ],
+        ];
+        let qfac = if f(76) < 0.0 { -1.0 } else { 1.0 };
+        let zoom = [f(80), f(84), f(88) * qfac];
+        std::array::from_fn(|r| {
+            let mut row = [0.0; 4];
+            for c in 0..3 {
+                row[c] = rot[r][c] * zoom[c];
+            }
+            row[3] = f(268 + 4 * r);
+            row
+        })
+    }
+
+    /// World position (x, y, z) of file voxel (i, j, k) by `affine`.
+    fn world(a: &[[f64; 4]; 3], ijk: [u64; 3]) -> [f64; 3] {
+        std::array::from_fn(|r| (0..3).map(|c| a[r][c] * ijk[c] as f64).sum::<f64>() + a[r][3])
+    }
+
+    /// A file whose axes run against the world's is read with them
+    /// reversed: the voxel at the reversed index is the file's, and the
+    /// store's scale and translation put every voxel where the file's
+    /// affine does. `flips` are the reversed axes `[x, y, z]` expected.
+    fn check_reversed(file: &[u8], dims: [u64; 3], vals: &[i16], flips: [bool; 3]) {
+        let dir = tempfile::tempdir().unwrap();
+        let p = write(dir.path(), "f.nii", file);
+        let src = open(&p).unwrap();
+        let m = src.meta();
+        let [nx, ny, nz] = dims;
+        assert_eq!(m.dims, [nz, ny, nx]);
+        let names = ["x", "y", "z"];
+        for (a, name) in names.iter().enumerate() {
+            let said = m
+                .notes
+                .iter()
+                .any(|n| n.contains(&format!("{name} runs against the file's direction")));
+            assert_eq!(said, flips[a], "axis {name}: {:?}", m.notes);
+        }
+        // Values.
+        let got = read_all(&src, 0);
+        let got: Vec<i16> = from_ne(&got, i16::from_ne_bytes);
+        let idx = |i: u64, j: u64, k: u64| ((k * ny + j) * nx + i) as usize;
+        let m_ = |a: usize, v: u64| if flips[a] { dims[a] - 1 - v } else { v };
+        for k in 0..nz {
+            for j in 0..ny {
+                for i in 0..nx {
+                    assert_eq!(
+                        got[idx(i, j, k)],
+                        vals[idx(m_(0, i), m_(1, j), m_(2, k))],
+                        "store voxel x={i} y={j} z={k}"
+                    );
+                }
+            }
+        }
+        assert_eq!(read_stitched(&src, 0, [2, 3, 4]), read_all(&src, 0));
+        // World positions.
+        let aff = affine_of(file);
+        let (sp, o) = (m.spacing.unwrap(), m.origin.unwrap());
+        for f in [
+            [0, 0, 0],
+            [nx - 1, ny - 1, nz - 1],
+            [1, ny - 1, 0],
+            [nx / 2, 1, nz - 1],
+        ] {
+            let want = world(&aff, f);
+            let store = [m_(0, f[0]), m_(1, f[1]), m_(2, f[2])];
+            for a in 0..3 {
+                let got = o[2 - a] + sp[2 - a] * store[a] as f64;
+                assert!(
+                    (got - want[a]).abs() < 1e-4,
+                    "file voxel {f:?}: {} = {got} in the store, {} in the file",
+                    names[a],
+                    want[a]
+                );
+            }
+        }
+    }
+
+    /// The LAS file of the user trial: a diagonal sform with a negative x
+    /// (`A = diag(-1.5, 1.5, 1.5)`, translation (50, -20, -10)).
+    #[test]
+    fn negative_sform_axis_is_read_reversed() {
+        let s = Synth {
+            dims: vec![30, 20, 10],
+            pixdim: [1.5, 1.5, 1.5],
+            sform: Some([50.0, -20.0, -10.0]),
+            ..Default::default()
+        };
+        let vals = ramp_i16(6000);
+        let mut file = header(&s);
+        file[280..284].copy_from_slice(&(-1.5f32).to_le_bytes()); // srow_x[0]
+        file.extend(i16_bytes(&vals, false));
+        check_reversed(&file, [30, 20, 10], &vals, [true, false, false]);
+        let src = open(&write(tempfile::tempdir().unwrap().path(), "a.nii", &file)).unwrap();
+        let m = src.meta();
+        assert_eq!(m.origin, Some([-10.0, -20.0, 6.5]), "50 + 29 · -1.5");
+        assert_eq!(m.spacing, Some([1.5, 1.5, 1.5]));
+        assert_eq!(m.notes.len(), 1, "{:?}", m.notes);
+        assert!(
+            m.notes[0].starts_with(
+                "sform (code 2) [-1.5 0 0] [0 1.5 0] [0 0 1.5]: x runs against the file's \
+                 direction -1.5: stored reversed so that it runs along +x (translation 6.5"
+            ),
+            "{:?}",
+            m.notes
+        );
+
+        // Every axis backwards, in a NIfTI-2 file.
+        let s2 = Synth {
+            version: 2,
+            vox_offset: 544,
+            ..s.clone()
+        };
+        let mut file = header(&s2);
+        for i in 0..3 {
+            let o = 400 + 32 * i + 8 * i;
+            file[o..o + 8].copy_from_slice(&(-1.5f64).to_le_bytes());
+        }
+        file.extend(i16_bytes(&vals, false));
+        let dir = tempfile::tempdir().unwrap();
+        let src = open(&write(dir.path(), "n2.nii", &file)).unwrap();
+        assert_eq!(src.meta().origin, Some([-23.5, -48.5, 6.5]));
+        let got: Vec<i16> = from_ne(&read_all(&src, 0), i16::from_ne_bytes);
+        let rev: Vec<i16> = vals.iter().rev().copied().collect();
+        assert_eq!(
+            got, rev,
+            "all three axes reversed: the whole volume backwards"
+        );
+    }
+
+    /// The qform: qfac −1 (pixdim[0] < 0) flips z; quaternions of 180°
+    /// turns about an axis flip the other two.
+    #[test]
+    fn qform_flips_are_read_reversed() {
+        let s = Synth {
+            qoffset: Some([1.0, 2.0, 3.0]),
+            ..Default::default()
+        };
+        let vals = ramp_i16(60);
+        let cases: [([f32; 3], f32, [bool; 3]); 4] = [
+            ([0.0, 0.0, 0.0], -1.0, [false, false, true]),
+            ([0.0, 1.0, 0.0], 1.0, [true, false, true]),
+            ([0.0, 1.0, 0.0], -1.0, [true, false, false]),
+            ([1.0, 0.0, 0.0], 1.0, [false, true, true]),
+        ];
+        for (quat, qfac, flips) in cases {
+            let mut file = header(&s);
+            for (i, q) in quat.iter().enumerate() {
+                file[256 + 4 * i..260 + 4 * i].copy_from_slice(&q.to_le_bytes());
+            }
+            file[76..80].copy_from_slice(&qfac.to_le_bytes());
+            file.extend(i16_bytes(&vals, false));
+            check_reversed(&file, [5, 4, 3], &vals, flips);
+        }
+        // qfac −1 alone: z from 3 down by 2.5 per slice, so slice 2 at -2.
+        let mut file = header(&s);
+        file[76..80].copy_from_slice(&(-1.0f32).to_le_bytes());
+        file.extend(i16_bytes(&vals, false));
+        let dir = tempfile::tempdir().unwrap();
+        let src = open(&write(dir.path(), "q.nii", &file)).unwrap();
+        assert_eq!(src.meta().origin.unwrap()[0] as f32, -2.0);
+        assert!(
+            src.meta().notes[0].starts_with("qform (code 1) quaternion (0, 0, 0) with qfac -1: z"),
+            "{:?}",
+            src.meta().notes
+        );
+    }
+
+    /// Reversal keeps channels (4-D), the rescale and gzip: each channel of
+    /// a file with y backwards is the same file's forward channel reversed.
+    #[test]
+    fn reversed_axes_keep_channels_and_rescale() {
+        let dir = tempfile::tempdir().unwrap();
+        let s = Synth {
+            dims: vec![5, 4, 3, 2],
+            sform: Some([0.0, 10.0, 0.0]),
+            slope: 0.5,
+            inter: -3.0,
+            ..Default::default()
+        };
+        let vals = ramp_i16(120);
+        let mut fwd = header(&s);
+        fwd.extend(i16_bytes(&vals, false));
+        let mut back = fwd.clone();
+        back[300..304].copy_from_slice(&(-0.9f32).to_le_bytes()); // srow_y[1]
+        let pf = write(dir.path(), "fwd.nii.gz", &gzip(&fwd));
+        let pb = write(dir.path(), "back.nii.gz", &gzip(&back));
+        let (f, b) = (open(&pf).unwrap(), open(&pb).unwrap());
+        assert_eq!(b.meta().channels, 2);
+        assert_eq!(b.meta().dtype, DType::F32, "rescaled");
+        assert!(b.meta().scaling.is_some());
+        assert_eq!(b.meta().origin.unwrap()[1] as f32, 10.0 - 3.0 * 0.9);
+        for c in 0..2 {
+            let fv: Vec<f32> = from_ne(&read_all(&f, c), f32::from_ne_bytes);
+            let bv: Vec<f32> = from_ne(&read_all(&b, c), f32::from_ne_bytes);
+            for k in 0..3 {
+                for j in 0..4 {
+                    for i in 0..5 {
+                        assert_eq!(
+                            bv[(k * 4 + j) * 5 + i],
+                            fv[(k * 4 + (3 - j)) * 5 + i],
+                            "channel {c} voxel {i},{j},{k}"
+                        );
+                    }
+                }
+            }
+            assert_eq!(read_stitched(&b, c, [2, 3, 2]), read_all(&b, c));
+        }
+    }
+
+    /// An invalid pixdim entry costs that axis only: its spacing comes
+    /// from the sform (the length of its column), else 1, and is noted.
+    #[test]
+    fn invalid_pixdim_is_replaced_and_noted() {
+        let dir = tempfile::tempdir().unwrap();
+        let s = Synth {
+            pixdim: [1.5, 1.5, 1.5],
+            sform: Some([1.0, 2.0, 3.0]),
+            ..Default::default()
+        };
+        let data = i16_bytes(&ramp_i16(60), false);
+        let mut file = header(&s);
+        file.extend(&data);
+        file[80..84].copy_from_slice(&0f32.to_le_bytes()); // pixdim[1]
+        let src = open(&write(dir.path(), "sform.nii", &file)).unwrap();
+        let m = src.meta();
+        assert_eq!(m.spacing, Some([1.5, 1.5, 1.5]));
+        assert_eq!(m.unit.as_deref(), Some("millimeter"));
+        assert_eq!(m.notes.len(), 1, "{:?}", m.notes);
+        assert!(
+            m.notes[0]
+                .starts_with("pixdim[1] = 0 is not a valid spacing: x spacing 1.5 from the sform"),
+            "{:?}",
+            m.notes
+        );
+
+        // A rotated sform: the column's length.
+        let mut rot = file.clone();
+        let (c, sn) = (0.6f32 * 1.5, 0.8f32 * 1.5);
+        for (o, v) in [(280, c), (284, -sn), (296, sn), (300, c)] {
+            rot[o..o + 4].copy_from_slice(&v.to_le_bytes());
+        }
+        rot[84..88].copy_from_slice(&f32::NAN.to_le_bytes()); // pixdim[2]
+        let m = open(&write(dir.path(), "rot.nii", &rot))
+            .unwrap()
+            .meta()
+            .clone();
+        let sp = m.spacing.unwrap();
+        assert!(
+            (sp[2] - 1.5).abs() < 1e-6 && (sp[1] - 1.5).abs() < 1e-6 && sp[0] == 1.5,
+            "{sp:?}"
+        );
+        assert!(m.notes.iter().any(|n| n.starts_with("pixdim[1] = 0 is not a valid spacing: x spacing 1.5 from the sform (the length of its column 1)")), "{:?}", m.notes);
+        assert!(
+            m.notes
+                .iter()
+                .any(|n| n.starts_with("pixdim[2] = NaN is not a valid spacing")),
+            "{:?}",
+            m.notes
+        );
+
+        // No sform: 1 for that axis, the others kept.
+        let s = Synth {
+            pixdim: [1.5, 1.5, 1.5],
+            qoffset: Some([0.0, 0.0, 0.0]),
+            ..Default::default()
+        };
+        let mut file = header(&s);
+        file.extend(&data);
+        file[80..84].copy_from_slice(&0f32.to_le_bytes());
+        let m = open(&write(dir.path(), "q.nii", &file))
+            .unwrap()
+            .meta()
+            .clone();
+        assert_eq!(m.spacing, Some([1.5, 1.5, 1.0]));
+        assert_eq!(m.notes.len(), 1, "{:?}", m.notes);
+        assert!(
+            m.notes[0].starts_with(
+                "pixdim[1] = 0 is not a valid spacing and no sform gives one: x spacing 1"
+            ),
+            "{:?}",
+            m.notes
+        );
+    }
+
+    /// A `bitpix` that disagrees with `datatype` is read as the datatype
+    /// says, and noted.
+    #[test]
+    fn bitpix_disagreement_is_noted() {
+        let dir = tempfile::tempdir().unwrap();
+        let s = Synth {
+            bitpix: 32,
+            ..Default::default()
+        };
+        let vals = ramp_i16(60);
+        let mut file = header(&s);
+        file.extend(i16_bytes(&vals, false));
+        let src = open(&write(dir.path(), "b.nii", &file)).unwrap();
+        assert_eq!(src.meta().dtype, DType::I16);
+        assert_eq!(read_all(&src, 0), ne_i16(&vals));
+        assert_eq!(src.meta().notes.len(), 1, "{:?}", src.meta().notes);
+        assert!(
+            src.meta().notes[0]
+                .starts_with("bitpix 32 disagrees with datatype 4 (i16, 16 bits): read as i16"),
+            "{:?}",
+            src.meta().notes
+        );
+    }
+
+    /// `--origin`/`--spacing` replace the file's geometry, not the data's
+    /// direction: the store keeps the reversed axis, with the overrides.
+    #[test]
+    fn overrides_keep_the_reversal() {
+        use crate::builder::{convert, ConvertOptions, NoProgress};
+        use std::sync::atomic::AtomicBool;
+        let dir = tempfile::tempdir().unwrap();
+        let s = Synth {
+            sform: Some([50.0, -20.0, -10.0]),
+            ..Default::default()
+        };
+        let vals = ramp_i16(60);
+        let mut file = header(&s);
+        file[280..284].copy_from_slice(&(-0.8f32).to_le_bytes());
+        file.extend(i16_bytes(&vals, false));
+        let src = open(&write(dir.path(), "o.nii", &file)).unwrap();
+        let out = dir.path().join("o.ome.zarr");
+        let opts = ConvertOptions {
+            brick: [4, 4, 4],
+            shard: [8, 8, 8],
+            origin: Some([7.0, 8.0, 9.0]),
+            spacing: Some([3.0, 2.0, 1.0]),
+            ..Default::default()
+        };
+        convert(&src, &out, &opts, &NoProgress, &AtomicBool::new(false)).unwrap();
+        let ms = crate::omezarr::read_multiscale(&out).unwrap().unwrap();
+        assert_eq!(ms.datasets[0].translation, Some(vec![7.0, 8.0, 9.0]));
+        assert_eq!(ms.datasets[0].scale, Some(vec![3.0, 2.0, 1.0]));
+        let store = crate::import::zarr::open(&out, 0).unwrap();
+        let got: Vec<i16> = from_ne(&read_all(&store, 0), i16::from_ne_bytes);
+        assert_eq!(got[0], vals[4], "store voxel 0 is the file's last x voxel");
+        assert_eq!(read_all(&store, 0), read_all(&src, 0));
     }
 
     /// A 4-D file with 3 volumes: channel c must be the c-th volume.

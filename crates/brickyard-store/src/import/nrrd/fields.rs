@@ -5,6 +5,7 @@
 use super::header::{parse_quoted, parse_vectors, truncate, Header, NameFormat};
 use super::{Encoding, Layout};
 use crate::error::{Result, StoreError};
+use crate::import::flip;
 use crate::source::SourceMeta;
 use brickyard_core::{DType, Dims3};
 use std::path::{Path, PathBuf};
@@ -24,6 +25,9 @@ pub(super) struct Plan {
     pub(super) data_files: Vec<PathBuf>,
     /// Bytes of the whole payload.
     pub(super) total_bytes: u64,
+    /// Axes read reversed, `[z, y, x]`: their space direction points
+    /// along the negative of their own world axis.
+    pub(super) flip: [bool; 3],
 }
 
 /// Result of mapping a NRRD type name.
@@ -511,6 +515,23 @@ pub(super) fn interpret(path: &Path, h: &Header) -> Result<Plan> {
         }
     }
 
+    // Steps (x, y[, z]) when every spatial axis steps along its own world
+    // axis only (x along the first component, ...), forwards or backwards:
+    // the backward ones are read reversed.
+    let steps: Option<Vec<f64>> = dirs.as_ref().and_then(|d| {
+        spatial
+            .iter()
+            .enumerate()
+            .map(|(k, &i)| {
+                let v = d[i].as_deref()?;
+                let own = *v.get(k)?;
+                let alone = v.iter().enumerate().all(|(j, &c)| j == k || c == 0.0);
+                (own != 0.0 && alone).then_some(own)
+            })
+            .collect()
+    });
+    let mut flip = [false; 3];
+
     // Origin.
     let mut origin = None;
     if let Some((f, v)) = h.get("space origin") {
@@ -535,6 +556,32 @@ pub(super) fn interpret(path: &Path, h: &Header) -> Result<Plan> {
         };
         if let Some(o) = o {
             origin = Some(origin_zyx(&o, &spatial, dirs.as_deref()));
+        }
+    }
+    // The note on reversed axes, and the origin moved to the voxel that
+    // becomes index 0.
+    let mut flip_note = None;
+    if let Some(st) = &steps {
+        const NAMES: [&str; 3] = ["x", "y", "z"];
+        let mut said = Vec::new();
+        for (k, &step) in st.iter().enumerate() {
+            let a = 2 - k;
+            if step < 0.0 && dims[a] > 1 {
+                flip[a] = true;
+                let t = origin.as_mut().map(|o: &mut [f64; 3]| {
+                    o[a] = flip::first_voxel(o[a], dims[a], step);
+                    o[a]
+                });
+                said.push((NAMES[k], flip::short(step), t));
+            }
+        }
+        if !said.is_empty() {
+            let v = h.get("space directions").map_or("", |x| x.1);
+            flip_note = Some(format!(
+                "space directions {}: {}",
+                truncate(v, 80),
+                flip::describe(&said)
+            ));
         }
     }
 
@@ -588,6 +635,9 @@ pub(super) fn interpret(path: &Path, h: &Header) -> Result<Plan> {
 
     let mut meta = SourceMeta::new(path, dims, channels as usize, dtype);
     meta.notes = header_notes(h, &spatial, dirs.as_deref(), origin.is_some());
+    if let Some(n) = flip_note {
+        meta.notes.insert(0, n);
+    }
     meta.spacing = spacing_xyz.map(|s| {
         if s.len() == 3 {
             [s[2], s[1], s[0]]
@@ -617,6 +667,7 @@ pub(super) fn interpret(path: &Path, h: &Header) -> Result<Plan> {
         line_skip,
         data_files,
         total_bytes,
+        flip,
     })
 }
 
@@ -630,18 +681,19 @@ fn header_notes(
 ) -> Vec<String> {
     let mut notes = Vec::new();
     if let Some(d) = dirs {
-        // Plain: axis k of the image points along +component k only.
-        let plain = spatial.iter().enumerate().all(|(k, &i)| {
+        // Kept: axis k of the image points along ±component k only (a
+        // backward axis is read reversed, and noted by the caller).
+        let kept = spatial.iter().enumerate().all(|(k, &i)| {
             d[i].as_deref().is_some_and(|v| {
                 v.iter()
                     .enumerate()
-                    .all(|(j, &c)| if j == k { c > 0.0 } else { c == 0.0 })
+                    .all(|(j, &c)| if j == k { c != 0.0 } else { c == 0.0 })
             })
         });
-        if !plain {
+        if !kept {
             let v = h.get("space directions").map_or("", |x| x.1);
             notes.push(format!(
-                "space directions {} flip or rotate the axes: not applied (spacing = vector \
+                "space directions {} rotate or permute the axes: not applied (spacing = vector \
                  lengths, origin = space origin)",
                 truncate(v, 80)
             ));

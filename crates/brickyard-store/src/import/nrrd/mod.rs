@@ -20,9 +20,16 @@
 //!   are read; anything else is [`StoreError::Unsupported`].
 //! * Spacing comes from the norms of `space directions` (so a flipped axis
 //!   still has a positive spacing) or from `spacings`; a 2-D image gets a z
-//!   spacing of 1. brickyard keeps only a scale and a translation, so
-//!   rotations and flips in `space directions` are dropped: the origin of an
-//!   axis is the `space origin` component along which that axis mostly points.
+//!   spacing of 1. brickyard keeps only a scale and a translation: when
+//!   every spatial axis points along its own world axis only, an axis that
+//!   points backwards (a negative step) is read reversed
+//!   (`import::flip::Flip`) and its origin moved to the file's last voxel
+//!   along it, so that world positions are the file's (noted); rotations and
+//!   permuted axes are dropped (noted):
+//!   the origin of an axis is the `space origin` component along which that
+//!   axis mostly points. Reversing z of gzip data reads the slices back to
+//!   front, so each slab read decompresses the stream again from its start:
+//!   such files convert correctly but more slowly.
 //!   The unit comes from `space units` (or `units`); a `space` that is
 //!   anatomical or `scanner-xyz`, given without units, means millimetres.
 //!
@@ -47,6 +54,7 @@ mod read;
 mod tests;
 
 use crate::error::{IoContext, Result};
+use crate::import::flip::Flip;
 use crate::source::SourceMeta;
 use fields::interpret;
 use header::read_header;
@@ -99,6 +107,8 @@ pub struct NrrdSource {
     /// gzip decoder cursors: one per channel when channels are stored one
     /// after the other, else a single one.
     gz: Vec<Mutex<GzState>>,
+    /// Axes read reversed (their space direction points backwards).
+    flip: Flip,
     /// Number of gzip streams opened (tests check that reads stream forwards).
     #[cfg(test)]
     gz_opens: std::sync::atomic::AtomicUsize,

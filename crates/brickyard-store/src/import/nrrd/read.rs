@@ -5,6 +5,7 @@
 use super::fields::Plan;
 use super::{Encoding, NrrdSource};
 use crate::error::{IoContext, Result, StoreError};
+use crate::import::flip::Flip;
 use crate::import::{swap_bytes_in_place, MAX_DEFLATE_RATIO};
 use crate::source::{check_region, SourceMeta, VolumeSource};
 use flate2::read::MultiGzDecoder;
@@ -90,6 +91,7 @@ impl NrrdSource {
             Encoding::Gzip if !plan.layout.interleaved => plan.meta.channels.min(MAX_GZ_CURSORS),
             Encoding::Gzip => 1,
         };
+        let flip = Flip::new(plan.flip, plan.meta.dims);
         Ok(NrrdSource {
             meta: plan.meta,
             layout: plan.layout,
@@ -101,6 +103,7 @@ impl NrrdSource {
             attached,
             raw_file,
             gz: (0..gz_slots).map(|_| Mutex::default()).collect(),
+            flip,
             #[cfg(test)]
             gz_opens: Default::default(),
         })
@@ -299,7 +302,24 @@ impl VolumeSource for NrrdSource {
         if out.is_empty() {
             return Ok(());
         }
-        let rows = Rows::new(self, c, &z, &y, &x);
+        let size = self.meta.dtype.size();
+        self.flip.read(z, y, x, out, size, |z, y, x, out| {
+            self.read_stored(c, &z, &y, &x, out)
+        })
+    }
+}
+
+impl NrrdSource {
+    /// Read a region as the file stores it (not reversed).
+    fn read_stored(
+        &self,
+        c: usize,
+        z: &Range<u64>,
+        y: &Range<u64>,
+        x: &Range<u64>,
+        out: &mut [u8],
+    ) -> Result<()> {
+        let rows = Rows::new(self, c, z, y, x);
         match self.encoding {
             Encoding::Raw => {
                 let mut handle: Option<(usize, File)> = None;

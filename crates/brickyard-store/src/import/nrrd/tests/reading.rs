@@ -24,18 +24,27 @@ fn mr_brain_real_file() {
     for (a, b) in sp.iter().zip([6.5, 0.78125, 0.78125]) {
         assert!((a - b).abs() < 1e-9, "spacing {sp:?}");
     }
+    // y steps by -0.78125 from 99.609375: read reversed, index 0 is the
+    // file's last row, at 99.609375 - 255 · 0.78125.
     let o = m.origin.unwrap();
-    for (a, b) in o.iter().zip([-78.0, 99.609375, -99.609375]) {
+    for (a, b) in o.iter().zip([-78.0, -99.609375, -99.609375]) {
         assert!((a - b).abs() < 1e-9, "origin {o:?}");
     }
     assert_eq!(m.unit.as_deref(), Some("millimeter"));
     assert_eq!(
         m.notes.len(),
         1,
-        "the flipped y axis is noted: {:?}",
+        "the reversed y axis is noted: {:?}",
         m.notes
     );
-    assert!(m.notes[0].contains("not applied"));
+    assert!(
+        m.notes[0].contains(
+            "y runs against the file's direction -0.78125: stored reversed so that it runs \
+             along +y (translation -99.609375"
+        ),
+        "{:?}",
+        m.notes
+    );
 
     // Independent decode: the payload follows the first blank line.
     let bytes = std::fs::read(&path).unwrap();
@@ -45,9 +54,17 @@ fn mr_brain_real_file() {
         .read_to_end(&mut expected)
         .unwrap();
     assert_eq!(expected.len(), 256 * 256 * 25 * 2);
+    let stored = expected.clone();
+    // The volume as read: rows in reverse order within each slice.
+    let row = 256 * 2;
+    let expected: Vec<u8> = stored
+        .chunks_exact(256 * row)
+        .flat_map(|slice| slice.chunks_exact(row).rev().flatten().copied())
+        .collect();
     let voxel = |z: usize, y: usize, x: usize| {
+        let y = 255 - y;
         let i = ((z * 256 + y) * 256 + x) * 2;
-        i16::from_le_bytes([expected[i], expected[i + 1]])
+        i16::from_le_bytes([stored[i], stored[i + 1]])
     };
 
     let whole = read_all(&s, 0);
@@ -124,17 +141,102 @@ fn unapplied_fields_are_noted() {
 
     let hdr = format!(
         "{HDR_U16}endian: little\nencoding: raw\nspace: RAS\n\
-         space directions: (0.5,0,0) (0,-0.25,0) (0,0,2)\nold min: -1.5\nold max: 7\n\
+         space directions: (0,0.25,0) (0.5,0,0) (0,0,2)\nold min: -1.5\nold max: 7\n\
          axis mins: 0 0 0\n\n"
     );
     let p = write(dir.path(), "noted.nrrd", &[hdr.as_bytes(), &le(&v)]);
     let s = open(&p).unwrap();
     let n = &s.meta().notes;
     assert_eq!(n.len(), 3, "{n:?}");
-    assert!(n[0].starts_with("space directions (0.5,0,0) (0,-0.25,0) (0,0,2) flip"));
+    assert!(
+        n[0].starts_with("space directions (0,0.25,0) (0.5,0,0) (0,0,2) rotate or permute"),
+        "{n:?}"
+    );
+    assert!(n[0].contains("not applied"));
     assert!(n[1].contains("(-1.5..7, the range before quantization) not applied"));
     assert!(n[2].starts_with("axis mins not applied"));
     assert_eq!(read_all(&s, 0), le(&v), "values are the stored numbers");
+}
+
+/// Axes whose space direction points backwards along their own world
+/// axis are read reversed: the voxel at the reversed index is the file's,
+/// and the translation and scale put every voxel where `space origin` +
+/// i · direction does. Raw and gzip, with an interleaved channel axis.
+#[test]
+fn backward_directions_are_read_reversed() {
+    let dir = tempfile::tempdir().unwrap();
+    // x backwards, y forwards, z backwards; sizes x 5, y 4, z 3.
+    let dirs = [[-0.5, 0.0, 0.0], [0.0, 0.25, 0.0], [0.0, 0.0, -2.0]];
+    let org = [10.0, 20.0, 30.0];
+    let (nx, ny, nz) = (5u64, 4u64, 3u64);
+    let v = values(2 * 60);
+    let flips = [true, false, true];
+    let fmt = |a: [f64; 3]| format!("({},{},{})", a[0], a[1], a[2]);
+    for (enc, data) in [("raw", le(&v)), ("gzip", gz(&le(&v)))] {
+        let hdr = format!(
+            "NRRD0004\ntype: unsigned short\ndimension: 4\nsizes: 2 5 4 3\n\
+             kinds: vector domain domain domain\nendian: little\nencoding: {enc}\n\
+             space: left-posterior-superior\nspace directions: none {} {} {}\n\
+             space origin: {}\n\n",
+            fmt(dirs[0]),
+            fmt(dirs[1]),
+            fmt(dirs[2]),
+            fmt(org)
+        );
+        let p = write(dir.path(), &format!("{enc}.nrrd"), &[hdr.as_bytes(), &data]);
+        let s = open(&p).unwrap();
+        let m = s.meta();
+        assert_eq!((m.dims, m.channels), ([3, 4, 5], 2));
+        assert_eq!(m.spacing, Some([2.0, 0.25, 0.5]));
+        assert_eq!(
+            m.origin,
+            Some([26.0, 20.0, 8.0]),
+            "30 - 2 · 2, 20, 10 - 4 · 0.5"
+        );
+        assert_eq!(m.notes.len(), 1, "{:?}", m.notes);
+        assert!(
+            m.notes[0].contains(
+                "x runs against the file's direction -0.5: stored reversed so that it runs \
+                 along +x (translation 8, the position of the file's last x voxel); z runs \
+                 against the file's direction -2"
+            ),
+            "{:?}",
+            m.notes
+        );
+        let mir = |a: usize, i: u64, n: u64| if flips[a] { n - 1 - i } else { i };
+        for c in 0..2 {
+            // The file's channel c; the volume as read.
+            let file: Vec<u16> = v.iter().skip(c).step_by(2).copied().collect();
+            let mut want = Vec::new();
+            for k in 0..nz {
+                for j in 0..ny {
+                    for i in 0..nx {
+                        let (fi, fj, fk) = (mir(0, i, nx), mir(1, j, ny), mir(2, k, nz));
+                        want.push(file[((fk * ny + fj) * nx + fi) as usize]);
+                    }
+                }
+            }
+            assert_eq!(read_all(&s, c), le(&want), "{enc} channel {c}");
+            check_boxes(&s, c, &le(&want), 20, 3 + c as u64);
+        }
+        // World positions, from the header's vectors.
+        let (sp, o) = (m.spacing.unwrap(), m.origin.unwrap());
+        for f in [[0, 0, 0], [4, 3, 2], [1, 3, 0], [2, 0, 2]] {
+            let file_world: Vec<f64> = (0..3)
+                .map(|r| org[r] + (0..3).map(|a| f[a] as f64 * dirs[a][r]).sum::<f64>())
+                .collect();
+            let n = [nx, ny, nz];
+            for a in 0..3 {
+                let idx = mir(a, f[a], n[a]);
+                let got = o[2 - a] + sp[2 - a] * idx as f64;
+                assert!(
+                    (got - file_world[a]).abs() < 1e-9,
+                    "{enc}: file voxel {f:?} axis {a}: {got} in the store, {} in the file",
+                    file_world[a]
+                );
+            }
+        }
+    }
 }
 
 #[test]
