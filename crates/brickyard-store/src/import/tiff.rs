@@ -1,20 +1,34 @@
 //! TIFF importer: a multi-page TIFF or BigTIFF (one page per z slice), a
 //! directory of 2-D TIFF slices, or a glob of slice files.
 //!
-//! Over 800 lines: 1.4k lines of importer (every TIFF layout), 0.9k of tests.
+//! Over 800 lines: 1.8k lines of importer (every TIFF layout, reads in place and
+//! YCbCr included), 1.2k of tests.
 //!
 //! Samples may be 8/16/32-bit unsigned or signed integers or 32/64-bit
 //! floats; several samples per pixel (RGB, multiband) become channels, in
 //! both chunky and planar-separate layouts. Compression is whatever the
 //! `tiff` crate decodes (LZW, Deflate, PackBits, JPEG, CCITT G4).
 //!
-//! Memory stays bounded: a request decodes only the strips or tiles that
-//! cover it, and a small LRU cache (by default [`DEFAULT_CACHE_PAGES`]
-//! pages' worth of decoded strips and tiles) avoids decoding the same data
-//! again when a page is read in several sub-regions. The IFD offsets of a
-//! multi-page file are collected once by [`open`], which also checks that all
-//! pages agree in size and sample type; reading a page then parses only its
-//! own IFD, so random access does not walk the IFD chain.
+//! Memory follows the region asked for, not the page size: uncompressed
+//! strips and tiles (no predictor) are not decoded at all, a request reads
+//! just the bytes of its rows and columns from the file (as the raw
+//! importer does); compressed ones are decoded one strip or tile at a time,
+//! only those that cover the request, and a small LRU cache bounded in
+//! bytes ([`DEFAULT_CACHE_BYTES`], whatever the page size) avoids decoding
+//! the same data again when a page is read in several sub-regions. The
+//! converter's memory plan counts no memory for a source beyond its fixed
+//! allowance, so this stays a small constant; a compressed strip or tile is
+//! still decoded whole, so a file of huge compressed strips (one strip per
+//! page) needs that much more ([`TiffSource::largest_decode_bytes`]). And
+//! when a small budget makes the converter read a page in columns narrower
+//! than its strips, each compressed strip is decoded once per column: the
+//! price of staying within the budget (a whole band of strips would not
+//! fit it).
+//!
+//! The IFD offsets of a multi-page file are collected once by [`open`],
+//! which also checks that all pages agree in size and sample type; reading
+//! a page then parses only its own IFD, so random access does not walk the
+//! IFD chain.
 //!
 //! Reduced-resolution pages (`NewSubfileType` bit 0, i.e. thumbnails and
 //! pyramid levels) are skipped.
@@ -29,6 +43,17 @@
 //!   `1 − stored` for floats, so that higher values are brighter; the
 //!   conversion report says so. Signed or multi-sample MinIsWhite images are
 //!   refused.
+//! * `PhotometricInterpretation` YCbCr (6), tifffile's default for JPEG
+//!   colour images and common from slide scanners: the decoder hands back
+//!   the stored Y, Cb, Cr samples (its JPEG path does no colour conversion,
+//!   only chroma upsampling), so they are converted to R, G, B with the
+//!   JFIF (BT.601 full range) equations, as libjpeg does, and the report
+//!   says so. 8-bit chunky YCbCr only. JPEG-compressed YCbCr may have any
+//!   `YCbCrSubSampling` (the JPEG decoder upsamples; `YCbCrCoefficients`
+//!   and `ReferenceBlackWhite` are ignored, as libtiff's and tifffile's
+//!   readers do); other compressions only `YCbCrSubSampling` 1,1 (the
+//!   decoder reads no subsampled data), with the default coefficients and
+//!   full-range reference values; anything else is refused.
 //! * An ImageJ file (a multi-page file whose `ImageDescription` starts with
 //!   `ImageJ=`): `channels=C` makes C channels of interleaved pages (ImageJ
 //!   stores channel fastest, then slice, then frame); the spacing is
@@ -53,13 +78,21 @@ use std::io::{self, BufReader, Read, Seek, SeekFrom};
 use std::ops::Range;
 use std::panic::{catch_unwind, AssertUnwindSafe};
 use std::path::{Path, PathBuf};
+use std::sync::atomic::{AtomicU64, Ordering as AtomicOrdering};
 use std::sync::{Arc, Mutex, PoisonError};
 use tiff::decoder::{ChunkType, Decoder, Limits};
-use tiff::tags::Tag;
+use tiff::tags::{ByteOrder, Tag};
 use tiff::{ColorType, TiffError, TiffFormatError, TiffUnsupportedError};
 
-/// Number of pages' worth of decoded strips/tiles kept by default.
-pub const DEFAULT_CACHE_PAGES: usize = 4;
+/// Bytes of decoded strips/tiles kept by default, whatever the page size:
+/// the converter's memory plan has no share for a source beyond its fixed
+/// allowance, so this must stay small.
+pub const DEFAULT_CACHE_BYTES: usize = 8 << 20;
+
+/// Most bytes of an uncompressed strip or tile read in one piece when a
+/// request needs most of each of its rows (rows needing little of theirs
+/// are read one by one).
+const RAW_BLOCK_BYTES: u64 = 1 << 20;
 
 /// Largest strip or tile decoded in one piece (a guard against absurd sizes
 /// in corrupt files).
@@ -75,6 +108,9 @@ pub struct TiffSource {
     /// `z · page_channels + c` holds channel `c` of slice `z`. 1 otherwise.
     page_channels: usize,
     cache: Mutex<ChunkCache>,
+    /// Bytes of strips and tiles decoded, or read without decoding, so far
+    /// (for tests and benchmarks: what a request costs).
+    decoded: AtomicU64,
 }
 
 /// Where the pages come from.
@@ -102,6 +138,9 @@ struct PageGeom {
     /// Strip (full width × rows per strip) or tile size.
     chunk_w: u32,
     chunk_h: u32,
+    /// Uncompressed, no predictor, values as stored: regions are read from
+    /// the file without decoding whole strips or tiles.
+    raw: bool,
 }
 
 /// What all pages must agree on.
@@ -116,6 +155,9 @@ struct PageFormat {
     planar: bool,
     /// `PhotometricInterpretation` 0: the decoder inverts the values.
     min_is_white: bool,
+    /// `PhotometricInterpretation` 6: decoded chunks hold Y, Cb, Cr, which
+    /// are converted to R, G, B.
+    ycbcr: bool,
 }
 
 impl std::fmt::Debug for TiffSource {
@@ -192,19 +234,44 @@ pub fn open_glob(pattern: &str) -> Result<TiffSource> {
 }
 
 impl TiffSource {
-    /// Keep up to `pages` pages' worth of decoded strips/tiles in the cache
-    /// (0 disables caching). The default is [`DEFAULT_CACHE_PAGES`].
-    pub fn with_cache_pages(self, pages: usize) -> Self {
-        self.set_cache_pages(pages);
+    /// Keep up to `bytes` of decoded strips/tiles in the cache (0 disables
+    /// caching; a strip or tile larger than that is never kept). The
+    /// default is [`DEFAULT_CACHE_BYTES`].
+    pub fn with_cache_bytes(self, bytes: usize) -> Self {
+        self.set_cache_bytes(bytes);
         self
     }
 
-    /// Change the cache size; see [`TiffSource::with_cache_pages`].
-    pub fn set_cache_pages(&self, pages: usize) {
-        let budget = self.page_bytes().saturating_mul(pages);
-        let mut cache = self.cache.lock().unwrap_or_else(PoisonError::into_inner);
-        cache.budget = budget;
-        cache.shrink_to(budget);
+    /// Change the cache size; see [`TiffSource::with_cache_bytes`].
+    pub fn set_cache_bytes(&self, bytes: usize) {
+        let mut cache = self.lock_cache();
+        cache.budget = bytes;
+        cache.shrink_to(bytes);
+    }
+
+    /// Bytes of strips and tiles decoded, or read from the file without
+    /// decoding, since the source was opened: what the reads so far cost.
+    pub fn bytes_decoded(&self) -> u64 {
+        self.decoded.load(AtomicOrdering::Relaxed)
+    }
+
+    /// The most bytes the cache of decoded strips/tiles has held.
+    pub fn cache_peak_bytes(&self) -> usize {
+        self.lock_cache().peak
+    }
+
+    /// Decoded bytes of the largest strip or tile that a read decodes whole
+    /// (0 when every page is read without decoding): the memory a read
+    /// needs beyond its output and the cache, per reading thread.
+    pub fn largest_decode_bytes(&self) -> u64 {
+        let f = &self.format;
+        let px = (if f.planar { 1 } else { f.channels } * f.dtype.size()) as u64;
+        self.pages
+            .iter()
+            .filter(|g| !g.raw)
+            .map(|g| (g.chunk_w as u64).saturating_mul(g.chunk_h.min(f.height) as u64) * px)
+            .max()
+            .unwrap_or(0)
     }
 
     /// The files of a slice stack, in z order (`None` for a multi-page file).
@@ -213,15 +280,6 @@ impl TiffSource {
             Stack::Files(files) => Some(files),
             Stack::File { .. } => None,
         }
-    }
-
-    /// Decoded bytes of one page, all its samples.
-    fn page_bytes(&self) -> usize {
-        let f = &self.format;
-        (f.width as usize)
-            .saturating_mul(f.height as usize)
-            .saturating_mul(f.channels * f.dtype.size())
-            .saturating_mul(self.page_channels)
     }
 
     /// The file holding page `z`, and how messages name the page.
@@ -255,6 +313,139 @@ impl TiffSource {
             .map_err(|e| tiff_error(path, &label, "IFD", e))
     }
 
+    /// Where the strips or tiles of page `z` (an uncompressed one) lie.
+    fn raw_page(&self, z: usize) -> Result<RawPage> {
+        let (path, label) = self.page_origin(z);
+        guard(path, &label, || {
+            let mut dec = self.page_decoder(z)?;
+            let file = dec.inner().get_ref().file.clone();
+            let (offsets_tag, counts_tag) = match dec.get_chunk_type() {
+                ChunkType::Strip => (Tag::StripOffsets, Tag::StripByteCounts),
+                ChunkType::Tile => (Tag::TileOffsets, Tag::TileByteCounts),
+            };
+            let offsets = dec
+                .get_tag_u64_vec(offsets_tag)
+                .map_err(|e| tiff_error(path, &label, &format!("{offsets_tag:?}"), e))?;
+            let counts = dec
+                .get_tag_u64_vec(counts_tag)
+                .map_err(|e| tiff_error(path, &label, &format!("{counts_tag:?}"), e))?;
+            let big = matches!(dec.byte_order(), ByteOrder::BigEndian);
+            Ok(RawPage {
+                file,
+                offsets,
+                counts,
+                swap: big != cfg!(target_endian = "big"),
+            })
+        })
+    }
+
+    /// Copy rows `ys` × columns `xs` (image coordinates) of uncompressed
+    /// strip or tile `idx` of page `z`, whose first pixel is at row `cy0`,
+    /// column `cx0` and whose rows hold `cw` pixels of `spp` samples, into
+    /// `out` (a slab of `nx` columns starting at image row `y0`, column
+    /// `x0`), reading only the bytes needed (`sample`: the sample to pick).
+    #[allow(clippy::too_many_arguments)]
+    fn read_raw(
+        &self,
+        z: usize,
+        page: &RawPage,
+        idx: u32,
+        [cy0, cx0, cw]: [u64; 3],
+        (ys, xs): (Range<u64>, Range<u64>),
+        (spp, sample): (usize, usize),
+        (out, nx, y0, x0): (&mut [u8], usize, u64, u64),
+        scratch: &mut Vec<u8>,
+    ) -> Result<()> {
+        let (path, label) = self.page_origin(z);
+        let ss = self.format.dtype.size();
+        let px = (spp * ss) as u64;
+        let stride = cw * px;
+        let n = (xs.end - xs.start) as usize;
+        let len = n as u64 * px;
+        let (Some(&offset), Some(&count)) = (
+            page.offsets.get(idx as usize),
+            page.counts.get(idx as usize),
+        ) else {
+            return Err(StoreError::invalid(
+                path,
+                "strip data",
+                format!("{label}: strip/tile {idx} is missing from the offsets"),
+            ));
+        };
+        // Bytes into the strip/tile of the first needed sample and past the
+        // last one.
+        let first = (ys.start - cy0) * stride + (xs.start - cx0) * px;
+        let end = (ys.end - 1 - cy0) * stride + (xs.start - cx0) * px + len;
+        if end > count {
+            return Err(StoreError::invalid(
+                path,
+                "strip data",
+                format!(
+                    "{label}: strip/tile {idx} holds {count} bytes but the image needs {end} of \
+                     them"
+                ),
+            ));
+        }
+        let read = |buf: &mut [u8], at: u64| {
+            read_exact_at(&page.file, buf, offset + at).map_err(|e| {
+                if e.kind() == io::ErrorKind::UnexpectedEof {
+                    StoreError::invalid(
+                        path,
+                        "strip data",
+                        format!("{label}: the file ends early (truncated?): {e}"),
+                    )
+                } else {
+                    StoreError::io(path, e)
+                }
+            })
+        };
+        // Rows that need most of their bytes are read several at a time.
+        let rows = ys.end - ys.start;
+        let per_read = if 2 * len >= stride {
+            (RAW_BLOCK_BYTES / stride.max(1)).max(1)
+        } else {
+            1
+        };
+        let mut r = 0;
+        while r < rows {
+            let k = per_read.min(rows - r);
+            let at = first + r * stride;
+            let span = ((k - 1) * stride + len) as usize;
+            let direct = spp == 1 && k == 1;
+            if !direct {
+                scratch.resize(span, 0);
+                read(&mut scratch[..span], at)?;
+            }
+            for i in 0..k {
+                let yy = ys.start + r + i;
+                let d = ((yy - y0) as usize * nx + (xs.start - x0) as usize) * ss;
+                let dst = &mut out[d..d + n * ss];
+                if direct {
+                    read(dst, at)?;
+                } else {
+                    let s0 = (i * stride) as usize;
+                    let src = &scratch[s0..s0 + len as usize];
+                    if spp == 1 {
+                        dst.copy_from_slice(src);
+                    } else {
+                        let pxs = px as usize;
+                        for (d, s) in dst.chunks_exact_mut(ss).zip(src.chunks_exact(pxs)) {
+                            d.copy_from_slice(&s[sample * ss..(sample + 1) * ss]);
+                        }
+                    }
+                }
+                if page.swap && ss > 1 {
+                    for e in dst.chunks_exact_mut(ss) {
+                        e.reverse();
+                    }
+                }
+            }
+            self.decoded.fetch_add(span as u64, AtomicOrdering::Relaxed);
+            r += k;
+        }
+        Ok(())
+    }
+
     /// Strip or tile `idx` of page `z`, from the cache or decoded (opening
     /// the page's decoder in `dec` on first use).
     fn chunk(
@@ -270,7 +461,7 @@ impl TiffSource {
         let (path, label) = self.page_origin(z);
         let f = self.format;
         let samples = if f.planar { 1 } else { f.channels };
-        let chunk = guard(path, &label, || {
+        let mut chunk = guard(path, &label, || {
             let d = match dec {
                 Some(d) => d,
                 None => dec.insert(self.page_decoder(z)?),
@@ -278,6 +469,11 @@ impl TiffSource {
             decode_chunk(d, idx, samples * f.dtype.size())
                 .map_err(|e| tiff_error(path, &label, "strip data", e))
         })?;
+        self.decoded
+            .fetch_add(chunk.data.len() as u64, AtomicOrdering::Relaxed);
+        if f.ycbcr {
+            ycbcr_to_rgb(&mut chunk.data);
+        }
         let chunk = Arc::new(chunk);
         self.lock_cache().insert(key, chunk.clone());
         Ok(chunk)
@@ -327,6 +523,8 @@ impl VolumeSource for TiffSource {
             let across = (f.width as u64).div_ceil(cw);
             let down = (f.height as u64).div_ceil(ch);
             let mut dec = None;
+            let mut raw = None;
+            let mut scratch = Vec::new();
             for row in y.start / ch..=(y.end - 1) / ch {
                 for col in x.start / cw..=(x.end - 1) / cw {
                     let idx = (plane * down + row) * across + col;
@@ -338,10 +536,27 @@ impl VolumeSource for TiffSource {
                             format!("{label}: too many strips or tiles"),
                         )
                     })?;
-                    let chunk = self.chunk(zi, idx, &mut dec)?;
                     let (cy0, cx0) = (row * ch, col * cw);
                     let ys = y.start.max(cy0)..y.end.min(cy0 + ch);
                     let xs = x.start.max(cx0)..x.end.min(cx0 + cw);
+                    if geom.raw {
+                        let page = match &raw {
+                            Some(p) => p,
+                            None => raw.insert(self.raw_page(zi)?),
+                        };
+                        self.read_raw(
+                            zi,
+                            page,
+                            idx,
+                            [cy0, cx0, cw],
+                            (ys, xs),
+                            (spp, sample),
+                            (&mut *out_z, nx, y.start, x.start),
+                            &mut scratch,
+                        )?;
+                        continue;
+                    }
+                    let chunk = self.chunk(zi, idx, &mut dec)?;
                     if ys.end > cy0 + chunk.height as u64 || xs.end > cx0 + chunk.width as u64 {
                         let (path, label) = self.page_origin(zi);
                         return Err(StoreError::invalid(
@@ -415,7 +630,7 @@ fn open_multipage(path: &Path) -> Result<TiffSource> {
             let label = format!("page {index}");
             let ifd = dec.ifd_pointer().map(|p| p.0).unwrap_or(0);
             if !is_reduced(&mut dec, path, &label)? {
-                let (fmt, chunk) = page_info(&mut dec, path, &label)?;
+                let (fmt, chunk, raw) = page_info(&mut dec, path, &label)?;
                 let (n, r) = check_chunk_extents(&mut dec, path, &label, len, &fmt)?;
                 need = need.saturating_add(n);
                 ratio = ratio.max(r);
@@ -452,6 +667,7 @@ fn open_multipage(path: &Path) -> Result<TiffSource> {
                     ifd,
                     chunk_w: chunk.0,
                     chunk_h: chunk.1,
+                    raw,
                 });
             }
             if !dec.more_images() {
@@ -505,7 +721,7 @@ fn open_files(stack_path: &Path, files: Vec<PathBuf>) -> Result<TiffSource> {
                 dec.next_image()
                     .map_err(|e| tiff_error(path, &format!("{label} page {index}"), "IFD", e))?;
             }
-            let (fmt, chunk) = page_info(&mut dec, path, &label)?;
+            let (fmt, chunk, raw) = page_info(&mut dec, path, &label)?;
             check_chunk_extents(&mut dec, path, &label, len, &fmt)?;
             let mut extra = 0;
             while dec.more_images() {
@@ -537,6 +753,7 @@ fn open_files(stack_path: &Path, files: Vec<PathBuf>) -> Result<TiffSource> {
                 ifd: 0,
                 chunk_w: chunk.0,
                 chunk_h: chunk.1,
+                raw,
             })
         })?;
         pages.push(geom);
@@ -637,6 +854,13 @@ impl TiffSource {
                 )
             });
         }
+        if format.ycbcr {
+            notes.push(
+                "PhotometricInterpretation YCbCr: the stored Y, Cb, Cr samples were converted to \
+                 R, G, B (JFIF / BT.601 full range, as libjpeg does)"
+                    .to_string(),
+            );
+        }
         let dims = [
             (n / page_channels) as u64,
             format.height as u64,
@@ -658,8 +882,9 @@ impl TiffSource {
             format,
             page_channels,
             cache: Mutex::new(ChunkCache::default()),
+            decoded: AtomicU64::new(0),
         };
-        src.set_cache_pages(DEFAULT_CACHE_PAGES);
+        src.set_cache_bytes(DEFAULT_CACHE_BYTES);
         Ok(src)
     }
 }
@@ -810,13 +1035,14 @@ fn is_reduced<R: Read + Seek>(dec: &mut Decoder<R>, path: &Path, label: &str) ->
     Ok(t.is_some_and(|t| t & 1 == 1))
 }
 
-/// Size, sample type and channels of the current page, and its strip or
-/// tile size.
+/// Size, sample type and channels of the current page, its strip or tile
+/// size, and whether its regions can be read without decoding (see
+/// [`PageGeom::raw`]).
 fn page_info<R: Read + Seek>(
     dec: &mut Decoder<R>,
     path: &Path,
     label: &str,
-) -> Result<(PageFormat, (u32, u32))> {
+) -> Result<(PageFormat, (u32, u32), bool)> {
     let err = |field: &'static str| move |e: TiffError| tiff_error(path, label, field, e);
     let (width, height) = dec.dimensions().map_err(err("ImageWidth"))?;
     let color = dec.colortype().map_err(err("PhotometricInterpretation"))?;
@@ -925,6 +1151,15 @@ fn page_info<R: Read + Seek>(
             ),
         ));
     }
+    let ycbcr = photometric == Some(6);
+    if ycbcr {
+        check_ycbcr(dec, path, label, compression, bits, planar)?;
+    }
+    let predictor = dec
+        .find_tag_unsigned::<u16>(Tag::Predictor)
+        .map_err(err("Predictor"))?
+        .unwrap_or(1);
+    let raw = compression == 1 && predictor == 1 && !min_is_white && !ycbcr;
     let chunk = dec.chunk_dimensions();
     if chunk.0 == 0 || chunk.1 == 0 {
         return Err(StoreError::invalid(
@@ -942,8 +1177,132 @@ fn page_info<R: Read + Seek>(
         channels,
         planar,
         min_is_white,
+        ycbcr,
     };
-    Ok((format, chunk))
+    Ok((format, chunk, raw))
+}
+
+/// Refuse YCbCr pages that are not converted right (see the [module
+/// docs](self)): other than 8-bit chunky; not JPEG-compressed and
+/// subsampled (the decoder reads no subsampled data), or with other than
+/// the default coefficients or full-range reference values.
+fn check_ycbcr<R: Read + Seek>(
+    dec: &mut Decoder<R>,
+    path: &Path,
+    label: &str,
+    compression: u16,
+    bits: u8,
+    planar: bool,
+) -> Result<()> {
+    if bits != 8 || planar {
+        return Err(StoreError::unsupported(
+            path,
+            "PhotometricInterpretation",
+            format!(
+                "{label}: YCbCr (6) with {}; brickyard converts YCbCr to RGB for 8-bit samples \
+                 stored chunky (PlanarConfiguration 1) only",
+                if planar {
+                    "planar-separate samples".to_string()
+                } else {
+                    format!("{bits}-bit samples")
+                }
+            ),
+        ));
+    }
+    if compression == 7 {
+        // The JPEG decoder upsamples the chroma; like libtiff's and
+        // tifffile's readers, the JFIF conversion ignores the coefficient
+        // and reference tags.
+        return Ok(());
+    }
+    let err = |field: &'static str| move |e: TiffError| tiff_error(path, label, field, e);
+    let sub = dec
+        .find_tag_unsigned_vec::<u16>(Tag::ChromaSubsampling)
+        .map_err(err("YCbCrSubSampling"))?
+        .unwrap_or_else(|| vec![2, 2]);
+    if sub != [1, 1] {
+        return Err(StoreError::unsupported(
+            path,
+            "YCbCrSubSampling",
+            format!(
+                "{label}: YCbCr (PhotometricInterpretation 6) subsampled {} with compression \
+                 {compression}; brickyard reads subsampled YCbCr only JPEG-compressed \
+                 (compression 7), other YCbCr only with YCbCrSubSampling 1,1 (the default, when \
+                 the tag is absent, is 2,2)",
+                sub.iter()
+                    .map(|v| v.to_string())
+                    .collect::<Vec<_>>()
+                    .join(",")
+            ),
+        ));
+    }
+    let numbers = |dec: &mut Decoder<R>, code: u16, field: &'static str| {
+        dec.find_tag(Tag::from_u16_exhaustive(code))
+            .map_err(err(field))
+            .map(|v| v.map(tag_numbers))
+    };
+    for (code, field, want) in [
+        (529, "YCbCrCoefficients", &[0.299, 0.587, 0.114][..]),
+        (
+            532,
+            "ReferenceBlackWhite",
+            &[0.0, 255.0, 128.0, 255.0, 128.0, 255.0][..],
+        ),
+    ] {
+        let Some(got) = numbers(dec, code, field)? else {
+            continue;
+        };
+        let same = got.len() == want.len()
+            && got
+                .iter()
+                .zip(want)
+                .all(|(g, w)| (g - w).abs() <= 1e-3 * w.max(1.0));
+        if !same {
+            return Err(StoreError::unsupported(
+                path,
+                field,
+                format!(
+                    "{label}: {field} {got:?} with YCbCr not JPEG-compressed; brickyard \
+                     converts such YCbCr with the default {want:?} only"
+                ),
+            ));
+        }
+    }
+    Ok(())
+}
+
+/// The numbers of a tag value (rationals as their quotient); values that
+/// are not numbers become NaN.
+fn tag_numbers(v: tiff::decoder::ifd::Value) -> Vec<f64> {
+    use tiff::decoder::ifd::Value;
+    match v {
+        Value::List(l) => l.into_iter().flat_map(tag_numbers).collect(),
+        Value::Rational(n, d) => vec![n as f64 / d as f64],
+        Value::SRational(n, d) => vec![n as f64 / d as f64],
+        Value::Byte(v) => vec![v as f64],
+        Value::Short(v) => vec![v as f64],
+        Value::Unsigned(v) => vec![v as f64],
+        Value::UnsignedBig(v) => vec![v as f64],
+        Value::Float(v) => vec![v as f64],
+        Value::Double(v) => vec![v],
+        _ => vec![f64::NAN],
+    }
+}
+
+/// Convert 8-bit Y, Cb, Cr triples to R, G, B in place, with the JFIF
+/// (BT.601 full range) equations libjpeg uses, rounded and clamped:
+/// R = Y + 1.402 (Cr − 128), G = Y − 0.344136 (Cb − 128) − 0.714136 (Cr −
+/// 128), B = Y + 1.772 (Cb − 128).
+fn ycbcr_to_rgb(data: &mut [u8]) {
+    for px in data.chunks_exact_mut(3) {
+        let y = px[0] as f32;
+        let cb = px[1] as f32 - 128.0;
+        let cr = px[2] as f32 - 128.0;
+        let to_u8 = |v: f32| v.round().clamp(0.0, 255.0) as u8;
+        px[0] = to_u8(y + 1.402 * cr);
+        px[1] = to_u8(y - 0.344136 * cb - 0.714136 * cr);
+        px[2] = to_u8(y + 1.772 * cb);
+    }
 }
 
 /// The name of a compression the `tiff` crate cannot decode, if it is one.
@@ -1073,6 +1432,13 @@ fn same_format(
             (f.planar as u8 + 1).to_string(),
             (f0.planar as u8 + 1).to_string(),
         )
+    } else if f.ycbcr != f0.ycbcr {
+        let name = |y: bool| if y { "6 (YCbCr)" } else { "not YCbCr" };
+        (
+            "PhotometricInterpretation",
+            name(f.ycbcr).to_string(),
+            name(f0.ycbcr).to_string(),
+        )
     } else if f.min_is_white != f0.min_is_white {
         let name = |w: bool| {
             if w {
@@ -1154,6 +1520,17 @@ fn tiff_error(path: &Path, label: &str, field: &str, e: TiffError) -> StoreError
     }
 }
 
+/// The strips or tiles of an uncompressed page, for reads without decoding:
+/// the file holding them, where each starts and how many bytes it holds,
+/// and whether samples need their bytes swapped (file byte order not
+/// native).
+struct RawPage {
+    file: Arc<File>,
+    offsets: Vec<u64>,
+    counts: Vec<u64>,
+    swap: bool,
+}
+
 /// One decoded strip or tile: `width × height` pixels of native-endian
 /// samples (all samples of a pixel together for chunky images).
 struct Chunk {
@@ -1191,6 +1568,8 @@ struct ChunkCache {
     map: HashMap<(usize, u32), (Arc<Chunk>, u64)>,
     bytes: usize,
     budget: usize,
+    /// The most bytes held at once.
+    peak: usize,
     tick: u64,
 }
 
@@ -1212,6 +1591,7 @@ impl ChunkCache {
         self.shrink_to(self.budget - n);
         self.tick += 1;
         self.bytes += n;
+        self.peak = self.peak.max(self.bytes);
         self.map.insert(key, (chunk, self.tick));
     }
 
@@ -1326,6 +1706,26 @@ impl Seek for PageReader {
         })?;
         Ok(self.pos)
     }
+}
+
+/// Fill `buf` from `file` at byte `offset` (`UnexpectedEof` if the file
+/// ends first).
+fn read_exact_at(file: &File, mut buf: &mut [u8], mut offset: u64) -> io::Result<()> {
+    while !buf.is_empty() {
+        match read_at(file, buf, offset)? {
+            0 => {
+                return Err(io::Error::new(
+                    io::ErrorKind::UnexpectedEof,
+                    format!("no data at byte {offset}"),
+                ))
+            }
+            n => {
+                buf = &mut buf[n..];
+                offset += n as u64;
+            }
+        }
+    }
+    Ok(())
 }
 
 /// Read from `file` at byte `offset` (a short count only at end of file).
@@ -1549,8 +1949,8 @@ mod tests {
             Some(3),
         );
         let want: Vec<u8> = pages.concat();
-        for cache in [0, 1, DEFAULT_CACHE_PAGES] {
-            let src = open(&path).unwrap().with_cache_pages(cache);
+        for cache in [0, 2000, DEFAULT_CACHE_BYTES] {
+            let src = open(&path).unwrap().with_cache_bytes(cache);
             assert_eq!(src.meta().dims, [5, 29, 37]);
             assert_eq!(src.meta().dtype, DType::U8);
             assert_eq!(read_all(&src, 0), want);
@@ -1928,9 +2328,10 @@ mod tests {
     }
 
     /// A minimal hand-written uncompressed TIFF: one IFD per page followed
-    /// by its values and strips, in either byte order and either planar
-    /// configuration. `pages` hold native-endian samples (planes one after
-    /// the other when `planar`).
+    /// by its values and strips (or tiles, padded at the edges), in either
+    /// byte order and either planar configuration. `pages` hold
+    /// native-endian samples in image order (planes one after the other
+    /// when `planar`).
     struct Hand {
         w: u32,
         h: u32,
@@ -1939,36 +2340,78 @@ mod tests {
         sample_format: u16,
         planar: bool,
         rows_per_strip: u32,
+        /// Tiles of this width and height instead of strips.
+        tile: Option<(u32, u32)>,
         be: bool,
         pages: Vec<Vec<u8>>,
     }
 
     impl Hand {
+        /// The strips or tiles of `page`, plane by plane, in file byte order.
+        fn chunks(&self, page: &[u8]) -> Vec<Vec<u8>> {
+            let ss = (self.bits / 8) as usize;
+            let (planes, spp) = if self.planar {
+                (self.spp as usize, 1)
+            } else {
+                (1, self.spp as usize)
+            };
+            let px = ss * spp;
+            let (w, h) = (self.w as usize, self.h as usize);
+            let (cw, ch) = match self.tile {
+                Some((tw, th)) => (tw as usize, th as usize),
+                None => (w, self.rows_per_strip as usize),
+            };
+            let mut out = Vec::new();
+            for p in 0..planes {
+                let plane = &page[p * w * h * px..(p + 1) * w * h * px];
+                for cy in 0..h.div_ceil(ch) {
+                    for cx in 0..w.div_ceil(cw) {
+                        // Strips end with the image, tiles are whole.
+                        let rows = if self.tile.is_some() {
+                            ch
+                        } else {
+                            ch.min(h - cy * ch)
+                        };
+                        let mut c = vec![0u8; rows * cw * px];
+                        for r in 0..rows.min(h - cy * ch) {
+                            let n = cw.min(w - cx * cw) * px;
+                            let src = ((cy * ch + r) * w + cx * cw) * px;
+                            c[r * cw * px..r * cw * px + n].copy_from_slice(&plane[src..src + n]);
+                        }
+                        if self.be {
+                            for e in c.chunks_exact_mut(ss) {
+                                e.reverse();
+                            }
+                        }
+                        out.push(c);
+                    }
+                }
+            }
+            out
+        }
+
         fn build(&self) -> Vec<u8> {
             let be = self.be;
             let u16b = |v: u16| if be { v.to_be_bytes() } else { v.to_le_bytes() };
             let u32b = |v: u32| if be { v.to_be_bytes() } else { v.to_le_bytes() };
-            let ss = (self.bits / 8) as usize;
             let mut out = Vec::new();
             out.extend(if be { *b"MM" } else { *b"II" });
             out.extend(u16b(42));
             out.extend(u32b(8));
-            let planes = if self.planar { self.spp as u32 } else { 1 };
-            let per_plane = self.h.div_ceil(self.rows_per_strip);
-            let row_bytes = self.w as usize * ss * if self.planar { 1 } else { self.spp as usize };
             for (pi, page) in self.pages.iter().enumerate() {
-                let mut sizes = Vec::new();
-                for _ in 0..planes {
-                    for s in 0..per_plane {
-                        let rows = self.rows_per_strip.min(self.h - s * self.rows_per_strip);
-                        sizes.push(rows * row_bytes as u32);
-                    }
-                }
+                let chunks = self.chunks(page);
+                let sizes: Vec<u32> = chunks.iter().map(|c| c.len() as u32).collect();
                 let n = sizes.len() as u32;
                 let shorts = |v: &[u16]| v.iter().flat_map(|&x| u16b(x)).collect::<Vec<u8>>();
                 let longs = |v: &[u32]| v.iter().flat_map(|&x| u32b(x)).collect::<Vec<u8>>();
                 let photometric = if self.spp == 3 { 2 } else { 1 };
-                // (tag, type, count, value bytes); offsets are patched below.
+                let (offsets_tag, counts_tag) = if self.tile.is_some() {
+                    (324, 325)
+                } else {
+                    (273, 279)
+                };
+                // (tag, type, count, value bytes), in tag order; offsets
+                // are patched below.
                 let mut entries: Vec<(u16, u16, u32, Vec<u8>)> = vec![
                     (256, 4, 1, longs(&[self.w])),
                     (257, 4, 1, longs(&[self.h])),
@@ -1980,10 +2423,7 @@ mod tests {
                     ),
                     (259, 3, 1, shorts(&[1])),
                     (262, 3, 1, shorts(&[photometric])),
-                    (273, 4, n, longs(&vec![0; n as usize])),
                     (277, 3, 1, shorts(&[self.spp])),
-                    (278, 4, 1, longs(&[self.rows_per_strip])),
-                    (279, 4, n, longs(&sizes)),
                     (284, 3, 1, shorts(&[if self.planar { 2 } else { 1 }])),
                     (
                         339,
@@ -1991,7 +2431,17 @@ mod tests {
                         self.spp as u32,
                         shorts(&vec![self.sample_format; self.spp as usize]),
                     ),
+                    (offsets_tag, 4, n, longs(&vec![0; n as usize])),
+                    (counts_tag, 4, n, longs(&sizes)),
                 ];
+                match self.tile {
+                    Some((tw, th)) => {
+                        entries.push((322, 4, 1, longs(&[tw])));
+                        entries.push((323, 4, 1, longs(&[th])));
+                    }
+                    None => entries.push((278, 4, 1, longs(&[self.rows_per_strip]))),
+                }
+                entries.sort_by_key(|e| e.0);
                 let ifd = out.len();
                 let extra_start = ifd + 2 + 12 * entries.len() + 4;
                 let extra_len: usize = entries
@@ -2005,7 +2455,8 @@ mod tests {
                     offsets.push(o);
                     o += s;
                 }
-                entries[5].3 = longs(&offsets);
+                let k = entries.iter().position(|e| e.0 == offsets_tag).unwrap();
+                entries[k].3 = longs(&offsets);
                 out.extend(u16b(entries.len() as u16));
                 let mut extra: Vec<u8> = Vec::new();
                 for (tag, ty, count, val) in &entries {
@@ -2021,7 +2472,7 @@ mod tests {
                         out.extend(v);
                     }
                 }
-                let data_end = data_start + page.len();
+                let data_end = o as usize;
                 let next = if pi + 1 < self.pages.len() {
                     data_end as u32
                 } else {
@@ -2030,13 +2481,9 @@ mod tests {
                 out.extend(u32b(next));
                 out.extend(extra);
                 assert_eq!(out.len(), data_start);
-                let mut data = page.clone();
-                if be {
-                    for e in data.chunks_exact_mut(ss) {
-                        e.reverse();
-                    }
+                for c in chunks {
+                    out.extend(c);
                 }
-                out.extend(data);
             }
             out
         }
@@ -2065,6 +2512,7 @@ mod tests {
                 sample_format: 1,
                 planar: true,
                 rows_per_strip: 2,
+                tile: None,
                 be,
                 pages: pages.clone(),
             };
@@ -2267,6 +2715,7 @@ mod tests {
             sample_format: 1,
             planar: false,
             rows_per_strip: 4,
+            tile: None,
             be: false,
             pages: vec![vec![7; 100]],
         };
@@ -2308,5 +2757,288 @@ mod tests {
         assert!(
             matches!(&e, StoreError::Io { error, .. } if error.kind() == io::ErrorKind::NotFound)
         );
+    }
+
+    /// The JFIF equations against values worked out by hand.
+    #[test]
+    fn ycbcr_to_rgb_hand_computed() {
+        let mut px = vec![
+            128, 128, 128, // grey stays grey
+            100, 150,
+            200, // R 100 + 1.402·72 = 200.94; G 100 − 0.344136·22 − 0.714136·72 = 41.01; B 100 + 1.772·22 = 138.98
+            76, 85,
+            255, // JFIF of pure red: R 76 + 1.402·127 = 254.05; G 76 + 0.344136·43 − 0.714136·127 = 0.10; B 76 − 1.772·43 = −0.20
+            255, 128, 255, // R 433.05 clamped; G 255 − 90.70 = 164.30
+            10, 0, 128, // G 10 + 0.344136·128 = 54.05; B 10 − 226.82 clamped
+        ];
+        ycbcr_to_rgb(&mut px);
+        assert_eq!(
+            px,
+            [128, 128, 128, 201, 41, 139, 254, 0, 0, 255, 164, 255, 10, 54, 0]
+        );
+    }
+
+    /// A JPEG-compressed YCbCr TIFF as tifffile writes it (chroma
+    /// subsampled 2×2, see tests/data/README.md) reads as the RGB colours
+    /// written, within JPEG's error, and the report says it was converted.
+    #[test]
+    fn ycbcr_jpeg_reads_as_rgb() {
+        let path = Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/data/ycbcr_jpeg.tif");
+        let src = open(&path).unwrap();
+        let m = src.meta();
+        assert_eq!(m.dims, [2, 48, 64]);
+        assert_eq!((m.channels, m.dtype), (3, DType::U8));
+        assert!(
+            m.notes
+                .iter()
+                .any(|n| n.contains("YCbCr") && n.contains("R, G, B")),
+            "{:?}",
+            m.notes
+        );
+        // The colours written (tests/data/README.md).
+        let want = |z: usize, y: usize, x: usize| -> [i32; 3] {
+            let v = if z == 0 {
+                [200, 50, 3 * x as i32]
+            } else {
+                [4 * y as i32 + 20, 230 - 3 * x as i32, 90]
+            };
+            v.map(|c| c.clamp(0, 255))
+        };
+        let mut worst = 0;
+        for c in 0..3 {
+            let got = read_all(&src, c);
+            assert_eq!(read_stitched(&src, c, [1, 7, 9]), got, "channel {c}");
+            for z in 0..2 {
+                for y in 0..48 {
+                    for x in 0..64 {
+                        let g = got[(z * 48 + y) * 64 + x] as i32;
+                        let d = (g - want(z, y, x)[c]).abs();
+                        worst = worst.max(d);
+                        assert!(
+                            d <= 4,
+                            "channel {c} at z {z} y {y} x {x}: {g}, written {}",
+                            want(z, y, x)[c]
+                        );
+                    }
+                }
+            }
+        }
+        // (The stored Y, Cb, Cr differ from R, G, B by up to 150.)
+        assert!(worst <= 4, "{worst}");
+    }
+
+    /// Set the 4 value bytes of tag `tag` in every IFD of a classic
+    /// little-endian TIFF (a value held in the entry).
+    fn patch_tag_value(bytes: &mut [u8], tag: u16, value: [u8; 4]) {
+        let u16at = |b: &[u8], o: usize| u16::from_le_bytes([b[o], b[o + 1]]);
+        let u32at = |b: &[u8], o: usize| u32::from_le_bytes(b[o..o + 4].try_into().unwrap());
+        let mut ifd = u32at(bytes, 4) as usize;
+        let mut found = 0;
+        while ifd != 0 {
+            let n = u16at(bytes, ifd) as usize;
+            for e in 0..n {
+                let o = ifd + 2 + 12 * e;
+                if u16at(bytes, o) == tag {
+                    bytes[o + 8..o + 12].copy_from_slice(&value);
+                    found += 1;
+                }
+            }
+            ifd = u32at(bytes, ifd + 2 + 12 * n) as usize;
+        }
+        assert!(found > 0, "tag {tag} not found");
+    }
+
+    /// YCbCr that is not JPEG-compressed: converted when not subsampled
+    /// (the decoder reads it as stored), refused when subsampled (which
+    /// the decoder cannot read), naming the file and the field.
+    #[test]
+    fn ycbcr_uncompressed_and_subsampled() {
+        let dir = tempfile::tempdir().unwrap();
+        let (w, h) = (11u32, 5u32);
+        let pages: Vec<Vec<u8>> = (0..2)
+            .map(|z| (0..w * h * 3).map(|i| (i * 37 + z * 101) as u8).collect())
+            .collect();
+        let path = dir.path().join("ycc.tif");
+        write_pages::<colortype::YCbCr8, TiffKindStandard>(
+            &path,
+            w,
+            h,
+            &pages,
+            Compression::Lzw,
+            Some(2),
+        );
+        let src = open(&path).unwrap();
+        assert_eq!(src.meta().channels, 3);
+        assert!(src.meta().notes.iter().any(|n| n.contains("YCbCr")));
+        let mut rgb = pages.concat();
+        ycbcr_to_rgb(&mut rgb);
+        for c in 0..3 {
+            let want: Vec<u8> = rgb.iter().skip(c).step_by(3).copied().collect();
+            assert_eq!(read_all(&src, c), want, "channel {c}");
+        }
+
+        let mut b = std::fs::read(&path).unwrap();
+        patch_tag_value(&mut b, 530, [2, 0, 2, 0]);
+        let path = dir.path().join("ycc-sub.tif");
+        std::fs::write(&path, &b).unwrap();
+        let msg = assert_err(open(&path), "ycc-sub.tif", "YCbCrSubSampling");
+        assert!(msg.contains("JPEG") && msg.contains("2,2"), "{msg}");
+    }
+
+    /// Pseudo-random u16 values of a `w`-wide page.
+    fn noise(z: usize, w: u32, h: u32) -> Vec<u16> {
+        (0..(w * h) as usize)
+            .map(|i| {
+                let v = (i as u64 * 2654435761 + z as u64 * 40503) ^ (i as u64 >> 7);
+                (v % 65521) as u16
+            })
+            .collect()
+    }
+
+    /// `[z, y, x]` box of the u16 pages (native-endian bytes).
+    fn crop(pages: &[Vec<u16>], w: u32, [z, y, x]: [Range<usize>; 3]) -> Vec<u8> {
+        let mut v = Vec::new();
+        for p in &pages[z] {
+            for r in y.clone() {
+                let o = r * w as usize;
+                v.extend_from_slice(&p[o + x.start..o + x.end]);
+            }
+        }
+        bytes(&v)
+    }
+
+    /// A region of wide pages costs the strips it touches (compressed) or
+    /// just its own bytes (uncompressed), not whole pages, and its values
+    /// are the values written, bit for bit.
+    #[test]
+    fn wide_pages_read_only_what_a_region_needs() {
+        let dir = tempfile::tempdir().unwrap();
+        let (w, h, rows) = (3000u32, 40u32, 4u32);
+        let pages: Vec<Vec<u16>> = (0..3).map(|z| noise(z, w, h)).collect();
+        let page_bytes = (w * h * 2) as u64;
+        let strip_bytes = (w * rows * 2) as u64;
+        let region = [1..3, 5..11, 1000..1064];
+        let want = crop(&pages, w, region.clone());
+        for comp in ["none", "lzw", "deflate"] {
+            let path = dir.path().join(format!("wide-{comp}.tif"));
+            let c = match comp {
+                "none" => Compression::Uncompressed,
+                "lzw" => Compression::Lzw,
+                _ => Compression::Deflate(DeflateLevel::Fast),
+            };
+            write_pages::<colortype::Gray16, TiffKindStandard>(&path, w, h, &pages, c, Some(rows));
+            let src = open(&path).unwrap();
+            let mut out = vec![0u8; want.len()];
+            let [z, y, x] = region.clone().map(|r| r.start as u64..r.end as u64);
+            src.read_region(0, z, y, x, &mut out).unwrap();
+            assert!(
+                out == want,
+                "{comp}: the region differs from the data written"
+            );
+            let cost = src.bytes_decoded();
+            if comp == "none" {
+                // 2 pages × 6 rows × 64 samples, read where they lie.
+                assert_eq!(cost, want.len() as u64, "{comp}");
+            } else {
+                // Rows 5..11 lie in strips 1 and 2 of each of 2 pages.
+                assert_eq!(cost, 2 * 2 * strip_bytes, "{comp}");
+            }
+            assert!(
+                cost < page_bytes / 2,
+                "{comp}: {cost} bytes for a small region"
+            );
+            // And everything, in narrow blocks and whole.
+            let all = bytes(&pages.concat());
+            assert!(read_stitched(&src, 0, [2, 7, 700]) == all, "{comp}");
+            assert!(read_all(&src, 0) == all, "{comp}");
+        }
+    }
+
+    /// The cache of decoded strips stays within its byte budget however
+    /// large the pages (it used to hold 4 pages' worth).
+    #[test]
+    fn chunk_cache_bounded_in_bytes() {
+        let dir = tempfile::tempdir().unwrap();
+        let (w, h) = (2048u32, 640u32);
+        let pages: Vec<Vec<u16>> = (0..4).map(|z| noise(z, w, h)).collect();
+        let path = dir.path().join("wide-lzw.tif");
+        write_pages::<colortype::Gray16, TiffKindStandard>(
+            &path,
+            w,
+            h,
+            &pages,
+            Compression::Lzw,
+            Some(16),
+        );
+        let all = bytes(&pages.concat());
+        // Pages of 2.5 MiB: 4 of them are 10 MiB.
+        let src = open(&path).unwrap();
+        assert!(read_stitched(&src, 0, [4, 64, 512]) == all);
+        let peak = src.cache_peak_bytes();
+        assert!(peak <= DEFAULT_CACHE_BYTES, "{peak}");
+        assert!(peak > 0);
+        assert_eq!(src.largest_decode_bytes(), (w * 16 * 2) as u64);
+        let src = open(&path).unwrap().with_cache_bytes(100_000);
+        assert!(read_stitched(&src, 0, [1, 40, 300]) == all);
+        let peak = src.cache_peak_bytes();
+        assert!(peak <= 100_000 && peak > 0, "{peak}");
+    }
+
+    /// Uncompressed tiles and strips read without decoding: planar and
+    /// chunky, both byte orders, edge tiles padded, any region.
+    #[test]
+    fn uncompressed_tiles_and_strips_read_in_place() {
+        let dir = tempfile::tempdir().unwrap();
+        let (w, h) = (45u32, 29u32);
+        for (planar, spp, tile, be) in [
+            (false, 1, Some((16, 16)), false),
+            (false, 3, Some((16, 32)), true),
+            (true, 2, Some((32, 16)), true),
+            (false, 3, None, true),
+            (true, 3, None, false),
+        ] {
+            let n = (w * h) as usize * spp as usize;
+            // Native u16 samples in image order (planes one after the other
+            // when planar); value = page·10000 + sample index.
+            let pages: Vec<Vec<u16>> = (0..3)
+                .map(|z| (0..n).map(|i| (z * 10000 + i) as u16).collect())
+                .collect();
+            let hand = Hand {
+                w,
+                h,
+                spp,
+                bits: 16,
+                sample_format: 1,
+                planar,
+                rows_per_strip: 3,
+                tile,
+                be,
+                pages: pages.iter().map(|p| bytes(p)).collect(),
+            };
+            let path = dir.path().join("t.tif");
+            std::fs::write(&path, hand.build()).unwrap();
+            let src = open(&path).unwrap();
+            assert!(src.pages.iter().all(|g| g.raw));
+            assert_eq!(src.meta().channels, spp as usize);
+            for c in 0..spp as usize {
+                let want: Vec<u16> = pages
+                    .iter()
+                    .flat_map(|p| {
+                        (0..(w * h) as usize).map(move |i| {
+                            if planar {
+                                p[c * (w * h) as usize + i]
+                            } else {
+                                p[i * spp as usize + c]
+                            }
+                        })
+                    })
+                    .collect();
+                let what = format!("planar {planar} spp {spp} tile {tile:?} be {be} c {c}");
+                assert_eq!(read_all(&src, c), bytes(&want), "{what}");
+                assert_eq!(read_stitched(&src, c, [2, 5, 7]), bytes(&want), "{what}");
+            }
+            assert_eq!(src.cache_peak_bytes(), 0);
+            assert_eq!(src.largest_decode_bytes(), 0);
+        }
     }
 }
