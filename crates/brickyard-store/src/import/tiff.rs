@@ -875,7 +875,7 @@ impl TiffSource {
         meta.spacing = spacing;
         meta.unit = unit;
         meta.notes = notes;
-        let src = TiffSource {
+        let mut src = TiffSource {
             meta,
             stack,
             pages,
@@ -885,6 +885,9 @@ impl TiffSource {
             decoded: AtomicU64::new(0),
         };
         src.set_cache_bytes(DEFAULT_CACHE_BYTES);
+        // What a read decodes whole, beside its encoded bytes, for the
+        // converter's memory plan (the cache is within its fixed share).
+        src.meta.read_bytes = src.largest_decode_bytes().saturating_mul(2);
         Ok(src)
     }
 }
