@@ -63,12 +63,17 @@ pub fn detect(path: &Path) -> Result<Format> {
     if s.contains('*') || s.contains('?') {
         return Ok(Format::TiffGlob);
     }
-    if s.contains(['[', '{']) && !path.exists() && !crate::storage::is_remote(path) {
+    // A class (`img_[0-2].tif`) unless a file is named so.
+    let remote = crate::storage::is_remote(path);
+    if s.contains('[') && !path.exists() && !remote {
+        return Ok(Format::TiffGlob);
+    }
+    if s.contains('{') && !path.exists() && !remote {
         return Err(StoreError::unsupported(
             path,
             "glob",
-            "patterns take * and ? (no file is named so, and [...] classes and {...} lists \
-             are not patterns here): e.g. 'slices/img_*.tif'",
+            "patterns take *, ? and [...] (no file is named so, and {...} lists are not \
+             patterns here): e.g. 'slices/img_*.tif'",
         ));
     }
     if crate::storage::is_remote(path) {

@@ -210,7 +210,7 @@ pub fn open_glob(pattern: &str) -> Result<TiffSource> {
         Some(d) if !d.as_os_str().is_empty() => d.to_path_buf(),
         _ => PathBuf::from("."),
     };
-    if dir.to_string_lossy().contains(['*', '?']) {
+    if dir.to_string_lossy().contains(['*', '?', '[']) {
         return Err(StoreError::unsupported(
             pattern,
             "glob",
@@ -1821,11 +1821,22 @@ fn wildcard_match(pattern: &str, name: &str) -> bool {
     // Position of the last `*` and the name position it is tried at.
     let mut star: Option<(usize, usize)> = None;
     while j < n.len() {
-        if i < p.len() && p[i] == '*' {
+        // One pattern element at `i` that takes `n[j]`: where the pattern
+        // goes on.
+        let one = match p.get(i) {
+            Some('*') | None => None,
+            Some('?') => Some(i + 1),
+            Some('[') => match class_at(&p, i) {
+                Some((takes, next)) => takes(n[j]).then_some(next),
+                None => (n[j] == '[').then_some(i + 1),
+            },
+            Some(&c) => (c == n[j]).then_some(i + 1),
+        };
+        if p.get(i) == Some(&'*') {
             star = Some((i, j));
             i += 1;
-        } else if i < p.len() && (p[i] == '?' || p[i] == n[j]) {
-            i += 1;
+        } else if let Some(next) = one {
+            i = next;
             j += 1;
         } else if let Some((si, sj)) = star {
             i = si + 1;
@@ -1836,6 +1847,34 @@ fn wildcard_match(pattern: &str, name: &str) -> bool {
         }
     }
     p[i..].iter().all(|&c| c == '*')
+}
+
+/// The character class `[...]` at `p[i]` (`[!...]` or `[^...]` negated,
+/// `a-z` ranges, a `]` first taken as itself): what it takes, and where
+/// the pattern goes on; `None` without a closing `]`.
+#[allow(clippy::type_complexity)]
+fn class_at(p: &[char], i: usize) -> Option<(Box<dyn Fn(char) -> bool>, usize)> {
+    let mut k = i + 1;
+    let negated = matches!(p.get(k), Some('!') | Some('^'));
+    if negated {
+        k += 1;
+    }
+    let first = k;
+    let mut ranges: Vec<(char, char)> = vec![];
+    while k < p.len() && (p[k] != ']' || k == first) {
+        if k + 2 < p.len() && p[k + 1] == '-' && p[k + 2] != ']' {
+            ranges.push((p[k], p[k + 2]));
+            k += 3;
+        } else {
+            ranges.push((p[k], p[k]));
+            k += 1;
+        }
+    }
+    if k >= p.len() {
+        return None;
+    }
+    let takes = move |c: char| ranges.iter().any(|&(a, b)| a <= c && c <= b) != negated;
+    Some((Box::new(takes), k + 1))
 }
 
 #[cfg(test)]
@@ -2607,6 +2646,16 @@ mod tests {
         assert!(!wildcard_match("a*b*c", "aXbYbZ"));
         assert!(wildcard_match("*", ""));
         assert!(wildcard_match("ä*ö", "äxyö"));
+        // Classes: ranges, lists, negation, a literal `[` without `]`.
+        assert!(wildcard_match("img_[0-2].tif", "img_1.tif"));
+        assert!(!wildcard_match("img_[0-2].tif", "img_3.tif"));
+        assert!(wildcard_match("img_[02468].tif", "img_8.tif"));
+        assert!(!wildcard_match("img_[!0-2].tif", "img_0.tif"));
+        assert!(wildcard_match("img_[^0-2].tif", "img_7.tif"));
+        assert!(wildcard_match("*_[a-c]*.tif", "x_b9.tif"));
+        assert!(wildcard_match("a[]]b", "a]b"));
+        assert!(wildcard_match("a[b", "a[b"));
+        assert!(!wildcard_match("a[b", "ab"));
         let mut v = vec![
             "img10.tif",
             "img2.tif",
