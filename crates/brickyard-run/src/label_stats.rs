@@ -317,7 +317,9 @@ pub fn write_from_voxels(
         None => None,
     };
     let intensity = image.as_ref().map(|im| (im as &dyn VolumeSource, 0));
-    let block = labels.preferred_read();
+    // Blocks of a brick (whole slices of a large volume would hold
+    // gigabytes at once).
+    let block = [64; 3];
     let rows = match brickyard_process::tally::tally(
         &labels, intensity, block, max_bytes, progress, cancel,
     )? {
