@@ -279,7 +279,7 @@ run_case process_generated   case_process generated
 run_case process_nuclei      case_process nuclei
 run_case process_crash       case_process crash
 run_case s3_moto             case_s3
-for ref in ome04_v2_u16 v3_plain_u16 v3_sharded_u16 ome05_2ch_u8 v3_f32_be v2_i16_be_F; do
+for ref in ome04_v2_u16 v3_plain_u16 v3_sharded_u16 ome05_2ch_u8 v3_f32_be v2_i16_be_F v2_u16_zlib; do
     run_case "ref_$ref" case_reference "$ref"
 done
 

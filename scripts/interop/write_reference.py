@@ -210,8 +210,24 @@ def write_v2_i16_be_F(outdir: Path):
               [1.0, 1.0, 1.0], None, 1)
 
 
+def write_v2_u16_zlib(outdir: Path):
+    import zarr
+    from numcodecs import Zlib
+
+    name = "v2_u16_zlib"
+    data = volume((17, 23, 29), np.uint16, seed=11)
+    store = fresh(outdir / f"{name}.zarr")
+    arr = zarr.create_array(str(store), shape=data.shape, dtype="<u2", chunks=(9, 11, 13),
+                            compressors=Zlib(level=6), zarr_format=2, fill_value=0)
+    arr[...] = data
+    zm = json.loads((store / ".zarray").read_text())
+    assert zm["compressor"]["id"] == "zlib", zm
+    save_meta(outdir, name, data, "plain Zarr v2 array, <u2, numcodecs Zlib",
+              [1.0, 1.0, 1.0], None, 1)
+
+
 CASES = [write_ome04_v2, write_v3_plain, write_v3_sharded,
-         write_ome05_2ch, write_v3_f32_be, write_v2_i16_be_F]
+         write_ome05_2ch, write_v3_f32_be, write_v2_i16_be_F, write_v2_u16_zlib]
 
 
 def main(argv):
