@@ -180,7 +180,22 @@ pub struct WebSession {
     /// The depth of the residency octree frames through it attach
     /// ([`View::octree_depth`](crate::view::View)).
     pub octree_depth: u32,
+    /// When failed bricks were last let go to be asked for again (ms;
+    /// `None`: not yet timed), and when the store was last checked for a
+    /// change, with a check under way.
+    retried_at: Option<f64>,
+    checked_at: f64,
+    checking: Rc<std::cell::Cell<bool>>,
 }
+
+/// How often bricks that failed to load are asked for again (ms): the
+/// native viewer's `RETRY_FAILED_AFTER` (20 s), so that a server back up
+/// (or a file repaired) fills the view without a reload.
+pub const RETRY_FAILED_AFTER_MS: f64 = 20_000.0;
+
+/// How often, while bricks are being loaded or failing, the store's root
+/// document is checked for a change on the server (ms).
+pub const CHECK_STORE_EVERY_MS: f64 = 2_000.0;
 
 impl WebSession {
     /// Channel `c` at world point `w` from what is resident: the value and
@@ -247,7 +262,59 @@ impl WebSession {
             tiles: Tiles::all(0, 0),
             pass: None,
             octree_depth: DEFAULT_DEPTH,
+            retried_at: None,
+            checked_at: f64::NEG_INFINITY,
+            checking: Rc::default(),
         })
+    }
+
+    /// Bricks that failed and are not asked for now (drawn from coarser
+    /// data) until [`retry_failed`](Self::retry_failed) lets them go.
+    pub fn failing(&self) -> usize {
+        self.vm.failed_count()
+    }
+
+    /// At `now_ms`: every [`RETRY_FAILED_AFTER_MS`] while bricks are
+    /// failing, forget which failed so that the next frames ask for them
+    /// again, as the native viewer does (`Session::retry_failed`); the
+    /// failures stay in [`failures`](Self::failures). Not once the store
+    /// changed on the server (nothing more is read of it). Returns whether
+    /// it let them go (the view is then drawn again).
+    pub fn retry_failed(&mut self, now_ms: f64) -> bool {
+        let at = *self.retried_at.get_or_insert(now_ms);
+        if self.vm.failed_count() == 0
+            || now_ms - at < RETRY_FAILED_AFTER_MS
+            || self.loads.src.changed()
+        {
+            return false;
+        }
+        self.retried_at = Some(now_ms);
+        self.vm.clear_failed();
+        true
+    }
+
+    /// At `now_ms`: while bricks are being loaded or failing, every
+    /// [`CHECK_STORE_EVERY_MS`], ask the server whether the store changed
+    /// since it was opened ([`WebSource::check_changed`], one check at a
+    /// time, beside the loads): a store reconverted in place is then no
+    /// longer read, rather than old and new data mixed.
+    pub fn check_store(&mut self, now_ms: f64) {
+        let (q, f) = self.loads.pending();
+        let busy = q + f > 0 || self.vm.failed_count() > 0 || !self.ready();
+        if !busy
+            || self.checking.get()
+            || now_ms - self.checked_at < CHECK_STORE_EVERY_MS
+            || self.loads.src.changed()
+        {
+            return;
+        }
+        self.checked_at = now_ms;
+        self.checking.set(true);
+        let (src, checking) = (self.loads.src.clone(), self.checking.clone());
+        (self.loads.spawn)(Box::pin(async move {
+            src.check_changed().await;
+            checking.set(false);
+        }));
     }
 
     /// Bricks that arrived and wait to be drawn with.

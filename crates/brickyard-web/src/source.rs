@@ -42,6 +42,47 @@ pub enum Range {
 /// object does not exist (a chunk never written: the fill value).
 pub trait Fetch {
     fn get(&self, path: &str, range: Range) -> LocalFuture<Result<Option<Vec<u8>>, String>>;
+
+    /// [`get`](Self::get), also giving the object's `ETag` where the
+    /// server sends one, and sending `If-Match: if_match` where given: an
+    /// object that is no longer the one of that tag (HTTP 412) is an error
+    /// containing [`STORE_CHANGED`]. Without tags (files, servers without
+    /// `ETag`): `get`, no tag, no check.
+    fn get_tagged(
+        &self,
+        path: &str,
+        range: Range,
+        if_match: Option<&str>,
+    ) -> LocalFuture<Result<Got, String>> {
+        let _ = if_match;
+        let f = self.get(path, range);
+        Box::pin(async move {
+            Ok(Got {
+                bytes: f.await?,
+                etag: None,
+            })
+        })
+    }
+}
+
+/// What a tagged read got: the bytes (`None`: not found) and the object's
+/// `ETag`, where the server sends one.
+#[derive(Clone, Debug, Default)]
+pub struct Got {
+    pub bytes: Option<Vec<u8>>,
+    pub etag: Option<String>,
+}
+
+/// What a read of an object that changed since the page read it says
+/// (a store reconverted in place while the page has it open).
+pub const STORE_CHANGED: &str = "the store changed on the server since it was opened: reload";
+
+/// A brick named for people: level, channel and brick (z, y, x).
+pub fn brick_name(k: &BrickKey) -> String {
+    format!(
+        "level {}, channel {}, brick (z {}, y {}, x {})",
+        k.level, k.channel, k.brick[0], k.brick[1], k.brick[2]
+    )
 }
 
 /// Counters of what a source fetched.
@@ -106,8 +147,9 @@ impl<K: std::hash::Hash + Eq + Clone, V: Clone> Lru<K, V> {
 }
 
 /// A shard's index: (offset, length) per inner chunk, `None` when the
-/// shard does not exist.
-type ShardIndex = Option<Rc<Vec<[u64; 2]>>>;
+/// shard does not exist; with the shard's `ETag` when the server sent one
+/// (the later reads of its chunks ask for that version: `If-Match`).
+type ShardIndex = Option<(Rc<Vec<[u64; 2]>>, Option<String>)>;
 
 /// An OME-Zarr store read over [`Fetch`].
 pub struct WebSource {
@@ -118,6 +160,17 @@ pub struct WebSource {
     chunks: RefCell<Lru<ChunkKey, Rc<Vec<u8>>>>,
     pub stats: RefCell<SourceStats>,
     inflight: RefCell<HashMap<(String, Range), SharedFetch>>,
+    /// The root document read at opening and its `ETag` (`None`: the
+    /// server sends none; nothing is checked then).
+    root: (String, Option<String>),
+    /// The store changed on the server since it was opened: nothing more
+    /// is read from it (its indexes and chunks may be another version's).
+    changed: std::cell::Cell<bool>,
+    /// Per level, the brick statistics read ([`brick_ranges`](Self::brick_ranges)):
+    /// a chunk or shard absent where they say its bricks hold data fails
+    /// the brick, as natively (`LevelStats::check_lost`).
+    level_stats: RefCell<Vec<Option<Rc<LevelStats>>>>,
+    chunk_budget: usize,
 }
 
 /// One level's brick statistics, decoded: per chunk of the array (by its
@@ -126,6 +179,8 @@ pub struct WebSource {
 struct LevelStats {
     chunk: [u64; 4],
     chunks: HashMap<[u64; 4], Option<Vec<f64>>>,
+    /// The store bricks' edge (`brickyard.brick`).
+    brick: Dims3,
 }
 
 impl LevelStats {
@@ -143,10 +198,18 @@ impl LevelStats {
     }
 }
 
+/// Why a chunk reads as the fill value: its file (shard or chunk) is not
+/// there, or its shard's index has no entry for it.
+const ABSENT_FILE: &str = "not found (HTTP 404)";
+const ABSENT_ENTRY: &str = "its shard's index has no entry for this chunk";
+
 /// (level, chunk or shard index, inner chunk or `usize::MAX`).
 type ChunkKey = (usize, Vec<u64>, usize);
 
-type SharedFetch = Shared<LocalFuture<Result<Option<Rc<Vec<u8>>>, String>>>;
+/// A read's bytes (`None`: not found) and the object's `ETag`.
+type Tagged = Result<(Option<Rc<Vec<u8>>>, Option<String>), String>;
+
+type SharedFetch = Shared<LocalFuture<Tagged>>;
 
 async fn get_json(fetch: &dyn Fetch, path: &str) -> Result<Option<Vec<u8>>, String> {
     fetch.get(path, Range::All).await
@@ -162,11 +225,18 @@ impl WebSource {
         apron: u64,
         chunk_budget: usize,
     ) -> Result<WebSource, String> {
-        let (mut ms, paths) = match get_json(&*fetch, "zarr.json").await? {
-            Some(t) => zarr::parse_root(3, &t).map_err(|e| e.to_string())?,
-            None => match get_json(&*fetch, ".zattrs").await? {
-                Some(t) => zarr::parse_root(2, &t).map_err(|e| e.to_string())?,
-                None => {
+        let root = fetch.get_tagged("zarr.json", Range::All, None).await?;
+        let (mut ms, paths, root) = match root.bytes {
+            Some(t) => {
+                let (ms, paths) = zarr::parse_root(3, &t).map_err(|e| e.to_string())?;
+                (ms, paths, ("zarr.json".to_string(), root.etag))
+            }
+            None => match fetch.get_tagged(".zattrs", Range::All, None).await? {
+                Got { bytes: Some(t), etag } => {
+                    let (ms, paths) = zarr::parse_root(2, &t).map_err(|e| e.to_string())?;
+                    (ms, paths, (".zattrs".to_string(), etag))
+                }
+                Got { bytes: None, .. } => {
                     return Err(
                         "zarr.json: not found (nor .zattrs): not a Zarr store, or the URL does not name its root"
                             .into(),
@@ -213,7 +283,49 @@ impl WebSource {
             chunks: RefCell::new(Lru::new(chunk_budget)),
             stats: RefCell::new(SourceStats::default()),
             inflight: RefCell::new(HashMap::new()),
+            root,
+            changed: std::cell::Cell::new(false),
+            level_stats: RefCell::new(vec![]),
+            chunk_budget,
         })
+    }
+
+    /// Whether the store changed on the server since it was opened (seen
+    /// by a read of a shard's chunk that asked for the version of its
+    /// index, or by [`check_changed`](Self::check_changed)).
+    pub fn changed(&self) -> bool {
+        self.changed.get()
+    }
+
+    /// Stop using what was read of the store: its shard indexes and
+    /// chunks are dropped, and every later load fails with
+    /// [`STORE_CHANGED`] (bricks already resident stay drawn).
+    fn mark_changed(&self) {
+        if !self.changed.replace(true) {
+            *self.indexes.borrow_mut() = Lru::new(8 << 20);
+            *self.chunks.borrow_mut() = Lru::new(self.chunk_budget);
+        }
+    }
+
+    /// Ask the server whether the store's root document is still the one
+    /// read at opening (`If-Match` its `ETag`; a reconversion writes it
+    /// anew): `true` when it changed (then as
+    /// [`mark_changed`](Self::mark_changed)). Servers without `ETag`: never.
+    /// A failed request (the server down) says nothing.
+    pub async fn check_changed(&self) -> bool {
+        if self.changed.get() {
+            return true;
+        }
+        let (doc, Some(tag)) = &self.root else {
+            return false;
+        };
+        match self.fetch.get_tagged(doc, Range::All, Some(tag)).await {
+            Err(e) if e.contains(STORE_CHANGED) => self.mark_changed(),
+            Ok(Got { bytes: None, .. }) => self.mark_changed(),
+            Ok(Got { etag: Some(t), .. }) if t != *tag => self.mark_changed(),
+            _ => {}
+        }
+        self.changed.get()
     }
 
     /// The store's per-brick statistics (`brickyard.stats`: per level an
@@ -241,7 +353,7 @@ impl WebSource {
             return (none(), vec![]);
         }
         let mut problems = vec![];
-        let mut levels: Vec<Option<LevelStats>> = vec![];
+        let mut levels: Vec<Option<Rc<LevelStats>>> = vec![];
         for (l, dims) in g.levels.iter().enumerate() {
             let count = g.bricks_per_level(l).iter().product::<u64>() * g.channels as u64;
             let stats = if count > max_bricks {
@@ -249,6 +361,7 @@ impl WebSource {
             } else {
                 self.level_stats(&format!("{dir}/{l}"), sb, *dims, &mut problems)
                     .await
+                    .map(Rc::new)
             };
             levels.push(stats);
         }
@@ -259,6 +372,7 @@ impl WebSource {
             |l| levels[l].is_some(),
             |l, c, b| levels[l].as_ref()?.get(c as u64, b),
         );
+        *self.level_stats.borrow_mut() = levels;
         (r, problems)
     }
 
@@ -355,7 +469,11 @@ impl WebSource {
                 }
             }
         }
-        Some(LevelStats { chunk: ch, chunks })
+        Some(LevelStats {
+            chunk: ch,
+            chunks,
+            brick: sb,
+        })
     }
 
     /// The bounding box of every label in the label image's statistics
@@ -388,30 +506,48 @@ impl WebSource {
 
     /// One read; reads of the same bytes already under way are joined,
     /// not sent again (neighbouring bricks ask for the same chunks).
-    async fn get(&self, path: &str, range: Range) -> Result<Option<Vec<u8>>, String> {
+    /// `if_match`: the object's version expected (its `ETag`); another
+    /// one marks the store changed ([`changed`](Self::changed)).
+    async fn get(
+        &self,
+        path: &str,
+        range: Range,
+        if_match: Option<&str>,
+    ) -> Result<(Option<Vec<u8>>, Option<String>), String> {
+        if self.changed.get() {
+            return Err(STORE_CHANGED.into());
+        }
         let k = (path.to_string(), range);
         let shared = self.inflight.borrow().get(&k).cloned();
         let fut = match shared {
             Some(f) => f,
             None => {
-                let f = self.fetch.get(path, range);
-                let f: LocalFuture<Result<Option<Rc<Vec<u8>>>, String>> =
-                    Box::pin(async move { f.await.map(|o| o.map(Rc::new)) });
+                let f = self.fetch.get_tagged(path, range, if_match);
+                let f: LocalFuture<Tagged> =
+                    Box::pin(async move { f.await.map(|g| (g.bytes.map(Rc::new), g.etag)) });
                 let f: SharedFetch = f.shared();
                 self.inflight.borrow_mut().insert(k.clone(), f.clone());
                 let r = f.clone().await;
                 self.inflight.borrow_mut().remove(&k);
                 let mut s = self.stats.borrow_mut();
                 s.requests += 1;
-                if let Ok(Some(b)) = &r {
+                if let Ok((Some(b), _)) = &r {
                     s.bytes += b.len() as u64;
                 }
                 f
             }
         };
-        fut.await
-            .map(|o| o.map(|b| Rc::try_unwrap(b).unwrap_or_else(|b| (*b).clone())))
-            .map_err(|e| format!("{path}: {e}"))
+        match fut.await {
+            Ok((o, tag)) => Ok((
+                o.map(|b| Rc::try_unwrap(b).unwrap_or_else(|b| (*b).clone())),
+                tag,
+            )),
+            Err(e) if e.contains(STORE_CHANGED) => {
+                self.mark_changed();
+                Err(STORE_CHANGED.into())
+            }
+            Err(e) => Err(format!("{path}: {e}")),
+        }
     }
 
     /// The index of shard `idx` of level `l`.
@@ -436,7 +572,8 @@ impl WebSource {
         } else {
             Range::Span { start: 0, len }
         };
-        let v = match self.get(&key, range).await? {
+        let (got, tag) = self.get(&key, range, None).await?;
+        let v = match got {
             None => None,
             Some(b) => {
                 if b.len() as u64 != len {
@@ -447,15 +584,18 @@ impl WebSource {
                 }
                 let (b, _) =
                     decode_chain(codecs, b).map_err(|e| format!("{key}: shard index: {e}"))?;
-                Some(Rc::new(
-                    b.chunks_exact(16)
-                        .map(|e| {
-                            [
-                                u64::from_le_bytes(e[..8].try_into().unwrap()),
-                                u64::from_le_bytes(e[8..].try_into().unwrap()),
-                            ]
-                        })
-                        .collect(),
+                Some((
+                    Rc::new(
+                        b.chunks_exact(16)
+                            .map(|e| {
+                                [
+                                    u64::from_le_bytes(e[..8].try_into().unwrap()),
+                                    u64::from_le_bytes(e[8..].try_into().unwrap()),
+                                ]
+                            })
+                            .collect(),
+                    ),
+                    tag,
                 ))
             }
         };
@@ -466,17 +606,17 @@ impl WebSource {
     }
 
     /// Chunk `inner` of (shard or chunk) `idx` of level `l`, decoded to
-    /// native-endian values (`None`: not stored; the fill value).
+    /// native-endian values (`Err(why)`: not stored, the fill value).
     async fn chunk(
         &self,
         l: usize,
         idx: &[u64],
         inner: Option<usize>,
-    ) -> Result<Option<Rc<Vec<u8>>>, String> {
+    ) -> Result<Result<Rc<Vec<u8>>, &'static str>, String> {
         let ck = (l, idx.to_vec(), inner.unwrap_or(usize::MAX));
         if let Some(v) = self.chunks.borrow_mut().get(&ck) {
             self.stats.borrow_mut().chunk_cache_hits += 1;
-            return Ok(Some(v));
+            return Ok(Ok(v));
         }
         let a = &self.meta.levels[l];
         let key = a.chunk_key(idx);
@@ -490,15 +630,23 @@ impl WebSource {
                         .zip(ishape)
                         .map(|(s, c)| s.div_ceil(*c) as usize)
                         .product();
-                    let Some(index) = self.shard_index(l, idx, n, index_codecs, at_end).await?
+                    let Some((index, tag)) =
+                        self.shard_index(l, idx, n, index_codecs, at_end).await?
                     else {
-                        return Ok(None);
+                        return Ok(Err(ABSENT_FILE));
                     };
                     let [off, len] = index[i];
                     if off == u64::MAX && len == u64::MAX {
                         (None, icodecs, ishape)
                     } else {
-                        let b = self.get(&key, Range::Span { start: off, len }).await?;
+                        // The chunk of the shard whose index was read: a
+                        // shard written anew since (a store reconverted in
+                        // place) answers 412, and the store is marked
+                        // changed rather than its new bytes cut by the old
+                        // index.
+                        let (b, _) = self
+                            .get(&key, Range::Span { start: off, len }, tag.as_deref())
+                            .await?;
                         match b {
                             Some(b) if b.len() as u64 == len => (Some(b), icodecs, ishape),
                             Some(b) => {
@@ -513,13 +661,14 @@ impl WebSource {
                         }
                     }
                 }
-                _ => (
-                    self.get(&key, Range::All).await?,
-                    &a.codecs[..],
-                    &a.chunk[..],
-                ),
+                _ => match self.get(&key, Range::All, None).await? {
+                    (None, _) => return Ok(Err(ABSENT_FILE)),
+                    (b, _) => (b, &a.codecs[..], &a.chunk[..]),
+                },
             };
-        let Some(bytes) = bytes else { return Ok(None) };
+        let Some(bytes) = bytes else {
+            return Ok(Err(ABSENT_ENTRY));
+        };
         let (mut v, big) = decode_chain(codecs, bytes).map_err(|e| format!("{key}: {e}"))?;
         let want = shape.iter().product::<u64>() as usize * es;
         if v.len() != want {
@@ -535,14 +684,57 @@ impl WebSource {
         let v = Rc::new(v);
         let size = v.len();
         self.chunks.borrow_mut().put(ck, v.clone(), size);
-        Ok(Some(v))
+        Ok(Ok(v))
+    }
+
+    /// A piece of brick `key` found absent (`why`) over `[plo, phi)` (the
+    /// level's voxels, z y x): an error where the brick statistics say a
+    /// store brick there holds values other than zeros, as the native
+    /// loader's `LevelStats::check_lost` (a shard or chunk lost, not one
+    /// never written). Only where the fill value is zeros, as there.
+    fn check_lost(
+        &self,
+        key: &BrickKey,
+        file: &str,
+        why: &str,
+        plo: Dims3,
+        phi: Dims3,
+    ) -> Result<(), String> {
+        let a = &self.meta.levels[key.level as usize];
+        if a.fill.iter().any(|&b| b != 0) || (0..3).any(|i| plo[i] >= phi[i]) {
+            return Ok(());
+        }
+        let ls = self.level_stats.borrow();
+        let Some(st) = ls.get(key.level as usize).and_then(|s| s.clone()) else {
+            return Ok(());
+        };
+        let sb = st.brick;
+        let c = key.channel as u64;
+        for z in plo[0] / sb[0]..=(phi[0] - 1) / sb[0] {
+            for y in plo[1] / sb[1]..=(phi[1] - 1) / sb[1] {
+                for x in plo[2] / sb[2]..=(phi[2] - 1) / sb[2] {
+                    if let Some((mn, mx)) = st.get(c, [z, y, x]) {
+                        if mn != 0.0 || mx != 0.0 {
+                            return Err(format!(
+                                "{file}: {why}, but the statistics say store brick (z {z}, y {y}, \
+                                 x {x}) of channel {c} holds values in [{mn}, {mx}]"
+                            ));
+                        }
+                    }
+                }
+            }
+        }
+        Ok(())
     }
 
     /// Load one padded brick.
     pub async fn load(&self, key: BrickKey) -> Result<LoadedBrick, String> {
         let g = &self.geometry;
         if !g.contains(&key) {
-            return Err(format!("{key:?} is outside the volume"));
+            return Err(format!("{} is outside the volume", brick_name(&key)));
+        }
+        if self.changed.get() {
+            return Err(STORE_CHANGED.into());
         }
         let l = key.level as usize;
         let a = &self.meta.levels[l];
@@ -590,7 +782,22 @@ impl WebSource {
                 }
                 None => (pi.clone(), None),
             };
-            let chunk = self.chunk(l, &outer, inner).await?;
+            let chunk = match self.chunk(l, &outer, inner).await? {
+                Ok(c) => Some(c),
+                Err(why) => {
+                    // The piece's part of the region, in the level's voxels.
+                    let mut plo = [0u64; 3];
+                    let mut phi = [1u64; 3];
+                    for (s, ax) in self.meta.space.iter().enumerate() {
+                        if let Some(ax) = *ax {
+                            plo[s] = lo[ax].max(porig[ax]);
+                            phi[s] = hi[ax].min(porig[ax] + piece[ax]);
+                        }
+                    }
+                    self.check_lost(&key, &a.chunk_key(&outer), why, plo, phi)?;
+                    None
+                }
+            };
             copy_piece(
                 buf,
                 p,

@@ -30,6 +30,9 @@ pub struct ViewState {
     /// type's range (0–1 for floats).
     pub window: Option<[f64; 2]>,
     pub channel: usize,
+    /// `channel=N` was given: that channel alone, also of a store of
+    /// several (as `render --channel N`), and kept in the URL.
+    pub channel_given: bool,
     /// Several channels at once (`channels=0,2`): composited per sample in
     /// DVR, added up in MIP and slices, each in its `omero` colour and
     /// window. Empty: one channel (`channel`), or for a store of several
@@ -39,6 +42,8 @@ pub struct ViewState {
     pub height: u32,
     pub lod_bias: f64,
     pub slice_z: f64,
+    /// `slice=` was given (only with `mode=slice`, as `render --slice-z`).
+    pub slice_given: bool,
     /// `labels=NAME`: the store's label image `labels/NAME` laid over the
     /// slice at `label_opacity` (as `render --labels NAME`).
     pub labels: Option<String>,
@@ -65,11 +70,13 @@ impl Default for ViewState {
             tf: None,
             window: None,
             channel: 0,
+            channel_given: false,
             channels: vec![],
             width: 512,
             height: 512,
             lod_bias: 0.0,
             slice_z: 0.5,
+            slice_given: false,
             labels: None,
             label_opacity: 0.5,
             label_select: None,
@@ -140,7 +147,8 @@ impl ViewState {
                 "channel" => {
                     s.channel = v
                         .parse()
-                        .map_err(|_| format!("channel: expected a channel number, found {v:?}"))?
+                        .map_err(|_| format!("channel: expected a channel number, found {v:?}"))?;
+                    s.channel_given = true;
                 }
                 "channels" => {
                     s.channels = v
@@ -153,6 +161,13 @@ impl ViewState {
                         })?;
                     if s.channels.len() > 64 {
                         return Err(format!("channels: at most 64, found {}", s.channels.len()));
+                    }
+                    for (i, c) in s.channels.iter().enumerate() {
+                        if s.channels[..i].contains(c) {
+                            return Err(format!(
+                                "channels: channel {c} given twice (in {v:?}); give each channel once"
+                            ));
+                        }
                     }
                 }
                 "size" => {
@@ -168,7 +183,15 @@ impl ViewState {
                     }
                 }
                 "bias" => s.lod_bias = num(k, &v)?.clamp(-8.0, 8.0),
-                "slice" => s.slice_z = num(k, &v)?.clamp(0.0, 1.0),
+                "slice" => {
+                    s.slice_z = num(k, &v)?;
+                    if !(0.0..=1.0).contains(&s.slice_z) {
+                        return Err(format!(
+                            "slice: expected a fraction of the depth from 0 to 1, found {v:?}"
+                        ));
+                    }
+                    s.slice_given = true;
+                }
                 "labels" => {
                     let ok = !v.is_empty()
                         && v != "."
@@ -210,6 +233,18 @@ impl ViewState {
                 _ => {}
             }
         }
+        if s.slice_given && s.mode != "slice" {
+            return Err(format!(
+                "slice: applies to mode=slice only (it places the slice's plane); mode={} draws \
+                 the whole volume",
+                s.mode
+            ));
+        }
+        if s.channel_given && !s.channels.is_empty() {
+            return Err(
+                "channel: channel=N shows one channel, channels=… several: give one of them".into(),
+            );
+        }
         Ok(s)
     }
 
@@ -238,7 +273,7 @@ impl ViewState {
         if let Some([a, b]) = self.window {
             q.push(format!("window={a},{b}"));
         }
-        if self.channel != d.channel {
+        if self.channel != d.channel || self.channel_given {
             q.push(format!("channel={}", self.channel));
         }
         if !self.channels.is_empty() {
@@ -251,7 +286,7 @@ impl ViewState {
         if self.lod_bias != d.lod_bias {
             q.push(format!("bias={}", self.lod_bias));
         }
-        if self.slice_z != d.slice_z {
+        if self.slice_z != d.slice_z || self.slice_given {
             q.push(format!("slice={}", self.slice_z));
         }
         if let Some(n) = &self.labels {
@@ -311,11 +346,12 @@ impl ViewState {
             [lo as f32, hi as f32],
         )
         .map_err(|e| format!("tf: {e}"))?;
-        // The channels shown: as asked, else a store's active channels
-        // when it has several (as `render` without --channel).
+        // The channels shown: as asked (`channel=N`: that one alone, as
+        // `render --channel N`), else a store's active channels when it
+        // has several (as `render` without --channel).
         let shown: Vec<usize> = if !self.channels.is_empty() {
             self.channels.clone()
-        } else if n_channels > 1 && !meta.is_empty() {
+        } else if n_channels > 1 && !meta.is_empty() && !self.channel_given {
             (0..n_channels.min(meta.len()))
                 .filter(|&c| meta[c].active)
                 .collect()
@@ -600,7 +636,7 @@ mod tests {
 
     #[test]
     fn the_query_round_trips_and_names_bad_keys() {
-        let s = ViewState::from_query("#store=x&mode=mip&az=12.5&el=-30&zoom=2&tf=hot&window=0,200&channel=1&size=640x480&bias=-1&slice=0.25").unwrap();
+        let s = ViewState::from_query("#store=x&mode=mip&az=12.5&el=-30&zoom=2&tf=hot&window=0,200&channel=1&size=640x480&bias=-1").unwrap();
         assert_eq!(
             (s.mode.as_str(), s.azimuth, s.elevation, s.zoom),
             ("mip", 12.5, -30.0, 2.0)
@@ -635,6 +671,66 @@ mod tests {
         assert_eq!(s.traversal, Traversal::Octree);
         assert_eq!(s.to_query(), "az=10&traversal=octree");
         let s = ViewState::from_query("traversal=octree&octree_depth=2").unwrap();
+        assert_eq!(ViewState::from_query(&s.to_query()).unwrap(), s);
+    }
+
+    #[test]
+    fn channel_and_slice_keys_mean_what_render_makes_of_them() {
+        let scene = Scene::new([1.0; 3], vec![[64, 64, 64], [32, 32, 32]]);
+        let meta: Vec<ChannelMeta> = (0..3)
+            .map(|i| ChannelMeta {
+                label: format!("c{i}"),
+                color: [1.0, 0.0, 0.0],
+                window: Some([0.0, 100.0 * (i + 1) as f64]),
+                active: true,
+            })
+            .collect();
+        let view = |q: &str| {
+            ViewState::from_query(q).and_then(|s| s.params(&scene, [0.0, 255.0], &meta, 3, false))
+        };
+        // `channel=1` of a store of three active channels: channel 1
+        // alone (as `render --channel 1`), in every mode, and kept in the
+        // URL, `channel=0` too.
+        for mode in ["dvr", "mip", "slice"] {
+            let v = view(&format!("mode={mode}&channel=1")).unwrap();
+            assert_eq!(v.channel, 1, "{mode}");
+            assert!(
+                v.params.channels.len() <= 1,
+                "{mode}: {:?}",
+                v.params.channels
+            );
+        }
+        // (Without it, the three active ones.)
+        assert_eq!(view("").unwrap().params.channels.len(), 3);
+        assert_eq!(view("mode=mip").unwrap().params.channels.len(), 3);
+        let s = ViewState::from_query("channel=0").unwrap();
+        assert_eq!(s.to_query(), "channel=0");
+        assert_eq!(view("mode=mip&channel=0").unwrap().params.channels.len(), 0);
+        // A channel given twice, or channel and channels together: refused.
+        let e = ViewState::from_query("channels=0,0").unwrap_err();
+        assert!(
+            e.starts_with("channels:") && e.contains("channel 0 given twice"),
+            "{e}"
+        );
+        let e = ViewState::from_query("channel=1&channels=0,2").unwrap_err();
+        assert!(e.starts_with("channel:"), "{e}");
+        // `slice` is a fraction of the depth (0 to 1), of slices only.
+        for bad in ["slice=2", "slice=-0.5", "mode=slice&slice=1.01"] {
+            let e = ViewState::from_query(&format!("mode=slice&{bad}")).unwrap_err();
+            assert!(
+                e.starts_with("slice:") && e.contains("0 to 1"),
+                "{bad}: {e}"
+            );
+        }
+        for q in ["slice=0.3", "mode=mip&slice=0.3", "slice=0.5"] {
+            let e = ViewState::from_query(q).unwrap_err();
+            assert!(
+                e.starts_with("slice:") && e.contains("mode=slice"),
+                "{q}: {e}"
+            );
+        }
+        let s = ViewState::from_query("mode=slice&slice=1").unwrap();
+        assert_eq!(s.slice_z, 1.0);
         assert_eq!(ViewState::from_query(&s.to_query()).unwrap(), s);
     }
 

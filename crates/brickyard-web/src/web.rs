@@ -5,7 +5,7 @@
 //! put on the canvas.
 
 use crate::session::{FrameOut, Spawn, WebSession};
-use crate::source::{Fetch, LocalFuture, Range, WebSource};
+use crate::source::{brick_name, Fetch, Got, LocalFuture, Range, WebSource, STORE_CHANGED};
 use crate::view::{Backend, ViewState};
 use brickyard_cache::vm::VmConfig;
 use std::cell::RefCell;
@@ -21,22 +21,69 @@ struct HttpFetch {
     token: Option<String>,
 }
 
-fn js_err(e: JsValue) -> String {
-    e.as_string()
-        .or_else(|| js_sys::JSON::stringify(&e).ok().and_then(|s| s.as_string()))
-        .unwrap_or_else(|| format!("{e:?}"))
+/// A JavaScript error as words for people: its message (a `TypeError` of
+/// `fetch()`, which says nothing more, as what it means), never `{}`.
+pub fn js_err(e: JsValue) -> String {
+    if let Some(s) = e.as_string() {
+        return s;
+    }
+    let field = |k: &str| {
+        js_sys::Reflect::get(&e, &JsValue::from_str(k))
+            .ok()
+            .and_then(|v| v.as_string())
+            .unwrap_or_default()
+    };
+    let (name, message) = (field("name"), field("message"));
+    match name.as_str() {
+        // (`fetch()` rejects with a TypeError, "Failed to fetch", both for
+        // a server not there and for a response CORS withholds.)
+        "TypeError" => return UNREACHABLE.into(),
+        "AbortError" => return "no answer in time (the request was abandoned)".into(),
+        _ => {}
+    }
+    if !message.is_empty() {
+        return if name.is_empty() {
+            message
+        } else {
+            format!("{name}: {message}")
+        };
+    }
+    js_sys::JSON::stringify(&e)
+        .ok()
+        .and_then(|s| s.as_string())
+        .filter(|s| s != "{}" && !s.is_empty())
+        .or_else(|| {
+            let s = String::from(js_sys::Object::from(e.clone()).to_string());
+            (!s.is_empty()).then_some(s)
+        })
+        .unwrap_or_else(|| "an unknown error".into())
 }
+
+/// What a request that never got an answer means.
+pub const UNREACHABLE: &str =
+    "could not reach the server (down, or the request was blocked by CORS)";
 
 impl Fetch for HttpFetch {
     fn get(&self, path: &str, range: Range) -> LocalFuture<Result<Option<Vec<u8>>, String>> {
+        let f = self.get_tagged(path, range, None);
+        Box::pin(async move { f.await.map(|g| g.bytes) })
+    }
+
+    fn get_tagged(
+        &self,
+        path: &str,
+        range: Range,
+        if_match: Option<&str>,
+    ) -> LocalFuture<Result<Got, String>> {
         let url = format!("{}/{}", self.base.trim_end_matches('/'), path);
         let token = self.token.clone();
+        let if_match = if_match.map(str::to_string);
         Box::pin(async move {
             // A request that stalls (a lost connection) is abandoned and
             // tried again, twice; then the brick fails.
             let mut last = String::new();
             for _ in 0..3 {
-                match get_once(&url, range, token.as_deref()).await {
+                match get_once(&url, range, token.as_deref(), if_match.as_deref()).await {
                     Ok(r) => return Ok(r),
                     Err((e, retry)) => {
                         if !retry {
@@ -51,12 +98,14 @@ impl Fetch for HttpFetch {
     }
 }
 
-/// One `GET`; errors say whether trying again may help.
+/// One `GET` (with `If-Match: if_match` where given); errors say whether
+/// trying again may help.
 async fn get_once(
     url: &str,
     range: Range,
     token: Option<&str>,
-) -> Result<Option<Vec<u8>>, (String, bool)> {
+    if_match: Option<&str>,
+) -> Result<Got, (String, bool)> {
     let fatal = |e: JsValue| (js_err(e), false);
     let opts = web_sys::RequestInit::new();
     opts.set_method("GET");
@@ -65,7 +114,7 @@ async fn get_once(
     // stalled on loopback was seen now and then in headless Chromium.
     let ctl = web_sys::AbortController::new().map_err(fatal)?;
     opts.set_signal(Some(&ctl.signal()));
-    if range != Range::All {
+    if range != Range::All || if_match.is_some() {
         // Byte ranges bypass the HTTP cache: Chromium's answers to ranges
         // of a partly cached object came back empty (its sparse entries);
         // bricks have caches of their own.
@@ -99,6 +148,9 @@ async fn get_once(
             .set("Authorization", &format!("Bearer {t}"))
             .map_err(fatal)?;
     }
+    if let Some(t) = if_match {
+        req.headers().set("If-Match", t).map_err(fatal)?;
+    }
     let window = web_sys::window().ok_or(("no window".to_string(), false))?;
     let abort_after = |ms: i32| -> Result<i32, (String, bool)> {
         let c = ctl.clone();
@@ -115,14 +167,29 @@ async fn get_once(
         .dyn_into()
         .map_err(fatal)?;
     match resp.status() {
-        404 => return Ok(None),
+        404 => {
+            return Ok(Got {
+                bytes: None,
+                etag: None,
+            })
+        }
         200 | 206 => {}
+        401 if token.is_some() => {
+            return Err((
+                format!(
+                    "{url}: HTTP 401: the server refused the token given (token=… in the page's \
+                     URL): check it"
+                ),
+                false,
+            ))
+        }
         401 => {
             return Err((
                 format!("{url}: HTTP 401: the store needs a token (token=… in the page's URL)"),
                 false,
             ))
         }
+        412 => return Err((format!("{url}: HTTP 412: {STORE_CHANGED}"), false)),
         s @ (500..=599 | 408 | 429) => {
             return Err((format!("{url}: HTTP {s} {}", resp.status_text()), true))
         }
@@ -133,8 +200,9 @@ async fn get_once(
     window.clear_timeout_with_handle(timer);
     let buf = buf.map_err(|e| (format!("{url}: {}", js_err(e)), true))?;
     let bytes = js_sys::Uint8Array::new(&buf).to_vec();
+    let etag = resp.headers().get("ETag").ok().flatten();
     // A server that ignores ranges answers 200 with the whole file.
-    Ok(Some(match (resp.status(), range) {
+    let bytes = Some(match (resp.status(), range) {
         (200, Range::Span { start, len }) => {
             let e = (start + len) as usize;
             bytes
@@ -144,7 +212,8 @@ async fn get_once(
         }
         (200, Range::Suffix(n)) => bytes[bytes.len().saturating_sub(n as usize)..].to_vec(),
         _ => bytes,
-    }))
+    });
+    Ok(Got { bytes, etag })
 }
 
 /// The device path: WebGPU's device, the page tables and pool on it, and
@@ -290,8 +359,9 @@ impl Viewer {
             .map_err(|e| JsValue::from_str(&format!("{url}: {e}")))?;
         if state.channel >= src.geometry.channels {
             return Err(JsValue::from_str(&format!(
-                "channel: the store has {} channels, found {}",
-                src.geometry.channels, state.channel
+                "channel: {}, found {}",
+                has_channels(src.geometry.channels),
+                state.channel
             )));
         }
         let window = default_window(&src, state.channel);
@@ -307,18 +377,33 @@ impl Viewer {
         };
         let spawn: Spawn = Rc::new(wasm_bindgen_futures::spawn_local);
         let mut stats_problems = vec![];
+        let root = url.trim_end_matches('/');
         let labels = match &state.labels {
             Some(name) => {
                 let fetch: Rc<dyn Fetch> = Rc::new(HttpFetch {
                     base: format!("{}/labels/{name}", url.trim_end_matches('/')),
                     token: token.clone().filter(|t| !t.is_empty()),
                 });
-                let lsrc = WebSource::open(fetch, 32, 1, 8 << 20)
-                    .await
-                    .map_err(|e| JsValue::from_str(&format!("labels: {url}/labels/{name}: {e}")))?;
+                let lsrc = WebSource::open(fetch, 32, 1, 8 << 20).await.map_err(|e| {
+                    JsValue::from_str(&format!("labels: {root}/labels/{name}: {e}"))
+                })?;
                 if !lsrc.meta.labels || lsrc.geometry.channels != 1 {
                     return Err(JsValue::from_str(&format!(
-                        "labels: {url}/labels/{name} is not a label image of one channel"
+                        "labels: {root}/labels/{name} is not a label image of one channel"
+                    )));
+                }
+                // Drawn over the grid they were made on, as `render
+                // --labels` takes them (else nothing would lie where it
+                // belongs).
+                let (si, sl) = (src.meta.spacing, lsrc.meta.spacing);
+                let same =
+                    (0..3).all(|a| (si[a] - sl[a]).abs() <= 1e-9 * si[a].abs().max(sl[a].abs()));
+                let (di, dl) = (src.meta.dims(0), lsrc.meta.dims(0));
+                if di != dl || !same {
+                    return Err(JsValue::from_str(&format!(
+                        "labels: {root}/labels/{name}: its level 0 is {dl:?} voxels of {sl:?} (z, \
+                         y, x), the image's {di:?} of {si:?}: label images are drawn over the \
+                         grid they were made on"
                     )));
                 }
                 let lcfg = VmConfig {
@@ -365,7 +450,7 @@ impl Viewer {
             "spacing": src.meta.spacing,
             "window": window,
             "pool_slots": session.vm.pool_slots(),
-            "device": device.as_ref().map(|d| d.gpu.describe()),
+            "device": device.as_ref().map(|d| describe(&d.gpu)),
             "device_note": device_note,
             "label_image": src.meta.labels,
             "stats_problems": stats_problems,
@@ -444,8 +529,9 @@ impl Viewer {
         let s = ViewState::from_query(q).map_err(|e| JsValue::from_str(&e))?;
         if s.channel >= self.channels {
             return Err(JsValue::from_str(&format!(
-                "channel: the store has {} channels, found {}",
-                self.channels, s.channel
+                "channel: {}, found {}",
+                has_channels(self.channels),
+                s.channel
             )));
         }
         if s.labels != self.state.borrow().labels {
@@ -620,6 +706,18 @@ impl Inner {
         // Draw when the view changed, or when enough bricks arrived to be
         // worth a frame: a frame holds the page's only thread, and loads
         // (decoding included) move on between frames.
+        // Failed bricks are asked for again now and then (a server back
+        // up), as in the native viewer; and while bricks are loading or
+        // failing, the store is checked for a change on the server.
+        let mut retried = self.session.retry_failed(t);
+        self.session.check_store(t);
+        if let Some(l) = &mut self.labels {
+            retried |= l.session.retry_failed(t);
+            l.session.check_store(t);
+        }
+        if retried {
+            self.drawn_state = None;
+        }
         let news = self.session.news();
         let (queued, in_flight) = self.session.loads.pending();
         let idle = queued + in_flight == 0;
@@ -806,8 +904,8 @@ impl Inner {
                 "name": x.name, "complete": x.last.complete,
                 "completeness": x.last.stats.completeness(),
                 "resident": x.session.vm.resident_bricks(),
-                "failed": x.session.failures.len(),
-                "last_failure": x.session.failures.last().map(|(k, e)| format!("{k:?}: {e}")),
+                "failed": x.session.failing(),
+                "last_failure": x.session.failures.last().map(|(k, e)| format!("{}: {e}", brick_name(k))),
             })
         });
         serde_json::json!({
@@ -821,8 +919,15 @@ impl Inner {
             "loaded": self.session.loads.loaded(),
             "queued": l.queued,
             "in_flight": l.in_flight,
-            "failed": self.session.failures.len(),
-            "last_failure": self.session.failures.last().map(|(k, e)| format!("{k:?}: {e}")),
+            "failed": self.session.failing(),
+            "failures": self.session.failures.len(),
+            "last_failure": self.session.failures.last().map(|(k, e)| format!("{}: {e}", brick_name(k))),
+            // The last failure was the server not answering (down, or
+            // CORS): the page says so while bricks are failing.
+            "unreachable": self.session.failing() > 0
+                && self.session.failures.last().is_some_and(|(_, e)| e.contains(UNREACHABLE)),
+            "store_changed": self.session.loads.src.changed()
+                || self.labels.as_ref().is_some_and(|l| l.session.loads.src.changed()),
             "bytes": bytes,
             "mib_s": self.mib_s,
             "frame_ms": self.frame_ms,
@@ -834,11 +939,35 @@ impl Inner {
             "frames": self.frames,
             "first_complete_ms": self.first_complete_ms,
             "query": state.to_query(),
-            "device": self.device.as_ref().map(|d| d.gpu.describe()),
+            "device": self.device.as_ref().map(|d| describe(&d.gpu)),
             "device_note": self.device_note,
             "on_device": self.on_device,
         })
         .to_string()
+    }
+}
+
+/// "the store has N channel(s)", in words.
+fn has_channels(n: usize) -> String {
+    match n {
+        1 => "the store has 1 channel (0)".into(),
+        n => format!("the store has {n} channels (0 to {})", n - 1),
+    }
+}
+
+/// The WebGPU adapter for people: its name where the browser gives one,
+/// and its kind ("a software adapter"), not the driver's debug fields.
+fn describe(gpu: &brickyard_gpu::Gpu) -> String {
+    let kind = match gpu.info.device_type {
+        wgpu::DeviceType::Cpu => "a software adapter",
+        wgpu::DeviceType::IntegratedGpu => "an integrated GPU",
+        wgpu::DeviceType::DiscreteGpu => "a discrete GPU",
+        wgpu::DeviceType::VirtualGpu => "a virtual GPU",
+        wgpu::DeviceType::Other => "the browser's adapter",
+    };
+    match gpu.info.name.trim() {
+        "" => kind.to_string(),
+        n => format!("{n}, {kind}"),
     }
 }
 

@@ -1273,3 +1273,200 @@ fn the_readout_reads_the_voxel_and_label_under_a_pixel_of_a_slice() {
     let p = brickyard_web::session::probe(&mip, &image, None, 240.0, 220.0).expect("a MIP point");
     assert_eq!(p["seen"]["how"], "the MIP's maximum", "{p}");
 }
+
+/// Files served as a server with `ETag`s does (`brickyard serve`: size and
+/// modification time) and `If-Match` (412): for a store reconverted in
+/// place while it is open.
+struct TaggedFetch(PathBuf);
+
+impl brickyard_web::source::Fetch for TaggedFetch {
+    fn get(
+        &self,
+        path: &str,
+        range: brickyard_web::source::Range,
+    ) -> brickyard_web::source::LocalFuture<Result<Option<Vec<u8>>, String>> {
+        FileFetch(self.0.clone()).get(path, range)
+    }
+
+    fn get_tagged(
+        &self,
+        path: &str,
+        range: brickyard_web::source::Range,
+        if_match: Option<&str>,
+    ) -> brickyard_web::source::LocalFuture<Result<brickyard_web::source::Got, String>> {
+        let tag = std::fs::metadata(self.0.join(path)).ok().map(|m| {
+            let t = m.modified().unwrap().duration_since(std::time::UNIX_EPOCH);
+            format!("\"{:x}-{:x}\"", m.len(), t.unwrap().as_nanos())
+        });
+        if let (Some(want), Some(have)) = (if_match, &tag) {
+            if want != have {
+                let e = format!("{path}: HTTP 412: {}", brickyard_web::source::STORE_CHANGED);
+                return Box::pin(async move { Err(e) });
+            }
+        }
+        let f = FileFetch(self.0.clone()).get(path, range);
+        Box::pin(async move {
+            Ok(brickyard_web::source::Got {
+                bytes: f.await?,
+                etag: tag,
+            })
+        })
+    }
+}
+
+#[test]
+fn a_store_reconverted_while_open_is_not_mixed_with_the_old_one() {
+    use brickyard_web::source::STORE_CHANGED;
+    let dir = tempfile::tempdir().unwrap();
+    let a = dir.path().join("a");
+    let b = dir.path().join("b");
+    std::fs::create_dir_all(&a).unwrap();
+    std::fs::create_dir_all(&b).unwrap();
+    let store = convert_file(&a, "mni152-t1-u8.nii.gz", Compression::Lz4, 64, 128);
+    let other = convert_file(&b, "mni152-t1-u8.nii.gz", Compression::None, 64, 128);
+    let open = || {
+        futures_executor::block_on(WebSource::open(
+            Rc::new(TaggedFetch(store.clone())),
+            32,
+            1,
+            1 << 20,
+        ))
+        .expect("open")
+    };
+    let web = open();
+    let later = open();
+    assert!(!futures_executor::block_on(later.check_changed()));
+    // Shard 0/c/0/0/0's index is read with its first brick.
+    let keys: Vec<BrickKey> = web
+        .geometry
+        .keys(0, 0)
+        .filter(|k| k.brick.iter().all(|&v| v < 4))
+        .collect();
+    futures_executor::block_on(web.load(keys[0])).expect("before");
+    // The store converted again in place (other bytes, other sizes).
+    std::thread::sleep(std::time::Duration::from_millis(20));
+    std::fs::remove_dir_all(&store).unwrap();
+    std::fs::rename(&other, &store).unwrap();
+    // A later brick of that shard: its chunk asked for with the index's
+    // version (If-Match) is refused, and the source reads nothing more.
+    let e = futures_executor::block_on(web.load(*keys.last().unwrap())).unwrap_err();
+    assert!(e.contains(STORE_CHANGED), "{e}");
+    assert!(web.changed());
+    for k in &keys[1..4] {
+        let e = futures_executor::block_on(web.load(*k)).unwrap_err();
+        assert_eq!(e, STORE_CHANGED);
+    }
+    // The root document's check sees it too (a source that read no shard).
+    assert!(futures_executor::block_on(later.check_changed()));
+    assert!(later.changed());
+    assert!(futures_executor::block_on(later.load(keys[0]))
+        .unwrap_err()
+        .contains(STORE_CHANGED));
+    // Without ETags (a plain file server): nothing is checked.
+    let plain = open_web(&store, 32);
+    assert!(!futures_executor::block_on(plain.check_changed()));
+}
+
+#[test]
+fn a_lost_shard_fails_the_bricks_its_statistics_say_hold_data() {
+    let dir = tempfile::tempdir().unwrap();
+    let store = convert_file(dir.path(), "mni152-t1-u8.nii.gz", Compression::Lz4, 64, 128);
+    std::fs::remove_file(store.join("0/c/0/0/0")).unwrap();
+    // Without statistics read, as Zarr reads it: the fill value.
+    let web = open_web(&store, 32);
+    let g = web.geometry.clone();
+    let keys: Vec<BrickKey> = g
+        .keys(0, 0)
+        .filter(|k| k.brick.iter().all(|&v| v < 4))
+        .collect();
+    for k in &keys {
+        futures_executor::block_on(web.load(*k)).expect("fill");
+    }
+    // With them (as the page reads them): bricks holding data there fail,
+    // naming the shard, as the native loader's `check_lost`.
+    let (_, problems) = futures_executor::block_on(web.brick_ranges(1 << 21));
+    assert!(problems.is_empty(), "{problems:?}");
+    let mut failed = 0;
+    for k in &keys {
+        if let Err(e) = futures_executor::block_on(web.load(*k)) {
+            assert!(
+                e.contains("0/c/0/0/0") && e.contains("not found") && e.contains("statistics"),
+                "{e}"
+            );
+            failed += 1;
+        }
+    }
+    assert!(failed > 0, "a lost shard of data must fail its bricks");
+    // The native loader agrees: the brick fails there too.
+    let native =
+        Loader::open(&store, [32; 3], 1, 1, Arc::new(HostCache::new(1 << 26))).expect("loader");
+    for k in &keys {
+        let w = futures_executor::block_on(web.load(*k)).is_err();
+        assert_eq!(w, native.load_now(k).is_err(), "{k:?}");
+    }
+}
+
+/// A `Fetch` over files that a switch takes down (a server gone).
+struct DownFetch(FileFetch, Rc<std::cell::Cell<bool>>);
+
+impl brickyard_web::source::Fetch for DownFetch {
+    fn get(
+        &self,
+        path: &str,
+        range: brickyard_web::source::Range,
+    ) -> brickyard_web::source::LocalFuture<Result<Option<Vec<u8>>, String>> {
+        if self.1.get() {
+            return Box::pin(async { Err("could not reach the server".to_string()) });
+        }
+        self.0.get(path, range)
+    }
+}
+
+#[test]
+fn failed_bricks_are_asked_for_again_after_a_while() {
+    use brickyard_web::session::RETRY_FAILED_AFTER_MS;
+    let dir = tempfile::tempdir().unwrap();
+    let store = convert_file(dir.path(), "mni152-t1-u8.nii.gz", Compression::Lz4, 64, 128);
+    let st = ViewState::from_query("mode=mip&size=96x96").unwrap();
+    let (reference, _) = stream(&store, &st, [0.0, 255.0], 64 << 20);
+    let down = Rc::new(std::cell::Cell::new(false));
+    let src = Rc::new(
+        futures_executor::block_on(WebSource::open(
+            Rc::new(DownFetch(FileFetch(store.clone()), down.clone())),
+            32,
+            1,
+            1 << 20,
+        ))
+        .unwrap(),
+    );
+    let mut exec = LocalPool::new();
+    let sp = exec.spawner();
+    let spawn: Spawn = Rc::new(move |f| spawn_local(&sp, f));
+    let cfg = VmConfig {
+        brick: [32; 3],
+        pool_bytes: 64 << 20,
+        ..Default::default()
+    };
+    let mut s = WebSession::new(src.clone(), cfg, spawn, 6).unwrap();
+    exec.run_until(s.read_ranges(1 << 21));
+    let v = st
+        .params(&s.scene, [0.0, 255.0], &src.meta.channels, 1, false)
+        .unwrap();
+    // The coarsest levels in, then the server goes.
+    while !s.ready() {
+        exec.run_until_stalled();
+        s.frame_cpu(&v.params, v.lod);
+    }
+    down.set(true);
+    let (partial, _) = frames_until_complete(&mut s, &mut exec, &v);
+    assert!(s.failing() > 0, "bricks must fail while the server is down");
+    assert!(max_diff(&partial, &reference) > 0.0);
+    // Back up: not asked for again before the time is up, then they are.
+    down.set(false);
+    assert!(!s.retry_failed(1000.0));
+    assert!(!s.retry_failed(1000.0 + RETRY_FAILED_AFTER_MS - 1.0));
+    assert!(s.retry_failed(1000.0 + RETRY_FAILED_AFTER_MS));
+    let (image, _) = frames_until_complete(&mut s, &mut exec, &v);
+    assert_eq!(s.failing(), 0);
+    assert_eq!(max_diff(&image, &reference), 0.0);
+}

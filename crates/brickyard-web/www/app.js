@@ -46,11 +46,18 @@ function syncControls(q) {
   $('mode').value = p.get('mode') || 'dvr';
   $('tf').value = p.get('tf') || '';
   $('slice').value = p.get('slice') || '0.5';
+  // (`slice` places a slice's plane: of mode=slice only.)
+  $('slice').disabled = (p.get('mode') || 'dvr') !== 'slice';
   $('bias').value = p.get('bias') || '0';
   $('traversal').value = p.get('traversal') || '';
   $('traversal').disabled = (p.get('mode') || 'dvr') !== 'dvr';
-  if (state.multi) $('channel').value = p.get('channels') || 'all';
-  else if (p.get('channel')) $('channel').value = p.get('channel');
+  const ch = state.multi ? (p.get('channels') || p.get('channel') || 'all') : (p.get('channel') || '0');
+  // A choice of several (`channels=0,2`) gets an entry of its own.
+  if (![...$('channel').options].some((o) => o.value === ch)) {
+    const o = document.createElement('option'); o.value = ch; o.textContent = `${ch.split(',').join(' + ')} (composited)`;
+    $('channel').appendChild(o);
+  }
+  $('channel').value = ch;
   const info = JSON.parse(state.viewer.info());
   const w = (p.get('window') || '').split(',').map(Number);
   const [lo, hi] = w.length === 2 && w.every(Number.isFinite) ? w : info.window;
@@ -104,21 +111,35 @@ async function tick() {
   try { st = JSON.parse(await state.viewer.frame()); } catch (e) { showError(e); running = false; return; }
   state.status = st;
   writeUrl(st.query);
+  // Failing bricks and their reason, as the native viewer retries them.
+  const lf = st.labels && st.labels.failed;
+  const failing = st.failed || lf ?
+    (st.unreachable ? '\nthe server cannot be reached: ' : '\n') +
+    `failing bricks: ${st.failed}${lf ? ` (labels: ${lf})` : ''}, drawn from coarser data and asked for again every 20 s` +
+    (st.failures ? `\nlast: ${st.last_failure}` : '') : '';
   $('status').textContent =
+    (st.store_changed ? 'the store changed on the server since it was opened: reload\n' : '') +
     `${st.complete ? 'complete' : 'loading'}  ${(100 * st.completeness).toFixed(1)} % exact` +
     `${st.bias > 0 ? `  (LOD bias +${st.bias}: the pool is too small for full detail)` : ''}\n` +
     `bricks: ${st.resident} resident of ${st.pool_slots}, ${st.loaded} loaded, ${st.in_flight} in flight, ${st.queued} queued\n` +
-    `read: ${(st.bytes / 1048576).toFixed(1)} MiB at ${st.mib_s.toFixed(1)} MiB/s\n` +
+    `read: ${(st.bytes / 1048576).toFixed(1)} MiB` +
+    (st.in_flight + st.queued > 0 ? ` at ${st.mib_s.toFixed(1)} MiB/s` : '') + '\n' +
     `frame: ${st.frame_ms.toFixed(0)} ms${st.on_device ? ' (WebGPU)' : ' (CPU)'}` +
     (st.parts > 1 ? ` in ${st.parts} parts` : '') +
     (st.scale < 1 ? ` at ${Math.round(100 * st.scale)} % size while moving` : '') +
     (st.first_complete_ms ? `, first complete after ${(st.first_complete_ms / 1000).toFixed(2)} s` : '') +
-    (st.failed ? `\nfailed bricks: ${st.failed} (drawn from coarser data)\nlast: ${st.last_failure}` : '') +
+    failing +
     (st.labels ? `\nlabels/${st.labels.name}: ${st.labels.complete ? 'complete' : 'loading'}, ${st.labels.resident} bricks resident` +
-      (st.labels.failed ? `, ${st.labels.failed} failed (last: ${st.labels.last_failure})` : '') : '');
+      (st.labels.failed ? `, ${st.labels.failed} failing (last: ${st.labels.last_failure})` : '') : '');
   const now = performance.now();
   if (now - histAt > 1000) { histAt = now; drawHistogram(); }
-  if (st.complete && !dragging) { running = false; return; }
+  if (st.complete && !dragging) {
+    running = false;
+    // Bricks failing: come back to ask for them again (the viewer does
+    // every 20 s) and to check the store, without a frame meanwhile.
+    if (st.failed || lf) setTimeout(wake, 2000);
+    return;
+  }
   if (st.tiles_left > 0) partChannel.port2.postMessage(0);
   else requestAnimationFrame(tick);
 }
@@ -209,18 +230,24 @@ function wireControls() {
   });
   hist.addEventListener('pointerup', () => { histDrag = null; });
   // The octree draws DVR: other modes go through the page tables.
-  $('mode').onchange = () => setView($('mode').value === 'dvr' ? { mode: null } : { mode: $('mode').value, traversal: null });
+  // (`slice` belongs to slices.)
+  $('mode').onchange = () => setView($('mode').value === 'dvr' ? { mode: null, slice: null }
+    : { mode: $('mode').value, traversal: null, slice: $('mode').value === 'slice' ? $('slice').value : null });
   $('traversal').onchange = () => setView({ traversal: $('traversal').value || null });
   $('tf').onchange = () => setView({ tf: $('tf').value || null });
   const win = () => setView({ window: `${$('wlo').value},${$('whi').value}` });
   $('wlo').onchange = win; $('whi').onchange = win;
   $('channel').onchange = () => state.multi
-    ? setView({ channels: $('channel').value === 'all' ? null : $('channel').value, window: null })
+    ? setView({ channels: $('channel').value === 'all' ? null : $('channel').value, channel: null, window: null })
     : setView({ channel: $('channel').value === '0' ? null : $('channel').value, window: null });
   $('slice').oninput = () => setView({ slice: $('slice').value });
   $('bias').oninput = () => state.viewer.moving() || setView({ bias: $('bias').value === '0' ? null : $('bias').value });
   window.addEventListener('hashchange', () => {
-    if (hashParams().get('store') !== state.store || hashParams().get('labels') !== state.labels) { location.reload(); return; }
+    // What the viewer was opened with (the store, its labels, the pool,
+    // who draws, the token) changes only by opening it again.
+    const h = hashParams();
+    if (h.get('store') !== state.store || h.get('labels') !== state.labels || h.get('pool') !== state.opened.pool ||
+      h.get('backend') !== state.opened.backend || h.get('token') !== state.opened.token) { location.reload(); return; }
     try { state.viewer.set_query(viewQuery()); syncControls(state.viewer.query()); wake(); } catch (e) { showError(e); }
   });
 }
@@ -236,6 +263,7 @@ async function main() {
   }
   state.store = store;
   state.labels = hashParams().get('labels');
+  state.opened = { pool: hashParams().get('pool'), backend: hashParams().get('backend'), token: hashParams().get('token') };
   const backend = hashParams().get('backend') || 'auto';
   let notice = state.webgpu
     ? ''

@@ -556,8 +556,16 @@ fn the_web_client_draws_several_channels_through_webgpu_and_the_octree_as_render
     assert_eq!(r["cpu-octree"]["status"]["on_device"], false, "{r}");
     // The default leaves a software adapter (isFallbackAdapter: "Cpu") for
     // the CPU in WebAssembly, and says why; a hardware one it uses.
+    // The adapter named for people, not wgpu's debug fields.
+    if let Some(g) = gpu {
+        let notice = r["gpu"]["notice"].as_str().unwrap();
+        assert!(
+            !g.contains("Cpu") && !g.contains("driver") && !notice.contains("( ("),
+            "{g}: {notice}"
+        );
+    }
     match gpu {
-        Some(g) if g.contains("(Cpu,") => {
+        Some(g) if g.contains("software") => {
             assert!(r["auto"]["device"].is_null(), "{r}");
             assert_eq!(r["auto"]["status"]["on_device"], false, "{r}");
             let notice = r["auto"]["notice"].as_str().unwrap();
@@ -744,4 +752,134 @@ fn the_web_pages_readout_names_the_voxel_and_a_click_picks_its_label() {
             "{t}"
         );
     }
+}
+
+/// What the page tells its user (`browser/status.mjs`) of each `(name,
+/// url)`, waited for up to `wait_ms` each.
+fn page_status(out: &Path, wait_ms: u64, pages: &[(&str, String)]) -> serde_json::Value {
+    std::fs::create_dir_all(out).unwrap();
+    let mut args: Vec<std::ffi::OsString> = vec![
+        "chromium".into(),
+        out.as_os_str().into(),
+        wait_ms.to_string().into(),
+    ];
+    args.extend(pages.iter().map(|(n, u)| format!("{n}={u}").into()));
+    let refs: Vec<&std::ffi::OsStr> = args.iter().map(|a| a.as_os_str()).collect();
+    serde_json::from_str(&browser_driver("status", &refs, &out.join("status.json"))).unwrap()
+}
+
+#[test]
+fn the_page_says_plainly_what_went_wrong() {
+    if needs_browser().is_none() {
+        return;
+    }
+    let dir = tempfile::tempdir().unwrap();
+    let store = mni_t1(dir.path());
+    // A lost shard: its bricks fail (drawn from coarser data) where the
+    // statistics say they hold data, as `render` reports; not read as fill.
+    std::fs::remove_file(store.join("0/c/0/0/0")).unwrap();
+    // A label image on another grid than the image's.
+    let raw = dir.path().join("small.raw");
+    std::fs::write(&raw, [1u8; 8 * 8 * 8]).unwrap();
+    let o = bin()
+        .args([
+            "convert", "--labels", "--dims", "8x8x8", "--dtype", "u8", "--quiet",
+        ])
+        .arg(&raw)
+        .arg(store.join("labels").join("small"))
+        .output()
+        .unwrap();
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let served = serve_web(&store);
+    let page = |q: &str| {
+        format!(
+            "http://127.0.0.1:{}/web/#store=..%2Fmni.ome.zarr%2F&backend=cpu&size=128x128{q}",
+            served.1
+        )
+    };
+    // A server not there: what that means, not `{}`.
+    let nothing = std::net::TcpListener::bind("127.0.0.1:0").unwrap();
+    let gone = nothing.local_addr().unwrap().port();
+    drop(nothing);
+    let r = page_status(
+        &dir.path().join("out"),
+        60_000,
+        &[
+            ("lost", page("&mode=slice&slice=0.25&zoom=1")),
+            (
+                "gone",
+                format!(
+                    "http://127.0.0.1:{}/web/#store=http%3A%2F%2F127.0.0.1%3A{gone}%2Fx.ome.zarr%2F&backend=cpu",
+                    served.1
+                ),
+            ),
+            ("slice_in_dvr", page("&slice=0.3")),
+            ("twice", page("&channels=0,0")),
+            ("grid", page("&mode=slice&labels=small")),
+        ],
+    );
+    let lost = &r["lost"];
+    assert!(lost["error"].is_null(), "{lost}");
+    let text = lost["text"].as_str().unwrap();
+    assert!(lost["status"]["failed"].as_u64().unwrap() > 0, "{lost}");
+    assert!(
+        text.contains("failing bricks")
+            && text.contains("0/c/0/0/0")
+            && text.contains("statistics")
+            && text.contains("level 0, channel 0, brick (z")
+            && !text.contains("BrickKey"),
+        "{text}"
+    );
+    // Once complete, no rate of a read that is over.
+    if lost["status"]["complete"] == true {
+        assert!(!text.contains("MiB/s"), "{text}");
+    }
+    let e = r["gone"]["error"].as_str().unwrap();
+    assert!(
+        e.contains("could not reach the server") && !e.contains("{}"),
+        "{e}"
+    );
+    let e = r["slice_in_dvr"]["error"].as_str().unwrap();
+    assert!(e.starts_with("slice:") && e.contains("mode=slice"), "{e}");
+    let e = r["twice"]["error"].as_str().unwrap();
+    assert!(e.contains("channel 0 given twice"), "{e}");
+    // Refused as `render --labels` refuses it, not drawn nowhere.
+    let e = r["grid"]["error"].as_str().unwrap();
+    assert!(
+        e.contains("labels/small") && e.contains("drawn over the grid"),
+        "{e}"
+    );
+    drop(served);
+
+    // A token refused is not a token missing.
+    let mut secured = bin()
+        .args([
+            "serve", "--web", "--quiet", "--port", "0", "--token", "s3cret",
+        ])
+        .arg(&store)
+        .stderr(Stdio::piped())
+        .spawn()
+        .unwrap();
+    let mut err = BufReader::new(secured.stderr.take().unwrap());
+    let mut first = String::new();
+    err.read_line(&mut first).unwrap();
+    let port: u16 = first
+        .split("127.0.0.1:")
+        .nth(1)
+        .and_then(|r| r.split('/').next())
+        .and_then(|p| p.parse().ok())
+        .unwrap_or_else(|| panic!("no address in {first:?}"));
+    let url =
+        |t: &str| format!("http://127.0.0.1:{port}/web/#store=..%2Fmni.ome.zarr%2F&backend=cpu{t}");
+    let r = page_status(
+        &dir.path().join("out2"),
+        30_000,
+        &[("wrong", url("&token=wrong")), ("none", url(""))],
+    );
+    let _ = secured.kill();
+    let _ = secured.wait();
+    let e = r["wrong"]["error"].as_str().unwrap();
+    assert!(e.contains("401") && e.contains("refused the token"), "{e}");
+    let e = r["none"]["error"].as_str().unwrap();
+    assert!(e.contains("401") && e.contains("needs a token"), "{e}");
 }
