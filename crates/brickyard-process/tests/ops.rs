@@ -898,10 +898,10 @@ fn label_tables_from_voxels_equal_a_naive_tally() {
             .entry(id as u64)
             .or_insert((0, [u64::MAX; 3], [0; 3], [0.0; 3], 0.0));
         e.0 += 1;
-        for a in 0..3 {
-            e.1[a] = e.1[a].min(p[a]);
-            e.2[a] = e.2[a].max(p[a]);
-            e.3[a] += p[a] as f64;
+        for (a, &v) in p.iter().enumerate() {
+            e.1[a] = e.1[a].min(v);
+            e.2[a] = e.2[a].max(v);
+            e.3[a] += v as f64;
         }
         e.4 += image[i] as f64;
     }
