@@ -334,18 +334,9 @@ fn raw_options(
         false => None,
     };
     let had = sidecar.is_some();
-    let Some(mut r) = sidecar.or_else(|| {
-        dims_dtype.map(|(dims, dtype)| RawOptions {
-            dims,
-            dtype,
-            endian: "little".into(),
-            spacing: None,
-            origin: None,
-            unit: None,
-            channels: 1,
-            header_bytes: 0,
-        })
-    }) else {
+    let Some(mut r) =
+        sidecar.or_else(|| dims_dtype.map(|(dims, dtype)| RawOptions::new(dims, dtype)))
+    else {
         return Ok(None);
     };
     let mut changed = vec![];

@@ -51,6 +51,21 @@ fn one() -> usize {
 }
 
 impl RawOptions {
+    /// `dims` (`[x, y, z]`) of `dtype`, little-endian, one channel, no
+    /// header, no geometry.
+    pub fn new(dims: [u64; 3], dtype: DType) -> RawOptions {
+        RawOptions {
+            dims,
+            dtype,
+            endian: default_endian(),
+            spacing: None,
+            origin: None,
+            unit: None,
+            channels: 1,
+            header_bytes: 0,
+        }
+    }
+
     /// The sidecar path of a raw file: `FILE.json`.
     pub fn sidecar_path(raw: &Path) -> PathBuf {
         let mut s = raw.as_os_str().to_owned();
@@ -264,16 +279,7 @@ mod tests {
         let dir = tempfile::tempdir().unwrap();
         let p = dir.path().join("bad.raw");
         std::fs::write(&p, vec![0u8; 100]).unwrap();
-        let opts = RawOptions {
-            dims: [10, 10, 2],
-            dtype: DType::U8,
-            endian: "little".into(),
-            spacing: None,
-            origin: None,
-            unit: None,
-            channels: 1,
-            header_bytes: 0,
-        };
+        let opts = RawOptions::new([10, 10, 2], DType::U8);
         let e = open(&p, &opts).err().unwrap().to_string();
         assert!(
             e.contains("bad.raw") && e.contains("dims") && e.contains("200"),
