@@ -2386,3 +2386,32 @@ fn viewer_picks_the_label_a_3d_view_shows_under_the_pointer() {
     eprintln!("label {id}: {n_only} lit pixels alone, {n_all} with all labels");
     assert!(n_only >= 25 && n_only * 2 < n_all, "{n_only} of {n_all}");
 }
+
+/// A script command that fails when it runs names its file and line (the
+/// comment and blank lines before it counted), as parse errors do.
+#[test]
+fn a_script_command_failing_names_its_line() {
+    let _session = shared();
+    let d = tempfile::tempdir().unwrap();
+    let store = mandelbulb(d.path(), "32", &["--brick", "16", "--shard", "32"]);
+    let script = d.path().join("s.txt");
+    let never = d.path().join("never.txt");
+    std::fs::write(
+        &script,
+        format!(
+            "# wait for a file that never comes\n\nmode dvr\nwait-file {} 0.2\nquit\n",
+            s(&never)
+        ),
+    )
+    .unwrap();
+    let Some(mut cmd) = viewer(&store, &script, None, &[]) else {
+        return;
+    };
+    let o = cmd.output().unwrap();
+    assert!(!o.status.success(), "the failing script succeeded");
+    let e = stderr(&o);
+    assert!(
+        e.contains(&format!("{}: line 4", s(&script))) && e.contains("did not appear"),
+        "{e}"
+    );
+}

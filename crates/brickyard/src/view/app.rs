@@ -20,7 +20,7 @@ mod save;
 pub use process::derived_dataset;
 
 use super::probe::{Look, Probe};
-use super::script::{Cmd, VIEWS};
+use super::script::{Step, VIEWS};
 use super::worker::{Msg, Out, Reply, Setup, Spec};
 use brickyard_core::camera::{scale, Camera, Projection};
 use brickyard_core::{DType, Dims3, TransferFunction};
@@ -169,7 +169,7 @@ pub struct ViewerApp {
     views: Vec<ViewState>,
     pool_mib: f64,
     host_mib: f64,
-    script: Vec<Cmd>,
+    script: Vec<Step>,
     pc: usize,
     waiting: Option<Instant>,
     window_shot: Option<PathBuf>,
@@ -265,7 +265,7 @@ impl ViewerApp {
         camera: Option<Camera>,
         tf: TransferFunction,
         mode: String,
-        script: Vec<Cmd>,
+        script: Vec<Step>,
         log: Option<std::fs::File>,
         exit: Arc<AtomicI32>,
         derived: Option<(Arc<Dataset>, Shown)>,

@@ -112,8 +112,19 @@ fn num<T: std::str::FromStr>(s: &str) -> Result<T> {
         .with_context(|| format!("expected a number, found {s:?}"))
 }
 
-/// Parse a script; errors name the file and line.
-pub fn parse(path: &Path, text: &str) -> Result<Vec<Cmd>> {
+/// A command of a script and where it was written.
+#[derive(Debug, Clone)]
+pub struct Step {
+    pub cmd: Cmd,
+    /// Its line in the file (from 1).
+    pub line: usize,
+    /// `FILE: line N: "text"`, for errors the command meets when it runs.
+    pub at: String,
+}
+
+/// Parse a script; errors name the file and line, and so does each step
+/// for the errors it meets when it runs.
+pub fn parse(path: &Path, text: &str) -> Result<Vec<Step>> {
     let mut out = vec![];
     for (n, line) in text.lines().enumerate() {
         let line = line.split('#').next().unwrap_or("").trim();
@@ -121,9 +132,13 @@ pub fn parse(path: &Path, text: &str) -> Result<Vec<Cmd>> {
             continue;
         }
         let w: Vec<&str> = line.split_whitespace().collect();
-        let cmd = parse_line(&w)
-            .with_context(|| format!("{}: line {}: {line:?}", path.display(), n + 1))?;
-        out.push(cmd);
+        let at = format!("{}: line {}: {line:?}", path.display(), n + 1);
+        let cmd = parse_line(&w).with_context(|| at.clone())?;
+        out.push(Step {
+            cmd,
+            line: n + 1,
+            at,
+        });
     }
     Ok(out)
 }

@@ -279,7 +279,8 @@ impl ViewerApp {
             if self.window_shot.is_some() {
                 return;
             }
-            let cmd = self.script[self.pc].clone();
+            let step = self.script[self.pc].clone();
+            let cmd = step.cmd;
             let r: Result<bool> = (|| {
                 Ok(match &cmd {
                     Cmd::Size(v, w, h) => {
@@ -619,14 +620,14 @@ impl ViewerApp {
                     // the frames before and after it.
                     self.log_line(serde_json::json!({
                         "t": self.started.elapsed().as_secs_f64(),
-                        "script_line": self.pc + 1,
+                        "script_line": step.line,
                         "command": format!("{cmd:?}"),
                     }));
                     self.pc += 1
                 }
                 Ok(false) => return,
                 Err(e) => {
-                    self.fail(ctx, &format!("{e:#}"));
+                    self.fail(ctx, &format!("{}: {e:#}", step.at));
                     return;
                 }
             }
