@@ -478,6 +478,23 @@ fn run_convert(
         cancel: &cancel,
         phase: None,
     };
+    // Labels into an image's `labels/NAME`, as the command line writes
+    // them: refused without `labels`; without geometry of their own, on
+    // the image's grid, they take the image's.
+    let group = brickyard_run::labels::label_target(dst, opts.labels).map_err(to_py)?;
+    let mut opts = opts.clone();
+    if let Some(g) = &group {
+        if opts.spacing.is_none() && opts.origin.is_none() && opts.unit.is_none() {
+            let inherit =
+                brickyard_run::labels::inherited_geometry(g, src.meta()).map_err(to_py)?;
+            if let Some((spacing, origin, unit)) = inherit {
+                (opts.spacing, opts.origin, opts.unit) = (spacing, origin, unit);
+            }
+        }
+        std::fs::create_dir_all(g)
+            .map_err(|e| to_py(anyhow::anyhow!("{}: cannot create: {e}", g.display())))?;
+    }
+    let opts = &opts;
     let r = py.detach(|| brickyard_store::convert(src, dst, opts, &p, &cancel));
     if cancel.load(Ordering::Relaxed) {
         // (Ctrl-C after the last piece: the store was written whole.)
@@ -492,14 +509,32 @@ fn run_convert(
         )));
     }
     let report = r.map_err(|e| to_py(e.into()))?;
+    // A label image: published in its image's group, and its statistics
+    // table written from its voxels.
+    let table = match opts.labels {
+        true => py
+            .detach(|| {
+                brickyard_run::labels::finish_label_image(
+                    dst,
+                    group.as_deref(),
+                    opts.memory / 2,
+                    &brickyard_store::NoProgress,
+                    &cancel,
+                )
+            })
+            .map_err(to_py)?
+            .map(|why| format!("; no table of label statistics ({why})")),
+        false => None,
+    };
     Ok(format!(
-        "{} levels, {} bricks ({} empty, {} constant), {} bytes written in {:.2} s",
+        "{} levels, {} bricks ({} empty, {} constant), {} bytes written in {:.2} s{}",
         report.levels.len(),
         report.bricks,
         report.bricks_empty,
         report.bricks_constant,
         report.bytes_written,
-        report.seconds
+        report.seconds,
+        table.unwrap_or_default()
     ))
 }
 

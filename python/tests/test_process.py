@@ -262,3 +262,38 @@ def test_too_little_memory_names_the_keyword_and_the_least_that_runs(tmp_path):
         brickyard.process(store, "gauss(6)", out="g", memory=f"{least - 1}MiB", progress=False)
     r = brickyard.process(store, "gauss(6)", out="g", memory=f"{least}MiB", progress=False)
     assert r.levels >= 1
+
+
+def test_labels_from_numpy_into_an_image_are_published_with_their_table(tmp_path):
+    """A segmentation written from NumPy into an image's labels/NAME is a
+    label image of that image, as `brickyard convert --labels` makes one:
+    listed, on the image's grid (its spacing taken), with the statistics
+    table of its voxels (counts and boxes against numpy, means of the
+    image under each label)."""
+    img = volume((20, 24, 28), "uint16", seed=3)
+    store = tmp_path / "img.ome.zarr"
+    brickyard.from_numpy(img, store, spacing=(0.5, 0.25, 2.0), unit="micrometer", brick=16,
+                         progress=False)
+    seg = ((img > np.percentile(img, 70)) * (1 + np.arange(28) // 7)[None, None, :]).astype(np.uint32)
+    with pytest.raises(ValueError, match="labels"):
+        brickyard.from_numpy(seg, store / "labels" / "nolab", brick=16, progress=False)
+    brickyard.from_numpy(seg, store / "labels" / "seg", labels=True, brick=16, progress=False)
+    g = zarr.open_group(str(store / "labels"), mode="r")
+    assert "seg" in g.attrs["ome"]["labels"]
+    with brickyard.open(store / "labels" / "seg") as s, brickyard.open(store) as i:
+        assert s.scales[0] == i.scales[0]
+    rows = {}
+    with open(store / "labels" / "seg" / "_brickyard" / "labels.csv") as f:
+        next(f)
+        for line in f:
+            c = line.strip().split(",")
+            rows[int(c[0])] = c
+    ids = [int(v) for v in np.unique(seg) if v]
+    assert sorted(rows) == ids
+    counts = np.bincount(seg.ravel())
+    means = ndi.mean(img.astype(np.float64), seg, index=ids)
+    for k, lab in enumerate(ids):
+        zz, yy, xx = np.nonzero(seg == lab)
+        want = [counts[lab], zz.min(), yy.min(), xx.min(), zz.max(), yy.max(), xx.max()]
+        assert [int(v) for v in rows[lab][1:8]] == want, lab
+        assert abs(float(rows[lab][11]) - means[k]) <= 1e-9 * means[k]

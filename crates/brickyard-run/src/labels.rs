@@ -55,6 +55,61 @@ pub fn label_store(store: &Path, name: &str) -> Result<PathBuf> {
     Ok(dir)
 }
 
+/// The `labels` group of an image that a conversion into `output` writes
+/// into (`IMAGE/labels/NAME`), if any: such an output must be a label
+/// image (`labels`), else an error says so.
+pub fn label_target(output: &Path, labels: bool) -> Result<Option<PathBuf>> {
+    let group = crate::process::label_group_of(output);
+    if let (Some(g), false) = (&group, labels) {
+        bail!(
+            "{}: lies in {}, the label images of an image: give --labels (labels=True in \
+             Python; coarser levels then take the mode of the labels, not their mean, and the \
+             image lists it), or write it elsewhere",
+            output.display(),
+            g.display()
+        );
+    }
+    Ok(group)
+}
+
+/// The image's geometry (`[z, y, x]` spacing, origin, and unit) that
+/// labels of `labels` (a source's description) written into its group
+/// `group` take: a segmentation saved without geometry on the image's grid
+/// lies over it that way. `None`: the labels keep their own (they have
+/// some, or lie on another grid).
+pub type Geometry = (Option<[f64; 3]>, Option<[f64; 3]>, Option<String>);
+
+/// See [`Geometry`].
+pub fn inherited_geometry(
+    group: &Path,
+    labels: &brickyard_store::SourceMeta,
+) -> Result<Option<Geometry>> {
+    let image = group.parent().unwrap_or(group);
+    let im = zarr::open(image, 0)?.meta().clone();
+    let plain = labels.spacing.is_none() && labels.origin.is_none();
+    Ok((plain && im.dims == labels.dims && im.spacing.is_some())
+        .then(|| (im.spacing, im.origin, im.unit.clone())))
+}
+
+/// What follows the conversion of a label image into `output`: in an
+/// image's `group`, it is marked as the image's and listed; its statistics
+/// table is written from its voxels (with the image's means when on its
+/// grid), in at most `max_bytes`. `Ok(Some(why))`: no table, and why (the
+/// image stays usable).
+pub fn finish_label_image(
+    output: &Path,
+    group: Option<&Path>,
+    max_bytes: u64,
+    progress: &dyn brickyard_store::Progress,
+    cancel: &std::sync::atomic::AtomicBool,
+) -> Result<Option<String>> {
+    if let Some(g) = group {
+        crate::process::publish_label_image(g, output)?;
+    }
+    let image = group.and_then(Path::parent);
+    crate::label_stats::write_from_voxels(output, image, max_bytes, progress, cancel)
+}
+
 /// Lay `labels` (a slice of labels) over `img` at `opacity`
 /// ([`Image::lay_labels_over`]).
 pub fn overlay(img: &mut Image, labels: &Image, opacity: f32) -> Result<()> {

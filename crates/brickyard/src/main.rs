@@ -372,16 +372,16 @@ fn raw_options(
     Ok(Some(r))
 }
 
-/// The statistics table of a label image converted from a file (as
-/// `process` writes for the labels it makes): one more pass over its
-/// voxels, with the mean intensity of the image it is published under.
+/// A label image converted from a file: published in its image's labels
+/// group, if in one, and its statistics table written (as `process` writes
+/// for the labels it makes): one more pass over its voxels, with the mean
+/// intensity of the image it is published under.
 /// Too many labels for half the memory budget, or values that are not
 /// labels, leave it without one, which is said; an interruption too.
 fn label_table(output: &Path, group: Option<&Path>, p: &PyramidArgs) -> Result<()> {
     let memory = parse_bytes(&p.memory).context("--memory")?;
     let bar = progress::Bar::new(p.quiet || p.json, "label statistics");
-    let image = group.and_then(Path::parent);
-    let r = brickyard_run::label_stats::write_from_voxels(output, image, memory / 2, &bar, &CANCEL);
+    let r = brickyard_run::labels::finish_label_image(output, group, memory / 2, &bar, &CANCEL);
     bar.finish();
     match r {
         Ok(None) => Ok(()),
@@ -673,36 +673,25 @@ fn run(cmd: Cmd, cluster: Option<&dist::Cluster>) -> Result<()> {
             // Labels written into an image's `labels` group: the group is
             // made when missing, and once written the label image is
             // marked as the image's and listed, as `process` publishes.
-            let group = brickyard_run::process::label_group_of(output);
-            if let (Some(g), false) = (&group, c.pyramid.labels) {
-                bail!(
-                    "{}: lies in {}, the label images of an image: give --labels (coarser \
-                     levels then take the mode of the labels, not their mean, and the image \
-                     lists it), or write it elsewhere",
-                    output.display(),
-                    g.display()
-                );
-            }
+            let group = brickyard_run::labels::label_target(output, c.pyramid.labels)?;
             let mut pyramid = c.pyramid.clone();
             if let Some(g) = &group {
-                let im =
-                    brickyard_store::import::zarr::open(g.parent().expect("a store above"), 0)?;
-                let (image, m) = (im.meta().dims, src.meta());
-                let dims = m.dims;
-                // A segmentation saved without geometry (TIFF) on the
-                // image's grid takes the image's, so that the two lie one
-                // over the other (flags given still win).
-                let geometry = [&pyramid.spacing, &pyramid.origin, &pyramid.unit];
-                if dims == image
-                    && m.spacing.is_none()
-                    && m.origin.is_none()
-                    && geometry.iter().all(|g| g.is_none())
-                {
+                let image =
+                    brickyard_store::import::zarr::open(g.parent().expect("a store above"), 0)?
+                        .meta()
+                        .dims;
+                let dims = src.meta().dims;
+                // Flags given win over the image's geometry.
+                let given = [&pyramid.spacing, &pyramid.origin, &pyramid.unit];
+                let inherit = match given.iter().all(|g| g.is_none()) {
+                    true => brickyard_run::labels::inherited_geometry(g, src.meta())?,
+                    false => None,
+                };
+                if let Some((spacing, origin, unit)) = inherit {
                     let xyz = |v: [f64; 3]| format!("{},{},{}", v[2], v[1], v[0]);
-                    let im = im.meta();
-                    pyramid.spacing = im.spacing.map(xyz);
-                    pyramid.origin = im.origin.map(xyz);
-                    pyramid.unit = im.unit.clone();
+                    pyramid.spacing = spacing.map(xyz);
+                    pyramid.origin = origin.map(xyz);
+                    pyramid.unit = unit;
                     if let Some(sp) = &pyramid.spacing {
                         eprintln!(
                             "note: {} gives no spacing: the image's ({sp}{}) taken, on the same grid",
@@ -724,9 +713,6 @@ fn run(cmd: Cmd, cluster: Option<&dist::Cluster>) -> Result<()> {
             run_convert(src.as_ref(), output, &pyramid, cluster)?;
             if dist::rank_size(cluster).0 != 0 {
                 return Ok(());
-            }
-            if let Some(g) = &group {
-                brickyard_run::process::publish_label_image(g, output)?;
             }
             if c.pyramid.labels {
                 label_table(output, group.as_deref(), &pyramid)?;

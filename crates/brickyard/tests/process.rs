@@ -1511,13 +1511,22 @@ fn bad_label_overlays_give_clear_errors() {
         assert!(!out.exists());
     }
     // A label image on another grid: the nuclei labels of the shared data
-    // converted with the TIFF's own spacing (1 in every axis), listed.
+    // converted with a spacing of 1 in every axis (the TIFF has none: on
+    // the image's grid it would take the image's), listed.
     let tif =
         Path::new(env!("CARGO_MANIFEST_DIR")).join("../../../shared/data/nuclei-labels-u32.tif");
     // `convert --labels` into the store's labels group lists the image and
     // marks it as the store's (it used to be written unlisted).
     let other = store.join("labels").join("truth");
-    ok(run(&["convert", s(&tif), s(&other), "--labels", "--quiet"]));
+    ok(run(&[
+        "convert",
+        s(&tif),
+        s(&other),
+        "--labels",
+        "--quiet",
+        "--spacing",
+        "1,1,1",
+    ]));
     let list = store.join("labels").join("zarr.json");
     let j: serde_json::Value = serde_json::from_slice(&std::fs::read(&list).unwrap()).unwrap();
     let names = j["attributes"]["ome"]["labels"].as_array().unwrap();
