@@ -439,8 +439,18 @@ mod tests {
             "size 3d 64 48 # main\n\nmode mip\ndrag xy left 3 -4\ntouch a.txt\nwait-file c\nwait-file d 5\nquit\n",
         )
         .unwrap();
+        // Each step keeps its file line (the blank one counted).
         assert_eq!(
-            c,
+            c.iter().map(|s| s.line).collect::<Vec<_>>(),
+            [1, 3, 4, 5, 6, 7, 8]
+        );
+        assert!(
+            c[1].at.starts_with("s.txt: line 3: \"mode mip\""),
+            "{}",
+            c[1].at
+        );
+        assert_eq!(
+            c.into_iter().map(|s| s.cmd).collect::<Vec<_>>(),
             vec![
                 Cmd::Size(0, 64, 48),
                 Cmd::Mode("mip".into()),
