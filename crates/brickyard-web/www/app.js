@@ -115,7 +115,8 @@ async function tick() {
   const lf = st.labels && st.labels.failed;
   const failing = st.failed || lf ?
     (st.unreachable ? '\nthe server cannot be reached: ' : '\n') +
-    `failing bricks: ${st.failed}${lf ? ` (labels: ${lf})` : ''}, drawn from coarser data and asked for again every 20 s` +
+    `failing bricks: ${st.failed}${lf ? ` (labels: ${lf})` : ''}, drawn from coarser data` +
+    (st.store_changed ? '' : ' and asked for again every 20 s') +
     (st.failures ? `\nlast: ${st.last_failure}` : '') : '';
   $('status').textContent =
     (st.store_changed ? 'the store changed on the server since it was opened: reload\n' : '') +
