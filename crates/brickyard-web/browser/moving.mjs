@@ -47,10 +47,12 @@ try {
   await page.mouse.move(x0, y);
   await page.mouse.down();
   report.during = [];
+  report.during_text = [];
   for (let i = 1; i <= 12; i++) {
     await page.mouse.move(x0 + 6 * i, y);
     await sleep(60);
     report.during.push(await page.evaluate(() => window.brickyard.status));
+    report.during_text.push(await page.evaluate(() => document.getElementById('status').textContent));
     if (i === 8) {
       report.mid_canvas = await page.evaluate(() => {
         const c = document.getElementById('view');

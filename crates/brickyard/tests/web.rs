@@ -376,8 +376,15 @@ fn a_moving_view_is_drawn_smaller_and_at_rest_as_render_draws_it() {
         mid["lit"].as_u64().unwrap() > (w * h / 20) as u64,
         "the canvas mid-drag is nearly black: {report}"
     );
+    // The status says so while the view is drawn smaller (between two
+    // pointer moves a frame of an unmoved camera is drawn at full size, so
+    // one moment's text may not: any of the drag's steps).
     assert!(
-        mid["text"].as_str().unwrap().contains("while moving"),
+        r["during_text"]
+            .as_array()
+            .unwrap()
+            .iter()
+            .any(|t| t.as_str().unwrap().contains("while moving")),
         "{report}"
     );
     // At rest: full size, complete, the view it ended at as render draws it,
