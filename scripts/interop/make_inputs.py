@@ -11,6 +11,8 @@ Files (dims are x,y,z; numpy arrays are ((c,) z, y, x)):
   vol.nrrd  + vol_nrrd.npy   int16 big-endian gzip NRRD, 33x28x19, spacings 0.8 0.8 2.0
   vol.nii   + vol_nii.npy    NIfTI-1 (.nii) uint16, 30x26x22, pixdim 1.5 1.5 1.5
   vol.tif   + vol_tif.npy    multi-page (z-stack) uint8 TIFF, 35x27x15 (tifffile)
+  vol_f16.tif + vol_f16_tif.npy  float16 TIFF, 17x21x9, strips of 5 rows (tifffile);
+                        the .npy holds the expected float32 values
 """
 from __future__ import annotations
 
@@ -98,6 +100,11 @@ def main(argv):
         import tifffile
         tifffile.imwrite(out / "vol.tif", t)
         np.save(out / "vol_tif.npy", t)
+        # float16 with infinities, NaN and subnormals: read as float32, exactly
+        h = (rng.standard_normal(size=(9, 21, 17)) * 300).astype(np.float16)
+        h.flat[:6] = [np.inf, -np.inf, np.nan, 6e-8, -0.0, 65504]
+        tifffile.imwrite(out / "vol_f16.tif", h, rowsperstrip=5)
+        np.save(out / "vol_f16_tif.npy", h.astype(np.float32))
     except ImportError:
         print("make_inputs: tifffile not installed, no TIFF written", file=sys.stderr)
 

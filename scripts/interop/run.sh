@@ -214,6 +214,8 @@ case_tiff() {
     mk_inputs
     by convert "$D/inputs/vol.tif" "$D/tif.zarr" --brick 16 --shard 32
     check "$D/tif.zarr" --npy "$D/inputs/vol_tif.npy" --brick 16 --shard 32
+    by convert "$D/inputs/vol_f16.tif" "$D/tif_f16.zarr" --brick 8 --shard 16
+    check "$D/tif_f16.zarr" --npy "$D/inputs/vol_f16_tif.npy" --brick 8 --shard 16
 }
 
 case_reconvert() {
@@ -279,7 +281,8 @@ run_case process_generated   case_process generated
 run_case process_nuclei      case_process nuclei
 run_case process_crash       case_process crash
 run_case s3_moto             case_s3
-for ref in ome04_v2_u16 v3_plain_u16 v3_sharded_u16 ome05_2ch_u8 v3_f32_be v2_i16_be_F v2_u16_zlib; do
+for ref in ome04_v2_u16 v3_plain_u16 v3_sharded_u16 ome05_2ch_u8 v3_f32_be v2_i16_be_F v2_u16_zlib \
+    v2_u64 v3_i64_sharded; do
     run_case "ref_$ref" case_reference "$ref"
 done
 

@@ -226,8 +226,40 @@ def write_v2_u16_zlib(outdir: Path):
               [1.0, 1.0, 1.0], None, 1)
 
 
+def write_v2_u64(outdir: Path):
+    """uint64 (v2 type string "<u8": 8 bytes, not uint8), values up to ~4e9:
+    stored as uint32, so the expected array is uint32."""
+    import zarr
+
+    name = "v2_u64"
+    data = volume((13, 21, 26), np.uint32, seed=13)
+    store = fresh(outdir / f"{name}.zarr")
+    arr = zarr.create_array(str(store), shape=data.shape, dtype="<u8", chunks=(5, 8, 9),
+                            zarr_format=2, fill_value=0)
+    arr[...] = data.astype(np.uint64)
+    zm = json.loads((store / ".zarray").read_text())
+    assert zm["dtype"] == "<u8", zm
+    save_meta(outdir, name, data, "plain Zarr v2 array, <u8 (uint64), values below 2^32",
+              [1.0, 1.0, 1.0], None, 1)
+
+
+def write_v3_i64_sharded(outdir: Path):
+    """int64 in shards, values within int32: stored as int32."""
+    import zarr
+
+    name = "v3_i64_sharded"
+    data = volume((15, 18, 22), np.int32, seed=17)
+    store = fresh(outdir / f"{name}.zarr")
+    arr = zarr.create_array(str(store), shape=data.shape, dtype="int64", chunks=(4, 6, 6),
+                            shards=(8, 12, 12), fill_value=0)
+    arr[...] = data.astype(np.int64)
+    save_meta(outdir, name, data, "sharded Zarr v3 array, int64, values within int32",
+              [1.0, 1.0, 1.0], None, 1)
+
+
 CASES = [write_ome04_v2, write_v3_plain, write_v3_sharded,
-         write_ome05_2ch, write_v3_f32_be, write_v2_i16_be_F, write_v2_u16_zlib]
+         write_ome05_2ch, write_v3_f32_be, write_v2_i16_be_F, write_v2_u16_zlib,
+         write_v2_u64, write_v3_i64_sharded]
 
 
 def main(argv):

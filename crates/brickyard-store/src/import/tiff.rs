@@ -4,10 +4,11 @@
 //! Over 800 lines: 1.8k lines of importer (every TIFF layout, reads in place and
 //! YCbCr included), 1.2k of tests.
 //!
-//! Samples may be 8/16/32-bit unsigned or signed integers or 32/64-bit
-//! floats; several samples per pixel (RGB, multiband) become channels, in
-//! both chunky and planar-separate layouts. Compression is whatever the
-//! `tiff` crate decodes (LZW, Deflate, PackBits, JPEG, CCITT G4).
+//! Samples may be 8/16/32-bit unsigned or signed integers or 16/32/64-bit
+//! floats (16-bit floats are stored as f32, exactly); several samples per
+//! pixel (RGB, multiband) become channels, in both chunky and
+//! planar-separate layouts. Compression is whatever the `tiff` crate
+//! decodes (LZW, Deflate, PackBits, JPEG, CCITT G4, Zstandard).
 //!
 //! Memory follows the region asked for, not the page size: uncompressed
 //! strips and tiles (no predictor) are not decoded at all, a request reads
@@ -160,6 +161,19 @@ struct PageFormat {
     ycbcr: bool,
 }
 
+impl PageFormat {
+    /// Bytes of one stored sample (2 for 16-bit floats, which `dtype`
+    /// holds as f32).
+    fn stored_size(&self) -> usize {
+        usize::from(self.bits / 8)
+    }
+
+    /// 16-bit float samples: decoded, then widened to f32.
+    fn half(&self) -> bool {
+        self.sample_format == 3 && self.bits == 16
+    }
+}
+
 impl std::fmt::Debug for TiffSource {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
         f.debug_struct("TiffSource")
@@ -265,7 +279,11 @@ impl TiffSource {
     /// needs beyond its output and the cache, per reading thread.
     pub fn largest_decode_bytes(&self) -> u64 {
         let f = &self.format;
-        let px = (if f.planar { 1 } else { f.channels } * f.dtype.size()) as u64;
+        let mut px = (if f.planar { 1 } else { f.channels } * f.dtype.size()) as u64;
+        if f.half() {
+            // The decoded f16 samples beside their f32 copy.
+            px += px / 2;
+        }
         self.pages
             .iter()
             .filter(|g| !g.raw)
@@ -466,11 +484,14 @@ impl TiffSource {
                 Some(d) => d,
                 None => dec.insert(self.page_decoder(z)?),
             };
-            decode_chunk(d, idx, samples * f.dtype.size())
+            decode_chunk(d, idx, samples * f.stored_size())
                 .map_err(|e| tiff_error(path, &label, "strip data", e))
         })?;
         self.decoded
             .fetch_add(chunk.data.len() as u64, AtomicOrdering::Relaxed);
+        if f.half() {
+            chunk.data = widen_f16(&chunk.data);
+        }
         if f.ycbcr {
             ycbcr_to_rgb(&mut chunk.data);
         }
@@ -854,6 +875,9 @@ impl TiffSource {
                 )
             });
         }
+        if format.half() {
+            notes.push("16-bit float samples stored as float32 (exactly)".to_string());
+        }
         if format.ycbcr {
             notes.push(
                 "PhotometricInterpretation YCbCr: the stored Y, Cb, Cr samples were converted to \
@@ -1103,7 +1127,8 @@ fn page_info<R: Read + Seek>(
         (2, 8) => DType::I8,
         (2, 16) => DType::I16,
         (2, 32) => DType::I32,
-        (3, 32) => DType::F32,
+        // 16-bit floats are widened to f32 (every f16 value is exact in f32).
+        (3, 16) | (3, 32) => DType::F32,
         (3, 64) => DType::F64,
         (1..=3, b) if !matches!(b, 8 | 16 | 32 | 64) => {
             return Err(StoreError::unsupported(
@@ -1129,7 +1154,7 @@ fn page_info<R: Read + Seek>(
                 "SampleFormat",
                 format!(
                     "{label}: {b}-bit {kind} samples (SampleFormat {sf}); supported are \
-                     8/16/32-bit integers and 32/64-bit floats"
+                     8/16/32-bit integers and 16/32/64-bit floats"
                 ),
             ));
         }
@@ -1162,7 +1187,8 @@ fn page_info<R: Read + Seek>(
         .find_tag_unsigned::<u16>(Tag::Predictor)
         .map_err(err("Predictor"))?
         .unwrap_or(1);
-    let raw = compression == 1 && predictor == 1 && !min_is_white && !ycbcr;
+    let half = sample_format == 3 && bits == 16;
+    let raw = compression == 1 && predictor == 1 && !min_is_white && !ycbcr && !half;
     let chunk = dec.chunk_dimensions();
     if chunk.0 == 0 || chunk.1 == 0 {
         return Err(StoreError::invalid(
@@ -1308,18 +1334,29 @@ fn ycbcr_to_rgb(data: &mut [u8]) {
     }
 }
 
+/// Native-endian f16 samples as native-endian f32 ones (exact: f32 holds
+/// every f16 value, infinities and NaNs included).
+fn widen_f16(data: &[u8]) -> Vec<u8> {
+    let mut out = Vec::with_capacity(data.len() * 2);
+    for b in data.chunks_exact(2) {
+        let v = half::f16::from_bits(u16::from_ne_bytes([b[0], b[1]])).to_f32();
+        out.extend_from_slice(&v.to_ne_bytes());
+    }
+    out
+}
+
 /// The name of a compression the `tiff` crate cannot decode, if it is one.
 fn unsupported_compression(code: u16) -> Option<&'static str> {
     match code {
-        // None, CCITT G4, LZW, JPEG, Adobe Deflate, PackBits, Deflate.
-        1 | 4 | 5 | 7 | 8 | 32773 | 32946 => None,
+        // None, CCITT G4, LZW, JPEG, Adobe Deflate, PackBits, Deflate,
+        // Zstandard.
+        1 | 4 | 5 | 7 | 8 | 32773 | 32946 | 50000 => None,
         2 => Some("CCITT RLE"),
         3 => Some("CCITT G3 fax"),
         6 => Some("old-style JPEG"),
         34712 => Some("JPEG 2000"),
         34887 => Some("LERC"),
         34925 => Some("LZMA"),
-        50000 => Some("Zstandard"),
         50001 => Some("WebP"),
         _ => Some("unknown"),
     }
@@ -1366,7 +1403,7 @@ fn check_chunk_extents<R: Read + Seek>(
     let need = (fmt.width as u64)
         .saturating_mul(fmt.height as u64)
         .saturating_mul(fmt.channels as u64)
-        .saturating_mul(fmt.dtype.size() as u64);
+        .saturating_mul(fmt.stored_size() as u64);
     let compression = dec
         .find_tag_unsigned::<u16>(Tag::Compression)
         .map_err(|e| tiff_error(path, label, "Compression", e))?
@@ -1504,6 +1541,20 @@ fn tiff_error(path: &Path, label: &str, field: &str, e: TiffError) -> StoreError
             field,
             format!("{label}: the file ends early (truncated?): {io}"),
         ),
+        // Decompressors report damaged data as I/O errors of these kinds.
+        TiffError::IoError(io)
+            if field == "strip data"
+                && matches!(
+                    io.kind(),
+                    io::ErrorKind::InvalidData | io::ErrorKind::InvalidInput | io::ErrorKind::Other
+                ) =>
+        {
+            StoreError::invalid(
+                path,
+                field,
+                format!("{label}: a strip or tile does not decode (damaged data?): {io}"),
+            )
+        }
         TiffError::IoError(io) => StoreError::io(path, io),
         TiffError::LimitsExceeded if field == "strip data" => StoreError::unsupported(
             path,
@@ -2385,6 +2436,8 @@ mod tests {
         /// Tiles of this width and height instead of strips.
         tile: Option<(u32, u32)>,
         be: bool,
+        /// Strips or tiles compressed with Zstandard (compression 50000).
+        zstd: bool,
         pages: Vec<Vec<u8>>,
     }
 
@@ -2425,6 +2478,9 @@ mod tests {
                                 e.reverse();
                             }
                         }
+                        if self.zstd {
+                            c = zstd::encode_all(&c[..], 3).unwrap();
+                        }
                         out.push(c);
                     }
                 }
@@ -2463,7 +2519,7 @@ mod tests {
                         self.spp as u32,
                         shorts(&vec![self.bits; self.spp as usize]),
                     ),
-                    (259, 3, 1, shorts(&[1])),
+                    (259, 3, 1, shorts(&[if self.zstd { 50000 } else { 1 }])),
                     (262, 3, 1, shorts(&[photometric])),
                     (277, 3, 1, shorts(&[self.spp])),
                     (284, 3, 1, shorts(&[if self.planar { 2 } else { 1 }])),
@@ -2556,6 +2612,7 @@ mod tests {
                 rows_per_strip: 2,
                 tile: None,
                 be,
+                zstd: false,
                 pages: pages.clone(),
             };
             let path = dir.path().join(format!("planar-{be}.tif"));
@@ -2571,6 +2628,122 @@ mod tests {
                 assert_eq!(read_stitched(&src, c, [3, 3, 4]), bytes(&want));
             }
         }
+    }
+
+    /// Zstandard-compressed strips and tiles (tifffile's `compression='zstd'`)
+    /// and 16-bit float samples, which are read as f32: every f16 value,
+    /// subnormals, infinities and NaN included, in both byte orders,
+    /// compressed or not, chunky or planar.
+    #[test]
+    fn zstd_and_float16() {
+        let dir = tempfile::tempdir().unwrap();
+        let (w, h) = (11u32, 9u32);
+        let special = [
+            0x0000u16, 0x8000, 0x0001, 0x03ff, 0x3c00, 0xbc00, 0x7bff, 0xfbff, 0x7c00, 0xfc00,
+            0x7e00,
+        ];
+        // Page z, channel c, pixel i -> f16 bits.
+        let bits = |z: usize, c: usize, i: usize| -> u16 {
+            if i < special.len() && z == 0 {
+                special[i]
+            } else {
+                half::f16::from_f32((z * 1000 + c * 100 + i) as f32 * 0.37 - 40.0).to_bits()
+            }
+        };
+        let n = (w * h) as usize;
+        for (zstd, be, planar, tile) in [
+            (true, false, false, None),
+            (true, true, true, Some((16, 16))),
+            (false, true, false, Some((16, 16))),
+            (false, false, true, None),
+        ] {
+            let pages: Vec<Vec<u8>> = (0..3)
+                .map(|z| {
+                    let v: Vec<u16> = if planar {
+                        (0..2)
+                            .flat_map(|c| (0..n).map(move |i| bits(z, c, i)))
+                            .collect()
+                    } else {
+                        (0..n)
+                            .flat_map(|i| (0..2).map(move |c| bits(z, c, i)))
+                            .collect()
+                    };
+                    bytes(&v)
+                })
+                .collect();
+            let hand = Hand {
+                w,
+                h,
+                spp: 2,
+                bits: 16,
+                sample_format: 3,
+                planar,
+                rows_per_strip: 4,
+                tile,
+                be,
+                zstd,
+                pages,
+            };
+            let path = dir.path().join(format!("f16-{zstd}-{be}-{planar}.tif"));
+            std::fs::write(&path, hand.build()).unwrap();
+            let src = open(&path).unwrap();
+            let meta = src.meta();
+            assert_eq!((meta.dims, meta.channels), ([3, 9, 11], 2));
+            assert_eq!(meta.dtype, DType::F32);
+            assert!(meta.notes.iter().any(|n| n.contains("16-bit float")));
+            for c in 0..2 {
+                let want: Vec<f32> = (0..3)
+                    .flat_map(|z| (0..n).map(move |i| half::f16::from_bits(bits(z, c, i)).to_f32()))
+                    .collect();
+                for got in [read_all(&src, c), read_stitched(&src, c, [2, 4, 5])] {
+                    let got: Vec<f32> = got
+                        .chunks_exact(4)
+                        .map(|b| f32::from_ne_bytes(b.try_into().unwrap()))
+                        .collect();
+                    assert_eq!(got.len(), want.len());
+                    for (k, (g, e)) in got.iter().zip(&want).enumerate() {
+                        assert!(
+                            g.to_bits() == e.to_bits(),
+                            "zstd {zstd} be {be} planar {planar} channel {c} voxel {k}: {g} != {e}"
+                        );
+                    }
+                }
+            }
+        }
+    }
+
+    /// A Zstandard strip that does not decode is an error naming the page.
+    #[test]
+    fn zstd_damaged_strip() {
+        let dir = tempfile::tempdir().unwrap();
+        let hand = Hand {
+            w: 64,
+            h: 8,
+            spp: 1,
+            bits: 16,
+            sample_format: 1,
+            planar: false,
+            rows_per_strip: 8,
+            tile: None,
+            be: false,
+            zstd: true,
+            pages: vec![bytes(&(0..512u16).collect::<Vec<_>>())],
+        };
+        let mut file = hand.build();
+        // The strip follows the IFD: scramble its frame's last bytes.
+        let k = file.len();
+        for b in &mut file[k - 8..] {
+            *b ^= 0x5a;
+        }
+        let path = dir.path().join("bad-zstd.tif");
+        std::fs::write(&path, &file).unwrap();
+        let src = open(&path).unwrap();
+        let mut out = vec![0u8; 64 * 8 * 2];
+        let e = src
+            .read_region(0, 0..1, 0..8, 0..64, &mut out)
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("bad-zstd.tif") && e.contains("page 0"), "{e}");
     }
 
     /// Write 2-D u8 slices `names[k]` holding the value `values[k]`.
@@ -2769,6 +2942,7 @@ mod tests {
             rows_per_strip: 4,
             tile: None,
             be: false,
+            zstd: false,
             pages: vec![vec![7; 100]],
         };
         let file = hand.build();
@@ -3065,6 +3239,7 @@ mod tests {
                 rows_per_strip: 3,
                 tile,
                 be,
+                zstd: false,
                 pages: pages.iter().map(|p| bytes(p)).collect(),
             };
             let path = dir.path().join("t.tif");

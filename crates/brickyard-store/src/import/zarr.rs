@@ -103,6 +103,86 @@ pub struct ZarrSource {
     /// Reads checked against the store's per-brick statistics
     /// ([`ZarrSource::check_against_stats`]).
     stats_check: Option<LevelStats>,
+    /// A 64-bit integer array, read as 32-bit (`meta.dtype`): see [`Wide`].
+    wide: Option<Wide>,
+}
+
+/// 64-bit integer arrays (label images from segmentation tools are often
+/// uint64), which brickyard stores as their 32-bit counterpart: every value
+/// read is checked to fit, and a read that meets one that does not fails,
+/// naming the value and the voxel, so that no value is ever changed.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub(crate) enum Wide {
+    U64,
+    I64,
+}
+
+impl Wide {
+    fn name(self) -> &'static str {
+        match self {
+            Wide::U64 => "uint64",
+            Wide::I64 => "int64",
+        }
+    }
+
+    /// The 32-bit type's Zarr name.
+    fn narrow_name(self) -> &'static str {
+        match self {
+            Wide::U64 => "uint32",
+            Wide::I64 => "int32",
+        }
+    }
+
+    fn narrow(self) -> DType {
+        match self {
+            Wide::U64 => DType::U32,
+            Wide::I64 => DType::I32,
+        }
+    }
+}
+
+/// The voxel type of a Zarr array from its `data_type` (v3) or `dtype`
+/// (v2, a NumPy type string whose number counts bytes: `<u8` is uint64):
+/// the type brickyard stores, and whether it is a 64-bit integer read
+/// narrowed ([`Wide`]).
+pub(crate) fn zarr_dtype(name: &str, v2: bool) -> Option<(DType, Option<Wide>)> {
+    let t = name.trim().to_ascii_lowercase();
+    let t = if v2 {
+        let t = t.trim_start_matches(['<', '>', '|', '=']);
+        match t {
+            "u1" | "b1" => "uint8",
+            "i1" => "int8",
+            "u2" => "uint16",
+            "i2" => "int16",
+            "u4" => "uint32",
+            "i4" => "int32",
+            "u8" => "uint64",
+            "i8" => "int64",
+            "f4" => "float32",
+            "f8" => "float64",
+            _ => return None,
+        }
+    } else {
+        t.as_str()
+    };
+    let wide = match t {
+        "uint64" => Some(Wide::U64),
+        "int64" => Some(Wide::I64),
+        _ => None,
+    };
+    let dtype = match (wide, t) {
+        (Some(w), _) => w.narrow(),
+        (None, "uint8" | "bool") => DType::U8,
+        (None, "int8") => DType::I8,
+        (None, "uint16") => DType::U16,
+        (None, "int16") => DType::I16,
+        (None, "uint32") => DType::U32,
+        (None, "int32") => DType::I32,
+        (None, "float32") => DType::F32,
+        (None, "float64") => DType::F64,
+        _ => return None,
+    };
+    Some((dtype, wide))
 }
 
 fn is_array_dir(p: &Path) -> bool {
@@ -278,11 +358,11 @@ fn check_sizes(
     apath: &Path,
     array: &Array<StoreAt>,
     mj: &Value,
-    dtype: DType,
+    dtype: &str,
+    size: u64,
 ) -> Result<Option<ShardCheck>> {
     let (file, chunk_key) = metadata_file(apath);
     let shape = array.shape();
-    let size = dtype.size() as u64;
     shape
         .iter()
         .try_fold(size, |a, &s| a.checked_mul(s))
@@ -358,19 +438,25 @@ fn open_array(
     let store = Arc::new(StoreAt::new(apath));
     let array = Array::open(store, "/").map_err(|e| StoreError::zarr(apath, e))?;
     let mj = serde_json::to_value(array.metadata()).map_err(|e| StoreError::zarr(apath, e))?;
+    let v2 = mj.get("data_type").is_none() && mj.get("dtype").is_some();
     let dt_name = mj
         .get("data_type")
         .or_else(|| mj.get("dtype"))
         .and_then(Value::as_str)
         .unwrap_or("?")
         .to_string();
-    let dtype = DType::parse(&dt_name).ok_or_else(|| {
+    let (dtype, wide) = zarr_dtype(&dt_name, v2).ok_or_else(|| {
         StoreError::unsupported(
             apath,
-            "data_type",
-            format!("{dt_name:?}; expected one of uint8, int8, uint16, int16, uint32, int32, float32, float64"),
+            if v2 { "dtype" } else { "data_type" },
+            format!(
+                "{dt_name:?}; expected one of uint8, int8, uint16, int16, uint32, int32, \
+                 uint64 or int64 (read as 32-bit when every value fits), float32, float64"
+            ),
         )
     })?;
+    // The size of a stored element.
+    let esize = if wide.is_some() { 8 } else { dtype.size() };
     let shape = array.shape().to_vec();
     let n = shape.len();
     if !(2..=5).contains(&n) {
@@ -380,7 +466,7 @@ fn open_array(
             format!("{n} dimensions; expected 2 to 5"),
         ));
     }
-    let shard_check = check_sizes(apath, &array, &mj, dtype)?;
+    let shard_check = check_sizes(apath, &array, &mj, &dt_name, esize as u64)?;
     // Axis names: from the multiscale, else from dimension_names, else positional.
     let mut names: Vec<Option<String>> = vec![None; n];
     let mut kinds: Vec<Option<String>> = vec![None; n];
@@ -500,21 +586,24 @@ fn open_array(
         .collect();
     let shards = ArrayShardedReadableExtCache::new(&array);
     let fill = array.fill_value().as_ne_bytes().to_vec();
-    let direct = shard_check.as_ref().and_then(|sc| {
-        let config = mj
-            .get("codecs")?
-            .as_array()?
-            .first()?
-            .get("configuration")?;
-        ShardReader::new(
-            sc.layout,
-            &chunk,
-            config,
-            array.data_type(),
-            array.fill_value(),
-            dtype.size(),
-        )
-    });
+    let direct = shard_check
+        .as_ref()
+        .filter(|_| wide.is_none())
+        .and_then(|sc| {
+            let config = mj
+                .get("codecs")?
+                .as_array()?
+                .first()?
+                .get("configuration")?;
+            ShardReader::new(
+                sc.layout,
+                &chunk,
+                config,
+                array.data_type(),
+                array.fill_value(),
+                dtype.size(),
+            )
+        });
     let grain: Vec<u64> = match &direct {
         Some(d) => d.inner().to_vec(),
         None if array.is_sharded() => array
@@ -526,8 +615,16 @@ fn open_array(
     // A chunk decoded whole, beside its encoded bytes.
     meta.read_bytes = grain
         .iter()
-        .fold(dtype.size() as u64, |a, &c| a.saturating_mul(c))
+        .fold(esize as u64, |a, &c| a.saturating_mul(c))
         .saturating_mul(2);
+    if let Some(w) = wide {
+        meta.notes.push(format!(
+            "{} values stored as {} (brickyard's widest integers): every value is checked to \
+             fit, and the conversion stops at the first that does not",
+            w.name(),
+            w.narrow_name()
+        ));
+    }
     Ok(ZarrSource {
         chunk_cache: None,
         grain,
@@ -544,6 +641,7 @@ fn open_array(
         dir: apath.to_path_buf(),
         group: None,
         stats_check: None,
+        wide,
     })
 }
 
@@ -636,6 +734,10 @@ impl ZarrSource {
     /// least-recently-used order for all of them, so that the level being
     /// read gets the room the others do not use.
     pub fn share_chunk_cache(&mut self, cache: &SharedChunkCache) {
+        if self.wide.is_some() {
+            // Read through the library and narrowed, region by region.
+            return;
+        }
         let id = NEXT_SOURCE.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
         self.chunk_cache = Some((cache.0.clone(), id));
     }
@@ -799,6 +901,84 @@ impl ZarrSource {
     /// touches and that was not checked before (see [`shard::read_index`]),
     /// so that a damaged index is a clear error before the Zarr library
     /// sizes a read from it.
+    /// Read the 64-bit integers of `ranges` (array axes) into `dst` as
+    /// 32-bit ones (array axis order), failing at the first value that
+    /// does not fit. In two pieces along the first axis longer than one,
+    /// so that the 64-bit copy is no larger than `dst`.
+    fn read_wide(&self, w: Wide, ranges: &[Range<u64>], dst: &mut [u8]) -> Result<()> {
+        let path = &self.meta.path;
+        let split = ranges.iter().position(|r| r.end - r.start >= 2);
+        let pieces: Vec<Vec<Range<u64>>> = match split {
+            None => vec![ranges.to_vec()],
+            Some(a) => {
+                let mid = ranges[a].start + (ranges[a].end - ranges[a].start) / 2;
+                let mut lo = ranges.to_vec();
+                let mut hi = ranges.to_vec();
+                lo[a].end = mid;
+                hi[a].start = mid;
+                vec![lo, hi]
+            }
+        };
+        let mut at = 0;
+        for piece in pieces {
+            let subset = ArraySubset::new_with_ranges(&piece);
+            let sizes: Vec<u64> = piece.iter().map(|r| r.end - r.start).collect();
+            // The array index of element `k` of the piece.
+            let index_of = |mut k: u64| -> Vec<u64> {
+                let mut idx = vec![0; sizes.len()];
+                for a in (0..sizes.len()).rev() {
+                    idx[a] = piece[a].start + k % sizes[a];
+                    k /= sizes[a];
+                }
+                idx
+            };
+            let fail = |k: usize, v: &dyn std::fmt::Display| {
+                StoreError::unsupported(
+                    path,
+                    "data_type",
+                    format!(
+                        "{}: the value {v} at array index {:?} does not fit in {}, the widest \
+                         integer type brickyard stores (relabel the image so that its values \
+                         fit)",
+                        w.name(),
+                        index_of(k as u64),
+                        w.narrow_name()
+                    ),
+                )
+            };
+            macro_rules! narrow {
+                ($wide:ty, $narrow:ty) => {{
+                    if self.shards.len() > SHARD_CACHE_MAX {
+                        self.shards.clear();
+                    }
+                    let v: Vec<$wide> = if self.shards.array_is_sharded() {
+                        self.check_shards(&subset)?;
+                        self.array.retrieve_array_subset_sharded_opt::<Vec<$wide>>(
+                            &self.shards,
+                            &subset,
+                            &CodecOptions::default(),
+                        )
+                    } else {
+                        self.array.retrieve_array_subset::<Vec<$wide>>(&subset)
+                    }
+                    .map_err(|e| StoreError::zarr(path, e))?;
+                    let part = &mut dst[at..at + v.len() * 4];
+                    for (k, (x, o)) in v.iter().zip(part.chunks_exact_mut(4)).enumerate() {
+                        let y = <$narrow>::try_from(*x).map_err(|_| fail(k, x))?;
+                        o.copy_from_slice(&y.to_ne_bytes());
+                    }
+                    at += v.len() * 4;
+                }};
+            }
+            match w {
+                Wide::U64 => narrow!(u64, u32),
+                Wide::I64 => narrow!(i64, i32),
+            }
+        }
+        debug_assert_eq!(at, dst.len());
+        Ok(())
+    }
+
     fn check_shards(&self, subset: &ArraySubset) -> Result<()> {
         let Some(sc) = &self.shard_check else {
             return Ok(());
@@ -953,39 +1133,55 @@ impl VolumeSource for ZarrSource {
         let natural = order.windows(2).all(|w| w[0] < w[1]);
         let path = &self.meta.path;
         super::chunks::note_fill();
-        dispatch_dtype!(self.meta.dtype, T => {
-            if self.shards.len() > SHARD_CACHE_MAX {
-                self.shards.clear();
-            }
-            let v: Vec<T> = if self.shards.array_is_sharded() {
-                self.check_shards(&subset)?;
-                self.array
-                    .retrieve_array_subset_sharded_opt::<Vec<T>>(&self.shards, &subset, &CodecOptions::default())
-                    .map_err(|e| StoreError::zarr(path, e))?
-            } else {
-                self.array.retrieve_array_subset::<Vec<T>>(&subset).map_err(|e| StoreError::zarr(path, e))?
-            };
+        // Copy `src`, elements of `es` bytes in array axis order, into
+        // `out` in z, y, x order.
+        let place = |src: &[u8], es: usize, out: &mut [u8]| {
             if natural {
-                out.copy_from_slice(as_bytes(&v));
-            } else {
-                // Transpose into z, y, x order.
-                let es = std::mem::size_of::<T>();
-                let st = |a: usize| self.zyx[a].map(|i| strides[i]).unwrap_or(0);
-                let (sz, sy, sx) = (st(0), st(1), st(2));
-                let (nz, ny, nx) = (rs[0].end - rs[0].start, rs[1].end - rs[1].start, rs[2].end - rs[2].start);
-                let src = as_bytes(&v);
-                let mut o = 0;
-                for k in 0..nz {
-                    for j in 0..ny {
-                        for i in 0..nx {
-                            let s = ((k * sz + j * sy + i * sx) as usize) * es;
-                            out[o..o + es].copy_from_slice(&src[s..s + es]);
-                            o += es;
-                        }
+                out.copy_from_slice(src);
+                return;
+            }
+            let st = |a: usize| self.zyx[a].map(|i| strides[i]).unwrap_or(0);
+            let (sz, sy, sx) = (st(0), st(1), st(2));
+            let (nz, ny, nx) = (
+                rs[0].end - rs[0].start,
+                rs[1].end - rs[1].start,
+                rs[2].end - rs[2].start,
+            );
+            let mut o = 0;
+            for k in 0..nz {
+                for j in 0..ny {
+                    for i in 0..nx {
+                        let s = ((k * sz + j * sy + i * sx) as usize) * es;
+                        out[o..o + es].copy_from_slice(&src[s..s + es]);
+                        o += es;
                     }
                 }
             }
-        });
+        };
+        if let Some(w) = self.wide {
+            if natural {
+                self.read_wide(w, &ranges, out)?;
+            } else {
+                let mut tmp = vec![0u8; out.len()];
+                self.read_wide(w, &ranges, &mut tmp)?;
+                place(&tmp, 4, out);
+            }
+        } else {
+            dispatch_dtype!(self.meta.dtype, T => {
+                if self.shards.len() > SHARD_CACHE_MAX {
+                    self.shards.clear();
+                }
+                let v: Vec<T> = if self.shards.array_is_sharded() {
+                    self.check_shards(&subset)?;
+                    self.array
+                        .retrieve_array_subset_sharded_opt::<Vec<T>>(&self.shards, &subset, &CodecOptions::default())
+                        .map_err(|e| StoreError::zarr(path, e))?
+                } else {
+                    self.array.retrieve_array_subset::<Vec<T>>(&subset).map_err(|e| StoreError::zarr(path, e))?
+                };
+                place(as_bytes(&v), std::mem::size_of::<T>(), out);
+            });
+        }
         let dims = rs.clone().map(|r| r.end - r.start);
         self.verify(c, &rs, out, dims, [0; 3])
     }
@@ -1065,6 +1261,83 @@ mod tests {
         std::fs::write(dir.join("zarr.json"), meta.to_string()).unwrap();
         let chunk: Vec<u8> = (0..32u16).flat_map(|v| v.to_le_bytes()).collect();
         std::fs::write(dir.join("c/0/0/0"), chunk).unwrap();
+    }
+
+    /// 64-bit integer arrays are read as 32-bit ones when every value
+    /// fits: a Zarr v2 `<u8` (uint64, not uint8) and a v3 int64 with its
+    /// axes in x, y, z order; a value that does not fit fails the read,
+    /// naming it and its index.
+    #[test]
+    fn wide_integers_narrowed_when_they_fit() {
+        let dir = tempfile::tempdir().unwrap();
+        // v2, uint64, 3×4×5 in chunks of 2×4×5, values v·1000003 + 5.
+        let v2 = dir.path().join("v2");
+        std::fs::create_dir_all(&v2).unwrap();
+        let meta = json!({
+            "zarr_format": 2, "shape": [3, 4, 5], "chunks": [2, 4, 5], "dtype": "<u8",
+            "compressor": null, "fill_value": 0, "order": "C", "filters": null,
+        });
+        std::fs::write(v2.join(".zarray"), meta.to_string()).unwrap();
+        let val = |i: u64| i * 1_000_003 + 5;
+        for c in 0..2u64 {
+            let chunk: Vec<u8> = (0..40)
+                .flat_map(|k| val(c * 40 + k).to_le_bytes())
+                .collect();
+            std::fs::write(v2.join(format!("{c}.0.0")), chunk).unwrap();
+        }
+        let src = open(&v2, 0).unwrap();
+        assert_eq!((src.meta().dtype, src.meta().dims), (DType::U32, [3, 4, 5]));
+        assert!(src.meta().notes.iter().any(|n| n.contains("uint64")));
+        let got: Vec<u32> = read_all(&src, 0)
+            .chunks_exact(4)
+            .map(|b| u32::from_ne_bytes(b.try_into().unwrap()))
+            .collect();
+        let want: Vec<u32> = (0..60).map(|i| val(i) as u32).collect();
+        assert_eq!(got, want);
+
+        // v3, int64, axes x, y, z (shape 5, 4, 3): read transposed.
+        let v3 = dir.path().join("v3");
+        std::fs::create_dir_all(v3.join("c/0/0")).unwrap();
+        let meta = json!({
+            "zarr_format": 3, "node_type": "array", "shape": [5, 4, 3], "data_type": "int64",
+            "chunk_grid": {"name": "regular", "configuration": {"chunk_shape": [5, 4, 3]}},
+            "chunk_key_encoding": {"name": "default", "configuration": {"separator": "/"}},
+            "fill_value": 0,
+            "codecs": [{"name": "bytes", "configuration": {"endian": "little"}}],
+            "dimension_names": ["x", "y", "z"],
+        });
+        std::fs::write(v3.join("zarr.json"), meta.to_string()).unwrap();
+        let at = |x: i64, y: i64, z: i64| -(x * 100 + y * 10 + z) * 4_000_001;
+        let chunk: Vec<u8> = (0..5)
+            .flat_map(|x| (0..4).flat_map(move |y| (0..3).map(move |z| at(x, y, z))))
+            .flat_map(|v| v.to_le_bytes())
+            .collect();
+        std::fs::write(v3.join("c/0/0/0"), &chunk).unwrap();
+        let src = open(&v3, 0).unwrap();
+        assert_eq!((src.meta().dtype, src.meta().dims), (DType::I32, [3, 4, 5]));
+        let got: Vec<i32> = read_all(&src, 0)
+            .chunks_exact(4)
+            .map(|b| i32::from_ne_bytes(b.try_into().unwrap()))
+            .collect();
+        let want: Vec<i32> = (0..3)
+            .flat_map(|z| (0..4).flat_map(move |y| (0..5).map(move |x| at(x, y, z) as i32)))
+            .collect();
+        assert_eq!(got, want);
+
+        // One value below i32::MIN: the read fails, naming it and where.
+        let mut bad = chunk;
+        let k = ((2 * 4 + 1) * 3 + 2) * 8; // x 2, y 1, z 2
+        bad[k..k + 8].copy_from_slice(&(-(1i64 << 31) - 1).to_le_bytes());
+        std::fs::write(v3.join("c/0/0/0"), &bad).unwrap();
+        let src = open(&v3, 0).unwrap();
+        let e = src
+            .read_region(0, 0..3, 0..4, 0..5, &mut vec![0u8; 240])
+            .unwrap_err()
+            .to_string();
+        assert!(
+            e.contains("-2147483649") && e.contains("[2, 1, 2]") && e.contains("int32"),
+            "{e}"
+        );
     }
 
     /// Chunks that were never written read as the array's fill value.

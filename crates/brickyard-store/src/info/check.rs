@@ -618,13 +618,18 @@ fn open_target<'a>(name: &'a str, dir: &'a Path) -> std::result::Result<Target<'
     let store = FilesystemStore::new(dir).map_err(|e| e.to_string())?;
     let array =
         Array::open(Arc::new(store), "/").map_err(|e| format!("cannot open the array: {e}"))?;
+    // 64-bit integers (read narrowed by conversion) are checked by
+    // decoding alone, as types brickyard does not store are.
+    let known = |name: Option<&str>, v2: bool| {
+        crate::import::zarr::zarr_dtype(name?, v2).and_then(|(d, wide)| wide.is_none().then_some(d))
+    };
     let dtype = read_json(&dir.join("zarr.json"))
         .ok()
-        .and_then(|j| j["data_type"].as_str().and_then(DType::parse))
+        .and_then(|j| known(j["data_type"].as_str(), false))
         .or_else(|| {
             read_json(&dir.join(".zarray"))
                 .ok()
-                .and_then(|j| j["dtype"].as_str().and_then(DType::parse))
+                .and_then(|j| known(j["dtype"].as_str(), true))
         });
     let sharded = array.is_sharded();
     let chunk: Vec<u64> = array
