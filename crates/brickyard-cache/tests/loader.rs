@@ -893,6 +893,41 @@ fn a_deleted_shard_beside_shards_that_were_read_is_a_failure() {
 }
 
 #[test]
+fn a_deleted_shard_that_comes_back_is_read_by_the_same_loader() {
+    // The loader keeps shard indexes and decoded chunks: what it read while
+    // the shard was missing (no index, fill-value chunks) must not outlive
+    // the failure, or the brick would load as zeros once the shard is back
+    // (a viewer retrying failed bricks drew it black and "complete").
+    let dir = tempfile::tempdir().unwrap();
+    let store = noise_store(dir.path());
+    let mut shards = vec![];
+    shard_files(&store.join("0"), &mut shards);
+    shards.sort();
+    let k = BrickKey::new(0, 0, [0, 0, 0]);
+    let want = match Loader::open(&store, [8; 3], 1, 1, Arc::new(HostCache::new(1 << 30)))
+        .unwrap()
+        .load_now(&k)
+        .unwrap()
+        .content
+    {
+        BrickContent::Data(d) => d,
+        _ => panic!("brick [0, 0, 0] holds data"),
+    };
+    let bytes = std::fs::read(&shards[0]).unwrap();
+    std::fs::remove_file(&shards[0]).unwrap();
+    let loader = Loader::open(&store, [8; 3], 1, 1, Arc::new(HostCache::new(1 << 30))).unwrap();
+    for _ in 0..2 {
+        let e = loader.load_now(&k).unwrap_err().to_string();
+        assert!(e.contains("missing"), "{e}");
+    }
+    std::fs::write(&shards[0], &bytes).unwrap();
+    match loader.load_now(&k).unwrap().content {
+        BrickContent::Data(d) => assert!(d == want, "the brick differs from the stored one"),
+        _ => panic!("the brick came back empty"),
+    }
+}
+
+#[test]
 fn a_store_replaced_while_open_fails_its_loads() {
     // The loader caches shard indexes and statistics; a store written
     // again in its place (`convert --overwrite` renames the new one in)

@@ -289,6 +289,23 @@ impl ChunkCache {
         }
     }
 
+    /// Drop the chunks `chunk_keys` of `source` that the cache holds (not
+    /// those being loaded now): they are read again when next asked for.
+    /// For chunks read while their data was missing, once it may be back.
+    pub fn forget(&self, source: u64, chunk_keys: &[Idx]) {
+        let mut st = lock(&self.state);
+        let st = &mut *st;
+        for k in chunk_keys {
+            let key: Idx = std::iter::once(source).chain(k.iter().copied()).collect();
+            if let Some(Entry::Ready { chunk, tick }) = st.map.get(&key) {
+                let (tick, cost) = (*tick, chunk.cost());
+                st.lru.remove(&tick);
+                st.bytes -= cost;
+                st.map.remove(&key);
+            }
+        }
+    }
+
     /// The positions of the chunks `chunk_keys` of `source` worth a
     /// read-ahead hint: those the cache neither holds (whole, or as a shell
     /// with the part `need`) nor is loading now, and that were not hinted
@@ -501,6 +518,11 @@ impl ShardReader {
         }
         m.insert(shard_idx.to_vec(), ix.clone());
         Ok(ix)
+    }
+
+    /// Forget the index of shard `shard_idx`: the next read reads it again.
+    pub(crate) fn forget_index(&self, shard_idx: &[u64]) {
+        lock(&self.indexes).remove(shard_idx);
     }
 
     /// Where the inner chunks `keys` (inner chunk grid indices) of `array`

@@ -748,6 +748,35 @@ impl ZarrSource {
         self.chunk_cache.as_ref().map_or(0, |(c, _)| c.bytes())
     }
 
+    /// Forget what is kept of the file (shard or chunk) at grid index
+    /// `grid`: its index and its decoded chunks, so that the next read
+    /// reads it again (a missing file may be back by then).
+    fn forget_file(&self, grid: &[u64]) {
+        if let Some(d) = &self.direct {
+            d.forget_index(grid);
+        }
+        let Some((cc, id)) = &self.chunk_cache else {
+            return;
+        };
+        // The inner chunks (grain) of the file, in every combination.
+        let n = grid.len();
+        let per: Vec<u64> = (0..n)
+            .map(|a| (self.chunk[a] / self.grain[a].max(1)).max(1))
+            .collect();
+        let total: u64 = per.iter().product();
+        let keys: Vec<Idx> = (0..total)
+            .map(|mut k| {
+                let mut key: Idx = smallvec::smallvec![0; n];
+                for a in (0..n).rev() {
+                    key[a] = grid[a] * per[a] + k % per[a];
+                    k /= per[a];
+                }
+                key
+            })
+            .collect();
+        cc.forget(*id, &keys);
+    }
+
     /// Read and decode the read-granularity chunks `keys` (chunk grid
     /// indices over the grain, array axis order).
     fn load_chunks(&self, keys: &[Vec<u64>]) -> Result<Vec<Decoded>> {
@@ -1060,6 +1089,7 @@ impl VolumeSource for ZarrSource {
             .collect();
         let file = self.dir.join(self.array.chunk_key(&grid).as_str());
         if !storage::exists(&file) {
+            self.forget_file(&grid);
             return Some((file, crate::source::FILE_MISSING.into()));
         }
         // A shard whose index has no entry for the inner chunk (index in C
@@ -1077,18 +1107,48 @@ impl VolumeSource for ZarrSource {
             entry = entry * per + k;
             pos.push(k);
         }
-        // The index the reads used, kept by the direct reader (a lookup
-        // per brick checked, not a read of the shard's index each time).
-        let index = match &self.direct {
-            Some(d) => d.index(&file, &grid).ok()??,
-            None => std::sync::Arc::new(shard::read_index(&file, &sc.layout).ok()??),
+        let absent = |ix: &Option<Arc<Vec<[u64; 2]>>>| {
+            ix.as_ref()
+                .is_none_or(|ix| ix.get(entry as usize) == Some(&[u64::MAX, u64::MAX]))
         };
-        (index.get(entry as usize)? == &[u64::MAX, u64::MAX]).then(|| {
-            (
-                file,
-                format!("the shard's index has no entry for its inner chunk {pos:?}"),
-            )
-        })
+        let no_entry = || format!("the shard's index has no entry for its inner chunk {pos:?}");
+        match &self.direct {
+            Some(d) => {
+                // The index the reads used, kept by the direct reader (a
+                // lookup per brick checked, not a read of the shard's index
+                // each time), unless it left the chunk out: then the shard
+                // may have changed since (a file that was missing is back),
+                // and the file says.
+                let used = d.index(&file, &grid).ok()?;
+                if !absent(&used) {
+                    return None;
+                }
+                self.forget_file(&grid);
+                let now = shard::read_index(&file, &sc.layout).ok()?.map(Arc::new);
+                Some(match (absent(&now), used.is_none()) {
+                    (true, _) => (file, no_entry()),
+                    (false, true) => (
+                        file,
+                        "the shard file was missing when the brick was read and is there now \
+                         (it is read again next time)"
+                            .into(),
+                    ),
+                    (false, false) => (
+                        file,
+                        "the shard's index had no entry for the brick's inner chunk when it was \
+                         read and has one now (it is read again next time)"
+                            .into(),
+                    ),
+                })
+            }
+            None => {
+                let now = shard::read_index(&file, &sc.layout).ok()?.map(Arc::new);
+                absent(&now).then(|| {
+                    self.forget_file(&grid);
+                    (file, no_entry())
+                })
+            }
+        }
     }
 
     fn meta(&self) -> &SourceMeta {
