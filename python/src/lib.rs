@@ -512,18 +512,27 @@ fn run_convert(
     // A label image: published in its image's group, and its statistics
     // table written from its voxels.
     let table = match opts.labels {
-        true => py
-            .detach(|| {
-                brickyard_run::labels::finish_label_image(
-                    dst,
-                    group.as_deref(),
-                    opts.memory / 2,
-                    &brickyard_store::NoProgress,
-                    &cancel,
-                )
-            })
-            .map_err(to_py)?
-            .map(|why| format!("; no table of label statistics ({why})")),
+        true => {
+            let notes = py
+                .detach(|| {
+                    brickyard_run::labels::finish_label_image(
+                        dst,
+                        group.as_deref(),
+                        opts.memory / 2,
+                        &brickyard_store::NoProgress,
+                        &cancel,
+                    )
+                })
+                .map_err(to_py)?;
+            let mut t = String::new();
+            if let Some(why) = notes.no_table {
+                t += &format!("; no table of label statistics ({why})");
+            }
+            if let Some(how) = notes.off_grid {
+                t += &format!("; note: {how}");
+            }
+            Some(t)
+        }
         false => None,
     };
     Ok(format!(

@@ -277,7 +277,17 @@ def test_labels_from_numpy_into_an_image_are_published_with_their_table(tmp_path
     seg = ((img > np.percentile(img, 70)) * (1 + np.arange(28) // 7)[None, None, :]).astype(np.uint32)
     with pytest.raises(ValueError, match="labels"):
         brickyard.from_numpy(seg, store / "labels" / "nolab", brick=16, progress=False)
-    brickyard.from_numpy(seg, store / "labels" / "seg", labels=True, brick=16, progress=False)
+    r = brickyard.from_numpy(seg, store / "labels" / "seg", labels=True, brick=16, progress=False)
+    assert "image's grid" not in r, r
+    # Off the image's grid (shifted, or cut): listed, and the report says
+    # it is not drawn over the image.
+    for name, kw in [("shifted", dict(spacing=(0.5, 0.25, 2.0), unit="micrometer",
+                                      origin=(0.0, 5.0, 0.0))),
+                     ("cut", dict())]:
+        part = seg if kw else seg[:, :10]
+        r = brickyard.from_numpy(part, store / "labels" / name, labels=True, brick=16,
+                                 progress=False, **kw)
+        assert "only on the image's grid" in r, (name, r)
     g = zarr.open_group(str(store / "labels"), mode="r")
     assert "seg" in g.attrs["ome"]["labels"]
     with brickyard.open(store / "labels" / "seg") as s, brickyard.open(store) as i:

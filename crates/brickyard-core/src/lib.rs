@@ -6,6 +6,7 @@
 
 pub mod camera;
 pub mod dtype;
+pub mod grid;
 pub mod label_table;
 pub mod pyramid;
 pub mod transfer;

@@ -312,7 +312,7 @@ pub fn write_from_voxels(
     let image = match image {
         Some(p) => {
             let im = zarr::open(p, 0)?;
-            (im.meta().dims == dims).then_some(im)
+            im.meta().same_grid(labels.meta()).is_ok().then_some(im)
         }
         None => None,
     };

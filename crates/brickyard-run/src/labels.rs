@@ -10,8 +10,8 @@ use brickyard_store::VolumeSource;
 use std::path::{Path, PathBuf};
 
 /// The folder of the store's label image `name`, once the store lists it
-/// and its level 0 has the image's voxels and spacing (the same world box:
-/// one camera shows both the same).
+/// and its level 0 has the image's voxels, spacing and origin, in the same
+/// unit (the same world box: one camera shows both the same).
 pub fn label_store(store: &Path, name: &str) -> Result<PathBuf> {
     if name.is_empty() || name == "." || name == ".." || name.contains(['/', '\\']) {
         bail!("labels: expected the name of one of the store's label images (labels/NAME), found {name:?}");
@@ -31,18 +31,11 @@ pub fn label_store(store: &Path, name: &str) -> Result<PathBuf> {
     let dir = store.join("labels").join(name);
     let image = zarr::open(store, 0)?.meta().clone();
     let labels = zarr::open(&dir, 0)?.meta().clone();
-    let spacing = |s: Option<[f64; 3]>| s.unwrap_or([1.0; 3]);
-    let (si, sl) = (spacing(image.spacing), spacing(labels.spacing));
-    let same_spacing = (0..3).all(|a| (si[a] - sl[a]).abs() <= 1e-9 * si[a].abs().max(sl[a].abs()));
-    if image.dims != labels.dims || !same_spacing {
+    if let Err(how) = image.same_grid(&labels) {
         bail!(
-            "{}: its level 0 is {:?} voxels of {:?} (z, y, x), the image's {:?} of {:?}: label \
-             images are drawn over the grid they were made on",
+            "{}: its level 0 is {how}, the image's: label images are drawn over the grid they \
+             were made on (the same voxels, spacing, origin and unit)",
             dir.display(),
-            labels.dims,
-            sl,
-            image.dims,
-            si
         );
     }
     if labels.channels > 1 {
@@ -91,23 +84,45 @@ pub fn inherited_geometry(
         .then(|| (im.spacing, im.origin, im.unit.clone())))
 }
 
+/// What [`finish_label_image`] did not do, for the report: why no
+/// statistics table was written, and how the label image lies off its
+/// image's grid (it is listed, but not drawn over the image).
+#[derive(Debug, Default)]
+pub struct LabelImageNotes {
+    pub no_table: Option<String>,
+    pub off_grid: Option<String>,
+}
+
 /// What follows the conversion of a label image into `output`: in an
 /// image's `group`, it is marked as the image's and listed; its statistics
 /// table is written from its voxels (with the image's means when on its
-/// grid), in at most `max_bytes`. `Ok(Some(why))`: no table, and why (the
-/// image stays usable).
+/// grid), in at most `max_bytes`. The notes say what was not done (the
+/// label image stays usable).
 pub fn finish_label_image(
     output: &Path,
     group: Option<&Path>,
     max_bytes: u64,
     progress: &dyn brickyard_store::Progress,
     cancel: &std::sync::atomic::AtomicBool,
-) -> Result<Option<String>> {
+) -> Result<LabelImageNotes> {
+    let mut notes = LabelImageNotes::default();
     if let Some(g) = group {
         crate::process::publish_label_image(g, output)?;
     }
     let image = group.and_then(Path::parent);
-    crate::label_stats::write_from_voxels(output, image, max_bytes, progress, cancel)
+    if let Some(im) = image {
+        let (a, b) = (zarr::open(im, 0)?, zarr::open(output, 0)?);
+        if let Err(how) = a.meta().same_grid(b.meta()) {
+            notes.off_grid = Some(format!(
+                "it is listed, but drawn over the image (render --labels) and given the \
+                 image's mean intensities only on the image's grid: its level 0 is {how}, the \
+                 image's"
+            ));
+        }
+    }
+    notes.no_table =
+        crate::label_stats::write_from_voxels(output, image, max_bytes, progress, cancel)?;
+    Ok(notes)
 }
 
 /// Lay `labels` (a slice of labels) over `img` at `opacity`

@@ -12,51 +12,7 @@ pub const ATTR: &str = "brickyard";
 /// Where the per-brick statistics live, relative to the root.
 pub const STATS_DIR: &str = "_brickyard/stats";
 
-/// Units accepted by OME-NGFF for space axes (UDUNITS-2 names).
-pub const SPACE_UNITS: &[&str] = &[
-    "angstrom",
-    "attometer",
-    "centimeter",
-    "decimeter",
-    "exameter",
-    "femtometer",
-    "foot",
-    "gigameter",
-    "hectometer",
-    "inch",
-    "kilometer",
-    "megameter",
-    "meter",
-    "micrometer",
-    "mile",
-    "millimeter",
-    "nanometer",
-    "parsec",
-    "petameter",
-    "picometer",
-    "terameter",
-    "yard",
-    "yoctometer",
-    "yottameter",
-    "zeptometer",
-    "zettameter",
-];
-
-/// Normalize common unit spellings to OME-NGFF names.
-pub fn normalize_unit(u: &str) -> Option<String> {
-    let t = u.trim().to_ascii_lowercase();
-    let n = match t.as_str() {
-        "mm" => "millimeter",
-        "um" | "µm" | "μm" | "micron" | "microns" => "micrometer",
-        "nm" => "nanometer",
-        "m" => "meter",
-        "cm" => "centimeter",
-        "pm" => "picometer",
-        "a" | "å" => "angstrom",
-        _ => t.as_str(),
-    };
-    SPACE_UNITS.contains(&n).then(|| n.to_string())
-}
+pub use brickyard_core::grid::{normalize_unit, unit_in_meters, SPACE_UNITS};
 
 /// Zarr v3 array metadata of one sharded pyramid level.
 pub fn level_array_json(

@@ -64,6 +64,22 @@ impl SourceMeta {
     pub fn channel_bytes(&self) -> u64 {
         self.dims.iter().product::<u64>() * self.dtype.size() as u64
     }
+
+    /// This volume's grid (a missing spacing is 1, a missing origin 0).
+    pub fn grid(&self) -> brickyard_core::grid::Grid<'_> {
+        brickyard_core::grid::Grid {
+            dims: self.dims,
+            spacing: self.spacing.unwrap_or([1.0; 3]),
+            origin: self.origin.unwrap_or([0.0; 3]),
+            unit: self.unit.as_deref(),
+        }
+    }
+
+    /// Whether `other` lies on this volume's grid
+    /// ([`Grid::same_as`](brickyard_core::grid::Grid::same_as)).
+    pub fn same_grid(&self, other: &SourceMeta) -> std::result::Result<(), String> {
+        self.grid().same_as(&other.grid())
+    }
 }
 
 /// A readable volume.

@@ -395,15 +395,11 @@ impl Viewer {
                 // Drawn over the grid they were made on, as `render
                 // --labels` takes them (else nothing would lie where it
                 // belongs).
-                let (si, sl) = (src.meta.spacing, lsrc.meta.spacing);
-                let same =
-                    (0..3).all(|a| (si[a] - sl[a]).abs() <= 1e-9 * si[a].abs().max(sl[a].abs()));
-                let (di, dl) = (src.meta.dims(0), lsrc.meta.dims(0));
-                if di != dl || !same {
+                if let Err(how) = src.meta.grid().same_as(&lsrc.meta.grid()) {
                     return Err(JsValue::from_str(&format!(
-                        "labels: {root}/labels/{name}: its level 0 is {dl:?} voxels of {sl:?} (z, \
-                         y, x), the image's {di:?} of {si:?}: label images are drawn over the \
-                         grid they were made on"
+                        "labels: {root}/labels/{name}: its level 0 is {how}, the image's: label \
+                         images are drawn over the grid they were made on (the same voxels, \
+                         spacing, origin and unit)"
                     )));
                 }
                 let lcfg = VmConfig {

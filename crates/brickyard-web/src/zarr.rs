@@ -146,6 +146,10 @@ pub struct Multiscale {
     pub channel_axis: Option<usize>,
     /// Level 0's voxel size `[z, y, x]`.
     pub spacing: [f64; 3],
+    /// The centre of level 0's voxel 0 `[z, y, x]` (its translations).
+    pub origin: [f64; 3],
+    /// The unit of the first space axis that names one.
+    pub unit: Option<String>,
     pub channels: Vec<ChannelMeta>,
     /// The store says it was not finished (brickyard's `complete: false`).
     pub incomplete: bool,
@@ -163,6 +167,16 @@ impl Multiscale {
     pub fn dims(&self, l: usize) -> Dims3 {
         let s = &self.levels[l].shape;
         self.space.map(|a| a.map_or(1, |a| s[a]))
+    }
+
+    /// Level 0's grid in world space.
+    pub fn grid(&self) -> brickyard_core::grid::Grid<'_> {
+        brickyard_core::grid::Grid {
+            dims: self.dims(0),
+            spacing: self.spacing,
+            origin: self.origin,
+            unit: self.unit.as_deref(),
+        }
     }
 
     /// Number of channels.
@@ -449,6 +463,15 @@ pub fn parse_root(zarr_format: u8, text: &[u8]) -> Result<(Multiscale, Vec<Strin
                 "an OME-Zarr multiscales list (is this an OME-Zarr image?)",
             )
         })?;
+    let unit = ms
+        .get("axes")
+        .and_then(Value::as_array)
+        .and_then(|a| {
+            a.iter()
+                .filter(|x| x.get("type").and_then(Value::as_str) == Some("space"))
+                .find_map(|x| x.get("unit").and_then(Value::as_str))
+        })
+        .map(str::to_string);
     let axes: Vec<(String, String)> = match ms.get("axes").and_then(Value::as_array) {
         Some(a) => a
             .iter()
@@ -506,17 +529,28 @@ pub fn parse_root(zarr_format: u8, text: &[u8]) -> Result<(Multiscale, Vec<Strin
         }
         paths.push(p.to_string());
     }
-    let scale_of = |o: &Value| -> Option<Vec<f64>> {
+    let transform_of = |o: &Value, kind: &str| -> Option<Vec<f64>> {
         o.get("coordinateTransformations")?
             .as_array()?
             .iter()
-            .find(|t| t.get("type").and_then(Value::as_str) == Some("scale"))?
-            .get("scale")?
+            .find(|t| t.get("type").and_then(Value::as_str) == Some(kind))?
+            .get(kind)?
             .as_array()
-            .map(|a| a.iter().map(|x| x.as_f64().unwrap_or(1.0)).collect())
+            .map(|a| a.iter().map(|x| x.as_f64().unwrap_or(f64::NAN)).collect())
     };
+    let scale_of = |o: &Value| transform_of(o, "scale");
     let s0 = scale_of(&datasets[0]).unwrap_or_else(|| vec![1.0; axes.len()]);
     let top = scale_of(ms).unwrap_or_else(|| vec![1.0; axes.len()]);
+    // world = top scale · (scale · i + translation) + top translation.
+    let t0 = transform_of(&datasets[0], "translation").unwrap_or_default();
+    let tt = transform_of(ms, "translation").unwrap_or_default();
+    let origin = space.map(|a| {
+        a.map_or(0.0, |a| {
+            let get =
+                |v: &Vec<f64>, d: f64| v.get(a).copied().filter(|x| x.is_finite()).unwrap_or(d);
+            get(&top, 1.0) * get(&t0, 0.0) + get(&tt, 0.0)
+        })
+    });
     let spacing = space.map(|a| {
         a.map_or(1.0, |a| {
             let s = s0.get(a).copied().unwrap_or(1.0) * top.get(a).copied().unwrap_or(1.0);
@@ -570,6 +604,8 @@ pub fn parse_root(zarr_format: u8, text: &[u8]) -> Result<(Multiscale, Vec<Strin
         space,
         channel_axis,
         spacing,
+        origin,
+        unit,
         channels,
         incomplete: by.and_then(|b| b.get("complete")).and_then(Value::as_bool) == Some(false),
         stats: by
@@ -703,5 +739,20 @@ mod tests {
             let e = parse_root(3, doc.as_bytes()).unwrap_err();
             assert_eq!(e.field, "multiscales.datasets[0].path", "{bad:?}: {e:?}");
         }
+    }
+
+    /// Level 0's world grid: world = top scale · (scale · i + translation)
+    /// + top translation, in the unit of the space axes, as the native
+    /// reader has it (labels are drawn over an image only on its grid).
+    #[test]
+    fn origin_and_unit() {
+        let doc = br#"{"zarr_format":3,"node_type":"group","attributes":{"ome":{"version":"0.5","multiscales":[{
+            "axes":[{"name":"c","type":"channel"},{"name":"z","type":"space","unit":"micrometer"},{"name":"y","type":"space","unit":"micrometer"},{"name":"x","type":"space","unit":"micrometer"}],
+            "datasets":[{"path":"0","coordinateTransformations":[{"type":"scale","scale":[1,2,1,1]},{"type":"translation","translation":[0,1,0,0]}]}],
+            "coordinateTransformations":[{"type":"scale","scale":[1,0.5,0.25,0.25]},{"type":"translation","translation":[0,10,20,30]}]}]}}}"#;
+        let (ms, _) = parse_root(3, doc).unwrap();
+        assert_eq!(ms.spacing, [1.0, 0.25, 0.25]);
+        assert_eq!(ms.origin, [10.5, 20.0, 30.0]);
+        assert_eq!(ms.unit.as_deref(), Some("micrometer"));
     }
 }
