@@ -575,6 +575,7 @@ pub fn convert_team(
     }
     // Nothing is created above the output: its folder must exist.
     check_parent(output)?;
+    check_not_in_node(output)?;
     // Refuse to touch existing data unless asked; never convert onto the input.
     if output.exists() && !opts.overwrite {
         return Err(StoreError::Refused {
@@ -1052,7 +1053,7 @@ fn finish_store(
         let old = old_path(output);
         std::fs::rename(output, &old).at(output)?;
         std::fs::rename(partial, output).at(output)?;
-        std::fs::remove_dir_all(&old).at(&old)?;
+        remove_replaced(&old)?;
     } else {
         std::fs::rename(partial, output).at(output)?;
     }
@@ -1098,6 +1099,38 @@ pub fn check_parent(output: &Path) -> Result<()> {
             parent.display()
         ),
     })
+}
+
+/// Refuse a store written inside a Zarr array (arrays hold chunks, not
+/// other nodes: readers would take it for chunks, or never see it) or
+/// inside a store's own `_brickyard` folder (its statistics and tables).
+fn check_not_in_node(output: &Path) -> Result<()> {
+    let refuse = |why: String| {
+        Err(StoreError::Refused {
+            path: output.into(),
+            msg: format!("cannot write a store there: {why}"),
+        })
+    };
+    let abs = std::path::absolute(output).unwrap_or_else(|_| output.to_path_buf());
+    for dir in abs.ancestors().skip(1) {
+        let array = dir.join(".zarray").is_file()
+            || crate::omezarr::read_json(&dir.join("zarr.json"))
+                .is_ok_and(|j| j.get("node_type").and_then(Value::as_str) == Some("array"));
+        if array {
+            return refuse(format!(
+                "{} is a Zarr array, whose folder holds its chunks only",
+                dir.display()
+            ));
+        }
+        let in_store = dir.parent().is_some_and(|p| p.join("zarr.json").is_file());
+        if dir.file_name().is_some_and(|n| n == "_brickyard") && in_store {
+            return refuse(format!(
+                "{} holds its store's statistics and tables",
+                dir.display()
+            ));
+        }
+    }
+    Ok(())
 }
 
 /// Refuse voxel spacings and origins that do not stay finite numbers at
@@ -1253,14 +1286,48 @@ fn beside(output: &Path, ext: &str) -> PathBuf {
     ))
 }
 
+/// The file that marks a replaced store as being removed
+/// ([`remove_replaced`]): what is left of it after a kill may go.
+const REPLACED_MARK: &str = ".brickyard-replaced";
+
+/// Remove `old`, a store that a new one replaced: marked first, then its
+/// metadata (so that no part of it passes for a store), then the rest,
+/// the mark last. A run killed on the way leaves a marked folder, which
+/// the next conversion of the same output removes ([`check_old`]).
+fn remove_replaced(old: &Path) -> Result<()> {
+    std::fs::write(old.join(REPLACED_MARK), b"").at(old)?;
+    for m in ["zarr.json", ".zgroup", ".zattrs", ".zarray"] {
+        let p = old.join(m);
+        if p.is_file() {
+            std::fs::remove_file(&p).at(&p)?;
+        }
+    }
+    for e in std::fs::read_dir(old).at(old)? {
+        let p = e.at(old)?.path();
+        if p.file_name() == Some(std::ffi::OsStr::new(REPLACED_MARK)) {
+            continue;
+        }
+        if p.is_dir() && !p.is_symlink() {
+            std::fs::remove_dir_all(&p).at(&p)?;
+        } else {
+            std::fs::remove_file(&p).at(&p)?;
+        }
+    }
+    std::fs::remove_dir_all(old).at(old)
+}
+
 /// Refuse to start when `OUTPUT.old` is in the way: the swap at the end
 /// moves the old store there. One is left when a run is killed during its
 /// swap: beside the new store (the old one half removed), or instead of
-/// it (the old store whole: it is all there is of `output`).
+/// it (the old store whole: it is all there is of `output`). What a run
+/// killed while it removed the old store left (marked so) is removed.
 fn check_old(output: &Path) -> Result<()> {
     let old = old_path(output);
     if std::fs::symlink_metadata(&old).is_err() {
         return Ok(());
+    }
+    if output.exists() && old.join(REPLACED_MARK).is_file() && !old.is_symlink() {
+        return std::fs::remove_dir_all(&old).at(&old);
     }
     let msg = if output.exists() {
         format!(

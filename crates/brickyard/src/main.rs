@@ -384,12 +384,16 @@ fn label_table(output: &Path, group: Option<&Path>, p: &PyramidArgs) -> Result<(
     let r = brickyard_run::labels::finish_label_image(output, group, memory / 2, &bar, &CANCEL);
     bar.finish();
     match r {
-        Ok(None) => Ok(()),
-        Ok(Some(why)) => {
-            eprintln!(
-                "note: {}: no table of label statistics ({why}); the label image is complete",
-                output.display()
-            );
+        Ok(notes) => {
+            if let Some(how) = notes.off_grid {
+                eprintln!("note: {}: {how}", output.display());
+            }
+            if let Some(why) = notes.no_table {
+                eprintln!(
+                    "note: {}: no table of label statistics ({why}); the label image is complete",
+                    output.display()
+                );
+            }
             Ok(())
         }
         Err(e) if CANCEL.load(Ordering::SeqCst) => Err(e.context(format!(
@@ -588,8 +592,11 @@ fn run(cmd: Cmd, cluster: Option<&dist::Cluster>) -> Result<()> {
                     })?;
                     Some(([zyx[2], zyx[1], zyx[0]], dtype))
                 }
-                _ => bail!("raw input needs both --dims and --dtype"),
+                // Refused below, once the input is known to be raw (other
+                // inputs are told that the flag is not for them).
+                _ => None,
             };
+            let half_given = c.dims.is_some() != c.dtype.is_some();
             if c.paths.len() < 2 {
                 bail!(
                     "convert: expected INPUT... OUTPUT, found one path ({}): name the store to write",
@@ -625,6 +632,9 @@ fn run(cmd: Cmd, cluster: Option<&dist::Cluster>) -> Result<()> {
                          header describes it): leave {flag} out",
                         input.display()
                     );
+                }
+                if half_given && fmt == Format::Raw {
+                    bail!("raw input needs both --dims and --dtype");
                 }
                 if c.level.is_some_and(|l| l > 0) && fmt != Format::Zarr {
                     bail!(
@@ -676,11 +686,6 @@ fn run(cmd: Cmd, cluster: Option<&dist::Cluster>) -> Result<()> {
             let group = brickyard_run::labels::label_target(output, c.pyramid.labels)?;
             let mut pyramid = c.pyramid.clone();
             if let Some(g) = &group {
-                let image =
-                    brickyard_store::import::zarr::open(g.parent().expect("a store above"), 0)?
-                        .meta()
-                        .dims;
-                let dims = src.meta().dims;
                 // Flags given win over the image's geometry.
                 let given = [&pyramid.spacing, &pyramid.origin, &pyramid.unit];
                 let inherit = match given.iter().all(|g| g.is_none()) {
@@ -699,13 +704,6 @@ fn run(cmd: Cmd, cluster: Option<&dist::Cluster>) -> Result<()> {
                             pyramid.unit.as_deref().map(|u| format!(" {u}")).unwrap_or_default()
                         );
                     }
-                }
-                if dims != image {
-                    eprintln!(
-                        "note: {} is {dims:?} voxels (z, y, x), the image {image:?}: it is listed, \
-                         but drawn over the image (render --labels) only on the image's grid",
-                        inputs[0].display()
-                    );
                 }
                 std::fs::create_dir_all(g)
                     .with_context(|| format!("{}: cannot create", g.display()))?;

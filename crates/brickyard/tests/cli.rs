@@ -1093,7 +1093,16 @@ fn outputs_and_geometry_a_store_cannot_have_are_refused() {
         &conv(d.path(), s(&out), &["--overwrite"]),
         &["g.zarr.old", "in the way"],
     );
+    // What a run killed while it removed the store it replaced left
+    // (marked so) is removed by the next run; unmarked folders are not.
+    std::fs::remove_dir_all(&old).unwrap();
+    std::fs::create_dir_all(old.join("1/c")).unwrap();
+    std::fs::write(old.join(".brickyard-replaced"), "").unwrap();
+    let o = conv(d.path(), s(&out), &["--overwrite"]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    assert!(!old.exists() && out.join("zarr.json").is_file());
     // ... or instead of it: the store a stopped swap moved aside.
+    std::fs::create_dir(&old).unwrap();
     std::fs::remove_dir_all(&old).unwrap();
     std::fs::rename(&out, &old).unwrap();
     fails_with(
@@ -2089,6 +2098,37 @@ fn flags_that_do_not_apply_to_an_input_are_refused() {
         fails_with(&run(&args), &[s(&store), flag, "a Zarr store"]);
         assert!(!out.exists());
     }
+    // One of --dims and --dtype alone: an input that is not raw is told the
+    // flag is not for it; raw data is asked for both.
+    let half = d.path().join("half.ome.zarr");
+    fails_with(
+        &run(&["convert", s(&store), s(&half), "--dims", "1x2x3"]),
+        &["--dims describes raw data", "a Zarr store"],
+    );
+    fails_with(
+        &run(&["convert", s(&raw), s(&half), "--dtype", "u8"]),
+        &["needs both --dims and --dtype"],
+    );
+    // Not inside an array's folder, nor a store's own _brickyard folder.
+    for (inside, why) in [
+        ("0/x.ome.zarr", "is a Zarr array"),
+        ("_brickyard/x", "statistics"),
+    ] {
+        let out = store.join(inside);
+        fails_with(
+            &run(&[
+                "convert",
+                s(&raw),
+                s(&out),
+                "--dims",
+                "16x16x16",
+                "--dtype",
+                "u8",
+            ]),
+            &[why],
+        );
+        assert!(!out.exists());
+    }
     let lvl = d.path().join("l1.ome.zarr");
     let o = run(&["convert", s(&store), s(&lvl), "--level", "1"]);
     assert!(o.status.success(), "{}", stderr(&o));
@@ -2173,6 +2213,98 @@ fn flags_that_do_not_apply_to_an_input_are_refused() {
         (a.meta().spacing, &a.meta().unit),
         (b.meta().spacing, &b.meta().unit)
     );
+}
+
+/// A label image lies over its image only on the same grid: the same
+/// voxels, spacing and origin, in the same unit (nanometers against
+/// micrometers compared as lengths). Off that grid it is refused by
+/// `render --labels`, and its table has no mean intensities.
+#[test]
+fn labels_over_an_image_need_its_origin_and_unit() {
+    let d = tempfile::tempdir().unwrap();
+    let raw = ramp_raw(d.path());
+    let store = d.path().join("s.ome.zarr");
+    let conv = |out: &Path, extra: &[&str]| {
+        let mut args = vec![
+            "convert",
+            s(&raw),
+            s(out),
+            "--dims",
+            "16x16x16",
+            "--dtype",
+            "u8",
+            "--spacing",
+            "0.26,0.26,0.5",
+        ];
+        args.extend(extra);
+        if !extra.contains(&"--unit") {
+            args.extend(["--unit", "micrometer"]);
+        }
+        let o = run(&args);
+        assert!(o.status.success(), "{}", stderr(&o));
+        stderr(&o)
+    };
+    conv(&store, &[]);
+    let lab = |name: &str| store.join("labels").join(name);
+    let off = "only on the image's grid";
+    assert!(!conv(&lab("same"), &["--labels"]).contains(off));
+    for (name, flags) in [
+        ("shifted", ["--origin", "13,13,0"]),
+        ("mm", ["--unit", "millimeter"]),
+    ] {
+        let e = conv(&lab(name), &["--labels", flags[0], flags[1]]);
+        assert!(e.contains(off), "{name}: {e}");
+    }
+    // The image's grid, in nanometers.
+    let o = run(&[
+        "convert",
+        s(&raw),
+        s(&lab("nm")),
+        "--dims",
+        "16x16x16",
+        "--dtype",
+        "u8",
+        "--spacing",
+        "260,260,500",
+        "--unit",
+        "nanometer",
+        "--labels",
+    ]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    let render = |name: &str| {
+        let out = d.path().join(format!("{name}.png"));
+        let o = run(&[
+            "render",
+            s(&store),
+            "--mode",
+            "slice",
+            "--size",
+            "32x32",
+            "--out",
+            s(&out),
+            "--labels",
+            name,
+        ]);
+        (o, out)
+    };
+    for ok in ["same", "nm"] {
+        let (o, out) = render(ok);
+        assert!(o.status.success() && out.exists(), "{ok}: {}", stderr(&o));
+    }
+    for (bad, why) in [("shifted", "[0.0, 13.0, 13.0]"), ("mm", "millimeter")] {
+        let (o, out) = render(bad);
+        fails_with(&o, &[bad, "drawn over the grid they were made on", why]);
+        assert!(!out.exists());
+    }
+    // Mean intensities only on the image's grid.
+    let means = |name: &str| {
+        let csv = std::fs::read_to_string(lab(name).join("_brickyard/labels.csv")).unwrap();
+        let rows: Vec<String> = csv.lines().skip(1).map(str::to_string).collect();
+        assert!(!rows.is_empty(), "{name}: no rows");
+        rows.iter().all(|r| !r.ends_with(','))
+    };
+    assert!(means("same") && means("nm"));
+    assert!(!means("shifted") && !means("mm"));
 }
 
 /// An input read in large chunks (a store of 256³ u16 chunks, 32 MiB
