@@ -180,6 +180,7 @@ pub fn split_with_filters(
         bail!("host: expected a size above 0 (e.g. 256MiB)");
     }
     let images = pixels * IMAGE_BYTES_PER_PIXEL;
+    let shares_given = pool.is_some() || host.is_some();
     // Each level's chunk cache keeps at least half a MiB.
     let fixed = FIXED_BYTES + extra + levels as u64 * (512 << 10);
     let explicit = total.is_some();
@@ -210,7 +211,7 @@ pub fn split_with_filters(
     let need = pool + host + chunks + images + fixed + filters;
     if explicit && (need > want_total || pool == 0 || host == 0) {
         bail!(
-            "memory: {} does not hold this split: pool {}, host cache {}, decoded chunks {} (at least {}), images {}{} and {} for the program; raise --memory or lower --pool/--host",
+            "memory: {} does not hold this split: pool {}, host cache {}, decoded chunks {} (at least {}), images {}{} and {} for the program; raise --memory{}{}",
             human_bytes(want_total),
             human_bytes(pool),
             human_bytes(host),
@@ -222,7 +223,9 @@ pub fn split_with_filters(
             } else {
                 String::new()
             },
-            human_bytes(fixed)
+            human_bytes(fixed),
+            if shares_given { " or lower --pool/--host" } else { "" },
+            if images > want_total / 4 { " or draw a smaller image" } else { "" }
         );
     }
     // Without --memory, explicit pool and host sizes stand; the total is

@@ -42,6 +42,8 @@ pub struct BrickSummary {
     pub empty: u64,
     /// Constant bricks (min == max), including empty ones.
     pub constant: u64,
+    /// Bricks of NaN only (counted in `bricks`; they have no range).
+    pub nan: u64,
     pub min: f64,
     pub max: f64,
 }
@@ -214,10 +216,11 @@ fn brick_summary(root: &Path, level: usize) -> Option<BrickSummary> {
                 continue;
             }
             let (mn, mx) = (v[2 * e], v[2 * e + 1]);
+            s.bricks += 1;
             if mn.is_nan() && mx.is_nan() {
+                s.nan += 1;
                 continue;
             }
-            s.bricks += 1;
             if mn == mx {
                 s.constant += 1;
                 if mn == 0.0 {
@@ -575,7 +578,11 @@ pub fn format_info(i: &StoreInfo) -> String {
             );
         }
         if let Some(b) = &l.stats {
-            // (Bricks of NaN only have no range: none counted, none shown.)
+            // (Bricks of NaN only have no range.)
+            let nan = match b.nan {
+                0 => String::new(),
+                n => format!(", {n} of NaN only"),
+            };
             let values = if b.min <= b.max {
                 format!("values {}..{}", b.min, b.max)
             } else {
@@ -583,7 +590,7 @@ pub fn format_info(i: &StoreInfo) -> String {
             };
             let _ = writeln!(
                 s,
-                "           bricks: {} ({} empty, {} constant incl. empty), {values}",
+                "           bricks: {} ({} empty, {} constant incl. empty{nan}), {values}",
                 b.bricks, b.empty, b.constant
             );
         }

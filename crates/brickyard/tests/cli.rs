@@ -2378,3 +2378,43 @@ fn an_input_of_large_chunks_is_planned_with_them() {
     );
     assert!(!huge.exists());
 }
+
+/// `info` counts the bricks of NaN only that `convert` wrote (they have no
+/// range of values), as the conversion report does.
+#[test]
+fn info_counts_bricks_of_nan_only() {
+    let d = tempfile::tempdir().unwrap();
+    let raw = d.path().join("nan.raw");
+    let mut v = vec![f32::NAN; 16 * 16 * 32];
+    v[16 * 16 * 16] = 3.0;
+    std::fs::write(
+        &raw,
+        v.iter().flat_map(|x| x.to_le_bytes()).collect::<Vec<u8>>(),
+    )
+    .unwrap();
+    let store = d.path().join("nan.ome.zarr");
+    let o = run(&[
+        "convert",
+        s(&raw),
+        s(&store),
+        "--dims",
+        "16x16x32",
+        "--dtype",
+        "f32",
+        "--brick",
+        "16",
+    ]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    let o = run(&["info", s(&store), "--json"]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    let j: serde_json::Value = serde_json::from_slice(&o.stdout).unwrap();
+    let st = &j["levels"][0]["stats"];
+    assert_eq!(
+        (st["bricks"].as_u64(), st["nan"].as_u64()),
+        (Some(2), Some(1)),
+        "{st}"
+    );
+    assert_eq!(st["max"].as_f64(), Some(3.0), "{st}");
+    let o = run(&["info", s(&store)]);
+    assert!(String::from_utf8_lossy(&o.stdout).contains("1 of NaN only"));
+}
