@@ -2215,6 +2215,7 @@ fn accumulate(
         .as_ref()
         .map(|r| format!(" rows {}..{}", r.start, r.end))
         .unwrap_or_default();
+    let mut prev = u64::MAX;
     for frame in 1..=4 * n as usize + 64 {
         let f0 = std::time::Instant::now();
         let st = acc.frame(backend, s, scene, params, lod)?;
@@ -2239,6 +2240,24 @@ fn accumulate(
             }
             return Ok(acc.image().clone());
         }
+        // Bricks that could not be loaded stay stand-ins for good: once
+        // the frames asked for are blended and no more stand-ins go, the
+        // image is as complete as it gets (drawn in part from coarser
+        // data, which the view's line says).
+        let stuck = left >= prev && acc.frames() >= n;
+        prev = left;
+        if stuck && !s.failures().is_empty() {
+            if !quiet {
+                outln!(
+                    "accumulated{band} {n} frames in {frame} passes, {:.2} s, with {left} stand-in samples of bricks that could not be loaded",
+                    t.elapsed().as_secs_f64()
+                );
+            }
+            return Ok(acc.image().clone());
+        }
+    }
+    if !s.failures().is_empty() {
+        return Ok(acc.image().clone());
     }
     bail!(
         "progressive: the accumulation did not complete ({left} stand-in samples left): the pool cannot hold the view's bricks"

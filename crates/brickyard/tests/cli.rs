@@ -1948,6 +1948,17 @@ fn a_view_with_no_data_at_any_level_writes_no_image() {
         png.exists() && out.contains("could not be loaded (drawn from coarser data)"),
         "{out}"
     );
+    // Accumulated (--progressive): the bricks that fail stay stand-ins for
+    // good, and the image is written as such (it failed: "the pool cannot
+    // hold the view's bricks", no image).
+    std::fs::remove_file(&png).unwrap();
+    let o = render_cpu(
+        &fine,
+        &png,
+        &["--size", "48", "--level", "0", "--progressive", "4"],
+    );
+    assert_eq!(o.status.code(), Some(3), "{}", stderr(&o));
+    assert!(png.exists());
 }
 
 fn walk(dir: &Path) -> Vec<std::path::PathBuf> {
