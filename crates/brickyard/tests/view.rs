@@ -2415,3 +2415,277 @@ fn a_script_command_failing_names_its_line() {
         "{e}"
     );
 }
+
+/// Runs `cmd` in a process group of its own, killed whole when it has not
+/// ended after `limit`: its output, or `None` when it was killed.
+fn output_within(mut cmd: Command, limit: std::time::Duration) -> Option<Output> {
+    use std::os::unix::process::CommandExt;
+    use std::process::Stdio;
+    cmd.process_group(0)
+        .stdout(Stdio::piped())
+        .stderr(Stdio::piped());
+    let mut child = cmd.spawn().unwrap();
+    let start = std::time::Instant::now();
+    while child.try_wait().unwrap().is_none() {
+        if start.elapsed() > limit {
+            let _ = Command::new("kill")
+                .args(["-KILL", &format!("-{}", child.id())])
+                .status();
+            let _ = child.wait();
+            return None;
+        }
+        std::thread::sleep(std::time::Duration::from_millis(50));
+    }
+    Some(child.wait_with_output().unwrap())
+}
+
+/// Script steps that cannot work are refused with their line before the
+/// window opens: a view of no pixels (it panicked the render thread, and
+/// the script failed only at its wait's timeout) and numbers that are not
+/// finite or below 0 where they mean a time (a `sleep nan` waited for
+/// ever).
+#[test]
+fn viewer_refuses_sizes_of_no_pixels_and_numbers_that_are_not_finite() {
+    let _session = shared();
+    let d = tempfile::tempdir().unwrap();
+    let store = mandelbulb(d.path(), "32", &["--brick", "16", "--shard", "32"]);
+    for (i, (line, want)) in [
+        ("size 3d 0 0", "between 1 and 16384"),
+        ("sleep nan", "finite"),
+        ("drag 3d left nan nan", "finite"),
+        ("cursor 0.5 0.5 nan", "finite"),
+        ("wait-complete -1", "0 or more"),
+    ]
+    .into_iter()
+    .enumerate()
+    {
+        let script = d.path().join(format!("s{i}.txt"));
+        std::fs::write(
+            &script,
+            format!("mode dvr\n{line}\nwait-complete 20\nquit\n"),
+        )
+        .unwrap();
+        let Some(cmd) = viewer(&store, &script, None, &["--backend", "cpu"]) else {
+            return;
+        };
+        let o = output_within(cmd, std::time::Duration::from_secs(60))
+            .unwrap_or_else(|| panic!("{line}: the viewer did not end in 60 s"));
+        assert!(!o.status.success(), "{line}: accepted");
+        let e = stderr(&o);
+        assert!(
+            e.contains(&format!("{}: line 2", s(&script))) && e.contains(want),
+            "{line}: {e}"
+        );
+        assert!(!e.contains("panicked"), "{line}: {e}");
+    }
+}
+
+/// The 3D view's zoom stays within a range of the volume's size, as the
+/// slice views' does: zoomed in 500 steps (0.85^500 of the distance) the
+/// eye stays 1/1000 of the diagonal from its target, and a frame there
+/// ends (it took practically for ever, and the window could not close);
+/// zoomed out 10^9 steps, at most 1000 diagonals.
+#[test]
+fn viewer_bounds_the_3d_zoom_and_closes_promptly() {
+    let _session = shared();
+    let d = tempfile::tempdir().unwrap();
+    let store = mandelbulb(d.path(), "32", &["--brick", "16", "--shard", "32"]);
+    let p = |n: &str| d.path().join(n);
+    std::fs::write(
+        p("s.txt"),
+        format!(
+            "size 3d 160 120\nsize xy 32 32\nsize xz 32 32\nsize yz 32 32\nsize oblique 32 32\n\
+             scroll 3d 500\nwait-complete 60\nsave-view 3d {}\nkey plus\nkey plus\n\
+             scroll 3d -1e9\nwait-complete 60\nsave-view 3d {}\nquit\n",
+            s(&p("near")),
+            s(&p("far"))
+        ),
+    )
+    .unwrap();
+    let Some(cmd) = viewer(&store, &p("s.txt"), None, &["--backend", "cpu"]) else {
+        return;
+    };
+    let o = output_within(cmd, std::time::Duration::from_secs(180))
+        .expect("the viewer did not end in 180 s");
+    assert!(o.status.success(), "viewer: {}", stderr(&o));
+    let diagonal = (3.0f64 * 32.0 * 32.0).sqrt();
+    let distance = |name: &str| {
+        let text = std::fs::read_to_string(p(&format!("{name}.camera.json"))).unwrap();
+        let v: serde_json::Value = serde_json::from_str(&text).unwrap();
+        let at = |k: &str| -> Vec<f64> {
+            v[k].as_array()
+                .unwrap()
+                .iter()
+                .map(|x| x.as_f64().unwrap())
+                .collect()
+        };
+        let (e, t) = (at("eye"), at("target"));
+        (0..3).map(|a| (e[a] - t[a]).powi(2)).sum::<f64>().sqrt() / diagonal
+    };
+    let (near, far) = (distance("near"), distance("far"));
+    assert!(
+        (0.99e-3..=1.01e-3).contains(&near),
+        "zoomed in to {near} diagonals"
+    );
+    assert!(
+        (0.99e3..=1.01e3).contains(&far),
+        "zoomed out to {far} diagonals"
+    );
+}
+
+/// A view size a script sets is held to `--memory` as the window's size
+/// is at the start (a 4000 × 4000 view went 50% over a 512 MiB budget),
+/// and pixels outside a view are refused, once, naming the line.
+#[test]
+fn viewer_refuses_view_sizes_beyond_its_memory_and_pixels_outside_its_views() {
+    let _session = shared();
+    let d = tempfile::tempdir().unwrap();
+    let store = mandelbulb(d.path(), "32", &["--brick", "16", "--shard", "32"]);
+    // (The script's first line is a comment: the size is line 2, the
+    // pixel line 3.)
+    for (i, (body, line, want)) in [
+        ("size 3d 4000 4000\nwait-complete 60", 2, "--memory"),
+        (
+            "size xy 64 64\nhover xy 500 5",
+            3,
+            "pixel (500, 5) is outside the view (64×64",
+        ),
+        (
+            "size 3d 64 48\nclick 3d 1e9 1e9",
+            3,
+            "is outside the view (64×48",
+        ),
+        ("size xy 64 64\npick xy 64 10", 3, "is outside the view"),
+    ]
+    .into_iter()
+    .enumerate()
+    {
+        let script = d.path().join(format!("s{i}.txt"));
+        std::fs::write(&script, format!("# {i}\n{body}\nquit\n")).unwrap();
+        let Some(cmd) = viewer(
+            &store,
+            &script,
+            None,
+            &["--backend", "cpu", "--memory", "512MiB"],
+        ) else {
+            return;
+        };
+        let o = output_within(cmd, std::time::Duration::from_secs(120))
+            .unwrap_or_else(|| panic!("{body}: the viewer did not end in 120 s"));
+        assert!(!o.status.success(), "{body}: accepted");
+        let e = stderr(&o);
+        assert!(
+            e.contains(&format!("{}: line {line}", s(&script))) && e.contains(want),
+            "{body}: {e}"
+        );
+        assert!(!e.contains("click 3d: click 3d"), "{e}");
+    }
+}
+
+/// A still DVR view whose pixels cannot keep one run of the coarsest
+/// level's rays (a large view within a small budget) is not accumulated:
+/// the status line and the log say so, the session goes on (on the
+/// device this ended every script with an error), and the view saved is
+/// what was drawn (no `--progressive`), which `render` draws again.
+#[test]
+fn viewer_skips_an_accumulation_that_cannot_fit_and_saves_what_it_drew() {
+    let _session = shared();
+    let d = tempfile::tempdir().unwrap();
+    let store = mandelbulb(d.path(), "48", &["--brick", "16", "--shard", "32"]);
+    let p = |n: &str| d.path().join(n);
+    // 64 MiB of kept samples (an eighth of --memory) over 560 × 560
+    // pixels: 10 samples a pixel, against 23 for a ray at level 2.
+    std::fs::write(
+        p("s.txt"),
+        format!(
+            "size 3d 560 560\nsize xy 32 32\nsize xz 32 32\nsize yz 32 32\nsize oblique 32 32\n\
+             mode dvr\nwait-complete 300\nscreenshot 3d {a}.png\nsave-view 3d {a}\nquit\n",
+            a = s(&p("big"))
+        ),
+    )
+    .unwrap();
+    let log = p("log.jsonl");
+    let Some(mut cmd) = viewer(
+        &store,
+        &p("s.txt"),
+        Some(&log),
+        &[
+            "--memory",
+            "512MiB",
+            "--pool",
+            "4MiB",
+            "--brick",
+            "8",
+            "--backend",
+            "cpu",
+        ],
+    ) else {
+        return;
+    };
+    let o = cmd.output().unwrap();
+    assert!(o.status.success(), "viewer: {}", stderr(&o));
+    assert!(stderr(&o).contains("no accumulation"), "{}", stderr(&o));
+    let lines = log_lines(&log);
+    assert!(
+        lines.iter().any(|l| l["note_view"] == "3d"
+            && l["note"].as_str().unwrap().starts_with("no accumulation")),
+        "no note logged"
+    );
+    assert!(
+        lines
+            .iter()
+            .filter(|l| l["view"] == "3d")
+            .all(|l| l["accumulated"].is_null()),
+        "the view accumulated"
+    );
+    let args = std::fs::read_to_string(p("big.args")).unwrap();
+    assert!(!args.contains("--progressive"), "{args}");
+    equals_render(&store, d.path(), "big");
+}
+
+/// On the device, whose largest buffer holds few samples a pixel over a
+/// large view (lavapipe: 5 over 1000 × 800 pixels, against 23 for a ray
+/// at the coarsest level), the view is not accumulated and the session
+/// goes on (the accumulation's error ended every script with exit 1); the
+/// view saved says `--progressive` only where it accumulated.
+#[test]
+fn viewer_on_the_device_goes_on_when_its_buffers_cannot_hold_an_accumulation() {
+    let _session = alone();
+    if brickyard_gpu::context::test_gpu().is_none() {
+        return; // BRICKYARD_SKIP_GPU=1
+    }
+    let d = tempfile::tempdir().unwrap();
+    let store = mandelbulb(d.path(), "48", &["--brick", "16", "--shard", "32"]);
+    let p = |n: &str| d.path().join(n);
+    std::fs::write(
+        p("s.txt"),
+        format!(
+            "size 3d 1000 800\nsize xy 32 32\nsize xz 32 32\nsize yz 32 32\nsize oblique 32 32\n\
+             mode dvr\nwait-complete 300\nsave-view 3d {}\nquit\n",
+            s(&p("dev"))
+        ),
+    )
+    .unwrap();
+    let log = p("log.jsonl");
+    let Some(mut cmd) = viewer(&store, &p("s.txt"), Some(&log), &["--backend", "gpu"]) else {
+        return;
+    };
+    let o = cmd.output().unwrap();
+    assert!(o.status.success(), "viewer: {}", stderr(&o));
+    let lines = log_lines(&log);
+    let accumulated = lines
+        .iter()
+        .filter(|l| l["view"] == "3d")
+        .any(|l| l["accumulated"][0].as_u64().is_some_and(|k| k > 0));
+    let skipped = lines.iter().any(|l| {
+        l["note"]
+            .as_str()
+            .is_some_and(|n| n.starts_with("no accumulation"))
+    });
+    assert!(
+        accumulated != skipped,
+        "accumulated {accumulated}, skipped {skipped}"
+    );
+    let args = std::fs::read_to_string(p("dev.args")).unwrap();
+    assert_eq!(args.contains("--progressive"), accumulated, "{args}");
+}

@@ -399,6 +399,7 @@ impl ViewerApp {
                         self.fail(ctx, &e);
                     }
                 }
+                Reply::Note(v, note) => self.note(v, note, ""),
                 Reply::Frame(out) => {
                     shown[out.view] = true;
                     self.show_frame(out);
@@ -425,6 +426,7 @@ impl ViewerApp {
                         self.fail(ctx, &e);
                     }
                 }
+                Reply::Note(v, note) => self.note(v, note, "labels"),
                 Reply::Frame(out) => {
                     let v = out.view;
                     if self.log.is_some() {
@@ -450,6 +452,25 @@ impl ViewerApp {
                 }
             }
         }
+    }
+
+    /// A note from a render thread about view `v` (of `layer`, when not
+    /// empty) that fails nothing: said in the status line and logged,
+    /// and on stderr when the view gives something up (once per text).
+    fn note(&mut self, v: usize, note: String, layer: &str) {
+        let text = match layer {
+            "" => format!("{}: {note}", VIEWS[v]),
+            l => format!("{l}: {}: {note}", VIEWS[v]),
+        };
+        if self.message == text {
+            return;
+        }
+        if note.starts_with("no accumulation") || note.starts_with("accumulation stopped") {
+            eprintln!("view: {text}");
+        }
+        self.message = text;
+        let t = self.started.elapsed().as_secs_f64();
+        self.log_line(serde_json::json!({ "t": t, "note": note, "note_view": VIEWS[v] }));
     }
 
     /// The voxel readout: ask about the point under the pointer (a

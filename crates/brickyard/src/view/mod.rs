@@ -150,6 +150,22 @@ fn histogram(
     h
 }
 
+/// The views' images, their textures and the window's frame buffers,
+/// for views of `pixels` pixels in all: the labels' slices over them add
+/// half as many again.
+pub(crate) fn image_pixels(pixels: u64, labels: bool) -> u64 {
+    pixels * if labels { 3 } else { 2 } / 2
+}
+
+/// [`image_pixels`] in bytes (as the memory split counts them).
+pub(crate) fn image_bytes(pixels: u64, labels: bool) -> u64 {
+    image_pixels(pixels, labels) * crate::memory::IMAGE_BYTES_PER_PIXEL
+}
+
+/// How long the window, once closed, waits for a render thread still
+/// drawing a frame before the process ends without it.
+const JOIN_WAIT: Duration = Duration::from_secs(10);
+
 pub fn run(c: ViewCmd, demo_store: impl FnOnce() -> Result<PathBuf>) -> Result<i32> {
     // The rules of `render --traversal` (checked before anything is read).
     let crate::render::TraversalChoice {
@@ -318,7 +334,7 @@ pub fn run(c: ViewCmd, demo_store: impl FnOnce() -> Result<PathBuf>) -> Result<i
         // The views' images, their textures and the window's frame
         // buffers: together about the window's pixels; the labels' slices
         // add half as many again.
-        ww as u64 * wh as u64 * if label_dir.is_some() { 3 } else { 2 } / 2,
+        image_pixels(ww as u64 * wh as u64, label_dir.is_some()),
         levels.len(),
         crate::memory::WINDOW_BYTES + accum_bytes + device.bytes + probe_bytes,
         derived_within.as_ref().map_or(0, |(_, b)| *b),
@@ -385,6 +401,8 @@ pub fn run(c: ViewCmd, demo_store: impl FnOnce() -> Result<PathBuf>) -> Result<i
         accumulate,
         accum_bytes,
         octree: octree.then_some(octree_depth),
+        image_bytes: image_bytes(ww as u64 * wh as u64, label_dir.is_some()),
+        memory_given: memory.is_some(),
     };
     // The histogram from the bricks' value ranges (statistics only).
     let loader = brickyard_cache::loader::Loader::open(
@@ -550,9 +568,27 @@ pub fn run(c: ViewCmd, demo_store: impl FnOnce() -> Result<PathBuf>) -> Result<i
     );
     // The window is gone and with it the sender of the worker's messages:
     // the worker sees that (or the `Quit` sent on exit) and returns.
+    // A thread still in a long frame (it reads its messages between
+    // frames) is waited for a while, then left: closing the window must
+    // not wait for ever.
+    let until = std::time::Instant::now() + JOIN_WAIT;
     for (thread, what) in [(&render_thread, "render"), (&label_thread, "label render")] {
         let handle = thread.lock().unwrap().take();
         if let Some(h) = handle {
+            while !h.is_finished() && std::time::Instant::now() < until {
+                std::thread::sleep(Duration::from_millis(20));
+            }
+            if !h.is_finished() {
+                eprintln!(
+                    "view: the {what} thread is still drawing a frame {} s after the window closed; exiting without it",
+                    JOIN_WAIT.as_secs()
+                );
+                if let Err(e) = &r {
+                    eprintln!("view: cannot open a window: {e}");
+                    std::process::exit(1);
+                }
+                std::process::exit(exit.load(Ordering::SeqCst));
+            }
             if h.join().is_err() {
                 eprintln!("view: the {what} thread panicked");
             }

@@ -106,11 +106,60 @@ fn view(s: &str) -> Result<usize> {
         .with_context(|| format!("expected a view ({}), found {s:?}", VIEWS.join(", ")))
 }
 
-fn num<T: std::str::FromStr>(s: &str) -> Result<T> {
-    s.parse::<T>()
-        .ok()
-        .with_context(|| format!("expected a number, found {s:?}"))
+/// A number a script may write: integers, and finite reals (`nan` and
+/// `inf`, or a real too large for its type, are refused).
+trait Num: std::str::FromStr {
+    fn finite(&self) -> bool {
+        true
+    }
 }
+impl Num for f32 {
+    fn finite(&self) -> bool {
+        self.is_finite()
+    }
+}
+impl Num for f64 {
+    fn finite(&self) -> bool {
+        self.is_finite()
+    }
+}
+impl Num for u32 {}
+impl Num for u64 {}
+impl Num for usize {}
+
+fn num<T: Num>(s: &str) -> Result<T> {
+    let x = s
+        .parse::<T>()
+        .ok()
+        .with_context(|| format!("expected a number, found {s:?}"))?;
+    if !x.finite() {
+        bail!("expected a finite number, found {s:?}");
+    }
+    Ok(x)
+}
+
+/// A number of seconds or milliseconds to wait: finite, not negative.
+fn duration(what: &str, s: &str) -> Result<f64> {
+    let x: f64 = num(s).with_context(|| what.to_string())?;
+    if x < 0.0 {
+        bail!("{what}: expected a time of 0 or more, found {s:?}");
+    }
+    Ok(x)
+}
+
+/// A pixel of a view (`X Y`, not negative; the view's size is checked
+/// when the command runs).
+fn pixel(what: &str, x: &str, y: &str) -> Result<(f64, f64)> {
+    let (px, py): (f64, f64) = (num(x)?, num(y)?);
+    if px < 0.0 || py < 0.0 {
+        bail!("{what}: expected a pixel of the view (X and Y of 0 or more), found {x} {y}");
+    }
+    Ok((px, py))
+}
+
+/// The largest view edge a script may ask for (as `--window-size` and
+/// `render --size` take).
+pub const MAX_EDGE: u32 = 16384;
 
 /// A command of a script and where it was written.
 #[derive(Debug, Clone)]
@@ -153,7 +202,15 @@ fn parse_line(w: &[&str]) -> Result<Cmd> {
     Ok(match w[0] {
         "size" => {
             arity(3)?;
-            Cmd::Size(view(w[1])?, num(w[2])?, num(w[3])?)
+            let (v, wd, ht): (usize, u32, u32) = (view(w[1])?, num(w[2])?, num(w[3])?);
+            if !(1..=MAX_EDGE).contains(&wd) || !(1..=MAX_EDGE).contains(&ht) {
+                bail!(
+                    "size: expected W H between 1 and {MAX_EDGE}, found {} {}",
+                    w[2],
+                    w[3]
+                );
+            }
+            Cmd::Size(v, wd, ht)
         }
         "mode" => {
             arity(1)?;
@@ -175,16 +232,21 @@ fn parse_line(w: &[&str]) -> Result<Cmd> {
         }
         "click" => {
             arity(3)?;
-            Cmd::Click(view(w[1])?, num(w[2])?, num(w[3])?)
+            let (x, y) = pixel("click", w[2], w[3])?;
+            Cmd::Click(view(w[1])?, x as f32, y as f32)
         }
         "hover" => match w.len() {
             2 if w[1] == "off" => Cmd::Hover(None),
-            4 => Cmd::Hover(Some((view(w[1])?, num(w[2])?, num(w[3])?))),
+            4 => {
+                let (x, y) = pixel("hover", w[2], w[3])?;
+                Cmd::Hover(Some((view(w[1])?, x, y)))
+            }
             _ => bail!("hover takes a view and X Y, or off"),
         },
         "pick" => {
             arity(3)?;
-            Cmd::Pick(view(w[1])?, num(w[2])?, num(w[3])?)
+            let (x, y) = pixel("pick", w[2], w[3])?;
+            Cmd::Pick(view(w[1])?, x, y)
         }
         "largest-labels" => {
             arity(1)?;
@@ -238,7 +300,7 @@ fn parse_line(w: &[&str]) -> Result<Cmd> {
         }
         "wait-probe" => match w.len() {
             1 => Cmd::WaitProbe(60.0),
-            2 => Cmd::WaitProbe(num(w[1])?),
+            2 => Cmd::WaitProbe(duration("wait-probe", w[1])?),
             _ => bail!("wait-probe takes at most 1 argument"),
         },
         "key" => {
@@ -317,7 +379,7 @@ fn parse_line(w: &[&str]) -> Result<Cmd> {
         }
         "wait-job" => match w.len() {
             1 => Cmd::WaitJob(600.0),
-            2 => Cmd::WaitJob(num(w[1])?),
+            2 => Cmd::WaitJob(duration("wait-job", w[1])?),
             _ => bail!("wait-job takes at most 1 argument"),
         },
         "derive" => {
@@ -385,7 +447,7 @@ fn parse_line(w: &[&str]) -> Result<Cmd> {
         }
         "wait-complete" => match w.len() {
             1 => Cmd::WaitComplete(120.0),
-            2 => Cmd::WaitComplete(num(w[1])?),
+            2 => Cmd::WaitComplete(duration("wait-complete", w[1])?),
             _ => bail!("wait-complete takes at most one argument"),
         },
         "screenshot" => {
@@ -410,14 +472,14 @@ fn parse_line(w: &[&str]) -> Result<Cmd> {
         }
         "wait-file" => match w.len() {
             2 => Cmd::WaitFile(w[1].into(), 120.0),
-            3 => Cmd::WaitFile(w[1].into(), num(w[2])?),
+            3 => Cmd::WaitFile(w[1].into(), duration("wait-file", w[2])?),
             _ => bail!("wait-file takes a file and at most a number of seconds"),
         },
         "sleep" => {
             if w.len() != 2 {
                 bail!("sleep takes a number of milliseconds");
             }
-            Cmd::Sleep(num(w[1])?)
+            Cmd::Sleep(duration("sleep", w[1])?)
         }
         "quit" => {
             arity(0)?;
@@ -471,5 +533,61 @@ mod tests {
         );
         let e = format!("{:#}", parse(p, "window 1\n").unwrap_err());
         assert!(e.contains("line 1") && e.contains("takes 2"), "{e}");
+    }
+
+    /// Sizes of no pixels or beyond what a view can take, numbers that are
+    /// not finite, times and pixels below 0: refused when the script is
+    /// read, naming the line (they panicked the render thread, hung the
+    /// window or were taken silently).
+    #[test]
+    fn scripts_refuse_zero_sizes_non_finite_and_negative_numbers() {
+        let p = Path::new("s.txt");
+        for (line, want) in [
+            ("size 3d 0 0", "between 1 and 16384"),
+            ("size xy 64 0", "between 1 and 16384"),
+            ("size 3d 20000 64", "between 1 and 16384"),
+            ("cursor 2 -1 nan", "finite"),
+            ("point nan 0.5", "finite"),
+            ("scroll xy nan", "finite"),
+            ("scroll 3d inf", "finite"),
+            ("drag 3d left nan nan", "finite"),
+            ("sleep nan", "finite"),
+            ("sleep inf", "finite"),
+            ("sleep -5", "0 or more"),
+            ("lod-bias nan", "finite"),
+            ("oblique nan 0", "finite"),
+            ("wait-complete nan", "finite"),
+            ("wait-complete -1", "0 or more"),
+            ("wait-probe nan", "finite"),
+            ("wait-probe -2", "0 or more"),
+            ("wait-job -inf", "finite"),
+            ("wait-file f -1", "0 or more"),
+            ("window nan 1", "finite"),
+            ("channel-window 0 0 inf", "finite"),
+            ("quality NaN", "finite"),
+            ("label-opacity nan", "finite"),
+            ("hover xy -5 -5", "pixel of the view"),
+            ("click 3d -1 4", "pixel of the view"),
+            ("pick xy 3 nan", "finite"),
+            ("point 1e39 0.5", "finite"),
+        ] {
+            let e = format!(
+                "{:#}",
+                parse(p, &format!("mode dvr\n{line}\nquit\n")).unwrap_err()
+            );
+            assert!(
+                e.contains(&format!("s.txt: line 2: {line:?}")) && e.contains(want),
+                "{line}: {e}"
+            );
+        }
+        // What stays allowed.
+        let c = parse(
+            p,
+            "size 3d 1 16384\nsleep 0\nwait-complete 0.5\nhover xy 0 0\nscroll 3d -3\nlod-bias -1.5\n",
+        )
+        .unwrap();
+        assert_eq!(c[0].cmd, Cmd::Size(0, 1, 16384));
+        assert_eq!(c[1].cmd, Cmd::Sleep(0.0));
+        assert_eq!(c[3].cmd, Cmd::Hover(Some((1, 0.0, 0.0))));
     }
 }

@@ -55,6 +55,11 @@ pub struct Setup {
     /// and kept after every frame; the 3D view's unshaded DVR goes
     /// through it.
     pub octree: Option<u32>,
+    /// Bytes the memory budget set aside for the views' images (by the
+    /// window's size), and whether that budget was given (`--memory`):
+    /// the sizes scripts set are held to it.
+    pub image_bytes: u64,
+    pub memory_given: bool,
 }
 
 pub enum Msg {
@@ -112,6 +117,9 @@ pub struct Out {
 pub enum Reply {
     Frame(Box<Out>),
     Error(String),
+    /// Something the status line should say about view `usize` that
+    /// fails nothing (an accumulation given up or drawn coarser).
+    Note(usize, String),
 }
 
 struct View {
@@ -130,6 +138,10 @@ struct View {
     /// Pool slots its last frame needed: used at their own level, and
     /// asked for.
     need: usize,
+    /// This version of the view does not accumulate samples (its
+    /// accumulation could not be begun, or failed): its plain frame is
+    /// its last.
+    no_acc: bool,
 }
 
 impl View {
@@ -186,6 +198,44 @@ fn acc_budget(scene: &Scene, p: &RenderParams, n: u32, bytes: u64) -> usize {
     let pixels = (p.width as u64 * p.height as u64).max(1);
     let fit = (bytes / pixels).saturating_sub(160) / per;
     fit.min(n as u64 * steps) as usize
+}
+
+/// Whether an accumulation keeping `kept` samples a pixel can draw `p`
+/// at `lod`: every ray's first run must fit (the rule of the device's
+/// accumulation, which the CPU's twin keeps). `Ok(None)`: at `lod`;
+/// `Ok(Some(note))`: at a coarser level of detail (as `render
+/// --progressive` does, and says); `Err(note)`: not even at the coarsest
+/// level, so the view does not accumulate.
+fn acc_fits(
+    scene: &Scene,
+    p: &RenderParams,
+    lod: Lod,
+    kept: usize,
+    on_device: bool,
+) -> Result<Option<String>, String> {
+    use brickyard_render::savr::{lod_within, longest_run};
+    match lod_within(scene, p, lod, kept as u64) {
+        Some(fit) if fit == lod => Ok(None),
+        Some(fit) => Ok(Some(format!(
+            "accumulating at {}: a pixel keeps {kept} samples, fewer than one run of the longest ray takes at the level of detail asked for (a smaller view keeps more detail)",
+            match fit {
+                Lod::Fixed(l) => format!("level {l}"),
+                Lod::Auto { bias } => format!("a level-of-detail bias of {bias:+.2}"),
+            }
+        ))),
+        None => Err(format!(
+            "no accumulation: a pixel keeps {kept} samples{}, fewer than one run of the longest ray takes even at the coarsest level ({}); a smaller view, or {}, accumulates",
+            match on_device {
+                true => " (what the device's largest buffer holds over the view)",
+                false => "",
+            },
+            longest_run(scene, p, scene.levels.len().saturating_sub(1)),
+            match on_device {
+                true => "--backend cpu",
+                false => "a larger --memory",
+            }
+        )),
+    }
 }
 
 fn open(setup: &Setup, scene: &mut Scene) -> anyhow::Result<(Session, Backend)> {
@@ -301,6 +351,7 @@ pub fn run(setup: Setup, mut scene: Scene, rx: Receiver<Msg>, tx: Sender<Reply>,
                             keep: None,
                             acc: None,
                             need: 0,
+                            no_acc: false,
                         });
                     }
                     let v = &mut views[i];
@@ -334,6 +385,7 @@ pub fn run(setup: Setup, mut scene: Scene, rx: Receiver<Msg>, tx: Sender<Reply>,
                         }
                     } else {
                         v.acc = None;
+                        v.no_acc = false;
                         v.budget.view_changed();
                         v.keep = None;
                     }
@@ -395,10 +447,16 @@ pub fn run(setup: Setup, mut scene: Scene, rx: Receiver<Msg>, tx: Sender<Reply>,
                     wake();
                 }
                 Err(e) => {
-                    let _ = tx.send(Reply::Error(format!("accumulation: {e:#}")));
+                    // The view keeps its plain frame: drawn once more and
+                    // settled, without accumulating (interactively and in
+                    // scripts alike; the status line says why).
+                    let note = format!("accumulation stopped: {e:#}");
+                    let _ = tx.send(Reply::Note(i, note));
                     wake();
                     views[i].acc = None;
-                    views[i].complete = true;
+                    views[i].no_acc = true;
+                    views[i].complete = false;
+                    views[i].keep = None;
                 }
             }
             continue;
@@ -449,21 +507,37 @@ pub fn run(setup: Setup, mut scene: Scene, rx: Receiver<Msg>, tx: Sender<Reply>,
             && spec.params.channels.is_empty()
             // (A label image's surfaces are whole in every frame.)
             && !spec.params.labels
+            && !views[i].no_acc
         {
             let n = setup_accumulate.0;
             let budget = acc_budget(&sc, &spec.params, n, setup_accumulate.1);
             if budget > 0 {
-                views[i].acc = Some(Acc {
-                    key: acc_key(&spec, lod),
-                    acc: Accumulating::new(&backend, &spec.params, n, budget),
-                    passes: 0,
-                    reblend: false,
-                    next_row: 0,
-                    part: 8,
-                    sent_at: Instant::now(),
-                });
-                accumulated = Some((0, n));
-                done = false;
+                let acc = Accumulating::new(&backend, &spec.params, n, budget);
+                let on_device = !matches!(backend, crate::backend::Backend::Cpu);
+                match acc_fits(&sc, &spec.params, lod, acc.budget(), on_device) {
+                    Ok(note) => {
+                        if let Some(note) = note {
+                            let _ = tx.send(Reply::Note(i, note));
+                        }
+                        views[i].acc = Some(Acc {
+                            key: acc_key(&spec, lod),
+                            acc,
+                            passes: 0,
+                            reblend: false,
+                            next_row: 0,
+                            part: 8,
+                            sent_at: Instant::now(),
+                        });
+                        accumulated = Some((0, n));
+                        done = false;
+                    }
+                    Err(note) => {
+                        // Not even the coarsest level's rays fit what a
+                        // pixel keeps: the plain frame stands.
+                        views[i].no_acc = true;
+                        let _ = tx.send(Reply::Note(i, note));
+                    }
+                }
             }
         }
         views[i].complete = done;

@@ -14,6 +14,11 @@ use eframe::egui;
 use std::sync::atomic::Ordering;
 use std::time::{Duration, Instant};
 
+/// The 3D camera's least and greatest distance to its target, in
+/// diagonals of the volume (see [`ViewerApp::zoom_range`]).
+const ZOOM_NEAREST: f64 = 1e-3;
+const ZOOM_FARTHEST: f64 = 1e3;
+
 /// Orbit parameters of a camera: (distance, azimuth, elevation) around its
 /// target (see [`Camera::orbit`]).
 fn orbit_of(c: &Camera) -> (f64, f64, f64) {
@@ -53,16 +58,96 @@ impl ViewerApp {
         self.interacting = Instant::now();
     }
 
+    /// The 3D camera's distance to its target (perspective) or the
+    /// height it sees (orthographic) stays within this range, relative to
+    /// the volume's diagonal (as the slice views' zoom stays within
+    /// 0.05–200): closer, one frame's rays took practically for ever.
+    pub(super) fn zoom_range(&self) -> [f64; 2] {
+        let diagonal = length(self.ds.extent).max(1e-9);
+        [ZOOM_NEAREST * diagonal, ZOOM_FARTHEST * diagonal]
+    }
+
     pub(super) fn zoom(&mut self, steps: f64) {
+        if !steps.is_finite() {
+            return;
+        }
         let k = 0.85f64.powf(steps);
+        let [near, far] = self.zoom_range();
         match &mut self.cam.projection {
-            Projection::Orthographic { height } => *height *= k,
+            Projection::Orthographic { height } => *height = (*height * k).clamp(near, far),
             Projection::Perspective { .. } => {
                 let v = sub(self.cam.eye, self.cam.target);
-                self.cam.eye = add(self.cam.target, scale(v, k));
+                let d = length(v);
+                if d > 0.0 && d.is_finite() {
+                    let to = (d * k).clamp(near, far);
+                    self.cam.eye = add(self.cam.target, scale(v, to / d));
+                }
             }
         }
         self.interacting = Instant::now();
+    }
+
+    /// Fails unless `(x, y)` is a render pixel of view `v` (`what`: the
+    /// command).
+    pub(super) fn check_pixel(&self, what: &str, v: usize, x: f64, y: f64) -> Result<()> {
+        let [w, h] = self.render_size(v);
+        if !(x >= 0.0 && y >= 0.0 && x < w as f64 && y < h as f64) {
+            bail!(
+                "{what} {}: pixel ({x}, {y}) is outside the view ({w}×{h} pixels)",
+                VIEWS[v]
+            );
+        }
+        Ok(())
+    }
+
+    /// Fails unless view `v` drawn at `w × h` (the others as they are)
+    /// keeps the views' images within what the memory budget set aside
+    /// for them at the start (the window's pixels, by `--window-size`),
+    /// as the start refuses a window too large for `--memory`. Without
+    /// `--memory`, within the machine's memory.
+    pub(super) fn check_view_size(&self, v: usize, w: u32, h: u32) -> Result<()> {
+        let pixels: u64 = (0..N_VIEWS)
+            .map(|k| {
+                let [a, b] = match k == v {
+                    true => [w, h],
+                    false => self.views[k].forced.unwrap_or(self.views[k].size),
+                };
+                a as u64 * b as u64
+            })
+            .sum();
+        let need = crate::view::image_bytes(pixels, self.labels.is_some());
+        let have = self.setup.image_bytes;
+        if need <= have {
+            return Ok(());
+        }
+        let human = brickyard_store::info::human_bytes;
+        let more = need - have;
+        let within = match self.setup.memory_given {
+            true => self.setup.memory_budget,
+            false => crate::memory::physical_ram(),
+        };
+        let total = self.setup.memory_budget.saturating_add(more);
+        if !self.setup.memory_given && total <= within {
+            return Ok(());
+        }
+        bail!(
+            "size {} {w} {h}: the views' images would need {} ({pixels} pixels in all), {} more than the {} set aside for them{}; a smaller size{}",
+            VIEWS[v],
+            human(need),
+            human(more),
+            human(have),
+            match self.setup.memory_given {
+                true => format!(
+                    " within --memory {} (by the window's size)",
+                    human(self.setup.memory_budget)
+                ),
+                false => format!(", and the viewer would need {} of this machine's {}", human(total), human(within)),
+            },
+            match self.setup.memory_given {
+                true => ", or a larger --memory",
+                false => "",
+            }
+        );
     }
 
     pub(super) fn key(&mut self, k: &str) {
@@ -268,7 +353,9 @@ impl ViewerApp {
         }
         self.waiting = None;
         if !self.message.starts_with(ok) {
-            bail!("{what}: {}", self.message);
+            // (The message may already name the command.)
+            let m = self.message.trim_start_matches(&format!("{what}: "));
+            bail!("{what}: {m}");
         }
         Ok(true)
     }
@@ -284,6 +371,7 @@ impl ViewerApp {
             let r: Result<bool> = (|| {
                 Ok(match &cmd {
                     Cmd::Size(v, w, h) => {
+                        self.check_view_size(*v, *w, *h)?;
                         self.views[*v].forced = Some([*w, *h]);
                         true
                     }
@@ -302,6 +390,9 @@ impl ViewerApp {
                     Cmd::Click(0, x, y) => {
                         // As a double-click: the cursor to the point shown.
                         let (x, y) = (*x as f64, *y as f64);
+                        if self.waiting.is_none() {
+                            self.check_pixel("click", 0, x, y)?;
+                        }
                         if self.probe.is_none() {
                             bail!("click 3d: the viewer has no voxel readout");
                         }
@@ -311,6 +402,7 @@ impl ViewerApp {
                         })?
                     }
                     Cmd::Click(v, x, y) => {
+                        self.check_pixel("click", *v, *x as f64, *y as f64)?;
                         self.cursor = self.slice_point(*v, *x as f64, *y as f64);
                         true
                     }
@@ -319,6 +411,9 @@ impl ViewerApp {
                         true
                     }
                     Cmd::Hover(h) => {
+                        if let Some((v, x, y)) = *h {
+                            self.check_pixel("hover", v, x, y)?;
+                        }
                         self.script_hover = *h;
                         true
                     }
@@ -327,6 +422,9 @@ impl ViewerApp {
                             bail!("pick: the viewer has no voxel readout");
                         }
                         let (v, x, y) = (*v, *x, *y);
+                        if self.waiting.is_none() {
+                            self.check_pixel("pick", v, x, y)?;
+                        }
                         let at = self.slice_pixel(v.max(1), x, y);
                         self.await_answer("pick", "labels picked", |a| match v {
                             0 => a.pick_3d(x, y).map_err(|e| anyhow::anyhow!("{e}")),

@@ -43,14 +43,25 @@ impl ViewerApp {
                 format!("{}", p.samples_per_voxel),
             ]);
         }
+        // Sample accumulation where the view's latest frame was one (of
+        // the version shown): what was drawn, not what could have been.
+        let vs = &self.views[v];
+        let accumulated = vs
+            .last
+            .as_ref()
+            .filter(|o| o.version == vs.version)
+            .and_then(|o| o.accumulated)
+            .filter(|&(k, n)| k > 0 && n > 0);
         match &p.mode {
-            RenderMode::Dvr if p.channels.is_empty() && self.setup.accumulate > 0 && !p.labels => a
-                .extend([
+            RenderMode::Dvr if p.channels.is_empty() && !p.labels && accumulated.is_some() => {
+                let (_, n) = accumulated.expect("matched");
+                a.extend([
                     "--mode".into(),
                     "dvr".into(),
                     "--progressive".into(),
-                    self.setup.accumulate.to_string(),
-                ]),
+                    n.to_string(),
+                ])
+            }
             RenderMode::Dvr => a.extend(["--mode".into(), "dvr".into()]),
             RenderMode::Mip => a.extend(["--mode".into(), "mip".into()]),
             RenderMode::Slice { origin, normal } => {
