@@ -19,14 +19,29 @@
 //! web page whose name is pointed at 127.0.0.1 (DNS rebinding) reads
 //! nothing, and pages of other origins cannot read across origins;
 //! the access log shows a `token=` parameter as `…`;
-//! a path is decoded once, and a segment that is `..`, `.`, empty, holds
-//! a `%` after decoding (double encoding), a backslash or a NUL is refused
-//! (403) before the file system is touched; the file found is then
-//! resolved (symlinks followed) and must still lie under its store's root
-//! (403 otherwise), and must be a regular file (404 otherwise). Methods
-//! that would write get 405. A fixed pool of worker threads answers
-//! (bounded concurrency); each request is logged on stderr; Ctrl-C or
-//! SIGTERM stops accepting and ends after the requests in progress.
+//! a path is decoded once, and a segment that is `..`, `.`, empty, hidden
+//! (a name starting with `.`, other than Zarr's `.zarray`, `.zgroup`,
+//! `.zattrs`, `.zmetadata`), holds a `%` after decoding (double encoding),
+//! a backslash or a NUL is refused (403) before the file system is
+//! touched; in a served folder only the stores found in it at start are
+//! served (a store whose real path is outside the folder is skipped, and
+//! the start says so); the file found is then resolved (symlinks
+//! followed) and must still lie under its store's root (403 otherwise),
+//! and must be a regular file (404 otherwise). Methods that would write
+//! get 405; a request with a body (`Content-Length` above 0 or
+//! `Transfer-Encoding`) gets 413 before anything else and its connection
+//! is closed without reading the body. The server reads requests itself
+//! (tiny_http writes the responses): a head is at most 32 KiB (431), sent
+//! within 30 s of its first byte (408); a connection waits 60 s at most
+//! for its next request; a response's writes must go out within 30 s
+//! each, and at 32 KiB/s on average after 30 s (a response whose client
+//! stops reading for 0.2 s gives its worker up meanwhile, so that slow
+//! readers do not hold the workers); at most 256 connections
+//! are open (64 from one address other than loopback), and beyond that
+//! the one that has waited longest for a request is closed to make room.
+//! `--workers` requests are answered at once; each request is logged on
+//! stderr; Ctrl-C or SIGTERM stops accepting and ends after the requests
+//! in progress.
 //! `--render` adds remote rendering (`remote`): a WebSocket endpoint and
 //! its thin client at `/remote`.
 
@@ -34,13 +49,13 @@ use anyhow::{bail, Context, Result};
 use clap::Args;
 use std::collections::HashMap;
 use std::fs::File;
-use std::io::{Read, Seek, SeekFrom};
-use std::net::{IpAddr, SocketAddr};
+use std::io::{Read, Seek, SeekFrom, Write};
+use std::net::{IpAddr, Shutdown, SocketAddr, TcpListener, TcpStream};
 use std::path::{Path, PathBuf};
 use std::sync::atomic::Ordering;
-use std::sync::Arc;
+use std::sync::{Arc, Condvar, Mutex};
 use std::time::{Duration, Instant, UNIX_EPOCH};
-use tiny_http::{Header, Method, Request, Response, Server, StatusCode};
+use tiny_http::{HTTPVersion, Header, Method, Response, StatusCode};
 
 /// The thin client of `--render` (the render port written in).
 const REMOTE_PAGE: &str = include_str!("remote.html");
@@ -110,10 +125,22 @@ pub struct ServeCmd {
     pub backend: String,
 }
 
+/// A directory served under `/<name>/`.
+struct Mount {
+    /// Its canonical path.
+    root: PathBuf,
+    /// A folder of stores: the stores found in it at start (by name, each
+    /// with its canonical root), the only paths served below it. `None`:
+    /// the directory is a store itself (or the web client's bundle).
+    stores: Option<HashMap<String, PathBuf>>,
+}
+
 /// What the server serves and how.
 struct Site {
-    /// Mount name → canonical root directory.
-    roots: HashMap<String, PathBuf>,
+    /// Mount name → what it serves.
+    roots: HashMap<String, Mount>,
+    /// Lines to print after the first (skipped folder entries, warnings).
+    notes: Vec<String>,
     token: Option<String>,
     /// `--allow-origin`: origins besides loopback ones that may read
     /// across origins.
@@ -160,36 +187,55 @@ fn web_dist(c: &ServeCmd) -> Result<PathBuf> {
         .with_context(|| format!("--web: {}: cannot serve it", dir.display()))
 }
 
-/// Whether `dir` is something `serve` can serve: a Zarr store (a group or
-/// an array at its top) or a folder with at least one store directly in it.
-/// The stores a served folder holds, as URL paths below it: `[""]` when
-/// it is a store itself, else its sub-folders that are stores (by name).
-fn stores_in(dir: &Path) -> Vec<String> {
-    let is_store = |d: &Path| {
-        d.is_dir()
-            && ["zarr.json", ".zgroup", ".zarray"]
-                .iter()
-                .any(|m| d.join(m).is_file())
-    };
-    if is_store(dir) {
-        return vec![String::new()];
-    }
-    let mut names: Vec<String> = std::fs::read_dir(dir)
-        .map(|entries| {
-            entries
-                .filter_map(|e| e.ok())
-                .filter(|e| is_store(&e.path()))
-                .filter_map(|e| e.file_name().to_str().map(str::to_string))
-                .filter(|n| segment_ok(n))
-                .collect()
-        })
-        .unwrap_or_default();
-    names.sort();
-    names
+/// Whether `d` is a Zarr store (a group or an array at its top).
+fn is_store(d: &Path) -> bool {
+    d.is_dir()
+        && ["zarr.json", ".zgroup", ".zarray"]
+            .iter()
+            .any(|m| d.join(m).is_file())
 }
 
-fn holds_a_store(dir: &Path) -> bool {
-    !stores_in(dir).is_empty()
+/// The stores directly in the folder `dir` (canonical), by name, sorted,
+/// and the stores in it that are not served, each with the reason: a
+/// name that cannot be a URL path segment (hidden ones included), or a
+/// real path outside the folder (a symlink leading out of it).
+fn stores_in(dir: &Path) -> (Vec<(String, PathBuf)>, Vec<String>) {
+    let mut stores = vec![];
+    let mut skipped = vec![];
+    let mut entries: Vec<_> = std::fs::read_dir(dir)
+        .map(|es| es.filter_map(|e| e.ok()).collect())
+        .unwrap_or_default();
+    entries.sort_by_key(|e| e.file_name());
+    for e in entries {
+        let path = e.path();
+        if !is_store(&path) {
+            continue;
+        }
+        let Some(name) = e.file_name().to_str().map(str::to_string) else {
+            skipped.push(format!(
+                "{}: its name is not UTF-8, so no URL names it",
+                path.display()
+            ));
+            continue;
+        };
+        if !segment_ok(&name) {
+            skipped.push(format!(
+                "{}: its name cannot be a URL path segment (hidden, or holding %, \\ or control characters)",
+                path.display()
+            ));
+            continue;
+        }
+        match path.canonicalize() {
+            Ok(real) if real.starts_with(dir) && real != dir => stores.push((name, real)),
+            Ok(real) => skipped.push(format!(
+                "{}: a link to {}, outside the served folder",
+                path.display(),
+                real.display()
+            )),
+            Err(err) => skipped.push(format!("{}: {err}", path.display())),
+        }
+    }
+    (stores, skipped)
 }
 
 fn is_loopback(ip: IpAddr) -> bool {
@@ -206,12 +252,29 @@ fn parse_bind(s: &str) -> std::result::Result<IpAddr, String> {
     })
 }
 
-fn read_token(c: &ServeCmd) -> Result<Option<String>> {
+/// The bearer token, and a warning when its file is readable by other
+/// users of this machine.
+fn read_token(c: &ServeCmd) -> Result<(Option<String>, Option<String>)> {
+    let mut warning = None;
     let t = match (&c.token, &c.token_file) {
         (Some(t), _) => Some(t.trim().to_string()),
         (None, Some(f)) => {
             let s = std::fs::read_to_string(f)
                 .with_context(|| format!("--token-file {}: cannot read it", f.display()))?;
+            #[cfg(unix)]
+            {
+                use std::os::unix::fs::PermissionsExt;
+                let mode = std::fs::metadata(f).map_or(0, |m| m.permissions().mode());
+                if mode & 0o044 != 0 {
+                    warning = Some(format!(
+                        "warning: --token-file {}: other users of this machine can read the token \
+                         (mode {:o}); make it private with `chmod 600 {}`",
+                        f.display(),
+                        mode & 0o777,
+                        f.display()
+                    ));
+                }
+            }
             Some(s.lines().next().unwrap_or("").trim().to_string())
         }
         (None, None) => None,
@@ -224,11 +287,12 @@ fn read_token(c: &ServeCmd) -> Result<Option<String>> {
             bail!("--token/--token-file: the token must be printable ASCII without spaces");
         }
     }
-    Ok(t)
+    Ok((t, warning))
 }
 
 fn site(c: &ServeCmd) -> Result<Site> {
-    let token = read_token(c)?;
+    let (token, warning) = read_token(c)?;
+    let mut notes: Vec<String> = warning.into_iter().collect();
     if !is_loopback(c.bind) && token.is_none() {
         bail!(
             "--bind {}: serving beyond this machine (a non-loopback address) needs a bearer \
@@ -256,24 +320,45 @@ fn site(c: &ServeCmd) -> Result<Site> {
                 s.display()
             );
         }
-        if !holds_a_store(&root) {
-            bail!(
-                "{}: holds no Zarr store: expected a store folder (zarr.json, .zgroup or \
-                 .zarray at its top, as `brickyard convert` writes) or a folder with such \
-                 stores in it",
-                s.display()
-            );
-        }
         let name = root
             .file_name()
             .and_then(|n| n.to_str())
             .filter(|n| segment_ok(n))
-            .with_context(|| format!("{}: its directory name cannot be a URL path", s.display()))?
+            .with_context(|| {
+                format!(
+                    "{}: its directory name cannot be a URL path (hidden, or holding %, \\ or \
+                     control characters)",
+                    s.display()
+                )
+            })?
             .to_string();
-        if let Some(prev) = roots.insert(name.clone(), root.clone()) {
+        let stores = if is_store(&root) {
+            None
+        } else {
+            let (stores, skipped) = stores_in(&root);
+            if stores.is_empty() {
+                bail!(
+                    "{}: holds no Zarr store: expected a store folder (zarr.json, .zgroup or \
+                     .zarray at its top, as `brickyard convert` writes) or a folder with such \
+                     stores in it{}",
+                    s.display(),
+                    skipped
+                        .iter()
+                        .map(|w| format!("\n  not served: {w}"))
+                        .collect::<String>()
+                );
+            }
+            notes.extend(skipped.iter().map(|w| format!("not served: {w}")));
+            Some(stores.into_iter().collect())
+        };
+        let mount = Mount {
+            root: root.clone(),
+            stores,
+        };
+        if let Some(prev) = roots.insert(name.clone(), mount) {
             bail!(
                 "{} and {} would both be served as /{name}/: serve directories of different names",
-                prev.display(),
+                prev.root.display(),
                 root.display()
             );
         }
@@ -282,7 +367,13 @@ fn site(c: &ServeCmd) -> Result<Site> {
         if roots.contains_key("web") {
             bail!("--web: a store named `web` would hide the web client at /web/; serve it from a directory of another name");
         }
-        roots.insert("web".to_string(), d.clone());
+        roots.insert(
+            "web".to_string(),
+            Mount {
+                root: d.clone(),
+                stores: None,
+            },
+        );
     }
     for o in &c.allow_origin {
         if o != "*" && origin_host(o).is_none() {
@@ -291,6 +382,7 @@ fn site(c: &ServeCmd) -> Result<Site> {
     }
     Ok(Site {
         roots,
+        notes,
         token,
         origins: c.allow_origin.clone(),
         log: !c.quiet,
@@ -318,12 +410,7 @@ pub fn run(c: ServeCmd) -> Result<()> {
         let port = l.local_addr()?.port();
         site.render_port = Some(port);
         let rs = Arc::new(crate::remote::RenderSite {
-            roots: site
-                .roots
-                .iter()
-                .filter(|(n, _)| site.web.is_none() || n.as_str() != "web")
-                .map(|(n, r)| (n.clone(), r.clone()))
-                .collect(),
+            roots: served_stores(&site).into_iter().collect(),
             token: site.token.clone(),
             origins: site.origins.clone(),
             backend: c.backend.clone(),
@@ -344,30 +431,13 @@ pub fn run(c: ServeCmd) -> Result<()> {
     }
     let site = Arc::new(site);
     let addr = SocketAddr::new(c.bind, c.port);
-    let listener =
-        std::net::TcpListener::bind(addr).with_context(|| format!("{addr}: cannot listen"))?;
+    let listener = TcpListener::bind(addr).with_context(|| format!("{addr}: cannot listen"))?;
     no_delay(&listener);
-    let server = Server::from_listener(listener, None)
-        .map_err(|e| anyhow::anyhow!("{addr}: cannot listen: {e}"))?;
-    let local = server
-        .server_addr()
-        .to_ip()
-        .context("the server has no IP address")?;
+    let local = listener
+        .local_addr()
+        .with_context(|| format!("{addr}: cannot listen"))?;
     // Each store by its URL path (a served folder of stores lists those).
-    let mut names: Vec<String> = site
-        .roots
-        .iter()
-        .filter(|(n, _)| site.web.is_none() || n.as_str() != "web")
-        .flat_map(|(n, root)| {
-            stores_in(root)
-                .into_iter()
-                .map(move |s| match s.is_empty() {
-                    true => n.clone(),
-                    false => format!("{n}/{s}"),
-                })
-        })
-        .collect();
-    names.sort();
+    let names: Vec<String> = served_stores(&site).into_iter().map(|(n, _)| n).collect();
     const LISTED: usize = 8;
     // The first line says where (tests and scripts read the port from it).
     eprintln!(
@@ -390,6 +460,9 @@ pub fn run(c: ServeCmd) -> Result<()> {
         }
     );
     // (After the address: the first line gives it.)
+    for n in &site.notes {
+        eprintln!("{n}");
+    }
     if let Some(t) = site.token.as_ref().filter(|t| t.len() < 16) {
         eprintln!(
             "note: a token of {} characters is easy to guess; use at least 16 (e.g. `openssl rand -hex 16`)",
@@ -409,30 +482,659 @@ pub fn run(c: ServeCmd) -> Result<()> {
         std::thread::spawn(move || crate::remote::serve(l, rs));
     }
     crate::install_ctrl_c();
-    let server = Arc::new(server);
-    let workers: Vec<_> = (0..c.workers)
-        .map(|_| {
-            let server = server.clone();
-            let site = site.clone();
-            std::thread::spawn(move || {
-                while !crate::CANCEL.load(Ordering::SeqCst) {
-                    match server.recv_timeout(Duration::from_millis(200)) {
-                        Ok(Some(rq)) => answer(&site, rq),
-                        Ok(None) => {}
-                        Err(e) => {
-                            eprintln!("serve: accepting a request failed: {e}");
-                            std::thread::sleep(Duration::from_millis(50));
-                        }
-                    }
-                }
-            })
-        })
-        .collect();
-    for w in workers {
-        let _ = w.join();
-    }
+    accept_loop(listener, site, c.workers);
     eprintln!("serve: stopped");
     Ok(())
+}
+
+/// Every store served, by its URL path (`name`, or `folder/store` in a
+/// served folder), with its canonical root; sorted.
+fn served_stores(site: &Site) -> Vec<(String, PathBuf)> {
+    let mut v: Vec<(String, PathBuf)> = site
+        .roots
+        .iter()
+        .filter(|(n, _)| site.web.is_none() || n.as_str() != "web")
+        .flat_map(|(n, m)| match &m.stores {
+            None => vec![(n.clone(), m.root.clone())],
+            Some(stores) => stores
+                .iter()
+                .map(|(s, root)| (format!("{n}/{s}"), root.clone()))
+                .collect(),
+        })
+        .collect();
+    v.sort();
+    v
+}
+
+// The connection layer. tiny_http 0.12 reads a request's head without a
+// size limit, has no read or write timeouts, starts a thread for every
+// connection and drains a request's body (however long) when the request
+// is dropped, in the worker that answered it; so `serve` accepts and
+// reads requests itself and uses tiny_http only to write responses.
+
+/// Bytes a request's line and headers may take together (431 beyond).
+const HEAD_MAX: usize = 32 * 1024;
+/// How long an open connection may wait for its next request.
+const IDLE: Duration = Duration::from_secs(60);
+/// How long a request's head may take once its first byte came (408).
+const HEAD_TIME: Duration = Duration::from_secs(30);
+/// Each write of a response must go out within this time...
+const WRITE_TIMEOUT: Duration = Duration::from_secs(30);
+/// ...and a request whose writes stall this long gives its worker up.
+const STALL: Duration = Duration::from_millis(200);
+/// ...and a response must go out at `MIN_RATE` bytes per second on
+/// average after this grace (a client that reads too slowly is cut off).
+const WRITE_GRACE: Duration = Duration::from_secs(30);
+const MIN_RATE: f64 = 32.0 * 1024.0;
+/// Connections open at once (more are answered 503 and closed), and from
+/// one address other than loopback.
+const MAX_CONNECTIONS: usize = 256;
+const MAX_PER_PEER: usize = 64;
+
+/// Requests being answered, at most `--workers` at once.
+struct Gate {
+    busy: Mutex<usize>,
+    cv: Condvar,
+    max: usize,
+}
+
+impl Gate {
+    fn enter(&self) -> GateGuard<'_> {
+        let mut b = self.busy.lock().unwrap_or_else(|e| e.into_inner());
+        while *b >= self.max {
+            b = self.cv.wait(b).unwrap_or_else(|e| e.into_inner());
+        }
+        *b += 1;
+        GateGuard(self)
+    }
+
+    fn busy(&self) -> usize {
+        *self.busy.lock().unwrap_or_else(|e| e.into_inner())
+    }
+}
+
+struct GateGuard<'a>(&'a Gate);
+
+impl Drop for GateGuard<'_> {
+    fn drop(&mut self) {
+        *self.0.busy.lock().unwrap_or_else(|e| e.into_inner()) -= 1;
+        self.0.cv.notify_one();
+    }
+}
+
+/// An open connection, as the accept loop sees it.
+struct Entry {
+    /// To close it when it is evicted.
+    stream: TcpStream,
+    peer: IpAddr,
+    /// Since when it has been waiting for a request (or reading its
+    /// head); `None` while a request is answered.
+    waiting: Option<Instant>,
+    /// Closed to make room: no longer counted.
+    evicted: bool,
+}
+
+/// The open connections.
+#[derive(Default)]
+struct Conns {
+    next: u64,
+    entries: HashMap<u64, Entry>,
+}
+
+impl Conns {
+    /// Closes the connection that has waited longest for a request among
+    /// those `which` selects; false when none waits.
+    fn evict(&mut self, which: impl Fn(&Entry) -> bool) -> bool {
+        let oldest = self
+            .entries
+            .values_mut()
+            .filter(|e| !e.evicted && e.waiting.is_some() && which(e))
+            .min_by_key(|e| e.waiting);
+        match oldest {
+            Some(e) => {
+                e.evicted = true;
+                let _ = e.stream.shutdown(Shutdown::Both);
+                true
+            }
+            None => false,
+        }
+    }
+}
+
+/// A connection's place among the open ones, given back on drop.
+struct ConnSlot {
+    conns: Arc<Mutex<Conns>>,
+    id: u64,
+}
+
+impl ConnSlot {
+    /// A place for a connection from `peer`: when `MAX_CONNECTIONS` are
+    /// open (or `MAX_PER_PEER` from that address, loopback aside), the
+    /// one that has waited longest for a request is closed to make room
+    /// (so connections that send nothing, or a head byte by byte, cannot
+    /// shut others out); when all are answering requests, none.
+    fn take(conns: &Arc<Mutex<Conns>>, s: &TcpStream) -> std::result::Result<Self, &'static str> {
+        let peer = s.peer_addr().map_err(|_| "no peer address")?.ip();
+        let stream = s.try_clone().map_err(|_| "out of file descriptors")?;
+        let mut c = conns.lock().unwrap_or_else(|e| e.into_inner());
+        let live = |c: &Conns, p: Option<IpAddr>| {
+            c.entries
+                .values()
+                .filter(|e| !e.evicted && p.is_none_or(|p| e.peer == p))
+                .count()
+        };
+        if !peer.is_loopback()
+            && live(&c, Some(peer)) >= MAX_PER_PEER
+            && !c.evict(|e| e.peer == peer)
+        {
+            return Err("too many connections from this address");
+        }
+        if live(&c, None) >= MAX_CONNECTIONS && !c.evict(|_| true) {
+            return Err("too many connections");
+        }
+        c.next += 1;
+        let id = c.next;
+        c.entries.insert(
+            id,
+            Entry {
+                stream,
+                peer,
+                waiting: Some(Instant::now()),
+                evicted: false,
+            },
+        );
+        Ok(ConnSlot {
+            conns: conns.clone(),
+            id,
+        })
+    }
+
+    /// Marks the connection as waiting for a request (`true`) or
+    /// answering one.
+    fn waiting(&self, w: bool) {
+        let mut c = self.conns.lock().unwrap_or_else(|e| e.into_inner());
+        if let Some(e) = c.entries.get_mut(&self.id) {
+            e.waiting = w.then(Instant::now);
+        }
+    }
+}
+
+impl Drop for ConnSlot {
+    fn drop(&mut self) {
+        let mut c = self.conns.lock().unwrap_or_else(|e| e.into_inner());
+        c.entries.remove(&self.id);
+    }
+}
+
+/// Waits until `l` has a connection to accept or `ms` milliseconds pass.
+fn wait_readable(l: &TcpListener, ms: i32) {
+    #[cfg(unix)]
+    {
+        use std::os::fd::AsRawFd;
+        let mut fd = libc::pollfd {
+            fd: l.as_raw_fd(),
+            events: libc::POLLIN,
+            revents: 0,
+        };
+        // SAFETY: one valid pollfd.
+        unsafe {
+            libc::poll(&mut fd, 1, ms);
+        }
+    }
+    #[cfg(not(unix))]
+    {
+        let _ = l;
+        std::thread::sleep(Duration::from_millis(ms.clamp(1, 10) as u64));
+    }
+}
+
+/// Accepts connections until Ctrl-C, each read on a thread of its own (at
+/// most `MAX_CONNECTIONS`), its requests answered `workers` at a time
+/// over all connections; then waits for the requests in progress.
+fn accept_loop(listener: TcpListener, site: Arc<Site>, workers: usize) {
+    let gate = Arc::new(Gate {
+        busy: Mutex::new(0),
+        cv: Condvar::new(),
+        max: workers,
+    });
+    let conns = Arc::new(Mutex::new(Conns::default()));
+    if let Err(e) = listener.set_nonblocking(true) {
+        eprintln!("serve: {e}");
+    }
+    while !crate::CANCEL.load(Ordering::SeqCst) {
+        wait_readable(&listener, 200);
+        let (stream, peer) = match listener.accept() {
+            Ok(x) => x,
+            Err(e) if e.kind() == std::io::ErrorKind::WouldBlock => continue,
+            Err(e) if e.kind() == std::io::ErrorKind::Interrupted => continue,
+            Err(e) => {
+                // (Out of file descriptors, say: wait for some to close.)
+                eprintln!("serve: accepting a connection failed: {e}");
+                std::thread::sleep(Duration::from_millis(100));
+                continue;
+            }
+        };
+        let slot = match ConnSlot::take(&conns, &stream) {
+            Ok(s) => s,
+            Err(why) => {
+                // Answered without waiting: the socket's buffer takes it.
+                let _ = stream.set_nonblocking(true);
+                let _ = (&stream).write_all(
+                    format!(
+                        "HTTP/1.1 503 Service Unavailable\r\nContent-Type: text/plain; charset=utf-8\r\n\
+                         Content-Length: {}\r\nRetry-After: 1\r\nConnection: close\r\n\r\n{why}\n",
+                        why.len() + 1
+                    )
+                    .as_bytes(),
+                );
+                log_line(
+                    &site,
+                    &peer.to_string(),
+                    "-",
+                    "-",
+                    503,
+                    0,
+                    Instant::now(),
+                    Some(why),
+                );
+                continue;
+            }
+        };
+        let (site, gate) = (site.clone(), gate.clone());
+        let spawned = std::thread::Builder::new()
+            .name("serve-connection".into())
+            .spawn(move || connection(&site, &gate, &slot, stream, peer));
+        if let Err(e) = spawned {
+            eprintln!("serve: cannot start a thread for a connection: {e}");
+        }
+    }
+    drop(listener);
+    while gate.busy() > 0 {
+        std::thread::sleep(Duration::from_millis(20));
+    }
+}
+
+/// An accepted connection.
+struct Conn {
+    stream: TcpStream,
+    peer: SocketAddr,
+    /// Whether writing a response failed (the connection is then closed).
+    broken: std::cell::Cell<bool>,
+}
+
+/// A request read from a connection: what `respond` needs of it.
+struct Request<'a> {
+    method: Method,
+    url: String,
+    version: HTTPVersion,
+    headers: Vec<Header>,
+    /// Whether the connection stays open after the response.
+    keep_alive: bool,
+    conn: &'a Conn,
+    /// Its worker slot (`--workers`), held while it is answered.
+    permit: Option<GateGuard<'a>>,
+}
+
+impl Request<'_> {
+    fn method(&self) -> &Method {
+        &self.method
+    }
+
+    fn url(&self) -> &str {
+        &self.url
+    }
+
+    fn headers(&self) -> &[Header] {
+        &self.headers
+    }
+
+    fn remote_addr(&self) -> Option<&SocketAddr> {
+        Some(&self.conn.peer)
+    }
+
+    /// Sends `r` (its head only for HEAD), paced: a client that reads too
+    /// slowly gets an error here and its connection is closed.
+    fn respond<R: Read>(mut self, mut r: Response<R>) -> std::io::Result<()> {
+        if !self.keep_alive {
+            r.add_header(header("Connection", "close"));
+        }
+        let mut w = std::io::BufWriter::with_capacity(
+            64 << 10,
+            Paced::new(&self.conn.stream, self.permit.take()),
+        );
+        let res = r
+            .raw_print(
+                &mut w,
+                self.version.clone(),
+                &self.headers,
+                self.method == Method::Head,
+                None,
+            )
+            .and_then(|()| w.flush());
+        if res.is_err() {
+            self.conn.broken.set(true);
+        }
+        res
+    }
+}
+
+/// A writer to a connection that fails once the response falls behind
+/// `MIN_RATE` (after `WRITE_GRACE`); each write is bounded by the
+/// socket's write timeout.
+struct Paced<'a> {
+    s: &'a TcpStream,
+    start: Instant,
+    sent: u64,
+    /// The worker slot of the request, given up once a write stalls for
+    /// `STALL`.
+    permit: Option<GateGuard<'a>>,
+    /// Whether a write stalled (the socket's timeout is then the rest of
+    /// `WRITE_TIMEOUT`).
+    patient: bool,
+}
+
+impl<'a> Paced<'a> {
+    fn new(s: &'a TcpStream, permit: Option<GateGuard<'a>>) -> Self {
+        let _ = s.set_write_timeout(Some(STALL));
+        Paced {
+            s,
+            start: Instant::now(),
+            sent: 0,
+            permit,
+            patient: false,
+        }
+    }
+}
+
+impl Write for Paced<'_> {
+    fn write(&mut self, b: &[u8]) -> std::io::Result<usize> {
+        let allowed = WRITE_GRACE + Duration::from_secs_f64(self.sent as f64 / MIN_RATE);
+        if self.start.elapsed() > allowed {
+            return Err(std::io::Error::new(
+                std::io::ErrorKind::TimedOut,
+                "the client reads too slowly",
+            ));
+        }
+        loop {
+            match self.s.write(b) {
+                Ok(n) => {
+                    self.sent += n as u64;
+                    return Ok(n);
+                }
+                Err(e)
+                    if matches!(
+                        e.kind(),
+                        std::io::ErrorKind::WouldBlock | std::io::ErrorKind::TimedOut
+                    ) =>
+                {
+                    if self.patient {
+                        return Err(std::io::Error::new(
+                            std::io::ErrorKind::TimedOut,
+                            "the client read nothing for 30 s",
+                        ));
+                    }
+                    // A slow reader: its worker goes to other requests,
+                    // and it gets the rest of the write timeout.
+                    self.permit = None;
+                    self.patient = true;
+                    self.s.set_write_timeout(Some(WRITE_TIMEOUT - STALL))?;
+                }
+                Err(e) => return Err(e),
+            }
+        }
+    }
+
+    fn flush(&mut self) -> std::io::Result<()> {
+        self.s.flush()
+    }
+}
+
+/// Where a request's head ends in `b` (after its blank line), looking
+/// from `from` on.
+fn head_end(b: &[u8], from: usize) -> Option<usize> {
+    (from..b.len()).find_map(|i| match (b[i], b.get(i + 1), b.get(i + 2)) {
+        (b'\n', Some(b'\n'), _) => Some(i + 2),
+        (b'\n', Some(b'\r'), Some(b'\n')) => Some(i + 3),
+        _ => None,
+    })
+}
+
+/// The next request's head from `s` (bytes read beyond it stay in
+/// `buf`): `Ok(None)` when the connection closed or stayed idle, `Err`
+/// with a status and reason to answer before closing.
+fn read_head(
+    mut s: &TcpStream,
+    buf: &mut Vec<u8>,
+) -> std::result::Result<Option<Vec<u8>>, (u16, &'static str)> {
+    let idle_until = Instant::now() + IDLE;
+    // Leading empty lines are ignored (RFC 9112, 2.2).
+    let blank = buf
+        .iter()
+        .take_while(|b| matches!(b, b'\r' | b'\n'))
+        .count();
+    buf.drain(..blank);
+    let mut deadline = (!buf.is_empty()).then(|| Instant::now() + HEAD_TIME);
+    let mut scanned = 0;
+    let mut chunk = [0u8; 4096];
+    loop {
+        if let Some(end) = head_end(buf, scanned) {
+            let rest = buf.split_off(end);
+            return Ok(Some(std::mem::replace(buf, rest)));
+        }
+        scanned = buf.len().saturating_sub(2);
+        if buf.len() >= HEAD_MAX {
+            return Err((431, "the request's head is too large"));
+        }
+        let left = deadline
+            .unwrap_or(idle_until)
+            .saturating_duration_since(Instant::now());
+        if left.is_zero() {
+            return match deadline {
+                Some(_) => Err((408, "the request's head took too long")),
+                None => Ok(None),
+            };
+        }
+        let _ = s.set_read_timeout(Some(left));
+        let want = (HEAD_MAX - buf.len()).min(chunk.len());
+        match s.read(&mut chunk[..want]) {
+            Ok(0) => return Ok(None),
+            Ok(n) => {
+                let mut new = &chunk[..n];
+                if buf.is_empty() {
+                    let blank = new
+                        .iter()
+                        .take_while(|b| matches!(b, b'\r' | b'\n'))
+                        .count();
+                    new = &new[blank..];
+                }
+                if deadline.is_none() && !new.is_empty() {
+                    deadline = Some(Instant::now() + HEAD_TIME);
+                }
+                buf.extend_from_slice(new);
+            }
+            Err(e)
+                if matches!(
+                    e.kind(),
+                    std::io::ErrorKind::WouldBlock
+                        | std::io::ErrorKind::TimedOut
+                        | std::io::ErrorKind::Interrupted
+                ) => {}
+            Err(_) => return Ok(None),
+        }
+    }
+}
+
+/// A request from its head; `Err` with a status and reason to answer.
+fn parse_head<'a>(
+    head: &[u8],
+    conn: &'a Conn,
+) -> std::result::Result<Request<'a>, (u16, &'static str)> {
+    let text = std::str::from_utf8(head)
+        .ok()
+        .filter(|t| t.is_ascii())
+        .ok_or((400, "the request's head is not ASCII"))?;
+    let mut lines = text.split('\n').map(|l| l.strip_suffix('\r').unwrap_or(l));
+    let line = lines.next().unwrap_or("");
+    let mut parts = line.split(' ');
+    let (Some(m), Some(url), Some(v), None) =
+        (parts.next(), parts.next(), parts.next(), parts.next())
+    else {
+        return Err((400, "malformed request line"));
+    };
+    let version = match v {
+        "HTTP/1.1" => HTTPVersion(1, 1),
+        "HTTP/1.0" => HTTPVersion(1, 0),
+        v if v.starts_with("HTTP/") => return Err((505, "HTTP/1.0 and HTTP/1.1 only")),
+        _ => return Err((400, "malformed request line")),
+    };
+    let method: Method = m
+        .parse()
+        .ok()
+        .filter(|_| !m.is_empty() && m.bytes().all(|b| b.is_ascii_graphic()))
+        .ok_or((400, "malformed request line"))?;
+    if url.is_empty() {
+        return Err((400, "malformed request line"));
+    }
+    let mut headers = vec![];
+    for l in lines.filter(|l| !l.is_empty()) {
+        // (Folded lines are obsolete: RFC 9112, 5.2.)
+        if l.starts_with([' ', '\t']) || !l.contains(':') {
+            return Err((400, "malformed header"));
+        }
+        headers.push(
+            l.parse::<Header>()
+                .map_err(|()| (400, "malformed header"))?,
+        );
+    }
+    let connection = headers
+        .iter()
+        .filter(|h| h.field.equiv("Connection"))
+        .map(|h| h.value.as_str().to_ascii_lowercase())
+        .collect::<Vec<_>>()
+        .join(",");
+    let keep_alive =
+        version == HTTPVersion(1, 1) && !connection.split(',').any(|t| t.trim() == "close");
+    Ok(Request {
+        method,
+        url: url.to_string(),
+        version,
+        headers,
+        keep_alive,
+        conn,
+        permit: None,
+    })
+}
+
+/// Why `rq`, which carries a body, is refused unread: GET and HEAD take
+/// none, and nothing here reads one.
+fn body_refusal(rq: &Request) -> Option<(u16, &'static str)> {
+    if rq
+        .headers()
+        .iter()
+        .any(|h| h.field.equiv("Transfer-Encoding"))
+    {
+        return Some((
+            413,
+            "request bodies are refused: this server is read-only (GET and HEAD take none)",
+        ));
+    }
+    for h in rq
+        .headers()
+        .iter()
+        .filter(|h| h.field.equiv("Content-Length"))
+    {
+        match h.value.as_str().trim().parse::<u64>() {
+            Ok(0) => {}
+            Ok(_) => {
+                return Some((
+                    413,
+                    "request bodies are refused: this server is read-only (GET and HEAD take none)",
+                ))
+            }
+            Err(_) => return Some((400, "malformed Content-Length")),
+        }
+    }
+    None
+}
+
+/// Answers a request refused before it was read whole (`status`, `why`)
+/// and closes the connection: what the client still sends is read for a
+/// moment at most (so that the answer is not lost to a reset), never
+/// waited for.
+fn refuse(site: &Site, conn: &Conn, method: &str, url: &str, status: u16, why: &str, t0: Instant) {
+    ALLOW_ORIGIN.with(|o| *o.borrow_mut() = None);
+    let r = text(status, why).with_header(header("Connection", "close"));
+    let mut w = std::io::BufWriter::new(Paced::new(&conn.stream, None));
+    let sent = r
+        .raw_print(&mut w, HTTPVersion(1, 1), &[], method == "HEAD", None)
+        .and_then(|()| w.flush());
+    log_line(
+        site,
+        &conn.peer.to_string(),
+        method,
+        &redact_token(url),
+        status,
+        0,
+        t0,
+        Some(&match sent {
+            Ok(()) => why.to_string(),
+            Err(e) => format!("{why}; sending failed: {e}"),
+        }),
+    );
+    let _ = conn.stream.shutdown(Shutdown::Write);
+    let until = Instant::now() + Duration::from_secs(1);
+    let mut left = 256usize << 10;
+    let mut b = [0u8; 8192];
+    while left > 0 {
+        let t = until.saturating_duration_since(Instant::now());
+        if t.is_zero() || conn.stream.set_read_timeout(Some(t)).is_err() {
+            break;
+        }
+        match (&conn.stream).read(&mut b) {
+            Ok(0) | Err(_) => break,
+            Ok(n) => left = left.saturating_sub(n),
+        }
+    }
+}
+
+/// Reads and answers the requests of one connection until it closes, is
+/// idle too long, or a request is refused unread.
+fn connection(site: &Site, gate: &Gate, slot: &ConnSlot, stream: TcpStream, peer: SocketAddr) {
+    let _ = stream.set_nonblocking(false);
+    let _ = stream.set_nodelay(true);
+    let conn = Conn {
+        stream,
+        peer,
+        broken: std::cell::Cell::new(false),
+    };
+    let mut buf = Vec::new();
+    loop {
+        let head = match read_head(&conn.stream, &mut buf) {
+            Ok(Some(h)) => h,
+            Ok(None) => return,
+            Err((status, why)) => {
+                return refuse(site, &conn, "-", "-", status, why, Instant::now());
+            }
+        };
+        let t0 = Instant::now();
+        let rq = match parse_head(&head, &conn) {
+            Ok(rq) => rq,
+            Err((status, why)) => return refuse(site, &conn, "-", "-", status, why, t0),
+        };
+        if let Some((status, why)) = body_refusal(&rq) {
+            let (m, u) = (rq.method().to_string(), rq.url().to_string());
+            return refuse(site, &conn, &m, &u, status, why, t0);
+        }
+        let keep_alive = rq.keep_alive;
+        slot.waiting(false);
+        let mut rq = rq;
+        rq.permit = Some(gate.enter());
+        answer(site, rq);
+        slot.waiting(true);
+        if !keep_alive || conn.broken.get() || crate::CANCEL.load(Ordering::SeqCst) {
+            return;
+        }
+    }
 }
 
 /// TCP_NODELAY on the listening socket, which the accepted connections
@@ -543,11 +1245,16 @@ fn percent_decode(s: &str) -> Option<String> {
     String::from_utf8(out).ok()
 }
 
-/// A decoded path segment that may be looked up.
+/// Zarr's own metadata names: the only hidden names served.
+const ZARR_DOTFILES: [&str; 4] = [".zarray", ".zgroup", ".zattrs", ".zmetadata"];
+
+/// A decoded path segment that may be looked up: not empty, `.` or `..`,
+/// not hidden (a name starting with `.`, other than Zarr's metadata:
+/// `.git`, `.aws`, `.env` … are never served), without `%` (double
+/// encoding), `\`, `/`, NUL or control characters.
 fn segment_ok(s: &str) -> bool {
     !(s.is_empty()
-        || s == "."
-        || s == ".."
+        || (s.starts_with('.') && !ZARR_DOTFILES.contains(&s))
         || s.contains(['%', '\\', '\0', '/'])
         || s.chars().any(char::is_control))
 }
@@ -578,16 +1285,36 @@ fn resolve(site: &Site, url: &str) -> Target {
         }
         segs.push(s);
     }
-    let Some(root) = site.roots.get(&segs[0]) else {
+    let Some(mount) = site.roots.get(&segs[0]) else {
         return Target::Refused(404, "no such store");
     };
+    // In a served folder, only the stores found in it at start, each
+    // within its own root.
+    let (root, rest) = match &mount.stores {
+        None => (&mount.root, &segs[1..]),
+        Some(stores) => match segs.get(1).and_then(|s| stores.get(s)) {
+            Some(root) => (root, &segs[2..]),
+            None if segs.len() == 1 => return Target::Refused(404, "not a file"),
+            None => return Target::Refused(404, "no such store"),
+        },
+    };
     let mut p = root.clone();
-    for s in &segs[1..] {
+    for s in rest {
         p.push(s);
     }
     // Follow symlinks; the result must still be inside the root.
     match p.canonicalize() {
         Ok(real) if !real.starts_with(root) => Target::Refused(403, "outside the served store"),
+        // (A link inside the store to a hidden file in it.)
+        Ok(real)
+            if !real
+                .strip_prefix(root)
+                .unwrap_or(&real)
+                .iter()
+                .all(|c| c.to_str().is_some_and(segment_ok)) =>
+        {
+            Target::Refused(403, "path segment refused")
+        }
         Ok(real) if real.is_file() => Target::File(real),
         Ok(_) => Target::Refused(404, "not a file"),
         Err(_) => Target::Refused(404, "not found"),
@@ -731,6 +1458,30 @@ fn answer(site: &Site, rq: Request) {
         .map(|a| a.to_string())
         .unwrap_or_else(|| "-".into());
     let (status, bytes, res) = respond(site, rq);
+    log_line(
+        site,
+        &peer,
+        &method.to_string(),
+        &url,
+        status,
+        bytes,
+        t0,
+        res.as_deref(),
+    );
+}
+
+/// A line of the access log (`url` already redacted).
+#[allow(clippy::too_many_arguments)]
+fn log_line(
+    site: &Site,
+    peer: &str,
+    method: &str,
+    url: &str,
+    status: u16,
+    bytes: u64,
+    t0: Instant,
+    note: Option<&str>,
+) {
     if site.log {
         let now = std::time::SystemTime::now()
             .duration_since(UNIX_EPOCH)
@@ -739,7 +1490,7 @@ fn answer(site: &Site, rq: Request) {
         eprintln!(
             "{now:.3} {peer} {method} {url} {status} {bytes} {:.1}ms{}",
             t0.elapsed().as_secs_f64() * 1e3,
-            res.map(|e| format!(" ({e})")).unwrap_or_default()
+            note.map(|e| format!(" ({e})")).unwrap_or_default()
         );
     }
 }
@@ -913,7 +1664,8 @@ fn respond(site: &Site, rq: Request) -> (u16, u64, Option<String>) {
     } else if ext == "json"
         || file
             .file_name()
-            .is_some_and(|n| n == ".zarray" || n == ".zgroup" || n == ".zattrs")
+            .and_then(|n| n.to_str())
+            .is_some_and(|n| ZARR_DOTFILES.contains(&n))
     {
         "application/json"
     } else {
@@ -1024,11 +1776,22 @@ mod tests {
     }
 
     #[test]
+    fn request_heads_end_at_a_blank_line() {
+        assert_eq!(head_end(b"GET / HTTP/1.1\r\nA: b\r\n\r\nnext", 0), Some(24));
+        assert_eq!(head_end(b"GET / HTTP/1.1\nA: b\n\n", 0), Some(21));
+        assert_eq!(head_end(b"GET / HTTP/1.1\r\nA: b\r\n", 0), None);
+    }
+
+    #[test]
     fn segments() {
         for bad in ["..", ".", "", "%2e%2e", "a\\b", "a%00"] {
             assert!(!segment_ok(bad), "{bad}");
         }
         assert!(segment_ok("zarr.json") && segment_ok(".zarray") && segment_ok("c"));
+        for hidden in [".aws", ".git", ".env", ".zarray.bak", "..."] {
+            assert!(!segment_ok(hidden), "{hidden}");
+        }
+        assert!(segment_ok(".zmetadata") && segment_ok("a.b") && segment_ok("x."));
         assert_eq!(percent_decode("%2e%2E").as_deref(), Some(".."));
         assert_eq!(percent_decode("%252e").as_deref(), Some("%2e"));
         assert_eq!(percent_decode("%2"), None);

@@ -1207,3 +1207,266 @@ fn a_folder_of_stores_is_listed_store_by_store() {
     let (status, _, _) = http(sv.port, "GET", &format!("/{store}zarr.json"), &[]);
     assert_eq!(status, 200, "the link's store is served");
 }
+
+/// A served folder serves the stores found in it at start and nothing
+/// else: not its other files, not hidden files (Zarr's `.zarray` … aside),
+/// not a store's links leading out of that store (even into the folder),
+/// and a store that is a link out of the folder is neither listed nor
+/// served (the start says so).
+#[test]
+fn a_served_folder_serves_its_stores_only() {
+    let d = tempfile::tempdir().unwrap();
+    let folder = d.path().join("coll");
+    std::fs::create_dir(&folder).unwrap();
+    let group = r#"{"zarr_format":3,"node_type":"group"}"#;
+    for name in ["a.ome.zarr", "b.ome.zarr"] {
+        let store = folder.join(name);
+        std::fs::create_dir(&store).unwrap();
+        std::fs::write(store.join("zarr.json"), group).unwrap();
+    }
+    let a = folder.join("a.ome.zarr");
+    std::fs::write(a.join(".zattrs"), "{}").unwrap();
+    std::fs::write(a.join(".secret"), "SECRET-dot-in-store").unwrap();
+    std::fs::create_dir(a.join(".git")).unwrap();
+    std::fs::write(a.join(".git").join("config"), "SECRET-git").unwrap();
+    std::fs::write(folder.join("secret.txt"), "SECRET-in-folder").unwrap();
+    std::fs::create_dir(folder.join(".aws")).unwrap();
+    std::fs::write(folder.join(".aws").join("credentials"), "SECRET-aws").unwrap();
+    std::os::unix::fs::symlink(folder.join("secret.txt"), a.join("out.txt")).unwrap();
+    std::os::unix::fs::symlink(folder.join("b.ome.zarr"), a.join("sibling")).unwrap();
+    std::os::unix::fs::symlink(a.join(".secret"), a.join("dot-link")).unwrap();
+    // A store outside the folder, linked into it; a link to a store inside.
+    let outside = d.path().join("outside.ome.zarr");
+    std::fs::create_dir(&outside).unwrap();
+    std::fs::write(outside.join("zarr.json"), group).unwrap();
+    std::fs::write(outside.join("data"), "SECRET-outside").unwrap();
+    std::os::unix::fs::symlink(&outside, folder.join("ext.ome.zarr")).unwrap();
+    std::os::unix::fs::symlink(&a, folder.join("alias.ome.zarr")).unwrap();
+    // A hidden store is not served either.
+    let hidden = folder.join(".hidden.ome.zarr");
+    std::fs::create_dir(&hidden).unwrap();
+    std::fs::write(hidden.join("zarr.json"), group).unwrap();
+
+    let sv = serve(&[&folder], &[]);
+    let until = Instant::now() + Duration::from_secs(10);
+    while !sv.log.lock().unwrap().contains("hidden.ome.zarr") && Instant::now() < until {
+        std::thread::sleep(Duration::from_millis(20));
+    }
+    let log = sv.log.lock().unwrap().clone();
+    let first = log.lines().next().unwrap();
+    assert!(
+        first.starts_with("serving 3 store(s)")
+            && first.contains("/coll/a.ome.zarr/ /coll/alias.ome.zarr/ /coll/b.ome.zarr/")
+            && !first.contains("ext.ome.zarr"),
+        "{log}"
+    );
+    assert!(
+        log.lines().any(|l| l.contains("not served")
+            && l.contains("ext.ome.zarr")
+            && l.contains("outside")),
+        "{log}"
+    );
+    assert!(
+        log.lines()
+            .any(|l| l.contains("not served") && l.contains(".hidden.ome.zarr")),
+        "{log}"
+    );
+    let p = sv.port;
+    for path in [
+        "/coll/secret.txt",
+        "/coll/.aws/credentials",
+        "/coll/%2eaws/credentials",
+        "/coll/a.ome.zarr/.secret",
+        "/coll/a.ome.zarr/.git/config",
+        "/coll/a.ome.zarr/dot-link",
+        "/coll/a.ome.zarr/out.txt",
+        "/coll/a.ome.zarr/sibling/zarr.json",
+        "/coll/ext.ome.zarr/zarr.json",
+        "/coll/ext.ome.zarr/data",
+        "/coll/.hidden.ome.zarr/zarr.json",
+        "/coll",
+    ] {
+        let (code, _, body) = http(p, "GET", path, &[]);
+        assert!(code == 403 || code == 404, "{path}: {code}");
+        assert!(
+            !String::from_utf8_lossy(&body).contains("SECRET"),
+            "{path} leaked"
+        );
+    }
+    for path in [
+        "/coll/a.ome.zarr/zarr.json",
+        "/coll/a.ome.zarr/.zattrs",
+        "/coll/b.ome.zarr/zarr.json",
+        "/coll/alias.ome.zarr/zarr.json",
+    ] {
+        let (code, _, _) = http(p, "GET", path, &[]);
+        assert_eq!(code, 200, "{path}");
+    }
+    drop(sv);
+
+    // A single store: its hidden files are not served either.
+    let sv = serve(&[&a], &["--quiet"]);
+    for (path, want) in [
+        ("/a.ome.zarr/.secret", 403),
+        ("/a.ome.zarr/.git/config", 403),
+        ("/a.ome.zarr/dot-link", 403),
+        ("/a.ome.zarr/.zattrs", 200),
+        ("/a.ome.zarr/zarr.json", 200),
+    ] {
+        let (code, _, _) = http(sv.port, "GET", path, &[]);
+        assert_eq!(code, want, "{path}");
+    }
+}
+
+/// Sends `head` on a new connection and reads what comes back within
+/// `wait`: the status line, whether the server closed the connection, and
+/// how long it took (the connection stays open on this side).
+fn raw_exchange(port: u16, head: &[u8], wait: Duration) -> (String, bool, Duration) {
+    let mut c = TcpStream::connect(("127.0.0.1", port)).unwrap();
+    let t0 = Instant::now();
+    // (The server may close before all of it is sent.)
+    let _ = c.write_all(head);
+    c.set_read_timeout(Some(Duration::from_millis(200)))
+        .unwrap();
+    let mut got = vec![];
+    let mut closed = false;
+    let mut b = [0u8; 4096];
+    while t0.elapsed() < wait {
+        match c.read(&mut b) {
+            Ok(0) => {
+                closed = true;
+                break;
+            }
+            Ok(n) => got.extend_from_slice(&b[..n]),
+            Err(e) if e.kind() == std::io::ErrorKind::ConnectionReset => {
+                closed = true;
+                break;
+            }
+            Err(_) => {}
+        }
+    }
+    let status = String::from_utf8_lossy(&got)
+        .lines()
+        .next()
+        .unwrap_or("")
+        .to_string();
+    (status, closed, t0.elapsed())
+}
+
+/// A request with a body (GET and HEAD take none) is refused at once and
+/// its connection closed, without waiting for the body: clients that
+/// trickle a large body hold no worker; so are heads too large.
+#[test]
+fn request_bodies_and_huge_heads_are_refused_at_once() {
+    let dir = tempfile::tempdir().unwrap();
+    let folder = dir.path().join("st");
+    let st = folder.join("a.ome.zarr");
+    std::fs::create_dir_all(&st).unwrap();
+    std::fs::write(
+        st.join("zarr.json"),
+        r#"{"zarr_format":3,"node_type":"group"}"#,
+    )
+    .unwrap();
+    let sv = serve(&[&st], &["--workers", "1"]);
+    let p = sv.port;
+    let wait = Duration::from_secs(10);
+    // Clients holding their bodies back (their connections stay open).
+    let mut held = vec![];
+    for _ in 0..4 {
+        let mut c = TcpStream::connect(("127.0.0.1", p)).unwrap();
+        c.write_all(
+            b"GET /a.ome.zarr/zarr.json HTTP/1.1\r\nHost: localhost\r\nContent-Length: 100000000\r\n\r\nx",
+        )
+        .unwrap();
+        held.push(c);
+    }
+    for (head, want) in [
+        (
+            &b"GET /a.ome.zarr/zarr.json HTTP/1.1\r\nHost: localhost\r\nContent-Length: 100000000\r\n\r\nxx"[..],
+            "413",
+        ),
+        (
+            b"PUT /a.ome.zarr/zarr.json HTTP/1.1\r\nHost: localhost\r\nContent-Length: 18446744073709551615\r\n\r\n",
+            "413",
+        ),
+        (
+            b"POST /a.ome.zarr/zarr.json HTTP/1.1\r\nHost: localhost\r\nTransfer-Encoding: chunked\r\n\r\n5\r\nhello",
+            "413",
+        ),
+        (
+            b"GET /a.ome.zarr/zarr.json HTTP/1.1\r\nHost: localhost\r\nContent-Length: 12x\r\n\r\n",
+            "400",
+        ),
+    ] {
+        let (status, closed, took) = raw_exchange(p, head, wait);
+        assert!(
+            status.starts_with("HTTP/1.1 ") && status.contains(want),
+            "{}: {status:?} after {took:?}",
+            String::from_utf8_lossy(head)
+        );
+        assert!(closed && took < Duration::from_secs(5), "{status}: {took:?}");
+    }
+    // The one worker still answers.
+    let t0 = Instant::now();
+    let (code, _, body) = http(p, "GET", "/a.ome.zarr/zarr.json", &[]);
+    assert_eq!(code, 200);
+    assert!(!body.is_empty() && t0.elapsed() < Duration::from_secs(5));
+    let (code, _, _) = http(
+        p,
+        "GET",
+        "/a.ome.zarr/zarr.json",
+        &[("Content-Length", "0")],
+    );
+    assert_eq!(code, 200, "an empty body is no body");
+
+    // A head past the limit: 431 and closed, not read on.
+    let mut head = b"GET /a.ome.zarr/zarr.json HTTP/1.1\r\nHost: localhost\r\n".to_vec();
+    for _ in 0..64 {
+        head.extend_from_slice(b"X-Pad: ");
+        head.extend(std::iter::repeat_n(b'a', 1000));
+        head.extend_from_slice(b"\r\n");
+    }
+    head.extend_from_slice(b"\r\n");
+    let (status, closed, took) = raw_exchange(p, &head, wait);
+    assert!(
+        status.contains("431") && closed,
+        "{status:?} after {took:?}"
+    );
+    let (code, _, _) = http(p, "GET", "/a.ome.zarr/zarr.json", &[]);
+    assert_eq!(code, 200);
+    drop(held);
+}
+
+/// Connections that send nothing (or a head byte by byte) do not shut
+/// others out: beyond the limit of open connections the one that has
+/// waited longest for a request is closed to make room.
+#[test]
+fn idle_connections_cannot_exhaust_the_server() {
+    let dir = tempfile::tempdir().unwrap();
+    let st = dir.path().join("a.ome.zarr");
+    std::fs::create_dir_all(&st).unwrap();
+    std::fs::write(
+        st.join("zarr.json"),
+        r#"{"zarr_format":3,"node_type":"group"}"#,
+    )
+    .unwrap();
+    let sv = serve(&[&st], &["--quiet"]);
+    let p = sv.port;
+    let mut idle = vec![];
+    for _ in 0..400 {
+        let mut c = TcpStream::connect(("127.0.0.1", p)).unwrap();
+        let _ = c.write_all(b"GET /a.ome.zarr/zarr.json HTTP/1.1\r\nX-a: ");
+        idle.push(c);
+    }
+    std::thread::sleep(Duration::from_millis(500));
+    let t0 = Instant::now();
+    let (code, _, _) = http(p, "GET", "/a.ome.zarr/zarr.json", &[]);
+    assert_eq!(code, 200);
+    assert!(t0.elapsed() < Duration::from_secs(5), "{:?}", t0.elapsed());
+    // The server holds a bounded number of threads.
+    let threads = std::fs::read_dir(format!("/proc/{}/task", sv.child.id()))
+        .map(|d| d.count())
+        .unwrap_or(0);
+    assert!(threads < 300, "{threads} threads");
+    drop(idle);
+}
