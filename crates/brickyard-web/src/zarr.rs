@@ -741,9 +741,9 @@ mod tests {
         }
     }
 
-    /// Level 0's world grid: world = top scale · (scale · i + translation)
-    /// + top translation, in the unit of the space axes, as the native
-    /// reader has it (labels are drawn over an image only on its grid).
+    /// Level 0's world grid: world = top scale · (scale · i + translation) +
+    /// top translation, in the unit of the space axes, as the native reader
+    /// has it (labels are drawn over an image only on its grid).
     #[test]
     fn origin_and_unit() {
         let doc = br#"{"zarr_format":3,"node_type":"group","attributes":{"ome":{"version":"0.5","multiscales":[{
