@@ -707,7 +707,7 @@ def process(store: Union[Store, str, os.PathLike], pipeline: str, out: str, *, l
 
     `pipeline` is e.g. `"gauss(1.5)|sobel"` or
     `"gauss(1.5)|threshold(300)|label(26)"`: stages gauss(σ), gradmag(σ),
-    sobel, threshold(t), window(lo,hi), label(6|26); σ in voxels, or with a
+    sobel, median(r), threshold(t), window(lo,hi), label(6|26); σ in voxels, or with a
     unit (`1.5um`). Labels and masks go to `STORE/labels/OUT`, other results
     to `STORE/derived/OUT`. `stats` also writes the per-label statistics of
     a labelling to a .csv or .json file. `backend` is cpu, gpu or auto (the

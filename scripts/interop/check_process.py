@@ -192,6 +192,14 @@ def case_generated():
                  ndi.gaussian_gradient_magnitude(f, 1.2, mode="nearest"))
     check_filter(store, vol, "sobel", "s",
                  ndi.generic_gradient_magnitude(f, ndi.sobel, mode="nearest"))
+    # Medians: the box 2R+1 across (x, y, z radii given x-first), blocks of 16
+    # with halos across brick edges; exact (a median is one of the values).
+    check_filter(store, vol, "median(1)", "m", ndi.median_filter(f, size=3, mode="nearest"))
+    check_filter(store, vol, "median(2,0,1)", "m2",
+                 ndi.median_filter(f, size=(3, 1, 5), mode="nearest"))
+    check_filter(store, vol, "gauss(1)|median(1)", "gm1",
+                 ndi.median_filter(ndi.gaussian_filter(f, 1.0, mode="nearest").astype(np.float32)
+                                   .astype(np.float64), size=3, mode="nearest"))
     t = int(np.percentile(vol, 80))
     check_labels(store, f"threshold({t})|label(26)", "l26", vol > t, 26, intensity=vol)
     check_labels(store, f"threshold({t})|label(6)", "l6", vol > t, 6, intensity=vol)

@@ -157,6 +157,10 @@ fn derive_stages(
             Op::Gauss(s) => Filter::Gauss(sigma(s)?),
             Op::GradMag(s) => Filter::GradMag(sigma(s)?),
             Op::Sobel => Filter::Sobel,
+            // The radius in level-0 voxels, at this level's.
+            Op::Median(r) => {
+                Filter::Median([0, 1, 2].map(|k| (r[k] as f64 / factor[k]).round() as usize))
+            }
             Op::Threshold(t) => Filter::Threshold(*t),
             Op::Window(a, b) => Filter::Window(*a, *b),
             Op::Label(_) => unreachable!("checked by check_live"),

@@ -13,7 +13,8 @@
 use crate::gpu::{DeviceFilter, FilterKernels};
 use crate::kernels::{
     fold_weights, gaussian_radius, gaussian_weights, gaussian_weights_folded, magnitude_nearest,
-    max_sigma, separable_nearest, threshold, window, Real, MAX_RADIUS, SOBEL_D, SOBEL_S,
+    max_sigma, median_nearest, separable_nearest, threshold, window, Real, MAX_RADIUS, SOBEL_D,
+    SOBEL_S,
 };
 use brickyard_core::{as_bytes_mut, dispatch_dtype, DType, Dims3, Sample};
 use brickyard_store::source::check_region;
@@ -38,6 +39,9 @@ pub enum Filter {
     Threshold(f64),
     /// `lo <= x <= hi`, as u8 0/1.
     Window(f64, f64),
+    /// `median_filter(x, size=2r+1, mode="nearest")`, the radius `[z, y, x]`
+    /// in voxels (CPU only: no device kernel).
+    Median([usize; 3]),
     /// A float filter on a volume of `dims` `[z, y, x]` whose kernels reach
     /// past the volume: the weights beyond `dims − 1` voxels from the
     /// centre summed onto the taps `±(dims − 1)` (boundary mode "nearest"
@@ -51,7 +55,7 @@ impl Filter {
     /// Voxel type of the result.
     pub fn out_dtype(&self) -> DType {
         match self {
-            Filter::Gauss(_) | Filter::GradMag(_) | Filter::Sobel => DType::F32,
+            Filter::Gauss(_) | Filter::GradMag(_) | Filter::Sobel | Filter::Median(_) => DType::F32,
             Filter::Threshold(_) | Filter::Window(..) => DType::U8,
             Filter::Folded(f, _) => f.out_dtype(),
         }
@@ -99,6 +103,7 @@ impl Filter {
                 }
             }),
             Filter::Sobel => [1; 3],
+            Filter::Median(r) => *r,
             Filter::Threshold(_) | Filter::Window(..) => [0; 3],
             Filter::Folded(f, d) => {
                 let h = f.halo();
@@ -137,7 +142,7 @@ impl Filter {
                     true,
                 ))
             }
-            Filter::Threshold(_) | Filter::Window(..) => None,
+            Filter::Threshold(_) | Filter::Window(..) | Filter::Median(_) => None,
             Filter::Folded(f, d) => {
                 let (cs, mag) = match &**f {
                     Filter::Gauss(s) => (
@@ -229,6 +234,7 @@ impl Filter {
                     separable_nearest(data, dims, refs(&cs[0]), first, len).0
                 }
             }
+            (Filter::Median(r), None) => median_nearest(&data, dims, *r, first, len),
             (Filter::Threshold(t), None) => threshold(&data, *t),
             (Filter::Window(lo, hi), None) => window(&data, *lo, *hi),
             _ => unreachable!("float filters have components"),
@@ -293,6 +299,8 @@ pub fn region_block_bytes(
     let read: u64 = inner.iter().product();
     let out: u64 = b.iter().product();
     let boxes = match filter.components() {
+        // The window's values, per thread: small beside the boxes.
+        None if matches!(filter, Filter::Median(_)) => 1,
         None => 0,
         Some((_, false)) => 1,
         Some((_, true)) => 2,
@@ -387,6 +395,10 @@ impl FilterSource {
     pub fn with_device(mut self, k: &Arc<FilterKernels>) -> FilterSource {
         let max_voxels = k.max_voxels();
         let h = self.filter.halo();
+        // A median has no device kernel: it stays on the CPU.
+        if matches!(self.filter, Filter::Median(_)) {
+            return self;
+        }
         if h.iter().map(|&v| 2 * v as u64 + 1).product::<u64>() <= max_voxels {
             self.device = Some(DeviceStage {
                 filter: Mutex::new(DeviceFilter::new(k.clone(), self.filter.clone())),

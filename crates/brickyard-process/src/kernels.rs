@@ -404,6 +404,64 @@ pub fn threshold<R: Real>(v: &[R], t: f64) -> Vec<R> {
         .collect()
 }
 
+/// The most voxels a median filter's window reaches from its centre along
+/// one axis (a window of up to 15³ values per voxel).
+pub const MAX_MEDIAN_RADIUS: usize = 7;
+
+/// The median of the `(2r+1)` box around each position `first..first +
+/// len` (per axis) of `data` (`dims`, `[z, y, x]`), a tap outside `data`
+/// reading its nearest end (scipy's `median_filter(x, size=2r+1,
+/// mode="nearest")`). Values are ordered by `f64::total_cmp` (NaN above
+/// every number); the window holds an odd count, so the median is one of
+/// its values, exact in any type. Planes in parallel.
+pub fn median_nearest<R: Real>(
+    data: &[R],
+    dims: [usize; 3],
+    r: [usize; 3],
+    first: [i64; 3],
+    len: [usize; 3],
+) -> Vec<R> {
+    use rayon::prelude::*;
+    let n = len.iter().product::<usize>();
+    let mut out = vec![R::default(); n];
+    if n == 0 {
+        return out;
+    }
+    // For each output coordinate along an axis, its taps' clamped indices.
+    let taps = |a: usize| -> Vec<Vec<usize>> {
+        (0..len[a])
+            .map(|i| {
+                let c = first[a] + i as i64;
+                (-(r[a] as i64)..=r[a] as i64)
+                    .map(|d| (c + d).clamp(0, dims[a] as i64 - 1) as usize)
+                    .collect()
+            })
+            .collect()
+    };
+    let (tz, ty, tx) = (taps(0), taps(1), taps(2));
+    let w = (2 * r[0] + 1) * (2 * r[1] + 1) * (2 * r[2] + 1);
+    let mid = w / 2;
+    out.par_chunks_mut(len[1] * len[2])
+        .enumerate()
+        .for_each(|(k, plane)| {
+            let mut win: Vec<f64> = Vec::with_capacity(w);
+            for j in 0..len[1] {
+                for i in 0..len[2] {
+                    win.clear();
+                    for &zz in &tz[k] {
+                        for &yy in &ty[j] {
+                            let row = (zz * dims[1] + yy) * dims[2];
+                            win.extend(tx[i].iter().map(|&xx| data[row + xx].to_f64()));
+                        }
+                    }
+                    let (_, m, _) = win.select_nth_unstable_by(mid, f64::total_cmp);
+                    plane[j * len[2] + i] = R::from_f64(*m);
+                }
+            }
+        });
+    out
+}
+
 /// 1 where `lo <= v <= hi`, else 0 (compared in f64).
 pub fn window<R: Real>(v: &[R], lo: f64, hi: f64) -> Vec<R> {
     let (one, zero) = (R::from_f64(1.0), R::default());
@@ -504,6 +562,48 @@ pub fn neighbour_offsets(conn: u8) -> Vec<[i64; 3]> {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// The median against its definition: every tap clamped into the
+    /// volume, the window sorted, its middle value; halos wider than the
+    /// volume, a region inside a larger block, radii 0 on some axes.
+    #[test]
+    fn median_is_the_middle_of_the_sorted_window() {
+        let dims = [3usize, 5, 4];
+        let n: usize = dims.iter().product();
+        // Values with ties, from a fixed sequence.
+        let data: Vec<f64> = (0..n).map(|i| ((i * 37 + 11) % 17) as f64 - 3.0).collect();
+        let at = |z: i64, y: i64, x: i64| {
+            let c = |v: i64, d: usize| v.clamp(0, d as i64 - 1) as usize;
+            data[(c(z, dims[0]) * dims[1] + c(y, dims[1])) * dims[2] + c(x, dims[2])]
+        };
+        for (r, first, len) in [
+            ([1, 1, 1], [0i64, 0, 0], [3usize, 5, 4]),
+            ([2, 0, 3], [0, 0, 0], [3, 5, 4]),
+            ([0, 2, 1], [1, 1, 1], [2, 3, 2]),
+            ([4, 4, 4], [0, 0, 0], [3, 5, 4]),
+        ] {
+            let got = median_nearest(&data, dims, r, first, len);
+            let mut k = 0;
+            for z in 0..len[0] as i64 {
+                for y in 0..len[1] as i64 {
+                    for x in 0..len[2] as i64 {
+                        let (cz, cy, cx) = (first[0] + z, first[1] + y, first[2] + x);
+                        let mut w = vec![];
+                        for dz in -(r[0] as i64)..=r[0] as i64 {
+                            for dy in -(r[1] as i64)..=r[1] as i64 {
+                                for dx in -(r[2] as i64)..=r[2] as i64 {
+                                    w.push(at(cz + dz, cy + dy, cx + dx));
+                                }
+                            }
+                        }
+                        w.sort_by(f64::total_cmp);
+                        assert_eq!(got[k], w[w.len() / 2], "r {r:?} at {cz},{cy},{cx}");
+                        k += 1;
+                    }
+                }
+            }
+        }
+    }
 
     #[test]
     fn gaussian_weights_match_scipy() {

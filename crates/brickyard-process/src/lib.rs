@@ -29,6 +29,7 @@ pub use label::{
 };
 pub use pipeline::{Op, ParseError, Pipeline, Sigma};
 
+use brickyard_core::grid::unit_in_meters;
 use brickyard_core::Dims3;
 use brickyard_store::VolumeSource;
 use std::sync::Arc;
@@ -60,7 +61,7 @@ pub fn sigma_voxels(
             let su = unit.ok_or_else(|| {
                 format!("σ given in {u} but the volume's spacing has no unit; give σ in voxels")
             })?;
-            let (a, b) = (pipeline::unit_meters(u), pipeline::unit_meters(su));
+            let (a, b) = (unit_in_meters(u), unit_in_meters(su));
             let f = match (a, b) {
                 (Some(a), Some(b)) => a / b,
                 _ => {
@@ -231,6 +232,7 @@ fn build_stages(
             Op::Gauss(s) => Filter::Gauss(sigma_voxels(s, spacing, unit.as_deref())?),
             Op::GradMag(s) => Filter::GradMag(sigma_voxels(s, spacing, unit.as_deref())?),
             Op::Sobel => Filter::Sobel,
+            Op::Median(r) => Filter::Median(r.map(|v| v as usize)),
             Op::Threshold(t) => Filter::Threshold(*t),
             Op::Window(a, b) => Filter::Window(*a, *b),
             Op::Label(c) => {

@@ -31,6 +31,9 @@ pub enum Op {
     Sobel,
     Threshold(f64),
     Window(f64, f64),
+    /// Median of the box reaching this many voxels from each voxel,
+    /// `[z, y, x]`.
+    Median([u64; 3]),
     Label(u8),
 }
 
@@ -54,6 +57,8 @@ impl Op {
             Op::Sobel => "sobel".into(),
             Op::Threshold(t) => format!("threshold({t})"),
             Op::Window(a, b) => format!("window({a},{b})"),
+            Op::Median(r) if r[0] == r[1] && r[1] == r[2] => format!("median({})", r[0]),
+            Op::Median(r) => format!("median({},{},{})", r[2], r[1], r[0]),
             Op::Label(c) => format!("label({c})"),
         }
     }
@@ -87,8 +92,8 @@ pub struct Pipeline {
     pub ops: Vec<Op>,
 }
 
-const STAGES: &str =
-    "a stage: gauss(SIGMA), gradmag(SIGMA), sobel, threshold(T), window(LO,HI) or label(6|26)";
+const STAGES: &str = "a stage: gauss(SIGMA), gradmag(SIGMA), sobel, median(R), threshold(T), \
+     window(LO,HI) or label(6|26)";
 
 /// Unit suffixes accepted on σ and the OME-NGFF unit they stand for.
 const UNITS: [(&str, &str); 6] = [
@@ -106,18 +111,6 @@ fn unit_suffix(unit: &str) -> &str {
         .find(|(_, u)| *u == unit)
         .map(|(s, _)| *s)
         .unwrap_or(unit)
-}
-
-/// Metres per unit, for the units σ may be given in.
-pub fn unit_meters(unit: &str) -> Option<f64> {
-    Some(match unit {
-        "nanometer" => 1e-9,
-        "micrometer" => 1e-6,
-        "millimeter" => 1e-3,
-        "centimeter" => 1e-2,
-        "meter" => 1.0,
-        _ => return None,
-    })
 }
 
 impl Pipeline {
@@ -264,6 +257,31 @@ fn parse_stage(s: &str, pos: usize) -> Result<Op, ParseError> {
             count(&[0], "no arguments")?;
             Ok(Op::Sobel)
         }
+        "median" => {
+            count(&[1, 3], "one radius or three (x,y,z)")?;
+            let max = crate::kernels::MAX_MEDIAN_RADIUS;
+            let mut vals = vec![];
+            for a in &args {
+                match a.0.parse::<u64>() {
+                    Ok(v) if v as usize <= max => vals.push(v),
+                    _ => {
+                        return Err(err(
+                            a.0,
+                            a.1,
+                            &format!(
+                                "a radius in voxels: a whole number from 0 to {max} (the box \
+                                 is 2R+1 voxels across)"
+                            ),
+                        ))
+                    }
+                }
+            }
+            Ok(Op::Median(if vals.len() == 1 {
+                [vals[0]; 3]
+            } else {
+                [vals[2], vals[1], vals[0]]
+            }))
+        }
         "threshold" => {
             count(&[1], "one argument: the threshold")?;
             Ok(Op::Threshold(number(&args[0], "threshold")?))
@@ -328,6 +346,24 @@ mod tests {
         );
         assert!(!p.is_label_output());
         assert_eq!(p.text(), "gauss(1.5um)");
+    }
+
+    #[test]
+    fn medians_parse_x_first_and_refuse_what_is_not_a_small_radius() {
+        let p = Pipeline::parse("median(1)|median(2,0,1)").unwrap();
+        assert_eq!(p.ops, vec![Op::Median([1; 3]), Op::Median([1, 0, 2])]);
+        assert_eq!(p.text(), "median(1)|median(2,0,1)");
+        for bad in ["median(1.5)", "median(-1)", "median(8)", "median(x)"] {
+            let e = Pipeline::parse(bad).unwrap_err();
+            assert!(
+                e.expected.contains("whole number from 0 to 7"),
+                "{bad}: {e}"
+            );
+        }
+        let e = Pipeline::parse("median(1,2)").unwrap_err();
+        assert!(e.expected.contains("one radius or three"), "{e}");
+        let e = Pipeline::parse("medain(1)").unwrap_err();
+        assert!(e.expected.contains("median(R)"), "{e}");
     }
 
     #[test]
