@@ -2460,24 +2460,37 @@ fn viewer_refuses_sizes_of_no_pixels_and_numbers_that_are_not_finite() {
     .enumerate()
     {
         let script = d.path().join(format!("s{i}.txt"));
-        std::fs::write(
-            &script,
-            format!("mode dvr\n{line}\nwait-complete 20\nquit\n"),
-        )
-        .unwrap();
-        let Some(cmd) = viewer(&store, &script, None, &["--backend", "cpu"]) else {
+        let text = format!("mode dvr\n{line}\nwait-complete 20\nquit\n");
+        let Some(e) = refused_at(&store, &script, &text, &["--backend", "cpu"], 2, want, 60) else {
             return;
         };
-        let o = output_within(cmd, std::time::Duration::from_secs(60))
-            .unwrap_or_else(|| panic!("{line}: the viewer did not end in 60 s"));
-        assert!(!o.status.success(), "{line}: accepted");
-        let e = stderr(&o);
-        assert!(
-            e.contains(&format!("{}: line 2", s(&script))) && e.contains(want),
-            "{line}: {e}"
-        );
         assert!(!e.contains("panicked"), "{line}: {e}");
     }
+}
+
+/// Run the viewer on `text` (written to `script`) with `flags`: it must
+/// end within `secs`, failing at line `line` with a message holding
+/// `want`. Its stderr; `None` where no viewer can run here.
+fn refused_at(
+    store: &Path,
+    script: &Path,
+    text: &str,
+    flags: &[&str],
+    line: usize,
+    want: &str,
+    secs: u64,
+) -> Option<String> {
+    std::fs::write(script, text).unwrap();
+    let cmd = viewer(store, script, None, flags)?;
+    let o = output_within(cmd, std::time::Duration::from_secs(secs))
+        .unwrap_or_else(|| panic!("{text}: the viewer did not end in {secs} s"));
+    assert!(!o.status.success(), "{text}: accepted");
+    let e = stderr(&o);
+    assert!(
+        e.contains(&format!("{}: line {line}", s(script))) && e.contains(want),
+        "{text}: {e}"
+    );
+    Some(e)
 }
 
 /// The 3D view's zoom stays within a range of the volume's size, as the
@@ -2561,23 +2574,11 @@ fn viewer_refuses_view_sizes_beyond_its_memory_and_pixels_outside_its_views() {
     .enumerate()
     {
         let script = d.path().join(format!("s{i}.txt"));
-        std::fs::write(&script, format!("# {i}\n{body}\nquit\n")).unwrap();
-        let Some(cmd) = viewer(
-            &store,
-            &script,
-            None,
-            &["--backend", "cpu", "--memory", "512MiB"],
-        ) else {
+        let text = format!("# {i}\n{body}\nquit\n");
+        let flags = ["--backend", "cpu", "--memory", "512MiB"];
+        let Some(e) = refused_at(&store, &script, &text, &flags, line, want, 120) else {
             return;
         };
-        let o = output_within(cmd, std::time::Duration::from_secs(120))
-            .unwrap_or_else(|| panic!("{body}: the viewer did not end in 120 s"));
-        assert!(!o.status.success(), "{body}: accepted");
-        let e = stderr(&o);
-        assert!(
-            e.contains(&format!("{}: line {line}", s(&script))) && e.contains(want),
-            "{body}: {e}"
-        );
         assert!(!e.contains("click 3d: click 3d"), "{e}");
     }
 }

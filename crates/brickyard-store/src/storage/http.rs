@@ -1534,21 +1534,27 @@ mod tests {
         l.local_addr().unwrap().port()
     }
 
-    /// A server that accepts connections and never answers (hung, or
-    /// stopped): each request waits for the answer's headers at most
-    /// `response_timeout`, and the host soon counts as down. `open` of
-    /// such a store waited out 30 s × 5 attempts per document, ten minutes.
-    #[test]
-    fn a_host_that_never_answers_counts_as_down() {
+    /// The port of a server that accepts and holds every connection and
+    /// answers nothing.
+    fn silent_server() -> u16 {
         let l = TcpListener::bind("127.0.0.1:0").unwrap();
         let port = l.local_addr().unwrap().port();
-        // Accept and hold every connection, answer nothing.
         std::thread::spawn(move || {
             let mut held = vec![];
             for s in l.incoming().flatten() {
                 held.push(s);
             }
         });
+        port
+    }
+
+    /// A server that accepts connections and never answers (hung, or
+    /// stopped): each request waits for the answer's headers at most
+    /// `response_timeout`, and the host soon counts as down. `open` of
+    /// such a store waited out 30 s × 5 attempts per document, ten minutes.
+    #[test]
+    fn a_host_that_never_answers_counts_as_down() {
+        let port = silent_server();
         let c = Client::new(HttpConfig {
             retries: 4,
             backoff: Duration::from_millis(10),
@@ -1987,15 +1993,8 @@ mod tests {
     #[test]
     fn https_to_a_plain_http_server_says_so() {
         // A server that waits for a request line that never comes (as
-        // tiny_http does with a TLS greeting).
-        let l = TcpListener::bind("127.0.0.1:0").unwrap();
-        let silent = l.local_addr().unwrap().port();
-        std::thread::spawn(move || {
-            let mut held = vec![];
-            for s in l.incoming().flatten() {
-                held.push(s);
-            }
-        });
+        // a plain-HTTP server does with a TLS greeting).
+        let silent = silent_server();
         // One that answers the greeting with an HTTP error.
         let l = TcpListener::bind("127.0.0.1:0").unwrap();
         let talks = l.local_addr().unwrap().port();
