@@ -1488,6 +1488,25 @@ fn bad_label_overlays_give_clear_errors() {
         &["--labels", "cells", "--turntable", "4"],
         &["one view at a time"],
     );
+    // Labels named that the image does not hold are said to be missing
+    // (a selection of only those drew nothing, silently).
+    let o = run(&[
+        "render",
+        s(&store),
+        "--mode",
+        "slice",
+        "--size",
+        "32",
+        "--out",
+        s(&out),
+        "--labels",
+        "cells",
+        "--only-labels",
+        "1,2000000000",
+    ]);
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(o.status.success(), "{err}");
+    assert!(err.contains("1 of the 2 label(s) named is not in"), "{err}");
     // Label colours are for slices and 3D views, drawn whole each frame.
     let cells = store.join("labels/cells");
     for (extra, want) in [
