@@ -169,8 +169,27 @@ fn lock<T>(m: &Mutex<T>) -> MutexGuard<'_, T> {
 }
 
 impl Shared {
-    /// Load one brick (called by the workers, or directly).
+    /// Load one brick (called by the workers, or directly). A load that
+    /// met a chunk that was absent from what the reader kept (a shard
+    /// index read while the file was missing, by a read-ahead hint) but is
+    /// in the file now is done again: the reader forgot what it kept of
+    /// that file. A brick with its apron reads up to 8 shards, each of
+    /// which may be told so in turn.
     fn load(&self, key: &BrickKey) -> Result<LoadedBrick> {
+        let mut tries = 0;
+        loop {
+            match self.load_once(key) {
+                Err(e)
+                    if tries < 8 && e.to_string().contains(brickyard_store::source::READ_AGAIN) =>
+                {
+                    tries += 1
+                }
+                r => return r,
+            }
+        }
+    }
+
+    fn load_once(&self, key: &BrickKey) -> Result<LoadedBrick> {
         let g = &self.geometry;
         if !g.contains(key) {
             return Err(StoreError::invalid(

@@ -928,6 +928,79 @@ fn a_deleted_shard_that_comes_back_is_read_by_the_same_loader() {
 }
 
 #[test]
+fn a_shard_index_kept_from_before_the_shard_came_back_is_read_again() {
+    // A read-ahead hint reads (and keeps) the index of a shard that is
+    // missing at the time; once the shard is back, the read that used the
+    // kept "no shard" comes out as the fill value. The lost-chunk rule
+    // tells, the reader forgets what it kept, and the read again gets the
+    // data (the loader does it at once: a viewer's retry took two rounds).
+    let dir = tempfile::tempdir().unwrap();
+    let store = noise_store(dir.path());
+    let mut shards = vec![];
+    shard_files(&store.join("0"), &mut shards);
+    shards.sort();
+    let bytes = std::fs::read(&shards[0]).unwrap();
+    std::fs::remove_file(&shards[0]).unwrap();
+    let mut src = zarr::open(&store, 0).unwrap();
+    src.enable_chunk_cache(16 << 20);
+    assert!(src.check_against_stats());
+    src.prefetch(0, [0..8, 0..8, 0..8]);
+    std::fs::write(&shards[0], &bytes).unwrap();
+    let mut out = vec![0u8; 8 * 8 * 8 * 2];
+    let e = src
+        .read_region(0, 0..8, 0..8, 0..8, &mut out)
+        .unwrap_err()
+        .to_string();
+    assert!(
+        e.contains("missing when the brick was read and is there now")
+            && e.contains(brickyard_store::source::READ_AGAIN),
+        "{e}"
+    );
+    src.read_region(0, 0..8, 0..8, 0..8, &mut out).unwrap();
+    let fresh = zarr::open(&store, 0).unwrap();
+    let mut want = vec![0u8; out.len()];
+    fresh.read_region(0, 0..8, 0..8, 0..8, &mut want).unwrap();
+    assert!(out == want, "the read again differs from the store");
+}
+
+#[test]
+fn bricks_of_a_shard_that_came_back_load_at_the_first_retry() {
+    // Loads and read-ahead hints while a shard is missing leave its kept
+    // index saying "no shard"; once it is back, the first retry of the
+    // failed bricks loads them all (a load that meets the stale index is
+    // done again at once).
+    let dir = tempfile::tempdir().unwrap();
+    let store = noise_store(dir.path());
+    let mut shards = vec![];
+    shard_files(&store.join("0"), &mut shards);
+    shards.sort();
+    let bytes = std::fs::read(&shards[0]).unwrap();
+    std::fs::remove_file(&shards[0]).unwrap();
+    let loader = Loader::open(&store, [8; 3], 1, 2, Arc::new(HostCache::new(1 << 30))).unwrap();
+    loader.set_read_ahead(64);
+    let level0: Vec<(BrickKey, u32)> = all_keys(loader.geometry())
+        .into_iter()
+        .filter(|k| k.level == 0)
+        .map(|k| (k, 1))
+        .collect();
+    loader.request(&level0);
+    assert!(loader.wait_idle(Duration::from_secs(60)));
+    assert!(!loader.take_failures().is_empty(), "no brick failed");
+    std::fs::write(&shards[0], &bytes).unwrap();
+    for round in 0..3 {
+        loader.retry_failed();
+        assert!(loader.wait_idle(Duration::from_secs(60)));
+        let f = loader.take_failures();
+        assert!(
+            f.is_empty(),
+            "round {round}: {} failed: {}",
+            f.len(),
+            f[0].message
+        );
+    }
+}
+
+#[test]
 fn a_store_replaced_while_open_fails_its_loads() {
     // The loader caches shard indexes and statistics; a store written
     // again in its place (`convert --overwrite` renames the new one in)

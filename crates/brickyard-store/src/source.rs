@@ -92,6 +92,11 @@ impl SourceMeta {
 /// [`VolumeSource::chunk_absent`]'s reason when the chunk's file is gone.
 pub const FILE_MISSING: &str = "the file is missing";
 
+/// How [`VolumeSource::chunk_absent`]'s reason ends when the chunk was
+/// absent from what the read used (a shard index kept from before) but is
+/// in the file now: the kept data is forgotten, and a read again gets it.
+pub const READ_AGAIN: &str = "(it is read again next time)";
+
 pub trait VolumeSource: Send + Sync {
     fn meta(&self) -> &SourceMeta;
 

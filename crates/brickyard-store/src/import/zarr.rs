@@ -1129,15 +1129,19 @@ impl VolumeSource for ZarrSource {
                     (true, _) => (file, no_entry()),
                     (false, true) => (
                         file,
-                        "the shard file was missing when the brick was read and is there now \
-                         (it is read again next time)"
-                            .into(),
+                        format!(
+                            "the shard file was missing when the brick was read and is there \
+                             now {}",
+                            crate::source::READ_AGAIN
+                        ),
                     ),
                     (false, false) => (
                         file,
-                        "the shard's index had no entry for the brick's inner chunk when it was \
-                         read and has one now (it is read again next time)"
-                            .into(),
+                        format!(
+                            "the shard's index had no entry for the brick's inner chunk when it \
+                             was read and has one now {}",
+                            crate::source::READ_AGAIN
+                        ),
                     ),
                 })
             }
