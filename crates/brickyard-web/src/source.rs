@@ -121,6 +121,11 @@ impl<K: std::hash::Hash + Eq + Clone, V: Clone> Lru<K, V> {
         self.order.push_back((k.clone(), t));
         Some(e.0.clone())
     }
+    fn remove(&mut self, k: &K) {
+        if let Some(e) = self.map.remove(k) {
+            self.bytes -= e.1;
+        }
+    }
     fn put(&mut self, k: K, v: V, size: usize) {
         self.tick += 1;
         if let Some(old) = self.map.insert(k.clone(), (v, size, self.tick)) {
@@ -794,7 +799,13 @@ impl WebSource {
                             phi[s] = hi[ax].min(porig[ax] + piece[ax]);
                         }
                     }
-                    self.check_lost(&key, &a.chunk_key(&outer), why, plo, phi)?;
+                    if let Err(e) = self.check_lost(&key, &a.chunk_key(&outer), why, plo, phi) {
+                        // Lost: what is kept of the shard (its index, or its
+                        // absence) is forgotten, so that a retry reads it
+                        // again once it is back.
+                        self.indexes.borrow_mut().remove(&(l, outer.clone()));
+                        return Err(e);
+                    }
                     None
                 }
             };

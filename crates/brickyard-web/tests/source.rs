@@ -1371,6 +1371,7 @@ fn a_store_reconverted_while_open_is_not_mixed_with_the_old_one() {
 fn a_lost_shard_fails_the_bricks_its_statistics_say_hold_data() {
     let dir = tempfile::tempdir().unwrap();
     let store = convert_file(dir.path(), "mni152-t1-u8.nii.gz", Compression::Lz4, 64, 128);
+    let shard = std::fs::read(store.join("0/c/0/0/0")).unwrap();
     std::fs::remove_file(store.join("0/c/0/0/0")).unwrap();
     // Without statistics read, as Zarr reads it: the fill value.
     let web = open_web(&store, 32);
@@ -1403,6 +1404,17 @@ fn a_lost_shard_fails_the_bricks_its_statistics_say_hold_data() {
     for k in &keys {
         let w = futures_executor::block_on(web.load(*k)).is_err();
         assert_eq!(w, native.load_now(k).is_err(), "{k:?}");
+    }
+    // The shard back (a repaired file): the same source reads it, equal to
+    // a fresh one's bricks (it kept the shard's absence, and failed them
+    // for as long as it kept it).
+    std::fs::write(store.join("0/c/0/0/0"), &shard).unwrap();
+    let fresh = open_web(&store, 32);
+    futures_executor::block_on(fresh.brick_ranges(1 << 21));
+    for k in &keys {
+        let again = futures_executor::block_on(web.load(*k)).expect("the shard is back");
+        let want = futures_executor::block_on(fresh.load(*k)).unwrap();
+        assert!(again.content == want.content, "{k:?} differs");
     }
 }
 
