@@ -1490,6 +1490,7 @@ fn bad_label_overlays_give_clear_errors() {
     );
     // Labels named that the image does not hold are said to be missing
     // (a selection of only those drew nothing, silently).
+    let drawn = d.path().join("some.png");
     let o = run(&[
         "render",
         s(&store),
@@ -1498,7 +1499,7 @@ fn bad_label_overlays_give_clear_errors() {
         "--size",
         "32",
         "--out",
-        s(&out),
+        s(&drawn),
         "--labels",
         "cells",
         "--only-labels",
