@@ -892,6 +892,19 @@ fn a_deleted_shard_beside_shards_that_were_read_is_a_failure() {
     }
 }
 
+/// A noise store in `dir` with its first level-0 shard moved away: the
+/// store, that shard's path and its bytes (to put back).
+fn noise_store_less_a_shard(dir: &Path) -> (PathBuf, PathBuf, Vec<u8>) {
+    let store = noise_store(dir);
+    let mut shards = vec![];
+    shard_files(&store.join("0"), &mut shards);
+    shards.sort();
+    let shard = shards.swap_remove(0);
+    let bytes = std::fs::read(&shard).unwrap();
+    std::fs::remove_file(&shard).unwrap();
+    (store, shard, bytes)
+}
+
 #[test]
 fn a_deleted_shard_that_comes_back_is_read_by_the_same_loader() {
     // The loader keeps shard indexes and decoded chunks: what it read while
@@ -899,11 +912,9 @@ fn a_deleted_shard_that_comes_back_is_read_by_the_same_loader() {
     // the failure, or the brick would load as zeros once the shard is back
     // (a viewer retrying failed bricks drew it black and "complete").
     let dir = tempfile::tempdir().unwrap();
-    let store = noise_store(dir.path());
-    let mut shards = vec![];
-    shard_files(&store.join("0"), &mut shards);
-    shards.sort();
+    let (store, shard, bytes) = noise_store_less_a_shard(dir.path());
     let k = BrickKey::new(0, 0, [0, 0, 0]);
+    std::fs::write(&shard, &bytes).unwrap();
     let want = match Loader::open(&store, [8; 3], 1, 1, Arc::new(HostCache::new(1 << 30)))
         .unwrap()
         .load_now(&k)
@@ -913,14 +924,13 @@ fn a_deleted_shard_that_comes_back_is_read_by_the_same_loader() {
         BrickContent::Data(d) => d,
         _ => panic!("brick [0, 0, 0] holds data"),
     };
-    let bytes = std::fs::read(&shards[0]).unwrap();
-    std::fs::remove_file(&shards[0]).unwrap();
+    std::fs::remove_file(&shard).unwrap();
     let loader = Loader::open(&store, [8; 3], 1, 1, Arc::new(HostCache::new(1 << 30))).unwrap();
     for _ in 0..2 {
         let e = loader.load_now(&k).unwrap_err().to_string();
         assert!(e.contains("missing"), "{e}");
     }
-    std::fs::write(&shards[0], &bytes).unwrap();
+    std::fs::write(&shard, &bytes).unwrap();
     match loader.load_now(&k).unwrap().content {
         BrickContent::Data(d) => assert!(d == want, "the brick differs from the stored one"),
         _ => panic!("the brick came back empty"),
@@ -935,17 +945,12 @@ fn a_shard_index_kept_from_before_the_shard_came_back_is_read_again() {
     // tells, the reader forgets what it kept, and the read again gets the
     // data (the loader does it at once: a viewer's retry took two rounds).
     let dir = tempfile::tempdir().unwrap();
-    let store = noise_store(dir.path());
-    let mut shards = vec![];
-    shard_files(&store.join("0"), &mut shards);
-    shards.sort();
-    let bytes = std::fs::read(&shards[0]).unwrap();
-    std::fs::remove_file(&shards[0]).unwrap();
+    let (store, shard, bytes) = noise_store_less_a_shard(dir.path());
     let mut src = zarr::open(&store, 0).unwrap();
     src.enable_chunk_cache(16 << 20);
     assert!(src.check_against_stats());
     src.prefetch(0, [0..8, 0..8, 0..8]);
-    std::fs::write(&shards[0], &bytes).unwrap();
+    std::fs::write(&shard, &bytes).unwrap();
     let mut out = vec![0u8; 8 * 8 * 8 * 2];
     let e = src
         .read_region(0, 0..8, 0..8, 0..8, &mut out)
@@ -970,12 +975,7 @@ fn bricks_of_a_shard_that_came_back_load_at_the_first_retry() {
     // failed bricks loads them all (a load that meets the stale index is
     // done again at once).
     let dir = tempfile::tempdir().unwrap();
-    let store = noise_store(dir.path());
-    let mut shards = vec![];
-    shard_files(&store.join("0"), &mut shards);
-    shards.sort();
-    let bytes = std::fs::read(&shards[0]).unwrap();
-    std::fs::remove_file(&shards[0]).unwrap();
+    let (store, shard, bytes) = noise_store_less_a_shard(dir.path());
     let loader = Loader::open(&store, [8; 3], 1, 2, Arc::new(HostCache::new(1 << 30))).unwrap();
     loader.set_read_ahead(64);
     let level0: Vec<(BrickKey, u32)> = all_keys(loader.geometry())
@@ -986,7 +986,7 @@ fn bricks_of_a_shard_that_came_back_load_at_the_first_retry() {
     loader.request(&level0);
     assert!(loader.wait_idle(Duration::from_secs(60)));
     assert!(!loader.take_failures().is_empty(), "no brick failed");
-    std::fs::write(&shards[0], &bytes).unwrap();
+    std::fs::write(&shard, &bytes).unwrap();
     for round in 0..3 {
         loader.retry_failed();
         assert!(loader.wait_idle(Duration::from_secs(60)));
