@@ -179,11 +179,7 @@ impl Shared {
         let mut tries = 0;
         loop {
             match self.load_once(key) {
-                Err(e)
-                    if tries < 8 && e.to_string().contains(brickyard_store::source::READ_AGAIN) =>
-                {
-                    tries += 1
-                }
+                Err(StoreError::Changed { .. }) if tries < 8 => tries += 1,
                 r => return r,
             }
         }

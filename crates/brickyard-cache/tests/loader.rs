@@ -1459,3 +1459,45 @@ fn bricks_equal_the_store_bit_for_bit_for_every_ratio_and_dtype() {
         }
     }
 }
+
+#[test]
+fn a_brick_hinted_while_its_shard_was_missing_loads_once_the_shard_is_back() {
+    // The read-ahead hint for brick b reads (and keeps) its shard's index
+    // while the shard is missing; the shard comes back before b's load,
+    // which meets the kept "no shard" and is done again at once, with the
+    // file's index: no failure, and b equals the stored brick.
+    let dir = tempfile::tempdir().unwrap();
+    let (store, shard, bytes) = noise_store_less_a_shard(dir.path());
+    let loader = Loader::open(&store, [8; 3], 1, 1, Arc::new(HostCache::new(1 << 30))).unwrap();
+    loader.set_read_ahead(8);
+    // a's load sleeps after its read: the shard comes back meanwhile,
+    // after b's hint (issued before a's load) and before b's load.
+    loader.set_read_delay(Duration::from_millis(1500));
+    let (a, b) = (
+        BrickKey::new(0, 0, [4, 4, 4]),
+        BrickKey::new(0, 0, [0, 0, 0]),
+    );
+    loader.set_paused(true);
+    loader.request(&[(a, 2), (b, 1)]);
+    loader.set_paused(false);
+    std::thread::sleep(Duration::from_millis(300));
+    std::fs::write(&shard, &bytes).unwrap();
+    assert!(loader.wait_idle(Duration::from_secs(60)));
+    let f = loader.take_failures();
+    assert!(f.is_empty(), "{}", f[0].message);
+    let got = loader.poll();
+    let got = got
+        .iter()
+        .find(|l| l.key == b)
+        .expect("brick b was not loaded");
+    let want = Loader::open(&store, [8; 3], 1, 1, Arc::new(HostCache::new(1 << 30)))
+        .unwrap()
+        .load_now(&b)
+        .unwrap();
+    match (&got.content, want.content) {
+        (BrickContent::Data(g), BrickContent::Data(w)) => {
+            assert!(*g == w, "brick b differs from the stored one")
+        }
+        _ => panic!("brick b came back without data"),
+    }
+}

@@ -5,7 +5,7 @@
 //! that holds zeros.
 
 use crate::error::{Result, StoreError};
-use crate::source::{VolumeSource, FILE_MISSING};
+use crate::source::{Absence, VolumeSource};
 use crate::storage::{self, StoreAt};
 use brickyard_core::Dims3;
 use std::collections::HashMap;
@@ -241,15 +241,23 @@ impl LevelStats {
                 continue;
             };
             let field = format!("channel {c} store brick {b:?}");
-            let msg =
-                format!("{why}, but the statistics say this brick holds values in [{mn}, {mx}]");
-            return Err(if why == FILE_MISSING {
-                StoreError::io(
+            let held = format!("the statistics say this brick holds values in [{mn}, {mx}]");
+            return Err(match why {
+                Absence::FileMissing => StoreError::io(
                     file,
-                    std::io::Error::new(std::io::ErrorKind::NotFound, format!("{field}: {msg}")),
-                )
-            } else {
-                StoreError::invalid(file, field, msg)
+                    std::io::Error::new(
+                        std::io::ErrorKind::NotFound,
+                        format!("{field}: the file is missing, but {held}"),
+                    ),
+                ),
+                Absence::NoEntry(why) => {
+                    StoreError::invalid(file, field, format!("{why}, but {held}"))
+                }
+                Absence::ChangedSince(why) => StoreError::Changed {
+                    path: file,
+                    field,
+                    msg: format!("{why}; {held}"),
+                },
             });
         }
         Ok(())

@@ -26,6 +26,15 @@ pub enum StoreError {
         field: String,
         msg: String,
     },
+    /// What a read used of a file (a shard index kept from before) left
+    /// data out that the file holds now: the reader forgot what it kept,
+    /// and the same read done again gets the data (the loader does so).
+    #[error("{}: {field}: {msg} {}", path.display(), crate::source::READ_AGAIN)]
+    Changed {
+        path: PathBuf,
+        field: String,
+        msg: String,
+    },
     /// The output exists and `--overwrite` was not given, or similar.
     #[error("{}: {msg}", path.display())]
     Refused { path: PathBuf, msg: String },

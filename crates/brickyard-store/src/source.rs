@@ -89,12 +89,23 @@ impl SourceMeta {
 /// `out.len()` equals the box's voxel count times the voxel size. Regions are
 /// always inside the volume. Implementations must be callable from several
 /// threads at once.
-/// [`VolumeSource::chunk_absent`]'s reason when the chunk's file is gone.
-pub const FILE_MISSING: &str = "the file is missing";
+/// Why [`VolumeSource::chunk_absent`] calls a chunk absent.
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub enum Absence {
+    /// The chunk's file (its shard's, when sharded) is gone.
+    FileMissing,
+    /// The file is there, but its shard's index has no entry for the chunk
+    /// (the words say which inner chunk).
+    NoEntry(String),
+    /// The chunk was absent from what the read used (a shard index kept
+    /// from before, while the file was missing or held no entry for it)
+    /// but is in the file now: the source forgot what it kept, and a read
+    /// again gets the data. The words say what changed.
+    ChangedSince(String),
+}
 
-/// How [`VolumeSource::chunk_absent`]'s reason ends when the chunk was
-/// absent from what the read used (a shard index kept from before) but is
-/// in the file now: the kept data is forgotten, and a read again gets it.
+/// How the message of an [`Absence::ChangedSince`] read ends
+/// ([`StoreError::Changed`](crate::StoreError::Changed)).
 pub const READ_AGAIN: &str = "(it is read again next time)";
 
 pub trait VolumeSource: Send + Sync {
@@ -137,11 +148,11 @@ pub trait VolumeSource: Send + Sync {
 
     /// Whether the store has no data for the chunk that holds voxel `v`
     /// (`[z, y, x]`) of channel `c`, for sources stored as files of chunks
-    /// or shards: `Some((file, why))` when its file is missing (`why` is
-    /// then [`FILE_MISSING`]) or its shard's index has no entry for it. A Zarr reader reads such a chunk as the
+    /// or shards: `Some((file, why))` when its file is missing or its
+    /// shard's index has no entry for it ([`Absence`]). A Zarr reader reads such a chunk as the
     /// fill value; callers that know data should be there (the store's
     /// statistics say so) report it. `None`: present, or not such a source.
-    fn chunk_absent(&self, _c: usize, _v: Dims3) -> Option<(std::path::PathBuf, String)> {
+    fn chunk_absent(&self, _c: usize, _v: Dims3) -> Option<(std::path::PathBuf, Absence)> {
         None
     }
 

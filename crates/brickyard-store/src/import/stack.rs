@@ -246,7 +246,11 @@ impl VolumeSource for ChannelStack {
         self.sources[0].preferred_read()
     }
 
-    fn chunk_absent(&self, c: usize, v: Dims3) -> Option<(std::path::PathBuf, String)> {
+    fn chunk_absent(
+        &self,
+        c: usize,
+        v: Dims3,
+    ) -> Option<(std::path::PathBuf, crate::source::Absence)> {
         let (s, sc) = self.map[c];
         self.sources[s].chunk_absent(sc, v)
     }

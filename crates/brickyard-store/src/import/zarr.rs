@@ -8,7 +8,7 @@ use crate::brick_stats::LevelStats;
 use crate::error::{Result, StoreError};
 use crate::omezarr::{read_json, read_multiscale, Multiscale, STATS_DIR};
 use crate::shard::{self, IndexLayout};
-use crate::source::{check_box, check_region, SourceMeta, VolumeSource};
+use crate::source::{check_box, check_region, Absence, SourceMeta, VolumeSource};
 use crate::storage::{self, StoreAt};
 use brickyard_core::{as_bytes, dispatch_dtype, DType, Dims3};
 use serde_json::Value;
@@ -1080,7 +1080,7 @@ impl VolumeSource for ZarrSource {
         Some(self.dir.join(self.array.chunk_key(&grid).as_str()))
     }
 
-    fn chunk_absent(&self, c: usize, v: Dims3) -> Option<(PathBuf, String)> {
+    fn chunk_absent(&self, c: usize, v: Dims3) -> Option<(PathBuf, Absence)> {
         let at = self.array_coords(c, v);
         let grid: Vec<u64> = at
             .iter()
@@ -1090,7 +1090,7 @@ impl VolumeSource for ZarrSource {
         let file = self.dir.join(self.array.chunk_key(&grid).as_str());
         if !storage::exists(&file) {
             self.forget_file(&grid);
-            return Some((file, crate::source::FILE_MISSING.into()));
+            return Some((file, Absence::FileMissing));
         }
         // A shard whose index has no entry for the inner chunk (index in C
         // order over the shard's grid of inner chunks).
@@ -1111,7 +1111,11 @@ impl VolumeSource for ZarrSource {
             ix.as_ref()
                 .is_none_or(|ix| ix.get(entry as usize) == Some(&[u64::MAX, u64::MAX]))
         };
-        let no_entry = || format!("the shard's index has no entry for its inner chunk {pos:?}");
+        let no_entry = || {
+            Absence::NoEntry(format!(
+                "the shard's index has no entry for its inner chunk {pos:?}"
+            ))
+        };
         match &self.direct {
             Some(d) => {
                 // The index the reads used, kept by the direct reader (a
@@ -1129,18 +1133,17 @@ impl VolumeSource for ZarrSource {
                     (true, _) => (file, no_entry()),
                     (false, true) => (
                         file,
-                        format!(
-                            "the shard file was missing when the brick was read and is there \
-                             now {}",
-                            crate::source::READ_AGAIN
+                        Absence::ChangedSince(
+                            "the shard file was missing when the brick was read and is there now"
+                                .into(),
                         ),
                     ),
                     (false, false) => (
                         file,
-                        format!(
+                        Absence::ChangedSince(
                             "the shard's index had no entry for the brick's inner chunk when it \
-                             was read and has one now {}",
-                            crate::source::READ_AGAIN
+                             was read and has one now"
+                                .into(),
                         ),
                     ),
                 })
