@@ -27,7 +27,10 @@
 //! served (a store whose real path is outside the folder is skipped, and
 //! the start says so); the file found is then resolved (symlinks
 //! followed) and must still lie under its store's root (403 otherwise),
-//! and must be a regular file (404 otherwise). Methods that would write
+//! and must be a regular file (403 otherwise: a folder or FIFO where a
+//! file should be is damage; only a path with nothing there gets 404,
+//! which Zarr clients read as an absent chunk; a file that cannot be
+//! read gets 403 or 500). Methods that would write
 //! get 405; a request with a body (`Content-Length` above 0 or
 //! `Transfer-Encoding`) gets 413 before anything else and its connection
 //! is closed without reading the body. The server reads requests itself
@@ -1316,8 +1319,24 @@ fn resolve(site: &Site, url: &str) -> Target {
             Target::Refused(403, "path segment refused")
         }
         Ok(real) if real.is_file() => Target::File(real),
-        Ok(_) => Target::Refused(404, "not a file"),
-        Err(_) => Target::Refused(404, "not found"),
+        // A folder or a FIFO where a client asks for a file is damage, not
+        // an absent key: Zarr clients read a 404 as the fill value.
+        Ok(_) => Target::Refused(403, "not a regular file"),
+        Err(e) => {
+            let (code, why) = unreadable(&e);
+            Target::Refused(code, why)
+        }
+    }
+}
+
+/// The answer for a file the server cannot read: 404 only where nothing is
+/// there (Zarr clients take a 404 for an absent chunk and read the fill
+/// value), 403 where it may not be read, 500 otherwise.
+fn unreadable(e: &std::io::Error) -> (u16, &'static str) {
+    match e.kind() {
+        std::io::ErrorKind::NotFound | std::io::ErrorKind::NotADirectory => (404, "not found"),
+        std::io::ErrorKind::PermissionDenied => (403, "cannot be read"),
+        _ => (500, "cannot be read"),
     }
 }
 
@@ -1631,11 +1650,9 @@ fn respond(site: &Site, rq: Request) -> (u16, u64, Option<String>) {
     let (mut f, meta) = match opened {
         Ok(x) => x,
         Err(e) => {
-            let r = rq
-                .respond(text(404, "cannot be read"))
-                .err()
-                .and_then(send_err);
-            return (404, 0, r.or(Some(format!("{}: {e}", file.display()))));
+            let (code, why) = unreadable(&e);
+            let r = rq.respond(text(code, why)).err().and_then(send_err);
+            return (code, 0, r.or(Some(format!("{}: {e}", file.display()))));
         }
     };
     let len = meta.len();

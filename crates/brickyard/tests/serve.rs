@@ -1470,3 +1470,32 @@ fn idle_connections_cannot_exhaust_the_server() {
     assert!(threads < 300, "{threads} threads");
     drop(idle);
 }
+
+#[test]
+fn damaged_chunk_paths_are_errors_not_absent_chunks() {
+    // Zarr clients read a 404 as "no chunk here" and use the fill value:
+    // only a path with nothing there may get one. A folder or a FIFO where
+    // a chunk's file should be is damage (403), so a client fails instead
+    // of reading zeros.
+    let dir = tempfile::tempdir().unwrap();
+    let st = store(dir.path());
+    let shard = st.join("0/c/0/0/0");
+    assert!(shard.is_file());
+    std::fs::remove_file(&shard).unwrap();
+    std::fs::create_dir(&shard).unwrap();
+    let fifo = st.join("0/c/0/0/1");
+    std::fs::remove_file(&fifo).unwrap();
+    let made = Command::new("mkfifo").arg(&fifo).status().unwrap();
+    assert!(made.success());
+    let sv = serve(&[&st], &[]);
+    for (path, want) in [
+        ("/m.ome.zarr/0/c/0/0/0", 403),
+        ("/m.ome.zarr/0/c/0/0/1", 403),
+        ("/m.ome.zarr/0/c/1/0/0", 200),
+        ("/m.ome.zarr/0/c/9/9/9", 404),
+        ("/m.ome.zarr/0/zarr.json/c", 404),
+    ] {
+        let (code, _, _) = http(sv.port, "GET", path, &[]);
+        assert_eq!(code, want, "{path}");
+    }
+}
