@@ -163,10 +163,10 @@ impl LodBudget {
         LodBudget {
             base,
             bias: base,
-            // A bias of `levels` sends every sample to the coarsest level
-            // from any distance a view can have (plus margin for zoomed-in
-            // cameras, whose footprint is below a voxel).
-            max: base.max(0.0) + levels as f64 + 2.0,
+            // A bias of `levels − 1` sends every sample to the coarsest
+            // level from any distance (`Lod::level_for`: the bias applies
+            // also where a pixel spans less than a voxel).
+            max: base.max(levels.max(1) as f64 - 1.0),
             interactive,
             saturated: 0,
             roomy: 0,

@@ -144,7 +144,11 @@ pub enum Lod {
     /// Always this level.
     Fixed(usize),
     /// Per sample, the level whose voxel matches the pixel footprint at the
-    /// sample's distance, shifted by `bias` levels (negative: finer).
+    /// sample's distance (level 0 where a pixel spans less than a level-0
+    /// voxel), shifted by `bias` levels (negative: finer). A positive bias
+    /// coarsens every sample, also those nearer than where the footprint
+    /// reaches a level-0 voxel: a budget that raises it to shrink a view's
+    /// working set (a camera inside the volume) gets what it asks for.
     Auto { bias: f64 },
 }
 
@@ -158,7 +162,7 @@ impl Lod {
         match self {
             Lod::Fixed(l) => l.min(levels.max(1) - 1),
             Lod::Auto { bias } => {
-                let l = (footprint / voxel0).log2() + bias;
+                let l = (footprint / voxel0).log2().max(0.0) + bias;
                 if l.is_finite() && l > 0.0 {
                     (l.floor() as usize).min(levels.max(1) - 1)
                 } else {

@@ -601,7 +601,7 @@ fn dvr_channels_ray(
 /// DVR with automatic level of detail, written plainly on whole levels in
 /// memory (`levels[l]`: level `l`, all of one extent): each step `t = base
 /// + (k + ½)·Δ_l` samples level `l`, the level whose voxel matches the pixel
-/// footprint at `t` (`⌊log2(footprint / voxel₀) + bias⌋`, clamped); where
+/// footprint at `t` (`⌊max(log2(footprint / voxel₀), 0) + bias⌋`, clamped); where
 /// that level changes, the new level's step grid takes that sample as its
 /// step 0 (the next step lies `Δ_new` on: samples stay evenly spaced within
 /// a level). The oracle of the
@@ -611,7 +611,10 @@ pub fn render_auto_lod(levels: &[Volume], params: &RenderParams, bias: f64) -> I
     let voxel = |l: usize| levels[l].voxel_size();
     let reference = params.reference_step.unwrap_or(voxel(0));
     let level_at = |t: f64| {
-        let l = (params.camera.pixel_footprint(t, params.height) / voxel(0)).log2() + bias;
+        let l = (params.camera.pixel_footprint(t, params.height) / voxel(0))
+            .log2()
+            .max(0.0)
+            + bias;
         if l.is_finite() && l > 0.0 {
             (l.floor() as usize).min(levels.len() - 1)
         } else {

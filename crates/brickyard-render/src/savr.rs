@@ -532,7 +532,8 @@ pub fn lod_within(scene: &Scene, params: &RenderParams, lod: Lod, budget: u64) -
                 .sum::<f64>()
                 .sqrt();
             let fp = params.camera.pixel_footprint(near, params.height);
-            let x = (fp / scene.voxel(0)).log2();
+            // (The rule's level is never finer than level 0.)
+            let x = (fp / scene.voxel(0)).log2().max(0.0);
             // A hundredth of a level above the threshold: the device
             // computes in f32.
             let want = finest as f64 + 0.01;

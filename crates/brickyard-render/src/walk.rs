@@ -351,6 +351,8 @@ impl<'a> Frame<'a> {
 
     pub(crate) fn compute_next_level_t(&self, level: usize) -> f64 {
         match self.lod {
+            // The bias alone reaches the next level: from the eye on.
+            Lod::Auto { bias } if level + 1 < self.levels() && bias >= level as f64 + 1.0 => 0.0,
             Lod::Auto { bias } if level + 1 < self.levels() && self.fp_slope > 0.0 => {
                 // fp(t) / voxel0 = 2^(level + 1 − bias)
                 let t = self.voxel[0] * (level as f64 + 1.0 - bias).exp2() / self.fp_slope;
@@ -583,7 +585,7 @@ mod tests {
                 for i in 0..20_000 {
                     let t = i as f64 * 1e-3;
                     let fp = cam.pixel_footprint(t, 30);
-                    let l = (fp / f.voxel[0]).log2() + bias;
+                    let l = (fp / f.voxel[0]).log2().max(0.0) + bias;
                     let want = if l.is_finite() && l > 0.0 {
                         (l.floor() as usize).min(3)
                     } else {

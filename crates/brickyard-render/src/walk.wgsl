@@ -185,7 +185,9 @@ fn level_at(t: f32) -> u32 {
     if (R.perspective == 1u) {
         fp = R.fp_slope * t;
     }
-    let l = log2(fp / R.voxel0) + R.lod_bias;
+    // (The rule's level, never finer than level 0, then the bias: as the
+    // CPU twin's `Lod::level_for`.)
+    let l = max(log2(fp / R.voxel0), 0.0) + R.lod_bias;
     if (l > 0.0 && l < 1e9) {
         return min(u32(floor(l)), R.levels - 1u);
     }

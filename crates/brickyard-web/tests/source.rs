@@ -1225,11 +1225,12 @@ fn the_readout_reads_the_voxel_and_label_under_a_pixel_of_a_slice() {
         hits > 100 && in_labels >= 5,
         "{hits} pixels, {in_labels} in labels"
     );
-    // The labels drawn at level 2 (a LOD bias of 3: unbiased, this view
-    // would draw level -0.8), their level 0 still resident: the label read
-    // out is the one drawn, level 2's.
+    // The labels drawn at level 2 (a LOD bias of 2: unbiased, this view
+    // would draw level -0.8, that is level 0, which the bias shifts by
+    // 2), their level 0 still resident: the label read out is the one
+    // drawn, level 2's.
     let mut lv2 = lv.clone();
-    lv2.lod = brickyard_render::cpu::Lod::Auto { bias: 3.0 };
+    lv2.lod = brickyard_render::cpu::Lod::Auto { bias: 2.0 };
     frames_until_complete(&mut labels, &mut lexec, &lv2);
     let (lab2, d2) =
         read_whole(&brickyard_store::import::zarr::open(&store.join("labels/cells"), 2).unwrap());

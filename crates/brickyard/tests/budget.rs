@@ -482,3 +482,72 @@ fn a_store_damaged_during_a_render_is_drawn_coarser_and_reported() {
     let lost = holes(&clean, &png_rgba(&png));
     assert!(lost * 200 <= lit(&clean), "{lost} pixels lost");
 }
+
+#[test]
+fn a_camera_inside_the_volume_completes_in_a_small_pool() {
+    // A perspective eye inside the volume: pixels near it span less than
+    // a level-0 voxel. The level-of-detail bias used to coarsen only
+    // samples past where the footprint reached a voxel, so raising it
+    // never shrank the near part of the working set: MIP with a pool
+    // below it stopped at --max-frames, 87 % complete at bias +7 in a
+    // volume of 5 levels. Now the view completes in a few frames, at a
+    // bias no larger than the coarsest level needs, without holes.
+    let d = tempfile::tempdir().unwrap();
+    let store = d.path().join("g.ome.zarr");
+    ok(&run(&[
+        "generate",
+        "mandelbulb",
+        s(&store),
+        "--size",
+        "256",
+        "--quiet",
+        "--brick",
+        "16",
+        "--shard",
+        "64",
+    ]));
+    let cam = d.path().join("inside.json");
+    std::fs::write(
+        &cam,
+        r#"{"projection":{"type":"perspective","fov_y_deg":35.0},"eye":[212,87,162],"target":[187,118,137],"up":[0,0,1]}"#,
+    )
+    .unwrap();
+    for mode in ["mip", "dvr"] {
+        let shot = |pool: &str| {
+            let png = d.path().join(format!("{mode}-{pool}.png"));
+            let o = run(&[
+                "render",
+                s(&store),
+                "--mode",
+                mode,
+                "--camera",
+                s(&cam),
+                "--size",
+                "256",
+                "--backend",
+                "cpu",
+                "--pool",
+                pool,
+                "--max-frames",
+                "100",
+                "--json",
+                "--out",
+                s(&png),
+            ]);
+            let v = summary(&ok(&o));
+            assert_eq!(o.status.code(), Some(0), "{mode} {pool}: {v}");
+            (v, png_rgba(&png))
+        };
+        let (full, full_px) = shot("64MiB");
+        assert_eq!(full["lod_bias"], 0.0, "{full}");
+        assert!(lit(&full_px) > 1000, "{mode}: too little content");
+        let (v, px) = shot("128KiB");
+        assert_eq!(v["stop"], "complete", "{mode}: {v}");
+        let (frames, bias) = (
+            v["frames"].as_u64().unwrap(),
+            v["lod_bias"].as_f64().unwrap(),
+        );
+        assert!(frames <= 20 && bias > 0.0 && bias <= 4.0, "{mode}: {v}");
+        assert_eq!(holes(&full_px, &px), 0, "{mode}: holes at 128 KiB");
+    }
+}
