@@ -149,6 +149,9 @@ struct Uniform {
     /// the list starts in the aux buffer (increasing, `i32` bits); its
     /// length; 0.
     label_sel: [u32; 4],
+    /// Sample accumulation: the band of image rows a dispatch draws (its
+    /// store is the image binding): first row, rows, 0, 0.
+    acc_band: [u32; 4],
 }
 
 const EXACT_BIT: u32 = 0x8000_0000;
@@ -179,14 +182,24 @@ pub struct GpuFrame {
 }
 
 /// A pass of a sample accumulation (`savr.wgsl`): its entry point
-/// (`accumulate` or `reblend`), the buffer holding the image and the store
-/// after it, and the accumulation's uniform fields.
+/// (`accumulate` or `reblend`), the bands of image rows its store is
+/// split into (one dispatch each, within one storage binding), and the
+/// accumulation's uniform fields.
 pub(crate) struct AccPass<'b> {
     pub entry: &'static str,
-    pub store: &'b wgpu::Buffer,
+    pub bands: Vec<AccBand<'b>>,
     pub acc: [u32; 4],
-    pub acc_off: [u32; 4],
     pub reference: f32,
+}
+
+/// A band of image rows of an accumulation: its first row, its rows, the
+/// buffer holding the band's image and its store after it, and where the
+/// store's parts start (words after the band's image).
+pub(crate) struct AccBand<'b> {
+    pub first: u32,
+    pub rows: u32,
+    pub store: &'b wgpu::Buffer,
+    pub acc_off: [u32; 4],
 }
 
 /// The device renderer: pipelines and the per-slot buffers that persist
@@ -488,9 +501,15 @@ impl GpuRenderer {
                 self.images.push(((w, h), b));
             }
         }
-        let image = match &pass {
-            Some(p) => p.store,
-            None => &self.images.last().expect("made above").1,
+        // The buffers drawn into, one dispatch each: the image, or the
+        // bands of an accumulation (first row, rows, store offsets).
+        let targets: Vec<(&wgpu::Buffer, u32, u32, [u32; 4])> = match &pass {
+            Some(p) => p
+                .bands
+                .iter()
+                .map(|b| (b.store, b.first, b.rows, b.acc_off))
+                .collect(),
+            None => vec![(&self.images.last().expect("made above").1, 0, h, [0; 4])],
         };
 
         let cam = &params.camera;
@@ -816,7 +835,6 @@ impl GpuRenderer {
         u.plane_normal = f4(plane.1);
         if let Some(p) = &pass {
             u.acc = p.acc;
-            u.acc_off = p.acc_off;
             u.acc_ref = [p.reference, 0.0, 0.0, 0.0];
         }
         if let (0, Some(sh)) = (mode, &tf.shading) {
@@ -837,33 +855,41 @@ impl GpuRenderer {
         if let Some((a, b)) = self.rows {
             u.rows = [1, a, b, 0];
         }
-        let uniform = gpu.uniform_buffer("render", &u);
         let res = dvm.resources(gpu, 0);
         let [keys, counts, dropped] = table.buffers();
-        let bind = self.kernel.bind_resources(
-            gpu,
-            vec![
-                res.layout.as_entire_binding(),
-                res.entries.as_entire_binding(),
-                wgpu::BindingResource::TextureView(&res.pool),
-                uniform.as_entire_binding(),
-                aux.as_entire_binding(),
-                image.as_entire_binding(),
-                stamps.as_entire_binding(),
-                counters.as_entire_binding(),
-                keys.as_entire_binding(),
-                counts.as_entire_binding(),
-                dropped.as_entire_binding(),
-                wgpu::BindingResource::TextureView(&cells),
-            ],
-        );
         let mut enc = gpu.device.create_command_encoder(&Default::default());
         if let (Some((at, bytes)), Some((_, dev))) = (copy_masks, &self.octree) {
             enc.copy_buffer_to_buffer(&dev.masks, 0, aux, at, bytes);
         }
         let entry = pass.as_ref().map_or("render", |p| p.entry);
-        self.kernel
-            .dispatch(&mut enc, entry, &bind, [w.div_ceil(8), h.div_ceil(8), 1]);
+        // One dispatch per target (an accumulation's bands share the
+        // frame's counters, stamps and request table).
+        for &(image, first, rows, acc_off) in &targets {
+            if pass.is_some() {
+                u.acc_off = acc_off;
+                u.acc_band = [first, rows, 0, 0];
+            }
+            let uniform = gpu.uniform_buffer("render", &u);
+            let bind = self.kernel.bind_resources(
+                gpu,
+                vec![
+                    res.layout.as_entire_binding(),
+                    res.entries.as_entire_binding(),
+                    wgpu::BindingResource::TextureView(&res.pool),
+                    uniform.as_entire_binding(),
+                    aux.as_entire_binding(),
+                    image.as_entire_binding(),
+                    stamps.as_entire_binding(),
+                    counters.as_entire_binding(),
+                    keys.as_entire_binding(),
+                    counts.as_entire_binding(),
+                    dropped.as_entire_binding(),
+                    wgpu::BindingResource::TextureView(&cells),
+                ],
+            );
+            self.kernel
+                .dispatch(&mut enc, entry, &bind, [w.div_ceil(8), rows.div_ceil(8), 1]);
+        }
         gpu.queue.submit([enc.finish()]);
 
         let head = gpu.read_u32_async("frame counters", counters, 8).await?;
@@ -888,11 +914,15 @@ impl GpuRenderer {
         }
         let list = list.into_iter().map(|(id, _)| ids.key(id)).collect();
         let img = if self.read_image {
-            let pixels = gpu
-                .read_back_async("image", image, w as u64 * h as u64 * 16)
-                .await?;
             let mut img = Image::new(w, h);
-            img.rgba = bytemuck::pod_collect_to_vec(&pixels);
+            img.rgba.clear();
+            for &(image, _, rows, _) in &targets {
+                let pixels = gpu
+                    .read_back_async("image", image, w as u64 * rows as u64 * 16)
+                    .await?;
+                img.rgba
+                    .extend(bytemuck::pod_collect_to_vec::<u8, [f32; 4]>(&pixels));
+            }
             img
         } else {
             Image::new(0, 0)

@@ -109,6 +109,9 @@ struct Render {
     // (1) or all but them (2); the list's start in `aux` (increasing,
     // i32 bits) and length; 0.
     label_sel: vec4<u32>,
+    // Sample accumulation: the band of image rows this dispatch draws
+    // (its store is the image binding): first row, rows; 0, 0.
+    acc_band: vec4<u32>,
 }
 
 @group(0) @binding(3) var<uniform> R: Render;

@@ -4,8 +4,11 @@
 // their own early termination and extended when the blend needs more, and
 // the blend in depth order with opacity corrected for the rate reached.
 //
-// The store lives in the image binding after the image (`image`, words
-// 4·P on, P = width × height), at the offsets of `R.acc_off`:
+// The store is split into bands of image rows (`R.acc_band`: first row,
+// rows), one dispatch and one buffer each (so that each fits one storage
+// binding); a band's store lives in the image binding after the band's
+// image (`image`, words 4·P on, P = width × rows, pixels numbered within
+// the band), at the offsets of `R.acc_off`:
 //   header   8 words a pixel: t0, t1, Δ (f32 bits), runs, stand-ins kept,
 //            short (the last blend ran out of kept samples), S (samples a
 //            run can hold), state (0 fresh, 1 begun);
@@ -32,11 +35,11 @@ var<private> a_retaken: u32;
 var<private> a_extended: u32;
 
 fn st_get(i: u32) -> u32 {
-    return image[4u * R.width * R.height + i];
+    return image[4u * R.width * R.acc_band.y + i];
 }
 
 fn st_set(i: u32, x: u32) {
-    image[4u * R.width * R.height + i] = x;
+    image[4u * R.width * R.acc_band.y + i] = x;
 }
 
 fn hdr(px: u32, i: u32) -> u32 {
@@ -386,12 +389,12 @@ fn put_acc_counts(px: u32) {
 
 @compute @workgroup_size(8, 8)
 fn accumulate(@builtin(global_invocation_id) g: vec3<u32>) {
-    if (g.x >= R.width || g.y >= R.height) {
+    if (g.x >= R.width || g.y >= R.acc_band.y) {
         return;
     }
     begin_invocation();
     let px = g.y * R.width + g.x;
-    let c = acc_pixel(px, pixel_ray(g.x, g.y));
+    let c = acc_pixel(px, pixel_ray(g.x, R.acc_band.x + g.y));
     flush_misses();
     put_pixel(px, c);
     put_acc_counts(px);
@@ -402,7 +405,7 @@ fn accumulate(@builtin(global_invocation_id) g: vec3<u32>) {
 // blend so far and are marked short (the next frame extends them).
 @compute @workgroup_size(8, 8)
 fn reblend(@builtin(global_invocation_id) g: vec3<u32>) {
-    if (g.x >= R.width || g.y >= R.height) {
+    if (g.x >= R.width || g.y >= R.acc_band.y) {
         return;
     }
     let px = g.y * R.width + g.x;

@@ -71,7 +71,12 @@ fn coords(l: u32, w: vec3<f32>) -> vec4<f32> {
         // `nearest`).
         return vec4<f32>(floor(q + vec3<f32>(0.5)), 0.0);
     }
-    return vec4<f32>(q, 0.0);
+    // A coordinate within f32 rounding of a voxel centre is that centre:
+    // the CPU (f64 positions) samples the voxel's own value there, and a
+    // fraction of ~1e-5 moved values exactly on a hard step of the
+    // transfer function off it (tests/progressive_gpu.rs in brickyard).
+    let r = round(q);
+    return vec4<f32>(select(q, r, abs(q - r) < vec3<f32>(1e-4)), 0.0);
 }
 
 // Every level's bit: a mask that lets every coarser level substitute.

@@ -12,12 +12,22 @@
 //! image itself. Run `k` of a pixel whose ray has `S` steps occupies
 //! samples `k·S …`, so a pixel begins run `k` only when `(k + 1)·S ≤ B` (the
 //! CPU's rule): a pixel whose buffer is full stays at the rate it reached,
-//! blended correctly for it. [`DeviceAccumulation::max_budget`] gives the
-//! largest `B` one storage binding of the device holds.
+//! blended correctly for it.
+//!
+//! The image's rows are split into bands, each with a buffer of its own
+//! (its pixels' image, then their store) no larger than one storage
+//! binding of the device, drawn by one dispatch each within the same
+//! frame: the store of the whole image is not bound by that limit (on
+//! lavapipe 128 MiB, which kept a 480 × 360 view at 85 samples a pixel and
+//! made `render --progressive` draw it coarser than a plain frame).
+//! [`DeviceAccumulation::max_budget`] gives the largest `B` one row of the
+//! image can keep. The first frame lowers `B` to what the view's rays can
+//! use (`N` runs of the longest ray at the finest level asked for), so a
+//! generous budget costs no memory.
 
 use super::MAX_FRAMES;
 use crate::cpu::{FrameStats, Lod, Scene};
-use crate::gpu::{AccPass, GpuFrame, GpuRenderer};
+use crate::gpu::{AccBand, AccPass, GpuFrame, GpuRenderer};
 use crate::image::Image;
 use crate::params::{RenderMode, RenderParams};
 use brickyard_cache::vm::VirtualMemory;
@@ -52,9 +62,14 @@ pub struct DeviceAccumulation {
     height: u32,
     target: u32,
     budget: u32,
+    /// Samples a pixel keeps as asked for (before the first frame lowers
+    /// `budget` to what the view can use).
+    asked: u32,
     /// Fixed by the first frame: whether its transfer function shades.
     normals: Option<bool>,
-    store: Option<wgpu::Buffer>,
+    /// Bands of image rows (first row, rows) and the buffer of each (the
+    /// band's image, then its store), made by the first frame.
+    bands: Vec<(u32, u32, wgpu::Buffer)>,
     drawn: u32,
     last: DeviceAccumStats,
     image: Image,
@@ -67,10 +82,15 @@ impl DeviceAccumulation {
         4 + HEADER + target as u64 + b + b.div_ceil(16) + if normals { b } else { 0 }
     }
 
-    /// The largest per-pixel budget one storage binding of `gpu` holds for
-    /// `width × height` pixels and `target` frames (with normals: shading).
+    /// The largest per-pixel budget the device holds for `width × height`
+    /// pixels and `target` frames (with normals: shading): what one
+    /// storage binding holds for one row of the image (the store is split
+    /// into bands of rows; `height` does not lower it). The memory the
+    /// whole store takes is the caller's to bound
+    /// ([`budget_within`](Self::budget_within)).
     pub fn max_budget(gpu: &Gpu, width: u32, height: u32, target: u32, normals: bool) -> u32 {
-        Self::budget_within(gpu.max_storage_binding(), width, height, target, normals)
+        let _ = height;
+        Self::budget_within(gpu.max_storage_binding(), width, 1, target, normals)
     }
 
     /// The largest per-pixel budget whose store takes at most `bytes`.
@@ -97,13 +117,15 @@ impl DeviceAccumulation {
     pub fn new(gpu: &Gpu, width: u32, height: u32, target: u32, budget: usize) -> Self {
         let target = target.clamp(1, MAX_FRAMES);
         let max = Self::max_budget(gpu, width, height, target, true);
+        let budget = (budget.min(u32::MAX as usize) as u32).min(max).max(1);
         DeviceAccumulation {
             width,
             height,
             target,
-            budget: (budget.min(u32::MAX as usize) as u32).min(max).max(1),
+            budget,
+            asked: budget,
             normals: None,
-            store: None,
+            bands: vec![],
             drawn: 0,
             last: DeviceAccumStats::default(),
             image: Image::new(width, height),
@@ -127,7 +149,13 @@ impl DeviceAccumulation {
 
     /// Bytes of the store on the device (image included).
     pub fn memory(&self) -> u64 {
-        self.store.as_ref().map_or(0, |b| b.size())
+        self.bands.iter().map(|(_, _, b)| b.size()).sum()
+    }
+
+    /// Bands of image rows the store is split into (first row, rows);
+    /// empty before the first frame.
+    pub fn bands(&self) -> Vec<(u32, u32)> {
+        self.bands.iter().map(|&(a, n, _)| (a, n)).collect()
     }
 
     /// The image of the last pass (when the renderer reads images back).
@@ -146,34 +174,85 @@ impl DeviceAccumulation {
         self.drawn > 0 && self.last.incomplete == 0
     }
 
-    /// Forget every kept sample (a new view): the store is cleared on the
-    /// device.
+    /// Forget every kept sample (a new view): the store is let go, and
+    /// the next frame makes one for its view (the budget as asked for).
     pub fn restart(&mut self, gpu: &Gpu) {
-        if let Some(b) = &self.store {
-            let mut enc = gpu.device.create_command_encoder(&Default::default());
-            enc.clear_buffer(b, 0, None);
-            gpu.queue.submit([enc.finish()]);
-        }
+        let _ = gpu;
+        self.bands.clear();
+        self.budget = self.asked;
         self.normals = None;
         self.drawn = 0;
         self.last = DeviceAccumStats::default();
     }
 
     fn pass<'b>(&'b self, entry: &'static str, reference: f64) -> AccPass<'b> {
-        let p = self.width as u64 * self.height as u64;
+        assert!(!self.bands.is_empty(), "made by the first frame");
         let (n, b) = (self.target as u64, self.budget as u64);
-        let runs = HEADER * p;
-        let vals = runs + n * p;
-        let flags = vals + b * p;
-        let cos = flags + b.div_ceil(16) * p;
         let normals = self.normals == Some(true);
+        let bands = self
+            .bands
+            .iter()
+            .map(|(first, rows, store)| {
+                let p = self.width as u64 * *rows as u64;
+                let runs = HEADER * p;
+                let vals = runs + n * p;
+                let flags = vals + b * p;
+                let cos = flags + b.div_ceil(16) * p;
+                AccBand {
+                    first: *first,
+                    rows: *rows,
+                    store,
+                    acc_off: [runs as u32, vals as u32, flags as u32, cos as u32],
+                }
+            })
+            .collect();
         AccPass {
             entry,
-            store: self.store.as_ref().expect("made by the first frame"),
+            bands,
             acc: [self.target, self.budget, 0, normals as u32],
-            acc_off: [runs as u32, vals as u32, flags as u32, cos as u32],
             reference: reference as f32,
         }
+    }
+
+    /// Make the store for the first frame: the budget lowered to what the
+    /// view's rays can use at `lod` (`target` runs of the longest ray at
+    /// its finest level: no pixel keeps more), then bands of rows each
+    /// within one storage binding.
+    fn make_store(
+        &mut self,
+        gpu: &Gpu,
+        scene: &Scene,
+        params: &RenderParams,
+        lod: Lod,
+        normals: bool,
+    ) -> Result<(), GpuError> {
+        let finest = match lod {
+            Lod::Fixed(l) => l.min(scene.levels.len() - 1),
+            Lod::Auto { .. } => 0,
+        };
+        let usable = self.target as u64 * super::longest_run(scene, params, finest);
+        self.budget = self.budget.min(usable.min(u32::MAX as u64) as u32).max(1);
+        let row = self.width as u64 * Self::words(self.target, self.budget, normals) * 4;
+        let limit = gpu.max_storage_binding();
+        if row > limit {
+            return Err(GpuError::Limit {
+                what: format!(
+                    "bytes of one image row of the sample store ({} samples a pixel; a narrower image, or fewer frames)",
+                    self.budget
+                ),
+                got: row,
+                limit,
+            });
+        }
+        let per = ((limit / row) as u32).clamp(1, self.height.max(1));
+        let mut first = 0;
+        while first < self.height {
+            let rows = per.min(self.height - first);
+            let buf = gpu.storage_buffer_zeroed("sample store", rows as u64 * row);
+            self.bands.push((first, rows, buf));
+            first += rows;
+        }
+        Ok(())
     }
 
     fn take_counts(&mut self, f: &GpuFrame) {
@@ -228,11 +307,8 @@ impl DeviceAccumulation {
             normals || !on,
             "the samples of this accumulation keep no normals: restart it to shade"
         );
-        if self.store.is_none() {
-            let words = self.width as u64
-                * self.height as u64
-                * Self::words(self.target, self.budget, true);
-            self.store = Some(gpu.storage_buffer_zeroed("sample store", words * 4));
+        if self.bands.is_empty() {
+            self.make_store(gpu, scene, params, lod, normals)?;
         }
         // Every pixel's first run fits its region of the store: coarser
         // levels where the view's rays are too long for it.
