@@ -121,14 +121,17 @@ impl Image {
             path: path.into(),
             message: m,
         };
-        let f = File::create(path).map_err(|e| err(e.to_string()))?;
-        let mut enc = png::Encoder::new(BufWriter::new(f), self.width, self.height);
-        enc.set_color(png::ColorType::Rgba);
-        enc.set_depth(png::BitDepth::Eight);
-        let mut w = enc.write_header().map_err(|e| err(e.to_string()))?;
-        w.write_image_data(&self.to_rgba8(background))
-            .map_err(|e| err(e.to_string()))?;
-        w.finish().map_err(|e| err(e.to_string()))
+        let rgba = self.to_rgba8(background);
+        write_whole(path, |out| {
+            let mut enc = png::Encoder::new(out, self.width, self.height);
+            enc.set_color(png::ColorType::Rgba);
+            enc.set_depth(png::BitDepth::Eight);
+            let mut w = enc.write_header()?;
+            w.write_image_data(&rgba)?;
+            w.finish()?;
+            Ok(())
+        })
+        .map_err(|e| err(e.to_string()))
     }
 
     fn check_same_size(&self, other: &Image) {
@@ -204,5 +207,75 @@ impl Image {
             return 0.0;
         }
         self.rgba.iter().filter(|p| p[3] >= threshold).count() as f64 / self.rgba.len() as f64
+    }
+}
+
+/// Write the file at `path` whole or not at all: into a temporary file
+/// beside it, then renamed over it, so that a failure (a full disk, a
+/// killed process) leaves the file that was there, and never a cut-off
+/// one. A path that names something other than a regular file (a device
+/// such as `/dev/null` or `/dev/stdout`, a FIFO) is written directly; a
+/// symbolic link's target is replaced, not the link.
+pub fn write_whole(
+    path: &Path,
+    write: impl FnOnce(&mut dyn std::io::Write) -> std::io::Result<()>,
+) -> std::io::Result<()> {
+    use std::io::Write as _;
+    if std::fs::metadata(path).is_ok_and(|m| !m.is_file()) {
+        let mut w = BufWriter::new(File::create(path)?);
+        write(&mut w)?;
+        return w.flush();
+    }
+    let real = std::fs::canonicalize(path).unwrap_or_else(|_| path.to_path_buf());
+    let name = real.file_name().unwrap_or_default().to_string_lossy();
+    let tmp = real.with_file_name(format!(".{name}.{}.tmp", std::process::id()));
+    let r = (|| {
+        let mut w = BufWriter::new(File::create(&tmp)?);
+        write(&mut w)?;
+        w.into_inner().map_err(|e| e.into_error())?.sync_data()?;
+        std::fs::rename(&tmp, &real)
+    })();
+    if r.is_err() {
+        let _ = std::fs::remove_file(&tmp);
+    }
+    r
+}
+
+#[cfg(test)]
+mod tests {
+    use super::{write_whole, Image};
+
+    /// A write that fails part way (a full disk) leaves the file that was
+    /// there, whole, and nothing beside it; one that succeeds replaces it.
+    #[test]
+    fn a_failed_write_leaves_the_old_file() {
+        let d = tempfile::tempdir().unwrap();
+        let p = d.path().join("r.png");
+        std::fs::write(&p, b"the old image").unwrap();
+        let e = write_whole(&p, |w| {
+            w.write_all(b"half of a new")?;
+            Err(std::io::Error::other("no space left"))
+        });
+        assert!(e.is_err());
+        assert_eq!(std::fs::read(&p).unwrap(), b"the old image");
+        let names: Vec<_> = std::fs::read_dir(d.path()).unwrap().flatten().collect();
+        assert_eq!(names.len(), 1, "left beside it: {names:?}");
+        write_whole(&p, |w| w.write_all(b"new")).unwrap();
+        assert_eq!(std::fs::read(&p).unwrap(), b"new");
+        // Through a link: the target is replaced, the link stays.
+        let link = d.path().join("link.png");
+        std::os::unix::fs::symlink(&p, &link).unwrap();
+        write_whole(&link, |w| w.write_all(b"via the link")).unwrap();
+        assert!(link.symlink_metadata().unwrap().file_type().is_symlink());
+        assert_eq!(std::fs::read(&p).unwrap(), b"via the link");
+        // A device is written to, not replaced.
+        Image::new(4, 4)
+            .write_png(std::path::Path::new("/dev/null"), [0.0; 4])
+            .unwrap();
+        use std::os::unix::fs::FileTypeExt;
+        assert!(std::fs::metadata("/dev/null")
+            .unwrap()
+            .file_type()
+            .is_char_device());
     }
 }

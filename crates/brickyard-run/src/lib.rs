@@ -4,14 +4,16 @@
 //! (`process`). Shared by the CLI and the Python bindings, so that both
 //! draw the same image of the same view and write the same results.
 
-/// `println!` that never fails: standard output closed early (`| head`)
-/// drops the text instead of ending the run, so images and stores are
-/// still written.
+/// `println!` that does not end the run when standard output fails: a
+/// pipe closed early (`| head`) drops the text, so images and stores are
+/// still written; another failure (a full disk under `> file`) is kept for
+/// [`out_error`], so the command ends with an error instead of a
+/// truncated file and status 0.
 #[macro_export]
 macro_rules! outln {
     ($($t:tt)*) => {{
         use std::io::Write as _;
-        let _ = writeln!(std::io::stdout(), $($t)*);
+        $crate::note_out(writeln!(std::io::stdout(), $($t)*));
     }};
 }
 
@@ -20,8 +22,28 @@ macro_rules! outln {
 macro_rules! out {
     ($($t:tt)*) => {{
         use std::io::Write as _;
-        let _ = write!(std::io::stdout(), $($t)*);
+        $crate::note_out(write!(std::io::stdout(), $($t)*));
     }};
+}
+
+static OUT_ERROR: std::sync::OnceLock<String> = std::sync::OnceLock::new();
+
+/// Keep the first failure of a write to standard output other than a
+/// closed pipe ([`outln!`]).
+pub fn note_out(r: std::io::Result<()>) {
+    if let Err(e) = r {
+        if e.kind() != std::io::ErrorKind::BrokenPipe {
+            let _ = OUT_ERROR.set(e.to_string());
+        }
+    }
+}
+
+/// Flush standard output and say whether any write to it failed (other
+/// than a closed pipe): what was printed is then incomplete.
+pub fn out_error() -> Option<String> {
+    use std::io::Write as _;
+    note_out(std::io::stdout().flush());
+    OUT_ERROR.get().cloned()
 }
 
 pub mod backend;

@@ -273,6 +273,23 @@ fn add_label(dir: &Path, name: &str) -> Result<()> {
     Ok(())
 }
 
+/// Take `name` off the `labels` group's list in `dir` (a result that could
+/// not be put in place after it was named).
+fn remove_label(dir: &Path, name: &str) -> Result<()> {
+    let _lock = PidLock::wait(
+        &dir.join(".zarr.json.lock"),
+        "updating the list of label images",
+        std::time::Duration::from_secs(60),
+    )?;
+    let (mut j, mut list) = labels_list(dir)?;
+    if list.iter().any(|n| n == name) {
+        list.retain(|n| n != name);
+        j["attributes"]["ome"]["labels"] = json!(list);
+        write_json(&dir.join("zarr.json"), &j)?;
+    }
+    Ok(())
+}
+
 /// The `labels` group `output` lies in when it is `IMAGE/labels/NAME` of
 /// an OME-Zarr image (its `zarr.json` has `multiscales`): where a label
 /// image converted from a file is published as `process` publishes its.
@@ -703,27 +720,48 @@ pub fn run(
     if cancel.load(Ordering::SeqCst) {
         return Err(cleanup(StoreError::Interrupted.into()));
     }
-    if paths.fin.exists() {
-        std::fs::rename(&paths.fin, &paths.old)
-            .with_context(|| format!("{}: cannot move aside", paths.fin.display()))?;
-        std::fs::rename(&paths.staged, &paths.fin)
-            .with_context(|| format!("{}: cannot publish", paths.fin.display()))?;
-        std::fs::remove_dir_all(&paths.old)
-            .with_context(|| format!("{}: cannot remove", paths.old.display()))?;
-    } else {
-        std::fs::rename(&paths.staged, &paths.fin)
-            .with_context(|| format!("{}: cannot publish", paths.fin.display()))?;
-    }
+    // The group names the result before it is put in place: a write that
+    // fails here (a full disk) leaves the store as it was, and a result in
+    // place is always named (one put in place first and then left unnamed
+    // was listed by `info` but unknown to `render --labels`).
+    let named_before =
+        is_label && labels_list(&paths.dir).is_ok_and(|(_, l)| l.contains(&paths.name));
     if is_label {
-        add_label(&paths.dir, &paths.name)?;
+        add_label(&paths.dir, &paths.name).map_err(cleanup)?;
     } else {
         let g = paths.dir.join("zarr.json");
         if !g.exists() {
             write_json(
                 &g,
                 &json!({"zarr_format": 3, "node_type": "group", "attributes": {}}),
-            )?;
+            )
+            .map_err(|e| cleanup(e.into()))?;
         }
+    }
+    // A failure to put it in place takes back the name it had not before.
+    let unname = |e: anyhow::Error| -> anyhow::Error {
+        if is_label && !named_before && !paths.fin.exists() {
+            let _ = remove_label(&paths.dir, &paths.name);
+        }
+        e
+    };
+    if paths.fin.exists() {
+        std::fs::rename(&paths.fin, &paths.old)
+            .with_context(|| format!("{}: cannot move aside", paths.fin.display()))
+            .map_err(cleanup)?;
+        if let Err(e) = std::fs::rename(&paths.staged, &paths.fin) {
+            // The old result back in its place.
+            let _ = std::fs::rename(&paths.old, &paths.fin);
+            return Err(cleanup(
+                anyhow::Error::new(e).context(format!("{}: cannot publish", paths.fin.display())),
+            ));
+        }
+        std::fs::remove_dir_all(&paths.old)
+            .with_context(|| format!("{}: cannot remove", paths.old.display()))?;
+    } else {
+        std::fs::rename(&paths.staged, &paths.fin)
+            .with_context(|| format!("{}: cannot publish", paths.fin.display()))
+            .map_err(|e| unname(cleanup(e)))?;
     }
     Ok(ProcessReport {
         output: paths.fin.clone(),

@@ -571,6 +571,10 @@ pub fn run_quiet(mut c: RenderCmd) -> Result<Vec<String>> {
 /// stands in for them (the CLI then exits with status 3).
 pub const DEGRADED: &str = "that could not be loaded (drawn from coarser data)";
 
+/// How a view's line begins (after its name) when it ended before it was
+/// complete (`--max-frames`, or nothing more could arrive).
+pub const STOPPED: &str = "stopped at ";
+
 /// Render; returns one line per view written (file, how it ended).
 pub fn run(c: RenderCmd) -> Result<Vec<String>> {
     run_shared(c, None)
@@ -611,7 +615,8 @@ pub fn write_view(
             .iter()
             .flat_map(|v| v.to_le_bytes())
             .collect();
-        std::fs::write(&f, bytes).with_context(|| format!("{}: cannot write", f.display()))?;
+        brickyard_render::image::write_whole(&f, |w| w.write_all(&bytes))
+            .with_context(|| format!("{}: cannot write", f.display()))?;
     }
     // (The error names the path.)
     img.write_png(path, [0.0, 0.0, 0.0, 1.0])
@@ -781,10 +786,18 @@ fn run_with_labels(
         Ok(())
     })
     .map_err(with_why)?;
+    // The labels' lines join the image's: bricks of the labels that could
+    // not be loaded end the command with status 3 as the image's do.
+    let label_lines: Vec<String> = label_lines
+        .iter()
+        .map(|l| {
+            let detail = l.split_once(": ").map_or(l.as_str(), |(_, d)| d);
+            format!("labels {name}: {detail}")
+        })
+        .collect();
     if !silent && !json {
         for l in &label_lines {
-            let detail = l.split_once(": ").map_or(l.as_str(), |(_, d)| d);
-            outln!("labels {name}: {detail}");
+            outln!("{l}");
         }
     }
     if shown.len() != labels.len() {
@@ -798,7 +811,7 @@ fn run_with_labels(
         crate::labels::overlay(&mut img, lab, opacity)?;
         sink(&path, img)?;
     }
-    Ok(lines)
+    Ok(lines.into_iter().chain(label_lines).collect())
 }
 
 /// [`run_with`] of one store.
@@ -1735,11 +1748,11 @@ fn run_one(
                 format!("complete but for {} brick(s) {DEGRADED}", failures.len())
             }
             Some(Stop::NoProgress) => format!(
-                "stopped at {:.1}% complete: nothing more could arrive or be placed for several frames",
+                "{STOPPED}{:.1}% complete: nothing more could arrive or be placed for several frames",
                 100.0 * out.completeness
             ),
             None => format!(
-                "stopped at {:.1}% complete after --max-frames {}",
+                "{STOPPED}{:.1}% complete after --max-frames {}",
                 100.0 * out.completeness,
                 c.max_frames
             ),

@@ -575,6 +575,7 @@ pub fn convert_team(
     }
     // Nothing is created above the output: its folder must exist.
     check_parent(output)?;
+    check_not_link(output)?;
     check_not_in_node(output)?;
     // Refuse to touch existing data unless asked; never convert onto the input.
     if output.exists() && !opts.overwrite {
@@ -1056,6 +1057,28 @@ fn finish_store(
         remove_replaced(&old)?;
     } else {
         std::fs::rename(partial, output).at(output)?;
+    }
+    Ok(())
+}
+
+/// Refuse an output that is a symbolic link: a store is written beside
+/// its output and renamed into place, which would put a folder where the
+/// link was and empty the store it pointed to.
+pub fn check_not_link(output: &Path) -> Result<()> {
+    if output
+        .symlink_metadata()
+        .is_ok_and(|m| m.file_type().is_symlink())
+    {
+        let to = std::fs::read_link(output)
+            .map(|t| format!(" (to {})", t.display()))
+            .unwrap_or_default();
+        return Err(StoreError::Refused {
+            path: output.into(),
+            msg: format!(
+                "is a symbolic link{to}: give the path of the store itself (outputs are \
+                 written beside it and renamed into place, which would replace the link)"
+            ),
+        });
     }
     Ok(())
 }

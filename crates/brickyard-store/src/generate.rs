@@ -194,6 +194,7 @@ pub fn write_raw_within(
     let [dz, dy, dx] = m.dims;
     let es = m.dtype.size() as u64;
     crate::builder::check_parent(path)?;
+    crate::builder::check_not_link(path)?;
     let tmp = crate::builder::partial_path(path);
     let _lock = crate::lock::PidLock::take(
         &crate::builder::lock_path(path),

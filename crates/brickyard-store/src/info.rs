@@ -146,6 +146,15 @@ fn array_info(dir: &Path) -> Result<ArraySummary> {
         return Ok((shape, dtype, chunk, None, codec_names(codecs)));
     }
     let v2 = dir.join(".zarray");
+    if !storage::exists(&v2) {
+        return Err(StoreError::io(
+            dir,
+            std::io::Error::new(
+                std::io::ErrorKind::NotFound,
+                "no array here (neither zarr.json nor, for Zarr v2, .zarray)",
+            ),
+        ));
+    }
     let j = read_json(&v2)?;
     let shape: Vec<u64> = serde_json::from_value(j["shape"].clone())
         .map_err(|_| StoreError::invalid(&v2, "shape", "expected a list of integers"))?;
@@ -420,8 +429,31 @@ fn inner_images(path: &Path, problems: &mut Vec<String>) -> Vec<(String, String)
             group_folders(path, group)
         };
         names.sort();
+        // Label images the labels group does not name: a job that stopped
+        // between putting the image in place and naming it (a full disk).
+        let listed: Option<Vec<String>> = (group == "labels" && !storage::is_remote(path))
+            .then(|| {
+                let j = read_json(&path.join("labels/zarr.json")).ok()?;
+                let a = j
+                    .pointer("/attributes/ome/labels")
+                    .or_else(|| j.pointer("/attributes/labels"))?
+                    .as_array()?
+                    .iter()
+                    .filter_map(Value::as_str)
+                    .map(str::to_string)
+                    .collect();
+                Some(a)
+            })
+            .flatten();
         for name in names {
             let rel = format!("{group}/{name}");
+            if !name.starts_with('.') && listed.as_ref().is_some_and(|l| !l.contains(&name)) {
+                problems.push(format!(
+                    "{rel}: not named in labels/zarr.json (a processing job that stopped while \
+                     publishing it?): the same `brickyard process` command with --overwrite \
+                     writes it again, or remove the folder"
+                ));
+            }
             if name.starts_with('.') {
                 problems.push(format!(
                     "{rel}: left by an interrupted processing job (the same `brickyard process` \

@@ -117,6 +117,8 @@ fn create_with_pid(path: &Path) -> Result<bool> {
         SERIAL.fetch_add(1, Ordering::Relaxed)
     ));
     if let Err(e) = std::fs::write(&tmp, format!("{pid}\n")) {
+        // (Created but not written: a full disk.)
+        let _ = std::fs::remove_file(&tmp);
         // Said of the folder: the temporary's name means nothing to a user.
         let dir = path.parent().filter(|d| !d.as_os_str().is_empty());
         let dir = dir.unwrap_or(Path::new("."));

@@ -125,8 +125,13 @@ pub fn write_json(path: &Path, v: &Value) -> Result<()> {
         std::fs::create_dir_all(p).at(p)?;
     }
     let tmp = path.with_extension("json.tmp");
-    std::fs::write(&tmp, serde_json::to_string_pretty(v).unwrap() + "\n").at(&tmp)?;
-    std::fs::rename(&tmp, path).at(path)
+    std::fs::write(&tmp, serde_json::to_string_pretty(v).unwrap() + "\n")
+        .and_then(|_| std::fs::rename(&tmp, path))
+        .inspect_err(|_| {
+            // (A full disk leaves it empty or cut short.)
+            let _ = std::fs::remove_file(&tmp);
+        })
+        .at(path)
 }
 
 /// Read a JSON document (a file or a URL, see [`crate::storage`]).

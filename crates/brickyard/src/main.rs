@@ -80,7 +80,10 @@ enum Cmd {
         #[arg(long)]
         json: bool,
         /// Also read and decode every chunk of every level and of the
-        /// statistics, and list the damaged ones (exit status 1 if any).
+        /// statistics, and list the damaged ones. Exit status: 1 where a
+        /// problem is listed (with or without --check: an unreadable
+        /// level, a damaged chunk, leftovers of an interrupted job), 2 for
+        /// a store whose writing did not finish, else 0.
         #[arg(long)]
         check: bool,
     },
@@ -109,10 +112,11 @@ enum Cmd {
         size: String,
     },
     /// Render a store (DVR, MIP or slice) to PNG through the virtual memory.
-    /// Exit status 0: every view complete; 3: images written, but bricks
-    /// could not be loaded (a damaged store, a lost server) and coarser
-    /// data stands in for them; 1: an error (no image where a view has no
-    /// data at any level).
+    /// Exit status 0: every view complete; 3: images written, but not every
+    /// view is complete: bricks could not be loaded (a damaged store, a
+    /// lost server) and coarser data stands in for them, or a view stopped
+    /// before it was complete (--max-frames); 1: an error (no image where
+    /// a view has no data at any level).
     Render(Box<render::RenderCmd>),
     /// Open an interactive viewer (no STORE: the demo dataset, generated on
     /// first use).
@@ -554,6 +558,15 @@ fn main() {
             1
         }
     };
+    // What went to standard output must have arrived (a full disk under
+    // `> file` would leave a truncated file behind a status of 0).
+    let code = match brickyard_run::out_error() {
+        Some(e) => {
+            eprintln!("error: standard output: {e}: what was printed is incomplete");
+            1
+        }
+        None => code,
+    };
     // MPI_Finalize before leaving (process::exit runs no destructors).
     #[cfg(feature = "mpi")]
     drop(cluster);
@@ -572,10 +585,16 @@ fn degraded(lines: Vec<String>) {
         .iter()
         .filter(|l| l.contains(render::DEGRADED))
         .count();
+    let stopped = lines.iter().filter(|l| l.contains(render::STOPPED)).count();
     if n > 0 {
         eprintln!(
             "note: {n} view(s) drawn in part from coarser data, bricks could not be loaded: exit status 3"
         );
+    }
+    if stopped > 0 {
+        eprintln!("note: {stopped} view(s) stopped before they were complete: exit status 3");
+    }
+    if n + stopped > 0 {
         EXIT_STATUS.store(3, std::sync::atomic::Ordering::SeqCst);
     }
 }
@@ -740,12 +759,14 @@ fn run(cmd: Cmd, cluster: Option<&dist::Cluster>) -> Result<()> {
                     out!("{}", brickyard_store::info::check::format_check(r));
                 }
             }
-            if checked.as_ref().is_some_and(|r| !r.ok()) {
-                std::process::exit(1);
-            }
-            if i.complete == Some(false) {
-                std::process::exit(2);
-            }
+            let status = if i.complete == Some(false) {
+                2
+            } else if checked.as_ref().is_some_and(|r| !r.ok()) || !i.problems.is_empty() {
+                1
+            } else {
+                0
+            };
+            EXIT_STATUS.store(status, std::sync::atomic::Ordering::SeqCst);
             Ok(())
         }
         Cmd::Generate {
@@ -823,9 +844,7 @@ fn run(cmd: Cmd, cluster: Option<&dist::Cluster>) -> Result<()> {
         },
         Cmd::View(v) => {
             let code = view::run(v, || demo_store(Path::new("brickyard-demo"), "384"))?;
-            if code != 0 {
-                std::process::exit(code);
-            }
+            EXIT_STATUS.store(code, std::sync::atomic::Ordering::SeqCst);
             Ok(())
         }
         Cmd::Bench(b) => bench::run(b),

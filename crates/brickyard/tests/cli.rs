@@ -705,15 +705,23 @@ fn max_frames_bounds_the_frames_drawn_and_reported() {
         ];
         a.extend_from_slice(extra);
         let o = run(&a);
-        assert!(o.status.success(), "{extra:?}: {}", stderr(&o));
-        String::from_utf8_lossy(&o.stdout).into_owned()
+        // (3: a view stopped before it was complete.)
+        assert!(
+            matches!(o.status.code(), Some(0 | 3)),
+            "{extra:?}: {}",
+            stderr(&o)
+        );
+        (
+            String::from_utf8_lossy(&o.stdout).into_owned(),
+            o.status.code(),
+        )
     };
     // (frame lines with their pass, the summary's frame count and how
-    // the view ended)
+    // the view ended; the exit status agrees)
     let frames = |extra: &[&str]| {
         let mut a = vec!["--json"];
         a.extend_from_slice(extra);
-        let out = render(&a);
+        let (out, code) = render(&a);
         let mut passes = Vec::new();
         let mut summary = None;
         // (JSON lines only: `wrote …` goes to standard error.)
@@ -726,6 +734,8 @@ fn max_frames_bounds_the_frames_drawn_and_reported() {
             }
         }
         let (n, stop) = summary.expect("a summary line");
+        let want = if stop == "complete" { 0 } else { 3 };
+        assert_eq!(code, Some(want), "{extra:?}: stop {stop}");
         (passes, n, stop)
     };
     // Unbounded, the view starts with request passes: the bound has
@@ -751,8 +761,9 @@ fn max_frames_bounds_the_frames_drawn_and_reported() {
             "--max-frames {max}: the last frame is the image"
         );
     }
-    let out = render(&["--max-frames", "1"]);
+    let (out, code) = render(&["--max-frames", "1"]);
     assert!(out.contains("; 1 frames,"), "{out}");
+    assert_eq!(code, Some(3), "{out}");
     has_content(&png_pixels(&png), "--max-frames 1");
 }
 

@@ -529,3 +529,78 @@ fn info_check_covers_the_images_inside_a_store() {
         "{j}"
     );
 }
+
+#[test]
+fn problems_info_lists_end_with_status_1() {
+    // A label image the labels group does not name (a job stopped between
+    // putting it in place and naming it), and a level whose array is gone:
+    // `info` lists each as a problem and ends with status 1, with and
+    // without --check.
+    let d = tempfile::tempdir().unwrap();
+    let store = clean_store(d.path());
+    let o = run(&[
+        "process",
+        s(&store),
+        "threshold(100)|label(6)",
+        "--out",
+        "cells",
+        "--quiet",
+    ]);
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let o = run(&["info", s(&store)]);
+    assert_eq!(
+        o.status.code(),
+        Some(0),
+        "{}",
+        String::from_utf8_lossy(&o.stdout)
+    );
+    let group = store.join("labels/zarr.json");
+    let mut j: serde_json::Value = serde_json::from_slice(&std::fs::read(&group).unwrap()).unwrap();
+    j["attributes"]["ome"]["labels"] = serde_json::json!([]);
+    std::fs::write(&group, j.to_string()).unwrap();
+    let unnamed = "labels/cells: not named in labels/zarr.json";
+    let o = run(&["info", s(&store)]);
+    let out = String::from_utf8_lossy(&o.stdout);
+    assert_eq!(o.status.code(), Some(1), "{out}");
+    assert!(out.contains(unnamed), "{out}");
+    let (code, j, _) = check(&store);
+    assert_eq!(code, Some(1), "{j}");
+    // A level's array gone: named as missing, not as a Zarr v2 file.
+    let lv = d.path().join("lv.ome.zarr");
+    copy_dir(&store, &lv);
+    std::fs::remove_dir_all(lv.join("labels")).unwrap();
+    std::fs::remove_file(lv.join("1/zarr.json")).unwrap();
+    let o = run(&["info", s(&lv)]);
+    let out = String::from_utf8_lossy(&o.stdout);
+    assert_eq!(o.status.code(), Some(1), "{out}");
+    assert!(
+        out.contains("problem: level 1:")
+            && out.contains("no array here")
+            && !out.contains(".zarray:"),
+        "{out}"
+    );
+}
+
+#[test]
+fn a_failed_write_to_standard_output_is_an_error() {
+    // `info > file` on a full disk left a truncated file and status 0.
+    let d = tempfile::tempdir().unwrap();
+    let store = clean_store(d.path());
+    for json in [false, true] {
+        let mut c = Command::new(env!("CARGO_BIN_EXE_brickyard"));
+        c.args(["info", s(&store)]);
+        if json {
+            c.arg("--json");
+        }
+        let o = c
+            .stdout(std::fs::File::create("/dev/full").unwrap())
+            .output()
+            .unwrap();
+        let err = String::from_utf8_lossy(&o.stderr);
+        assert_eq!(o.status.code(), Some(1), "{err}");
+        assert!(
+            err.contains("standard output") && err.contains("incomplete"),
+            "{err}"
+        );
+    }
+}
