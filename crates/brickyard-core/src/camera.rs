@@ -36,6 +36,11 @@ pub const MAX_COORD: f64 = 1e15;
 /// A 3-vector in world coordinates `[x, y, z]`.
 pub type Vec3 = [f64; 3];
 
+/// The room a default slice view leaves around the volume: the box's
+/// projection fills `1 / FIT_MARGIN` of the image's limiting direction
+/// ([`Camera::fit_plane`]).
+pub const FIT_MARGIN: f64 = 1.05;
+
 /// World extent `[X, Y, Z]` of a volume of `dims` voxels (`[z, y, x]`) with
 /// voxel spacing `spacing` (`[z, y, x]`).
 pub fn world_extent(dims: [u64; 3], spacing: [f64; 3]) -> Vec3 {
@@ -417,8 +422,9 @@ impl Camera {
     /// An orbit camera that frames the whole box `[0, extent]` (world
     /// `[x, y, z]`): it looks at the box centre and its view contains the
     /// box's bounding sphere vertically (for images at least as wide as
-    /// they are tall, horizontally too). Orthographic: `height` in
-    /// `projection` is replaced by the sphere's diameter.
+    /// they are tall, horizontally too; [`Camera::fit_image`] fits both
+    /// for any image). Orthographic: `height` in `projection` is replaced
+    /// by the sphere's diameter.
     pub fn fit(
         extent: Vec3,
         azimuth_deg: f64,
@@ -437,6 +443,123 @@ impl Camera {
             }
         };
         Camera::orbit(centre, distance, azimuth_deg, elevation_deg, projection)
+    }
+
+    /// [`Camera::fit`] for a `width × height` image: the box's bounding
+    /// sphere lies within the image's height **and** its width (the
+    /// narrower of the two limits; the same camera as `fit` for images at
+    /// least as wide as they are tall). The sphere, not the box's
+    /// projection, so that every direction (a turntable's frames) is
+    /// framed alike. A box whose projection would fall between two rows
+    /// or columns of pixel centres (under a pixel across, an even number
+    /// of pixels) is moved half a pixel onto the nearest ones
+    /// ([`Camera::on_pixel_centres`]).
+    pub fn fit_image(
+        extent: Vec3,
+        azimuth_deg: f64,
+        elevation_deg: f64,
+        projection: Projection,
+        width: u32,
+        height: u32,
+    ) -> Camera {
+        let aspect = width.max(1) as f64 / height.max(1) as f64;
+        let cam = if aspect >= 1.0 {
+            Camera::fit(extent, azimuth_deg, elevation_deg, projection)
+        } else {
+            let centre = scale(extent, 0.5);
+            let r = length(extent) * 0.5;
+            let (distance, projection) = match projection {
+                Projection::Perspective { fov_y_deg } => {
+                    // The horizontal half-angle limits.
+                    let half = ((fov_y_deg * 0.5).to_radians().tan() * aspect).atan();
+                    (r / half.sin(), projection)
+                }
+                Projection::Orthographic { .. } => (
+                    2.0 * r,
+                    Projection::Orthographic {
+                        height: 2.0 * r / aspect,
+                    },
+                ),
+            };
+            Camera::orbit(centre, distance, azimuth_deg, elevation_deg, projection)
+        };
+        cam.on_pixel_centres(extent, width, height)
+    }
+
+    /// The default camera of a slice: orthographic, looking along `normal`
+    /// at the plane through `origin` (as [`Camera::facing_plane`] orients
+    /// it), centred on the box `[0, extent]`'s centre projected into the
+    /// plane, and as tall as the box's projection needs to fit the
+    /// `width × height` image in both directions with [`FIT_MARGIN`]
+    /// (for a normal along z and a square image: `max(X, Y) · 1.05`).
+    /// Sub-pixel projections are moved onto pixel centres as in
+    /// [`Camera::fit_image`].
+    pub fn fit_plane(extent: Vec3, origin: Vec3, normal: Vec3, width: u32, height: u32) -> Camera {
+        let n = normalize(normal);
+        // The box's centre in the plane: for the default plane (a normal
+        // along z through the centre's x and y) the offset is exactly zero
+        // and the target is `origin` itself.
+        let d = sub(scale(extent, 0.5), origin);
+        let centre = add(origin, sub(d, scale(n, dot(d, n))));
+        let b = Camera::facing_plane(centre, normal, 1.0).basis();
+        // The projection of a box onto a unit axis spans Σ |axis_a| · extent_a.
+        let span = |axis: Vec3| (0..3).map(|a| axis[a].abs() * extent[a]).sum::<f64>();
+        let aspect = width.max(1) as f64 / height.max(1) as f64;
+        let h = span(b.up).max(span(b.right) / aspect) * FIT_MARGIN;
+        // A volume of zero size (never from a store) still gets a camera.
+        let h = if h > 0.0 { h } else { 1.0 };
+        Camera::facing_plane(centre, normal, h).on_pixel_centres(extent, width, height)
+    }
+
+    /// This camera moved half a pixel (or less) along its right and up
+    /// vectors where the projection of the box `[0, extent]` into a
+    /// `width × height` image covers no pixel centre across that
+    /// direction (it is under a pixel across and falls between two): then
+    /// its middle moves onto the nearest pixel centre, and the rays
+    /// through that row or column meet it. Where it covers one already
+    /// (every box a pixel or more across), or a corner lies behind a
+    /// perspective eye, the camera is unchanged.
+    pub fn on_pixel_centres(self, extent: Vec3, width: u32, height: u32) -> Camera {
+        let (w, h) = (width.max(1), height.max(1));
+        let rg = self.ray_gen(w, h);
+        let mut lo = [f64::INFINITY; 2];
+        let mut hi = [f64::NEG_INFINITY; 2];
+        for c in 0..8 {
+            let p = [0, 1, 2].map(|a| if c >> a & 1 == 1 { extent[a] } else { 0.0 });
+            let Some(q) = rg.project(p) else {
+                return self;
+            };
+            for k in 0..2 {
+                lo[k] = lo[k].min(q[k]);
+                hi[k] = hi[k].max(q[k]);
+            }
+        }
+        // How far (in pixels) the projection's middle moves, per image axis.
+        let mut delta = [0.0; 2];
+        for k in 0..2 {
+            if !(lo[k].is_finite() && hi[k].is_finite()) {
+                return self;
+            }
+            // Pixel centres at i + 0.5: one lies in [lo, hi] unless both
+            // round to the same gap.
+            if (lo[k] - 0.5).ceil() > (hi[k] - 0.5).floor() {
+                let mid = 0.5 * (lo[k] + hi[k]);
+                delta[k] = ((mid - 0.5).round() + 0.5) - mid;
+            }
+        }
+        if delta == [0.0; 2] {
+            return self;
+        }
+        let b = self.basis();
+        let fp = self.pixel_footprint(length(sub(self.target, self.eye)), h);
+        // Moving the camera right moves the image left; moving it up
+        // moves the image down (y grows downwards).
+        let shift = add(scale(b.right, -delta[0] * fp), scale(b.up, delta[1] * fp));
+        Camera {
+            eye: add(self.eye, shift),
+            target: add(self.target, shift),
+            ..self
+        }
     }
 
     /// An orthographic camera looking along `normal` at the plane through
@@ -608,8 +731,72 @@ impl Camera {
 
 impl TryFrom<Value> for Camera {
     type Error = ConfigError;
+    /// The camera of a camera file; a slice's plane in it
+    /// ([`CameraFile`]) is checked and left out.
     fn try_from(v: Value) -> Result<Camera, ConfigError> {
-        let o = Fields::new("camera", &v, &["projection", "eye", "target", "up"])?;
+        CameraFile::try_from(v).map(|f| f.camera)
+    }
+}
+
+/// A camera file as `render --save-camera` writes it and `render --camera`
+/// reads it: the camera and, for a slice, its plane, in the terms of
+/// `render`'s options: `slice_origin` (a point of the plane, world
+/// `[x, y, z]` as `--slice-origin`) and `slice_normal` (as
+/// `--slice-normal`, not normalized). Files without the plane (older ones,
+/// the viewer's, those of 3D views) read with both `None`.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct CameraFile {
+    pub camera: Camera,
+    pub slice_origin: Option<Vec3>,
+    pub slice_normal: Option<Vec3>,
+}
+
+impl CameraFile {
+    /// Parse a camera file: [`Camera::from_json`]'s fields and the
+    /// optional `slice_origin` (within ±[`MAX_COORD`]) and `slice_normal`
+    /// (non-zero). Errors name the offending field.
+    pub fn from_json(s: &str) -> Result<CameraFile, ConfigError> {
+        let v: Value = serde_json::from_str(s).map_err(|e| ConfigError::syntax("camera", &e))?;
+        CameraFile::try_from(v)
+    }
+
+    /// The file as pretty JSON: the camera's fields as
+    /// [`Camera::to_json`] writes them, then the plane's where there is
+    /// one.
+    pub fn to_json(&self) -> String {
+        #[derive(Serialize)]
+        struct Out<'a> {
+            #[serde(flatten)]
+            camera: &'a Camera,
+            #[serde(skip_serializing_if = "Option::is_none")]
+            slice_origin: Option<Vec3>,
+            #[serde(skip_serializing_if = "Option::is_none")]
+            slice_normal: Option<Vec3>,
+        }
+        let out = Out {
+            camera: &self.camera,
+            slice_origin: self.slice_origin,
+            slice_normal: self.slice_normal,
+        };
+        serde_json::to_string_pretty(&out).expect("a camera file always serializes")
+    }
+}
+
+impl TryFrom<Value> for CameraFile {
+    type Error = ConfigError;
+    fn try_from(v: Value) -> Result<CameraFile, ConfigError> {
+        let o = Fields::new(
+            "camera",
+            &v,
+            &[
+                "projection",
+                "eye",
+                "target",
+                "up",
+                "slice_origin",
+                "slice_normal",
+            ],
+        )?;
         let pv = o.required("projection")?;
         let projection = parse_projection(pv)?;
         let cam = Camera {
@@ -619,7 +806,25 @@ impl TryFrom<Value> for Camera {
             up: o.vec3("up")?.unwrap_or([0.0, 0.0, 1.0]),
         };
         cam.validate()?;
-        Ok(cam)
+        let slice_origin = o.vec3("slice_origin")?;
+        if let Some(p) = slice_origin.filter(|p| p.iter().any(|x| x.abs() > MAX_COORD)) {
+            return Err(o.err(
+                "slice_origin",
+                format!("must be within ±{MAX_COORD:e} (world units), got {p:?}"),
+            ));
+        }
+        let slice_normal = o.vec3("slice_normal")?;
+        if let Some(n) = slice_normal.filter(|n| !(1e-12..=f64::MAX).contains(&length(*n))) {
+            return Err(o.err(
+                "slice_normal",
+                format!("must be a non-zero vector of finite length, got {n:?}"),
+            ));
+        }
+        Ok(CameraFile {
+            camera: cam,
+            slice_origin,
+            slice_normal,
+        })
     }
 }
 
@@ -1012,6 +1217,218 @@ mod tests {
         }
     }
 
+    /// The continuous image box `[x0, x1] × [y0, y1]` (pixels) that the
+    /// box `[0, ext]` projects to.
+    fn projected_box(cam: &Camera, ext: Vec3, w: u32, h: u32) -> [f64; 4] {
+        let mut b = [
+            f64::INFINITY,
+            f64::NEG_INFINITY,
+            f64::INFINITY,
+            f64::NEG_INFINITY,
+        ];
+        for c in 0..8 {
+            let p = [0, 1, 2].map(|a| if c >> a & 1 == 1 { ext[a] } else { 0.0 });
+            let q = cam.project(p, w, h).unwrap();
+            b = [
+                b[0].min(q[0]),
+                b[1].max(q[0]),
+                b[2].min(q[1]),
+                b[3].max(q[1]),
+            ];
+        }
+        b
+    }
+
+    const SIZES: [(u32, u32); 8] = [
+        (100, 100),
+        (150, 400),
+        (400, 150),
+        (400, 1),
+        (1, 400),
+        (4000, 1),
+        (1024, 64),
+        (33, 71),
+    ];
+
+    #[test]
+    fn fit_image_frames_the_bounding_sphere_in_both_directions() {
+        let ext = [150.5, 185.0, 158.0];
+        let r = length(ext) * 0.5;
+        for proj in [PERSP, ORTHO] {
+            for (az, el) in [(30.0, 20.0), (0.0, 0.0), (200.0, -70.0), (90.0, 90.0)] {
+                for (w, h) in SIZES {
+                    let cam = Camera::fit_image(ext, az, el, proj, w, h);
+                    cam.validate().unwrap();
+                    let what = format!("{proj:?} {az} {el} {w}x{h}");
+                    if w >= h {
+                        let fit = Camera::fit(ext, az, el, proj);
+                        assert_eq!(cam, fit.on_pixel_centres(ext, w, h), "{what}");
+                    }
+                    // The sphere touches the narrower direction's edges and
+                    // stays within the other's.
+                    let (wf, hf) = (w as f64, h as f64);
+                    let rg = cam.ray_gen(w, h);
+                    let b = cam.basis();
+                    let d = length(sub(cam.target, cam.eye));
+                    let (right, up) = match cam.projection {
+                        Projection::Orthographic { height } => {
+                            (height * 0.5 * wf / hf, height * 0.5)
+                        }
+                        Projection::Perspective { fov_y_deg } => {
+                            // The half-angles' sines: the sphere's angular
+                            // radius asin(r / d) must not exceed them.
+                            let t = (fov_y_deg * 0.5).to_radians().tan();
+                            let s = |t: f64| t / (1.0 + t * t).sqrt();
+                            (d * s(t * wf / hf), d * s(t))
+                        }
+                    };
+                    assert!(
+                        r <= right * (1.0 + 1e-9) && r <= up * (1.0 + 1e-9),
+                        "{what}"
+                    );
+                    assert!((r - right.min(up)).abs() <= 1e-9 * r, "{what}");
+                    // Every corner inside the image.
+                    let q = projected_box(&cam, ext, w, h);
+                    assert!(
+                        q[0] >= 0.0 && q[1] <= wf && q[2] >= 0.0 && q[3] <= hf,
+                        "{what}: {q:?}"
+                    );
+                    // The box's centre projects to the image's centre, or
+                    // within half a pixel of it for a box under a pixel
+                    // across (moved onto pixel centres).
+                    let c = rg.project(scale(ext, 0.5)).unwrap();
+                    for (k, n) in [(0, wf), (1, hf)] {
+                        let off = (c[k] - n / 2.0).abs();
+                        let small = [q[1] - q[0], q[3] - q[2]][k] < 1.0;
+                        assert!(off < 1e-6 || small && off <= 0.5 + 1e-6, "{what}: {c:?}");
+                    }
+                    assert!(close(b.forward, normalize(sub(cam.target, cam.eye)), 1e-12));
+                }
+            }
+        }
+    }
+
+    #[test]
+    fn fit_plane_fits_the_box_projection_with_the_margin() {
+        let ext = [150.5, 185.0, 158.0];
+        let normals = [
+            [0.0, 0.0, 1.0],
+            [0.0, 0.0, -2.0],
+            [1.0, 0.0, 0.0],
+            [0.0, 1.0, 0.0],
+            [1.0, 0.3, 0.2],
+            [-0.4, 1.0, 0.7],
+        ];
+        for n in normals {
+            for origin in [scale(ext, 0.5), [75.25, 92.5, 31.75], [10.0, 170.0, 150.0]] {
+                for (w, h) in SIZES {
+                    let cam = Camera::fit_plane(ext, origin, n, w, h);
+                    cam.validate().unwrap();
+                    let what = format!("{n:?} {origin:?} {w}x{h}");
+                    let (wf, hf) = (w as f64, h as f64);
+                    let b = cam.basis();
+                    // Face on, the target in the plane.
+                    assert!(close(b.forward, normalize(n), 1e-12), "{what}");
+                    assert!(
+                        dot(sub(cam.target, origin), normalize(n)).abs() < 1e-9,
+                        "{what}"
+                    );
+                    // The projection fills 1/1.05 of one direction and at
+                    // most that of the other, centred.
+                    let q = projected_box(&cam, ext, w, h);
+                    let (fw, fh) = ((q[1] - q[0]) / wf, (q[3] - q[2]) / hf);
+                    let fill = 1.0 / FIT_MARGIN;
+                    assert!(fw <= fill + 1e-9 && fh <= fill + 1e-9, "{what}: {fw} {fh}");
+                    assert!((fw.max(fh) - fill).abs() < 1e-9, "{what}: {fw} {fh}");
+                    // Centred, or within half a pixel of it where the box is
+                    // under a pixel across (moved onto pixel centres).
+                    let mid = [(q[0] + q[1]) / 2.0, (q[2] + q[3]) / 2.0];
+                    for (k, n) in [(0, wf), (1, hf)] {
+                        let off = (mid[k] - n / 2.0).abs();
+                        let small = [q[1] - q[0], q[3] - q[2]][k] < 1.0;
+                        assert!(off < 1e-6 || small && off <= 0.5 + 1e-6, "{what}: {q:?}");
+                    }
+                    // The margin's pixels are clear: the edge columns and rows
+                    // of every image at least 40 pixels across that way.
+                    if w >= 40 {
+                        assert!(q[0] > 1.0 && q[1] < wf - 1.0, "{what}: {q:?}");
+                    }
+                    if h >= 40 {
+                        assert!(q[2] > 1.0 && q[3] < hf - 1.0, "{what}: {q:?}");
+                    }
+                }
+            }
+        }
+        // The default plane of a square image: the old view, bit for bit.
+        let o = [75.25, 92.5, 79.25];
+        assert_eq!(
+            Camera::fit_plane(ext, o, [0.0, 0.0, 1.0], 200, 200),
+            Camera::facing_plane(o, [0.0, 0.0, 1.0], 185.0 * 1.05)
+        );
+        // A portrait image: the width limits (150.5 across 150 pixels).
+        let cam = Camera::fit_plane(ext, o, [0.0, 0.0, 1.0], 150, 400);
+        assert_eq!(
+            cam.projection,
+            Projection::Orthographic {
+                height: 150.5 * 1.05 * 400.0 / 150.0
+            }
+        );
+    }
+
+    #[test]
+    fn a_box_thinner_than_a_pixel_is_moved_onto_pixel_centres() {
+        // 4096 × 4 × 4 seen face on in 1024 × 64: 4.2 world units a pixel,
+        // the box 0.95 pixel tall, centred on the boundary of rows 31 and
+        // 32: the rays of the pixel centres missed it.
+        let ext = [4096.0, 4.0, 4.0];
+        let o = [2048.0, 2.0, 2.5];
+        for (w, h) in [(1024, 64), (1024, 1), (1024, 2), (64, 1024), (4000, 1)] {
+            let cam = Camera::fit_plane(ext, o, [0.0, 0.0, 1.0], w, h);
+            let (mut rows, mut cols) = (vec![false; h as usize], vec![false; w as usize]);
+            for j in 0..h {
+                for i in 0..w {
+                    let r = cam.ray(i as f64 + 0.5, j as f64 + 0.5, w, h);
+                    if intersect_box(&r, [0.0; 3], ext).is_some() {
+                        (rows[j as usize], cols[i as usize]) = (true, true);
+                    }
+                }
+            }
+            let count = |v: &[bool]| v.iter().filter(|x| **x).count();
+            // One row across the thin side; the long one fills the
+            // width less the margin.
+            let (thin, long) = (count(&rows), count(&cols) as f64);
+            // World units a pixel: the limiting direction's.
+            let px = (ext[0] / w as f64).max(ext[1] / h as f64) * FIT_MARGIN;
+            let fill = ext[0] / px;
+            assert!(
+                thin == 1 && long >= fill.floor() - 1.0 && long <= fill.ceil(),
+                "{w}x{h}: {thin} {long}"
+            );
+            // Moved by half a pixel at most, along the screen only.
+            let fp = cam.pixel_footprint(1.0, h);
+            let m = sub(cam.target, o);
+            assert!(length(m) <= 0.5 * fp * 2f64.sqrt() + 1e-9, "{w}x{h}: {m:?}");
+            assert!(m[2].abs() < 1e-12);
+        }
+        // A small perspective view: the sphere fit leaves a large volume
+        // under a pixel in a 1-pixel-high image; the middle column is lit.
+        let ext = [150.5, 185.0, 158.0];
+        for proj in [PERSP, ORTHO] {
+            for (w, h) in [(400, 1), (4000, 1), (2, 2)] {
+                let cam = Camera::fit_image(ext, 30.0, 20.0, proj, w, h);
+                let hit = (0..w).any(|i| {
+                    let r = cam.ray(i as f64 + 0.5, 0.5, w, h);
+                    intersect_box(&r, [0.0; 3], ext).is_some()
+                });
+                assert!(hit, "{proj:?} {w}x{h}");
+            }
+        }
+        // Boxes a pixel or more across stay where they were.
+        let cam = Camera::facing_plane([5.0, 5.0, 5.0], [0.0, 0.0, 1.0], 20.0);
+        assert_eq!(cam.on_pixel_centres([10.0; 3], 20, 20), cam);
+        assert_eq!(cam.on_pixel_centres([10.0; 3], 2, 2), cam);
+    }
+
     #[test]
     fn turntable_rotates_about_z() {
         let cam = Camera::orbit([1.0, 2.0, 3.0], 10.0, 0.0, 30.0, PERSP);
@@ -1142,6 +1559,71 @@ mod tests {
         )
         .unwrap();
         assert_eq!(c.up, [0.0, 0.0, 1.0]);
+    }
+
+    #[test]
+    fn camera_files_keep_a_slices_plane() {
+        let cam = Camera::fit_plane(
+            [150.5, 185.0, 158.0],
+            [75.25, 92.5, 31.75],
+            [1.0, 0.3, 0.2],
+            200,
+            200,
+        );
+        let f = CameraFile {
+            camera: cam,
+            slice_origin: Some([75.25, 92.5, 31.75]),
+            slice_normal: Some([1.0, 0.3, 0.2]),
+        };
+        let s = f.to_json();
+        assert!(
+            s.contains("\"slice_origin\"") && s.contains("\"slice_normal\""),
+            "{s}"
+        );
+        // The camera's fields first, as Camera::to_json writes them.
+        assert!(s.starts_with(cam.to_json().trim_end_matches("\n}")), "{s}");
+        let back = CameraFile::from_json(&s).unwrap();
+        assert_eq!(back.slice_origin, f.slice_origin);
+        assert_eq!(back.slice_normal, f.slice_normal);
+        assert!(close(back.camera.eye, cam.eye, 1e-12));
+        // Reading the same text twice gives the same numbers.
+        assert_eq!(CameraFile::from_json(&s).unwrap(), back);
+        // A camera reader takes the file too (the viewer reads them).
+        assert!(close(
+            Camera::from_json(&s).unwrap().target,
+            cam.target,
+            1e-12
+        ));
+        // Files without a plane: none, and written as before.
+        let plain = CameraFile {
+            camera: cam,
+            slice_origin: None,
+            slice_normal: None,
+        };
+        assert_eq!(plain.to_json(), cam.to_json());
+        let old = CameraFile::from_json(&cam.to_json()).unwrap();
+        assert_eq!((old.slice_origin, old.slice_normal), (None, None));
+        // Bad planes name the field.
+        let p = r#""projection": {"type": "orthographic", "height": 5}, "eye": [0, 0, 10], "target": [0, 0, 0], "up": [0, 1, 0]"#;
+        for (extra, field, msg) in [
+            (r#""slice_normal": [0, 0, 0]"#, "`slice_normal`", "non-zero"),
+            (r#""slice_normal": [0, 1]"#, "`slice_normal`", "3 numbers"),
+            (
+                r#""slice_origin": [2e15, 0, 0]"#,
+                "`slice_origin`",
+                "within ±1e15",
+            ),
+            (r#""slice_origin": "middle""#, "`slice_origin`", "3 numbers"),
+            (r#""slice": [0, 0, 1]"#, "`slice`", "unknown field"),
+        ] {
+            let json = format!("{{{p}, {extra}}}");
+            for e in [
+                CameraFile::from_json(&json).unwrap_err().to_string(),
+                Camera::from_json(&json).unwrap_err().to_string(),
+            ] {
+                assert!(e.contains(field) && e.contains(msg), "{json}\n→ {e}");
+            }
+        }
     }
 
     #[test]

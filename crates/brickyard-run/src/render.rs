@@ -5,7 +5,7 @@ use crate::share::{Share, Split};
 use anyhow::{bail, Context, Result};
 use brickyard_cache::session::Session;
 use brickyard_cache::vm::VmConfig;
-use brickyard_core::camera::{world_extent, Camera, Projection};
+use brickyard_core::camera::{world_extent, Camera, CameraFile, Projection};
 use brickyard_core::TransferFunction;
 use brickyard_render::budget::Stop;
 use brickyard_render::cpu::{Lod, Scene};
@@ -32,7 +32,9 @@ pub struct RenderCmd {
     /// Output PNG (a turntable writes NAME-0000.png, NAME-0001.png, ...).
     #[arg(long, short, default_value = "render.png")]
     out: PathBuf,
-    /// Camera JSON file (as written by `--save-camera` or the viewer).
+    /// Camera JSON file (as written by `--save-camera` or the viewer); in
+    /// slice mode also the plane saved with it (`slice_origin`,
+    /// `slice_normal`), where --slice-* options do not place it.
     #[arg(long)]
     camera: Option<PathBuf>,
     /// dvr, mip: the camera's angle around the volume in degrees
@@ -50,7 +52,8 @@ pub struct RenderCmd {
     /// dvr, mip: orthographic projection.
     #[arg(long)]
     ortho: bool,
-    /// Write the camera used to this JSON file.
+    /// Write the camera used to this JSON file (in slice mode with the
+    /// plane: --camera draws the same slice).
     #[arg(long)]
     save_camera: Option<PathBuf>,
     /// Transfer function: a preset (linear, soft, hot, viridis, coolwarm,
@@ -115,8 +118,9 @@ pub struct RenderCmd {
     #[arg(long)]
     derive: Option<String>,
     /// Slice: position of the plane along z as a fraction of the depth
-    /// (default 0.5): the plane goes through the centres of the voxel
-    /// layer that holds it (one layer, not a blend of two).
+    /// (default 0.5, or the --camera file's plane): the plane goes through
+    /// the centres of the voxel layer that holds it (one layer, not a
+    /// blend of two).
     #[arg(long, allow_negative_numbers = true)]
     slice_z: Option<f64>,
     /// Slice: a point of the plane in world coordinates X,Y,Z (the
@@ -125,7 +129,8 @@ pub struct RenderCmd {
     /// --slice-z; as the viewer's saved views give it).
     #[arg(long, allow_hyphen_values = true)]
     slice_origin: Option<String>,
-    /// Slice: the plane's normal X,Y,Z (default 0,0,1).
+    /// Slice: the plane's normal X,Y,Z (default 0,0,1, or the --camera
+    /// file's).
     #[arg(long, allow_hyphen_values = true)]
     slice_normal: Option<String>,
     /// Render this level only (default: automatic level of detail); a pool
@@ -1143,10 +1148,24 @@ fn run_one(
     } else {
         Projection::Perspective { fov_y_deg: fov }
     };
+    // `--camera`: the camera, and for a slice the plane saved with it
+    // (where the options do not place it themselves).
+    let camera_file = match &c.camera {
+        Some(p) => {
+            let text = std::fs::read_to_string(p)
+                .with_context(|| format!("{}: cannot read", p.display()))?;
+            Some(
+                CameraFile::from_json(&text)
+                    .map_err(|e| anyhow::anyhow!("{}: {e}", p.display()))?,
+            )
+        }
+        None => None,
+    };
     let mode = match c.mode.as_str() {
         "dvr" => RenderMode::Dvr,
         "mip" => RenderMode::Mip,
         "slice" => {
+            let saved = camera_file.as_ref();
             let origin = match &c.slice_origin {
                 Some(o) => {
                     let v = parse_vec3(o, "slice-origin")?;
@@ -1155,6 +1174,9 @@ fn run_one(
                         bail!("slice-origin: expected coordinates within ±{max:e}, found {o:?}");
                     }
                     v
+                }
+                None if c.slice_z.is_none() && saved.is_some_and(|f| f.slice_origin.is_some()) => {
+                    saved.and_then(|f| f.slice_origin).unwrap()
                 }
                 None => {
                     let z = c.slice_z.unwrap_or(0.5);
@@ -1167,7 +1189,9 @@ fn run_one(
             };
             let normal = match &c.slice_normal {
                 Some(n) => parse_vec3(n, "slice-normal")?,
-                None => [0.0, 0.0, 1.0],
+                None => saved
+                    .and_then(|f| f.slice_normal)
+                    .unwrap_or([0.0, 0.0, 1.0]),
             };
             let ln = brickyard_core::camera::length(normal);
             if !(1e-12..=f64::MAX).contains(&ln) {
@@ -1179,23 +1203,47 @@ fn run_one(
         }
         s => bail!("mode: expected dvr, mip or slice, found {s:?}"),
     };
-    let camera = match &c.camera {
-        Some(p) => {
-            let text = std::fs::read_to_string(p)
-                .with_context(|| format!("{}: cannot read", p.display()))?;
-            Camera::from_json(&text).map_err(|e| anyhow::anyhow!("{}: {e}", p.display()))?
-        }
+    // The default view fits the volume into the image (one view's,
+    // `w × h`), its width as well as its height.
+    let camera = match &camera_file {
+        Some(f) => f.camera,
         None => match &mode {
             RenderMode::Slice { origin, normal } => {
-                Camera::facing_plane(*origin, *normal, extent[0].max(extent[1]) * 1.05)
+                Camera::fit_plane(extent, *origin, *normal, w, h)
             }
-            _ => Camera::fit(extent, azimuth, elevation, projection),
+            _ => Camera::fit_image(extent, azimuth, elevation, projection, w, h),
         },
     };
-    if let Some(p) = &c.save_camera {
-        std::fs::write(p, camera.to_json())
-            .with_context(|| format!("{}: cannot write", p.display()))?;
-    }
+    // A slice's camera file keeps its plane, so that `--camera` draws the
+    // same slice; the view is drawn with the camera and plane as the file
+    // gives them back (a JSON number may read back an ulp off), so that
+    // it draws the same image too.
+    let (camera, mode) = match &c.save_camera {
+        Some(p) => {
+            let plane = match &mode {
+                RenderMode::Slice { origin, normal } => Some((*origin, *normal)),
+                _ => None,
+            };
+            let text = CameraFile {
+                camera,
+                slice_origin: plane.map(|p| p.0),
+                slice_normal: plane.map(|p| p.1),
+            }
+            .to_json();
+            brickyard_render::image::write_whole(p, |w| w.write_all(text.as_bytes()))
+                .with_context(|| format!("{}: cannot write", p.display()))?;
+            let back = CameraFile::from_json(&text)
+                .map_err(|e| anyhow::anyhow!("{}: {e}", p.display()))?;
+            let mode = match (mode, back.slice_origin, back.slice_normal) {
+                (RenderMode::Slice { .. }, Some(origin), Some(normal)) => {
+                    RenderMode::Slice { origin, normal }
+                }
+                (m, _, _) => m,
+            };
+            (back.camera, mode)
+        }
+        None => (camera, mode),
+    };
     let batch = !c.stream;
     // A device back end's driver lives in this process: its share comes
     // off the budget before the split (and `auto` takes the CPU where the
@@ -2236,7 +2284,7 @@ fn accumulate(
             }
         ),
         None => bail!(
-            "progressive: a pixel keeps {kept} samples (what the device's largest buffer holds over the image), fewer than one run of the longest ray takes even at the coarsest level ({}): a smaller image, or --backend cpu",
+            "progressive: a pixel keeps {kept} samples (what one storage binding of the device holds for a row of the image), fewer than one run of the longest ray takes even at the coarsest level ({}): a smaller image, or --backend cpu",
             brickyard_render::savr::longest_run(scene, params, scene.levels.len() - 1)
         ),
         _ => {}

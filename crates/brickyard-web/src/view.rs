@@ -390,17 +390,21 @@ impl ViewState {
                 normal: [0.0, 0.0, 1.0],
             },
         };
+        // The default views fit the volume into the image, its width as
+        // well as its height (as `render`'s).
         let mut camera = match &mode {
             RenderMode::Slice { origin, normal } => {
-                Camera::facing_plane(*origin, *normal, e[0].max(e[1]) * 1.05)
+                Camera::fit_plane(e, *origin, *normal, self.width, self.height)
             }
-            _ => Camera::fit(
+            _ => Camera::fit_image(
                 e,
                 self.azimuth,
                 self.elevation,
                 Projection::Perspective {
                     fov_y_deg: self.fov,
                 },
+                self.width,
+                self.height,
             ),
         };
         if self.zoom != 1.0 {

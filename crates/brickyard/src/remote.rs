@@ -344,15 +344,23 @@ fn params(o: &Open, v: &View) -> Result<RenderParams> {
         (Some(c), _) => {
             Camera::from_json(&c.to_string()).map_err(|e| anyhow::anyhow!("camera: {e}"))?
         }
+        // The default views fit the volume into the image, its width as
+        // well as its height (as `render`'s).
         (None, RenderMode::Slice { origin, normal }) => {
-            Camera::facing_plane(*origin, *normal, extent[0].max(extent[1]) * 1.05 / v.zoom)
+            let mut c = Camera::fit_plane(extent, *origin, *normal, v.size[0], v.size[1]);
+            if let Projection::Orthographic { height } = &mut c.projection {
+                *height /= v.zoom;
+            }
+            c
         }
         (None, _) => {
-            let full = Camera::fit(
+            let full = Camera::fit_image(
                 extent,
                 v.azimuth,
                 v.elevation,
                 Projection::Perspective { fov_y_deg: 35.0 },
+                v.size[0],
+                v.size[1],
             );
             let eye = [0, 1, 2].map(|a| full.target[a] + (full.eye[a] - full.target[a]) / v.zoom);
             Camera { eye, ..full }
