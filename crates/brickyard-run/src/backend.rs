@@ -201,6 +201,19 @@ pub fn plan_device(choice: &str, adapter: usize, memory: Option<u64>) -> DeviceP
     );
     match choice {
         "auto" => {
+            // Under an address-space limit a graphics driver looked at
+            // maps more than it holds (lavapipe: an allocation failed
+            // within `ulimit -v 400000` at a budget that fits without it).
+            if crate::memory::address_space_limit().is_some() {
+                return DevicePlan {
+                    note: Some(
+                        "note: an address-space limit is set (ulimit -v): --backend auto takes \
+                         the CPU without looking for a device (--backend gpu to use one)"
+                            .into(),
+                    ),
+                    ..plan("cpu", 0, false)
+                };
+            }
             // Room for a driver and at least 64 MiB of data besides.
             if let Some(m) = memory.filter(|&m| m < FIXED_BYTES + hardware + (64 << 20)) {
                 return DevicePlan {

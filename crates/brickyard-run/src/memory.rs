@@ -62,9 +62,86 @@ fn known_ram() -> Option<u64> {
         .map(|kib| kib << 10)
 }
 
-/// The default budget: a quarter of physical memory.
+/// The default budget: a quarter of physical memory, or of the memory
+/// limit of the process's control group where that is lower, and within
+/// what its address-space limit (`ulimit -v`) leaves beside the program
+/// ([`default_memory_source`] says which).
 pub fn default_memory() -> u64 {
-    physical_ram() / 4
+    default_memory_source().0
+}
+
+/// What the program maps beside its budget (its code, thread stacks, the
+/// allocator's spare room), for the address-space limit: `render` at
+/// `--memory 256MiB` ran within `ulimit -v 400000` (390 MiB).
+const ADDRESS_SPACE_BESIDE: u64 = 192 << 20;
+
+/// [`default_memory`], and what it is a share of: "RAM", "the control
+/// group's memory limit" or "the address-space limit".
+pub fn default_memory_source() -> (u64, &'static str) {
+    let ram = physical_ram();
+    let (mut m, mut of) = match cgroup_limit() {
+        Some(c) if c < ram => (c / 4, "the control group's memory limit"),
+        _ => (ram / 4, "RAM"),
+    };
+    if let Some(a) = address_space_limit() {
+        let within = a.saturating_sub(ADDRESS_SPACE_BESIDE);
+        if within < m {
+            (m, of) = (within.max(16 << 20), "the address-space limit");
+        }
+    }
+    (m, of)
+}
+
+/// The process's address-space limit (`RLIMIT_AS`, `ulimit -v`), unless
+/// unlimited.
+pub fn address_space_limit() -> Option<u64> {
+    let mut r = libc::rlimit {
+        rlim_cur: 0,
+        rlim_max: 0,
+    };
+    // SAFETY: getrlimit writes the struct it is given.
+    let ok = unsafe { libc::getrlimit(libc::RLIMIT_AS, &mut r) } == 0;
+    (ok && r.rlim_cur != libc::RLIM_INFINITY).then_some(r.rlim_cur as u64)
+}
+
+/// The memory limit of the process's control group (v2 `memory.max` of
+/// its group and those above it, or v1 `memory.limit_in_bytes`), unless
+/// there is none.
+fn cgroup_limit() -> Option<u64> {
+    let groups = std::fs::read_to_string("/proc/self/cgroup").ok()?;
+    let read = |f: &std::path::Path| -> Option<u64> {
+        let t = std::fs::read_to_string(f).ok()?;
+        let v = t.trim().parse::<u64>().ok()?;
+        // ("max" in v2; v1 says "none" with a page-rounded i64::MAX.)
+        (v < 1 << 60).then_some(v)
+    };
+    let mut least: Option<u64> = None;
+    let mut take = |v: Option<u64>| {
+        if let Some(v) = v {
+            least = Some(least.map_or(v, |l| l.min(v)));
+        }
+    };
+    for line in groups.lines() {
+        let mut parts = line.splitn(3, ':');
+        let (_, ctrl, path) = (parts.next()?, parts.next()?, parts.next()?);
+        let path = path.trim_start_matches('/');
+        if ctrl.is_empty() {
+            // v2: the group and every group above it.
+            let mut dir = std::path::Path::new("/sys/fs/cgroup").join(path);
+            loop {
+                take(read(&dir.join("memory.max")));
+                if !dir.pop() || !dir.starts_with("/sys/fs/cgroup") {
+                    break;
+                }
+            }
+        } else if ctrl.split(',').any(|c| c == "memory") {
+            let root = std::path::Path::new("/sys/fs/cgroup/memory");
+            take(read(&root.join(path).join("memory.limit_in_bytes")));
+            // (Inside a container the group's own folder is the root.)
+            take(read(&root.join("memory.limit_in_bytes")));
+        }
+    }
+    least
 }
 
 /// The process's peak resident set so far (VmHWM), where the system says.
@@ -113,9 +190,15 @@ impl Split {
             "memory budget {}{}: pool {}, host cache {}, decoded chunks {}, images {}, {}{}program {}",
             human_bytes(self.total),
             if self.explicit {
-                ""
+                String::new()
             } else {
-                " (default: a quarter of RAM)"
+                match default_memory_source().1 {
+                    "RAM" => " (default: a quarter of RAM)".to_string(),
+                    "the address-space limit" => {
+                        " (default: within the address-space limit, ulimit -v)".to_string()
+                    }
+                    of => format!(" (default: a quarter of {of})"),
+                }
             },
             human_bytes(self.pool),
             human_bytes(self.host),

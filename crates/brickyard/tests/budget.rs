@@ -551,3 +551,29 @@ fn a_camera_inside_the_volume_completes_in_a_small_pool() {
         assert_eq!(holes(&full_px, &px), 0, "{mode}: holes at 128 KiB");
     }
 }
+
+#[test]
+fn the_default_budget_stays_within_an_address_space_limit() {
+    // Under `ulimit -v` the default budget (a quarter of RAM) asked for
+    // more than the process could map: an allocation failed and the
+    // process aborted. The default now fits the limit, and `auto` takes
+    // the CPU without loading a graphics driver.
+    let d = tempfile::tempdir().unwrap();
+    let store = store(d.path());
+    let png = d.path().join("v.png");
+    let cmd = format!(
+        "ulimit -v 400000 && exec '{}' render '{}' --size 256 --out '{}'",
+        env!("CARGO_BIN_EXE_brickyard"),
+        s(&store),
+        s(&png)
+    );
+    let o = Command::new("bash").args(["-c", &cmd]).output().unwrap();
+    let (out, err) = (
+        String::from_utf8_lossy(&o.stdout),
+        String::from_utf8_lossy(&o.stderr),
+    );
+    assert_eq!(o.status.code(), Some(0), "{out}\n{err}");
+    assert!(out.contains("within the address-space limit"), "{out}");
+    assert!(err.contains("takes the CPU"), "{err}");
+    assert!(lit(&png_rgba(&png)) > 1000, "too little drawn");
+}
