@@ -536,7 +536,7 @@ fn run_convert(
         false => None,
     };
     Ok(format!(
-        "{} levels, {} bricks ({} empty, {} constant), {} bytes written in {:.2} s{}",
+        "{} levels, {} bricks ({} empty, {} constant incl. empty), {} bytes written in {:.2} s{}",
         report.levels.len(),
         report.bricks,
         report.bricks_empty,

@@ -451,7 +451,7 @@ fn run_convert(
         outln!("{}", serde_json::to_string(&j)?);
     } else {
         outln!(
-            "wrote {}{} ({} levels, {} bricks: {} empty, {} constant) in {:.2} s: {} in, {} out, {:.0} MB/s, peak RSS {}",
+            "wrote {}{} ({} levels, {} bricks: {} empty, {} constant incl. empty) in {:.2} s: {} in, {} out, {:.0} MB/s, peak RSS {}",
             output.display(),
             if size > 1 { format!(" on {size} ranks") } else { String::new() },
             r.levels.len(),
