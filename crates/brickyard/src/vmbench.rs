@@ -685,6 +685,9 @@ pub fn render(dir: &Path, dims: Dims3, dtype: DType, o: &RenderBench) -> Result<
         // host cache kept: bricks come from RAM.
         let dropped = cold && drop_caches();
         let mut runs = vec![];
+        // What the cold run read from the store (the later runs find the
+        // bricks in the warm host cache and read nothing).
+        let mut cold_bytes_read = 0;
         let mut warm_session = None;
         for _ in 0..2 {
             let mut s = match &st {
@@ -767,6 +770,9 @@ pub fn render(dir: &Path, dims: Dims3, dtype: DType, o: &RenderBench) -> Result<
                 if completeness >= 1.0 || out_of_time {
                     break;
                 }
+            }
+            if runs.is_empty() {
+                cold_bytes_read = s.loader().bytes_read();
             }
             runs.push((
                 t.elapsed().as_secs_f64(),
@@ -856,7 +862,7 @@ pub fn render(dir: &Path, dims: Dims3, dtype: DType, o: &RenderBench) -> Result<
         let stt = last.expect("one warm frame");
         let (cold_s, frames, first_frame_ms, up, down, upload_ms, cold_done) = runs[0];
         let (host_s, host_frames, .., host_done) = runs[1];
-        let bytes_read = s.loader().bytes_read();
+        let bytes_read = cold_bytes_read;
         let pool_bytes = s.vm().pool_bytes();
         outln!(
             "{}",

@@ -10,7 +10,7 @@ use crate::source::{check_region, SourceMeta, VolumeSource};
 use brickyard_core::DType;
 use serde::{Deserialize, Serialize};
 use std::fs::File;
-use std::io::Read;
+use std::io::{self, Read};
 use std::ops::Range;
 use std::os::unix::fs::FileExt;
 use std::path::{Path, PathBuf};
@@ -118,6 +118,8 @@ pub struct RawSource {
     file: File,
     big_endian: bool,
     header: u64,
+    /// Bytes the file held when opened (header and voxels).
+    len: u64,
 }
 
 /// Open a raw file described by `opts`.
@@ -143,8 +145,28 @@ pub fn open(path: &Path, opts: &RawOptions) -> Result<RawSource> {
     if opts.channels == 0 {
         return Err(StoreError::invalid(path, "channels", "expected at least 1"));
     }
+    // A pipe, socket or device has no length to check against dims (and
+    // opening a FIFO would wait for a writer): refuse it before opening.
+    let not_regular = |m: &std::fs::Metadata| {
+        StoreError::invalid(
+            path,
+            "input",
+            format!(
+                "raw input must be a regular file, found {}; copy the data to a file first",
+                file_kind(m)
+            ),
+        )
+    };
+    let m = std::fs::metadata(path).at(path)?;
+    if !m.is_file() {
+        return Err(not_regular(&m));
+    }
     let file = File::open(path).at(path)?;
-    let len = file.metadata().at(path)?.len();
+    let m = file.metadata().at(path)?;
+    if !m.is_file() {
+        return Err(not_regular(&m));
+    }
+    let len = m.len();
     let [x, y, z] = opts.dims;
     let need = x
         .checked_mul(y)
@@ -173,7 +195,67 @@ pub fn open(path: &Path, opts: &RawOptions) -> Result<RawSource> {
         file,
         big_endian,
         header: opts.header_bytes,
+        len,
     })
+}
+
+/// What kind of file `m` describes, for messages.
+fn file_kind(m: &std::fs::Metadata) -> &'static str {
+    use std::os::unix::fs::FileTypeExt;
+    let t = m.file_type();
+    if t.is_dir() {
+        "a folder"
+    } else if t.is_fifo() {
+        "a FIFO (named pipe)"
+    } else if t.is_socket() {
+        "a socket"
+    } else if t.is_char_device() {
+        "a character device"
+    } else if t.is_block_device() {
+        "a block device"
+    } else {
+        "not a regular file"
+    }
+}
+
+/// Fill as much of `buf` as `file` holds from byte `offset`: the count is
+/// short only where the file ends first.
+pub(crate) fn read_full_at(file: &File, buf: &mut [u8], offset: u64) -> io::Result<usize> {
+    let mut done = 0;
+    while done < buf.len() {
+        match file.read_at(&mut buf[done..], offset + done as u64) {
+            Ok(0) => break,
+            Ok(n) => done += n,
+            Err(e) if e.kind() == io::ErrorKind::Interrupted => {}
+            Err(e) => return Err(e),
+        }
+    }
+    Ok(done)
+}
+
+/// The message for a file that ends at byte `at` where `need` bytes were
+/// there when it was opened.
+pub(crate) fn ends_early(at: u64, need: u64) -> String {
+    format!(
+        "the file ends early, at byte {at}; expected {need} bytes (its size when opened): \
+         it changed while being read, or is truncated"
+    )
+}
+
+impl RawSource {
+    /// Fill `buf` from byte `off`; a file that ends first is an error
+    /// naming it and the byte where it ends.
+    fn read_at(&self, buf: &mut [u8], off: u64) -> Result<()> {
+        let got = read_full_at(&self.file, buf, off).at(&self.meta.path)?;
+        if got < buf.len() {
+            return Err(StoreError::invalid(
+                &self.meta.path,
+                "data",
+                ends_early(off + got as u64, self.len),
+            ));
+        }
+        Ok(())
+    }
 }
 
 impl VolumeSource for RawSource {
@@ -201,17 +283,13 @@ impl VolumeSource for RawSource {
                 // One contiguous read per slice.
                 let n = ((y.end - y.start) * row) as usize;
                 let off = base + ((zz * dy + y.start) * dx) * es;
-                self.file
-                    .read_exact_at(&mut out[o..o + n], off)
-                    .at(&self.meta.path)?;
+                self.read_at(&mut out[o..o + n], off)?;
                 o += n;
             } else {
                 for yy in y.clone() {
                     let off = base + ((zz * dy + yy) * dx + x.start) * es;
                     let n = row as usize;
-                    self.file
-                        .read_exact_at(&mut out[o..o + n], off)
-                        .at(&self.meta.path)?;
+                    self.read_at(&mut out[o..o + n], off)?;
                     o += n;
                 }
             }
