@@ -144,7 +144,9 @@ pub struct RenderCmd {
     #[arg(long)]
     samples_per_voxel: Option<f64>,
     /// Memory for the whole process: the brick pool, host cache, decoded
-    /// chunks and images are split out of it (default: a quarter of RAM).
+    /// chunks and images are split out of it (default: a quarter of RAM, or
+    /// of the control group's memory limit where lower, and within an
+    /// address-space limit, ulimit -v).
     #[arg(long)]
     memory: Option<String>,
     /// Brick-pool budget (default: a share of --memory). A pool smaller
