@@ -200,11 +200,17 @@ class Store:
         return a[index]
 
     def __getitem__(self, key: Any) -> np.ndarray:
-        """`store[c, z0:z1, y0:y1, x0:x1]` (level 0); with three axes, channel 0."""
+        """`store[c, z0:z1, y0:y1, x0:x1]` (level 0); a store of one channel
+        also `store[z0:z1, y0:y1, x0:x1]`. A store of several channels takes
+        the channel first, as its `shape` says: fewer than four indices are
+        refused rather than read from channel 0."""
         if not isinstance(key, tuple):
             key = (key,)
         if len(key) == 4:
             return self.read(0, _channel_index(key[0], self.channels, "store"), key[1:])
+        if self.channels > 1:
+            raise IndexError(f"{self._path}: {self.channels} channels: index it as store[c, z, y, x] "
+                             f"(shape {self.shape}), e.g. store[1] is not channel 1: store[1, :, :, :] is")
         return self.read(0, 0, key)
 
     def __repr__(self) -> str:
@@ -500,6 +506,10 @@ def render(store: Union[Store, str, os.PathLike], mode: str = "dvr", camera: Any
     if out is not None:
         out = os.fspath(out)
         options["out"] = out
+    if isinstance(store, Store):
+        # A closed handle, or one whose store was replaced or removed, is
+        # refused as its reads are (the path would draw what is there now).
+        store._open().check()
     with tempfile.TemporaryDirectory(prefix="brickyard-render-") as tmp:
         args = render_args(store, mode, camera, tf, size, backend, tmp, **options)
         try:
@@ -515,6 +525,10 @@ def render(store: Union[Store, str, os.PathLike], mode: str = "dvr", camera: Any
     # read: a damaged store, a server gone) are returned, and said so.
     for note in notes:
         if "could not be loaded" in note or "stopped at" in note:
+            # (Without `out`, no file was written: the line's file name,
+            # the CLI's default, is left out.)
+            if out is None and ": " in note:
+                note = note.split(": ", 1)[1]
             warnings.warn(f"render: {note}", RuntimeWarning, stacklevel=2)
     views = np.frombuffer(buf, dtype=np.dtype(dtype)).reshape(n, h, w, 4)
     return views if numbered else views[0]
@@ -574,6 +588,11 @@ def _options(brick, shard, compression, labels, memory, overwrite, spacing, orig
             raise ValueError(f"{what}: expected three values (z, y, x), got {len(v)}")
         if kind is int and any(x < 1 for x in v):
             raise ValueError(f"{what}: expected sizes of at least 1 voxel, got {v}")
+        # (Said here in the order given: the converter names x, y, z.)
+        if what == "spacing" and not all(np.isfinite(x) and x > 0 for x in v):
+            raise ValueError(f"spacing: expected positive numbers (z, y, x), got {v}")
+        if what == "origin" and not all(np.isfinite(x) for x in v):
+            raise ValueError(f"origin: expected finite numbers (z, y, x), got {v}")
         return v
 
     memory = _bytes(memory, "memory")

@@ -98,6 +98,12 @@ impl NativeStore {
 
 #[pymethods]
 impl NativeStore {
+    /// An OSError when the store was replaced or removed since it was
+    /// opened (what reads refuse).
+    fn check(&self) -> PyResult<()> {
+        self.check_same()
+    }
+
     #[new]
     #[pyo3(signature = (path, cache_bytes, chunk_bytes, brick, threads))]
     fn new(

@@ -54,8 +54,14 @@ def test_store_slicing_and_metadata(tmp_path):
     assert s.channels == 2 and s.shape == (2, 20, 33, 40)
     assert s.scales[0][-3:] == [3.0, 0.5, 0.5]
     np.testing.assert_array_equal(s[1, 2:9, :, 5:17], a[1, 2:9, :, 5:17])
-    np.testing.assert_array_equal(s[4], a[0, 4])
-    np.testing.assert_array_equal(s[5, -3:, 7], a[0, 5, -3:, 7])
+    # Several channels: the channel first, as `shape` says. Fewer indices
+    # read channel 0 at z where NumPy would take a channel (s[1] was z 1
+    # of channel 0): refused, with the way to say it.
+    for key in (np.s_[1], np.s_[5, -3:, 7], np.s_[..., 0]):
+        with pytest.raises(IndexError, match=r"store\[c, z, y, x\]"):
+            s[key]
+    np.testing.assert_array_equal(s[1, :, :, :], a[1])
+    np.testing.assert_array_equal(s[0, 5, -3:, 7], a[0, 5, -3:, 7])
     np.testing.assert_array_equal(s.read(channel=1, region=np.s_[..., 3]), a[1, :, :, 3])
     for c in range(2):
         np.testing.assert_array_equal(s.read(0, c), zarr_level(dst, 0, c)[...])
@@ -109,8 +115,36 @@ def test_a_store_closes_and_pickles_by_reopening(tmp_path):
         assert got == int(v[0].astype(np.int64).sum())
     with pytest.raises(ValueError, match="the store is closed"):
         s.read()
+    # Rendering a closed handle is refused as its reads are.
+    with pytest.raises(ValueError, match="the store is closed"):
+        brickyard.render(s, size=16, backend="cpu")
     assert (t.read(region=np.s_[0:1, 0:1, 0:2]) == v[0:1, 0:1, 0:2]).all()
 
 
 def _first_plane_sum(s):
     return int(s.read(region=np.s_[0:1, :, :]).astype(np.int64).sum())
+
+
+def test_a_replaced_store_is_refused_by_render_as_by_reads(tmp_path):
+    # The handle's reads refuse a store replaced since it was opened;
+    # `render` took its path and drew whatever was there now.
+    p = tmp_path / "r.zarr"
+    brickyard.from_numpy(volume((24, 24, 24), "uint8", seed=1), p, progress=False)
+    s = brickyard.open(p)
+    assert brickyard.render(s, size=16, backend="cpu").shape == (16, 16, 4)
+    import shutil
+    shutil.rmtree(p)
+    brickyard.from_numpy(volume((30, 20, 10), "uint16", seed=2), p, progress=False)
+    with pytest.raises(OSError, match="replaced"):
+        s.read()
+    with pytest.raises(OSError, match="replaced"):
+        brickyard.render(s, size=16, backend="cpu")
+    # A path, or a handle opened again, draws the new store.
+    assert brickyard.render(brickyard.open(p), size=16, backend="cpu").shape == (16, 16, 4)
+
+
+def test_spacing_errors_name_the_values_as_given():
+    with pytest.raises(ValueError, match=r"spacing: expected positive numbers \(z, y, x\), got \(3\.0, 2\.0, -1\.0\)"):
+        brickyard.from_numpy(np.zeros((8, 8, 8), np.uint8), "never.zarr", spacing=(3, 2, -1), progress=False)
+    with pytest.raises(ValueError, match="origin: expected finite"):
+        brickyard.from_numpy(np.zeros((8, 8, 8), np.uint8), "never.zarr", origin=(0, float("nan"), 0), progress=False)
