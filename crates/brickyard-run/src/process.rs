@@ -394,6 +394,37 @@ pub fn run(
                 caller.overwrite
             );
         }
+        // Its folder must take a new file (read-only, a file system that
+        // takes none): found now, not after the whole computation. A file
+        // made beside it and removed, as the statistics will be written.
+        {
+            let dir = p
+                .parent()
+                .filter(|d| !d.as_os_str().is_empty())
+                .unwrap_or(std::path::Path::new("."));
+            let name = p.file_name().unwrap_or_default().to_string_lossy();
+            let mut k = 0;
+            loop {
+                let probe = dir.join(format!(".{name}.{}.{k}.probe", std::process::id()));
+                match std::fs::OpenOptions::new()
+                    .write(true)
+                    .create_new(true)
+                    .open(&probe)
+                {
+                    Ok(_) => {
+                        let _ = std::fs::remove_file(&probe);
+                        break;
+                    }
+                    Err(e) if e.kind() == std::io::ErrorKind::AlreadyExists && k < 100 => k += 1,
+                    Err(e) => bail!(
+                        "{f}stats: {}: cannot create a file in its folder {} ({e}); expected a \
+                         folder where files can be written",
+                        p.display(),
+                        dir.display()
+                    ),
+                }
+            }
+        }
     }
     let store = &c.store;
     if brickyard_store::storage::is_remote(store) {

@@ -233,6 +233,13 @@ pub(crate) fn install_ctrl_c() {
     unsafe {
         libc::signal(libc::SIGINT, on_sigint as *const () as libc::sighandler_t);
         libc::signal(libc::SIGTERM, on_sigint as *const () as libc::sighandler_t);
+        // A closed terminal (SIGHUP) stops work the same way: cleaned up,
+        // nothing half-written left behind. Unless started ignoring it
+        // (nohup): then it goes on.
+        let hup = libc::signal(libc::SIGHUP, on_sigint as *const () as libc::sighandler_t);
+        if hup == libc::SIG_IGN {
+            libc::signal(libc::SIGHUP, libc::SIG_IGN);
+        }
     }
 }
 

@@ -19,7 +19,11 @@ fn average_eta(st: &ProgressState, w: &mut dyn std::fmt::Write) {
     match (average_rate(st), st.len()) {
         (Some(r), Some(len)) => {
             let left = len.saturating_sub(st.pos()) as f64 / r;
-            let _ = write!(w, "{:#}", HumanDuration(std::time::Duration::from_secs_f64(left)));
+            let _ = write!(
+                w,
+                "{:#}",
+                HumanDuration(std::time::Duration::from_secs_f64(left))
+            );
         }
         _ => {
             let _ = write!(w, "…");
@@ -32,18 +36,24 @@ fn style(template: &str) -> ProgressStyle {
         .unwrap()
         .progress_chars("=> ")
         .with_key("avg_eta", average_eta)
-        .with_key("avg_bytes_per_sec", |st: &ProgressState, w: &mut dyn std::fmt::Write| {
-            let _ = match average_rate(st) {
-                Some(r) => write!(w, "{}/s", BinaryBytes(r as u64)),
-                None => write!(w, "…"),
-            };
-        })
-        .with_key("avg_per_sec", |st: &ProgressState, w: &mut dyn std::fmt::Write| {
-            let _ = match average_rate(st) {
-                Some(r) => write!(w, "{r:.1}/s"),
-                None => write!(w, "…"),
-            };
-        })
+        .with_key(
+            "avg_bytes_per_sec",
+            |st: &ProgressState, w: &mut dyn std::fmt::Write| {
+                let _ = match average_rate(st) {
+                    Some(r) => write!(w, "{}/s", BinaryBytes(r as u64)),
+                    None => write!(w, "…"),
+                };
+            },
+        )
+        .with_key(
+            "avg_per_sec",
+            |st: &ProgressState, w: &mut dyn std::fmt::Write| {
+                let _ = match average_rate(st) {
+                    Some(r) => write!(w, "{r:.1}/s"),
+                    None => write!(w, "…"),
+                };
+            },
+        )
 }
 
 pub struct Bar {

@@ -466,6 +466,17 @@ pub fn run(c: ServeCmd) -> Result<()> {
     for n in &site.notes {
         eprintln!("{n}");
     }
+    // A store an interrupted conversion left is served as it is, but not
+    // silently: its readers may find levels or chunks missing.
+    for (n, root) in served_stores(&site) {
+        if let Some(why) = incomplete(&root) {
+            eprintln!(
+                "warning: /{n}/ ({}) is INCOMPLETE ({why}): the conversion that wrote it did \
+                 not finish, so it may lack levels or chunks",
+                root.display()
+            );
+        }
+    }
     if let Some(t) = site.token.as_ref().filter(|t| t.len() < 16) {
         eprintln!(
             "note: a token of {} characters is easy to guess; use at least 16 (e.g. `openssl rand -hex 16`)",
@@ -488,6 +499,22 @@ pub fn run(c: ServeCmd) -> Result<()> {
     accept_loop(listener, site, c.workers);
     eprintln!("serve: stopped");
     Ok(())
+}
+
+/// Why the store at `root` is incomplete, if it is, as `brickyard info`
+/// tells it: its root group's brickyard attributes lack `complete: true`,
+/// or its folder is a `.partial` one.
+fn incomplete(root: &Path) -> Option<&'static str> {
+    if let Ok(Some((_, attrs))) = brickyard_store::omezarr::read_group_attributes(root) {
+        if let Some(b) = attrs.get(brickyard_store::omezarr::ATTR) {
+            if b.get("complete").and_then(serde_json::Value::as_bool) != Some(true) {
+                return Some("its root metadata says complete: false");
+            }
+        }
+    }
+    root.to_string_lossy()
+        .ends_with(".partial")
+        .then_some("a .partial folder")
 }
 
 /// Every store served, by its URL path (`name`, or `folder/store` in a

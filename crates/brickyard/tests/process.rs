@@ -1671,3 +1671,43 @@ fn labelling_a_noisy_mask_keeps_to_the_memory_budget_or_says_why_not() {
     assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
     assert!(out.contains(" labels)"), "{out}");
 }
+
+/// A statistics file whose folder takes no new file (read-only even to
+/// root: /sys, /proc) is refused before any work, naming it, and leaves
+/// nothing in the store (it was found only after the whole computation,
+/// leaving `labels/.NAME.new` behind).
+#[test]
+fn a_statistics_folder_that_takes_no_file_is_refused_before_any_work() {
+    let d = tempfile::tempdir().unwrap();
+    let store = make_store(d.path(), "20");
+    let before = snapshot(&store);
+    let mut tried = 0;
+    for dir in ["/sys", "/proc", "/proc/self"] {
+        if !Path::new(dir).is_dir() {
+            continue;
+        }
+        tried += 1;
+        let stats = format!("{dir}/cells.csv");
+        let o = run(&[
+            "process",
+            s(&store),
+            "threshold(1)|label(6)",
+            "--out",
+            "cells",
+            "--stats",
+            &stats,
+            "--quiet",
+        ]);
+        let e = String::from_utf8_lossy(&o.stderr);
+        assert_eq!(o.status.code(), Some(1), "{stats}: {e}");
+        assert!(!e.contains("panicked"), "{e}");
+        for want in ["--stats", &stats, "cannot create a file in its folder"] {
+            assert!(e.contains(want), "{e} should mention {want:?}");
+        }
+        // Before any work: no note about the mask, nothing written.
+        assert!(!e.contains("mask"), "the work was done first: {e}");
+        assert_eq!(snapshot(&store), before, "{stats}: the store changed");
+        assert!(!store.join("labels").exists(), "{stats}");
+    }
+    assert!(tried > 0, "no /sys or /proc to test with");
+}

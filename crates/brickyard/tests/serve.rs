@@ -1499,3 +1499,59 @@ fn damaged_chunk_paths_are_errors_not_absent_chunks() {
         assert_eq!(code, want, "{path}");
     }
 }
+
+/// A store an interrupted conversion left (brickyard's `complete: false`
+/// in its root zarr.json), given or found in a served folder, is still
+/// served, but the start warns of it on stderr, naming it; a complete
+/// store and a plain Zarr group get no warning.
+#[test]
+fn incomplete_stores_are_served_with_a_warning() {
+    let d = tempfile::tempdir().unwrap();
+    let group = |dir: &Path, attrs: &str| {
+        std::fs::create_dir_all(dir).unwrap();
+        std::fs::write(
+            dir.join("zarr.json"),
+            format!(r#"{{"zarr_format":3,"node_type":"group","attributes":{attrs}}}"#),
+        )
+        .unwrap();
+    };
+    let folder = d.path().join("st");
+    group(
+        &folder.join("done.ome.zarr"),
+        r#"{"brickyard":{"complete":true}}"#,
+    );
+    group(
+        &folder.join("half.ome.zarr"),
+        r#"{"brickyard":{"complete":false}}"#,
+    );
+    group(&folder.join("plain.zarr"), "{}");
+    let partial = d.path().join("x.ome.zarr.partial");
+    group(&partial, r#"{"brickyard":{"version":1,"complete":false}}"#);
+    let sv = serve(&[&folder, &partial], &["--quiet"]);
+    // Warnings come in URL order: the last one says the listing is done.
+    let until = Instant::now() + Duration::from_secs(60);
+    while !sv.log.lock().unwrap().contains("/x.ome.zarr.partial/ (") && Instant::now() < until {
+        std::thread::sleep(Duration::from_millis(20));
+    }
+    let log = sv.log.lock().unwrap().clone();
+    let warnings: Vec<&str> = log.lines().filter(|l| l.starts_with("warning:")).collect();
+    assert_eq!(warnings.len(), 2, "{log}");
+    for (w, (url, path)) in warnings.iter().zip([
+        ("/st/half.ome.zarr/", folder.join("half.ome.zarr")),
+        ("/x.ome.zarr.partial/", partial.clone()),
+    ]) {
+        let path = path.canonicalize().unwrap();
+        assert!(
+            w.contains(url) && w.contains(s(&path)) && w.contains("INCOMPLETE"),
+            "{w}"
+        );
+    }
+    // Served all the same.
+    for p in [
+        "/st/half.ome.zarr/zarr.json",
+        "/x.ome.zarr.partial/zarr.json",
+    ] {
+        let (status, _, _) = http(sv.port, "GET", p, &[]);
+        assert_eq!(status, 200, "{p}");
+    }
+}

@@ -233,12 +233,12 @@ pub(crate) fn read_full_at(file: &File, buf: &mut [u8], offset: u64) -> io::Resu
     Ok(done)
 }
 
-/// The message for a file that ends at byte `at` where `need` bytes were
-/// there when it was opened.
+/// The message for a file, checked large enough when opened, that ends at
+/// byte `at` where the data needs `need` bytes.
 pub(crate) fn ends_early(at: u64, need: u64) -> String {
     format!(
-        "the file ends early, at byte {at}; expected {need} bytes (its size when opened): \
-         it changed while being read, or is truncated"
+        "the file ends early: no data at byte {at} of the {need} expected (they were there \
+         when it was opened): it changed while being read, or is truncated"
     )
 }
 

@@ -6,6 +6,7 @@ use super::fields::Plan;
 use super::{Encoding, NrrdSource};
 use crate::error::{IoContext, Result, StoreError};
 use crate::import::flip::Flip;
+use crate::import::raw::{ends_early, read_full_at};
 use crate::import::{swap_bytes_in_place, MAX_DEFLATE_RATIO};
 use crate::source::{check_region, SourceMeta, VolumeSource};
 use flate2::read::MultiGzDecoder;
@@ -461,8 +462,9 @@ impl NrrdSource {
             let n = ((self.per_file - local) as usize).min(buf.len() - done);
             let df = &self.files[k];
             let piece = &mut buf[done..done + n];
+            let at = df.start + local;
             let res = match &self.raw_file {
-                Some(f) => f.read_exact_at(piece, df.start + local),
+                Some(f) => read_full_at(f, piece, at),
                 None => {
                     let h = match handle.take() {
                         Some(h) if h.0 == k => handle.insert(h),
@@ -472,16 +474,29 @@ impl NrrdSource {
                             handle.insert((k, f))
                         }
                     };
-                    h.1.read_exact_at(piece, df.start + local)
+                    read_full_at(&h.1, piece, at)
                 }
             };
-            res.map_err(|e| {
+            let got = res.map_err(|e| {
                 if self.attached {
                     StoreError::io(&self.meta.path, e)
                 } else {
                     data_file_error(&self.meta.path, &df.path, e)
                 }
             })?;
+            if got < n {
+                // The size was checked at open: the file shrank since.
+                let msg = ends_early(at + got as u64, df.start + self.per_file);
+                return Err(if self.attached {
+                    StoreError::invalid(&self.meta.path, "data", msg)
+                } else {
+                    StoreError::invalid(
+                        &df.path,
+                        "data",
+                        format!("{msg} (data file named in {})", self.meta.path.display()),
+                    )
+                });
+            }
             done += n;
             off += n as u64;
         }
