@@ -88,7 +88,17 @@ fn sighup_stops_work_and_leaves_nothing() {
     let out = d.path().join("hup.ome.zarr");
     let partial = d.path().join("hup.ome.zarr.partial");
     // 640³ on one thread: a minute or so of work if the signal is missed.
-    let child = signal_once_started(generate(&out, 640), &partial, libc::SIGHUP);
+    let mut cmd = generate(&out, 640);
+    // As started from a terminal: SIGHUP at its default (a test run under
+    // `nohup` hands its children SIGHUP ignored, which they keep).
+    // SAFETY: signal(2) is async-signal-safe.
+    unsafe {
+        cmd.pre_exec(|| {
+            libc::signal(libc::SIGHUP, libc::SIG_DFL);
+            Ok(())
+        });
+    }
+    let child = signal_once_started(cmd, &partial, libc::SIGHUP);
     let (st, err) = finish(child);
     assert!(!st.success(), "a hung-up run must fail: {st} {err}");
     assert_eq!(
