@@ -46,6 +46,36 @@ pub fn out_error() -> Option<String> {
     OUT_ERROR.get().cloned()
 }
 
+/// Whether a new file can be made in the folder of `file` (read-only
+/// mounts and file systems that take none are found before the work, not
+/// after it): a file made there and removed. The folder and the error
+/// where not.
+pub fn can_create_beside(
+    file: &std::path::Path,
+) -> Result<(), (std::path::PathBuf, std::io::Error)> {
+    let dir = file
+        .parent()
+        .filter(|d| !d.as_os_str().is_empty())
+        .unwrap_or(std::path::Path::new("."));
+    let name = file.file_name().unwrap_or_default().to_string_lossy();
+    for k in 0..100 {
+        let probe = dir.join(format!(".{name}.{}.{k}.probe", std::process::id()));
+        match std::fs::OpenOptions::new()
+            .write(true)
+            .create_new(true)
+            .open(&probe)
+        {
+            Ok(_) => {
+                let _ = std::fs::remove_file(&probe);
+                return Ok(());
+            }
+            Err(e) if e.kind() == std::io::ErrorKind::AlreadyExists => continue,
+            Err(e) => return Err((dir.to_path_buf(), e)),
+        }
+    }
+    Ok(())
+}
+
 pub mod backend;
 pub mod derive;
 pub mod frames;

@@ -254,18 +254,18 @@ fn labels_list(dir: &Path) -> Result<(Value, Vec<String>)> {
     Ok((j, list))
 }
 
-/// Add `name` to the `labels` group's list in `dir`: read anew and written
-/// under the group's lock, so that jobs publishing other names at the same
-/// time keep each other's entries.
-fn add_label(dir: &Path, name: &str) -> Result<()> {
+/// Change the `labels` group's list in `dir` with `edit` (which says
+/// whether it changed it): read anew and written under the group's lock,
+/// so that jobs publishing other names at the same time keep each other's
+/// entries.
+fn edit_labels(dir: &Path, edit: impl FnOnce(&mut Vec<String>) -> bool) -> Result<()> {
     let _lock = PidLock::wait(
         &dir.join(".zarr.json.lock"),
         "updating the list of label images",
         std::time::Duration::from_secs(60),
     )?;
     let (mut j, mut list) = labels_list(dir)?;
-    if !list.iter().any(|n| n == name) {
-        list.push(name.to_string());
+    if edit(&mut list) {
         j["attributes"]["ome"]["version"] = json!("0.5");
         j["attributes"]["ome"]["labels"] = json!(list);
         write_json(&dir.join("zarr.json"), &j)?;
@@ -273,21 +273,25 @@ fn add_label(dir: &Path, name: &str) -> Result<()> {
     Ok(())
 }
 
+/// Add `name` to the `labels` group's list in `dir`.
+fn add_label(dir: &Path, name: &str) -> Result<()> {
+    edit_labels(dir, |list| {
+        let new = !list.iter().any(|n| n == name);
+        if new {
+            list.push(name.to_string());
+        }
+        new
+    })
+}
+
 /// Take `name` off the `labels` group's list in `dir` (a result that could
 /// not be put in place after it was named).
 fn remove_label(dir: &Path, name: &str) -> Result<()> {
-    let _lock = PidLock::wait(
-        &dir.join(".zarr.json.lock"),
-        "updating the list of label images",
-        std::time::Duration::from_secs(60),
-    )?;
-    let (mut j, mut list) = labels_list(dir)?;
-    if list.iter().any(|n| n == name) {
+    edit_labels(dir, |list| {
+        let had = list.iter().any(|n| n == name);
         list.retain(|n| n != name);
-        j["attributes"]["ome"]["labels"] = json!(list);
-        write_json(&dir.join("zarr.json"), &j)?;
-    }
-    Ok(())
+        had
+    })
 }
 
 /// The `labels` group `output` lies in when it is `IMAGE/labels/NAME` of
@@ -395,35 +399,14 @@ pub fn run(
             );
         }
         // Its folder must take a new file (read-only, a file system that
-        // takes none): found now, not after the whole computation. A file
-        // made beside it and removed, as the statistics will be written.
-        {
-            let dir = p
-                .parent()
-                .filter(|d| !d.as_os_str().is_empty())
-                .unwrap_or(std::path::Path::new("."));
-            let name = p.file_name().unwrap_or_default().to_string_lossy();
-            let mut k = 0;
-            loop {
-                let probe = dir.join(format!(".{name}.{}.{k}.probe", std::process::id()));
-                match std::fs::OpenOptions::new()
-                    .write(true)
-                    .create_new(true)
-                    .open(&probe)
-                {
-                    Ok(_) => {
-                        let _ = std::fs::remove_file(&probe);
-                        break;
-                    }
-                    Err(e) if e.kind() == std::io::ErrorKind::AlreadyExists && k < 100 => k += 1,
-                    Err(e) => bail!(
-                        "{f}stats: {}: cannot create a file in its folder {} ({e}); expected a \
-                         folder where files can be written",
-                        p.display(),
-                        dir.display()
-                    ),
-                }
-            }
+        // takes none): found now, not after the whole computation.
+        if let Err((dir, e)) = crate::can_create_beside(p) {
+            bail!(
+                "{f}stats: {}: cannot create a file in its folder {} ({e}); expected a folder \
+                 where files can be written",
+                p.display(),
+                dir.display()
+            );
         }
     }
     let store = &c.store;

@@ -908,25 +908,12 @@ fn run_one(
         if file.is_dir() {
             bail!("{}: cannot write {what}: it is a folder", file.display());
         }
-        let dir = file
-            .parent()
-            .filter(|p| !p.as_os_str().is_empty())
-            .unwrap_or(std::path::Path::new("."));
-        let probe = dir.join(format!(".brickyard-write-{}", std::process::id()));
-        match std::fs::OpenOptions::new()
-            .write(true)
-            .create_new(true)
-            .open(&probe)
-        {
-            Ok(_) => {
-                let _ = std::fs::remove_file(&probe);
-            }
-            Err(e) if e.kind() != std::io::ErrorKind::AlreadyExists => bail!(
+        if let Err((dir, e)) = crate::can_create_beside(file) {
+            bail!(
                 "{}: cannot write {what}: cannot create a file in {} ({e})",
                 file.display(),
                 dir.display()
-            ),
-            Err(_) => {}
+            );
         }
         if file.exists() {
             if let Err(e) = std::fs::OpenOptions::new().append(true).open(file) {
