@@ -711,22 +711,14 @@ pub fn run(
             return Err(cleanup(StoreError::Interrupted.into()));
         }
         if let (Some(p), Some(is_json)) = (&c.stats, stats_fmt) {
-            // Whole or not at all: written beside it, then renamed.
-            let tmp = p.with_file_name(format!(
-                ".{}.{}.tmp",
-                p.file_name().unwrap_or_default().to_string_lossy(),
-                std::process::id()
-            ));
+            // Whole or not at all (written beside it, then renamed), as
+            // the images `render` writes.
             let write: &dyn Fn(&mut dyn std::io::Write) -> std::io::Result<()> = if is_json {
                 &|w| write_stats_json(w, lab, &extra)
             } else {
                 &|w| write_stats_csv(w, &lab.stats)
             };
-            to(tmp.clone(), write)
-                .and_then(|_| std::fs::rename(&tmp, p))
-                .inspect_err(|_| {
-                    let _ = std::fs::remove_file(&tmp);
-                })
+            brickyard_render::image::write_whole(p, write)
                 .with_context(|| format!("{}: cannot write", p.display()))?;
         }
     }

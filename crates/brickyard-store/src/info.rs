@@ -402,49 +402,41 @@ fn child_images(path: &Path) -> Vec<(String, String)> {
         .collect()
 }
 
+/// The names `labels/zarr.json` lists (OME 0.5 `ome.labels`, or 0.4
+/// `labels`); `None` where there is no such list.
+fn named_labels(path: &Path) -> Option<Vec<String>> {
+    let j = read_json(&path.join("labels/zarr.json")).ok()?;
+    let a = j
+        .pointer("/attributes/ome/labels")
+        .or_else(|| j.pointer("/attributes/labels"))?
+        .as_array()?;
+    Some(
+        a.iter()
+            .filter_map(Value::as_str)
+            .map(str::to_string)
+            .collect(),
+    )
+}
+
 /// The images under `labels/` and `derived/` (what `brickyard process`
 /// writes), and the leftovers of interrupted jobs as problems.
 fn inner_images(path: &Path, problems: &mut Vec<String>) -> Vec<(String, String)> {
     let mut out = vec![];
     for group in ["labels", "derived"] {
+        // The label images the labels group names (`None`: no list).
+        let listed = (group == "labels").then(|| named_labels(path)).flatten();
         let mut names: Vec<String> = if storage::is_remote(path) {
             // Not listable: the label images the labels group names.
-            if group != "labels" {
-                continue;
+            match &listed {
+                Some(l) => l.clone(),
+                None => continue,
             }
-            let Ok(j) = read_json(&path.join("labels/zarr.json")) else {
-                continue;
-            };
-            j.pointer("/attributes/ome/labels")
-                .or_else(|| j.pointer("/attributes/labels"))
-                .and_then(Value::as_array)
-                .map(|a| {
-                    a.iter()
-                        .filter_map(Value::as_str)
-                        .map(str::to_string)
-                        .collect()
-                })
-                .unwrap_or_default()
         } else {
             group_folders(path, group)
         };
         names.sort();
         // Label images the labels group does not name: a job that stopped
         // between putting the image in place and naming it (a full disk).
-        let listed: Option<Vec<String>> = (group == "labels" && !storage::is_remote(path))
-            .then(|| {
-                let j = read_json(&path.join("labels/zarr.json")).ok()?;
-                let a = j
-                    .pointer("/attributes/ome/labels")
-                    .or_else(|| j.pointer("/attributes/labels"))?
-                    .as_array()?
-                    .iter()
-                    .filter_map(Value::as_str)
-                    .map(str::to_string)
-                    .collect();
-                Some(a)
-            })
-            .flatten();
         for name in names {
             let rel = format!("{group}/{name}");
             if !name.starts_with('.') && listed.as_ref().is_some_and(|l| !l.contains(&name)) {
