@@ -166,3 +166,48 @@ mod tests {
         assert_eq!(p.levels.len(), 1);
     }
 }
+
+/// Why a store is incomplete, if it is: the one rule that `info`, the
+/// readers (native and web) and `serve` share. A store is incomplete when
+/// its folder is a `.partial` one (a conversion still writing, or killed),
+/// or when its root group's `brickyard` attributes (`brickyard`, given as
+/// found) do not say `complete: true`: the writer sets `false` first and
+/// `true` only once every chunk is in place, so a missing or non-boolean
+/// field is not taken as complete either. A store without `brickyard`
+/// attributes (another writer's) is taken as complete.
+pub fn incomplete_reason(
+    store: &str,
+    brickyard: Option<&serde_json::Value>,
+) -> Option<&'static str> {
+    if store.trim_end_matches('/').ends_with(".partial") {
+        return Some("a conversion still writing it, or interrupted (its folder ends in .partial)");
+    }
+    match brickyard.map(|b| b.get("complete")) {
+        None => None,
+        Some(Some(serde_json::Value::Bool(true))) => None,
+        Some(Some(serde_json::Value::Bool(false))) => {
+            Some("an interrupted conversion (its root metadata says complete: false)")
+        }
+        Some(_) => Some("its root metadata's brickyard attributes do not say complete: true"),
+    }
+}
+
+#[cfg(test)]
+mod incomplete_tests {
+    use super::incomplete_reason;
+    use serde_json::json;
+
+    #[test]
+    fn one_rule_for_every_reading_of_complete() {
+        assert_eq!(incomplete_reason("a.zarr", None), None);
+        assert_eq!(
+            incomplete_reason("a.zarr", Some(&json!({"complete": true}))),
+            None
+        );
+        assert!(incomplete_reason("a.zarr", Some(&json!({"complete": false}))).is_some());
+        assert!(incomplete_reason("a.zarr", Some(&json!({"version": 1}))).is_some());
+        assert!(incomplete_reason("a.zarr", Some(&json!({"complete": "yes"}))).is_some());
+        assert!(incomplete_reason("a.zarr.partial", None).is_some());
+        assert!(incomplete_reason("a.zarr.partial/", Some(&json!({"complete": true}))).is_some());
+    }
+}

@@ -428,9 +428,9 @@ pub fn run(
         );
     }
     // An interrupted conversion's store is refused, as `render` does.
-    if brickyard_store::info::inspect(store)?.complete == Some(false) {
+    if let Some(why) = brickyard_store::info::inspect(store)?.incomplete {
         bail!(
-            "{}: the store is incomplete (an interrupted conversion); convert the volume again with {}",
+            "{}: the store is incomplete: {why}; convert the volume again with {}",
             store.display(),
             caller.convert
         );

@@ -972,11 +972,8 @@ fn run_one(
         say_err!(silent, "{}", auto_takes_cpu());
     }
     let info = inspect(&c.store)?;
-    if info.complete == Some(false) {
-        bail!(
-            "{}: the store is incomplete (an interrupted conversion)",
-            c.store.display()
-        );
+    if let Some(why) = info.incomplete {
+        bail!("{}: the store is incomplete: {why}", c.store.display());
     }
     // A label image shows its labels unless --tf says otherwise.
     let tf_name = match c.tf.as_deref() {

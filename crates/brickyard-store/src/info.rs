@@ -56,6 +56,10 @@ pub struct StoreInfo {
     pub ome_version: Option<String>,
     /// `Some(false)` when the store is an unfinished brickyard conversion.
     pub complete: Option<bool>,
+    /// Why it is incomplete, where it is
+    /// ([`incomplete_reason`](brickyard_core::pyramid::incomplete_reason)).
+    #[serde(skip)]
+    pub incomplete: Option<&'static str>,
     pub axes: Vec<String>,
     pub units: Vec<Option<String>>,
     pub labels: bool,
@@ -273,6 +277,7 @@ pub fn inspect(path: &Path) -> Result<StoreInfo> {
         zarr_format: 3,
         ome_version: None,
         complete: None,
+        incomplete: None,
         axes: vec![],
         units: vec![],
         labels: false,
@@ -291,7 +296,6 @@ pub fn inspect(path: &Path) -> Result<StoreInfo> {
             info.axes = m.axes.iter().map(|a| a.name.clone()).collect();
             info.units = m.axes.iter().map(|a| a.unit.clone()).collect();
             if let Some(b) = &m.brickyard {
-                info.complete = Some(b.get("complete").and_then(Value::as_bool).unwrap_or(false));
                 info.labels = b.get("labels").and_then(Value::as_bool).unwrap_or(false);
                 info.source_notes = b
                     .get("source_notes")
@@ -329,8 +333,14 @@ pub fn inspect(path: &Path) -> Result<StoreInfo> {
             vec![(String::new(), None, None)]
         }
     };
-    if path.to_string_lossy().ends_with(".partial") {
+    // The one rule shared with the readers and `serve`; a store without
+    // brickyard attributes (another writer's) says nothing either way.
+    let by = ms.as_ref().and_then(|m| m.brickyard.as_ref());
+    info.incomplete = brickyard_core::pyramid::incomplete_reason(&path.to_string_lossy(), by);
+    if info.incomplete.is_some() {
         info.complete = Some(false);
+    } else if by.is_some() {
+        info.complete = Some(true);
     }
     for (k, (p, scale, translation)) in datasets.into_iter().enumerate() {
         let dir = if p.is_empty() {
@@ -363,8 +373,10 @@ pub fn inspect(path: &Path) -> Result<StoreInfo> {
             Err(e) => problems.push(format!("level {k}: {e}")),
         }
     }
-    if info.complete == Some(false) {
-        problems.push("INCOMPLETE: the conversion that wrote this store did not finish".into());
+    if let Some(why) = info.incomplete {
+        problems.push(format!(
+            "INCOMPLETE: the conversion that wrote this store did not finish: {why}"
+        ));
     }
     info.inner_images = inner_images(path, &mut problems);
     info.problems = problems;

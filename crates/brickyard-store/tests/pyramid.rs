@@ -244,3 +244,60 @@ fn failures_leave_nothing_and_never_damage_existing_output() {
     assert!(!dir.path().join("c.ome.zarr").exists());
     assert!(!partial_path(&dir.path().join("c.ome.zarr")).exists());
 }
+
+/// `info` and the reader read a store's `complete` flag by one rule: where
+/// its brickyard attributes do not say `complete: true` (false, missing,
+/// not a boolean), `info` calls it incomplete and the reader refuses it,
+/// naming why; a store without brickyard attributes is read.
+#[test]
+fn info_and_the_reader_agree_on_what_is_incomplete() {
+    use brickyard_store::import::zarr;
+    use brickyard_store::info::inspect;
+    let dir = tempfile::tempdir().unwrap();
+    let out = dir.path().join("c.ome.zarr");
+    let src = make_source([9, 10, 11], 1, DType::U8, 4);
+    convert(
+        &src,
+        &out,
+        &opts(8, 8),
+        &NoProgress,
+        &AtomicBool::new(false),
+    )
+    .unwrap();
+    let root = out.join("zarr.json");
+    let original: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(&root).unwrap()).unwrap();
+    assert_eq!(original["attributes"]["brickyard"]["complete"], true);
+    let cases: [(Option<serde_json::Value>, bool); 5] = [
+        (Some(serde_json::json!(true)), true),
+        (Some(serde_json::json!(false)), false),
+        (None, false),
+        (Some(serde_json::json!("true")), false),
+        (Some(serde_json::json!(1)), false),
+    ];
+    for (flag, complete) in cases {
+        let mut j = original.clone();
+        let b = j["attributes"]["brickyard"].as_object_mut().unwrap();
+        match &flag {
+            Some(v) => b.insert("complete".into(), v.clone()),
+            None => b.remove("complete"),
+        };
+        std::fs::write(&root, serde_json::to_vec(&j).unwrap()).unwrap();
+        let info = inspect(&out).unwrap();
+        assert_eq!(info.complete, Some(complete), "{flag:?}");
+        match zarr::open(&out, 0) {
+            Ok(_) => assert!(complete, "{flag:?}: an incomplete store was read"),
+            Err(e) => {
+                assert!(!complete, "{flag:?}: {e}");
+                assert!(e.to_string().contains("the store is incomplete"), "{e}");
+            }
+        }
+    }
+    // Without brickyard attributes (another writer's store): read, and
+    // `info` says nothing of completeness.
+    let mut j = original.clone();
+    j["attributes"].as_object_mut().unwrap().remove("brickyard");
+    std::fs::write(&root, serde_json::to_vec(&j).unwrap()).unwrap();
+    assert_eq!(inspect(&out).unwrap().complete, None);
+    assert!(zarr::open(&out, 0).is_ok());
+}

@@ -249,8 +249,8 @@ impl WebSource {
                 }
             },
         };
-        if ms.incomplete {
-            return Err("zarr.json: brickyard.complete is false: the store is incomplete (an interrupted conversion)".into());
+        if let Some(why) = ms.incomplete {
+            return Err(format!("zarr.json: the store is incomplete: {why}"));
         }
         for p in &paths {
             let a = if ms.zarr_format == 3 {

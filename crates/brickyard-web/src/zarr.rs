@@ -151,8 +151,9 @@ pub struct Multiscale {
     /// The unit of the first space axis that names one.
     pub unit: Option<String>,
     pub channels: Vec<ChannelMeta>,
-    /// The store says it was not finished (brickyard's `complete: false`).
-    pub incomplete: bool,
+    /// Why the store is incomplete, if its brickyard attributes say so (the
+    /// rule the native readers share).
+    pub incomplete: Option<&'static str>,
     /// brickyard's per-brick statistics group, if any.
     pub stats: Option<String>,
     /// brickyard's statistics brick edge `[z, y, x]`.
@@ -607,7 +608,7 @@ pub fn parse_root(zarr_format: u8, text: &[u8]) -> Result<(Multiscale, Vec<Strin
         origin,
         unit,
         channels,
-        incomplete: by.and_then(|b| b.get("complete")).and_then(Value::as_bool) == Some(false),
+        incomplete: brickyard_core::pyramid::incomplete_reason("", by),
         stats: by
             .and_then(|b| b.get("stats"))
             .and_then(Value::as_str)

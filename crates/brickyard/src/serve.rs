@@ -501,20 +501,17 @@ pub fn run(c: ServeCmd) -> Result<()> {
     Ok(())
 }
 
-/// Why the store at `root` is incomplete, if it is, as `brickyard info`
-/// tells it: its root group's brickyard attributes lack `complete: true`,
-/// or its folder is a `.partial` one.
+/// Why the store at `root` is incomplete, if it is, by the rule `brickyard
+/// info` and the readers share.
 fn incomplete(root: &Path) -> Option<&'static str> {
-    if let Ok(Some((_, attrs))) = brickyard_store::omezarr::read_group_attributes(root) {
-        if let Some(b) = attrs.get(brickyard_store::omezarr::ATTR) {
-            if b.get("complete").and_then(serde_json::Value::as_bool) != Some(true) {
-                return Some("its root metadata says complete: false");
-            }
-        }
-    }
-    root.to_string_lossy()
-        .ends_with(".partial")
-        .then_some("a .partial folder")
+    let attrs = brickyard_store::omezarr::read_group_attributes(root)
+        .ok()
+        .flatten()
+        .map(|(_, a)| a);
+    let by = attrs
+        .as_ref()
+        .and_then(|a| a.get(brickyard_store::omezarr::ATTR));
+    brickyard_core::pyramid::incomplete_reason(&root.to_string_lossy(), by)
 }
 
 /// Every store served, by its URL path (`name`, or `folder/store` in a

@@ -1148,10 +1148,7 @@ fn an_interrupted_conversion_is_refused() {
         let o = run(&args);
         let e = String::from_utf8_lossy(&o.stderr);
         assert_eq!(o.status.code(), Some(1), "{args:?}: {e}");
-        assert!(
-            e.contains("the store is incomplete (an interrupted conversion)"),
-            "{args:?}: {e}"
-        );
+        assert!(e.contains("the store is incomplete: "), "{args:?}: {e}");
     }
     assert_eq!(snapshot(&partial), before, "the store was changed");
     assert!(!partial.join("labels").exists(), "labels were written");

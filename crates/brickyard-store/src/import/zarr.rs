@@ -229,23 +229,16 @@ pub fn open(path: &Path, level: usize) -> Result<ZarrSource> {
     })?;
     // An interrupted conversion's store (or its folder while it is
     // written): its missing chunks would read as the fill value.
-    let unfinished = ms
-        .brickyard
-        .as_ref()
-        .and_then(|b| b.get("complete"))
-        .and_then(Value::as_bool)
-        == Some(false);
-    if unfinished
-        || path
-            .to_string_lossy()
-            .trim_end_matches('/')
-            .ends_with(".partial")
+    if let Some(why) =
+        brickyard_core::pyramid::incomplete_reason(&path.to_string_lossy(), ms.brickyard.as_ref())
     {
         return Err(StoreError::invalid(
             path,
             "attributes.brickyard.complete",
-            "the store is incomplete (an interrupted conversion): its missing chunks would \
-             read as zeros; convert the volume again",
+            format!(
+                "the store is incomplete: {why}; its missing chunks would read as zeros; \
+                 convert the volume again"
+            ),
         ));
     }
     let ds = ms.datasets.get(level).ok_or_else(|| {

@@ -190,11 +190,8 @@ pub fn run(c: ViewCmd, demo_store: impl FnOnce() -> Result<PathBuf>) -> Result<i
         None => demo_store()?,
     };
     let info = inspect(&store)?;
-    if info.complete == Some(false) {
-        bail!(
-            "{}: the store is incomplete (an interrupted conversion)",
-            store.display()
-        );
+    if let Some(why) = info.incomplete {
+        bail!("{}: the store is incomplete: {why}", store.display());
     }
     // `--labels NAME`: checked before any window opens.
     let label_dir = match (&c.labels, c.label_opacity) {
