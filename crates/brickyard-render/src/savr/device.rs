@@ -82,14 +82,13 @@ impl DeviceAccumulation {
         4 + HEADER + target as u64 + b + b.div_ceil(16) + if normals { b } else { 0 }
     }
 
-    /// The largest per-pixel budget the device holds for `width × height`
-    /// pixels and `target` frames (with normals: shading): what one
+    /// The largest per-pixel budget the device holds for images `width`
+    /// pixels wide and `target` frames (with normals: shading): what one
     /// storage binding holds for one row of the image (the store is split
-    /// into bands of rows; `height` does not lower it). The memory the
+    /// into bands of rows, so the height does not lower it). The memory the
     /// whole store takes is the caller's to bound
     /// ([`budget_within`](Self::budget_within)).
-    pub fn max_budget(gpu: &Gpu, width: u32, height: u32, target: u32, normals: bool) -> u32 {
-        let _ = height;
+    pub fn max_budget(gpu: &Gpu, width: u32, target: u32, normals: bool) -> u32 {
         Self::budget_within(gpu.max_storage_binding(), width, 1, target, normals)
     }
 
@@ -116,7 +115,7 @@ impl DeviceAccumulation {
     /// [`max_budget`]: Self::max_budget
     pub fn new(gpu: &Gpu, width: u32, height: u32, target: u32, budget: usize) -> Self {
         let target = target.clamp(1, MAX_FRAMES);
-        let max = Self::max_budget(gpu, width, height, target, true);
+        let max = Self::max_budget(gpu, width, target, true);
         let budget = (budget.min(u32::MAX as usize) as u32).min(max).max(1);
         DeviceAccumulation {
             width,
@@ -176,8 +175,7 @@ impl DeviceAccumulation {
 
     /// Forget every kept sample (a new view): the store is let go, and
     /// the next frame makes one for its view (the budget as asked for).
-    pub fn restart(&mut self, gpu: &Gpu) {
-        let _ = gpu;
+    pub fn restart(&mut self) {
         self.bands.clear();
         self.budget = self.asked;
         self.normals = None;
