@@ -5,7 +5,7 @@
 
 use super::{Vec3, ViewerApp, N_VIEWS};
 use crate::view::worker::{Msg, Spec};
-use brickyard_core::camera::{add, dot, length, normalize, scale, sub, Camera};
+use brickyard_core::camera::{add, dot, length, normalize, scale, sub, Camera, Projection};
 use brickyard_core::views::Views;
 use brickyard_core::TransferFunction;
 use brickyard_render::cpu::Lod;
@@ -55,14 +55,39 @@ impl ViewerApp {
         vs.size
     }
 
+    /// The home camera for a 3D view of `size` pixels: the whole volume
+    /// in both its height and width ([`Camera::fit_image`]). The current
+    /// camera follows while it is still the home one (not moved, not
+    /// given).
+    pub(super) fn fit_home(&mut self, size: [u32; 2]) {
+        let home = Camera::fit_image(
+            self.ds.extent,
+            30.0,
+            20.0,
+            Projection::Perspective { fov_y_deg: 35.0 },
+            size[0],
+            size[1],
+        );
+        if home != self.home {
+            if self.cam == self.home {
+                self.cam = home;
+            }
+            self.home = home;
+        }
+    }
+
     pub(super) fn slice_camera(&self, v: usize, size: [u32; 2]) -> Camera {
         let n = self.plane_normal(v);
         let vs = &self.views[v];
         let e = self.ds.extent;
-        let height = e.iter().cloned().fold(0.0, f64::max) * 1.05 / vs.zoom;
+        // The three planes share one scale (a cube of the volume's longest
+        // side fits each view), in the view's height and, for a view
+        // taller than wide, its width too.
+        let aspect = size[0].max(1) as f64 / size[1].max(1) as f64;
+        let height =
+            e.iter().cloned().fold(0.0, f64::max) * 1.05 * (1.0 / aspect).max(1.0) / vs.zoom;
         let base = Camera::facing_plane(self.cursor, n, height);
         let b = base.basis();
-        let _ = size;
         let shift = add(scale(b.right, vs.pan[0]), scale(b.up, vs.pan[1]));
         // Centre the view on the volume's centre projected into the plane,
         // then pan.

@@ -525,6 +525,9 @@ impl ViewerApp {
         let px = [(rect.width() * ppp) as u32, (rect.height() * ppp) as u32]
             .map(|s| (s / 8 * 8).max(16));
         self.views[v].size = px;
+        if v == 0 {
+            self.fit_home(self.views[0].forced.unwrap_or(px));
+        }
         let painter = ui.painter_at(rect);
         painter.rect_filled(rect, 0.0, egui::Color32::BLACK);
         // The image keeps its aspect (a size fixed by a script may differ
