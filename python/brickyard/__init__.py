@@ -17,6 +17,7 @@ from __future__ import annotations
 import builtins
 import contextlib
 import json
+import difflib
 import os
 import re
 import sys
@@ -35,9 +36,12 @@ _BACKENDS = ("auto", "cpu", "gpu")
 _DTYPES = ("uint8", "int8", "uint16", "int16", "uint32", "int32", "float32", "float64")
 
 
-def _region(region: Any, shape: Sequence[int]) -> Tuple[Tuple[int, int, int], Tuple[int, int, int], Tuple[bool, bool, bool]]:
-    """A region (`np.s_[z0:z1, y0:y1, x0:x1]`, ints, or None) as lo, hi and
-    which axes an integer index drops."""
+def _region(region: Any, shape: Sequence[int]) -> Tuple[Tuple[int, int, int], Tuple[int, int, int], tuple]:
+    """A region (`np.s_[z0:z1:step, y0:y1, x0:x1]`, ints, or None) as the box
+    to read (lo, hi) and the index that then takes from that box what NumPy
+    would: every step (negative ones too), an integer's axis dropped.
+    Slices clip to the axis as NumPy's do; a slice that selects nothing
+    gives an empty box (lo == hi on that axis) and an empty array."""
     if region is None:
         region = ()
     if not isinstance(region, tuple):
@@ -49,7 +53,7 @@ def _region(region: Any, shape: Sequence[int]) -> Tuple[Tuple[int, int, int], Tu
     if len(region) > 3:
         raise IndexError(f"region: expected at most 3 axes (z, y, x), got {len(region)}")
     region = tuple(region) + (slice(None),) * (3 - len(region))
-    lo, hi, drop = [], [], []
+    lo, hi, take = [], [], []
     for axis, (r, n) in enumerate(zip(region, shape)):
         name = "zyx"[axis]
         if isinstance(r, (int, np.integer)) and not isinstance(r, bool):
@@ -60,21 +64,72 @@ def _region(region: Any, shape: Sequence[int]) -> Tuple[Tuple[int, int, int], Tu
                 raise IndexError(f"region: index {int(r)} is outside axis {name} of length {n}")
             lo.append(i)
             hi.append(i + 1)
-            drop.append(True)
+            take.append(0)
         elif isinstance(r, slice):
-            if r.step not in (None, 1):
-                raise ValueError(f"region: axis {name}: only step 1 is supported, got {r.step}")
-            a, b, _ = r.indices(n)
-            if b <= a:
-                raise IndexError(f"region: axis {name}: {r.start}:{r.stop} selects nothing of length {n}")
-            if (r.start is not None and not -n <= r.start <= n) or (r.stop is not None and not -n <= r.stop <= n):
-                raise IndexError(f"region: axis {name}: {r.start}:{r.stop} is outside length {n}")
-            lo.append(a)
-            hi.append(b)
-            drop.append(False)
+            for part in (r.start, r.stop, r.step):
+                if part is not None and (not isinstance(part, (int, np.integer)) or isinstance(part, bool)):
+                    raise TypeError(f"region: axis {name}: slice bounds and steps must be integers or None, "
+                                    f"got {part!r}")
+            if r.step is not None and int(r.step) == 0:
+                raise ValueError(f"region: axis {name}: slice step cannot be zero")
+            a, b, step = r.indices(n)
+            k = len(range(a, b, step))
+            if k == 0:
+                lo.append(0)
+                hi.append(0)
+                take.append(slice(None))
+            elif step > 0:
+                lo.append(a)
+                hi.append(a + (k - 1) * step + 1)
+                take.append(slice(None, None, step))
+            else:
+                # Read from the last index taken up to the first; the box is
+                # then walked backwards from its end.
+                lo.append(a + (k - 1) * step)
+                hi.append(a + 1)
+                take.append(slice(None, None, step))
         else:
             raise TypeError(f"region: axis {name}: expected an int or a slice, got {type(r).__name__}")
-    return (lo[0], lo[1], lo[2]), (hi[0], hi[1], hi[2]), (drop[0], drop[1], drop[2])
+    return (lo[0], lo[1], lo[2]), (hi[0], hi[1], hi[2]), tuple(take)
+
+
+def _indexed_shape(channels: int, zyx: Sequence[int]) -> tuple:
+    """The shape a store or level indexes by: `(z, y, x)` for one channel,
+    `(c, z, y, x)` for several."""
+    return tuple(zyx) if channels == 1 else (channels,) + tuple(zyx)
+
+
+def _index(store: "Store", level: int, key: Any) -> np.ndarray:
+    """`store[key]` at `level`, as NumPy indexes an array of the indexed
+    shape: for several channels the first axis is the channel (an integer,
+    negative from the end, or a slice: the channels taken are stacked)."""
+    if store.channels == 1:
+        return store.read(level, 0, key)
+    if not isinstance(key, tuple):
+        key = (key,)
+    if sum(k is Ellipsis for k in key) > 1:
+        raise IndexError("an index can only have a single ellipsis ('...')")
+    if any(k is Ellipsis for k in key):
+        i = next(j for j, k in enumerate(key) if k is Ellipsis)
+        key = key[:i] + (slice(None),) * (4 - (len(key) - 1)) + key[i + 1:]
+    if len(key) > 4:
+        raise IndexError(f"too many indices: {len(key)} for shape {_indexed_shape(store.channels, store.shapes[level])} "
+                         "(c, z, y, x)")
+    c, rest = (key[0] if key else slice(None)), key[1:]
+    if isinstance(c, slice):
+        for part in (c.start, c.stop, c.step):
+            if part is not None and (not isinstance(part, (int, np.integer)) or isinstance(part, bool)):
+                raise TypeError(f"channel: slice bounds and steps must be integers or None, got {part!r}")
+        if c.step is not None and int(c.step) == 0:
+            raise ValueError("channel: slice step cannot be zero")
+        chosen = range(*c.indices(store.channels))
+        if len(chosen) == 0:
+            # The shape NumPy gives, without reading anything.
+            one = _region(rest, store.shapes[level])
+            box = tuple(h - l for l, h in zip(one[0], one[1]))
+            return np.empty((0,) + np.empty(box, dtype=store.dtype)[one[2]].shape, dtype=store.dtype)
+        return np.stack([store.read(level, k, rest) for k in chosen])
+    return store.read(level, _channel_index(c, store.channels, "store"), rest)
 
 
 class Store:
@@ -136,8 +191,13 @@ class Store:
 
     @property
     def shape(self) -> tuple:
-        """`(c, z, y, x)` of level 0."""
-        return (self.channels,) + self.shapes[0]
+        """Level 0's shape as it indexes: `(z, y, x)` for a store of one
+        channel, `(c, z, y, x)` for several."""
+        return _indexed_shape(self.channels, self.shapes[0])
+
+    @property
+    def ndim(self) -> int:
+        return len(self.shape)
 
     @property
     def channels(self) -> int:
@@ -164,6 +224,13 @@ class Store:
     def units(self) -> list:
         return self._open().units
 
+    @property
+    def channel_names(self) -> list:
+        """One name per channel: the store's OME `omero` labels (as a
+        conversion from a named source or `from_numpy(channel_names=...)`
+        wrote them), else "channel i"."""
+        return self._open().channel_names
+
     def cache_stats(self) -> dict:
         """The host cache: bytes held, budget, hits, misses; bytes read from the store."""
         held, budget, hits, misses = self._open().cache_stats()
@@ -188,30 +255,30 @@ class Store:
             raise IndexError(f"level: {level} asked for but the store has {len(shapes)} level(s)")
         if not 0 <= channel < self._channels:
             raise IndexError(f"channel: {channel} asked for but the store has {self._channels} channel(s)")
-        lo, hi, drop = _region(region, shapes[level])
-        need = int(np.prod([h - l for l, h in zip(lo, hi)], dtype=object)) * np.dtype(self._dtype).itemsize
+        lo, hi, take = _region(region, shapes[level])
+        box = (hi[0] - lo[0], hi[1] - lo[1], hi[2] - lo[2])
+        if 0 in box:
+            # Nothing selected (NumPy's empty slices): nothing to read.
+            return np.empty(box, dtype=self._dtype)[take]
+        need = int(np.prod(box, dtype=object)) * np.dtype(self._dtype).itemsize
         ram = _physical_memory()
         if ram and need > ram:
             raise MemoryError(f"region: {tuple(lo)}..{tuple(hi)} of level {level} is {need} bytes, more than this "
                               f"machine's memory ({ram} bytes): read it in parts")
         buf = self._open().read(int(level), int(channel), lo, hi)
-        a = np.frombuffer(buf, dtype=self._dtype).reshape((hi[0] - lo[0], hi[1] - lo[1], hi[2] - lo[2]))
-        index = tuple(0 if d else slice(None) for d in drop)
-        return a[index]
+        a = np.frombuffer(buf, dtype=self._dtype).reshape(box)[take]
+        # Steps give a view of the whole box: a copy of what was taken lets
+        # the rest go.
+        if any(isinstance(t, slice) and t.step not in (None, 1) for t in take):
+            a = np.ascontiguousarray(a)
+        return a
 
     def __getitem__(self, key: Any) -> np.ndarray:
-        """`store[c, z0:z1, y0:y1, x0:x1]` (level 0); a store of one channel
-        also `store[z0:z1, y0:y1, x0:x1]`. A store of several channels takes
-        the channel first, as its `shape` says: fewer than four indices are
-        refused rather than read from channel 0."""
-        if not isinstance(key, tuple):
-            key = (key,)
-        if len(key) == 4:
-            return self.read(0, _channel_index(key[0], self.channels, "store"), key[1:])
-        if self.channels > 1:
-            raise IndexError(f"{self._path}: {self.channels} channels: index it as store[c, z, y, x] "
-                             f"(shape {self.shape}), e.g. store[1] is not channel 1: store[1, :, :, :] is")
-        return self.read(0, 0, key)
+        """Level 0 indexed as NumPy indexes an array of `shape`:
+        `store[z0:z1, y0:y1, x0:x1]` for one channel, `store[c, z0:z1, ...]`
+        for several (the channel an integer or a slice; `store[1]` is
+        channel 1 whole)."""
+        return _index(self, 0, key)
 
     def __repr__(self) -> str:
         return (f"<brickyard.Store {self.path!r}: {self.levels} levels, level 0 {self.shapes[0]}, "
@@ -227,7 +294,12 @@ class Level:
 
     @property
     def shape(self) -> tuple:
-        return self.store.shapes[self.index]
+        """As `Store.shape`: `(z, y, x)`, or `(c, z, y, x)` for several channels."""
+        return _indexed_shape(self.store.channels, self.store.shapes[self.index])
+
+    @property
+    def ndim(self) -> int:
+        return len(self.shape)
 
     @property
     def dtype(self) -> np.dtype:
@@ -237,12 +309,8 @@ class Level:
         return self.store.read(self.index, channel, region)
 
     def __getitem__(self, key: Any) -> np.ndarray:
-        if not isinstance(key, tuple):
-            key = (key,)
-        if len(key) == 4:
-            c = _channel_index(key[0], self.store.channels, "level")
-            return self.store.read(self.index, c, key[1:])
-        return self.store.read(self.index, 0, key)
+        """As `Store.__getitem__`, at this level."""
+        return _index(self.store, self.index, key)
 
     def __repr__(self) -> str:
         return f"<brickyard.Level {self.index} of {self.store.path!r}: {self.shape}>"
@@ -298,9 +366,10 @@ _FLAGS = frozenset((
     "derive", "distribute", "elevation", "eye-separation", "fov", "gpu-update", "hide-labels", "host", "json",
     "label-opacity", "labels", "level", "loader-threads", "lod-bias", "max-frames", "memory", "mode", "multiplex",
     "no-early-termination", "octree-depth", "only-labels", "origin", "ortho", "out", "overwrite", "parallax", "pool",
-    "progressive", "quiet", "raw-f32", "read-delay-ms", "region-weights", "requests", "samples-per-voxel",
-    "save-camera", "shard", "size", "slice-normal", "slice-origin", "slice-z", "spacing", "stats", "stereo",
-    "stream", "tf", "traversal", "turntable", "unit", "upload", "views", "window"))
+    "progressive", "quiet", "raw-f32", "read-delay-ms", "region-weights", "requests",
+    "samples-per-voxel", "save-camera", "shard", "size", "slice-normal", "slice-origin", "slice-z",
+    "spacing", "stats", "stereo", "stream", "tf", "traversal", "turntable", "unit", "upload", "views",
+    "window"))
 _SWITCHES = {
     "render": frozenset(("json", "no-early-termination", "ortho", "quiet", "raw-f32", "stream")),
     "convert": frozenset(("labels", "overwrite")),
@@ -440,6 +509,10 @@ def render_args(store: Union[Store, str, os.PathLike], mode: str = "dvr", camera
             args += ["--tf", p]
     for k, v in options.items():
         flag = "--" + k.replace("_", "-")
+        if k.replace("_", "-") not in _FLAGS:
+            near = difflib.get_close_matches(k, [f.replace("-", "_") for f in _FLAGS], n=1)
+            hint = f" (did you mean {near[0]}=?)" if near else ""
+            raise TypeError(f"render: unexpected keyword argument {k!r}{hint}")
         if v is True:
             args.append(flag)
         elif v is False or v is None:
@@ -468,6 +541,8 @@ def _channel_options(channel: Any) -> None:
     list of them): a negative one, or one beyond any store, is an
     IndexError (the CLI parses them as unsigned numbers)."""
     for c in channel if isinstance(channel, (list, tuple)) else (channel,):
+        if not isinstance(c, (str, int, np.integer)) or isinstance(c, bool):
+            raise TypeError(f"channel: expected an integer or \"C[:COLOR[:LO,HI]]\" text, found {c!r}")
         if isinstance(c, str) and re.fullmatch(r"\s*[+-]?[0-9]+\s*", c.split(":", 1)[0]):
             c = int(c.split(":", 1)[0])
         if isinstance(c, (int, np.integer)) and not isinstance(c, bool):
@@ -577,7 +652,7 @@ def _progress_callback(progress: Any, what: str):
     return bars, bars
 
 
-def _options(brick, shard, compression, labels, memory, overwrite, spacing, origin, unit) -> dict:
+def _options(brick, shard, compression, labels, memory, overwrite, spacing, origin, unit, channel_names=None) -> dict:
     def three(v, what, kind):
         if v is None:
             return None
@@ -603,21 +678,44 @@ def _options(brick, shard, compression, labels, memory, overwrite, spacing, orig
     return {"brick": three(brick, "brick", int), "shard": three(shard, "shard", int),
             "compression": compression, "labels": bool(labels), "memory": int(memory),
             "overwrite": bool(overwrite), "spacing": three(spacing, "spacing", float),
-            "origin": three(origin, "origin", float), "unit": unit}
+            "origin": three(origin, "origin", float), "unit": unit,
+            "channel_names": _channel_names(channel_names)}
+
+
+def _channel_names(names: Any) -> Optional[list]:
+    """`channel_names` as `convert --channel-names` takes them: one string per
+    channel (a sequence, or one comma-separated string), none empty, none
+    twice; the count is checked against the input's channels."""
+    if names is None:
+        return None
+    if isinstance(names, str):
+        names = names.split(",")
+    if not isinstance(names, (list, tuple)) or not all(isinstance(n, str) for n in names):
+        raise TypeError(f"channel_names: expected a list of strings, got {names!r}")
+    names = [n.strip() for n in names]
+    for i, n in enumerate(names):
+        if not n:
+            raise ValueError(f"channel_names: name {i + 1} of {names!r} is empty")
+        if n in names[:i]:
+            raise ValueError(f"channel_names: {n!r} given twice (names {names.index(n) + 1} and {i + 1}); "
+                             "each channel needs a name of its own")
+    return names
 
 
 def convert(src: Union[str, os.PathLike], dst: Union[str, os.PathLike], *, brick=64, shard=512,
             compression: str = "lz4", labels: bool = False, memory: int = 1 << 30, overwrite: bool = False,
-            spacing=None, origin=None, unit: Optional[str] = None, level: int = 0, progress: Any = True) -> str:
+            spacing=None, origin=None, unit: Optional[str] = None, level: int = 0, progress: Any = True,
+            channel_names=None) -> str:
     """Convert any input `brickyard convert` reads into a brickyard OME-Zarr
-    pyramid at `dst`. Returns a one-line report."""
+    pyramid at `dst`. Returns a one-line report. `channel_names` (one per
+    channel, as `--channel-names`) replaces the names the input gives."""
     level = _index_option(level, "level")
     cb, bar = _progress_callback(progress, "convert")
     try:
         with _cli_errors("convert"):
             return _native.convert(os.fspath(src), os.fspath(dst),
                                    _options(brick, shard, compression, labels, memory, overwrite, spacing, origin,
-                                            unit),
+                                            unit, channel_names),
                                    level, cb)
     finally:
         if bar is not None:
@@ -650,8 +748,10 @@ def _lazy_dtype(array: Any) -> Optional[np.dtype]:
 
 def from_numpy(array: Any, dst: Union[str, os.PathLike], *, spacing=None, origin=None, unit: Optional[str] = None,
                brick=64, shard=512, compression: str = "lz4", labels: bool = False, memory: int = 1 << 30,
-               overwrite: bool = False, progress: Any = True) -> str:
+               overwrite: bool = False, progress: Any = True, channel_names=None) -> str:
     """Write a `(z, y, x)` or `(c, z, y, x)` array as a brickyard OME-Zarr pyramid.
+    `channel_names`: one per channel (else "channel 0", "channel 1", ...),
+    stored in the OME `omero` metadata and read back as `Store.channel_names`.
 
     A C-contiguous NumPy array in the machine's byte order is read where it
     lies (no copy); any other NumPy array (a strided view, a transposed or
@@ -661,7 +761,7 @@ def from_numpy(array: Any, dst: Union[str, os.PathLike], *, spacing=None, origin
     region at a time (slabs of `brick` planes, at most what `memory`
     allows) and each is fetched with `array[c, z0:z1, y0:y1, x0:x1]` (a dask
     region is computed then). Other inputs go through `np.asarray`."""
-    options = _options(brick, shard, compression, labels, memory, overwrite, spacing, origin, unit)
+    options = _options(brick, shard, compression, labels, memory, overwrite, spacing, origin, unit, channel_names)
     dt = _lazy_dtype(array)
     if dt is None:
         return _from_memory(np.asarray(array), dst, options, progress)

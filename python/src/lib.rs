@@ -76,6 +76,9 @@ struct NativeStore {
     translations: Vec<Option<Vec<f64>>>,
     axes: Vec<String>,
     units: Vec<Option<String>>,
+    /// One name per channel: the OME `omero` block's labels, else
+    /// "channel i" (as the viewer and `info` name them).
+    channel_names: Vec<String>,
     /// The root `zarr.json` (or `.zgroup`/`.zarray`) as it was opened (a
     /// local store): a store replaced since (written again with
     /// `overwrite`) is refused, not read half from what this handle
@@ -196,6 +199,11 @@ impl NativeStore {
         self.units.clone()
     }
 
+    #[getter]
+    fn channel_names(&self) -> Vec<String> {
+        self.channel_names.clone()
+    }
+
     /// Host cache: (bytes held, budget, hits, misses).
     fn cache_stats(&self) -> (u64, u64, u64, u64) {
         let c = self.loader.cache();
@@ -253,18 +261,27 @@ fn open_store(
         )));
     }
     let info = inspect(&path)?;
-    if info.complete == Some(false) {
-        anyhow::bail!(
-            "{}: the store is incomplete (an interrupted conversion)",
-            path.display()
-        );
+    if let Some(why) = info.incomplete {
+        anyhow::bail!("{}: the store is incomplete: {why}", path.display());
     }
     let identity = brickyard_store::storage::StoreIdentity::of(&path);
     let cache = Arc::new(HostCache::new(cache_bytes));
     let loader =
         Loader::open_with_chunk_cache(&path, [brick; 3], 0, threads.max(1), cache, chunk_bytes)?;
+    let omero = brickyard_store::omezarr::read_omero(&path)
+        .ok()
+        .flatten()
+        .unwrap_or_default();
+    let channel_names = (0..loader.geometry().channels)
+        .map(|i| {
+            omero
+                .get(i)
+                .map_or_else(|| format!("channel {i}"), |c| c.label.clone())
+        })
+        .collect();
     Ok(NativeStore {
         identity,
+        channel_names,
         scales: info.levels.iter().map(|l| l.scale.clone()).collect(),
         translations: info.levels.iter().map(|l| l.translation.clone()).collect(),
         axes: info.axes.clone(),
@@ -436,6 +453,20 @@ struct PyConvertOptions {
     spacing: Option<[f64; 3]>,
     origin: Option<[f64; 3]>,
     unit: Option<String>,
+    /// One name per channel (checked here against the source's channels;
+    /// empty and repeated names refused by the Python side).
+    channel_names: Option<Vec<String>>,
+}
+
+/// `names`, where given, for a source of `channels` channels: one each.
+fn check_name_count(names: &Option<Vec<String>>, channels: usize) -> PyResult<()> {
+    match names {
+        Some(n) if n.len() != channels => Err(PyValueError::new_err(format!(
+            "channel_names: {} name(s) given for {channels} channel(s); expected one per channel",
+            n.len()
+        ))),
+        _ => Ok(()),
+    }
 }
 
 impl PyConvertOptions {
@@ -581,6 +612,15 @@ fn convert(
             )
         })
         .map_err(|e| to_py(e.into()))?;
+    check_name_count(&options.channel_names, source.meta().channels)?;
+    let source = match &options.channel_names {
+        Some(names) => Box::new(
+            brickyard_store::import::stack::ChannelStack::new(vec![source])
+                .and_then(|s| s.with_names(names))
+                .map_err(|e| to_py(e.into()))?,
+        ),
+        None => source,
+    };
     run_convert(py, source.as_ref(), &dst, &opts, progress)
 }
 
@@ -603,7 +643,11 @@ fn from_array(
     // SAFETY: `array` is borrowed for this whole call, and a NumPy array
     // keeps its memory while it is referenced (it cannot be resized then).
     let data = unsafe { view.bytes() };
-    let src = source::MemorySource::new(data, view.shape, dtype).map_err(to_py)?;
+    let mut src = source::MemorySource::new(data, view.shape, dtype).map_err(to_py)?;
+    check_name_count(&options.channel_names, src.meta().channels)?;
+    if let Some(names) = &options.channel_names {
+        src.name_channels(names);
+    }
     run_convert(py, &src, &dst, &opts, progress)
 }
 
@@ -627,7 +671,11 @@ fn from_lazy(
     progress: Option<Py<PyAny>>,
 ) -> PyResult<String> {
     let opts = options.to_options()?;
-    let src = source::LazySource::new(read, name, shape, dtype, chunk).map_err(to_py)?;
+    let mut src = source::LazySource::new(read, name, shape, dtype, chunk).map_err(to_py)?;
+    check_name_count(&options.channel_names, src.meta().channels)?;
+    if let Some(names) = &options.channel_names {
+        src.name_channels(names);
+    }
     let r = run_convert(py, &src, &dst, &opts, progress);
     let cause = src.error.lock().unwrap().take();
     match (r, cause) {

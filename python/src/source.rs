@@ -42,6 +42,11 @@ impl<'a> MemorySource<'a> {
         );
         Ok(MemorySource { meta, data, shape })
     }
+
+    /// Name the channels (one name each, checked by the caller).
+    pub fn name_channels(&mut self, names: &[String]) {
+        self.meta.channel_names = names.to_vec();
+    }
 }
 
 impl VolumeSource for MemorySource<'_> {
@@ -208,6 +213,11 @@ impl LazySource {
             chunk,
             error: Mutex::new(None),
         })
+    }
+
+    /// Name the channels (one name each, checked by the caller).
+    pub fn name_channels(&mut self, names: &[String]) {
+        self.meta.channel_names = names.to_vec();
     }
 }
 

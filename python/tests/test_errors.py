@@ -35,14 +35,12 @@ def test_wrong_regions(store):
     s = brickyard.open(store)
     with pytest.raises(IndexError, match="outside axis z of length 20"):
         s[20]
-    with pytest.raises(IndexError, match="selects nothing"):
-        s[5:5]
-    with pytest.raises(IndexError, match="outside length 24"):
-        s[:, 0:25]
     with pytest.raises(IndexError, match="at most 3 axes"):
         s.read(region=np.s_[0, 0, 0, 0])
-    with pytest.raises(ValueError, match="only step 1"):
-        s[::2]
+    with pytest.raises(ValueError, match="step cannot be zero"):
+        s[::0]
+    with pytest.raises(TypeError, match="must be integers or None"):
+        s[0:2.5]
     with pytest.raises(TypeError, match="expected an int or a slice"):
         s["a"]
     with pytest.raises(IndexError, match="level: 9 asked for but the store has"):
@@ -97,7 +95,7 @@ def test_bad_render_options(store):
         brickyard.render(store, size=(0, 10), backend="cpu")
     with pytest.raises(IndexError, match="level: the store has"):
         brickyard.render(store, level=40, backend="cpu")
-    with pytest.raises(ValueError, match="unexpected argument"):
+    with pytest.raises(TypeError, match="unexpected keyword argument 'no_such_option'"):
         brickyard.render(store, backend="cpu", no_such_option=3)
 
 
@@ -163,9 +161,9 @@ def test_messages_name_python_keywords(store, tmp_path):
     with pytest.raises(ValueError) as e:
         brickyard.render(store, size=16, backend="cpu", level="x")
     assert str(e.value) == "error: invalid value 'x' for 'level': invalid digit found in string", e.value
-    with pytest.raises(ValueError) as e:
+    with pytest.raises(TypeError) as e:
         brickyard.render(store, backend="cpu", no_such_option=3)
-    assert str(e.value) == "error: unexpected argument 'no_such_option' found", e.value
+    assert str(e.value) == "render: unexpected keyword argument 'no_such_option'", e.value
     # A flag with its value: the keyword with that value.
     with pytest.raises(ValueError) as e:
         brickyard.render(store, mode="slice", ortho=True, backend="cpu")

@@ -66,7 +66,7 @@ WRITER = textwrap.dedent("""
 
     def check(a, dst):
         s = brickyard.open(dst, cache=8 << 20, chunk_cache=4 << 20)
-        assert s.shape == (1,) + a.shape and s.dtype == a.dtype, (s.shape, s.dtype)
+        assert s.shape == a.shape and s.dtype == a.dtype, (s.shape, s.dtype)
         for z in range(0, a.shape[0], 32):
             np.testing.assert_array_equal(s.read(0, 0, np.s_[z:z + 32]), a[z:z + 32])
 

@@ -54,12 +54,22 @@ def test_store_slicing_and_metadata(tmp_path):
     assert s.channels == 2 and s.shape == (2, 20, 33, 40)
     assert s.scales[0][-3:] == [3.0, 0.5, 0.5]
     np.testing.assert_array_equal(s[1, 2:9, :, 5:17], a[1, 2:9, :, 5:17])
-    # Several channels: the channel first, as `shape` says. Fewer indices
-    # read channel 0 at z where NumPy would take a channel (s[1] was z 1
-    # of channel 0): refused, with the way to say it.
-    for key in (np.s_[1], np.s_[5, -3:, 7], np.s_[..., 0]):
-        with pytest.raises(IndexError, match=r"store\[c, z, y, x\]"):
-            s[key]
+    # Several channels: indexed as NumPy indexes an array of `shape`, the
+    # channel first (s[1] is channel 1 whole, not z 1 of channel 0), by
+    # an integer or a slice, through the store and its levels alike.
+    l1 = zarr_level(dst, 1, 0)
+    ref1 = np.stack([zarr_level(dst, 1, c)[...] for c in range(2)])
+    assert s.level(1).shape == ref1.shape and s.ndim == 4
+    for key in (np.s_[1], np.s_[1, 5], np.s_[..., 0], np.s_[:, 4, -3:, 7], np.s_[::-1, 2:9:3, 5],
+                np.s_[1:, ..., ::7], np.s_[5:, 1], np.s_[-1, -1, -1, -1], np.s_[:]):
+        np.testing.assert_array_equal(s[key], a[key], err_msg=str(key))
+        assert s[key].shape == a[key].shape, key
+        np.testing.assert_array_equal(s.level(1)[key], ref1[key], err_msg=str(key))
+    assert l1.shape == ref1.shape[1:]
+    with pytest.raises(IndexError, match="channel: 5 asked for"):
+        s[5, -3:, 7]
+    with pytest.raises(IndexError, match="too many indices"):
+        s[0, 0, 0, 0, 0]
     np.testing.assert_array_equal(s[1, :, :, :], a[1])
     np.testing.assert_array_equal(s[0, 5, -3:, 7], a[0, 5, -3:, 7])
     np.testing.assert_array_equal(s.read(channel=1, region=np.s_[..., 3]), a[1, :, :, 3])
@@ -148,3 +158,59 @@ def test_spacing_errors_name_the_values_as_given():
         brickyard.from_numpy(np.zeros((8, 8, 8), np.uint8), "never.zarr", spacing=(3, 2, -1), progress=False)
     with pytest.raises(ValueError, match="origin: expected finite"):
         brickyard.from_numpy(np.zeros((8, 8, 8), np.uint8), "never.zarr", origin=(0, float("nan"), 0), progress=False)
+
+
+def test_slices_clip_step_and_select_nothing_as_numpy_does(tmp_path):
+    """Slices out of range clip, empty ones give empty arrays of NumPy's
+    shape, and steps (negative ones too) take what NumPy takes: every
+    selection against the same one of the array in memory."""
+    a = volume((19, 24, 31), "uint16", seed=5)
+    dst = tmp_path / "steps.ome.zarr"
+    brickyard.from_numpy(a, dst, brick=8, shard=16, progress=False)
+    s = brickyard.open(dst, brick=8)
+    keys = [
+        np.s_[5:5], np.s_[:, 0:25], np.s_[-100:100, 30:, :40], np.s_[::2], np.s_[::-1],
+        np.s_[3:17:4, ::-5, 30:2:-7], np.s_[18:0:-3, 7, ::9], np.s_[2, 10:3], np.s_[..., ::-2],
+        np.s_[0:19:100, -1::-23, 1::30], np.s_[:, 24:, 0], np.s_[7:3:1, :, :],
+    ]
+    for key in keys:
+        got = s[key]
+        want = a[key]
+        assert got.shape == want.shape, key
+        assert got.dtype == want.dtype, key
+        np.testing.assert_array_equal(got, want, err_msg=str(key))
+    # A store of several channels, and a coarser level through Level.
+    b = np.stack([a, a[::-1] + 1])
+    dst2 = tmp_path / "steps2.ome.zarr"
+    brickyard.from_numpy(b, dst2, brick=8, shard=16, progress=False)
+    t = brickyard.open(dst2, brick=8)
+    np.testing.assert_array_equal(t[1, ::-2, 3:50:5, -4:], b[1, ::-2, 3:50:5, -4:])
+    ref = t.read(1, 1)
+    np.testing.assert_array_equal(t.level(1)[1, ::3, ::-1, 1:99], ref[::3, ::-1, 1:99])
+
+
+
+def test_channel_names_are_written_and_read(tmp_path):
+    """Names given to from_numpy (and convert) come back as
+    Store.channel_names, and zarr-python reads the same labels from the
+    omero metadata; a store without names has "channel i"."""
+    a = np.stack([volume((9, 10, 11), "uint8", seed=s) for s in range(3)])
+    named = tmp_path / "named.ome.zarr"
+    brickyard.from_numpy(a, named, brick=8, shard=8, progress=False, channel_names=["DAPI", "GFP", "RFP"])
+    s = brickyard.open(named)
+    assert s.channel_names == ["DAPI", "GFP", "RFP"]
+    g = zarr.open_group(str(named), mode="r")
+    assert [c["label"] for c in g.attrs["ome"]["omero"]["channels"]] == ["DAPI", "GFP", "RFP"]
+    again = tmp_path / "again.ome.zarr"
+    brickyard.convert(named, again, progress=False, channel_names="a, b,c")
+    assert brickyard.open(again).channel_names == ["a", "b", "c"]
+    plain = tmp_path / "plain.ome.zarr"
+    brickyard.from_numpy(a, plain, brick=8, shard=8, progress=False)
+    assert brickyard.open(plain).channel_names == ["channel 0", "channel 1", "channel 2"]
+    with pytest.raises(ValueError, match="2 name\\(s\\) given for 3 channel"):
+        brickyard.from_numpy(a, tmp_path / "x.ome.zarr", progress=False, channel_names=["a", "b"])
+    with pytest.raises(ValueError, match="given twice"):
+        brickyard.from_numpy(a, tmp_path / "y.ome.zarr", progress=False, channel_names=["a", "b", "a"])
+    with pytest.raises(ValueError, match="is empty"):
+        brickyard.convert(named, tmp_path / "z.ome.zarr", progress=False, channel_names="a,,c")
+    assert not (tmp_path / "x.ome.zarr").exists() and not (tmp_path / "z.ome.zarr").exists()

@@ -181,3 +181,16 @@ def test_label_images_render_as_the_cli_draws_them(tmp_path, cli):
     assert (ramp != alone).any()
     with pytest.raises(ValueError, match="no label image"):
         brickyard.render(str(dst), mode="slice", labels="nope", size=16)
+
+
+def test_render_refuses_unknown_options_and_channels_that_are_no_integers(store):
+    s = brickyard.open(store)
+    with pytest.raises(TypeError, match="unexpected keyword argument 'channels' \\(did you mean channel=\\?\\)"):
+        brickyard.render(s, size=16, backend="cpu", channels=[0])
+    with pytest.raises(TypeError, match="unexpected keyword argument 'colour'"):
+        brickyard.render(s, size=16, backend="cpu", colour="red")
+    for bad in (1.0, True, [0, 1.5]):
+        with pytest.raises(TypeError, match="channel: expected an integer"):
+            brickyard.render(s, size=16, backend="cpu", channel=bad)
+    # Flags the CLI takes pass.
+    assert brickyard.render(s, size=16, backend="cpu", lod_bias=0.5).shape == (16, 16, 4)
