@@ -154,6 +154,11 @@ pub struct RenderParams {
 /// The most labels a [`LabelSelect`] names.
 pub const MAX_SELECTED_LABELS: usize = 1 << 16;
 
+/// The largest label magnitude the renderers tell apart: label images are
+/// sampled as `f32` (on the CPU and the device alike), which holds every
+/// integer up to 2²⁴ and only every second one above.
+pub const EXACT_LABELS: i64 = 1 << 24;
+
 /// Which labels of a label image are drawn: only those named, or all but
 /// those named.
 #[derive(Debug, Clone, PartialEq, Eq, Hash, Serialize, Deserialize)]
@@ -270,19 +275,25 @@ impl LabelSelect {
     /// 0, the background, is refused).
     pub fn parse_ids(text: &str) -> Result<Vec<i32>, String> {
         let mut ids = vec![];
-        for part in text.split(',').map(str::trim).filter(|p| !p.is_empty()) {
+        for part in text.split(',').map(str::trim) {
+            if part.is_empty() {
+                return Err(format!(
+                    "an empty item in {text:?}: expected labels such as 3,17,40-45"
+                ));
+            }
             let num = |s: &str| {
                 let v = s
                     .trim()
                     .parse::<i64>()
                     .map_err(|_| format!("expected labels such as 3,17,40-45, found {part:?}"))?;
-                i32::try_from(v).map_err(|_| {
-                    format!(
-                        "labels from {} to {} can be chosen, found {v}",
-                        i32::MIN,
-                        i32::MAX
-                    )
-                })
+                if v.abs() > EXACT_LABELS {
+                    return Err(format!(
+                        "labels from -{EXACT_LABELS} to {EXACT_LABELS} (2^24) can be chosen, \
+                         found {v}: label images are drawn from 32-bit floats, which tell \
+                         larger labels apart only in pairs"
+                    ));
+                }
+                Ok(v as i32)
             };
             let (a, b) = match part.split_once('-').filter(|(a, _)| !a.is_empty()) {
                 Some((a, b)) => (num(a)?, num(b)?),

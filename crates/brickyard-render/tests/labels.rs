@@ -706,9 +706,29 @@ fn label_selections_are_refused_where_they_mean_nothing() {
         vec![3, 17, 40, 41, 42]
     );
     assert_eq!(LabelSelect::parse_ids("-2").unwrap(), vec![-2]);
-    for bad in ["", "x", "5-3", "1-999999", "0", "3,0-2"] {
+    for bad in [
+        "",
+        "x",
+        "5-3",
+        "1-999999",
+        "0",
+        "3,0-2",
+        "1,,2",
+        "1,",
+        "16777217",
+        "-16777217",
+        "4000000000",
+    ] {
         assert!(LabelSelect::parse_ids(bad).is_err(), "{bad}");
     }
+    // Labels up to 2^24 are told apart (f32 holds every integer there).
+    assert_eq!(
+        LabelSelect::parse_ids("16777215-16777216").unwrap(),
+        vec![16777215, 16777216]
+    );
+    assert!(LabelSelect::parse_ids("16777217")
+        .unwrap_err()
+        .contains("2^24"));
 }
 
 #[test]

@@ -82,7 +82,8 @@ pub struct RenderCmd {
     /// Label images: draw every label but these (e.g. `3,17,40-45`).
     #[arg(long, value_name = "IDS", allow_hyphen_values = true)]
     hide_labels: Option<String>,
-    /// Data window LO,HI (default: the data range from the brick statistics).
+    /// Data window LO,HI (default: the 0.5th and 99.5th percentiles of the
+    /// values of the finest level of at most four million voxels).
     #[arg(long, allow_hyphen_values = true)]
     window: Option<String>,
     /// A channel to show, `C[:COLOR[:LO,HI]]` (repeat for several). In mip
@@ -172,7 +173,7 @@ pub struct RenderCmd {
     /// instead of loading each frame's working set before drawing again.
     #[arg(long)]
     stream: bool,
-    /// DVR on the CPU: after the view is complete, accumulate N frames of
+    /// DVR (CPU or device): after the view is complete, accumulate N frames of
     /// samples at new positions along each ray (frame k shifted within
     /// the step by a Halton offset), blended in depth order: the image of
     /// N times the sampling rate. Each frame's time and the memory the
@@ -341,6 +342,23 @@ fn check_mode_flags(c: &RenderCmd) -> Result<()> {
             }
         }
         m => bail!("mode: expected dvr, mip or slice, found {m:?}"),
+    }
+    // Flags that another one makes moot.
+    if c.ortho && c.fov.is_some() {
+        bail!("fov: a perspective camera's field of view; --ortho draws in parallel projection (give one or the other)");
+    }
+    if c.level.is_some() && c.lod_bias != 0.0 {
+        bail!(
+            "lod-bias: shifts the automatic level of detail; --level {} draws one level (give \
+             one or the other)",
+            c.level.unwrap_or(0)
+        );
+    }
+    if c.gpu_update.is_some() && c.backend == "cpu" {
+        bail!("gpu-update: how the device back end updates its caches; --backend cpu has none");
+    }
+    if c.loader_threads == 0 {
+        bail!("loader-threads: expected at least 1 thread reading bricks, found 0");
     }
     if let Some(cam) = &c.camera {
         for (flag, given) in camera_flags {
@@ -1019,6 +1037,24 @@ fn run_one(
     }
     let l0 = zarr::open(&c.store, 0)?;
     let m = l0.meta().clone();
+    // Labels are sampled as f32: beyond 2^24 neighbouring labels share a
+    // value (and so a colour). Said, on stderr, also in the labels' run of
+    // --labels.
+    if labels {
+        let exact = brickyard_render::params::EXACT_LABELS as f64;
+        if let Some(s) = info.levels.first().and_then(|l| l.stats.as_ref()) {
+            if s.max > exact || s.min < -exact {
+                eprintln!(
+                    "warning: {}: labels reach {}; labels beyond {} (2^24) are drawn from 32-bit \
+                     floats, so neighbouring ones there may share a colour and cannot be chosen \
+                     apart (renumber them below 2^24 to draw each alone)",
+                    c.store.display(),
+                    if s.max > exact { s.max } else { s.min },
+                    brickyard_render::params::EXACT_LABELS
+                );
+            }
+        }
+    }
     // Only some labels drawn: where they lie, from the label statistics
     // (bricks none of them reaches are crossed). Unreadable statistics
     // only cost that.
@@ -1082,6 +1118,13 @@ fn run_one(
             if c.channels.len() > 1 {
                 bail!("derive: a derived channel is computed from one channel; give at most one --channel");
             }
+            if c.channels.is_empty() && m.channels > 1 {
+                say_err!(
+                    silent,
+                    "note: --derive computes from channel 0 of {} (choose another with --channel C)",
+                    m.channels
+                );
+            }
             let (d, bytes) = crate::derive::Derived::new_within(
                 &c.store,
                 p,
@@ -1122,7 +1165,7 @@ fn run_one(
                 .unwrap_or((0.0, 1.0))
         }
     };
-    let tf = match labels {
+    let mut tf = match labels {
         true => TransferFunction::preset("linear", [lo as f32, hi as f32])?,
         false => transfer_function(tf_name, [lo as f32, hi as f32], "tf")?,
     };
@@ -1185,6 +1228,23 @@ fn run_one(
                     "slice-normal: expected a non-zero vector of finite length, found {normal:?}"
                 );
             }
+            // A plane that misses the volume would draw a blank image and
+            // call it complete.
+            let side = |k: usize| {
+                let p = [0, 1, 2].map(|a| if k >> a & 1 == 1 { extent[a] } else { 0.0 });
+                (0..3).map(|a| (p[a] - origin[a]) * normal[a]).sum::<f64>()
+            };
+            let (lo, hi) = (0..8)
+                .map(side)
+                .fold((f64::INFINITY, f64::NEG_INFINITY), |(l, h), v| {
+                    (l.min(v), h.max(v))
+                });
+            if lo > 0.0 || hi < 0.0 {
+                bail!(
+                    "slice-origin: the plane through {origin:?} with normal {normal:?} misses the \
+                     volume, which spans [0, 0, 0] to {extent:?} (world x, y, z)"
+                );
+            }
             RenderMode::Slice { origin, normal }
         }
         s => bail!("mode: expected dvr, mip or slice, found {s:?}"),
@@ -1243,17 +1303,26 @@ fn run_one(
     if pool_given == Some(0) {
         bail!("pool: expected a size above 0 (e.g. 256MiB)");
     }
-    let mut split = crate::memory::split_with_filters(
-        memory,
-        pool_given,
-        opt_bytes(&c.host, "host")?,
-        n_views as u64 * w as u64 * h as u64,
-        info.levels.len(),
-        device.bytes,
-        filter_bytes,
-    )
-    .map_err(|e| {
-        if device.bytes > 0 && backend_choice == "cpu" {
+    let pixels = n_views as u64 * w as u64 * h as u64;
+    let ranks = share.as_ref().map_or(1, |s| s.size());
+    let host_given = opt_bytes(&c.host, "host")?;
+    let split_for = |device_bytes: u64| {
+        crate::memory::split_with_filters(
+            memory,
+            pool_given,
+            host_given,
+            pixels + exchange_pixels(shared, ranks, pixels),
+            info.levels.len(),
+            device_bytes,
+            filter_bytes,
+        )
+    };
+    let mut split = split_for(device.bytes).map_err(|e| {
+        // The driver's share is named only where it is what leaves too
+        // little (the split without it would do), not for a bad --host.
+        if device.bytes == 0 || split_for(0).is_err() {
+            e
+        } else if backend_choice == "cpu" {
             // `auto` looked for a device and drew on the CPU; the driver
             // it loaded stays.
             e.context(format!(
@@ -1261,14 +1330,12 @@ fn run_one(
                  --memory (--backend cpu does without)",
                 human_bytes(device.bytes)
             ))
-        } else if device.bytes > 0 {
+        } else {
             e.context(format!(
                 "--backend {backend_choice}: the device back end takes {} of --memory for its \
                  driver (--backend cpu does without)",
                 human_bytes(device.bytes)
             ))
-        } else {
-            e
         }
     })?;
     device.take_from(&mut split, pool_given)?;
@@ -1330,12 +1397,32 @@ fn run_one(
         o
     });
     let channel_args: Vec<String> = match &omero {
-        Some(o) if c.channels.is_empty() && derived.is_none() && m.channels > 1 => o
-            .iter()
-            .enumerate()
-            .filter(|(i, ch)| ch.active && *i < m.channels)
-            .map(|(i, _)| i.to_string())
-            .collect(),
+        Some(o) if c.channels.is_empty() && derived.is_none() && m.channels > 1 => {
+            let active: Vec<String> = o
+                .iter()
+                .enumerate()
+                .filter(|(i, ch)| ch.active && *i < m.channels)
+                .map(|(i, _)| i.to_string())
+                .collect();
+            // The store's active channels, as many as the mode draws at
+            // once (a store of 70 channels, all active, still renders).
+            let most = match mode {
+                RenderMode::Dvr => brickyard_render::params::MAX_DVR_CHANNELS,
+                _ => brickyard_render::params::MAX_CHANNELS,
+            };
+            if active.len() > most {
+                say_err!(
+                    silent,
+                    "note: the store has {} active channels; {mode_name} draws at most {most} at \
+                     once: channels {}..{} shown (choose others with --channel)",
+                    active.len(),
+                    active[0],
+                    active[most - 1],
+                    mode_name = c.mode
+                );
+            }
+            active.into_iter().take(most).collect()
+        }
         _ => c.channels.clone(),
     };
     let mut styles = channel_args
@@ -1349,6 +1436,23 @@ fn run_one(
     for (st, arg) in styles.iter().zip(&channel_args) {
         once(&mut per_channel_seen, "channel", st.channel, arg)?;
     }
+    // Per-channel settings are for several channels: a store of one says
+    // what to give instead (it was told to show the channel, then that one
+    // channel goes through --tf).
+    if m.channels == 1 && derived.is_none() {
+        if !c.channel_tfs.is_empty() {
+            bail!(
+                "channel-tf: transfer functions per channel are for dvr of several channels; \
+                 this store has one channel: give its transfer function with --tf"
+            );
+        }
+        if !c.channel_levels.is_empty() {
+            bail!(
+                "channel-levels: level ranges per channel are for dvr of several channels; this \
+                 store has one channel: give its level with --level"
+            );
+        }
+    }
     for t in &c.channel_tfs {
         let (ch, spec) = t
             .split_once('=')
@@ -1359,7 +1463,10 @@ fn run_one(
             .with_context(|| format!("channel-tf: {ch:?} in {t:?} is not a channel number"))?;
         once(&mut per_channel_seen, "channel-tf", ch, t)?;
         let Some(st) = styles.iter_mut().find(|s| s.channel == ch) else {
-            bail!("channel-tf: channel {ch} is not shown (give it with --channel)");
+            bail!(
+                "channel-tf: channel {ch} is not shown (give it with --channel, beside at least \
+                 one other: one channel goes through --tf)"
+            );
         };
         // A preset spans the channel's window, as --tf spans --window.
         st.tf = Some(transfer_function(spec, st.window, "channel-tf")?);
@@ -1368,7 +1475,10 @@ fn run_one(
         let (ch, range) = parse_channel_levels(t, info.levels.len())?;
         once(&mut per_channel_seen, "channel-levels", ch, t)?;
         let Some(st) = styles.iter_mut().find(|s| s.channel == ch) else {
-            bail!("channel-levels: channel {ch} is not shown (give it with --channel)");
+            bail!(
+                "channel-levels: channel {ch} is not shown (give it with --channel, beside at \
+                 least one other: one channel is drawn at --level)"
+            );
         };
         st.levels = Some(range);
     }
@@ -1394,9 +1504,48 @@ fn run_one(
                     bail!("channel-levels: one channel in dvr is drawn at --level (or the automatic level of detail); level ranges are for several channels");
                 }
                 scene.channel = one.channel;
+                // One channel goes through --tf: a window given with it
+                // (`--channel C:COLOR:LO,HI`) is that function's window,
+                // and a colour is not used (said, not silently dropped).
+                if let Some(arg) = channel_args.first().filter(|_| derived.is_none()) {
+                    let parts: Vec<&str> = arg.splitn(3, ':').collect();
+                    if parts.len() == 3 {
+                        if c.window.is_some() {
+                            bail!(
+                                "channel: {arg:?} gives a window and so does --window: give it once"
+                            );
+                        }
+                        if !labels {
+                            tf = transfer_function(tf_name, one.window, "tf")?;
+                        }
+                    }
+                    if parts.len() >= 2 {
+                        say_err!(
+                            silent,
+                            "note: one channel in dvr is drawn through --tf ({tf_name}): the \
+                             colour in --channel {arg} is not used (show two or more channels \
+                             to composite them in their colours)"
+                        );
+                    }
+                }
             }
-            _ => {}
+            _ => {
+                if c.tf.is_some() {
+                    bail!(
+                        "tf: {} channels are composited, each with its own colour and window \
+                         (or --channel-tf C=TF); --tf is for one channel",
+                        styles.len()
+                    );
+                }
+            }
         }
+    } else if styles.len() > 1 && c.tf.is_some() {
+        bail!(
+            "tf: {} channels are added up in {}, each in its own colour and window; --tf is for \
+             one channel",
+            styles.len(),
+            c.mode
+        );
     } else if !c.channel_tfs.is_empty() {
         bail!("channel-tf: transfer functions per channel are for dvr; mip and slice add channels up by colour and window");
     } else if !c.channel_levels.is_empty() {
