@@ -303,8 +303,12 @@ fn open(site: &RenderSite, caches: &Caches, name: &str) -> Result<Open> {
     // A frame waits a little for the bricks it asked for (the session's
     // messages wait meanwhile).
     s.set_batch(Some(brickyard_run::frames::STREAM_LOAD_WAIT));
-    s.pin_coarsest(512, Duration::from_secs(120))
-        .map_err(|e| anyhow::anyhow!("pool: {e}"))?;
+    s.pin_coarsest(512, Duration::from_secs(120)).map_err(|e| {
+        anyhow::anyhow!(
+            "serve --render-pool {}: {e}",
+            brickyard_store::info::human_bytes(site.pool)
+        )
+    })?;
     let backend = brickyard_run::backend::Backend::choose(
         &site.backend,
         brickyard_run::backend::GpuUpdate::Device,

@@ -400,7 +400,37 @@ pub fn run(c: ServeCmd) -> Result<()> {
         bail!("--workers: at least 1");
     }
     let mut render = None;
+    if !c.render {
+        // Render-session flags without the sessions would change nothing.
+        // (Told apart from their defaults, as clap declares them above.)
+        for (flag, given) in [
+            ("render-pool", c.render_pool != "256MiB"),
+            ("render-host", c.render_host != "1GiB"),
+            ("render-port", c.render_port != 0),
+            ("render-sessions", c.render_sessions != 4),
+            ("max-fps", c.max_fps != 20.0),
+            ("backend", c.backend != "auto"),
+        ] {
+            if given {
+                bail!("--{flag}: applies to render sessions (give --render too)");
+            }
+        }
+    }
     if c.render {
+        if !matches!(c.backend.as_str(), "auto" | "gpu" | "cpu") {
+            bail!(
+                "--backend: expected auto, gpu or cpu, found {:?}",
+                c.backend
+            );
+        }
+        for (flag, v) in [
+            ("render-pool", &c.render_pool),
+            ("render-host", &c.render_host),
+        ] {
+            if crate::parse_bytes(v).with_context(|| format!("--{flag}"))? == 0 {
+                bail!("--{flag}: expected a size above 0 (e.g. 256MiB)");
+            }
+        }
         if c.render_sessions == 0 {
             bail!("--render-sessions: at least 1");
         }

@@ -1555,3 +1555,46 @@ fn incomplete_stores_are_served_with_a_warning() {
         assert_eq!(status, 200, "{p}");
     }
 }
+
+/// Render-session flags are checked at start: a bad --backend or an empty
+/// --render-pool was accepted and then every session failed; without
+/// --render they changed nothing and were taken silently.
+#[test]
+fn render_session_flags_are_checked_at_start() {
+    let d = tempfile::tempdir().unwrap();
+    let st = d.path().join("s.ome.zarr");
+    std::fs::create_dir_all(&st).unwrap();
+    std::fs::write(
+        st.join("zarr.json"),
+        r#"{"zarr_format":3,"node_type":"group","attributes":{}}"#,
+    )
+    .unwrap();
+    for (args, words) in [
+        (
+            vec!["--render", "--backend", "foo"],
+            vec!["--backend", "expected auto, gpu or cpu"],
+        ),
+        (
+            vec!["--render", "--render-pool", "0"],
+            vec!["--render-pool", "above 0"],
+        ),
+        (vec!["--backend", "cpu"], vec!["--backend", "give --render"]),
+        (
+            vec!["--render-pool", "64MiB"],
+            vec!["--render-pool", "give --render"],
+        ),
+        (vec!["--max-fps", "5"], vec!["--max-fps", "give --render"]),
+    ] {
+        let mut a = vec!["serve", st.to_str().unwrap(), "--port", "0"];
+        a.extend(args.iter());
+        let o = std::process::Command::new(env!("CARGO_BIN_EXE_brickyard"))
+            .args(&a)
+            .output()
+            .unwrap();
+        let e = String::from_utf8_lossy(&o.stderr);
+        assert_eq!(o.status.code(), Some(1), "{a:?}: {e}");
+        for w in words {
+            assert!(e.contains(w), "{a:?}: {w:?} not in {e}");
+        }
+    }
+}
