@@ -713,6 +713,13 @@ pub fn render(dir: &Path, dims: Dims3, dtype: DType, o: &RenderBench) -> Result<
                     Session::from_loader(l, cfg.clone())
                 }
             };
+            // A pool that cannot keep the coarsest level resident never
+            // completes a view: refused before the frame loops, as
+            // `render --pool` is (the loops spun until their time ran out).
+            s.loader()
+                .geometry()
+                .pinned_levels(s.vm().pool_slots(), s.vm().slot_bytes() as u64, 512)
+                .map_err(|e| anyhow::anyhow!("--pool {}: {e}", cfg.pool_bytes))?;
             let (choice, update) = match name.strip_suffix("-host") {
                 Some(c) => (c, crate::backend::GpuUpdate::Host),
                 None => (name.as_str(), crate::backend::GpuUpdate::Device),
