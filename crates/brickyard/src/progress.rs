@@ -6,7 +6,9 @@
 //! and the ETA from it, swing from 3 to 27 minutes and back within 90 s of
 //! a 13-minute run.
 
-use indicatif::{BinaryBytes, HumanDuration, ProgressBar, ProgressState, ProgressStyle};
+use indicatif::{
+    BinaryBytes, HumanDuration, ProgressBar, ProgressDrawTarget, ProgressState, ProgressStyle,
+};
 
 /// Items (or bytes) a second since the start.
 fn average_rate(st: &ProgressState) -> Option<f64> {
@@ -65,7 +67,9 @@ impl Bar {
         if quiet {
             return Bar { bar: None };
         }
-        let bar = ProgressBar::new(0);
+        // Hidden until its phase starts: a job without that phase (a
+        // labelling bar for a pipeline that labels nothing) shows none.
+        let bar = ProgressBar::with_draw_target(Some(0), ProgressDrawTarget::hidden());
         bar.set_style(style(
             "{msg} [{bar:40}] {binary_bytes}/{binary_total_bytes} {avg_bytes_per_sec} ETA {avg_eta}",
         ));
@@ -78,7 +82,9 @@ impl Bar {
         if quiet {
             return Bar { bar: None };
         }
-        let bar = ProgressBar::new(0);
+        // Hidden until its phase starts: a job without that phase (a
+        // labelling bar for a pipeline that labels nothing) shows none.
+        let bar = ProgressBar::with_draw_target(Some(0), ProgressDrawTarget::hidden());
         bar.set_style(style(
             "{msg} [{bar:40}] {pos}/{len} {avg_per_sec} ETA {avg_eta}",
         ));
@@ -96,8 +102,13 @@ impl Bar {
 impl brickyard_store::Progress for Bar {
     fn start(&self, total: u64) {
         if let Some(b) = &self.bar {
+            // The rate and ETA count from here (not from when the bar was
+            // made, before the phases ahead of it).
+            b.reset();
             b.set_length(total);
-            b.set_position(0);
+            if b.is_hidden() && total > 0 {
+                b.set_draw_target(ProgressDrawTarget::stderr());
+            }
         }
     }
     fn inc(&self, n: u64) {
