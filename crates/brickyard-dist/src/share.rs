@@ -239,6 +239,14 @@ impl Share for RenderShare<'_> {
         }
     }
 
+    fn gather_text(&mut self, mine: String) -> Vec<String> {
+        self.c
+            .gather_bytes(mine.as_bytes())
+            .into_iter()
+            .map(|b| String::from_utf8_lossy(&b).into_owned())
+            .collect()
+    }
+
     fn sum(&mut self, mut img: Image) -> Result<Option<Image>> {
         self.c.sum_f32_to_root(img.rgba.as_flattened_mut());
         Ok((self.c.rank() == 0).then_some(img))

@@ -578,6 +578,11 @@ impl RenderCmd {
         &self.backend
     }
 
+    /// The store drawn (what the ranks of a shared render must all see).
+    pub fn store(&self) -> &std::path::Path {
+        &self.store
+    }
+
     pub fn try_parse_from(args: &[String]) -> Result<RenderCmd, clap::Error> {
         use clap::{Args as _, FromArgMatches as _};
         let cmd = RenderCmd::augment_args(clap::Command::new("render")).no_binary_name(false);
@@ -690,6 +695,18 @@ macro_rules! say_err {
     ($silent:expr, $($t:tt)*) => {
         if !$silent {
             eprintln!($($t)*);
+        }
+    };
+}
+
+/// A line of text about a shared render: on stdout, or with `--json` (whose
+/// stdout holds JSON lines only) on stderr.
+macro_rules! say_text {
+    ($json:expr, $silent:expr, $($t:tt)*) => {
+        if $json {
+            say_err!($silent, $($t)*);
+        } else {
+            say!($silent, $($t)*);
         }
     };
 }
@@ -1774,7 +1791,8 @@ fn run_one(
             // How the split shares out the bricks drawn.
             let holding = |b: [u64; 3]| (data(b) == 1.0) as u8 as f64;
             let counts: Vec<u64> = boxes.iter().map(|r| r.load(&holding) as u64).collect();
-            say!(
+            say_text!(
+                c.json,
                 silent,
                 "regions of {} ranks, split by {}: bricks drawn {:?}",
                 boxes.len(),
@@ -1894,7 +1912,8 @@ fn run_one(
                 let out = drawn?;
                 // How long each rank drew its part (the balance).
                 let secs = sh.gather_times(out.seconds);
-                say!(
+                say_text!(
+                    c.json,
                     silent,
                     "view {v}: ranks drew their parts in {} s",
                     secs.iter()
@@ -1907,13 +1926,12 @@ fn run_one(
             _ => drawn?,
         };
         let read = s.loader().bytes_read();
-        let failures = s.failures();
+        let mut failures = s.failures().to_vec();
         // Parts of the view with no data at any level (the coarsest
         // level's bricks could not be read either): no image of the view
         // can be made; an image with holes is not written as if it were.
-        if out.unserved > 0 && !failures.is_empty() {
-            let first = &failures[0];
-            bail!(
+        let holes = match failures.first() {
+            Some(first) if out.unserved > 0 => Err(anyhow::anyhow!(
                 "view {v}: {} brick(s) could not be loaded, the coarsest level's among them, so \
                  part of the view has no data at any level ({} samples); no image written. \
                  First: level {} channel {} brick {:?}: {}",
@@ -1923,7 +1941,19 @@ fn run_one(
                 first.key.channel,
                 first.key.brick,
                 first.message
-            );
+            )),
+            _ => Ok(()),
+        };
+        let mut out = out;
+        match share.as_deref_mut() {
+            // Shared: holes in any rank's part fail every rank; the bricks
+            // the others could not load and how their parts stopped are
+            // reported by rank 0 with its own.
+            Some(sh) if shared.is_some() => {
+                sh.agree(holes)?;
+                gather_outcome(sh, &mut out.stop, &mut out.completeness, &mut failures);
+            }
+            _ => holes?,
         }
         let why = match &out.stop {
             Some(Stop::Complete) => "complete".to_string(),
@@ -2061,7 +2091,8 @@ fn run_one(
                                 .map_err(|e| anyhow::anyhow!("{e:#}")),
                         )?;
                         let secs = sh.gather_times(t.elapsed().as_secs_f64());
-                        say!(
+                        say_text!(
+                            c.json,
                             silent,
                             "view {v}: ranks accumulated their regions in {} s",
                             secs.iter()
@@ -2082,7 +2113,8 @@ fn run_one(
             (Some(Split::Data), Some(sh)) => {
                 let (img, ms) =
                     sh.composite(img, mode == RenderMode::Mip, order_eye(&cam, extent))?;
-                say!(
+                say_text!(
+                    c.json,
                     silent,
                     "view {v}: composited {} ranks ({}) in {ms:.1} ms",
                     sh.size(),
@@ -2500,6 +2532,94 @@ fn order_eye(cam: &Camera, extent: [f64; 3]) -> [f64; 3] {
             [0, 1, 2].map(|a| cam.target[a] - d[a] / len * far)
         }
         _ => cam.eye,
+    }
+}
+
+/// Shared: the buffers the ranks' images meet through, beyond a frame's
+/// own images, in pixels of the images' share of the budget
+/// ([`crate::memory::IMAGE_BYTES_PER_PIXEL`] each) for images of `pixels`
+/// pixels. Direct send holds every rank's piece of this rank's span (a
+/// whole image's worth) and their composite; binary swap at most half an
+/// image received at once; rank 0 gathers the whole image; the sum of
+/// image-parallel parts goes through pieces of at most 16 MiB. Rank 0's
+/// (the most), on every rank: every rank's pool is the same.
+fn exchange_pixels(shared: Option<Split>, ranks: usize, pixels: u64) -> u64 {
+    const RGBA: u64 = 16;
+    let bytes = match shared {
+        _ if ranks < 2 => 0,
+        Some(Split::Data) if ranks.is_power_of_two() => pixels * (RGBA / 2 + RGBA),
+        Some(Split::Data) => pixels * RGBA + (pixels * RGBA).div_ceil(ranks as u64) + pixels * RGBA,
+        Some(Split::Image) => (pixels * RGBA).min(16 << 20),
+        None => 0,
+    };
+    bytes.div_ceil(crate::memory::IMAGE_BYTES_PER_PIXEL)
+}
+
+/// Shared: every rank's failed bricks and how its part of a view stopped,
+/// gathered on rank 0 (collective): rank 0's `failures` gain the others'
+/// (each brick once), its `stop` becomes the least complete of the ranks'
+/// (stopped by --max-frames, then for want of progress, then complete but
+/// for failed bricks) and its `completeness` the lowest. The other ranks'
+/// are left as they are (they print nothing).
+fn gather_outcome(
+    sh: &mut dyn Share,
+    stop: &mut Option<Stop>,
+    completeness: &mut f64,
+    failures: &mut Vec<brickyard_cache::loader::LoadFailure>,
+) {
+    let code = |s: &Option<Stop>| match s {
+        Some(Stop::Complete) => 0u64,
+        Some(Stop::CompleteButFailed) => 1,
+        Some(Stop::NoProgress) => 2,
+        None => 3,
+    };
+    let mine = serde_json::json!({
+        "stop": code(stop),
+        "completeness": *completeness,
+        "failures": failures.iter().map(|f| serde_json::json!([
+            f.key.level, f.key.channel, f.key.brick, f.io, f.message
+        ])).collect::<Vec<_>>(),
+    });
+    let all = sh.gather_text(mine.to_string());
+    let mut worst = code(stop);
+    for (r, text) in all.iter().enumerate().skip(1) {
+        let Ok(j) = serde_json::from_str::<serde_json::Value>(text) else {
+            // (Cannot happen: every rank sends what it made above.)
+            eprintln!("warning: rank {r}: unreadable report of its part: {text:?}");
+            continue;
+        };
+        worst = worst.max(j["stop"].as_u64().unwrap_or(3));
+        if let Some(c) = j["completeness"].as_f64() {
+            *completeness = completeness.min(c);
+        }
+        for f in j["failures"].as_array().into_iter().flatten() {
+            let brick: Option<Vec<u32>> = f[2]
+                .as_array()
+                .map(|b| b.iter().map(|x| x.as_u64().unwrap_or(0) as u32).collect());
+            let key = brickyard_cache::brick::BrickKey {
+                level: f[0].as_u64().unwrap_or(0) as u8,
+                channel: f[1].as_u64().unwrap_or(0) as u16,
+                brick: match brick.as_deref() {
+                    Some(&[z, y, x]) => [z, y, x],
+                    _ => [0; 3],
+                },
+            };
+            if failures.iter().all(|g| g.key != key) {
+                failures.push(brickyard_cache::loader::LoadFailure {
+                    key,
+                    message: f[4].as_str().unwrap_or_default().to_string(),
+                    io: f[3].as_bool().unwrap_or(false),
+                });
+            }
+        }
+    }
+    if !all.is_empty() {
+        *stop = match worst {
+            0 => Some(Stop::Complete),
+            1 => Some(Stop::CompleteButFailed),
+            2 => Some(Stop::NoProgress),
+            _ => None,
+        };
     }
 }
 

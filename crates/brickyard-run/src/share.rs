@@ -42,6 +42,9 @@ pub trait Share {
     /// Every rank's `mine` (a time, say), in rank order, on rank 0; empty
     /// on the others.
     fn gather_times(&mut self, mine: f64) -> Vec<f64>;
+    /// Every rank's `mine` (how its part of a view went, say), in rank
+    /// order, on rank 0; empty on the others.
+    fn gather_text(&mut self, mine: String) -> Vec<String>;
     /// Image-parallel: the sum of the ranks' images, on rank 0.
     fn sum(&mut self, img: Image) -> Result<Option<Image>>;
     /// Data-parallel: the k-d split of the grid of `bricks` level-0

@@ -545,7 +545,12 @@ fn main() {
         None
     };
     let (rank, size) = dist::rank_size(cluster.as_ref());
-    let code = match run(cli.cmd, cluster.as_ref()) {
+    let result = match cluster.as_ref() {
+        #[cfg(feature = "mpi")]
+        Some(c) if size > 1 => run_ranks(cli.cmd, c),
+        _ => run(cli.cmd, cluster.as_ref()),
+    };
+    let code = match result {
         Ok(()) => EXIT_STATUS.load(std::sync::atomic::Ordering::SeqCst),
         Err(e) => {
             // What every rank agreed on is said once, by rank 0; a rank's
@@ -578,6 +583,79 @@ fn main() {
     #[cfg(feature = "mpi")]
     drop(cluster);
     std::process::exit(code);
+}
+
+/// A command under `mpirun` with several ranks. Every rank must be given
+/// the same command and see the same inputs (checked first, an error every
+/// rank agrees on); commands that share no work are refused. A rank's own
+/// failure or panic (not one the ranks agreed on at a meeting point) must
+/// not end in `MPI_Finalize`, which would wait for ranks that wait for this
+/// one: [`brickyard_dist::Cluster::fail_alone`] ends the job, or, when
+/// every rank failed alike, lets rank 0 say it once.
+#[cfg(feature = "mpi")]
+fn run_ranks(cmd: Cmd, c: &dist::Cluster) -> Result<()> {
+    use brickyard_dist::{cluster::input_identity, Agreed};
+    let args: Vec<String> = std::env::args_os()
+        .skip(1)
+        .map(|a| a.to_string_lossy().into_owned())
+        .collect();
+    let inputs: Vec<PathBuf> = match &cmd {
+        Cmd::Convert(cv) => cv.paths.split_last().map_or(vec![], |(_, i)| i.to_vec()),
+        Cmd::Render(r) => vec![r.store().to_path_buf()],
+        _ => vec![],
+    };
+    let seen: Vec<(String, String)> = inputs
+        .iter()
+        .map(|p| (p.display().to_string(), input_identity(p)))
+        .collect();
+    c.check_same_command(&args, &seen).map_err(Agreed)?;
+    let alone = match &cmd {
+        Cmd::Convert(_) | Cmd::Render(_) => None,
+        Cmd::Generate { output, .. }
+            if [".zarr", ".zarr/"]
+                .iter()
+                .any(|e| output.to_string_lossy().ends_with(e)) =>
+        {
+            None
+        }
+        Cmd::Generate { .. } => Some("generate (of a raw file)"),
+        Cmd::Process(_) => Some("process"),
+        Cmd::Info { .. } => Some("info"),
+        Cmd::Demo { .. } => Some("demo"),
+        Cmd::View(_) => Some("view"),
+        Cmd::Bench(_) => Some("bench"),
+        Cmd::Serve(_) => Some("serve"),
+        Cmd::Vm(_) => Some("vm"),
+    };
+    if let Some(name) = alone {
+        // The same on every rank (the same command): said once by rank 0.
+        return Err(Agreed(format!(
+            "{name} runs in one process and shares no work among MPI ranks: each of the {} \
+             ranks would run it whole (racing for its output). Run it without mpirun, or with \
+             mpirun -n 1; convert, generate (of a store) and render share their work",
+            dist::rank_size(Some(c)).1
+        ))
+        .into());
+    }
+    let r = std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| {
+        c.fail_at_start()?;
+        run(cmd, Some(c))
+    }));
+    let msg = match r {
+        Ok(Ok(())) => return Ok(()),
+        Ok(Err(e)) if dist::agreed(&e) => return Err(e),
+        Ok(Err(e)) => format!("{e:#}"),
+        Err(p) => {
+            let what = p
+                .downcast_ref::<&str>()
+                .map(|s| s.to_string())
+                .or_else(|| p.downcast_ref::<String>().cloned())
+                .unwrap_or_else(|| "(no message)".into());
+            format!("panicked: {what}")
+        }
+    };
+    // Returns only when every rank failed so: then rank 0 says it, once.
+    Err(Agreed(c.fail_alone(&msg)).into())
 }
 
 /// The exit status of a command that ended without an error (0 unless it
@@ -847,7 +925,21 @@ fn run(cmd: Cmd, cluster: Option<&dist::Cluster>) -> Result<()> {
                 let mut share = RenderShare::new(c, split).bands_per_rank(per_rank);
                 render::run_shared(*r, Some(&mut share)).map(degraded)
             }
-            _ => render::run(*r).map(degraded),
+            _ => {
+                // An MPI build run alone: --distribute has no ranks to share with.
+                #[cfg(feature = "mpi")]
+                if let Some(d) = r
+                    .distribute
+                    .as_deref()
+                    .filter(|d| ["image", "data"].contains(d))
+                {
+                    eprintln!(
+                        "note: --distribute {d} shares a render among the processes mpirun \
+                         starts; this process runs alone and draws the whole image"
+                    );
+                }
+                render::run(*r).map(degraded)
+            }
         },
         Cmd::View(v) => {
             let code = view::run(v, || demo_store(Path::new("brickyard-demo"), "384"))?;

@@ -120,3 +120,41 @@ fn distribute_flags_on_one_process() {
     );
     assert!(!err.contains("panicked"), "{err}");
 }
+
+/// An MPI build run without mpirun: `--distribute` has no ranks to share
+/// with, and says so (a build without MPI refuses the flag).
+#[cfg(feature = "mpi")]
+#[test]
+fn distribute_alone_says_it_shares_nothing() {
+    let dir = tempfile::tempdir().unwrap();
+    let store = dir.path().join("g.ome.zarr");
+    ok(&run(&[
+        "generate",
+        "mandelbulb",
+        s(&store),
+        "--size",
+        "32",
+        "--brick",
+        "16",
+        "--shard",
+        "32",
+        "--quiet",
+    ]));
+    let o = run(&[
+        "render",
+        s(&store),
+        "--distribute",
+        "data",
+        "--size",
+        "32x32",
+        "--quiet",
+        "--out",
+        s(&dir.path().join("x.png")),
+    ]);
+    ok(&o);
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(
+        err.contains("note: --distribute data shares a render among the processes mpirun starts"),
+        "{err}"
+    );
+}

@@ -1029,3 +1029,365 @@ fn device_ranks_equal_one_process() {
     assert!(!err.contains("panicked"), "{err}");
     assert!(!dir.path().join("x.png").exists());
 }
+
+/// An MPMD job, `mpirun -n 1 brickyard A : -n 1 brickyard B : …`, ended
+/// by `timeout` after `secs` seconds: its output, and whether it ran past
+/// that bound (a hang).
+fn mpirun_mpmd(parts: &[Vec<&str>], env: &[(&str, &str)], secs: u32) -> (Output, bool) {
+    let _one = MPIRUN.lock().unwrap_or_else(|e| e.into_inner());
+    let mut c = Command::new("timeout");
+    c.args(["-k", "10", &secs.to_string(), "mpirun", "--oversubscribe"]);
+    for (i, p) in parts.iter().enumerate() {
+        if i > 0 {
+            c.arg(":");
+        }
+        c.args(["-n", "1", bin()]).args(p);
+    }
+    c.env("OMPI_ALLOW_RUN_AS_ROOT", "1")
+        .env("OMPI_ALLOW_RUN_AS_ROOT_CONFIRM", "1")
+        .env("OMPI_MCA_rmaps_base_oversubscribe", "1")
+        .env("OMPI_MCA_btl_vader_single_copy_mechanism", "none");
+    for (k, v) in env {
+        c.env(k, v);
+    }
+    let o = c.output().unwrap();
+    let hung = matches!(o.status.code(), Some(124) | Some(137) | None);
+    (o, hung)
+}
+
+/// `n` ranks of one command, bounded as [`mpirun_mpmd`].
+fn mpirun_bounded(n: usize, args: &[&str], env: &[(&str, &str)], secs: u32) -> (Output, bool) {
+    mpirun_mpmd(&vec![args.to_vec(); n], env, secs)
+}
+
+/// A failure on one rank that the others do not hear of (not at a meeting
+/// point: before the ranks meet, or a panic) ends the whole job within a
+/// bound, with a failure status, naming the rank; a conversion so ended
+/// leaves nothing that looks complete, and the next run takes over its
+/// stale lock. When every rank fails alike before they meet, rank 0 says
+/// it once and the job ends cleanly (no MPI_Abort).
+#[test]
+fn a_rank_failing_alone_ends_the_job() {
+    if !have_mpirun() {
+        return;
+    }
+    let dir = tempfile::tempdir().unwrap();
+    let raw = dir.path().join("m.raw");
+    generate(&raw, &["--size", "64x48x40", "--dtype", "u8"]);
+    let out = dir.path().join("h.ome.zarr");
+    let conv = [
+        "convert",
+        s(&raw),
+        s(&out),
+        "--brick",
+        "16",
+        "--shard",
+        "32",
+        "--quiet",
+    ];
+    for how in ["error", "panic"] {
+        let t = std::time::Instant::now();
+        let (o, hung) = mpirun_bounded(
+            3,
+            &conv,
+            &[("BRICKYARD_MPI_FAIL", &format!("1:0:{how}"))],
+            120,
+        );
+        let err = String::from_utf8_lossy(&o.stderr);
+        assert!(!hung, "convert, rank 1 {how}: the job hung\n{err}");
+        assert!(!o.status.success(), "convert, rank 1 {how}: {err}");
+        let want = match how {
+            "error" => "rank 1: injected failure at the start",
+            _ => "rank 1: panicked: injected panic at the start",
+        };
+        assert!(err.contains(want), "{err}");
+        assert!(t.elapsed().as_secs() < 60, "{:?}", t.elapsed());
+        assert!(!out.exists(), "a store that looks complete");
+        let partial = dir.path().join("h.ome.zarr.partial");
+        if partial.join("zarr.json").exists() {
+            assert_eq!(run(&["info", s(&partial)]).status.code(), Some(2));
+        }
+    }
+    // The next run takes over what the aborted one left.
+    ok(&mpirun(2, &conv, &[]), "convert after an aborted one");
+    assert!(out.join("zarr.json").exists());
+    // A render: rank 2 panics before the ranks meet.
+    for split in ["image", "data"] {
+        let png = dir.path().join(format!("{split}.png"));
+        let (o, hung) = mpirun_bounded(
+            3,
+            &[
+                "render",
+                s(&out),
+                "--distribute",
+                split,
+                "--size",
+                "48x40",
+                "--out",
+                s(&png),
+                "--quiet",
+            ],
+            &[("BRICKYARD_MPI_FAIL", "2:0:panic")],
+            120,
+        );
+        let err = String::from_utf8_lossy(&o.stderr);
+        assert!(!hung, "render {split}: the job hung\n{err}");
+        assert!(!o.status.success(), "{split}: {err}");
+        assert!(
+            err.contains("rank 2: panicked: injected panic"),
+            "{split}: {err}"
+        );
+        assert!(!png.exists(), "{split}: an image was written");
+    }
+    // The trial's hang: one rank names an input that is not there.
+    let elsewhere = dir.path().join("elsewhere/m.raw");
+    let out2 = dir.path().join("h2.ome.zarr");
+    let a = |input: &Path| -> Vec<String> {
+        [
+            "convert",
+            s(input),
+            s(&out2),
+            "--brick",
+            "16",
+            "--shard",
+            "32",
+            "--quiet",
+        ]
+        .iter()
+        .map(|x| x.to_string())
+        .collect()
+    };
+    let (a0, a1) = (a(&raw), a(&elsewhere));
+    let (o, hung) = mpirun_mpmd(
+        &[
+            a0.iter().map(|x| x.as_str()).collect(),
+            a1.iter().map(|x| x.as_str()).collect(),
+        ],
+        &[],
+        120,
+    );
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(!hung, "the job hung\n{err}");
+    assert!(!o.status.success(), "{err}");
+    assert_eq!(
+        err.matches("not given the same command").count(),
+        1,
+        "{err}"
+    );
+    assert!(
+        err.contains("rank 0 ran `convert") && err.contains("rank 1 ran `convert"),
+        "{err}"
+    );
+    assert!(!out2.exists() && !dir.path().join("h2.ome.zarr.partial").exists());
+    // Every rank fails alike before the ranks meet: said once, cleanly.
+    let (o, hung) = mpirun_bounded(
+        3,
+        &[
+            "render",
+            s(&out),
+            "--distribute",
+            "data",
+            "--size",
+            "0x0",
+            "--out",
+            s(&dir.path().join("z.png")),
+        ],
+        &[],
+        120,
+    );
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(!hung && !o.status.success(), "{err}");
+    assert_eq!(err.matches("error:").count(), 1, "{err}");
+    assert!(!err.contains("rank "), "{err}");
+    assert!(!err.contains("MPI_ABORT"), "{err}");
+}
+
+/// Ranks given different arguments (an MPMD job) stop before they draw or
+/// write anything: an error every rank agrees on, said once, naming the
+/// ranks; a command that shares no work is refused under mpirun.
+#[test]
+fn ranks_must_run_the_same_command() {
+    if !have_mpirun() {
+        return;
+    }
+    let dir = tempfile::tempdir().unwrap();
+    let store = dir.path().join("g.ome.zarr");
+    generate(&store, &["--size", "64", "--brick", "32", "--shard", "64"]);
+    let png = dir.path().join("x.png");
+    let r = |size: &'static str, split: &'static str| -> Vec<String> {
+        [
+            "render",
+            s(&store),
+            "--distribute",
+            split,
+            "--size",
+            size,
+            "--out",
+            s(&png),
+            "--quiet",
+        ]
+        .iter()
+        .map(|x| x.to_string())
+        .collect()
+    };
+    for (a, b, c) in [
+        (r("64", "data"), r("64", "data"), r("32", "data")),
+        (r("64", "image"), r("64", "data"), r("64", "image")),
+    ] {
+        let parts: Vec<Vec<&str>> = [&a, &b, &c]
+            .iter()
+            .map(|v| v.iter().map(|x| x.as_str()).collect())
+            .collect();
+        let (o, hung) = mpirun_mpmd(&parts, &[], 120);
+        let err = String::from_utf8_lossy(&o.stderr);
+        assert!(!hung, "the job hung\n{err}");
+        assert!(!o.status.success(), "{err}");
+        assert_eq!(
+            err.matches("not given the same command").count(),
+            1,
+            "{err}"
+        );
+        assert!(
+            err.contains("ranks 0, 1 ran `render") || err.contains("ranks 0, 2 ran `render"),
+            "{err}"
+        );
+        assert!(!png.exists());
+    }
+    // convert against render: no hang either.
+    let parts = vec![
+        vec!["info", s(&store)],
+        vec!["render", s(&store), "--out", s(&png)],
+    ];
+    let (o, hung) = mpirun_mpmd(&parts, &[], 120);
+    assert!(!hung && !o.status.success());
+    for args in [
+        vec!["info", s(&store)],
+        vec![
+            "generate",
+            "mandelbulb",
+            s(&dir.path().join("m.raw")),
+            "--size",
+            "16",
+        ],
+    ] {
+        let (o, hung) = mpirun_bounded(2, &args, &[], 120);
+        let err = String::from_utf8_lossy(&o.stderr);
+        assert!(!hung && !o.status.success(), "{args:?}: {err}");
+        assert_eq!(
+            err.matches("shares no work among MPI ranks").count(),
+            1,
+            "{err}"
+        );
+    }
+}
+
+/// Bricks that ranks other than 0 could not load are reported by rank 0
+/// as one process reports its own, with exit status 3 (level 0 drawn). The volume, longer
+/// in x, is split in x between 2 ranks (uniform weights): a damaged shard
+/// at either end of x is read by rank 0 in one run and by rank 1 in the
+/// other.
+#[test]
+fn failures_on_every_rank_are_reported() {
+    if !have_mpirun() {
+        return;
+    }
+    let dir = tempfile::tempdir().unwrap();
+    let clean = dir.path().join("c.ome.zarr");
+    generate(
+        &clean,
+        &["--size", "128x64x64", "--brick", "16", "--shard", "32"],
+    );
+    for x in [0, 3] {
+        let store = dir.path().join(format!("d{x}.ome.zarr"));
+        let o = Command::new("cp")
+            .args(["-r", s(&clean), s(&store)])
+            .output()
+            .unwrap();
+        ok(&o, "cp");
+        // Every level-0 shard at this x, damaged in its middle.
+        let mut damaged = 0;
+        for z in 0..2 {
+            for y in 0..2 {
+                let f = store.join(format!("0/c/{z}/{y}/{x}"));
+                let Ok(mut b) = std::fs::read(&f) else {
+                    continue;
+                };
+                let mid = b.len() / 3;
+                let end = (mid + 2000).min(b.len() - 1);
+                b[mid..end].fill(b'Z');
+                std::fs::write(&f, b).unwrap();
+                damaged += 1;
+            }
+        }
+        assert!(damaged > 0, "no shard at x {x}");
+        for split in ["data", "image"] {
+            let png = dir.path().join(format!("d{x}-{split}.png"));
+            let o = mpirun(
+                2,
+                &[
+                    "render",
+                    s(&store),
+                    "--distribute",
+                    split,
+                    "--region-weights",
+                    "uniform",
+                    "--size",
+                    "96x64",
+                    "--level",
+                    "0",
+                    "--out",
+                    s(&png),
+                ],
+                &[],
+            );
+            let (out, err) = (
+                String::from_utf8_lossy(&o.stdout),
+                String::from_utf8_lossy(&o.stderr),
+            );
+            assert_eq!(o.status.code(), Some(3), "x {x}, {split}: {out}\n{err}");
+            assert!(
+                out.contains("could not load level 0"),
+                "x {x}, {split}: {out}"
+            );
+            assert!(err.contains("exit status 3"), "x {x}, {split}: {err}");
+        }
+    }
+}
+
+/// With --json, standard output holds JSON lines only under mpirun too.
+#[test]
+fn json_output_of_shared_renders_is_json() {
+    if !have_mpirun() {
+        return;
+    }
+    let dir = tempfile::tempdir().unwrap();
+    let store = dir.path().join("g.ome.zarr");
+    generate(&store, &["--size", "64", "--brick", "32", "--shard", "64"]);
+    for (n, split) in [(3, "data"), (2, "data"), (2, "image")] {
+        let png = dir.path().join(format!("{split}{n}.png"));
+        let o = mpirun(
+            n,
+            &[
+                "render",
+                s(&store),
+                "--distribute",
+                split,
+                "--size",
+                "64x48",
+                "--json",
+                "--out",
+                s(&png),
+            ],
+            &[],
+        );
+        ok(&o, &format!("{split} on {n} ranks"));
+        let out = String::from_utf8_lossy(&o.stdout);
+        assert!(out.lines().count() > 1, "{out}");
+        for l in out.lines() {
+            assert!(
+                serde_json::from_str::<serde_json::Value>(l).is_ok(),
+                "{split} on {n} ranks: not JSON: {l:?}"
+            );
+        }
+    }
+}
