@@ -519,6 +519,10 @@ fn run_convert(
     // them: refused without `labels`; without geometry of their own, on
     // the image's grid, they take the image's.
     let group = brickyard_run::labels::label_target(dst, opts.labels).map_err(to_py)?;
+    // A label image that cannot be one (several channels, float voxels):
+    // refused before its labels group is made.
+    brickyard_store::builder::check_labels(dst, src.meta(), opts.labels)
+        .map_err(|e| to_py(e.into()))?;
     let mut opts = opts.clone();
     if let Some(g) = &group {
         if opts.spacing.is_none() && opts.origin.is_none() && opts.unit.is_none() {

@@ -153,7 +153,8 @@ def test_messages_name_python_keywords(store, tmp_path):
     assert str(e.value).endswith("; raise memory= or lower pool=/host= or draw a smaller image"), e.value
     with pytest.raises(ValueError) as e:
         brickyard.render(store, channel=[0], channel_tf={1: "hot"}, backend="cpu")
-    assert str(e.value) == "channel-tf: channel 1 is not shown (give it with channel=)"
+    assert str(e.value) == ("channel-tf: transfer functions per channel are for dvr of several channels; this "
+                            "store has one channel: give its transfer function with tf="), e.value
     with pytest.raises(ValueError) as e:
         brickyard.render(store, derive="gauss(1)", channel=[0, 0], backend="cpu")
     assert str(e.value) == "derive: a derived channel is computed from one channel; give at most one channel="

@@ -307,3 +307,21 @@ def test_labels_from_numpy_into_an_image_are_published_with_their_table(tmp_path
         want = [counts[lab], zz.min(), yy.min(), xx.min(), zz.max(), yy.max(), xx.max()]
         assert [int(v) for v in rows[lab][1:8]] == want, lab
         assert abs(float(rows[lab][11]) - means[k]) <= 1e-9 * means[k]
+
+
+def test_a_label_image_of_several_channels_is_refused_before_anything_is_written(tmp_path):
+    """A label image has one channel: from_numpy(labels=True) of a (c, z, y,
+    x) array with c > 1 is refused, with or without geometry given, and
+    leaves no labels group behind; float labels likewise."""
+    img = volume((8, 9, 10), "uint16", seed=4)
+    store = tmp_path / "img.ome.zarr"
+    brickyard.from_numpy(img, store, brick=8, progress=False)
+    two = np.stack([img.astype(np.uint32), img.astype(np.uint32)])
+    for kw in (dict(), dict(spacing=(1.0, 1.0, 1.0))):
+        with pytest.raises(ValueError, match="one channel"):
+            brickyard.from_numpy(two, store / "labels" / "two", labels=True, brick=8, progress=False, **kw)
+        assert not (store / "labels").exists()
+    with pytest.raises(ValueError, match="integers"):
+        brickyard.from_numpy(img.astype(np.float32), store / "labels" / "f", labels=True, brick=8,
+                             progress=False, spacing=(1.0, 1.0, 1.0))
+    assert not (store / "labels").exists()

@@ -56,7 +56,7 @@ def test_url_reads_equal_local_reads(served):
 
 def test_url_renders_as_local(served):
     _, local, url = served
-    kw = dict(mode="mip", backend="cpu", size=(48, 40), tf="hot")
+    kw = dict(mode="mip", backend="cpu", size=(48, 40), channel=["0:red", "1:green"])
     np.testing.assert_array_equal(brickyard.render(url, **kw), brickyard.render(local, **kw))
 
 

@@ -1453,23 +1453,6 @@ fn run_one(
     for (st, arg) in styles.iter().zip(&channel_args) {
         once(&mut per_channel_seen, "channel", st.channel, arg)?;
     }
-    // Per-channel settings are for several channels: a store of one says
-    // what to give instead (it was told to show the channel, then that one
-    // channel goes through --tf).
-    if m.channels == 1 && derived.is_none() {
-        if !c.channel_tfs.is_empty() {
-            bail!(
-                "channel-tf: transfer functions per channel are for dvr of several channels; \
-                 this store has one channel: give its transfer function with --tf"
-            );
-        }
-        if !c.channel_levels.is_empty() {
-            bail!(
-                "channel-levels: level ranges per channel are for dvr of several channels; this \
-                 store has one channel: give its level with --level"
-            );
-        }
-    }
     for t in &c.channel_tfs {
         let (ch, spec) = t
             .split_once('=')
@@ -1480,6 +1463,12 @@ fn run_one(
             .with_context(|| format!("channel-tf: {ch:?} in {t:?} is not a channel number"))?;
         once(&mut per_channel_seen, "channel-tf", ch, t)?;
         let Some(st) = styles.iter_mut().find(|s| s.channel == ch) else {
+            if m.channels == 1 {
+                bail!(
+                    "channel-tf: transfer functions per channel are for dvr of several \
+                     channels; this store has one channel: give its transfer function with --tf"
+                );
+            }
             bail!(
                 "channel-tf: channel {ch} is not shown (give it with --channel, beside at least \
                  one other: one channel goes through --tf)"
@@ -1492,6 +1481,12 @@ fn run_one(
         let (ch, range) = parse_channel_levels(t, info.levels.len())?;
         once(&mut per_channel_seen, "channel-levels", ch, t)?;
         let Some(st) = styles.iter_mut().find(|s| s.channel == ch) else {
+            if m.channels == 1 {
+                bail!(
+                    "channel-levels: level ranges per channel are for dvr of several channels; \
+                     this store has one channel: give its level with --level"
+                );
+            }
             bail!(
                 "channel-levels: channel {ch} is not shown (give it with --channel, beside at \
                  least one other: one channel is drawn at --level)"

@@ -1454,7 +1454,7 @@ fn bad_label_overlays_give_clear_errors() {
     fails(&["--label-opacity", "0.3"], &["applies with --labels"]);
     fails(
         &["--labels", "cells", "--only-labels", "4294967295"],
-        &["only-labels", "labels from -2147483648 to 2147483647"],
+        &["only-labels", "labels from -16777216 to 16777216 (2^24)"],
     );
     // A selection of the labels is refused before the image under them
     // is drawn (it used to be checked once the image was done).
@@ -1500,7 +1500,7 @@ fn bad_label_overlays_give_clear_errors() {
         "--labels",
         "cells",
         "--only-labels",
-        "1,2000000000",
+        "1,2000000",
     ]);
     let err = String::from_utf8_lossy(&o.stderr);
     assert!(o.status.success(), "{err}");
