@@ -77,6 +77,9 @@ pub fn inherited_geometry(
     group: &Path,
     labels: &brickyard_store::SourceMeta,
 ) -> Result<Option<Geometry>> {
+    // (A label image that cannot be one is refused before its group is
+    // made.)
+    brickyard_store::builder::check_labels(group, labels, true)?;
     let image = group.parent().unwrap_or(group);
     let im = zarr::open(image, 0)?.meta().clone();
     let plain = labels.spacing.is_none() && labels.origin.is_none();

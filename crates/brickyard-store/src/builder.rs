@@ -489,6 +489,45 @@ pub fn least_budget(start: u64, mut fits: impl FnMut(u64) -> bool) -> u64 {
     hi
 }
 
+/// Refuse, before anything is written, a conversion into `output` of a
+/// source described by `meta` as labels (`labels`: asked for, as
+/// `--labels` does; or the source says so) that cannot be a label image:
+/// float voxels (labels are integer ids; only when asked for) or more than
+/// one channel (a label image holds one object id per voxel).
+pub fn check_labels(output: &Path, meta: &SourceMeta, labels: bool) -> Result<()> {
+    if labels && meta.dtype.is_float() {
+        // Labels are integers (OME-Zarr's image-label); the mode of
+        // float voxels would stand in for no object.
+        return Err(StoreError::invalid(
+            output,
+            "labels",
+            format!(
+                "a label volume holds integers, this one holds {}: convert it without --labels",
+                meta.dtype
+            ),
+        ));
+    }
+    if (labels || meta.labels) && meta.channels > 1 {
+        // Its readers (render --labels, the label statistics) take one
+        // channel: a label image of several would be written, listed,
+        // and then refused by each of them.
+        let why = match labels {
+            true => "",
+            false => " (its input marks it as labels)",
+        };
+        return Err(StoreError::invalid(
+            output,
+            "labels",
+            format!(
+                "a label image has one channel (one object id per voxel), and this volume has \
+                 {} channels{why}: convert each channel as a label image of its own",
+                meta.channels
+            ),
+        ));
+    }
+    Ok(())
+}
+
 /// Convert `src` into an OME-Zarr 0.5 pyramid at `output`. The volume is
 /// treated as labels when `opts.labels` is set or the source says so
 /// ([`SourceMeta::labels`](crate::SourceMeta::labels)).
@@ -519,18 +558,7 @@ pub fn convert_team(
     // A failure of any rank at a meeting point, as this rank's error.
     let team_err = |e: String| StoreError::Team(e);
     let meta = src.meta().clone();
-    if opts.labels && meta.dtype.is_float() {
-        // Labels are integers (OME-Zarr's image-label); the mode of
-        // float voxels would stand in for no object.
-        return Err(StoreError::invalid(
-            output,
-            "labels",
-            format!(
-                "a label volume holds integers, this one holds {}: convert it without --labels",
-                meta.dtype
-            ),
-        ));
-    }
+    check_labels(output, &meta, opts.labels)?;
     let with_labels;
     let opts = if meta.labels && !opts.labels {
         with_labels = ConvertOptions {
@@ -742,6 +770,12 @@ pub fn convert_team(
                 .unwrap_or_else(|| format!("channel {i}"))
         })
         .collect();
+    // How the channels are shown, where the source says (a store's
+    // `omero`): kept; defaults for the rest.
+    let display: Vec<crate::ChannelDisplay> = match meta.channel_display.len() == c {
+        true => meta.channel_display.clone(),
+        false => vec![],
+    };
     let root = |complete: bool, omero: Option<Value>| {
         let mut ome = json!({"version": "0.5", "multiscales": multiscales_json(&levels, c, unit.as_deref(), &name, opts.labels)});
         if let Some(o) = omero {
@@ -967,7 +1001,7 @@ pub fn convert_team(
     team.broadcast(&mut sums);
     let bytes_written = sums[0];
     let finished = if root_rank {
-        finish_store(&partial, output, &outs, c, &labels, &root)
+        finish_store(&partial, output, &outs, c, (&labels, &display), &root)
     } else {
         Ok(())
     };
@@ -1023,7 +1057,7 @@ fn finish_store(
     output: &Path,
     outs: &[LevelOut],
     c: usize,
-    labels: &[String],
+    (labels, display): (&[String], &[crate::ChannelDisplay]),
     root: &dyn Fn(bool, Option<Value>) -> Value,
 ) -> Result<()> {
     write_stats(partial, outs, c)?;
@@ -1046,7 +1080,7 @@ fn finish_store(
     };
     write_json(
         &partial.join("zarr.json"),
-        &root(true, Some(omero_json(labels, &ranges))),
+        &root(true, Some(omero_json(labels, &ranges, display))),
     )?;
     // Swap into place: the old output (if any) is removed only after the new
     // one is complete.

@@ -48,6 +48,19 @@ pub struct BrickSummary {
     pub max: f64,
 }
 
+/// One channel as the store's `omero` metadata describes it (fields it
+/// leaves out take the readers' defaults: white, active).
+#[derive(Debug, Clone, Serialize)]
+pub struct ChannelInfo {
+    pub index: usize,
+    pub label: String,
+    /// `RRGGBB`.
+    pub color: String,
+    /// `[start, end]`: the values shown from black to full colour.
+    pub window: Option<[f64; 2]>,
+    pub active: bool,
+}
+
 /// Summary of a store.
 #[derive(Debug, Clone, Serialize)]
 pub struct StoreInfo {
@@ -69,6 +82,9 @@ pub struct StoreInfo {
     /// stores: the root attribute `brickyard.source_notes`).
     pub source_notes: Vec<String>,
     pub levels: Vec<LevelInfo>,
+    /// The channels as the store's OME `omero` metadata describes them
+    /// (empty where it has none).
+    pub channels: Vec<ChannelInfo>,
     /// Images written into the store by processing (`labels/NAME`,
     /// `derived/NAME`): path inside the store and a one-line summary.
     pub inner_images: Vec<(String, String)>,
@@ -284,6 +300,7 @@ pub fn inspect(path: &Path) -> Result<StoreInfo> {
         label_image: false,
         source_notes: vec![],
         levels: vec![],
+        channels: vec![],
         inner_images: vec![],
         problems: vec![],
     };
@@ -322,7 +339,7 @@ pub fn inspect(path: &Path) -> Result<StoreInfo> {
             if is_plain_group(path) {
                 // A plain group (such as a store's `labels/`): the images
                 // in it, no levels of its own.
-                info.inner_images = child_images(path);
+                info.inner_images = child_images(path, &mut problems);
                 if info.inner_images.is_empty() && !storage::is_remote(path) {
                     problems.push("a Zarr group with no multiscale image in it".into());
                 }
@@ -378,6 +395,25 @@ pub fn inspect(path: &Path) -> Result<StoreInfo> {
             "INCOMPLETE: the conversion that wrote this store did not finish: {why}"
         ));
     }
+    if ms.is_some() {
+        match crate::omezarr::read_omero(path) {
+            Ok(Some(chs)) => {
+                info.channels = chs
+                    .into_iter()
+                    .enumerate()
+                    .map(|(index, c)| ChannelInfo {
+                        index,
+                        label: c.label,
+                        color: format!("{:02X}{:02X}{:02X}", c.color[0], c.color[1], c.color[2]),
+                        window: c.window,
+                        active: c.active,
+                    })
+                    .collect()
+            }
+            Ok(None) => {}
+            Err(e) => problems.push(format!("channels: {e}")),
+        }
+    }
     info.inner_images = inner_images(path, &mut problems);
     info.problems = problems;
     Ok(info)
@@ -394,8 +430,9 @@ pub(crate) fn is_plain_group(path: &Path) -> bool {
     }
 }
 
-/// The multiscale images directly inside a local group folder.
-fn child_images(path: &Path) -> Vec<(String, String)> {
+/// The multiscale images directly inside a local group folder; the
+/// leftovers of interrupted conversions among them as problems.
+fn child_images(path: &Path, problems: &mut Vec<String>) -> Vec<(String, String)> {
     let Ok(rd) = std::fs::read_dir(path) else {
         return vec![];
     };
@@ -405,13 +442,101 @@ fn child_images(path: &Path) -> Vec<(String, String)> {
         .map(|e| e.file_name().to_string_lossy().into_owned())
         .collect();
     names.sort();
+    let group = path
+        .file_name()
+        .map(|n| n.to_string_lossy().into_owned())
+        .unwrap_or_default();
     names
         .into_iter()
         .filter_map(|name| {
-            let ms = read_multiscale(&path.join(&name)).ok()??;
+            let dir = path.join(&name);
+            let ms = read_multiscale(&dir);
+            let by = ms.as_ref().ok().and_then(Option::as_ref);
+            if let Some(p) = unfinished(&group, &name, &dir, by) {
+                problems.push(p);
+                return None;
+            }
+            let ms = ms.ok()??;
             Some((name, format!("{} levels", ms.datasets.len())))
         })
         .collect()
+}
+
+/// Which command wrote the image `name` of a store's `group` (`labels`,
+/// `derived`) whose root multiscale is `ms`, and how to write it again:
+/// `process` marks its results (`brickyard.process`); a brickyard store
+/// without that mark is a conversion's (`convert`, or Python's
+/// `convert`/`from_numpy`). `None`: another writer's, or not known.
+fn writer_of(
+    group: &str,
+    name: &str,
+    ms: Option<&crate::omezarr::Multiscale>,
+) -> Option<(String, String)> {
+    let b = ms?.brickyard.as_ref()?;
+    Some(match b.get("process") {
+        Some(_) => (
+            "`brickyard process` job".to_string(),
+            "the same `brickyard process` command with --overwrite".to_string(),
+        ),
+        None => (
+            format!("conversion ({})", convert_command(group, name)),
+            "the same convert with --overwrite".to_string(),
+        ),
+    })
+}
+
+/// Who may have written the image `name` of `group` where its metadata
+/// does not say, and what to run again.
+fn either_writer(group: &str, name: &str) -> (String, String) {
+    (
+        format!(
+            "conversion ({}) or `brickyard process` job",
+            convert_command(group, name)
+        ),
+        "the command that wrote it, run again with --overwrite,".to_string(),
+    )
+}
+
+/// The conversion that writes `group/name` (`labels`: with --labels).
+fn convert_command(group: &str, name: &str) -> String {
+    let labels = match group {
+        "labels" => " --labels",
+        _ => "",
+    };
+    format!("`brickyard convert INPUT STORE/{group}/{name}{labels}`")
+}
+
+/// The problem with the image `name` in a store's `group` (at `dir`, its
+/// root multiscale `ms` where read) when it is not finished, by the one
+/// rule for completeness
+/// ([`incomplete_reason`](brickyard_core::pyramid::incomplete_reason)):
+/// what left it, and how to clean it up.
+fn unfinished(
+    group: &str,
+    name: &str,
+    dir: &Path,
+    ms: Option<&crate::omezarr::Multiscale>,
+) -> Option<String> {
+    let by = ms.and_then(|m| m.brickyard.as_ref());
+    let why = brickyard_core::pyramid::incomplete_reason(&dir.to_string_lossy(), by)?;
+    let rel = format!("{group}/{name}");
+    Some(match name.strip_suffix(".partial") {
+        // `convert` writes NAME.partial beside NAME (`process` writes
+        // hidden folders, .NAME.new.partial): a conversion's.
+        Some(target) => format!(
+            "{rel}: not an image but {why}, by {}: run that convert again with --overwrite \
+             (it starts over), or remove the folder",
+            convert_command(group, target)
+        ),
+        None => {
+            let (who, again) =
+                writer_of(group, name, ms).unwrap_or_else(|| either_writer(group, name));
+            format!(
+                "{rel}: incomplete ({why}): an interrupted {who}; {again} writes it again, or \
+                 remove the folder"
+            )
+        }
+    })
 }
 
 /// The names `labels/zarr.json` lists (OME 0.5 `ome.labels`, or 0.4
@@ -451,13 +576,6 @@ fn inner_images(path: &Path, problems: &mut Vec<String>) -> Vec<(String, String)
         // between putting the image in place and naming it (a full disk).
         for name in names {
             let rel = format!("{group}/{name}");
-            if !name.starts_with('.') && listed.as_ref().is_some_and(|l| !l.contains(&name)) {
-                problems.push(format!(
-                    "{rel}: not named in labels/zarr.json (a processing job that stopped while \
-                     publishing it?): the same `brickyard process` command with --overwrite \
-                     writes it again, or remove the folder"
-                ));
-            }
             if name.starts_with('.') {
                 problems.push(format!(
                     "{rel}: left by an interrupted processing job (the same `brickyard process` \
@@ -466,7 +584,23 @@ fn inner_images(path: &Path, problems: &mut Vec<String>) -> Vec<(String, String)
                 continue;
             }
             let dir = path.join(group).join(&name);
-            let summary = read_multiscale(&dir).map(|ms| {
+            let ms = read_multiscale(&dir);
+            let root = ms.as_ref().ok().and_then(Option::as_ref);
+            // A conversion or job that did not finish: not an image of the
+            // store, whether its group names it or not.
+            if let Some(p) = unfinished(group, &name, &dir, root) {
+                problems.push(p);
+                continue;
+            }
+            if listed.as_ref().is_some_and(|l| !l.contains(&name)) {
+                let (who, again) =
+                    writer_of(group, &name, root).unwrap_or_else(|| either_writer(group, &name));
+                problems.push(format!(
+                    "{rel}: not named in labels/zarr.json (a {who} that stopped while \
+                     publishing it?): {again} writes it again, or remove the folder"
+                ));
+            }
+            let summary = ms.map(|ms| {
                 let ms = ms?;
                 let first = ms.datasets.first()?;
                 let meta = read_json(&dir.join(&first.path).join("zarr.json")).ok()?;
@@ -562,6 +696,20 @@ pub fn format_info(i: &StoreInfo) -> String {
             })
             .collect();
         let _ = writeln!(s, "  axes: {}", ax.join(", "));
+    }
+    for c in &i.channels {
+        let window = match c.window {
+            Some([a, b]) => format!("window {a}..{b}"),
+            None => "no window (the data range)".to_string(),
+        };
+        let _ = writeln!(
+            s,
+            "  channel {} {:?}: colour {}, {window}, {}",
+            c.index,
+            c.label,
+            c.color,
+            if c.active { "active" } else { "inactive" }
+        );
     }
     for n in &i.source_notes {
         let _ = writeln!(s, "  source: {n}");

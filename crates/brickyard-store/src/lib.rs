@@ -18,4 +18,4 @@ pub mod storage;
 pub use builder::{convert, ConvertOptions, ConvertReport, NoProgress, Progress};
 pub use codec::Compression;
 pub use error::{Result, StoreError};
-pub use source::{SourceMeta, VolumeSource};
+pub use source::{ChannelDisplay, SourceMeta, VolumeSource};

@@ -3,6 +3,7 @@
 
 use crate::codec::Compression;
 use crate::error::{IoContext, Result, StoreError};
+use crate::source::ChannelDisplay;
 use brickyard_core::{DType, LevelPlan};
 use serde_json::{json, Value};
 use std::path::{Path, PathBuf};
@@ -430,30 +431,46 @@ pub struct OmeroChannel {
 
 /// The OME-Zarr `omero` block for channels named `labels` whose data
 /// ranges are `ranges` (`(min, max)`, NaN: unknown): each with its colour,
-/// and a window over its range.
-pub fn omero_json(labels: &[String], ranges: &[(f64, f64)]) -> Value {
+/// its window and whether it is active, as `display` says where it has an
+/// entry for the channel (a source's `omero`), else the defaults: white
+/// for one channel, [`CHANNEL_COLORS`] in turn for several, a window over
+/// the data range, active. A window's `min`/`max` span the data range and
+/// the window.
+pub fn omero_json(labels: &[String], ranges: &[(f64, f64)], display: &[ChannelDisplay]) -> Value {
     let n = labels.len();
+    let hex = |c: [u8; 3]| format!("{:02X}{:02X}{:02X}", c[0], c[1], c[2]);
     let channels: Vec<Value> = labels
         .iter()
         .zip(ranges)
         .enumerate()
         .map(|(i, (label, &(lo, hi)))| {
-            let color = if n == 1 {
-                "FFFFFF"
-            } else {
-                CHANNEL_COLORS[i % CHANNEL_COLORS.len()]
+            let given = display.get(i).cloned().unwrap_or_default();
+            let color = match given.color {
+                Some(c) => hex(c),
+                None if n == 1 => "FFFFFF".to_string(),
+                None => CHANNEL_COLORS[i % CHANNEL_COLORS.len()].to_string(),
             };
             let mut c = json!({
                 "label": label,
                 "color": color,
-                "active": true,
+                "active": given.active.unwrap_or(true),
                 "coefficient": 1,
                 "family": "linear",
                 "inverted": false,
             });
-            if lo.is_finite() && hi.is_finite() {
-                let hi = if hi > lo { hi } else { lo + 1.0 };
-                c["window"] = json!({"min": lo, "max": hi, "start": lo, "end": hi});
+            let finite = lo.is_finite() && hi.is_finite();
+            let range = finite.then_some((lo, if hi > lo { hi } else { lo + 1.0 }));
+            match (given.window, range) {
+                (Some([a, b]), Some((lo, hi))) => {
+                    c["window"] = json!({"min": lo.min(a), "max": hi.max(b), "start": a, "end": b});
+                }
+                (Some([a, b]), None) => {
+                    c["window"] = json!({"min": a, "max": b, "start": a, "end": b});
+                }
+                (None, Some((lo, hi))) => {
+                    c["window"] = json!({"min": lo, "max": hi, "start": lo, "end": hi});
+                }
+                (None, None) => {}
             }
             c
         })
@@ -465,6 +482,22 @@ pub fn omero_json(labels: &[String], ranges: &[(f64, f64)]) -> Value {
 /// under `ome`; 0.4: at the top of the attributes); `Ok(None)` when there
 /// is none. A malformed entry is an error naming the field.
 pub fn read_omero(dir: &Path) -> Result<Option<Vec<OmeroChannel>>> {
+    Ok(read_omero_given(dir)?.map(|chs| {
+        chs.into_iter()
+            .map(|(label, d)| OmeroChannel {
+                label,
+                color: d.color.unwrap_or([255, 255, 255]),
+                window: d.window,
+                active: d.active.unwrap_or(true),
+            })
+            .collect()
+    }))
+}
+
+/// [`read_omero`] as given: each channel's label (`channel i` where it has
+/// none) and the fields it gives (a field left out is `None`), for a copy
+/// that keeps what the store says and no more.
+pub fn read_omero_given(dir: &Path) -> Result<Option<Vec<(String, ChannelDisplay)>>> {
     let Some((zarr_format, attrs)) = read_group_attributes(dir)? else {
         return Ok(None);
     };
@@ -495,7 +528,7 @@ pub fn read_omero(dir: &Path) -> Result<Option<Vec<OmeroChannel>>> {
             .and_then(Value::as_str)
             .map_or_else(|| format!("channel {i}"), str::to_string);
         let color = match c.get("color") {
-            None => [255, 255, 255],
+            None => None,
             Some(v) => {
                 let s = v.as_str().unwrap_or("");
                 let ok = s.len() == 6 && s.chars().all(|ch| ch.is_ascii_hexdigit());
@@ -507,7 +540,7 @@ pub fn read_omero(dir: &Path) -> Result<Option<Vec<OmeroChannel>>> {
                     ));
                 }
                 let b = |k: usize| u8::from_str_radix(&s[2 * k..2 * k + 2], 16).unwrap();
-                [b(0), b(1), b(2)]
+                Some([b(0), b(1), b(2)])
             }
         };
         let window = match c.get("window") {
@@ -526,13 +559,73 @@ pub fn read_omero(dir: &Path) -> Result<Option<Vec<OmeroChannel>>> {
                 }
             }
         };
-        let active = c.get("active").and_then(Value::as_bool).unwrap_or(true);
-        out.push(OmeroChannel {
+        let active = c.get("active").and_then(Value::as_bool);
+        out.push((
             label,
-            color,
-            window,
-            active,
-        });
+            ChannelDisplay {
+                color,
+                window,
+                active,
+            },
+        ));
     }
     Ok(Some(out))
+}
+
+#[cfg(test)]
+mod omero_tests {
+    use super::*;
+
+    #[test]
+    fn omero_keeps_what_a_source_gives_and_defaults_the_rest() {
+        let labels = ["DAPI".to_string(), "GFP".to_string(), "RFP".to_string()];
+        let ranges = [(0.0, 999.0), (0.0, 999.0), (f64::NAN, f64::NAN)];
+        let display = [
+            ChannelDisplay {
+                color: Some([0, 0, 255]),
+                window: Some([100.0, 500.0]),
+                active: Some(true),
+            },
+            ChannelDisplay {
+                color: None,
+                window: Some([200.0, 1200.0]),
+                active: Some(false),
+            },
+            ChannelDisplay::default(),
+        ];
+        let o = omero_json(&labels, &ranges, &display);
+        let c = &o["channels"];
+        assert_eq!(c[0]["color"], "0000FF");
+        assert_eq!(c[0]["active"], true);
+        assert_eq!(
+            c[0]["window"],
+            json!({"min": 0.0, "max": 999.0, "start": 100.0, "end": 500.0})
+        );
+        // A colour not given: the default for its place; a window beyond
+        // the data: min/max take it in.
+        assert_eq!(c[1]["color"], CHANNEL_COLORS[1]);
+        assert_eq!(c[1]["active"], false);
+        assert_eq!(
+            c[1]["window"],
+            json!({"min": 0.0, "max": 1200.0, "start": 200.0, "end": 1200.0})
+        );
+        assert_eq!(c[2]["color"], CHANNEL_COLORS[2]);
+        assert_eq!(c[2]["active"], true);
+        assert!(c[2].get("window").is_none());
+        // Nothing given: as before.
+        assert_eq!(
+            omero_json(&labels, &ranges, &[]),
+            omero_json(&labels, &ranges, &vec![ChannelDisplay::default(); 3])
+        );
+        // Read back as given.
+        let d = tempfile::tempdir().unwrap();
+        let root = json!({"zarr_format": 3, "node_type": "group",
+                          "attributes": {"ome": {"version": "0.5", "omero": o}}});
+        std::fs::write(d.path().join("zarr.json"), root.to_string()).unwrap();
+        let got = read_omero_given(d.path()).unwrap().unwrap();
+        assert_eq!(got[0].1, display[0]);
+        assert_eq!(got[1].1.window, display[1].window);
+        assert_eq!(got[1].1.active, Some(false));
+        assert_eq!(got[1].0, "GFP");
+    }
 }

@@ -25,6 +25,11 @@ pub struct SourceMeta {
     pub unit: Option<String>,
     /// Per-channel names, if the file has them.
     pub channel_names: Vec<String>,
+    /// How each channel is shown, where the file says (an OME-Zarr's
+    /// `omero` channels): empty, or one entry per channel whose fields
+    /// are `None` where the file gives none (the converter's defaults
+    /// then apply).
+    pub channel_display: Vec<ChannelDisplay>,
     /// Whether the volume holds labels (segmentation ids) rather than
     /// intensities; importers set this only when the file says so.
     pub labels: bool,
@@ -42,6 +47,25 @@ pub struct SourceMeta {
     pub read_bytes: u64,
 }
 
+/// How a channel is shown by default, as far as a source says (OME-Zarr
+/// `omero` metadata); a field left `None` takes the converter's default.
+#[derive(Debug, Clone, Default, PartialEq)]
+pub struct ChannelDisplay {
+    /// Linear RGB colour, 0–255.
+    pub color: Option<[u8; 3]>,
+    /// Data values `[start, end]` shown from black to full colour.
+    pub window: Option<[f64; 2]>,
+    /// Whether the channel is shown by default.
+    pub active: Option<bool>,
+}
+
+impl ChannelDisplay {
+    /// Whether the source says nothing of the channel.
+    pub fn is_empty(&self) -> bool {
+        self == &ChannelDisplay::default()
+    }
+}
+
 impl SourceMeta {
     pub fn new(path: impl Into<PathBuf>, dims: Dims3, channels: usize, dtype: DType) -> Self {
         SourceMeta {
@@ -53,6 +77,7 @@ impl SourceMeta {
             origin: None,
             unit: None,
             channel_names: Vec::new(),
+            channel_display: Vec::new(),
             labels: false,
             scaling: None,
             notes: Vec::new(),

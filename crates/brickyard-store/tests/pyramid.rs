@@ -301,3 +301,45 @@ fn info_and_the_reader_agree_on_what_is_incomplete() {
     assert_eq!(inspect(&out).unwrap().complete, None);
     assert!(zarr::open(&out, 0).is_ok());
 }
+
+/// A label image holds one object id per voxel: a conversion of several
+/// channels as labels (asked for, or marked so by the source) is refused
+/// before anything is written, naming the channels; Python's
+/// `from_numpy(..., labels=True)` converts through the same call.
+#[test]
+fn a_label_image_of_several_channels_is_refused_before_writing() {
+    let dir = tempfile::tempdir().unwrap();
+    let out = dir.path().join("two.ome.zarr");
+    let mut o = opts(8, 8);
+    o.labels = true;
+    let src = make_source([9, 10, 11], 2, DType::U16, 4);
+    let e = convert(&src, &out, &o, &NoProgress, &AtomicBool::new(false))
+        .unwrap_err()
+        .to_string();
+    assert!(
+        e.contains("a label image has one channel") && e.contains("2 channels"),
+        "{e}"
+    );
+    assert!(!out.exists() && !partial_path(&out).exists());
+    assert_eq!(std::fs::read_dir(dir.path()).unwrap().count(), 0);
+    // Marked as labels by the source, not asked for: the same.
+    let mut src = make_source([9, 10, 11], 3, DType::U16, 4);
+    src.meta.labels = true;
+    let e = convert(
+        &src,
+        &out,
+        &opts(8, 8),
+        &NoProgress,
+        &AtomicBool::new(false),
+    )
+    .unwrap_err()
+    .to_string();
+    assert!(
+        e.contains("3 channels") && e.contains("marks it as labels"),
+        "{e}"
+    );
+    assert_eq!(std::fs::read_dir(dir.path()).unwrap().count(), 0);
+    // One channel: written.
+    let src = make_source([9, 10, 11], 1, DType::U16, 4);
+    convert(&src, &out, &o, &NoProgress, &AtomicBool::new(false)).unwrap();
+}

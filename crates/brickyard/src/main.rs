@@ -778,7 +778,12 @@ fn run(cmd: Cmd, cluster: Option<&dist::Cluster>) -> Result<()> {
                     .iter()
                     .map(|p| Ok(open_input(p, &options(p)?)?))
                     .collect::<Result<Vec<_>>>()?;
-                let mut stack = ChannelStack::new(sources)?;
+                // --labels given: the inputs are labels, whatever their
+                // headers say.
+                let mut stack = match c.pyramid.labels {
+                    true => ChannelStack::of_labels(sources)?,
+                    false => ChannelStack::new(sources)?,
+                };
                 if let Some(names) = &names {
                     stack = stack.with_names(names)?;
                 }
@@ -788,6 +793,9 @@ fn run(cmd: Cmd, cluster: Option<&dist::Cluster>) -> Result<()> {
             // made when missing, and once written the label image is
             // marked as the image's and listed, as `process` publishes.
             let group = brickyard_run::labels::label_target(output, c.pyramid.labels)?;
+            // A label image that cannot be one (several channels, float
+            // voxels) is refused before anything is written.
+            brickyard_store::builder::check_labels(output, src.meta(), c.pyramid.labels)?;
             let mut pyramid = c.pyramid.clone();
             if let Some(g) = &group {
                 // Flags given win over the image's geometry.

@@ -1168,7 +1168,7 @@ fn negative_values_are_taken_as_values() {
             "--slice-normal",
             "-1,0,0",
             "--slice-origin",
-            "-1,8,8",
+            "1,-8,8",
         ],
         &["--mode", "mip", "--channel", "0:red:-1,200"],
     ] {
@@ -2439,4 +2439,359 @@ fn info_counts_bricks_of_nan_only() {
     assert_eq!(st["max"].as_f64(), Some(3.0), "{st}");
     let o = run(&["info", s(&store)]);
     assert!(String::from_utf8_lossy(&o.stdout).contains("1 of NaN only"));
+}
+
+/// A NIfTI-1 file of u8 voxels `data` (x fastest) of `dims` (x, y, z), with
+/// `intent` and the rescale `scl` (slope, intercept).
+fn nifti_u8(path: &Path, dims: [u16; 3], data: &[u8], intent: i16, scl: (f32, f32)) {
+    let mut h = vec![0u8; 352];
+    h[0..4].copy_from_slice(&348i32.to_le_bytes());
+    let dim = [3, dims[0], dims[1], dims[2], 1, 1, 1, 1];
+    for (k, d) in dim.iter().enumerate() {
+        h[40 + 2 * k..42 + 2 * k].copy_from_slice(&(*d as i16).to_le_bytes());
+    }
+    h[68..70].copy_from_slice(&intent.to_le_bytes());
+    h[70..72].copy_from_slice(&2i16.to_le_bytes()); // uint8
+    h[72..74].copy_from_slice(&8i16.to_le_bytes());
+    for k in 0..4 {
+        h[76 + 4 * k..80 + 4 * k].copy_from_slice(&1f32.to_le_bytes());
+    }
+    h[108..112].copy_from_slice(&352f32.to_le_bytes());
+    h[112..116].copy_from_slice(&scl.0.to_le_bytes());
+    h[116..120].copy_from_slice(&scl.1.to_le_bytes());
+    h[123] = 2; // millimetres
+    h[344..348].copy_from_slice(b"n+1\0");
+    h.extend_from_slice(data);
+    std::fs::write(path, h).unwrap();
+}
+
+fn copy_tree(from: &Path, to: &Path) {
+    std::fs::create_dir_all(to).unwrap();
+    for e in std::fs::read_dir(from).unwrap().flatten() {
+        let t = to.join(e.file_name());
+        if e.file_type().unwrap().is_dir() {
+            copy_tree(&e.path(), &t);
+        } else {
+            std::fs::copy(e.path(), &t).unwrap();
+        }
+    }
+}
+
+fn read_root(store: &Path) -> serde_json::Value {
+    serde_json::from_slice(&std::fs::read(store.join("zarr.json")).unwrap()).unwrap()
+}
+
+/// What a killed `convert FILE STORE/labels/NAME --labels` leaves
+/// (`labels/NAME.partial`, its root saying complete: false) is no image of
+/// the store: `info` lists it as a problem (status 1), saying what left it
+/// and how to clean it up, with or without a labels group before; the
+/// same convert run again with --overwrite clears it. A finished label
+/// image that the group does not name is blamed on the command that wrote
+/// it (its metadata tells `convert` from `process`).
+#[test]
+fn info_lists_an_interrupted_label_conversion_as_a_problem() {
+    let d = tempfile::tempdir().unwrap();
+    let store = mandelbulb_48(d.path(), "k.ome.zarr");
+    let raw = d.path().join("seg.raw");
+    std::fs::write(
+        &raw,
+        (0..48 * 48 * 48).map(|i| (i % 3) as u8).collect::<Vec<_>>(),
+    )
+    .unwrap();
+    let convert_labels = |name: &str, extra: &[&str]| {
+        let out = store.join("labels").join(name);
+        let mut args = vec![
+            "convert",
+            s(&raw),
+            s(&out),
+            "--labels",
+            "--dims",
+            "48x48x48",
+        ];
+        args.extend(["--dtype", "u8", "--quiet"]);
+        args.extend(extra);
+        let o = run(&args);
+        assert!(o.status.success(), "{}", stderr(&o));
+    };
+    convert_labels("seg", &[]);
+    // What the kill leaves, made from a finished one.
+    let partial = store.join("labels/killed.partial");
+    copy_tree(&store.join("labels/seg"), &partial);
+    let mut root = read_root(&partial);
+    root["attributes"]["brickyard"]["complete"] = false.into();
+    std::fs::write(partial.join("zarr.json"), root.to_string()).unwrap();
+    let check = |what: &Path, rel: &str| {
+        let o = run(&["info", s(what)]);
+        let out = String::from_utf8_lossy(&o.stdout).into_owned();
+        assert_eq!(o.status.code(), Some(1), "{out}");
+        let line = out
+            .lines()
+            .find(|l| l.contains("problem:") && l.contains("killed.partial"))
+            .unwrap_or_else(|| panic!("no problem line for the partial: {out}"));
+        for want in [
+            rel,
+            "interrupted",
+            "brickyard convert INPUT STORE/labels/killed --labels",
+            "--overwrite",
+            "remove the folder",
+        ] {
+            assert!(line.contains(want), "{want}: {line}");
+        }
+        assert!(!line.contains("process"), "{line}");
+        assert!(!out.contains("image inside: labels/killed"), "{out}");
+        assert!(!out.contains("image inside: killed"), "{out}");
+    };
+    // A labels group that names other images.
+    check(&store, "labels/killed.partial");
+    check(&store.join("labels"), "labels/killed.partial");
+    // --check reads no chunk of it (not an image): named once, as above.
+    let o = run(&["info", "--check", s(&store)]);
+    let out = String::from_utf8_lossy(&o.stdout);
+    assert_eq!(o.status.code(), Some(1), "{out}");
+    let named: Vec<&str> = out.lines().filter(|l| l.contains("killed")).collect();
+    assert!(
+        named.len() == 1 && named[0].contains("problem: labels/killed.partial: not an image"),
+        "{out}"
+    );
+    // No labels group yet (the first label image was being converted).
+    let fresh = d.path().join("fresh.ome.zarr");
+    copy_tree(&store, &fresh);
+    std::fs::remove_dir_all(fresh.join("labels/seg")).unwrap();
+    std::fs::remove_file(fresh.join("labels/zarr.json")).unwrap();
+    check(&fresh, "labels/killed.partial");
+    // The same convert again, with --overwrite: the partial is gone, the
+    // image listed, nothing to report.
+    convert_labels("killed", &["--overwrite"]);
+    assert!(!partial.exists());
+    let o = run(&["info", s(&store)]);
+    let out = String::from_utf8_lossy(&o.stdout);
+    assert_eq!(o.status.code(), Some(0), "{out}");
+    assert!(out.contains("image inside: labels/killed (uint8"), "{out}");
+    // Finished but not named by the group: convert's blamed on convert,
+    // process's on process.
+    let o = run(&[
+        "process",
+        s(&store),
+        "threshold(100)",
+        "--out",
+        "mask",
+        "--quiet",
+    ]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    let group = store.join("labels/zarr.json");
+    let mut j: serde_json::Value = serde_json::from_slice(&std::fs::read(&group).unwrap()).unwrap();
+    j["attributes"]["ome"]["labels"] = serde_json::json!(["seg"]);
+    std::fs::write(&group, j.to_string()).unwrap();
+    let o = run(&["info", s(&store)]);
+    let out = String::from_utf8_lossy(&o.stdout);
+    assert_eq!(o.status.code(), Some(1), "{out}");
+    let line = |name: &str| {
+        out.lines()
+            .find(|l| l.contains(&format!("problem: labels/{name}: not named")))
+            .unwrap_or_else(|| panic!("{name}: {out}"))
+            .to_string()
+    };
+    let killed = line("killed");
+    assert!(
+        killed.contains("brickyard convert INPUT STORE/labels/killed --labels")
+            && !killed.contains("process"),
+        "{killed}"
+    );
+    let mask = line("mask");
+    assert!(
+        mask.contains("brickyard process") && !mask.contains("convert"),
+        "{mask}"
+    );
+}
+
+/// A conversion of a store keeps each channel's colour, window and active
+/// flag from its `omero` metadata (not only the names), a stack of inputs
+/// each input's, and `info` shows them (text and JSON).
+#[test]
+fn a_copy_keeps_the_channels_colours_windows_and_active_flags() {
+    let d = tempfile::tempdir().unwrap();
+    let (a, b) = (d.path().join("a.raw"), d.path().join("b.raw"));
+    std::fs::write(
+        &a,
+        (0..8 * 8 * 8).map(|i| (i % 100) as u8).collect::<Vec<_>>(),
+    )
+    .unwrap();
+    std::fs::write(
+        &b,
+        (0..8 * 8 * 8).map(|i| (i % 90) as u8).collect::<Vec<_>>(),
+    )
+    .unwrap();
+    let store = d.path().join("two.ome.zarr");
+    let raw = ["--dims", "8x8x8", "--dtype", "u8", "--quiet"];
+    let mut args = vec![
+        "convert",
+        s(&a),
+        s(&b),
+        s(&store),
+        "--channel-names",
+        "dapi,gfp",
+    ];
+    args.extend(raw);
+    let o = run(&args);
+    assert!(o.status.success(), "{}", stderr(&o));
+    let mut root = read_root(&store);
+    let chs = &mut root["attributes"]["ome"]["omero"]["channels"];
+    chs[0]["color"] = "123456".into();
+    chs[0]["window"] = serde_json::json!({"min": 0, "max": 255, "start": 10, "end": 50});
+    chs[1]["color"] = "ABCDEF".into();
+    chs[1]["window"] = serde_json::json!({"min": 0, "max": 255, "start": 20, "end": 80});
+    chs[1]["active"] = false.into();
+    std::fs::write(store.join("zarr.json"), root.to_string()).unwrap();
+    let shown = |store: &Path| -> Vec<(String, String, bool, f64, f64)> {
+        read_root(store)["attributes"]["ome"]["omero"]["channels"]
+            .as_array()
+            .expect("omero channels")
+            .iter()
+            .map(|c| {
+                (
+                    c["label"].as_str().unwrap().to_string(),
+                    c["color"].as_str().unwrap().to_string(),
+                    c["active"].as_bool().unwrap(),
+                    c["window"]["start"].as_f64().unwrap(),
+                    c["window"]["end"].as_f64().unwrap(),
+                )
+            })
+            .collect()
+    };
+    let want = vec![
+        ("dapi".to_string(), "123456".to_string(), true, 10.0, 50.0),
+        ("gfp".to_string(), "ABCDEF".to_string(), false, 20.0, 80.0),
+    ];
+    assert_eq!(shown(&store), want);
+    let copy = d.path().join("copy.ome.zarr");
+    let o = run(&["convert", s(&store), s(&copy), "--brick", "4", "--quiet"]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    assert_eq!(shown(&copy), want);
+    // `info` shows them.
+    let o = run(&["info", s(&copy)]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    let out = String::from_utf8_lossy(&o.stdout);
+    assert!(
+        out.contains("channel 0 \"dapi\": colour 123456, window 10..50, active")
+            && out.contains("channel 1 \"gfp\": colour ABCDEF, window 20..80, inactive"),
+        "{out}"
+    );
+    let o = run(&["info", s(&copy), "--json"]);
+    let j: serde_json::Value = serde_json::from_slice(&o.stdout).unwrap();
+    assert_eq!(
+        j["channels"][1],
+        serde_json::json!({"index": 1, "label": "gfp", "color": "ABCDEF",
+                           "window": [20.0, 80.0], "active": false}),
+        "{j}"
+    );
+    assert!(
+        j["levels"][0]["shape"].is_array() && j["complete"] == true,
+        "{j}"
+    );
+    // A stack: each input's channels as that input shows them (a
+    // one-channel store's white), in order.
+    let one = d.path().join("one.ome.zarr");
+    let mut args = vec!["convert", s(&a), s(&one)];
+    args.extend(raw);
+    assert!(run(&args).status.success());
+    let stack = d.path().join("stack.ome.zarr");
+    let o = run(&["convert", s(&copy), s(&one), s(&stack), "--quiet"]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    let got = shown(&stack);
+    assert_eq!(got.len(), 3, "{got:?}");
+    // (Named after their input: `copy:dapi`.)
+    assert_eq!(got[0].0, "copy:dapi");
+    for (g, w) in got.iter().zip(&want) {
+        assert_eq!((&g.1, g.2, g.3, g.4), (&w.1, w.2, w.3, w.4), "{got:?}");
+    }
+    assert_eq!((got[2].1.as_str(), got[2].2), ("FFFFFF", true));
+}
+
+/// A label image holds one channel: `convert a b IMAGE/labels/NAME
+/// --labels` (two channels) is refused before anything is written, naming
+/// the count, instead of writing and listing an image that `render
+/// --labels` then refuses; a standalone one likewise.
+#[test]
+fn a_label_image_of_several_channels_is_refused() {
+    let d = tempfile::tempdir().unwrap();
+    let store = mandelbulb_48(d.path(), "m.ome.zarr");
+    let raw = d.path().join("seg.raw");
+    std::fs::write(&raw, vec![1u8; 48 * 48 * 48]).unwrap();
+    let two = store.join("labels/two");
+    let flags = ["--labels", "--dims", "48x48x48", "--dtype", "u8", "--quiet"];
+    let mut args = vec!["convert", s(&raw), s(&raw), s(&two)];
+    args.extend(flags);
+    fails_with(
+        &run(&args),
+        &["a label image has one channel", "2 channels"],
+    );
+    assert!(!store.join("labels").exists(), "nothing written");
+    let alone = d.path().join("alone.ome.zarr");
+    let mut args = vec!["convert", s(&raw), s(&raw), s(&alone)];
+    args.extend(flags);
+    fails_with(
+        &run(&args),
+        &["a label image has one channel", "2 channels"],
+    );
+    assert!(!alone.exists() && !d.path().join("alone.ome.zarr.partial").exists());
+}
+
+/// Several inputs, one of NIfTI intent "label": without --labels the
+/// message names the intent (not a grid); with --labels the files'
+/// intents give way (what stops it then is the one-channel rule). Voxel
+/// types are named as on the command line, and a rescale that widened a
+/// file's numbers is said.
+#[test]
+fn inputs_that_differ_in_intent_or_voxel_type_are_named_plainly() {
+    let d = tempfile::tempdir().unwrap();
+    let data: Vec<u8> = (0..8 * 8 * 8).map(|i| (i % 256) as u8).collect();
+    let (seg, t1, scl) = (
+        d.path().join("seg.nii"),
+        d.path().join("t1.nii"),
+        d.path().join("scl.nii"),
+    );
+    nifti_u8(&seg, [8, 8, 8], &data, 1002, (0.0, 0.0));
+    nifti_u8(&t1, [8, 8, 8], &data, 0, (0.0, 0.0));
+    nifti_u8(&scl, [8, 8, 8], &data, 0, (2.0, -1.0));
+    let out = d.path().join("o.ome.zarr");
+    let o = run(&["convert", s(&seg), s(&t1), s(&out), "--quiet"]);
+    fails_with(
+        &o,
+        &[
+            "seg.nii marks its voxels as labels",
+            "NIfTI intent",
+            "--labels",
+        ],
+    );
+    assert!(!stderr(&o).contains("grid"), "{}", stderr(&o));
+    let o = run(&["convert", s(&seg), s(&t1), s(&out), "--labels", "--quiet"]);
+    fails_with(&o, &["a label image has one channel"]);
+    assert!(
+        !stderr(&o).contains("grid") && !stderr(&o).contains("labels false"),
+        "{}",
+        stderr(&o)
+    );
+    let o = run(&["convert", s(&t1), s(&scl), s(&out), "--quiet"]);
+    fails_with(
+        &o,
+        &[
+            "this file has i16 (its u8 numbers rescaled by scl_slope=2, scl_inter=-1",
+            "--raw-values keeps them u8",
+            "t1.nii has u8",
+        ],
+    );
+    assert!(
+        !stderr(&o).contains("I16") && !stderr(&o).contains("U8"),
+        "{}",
+        stderr(&o)
+    );
+    let o = run(&[
+        "convert",
+        s(&t1),
+        s(&scl),
+        s(&out),
+        "--raw-values",
+        "--quiet",
+    ]);
+    assert!(o.status.success(), "{}", stderr(&o));
 }

@@ -6,7 +6,7 @@
 //! names a file gives its channels).
 
 use crate::error::{Result, StoreError};
-use crate::source::{SourceMeta, VolumeSource};
+use crate::source::{ChannelDisplay, SourceMeta, VolumeSource};
 use brickyard_core::Dims3;
 use std::ops::Range;
 use std::path::Path;
@@ -62,14 +62,58 @@ pub fn channel_label(path: &Path) -> String {
     s.to_string()
 }
 
+/// A source's voxel type for messages (`u8`, `i16`), with the rescale
+/// that made it, where one did (a NIfTI file's scl_slope/scl_inter widen
+/// its stored numbers).
+fn voxel_type(m: &SourceMeta) -> String {
+    match &m.scaling {
+        Some(v) if v.applied && v.dtype != v.stored => format!(
+            "{} (its {} numbers rescaled by {}={}, {}={}, which makes them {}{})",
+            m.dtype,
+            v.stored,
+            v.fields[0],
+            v.slope,
+            v.fields[1],
+            v.inter,
+            v.dtype,
+            match v.fields[0] {
+                "scl_slope" => format!("; --raw-values keeps them {}", v.stored),
+                _ => String::new(),
+            }
+        ),
+        _ => m.dtype.to_string(),
+    }
+}
+
+/// What marks a file's voxels as labels, for messages.
+fn labels_mark(path: &Path) -> &'static str {
+    let name = path.to_string_lossy().to_ascii_lowercase();
+    if name.ends_with(".nii") || name.ends_with(".nii.gz") {
+        "its NIfTI intent is \"label\""
+    } else {
+        "its metadata says labels"
+    }
+}
+
 fn close3(a: [f64; 3], b: [f64; 3], scale: f64) -> bool {
     (0..3).all(|i| (a[i] - b[i]).abs() <= SAME * scale.max(a[i].abs()).max(b[i].abs()))
 }
 
 impl ChannelStack {
     /// Stack `sources` (at least one) as channels, after checking that they
-    /// share one grid.
+    /// share one grid and agree on whether they hold labels.
     pub fn new(sources: Vec<Box<dyn VolumeSource>>) -> Result<ChannelStack> {
+        Self::stack(sources, false)
+    }
+
+    /// [`ChannelStack::new`] for inputs taken as labels whatever their
+    /// headers say (`convert --labels`): one that does not mark itself as
+    /// labels (a NIfTI file without intent "label") is no mismatch.
+    pub fn of_labels(sources: Vec<Box<dyn VolumeSource>>) -> Result<ChannelStack> {
+        Self::stack(sources, true)
+    }
+
+    fn stack(sources: Vec<Box<dyn VolumeSource>>, as_labels: bool) -> Result<ChannelStack> {
         let Some(first) = sources.first() else {
             return Err(StoreError::invalid(
                 "(no input)",
@@ -86,6 +130,8 @@ impl ChannelStack {
         let mut origin = None;
         let mut unit = None;
         let mut labels = None;
+        // How each channel is shown, where its input says.
+        let mut display = vec![];
         for (i, s) in sources.iter().enumerate() {
             let m = s.meta();
             let bad = |field: &str, this: String, there: String| {
@@ -103,7 +149,7 @@ impl ChannelStack {
                 return bad("dims", xyz(m.dims), xyz(m0.dims));
             }
             if m.dtype != m0.dtype {
-                return bad("dtype", format!("{:?}", m.dtype), format!("{:?}", m0.dtype));
+                return bad("dtype", voxel_type(m), voxel_type(&m0));
             }
             if let Some(sp) = m.spacing {
                 match spacing {
@@ -147,14 +193,27 @@ impl ChannelStack {
                 unit = m.unit.clone();
             }
             match labels {
-                Some(l) if l != m.labels => {
-                    return bad(
+                Some(l) if l != m.labels && !as_labels => {
+                    let (marked, plain) = match m.labels {
+                        true => (&m.path, &m0.path),
+                        false => (&m0.path, &m.path),
+                    };
+                    return Err(StoreError::invalid(
+                        &m.path,
                         "labels",
-                        format!("labels {}", m.labels),
-                        format!("labels {l}"),
-                    )
+                        format!(
+                            "{} marks its voxels as labels ({}) and {} does not: the channels \
+                             of one volume are all labels or all intensities. --labels takes \
+                             every input as labels, but a label image has one channel: convert \
+                             {} on its own (--labels, e.g. into STORE/labels/NAME)",
+                            marked.display(),
+                            labels_mark(marked),
+                            plain.display(),
+                            marked.display()
+                        ),
+                    ));
                 }
-                _ => labels = Some(m.labels),
+                _ => labels = Some(m.labels || as_labels),
             }
             let stem = channel_label(&m.path);
             let folder = m
@@ -163,6 +222,10 @@ impl ChannelStack {
                 .and_then(|p| p.file_name())
                 .map(|f| f.to_string_lossy().into_owned());
             for c in 0..m.channels {
+                display.push(match m.channel_display.len() == m.channels {
+                    true => m.channel_display[c].clone(),
+                    false => ChannelDisplay::default(),
+                });
                 map.push((i, c));
                 folders.push(folder.clone());
                 let name = match m.channel_names.get(c) {
@@ -194,6 +257,9 @@ impl ChannelStack {
         meta.origin = origin.map(|(o, _)| o);
         meta.unit = unit;
         meta.labels = labels.unwrap_or(false);
+        if display.iter().any(|d| !d.is_empty()) {
+            meta.channel_display = display;
+        }
         meta.scaling = m0.scaling.clone();
         meta.read_bytes = sources
             .iter()
@@ -373,5 +439,115 @@ mod tests {
             ),
         ])
         .is_ok());
+    }
+
+    /// A source `src` makes, changed by `edit`.
+    fn edited(
+        kind: Kind,
+        name: &str,
+        dtype: DType,
+        edit: impl FnOnce(&mut SourceMeta),
+    ) -> Box<dyn VolumeSource> {
+        let p = Procedural::new(kind, [6, 7, 9], dtype);
+        let mut m = p.meta().clone();
+        m.path = name.into();
+        edit(&mut m);
+        Box::new(Renamed(p, m))
+    }
+
+    #[test]
+    fn labels_given_override_what_the_files_say() {
+        let mixed = || {
+            vec![
+                edited(Kind::Mandelbulb, "/x/seg.nii.gz", DType::U8, |m| {
+                    m.labels = true
+                }),
+                edited(Kind::Mandelbulb, "/x/t1.nii.gz", DType::U8, |_| {}),
+            ]
+        };
+        // Without --labels: the difference named (the intent), --labels
+        // named, no talk of a grid.
+        let e = ChannelStack::new(mixed()).err().unwrap().to_string();
+        assert!(
+            e.contains("/x/seg.nii.gz marks its voxels as labels")
+                && e.contains("NIfTI intent is \"label\"")
+                && e.contains("/x/t1.nii.gz does not")
+                && e.contains("--labels")
+                && !e.contains("grid")
+                && !e.contains("labels false"),
+            "{e}"
+        );
+        // --labels given: every input is labels.
+        let s = ChannelStack::of_labels(mixed()).unwrap();
+        assert!(s.meta().labels);
+        let s = ChannelStack::of_labels(vec![
+            edited(Kind::Mandelbulb, "/x/a.nii", DType::U8, |_| {}),
+            edited(Kind::Mandelbulb, "/x/b.nii", DType::U8, |_| {}),
+        ])
+        .unwrap();
+        assert!(s.meta().labels);
+    }
+
+    #[test]
+    fn voxel_types_are_named_as_on_the_command_line() {
+        let e = ChannelStack::new(vec![
+            edited(Kind::Mandelbulb, "/x/a.nii", DType::U8, |_| {}),
+            edited(Kind::Mandelbulb, "/x/b.nii", DType::I16, |_| {}),
+        ])
+        .err()
+        .unwrap()
+        .to_string();
+        assert!(
+            e.contains("this file has i16, /x/a.nii has u8") && !e.contains("I16"),
+            "{e}"
+        );
+        // A rescale that widened the stored numbers: said.
+        let e = ChannelStack::new(vec![
+            edited(Kind::Mandelbulb, "/x/a.nii", DType::U8, |_| {}),
+            edited(Kind::Mandelbulb, "/x/scl.nii", DType::I16, |m| {
+                m.scaling = Some(crate::import::scale::ValueScaling {
+                    fields: ["scl_slope", "scl_inter"],
+                    slope: 2.0,
+                    inter: -1.0,
+                    stored: DType::U8,
+                    dtype: DType::I16,
+                    applied: true,
+                    scanned: None,
+                })
+            }),
+        ])
+        .err()
+        .unwrap()
+        .to_string();
+        assert!(
+            e.contains("i16 (its u8 numbers rescaled by scl_slope=2, scl_inter=-1")
+                && e.contains("--raw-values keeps them u8"),
+            "{e}"
+        );
+    }
+
+    #[test]
+    fn each_input_keeps_how_its_channels_are_shown() {
+        let shown = ChannelDisplay {
+            color: Some([0, 0, 255]),
+            window: Some([100.0, 500.0]),
+            active: Some(false),
+        };
+        let given = shown.clone();
+        let s = ChannelStack::new(vec![
+            edited(Kind::Mandelbulb, "/x/a.nii", DType::U8, |_| {}),
+            edited(Kind::Mandelbulb, "/x/b.zarr", DType::U8, |m| {
+                m.channel_display = vec![given]
+            }),
+        ])
+        .unwrap();
+        assert_eq!(s.meta().channel_display, [ChannelDisplay::default(), shown]);
+        // None given: none kept (the converter's defaults).
+        let s = ChannelStack::new(vec![
+            edited(Kind::Mandelbulb, "/x/a.nii", DType::U8, |_| {}),
+            edited(Kind::Mandelbulb, "/x/b.nii", DType::U8, |_| {}),
+        ])
+        .unwrap();
+        assert!(s.meta().channel_display.is_empty());
     }
 }

@@ -564,11 +564,28 @@ fn open_array(
         if let Some(b) = &m.brickyard {
             meta.labels = b.get("labels").and_then(Value::as_bool).unwrap_or(false);
         }
-        // The channels' names from `omero`, so a copy keeps them.
-        if let Ok(Some(om)) = crate::omezarr::read_omero(&meta.path) {
-            if channels > 1 && om.len() == channels {
-                meta.channel_names = om.into_iter().map(|c| c.label).collect();
+        // The channels' names, colours, windows and active flags from
+        // `omero`, so a copy keeps them (the name of a single channel
+        // is not taken, as before).
+        match crate::omezarr::read_omero_given(&meta.path) {
+            Ok(Some(om)) if om.len() == channels => {
+                let (names, display): (Vec<_>, Vec<_>) = om.into_iter().unzip();
+                if channels > 1 {
+                    meta.channel_names = names;
+                }
+                if display.iter().any(|d| !d.is_empty()) {
+                    meta.channel_display = display;
+                }
             }
+            Ok(Some(om)) => meta.notes.push(format!(
+                "omero: {} channel(s) described for {channels}: their names, colours and \
+                 windows are not kept",
+                om.len()
+            )),
+            Ok(None) => {}
+            Err(e) => meta.notes.push(format!(
+                "omero: not kept ({e}); the channels take the default names, colours and windows"
+            )),
         }
     }
     let chunk: Vec<u64> = array

@@ -833,14 +833,15 @@ pub fn check(path: &Path, progress: &dyn Progress) -> Result<CheckReport> {
 
 /// The images under a local store's `labels/` and `derived/` groups (what
 /// `brickyard process` writes), as `(group/name, folder)`; hidden
-/// leftovers of interrupted jobs are not images (`info` names them).
+/// leftovers of interrupted jobs and the `NAME.partial` of interrupted
+/// conversions are not images (`info` names them as problems).
 fn inner_images(path: &Path) -> Vec<(String, PathBuf)> {
     ["labels", "derived"]
         .into_iter()
         .flat_map(|g| {
             super::group_folders(path, g)
                 .into_iter()
-                .filter(|n| !n.starts_with('.'))
+                .filter(|n| !n.starts_with('.') && !n.ends_with(".partial"))
                 .map(move |n| (format!("{g}/{n}"), path.join(g).join(n)))
         })
         .collect()
