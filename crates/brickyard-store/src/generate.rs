@@ -190,9 +190,47 @@ pub fn write_raw_within(
     slab_bytes: u64,
     cancel: &AtomicBool,
 ) -> Result<()> {
+    write_raw_described(
+        src,
+        path,
+        progress,
+        slab_bytes,
+        cancel,
+        Some([1.0; 3]),
+        None,
+        None,
+    )
+}
+
+/// [`write_raw_within`], the sidecar giving `spacing` and `origin`
+/// (`[x, y, z]`) and `unit` (an OME-Zarr space unit, or one of its short
+/// names): the geometry the caller asked for.
+#[allow(clippy::too_many_arguments)]
+pub fn write_raw_described(
+    src: &Procedural,
+    path: &Path,
+    progress: &dyn crate::Progress,
+    slab_bytes: u64,
+    cancel: &AtomicBool,
+    spacing: Option<[f64; 3]>,
+    origin: Option<[f64; 3]>,
+    unit: Option<String>,
+) -> Result<()> {
     let m = src.meta();
     let [dz, dy, dx] = m.dims;
     let es = m.dtype.size() as u64;
+    let opts = RawOptions {
+        dims: [dx, dy, dz],
+        dtype: m.dtype,
+        endian: "little".into(),
+        spacing,
+        origin,
+        unit,
+        channels: 1,
+        header_bytes: 0,
+    };
+    // Geometry convert would refuse is refused before anything is written.
+    opts.check_geometry(path)?;
     crate::builder::check_parent(path)?;
     crate::builder::check_not_link(path)?;
     let tmp = crate::builder::partial_path(path);
@@ -251,16 +289,6 @@ pub fn write_raw_within(
         return Err(e);
     }
 
-    let opts = RawOptions {
-        dims: [dx, dy, dz],
-        dtype: m.dtype,
-        endian: "little".into(),
-        spacing: Some([1.0; 3]),
-        origin: None,
-        unit: None,
-        channels: 1,
-        header_bytes: 0,
-    };
     opts.write_sidecar(&RawOptions::sidecar_path(path))?;
     std::fs::rename(&tmp, path).at(path)?;
     Ok(())

@@ -141,15 +141,16 @@ enum VmCmd {
 
 #[derive(Args, Clone)]
 struct PyramidArgs {
-    /// Brick (inner chunk) edge in voxels (2 to 1024).
-    #[arg(long, default_value_t = 64, value_parser = clap::value_parser!(u64).range(2..=1024))]
-    brick: u64,
-    /// Shard edge in voxels (a multiple of the brick, at most 16384).
-    #[arg(long, default_value_t = 512, value_parser = clap::value_parser!(u64).range(2..=16384))]
-    shard: u64,
-    /// lz4 (blosc), zstd, zstd:LEVEL or none.
-    #[arg(long, default_value = "lz4")]
-    compression: String,
+    /// Brick (inner chunk) edge in voxels (2 to 1024) [default: 64].
+    #[arg(long, value_parser = clap::value_parser!(u64).range(2..=1024))]
+    brick: Option<u64>,
+    /// Shard edge in voxels (a multiple of the brick, at most 16384)
+    /// [default: 512, or the brick rounded up to a multiple of it].
+    #[arg(long, value_parser = clap::value_parser!(u64).range(2..=16384))]
+    shard: Option<u64>,
+    /// lz4 (blosc), zstd, zstd:LEVEL or none [default: lz4].
+    #[arg(long)]
+    compression: Option<String>,
     /// The volume holds labels: coarser levels take the mode, not the mean.
     #[arg(long)]
     labels: bool,
@@ -179,8 +180,8 @@ struct PyramidArgs {
     /// that N ranks can share the finer levels (e.g. 64; 1, the default:
     /// the fewest passes). The store depends on it: a single process given
     /// the same --columns writes the same bytes.
-    #[arg(long, default_value_t = 1, value_name = "N")]
-    columns: u64,
+    #[arg(long, value_name = "N")]
+    columns: Option<u64>,
 }
 
 #[derive(Args)]
@@ -282,20 +283,24 @@ pub(crate) fn parse_compression(s: &str) -> Result<Compression> {
     })
 }
 
+/// The brick when `--brick` is not given.
+const DEFAULT_BRICK: u64 = 64;
+/// The shard when `--shard` is not given (rounded up to a multiple of the
+/// brick).
+const DEFAULT_SHARD: u64 = 512;
+
 fn convert_options(p: &PyramidArgs) -> Result<ConvertOptions> {
-    let compression = parse_compression(&p.compression)?;
-    if p.brick < 2 || !p.brick.is_multiple_of(2) {
-        bail!(
-            "brick: expected an even number of voxels >= 2, found {}",
-            p.brick
-        );
+    let compression = parse_compression(p.compression.as_deref().unwrap_or("lz4"))?;
+    let brick = p.brick.unwrap_or(DEFAULT_BRICK);
+    if brick < 2 || !brick.is_multiple_of(2) {
+        bail!("brick: expected an even number of voxels >= 2, found {brick}");
     }
-    if p.shard < p.brick || !p.shard.is_multiple_of(p.brick) {
-        bail!(
-            "shard: expected a multiple of the brick ({}), found {}",
-            p.brick,
-            p.shard
-        );
+    // Not given: the default, at least the brick and a multiple of it.
+    let shard = p
+        .shard
+        .unwrap_or_else(|| DEFAULT_SHARD.max(brick).div_ceil(brick) * brick);
+    if shard < brick || !shard.is_multiple_of(brick) {
+        bail!("shard: expected a multiple of the brick ({brick}), found {shard}");
     }
     let xyz = |o: Option<[f64; 3]>| o.map(|v| [v[2], v[1], v[0]]);
     let spacing = xyz(p
@@ -312,8 +317,8 @@ fn convert_options(p: &PyramidArgs) -> Result<ConvertOptions> {
         }
     }
     Ok(ConvertOptions {
-        brick: [p.brick; 3],
-        shard: [p.shard; 3],
+        brick: [brick; 3],
+        shard: [shard; 3],
         compression,
         labels: p.labels,
         memory: parse_bytes(&p.memory).context("--memory")?,
@@ -326,7 +331,7 @@ fn convert_options(p: &PyramidArgs) -> Result<ConvertOptions> {
             .map(|s| parse_triple(s, "origin"))
             .transpose()?),
         unit: p.unit.clone(),
-        columns: p.columns.max(1),
+        columns: p.columns.unwrap_or(1).max(1),
     })
 }
 
@@ -336,7 +341,7 @@ fn convert_options(p: &PyramidArgs) -> Result<ConvertOptions> {
 /// give).
 fn raw_options(
     input: &Path,
-    dims_dtype: Option<(Dims3, DType)>,
+    (dims, dtype): (Option<Dims3>, Option<DType>),
     c: &ConvertCmd,
 ) -> Result<Option<RawOptions>> {
     let side = RawOptions::sidecar_path(input);
@@ -345,9 +350,19 @@ fn raw_options(
         false => None,
     };
     let had = sidecar.is_some();
-    let Some(mut r) =
-        sidecar.or_else(|| dims_dtype.map(|(dims, dtype)| RawOptions::new(dims, dtype)))
-    else {
+    if !had && dims.is_some() != dtype.is_some() {
+        bail!(
+            "{}: raw input needs both --dims and --dtype (or a sidecar {} describing it), \
+             found only {}",
+            input.display(),
+            side.display(),
+            if dims.is_some() { "--dims" } else { "--dtype" }
+        );
+    }
+    let Some(mut r) = sidecar.or_else(|| match (dims, dtype) {
+        (Some(dims), Some(dtype)) => Some(RawOptions::new(dims, dtype)),
+        _ => None,
+    }) else {
         return Ok(None);
     };
     let mut changed = vec![];
@@ -356,10 +371,13 @@ fn raw_options(
             changed.push(name.to_string());
         }
     };
-    if let Some((dims, dtype)) = dims_dtype {
+    if let Some(dims) = dims {
         set("dims", r.dims != dims);
+        r.dims = dims;
+    }
+    if let Some(dtype) = dtype {
         set("dtype", r.dtype != dtype);
-        (r.dims, r.dtype) = (dims, dtype);
+        r.dtype = dtype;
     }
     if let Some(e) = &c.endian {
         set("endian", &r.endian != e);
@@ -687,20 +705,25 @@ fn degraded(lines: Vec<String>) {
 fn run(cmd: Cmd, cluster: Option<&dist::Cluster>) -> Result<()> {
     match cmd {
         Cmd::Convert(c) => {
-            let dims_dtype = match (&c.dims, &c.dtype) {
-                (None, None) => None,
-                (Some(d), Some(t)) => {
+            // Either alone replaces that field of a sidecar; without one,
+            // both are needed (refused once the input is known to be raw:
+            // other inputs are told that the flag is not for them).
+            let dims = match &c.dims {
+                None => None,
+                Some(d) => {
                     let zyx = parse_size(d).map_err(|e| anyhow::anyhow!("dims: {e}"))?;
-                    let dtype = DType::parse(t).with_context(|| {
-                        format!("dtype: expected one of u8, i8, u16, i16, u32, i32, f32, f64, found {t:?}")
-                    })?;
-                    Some(([zyx[2], zyx[1], zyx[0]], dtype))
+                    Some([zyx[2], zyx[1], zyx[0]])
                 }
-                // Refused below, once the input is known to be raw (other
-                // inputs are told that the flag is not for them).
-                _ => None,
             };
-            let half_given = c.dims.is_some() != c.dtype.is_some();
+            let dtype = match &c.dtype {
+                None => None,
+                Some(t) => Some(DType::parse(t).with_context(|| {
+                    format!(
+                        "dtype: expected one of u8, i8, u16, i16, u32, i32, f32, f64, found {t:?}"
+                    )
+                })?),
+            };
+            let dims_dtype = (dims, dtype);
             if c.paths.len() < 2 {
                 bail!(
                     "convert: expected INPUT... OUTPUT, found one path ({}): name the store to write",
@@ -736,9 +759,6 @@ fn run(cmd: Cmd, cluster: Option<&dist::Cluster>) -> Result<()> {
                          header describes it): leave {flag} out",
                         input.display()
                     );
-                }
-                if half_given && fmt == Format::Raw {
-                    bail!("raw input needs both --dims and --dtype");
                 }
                 if c.level.is_some_and(|l| l > 0) && fmt != Format::Zarr {
                     bail!(
@@ -878,7 +898,9 @@ fn run(cmd: Cmd, cluster: Option<&dist::Cluster>) -> Result<()> {
             let src = Procedural::new(k, dims, dt);
             let s = output.to_string_lossy();
             if s.ends_with(".zarr") || s.ends_with(".zarr/") {
-                run_convert(&src, &output, &pyramid, cluster)
+                run_convert(&src, &output, &pyramid, cluster).map_err(|e| {
+                    too_large(e, dims, dt, &pyramid.memory, "--size or a larger --memory")
+                })
             } else {
                 // The raw file and its sidecar: neither is replaced unasked.
                 let sidecar = RawOptions::sidecar_path(&output);
@@ -890,17 +912,52 @@ fn run(cmd: Cmd, cluster: Option<&dist::Cluster>) -> Result<()> {
                         bail!("{}: is a folder; expected a file to write", p.display());
                     }
                 }
+                // The flags that shape a store do nothing for a raw file:
+                // refused, not ignored.
+                let store_only = [
+                    (pyramid.brick.is_some(), "--brick"),
+                    (pyramid.shard.is_some(), "--shard"),
+                    (pyramid.compression.is_some(), "--compression"),
+                    (pyramid.labels, "--labels"),
+                    (pyramid.columns.is_some(), "--columns"),
+                ];
+                if let Some((_, flag)) = store_only.iter().find(|f| f.0) {
+                    bail!(
+                        "{}: {flag} shapes an OME-Zarr store, and this output is a raw file \
+                         (its name does not end in .zarr): leave {flag} out, or name a .zarr output",
+                        output.display()
+                    );
+                }
+                // Spacing, origin and unit go into the sidecar, checked as
+                // convert checks them.
+                let geometry = convert_options(&pyramid)?;
+                let xyz = |v: [f64; 3]| [v[2], v[1], v[0]];
+                let unit = match &pyramid.unit {
+                    None => None,
+                    Some(u) => Some(brickyard_store::omezarr::normalize_unit(u).with_context(
+                        || {
+                            format!(
+                                "unit: unknown unit {u:?}; expected one of OME-Zarr's space \
+                                 units ({}) or mm, um, nm, cm, m",
+                                brickyard_store::omezarr::SPACE_UNITS.join(", ")
+                            )
+                        },
+                    )?),
+                };
                 // Within --memory (a quarter of it for the slab, at most
                 // 64 MiB), and stopped cleanly by Ctrl-C.
-                let memory = parse_bytes(&pyramid.memory).context("--memory")?;
+                let memory = geometry.memory;
                 install_ctrl_c();
                 let bar = progress::Bar::new(pyramid.quiet, "generating");
-                brickyard_store::generate::write_raw_within(
+                brickyard_store::generate::write_raw_described(
                     &src,
                     &output,
                     &bar,
                     (memory / 4).clamp(1, 64 << 20),
                     &CANCEL,
+                    Some(geometry.spacing.map_or([1.0; 3], xyz)),
+                    geometry.origin.map(xyz),
+                    unit,
                 )?;
                 bar.finish();
                 outln!(
@@ -970,11 +1027,57 @@ fn demo_store(out: &Path, size: &str) -> Result<PathBuf> {
     Ok(store)
 }
 
+/// A conversion of a generated `dims` volume of `dtype` that failed for
+/// want of memory: the volume's size is the problem, said so (with the
+/// builder's figures), and `fix` the way out.
+fn too_large(
+    e: anyhow::Error,
+    dims: Dims3,
+    dtype: DType,
+    memory: &str,
+    fix: &str,
+) -> anyhow::Error {
+    let Some(brickyard_store::error::StoreError::Invalid { field, .. }) =
+        e.downcast_ref::<brickyard_store::error::StoreError>()
+    else {
+        return e;
+    };
+    if field != "memory" {
+        return e;
+    }
+    let mut bytes = dims.iter().map(|&d| d as f64).product::<f64>() * dtype.size() as f64;
+    let mut unit = 0;
+    let units = ["B", "KiB", "MiB", "GiB", "TiB", "PiB", "EiB", "ZiB", "YiB"];
+    while bytes >= 1024.0 && unit + 1 < units.len() {
+        bytes /= 1024.0;
+        unit += 1;
+    }
+    anyhow::anyhow!(
+        "size: a {}x{}x{} {dtype} volume ({bytes:.1} {}) is too large to convert within a memory \
+         budget of {memory}: choose a smaller {fix} ({e})",
+        dims[2],
+        dims[1],
+        dims[0],
+        units[unit]
+    )
+}
+
 fn convert_demo(out: &Path, size: &str) -> Result<PathBuf> {
-    // The demo folder itself is made, never the folders above it.
-    brickyard_store::builder::check_parent(out)?;
-    std::fs::create_dir_all(out).with_context(|| format!("{}: cannot create", out.display()))?;
     let dims = parse_size(size).map_err(|e| anyhow::anyhow!("size: {e}"))?;
+    // The demo folder itself is made, never the folders above it; made
+    // here and left empty by a failure, it is removed.
+    brickyard_store::builder::check_parent(out)?;
+    let made = !out.exists();
+    std::fs::create_dir_all(out).with_context(|| format!("{}: cannot create", out.display()))?;
+    let r = convert_demo_in(out, dims);
+    if r.is_err() && made {
+        // (Only an empty folder: remove_dir removes nothing else.)
+        let _ = std::fs::remove_dir(out);
+    }
+    r
+}
+
+fn convert_demo_in(out: &Path, dims: Dims3) -> Result<PathBuf> {
     let store = out.join("mandelbulb.ome.zarr");
     let src = Procedural::new(Kind::Mandelbulb, dims, DType::U16);
     outln!(
@@ -985,9 +1088,9 @@ fn convert_demo(out: &Path, size: &str) -> Result<PathBuf> {
         store.display()
     );
     let args = PyramidArgs {
-        brick: 64,
-        shard: 256,
-        compression: "lz4".into(),
+        brick: Some(64),
+        shard: Some(256),
+        compression: Some("lz4".into()),
         labels: false,
         memory: "256MiB".into(),
         overwrite: true,
@@ -996,9 +1099,10 @@ fn convert_demo(out: &Path, size: &str) -> Result<PathBuf> {
         unit: Some("micrometer".into()),
         json: false,
         quiet: false,
-        columns: 1,
+        columns: None,
     };
-    run_convert(&src, &store, &args, None)?;
+    run_convert(&src, &store, &args, None)
+        .map_err(|e| too_large(e, dims, DType::U16, &args.memory, "--size"))?;
     Ok(store)
 }
 

@@ -2795,3 +2795,169 @@ fn inputs_that_differ_in_intent_or_voxel_type_are_named_plainly() {
     ]);
     assert!(o.status.success(), "{}", stderr(&o));
 }
+
+/// A raw sidecar's spacing, origin and unit are checked as the flags are:
+/// refused naming the sidecar and the field, not silently replaced.
+#[test]
+fn sidecar_geometry_is_checked() {
+    let d = tempfile::tempdir().unwrap();
+    let raw = d.path().join("sc.raw");
+    std::fs::write(&raw, vec![0u8; 32 * 32 * 16]).unwrap();
+    let side = d.path().join("sc.raw.json");
+    let out = d.path().join("sc.ome.zarr");
+    for (j, field) in [
+        (
+            r#"{"dims":[32,32,16],"dtype":"u8","spacing":[0,1,1]}"#,
+            "spacing",
+        ),
+        (
+            r#"{"dims":[32,32,16],"dtype":"u8","spacing":[-2,1,1]}"#,
+            "spacing",
+        ),
+        (
+            r#"{"dims":[32,32,16],"dtype":"u8","unit":"furlong"}"#,
+            "unit",
+        ),
+    ] {
+        std::fs::write(&side, j).unwrap();
+        let o = run(&["convert", s(&raw), s(&out), "--quiet"]);
+        fails_with(&o, &["sc.raw.json", field]);
+        assert!(!out.exists(), "{j}");
+    }
+    std::fs::write(
+        &side,
+        r#"{"dims":[32,32,16],"dtype":"u8","unit":"um","spacing":[0.5,1,1]}"#,
+    )
+    .unwrap();
+    let o = run(&["convert", s(&raw), s(&out), "--quiet"]);
+    assert!(o.status.success(), "{}", stderr(&o));
+}
+
+/// `--dims` or `--dtype` alone replaces that field of a sidecar; without
+/// one, the error names the input and asks for both (or a sidecar).
+#[test]
+fn dims_or_dtype_alone_with_a_sidecar() {
+    let d = tempfile::tempdir().unwrap();
+    let raw = d.path().join("a.raw");
+    std::fs::write(&raw, vec![0u8; 32 * 32 * 16]).unwrap();
+    let side = d.path().join("a.raw.json");
+    std::fs::write(&side, r#"{"dims":[32,32,16],"dtype":"u8"}"#).unwrap();
+    for (i, flags) in [["--dims", "16x32x32"], ["--dtype", "u8"]]
+        .iter()
+        .enumerate()
+    {
+        let out = d.path().join(format!("a{i}.ome.zarr"));
+        let mut args = vec!["convert", s(&raw), s(&out), "--quiet"];
+        args.extend(flags);
+        let o = run(&args);
+        assert!(o.status.success(), "{flags:?}: {}", stderr(&o));
+    }
+    // The dims given win: 16x32x32 read as u16 does not match the file.
+    let out = d.path().join("b.ome.zarr");
+    let o = run(&["convert", s(&raw), s(&out), "--dtype", "u16", "--quiet"]);
+    fails_with(&o, &["a.raw", "dims"]);
+    std::fs::remove_file(&side).unwrap();
+    let o = run(&["convert", s(&raw), s(&out), "--dims", "32x32x16"]);
+    fails_with(&o, &["a.raw", "--dims and --dtype", "sidecar"]);
+}
+
+/// A generated raw file's sidecar holds the spacing, origin and unit
+/// given; flags that shape only a store are refused for a raw output.
+#[test]
+fn generate_raw_geometry_and_store_flags() {
+    let d = tempfile::tempdir().unwrap();
+    let g = d.path().join("g.raw");
+    let o = run(&[
+        "generate",
+        "mandelbulb",
+        s(&g),
+        "--size",
+        "8",
+        "--spacing",
+        "0.5,0.5,2",
+        "--origin",
+        "1,2,3",
+        "--unit",
+        "micrometer",
+        "--quiet",
+    ]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    let j: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(d.path().join("g.raw.json")).unwrap())
+            .unwrap();
+    assert_eq!(j["spacing"], serde_json::json!([0.5, 0.5, 2.0]), "{j}");
+    assert_eq!(j["origin"], serde_json::json!([1.0, 2.0, 3.0]), "{j}");
+    assert_eq!(j["unit"], "micrometer", "{j}");
+    for flag in [
+        &["--brick", "32"][..],
+        &["--shard", "128"],
+        &["--compression", "zstd"],
+        &["--labels"],
+        &["--columns", "4"],
+    ] {
+        let h = d.path().join("h.raw");
+        let mut args = vec!["generate", "mandelbulb", s(&h), "--size", "8"];
+        args.extend(flag);
+        fails_with(&run(&args), &[flag[0], "h.raw"]);
+        assert!(!h.exists(), "{flag:?}");
+    }
+    let h = d.path().join("h.raw");
+    let o = run(&[
+        "generate",
+        "mandelbulb",
+        s(&h),
+        "--size",
+        "8",
+        "--unit",
+        "furlong",
+    ]);
+    fails_with(&o, &["unit", "furlong"]);
+    assert!(!h.exists());
+}
+
+/// Without --shard, the default shard is at least the brick, a multiple of it.
+#[test]
+fn default_shard_follows_the_brick() {
+    let d = tempfile::tempdir().unwrap();
+    let raw = d.path().join("v.raw");
+    std::fs::write(&raw, vec![0u8; 32 * 32 * 16]).unwrap();
+    for brick in ["1024", "96"] {
+        let out = d.path().join(format!("v{brick}.ome.zarr"));
+        let o = run(&[
+            "convert",
+            s(&raw),
+            s(&out),
+            "--dims",
+            "32x32x16",
+            "--dtype",
+            "u8",
+            "--brick",
+            brick,
+            "--memory",
+            "8GiB",
+            "--quiet",
+        ]);
+        assert!(!stderr(&o).contains("shard"), "{brick}: {}", stderr(&o));
+    }
+}
+
+/// A volume far too large for the budget says that its size is the
+/// problem; demo leaves no folder behind when it fails before writing.
+#[test]
+fn absurd_sizes_blame_the_size() {
+    let d = tempfile::tempdir().unwrap();
+    let h = d.path().join("h.ome.zarr");
+    let o = run(&[
+        "generate",
+        "mandelbulb",
+        s(&h),
+        "--size",
+        "100000000",
+        "--quiet",
+    ]);
+    fails_with(&o, &["size", "volume", "too large", "--size"]);
+    let dh = d.path().join("dhuge");
+    let o = run(&["demo", "--size", "100000", "--out", s(&dh)]);
+    fails_with(&o, &["size", "volume", "too large", "--size"]);
+    assert!(!dh.exists());
+}

@@ -1139,7 +1139,7 @@ fn a_rank_failing_alone_ends_the_job() {
         );
         assert!(!png.exists(), "{split}: an image was written");
     }
-    // The trial's hang: one rank names an input that is not there.
+    // A hang seen once: one rank names an input that is not there.
     let elsewhere = dir.path().join("elsewhere/m.raw");
     let out2 = dir.path().join("h2.ome.zarr");
     let a = |input: &Path| -> Vec<String> {

@@ -1,5 +1,5 @@
 //! `render`'s channel options and the flags that another makes moot, as
-//! a user trial found them: a window given with one DVR channel is its
+//! a user meets them: a window given with one DVR channel is its
 //! transfer function's window, `--tf` with several channels is refused
 //! (it was ignored), a store with more active channels than a mode draws
 //! still renders, a slice plane that misses the volume is refused (it

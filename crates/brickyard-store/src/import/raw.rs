@@ -93,7 +93,7 @@ impl RawOptions {
 
     /// Parse the bytes of a sidecar file; `path` names it in errors.
     pub fn parse_sidecar(path: &Path, bytes: &[u8]) -> Result<RawOptions> {
-        serde_json::from_slice(bytes).map_err(|e| {
+        let r: RawOptions = serde_json::from_slice(bytes).map_err(|e| {
             StoreError::invalid(
                 path,
                 "sidecar",
@@ -102,7 +102,47 @@ impl RawOptions {
                      \"spacing\":[x,y,z],\"channels\":1,\"header_bytes\":0}}"
                 ),
             )
-        })
+        })?;
+        r.check_geometry(path)?;
+        Ok(r)
+    }
+
+    /// The sidecar's spacing, origin and unit are the user's own statement:
+    /// refused as the same values given as flags are (not silently
+    /// replaced or dropped); `path` names the sidecar.
+    pub fn check_geometry(&self, path: &Path) -> Result<()> {
+        if let Some(sp) = self.spacing {
+            if sp.iter().any(|v| !(v.is_finite() && *v > 0.0)) {
+                return Err(StoreError::invalid(
+                    path,
+                    "spacing",
+                    format!("expected positive numbers, found {sp:?} (x, y, z)"),
+                ));
+            }
+        }
+        if let Some(o) = self.origin {
+            if o.iter().any(|v| !v.is_finite()) {
+                return Err(StoreError::invalid(
+                    path,
+                    "origin",
+                    format!("expected finite numbers, found {o:?} (x, y, z)"),
+                ));
+            }
+        }
+        if let Some(u) = &self.unit {
+            if crate::omezarr::normalize_unit(u).is_none() {
+                return Err(StoreError::invalid(
+                    path,
+                    "unit",
+                    format!(
+                        "unknown unit {u:?}; expected one of OME-Zarr's space units ({}) or mm, \
+                         um, nm, cm, m",
+                        crate::omezarr::SPACE_UNITS.join(", ")
+                    ),
+                ));
+            }
+        }
+        Ok(())
     }
 
     /// Write a sidecar file.
