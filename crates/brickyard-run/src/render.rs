@@ -1541,26 +1541,33 @@ fn run_one(
                     }
                 }
             }
-            _ => {
-                if c.tf.is_some() {
-                    bail!(
-                        "tf: {} channels are composited, each with its own colour and window \
-                         (or --channel-tf C=TF); --tf is for one channel",
-                        styles.len()
-                    );
-                }
-            }
+            _ => {}
         }
-    } else if styles.len() > 1 && c.tf.is_some() {
-        bail!(
-            "tf: {} channels are added up in {}, each in its own colour and window; --tf is for \
-             one channel",
+    }
+    // --tf draws one channel; several are drawn each in its own colour and
+    // window (and in dvr with --channel-tf): said, not silently dropped
+    // (not refused: the viewer's saved views give --tf with them).
+    if styles.len() > 1 && c.tf.is_some() {
+        say_err!(
+            silent,
+            "note: --tf is not used: {} channels are {} each in its own colour and window{}; \
+             --tf is for one channel",
             styles.len(),
-            c.mode
+            if mode == RenderMode::Dvr {
+                "composited"
+            } else {
+                "added up"
+            },
+            if mode == RenderMode::Dvr {
+                " (or --channel-tf C=TF)"
+            } else {
+                ""
+            }
         );
-    } else if !c.channel_tfs.is_empty() {
+    }
+    if mode != RenderMode::Dvr && !c.channel_tfs.is_empty() {
         bail!("channel-tf: transfer functions per channel are for dvr; mip and slice add channels up by colour and window");
-    } else if !c.channel_levels.is_empty() {
+    } else if mode != RenderMode::Dvr && !c.channel_levels.is_empty() {
         bail!("channel-levels: level ranges per channel are for dvr; mip and slice read every channel at one level");
     }
     // DVR of several channels composites them; one goes through --tf.
