@@ -88,13 +88,16 @@ pub struct ProcessReport {
     /// The device the filter stages ran on (`None`: the CPU).
     pub device: Option<String>,
     pub seconds: f64,
+    /// What the user should know of the result (a label image of a
+    /// coarser level lies off the image's grid).
+    pub note: Option<String>,
 }
 
 impl ProcessReport {
-    /// `wrote OUTPUT (DTYPE, N levels[, M labels]) in S s`.
+    /// `wrote OUTPUT (DTYPE, N levels[, M labels]) in S s[; note: …]`.
     pub fn summary(&self) -> String {
         format!(
-            "wrote {} ({}, {} levels{}) in {:.2} s",
+            "wrote {} ({}, {} levels{}) in {:.2} s{}",
             self.output.display(),
             self.dtype,
             self.levels,
@@ -102,6 +105,10 @@ impl ProcessReport {
                 .map(|n| format!(", {n} labels"))
                 .unwrap_or_default(),
             self.seconds,
+            self.note
+                .as_ref()
+                .map(|n| format!("; note: {n}"))
+                .unwrap_or_default(),
         )
     }
 }
@@ -778,5 +785,15 @@ pub fn run(
         bytes_written: report.bytes_written,
         device: on,
         seconds: t0.elapsed().as_secs_f64(),
+        // Label images are drawn over their image (render --labels) on
+        // its grid only; one made from a coarser level is drawn alone.
+        note: (is_label && c.level > 0).then(|| {
+            format!(
+                "it lies on level {}'s grid, not the image's: render --labels draws label images \
+                 over the image on its own grid only; draw it alone with brickyard render {}",
+                c.level,
+                paths.fin.display()
+            )
+        }),
     })
 }

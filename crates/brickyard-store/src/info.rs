@@ -583,6 +583,18 @@ fn inner_images(path: &Path, problems: &mut Vec<String>) -> Vec<(String, String)
                 ));
                 continue;
             }
+            // `convert --overwrite` moves the image it replaces to NAME.old
+            // and removes it once the new one is in place: one left behind
+            // was stopped in between.
+            if let Some(target) = name.strip_suffix(".old") {
+                if path.join(group).join(target).exists() {
+                    problems.push(format!(
+                        "{rel}: not an image but the one {group}/{target} replaced, left by a \
+                         conversion stopped while swapping them: remove the folder"
+                    ));
+                    continue;
+                }
+            }
             let dir = path.join(group).join(&name);
             let ms = read_multiscale(&dir);
             let root = ms.as_ref().ok().and_then(Option::as_ref);

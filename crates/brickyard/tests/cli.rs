@@ -2961,3 +2961,107 @@ fn absurd_sizes_blame_the_size() {
     fails_with(&o, &["size", "volume", "too large", "--size"]);
     assert!(!dh.exists());
 }
+
+/// A high Zstandard level's compressor state (several MiB a thread) is in
+/// the conversion's budget: with eight threads at level 19 a 128³ u16
+/// volume peaked near 100 MiB under `--memory 64MiB`. Now such a budget
+/// is refused, naming --memory, and a budget the plan accepts holds.
+#[test]
+fn zstd_compressor_state_is_in_the_memory_budget() {
+    let d = tempfile::tempdir().unwrap();
+    let raw = d.path().join("z.raw");
+    let g = run(&[
+        "generate",
+        "mandelbulb",
+        s(&raw),
+        "--size",
+        "128",
+        "--dtype",
+        "u16",
+        "--quiet",
+    ]);
+    assert!(g.status.success(), "{}", stderr(&g));
+    let conv = |memory: &str, name: &str| {
+        run(&[
+            "convert",
+            s(&raw),
+            s(&d.path().join(name)),
+            "--memory",
+            memory,
+            "--compression",
+            "zstd:19",
+            "--threads",
+            "8",
+            "--json",
+            "--quiet",
+        ])
+    };
+    let o = conv("64MiB", "a.ome.zarr");
+    assert!(
+        !o.status.success(),
+        "64 MiB taken for 8 level-19 compressors"
+    );
+    assert!(stderr(&o).contains("memory"), "{}", stderr(&o));
+    assert!(!d.path().join("a.ome.zarr").exists());
+    // The least budget the plan takes, named in the message, holds.
+    let e = stderr(&o);
+    let need: u64 = e
+        .split("at least ")
+        .nth(1)
+        .and_then(|t| t.split(" MiB").next())
+        .and_then(|n| n.trim().parse().ok())
+        .unwrap_or_else(|| panic!("no least budget in: {e}"));
+    let budget = format!("{need}MiB");
+    let o = conv(&budget, "b.ome.zarr");
+    assert!(o.status.success(), "{}", stderr(&o));
+    let r: serde_json::Value = serde_json::from_slice(&o.stdout).unwrap();
+    let rss = r["peak_rss_bytes"].as_u64().unwrap();
+    assert!(
+        rss > 0 && rss <= need << 20,
+        "peak RSS {rss} over the {need} MiB budget"
+    );
+}
+
+/// What `convert --overwrite` of a label image leaves when stopped while
+/// swapping (NAME.old beside the new NAME) is listed as a problem, not as
+/// a second label image.
+#[test]
+fn info_lists_a_replaced_label_image_left_behind_as_a_problem() {
+    let d = tempfile::tempdir().unwrap();
+    let store = mandelbulb_48(d.path(), "o.ome.zarr");
+    let raw = d.path().join("seg.raw");
+    std::fs::write(
+        &raw,
+        (0..48 * 48 * 48).map(|i| (i % 3) as u8).collect::<Vec<_>>(),
+    )
+    .unwrap();
+    let out = store.join("labels/seg");
+    let o = run(&[
+        "convert",
+        s(&raw),
+        s(&out),
+        "--labels",
+        "--dims",
+        "48x48x48",
+        "--dtype",
+        "u8",
+        "--quiet",
+    ]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    copy_tree(&out, &store.join("labels/seg.old"));
+    let o = run(&["info", s(&store)]);
+    let text = String::from_utf8_lossy(&o.stdout).into_owned();
+    assert_eq!(o.status.code(), Some(1), "{text}");
+    assert!(
+        text.lines().any(|l| l.contains("problem:")
+            && l.contains("labels/seg.old")
+            && l.contains("remove the folder")),
+        "{text}"
+    );
+    assert!(
+        !text
+            .lines()
+            .any(|l| l.contains("image inside: labels/seg.old")),
+        "{text}"
+    );
+}

@@ -1708,3 +1708,42 @@ fn a_statistics_folder_that_takes_no_file_is_refused_before_any_work() {
     }
     assert!(tried > 0, "no /sys or /proc to test with");
 }
+
+/// A label image made from a coarser level lies off the image's grid, so
+/// `render --labels` cannot lay it over the image: the report says so at
+/// once (it said nothing, and the overlay failed later).
+#[test]
+fn labels_of_a_coarser_level_are_said_to_lie_off_the_image_grid() {
+    let d = tempfile::tempdir().unwrap();
+    let store = make_store(d.path(), "48");
+    let o = run(&[
+        "process",
+        s(&store),
+        "threshold(100)|label(6)",
+        "--level",
+        "1",
+        "--out",
+        "coarse",
+    ]);
+    let all = format!(
+        "{}{}",
+        String::from_utf8_lossy(&o.stdout),
+        String::from_utf8_lossy(&o.stderr)
+    );
+    assert!(o.status.success(), "{all}");
+    assert!(all.contains("lies on level 1's grid"), "{all}");
+    let o = run(&[
+        "process",
+        s(&store),
+        "threshold(100)|label(6)",
+        "--out",
+        "fine",
+    ]);
+    let all = format!(
+        "{}{}",
+        String::from_utf8_lossy(&o.stdout),
+        String::from_utf8_lossy(&o.stderr)
+    );
+    assert!(o.status.success(), "{all}");
+    assert!(!all.contains("grid"), "{all}");
+}
