@@ -323,7 +323,7 @@ pub fn input_identity(path: &std::path::Path) -> String {
     if md.is_dir() {
         for name in ["zarr.json", ".zattrs", ".zgroup", ".zarray"] {
             if let Ok(b) = std::fs::read(path.join(name)) {
-                return format!("a store whose {name} hashes to {:016x}", fnv(&b));
+                return format!("a store whose {name} hashes to {:016x}", content_hash(&b));
             }
         }
         let n = std::fs::read_dir(path).map(|d| d.count()).unwrap_or(0);
@@ -337,10 +337,13 @@ pub fn input_identity(path: &std::path::Path) -> String {
     format!("{} bytes modified at {mtime} s (Unix time)", md.len())
 }
 
-fn fnv(b: &[u8]) -> u64 {
-    b.iter().fold(0xcbf29ce484222325u64, |h, &x| {
-        (h ^ x as u64).wrapping_mul(0x100000001b3)
-    })
+/// A hash of `b` that every rank computes alike (the same binary: std's
+/// default hasher with its fixed keys).
+fn content_hash(b: &[u8]) -> u64 {
+    use std::hash::Hasher;
+    let mut h = std::hash::DefaultHasher::new();
+    h.write(b);
+    h.finish()
 }
 
 /// The ranks' command lines and inputs (in rank order) that differ from
