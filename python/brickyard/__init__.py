@@ -367,7 +367,7 @@ _FLAGS = frozenset((
     "label-opacity", "labels", "level", "loader-threads", "lod-bias", "max-frames", "memory", "mode", "multiplex",
     "no-early-termination", "octree-depth", "only-labels", "origin", "ortho", "out", "overwrite", "parallax", "pool",
     "progressive", "quiet", "raw-f32", "read-delay-ms", "region-weights", "requests",
-    "samples-per-voxel", "save-camera", "shard", "size", "slice-normal", "slice-origin", "slice-z",
+    "samples-per-voxel", "save-camera", "shard", "size", "slice-at", "slice-normal", "slice-origin", "slice-z",
     "spacing", "stats", "stereo", "stream", "tf", "traversal", "turntable", "unit", "upload", "views",
     "window"))
 _SWITCHES = {

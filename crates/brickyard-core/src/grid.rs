@@ -81,6 +81,19 @@ pub fn normalize_unit(u: &str) -> Option<String> {
     SPACE_UNITS.contains(&n).then(|| n.to_string())
 }
 
+/// A unit a user names (a flag, a sidecar, a Python keyword): its OME-NGFF
+/// name, or the message saying what was expected. Units read from an
+/// input's header go through [`normalize_unit`] instead, which drops one it
+/// does not know.
+pub fn known_unit(u: &str) -> Result<String, String> {
+    normalize_unit(u).ok_or_else(|| {
+        format!(
+            "unknown unit {u:?}; expected one of OME-Zarr's space units ({}) or mm, um, nm, cm, m",
+            SPACE_UNITS.join(", ")
+        )
+    })
+}
+
 /// A volume's grid: voxels, spacing and origin `[z, y, x]` (the centre of
 /// voxel 0), and the unit of both.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -144,6 +157,9 @@ mod tests {
         assert_eq!(unit_in_meters("µm"), Some(1e-6));
         assert_eq!(unit_in_meters("millimeter"), Some(1e-3));
         assert_eq!(unit_in_meters("parsnip"), None);
+        assert_eq!(known_unit(" UM ").as_deref(), Ok("micrometer"));
+        let e = known_unit("parsnip").unwrap_err();
+        assert!(e.contains("\"parsnip\"") && e.contains("millimeter"), "{e}");
         let um = grid([0.5, 0.26, 0.26], [0.25, 0.13, 0.13], Some("micrometer"));
         // The same grid in nanometers, and without units.
         assert!(um

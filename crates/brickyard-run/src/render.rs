@@ -130,6 +130,13 @@ pub struct RenderCmd {
     /// --slice-z; as the viewer's saved views give it).
     #[arg(long, allow_hyphen_values = true)]
     slice_origin: Option<String>,
+    /// Slice: a point of the plane in the store's physical coordinates
+    /// X,Y,Z, in its unit with its translation added (as `brickyard info`
+    /// lists them and the converted file's header placed the voxels: e.g.
+    /// a brain's coordinates from its NIfTI header) (instead of --slice-z
+    /// and --slice-origin).
+    #[arg(long, allow_hyphen_values = true)]
+    slice_at: Option<String>,
     /// Slice: the plane's normal X,Y,Z (default 0,0,1, or the --camera
     /// file's).
     #[arg(long, allow_hyphen_values = true)]
@@ -303,6 +310,7 @@ fn check_mode_flags(c: &RenderCmd) -> Result<()> {
             for (flag, given) in [
                 ("slice-z", c.slice_z.is_some()),
                 ("slice-origin", c.slice_origin.is_some()),
+                ("slice-at", c.slice_at.is_some()),
                 ("slice-normal", c.slice_normal.is_some()),
             ] {
                 if given {
@@ -335,9 +343,20 @@ fn check_mode_flags(c: &RenderCmd) -> Result<()> {
                      samples along rays)"
                 );
             }
-            if c.slice_z.is_some() && c.slice_origin.is_some() {
+            let placed: Vec<&str> = [
+                ("--slice-z", c.slice_z.is_some()),
+                ("--slice-origin", c.slice_origin.is_some()),
+                ("--slice-at", c.slice_at.is_some()),
+            ]
+            .into_iter()
+            .filter_map(|(f, given)| given.then_some(f))
+            .collect();
+            if placed.len() > 1 {
                 bail!(
-                    "slice-z: give --slice-z or --slice-origin, not both (either places the plane)"
+                    "{}: give one of --slice-z, --slice-origin and --slice-at, not {} (each \
+                     places the plane)",
+                    placed[0].trim_start_matches('-'),
+                    placed.join(" and ")
                 );
             }
         }
@@ -1212,19 +1231,32 @@ fn run_one(
         "mip" => RenderMode::Mip,
         "slice" => {
             let saved = camera_file.as_ref();
-            let origin = match &c.slice_origin {
-                Some(o) => {
+            let max = brickyard_core::camera::MAX_COORD;
+            let origin = match (&c.slice_origin, &c.slice_at) {
+                (Some(o), _) => {
                     let v = parse_vec3(o, "slice-origin")?;
-                    let max = brickyard_core::camera::MAX_COORD;
                     if v.iter().any(|a| a.abs() > max) {
                         bail!("slice-origin: expected coordinates within ±{max:e}, found {o:?}");
                     }
                     v
                 }
-                None if c.slice_z.is_none() && saved.is_some_and(|f| f.slice_origin.is_some()) => {
+                // Physical coordinates: voxel i's centre lies at
+                // translation + i·spacing there, at (i + ½)·spacing in the
+                // renderer's world.
+                (None, Some(a)) => {
+                    let v = parse_vec3(a, "slice-at")?;
+                    if v.iter().any(|a| a.abs() > max) {
+                        bail!("slice-at: expected coordinates within ±{max:e}, found {a:?}");
+                    }
+                    let t = m.origin.unwrap_or([0.0; 3]);
+                    [0, 1, 2].map(|k| v[k] - t[2 - k] + 0.5 * spacing[2 - k])
+                }
+                (None, None)
+                    if c.slice_z.is_none() && saved.is_some_and(|f| f.slice_origin.is_some()) =>
+                {
                     saved.and_then(|f| f.slice_origin).unwrap()
                 }
-                None => {
+                (None, None) => {
                     let z = c.slice_z.unwrap_or(0.5);
                     if !(0.0..=1.0).contains(&z) {
                         bail!("slice-z: expected a fraction of the depth from 0 to 1, found {z}");
@@ -1257,6 +1289,22 @@ fn run_one(
                     (l.min(v), h.max(v))
                 });
             if lo > 0.0 || hi < 0.0 {
+                if let Some(a) = &c.slice_at {
+                    // Said in the coordinates given: the voxels' outer
+                    // faces, translation added.
+                    let t = m.origin.unwrap_or([0.0; 3]);
+                    let from = [0, 1, 2].map(|k| t[2 - k] - 0.5 * spacing[2 - k]);
+                    let to = [0, 1, 2].map(|k| from[k] + extent[k]);
+                    bail!(
+                        "slice-at: the plane through {a} with normal {normal:?} misses the \
+                         volume, which spans {from:?} to {to:?} (x, y, z, the store's physical \
+                         coordinates{})",
+                        m.unit
+                            .as_deref()
+                            .map(|u| format!(", {u}"))
+                            .unwrap_or_default()
+                    );
+                }
                 bail!(
                     "slice-origin: the plane through {origin:?} with normal {normal:?} misses the \
                      volume, which spans [0, 0, 0] to {extent:?} (world x, y, z)"

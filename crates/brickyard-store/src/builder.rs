@@ -670,16 +670,7 @@ pub fn convert_team(
     // A unit the user names must be one OME-Zarr knows; one from the
     // input's header that is not is left out.
     if let Some(u) = &opts.unit {
-        if omezarr::normalize_unit(u).is_none() {
-            return Err(StoreError::invalid(
-                output,
-                "unit",
-                format!(
-                    "unknown unit {u:?}; expected one of OME-Zarr's space units ({}) or mm, um, nm, cm, m",
-                    omezarr::SPACE_UNITS.join(", ")
-                ),
-            ));
-        }
+        omezarr::known_unit(u).map_err(|why| StoreError::invalid(output, "unit", why))?;
     }
     let unit = opts
         .unit

@@ -13,7 +13,7 @@ pub const ATTR: &str = "brickyard";
 /// Where the per-brick statistics live, relative to the root.
 pub const STATS_DIR: &str = "_brickyard/stats";
 
-pub use brickyard_core::grid::{normalize_unit, unit_in_meters, SPACE_UNITS};
+pub use brickyard_core::grid::{known_unit, normalize_unit, unit_in_meters, SPACE_UNITS};
 
 /// Zarr v3 array metadata of one sharded pyramid level.
 pub fn level_array_json(
@@ -178,6 +178,10 @@ pub struct Multiscale {
     /// `labels/NAME` does), or its multiscales say coarser levels took the
     /// most frequent value (`"type": "mode"`, as `convert --labels` writes).
     pub label_image: bool,
+    /// The `omero` block as the group gives it (read with
+    /// [`omero_given`]), and the file it comes from.
+    pub omero: Option<Value>,
+    pub meta_path: PathBuf,
 }
 
 /// The `scale` and `translation` of an object's `coordinateTransformations`
@@ -409,6 +413,8 @@ pub fn parse_multiscale(
         zarr_format,
         brickyard,
         label_image,
+        omero: ome.get("omero").or_else(|| attrs.get("omero")).cloned(),
+        meta_path: meta_path.to_path_buf(),
     }))
 }
 
@@ -506,16 +512,27 @@ pub fn read_omero_given(dir: &Path) -> Result<Option<Vec<(String, ChannelDisplay
     } else {
         dir.join(".zattrs")
     };
-    let Some(o) = attrs
-        .get("ome")
-        .and_then(|o| o.get("omero"))
-        .or_else(|| attrs.get("omero"))
-    else {
+    omero_given(
+        &meta_path,
+        attrs
+            .get("ome")
+            .and_then(|o| o.get("omero"))
+            .or_else(|| attrs.get("omero")),
+    )
+}
+
+/// [`read_omero_given`] of an `omero` block already read (from
+/// [`Multiscale::omero`]); `meta_path` names its file in errors.
+pub fn omero_given(
+    meta_path: &Path,
+    omero: Option<&Value>,
+) -> Result<Option<Vec<(String, ChannelDisplay)>>> {
+    let Some(o) = omero else {
         return Ok(None);
     };
     let Some(chs) = o.get("channels").and_then(Value::as_array) else {
         return Err(StoreError::invalid(
-            &meta_path,
+            meta_path,
             "omero.channels",
             "expected an array of channels",
         ));
@@ -534,7 +551,7 @@ pub fn read_omero_given(dir: &Path) -> Result<Option<Vec<(String, ChannelDisplay
                 let ok = s.len() == 6 && s.chars().all(|ch| ch.is_ascii_hexdigit());
                 if !ok {
                     return Err(StoreError::invalid(
-                        &meta_path,
+                        meta_path,
                         field("color"),
                         format!("expected six hex digits RRGGBB, found {v}"),
                     ));
@@ -551,7 +568,7 @@ pub fn read_omero_given(dir: &Path) -> Result<Option<Vec<(String, ChannelDisplay
                     (Some(a), Some(b)) if a.is_finite() && b.is_finite() && a < b => Some([a, b]),
                     _ => {
                         return Err(StoreError::invalid(
-                            &meta_path,
+                            meta_path,
                             field("window"),
                             format!("expected numbers start < end, found {w}"),
                         ))

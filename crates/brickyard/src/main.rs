@@ -934,15 +934,10 @@ fn run(cmd: Cmd, cluster: Option<&dist::Cluster>) -> Result<()> {
                 let xyz = |v: [f64; 3]| [v[2], v[1], v[0]];
                 let unit = match &pyramid.unit {
                     None => None,
-                    Some(u) => Some(brickyard_store::omezarr::normalize_unit(u).with_context(
-                        || {
-                            format!(
-                                "unit: unknown unit {u:?}; expected one of OME-Zarr's space \
-                                 units ({}) or mm, um, nm, cm, m",
-                                brickyard_store::omezarr::SPACE_UNITS.join(", ")
-                            )
-                        },
-                    )?),
+                    Some(u) => Some(
+                        brickyard_store::omezarr::known_unit(u)
+                            .map_err(|why| anyhow::anyhow!("unit: {why}"))?,
+                    ),
                 };
                 // Within --memory (a quarter of it for the slab, at most
                 // 64 MiB), and stopped cleanly by Ctrl-C.

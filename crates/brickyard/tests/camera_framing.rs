@@ -267,3 +267,97 @@ fn a_saved_slice_camera_brings_back_the_same_slice() {
         "{v}"
     );
 }
+
+#[test]
+fn slice_at_takes_the_stores_physical_coordinates() {
+    // 40 × 32 × 24 voxels, spacing 2, 1, 0.5 and voxel 0's centre at
+    // (-30, 10, 5) millimeters: layer k of z lies at 5 + 0.5·k.
+    let d = tempfile::tempdir().unwrap();
+    let p = |n: &str| d.path().join(n);
+    // (The raw file of a lit volume, converted again with a geometry.)
+    raw_store(d.path(), "placed", [40, 32, 24]);
+    let store = p("placed-mm.zarr");
+    ok(&run(&[
+        "convert",
+        "--quiet",
+        "--dims",
+        "40x32x24",
+        "--dtype",
+        "u8",
+        "--spacing",
+        "2,1,0.5",
+        "--origin",
+        "-30,10,5",
+        "--unit",
+        "mm",
+        s(&p("placed.raw")),
+        s(&store),
+    ]));
+    let slice = ["--mode", "slice", "--size", "80x64"];
+    let bytes = |f: &Path| std::fs::read(f).unwrap();
+    // z = 8.5 mm is layer 7 of 24: the slice --slice-z draws at that
+    // layer (any x and y name the same plane).
+    let (a, b) = (p("at.png"), p("z.png"));
+    render(
+        &store,
+        &a,
+        &[&slice[..], &["--slice-at", "-100,0,8.5"]].concat(),
+    );
+    render(
+        &store,
+        &b,
+        &[&slice[..], &["--slice-z", &format!("{}", 7.5 / 24.0)]].concat(),
+    );
+    assert!(lit(&png_pixels(&a).0, 80).0 > 1000, "a blank slice");
+    assert!(bytes(&a) == bytes(&b), "--slice-at 8.5 mm is not layer 7");
+    // Across x: x = -4 mm is column 13, at 27 in the renderer's world
+    // (corner at 0, (13 + ½)·2), as --slice-origin takes it.
+    let (c, e) = (p("at-x.png"), p("origin-x.png"));
+    let across = ["--slice-normal", "1,0,0"];
+    render(
+        &store,
+        &c,
+        &[&slice[..], &across[..], &["--slice-at", "-4,12,6"]].concat(),
+    );
+    render(
+        &store,
+        &e,
+        &[&slice[..], &across[..], &["--slice-origin", "27,0,0"]].concat(),
+    );
+    assert!(lit(&png_pixels(&c).0, 80).0 > 1000, "a blank slice");
+    assert!(bytes(&c) == bytes(&e), "--slice-at -4 mm is not column 13");
+    // A plane beyond the volume names its span in the same coordinates:
+    // z from 5 - 0.25 to 5 + 23.75 mm.
+    let o = bin()
+        .arg("render")
+        .arg(&store)
+        .args([
+            "--mode",
+            "slice",
+            "--slice-at",
+            "0,0,40",
+            "-o",
+            s(&p("no.png")),
+        ])
+        .output()
+        .unwrap();
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert_eq!(o.status.code(), Some(1), "{err}");
+    assert!(
+        err.contains("slice-at:")
+            && err.contains("spans [-31.0, 9.5, 4.75] to [49.0, 41.5, 16.75]")
+            && err.contains("millimeter"),
+        "{err}"
+    );
+    assert!(!p("no.png").exists());
+    // Two ways of placing the plane at once are refused.
+    let o = bin()
+        .arg("render")
+        .arg(&store)
+        .args(["--mode", "slice", "--slice-at", "0,0,8", "--slice-z", "0.5"])
+        .output()
+        .unwrap();
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert_eq!(o.status.code(), Some(1), "{err}");
+    assert!(err.contains("--slice-z and --slice-at"), "{err}");
+}

@@ -130,17 +130,7 @@ impl RawOptions {
             }
         }
         if let Some(u) = &self.unit {
-            if crate::omezarr::normalize_unit(u).is_none() {
-                return Err(StoreError::invalid(
-                    path,
-                    "unit",
-                    format!(
-                        "unknown unit {u:?}; expected one of OME-Zarr's space units ({}) or mm, \
-                         um, nm, cm, m",
-                        crate::omezarr::SPACE_UNITS.join(", ")
-                    ),
-                ));
-            }
+            crate::omezarr::known_unit(u).map_err(|why| StoreError::invalid(path, "unit", why))?;
         }
         Ok(())
     }

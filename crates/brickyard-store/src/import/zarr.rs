@@ -567,7 +567,7 @@ fn open_array(
         // The channels' names, colours, windows and active flags from
         // `omero`, so a copy keeps them (the name of a single channel
         // is not taken, as before).
-        match crate::omezarr::read_omero_given(&meta.path) {
+        match crate::omezarr::omero_given(&m.meta_path, m.omero.as_ref()) {
             Ok(Some(om)) if om.len() == channels => {
                 let (names, display): (Vec<_>, Vec<_>) = om.into_iter().unzip();
                 if channels > 1 {
