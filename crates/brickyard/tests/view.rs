@@ -1648,11 +1648,23 @@ fn unreadable_label_chunks_are_drawn_coarser_and_reported_briefly() {
         ),
     )
     .unwrap();
+    // (The 3D view does not accumulate samples: its passes, of no concern
+    // here, took most of the two minutes wait-complete allows on a loaded
+    // two-core machine.)
     let Some(mut cmd) = viewer(
         &store,
         &p("s.txt"),
         Some(&p("log.jsonl")),
-        &["--labels", "cells", "--backend", "cpu", "--brick", "16"],
+        &[
+            "--labels",
+            "cells",
+            "--backend",
+            "cpu",
+            "--brick",
+            "16",
+            "--accumulate",
+            "0",
+        ],
     ) else {
         return;
     };
@@ -2689,4 +2701,71 @@ fn viewer_on_the_device_goes_on_when_its_buffers_cannot_hold_an_accumulation() {
     );
     let args = std::fs::read_to_string(p("dev.args")).unwrap();
     assert_eq!(args.contains("--progressive"), accumulated, "{args}");
+}
+
+#[test]
+fn a_cold_3d_view_is_previewed_smaller_then_drawn_whole() {
+    let _session = shared();
+    let d = tempfile::tempdir().unwrap();
+    let p = |n: &str| d.path().join(n);
+    let store = mandelbulb(d.path(), "96", &["--brick", "16", "--shard", "32"]);
+    std::fs::write(
+        p("s.txt"),
+        format!(
+            "size 3d 400 300\nwait-complete 300\nscreenshot 3d {}\nquit\n",
+            s(&p("3d.png"))
+        ),
+    )
+    .unwrap();
+    // A slow disk: the first frames find little resident.
+    let Some(mut cmd) = viewer(
+        &store,
+        &p("s.txt"),
+        Some(&p("log.jsonl")),
+        &[
+            "--backend",
+            "cpu",
+            "--brick",
+            "16",
+            "--read-delay-ms",
+            "3",
+            "--accumulate",
+            "0",
+        ],
+    ) else {
+        return;
+    };
+    let o = cmd.output().unwrap();
+    assert!(o.status.success(), "viewer: {}", stderr(&o));
+    let frames: Vec<serde_json::Value> = log_lines(&p("log.jsonl"))
+        .into_iter()
+        .filter(|l| l["view"] == "3d")
+        .collect();
+    // While most of it loads, the view comes as previews (never complete,
+    // never settled); then whole frames, the last one settled.
+    let first = frames.first().expect("no 3D frame");
+    assert_eq!(first["preview"], true, "{first}");
+    assert!(first["completeness"].as_f64().unwrap() < 1.0, "{first}");
+    for f in frames.iter().filter(|f| f["preview"] == true) {
+        assert!(
+            f["settled"] == false && f["completeness"].as_f64().unwrap() < 1.0,
+            "{f}"
+        );
+    }
+    let k = frames.iter().position(|f| f["preview"] == false);
+    let k = k.expect("never drawn whole");
+    assert!(
+        frames[k..].iter().all(|f| f["preview"] == false),
+        "a preview after a whole frame of the same view"
+    );
+    let last = frames.last().unwrap();
+    assert!(
+        last["settled"] == true && last["completeness"].as_f64().unwrap() >= 1.0,
+        "{last}"
+    );
+    // The screenshot (the view's last complete image) is whole-sized and
+    // shows the volume.
+    let (w, h, px) = png_pixels(&p("3d.png"));
+    assert_eq!((w, h), (400, 300));
+    assert!(px.chunks(4).filter(|c| c[..3] != [0, 0, 0]).count() > 5000);
 }

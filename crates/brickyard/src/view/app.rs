@@ -794,7 +794,7 @@ impl ViewerApp {
                     "settled": out.settled, "new_failures": out.new_failures,
                     "accumulated": out.accumulated, "reblended": out.reblended,
                     "since_change_ms": out.since_change_ms,
-                    "octree_nodes": out.octree_nodes,
+                    "octree_nodes": out.octree_nodes, "preview": out.preview,
                     "peak_rss_bytes": crate::memory::peak_rss(),
                     "memory_budget_bytes": self.setup.memory_budget,
             }));
@@ -811,6 +811,7 @@ impl ViewerApp {
         }
         if v == 0
             && out.version == self.views[0].version
+            && !out.preview
             && self.interacting.elapsed() < Duration::from_millis(200)
         {
             self.moving_last = out.image.width as f64 / self.views[0].size[0].max(1) as f64;
@@ -894,6 +895,7 @@ impl ViewerApp {
     fn complete(&self, v: usize) -> bool {
         let done = |o: &Out, version: u64| {
             o.version == version
+                && !o.preview
                 && (o.settled || (o.completeness >= 1.0 && o.accumulated.is_none()))
         };
         let vs = &self.views[v];

@@ -112,6 +112,10 @@ pub struct Out {
     /// Residency-octree nodes the frame's rays visited (0: drawn through
     /// the page tables).
     pub octree_nodes: u64,
+    /// A preview: the view drawn smaller (a fraction of its width and
+    /// height, [`PREVIEW_FOR`]) while most of what it needs is still
+    /// loading; shown scaled up, never complete.
+    pub preview: bool,
 }
 
 pub enum Reply {
@@ -142,6 +146,9 @@ struct View {
     /// accumulation could not be begun, or failed): its plain frame is
     /// its last.
     no_acc: bool,
+    /// Its next frame is drawn first as a preview ([`preview_params`]),
+    /// and sent as one while that preview is incomplete.
+    preview: bool,
 }
 
 impl View {
@@ -172,6 +179,46 @@ struct Acc {
 
 /// The time an accumulation part should take.
 const PART_MS: f64 = 20.0;
+
+/// A view changed draws previews for at most this long (then full frames,
+/// whose level-of-detail budget copes with a pool the view does not fit).
+const PREVIEW_FOR: Duration = Duration::from_secs(2);
+
+/// A view's preview, as `render`'s request pass is drawn: the width and
+/// height divided by [`crate::frames::pass_divisor`], a quarter of the
+/// samples along each ray, at the level of detail of the full image.
+/// `None` where a frame is cheap anyway or laid out otherwise (slices,
+/// several views, images under 128 pixels a side) and on a device, whose
+/// frames are fast.
+///
+/// A full frame drawn while none of the finer bricks are resident samples
+/// the coarse stand-ins at the full image's positions, and rays go deeper
+/// through the smoother data: on two cores a 1200×800 DVR of Colin27
+/// took 1.7 s so, four times a complete frame (BENCHMARKS.md).
+fn preview_params(backend: &Backend, p: &RenderParams, lod: Lod) -> Option<(RenderParams, Lod)> {
+    use brickyard_render::reference::RenderMode;
+    let cheap = matches!(p.mode, RenderMode::Slice { .. });
+    if cheap
+        || !matches!(backend, Backend::Cpu)
+        || p.views.is_some()
+        || p.width < 128
+        || p.height < 128
+    {
+        return None;
+    }
+    let div = crate::frames::pass_divisor(p.width, p.height);
+    let mut small = p.clone();
+    small.width = p.width / div;
+    small.height = p.height / div;
+    small.samples_per_voxel = p.samples_per_voxel * 0.25;
+    let lod = match lod {
+        Lod::Auto { bias } => Lod::Auto {
+            bias: bias - f64::from(div).log2(),
+        },
+        fixed => fixed,
+    };
+    Some((small, lod))
+}
 
 /// The least time between accumulation parts sent to the window (a pass's
 /// last part is always sent): each sent image is converted for display on
@@ -352,6 +399,7 @@ pub fn run(setup: Setup, mut scene: Scene, rx: Receiver<Msg>, tx: Sender<Reply>,
                             acc: None,
                             need: 0,
                             no_acc: false,
+                            preview: false,
                         });
                     }
                     let v = &mut views[i];
@@ -388,6 +436,7 @@ pub fn run(setup: Setup, mut scene: Scene, rx: Receiver<Msg>, tx: Sender<Reply>,
                         v.no_acc = false;
                         v.budget.view_changed();
                         v.keep = None;
+                        v.preview = true;
                     }
                     v.spec = spec;
                 }
@@ -402,6 +451,7 @@ pub fn run(setup: Setup, mut scene: Scene, rx: Receiver<Msg>, tx: Sender<Reply>,
                             v.complete = v.spec.is_none();
                             v.keep = None;
                             v.acc = None;
+                            v.preview = true;
                         }
                     }
                     Err(e) => {
@@ -460,6 +510,74 @@ pub fn run(setup: Setup, mut scene: Scene, rx: Receiver<Msg>, tx: Sender<Reply>,
                 }
             }
             continue;
+        }
+        // A view just changed is first drawn as a preview: sent while it
+        // is incomplete (most of the view still loading), dropped for the
+        // full frame once it is complete (the view was warm), nothing
+        // more is coming, or after PREVIEW_FOR.
+        let preview = match views[i].preview {
+            true => preview_params(&backend, &spec.params, lod),
+            false => None,
+        };
+        if let Some((pp, pl)) = preview {
+            let f = match backend.frame(&mut s, &sc, &pp, pl) {
+                Ok(f) => f,
+                Err(e) => {
+                    let _ = tx.send(Reply::Error(format!("{e:#}")));
+                    wake();
+                    views[i].complete = true;
+                    continue;
+                }
+            };
+            let completeness = f.stats.completeness();
+            let sig = crate::frames::signals(&s, &f);
+            let pending = f.session.pending + f.session.in_flight + f.session.waiting_upload;
+            if completeness >= 1.0
+                || (sig.requests == 0 && pending == 0)
+                || sig.evicted_in_use > 0
+                || views[i].arrived.elapsed() >= PREVIEW_FOR
+            {
+                views[i].preview = false;
+            }
+            if completeness < 1.0 {
+                let out = Out {
+                    view: i,
+                    version: views[i].version,
+                    image: f.image,
+                    completeness,
+                    render_ms: f.render_ms,
+                    cache_ms: f.cache_ms,
+                    up: f.up,
+                    down: f.down,
+                    resident_bricks: f.session.frame.resident_bricks,
+                    pool_slots: s.vm().pool_slots(),
+                    pending,
+                    bytes_read: s.loader().bytes_read(),
+                    host_bytes: s.loader().cache().bytes(),
+                    host_budget: s.loader().cache().budget(),
+                    backend: backend.describe(),
+                    lod_extra: views[i].budget.extra(),
+                    lod,
+                    failed: s.vm().failed_count(),
+                    new_failures: vec![],
+                    settled: false,
+                    accumulated: None,
+                    reblended: false,
+                    since_change_ms: views[i].arrived.elapsed().as_secs_f64() * 1e3,
+                    octree_nodes: f.stats.octree_nodes,
+                    preview: true,
+                };
+                if tx.send(Reply::Frame(Box::new(out))).is_err() {
+                    return;
+                }
+                wake();
+                if views[i].preview {
+                    if f.session.insert.inserted == 0 && f.session.insert.flagged == 0 {
+                        std::thread::sleep(Duration::from_millis(4));
+                    }
+                    continue;
+                }
+            }
         }
         let drawn = match views[i].keep.take() {
             Some((kl, img, tiles)) if kl == lod => {
@@ -582,6 +700,7 @@ pub fn run(setup: Setup, mut scene: Scene, rx: Receiver<Msg>, tx: Sender<Reply>,
             reblended: false,
             since_change_ms: views[i].arrived.elapsed().as_secs_f64() * 1e3,
             octree_nodes: f.stats.octree_nodes,
+            preview: false,
         };
         if tx.send(Reply::Frame(Box::new(out))).is_err() {
             return;
@@ -714,5 +833,6 @@ fn status(s: &Session, a: AccOut) -> Out {
         reblended: a.reblended,
         since_change_ms: 0.0,
         octree_nodes: 0,
+        preview: false,
     }
 }
