@@ -103,6 +103,11 @@ def _index(store: "Store", level: int, key: Any) -> np.ndarray:
     """`store[key]` at `level`, as NumPy indexes an array of the indexed
     shape: for several channels the first axis is the channel (an integer,
     negative from the end, or a slice: the channels taken are stacked)."""
+    # (`read` takes None for the whole volume; in an index NumPy reads it
+    # as a new axis, which a store does not make.)
+    if key is None or (isinstance(key, tuple) and any(k is None for k in key)):
+        raise IndexError("None (np.newaxis) in an index is not supported: add the axis to the array read, "
+                         "e.g. store[...][np.newaxis]")
     if store.channels == 1:
         return store.read(level, 0, key)
     if not isinstance(key, tuple):
@@ -702,18 +707,21 @@ def _channel_names(names: Any) -> Optional[list]:
     return names
 
 
-def convert(src: Union[str, os.PathLike], dst: Union[str, os.PathLike], *, brick=64, shard=512,
-            compression: str = "lz4", labels: bool = False, memory: int = 1 << 30, overwrite: bool = False,
-            spacing=None, origin=None, unit: Optional[str] = None, level: int = 0, progress: Any = True,
-            channel_names=None) -> str:
+def convert(src: Union[str, os.PathLike, Sequence[Union[str, os.PathLike]]], dst: Union[str, os.PathLike], *,
+            brick=64, shard=512, compression: str = "lz4", labels: bool = False, memory: int = 1 << 30,
+            overwrite: bool = False, spacing=None, origin=None, unit: Optional[str] = None, level: int = 0,
+            progress: Any = True, channel_names=None) -> str:
     """Convert any input `brickyard convert` reads into a brickyard OME-Zarr
-    pyramid at `dst`. Returns a one-line report. `channel_names` (one per
-    channel, as `--channel-names`) replaces the names the input gives."""
+    pyramid at `dst`. Returns a one-line report. `src` may be a list of
+    inputs of one grid: they become the store's channels, in order, as
+    `brickyard convert IN1 IN2 ... OUT` stacks them. `channel_names` (one per
+    channel, as `--channel-names`) replaces the names the inputs give."""
     level = _index_option(level, "level")
+    srcs = [src] if isinstance(src, (str, bytes, os.PathLike)) else list(src)
     cb, bar = _progress_callback(progress, "convert")
     try:
         with _cli_errors("convert"):
-            return _native.convert(os.fspath(src), os.fspath(dst),
+            return _native.convert([os.fspath(s) for s in srcs], os.fspath(dst),
                                    _options(brick, shard, compression, labels, memory, overwrite, spacing, origin,
                                             unit, channel_names),
                                    level, cb)
@@ -753,6 +761,12 @@ def from_numpy(array: Any, dst: Union[str, os.PathLike], *, spacing=None, origin
     `channel_names`: one per channel (else "channel 0", "channel 1", ...),
     stored in the OME `omero` metadata and read back as `Store.channel_names`.
 
+    Every type `convert` stores is taken (uint8, int8, uint16, int16,
+    uint32, int32, float32, float64), and as `convert` reads them: bool as
+    uint8, float16 as float32, int64 and uint64 as int32 and uint32 where
+    every value fits (`skimage.measure.label`'s labels, NumPy's default
+    integers); a value that does not fit is a ValueError naming it.
+
     A C-contiguous NumPy array in the machine's byte order is read where it
     lies (no copy); any other NumPy array (a strided view, a transposed or
     byte-swapped one) region by region, as a lazy array is. A lazy array
@@ -769,13 +783,37 @@ def from_numpy(array: Any, dst: Union[str, os.PathLike], *, spacing=None, origin
     return _from_regions(array, dt, name, dst, options, progress)
 
 
+# Types stored as another that holds every value as `convert` reads them:
+# booleans as uint8, float16 as float32; 64-bit integers as 32-bit ones
+# when every value fits (else an error naming a value that does not).
+_STORED_AS = {"bool": "uint8", "float16": "float32", "int64": "int32", "uint64": "uint32"}
+
+
+def _narrow(block: np.ndarray, to: np.dtype, where: str) -> np.ndarray:
+    """`block` as `to` (see `_STORED_AS`); a ValueError where a 64-bit
+    integer does not fit."""
+    if block.dtype.kind in "iu" and block.size:
+        lo, hi = block.min(), block.max()
+        info = np.iinfo(to)
+        if lo < info.min or hi > info.max:
+            bad = lo if lo < info.min else hi
+            raise ValueError(f"array: {block.dtype} value {bad}{where} does not fit {to} ({info.min} to {info.max}), "
+                             "the 32-bit type brickyard stores 64-bit integers as; rescale it, or store it as "
+                             "float32/float64 (array.astype(np.float64))")
+    return block.astype(to)
+
+
 def _from_regions(array: Any, dt: np.dtype, name: str, dst, options: dict, progress) -> str:
     """The conversion of an array read region by region (`from_numpy`)."""
     shape = tuple(int(n) for n in array.shape)
     if len(shape) not in (3, 4):
         raise ValueError(f"array: expected (z, y, x) or (c, z, y, x), got {len(shape)} dimension(s) of shape {shape}")
+    given = dt
+    if dt.name in _STORED_AS:
+        dt = np.dtype(_STORED_AS[dt.name])
     if dt.name not in _DTYPES:
-        raise TypeError(f"array: dtype {dt} is not stored by brickyard (one of {', '.join(_DTYPES)})")
+        raise TypeError(f"array: dtype {dt} is not stored by brickyard (one of {', '.join(_DTYPES)}, "
+                        f"or {', '.join(_STORED_AS)} stored as such)")
     native = dt.newbyteorder("=")
     four = len(shape) == 4
 
@@ -785,6 +823,8 @@ def _from_regions(array: Any, dt: np.dtype, name: str, dst, options: dict, progr
         block = np.asarray(block)
         if block.shape != (z1 - z0, y1 - y0, x1 - x0):
             raise ValueError(f"array: [{z0}:{z1}, {y0}:{y1}, {x0}:{x1}] of channel {c} has shape {block.shape}")
+        if given.name in _STORED_AS:
+            block = _narrow(block, native, f" in [{z0}:{z1}, {y0}:{y1}, {x0}:{x1}] of channel {c}")
         return np.ascontiguousarray(block, dtype=native).tobytes()
 
     c4 = shape if four else (1,) + shape
@@ -802,8 +842,14 @@ def _from_memory(a: np.ndarray, dst, options: dict, progress) -> str:
         a = a[np.newaxis]
     if a.ndim != 4:
         raise ValueError(f"array: expected (z, y, x) or (c, z, y, x), got {a.ndim} dimension(s) of shape {a.shape}")
+    if a.dtype.name in _STORED_AS:
+        # One pass for the range of 64-bit integers, then the copy in the
+        # narrower type (which takes half their memory, or the same for
+        # booleans as bytes, a float16 array twice its own).
+        a = _narrow(a, np.dtype(_STORED_AS[a.dtype.name]), "")
     if a.dtype.name not in _DTYPES:
-        raise TypeError(f"array: dtype {a.dtype} is not stored by brickyard (one of {', '.join(_DTYPES)})")
+        raise TypeError(f"array: dtype {a.dtype} is not stored by brickyard (one of {', '.join(_DTYPES)}, "
+                        f"or {', '.join(_STORED_AS)} stored as such)")
     if not (a.flags.c_contiguous and a.dtype.isnative):
         # Read region by region (each converted to C order and the native
         # byte order as it is read): a whole copy would double the memory.

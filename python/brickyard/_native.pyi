@@ -2,7 +2,7 @@
 
 from os import PathLike
 from pathlib import Path
-from typing import Any, Callable, Optional, Sequence, Tuple, TypedDict, Union
+from typing import Any, Callable, List, Optional, Sequence, Tuple, TypedDict, Union
 
 class ConvertOptions(TypedDict):
     brick: Tuple[int, int, int]
@@ -51,7 +51,8 @@ class NativeStore:
 # (views, width, height, pixels): every view's pixels one after the other; with out, each view written as a PNG
 def parse_bytes(text: str) -> int: ...
 def render(args: Sequence[str], float: bool = False, write: bool = False) -> Tuple[int, int, int, bytearray, list]: ...
-def convert(src: Union[str, PathLike], dst: Union[str, PathLike], options: ConvertOptions, zarr_level: int = 0,
+# srcs: one input, or several of one grid stacked as channels
+def convert(srcs: List[Union[str, PathLike]], dst: Union[str, PathLike], options: ConvertOptions, zarr_level: int = 0,
             progress: Optional[Progress] = None) -> str: ...
 # array: a C-contiguous, native-endian NumPy array (c, z, y, x), read in place
 def from_array(array: Any, dtype: str, dst: Union[str, PathLike], options: ConvertOptions,

@@ -62,6 +62,32 @@ fn interrupted() -> bool {
     Python::attach(|py| py.check_signals().is_err())
 }
 
+/// Run `job` on a thread of its own, without the GIL, while this thread
+/// watches for Ctrl-C every few milliseconds and sets `cancel` when it
+/// comes: the job's own threads are not where Python runs signal
+/// handlers, and they may go long between progress reports (a slab of
+/// bricks at zstd:19, a median filter's block).
+fn watched<R: Send>(
+    py: Python<'_>,
+    cancel: &AtomicBool,
+    what: &str,
+    job: impl FnOnce() -> anyhow::Result<R> + Send,
+) -> anyhow::Result<R> {
+    py.detach(|| {
+        std::thread::scope(|s| {
+            let job = s.spawn(job);
+            while !job.is_finished() {
+                std::thread::sleep(std::time::Duration::from_millis(2));
+                if interrupted() {
+                    cancel.store(true, Ordering::SeqCst);
+                }
+            }
+            job.join()
+                .unwrap_or_else(|_| Err(anyhow::anyhow!("{what}: the job panicked")))
+        })
+    })
+}
+
 /// An OME-Zarr store opened for reading: every level through one loader
 /// and one byte-bounded host cache.
 #[pyclass(module = "brickyard._native", frozen)]
@@ -326,8 +352,11 @@ fn render<'py>(
     float: bool,
     write: bool,
 ) -> PyResult<Rendered<'py>> {
-    let cmd = brickyard_run::render::RenderCmd::try_parse_from(&args)
+    let mut cmd = brickyard_run::render::RenderCmd::try_parse_from(&args)
         .map_err(|e| PyValueError::new_err(e.to_string().trim().to_string()))?;
+    if !write {
+        cmd = cmd.in_memory();
+    }
     if let Some(store) = args.get(2).map(PathBuf::from) {
         if !store.exists() && !brickyard_store::storage::is_remote(&store) {
             return Err(missing(&store));
@@ -536,7 +565,9 @@ fn run_convert(
             .map_err(|e| to_py(anyhow::anyhow!("{}: cannot create: {e}", g.display())))?;
     }
     let opts = &opts;
-    let r = py.detach(|| brickyard_store::convert(src, dst, opts, &p, &cancel));
+    let r = watched(py, &cancel, "convert", || {
+        Ok(brickyard_store::convert(src, dst, opts, &p, &cancel)?)
+    });
     if cancel.load(Ordering::Relaxed) {
         // (Ctrl-C after the last piece: the store was written whole.)
         let done = if r.is_ok() {
@@ -549,7 +580,7 @@ fn run_convert(
             dst.display()
         )));
     }
-    let report = r.map_err(|e| to_py(e.into()))?;
+    let report = r.map_err(to_py)?;
     // A label image: published in its image's group, and its statistics
     // table written from its voxels.
     let table = match opts.labels {
@@ -589,41 +620,61 @@ fn run_convert(
 }
 
 /// Convert any input `brickyard convert` reads (OME-Zarr/Zarr, TIFF, NRRD,
-/// NIfTI, raw with a JSON sidecar) into a brickyard OME-Zarr pyramid.
+/// NIfTI, raw with a JSON sidecar) into a brickyard OME-Zarr pyramid;
+/// several inputs of one grid become the channels of one store, in order,
+/// as the command line stacks them.
 #[pyfunction]
-#[pyo3(signature = (src, dst, options, zarr_level = 0, progress = None))]
+#[pyo3(signature = (srcs, dst, options, zarr_level = 0, progress = None))]
 fn convert(
     py: Python<'_>,
-    src: PathBuf,
+    srcs: Vec<PathBuf>,
     dst: PathBuf,
     options: PyConvertOptions,
     zarr_level: usize,
     progress: Option<Py<PyAny>>,
 ) -> PyResult<String> {
+    if srcs.is_empty() {
+        return Err(PyValueError::new_err(
+            "src: expected an input, or a list of inputs, found none",
+        ));
+    }
     // (A remote store is there or not as its server says, when opened.)
-    if !brickyard_store::storage::is_remote(&src) && !src.exists() {
-        return Err(missing(&src));
+    for src in &srcs {
+        if !brickyard_store::storage::is_remote(src) && !src.exists() {
+            return Err(missing(src));
+        }
     }
     let opts = options.to_options()?;
-    let source = py
+    let mut sources = py
         .detach(|| {
-            open_input(
-                &src,
-                &ImportOptions {
-                    zarr_level,
-                    ..Default::default()
-                },
-            )
+            srcs.iter()
+                .map(|src| {
+                    open_input(
+                        src,
+                        &ImportOptions {
+                            zarr_level,
+                            ..Default::default()
+                        },
+                    )
+                })
+                .collect::<brickyard_store::Result<Vec<_>>>()
         })
         .map_err(|e| to_py(e.into()))?;
-    check_name_count(&options.channel_names, source.meta().channels)?;
-    let source = match &options.channel_names {
-        Some(names) => Box::new(
-            brickyard_store::import::stack::ChannelStack::new(vec![source])
-                .and_then(|s| s.with_names(names))
-                .map_err(|e| to_py(e.into()))?,
-        ),
-        None => source,
+    let channels: usize = sources.iter().map(|s| s.meta().channels).sum();
+    check_name_count(&options.channel_names, channels)?;
+    let source: Box<dyn VolumeSource> = if sources.len() == 1 && options.channel_names.is_none() {
+        sources.pop().expect("one source")
+    } else {
+        // Labels given: the inputs are labels, whatever their headers say.
+        let stack = match opts.labels {
+            true => brickyard_store::import::stack::ChannelStack::of_labels(sources),
+            false => brickyard_store::import::stack::ChannelStack::new(sources),
+        };
+        let stack = match &options.channel_names {
+            Some(names) => stack.and_then(|s| s.with_names(names)),
+            None => stack,
+        };
+        Box::new(stack.map_err(|e| to_py(e.into()))?)
     };
     run_convert(py, source.as_ref(), &dst, &opts, progress)
 }
@@ -748,23 +799,12 @@ fn process(
     // The job runs beside this thread, which watches for Ctrl-C: the
     // labelling reports progress from worker threads, where Python does
     // not run signal handlers.
-    let r = py
-        .detach(|| {
-            std::thread::scope(|s| {
-                let job = s.spawn(|| brickyard_run::process::run(&args, &PYTHON, &phases, &cancel));
-                // (Often: a signal sent at the first piece of a short phase
-                // must stop it before it ends.)
-                while !job.is_finished() {
-                    std::thread::sleep(std::time::Duration::from_millis(2));
-                    if interrupted() {
-                        cancel.store(true, Ordering::SeqCst);
-                    }
-                }
-                job.join()
-                    .unwrap_or_else(|_| Err(anyhow::anyhow!("process: the job panicked")))
-            })
-        })
-        .map_err(to_py)?;
+    // (Often: a signal sent at the first piece of a short phase must stop
+    // it before it ends.)
+    let r = watched(py, &cancel, "process", || {
+        brickyard_run::process::run(&args, &PYTHON, &phases, &cancel)
+    })
+    .map_err(to_py)?;
     Ok((r.output.clone(), r.labels, r.summary()))
 }
 

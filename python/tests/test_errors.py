@@ -52,11 +52,27 @@ def test_wrong_regions(store):
         s._native.read(0, 0, (0, 0, 0), (21, 1, 1))
 
 
+class _Lazy:
+    """An array read region by region (as dask or zarr arrays are)."""
+
+    def __init__(self, a):
+        self.a, self.shape, self.dtype = a, a.shape, a.dtype
+
+    def __getitem__(self, key):
+        return self.a[key]
+
+
 def test_wrong_dtype_and_shape(tmp_path):
     with pytest.raises(TypeError, match="dtype complex128 is not stored by brickyard"):
         brickyard.from_numpy(np.zeros((4, 4, 4), np.complex128), tmp_path / "c.ome.zarr", progress=False)
-    with pytest.raises(TypeError, match="dtype bool"):
-        brickyard.from_numpy(np.zeros((4, 4, 4), bool), tmp_path / "b.ome.zarr", progress=False)
+    # 64-bit integers whose values do not fit 32 bits: named, nothing written.
+    big = np.zeros((4, 4, 4), np.int64)
+    big[1, 2, 3] = 1 << 40
+    with pytest.raises(ValueError, match="int64 value 1099511627776 does not fit int32"):
+        brickyard.from_numpy(big, tmp_path / "b.ome.zarr", progress=False)
+    with pytest.raises(ValueError, match=r"value 1099511627776 in \[0:4, 0:4, 0:4\] of channel 0 does not fit"):
+        brickyard.from_numpy(_Lazy(big), tmp_path / "b.ome.zarr", progress=False)
+    assert not (tmp_path / "b.ome.zarr").exists()
     with pytest.raises(ValueError, match="expected \\(z, y, x\\) or \\(c, z, y, x\\)"):
         brickyard.from_numpy(np.zeros((4, 4)), tmp_path / "d.ome.zarr", progress=False)
     for bad in ("gzip", "zstd:abc", "zstd:99"):
@@ -336,3 +352,31 @@ def test_budgets_are_taken_as_the_cli_writes_them(store, tmp_path):
     brickyard.from_numpy(np.zeros((8, 8, 8), np.uint8), tmp_path / "m.zarr", memory="64MiB", progress=False)
     with pytest.raises(ValueError, match="^memory: "):
         brickyard.from_numpy(np.zeros((8, 8, 8), np.uint8), tmp_path / "n.zarr", memory="a lot", progress=False)
+
+
+def test_types_stored_as_convert_reads_them(tmp_path):
+    # bool as uint8, float16 as float32, int64 and uint64 as 32-bit
+    # integers where every value fits: in memory and read region by region
+    # (a strided view), each read back equal to the array.
+    rng = np.random.default_rng(3)
+    cases = {
+        "bool": (rng.random((6, 5, 7)) > 0.5, "uint8"),
+        "float16": (rng.standard_normal((6, 5, 7)).astype(np.float16), "float32"),
+        "int64": (rng.integers(-(1 << 31), 1 << 31, (6, 5, 7)), "int32"),
+        "uint64": (rng.integers(0, 1 << 32, (6, 5, 7), dtype=np.uint64), "uint32"),
+    }
+    for name, (a, stored) in cases.items():
+        for view, arr in (("memory", a), ("strided", a[:, :, ::-1]), ("lazy", a[::-1])):
+            out = tmp_path / f"{name}-{view}.ome.zarr"
+            brickyard.from_numpy(_Lazy(arr) if view == "lazy" else arr, out, progress=False)
+            s = brickyard.open(out)
+            assert s.dtype == stored, (name, view, s.dtype)
+            np.testing.assert_array_equal(s[:], arr.astype(stored), err_msg=f"{name} {view}")
+            s.close()
+    # Labels as skimage.measure.label returns them (int64).
+    lab = np.zeros((8, 8, 8), np.int64)
+    lab[1:3, 1:3, 1:3], lab[5:7, 5:7, 5:7] = 1, 2
+    brickyard.from_numpy(lab, tmp_path / "lab.ome.zarr", labels=True, progress=False)
+    s = brickyard.open(tmp_path / "lab.ome.zarr")
+    assert s.dtype == "int32"
+    np.testing.assert_array_equal(s[:], lab)

@@ -190,6 +190,34 @@ def test_ctrl_c_leaves_the_store_as_it_was(tmp_path, pipe, phase):
 
 
 
+@pytest.mark.parametrize("job", ["median", "zstd"])
+def test_ctrl_c_is_answered_within_a_slow_region(tmp_path, job):
+    # One region of a slow stage takes tens of seconds (median(3) of this
+    # volume: about 30 s on two cores in one region; zstd:19 several
+    # seconds a slab): Ctrl-C must not wait for its end.
+    a = np.random.default_rng(0).integers(0, 4000, (64, 512, 512), dtype=np.uint16)
+    src = tmp_path / "s.ome.zarr"
+    brickyard.from_numpy(a, src, progress=False)
+    before = sorted(os.listdir(src))
+    old = signal.signal(signal.SIGINT, signal.default_int_handler)
+    timer = threading.Timer(1.5, lambda: os.kill(os.getpid(), signal.SIGINT))
+    t0 = time.monotonic()
+    try:
+        timer.start()
+        with pytest.raises(KeyboardInterrupt):
+            if job == "median":
+                brickyard.process(src, "median(3)", out="med", progress=False)
+            else:
+                brickyard.from_numpy(a, tmp_path / "z.ome.zarr", compression="zstd:19", progress=False)
+        seconds = time.monotonic() - t0
+    finally:
+        timer.cancel()
+        signal.signal(signal.SIGINT, old)
+    assert seconds < 1.5 + 3, f"KeyboardInterrupt {seconds - 1.5:.1f} s after SIGINT"
+    assert sorted(os.listdir(src)) == before
+    assert not (tmp_path / "z.ome.zarr").exists()
+
+
 def test_process_releases_the_gil(tmp_path):
     dst = tmp_path / "gil.ome.zarr"
     # Large enough that the job lasts well over the 0.1 s this test needs

@@ -214,3 +214,46 @@ def test_channel_names_are_written_and_read(tmp_path):
     with pytest.raises(ValueError, match="is empty"):
         brickyard.convert(named, tmp_path / "z.ome.zarr", progress=False, channel_names="a,,c")
     assert not (tmp_path / "x.ome.zarr").exists() and not (tmp_path / "z.ome.zarr").exists()
+
+
+def test_several_inputs_become_channels_as_the_cli_stacks_them(tmp_path, cli):
+    """convert([a, b], out) stacks inputs of one grid as channels, in
+    order, as `brickyard convert A B OUT` does; names may be given."""
+    a, b = volume((9, 10, 11), "uint16", seed=1), volume((9, 10, 11), "uint16", seed=2)
+    pa, pb = tmp_path / "a.ome.zarr", tmp_path / "b.ome.zarr"
+    brickyard.from_numpy(a, pa, brick=8, shard=8, progress=False)
+    brickyard.from_numpy(b, pb, brick=8, shard=8, progress=False)
+    two = tmp_path / "two.ome.zarr"
+    brickyard.convert([pa, str(pb)], two, brick=8, shard=8, progress=False, channel_names=["first", "second"])
+    s = brickyard.open(two)
+    assert s.shape == (2, 9, 10, 11)
+    np.testing.assert_array_equal(s[0], a)
+    np.testing.assert_array_equal(s[1], b)
+    assert s.channel_names == ["first", "second"]
+    cli("convert", pa, pb, tmp_path / "cli.ome.zarr", "--brick", "8", "--shard", "8", "--quiet")
+    c = brickyard.open(tmp_path / "cli.ome.zarr")
+    for level in range(s.levels):
+        np.testing.assert_array_equal(s.level(level)[:], c.level(level)[:])
+    with pytest.raises(ValueError, match="3 name\\(s\\) given for 2 channel"):
+        brickyard.convert((pa, pb), tmp_path / "x.ome.zarr", progress=False, channel_names=["a", "b", "c"])
+    with pytest.raises(FileNotFoundError, match="nowhere.ome.zarr"):
+        brickyard.convert([pa, tmp_path / "nowhere.ome.zarr"], tmp_path / "y.ome.zarr", progress=False)
+    other = tmp_path / "other.ome.zarr"
+    brickyard.from_numpy(volume((9, 10, 12), "uint16", seed=3), other, progress=False)
+    with pytest.raises(ValueError):
+        brickyard.convert([pa, other], tmp_path / "z.ome.zarr", progress=False)
+    assert not any((tmp_path / n).exists() for n in ("x.ome.zarr", "y.ome.zarr", "z.ome.zarr"))
+
+
+def test_none_in_an_index_is_refused(tmp_path):
+    """NumPy reads None as a new axis; a store does not make one, and says
+    so rather than reading the whole volume without it."""
+    p = tmp_path / "n.ome.zarr"
+    brickyard.from_numpy(volume((4, 5, 6), "uint8", seed=1), p, progress=False)
+    s = brickyard.open(p)
+    for key in (None, (None,), (0, None), (Ellipsis, None)):
+        with pytest.raises(IndexError, match="np.newaxis"):
+            s[key]
+        with pytest.raises(IndexError, match="np.newaxis"):
+            s.level(0)[key]
+    assert s.read(0, 0, None).shape == (4, 5, 6)

@@ -116,6 +116,16 @@ def test_render_out_writes_the_png(store, cli, tmp_path):
         brickyard.render(store, size=16, backend="cpu", out=tmp_path / "nowhere" / "x.png")
 
 
+def test_render_without_out_needs_no_writable_folder(store, monkeypatch):
+    # Without `out` nothing is written: a notebook started in a folder it
+    # cannot write (here /proc, which no one can create files in) renders.
+    monkeypatch.chdir("/proc")
+    got = brickyard.render(store, mode="mip", size=(40, 32), backend="cpu")
+    assert got.shape == (32, 40, 4) and got.any()
+    with pytest.raises(ValueError, match="cannot create a file in"):
+        brickyard.render(store, mode="mip", size=(40, 32), backend="cpu", out="x.png")
+
+
 def test_turntable_returns_every_view(store, cli, tmp_path):
     n = 3
     kw = dict(mode="dvr", tf="hot", size=(36, 28), backend="cpu")

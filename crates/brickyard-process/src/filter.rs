@@ -21,6 +21,7 @@ use brickyard_store::source::check_region;
 use brickyard_store::{Result, SourceMeta, StoreError, VolumeSource};
 use rayon::prelude::*;
 use std::ops::Range;
+use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::{Arc, Mutex};
 
 /// scipy's default `truncate`: kernels reach `int(4σ + 0.5)` voxels.
@@ -259,6 +260,9 @@ pub struct FilterSource {
     /// The filter's weights ([`Filter::components`]), computed once.
     #[allow(clippy::type_complexity)]
     components: Option<(Vec<[Vec<f64>; 3]>, bool)>,
+    /// Set from outside (Ctrl-C): reads end with
+    /// [`StoreError::Interrupted`] before their next block.
+    stop: Option<Arc<AtomicBool>>,
 }
 
 /// A stage's filter on the device, and the most voxels of a padded piece.
@@ -352,6 +356,7 @@ impl FilterSource {
             block: block.map(|b| b.max(1)),
             device: None,
             parallel: usize::MAX,
+            stop: None,
             components,
         })
     }
@@ -361,6 +366,20 @@ impl FilterSource {
     pub fn with_parallel(mut self, n: usize) -> FilterSource {
         self.parallel = n.max(1);
         self
+    }
+
+    /// Reads stop before their next block once `stop` is set (a job's
+    /// Ctrl-C: a region of a slow filter takes many seconds).
+    pub fn with_stop(mut self, stop: Option<Arc<AtomicBool>>) -> FilterSource {
+        self.stop = stop;
+        self
+    }
+
+    fn stopped(&self) -> Result<()> {
+        match &self.stop {
+            Some(s) if s.load(Ordering::Relaxed) => Err(StoreError::Interrupted),
+            _ => Ok(()),
+        }
     }
 
     /// [`block_bytes`] of this stage.
@@ -606,7 +625,10 @@ impl VolumeSource for FilterSource {
             let pieces = self.device_pieces(&r, dev.max_voxels);
             let vals: Vec<Result<Vec<f32>>> = pieces
                 .par_iter()
-                .map(|b| self.compute_device(dev, b))
+                .map(|b| {
+                    self.stopped()?;
+                    self.compute_device(dev, b)
+                })
                 .collect();
             for (b, v) in pieces.iter().zip(vals) {
                 let v = v?;
@@ -631,6 +653,7 @@ impl VolumeSource for FilterSource {
                     let vals: Vec<Result<Vec<f32>>> = group
                         .par_iter()
                         .map(|b| {
+                            self.stopped()?;
                             let v = self.compute(b)?;
                             Ok(v.into_iter().map(|x| x as f32).collect())
                         })
@@ -644,6 +667,7 @@ impl VolumeSource for FilterSource {
                     let vals: Vec<Result<Vec<u8>>> = group
                         .par_iter()
                         .map(|b| {
+                            self.stopped()?;
                             let v = self.compute(b)?;
                             Ok(v.into_iter().map(|x| x as u8).collect())
                         })

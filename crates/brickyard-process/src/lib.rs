@@ -96,7 +96,7 @@ pub fn build_on(
     block: Dims3,
     device: Option<&Arc<FilterKernels>>,
 ) -> Result<Built, String> {
-    build_stages(p, input, channel, block, device, usize::MAX).map(|(b, _)| b)
+    build_stages(p, input, channel, block, device, usize::MAX, None).map(|(b, _)| b)
 }
 
 /// What [`build_within`] plans for the filters' memory.
@@ -116,7 +116,9 @@ pub struct FilterMemory {
 /// inside each of the outer stage's blocks, so `n` blocks at once per stage
 /// can mean `n^k` of the k-th stage from the end). An error, before
 /// anything is computed, naming the stage, when even one block at a time
-/// per stage does not fit.
+/// per stage does not fit. Once `stop` is set, the stages' reads end
+/// before their next block ([`FilterSource::with_stop`]).
+#[allow(clippy::too_many_arguments)]
 pub fn build_within(
     p: &Pipeline,
     input: Arc<dyn VolumeSource>,
@@ -125,11 +127,12 @@ pub fn build_within(
     device: Option<&Arc<FilterKernels>>,
     budget: u64,
     threads: usize,
+    stop: Option<Arc<std::sync::atomic::AtomicBool>>,
 ) -> Result<(Built, FilterMemory), String> {
     // The stages' blocks, innermost first.
-    let (_, stages) = build_stages(p, input.clone(), channel, block, device, 1)?;
+    let (_, stages) = build_stages(p, input.clone(), channel, block, device, 1, None)?;
     let plan = plan_parallel(&stages, budget, threads)?;
-    let (built, _) = build_stages(p, input, channel, block, device, plan.parallel)?;
+    let (built, _) = build_stages(p, input, channel, block, device, plan.parallel, stop)?;
     Ok((built, plan))
 }
 
@@ -196,7 +199,7 @@ pub fn plan_result(
     channel: usize,
     block: Dims3,
 ) -> Result<(u64, brickyard_store::SourceMeta), String> {
-    let (built, stages) = build_stages(p, input, channel, block, None, 1)?;
+    let (built, stages) = build_stages(p, input, channel, block, None, 1, None)?;
     let m = built.source.meta();
     let meta = match built.label {
         None => m.clone(),
@@ -214,6 +217,7 @@ fn build_stages(
     block: Dims3,
     device: Option<&Arc<FilterKernels>>,
     parallel: usize,
+    stop: Option<Arc<std::sync::atomic::AtomicBool>>,
 ) -> Result<(Built, Vec<(String, u64)>), String> {
     let m = input.meta();
     if channel >= m.channels {
@@ -243,7 +247,8 @@ fn build_stages(
         let name = op.text();
         let mut stage = FilterSource::try_new(src, ch, f, &name, block)
             .map_err(|e| format!("{name}: {e}"))?
-            .with_parallel(parallel);
+            .with_parallel(parallel)
+            .with_stop(stop.clone());
         stages.push((name, stage.block_bytes()));
         if let Some(k) = device {
             stage = stage.with_device(k);

@@ -834,7 +834,7 @@ fn an_impossible_sigma_or_budget_is_an_error_not_a_panic() {
         assert!(e.contains("1048576"), "{pipe}: {e}");
     }
     let p = Pipeline::parse("gauss(1)|gradmag(3)").unwrap();
-    let e = brickyard_process::build_within(&p, src.clone(), 0, [8; 3], None, 1000, 4)
+    let e = brickyard_process::build_within(&p, src.clone(), 0, [8; 3], None, 1000, 4, None)
         .err()
         .unwrap();
     assert!(e.starts_with("gradmag(3): ") && e.contains("budget"), "{e}");
@@ -842,7 +842,7 @@ fn an_impossible_sigma_or_budget_is_an_error_not_a_panic() {
     // and the same values.
     let need = brickyard_process::filter_bytes_at_least(&p, src.clone(), 0, [8; 3]).unwrap();
     let (b, m) =
-        brickyard_process::build_within(&p, src.clone(), 0, [8; 3], None, need, 4).unwrap();
+        brickyard_process::build_within(&p, src.clone(), 0, [8; 3], None, need, 4, None).unwrap();
     assert_eq!(m.parallel, 1);
     assert!(m.bytes <= need);
     let free = build(&p, src, 0, [8; 3]).unwrap();

@@ -291,6 +291,20 @@ pub struct RenderCmd {
     /// Print nothing (a caller that takes the images, not the PNG files).
     #[arg(skip)]
     silent: bool,
+    /// The images are not written (a caller that takes them in memory):
+    /// `--out`'s folder need not be writable.
+    #[arg(skip)]
+    in_memory: bool,
+}
+
+impl RenderCmd {
+    /// The images stay in memory (see [`views`]): `--out` names them but
+    /// is not written, so its folder is not checked (a notebook started
+    /// in a read-only folder still renders).
+    pub fn in_memory(mut self) -> RenderCmd {
+        self.in_memory = true;
+        self
+    }
 }
 
 /// Flags that hold for some modes only, refused in the others (they would
@@ -944,7 +958,7 @@ fn run_one(
         );
     }
     let files = [
-        (Some(&c.out), "the image"),
+        (Some(&c.out).filter(|_| !c.in_memory), "the image"),
         (c.save_camera.as_ref(), "the camera (--save-camera)"),
     ];
     for (file, what) in files {

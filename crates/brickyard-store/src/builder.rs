@@ -1651,6 +1651,11 @@ fn write_bricks<T: Sample>(ctx: &Ctx, k: usize, ch: usize, s: &Slab<T>) -> Resul
     let batch = 2 * rayon::current_num_threads().max(1);
     let mut st = out.stats.lock().unwrap();
     for part in list.chunks(batch) {
+        // A slab's bricks take long at a slow compressor (zstd:19: about
+        // 0.2 s a brick a thread): Ctrl-C is answered between batches.
+        if ctx.cancel.load(Ordering::Relaxed) {
+            return Err(StoreError::Interrupted);
+        }
         let encoded: Vec<Encoded> = part
             .par_iter()
             .map(|&(byi, bxi)| {

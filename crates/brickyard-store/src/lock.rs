@@ -62,13 +62,23 @@ impl PidLock {
                         std::thread::sleep(Duration::from_millis(20));
                     }
                     _ => {
-                        let who = match pid {
-                            0 => "another process".to_string(),
-                            p => format!("another process (pid {p})"),
+                        // (This very process: another call of it, e.g. a
+                        // second thread of a Python program.)
+                        let msg = match pid {
+                            0 => {
+                                format!("another process is {what}; wait for it to end or stop it")
+                            }
+                            p if p == std::process::id() => format!(
+                                "another call in this process (pid {p}) is {what}; wait for it \
+                                 to end"
+                            ),
+                            p => format!(
+                                "another process (pid {p}) is {what}; wait for it to end or stop it"
+                            ),
                         };
                         return Err(StoreError::Refused {
                             path: path.into(),
-                            msg: format!("{who} is {what}; wait for it to end or stop it"),
+                            msg,
                         });
                     }
                 },
@@ -276,6 +286,25 @@ mod tests {
         let _ = std::fs::remove_dir_all(&d);
         std::fs::create_dir_all(&d).unwrap();
         d
+    }
+
+    /// A lock this very process holds (another thread's call) is said to
+    /// be another call's, not another process's to stop.
+    #[test]
+    fn a_lock_of_this_process_is_another_calls() {
+        let d = dir("same");
+        let p = d.join("s.lock");
+        let held = PidLock::take(&p, "writing s").unwrap();
+        let e = PidLock::take(&p, "writing s").unwrap_err().to_string();
+        assert!(
+            e.contains("another call in this process")
+                && e.contains(&format!("pid {}", std::process::id()))
+                && !e.contains("stop it"),
+            "{e}"
+        );
+        drop(held);
+        drop(PidLock::take(&p, "writing s").unwrap());
+        std::fs::remove_dir_all(&d).unwrap();
     }
 
     /// A killed writer not yet reaped by its parent (a zombie) holds no

@@ -34,11 +34,12 @@ pub struct ProcessCmd {
     /// The OME-Zarr image to process (a store written by `convert`).
     pub store: PathBuf,
     /// The pipeline, e.g. "gauss(1.5)|threshold(3000)|label(26)". Stages:
-    /// gauss(σ), gradmag(σ), sobel, threshold(t) (1 where the value is
-    /// above t, in the image's own values: see `brickyard info`),
-    /// window(lo,hi), label(6|26); σ in voxels, or with a unit (1.5um);
-    /// three values are x,y,z. Gradients (gradmag, sobel) are per voxel,
-    /// not per unit of the spacing.
+    /// gauss(σ), gradmag(σ), sobel, median(r) (radius 0 to 7 voxels, on
+    /// the CPU), threshold(t) (1 where the value is above t, in the
+    /// image's own values: see `brickyard info`), window(lo,hi),
+    /// label(6|26); σ in voxels, or with a unit (1.5um); three values are
+    /// x,y,z. Gradients (gradmag, sobel) are per voxel, not per unit of
+    /// the spacing.
     pub pipeline: String,
     /// Name of the result: STORE/labels/NAME for labels and masks,
     /// STORE/derived/NAME otherwise.
