@@ -611,7 +611,7 @@ fn render_rejects_flags_that_cannot_work() {
                 "--slice-origin",
                 "1,1,1",
             ],
-            vec!["slice-z", "slice-origin", "not both"],
+            vec!["slice-z", "not --slice-z and --slice-origin"],
         ),
         // The camera of --camera has its angles and projection.
         (
