@@ -251,23 +251,40 @@ fn acc_retake(px: u32, ray: Ray) {
     set_hdr(px, 4u, left);
 }
 
-struct Blended {
-    c: vec4<f32>,
-    // The run that ran out before the ray stopped (AUTO: none).
-    short_run: u32,
+// Where a blend stands: its colour so far, and the next sample to blend
+// (step j, the q-th run by offset; `any`: a run of step j held a sample
+// before it).
+struct BlendAt {
+    acc: vec4<f32>,
+    j: u32,
+    q: u32,
+    any: u32,
 }
 
+// The result of a blend whose loops ended before any of their exits: the
+// device cut them short (lavapipe ends every loop of an invocation once
+// its loops have run 65535 iterations in all).
+const A_CUT: u32 = 0xfffffffeu;
+
 // Blend pixel `px`'s n runs in depth order (j outer, runs by offset
-// inner) with exponent `e`.
-fn acc_blend(px: u32, n: u32, e: f32) -> Blended {
+// inner) with exponent `e`, from `at` on. Returns AUTO when the blend is
+// done (its colour in `at.acc`), or the run that ran out before the ray
+// stopped, with `at` at that run's next sample: once the run is extended,
+// the blend goes on from there (the samples before are unchanged, so the
+// colour is that of blending again from the start, as the CPU twin does,
+// without the cost: that grew with the square of the samples added and
+// ran past the device's limit on loop iterations for rays whose opacity
+// stays just under the threshold).
+fn acc_blend(px: u32, n: u32, e: f32, at: ptr<function, BlendAt>) -> u32 {
     let cap = hdr(px, 6u);
     let m = log2_ceil(n);
     let size = 1u << m;
-    var acc = vec4<f32>(0.0);
-    var j = 0u;
+    var acc = (*at).acc;
+    var j = (*at).j;
+    var q0 = (*at).q;
+    var any = (*at).any == 1u;
     loop {
-        var any = false;
-        for (var q = 0u; q < size; q = q + 1u) {
+        for (var q = q0; q < size; q = q + 1u) {
             let k = frame_at(q, m);
             if (k >= n) {
                 continue;
@@ -275,7 +292,8 @@ fn acc_blend(px: u32, n: u32, e: f32) -> Blended {
             let r = run_word(px, k);
             if (j >= (r & ~A_ENDED)) {
                 if ((r & A_ENDED) == 0u) {
-                    return Blended(acc, k);
+                    *at = BlendAt(acc, j, q, u32(any));
+                    return k;
                 }
                 continue;
             }
@@ -302,21 +320,33 @@ fn acc_blend(px: u32, n: u32, e: f32) -> Blended {
                 let wt = (1.0 - acc.w) * a;
                 acc = acc + vec4<f32>(c * wt, wt);
                 if (acc.w >= EARLY_TERMINATION) {
-                    return Blended(acc, AUTO);
+                    (*at).acc = acc;
+                    return AUTO;
                 }
             }
         }
         if (!any) {
-            return Blended(acc, AUTO);
+            (*at).acc = acc;
+            return AUTO;
         }
+        q0 = 0u;
+        any = false;
         j = j + 1u;
     }
-    return Blended(acc, AUTO);
+    (*at).acc = acc;
+    return A_CUT;
 }
 
 // The blend's opacity-correction exponent: (Δ/n)/Δ_ref.
 fn acc_exponent(px: u32) -> f32 {
     return (hdr_f(px, 2u) / f32(hdr(px, 3u))) / R.acc_ref.x;
+}
+
+// The colour pixel `px` shows: the last frame's (the image is this
+// accumulation's own, at the store's head).
+fn shown(px: u32) -> vec4<f32> {
+    return vec4<f32>(bitcast<f32>(image[4u * px]), bitcast<f32>(image[4u * px + 1u]),
+                     bitcast<f32>(image[4u * px + 2u]), bitcast<f32>(image[4u * px + 3u]));
 }
 
 // One accumulation frame of pixel `px`: its colour.
@@ -346,8 +376,7 @@ fn acc_pixel(px: u32, ray: Ray) -> vec4<f32> {
     // last blend not short): the colour it shows stays (the CPU twin's
     // rule; the image is this accumulation's own, at the store's head).
     if (!retaken && hdr(px, 5u) == 0u && !room(px, k)) {
-        return vec4<f32>(bitcast<f32>(image[4u * px]), bitcast<f32>(image[4u * px + 1u]),
-                         bitcast<f32>(image[4u * px + 2u]), bitcast<f32>(image[4u * px + 3u]));
+        return shown(px);
     }
     if (room(px, k)) {
         set_hdr(px, 3u, k + 1u);
@@ -356,15 +385,28 @@ fn acc_pixel(px: u32, ray: Ray) -> vec4<f32> {
     }
     let n = hdr(px, 3u);
     let e = acc_exponent(px);
+    var at = BlendAt(vec4<f32>(0.0), 0u, 0u, 0u);
     loop {
-        let b = acc_blend(px, n, e);
-        if (b.short_run == AUTO) {
+        let k = acc_blend(px, n, e, &at);
+        if (k == AUTO) {
             set_hdr(px, 5u, 0u);
-            return b.c;
+            return at.acc;
         }
-        a_extended = a_extended + acc_take(px, ray, b.short_run, A_EXTEND, false, 0.0);
+        if (k == A_CUT) {
+            break;
+        }
+        // An extension takes A_EXTEND samples or ends the run; one that
+        // did neither was cut short.
+        let r = run_word(px, k);
+        a_extended = a_extended + acc_take(px, ray, k, A_EXTEND, false, 0.0);
+        if (run_word(px, k) == r) {
+            break;
+        }
     }
-    return vec4<f32>(0.0);
+    // Cut short by the device: the pixel stays incomplete (short) and
+    // shows what it showed before; the next frame blends it again.
+    set_hdr(px, 5u, 1u);
+    return shown(px);
 }
 
 // Whether pixel `px` is complete: no stand-in, no short run, and every
@@ -411,9 +453,10 @@ fn reblend(@builtin(global_invocation_id) g: vec3<u32>) {
     let px = g.y * R.width + g.x;
     var c = vec4<f32>(0.0);
     if (hdr(px, 7u) == 1u && hdr_f(px, 2u) != 0.0 && hdr(px, 3u) > 0u) {
-        let b = acc_blend(px, hdr(px, 3u), acc_exponent(px));
-        c = b.c;
-        set_hdr(px, 5u, u32(b.short_run != AUTO));
+        var at = BlendAt(vec4<f32>(0.0), 0u, 0u, 0u);
+        let k = acc_blend(px, hdr(px, 3u), acc_exponent(px), &at);
+        c = at.acc;
+        set_hdr(px, 5u, u32(k != AUTO));
     }
     put_pixel(px, c);
     put_acc_counts(px);

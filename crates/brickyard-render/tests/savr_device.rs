@@ -10,15 +10,19 @@ mod accumulation;
 
 use accumulation::{fixture, scale_opacity, session, Fixture};
 use brickyard_cache::session::Session;
-use brickyard_core::{Shading, TransferFunction};
+use brickyard_core::camera::{world_extent, Camera, Projection};
+use brickyard_core::{DType, Shading, TransferFunction};
 use brickyard_gpu::context::{test_gpu, Gpu};
 use brickyard_gpu::vm::DeviceVm;
-use brickyard_render::cpu::Lod;
+use brickyard_render::cpu::{Lod, Scene};
 use brickyard_render::gpu::GpuRenderer;
 use brickyard_render::image::Image;
-use brickyard_render::reference::RenderParams;
+use brickyard_render::reference::{RenderMode, RenderParams, Volume};
 use brickyard_render::savr::device::DeviceAccumulation;
 use brickyard_render::savr::Accumulation;
+use brickyard_store::builder::{convert, ConvertOptions, NoProgress};
+use brickyard_store::source::{SourceMeta, VolumeSource};
+use std::sync::atomic::AtomicBool;
 
 const TOLERANCE: f32 = 1e-4;
 
@@ -321,4 +325,121 @@ fn a_store_too_small_for_a_ray_samples_a_coarser_level() {
         level0.image().max_abs_diff(level1.image()) > 1e-3,
         "levels 0 and 1 draw the same image: the check says nothing"
     );
+}
+
+/// A slab of `SLAB_VALUE` in the first `SLAB` voxels along x, then zeros
+/// to the end of a long volume.
+struct SlabThenEmpty(SourceMeta);
+
+const SLAB: u64 = 8;
+const SLAB_VALUE: u8 = 108;
+
+impl VolumeSource for SlabThenEmpty {
+    fn meta(&self) -> &SourceMeta {
+        &self.0
+    }
+    fn read_region(
+        &self,
+        _c: usize,
+        z: std::ops::Range<u64>,
+        y: std::ops::Range<u64>,
+        x: std::ops::Range<u64>,
+        out: &mut [u8],
+    ) -> brickyard_store::Result<()> {
+        let mut i = 0;
+        for _ in z {
+            for _ in y.clone() {
+                for xx in x.clone() {
+                    out[i] = if xx < SLAB { SLAB_VALUE } else { 0 };
+                    i += 1;
+                }
+            }
+        }
+        Ok(())
+    }
+}
+
+/// Rays that cross a thin slab whose opacity lies right at the
+/// early-termination threshold, then 400 voxels of nothing, in two frames
+/// with every brick resident: the second frame's run (offset 0) reaches an
+/// opacity of 0.99 alone and stops, the blend of both runs stays just under
+/// it, so that run is extended 8 samples at a time to the ray's far end.
+/// The device's image equals the CPU's. Before, the device blended every
+/// kept sample again from the ray's start after each extension: the
+/// invocation's loops ran past the 65535 iterations lavapipe allows an
+/// invocation, the driver cut them short, and every pixel came out blank
+/// (as one pixel of Colin27 did under `render --progressive 4`, its fourth
+/// frame's blend just under 0.99).
+#[test]
+fn open_runs_extended_to_a_long_rays_end_blend_as_on_the_cpu() {
+    let Some(gpu) = test_gpu() else { return };
+    let dir = tempfile::tempdir().unwrap();
+    let store = dir.path().join("slab.ome.zarr");
+    let dims = [16, 16, 400];
+    let src = SlabThenEmpty(SourceMeta::new("<slab>", dims, 1, DType::U8));
+    let o = ConvertOptions {
+        brick: [16; 3],
+        shard: [32; 3],
+        ..Default::default()
+    };
+    convert(&src, &store, &o, &NoProgress, &AtomicBool::new(false)).unwrap();
+    let levels: Vec<Volume> = (0..)
+        .map_while(|l| Volume::from_store(&store, l, 0).ok())
+        .collect();
+    let extent = world_extent(dims, levels[0].spacing);
+    let scene = Scene::new(extent, levels.iter().map(|v| v.dims).collect());
+    // Along x through the slab first, tilted a little (no ray parallel to
+    // a face), every ray within the 16 × 16 cross-section.
+    let cam = Camera {
+        projection: Projection::Orthographic { height: 8.0 },
+        eye: [-5.0, 8.0, 8.0],
+        target: [400.0, 8.2, 8.1],
+        up: [0.0, 0.0, 1.0],
+    };
+    let tf = TransferFunction::preset("linear", [0.0, 255.0]).unwrap();
+    let mut p = RenderParams::new(8, 8, cam, tf, RenderMode::Dvr);
+    p.reference_step = Some(scene.voxel(0));
+    let f = Fixture {
+        _dir: dir,
+        store,
+        levels,
+        scene,
+        params: p.clone(),
+        bytes: dims.iter().product::<u64>(),
+    };
+
+    // The CPU twin: the runs stopped on their own are extended by most of
+    // the ray's length.
+    let lod = Lod::Fixed(0);
+    let mut s = session(&f.store, 64 << 20);
+    let mut loaded = Accumulation::new(8, 8, 1, 1 << 16);
+    accumulate(&mut s, &f, &p, &mut loaded, lod);
+    let mut acc = Accumulation::new(8, 8, 2, 1 << 16);
+    let mut extended = 0;
+    for _ in 1..=600 {
+        s.begin_frame();
+        let (st, reqs) = acc.frame(s.vm(), &f.scene, &p, lod);
+        extended += st.extended;
+        s.finish_frame(reqs.iter());
+        if acc.complete() {
+            break;
+        }
+        std::thread::sleep(std::time::Duration::from_millis(1));
+    }
+    assert!(acc.complete(), "the CPU accumulation never completed");
+    eprintln!("CPU: {extended} samples added to runs that had stopped");
+    assert!(
+        extended >= 64 * 360,
+        "{extended} samples added to stopped runs: the blend does not reach the far end"
+    );
+    assert!(acc.image().coverage(0.5) == 1.0, "the slab does not show");
+
+    let mut r = GpuRenderer::new(&gpu);
+    let mut ds = session(&f.store, 64 << 20);
+    let (mut dvm, _) = DeviceVm::new(&gpu, ds.vm_mut()).unwrap();
+    let mut loaded = DeviceAccumulation::new(&gpu, 8, 8, 1, 1 << 16);
+    accumulate_device(&gpu, &mut r, &mut dvm, &mut ds, &f, &p, &mut loaded, lod);
+    let mut dacc = DeviceAccumulation::new(&gpu, 8, 8, 2, 1 << 16);
+    accumulate_device(&gpu, &mut r, &mut dvm, &mut ds, &f, &p, &mut dacc, lod);
+    twins("open runs to the far end", dacc.image(), acc.image());
 }
