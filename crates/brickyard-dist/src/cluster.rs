@@ -33,6 +33,8 @@ pub struct Cluster {
     world: SimpleCommunicator,
     rank: usize,
     size: usize,
+    /// Ranks on this rank's node (sharing its memory), this one included.
+    node_ranks: usize,
     meetings: Cell<u64>,
     fail: Option<(usize, u64, Fail)>,
     // Dropped last: MPI_Finalize.
@@ -66,9 +68,13 @@ impl Cluster {
             Ok(v) => Some(parse_fail(&v)?),
             Err(_) => None,
         };
+        // The ranks that share this node's memory
+        // (MPI_Comm_split_type(MPI_COMM_TYPE_SHARED)).
+        let node_ranks = world.split_shared(world.rank()).size().max(1) as usize;
         Ok(Some(Cluster {
             rank: world.rank() as usize,
             size: world.size() as usize,
+            node_ranks,
             world,
             meetings: Cell::new(0),
             fail,
@@ -86,6 +92,12 @@ impl Cluster {
             },
             _ => Ok(()),
         }
+    }
+
+    /// How many ranks run on this rank's node (this one included): they
+    /// share its memory.
+    pub fn ranks_on_node(&self) -> usize {
+        self.node_ranks
     }
 
     pub fn world(&self) -> &SimpleCommunicator {

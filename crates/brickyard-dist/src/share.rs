@@ -166,6 +166,10 @@ impl Share for RenderShare<'_> {
         self.split
     }
 
+    fn ranks_on_node(&self) -> usize {
+        self.c.ranks_on_node()
+    }
+
     fn next_band(&mut self, view: u32, rows: u32) -> Result<Option<(u32, u32)>> {
         if self.c.rank() == 0 {
             self.open_view(view, rows);

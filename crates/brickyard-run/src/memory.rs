@@ -70,6 +70,20 @@ pub fn default_memory() -> u64 {
     default_memory_source().0
 }
 
+/// Processes of one job on this node (MPI ranks), which share its memory:
+/// the default budget is divided among them (1: this process alone).
+static NODE_PROCESSES: std::sync::atomic::AtomicU64 = std::sync::atomic::AtomicU64::new(1);
+
+/// Divide the default budget among the `n` processes of one job that run
+/// on this node (an explicit `--memory` stays each one's).
+pub fn share_default_among(n: usize) {
+    NODE_PROCESSES.store(n.max(1) as u64, std::sync::atomic::Ordering::Relaxed);
+}
+
+fn node_processes() -> u64 {
+    NODE_PROCESSES.load(std::sync::atomic::Ordering::Relaxed)
+}
+
 /// What the program maps beside its budget (its code, thread stacks, the
 /// allocator's spare room), for the address-space limit: `render` at
 /// `--memory 256MiB` ran within `ulimit -v 400000` (390 MiB).
@@ -83,6 +97,8 @@ pub fn default_memory_source() -> (u64, &'static str) {
         Some(c) if c < ram => (c / 4, "the control group's memory limit"),
         _ => (ram / 4, "RAM"),
     };
+    // (The address-space limit is each process's own.)
+    m /= node_processes();
     if let Some(a) = address_space_limit() {
         let within = a.saturating_sub(ADDRESS_SPACE_BESIDE);
         if within < m {
@@ -192,12 +208,16 @@ impl Split {
             if self.explicit {
                 String::new()
             } else {
+                let among = match node_processes() {
+                    1 => String::new(),
+                    n => format!(", divided among the {n} ranks on this node"),
+                };
                 match default_memory_source().1 {
-                    "RAM" => " (default: a quarter of RAM)".to_string(),
+                    "RAM" => format!(" (default: a quarter of RAM{among})"),
                     "the address-space limit" => {
                         " (default: within the address-space limit, ulimit -v)".to_string()
                     }
-                    of => format!(" (default: a quarter of {of})"),
+                    of => format!(" (default: a quarter of {of}{among})"),
                 }
             },
             human_bytes(self.pool),

@@ -153,8 +153,9 @@ pub struct RenderCmd {
     samples_per_voxel: Option<f64>,
     /// Memory for the whole process: the brick pool, host cache, decoded
     /// chunks and images are split out of it (default: a quarter of RAM, or
-    /// of the control group's memory limit where lower, and within an
-    /// address-space limit, ulimit -v).
+    /// of the control group's memory limit where lower, divided among the
+    /// MPI ranks on this node, and within an address-space limit, ulimit
+    /// -v). An explicit --memory is each rank's.
     #[arg(long)]
     memory: Option<String>,
     /// Brick-pool budget (default: a share of --memory). A pool smaller
@@ -648,6 +649,10 @@ pub fn run(c: RenderCmd) -> Result<Vec<String>> {
 pub fn run_shared(mut c: RenderCmd, share: Option<&mut dyn Share>) -> Result<Vec<String>> {
     if share.as_ref().is_some_and(|s| s.rank() > 0) {
         c.silent = true;
+    }
+    // Ranks on one node share its memory: the default budget is theirs.
+    if let Some(s) = share.as_ref() {
+        crate::memory::share_default_among(s.ranks_on_node());
     }
     let (raw, json) = (c.raw_f32, c.json);
     run_with(c, share, &mut |path, img| {

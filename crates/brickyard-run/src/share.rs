@@ -28,6 +28,12 @@ pub trait Share {
     fn rank(&self) -> usize;
     fn size(&self) -> usize;
     fn split(&self) -> Split;
+    /// How many ranks run on this rank's node, this one included (they
+    /// share its memory: a default memory budget taken from the node's
+    /// RAM is divided among them). Not collective.
+    fn ranks_on_node(&self) -> usize {
+        1
+    }
     /// Image-parallel: the next band of tile rows this rank draws of the
     /// `rows` of view `view`; `None` when none is left. Not collective.
     fn next_band(&mut self, view: u32, rows: u32) -> Result<Option<(u32, u32)>>;

@@ -331,7 +331,13 @@ fn convert_options(p: &PyramidArgs) -> Result<ConvertOptions> {
             .map(|s| parse_triple(s, "origin"))
             .transpose()?),
         unit: p.unit.clone(),
-        columns: p.columns.unwrap_or(1).max(1),
+        columns: match p.columns {
+            Some(0) => bail!(
+                "columns: expected at least 1 column of whole shards (the ranks under mpirun \
+                 share the columns), found 0"
+            ),
+            c => c.unwrap_or(1),
+        },
     })
 }
 
@@ -448,7 +454,15 @@ fn run_convert(
     let r = match cluster {
         #[cfg(feature = "mpi")]
         Some(c) if size > 1 => {
-            brickyard_store::builder::convert_team(src, output, &opts, &bar, &CANCEL, c)
+            let _watch = InterruptWatch::start(output, rank);
+            let r = brickyard_store::builder::convert_team(src, output, &opts, &bar, &CANCEL, c);
+            // A failure the ranks met over has stopped every rank's writing:
+            // rank 0 removes what is left of this run's partial output (the
+            // builder does after most meetings, not after the first).
+            if rank == 0 && matches!(r, Err(brickyard_store::StoreError::Team(_))) {
+                remove_unlocked_partial(output);
+            }
+            r
         }
         _ => convert(src, output, &opts, &bar, &CANCEL),
     };
@@ -676,6 +690,157 @@ fn run_ranks(cmd: Cmd, c: &dist::Cluster) -> Result<()> {
     Err(Agreed(c.fail_alone(&msg)).into())
 }
 
+/// `--region-weights` says how `--distribute data` balances its regions;
+/// with another split, or none, it would be ignored: refused, as render's
+/// other flags that do nothing where they are given. (A value that is not
+/// one of view, data, uniform is refused by the render with the values it
+/// takes.)
+fn check_region_weights(r: &render::RenderCmd) -> Result<()> {
+    let known = ["view", "data", "uniform"].contains(&r.region_weights.as_str());
+    let data = r.distribute.as_deref() == Some("data");
+    // (view, the default, may have been given too.)
+    if known && !data && (r.region_weights != "view" || region_weights_given()) {
+        bail!(
+            "region-weights: only with --distribute data (it balances the regions of a \
+             data-parallel render), found --region-weights {} {}",
+            r.region_weights,
+            match r.distribute.as_deref() {
+                None => "without --distribute".to_string(),
+                Some(d) => format!("with --distribute {d}"),
+            }
+        );
+    }
+    Ok(())
+}
+
+/// Whether `render --region-weights` is on this process's command line
+/// (rather than its default).
+fn region_weights_given() -> bool {
+    use clap::CommandFactory;
+    let Ok(m) = Cli::command().try_get_matches() else {
+        return false;
+    };
+    m.subcommand_matches("render").is_some_and(|r| {
+        r.value_source("region_weights") == Some(clap::parser::ValueSource::CommandLine)
+    })
+}
+
+/// `OUTPUT.partial` removed, unless another live process holds the lock
+/// of `output` (then the partial output is its own).
+#[cfg(feature = "mpi")]
+fn remove_unlocked_partial(output: &Path) {
+    let name = output
+        .file_name()
+        .map(|n| n.to_string_lossy().into_owned())
+        .unwrap_or_default();
+    let lock = output.with_file_name(format!("{name}.lock"));
+    let what = format!("writing {}", output.display());
+    if let Ok(_held) = brickyard_store::lock::PidLock::take(&lock, &what) {
+        let _ = std::fs::remove_dir_all(partial_path(output));
+    }
+}
+
+/// A conversion shared by ranks, stopped by SIGTERM or SIGINT (`mpirun`,
+/// itself interrupted, sends every rank SIGTERM, and SIGKILL a second
+/// later: Open MPI's `odls_base_sigkill_timeout`). The ranks stop at their
+/// next slab of input and meet over it, and rank 0 removes `OUT.partial`
+/// (and, as the lock is dropped, `OUT.lock`), as a single process does.
+/// A rank still busy with a slab (a slow codec) would have SIGKILL come
+/// first and leave both behind; so where the meeting has not ended the
+/// conversion [`InterruptWatch::ROOT`] after the signal, rank 0 removes
+/// the partial output and its lock itself, and keeps removing what the
+/// others still write until it ends; at [`InterruptWatch::OTHERS`] the
+/// other ranks end (status 130), which stops their writing and makes
+/// `mpirun` end rank 0.
+#[cfg(feature = "mpi")]
+struct InterruptWatch {
+    done: std::sync::Arc<AtomicBool>,
+    thread: Option<std::thread::JoinHandle<()>>,
+}
+
+#[cfg(feature = "mpi")]
+impl InterruptWatch {
+    const ROOT: std::time::Duration = std::time::Duration::from_millis(400);
+    const OTHERS: std::time::Duration = std::time::Duration::from_millis(600);
+    /// Rank 0's end, if nothing has ended it before.
+    const ROOT_END: std::time::Duration = std::time::Duration::from_millis(950);
+
+    fn start(output: &Path, rank: usize) -> InterruptWatch {
+        use std::time::{Duration, Instant};
+        let done = std::sync::Arc::new(AtomicBool::new(false));
+        let (d, output) = (done.clone(), output.to_path_buf());
+        let thread = std::thread::spawn(move || {
+            let tick = Duration::from_millis(10);
+            // Until `until` after the signal, or the conversion's end (true).
+            let wait_until = |t: Instant, until: Duration| loop {
+                if d.load(Ordering::SeqCst) {
+                    return true;
+                }
+                if t.elapsed() >= until {
+                    return false;
+                }
+                std::thread::sleep(tick);
+            };
+            while !CANCEL.load(Ordering::SeqCst) {
+                if d.load(Ordering::SeqCst) {
+                    return;
+                }
+                std::thread::sleep(tick);
+            }
+            let t = Instant::now();
+            if rank != 0 {
+                if wait_until(t, Self::OTHERS) {
+                    return;
+                }
+                // SAFETY: ends the process at once, as the signal's
+                // default action would have.
+                unsafe { libc::_exit(130) }
+            }
+            if wait_until(t, Self::ROOT) {
+                return;
+            }
+            let partial = partial_path(&output);
+            let name = output
+                .file_name()
+                .map(|n| n.to_string_lossy().into_owned())
+                .unwrap_or_default();
+            let lock = output.with_file_name(format!("{name}.lock"));
+            let _ = std::fs::remove_dir_all(&partial);
+            if std::fs::read_to_string(&lock)
+                .is_ok_and(|s| s.trim() == std::process::id().to_string())
+            {
+                let _ = std::fs::remove_file(&lock);
+            }
+            eprintln!(
+                "error: interrupted: {} not written (its partial output removed)",
+                output.display()
+            );
+            while t.elapsed() < Self::ROOT_END {
+                if partial.exists() {
+                    let _ = std::fs::remove_dir_all(&partial);
+                }
+                std::thread::sleep(Duration::from_millis(2));
+            }
+            // SAFETY: as above.
+            unsafe { libc::_exit(130) }
+        });
+        InterruptWatch {
+            done,
+            thread: Some(thread),
+        }
+    }
+}
+
+#[cfg(feature = "mpi")]
+impl Drop for InterruptWatch {
+    fn drop(&mut self) {
+        self.done.store(true, Ordering::SeqCst);
+        if let Some(t) = self.thread.take() {
+            let _ = t.join();
+        }
+    }
+}
+
 /// The exit status of a command that ended without an error (0 unless it
 /// says otherwise).
 static EXIT_STATUS: std::sync::atomic::AtomicI32 = std::sync::atomic::AtomicI32::new(0);
@@ -703,6 +868,9 @@ fn degraded(lines: Vec<String>) {
 }
 
 fn run(cmd: Cmd, cluster: Option<&dist::Cluster>) -> Result<()> {
+    if let Cmd::Render(r) = &cmd {
+        check_region_weights(r)?;
+    }
     match cmd {
         Cmd::Convert(c) => {
             // Either alone replaces that field of a sidecar; without one,

@@ -158,3 +158,153 @@ fn distribute_alone_says_it_shares_nothing() {
         "{err}"
     );
 }
+
+/// `--region-weights` balances the regions of `--distribute data` only:
+/// given with another split, or without one, it is refused, saying what
+/// was given and what it needs; `--columns 0` (no column for the ranks
+/// to share) is refused by `convert` and `generate`.
+#[test]
+fn flags_without_their_split_are_refused() {
+    let dir = tempfile::tempdir().unwrap();
+    let store = dir.path().join("g.ome.zarr");
+    ok(&run(&[
+        "generate",
+        "mandelbulb",
+        s(&store),
+        "--size",
+        "32",
+        "--brick",
+        "16",
+        "--shard",
+        "32",
+        "--quiet",
+    ]));
+    let out = dir.path().join("x.png");
+    let render = |extra: &[&str]| {
+        let mut a = vec![
+            "render",
+            s(&store),
+            "--size",
+            "32x32",
+            "--backend",
+            "cpu",
+            "--quiet",
+            "--out",
+            s(&out),
+        ];
+        a.extend(extra);
+        run(&a)
+    };
+    for (extra, said) in [
+        (
+            &["--region-weights", "data"][..],
+            "found --region-weights data without --distribute",
+        ),
+        (
+            &["--region-weights=view"][..],
+            "found --region-weights view without --distribute",
+        ),
+        (
+            &["--region-weights", "uniform", "--distribute", "image"][..],
+            "found --region-weights uniform with --distribute image",
+        ),
+    ] {
+        let o = render(extra);
+        assert_eq!(o.status.code(), Some(1), "{extra:?}");
+        let err = String::from_utf8_lossy(&o.stderr);
+        assert!(
+            err.contains("region-weights: only with --distribute data"),
+            "{extra:?}: {err}"
+        );
+        assert!(err.contains(said), "{extra:?}: {err}");
+        assert!(!out.exists(), "{extra:?}: an image was written");
+    }
+    // With the split it balances: drawn (alone, a note says it shares nothing).
+    ok(&render(&[
+        "--distribute",
+        "data",
+        "--region-weights",
+        "uniform",
+    ]));
+    assert!(out.exists());
+
+    let raw = dir.path().join("m.raw");
+    ok(&run(&[
+        "generate",
+        "mandelbulb",
+        s(&raw),
+        "--size",
+        "16",
+        "--quiet",
+    ]));
+    for args in [
+        vec!["convert", s(&raw), "c.ome.zarr"],
+        vec!["generate", "mandelbulb", "c.ome.zarr", "--size", "16"],
+    ] {
+        let mut a = args.clone();
+        a.extend(["--columns", "0", "--quiet"]);
+        let o = Command::new(env!("CARGO_BIN_EXE_brickyard"))
+            .args(&a)
+            .current_dir(dir.path())
+            .output()
+            .unwrap();
+        assert_eq!(o.status.code(), Some(1), "{a:?}");
+        let err = String::from_utf8_lossy(&o.stderr);
+        assert!(
+            err.contains("columns: expected at least 1 column") && err.contains("found 0"),
+            "{a:?}: {err}"
+        );
+        assert!(!dir.path().join("c.ome.zarr").exists());
+        assert!(!dir.path().join("c.ome.zarr.partial").exists());
+    }
+}
+
+/// Standard error that is not a terminal (a log, a pipe under mpirun)
+/// gets plain progress lines (what, done of total, rate, time left), the
+/// first after the interval of `BRICKYARD_PROGRESS_SECONDS` (10 s unless
+/// set) and a last one when the work is done; `--quiet` and `--json`
+/// write none, and work shorter than the interval writes none.
+#[test]
+fn progress_lines_in_a_log() {
+    let dir = tempfile::tempdir().unwrap();
+    let convert = |name: &str, extra: &[&str], every: Option<&str>| {
+        let mut c = Command::new(env!("CARGO_BIN_EXE_brickyard"));
+        c.args(["generate", "mandelbulb"])
+            .arg(dir.path().join(name))
+            .args(["--size", "48", "--brick", "16", "--shard", "16"])
+            .args(extra)
+            .env_remove("BRICKYARD_PROGRESS_SECONDS");
+        if let Some(e) = every {
+            c.env("BRICKYARD_PROGRESS_SECONDS", e);
+        }
+        let o = c.output().unwrap();
+        ok(&o);
+        String::from_utf8_lossy(&o.stderr).into_owned()
+    };
+    let err = convert("a.ome.zarr", &[], Some("0"));
+    let lines: Vec<&str> = err
+        .lines()
+        .filter(|l| l.starts_with("converting: "))
+        .collect();
+    assert!(lines.len() >= 2, "{err}");
+    assert!(
+        lines[0].contains(" of 108.00 KiB (") && lines[0].contains("/s, ETA "),
+        "{err}"
+    );
+    assert!(
+        lines
+            .last()
+            .unwrap()
+            .starts_with("converting: done, 108.00 KiB in "),
+        "{err}"
+    );
+    // No terminal's bar drawing in a log.
+    assert!(!err.contains('\r') && !err.contains('\u{1b}'), "{err:?}");
+    for (name, extra) in [("q.ome.zarr", "--quiet"), ("j.ome.zarr", "--json")] {
+        let err = convert(name, &[extra], Some("0"));
+        assert!(!err.contains("converting"), "{extra}: {err}");
+    }
+    // Shorter than the default interval: nothing.
+    let err = convert("d.ome.zarr", &[], None);
+    assert!(!err.contains("converting"), "{err}");
+}
