@@ -540,39 +540,17 @@ pub fn run(setup: Setup, mut scene: Scene, rx: Receiver<Msg>, tx: Sender<Reply>,
                 views[i].preview = false;
             }
             if completeness < 1.0 {
+                let idle = f.session.insert.inserted == 0 && f.session.insert.flagged == 0;
                 let out = Out {
-                    view: i,
-                    version: views[i].version,
-                    image: f.image,
-                    completeness,
-                    render_ms: f.render_ms,
-                    cache_ms: f.cache_ms,
-                    up: f.up,
-                    down: f.down,
-                    resident_bricks: f.session.frame.resident_bricks,
-                    pool_slots: s.vm().pool_slots(),
-                    pending,
-                    bytes_read: s.loader().bytes_read(),
-                    host_bytes: s.loader().cache().bytes(),
-                    host_budget: s.loader().cache().budget(),
-                    backend: backend.describe(),
-                    lod_extra: views[i].budget.extra(),
-                    lod,
-                    failed: s.vm().failed_count(),
-                    new_failures: vec![],
-                    settled: false,
-                    accumulated: None,
-                    reblended: false,
-                    since_change_ms: views[i].arrived.elapsed().as_secs_f64() * 1e3,
-                    octree_nodes: f.stats.octree_nodes,
                     preview: true,
+                    ..frame_out(i, &views[i], &s, &backend, f, lod)
                 };
                 if tx.send(Reply::Frame(Box::new(out))).is_err() {
                     return;
                 }
                 wake();
                 if views[i].preview {
-                    if f.session.insert.inserted == 0 && f.session.insert.flagged == 0 {
+                    if idle {
                         std::thread::sleep(Duration::from_millis(4));
                     }
                     continue;
@@ -674,40 +652,19 @@ pub fn run(setup: Setup, mut scene: Scene, rx: Receiver<Msg>, tx: Sender<Reply>,
             })
             .collect();
         reported = s.failures().len();
-        let loader = s.loader();
+        let idle = f.session.insert.inserted == 0 && f.session.insert.flagged == 0;
         let out = Out {
-            view: i,
-            version: views[i].version,
-            image: f.image,
-            completeness,
-            render_ms: f.render_ms,
-            cache_ms: f.cache_ms,
-            up: f.up,
-            down: f.down,
-            resident_bricks: f.session.frame.resident_bricks,
-            pool_slots: s.vm().pool_slots(),
-            pending: f.session.pending + f.session.in_flight + f.session.waiting_upload,
-            bytes_read: loader.bytes_read(),
-            host_bytes: loader.cache().bytes(),
-            host_budget: loader.cache().budget(),
-            backend: backend.describe(),
-            lod_extra: views[i].budget.extra(),
-            lod,
-            failed: s.vm().failed_count(),
             new_failures,
             settled: done,
             accumulated,
-            reblended: false,
-            since_change_ms: views[i].arrived.elapsed().as_secs_f64() * 1e3,
-            octree_nodes: f.stats.octree_nodes,
-            preview: false,
+            ..frame_out(i, &views[i], &s, &backend, f, lod)
         };
         if tx.send(Reply::Frame(Box::new(out))).is_err() {
             return;
         }
         wake();
         // Waiting for I/O: frames keep coming, but not as a busy loop.
-        if !done && f.session.insert.inserted == 0 && f.session.insert.flagged == 0 {
+        if !done && idle {
             if idle_since.elapsed() > Duration::from_millis(2) {
                 std::thread::sleep(Duration::from_millis(4));
             }
@@ -806,6 +763,47 @@ fn accumulate(
 }
 
 /// An [`Out`] of an accumulation pass, with the session's figures.
+/// What frame `f` of view `i` (`v`) sends: its image and figures, with no
+/// new failures, not settled, not accumulated, not a preview (the callers
+/// say otherwise).
+fn frame_out(
+    i: usize,
+    v: &View,
+    s: &Session,
+    backend: &Backend,
+    f: crate::backend::Frame,
+    lod: Lod,
+) -> Out {
+    let loader = s.loader();
+    Out {
+        view: i,
+        version: v.version,
+        completeness: f.stats.completeness(),
+        render_ms: f.render_ms,
+        cache_ms: f.cache_ms,
+        up: f.up,
+        down: f.down,
+        resident_bricks: f.session.frame.resident_bricks,
+        pool_slots: s.vm().pool_slots(),
+        pending: f.session.pending + f.session.in_flight + f.session.waiting_upload,
+        bytes_read: loader.bytes_read(),
+        host_bytes: loader.cache().bytes(),
+        host_budget: loader.cache().budget(),
+        backend: backend.describe(),
+        lod_extra: v.budget.extra(),
+        lod,
+        failed: s.vm().failed_count(),
+        new_failures: vec![],
+        settled: false,
+        accumulated: None,
+        reblended: false,
+        since_change_ms: v.arrived.elapsed().as_secs_f64() * 1e3,
+        octree_nodes: f.stats.octree_nodes,
+        preview: false,
+        image: f.image,
+    }
+}
+
 fn status(s: &Session, a: AccOut) -> Out {
     let loader = s.loader();
     Out {
