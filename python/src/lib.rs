@@ -357,28 +357,34 @@ fn render<'py>(
     if !write {
         cmd = cmd.in_memory();
     }
+    // Ctrl-C stops the render within a band of tiles of its frame.
+    let cancel = std::sync::Arc::new(AtomicBool::new(false));
+    cmd = cmd.with_stop(cancel.clone());
     if let Some(store) = args.get(2).map(PathBuf::from) {
         if !store.exists() && !brickyard_store::storage::is_remote(&store) {
             return Err(missing(&store));
         }
     }
     let raw = cmd.raw_f32;
-    let (images, notes) = py
-        .detach(|| -> anyhow::Result<_> {
-            let (views, notes) = brickyard_run::render::views_noted(cmd)?;
-            if write {
-                for (path, img) in &views {
-                    // A file that cannot be written is an `OSError`.
-                    brickyard_run::render::write_view(path, img, raw)
-                        .map_err(|e| anyhow::Error::new(std::io::Error::other(format!("{e:#}"))))?;
-                }
+    let r = watched(py, &cancel, "render", || -> anyhow::Result<_> {
+        let (views, notes) = brickyard_run::render::views_noted(cmd)?;
+        if write {
+            for (path, img) in &views {
+                // A file that cannot be written is an `OSError`.
+                brickyard_run::render::write_view(path, img, raw)
+                    .map_err(|e| anyhow::Error::new(std::io::Error::other(format!("{e:#}"))))?;
             }
-            Ok((
-                views.into_iter().map(|(_, img)| img).collect::<Vec<_>>(),
-                notes,
-            ))
-        })
-        .map_err(to_py)?;
+        }
+        Ok((
+            views.into_iter().map(|(_, img)| img).collect::<Vec<_>>(),
+            notes,
+        ))
+    });
+    // (Ctrl-C taken by the watch: raised even where the render had ended.)
+    if cancel.load(Ordering::SeqCst) {
+        return Err(PyKeyboardInterrupt::new_err("render: interrupted"));
+    }
+    let (images, notes) = r.map_err(to_py)?;
     let (w, h) = match images.first() {
         Some(img) => (img.width, img.height),
         None => return Err(PyValueError::new_err("render: no view was drawn")),

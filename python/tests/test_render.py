@@ -204,3 +204,26 @@ def test_render_refuses_unknown_options_and_channels_that_are_no_integers(store)
             brickyard.render(s, size=16, backend="cpu", channel=bad)
     # Flags the CLI takes pass.
     assert brickyard.render(s, size=16, backend="cpu", lod_bias=0.5).shape == (16, 16, 4)
+
+
+def test_ctrl_c_stops_a_long_render(tmp_path):
+    # One frame of 2048² at 8 samples per voxel takes seconds (8 s on two
+    # cores); Ctrl-C stops it within a band of its tiles.
+    import os
+    import signal
+    import threading
+    import time
+    p = tmp_path / "long.ome.zarr"
+    brickyard.from_numpy(volume((96, 96, 96), "uint16", seed=1), p, progress=False)
+    old = signal.signal(signal.SIGINT, signal.default_int_handler)
+    timer = threading.Timer(1.0, lambda: os.kill(os.getpid(), signal.SIGINT))
+    t0 = time.monotonic()
+    try:
+        timer.start()
+        with pytest.raises(KeyboardInterrupt, match="interrupted"):
+            brickyard.render(p, size=2048, samples_per_voxel=8, backend="cpu")
+        seconds = time.monotonic() - t0
+    finally:
+        timer.cancel()
+        signal.signal(signal.SIGINT, old)
+    assert seconds < 1.0 + 3, f"KeyboardInterrupt {seconds - 1.0:.1f} s after SIGINT"

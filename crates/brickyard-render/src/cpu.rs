@@ -108,6 +108,9 @@ pub struct Scene {
     /// renderers during a frame; updated between frames
     /// ([`Octree::sync`](crate::octree::Octree::sync)).
     pub octree: Option<Arc<RwLock<Octree>>>,
+    /// Set from outside (Ctrl-C): a frame drawn on the CPU leaves its
+    /// remaining bands of tiles undrawn, and the caller drops it.
+    pub stop: Option<Arc<std::sync::atomic::AtomicBool>>,
 }
 
 impl Scene {
@@ -125,7 +128,15 @@ impl Scene {
             octree_runs: true,
             x86_v3: true,
             octree: None,
+            stop: None,
         }
+    }
+
+    /// Whether [`Scene::stop`] was set.
+    pub fn stopped(&self) -> bool {
+        self.stop
+            .as_ref()
+            .is_some_and(|s| s.load(std::sync::atomic::Ordering::Relaxed))
     }
 
     /// Smallest voxel edge of level `l` in world units.
@@ -503,6 +514,12 @@ fn render_typed<T: Sample>(
                 (walkers, vm.requests(), FrameStats::default())
             },
             |(mut walkers, mut req, mut st), (band, rows, redo)| {
+                // Stopped: the frame's other bands are left undrawn (a
+                // band of a large image at many samples per voxel takes a
+                // tenth of a second, the frame many seconds).
+                if scene.stopped() {
+                    return (walkers, req, st);
+                }
                 let multi = !params.channels.is_empty();
                 let nrows = rows.len() / w;
                 for (tx, x0) in (0..w).step_by(TILE_W).enumerate() {

@@ -195,6 +195,10 @@ pub fn drive(
             },
         };
         frames += 1;
+        // Stopped (Ctrl-C) during the frame: it is not whole.
+        if scene.stopped() {
+            return Err(crate::process::Interrupted.into());
+        }
         let sig = signals(s, &f);
         on_frame(&FrameInfo {
             frame: frames,

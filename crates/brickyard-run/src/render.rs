@@ -296,6 +296,10 @@ pub struct RenderCmd {
     /// `--out`'s folder need not be writable.
     #[arg(skip)]
     in_memory: bool,
+    /// Set from outside (Ctrl-C): the render stops within a band of tiles
+    /// of its frame with [`crate::process::Interrupted`].
+    #[arg(skip)]
+    stop: Option<std::sync::Arc<std::sync::atomic::AtomicBool>>,
 }
 
 impl RenderCmd {
@@ -304,6 +308,12 @@ impl RenderCmd {
     /// in a read-only folder still renders).
     pub fn in_memory(mut self) -> RenderCmd {
         self.in_memory = true;
+        self
+    }
+
+    /// Stop (with [`crate::process::Interrupted`]) once `stop` is set.
+    pub fn with_stop(mut self, stop: std::sync::Arc<std::sync::atomic::AtomicBool>) -> RenderCmd {
+        self.stop = Some(stop);
         self
     }
 }
@@ -1151,6 +1161,7 @@ fn run_one(
         levels.push(zarr::open(&c.store, l)?.meta().dims);
     }
     let mut scene = Scene::new(extent, levels);
+    scene.stop = c.stop.clone();
     // The store's channel the view shows (DVR) or the first one listed.
     let first_channel = c
         .channels
