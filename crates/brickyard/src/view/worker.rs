@@ -762,7 +762,6 @@ fn accumulate(
     Ok((Some(out), done))
 }
 
-/// An [`Out`] of an accumulation pass, with the session's figures.
 /// What frame `f` of view `i` (`v`) sends: its image and figures, with no
 /// new failures, not settled, not accumulated, not a preview (the callers
 /// say otherwise).
@@ -804,6 +803,7 @@ fn frame_out(
     }
 }
 
+/// An [`Out`] of an accumulation pass, with the session's figures.
 fn status(s: &Session, a: AccOut) -> Out {
     let loader = s.loader();
     Out {
