@@ -193,9 +193,12 @@ def test_ctrl_c_leaves_the_store_as_it_was(tmp_path, pipe, phase):
 @pytest.mark.parametrize("job", ["median", "zstd"])
 def test_ctrl_c_is_answered_within_a_slow_region(tmp_path, job):
     # One region of a slow stage takes tens of seconds (median(3) of this
-    # volume: about 30 s on two cores in one region; zstd:19 several
-    # seconds a slab): Ctrl-C must not wait for its end.
-    a = np.random.default_rng(0).integers(0, 4000, (64, 512, 512), dtype=np.uint16)
+    # volume: about 30 s on two cores in one region); zstd:19 takes 1.5 s
+    # or more a slab of 64 planes, 4.3 s for these 160 planes on an idle
+    # two-core machine (64 planes ended before the signal): Ctrl-C must
+    # not wait for the region's or the job's end.
+    depth = 64 if job == "median" else 160
+    a = np.random.default_rng(0).integers(0, 4000, (depth, 512, 512), dtype=np.uint16)
     src = tmp_path / "s.ome.zarr"
     brickyard.from_numpy(a, src, progress=False)
     before = sorted(os.listdir(src))
