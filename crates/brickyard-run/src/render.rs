@@ -280,9 +280,9 @@ pub struct RenderCmd {
     /// times its data weight), data (by the store's per-brick statistics, a
     /// brick the rays draw weighs 1, one they cross without drawing (DVR:
     /// hidden by the transfer function; MIP: empty or constant) 1/16) or
-    /// uniform (every brick the same).
-    #[arg(long, value_name = "view|data|uniform", default_value = "view")]
-    pub region_weights: String,
+    /// uniform (every brick the same). Refused without --distribute data.
+    #[arg(long, value_name = "view|data|uniform")]
+    pub region_weights: Option<String>,
     /// Also write each image as premultiplied linear RGBA in 32-bit floats
     /// (little-endian, row-major, top row first, width × height × 4) beside
     /// its PNG, with the extension .f32: what the renderer computed, before
@@ -1004,10 +1004,20 @@ fn run_one(
             }
         }
     }
-    if !matches!(c.region_weights.as_str(), "view" | "data" | "uniform") {
+    let weights = c.region_weights.as_deref().unwrap_or("view");
+    if !matches!(weights, "view" | "data" | "uniform") {
+        bail!("region-weights: expected view, data or uniform, found {weights:?}");
+    }
+    // It balances a data-parallel render's regions; with another split,
+    // or none, it would be ignored.
+    if c.region_weights.is_some() && c.distribute.as_deref() != Some("data") {
         bail!(
-            "region-weights: expected view, data or uniform, found {:?}",
-            c.region_weights
+            "region-weights: only with --distribute data (it balances the regions of a \
+             data-parallel render), found --region-weights {weights} {}",
+            match c.distribute.as_deref() {
+                None => "without --distribute".to_string(),
+                Some(d) => format!("with --distribute {d}"),
+            }
         );
     }
     let data_split = shared == Some(Split::Data);
@@ -1807,8 +1817,8 @@ fn run_one(
             }
             let nb = m.dims.map(|d| d.div_ceil(c.brick));
             let ranges = scene.ranges.as_deref().and_then(|r| r.level(0));
-            let by_data = c.region_weights != "uniform";
-            let by_view = c.region_weights == "view";
+            let by_data = weights != "uniform";
+            let by_view = weights == "view";
             // DVR draws what the transfer function shows (a brick it
             // hides is crossed in one jump, a uniform one it shows is
             // sampled at every step); MIP draws bricks holding data (a

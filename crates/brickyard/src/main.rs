@@ -690,41 +690,6 @@ fn run_ranks(cmd: Cmd, c: &dist::Cluster) -> Result<()> {
     Err(Agreed(c.fail_alone(&msg)).into())
 }
 
-/// `--region-weights` says how `--distribute data` balances its regions;
-/// with another split, or none, it would be ignored: refused, as render's
-/// other flags that do nothing where they are given. (A value that is not
-/// one of view, data, uniform is refused by the render with the values it
-/// takes.)
-fn check_region_weights(r: &render::RenderCmd) -> Result<()> {
-    let known = ["view", "data", "uniform"].contains(&r.region_weights.as_str());
-    let data = r.distribute.as_deref() == Some("data");
-    // (view, the default, may have been given too.)
-    if known && !data && (r.region_weights != "view" || region_weights_given()) {
-        bail!(
-            "region-weights: only with --distribute data (it balances the regions of a \
-             data-parallel render), found --region-weights {} {}",
-            r.region_weights,
-            match r.distribute.as_deref() {
-                None => "without --distribute".to_string(),
-                Some(d) => format!("with --distribute {d}"),
-            }
-        );
-    }
-    Ok(())
-}
-
-/// Whether `render --region-weights` is on this process's command line
-/// (rather than its default).
-fn region_weights_given() -> bool {
-    use clap::CommandFactory;
-    let Ok(m) = Cli::command().try_get_matches() else {
-        return false;
-    };
-    m.subcommand_matches("render").is_some_and(|r| {
-        r.value_source("region_weights") == Some(clap::parser::ValueSource::CommandLine)
-    })
-}
-
 /// `OUTPUT.partial` removed, unless another live process holds the lock
 /// of `output` (then the partial output is its own).
 #[cfg(feature = "mpi")]
@@ -868,9 +833,6 @@ fn degraded(lines: Vec<String>) {
 }
 
 fn run(cmd: Cmd, cluster: Option<&dist::Cluster>) -> Result<()> {
-    if let Cmd::Render(r) = &cmd {
-        check_region_weights(r)?;
-    }
     match cmd {
         Cmd::Convert(c) => {
             // Either alone replaces that field of a sidecar; without one,
