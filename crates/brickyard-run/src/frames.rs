@@ -106,6 +106,20 @@ pub fn pass_divisor(width: u32, height: u32) -> u32 {
     [8, 4].into_iter().find(|d| short / d >= 256).unwrap_or(2)
 }
 
+/// The request pass of `params`: the image's width and height divided by
+/// [`pass_divisor`] and a quarter of the samples along each ray, and the
+/// bias it draws at (subtracted from the image's: as many levels finer as
+/// the divisor's log2, which is the level the full image asks for). The
+/// viewer's previews are drawn so too.
+pub fn request_pass(params: &RenderParams) -> (RenderParams, f64) {
+    let div = pass_divisor(params.width, params.height);
+    let mut p = params.clone();
+    p.width = params.width / div;
+    p.height = params.height / div;
+    p.samples_per_voxel = params.samples_per_voxel * 0.25;
+    (p, f64::from(div).log2())
+}
+
 /// The signals of a frame for the LOD budget.
 pub fn signals(s: &Session, f: &Frame) -> FrameSignals {
     FrameSignals::of_frame(s, &f.session, f.stats.completeness() >= 1.0, f.exact_slots)
@@ -138,14 +152,8 @@ pub fn drive(
     // pass's 1915 at a quarter of the width, 16 at half of it, while the
     // first pass took a third of the time; BENCHMARKS.md).
     let div = pass_divisor(params.width, params.height);
-    let small = (opt.batch && params.width >= 128 && params.height >= 128).then(|| {
-        let mut p = params.clone();
-        p.width = params.width / div;
-        p.height = params.height / div;
-        p.samples_per_voxel = params.samples_per_voxel * 0.25;
-        p
-    });
-    let pass_bias = f64::from(div).log2();
+    let (small, pass_bias) = request_pass(params);
+    let small = (opt.batch && params.width >= 128 && params.height >= 128).then_some(small);
     // First the request pass (while it finds bricks to ask for), then full
     // frames until the budget says stop; at least one full frame. Passes
     // count among `max_frames`: the last frame it allows is always a full

@@ -206,15 +206,9 @@ fn preview_params(backend: &Backend, p: &RenderParams, lod: Lod) -> Option<(Rend
     {
         return None;
     }
-    let div = crate::frames::pass_divisor(p.width, p.height);
-    let mut small = p.clone();
-    small.width = p.width / div;
-    small.height = p.height / div;
-    small.samples_per_voxel = p.samples_per_voxel * 0.25;
+    let (small, finer) = crate::frames::request_pass(p);
     let lod = match lod {
-        Lod::Auto { bias } => Lod::Auto {
-            bias: bias - f64::from(div).log2(),
-        },
+        Lod::Auto { bias } => Lod::Auto { bias: bias - finer },
         fixed => fixed,
     };
     Some((small, lod))
