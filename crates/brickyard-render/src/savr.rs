@@ -260,6 +260,11 @@ impl Accumulation {
         &self.image
     }
 
+    /// Frames drawn (a frame drawn in parts counts when its last part is).
+    pub fn drawn(&self) -> u32 {
+        self.drawn
+    }
+
     /// Frames asked for.
     pub fn target(&self) -> u32 {
         self.target

@@ -614,6 +614,15 @@ impl Accumulating {
         }
     }
 
+    /// Frames drawn, at most the target: where the memory for kept
+    /// samples stopped some pixels short, more than [`frames`](Self::frames).
+    pub fn drawn(&self) -> u32 {
+        match self {
+            Accumulating::Cpu(a) => a.drawn().min(a.target()),
+            Accumulating::Gpu(a) => a.drawn().min(a.target()),
+        }
+    }
+
     pub fn target(&self) -> u32 {
         match self {
             Accumulating::Cpu(a) => a.target(),

@@ -951,6 +951,65 @@ quit
 }
 
 #[test]
+fn an_accumulation_whose_longest_rays_fill_their_memory_counts_its_frames_drawn() {
+    let _session = shared();
+    // 200 × 160 pixels share 32 MiB of kept samples (an eighth of
+    // --memory): about 200 a pixel, two runs of the longest rays through
+    // 48³. Those stop at two frames; the view still draws all eight, and
+    // its count says so (it stayed at 2 of 8 until the view settled).
+    let d = tempfile::tempdir().unwrap();
+    let store = mandelbulb(d.path(), "48", &["--brick", "16", "--shard", "32"]);
+    let p = |n: &str| d.path().join(n);
+    std::fs::write(
+        p("s.txt"),
+        "size 3d 200 160\nsize xy 32 32\nsize xz 32 32\nsize yz 32 32\n\
+         size oblique 32 32\nmode dvr\nwait-complete 300\nquit\n",
+    )
+    .unwrap();
+    let log = p("log.jsonl");
+    let Some(mut cmd) = viewer(
+        &store,
+        &p("s.txt"),
+        Some(&log),
+        &[
+            "--memory",
+            "256MiB",
+            "--brick",
+            "8",
+            "--backend",
+            "cpu",
+            "--accumulate",
+            "8",
+        ],
+    ) else {
+        return;
+    };
+    let o = cmd.output().unwrap();
+    assert!(o.status.success(), "viewer: {}", stderr(&o));
+    let counts: Vec<(u64, u64, bool)> = log_lines(&log)
+        .iter()
+        .filter(|l| l["view"] == "3d" && l["accumulated"].is_array())
+        .map(|l| {
+            (
+                l["accumulated"][0].as_u64().unwrap(),
+                l["accumulated_fewest"].as_u64().unwrap(),
+                l["settled"] == true,
+            )
+        })
+        .collect();
+    // Every frame drawn is counted, in order, up to the eight asked for.
+    let drawn: Vec<u64> = counts.iter().map(|c| c.0).collect();
+    assert!(drawn.windows(2).all(|w| w[1] >= w[0]), "{counts:?}");
+    for k in 1..=8 {
+        assert!(drawn.contains(&k), "frame {k} never counted: {counts:?}");
+    }
+    let last = *counts.last().unwrap();
+    assert!(last.2 && last.0 == 8, "{counts:?}");
+    // The longest rays hold fewer: as many as their memory allows.
+    assert!((1..8).contains(&last.1), "{counts:?}");
+}
+
+#[test]
 fn viewer_composites_channels_in_dvr_and_switches_them_as_render_does() {
     let _session = shared();
     switch_channels(&[]);

@@ -793,6 +793,7 @@ impl ViewerApp {
                     "lod_extra": out.lod_extra, "failed_bricks": out.failed,
                     "settled": out.settled, "new_failures": out.new_failures,
                     "accumulated": out.accumulated, "reblended": out.reblended,
+                    "accumulated_fewest": out.accumulated_fewest,
                     "since_change_ms": out.since_change_ms,
                     "octree_nodes": out.octree_nodes, "preview": out.preview,
                     "peak_rss_bytes": crate::memory::peak_rss(),

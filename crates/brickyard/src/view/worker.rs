@@ -100,9 +100,12 @@ pub struct Out {
     /// Nothing more will come for this view until it changes: complete,
     /// or what is missing are bricks that failed to load.
     pub settled: bool,
-    /// Sample accumulation: frames blended and asked for (`Some((0, N))`
+    /// Sample accumulation: frames drawn and asked for (`Some((0, N))`
     /// on the plain frame after which it begins).
     pub accumulated: Option<(u32, u32)>,
+    /// The fewest frames any pixel holds: fewer than drawn where the
+    /// memory for kept samples stopped long rays short.
+    pub accumulated_fewest: u32,
     /// The image is a re-blend of kept samples (a transfer-function edit;
     /// no volume access).
     pub reblended: bool,
@@ -675,6 +678,7 @@ struct AccOut {
     completeness: f64,
     render_ms: f64,
     accumulated: (u32, u32),
+    fewest: u32,
     reblended: bool,
     settled: bool,
     lod: Lod,
@@ -704,7 +708,8 @@ fn accumulate(
                 image: a.acc.image().clone(),
                 completeness: 1.0,
                 render_ms: t.elapsed().as_secs_f64() * 1e3,
-                accumulated: (a.acc.frames(), a.acc.target()),
+                accumulated: (a.acc.drawn(), a.acc.target()),
+                fewest: a.acc.frames(),
                 reblended: true,
                 settled: done,
                 lod,
@@ -748,7 +753,8 @@ fn accumulate(
             f.exact as f64 / f.samples as f64
         },
         render_ms: t.elapsed().as_secs_f64() * 1e3,
-        accumulated: (a.acc.frames(), a.acc.target()),
+        accumulated: (a.acc.drawn(), a.acc.target()),
+        fewest: a.acc.frames(),
         reblended: false,
         settled: done,
         lod,
@@ -789,6 +795,7 @@ fn frame_out(
         new_failures: vec![],
         settled: false,
         accumulated: None,
+        accumulated_fewest: 0,
         reblended: false,
         since_change_ms: v.arrived.elapsed().as_secs_f64() * 1e3,
         octree_nodes: f.stats.octree_nodes,
@@ -822,6 +829,7 @@ fn status(s: &Session, a: AccOut) -> Out {
         new_failures: vec![],
         settled: a.settled,
         accumulated: Some(a.accumulated),
+        accumulated_fewest: a.fewest,
         reblended: a.reblended,
         since_change_ms: 0.0,
         octree_nodes: 0,

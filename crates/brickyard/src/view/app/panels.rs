@@ -666,7 +666,15 @@ impl ViewerApp {
         };
         let mut detail = String::new();
         match o.accumulated {
-            Some((_, n)) if o.settled => detail += &format!(" · accumulated {n} frames"),
+            Some((_, n)) if o.settled => {
+                detail += &format!(" · accumulated {n} frames");
+                if o.accumulated_fewest < n {
+                    detail += &format!(
+                        " ({} in the longest rays: their memory for samples is full)",
+                        o.accumulated_fewest
+                    );
+                }
+            }
             Some((k, n)) => detail += &format!(" · accumulating {k}/{n}"),
             None => {}
         }
