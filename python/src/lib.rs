@@ -559,6 +559,7 @@ fn run_convert(
     brickyard_store::builder::check_labels(dst, src.meta(), opts.labels)
         .map_err(|e| to_py(e.into()))?;
     let mut opts = opts.clone();
+    let mut made = None;
     if let Some(g) = &group {
         if opts.spacing.is_none() && opts.origin.is_none() && opts.unit.is_none() {
             let inherit =
@@ -567,13 +568,15 @@ fn run_convert(
                 (opts.spacing, opts.origin, opts.unit) = (spacing, origin, unit);
             }
         }
-        std::fs::create_dir_all(g)
-            .map_err(|e| to_py(anyhow::anyhow!("{}: cannot create: {e}", g.display())))?;
+        made = Some(brickyard_run::labels::LabelGroup::make(g).map_err(to_py)?);
     }
     let opts = &opts;
     let r = watched(py, &cancel, "convert", || {
         Ok(brickyard_store::convert(src, dst, opts, &p, &cancel)?)
     });
+    if r.is_err() {
+        made.map(|m| m.undo());
+    }
     if cancel.load(Ordering::Relaxed) {
         // (Ctrl-C after the last piece: the store was written whole.)
         let done = if r.is_ok() {

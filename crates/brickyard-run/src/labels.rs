@@ -2,7 +2,7 @@
 //! `labels/NAME` must lie on the image's grid, and its slice, in the
 //! labels' colours, is laid over the image's at an opacity.
 
-use anyhow::{bail, Result};
+use anyhow::{bail, Context, Result};
 use brickyard_render::Image;
 use brickyard_store::import::zarr;
 use brickyard_store::omezarr::label_names;
@@ -63,6 +63,32 @@ pub fn label_target(output: &Path, labels: bool) -> Result<Option<PathBuf>> {
         );
     }
     Ok(group)
+}
+
+/// An image's `labels` group made (if missing) for a label image about to
+/// be written into it: [`undo`](Self::undo) takes it back when that fails
+/// and the group is still empty (an interrupted conversion left an empty
+/// `labels` folder in a store that had none).
+pub struct LabelGroup {
+    made: Option<PathBuf>,
+}
+
+impl LabelGroup {
+    /// `group` made when missing.
+    pub fn make(group: &Path) -> Result<LabelGroup> {
+        let made = (!group.exists()).then(|| group.to_path_buf());
+        std::fs::create_dir_all(group)
+            .with_context(|| format!("{}: cannot create", group.display()))?;
+        Ok(LabelGroup { made })
+    }
+
+    /// The write failed: the group goes if this made it and nothing is in
+    /// it.
+    pub fn undo(self) {
+        if let Some(g) = self.made {
+            let _ = std::fs::remove_dir(g);
+        }
+    }
 }
 
 /// The image's geometry (`[z, y, x]` spacing, origin, and unit) that

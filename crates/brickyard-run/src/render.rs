@@ -1133,37 +1133,52 @@ fn run_one(
     // Only some labels drawn: where they lie, from the label statistics
     // (bricks none of them reaches are crossed). Unreadable statistics
     // only cost that.
-    let select =
-        match select {
-            Some(s) if labels && !s.hide => {
-                match crate::label_stats::with_boxes(s.clone(), &c.store, m.dims) {
-                    Ok(s) => {
-                        // Labels named that the image does not hold draw
-                        // nothing: said (on stderr, also in the labels' run
-                        // of --labels, which is otherwise silent).
-                        if let Some(b) = &s.boxes {
-                            let (found, named) = (b.boxes.len(), s.ids.len());
-                            if found < named {
-                                eprintln!(
-                                "note: only-labels: {} of the {named} label(s) named {} not in \
-                                 {} (its table of label statistics){}",
+    let select = match select {
+        Some(s) if labels && !s.hide => {
+            match crate::label_stats::with_boxes(s.clone(), &c.store, m.dims) {
+                Ok(s) => {
+                    // Labels named that the image does not hold draw
+                    // nothing: said (on stderr, also in the labels' run
+                    // of --labels, which is otherwise silent).
+                    // None of them: nothing of what was asked could
+                    // be drawn, an error (it wrote an image of no
+                    // label and exited 0).
+                    if let Some(b) = &s.boxes {
+                        let (found, named) = (b.boxes.len(), s.ids.len());
+                        if found == 0 {
+                            bail!(
+                                "only-labels: {} in {} (its table of label statistics): \
+                                     nothing would be drawn",
+                                match named {
+                                    1 => format!("label {} is not", s.ids_text()),
+                                    n => format!(
+                                        "none of the {n} labels named ({}) is",
+                                        s.ids_text()
+                                    ),
+                                },
+                                c.store.display(),
+                            );
+                        }
+                        if found < named {
+                            eprintln!(
+                                "note: only-labels: {} of the {named} label(s) named {} not \
+                                     in {} (its table of label statistics)",
                                 named - found,
                                 if named - found == 1 { "is" } else { "are" },
                                 c.store.display(),
-                                if found == 0 { ": no label is drawn" } else { "" }
                             );
-                            }
                         }
-                        Some(s)
                     }
-                    Err(e) => {
-                        say_err!(silent, "render: label statistics not used: {e:#}");
-                        Some(s)
-                    }
+                    Some(s)
+                }
+                Err(e) => {
+                    say_err!(silent, "render: label statistics not used: {e:#}");
+                    Some(s)
                 }
             }
-            s => s,
-        };
+        }
+        s => s,
+    };
     let spacing = m.spacing.unwrap_or([1.0; 3]);
     let extent = world_extent(m.dims, spacing);
     let mut levels = vec![];

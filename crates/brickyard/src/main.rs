@@ -947,6 +947,7 @@ fn run(cmd: Cmd, cluster: Option<&dist::Cluster>) -> Result<()> {
             // voxels) is refused before anything is written.
             brickyard_store::builder::check_labels(output, src.meta(), c.pyramid.labels)?;
             let mut pyramid = c.pyramid.clone();
+            let mut made = None;
             if let Some(g) = &group {
                 // Flags given win over the image's geometry.
                 let given = [&pyramid.spacing, &pyramid.origin, &pyramid.unit];
@@ -967,10 +968,12 @@ fn run(cmd: Cmd, cluster: Option<&dist::Cluster>) -> Result<()> {
                         );
                     }
                 }
-                std::fs::create_dir_all(g)
-                    .with_context(|| format!("{}: cannot create", g.display()))?;
+                made = Some(brickyard_run::labels::LabelGroup::make(g)?);
             }
-            run_convert(src.as_ref(), output, &pyramid, cluster)?;
+            if let Err(e) = run_convert(src.as_ref(), output, &pyramid, cluster) {
+                made.map(|m| m.undo());
+                return Err(e);
+            }
             if dist::rank_size(cluster).0 != 0 {
                 return Ok(());
             }

@@ -1505,6 +1505,31 @@ fn bad_label_overlays_give_clear_errors() {
     let err = String::from_utf8_lossy(&o.stderr);
     assert!(o.status.success(), "{err}");
     assert!(err.contains("1 of the 2 label(s) named is not in"), "{err}");
+    // Only those: nothing would be drawn, an error (it wrote an image of
+    // no label and exited 0).
+    let none = d.path().join("none.png");
+    for ids in ["2000000", "2000000-2000002"] {
+        let o = run(&[
+            "render",
+            s(&store),
+            "--mode",
+            "slice",
+            "--size",
+            "32",
+            "--out",
+            s(&none),
+            "--labels",
+            "cells",
+            "--only-labels",
+            ids,
+        ]);
+        let err = String::from_utf8_lossy(&o.stderr);
+        assert!(!o.status.success() && !none.exists(), "{ids}: {err}");
+        assert!(
+            err.contains("only-labels: ") && err.contains("nothing would be drawn"),
+            "{ids}: {err}"
+        );
+    }
     // Label colours are for slices and 3D views, drawn whole each frame.
     let cells = store.join("labels/cells");
     for (extra, want) in [

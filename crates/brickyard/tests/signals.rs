@@ -172,3 +172,37 @@ fn sigint_stops_a_slow_filter_within_its_region() {
     );
     assert_eq!(names(&store), before, "the store is as it was");
 }
+
+#[test]
+fn sigint_during_a_label_conversion_leaves_the_image_as_it_was() {
+    // Labels written into an image that has no `labels` group yet: the
+    // group is made for them, and an interrupted conversion takes it back
+    // (it left an empty `labels` folder behind).
+    let d = tempfile::tempdir().unwrap();
+    let raw = d.path().join("bulb.raw");
+    let o = generate(&raw, 256).output().unwrap();
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let img = d.path().join("img.ome.zarr");
+    let o = Command::new(env!("CARGO_BIN_EXE_brickyard"))
+        .arg("convert")
+        .args([&raw, &img])
+        .arg("--quiet")
+        .output()
+        .unwrap();
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let before = names(&img);
+    let labels = img.join("labels/L");
+    let mut cmd = Command::new(env!("CARGO_BIN_EXE_brickyard"));
+    cmd.arg("convert")
+        .args([&raw, &labels])
+        .args(["--labels", "--threads", "1", "--compression", "zstd:19"])
+        .args(["--quiet"])
+        .stdin(Stdio::null())
+        .stdout(Stdio::null())
+        .stderr(Stdio::piped());
+    let child = signal_once_started(cmd, &img.join("labels/L.partial"), libc::SIGINT);
+    let (st, err) = finish(child);
+    assert_eq!(st.code(), Some(1), "{st}: {err}");
+    assert!(err.contains("interrupted"), "{err}");
+    assert_eq!(names(&img), before, "the image changed: {err}");
+}
