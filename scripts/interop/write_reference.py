@@ -226,6 +226,23 @@ def write_v2_u16_zlib(outdir: Path):
               [1.0, 1.0, 1.0], None, 1)
 
 
+def write_v2_i16_bz2(outdir: Path):
+    """numcodecs BZ2 (a compressor of older Zarr v2 stores)."""
+    import zarr
+    from numcodecs import BZ2
+
+    name = "v2_i16_bz2"
+    data = volume((19, 22, 25), np.int16, seed=19)
+    store = fresh(outdir / f"{name}.zarr")
+    arr = zarr.create_array(str(store), shape=data.shape, dtype="<i2", chunks=(8, 9, 10),
+                            compressors=BZ2(level=5), zarr_format=2, fill_value=0)
+    arr[...] = data
+    zm = json.loads((store / ".zarray").read_text())
+    assert zm["compressor"]["id"] == "bz2", zm
+    save_meta(outdir, name, data, "plain Zarr v2 array, <i2, numcodecs BZ2",
+              [1.0, 1.0, 1.0], None, 1)
+
+
 def write_v2_u64(outdir: Path):
     """uint64 (v2 type string "<u8": 8 bytes, not uint8), values up to ~4e9:
     stored as uint32, so the expected array is uint32."""
@@ -259,7 +276,7 @@ def write_v3_i64_sharded(outdir: Path):
 
 CASES = [write_ome04_v2, write_v3_plain, write_v3_sharded,
          write_ome05_2ch, write_v3_f32_be, write_v2_i16_be_F, write_v2_u16_zlib,
-         write_v2_u64, write_v3_i64_sharded]
+         write_v2_i16_bz2, write_v2_u64, write_v3_i64_sharded]
 
 
 def main(argv):
