@@ -575,7 +575,9 @@ fn run_convert(
         Ok(brickyard_store::convert(src, dst, opts, &p, &cancel)?)
     });
     if r.is_err() {
-        made.map(|m| m.undo());
+        if let Some(m) = made {
+            m.undo();
+        }
     }
     if cancel.load(Ordering::Relaxed) {
         // (Ctrl-C after the last piece: the store was written whole.)

@@ -971,7 +971,9 @@ fn run(cmd: Cmd, cluster: Option<&dist::Cluster>) -> Result<()> {
                 made = Some(brickyard_run::labels::LabelGroup::make(g)?);
             }
             if let Err(e) = run_convert(src.as_ref(), output, &pyramid, cluster) {
-                made.map(|m| m.undo());
+                if let Some(m) = made {
+                    m.undo();
+                }
                 return Err(e);
             }
             if dist::rank_size(cluster).0 != 0 {
