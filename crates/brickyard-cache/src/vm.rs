@@ -917,8 +917,10 @@ impl VirtualMemory {
         let mut missed = [None; 32];
         for lv in l0..nl {
             let dims = self.layout.levels[lv];
-            // Continuous voxel coordinates (voxel centres at i + 0.5).
-            let pos = [0, 1, 2].map(|a| p[a] * dims[a] as f64);
+            // Continuous voxel coordinates (voxel centres at i + 0.5; the
+            // level's voxels across the extent: `level_span`).
+            let span = brickyard_core::level_span(&self.layout.levels, lv);
+            let pos = [0, 1, 2].map(|a| p[a] * span[a]);
             let (base, frac) = if trilinear {
                 let q = [0, 1, 2].map(|a| (pos[a] - 0.5).clamp(0.0, (dims[a] - 1) as f64));
                 // q ≥ 0 after the clamp: truncation is floor (and avoids a libm call).

@@ -28,15 +28,20 @@ impl Lcg {
 /// Whole levels in memory (u16), independent per level.
 struct Model {
     levels: Vec<Dims3>,
+    /// Per level, its voxels across the extent: level 0's over the plan's
+    /// cumulative ratio (voxel `i` centred at `R·(i + ½)` level-0 voxels).
+    spans: Vec<[f64; 3]>,
     data: Vec<Vec<u16>>,
 }
 
 impl Model {
     fn new(dims: Dims3, rng: &mut Lcg) -> Model {
-        let levels: Vec<Dims3> = plan_levels(dims, [1.0; 3], [0.0; 3], [4; 3])
+        let plan = plan_levels(dims, [1.0; 3], [0.0; 3], [4; 3]);
+        let levels: Vec<Dims3> = plan.levels.iter().map(|l| l.dims).collect();
+        let spans = plan
             .levels
             .iter()
-            .map(|l| l.dims)
+            .map(|l| [0, 1, 2].map(|a| dims[a] as f64 / l.cum_ratio[a] as f64))
             .collect();
         let data = levels
             .iter()
@@ -55,7 +60,11 @@ impl Model {
                     .collect()
             })
             .collect();
-        Model { levels, data }
+        Model {
+            levels,
+            spans,
+            data,
+        }
     }
     fn at(&self, l: usize, v: [i64; 3]) -> f32 {
         let d = self.levels[l];
@@ -65,7 +74,7 @@ impl Model {
     /// Reference sample: clamp-to-edge trilinear or nearest on the level.
     fn sample(&self, l: usize, p: [f64; 3], trilinear: bool) -> f32 {
         let d = self.levels[l];
-        let pos = [0, 1, 2].map(|a| p[a] * d[a] as f64);
+        let pos = [0, 1, 2].map(|a| p[a] * self.spans[l][a]);
         if !trilinear {
             return self.at(
                 l,

@@ -70,6 +70,16 @@ pub fn world_to_voxel(world: Vec3, extent: Vec3, dims: [u64; 3]) -> [u64; 3] {
     [0, 1, 2].map(|a| ((p[a] * dims[a] as f64).floor().max(0.0) as u64).min(dims[a] - 1))
 }
 
+/// The voxel `[z, y, x]` of level `l` of a pyramid of sizes `levels` over
+/// `extent` that holds the world point `world` (clamped to the level's
+/// voxels): [`world_to_voxel`] with the level's
+/// [`level_span`](crate::level_span) for its size.
+pub fn world_to_level_voxel(world: Vec3, extent: Vec3, levels: &[[u64; 3]], l: usize) -> [u64; 3] {
+    let p = world_to_normalized(world, extent);
+    let (s, dims) = (crate::level_span(levels, l), levels[l]);
+    [0, 1, 2].map(|a| ((p[a] * s[a]).floor().max(0.0) as u64).min(dims[a] - 1))
+}
+
 /// Normalized real position `p = [z, y, x]` of the world point `world`
 /// (`[x, y, z]`) in a volume of world extent `extent` (`[X, Y, Z]`):
 /// `p[a] = world[axis] / extent[axis]`. Not clamped: points outside the box

@@ -17,7 +17,7 @@ pub use camera::{Camera, ConfigError, Projection, Ray};
 pub use dtype::{
     as_bytes, as_bytes_mut, cast_slice, cast_slice_mut, trilinear, trilinear_of, DType, Sample,
 };
-pub use pyramid::{plan_levels, LevelPlan, PyramidPlan};
+pub use pyramid::{level_ratio, level_span, plan_levels, LevelPlan, PyramidPlan};
 pub use transfer::{ColorMap, Shading, TransferFunction};
 
 /// Axis order used everywhere inside brickyard: `[z, y, x]`, x fastest.

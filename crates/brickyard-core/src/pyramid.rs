@@ -44,6 +44,42 @@ pub fn level_path_inside(path: &str) -> bool {
             .all(|c| !c.is_empty() && c != "." && c != "..")
 }
 
+/// How many of level `l`'s voxels span level 0's extent on each axis
+/// (`[z, y, x]`) in a pyramid of `levels` (voxels per level, finest
+/// first): `dims_0 / R`, with `R` the level's ratio to level 0. Voxel `i`
+/// of the level is the mean of the box of level-0 voxels `[R·i, R·(i + 1))`
+/// and lies at its centre, `R·(i + ½)` level-0 voxels from the volume's
+/// low face (the `scale` and `translation` a store's levels are given), so
+/// a position at fraction `p` of the extent is the level's continuous voxel
+/// coordinate `p · span − ½`. An axis that is not a multiple of `R` ends
+/// inside the level's last voxel: the span is then less than the level's
+/// voxels (61 voxels at `R = 8`: 7.625 of 8).
+///
+/// Each level's ratio to the one before is read from the sizes: their
+/// quotient rounded, at least 1 (the planner's halving by `div_ceil` gives
+/// 2 for any axis it halves, and other pyramids' integer ratios, rounded
+/// up or down, come out as they are).
+pub fn level_span(levels: &[Dims3], l: usize) -> [f64; 3] {
+    let r = level_ratio(levels, l);
+    match levels.first() {
+        Some(d0) => [0, 1, 2].map(|a| d0[a] as f64 / r[a] as f64),
+        None => [1.0; 3],
+    }
+}
+
+/// Level `l`'s ratio `R` to level 0 on each axis (see [`level_span`]: its
+/// span is `dims_0 / R`, which integer code keeps as that fraction).
+pub fn level_ratio(levels: &[Dims3], l: usize) -> [u64; 3] {
+    let mut ratio = [1u64; 3];
+    for k in 1..=l.min(levels.len().saturating_sub(1)) {
+        for a in 0..3 {
+            let q = levels[k - 1][a] as f64 / levels[k][a].max(1) as f64;
+            ratio[a] = ratio[a].saturating_mul(q.round().max(1.0) as u64);
+        }
+    }
+    ratio
+}
+
 /// Per-axis ratios for the next level, from the current spacing.
 pub fn next_ratio(dims: Dims3, spacing: [f64; 3]) -> [u32; 3] {
     let smin = (0..3)
@@ -130,6 +166,33 @@ mod tests {
         assert_eq!(p.levels.len(), 11);
         let p = plan_levels([256; 3], [f64::INFINITY; 3], [0.0; 3], [64; 3]);
         assert_eq!(p.levels.len(), 3);
+    }
+
+    #[test]
+    fn level_spans_follow_the_planners_ratios() {
+        // Odd and anisotropic sizes: every planned level's span is level
+        // 0's size over the plan's cumulative ratio.
+        for (dims, spacing) in [
+            ([61, 47, 301], [1.0, 1.0, 1.0]),
+            ([33, 200, 129], [4.0, 0.5, 0.5]),
+            ([1, 257, 255], [1.0, 1.0, 1.0]),
+            ([512, 512, 512], [1.0, 1.0, 1.0]),
+        ] {
+            let p = plan_levels(dims, spacing, [0.0; 3], [16; 3]);
+            let levels: Vec<Dims3> = p.levels.iter().map(|l| l.dims).collect();
+            for (l, lp) in p.levels.iter().enumerate() {
+                let want = [0, 1, 2].map(|a| dims[a] as f64 / lp.cum_ratio[a] as f64);
+                assert_eq!(level_span(&levels, l), want, "{dims:?} level {l}");
+                // Never more than the level's voxels, and less than one short.
+                for (w, n) in want.iter().zip(lp.dims) {
+                    assert!(*w <= n as f64 && *w > n as f64 - 1.0);
+                }
+            }
+        }
+        // Another pyramid's ratios (3, sizes rounded down): read as they are.
+        let levels = [[90, 91, 92], [30, 30, 30], [10, 10, 10]];
+        assert_eq!(level_span(&levels, 1), [30.0, 91.0 / 3.0, 92.0 / 3.0]);
+        assert_eq!(level_span(&levels, 2), [10.0, 91.0 / 9.0, 92.0 / 9.0]);
     }
 
     #[test]

@@ -139,12 +139,19 @@ impl Scene {
             .is_some_and(|s| s.load(std::sync::atomic::Ordering::Relaxed))
     }
 
+    /// Level `l`'s voxels across the extent on each axis (`[z, y, x]`,
+    /// [`level_span`](brickyard_core::level_span)): a world point `w` is
+    /// the level's continuous voxel coordinate `w·span/extent − ½`.
+    pub fn span(&self, l: usize) -> [f64; 3] {
+        brickyard_core::level_span(&self.levels, l)
+    }
+
     /// Smallest voxel edge of level `l` in world units.
     pub fn voxel(&self, l: usize) -> f64 {
-        let d = self.levels[l];
+        let s = self.span(l);
         let ext_zyx = [self.extent[2], self.extent[1], self.extent[0]];
         (0..3)
-            .map(|a| ext_zyx[a] / d[a] as f64)
+            .map(|a| ext_zyx[a] / s[a])
             .fold(f64::INFINITY, f64::min)
     }
 }

@@ -570,9 +570,10 @@ impl GpuRenderer {
         };
         for (l, d) in scene.levels.iter().enumerate() {
             let ext = [scene.extent[2], scene.extent[1], scene.extent[0]];
+            let span = scene.span(l);
             u.scale[l] = [0, 1, 2, 3].map(|a| {
                 if a < 3 {
-                    (d[a] as f64 / ext[a]) as f32
+                    (span[a] / ext[a]) as f32
                 } else {
                     0.0
                 }
@@ -689,7 +690,13 @@ impl GpuRenderer {
                     clear_bits_by(&ids, r, scene.channel, |lo, hi, l, i| {
                         crate::optics::label_clear(lo, hi, sel)
                             || sel.is_some_and(|s| {
-                                !s.may_reach_brick(i, scene.levels[l], cfg.brick, cfg.apron)
+                                !s.may_reach_brick(
+                                    i,
+                                    scene.levels[l],
+                                    scene.span(l),
+                                    cfg.brick,
+                                    cfg.apron,
+                                )
                             })
                     })
                 }
@@ -705,12 +712,12 @@ impl GpuRenderer {
                     let mut bits = vec![0u32; (ids.len() as usize).div_ceil(32).max(1)];
                     let starts = ids.level_starts();
                     for (l, &first) in starts.iter().enumerate().take(starts.len() - 1) {
-                        let d = scene.levels[l];
+                        let (d, span) = (scene.levels[l], scene.span(l));
                         let n =
                             (0..3).map(|a| d[a].div_ceil(cfg.brick[a])).product::<u64>() as usize;
                         let off = scene.channel * n;
-                        for i in
-                            (0..n).filter(|&i| !sel.may_reach_brick(i, d, cfg.brick, cfg.apron))
+                        for i in (0..n)
+                            .filter(|&i| !sel.may_reach_brick(i, d, span, cfg.brick, cfg.apron))
                         {
                             let id = first as usize + off + i;
                             bits[id / 32] |= 1 << (id % 32);

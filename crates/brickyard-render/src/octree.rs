@@ -47,10 +47,12 @@
 //! [`Octree::sync`] and [`Octree::of_vm`] tighten them from the voxels.
 //!
 //! *The voxels a sample inside a leaf can read.* Take one axis, the
-//! level's `n` voxels, voxel `j` centred at `j + ½`, and a leaf of depth
-//! `D` with index `i`: it covers the continuous coordinates `[a, b)`, `a =
-//! i·n/2^D`, `b = (i+1)·n/2^D`. A sample at `p` (continuous coordinate `x
-//! = p·n ∈ [a, b)`) takes `q = clamp(x − ½, 0, n − 1)` (clamp to edge),
+//! level's `n` voxels spanning `s` of them across the extent (`s = n` at
+//! level 0; a coarser level's last voxel may reach past the extent:
+//! `level_span`), voxel `j` centred at `j + ½`, and a leaf of depth `D`
+//! with index `i`: it covers the continuous coordinates `[a, b)`, `a =
+//! i·s/2^D`, `b = (i+1)·s/2^D`. A sample at `p` (continuous coordinate `x
+//! = p·s ∈ [a, b)`) takes `q = clamp(x − ½, 0, n − 1)` (clamp to edge),
 //! the base voxel `j₀ = ⌊q⌋` and reads `j₀` and `j₀ + 1` with weights `1 −
 //! f` and `f = q − j₀`. If `q = n − 1` (the clamp at the upper edge), `f =
 //! 0`: voxel `n` (the apron beyond the volume) gets no weight and `lerp(a,
@@ -59,7 +61,7 @@
 //! grown by one on each side. The slack is at least half a voxel on each
 //! side, so a point computed in floating point slightly outside the leaf
 //! (the traversal finds the node from `w / extent`, the sampler `q` from
-//! `w · n / extent`) still reads only these voxels. Per brick the octree
+//! `w · s / extent`) still reads only these voxels. Per brick the octree
 //! keeps the range of the voxels of its padded box (apron included) in that
 //! grown leaf box, clamped to `[0, n − 1]`.
 //!
@@ -357,7 +359,14 @@ impl Octree {
 
     /// Leaves `[lo, hi)` per axis that brick `b` of level `l` overlaps.
     pub fn leaves_of(&self, l: usize, b: Dims3) -> (Dims3, Dims3) {
-        overlap(self.depth, self.dims[l], self.brick, b)
+        overlap(self.depth, self.dims[l], self.span(l), self.brick, b)
+    }
+
+    /// Level `l`'s span (its voxels across the extent) as the fraction
+    /// `num / den` per axis: level 0's voxels over the level's ratio
+    /// ([`level_span`](brickyard_core::level_span)).
+    pub fn span(&self, l: usize) -> (Dims3, Dims3) {
+        (self.dims[0], brickyard_core::level_ratio(&self.dims, l))
     }
 
     /// The mask of `node` for channel `c`.
@@ -633,12 +642,14 @@ impl Octree {
     pub fn bricks_of_leaf(&self, l: usize, leaf: Dims3) -> (Dims3, Dims3) {
         let d = self.depth;
         let (dims, brick) = (self.dims[l], self.brick);
+        let (num, den) = self.span(l);
         let mut lo = [0; 3];
         let mut hi = [0; 3];
         for a in 0..3 {
-            // The leaf's voxels [v0, v1).
-            let v0 = (leaf[a] * dims[a]) >> d;
-            let v1 = ((leaf[a] + 1) * dims[a]).div_ceil(1 << d);
+            // The leaf's voxels [v0, v1): its continuous coordinates
+            // [i·s/2^d, (i + 1)·s/2^d), s = num/den, widened to voxels.
+            let v0 = (leaf[a] * num[a]) / (den[a] << d);
+            let v1 = ((leaf[a] + 1) * num[a]).div_ceil(den[a] << d);
             lo[a] = v0 / brick[a];
             hi[a] = v1.div_ceil(brick[a]).min(dims[a].div_ceil(brick[a]));
         }
@@ -705,6 +716,7 @@ impl Octree {
             return None;
         }
         let (d, dims, brick) = (self.depth, self.dims[l], self.brick);
+        let (num, den) = self.span(l);
         let padded = vm.padded();
         // Per axis and leaf: the voxels read, as local indices `[s, t]`
         // in the padded brick (empty when s > t).
@@ -714,8 +726,8 @@ impl Octree {
                 let p1 = p0 + padded[a] as i64 - 1;
                 (lo[a]..hi[a])
                     .map(|i| {
-                        let g0 = ((i * dims[a]) >> d) as i64 - 1;
-                        let g1 = ((i + 1) * dims[a]).div_ceil(1 << d) as i64;
+                        let g0 = ((i * num[a]) / (den[a] << d)) as i64 - 1;
+                        let g1 = ((i + 1) * num[a]).div_ceil(den[a] << d) as i64;
                         let s = g0.max(0).max(p0);
                         let t = g1.min(dims[a] as i64 - 1).min(p1);
                         if t < s {
@@ -875,17 +887,28 @@ pub(crate) fn union(a: [f32; 2], b: [f32; 2]) -> [f32; 2] {
 }
 
 /// Leaves `[lo, hi)` per axis of an octree of depth `depth` that brick `b`
-/// (edge `brick` voxels) of a level of `dims` voxels overlaps.
-pub fn overlap(depth: u32, dims: Dims3, brick: Dims3, b: Dims3) -> (Dims3, Dims3) {
+/// (edge `brick` voxels) of a level of `dims` voxels overlaps, the level
+/// spanning `num / den` of its voxels across the extent (`span`,
+/// [`Octree::span`]; `(dims, [1; 3])` for level 0).
+pub fn overlap(
+    depth: u32,
+    dims: Dims3,
+    span: (Dims3, Dims3),
+    brick: Dims3,
+    b: Dims3,
+) -> (Dims3, Dims3) {
     let n = 1u64 << depth;
+    let (num, den) = span;
     let mut lo = [0; 3];
     let mut hi = [0; 3];
     for a in 0..3 {
         let v0 = b[a] * brick[a];
         let v1 = ((b[a] + 1) * brick[a]).min(dims[a]);
-        // Leaves i with i·dims < v1·n and v0·n < (i + 1)·dims.
-        lo[a] = (v0 * n) / dims[a];
-        hi[a] = (v1 * n).div_ceil(dims[a]).min(n);
+        // Leaf i covers the continuous coordinates [i·s/n, (i + 1)·s/n),
+        // s = num/den: leaves with i·num < v1·n·den and v0·n·den <
+        // (i + 1)·num.
+        lo[a] = ((v0 * n * den[a]) / num[a]).min(n);
+        hi[a] = (v1 * n * den[a]).div_ceil(num[a]).min(n);
     }
     (lo, hi)
 }

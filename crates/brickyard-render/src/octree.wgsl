@@ -20,6 +20,9 @@ struct Params {
     // Per level: voxels z, y, x; w: offset of its brick ranges
     // ([channel][z][y][x]) in `brick_ranges`, NONE when unknown.
     dims: array<vec4<u32>, 32>,
+    // Per level: its ratio to level 0 (z, y, x): the level spans
+    // dims[0] / ratio of its voxels across the extent (`Octree::span`).
+    ratio: array<vec4<u32>, 32>,
 }
 
 @group(0) @binding(0) var<uniform> params: Params;
@@ -72,14 +75,17 @@ fn apply_events(@builtin(workgroup_id) wg: vec3<u32>, @builtin(local_invocation_
     let mapped = (e.x >> 31u) != 0u;
     let n = 1u << params.depth;
     let dims = params.dims[l].xyz;
+    let num = params.dims[0].xyz;
+    let den = params.ratio[l].xyz;
     let b = e.yzw;
     var lo: vec3<u32>;
     var hi: vec3<u32>;
     for (var a = 0u; a < 3u; a++) {
         let v0 = b[a] * params.brick[a];
         let v1 = min((b[a] + 1u) * params.brick[a], dims[a]);
-        lo[a] = (v0 * n) / dims[a];
-        hi[a] = min((v1 * n + dims[a] - 1u) / dims[a], n);
+        // Leaves i with i·num < v1·n·den and v0·n·den < (i + 1)·num.
+        lo[a] = min((v0 * n * den[a]) / num[a], n);
+        hi[a] = min((v1 * n * den[a] + num[a] - 1u) / num[a], n);
     }
     for (var z = lo.x; z < hi.x; z++) {
         for (var y = lo.y; y < hi.y; y++) {
@@ -162,15 +168,20 @@ fn leaf_ranges(@builtin(workgroup_id) wg: vec3<u32>, @builtin(local_invocation_i
         return;
     }
     let q = vec3<u32>(leaf / (n * n), (leaf / n) % n, leaf % n);
+    let num = params.dims[0].xyz;
+    let den = params.ratio[l].xyz;
     var lo: vec3<u32>;
     var hi: vec3<u32>;
     var nb: vec3<u32>;
     for (var a = 0u; a < 3u; a++) {
         let bs = params.brick[a];
         nb[a] = (dl[a] + bs - 1u) / bs;
-        // Bricks b with b·B·n' < (q+1)·dims and q·dims < (b+1)·B·n'.
-        lo[a] = (q[a] * dl[a]) / (bs * n);
-        hi[a] = min(((q[a] + 1u) * dl[a] + bs * n - 1u) / (bs * n), nb[a]);
+        // The leaf's voxels [v0, v1) (`Octree::bricks_of_leaf`), then
+        // the bricks holding them.
+        let v0 = (q[a] * num[a]) / (den[a] << params.depth);
+        let v1 = ((q[a] + 1u) * num[a] + (den[a] << params.depth) - 1u) / (den[a] << params.depth);
+        lo[a] = v0 / bs;
+        hi[a] = min((v1 + bs - 1u) / bs, nb[a]);
     }
     let inf = bitcast<f32>(0x7f800000u | (params.pad2 & 0u));
     var acc = vec2<f32>(inf, -inf);

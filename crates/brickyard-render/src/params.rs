@@ -206,11 +206,19 @@ impl LabelSelect {
     }
 
     /// Whether a label it draws may lie in brick `i` (raster order
-    /// `[z, y, x]`) of a level of size `dims` cut into bricks of `brick`
+    /// `[z, y, x]`) of a level of size `dims` spanning `span` of its
+    /// voxels across the extent (`Scene::span`) cut into bricks of `brick`
     /// voxels, padded by `apron`: `false` only where its label boxes say
     /// that none reaches the padded brick (widened by a voxel of the level
     /// each way, as coarser levels' voxels only roughly cover level 0's).
-    pub fn may_reach_brick(&self, i: usize, dims: [u64; 3], brick: [u64; 3], apron: u64) -> bool {
+    pub fn may_reach_brick(
+        &self,
+        i: usize,
+        dims: [u64; 3],
+        span: [f64; 3],
+        brick: [u64; 3],
+        apron: u64,
+    ) -> bool {
         let Some(boxes) = self.boxes.as_ref().filter(|_| !self.hide) else {
             return true;
         };
@@ -218,8 +226,8 @@ impl LabelSelect {
         let i = i as u64;
         let b = [i / (n[1] * n[2]), i / n[2] % n[1], i % n[2]];
         let margin = apron as f64 + 1.0;
-        let lo = [0, 1, 2].map(|a| ((b[a] * brick[a]) as f64 - margin) / dims[a] as f64);
-        let hi = [0, 1, 2].map(|a| (((b[a] + 1) * brick[a]) as f64 + margin) / dims[a] as f64);
+        let lo = [0, 1, 2].map(|a| ((b[a] * brick[a]) as f64 - margin) / span[a]);
+        let hi = [0, 1, 2].map(|a| (((b[a] + 1) * brick[a]) as f64 + margin) / span[a]);
         boxes.meet(lo, hi)
     }
 

@@ -104,11 +104,13 @@ pub fn label_id(v: f64) -> u64 {
     }
 }
 
-/// The smallest voxel edge of a level of size `d` (`[z, y, x]`) spanning
-/// `extent` (`[X, Y, Z]`).
-pub fn voxel_edge(d: Dims3, extent: Vec3) -> f64 {
+/// The smallest voxel edge of level `l` of a pyramid of sizes `dims`
+/// (`[z, y, x]`) over `extent` (`[X, Y, Z]`): the extent over the level's
+/// [`level_span`](brickyard_core::level_span).
+pub fn voxel_edge(dims: &[Dims3], l: usize, extent: Vec3) -> f64 {
+    let s = brickyard_core::level_span(dims, l);
     [0, 1, 2]
-        .map(|a| extent[a] / d[2 - a] as f64)
+        .map(|a| extent[a] / s[2 - a])
         .into_iter()
         .fold(f64::INFINITY, f64::min)
 }
@@ -133,7 +135,7 @@ pub fn seen_point<E>(
     let Some((t0, t1)) = intersect_box(ray, [0.0; 3], extent) else {
         return Ok(None);
     };
-    let (voxel0, levels) = (voxel_edge(dims[0], extent), dims.len());
+    let (voxel0, levels) = (voxel_edge(dims, 0, extent), dims.len());
     let per_voxel = match look {
         Look::Dvr { samples, .. } => samples.max(0.25),
         Look::Mip { .. } => 4.0,
@@ -145,7 +147,7 @@ pub fn seen_point<E>(
     let mut best: Option<(f64, Vec3, usize)> = None;
     loop {
         let level = drawn.level(t, voxel0, levels);
-        let dt = voxel_edge(dims[level], extent) / per_voxel / length(ray.dir);
+        let dt = voxel_edge(dims, level, extent) / per_voxel / length(ray.dir);
         if first {
             t = (t0 + 0.5 * dt).min(0.5 * (t0 + t1));
             first = false;
@@ -173,7 +175,7 @@ pub fn seen_point<E>(
                         through *= 1.0 - tf.lookup(x as f32)[3].clamp(0.0, 1.0) as f64;
                     }
                 }
-                let r = reference.unwrap_or_else(|| voxel_edge(dims[level], extent));
+                let r = reference.unwrap_or_else(|| voxel_edge(dims, level, extent));
                 let a = 1.0 - through.powf(dt * length(ray.dir) / r);
                 gathered += (1.0 - gathered) * a;
                 if gathered >= 0.5 {

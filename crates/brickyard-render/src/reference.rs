@@ -9,7 +9,7 @@
 //! - **World box.** The volume fills `[0, X] × [0, Y] × [0, Z]` (world
 //!   `[x, y, z]`, [`Volume::extent`]); a world point `w` is sampled at the
 //!   normalized position `p = world_to_normalized(w, extent)` (`[z, y, x]`).
-//! - **Sampling** ([`Volume::sample`]): voxel coordinate `p·dims − 0.5`
+//! - **Sampling** ([`Volume::sample`]): voxel coordinate `p·span − 0.5`
 //!   clamped to `[0, dims − 1]` per axis, then `brickyard_core::trilinear` (lerps along
 //!   x, y, z), exactly as `brickyard_cache::vm::VirtualMemory::sample`
 //!   (bit-identical for the same level).
@@ -98,6 +98,13 @@ pub struct Volume {
     pub spacing: [f64; 3],
     /// Voxels, `[z, y, x]`, x fastest; `len = dims` product.
     pub data: Vec<f32>,
+    /// Voxels across the world box on each axis, `[z, y, x]`: `dims`, but
+    /// for a coarser level of a store, whose last voxel may reach past the
+    /// box ([`from_store`](Self::from_store)).
+    pub span: [f64; 3],
+    /// The world box `[X, Y, Z]`: `dims · spacing`, but for a coarser
+    /// level of a store, level 0's.
+    pub world: Vec3,
 }
 
 impl Volume {
@@ -118,6 +125,8 @@ impl Volume {
             dims,
             spacing,
             data,
+            span: dims.map(|d| d as f64),
+            world: world_extent(dims, spacing),
         }
     }
 
@@ -180,12 +189,15 @@ impl Volume {
     /// Level `level`, channel `channel` of a store (OME-Zarr image or bare
     /// Zarr array), read whole through `brickyard_store::import::zarr`.
     ///
-    /// The spacing is chosen so that **every level fills the world box of
-    /// level 0** (`dims₀ · spacing₀`): `spacing_l = dims₀ · spacing₀ / dims_l`.
-    /// This is the convention of the virtual memory, whose normalized
-    /// position `p` means the same point at every level; it differs from the
-    /// level's own OME-Zarr scale by less than one level-`l` voxel when a
-    /// dimension is odd. Level 0 keeps its spacing exactly.
+    /// A coarser level is placed as the store's own `scale` says: it
+    /// spans `dims₀ / R` of its voxels across level 0's world box, `R =
+    /// spacing_l / spacing₀` (voxel `i` centred at `R·(i + ½)` level-0
+    /// voxels; the last voxel of an axis that is not a multiple of `R`
+    /// reaches past the box), and its spacing is the box over that span.
+    /// The renderers take the span from the levels' sizes
+    /// ([`level_span`](brickyard_core::level_span)); this takes `R` from
+    /// the metadata, independently (rounded where it is within 1e-9 of a
+    /// whole number, as a store's ratios are).
     #[cfg(feature = "loader")]
     pub fn from_store(path: &Path, level: usize, channel: usize) -> Result<Volume, StoreError> {
         let src = zarr::open(path, level)?;
@@ -193,20 +205,27 @@ impl Volume {
         if level > 0 {
             let base = zarr::open(path, 0)?;
             let m0 = base.meta();
-            let ext = world_extent(m0.dims, m0.spacing.unwrap_or([1.0; 3]));
+            let s0 = m0.spacing.unwrap_or([1.0; 3]);
+            let ext = world_extent(m0.dims, s0);
+            let ratio = [0, 1, 2].map(|a| {
+                let r = v.spacing[a] / s0[a];
+                if (r - r.round()).abs() < 1e-9 * r {
+                    r.round()
+                } else {
+                    r
+                }
+            });
+            v.span = [0, 1, 2].map(|a| m0.dims[a] as f64 / ratio[a]);
             // world_extent is [x, y, z]; spacing is [z, y, x].
-            v.spacing = [
-                ext[2] / v.dims[0] as f64,
-                ext[1] / v.dims[1] as f64,
-                ext[0] / v.dims[2] as f64,
-            ];
+            v.spacing = [0, 1, 2].map(|a| ext[2 - a] / v.span[a]);
+            v.world = ext;
         }
         Ok(v)
     }
 
     /// World extent `[X, Y, Z]` (note: `[x, y, z]`, the camera's order).
     pub fn extent(&self) -> Vec3 {
-        world_extent(self.dims, self.spacing)
+        self.world
     }
 
     /// One voxel of this level for stepping and opacity correction: the
@@ -232,13 +251,15 @@ impl Volume {
 
     /// Clamp-to-edge trilinear sample at the normalized position
     /// `p = [z, y, x]` (the rule of `VirtualMemory::sample`: voxel
-    /// coordinate `p·dims − 0.5` clamped to `[0, dims − 1]`, `f32`
+    /// coordinate `p·span − 0.5` clamped to `[0, dims − 1]` (`span`: the
+    /// voxels across the box, `dims` but for a store's coarser level), `f32`
     /// fractions, then [`brickyard_core::trilinear`]: lerps along x, y, z,
     /// a zero fraction taking the first value as it is).
     #[inline]
     pub fn sample(&self, p: [f64; 3]) -> f32 {
         let d = self.dims;
-        let q = [0, 1, 2].map(|a| (p[a] * d[a] as f64 - 0.5).clamp(0.0, (d[a] - 1) as f64));
+        let s = self.span;
+        let q = [0, 1, 2].map(|a| (p[a] * s[a] - 0.5).clamp(0.0, (d[a] - 1) as f64));
         // q ≥ 0 after the clamp: truncation is floor (and avoids a libm call).
         let b = q.map(|x| (x as u64) as f64);
         let base = [0, 1, 2].map(|a| b[a] as u64);
@@ -264,15 +285,15 @@ impl Volume {
 
     /// The index `[z, y, x]` of [`nearest`](Self::nearest)'s voxel.
     pub fn nearest_index(&self, p: [f64; 3]) -> [u64; 3] {
-        let d = self.dims;
+        let (d, s) = (self.dims, self.span);
         [0, 1, 2].map(|a| {
-            let q = (p[a] * d[a] as f64 - 0.5).clamp(0.0, (d[a] - 1) as f64);
+            let q = (p[a] * s[a] - 0.5).clamp(0.0, (d[a] - 1) as f64);
             (q + 0.5).floor() as u64
         })
     }
 
     /// The voxel nearest to the normalized position `p = [z, y, x]`: the
-    /// voxel coordinate `p·dims − 0.5` clamped to `[0, dims − 1]` as for
+    /// voxel coordinate `p·span − 0.5` clamped to `[0, dims − 1]` as for
     /// [`sample`](Self::sample), rounded by `⌊q + ½⌋` (how label images are
     /// sampled).
     pub fn nearest(&self, p: [f64; 3]) -> f32 {
@@ -710,7 +731,7 @@ fn shade_sample(
     let mut g = [0.0f64; 3];
     for (a, ga) in g.iter_mut().enumerate() {
         // World axis a is volume axis 2 − a.
-        let h = extent[a] / vol.dims[2 - a] as f64;
+        let h = extent[a] / vol.span[2 - a];
         let (mut ahead, mut behind) = (w, w);
         ahead[a] += h;
         behind[a] -= h;

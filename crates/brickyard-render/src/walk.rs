@@ -129,7 +129,9 @@ impl<'a> Frame<'a> {
                     return Some(
                         (0..n as usize)
                             .map(|i| {
-                                !sel.is_some_and(|s| s.may_reach_brick(i, d, cfg.brick, cfg.apron))
+                                !sel.is_some_and(|s| {
+                                    s.may_reach_brick(i, d, scene.span(l), cfg.brick, cfg.apron)
+                                })
                             })
                             .collect(),
                     );
@@ -148,7 +150,13 @@ impl<'a> Frame<'a> {
                             true => {
                                 crate::optics::label_clear(lo, hi, sel)
                                     || sel.is_some_and(|s| {
-                                        !s.may_reach_brick(i, scene.levels[l], cfg.brick, cfg.apron)
+                                        !s.may_reach_brick(
+                                            i,
+                                            scene.levels[l],
+                                            scene.span(l),
+                                            cfg.brick,
+                                            cfg.apron,
+                                        )
                                     })
                             }
                             false => params.tf.max_opacity(lo, hi) <= 0.0,
@@ -209,10 +217,11 @@ impl<'a> Frame<'a> {
                     (dt, 1.0 / dt, (dt / reference) as f32)
                 })
                 .collect(),
-            inv_scale: scene
-                .levels
-                .iter()
-                .map(|d| [0, 1, 2].map(|a| 1.0 / (d[a] as f64 / scene.extent[2 - a])))
+            inv_scale: (0..nl)
+                .map(|l| {
+                    let s = scene.span(l);
+                    [0, 1, 2].map(|a| 1.0 / (s[a] / scene.extent[2 - a]))
+                })
                 .collect(),
             vm,
             scene,
@@ -221,10 +230,11 @@ impl<'a> Frame<'a> {
             tf_eval,
             lod,
             dims: scene.levels.clone(),
-            scale: scene
-                .levels
-                .iter()
-                .map(|d| [0, 1, 2].map(|a| d[a] as f64 / scene.extent[2 - a]))
+            scale: (0..nl)
+                .map(|l| {
+                    let s = scene.span(l);
+                    [0, 1, 2].map(|a| s[a] / scene.extent[2 - a])
+                })
                 .collect(),
             qmax: scene
                 .levels
@@ -364,9 +374,10 @@ impl<'a> Frame<'a> {
     }
 
     /// Clamped voxel base and trilinear fractions of the world point `w`
-    /// (`[x, y, z]`) at level `l`: voxel coordinate `q = w·dims/extent −
+    /// (`[x, y, z]`) at level `l`: voxel coordinate `q = w·span/extent −
     /// ½` clamped to `[0, dims − 1]` (the reference sampler's rule, with
-    /// the division folded into a scale).
+    /// the division folded into a scale; `span`:
+    /// [`level_span`](brickyard_core::level_span)).
     #[inline(always)]
     pub(crate) fn coords(&self, l: usize, w: Vec3) -> (Dims3, [f32; 3]) {
         let s = &self.scale[l];

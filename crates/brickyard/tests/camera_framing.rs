@@ -361,3 +361,108 @@ fn slice_at_takes_the_stores_physical_coordinates() {
     assert_eq!(o.status.code(), Some(1), "{err}");
     assert!(err.contains("--slice-z and --slice-at"), "{err}");
 }
+
+#[test]
+fn coarser_levels_lie_where_the_store_places_them() {
+    // A ramp along x (value = x index, 61 voxels: no power of two), float
+    // so that the levels' box means are exact. Level L's voxel j is the
+    // mean of its two level-(L−1) voxels (the last one alone) and is
+    // centred at 2^L·(j + ½) level-0 voxels, as the store's scale and
+    // translation say: a slice drawn at level L is that level's voxels
+    // interpolated at those places. (They were spread over the level-0
+    // extent instead: 8 voxels over 61 at level 3, off by up to 2.9.)
+    let d = tempfile::tempdir().unwrap();
+    let p = |n: &str| d.path().join(n);
+    let (nx, ny, nz) = (61usize, 8usize, 8usize);
+    let mut bytes = Vec::with_capacity(nx * ny * nz * 4);
+    for _ in 0..ny * nz {
+        for i in 0..nx {
+            bytes.extend_from_slice(&(i as f32).to_le_bytes());
+        }
+    }
+    std::fs::write(p("ramp.raw"), bytes).unwrap();
+    let store = p("ramp.zarr");
+    ok(&run(&[
+        "convert",
+        "--quiet",
+        "--dims",
+        "61x8x8",
+        "--dtype",
+        "f32",
+        "--brick",
+        "4",
+        s(&p("ramp.raw")),
+        s(&store),
+    ]));
+    // The levels along x, by the builder's rule.
+    let mut levels = vec![(0..nx).map(|i| i as f64).collect::<Vec<f64>>()];
+    while levels.last().unwrap().len() > 4 {
+        let prev = levels.last().unwrap();
+        let next = prev
+            .chunks(2)
+            .map(|c| c.iter().sum::<f64>() / c.len() as f64)
+            .collect();
+        levels.push(next);
+    }
+    assert_eq!(levels.len(), 5, "61 → 31 → 16 → 8 → 4");
+    // Two pixels a voxel across x, looking down z at the middle layer.
+    let (w, h) = (2 * nx, 2 * ny);
+    std::fs::write(
+        p("cam.json"),
+        r#"{"projection":{"type":"orthographic","height":8.0},"eye":[30.5,4.0,-100.0],"target":[30.5,4.0,4.0],"up":[0.0,-1.0,0.0]}"#,
+    )
+    .unwrap();
+    let backends: &[&str] = match brickyard_gpu::context::test_gpu() {
+        Some(_) => &["cpu", "gpu"],
+        None => &["cpu"], // BRICKYARD_SKIP_GPU=1
+    };
+    for &backend in backends {
+        for (l, lv) in levels.iter().enumerate().skip(1) {
+            let out = p(&format!("l{l}-{backend}.png"));
+            let o = bin()
+                .arg("render")
+                .arg(&store)
+                .args([
+                    "--mode",
+                    "slice",
+                    "--slice-z",
+                    "0.5",
+                    "--level",
+                    &l.to_string(),
+                ])
+                .args(["--camera", s(&p("cam.json")), "--size", &format!("{w}x{h}")])
+                .args(["--tf", "linear", "--window", "0,61", "--raw-f32", "--quiet"])
+                .args(["--backend", backend, "-o", s(&out)])
+                .output()
+                .unwrap();
+            ok(&o);
+            let raw = std::fs::read(out.with_extension("f32")).unwrap();
+            let px: Vec<f32> = raw
+                .chunks_exact(4)
+                .map(|b| f32::from_le_bytes(b.try_into().unwrap()))
+                .collect();
+            assert_eq!(px.len(), w * h * 4);
+            let r = (1u64 << l) as f64;
+            let (mut worst, mut interior) = (0.0f64, 0.0f64);
+            for i in 0..w {
+                let x = (i as f64 + 0.5) * 0.5;
+                let q = (x / r - 0.5).clamp(0.0, (lv.len() - 1) as f64);
+                let j = q.floor() as usize;
+                let f = q - j as f64;
+                let want = lv[j] * (1.0 - f) + lv[(j + 1).min(lv.len() - 1)] * f;
+                let got = px[(h / 2 * w + i) * 4] as f64 * 61.0;
+                worst = worst.max((got - want).abs());
+                // Box means of a ramp interpolated between their centres
+                // are the ramp itself, away from the partial last box.
+                if x > r && x < 56.0 - r {
+                    interior = interior.max((got - (x - 0.5)).abs());
+                }
+            }
+            assert!(worst < 2e-3, "{backend} level {l}: off by {worst}");
+            assert!(
+                interior < 2e-3,
+                "{backend} level {l}: the ramp off by {interior}"
+            );
+        }
+    }
+}

@@ -22,6 +22,8 @@ struct Params {
     pad: [u32; 3],
     brick: [u32; 4],
     dims: [[u32; 4]; 32],
+    /// Per level: its ratio to level 0 (`Octree::span`'s denominator).
+    ratio: [[u32; 4]; 32],
 }
 
 /// The octree's buffers on the device and its update passes.
@@ -92,6 +94,7 @@ impl DeviceOctree {
                 0,
             ],
             dims: [[0; 4]; 32],
+            ratio: [[0; 4]; 32],
         };
         let mut flat: Vec<[f32; 2]> = vec![];
         for l in 0..nl {
@@ -106,6 +109,8 @@ impl DeviceOctree {
                 _ => NONE,
             };
             params.dims[l] = [d[0] as u32, d[1] as u32, d[2] as u32, off];
+            let r = tree.span(l).1;
+            params.ratio[l] = [r[0] as u32, r[1] as u32, r[2] as u32, 0];
         }
         let kernel = Kernel::new(
             gpu,

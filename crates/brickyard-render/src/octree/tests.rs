@@ -25,15 +25,16 @@ impl Rng {
 }
 
 /// Whether node `i` (per axis) of depth `d` and brick `b` of a level of
-/// `dims` overlap: the half-open normalized intervals `[i/2^d, (i+1)/2^d)`
-/// and `[b·B/n, min((b+1)·B, n)/n)` intersect on every axis (in f64, exact
-/// at these sizes).
-fn overlaps(d: u32, i: Dims3, dims: Dims3, brick: Dims3, b: Dims3) -> bool {
+/// `dims` voxels spanning `span` of them across the extent overlap: the
+/// half-open normalized intervals `[i/2^d, (i+1)/2^d)` and `[b·B/s,
+/// min((b+1)·B, n)/s)` intersect on every axis (in f64, exact at these
+/// sizes).
+fn overlaps(d: u32, i: Dims3, dims: Dims3, span: [f64; 3], brick: Dims3, b: Dims3) -> bool {
     (0..3).all(|a| {
         let s = (1u64 << d) as f64;
         let (n0, n1) = (i[a] as f64 / s, (i[a] + 1) as f64 / s);
-        let v0 = (b[a] * brick[a]) as f64 / dims[a] as f64;
-        let v1 = (((b[a] + 1) * brick[a]).min(dims[a])) as f64 / dims[a] as f64;
+        let v0 = (b[a] * brick[a]) as f64 / span[a];
+        let v1 = (((b[a] + 1) * brick[a]).min(dims[a])) as f64 / span[a];
         n0 < v1 && v0 < n1
     })
 }
@@ -51,7 +52,8 @@ fn brute_masks(o: &Octree, mapped: &HashSet<u64>) -> Vec<u32> {
                         let key = BrickKey::unpack(k);
                         let l = key.level as usize;
                         let b = key.brick.map(|v| v as u64);
-                        if overlaps(d, [z, y, x], o.dims[l], o.brick, b) {
+                        let span = brickyard_core::level_span(&o.dims, l);
+                        if overlaps(d, [z, y, x], o.dims[l], span, o.brick, b) {
                             m[node * o.channels + key.channel as usize] |= 1 << l;
                         }
                     }
@@ -124,7 +126,8 @@ fn ranges_are_the_union_of_the_overlapping_bricks() {
                                             for by in 0..nb[1] {
                                                 for bx in 0..nb[2] {
                                                     let b = [bz, by, bx];
-                                                    if overlaps(d, [z, y, x], *dl, brick, b) {
+                                                    let span = brickyard_core::level_span(&dims, l);
+                                                    if overlaps(d, [z, y, x], *dl, span, brick, b) {
                                                         want = union(want, lr.get(c, b));
                                                     }
                                                 }
@@ -309,12 +312,18 @@ fn depths_out_of_range_are_refused_naming_the_depth() {
 #[test]
 fn overlap_is_exact_at_node_and_brick_boundaries() {
     // 64 voxels, bricks of 16, depth 2: brick b covers exactly leaf b.
-    let (lo, hi) = overlap(2, [64; 3], [16; 3], [1, 2, 3]);
+    let (lo, hi) = overlap(2, [64; 3], ([64; 3], [1; 3]), [16; 3], [1, 2, 3]);
     assert_eq!((lo, hi), ([1, 2, 3], [2, 3, 4]));
     // 60 voxels: brick 3 is [48, 60) = [0.8, 1): leaf 3 only; brick 1 is
     // [16, 32) = [0.267, 0.533): leaves 1 and 2.
-    let (lo, hi) = overlap(2, [60; 3], [16; 3], [3, 1, 0]);
+    let (lo, hi) = overlap(2, [60; 3], ([60; 3], [1; 3]), [16; 3], [3, 1, 0]);
     assert_eq!((lo, hi), ([3, 1, 0], [4, 3, 2]));
+    // A coarser level of 61 voxels at ratio 2: 31 voxels spanning 30.5.
+    // Brick 1 (8 voxels) is [8, 16) of 30.5 = [0.262, 0.525): leaves 1
+    // and 2 (of 4); brick 3 is [24, 31): [0.787, 1.016), leaf 3 only;
+    // brick 0 is [0, 8): [0, 0.262), reaching into leaf 1 (from 0.25).
+    let (lo, hi) = overlap(2, [31; 3], ([61; 3], [2; 3]), [8; 3], [1, 3, 0]);
+    assert_eq!((lo, hi), ([1, 3, 0], [3, 4, 2]));
 }
 
 #[test]
@@ -333,7 +342,14 @@ fn bricks_of_leaf_is_the_inverse_of_overlap() {
                     let inside = (0..3).all(|a| lo[a] <= b[a] && b[a] < hi[a]);
                     assert_eq!(
                         inside,
-                        overlaps(depth, leaf, dl, brick, b),
+                        overlaps(
+                            depth,
+                            leaf,
+                            dl,
+                            brickyard_core::level_span(&dims, l),
+                            brick,
+                            b
+                        ),
                         "depth {depth} level {l} leaf {leaf:?} brick {b:?}"
                     );
                 }
@@ -483,15 +499,16 @@ fn ranges_from_resident_voxels_equal_a_brute_force_under_a_small_pool() {
             for c in 0..ch {
                 for (l, &dl) in dims.iter().enumerate() {
                     // The leaf's continuous voxel box [a, b) per axis.
-                    let a = [0, 1, 2].map(|k| li[k] as f64 / s as f64 * dl[k] as f64);
-                    let b = [0, 1, 2].map(|k| (li[k] + 1) as f64 / s as f64 * dl[k] as f64);
+                    let span = brickyard_core::level_span(&dims, l);
+                    let a = [0, 1, 2].map(|k| li[k] as f64 / s as f64 * span[k]);
+                    let b = [0, 1, 2].map(|k| (li[k] + 1) as f64 / s as f64 * span[k]);
                     let nb = o.bricks(l);
                     let mut acc = [f32::INFINITY, f32::NEG_INFINITY];
                     for bz in 0..nb[0] {
                         for by in 0..nb[1] {
                             for bx in 0..nb[2] {
                                 let bk = [bz, by, bx];
-                                if !overlaps(d, li, dl, brick, bk) {
+                                if !overlaps(d, li, dl, span, brick, bk) {
                                     continue;
                                 }
                                 let key = BrickKey::new(l as u8, c as u16, bk.map(|v| v as u32));

@@ -17,7 +17,7 @@ use anyhow::{Context, Result};
 use brickyard_cache::brick::{BrickContent, BrickKey, LoadedBrick};
 use brickyard_cache::host_cache::HostCache;
 use brickyard_cache::loader::Loader;
-use brickyard_core::camera::{world_to_voxel, Ray};
+use brickyard_core::camera::{world_to_level_voxel, world_to_voxel, Ray};
 use brickyard_core::{cast_slice, dispatch_dtype, DType, Dims3, Sample};
 use brickyard_render::params::LabelBoxes;
 use brickyard_render::params::LabelSelect;
@@ -653,7 +653,8 @@ fn run(
         };
         let label = reader.map(|r| {
             let level = label_level.min(r.levels() - 1);
-            let lv = world_to_voxel(world, extent, r.dims_at(level));
+            let sizes: Vec<Dims3> = (0..r.levels()).map(|l| r.dims_at(l)).collect();
+            let lv = world_to_level_voxel(world, extent, &sizes, level);
             let v = r.value(level, lv, 0).map_err(|e| format!("{e:#}"))?;
             let label = label_id(v);
             Ok(LabelAt {
@@ -703,7 +704,8 @@ fn seen_point(
 ) -> Result<Option<(Vec3, usize, f64)>> {
     let dims: Vec<Dims3> = (0..r.levels()).map(|l| r.dims_at(l)).collect();
     readout::seen_point(ray, extent, &dims, drawn, look, |l, w, c| {
-        r.value(l, world_to_voxel(w, extent, dims[l]), c).map(Some)
+        r.value(l, world_to_level_voxel(w, extent, &dims, l), c)
+            .map(Some)
     })
 }
 
