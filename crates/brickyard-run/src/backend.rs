@@ -571,6 +571,9 @@ pub struct AccumFrame {
     pub samples: u64,
     pub exact: u64,
     pub stand_ins: u64,
+    /// Pixels not complete after the frame (the device counts them; the
+    /// CPU's are those with stand-ins, `None`).
+    pub incomplete: Option<u64>,
 }
 
 impl Accumulating {
@@ -680,6 +683,7 @@ impl Accumulating {
                     samples: st.frame.samples,
                     exact: st.frame.exact,
                     stand_ins: st.stand_ins,
+                    incomplete: None,
                 })
             }
             (Accumulating::Gpu(a), Backend::Gpu(g)) => {
@@ -707,6 +711,7 @@ impl Accumulating {
                     samples: a.last().frame.samples,
                     exact: a.last().frame.exact,
                     stand_ins: a.last().stand_ins,
+                    incomplete: Some(a.last().incomplete),
                 })
             }
             _ => bail!("the accumulation was begun on another back end"),

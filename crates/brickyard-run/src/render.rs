@@ -2568,11 +2568,13 @@ fn accumulate(
         .map(|r| format!(" rows {}..{}", r.start, r.end))
         .unwrap_or_default();
     let mut prev = u64::MAX;
+    let mut short = None;
     for frame in 1..=4 * n as usize + 64 {
         let f0 = std::time::Instant::now();
         let st = acc.frame(backend, s, scene, params, lod)?;
         between();
         left = st.stand_ins;
+        short = st.incomplete;
         if !quiet {
             outln!(
                 "accumulate{band} {}/{n}: {:8.1} ms, {} samples taken, {} stand-ins left, {} kept",
@@ -2610,6 +2612,14 @@ fn accumulate(
     }
     if !s.failures().is_empty() {
         return Ok(acc.image().clone());
+    }
+    // Every sample served at its level, yet pixels short of their blend:
+    // the device cuts a blend longer than its loop limit (a software
+    // device's 65535 iterations an invocation), frame after frame.
+    if let (0, Some(k)) = (left, short.filter(|&k| k > 0)) {
+        bail!(
+            "progressive: {k} pixel(s) stayed short of their blend in every frame with all their samples at hand: the device cuts a blend this long; --backend cpu draws them, as do fewer frames (--progressive) or a lower --samples-per-voxel"
+        )
     }
     bail!(
         "progressive: the accumulation did not complete ({left} stand-in samples left): the pool cannot hold the view's bricks"

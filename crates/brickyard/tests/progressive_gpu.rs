@@ -227,3 +227,70 @@ fn progressive_on_the_device_keeps_the_detail_of_the_cpu() {
         "device vs CPU max {worst}, {off} values beyond 1e-4"
     );
 }
+
+#[test]
+fn a_blend_longer_than_the_devices_loop_limit_is_named_as_such() {
+    // 256 frames of 4 samples a voxel along rays through a nearly clear
+    // 160³ volume: one pixel's blend takes over 200 000 samples, more
+    // than a software device runs in one invocation (65 535 loop
+    // iterations). With every brick resident the render once ended with
+    // "the pool cannot hold the view's bricks".
+    let Some(gpu) = brickyard_gpu::context::test_gpu() else {
+        return; // BRICKYARD_SKIP_GPU=1
+    };
+    let software = gpu.info.device_type == wgpu::DeviceType::Cpu;
+    drop(gpu);
+    let d = tempfile::tempdir().unwrap();
+    let store = d.path().join("m.zarr");
+    let o = run(&[
+        "generate",
+        "mandelbulb",
+        s(&store),
+        "--size",
+        "160",
+        "--quiet",
+    ]);
+    ok(&o, "generate");
+    let view = [
+        "--mode",
+        "dvr",
+        "--size",
+        "4x4",
+        "--tf",
+        "linear",
+        "--window",
+        "0,100000",
+        "--progressive",
+        "256",
+        "--samples-per-voxel",
+        "4",
+        "--quiet",
+    ];
+    let png = d.path().join("a.png");
+    let o = run(&[
+        &["render", s(&store)][..],
+        &view,
+        &["--backend", "gpu", "-o", s(&png)],
+    ]
+    .concat());
+    let err = String::from_utf8_lossy(&o.stderr);
+    if o.status.success() && !software {
+        // A hardware device may run such loops whole, and draw it.
+        assert!(png.exists(), "{err}");
+        return;
+    }
+    assert!(!o.status.success() && !png.exists(), "{err}");
+    assert!(
+        err.contains("stayed short of their blend") && err.contains("--backend cpu"),
+        "{err}"
+    );
+    assert!(!err.contains("pool cannot hold"), "{err}");
+    // The CPU draws it, as the message says.
+    let o = run(&[
+        &["render", s(&store)][..],
+        &view,
+        &["--backend", "cpu", "-o", s(&png)],
+    ]
+    .concat());
+    ok(&o, "render on the CPU");
+}
