@@ -120,6 +120,41 @@ pub fn request_pass(params: &RenderParams) -> (RenderParams, f64) {
     (p, f64::from(div).log2())
 }
 
+/// A view changed draws previews for at most this long, in the viewer and
+/// in remote rendering (then full frames, whose level-of-detail budget
+/// copes with a pool the view does not fit).
+pub const PREVIEW_FOR: std::time::Duration = std::time::Duration::from_secs(2);
+
+/// A view's preview, as `render`'s request pass is drawn: the width and
+/// height divided by [`pass_divisor`], a quarter of the
+/// samples along each ray, at the level of detail of the full image.
+/// `None` where a frame is cheap anyway or laid out otherwise (slices,
+/// several views, images under 128 pixels a side) and on a device, whose
+/// frames are fast.
+///
+/// A full frame drawn while none of the finer bricks are resident samples
+/// the coarse stand-ins at the full image's positions, and rays go deeper
+/// through the smoother data: on two cores a 1200×800 DVR of Colin27
+/// took 1.7 s so, four times a complete frame (BENCHMARKS.md).
+pub fn preview(backend: &Backend, p: &RenderParams, lod: Lod) -> Option<(RenderParams, Lod)> {
+    use brickyard_render::reference::RenderMode;
+    let cheap = matches!(p.mode, RenderMode::Slice { .. });
+    if cheap
+        || !matches!(backend, Backend::Cpu)
+        || p.views.is_some()
+        || p.width < 128
+        || p.height < 128
+    {
+        return None;
+    }
+    let (small, finer) = request_pass(p);
+    let lod = match lod {
+        Lod::Auto { bias } => Lod::Auto { bias: bias - finer },
+        fixed => fixed,
+    };
+    Some((small, lod))
+}
+
 /// The signals of a frame for the LOD budget.
 pub fn signals(s: &Session, f: &Frame) -> FrameSignals {
     FrameSignals::of_frame(s, &f.session, f.stats.completeness() >= 1.0, f.exact_slots)

@@ -408,6 +408,9 @@ fn session(ws: &mut WebSocket<TcpStream>, site: &RenderSite, caches: &Caches) ->
     let mut open_store: Option<Open> = None;
     // The view being drawn: its parameters and level-of-detail budget.
     let mut drawing: Option<(RenderParams, LodBudget, u64)> = None;
+    // A new view is first drawn as a preview, as the viewer draws it
+    // (`frames::preview`), since when.
+    let mut previewing: Option<Instant> = None;
     let min_interval = Duration::from_secs_f64(1.0 / site.max_fps.max(0.1));
     let mut last_sent = Instant::now() - min_interval;
     loop {
@@ -488,6 +491,7 @@ fn session(ws: &mut WebSocket<TcpStream>, site: &RenderSite, caches: &Caches) ->
                 Ok(p) => {
                     let budget = LodBudget::new(0.0, o.scene.levels.len(), false);
                     drawing = Some((p, budget, 0));
+                    previewing = Some(Instant::now());
                 }
                 Err(e) => send_json(ws, json!({"error": format!("{e:#}")}))?,
             }
@@ -502,6 +506,42 @@ fn session(ws: &mut WebSocket<TcpStream>, site: &RenderSite, caches: &Caches) ->
         }
         let t = Instant::now();
         let lod = budget.apply(Lod::Auto { bias: 0.0 }, o.scene.levels.len());
+        // The preview: sent while it is incomplete (most of the view still
+        // loading), given up for full frames once it is complete, nothing
+        // more is coming, or after PREVIEW_FOR. The page scales it up.
+        let preview = previewing.and_then(|since| {
+            brickyard_run::frames::preview(&o.backend, p, lod).map(|pp| (since, pp))
+        });
+        if previewing.is_some() && preview.is_none() {
+            previewing = None;
+        }
+        if let Some((since, (pp, pl))) = preview {
+            let f = o.backend.frame(&mut o.s, &o.scene, &pp, pl)?;
+            let sig = brickyard_run::frames::signals(&o.s, &f);
+            let pending = f.session.pending + f.session.in_flight + f.session.waiting_upload;
+            let completeness = f.stats.completeness();
+            if completeness >= 1.0
+                || (sig.requests == 0 && pending == 0)
+                || sig.evicted_in_use > 0
+                || since.elapsed() >= brickyard_run::frames::PREVIEW_FOR
+            {
+                previewing = None;
+            }
+            if completeness < 1.0 {
+                *frames += 1;
+                let bytes = encode(&f.image, false)?;
+                send_json(
+                    ws,
+                    json!({"frame": *frames, "completeness": completeness, "complete": false,
+                        "final": false, "preview": true, "format": "jpeg", "width": pp.width,
+                        "height": pp.height, "lod_bias": budget.bias,
+                        "ms": t.elapsed().as_secs_f64() * 1e3, "bytes": bytes.len()}),
+                )?;
+                ws.send(Message::Binary(bytes.into()))?;
+                last_sent = Instant::now();
+                continue;
+            }
+        }
         let f = o.backend.frame(&mut o.s, &o.scene, p, lod)?;
         *frames += 1;
         let sig = brickyard_run::frames::signals(&o.s, &f);

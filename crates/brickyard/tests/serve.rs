@@ -764,6 +764,23 @@ fn ws_frame(
     }
 }
 
+/// The port of a `serve --render`'s sessions, from its log.
+fn render_port(srv: &Served) -> u16 {
+    let log = || srv.log.lock().unwrap().clone();
+    for _ in 0..100 {
+        if let Some(p) = log()
+            .split("/render")
+            .next()
+            .and_then(|l| l.rsplit(':').next())
+            .and_then(|p| p.parse().ok())
+        {
+            return p;
+        }
+        std::thread::sleep(std::time::Duration::from_millis(50));
+    }
+    panic!("no render port in {}", log())
+}
+
 fn png_bytes_rgba(b: &[u8]) -> (u32, u32, Vec<u8>) {
     let dec = png::Decoder::new(std::io::Cursor::new(b.to_vec()));
     let mut r = dec.read_info().unwrap();
@@ -779,6 +796,74 @@ fn png_bytes_rgba(b: &[u8]) -> (u32, u32, Vec<u8>) {
 /// within 1/255. A second view in the same session is drawn too; a bad
 /// message gets an error and the session goes on; sessions beyond the limit
 /// and a wrong token are refused at the handshake; the page is served.
+#[test]
+fn a_new_remote_view_is_previewed_smaller_then_drawn_whole() {
+    // A cold 512 × 400 DVR on the CPU: its first frames come at half the
+    // width and height (what `render`'s request pass draws) while the
+    // bricks load, marked as previews; the last frame is the whole image,
+    // equal to render's. (Full frames of stand-ins came first, each as
+    // slow as a complete one or slower.)
+    let d = tempfile::tempdir().unwrap();
+    let st = store(d.path());
+    let cam = d.path().join("cam.json");
+    let size = ["--size", "512x400", "--tf", "hot", "--window", "0,255"];
+    ok(&run(&[
+        &["render", s(&st), "--save-camera", s(&cam)][..],
+        &size,
+        &[
+            "--out",
+            s(&d.path().join("a.png")),
+            "--backend",
+            "cpu",
+            "--quiet",
+        ],
+    ]
+    .concat()));
+    let want = png_rgba(&d.path().join("a.png"));
+    let srv = serve(&[&st], &["--render", "--backend", "cpu", "--max-fps", "50"]);
+    let url = format!("ws://127.0.0.1:{}/render", render_port(&srv));
+    let (mut ws, _) = tungstenite::connect(url.as_str()).unwrap();
+    let camera: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(&cam).unwrap()).unwrap();
+    let view = serde_json::json!({"store": "m.ome.zarr", "mode": "dvr", "tf": "hot",
+        "window": [0, 255], "size": [512, 400], "camera": camera});
+    ws.send(tungstenite::Message::Text(view.to_string().into()))
+        .unwrap();
+    let mut seen = vec![];
+    let last = loop {
+        let (m, img) = ws_frame(&mut ws);
+        seen.push(m.clone());
+        if m["final"] == true {
+            break img;
+        }
+    };
+    let previews: Vec<_> = seen.iter().filter(|m| m["preview"] == true).collect();
+    assert!(!previews.is_empty(), "no preview: {seen:?}");
+    for m in &previews {
+        assert_eq!(
+            (&m["width"], &m["height"]),
+            (&256.into(), &200.into()),
+            "{m}"
+        );
+        assert!(m["completeness"].as_f64().unwrap() < 1.0, "{m}");
+    }
+    // Previews first, then full frames only.
+    let first_full = seen.iter().position(|m| m["preview"] != true).unwrap();
+    assert!(
+        seen[first_full..].iter().all(|m| m["preview"] != true),
+        "{seen:?}"
+    );
+    let (w, h, got) = png_bytes_rgba(&last);
+    assert_eq!((w, h), (512, 400));
+    let worst = got
+        .iter()
+        .zip(&want)
+        .map(|(a, b)| a.abs_diff(*b))
+        .max()
+        .unwrap();
+    assert!(worst <= 1, "the final frame and render differ by {worst}");
+}
+
 #[test]
 fn remote_rendering_streams_frames_equal_to_render() {
     let d = tempfile::tempdir().unwrap();
@@ -814,23 +899,7 @@ fn remote_rendering_streams_frames_equal_to_render() {
             "50",
         ],
     );
-    let log = || srv.log.lock().unwrap().clone();
-    let port: u16 = {
-        let mut port = None;
-        for _ in 0..100 {
-            if let Some(p) = log()
-                .split("/render")
-                .next()
-                .and_then(|l| l.rsplit(':').next())
-                .and_then(|p| p.parse().ok())
-            {
-                port = Some(p);
-                break;
-            }
-            std::thread::sleep(std::time::Duration::from_millis(50));
-        }
-        port.unwrap_or_else(|| panic!("no render port in {}", log()))
-    };
+    let port = render_port(&srv);
     let url = format!("ws://127.0.0.1:{port}/render");
     // A connection that sends nothing holds no session (the one allowed
     // used to be taken before the handshake, by anyone, token or not).

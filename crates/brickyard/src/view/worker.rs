@@ -116,7 +116,7 @@ pub struct Out {
     /// the page tables).
     pub octree_nodes: u64,
     /// A preview: the view drawn smaller (a fraction of its width and
-    /// height, [`PREVIEW_FOR`]) while most of what it needs is still
+    /// height, [`PREVIEW_FOR`](crate::frames::PREVIEW_FOR)) while most of what it needs is still
     /// loading; shown scaled up, never complete.
     pub preview: bool,
 }
@@ -149,7 +149,7 @@ struct View {
     /// accumulation could not be begun, or failed): its plain frame is
     /// its last.
     no_acc: bool,
-    /// Its next frame is drawn first as a preview ([`preview_params`]),
+    /// Its next frame is drawn first as a preview ([`preview`](crate::frames::preview)),
     /// and sent as one while that preview is incomplete.
     preview: bool,
 }
@@ -182,40 +182,6 @@ struct Acc {
 
 /// The time an accumulation part should take.
 const PART_MS: f64 = 20.0;
-
-/// A view changed draws previews for at most this long (then full frames,
-/// whose level-of-detail budget copes with a pool the view does not fit).
-const PREVIEW_FOR: Duration = Duration::from_secs(2);
-
-/// A view's preview, as `render`'s request pass is drawn: the width and
-/// height divided by [`crate::frames::pass_divisor`], a quarter of the
-/// samples along each ray, at the level of detail of the full image.
-/// `None` where a frame is cheap anyway or laid out otherwise (slices,
-/// several views, images under 128 pixels a side) and on a device, whose
-/// frames are fast.
-///
-/// A full frame drawn while none of the finer bricks are resident samples
-/// the coarse stand-ins at the full image's positions, and rays go deeper
-/// through the smoother data: on two cores a 1200×800 DVR of Colin27
-/// took 1.7 s so, four times a complete frame (BENCHMARKS.md).
-fn preview_params(backend: &Backend, p: &RenderParams, lod: Lod) -> Option<(RenderParams, Lod)> {
-    use brickyard_render::reference::RenderMode;
-    let cheap = matches!(p.mode, RenderMode::Slice { .. });
-    if cheap
-        || !matches!(backend, Backend::Cpu)
-        || p.views.is_some()
-        || p.width < 128
-        || p.height < 128
-    {
-        return None;
-    }
-    let (small, finer) = crate::frames::request_pass(p);
-    let lod = match lod {
-        Lod::Auto { bias } => Lod::Auto { bias: bias - finer },
-        fixed => fixed,
-    };
-    Some((small, lod))
-}
 
 /// The least time between accumulation parts sent to the window (a pass's
 /// last part is always sent): each sent image is converted for display on
@@ -513,7 +479,7 @@ pub fn run(setup: Setup, mut scene: Scene, rx: Receiver<Msg>, tx: Sender<Reply>,
         // full frame once it is complete (the view was warm), nothing
         // more is coming, or after PREVIEW_FOR.
         let preview = match views[i].preview {
-            true => preview_params(&backend, &spec.params, lod),
+            true => crate::frames::preview(&backend, &spec.params, lod),
             false => None,
         };
         if let Some((pp, pl)) = preview {
@@ -532,7 +498,7 @@ pub fn run(setup: Setup, mut scene: Scene, rx: Receiver<Msg>, tx: Sender<Reply>,
             if completeness >= 1.0
                 || (sig.requests == 0 && pending == 0)
                 || sig.evicted_in_use > 0
-                || views[i].arrived.elapsed() >= PREVIEW_FOR
+                || views[i].arrived.elapsed() >= crate::frames::PREVIEW_FOR
             {
                 views[i].preview = false;
             }
