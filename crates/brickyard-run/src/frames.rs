@@ -155,6 +155,18 @@ pub fn preview(backend: &Backend, p: &RenderParams, lod: Lod) -> Option<(RenderP
     Some((small, lod))
 }
 
+/// Whether previews of a view that changed at `since` give way to full
+/// frames after preview `f`: it is complete (the view was warm), nothing
+/// more is coming, the pool thrashes, or [`PREVIEW_FOR`] has passed.
+pub fn preview_over(s: &Session, f: &Frame, since: Instant) -> bool {
+    let sig = signals(s, f);
+    let pending = f.session.pending + f.session.in_flight + f.session.waiting_upload;
+    f.stats.completeness() >= 1.0
+        || (sig.requests == 0 && pending == 0)
+        || sig.evicted_in_use > 0
+        || since.elapsed() >= PREVIEW_FOR
+}
+
 /// The signals of a frame for the LOD budget.
 pub fn signals(s: &Session, f: &Frame) -> FrameSignals {
     FrameSignals::of_frame(s, &f.session, f.stats.completeness() >= 1.0, f.exact_slots)

@@ -517,14 +517,8 @@ fn session(ws: &mut WebSocket<TcpStream>, site: &RenderSite, caches: &Caches) ->
         }
         if let Some((since, (pp, pl))) = preview {
             let f = o.backend.frame(&mut o.s, &o.scene, &pp, pl)?;
-            let sig = brickyard_run::frames::signals(&o.s, &f);
-            let pending = f.session.pending + f.session.in_flight + f.session.waiting_upload;
             let completeness = f.stats.completeness();
-            if completeness >= 1.0
-                || (sig.requests == 0 && pending == 0)
-                || sig.evicted_in_use > 0
-                || since.elapsed() >= brickyard_run::frames::PREVIEW_FOR
-            {
+            if brickyard_run::frames::preview_over(&o.s, &f, since) {
                 previewing = None;
             }
             if completeness < 1.0 {

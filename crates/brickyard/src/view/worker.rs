@@ -493,13 +493,7 @@ pub fn run(setup: Setup, mut scene: Scene, rx: Receiver<Msg>, tx: Sender<Reply>,
                 }
             };
             let completeness = f.stats.completeness();
-            let sig = crate::frames::signals(&s, &f);
-            let pending = f.session.pending + f.session.in_flight + f.session.waiting_upload;
-            if completeness >= 1.0
-                || (sig.requests == 0 && pending == 0)
-                || sig.evicted_in_use > 0
-                || views[i].arrived.elapsed() >= crate::frames::PREVIEW_FOR
-            {
+            if crate::frames::preview_over(&s, &f, views[i].arrived) {
                 views[i].preview = false;
             }
             if completeness < 1.0 {
