@@ -361,6 +361,8 @@ pub struct InsertReport {
 /// The virtual memory.
 pub struct VirtualMemory {
     layout: VirtualLayout,
+    /// Per level, its voxels across the extent (`level_span`).
+    spans: Vec<[f64; 3]>,
     cfg: VmConfig,
     channels: usize,
     dtype: DType,
@@ -468,6 +470,9 @@ impl VirtualMemory {
         let slots = SlotSet::new(cfg.pool_slots(dtype, bricks));
         VirtualMemory {
             merged: Requests::with_capacity(cfg.request_cap * 8),
+            spans: (0..layout.levels.len())
+                .map(|l| brickyard_core::level_span(&layout.levels, l))
+                .collect(),
             layout,
             channels,
             dtype,
@@ -919,7 +924,7 @@ impl VirtualMemory {
             let dims = self.layout.levels[lv];
             // Continuous voxel coordinates (voxel centres at i + 0.5; the
             // level's voxels across the extent: `level_span`).
-            let span = brickyard_core::level_span(&self.layout.levels, lv);
+            let span = self.spans[lv];
             let pos = [0, 1, 2].map(|a| p[a] * span[a]);
             let (base, frac) = if trilinear {
                 let q = [0, 1, 2].map(|a| (pos[a] - 0.5).clamp(0.0, (dims[a] - 1) as f64));

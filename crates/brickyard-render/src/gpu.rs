@@ -687,13 +687,14 @@ impl GpuRenderer {
                     // (Also bricks no label of a selection reaches.)
                     let sel = key.7.as_ref();
                     let cfg = vm.config();
+                    let spans: Vec<_> = (0..scene.levels.len()).map(|l| scene.span(l)).collect();
                     clear_bits_by(&ids, r, scene.channel, |lo, hi, l, i| {
                         crate::optics::label_clear(lo, hi, sel)
                             || sel.is_some_and(|s| {
                                 !s.may_reach_brick(
                                     i,
                                     scene.levels[l],
-                                    scene.span(l),
+                                    spans[l],
                                     cfg.brick,
                                     cfg.apron,
                                 )

@@ -165,6 +165,8 @@ pub struct Octree {
     pub dims: Vec<Dims3>,
     /// Brick edge in voxels `[z, y, x]`.
     pub brick: Dims3,
+    /// Per level, its ratio to level 0 ([`span`](Self::span)).
+    ratio: Vec<Dims3>,
     /// `[node][channel]`: bit `l` set when some overlapping brick of level
     /// `l` is mapped.
     pub mask: Vec<u32>,
@@ -265,6 +267,9 @@ impl Octree {
             channels,
             dims: dims.to_vec(),
             brick,
+            ratio: (0..nl)
+                .map(|l| brickyard_core::level_ratio(dims, l))
+                .collect(),
             mask: vec![0; nodes as usize * channels],
             range: vec![[f32::NAN; 2]; nodes as usize * channels * nl],
             count: vec![0; leaves as usize * channels * nl],
@@ -366,7 +371,7 @@ impl Octree {
     /// `num / den` per axis: level 0's voxels over the level's ratio
     /// ([`level_span`](brickyard_core::level_span)).
     pub fn span(&self, l: usize) -> (Dims3, Dims3) {
-        (self.dims[0], brickyard_core::level_ratio(&self.dims, l))
+        (self.dims[0], self.ratio[l])
     }
 
     /// The mask of `node` for channel `c`.

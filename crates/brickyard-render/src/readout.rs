@@ -135,7 +135,10 @@ pub fn seen_point<E>(
     let Some((t0, t1)) = intersect_box(ray, [0.0; 3], extent) else {
         return Ok(None);
     };
-    let (voxel0, levels) = (voxel_edge(dims, 0, extent), dims.len());
+    let edge: Vec<f64> = (0..dims.len())
+        .map(|l| voxel_edge(dims, l, extent))
+        .collect();
+    let (voxel0, levels) = (edge[0], dims.len());
     let per_voxel = match look {
         Look::Dvr { samples, .. } => samples.max(0.25),
         Look::Mip { .. } => 4.0,
@@ -147,7 +150,7 @@ pub fn seen_point<E>(
     let mut best: Option<(f64, Vec3, usize)> = None;
     loop {
         let level = drawn.level(t, voxel0, levels);
-        let dt = voxel_edge(dims, level, extent) / per_voxel / length(ray.dir);
+        let dt = edge[level] / per_voxel / length(ray.dir);
         if first {
             t = (t0 + 0.5 * dt).min(0.5 * (t0 + t1));
             first = false;
@@ -175,7 +178,7 @@ pub fn seen_point<E>(
                         through *= 1.0 - tf.lookup(x as f32)[3].clamp(0.0, 1.0) as f64;
                     }
                 }
-                let r = reference.unwrap_or_else(|| voxel_edge(dims, level, extent));
+                let r = reference.unwrap_or(edge[level]);
                 let a = 1.0 - through.powf(dt * length(ray.dir) / r);
                 gathered += (1.0 - gathered) * a;
                 if gathered >= 0.5 {

@@ -117,6 +117,7 @@ impl<'a> Frame<'a> {
         let transparent: Vec<Option<Vec<bool>>> = (0..nl)
             .map(|l| {
                 let sel = params.label_select.as_ref();
+                let span = scene.span(l);
                 let Some(r) = scene.ranges.as_ref().and_then(|r| r.level(l)) else {
                     // No statistics: a label image drawing only some
                     // labels still crosses the bricks their boxes miss.
@@ -130,7 +131,7 @@ impl<'a> Frame<'a> {
                         (0..n as usize)
                             .map(|i| {
                                 !sel.is_some_and(|s| {
-                                    s.may_reach_brick(i, d, scene.span(l), cfg.brick, cfg.apron)
+                                    s.may_reach_brick(i, d, span, cfg.brick, cfg.apron)
                                 })
                             })
                             .collect(),
@@ -153,7 +154,7 @@ impl<'a> Frame<'a> {
                                         !s.may_reach_brick(
                                             i,
                                             scene.levels[l],
-                                            scene.span(l),
+                                            span,
                                             cfg.brick,
                                             cfg.apron,
                                         )
@@ -206,6 +207,13 @@ impl<'a> Frame<'a> {
             _ => vec![],
         };
         let tf_eval = params.tf.evaluator();
+        // Level l's voxel coordinate per world unit: its span over the extent.
+        let scale: Vec<[f64; 3]> = (0..nl)
+            .map(|l| {
+                let s = scene.span(l);
+                [0, 1, 2].map(|a| s[a] / scene.extent[2 - a])
+            })
+            .collect();
         let mut frame = Frame {
             max_blocks,
             tf_table: TfTable::new(&params.tf, &tf_eval),
@@ -217,12 +225,7 @@ impl<'a> Frame<'a> {
                     (dt, 1.0 / dt, (dt / reference) as f32)
                 })
                 .collect(),
-            inv_scale: (0..nl)
-                .map(|l| {
-                    let s = scene.span(l);
-                    [0, 1, 2].map(|a| 1.0 / (s[a] / scene.extent[2 - a]))
-                })
-                .collect(),
+            inv_scale: scale.iter().map(|s| s.map(|x| 1.0 / x)).collect(),
             vm,
             scene,
             params,
@@ -230,12 +233,7 @@ impl<'a> Frame<'a> {
             tf_eval,
             lod,
             dims: scene.levels.clone(),
-            scale: (0..nl)
-                .map(|l| {
-                    let s = scene.span(l);
-                    [0, 1, 2].map(|a| s[a] / scene.extent[2 - a])
-                })
-                .collect(),
+            scale,
             qmax: scene
                 .levels
                 .iter()
