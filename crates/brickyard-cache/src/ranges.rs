@@ -96,15 +96,15 @@ fn padded_range(
     for z in lo[0] / sb[0]..=(hi[0] - 1) / sb[0] {
         for y in lo[1] / sb[1]..=(hi[1] - 1) / sb[1] {
             for x in lo[2] / sb[2]..=(hi[2] - 1) / sb[2] {
-                match stats([z, y, x]) {
-                    // A brick of only NaN has NaN statistics: its samples
-                    // are transparent, so it does not widen the range.
-                    Some((a, b)) if a.is_nan() && b.is_nan() => {}
-                    Some((a, b)) if !a.is_nan() && !b.is_nan() => {
-                        mn = mn.min(a);
-                        mx = mx.max(b);
-                    }
-                    _ => return [f32::NAN; 2],
+                // A brick of only NaN has NaN statistics: its samples
+                // are transparent, so it does not widen the range (nor
+                // do the NaN voxels of any other brick).
+                let Some((a, b)) = stats([z, y, x]) else {
+                    return [f32::NAN; 2];
+                };
+                if let Some((a, b)) = brickyard_core::brick_stats::finite_range(a, b) {
+                    mn = mn.min(a);
+                    mx = mx.max(b);
                 }
             }
         }
@@ -174,6 +174,23 @@ mod tests {
         let l = r.level(0).unwrap();
         assert_eq!(l.get(0, [0, 0, 0]), [0.0, 1.0]);
         assert!(l.get(0, [0, 0, 1])[0].is_nan());
+        // NaN takes no part: a brick of NaN alone adds nothing, one of a
+        // single value beside NaN, `(v, NaN)`, adds `v`.
+        let r = BrickRanges::build(
+            &g,
+            [1, 1, 8],
+            1 << 20,
+            |_| true,
+            |_, _, b| match b[2] {
+                0 => Some((4.0, f64::NAN)),
+                1 => Some((f64::NAN, f64::NAN)),
+                _ => Some((9.0, 12.0)),
+            },
+        );
+        let l = r.level(0).unwrap();
+        assert_eq!(l.get(0, [0, 0, 0]), [4.0, 4.0]);
+        assert_eq!(l.get(0, [0, 0, 1]), [4.0, 12.0]);
+        assert_eq!(l.get(0, [0, 0, 2]), [9.0, 12.0]);
         // Too many bricks: left out.
         let r = BrickRanges::build(&g, [1, 1, 8], 3, |_| true, |_, _, _| None);
         assert!(r.level(0).is_none());

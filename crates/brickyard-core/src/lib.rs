@@ -4,6 +4,7 @@
 //!
 //! This crate does no I/O and never touches a GPU.
 
+pub mod brick_stats;
 pub mod camera;
 pub mod dtype;
 pub mod grid;

@@ -83,6 +83,8 @@ impl ReadBox<'_> {
     }
 }
 
+pub use brickyard_core::brick_stats::{finite_range, recorded};
+
 /// A decoded chunk of the statistics array, `None` when unreadable.
 type StatsChunk = Option<Arc<Vec<f64>>>;
 
@@ -184,10 +186,9 @@ impl LevelStats {
             for y in r[1].clone() {
                 for x in r[2].clone() {
                     let (mn, mx) = self.get(c, [z, y, x])?;
-                    if mn.is_nan() || mx.is_nan() {
-                        continue;
+                    if let Some((mn, mx)) = finite_range(mn, mx) {
+                        out = (out.0.min(mn), out.1.max(mx));
                     }
-                    out = (out.0.min(mn), out.1.max(mx));
                 }
             }
         }
@@ -204,7 +205,8 @@ impl LevelStats {
             for y in r[1].clone() {
                 for x in r[2].clone() {
                     let (mn, mx) = self.get(c, [z, y, x])?;
-                    // NaN fails both comparisons.
+                    // NaN fails both comparisons (a brick of NaN alone,
+                    // and one recorded as `(v, NaN)`: see `finite_range`).
                     if mn != mx || val.is_some_and(|v| v != mn) {
                         return None;
                     }
@@ -302,12 +304,10 @@ impl LevelStats {
             for by in span[1].clone() {
                 for bx in span[2].clone() {
                     let b = [bz, by, bx];
-                    let Some((mn, mx)) = self.get(c, b) else {
+                    let Some((mn, mx)) = self.get(c, b).and_then(|(a, b)| finite_range(a, b))
+                    else {
                         continue;
                     };
-                    if mn.is_nan() || mx.is_nan() {
-                        continue;
-                    }
                     let (blo, bhi) = r.part(b, sb);
                     let (vmin, vmax) = brickyard_core::dispatch_dtype!(dtype, T => {
                         // In the type itself, a row at a time (selects the

@@ -1087,9 +1087,9 @@ fn finish_store(
             .map(|ch| {
                 st[ch * per..(ch + 1) * per]
                     .iter()
-                    .filter(|m| !m[0].is_nan() && !m[1].is_nan())
+                    .filter_map(|m| crate::brick_stats::finite_range(m[0], m[1]))
                     .fold((f64::NAN, f64::NAN), |(lo, hi), m| {
-                        (lo.min(m[0]), hi.max(m[1]))
+                        (lo.min(m.0), hi.max(m.1))
                     })
             })
             .collect()
@@ -1682,6 +1682,11 @@ fn write_bricks<T: Sample>(ctx: &Ctx, k: usize, ch: usize, s: &Slab<T>) -> Resul
                 let (mn, mx) = mm
                     .map(|(a, b)| (a.to_f64(), b.to_f64()))
                     .unwrap_or((f64::NAN, f64::NAN));
+                // One value besides NaN: recorded so that no reader takes
+                // the brick for constant (the padding is 0, never NaN).
+                #[allow(clippy::eq_op)]
+                let has_nan = T::DTYPE.is_float() && mn == mx && brick.iter().any(|v| v != v);
+                let (mn, mx) = crate::brick_stats::recorded(mn, mx, has_nan);
                 let bytes = as_bytes(&brick);
                 // Padding is zero, so for integers min/max tell whether the brick
                 // is all fill value; floats also need -0.0 kept (bit test).

@@ -246,11 +246,13 @@ fn brick_summary(root: &Path, level: usize) -> Option<BrickSummary> {
             }
             let (mn, mx) = (v[2 * e], v[2 * e + 1]);
             s.bricks += 1;
-            if mn.is_nan() && mx.is_nan() {
+            // (A brick of one value beside NaN is `(v, NaN)`: not constant.)
+            let constant = mn == mx;
+            let Some((mn, mx)) = brickyard_core::brick_stats::finite_range(mn, mx) else {
                 s.nan += 1;
                 continue;
-            }
-            if mn == mx {
+            };
+            if constant {
                 s.constant += 1;
                 if mn == 0.0 {
                     s.empty += 1;

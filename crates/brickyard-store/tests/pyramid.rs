@@ -343,3 +343,80 @@ fn a_label_image_of_several_channels_is_refused_before_writing() {
     let src = make_source([9, 10, 11], 1, DType::U16, 4);
     convert(&src, &out, &o, &NoProgress, &AtomicBool::new(false)).unwrap();
 }
+
+/// A brick whose values besides NaN are all one value is recorded as
+/// `(v, NaN)`, not as constant; bricks of NaN alone as `(NaN, NaN)`; a
+/// brick of zeros and NaN is stored (it is not empty). `info --check`
+/// accepts what convert wrote, and names statistics that record such a
+/// brick as constant (as stores written before the rule do).
+#[test]
+fn a_brick_of_one_value_beside_nan_is_not_recorded_constant() {
+    let dir = tempfile::tempdir().unwrap();
+    let out = dir.path().join("n.ome.zarr");
+    let d = 16usize;
+    let mut v = vec![0f32; d * d * d];
+    for z in 0..d {
+        for y in 0..d {
+            for x in 0..d {
+                v[(z * d + y) * d + x] = match (z / 8, y / 8, x / 8) {
+                    (0, 0, 0) if (z, y, x) == (3, 4, 5) => f32::NAN,
+                    (0, 0, 0) => 5.0,
+                    (0, 0, 1) if (z, y, x) == (1, 2, 9) => 0.0,
+                    (0, 0, 1) => f32::NAN,
+                    (0, 1, 0) => 7.0,
+                    (0, 1, 1) => f32::NAN,
+                    _ => 0.0,
+                };
+            }
+        }
+    }
+    let mut meta = brickyard_store::SourceMeta::new("nan", [16; 3], 1, DType::F32);
+    meta.spacing = Some([1.0; 3]);
+    let src = MemSource {
+        meta,
+        data: brickyard_core::as_bytes(&v).to_vec(),
+        fail_after: None,
+        reads: Default::default(),
+    };
+    let r = convert(
+        &src,
+        &out,
+        &opts(8, 16),
+        &NoProgress,
+        &AtomicBool::new(false),
+    )
+    .unwrap();
+    // Bricks 0,1,0 (7) and the four of z ≥ 8 that are 0, of which those
+    // four are empty.
+    assert_eq!((r.bricks_constant, r.bricks_empty), (5, 4), "{r:?}");
+    let stats = |out: &std::path::Path| -> (Array<FilesystemStore>, Vec<f64>) {
+        let fs = Arc::new(FilesystemStore::new(out.join("_brickyard/stats/0")).unwrap());
+        let a = Array::open(fs, "/").unwrap();
+        let all = ArraySubset::new_with_ranges(&[0..1, 0..2, 0..2, 0..2, 0..2]);
+        let st = a.retrieve_array_subset::<Vec<f64>>(&all).unwrap();
+        (a, st)
+    };
+    let (a, st) = stats(&out);
+    let pair = |i: usize| (st[2 * i], st[2 * i + 1]);
+    assert!(pair(0).0 == 5.0 && pair(0).1.is_nan(), "{:?}", pair(0));
+    assert!(pair(1).0 == 0.0 && pair(1).1.is_nan(), "{:?}", pair(1));
+    assert_eq!(pair(2), (7.0, 7.0));
+    assert!(pair(3).0.is_nan() && pair(3).1.is_nan(), "{:?}", pair(3));
+    assert_eq!(pair(4), (0.0, 0.0));
+    // The brick of zeros and NaN was written: level 0 reads back its NaN.
+    let (l0, _) = read_level(&out, 0, None, DType::F32);
+    assert!(l0[(2 * d + 3) * d + 9].is_nan() && l0[(d + 2) * d + 9] == 0.0);
+    let info = brickyard_store::info::inspect(&out).unwrap();
+    let s0 = info.levels[0].stats.clone().unwrap();
+    assert_eq!((s0.constant, s0.empty, s0.nan), (5, 4, 1), "{s0:?}");
+    assert_eq!((s0.min, s0.max), (0.0, 7.0), "{s0:?}");
+    let c = brickyard_store::info::check::check(&out, &NoProgress).unwrap();
+    assert!(c.ok(), "{c:?}");
+    // Statistics of the old kind: brick 0 recorded as constant 5.
+    let b0 = ArraySubset::new_with_ranges(&[0..1, 0..1, 0..1, 0..1, 0..2]);
+    a.store_array_subset(&b0, &[5.0f64, 5.0]).unwrap();
+    let c = brickyard_store::info::check::check(&out, &NoProgress).unwrap();
+    assert_eq!(c.problems.len(), 1, "{c:?}");
+    let msg = c.problems[0].to_string();
+    assert!(msg.contains("NaN voxels are drawn as 5"), "{msg}");
+}

@@ -2441,6 +2441,125 @@ fn info_counts_bricks_of_nan_only() {
     assert!(String::from_utf8_lossy(&o.stdout).contains("1 of NaN only"));
 }
 
+/// NaN voxels are drawn as nothing whether the other values of their brick
+/// differ or are all one value: such a brick is recorded as `(v, NaN)`, so
+/// that no reader takes it for constant and maps it without loading it
+/// (which drew its NaN as `v`). Bricks of 8 voxels; the left half's bricks
+/// hold 50 and NaN, the right half's 50, 60 and NaN; every odd column is
+/// NaN through the whole depth.
+#[test]
+fn nan_beside_a_single_value_is_drawn_as_nan() {
+    let d = tempfile::tempdir().unwrap();
+    let (nx, ny, nz) = (32usize, 32usize, 16usize);
+    let mut v = vec![50f32; nx * ny * nz];
+    for (i, x) in v.iter_mut().enumerate() {
+        let c = i % nx;
+        if c % 2 == 1 {
+            *x = f32::NAN;
+        } else if c >= 16 && c % 3 == 0 {
+            *x = 60.0;
+        }
+    }
+    let raw = d.path().join("v.raw");
+    std::fs::write(
+        &raw,
+        v.iter().flat_map(|x| x.to_le_bytes()).collect::<Vec<u8>>(),
+    )
+    .unwrap();
+    let store = d.path().join("v.ome.zarr");
+    let o = run(&[
+        "convert",
+        s(&raw),
+        s(&store),
+        "--dims",
+        "32x32x16",
+        "--dtype",
+        "f32",
+        "--brick",
+        "8",
+    ]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    // Level 0: 4·4·2 bricks, none constant (each holds NaN), none of NaN only.
+    let o = run(&["info", s(&store), "--json"]);
+    let j: serde_json::Value = serde_json::from_slice(&o.stdout).unwrap();
+    let st = &j["levels"][0]["stats"];
+    assert_eq!(
+        (
+            st["bricks"].as_u64(),
+            st["constant"].as_u64(),
+            st["nan"].as_u64()
+        ),
+        (Some(32), Some(0), Some(0)),
+        "{st}"
+    );
+    assert_eq!(
+        (st["min"].as_f64(), st["max"].as_f64()),
+        (Some(50.0), Some(60.0)),
+        "{st}"
+    );
+    let o = run(&["info", s(&store), "--check"]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    let cam = d.path().join("cam.json");
+    std::fs::write(
+        &cam,
+        r#"{"projection":{"type":"orthographic","height":32},"eye":[16,16,-50],"target":[16,16,8],"up":[0,-1,0]}"#,
+    )
+    .unwrap();
+    let backends: &[&str] = match brickyard_gpu::context::test_gpu() {
+        Some(_) => &["cpu", "gpu"],
+        None => &["cpu"], // BRICKYARD_SKIP_GPU=1
+    };
+    for &backend in backends {
+        for mode in ["mip", "slice"] {
+            let png = d.path().join(format!("{mode}-{backend}.png"));
+            let o = run(&[
+                "render",
+                s(&store),
+                "--size",
+                "32",
+                "--camera",
+                s(&cam),
+                "--mode",
+                mode,
+                "--tf",
+                "linear",
+                "--window",
+                "0,100",
+                "--level",
+                "0",
+                "--backend",
+                backend,
+                "--raw-f32",
+                "--quiet",
+                "-o",
+                s(&png),
+            ]);
+            assert!(o.status.success(), "{}", stderr(&o));
+            let px: Vec<f32> = std::fs::read(png.with_extension("f32"))
+                .unwrap()
+                .chunks_exact(4)
+                .map(|b| f32::from_le_bytes(b.try_into().unwrap()))
+                .collect();
+            assert_eq!(px.len(), 32 * 32 * 4);
+            // Pixel centres lie on voxel centres: column c shows voxel column c.
+            for y in [3usize, 16, 28] {
+                for c in 0..nx {
+                    let got = px[(y * 32 + c) * 4];
+                    let want = match c {
+                        c if c % 2 == 1 => 0.0,
+                        c if c >= 16 && c % 3 == 0 => 0.6,
+                        _ => 0.5,
+                    };
+                    assert!(
+                        (got - want).abs() < 1e-4,
+                        "{backend} {mode}: row {y} column {c} is {got}, {want} expected"
+                    );
+                }
+            }
+        }
+    }
+}
+
 /// A NIfTI-1 file of u8 voxels `data` (x fastest) of `dims` (x, y, z), with
 /// `intent` and the rescale `scl` (slope, intercept).
 fn nifti_u8(path: &Path, dims: [u16; 3], data: &[u8], intent: i16, scl: (f32, f32)) {

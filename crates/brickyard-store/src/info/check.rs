@@ -269,6 +269,25 @@ fn same(a: f64, b: f64) -> bool {
     a == b || (a.is_nan() && b.is_nan())
 }
 
+/// Whether the part of a decoded chunk of shape `cs` inside the array
+/// (`valid` elements along each axis) holds NaN.
+fn clipped_any_nan<T: Sample>(v: &[T], cs: &[u64], valid: &[u64]) -> bool {
+    let n = cs.len();
+    let row = valid[n - 1] as usize;
+    let rows: u64 = valid[..n - 1].iter().product();
+    (0..rows).any(|r| {
+        let idx = unravel(r, &valid[..n - 1]);
+        let mut off = 0u64;
+        for a in 0..n - 1 {
+            off = off * cs[a] + idx[a];
+        }
+        let off = (off * cs[n - 1]) as usize;
+        // (Not NaN: the one value unequal to itself.)
+        #[allow(clippy::eq_op)]
+        v[off..off + row].iter().any(|x| x != x)
+    })
+}
+
 /// Minimum and maximum (NaN ignored, as the statistics are made) of the
 /// part of a decoded chunk of shape `cs` that lies inside the array:
 /// `valid` elements along each axis.
@@ -362,6 +381,15 @@ impl Target<'_> {
             .map(|a| self.sub[a].min(shape[a].saturating_sub(g[a] * self.sub[a])))
             .collect();
         let (mn, mx) = clipped_min_max(v, &self.sub, &valid)?;
+        let has_nan = T::DTYPE.is_float() && mn == mx && clipped_any_nan(v, &self.sub, &valid);
+        let (mn, mx) = brickyard_core::brick_stats::recorded(mn, mx, has_nan);
+        if has_nan && same(mn, want[0]) && same(mn, want[1]) {
+            return Some(format!(
+                "its values besides NaN are all {mn}, and the statistics say {mn}..{mn}: a \
+                 constant brick, so its NaN voxels are drawn as {mn} (statistics written \
+                 before NaN was recorded; convert the source again)"
+            ));
+        }
         (!same(mn, want[0]) || !same(mx, want[1])).then(|| {
             format!(
                 "decoded values span {mn}..{mx}, the statistics say {}..{}",
