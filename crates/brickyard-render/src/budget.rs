@@ -125,6 +125,10 @@ pub enum Decision {
     Continue,
     /// The bias changed (coarser or finer); draw another frame.
     Changed { from: f64, to: f64 },
+    /// A try at a finer bias ([`LodBudget::try_finer`]) did not fit: the
+    /// bias is back at `to`, where the view was complete, and that
+    /// complete image is the result.
+    Revert { from: f64, to: f64 },
     /// A render may stop here.
     Stop(Stop),
 }
@@ -146,9 +150,17 @@ pub struct LodBudget {
     roomy: u32,
     /// Frames in a row without progress.
     stalled: u32,
-    /// The working set at the user's bias, in bricks, as first measured
-    /// when it did not fit (a lower bound).
+    /// What the first frame that did not fit at the user's bias asked for,
+    /// in bricks (slots used at their own level and bricks asked for). An
+    /// estimate: a frame still waiting for data lets rays run on past
+    /// what would have stopped them.
     pub needed_at_base: Option<usize>,
+    /// While a render tries a finer bias ([`try_finer`](Self::try_finer)):
+    /// the bias it was complete at.
+    trying: Option<f64>,
+    /// The finest bias a try found too fine for the pool, for the view in
+    /// hand (never tried again until the view changes).
+    too_fine: Option<f64>,
 }
 
 /// Steps of the bias.
@@ -172,7 +184,53 @@ impl LodBudget {
             roomy: 0,
             stalled: 0,
             needed_at_base: None,
+            trying: None,
+            too_fine: None,
         }
+    }
+
+    /// A render complete at a bias coarser than the user's: try half a
+    /// level finer, returning `(from, to)`, or `None` when there is no
+    /// finer bias to try (at the user's, or that bias was found too fine
+    /// for this view). The caller keeps the complete image: if the finer
+    /// bias does not fit, [`update`](Self::update) says
+    /// [`Decision::Revert`] and that image is the result.
+    ///
+    /// The bias is raised from frames still waiting for data, whose rays
+    /// run on past what the missing bricks would have stopped: they ask
+    /// for more than the view needs, and how much more depends on the
+    /// order bricks arrive in (the back ends differ). Trying finer from
+    /// a complete view, with the coarser bricks in the pool standing in,
+    /// settles every back end at the finest bias that fits.
+    pub fn try_finer(&mut self) -> Option<(f64, f64)> {
+        if self.interactive || self.bias <= self.base {
+            return None;
+        }
+        let to = (self.bias - STEP).max(self.base);
+        if self.too_fine.is_some_and(|t| to <= t) {
+            return None;
+        }
+        let from = self.bias;
+        self.trying = Some(from);
+        self.bias = to;
+        self.saturated = 0;
+        self.stalled = 0;
+        Some((from, to))
+    }
+
+    /// Whether a finer bias is being tried.
+    pub fn trying_finer(&self) -> bool {
+        self.trying.is_some()
+    }
+
+    /// Give up the try at a finer bias (the render ends before it could
+    /// tell): the bias goes back to the one that was complete.
+    pub fn abandon_try(&mut self) -> Option<Decision> {
+        let to = self.trying.take()?;
+        let from = self.bias;
+        self.too_fine = Some(from);
+        self.bias = to;
+        Some(Decision::Revert { from, to })
     }
 
     /// The level of detail to draw with: `lod` shifted by the bias in
@@ -199,6 +257,10 @@ impl LodBudget {
         self.saturated = 0;
         self.roomy = 0;
         self.stalled = 0;
+        self.too_fine = None;
+        if let Some(to) = self.trying.take() {
+            self.bias = to;
+        }
     }
 
     /// Take one frame's signals and decide.
@@ -214,6 +276,20 @@ impl LodBudget {
             self.stalled = 0;
         } else if !s.complete {
             self.stalled += 1;
+        }
+        if self.trying.is_some() {
+            // A finer try: complete, it holds (the caller may try finer
+            // still); anything else (no room, a stall, bricks that failed)
+            // and the complete image at the coarser bias is the result.
+            if s.complete {
+                self.trying = None;
+                return Decision::Stop(Stop::Complete);
+            }
+            let failed = s.requests == 0 && !s.progress;
+            if full || failed || self.stalled >= STALL_FRAMES {
+                return self.abandon_try().expect("trying");
+            }
+            return Decision::Continue;
         }
         if full && self.saturated >= 1 && self.bias < self.max {
             // How much too big is the working set? Slots used at their own
@@ -406,6 +482,75 @@ mod tests {
             Decision::Stop(Stop::Complete)
         );
         assert_eq!(b.bias, 2.5);
+    }
+
+    #[test]
+    fn a_render_tries_finer_before_it_ends_and_reverts_when_that_does_not_fit() {
+        let mut b = LodBudget::new(0.0, 6, false);
+        // Raised by two levels from a frame that overstated its needs.
+        assert!(matches!(
+            b.update(&sig(false, 1500, 10, 100)),
+            Decision::Changed { .. }
+        ));
+        assert_eq!(b.bias, 2.0);
+        assert_eq!(
+            b.update(&sig(true, 0, 0, 30)),
+            Decision::Stop(Stop::Complete)
+        );
+        // Complete: half a level finer fits, and so does the next half.
+        assert_eq!(b.try_finer(), Some((2.0, 1.5)));
+        assert!(b.trying_finer());
+        assert_eq!(b.update(&sig(false, 20, 0, 40)), Decision::Continue);
+        assert_eq!(
+            b.update(&sig(true, 0, 0, 60)),
+            Decision::Stop(Stop::Complete)
+        );
+        assert!(!b.trying_finer());
+        assert_eq!(b.try_finer(), Some((1.5, 1.0)));
+        // 1.0 does not: back to 1.5, where the render was complete, and
+        // 1.0 is not tried again for this view.
+        assert_eq!(
+            b.update(&sig(false, 30, 4, 100)),
+            Decision::Revert { from: 1.0, to: 1.5 }
+        );
+        assert_eq!((b.bias, b.trying_finer()), (1.5, false));
+        assert_eq!(b.try_finer(), None);
+        // The next view may try it again.
+        b.view_changed();
+        assert_eq!(b.try_finer(), Some((1.5, 1.0)));
+        // A stall, or only failed bricks left, also ends the try.
+        let stuck = FrameSignals {
+            progress: false,
+            ..sig(false, 5, 0, 50)
+        };
+        let mut d = Decision::Continue;
+        for _ in 0..STALL_FRAMES {
+            d = b.update(&stuck);
+        }
+        assert_eq!(d, Decision::Revert { from: 1.0, to: 1.5 });
+        b.view_changed();
+        assert_eq!(b.try_finer(), Some((1.5, 1.0)));
+        let failed = FrameSignals {
+            progress: false,
+            ..sig(false, 0, 0, 50)
+        };
+        assert_eq!(b.update(&failed), Decision::Revert { from: 1.0, to: 1.5 });
+        // Out of frames while trying: the caller abandons the try.
+        b.view_changed();
+        assert_eq!(b.try_finer(), Some((1.5, 1.0)));
+        assert_eq!(
+            b.abandon_try(),
+            Some(Decision::Revert { from: 1.0, to: 1.5 })
+        );
+        assert_eq!(b.abandon_try(), None);
+        // Never past the user's bias, and views never try.
+        let mut b = LodBudget::new(0.5, 6, false);
+        assert_eq!(b.try_finer(), None);
+        b.bias = 0.75;
+        assert_eq!(b.try_finer(), Some((0.75, 0.5)));
+        let mut v = LodBudget::new(0.0, 6, true);
+        v.bias = 2.0;
+        assert_eq!(v.try_finer(), None);
     }
 
     #[test]

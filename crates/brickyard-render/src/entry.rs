@@ -380,13 +380,21 @@ impl Entries {
     /// and resident bricks crossed through their clear cells are the ones
     /// the walk looked up there and rays now skip (of each channel, for
     /// [`of_channels`](Self::of_channels)).
+    ///
+    /// Only up to where the level changes: rays walk on from there at a
+    /// coarser level (`start_at_entry`), and this level's bricks beyond
+    /// are not theirs. (Marked, they held the pool: after a coarser bias
+    /// the pool's finer bricks, crossed far past their level's end, took
+    /// the room of the bricks the view needs, and a render that fits
+    /// found no room.)
     pub(crate) fn mark_passed(&self, f: &Frame, rg: &ViewRays) {
+        let end = f.next_level_t(self.level);
         self.passable.par_iter().for_each(|p| {
             let near = p.bx.near;
             let [x0, y0, x1, y1] = p.bx.rect;
             'px: for j in y0..y1 {
                 for i in x0..x1 {
-                    let e = self.at(i as usize, j as usize);
+                    let e = self.at(i as usize, j as usize).min(end);
                     if e <= near {
                         continue;
                     }

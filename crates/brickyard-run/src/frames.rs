@@ -215,6 +215,9 @@ pub fn drive(
     let mut stop = None;
     let mut completeness = 0.0;
     let mut unserved = 0;
+    // The last complete image (its unserved samples, its bias) while a
+    // finer bias is tried.
+    let mut complete: Option<(Image, u64, f64)> = None;
     loop {
         if frames >= opt.max_frames && full_drawn {
             break;
@@ -264,6 +267,10 @@ pub fn drive(
             f: &f,
         });
         let d = budget.update(&sig);
+        if let Decision::Revert { .. } = d {
+            // The finer bias did not fit: the complete image stands.
+            break;
+        }
         let tiles = f.tiles.take();
         if pass {
             keep = tiles.map(|t| (true, l, f.image, t));
@@ -273,6 +280,7 @@ pub fn drive(
                 Decision::Changed { .. } => true,
                 Decision::Stop(_) => false,
                 Decision::Continue => sig.requests > 0,
+                Decision::Revert { .. } => unreachable!("handled above"),
             };
             continue;
         }
@@ -284,6 +292,20 @@ pub fn drive(
             None => shown = Some(f.image),
         }
         if let Decision::Stop(why) = d {
+            // Complete at a bias the budget raised: try finer, keeping
+            // this image in case the finer one does not fit.
+            let finer = (why == Stop::Complete && frames < opt.max_frames)
+                .then(|| budget.try_finer())
+                .flatten();
+            if let Some((from, _)) = finer {
+                let img = match keep.take() {
+                    Some((_, _, img, _)) => img,
+                    None => shown.take().expect("a full frame was drawn"),
+                };
+                complete = Some((img, unserved, from));
+                pass = small.is_some();
+                continue;
+            }
             stop = Some(why);
             break;
         }
@@ -291,6 +313,21 @@ pub fn drive(
             // Nothing arrived yet: do not spin.
             std::thread::sleep(std::time::Duration::from_millis(1));
         }
+    }
+    // Ended while trying a finer bias (out of frames, or it did not
+    // fit): the image complete at the coarser bias is the result.
+    budget.abandon_try();
+    if let (Some((img, u, bias)), true) = (complete.take(), stop.is_none()) {
+        budget.bias = bias;
+        return Ok(Outcome {
+            image: img,
+            frames,
+            stop: Some(Stop::Complete),
+            budget: budget.clone(),
+            completeness: 1.0,
+            unserved: u,
+            seconds: t0.elapsed().as_secs_f64(),
+        });
     }
     let image = match keep {
         Some((false, _, img, _)) => img,

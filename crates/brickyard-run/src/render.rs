@@ -2081,7 +2081,7 @@ fn run_one(
                 .needed_at_base
                 .map(|n| {
                     format!(
-                        ", this view needs at least about {} at full detail",
+                        ", its first frame at full detail asked for about {}",
                         human_bytes(n as u64 * slot_bytes)
                     )
                 })

@@ -206,6 +206,77 @@ fn pools_from_tiny_to_large_complete_on_the_device() {
     pools_complete_at_the_detail_that_fits("gpu");
 }
 
+/// A close perspective camera and pools from below to an eighth of the
+/// view's working set (2.4 MiB): the CPU and the device settle at the same bias, and
+/// it is the finest that fits (asked half a level finer, the same pool
+/// makes the render coarsen again). Coarsening decides from frames still
+/// waiting for data, which ask for more than the view needs (the back ends
+/// differed by up to 1.5 levels); a complete render tries half a level
+/// finer before it ends. The CPU also marked the finer bricks its rays
+/// passed through clear space beyond their level's end as in use, which
+/// held the pool against the bricks the view needed.
+#[test]
+fn back_ends_settle_at_the_same_finest_bias_that_fits() {
+    let d = tempfile::tempdir().unwrap();
+    let store = d.path().join("m.ome.zarr");
+    ok(&run(&[
+        "generate",
+        "mandelbulb",
+        s(&store),
+        "--size",
+        "192",
+        "--dtype",
+        "u8",
+        "--quiet",
+        "--brick",
+        "16",
+        "--shard",
+        "64",
+    ]));
+    let cam = d.path().join("near.json");
+    std::fs::write(
+        &cam,
+        r#"{"projection":{"type":"perspective","fov_y_deg":70},"eye":[96,-30,150],"target":[96,96,96],"up":[0,0,1]}"#,
+    )
+    .unwrap();
+    let backends: &[&str] = match brickyard_gpu::context::test_gpu() {
+        Some(_) => &["cpu", "gpu"],
+        None => &["cpu"], // BRICKYARD_SKIP_GPU=1
+    };
+    let png = d.path().join("x.png");
+    let mut raised = 0;
+    for pool in ["2MiB", "1MiB", "600KiB", "300KiB"] {
+        let mut biases = vec![];
+        for &backend in backends {
+            let args = ["--camera", s(&cam), "--pool", pool];
+            let v = render(&store, &png, backend, &args);
+            assert_eq!(v["stop"], "complete", "{pool} {backend}: {v}");
+            let bias = v["lod_bias"].as_f64().unwrap();
+            raised += (bias > 0.0) as usize;
+            if bias > 0.0 {
+                let finer = format!("{}", bias - 0.5);
+                let mut args = args.to_vec();
+                args.extend(["--lod-bias", &finer]);
+                let w = render(&store, &png, backend, &args);
+                assert!(
+                    w["lod_bias"].as_f64().unwrap() > bias - 0.5,
+                    "{pool} {backend}: settled at {bias}, but {finer} fits: {w}"
+                );
+            }
+            biases.push(bias);
+        }
+        assert!(
+            biases.windows(2).all(|b| b[0] == b[1]),
+            "{pool}: {backends:?} at {biases:?}"
+        );
+    }
+    assert_eq!(
+        raised,
+        4 * backends.len(),
+        "every pool is below the working set"
+    );
+}
+
 #[test]
 fn the_process_stays_within_its_memory_budget() {
     let d = tempfile::tempdir().unwrap();
