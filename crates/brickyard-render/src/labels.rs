@@ -209,8 +209,10 @@ impl<'f, 'a, T: Sample> Walker<'f, 'a, T> {
 
     /// The value of voxel `q` of `level` from its own brick: `None` where
     /// that brick is not resident (no coarser level stands in: the
-    /// neighbours only shade), counted as an unserved sample and a miss of
-    /// the brick.
+    /// neighbours only shade), counted as a miss of the brick. Not as an
+    /// unserved sample: the pixel is drawn (the neighbour counts as the
+    /// label), and a brick that failed to load would otherwise make its
+    /// neighbours' pixels count as holes that no level fills.
     fn voxel_at_level(
         &mut self,
         level: usize,
@@ -236,7 +238,6 @@ impl<'f, 'a, T: Sample> Walker<'f, 'a, T> {
             }
             Content::Unmapped => {
                 c.missed += 1;
-                st.unserved += 1;
                 None
             }
             Content::Unresolved => unreachable!("resolved above"),

@@ -12,8 +12,8 @@ fn label_id(v: f32) -> i32 {
 
 // Whether voxel `q` ([z, y, x]) of `level` holds label `id` (1) or not
 // (0), from its own brick: outside the volume, not; its brick not
-// resident, yes, and a miss of it (labels.rs's `voxel_at_level`). Counted
-// as a sample.
+// resident, yes, and a miss of it, not an unserved sample (the pixel is
+// drawn; labels.rs's `voxel_at_level`). Counted as a sample.
 fn label_holds(level: u32, q: vec3<i32>, id: i32) -> f32 {
     if (any(q < vec3<i32>(0)) || any(vec3<f32>(q) > R.qmax[level].xyz)) {
         return 0.0;
@@ -24,7 +24,6 @@ fn label_holds(level: u32, q: vec3<i32>, id: i32) -> f32 {
     atomicAdd(&counters[0], 1u);
     if (r.y == 0.0) {
         miss(brick_id(level, b));
-        atomicAdd(&counters[2], 1u);
         return 1.0;
     }
     if (flag(e) == MAPPED) {

@@ -499,6 +499,102 @@ fn damaged_chunks_are_drawn_coarser_and_reported() {
     );
 }
 
+/// A label image's surfaces over a damaged level 0 are drawn from its
+/// coarser levels, as an image's are, on both back ends: the missing
+/// neighbours of a surface voxel only shade it, they are no hole (the CPU
+/// counted them as samples no level could serve, and the render ended
+/// with an error and no image).
+#[test]
+fn a_damaged_label_image_is_drawn_coarser_and_reported() {
+    let d = tempfile::tempdir().unwrap();
+    let store = store(d.path());
+    ok(&run(&[
+        "process",
+        s(&store),
+        "threshold(40)|label(6)",
+        "--out",
+        "blobs",
+        "--quiet",
+    ]));
+    let labels = store.join("labels/blobs");
+    // (`render`'s arguments but --window: label colours take none.)
+    let draw = |png: &Path, backend: &str| {
+        let o = run(&[
+            "render",
+            s(&labels),
+            "--size",
+            "160",
+            "--brick",
+            "16",
+            "--backend",
+            backend,
+            "--json",
+            "--out",
+            s(png),
+        ]);
+        let v = summary(&ok(&o));
+        let failed = v["failed_bricks"].as_array().is_some_and(|f| !f.is_empty());
+        assert_eq!(o.status.code(), Some(if failed { 3 } else { 0 }), "{v}");
+        v
+    };
+    let backends: &[&str] = match brickyard_gpu::context::test_gpu() {
+        Some(_) => &["cpu", "gpu"],
+        None => &["cpu"], // BRICKYARD_SKIP_GPU=1
+    };
+    let mut clean = vec![];
+    for &backend in backends {
+        let png = d.path().join(format!("clean-{backend}.png"));
+        let v = draw(&png, backend);
+        assert_eq!(v["stop"], "complete", "{v}");
+        clean.push(png_rgba(&png));
+        assert!(
+            lit(clean.last().unwrap()) > 160 * 160 / 10,
+            "too little shows"
+        );
+    }
+    // Level 0 is one shard: its index cut off, every brick of it fails.
+    let l0 = shards(&labels, 0);
+    assert_eq!(l0.len(), 1, "{l0:?}");
+    let t = std::fs::read(&l0[0]).unwrap();
+    std::fs::write(&l0[0], &t[..t.len() / 3]).unwrap();
+    for (i, &backend) in backends.iter().enumerate() {
+        let png = d.path().join(format!("damaged-{backend}.png"));
+        let v = draw(&png, backend);
+        assert_eq!(v["stop"], "complete_but_failed", "{backend}: {v}");
+        assert!(!v["failed_bricks"].as_array().unwrap().is_empty(), "{v}");
+        // Level 0 lost whole: the image is level 1's, up to a few
+        // silhouette pixels (the walk steps at level 0's rate through
+        // level 1's voxels), and close to full detail's.
+        let png1 = d.path().join(format!("l1-{backend}.png"));
+        ok(&run(&[
+            "render",
+            s(&labels),
+            "--size",
+            "160",
+            "--brick",
+            "16",
+            "--backend",
+            backend,
+            "--level",
+            "1",
+            "--out",
+            s(&png1),
+        ]));
+        let (img, l1) = (png_rgba(&png), png_rgba(&png1));
+        let (lost, gained) = (holes(&l1, &img), holes(&img, &l1));
+        eprintln!(
+            "{backend}: against level 1: {lost} lost, {gained} gained of {}",
+            lit(&l1)
+        );
+        assert!(
+            (lost + gained) * 50 <= lit(&l1),
+            "{backend}: {lost} lost, {gained} gained"
+        );
+        let lost = holes(&clean[i], &img);
+        assert!(lost * 20 <= lit(&clean[i]), "{backend}: {lost} pixels lost");
+    }
+}
+
 #[test]
 fn a_store_damaged_during_a_render_is_drawn_coarser_and_reported() {
     // A slow render (a few bricks a frame, each read delayed) of a store
