@@ -106,9 +106,23 @@ impl Derived {
         } else {
             "raise --memory".into()
         };
+        // What makes the blocks smaller: a σ (gauss, gradmag), a radius
+        // (median).
+        use brickyard_process::pipeline::Op;
+        let ops = &d.pipeline.ops;
+        let smaller = match (
+            ops.iter()
+                .any(|o| matches!(o, Op::Gauss(_) | Op::GradMag(_))),
+            ops.iter().any(|o| matches!(o, Op::Median(_))),
+        ) {
+            (true, true) => " or use a smaller σ or median radius",
+            (true, false) => " or use a smaller σ",
+            (false, true) => " or use a smaller median radius",
+            (false, false) => "",
+        };
         Err(anyhow!(
             "{e:#}; the filters of --derive get a quarter of --memory ({} of {}{}): \
-             {raise}; or lower --loader-threads or use a smaller σ",
+             {raise}; or lower --loader-threads{smaller}",
             human_bytes(share),
             human_bytes(total),
             if memory.is_some() {

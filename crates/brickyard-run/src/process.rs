@@ -463,6 +463,19 @@ fn run_job(
             caller.convert
         );
     }
+    // Results are OME-Zarr 0.5 groups (Zarr v3): inside a Zarr v2 store
+    // (OME-Zarr 0.4) its readers would not find them.
+    if !store.join("zarr.json").exists()
+        && (store.join(".zgroup").exists() || store.join(".zattrs").exists())
+    {
+        bail!(
+            "{}: a Zarr v2 store (OME-Zarr 0.4, .zgroup/.zattrs); `process` writes its results \
+             into the store as OME-Zarr 0.5 (Zarr v3) groups, which readers of a v2 store do \
+             not find: convert it first with {} and process the copy",
+            store.display(),
+            caller.convert
+        );
+    }
     // An interrupted conversion's store is refused, as `render` does.
     if let Some(why) = brickyard_store::info::inspect(store)?.incomplete {
         bail!(

@@ -553,6 +553,40 @@ fn bad_process_inputs_give_clear_errors() {
         bad
     );
     assert_eq!(std::fs::read_dir(store.join("labels")).unwrap().count(), 1);
+    // An OME-Zarr 0.4 store (Zarr v2), which `render` reads: its readers
+    // would not find results written as v3 groups, so it is refused,
+    // pointing to `convert`, and left as it was.
+    let v2 = d.path().join("v2.ome.zarr");
+    std::fs::create_dir_all(v2.join("0")).unwrap();
+    std::fs::write(v2.join(".zgroup"), r#"{"zarr_format": 2}"#).unwrap();
+    let ms = r#"{"multiscales": [{"version": "0.4", "axes": [{"name": "z", "type": "space"},
+        {"name": "y", "type": "space"}, {"name": "x", "type": "space"}], "datasets": [{"path": "0",
+        "coordinateTransformations": [{"type": "scale", "scale": [1, 1, 1]}]}]}]}"#;
+    std::fs::write(v2.join(".zattrs"), ms).unwrap();
+    let arr = r#"{"zarr_format": 2, "shape": [4, 4, 4], "chunks": [4, 4, 4], "dtype": "|u1",
+        "compressor": null, "fill_value": 0, "order": "C", "filters": null}"#;
+    std::fs::write(v2.join("0/.zarray"), arr).unwrap();
+    std::fs::write(v2.join("0/0.0.0"), (0..64u8).collect::<Vec<u8>>()).unwrap();
+    let before = snapshot(&v2);
+    ok(run(&[
+        "render",
+        s(&v2),
+        "--mode",
+        "slice",
+        "--size",
+        "8",
+        "--out",
+        s(&d.path().join("v2.png")),
+    ]));
+    let o = run(&["process", s(&v2), "threshold(10)|label(6)", "--out", "m"]);
+    let e = String::from_utf8_lossy(&o.stderr);
+    assert!(!o.status.success() && !e.contains("panicked"), "{e}");
+    assert!(
+        e.contains("Zarr v2") && e.contains("brickyard convert"),
+        "{e}"
+    );
+    assert_eq!(snapshot(&v2), before);
+    assert!(!v2.join("labels").exists() && !v2.join("derived").exists());
 }
 
 #[test]
