@@ -406,12 +406,21 @@ fn render<'py>(
 
 /// The builder's progress, handed to a Python callable `progress(kind,
 /// n)` (`kind` "start" with the total bytes, "inc" with bytes done); a
-/// Ctrl-C seen here cancels the conversion.
+/// Ctrl-C seen here cancels the conversion, and so does an exception the
+/// callback raises (kept in `error`, raised when the job has stopped).
 struct PyProgress<'a> {
     callback: Option<Py<PyAny>>,
     cancel: &'a AtomicBool,
     /// Named phases of one call (`process`): "start" becomes "start:PHASE".
     phase: Option<&'static str>,
+    /// The first exception the callback raised (other than Ctrl-C's).
+    error: &'a std::sync::Mutex<Option<PyErr>>,
+}
+
+/// The exception a `progress` callback raised, if any: the job it
+/// cancelled raises it (the callback's own, not a KeyboardInterrupt).
+fn callback_error(error: &std::sync::Mutex<Option<PyErr>>) -> Option<PyErr> {
+    error.lock().unwrap_or_else(|e| e.into_inner()).take()
 }
 
 impl PyProgress<'_> {
@@ -429,13 +438,14 @@ impl PyProgress<'_> {
                 if let Err(e) = cb.call1(py, (kind.as_str(), n)) {
                     // Ctrl-C that arrived while the callback ran is the
                     // user's: it cancels the job (raised again as the
-                    // job's KeyboardInterrupt). Other errors of the
-                    // callback are printed and the job goes on.
-                    if e.is_instance_of::<PyKeyboardInterrupt>(py) {
-                        self.cancel.store(true, Ordering::Relaxed);
-                    } else {
-                        e.print(py);
+                    // job's KeyboardInterrupt). Any other exception of the
+                    // callback cancels it too (a notebook's or GUI's way
+                    // to stop a job), and is the one the job raises.
+                    if !e.is_instance_of::<PyKeyboardInterrupt>(py) {
+                        let mut slot = self.error.lock().unwrap_or_else(|e| e.into_inner());
+                        slot.get_or_insert(e);
                     }
+                    self.cancel.store(true, Ordering::Relaxed);
                 }
             }
         })
@@ -545,10 +555,12 @@ fn run_convert(
     progress: Option<Py<PyAny>>,
 ) -> PyResult<String> {
     let cancel = AtomicBool::new(false);
+    let error = std::sync::Mutex::new(None);
     let p = PyProgress {
         callback: progress,
         cancel: &cancel,
         phase: None,
+        error: &error,
     };
     // Labels into an image's `labels/NAME`, as the command line writes
     // them: refused without `labels`; without geometry of their own, on
@@ -578,6 +590,13 @@ fn run_convert(
         if let Some(m) = made {
             m.undo();
         }
+    }
+    match (callback_error(&error), &r) {
+        (Some(e), Err(_)) => return Err(e),
+        // Raised after the last piece: the store is complete; the
+        // exception is shown, not lost.
+        (Some(e), Ok(_)) => e.print(py),
+        (None, _) => {}
     }
     if cancel.load(Ordering::Relaxed) {
         // (Ctrl-C after the last piece: the store was written whole.)
@@ -795,16 +814,19 @@ fn process(
         quiet: progress.is_none(),
     };
     let cancel = AtomicBool::new(false);
+    let error = std::sync::Mutex::new(None);
     let phases = PyPhases {
         labelling: PyProgress {
             callback: progress.as_ref().map(|p| p.clone_ref(py)),
             cancel: &cancel,
             phase: Some("labelling (pass 1, voxels)"),
+            error: &error,
         },
         writing: PyProgress {
             callback: progress,
             cancel: &cancel,
             phase: Some("writing"),
+            error: &error,
         },
     };
     // The job runs beside this thread, which watches for Ctrl-C: the
@@ -814,8 +836,13 @@ fn process(
     // it before it ends.)
     let r = watched(py, &cancel, "process", || {
         brickyard_run::process::run(&args, &PYTHON, &phases, &cancel)
-    })
-    .map_err(to_py)?;
+    });
+    match (callback_error(&error), &r) {
+        (Some(e), Err(_)) => return Err(e),
+        (Some(e), Ok(_)) => e.print(py),
+        (None, _) => {}
+    }
+    let r = r.map_err(to_py)?;
     Ok((r.output.clone(), r.labels, r.summary()))
 }
 

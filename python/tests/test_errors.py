@@ -281,6 +281,37 @@ def test_ctrl_c_in_a_progress_callback_stops_the_conversion(tmp_path):
     assert not dst.exists() and not (tmp_path / "c.zarr.partial").exists()
 
 
+def test_an_exception_in_a_progress_callback_cancels_the_job_and_is_raised(store, tmp_path):
+    # A notebook's or GUI's cancel button raises from the callback: the job
+    # stops, nothing is published, and the callback's own exception comes
+    # out (it used to be printed while the job went on and published).
+    class Cancel(Exception):
+        pass
+
+    calls = []
+
+    def cancel(kind, n):
+        calls.append(kind)
+        if kind == "inc":
+            raise Cancel("cancelled by the user")
+
+    v = np.random.default_rng(2).integers(0, 60000, (128, 256, 256), dtype=np.uint16)
+    dst = tmp_path / "n.ome.zarr"
+    with pytest.raises(Cancel, match="cancelled by the user"):
+        brickyard.from_numpy(v, dst, progress=cancel, memory=64 << 20)
+    assert calls.count("inc") == 1, calls
+    assert not dst.exists() and not (tmp_path / "n.ome.zarr.partial").exists()
+    before = sorted(p.relative_to(store) for p in store.rglob("*"))
+    calls.clear()
+    with pytest.raises(Cancel, match="cancelled by the user"):
+        brickyard.process(store, "gauss(1)", out="cancelled", progress=cancel)
+    assert "inc" in calls, calls
+    assert sorted(p.relative_to(store) for p in store.rglob("*")) == before
+    # The store takes the same job afterwards.
+    brickyard.process(store, "gauss(1)", out="cancelled", progress=False)
+    assert (store / "derived" / "cancelled").is_dir()
+
+
 def test_a_shard_file_gone_is_an_oserror(tmp_path):
     # As the README says for a file gone (it was a ValueError).
     p = tmp_path / "g.zarr"

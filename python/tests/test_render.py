@@ -206,9 +206,12 @@ def test_render_refuses_unknown_options_and_channels_that_are_no_integers(store)
     assert brickyard.render(s, size=16, backend="cpu", lod_bias=0.5).shape == (16, 16, 4)
 
 
-def test_ctrl_c_stops_a_long_render(tmp_path):
+@pytest.mark.parametrize("kind", ["frame", "progressive"])
+def test_ctrl_c_stops_a_long_render(tmp_path, kind):
     # One frame of 2048² at 8 samples per voxel takes seconds (8 s on two
-    # cores); Ctrl-C stops it within a band of its tiles.
+    # cores); Ctrl-C stops it within a band of its tiles. An accumulation
+    # of 48 frames at 256² takes 19 s: Ctrl-C stops it between frames
+    # (it used to wait for the last).
     import os
     import signal
     import threading
@@ -221,7 +224,10 @@ def test_ctrl_c_stops_a_long_render(tmp_path):
     try:
         timer.start()
         with pytest.raises(KeyboardInterrupt, match="interrupted"):
-            brickyard.render(p, size=2048, samples_per_voxel=8, backend="cpu")
+            if kind == "frame":
+                brickyard.render(p, size=2048, samples_per_voxel=8, backend="cpu")
+            else:
+                brickyard.render(p, size=256, progressive=48, backend="cpu")
         seconds = time.monotonic() - t0
     finally:
         timer.cancel()

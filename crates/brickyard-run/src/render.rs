@@ -2572,6 +2572,11 @@ fn accumulate(
     for frame in 1..=4 * n as usize + 64 {
         let f0 = std::time::Instant::now();
         let st = acc.frame(backend, s, scene, params, lod)?;
+        // Stopped (Ctrl-C; a Python caller's KeyboardInterrupt) during
+        // the frame: between frames, not after all of them.
+        if scene.stopped() {
+            return Err(crate::process::Interrupted.into());
+        }
         between();
         left = st.stand_ins;
         short = st.incomplete;
