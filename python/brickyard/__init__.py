@@ -381,12 +381,16 @@ _SWITCHES = {
     "process": frozenset(("overwrite",)),
 }
 # Words that are a flag's value when they follow it ("use --backend cpu").
-_CHOICES = {"backend": ("auto", "cpu", "gpu"), "mode": ("dvr", "mip", "slice")}
+_CHOICES = {"backend": ("auto", "cpu", "gpu"), "mode": ("dvr", "mip", "slice"),
+            "tf": ("labels", "linear", "soft", "hot", "viridis", "coolwarm", "opaque")}
 # A flag in a message: as clap quotes it ('--level <LEVEL>'), or in the
 # text, with the value that follows it if there is one (a number, with or
 # without a unit: "--memory 56MiB").
 _FLAG_RE = re.compile(r"'--(?P<quoted>[a-z][a-z0-9-]*)(?: <[A-Z_]+>)?'"
-                      r"|--(?P<flag>[a-z][a-z0-9]*(?:-[a-z0-9]+)*)(?P<value> [0-9][\w.]*| [a-z]+)?")
+                      r"|--(?P<flag>[a-z][a-z0-9]*(?:-[a-z0-9]+)*)"
+                      r"(?P<value> [0-9][\w.]*| [a-z]+| [A-Z][A-Z_]*\b)?")
+# A message that starts with the flag it is about ("label-opacity: ...").
+_PREFIX_RE = re.compile(r"^(?P<flag>[a-z][a-z0-9]*(?:-[a-z0-9]+)+):")
 
 
 def _keywords(message: str, command: str) -> str:
@@ -400,9 +404,17 @@ def _keywords(message: str, command: str) -> str:
     (its usage line and advice about --help are the CLI's)."""
     if message.startswith("error: "):
         message = message.split("\n\n", 1)[0]
+    p = _PREFIX_RE.match(message)
+    if p and p.group("flag") in _FLAGS:
+        message = p.group("flag").replace("-", "_") + message[p.end("flag"):]
+    # A command line quoted as such (`brickyard process ... --out NAME`)
+    # is left whole: it is advice to run that command.
+    quoted = [q.span() for q in re.finditer(r"`[^`]*`", message)]
 
     def word(m: "re.Match") -> str:
         at = m.start()
+        if any(a < at < b for a, b in quoted):
+            return m.group(0)
         before = message[at - 1] if at else " "
         name = m.group("quoted") or m.group("flag")
         # "--pool/--host": a flag after a flag and a slash.
@@ -418,6 +430,9 @@ def _keywords(message: str, command: str) -> str:
             return f"{key}=True" + (m.group("value") or "")
         if value and (value[0].isdigit() or value in _CHOICES.get(name, ())):
             return f"{key}={value}" if re.fullmatch(r"[0-9]+(\.[0-9]+)?", value) else f'{key}="{value}"'
+        # A placeholder: "--labels NAME" is labels=NAME.
+        if value and value[0].isupper():
+            return f"{key}={value}"
         return f"{key}=" + (m.group("value") or "")
 
     return _FLAG_RE.sub(word, message)
@@ -429,7 +444,7 @@ _OUT_OF_RANGE = re.compile(
     r"^level: the store has \d+ levels$"
     r"|^(derive: )?channel:? \d+ asked for but .* has \d+ channel\(s\)$"
     r"|: level \d+ asked for but the image has \d+ levels$"
-    r"|^channel-levels: .*\(the store has \d+ levels\)$", re.S)
+    r"|^channel_levels: .*\(the store has \d+ levels\)$", re.S)
 
 
 @contextlib.contextmanager

@@ -131,7 +131,7 @@ def test_level_and_channel_outside_the_store_are_index_errors(store, tmp_path):
         brickyard.render(store, channel=1, backend="cpu")
     with pytest.raises(IndexError, match="channel: 3 asked for but the store has 1 channel"):
         brickyard.render(store, channel=["0:red", "3:green"], backend="cpu")
-    with pytest.raises(IndexError, match="channel-levels: .*the store has 2 levels"):
+    with pytest.raises(IndexError, match="channel_levels: .*the store has 2 levels"):
         brickyard.render(store, channel=[0], channel_levels={0: (0, 5)}, backend="cpu")
     with pytest.raises(IndexError, match="level 7 asked for but the image has 2 levels"):
         brickyard.convert(store, tmp_path / "c.ome.zarr", level=7, progress=False)
@@ -169,7 +169,7 @@ def test_messages_name_python_keywords(store, tmp_path):
     assert str(e.value).endswith("; raise memory= or lower pool=/host= or draw a smaller image"), e.value
     with pytest.raises(ValueError) as e:
         brickyard.render(store, channel=[0], channel_tf={1: "hot"}, backend="cpu")
-    assert str(e.value) == ("channel-tf: transfer functions per channel are for dvr of several channels; this "
+    assert str(e.value) == ("channel_tf: transfer functions per channel are for dvr of several channels; this "
                             "store has one channel: give its transfer function with tf="), e.value
     with pytest.raises(ValueError) as e:
         brickyard.render(store, derive="gauss(1)", channel=[0, 0], backend="cpu")
@@ -187,6 +187,19 @@ def test_messages_name_python_keywords(store, tmp_path):
     assert str(e.value).startswith('ortho: applies to mode="dvr" and mip only; a slice is seen face on (move '
                                    'its plane with slice_z=, slice_origin= or slice_normal=, or give the camera '
                                    'with camera=)'), e.value
+    # A message about a flag starts with its keyword; a placeholder and a
+    # preset are the keyword's value; a command line in backquotes is
+    # left as the command it is.
+    with pytest.raises(ValueError) as e:
+        brickyard.render(store, mode="slice", label_opacity=2, backend="cpu")
+    assert str(e.value).startswith("label_opacity: applies with labels=NAME"), e.value
+    with pytest.raises(ValueError) as e:
+        brickyard.render(store, only_labels=[1], backend="cpu")
+    assert str(e.value) == ('only_labels: applies to a label image\'s colours (a store\'s labels/NAME, '
+                            'tf="labels", or labels=NAME over a slice)'), e.value
+    with pytest.raises(ValueError) as e:
+        brickyard.render(store, mode="slice", derive="gauss(1)|label(6)", backend="cpu")
+    assert "`brickyard process STORE PIPELINE --out NAME`" in str(e.value), e.value
 
 
 def test_every_render_flag_is_translated(cli):
