@@ -614,15 +614,24 @@ fn inner_images(path: &Path, problems: &mut Vec<String>) -> Vec<(String, String)
                      publishing it?): {again} writes it again, or remove the folder"
                 ));
             }
-            let summary = ms.map(|ms| {
-                let ms = ms?;
-                let first = ms.datasets.first()?;
-                let meta = read_json(&dir.join(&first.path).join("zarr.json")).ok()?;
-                let dtype = meta.get("data_type")?.as_str()?.to_string();
+            // (A first level's metadata that cannot be read is named
+            // with its fault, not as "not a multiscale image".)
+            let summary = ms.and_then(|ms| {
+                let Some(ms) = ms else { return Ok(None) };
+                let Some(first) = ms.datasets.first() else {
+                    return Ok(None);
+                };
+                let meta = read_json(&dir.join(&first.path).join("zarr.json"))?;
+                let Some(dtype) = meta.get("data_type").and_then(|d| d.as_str()) else {
+                    return Ok(None);
+                };
                 let count = label_count(&dir).map_or(String::new(), |n| {
                     format!(", {n} labels with statistics (_brickyard/labels.csv)")
                 });
-                Some(format!("{dtype}, {} levels{count}", ms.datasets.len()))
+                Ok(Some(format!(
+                    "{dtype}, {} levels{count}",
+                    ms.datasets.len()
+                )))
             });
             match summary {
                 Ok(Some(s)) => out.push((rel, s)),

@@ -3184,3 +3184,21 @@ fn info_lists_a_replaced_label_image_left_behind_as_a_problem() {
         "{text}"
     );
 }
+
+/// A level whose `zarr.json` is there but damaged is named with its fault
+/// (the file, "not valid JSON"), by `render` and `info`, not as an array
+/// missing from its path.
+#[test]
+fn a_damaged_level_metadata_file_is_named_with_its_fault() {
+    let d = tempfile::tempdir().unwrap();
+    let store = mandelbulb_48(d.path(), "b.ome.zarr");
+    let meta = store.join("0/zarr.json");
+    let mut b = std::fs::read(&meta).unwrap();
+    b[40..44].copy_from_slice(&[0, 1, 2, 3]);
+    std::fs::write(&meta, &b).unwrap();
+    let png = d.path().join("x.png");
+    let o = run(&["render", s(&store), "--size", "16", "--out", s(&png)]);
+    fails_with(&o, &["0/zarr.json", "not valid JSON"]);
+    assert!(!stderr(&o).contains("no Zarr array"), "{}", stderr(&o));
+    assert!(!png.exists());
+}

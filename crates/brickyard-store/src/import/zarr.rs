@@ -253,6 +253,20 @@ pub fn open(path: &Path, level: usize) -> Result<ZarrSource> {
     })?;
     let apath = path.join(&ds.path);
     if !is_array_dir(&apath) {
+        // A metadata file that is there but unreadable (damaged, cut
+        // short) is named with its own fault, not as a missing array.
+        let meta = apath.join("zarr.json");
+        if storage::exists(&meta) {
+            let j = read_json(&meta)?;
+            return Err(StoreError::invalid(
+                &meta,
+                "node_type",
+                format!(
+                    "expected \"array\" (level {level} of the image), found {}",
+                    j.get("node_type").unwrap_or(&Value::Null)
+                ),
+            ));
+        }
         return Err(StoreError::invalid(
             &apath,
             "datasets.path",
