@@ -200,6 +200,10 @@ pub struct Accumulation {
     /// Blends stop at an opacity of 0.99 (`RenderParams::early_termination`
     /// of the last frame; regions of a sort-last render blend everything).
     early: bool,
+    /// Blend a pixel only once its last run is taken (a render that shows
+    /// only the last image): frame `k` then costs one run, not a blend of
+    /// `k` runs, and `N` frames cost `N` runs instead of `N²/2`.
+    last_only: bool,
 }
 
 /// The result of a blend from kept samples.
@@ -251,6 +255,7 @@ impl Accumulation {
             drawn: 0,
             shaded: None,
             early: true,
+            last_only: false,
         }
     }
 
@@ -336,6 +341,14 @@ impl Accumulation {
         self.frame_rows(vm, scene, params, lod, 0..self.height)
     }
 
+    /// Blend each pixel only in the frame that takes its last run (and
+    /// in frames after it that replace stand-ins): for a render that
+    /// shows only the complete image. The image is the same; the frames
+    /// before show nothing new.
+    pub fn blend_last_only(&mut self) {
+        self.last_only = true;
+    }
+
     /// The image rows this accumulation keeps.
     pub fn kept_rows(&self) -> std::ops::Range<u32> {
         self.row0..self.row0 + self.rows
@@ -405,7 +418,8 @@ impl Accumulation {
         let mut image = std::mem::replace(&mut self.image, Image::new(1, 1));
         let span = (rows.start - self.row0) as usize * w..(rows.end - self.row0) as usize * w;
         let first = rows.start as usize;
-        let (clip, early) = (params.clip.as_deref().copied(), self.early);
+        let (clip, early, last_only) =
+            (params.clip.as_deref().copied(), self.early, self.last_only);
         let parts: Vec<(AccumStats, Requests)> = pixels[span.clone()]
             .par_chunks_mut(w * BAND)
             .zip(image.rgba[span].par_chunks_mut(w * BAND))
@@ -431,6 +445,7 @@ impl Accumulation {
                             normals,
                             clip,
                             early,
+                            last_only,
                         };
                         *o = s.pixel(p, (&tf, shading.as_ref()), orders, reference, &room, *o);
                     }
@@ -651,6 +666,8 @@ struct Sampler<'w, 'f, 'a, T> {
     clip: Option<[[f64; 3]; 2]>,
     /// Runs stop where they alone would stop a ray.
     early: bool,
+    /// [`Accumulation::blend_last_only`].
+    last_only: bool,
 }
 
 impl<T: Sample> Sampler<'_, '_, '_, T> {
@@ -831,6 +848,12 @@ impl<T: Sample> Sampler<'_, '_, '_, T> {
             let e = (p.dt / reference) as f32;
             let own = self.early.then_some((look.0, e));
             self.take(p, k as usize, usize::MAX, own);
+            if self.last_only && room(p, k + 1) {
+                // More runs to come: the blend waits for them (marked
+                // short, so that it is not taken for done).
+                p.short = true;
+                return shown;
+            }
         }
         let order = &orders[p.runs.len() - 1];
         let e = exponent(p, reference);

@@ -220,6 +220,43 @@ fn a_complete_image_holds_no_stand_in() {
     assert!(d <= 1e-5, "max abs diff {d} after {frames} frames");
 }
 
+/// A render blends each pixel once, when its last run is in
+/// (`blend_last_only`): the same image bit for bit as blending every frame,
+/// in core, out of core (stand-ins retaken after the last run) and with a
+/// budget that stops pixels early; the frames before show nothing new.
+#[test]
+fn blending_only_the_last_frame_gives_the_same_image() {
+    let f = fixture();
+    for (pool, n, budget) in [
+        (64u64 << 20, 16u32, 1usize << 20),
+        (f.bytes / 3, 8, 1 << 20),
+        (64 << 20, 16, 3 * 200),
+    ] {
+        let mut every = Accumulation::new(f.params.width, f.params.height, n, budget);
+        let mut s = session(&f.store, pool);
+        accumulate(&mut s, &f, &mut every, Lod::Fixed(0));
+        let mut last = Accumulation::new(f.params.width, f.params.height, n, budget);
+        last.blend_last_only();
+        let mut s = session(&f.store, pool);
+        s.begin_frame();
+        let (_, reqs) = last.frame(s.vm(), &f.scene, &f.params, Lod::Fixed(0));
+        s.finish_frame(reqs.iter());
+        if n > 1 && budget > 1000 {
+            // Frame 1 of n blends nothing.
+            assert_eq!(last.image().coverage(0.01), 0.0, "pool {pool}");
+            assert!(!last.complete());
+        }
+        accumulate(&mut s, &f, &mut last, Lod::Fixed(0));
+        assert_eq!(last.frames(), every.frames());
+        assert_eq!(
+            last.image().rgba,
+            every.image().rgba,
+            "pool {pool}, {n} frames, budget {budget}"
+        );
+        assert!(every.image().coverage(0.01) > 0.2, "image nearly empty");
+    }
+}
+
 /// A per-pixel budget of 600 samples stops pixels short of the 16 frames
 /// asked for (at ⌊600 / steps of the ray⌋) and the accumulation is
 /// complete there, within the memory bound.

@@ -577,6 +577,14 @@ pub struct AccumFrame {
 }
 
 impl Accumulating {
+    /// Blend only what the last frame shows (see
+    /// [`Accumulation::blend_last_only`]; the device blends every frame).
+    pub fn blend_last_only(&mut self) {
+        if let Accumulating::Cpu(a) = self {
+            a.blend_last_only();
+        }
+    }
+
     /// An empty accumulation of `n` frames for `p`'s image on `backend`,
     /// keeping at most `budget` samples a pixel (the device lowers it to
     /// what one of its buffers holds).

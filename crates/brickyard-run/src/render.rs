@@ -2544,6 +2544,8 @@ fn accumulate(
         )),
         None => Accumulating::new(backend, params, n, budget),
     };
+    // A render shows the last image only: the frames before need no blend.
+    acc.blend_last_only();
     // A store too small for one run of the view's rays costs detail: say so.
     let kept = acc.budget() as u64;
     match brickyard_render::savr::lod_within(scene, params, lod, kept) {
