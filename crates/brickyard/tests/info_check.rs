@@ -528,6 +528,45 @@ fn info_check_covers_the_images_inside_a_store() {
             .any(|a| a.starts_with("labels/cells")),
         "{j}"
     );
+    // A shard of the label image gone: its statistics say it held labels
+    // (the images' statistics were read but not used before).
+    let lost = d.path().join("lost.ome.zarr");
+    copy_dir(&store, &lost);
+    let shard = lost.join("labels/cells/0/c/0/0/0");
+    std::fs::remove_file(&shard).unwrap();
+    let (code, j, _) = check(&lost);
+    assert_eq!(code, Some(1), "{j}");
+    assert!(
+        j["problems"]
+            .as_array()
+            .unwrap()
+            .iter()
+            .any(|p| p["array"] == "labels/cells level 0"
+                && p["error"].as_str().unwrap().contains("statistics")),
+        "{j}"
+    );
+    // The label table `--only-labels` goes by: cut short, or not a table.
+    let table = store.join("labels/cells/_brickyard/labels.csv");
+    let whole = std::fs::read_to_string(&table).unwrap();
+    let rows = whole.lines().count() - 1;
+    assert!(rows > 3, "{whole}");
+    for (text, want) in [
+        (
+            whole.lines().take(3).collect::<Vec<_>>().join("\n") + "\n",
+            "the table lists 2 label(s), up to 2",
+        ),
+        ("garbage,,,\n".to_string(), "expected the header"),
+        (whole.replacen("\n2,", "\n2,x", 1), "row 2"),
+    ] {
+        std::fs::write(&table, &text).unwrap();
+        let (code, j, _) = check(&store);
+        assert_eq!(code, Some(1), "{j}");
+        let p = &j["problems"][0];
+        assert_eq!(p["array"], "labels/cells label table", "{j}");
+        assert!(p["error"].as_str().unwrap().contains(want), "{want}: {j}");
+    }
+    std::fs::write(&table, &whole).unwrap();
+    assert_eq!(check(&store).0, Some(0));
 }
 
 #[test]

@@ -455,7 +455,8 @@ impl Target<'_> {
         let mut t = Tally::default();
         let path = self.shard_path(s);
         let inner = self.inner_chunks(s);
-        let want_values = self.stats.is_none() && self.name.starts_with("statistics");
+        // (Also of the images inside: "labels/NAME statistics of level K".)
+        let want_values = self.stats.is_none() && self.name.contains("statistics of level ");
         // Open the file first: a missing file is legal (fill value), an
         // unreadable one is not.
         let mut file = match crate::storage::open_regular(&path) {
@@ -845,6 +846,14 @@ pub fn check(path: &Path, progress: &dyn Progress) -> Result<CheckReport> {
             report.absent += tally.absent;
             problems.extend(tally.problems);
         }
+        let name = dir
+            .strip_prefix(path)
+            .map_or(String::new(), |r| r.to_string_lossy().into_owned());
+        problems.extend(label_table_problem(
+            dir,
+            &name,
+            stats.first().and_then(Option::as_ref),
+        ));
     }
     // A stable order: by array as listed, then shard, then chunk.
     let listed: Vec<&str> = images
@@ -857,6 +866,60 @@ pub fn check(path: &Path, progress: &dyn Progress) -> Result<CheckReport> {
     });
     report.problems = problems;
     Ok(report)
+}
+
+/// A label image's table of label statistics (`_brickyard/labels.csv`,
+/// which `render --only-labels` and the viewer's readout go by) that
+/// cannot be read, or that lists fewer labels than its voxels hold: the
+/// largest label in level 0's brick statistics is above the table's
+/// largest (a table cut short, or one of another image). `None` when the
+/// image has no table.
+fn label_table_problem(dir: &Path, name: &str, stats: Option<&LevelStats>) -> Option<CheckProblem> {
+    use brickyard_core::label_table;
+    let path = dir.join(label_table::PATH);
+    let text = std::fs::read(&path).ok()?;
+    let problem = |error: String| CheckProblem {
+        array: match name {
+            "" => "label table".to_string(),
+            n => format!("{n} label table"),
+        },
+        chunk: None,
+        shard: vec![],
+        path: path.clone(),
+        error,
+    };
+    let Ok(text) = String::from_utf8(text) else {
+        return Some(problem("not UTF-8 text".into()));
+    };
+    let mut lines = text.lines();
+    if let Err(e) = label_table::check_header(lines.next().unwrap_or("")) {
+        return Some(problem(e));
+    }
+    let mut top = 0u64;
+    let mut rows = 0u64;
+    for (i, line) in lines.enumerate().filter(|(_, l)| !l.is_empty()) {
+        match label_table::parse_row(line) {
+            Ok((id, _)) => {
+                top = top.max(id);
+                rows += 1;
+            }
+            Err(e) => return Some(problem(format!("row {}: {e}", i + 1))),
+        }
+    }
+    let held = stats?
+        .v
+        .iter()
+        .flatten()
+        .filter_map(|m| brickyard_core::brick_stats::finite_range(m[0], m[1]))
+        .map(|(_, hi)| hi)
+        .fold(f64::NEG_INFINITY, f64::max);
+    (held > top as f64).then(|| {
+        problem(format!(
+            "the table lists {rows} label(s), up to {top}, but level 0's voxels hold labels up \
+             to {held} (by the brick statistics): a table cut short or of another image; \
+             --only-labels and --hide-labels go by it (process the image again to write it)"
+        ))
+    })
 }
 
 /// The images under a local store's `labels/` and `derived/` groups (what
