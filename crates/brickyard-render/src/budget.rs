@@ -203,10 +203,21 @@ impl LodBudget {
     /// a complete view, with the coarser bricks in the pool standing in,
     /// settles every back end at the finest bias that fits.
     pub fn try_finer(&mut self) -> Option<(f64, f64)> {
+        self.try_finer_to((self.bias - STEP).max(self.base))
+    }
+
+    /// [`try_finer`](Self::try_finer) for a fixed level, which the bias
+    /// moves by whole levels ([`apply`](Self::apply)): the next finer level
+    /// drawn (half a level finer would often draw the same one).
+    pub fn try_finer_level(&mut self) -> Option<(f64, f64)> {
+        let extra = (self.bias - self.base).max(0.0).ceil();
+        self.try_finer_to(self.base + (extra - 1.0).max(0.0))
+    }
+
+    fn try_finer_to(&mut self, to: f64) -> Option<(f64, f64)> {
         if self.interactive || self.bias <= self.base {
             return None;
         }
-        let to = (self.bias - STEP).max(self.base);
         if self.too_fine.is_some_and(|t| to <= t) {
             return None;
         }
@@ -551,6 +562,19 @@ mod tests {
         let mut v = LodBudget::new(0.0, 6, true);
         v.bias = 2.0;
         assert_eq!(v.try_finer(), None);
+        // A fixed level moves by whole levels: from 1.5 (two levels
+        // coarser) to 1.0 (one), then to the level asked for.
+        let mut f = LodBudget::new(0.0, 6, false);
+        f.bias = 1.5;
+        assert_eq!(f.apply(Lod::Fixed(1), 6), Lod::Fixed(3));
+        assert_eq!(f.try_finer_level(), Some((1.5, 1.0)));
+        assert_eq!(f.apply(Lod::Fixed(1), 6), Lod::Fixed(2));
+        assert_eq!(
+            f.update(&sig(true, 0, 0, 10)),
+            Decision::Stop(Stop::Complete)
+        );
+        assert_eq!(f.try_finer_level(), Some((1.0, 0.0)));
+        assert_eq!(f.apply(Lod::Fixed(1), 6), Lod::Fixed(1));
     }
 
     #[test]

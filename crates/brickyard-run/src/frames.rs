@@ -295,7 +295,10 @@ pub fn drive(
             // Complete at a bias the budget raised: try finer, keeping
             // this image in case the finer one does not fit.
             let finer = (why == Stop::Complete && frames < opt.max_frames)
-                .then(|| budget.try_finer())
+                .then(|| match lod {
+                    Lod::Fixed(_) => budget.try_finer_level(),
+                    Lod::Auto { .. } => budget.try_finer(),
+                })
                 .flatten();
             if let Some((from, _)) = finer {
                 let img = match keep.take() {
@@ -317,8 +320,18 @@ pub fn drive(
     // Ended while trying a finer bias (out of frames, or it did not
     // fit): the image complete at the coarser bias is the result.
     budget.abandon_try();
+    // A fixed level moves by whole levels: the bias says by how many
+    // (+0.5 and +1.0 draw the same level; the back ends then report
+    // alike).
+    let whole = |b: &mut LodBudget| {
+        if let Lod::Fixed(_) = lod {
+            b.bias = b.base + (b.bias - b.base).max(0.0).ceil();
+        }
+    };
+    whole(budget);
     if let (Some((img, u, bias)), true) = (complete.take(), stop.is_none()) {
         budget.bias = bias;
+        whole(budget);
         return Ok(Outcome {
             image: img,
             frames,

@@ -112,6 +112,15 @@ fn render(store: &Path, out: &Path, backend: &str, extra: &[&str]) -> serde_json
     v
 }
 
+/// The back ends to compare: the device too where there is an adapter
+/// (lavapipe here; none with BRICKYARD_SKIP_GPU=1).
+fn backends() -> &'static [&'static str] {
+    match brickyard_gpu::context::test_gpu() {
+        Some(_) => &["cpu", "gpu"],
+        None => &["cpu"],
+    }
+}
+
 fn pools_complete_at_the_detail_that_fits(backend: &str) {
     let d = tempfile::tempdir().unwrap();
     let store = store(d.path());
@@ -239,10 +248,7 @@ fn back_ends_settle_at_the_same_finest_bias_that_fits() {
         r#"{"projection":{"type":"perspective","fov_y_deg":70},"eye":[96,-30,150],"target":[96,96,96],"up":[0,0,1]}"#,
     )
     .unwrap();
-    let backends: &[&str] = match brickyard_gpu::context::test_gpu() {
-        Some(_) => &["cpu", "gpu"],
-        None => &["cpu"], // BRICKYARD_SKIP_GPU=1
-    };
+    let backends = backends();
     let png = d.path().join("x.png");
     let mut raised = 0;
     for pool in ["2MiB", "1MiB", "600KiB", "300KiB"] {
@@ -537,10 +543,7 @@ fn a_damaged_label_image_is_drawn_coarser_and_reported() {
         assert_eq!(o.status.code(), Some(if failed { 3 } else { 0 }), "{v}");
         v
     };
-    let backends: &[&str] = match brickyard_gpu::context::test_gpu() {
-        Some(_) => &["cpu", "gpu"],
-        None => &["cpu"], // BRICKYARD_SKIP_GPU=1
-    };
+    let backends = backends();
     let mut clean = vec![];
     for &backend in backends {
         let png = d.path().join(format!("clean-{backend}.png"));
