@@ -417,10 +417,23 @@ struct PyProgress<'a> {
     error: &'a std::sync::Mutex<Option<PyErr>>,
 }
 
-/// The exception a `progress` callback raised, if any: the job it
-/// cancelled raises it (the callback's own, not a KeyboardInterrupt).
-fn callback_error(error: &std::sync::Mutex<Option<PyErr>>) -> Option<PyErr> {
-    error.lock().unwrap_or_else(|e| e.into_inner()).take()
+/// The exception a `progress` callback raised, if any, to raise for the
+/// job it cancelled (`failed`: the callback's own, not a
+/// KeyboardInterrupt). Raised after the job's last piece, the job is
+/// done: the exception is shown, not lost.
+fn callback_error(
+    py: Python<'_>,
+    error: &std::sync::Mutex<Option<PyErr>>,
+    failed: bool,
+) -> PyResult<()> {
+    match error.lock().unwrap_or_else(|e| e.into_inner()).take() {
+        Some(e) if failed => Err(e),
+        Some(e) => {
+            e.print(py);
+            Ok(())
+        }
+        None => Ok(()),
+    }
 }
 
 impl PyProgress<'_> {
@@ -591,13 +604,7 @@ fn run_convert(
             m.undo();
         }
     }
-    match (callback_error(&error), &r) {
-        (Some(e), Err(_)) => return Err(e),
-        // Raised after the last piece: the store is complete; the
-        // exception is shown, not lost.
-        (Some(e), Ok(_)) => e.print(py),
-        (None, _) => {}
-    }
+    callback_error(py, &error, r.is_err())?;
     if cancel.load(Ordering::Relaxed) {
         // (Ctrl-C after the last piece: the store was written whole.)
         let done = if r.is_ok() {
@@ -837,11 +844,7 @@ fn process(
     let r = watched(py, &cancel, "process", || {
         brickyard_run::process::run(&args, &PYTHON, &phases, &cancel)
     });
-    match (callback_error(&error), &r) {
-        (Some(e), Err(_)) => return Err(e),
-        (Some(e), Ok(_)) => e.print(py),
-        (None, _) => {}
-    }
+    callback_error(py, &error, r.is_err())?;
     let r = r.map_err(to_py)?;
     Ok((r.output.clone(), r.labels, r.summary()))
 }

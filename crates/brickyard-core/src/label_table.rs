@@ -85,6 +85,18 @@ pub fn check_header(line: &str) -> Result<(), String> {
     }
 }
 
+/// Every row of a whole table's text (header first), in the file's order;
+/// an error names the line it is on (the header is line 1).
+pub fn parse_table(text: &str, mut f: impl FnMut(u64, LabelRow)) -> Result<(), String> {
+    let mut lines = text.lines();
+    check_header(lines.next().unwrap_or(""))?;
+    for (i, line) in lines.enumerate().filter(|(_, l)| !l.is_empty()) {
+        let (id, r) = parse_row(line).map_err(|e| format!("row {}: {e}", i + 2))?;
+        f(id, r);
+    }
+    Ok(())
+}
+
 /// A row of the table: its label and the rest.
 pub fn parse_row(line: &str) -> Result<(u64, LabelRow), String> {
     let f: Vec<&str> = line.split(',').collect();

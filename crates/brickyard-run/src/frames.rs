@@ -320,18 +320,17 @@ pub fn drive(
     // Ended while trying a finer bias (out of frames, or it did not
     // fit): the image complete at the coarser bias is the result.
     budget.abandon_try();
+    let kept = complete.filter(|_| stop.is_none());
+    if let Some((_, _, bias)) = kept {
+        budget.bias = bias;
+    }
     // A fixed level moves by whole levels: the bias says by how many
     // (+0.5 and +1.0 draw the same level; the back ends then report
     // alike).
-    let whole = |b: &mut LodBudget| {
-        if let Lod::Fixed(_) = lod {
-            b.bias = b.base + (b.bias - b.base).max(0.0).ceil();
-        }
-    };
-    whole(budget);
-    if let (Some((img, u, bias)), true) = (complete.take(), stop.is_none()) {
-        budget.bias = bias;
-        whole(budget);
+    if let Lod::Fixed(_) = lod {
+        budget.bias = budget.base + (budget.bias - budget.base).max(0.0).ceil();
+    }
+    if let Some((img, u, _)) = kept {
         return Ok(Outcome {
             image: img,
             frames,

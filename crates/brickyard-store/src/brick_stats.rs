@@ -7,6 +7,7 @@
 use crate::error::{Result, StoreError};
 use crate::source::{Absence, VolumeSource};
 use crate::storage::{self, StoreAt};
+pub use brickyard_core::brick_stats::{finite_range, recorded};
 use brickyard_core::Dims3;
 use std::collections::HashMap;
 use std::path::{Path, PathBuf};
@@ -82,8 +83,6 @@ impl ReadBox<'_> {
         &self.buf[i as usize..(i + (x1 - x0) * self.es) as usize]
     }
 }
-
-pub use brickyard_core::brick_stats::{finite_range, recorded};
 
 /// A decoded chunk of the statistics array, `None` when unreadable.
 type StatsChunk = Option<Arc<Vec<f64>>>;

@@ -496,16 +496,11 @@ impl WebSource {
         if b.len() > max_bytes {
             return Ok(None);
         }
-        let text = String::from_utf8_lossy(&b);
-        let mut lines = text.lines();
-        label_table::check_header(lines.next().unwrap_or(""))
-            .map_err(|e| format!("{path}: {e}"))?;
         let mut out = std::collections::HashMap::new();
-        for (i, line) in lines.enumerate().filter(|(_, l)| !l.is_empty()) {
-            let (id, r) =
-                label_table::parse_row(line).map_err(|e| format!("{path}: row {}: {e}", i + 2))?;
+        label_table::parse_table(&String::from_utf8_lossy(&b), |id, r| {
             out.insert(id, r.bounds());
-        }
+        })
+        .map_err(|e| format!("{path}: {e}"))?;
         Ok(Some(out))
     }
 

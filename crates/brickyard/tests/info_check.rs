@@ -556,7 +556,8 @@ fn info_check_covers_the_images_inside_a_store() {
             "the table lists 2 label(s), up to 2",
         ),
         ("garbage,,,\n".to_string(), "expected the header"),
-        (whole.replacen("\n2,", "\n2,x", 1), "row 2"),
+        // (Label 2 is on the third line: the header is the first.)
+        (whole.replacen("\n2,", "\n2,x", 1), "row 3: column 2"),
     ] {
         std::fs::write(&table, &text).unwrap();
         let (code, j, _) = check(&store);

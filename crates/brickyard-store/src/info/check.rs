@@ -269,22 +269,24 @@ fn same(a: f64, b: f64) -> bool {
     a == b || (a.is_nan() && b.is_nan())
 }
 
-/// Whether the part of a decoded chunk of shape `cs` inside the array
-/// (`valid` elements along each axis) holds NaN.
-fn clipped_any_nan<T: Sample>(v: &[T], cs: &[u64], valid: &[u64]) -> bool {
+/// The rows (along the last axis) of the part of a decoded chunk of shape
+/// `cs` that lies inside the array: `valid` elements along each axis.
+fn clipped_rows<'a, T>(
+    v: &'a [T],
+    cs: &'a [u64],
+    valid: &'a [u64],
+) -> impl Iterator<Item = &'a [T]> {
     let n = cs.len();
     let row = valid[n - 1] as usize;
     let rows: u64 = valid[..n - 1].iter().product();
-    (0..rows).any(|r| {
+    (0..rows).map(move |r| {
         let idx = unravel(r, &valid[..n - 1]);
         let mut off = 0u64;
         for a in 0..n - 1 {
             off = off * cs[a] + idx[a];
         }
         let off = (off * cs[n - 1]) as usize;
-        // (Not NaN: the one value unequal to itself.)
-        #[allow(clippy::eq_op)]
-        v[off..off + row].iter().any(|x| x != x)
+        &v[off..off + row]
     })
 }
 
@@ -301,16 +303,9 @@ fn clipped_min_max<T: Sample>(v: &[T], cs: &[u64], valid: &[u64]) -> Option<(f64
         let (a, b) = T::min_max(v);
         return Some((a.to_f64(), b.to_f64()));
     }
-    let rows: u64 = valid[..n - 1].iter().product();
     let mut mm: Option<(T, T)> = None;
-    for r in 0..rows {
-        let idx = unravel(r, &valid[..n - 1]);
-        let mut off = 0u64;
-        for a in 0..n - 1 {
-            off = off * cs[a] + idx[a];
-        }
-        let off = (off * cs[n - 1]) as usize;
-        let (a, b) = T::min_max(&v[off..off + row]);
+    for r in clipped_rows(v, cs, valid) {
+        let (a, b) = T::min_max(r);
         mm = Some(match mm {
             None => (a, b),
             Some((m0, m1)) => (T::min_max(&[m0, a]).0, T::min_max(&[m1, b]).1),
@@ -381,7 +376,11 @@ impl Target<'_> {
             .map(|a| self.sub[a].min(shape[a].saturating_sub(g[a] * self.sub[a])))
             .collect();
         let (mn, mx) = clipped_min_max(v, &self.sub, &valid)?;
-        let has_nan = T::DTYPE.is_float() && mn == mx && clipped_any_nan(v, &self.sub, &valid);
+        // (Not NaN: the one value unequal to itself.)
+        #[allow(clippy::eq_op)]
+        let has_nan = T::DTYPE.is_float()
+            && mn == mx
+            && clipped_rows(v, &self.sub, &valid).any(|r| r.iter().any(|x| x != x));
         let (mn, mx) = brickyard_core::brick_stats::recorded(mn, mx, has_nan);
         if has_nan && same(mn, want[0]) && same(mn, want[1]) {
             return Some(format!(
@@ -891,20 +890,13 @@ fn label_table_problem(dir: &Path, name: &str, stats: Option<&LevelStats>) -> Op
     let Ok(text) = String::from_utf8(text) else {
         return Some(problem("not UTF-8 text".into()));
     };
-    let mut lines = text.lines();
-    if let Err(e) = label_table::check_header(lines.next().unwrap_or("")) {
+    let (mut top, mut rows) = (0u64, 0u64);
+    let read = label_table::parse_table(&text, |id, _| {
+        top = top.max(id);
+        rows += 1;
+    });
+    if let Err(e) = read {
         return Some(problem(e));
-    }
-    let mut top = 0u64;
-    let mut rows = 0u64;
-    for (i, line) in lines.enumerate().filter(|(_, l)| !l.is_empty()) {
-        match label_table::parse_row(line) {
-            Ok((id, _)) => {
-                top = top.max(id);
-                rows += 1;
-            }
-            Err(e) => return Some(problem(format!("row {}: {e}", i + 1))),
-        }
     }
     let held = stats?
         .v
