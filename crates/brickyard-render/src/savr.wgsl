@@ -382,6 +382,13 @@ fn acc_pixel(px: u32, ray: Ray) -> vec4<f32> {
         set_hdr(px, 3u, k + 1u);
         set_run_word(px, k, 0u);
         acc_take(px, ray, k, 0xffffffffu, true, dt / R.acc_ref.x);
+        if (R.acc.z == 1u && room(px, k + 1u)) {
+            // Blending the last run only (R.acc.z), and more runs to come:
+            // the blend waits for them (marked short, so that the pixel is
+            // not taken for complete).
+            set_hdr(px, 5u, 1u);
+            return shown(px);
+        }
     }
     let n = hdr(px, 3u);
     let e = acc_exponent(px);

@@ -185,6 +185,77 @@ fn device_accumulation_out_of_core_and_shaded() {
     }
 }
 
+/// Blending each pixel only when its last run is in (`blend_last_only`,
+/// what `render --progressive` asks for) gives the device's image of
+/// blending every frame bit for bit: in core, out of core (stand-ins
+/// retaken after the last run) and with a budget that stops pixels early;
+/// frame 1 of several blends nothing.
+#[test]
+fn device_blending_only_the_last_frame_gives_the_same_image() {
+    let Some(gpu) = test_gpu() else { return };
+    let f = fixture();
+    let mut r = GpuRenderer::new(&gpu);
+    for (pool, n, budget) in [
+        (64u64 << 20, 16u32, 1usize << 16),
+        (f.bytes / 3, 8, 1 << 16),
+        (64 << 20, 16, 3 * 200),
+    ] {
+        let mut run = |last_only: bool| {
+            let mut s = session(&f.store, pool);
+            let (mut dvm, _) = DeviceVm::new(&gpu, s.vm_mut()).unwrap();
+            let mut dacc = DeviceAccumulation::new(&gpu, 40, 30, n, budget);
+            if last_only {
+                dacc.blend_last_only();
+                // Frames before the last blend nothing, also those whose
+                // samples were served (the first, from cold, has none).
+                let mut served = 0;
+                while budget > 1000 && dacc.drawn() + 1 < n && (served == 0 || dacc.drawn() < 3) {
+                    std::thread::sleep(std::time::Duration::from_millis(2));
+                    s.begin_frame();
+                    let fr = dacc
+                        .frame(
+                            &gpu,
+                            &mut r,
+                            &dvm,
+                            s.vm(),
+                            None,
+                            &f.scene,
+                            &f.params,
+                            Lod::Fixed(0),
+                        )
+                        .unwrap();
+                    s.finish_frame([&fr.requests]);
+                    dvm.sync(&gpu, s.vm_mut());
+                    served += dacc.last().frame.exact;
+                    let what = format!("pool {pool}, frame {}", dacc.drawn());
+                    assert_eq!(dacc.image().coverage(0.01), 0.0, "{what} blended");
+                    assert!(!dacc.complete(), "{what}");
+                }
+                assert!(served > 0 || budget < 1000, "pool {pool}: nothing served");
+            }
+            accumulate_device(
+                &gpu,
+                &mut r,
+                &mut dvm,
+                &mut s,
+                &f,
+                &f.params,
+                &mut dacc,
+                Lod::Fixed(0),
+            );
+            (dacc.image().clone(), dacc.drawn())
+        };
+        let (every, drawn) = run(false);
+        let (last, last_drawn) = run(true);
+        assert_eq!(last_drawn, drawn, "pool {pool}");
+        assert_eq!(
+            last.rgba, every.rgba,
+            "pool {pool}, {n} frames, budget {budget}"
+        );
+        assert!(every.coverage(0.01) > 0.2, "image nearly empty");
+    }
+}
+
 /// A budget of 600 samples stops pixels short of 16 frames, as on the
 /// CPU; a re-blend under a fainter and a denser function equals the CPU's
 /// re-blend (the fainter one reports short pixels, the next frame

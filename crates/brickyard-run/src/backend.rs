@@ -578,10 +578,11 @@ pub struct AccumFrame {
 
 impl Accumulating {
     /// Blend only what the last frame shows (see
-    /// [`Accumulation::blend_last_only`]; the device blends every frame).
+    /// [`Accumulation::blend_last_only`]).
     pub fn blend_last_only(&mut self) {
-        if let Accumulating::Cpu(a) = self {
-            a.blend_last_only();
+        match self {
+            Accumulating::Cpu(a) => a.blend_last_only(),
+            Accumulating::Gpu(a) => a.blend_last_only(),
         }
     }
 

@@ -73,6 +73,9 @@ pub struct DeviceAccumulation {
     drawn: u32,
     last: DeviceAccumStats,
     image: Image,
+    /// Blend a pixel only in the frame that takes its last run (see
+    /// [`blend_last_only`](Self::blend_last_only)).
+    last_only: bool,
 }
 
 impl DeviceAccumulation {
@@ -128,7 +131,19 @@ impl DeviceAccumulation {
             drawn: 0,
             last: DeviceAccumStats::default(),
             image: Image::new(width, height),
+            last_only: false,
         }
+    }
+
+    /// Blend each pixel only in the frame that takes its last run (and in
+    /// frames after it that replace stand-ins or extend its runs), as the
+    /// CPU twin's [`Accumulation::blend_last_only`]: for a render that
+    /// shows only the complete image. The complete image is the same; the
+    /// frames before show nothing new for pixels with runs still to come.
+    ///
+    /// [`Accumulation::blend_last_only`]: crate::savr::Accumulation::blend_last_only
+    pub fn blend_last_only(&mut self) {
+        self.last_only = true;
     }
 
     /// Samples a pixel keeps.
@@ -207,7 +222,12 @@ impl DeviceAccumulation {
         AccPass {
             entry,
             bands,
-            acc: [self.target, self.budget, 0, normals as u32],
+            acc: [
+                self.target,
+                self.budget,
+                self.last_only as u32,
+                normals as u32,
+            ],
             reference: reference as f32,
         }
     }
