@@ -730,6 +730,15 @@ fn run_job(
     }
     if is_label {
         attrs["ome"]["image-label"] = json!({"version": "0.5", "source": {"image": "../../"}});
+    } else if let Some(ch) = attrs
+        .get_mut("ome")
+        .and_then(|o| o.get_mut("omero"))
+        .and_then(|o| o.get_mut("channels"))
+        .and_then(|c| c.get_mut(0))
+    {
+        // The result's one channel is named as the result (it was
+        // "channel 0", whichever channel it came from).
+        ch["label"] = json!(paths.name);
     }
     write_json(&root, &j).map_err(|e| cleanup(e.into()))?;
     if let Some(lab) = &labeling {

@@ -675,6 +675,29 @@ fn the_chosen_channel_is_processed_and_measured() {
         // The mean is over channel 1 (the processed one), not channel 0.
         assert_eq!(row[11].parse::<f64>().unwrap(), val as f64);
     }
+    // A derived image of channel 1 (a median of radius 1: the boxes'
+    // middles keep their values, the zeros around them stay zero; channel
+    // 0's noise would not), its one channel named as the result (not
+    // "channel 0").
+    ok(run(&[
+        "process",
+        s(&store),
+        "median(1)",
+        "--out",
+        "bright",
+        "--channel",
+        "1",
+        "--quiet",
+    ]));
+    let (got, _) = read_level0::<f32>(&store.join("derived/bright"));
+    let at = |z: usize, y: usize, x: usize| got[(z * 14 + y) * 16 + x];
+    assert_eq!(
+        (at(8, 10, 12), at(2, 3, 4), at(0, 0, 0), at(11, 0, 15)),
+        (900.0, 500.0, 0.0, 0.0)
+    );
+    let info =
+        String::from_utf8(ok(run(&["info", s(&store.join("derived/bright"))])).stdout).unwrap();
+    assert!(info.contains("channel 0 \"bright\""), "{info}");
 }
 
 fn png_rgba(p: &Path) -> Vec<u8> {
