@@ -88,6 +88,25 @@ impl Views {
                 format!("must be 0 or more, got {}", self.spacing),
             );
         }
+        // A slice shifted by more than a view's width is out of every
+        // view (and its layers would span the shifts: memory and time
+        // without bound).
+        let view_width = match self.alone {
+            Some(_) => width,
+            None => width / self.count,
+        } as f64;
+        let reach = (self.count as f64 - 1.0) * 0.5 * (self.count / 2) as f64;
+        if self.parallax.abs() * reach > view_width {
+            return bad(
+                "parallax",
+                format!(
+                    "shifts a slice by up to {} pixels, more than a view's width ({view_width}): at most {} pixels with {} views",
+                    self.parallax.abs() * reach,
+                    (view_width / reach * 100.0).floor() / 100.0,
+                    self.count
+                ),
+            );
+        }
         Ok(())
     }
 

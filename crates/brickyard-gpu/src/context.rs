@@ -204,6 +204,12 @@ impl Gpu {
             .min(self.limits.max_buffer_size)
     }
 
+    /// A software adapter (Mesa's lavapipe, WARP): its device memory is
+    /// this process's memory.
+    pub fn is_software(&self) -> bool {
+        self.info.device_type == wgpu::DeviceType::Cpu
+    }
+
     /// One line for logs and reports: name, kind and back end.
     pub fn describe(&self) -> String {
         format!(

@@ -157,6 +157,15 @@ impl Pixel {
     fn start(&self, k: usize) -> usize {
         self.runs[..k].iter().map(|r| r.len as usize).sum()
     }
+
+    /// Bytes this pixel holds allocated.
+    fn memory(&self) -> usize {
+        self.values.capacity() * 4
+            + self.flags.capacity()
+            + self.cos.capacity() * 4
+            + self.runs.capacity() * std::mem::size_of::<RunInfo>()
+            + std::mem::size_of::<Pixel>()
+    }
 }
 
 /// What an accumulation frame did.
@@ -290,17 +299,66 @@ impl Accumulation {
             .unwrap_or(self.drawn.min(self.target))
     }
 
-    /// Bytes of kept samples and run headers, all pixels.
+    /// Bytes of kept samples and run headers, all pixels: what their
+    /// buffers hold allocated, room not yet used included.
     pub fn memory(&self) -> usize {
+        self.pixels.iter().map(Pixel::memory).sum()
+    }
+
+    /// The bytes this accumulation is expected to hold once it has drawn
+    /// `target` frames, from what its frames so far kept: each pixel's
+    /// runs at their mean length so far (an eighth more, and two samples
+    /// a run, for runs a little longer and for extensions), or what its
+    /// buffers hold now where more. Before the first frame: what the
+    /// pixels alone take.
+    pub fn expected_memory(&self, target: u32) -> u64 {
+        let per = (BYTES_PER_SAMPLE + if self.shaded == Some(true) { 4 } else { 0 }) as u64;
+        let t = target.max(1) as u64;
         self.pixels
             .iter()
             .map(|p| {
-                p.values.len() * BYTES_PER_SAMPLE
-                    + p.cos.len() * 4
-                    + p.runs.len() * std::mem::size_of::<RunInfo>()
-                    + std::mem::size_of::<Pixel>()
+                let d = p.runs.len() as u64;
+                let now = p.memory() as u64;
+                if d == 0 {
+                    return now;
+                }
+                let runs = (t * std::mem::size_of::<RunInfo>() as u64)
+                    .max((p.runs.capacity() * std::mem::size_of::<RunInfo>()) as u64);
+                let samples = (p.values.len() as u64 * t * 9).div_ceil(d * 8) + 2 * t;
+                let expected = std::mem::size_of::<Pixel>() as u64 + runs + samples * per;
+                // (After one run the buffers hold only it: the second
+                // reserves for the frames asked for then.)
+                match d {
+                    1 => expected,
+                    _ => now.max(expected),
+                }
             })
             .sum()
+    }
+
+    /// Lower the frames asked for to the most whose
+    /// [`expected_memory`](Self::expected_memory) is within `bytes` (never
+    /// below the frames drawn, nor below 1); pixels then stop at the rate
+    /// reached, as with a per-pixel budget. Returns the new number of
+    /// frames when it was lowered. Call it after the first frame: the
+    /// second reserves each pixel's room for the frames then asked for.
+    pub fn fit_memory(&mut self, bytes: u64) -> Option<u32> {
+        let least = self.drawn.clamp(1, self.target);
+        if self.expected_memory(self.target) <= bytes {
+            return None;
+        }
+        // The most frames that fit (the expected bytes grow with them).
+        let (mut lo, mut hi) = (least, self.target);
+        while lo < hi {
+            let mid = lo + (hi - lo).div_ceil(2);
+            if self.expected_memory(mid) <= bytes {
+                lo = mid;
+            } else {
+                hi = mid - 1;
+            }
+        }
+        self.target = lo;
+        Some(lo)
     }
 
     /// Every pixel holds the frames asked for (or all its budget allows),
@@ -446,6 +504,7 @@ impl Accumulation {
                             clip,
                             early,
                             last_only,
+                            target,
                         };
                         *o = s.pixel(p, (&tf, shading.as_ref()), orders, reference, &room, *o);
                     }
@@ -525,6 +584,48 @@ pub fn longest_run(scene: &Scene, params: &RenderParams, level: usize) -> u64 {
     (diagonal / (scene.voxel(level) / params.samples_per_voxel)).ceil() as u64 + 2
 }
 
+/// The most bytes the first frame of an accumulation of `target` frames
+/// of `params`' view (its image rows `rows`) holds, with every ray's first
+/// run sampled at `level`'s step: each pixel's header, its runs' room,
+/// and room for its whole ray's samples (what the first frame reserves;
+/// rays end earlier where they turn opaque). An automatic level of detail
+/// asks for `level` or coarser.
+pub fn first_frame_memory(
+    scene: &Scene,
+    params: &RenderParams,
+    rows: std::ops::Range<u32>,
+    target: u32,
+    level: usize,
+) -> u64 {
+    let per = (BYTES_PER_SAMPLE + if params.tf.shading.is_some() { 4 } else { 0 }) as f64;
+    let dt = scene.voxel(level) / params.samples_per_voxel;
+    let rg = ViewRays::new(
+        &params.camera,
+        params.views.as_ref(),
+        params.width,
+        params.height,
+    );
+    let head = std::mem::size_of::<Pixel>() as u64;
+    let runs = (target.clamp(1, MAX_FRAMES) as usize * std::mem::size_of::<RunInfo>()) as u64;
+    rows.into_par_iter()
+        .map(|j| {
+            (0..params.width)
+                .map(|i| {
+                    let ray = rg.pixel_ray(i, j);
+                    let d = ray.dir;
+                    let inv = [1.0 / d[0], 1.0 / d[1], 1.0 / d[2]];
+                    head + match intersect_box_inv(&ray, inv, [0.0; 3], scene.extent) {
+                        Some((t0, t1)) if t1 > t0 => {
+                            runs + (((t1 - t0) / dt).ceil() + 1.0) as u64 * per as u64
+                        }
+                        _ => 0,
+                    }
+                })
+                .sum::<u64>()
+        })
+        .sum()
+}
+
 /// The level of detail at which every ray's first run of samples fits
 /// `budget` samples: `lod` itself where it does, else `lod` moved to the
 /// finest level `F` whose longest run fits (a fixed level no finer than
@@ -534,10 +635,18 @@ pub fn longest_run(scene: &Scene, params: &RenderParams, level: usize) -> u64 {
 pub fn lod_within(scene: &Scene, params: &RenderParams, lod: Lod, budget: u64) -> Option<Lod> {
     let n = scene.levels.len();
     let finest = (0..n).find(|&l| longest_run(scene, params, l) <= budget)?;
+    Some(lod_at_least(scene, params, lod, finest))
+}
+
+/// `lod` moved so that no ray asks for a level finer than `finest` (a
+/// fixed level no finer; an automatic one with its bias raised so that the
+/// nearest point of the volume asks for `finest` or coarser, or fixed at
+/// `finest` when the eye is inside the volume).
+pub fn lod_at_least(scene: &Scene, params: &RenderParams, lod: Lod, finest: usize) -> Lod {
     if finest == 0 {
-        return Some(lod);
+        return lod;
     }
-    Some(match lod {
+    match lod {
         Lod::Fixed(l) => Lod::Fixed(l.max(finest)),
         Lod::Auto { bias } => {
             // The footprint grows with the distance (perspective) or is
@@ -563,7 +672,7 @@ pub fn lod_within(scene: &Scene, params: &RenderParams, lod: Lod, budget: u64) -
                 false => Lod::Fixed(finest),
             }
         }
-    })
+    }
 }
 
 /// Whether pixel `p` may begin run `k` of `target` with `budget` samples.
@@ -668,6 +777,8 @@ struct Sampler<'w, 'f, 'a, T> {
     early: bool,
     /// [`Accumulation::blend_last_only`].
     last_only: bool,
+    /// Frames asked for (the room each pixel's buffers reserve).
+    target: u32,
 }
 
 impl<T: Sample> Sampler<'_, '_, '_, T> {
@@ -729,6 +840,15 @@ impl<T: Sample> Sampler<'_, '_, '_, T> {
                 break;
             }
             let (v, fl, cos) = self.sample(t);
+            if vals.len() == vals.capacity() {
+                // Beyond the room reserved: an eighth more, not double.
+                let more = EXTEND.max(vals.len() / 8);
+                vals.reserve_exact(more);
+                flags.reserve_exact(more);
+                if self.normals {
+                    coss.reserve_exact(more);
+                }
+            }
             vals.push(v);
             flags.push(fl);
             if self.normals {
@@ -751,9 +871,13 @@ impl<T: Sample> Sampler<'_, '_, '_, T> {
         if last {
             (p.values, p.flags, p.cos) = (vals, flags, coss);
         } else {
+            // (Room for exactly these: an extension, not a doubling.)
+            p.values.reserve_exact(vals.len());
+            p.flags.reserve_exact(flags.len());
             p.values.splice(start..start, vals);
             p.flags.splice(start..start, flags);
             if self.normals {
+                p.cos.reserve_exact(coss.len());
                 p.cos.splice(start..start, coss);
             }
         }
@@ -840,6 +964,26 @@ impl<T: Sample> Sampler<'_, '_, '_, T> {
             return shown;
         }
         if room(p, k) {
+            // The buffers' room, reserved instead of doubling as they
+            // fill: the first run's bound while it is taken (then only
+            // what it took), then from its length the frames asked for.
+            // What they hold allocated stays close to what they keep
+            // (see `expected_memory`, `first_frame_memory`).
+            let more = match k {
+                0 => p.max_run(),
+                1 => (p.values.len() + 2) * (self.target as usize).saturating_sub(1),
+                _ => 0,
+            };
+            if more > 0 {
+                p.values.reserve_exact(more);
+                p.flags.reserve_exact(more);
+                if self.normals {
+                    p.cos.reserve_exact(more);
+                }
+            }
+            if k == 1 {
+                p.runs.reserve_exact(self.target as usize - 1);
+            }
             p.runs.push(RunInfo {
                 first: first_step(p, offset(k)),
                 len: 0,
@@ -848,6 +992,11 @@ impl<T: Sample> Sampler<'_, '_, '_, T> {
             let e = (p.dt / reference) as f32;
             let own = self.early.then_some((look.0, e));
             self.take(p, k as usize, usize::MAX, own);
+            if k == 0 {
+                p.values.shrink_to_fit();
+                p.flags.shrink_to_fit();
+                p.cos.shrink_to_fit();
+            }
             if self.last_only && room(p, k + 1) {
                 // More runs to come: the blend waits for them (marked
                 // short, so that it is not taken for done).

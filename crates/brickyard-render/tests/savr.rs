@@ -263,6 +263,53 @@ fn blending_only_the_last_frame_gives_the_same_image() {
     }
 }
 
+/// Frames lowered after the first to fit a memory budget
+/// (`fit_memory`, what `render --progressive` does with the samples' share
+/// of --memory): the memory held stays within it, and the image is that of
+/// an accumulation asked for the lowered number from the start, bit for
+/// bit. The expected memory of the first frame's room is an upper bound of
+/// what it held.
+#[test]
+fn frames_lowered_to_fit_memory_stay_within_it() {
+    use brickyard_render::savr::first_frame_memory;
+    let f = fixture();
+    let (w, h) = (f.params.width, f.params.height);
+    let bound = first_frame_memory(&f.scene, &f.params, 0..h, 16, 0);
+    let mut s = session(&f.store, 64 << 20);
+    let mut acc = Accumulation::new(w, h, 16, 1 << 20);
+    acc.blend_last_only();
+    s.begin_frame();
+    let (_, reqs) = acc.frame(s.vm(), &f.scene, &f.params, Lod::Fixed(0));
+    s.finish_frame(reqs.iter());
+    let first = acc.memory() as u64;
+    assert!(first <= bound, "first frame {first} > its bound {bound}");
+    let all = acc.expected_memory(16);
+    let five = acc.expected_memory(5);
+    assert!(five < all && acc.expected_memory(4) < five);
+    // Room for five frames: five are drawn.
+    assert_eq!(acc.fit_memory(five), Some(5));
+    assert_eq!(acc.fit_memory(five), None, "already within");
+    accumulate(&mut s, &f, &mut acc, Lod::Fixed(0));
+    assert!(acc.complete());
+    assert_eq!(acc.target(), 5);
+    let held = acc.memory() as u64;
+    assert!(held <= five, "held {held} > {five} expected");
+    let mut s = session(&f.store, 64 << 20);
+    let mut want = Accumulation::new(w, h, 5, 1 << 20);
+    accumulate(&mut s, &f, &mut want, Lod::Fixed(0));
+    assert_eq!(acc.image().rgba, want.image().rgba);
+    assert!(want.image().coverage(0.01) > 0.2, "image nearly empty");
+    // Less than one more frame's room: the frames drawn stay.
+    let mut one = Accumulation::new(w, h, 16, 1 << 20);
+    let mut s = session(&f.store, 64 << 20);
+    s.begin_frame();
+    let (_, reqs) = one.frame(s.vm(), &f.scene, &f.params, Lod::Fixed(0));
+    s.finish_frame(reqs.iter());
+    assert_eq!(one.fit_memory(0), Some(1));
+    accumulate(&mut s, &f, &mut one, Lod::Fixed(0));
+    assert!(one.complete() && one.drawn() >= 1 && one.target() == 1);
+}
+
 /// A per-pixel budget of 600 samples stops pixels short of the 16 frames
 /// asked for (at ⌊600 / steps of the ray⌋) and the accumulation is
 /// complete there, within the memory bound.

@@ -248,6 +248,12 @@ pub fn plan_device(choice: &str, adapter: usize, memory: Option<u64>) -> DeviceP
 }
 
 impl Backend {
+    /// A device whose memory is this process's (a software adapter): what
+    /// it allocates counts against --memory.
+    pub fn device_in_host_memory(&self) -> bool {
+        matches!(self, Backend::Gpu(g) if g.gpu.is_software())
+    }
+
     /// The back end `choice` names for rendering `channels` channels (added
     /// up when several) from session `s`. `auto` takes a hardware adapter when
     /// there is one, the CPU otherwise (a software adapter is slower than the
@@ -635,6 +641,7 @@ impl Accumulating {
         }
     }
 
+    /// Frames asked for (lowered by [`fit_memory`](Self::fit_memory)).
     pub fn target(&self) -> u32 {
         match self {
             Accumulating::Cpu(a) => a.target(),
@@ -647,6 +654,26 @@ impl Accumulating {
         match self {
             Accumulating::Cpu(a) => a.budget(),
             Accumulating::Gpu(a) => a.budget(),
+        }
+    }
+
+    /// Lower the frames asked for to the most whose expected samples fit
+    /// `bytes` (see [`Accumulation::fit_memory`]); the new number where
+    /// lowered. The device's store is allocated whole at the first frame
+    /// (sized within its share before): `None`.
+    pub fn fit_memory(&mut self, bytes: u64) -> Option<u32> {
+        match self {
+            Accumulating::Cpu(a) => a.fit_memory(bytes),
+            Accumulating::Gpu(_) => None,
+        }
+    }
+
+    /// The bytes of samples expected after `target` frames (see
+    /// [`Accumulation::expected_memory`]; the device's whole store).
+    pub fn expected_memory(&self, target: u32) -> u64 {
+        match self {
+            Accumulating::Cpu(a) => a.expected_memory(target),
+            Accumulating::Gpu(a) => a.memory(),
         }
     }
 

@@ -196,6 +196,8 @@ pub struct Split {
     /// The filters of a live derived channel (`--derive`): the most their
     /// blocks hold at once.
     pub filters: u64,
+    /// The samples a progressive render keeps (`--progressive`).
+    pub samples: u64,
     /// Whether the total was given (`--memory`) rather than the default.
     pub explicit: bool,
 }
@@ -228,7 +230,12 @@ impl Split {
                 format!("derived channel's filters {}, ", human_bytes(self.filters))
             } else {
                 String::new()
-            },
+            }
+                + &if self.samples > 0 {
+                    format!("kept samples {}, ", human_bytes(self.samples))
+                } else {
+                    String::new()
+                },
             if self.device > 0 {
                 format!("device back end {}, ", human_bytes(self.device))
             } else {
@@ -276,19 +283,36 @@ pub fn split_with_filters(
     extra: u64,
     filters: u64,
 ) -> Result<Split> {
+    split_with_shares(total, pool, host, pixels, levels, extra, (filters, 0))
+}
+
+/// [`split_with_filters`] with `samples` bytes set aside besides for the
+/// samples a progressive render keeps (`shares`: filters, samples).
+pub fn split_with_shares(
+    total: Option<u64>,
+    pool: Option<u64>,
+    host: Option<u64>,
+    pixels: u64,
+    levels: usize,
+    extra: u64,
+    (filters, samples): (u64, u64),
+) -> Result<Split> {
     if pool == Some(0) {
         bail!("pool: expected a size above 0 (e.g. 256MiB)");
     }
     if host == Some(0) {
         bail!("host: expected a size above 0 (e.g. 256MiB)");
     }
-    let images = pixels * IMAGE_BYTES_PER_PIXEL;
+    let images = pixels.saturating_mul(IMAGE_BYTES_PER_PIXEL);
     let shares_given = pool.is_some() || host.is_some();
     // Each level's chunk cache keeps at least half a MiB.
     let fixed = FIXED_BYTES + extra + levels as u64 * (512 << 10);
     let explicit = total.is_some();
     let want_total = total.unwrap_or_else(default_memory);
-    let rest = want_total.saturating_sub(fixed + images + filters);
+    // (Sums saturate: a size given as 2^64 − 1 bytes is refused below as
+    // more than the machine has, not wrapped around to a small one.)
+    let filters = filters.saturating_add(samples);
+    let rest = want_total.saturating_sub(fixed.saturating_add(images).saturating_add(filters));
     let min_chunks = 4u64 << 20;
     let (pool, host, chunks) = match (pool, host) {
         (None, None) => {
@@ -307,11 +331,13 @@ pub fn split_with_filters(
             (left.saturating_sub(chunks), h, chunks)
         }
         (Some(p), Some(h)) => {
-            let left = rest.saturating_sub(p + h);
+            let left = rest.saturating_sub(p.saturating_add(h));
             (p, h, left.clamp(min_chunks, 256 << 20))
         }
     };
-    let need = pool + host + chunks + images + fixed + filters;
+    let need = [pool, host, chunks, images, fixed, filters]
+        .into_iter()
+        .fold(0u64, u64::saturating_add);
     if explicit && (need > want_total || pool == 0 || host == 0) {
         bail!(
             "memory: {} does not hold this split: pool {}, host cache {}, decoded chunks {} (at least {}), images {}{} and {} for the program; raise --memory{}{}",
@@ -354,7 +380,8 @@ pub fn split_with_filters(
         images,
         fixed,
         device: 0,
-        filters,
+        filters: filters - samples,
+        samples,
         explicit,
     })
 }
@@ -373,6 +400,9 @@ pub fn parse_bytes(s: &str) -> Result<u64> {
         .with_context(|| {
             format!("expected a size like 512MiB, 2GiB or 4096 (bytes), found {s:?}")
         })?;
+    if matches!(unit.trim().to_ascii_lowercase().as_str(), "" | "b") && v.fract() != 0.0 {
+        bail!("expected a whole number of bytes, found {s:?} (or a unit: 1.5GiB)");
+    }
     let mul: f64 = match unit.trim().to_ascii_lowercase().as_str() {
         "" | "b" => 1.0,
         "k" | "kib" => 1024.0,
@@ -458,6 +488,28 @@ mod tests {
         .unwrap_err()
         .to_string();
         assert!(e.contains("does not hold") && e.contains("filters"), "{e}");
+    }
+
+    #[test]
+    fn sizes_past_any_machine_are_refused_not_wrapped() {
+        // A pool of 2^64 − 1 bytes summed with the rest wrapped around to
+        // a small total and passed.
+        let e = split(Some(1 << 30), Some(u64::MAX), None, 1 << 16, 4)
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("does not hold"), "{e}");
+        if known_ram().is_some() {
+            let e = split(None, Some(u64::MAX), Some(u64::MAX), 1 << 16, 4)
+                .unwrap_err()
+                .to_string();
+            assert!(e.contains("of RAM"), "{e}");
+        }
+        assert_eq!(parse_bytes("99999999999999999999").unwrap(), u64::MAX);
+        // Bytes are whole; with a unit a fraction is bytes.
+        let e = parse_bytes("1.9").unwrap_err().to_string();
+        assert!(e.contains("whole number of bytes"), "{e}");
+        assert_eq!(parse_bytes("1.5KiB").unwrap(), 1536);
+        assert_eq!(parse_bytes("4096").unwrap(), 4096);
     }
 
     #[test]

@@ -401,9 +401,7 @@ fn check_mode_flags(c: &RenderCmd) -> Result<()> {
     if c.gpu_update.is_some() && c.backend == "cpu" {
         bail!("gpu-update: how the device back end updates its caches; --backend cpu has none");
     }
-    if c.loader_threads == 0 {
-        bail!("loader-threads: expected at least 1 thread reading bricks, found 0");
-    }
+    check_loader_threads(c.loader_threads)?;
     if let Some(cam) = &c.camera {
         for (flag, given) in camera_flags {
             if given {
@@ -1380,6 +1378,17 @@ fn run_one(
             _ => Camera::fit_image(extent, azimuth, elevation, projection, w, h),
         },
     };
+    // A field of view so narrow that the eye fitting the volume into it
+    // stands beyond the coordinates a camera takes: said of --fov (the
+    // camera's check would name its eye, which the user never gave).
+    if camera_file.is_none() && c.fov.is_some() {
+        let max = brickyard_core::camera::MAX_COORD;
+        if camera.eye.iter().any(|v| !v.is_finite() || v.abs() > max) {
+            bail!(
+                "fov: {fov}° is too narrow: the camera that fits the volume into it would stand                  beyond ±{max:e} from it; give a wider field of view"
+            );
+        }
+    }
     // A slice's camera file keeps its plane, so that `--camera` draws the
     // same slice; the view is drawn with the camera and plane as the file
     // gives them back (a JSON number may read back an ulp off), so that
@@ -1426,15 +1435,22 @@ fn run_one(
     let pixels = n_views as u64 * w as u64 * h as u64;
     let ranks = share.as_ref().map_or(1, |s| s.size());
     let host_given = opt_bytes(&c.host, "host")?;
+    // `--progressive`: the samples it keeps get a quarter of --memory,
+    // set aside before the pool and host cache take their shares (frames
+    // beyond what it holds are not drawn, and the run says so).
+    let samples_bytes = match c.progressive {
+        Some(_) => memory.unwrap_or_else(crate::memory::default_memory) / 4,
+        None => 0,
+    };
     let split_for = |device_bytes: u64| {
-        crate::memory::split_with_filters(
+        crate::memory::split_with_shares(
             memory,
             pool_given,
             host_given,
             pixels + exchange_pixels(shared, ranks, pixels),
             info.levels.len(),
             device_bytes,
-            filter_bytes,
+            (filter_bytes, samples_bytes),
         )
     };
     let mut split = split_for(device.bytes).map_err(|e| {
@@ -1994,7 +2010,8 @@ fn run_one(
                 opt,
                 &mut budget,
                 &mut on_frame,
-                c.progressive.map(|n| (n, c.json || c.quiet || silent)),
+                c.progressive
+                    .map(|n| (n, c.json || c.quiet || silent, split.samples)),
             ),
             _ => crate::frames::drive(
                 &mut backend,
@@ -2184,6 +2201,7 @@ fn run_one(
                     &scene,
                     &params,
                     (lod, n, None),
+                    split.samples,
                     c.json || c.quiet || silent,
                     &mut || {},
                 );
@@ -2503,12 +2521,20 @@ const DEVICE_STORE_BYTES: u64 = 512 << 20;
 /// `rows`: only these image rows (a band of an image-parallel render, on
 /// the CPU); the image returned is then theirs. `between` runs after every
 /// frame (rank 0 answers the other ranks there).
+///
+/// `bytes`: the share of --memory for the kept samples. The CPU's first
+/// frame is sampled coarser where its runs could take more; after it,
+/// fewer frames are drawn where the frames asked for would keep more. A
+/// device whose memory is this process's (a software adapter) sizes its
+/// store within it.
+#[allow(clippy::too_many_arguments)]
 fn accumulate(
     backend: &mut crate::backend::Backend,
     s: &mut Session,
     scene: &Scene,
     params: &RenderParams,
     (lod, n, rows): (Lod, u32, Option<std::ops::Range<u32>>),
+    bytes: u64,
     quiet: bool,
     between: &mut dyn FnMut(),
 ) -> Result<brickyard_render::Image> {
@@ -2518,15 +2544,30 @@ fn accumulate(
     let steps = (diagonal / (scene.voxel(0) / params.samples_per_voxel)).ceil() as usize + 2;
     backend.set_read_image(true);
     let mut budget = n as usize * steps;
-    if !matches!(backend, crate::backend::Backend::Cpu) {
-        // The device's store is allocated whole: at most this much.
+    let cpu = matches!(backend, crate::backend::Backend::Cpu);
+    // What the pool's budget leaves unused (a pool no larger than the
+    // volume's bricks).
+    let spare = {
         let vm = s.vm();
-        let spare = vm
-            .config()
+        vm.config()
             .pool_bytes
-            .saturating_sub(vm.pool_slots() as u64 * vm.slot_bytes() as u64);
+            .saturating_sub(vm.pool_slots() as u64 * vm.slot_bytes() as u64)
+    };
+    // The CPU's samples take their share and the pool's unused budget.
+    let bytes = match cpu {
+        true => bytes + spare,
+        false => bytes,
+    };
+    if !cpu {
+        // The device's store is allocated whole: at most this much (on a
+        // software adapter, host memory: the samples' share of --memory,
+        // or what the pool's budget leaves unused).
+        let floor = match backend.device_in_host_memory() {
+            true => bytes,
+            false => DEVICE_STORE_BYTES,
+        };
         let cap = brickyard_render::savr::device::DeviceAccumulation::budget_within(
-            DEVICE_STORE_BYTES.max(spare),
+            floor.max(spare),
             params.width,
             params.height,
             n,
@@ -2546,16 +2587,44 @@ fn accumulate(
     };
     // A render shows the last image only: the frames before need no blend.
     acc.blend_last_only();
+    // The CPU's first frame reserves room for every ray's whole run: at a
+    // level whose runs fit the samples' share.
+    let lod = match cpu {
+        true => {
+            use brickyard_render::savr::{first_frame_memory, lod_at_least};
+            let band = rows.clone().unwrap_or(0..params.height);
+            let at = |l: usize| first_frame_memory(scene, params, band.clone(), n, l);
+            let from = lod_finest(lod);
+            match (from..scene.levels.len()).find(|&l| at(l) <= bytes) {
+                Some(l) if l == from => lod,
+                Some(l) => {
+                    let fit = lod_at_least(scene, params, lod, l);
+                    if !quiet {
+                        outln!(
+                            "progressive: the first frame's samples at level {from} may take {}, more than the memory for them ({}: a quarter of --memory, and what the pool's budget leaves unused); accumulating at {} (more --memory, or a smaller image, keeps more detail)",
+                            human_bytes(at(from)),
+                            human_bytes(bytes),
+                            describe_lod(fit)
+                        );
+                    }
+                    fit
+                }
+                None => bail!(
+                    "progressive: the first frame's samples take up to {} even at the coarsest level, more than the memory for them ({}: a quarter of --memory, and what the pool's budget leaves unused): raise --memory or draw a smaller image",
+                    human_bytes(at(scene.levels.len() - 1)),
+                    human_bytes(bytes)
+                ),
+            }
+        }
+        false => lod,
+    };
     // A store too small for one run of the view's rays costs detail: say so.
     let kept = acc.budget() as u64;
     match brickyard_render::savr::lod_within(scene, params, lod, kept) {
         Some(fit) if fit != lod && !quiet => outln!(
             "progressive: a pixel keeps {kept} samples, fewer than one run of the longest ray takes at the level asked for ({}); accumulating at {} (a smaller image keeps more detail)",
             brickyard_render::savr::longest_run(scene, params, lod_finest(lod)),
-            match fit {
-                Lod::Fixed(l) => format!("level {l}"),
-                Lod::Auto { bias } => format!("a level-of-detail bias of {bias:+.2}"),
-            }
+            describe_lod(fit)
         ),
         None => bail!(
             "progressive: a pixel keeps {kept} samples (what one storage binding of the device holds for a row of the image), fewer than one run of the longest ray takes even at the coarsest level ({}): a smaller image, or --backend cpu",
@@ -2584,18 +2653,37 @@ fn accumulate(
         short = st.incomplete;
         if !quiet {
             outln!(
-                "accumulate{band} {}/{n}: {:8.1} ms, {} samples taken, {} stand-ins left, {} kept",
+                "accumulate{band} {}/{}: {:8.1} ms, {} samples taken, {} stand-ins left, {} kept",
                 acc.frames(),
+                acc.target(),
                 f0.elapsed().as_secs_f64() * 1e3,
                 st.samples,
                 st.stand_ins,
                 human_bytes(acc.memory())
             );
         }
+        // After the first frame: as many frames as the samples' share
+        // holds (the next frame reserves their room).
+        if frame == 1 {
+            let asked = acc.expected_memory(acc.target());
+            if let Some(t) = acc.fit_memory(bytes) {
+                if !quiet {
+                    outln!(
+                        "progressive{band}: {n} frames would keep about {} of samples, more than the memory for them ({}: a quarter of --memory, and what the pool's budget leaves unused); accumulating {t} (more --memory, or a smaller image, draws more)",
+                        human_bytes(asked),
+                        human_bytes(bytes)
+                    );
+                }
+            }
+        }
         if acc.complete() {
             if !quiet {
                 outln!(
-                    "accumulated{band} {n} frames in {frame} passes, {:.2} s",
+                    "accumulated{band} {} frames in {frame} passes, {:.2} s",
+                    match acc.target() {
+                        t if t < n => format!("{t} of the {n}"),
+                        _ => n.to_string(),
+                    },
                     t.elapsed().as_secs_f64()
                 );
             }
@@ -2605,7 +2693,7 @@ fn accumulate(
         // the frames asked for are blended and no more stand-ins go, the
         // image is as complete as it gets (drawn in part from coarser
         // data, which the view's line says).
-        let stuck = left >= prev && acc.frames() >= n;
+        let stuck = left >= prev && acc.frames() >= acc.target();
         prev = left;
         if stuck && !s.failures().is_empty() {
             if !quiet {
@@ -2631,6 +2719,23 @@ fn accumulate(
     bail!(
         "progressive: the accumulation did not complete ({left} stand-in samples left): the pool cannot hold the view's bricks"
     )
+}
+
+/// The threads reading bricks: 1 to 256 (each reads and decodes chunks
+/// beside the others; more than a few per core only wait on each other).
+pub fn check_loader_threads(n: usize) -> Result<()> {
+    if !(1..=256).contains(&n) {
+        bail!("loader-threads: expected 1 to 256 threads reading bricks, found {n}");
+    }
+    Ok(())
+}
+
+/// `lod` in words: "level 2", "a level-of-detail bias of +1.00".
+fn describe_lod(lod: Lod) -> String {
+    match lod {
+        Lod::Fixed(l) => format!("level {l}"),
+        Lod::Auto { bias } => format!("a level-of-detail bias of {bias:+.2}"),
+    }
 }
 
 /// The finest level `lod` asks for anywhere (an automatic one: level 0,
@@ -2763,7 +2868,7 @@ fn draw_bands(
     opt: crate::frames::DriveOptions,
     budget: &mut brickyard_render::budget::LodBudget,
     on_frame: &mut dyn FnMut(&crate::frames::FrameInfo),
-    progressive: Option<(u32, bool)>,
+    progressive: Option<(u32, bool, u64)>,
 ) -> Result<crate::frames::Outcome> {
     use brickyard_render::cpu::Tiles;
     let t0 = std::time::Instant::now();
@@ -2792,7 +2897,7 @@ fn draw_bands(
             let px = Tiles::pixel_rows(h, a..b);
             let span = px.start as usize * w as usize..px.end as usize * w as usize;
             match progressive {
-                Some((n, quiet)) => {
+                Some((n, quiet, samples)) => {
                     let lod = match opt.lod {
                         Lod::Auto { .. } => Lod::Auto {
                             bias: o.budget.bias,
@@ -2805,6 +2910,7 @@ fn draw_bands(
                         scene,
                         params,
                         (lod, n, Some(px)),
+                        samples,
                         quiet,
                         &mut || share.serve(),
                     )?;

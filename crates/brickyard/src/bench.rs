@@ -164,6 +164,9 @@ pub fn run(b: BenchCmd) -> Result<()> {
                 .with_context(|| {
                     format!("--loader-threads: expected numbers, found {:?}", b.loader_threads)
                 })?;
+            for &t in &threads {
+                crate::render::check_loader_threads(t)?;
+            }
             let o = crate::vmbench::LoaderBench {
                 brick: b.brick,
                 threads,

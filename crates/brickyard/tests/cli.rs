@@ -447,6 +447,51 @@ fn render_writes_pngs_and_rejects_bad_options() {
         ]),
         &["pool", "coarsest level", "--pool"],
     );
+    // Numbers past any machine are refused, never wrapped around or
+    // allocated (a pool of 2^64 − 1 bytes summed to a small budget; a
+    // parallax of 1e30 indexed out of bounds; 100000 loader threads
+    // aborted the process; a field of view of 1e-30° blamed the eye).
+    let out = d.path().join("huge.png");
+    let r = |extra: &[&str]| {
+        run(&[
+            &["render", s(&store), "--out", s(&out), "--size", "64x40"],
+            extra,
+        ]
+        .concat())
+    };
+    fails_with(&r(&["--pool", "18446744073709551615"]), &["pool", "RAM"]);
+    fails_with(&r(&["--pool", "99999999999999999999"]), &["pool", "RAM"]);
+    fails_with(
+        &r(&["--memory", "1.9"]),
+        &["memory", "whole number of bytes"],
+    );
+    // (Views 64 pixels wide: 2 views shift a slice by half the parallax,
+    // 4 views by three times it.)
+    for p in ["1e30", "-1e30", "1e9", "129"] {
+        fails_with(
+            &r(&[
+                "--mode",
+                "slice",
+                "--views",
+                "2",
+                &format!("--parallax={p}"),
+            ]),
+            &["parallax", "at most 128 pixels with 2 views"],
+        );
+    }
+    fails_with(
+        &r(&["--mode", "slice", "--views", "4", "--parallax=22"]),
+        &["parallax", "at most 21.33 pixels with 4 views"],
+    );
+    let o = r(&["--mode", "slice", "--views", "2", "--parallax=-128"]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    for t in ["0", "257", "100000"] {
+        fails_with(
+            &r(&["--loader-threads", t]),
+            &["loader-threads", "1 to 256"],
+        );
+    }
+    fails_with(&r(&["--fov", "1e-30"]), &["fov", "too narrow"]);
 }
 
 /// The viewer refuses an upload budget below one brick before it opens a
@@ -1486,6 +1531,71 @@ fn render_progressive_accumulates_frames() {
             "0",
         ]),
         &["progressive"],
+    );
+}
+
+/// `--progressive`'s kept samples are held to their share of --memory:
+/// asked for 64 frames of a 256² view (about 560 MiB of samples) within
+/// 160 MiB, it draws the frames that fit, says so, and stays within the
+/// budget (it took 689 MiB before); a budget whose share cannot hold the
+/// first frame even at the coarsest level is refused, naming it.
+#[test]
+fn progressive_samples_stay_within_their_share_of_memory() {
+    let d = tempfile::tempdir().unwrap();
+    let store = d.path().join("m.ome.zarr");
+    let o = run(&[
+        "generate",
+        "mandelbulb",
+        s(&store),
+        "--size",
+        "96",
+        "--quiet",
+    ]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    let out = d.path().join("p.png");
+    let render = |memory: &str| {
+        run(&[
+            "render",
+            s(&store),
+            "--out",
+            s(&out),
+            "--backend",
+            "cpu",
+            "--size",
+            "256",
+            "--progressive",
+            "64",
+            "--memory",
+            memory,
+        ])
+    };
+    let o = render("160MiB");
+    assert!(o.status.success(), "{}", stderr(&o));
+    let text = String::from_utf8_lossy(&o.stdout).to_string() + &stderr(&o);
+    let drawn: u32 = text
+        .split("accumulated ")
+        .nth(1)
+        .and_then(|t| t.split(" of the 64 frames").next())
+        .and_then(|n| n.parse().ok())
+        .unwrap_or_else(|| panic!("no lowered frame count: {text}"));
+    assert!((2..64).contains(&drawn), "{drawn} frames: {text}");
+    assert!(text.contains(&format!("accumulating {drawn} ")), "{text}");
+    has_content(&png_pixels(&out), "progressive within a budget");
+    // "peak memory 89.9 MiB of a 160.0 MiB budget"
+    let peak = text
+        .split("peak memory ")
+        .nth(1)
+        .and_then(|t| t.split(" of a").next())
+        .unwrap_or_else(|| panic!("no peak: {text}"));
+    let mib: f64 = match peak.split_once(' ') {
+        Some((v, "MiB")) => v.parse().unwrap(),
+        Some((v, "KiB")) => v.parse::<f64>().unwrap() / 1024.0,
+        _ => panic!("peak {peak}"),
+    };
+    assert!(mib <= 160.0, "peak {peak} over the 160 MiB budget: {text}");
+    fails_with(
+        &render("96MiB"),
+        &["progressive", "first frame", "--memory"],
     );
 }
 

@@ -282,6 +282,7 @@ pub fn run(c: ViewCmd, demo_store: impl FnOnce() -> Result<PathBuf>) -> Result<i
         host.get_or_insert(1 << 30);
     }
     crate::render::check_read_delay(c.read_delay_ms)?;
+    crate::render::check_loader_threads(c.loader_threads)?;
     if accumulate > brickyard_render::savr::MAX_FRAMES {
         bail!(
             "accumulate: N frames between 0 and {}, got {}",
