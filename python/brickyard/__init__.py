@@ -498,6 +498,10 @@ _REPEATED = ("channel", "channel_tf", "channel_levels")
 _PER_CHANNEL = ("channel_tf", "channel_levels")
 
 
+# render's budgets, in bytes or as sizes ("1GiB"): whole numbers only.
+_BUDGETS = ("memory", "pool", "host", "upload")
+
+
 def render_args(store: Union[Store, str, os.PathLike], mode: str = "dvr", camera: Any = None, tf: Any = None,
                 size: Union[int, Tuple[int, int]] = (512, 512), backend: str = "auto", tmpdir: str = ".",
                 **options: Any) -> list:
@@ -533,6 +537,11 @@ def render_args(store: Union[Store, str, os.PathLike], mode: str = "dvr", camera
             near = difflib.get_close_matches(k, [f.replace("-", "_") for f in _FLAGS], n=1)
             hint = f" (did you mean {near[0]}=?)" if near else ""
             raise TypeError(f"render: unexpected keyword argument {k!r}{hint}")
+        if k in _BUDGETS and v is not None and (
+                isinstance(v, bool) or not isinstance(v, (int, np.integer, str))):
+            # (As `process` and `convert` say of a budget that is no whole
+            # number of bytes.)
+            raise TypeError(f"{k}: expected bytes or a size such as \"1GiB\", got {v!r}")
         if v is True:
             args.append(flag)
         elif v is False or v is None:
@@ -695,7 +704,12 @@ def _options(brick, shard, compression, labels, memory, overwrite, spacing, orig
         raise TypeError(f"compression: expected a name such as lz4, zstd or none, got {compression!r}")
     if memory < 0:
         raise ValueError(f"memory: expected a number of bytes, got {memory}")
-    return {"brick": three(brick, "brick", int), "shard": three(shard, "shard", int),
+    bricks = three(brick, "brick", int)
+    # Not given: 512 voxels, at least the brick and a multiple of it (as
+    # `convert` without --shard).
+    shards = three(shard, "shard", int) if shard is not None else \
+        tuple(max(b, -(-512 // b) * b) for b in bricks)
+    return {"brick": bricks, "shard": shards,
             "compression": compression, "labels": bool(labels), "memory": int(memory),
             "overwrite": bool(overwrite), "spacing": three(spacing, "spacing", float),
             "origin": three(origin, "origin", float), "unit": unit,
@@ -723,7 +737,7 @@ def _channel_names(names: Any) -> Optional[list]:
 
 
 def convert(src: Union[str, os.PathLike, Sequence[Union[str, os.PathLike]]], dst: Union[str, os.PathLike], *,
-            brick=64, shard=512, compression: str = "lz4", labels: bool = False, memory: int = 1 << 30,
+            brick=64, shard=None, compression: str = "lz4", labels: bool = False, memory: int = 1 << 30,
             overwrite: bool = False, spacing=None, origin=None, unit: Optional[str] = None, level: int = 0,
             progress: Any = True, channel_names=None) -> str:
     """Convert any input `brickyard convert` reads into a brickyard OME-Zarr
@@ -770,7 +784,7 @@ def _lazy_dtype(array: Any) -> Optional[np.dtype]:
 
 
 def from_numpy(array: Any, dst: Union[str, os.PathLike], *, spacing=None, origin=None, unit: Optional[str] = None,
-               brick=64, shard=512, compression: str = "lz4", labels: bool = False, memory: int = 1 << 30,
+               brick=64, shard=None, compression: str = "lz4", labels: bool = False, memory: int = 1 << 30,
                overwrite: bool = False, progress: Any = True, channel_names=None) -> str:
     """Write a `(z, y, x)` or `(c, z, y, x)` array as a brickyard OME-Zarr pyramid.
     `channel_names`: one per channel (else "channel 0", "channel 1", ...),

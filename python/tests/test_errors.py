@@ -396,6 +396,16 @@ def test_budgets_are_taken_as_the_cli_writes_them(store, tmp_path):
     brickyard.from_numpy(np.zeros((8, 8, 8), np.uint8), tmp_path / "m.zarr", memory="64MiB", progress=False)
     with pytest.raises(ValueError, match="^memory: "):
         brickyard.from_numpy(np.zeros((8, 8, 8), np.uint8), tmp_path / "n.zarr", memory="a lot", progress=False)
+    # A budget that is no whole number of bytes is a TypeError in render as
+    # in process (render took 1.5 for 1 byte); a fractional size with a
+    # unit is bytes.
+    for kw in ("memory", "pool", "host", "upload"):
+        with pytest.raises(TypeError, match=f"^{kw}: expected bytes"):
+            brickyard.render(store, size=8, **{kw: 1.5})
+    with pytest.raises(TypeError, match="^memory: expected bytes"):
+        brickyard.process(store, "gauss(1)", "g", memory=1.5)
+    with pytest.raises(ValueError, match="whole number of bytes"):
+        brickyard.render(store, size=8, memory="1.5")
 
 
 def test_types_stored_as_convert_reads_them(tmp_path):
@@ -424,3 +434,14 @@ def test_types_stored_as_convert_reads_them(tmp_path):
     s = brickyard.open(tmp_path / "lab.ome.zarr")
     assert s.dtype == "int32"
     np.testing.assert_array_equal(s[:], lab)
+
+
+def test_a_brick_that_does_not_divide_512_takes_the_default_shard_as_the_cli_does(tmp_path):
+    # The shard default was 512 whatever the brick: brick=48 was refused
+    # ("shard [512, 512, 512] must be a multiple of the brick"), as the CLI
+    # rounds the default up to a multiple of it.
+    a = np.arange(50 * 60 * 70, dtype=np.uint16).reshape(50, 60, 70)
+    brickyard.from_numpy(a, tmp_path / "b.zarr", brick=48, progress=False)
+    assert np.array_equal(brickyard.open(tmp_path / "b.zarr")[:, :, :], a)
+    with pytest.raises(ValueError, match="shard"):
+        brickyard.from_numpy(a, tmp_path / "c.zarr", brick=48, shard=500, progress=False)

@@ -73,11 +73,16 @@ impl Filter {
                 .iter()
                 .find(|&&v| gaussian_radius(v, TRUNCATE) > MAX_RADIUS)
             {
+                // (The radius, ⌈truncate·σ⌉, saturates for a huge σ: said
+                // as a product then.)
+                let reach = match gaussian_radius(*v, TRUNCATE) {
+                    r if r < u64::MAX => r.to_string(),
+                    _ => format!("about {:.1e}", TRUNCATE * v),
+                };
                 return Err(format!(
-                    "σ {v} voxels is too large: its kernel would reach {} voxels; σ may be at \
-                     most {} voxels (a kernel that reaches past the volume is folded onto its \
+                    "σ {v} voxels is too large: its kernel would reach {reach} voxels; σ may be \
+                     at most {} voxels (a kernel that reaches past the volume is folded onto its \
                      edge voxels, so a wider one gives the same result)",
-                    gaussian_radius(*v, TRUNCATE),
                     max_sigma(TRUNCATE)
                 ));
             }

@@ -116,6 +116,8 @@ fn unit_suffix(unit: &str) -> &str {
 impl Pipeline {
     pub fn parse(text: &str) -> Result<Pipeline, ParseError> {
         let mut ops = vec![];
+        // Where each stage begins, for messages.
+        let mut starts = vec![];
         let mut pos = 0;
         for part in text.split('|') {
             let start = pos + (part.len() - part.trim_start().len());
@@ -129,12 +131,13 @@ impl Pipeline {
                 });
             }
             ops.push(parse_stage(s, start)?);
+            starts.push((start, s));
         }
         for (i, op) in ops.iter().enumerate() {
             if matches!(op, Op::Label(_)) && i + 1 != ops.len() {
                 return Err(ParseError {
-                    token: op.text(),
-                    pos: 0,
+                    token: starts[i].1.to_string(),
+                    pos: starts[i].0,
                     expected: "label(...) as the last stage (labels are not filtered further)"
                         .into(),
                 });
@@ -383,6 +386,9 @@ mod tests {
         assert_eq!(e.token, "8");
         let e = Pipeline::parse("label(6)|gauss(1)").unwrap_err();
         assert!(e.expected.contains("last stage"));
+        let e = Pipeline::parse("gauss(1)|threshold(0)|label(6)| label(6)").unwrap_err();
+        assert!(e.expected.contains("last stage"));
+        assert_eq!((e.token.as_str(), e.pos), ("label(6)", 22));
         let e = Pipeline::parse("gauss(1)||sobel").unwrap_err();
         assert_eq!(e.pos, 9);
         let e = Pipeline::parse("window(3,1)").unwrap_err();

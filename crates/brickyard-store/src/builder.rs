@@ -707,8 +707,8 @@ pub fn convert_team(
             output,
             "memory",
             format!(
-                "budget of {} MiB is too small for bricks of {:?}{}: need at least {} MiB",
-                opts.memory >> 20,
+                "budget of {} is too small for bricks of {:?}{}: need at least {} MiB",
+                crate::info::human_bytes(opts.memory),
                 opts.brick,
                 match meta.read_bytes >= 1 << 20 {
                     true => format!(
@@ -753,6 +753,9 @@ pub fn convert_team(
                 &format!("writing {}", output.display()),
             )?);
             check_old(output)?;
+            if output.exists() {
+                crate::lock::refuse_if_in_use(output)?;
+            }
             if partial.exists() {
                 std::fs::remove_dir_all(&partial).at(&partial)?;
             }
@@ -1101,6 +1104,9 @@ fn finish_store(
     // Swap into place: the old output (if any) is removed only after the new
     // one is complete.
     if output.exists() {
+        // (A job that began inside it since the start: the new store waits
+        // beside it, as the partial output of a stopped run.)
+        crate::lock::refuse_if_in_use(output)?;
         let old = old_path(output);
         std::fs::rename(output, &old).at(output)?;
         std::fs::rename(partial, output).at(output)?;

@@ -273,7 +273,34 @@ fn brick_summary(root: &Path, level: usize) -> Option<BrickSummary> {
 /// `labels/zarr.json` are found.
 pub fn inspect(path: &Path) -> Result<StoreInfo> {
     if !path.exists() && !storage::is_remote(path) {
-        return Err(StoreError::not_found(path));
+        // What an interrupted conversion of it left, said.
+        let beside = |ext: &str| {
+            let mut n = path.as_os_str().to_os_string();
+            n.push(format!(".{ext}"));
+            PathBuf::from(n)
+        };
+        let (partial, old) = (beside("partial"), beside("old"));
+        let hint = if old.is_dir() {
+            format!(
+                "; {} is the store a conversion was replacing when it stopped: rename it back",
+                old.display()
+            )
+        } else if partial.is_dir() {
+            format!(
+                "; {} is what an interrupted conversion of it wrote: run that convert again (it \
+                 takes over), or remove the folder",
+                partial.display()
+            )
+        } else {
+            return Err(StoreError::not_found(path));
+        };
+        return Err(StoreError::io(
+            path,
+            std::io::Error::new(
+                std::io::ErrorKind::NotFound,
+                format!("no such file or directory{hint}"),
+            ),
+        ));
     }
     if !is_zarr(path) {
         // A volume file given where a store is read: say what to do.
@@ -289,6 +316,18 @@ pub fn inspect(path: &Path) -> Result<StoreInfo> {
         ));
     }
     let mut problems = vec![];
+    if !storage::is_remote(path) {
+        let mut old = path.as_os_str().to_os_string();
+        old.push(".old");
+        let old = PathBuf::from(old);
+        if old.is_dir() {
+            problems.push(format!(
+                "{}: the store this one replaced, left beside it by a conversion stopped while \
+                 swapping them (it takes the space of a whole store): remove it",
+                old.display()
+            ));
+        }
+    }
     let ms = read_multiscale(path)?;
     let mut info = StoreInfo {
         path: path.to_path_buf(),
@@ -526,9 +565,13 @@ fn unfinished(
         // `convert` writes NAME.partial beside NAME (`process` writes
         // hidden folders, .NAME.new.partial): a conversion's.
         Some(target) => format!(
-            "{rel}: not an image but {why}, by {}: run that convert again with --overwrite \
-             (it starts over), or remove the folder",
-            convert_command(group, target)
+            "{rel}: not an image but {why}, by {}: run that convert again{} (it starts over), \
+             or remove the folder",
+            convert_command(group, target),
+            match dir.with_file_name(target).exists() {
+                true => " with --overwrite",
+                false => "",
+            }
         ),
         None => {
             let (who, again) =
@@ -574,6 +617,24 @@ fn inner_images(path: &Path, problems: &mut Vec<String>) -> Vec<(String, String)
             group_folders(path, group)
         };
         names.sort();
+        // Locks of jobs that are gone (killed), and temporaries of their
+        // attempts: taken over by the next job there.
+        if let Ok(rd) = std::fs::read_dir(path.join(group)) {
+            let mut left: Vec<String> = rd
+                .flatten()
+                .filter(|e| e.path().is_file())
+                .map(|e| e.file_name().to_string_lossy().into_owned())
+                .filter(|n| n.starts_with('.') && (n.ends_with(".lock") || n.ends_with(".tmp")))
+                .filter(|n| crate::lock::is_stale(&path.join(group).join(n)))
+                .collect();
+            left.sort();
+            for n in left {
+                problems.push(format!(
+                    "{group}/{n}: the lock of an interrupted processing job (the next job there \
+                     removes it), or remove the file"
+                ));
+            }
+        }
         // Label images the labels group does not name: a job that stopped
         // between putting the image in place and naming it (a full disk).
         for name in names {

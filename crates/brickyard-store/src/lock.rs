@@ -113,6 +113,71 @@ impl Drop for PidLock {
     }
 }
 
+/// The locks of live processes inside store `store` (its own folder and
+/// the `labels/` and `derived/` folders a `process` job writes in), each
+/// with the process's id (0: not known): jobs at work there.
+pub fn live_locks_within(store: &Path) -> Vec<(PathBuf, u32)> {
+    let mut held = vec![];
+    for dir in [
+        store.to_path_buf(),
+        store.join("labels"),
+        store.join("derived"),
+    ] {
+        let Ok(entries) = std::fs::read_dir(&dir) else {
+            continue;
+        };
+        for e in entries.flatten() {
+            let name = e.file_name();
+            let name = name.to_string_lossy();
+            if !(name.starts_with('.') && name.ends_with(".lock")) {
+                continue;
+            }
+            if let Some(Holder::Alive(pid)) = holder(&e.path()) {
+                held.push((e.path(), pid));
+            }
+        }
+    }
+    held
+}
+
+/// Whether the lock file `path` (or a temporary of a lock attempt,
+/// `.NAME.PID.N.tmp`) was left by a process that is gone.
+pub fn is_stale(path: &Path) -> bool {
+    let name = path
+        .file_name()
+        .map(|n| n.to_string_lossy().into_owned())
+        .unwrap_or_default();
+    if let Some(rest) = name.strip_suffix(".tmp") {
+        // `.{lock name}.{pid}.{serial}`
+        let mut parts = rest.rsplit('.');
+        let _serial = parts.next();
+        return parts
+            .next()
+            .and_then(|p| p.parse::<u32>().ok())
+            .is_some_and(|p| !alive(p));
+    }
+    matches!(holder(path), Some(Holder::Gone))
+}
+
+/// Refuse to replace or remove `store` while a live process holds a lock
+/// inside it (a `process` job writing a result there).
+pub fn refuse_if_in_use(store: &Path) -> Result<()> {
+    match live_locks_within(store).first() {
+        None => Ok(()),
+        Some((lock, pid)) => Err(StoreError::Refused {
+            path: store.into(),
+            msg: format!(
+                "a job is writing inside it ({}{}): replacing the store now would pull it from                  under that job; wait for it to end or stop it",
+                lock.display(),
+                match pid {
+                    0 => String::new(),
+                    p => format!(", pid {p}"),
+                }
+            ),
+        }),
+    }
+}
+
 /// Create `path` holding this process's id; `Ok(false)` when it exists.
 fn create_with_pid(path: &Path) -> Result<bool> {
     use std::sync::atomic::{AtomicU64, Ordering};

@@ -228,7 +228,10 @@ impl View {
                 "tf" => v.tf = x.clone(),
                 "window" => {
                     let w: [f32; 2] = serde_json::from_value(x.clone()).with_context(|| format!("window: expected [lo, hi], got {x}"))?;
-                    if !(w[0].is_finite() && w[1].is_finite() && w[0] < w[1]) {
+                    if !(w[0].is_finite() && w[1].is_finite()) {
+                        bail!("window: expected numbers within ±{:e} (the range of 32-bit floats), got {x}", f32::MAX);
+                    }
+                    if w[0] >= w[1] {
                         bail!("window: expected lo < hi, got {x}");
                     }
                     v.window = Some(w);

@@ -1223,6 +1223,70 @@ fn fails_naming(args: &[&str], words: &[&str]) {
     }
 }
 
+/// `convert --overwrite` of a store with a job at work inside it (its
+/// lock held by a live process) is refused, naming the lock, and leaves the
+/// store as it was (it used to replace the store from under the job); a
+/// lock whose process is gone does not hold it up. `info` lists such a
+/// lock, a replaced store left beside as STORE.old, and, for a STORE that
+/// is missing, the STORE.partial of an interrupted conversion.
+#[test]
+fn a_store_with_a_job_at_work_inside_is_not_replaced_and_leftovers_are_listed() {
+    let d = tempfile::tempdir().unwrap();
+    let store = make_store(d.path(), "24");
+    let other = d.path().join("w.zarr");
+    ok(run(&[
+        "generate",
+        "mandelbulb",
+        s(&other),
+        "--size",
+        "16",
+        "--quiet",
+    ]));
+    std::fs::create_dir_all(store.join("labels")).unwrap();
+    let lock = store.join("labels/.cells.lock");
+    // A live job: this test's own process holds the lock.
+    std::fs::write(&lock, format!("{}\n", std::process::id())).unwrap();
+    let before = snapshot(&store);
+    let replace = ["convert", s(&other), s(&store), "--overwrite", "--quiet"];
+    fails_naming(&replace, &[".cells.lock", "job is writing inside it"]);
+    assert_eq!(snapshot(&store), before, "the store changed");
+    // The lock of a job that is gone: listed by `info`, no obstacle.
+    std::fs::write(&lock, "4194305\n").unwrap();
+    let o = run(&["info", s(&store)]);
+    let text = String::from_utf8_lossy(&o.stdout).to_string() + &String::from_utf8_lossy(&o.stderr);
+    assert!(
+        text.contains("labels/.cells.lock") && text.contains("interrupted"),
+        "{text}"
+    );
+    ok(run(&replace));
+    assert!(!lock.exists());
+    // A replaced store left beside it.
+    let old = d.path().join("v.zarr.old");
+    let o8 = d.path().join("o.zarr");
+    ok(run(&[
+        "generate",
+        "mandelbulb",
+        s(&o8),
+        "--size",
+        "8",
+        "--quiet",
+    ]));
+    std::fs::rename(&o8, &old).unwrap();
+    let o = run(&["info", s(&store)]);
+    let text = String::from_utf8_lossy(&o.stdout).to_string() + &String::from_utf8_lossy(&o.stderr);
+    assert!(
+        text.contains("v.zarr.old") && text.contains("replaced"),
+        "{text}"
+    );
+    // Only the partial output of an interrupted conversion.
+    std::fs::remove_dir_all(&old).unwrap();
+    std::fs::rename(&store, d.path().join("v.zarr.partial")).unwrap();
+    fails_naming(
+        &["info", s(&store)],
+        &["v.zarr.partial", "interrupted conversion"],
+    );
+}
+
 #[test]
 fn a_store_that_lost_a_shard_fails_process_and_convert_with_the_file_named() {
     let d = tempfile::tempdir().unwrap();
