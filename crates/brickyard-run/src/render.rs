@@ -26,8 +26,9 @@ pub struct RenderCmd {
     /// dvr, mip or slice.
     #[arg(long, default_value = "dvr")]
     mode: String,
-    /// Image size WxH (or N: square).
-    #[arg(long, default_value = "512x512")]
+    /// Image size WxH (or N: square); given twice, the last one (a view's
+    /// saved arguments, then a larger size).
+    #[arg(long, default_value = "512x512", overrides_with = "size")]
     size: String,
     /// Output PNG (a turntable writes NAME-0000.png, NAME-0001.png, ...).
     #[arg(long, short, default_value = "render.png")]

@@ -141,11 +141,11 @@ enum VmCmd {
 
 #[derive(Args, Clone)]
 struct PyramidArgs {
-    /// Brick (inner chunk) edge in voxels (2 to 1024) [default: 64].
+    /// Brick (inner chunk) edge in voxels (even, 2 to 1024) [default: 64].
     #[arg(long, value_parser = clap::value_parser!(u64).range(2..=1024))]
     brick: Option<u64>,
     /// Shard edge in voxels (a multiple of the brick, at most 16384)
-    /// [default: 512, or the brick rounded up to a multiple of it].
+    /// [default: 512 rounded up to a multiple of the brick].
     #[arg(long, value_parser = clap::value_parser!(u64).range(2..=16384))]
     shard: Option<u64>,
     /// lz4 (blosc), zstd, zstd:LEVEL or none [default: lz4].

@@ -492,6 +492,13 @@ fn render_writes_pngs_and_rejects_bad_options() {
         );
     }
     fails_with(&r(&["--fov", "1e-30"]), &["fov", "too narrow"]);
+    // A view's saved arguments (which hold its --size) and then a larger
+    // size: the last one given.
+    let o = r(&["--size", "80x40"]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    let dec = png::Decoder::new(std::io::BufReader::new(std::fs::File::open(&out).unwrap()));
+    let info = dec.read_info().unwrap();
+    assert_eq!((info.info().width, info.info().height), (80, 40));
 }
 
 /// The viewer refuses an upload budget below one brick before it opens a

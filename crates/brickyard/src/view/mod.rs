@@ -41,13 +41,15 @@ pub struct ViewCmd {
     gpu_update: Option<GpuUpdate>,
     /// One budget for the whole viewer: the brick pool, host cache,
     /// decoded-chunk caches, view images and the window are split out of
-    /// it. Without it: --pool 256MiB and --host 1GiB.
+    /// it. Without it: --pool 256MiB and --host 1GiB (768 MiB on a software
+    /// device, whose copy of the pool is host memory too).
     #[arg(long)]
     memory: Option<String>,
     /// Brick-pool budget (default: 256 MiB, or a share of --memory).
     #[arg(long)]
     pool: Option<String>,
-    /// Host-cache budget (default: 1 GiB, or a share of --memory).
+    /// Host-cache budget (default: 1 GiB, less the pool's copy on a software
+    /// device, or a share of --memory).
     #[arg(long)]
     host: Option<String>,
     /// Engine brick edge (2 to 512 voxels).
