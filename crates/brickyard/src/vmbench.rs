@@ -781,8 +781,18 @@ pub fn render(dir: &Path, dims: Dims3, dtype: DType, o: &RenderBench) -> Result<
             if runs.is_empty() {
                 cold_bytes_read = s.loader().bytes_read();
             }
+            // A run stopped by its limit is no time to complete: null,
+            // and said (its completeness is in the report beside it).
+            if completeness < 1.0 {
+                eprintln!(
+                    "bench render: {name}, run {}: stopped at {:.2} % complete after {frames} frame(s), {:.1} s (its limit): no time to complete is reported",
+                    runs.len() + 1,
+                    completeness * 100.0,
+                    t.elapsed().as_secs_f64()
+                );
+            }
             runs.push((
-                t.elapsed().as_secs_f64(),
+                (completeness >= 1.0).then(|| t.elapsed().as_secs_f64()),
                 frames,
                 first_frame_ms,
                 up,
