@@ -269,25 +269,13 @@ pub fn split_with(
     levels: usize,
     extra: u64,
 ) -> Result<Split> {
-    split_with_filters(total, pool, host, pixels, levels, extra, 0)
+    split_with_shares(total, pool, host, pixels, levels, extra, (0, 0))
 }
 
-/// [`split_with`] with `filters` bytes set aside for the filters of a live
-/// derived channel (see [`crate::derive::Derived::within`]).
-pub fn split_with_filters(
-    total: Option<u64>,
-    pool: Option<u64>,
-    host: Option<u64>,
-    pixels: u64,
-    levels: usize,
-    extra: u64,
-    filters: u64,
-) -> Result<Split> {
-    split_with_shares(total, pool, host, pixels, levels, extra, (filters, 0))
-}
-
-/// [`split_with_filters`] with `samples` bytes set aside besides for the
-/// samples a progressive render keeps (`shares`: filters, samples).
+/// [`split_with`] with shares set aside before the pool and host cache
+/// take theirs: `filters` bytes for the filters of a live derived channel
+/// (see [`crate::derive::Derived::within`]) and `samples` bytes for the
+/// samples a progressive render keeps.
 pub fn split_with_shares(
     total: Option<u64>,
     pool: Option<u64>,
@@ -464,7 +452,8 @@ mod tests {
     #[test]
     fn the_filters_share_comes_out_of_the_budget() {
         let plain = split(Some(512 << 20), None, None, 1 << 16, 4).unwrap();
-        let s = split_with_filters(Some(512 << 20), None, None, 1 << 16, 4, 0, 64 << 20).unwrap();
+        let s =
+            split_with_shares(Some(512 << 20), None, None, 1 << 16, 4, 0, (64 << 20, 0)).unwrap();
         assert_eq!(s.filters, 64 << 20);
         assert_eq!(
             s.pool + s.host + s.chunks + s.images + s.fixed + s.filters,
@@ -476,14 +465,14 @@ mod tests {
             "{}",
             s.describe()
         );
-        let e = split_with_filters(
+        let e = split_with_shares(
             Some(256 << 20),
             Some(100 << 20),
             Some(60 << 20),
             0,
             4,
             0,
-            64 << 20,
+            (64 << 20, 0),
         )
         .unwrap_err()
         .to_string();

@@ -327,7 +327,7 @@ pub fn run(c: ViewCmd, demo_store: impl FnOnce() -> Result<PathBuf>) -> Result<i
         None => None,
     };
     let probe_bytes = probe::bytes(levels.len(), m.channels, label_levels);
-    let mut split = crate::memory::split_with_filters(
+    let mut split = crate::memory::split_with_shares(
         memory,
         pool,
         host,
@@ -337,7 +337,7 @@ pub fn run(c: ViewCmd, demo_store: impl FnOnce() -> Result<PathBuf>) -> Result<i
         image_pixels(ww as u64 * wh as u64, label_dir.is_some()),
         levels.len(),
         crate::memory::WINDOW_BYTES + accum_bytes + device.bytes + probe_bytes,
-        derived_within.as_ref().map_or(0, |(_, b)| *b),
+        (derived_within.as_ref().map_or(0, |(_, b)| *b), 0),
     )?;
     device.take_from(&mut split, pool)?;
     // The label image's session: a quarter of the pool, the host cache
