@@ -60,6 +60,30 @@ pub struct LoadFailure {
     pub io: bool,
 }
 
+impl LoadFailure {
+    /// Where the failure is, in the engine's bricks and in the level's
+    /// voxels (by which the store's chunk is found: the engine's bricks
+    /// need not be the store's): "level 0 channel 0 brick [12, 7, 14]
+    /// (voxels z 384..416, y 224..256, x 448..480)".
+    pub fn place(&self, g: &BrickGeometry) -> String {
+        let k = &self.key;
+        let lo = g.origin_of(k);
+        let ext = g.extent_of(k);
+        format!(
+            "level {} channel {} brick {:?} (voxels z {}..{}, y {}..{}, x {}..{})",
+            k.level,
+            k.channel,
+            k.brick,
+            lo[0],
+            lo[0] + ext[0],
+            lo[1],
+            lo[1] + ext[1],
+            lo[2],
+            lo[2] + ext[2]
+        )
+    }
+}
+
 /// A snapshot of the loader's counters.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
 pub struct LoaderStats {

@@ -2057,12 +2057,10 @@ fn run_one(
             Some(first) if out.unserved > 0 => Err(anyhow::anyhow!(
                 "view {v}: {} brick(s) could not be loaded, the coarsest level's among them, so \
                  part of the view has no data at any level ({} samples); no image written. \
-                 First: level {} channel {} brick {:?}: {}",
+                 First: {}: {}",
                 failures.len(),
                 out.unserved,
-                first.key.level,
-                first.key.channel,
-                first.key.brick,
+                first.place(s.loader().geometry()),
                 first.message
             )),
             _ => Ok(()),
@@ -2123,7 +2121,13 @@ fn run_one(
                     "lod_bias": b.bias, "lod_bias_asked": b.base,
                     "needed_bytes_at_full_detail": b.needed_at_base.map(|n| n as u64 * slot_bytes),
                     "pool_bytes": s.vm().pool_bytes(), "bytes_read_total": read,
-                    "failed_bricks": failures.iter().map(|f| serde_json::json!({"key": {"level": f.key.level, "channel": f.key.channel, "brick": f.key.brick}, "error": f.message})).collect::<Vec<_>>(),
+                    "failed_bricks": failures.iter().map(|f| {
+                        let g = s.loader().geometry();
+                        let (lo, ext) = (g.origin_of(&f.key), g.extent_of(&f.key));
+                        // The level's voxels it covers, [z, y, x] from and to.
+                        let hi = [0, 1, 2].map(|a| lo[a] + ext[a]);
+                        serde_json::json!({"key": {"level": f.key.level, "channel": f.key.channel, "brick": f.key.brick}, "voxels": [lo, hi], "error": f.message})
+                    }).collect::<Vec<_>>(),
                     "peak_rss_bytes": peak, "memory_budget_bytes": split.total})
             );
         }
@@ -2138,10 +2142,8 @@ fn run_one(
             for f in failures.iter().take(10) {
                 say!(
                     silent,
-                    "  could not load level {} channel {} brick {:?}: {}",
-                    f.key.level,
-                    f.key.channel,
-                    f.key.brick,
+                    "  could not load {}: {}",
+                    f.place(s.loader().geometry()),
                     f.message
                 );
             }

@@ -456,6 +456,10 @@ fn damaged_chunks_are_drawn_coarser_and_reported() {
                 && k["brick"].as_array().unwrap().len() == 3,
             "{f}"
         );
+        // The voxels it covers: the brick's 16³ from its index.
+        let b = k["brick"].as_array().unwrap();
+        let lo: Vec<u64> = b.iter().map(|i| i.as_u64().unwrap() * 16).collect();
+        assert_eq!(f["voxels"][0], serde_json::json!(lo), "{f}");
     }
     assert!(
         failed
@@ -487,6 +491,9 @@ fn damaged_chunks_are_drawn_coarser_and_reported() {
     let o = text_render();
     let out = ok(&o);
     assert!(out.contains("could not load level 0"), "{out}");
+    // Also by the level's voxels (the engine's 16³ bricks are not the
+    // store's chunks).
+    assert!(out.contains(" (voxels z "), "{out}");
     // Damaged brick statistics change nothing in the image (their bricks
     // are loaded instead of skipped) but are reported, not passed over.
     let stats = store.join("_brickyard/stats/0/c/0/0/0/0/0");

@@ -600,13 +600,7 @@ pub fn run(setup: Setup, mut scene: Scene, rx: Receiver<Msg>, tx: Sender<Reply>,
         }
         let new_failures: Vec<String> = s.failures()[reported.min(s.failures().len())..]
             .iter()
-            .map(|f| {
-                let k = f.key;
-                format!(
-                    "level {} channel {} brick {:?}: {}",
-                    k.level, k.channel, k.brick, f.message
-                )
-            })
+            .map(|f| format!("{}: {}", f.place(s.loader().geometry()), f.message))
             .collect();
         reported = s.failures().len();
         let idle = f.session.insert.inserted == 0 && f.session.insert.flagged == 0;
