@@ -26,6 +26,10 @@ use serde::{Deserialize, Serialize};
 /// Most views one image holds.
 pub const MAX_VIEWS: u32 = 16;
 
+/// The farthest a super-slice's slice may shift in pixels (`parallax`
+/// times the views' and slices' reach): its layers span the shifts.
+pub const MAX_SHIFT: f64 = 4096.0;
+
 /// How many views, and how they differ.
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
 pub struct Views {
@@ -88,21 +92,17 @@ impl Views {
                 format!("must be 0 or more, got {}", self.spacing),
             );
         }
-        // A slice shifted by more than a view's width is out of every
-        // view (and its layers would span the shifts: memory and time
-        // without bound).
-        let view_width = match self.alone {
-            Some(_) => width,
-            None => width / self.count,
-        } as f64;
+        // A super-slice's layers span its slices' shifts: memory and time
+        // grow with them (a parallax of 1e9 took 16 GB; 1e30 indexed out
+        // of bounds), so the farthest shift is at most MAX_SHIFT pixels.
         let reach = (self.count as f64 - 1.0) * 0.5 * (self.count / 2) as f64;
-        if self.parallax.abs() * reach > view_width {
+        if self.parallax.abs() * reach > MAX_SHIFT {
             return bad(
                 "parallax",
                 format!(
-                    "shifts a slice by up to {} pixels, more than a view's width ({view_width}): at most {} pixels with {} views",
+                    "shifts a slice by up to {:e} pixels, more than {MAX_SHIFT}: at most {} pixels with {} views",
                     self.parallax.abs() * reach,
-                    (view_width / reach * 100.0).floor() / 100.0,
+                    (MAX_SHIFT / reach * 100.0).floor() / 100.0,
                     self.count
                 ),
             );

@@ -505,6 +505,7 @@ impl Accumulation {
                             early,
                             last_only,
                             target,
+                            budget,
                         };
                         *o = s.pixel(p, (&tf, shading.as_ref()), orders, reference, &room, *o);
                     }
@@ -584,17 +585,17 @@ pub fn longest_run(scene: &Scene, params: &RenderParams, level: usize) -> u64 {
     (diagonal / (scene.voxel(level) / params.samples_per_voxel)).ceil() as u64 + 2
 }
 
-/// The most bytes the first frame of an accumulation of `target` frames
-/// of `params`' view (its image rows `rows`) holds, with every ray's first
-/// run sampled at `level`'s step: each pixel's header, its runs' room,
-/// and room for its whole ray's samples (what the first frame reserves;
-/// rays end earlier where they turn opaque). An automatic level of detail
+/// The most bytes the first frame of an accumulation of `params`' view
+/// (its image rows `rows`) holds, with every ray's first run sampled at
+/// `level`'s step: each pixel's header, its first run's entry, and room
+/// for its whole ray's samples (what the first frame reserves; rays end
+/// earlier where they turn opaque). The frames asked for do not enter: the
+/// room for them is reserved at the second. An automatic level of detail
 /// asks for `level` or coarser.
 pub fn first_frame_memory(
     scene: &Scene,
     params: &RenderParams,
     rows: std::ops::Range<u32>,
-    target: u32,
     level: usize,
 ) -> u64 {
     let per = (BYTES_PER_SAMPLE + if params.tf.shading.is_some() { 4 } else { 0 }) as f64;
@@ -606,7 +607,8 @@ pub fn first_frame_memory(
         params.height,
     );
     let head = std::mem::size_of::<Pixel>() as u64;
-    let runs = (target.clamp(1, MAX_FRAMES) as usize * std::mem::size_of::<RunInfo>()) as u64;
+    // (A vector's first allocation for one 12-byte entry holds 4.)
+    let runs = (4 * std::mem::size_of::<RunInfo>()) as u64;
     rows.into_par_iter()
         .map(|j| {
             (0..params.width)
@@ -777,8 +779,10 @@ struct Sampler<'w, 'f, 'a, T> {
     early: bool,
     /// [`Accumulation::blend_last_only`].
     last_only: bool,
-    /// Frames asked for (the room each pixel's buffers reserve).
+    /// Frames asked for and samples a pixel may keep (the room each
+    /// pixel's buffers reserve).
     target: u32,
+    budget: usize,
 }
 
 impl<T: Sample> Sampler<'_, '_, '_, T> {
@@ -971,7 +975,9 @@ impl<T: Sample> Sampler<'_, '_, '_, T> {
             // (see `expected_memory`, `first_frame_memory`).
             let more = match k {
                 0 => p.max_run(),
-                1 => (p.values.len() + 2) * (self.target as usize).saturating_sub(1),
+                // (Never past what the pixel may keep.)
+                1 => ((p.values.len() + 2) * (self.target as usize).saturating_sub(1))
+                    .min(self.budget.saturating_sub(p.values.len())),
                 _ => 0,
             };
             if more > 0 {

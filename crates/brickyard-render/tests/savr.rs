@@ -274,7 +274,7 @@ fn frames_lowered_to_fit_memory_stay_within_it() {
     use brickyard_render::savr::first_frame_memory;
     let f = fixture();
     let (w, h) = (f.params.width, f.params.height);
-    let bound = first_frame_memory(&f.scene, &f.params, 0..h, 16, 0);
+    let bound = first_frame_memory(&f.scene, &f.params, 0..h, 0);
     let mut s = session(&f.store, 64 << 20);
     let mut acc = Accumulation::new(w, h, 16, 1 << 20);
     acc.blend_last_only();

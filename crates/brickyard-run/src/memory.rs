@@ -299,8 +299,8 @@ pub fn split_with_shares(
     let want_total = total.unwrap_or_else(default_memory);
     // (Sums saturate: a size given as 2^64 − 1 bytes is refused below as
     // more than the machine has, not wrapped around to a small one.)
-    let filters = filters.saturating_add(samples);
-    let rest = want_total.saturating_sub(fixed.saturating_add(images).saturating_add(filters));
+    let aside = filters.saturating_add(samples);
+    let rest = want_total.saturating_sub(fixed.saturating_add(images).saturating_add(aside));
     let min_chunks = 4u64 << 20;
     let (pool, host, chunks) = match (pool, host) {
         (None, None) => {
@@ -323,7 +323,7 @@ pub fn split_with_shares(
             (p, h, left.clamp(min_chunks, 256 << 20))
         }
     };
-    let need = [pool, host, chunks, images, fixed, filters]
+    let need = [pool, host, chunks, images, fixed, aside]
         .into_iter()
         .fold(0u64, u64::saturating_add);
     if explicit && (need > want_total || pool == 0 || host == 0) {
@@ -337,6 +337,10 @@ pub fn split_with_shares(
             human_bytes(images),
             if filters > 0 {
                 format!(", the derived channel's filters {}", human_bytes(filters))
+            } else {
+                String::new()
+            } + &if samples > 0 {
+                format!(", the kept samples {}", human_bytes(samples))
             } else {
                 String::new()
             },
@@ -368,7 +372,7 @@ pub fn split_with_shares(
         images,
         fixed,
         device: 0,
-        filters: filters - samples,
+        filters,
         samples,
         explicit,
     })

@@ -932,8 +932,10 @@ fn run_one(
     if c.max_frames == 0 {
         bail!("max-frames: expected at least 1 frame, found 0");
     }
-    if c.turntable == Some(0) {
-        bail!("turntable: expected at least 1 view, found 0");
+    if let Some(n) = c.turntable.filter(|n| !(1..=3600).contains(n)) {
+        // (A view a tenth of a degree apart at most: more is a typo, not
+        // a turntable, and each view is a file.)
+        bail!("turntable: expected 1 to 3600 views, found {n}");
     }
     if let Some(e) = c.out.extension().filter(|e| !e.eq_ignore_ascii_case("png")) {
         bail!(
@@ -1386,7 +1388,7 @@ fn run_one(
         let max = brickyard_core::camera::MAX_COORD;
         if camera.eye.iter().any(|v| !v.is_finite() || v.abs() > max) {
             bail!(
-                "fov: {fov}° is too narrow: the camera that fits the volume into it would stand                  beyond ±{max:e} from it; give a wider field of view"
+                "fov: {fov}° is too narrow: the camera that fits the volume into it would stand beyond ±{max:e} from it; give a wider field of view"
             );
         }
     }
@@ -2102,10 +2104,16 @@ fn run_one(
                     )
                 })
                 .unwrap_or_default();
+            // A fixed level is said as the level drawn.
+            let at = match lod {
+                Lod::Fixed(l) => match b.apply(lod, scene.levels.len()) {
+                    Lod::Fixed(m) => format!("level {m} (asked level {l})"),
+                    Lod::Auto { .. } => unreachable!("a fixed level stays fixed"),
+                },
+                Lod::Auto { .. } => format!("LOD bias {:+.1} (asked {:+.1})", b.bias, b.base),
+            };
             format!(
-                " at LOD bias {:+.1} (asked {:+.1}): the pool holds {}{need}",
-                b.bias,
-                b.base,
+                " at {at}: the pool holds {}{need}",
                 human_bytes(s.vm().pool_bytes() as u64)
             )
         } else {
@@ -2193,10 +2201,11 @@ fn run_one(
         let img = match c.progressive {
             // Image-parallel bands accumulated band by band.
             Some(n) if shared != Some(Split::Image) => {
-                let lod = match lod {
-                    Lod::Auto { .. } => Lod::Auto { bias: b.bias },
-                    fixed => fixed,
-                };
+                // The detail the view settled at: a fixed level the pool
+                // could not hold fell back to a coarser one, which the
+                // accumulation keeps (at the level asked for, the device
+                // kept stand-ins it could never retake).
+                let lod = b.apply(lod, scene.levels.len());
                 let t = std::time::Instant::now();
                 let acc = accumulate(
                     &mut backend,
@@ -2596,13 +2605,14 @@ fn accumulate(
         true => {
             use brickyard_render::savr::{first_frame_memory, lod_at_least};
             let band = rows.clone().unwrap_or(0..params.height);
-            let at = |l: usize| first_frame_memory(scene, params, band.clone(), n, l);
+            let at = |l: usize| first_frame_memory(scene, params, band.clone(), l);
             let from = lod_finest(lod);
             match (from..scene.levels.len()).find(|&l| at(l) <= bytes) {
                 Some(l) if l == from => lod,
                 Some(l) => {
                     let fit = lod_at_least(scene, params, lod, l);
-                    if !quiet {
+                    // (A bias asked for may be coarse enough already.)
+                    if !quiet && fit != lod {
                         outln!(
                             "progressive: the first frame's samples at level {from} may take {}, more than the memory for them ({}: a quarter of --memory, and what the pool's budget leaves unused); accumulating at {} (more --memory, or a smaller image, keeps more detail)",
                             human_bytes(at(from)),
@@ -2901,12 +2911,7 @@ fn draw_bands(
             let span = px.start as usize * w as usize..px.end as usize * w as usize;
             match progressive {
                 Some((n, quiet, samples)) => {
-                    let lod = match opt.lod {
-                        Lod::Auto { .. } => Lod::Auto {
-                            bias: o.budget.bias,
-                        },
-                        fixed => fixed,
-                    };
+                    let lod = o.budget.apply(opt.lod, scene.levels.len());
                     let band = accumulate(
                         backend,
                         s,

@@ -317,9 +317,32 @@ pub fn inspect(path: &Path) -> Result<StoreInfo> {
     }
     let mut problems = vec![];
     if !storage::is_remote(path) {
-        let mut old = path.as_os_str().to_os_string();
-        old.push(".old");
-        let old = PathBuf::from(old);
+        let beside = |ext: &str| {
+            let mut n = path.as_os_str().to_os_string();
+            n.push(format!(".{ext}"));
+            PathBuf::from(n)
+        };
+        // A conversion replacing this store (`--overwrite`) writes
+        // STORE.partial under STORE.lock: one at work now, or one
+        // stopped (its lock's process gone, or no lock).
+        let (partial, lock) = (beside("partial"), beside("lock"));
+        let running = lock.is_file() && !crate::lock::is_stale(&lock);
+        if partial.is_dir() && !running {
+            problems.push(format!(
+                "{}: what an interrupted conversion into this store wrote (it would have \
+                 replaced it): run that convert --overwrite again (it starts over), or remove \
+                 the folder",
+                partial.display()
+            ));
+        }
+        if lock.is_file() && !running {
+            problems.push(format!(
+                "{}: the lock of an interrupted conversion (the next one removes it), or \
+                 remove the file",
+                lock.display()
+            ));
+        }
+        let old = beside("old");
         if old.is_dir() {
             problems.push(format!(
                 "{}: the store this one replaced, left beside it by a conversion stopped while \
@@ -637,8 +660,22 @@ fn inner_images(path: &Path, problems: &mut Vec<String>) -> Vec<(String, String)
         }
         // Label images the labels group does not name: a job that stopped
         // between putting the image in place and naming it (a full disk).
+        // Jobs at work now in this group: their locks' names (`.NAME.lock`).
+        let working: Vec<String> = crate::lock::live_locks_within(path)
+            .into_iter()
+            .filter(|(l, _)| l.parent() == Some(&path.join(group)))
+            .filter_map(|(l, _)| {
+                let n = l.file_name()?.to_string_lossy().into_owned();
+                Some(n.strip_suffix(".lock")?.to_string())
+            })
+            .collect();
         for name in names {
             let rel = format!("{group}/{name}");
+            // (A running job's hidden folders: `.NAME.new.partial` and
+            // the like, under its lock `.NAME.lock`.)
+            if working.iter().any(|w| name.starts_with(&format!("{w}."))) {
+                continue;
+            }
             if name.starts_with('.') {
                 problems.push(format!(
                     "{rel}: left by an interrupted processing job (the same `brickyard process` \

@@ -167,7 +167,7 @@ pub fn refuse_if_in_use(store: &Path) -> Result<()> {
         Some((lock, pid)) => Err(StoreError::Refused {
             path: store.into(),
             msg: format!(
-                "a job is writing inside it ({}{}): replacing the store now would pull it from                  under that job; wait for it to end or stop it",
+                "a job is writing inside it ({}{}): replacing the store now would pull it from under that job; wait for it to end or stop it",
                 lock.display(),
                 match pid {
                     0 => String::new(),

@@ -117,6 +117,9 @@ enum Cmd {
     /// lost server) and coarser data stands in for them, or a view stopped
     /// before it was complete (--max-frames); 1: an error (no image where
     /// a view has no data at any level).
+    // (`--azimuth -30`, `--fov -10`: a negative number is the flag's
+    // value, checked by its own rule, not taken for a flag.)
+    #[command(allow_negative_numbers = true)]
     Render(Box<render::RenderCmd>),
     /// Open an interactive viewer (no STORE: the demo dataset, generated on
     /// first use).

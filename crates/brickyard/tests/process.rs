@@ -1246,18 +1246,40 @@ fn a_store_with_a_job_at_work_inside_is_not_replaced_and_leftovers_are_listed() 
     let lock = store.join("labels/.cells.lock");
     // A live job: this test's own process holds the lock.
     std::fs::write(&lock, format!("{}\n", std::process::id())).unwrap();
+    // The job's staging folder: at work, not a leftover.
+    std::fs::create_dir_all(store.join("labels/.cells.new.partial")).unwrap();
+    let info = || {
+        let o = run(&["info", s(&store)]);
+        String::from_utf8_lossy(&o.stdout).to_string() + &String::from_utf8_lossy(&o.stderr)
+    };
+    let text = info();
+    assert!(!text.contains(".cells.new.partial"), "{text}");
     let before = snapshot(&store);
     let replace = ["convert", s(&other), s(&store), "--overwrite", "--quiet"];
     fails_naming(&replace, &[".cells.lock", "job is writing inside it"]);
     assert_eq!(snapshot(&store), before, "the store changed");
-    // The lock of a job that is gone: listed by `info`, no obstacle.
+    // The lock of a job that is gone: listed by `info` with its folder,
+    // no obstacle.
     std::fs::write(&lock, "4194305\n").unwrap();
-    let o = run(&["info", s(&store)]);
-    let text = String::from_utf8_lossy(&o.stdout).to_string() + &String::from_utf8_lossy(&o.stderr);
+    let text = info();
     assert!(
         text.contains("labels/.cells.lock") && text.contains("interrupted"),
         "{text}"
     );
+    assert!(text.contains("labels/.cells.new.partial"), "{text}");
+    // A conversion into the store killed: its partial output and lock
+    // beside it.
+    let partial = d.path().join("v.zarr.partial");
+    let store_lock = d.path().join("v.zarr.lock");
+    std::fs::create_dir_all(&partial).unwrap();
+    std::fs::write(&store_lock, "4194305\n").unwrap();
+    let text = info();
+    assert!(
+        text.contains("v.zarr.partial") && text.contains("v.zarr.lock"),
+        "{text}"
+    );
+    std::fs::remove_dir_all(&partial).unwrap();
+    std::fs::remove_file(&store_lock).unwrap();
     ok(run(&replace));
     assert!(!lock.exists());
     // A replaced store left beside it.
