@@ -354,11 +354,16 @@ pub fn split_with_shares(
     let total = want_total.max(need);
     if let Some(ram) = known_ram().filter(|r| total > *r) {
         bail!(
-            "memory: pool {}, host cache {} and the rest need {}, but this machine has {} of RAM; lower --pool/--host or --memory",
+            "memory: pool {}, host cache {} and the rest need {}, but this machine has {} of RAM; lower {}",
             human_bytes(pool),
             human_bytes(host),
             human_bytes(total),
-            human_bytes(ram)
+            human_bytes(ram),
+            match (shares_given, explicit) {
+                (true, true) => "--pool/--host or --memory",
+                (true, false) => "--pool/--host",
+                _ => "--memory",
+            }
         );
     }
     if pool == 0 {
