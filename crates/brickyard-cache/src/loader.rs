@@ -61,25 +61,24 @@ pub struct LoadFailure {
 }
 
 impl LoadFailure {
+    /// The level's voxels the failed brick covers, `[z, y, x]` from and
+    /// to (by which the store's chunk is found: the engine's bricks need
+    /// not be the store's).
+    pub fn voxels(&self, g: &BrickGeometry) -> [Dims3; 2] {
+        let lo = g.origin_of(&self.key);
+        let ext = g.extent_of(&self.key);
+        [lo, [0, 1, 2].map(|a| lo[a] + ext[a])]
+    }
+
     /// Where the failure is, in the engine's bricks and in the level's
-    /// voxels (by which the store's chunk is found: the engine's bricks
-    /// need not be the store's): "level 0 channel 0 brick [12, 7, 14]
-    /// (voxels z 384..416, y 224..256, x 448..480)".
+    /// voxels: "level 0 channel 0 brick [12, 7, 14] (voxels z 384..416,
+    /// y 224..256, x 448..480)".
     pub fn place(&self, g: &BrickGeometry) -> String {
         let k = &self.key;
-        let lo = g.origin_of(k);
-        let ext = g.extent_of(k);
+        let [lo, hi] = self.voxels(g);
         format!(
             "level {} channel {} brick {:?} (voxels z {}..{}, y {}..{}, x {}..{})",
-            k.level,
-            k.channel,
-            k.brick,
-            lo[0],
-            lo[0] + ext[0],
-            lo[1],
-            lo[1] + ext[1],
-            lo[2],
-            lo[2] + ext[2]
+            k.level, k.channel, k.brick, lo[0], hi[0], lo[1], hi[1], lo[2], hi[2]
         )
     }
 }

@@ -105,6 +105,12 @@ const BAND: usize = 8;
 /// Bytes a kept sample costs.
 pub const BYTES_PER_SAMPLE: usize = 5;
 
+/// Bytes a kept sample costs, with its normal's cosine where the samples
+/// keep normals (a shading transfer function).
+pub fn sample_bytes(normals: bool) -> u64 {
+    BYTES_PER_SAMPLE as u64 + if normals { 4 } else { 0 }
+}
+
 /// The offset within a step of frame `k`'s samples: `½ + r₂(k) (mod 1)`.
 pub fn offset(k: u32) -> f64 {
     let r = k.reverse_bits() as f64 / 4_294_967_296.0;
@@ -312,7 +318,7 @@ impl Accumulation {
     /// buffers hold now where more. Before the first frame: what the
     /// pixels alone take.
     pub fn expected_memory(&self, target: u32) -> u64 {
-        let per = (BYTES_PER_SAMPLE + if self.shaded == Some(true) { 4 } else { 0 }) as u64;
+        let per = sample_bytes(self.shaded == Some(true));
         let t = target.max(1) as u64;
         self.pixels
             .iter()
@@ -339,12 +345,14 @@ impl Accumulation {
     /// Lower the frames asked for to the most whose
     /// [`expected_memory`](Self::expected_memory) is within `bytes` (never
     /// below the frames drawn, nor below 1); pixels then stop at the rate
-    /// reached, as with a per-pixel budget. Returns the new number of
-    /// frames when it was lowered. Call it after the first frame: the
-    /// second reserves each pixel's room for the frames then asked for.
-    pub fn fit_memory(&mut self, bytes: u64) -> Option<u32> {
+    /// reached, as with a per-pixel budget. Returns, when it was lowered,
+    /// the new number of frames and the bytes the frames asked for were
+    /// expected to take. Call it after the first frame: the second
+    /// reserves each pixel's room for the frames then asked for.
+    pub fn fit_memory(&mut self, bytes: u64) -> Option<(u32, u64)> {
         let least = self.drawn.clamp(1, self.target);
-        if self.expected_memory(self.target) <= bytes {
+        let asked = self.expected_memory(self.target);
+        if asked <= bytes {
             return None;
         }
         // The most frames that fit (the expected bytes grow with them).
@@ -358,7 +366,7 @@ impl Accumulation {
             }
         }
         self.target = lo;
-        Some(lo)
+        Some((lo, asked))
     }
 
     /// Every pixel holds the frames asked for (or all its budget allows),
@@ -598,7 +606,7 @@ pub fn first_frame_memory(
     rows: std::ops::Range<u32>,
     level: usize,
 ) -> u64 {
-    let per = (BYTES_PER_SAMPLE + if params.tf.shading.is_some() { 4 } else { 0 }) as f64;
+    let per = sample_bytes(params.tf.shading.is_some());
     let dt = scene.voxel(level) / params.samples_per_voxel;
     let rg = ViewRays::new(
         &params.camera,
@@ -618,7 +626,7 @@ pub fn first_frame_memory(
                     let inv = [1.0 / d[0], 1.0 / d[1], 1.0 / d[2]];
                     head + match intersect_box_inv(&ray, inv, [0.0; 3], scene.extent) {
                         Some((t0, t1)) if t1 > t0 => {
-                            runs + (((t1 - t0) / dt).ceil() + 1.0) as u64 * per as u64
+                            runs + (((t1 - t0) / dt).ceil() as u64 + 1) * per
                         }
                         _ => 0,
                     }

@@ -658,22 +658,14 @@ impl Accumulating {
     }
 
     /// Lower the frames asked for to the most whose expected samples fit
-    /// `bytes` (see [`Accumulation::fit_memory`]); the new number where
-    /// lowered. The device's store is allocated whole at the first frame
-    /// (sized within its share before): `None`.
-    pub fn fit_memory(&mut self, bytes: u64) -> Option<u32> {
+    /// `bytes` (see [`Accumulation::fit_memory`]): where lowered, the new
+    /// number and the bytes the frames asked for were expected to take.
+    /// The device's store is allocated whole at the first frame (sized
+    /// within its share before): `None`.
+    pub fn fit_memory(&mut self, bytes: u64) -> Option<(u32, u64)> {
         match self {
             Accumulating::Cpu(a) => a.fit_memory(bytes),
             Accumulating::Gpu(_) => None,
-        }
-    }
-
-    /// The bytes of samples expected after `target` frames (see
-    /// [`Accumulation::expected_memory`]; the device's whole store).
-    pub fn expected_memory(&self, target: u32) -> u64 {
-        match self {
-            Accumulating::Cpu(a) => a.expected_memory(target),
-            Accumulating::Gpu(a) => a.memory(),
         }
     }
 

@@ -2129,13 +2129,7 @@ fn run_one(
                     "lod_bias": b.bias, "lod_bias_asked": b.base,
                     "needed_bytes_at_full_detail": b.needed_at_base.map(|n| n as u64 * slot_bytes),
                     "pool_bytes": s.vm().pool_bytes(), "bytes_read_total": read,
-                    "failed_bricks": failures.iter().map(|f| {
-                        let g = s.loader().geometry();
-                        let (lo, ext) = (g.origin_of(&f.key), g.extent_of(&f.key));
-                        // The level's voxels it covers, [z, y, x] from and to.
-                        let hi = [0, 1, 2].map(|a| lo[a] + ext[a]);
-                        serde_json::json!({"key": {"level": f.key.level, "channel": f.key.channel, "brick": f.key.brick}, "voxels": [lo, hi], "error": f.message})
-                    }).collect::<Vec<_>>(),
+                    "failed_bricks": failures.iter().map(|f| serde_json::json!({"key": {"level": f.key.level, "channel": f.key.channel, "brick": f.key.brick}, "voxels": f.voxels(s.loader().geometry()), "error": f.message})).collect::<Vec<_>>(),
                     "peak_rss_bytes": peak, "memory_budget_bytes": split.total})
             );
         }
@@ -2551,9 +2545,7 @@ fn accumulate(
     between: &mut dyn FnMut(),
 ) -> Result<brickyard_render::Image> {
     use crate::backend::Accumulating;
-    let e = scene.extent;
-    let diagonal = (e[0] * e[0] + e[1] * e[1] + e[2] * e[2]).sqrt();
-    let steps = (diagonal / (scene.voxel(0) / params.samples_per_voxel)).ceil() as usize + 2;
+    let steps = brickyard_render::savr::longest_run(scene, params, 0) as usize;
     backend.set_read_image(true);
     let mut budget = n as usize * steps;
     let cpu = matches!(backend, crate::backend::Backend::Cpu);
@@ -2570,6 +2562,10 @@ fn accumulate(
         true => bytes + spare,
         false => bytes,
     };
+    let memory_for = format!(
+        "the memory for them ({}: a quarter of --memory, and what the pool's budget leaves unused)",
+        human_bytes(bytes)
+    );
     if !cpu {
         // The device's store is allocated whole: at most this much (on a
         // software adapter, host memory: the samples' share of --memory,
@@ -2614,18 +2610,16 @@ fn accumulate(
                     // (A bias asked for may be coarse enough already.)
                     if !quiet && fit != lod {
                         outln!(
-                            "progressive: the first frame's samples at level {from} may take {}, more than the memory for them ({}: a quarter of --memory, and what the pool's budget leaves unused); accumulating at {} (more --memory, or a smaller image, keeps more detail)",
+                            "progressive: the first frame's samples at level {from} may take {}, more than {memory_for}; accumulating at {} (more --memory, or a smaller image, keeps more detail)",
                             human_bytes(at(from)),
-                            human_bytes(bytes),
                             describe_lod(fit)
                         );
                     }
                     fit
                 }
                 None => bail!(
-                    "progressive: the first frame's samples take up to {} even at the coarsest level, more than the memory for them ({}: a quarter of --memory, and what the pool's budget leaves unused): raise --memory or draw a smaller image",
+                    "progressive: the first frame's samples take up to {} even at the coarsest level, more than {memory_for}: raise --memory or draw a smaller image",
                     human_bytes(at(scene.levels.len() - 1)),
-                    human_bytes(bytes)
                 ),
             }
         }
@@ -2678,15 +2672,11 @@ fn accumulate(
         // After the first frame: as many frames as the samples' share
         // holds (the next frame reserves their room).
         if frame == 1 {
-            let asked = acc.expected_memory(acc.target());
-            if let Some(t) = acc.fit_memory(bytes) {
-                if !quiet {
-                    outln!(
-                        "progressive{band}: {n} frames would keep about {} of samples, more than the memory for them ({}: a quarter of --memory, and what the pool's budget leaves unused); accumulating {t} (more --memory, or a smaller image, draws more)",
-                        human_bytes(asked),
-                        human_bytes(bytes)
-                    );
-                }
+            if let (Some((t, asked)), false) = (acc.fit_memory(bytes), quiet) {
+                outln!(
+                    "progressive{band}: {n} frames would keep about {} of samples, more than {memory_for}; accumulating {t} (more --memory, or a smaller image, draws more)",
+                    human_bytes(asked)
+                );
             }
         }
         if acc.complete() {

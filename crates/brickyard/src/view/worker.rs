@@ -198,16 +198,14 @@ fn acc_key(spec: &Spec, lod: Lod) -> (RenderParams, Lod, usize) {
 }
 
 /// Samples a pixel of a `p`-sized view keeps for `n` frames within
-/// `bytes` (5 bytes a sample, 9 with normals, about 160 bytes of
-/// bookkeeping a pixel), and at most `n` whole rays of the scene.
+/// `bytes` (`savr::sample_bytes` a sample, about 160 bytes of bookkeeping
+/// a pixel), and at most `n` whole rays of the scene.
 fn acc_budget(scene: &Scene, p: &RenderParams, n: u32, bytes: u64) -> usize {
-    let e = scene.extent;
-    let diagonal = (e[0] * e[0] + e[1] * e[1] + e[2] * e[2]).sqrt();
-    let steps = (diagonal / (scene.voxel(0) / p.samples_per_voxel)).ceil() as u64 + 2;
-    let per = if p.tf.shading.is_some() { 9 } else { 5 };
+    use brickyard_render::savr::{longest_run, sample_bytes};
+    let per = sample_bytes(p.tf.shading.is_some());
     let pixels = (p.width as u64 * p.height as u64).max(1);
     let fit = (bytes / pixels).saturating_sub(160) / per;
-    fit.min(n as u64 * steps) as usize
+    fit.min(n as u64 * longest_run(scene, p, 0)) as usize
 }
 
 /// Whether an accumulation keeping `kept` samples a pixel can draw `p`
