@@ -704,12 +704,8 @@ def _options(brick, shard, compression, labels, memory, overwrite, spacing, orig
         raise TypeError(f"compression: expected a name such as lz4, zstd or none, got {compression!r}")
     if memory < 0:
         raise ValueError(f"memory: expected a number of bytes, got {memory}")
-    bricks = three(brick, "brick", int)
-    # Not given: 512 voxels, at least the brick and a multiple of it (as
-    # `convert` without --shard).
-    shards = three(shard, "shard", int) if shard is not None else \
-        tuple(max(b, -(-512 // b) * b) for b in bricks)
-    return {"brick": bricks, "shard": shards,
+    # (shard None: `convert`'s default for the brick, as without --shard.)
+    return {"brick": three(brick, "brick", int), "shard": three(shard, "shard", int),
             "compression": compression, "labels": bool(labels), "memory": int(memory),
             "overwrite": bool(overwrite), "spacing": three(spacing, "spacing", float),
             "origin": three(origin, "origin", float), "unit": unit,

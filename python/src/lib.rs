@@ -503,7 +503,8 @@ const PYTHON: brickyard_run::process::Caller = brickyard_run::process::Caller {
 #[pyo3(from_item_all)]
 struct PyConvertOptions {
     brick: [u64; 3],
-    shard: [u64; 3],
+    /// `None`: `convert`'s default for the brick.
+    shard: Option<[u64; 3]>,
     compression: String,
     labels: bool,
     memory: u64,
@@ -538,16 +539,20 @@ impl PyConvertOptions {
                 self.compression
             ))
         })?;
-        for (what, v) in [("brick", self.brick), ("shard", self.shard)] {
-            if v.contains(&0) {
-                return Err(PyValueError::new_err(format!(
-                    "{what}: every edge must be positive, got {v:?}"
-                )));
-            }
-        }
+        let positive = |what: &str, v: [u64; 3]| match v.contains(&0) {
+            true => Err(PyValueError::new_err(format!(
+                "{what}: every edge must be positive, got {v:?}"
+            ))),
+            false => Ok(v),
+        };
+        let brick = positive("brick", self.brick)?;
+        let shard = match self.shard {
+            Some(s) => positive("shard", s)?,
+            None => brick.map(brickyard_store::builder::default_shard),
+        };
         Ok(ConvertOptions {
-            brick: self.brick,
-            shard: self.shard,
+            brick,
+            shard,
             compression,
             labels: self.labels,
             memory: self.memory,

@@ -517,7 +517,7 @@ fn run_job(
     let is_label = pipe.is_label_output();
     let mut opts = ConvertOptions {
         brick,
-        shard: [512; 3].map(|s: u64| s.max(brick[0]).div_ceil(brick[0]) * brick[0]),
+        shard: brick.map(brickyard_store::builder::default_shard),
         compression: Compression::Lz4,
         labels: is_label,
         memory: 0,

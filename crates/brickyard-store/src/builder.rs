@@ -1339,13 +1339,22 @@ pub fn replaceable(path: &Path) -> bool {
             .unwrap_or(false)
 }
 
+/// The shard edge when none is given: [`DEFAULT_SHARD`] voxels, at least
+/// the brick and a multiple of it.
+pub fn default_shard(brick: u64) -> u64 {
+    DEFAULT_SHARD.max(brick).div_ceil(brick) * brick
+}
+
+/// The shard edge asked for when none is given (see [`default_shard`]).
+pub const DEFAULT_SHARD: u64 = 512;
+
 /// Where an unfinished conversion of `output` is written.
 pub fn partial_path(output: &Path) -> PathBuf {
     beside(output, "partial")
 }
 
 /// Where a replaced store stays while its replacement is swapped in.
-fn old_path(output: &Path) -> PathBuf {
+pub(crate) fn old_path(output: &Path) -> PathBuf {
     beside(output, "old")
 }
 

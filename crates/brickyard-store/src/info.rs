@@ -274,12 +274,10 @@ fn brick_summary(root: &Path, level: usize) -> Option<BrickSummary> {
 pub fn inspect(path: &Path) -> Result<StoreInfo> {
     if !path.exists() && !storage::is_remote(path) {
         // What an interrupted conversion of it left, said.
-        let beside = |ext: &str| {
-            let mut n = path.as_os_str().to_os_string();
-            n.push(format!(".{ext}"));
-            PathBuf::from(n)
-        };
-        let (partial, old) = (beside("partial"), beside("old"));
+        let (partial, old) = (
+            crate::builder::partial_path(path),
+            crate::builder::old_path(path),
+        );
         let hint = if old.is_dir() {
             format!(
                 "; {} is the store a conversion was replacing when it stopped: rename it back",
@@ -317,15 +315,13 @@ pub fn inspect(path: &Path) -> Result<StoreInfo> {
     }
     let mut problems = vec![];
     if !storage::is_remote(path) {
-        let beside = |ext: &str| {
-            let mut n = path.as_os_str().to_os_string();
-            n.push(format!(".{ext}"));
-            PathBuf::from(n)
-        };
         // A conversion replacing this store (`--overwrite`) writes
         // STORE.partial under STORE.lock: one at work now, or one
         // stopped (its lock's process gone, or no lock).
-        let (partial, lock) = (beside("partial"), beside("lock"));
+        let (partial, lock) = (
+            crate::builder::partial_path(path),
+            crate::builder::lock_path(path),
+        );
         let running = lock.is_file() && !crate::lock::is_stale(&lock);
         if partial.is_dir() && !running {
             problems.push(format!(
@@ -342,7 +338,7 @@ pub fn inspect(path: &Path) -> Result<StoreInfo> {
                 lock.display()
             ));
         }
-        let old = beside("old");
+        let old = crate::builder::old_path(path);
         if old.is_dir() {
             problems.push(format!(
                 "{}: the store this one replaced, left beside it by a conversion stopped while \
@@ -640,35 +636,39 @@ fn inner_images(path: &Path, problems: &mut Vec<String>) -> Vec<(String, String)
             group_folders(path, group)
         };
         names.sort();
-        // Locks of jobs that are gone (killed), and temporaries of their
+        // The group's jobs by their locks (`.NAME.lock`): at work now (their
+        // names), or gone (killed), as are the temporaries of their
         // attempts: taken over by the next job there.
+        let mut working: Vec<String> = vec![];
+        let mut left: Vec<String> = vec![];
         if let Ok(rd) = std::fs::read_dir(path.join(group)) {
-            let mut left: Vec<String> = rd
-                .flatten()
-                .filter(|e| e.path().is_file())
-                .map(|e| e.file_name().to_string_lossy().into_owned())
-                .filter(|n| n.starts_with('.') && (n.ends_with(".lock") || n.ends_with(".tmp")))
-                .filter(|n| crate::lock::is_stale(&path.join(group).join(n)))
-                .collect();
-            left.sort();
-            for n in left {
-                problems.push(format!(
-                    "{group}/{n}: the lock of an interrupted processing job (the next job there \
-                     removes it), or remove the file"
-                ));
+            for e in rd.flatten().filter(|e| e.path().is_file()) {
+                let n = e.file_name().to_string_lossy().into_owned();
+                if !n.starts_with('.') {
+                    continue;
+                }
+                match n.strip_suffix(".lock") {
+                    Some(job) if crate::lock::live_holder(&e.path()).is_some() => {
+                        working.push(job.to_string())
+                    }
+                    _ if (n.ends_with(".lock") || n.ends_with(".tmp"))
+                        && crate::lock::is_stale(&e.path()) =>
+                    {
+                        left.push(n)
+                    }
+                    _ => {}
+                }
             }
+        }
+        left.sort();
+        for n in left {
+            problems.push(format!(
+                "{group}/{n}: the lock of an interrupted processing job (the next job there \
+                 removes it), or remove the file"
+            ));
         }
         // Label images the labels group does not name: a job that stopped
         // between putting the image in place and naming it (a full disk).
-        // Jobs at work now in this group: their locks' names (`.NAME.lock`).
-        let working: Vec<String> = crate::lock::live_locks_within(path)
-            .into_iter()
-            .filter(|(l, _)| l.parent() == Some(&path.join(group)))
-            .filter_map(|(l, _)| {
-                let n = l.file_name()?.to_string_lossy().into_owned();
-                Some(n.strip_suffix(".lock")?.to_string())
-            })
-            .collect();
         for name in names {
             let rel = format!("{group}/{name}");
             // (A running job's hidden folders: `.NAME.new.partial` and

@@ -132,12 +132,21 @@ pub fn live_locks_within(store: &Path) -> Vec<(PathBuf, u32)> {
             if !(name.starts_with('.') && name.ends_with(".lock")) {
                 continue;
             }
-            if let Some(Holder::Alive(pid)) = holder(&e.path()) {
+            if let Some(pid) = live_holder(&e.path()) {
                 held.push((e.path(), pid));
             }
         }
     }
     held
+}
+
+/// The live process that holds the lock file `path`, if one does (0:
+/// one this process cannot see into).
+pub fn live_holder(path: &Path) -> Option<u32> {
+    match holder(path) {
+        Some(Holder::Alive(pid)) => Some(pid),
+        _ => None,
+    }
 }
 
 /// Whether the lock file `path` (or a temporary of a lock attempt,
@@ -147,16 +156,21 @@ pub fn is_stale(path: &Path) -> bool {
         .file_name()
         .map(|n| n.to_string_lossy().into_owned())
         .unwrap_or_default();
-    if let Some(rest) = name.strip_suffix(".tmp") {
-        // `.{lock name}.{pid}.{serial}`
-        let mut parts = rest.rsplit('.');
-        let _serial = parts.next();
-        return parts
-            .next()
-            .and_then(|p| p.parse::<u32>().ok())
-            .is_some_and(|p| !alive(p));
+    if name.ends_with(".tmp") {
+        return attempt_pid(&name).is_some_and(|p| !alive(p));
     }
     matches!(holder(path), Some(Holder::Gone))
+}
+
+/// The process id in the name of a lock attempt's temporary,
+/// `.{lock name}.{pid}.{serial}.tmp` ([`create_with_pid`]).
+fn attempt_pid(file_name: &str) -> Option<u32> {
+    file_name
+        .strip_suffix(".tmp")?
+        .rsplit('.')
+        .nth(1)?
+        .parse()
+        .ok()
 }
 
 /// Refuse to replace or remove `store` while a live process holds a lock
@@ -246,11 +260,7 @@ fn remove_stale_temporaries(path: &Path) {
     for e in entries.flatten() {
         let f = e.file_name();
         let f = f.to_string_lossy();
-        let Some(rest) = f.strip_prefix(&prefix).and_then(|r| r.strip_suffix(".tmp")) else {
-            continue;
-        };
-        let pid = rest.split('.').next().and_then(|p| p.parse::<u32>().ok());
-        if pid.is_some_and(|p| !alive(p)) {
+        if f.starts_with(&prefix) && attempt_pid(&f).is_some_and(|p| !alive(p)) {
             let _ = std::fs::remove_file(e.path());
         }
     }

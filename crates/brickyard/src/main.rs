@@ -288,9 +288,6 @@ pub(crate) fn parse_compression(s: &str) -> Result<Compression> {
 
 /// The brick when `--brick` is not given.
 const DEFAULT_BRICK: u64 = 64;
-/// The shard when `--shard` is not given (rounded up to a multiple of the
-/// brick).
-const DEFAULT_SHARD: u64 = 512;
 
 fn convert_options(p: &PyramidArgs) -> Result<ConvertOptions> {
     let compression = parse_compression(p.compression.as_deref().unwrap_or("lz4"))?;
@@ -298,10 +295,9 @@ fn convert_options(p: &PyramidArgs) -> Result<ConvertOptions> {
     if brick < 2 || !brick.is_multiple_of(2) {
         bail!("brick: expected an even number of voxels >= 2, found {brick}");
     }
-    // Not given: the default, at least the brick and a multiple of it.
     let shard = p
         .shard
-        .unwrap_or_else(|| DEFAULT_SHARD.max(brick).div_ceil(brick) * brick);
+        .unwrap_or_else(|| brickyard_store::builder::default_shard(brick));
     if shard < brick || !shard.is_multiple_of(brick) {
         bail!("shard: expected a multiple of the brick ({brick}), found {shard}");
     }
