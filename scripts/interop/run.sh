@@ -282,7 +282,7 @@ run_case process_nuclei      case_process nuclei
 run_case process_crash       case_process crash
 run_case s3_moto             case_s3
 for ref in ome04_v2_u16 v3_plain_u16 v3_sharded_u16 ome05_2ch_u8 v3_f32_be v2_i16_be_F v2_u16_zlib \
-    v2_i16_bz2 v2_u64 v3_i64_sharded; do
+    v2_i16_bz2 v2_i16_lz4 v3_u16_lz4 v2_u64 v3_i64_sharded; do
     run_case "ref_$ref" case_reference "$ref"
 done
 

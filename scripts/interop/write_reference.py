@@ -243,6 +243,47 @@ def write_v2_i16_bz2(outdir: Path):
               [1.0, 1.0, 1.0], None, 1)
 
 
+def write_v2_i16_lz4(outdir: Path):
+    """numcodecs LZ4 (a compressor of older Zarr v2 stores: a length header
+    and an LZ4 block, not Blosc)."""
+    import zarr
+    from numcodecs import LZ4
+
+    name = "v2_i16_lz4"
+    data = volume((21, 17, 26), np.int16, seed=23)
+    store = fresh(outdir / f"{name}.zarr")
+    arr = zarr.create_array(str(store), shape=data.shape, dtype="<i2", chunks=(8, 7, 10),
+                            compressors=LZ4(acceleration=1), zarr_format=2, fill_value=0)
+    arr[...] = data
+    zm = json.loads((store / ".zarray").read_text())
+    assert zm["compressor"]["id"] == "lz4", zm
+    save_meta(outdir, name, data, "plain Zarr v2 array, <i2, numcodecs LZ4",
+              [1.0, 1.0, 1.0], None, 1)
+
+
+def write_v3_u16_lz4(outdir: Path):
+    """numcodecs LZ4 in a Zarr v3 array (zarr-python names it numcodecs.lz4)."""
+
+    import zarr
+    try:
+        from zarr.codecs.numcodecs import LZ4
+    except ImportError:  # zarr-python before 3.1.3
+        from numcodecs.zarr3 import LZ4
+
+    name = "v3_u16_lz4"
+    data = volume((18, 23, 20), np.uint16, seed=29)
+    store = fresh(outdir / f"{name}.zarr")
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        arr = zarr.create_array(str(store), shape=data.shape, dtype="uint16", chunks=(7, 9, 8),
+                                compressors=[LZ4(acceleration=2)], zarr_format=3, fill_value=0)
+        arr[...] = data
+    zm = json.loads((store / "zarr.json").read_text())
+    assert any(c["name"] == "numcodecs.lz4" for c in zm["codecs"]), zm
+    save_meta(outdir, name, data, "plain Zarr v3 array, uint16, numcodecs.lz4",
+              [1.0, 1.0, 1.0], None, 1)
+
+
 def write_v2_u64(outdir: Path):
     """uint64 (v2 type string "<u8": 8 bytes, not uint8), values up to ~4e9:
     stored as uint32, so the expected array is uint32."""
@@ -276,7 +317,7 @@ def write_v3_i64_sharded(outdir: Path):
 
 CASES = [write_ome04_v2, write_v3_plain, write_v3_sharded,
          write_ome05_2ch, write_v3_f32_be, write_v2_i16_be_F, write_v2_u16_zlib,
-         write_v2_i16_bz2, write_v2_u64, write_v3_i64_sharded]
+         write_v2_i16_bz2, write_v2_i16_lz4, write_v3_u16_lz4, write_v2_u64, write_v3_i64_sharded]
 
 
 def main(argv):

@@ -10,6 +10,7 @@ pub mod generate;
 pub mod import;
 pub mod info;
 pub mod lock;
+pub mod numcodecs_lz4;
 pub mod omezarr;
 pub mod shard;
 pub mod source;
