@@ -217,6 +217,7 @@ pub struct RenderCmd {
     /// thirtieth of the distance to the target, where the views agree).
     #[arg(long, value_name = "D")]
     eye_separation: Option<f64>,
+    /// Threads that read and decode bricks (1 to 256).
     #[arg(long, default_value_t = 2)]
     loader_threads: usize,
     /// Slow every brick read down by this many milliseconds (a slow disk).

@@ -36,6 +36,7 @@ pub struct BenchCmd {
     /// Volume size (N or XxYxZ; default 256, octree 128).
     #[arg(long)]
     size: Option<String>,
+    /// Voxel type of the generated volume: u8, u16, f32, ...
     #[arg(long, default_value = "u8")]
     dtype: String,
     /// Where inputs are generated (kept between runs) and outputs written.
@@ -44,10 +45,13 @@ pub struct BenchCmd {
     /// Memory budget handed to the converter.
     #[arg(long, default_value = "1GiB")]
     memory: String,
+    /// Brick (inner chunk) edge of the converted store, in voxels.
     #[arg(long, default_value_t = 64, value_parser = clap::value_parser!(u64).range(2..=1024))]
     brick: u64,
+    /// Shard edge of the converted store, in voxels.
     #[arg(long, default_value_t = 256, value_parser = clap::value_parser!(u64).range(2..=16384))]
     shard: u64,
+    /// Compression of the converted store: lz4 (blosc), zstd, zstd:LEVEL or none.
     #[arg(long, default_value = "lz4")]
     compression: String,
     /// Repetitions (the best is reported, all are listed).

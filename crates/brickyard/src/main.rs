@@ -96,6 +96,7 @@ enum Cmd {
         /// N (a cube) or XxYxZ.
         #[arg(long, default_value = "256")]
         size: String,
+        /// Voxel type: u8, u16, u32, i16, f32, ...
         #[arg(long, default_value = "u8")]
         dtype: String,
         #[command(flatten)]

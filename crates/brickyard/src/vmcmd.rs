@@ -22,18 +22,20 @@ pub struct FootprintCmd {
     /// Voxel type (for --dims): u8, u16, u32 (RGBA), f32 ...
     #[arg(long, default_value = "u8")]
     dtype: String,
+    /// Brick edge in voxels, without the apron.
     #[arg(long, default_value_t = 64, value_parser = clap::value_parser!(u64).range(2..=1024))]
     brick: u64,
-    #[arg(long, default_value_t = 1)]
+    /// Voxels each brick repeats of its neighbours on every side.
+    #[arg(long, default_value_t = 1, value_parser = clap::value_parser!(u64).range(0..=64))]
     apron: u64,
     /// Page-table block edge.
-    #[arg(long, default_value_t = 32)]
+    #[arg(long, default_value_t = 32, value_parser = clap::value_parser!(u64).range(2..=1024))]
     pt_block: u64,
     /// Intermediate page-table levels (default: automatic from --max-dir).
-    #[arg(long)]
-    pt_levels: Option<usize>,
+    #[arg(long, value_parser = clap::value_parser!(u64).range(0..=16))]
+    pt_levels: Option<u64>,
     /// Largest directory (entries) before a page-table level is added.
-    #[arg(long, default_value_t = 32768)]
+    #[arg(long, default_value_t = 32768, value_parser = clap::value_parser!(u64).range(1..))]
     max_dir: u64,
     /// Brick pool size (e.g. 3GB, 4GiB).
     #[arg(long, default_value = "4GB")]
@@ -41,8 +43,10 @@ pub struct FootprintCmd {
     /// Blocks per page-table cache.
     #[arg(long, default_value_t = 500)]
     pt_cache_blocks: u64,
-    #[arg(long, default_value_t = 256)]
+    /// Requests the capped request list holds a frame.
+    #[arg(long, default_value_t = 256, value_parser = clap::value_parser!(u64).range(1..=1_048_576))]
     request_cap: u64,
+    /// Print the figures as JSON.
     #[arg(long)]
     json: bool,
 }
@@ -68,6 +72,19 @@ pub fn footprint(c: FootprintCmd) -> Result<()> {
             let dims = parse_size(d).map_err(|e| anyhow::anyhow!("dims: {e}"))?;
             let dt =
                 DType::parse(&c.dtype).with_context(|| format!("dtype: unknown {:?}", c.dtype))?;
+            // Sums over the bricks stay within 64 bits below 2^60 bytes.
+            let bytes = dims
+                .iter()
+                .try_fold(dt.size() as u64, |a, &n| a.checked_mul(n));
+            if bytes.is_none_or(|b| b > 1 << 60) {
+                bail!(
+                    "dims: {}x{}x{} voxels of {} are more than 1 EiB; expected a volume of at most 2^60 bytes",
+                    dims[0],
+                    dims[1],
+                    dims[2],
+                    c.dtype
+                );
+            }
             let plan = plan_levels(dims, [1.0; 3], [0.0; 3], [c.brick; 3]);
             (plan.levels.iter().map(|l| l.dims).collect(), dt)
         }
@@ -75,7 +92,7 @@ pub fn footprint(c: FootprintCmd) -> Result<()> {
     };
     let brick = [c.brick; 3];
     let layout = match c.pt_levels {
-        Some(n) => VirtualLayout::new(levels.clone(), brick, vec![[c.pt_block; 3]; n]),
+        Some(n) => VirtualLayout::new(levels.clone(), brick, vec![[c.pt_block; 3]; n as usize]),
         None => VirtualLayout::auto(levels.clone(), brick, [c.pt_block; 3], c.max_dir),
     };
     let pool = crate::parse_bytes(&c.pool)?;

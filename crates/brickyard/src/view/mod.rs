@@ -59,6 +59,7 @@ pub struct ViewCmd {
     /// most 32 MiB: its staging buffer is set aside in --memory).
     #[arg(long, default_value = "64MiB")]
     upload: String,
+    /// Threads that read and decode bricks (1 to 256).
     #[arg(long, default_value_t = 2)]
     loader_threads: usize,
     /// Start with this camera (JSON, as `render --camera` takes).
