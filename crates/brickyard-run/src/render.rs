@@ -2628,7 +2628,8 @@ fn accumulate(
     };
     // A store too small for one run of the view's rays costs detail: say so.
     let kept = acc.budget() as u64;
-    match brickyard_render::savr::lod_within(scene, params, lod, kept) {
+    let within = brickyard_render::savr::lod_within(scene, params, lod, kept);
+    match within {
         Some(fit) if fit != lod && !quiet => outln!(
             "progressive: a pixel keeps {kept} samples, fewer than one run of the longest ray takes at the level asked for ({}); accumulating at {} (a smaller image keeps more detail)",
             brickyard_render::savr::longest_run(scene, params, lod_finest(lod)),
@@ -2640,6 +2641,13 @@ fn accumulate(
         ),
         _ => {}
     }
+    // A pixel begins run k only when k + 1 runs of its ray fit its store:
+    // where the device's store is smaller than the frames asked for take
+    // on the longest rays, those pixels stay at fewer frames (the CPU's
+    // store grows: its budget is the frames' whole runs).
+    let longest =
+        brickyard_render::savr::longest_run(scene, params, lod_finest(within.unwrap_or(lod)));
+    let fewest = (kept / longest.max(1)).min(n as u64) as u32;
     let t = std::time::Instant::now();
     let mut left = 0;
     let band = rows
@@ -2683,12 +2691,18 @@ fn accumulate(
         if acc.complete() {
             if !quiet {
                 outln!(
-                    "accumulated{band} {} frames in {frame} passes, {:.2} s",
+                    "accumulated{band} {} frames in {frame} passes, {:.2} s{}",
                     match acc.target() {
                         t if t < n => format!("{t} of the {n}"),
                         _ => n.to_string(),
                     },
-                    t.elapsed().as_secs_f64()
+                    t.elapsed().as_secs_f64(),
+                    match fewest < acc.target() {
+                        true => format!(
+                            "; a ray as long as the volume's diagonal ({longest} samples a run) keeps {fewest} of them in the {kept} samples of a pixel's store on the device (more --memory, or a smaller image, keeps more)"
+                        ),
+                        false => String::new(),
+                    }
                 );
             }
             return Ok(acc.image().clone());

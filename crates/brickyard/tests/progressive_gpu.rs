@@ -294,3 +294,67 @@ fn a_blend_longer_than_the_devices_loop_limit_is_named_as_such() {
     .concat());
     ok(&o, "render on the CPU");
 }
+
+/// Where the device's fixed sample store holds fewer runs of the longest
+/// rays than the frames asked for, those pixels stop at fewer frames (the
+/// room rule), and `render` says how many: "accumulated 32 frames" alone
+/// claimed more than such pixels hold. The CPU's store grows: no such note.
+#[test]
+fn frames_the_devices_store_cannot_hold_are_said() {
+    if brickyard_gpu::context::test_gpu().is_none() {
+        return; // BRICKYARD_SKIP_GPU=1
+    }
+    let d = tempfile::tempdir().unwrap();
+    let st = d.path().join("m.zarr");
+    ok(
+        &run(&["generate", "mandelbulb", s(&st), "--size", "32", "--quiet"]),
+        "generate",
+    );
+    let view = |backend: &'static str| {
+        [
+            "render",
+            s(&st),
+            "--size",
+            "256",
+            "--tf",
+            "linear",
+            "--progressive",
+            "32",
+            "--memory",
+            "1GiB",
+            "--backend",
+            backend,
+        ]
+    };
+    let png = d.path().join("g.png");
+    let out = ok(&run(&[&view("gpu")[..], &["-o", s(&png)]].concat()), "gpu");
+    let line = out
+        .lines()
+        .find(|l| l.starts_with("accumulated 32 frames"))
+        .unwrap_or_else(|| panic!("no accumulated line: {out}"));
+    // "... diagonal (L samples a run) keeps K of them in the B samples ..."
+    let num_after = |key: &str| -> u64 {
+        let at = line.find(key).unwrap_or_else(|| panic!("{key}: {line}")) + key.len();
+        line[at..]
+            .split(|c: char| !c.is_ascii_digit())
+            .next()
+            .unwrap()
+            .parse()
+            .unwrap_or_else(|_| panic!("{key}: {line}"))
+    };
+    let (runs, fewest, kept) = (
+        num_after("diagonal ("),
+        num_after(" keeps "),
+        num_after(" in the "),
+    );
+    // A 32³ volume's diagonal at one sample a voxel, and the room rule.
+    assert_eq!(runs, (32f64 * 3f64.sqrt()).ceil() as u64 + 2, "{line}");
+    assert_eq!(fewest, kept / runs, "{line}");
+    assert!(fewest >= 1 && fewest < 32, "{line}");
+    assert!(png.exists());
+    let out = ok(&run(&[&view("cpu")[..], &["-o", s(&png)]].concat()), "cpu");
+    assert!(
+        out.contains("accumulated 32 frames") && !out.contains("diagonal"),
+        "{out}"
+    );
+}
