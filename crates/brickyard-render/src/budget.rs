@@ -325,6 +325,14 @@ impl LodBudget {
                 to: self.bias,
             };
         }
+        // At the bias limit and still saturated frame after frame (bricks
+        // arrive and find no slot): every sample at the coarsest level,
+        // which stays resident, needs no slot, so the frames ask for
+        // bricks of levels they do not draw. A render stops rather than
+        // go on until its frames run out; what it drew is not complete.
+        if !self.interactive && full && self.bias >= self.max && self.saturated >= STALL_FRAMES {
+            return Decision::Stop(Stop::NoProgress);
+        }
         if self.interactive {
             // Refine when the working set would still fit at the finer
             // bias (twice as many bricks for half a level, with a margin).
@@ -595,6 +603,29 @@ mod tests {
             d = b.update(&stuck);
         }
         assert_eq!(d, Decision::Stop(Stop::NoProgress));
+    }
+
+    #[test]
+    fn a_render_saturated_at_the_bias_limit_stops() {
+        let mut b = LodBudget::new(0.0, 3, false);
+        let full = sig(false, 28, 28, 100);
+        let mut frames = 0;
+        let d = loop {
+            frames += 1;
+            assert!(frames < 100, "no end");
+            match b.update(&full) {
+                Decision::Stop(why) => break why,
+                _ => continue,
+            }
+        };
+        assert_eq!(b.bias, b.max);
+        assert_eq!(d, Stop::NoProgress);
+        assert!(frames <= 4 + STALL_FRAMES as usize, "{frames} frames");
+        // A view goes on (the user moves it).
+        let mut v = LodBudget::new(0.0, 3, true);
+        for _ in 0..50 {
+            assert!(!matches!(v.update(&full), Decision::Stop(_)));
+        }
     }
 
     #[test]

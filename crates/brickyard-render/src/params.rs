@@ -149,6 +149,15 @@ pub struct RenderParams {
     /// ray goes on through them in 3D.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub label_select: Option<LabelSelect>,
+    /// The image height whose pixel footprint picks the automatic level
+    /// of detail (`None`: `height`). A smaller image drawn to find the
+    /// bricks a larger one needs (`render`'s request pass, the viewer's
+    /// previews) asks for the larger image's levels this way, also where
+    /// those pixels span less than a voxel and the rule's floor holds
+    /// (a bias could not say that: the pass then asked for finer levels
+    /// than the image draws).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub lod_height: Option<u32>,
 }
 
 /// The most labels a [`LabelSelect`] names.
@@ -410,6 +419,12 @@ fn one() -> f64 {
 }
 
 impl RenderParams {
+    /// The height whose pixel footprint picks the level of detail
+    /// ([`lod_height`](Self::lod_height), else `height`).
+    pub fn lod_height(&self) -> u32 {
+        self.lod_height.unwrap_or(self.height)
+    }
+
     /// Parameters with one sample per voxel and `Δ_ref` = one voxel.
     pub fn new(
         width: u32,
@@ -435,6 +450,7 @@ impl RenderParams {
             mip_values: false,
             labels: false,
             label_select: None,
+            lod_height: None,
         }
     }
 

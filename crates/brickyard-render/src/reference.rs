@@ -632,7 +632,7 @@ pub fn render_auto_lod(levels: &[Volume], params: &RenderParams, bias: f64) -> I
     let voxel = |l: usize| levels[l].voxel_size();
     let reference = params.reference_step.unwrap_or(voxel(0));
     let level_at = |t: f64| {
-        let l = (params.camera.pixel_footprint(t, params.height) / voxel(0))
+        let l = (params.camera.pixel_footprint(t, params.lod_height()) / voxel(0))
             .log2()
             .max(0.0)
             + bias;

@@ -670,7 +670,7 @@ pub fn lod_at_least(scene: &Scene, params: &RenderParams, lod: Lod, finest: usiz
                 })
                 .sum::<f64>()
                 .sqrt();
-            let fp = params.camera.pixel_footprint(near, params.height);
+            let fp = params.camera.pixel_footprint(near, params.lod_height());
             // (The rule's level is never finer than level 0.)
             let x = (fp / scene.voxel(0)).log2().max(0.0);
             // A hundredth of a level above the threshold: the device

@@ -111,7 +111,9 @@ impl<'a> Frame<'a> {
         let padded = vm.padded();
         let nl = scene.levels.len();
         let fp_slope = match params.camera.projection {
-            Projection::Perspective { .. } => params.camera.pixel_footprint(1.0, params.height),
+            Projection::Perspective { .. } => {
+                params.camera.pixel_footprint(1.0, params.lod_height())
+            }
             Projection::Orthographic { .. } => 0.0,
         };
         let transparent: Vec<Option<Vec<bool>>> = (0..nl)
@@ -343,7 +345,10 @@ impl<'a> Frame<'a> {
             }
             lod => {
                 let fp = match self.fp_slope {
-                    0.0 => self.params.camera.pixel_footprint(t, self.params.height),
+                    0.0 => self
+                        .params
+                        .camera
+                        .pixel_footprint(t, self.params.lod_height()),
                     slope => slope * t,
                 };
                 lod.level_for(fp, self.voxel[0], self.levels())

@@ -107,17 +107,17 @@ pub fn pass_divisor(width: u32, height: u32) -> u32 {
 }
 
 /// The request pass of `params`: the image's width and height divided by
-/// [`pass_divisor`] and a quarter of the samples along each ray, and the
-/// bias it draws at (subtracted from the image's: as many levels finer as
-/// the divisor's log2, which is the level the full image asks for). The
-/// viewer's previews are drawn so too.
-pub fn request_pass(params: &RenderParams) -> (RenderParams, f64) {
+/// [`pass_divisor`] and a quarter of the samples along each ray, at the
+/// levels of detail the full image draws (its pixel footprint picks them:
+/// [`RenderParams::lod_height`]). The viewer's previews are drawn so too.
+pub fn request_pass(params: &RenderParams) -> RenderParams {
     let div = pass_divisor(params.width, params.height);
     let mut p = params.clone();
     p.width = params.width / div;
     p.height = params.height / div;
+    p.lod_height = Some(params.lod_height());
     p.samples_per_voxel = params.samples_per_voxel * 0.25;
-    (p, f64::from(div).log2())
+    p
 }
 
 /// A view changed draws previews for at most this long, in the viewer and
@@ -147,12 +147,7 @@ pub fn preview(backend: &Backend, p: &RenderParams, lod: Lod) -> Option<(RenderP
     {
         return None;
     }
-    let (small, finer) = request_pass(p);
-    let lod = match lod {
-        Lod::Auto { bias } => Lod::Auto { bias: bias - finer },
-        fixed => fixed,
-    };
-    Some((small, lod))
+    Some((request_pass(p), lod))
 }
 
 /// Whether previews of a view that changed at `since` give way to full
@@ -187,10 +182,9 @@ pub fn drive(
     let levels = scene.levels.len();
     let mut frames = 0;
     // The request pass: the image's width and height divided by
-    // `pass_divisor` (2, 4 or 8), as many levels finer than the automatic
-    // rule would pick for that size as the divisor's log2, which is the
-    // level the full image asks for (the pixel footprint grows by the
-    // divisor), and a quarter of the samples along each ray: rays cross
+    // `pass_divisor` (2, 4 or 8), at the levels the full image asks for
+    // (its pixel footprint picks them), and a quarter of the samples
+    // along each ray: rays cross
     // the same bricks and, with the opacity corrected for the longer step,
     // end about where they would. A brick of the level the image draws
     // spans tens of its pixels, so pass rays a few pixels apart still
@@ -199,7 +193,7 @@ pub fn drive(
     // pass's 1915 at a quarter of the width, 16 at half of it, while the
     // first pass took a third of the time; BENCHMARKS.md).
     let div = pass_divisor(params.width, params.height);
-    let (small, pass_bias) = request_pass(params);
+    let small = request_pass(params);
     let small = (opt.batch && params.width >= 128 && params.height >= 128).then_some(small);
     // First the request pass (while it finds bricks to ask for), then full
     // frames until the budget says stop; at least one full frame. Passes
@@ -225,17 +219,10 @@ pub fn drive(
         if frames + 1 >= opt.max_frames {
             pass = false;
         }
-        let (p, l) = match (&small, pass) {
-            (Some(sp), true) => (
-                sp,
-                match budget.apply(lod, levels) {
-                    Lod::Auto { bias } => Lod::Auto {
-                        bias: bias - pass_bias,
-                    },
-                    fixed => fixed,
-                },
-            ),
-            _ => (params, budget.apply(lod, levels)),
+        let l = budget.apply(lod, levels);
+        let p = match (&small, pass) {
+            (Some(sp), true) => sp,
+            _ => params,
         };
         let ft = Instant::now();
         let mut f = match keep.take() {
