@@ -626,9 +626,12 @@ def render(store: Union[Store, str, os.PathLike], mode: str = "dvr", camera: Any
                 e.args = (re.sub(re.escape(tmp) + r"/([\w-]+)\.json", r"the \1 given", e.args[0]),)
             raise
     # Views drawn without some of their data (bricks that could not be
-    # read: a damaged store, a server gone) are returned, and said so.
+    # read: a damaged store, a server gone), or with less detail than asked
+    # for (a coarser level or bias where the memory given holds no more,
+    # fewer frames of samples) are returned, and said so.
     for note in notes:
-        if "could not be loaded" in note or "stopped at" in note:
+        if (any(m in note for m in ("could not be loaded", "stopped at", "(asked ", "volume's diagonal"))
+                or re.search(r"\b\d+ of the \d+ frames", note)):
             # (Without `out`, no file was written: the line's file name,
             # the CLI's default, is left out.)
             if out is None and ": " in note:

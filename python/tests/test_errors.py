@@ -445,3 +445,15 @@ def test_a_brick_that_does_not_divide_512_takes_the_default_shard_as_the_cli_doe
     assert np.array_equal(brickyard.open(tmp_path / "b.zarr")[:, :, :], a)
     with pytest.raises(ValueError, match="shard"):
         brickyard.from_numpy(a, tmp_path / "c.zarr", brick=48, shard=500, progress=False)
+
+
+def test_convert_refuses_a_level_of_an_input_that_has_none(tmp_path):
+    # level= picks a level of a Zarr input; a TIFF's was ignored (its level
+    # 0 converted), where the CLI refuses --level.
+    import tifffile  # (in the test environment: scripts/interop/requirements.txt)
+    tif = tmp_path / "s.tif"
+    tifffile.imwrite(tif, np.arange(4 * 8 * 8, dtype=np.uint16).reshape(4, 8, 8), photometric="minisblack")
+    with pytest.raises(ValueError, match=r"s\.tif: level: picks a level of a Zarr/OME-Zarr input, .* a TIFF file"):
+        brickyard.convert(tif, tmp_path / "t.ome.zarr", level=1, progress=False)
+    assert not (tmp_path / "t.ome.zarr").exists()
+    brickyard.convert(tif, tmp_path / "t.ome.zarr", level=0, progress=False)

@@ -1,6 +1,7 @@
 """render() against `brickyard render` of the same view, bit for bit."""
 
 import json
+import warnings
 
 import numpy as np
 import pytest
@@ -233,3 +234,19 @@ def test_ctrl_c_stops_a_long_render(tmp_path, kind):
         timer.cancel()
         signal.signal(signal.SIGINT, old)
     assert seconds < 1.0 + 3, f"KeyboardInterrupt {seconds - 1.0:.1f} s after SIGINT"
+
+
+def test_a_render_drawn_coarser_than_asked_says_so(tmp_path):
+    # A pool too small for level 0: the image comes back at a coarser
+    # level, and a RuntimeWarning says which (it came back silently, the
+    # note only in what the CLI prints).
+    p = tmp_path / "c.zarr"
+    v = (np.random.default_rng(1).random((128, 128, 128)) * 255).astype(np.uint8)
+    brickyard.from_numpy(v, p, progress=False)
+    with pytest.warns(RuntimeWarning, match=r"at level [1-9]\d* \(asked level 0\)"):
+        img = brickyard.render(p, backend="cpu", size=256, level=0, pool="1MiB", mode="mip")
+    assert img.shape == (256, 256, 4) and img[..., :3].max() > 0
+    # Where the pool holds the view: no warning.
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        brickyard.render(p, backend="cpu", size=64, level=0, mode="mip")

@@ -873,14 +873,7 @@ fn run(cmd: Cmd, cluster: Option<&dist::Cluster>) -> Result<()> {
                     (c.channels.is_some(), "--channels"),
                     (c.header_bytes.is_some(), "--header-bytes"),
                 ];
-                let kind = match fmt {
-                    Format::Raw => "raw data",
-                    Format::Tiff => "a TIFF file",
-                    Format::TiffGlob | Format::TiffDir => "a stack of TIFF slices",
-                    Format::Nrrd => "an NRRD file",
-                    Format::Nifti => "a NIfTI file",
-                    Format::Zarr => "a Zarr store",
-                };
+                let kind = fmt.describe();
                 if let (false, Some((_, flag))) =
                     (fmt == Format::Raw, raw_flags.iter().find(|f| f.0))
                 {
@@ -890,6 +883,8 @@ fn run(cmd: Cmd, cluster: Option<&dist::Cluster>) -> Result<()> {
                         input.display()
                     );
                 }
+                // (open_input refuses these too, for every caller; here
+                // they are named as the flags they were given as.)
                 if c.level.is_some_and(|l| l > 0) && fmt != Format::Zarr {
                     bail!(
                         "{}: --level picks a level of a Zarr/OME-Zarr input, and this input is \

@@ -57,6 +57,20 @@ pub enum Format {
     Zarr,
 }
 
+impl Format {
+    /// The format as messages name an input of it ("a TIFF file").
+    pub fn describe(self) -> &'static str {
+        match self {
+            Format::Raw => "raw data",
+            Format::Tiff => "a TIFF file",
+            Format::TiffGlob | Format::TiffDir => "a stack of TIFF slices",
+            Format::Nrrd => "an NRRD file",
+            Format::Nifti => "a NIfTI file",
+            Format::Zarr => "a Zarr store",
+        }
+    }
+}
+
 /// Decide the format of `path` from its name and first bytes.
 pub fn detect(path: &Path) -> Result<Format> {
     let s = path.to_string_lossy();
@@ -119,9 +133,40 @@ pub fn detect(path: &Path) -> Result<Format> {
     Ok(Format::Raw)
 }
 
-/// Open any supported input.
+/// Open any supported input. Options that do not apply to its format are
+/// refused, not ignored.
 pub fn open_input(path: &Path, opts: &ImportOptions) -> Result<Box<dyn VolumeSource>> {
     let fmt = detect(path)?;
+    if opts.zarr_level > 0 && fmt != Format::Zarr {
+        return Err(StoreError::invalid(
+            path,
+            "level",
+            format!(
+                "picks a level of a Zarr/OME-Zarr input, and this input is read as {}",
+                fmt.describe()
+            ),
+        ));
+    }
+    if opts.raw_values && fmt != Format::Nifti {
+        return Err(StoreError::invalid(
+            path,
+            "raw values",
+            format!(
+                "keep a NIfTI file's numbers without its scl_slope/scl_inter, and this input is read as {}",
+                fmt.describe()
+            ),
+        ));
+    }
+    if opts.raw.is_some() && fmt != Format::Raw {
+        return Err(StoreError::invalid(
+            path,
+            "raw description",
+            format!(
+                "describes raw data, and this input is read as {} (its header describes it)",
+                fmt.describe()
+            ),
+        ));
+    }
     Ok(match fmt {
         Format::Raw => {
             let ro = match &opts.raw {
