@@ -667,10 +667,32 @@ impl Client {
         })?;
         Ok(got.map(|(len, etag)| {
             if let Some(e) = etag {
-                self.pin(url, e);
+                self.saw_version(url, e);
             }
             len
         }))
+    }
+
+    /// A size read (`HEAD`) of `url` answered with `etag`: where an index
+    /// of another version was read, the file changed; what was cached of
+    /// it goes, and its reads keep the ETag of the index their offsets
+    /// came from (they fail until the index is read again, which pins the
+    /// new version). Taking the new ETag here sent reads at the old
+    /// index's offsets with the new version's `If-Match`: the server
+    /// served them, and the old offsets read the new file's bytes.
+    fn saw_version(&self, url: &str, etag: String) {
+        let pins = self.pins.lock().unwrap_or_else(|e| e.into_inner());
+        match pins.get(url) {
+            Some(old) if !same_etag(old, &etag) => {
+                drop(pins);
+                self.forget(url);
+            }
+            Some(_) => {}
+            None => {
+                drop(pins);
+                self.pin(url, etag);
+            }
+        }
     }
 
     /// An error of a read of `url` (shown without credentials or query).
@@ -1803,6 +1825,15 @@ mod tests {
             .to_string();
         assert!(e.contains("changed on the server"), "{e}");
         assert!(e.contains(&s.url(shard)), "{e}");
+        // A size read of the new version (as the shard reader asks for
+        // a length) does not make the old offsets good: the reads keep
+        // the ETag of the index they came from, and fail.
+        assert_eq!(c.size(&s.url(shard)).unwrap(), Some(64));
+        let e = c
+            .read_spans(&s.url(shard), &[Span::Range(0..8)])
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("changed on the server"), "{e}");
         // Its index is read again (not the cached one), and then its
         // chunks are read from the new file.
         let (index, _) = c.suffix(&s.url(shard), 16).unwrap().unwrap();
