@@ -165,6 +165,36 @@ pub fn peak_rss() -> Option<u64> {
     status_bytes("VmHWM:")
 }
 
+/// The budget [`relieve`] keeps the resident set under (0: none).
+static WATCHED: std::sync::atomic::AtomicU64 = std::sync::atomic::AtomicU64::new(0);
+
+/// Have [`relieve`] keep the resident set within `total` bytes.
+pub fn watch(total: u64) {
+    WATCHED.store(total, std::sync::atomic::Ordering::Relaxed);
+}
+
+/// Between frames: where the resident set has come within a tenth of the
+/// watched budget, give the memory the allocator keeps freed back to the
+/// system. The shares are counted by what they hold; the allocator keeps
+/// what bricks and chunks let go of in the heaps of the threads that made
+/// them, for the next of their size, and a render of 32-bit labels went
+/// 23 MiB past a 256 MiB budget so. Far from the budget nothing is done:
+/// memory kept for reuse spares fresh pages, which cost more than the
+/// reads (BENCHMARKS.md, "What a first fill's fresh memory costs").
+pub fn relieve() {
+    let b = WATCHED.load(std::sync::atomic::Ordering::Relaxed);
+    if std::env::var_os("BY_DEBUG_RSS").is_some() {
+        eprintln!(
+            "rss {:?} hwm {:?}",
+            rss().map(|r| r >> 20),
+            peak_rss().map(|r| r >> 20)
+        );
+    }
+    if b > 0 && rss().is_some_and(|r| r > b - b / 4) {
+        crate::window::give_back_freed_memory();
+    }
+}
+
 /// The process's resident set now (VmRSS), where the system says.
 pub fn rss() -> Option<u64> {
     status_bytes("VmRSS:")

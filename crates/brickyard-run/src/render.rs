@@ -1479,6 +1479,7 @@ fn run_one(
         }
     })?;
     device.take_from(&mut split, pool_given)?;
+    crate::memory::watch(split.total);
     // A padded brick of the pool (its cell ranges included), to size the
     // batch's requests and uploads.
     let dtype = match &derived {

@@ -1669,12 +1669,10 @@ fn respond(site: &Site, rq: Request) -> (u16, u64, Option<String>) {
     };
     let file = match resolve(site, &url) {
         Target::Index => {
-            let mut names: Vec<&String> = site
-                .roots
-                .keys()
-                .filter(|n| site.web.is_none() || n.as_str() != "web")
-                .collect();
-            names.sort();
+            // Every store by its path (`folder/store` in a served folder,
+            // as the render endpoint names them): the folder's name alone
+            // named no store (`/remote` offered it and could open none).
+            let names: Vec<String> = served_stores(site).into_iter().map(|(n, _)| n).collect();
             let body = serde_json::json!({ "stores": names })
                 .to_string()
                 .into_bytes();

@@ -1275,6 +1275,16 @@ fn a_folder_of_stores_is_listed_store_by_store() {
     assert_eq!(store, "st/a.ome.zarr/");
     let (status, _, _) = http(sv.port, "GET", &format!("/{store}zarr.json"), &[]);
     assert_eq!(status, 200, "the link's store is served");
+    // `/` lists the stores by their paths (it listed the folder, `st`,
+    // which the render page offered and could not open).
+    let (status, _, body) = http(sv.port, "GET", "/", &[]);
+    assert_eq!(status, 200);
+    let v: serde_json::Value = serde_json::from_slice(&body).unwrap();
+    assert_eq!(
+        v["stores"],
+        serde_json::json!(["st/a.ome.zarr", "st/b.ome.zarr"]),
+        "{v}"
+    );
 }
 
 /// A served folder serves the stores found in it at start and nothing
