@@ -240,6 +240,7 @@ pub fn drive(
             },
         };
         frames += 1;
+        crate::memory::relieve();
         // Stopped (Ctrl-C) during the frame: it is not whole.
         if scene.stopped() {
             return Err(crate::process::Interrupted.into());
