@@ -501,6 +501,33 @@ fn run_job(
         .and_then(|b| serde_json::from_value(b.clone()).ok())
         .filter(|b: &[u64; 3]| b.iter().all(|&v| v >= 2 && v % 2 == 0))
         .unwrap_or([64; 3]);
+    // The device back end's driver (on a software adapter also its
+    // memory) is in --memory, as for render: the job takes the rest. It
+    // went past --memory by the driver's share (333 MiB at 200 MiB).
+    let kernels = device(&c.backend, f)?;
+    let device_bytes = kernels.as_ref().map_or(0, |k| match k.gpu.is_software() {
+        true => crate::memory::SOFTWARE_DEVICE_BYTES,
+        false => crate::memory::DEVICE_BYTES,
+    });
+    let (kernels, device_bytes) = match (kernels, memory >= device_bytes + (1 << 20)) {
+        (k, true) => (k, device_bytes),
+        (Some(_), false) if c.backend == "auto" => {
+            if !c.quiet {
+                crate::outln!(
+                    "note: {f}memory {} leaves no room for the device's driver (about {}): {f}backend auto takes the CPU",
+                    human_bytes(memory),
+                    human_bytes(device_bytes)
+                );
+            }
+            (None, 0)
+        }
+        (_, false) => bail!(
+            "{f}memory: {} does not hold the device back end's {} for its driver: give more, or {f}backend cpu (which does without)",
+            human_bytes(memory),
+            human_bytes(device_bytes)
+        ),
+    };
+    let memory = memory - device_bytes;
     src.enable_chunk_cache(memory / 8);
     let meta = src.meta().clone();
     if c.channel >= meta.channels {
@@ -512,7 +539,6 @@ fn run_job(
         );
     }
     let input: Arc<ZarrSource> = Arc::new(src);
-    let kernels = device(&c.backend, f)?;
     let on = kernels.as_ref().map(|k| k.gpu.describe());
     let is_label = pipe.is_label_output();
     let mut opts = ConvertOptions {
@@ -556,7 +582,7 @@ fn run_job(
             .iter()
             .any(|o| matches!(o, Op::Gauss(_) | Op::GradMag(_)));
         // How the caller gives a size: `--memory 56MiB`, `memory="56MiB"`.
-        let least_mib = least.div_ceil(1 << 20);
+        let least_mib = (least + device_bytes).div_ceil(1 << 20);
         let give = match f {
             "" => format!("memory=\"{least_mib}MiB\""),
             _ => format!("{f}memory {least_mib}MiB"),
@@ -565,8 +591,8 @@ fn run_job(
             "{f}memory: {} is too small for {:?} on level {} of {}: give {give} or \
              more (the filters hold {} at once, one block with its halo per stage, and take \
              at most half of {f}memory; writing the result's pyramid takes {}, and reading the \
-             input an eighth of {f}memory){}",
-            human_bytes(memory),
+             input an eighth of {f}memory){}{}",
+            human_bytes(c.memory),
             pipe.text(),
             c.level,
             store.display(),
@@ -576,6 +602,13 @@ fn run_job(
                 "; a smaller σ needs less"
             } else {
                 ""
+            },
+            match device_bytes {
+                0 => String::new(),
+                d => format!(
+                    "; the device back end takes {} of it for its driver ({f}backend cpu does without)",
+                    human_bytes(d)
+                ),
             }
         );
     }
