@@ -195,7 +195,13 @@ fn scale_translation(o: &Value) -> (Option<Vec<f64>>, Option<Vec<f64>>) {
             let vals = |k: &str| {
                 t.get(k)
                     .and_then(Value::as_array)
-                    .map(|a| a.iter().filter_map(Value::as_f64).collect::<Vec<_>>())
+                    // (A value that is not a number is NaN: refused below,
+                    // not dropped, which shifted the others to other axes.)
+                    .map(|a| {
+                        a.iter()
+                            .map(|v| v.as_f64().unwrap_or(f64::NAN))
+                            .collect::<Vec<_>>()
+                    })
             };
             match t.get("type").and_then(Value::as_str) {
                 Some("scale") => scale = vals("scale"),
@@ -404,6 +410,28 @@ pub fn parse_multiscale(
             Ok(d)
         })
         .collect::<Result<Vec<_>>>()?;
+    // A voxel's size is positive and a position finite: a scale of 0 or
+    // -0.2 was taken as 1 by `convert` (silently), and failed `render`
+    // naming one of its own parameters.
+    for (i, d) in datasets.iter().enumerate() {
+        let bad = |v: &Option<Vec<f64>>, ok: fn(f64) -> bool| {
+            v.as_ref().filter(|v| !v.iter().all(|&x| ok(x))).cloned()
+        };
+        if let Some(v) = bad(&d.scale, |x| x.is_finite() && x > 0.0) {
+            return Err(StoreError::invalid(
+                meta_path,
+                format!("multiscales.datasets[{i}] (path {:?}) scale", d.path),
+                format!("expected positive numbers (a voxel's size along each axis), found {v:?}"),
+            ));
+        }
+        if let Some(v) = bad(&d.translation, f64::is_finite) {
+            return Err(StoreError::invalid(
+                meta_path,
+                format!("multiscales.datasets[{i}] (path {:?}) translation", d.path),
+                format!("expected finite numbers, found {v:?}"),
+            ));
+        }
+    }
     let label_image =
         ome.get("image-label").is_some() || ms0.get("type").and_then(Value::as_str) == Some("mode");
     Ok(Some(Multiscale {

@@ -1486,6 +1486,36 @@ mod tests {
         assert_eq!(src.meta().spacing, Some([6.0, 1.0, 1.0]));
         assert_eq!(src.meta().origin, Some([3.0, 0.0, 0.0]));
 
+        // A voxel size of 0, below 0 or not a number, a position not
+        // finite: refused, naming the dataset (a scale of -0.2 was taken
+        // as 1 by convert).
+        for (what, t) in [
+            ("scale", json!({"type": "scale", "scale": [1.0, 0.2, -0.2]})),
+            ("scale", json!({"type": "scale", "scale": [0.0, 1.0, 1.0]})),
+            ("scale", json!({"type": "scale", "scale": [1.0, "a", 1.0]})),
+            (
+                "translation",
+                json!({"type": "translation", "translation": [1.0, null, 0.0]}),
+            ),
+        ] {
+            let mut g = group.clone();
+            g["attributes"]["ome"]["multiscales"][0]["datasets"][0]["coordinateTransformations"] =
+                json!([{"type": "scale", "scale": [1.0, 1.0, 1.0]}, t]);
+            if what == "scale" {
+                g["attributes"]["ome"]["multiscales"][0]["datasets"][0]
+                    ["coordinateTransformations"] = json!([t]);
+            }
+            std::fs::write(dir.path().join("zarr.json"), g.to_string()).unwrap();
+            let Err(e) = open(dir.path(), 0) else {
+                panic!("{t} was accepted");
+            };
+            let e = e.to_string();
+            assert!(
+                e.contains(&format!("datasets[0] (path \"0\") {what}")),
+                "{e}"
+            );
+        }
+
         // A global transformation of the wrong length is an error.
         let mut g = group;
         g["attributes"]["ome"]["multiscales"][0]["coordinateTransformations"] =
