@@ -419,14 +419,37 @@ pub fn inspect(path: &Path) -> Result<StoreInfo> {
     } else if by.is_some() {
         info.complete = Some(true);
     }
+    let mut first_dtype: Option<String> = None;
     for (k, (p, scale, translation)) in datasets.into_iter().enumerate() {
         let dir = if p.is_empty() {
             path.to_path_buf()
         } else {
             path.join(&p)
         };
+        // What every reader does first: the array opened as Zarr has it
+        // (codecs known, a fill value of the type, inner chunks that
+        // divide the shard). The metadata read by hand below passed a
+        // level that no reader could open.
+        if let Err(e) = Array::open(Arc::new(StoreAt::new(&dir)), "/") {
+            problems.push(format!("level {k}: cannot be read: {e}"));
+        }
         match array_info(&dir) {
             Ok((shape, dtype, chunk, inner, codecs)) => {
+                match &first_dtype {
+                    None => first_dtype = Some(dtype.clone()),
+                    Some(d0) if *d0 != dtype => problems.push(format!(
+                        "level {k}: its voxels are {dtype}, level 0's {d0}: the readers take a pyramid of one type"
+                    )),
+                    Some(_) => {}
+                }
+                if let Some(inner) = inner.as_ref().filter(|i| {
+                    i.len() != chunk.len()
+                        || i.iter().zip(&chunk).any(|(i, c)| *i == 0 || c % i != 0)
+                }) {
+                    problems.push(format!(
+                        "level {k}: inner chunks {inner:?} do not divide its shards {chunk:?}: no reader can place them"
+                    ));
+                }
                 let es = DType::parse(&dtype).map(|d| d.size() as u64).unwrap_or(0);
                 let bytes_raw = shape.iter().product::<u64>() * es;
                 let mut bytes_on_disk = dir_size(&dir);
@@ -448,6 +471,19 @@ pub fn inspect(path: &Path) -> Result<StoreInfo> {
                 });
             }
             Err(e) => problems.push(format!("level {k}: {e}")),
+        }
+    }
+    // Statistics kept for some levels and not others: those without them
+    // were lost (the writer keeps them for every level), and there a
+    // missing shard reads as empty (the statistics say where data is).
+    if info.levels.iter().any(|l| l.stats.is_some()) {
+        for (k, l) in info.levels.iter().enumerate() {
+            if l.stats.is_none() {
+                problems.push(format!(
+                    "level {k}: its brick statistics ({}/{k}) are missing or unreadable: a missing chunk or shard of it cannot be told from an empty one",
+                    STATS_DIR
+                ));
+            }
         }
     }
     if let Some(why) = info.incomplete {

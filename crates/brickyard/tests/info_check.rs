@@ -621,6 +621,63 @@ fn problems_info_lists_end_with_status_1() {
     );
 }
 
+/// Levels no reader can open, and levels whose statistics are gone, are
+/// problems of plain `info` too (exit 1): it read the metadata by hand
+/// and passed them with status 0.
+#[test]
+fn levels_the_readers_refuse_are_problems_without_check() {
+    let d = tempfile::tempdir().unwrap();
+    let store = clean_store(d.path());
+    let edit = |name: &str, f: &dyn Fn(&mut serde_json::Value)| -> PathBuf {
+        let to = d.path().join(name);
+        copy_dir(&store, &to);
+        let p = to.join("0/zarr.json");
+        let mut j: serde_json::Value = serde_json::from_slice(&std::fs::read(&p).unwrap()).unwrap();
+        f(&mut j);
+        std::fs::write(&p, j.to_string()).unwrap();
+        to
+    };
+    let cases = [
+        (
+            edit("codec.ome.zarr", &|j| {
+                j["codecs"][0]["configuration"]["codecs"][1] =
+                    serde_json::json!({"name": "lzma", "configuration": {}})
+            }),
+            "level 0: cannot be read: codec lzma",
+        ),
+        (
+            edit("fill.ome.zarr", &|j| j["fill_value"] = "banana".into()),
+            "level 0: cannot be read",
+        ),
+        (
+            edit("inner.ome.zarr", &|j| {
+                j["codecs"][0]["configuration"]["chunk_shape"] = serde_json::json!([6, 6, 6])
+            }),
+            "level 0: inner chunks [6, 6, 6] do not divide its shards [16, 16, 16]",
+        ),
+        (
+            edit("dtype.ome.zarr", &|j| j["data_type"] = "float32".into()),
+            "level 1: its voxels are uint8, level 0's float32",
+        ),
+        (
+            {
+                let to = d.path().join("stats.ome.zarr");
+                copy_dir(&store, &to);
+                std::fs::remove_dir_all(to.join("_brickyard/stats/0")).unwrap();
+                to
+            },
+            "level 0: its brick statistics (_brickyard/stats/0) are missing",
+        ),
+    ];
+    assert_eq!(run(&["info", s(&store)]).status.code(), Some(0));
+    for (st, want) in cases {
+        let o = run(&["info", s(&st)]);
+        let out = String::from_utf8_lossy(&o.stdout);
+        assert_eq!(o.status.code(), Some(1), "{}: {out}", st.display());
+        assert!(out.contains(&format!("problem: {want}")), "{want}: {out}");
+    }
+}
+
 #[test]
 fn a_failed_write_to_standard_output_is_an_error() {
     // `info > file` on a full disk left a truncated file and status 0.
