@@ -52,6 +52,16 @@ try {
   report.first_frame_ms = Date.now() - t0;
   const first = await waitComplete(page, 'first load');
   report.complete_ms = Date.now() - t0;
+  // The histogram of the complete view: its grey bars' pixels (a view
+  // complete within a second kept an empty box; the page's colour space
+  // shows #888 as another grey).
+  report.hist_bar_pixels = await page.evaluate(() => {
+    const c = document.getElementById('hist');
+    const d = c.getContext('2d').getImageData(0, 0, c.width, c.height).data;
+    let n = 0;
+    for (let i = 0; i < d.length; i += 4) if (d[i] > 0 && d[i] === d[i + 1] && d[i + 1] === d[i + 2]) n++;
+    return n;
+  });
   report.status = first.status;
   report.webgpu = first.webgpu;
   report.device = await page.evaluate(() => window.brickyard.device || null);

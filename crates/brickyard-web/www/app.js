@@ -132,8 +132,11 @@ async function tick() {
     failing +
     (st.labels ? `\nlabels/${st.labels.name}: ${st.labels.complete ? 'complete' : 'loading'}, ${st.labels.resident} bricks resident` +
       (st.labels.failed ? `, ${st.labels.failed} failing (last: ${st.labels.last_failure})` : '') : '');
+  // At most once a second while loading, and once the view completes
+  // (a view complete within a second kept the histogram of its first
+  // frame, drawn before any brick had arrived: an empty box).
   const now = performance.now();
-  if (now - histAt > 1000) { histAt = now; drawHistogram(); }
+  if (now - histAt > 1000 || (st.complete && !dragging)) { histAt = now; drawHistogram(); }
   if (st.complete && !dragging) {
     running = false;
     // Bricks failing: come back to ask for them again (the viewer does

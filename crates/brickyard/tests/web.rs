@@ -306,6 +306,11 @@ fn the_web_client_draws_what_render_draws_in_a_headless_browser() {
         r["bad_query_error"].as_str().unwrap().starts_with("mode:"),
         "{report}"
     );
+    // The histogram shows the complete view's voxels.
+    assert!(
+        r["hist_bar_pixels"].as_u64().unwrap_or(0) > 100,
+        "an empty histogram: {report}"
+    );
 }
 
 /// A view turned with the mouse, as a user does: while it moves, frames
