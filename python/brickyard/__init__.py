@@ -688,9 +688,18 @@ def _options(brick, shard, compression, labels, memory, overwrite, spacing, orig
     def three(v, what, kind):
         if v is None:
             return None
-        if isinstance(v, (int, float, np.number)):
+        if isinstance(v, (int, float, np.number)) and not isinstance(v, bool):
             v = (v, v, v)
-        v = tuple(kind(x) for x in v)
+        # (Text was taken letter by letter: "64" as two values, "1,2,3" as
+        # a number that could not be read.)
+        if isinstance(v, (str, bytes, bool)) or not hasattr(v, "__iter__"):
+            raise TypeError(f"{what}: expected a number or three numbers (z, y, x), got {v!r}")
+        try:
+            v = tuple(kind(x) for x in v)
+        except (TypeError, ValueError):
+            raise TypeError(f"{what}: expected a number or three numbers (z, y, x), got {v!r}") from None
+        if kind is int and any(x >= 1 << 63 for x in v):
+            raise ValueError(f"{what}: expected sizes below 2^63 voxels, got {v}")
         if len(v) != 3:
             raise ValueError(f"{what}: expected three values (z, y, x), got {len(v)}")
         if kind is int and any(x < 1 for x in v):
@@ -705,8 +714,14 @@ def _options(brick, shard, compression, labels, memory, overwrite, spacing, orig
     memory = _bytes(memory, "memory")
     if not isinstance(compression, str):
         raise TypeError(f"compression: expected a name such as lz4, zstd or none, got {compression!r}")
-    if memory < 0:
-        raise ValueError(f"memory: expected a number of bytes, got {memory}")
+    # Whole bytes, as process() and render() take them (a float was cut to
+    # its whole part: 1.5 became 1 byte).
+    if isinstance(memory, bool) or not isinstance(memory, (int, np.integer)):
+        raise TypeError(f"memory: expected bytes or a size such as \"1GiB\", got {memory!r}")
+    if memory < 0 or memory >= 1 << 64:
+        raise ValueError(f"memory: expected a number of bytes from 0 to 2^64 - 1, got {memory}")
+    if unit is not None and not isinstance(unit, str):
+        raise TypeError(f"unit: expected a name such as micrometer, got {unit!r}")
     # (shard None: `convert`'s default for the brick, as without --shard.)
     return {"brick": three(brick, "brick", int), "shard": three(shard, "shard", int),
             "compression": compression, "labels": bool(labels), "memory": int(memory),
@@ -909,6 +924,11 @@ def process(store: Union[Store, str, os.PathLike], pipeline: str, out: str, *, l
     raises ValueError with the CLI's message, a level or channel outside
     the store IndexError; Ctrl-C stops the job and leaves the store as it
     was."""
+    if isinstance(store, Store):
+        # A closed handle, or one whose store was replaced or removed, is
+        # refused as render() and reads refuse it (the path would process
+        # what is there now).
+        store._open().check()
     path = store.path if isinstance(store, Store) else os.fspath(store)
     if not isinstance(pipeline, str):
         raise TypeError(f"pipeline: expected text such as \"gauss(1.5)|sobel\", got {type(pipeline).__name__}")

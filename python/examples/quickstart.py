@@ -1,6 +1,6 @@
 """Read a region, render a view and save it as a PNG.
 
-    pip install ./python matplotlib
+    pip install ./python
     python python/examples/quickstart.py [STORE.ome.zarr] [OUT.png]
 
 Without a store, a 96³ test volume is written first (brickyard.from_numpy) and
@@ -45,17 +45,12 @@ def main() -> None:
         edges = brickyard.process(store, "gauss(1.5)|sobel", out="edges", progress=False)
         print(f"{edges}: max gradient {edges.read(0).max():.1f}")
 
-    # The same image `brickyard render STORE --mode dvr --tf hot` writes.
-    rgba = brickyard.render(store, mode="dvr", tf="hot", size=(384, 384), azimuth=35, elevation=25)
-    try:
-        import matplotlib.pyplot as plt
-
-        plt.imsave(out, rgba)
-    except ImportError:
-        import imageio.v3 as iio
-
-        iio.imwrite(out, rgba)
-    print(f"wrote {out}")
+    # The same image `brickyard render STORE --mode dvr --tf hot --out OUT`
+    # writes: returned as an array, and written as the PNG (`out`), with
+    # nothing besides the package installed.
+    rgba = brickyard.render(store, mode="dvr", tf="hot", size=(384, 384), azimuth=35, elevation=25,
+                            out=out)
+    print(f"wrote {out}: {rgba.shape} {rgba.dtype}, {int((rgba[..., :3].max(axis=-1) > 0).sum())} pixels lit")
 
 
 if __name__ == "__main__":

@@ -457,3 +457,37 @@ def test_convert_refuses_a_level_of_an_input_that_has_none(tmp_path):
         brickyard.convert(tif, tmp_path / "t.ome.zarr", level=1, progress=False)
     assert not (tmp_path / "t.ome.zarr").exists()
     brickyard.convert(tif, tmp_path / "t.ome.zarr", level=0, progress=False)
+
+
+def test_budgets_and_sizes_of_the_wrong_kind_are_type_errors(tmp_path):
+    # convert and from_numpy took a float budget by its whole part (1.5
+    # became 1 byte), iterated text ("64" as two values) and passed 2**70
+    # to the native side, which named an internal field.
+    a = np.zeros((8, 8, 8), np.uint8)
+    out = tmp_path / "o.zarr"
+    for kw, err, msg in [
+        ({"memory": 1.5e9}, TypeError, "memory: expected bytes"),
+        ({"memory": None}, TypeError, "memory: expected bytes"),
+        ({"memory": 2**70}, ValueError, "memory: expected a number of bytes"),
+        ({"brick": "64"}, TypeError, "brick: expected a number or three numbers"),
+        ({"brick": 2**70}, ValueError, "brick: expected sizes below"),
+        ({"spacing": "0.5"}, TypeError, "spacing: expected a number or three numbers"),
+        ({"spacing": "1,2,3"}, TypeError, "spacing: expected a number or three numbers"),
+        ({"unit": 5}, TypeError, "unit: expected a name"),
+    ]:
+        with pytest.raises(err, match=msg):
+            brickyard.from_numpy(a, out, progress=False, **kw)
+        assert not out.exists()
+    brickyard.from_numpy(a, out, progress=False, memory=1 << 26)
+    with pytest.raises(TypeError, match="memory: expected bytes"):
+        brickyard.convert(out, tmp_path / "c.zarr", memory=1.5, progress=False)
+
+
+def test_process_refuses_a_closed_store_as_render_does(tmp_path):
+    p = tmp_path / "s.zarr"
+    brickyard.from_numpy(np.arange(16**3, dtype=np.uint16).reshape(16, 16, 16), p, progress=False)
+    s = brickyard.open(p)
+    s.close()
+    with pytest.raises(ValueError, match="the store is closed"):
+        brickyard.process(s, "gauss(1)", out="g", progress=False)
+    assert not (p / "derived").exists()

@@ -250,3 +250,19 @@ def test_a_render_drawn_coarser_than_asked_says_so(tmp_path):
     with warnings.catch_warnings():
         warnings.simplefilter("error")
         brickyard.render(p, backend="cpu", size=64, level=0, mode="mip")
+
+
+def test_the_quickstart_runs_with_the_package_alone(tmp_path):
+    # The README's example, as a new user runs it after `pip install
+    # ./python`: it needed matplotlib (or imageio) to write its PNG.
+    import pathlib
+    import re
+    import subprocess
+    import sys
+
+    ex = pathlib.Path(__file__).resolve().parents[1] / "examples" / "quickstart.py"
+    r = subprocess.run([sys.executable, str(ex)], cwd=tmp_path, capture_output=True, text=True, timeout=300)
+    assert r.returncode == 0, r.stderr
+    m = re.search(r"wrote brickyard-example\.png: \(384, 384, 4\) uint8, (\d+) pixels lit", r.stdout)
+    assert m and int(m.group(1)) > 1000, r.stdout
+    assert (tmp_path / "brickyard-example.png").stat().st_size > 1000
