@@ -516,6 +516,17 @@ pub fn transfer_function(spec: &str, window: [f32; 2], flag: &str) -> Result<Tra
     if !preset && (name.ends_with(".json") || std::path::Path::new(name).is_file()) {
         let text = std::fs::read_to_string(name)
             .with_context(|| format!("{flag}: {name}: cannot read"))?;
+        // Without a `window`, the one a preset would take (the data's
+        // default): `{"preset": "soft", "shading": true}` turns shading on
+        // over the window `--tf soft` draws (it was refused, "window:
+        // missing").
+        let text = match serde_json::from_str::<serde_json::Value>(&text) {
+            Ok(serde_json::Value::Object(mut o)) if !o.contains_key("window") => {
+                o.insert("window".into(), serde_json::json!([window[0], window[1]]));
+                serde_json::Value::Object(o).to_string()
+            }
+            _ => text,
+        };
         return TransferFunction::from_json(&text)
             .map_err(|e| anyhow::anyhow!("{flag}: {name}: {e}"));
     }

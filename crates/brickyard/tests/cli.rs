@@ -3332,3 +3332,43 @@ fn a_damaged_level_metadata_file_is_named_with_its_fault() {
     assert!(!stderr(&o).contains("no Zarr array"), "{}", stderr(&o));
     assert!(!png.exists());
 }
+
+/// A transfer-function file without `window` takes the window a preset
+/// would (`--window` here): the same image as the file with that window
+/// written in (it was refused, "window: missing").
+#[test]
+fn a_transfer_function_without_a_window_takes_the_presets() {
+    let d = tempfile::tempdir().unwrap();
+    let st = d.path().join("m.zarr");
+    let o = run(&["generate", "mandelbulb", s(&st), "--size", "32", "--quiet"]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    let bare = d.path().join("bare.json");
+    let full = d.path().join("full.json");
+    std::fs::write(&bare, r#"{"preset": "soft", "shading": true}"#).unwrap();
+    std::fs::write(
+        &full,
+        r#"{"preset": "soft", "shading": true, "window": [10, 200]}"#,
+    )
+    .unwrap();
+    let mut pngs = vec![];
+    for (tf, name) in [(&bare, "a.png"), (&full, "b.png")] {
+        let png = d.path().join(name);
+        let o = run(&[
+            "render",
+            s(&st),
+            "--tf",
+            s(tf),
+            "--window",
+            "10,200",
+            "--size",
+            "64",
+            "--backend",
+            "cpu",
+            "-o",
+            s(&png),
+        ]);
+        assert!(o.status.success(), "{}", stderr(&o));
+        pngs.push(std::fs::read(&png).unwrap());
+    }
+    assert_eq!(pngs[0], pngs[1]);
+}
