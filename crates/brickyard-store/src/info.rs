@@ -202,14 +202,16 @@ fn array_info(dir: &Path) -> Result<ArraySummary> {
     Ok((shape, dtype, chunk, None, names))
 }
 
-/// Summarize the statistics array of one level, chunk by chunk.
-fn brick_summary(root: &Path, level: usize) -> Option<BrickSummary> {
+/// Summarize the statistics array of one level, chunk by chunk: `Ok(None)`
+/// where none is stored, an error where it is and cannot be read (a
+/// remote store whose server does not answer was said to have none).
+fn brick_summary(root: &Path, level: usize) -> std::result::Result<Option<BrickSummary>, String> {
     let dir = root.join(STATS_DIR).join(level.to_string());
     if !storage::exists(&dir.join("zarr.json")) {
-        return None;
+        return Ok(None);
     }
     let store = Arc::new(StoreAt::new(&dir));
-    let a = Array::open(store, "/").ok()?;
+    let a = Array::open(store, "/").map_err(|e| e.to_string())?;
     let grid = a.chunk_grid_shape().to_vec();
     let mut s = BrickSummary {
         min: f64::INFINITY,
@@ -224,9 +226,11 @@ fn brick_summary(root: &Path, level: usize) -> Option<BrickSummary> {
             idx[d] = r % grid[d];
             r /= grid[d];
         }
-        let v: Vec<f64> = a.retrieve_chunk::<Vec<f64>>(&idx).ok()?;
+        let v: Vec<f64> = a
+            .retrieve_chunk::<Vec<f64>>(&idx)
+            .map_err(|e| format!("chunk {idx:?}: {e}"))?;
         // Clip to the array: retrieve_chunk returns the full chunk.
-        let shape = a.chunk_shape(&idx).ok()?;
+        let shape = a.chunk_shape(&idx).map_err(|e| e.to_string())?;
         let cs: Vec<u64> = shape.iter().map(|c| c.get()).collect();
         let ashape = a.shape();
         let ne = v.len() / 2;
@@ -262,7 +266,7 @@ fn brick_summary(root: &Path, level: usize) -> Option<BrickSummary> {
             s.max = s.max.max(mx);
         }
     }
-    Some(s)
+    Ok(Some(s))
 }
 
 /// Inspect a store.
@@ -467,7 +471,15 @@ pub fn inspect(path: &Path) -> Result<StoreInfo> {
                     translation,
                     bytes_on_disk,
                     bytes_raw,
-                    stats: brick_summary(path, k),
+                    stats: match brick_summary(path, k) {
+                        Ok(st) => st,
+                        Err(e) => {
+                            problems.push(format!(
+                                "level {k}: its brick statistics ({STATS_DIR}/{k}) cannot be read: {e}"
+                            ));
+                            None
+                        }
+                    },
                 });
             }
             Err(e) => problems.push(format!("level {k}: {e}")),
@@ -478,7 +490,8 @@ pub fn inspect(path: &Path) -> Result<StoreInfo> {
     // missing shard reads as empty (the statistics say where data is).
     if info.levels.iter().any(|l| l.stats.is_some()) {
         for (k, l) in info.levels.iter().enumerate() {
-            if l.stats.is_none() {
+            let said = format!("level {k}: its brick statistics");
+            if l.stats.is_none() && !problems.iter().any(|p| p.starts_with(&said)) {
                 problems.push(format!(
                     "level {k}: its brick statistics ({}/{k}) are missing or unreadable: a missing chunk or shard of it cannot be told from an empty one",
                     STATS_DIR

@@ -668,6 +668,33 @@ fn levels_the_readers_refuse_are_problems_without_check() {
             },
             "level 0: its brick statistics (_brickyard/stats/0) are missing",
         ),
+        (
+            // Statistics there and unreadable: said (it read as "none
+            // stored", also where a server did not answer).
+            {
+                let to = d.path().join("badstats.ome.zarr");
+                copy_dir(&store, &to);
+                let mut files = vec![to.join("_brickyard/stats/0")];
+                let mut chunk = None;
+                while let Some(p) = files.pop() {
+                    for e in std::fs::read_dir(&p).unwrap() {
+                        let e = e.unwrap().path();
+                        if e.is_dir() {
+                            files.push(e);
+                        } else if e.file_name().unwrap() != "zarr.json" {
+                            chunk = Some(e);
+                        }
+                    }
+                }
+                let f = std::fs::OpenOptions::new()
+                    .write(true)
+                    .open(chunk.unwrap())
+                    .unwrap();
+                f.set_len(10).unwrap();
+                to
+            },
+            "level 0: its brick statistics (_brickyard/stats/0) cannot be read",
+        ),
     ];
     assert_eq!(run(&["info", s(&store)]).status.code(), Some(0));
     for (st, want) in cases {
