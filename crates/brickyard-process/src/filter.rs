@@ -77,12 +77,14 @@ impl Filter {
                 // as a product then.)
                 let reach = match gaussian_radius(*v, TRUNCATE) {
                     r if r < u64::MAX => r.to_string(),
-                    _ => format!("about {:.1e}", TRUNCATE * v),
+                    _ if (TRUNCATE * v).is_finite() => format!("about {:.1e}", TRUNCATE * v),
+                    _ => "more than 1e308".to_string(),
                 };
                 return Err(format!(
-                    "σ {v} voxels is too large: its kernel would reach {reach} voxels; σ may be \
+                    "σ {} voxels is too large: its kernel would reach {reach} voxels; σ may be \
                      at most {} voxels (a kernel that reaches past the volume is folded onto its \
                      edge voxels, so a wider one gives the same result)",
+                    crate::pipeline::short(*v),
                     max_sigma(TRUNCATE)
                 ));
             }

@@ -37,6 +37,17 @@ pub enum Op {
     Label(u8),
 }
 
+/// A number as a message shows it: as written where short, in exponent
+/// form where huge or tiny (`gauss(1e308)` was said with 309 digits).
+pub fn short(x: f64) -> String {
+    let a = x.abs();
+    if a != 0.0 && a.is_finite() && !(1e-4..1e9).contains(&a) {
+        format!("{x:e}")
+    } else {
+        format!("{x}")
+    }
+}
+
 impl Op {
     /// The stage as it would be written.
     pub fn text(&self) -> String {
@@ -46,17 +57,17 @@ impl Op {
                 Sigma::Physical { value, unit } => (value, unit_suffix(unit).to_string()),
             };
             if v[0] == v[1] && v[1] == v[2] {
-                format!("{}{u}", v[0])
+                format!("{}{u}", short(v[0]))
             } else {
-                format!("{}{u},{}{u},{}{u}", v[2], v[1], v[0])
+                format!("{}{u},{}{u},{}{u}", short(v[2]), short(v[1]), short(v[0]))
             }
         }
         match self {
             Op::Gauss(s) => format!("gauss({})", sig(s)),
             Op::GradMag(s) => format!("gradmag({})", sig(s)),
             Op::Sobel => "sobel".into(),
-            Op::Threshold(t) => format!("threshold({t})"),
-            Op::Window(a, b) => format!("window({a},{b})"),
+            Op::Threshold(t) => format!("threshold({})", short(*t)),
+            Op::Window(a, b) => format!("window({},{})", short(*a), short(*b)),
             Op::Median(r) if r[0] == r[1] && r[1] == r[2] => format!("median({})", r[0]),
             Op::Median(r) => format!("median({},{},{})", r[2], r[1], r[0]),
             Op::Label(c) => format!("label({c})"),
@@ -322,6 +333,18 @@ fn split_unit(a: &str) -> (&str, &str) {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// Huge and tiny numbers are said in exponent form (σ 1e308 took 309
+    /// digits in each of the three places a message named it), and the
+    /// text parses back to the same stages.
+    #[test]
+    fn numbers_in_stage_text_stay_short() {
+        let p = Pipeline::parse("gauss(1e308)|threshold(0.00001)|window(-2.5e12,3)").unwrap();
+        assert_eq!(p.text(), "gauss(1e308)|threshold(1e-5)|window(-2.5e12,3)");
+        assert_eq!(Pipeline::parse(&p.text()).unwrap().ops, p.ops);
+        assert_eq!(short(1.5), "1.5");
+        assert_eq!(short(0.0), "0");
+    }
 
     #[test]
     fn parses_a_chain() {
