@@ -78,11 +78,19 @@ fn spans_read_with_one_buffer_are_the_files_bytes() {
     .unwrap();
     assert_eq!(inner, [&data[..100], &data[50..150]].concat());
 
-    // No file, a folder, and a span past the end: as `read_spans`.
+    // No file (absent), a folder (damage: an error) and a span past the
+    // end: as `read_spans`.
     assert!(read_with(&dir.path().join("none.bin"), &spans)
         .unwrap()
         .is_none());
-    assert!(read_with(dir.path(), &spans).unwrap().is_none());
+    let e = read_with(dir.path(), &spans).unwrap_err().to_string();
+    assert!(e.contains("a folder stands where"), "{e}");
+    assert_eq!(
+        e,
+        storage::read_spans(dir.path(), &spans)
+            .unwrap_err()
+            .to_string()
+    );
     let past = [Span::Range(len as u64 - 10..len as u64 + 1)];
     let e = read_with(&p, &past).unwrap_err().to_string();
     assert!(e.contains("a.bin") && e.contains("300001"), "{e}");

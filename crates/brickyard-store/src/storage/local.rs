@@ -34,6 +34,16 @@ fn open_regular_with(p: &Path) -> std::io::Result<(File, std::fs::Metadata)> {
     }
 }
 
+/// A folder where a value's file belongs: damage, not an absent value
+/// (read as absent, a shard turned folder was reported as an index
+/// without the chunk).
+fn a_folder() -> std::io::Error {
+    std::io::Error::new(
+        ErrorKind::IsADirectory,
+        "a folder stands where a store's file belongs",
+    )
+}
+
 fn not_regular() -> std::io::Error {
     std::io::Error::new(
         ErrorKind::InvalidInput,
@@ -44,17 +54,18 @@ fn not_regular() -> std::io::Error {
 pub(super) fn size(p: &Path) -> Result<Option<u64>> {
     match std::fs::metadata(p) {
         Ok(m) if m.is_file() => Ok(Some(m.len())),
-        Ok(m) if m.is_dir() => Ok(None),
+        Ok(m) if m.is_dir() => Err(StoreError::io(p, a_folder())),
         Ok(_) => Err(StoreError::io(p, not_regular())),
         Err(e) if e.kind() == ErrorKind::NotFound => Ok(None),
         Err(e) => Err(StoreError::io(p, e)),
     }
 }
 
-/// `p` opened, and its length; `None` when there is no such file.
+/// `p` opened, and its length; `None` when there is no such file (a
+/// folder there: an error, [`a_folder`]).
 fn open_file(p: &Path) -> Result<Option<(File, u64)>> {
     match open_regular_with(p) {
-        Ok((_, meta)) if meta.is_dir() => Ok(None),
+        Ok((_, meta)) if meta.is_dir() => Err(StoreError::io(p, a_folder())),
         Ok((f, meta)) => Ok(Some((f, meta.len()))),
         Err(e) if e.kind() == ErrorKind::NotFound => Ok(None),
         Err(e) => Err(StoreError::io(p, e)),
