@@ -350,7 +350,7 @@ fn frames_the_devices_store_cannot_hold_are_said() {
     // A 32³ volume's diagonal at one sample a voxel, and the room rule.
     assert_eq!(runs, (32f64 * 3f64.sqrt()).ceil() as u64 + 2, "{line}");
     assert_eq!(fewest, kept / runs, "{line}");
-    assert!(fewest >= 1 && fewest < 32, "{line}");
+    assert!((1..32).contains(&fewest), "{line}");
     assert!(png.exists());
     let out = ok(&run(&[&view("cpu")[..], &["-o", s(&png)]].concat()), "cpu");
     assert!(
