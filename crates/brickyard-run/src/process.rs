@@ -697,14 +697,23 @@ fn run_job(
                 // share shrinks by that much.
                 let kept = lab.bytes();
                 if opts.memory.saturating_sub(kept) < writer_least {
+                    // The writer's share grows by at least 5/8 of what is
+                    // added to --memory (the input's eighth and the
+                    // filters' quarter take the rest): that much more.
+                    let short = writer_least + kept - opts.memory;
+                    let mib = (c.memory + short * 8 / 5).div_ceil(1 << 20);
+                    let give = match f {
+                        "" => format!("memory=\"{mib}MiB\""),
+                        _ => format!("{f}memory {mib}MiB"),
+                    };
                     bail!(
                         "{f}memory: {} labels ({} of statistics and maps, kept while the result \
                          is written) leave the writer less than the {} it needs within {}: give \
-                         more memory",
+                         {give} or more",
                         lab.count(),
                         human_bytes(kept),
                         human_bytes(writer_least),
-                        human_bytes(memory)
+                        human_bytes(c.memory)
                     );
                 }
                 opts.memory -= kept;
