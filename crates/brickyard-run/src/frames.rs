@@ -254,7 +254,18 @@ pub fn drive(
             bytes_read: s.loader().bytes_read(),
             f: &f,
         });
-        let d = budget.update(&sig);
+        // A request pass complete while a finer bias is tried says nothing
+        // of the image (it samples a fraction of its pixels, and the image
+        // may need bricks the pass passed between): the image's frame
+        // decides whether the try holds. Taken as the try's end, the image
+        // then coarsened again and a finer bias was tried again, frame
+        // after frame (a 600 KiB pool on the device ran until its frames
+        // ran out).
+        let d = if pass && sig.complete && budget.trying_finer() {
+            Decision::Stop(Stop::Complete)
+        } else {
+            budget.update(&sig)
+        };
         if let Decision::Revert { .. } = d {
             // The finer bias did not fit: the complete image stands.
             break;

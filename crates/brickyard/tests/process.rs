@@ -106,6 +106,16 @@ fn snapshot(store: &Path) -> BTreeMap<String, Vec<u8>> {
     m
 }
 
+/// The peak RSS a job's report line gives, in MiB.
+fn peak_rss_mib(o: &Output) -> f64 {
+    let out = String::from_utf8_lossy(&o.stdout);
+    out.split("peak RSS ")
+        .nth(1)
+        .and_then(|t| t.split(" MiB").next())
+        .and_then(|v| v.parse().ok())
+        .unwrap_or_else(|| panic!("no peak RSS in {out:?}"))
+}
+
 fn make_store(dir: &Path, size: &str) -> std::path::PathBuf {
     let store = dir.join("v.zarr");
     ok(run(&[
@@ -438,13 +448,7 @@ fn a_huge_sigma_stays_within_the_memory_budget() {
         "--memory",
         "64MiB",
     ]));
-    let out = String::from_utf8_lossy(&o.stdout);
-    let peak: f64 = out
-        .split("peak RSS ")
-        .nth(1)
-        .and_then(|t| t.split(" MiB").next())
-        .and_then(|v| v.parse().ok())
-        .unwrap_or_else(|| panic!("no peak RSS in {out:?}"));
+    let peak = peak_rss_mib(&o);
     assert!(peak <= 64.0, "peak RSS {peak} MiB over a 64 MiB budget");
 }
 
@@ -482,13 +486,7 @@ fn the_device_back_ends_driver_is_in_the_budget() {
     );
     assert!(!store.join("derived/g").exists());
     let o = ok(job("800MiB"));
-    let out = String::from_utf8_lossy(&o.stdout);
-    let peak: f64 = out
-        .split("peak RSS ")
-        .nth(1)
-        .and_then(|t| t.split(" MiB").next())
-        .and_then(|v| v.parse().ok())
-        .unwrap_or_else(|| panic!("no peak RSS in {out:?}"));
+    let peak = peak_rss_mib(&o);
     assert!(peak <= 800.0, "peak RSS {peak} MiB over an 800 MiB budget");
 }
 
