@@ -62,9 +62,17 @@ impl StoreError {
     /// `path` does not exist (an I/O error of kind `NotFound` that says so
     /// in words, not as the bare kind's "entity not found").
     pub fn not_found(path: impl Into<PathBuf>) -> Self {
+        let path = path.into();
+        let what = match foreign_scheme(&path) {
+            Some(scheme) => format!(
+                "no such file or directory; {scheme}:// is no scheme stores are read from: \
+                 give a local path or an http://, https:// or s3:// URL"
+            ),
+            None => "no such file or directory".to_string(),
+        };
         StoreError::io(
             path,
-            std::io::Error::new(std::io::ErrorKind::NotFound, "no such file or directory"),
+            std::io::Error::new(std::io::ErrorKind::NotFound, what),
         )
     }
     pub fn invalid(
@@ -105,5 +113,37 @@ pub trait IoContext<T> {
 impl<T> IoContext<T> for std::io::Result<T> {
     fn at(self, path: impl Into<PathBuf>) -> Result<T> {
         self.map_err(|e| StoreError::io(path, e))
+    }
+}
+
+/// The scheme of `p` where it reads as a URL (`scheme://…`) of a scheme
+/// other than those read (`ftp`, `gs`, `file`, …).
+fn foreign_scheme(p: &std::path::Path) -> Option<&str> {
+    let s = p.to_str()?;
+    let (scheme, _) = s.split_once("://")?;
+    let ok = scheme.len() > 1
+        && scheme.starts_with(|c: char| c.is_ascii_alphabetic())
+        && scheme
+            .chars()
+            .all(|c| c.is_ascii_alphanumeric() || matches!(c, '+' | '-' | '.'));
+    (ok && !["http", "https", "s3"]
+        .iter()
+        .any(|k| scheme.eq_ignore_ascii_case(k)))
+    .then_some(scheme)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn paths_of_other_url_schemes_are_named_as_such() {
+        let e = StoreError::not_found("ftp://host/a.ome.zarr").to_string();
+        assert!(e.contains("ftp:// is no scheme"), "{e}");
+        let e = StoreError::not_found("data/a.ome.zarr").to_string();
+        assert!(!e.contains("scheme"), "{e}");
+        // (A drive letter or one-letter folder is no scheme.)
+        assert!(foreign_scheme(std::path::Path::new("c://x")).is_none());
+        assert!(foreign_scheme(std::path::Path::new("gs://b/x")).is_some());
     }
 }

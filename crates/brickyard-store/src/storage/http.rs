@@ -3,7 +3,10 @@
 //! of shard indexes (suffix reads).
 //!
 //! What is retried: server errors (5xx), 429, timeouts, refused or reset
-//! connections and truncated bodies. What is not: 401/403 (access), 404
+//! connections and truncated bodies; a request the server accepted and
+//! did not answer, once. No connection, no answer and a gateway's 502/504
+//! count toward the host being down, whose requests then fail at once for
+//! a while. What is not: 401/403 (access), 404
 //! (a missing value reads as absent, which Zarr means as "fill value"),
 //! 416 and other client errors. Every error names the URL, the bytes
 //! asked for and what happened (`HTTP 403 Forbidden`, `timed out after
@@ -256,6 +259,15 @@ struct Failure {
     /// out) or no answer to the request sent; counts toward the host
     /// being down.
     unreachable: bool,
+    /// Most attempts after the first for this kind of failure (a request
+    /// a server accepted and did not answer is tried once more, not on
+    /// the whole schedule: its wait is long, and a second silence says
+    /// enough).
+    most_retries: u32,
+    /// A request sent and not answered: it waited the whole response
+    /// timeout, and counts as [`SILENCE_COUNTS`] attempts toward the host
+    /// being down.
+    silence: bool,
     what: String,
 }
 
@@ -265,6 +277,8 @@ impl Failure {
             retry: true,
             changed: false,
             unreachable: false,
+            most_retries: u32::MAX,
+            silence: false,
             what: what.into(),
         }
     }
@@ -273,6 +287,8 @@ impl Failure {
             retry: false,
             changed: false,
             unreachable: false,
+            most_retries: u32::MAX,
+            silence: false,
             what: what.into(),
         }
     }
@@ -281,6 +297,8 @@ impl Failure {
             retry: true,
             changed: false,
             unreachable: true,
+            most_retries: u32::MAX,
+            silence: false,
             what: what.into(),
         }
     }
@@ -289,6 +307,8 @@ impl Failure {
             retry: false,
             changed: true,
             unreachable: false,
+            most_retries: 0,
+            silence: false,
             what: "the file changed on the server since its index was read (store replaced?): \
                    open the store again"
                 .to_string(),
@@ -300,6 +320,10 @@ impl Failure {
 /// request sent) in a row, over all requests to a host, after which it
 /// counts as down.
 const HOST_DOWN_AFTER: u32 = 6;
+/// What a request sent and not answered within the response timeout
+/// counts toward [`HOST_DOWN_AFTER`]: each such attempt waited the whole
+/// timeout (10 s), so two in a row are enough.
+const SILENCE_COUNTS: u32 = 3;
 /// How long requests to a host that is down fail without trying; doubled
 /// each time a try after the pause fails too, up to [`HOST_PAUSE_MAX`].
 const HOST_PAUSE: Duration = Duration::from_secs(5);
@@ -315,6 +339,10 @@ const HOST_PAUSE_MAX: Duration = Duration::from_secs(60);
 struct HostHealth {
     fails_in_a_row: u32,
     down_until: Option<Instant>,
+    /// Since when the one attempt after a pause is under way: meanwhile
+    /// the host's other requests fail without trying (each would wait
+    /// out the same timeout).
+    probe_since: Option<Instant>,
     pause: Duration,
     last: String,
 }
@@ -383,6 +411,9 @@ fn check_url(url: &str) -> std::result::Result<(), String> {
         return Ok(());
     }
     let auth = authority(url);
+    if auth.is_empty() {
+        return Err("the URL names no host (expected http(s)://HOST[:PORT]/PATH)".to_string());
+    }
     if auth.contains('@') {
         return Err(
             "the URL holds credentials (user:password@), which are not used (and are \
@@ -396,10 +427,14 @@ fn check_url(url: &str) -> std::result::Result<(), String> {
         } else {
             "a fragment"
         };
+        let token = if what == "a query string" {
+            " (give a token with BRICKYARD_TOKEN instead of ?token=…)"
+        } else {
+            ""
+        };
         return Err(format!(
             "the URL holds {what} ({:?}): a store URL must end in the store's path, since keys \
-             are joined onto it; remove it (give a token with BRICKYARD_TOKEN instead of \
-             ?token=…)",
+             are joined onto it; remove it{token}",
             &redact(url)[q..]
         ));
     }
@@ -1167,7 +1202,7 @@ impl Client {
                     }
                     return Ok(v);
                 }
-                Err(f) if f.retry && attempt < retries => {
+                Err(f) if f.retry && attempt < retries.min(f.most_retries) => {
                     self.retries.fetch_add(1, Ordering::Relaxed);
                     std::thread::sleep(self.backoff(attempt));
                     attempt += 1;
@@ -1218,17 +1253,37 @@ impl Client {
     }
 
     /// Why requests to `url`'s host fail without trying, if they do.
+    /// After its pause, one attempt goes out (the caller's) and the others
+    /// fail until it ends.
     fn host_down(&self, url: &str) -> Option<String> {
-        let hosts = self.hosts.lock().unwrap_or_else(|e| e.into_inner());
-        let h = hosts.get(host_of(url))?;
-        let left = h.down_until?.checked_duration_since(Instant::now())?;
+        let mut hosts = self.hosts.lock().unwrap_or_else(|e| e.into_inner());
+        let h = hosts.get_mut(host_of(url))?;
+        let now = Instant::now();
+        let until = h.down_until?;
+        let then = match until.checked_duration_since(now) {
+            Some(left) => format!(
+                "requests to it fail without trying for {:.0} s more",
+                left.as_secs_f64().ceil()
+            ),
+            // (An attempt that never said how it ended, e.g. one whose
+            // thread panicked, holds the others back at most a timeout.)
+            None if h
+                .probe_since
+                .is_some_and(|t| now.duration_since(t) < self.cfg.timeout) =>
+            {
+                "one request is trying it again; the others fail without trying meanwhile"
+                    .to_string()
+            }
+            None => {
+                h.probe_since = Some(now);
+                return None;
+            }
+        };
         Some(format!(
-            "{} is not answering: {} attempts in a row got no connection or no answer (last: {}); \
-             requests to it fail without trying for {:.0} s more",
+            "{} is not answering: attempts in a row got no connection or no answer \
+             (last: {}); {then}",
             redact(host_of(url)),
-            h.fails_in_a_row,
             h.last,
-            left.as_secs_f64().ceil()
         ))
     }
 
@@ -1238,8 +1293,9 @@ impl Client {
         match failure {
             Some(f) if f.unreachable => {
                 let h = hosts.entry(host_of(url).to_string()).or_default();
-                h.fails_in_a_row += 1;
+                h.fails_in_a_row += if f.silence { SILENCE_COUNTS } else { 1 };
                 h.last = f.what.clone();
+                h.probe_since = None;
                 if h.fails_in_a_row >= HOST_DOWN_AFTER {
                     h.pause = if h.down_until.is_some() {
                         (h.pause * 2).min(HOST_PAUSE_MAX)
@@ -1340,6 +1396,13 @@ impl Client {
                     " (a token may be needed: set BRICKYARD_TOKEN)"
                 }
             ))),
+            // A gateway that cannot reach the server behind it: as good
+            // as nobody there (a proxy whose backend died answers every
+            // request so).
+            502 | 504 => Err(Failure::unreachable(format!(
+                "HTTP {code} {} (the server behind a proxy or gateway did not answer)",
+                status_text(code)
+            ))),
             408 | 429 | 500..=599 => {
                 Err(Failure::retry(format!("HTTP {code} {}", status_text(code))))
             }
@@ -1403,10 +1466,14 @@ impl Client {
                 ))
             }
             // Connected, asked, and no answer: as good as nobody there.
-            ureq::Error::Timeout(t @ ureq::Timeout::RecvResponse) => Failure::unreachable(format!(
-                "no answer ({t}) within {:.1} s",
-                self.cfg.response_timeout.as_secs_f64()
-            )),
+            ureq::Error::Timeout(t @ ureq::Timeout::RecvResponse) => Failure {
+                most_retries: 1,
+                silence: true,
+                ..Failure::unreachable(format!(
+                    "no answer ({t}) within {:.1} s",
+                    self.cfg.response_timeout.as_secs_f64()
+                ))
+            },
             ureq::Error::Timeout(t) => Failure::retry(format!(
                 "timed out ({t}) after at most {:.1} s",
                 self.cfg.timeout.as_secs_f64()
@@ -1559,15 +1626,23 @@ mod tests {
     /// The port of a server that accepts and holds every connection and
     /// answers nothing.
     fn silent_server() -> u16 {
+        silent_server_counting().0
+    }
+
+    /// [`silent_server`], with the number of connections it accepted.
+    fn silent_server_counting() -> (u16, Arc<AtomicU64>) {
         let l = TcpListener::bind("127.0.0.1:0").unwrap();
         let port = l.local_addr().unwrap().port();
+        let n = Arc::new(AtomicU64::new(0));
+        let n2 = n.clone();
         std::thread::spawn(move || {
             let mut held = vec![];
             for s in l.incoming().flatten() {
+                n2.fetch_add(1, Ordering::SeqCst);
                 held.push(s);
             }
         });
-        port
+        (port, n)
     }
 
     /// A server that accepts connections and never answers (hung, or
@@ -1576,7 +1651,7 @@ mod tests {
     /// such a store waited out 30 s × 5 attempts per document, ten minutes.
     #[test]
     fn a_host_that_never_answers_counts_as_down() {
-        let port = silent_server();
+        let (port, accepted) = silent_server_counting();
         let c = Client::new(HttpConfig {
             retries: 4,
             backoff: Duration::from_millis(10),
@@ -1593,8 +1668,83 @@ mod tests {
             })
             .collect();
         assert!(t0.elapsed() < Duration::from_secs(5), "{:?}", t0.elapsed());
-        assert!(errors[0].contains("no answer"), "{}", errors[0]);
+        // Its wait is long: a request asked and not answered is tried once
+        // more, not on the whole schedule (`info` of such a store took 64 s
+        // at the default 10 s, now 20 s).
+        assert!(
+            errors[0].contains("no answer") && errors[0].contains("after 2 attempts"),
+            "{}",
+            errors[0]
+        );
         assert!(errors[5].contains("is not answering"), "{}", errors[5]);
+        // Two silences, and the host counted as down: nothing more sent.
+        assert_eq!(accepted.load(Ordering::SeqCst), 2);
+        // After the pause one request tries it again; the others, which
+        // would each wait out the same silence, fail meanwhile.
+        std::thread::sleep(HOST_PAUSE);
+        let c = Arc::new(c);
+        let errors: Vec<String> = (0..8)
+            .map(|i| {
+                let c = c.clone();
+                std::thread::spawn(move || {
+                    c.size(&format!("http://127.0.0.1:{port}/s.zarr/c/x{i}"))
+                        .unwrap_err()
+                        .to_string()
+                })
+            })
+            .collect::<Vec<_>>()
+            .into_iter()
+            .map(|t| t.join().unwrap())
+            .collect();
+        assert_eq!(accepted.load(Ordering::SeqCst), 3, "{errors:?}");
+        assert!(
+            errors
+                .iter()
+                .any(|e| e.contains("one request is trying it again")),
+            "{errors:?}"
+        );
+    }
+
+    /// A proxy whose server behind it died answers 502 to everything: its
+    /// host counts as down as one that does not answer at all, where each
+    /// file cost its whole schedule of retries (a render through such a
+    /// proxy took 105 s to give up).
+    #[test]
+    fn a_gateway_without_its_server_counts_as_down() {
+        let s = Server::start();
+        let c = Client::new(quick());
+        for i in 0..12 {
+            s.fail.lock().unwrap().insert(format!("/s.zarr/c/{i}"), 502);
+        }
+        let errors: Vec<String> = (0..12)
+            .map(|i| {
+                c.size(&s.url(&format!("s.zarr/c/{i}")))
+                    .unwrap_err()
+                    .to_string()
+            })
+            .collect();
+        assert!(
+            errors[0].contains("HTTP 502 Bad Gateway") && errors[0].contains("behind a proxy"),
+            "{}",
+            errors[0]
+        );
+        let tried: usize = (0..12).map(|i| s.requests(&format!("s.zarr/c/{i}"))).sum();
+        assert_eq!(tried, 6, "{errors:?}");
+        assert!(errors[11].contains("is not answering"), "{}", errors[11]);
+        // A 503 (busy, or down for maintenance) is the server's own answer:
+        // retried, and no count toward the host being down.
+        let t = Server::start();
+        t.fail.lock().unwrap().insert("/s.zarr/c/0".into(), 503);
+        let e = c.size(&t.url("s.zarr/c/0")).unwrap_err().to_string();
+        assert!(
+            e.contains("HTTP 503") && e.contains("after 5 attempts"),
+            "{e}"
+        );
+        assert!(!c
+            .hosts
+            .lock()
+            .unwrap()
+            .contains_key(host_of(&t.url("s.zarr/c/0"))));
     }
 
     /// A server that was there, went away and came back: its requests stop
@@ -2004,6 +2154,10 @@ mod tests {
         assert!(check_url("http://[::1]:8000/a.zarr").is_ok());
         assert!(check_url("http://[::1]:0/a.zarr").is_err());
         assert!(check_url("http://h/a.zarr").is_ok());
+        let e = check_url("http:///a.zarr").unwrap_err();
+        assert!(e.contains("names no host"), "{e}");
+        let e = check_url("http://h/a.zarr#x").unwrap_err();
+        assert!(e.contains("a fragment") && !e.contains("token"), "{e}");
 
         let c = Client::new(HttpConfig {
             token: Some("abc\r\nX-Evil: 1".into()),
