@@ -37,7 +37,7 @@ use std::sync::atomic::{AtomicBool, Ordering};
 #[derive(Parser)]
 #[command(name = "brickyard", version, about, long_about = None)]
 struct Cli {
-    /// Worker threads (default: all cores).
+    /// Threads for decoding, rendering and processing (default: all cores).
     #[arg(long, global = true)]
     threads: Option<usize>,
     /// s3:// stores: an S3-compatible endpoint (http(s)://host:port),

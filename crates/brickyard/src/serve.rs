@@ -89,7 +89,8 @@ pub struct ServeCmd {
     /// also name a loopback host (DNS rebinding).
     #[arg(long = "allow-origin", value_name = "ORIGIN")]
     pub allow_origin: Vec<String>,
-    /// Worker threads (requests answered at once).
+    /// Requests answered at once, over all connections (each reads its
+    /// file and writes its response on a thread of its own).
     #[arg(long, default_value_t = 16)]
     pub workers: usize,
     /// No access log.
@@ -1063,6 +1064,11 @@ fn parse_head<'a>(
                 .map_err(|()| (400, "malformed header"))?,
         );
     }
+    // One Host only (RFC 9112, 3.2): which of two a proxy or a cache
+    // would take is not known.
+    if headers.iter().filter(|h| h.field.equiv("Host")).count() > 1 {
+        return Err((400, "more than one Host header"));
+    }
     let connection = headers
         .iter()
         .filter(|h| h.field.equiv("Connection"))
@@ -1332,6 +1338,10 @@ fn resolve(site: &Site, url: &str) -> Target {
     if rest.is_empty() {
         return Target::Index;
     }
+    // A folder's path: nothing is listed (Zarr readers never ask for one).
+    if rest.ends_with('/') {
+        return Target::Refused(404, "a folder: nothing is listed here, ask for a file");
+    }
     let mut segs = vec![];
     for raw in rest.split('/') {
         let Some(s) = percent_decode(raw) else {
@@ -1409,7 +1419,12 @@ pub fn parse_range(v: &str, len: u64) -> std::result::Result<Option<(u64, u64)>,
         return Ok(None);
     };
     let (a, b) = (a.trim(), b.trim());
-    let num = |s: &str| s.parse::<u64>().ok();
+    // Digits only (`+1` or ` 1` is no byte position: RFC 9110, 14.1.1).
+    let num = |s: &str| {
+        (!s.is_empty() && s.bytes().all(|b| b.is_ascii_digit()))
+            .then(|| s.parse::<u64>().ok())
+            .flatten()
+    };
     let (start, end) = match (a.is_empty(), b.is_empty()) {
         (true, true) => return Ok(None),
         (true, false) => {
@@ -1842,6 +1857,10 @@ mod tests {
         assert_eq!(parse_range("bytes=0-1,5-6", 100), Ok(None));
         assert_eq!(parse_range("bytes=5-1", 100), Ok(None));
         assert_eq!(parse_range("items=0-1", 100), Ok(None));
+        // Byte positions are digits only.
+        assert_eq!(parse_range("bytes=+1-5", 100), Ok(None));
+        assert_eq!(parse_range("bytes=1-+5", 100), Ok(None));
+        assert_eq!(parse_range("bytes=-+5", 100), Ok(None));
     }
 
     #[test]

@@ -1476,6 +1476,11 @@ fn request_bodies_and_huge_heads_are_refused_at_once() {
             b"GET /a.ome.zarr/zarr.json HTTP/1.1\r\nHost: localhost\r\nContent-Length: 12x\r\n\r\n",
             "400",
         ),
+        // Two Hosts: which one a proxy took is not known.
+        (
+            b"GET /a.ome.zarr/zarr.json HTTP/1.1\r\nHost: localhost\r\nHost: example.org\r\n\r\n",
+            "400",
+        ),
     ] {
         let (status, closed, took) = raw_exchange(p, head, wait);
         assert!(
@@ -1497,6 +1502,12 @@ fn request_bodies_and_huge_heads_are_refused_at_once() {
         &[("Content-Length", "0")],
     );
     assert_eq!(code, 200, "an empty body is no body");
+    // A folder's path with its slash: not listed, said so (it was 403
+    // "path segment refused").
+    let (code, _, body) = http(p, "GET", "/a.ome.zarr/", &[]);
+    let body = String::from_utf8_lossy(&body);
+    assert_eq!(code, 404, "{body}");
+    assert!(body.contains("a folder"), "{body}");
 
     // A head past the limit: 431 and closed, not read on.
     let mut head = b"GET /a.ome.zarr/zarr.json HTTP/1.1\r\nHost: localhost\r\n".to_vec();
