@@ -1112,16 +1112,20 @@ impl VolumeSource for ZarrSource {
             .map(|(&p, &n)| p / n.max(1))
             .collect();
         let file = self.dir.join(self.array.chunk_key(&grid).as_str());
-        if !storage::exists(&file) {
-            self.forget_file(&grid);
-            return Some((file, Absence::FileMissing));
-        }
+        let missing = || {
+            (!storage::exists(&file)).then(|| {
+                self.forget_file(&grid);
+                (file.clone(), Absence::FileMissing)
+            })
+        };
         // A shard whose index has no entry for the inner chunk (index in C
         // order over the shard's grid of inner chunks).
         // The inner chunks are the grain (taken once when the store was
         // opened: the library derives it from the codec's configuration
         // through JSON on every call).
-        let sc = self.shard_check.as_ref()?;
+        let Some(sc) = self.shard_check.as_ref() else {
+            return missing();
+        };
         let inner = &self.grain;
         let mut entry = 0u64;
         let mut pos = vec![];
@@ -1147,9 +1151,15 @@ impl VolumeSource for ZarrSource {
                 // each time), unless it left the chunk out: then the shard
                 // may have changed since (a file that was missing is back),
                 // and the file says.
+                // (Most such bricks were read from a chunk of zeros, which
+                // this says without a look at the file: a HEAD request per
+                // brick on a remote store.)
                 let used = d.index(&file, &grid).ok()?;
                 if !absent(&used) {
                     return None;
+                }
+                if let Some(m) = missing() {
+                    return Some(m);
                 }
                 self.forget_file(&grid);
                 let now = shard::read_index(&file, &sc.layout).ok()?.map(Arc::new);
@@ -1173,6 +1183,9 @@ impl VolumeSource for ZarrSource {
                 })
             }
             None => {
+                if let Some(m) = missing() {
+                    return Some(m);
+                }
                 let now = shard::read_index(&file, &sc.layout).ok()?.map(Arc::new);
                 absent(&now).then(|| {
                     self.forget_file(&grid);
