@@ -277,7 +277,12 @@ impl LodBudget {
     /// Take one frame's signals and decide.
     pub fn update(&mut self, s: &FrameSignals) -> Decision {
         // Saturated: bricks are wanted, and what arrived found no room.
-        let full = s.deferred > 0 && s.requests > 0;
+        // Bricks that arrived and wait for a slot are not asked for again
+        // (on the device they are not: a streamed view whose waiting
+        // bricks found no slot, frame after frame, asked for nothing and
+        // ran until it was killed): an incomplete view counts them as
+        // wanted.
+        let full = s.deferred > 0 && (s.requests > 0 || !s.complete);
         if full {
             self.saturated += 1;
         } else {
@@ -306,7 +311,7 @@ impl LodBudget {
             // How much too big is the working set? Slots used at their own
             // level plus bricks still asked for, against the room there is.
             let used = s.exact_slots.unwrap_or(s.free_slots);
-            let need = used + s.requested.max(s.requests);
+            let need = used + s.requested.max(s.requests).max(s.deferred);
             if self.bias == self.base && self.needed_at_base.is_none() {
                 self.needed_at_base = Some(need);
             }
@@ -583,6 +588,33 @@ mod tests {
         );
         assert_eq!(f.try_finer_level(), Some((1.0, 0.0)));
         assert_eq!(f.apply(Lod::Fixed(1), 6), Lod::Fixed(1));
+    }
+
+    /// A streamed view on the device: bricks that arrived wait for a slot
+    /// and are not asked for again, so its frames ask for nothing while
+    /// incomplete. It ran until it was killed; it coarsens, and at the
+    /// bias limit it stops.
+    #[test]
+    fn bricks_waiting_for_a_slot_count_as_wanted() {
+        let mut b = LodBudget::new(0.0, 3, false);
+        let waiting = sig(false, 0, 71, 100);
+        assert!(matches!(b.update(&waiting), Decision::Changed { .. }));
+        let mut frames = 1;
+        let d = loop {
+            frames += 1;
+            if let Decision::Stop(s) = b.update(&waiting) {
+                break s;
+            }
+            assert!(frames < 100, "no end");
+        };
+        assert_eq!(d, Stop::NoProgress);
+        assert_eq!(b.bias, b.max);
+        // Complete with bricks left waiting: done, not saturated.
+        let mut b = LodBudget::new(0.0, 3, false);
+        assert_eq!(
+            b.update(&sig(true, 0, 5, 100)),
+            Decision::Stop(Stop::Complete)
+        );
     }
 
     #[test]

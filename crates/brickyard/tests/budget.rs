@@ -283,6 +283,38 @@ fn back_ends_settle_at_the_same_finest_bias_that_fits() {
     );
 }
 
+/// `render --stream` with a pool smaller than the view: on the device,
+/// bricks that arrived and waited for a slot were not asked for again, the
+/// frames asked for nothing, and the render ran until it was killed (for
+/// every mode). It ends, complete at a coarser bias, on both back ends.
+#[test]
+fn streamed_views_with_small_pools_end() {
+    let d = tempfile::tempdir().unwrap();
+    let store = store(d.path());
+    let png = d.path().join("s.png");
+    for &backend in backends() {
+        for mode in ["dvr", "mip", "slice"] {
+            for pool in ["600KiB", "256KiB"] {
+                let args = [
+                    "--stream",
+                    "--mode",
+                    mode,
+                    "--pool",
+                    pool,
+                    "--max-frames",
+                    "200",
+                ];
+                let v = render(&store, &png, backend, &args);
+                assert_eq!(v["stop"], "complete", "{backend} {mode} {pool}: {v}");
+                assert!(
+                    v["frames"].as_u64().unwrap() < 60,
+                    "{backend} {mode} {pool}: {v}"
+                );
+            }
+        }
+    }
+}
+
 #[test]
 fn the_process_stays_within_its_memory_budget() {
     let d = tempfile::tempdir().unwrap();
