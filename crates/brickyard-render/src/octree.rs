@@ -234,10 +234,7 @@ impl Octree {
         if nl == 0 || nl > 32 {
             return bad(format!("1 to 32 levels (one mask bit each), got {nl}"));
         }
-        let nodes = node_count(depth) as u64;
-        let leaves = 1u64 << (3 * depth);
-        let c = channels as u64;
-        let bytes = nodes * c * 4 + nodes * c * nl as u64 * 8 + leaves * c * nl as u64 * 4;
+        let bytes = Octree::bytes(depth, nl, channels);
         if bytes > MAX_BYTES {
             return bad(format!(
                 "depth {depth} with {channels} channels and {nl} levels needs {} MiB (at most {} MiB): choose a smaller depth",
@@ -246,6 +243,27 @@ impl Octree {
             ));
         }
         Ok(())
+    }
+
+    /// The bytes of the tables of an octree of depth `depth` over `levels`
+    /// levels of `channels` channels: masks and value ranges per node,
+    /// per-leaf entries.
+    pub fn bytes(depth: u32, levels: usize, channels: usize) -> u64 {
+        let nodes = node_count(depth.min(MAX_DEPTH)) as u64;
+        let leaves = 1u64 << (3 * depth.min(MAX_DEPTH));
+        let (c, nl) = (channels as u64, levels as u64);
+        nodes * c * 4 + nodes * c * nl * 8 + leaves * c * nl * 4
+    }
+
+    /// What an octree of depth `depth` takes while views are drawn
+    /// through it: its own tables ([`bytes`](Self::bytes)) and the
+    /// traversal's per-frame tables over its nodes and levels, the last
+    /// frame's kept beside the one being made (measured on the CPU: about
+    /// 80 bytes per node and level at depths 6 and 7, whatever the
+    /// channels).
+    pub fn working_bytes(depth: u32, levels: usize, channels: usize) -> u64 {
+        Octree::bytes(depth, levels, channels)
+            + node_count(depth.min(MAX_DEPTH)) as u64 * levels as u64 * 80
     }
 
     /// An octree of depth `depth` for a volume of `dims` per level and

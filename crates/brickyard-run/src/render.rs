@@ -1457,6 +1457,35 @@ fn run_one(
         Some(_) => memory.unwrap_or_else(crate::memory::default_memory) / 4,
         None => 0,
     };
+    // The residency octree: its tables and the traversal's per frame grow
+    // 8× a depth (depth 7 over three levels took 600 MiB, past a 128 MiB
+    // --memory). They are set aside in --memory; a depth that would take
+    // more than a quarter of it is lowered (the octree only skips space
+    // faster; the image is the same), and the run says so.
+    let mut octree_depth = octree_depth;
+    let octree_bytes = if traversal == Traversal::Octree {
+        use brickyard_render::octree::{Octree, MIN_DEPTH};
+        let cost = |d: u32| Octree::working_bytes(d, info.levels.len(), m.channels.max(1));
+        let total = memory.unwrap_or_else(crate::memory::default_memory);
+        let asked = octree_depth;
+        while octree_depth > MIN_DEPTH && cost(octree_depth) > total / 4 {
+            octree_depth -= 1;
+        }
+        if octree_depth < asked {
+            say_err!(
+                silent,
+                "note: octree-depth {asked} would take about {} of --memory {}: drawing through \
+                 depth {octree_depth} ({}; the image is the same, space is skipped in larger \
+                 steps)",
+                human_bytes(cost(asked)),
+                human_bytes(total),
+                human_bytes(cost(octree_depth))
+            );
+        }
+        cost(octree_depth)
+    } else {
+        0
+    };
     let split_for = |device_bytes: u64| {
         crate::memory::split_with_shares(
             memory,
@@ -1464,7 +1493,7 @@ fn run_one(
             host_given,
             pixels + exchange_pixels(shared, ranks, pixels),
             info.levels.len(),
-            device_bytes,
+            device_bytes + octree_bytes,
             (filter_bytes, samples_bytes),
         )
     };

@@ -441,3 +441,65 @@ fn bench_octree_measures_both_traversals() {
         &["channels"],
     );
 }
+
+/// An octree deeper than `--memory` holds: depth 7 over three levels took
+/// 600 MiB with `--memory 128MiB` and said so only after. The depth is
+/// lowered to what fits, said before drawing, the run stays within the
+/// budget, and the image is the one the deeper octree draws.
+#[test]
+fn an_octree_deeper_than_the_budget_holds_is_lowered() {
+    let d = tempfile::tempdir().unwrap();
+    let store = mandelbulb(d.path());
+    let (deep, _, _) = render(
+        &store,
+        d.path(),
+        "deep.png",
+        &[
+            "--traversal",
+            "octree",
+            "--octree-depth",
+            "6",
+            "--memory",
+            "4GiB",
+        ],
+    );
+    let png = d.path().join("small.png");
+    let o = run(&[
+        "render",
+        s(&store),
+        "--size",
+        "64x56",
+        "--brick",
+        "8",
+        "--backend",
+        "cpu",
+        "--json",
+        "--traversal",
+        "octree",
+        "--octree-depth",
+        "6",
+        "--memory",
+        "96MiB",
+        "--out",
+        s(&png),
+    ]);
+    let out = ok(&o, "small");
+    let err = stderr(&o);
+    assert!(
+        err.contains("octree-depth 6 would take about") && err.contains("drawing through depth"),
+        "{err}"
+    );
+    let v = out
+        .lines()
+        .filter_map(|l| serde_json::from_str::<serde_json::Value>(l).ok())
+        .find(|v| v["peak_rss_bytes"].is_u64())
+        .unwrap_or_else(|| panic!("no summary: {out}"));
+    let (peak, budget) = (
+        v["peak_rss_bytes"].as_u64().unwrap(),
+        v["memory_budget_bytes"].as_u64().unwrap(),
+    );
+    assert!(peak <= budget, "{peak} > {budget}");
+    let small = png_pixels(&png);
+    assert!(lit(&small) > 0, "an empty image");
+    assert_eq!(max_diff(&deep, &small), 0);
+}
