@@ -2175,7 +2175,7 @@ fn run_one(
                     "peak_rss_bytes": peak, "memory_budget_bytes": split.total})
             );
         }
-        let detail_line = format!(
+        let mut detail_line = format!(
             "{why}{detail}; {} frames, {:.2} s, {} read",
             out.frames,
             out.seconds,
@@ -2273,7 +2273,20 @@ fn run_one(
                         );
                         acc?
                     }
-                    _ => acc?,
+                    // Not even one frame's samples fit: the view as drawn
+                    // (one frame, complete) is the image, said so; it had
+                    // been drawn and thrown away for an error.
+                    _ => match acc {
+                        Err(e) if e.downcast_ref::<NoRoomToAccumulate>().is_some() => {
+                            let line = format!(
+                                "{e}; the image is the view's one frame, 1 of the {n} frames"
+                            );
+                            say_err!(silent, "note: {line}");
+                            detail_line.push_str(&format!("; {line}"));
+                            out.image
+                        }
+                        r => r?,
+                    },
                 }
             }
             _ => out.image,
@@ -2561,6 +2574,19 @@ fn view_layout(c: &RenderCmd) -> Result<(u32, Option<brickyard_render::views::La
 /// leave unused raises it, up to what one buffer of the device holds.
 const DEVICE_STORE_BYTES: u64 = 512 << 20;
 
+/// An accumulation that cannot keep even one frame's samples (the
+/// caller may keep the view's image as drawn instead).
+#[derive(Debug)]
+struct NoRoomToAccumulate(String);
+
+impl std::fmt::Display for NoRoomToAccumulate {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(&self.0)
+    }
+}
+
+impl std::error::Error for NoRoomToAccumulate {}
+
 /// `--progressive N`: accumulation frames of the view (whose working set
 /// the drive has just loaded) until `n` frames are blended and no stand-in
 /// is left. The per-pixel store holds `n` whole rays of samples (on the
@@ -2659,10 +2685,13 @@ fn accumulate(
                     }
                     fit
                 }
-                None => bail!(
-                    "progressive: the first frame's samples take up to {} even at the coarsest level, more than {memory_for}: raise --memory or draw a smaller image",
-                    human_bytes(at(scene.levels.len() - 1)),
-                ),
+                None => {
+                    return Err(NoRoomToAccumulate(format!(
+                        "progressive: the first frame's samples take up to {} even at the coarsest level, more than {memory_for}: raise --memory or draw a smaller image to accumulate",
+                        human_bytes(at(scene.levels.len() - 1)),
+                    ))
+                    .into())
+                }
             }
         }
         false => lod,
