@@ -645,6 +645,23 @@ pub fn convert_team(
                 .into(),
         });
     }
+    if output.exists() {
+        let lost = not_remade(output);
+        if !lost.is_empty() {
+            let more = lost.len().saturating_sub(8);
+            let mut names = lost.iter().take(8).cloned().collect::<Vec<_>>().join(", ");
+            if more > 0 {
+                names.push_str(&format!(" and {more} more"));
+            }
+            return Err(StoreError::Refused {
+                path: output.into(),
+                msg: format!(
+                    "--overwrite would delete what a conversion does not make again: {names}; \
+                     move it out of the store first, or remove the store yourself"
+                ),
+            });
+        }
+    }
     // (An output that does not exist yet: its folder's real path and name.)
     let out_real = output
         .canonicalize()
@@ -1337,6 +1354,46 @@ pub fn replaceable(path: &Path) -> bool {
         || std::fs::read_dir(path)
             .map(|mut d| d.next().is_none())
             .unwrap_or(false)
+}
+
+/// What in the store at `path` a conversion into it does not write again
+/// (results of `process` under `labels/` and `derived/`, label images,
+/// other files and folders), as paths relative to it: `--overwrite`
+/// would delete them with the old store.
+pub fn not_remade(path: &Path) -> Vec<String> {
+    let own = |n: &str| {
+        matches!(
+            n,
+            "zarr.json" | ".zgroup" | ".zattrs" | ".zarray" | ".zmetadata" | "_brickyard"
+        ) || (!n.is_empty() && n.bytes().all(|b| b.is_ascii_digit()))
+    };
+    let names = |p: &Path| -> Vec<String> {
+        let mut v: Vec<String> = std::fs::read_dir(p)
+            .map(|d| {
+                d.flatten()
+                    .map(|e| e.file_name().to_string_lossy().into_owned())
+                    .collect()
+            })
+            .unwrap_or_default();
+        v.sort();
+        v
+    };
+    let mut lost = vec![];
+    for n in names(path) {
+        if own(&n) {
+            continue;
+        }
+        if (n == "labels" || n == "derived") && path.join(&n).is_dir() {
+            for m in names(&path.join(&n)) {
+                if !matches!(m.as_str(), "zarr.json" | ".zgroup" | ".zattrs") {
+                    lost.push(format!("{n}/{m}"));
+                }
+            }
+            continue;
+        }
+        lost.push(n);
+    }
+    lost
 }
 
 /// The shard edge when none is given: [`DEFAULT_SHARD`] voxels, at least

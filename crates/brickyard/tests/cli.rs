@@ -987,7 +987,8 @@ fn ramp_raw(dir: &Path) -> std::path::PathBuf {
 }
 
 /// `convert --overwrite` replaces a store (or an empty folder), never a
-/// file or a folder of other things; bad units and zstd levels are named.
+/// file, a folder of other things, or what a store holds beside the
+/// conversion's own arrays; bad units and zstd levels are named.
 #[test]
 fn overwrite_replaces_stores_only() {
     let d = tempfile::tempdir().unwrap();
@@ -1031,6 +1032,24 @@ fn overwrite_replaces_stores_only() {
     assert!(empty.join("zarr.json").is_file());
     let o = conv(&empty, &["--overwrite"]);
     assert!(o.status.success(), "a store is replaced: {}", stderr(&o));
+    // A store holding what a conversion does not make again (a label
+    // image, a processing result, notes): refused, naming them (they were
+    // deleted without a word), and left as it was.
+    std::fs::create_dir_all(empty.join("labels/truth")).unwrap();
+    std::fs::write(empty.join("labels/zarr.json"), "{}").unwrap();
+    std::fs::write(empty.join("labels/truth/zarr.json"), "{}").unwrap();
+    std::fs::write(empty.join("NOTES.txt"), "keep me").unwrap();
+    fails_with(
+        &conv(&empty, &["--overwrite"]),
+        &["would delete", "NOTES.txt", "labels/truth"],
+    );
+    assert!(empty.join("labels/truth/zarr.json").is_file());
+    assert_eq!(
+        std::fs::read_to_string(empty.join("NOTES.txt")).unwrap(),
+        "keep me"
+    );
+    std::fs::remove_dir_all(empty.join("labels")).unwrap();
+    std::fs::remove_file(empty.join("NOTES.txt")).unwrap();
     // Never into the input itself, even where the output does not exist yet.
     let inner = empty.join("inner.zarr");
     fails_with(
