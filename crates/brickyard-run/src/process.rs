@@ -618,6 +618,23 @@ fn run_job(
         .map_err(|e| anyhow::anyhow!("pipeline {:?}: {e}", c.pipeline))?;
     opts.memory = memory - memory / 8 - filter_memory.bytes;
     let dir = store.join(if is_label { "labels" } else { "derived" });
+    // One name, one result: the same name under the other folder would
+    // make `info`, `render --labels NAME` and `--derived NAME` ambiguous.
+    let other = store
+        .join(if is_label { "derived" } else { "labels" })
+        .join(&c.out);
+    if other.exists() {
+        bail!(
+            "{}: a result of this name is there already ({}); give another {}out",
+            other.display(),
+            if is_label {
+                "not a label image: derived"
+            } else {
+                "a label image"
+            },
+            caller.flag
+        );
+    }
     let paths = Paths::new(dir, &c.out);
     let made_dir = !paths.dir.exists();
     std::fs::create_dir_all(&paths.dir)

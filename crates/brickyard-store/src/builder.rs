@@ -1384,8 +1384,10 @@ pub fn not_remade(path: &Path) -> Vec<String> {
             continue;
         }
         if (n == "labels" || n == "derived") && path.join(&n).is_dir() {
+            // (Hidden names there are what interrupted jobs left: their
+            // locks and partial output, not results.)
             for m in names(&path.join(&n)) {
-                if !matches!(m.as_str(), "zarr.json" | ".zgroup" | ".zattrs") {
+                if !m.starts_with('.') && m != "zarr.json" {
                     lost.push(format!("{n}/{m}"));
                 }
             }

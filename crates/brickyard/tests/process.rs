@@ -1028,14 +1028,18 @@ fn a_refusal_for_memory_asks_for_the_least_that_works() {
         "128",
         "--quiet",
     ]));
-    for pipe in ["gauss(2)", "threshold(50)|label(26)", "sobel"] {
+    for (pipe, out) in [
+        ("gauss(2)", "small"),
+        ("threshold(50)|label(26)", "small-labels"),
+        ("sobel", "small"),
+    ] {
         let job = |memory: u64| {
             run(&[
                 "process",
                 s(&store),
                 pipe,
                 "--out",
-                "small",
+                out,
                 "--memory",
                 &format!("{memory}MiB"),
                 "--quiet",
@@ -1956,4 +1960,48 @@ fn labels_of_a_coarser_level_are_said_to_lie_off_the_image_grid() {
     );
     assert!(o.status.success(), "{all}");
     assert!(!all.contains("grid"), "{all}");
+}
+
+/// One name, one result: a label image named as a derived result already
+/// there (or the other way round) is refused, with or without
+/// --overwrite; both had been written, and `info` listed two results of
+/// one name.
+#[test]
+fn a_result_name_is_taken_once_over_labels_and_derived() {
+    let d = tempfile::tempdir().unwrap();
+    let store = make_store(d.path(), "24");
+    ok(run(&[
+        "process",
+        s(&store),
+        "gauss(1)",
+        "--out",
+        "r",
+        "--quiet",
+    ]));
+    for extra in [&[][..], &["--overwrite"][..]] {
+        let mut a = vec![
+            "process",
+            s(&store),
+            "threshold(0.1)",
+            "--out",
+            "r",
+            "--quiet",
+        ];
+        a.extend_from_slice(extra);
+        fails_naming(&a, &["derived/r", "a result of this name", "--out"]);
+    }
+    assert!(!store.join("labels/r").exists());
+    ok(run(&[
+        "process",
+        s(&store),
+        "threshold(0.1)",
+        "--out",
+        "m",
+        "--quiet",
+    ]));
+    fails_naming(
+        &["process", s(&store), "sobel", "--out", "m", "--quiet"],
+        &["labels/m", "a label image"],
+    );
+    assert!(!store.join("derived/m").exists());
 }
