@@ -288,11 +288,20 @@ pub fn inspect(path: &Path) -> Result<StoreInfo> {
                 old.display()
             )
         } else if partial.is_dir() {
-            format!(
-                "; {} is what an interrupted conversion of it wrote: run that convert again (it \
-                 takes over), or remove the folder",
-                partial.display()
-            )
+            match crate::lock::live_holder(&crate::builder::lock_path(path)) {
+                // (Not interrupted: at work. Removing its folder would
+                // break it.)
+                Some(pid) => format!(
+                    "; a conversion into it is at work (process {pid}, writing {}): wait for it \
+                     to end",
+                    partial.display()
+                ),
+                None => format!(
+                    "; {} is what an interrupted conversion of it wrote: run that convert again \
+                     (it takes over), or remove the folder",
+                    partial.display()
+                ),
+            }
         } else {
             return Err(StoreError::not_found(path));
         };

@@ -728,3 +728,28 @@ fn a_failed_write_to_standard_output_is_an_error() {
         );
     }
 }
+
+/// `info` of a store whose conversion is still at work (its lock held by
+/// a live process) says so; it said to remove the folder the conversion
+/// was writing. A lock left by a process that is gone: interrupted.
+#[test]
+fn info_tells_a_conversion_at_work_from_an_interrupted_one() {
+    let d = tempfile::tempdir().unwrap();
+    let store = d.path().join("live.zarr");
+    std::fs::create_dir(d.path().join("live.zarr.partial")).unwrap();
+    let lock = d.path().join("live.zarr.lock");
+    std::fs::write(&lock, format!("{}\n", std::process::id())).unwrap();
+    let o = run(&["info", s(&store)]);
+    let e = String::from_utf8_lossy(&o.stderr).to_string();
+    assert_ne!(o.status.code(), Some(0), "{e}");
+    assert!(
+        e.contains("at work") && !e.contains("remove the folder"),
+        "{e}"
+    );
+    std::fs::write(&lock, "4194305\n").unwrap();
+    let e = String::from_utf8_lossy(&run(&["info", s(&store)]).stderr).to_string();
+    assert!(
+        e.contains("interrupted") && e.contains("remove the folder"),
+        "{e}"
+    );
+}
