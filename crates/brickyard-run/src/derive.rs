@@ -180,6 +180,12 @@ impl Derived {
         }
     }
 
+    /// The largest region a read of the derived channel may ask for within
+    /// its filters' share of --memory (a padded brick), when held to one.
+    pub fn read_limit(&self) -> Option<[u64; 3]> {
+        self.within.as_ref().map(|w| w.read)
+    }
+
     /// The derived source of one level's stored array.
     pub fn level(&self, stored: Arc<dyn VolumeSource>) -> Result<Arc<dyn VolumeSource>> {
         Ok(self.planned(stored)?.0)

@@ -1251,8 +1251,12 @@ fn run_one(
         }
         None if derived.is_some() => {
             let d = derived.as_ref().unwrap();
-            crate::window::window_of_levels(info.levels.len(), 0, |l| d.open_level(l))?
-                .unwrap_or((0.0, 1.0))
+            let w =
+                crate::window::window_of_levels_in(info.levels.len(), 0, d.read_limit(), |l| {
+                    d.open_level(l)
+                })?;
+            crate::window::give_back_freed_memory();
+            w.unwrap_or((0.0, 1.0))
         }
         None => {
             let ch = first_channel.min(m.channels.saturating_sub(1));

@@ -2005,3 +2005,37 @@ fn a_result_name_is_taken_once_over_labels_and_derived() {
     );
     assert!(!store.join("derived/m").exists());
 }
+
+/// The default window of a live derived channel is read within the
+/// filters' share: it read slabs of whole planes through the filters, and
+/// a render of a 128³ store with `--memory 80MiB` peaked at 91 MiB.
+#[test]
+fn a_derived_channels_default_window_stays_within_the_budget() {
+    let d = tempfile::tempdir().unwrap();
+    let store = make_store(d.path(), "128");
+    let png = d.path().join("x.png");
+    let o = run(&[
+        "render",
+        s(&store),
+        "--backend",
+        "cpu",
+        "--derive",
+        "gauss(2)|sobel",
+        "--memory",
+        "80MiB",
+        "--json",
+        "--out",
+        s(&png),
+    ]);
+    let out = String::from_utf8_lossy(&ok(o).stdout).into_owned();
+    let v = out
+        .lines()
+        .filter_map(|l| serde_json::from_str::<serde_json::Value>(l).ok())
+        .find(|v| v["peak_rss_bytes"].is_u64())
+        .unwrap_or_else(|| panic!("no summary: {out}"));
+    let (peak, budget) = (
+        v["peak_rss_bytes"].as_u64().unwrap(),
+        v["memory_budget_bytes"].as_u64().unwrap(),
+    );
+    assert!(peak <= budget, "peak {peak} over {budget}");
+}
