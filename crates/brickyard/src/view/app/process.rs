@@ -13,10 +13,12 @@ use std::sync::Arc;
 /// the derived values (as `render --derive` takes it). The histogram is
 /// empty: the store's statistics describe the stored values.
 pub fn derived_dataset(stored: &Dataset, d: &Derived) -> Result<Dataset> {
-    let window = crate::window::window_of_levels(stored.levels.len(), 0, |l| d.open_level(l))?
-        .map(|(lo, hi)| [lo as f32, hi as f32])
-        .filter(|w| w[1] > w[0])
-        .unwrap_or([0.0, 1.0]);
+    let window = crate::window::window_of_levels_in(stored.levels.len(), 0, d.read_limit(), |l| {
+        d.open_level(l)
+    })?
+    .map(|(lo, hi)| [lo as f32, hi as f32])
+    .filter(|w| w[1] > w[0])
+    .unwrap_or([0.0, 1.0]);
     Ok(Dataset {
         channels: 1,
         dtype: d.dtype,
