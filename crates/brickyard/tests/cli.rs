@@ -3409,3 +3409,33 @@ fn a_transfer_function_without_a_window_takes_the_presets() {
     }
     assert_eq!(pngs[0], pngs[1]);
 }
+
+/// Engine bricks of 2 or 3 voxels are refused: a render of Colin27 at
+/// `--brick 2` took 244 s over 238 frames and then lowered its detail.
+#[test]
+fn engine_bricks_below_four_voxels_are_refused() {
+    let d = tempfile::tempdir().unwrap();
+    let store = d.path().join("m.ome.zarr");
+    let o = run(&[
+        "generate",
+        "mandelbulb",
+        s(&store),
+        "--size",
+        "16",
+        "--quiet",
+    ]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    for b in ["2", "3"] {
+        fails_with(
+            &run(&[
+                "render",
+                s(&store),
+                "--brick",
+                b,
+                "--out",
+                s(&d.path().join("x.png")),
+            ]),
+            &["--brick", "4..=512"],
+        );
+    }
+}

@@ -52,8 +52,9 @@ pub struct ViewCmd {
     /// device, or a share of --memory).
     #[arg(long)]
     host: Option<String>,
-    /// Engine brick edge (2 to 512 voxels).
-    #[arg(long, default_value_t = 32, value_parser = clap::value_parser!(u64).range(2..=512))]
+    /// Engine brick edge (4 to 512 voxels; smaller bricks cost far more in
+    /// bookkeeping than they save: a view at 2 took minutes).
+    #[arg(long, default_value_t = 32, value_parser = clap::value_parser!(u64).range(4..=512))]
     brick: u64,
     /// Bytes written into the pool per frame (a device back end writes at
     /// most 32 MiB: its staging buffer is set aside in --memory).
