@@ -64,16 +64,26 @@ impl PidLock {
                     _ => {
                         // (This very process: another call of it, e.g. a
                         // second thread of a Python program.)
+                        // (A lock that outlived its job in a way this
+                        // cannot see: its process id taken again after a
+                        // restart, or a lock without one.)
+                        let stale = format!(
+                            "; if no such job is running (a lock that outlived a restart), \
+                             remove {}",
+                            path.display()
+                        );
                         let msg = match pid {
-                            0 => {
-                                format!("another process is {what}; wait for it to end or stop it")
-                            }
+                            0 => format!(
+                                "another process is {what} (the lock names none this one can \
+                                 see); wait for it to end or stop it{stale}"
+                            ),
                             p if p == std::process::id() => format!(
                                 "another call in this process (pid {p}) is {what}; wait for it \
                                  to end"
                             ),
                             p => format!(
-                                "another process (pid {p}) is {what}; wait for it to end or stop it"
+                                "another process (pid {p}) is {what}; wait for it to end or stop \
+                                 it{stale}"
                             ),
                         };
                         return Err(StoreError::Refused {
