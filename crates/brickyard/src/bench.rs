@@ -279,9 +279,29 @@ pub fn run(b: BenchCmd) -> Result<()> {
     }
 }
 
+/// Make `--dir` (its own folder only: a folder above it that does not
+/// exist is a mistyped path, refused as other writers refuse it).
+pub(crate) fn make_bench_dir(dir: &std::path::Path) -> Result<()> {
+    if dir.is_dir() {
+        return Ok(());
+    }
+    let parent = match dir.parent() {
+        Some(p) if p.as_os_str().is_empty() => std::path::Path::new("."),
+        Some(p) => p,
+        None => std::path::Path::new("."),
+    };
+    if !parent.is_dir() {
+        anyhow::bail!(
+            "dir: {}: the folder it goes in, {}, does not exist",
+            dir.display(),
+            parent.display()
+        );
+    }
+    std::fs::create_dir(dir).with_context(|| format!("{}: cannot create", dir.display()))
+}
+
 fn bench_convert(b: &BenchCmd, dims: [u64; 3], dtype: DType) -> Result<()> {
-    std::fs::create_dir_all(&b.dir)
-        .with_context(|| format!("{}: cannot create", b.dir.display()))?;
+    make_bench_dir(&b.dir)?;
     let raw = b.dir.join(format!(
         "mandelbulb-{}x{}x{}-{}.raw",
         dims[2], dims[1], dims[0], dtype

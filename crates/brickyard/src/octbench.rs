@@ -5,7 +5,7 @@
 //! bricks per ray (the bricks: CPU only), peak bricks resident, and how
 //! far the two images differ.
 
-use anyhow::{bail, Context, Result};
+use anyhow::{bail, Result};
 use brickyard_cache::session::Session;
 use brickyard_cache::vm::VmConfig;
 use brickyard_core::camera::{world_extent, Camera, Projection};
@@ -140,7 +140,7 @@ fn banded_store(dir: &Path, dims: Dims3, n: usize, o: &OctreeBench) -> Result<Pa
     if inspect(&p).is_ok_and(|i| i.complete != Some(false)) {
         return Ok(p);
     }
-    std::fs::create_dir_all(dir).with_context(|| format!("{}: cannot create", dir.display()))?;
+    crate::bench::make_bench_dir(dir)?;
     eprintln!("bench: writing {}", p.display());
     let src = Banded::new(dims, n);
     let opts = ConvertOptions {

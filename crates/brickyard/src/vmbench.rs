@@ -33,7 +33,7 @@ fn store_with(
     compression: Compression,
     tag: &str,
 ) -> Result<PathBuf> {
-    std::fs::create_dir_all(dir)?;
+    crate::bench::make_bench_dir(dir)?;
     let p = dir.join(format!(
         "mandelbulb-{}x{}x{}-{}{}.ome.zarr",
         dims[2], dims[1], dims[0], dtype, tag

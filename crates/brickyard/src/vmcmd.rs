@@ -96,8 +96,23 @@ pub fn footprint(c: FootprintCmd) -> Result<()> {
         None => VirtualLayout::auto(levels.clone(), brick, [c.pt_block; 3], c.max_dir),
     };
     let pool = crate::parse_bytes(&c.pool)?;
+    if c.apron > c.brick {
+        bail!(
+            "apron: {} voxels on each side of a brick of {}: expected at most the brick's edge",
+            c.apron,
+            c.brick
+        );
+    }
     let padded = (c.brick + 2 * c.apron).pow(3) * dtype.size() as u64;
     let slots = pool / padded;
+    if slots == 0 {
+        bail!(
+            "pool: {} holds no brick of {} (padded, {} voxels a side); expected at least one",
+            human_bytes(pool),
+            human_bytes(padded),
+            c.brick + 2 * c.apron
+        );
+    }
     let pt_caches = vec![c.pt_cache_blocks; layout.pt_levels()];
     let ours = Footprint::of(&layout, slots, &pt_caches, padded, c.request_cap);
     let paper = Footprint::paper_equivalent(

@@ -3439,3 +3439,29 @@ fn engine_bricks_below_four_voxels_are_refused() {
         );
     }
 }
+
+/// `vm footprint` refuses a pool that holds no brick and an apron wider
+/// than the brick (it printed "0 slots" and accounted for them), and
+/// `bench --dir` does not create the folders above the one it names (it
+/// made `/nonexistent/x`).
+#[test]
+fn footprint_and_bench_refuse_what_cannot_be() {
+    for (args, want) in [
+        (&["--pool", "0"][..], "holds no brick"),
+        (&["--pool", "1KiB"][..], "holds no brick"),
+        (&["--brick", "4", "--apron", "5"][..], "apron"),
+    ] {
+        let mut a = vec!["vm", "footprint", "--dims", "256"];
+        a.extend_from_slice(args);
+        fails_with(&run(&a), &[want]);
+    }
+    let o = run(&["vm", "footprint", "--dims", "256"]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    let d = tempfile::tempdir().unwrap();
+    let dir = d.path().join("no/such");
+    fails_with(
+        &run(&["bench", "convert", "--size", "16", "--dir", s(&dir)]),
+        &["dir", "does not exist"],
+    );
+    assert!(!d.path().join("no").exists());
+}
