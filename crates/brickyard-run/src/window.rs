@@ -112,61 +112,38 @@ pub fn window_of_levels_in(
         if z * y * x > MAX_VOXELS {
             continue;
         }
-        // Read in slabs of whole planes and keep every `stride`-th value:
-        // what this takes stays a few MiB (the level whole as `f64`s beside
-        // its own copy went over small budgets by up to 64 MiB).
+        // Read region by region and keep every `stride`-th value in read
+        // order: what this takes stays a few MiB (the level whole as `f64`s
+        // beside its own copy went over small budgets by up to 64 MiB).
+        // Regions are slabs of whole planes (raster order), or at most
+        // `limit` where given.
         let n = z * y * x;
         let stride = n.div_ceil(MAX_SAMPLES).max(1);
-        if let Some(lim) = limit {
-            // Region by region, every `stride`-th value in read order (a
-            // sample as even as the raster order's).
-            let [bz, by, bx] = lim.map(|v| v.max(1));
-            let values: Option<Vec<f64>> = dispatch_dtype!(m.dtype, T => {
-                let mut values = Vec::with_capacity(n.div_ceil(stride) as usize);
-                let mut buf = vec![];
-                let mut seen = 0u64;
-                let mut ok = true;
-                'read: for z0 in (0..z).step_by(bz as usize) {
-                    for y0 in (0..y).step_by(by as usize) {
-                        for x0 in (0..x).step_by(bx as usize) {
-                            let (z1, y1, x1) = ((z0 + bz).min(z), (y0 + by).min(y), (x0 + bx).min(x));
-                            buf.clear();
-                            buf.resize(((z1 - z0) * (y1 - y0) * (x1 - x0)) as usize, T::default());
-                            if src.read_region(c, z0..z1, y0..y1, x0..x1, as_bytes_mut(&mut buf)).is_err() {
-                                ok = false;
-                                break 'read;
-                            }
-                            let skip = (seen.div_ceil(stride) * stride - seen) as usize;
-                            values.extend(buf.iter().skip(skip).step_by(stride as usize).map(|v| v.to_f64()));
-                            seen += buf.len() as u64;
-                        }
-                    }
-                }
-                ok.then_some(values)
-            });
-            if let Some(v) = values {
-                return Ok(robust_window(v));
-            }
-            continue;
-        }
         let depth = src.preferred_read()[0].max(1);
         let planes = (SLAB_VOXELS / (y * x).max(1)).div_ceil(depth).max(1) * depth;
+        let [bz, by, bx] = limit.unwrap_or([planes, y, x]).map(|v| v.max(1));
         let values: Option<Vec<f64>> = dispatch_dtype!(m.dtype, T => {
             let mut values = Vec::with_capacity(n.div_ceil(stride) as usize);
             let mut buf = vec![];
-            let mut z0 = 0;
+            let mut seen = 0u64;
             let mut ok = true;
-            while z0 < z && ok {
-                let z1 = (z0 + planes).min(z);
-                buf.clear();
-                buf.resize(((z1 - z0) * y * x) as usize, T::default());
-                ok = src.read_region(c, z0..z1, 0..y, 0..x, as_bytes_mut(&mut buf)).is_ok();
-                let first = z0 * y * x;
-                // The first index at or after `first` that is a multiple of
-                // the stride.
-                let skip = (first.div_ceil(stride) * stride - first) as usize;
-                values.extend(buf.iter().skip(skip).step_by(stride as usize).map(|v| v.to_f64()));
-                z0 = z1;
+            'read: for z0 in (0..z).step_by(bz as usize) {
+                for y0 in (0..y).step_by(by as usize) {
+                    for x0 in (0..x).step_by(bx as usize) {
+                        let (z1, y1, x1) = ((z0 + bz).min(z), (y0 + by).min(y), (x0 + bx).min(x));
+                        buf.clear();
+                        buf.resize(((z1 - z0) * (y1 - y0) * (x1 - x0)) as usize, T::default());
+                        if src.read_region(c, z0..z1, y0..y1, x0..x1, as_bytes_mut(&mut buf)).is_err() {
+                            ok = false;
+                            break 'read;
+                        }
+                        // The first value whose index counted from the
+                        // start is a multiple of the stride.
+                        let skip = (seen.div_ceil(stride) * stride - seen) as usize;
+                        values.extend(buf.iter().skip(skip).step_by(stride as usize).map(|v| v.to_f64()));
+                        seen += buf.len() as u64;
+                    }
+                }
             }
             ok.then_some(values)
         });
