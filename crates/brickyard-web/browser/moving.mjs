@@ -2,9 +2,11 @@
 //   node moving.mjs CHROMIUM OUT_DIR PAGE_URL
 // Opens PAGE_URL, waits until its view is complete, then drags across the
 // canvas with the mouse (small steps, a frame's time apart) and records
-// the page's status after each step and the canvas once mid-drag; lets go
+// every status the page sets and the canvas once mid-drag; lets go
 // and waits until the view is complete again. OUT_DIR/moving.json gets
-// the status before the drag, the statuses during it, the canvas's size
+// the status before the drag, every status the page set from the press to
+// the release (`drag_log`) and every text of its status line meanwhile
+// (`drag_text`), the canvas's size
 // and lit pixels mid-drag, the status and URL at the end; OUT_DIR/end.rgba
 // the final canvas (straight RGBA); `rest_long_tasks` the durations (ms) of
 // the page's tasks over 50 ms from letting go until the view is complete
@@ -42,17 +44,28 @@ try {
   });
   await page.goto(url);
   report.before = await waitComplete(page);
+  // Every status the page sets from here on (one per call of its frame
+  // loop) and every text its status line shows: what the drag drew does
+  // not depend on when this script looks.
+  await page.evaluate(() => {
+    const s = window.brickyard;
+    let v = s.status;
+    window.statusLog = [];
+    Object.defineProperty(s, 'status', {
+      get() { return v; },
+      set(x) { v = x; window.statusLog.push(x); },
+    });
+    window.textLog = [];
+    new MutationObserver(() => window.textLog.push(document.getElementById('status').textContent))
+      .observe(document.getElementById('status'), { childList: true, characterData: true, subtree: true });
+  });
   const box = await page.locator('#view').boundingBox();
   const [x0, y] = [box.x + box.width * 0.3, box.y + box.height * 0.5];
   await page.mouse.move(x0, y);
   await page.mouse.down();
-  report.during = [];
-  report.during_text = [];
   for (let i = 1; i <= 12; i++) {
     await page.mouse.move(x0 + 6 * i, y);
     await sleep(60);
-    report.during.push(await page.evaluate(() => window.brickyard.status));
-    report.during_text.push(await page.evaluate(() => document.getElementById('status').textContent));
     if (i === 8) {
       report.mid_canvas = await page.evaluate(() => {
         const c = document.getElementById('view');
@@ -65,6 +78,11 @@ try {
   }
   await page.evaluate(() => { window.longTasks = []; });
   await page.mouse.up();
+  [report.drag_log, report.drag_text] = await page.evaluate(() => {
+    const l = [window.statusLog, window.textLog];
+    window.statusLog = []; window.textLog = [];
+    return l;
+  });
   report.end = await waitComplete(page);
   await sleep(100);
   report.rest_long_tasks = await page.evaluate(() => window.longTasks);

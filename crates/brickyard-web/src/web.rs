@@ -267,6 +267,9 @@ struct Inner {
     /// at (1: full size), and a canvas to draw such frames into before
     /// they are scaled onto the page's.
     drawn_scale: f64,
+    /// The last frame was drawn as a moving view's (within
+    /// [`MOVING_FOR_MS`] of a camera move).
+    drawn_moving: bool,
     /// The fraction of the size the last frame while moving was drawn at
     /// (1: full size, or none yet): `budget::moving_scale`'s `last`.
     moving_last: f64,
@@ -478,6 +481,7 @@ impl Viewer {
                 view: None,
                 full_ms: 0.0,
                 drawn_scale: 1.0,
+                drawn_moving: false,
                 moving_last: 1.0,
                 tile_cost: (0.0, 0.0),
                 pass_ms: 0.0,
@@ -744,6 +748,7 @@ impl Inner {
             self.drawn_at = t;
             self.drawn_state = Some(state.clone());
             self.drawn_scale = scale;
+            self.drawn_moving = moving && three_d;
             let device = self.device.as_mut();
             self.on_device = device.is_some();
             self.last = match device {
@@ -928,6 +933,7 @@ impl Inner {
             "mib_s": self.mib_s,
             "frame_ms": self.frame_ms,
             "scale": self.drawn_scale,
+            "moving": self.drawn_moving,
             "full_ms": self.full_ms,
             "parts": self.parts,
             "full_parts": self.full_parts,
