@@ -21,7 +21,7 @@ use brickyard_store::source::check_region;
 use brickyard_store::{Result, SourceMeta, StoreError, VolumeSource};
 use rayon::prelude::*;
 use std::ops::Range;
-use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
 use std::sync::{Arc, Mutex};
 
 /// scipy's default `truncate`: kernels reach `int(4σ + 0.5)` voxels.
@@ -270,6 +270,8 @@ pub struct FilterSource {
     /// Set from outside (Ctrl-C): reads end with
     /// [`StoreError::Interrupted`] before their next block.
     stop: Option<Arc<AtomicBool>>,
+    /// Counts the voxels this stage has computed ([`FilterSource::with_meter`]).
+    meter: Option<Arc<AtomicU64>>,
 }
 
 /// A stage's filter on the device, and the most voxels of a padded piece.
@@ -364,6 +366,7 @@ impl FilterSource {
             device: None,
             parallel: usize::MAX,
             stop: None,
+            meter: None,
             components,
         })
     }
@@ -380,6 +383,24 @@ impl FilterSource {
     pub fn with_stop(mut self, stop: Option<Arc<AtomicBool>>) -> FilterSource {
         self.stop = stop;
         self
+    }
+
+    /// Each block this stage computes adds its voxels to `meter` as soon
+    /// as it is done: a job's progress within a region, which a slow
+    /// filter (a median) takes minutes over.
+    pub fn with_meter(mut self, meter: Option<Arc<AtomicU64>>) -> FilterSource {
+        self.meter = meter;
+        self
+    }
+
+    /// Add a computed block `b` to the meter.
+    fn count(&self, b: &[Range<u64>; 3]) {
+        if let Some(m) = &self.meter {
+            m.fetch_add(
+                b.iter().map(|r| r.end - r.start).product(),
+                Ordering::Relaxed,
+            );
+        }
     }
 
     fn stopped(&self) -> Result<()> {
@@ -634,7 +655,9 @@ impl VolumeSource for FilterSource {
                 .par_iter()
                 .map(|b| {
                     self.stopped()?;
-                    self.compute_device(dev, b)
+                    let v = self.compute_device(dev, b)?;
+                    self.count(b);
+                    Ok(v)
                 })
                 .collect();
             for (b, v) in pieces.iter().zip(vals) {
@@ -662,6 +685,7 @@ impl VolumeSource for FilterSource {
                         .map(|b| {
                             self.stopped()?;
                             let v = self.compute(b)?;
+                            self.count(b);
                             Ok(v.into_iter().map(|x| x as f32).collect())
                         })
                         .collect();
@@ -676,6 +700,7 @@ impl VolumeSource for FilterSource {
                         .map(|b| {
                             self.stopped()?;
                             let v = self.compute(b)?;
+                            self.count(b);
                             Ok(v.into_iter().map(|x| x as u8).collect())
                         })
                         .collect();

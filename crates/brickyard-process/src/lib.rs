@@ -96,7 +96,16 @@ pub fn build_on(
     block: Dims3,
     device: Option<&Arc<FilterKernels>>,
 ) -> Result<Built, String> {
-    build_stages(p, input, channel, block, device, usize::MAX, None).map(|(b, _)| b)
+    build_stages(
+        p,
+        input,
+        channel,
+        block,
+        device,
+        usize::MAX,
+        Hooks::default(),
+    )
+    .map(|(b, _)| b)
 }
 
 /// What [`build_within`] plans for the filters' memory.
@@ -109,6 +118,17 @@ pub struct FilterMemory {
     pub bytes: u64,
 }
 
+/// What a job hands the stages [`build_within`] makes.
+#[derive(Clone, Default)]
+pub struct Hooks {
+    /// Once set, the stages' reads end before their next block
+    /// ([`FilterSource::with_stop`]).
+    pub stop: Option<Arc<std::sync::atomic::AtomicBool>>,
+    /// Counts the voxels the last filter stage has computed
+    /// ([`FilterSource::with_meter`]): progress within a region.
+    pub meter: Option<Arc<std::sync::atomic::AtomicU64>>,
+}
+
 /// [`build_on`] within a memory budget: each filter stage computes at most
 /// as many blocks at once (up to `threads`) as keep the blocks in flight of
 /// all stages within `budget` bytes, counting a block's box grown by its
@@ -116,8 +136,8 @@ pub struct FilterMemory {
 /// inside each of the outer stage's blocks, so `n` blocks at once per stage
 /// can mean `n^k` of the k-th stage from the end). An error, before
 /// anything is computed, naming the stage, when even one block at a time
-/// per stage does not fit. Once `stop` is set, the stages' reads end
-/// before their next block ([`FilterSource::with_stop`]).
+/// per stage does not fit. `hooks` stops the stages' reads and counts
+/// what they compute ([`Hooks`]).
 #[allow(clippy::too_many_arguments)]
 pub fn build_within(
     p: &Pipeline,
@@ -127,12 +147,20 @@ pub fn build_within(
     device: Option<&Arc<FilterKernels>>,
     budget: u64,
     threads: usize,
-    stop: Option<Arc<std::sync::atomic::AtomicBool>>,
+    hooks: Hooks,
 ) -> Result<(Built, FilterMemory), String> {
     // The stages' blocks, innermost first.
-    let (_, stages) = build_stages(p, input.clone(), channel, block, device, 1, None)?;
+    let (_, stages) = build_stages(
+        p,
+        input.clone(),
+        channel,
+        block,
+        device,
+        1,
+        Hooks::default(),
+    )?;
     let plan = plan_parallel(&stages, budget, threads)?;
-    let (built, _) = build_stages(p, input, channel, block, device, plan.parallel, stop)?;
+    let (built, _) = build_stages(p, input, channel, block, device, plan.parallel, hooks)?;
     Ok((built, plan))
 }
 
@@ -199,7 +227,7 @@ pub fn plan_result(
     channel: usize,
     block: Dims3,
 ) -> Result<(u64, brickyard_store::SourceMeta), String> {
-    let (built, stages) = build_stages(p, input, channel, block, None, 1, None)?;
+    let (built, stages) = build_stages(p, input, channel, block, None, 1, Hooks::default())?;
     let m = built.source.meta();
     let meta = match built.label {
         None => m.clone(),
@@ -217,7 +245,7 @@ fn build_stages(
     block: Dims3,
     device: Option<&Arc<FilterKernels>>,
     parallel: usize,
-    stop: Option<Arc<std::sync::atomic::AtomicBool>>,
+    hooks: Hooks,
 ) -> Result<(Built, Vec<(String, u64)>), String> {
     let m = input.meta();
     if channel >= m.channels {
@@ -231,7 +259,9 @@ fn build_stages(
     let mut ch = channel;
     let mut label = None;
     let mut stages = vec![];
-    for op in &p.ops {
+    // The stage whose blocks the meter counts: the last filter's.
+    let last = p.ops.iter().rposition(|o| !matches!(o, Op::Label(_)));
+    for (i, op) in p.ops.iter().enumerate() {
         let f = match op {
             Op::Gauss(s) => Filter::Gauss(sigma_voxels(s, spacing, unit.as_deref())?),
             Op::GradMag(s) => Filter::GradMag(sigma_voxels(s, spacing, unit.as_deref())?),
@@ -248,7 +278,8 @@ fn build_stages(
         let mut stage = FilterSource::try_new(src, ch, f, &name, block)
             .map_err(|e| format!("{name}: {e}"))?
             .with_parallel(parallel)
-            .with_stop(stop.clone());
+            .with_stop(hooks.stop.clone())
+            .with_meter(hooks.meter.clone().filter(|_| Some(i) == last));
         stages.push((name, stage.block_bytes()));
         if let Some(k) = device {
             stage = stage.with_device(k);

@@ -834,15 +834,33 @@ fn an_impossible_sigma_or_budget_is_an_error_not_a_panic() {
         assert!(e.contains("1048576"), "{pipe}: {e}");
     }
     let p = Pipeline::parse("gauss(1)|gradmag(3)").unwrap();
-    let e = brickyard_process::build_within(&p, src.clone(), 0, [8; 3], None, 1000, 4, None)
-        .err()
-        .unwrap();
+    let e = brickyard_process::build_within(
+        &p,
+        src.clone(),
+        0,
+        [8; 3],
+        None,
+        1000,
+        4,
+        Default::default(),
+    )
+    .err()
+    .unwrap();
     assert!(e.starts_with("gradmag(3): ") && e.contains("budget"), "{e}");
     // A budget for one block at a time per stage computes one at a time,
     // and the same values.
     let need = brickyard_process::filter_bytes_at_least(&p, src.clone(), 0, [8; 3]).unwrap();
-    let (b, m) =
-        brickyard_process::build_within(&p, src.clone(), 0, [8; 3], None, need, 4, None).unwrap();
+    let (b, m) = brickyard_process::build_within(
+        &p,
+        src.clone(),
+        0,
+        [8; 3],
+        None,
+        need,
+        4,
+        Default::default(),
+    )
+    .unwrap();
     assert_eq!(m.parallel, 1);
     assert!(m.bytes <= need);
     let free = build(&p, src, 0, [8; 3]).unwrap();
@@ -948,5 +966,47 @@ fn label_tables_from_voxels_equal_a_naive_tally() {
     match tally(&neg, None, [4, 5, 6], 1 << 30, &NoProgress, &stop).unwrap() {
         Err(NoTable::NotALabel { value, at }) => assert_eq!((value, at), (-4.0, [3, 2, 7])),
         other => panic!("expected a value that is not a label, got {other:?}"),
+    }
+}
+
+/// A job's meter counts the voxels of the last filter stage's blocks, each
+/// once as it is computed: a region read in pieces adds up to the region,
+/// the inner stages' blocks (grown by the outer stage's halo) are not
+/// counted, and a labelling's mask stage is the last filter stage.
+#[test]
+fn the_meter_counts_the_last_filter_stages_voxels_once() {
+    use std::sync::atomic::{AtomicU64, Ordering};
+    let v: Vec<f32> = volume(DIMS, 6);
+    let src: Arc<dyn VolumeSource> = Arc::new(Mem::new(DIMS, &v));
+    let n: u64 = DIMS.iter().product();
+    for pipe in [
+        "median(1)",
+        "gauss(1)|median(1)",
+        "gauss(1)|threshold(0.5)|label(6)",
+    ] {
+        let p = Pipeline::parse(pipe).unwrap();
+        let meter = Arc::new(AtomicU64::new(0));
+        let hooks = brickyard_process::Hooks {
+            stop: None,
+            meter: Some(meter.clone()),
+        };
+        let (b, _) =
+            brickyard_process::build_within(&p, src.clone(), 0, [8; 3], None, 1 << 30, 4, hooks)
+                .unwrap();
+        // Read in pieces of several blocks each, the meter checked after each.
+        let mut seen = 0;
+        let [dz, dy, dx] = DIMS;
+        let mut buf = vec![0u8; (5 * dy * dx) as usize * b.source.meta().dtype.size()];
+        for z in (0..dz).step_by(5) {
+            let h = 5.min(dz - z);
+            let out = &mut buf[..(h * dy * dx) as usize * b.source.meta().dtype.size()];
+            b.source
+                .read_region(b.channel, z..z + h, 0..dy, 0..dx, out)
+                .unwrap();
+            let now = meter.load(Ordering::Relaxed);
+            assert_eq!(now - seen, h * dy * dx, "{pipe}: planes {z}..{}", z + h);
+            seen = now;
+        }
+        assert_eq!(seen, n, "{pipe}");
     }
 }

@@ -20,7 +20,7 @@ use brickyard_store::omezarr::{read_json, write_json};
 use brickyard_store::{convert, Compression, ConvertOptions, StoreError, VolumeSource};
 use serde_json::{json, Value};
 use std::path::{Path, PathBuf};
-use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
 use std::sync::Arc;
 use std::time::Instant;
 
@@ -340,6 +340,72 @@ fn least_memory(filters: u64, writer: u64) -> u64 {
     brickyard_store::builder::least_budget(start, fits).max(1 << 20)
 }
 
+/// The writing phase's progress: the bytes the writer has read, or,
+/// where further on, what the last filter stage has computed since the
+/// phase began (`meter`, in voxels of `per_voxel` bytes of the writer's
+/// input): the writer reads a slab of whole planes at a time, which a slow
+/// filter takes minutes over, and the bar moves meanwhile.
+struct Metered<'a> {
+    inner: &'a dyn Progress,
+    meter: &'a AtomicU64,
+    per_voxel: u64,
+    s: std::sync::Mutex<MeterState>,
+}
+
+#[derive(Default)]
+struct MeterState {
+    on: bool,
+    /// The meter when the phase began (a labelling's first pass counted
+    /// before it).
+    base: u64,
+    total: u64,
+    read: u64,
+    shown: u64,
+}
+
+impl Metered<'_> {
+    fn show(&self, s: &mut MeterState) {
+        if !s.on {
+            return;
+        }
+        let computed = self.meter.load(Ordering::Relaxed).saturating_sub(s.base) * self.per_voxel;
+        let t = s.read.max(computed).min(s.total);
+        if t > s.shown {
+            self.inner.inc(t - s.shown);
+            s.shown = t;
+        }
+    }
+
+    fn tick(&self) {
+        let mut s = self.s.lock().unwrap();
+        self.show(&mut s);
+    }
+}
+
+impl Progress for Metered<'_> {
+    fn start(&self, total: u64) {
+        let mut s = self.s.lock().unwrap();
+        self.inner.start(total);
+        *s = MeterState {
+            on: true,
+            base: self.meter.load(Ordering::Relaxed),
+            total,
+            read: 0,
+            shown: 0,
+        };
+    }
+
+    fn inc(&self, bytes: u64) {
+        let mut s = self.s.lock().unwrap();
+        s.read += bytes;
+        self.show(&mut s);
+    }
+
+    fn message(&self, msg: &str) {
+        self.inner.message(msg)
+    }
+}
+
 /// Run the pipeline and publish its result; `cancel` stops the job between
 /// pieces of work, leaving the store as it was (the error is then
 /// [`Interrupted`] with what to do in its context).
@@ -558,6 +624,10 @@ fn run_job(
     // time needs more, but never what the pyramid writer needs; the
     // writer the rest. Checked before anything is written.
     let threads = rayon::current_num_threads();
+    // The voxels the last filter stage has computed: the writing phase's
+    // progress between the writer's reads (a region of a slow filter takes
+    // minutes).
+    let meter = Arc::new(AtomicU64::new(0));
     let build = |share: u64| {
         build_within(
             &pipe,
@@ -567,7 +637,10 @@ fn run_job(
             kernels.as_ref(),
             share,
             threads,
-            Some(stop.clone()),
+            brickyard_process::Hooks {
+                stop: Some(stop.clone()),
+                meter: Some(meter.clone()),
+            },
         )
     };
     // (A σ that cannot be computed fails here, whatever the budget.)
@@ -755,17 +828,38 @@ fn run_job(
             }
             None => built.source.clone(),
         };
-        let r = convert(
-            out_src.as_ref(),
-            &paths.staged,
-            &opts,
-            phases.writing(),
-            cancel,
-        );
+        let writing = Metered {
+            inner: phases.writing(),
+            meter: &meter,
+            per_voxel: out_src.meta().dtype.size() as u64,
+            s: Default::default(),
+        };
+        let done = AtomicBool::new(false);
+        let r = std::thread::scope(|sc| {
+            sc.spawn(|| {
+                while !done.load(Ordering::SeqCst) {
+                    std::thread::sleep(std::time::Duration::from_millis(100));
+                    writing.tick();
+                }
+            });
+            let r = convert(out_src.as_ref(), &paths.staged, &opts, &writing, cancel);
+            done.store(true, Ordering::SeqCst);
+            r
+        });
         phases.done(false);
         let r = r?;
         if cancel.load(Ordering::SeqCst) {
             return Err(StoreError::Interrupted.into());
+        }
+        // A mask (no labelling) that came out empty: most likely a
+        // threshold in the wrong units, as the labelling's note says.
+        if is_label && labeling.is_none() && r.bricks_empty == r.bricks {
+            eprintln!(
+                "note: no voxel is in the mask ({}): threshold(t) keeps values above t and \
+                 window(lo,hi) values from lo to hi, in the image's own values (`brickyard info` \
+                 shows them)",
+                pipe.text()
+            );
         }
         Ok(r)
     })()
@@ -907,4 +1001,52 @@ fn run_job(
             )
         }),
     })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use std::sync::Mutex;
+
+    /// A progress that records each step it is given.
+    #[derive(Default)]
+    struct Steps(Mutex<Vec<u64>>);
+    impl Progress for Steps {
+        fn start(&self, total: u64) {
+            self.0.lock().unwrap().push(total + 1_000_000);
+        }
+        fn inc(&self, b: u64) {
+            self.0.lock().unwrap().push(b);
+        }
+    }
+
+    /// The writing bar moves with the filter's meter between the writer's
+    /// reads, never backwards, never past its total, and ends at the
+    /// writer's count; what the meter counted before the phase (a
+    /// labelling's first pass) is not shown.
+    #[test]
+    fn the_writing_bar_moves_with_the_filters_meter() {
+        let meter = AtomicU64::new(500);
+        let steps = Steps::default();
+        let m = Metered {
+            inner: &steps,
+            meter: &meter,
+            per_voxel: 4,
+            s: Default::default(),
+        };
+        m.tick(); // before the phase: nothing
+        m.start(4000);
+        m.tick(); // nothing computed since the start
+        meter.fetch_add(100, Ordering::Relaxed); // 400 bytes computed
+        m.tick();
+        m.inc(256); // the writer read less than was computed: no step
+        m.inc(256); // now more: the excess
+        meter.fetch_add(2000, Ordering::Relaxed); // past the total: capped
+        m.tick();
+        m.tick();
+        m.inc(4000 - 512); // the writer's count ends at the total
+        let s = steps.0.lock().unwrap().clone();
+        assert_eq!(s, vec![1_004_000, 400, 112, 3488]);
+        assert_eq!(s[1..].iter().sum::<u64>(), 4000);
+    }
 }

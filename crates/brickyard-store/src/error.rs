@@ -68,7 +68,7 @@ impl StoreError {
                 "no such file or directory; {scheme}:// is no scheme stores are read from: \
                  give a local path or an http://, https:// or s3:// URL"
             ),
-            None => "no such file or directory".to_string(),
+            None => format!("no such file or directory{}", unfinished_result(&path)),
         };
         StoreError::io(
             path,
@@ -145,5 +145,34 @@ mod tests {
         // (A drive letter or one-letter folder is no scheme.)
         assert!(foreign_scheme(std::path::Path::new("c://x")).is_none());
         assert!(foreign_scheme(std::path::Path::new("gs://b/x")).is_some());
+    }
+}
+
+/// Where a missing `path` is a processing result still being written, or
+/// one whose job was stopped (`brickyard process` stages its result as
+/// `.NAME.new` beside it, under the lock `.NAME.lock`): that, in words,
+/// to follow "no such file".
+fn unfinished_result(path: &std::path::Path) -> String {
+    let (Some(dir), Some(name)) = (path.parent(), path.file_name()) else {
+        return String::new();
+    };
+    if dir.as_os_str().is_empty() || crate::storage::is_remote(path) {
+        return String::new();
+    }
+    let name = name.to_string_lossy();
+    if let Some(pid) = crate::lock::live_holder(&dir.join(format!(".{name}.lock"))) {
+        return format!("; a processing job is writing it now (process {pid}): wait for it to end");
+    }
+    let staged = dir.join(format!(".{name}.new"));
+    match [staged.clone(), crate::builder::partial_path(&staged)]
+        .into_iter()
+        .find(|p| p.exists())
+    {
+        Some(left) => format!(
+            "; the processing job that was writing it stopped before it ended (it left {}): \
+             run the same `brickyard process` command again",
+            left.display()
+        ),
+        None => String::new(),
     }
 }

@@ -1868,6 +1868,22 @@ fn labelling_a_noisy_mask_keeps_to_the_memory_budget_or_says_why_not() {
         String::from_utf8_lossy(&o.stderr)
     );
     assert!(!store.join("labels/n").exists());
+    // A mask alone, empty: the same note (a mask with voxels in it gets
+    // none).
+    for (pipe, empty) in [("threshold(255)", true), ("threshold(0)", false)] {
+        let o = run(&[
+            "process",
+            s(&store),
+            pipe,
+            "--out",
+            "m",
+            "--overwrite",
+            "--quiet",
+        ]);
+        let e = String::from_utf8_lossy(&o.stderr);
+        assert!(o.status.success(), "{pipe}: {e}");
+        assert_eq!(e.contains("no voxel is in the mask"), empty, "{pipe}: {e}");
+    }
     let o = run(&[
         "process",
         s(&store),
@@ -2038,4 +2054,48 @@ fn a_derived_channels_default_window_stays_within_the_budget() {
         v["memory_budget_bytes"].as_u64().unwrap(),
     );
     assert!(peak <= budget, "peak {peak} over {budget}");
+}
+
+/// A result asked for while its job is at work, or after the job was
+/// killed, is not there: the error says which (it said only "no such file
+/// or directory"), for render and info alike.
+#[test]
+fn a_result_whose_job_was_stopped_or_is_at_work_is_named_so() {
+    let d = tempfile::tempdir().unwrap();
+    let store = make_store(d.path(), "20");
+    let derived = store.join("derived");
+    std::fs::create_dir_all(derived.join(".h.new.partial")).unwrap();
+    let h = derived.join("h");
+    let png = d.path().join("h.png");
+    for args in [vec!["render", s(&h), "-o", s(&png)], vec!["info", s(&h)]] {
+        let o = run(&args);
+        let e = String::from_utf8_lossy(&o.stderr);
+        assert_eq!(o.status.code(), Some(1), "{args:?}: {e}");
+        assert!(
+            e.contains("no such file or directory")
+                && e.contains("stopped before it ended")
+                && e.contains(".h.new.partial")
+                && e.contains("run the same `brickyard process` command again"),
+            "{args:?}: {e}"
+        );
+    }
+    // A live job's lock (this test's own process): at work.
+    std::fs::write(derived.join(".h.lock"), format!("{}\n", std::process::id())).unwrap();
+    let o = run(&["render", s(&h), "-o", s(&png)]);
+    let e = String::from_utf8_lossy(&o.stderr);
+    assert!(
+        e.contains(&format!(
+            "a processing job is writing it now (process {})",
+            std::process::id()
+        )),
+        "{e}"
+    );
+    // A name nothing was ever written to: the plain message.
+    let o = run(&["render", s(&derived.join("other")), "-o", s(&png)]);
+    let e = String::from_utf8_lossy(&o.stderr);
+    assert!(
+        e.contains("no such file or directory") && !e.contains("processing job"),
+        "{e}"
+    );
+    assert!(!png.exists());
 }
