@@ -1051,6 +1051,13 @@ pub fn convert_team(
     }
     let notes = {
         let mut n = meta.notes.clone();
+        if meta.spacing.is_none() && opts.spacing.is_none() {
+            n.push(
+                "the input gives no voxel spacing: 1 unit per voxel on each axis (--spacing X,Y,Z \
+                 and --unit set it)"
+                    .into(),
+            );
+        }
         // Ranks that had nothing to do in the first pass.
         let first = passes.first().map(|p| {
             let c = columns(&levels, p.from, p.to, opts.brick, opts.shard).1;

@@ -58,6 +58,14 @@ impl Procedural {
         Procedural { meta, kind }
     }
 
+    /// The same volume with its voxel spacing `[z, y, x]` stated (the
+    /// `generate` command's: a procedural volume's grid is one unit per
+    /// voxel by definition, not a spacing that went missing).
+    pub fn with_spacing(mut self, spacing: [f64; 3]) -> Procedural {
+        self.meta.spacing = Some(spacing);
+        self
+    }
+
     /// Value in `[0, 1]` at voxel `(z, y, x)`.
     pub fn value(&self, z: u64, y: u64, x: u64) -> f64 {
         let [dz, dy, dx] = self.meta.dims;

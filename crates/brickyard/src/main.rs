@@ -165,7 +165,9 @@ struct PyramidArgs {
     #[arg(long)]
     overwrite: bool,
     /// Voxel spacing X,Y,Z (overrides the file's).
-    #[arg(long)]
+    // (`--spacing -1,1,1` is refused by its own rule, saying why, not
+    // taken for a flag.)
+    #[arg(long, allow_hyphen_values = true)]
     spacing: Option<String>,
     /// Position X,Y,Z of the first voxel's centre (overrides the file's).
     #[arg(long, allow_hyphen_values = true)]
@@ -1025,7 +1027,7 @@ fn run(cmd: Cmd, cluster: Option<&dist::Cluster>) -> Result<()> {
             let dims = parse_size(&size).map_err(|e| anyhow::anyhow!("size: {e}"))?;
             let dt = DType::parse(&dtype)
                 .with_context(|| format!("dtype: unknown voxel type {dtype:?}"))?;
-            let src = Procedural::new(k, dims, dt);
+            let src = Procedural::new(k, dims, dt).with_spacing([1.0; 3]);
             let s = output.to_string_lossy();
             if s.ends_with(".zarr") || s.ends_with(".zarr/") {
                 run_convert(&src, &output, &pyramid, cluster).map_err(|e| {
@@ -1204,7 +1206,7 @@ fn convert_demo(out: &Path, size: &str) -> Result<PathBuf> {
 
 fn convert_demo_in(out: &Path, dims: Dims3) -> Result<PathBuf> {
     let store = out.join("mandelbulb.ome.zarr");
-    let src = Procedural::new(Kind::Mandelbulb, dims, DType::U16);
+    let src = Procedural::new(Kind::Mandelbulb, dims, DType::U16).with_spacing([1.0; 3]);
     outln!(
         "demo: converting a {}x{}x{} u16 Mandelbulb into {}",
         dims[2],

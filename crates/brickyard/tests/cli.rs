@@ -1138,6 +1138,12 @@ fn outputs_and_geometry_a_store_cannot_have_are_refused() {
             &["origin", "finite"],
         );
     }
+    // A negative spacing is the flag's value, refused by its rule (it was
+    // taken for an unknown flag).
+    fails_with(
+        &conv(d.path(), s(&out), &["--spacing", "-1,1,1"]),
+        &["spacing", "expected positive numbers", "-1"],
+    );
     assert!(!out.exists());
     // A volume no viewer could place a camera around: refused (render
     // refused it only later, blaming a camera the user never gave).
@@ -1154,6 +1160,10 @@ fn outputs_and_geometry_a_store_cannot_have_are_refused() {
         &["--spacing", "1e-9,1e-9,2e-9", "--brick", "4"],
     );
     assert!(o.status.success(), "{}", stderr(&o));
+    // A raw volume converted without --spacing says what it assumed; with
+    // one, nothing is said.
+    let said = |o: &Output| String::from_utf8_lossy(&o.stdout).contains("gives no voxel spacing");
+    assert!(!said(&o), "{}", String::from_utf8_lossy(&o.stdout));
     let info = run(&["info", s(&out), "--json"]);
     assert!(info.status.success(), "{}", stderr(&info));
     // A second writer of the same output: the lock names the first one
@@ -1173,6 +1183,7 @@ fn outputs_and_geometry_a_store_cannot_have_are_refused() {
     std::fs::write(&lock, "4000000000\n").unwrap();
     let o = conv(d.path(), s(&out), &["--overwrite"]);
     assert!(o.status.success(), "{}", stderr(&o));
+    assert!(said(&o), "{}", String::from_utf8_lossy(&o.stdout));
     assert!(
         stderr(&o).contains("process that is gone"),
         "{}",
