@@ -89,6 +89,10 @@ pub struct StoreInfo {
     /// `derived/NAME`): path inside the store and a one-line summary.
     pub inner_images: Vec<(String, String)>,
     pub problems: Vec<String>,
+    /// The path is one level (an array) of an OME-Zarr image in the folder
+    /// above: which one, and that `info` of that folder describes it whole.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub level_of: Option<String>,
 }
 
 fn dir_size(p: &Path) -> u64 {
@@ -376,7 +380,11 @@ pub fn inspect(path: &Path) -> Result<StoreInfo> {
         channels: vec![],
         inner_images: vec![],
         problems: vec![],
+        level_of: None,
     };
+    if ms.is_none() {
+        info.level_of = level_of(path);
+    }
     type Ds = (String, Option<Vec<f64>>, Option<Vec<f64>>);
     let datasets: Vec<Ds> = match &ms {
         Some(m) => {
@@ -831,6 +839,26 @@ fn group_folders(path: &Path, group: &str) -> Vec<String> {
     names
 }
 
+/// Where `path` is one level of an OME-Zarr image (a dataset of the
+/// multiscales in the folder above it), which level of which image, in
+/// words.
+fn level_of(path: &Path) -> Option<String> {
+    if storage::is_remote(path) {
+        return None;
+    }
+    let parent = path.parent().filter(|p| !p.as_os_str().is_empty())?;
+    let name = path.file_name()?.to_str()?;
+    let ms = read_multiscale(parent).ok().flatten()?;
+    let i = ms.datasets.iter().position(|d| d.path == name)?;
+    Some(format!(
+        "level {i} of {} levels of the image {}: `brickyard info {}` describes the whole \
+         image, and other commands take it, not the level",
+        ms.datasets.len(),
+        parent.display(),
+        parent.display()
+    ))
+}
+
 /// Human-readable byte count.
 pub fn human_bytes(n: u64) -> String {
     let units = ["B", "KiB", "MiB", "GiB", "TiB", "PiB"];
@@ -855,6 +883,7 @@ pub fn format_info(i: &StoreInfo) -> String {
     let status = match i.complete {
         Some(true) => "complete (brickyard)",
         Some(false) => "INCOMPLETE",
+        None if i.level_of.is_some() => "one level of an OME-Zarr image",
         None => "foreign store",
     };
     let _ = writeln!(
@@ -864,6 +893,9 @@ pub fn format_info(i: &StoreInfo) -> String {
         i.ome_version.as_deref().unwrap_or("-"),
         if i.labels { ", labels" } else { "" }
     );
+    if let Some(l) = &i.level_of {
+        let _ = writeln!(s, "  {l}");
+    }
     if !i.axes.is_empty() {
         let ax: Vec<String> = i
             .axes

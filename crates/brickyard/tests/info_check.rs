@@ -176,6 +176,20 @@ fn info_check_passes_clean_stores() {
         "{text}"
     );
     assert!(!text.contains("BAD"), "{text}");
+    // One level of it, given as a store: described, and said to be a level
+    // of the image above (it was called a foreign store).
+    let o = run(&["info", s(&store.join("1"))]);
+    let text = String::from_utf8_lossy(&o.stdout);
+    assert!(o.status.success(), "{text}");
+    assert!(
+        text.contains("one level of an OME-Zarr image")
+            && text.contains(&format!(
+                "level 1 of 4 levels of the image {}",
+                store.display()
+            ))
+            && !text.contains("foreign"),
+        "{text}"
+    );
 
     // Two channels (4-D arrays), zstd: the statistics still match.
     let raw = d.path().join("one.raw");
