@@ -916,6 +916,46 @@ fn run_with_labels(
     Ok(lines.into_iter().chain(label_lines).collect())
 }
 
+/// The residency octree's depth within a budget ([`fit_octree_depth`]).
+pub struct OctreeFit {
+    /// The depth drawn through.
+    pub depth: u32,
+    /// What its tables and the traversal's per-frame tables take
+    /// ([`brickyard_render::octree::Octree::working_bytes`]), to set aside
+    /// in the budget.
+    pub bytes: u64,
+    /// Where the depth asked for was lowered, a note saying so.
+    pub note: Option<String>,
+}
+
+/// The octree's tables and the traversal's per frame grow 8× a depth
+/// (depth 7 over three levels took 600 MiB, past a 128 MiB --memory): a
+/// depth `asked` that would take more than a quarter of `total` is lowered
+/// (the octree only skips space faster; the image is the same), with a
+/// note. For `render` and the viewer alike.
+pub fn fit_octree_depth(asked: u32, levels: usize, channels: usize, total: u64) -> OctreeFit {
+    use brickyard_render::octree::{Octree, MIN_DEPTH};
+    let cost = |d: u32| Octree::working_bytes(d, levels, channels.max(1));
+    let mut depth = asked;
+    while depth > MIN_DEPTH && cost(depth) > total / 4 {
+        depth -= 1;
+    }
+    let note = (depth < asked).then(|| {
+        format!(
+            "note: octree-depth {asked} would take about {} of --memory {}: drawing through \
+             depth {depth} ({}; the image is the same, space is skipped in larger steps)",
+            human_bytes(cost(asked)),
+            human_bytes(total),
+            human_bytes(cost(depth))
+        )
+    });
+    OctreeFit {
+        depth,
+        bytes: cost(depth),
+        note,
+    }
+}
+
 /// [`run_with`] of one store.
 fn run_one(
     c: RenderCmd,
@@ -1467,29 +1507,15 @@ fn run_one(
     // --memory). They are set aside in --memory; a depth that would take
     // more than a quarter of it is lowered (the octree only skips space
     // faster; the image is the same), and the run says so.
-    let mut octree_depth = octree_depth;
-    let octree_bytes = if traversal == Traversal::Octree {
-        use brickyard_render::octree::{Octree, MIN_DEPTH};
-        let cost = |d: u32| Octree::working_bytes(d, info.levels.len(), m.channels.max(1));
+    let (octree_depth, octree_bytes) = if traversal == Traversal::Octree {
         let total = memory.unwrap_or_else(crate::memory::default_memory);
-        let asked = octree_depth;
-        while octree_depth > MIN_DEPTH && cost(octree_depth) > total / 4 {
-            octree_depth -= 1;
+        let fit = fit_octree_depth(octree_depth, info.levels.len(), m.channels, total);
+        if let Some(n) = &fit.note {
+            say_err!(silent, "{n}");
         }
-        if octree_depth < asked {
-            say_err!(
-                silent,
-                "note: octree-depth {asked} would take about {} of --memory {}: drawing through \
-                 depth {octree_depth} ({}; the image is the same, space is skipped in larger \
-                 steps)",
-                human_bytes(cost(asked)),
-                human_bytes(total),
-                human_bytes(cost(octree_depth))
-            );
-        }
-        cost(octree_depth)
+        (fit.depth, fit.bytes)
     } else {
-        0
+        (octree_depth, 0)
     };
     let split_for = |device_bytes: u64| {
         crate::memory::split_with_shares(

@@ -1261,6 +1261,49 @@ quit
     assert!(sbs.iter().any(|&x| x > 0));
 }
 
+/// An octree deeper than --memory holds is lowered as `render` lowers it,
+/// with the same note, and the view completes (the viewer took the depth
+/// asked for, whatever it cost).
+#[test]
+fn viewer_lowers_an_octree_deeper_than_the_budget_holds() {
+    let _session = shared();
+    let d = tempfile::tempdir().unwrap();
+    let store = mandelbulb(d.path(), "40", &["--brick", "16"]);
+    let p = |n: &str| d.path().join(n);
+    let script = format!(
+        "size 3d 64 56\nwait-complete 300\nscreenshot 3d {a}.png\nquit\n",
+        a = s(&p("a"))
+    );
+    std::fs::write(p("s.txt"), script).unwrap();
+    let Some(mut cmd) = viewer(
+        &store,
+        &p("s.txt"),
+        None,
+        &[
+            "--brick",
+            "8",
+            "--traversal",
+            "octree",
+            "--octree-depth",
+            "7",
+            "--memory",
+            "512MiB",
+            "--window-size",
+            "640x480",
+        ],
+    ) else {
+        return;
+    };
+    let o = cmd.output().unwrap();
+    let e = stderr(&o);
+    assert!(o.status.success(), "viewer: {e}");
+    assert!(
+        e.contains("octree-depth 7 would take about") && e.contains("drawing through depth"),
+        "{e}"
+    );
+    assert!(p("a.png").is_file());
+}
+
 #[test]
 fn viewer_draws_dvr_through_the_residency_octree_as_render_does() {
     let _session = shared();

@@ -329,6 +329,18 @@ pub fn run(c: ViewCmd, demo_store: impl FnOnce() -> Result<PathBuf>) -> Result<i
         None => None,
     };
     let probe_bytes = probe::bytes(levels.len(), m.channels, label_levels);
+    // The residency octree's tables count in --memory, and a depth that
+    // would take more than a quarter of it is lowered, as `render` does.
+    let (octree_depth, octree_bytes) = if octree {
+        let total = memory.unwrap_or_else(crate::memory::default_memory);
+        let fit = crate::render::fit_octree_depth(octree_depth, levels.len(), m.channels, total);
+        if let Some(n) = &fit.note {
+            eprintln!("{n}");
+        }
+        (fit.depth, fit.bytes)
+    } else {
+        (octree_depth, 0)
+    };
     let mut split = crate::memory::split_with_shares(
         memory,
         pool,
@@ -338,7 +350,7 @@ pub fn run(c: ViewCmd, demo_store: impl FnOnce() -> Result<PathBuf>) -> Result<i
         // add half as many again.
         image_pixels(ww as u64 * wh as u64, label_dir.is_some()),
         levels.len(),
-        crate::memory::WINDOW_BYTES + accum_bytes + device.bytes + probe_bytes,
+        crate::memory::WINDOW_BYTES + accum_bytes + device.bytes + probe_bytes + octree_bytes,
         (derived_within.as_ref().map_or(0, |(_, b)| *b), 0),
     )?;
     device.take_from(&mut split, pool)?;
