@@ -342,6 +342,7 @@ pub fn split_with_shares(
     // rest where their shares are computed, beside them where given.
     let slack = |host: u64, chunks: u64| host.saturating_add(chunks) / SLACK;
     let less = |x: u64| x - x / (SLACK + 1);
+    let (pool_given, host_given) = (pool, host);
     let (pool, host, chunks, held) = match (pool, host) {
         (None, None) => {
             let chunks = (rest * 15 / 100).min(256 << 20);
@@ -379,8 +380,27 @@ pub fn split_with_shares(
         .into_iter()
         .fold(0u64, u64::saturating_add);
     if explicit && (need > want_total || pool == 0 || host == 0) {
+        // The least total this split holds: the shares given (or a few
+        // MiB each), the decoded chunks' least and their slack (of the
+        // chunks' share with its slack in it: 1/7 of host and chunks), and
+        // the rest as counted here (what the pool's pinned levels need is
+        // checked apart, saying so).
+        let (p, h) = (pool_given.unwrap_or(4 << 20), host_given.unwrap_or(4 << 20));
+        let slack_most = h.saturating_add(min_chunks) / (SLACK - 1) + 1;
+        let least = [
+            p,
+            h,
+            min_chunks,
+            slack_most,
+            images,
+            FIXED_BYTES + extra,
+            aside,
+        ]
+        .into_iter()
+        .fold(levels as u64 * (512 << 10), u64::saturating_add);
+        let least = least.div_ceil(1 << 20) << 20;
         bail!(
-            "memory: {} does not hold this split: pool {}, host cache {}, decoded chunks {} (at least {}), images {}{} and {} for the program; raise --memory{}{}",
+            "memory: {} does not hold this split: pool {}, host cache {}, decoded chunks {} (at least {}), images {}{} and {} for the program; raise --memory to {}MiB or more{}{}",
             human_bytes(want_total),
             human_bytes(pool),
             human_bytes(host),
@@ -397,6 +417,7 @@ pub fn split_with_shares(
                 String::new()
             },
             human_bytes(fixed),
+            least >> 20,
             if shares_given { " or lower --pool/--host" } else { "" },
             if images > want_total / 4 { " or draw a smaller image" } else { "" }
         );
@@ -476,6 +497,50 @@ pub fn parse_bytes(s: &str) -> Result<u64> {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// A split --memory cannot hold names the least it can, and that much
+    /// holds it (given shares or not, with images, levels, the program's
+    /// extra and the set-aside shares).
+    #[test]
+    fn a_refused_split_names_a_total_that_holds_it() {
+        let mib = 1u64 << 20;
+        let mut tried = 0;
+        for (pool, host) in [
+            (None, None),
+            (Some(64 * mib), None),
+            (None, Some(64 * mib)),
+            (Some(64 * mib), Some(64 * mib)),
+            (Some(300 * mib), Some(5 * mib)),
+            (Some(mib), Some(200 * mib)),
+        ] {
+            for (pixels, levels, extra, shares) in [
+                (0, 1, 0, (0, 0)),
+                (1 << 20, 5, 160 * mib, (0, 0)),
+                (640 * 480, 9, 7 * mib + 12345, (30 * mib, 20 * mib)),
+            ] {
+                let e = split_with_shares(Some(8 * mib), pool, host, pixels, levels, extra, shares)
+                    .unwrap_err()
+                    .to_string();
+                let figure: u64 = e
+                    .split("raise --memory to ")
+                    .nth(1)
+                    .and_then(|t| t.split("MiB or more").next())
+                    .and_then(|n| n.parse().ok())
+                    .unwrap_or_else(|| panic!("no figure in {e}"));
+                let at =
+                    |t: u64| split_with_shares(Some(t), pool, host, pixels, levels, extra, shares);
+                let s = at(figure * mib).unwrap_or_else(|e| {
+                    panic!("{pool:?} {host:?} {pixels} {levels} {extra}: {figure} MiB: {e}")
+                });
+                assert!(s.pool > 0 && s.host > 0 && s.total <= figure * mib);
+                // Not far above the least that holds it (the shares not
+                // given are counted at 4 MiB each).
+                assert!(at((figure - 16) * mib).is_err(), "{e}");
+                tried += 1;
+            }
+        }
+        assert_eq!(tried, 18);
+    }
 
     #[test]
     fn shares_add_up_to_the_budget() {

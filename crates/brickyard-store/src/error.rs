@@ -132,22 +132,6 @@ fn foreign_scheme(p: &std::path::Path) -> Option<&str> {
     .then_some(scheme)
 }
 
-#[cfg(test)]
-mod tests {
-    use super::*;
-
-    #[test]
-    fn paths_of_other_url_schemes_are_named_as_such() {
-        let e = StoreError::not_found("ftp://host/a.ome.zarr").to_string();
-        assert!(e.contains("ftp:// is no scheme"), "{e}");
-        let e = StoreError::not_found("data/a.ome.zarr").to_string();
-        assert!(!e.contains("scheme"), "{e}");
-        // (A drive letter or one-letter folder is no scheme.)
-        assert!(foreign_scheme(std::path::Path::new("c://x")).is_none());
-        assert!(foreign_scheme(std::path::Path::new("gs://b/x")).is_some());
-    }
-}
-
 /// Where a missing `path` is a processing result still being written, or
 /// one whose job was stopped (`brickyard process` stages its result as
 /// `.NAME.new` beside it, under the lock `.NAME.lock`): that, in words,
@@ -174,5 +158,21 @@ fn unfinished_result(path: &std::path::Path) -> String {
             left.display()
         ),
         None => String::new(),
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn paths_of_other_url_schemes_are_named_as_such() {
+        let e = StoreError::not_found("ftp://host/a.ome.zarr").to_string();
+        assert!(e.contains("ftp:// is no scheme"), "{e}");
+        let e = StoreError::not_found("data/a.ome.zarr").to_string();
+        assert!(!e.contains("scheme"), "{e}");
+        // (A drive letter or one-letter folder is no scheme.)
+        assert!(foreign_scheme(std::path::Path::new("c://x")).is_none());
+        assert!(foreign_scheme(std::path::Path::new("gs://b/x")).is_some());
     }
 }
