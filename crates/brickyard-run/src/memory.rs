@@ -400,7 +400,7 @@ pub fn split_with_shares(
         .fold(levels as u64 * (512 << 10), u64::saturating_add);
         let least = least.div_ceil(1 << 20) << 20;
         bail!(
-            "memory: {} does not hold this split: pool {}, host cache {}, decoded chunks {} (at least {}), images {}{} and {} for the program; raise --memory to {}MiB or more{}{}",
+            "memory: {} does not hold this split: pool {}, host cache {}, decoded chunks {} (at least {}), images {}{} and {} for the program; raise --memory ({}MiB holds it){}{}",
             human_bytes(want_total),
             human_bytes(pool),
             human_bytes(host),
@@ -522,9 +522,9 @@ mod tests {
                     .unwrap_err()
                     .to_string();
                 let figure: u64 = e
-                    .split("raise --memory to ")
+                    .split("raise --memory (")
                     .nth(1)
-                    .and_then(|t| t.split("MiB or more").next())
+                    .and_then(|t| t.split("MiB holds it)").next())
                     .and_then(|n| n.parse().ok())
                     .unwrap_or_else(|| panic!("no figure in {e}"));
                 let at =
