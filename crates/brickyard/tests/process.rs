@@ -1445,6 +1445,49 @@ fn a_chunk_whose_bytes_changed_fails_process_and_convert() {
     assert!(!store.join("derived/g").exists());
 }
 
+/// A chunk that cannot be decoded (its compressed bytes overwritten) fails
+/// `convert` from the store naming the shard file and the chunk's voxels
+/// (it named only the store), and `process` naming the chunk.
+#[test]
+fn an_undecodable_chunk_is_named_by_convert_and_process() {
+    let d = tempfile::tempdir().unwrap();
+    let store = d.path().join("f.ome.zarr");
+    ok(run(&[
+        "generate",
+        "marschner-lobb",
+        s(&store),
+        "--size",
+        "32",
+        "--dtype",
+        "f32",
+        "--brick",
+        "8",
+        "--shard",
+        "16",
+        "--quiet",
+    ]));
+    // The shard's chunks, not its index (at the end): garbage.
+    let shard = store.join("0/c/0/0/0");
+    let mut b = std::fs::read(&shard).unwrap();
+    let n = b.len() - 300;
+    b[..n].fill(0x5a);
+    std::fs::write(&shard, &b).unwrap();
+    let converted = d.path().join("again.ome.zarr");
+    fails_naming(
+        &["convert", s(&store), s(&converted)],
+        &[
+            "0/c/0/0/0",
+            "the chunk of voxels x 0..8, y 0..8, z 0..8 cannot be decoded",
+        ],
+    );
+    fails_naming(
+        &["process", s(&store), "gauss(1)", "--out", "g"],
+        &["0/c/0/0/0", "chunk at [0, 0, 0]"],
+    );
+    assert!(!converted.exists());
+    assert!(!store.join("derived/g").exists());
+}
+
 /// The nuclei stack converted (z 4× coarser than x and y) and its nuclei
 /// labelled by `process` into `labels/cells`.
 fn nuclei_with_labels(dir: &Path) -> std::path::PathBuf {

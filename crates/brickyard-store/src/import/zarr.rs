@@ -1215,6 +1215,75 @@ impl VolumeSource for ZarrSource {
             self.read_box(cc, c, region.clone(), out, dims, [0; 3])?;
             return self.verify(c, &region, out, dims, [0; 3]);
         }
+        let region = [z.clone(), y.clone(), x.clone()];
+        match self.read_plain(c, z, y, x, out) {
+            Err(e @ StoreError::Zarr { .. }) => Err(self.locate_failure(c, &region, e)),
+            r => r,
+        }
+    }
+
+    fn read_region_into(
+        &self,
+        c: usize,
+        region: [Range<u64>; 3],
+        out: &mut [u8],
+        dims: Dims3,
+        at: Dims3,
+    ) -> Result<()> {
+        match &self.chunk_cache {
+            Some((cc, id)) => {
+                let cc = (&**cc, *id);
+                check_box(&self.meta, c, &region, out, dims, at);
+                self.read_box(cc, c, region.clone(), out, dims, at)?;
+                self.verify(c, &region, out, dims, at)
+            }
+            None => crate::source::read_region_into_by_copy(self, c, region, out, dims, at),
+        }
+    }
+
+    /// Hints the stored bytes of the region's chunks that the decoded-chunk
+    /// cache does not hold and that were not hinted since their last load,
+    /// for sharded arrays read directly.
+    fn prefetch(&self, c: usize, region: [Range<u64>; 3]) -> usize {
+        let (Some(direct), Some((cc, id))) = (&self.direct, &self.chunk_cache) else {
+            return 0;
+        };
+        // Remote stores take no hint: reading their shard indexes here
+        // would only move requests ahead of the load that needs them.
+        if storage::is_remote(&self.dir) || region.iter().any(|r| r.is_empty()) {
+            return 0;
+        }
+        let (keys, need) = self.chunks_of(&self.array_ranges(c, region));
+        let missing: Vec<Vec<u64>> = cc
+            .to_hint(*id, &keys, &need)
+            .into_iter()
+            .map(|i| keys[i].to_vec())
+            .collect();
+        if missing.is_empty() {
+            return 0;
+        }
+        direct
+            .prefetch(&self.array, &self.dir, &missing)
+            .unwrap_or(0)
+    }
+
+    fn preferred_read(&self) -> Dims3 {
+        let cz = self.zyx[0].map(|i| self.chunk[i]).unwrap_or(1);
+        [cz, self.meta.dims[1], self.meta.dims[2]]
+    }
+}
+
+impl ZarrSource {
+    /// [`VolumeSource::read_region`] without the decoded-chunk cache: the
+    /// Zarr library reads the region.
+    fn read_plain(
+        &self,
+        c: usize,
+        z: Range<u64>,
+        y: Range<u64>,
+        x: Range<u64>,
+        out: &mut [u8],
+    ) -> Result<()> {
         let n = self.array.shape().len();
         let mut ranges: Vec<Range<u64>> = vec![0..1; n];
         let rs = [z, y, x];
@@ -1290,54 +1359,52 @@ impl VolumeSource for ZarrSource {
         self.verify(c, &rs, out, dims, [0; 3])
     }
 
-    fn read_region_into(
-        &self,
-        c: usize,
-        region: [Range<u64>; 3],
-        out: &mut [u8],
-        dims: Dims3,
-        at: Dims3,
-    ) -> Result<()> {
-        match &self.chunk_cache {
-            Some((cc, id)) => {
-                let cc = (&**cc, *id);
-                check_box(&self.meta, c, &region, out, dims, at);
-                self.read_box(cc, c, region.clone(), out, dims, at)?;
-                self.verify(c, &region, out, dims, at)
+    /// After the read of `region` failed with `e`: the first chunk of it
+    /// (of the read grain) whose own read fails, named by its file and its
+    /// voxels, with that read's error (`convert` of a damaged store said
+    /// only which store); `e` where no chunk fails alone.
+    fn locate_failure(&self, c: usize, region: &[Range<u64>; 3], e: StoreError) -> StoreError {
+        let grain: [u64; 3] = [0, 1, 2].map(|a| self.zyx[a].map_or(1, |i| self.grain[i].max(1)));
+        let boxes = crate::source::grid_boxes(region, grain);
+        let es = self.meta.dtype.size();
+        let one = boxes.len() == 1;
+        for b in boxes {
+            let failed = if one {
+                Some(e.to_string())
+            } else {
+                let mut buf = vec![
+                    0u8;
+                    b.iter()
+                        .map(|r| (r.end - r.start) as usize)
+                        .product::<usize>()
+                        * es
+                ];
+                match self.read_plain(c, b[0].clone(), b[1].clone(), b[2].clone(), &mut buf) {
+                    Err(e @ StoreError::Zarr { .. }) => Some(e.to_string()),
+                    _ => None,
+                }
+            };
+            if let Some(msg) = failed {
+                let file = self
+                    .chunk_file(c, [b[0].start, b[1].start, b[2].start])
+                    .unwrap_or_else(|| self.meta.path.clone());
+                let msg = msg.split(": zarr: ").last().unwrap_or(&msg).to_string();
+                let channel = if self.meta.channels > 1 {
+                    format!(", channel {c}")
+                } else {
+                    String::new()
+                };
+                return StoreError::zarr(
+                    file,
+                    format!(
+                        "the chunk of voxels x {}..{}, y {}..{}, z {}..{}{channel} cannot be \
+                         decoded (damaged or truncated): {msg}",
+                        b[2].start, b[2].end, b[1].start, b[1].end, b[0].start, b[0].end
+                    ),
+                );
             }
-            None => crate::source::read_region_into_by_copy(self, c, region, out, dims, at),
         }
-    }
-
-    /// Hints the stored bytes of the region's chunks that the decoded-chunk
-    /// cache does not hold and that were not hinted since their last load,
-    /// for sharded arrays read directly.
-    fn prefetch(&self, c: usize, region: [Range<u64>; 3]) -> usize {
-        let (Some(direct), Some((cc, id))) = (&self.direct, &self.chunk_cache) else {
-            return 0;
-        };
-        // Remote stores take no hint: reading their shard indexes here
-        // would only move requests ahead of the load that needs them.
-        if storage::is_remote(&self.dir) || region.iter().any(|r| r.is_empty()) {
-            return 0;
-        }
-        let (keys, need) = self.chunks_of(&self.array_ranges(c, region));
-        let missing: Vec<Vec<u64>> = cc
-            .to_hint(*id, &keys, &need)
-            .into_iter()
-            .map(|i| keys[i].to_vec())
-            .collect();
-        if missing.is_empty() {
-            return 0;
-        }
-        direct
-            .prefetch(&self.array, &self.dir, &missing)
-            .unwrap_or(0)
-    }
-
-    fn preferred_read(&self) -> Dims3 {
-        let cz = self.zyx[0].map(|i| self.chunk[i]).unwrap_or(1);
-        [cz, self.meta.dims[1], self.meta.dims[2]]
+        e
     }
 }
 
