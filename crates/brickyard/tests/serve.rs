@@ -1588,6 +1588,20 @@ fn damaged_chunk_paths_are_errors_not_absent_chunks() {
         let (code, _, _) = http(sv.port, "GET", path, &[]);
         assert_eq!(code, want, "{path}");
     }
+    // A client refused a path says the server's reason, not that a token
+    // may be needed (the server takes none).
+    let url = format!("http://127.0.0.1:{}/m.ome.zarr/../m.ome.zarr", sv.port);
+    let o = bin()
+        .args(["info", &url])
+        .env_remove("BRICKYARD_TOKEN")
+        .output()
+        .unwrap();
+    let e = String::from_utf8_lossy(&o.stderr);
+    assert_eq!(o.status.code(), Some(1), "{e}");
+    assert!(
+        e.contains("403") && e.contains("path segment refused") && !e.contains("TOKEN"),
+        "{e}"
+    );
 }
 
 /// A store an interrupted conversion left (brickyard's `complete: false`

@@ -1381,19 +1381,31 @@ impl Client {
             401 | 403 => Err(Failure::fatal(format!(
                 "HTTP {code} {}: access refused{}",
                 status_text(code),
-                if s3 {
+                // The server's own reason, where it gives one in a short
+                // line of text (a refused path is not a missing token).
+                if let Some(why) = (!s3).then(|| short_reason(&mut resp)).flatten() {
+                    match (code, self.cfg.token.is_some()) {
+                        (401, false) => format!(": {why} (set BRICKYARD_TOKEN)"),
+                        _ => format!(": {why}"),
+                    }
+                } else if s3 {
                     if super::s3::signed() {
                         " (the signed request was refused: check AWS_ACCESS_KEY_ID, \
                          AWS_SECRET_ACCESS_KEY, AWS_SESSION_TOKEN and AWS_REGION; \
                          S3 also answers 403 for a missing key without list permission)"
+                            .to_string()
                     } else {
                         " (an unsigned request: set AWS_ACCESS_KEY_ID and \
                          AWS_SECRET_ACCESS_KEY for a private bucket)"
+                            .to_string()
                     }
                 } else if self.cfg.token.is_some() {
-                    " (the bearer token was not accepted)"
+                    " (the bearer token was not accepted)".into()
+                } else if code == 401 {
+                    " (a token is needed: set BRICKYARD_TOKEN)".into()
                 } else {
-                    " (a token may be needed: set BRICKYARD_TOKEN)"
+                    " (the server refuses this path; if it takes tokens, set BRICKYARD_TOKEN)"
+                        .into()
                 }
             ))),
             // A gateway that cannot reach the server behind it: as good
@@ -1609,6 +1621,28 @@ fn read_body(
         }
         Ok(body[r.start as usize..r.end as usize].to_vec())
     }
+}
+
+/// A refusal's reason as the server gives it: a short line of plain text
+/// (at most 200 bytes, printable), or nothing.
+fn short_reason(resp: &mut ureq::http::Response<ureq::Body>) -> Option<String> {
+    let plain = resp
+        .headers()
+        .get("content-type")
+        .and_then(|v| v.to_str().ok())
+        .is_some_and(|t| t.starts_with("text/plain"));
+    if !plain {
+        return None;
+    }
+    let text = resp
+        .body_mut()
+        .with_config()
+        .limit(200)
+        .read_to_string()
+        .ok()?;
+    let text = text.trim();
+    (!text.is_empty() && !text.contains('\n') && text.chars().all(|c| !c.is_control()))
+        .then(|| text.to_string())
 }
 
 #[cfg(test)]
