@@ -142,7 +142,8 @@ class Store:
 
     def __init__(self, path: Union[str, os.PathLike], cache: int = 256 << 20, chunk_cache: int = 64 << 20,
                  brick: int = 64, threads: Optional[int] = None):
-        threads = threads or min(8, os.cpu_count() or 1)
+        if threads is None:
+            threads = min(8, os.cpu_count() or 1)
         # Budgets as the CLI takes them ("512MiB") or in bytes.
         cache, chunk_cache = (_bytes(v, what) for v, what in ((cache, "cache"), (chunk_cache, "chunk_cache")))
         for what, v, least in (("cache", cache, 0), ("chunk_cache", chunk_cache, 0), ("brick", brick, 1),

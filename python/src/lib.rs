@@ -52,8 +52,10 @@ fn to_py(e: anyhow::Error) -> PyErr {
     PyValueError::new_err(msg)
 }
 
+/// A path that is not there, said as the CLI says it (an unknown URL
+/// scheme, an interrupted conversion or processing job named).
 fn missing(path: &Path) -> PyErr {
-    PyFileNotFoundError::new_err(format!("{}: no such file or directory", path.display()))
+    PyFileNotFoundError::new_err(brickyard_store::StoreError::not_found(path).to_string())
 }
 
 /// Whether Ctrl-C was pressed (asks the interpreter, taking the GIL for a

@@ -24,6 +24,12 @@ def test_missing_store(tmp_path):
         brickyard.render(tmp_path / "nowhere", backend="cpu")
     with pytest.raises(FileNotFoundError, match="nowhere.tif"):
         brickyard.convert(tmp_path / "nowhere.tif", tmp_path / "out.ome.zarr", progress=False)
+    # As the CLI says it: an unknown scheme, what an interrupted conversion left.
+    with pytest.raises(FileNotFoundError, match="ftp:// is no scheme stores are read from"):
+        brickyard.open("ftp://127.0.0.1/x.ome.zarr")
+    (tmp_path / "kc.ome.zarr.partial").mkdir()
+    with pytest.raises(FileNotFoundError, match="is what an interrupted conversion of it wrote"):
+        brickyard.open(tmp_path / "kc.ome.zarr")
 
 
 def test_not_a_store(tmp_path):
@@ -349,7 +355,8 @@ def test_render_names_dicts_as_given_not_by_their_temporary_files(store):
 
 
 def test_open_and_read_name_arguments_of_the_wrong_kind(store):
-    for kw, exc in [({"cache": -1}, ValueError), ({"threads": -1}, ValueError), ({"brick": 0}, ValueError),
+    for kw, exc in [({"cache": -1}, ValueError), ({"threads": -1}, ValueError), ({"threads": 0}, ValueError),
+                    ({"brick": 0}, ValueError),
                     ({"brick": 1}, ValueError), ({"brick": 1024}, ValueError),
                     ({"cache": "lots"}, ValueError), ({"brick": 32.5}, TypeError)]:
         with pytest.raises(exc, match=next(iter(kw))):

@@ -68,7 +68,11 @@ impl StoreError {
                 "no such file or directory; {scheme}:// is no scheme stores are read from: \
                  give a local path or an http://, https:// or s3:// URL"
             ),
-            None => format!("no such file or directory{}", unfinished_result(&path)),
+            None => format!(
+                "no such file or directory{}{}",
+                unfinished_conversion(&path),
+                unfinished_result(&path)
+            ),
         };
         StoreError::io(
             path,
@@ -130,6 +134,41 @@ fn foreign_scheme(p: &std::path::Path) -> Option<&str> {
         .iter()
         .any(|k| scheme.eq_ignore_ascii_case(k)))
     .then_some(scheme)
+}
+
+/// Where a missing local store `path` is being converted, or what a
+/// conversion that stopped left of it: that, in words, to follow "no such
+/// file".
+fn unfinished_conversion(path: &std::path::Path) -> String {
+    if crate::storage::is_remote(path) {
+        return String::new();
+    }
+    let (partial, old) = (
+        crate::builder::partial_path(path),
+        crate::builder::old_path(path),
+    );
+    if old.is_dir() {
+        format!(
+            "; {} is the store a conversion was replacing when it stopped: rename it back",
+            old.display()
+        )
+    } else if partial.is_dir() {
+        match crate::lock::live_holder(&crate::builder::lock_path(path)) {
+            // (Not interrupted: at work. Removing its folder would break
+            // it.)
+            Some(pid) => format!(
+                "; a conversion into it is at work (process {pid}, writing {}): wait for it to end",
+                partial.display()
+            ),
+            None => format!(
+                "; {} is what an interrupted conversion of it wrote: run that convert again (it \
+                 takes over), or remove the folder",
+                partial.display()
+            ),
+        }
+    } else {
+        String::new()
+    }
 }
 
 /// Where a missing `path` is a processing result still being written, or

@@ -281,41 +281,8 @@ fn brick_summary(root: &Path, level: usize) -> std::result::Result<Option<BrickS
 /// `labels/zarr.json` are found.
 pub fn inspect(path: &Path) -> Result<StoreInfo> {
     if !path.exists() && !storage::is_remote(path) {
-        // What an interrupted conversion of it left, said.
-        let (partial, old) = (
-            crate::builder::partial_path(path),
-            crate::builder::old_path(path),
-        );
-        let hint = if old.is_dir() {
-            format!(
-                "; {} is the store a conversion was replacing when it stopped: rename it back",
-                old.display()
-            )
-        } else if partial.is_dir() {
-            match crate::lock::live_holder(&crate::builder::lock_path(path)) {
-                // (Not interrupted: at work. Removing its folder would
-                // break it.)
-                Some(pid) => format!(
-                    "; a conversion into it is at work (process {pid}, writing {}): wait for it \
-                     to end",
-                    partial.display()
-                ),
-                None => format!(
-                    "; {} is what an interrupted conversion of it wrote: run that convert again \
-                     (it takes over), or remove the folder",
-                    partial.display()
-                ),
-            }
-        } else {
-            return Err(StoreError::not_found(path));
-        };
-        return Err(StoreError::io(
-            path,
-            std::io::Error::new(
-                std::io::ErrorKind::NotFound,
-                format!("no such file or directory{hint}"),
-            ),
-        ));
+        // (What an interrupted conversion or job left is said.)
+        return Err(StoreError::not_found(path));
     }
     if !is_zarr(path) {
         // A volume file given where a store is read: say what to do.
