@@ -449,8 +449,10 @@ fn run_job(
     let pipe = parse(&c.pipeline)?;
     check_name(&c.out, f)?;
     let memory = c.memory;
-    if memory < 1 << 20 {
-        bail!("{f}memory: expected at least 1 MiB, got {memory} bytes");
+    // (A budget too small for the job is refused below, with the least
+    // that runs it: saying "at least 1 MiB" first only took a second try.)
+    if memory == 0 {
+        bail!("{f}memory: expected a size above 0 (e.g. 1GiB)");
     }
     if c.stats.is_some() && !matches!(pipe.ops.last(), Some(Op::Label(_))) {
         bail!("{f}stats: only a pipeline that ends in label(...) has per-label statistics");
@@ -577,6 +579,8 @@ fn run_job(
     });
     let (kernels, device_bytes) = match (kernels, memory >= device_bytes + (1 << 20)) {
         (k, true) => (k, device_bytes),
+        // The CPU: a budget too small is refused below, with a figure.
+        (None, false) => (None, 0),
         (Some(_), false) if c.backend == "auto" => {
             if !c.quiet {
                 crate::outln!(

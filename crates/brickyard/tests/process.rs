@@ -1067,6 +1067,24 @@ fn a_refusal_for_memory_asks_for_the_least_that_works() {
                 .unwrap_or_else(|| panic!("{pipe} in {memory} MiB: no --memory asked for: {e}"))
         };
         let need = refused(1);
+        // Below a MiB too: the same figure at once (it said "expected at
+        // least 1 MiB", and the figure only on a second try).
+        let o = run(&[
+            "process",
+            s(&store),
+            pipe,
+            "--out",
+            out,
+            "--memory",
+            "1KiB",
+            "--quiet",
+        ]);
+        let e = String::from_utf8_lossy(&o.stderr);
+        assert!(
+            e.contains("1.0 KiB is too small")
+                && e.contains(&format!("give --memory {need}MiB or more")),
+            "{pipe}: {e}"
+        );
         for m in [need / 2, need / 2 + 1, need * 3 / 4, need - 1] {
             assert_eq!(refused(m), need, "{pipe} in {m} MiB");
         }
