@@ -765,13 +765,22 @@ def convert(src: Union[str, os.PathLike, Sequence[Union[str, os.PathLike]]], dst
     cb, bar = _progress_callback(progress, "convert")
     try:
         with _cli_errors("convert"):
-            return _native.convert([os.fspath(s) for s in srcs], os.fspath(dst),
+            return _warn_notes(dst, _native.convert([os.fspath(s) for s in srcs], os.fspath(dst),
                                    _options(brick, shard, compression, labels, memory, overwrite, spacing, origin,
                                             unit, channel_names),
-                                   level, cb)
+                                   level, cb))
     finally:
         if bar is not None:
             bar.close()
+
+
+def _warn_notes(dst: Any, report: str) -> str:
+    """`report` as written, with its notes (a label image off its image's
+    grid: listed, but not drawn over it) also raised as a UserWarning, which
+    a script sees where a note inside the returned text goes unread."""
+    for note in report.split("; note: ")[1:]:
+        warnings.warn(f"{os.fspath(dst)}: a label image off its image's grid: {note}", UserWarning, stacklevel=3)
+    return report
 
 
 def _chunk_of(array: Any) -> Optional[Tuple[int, int, int]]:
@@ -875,7 +884,7 @@ def _from_regions(array: Any, dt: np.dtype, name: str, dst, options: dict, progr
     cb, bar = _progress_callback(progress, "from_numpy")
     try:
         with _cli_errors("convert"):
-            return _native.from_lazy(read, name, c4, native.name, _chunk_of(array), os.fspath(dst), options, cb)
+            return _warn_notes(dst, _native.from_lazy(read, name, c4, native.name, _chunk_of(array), os.fspath(dst), options, cb))
     finally:
         if bar is not None:
             bar.close()
@@ -901,7 +910,7 @@ def _from_memory(a: np.ndarray, dst, options: dict, progress) -> str:
     cb, bar = _progress_callback(progress, "from_numpy")
     try:
         with _cli_errors("convert"):
-            return _native.from_array(a, a.dtype.name, os.fspath(dst), options, cb)
+            return _warn_notes(dst, _native.from_array(a, a.dtype.name, os.fspath(dst), options, cb))
     finally:
         if bar is not None:
             bar.close()
