@@ -276,18 +276,7 @@ fn open_store(
     brick: u64,
     threads: usize,
 ) -> anyhow::Result<NativeStore> {
-    // Only a 404 makes a URL "not a Zarr store" (other failures count as
-    // present and are reported by the reads that follow).
-    if brickyard_store::storage::is_remote(&path) && !brickyard_store::import::zarr::is_zarr(&path)
-    {
-        return Err(anyhow::Error::new(std::io::Error::new(
-            std::io::ErrorKind::NotFound,
-            format!(
-                "{}: not found (HTTP 404 for zarr.json, .zgroup and .zarray)",
-                path.display()
-            ),
-        )));
-    }
+    // (A URL with no store behind it: `inspect` says not found.)
     let info = inspect(&path)?;
     if let Some(why) = info.incomplete {
         anyhow::bail!("{}: the store is incomplete: {why}", path.display());

@@ -285,6 +285,17 @@ pub fn inspect(path: &Path) -> Result<StoreInfo> {
         return Err(StoreError::not_found(path));
     }
     if !is_zarr(path) {
+        // A URL: only a 404 makes it no store (other failures count as
+        // present and are reported by the reads that follow).
+        if storage::is_remote(path) {
+            return Err(StoreError::io(
+                path,
+                std::io::Error::new(
+                    std::io::ErrorKind::NotFound,
+                    "not found (HTTP 404 for zarr.json, .zgroup and .zarray)",
+                ),
+            ));
+        }
         // A volume file given where a store is read: say what to do.
         let hint = if !storage::is_remote(path) && path.is_file() {
             "; a file, not a store: convert it first with `brickyard convert FILE STORE`"

@@ -564,8 +564,10 @@ fn missing_stores_and_unreachable_servers_are_clear_errors() {
     ]);
     assert!(!o.status.success());
     let e = String::from_utf8_lossy(&o.stderr);
+    // Not found, as Python's open says it (it said "not a Zarr store").
     assert!(
-        e.contains("nothing.zarr") && e.contains("not a Zarr"),
+        e.contains("nothing.zarr")
+            && e.contains("not found (HTTP 404 for zarr.json, .zgroup and .zarray)"),
         "{e}"
     );
     // A port nobody listens on: connection refused, retried, then an error
