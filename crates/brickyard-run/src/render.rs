@@ -231,8 +231,8 @@ pub struct RenderCmd {
     /// pool holds, or when nothing more can arrive.
     #[arg(long, default_value_t = 2000)]
     max_frames: usize,
-    /// Render a turntable of N views.
-    #[arg(long)]
+    /// Render a turntable of N views (1 to 3600).
+    #[arg(long, value_parser = parse_views)]
     turntable: Option<u32>,
     /// Print one JSON line per frame.
     #[arg(long)]
@@ -954,6 +954,17 @@ pub fn fit_octree_depth(asked: u32, levels: usize, channels: usize, total: u64) 
         bytes: cost(depth),
         note,
     }
+}
+
+/// A `--turntable` count: 1 to 3600 views, said so for any other value (a
+/// negative one got the parser's "not in 0..=4294967295").
+fn parse_views(s: &str) -> std::result::Result<u32, String> {
+    s.trim()
+        .parse::<i64>()
+        .ok()
+        .filter(|n| (1..=3600).contains(n))
+        .map(|n| n as u32)
+        .ok_or_else(|| format!("expected 1 to 3600 views, found {s}"))
 }
 
 /// [`run_with`] of one store.

@@ -595,6 +595,11 @@ fn render_rejects_flags_that_cannot_work() {
             vec!["--turntable", "100000"],
             vec!["turntable", "1 to 3600"],
         ),
+        // (A negative count got the parser's "not in 0..=4294967295".)
+        (
+            vec!["--turntable", "-2"],
+            vec!["turntable", "1 to 3600", "found -2"],
+        ),
         // A negative number is the flag's value (not taken for a flag).
         (vec!["--fov", "-10"], vec!["fov", "found -10"]),
         // A channel's window as --window's: not reversed, not NaN.
