@@ -419,7 +419,7 @@ pub fn split_with_shares(
             human_bytes(fixed),
             least >> 20,
             if shares_given { " or lower --pool/--host" } else { "" },
-            if images > want_total / 4 { " or draw a smaller image" } else { "" }
+            if images > least / 8 { " or draw a smaller image" } else { "" }
         );
     }
     // Without --memory, explicit pool and host sizes stand; the total is
