@@ -1362,8 +1362,12 @@ impl ZarrSource {
     /// After the read of `region` failed with `e`: the first chunk of it
     /// (of the read grain) whose own read fails, named by its file and its
     /// voxels, with that read's error (`convert` of a damaged store said
-    /// only which store); `e` where no chunk fails alone.
+    /// only which store); `e` where no chunk fails alone, and for remote
+    /// stores (whose failures are mostly the network's, said as they are).
     fn locate_failure(&self, c: usize, region: &[Range<u64>; 3], e: StoreError) -> StoreError {
+        if storage::is_remote(&self.dir) {
+            return e;
+        }
         let grain: [u64; 3] = [0, 1, 2].map(|a| self.zyx[a].map_or(1, |i| self.grain[i].max(1)));
         let boxes = crate::source::grid_boxes(region, grain);
         let es = self.meta.dtype.size();
