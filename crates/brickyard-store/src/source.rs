@@ -286,33 +286,6 @@ pub fn read_region_into_by_copy<S: VolumeSource + ?Sized>(
 }
 
 /// Helpers for importer tests.
-/// The boxes of the grid of `cell`-sized cells (aligned to multiples of
-/// `cell` from 0) that `region` (`[z, y, x]`) crosses, each cut to the
-/// region, z slowest.
-pub(crate) fn grid_boxes(region: &[Range<u64>; 3], cell: Dims3) -> Vec<[Range<u64>; 3]> {
-    let cuts = |a: usize| -> Vec<Range<u64>> {
-        let (r, n) = (&region[a], cell[a].max(1));
-        let mut v = vec![];
-        let mut s = r.start;
-        while s < r.end {
-            let e = ((s / n + 1) * n).min(r.end);
-            v.push(s..e);
-            s = e;
-        }
-        v
-    };
-    let (zs, ys, xs) = (cuts(0), cuts(1), cuts(2));
-    let mut out = vec![];
-    for z in &zs {
-        for y in &ys {
-            for x in &xs {
-                out.push([z.clone(), y.clone(), x.clone()]);
-            }
-        }
-    }
-    out
-}
-
 #[cfg(test)]
 pub(crate) mod test_util {
     use super::VolumeSource;

@@ -1421,13 +1421,10 @@ fn a_store_that_lost_a_shard_fails_process_and_convert_with_the_file_named() {
     ]));
 }
 
-/// A chunk whose bytes changed in place still decodes (no codec here
-/// carries a checksum; uncompressed chunks decode whatever they hold) to
-/// values its statistics exclude: `process` and `convert` fail naming the
-/// file, where they used to compute from them (a user trial's flipped
-/// bytes gave 9496 labels instead of 9494, exit 0).
-#[test]
-fn a_chunk_whose_bytes_changed_fails_process_and_convert() {
+/// A 32³ f32 store in 8³ chunks and 16³ shards (`compression`) whose first
+/// shard file `damage` changes: `process` and `convert` from it fail naming
+/// the file and `words`, and leave no result.
+fn fails_on_a_damaged_shard(compression: &str, damage: impl Fn(&mut Vec<u8>), words: &[&str]) {
     let d = tempfile::tempdir().unwrap();
     let store = d.path().join("f.ome.zarr");
     ok(run(&[
@@ -1443,67 +1440,50 @@ fn a_chunk_whose_bytes_changed_fails_process_and_convert() {
         "--shard",
         "16",
         "--compression",
-        "none",
+        compression,
         "--quiet",
     ]));
     let shard = store.join("0/c/0/0/0");
     let mut b = std::fs::read(&shard).unwrap();
-    // The first chunk (8³ f32, uncompressed, at the start of the shard):
-    // 3.4e38 in a row of it.
-    b[..64].fill(0x7f);
+    damage(&mut b);
     std::fs::write(&shard, &b).unwrap();
     let converted = d.path().join("again.ome.zarr");
     for args in [
         vec!["process", s(&store), "gauss(1)", "--out", "g"],
         vec!["convert", s(&store), s(&converted)],
     ] {
-        fails_naming(&args, &["0/c/0/0/0", "the statistics say"]);
+        fails_naming(&args, &[&["0/c/0/0/0"], words].concat());
     }
     assert!(!converted.exists());
     assert!(!store.join("derived/g").exists());
 }
 
+/// A chunk whose bytes changed in place still decodes (no codec here
+/// carries a checksum; uncompressed chunks decode whatever they hold) to
+/// values its statistics exclude: `process` and `convert` fail naming the
+/// file, where they used to compute from them (a user trial's flipped
+/// bytes gave 9496 labels instead of 9494, exit 0).
+#[test]
+fn a_chunk_whose_bytes_changed_fails_process_and_convert() {
+    // The first chunk (8³ f32, uncompressed, at the start of the shard):
+    // 3.4e38 in a row of it.
+    fails_on_a_damaged_shard("none", |b| b[..64].fill(0x7f), &["the statistics say"]);
+}
+
 /// A chunk that cannot be decoded (its compressed bytes overwritten) fails
-/// `convert` from the store naming the shard file and the chunk's voxels
-/// (it named only the store), and `process` naming the chunk.
+/// `convert` and `process` naming the shard file and the chunk (`convert`
+/// named only the store).
 #[test]
 fn an_undecodable_chunk_is_named_by_convert_and_process() {
-    let d = tempfile::tempdir().unwrap();
-    let store = d.path().join("f.ome.zarr");
-    ok(run(&[
-        "generate",
-        "marschner-lobb",
-        s(&store),
-        "--size",
-        "32",
-        "--dtype",
-        "f32",
-        "--brick",
-        "8",
-        "--shard",
-        "16",
-        "--quiet",
-    ]));
     // The shard's chunks, not its index (at the end): garbage.
-    let shard = store.join("0/c/0/0/0");
-    let mut b = std::fs::read(&shard).unwrap();
-    let n = b.len() - 300;
-    b[..n].fill(0x5a);
-    std::fs::write(&shard, &b).unwrap();
-    let converted = d.path().join("again.ome.zarr");
-    fails_naming(
-        &["convert", s(&store), s(&converted)],
-        &[
-            "0/c/0/0/0",
-            "the chunk of voxels x 0..8, y 0..8, z 0..8 cannot be decoded",
-        ],
+    fails_on_a_damaged_shard(
+        "lz4",
+        |b| {
+            let n = b.len() - 300;
+            b[..n].fill(0x5a)
+        },
+        &["chunk at [0, 0, 0]", "blosc"],
     );
-    fails_naming(
-        &["process", s(&store), "gauss(1)", "--out", "g"],
-        &["0/c/0/0/0", "chunk at [0, 0, 0]"],
-    );
-    assert!(!converted.exists());
-    assert!(!store.join("derived/g").exists());
 }
 
 /// The nuclei stack converted (z 4× coarser than x and y) and its nuclei

@@ -872,6 +872,24 @@ impl ZarrSource {
         Ok(())
     }
 
+    /// A read of `ranges` (array axis order) that failed with `e`: in a
+    /// local store, the first of its chunks whose own decoding fails, named
+    /// by its file and position as [`Self::load_chunks`] names it (the
+    /// region's error named only the store: `convert` of a damaged store
+    /// said so); otherwise, and where no chunk fails alone, `e`. Remote
+    /// failures are mostly the network's: said as they are, not read again
+    /// chunk by chunk.
+    fn failed_read(&self, ranges: &[Range<u64>], e: zarrs::array::ArrayError) -> StoreError {
+        let whole = StoreError::zarr(&self.meta.path, e);
+        if storage::is_remote(&self.dir) {
+            return whole;
+        }
+        let (keys, _) = self.chunks_of(ranges);
+        keys.iter()
+            .find_map(|k| self.load_chunks(&[k.to_vec()]).err())
+            .unwrap_or(whole)
+    }
+
     /// The chunks (indices over the grain) that the box `ranges` (array
     /// axis order) touches, in C order, and the part of each inside it
     /// (`lo`, `hi`).
@@ -1014,7 +1032,7 @@ impl ZarrSource {
                     } else {
                         self.array.retrieve_array_subset::<Vec<$wide>>(&subset)
                     }
-                    .map_err(|e| StoreError::zarr(path, e))?;
+                    .map_err(|e| self.failed_read(&piece, e))?;
                     let part = &mut dst[at..at + v.len() * 4];
                     for (k, (x, o)) in v.iter().zip(part.chunks_exact_mut(4)).enumerate() {
                         let y = <$narrow>::try_from(*x).map_err(|_| fail(k, x))?;
@@ -1215,11 +1233,78 @@ impl VolumeSource for ZarrSource {
             self.read_box(cc, c, region.clone(), out, dims, [0; 3])?;
             return self.verify(c, &region, out, dims, [0; 3]);
         }
-        let region = [z.clone(), y.clone(), x.clone()];
-        match self.read_plain(c, z, y, x, out) {
-            Err(e @ StoreError::Zarr { .. }) => Err(self.locate_failure(c, &region, e)),
-            r => r,
+        let n = self.array.shape().len();
+        let mut ranges: Vec<Range<u64>> = vec![0..1; n];
+        let rs = [z, y, x];
+        for (a, r) in rs.iter().enumerate() {
+            if let Some(i) = self.zyx[a] {
+                ranges[i] = r.clone();
+            }
         }
+        if let Some(i) = self.caxis {
+            ranges[i] = c as u64..c as u64 + 1;
+        }
+        let subset = ArraySubset::new_with_ranges(&ranges);
+        // Strides of the retrieved subset (C order over array axes).
+        let sizes: Vec<u64> = ranges.iter().map(|r| r.end - r.start).collect();
+        let mut strides = vec![1u64; n];
+        for i in (0..n.saturating_sub(1)).rev() {
+            strides[i] = strides[i + 1] * sizes[i + 1];
+        }
+        let order: Vec<usize> = self.zyx.iter().flatten().copied().collect();
+        let natural = order.windows(2).all(|w| w[0] < w[1]);
+        super::chunks::note_fill();
+        // Copy `src`, elements of `es` bytes in array axis order, into
+        // `out` in z, y, x order.
+        let place = |src: &[u8], es: usize, out: &mut [u8]| {
+            if natural {
+                out.copy_from_slice(src);
+                return;
+            }
+            let st = |a: usize| self.zyx[a].map(|i| strides[i]).unwrap_or(0);
+            let (sz, sy, sx) = (st(0), st(1), st(2));
+            let (nz, ny, nx) = (
+                rs[0].end - rs[0].start,
+                rs[1].end - rs[1].start,
+                rs[2].end - rs[2].start,
+            );
+            let mut o = 0;
+            for k in 0..nz {
+                for j in 0..ny {
+                    for i in 0..nx {
+                        let s = ((k * sz + j * sy + i * sx) as usize) * es;
+                        out[o..o + es].copy_from_slice(&src[s..s + es]);
+                        o += es;
+                    }
+                }
+            }
+        };
+        if let Some(w) = self.wide {
+            if natural {
+                self.read_wide(w, &ranges, out)?;
+            } else {
+                let mut tmp = vec![0u8; out.len()];
+                self.read_wide(w, &ranges, &mut tmp)?;
+                place(&tmp, 4, out);
+            }
+        } else {
+            dispatch_dtype!(self.meta.dtype, T => {
+                if self.shards.len() > SHARD_CACHE_MAX {
+                    self.shards.clear();
+                }
+                let v: Vec<T> = if self.shards.array_is_sharded() {
+                    self.check_shards(&subset)?;
+                    self.array
+                        .retrieve_array_subset_sharded_opt::<Vec<T>>(&self.shards, &subset, &CodecOptions::default())
+                        .map_err(|e| self.failed_read(&ranges, e))?
+                } else {
+                    self.array.retrieve_array_subset::<Vec<T>>(&subset).map_err(|e| self.failed_read(&ranges, e))?
+                };
+                place(as_bytes(&v), std::mem::size_of::<T>(), out);
+            });
+        }
+        let dims = rs.clone().map(|r| r.end - r.start);
+        self.verify(c, &rs, out, dims, [0; 3])
     }
 
     fn read_region_into(
@@ -1270,145 +1355,6 @@ impl VolumeSource for ZarrSource {
     fn preferred_read(&self) -> Dims3 {
         let cz = self.zyx[0].map(|i| self.chunk[i]).unwrap_or(1);
         [cz, self.meta.dims[1], self.meta.dims[2]]
-    }
-}
-
-impl ZarrSource {
-    /// [`VolumeSource::read_region`] without the decoded-chunk cache: the
-    /// Zarr library reads the region.
-    fn read_plain(
-        &self,
-        c: usize,
-        z: Range<u64>,
-        y: Range<u64>,
-        x: Range<u64>,
-        out: &mut [u8],
-    ) -> Result<()> {
-        let n = self.array.shape().len();
-        let mut ranges: Vec<Range<u64>> = vec![0..1; n];
-        let rs = [z, y, x];
-        for (a, r) in rs.iter().enumerate() {
-            if let Some(i) = self.zyx[a] {
-                ranges[i] = r.clone();
-            }
-        }
-        if let Some(i) = self.caxis {
-            ranges[i] = c as u64..c as u64 + 1;
-        }
-        let subset = ArraySubset::new_with_ranges(&ranges);
-        // Strides of the retrieved subset (C order over array axes).
-        let sizes: Vec<u64> = ranges.iter().map(|r| r.end - r.start).collect();
-        let mut strides = vec![1u64; n];
-        for i in (0..n.saturating_sub(1)).rev() {
-            strides[i] = strides[i + 1] * sizes[i + 1];
-        }
-        let order: Vec<usize> = self.zyx.iter().flatten().copied().collect();
-        let natural = order.windows(2).all(|w| w[0] < w[1]);
-        let path = &self.meta.path;
-        super::chunks::note_fill();
-        // Copy `src`, elements of `es` bytes in array axis order, into
-        // `out` in z, y, x order.
-        let place = |src: &[u8], es: usize, out: &mut [u8]| {
-            if natural {
-                out.copy_from_slice(src);
-                return;
-            }
-            let st = |a: usize| self.zyx[a].map(|i| strides[i]).unwrap_or(0);
-            let (sz, sy, sx) = (st(0), st(1), st(2));
-            let (nz, ny, nx) = (
-                rs[0].end - rs[0].start,
-                rs[1].end - rs[1].start,
-                rs[2].end - rs[2].start,
-            );
-            let mut o = 0;
-            for k in 0..nz {
-                for j in 0..ny {
-                    for i in 0..nx {
-                        let s = ((k * sz + j * sy + i * sx) as usize) * es;
-                        out[o..o + es].copy_from_slice(&src[s..s + es]);
-                        o += es;
-                    }
-                }
-            }
-        };
-        if let Some(w) = self.wide {
-            if natural {
-                self.read_wide(w, &ranges, out)?;
-            } else {
-                let mut tmp = vec![0u8; out.len()];
-                self.read_wide(w, &ranges, &mut tmp)?;
-                place(&tmp, 4, out);
-            }
-        } else {
-            dispatch_dtype!(self.meta.dtype, T => {
-                if self.shards.len() > SHARD_CACHE_MAX {
-                    self.shards.clear();
-                }
-                let v: Vec<T> = if self.shards.array_is_sharded() {
-                    self.check_shards(&subset)?;
-                    self.array
-                        .retrieve_array_subset_sharded_opt::<Vec<T>>(&self.shards, &subset, &CodecOptions::default())
-                        .map_err(|e| StoreError::zarr(path, e))?
-                } else {
-                    self.array.retrieve_array_subset::<Vec<T>>(&subset).map_err(|e| StoreError::zarr(path, e))?
-                };
-                place(as_bytes(&v), std::mem::size_of::<T>(), out);
-            });
-        }
-        let dims = rs.clone().map(|r| r.end - r.start);
-        self.verify(c, &rs, out, dims, [0; 3])
-    }
-
-    /// After the read of `region` failed with `e`: the first chunk of it
-    /// (of the read grain) whose own read fails, named by its file and its
-    /// voxels, with that read's error (`convert` of a damaged store said
-    /// only which store); `e` where no chunk fails alone, and for remote
-    /// stores (whose failures are mostly the network's, said as they are).
-    fn locate_failure(&self, c: usize, region: &[Range<u64>; 3], e: StoreError) -> StoreError {
-        if storage::is_remote(&self.dir) {
-            return e;
-        }
-        let grain: [u64; 3] = [0, 1, 2].map(|a| self.zyx[a].map_or(1, |i| self.grain[i].max(1)));
-        let boxes = crate::source::grid_boxes(region, grain);
-        let es = self.meta.dtype.size();
-        let one = boxes.len() == 1;
-        for b in boxes {
-            let failed = if one {
-                Some(e.to_string())
-            } else {
-                let mut buf = vec![
-                    0u8;
-                    b.iter()
-                        .map(|r| (r.end - r.start) as usize)
-                        .product::<usize>()
-                        * es
-                ];
-                match self.read_plain(c, b[0].clone(), b[1].clone(), b[2].clone(), &mut buf) {
-                    Err(e @ StoreError::Zarr { .. }) => Some(e.to_string()),
-                    _ => None,
-                }
-            };
-            if let Some(msg) = failed {
-                let file = self
-                    .chunk_file(c, [b[0].start, b[1].start, b[2].start])
-                    .unwrap_or_else(|| self.meta.path.clone());
-                let msg = msg.split(": zarr: ").last().unwrap_or(&msg).to_string();
-                let channel = if self.meta.channels > 1 {
-                    format!(", channel {c}")
-                } else {
-                    String::new()
-                };
-                return StoreError::zarr(
-                    file,
-                    format!(
-                        "the chunk of voxels x {}..{}, y {}..{}, z {}..{}{channel} cannot be \
-                         decoded (damaged or truncated): {msg}",
-                        b[2].start, b[2].end, b[1].start, b[1].end, b[0].start, b[0].end
-                    ),
-                );
-            }
-        }
-        e
     }
 }
 
