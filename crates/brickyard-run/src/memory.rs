@@ -375,6 +375,7 @@ pub fn split_with_shares(
             (p, h, chunks.clamp(min_chunks, 256 << 20), s)
         }
     };
+    let program = fixed;
     let fixed = fixed.saturating_add(held);
     let need = [pool, host, chunks, images, fixed, aside]
         .into_iter()
@@ -387,17 +388,9 @@ pub fn split_with_shares(
         // checked apart, saying so).
         let (p, h) = (pool_given.unwrap_or(4 << 20), host_given.unwrap_or(4 << 20));
         let slack_most = h.saturating_add(min_chunks) / (SLACK - 1) + 1;
-        let least = [
-            p,
-            h,
-            min_chunks,
-            slack_most,
-            images,
-            FIXED_BYTES + extra,
-            aside,
-        ]
-        .into_iter()
-        .fold(levels as u64 * (512 << 10), u64::saturating_add);
+        let least = [p, h, min_chunks, slack_most, images, program, aside]
+            .into_iter()
+            .fold(0u64, u64::saturating_add);
         let least = least.div_ceil(1 << 20) << 20;
         bail!(
             "memory: {} does not hold this split: pool {}, host cache {}, decoded chunks {} (at least {}), images {}{} and {} for the program; raise --memory ({}MiB holds it){}{}",

@@ -340,6 +340,11 @@ fn least_memory(filters: u64, writer: u64) -> u64 {
     brickyard_store::builder::least_budget(start, fits).max(1 << 20)
 }
 
+/// What a threshold or window keeps, said where a mask came out empty or
+/// full (most likely a threshold in the wrong units).
+const MASK_UNITS: &str = "threshold(t) keeps values above t and window(lo,hi) values from lo to \
+    hi, in the image's own values (`brickyard info` shows them)";
+
 /// The writing phase's progress: the bytes the writer has read, or,
 /// where further on, what the last filter stage has computed since the
 /// phase began (`meter`, in voxels of `per_voxel` bytes of the writer's
@@ -816,14 +821,10 @@ fn run_job(
                 // wrong, but hardly what was meant).
                 let voxels: u64 = lab.dims.iter().product();
                 if lab.count() == 0 {
-                    eprintln!(
-                        "note: no voxel is in the mask, so there are no labels: threshold(t) keeps \
-                         values above t, in the image's own values (`brickyard info` shows them)"
-                    );
+                    eprintln!("note: no voxel is in the mask, so there are no labels: {MASK_UNITS}");
                 } else if lab.count() == 1 && lab.stats[0].voxels == voxels {
                     eprintln!(
-                        "note: every voxel is in the mask, one label covers the volume: threshold(t) \
-                         keeps values above t, in the image's own values (`brickyard info` shows them)"
+                        "note: every voxel is in the mask, one label covers the volume: {MASK_UNITS}"
                     );
                 }
                 let lab = Arc::new(lab);
@@ -838,16 +839,19 @@ fn run_job(
             per_voxel: out_src.meta().dtype.size() as u64,
             s: Default::default(),
         };
-        let done = AtomicBool::new(false);
+        // The meter is shown every 100 ms until the writer ends (the
+        // sender dropped).
+        let (ended, ticks) = std::sync::mpsc::channel::<()>();
         let r = std::thread::scope(|sc| {
-            sc.spawn(|| {
-                while !done.load(Ordering::SeqCst) {
-                    std::thread::sleep(std::time::Duration::from_millis(100));
-                    writing.tick();
+            let shown = &writing;
+            sc.spawn(move || {
+                use std::sync::mpsc::RecvTimeoutError::Timeout;
+                while let Err(Timeout) = ticks.recv_timeout(std::time::Duration::from_millis(100)) {
+                    shown.tick();
                 }
             });
             let r = convert(out_src.as_ref(), &paths.staged, &opts, &writing, cancel);
-            done.store(true, Ordering::SeqCst);
+            drop(ended);
             r
         });
         phases.done(false);
@@ -858,12 +862,7 @@ fn run_job(
         // A mask (no labelling) that came out empty: most likely a
         // threshold in the wrong units, as the labelling's note says.
         if is_label && labeling.is_none() && r.bricks_empty == r.bricks {
-            eprintln!(
-                "note: no voxel is in the mask ({}): threshold(t) keeps values above t and \
-                 window(lo,hi) values from lo to hi, in the image's own values (`brickyard info` \
-                 shows them)",
-                pipe.text()
-            );
+            eprintln!("note: no voxel is in the mask ({}): {MASK_UNITS}", pipe.text());
         }
         Ok(r)
     })()

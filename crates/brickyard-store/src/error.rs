@@ -179,7 +179,7 @@ fn unfinished_result(path: &std::path::Path) -> String {
     let (Some(dir), Some(name)) = (path.parent(), path.file_name()) else {
         return String::new();
     };
-    if dir.as_os_str().is_empty() || crate::storage::is_remote(path) {
+    if crate::storage::is_remote(path) {
         return String::new();
     }
     let name = name.to_string_lossy();

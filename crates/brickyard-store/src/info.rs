@@ -297,7 +297,7 @@ pub fn inspect(path: &Path) -> Result<StoreInfo> {
             ));
         }
         // A volume file given where a store is read: say what to do.
-        let hint = if !storage::is_remote(path) && path.is_file() {
+        let hint = if path.is_file() {
             "; a file, not a store: convert it first with `brickyard convert FILE STORE`"
         } else {
             ""
