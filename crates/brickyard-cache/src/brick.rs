@@ -313,7 +313,8 @@ impl std::fmt::Display for PoolTooSmall {
             "the pool holds {} bricks, but the coarsest level alone needs {} (kept resident so that every part of the volume can be drawn) plus as many to work with; give the pool at least {:.1} MiB",
             self.slots,
             self.needed,
-            self.minimum_bytes as f64 / (1u64 << 20) as f64
+            // (Rounded up: the figure given back must hold them.)
+            (self.minimum_bytes as f64 / (1u64 << 20) as f64 * 10.0).ceil() / 10.0
         )
     }
 }

@@ -213,6 +213,9 @@ fn status_bytes(key: &str) -> Option<u64> {
 /// still up to 5 % past the third (the heaps grow within one frame).
 const SLACK: u64 = 8;
 
+/// The least host cache a split keeps.
+pub const HOST_LEAST: u64 = 1 << 20;
+
 /// How a budget is split.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct Split {
@@ -236,6 +239,37 @@ pub struct Split {
 }
 
 impl Split {
+    /// Where the pool, a share of the budget, is too small to keep the
+    /// coarsest level resident (`least` bytes of pool: see
+    /// `BrickGeometry::pinned_levels`), it takes what it lacks from the
+    /// host cache's share, which keeps [`HOST_LEAST`] (a host cache
+    /// smaller than the coarsest level still pins it: the bricks go
+    /// straight on into the pool; a 256² render of 32-bit labels with 128
+    /// KiB of host cache completed as with 8 MiB). Returns the bytes
+    /// moved; `None` where the host cache cannot spare them (or the pool
+    /// needs none).
+    pub fn lend_pool(&mut self, least: u64) -> Option<u64> {
+        let short = least.checked_sub(self.pool).filter(|s| *s > 0)?;
+        if self.host < HOST_LEAST.saturating_add(short) {
+            return None;
+        }
+        self.host -= short;
+        self.pool += short;
+        Some(short)
+    }
+
+    /// A total that gives the pool `least` bytes, the host cache lending
+    /// what it can spare ([`Split::lend_pool`]), in whole MiB: what they
+    /// lack twice over, as at most half of a raise reaches the pool and
+    /// the host cache together (the decoded chunks, the allocator's slack
+    /// and a derived channel's filters take their parts of it).
+    pub fn total_holding_pool(&self, least: u64) -> u64 {
+        let short = least.saturating_sub(self.pool);
+        let spare = self.host.saturating_sub(HOST_LEAST);
+        let more = short.saturating_sub(spare).saturating_mul(2);
+        self.total.saturating_add(more).div_ceil(1 << 20) << 20
+    }
+
     pub fn describe(&self) -> String {
         format!(
             "memory budget {}{}: pool {}, host cache {}, decoded chunks {}, images {}, {}{}program {}",
@@ -438,7 +472,7 @@ pub fn split_with_shares(
     Ok(Split {
         total,
         pool,
-        host: host.max(1 << 20),
+        host: host.max(HOST_LEAST),
         chunks,
         images,
         fixed,
@@ -489,6 +523,37 @@ pub fn parse_bytes(s: &str) -> Result<u64> {
 
 #[cfg(test)]
 mod tests {
+
+    #[test]
+    fn the_host_cache_lends_the_pool_what_it_can_spare() {
+        let mb = |x: u64| x << 20;
+        let base = Split {
+            total: mb(64),
+            pool: mb(2),
+            host: mb(2),
+            chunks: mb(1),
+            images: mb(1),
+            fixed: mb(50),
+            device: 0,
+            filters: 0,
+            samples: 0,
+            explicit: true,
+        };
+        // Short by 1 MiB, the host cache keeps its least.
+        let mut s = base;
+        assert_eq!(s.lend_pool(mb(3)), Some(mb(1)));
+        assert_eq!((s.pool, s.host), (mb(3), HOST_LEAST));
+        assert_eq!(s.pool + s.host, base.pool + base.host);
+        // Short by more than it can spare: unchanged, and the total named
+        // gives twice what was missing beyond the spare.
+        let mut s = base;
+        assert_eq!(s.lend_pool(mb(4)), None);
+        assert_eq!(s, base);
+        assert_eq!(s.total_holding_pool(mb(4)), mb(66));
+        // A pool that holds it already borrows nothing.
+        assert_eq!(s.lend_pool(mb(2)), None);
+        assert_eq!(s.total_holding_pool(mb(2)), mb(64));
+    }
     use super::*;
 
     /// A split --memory cannot hold names the least it can, and that much

@@ -1801,19 +1801,49 @@ fn run_one(
             .set_read_delay(std::time::Duration::from_millis(c.read_delay_ms));
         // The coarsest levels stay resident: every sample finds data at some
         // level, whatever the pool's pressure.
-        let pinned = s
-            .pin_coarsest(512, std::time::Duration::from_secs(120))
-            .map_err(|e| {
-                if c.pool.is_some() {
-                    anyhow::anyhow!("pool: {e} (--pool)")
-                } else {
-                    // The pool was a share of --memory: say which knob moves it.
-                    anyhow::anyhow!(
-                        "pool: {e}; the pool is a share of --memory ({}): raise --memory, or set --pool",
-                        human_bytes(split.total)
-                    )
+        let pinned = match s.pin_coarsest(512, std::time::Duration::from_secs(120)) {
+            Ok(p) => p,
+            Err(e) if c.pool.is_some() => bail!("pool: {e} (--pool)"),
+            Err(e) => {
+                // The pool is a share of --memory: the host cache lends it
+                // what it lacks where it can spare it, else the run says
+                // which knob moves it.
+                let Some(moved) = split.lend_pool(e.minimum_bytes) else {
+                    bail!(
+                        "pool: {e}; the pool is a share of --memory ({}): raise --memory ({}MiB \
+                         holds it), or set --pool",
+                        human_bytes(split.total),
+                        split.total_holding_pool(e.minimum_bytes) >> 20
+                    );
+                };
+                say_err!(
+                    silent,
+                    "note: the pool takes {} of the host cache's share, to keep the coarsest \
+                     level resident (pool {}, host cache {})",
+                    human_bytes(moved),
+                    human_bytes(split.pool),
+                    human_bytes(split.host)
+                );
+                cfg.pool_bytes = split.pool;
+                if c.upload.is_none() && batch {
+                    cfg.upload_bytes_per_frame =
+                        split.pool.min(device.upload_cap().unwrap_or(u64::MAX));
                 }
-            })?;
+                if c.requests.is_none() {
+                    cfg.request_cap = crate::frames::requests_per_frame(
+                        split.pool,
+                        split.host,
+                        slot_bytes,
+                        if batch {
+                            crate::frames::BATCH_REQUESTS
+                        } else {
+                            crate::frames::STREAM_REQUESTS
+                        },
+                    );
+                }
+                continue;
+            }
+        };
         match crate::backend::Backend::choose_on(
             &backend_choice,
             gpu_update,

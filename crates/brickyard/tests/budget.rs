@@ -363,6 +363,82 @@ fn the_process_stays_within_its_memory_budget() {
     assert!(String::from_utf8_lossy(&o.stderr).contains("does not hold"));
 }
 
+/// Budgets just below and above the least a view takes: each one is drawn
+/// complete or refused with a total that holds it (drawn complete when
+/// given), and where the pool's share is a little short of the coarsest
+/// level the host cache's share lends it the rest. A 256³ u32 label image
+/// (its coarsest level 8 bricks of 2.4 MiB at 32³); the split is computed,
+/// not measured, so the same budgets fall the same way on every machine.
+#[test]
+fn a_budget_that_is_refused_names_one_that_holds_the_view() {
+    let d = tempfile::tempdir().unwrap();
+    let store = d.path().join("l.ome.zarr");
+    ok(&run(&[
+        "generate",
+        "mandelbulb",
+        s(&store),
+        "--size",
+        "256",
+        "--dtype",
+        "u32",
+        "--labels",
+        "--quiet",
+    ]));
+    let out = d.path().join("l.png");
+    let draw = |memory: u64| {
+        let m = format!("{memory}MiB");
+        run(&[
+            "render",
+            s(&store),
+            "--mode",
+            "dvr",
+            "--size",
+            "128",
+            "--backend",
+            "cpu",
+            "--json",
+            "--memory",
+            &m,
+            "--out",
+            s(&out),
+        ])
+    };
+    let (mut refused, mut lent, mut drawn) = (0, 0, 0);
+    for memory in 50..=58u64 {
+        let o = draw(memory);
+        let err = String::from_utf8_lossy(&o.stderr).into_owned();
+        if o.status.success() {
+            let v = summary(&String::from_utf8_lossy(&o.stdout));
+            assert_eq!(v["stop"], "complete", "{memory} MiB: {v}");
+            if err.contains("note: the pool takes") {
+                lent += 1;
+            } else {
+                drawn += 1;
+            }
+            continue;
+        }
+        assert_eq!(o.status.code(), Some(1), "{memory} MiB: {err}");
+        refused += 1;
+        let holds: u64 = err
+            .split("raise --memory (")
+            .nth(1)
+            .and_then(|t| t.split("MiB holds it)").next())
+            .and_then(|n| n.parse().ok())
+            .unwrap_or_else(|| panic!("{memory} MiB: no total named: {err}"));
+        assert!(holds > memory, "{memory} MiB: {err}");
+        let o = draw(holds);
+        assert!(
+            o.status.success(),
+            "{memory} MiB was refused naming {holds} MiB, which failed too: {}",
+            String::from_utf8_lossy(&o.stderr)
+        );
+    }
+    assert!(
+        refused > 0 && lent > 0 && drawn > 0,
+        "refused {refused}, lent {lent}, drawn {drawn}: the budgets no longer span the least"
+    );
+}
+
 /// The device back end's driver lives in the process too: `--memory` sets
 /// it aside (on a software adapter the device's copy of the pool besides),
 /// refuses a budget that cannot hold it, and `auto` takes the CPU rather

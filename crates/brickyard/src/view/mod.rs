@@ -391,9 +391,30 @@ pub fn run(c: ViewCmd, demo_store: impl FnOnce() -> Result<PathBuf>) -> Result<i
         );
     }
     let slots = cfg.pool_slots(m.dtype, geometry.total_bricks() as u64) as usize;
-    geometry
-        .pinned_levels(slots, cfg.slot_bytes(m.dtype), 512)
-        .map_err(|e| anyhow::anyhow!("pool: {e} (--pool)"))?;
+    if let Err(e) = geometry.pinned_levels(slots, cfg.slot_bytes(m.dtype), 512) {
+        if pool.is_some() {
+            anyhow::bail!("pool: {e} (--pool)");
+        }
+        // A share of --memory: the host cache lends the pool what it
+        // lacks where it can (as `render` does), else the run says which
+        // knob moves it.
+        let Some(moved) = split.lend_pool(e.minimum_bytes) else {
+            anyhow::bail!(
+                "pool: {e}; the pool is a share of --memory ({}): raise --memory ({}MiB holds \
+                 it), or set --pool",
+                brickyard_store::info::human_bytes(split.total),
+                split.total_holding_pool(e.minimum_bytes) >> 20
+            );
+        };
+        eprintln!(
+            "note: the pool takes {} of the host cache's share, to keep the coarsest level \
+             resident (pool {}, host cache {})",
+            brickyard_store::info::human_bytes(moved),
+            brickyard_store::info::human_bytes(split.pool),
+            brickyard_store::info::human_bytes(split.host)
+        );
+        cfg.pool_bytes = split.pool;
+    }
     cfg.request_cap = crate::frames::requests_per_frame(
         split.pool,
         split.host,
