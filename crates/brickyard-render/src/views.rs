@@ -220,7 +220,9 @@ pub fn compose(
     let bg = [0, 1, 2].map(|c| background[c] * background[3]);
     let w = img.width / count;
     let h = img.height;
-    let views: Vec<Image> = (0..count).map(|v| view(img, count, v)).collect();
+    // Pixel (x, y) of view v, read in place (copies of the views would
+    // take as much memory again as the image).
+    let at = |v: u32, x: u32, y: u32| img.rgba[(y * img.width + v * w + x) as usize];
     let pair = || {
         if count == 2 {
             Ok(())
@@ -237,12 +239,13 @@ pub fn compose(
             let cols = (count as f64).sqrt().ceil() as u32;
             let rows = count.div_ceil(cols);
             let mut out = Image::new(cols * w, rows * h);
-            for (v, im) in views.iter().enumerate() {
-                let (ox, oy) = ((v as u32 % cols) * w, (v as u32 / cols) * h);
+            for v in 0..count {
+                let (ox, oy) = ((v % cols) * w, (v / cols) * h);
                 for y in 0..h {
-                    for x in 0..w {
-                        out.set(ox + x, oy + y, im.get(x, y));
-                    }
+                    let from = (y * img.width + v * w) as usize;
+                    let to = ((oy + y) * out.width + ox) as usize;
+                    out.rgba[to..to + w as usize]
+                        .copy_from_slice(&img.rgba[from..from + w as usize]);
                 }
             }
             out
@@ -250,16 +253,23 @@ pub fn compose(
         Layout::TopBottom => {
             pair()?;
             let mut out = Image::new(w, 2 * h);
-            out.rgba[..(w * h) as usize].copy_from_slice(&views[0].rgba);
-            out.rgba[(w * h) as usize..].copy_from_slice(&views[1].rgba);
+            for v in 0..2 {
+                for y in 0..h {
+                    let from = (y * img.width + v * w) as usize;
+                    let to = ((v * h + y) * w) as usize;
+                    out.rgba[to..to + w as usize]
+                        .copy_from_slice(&img.rgba[from..from + w as usize]);
+                }
+            }
             out
         }
         Layout::Anaglyph => {
             pair()?;
             let mut out = Image::new(w, h);
             for (i, px) in out.rgba.iter_mut().enumerate() {
-                let l = over(views[0].rgba[i], bg);
-                let r = over(views[1].rgba[i], bg);
+                let (x, y) = (i as u32 % w, i as u32 / w);
+                let l = over(at(0, x, y), bg);
+                let r = over(at(1, x, y), bg);
                 let mut c = [0f32; 4];
                 for (o, cc) in c.iter_mut().take(3).enumerate() {
                     let mut s = 0.0;
@@ -286,7 +296,7 @@ pub fn compose(
                     let mut c = [0f32, 0.0, 0.0, 1.0];
                     for (s, cc) in c.iter_mut().take(3).enumerate() {
                         let v = m.view_of(x, y, s as u32) as usize;
-                        *cc = over(views[v].get(x, y), bg)[s];
+                        *cc = over(at(v as u32, x, y), bg)[s];
                     }
                     out.set(x, y, c);
                 }
@@ -378,8 +388,22 @@ mod tests {
         assert_eq!((tb.width, tb.height), (8, 10));
         assert_eq!(tb.get(3, 2), img.get(3, 2));
         assert_eq!(tb.get(3, 7), img.get(8 + 3, 2));
-        let tiles = compose(&views_image(5, 4, 3), 5, &Layout::Tiles, [0.0; 4]).unwrap();
+        let five = views_image(5, 4, 3);
+        let tiles = compose(&five, 5, &Layout::Tiles, [0.0; 4]).unwrap();
         assert_eq!((tiles.width, tiles.height), (12, 6));
+        // Views 0–2 on the first row of tiles, 3–4 on the second, the
+        // sixth tile clear; each pixel as the view itself has it.
+        for v in 0..6u32 {
+            let (ox, oy) = ((v % 3) * 4, (v / 3) * 3);
+            for (x, y) in (0..4).flat_map(|x| (0..3).map(move |y| (x, y))) {
+                let want = if v < 5 {
+                    view(&five, 5, v).get(x, y)
+                } else {
+                    [0.0; 4]
+                };
+                assert_eq!(tiles.get(ox + x, oy + y), want, "view {v} ({x}, {y})");
+            }
+        }
         assert!(compose(&views_image(3, 4, 3), 3, &Layout::Anaglyph, [0.0; 4]).is_err());
         // White on the left only: red lit, cyan dark; on the right only:
         // red dark, green and blue lit.

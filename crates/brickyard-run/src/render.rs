@@ -1095,6 +1095,8 @@ fn run_one(
     // `--out` (numbered for turntables).
     let compose = |img: brickyard_render::image::Image| -> Result<brickyard_render::image::Image> {
         match &layout {
+            // (Side by side is the image as drawn: not copied.)
+            Some(brickyard_render::views::Layout::SideBySide) if n_views == 2 => Ok(img),
             Some(l) => brickyard_render::views::compose(&img, n_views, l, [0.0, 0.0, 0.0, 1.0])
                 .map_err(|e| anyhow::anyhow!("views: {e}")),
             None => Ok(img),
