@@ -162,6 +162,40 @@ impl Pipeline {
         self.ops.iter().map(Op::text).collect::<Vec<_>>().join("|")
     }
 
+    /// On a label image, whose values are names: the stages that would mix
+    /// label ids as if they were intensities (averages, gradients,
+    /// medians) before a threshold, window or labelling makes a mask of
+    /// them. Empty where the pipeline suits labels (`threshold(0)` keeps
+    /// every label, `window(a,b)` the labels a to b, and filters after
+    /// them smooth the mask).
+    pub fn mixes_label_ids(&self) -> Vec<&Op> {
+        self.ops
+            .iter()
+            .take_while(|op| !matches!(op, Op::Threshold(_) | Op::Window(..) | Op::Label(_)))
+            .filter(|op| {
+                matches!(
+                    op,
+                    Op::Gauss(_) | Op::GradMag(_) | Op::Sobel | Op::Median(_)
+                )
+            })
+            .collect()
+    }
+
+    /// The note for [`Pipeline::mixes_label_ids`] on the label image
+    /// `name`, or `None` where the pipeline suits labels.
+    pub fn label_ids_note(&self, name: &str) -> Option<String> {
+        let mixing = self.mixes_label_ids();
+        let first = mixing.first()?;
+        Some(format!(
+            "{name} is a label image: {} treat{} its label ids as intensities (the result depends on \
+             how the labels happen to be numbered); threshold(0) first makes a mask of all its \
+             labels (e.g. \"threshold(0)|{}\"), window(a,b) of the labels a to b",
+            mixing.iter().map(|op| op.text()).collect::<Vec<_>>().join(", "),
+            if mixing.len() == 1 { "s" } else { "" },
+            first.text()
+        ))
+    }
+
     /// Whether the result is a label or mask image (written with mode
     /// downsampling, under `labels/`).
     pub fn is_label_output(&self) -> bool {
@@ -332,6 +366,37 @@ fn split_unit(a: &str) -> (&str, &str) {
 
 #[cfg(test)]
 mod tests {
+    #[test]
+    fn filters_before_a_mask_mix_label_ids_and_after_it_do_not() {
+        let mixing = |t: &str| {
+            Pipeline::parse(t)
+                .unwrap()
+                .mixes_label_ids()
+                .iter()
+                .map(|op| op.text())
+                .collect::<Vec<_>>()
+        };
+        assert_eq!(mixing("gauss(2)"), ["gauss(2)"]);
+        assert_eq!(
+            mixing("median(1)|sobel|threshold(3)"),
+            ["median(1)", "sobel"]
+        );
+        assert!(mixing("threshold(0)|gauss(2)").is_empty());
+        assert!(mixing("window(3,5)|gradmag(1)").is_empty());
+        assert!(mixing("label(26)").is_empty());
+        let p = Pipeline::parse("gauss(2)|sobel").unwrap();
+        let note = p.label_ids_note("labels/cells").unwrap();
+        assert!(
+            note.starts_with("labels/cells is a label image: gauss(2), sobel treat its"),
+            "{note}"
+        );
+        assert!(note.contains("\"threshold(0)|gauss(2)\""), "{note}");
+        assert!(Pipeline::parse("threshold(0)")
+            .unwrap()
+            .label_ids_note("x")
+            .is_none());
+    }
+
     use super::*;
 
     /// Huge and tiny numbers are said in exponent form (σ 1e308 took 309

@@ -567,6 +567,12 @@ fn run_job(
             store.display()
         )
     })?;
+    // A label image's values are names: filters that mix them are said
+    // in the report (the job runs: a user may mean it).
+    let ids_note = match ms.label_image {
+        true => pipe.label_ids_note(&store.display().to_string()),
+        false => None,
+    };
     let brick: [u64; 3] = ms
         .brickyard
         .as_ref()
@@ -995,14 +1001,21 @@ fn run_job(
         seconds: t0.elapsed().as_secs_f64(),
         // Label images are drawn over their image (render --labels) on
         // its grid only; one made from a coarser level is drawn alone.
-        note: (is_label && c.level > 0).then(|| {
-            format!(
-                "it lies on level {}'s grid, not the image's: render --labels draws label images \
-                 over the image on its own grid only; draw it alone with brickyard render {}",
-                c.level,
-                paths.fin.display()
-            )
-        }),
+        note: [
+            ids_note,
+            (is_label && c.level > 0).then(|| {
+                format!(
+                    "it lies on level {}'s grid, not the image's: render --labels draws label \
+                     images over the image on its own grid only; draw it alone with brickyard \
+                     render {}",
+                    c.level,
+                    paths.fin.display()
+                )
+            }),
+        ]
+        .into_iter()
+        .flatten()
+        .reduce(|a, b| format!("{a}; {b}")),
     })
 }
 

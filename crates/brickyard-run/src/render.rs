@@ -1292,6 +1292,11 @@ fn run_one(
                 c.brick,
             )?;
             filter_bytes = bytes;
+            if info.label_image {
+                if let Some(n) = d.pipeline.label_ids_note(&c.store.display().to_string()) {
+                    say_err!(silent, "note: {n}");
+                }
+            }
             Some(d)
         }
         None => None,
