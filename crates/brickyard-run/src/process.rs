@@ -184,6 +184,15 @@ impl Paths {
     /// yet swapped back comes back; unpublished results go.
     fn recover(&self) -> Result<()> {
         if self.old.exists() {
+            if !self.old.is_dir() {
+                // (Not a result: an earlier version moved a file of the
+                // user's here when asked to overwrite it.)
+                bail!(
+                    "{}: not a result (a file): move it back to {} or remove it yourself",
+                    self.old.display(),
+                    self.fin.display()
+                );
+            }
             if self.fin.exists() {
                 note(&format!(
                     "removing {} (left by an interrupted run)",
@@ -711,18 +720,6 @@ fn run_job(
     let other = store
         .join(if is_label { "derived" } else { "labels" })
         .join(&c.out);
-    if other.exists() {
-        bail!(
-            "{}: a result of this name is there already ({}); give another {}out",
-            other.display(),
-            if is_label {
-                "not a label image: derived"
-            } else {
-                "a label image"
-            },
-            caller.flag
-        );
-    }
     let paths = Paths::new(dir, &c.out);
     let made_dir = !paths.dir.exists();
     std::fs::create_dir_all(&paths.dir)
@@ -743,6 +740,42 @@ fn run_job(
         }
         e
     };
+    // A job writing this name as the other kind (a label image beside a
+    // derived result, or the other way round) would publish the second
+    // of one name: refused while it is at work; before publishing, the
+    // first published holds the name (two started at once: the second
+    // to end is refused).
+    let other_kind = |what: &str, at_work: bool| -> Option<anyhow::Error> {
+        let lock = other.with_file_name(format!(".{}.lock", c.out));
+        if other.exists() {
+            return Some(anyhow::anyhow!(
+                "{}: a result of this name is there already ({}); give another {}out",
+                other.display(),
+                what,
+                caller.flag
+            ));
+        }
+        if !at_work {
+            return None;
+        }
+        brickyard_store::lock::live_holder(&lock).map(|pid| {
+            anyhow::anyhow!(
+                "{}: another process (pid {pid}) is writing a result of this name ({}); give \
+                 another {}out, or wait for it to end",
+                other.display(),
+                what,
+                caller.flag
+            )
+        })
+    };
+    let other_what = if is_label {
+        "not a label image: derived"
+    } else {
+        "a label image"
+    };
+    if let Some(e) = other_kind(other_what, true) {
+        return Err(leave(e));
+    }
     paths.recover().map_err(leave)?;
     if paths.fin.exists() && !c.overwrite {
         return Err(leave(anyhow::anyhow!(
@@ -750,6 +783,36 @@ fn run_job(
             paths.fin.display(),
             caller.overwrite
         )));
+    }
+    // --overwrite replaces a result, never what is not one (a folder of
+    // the user's, a file), nor what a result holds that the job does not
+    // make again (results made from it).
+    if paths.fin.exists() {
+        if !brickyard_store::builder::replaceable(&paths.fin) {
+            return Err(leave(anyhow::anyhow!(
+                "{}: exists and is not a result ({}): {}overwrite replaces results only; \
+                 remove it yourself or give another {}out",
+                paths.fin.display(),
+                if paths.fin.is_dir() {
+                    "a folder with no zarr.json in it"
+                } else {
+                    "a file"
+                },
+                caller.flag,
+                caller.flag
+            )));
+        }
+        let lost = brickyard_store::builder::not_remade(&paths.fin);
+        if !lost.is_empty() {
+            return Err(leave(anyhow::anyhow!(
+                "{}: {}overwrite would delete what the job does not make again: {}; move it \
+                 out first, or give another {}out",
+                paths.fin.display(),
+                caller.flag,
+                lost.join(", "),
+                caller.flag
+            )));
+        }
     }
     // A damaged list of label images is refused before any work (it is
     // read again, under its lock, when the result is added to it).
@@ -946,6 +1009,10 @@ fn run_job(
     // The last moment a Ctrl-C leaves the store as it was.
     if cancel.load(Ordering::SeqCst) {
         return Err(cleanup(StoreError::Interrupted.into()));
+    }
+    // (The other kind of result may have come meanwhile: see above.)
+    if let Some(e) = other_kind(other_what, false) {
+        return Err(cleanup(e));
     }
     // The group names the result before it is put in place: a write that
     // fails here (a full disk) leaves the store as it was, and a result in

@@ -378,6 +378,75 @@ fn a_second_job_on_the_same_name_is_refused_while_the_first_runs() {
     assert!(!lock.exists());
 }
 
+/// `--overwrite` replaces results only: a folder or file of the user's at
+/// the result's place, and results made from the old result, stay as they
+/// are, with an error naming them; a job writing the name as the other
+/// kind (a label image beside a derived result) is refused while it runs.
+#[test]
+fn overwrite_replaces_results_only_and_one_name_is_one_kind() {
+    let d = tempfile::tempdir().unwrap();
+    let store = make_store(d.path(), "40");
+    let process = |pipeline: &str, out: &str| {
+        run(&[
+            "process",
+            s(&store),
+            pipeline,
+            "--out",
+            out,
+            "--overwrite",
+            "--quiet",
+        ])
+    };
+    let refused = |o: &Output, want: &str| {
+        let e = String::from_utf8_lossy(&o.stderr);
+        assert_eq!(o.status.code(), Some(1), "{e}");
+        assert!(e.contains(want) && !e.contains("panicked"), "{e}");
+    };
+    // A folder of the user's.
+    ok(process("gauss(1)", "g"));
+    let mine = store.join("derived/mine");
+    std::fs::create_dir_all(&mine).unwrap();
+    std::fs::write(mine.join("notes.txt"), "precious").unwrap();
+    refused(
+        &process("gauss(1)", "mine"),
+        "derived/mine: exists and is not a result (a folder with no zarr.json in it)",
+    );
+    assert_eq!(std::fs::read(mine.join("notes.txt")).unwrap(), b"precious");
+    // A file of the user's: not moved aside, the store untouched.
+    let file = store.join("derived/notes");
+    std::fs::write(&file, "mine").unwrap();
+    let before = snapshot(&store);
+    refused(&process("gauss(1)", "notes"), "is not a result (a file)");
+    assert_eq!(snapshot(&store), before);
+    // A result made from the result.
+    ok(run(&[
+        "process",
+        s(&store.join("derived/g")),
+        "gauss(1)",
+        "--out",
+        "gg",
+        "--quiet",
+    ]));
+    refused(
+        &process("gauss(2)", "g"),
+        "--overwrite would delete what the job does not make again: derived/gg",
+    );
+    assert!(store.join("derived/g/derived/gg/zarr.json").is_file());
+    // A live job writing `cells` as a label image (its lock, naming this
+    // process): a derived `cells` is refused, and goes once it is gone.
+    std::fs::create_dir_all(store.join("labels")).unwrap();
+    let lock = store.join("labels/.cells.lock");
+    std::fs::write(&lock, format!("{}\n", std::process::id())).unwrap();
+    refused(&process("gauss(1)", "cells"), "another process (pid");
+    assert!(!store.join("derived/cells").exists());
+    std::fs::remove_file(&lock).unwrap();
+    ok(process("gauss(1)", "cells"));
+    refused(
+        &process("threshold(30000)", "cells"),
+        "a result of this name is there already",
+    );
+}
+
 /// Jobs that publish different label images into the same store at the
 /// same time each add their name to the labels group's list: none is lost
 /// (the list was read at the start and written at the end, so the last
