@@ -721,6 +721,13 @@ fn run_job(
         .join(if is_label { "derived" } else { "labels" })
         .join(&c.out);
     let paths = Paths::new(dir, &c.out);
+    if paths.dir.exists() && !paths.dir.is_dir() {
+        bail!(
+            "{}: a file, where results are written into a folder of this name; move the file \
+             out of the store",
+            paths.dir.display()
+        );
+    }
     let made_dir = !paths.dir.exists();
     std::fs::create_dir_all(&paths.dir)
         .with_context(|| format!("{}: cannot create", paths.dir.display()))?;

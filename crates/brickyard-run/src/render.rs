@@ -1818,7 +1818,7 @@ fn run_one(
                 let Some(moved) = split.lend_pool(e.minimum_bytes) else {
                     bail!(
                         "pool: {e}; the pool is a share of --memory ({}): raise --memory ({}MiB \
-                         holds it), or set --pool",
+                         holds it)",
                         human_bytes(split.total),
                         split.total_holding_pool(e.minimum_bytes) >> 20
                     );
@@ -2233,8 +2233,17 @@ fn run_one(
                 },
                 Lod::Auto { .. } => format!("LOD bias {:+.1} (asked {:+.1})", b.bias, b.base),
             };
+            // (The resident coarsest levels take their part of it.)
+            let pinned = s.vm().pinned_bricks() as u64 * slot_bytes;
+            let beside = match pinned {
+                0 => String::new(),
+                p => format!(
+                    ", {} of it beside the resident coarsest levels",
+                    human_bytes((s.vm().pool_bytes() as u64).saturating_sub(p))
+                ),
+            };
             format!(
-                " at {at}: the pool holds {}{need}",
+                " at {at}: the pool holds {}{beside}{need}",
                 human_bytes(s.vm().pool_bytes() as u64)
             )
         } else {

@@ -143,14 +143,24 @@ enum VmCmd {
     Footprint(vmcmd::FootprintCmd),
 }
 
+/// An edge in voxels from 2 to `most` (`--brick`, `--shard`).
+fn edge(t: &str, most: u64) -> Result<u64, String> {
+    t.trim()
+        .parse::<u64>()
+        .ok()
+        .filter(|v| (2..=most).contains(v))
+        .ok_or_else(|| format!("expected a number of voxels from 2 to {most}, found {t:?}"))
+}
+
 #[derive(Args, Clone)]
 struct PyramidArgs {
     /// Brick (inner chunk) edge in voxels (even, 2 to 1024) [default: 64].
-    #[arg(long, value_parser = clap::value_parser!(u64).range(2..=1024))]
+    // (`--brick -64` gets the range's message, not taken for flags.)
+    #[arg(long, allow_hyphen_values = true, value_parser = |t: &str| edge(t, 1024))]
     brick: Option<u64>,
     /// Shard edge in voxels (a multiple of the brick, at most 16384)
     /// [default: 512 rounded up to a multiple of the brick].
-    #[arg(long, value_parser = clap::value_parser!(u64).range(2..=16384))]
+    #[arg(long, allow_hyphen_values = true, value_parser = |t: &str| edge(t, 16384))]
     shard: Option<u64>,
     /// lz4 (blosc), zstd, zstd:LEVEL or none [default: lz4].
     #[arg(long)]

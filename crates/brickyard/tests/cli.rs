@@ -153,6 +153,24 @@ fn bad_inputs_give_clear_errors() {
         ]),
         &["memory"],
     );
+    // A negative edge is a value out of range, not a flag.
+    fails_with(
+        &run(&[
+            "convert",
+            s(&raw),
+            s(&out),
+            "--dims",
+            "10x10x10",
+            "--dtype",
+            "u8",
+            "--brick",
+            "-64",
+        ]),
+        &[
+            "--brick",
+            "expected a number of voxels from 2 to 1024, found \"-64\"",
+        ],
+    );
     // info on something that is not a store.
     fails_with(&run(&["info", s(&raw)]), &["v.raw"]);
 }

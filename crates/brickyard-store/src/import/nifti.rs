@@ -149,13 +149,17 @@ impl NiftiSource {
             shape += &format!("×{}", self.meta.channels);
         }
         let need = self.stored_channel_bytes() * self.meta.channels as u64;
+        let holds = match self.data {
+            Data::Raw(_) => format!("file holds {held} bytes of voxel data"),
+            Data::Gz(_) => format!(
+                "the gzip stream is cut short (a truncated file?): its voxel data ends after \
+                 {held} bytes"
+            ),
+        };
         StoreError::invalid(
             &self.data_path,
             "data",
-            format!(
-                "file holds {held} bytes of voxel data, dims {shape} × {} need {need}",
-                self.stored
-            ),
+            format!("{holds}, dims {shape} × {} need {need}", self.stored),
         )
     }
 
@@ -2362,6 +2366,8 @@ mod tests {
         let src = open(&p).unwrap();
         let mut out = vec![0u8; src.meta().channel_bytes() as usize];
         let r = src.read_region(0, 0..16, 0..64, 0..64, &mut out);
+        let msg = r.as_ref().err().map(|e| e.to_string()).unwrap_or_default();
+        assert!(msg.contains("the gzip stream is cut short"), "{msg}");
         assert_err(r, "cut.nii.gz", "data");
     }
 

@@ -401,7 +401,7 @@ pub fn run(c: ViewCmd, demo_store: impl FnOnce() -> Result<PathBuf>) -> Result<i
         let Some(moved) = split.lend_pool(e.minimum_bytes) else {
             anyhow::bail!(
                 "pool: {e}; the pool is a share of --memory ({}): raise --memory ({}MiB holds \
-                 it), or set --pool",
+                 it)",
                 brickyard_store::info::human_bytes(split.total),
                 split.total_holding_pool(e.minimum_bytes) >> 20
             );
