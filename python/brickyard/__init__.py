@@ -960,4 +960,8 @@ def process(store: Union[Store, str, os.PathLike], pipeline: str, out: str, *, l
         if bar is not None:
             bar.close()
     result = os.fspath(result)
+    # What the CLI's report says of the result (label ids filtered as
+    # intensities, labels off the image's grid), as a UserWarning.
+    for note in _line.split("; note: ")[1:]:
+        warnings.warn(f"{result}: {note}", UserWarning, stacklevel=2)
     return open(result) if open_result else result

@@ -1,6 +1,7 @@
 """brickyard.process against the CLI (bit for bit) and scipy.ndimage (within tolerance)."""
 
 import os
+import warnings
 import re
 import shutil
 import signal
@@ -112,6 +113,23 @@ def test_labels_equal_cli_and_scipy(two_stores, vol, cli, tmp_path):
     assert np.array_equal(lab > 0, ref > 0)
     pairs = np.unique(np.stack([lab[ref > 0], ref[ref > 0]]), axis=1)
     assert pairs.shape[1] == n
+
+
+def test_filtering_label_ids_warns_and_a_mask_of_them_does_not(two_stores, vol):
+    _, b = two_stores
+    t = float(np.percentile(vol, 80))
+    cells = brickyard.process(b, f"threshold({t})|label(26)", out="cells", progress=False)
+    with pytest.warns(UserWarning, match=r"is a label image: gauss\(1\) treats its label ids as intensities"):
+        brickyard.process(cells, "gauss(1)", out="smooth", progress=False)
+    # threshold(0): the mask of every label, smoothed: no warning, and the
+    # values are those of the mask's own Gaussian.
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        r = brickyard.process(cells, "threshold(0)|gauss(1)", out="m", progress=False)
+    lab = levels(cells.path)[0]
+    want = ndi.gaussian_filter((lab > 0).astype(np.float64), 1.0, mode="nearest")
+    got = levels(r.path)[0]
+    assert np.abs(got - want).max() <= TOL
 
 
 def cli_error(*args):
