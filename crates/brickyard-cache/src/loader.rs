@@ -504,6 +504,9 @@ impl Shared {
             let mut rest = run.into_iter();
             while let Some(e) = rest.next() {
                 self.load_one(e.key);
+                if let Some(f) = RELIEF.get() {
+                    f();
+                }
                 if rest.len() == 0 {
                     break;
                 }
@@ -576,6 +579,19 @@ impl Shared {
 
 /// The most bricks one thread claims at a time ([`Shared::claim`]).
 const RUN_MAX: usize = 4;
+
+/// What the loader's threads call after each brick they load (see
+/// [`set_relief`]).
+static RELIEF: std::sync::OnceLock<fn()> = std::sync::OnceLock::new();
+
+/// Have every loader's threads call `f` after each brick they load: the
+/// program's way to keep the process within its memory budget while a
+/// frame waits for its bricks (heaps grow within one frame of a batch
+/// render, which waits for all of them). `f` keeps its own pace. Set once
+/// per process; later calls are ignored.
+pub fn set_relief(f: fn()) {
+    let _ = RELIEF.set(f);
+}
 
 /// How far ahead of the loads the loader hints the store's bytes to the
 /// system, in queued bricks ([`Shared::ahead`]): 32 bricks of 64³ u8 keep

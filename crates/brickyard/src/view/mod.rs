@@ -354,6 +354,9 @@ pub fn run(c: ViewCmd, demo_store: impl FnOnce() -> Result<PathBuf>) -> Result<i
         (derived_within.as_ref().map_or(0, |(_, b)| *b), 0),
     )?;
     device.take_from(&mut split, pool)?;
+    // Freed memory goes back to the system near the budget, as the loader
+    // loads (as in `render`).
+    crate::memory::watch(split.total);
     // The label image's session: a quarter of the pool, the host cache
     // and the decoded chunks (it draws slices only).
     let label_bytes = label_dir.as_ref().map(|_| {
