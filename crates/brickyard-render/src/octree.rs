@@ -261,6 +261,13 @@ impl Octree {
     /// frame's kept beside the one being made (measured on the CPU: about
     /// 80 bytes per node and level at depths 6 and 7, whatever the
     /// channels).
+    /// Bytes of the tables a device frame through an octree of `depth`
+    /// binds in one storage buffer (residency masks, depths, level
+    /// offsets), beside the transfer functions.
+    pub fn device_table_bytes(depth: u32, levels: usize, channels: usize) -> u64 {
+        dvr::OctFrame::device_layout(depth.min(MAX_DEPTH), levels, channels)[2] as u64 * 4
+    }
+
     pub fn working_bytes(depth: u32, levels: usize, channels: usize) -> u64 {
         Octree::bytes(depth, levels, channels)
             + node_count(depth.min(MAX_DEPTH)) as u64 * levels as u64 * 80

@@ -248,6 +248,15 @@ pub fn plan_device(choice: &str, adapter: usize, memory: Option<u64>) -> DeviceP
 }
 
 impl Backend {
+    /// The largest storage buffer a device frame may bind (`None`: the
+    /// CPU).
+    pub fn max_storage_binding(&self) -> Option<u64> {
+        match self {
+            Backend::Gpu(g) => Some(g.gpu.max_storage_binding()),
+            Backend::Cpu => None,
+        }
+    }
+
     /// A device whose memory is this process's (a software adapter): what
     /// it allocates counts against --memory.
     pub fn device_in_host_memory(&self) -> bool {

@@ -956,6 +956,34 @@ pub fn fit_octree_depth(asked: u32, levels: usize, channels: usize, total: u64) 
     }
 }
 
+/// The deepest octree at most `asked` whose device tables (and a
+/// transfer function's room beside them) a device's storage buffer of
+/// `limit` bytes holds.
+pub fn fit_octree_to_device(asked: u32, levels: usize, channels: usize, limit: u64) -> OctreeFit {
+    use brickyard_render::octree::{Octree, MIN_DEPTH};
+    // (Transfer functions, channel styles and a label selection: within
+    // 1 MiB.)
+    let cost = |d: u32| Octree::device_table_bytes(d, levels, channels.max(1)) + (1 << 20);
+    let mut depth = asked;
+    while depth > MIN_DEPTH && cost(depth) > limit {
+        depth -= 1;
+    }
+    let note = (depth < asked).then(|| {
+        format!(
+            "note: octree-depth {asked}: its tables would take {} on the device, past its limit \
+             of {} for one buffer: drawing through depth {depth} (the image is the same, space \
+             is skipped in larger steps)",
+            human_bytes(cost(asked)),
+            human_bytes(limit)
+        )
+    });
+    OctreeFit {
+        depth,
+        bytes: cost(depth),
+        note,
+    }
+}
+
 /// A `--turntable` count: 1 to 3600 views, said so for any other value (a
 /// negative one got the parser's "not in 0..=4294967295").
 fn parse_views(s: &str) -> std::result::Result<u32, String> {
@@ -1885,6 +1913,19 @@ fn run_one(
     // function hides without loading it.
     scene.ranges = Some(std::sync::Arc::new(s.loader().brick_ranges(1 << 24)));
     if traversal == Traversal::Octree {
+        // A device binds the octree's tables in one buffer: a depth whose
+        // tables pass the device's limit for one is lowered (as one past
+        // --memory is), and the run says so.
+        let octree_depth = match backend.max_storage_binding() {
+            Some(limit) => {
+                let fit = fit_octree_to_device(octree_depth, scene.levels.len(), m.channels, limit);
+                if let Some(n) = &fit.note {
+                    say_err!(silent, "{n}");
+                }
+                fit.depth
+            }
+            None => octree_depth,
+        };
         crate::backend::attach_octree(&mut scene, &mut s, octree_depth)?;
     }
     let lod = match c.level {
@@ -3112,4 +3153,29 @@ fn draw_bands(
         unserved,
         seconds: t0.elapsed().as_secs_f64(),
     })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// An octree whose device tables pass the device's limit for one
+    /// buffer is drawn through the deepest that fits, and said so.
+    #[test]
+    fn an_octree_too_deep_for_the_device_is_lowered_to_fit() {
+        use brickyard_render::octree::Octree;
+        let limit = 128u64 << 20;
+        let fit = fit_octree_to_device(7, 3, 1, limit);
+        assert!(Octree::device_table_bytes(7, 3, 1) > limit);
+        assert_eq!(fit.depth, 6);
+        assert!(fit.bytes <= limit);
+        let note = fit.note.unwrap();
+        assert!(
+            note.contains("past its limit of 128.0 MiB") && note.contains("depth 6"),
+            "{note}"
+        );
+        // One that fits is left as asked, without a note.
+        let fit = fit_octree_to_device(5, 3, 1, limit);
+        assert_eq!((fit.depth, fit.note), (5, None));
+    }
 }

@@ -281,6 +281,23 @@ fn open(setup: &Setup, scene: &mut Scene) -> anyhow::Result<(Session, Backend)> 
     // The residency octree of this session's virtual memory.
     scene.octree = None;
     if let Some(depth) = setup.octree {
+        // (A depth whose tables pass the device's limit for one buffer is
+        // lowered, as `render` does.)
+        let depth = match b.max_storage_binding() {
+            Some(limit) => {
+                let fit = crate::render::fit_octree_to_device(
+                    depth,
+                    scene.levels.len(),
+                    setup.channels,
+                    limit,
+                );
+                if let Some(n) = &fit.note {
+                    eprintln!("{n}");
+                }
+                fit.depth
+            }
+            None => depth,
+        };
         crate::backend::attach_octree(scene, &mut s, depth)?;
     }
     Ok((s, b))
