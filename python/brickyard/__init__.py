@@ -775,11 +775,12 @@ def convert(src: Union[str, os.PathLike, Sequence[Union[str, os.PathLike]]], dst
 
 
 def _warn_notes(dst: Any, report: str) -> str:
-    """`report` as written, with its notes (a label image off its image's
-    grid: listed, but not drawn over it) also raised as a UserWarning, which
-    a script sees where a note inside the returned text goes unread."""
+    """`report` as written, with its notes (no voxel spacing in the input; a
+    label image off its image's grid: listed, but not drawn over it) also
+    raised as UserWarnings, which a script sees where a note inside the
+    returned text goes unread."""
     for note in report.split("; note: ")[1:]:
-        warnings.warn(f"{os.fspath(dst)}: a label image off its image's grid: {note}", UserWarning, stacklevel=3)
+        warnings.warn(f"{os.fspath(dst)}: {note}", UserWarning, stacklevel=3)
     return report
 
 

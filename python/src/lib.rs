@@ -556,12 +556,16 @@ impl PyConvertOptions {
     }
 }
 
+/// `file_notes`: the conversion's notes on its input (no voxel spacing,
+/// ...) are added to the report, as for a file (an array without spacing
+/// is the rule, not worth a warning).
 fn run_convert(
     py: Python<'_>,
     src: &dyn VolumeSource,
     dst: &Path,
     opts: &ConvertOptions,
     progress: Option<Py<PyAny>>,
+    file_notes: bool,
 ) -> PyResult<String> {
     let cancel = AtomicBool::new(false);
     let error = std::sync::Mutex::new(None);
@@ -634,12 +638,21 @@ fn run_convert(
                 t += &format!("; no table of label statistics ({why})");
             }
             if let Some(how) = notes.off_grid {
-                t += &format!("; note: {how}");
+                t += &format!("; note: a label image off its image's grid: {how}");
             }
             Some(t)
         }
         false => None,
     };
+    // The conversion's notes (no spacing in the input, ...), which the
+    // bindings raise as warnings.
+    let table = table.unwrap_or_default()
+        + &report
+            .notes
+            .iter()
+            .filter(|_| file_notes)
+            .map(|n| format!("; note: {n}"))
+            .collect::<String>();
     Ok(format!(
         "{} levels, {} bricks ({} empty, {} constant incl. empty), {} bytes written in {:.2} s{}",
         report.levels.len(),
@@ -648,7 +661,7 @@ fn run_convert(
         report.bricks_constant,
         report.bytes_written,
         report.seconds,
-        table.unwrap_or_default()
+        table
     ))
 }
 
@@ -709,7 +722,7 @@ fn convert(
         };
         Box::new(stack.map_err(|e| to_py(e.into()))?)
     };
-    run_convert(py, source.as_ref(), &dst, &opts, progress)
+    run_convert(py, source.as_ref(), &dst, &opts, progress, true)
 }
 
 /// Convert a NumPy array (C-contiguous, native-endian, `[c, z, y, x]` of
@@ -736,7 +749,7 @@ fn from_array(
     if let Some(names) = &options.channel_names {
         src.name_channels(names);
     }
-    run_convert(py, &src, &dst, &opts, progress)
+    run_convert(py, &src, &dst, &opts, progress, false)
 }
 
 /// Convert a lazy array into a brickyard OME-Zarr pyramid, region by
@@ -764,7 +777,7 @@ fn from_lazy(
     if let Some(names) = &options.channel_names {
         src.name_channels(names);
     }
-    let r = run_convert(py, &src, &dst, &opts, progress);
+    let r = run_convert(py, &src, &dst, &opts, progress, false);
     let cause = src.error.lock().unwrap().take();
     match (r, cause) {
         // Ctrl-C inside the array's own code: raised as it came.

@@ -499,3 +499,22 @@ def test_process_refuses_a_closed_store_as_render_does(tmp_path):
     with pytest.raises(ValueError, match="the store is closed"):
         brickyard.process(s, "gauss(1)", out="g", progress=False)
     assert not (p / "derived").exists()
+
+
+def test_the_conversions_notes_are_warnings(tmp_path):
+    # A file without voxel spacing: the CLI's note ("1 unit per voxel")
+    # went to fd 2 only, unseen in a notebook; now a UserWarning. An
+    # array without spacing is the rule and gets none, nor a file given
+    # its spacing.
+    import tifffile
+    tif = tmp_path / "s.tif"
+    tifffile.imwrite(tif, np.arange(4 * 8 * 8, dtype=np.uint16).reshape(4, 8, 8), photometric="minisblack")
+    with pytest.warns(UserWarning, match=r"t\.ome\.zarr: the input gives no voxel spacing: 1 unit per voxel"):
+        brickyard.convert(tif, tmp_path / "t.ome.zarr", progress=False)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        brickyard.convert(tif, tmp_path / "u.ome.zarr", spacing=(1.0, 2.0, 2.0), progress=False)
+        brickyard.from_numpy(np.zeros((8, 8, 8), np.uint8), tmp_path / "v.ome.zarr", progress=False)
+    # A mask that came out empty: the note is a warning too.
+    with pytest.warns(UserWarning, match=r"no voxel is in the mask \(threshold\(100000\)\)"):
+        brickyard.process(tmp_path / "u.ome.zarr", "threshold(100000)", out="none", progress=False)

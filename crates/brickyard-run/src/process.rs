@@ -88,16 +88,17 @@ pub struct ProcessReport {
     /// The device the filter stages ran on (`None`: the CPU).
     pub device: Option<String>,
     pub seconds: f64,
-    /// What the user should know of the result (a label image of a
-    /// coarser level lies off the image's grid).
-    pub note: Option<String>,
+    /// What the user should know of the result: label ids filtered as
+    /// intensities, a mask that came out empty or full, a label image of a
+    /// coarser level off the image's grid.
+    pub notes: Vec<String>,
 }
 
 impl ProcessReport {
-    /// `wrote OUTPUT (DTYPE, N levels[, M labels]) in S s[; note: …]`.
-    pub fn summary(&self) -> String {
+    /// `wrote OUTPUT (DTYPE, N levels[, M labels]) in S s`.
+    pub fn headline(&self) -> String {
         format!(
-            "wrote {} ({}, {} levels{}) in {:.2} s{}",
+            "wrote {} ({}, {} levels{}) in {:.2} s",
             self.output.display(),
             self.dtype,
             self.levels,
@@ -105,10 +106,18 @@ impl ProcessReport {
                 .map(|n| format!(", {n} labels"))
                 .unwrap_or_default(),
             self.seconds,
-            self.note
-                .as_ref()
+        )
+    }
+
+    /// The [`headline`](Self::headline) and `; note: …` for each note.
+    pub fn summary(&self) -> String {
+        format!(
+            "{}{}",
+            self.headline(),
+            self.notes
+                .iter()
                 .map(|n| format!("; note: {n}"))
-                .unwrap_or_default(),
+                .collect::<String>()
         )
     }
 }
@@ -847,6 +856,14 @@ fn run_job(
         }
     };
     let mut labeling = None;
+    // What the report says of a mask that came out empty or full (most
+    // likely a threshold in the wrong units).
+    let mask_note = std::sync::Mutex::new(None::<String>);
+    let say = |n: String| {
+        *mask_note
+            .lock()
+            .unwrap_or_else(std::sync::PoisonError::into_inner) = Some(n)
+    };
     let report = (|| -> Result<brickyard_store::ConvertReport> {
         let out_src: Arc<dyn VolumeSource> = match built.label {
             Some(conn) => {
@@ -897,11 +914,13 @@ fn run_job(
                 // wrong, but hardly what was meant).
                 let voxels: u64 = lab.dims.iter().product();
                 if lab.count() == 0 {
-                    eprintln!("note: no voxel is in the mask, so there are no labels: {MASK_UNITS}");
+                    say(format!(
+                        "no voxel is in the mask, so there are no labels: {MASK_UNITS}"
+                    ));
                 } else if lab.count() == 1 && lab.stats[0].voxels == voxels {
-                    eprintln!(
-                        "note: every voxel is in the mask, one label covers the volume: {MASK_UNITS}"
-                    );
+                    say(format!(
+                        "every voxel is in the mask, one label covers the volume: {MASK_UNITS}"
+                    ));
                 }
                 let lab = Arc::new(lab);
                 labeling = Some(lab.clone());
@@ -938,7 +957,10 @@ fn run_job(
         // A mask (no labelling) that came out empty: most likely a
         // threshold in the wrong units, as the labelling's note says.
         if is_label && labeling.is_none() && r.bricks_empty == r.bricks {
-            eprintln!("note: no voxel is in the mask ({}): {MASK_UNITS}", pipe.text());
+            say(format!(
+                "no voxel is in the mask ({}): {MASK_UNITS}",
+                pipe.text()
+            ));
         }
         Ok(r)
     })()
@@ -1075,8 +1097,11 @@ fn run_job(
         seconds: t0.elapsed().as_secs_f64(),
         // Label images are drawn over their image (render --labels) on
         // its grid only; one made from a coarser level is drawn alone.
-        note: [
+        notes: [
             ids_note,
+            mask_note
+                .into_inner()
+                .unwrap_or_else(std::sync::PoisonError::into_inner),
             (is_label && c.level > 0).then(|| {
                 format!(
                     "it lies on level {}'s grid, not the image's: render --labels draws label \
@@ -1089,7 +1114,7 @@ fn run_job(
         ]
         .into_iter()
         .flatten()
-        .reduce(|a, b| format!("{a}; {b}")),
+        .collect(),
     })
 }
 

@@ -142,10 +142,14 @@ pub fn run(c: ProcessCmd) -> Result<()> {
                 "bytes_written": r.bytes_written,
                 "peak_rss_bytes": rss,
                 "device": r.device,
+                "notes": r.notes,
             })
         );
     } else {
-        outln!("{}, peak RSS {}", r.summary(), human_bytes(rss));
+        outln!("{}, peak RSS {}", r.headline(), human_bytes(rss));
+        for n in &r.notes {
+            eprintln!("note: {n}");
+        }
     }
     Ok(())
 }
