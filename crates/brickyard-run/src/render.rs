@@ -332,6 +332,9 @@ fn check_mode_flags(c: &RenderCmd) -> Result<()> {
         ("elevation", c.elevation.is_some()),
         ("fov", c.fov.is_some()),
         ("ortho", c.ortho),
+        // (A turntable's camera orbits a plane that stays: seen edge on,
+        // frames came out black.)
+        ("turntable", c.turntable.is_some()),
     ];
     match mode {
         "dvr" | "mip" => {
@@ -1064,6 +1067,34 @@ fn run_one(
             "lod-bias: expected a finite number of levels (negative: finer), found {}",
             c.lod_bias
         );
+    }
+    // The camera's file is none of the image's (it was written, then
+    // overwritten by the image without a word).
+    if let Some(cam) = &c.save_camera {
+        let out = (!c.in_memory).then_some(&c.out);
+        let images = [
+            out.cloned(),
+            out.filter(|_| c.raw_f32).map(|o| o.with_extension("f32")),
+        ];
+        let same = |a: &std::path::Path, b: &std::path::Path| {
+            a == b
+                || std::fs::canonicalize(a)
+                    .ok()
+                    .zip(std::fs::canonicalize(b).ok())
+                    .is_some_and(|(x, y)| x == y)
+        };
+        if let Some(img) = images.iter().flatten().find(|i| same(cam, i)) {
+            bail!(
+                "save-camera: {} is the image's own file ({}); give the camera another file \
+                 (e.g. view.json)",
+                cam.display(),
+                if img.extension().is_some_and(|e| e == "f32") {
+                    "--raw-f32"
+                } else {
+                    "--out"
+                }
+            );
+        }
     }
     let files = [
         (Some(&c.out).filter(|_| !c.in_memory), "the image"),
@@ -2475,6 +2506,14 @@ fn run_one(
 /// traversal, the octree's depth, the debug image and the back end to
 /// open (`auto` becomes `cpu` for what only the CPU draws).
 fn traversal_options(c: &RenderCmd) -> Result<TraversalChoice> {
+    // (The octree's rays end at an opacity of 0.99 always: the flag was
+    // dropped without a word.)
+    if c.no_early_termination && c.traversal == "octree" {
+        bail!(
+            "no-early-termination: the octree traversal ends rays at an opacity of 0.99; use \
+             --traversal page-table for rays without early termination"
+        );
+    }
     check_traversal(&TraversalFlags {
         gpu_update: c.gpu_update,
         traversal: &c.traversal,
@@ -2552,12 +2591,20 @@ pub fn check_traversal(f: &TraversalFlags) -> Result<TraversalChoice> {
         }
     }
     if octree || debug.is_some() {
-        let (flag, what) = match octree {
-            true => ("traversal", "--traversal octree"),
-            false => ("debug", "--debug"),
+        let (flag, what, why) = match octree {
+            true => (
+                "traversal",
+                "--traversal octree",
+                "sample accumulation walks the page tables",
+            ),
+            false => (
+                "debug",
+                "--debug",
+                "a debug image counts the work of one frame's rays",
+            ),
         };
         if let Some(acc) = f.accumulation {
-            bail!("{flag}: {what} and {acc} do not go together (sample accumulation walks the page tables)");
+            bail!("{flag}: {what} and {acc} do not go together ({why})");
         }
     }
     let gpu_update = match (f.gpu_update, octree) {

@@ -690,6 +690,22 @@ fn render_rejects_flags_that_cannot_work() {
             vec!["no-early-termination", "dvr only"],
         ),
         (
+            vec!["--mode", "slice", "--turntable", "4"],
+            vec!["turntable", "dvr and mip only", "face on"],
+        ),
+        (
+            vec!["--traversal", "octree", "--no-early-termination"],
+            vec![
+                "no-early-termination",
+                "octree traversal ends rays",
+                "page-table",
+            ],
+        ),
+        (
+            vec!["--debug", "steps", "--progressive", "4"],
+            vec!["debug", "a debug image counts the work of one frame's rays"],
+        ),
+        (
             vec![
                 "--mode",
                 "slice",
@@ -717,6 +733,20 @@ fn render_rejects_flags_that_cannot_work() {
         // (No back end was asked for: none is blamed.)
         assert!(!stderr(&o).contains("--backend"), "{}", stderr(&o));
         assert!(!png.exists(), "{args:?} wrote an image");
+    }
+    // The camera's file is not the image's (it was overwritten by it).
+    for (cam, extra, flag) in [
+        (png.clone(), None, "--out"),
+        (png.with_extension("f32"), Some("--raw-f32"), "--raw-f32"),
+    ] {
+        let mut args = vec!["render", s(&store), "--size", "16", "--out", s(&png)];
+        args.extend(extra);
+        args.extend(["--save-camera", s(&cam)]);
+        fails_with(
+            &run(&args),
+            &["save-camera", &format!("is the image's own file ({flag})")],
+        );
+        assert!(!cam.exists());
     }
     let jpg = d.path().join("x.jpg");
     fails_with(
