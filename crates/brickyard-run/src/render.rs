@@ -2789,6 +2789,8 @@ fn accumulate(
     between: &mut dyn FnMut(),
 ) -> Result<brickyard_render::Image> {
     use crate::backend::Accumulating;
+    // The detail the view was drawn at (the accumulation may go coarser).
+    let view_lod = lod;
     let steps = brickyard_render::savr::longest_run(scene, params, 0) as usize;
     backend.set_read_image(true);
     let mut budget = n as usize * steps;
@@ -2935,6 +2937,19 @@ fn accumulate(
             }
         }
         if acc.complete() {
+            // One frame at a coarser level than the view's adds no sample
+            // and loses detail: the view as drawn is the image (it was
+            // replaced by the coarser frame).
+            if acc.target() <= 1 && lod != view_lod {
+                return Err(NoRoomToAccumulate(format!(
+                    "progressive{band}: one frame's samples fit at {}, coarser than the view \
+                     drawn at {}, and no more: nothing to add (more --memory, or a smaller \
+                     image, accumulates)",
+                    describe_lod(lod),
+                    describe_lod(view_lod)
+                ))
+                .into());
+            }
             if !quiet {
                 outln!(
                     "accumulated{band} {} frames in {frame} passes, {:.2} s{}",

@@ -1715,6 +1715,47 @@ fn progressive_samples_stay_within_their_share_of_memory() {
         &png_pixels(&out),
         "one frame where none could be accumulated",
     );
+    // Room for one frame only, and that at a coarser level than the view
+    // (192³, 256², level 0, 90 MiB): the view as drawn is the image, not
+    // the coarser frame (it was written instead, blurrier, exit 0).
+    let big = d.path().join("b.ome.zarr");
+    let o = run(&[
+        "generate",
+        "mandelbulb",
+        s(&big),
+        "--size",
+        "192",
+        "--quiet",
+    ]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    let at = |out: &Path, extra: &[&str]| {
+        let mut a = vec![
+            "render",
+            s(&big),
+            "--out",
+            s(out),
+            "--backend",
+            "cpu",
+            "--size",
+            "256",
+            "--level",
+            "0",
+            "--memory",
+            "90MiB",
+        ];
+        a.extend_from_slice(extra);
+        run(&a)
+    };
+    let view = d.path().join("view.png");
+    let o = at(&out, &["--progressive", "32"]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    let err = stderr(&o);
+    assert!(
+        err.contains("one frame's samples fit at level 1, coarser than the view drawn at level 0"),
+        "{err}"
+    );
+    assert!(at(&view, &[]).status.success());
+    assert_eq!(png_pixels(&out), png_pixels(&view));
 }
 
 /// A budget too small for the pyramid names one that is enough.
