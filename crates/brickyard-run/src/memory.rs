@@ -452,6 +452,30 @@ pub fn split_with_shares(
             .into_iter()
             .fold(0u64, u64::saturating_add);
         let least = least.div_ceil(1 << 20) << 20;
+        // More than the machine has: no --memory holds it.
+        if let Some(ram) = known_ram().filter(|r| least > *r) {
+            bail!(
+                "memory: {} does not hold this split, nor would any --memory on this machine \
+                 ({} of RAM): images {}{} and {} for the program need {} at least; {}",
+                human_bytes(want_total),
+                human_bytes(ram),
+                human_bytes(images),
+                if aside > 0 {
+                    format!(", set aside {}", human_bytes(aside))
+                } else {
+                    String::new()
+                },
+                human_bytes(program),
+                human_bytes(least),
+                if images > least / 2 {
+                    "draw a smaller image (or fewer views)"
+                } else if shares_given {
+                    "lower --pool/--host"
+                } else {
+                    "draw a smaller image"
+                }
+            );
+        }
         bail!(
             "memory: {} does not hold this split: pool {}, host cache {}, decoded chunks {} (at least {}), images {}{} and {} for the program; raise --memory ({}MiB holds it){}{}",
             human_bytes(want_total),
@@ -479,6 +503,17 @@ pub fn split_with_shares(
     // what they add up to.
     let total = want_total.max(need);
     if let Some(ram) = known_ram().filter(|r| total > *r) {
+        // (The default budget is within RAM: without shares given, what
+        // passes it is the images, the rest being fixed.)
+        if !shares_given && !explicit {
+            bail!(
+                "memory: the images take {} (and the rest {}), but this machine has {} of RAM; \
+                 draw a smaller image or fewer views",
+                human_bytes(images),
+                human_bytes(total.saturating_sub(images)),
+                human_bytes(ram)
+            );
+        }
         bail!(
             "memory: pool {}, host cache {} and the rest need {}, but this machine has {} of RAM; lower {}",
             human_bytes(pool),
@@ -549,6 +584,28 @@ pub fn parse_bytes(s: &str) -> Result<u64> {
 
 #[cfg(test)]
 mod tests {
+
+    /// Images larger than the machine's RAM: no --memory is asked for,
+    /// given or not; the image's size is named as what to change.
+    #[test]
+    fn images_past_the_machines_ram_ask_for_a_smaller_image() {
+        let Some(ram) = known_ram() else { return };
+        let pixels = ram / IMAGE_BYTES_PER_PIXEL * 2;
+        let e = split(None, None, None, pixels, 4).unwrap_err().to_string();
+        assert!(
+            e.contains("the images take") && e.contains("draw a smaller image or fewer views"),
+            "{e}"
+        );
+        let e = split(Some(ram / 2), None, None, pixels, 4)
+            .unwrap_err()
+            .to_string();
+        assert!(
+            e.contains("nor would any --memory on this machine")
+                && e.contains("draw a smaller image"),
+            "{e}"
+        );
+        assert!(!e.contains("raise --memory"), "{e}");
+    }
 
     #[test]
     fn the_host_cache_lends_the_pool_what_it_can_spare() {
