@@ -2672,7 +2672,11 @@ fn view_layout(c: &RenderCmd) -> Result<(u32, Option<brickyard_render::views::La
         }
     } else if c.eye_separation.is_some() || c.stereo.is_some() {
         bail!(
-            "stereo: slices take --views N (a super-slice) with --parallax and --spacing, not eyes"
+            "{}: slices take --views N (a super-slice) with --parallax and --spacing, not eyes",
+            match c.stereo {
+                Some(_) => "stereo",
+                None => "eye-separation",
+            }
         );
     }
     if let Some(d) = c.eye_separation {
@@ -2694,7 +2698,11 @@ fn view_layout(c: &RenderCmd) -> Result<(u32, Option<brickyard_render::views::La
         (Some(_), Some(_)) => bail!("stereo: give --stereo (two views) or --views N, not both"),
         (Some(st), None) => {
             if c.multiplex.is_some() {
-                bail!("multiplex: for --views N; --stereo says how the pair is written");
+                bail!(
+                    "multiplex: for --views N (2 to {}); --stereo says itself how its pair is \
+                     written (sbs, tb or anaglyph)",
+                    brickyard_core::views::MAX_VIEWS
+                );
             }
             let layout = match st.as_str() {
                 "sbs" => Layout::SideBySide,
@@ -2728,14 +2736,28 @@ fn view_layout(c: &RenderCmd) -> Result<(u32, Option<brickyard_render::views::La
             Ok((n, Some(layout)))
         }
         (None, None) => {
-            for (flag, given) in [
-                ("multiplex", c.multiplex.is_some()),
-                ("eye-separation", c.eye_separation.is_some()),
-                ("parallax", c.parallax.is_some()),
-                ("spacing", c.spacing.is_some()),
+            // (Each names what it does take: --stereo writes its pair its
+            // own way, and slices have no eyes.)
+            for (flag, given, with) in [
+                ("multiplex", c.multiplex.is_some(), "with --views N"),
+                (
+                    "eye-separation",
+                    c.eye_separation.is_some(),
+                    "with --views N or --stereo",
+                ),
+                (
+                    "parallax",
+                    c.parallax.is_some(),
+                    "with --views N (a super-slice)",
+                ),
+                (
+                    "spacing",
+                    c.spacing.is_some(),
+                    "with --views N (a super-slice)",
+                ),
             ] {
                 if given {
-                    bail!("{flag}: only with --views N or --stereo");
+                    bail!("{flag}: only {with}");
                 }
             }
             Ok((1, None))

@@ -58,6 +58,14 @@ pub fn refuse_launcher(cmd: &crate::Cmd) -> anyhow::Result<()> {
         );
     }
     if let crate::Cmd::Render(r) = cmd {
+        // (A value that is wrong is said as such first.)
+        if let Some(d) = r
+            .distribute
+            .as_deref()
+            .filter(|d| !matches!(*d, "image" | "data"))
+        {
+            anyhow::bail!("distribute: expected image or data, found {d:?}");
+        }
         if r.distribute.is_some() {
             anyhow::bail!(
                 "--distribute shares a render among the processes mpirun starts, but this \

@@ -690,6 +690,18 @@ fn render_rejects_flags_that_cannot_work() {
             vec!["no-early-termination", "dvr only"],
         ),
         (
+            vec!["--mode", "slice", "--views", "4", "--eye-separation", "2"],
+            vec!["eye-separation:", "slices take --views N"],
+        ),
+        (
+            vec!["--multiplex", "tiles"],
+            vec!["multiplex", "only with --views N"],
+        ),
+        (
+            vec!["--mode", "slice", "--parallax", "2"],
+            vec!["parallax", "only with --views N (a super-slice)"],
+        ),
+        (
             vec!["--mode", "slice", "--turntable", "4"],
             vec!["turntable", "dvr and mip only", "face on"],
         ),
@@ -799,6 +811,13 @@ fn a_build_without_mpi_refuses_to_run_as_several_ranks() {
     let mut a = args.to_vec();
     a.extend(["--distribute", "data"]);
     fails_with(&run(&a), &["--distribute", "without MPI"]);
+    // A wrong value is said as such, built with MPI or not.
+    let mut a = args.to_vec();
+    a.extend(["--distribute", "foo"]);
+    fails_with(
+        &run(&a),
+        &["distribute: expected image or data, found \"foo\""],
+    );
 }
 
 /// `--max-frames N` bounds the frames a view draws, its request passes
