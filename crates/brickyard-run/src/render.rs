@@ -2410,7 +2410,7 @@ fn run_one(
                     &params,
                     (lod, n, None),
                     split.samples,
-                    c.json || c.quiet || silent,
+                    (c.quiet || silent, c.json.then_some(v)),
                     &mut || {},
                 );
                 match share.as_deref_mut() {
@@ -2807,10 +2807,20 @@ fn accumulate(
     params: &RenderParams,
     (lod, n, rows): (Lod, u32, Option<std::ops::Range<u32>>),
     bytes: u64,
-    quiet: bool,
+    (quiet, json): (bool, Option<u32>),
     between: &mut dyn FnMut(),
 ) -> Result<brickyard_render::Image> {
     use crate::backend::Accumulating;
+    // With --json (view `json`): a JSON line per frame and at the end on
+    // stdout, the notes as text on stderr; else text lines on stdout.
+    let text = !quiet && json.is_none();
+    let note = |line: String| {
+        if text {
+            outln!("{line}");
+        } else if !quiet {
+            eprintln!("{line}");
+        }
+    };
     // The detail the view was drawn at (the accumulation may go coarser).
     let view_lod = lod;
     let steps = brickyard_render::savr::longest_run(scene, params, 0) as usize;
@@ -2876,12 +2886,12 @@ fn accumulate(
                 Some(l) => {
                     let fit = lod_at_least(scene, params, lod, l);
                     // (A bias asked for may be coarse enough already.)
-                    if !quiet && fit != lod {
-                        outln!(
+                    if fit != lod {
+                        note(format!(
                             "progressive: the first frame's samples at level {from} may take {}, more than {memory_for}; accumulating at {} (more --memory, or a smaller image, keeps more detail)",
                             human_bytes(at(from)),
                             describe_lod(fit)
-                        );
+                        ));
                     }
                     fit
                 }
@@ -2900,11 +2910,11 @@ fn accumulate(
     let kept = acc.budget() as u64;
     let within = brickyard_render::savr::lod_within(scene, params, lod, kept);
     match within {
-        Some(fit) if fit != lod && !quiet => outln!(
+        Some(fit) if fit != lod => note(format!(
             "progressive: a pixel keeps {kept} samples, fewer than one run of the longest ray takes at the level asked for ({}); accumulating at {} (a smaller image keeps more detail)",
             brickyard_render::savr::longest_run(scene, params, lod_finest(lod)),
             describe_lod(fit)
-        ),
+        )),
         None => bail!(
             "progressive: a pixel keeps {kept} samples (what one storage binding of the device holds for a row of the image), fewer than one run of the longest ray takes even at the coarsest level ({}): a smaller image, or --backend cpu",
             brickyard_render::savr::longest_run(scene, params, scene.levels.len() - 1)
@@ -2937,7 +2947,7 @@ fn accumulate(
         between();
         left = st.stand_ins;
         short = st.incomplete;
-        if !quiet {
+        if text {
             outln!(
                 "accumulate{band} {}/{}: {:8.1} ms, {} samples taken, {} stand-ins left, {} kept",
                 acc.frames(),
@@ -2947,15 +2957,22 @@ fn accumulate(
                 st.stand_ins,
                 human_bytes(acc.memory())
             );
+        } else if let (Some(v), false) = (json, quiet) {
+            outln!(
+                "{}",
+                serde_json::json!({"view": v, "accumulate": acc.frames(), "of": acc.target(),
+                    "ms": f0.elapsed().as_secs_f64() * 1e3, "samples": st.samples,
+                    "stand_ins": st.stand_ins, "kept_bytes": acc.memory()})
+            );
         }
         // After the first frame: as many frames as the samples' share
         // holds (the next frame reserves their room).
         if frame == 1 {
-            if let (Some((t, asked)), false) = (acc.fit_memory(bytes), quiet) {
-                outln!(
+            if let Some((t, asked)) = acc.fit_memory(bytes) {
+                note(format!(
                     "progressive{band}: {n} frames would keep about {} of samples, more than {memory_for}; accumulating {t} (more --memory, or a smaller image, draws more)",
                     human_bytes(asked)
-                );
+                ));
             }
         }
         if acc.complete() {
@@ -2972,7 +2989,14 @@ fn accumulate(
                 ))
                 .into());
             }
-            if !quiet {
+            if let (Some(v), false) = (json, quiet) {
+                outln!(
+                    "{}",
+                    serde_json::json!({"view": v, "accumulated": acc.target(), "asked": n,
+                        "passes": frame, "seconds": t.elapsed().as_secs_f64()})
+                );
+            }
+            if text {
                 outln!(
                     "accumulated{band} {} frames in {frame} passes, {:.2} s{}",
                     match acc.target() {
@@ -2997,10 +3021,16 @@ fn accumulate(
         let stuck = left >= prev && acc.frames() >= acc.target();
         prev = left;
         if stuck && !s.failures().is_empty() {
-            if !quiet {
+            if text {
                 outln!(
                     "accumulated{band} {n} frames in {frame} passes, {:.2} s, with {left} stand-in samples of bricks that could not be loaded",
                     t.elapsed().as_secs_f64()
+                );
+            } else if let (Some(v), false) = (json, quiet) {
+                outln!(
+                    "{}",
+                    serde_json::json!({"view": v, "accumulated": n, "asked": n, "passes": frame,
+                        "seconds": t.elapsed().as_secs_f64(), "stand_ins": left})
                 );
             }
             return Ok(acc.image().clone());
@@ -3207,7 +3237,7 @@ fn draw_bands(
                         params,
                         (lod, n, Some(px)),
                         samples,
-                        quiet,
+                        (quiet, None),
                         &mut || share.serve(),
                     )?;
                     image.rgba[span].copy_from_slice(&band.rgba);

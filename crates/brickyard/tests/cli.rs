@@ -1602,6 +1602,38 @@ fn render_progressive_accumulates_frames() {
     let px = png_pixels(&acc);
     has_content(&px, "progressive");
     assert_ne!(px, png_pixels(&plain), "4 frames drew the 1-frame image");
+    // With --json: a JSON line per frame and one at the end (the text
+    // lines were dropped), and the same image.
+    let o = run(&[
+        &[
+            "render",
+            s(&store),
+            "--out",
+            s(&acc),
+            "--progressive",
+            "4",
+            "--json",
+        ],
+        &common[..],
+    ]
+    .concat());
+    assert!(o.status.success(), "{}", stderr(&o));
+    let lines: Vec<serde_json::Value> = String::from_utf8_lossy(&o.stdout)
+        .lines()
+        .map(|l| serde_json::from_str(l).unwrap_or_else(|e| panic!("{l}: {e}")))
+        .collect();
+    let frames: Vec<u64> = lines
+        .iter()
+        .filter_map(|v| v["accumulate"].as_u64())
+        .collect();
+    assert_eq!(frames.last(), Some(&4), "{lines:?}");
+    assert!(
+        lines
+            .iter()
+            .any(|v| v["accumulated"] == 4 && v["asked"] == 4),
+        "{lines:?}"
+    );
+    assert_eq!(png_pixels(&acc), px);
     let streamed = png("stream.png");
     let o = run(&[
         &["render", s(&store), "--out", s(&streamed), "--stream"],
