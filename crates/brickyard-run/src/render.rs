@@ -1639,6 +1639,20 @@ fn run_one(
         ..Default::default()
     }
     .slot_bytes(dtype);
+    // A batch asks for as much as the pool and the host cache can take at
+    // once (bricks waiting to be written are held by the host cache).
+    let requests_for = |pool: u64, host: u64| {
+        crate::frames::requests_per_frame(
+            pool,
+            host,
+            slot_bytes,
+            if batch {
+                crate::frames::BATCH_REQUESTS
+            } else {
+                crate::frames::STREAM_REQUESTS
+            },
+        )
+    };
     let cfg = VmConfig {
         brick: [c.brick; 3],
         pool_bytes: split.pool,
@@ -1661,18 +1675,7 @@ fn run_one(
                 u.min(device.upload_cap().unwrap_or(u64::MAX))
             }
         },
-        // A batch asks for as much as the pool and the host cache can take
-        // at once (bricks waiting to be written are held by the host cache).
-        request_cap: c.requests.unwrap_or(crate::frames::requests_per_frame(
-            split.pool,
-            split.host,
-            slot_bytes,
-            if batch {
-                crate::frames::BATCH_REQUESTS
-            } else {
-                crate::frames::STREAM_REQUESTS
-            },
-        )),
+        request_cap: c.requests.unwrap_or(requests_for(split.pool, split.host)),
         ..Default::default()
     };
     // The store's channel defaults (names, colours, windows); an explicit
@@ -1896,16 +1899,7 @@ fn run_one(
                         split.pool.min(device.upload_cap().unwrap_or(u64::MAX));
                 }
                 if c.requests.is_none() {
-                    cfg.request_cap = crate::frames::requests_per_frame(
-                        split.pool,
-                        split.host,
-                        slot_bytes,
-                        if batch {
-                            crate::frames::BATCH_REQUESTS
-                        } else {
-                            crate::frames::STREAM_REQUESTS
-                        },
-                    );
+                    cfg.request_cap = requests_for(split.pool, split.host);
                 }
                 continue;
             }
