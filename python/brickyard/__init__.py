@@ -962,7 +962,6 @@ def process(store: Union[Store, str, os.PathLike], pipeline: str, out: str, *, l
             bar.close()
     result = os.fspath(result)
     # What the CLI's report says of the result (label ids filtered as
-    # intensities, labels off the image's grid), as a UserWarning.
-    for note in _line.split("; note: ")[1:]:
-        warnings.warn(f"{result}: {note}", UserWarning, stacklevel=2)
+    # intensities, labels off the image's grid), as UserWarnings.
+    _warn_notes(result, _line)
     return open(result) if open_result else result

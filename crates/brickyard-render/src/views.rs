@@ -223,6 +223,20 @@ pub fn compose(
     // Pixel (x, y) of view v, read in place (copies of the views would
     // take as much memory again as the image).
     let at = |v: u32, x: u32, y: u32| img.rgba[(y * img.width + v * w + x) as usize];
+    // The views in a grid of `cols × rows` tiles, row by row, copied a
+    // pixel row at a time (tiles past the last view clear).
+    let tiled = |cols: u32, rows: u32| {
+        let mut out = Image::new(cols * w, rows * h);
+        for v in 0..count {
+            let (ox, oy) = ((v % cols) * w, (v / cols) * h);
+            for y in 0..h {
+                let from = (y * img.width + v * w) as usize;
+                let to = ((oy + y) * out.width + ox) as usize;
+                out.rgba[to..to + w as usize].copy_from_slice(&img.rgba[from..from + w as usize]);
+            }
+        }
+        out
+    };
     let pair = || {
         if count == 2 {
             Ok(())
@@ -238,30 +252,11 @@ pub fn compose(
         Layout::Tiles => {
             let cols = (count as f64).sqrt().ceil() as u32;
             let rows = count.div_ceil(cols);
-            let mut out = Image::new(cols * w, rows * h);
-            for v in 0..count {
-                let (ox, oy) = ((v % cols) * w, (v / cols) * h);
-                for y in 0..h {
-                    let from = (y * img.width + v * w) as usize;
-                    let to = ((oy + y) * out.width + ox) as usize;
-                    out.rgba[to..to + w as usize]
-                        .copy_from_slice(&img.rgba[from..from + w as usize]);
-                }
-            }
-            out
+            tiled(cols, rows)
         }
         Layout::TopBottom => {
             pair()?;
-            let mut out = Image::new(w, 2 * h);
-            for v in 0..2 {
-                for y in 0..h {
-                    let from = (y * img.width + v * w) as usize;
-                    let to = ((v * h + y) * w) as usize;
-                    out.rgba[to..to + w as usize]
-                        .copy_from_slice(&img.rgba[from..from + w as usize]);
-                }
-            }
-            out
+            tiled(1, 2)
         }
         Layout::Anaglyph => {
             pair()?;
