@@ -2425,7 +2425,7 @@ fn run_one(
                                 .collect::<Vec<_>>()
                                 .join(" / ")
                         );
-                        acc?
+                        acc?.0
                     }
                     // Not even one frame's samples fit: the view as drawn
                     // (one frame, complete) is the image, said so; it had
@@ -2439,7 +2439,20 @@ fn run_one(
                             detail_line.push_str(&format!("; {line}"));
                             out.image
                         }
-                        r => r?,
+                        // The view's frames stopped short (--max-frames, or
+                        // no progress), yet the accumulation's frames
+                        // loaded the rest and left no stand-in: the image
+                        // is complete, and said so (it ended with status 3).
+                        Ok((img, true)) if matches!(out.stop, None | Some(Stop::NoProgress)) => {
+                            let line = format!(
+                                "complete after all: accumulating {n} frames loaded what the view's frames had not"
+                            );
+                            say_text!(c.json, silent, "view {v}: {line}");
+                            detail_line = format!("{line}; the view's frames {detail_line}");
+                            detail_line = detail_line.replacen(STOPPED, "had ended at ", 1);
+                            img
+                        }
+                        r => r?.0,
                     },
                 }
             }
@@ -2803,7 +2816,7 @@ fn accumulate(
     bytes: u64,
     (quiet, json): (bool, Option<u32>),
     between: &mut dyn FnMut(),
-) -> Result<brickyard_render::Image> {
+) -> Result<(brickyard_render::Image, bool)> {
     use crate::backend::Accumulating;
     // With --json (view `json`): a JSON line per frame and at the end on
     // stdout, the notes as text on stderr; else text lines on stdout.
@@ -3006,7 +3019,8 @@ fn accumulate(
                     }
                 );
             }
-            return Ok(acc.image().clone());
+            // Every frame blended, no stand-in left: complete.
+            return Ok((acc.image().clone(), true));
         }
         // Bricks that could not be loaded stay stand-ins for good: once
         // the frames asked for are blended and no more stand-ins go, the
@@ -3027,11 +3041,11 @@ fn accumulate(
                         "seconds": t.elapsed().as_secs_f64(), "stand_ins": left})
                 );
             }
-            return Ok(acc.image().clone());
+            return Ok((acc.image().clone(), false));
         }
     }
     if !s.failures().is_empty() {
-        return Ok(acc.image().clone());
+        return Ok((acc.image().clone(), false));
     }
     // Every sample served at its level, yet pixels short of their blend:
     // the device cuts a blend longer than its loop limit (a software
@@ -3233,7 +3247,8 @@ fn draw_bands(
                         samples,
                         (quiet, None),
                         &mut || share.serve(),
-                    )?;
+                    )?
+                    .0;
                     image.rgba[span].copy_from_slice(&band.rgba);
                 }
                 None => image.rgba[span.clone()].copy_from_slice(&o.image.rgba[span]),

@@ -901,6 +901,17 @@ fn max_frames_bounds_the_frames_drawn_and_reported() {
     assert!(out.contains("; 1 frames,"), "{out}");
     assert_eq!(code, Some(3), "{out}");
     has_content(&png_pixels(&png), "--max-frames 1");
+    // A view stopped by --max-frames whose accumulation then loads the
+    // rest ends complete (it ended with status 3), its image the one
+    // drawn without the bound.
+    let (out, code) = render(&["--progressive", "3"]);
+    assert_eq!(code, Some(0), "{out}");
+    let whole = std::fs::read(&png).unwrap();
+    let (out, code) = render(&["--progressive", "3", "--max-frames", "1"]);
+    assert!(out.contains("complete after all"), "{out}");
+    assert_eq!(code, Some(0), "{out}");
+    assert_eq!(std::fs::read(&png).unwrap(), whole);
+    has_content(&png_pixels(&png), "--progressive 3 --max-frames 1");
 }
 
 /// Standard output closed early (`render … | head -1`): the run still
