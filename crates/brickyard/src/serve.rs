@@ -32,8 +32,9 @@
 //! which Zarr clients read as an absent chunk; a file that cannot be
 //! read gets 403 or 500). Methods that would write
 //! get 405; a request with a body (`Content-Length` above 0 or
-//! `Transfer-Encoding`) gets 413 before anything else and its connection
-//! is closed without reading the body. The server reads requests itself
+//! `Transfer-Encoding`) gets 405 (a method that would write) or 413
+//! before anything else and its connection is closed without reading the
+//! body. The server reads requests itself
 //! (tiny_http writes the responses): a head is at most 32 KiB (431), sent
 //! within 30 s of its first byte (408); a connection waits 60 s at most
 //! for its next request; a response's writes must go out within 30 s
@@ -1091,16 +1092,10 @@ fn parse_head<'a>(
 /// Why `rq`, which carries a body, is refused unread: GET and HEAD take
 /// none, and nothing here reads one.
 fn body_refusal(rq: &Request) -> Option<(u16, &'static str)> {
-    if rq
+    let mut body = rq
         .headers()
         .iter()
-        .any(|h| h.field.equiv("Transfer-Encoding"))
-    {
-        return Some((
-            413,
-            "request bodies are refused: this server is read-only (GET and HEAD take none)",
-        ));
-    }
+        .any(|h| h.field.equiv("Transfer-Encoding"));
     for h in rq
         .headers()
         .iter()
@@ -1108,16 +1103,20 @@ fn body_refusal(rq: &Request) -> Option<(u16, &'static str)> {
     {
         match h.value.as_str().trim().parse::<u64>() {
             Ok(0) => {}
-            Ok(_) => {
-                return Some((
-                    413,
-                    "request bodies are refused: this server is read-only (GET and HEAD take none)",
-                ))
-            }
+            Ok(_) => body = true,
             Err(_) => return Some((400, "malformed Content-Length")),
         }
     }
-    None
+    // (A PUT or POST with a body was told 413, as if a smaller body would
+    // do: the method is what is refused.)
+    match (body, rq.method()) {
+        (false, _) => None,
+        (true, Method::Get | Method::Head | Method::Options) => Some((
+            413,
+            "request bodies are refused: this server is read-only (GET and HEAD take none)",
+        )),
+        (true, _) => Some((405, "read-only: only GET, HEAD and OPTIONS")),
+    }
 }
 
 /// Answers a request refused before it was read whole (`status`, `why`)
@@ -1126,7 +1125,10 @@ fn body_refusal(rq: &Request) -> Option<(u16, &'static str)> {
 /// waited for.
 fn refuse(site: &Site, conn: &Conn, method: &str, url: &str, status: u16, why: &str, t0: Instant) {
     ALLOW_ORIGIN.with(|o| *o.borrow_mut() = None);
-    let r = text(status, why).with_header(header("Connection", "close"));
+    let mut r = text(status, why).with_header(header("Connection", "close"));
+    if status == 405 {
+        r = r.with_header(header("Allow", "GET, HEAD, OPTIONS"));
+    }
     let mut w = std::io::BufWriter::new(Paced::new(&conn.stream, None));
     let sent = r
         .raw_print(&mut w, HTTPVersion(1, 1), &[], method == "HEAD", None)

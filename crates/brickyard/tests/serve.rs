@@ -1468,10 +1468,14 @@ fn request_bodies_and_huge_heads_are_refused_at_once() {
         ),
         (
             b"PUT /a.ome.zarr/zarr.json HTTP/1.1\r\nHost: localhost\r\nContent-Length: 18446744073709551615\r\n\r\n",
-            "413",
+            "405",
         ),
         (
             b"POST /a.ome.zarr/zarr.json HTTP/1.1\r\nHost: localhost\r\nTransfer-Encoding: chunked\r\n\r\n5\r\nhello",
+            "405",
+        ),
+        (
+            b"GET /a.ome.zarr/zarr.json HTTP/1.1\r\nHost: localhost\r\nTransfer-Encoding: chunked\r\n\r\n5\r\nhello",
             "413",
         ),
         (
