@@ -185,6 +185,19 @@ struct Shared {
     read_ahead: AtomicUsize,
 }
 
+/// A read that met damage in the store (a chunk that does not decode, a
+/// truncated shard, values the statistics contradict, data lost): worth a
+/// read of fewer chunks. Of a remote store, only what the statistics
+/// contradict: its reader's errors include a server that did not answer,
+/// which the same read of fewer chunks would wait for again.
+fn damaged(e: &StoreError, remote: bool) -> bool {
+    match e {
+        StoreError::Invalid { .. } => true,
+        StoreError::Zarr { .. } => !remote,
+        _ => false,
+    }
+}
+
 fn lock<T>(m: &Mutex<T>) -> MutexGuard<'_, T> {
     // Loads run outside the locks and panics inside them are caught, so a
     // poisoned lock still guards consistent data.
@@ -228,10 +241,47 @@ impl Shared {
         if let Some(v) = level.stats.as_ref().and_then(|s| s.uniform(c, lo, hi)) {
             return Ok(uniform_brick(*key, v, 0));
         }
-        if let Some(b) = self.uniform_by_apron(level, key, &reg)? {
-            self.simulated_delay();
-            return Ok(b);
+        let remote = brickyard_store::storage::is_remote(&self.path);
+        match self.uniform_by_apron(level, key, &reg) {
+            Ok(Some(b)) => {
+                self.simulated_delay();
+                return Ok(b);
+            }
+            Ok(None) => {}
+            // (Damage in the apron's slabs: the read below meets it too,
+            // and falls back to the brick proper.)
+            Err(e) if !damaged(&e, remote) => return Err(e),
+            Err(_) => {}
         }
+        match self.read_brick(key, level, &reg) {
+            // A damaged chunk that only the apron reaches into (a
+            // neighbour's): the brick proper is read, its apron repeats its
+            // edge. Its neighbours were all drawn coarser, 58 bricks for
+            // one damaged chunk of 64³ (bricks of 32³); now the damaged
+            // chunk's own bricks are, and say so.
+            Err(e) if damaged(&e, remote) && g.apron > 0 => {
+                let o = g.origin_of(key);
+                let ext = g.extent_of(key);
+                let proper = PaddedRegion {
+                    lo: o,
+                    hi: [0, 1, 2].map(|a| o[a] + ext[a]),
+                    at: [g.apron; 3],
+                };
+                if proper == reg {
+                    return Err(e);
+                }
+                self.read_brick(key, level, &proper)
+            }
+            r => r,
+        }
+    }
+
+    /// Read the region `reg` of `key`'s level into a new brick (the apron
+    /// outside it repeats its edge), checked against the brick statistics.
+    fn read_brick(&self, key: &BrickKey, level: &Level, reg: &PaddedRegion) -> Result<LoadedBrick> {
+        let g = &self.geometry;
+        let c = key.channel as u64;
+        let (lo, hi) = (reg.lo, reg.hi);
         // The brick's final buffer: the level's voxels are read straight
         // into it, then the apron outside the level repeats the edge.
         let mut data = brick_buffer(g);
@@ -269,7 +319,7 @@ impl Shared {
             };
             st.check_lost_read(&*level.src, c, &r)?;
         }
-        let brick = finish_brick(g, *key, data, &reg);
+        let brick = finish_brick(g, *key, data, reg);
         if let Some(st) = &level.stats {
             // A chunk whose bytes changed decodes to values the statistics
             // exclude: a failure (drawn coarser, reported), not a brick of

@@ -1284,6 +1284,86 @@ fn a_store_damaged_while_open_fails_bricks_and_keeps_serving_the_rest() {
 }
 
 #[test]
+fn a_damaged_chunk_fails_its_own_bricks_not_the_neighbours_whose_apron_reaches_it() {
+    // One inner chunk of a shard scrambled (same length; the shard's index
+    // intact). Its neighbours' aprons reach into it: they failed too (a
+    // brick per chunk here, 1 + 26 neighbours). Now only the chunk's own
+    // brick fails; the others arrive with their brick proper as stored
+    // and their apron as stored but where it lies in the damaged chunk,
+    // which repeats the brick's edge.
+    let dir = tempfile::tempdir().unwrap();
+    let store = noise_store(dir.path());
+    let levels = read_levels(&store, 1);
+    // Shard [1, 1, 1] of level 0 (voxels 16..32 on every axis): its 8
+    // inner chunks of 8³, the index (offset, length) per chunk at its end.
+    let shard = store.join("0/c/1/1/1");
+    let mut bytes = std::fs::read(&shard).unwrap();
+    let index = bytes.len() - (8 * 16 + 4);
+    let entry = |i: usize| {
+        let at = index + 16 * i;
+        let num = |o: usize| u64::from_le_bytes(bytes[at + o..at + o + 8].try_into().unwrap());
+        (num(0) as usize, num(8) as usize)
+    };
+    // Inner chunk [1, 0, 1] of the shard (C order): level-0 brick [3, 2, 3].
+    let (off, len) = entry(5);
+    assert!(len > 16 && off + len <= index, "chunk ({off}, {len})");
+    bytes[off..off + len].fill(0x5A);
+    std::fs::write(&shard, &bytes).unwrap();
+    let bad = BrickKey {
+        level: 0,
+        channel: 0,
+        brick: [3, 2, 3],
+    };
+    let loader = Loader::open(&store, [8; 3], 1, 2, Arc::new(HostCache::new(0))).unwrap();
+    let g = loader.geometry().clone();
+    let keys: Vec<BrickKey> = g.keys(0, 0).collect();
+    let got = load_all(&loader, &keys);
+    let failures = loader.take_failures();
+    assert_eq!(
+        failures.iter().map(|f| f.key).collect::<Vec<_>>(),
+        vec![bad],
+        "{:?}",
+        failures.iter().map(|f| &f.message).collect::<Vec<_>>()
+    );
+    assert_eq!(got.len(), keys.len() - 1);
+    // The damaged chunk's voxels, in level coordinates.
+    let in_bad = |q: [i64; 3]| {
+        (0..3).all(|a| q[a] >= 8 * bad.brick[a] as i64 && q[a] < 8 * (bad.brick[a] as i64 + 1))
+    };
+    let (p, d) = (g.padded(), levels.dims[0]);
+    let mut neighbours = 0;
+    for (k, b) in &got {
+        let want = crop(&levels, &g, k).0;
+        let have = brick_values(b, &g);
+        let po = g.padded_origin_of(k);
+        let e = g.extent_of(k);
+        let voxels = || {
+            (0..p[0] as i64).flat_map(move |z| {
+                (0..p[1] as i64).flat_map(move |y| (0..p[2] as i64).map(move |x| [z, y, x]))
+            })
+        };
+        let at = |j: [i64; 3]| ((j[0] * p[1] as i64 + j[1]) * p[2] as i64 + j[2]) as usize;
+        let level_voxel = |j: [i64; 3]| [0, 1, 2].map(|a| (po[a] + j[a]).clamp(0, d[a] as i64 - 1));
+        if !voxels().any(|j| in_bad(level_voxel(j))) {
+            assert_eq!(have, want, "{k:?}");
+            continue;
+        }
+        // A neighbour: its brick proper as stored, its apron the brick's
+        // edge repeated (the apron's nearest voxel of the brick proper).
+        neighbours += 1;
+        for j in voxels() {
+            let own = [0, 1, 2].map(|a| j[a].clamp(1, e[a] as i64));
+            assert_eq!(
+                have[at(j)],
+                want[at(own)],
+                "{k:?} at {j:?} of its padded brick"
+            );
+        }
+    }
+    assert_eq!(neighbours, 26, "the damaged brick's neighbours");
+}
+
+#[test]
 fn read_delay_slows_reads_only() {
     let dir = tempfile::tempdir().unwrap();
     // Zero below z = 16, noise above.
