@@ -46,6 +46,8 @@ def _region(region: Any, shape: Sequence[int]) -> Tuple[Tuple[int, int, int], Tu
         region = ()
     if not isinstance(region, tuple):
         region = (region,)
+    if sum(r is Ellipsis for r in region) > 1:
+        raise IndexError("an index can only have a single ellipsis ('...')")
     if any(r is Ellipsis for r in region):
         i = next(k for k, r in enumerate(region) if r is Ellipsis)
         fill = 3 - (len(region) - 1)
@@ -88,9 +90,34 @@ def _region(region: Any, shape: Sequence[int]) -> Tuple[Tuple[int, int, int], Tu
                 lo.append(a + (k - 1) * step)
                 hi.append(a + 1)
                 take.append(slice(None, None, step))
+        elif isinstance(r, (list, np.ndarray, bool, np.bool_)):
+            # (NumPy's advanced indexing: a copy of chosen voxels, which the
+            # array read does as well.)
+            raise TypeError(f"region: axis {name}: lists, arrays and boolean masks do not index a store (NumPy's "
+                            f"advanced indexing); read the box and index the array, e.g. store[lo:hi][[1, 5, 2]]")
         else:
             raise TypeError(f"region: axis {name}: expected an int or a slice, got {type(r).__name__}")
     return (lo[0], lo[1], lo[2]), (hi[0], hi[1], hi[2]), tuple(take)
+
+
+# The most of a region's box a read with steps holds at once, beside the
+# result.
+_PIECE = 32 << 20
+
+
+def _pieces(idx: np.ndarray, unit: int):
+    """Runs of the indices `idx` (one axis of a region with steps, in the
+    result's order) whose span takes at most `_PIECE` bytes at `unit` bytes
+    an index (a run of one index whatever its size): `(run in the result,
+    lo, hi, the run's indices in [lo, hi) less lo)`."""
+    i = 0
+    while i < len(idx):
+        j = i + 1
+        while j < len(idx) and (abs(int(idx[j]) - int(idx[i])) + 1) * unit <= _PIECE:
+            j += 1
+        a, b = min(int(idx[i]), int(idx[j - 1])), max(int(idx[i]), int(idx[j - 1])) + 1
+        yield slice(i, j), a, b, idx[i:j] - a
+        i = j
 
 
 def _indexed_shape(channels: int, zyx: Sequence[int]) -> tuple:
@@ -152,7 +179,7 @@ class Store:
                 raise TypeError(f"{what}: expected a whole number, got {type(v).__name__} {v!r}")
             if v < least:
                 raise ValueError(f"{what}: expected at least {least}, got {v}")
-        self._path = os.fspath(path)
+        self._path = os.fsdecode(path)
         self._args = (self._path, int(cache), int(chunk_cache), int(brick), int(threads))
         self._native = _native.NativeStore(*self._args)
         # Fixed for the store's life: asked of the native side once, not per read.
@@ -266,18 +293,50 @@ class Store:
         if 0 in box:
             # Nothing selected (NumPy's empty slices): nothing to read.
             return np.empty(box, dtype=self._dtype)[take]
-        need = int(np.prod(box, dtype=object)) * np.dtype(self._dtype).itemsize
+        stepped = any(isinstance(t, slice) and t.step is not None and abs(t.step) > 1 for t in take)
+        item = np.dtype(self._dtype).itemsize
+        shape = [len(range(n)[t]) for n, t in zip(box, take) if isinstance(t, slice)]
+        need = int(np.prod(shape, dtype=object)) * item
         ram = _physical_memory()
         if ram and need > ram:
             raise MemoryError(f"region: {tuple(lo)}..{tuple(hi)} of level {level} is {need} bytes, more than this "
                               f"machine's memory ({ram} bytes): read it in parts")
+        if stepped:
+            return self._read_stepped(int(level), int(channel), lo, hi, take)
         buf = self._open().read(int(level), int(channel), lo, hi)
         a = np.frombuffer(buf, dtype=self._dtype).reshape(box)[take]
-        # Steps give a view of the whole box: a copy of what was taken lets
-        # the rest go.
+        # (A step of -1 walks the box backwards: a view of it, no larger.)
         if any(isinstance(t, slice) and t.step not in (None, 1) for t in take):
             a = np.ascontiguousarray(a)
         return a
+
+    def _read_stepped(self, level: int, channel: int, lo: Sequence[int], hi: Sequence[int], take: tuple) -> np.ndarray:
+        """A region with steps (`store[::8]`), read in pieces of the box it
+        spans of at most `_PIECE` bytes (runs of planes, or of rows of one
+        plane), each taking what the steps select: memory holds the result
+        and one piece, not the whole box (a 2 MiB `store[::256]` of a
+        576 MiB level read all of it)."""
+        native = self._open()
+        dt = np.dtype(self._dtype)
+        sel = [np.arange(a, b)[t if isinstance(t, slice) else slice(0, 1)] for a, b, t in zip(lo, hi, take)]
+        out = np.empty(tuple(len(x) for x in sel), dtype=dt)
+        row = (hi[2] - lo[2]) * dt.itemsize
+        plane = (hi[1] - lo[1]) * row
+        tx = sel[2] - lo[2]
+
+        def read(z0, z1, y0, y1):
+            buf = native.read(level, channel, (z0, y0, lo[2]), (z1, y1, hi[2]))
+            return np.frombuffer(buf, dtype=dt).reshape(z1 - z0, y1 - y0, hi[2] - lo[2])
+
+        for zs, z0, z1, tz in _pieces(sel[0], plane):
+            if (z1 - z0) * plane <= _PIECE:
+                out[zs] = read(z0, z1, lo[1], hi[1])[np.ix_(tz, sel[1] - lo[1], tx)]
+                continue
+            # One plane larger than a piece: by runs of rows.
+            for ys, y0, y1, ty in _pieces(sel[1], row):
+                out[zs, ys] = read(z0, z1, y0, y1)[np.ix_(tz, ty, tx)]
+        # An integer's axis dropped, as NumPy does.
+        return out[tuple(slice(None) if isinstance(t, slice) else 0 for t in take)]
 
     def __getitem__(self, key: Any) -> np.ndarray:
         """Level 0 indexed as NumPy indexes an array of `shape`:
@@ -285,6 +344,14 @@ class Store:
         for several (the channel an integer or a slice; `store[1]` is
         channel 1 whole)."""
         return _index(self, 0, key)
+
+    def __len__(self) -> int:
+        """The length of the first axis of `shape`, as NumPy's `len`."""
+        return self.shape[0]
+
+    def __array__(self, dtype: Any = None, copy: Any = None) -> np.ndarray:
+        """`np.asarray(store)`: level 0 whole, read (a new array always)."""
+        return _as_array(self[...], dtype, copy)
 
     def __repr__(self) -> str:
         return (f"<brickyard.Store {self.path!r}: {self.levels} levels, level 0 {self.shapes[0]}, "
@@ -318,8 +385,23 @@ class Level:
         """As `Store.__getitem__`, at this level."""
         return _index(self.store, self.index, key)
 
+    def __len__(self) -> int:
+        return self.shape[0]
+
+    def __array__(self, dtype: Any = None, copy: Any = None) -> np.ndarray:
+        """`np.asarray(level)`: the level whole, read (a new array always)."""
+        return _as_array(self[...], dtype, copy)
+
     def __repr__(self) -> str:
         return f"<brickyard.Level {self.index} of {self.store.path!r}: {self.shape}>"
+
+
+def _as_array(a: np.ndarray, dtype: Any, copy: Any) -> np.ndarray:
+    """What `__array__` returns of `a`, freshly read: in `dtype` if given;
+    `copy=False` (no copy) cannot be had of a store."""
+    if copy is False:
+        raise ValueError("a store is read into a new array: np.asarray(store, copy=False) cannot avoid a copy")
+    return a if dtype is None else a.astype(dtype, copy=False)
 
 
 def _bytes(value: Any, what: str) -> Any:
@@ -394,6 +476,16 @@ _FLAG_RE = re.compile(r"'--(?P<quoted>[a-z][a-z0-9-]*)(?: <[A-Z_]+>)?'"
 _PREFIX_RE = re.compile(r"^(?P<flag>[a-z][a-z0-9]*(?:-[a-z0-9]+)+):")
 
 
+# Phrases of the CLI's messages said as Python says them: its coordinates
+# are (z, y, x), and raw data comes in through NumPy.
+_PHRASES = (
+    ("--spacing X,Y,Z", "spacing=(z, y, x)"),
+    ("--origin X,Y,Z", "origin=(z, y, x)"),
+    ("for raw data give --dims, --dtype (and --endian, --spacing) or write a sidecar",
+     "raw data: brickyard.from_numpy(np.memmap(path, dtype, mode=\"r\", shape=(z, y, x))), or write a sidecar"),
+)
+
+
 def _keywords(message: str, command: str) -> str:
     """A message of the CLI's code with its flags as this module's keyword
     arguments (of `command`: render, convert or process): `--overwrite` is
@@ -405,6 +497,17 @@ def _keywords(message: str, command: str) -> str:
     (its usage line and advice about --help are the CLI's)."""
     if message.startswith("error: "):
         message = message.split("\n\n", 1)[0]
+        # The parser's "error: invalid value '0' for '--turntable <N>': why"
+        # as this module's own messages say it: "turntable: why".
+        bad = re.match(r"error: invalid value '(?P<v>.*)' for '(?:--)?(?P<n>[a-z][a-z0-9-]*)(?: <[A-Z_]+>)?': "
+                       r"(?P<why>.*)$", message, re.S)
+        if bad:
+            why = bad.group("why").strip()
+            if bad.group("v") not in why:
+                why = f"invalid value {bad.group('v')!r}: {why}"
+            message = f"{bad.group('n')}: {why}"
+    for cli, py in _PHRASES:
+        message = message.replace(cli, py)
     p = _PREFIX_RE.match(message)
     if p and p.group("flag") in _FLAGS:
         message = p.group("flag").replace("-", "_") + message[p.end("flag"):]
@@ -426,6 +529,9 @@ def _keywords(message: str, command: str) -> str:
             return f"'{key}'"
         if name not in _FLAGS or not (before in " \t\n(\"'" or after_flag):
             return m.group(0)
+        # "--memory: expected a size" is about the option, not a value of it.
+        if not m.group("value") and message[m.end():m.end() + 1] == ":":
+            return key
         value = (m.group("value") or "").strip()
         if name in _SWITCHES[command]:
             return f"{key}=True" + (m.group("value") or "")
@@ -501,6 +607,11 @@ _PER_CHANNEL = ("channel_tf", "channel_levels")
 
 # render's budgets, in bytes or as sizes ("1GiB"): whole numbers only.
 _BUDGETS = ("memory", "pool", "host", "upload")
+# render's options that take a whole number (0 or more; the CLI says which
+# range), and those that take a file name.
+_WHOLE = ("level", "brick", "requests", "progressive", "views", "loader_threads", "read_delay_ms", "max_frames",
+          "turntable", "octree_depth")
+_PATHS = ("save_camera", "out")
 
 
 def render_args(store: Union[Store, str, os.PathLike], mode: str = "dvr", camera: Any = None, tf: Any = None,
@@ -532,6 +643,8 @@ def render_args(store: Union[Store, str, os.PathLike], mode: str = "dvr", camera
             if not p.endswith(".json"):
                 raise ValueError(f"tf: a transfer-function file must end in .json, got {p!r}")
             args += ["--tf", p]
+    if options.get("only_labels") is not None and options.get("hide_labels") is not None:
+        raise ValueError("only_labels, hide_labels: give one or the other (the labels drawn, or those hidden)")
     for k, v in options.items():
         flag = "--" + k.replace("_", "-")
         if k.replace("_", "-") not in _FLAGS:
@@ -543,6 +656,19 @@ def render_args(store: Union[Store, str, os.PathLike], mode: str = "dvr", camera
             # (As `process` and `convert` say of a budget that is no whole
             # number of bytes.)
             raise TypeError(f"{k}: expected bytes or a size such as \"1GiB\", got {v!r}")
+        if isinstance(v, np.ndarray):
+            v = v.tolist()
+        elif isinstance(v, np.generic):
+            v = v.item()
+        if k in _WHOLE and v is not None and v is not False and (isinstance(v, bool) or not isinstance(v, int)):
+            # (The CLI's parser said "invalid digit found in string" of 1.5.)
+            raise TypeError(f"{k}: expected a whole number, found {v!r}")
+        if k in _WHOLE and v is not None and v is not False and v < 0:
+            raise ValueError(f"{k}: expected a whole number, 0 or more, found {v}")
+        if k in _PATHS and v is not None and not isinstance(v, (str, os.PathLike)):
+            raise TypeError(f"{k}: expected a file name, found {type(v).__name__} {v!r}")
+        if isinstance(v, dict) and k not in _PER_CHANNEL:
+            raise TypeError(f"{k}: a dict is no value of this option, found {v!r}")
         if v is True:
             args.append(flag)
         elif v is False or v is None:
@@ -560,6 +686,8 @@ def render_args(store: Union[Store, str, os.PathLike], mode: str = "dvr", camera
                 args.append(f"{flag}={int(c)}={x}")
         elif isinstance(v, (list, tuple)):
             args.append(f"{flag}=" + ",".join(str(x) for x in v))
+        elif isinstance(v, os.PathLike):
+            args.append(f"{flag}={os.fspath(v)}")
         else:
             # `--flag=value`: a negative number is a value, not an option.
             args.append(f"{flag}={v}")
@@ -601,6 +729,11 @@ def render(store: Union[Store, str, os.PathLike], mode: str = "dvr", camera: Any
     `STEM-0000.png`, `STEM-0001.png`, ... beside it)."""
     if dtype not in ("uint8", "float32"):
         raise ValueError(f"dtype: expected uint8 or float32, found {dtype!r}")
+    threads = options.pop("threads", None)
+    if threads is not None and (isinstance(threads, bool) or not isinstance(threads, (int, np.integer))):
+        raise TypeError(f"threads: expected a whole number of threads, found {threads!r}")
+    if threads is not None and not 1 <= threads <= 1024:
+        raise ValueError(f"threads: expected 1 to 1024 threads, found {threads}")
     level = options.get("level")
     if isinstance(level, (int, np.integer)) and not isinstance(level, bool):
         _index_option(level, "level")
@@ -619,7 +752,8 @@ def render(store: Union[Store, str, os.PathLike], mode: str = "dvr", camera: Any
         args = render_args(store, mode, camera, tf, size, backend, tmp, **options)
         try:
             with _cli_errors("render"):
-                n, w, h, buf, notes = _native.render(args, dtype == "float32", out is not None)
+                n, w, h, buf, notes = _native.render(args, dtype == "float32", out is not None,
+                                                     None if threads is None else int(threads))
         except Exception as e:
             # The files written for dicts and JSON text are named as what
             # they were given as, not by their temporary names.
@@ -631,6 +765,13 @@ def render(store: Union[Store, str, os.PathLike], mode: str = "dvr", camera: Any
     # for (a coarser level or bias where the memory given holds no more,
     # fewer frames of samples) are returned, and said so.
     for note in notes:
+        # What the CLI says on stderr beside its lines (labels past 2^24,
+        # label ids filtered as intensities, damaged brick statistics).
+        told = re.match(r"(warning|note): ", note)
+        if told:
+            warnings.warn(f"render: {_keywords(note[told.end():], 'render')}",
+                          RuntimeWarning if told.group(1) == "warning" else UserWarning, stacklevel=2)
+            continue
         if (any(m in note for m in ("could not be loaded", "stopped at", "(asked ", "volume's diagonal"))
                 or re.search(r"\b\d+ of the \d+ frames", note)):
             # (Without `out`, no file was written: the line's file name,
@@ -774,13 +915,19 @@ def convert(src: Union[str, os.PathLike, Sequence[Union[str, os.PathLike]]], dst
             bar.close()
 
 
-def _warn_notes(dst: Any, report: str) -> str:
+def _warn_notes(dst: Any, report: str, command: str = "convert") -> str:
     """`report` as written, with its notes (no voxel spacing in the input; a
-    label image off its image's grid: listed, but not drawn over it) also
-    raised as UserWarnings, which a script sees where a note inside the
-    returned text goes unread."""
-    for note in report.split("; note: ")[1:]:
-        warnings.warn(f"{os.fspath(dst)}: {note}", UserWarning, stacklevel=3)
+    label image off its image's grid: listed, but not drawn over it; no
+    table of label statistics) also raised as UserWarnings, which a script
+    sees where a note inside the returned text goes unread, their flags as
+    keyword arguments. Which input became which channel is said in the
+    report only (it warns of nothing)."""
+    notes = report.split("; note: ")[1:]
+    notes += [p for p in report.split("; ") if p.startswith("no table of label statistics")]
+    for note in notes:
+        if re.match(r"channels? \d+(, \d+)* from ", note):
+            continue
+        warnings.warn(f"{os.fspath(dst)}: {_keywords(note, command)}", UserWarning, stacklevel=3)
     return report
 
 
@@ -963,5 +1110,5 @@ def process(store: Union[Store, str, os.PathLike], pipeline: str, out: str, *, l
     result = os.fspath(result)
     # What the CLI's report says of the result (label ids filtered as
     # intensities, labels off the image's grid), as UserWarnings.
-    _warn_notes(result, _line)
+    _warn_notes(result, _line, "process")
     return open(result) if open_result else result

@@ -336,12 +336,13 @@ type Rendered<'py> = (usize, u32, u32, Bound<'py, PyByteArray>, Vec<String>);
 /// `STEM-0001.png`, ... beside it). `notes` holds each view's closing
 /// line, as the CLI prints it (how the view ended).
 #[pyfunction]
-#[pyo3(signature = (args, float = false, write = false))]
+#[pyo3(signature = (args, float = false, write = false, threads = None))]
 fn render<'py>(
     py: Python<'py>,
     args: Vec<String>,
     float: bool,
     write: bool,
+    threads: Option<usize>,
 ) -> PyResult<Rendered<'py>> {
     let mut cmd = brickyard_run::render::RenderCmd::try_parse_from(&args)
         .map_err(|e| PyValueError::new_err(e.to_string().trim().to_string()))?;
@@ -357,8 +358,21 @@ fn render<'py>(
         }
     }
     let raw = cmd.raw_f32;
+    // `threads`: the render's own pool of that many (as the CLI's --threads).
+    let pool = match threads {
+        Some(n) => Some(
+            rayon::ThreadPoolBuilder::new()
+                .num_threads(n)
+                .build()
+                .map_err(|e| PyOSError::new_err(format!("threads: {e}")))?,
+        ),
+        None => None,
+    };
     let r = watched(py, &cancel, "render", || -> anyhow::Result<_> {
-        let (views, notes) = brickyard_run::render::views_noted(cmd)?;
+        let (views, notes) = match &pool {
+            Some(p) => p.install(|| brickyard_run::render::views_noted(cmd))?,
+            None => brickyard_run::render::views_noted(cmd)?,
+        };
         if write {
             for (path, img) in &views {
                 // A file that cannot be written is an `OSError`.
@@ -684,9 +698,16 @@ fn convert(
             "src: expected an input, or a list of inputs, found none",
         ));
     }
-    // (A remote store is there or not as its server says, when opened.)
+    // (A remote store is there or not as its server says, when opened; a
+    // pattern of TIFF slices, `slices/img_*.tif`, names no file itself: the
+    // reader says when it matches none.)
     for src in &srcs {
-        if !brickyard_store::storage::is_remote(src) && !src.exists() {
+        let pattern = !src.exists()
+            && matches!(
+                brickyard_store::import::detect(src),
+                Ok(brickyard_store::import::Format::TiffGlob)
+            );
+        if !brickyard_store::storage::is_remote(src) && !src.exists() && !pattern {
             return Err(missing(src));
         }
     }

@@ -183,8 +183,28 @@ def test_messages_name_python_keywords(store, tmp_path):
     assert str(e.value) == "derive: a derived channel is computed from one channel; give at most one channel="
     # The command line's parser: the option by its keyword, no advice about --help.
     with pytest.raises(ValueError) as e:
-        brickyard.render(store, size=16, backend="cpu", level="x")
-    assert str(e.value) == "error: invalid value 'x' for 'level': invalid digit found in string", e.value
+        brickyard.render(store, size=16, backend="cpu", lod_bias="x")
+    assert str(e.value) == "lod_bias: invalid value 'x': invalid float literal", e.value
+    with pytest.raises(ValueError) as e:
+        brickyard.render(store, size=16, backend="cpu", turntable=0)
+    assert str(e.value) == "turntable: expected 1 to 3600 views, found 0", e.value
+    with pytest.raises(ValueError) as e:
+        brickyard.render(store, size=16, backend="cpu", memory=-5)
+    assert str(e.value).startswith("memory: expected a size"), e.value
+    # Whole numbers, file names and sequences checked as Python has them.
+    for k, v in (("level", "x"), ("level", 1.5), ("turntable", True), ("read_delay_ms", 2.0)):
+        with pytest.raises(TypeError, match=f"^{k}: expected a whole number, found"):
+            brickyard.render(store, size=16, backend="cpu", **{k: v})
+    with pytest.raises(ValueError, match="^read_delay_ms: expected a whole number, 0 or more, found -1"):
+        brickyard.render(store, size=16, backend="cpu", read_delay_ms=-1)
+    with pytest.raises(TypeError, match="^save_camera: expected a file name, found dict"):
+        brickyard.render(store, size=16, backend="cpu", save_camera={})
+    with pytest.raises(ValueError, match="^only_labels, hide_labels: give one or the other"):
+        brickyard.render(store, size=16, backend="cpu", only_labels=[1], hide_labels=[2])
+    with pytest.raises(ValueError, match="^threads: expected 1 to 1024 threads, found 0"):
+        brickyard.render(store, size=16, backend="cpu", threads=0)
+    np.testing.assert_array_equal(brickyard.render(store, size=16, backend="cpu", window=np.array([0, 90])),
+                                  brickyard.render(store, size=16, backend="cpu", window=(0, 90), threads=1))
     with pytest.raises(TypeError) as e:
         brickyard.render(store, backend="cpu", no_such_option=3)
     assert str(e.value) == "render: unexpected keyword argument 'no_such_option'", e.value
@@ -518,3 +538,15 @@ def test_the_conversions_notes_are_warnings(tmp_path):
     # A mask that came out empty: the note is a warning too.
     with pytest.warns(UserWarning, match=r"no voxel is in the mask \(threshold\(100000\)\)"):
         brickyard.process(tmp_path / "u.ome.zarr", "threshold(100000)", out="none", progress=False)
+
+
+def test_what_render_says_on_stderr_is_a_python_warning(tmp_path):
+    """Labels past 2^24 were said on stderr only, where a script does not
+    see them: now a RuntimeWarning (the CLI still prints them)."""
+    lab = np.zeros((16, 16, 16), np.uint32)
+    lab[4:12, 4:12, 4:12] = (1 << 25) + 3
+    dst = tmp_path / "big-ids.ome.zarr"
+    brickyard.from_numpy(lab, dst, labels=True, progress=False)
+    with pytest.warns(RuntimeWarning, match=r"labels reach 33554435; labels beyond 16777216"):
+        img = brickyard.render(dst, size=24, backend="cpu")
+    assert img[..., 3].max() > 0

@@ -50,6 +50,46 @@ def test_reading_more_than_the_cache_stays_bounded(tmp_path):
     assert growth < 20 << 20, f"RSS grew by {growth / 2**20:.1f} MiB reading a {volume_bytes / 2**20:.0f} MiB volume"
 
 
+STEPPED = textwrap.dedent("""
+    import sys, numpy as np, brickyard
+
+    def rss(field):
+        for line in open("/proc/self/status"):
+            if line.startswith(field):
+                return int(line.split()[1]) * 1024
+
+    brickyard._PIECE = 4 << 20
+    s = brickyard.open(sys.argv[1], cache=8 << 20, chunk_cache=4 << 20, brick=32)
+    s.read(0, 0, np.s_[0:16])
+    base = rss("VmRSS:")
+    a = s[::8]
+    b = s[::-5, ::4, 1::3]
+    print(a.nbytes, b.nbytes, rss("VmHWM:") - base, int(a.sum(dtype=np.int64)), int(b.sum(dtype=np.int64)))
+""")
+
+
+def test_reads_with_steps_hold_a_piece_of_the_box_not_all_of_it(tmp_path):
+    """`store[::8]` read the whole box its steps span (all 48 MiB here) to
+    keep an eighth of it; it now reads pieces of the box (4 MiB here)."""
+    shape = (384, 256, 256)
+    z = np.arange(shape[0], dtype=np.uint32)[:, None, None]
+    y = np.arange(shape[1], dtype=np.uint32)[None, :, None]
+    x = np.arange(shape[2], dtype=np.uint32)[None, None, :]
+    a = ((z * 7919 + y * 104729 + x * 31) % 65521).astype(np.uint16)
+    dst = tmp_path / "big.ome.zarr"
+    brickyard.from_numpy(a, dst, brick=32, shard=128, progress=False)
+    want_a, want_b = a[::8], a[::-5, ::4, 1::3]
+    del z, y, x
+    out = subprocess.run([sys.executable, "-c", STEPPED, str(dst)], capture_output=True, text=True)
+    assert out.returncode == 0, out.stderr
+    na, nb, growth, sa, sb = map(int, out.stdout.split())
+    assert (na, nb) == (want_a.nbytes, want_b.nbytes)
+    assert (sa, sb) == (int(want_a.sum(dtype=np.int64)), int(want_b.sum(dtype=np.int64)))
+    # Caches (12 MiB) + a piece (4 MiB) + the results (9 MiB) + slack,
+    # against the 48 MiB box.
+    assert growth < 34 << 20, f"RSS grew by {growth / 2**20:.1f} MiB reading steps of a {a.nbytes >> 20} MiB volume"
+
+
 WRITER = textwrap.dedent("""
     import sys, numpy as np, brickyard
 

@@ -1,5 +1,8 @@
 """Reads through the bindings against zarr-python, and from_numpy round trips."""
 
+import os
+import warnings
+
 import numpy as np
 import pytest
 import zarr
@@ -160,10 +163,14 @@ def test_spacing_errors_name_the_values_as_given():
         brickyard.from_numpy(np.zeros((8, 8, 8), np.uint8), "never.zarr", origin=(0, float("nan"), 0), progress=False)
 
 
-def test_slices_clip_step_and_select_nothing_as_numpy_does(tmp_path):
+@pytest.mark.parametrize("piece", [32 << 20, 3000, 100])
+def test_slices_clip_step_and_select_nothing_as_numpy_does(tmp_path, monkeypatch, piece):
     """Slices out of range clip, empty ones give empty arrays of NumPy's
     shape, and steps (negative ones too) take what NumPy takes: every
-    selection against the same one of the array in memory."""
+    selection against the same one of the array in memory; also where a
+    read with steps goes in pieces of a few planes (3000 bytes) or of a
+    few rows of a plane (100)."""
+    monkeypatch.setattr(brickyard, "_PIECE", piece)
     a = volume((19, 24, 31), "uint16", seed=5)
     dst = tmp_path / "steps.ome.zarr"
     brickyard.from_numpy(a, dst, brick=8, shard=16, progress=False)
@@ -171,7 +178,8 @@ def test_slices_clip_step_and_select_nothing_as_numpy_does(tmp_path):
     keys = [
         np.s_[5:5], np.s_[:, 0:25], np.s_[-100:100, 30:, :40], np.s_[::2], np.s_[::-1],
         np.s_[3:17:4, ::-5, 30:2:-7], np.s_[18:0:-3, 7, ::9], np.s_[2, 10:3], np.s_[..., ::-2],
-        np.s_[0:19:100, -1::-23, 1::30], np.s_[:, 24:, 0], np.s_[7:3:1, :, :],
+        np.s_[0:19:100, -1::-23, 1::30], np.s_[:, 24:, 0], np.s_[7:3:1, :, :], np.s_[1::2, 3::-1, 5],
+        np.s_[::3, ::3, ::3], np.s_[4, ::-2, ::2],
     ]
     for key in keys:
         got = s[key]
@@ -257,3 +265,42 @@ def test_none_in_an_index_is_refused(tmp_path):
         with pytest.raises(IndexError, match="np.newaxis"):
             s.level(0)[key]
     assert s.read(0, 0, None).shape == (4, 5, 6)
+
+
+def test_a_store_is_sized_and_converted_as_numpy_arrays_are_and_advanced_indexing_is_refused(tmp_path):
+    """`len` and `np.asarray` as NumPy has them for an array of `shape`;
+    lists, integer arrays and boolean masks are refused by name (NumPy's
+    advanced indexing), as are two ellipses."""
+    a = volume((9, 10, 11), "uint16", seed=2)
+    dst = tmp_path / "n.ome.zarr"
+    brickyard.from_numpy(a, dst, brick=8, shard=8, progress=False)
+    s = brickyard.open(os.fsencode(dst))
+    assert len(s) == 9 and len(s.level(1)) == len(s.level(1)[...])
+    np.testing.assert_array_equal(np.asarray(s), a)
+    assert np.asarray(s, dtype=np.float32).dtype == np.float32
+    np.testing.assert_array_equal(np.asarray(s.level(1)), s.read(1))
+    with pytest.raises(ValueError, match="copy=False"):
+        s.__array__(copy=False)
+    for key in ([1, 5, 2], np.array([1, 2]), a[:, 0, 0] > 3, True, (slice(None), [0, 1])):
+        with pytest.raises(TypeError, match="advanced indexing"):
+            s[key]
+    with pytest.raises(IndexError, match="single ellipsis"):
+        s[..., ...]
+
+
+def test_a_pattern_of_slices_converts_as_the_cli_converts_it(tmp_path):
+    """`convert("slices/img_*.tif")` was refused as a missing file."""
+    import tifffile
+
+    a = volume((6, 12, 10), "uint8", seed=4)
+    for z in range(6):
+        tifffile.imwrite(tmp_path / f"img_{z}.tif", a[z])
+    dst = tmp_path / "g.ome.zarr"
+    with warnings.catch_warnings(record=True) as w:
+        warnings.simplefilter("always")
+        brickyard.convert(str(tmp_path / "img_*.tif"), dst, progress=False)
+    np.testing.assert_array_equal(brickyard.open(dst)[...], a)
+    # The note on the missing spacing speaks Python: (z, y, x).
+    assert any("spacing=(z, y, x)" in str(x.message) for x in w), [str(x.message) for x in w]
+    with pytest.raises(Exception, match="img_x"):
+        brickyard.convert(str(tmp_path / "img_x*.tif"), tmp_path / "h.ome.zarr", progress=False)

@@ -732,11 +732,36 @@ pub fn views_noted(
 ) -> Result<(Vec<(PathBuf, brickyard_render::Image)>, Vec<String>)> {
     c.silent = true;
     let mut out = vec![];
+    WARNINGS.with(|w| *w.borrow_mut() = Some(vec![]));
     let lines = run_with(c, None, &mut |path, img| {
         out.push((path.to_path_buf(), img));
         Ok(())
-    })?;
+    });
+    let warned = WARNINGS.with(|w| w.borrow_mut().take()).unwrap_or_default();
+    let mut lines = lines?;
+    lines.extend(warned);
     Ok((out, lines))
+}
+
+thread_local! {
+    /// The warnings of a run of [`views_noted`], whose caller (Python)
+    /// raises them as its own, where a run of the CLI prints them.
+    static WARNINGS: std::cell::RefCell<Option<Vec<String>>> = const { std::cell::RefCell::new(None) };
+}
+
+/// A warning or note about the run (`KIND: …` on stderr unless the run is
+/// silent), or kept for the caller of [`views_noted`].
+fn tell(silent: bool, kind: &str, line: String) {
+    let kept = WARNINGS.with(|w| match w.borrow_mut().as_mut() {
+        Some(v) => {
+            v.push(format!("{kind}: {line}"));
+            true
+        }
+        None => false,
+    });
+    if !kept && !silent {
+        eprintln!("{kind}: {line}");
+    }
 }
 
 /// [`views`]' images alone.
@@ -1245,13 +1270,17 @@ fn run_one(
         let exact = brickyard_render::params::EXACT_LABELS as f64;
         if let Some(s) = info.levels.first().and_then(|l| l.stats.as_ref()) {
             if s.max > exact || s.min < -exact {
-                eprintln!(
-                    "warning: {}: labels reach {}; labels beyond {} (2^24) are drawn from 32-bit \
+                tell(
+                    false,
+                    "warning",
+                    format!(
+                        "{}: labels reach {}; labels beyond {} (2^24) are drawn from 32-bit \
                      floats, so neighbouring ones there may share a colour and cannot be chosen \
                      apart (renumber them below 2^24 to draw each alone)",
-                    c.store.display(),
-                    if s.max > exact { s.max } else { s.min },
-                    brickyard_render::params::EXACT_LABELS
+                        c.store.display(),
+                        if s.max > exact { s.max } else { s.min },
+                        brickyard_render::params::EXACT_LABELS
+                    ),
                 );
             }
         }
@@ -1286,19 +1315,27 @@ fn run_one(
                             );
                         }
                         if found < named {
-                            eprintln!(
-                                "note: only-labels: {} of the {named} label(s) named {} not \
+                            tell(
+                                false,
+                                "note",
+                                format!(
+                                    "only-labels: {} of the {named} label(s) named {} not \
                                      in {} (its table of label statistics)",
-                                named - found,
-                                if named - found == 1 { "is" } else { "are" },
-                                c.store.display(),
+                                    named - found,
+                                    if named - found == 1 { "is" } else { "are" },
+                                    c.store.display(),
+                                ),
                             );
                         }
                     }
                     Some(s)
                 }
                 Err(e) => {
-                    say_err!(silent, "render: label statistics not used: {e:#}");
+                    tell(
+                        silent,
+                        "warning",
+                        format!("label statistics not used: {e:#}"),
+                    );
                     Some(s)
                 }
             }
@@ -1353,7 +1390,7 @@ fn run_one(
             filter_bytes = bytes;
             if info.label_image {
                 if let Some(n) = d.pipeline.label_ids_note(&c.store.display().to_string()) {
-                    say_err!(silent, "note: {n}");
+                    tell(silent, "note", n);
                 }
             }
             Some(d)
@@ -2350,7 +2387,7 @@ fn run_one(
             }
         }
         for p in s.loader().take_stats_problems() {
-            say_err!(silent, "warning: brick statistics {p}");
+            tell(silent, "warning", format!("brick statistics {p}"));
         }
         if let Some(d) = debug {
             // The debug image of the complete view: one more whole frame
