@@ -234,7 +234,9 @@ def test_ctrl_c_is_answered_within_a_slow_region(tmp_path, job):
     finally:
         timer.cancel()
         signal.signal(signal.SIGINT, old)
-    assert seconds < 1.5 + 3, f"KeyboardInterrupt {seconds - 1.5:.1f} s after SIGINT"
+    # (A median's block is given up row by row: its wait was 2.2-2.7 s for
+    # median(7); zstd's slab is not.)
+    assert seconds < 1.5 + (1 if job == "median" else 3), f"KeyboardInterrupt {seconds - 1.5:.1f} s after SIGINT"
     assert sorted(os.listdir(src)) == before
     assert not (tmp_path / "z.ome.zarr").exists()
 

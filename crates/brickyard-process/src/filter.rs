@@ -13,8 +13,8 @@
 use crate::gpu::{DeviceFilter, FilterKernels};
 use crate::kernels::{
     fold_weights, gaussian_radius, gaussian_weights, gaussian_weights_folded, magnitude_nearest,
-    max_sigma, median_nearest, separable_nearest, threshold, window, Real, MAX_RADIUS, SOBEL_D,
-    SOBEL_S,
+    max_sigma, median_nearest_until, separable_nearest, threshold, window, Real, MAX_RADIUS,
+    SOBEL_D, SOBEL_S,
 };
 use brickyard_core::{as_bytes_mut, dispatch_dtype, DType, Dims3, Sample};
 use brickyard_store::source::check_region;
@@ -209,12 +209,13 @@ impl Filter {
         first: [i64; 3],
         len: [usize; 3],
     ) -> Vec<R> {
-        self.apply_with(self.components(), data, dims, first, len)
+        self.apply_with(self.components(), data, dims, first, len, None)
     }
 
     /// [`Filter::apply_nearest`] with the filter's
     /// [`Filter::components`] computed once beforehand.
     #[allow(clippy::type_complexity)]
+    /// A median gives up once `stop` is set (see [`median_nearest_until`]).
     fn apply_with<R: Real>(
         &self,
         components: Option<(Vec<[Vec<f64>; 3]>, bool)>,
@@ -222,6 +223,7 @@ impl Filter {
         dims: [usize; 3],
         first: [i64; 3],
         len: [usize; 3],
+        stop: Option<&AtomicBool>,
     ) -> Vec<R> {
         match (self, components) {
             (_, Some((cs, mag))) => {
@@ -242,7 +244,7 @@ impl Filter {
                     separable_nearest(data, dims, refs(&cs[0]), first, len).0
                 }
             }
-            (Filter::Median(r), None) => median_nearest(&data, dims, *r, first, len),
+            (Filter::Median(r), None) => median_nearest_until(&data, dims, *r, first, len, stop),
             (Filter::Threshold(t), None) => threshold(&data, *t),
             (Filter::Window(lo, hi), None) => window(&data, *lo, *hi),
             _ => unreachable!("float filters have components"),
@@ -516,9 +518,17 @@ impl FilterSource {
         });
         let first = [0, 1, 2].map(|a| (b[a].start - rlo[a]) as i64);
         let len = [0, 1, 2].map(|a| (b[a].end - b[a].start) as usize);
-        Ok(self
-            .filter
-            .apply_with(self.components.clone(), read, rd, first, len))
+        let v = self.filter.apply_with(
+            self.components.clone(),
+            read,
+            rd,
+            first,
+            len,
+            self.stop.as_deref(),
+        );
+        // (A median stopped halfway is thrown away.)
+        self.stopped()?;
+        Ok(v)
     }
 
     /// Values of one piece, computed on the device.

@@ -421,7 +421,22 @@ pub fn median_nearest<R: Real>(
     first: [i64; 3],
     len: [usize; 3],
 ) -> Vec<R> {
+    median_nearest_until(data, dims, r, first, len, None)
+}
+
+/// [`median_nearest`] that gives up once `stop` is set (looked at every
+/// row: a wide window takes seconds a block, and Ctrl-C waited for it);
+/// what it returns then is unfinished, for the caller to throw away.
+pub fn median_nearest_until<R: Real>(
+    data: &[R],
+    dims: [usize; 3],
+    r: [usize; 3],
+    first: [i64; 3],
+    len: [usize; 3],
+    stop: Option<&std::sync::atomic::AtomicBool>,
+) -> Vec<R> {
     use rayon::prelude::*;
+    let stopped = || stop.is_some_and(|s| s.load(std::sync::atomic::Ordering::Relaxed));
     let n = len.iter().product::<usize>();
     let mut out = vec![R::default(); n];
     if n == 0 {
@@ -446,6 +461,9 @@ pub fn median_nearest<R: Real>(
         .for_each(|(k, plane)| {
             let mut win: Vec<f64> = Vec::with_capacity(w);
             for j in 0..len[1] {
+                if stopped() {
+                    return;
+                }
                 for i in 0..len[2] {
                     win.clear();
                     for &zz in &tz[k] {
