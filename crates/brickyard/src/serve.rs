@@ -381,8 +381,17 @@ fn site(c: &ServeCmd) -> Result<Site> {
         );
     }
     for o in &c.allow_origin {
-        if o != "*" && origin_host(o).is_none() {
+        let Some(host) = origin_host(o).or(Some("").filter(|_| o == "*")) else {
             bail!("--allow-origin: expected * or scheme://host[:port] (as a browser sends it), found {o:?}");
+        };
+        // (A port past 65535 was taken, and named an origin no browser sends.)
+        let port = host
+            .rsplit_once(':')
+            .filter(|(h, _)| !h.ends_with('[') && !host.ends_with(']'));
+        if let Some((_, p)) = port {
+            if p.parse::<u16>().map_or(true, |p| p == 0) {
+                bail!("--allow-origin: the port of {o:?} is not 1 to 65535");
+            }
         }
     }
     Ok(Site {
@@ -1067,8 +1076,14 @@ fn parse_head<'a>(
     }
     // One Host only (RFC 9112, 3.2): which of two a proxy or a cache
     // would take is not known.
-    if headers.iter().filter(|h| h.field.equiv("Host")).count() > 1 {
+    let hosts = headers.iter().filter(|h| h.field.equiv("Host")).count();
+    if hosts > 1 {
         return Err((400, "more than one Host header"));
+    }
+    // (RFC 9112, 3.2: an HTTP/1.1 request without one is answered 400; it
+    // was served.)
+    if hosts == 0 && version == HTTPVersion(1, 1) {
+        return Err((400, "an HTTP/1.1 request must carry a Host header"));
     }
     let connection = headers
         .iter()
@@ -1633,7 +1648,8 @@ fn respond(site: &Site, rq: Request) -> (u16, u64, Option<String>) {
     }
     // Without a token the server answers only requests that name it by a
     // loopback host: a page whose name an attacker points at 127.0.0.1
-    // (DNS rebinding) is refused. (HTTP/1.0 requests may omit Host.)
+    // (DNS rebinding) is refused. (HTTP/1.0 requests may omit Host; HTTP/1.1
+    // ones were refused without one in `parse_head`.)
     if site.token.is_none() {
         if let Some(h) = req_header(&rq, "Host").filter(|h| !loopback_host(h)) {
             let why =

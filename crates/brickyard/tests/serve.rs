@@ -659,6 +659,16 @@ fn serve_refuses_folders_without_a_store() {
             "{e:?}: {named:?}, {why:?}"
         );
     }
+    // Origins no browser sends (a port past 65535 was taken).
+    for (origin, why) in [
+        ("http://x:99999", "is not 1 to 65535"),
+        ("http://x:0", "is not 1 to 65535"),
+        ("x.org", "expected * or scheme://host[:port]"),
+    ] {
+        let o = run(&["serve", s(&st), "--port", "0", "--allow-origin", origin]);
+        let e = String::from_utf8_lossy(&o.stderr);
+        assert!(!o.status.success() && e.contains(why), "{origin}: {e}");
+    }
     // The store itself, and the folder it is in.
     for (served, path) in [
         (&st, "/a.ome.zarr/zarr.json"),
@@ -1487,6 +1497,8 @@ fn request_bodies_and_huge_heads_are_refused_at_once() {
             b"GET /a.ome.zarr/zarr.json HTTP/1.1\r\nHost: localhost\r\nHost: example.org\r\n\r\n",
             "400",
         ),
+        // None, in HTTP/1.1 (it was served).
+        (b"GET /a.ome.zarr/zarr.json HTTP/1.1\r\n\r\n", "400"),
     ] {
         let (status, closed, took) = raw_exchange(p, head, wait);
         assert!(
