@@ -523,7 +523,18 @@ fn traversal_writes_and_tokens_are_refused() {
     let e = String::from_utf8_lossy(&o.stderr);
     assert!(e.contains("401") && e.contains(&url), "{e}");
     assert!(
-        e.contains("BRICKYARD_TOKEN") && !e.contains("--token"),
+        e.contains("BRICKYARD_TOKEN") && !e.contains("--token") && !e.contains("refused: check"),
+        "{e}"
+    );
+    // A wrong token is said to be wrong, not missing.
+    let o = bin()
+        .args(["info", &url])
+        .env("BRICKYARD_TOKEN", "not-the-token-at-all")
+        .output()
+        .unwrap();
+    let e = String::from_utf8_lossy(&o.stderr);
+    assert!(
+        !o.status.success() && e.contains("the token given was refused: check BRICKYARD_TOKEN"),
         "{e}"
     );
     assert_eq!(

@@ -1386,6 +1386,10 @@ impl Client {
                 if let Some(why) = (!s3).then(|| short_reason(&mut resp)).flatten() {
                     match (code, self.cfg.token.is_some()) {
                         (401, false) => format!(": {why} (set BRICKYARD_TOKEN)"),
+                        // (A wrong token read as a missing one.)
+                        (401, true) => {
+                            format!(": {why} (the token given was refused: check BRICKYARD_TOKEN)")
+                        }
                         _ => format!(": {why}"),
                     }
                 } else if s3 {
