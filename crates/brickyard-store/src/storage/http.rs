@@ -487,6 +487,11 @@ const FAILING_FOR: Duration = Duration::from_secs(30);
 /// whether it changed (`If-None-Match`): a store opened again later sees
 /// the store as it is then.
 const META_FRESH: Duration = Duration::from_secs(1);
+/// How long a file the server said is not there (404, 410) is taken as
+/// absent without asking again: every brick of a missing shard asked for
+/// it (a render of a store missing one shard sent 995 HEADs and 770
+/// GETs for it, and took 30 s).
+const ABSENT_FRESH: Duration = Duration::from_secs(10);
 /// Most files whose ETag is remembered (the set is cleared past this).
 const PINS_MAX: usize = 1 << 16;
 
@@ -572,6 +577,9 @@ pub struct Client {
     /// HTTP server asked with https:// would cost every document read
     /// the handshake's timeout).
     tls_failed: Mutex<HashMap<String, (String, Instant)>>,
+    /// Files (not metadata documents) the server said are not there, and
+    /// when ([`ABSENT_FRESH`]).
+    absent: Mutex<HashMap<String, Instant>>,
 }
 
 /// A metadata document (`None`: not there), its ETag and when the server
@@ -677,6 +685,35 @@ impl Client {
             failing: Mutex::new(HashMap::new()),
             flights: Mutex::new(HashMap::new()),
             tls_failed: Mutex::new(HashMap::new()),
+            absent: Mutex::new(HashMap::new()),
+        }
+    }
+
+    /// Whether the server said lately that `url` is not there.
+    fn known_absent(&self, url: &str) -> bool {
+        let mut a = self.absent.lock().unwrap_or_else(|e| e.into_inner());
+        match a.get(url) {
+            Some(t) if t.elapsed() < ABSENT_FRESH => true,
+            Some(_) => {
+                a.remove(url);
+                false
+            }
+            None => false,
+        }
+    }
+
+    /// `got` of a read of `url`, remembered when it says the file is not
+    /// there (the map keeps at most 4096 such files).
+    fn note_absent<T>(&self, url: &str, got: &Result<Option<T>, impl Sized>) {
+        if let Ok(None) = got {
+            let mut a = self.absent.lock().unwrap_or_else(|e| e.into_inner());
+            if a.len() >= 4096 {
+                a.retain(|_, t| t.elapsed() < ABSENT_FRESH);
+                if a.len() >= 4096 {
+                    a.clear();
+                }
+            }
+            a.insert(url.to_string(), Instant::now());
         }
     }
 
@@ -691,6 +728,9 @@ impl Client {
             // A metadata document is read whole: its length with it.
             return Ok(self.meta_doc(url)?.map(|d| d.len() as u64));
         }
+        if self.known_absent(url) {
+            return Ok(None);
+        }
         let got = self.with_retries(url, "HEAD", None, None, |resp| {
             let len = resp
                 .headers()
@@ -699,8 +739,9 @@ impl Client {
                 .and_then(|v| v.trim().parse::<u64>().ok());
             let len = len.ok_or_else(|| Failure::fatal("the answer has no Content-Length"))?;
             Ok((len, etag_of(resp)))
-        })?;
-        Ok(got.map(|(len, etag)| {
+        });
+        self.note_absent(url, &got);
+        Ok(got?.map(|(len, etag)| {
             if let Some(e) = etag {
                 self.saw_version(url, e);
             }
@@ -943,6 +984,9 @@ impl Client {
             self.index_hits.fetch_add(1, Ordering::Relaxed);
             return Ok(Some(h));
         }
+        if self.known_absent(url) {
+            return Ok(None);
+        }
         if n == 0 {
             return Ok(self.size(url)?.map(|len| (Arc::new(vec![]), len)));
         }
@@ -990,6 +1034,7 @@ impl Client {
             Some(h) => Ok(Some(h)),
             None => self.read_suffix(url, n),
         };
+        self.note_absent(url, &res);
         *flight.done.lock().unwrap_or_else(|e| e.into_inner()) = Some(res.clone());
         res.map_err(|m| self.error(url, m))
     }
@@ -2156,6 +2201,29 @@ mod tests {
         s.fail.lock().unwrap().clear();
         assert_eq!(c.suffix(&url, 16).unwrap().unwrap().1, 64);
         assert!(c.failing.lock().unwrap().is_empty());
+    }
+
+    /// A shard that is not there was asked for by every brick of it (995
+    /// HEADs and 770 GETs in a render of 30 s): now once in
+    /// [`ABSENT_FRESH`], its index and its size alike; put there, it is
+    /// read once that has passed.
+    #[test]
+    fn a_missing_file_is_asked_for_once_a_while() {
+        let s = Server::start();
+        let c = Client::new(quick());
+        let gone = "s.zarr/0/c/0/0/0";
+        for _ in 0..20 {
+            assert!(c.suffix(&s.url(gone), 16).unwrap().is_none());
+            assert!(c.size(&s.url(gone)).unwrap().is_none());
+        }
+        assert_eq!(s.requests(gone), 1);
+        s.put(gone, &[7u8; 64], Some("\"x\""));
+        assert!(c.suffix(&s.url(gone), 16).unwrap().is_none());
+        for t in c.absent.lock().unwrap().values_mut() {
+            *t = t.checked_sub(ABSENT_FRESH).unwrap_or(*t);
+        }
+        assert_eq!(c.suffix(&s.url(gone), 16).unwrap().unwrap().1, 64);
+        assert_eq!(s.requests(gone), 2);
     }
 
     /// Credentials in a URL were not used and showed in messages; a query
