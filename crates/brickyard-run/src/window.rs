@@ -106,7 +106,11 @@ pub fn window_of_levels_in(
     open: impl Fn(usize) -> Result<std::sync::Arc<dyn VolumeSource>>,
 ) -> Result<Option<(f64, f64)>> {
     for l in 0..levels {
-        let src = open(l)?;
+        // A level that cannot be opened gives way as one that cannot be
+        // read does (the render's own reads then say what is wrong).
+        let Ok(src) = open(l) else {
+            continue;
+        };
         let m = src.meta().clone();
         let [z, y, x] = m.dims;
         if z * y * x > MAX_VOXELS {

@@ -1325,7 +1325,7 @@ impl Client {
             }
         };
         Some(format!(
-            "{} is not answering: attempts in a row got no connection or no answer \
+            "not sent: {} is not answering: attempts in a row got no connection or no answer \
              (last: {}); {then}",
             redact(host_of(url)),
             h.last,
@@ -1339,7 +1339,9 @@ impl Client {
             Some(f) if f.unreachable => {
                 let h = hosts.entry(host_of(url).to_string()).or_default();
                 h.fails_in_a_row += if f.silence { SILENCE_COUNTS } else { 1 };
-                h.last = f.what.clone();
+                // (Which request: a request refused meanwhile is named, and
+                // a zarr.json the server had answered read as the fault.)
+                h.last = format!("{}: {}", redact(url), f.what);
                 h.probe_since = None;
                 if h.fails_in_a_row >= HOST_DOWN_AFTER {
                     h.pause = if h.down_until.is_some() {
@@ -1759,7 +1761,18 @@ mod tests {
             "{}",
             errors[0]
         );
-        assert!(errors[5].contains("is not answering"), "{}", errors[5]);
+        // A request refused meanwhile says it was not sent, and which one
+        // was not answered (a zarr.json the server had answered read as
+        // the fault).
+        assert!(
+            errors[5].contains("not sent: ")
+                && errors[5].contains("is not answering")
+                && errors[5].contains(&format!(
+                    "(last: http://127.0.0.1:{port}/s.zarr/c/0: no answer"
+                )),
+            "{}",
+            errors[5]
+        );
         // Two silences, and the host counted as down: nothing more sent.
         assert_eq!(accepted.load(Ordering::SeqCst), 2);
         // After the pause one request tries it again; the others, which
