@@ -242,7 +242,15 @@ impl LevelStats {
                 continue;
             };
             let field = format!("channel {c} store brick {b:?}");
-            let held = format!("the statistics say this brick holds values in [{mn}, {mx}]");
+            // (No range at all: the statistics were read as their fill
+            // value, gone as well, which said "[NaN, NaN]" of a store
+            // replaced by another with fewer levels.)
+            let held = match mn.is_nan() && mx.is_nan() {
+                true => "its brick statistics are missing too (was the store replaced or damaged? \
+                         open it again)"
+                    .to_string(),
+                false => format!("the statistics say this brick holds values in [{mn}, {mx}]"),
+            };
             return Err(match why {
                 Absence::FileMissing => StoreError::io(
                     file,
