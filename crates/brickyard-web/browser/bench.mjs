@@ -26,7 +26,9 @@ for (let i = 0; i < Number(runs || 3); i++) {
     const q = v.query();
     const times = [];
     for (let k = 1; k <= 5; k++) {
-      v.set_query(q + (q ? '&' : '') + `zoom=${1 + k * 1e-6}`);
+      // (Set, not appended: a key given twice is refused.)
+      const nudged = new URLSearchParams(q); nudged.set('zoom', String(Number(nudged.get('zoom') || 1) * (1 + k * 1e-6)));
+      v.set_query(nudged.toString());
       const t = performance.now();
       await v.frame();
       times.push(performance.now() - t);

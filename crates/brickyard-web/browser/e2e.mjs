@@ -72,7 +72,9 @@ try {
     const ms = await page.evaluate(async () => {
       const v = window.brickyard.viewer;
       const q = v.query();
-      v.set_query(q + (q ? '&' : '') + 'zoom=1.0001');
+      // (Set, not appended: a key given twice is refused.)
+      const nudged = new URLSearchParams(q); nudged.set('zoom', String(Number(nudged.get('zoom') || 1) * 1.0001));
+      v.set_query(nudged.toString());
       const t = performance.now();
       await v.frame();
       const ms = performance.now() - t;

@@ -5,7 +5,7 @@
 //! what arrived since the last one.
 
 use crate::source::{LocalFuture, WebSource};
-use brickyard_cache::brick::{BrickKey, LoadedBrick};
+use brickyard_cache::brick::{BrickKey, LoadedBrick, PoolTooSmall};
 use brickyard_cache::vm::{FrameReport, InsertReport, VirtualMemory, VmConfig};
 use brickyard_render::budget::{Decision, FrameSignals, LodBudget};
 use brickyard_render::cpu::{render_tiles, FrameStats, Lod, Scene, Tiles};
@@ -186,6 +186,11 @@ pub struct WebSession {
     retried_at: Option<f64>,
     checked_at: f64,
     checking: Rc<std::cell::Cell<bool>>,
+    /// A probe of a server found unreachable is under way; one found it
+    /// back (the next [`retry_failed`](Self::retry_failed) lets the failed
+    /// bricks go).
+    probing: Rc<std::cell::Cell<bool>>,
+    back: Rc<std::cell::Cell<bool>>,
 }
 
 /// How often bricks that failed to load are asked for again (ms): the
@@ -224,19 +229,20 @@ impl WebSession {
     /// A session over `src` with a pool of `cfg.pool_bytes`; starts
     /// loading the coarsest level (and finer ones while they stay within
     /// an eighth of the pool), which stays resident for good once in.
+    /// A pool too small for that is refused
+    /// ([`view::pool_too_small`](crate::view::pool_too_small) says it in
+    /// the page's words).
     pub fn new(
         src: Rc<WebSource>,
         cfg: VmConfig,
         spawn: Spawn,
         max_loads: usize,
-    ) -> Result<WebSession, String> {
+    ) -> Result<WebSession, PoolTooSmall> {
         let g = src.geometry.clone();
         let vm = VirtualMemory::new(&g.levels, g.channels, g.dtype, cfg);
         let slots = vm.pool_slots();
         let slot_bytes = vm.slot_bytes() as u64;
-        let levels = g
-            .pinned_levels(slots, slot_bytes, 512)
-            .map_err(|e| format!("pool: {e}"))?;
+        let levels = g.pinned_levels(slots, slot_bytes, 512)?;
         let mut keys = vec![];
         for &l in &levels {
             for c in 0..g.channels {
@@ -265,6 +271,8 @@ impl WebSession {
             retried_at: None,
             checked_at: f64::NEG_INFINITY,
             checking: Rc::default(),
+            probing: Rc::default(),
+            back: Rc::default(),
         })
     }
 
@@ -280,17 +288,51 @@ impl WebSession {
     /// failures stay in [`failures`](Self::failures). Not once the store
     /// changed on the server (nothing more is read of it). Returns whether
     /// it let them go (the view is then drawn again).
+    ///
+    /// While the server is unreachable ([`WebSource::unreachable`]) nothing
+    /// is let go: every [`RETRY_FAILED_AFTER_MS`] one request
+    /// ([`WebSource::probe`]) asks whether it is back, and the first call
+    /// after an answer lets the failed bricks go (and the view, drawn
+    /// again, asks for what it had not asked for). A server still gone
+    /// costs that one request, not a view reset and a request per brick.
     pub fn retry_failed(&mut self, now_ms: f64) -> bool {
         let at = *self.retried_at.get_or_insert(now_ms);
-        if self.vm.failed_count() == 0
-            || now_ms - at < RETRY_FAILED_AFTER_MS
-            || self.loads.src.changed()
-        {
+        let src = self.loads.src.clone();
+        if src.changed() {
+            return false;
+        }
+        if src.unreachable() {
+            if now_ms - at >= RETRY_FAILED_AFTER_MS && !self.probing.get() {
+                self.retried_at = Some(now_ms);
+                self.probing.set(true);
+                let (probing, back) = (self.probing.clone(), self.back.clone());
+                (self.loads.spawn)(Box::pin(async move {
+                    if src.probe().await {
+                        back.set(true);
+                    }
+                    probing.set(false);
+                }));
+            }
+            return false;
+        }
+        if self.back.take() {
+            self.retried_at = Some(now_ms);
+            self.vm.clear_failed();
+            return true;
+        }
+        if self.vm.failed_count() == 0 || now_ms - at < RETRY_FAILED_AFTER_MS {
             return false;
         }
         self.retried_at = Some(now_ms);
         self.vm.clear_failed();
         true
+    }
+
+    /// Whether the server was found unreachable: nothing is asked of it
+    /// (but a probe every [`RETRY_FAILED_AFTER_MS`]), and the view is drawn
+    /// from what it has.
+    pub fn unreachable(&self) -> bool {
+        self.loads.src.unreachable()
     }
 
     /// At `now_ms`: while bricks are being loaded or failing, every
@@ -302,6 +344,7 @@ impl WebSession {
         let (q, f) = self.loads.pending();
         let busy = q + f > 0 || self.vm.failed_count() > 0 || !self.ready();
         if !busy
+            || self.unreachable()
             || self.checking.get()
             || now_ms - self.checked_at < CHECK_STORE_EVERY_MS
             || self.loads.src.changed()
@@ -554,11 +597,14 @@ impl WebSession {
     ) -> FrameOut {
         let arrived_before = self.waiting.len();
         let mut out = self.end_frame(reqs);
+        // (With the server unreachable, nothing asked for can come: the
+        // view is drawn from what it has, as if all of it had failed.)
+        let down = self.unreachable();
         let failed_in_list = out
             .frame
             .requests
             .iter()
-            .filter(|k| self.vm.is_failed(**k))
+            .filter(|k| down || self.vm.is_failed(**k))
             .count();
         let sig = FrameSignals {
             complete: stats.completeness() >= 1.0,
@@ -578,7 +624,8 @@ impl WebSession {
         // Complete: every sample at its own level, or nothing left to ask
         // for but bricks that failed (drawn from coarser data).
         out.complete = matches!(decision, Decision::Continue)
-            && (sig.complete || (sig.requests == 0 && !sig.progress && stats.unserved == 0));
+            && (sig.complete
+                || (sig.requests == 0 && !sig.progress && (stats.unserved == 0 || down)));
         out.stats = stats;
         out
     }
@@ -594,10 +641,13 @@ impl WebSession {
         reqs: impl IntoIterator<Item = &'a brickyard_cache::vm::Requests>,
     ) -> FrameOut {
         let frame = self.vm.end_frame(reqs);
+        // (Nothing is asked of a server found unreachable: queued loads
+        // are dropped too.)
+        let down = self.unreachable();
         let wanted: Vec<BrickKey> = frame
             .requests
             .iter()
-            .filter(|k| !self.vm.is_resident(**k) && !self.vm.is_failed(**k))
+            .filter(|k| !down && !self.vm.is_resident(**k) && !self.vm.is_failed(**k))
             .copied()
             .collect();
         self.loads.request(&wanted);

@@ -77,6 +77,17 @@ pub struct Got {
 /// (a store reconverted in place while the page has it open).
 pub const STORE_CHANGED: &str = "the store changed on the server since it was opened: reload";
 
+/// What a request that never got an answer says (a [`Fetch`]'s error
+/// containing it: the server is down, or CORS withheld the answer). The
+/// first such error marks the source unreachable
+/// ([`WebSource::unreachable`]): nothing more is asked of the server until
+/// [`WebSource::probe`] finds it back.
+pub const UNREACHABLE: &str =
+    "could not reach the server (down, or the request was blocked by CORS)";
+
+/// What a read not sent because the server was found unreachable says.
+pub const NOT_ASKED: &str = "not asked for: the server could not be reached";
+
 /// A brick named for people: level, channel and brick (z, y, x).
 pub fn brick_name(k: &BrickKey) -> String {
     format!(
@@ -171,6 +182,10 @@ pub struct WebSource {
     /// The store changed on the server since it was opened: nothing more
     /// is read from it (its indexes and chunks may be another version's).
     changed: std::cell::Cell<bool>,
+    /// A request found the server unreachable ([`UNREACHABLE`]): later
+    /// reads fail at once, without a request, until
+    /// [`probe`](Self::probe) gets an answer.
+    unreachable: std::cell::Cell<bool>,
     /// Per level, the brick statistics read ([`brick_ranges`](Self::brick_ranges)):
     /// a chunk or shard absent where they say its bricks hold data fails
     /// the brick, as natively (`LevelStats::check_lost`).
@@ -290,6 +305,7 @@ impl WebSource {
             inflight: RefCell::new(HashMap::new()),
             root,
             changed: std::cell::Cell::new(false),
+            unreachable: std::cell::Cell::new(false),
             level_stats: RefCell::new(vec![]),
             chunk_budget,
         })
@@ -300,6 +316,27 @@ impl WebSource {
     /// index, or by [`check_changed`](Self::check_changed)).
     pub fn changed(&self) -> bool {
         self.changed.get()
+    }
+
+    /// Whether a request found the server unreachable (and no
+    /// [`probe`](Self::probe) found it back since): reads fail at once,
+    /// with [`NOT_ASKED`], rather than a request per brick.
+    pub fn unreachable(&self) -> bool {
+        self.unreachable.get()
+    }
+
+    /// Ask the server for the store's root document, once, past the
+    /// [`unreachable`](Self::unreachable) mark: any answer clears the mark
+    /// (reads go to the server again) and returns `true`; no answer keeps
+    /// it and returns `false`.
+    pub async fn probe(&self) -> bool {
+        match self.fetch.get(&self.root.0, Range::All).await {
+            Err(e) if e.contains(UNREACHABLE) => false,
+            _ => {
+                self.unreachable.set(false);
+                true
+            }
+        }
     }
 
     /// Stop using what was read of the store: its shard indexes and
@@ -324,8 +361,12 @@ impl WebSource {
         let (doc, Some(tag)) = &self.root else {
             return false;
         };
+        if self.unreachable.get() {
+            return false;
+        }
         match self.fetch.get_tagged(doc, Range::All, Some(tag)).await {
             Err(e) if e.contains(STORE_CHANGED) => self.mark_changed(),
+            Err(e) if e.contains(UNREACHABLE) => self.unreachable.set(true),
             Ok(Got { bytes: None, .. }) => self.mark_changed(),
             Ok(Got { etag: Some(t), .. }) if t != *tag => self.mark_changed(),
             _ => {}
@@ -517,6 +558,9 @@ impl WebSource {
         if self.changed.get() {
             return Err(STORE_CHANGED.into());
         }
+        if self.unreachable.get() {
+            return Err(format!("{path}: {NOT_ASKED}"));
+        }
         let k = (path.to_string(), range);
         let shared = self.inflight.borrow().get(&k).cloned();
         let fut = match shared {
@@ -546,7 +590,12 @@ impl WebSource {
                 self.mark_changed();
                 Err(STORE_CHANGED.into())
             }
-            Err(e) => Err(format!("{path}: {e}")),
+            Err(e) => {
+                if e.contains(UNREACHABLE) {
+                    self.unreachable.set(true);
+                }
+                Err(format!("{path}: {e}"))
+            }
         }
     }
 
@@ -735,6 +784,9 @@ impl WebSource {
         }
         if self.changed.get() {
             return Err(STORE_CHANGED.into());
+        }
+        if self.unreachable.get() {
+            return Err(NOT_ASKED.into());
         }
         let l = key.level as usize;
         let a = &self.meta.levels[l];

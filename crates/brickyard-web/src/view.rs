@@ -93,11 +93,80 @@ fn num(k: &str, v: &str) -> Result<f64, String> {
         .ok_or_else(|| format!("{k}: expected a number, found {v:?}"))
 }
 
+/// The view's keys in the page's URL (`#…`), which [`ViewState`] reads.
+pub const VIEW_KEYS: &[&str] = &[
+    "mode",
+    "az",
+    "el",
+    "zoom",
+    "fov",
+    "tf",
+    "window",
+    "channel",
+    "channels",
+    "size",
+    "bias",
+    "slice",
+    "labels",
+    "label_opacity",
+    "only_labels",
+    "hide_labels",
+    "traversal",
+    "octree_depth",
+];
+
+/// The page's own keys in its URL: what the viewer is opened with (the
+/// store, the pool in MiB, who draws, a bearer token), read by the page.
+pub const PAGE_KEYS: &[&str] = &["store", "pool", "backend", "token"];
+
+/// The largest LOD bias `bias=` takes, either way (levels).
+pub const MAX_BIAS: f64 = 8.0;
+
+/// A key the page does not know, named, with the nearest known one where
+/// it looks like a typo of it (a letter off, two for longer keys).
+fn unknown_key(k: &str) -> String {
+    let mut all: Vec<&str> = VIEW_KEYS.iter().chain(PAGE_KEYS).copied().collect();
+    let near = all
+        .iter()
+        .map(|x| (edit_distance(k, x), *x))
+        .filter(|(d, _)| *d <= if k.len() <= 4 { 1 } else { 2 })
+        .min();
+    all.sort_unstable();
+    match near {
+        Some((_, x)) => format!("{k}: not a key of the page's URL; did you mean {x}?"),
+        None => format!(
+            "{k}: not a key of the page's URL (the keys: {})",
+            all.join(", ")
+        ),
+    }
+}
+
+/// Levenshtein distance (keys are short).
+fn edit_distance(a: &str, b: &str) -> usize {
+    let (a, b): (Vec<char>, Vec<char>) = (a.chars().collect(), b.chars().collect());
+    let mut row: Vec<usize> = (0..=b.len()).collect();
+    for i in 1..=a.len() {
+        let mut diag = row[0];
+        row[0] = i;
+        for j in 1..=b.len() {
+            let up = row[j];
+            row[j] = (row[j] + 1)
+                .min(row[j - 1] + 1)
+                .min(diag + usize::from(a[i - 1] != b[j - 1]));
+            diag = up;
+        }
+    }
+    row[b.len()]
+}
+
 impl ViewState {
-    /// Read `k=v` pairs (`&`-separated; unknown keys such as `store` are
-    /// left to the caller). Errors name the key.
+    /// Read `k=v` pairs (`&`-separated; the page's own keys,
+    /// [`PAGE_KEYS`] such as `store`, are left to the caller). Errors name
+    /// the key: a bad value, a key given twice, a key the page does not
+    /// know (with the nearest known one, for a typo).
     pub fn from_query(q: &str) -> Result<ViewState, String> {
         let mut s = ViewState::default();
+        let mut seen: Vec<(&str, String)> = vec![];
         for kv in q
             .trim_start_matches(['#', '?'])
             .split('&')
@@ -105,6 +174,15 @@ impl ViewState {
         {
             let (k, v) = kv.split_once('=').unwrap_or((kv, ""));
             let v = decode(v);
+            if let Some((_, first)) = seen.iter().find(|(s, _)| *s == k) {
+                return Err(format!(
+                    "{k}: given twice ({first:?} and {v:?}); give it once"
+                ));
+            }
+            seen.push((k, v.clone()));
+            if !VIEW_KEYS.contains(&k) && !PAGE_KEYS.contains(&k) {
+                return Err(unknown_key(k));
+            }
             match k {
                 "mode" => {
                     if !["dvr", "mip", "slice"].contains(&v.as_str()) {
@@ -182,7 +260,15 @@ impl ViewState {
                         }
                     }
                 }
-                "bias" => s.lod_bias = num(k, &v)?.clamp(-8.0, 8.0),
+                "bias" => {
+                    s.lod_bias = num(k, &v)?;
+                    if !(-MAX_BIAS..=MAX_BIAS).contains(&s.lod_bias) {
+                        return Err(format!(
+                            "bias: expected a level-of-detail bias from -{MAX_BIAS} to {MAX_BIAS} \
+                             levels (negative: finer), found {v:?}"
+                        ));
+                    }
+                }
                 "slice" => {
                     s.slice_z = num(k, &v)?;
                     if !(0.0..=1.0).contains(&s.slice_z) {
@@ -586,6 +672,59 @@ pub fn pool_bytes(v: Option<&str>) -> Result<u64, String> {
     }
 }
 
+/// Which share of the page's pool a session gets: all of it, the image's
+/// three quarters beside a label image (`labels=`), or the label image's
+/// quarter.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum PoolShare {
+    All,
+    Image,
+    Labels,
+}
+
+impl PoolShare {
+    /// The bytes of this share of a pool of `mib` MiB (as the page splits
+    /// it: the label image gets `pool / 4`).
+    pub fn of(self, mib: u64) -> u64 {
+        let pool = mib << 20;
+        match self {
+            PoolShare::All => pool,
+            PoolShare::Image => pool - pool / 4,
+            PoolShare::Labels => pool / 4,
+        }
+    }
+
+    /// The least `pool=` (whole MiB) whose share holds `bytes`.
+    pub fn least_mib(self, bytes: u64) -> u64 {
+        let per_mib = self.of(1);
+        bytes.div_ceil(per_mib).max(1)
+    }
+}
+
+/// A pool too small for the coarsest levels, in the page's words: the
+/// `pool=` that holds them (whole MiB, as `pool=` takes), or that no page
+/// can hold it.
+pub fn pool_too_small(e: &brickyard_cache::brick::PoolTooSmall, share: PoolShare) -> String {
+    let whose = match share {
+        PoolShare::Labels => "the label image's quarter of the pool",
+        _ => "the pool",
+    };
+    let mib = share.least_mib(e.minimum_bytes);
+    let give = if mib <= MAX_POOL_MIB {
+        format!("give pool={mib} (MiB) or more")
+    } else {
+        format!(
+            "that takes pool={mib} (MiB), more than a page holds (pool={MAX_POOL_MIB} at most): \
+             `brickyard render` or `brickyard view` draw it"
+        )
+    };
+    format!(
+        "pool: {whose} holds {} bricks, but the coarsest level alone needs {} (kept resident so \
+         that every part of the volume can be drawn) plus as many to work with: {give}",
+        e.slots, e.needed
+    )
+}
+
 /// Undo `%XX` escapes (and `+` for space).
 pub fn decode(s: &str) -> String {
     let b = s.as_bytes();
@@ -626,6 +765,72 @@ mod tests {
                 "{e}"
             );
         }
+    }
+
+    #[test]
+    fn unknown_and_repeated_keys_and_biases_out_of_range_are_refused_by_name() {
+        // The page's own keys pass (the page reads them).
+        ViewState::from_query("store=..%2Fx%2F&pool=16&backend=cpu&token=t&mode=mip").unwrap();
+        let e = ViewState::from_query("mode=mip&frobnicate=1").unwrap_err();
+        assert!(
+            e.starts_with("frobnicate: not a key of the page's URL")
+                && e.contains("mode, octree_depth"),
+            "{e}"
+        );
+        let e = ViewState::from_query("windw=0,100").unwrap_err();
+        assert!(
+            e.starts_with("windw:") && e.contains("did you mean window?"),
+            "{e}"
+        );
+        // (No guess for a short key far from every one.)
+        let e = ViewState::from_query("x=1").unwrap_err();
+        assert!(e.starts_with("x:") && !e.contains("did you mean"), "{e}");
+        let e = ViewState::from_query("mode=mip&az=3&mode=slice").unwrap_err();
+        assert_eq!(e, "mode: given twice (\"mip\" and \"slice\"); give it once");
+        let e = ViewState::from_query("pool=8&pool=16").unwrap_err();
+        assert!(e.starts_with("pool: given twice"), "{e}");
+        // The bias: -8 to 8 levels, not clamped silently.
+        assert_eq!(ViewState::from_query("bias=8").unwrap().lod_bias, 8.0);
+        assert_eq!(ViewState::from_query("bias=-8").unwrap().lod_bias, -8.0);
+        for bad in ["99", "-8.5", "8.01"] {
+            let e = ViewState::from_query(&format!("bias={bad}")).unwrap_err();
+            assert!(
+                e.starts_with("bias:") && e.contains("-8 to 8") && e.contains(bad),
+                "{e}"
+            );
+        }
+    }
+
+    #[test]
+    fn a_pool_too_small_names_the_whole_mib_that_holds_the_coarsest_levels() {
+        use brickyard_cache::brick::PoolTooSmall;
+        // 1.9 MiB needed: pool=2, as `pool` takes whole MiB.
+        let e = PoolTooSmall {
+            slots: 26,
+            needed: 25,
+            minimum_bytes: 50 * 39304,
+        };
+        let t = pool_too_small(&e, PoolShare::All);
+        assert!(t.contains("give pool=2 (MiB)") && !t.contains("1.9"), "{t}");
+        for share in [PoolShare::All, PoolShare::Image, PoolShare::Labels] {
+            let m = share.least_mib(e.minimum_bytes);
+            assert!(share.of(m) >= e.minimum_bytes, "{share:?}");
+            assert!(share.of(m - 1) < e.minimum_bytes, "{share:?}");
+        }
+        // Beside labels the image has three quarters, the labels one.
+        assert_eq!(PoolShare::Image.least_mib(3 << 20), 4);
+        assert_eq!(PoolShare::Labels.least_mib(1 << 20), 4);
+        let t = pool_too_small(&e, PoolShare::Labels);
+        assert!(
+            t.contains("label image's quarter") && t.contains("pool=8 (MiB)"),
+            "{t}"
+        );
+        let huge = PoolTooSmall {
+            minimum_bytes: 5000 << 20,
+            ..e
+        };
+        let t = pool_too_small(&huge, PoolShare::All);
+        assert!(t.contains("pool=5000") && t.contains("2048 at most"), "{t}");
     }
 
     #[test]
@@ -719,7 +924,7 @@ mod tests {
         let e = ViewState::from_query("channel=1&channels=0,2").unwrap_err();
         assert!(e.starts_with("channel:"), "{e}");
         // `slice` is a fraction of the depth (0 to 1), of slices only.
-        for bad in ["slice=2", "slice=-0.5", "mode=slice&slice=1.01"] {
+        for bad in ["slice=2", "slice=-0.5", "slice=1.01"] {
             let e = ViewState::from_query(&format!("mode=slice&{bad}")).unwrap_err();
             assert!(
                 e.starts_with("slice:") && e.contains("0 to 1"),

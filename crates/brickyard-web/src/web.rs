@@ -5,7 +5,9 @@
 //! put on the canvas.
 
 use crate::session::{FrameOut, Spawn, WebSession};
-use crate::source::{brick_name, Fetch, Got, LocalFuture, Range, WebSource, STORE_CHANGED};
+use crate::source::{
+    brick_name, Fetch, Got, LocalFuture, Range, WebSource, STORE_CHANGED, UNREACHABLE,
+};
 use crate::view::{Backend, ViewState};
 use brickyard_cache::vm::VmConfig;
 use std::cell::RefCell;
@@ -58,10 +60,6 @@ pub fn js_err(e: JsValue) -> String {
         })
         .unwrap_or_else(|| "an unknown error".into())
 }
-
-/// What a request that never got an answer means.
-pub const UNREACHABLE: &str =
-    "could not reach the server (down, or the request was blocked by CORS)";
 
 impl Fetch for HttpFetch {
     fn get(&self, path: &str, range: Range) -> LocalFuture<Result<Option<Vec<u8>>, String>> {
@@ -162,8 +160,14 @@ async fn get_once(
     let timer = abort_after(4_000)?;
     let resp = JsFuture::from(window.fetch_with_request(&req)).await;
     window.clear_timeout_with_handle(timer);
+    // (A server not there is not asked again at once: the source stops
+    // reading until its probe finds the server back, `WebSource::probe`.)
     let resp: web_sys::Response = resp
-        .map_err(|e| (format!("{url}: {}", js_err(e)), true))?
+        .map_err(|e| {
+            let e = js_err(e);
+            let again = !e.contains(UNREACHABLE);
+            (format!("{url}: {e}"), again)
+        })?
         .dyn_into()
         .map_err(fatal)?;
     match resp.status() {
@@ -409,8 +413,13 @@ impl Viewer {
                     pool_bytes: label_pool,
                     ..cfg.clone()
                 };
-                let mut session = WebSession::new(Rc::new(lsrc), lcfg, spawn.clone(), 16)
-                    .map_err(|e| JsValue::from_str(&format!("labels: {e}")))?;
+                let mut session =
+                    WebSession::new(Rc::new(lsrc), lcfg, spawn.clone(), 16).map_err(|e| {
+                        JsValue::from_str(&format!(
+                            "labels: {}",
+                            crate::view::pool_too_small(&e, crate::view::PoolShare::Labels)
+                        ))
+                    })?;
                 stats_problems.extend(session.read_ranges(MAX_RANGES).await);
                 Some(LabelLayer {
                     session,
@@ -421,8 +430,12 @@ impl Viewer {
             }
             None => None,
         };
-        let mut session =
-            WebSession::new(Rc::new(src), cfg, spawn, 32).map_err(|e| JsValue::from_str(&e))?;
+        let share = match labels {
+            Some(_) => crate::view::PoolShare::Image,
+            None => crate::view::PoolShare::All,
+        };
+        let mut session = WebSession::new(Rc::new(src), cfg, spawn, 32)
+            .map_err(|e| JsValue::from_str(&crate::view::pool_too_small(&e, share)))?;
         stats_problems.extend(session.read_ranges(MAX_RANGES).await);
         for p in &stats_problems {
             web_sys::console::warn_1(&JsValue::from_str(&format!("brick statistics: {p}")));
@@ -923,10 +936,22 @@ impl Inner {
             "failed": self.session.failing(),
             "failures": self.session.failures.len(),
             "last_failure": self.session.failures.last().map(|(k, e)| format!("{}: {e}", brick_name(k))),
-            // The last failure was the server not answering (down, or
-            // CORS): the page says so while bricks are failing.
-            "unreachable": self.session.failing() > 0
-                && self.session.failures.last().is_some_and(|(_, e)| e.contains(UNREACHABLE)),
+            // The server did not answer (down, or CORS): nothing is asked
+            // of it but a probe every 20 s, and the view is drawn from
+            // what it has.
+            "unreachable": self.session.unreachable()
+                || self.labels.as_ref().is_some_and(|l| l.session.unreachable()),
+            // Complete, but drawn from coarser data where bricks failed or
+            // could not be asked for.
+            "degraded": self.complete()
+                && (self.session.failing() > 0
+                    || self.session.unreachable()
+                    || self.labels.as_ref().is_some_and(|l| {
+                        l.session.failing() > 0 || l.session.unreachable()
+                    })),
+            // The LOD bias the view asked for (`bias=`): `bias` above it
+            // is the pool's doing.
+            "bias_asked": state.lod_bias,
             "store_changed": self.session.loads.src.changed()
                 || self.labels.as_ref().is_some_and(|l| l.session.loads.src.changed()),
             "bytes": bytes,

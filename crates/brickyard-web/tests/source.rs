@@ -13,7 +13,7 @@ use brickyard_store::builder::{convert, ConvertOptions, NoProgress};
 use brickyard_store::codec::Compression;
 use brickyard_store::import::{open_input, ImportOptions};
 use brickyard_web::session::{Spawn, WebSession};
-use brickyard_web::source::{FileFetch, WebSource};
+use brickyard_web::source::{FileFetch, WebSource, UNREACHABLE};
 use brickyard_web::view::ViewState;
 use futures_executor::LocalPool;
 use futures_util_spawn::spawn_local;
@@ -1419,8 +1419,14 @@ fn a_lost_shard_fails_the_bricks_its_statistics_say_hold_data() {
     }
 }
 
-/// A `Fetch` over files that a switch takes down (a server gone).
-struct DownFetch(FileFetch, Rc<std::cell::Cell<bool>>);
+/// A `Fetch` over files that a switch takes down (a server gone: every
+/// request fails as the page's `fetch()` does then), counting the
+/// requests sent while it is down.
+struct DownFetch(
+    FileFetch,
+    Rc<std::cell::Cell<bool>>,
+    Rc<std::cell::Cell<u64>>,
+);
 
 impl brickyard_web::source::Fetch for DownFetch {
     fn get(
@@ -1429,23 +1435,34 @@ impl brickyard_web::source::Fetch for DownFetch {
         range: brickyard_web::source::Range,
     ) -> brickyard_web::source::LocalFuture<Result<Option<Vec<u8>>, String>> {
         if self.1.get() {
-            return Box::pin(async { Err("could not reach the server".to_string()) });
+            self.2.set(self.2.get() + 1);
+            let e = format!("http://127.0.0.1:1/{path}: {UNREACHABLE}");
+            return Box::pin(async move { Err(e) });
         }
         self.0.get(path, range)
     }
 }
 
-#[test]
-fn failed_bricks_are_asked_for_again_after_a_while() {
-    use brickyard_web::session::RETRY_FAILED_AFTER_MS;
-    let dir = tempfile::tempdir().unwrap();
-    let store = convert_file(dir.path(), "mni152-t1-u8.nii.gz", Compression::Lz4, 64, 128);
-    let st = ViewState::from_query("mode=mip&size=96x96").unwrap();
-    let (reference, _) = stream(&store, &st, [0.0, 255.0], 64 << 20);
+/// A session over `store` through a [`DownFetch`] (its switch and
+/// counter), a pool of 64 MiB, the statistics read.
+type DownSession = (
+    WebSession,
+    LocalPool,
+    Rc<WebSource>,
+    Rc<std::cell::Cell<bool>>,
+    Rc<std::cell::Cell<u64>>,
+);
+
+fn down_session(store: &Path) -> DownSession {
     let down = Rc::new(std::cell::Cell::new(false));
+    let sent = Rc::new(std::cell::Cell::new(0));
     let src = Rc::new(
         futures_executor::block_on(WebSource::open(
-            Rc::new(DownFetch(FileFetch(store.clone()), down.clone())),
+            Rc::new(DownFetch(
+                FileFetch(store.to_path_buf()),
+                down.clone(),
+                sent.clone(),
+            )),
             32,
             1,
             1 << 20,
@@ -1462,6 +1479,94 @@ fn failed_bricks_are_asked_for_again_after_a_while() {
     };
     let mut s = WebSession::new(src.clone(), cfg, spawn, 6).unwrap();
     exec.run_until(s.read_ranges(1 << 21));
+    (s, exec, src, down, sent)
+}
+
+#[test]
+fn a_server_gone_is_not_asked_for_each_brick_and_the_view_ends_from_what_it_has() {
+    use brickyard_web::session::RETRY_FAILED_AFTER_MS;
+    let dir = tempfile::tempdir().unwrap();
+    let store = convert_file(dir.path(), "mni152-t1-u8.nii.gz", Compression::Lz4, 64, 128);
+    // A view of many level-0 bricks (more than a frame's request list).
+    let st = ViewState::from_query("size=400x400&window=0,255&zoom=1.3").unwrap();
+    let (reference, _) = stream(&store, &st, [0.0, 255.0], 64 << 20);
+    let (mut s, mut exec, src, down, sent) = down_session(&store);
+    let v = st
+        .params(&s.scene, [0.0, 255.0], &src.meta.channels, 1, false)
+        .unwrap();
+    // The coarsest levels in and a few frames' bricks, then the server
+    // goes.
+    while !s.ready() {
+        exec.run_until_stalled();
+        s.frame_cpu(&v.params, v.lod);
+    }
+    for _ in 0..2 {
+        exec.run_until_stalled();
+        s.frame_cpu(&v.params, v.lod);
+    }
+    down.set(true);
+    let mut frames = 0;
+    loop {
+        exec.run_until_stalled();
+        let out = s.frame_cpu(&v.params, v.lod);
+        frames += 1;
+        if out.complete {
+            break;
+        }
+        assert!(
+            frames < 20,
+            "the view did not end in 20 frames with the server gone"
+        );
+    }
+    // Found unreachable by the first request that got no answer: the
+    // loads begun meanwhile (at most the 6 at a time) were its only
+    // requests, and the view ended from what it had, without asking
+    // for its other bricks one by one.
+    assert!(s.unreachable());
+    assert!(
+        sent.get() <= 6,
+        "{} requests to a server found unreachable (one per brick?)",
+        sent.get()
+    );
+    assert!(s.image().rgba.iter().filter(|p| p[3] > 0.05).count() > 1000);
+    assert!(max_diff(s.image(), &reference) > 0.0);
+    let complete = s.image().clone();
+    // Still gone at the retry: one request (the probe), nothing let go,
+    // and the view stays as it was (no reset, nothing asked for).
+    let t0 = 1000.0;
+    assert!(!s.retry_failed(t0));
+    let before = sent.get();
+    assert!(!s.retry_failed(t0 + RETRY_FAILED_AFTER_MS));
+    exec.run_until_stalled();
+    assert_eq!(sent.get(), before + 1, "the probe is one request");
+    assert!(!s.retry_failed(t0 + RETRY_FAILED_AFTER_MS + 1.0));
+    exec.run_until_stalled();
+    let out = s.frame_cpu(&v.params, v.lod);
+    exec.run_until_stalled();
+    assert!(out.complete && s.loads.pending() == (0, 0));
+    assert_eq!(sent.get(), before + 1, "nothing asked for between probes");
+    assert_eq!(max_diff(s.image(), &complete), 0.0);
+    // Back: the next probe (20 s on) finds it, the bricks are let go, and
+    // the view completes as it would have.
+    down.set(false);
+    assert!(!s.retry_failed(t0 + 2.0 * RETRY_FAILED_AFTER_MS - 1.0));
+    assert!(!s.retry_failed(t0 + 2.0 * RETRY_FAILED_AFTER_MS));
+    exec.run_until_stalled();
+    assert!(!s.unreachable());
+    assert!(s.retry_failed(t0 + 2.0 * RETRY_FAILED_AFTER_MS + 10.0));
+    let (image, _) = frames_until_complete(&mut s, &mut exec, &v);
+    assert_eq!(s.failing(), 0);
+    assert_eq!(max_diff(&image, &reference), 0.0);
+}
+
+#[test]
+fn failed_bricks_are_asked_for_again_after_a_while() {
+    use brickyard_web::session::RETRY_FAILED_AFTER_MS;
+    let dir = tempfile::tempdir().unwrap();
+    let store = convert_file(dir.path(), "mni152-t1-u8.nii.gz", Compression::Lz4, 64, 128);
+    let st = ViewState::from_query("mode=mip&size=96x96").unwrap();
+    let (reference, _) = stream(&store, &st, [0.0, 255.0], 64 << 20);
+    let (mut s, mut exec, src, down, _) = down_session(&store);
     let v = st
         .params(&s.scene, [0.0, 255.0], &src.meta.channels, 1, false)
         .unwrap();
@@ -1474,11 +1579,14 @@ fn failed_bricks_are_asked_for_again_after_a_while() {
     let (partial, _) = frames_until_complete(&mut s, &mut exec, &v);
     assert!(s.failing() > 0, "bricks must fail while the server is down");
     assert!(max_diff(&partial, &reference) > 0.0);
-    // Back up: not asked for again before the time is up, then they are.
+    // Back up: not asked for again before the time is up; then one
+    // request finds the server back, and they are.
     down.set(false);
     assert!(!s.retry_failed(1000.0));
     assert!(!s.retry_failed(1000.0 + RETRY_FAILED_AFTER_MS - 1.0));
-    assert!(s.retry_failed(1000.0 + RETRY_FAILED_AFTER_MS));
+    assert!(!s.retry_failed(1000.0 + RETRY_FAILED_AFTER_MS));
+    exec.run_until_stalled();
+    assert!(s.retry_failed(1000.0 + RETRY_FAILED_AFTER_MS + 1.0));
     let (image, _) = frames_until_complete(&mut s, &mut exec, &v);
     assert_eq!(s.failing(), 0);
     assert_eq!(max_diff(&image, &reference), 0.0);

@@ -22,13 +22,11 @@ async function remoteOffered() {
   try { const r = await fetch(new URL('../remote', location.href), { method: 'HEAD' }); return r.ok; } catch { return false; }
 }
 
+// The URL's `#…` as it is, for the viewer: it reads the view's keys,
+// leaves the page's own (store, pool, backend, token) to the page, and
+// refuses by name a key it does not know or one given twice.
 function viewQuery() {
-  const p = hashParams();
-  p.delete('store');
-  p.delete('pool');
-  p.delete('backend');
-  p.delete('token');
-  return p.toString();
+  return location.hash.slice(1);
 }
 
 function writeUrl(query) {
@@ -112,16 +110,27 @@ async function tick() {
   state.status = st;
   writeUrl(st.query);
   // Failing bricks and their reason, as the native viewer retries them.
+  // A server found unreachable is not asked for each brick: the view is
+  // drawn from what it has, and the server asked again every 20 s.
   const lf = st.labels && st.labels.failed;
-  const failing = st.failed || lf ?
-    (st.unreachable ? '\nthe server cannot be reached: ' : '\n') +
-    `failing bricks: ${st.failed}${lf ? ` (labels: ${lf})` : ''}, drawn from coarser data` +
+  const failing = st.unreachable
+    ? '\nthe server cannot be reached: the view is drawn from the data loaded before' +
+      (st.failed || lf ? ` (failing bricks: ${st.failed}${lf ? `, labels: ${lf}` : ''})` : '') +
+      ', nothing more is asked for; the server is tried again every 20 s' +
+      (st.failures ? `\nlast: ${st.last_failure}` : '')
+    : st.failed || lf ?
+    `\nfailing bricks: ${st.failed}${lf ? ` (labels: ${lf})` : ''}, drawn from coarser data` +
     (st.store_changed ? '' : ' and asked for again every 20 s') +
     (st.failures ? `\nlast: ${st.last_failure}` : '') : '';
+  // The LOD bias: as asked for (bias=), or raised by the pool's size.
+  const sign = (b) => (b > 0 ? '+' : '') + b;
+  const bias = st.bias > st.bias_asked
+    ? `  (LOD bias ${sign(st.bias)}${st.bias_asked ? `, ${sign(st.bias_asked)} asked for` : ''}: the pool is too small for full detail)`
+    : st.bias_asked ? `  (LOD bias ${sign(st.bias_asked)}, as asked for)` : '';
   $('status').textContent =
     (st.store_changed ? 'the store changed on the server since it was opened: reload\n' : '') +
-    `${st.complete ? 'complete' : 'loading'}  ${(100 * st.completeness).toFixed(1)} % exact` +
-    `${st.bias > 0 ? `  (LOD bias +${st.bias}: the pool is too small for full detail)` : ''}\n` +
+    `${st.complete ? (st.degraded ? 'complete (degraded)' : 'complete') : 'loading'}  ${(100 * st.completeness).toFixed(1)} % exact` +
+    `${bias}\n` +
     `bricks: ${st.resident} resident of ${st.pool_slots}, ${st.loaded} loaded, ${st.in_flight} in flight, ${st.queued} queued\n` +
     `read: ${(st.bytes / 1048576).toFixed(1)} MiB` +
     (st.in_flight + st.queued > 0 ? ` at ${st.mib_s.toFixed(1)} MiB/s` : '') + '\n' +
@@ -141,7 +150,8 @@ async function tick() {
     running = false;
     // Bricks failing: come back to ask for them again (the viewer does
     // every 20 s) and to check the store, without a frame meanwhile.
-    if (st.failed || lf) setTimeout(wake, 2000);
+    // (A server found unreachable: to probe it every 20 s.)
+    if (st.failed || lf || st.unreachable) setTimeout(wake, 2000);
     return;
   }
   if (st.tiles_left > 0) partChannel.port2.postMessage(0);

@@ -857,7 +857,50 @@ fn the_page_says_plainly_what_went_wrong() {
             ("slice_in_dvr", page("&slice=0.3")),
             ("twice", page("&channels=0,0")),
             ("grid", page("&mode=slice&labels=small")),
+            // Keys the page does not know, or given twice: refused by
+            // name, not dropped or the last one taken.
+            ("unknown", page("&frobnicate=1")),
+            ("typo", page("&windw=0,100")),
+            ("repeated", page("&mode=mip&mode=slice")),
+            // A bias out of range: refused, not clamped; one in range:
+            // said to be asked for, not blamed on the pool.
+            ("bias99", page("&bias=99")),
+            ("bias2", page("&bias=2")),
         ],
+    );
+    let e = r["unknown"]["error"].as_str().unwrap_or_default();
+    assert!(
+        e.starts_with("frobnicate: not a key of the page's URL"),
+        "{}",
+        r["unknown"]
+    );
+    let e = r["typo"]["error"].as_str().unwrap_or_default();
+    assert!(
+        e.starts_with("windw:") && e.contains("did you mean window?"),
+        "{}",
+        r["typo"]
+    );
+    let e = r["repeated"]["error"].as_str().unwrap_or_default();
+    assert!(
+        e.starts_with("mode: given twice (\"mip\" and \"slice\")"),
+        "{}",
+        r["repeated"]
+    );
+    let e = r["bias99"]["error"].as_str().unwrap_or_default();
+    assert!(
+        e.starts_with("bias:") && e.contains("-8 to 8") && e.contains("99"),
+        "{}",
+        r["bias99"]
+    );
+    let b2 = &r["bias2"];
+    assert!(
+        b2["error"].is_null() && b2["status"]["complete"] == true,
+        "{b2}"
+    );
+    let text = b2["text"].as_str().unwrap();
+    assert!(
+        text.contains("LOD bias +2, as asked for") && !text.contains("pool is too small"),
+        "{text}"
     );
     let lost = &r["lost"];
     assert!(lost["error"].is_null(), "{lost}");
