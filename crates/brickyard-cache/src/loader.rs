@@ -194,6 +194,9 @@ fn damaged(e: &StoreError, remote: bool) -> bool {
     match e {
         StoreError::Invalid { .. } => true,
         StoreError::Zarr { .. } => !remote,
+        // A shard file gone where the statistics say there is data
+        // (`LevelStats::check_lost`), of a local store.
+        StoreError::Io { error, .. } => !remote && error.kind() == std::io::ErrorKind::NotFound,
         _ => false,
     }
 }
