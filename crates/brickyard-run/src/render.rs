@@ -128,14 +128,16 @@ pub struct RenderCmd {
     /// Slice: a point of the plane in world coordinates X,Y,Z (the
     /// volume's corner at 0, voxels `spacing` apart: the store's
     /// translation is not added; as cameras are given) (instead of
-    /// --slice-z; as the viewer's saved views give it).
+    /// --slice-z; as the viewer's saved views give it). A plane between
+    /// two voxel layers samples them trilinearly (a blend of both, unlike
+    /// --slice-z).
     #[arg(long, allow_hyphen_values = true)]
     slice_origin: Option<String>,
     /// Slice: a point of the plane in the store's physical coordinates
     /// X,Y,Z, in its unit with its translation added (as `brickyard info`
     /// lists them and the converted file's header placed the voxels: e.g.
     /// a brain's coordinates from its NIfTI header) (instead of --slice-z
-    /// and --slice-origin).
+    /// and --slice-origin). Sampled trilinearly as --slice-origin is.
     #[arg(long, allow_hyphen_values = true)]
     slice_at: Option<String>,
     /// Slice: the plane's normal X,Y,Z (default 0,0,1, or the --camera
