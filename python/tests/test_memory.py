@@ -28,17 +28,21 @@ READER = textwrap.dedent("""
 """)
 
 
+def _pattern_volume() -> np.ndarray:
+    """48 MiB of uint16 (the readers' caches: 12 MiB), from a pattern."""
+    z = np.arange(384, dtype=np.uint32)[:, None, None]
+    y = np.arange(256, dtype=np.uint32)[None, :, None]
+    x = np.arange(256, dtype=np.uint32)[None, None, :]
+    return ((z * 7919 + y * 104729 + x * 31) % 65521).astype(np.uint16)
+
+
 def test_reading_more_than_the_cache_stays_bounded(tmp_path):
-    shape = (384, 256, 256)  # 48 MiB of uint16 (the reader's caches: 12 MiB)
-    z = np.arange(shape[0], dtype=np.uint32)[:, None, None]
-    y = np.arange(shape[1], dtype=np.uint32)[None, :, None]
-    x = np.arange(shape[2], dtype=np.uint32)[None, None, :]
-    a = ((z * 7919 + y * 104729 + x * 31) % 65521).astype(np.uint16)
+    a = _pattern_volume()
     dst = tmp_path / "big.ome.zarr"
     brickyard.from_numpy(a, dst, brick=32, shard=128, progress=False)
     expected = int(a.sum(dtype=np.int64))
     volume_bytes = a.nbytes
-    del a, z, y, x
+    del a
     out = subprocess.run([sys.executable, "-c", READER, str(dst)], capture_output=True, text=True, check=True)
     total, base, peak, held, budget, read = map(int, out.stdout.split())
     assert total == expected, "the slabs read do not add up to the volume"
@@ -71,15 +75,10 @@ STEPPED = textwrap.dedent("""
 def test_reads_with_steps_hold_a_piece_of_the_box_not_all_of_it(tmp_path):
     """`store[::8]` read the whole box its steps span (all 48 MiB here) to
     keep an eighth of it; it now reads pieces of the box (4 MiB here)."""
-    shape = (384, 256, 256)
-    z = np.arange(shape[0], dtype=np.uint32)[:, None, None]
-    y = np.arange(shape[1], dtype=np.uint32)[None, :, None]
-    x = np.arange(shape[2], dtype=np.uint32)[None, None, :]
-    a = ((z * 7919 + y * 104729 + x * 31) % 65521).astype(np.uint16)
+    a = _pattern_volume()
     dst = tmp_path / "big.ome.zarr"
     brickyard.from_numpy(a, dst, brick=32, shard=128, progress=False)
     want_a, want_b = a[::8], a[::-5, ::4, 1::3]
-    del z, y, x
     out = subprocess.run([sys.executable, "-c", STEPPED, str(dst)], capture_output=True, text=True)
     assert out.returncode == 0, out.stderr
     na, nb, growth, sa, sb = map(int, out.stdout.split())
