@@ -60,6 +60,7 @@ pub trait Fetch {
             Ok(Got {
                 bytes: f.await?,
                 etag: None,
+                whole: false,
             })
         })
     }
@@ -71,6 +72,28 @@ pub trait Fetch {
 pub struct Got {
     pub bytes: Option<Vec<u8>>,
     pub etag: Option<String>,
+    /// The server ignored the range asked for and answered with the whole
+    /// object (HTTP 200 to a `Range`): `bytes` holds all of it, for the
+    /// reader to [`cut`] (and keep: [`WebSource`] keeps such objects, so
+    /// the other ranges of one are not downloaded whole again).
+    pub whole: bool,
+}
+
+/// The bytes of `range` of a whole object `b`.
+pub fn cut(b: &[u8], range: Range) -> Result<&[u8], String> {
+    match range {
+        Range::All => Ok(b),
+        Range::Span { start, len } => start
+            .checked_add(len)
+            .and_then(|e| b.get(start as usize..e as usize))
+            .ok_or_else(|| {
+                format!(
+                    "range {start}+{len} past the end of the object ({} bytes)",
+                    b.len()
+                )
+            }),
+        Range::Suffix(n) => Ok(&b[b.len().saturating_sub(n as usize)..]),
+    }
 }
 
 /// What a read of an object that changed since the page read it says
@@ -112,6 +135,8 @@ struct Lru<K, V> {
     bytes: usize,
     budget: usize,
     tick: u64,
+    /// The newest value stays even where it alone is over the budget.
+    keep_newest: bool,
 }
 
 impl<K: std::hash::Hash + Eq + Clone, V: Clone> Lru<K, V> {
@@ -122,6 +147,16 @@ impl<K: std::hash::Hash + Eq + Clone, V: Clone> Lru<K, V> {
             bytes: 0,
             budget,
             tick: 0,
+            keep_newest: false,
+        }
+    }
+    /// An `Lru` that keeps the newest value even where it alone is over
+    /// the budget (whole objects downloaded: the next range of one read
+    /// from it rather than downloaded whole again).
+    fn keeping_newest(budget: usize) -> Self {
+        Lru {
+            keep_newest: true,
+            ..Lru::new(budget)
         }
     }
     fn get(&mut self, k: &K) -> Option<V> {
@@ -148,6 +183,10 @@ impl<K: std::hash::Hash + Eq + Clone, V: Clone> Lru<K, V> {
             let Some((k, t)) = self.order.pop_front() else {
                 break;
             };
+            if self.keep_newest && t == self.tick {
+                self.order.push_front((k, t));
+                break;
+            }
             if self.map.get(&k).is_some_and(|e| e.2 == t) {
                 let e = self.map.remove(&k).expect("present");
                 self.bytes -= e.1;
@@ -176,6 +215,15 @@ pub struct WebSource {
     chunks: RefCell<Lru<ChunkKey, Rc<Vec<u8>>>>,
     pub stats: RefCell<SourceStats>,
     inflight: RefCell<HashMap<(String, Range), SharedFetch>>,
+    /// The server answered a range with the whole object (it ignores
+    /// `Range`, as `python3 -m http.server`): later ranges are read from
+    /// whole objects, downloaded once (concurrent reads of one object
+    /// joined) and kept in `wholes` (least recently used out first, at
+    /// most `chunk_budget` bytes, or the newest object alone where it is
+    /// larger), not downloaded whole again per range.
+    ranges_ignored: std::cell::Cell<bool>,
+    /// Whole objects of a server that ignores ranges, with their `ETag`s.
+    wholes: RefCell<Lru<String, Whole>>,
     /// The root document read at opening and its `ETag` (`None`: the
     /// server sends none; nothing is checked then).
     root: (String, Option<String>),
@@ -223,11 +271,16 @@ impl LevelStats {
 const ABSENT_FILE: &str = "not found (HTTP 404)";
 const ABSENT_ENTRY: &str = "its shard's index has no entry for this chunk";
 
+/// A whole object (of a server that ignores ranges) and its `ETag`.
+type Whole = (Rc<Vec<u8>>, Option<String>);
+
 /// (level, chunk or shard index, inner chunk or `usize::MAX`).
 type ChunkKey = (usize, Vec<u64>, usize);
 
-/// A read's bytes (`None`: not found) and the object's `ETag`.
-type Tagged = Result<(Option<Rc<Vec<u8>>>, Option<String>), String>;
+/// A read's bytes (`None`: not found), the object's `ETag`, and whether
+/// the bytes are the whole object though a range was asked for
+/// ([`Got::whole`]).
+type Tagged = Result<(Option<Rc<Vec<u8>>>, Option<String>, bool), String>;
 
 type SharedFetch = Shared<LocalFuture<Tagged>>;
 
@@ -252,7 +305,11 @@ impl WebSource {
                 (ms, paths, ("zarr.json".to_string(), root.etag))
             }
             None => match fetch.get_tagged(".zattrs", Range::All, None).await? {
-                Got { bytes: Some(t), etag } => {
+                Got {
+                    bytes: Some(t),
+                    etag,
+                    ..
+                } => {
                     let (ms, paths) = zarr::parse_root(2, &t).map_err(|e| e.to_string())?;
                     (ms, paths, (".zattrs".to_string(), etag))
                 }
@@ -303,6 +360,8 @@ impl WebSource {
             chunks: RefCell::new(Lru::new(chunk_budget)),
             stats: RefCell::new(SourceStats::default()),
             inflight: RefCell::new(HashMap::new()),
+            ranges_ignored: std::cell::Cell::new(false),
+            wholes: RefCell::new(Lru::keeping_newest(chunk_budget)),
             root,
             changed: std::cell::Cell::new(false),
             unreachable: std::cell::Cell::new(false),
@@ -346,6 +405,7 @@ impl WebSource {
         if !self.changed.replace(true) {
             *self.indexes.borrow_mut() = Lru::new(8 << 20);
             *self.chunks.borrow_mut() = Lru::new(self.chunk_budget);
+            *self.wholes.borrow_mut() = Lru::keeping_newest(self.chunk_budget);
         }
     }
 
@@ -548,13 +608,75 @@ impl WebSource {
     /// One read; reads of the same bytes already under way are joined,
     /// not sent again (neighbouring bricks ask for the same chunks).
     /// `if_match`: the object's version expected (its `ETag`); another
-    /// one marks the store changed ([`changed`](Self::changed)).
+    /// one marks the store changed ([`changed`](Self::changed)). From a
+    /// server that ignores ranges, ranges are cut from whole objects, each
+    /// downloaded once while kept ([`ranges_ignored`](Self::ranges_ignored)).
     async fn get(
         &self,
         path: &str,
         range: Range,
         if_match: Option<&str>,
     ) -> Result<(Option<Vec<u8>>, Option<String>), String> {
+        let mut ask = range;
+        if range != Range::All && self.ranges_ignored.get() {
+            let kept = self.wholes.borrow_mut().get(&path.to_string());
+            if let Some((b, tag)) = kept {
+                if if_match.is_none() || if_match == tag.as_deref() {
+                    let piece = cut(&b, range).map_err(|e| format!("{path}: {e}"))?;
+                    return Ok((Some(piece.to_vec()), tag));
+                }
+                self.wholes.borrow_mut().remove(&path.to_string());
+            }
+            // The whole object, one download for every range of it.
+            ask = Range::All;
+        }
+        let (got, tag, whole) = self.get_joined(path, ask, if_match).await?;
+        let Some(b) = got else {
+            return Ok((None, tag));
+        };
+        if range == Range::All {
+            return Ok((
+                Some(Rc::try_unwrap(b).unwrap_or_else(|b| (*b).clone())),
+                tag,
+            ));
+        }
+        if ask == Range::All || whole {
+            // (A server that answers a range with as many bytes as asked
+            // for, whole, is not taken for one that ignores ranges.)
+            let n = match range {
+                Range::Span { len, .. } | Range::Suffix(len) => len,
+                Range::All => 0,
+            };
+            if ask == Range::All || b.len() as u64 > n {
+                self.ranges_ignored.set(true);
+                let size = b.len();
+                self.wholes
+                    .borrow_mut()
+                    .put(path.to_string(), (b.clone(), tag.clone()), size);
+            }
+            let piece = cut(&b, range).map_err(|e| format!("{path}: {e}"))?;
+            return Ok((Some(piece.to_vec()), tag));
+        }
+        Ok((
+            Some(Rc::try_unwrap(b).unwrap_or_else(|b| (*b).clone())),
+            tag,
+        ))
+    }
+
+    /// Whether the server was found to ignore ranges (it answered one with
+    /// the whole object): ranges are cut from whole objects then.
+    pub fn ranges_ignored(&self) -> bool {
+        self.ranges_ignored.get()
+    }
+
+    /// One request, joined with one for the same bytes under way; counted
+    /// in [`stats`](Self::stats) by the bytes it downloaded.
+    async fn get_joined(
+        &self,
+        path: &str,
+        range: Range,
+        if_match: Option<&str>,
+    ) -> Result<(Option<Rc<Vec<u8>>>, Option<String>, bool), String> {
         if self.changed.get() {
             return Err(STORE_CHANGED.into());
         }
@@ -567,25 +689,24 @@ impl WebSource {
             Some(f) => f,
             None => {
                 let f = self.fetch.get_tagged(path, range, if_match);
-                let f: LocalFuture<Tagged> =
-                    Box::pin(async move { f.await.map(|g| (g.bytes.map(Rc::new), g.etag)) });
+                let f: LocalFuture<Tagged> = Box::pin(async move {
+                    f.await
+                        .map(|g| (g.bytes.map(Rc::new), g.etag, g.whole && range != Range::All))
+                });
                 let f: SharedFetch = f.shared();
                 self.inflight.borrow_mut().insert(k.clone(), f.clone());
                 let r = f.clone().await;
                 self.inflight.borrow_mut().remove(&k);
                 let mut s = self.stats.borrow_mut();
                 s.requests += 1;
-                if let Ok((Some(b), _)) = &r {
+                if let Ok((Some(b), _, _)) = &r {
                     s.bytes += b.len() as u64;
                 }
                 f
             }
         };
         match fut.await {
-            Ok((o, tag)) => Ok((
-                o.map(|b| Rc::try_unwrap(b).unwrap_or_else(|b| (*b).clone())),
-                tag,
-            )),
+            Ok(r) => Ok(r),
             Err(e) if e.contains(STORE_CHANGED) => {
                 self.mark_changed();
                 Err(STORE_CHANGED.into())

@@ -6,7 +6,7 @@
 
 use crate::session::{FrameOut, Spawn, WebSession};
 use crate::source::{
-    brick_name, Fetch, Got, LocalFuture, Range, WebSource, STORE_CHANGED, UNREACHABLE,
+    brick_name, cut, Fetch, Got, LocalFuture, Range, WebSource, STORE_CHANGED, UNREACHABLE,
 };
 use crate::view::{Backend, ViewState};
 use brickyard_cache::vm::VmConfig;
@@ -64,7 +64,16 @@ pub fn js_err(e: JsValue) -> String {
 impl Fetch for HttpFetch {
     fn get(&self, path: &str, range: Range) -> LocalFuture<Result<Option<Vec<u8>>, String>> {
         let f = self.get_tagged(path, range, None);
-        Box::pin(async move { f.await.map(|g| g.bytes) })
+        let path = path.to_string();
+        Box::pin(async move {
+            let g = f.await?;
+            match g.bytes {
+                Some(b) if g.whole => Ok(Some(
+                    cut(&b, range).map_err(|e| format!("{path}: {e}"))?.to_vec(),
+                )),
+                b => Ok(b),
+            }
+        })
     }
 
     fn get_tagged(
@@ -175,6 +184,7 @@ async fn get_once(
             return Ok(Got {
                 bytes: None,
                 etag: None,
+                whole: false,
             })
         }
         200 | 206 => {}
@@ -205,19 +215,15 @@ async fn get_once(
     let buf = buf.map_err(|e| (format!("{url}: {}", js_err(e)), true))?;
     let bytes = js_sys::Uint8Array::new(&buf).to_vec();
     let etag = resp.headers().get("ETag").ok().flatten();
-    // A server that ignores ranges answers 200 with the whole file.
-    let bytes = Some(match (resp.status(), range) {
-        (200, Range::Span { start, len }) => {
-            let e = (start + len) as usize;
-            bytes
-                .get(start as usize..e)
-                .ok_or((format!("{url}: shorter than the range asked for"), false))?
-                .to_vec()
-        }
-        (200, Range::Suffix(n)) => bytes[bytes.len().saturating_sub(n as usize)..].to_vec(),
-        _ => bytes,
-    });
-    Ok(Got { bytes, etag })
+    // A server that ignores ranges answers 200 with the whole file: it
+    // goes back whole, for the source to cut, count as downloaded, and
+    // keep (`WebSource::get`), not to download it again per range.
+    let whole = resp.status() == 200 && range != Range::All;
+    Ok(Got {
+        bytes: Some(bytes),
+        etag,
+        whole,
+    })
 }
 
 /// The device path: WebGPU's device, the page tables and pool on it, and

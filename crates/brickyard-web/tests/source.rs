@@ -1310,6 +1310,7 @@ impl brickyard_web::source::Fetch for TaggedFetch {
             Ok(brickyard_web::source::Got {
                 bytes: f.await?,
                 etag: tag,
+                whole: false,
             })
         })
     }
@@ -1590,4 +1591,142 @@ fn failed_bricks_are_asked_for_again_after_a_while() {
     let (image, _) = frames_until_complete(&mut s, &mut exec, &v);
     assert_eq!(s.failing(), 0);
     assert_eq!(max_diff(&image, &reference), 0.0);
+}
+
+/// Files served as a server that ignores `Range` does (`python3 -m
+/// http.server`): every read answers the whole object (HTTP 200), a turn
+/// of the executor later (so reads overlap); counting the downloads of
+/// each level's chunks and shards (`L/c/…`) and the bytes downloaded (of
+/// those, and in all).
+struct WholeFetch(
+    FileFetch,
+    Rc<std::cell::RefCell<std::collections::HashMap<String, u64>>>,
+    Rc<std::cell::Cell<[u64; 2]>>,
+);
+
+impl brickyard_web::source::Fetch for WholeFetch {
+    fn get(
+        &self,
+        path: &str,
+        range: brickyard_web::source::Range,
+    ) -> brickyard_web::source::LocalFuture<Result<Option<Vec<u8>>, String>> {
+        let f = self.get_tagged(path, range, None);
+        Box::pin(async move {
+            let g = f.await?;
+            Ok(g.bytes.map(|b| {
+                brickyard_web::source::cut(&b, range)
+                    .expect("in the object")
+                    .to_vec()
+            }))
+        })
+    }
+
+    fn get_tagged(
+        &self,
+        path: &str,
+        range: brickyard_web::source::Range,
+        _if_match: Option<&str>,
+    ) -> brickyard_web::source::LocalFuture<Result<brickyard_web::source::Got, String>> {
+        let f = self.0.get(path, brickyard_web::source::Range::All);
+        let (counts, bytes, path) = (self.1.clone(), self.2.clone(), path.to_string());
+        Box::pin(async move {
+            let mut yielded = false;
+            futures_util::future::poll_fn(|cx| {
+                if yielded {
+                    std::task::Poll::Ready(())
+                } else {
+                    yielded = true;
+                    cx.waker().wake_by_ref();
+                    std::task::Poll::Pending
+                }
+            })
+            .await;
+            let b = f.await?;
+            if let Some(b) = &b {
+                let [mut ranged, mut all] = bytes.get();
+                if path.as_bytes()[0].is_ascii_digit() && path.contains("/c/") {
+                    *counts.borrow_mut().entry(path).or_insert(0) += 1;
+                    ranged += b.len() as u64;
+                }
+                all += b.len() as u64;
+                bytes.set([ranged, all]);
+            }
+            Ok(brickyard_web::source::Got {
+                bytes: b,
+                etag: None,
+                whole: range != brickyard_web::source::Range::All,
+            })
+        })
+    }
+}
+
+#[test]
+fn a_server_that_ignores_ranges_sends_each_shard_once_and_the_bytes_are_counted() {
+    let dir = tempfile::tempdir().unwrap();
+    let store = convert_file(dir.path(), "mni152-t1-u8.nii.gz", Compression::Lz4, 32, 64);
+    let st = ViewState::from_query("size=400x400&window=0,255&zoom=1.3").unwrap();
+    let (reference, _) = stream(&store, &st, [0.0, 255.0], 64 << 20);
+    // The page's chunk budget (32 MiB): each shard downloaded once. One
+    // smaller than any shard (memory kept bounded, the shards downloaded
+    // again): the same image.
+    for (budget, most) in [(32usize << 20, 1), (1 << 12, u64::MAX)] {
+        let counts = Rc::new(std::cell::RefCell::new(std::collections::HashMap::new()));
+        let bytes = Rc::new(std::cell::Cell::new([0, 0]));
+        let src = Rc::new(
+            futures_executor::block_on(WebSource::open(
+                Rc::new(WholeFetch(
+                    FileFetch(store.clone()),
+                    counts.clone(),
+                    bytes.clone(),
+                )),
+                32,
+                1,
+                budget,
+            ))
+            .unwrap(),
+        );
+        let mut exec = LocalPool::new();
+        let sp = exec.spawner();
+        let spawn: Spawn = Rc::new(move |f| spawn_local(&sp, f));
+        let cfg = VmConfig {
+            brick: [32; 3],
+            pool_bytes: 64 << 20,
+            ..Default::default()
+        };
+        let mut s = WebSession::new(src.clone(), cfg, spawn, 6).unwrap();
+        let problems = exec.run_until(s.read_ranges(1 << 21));
+        assert!(problems.is_empty(), "{problems:?}");
+        let v = st
+            .params(&s.scene, [0.0, 255.0], &src.meta.channels, 1, false)
+            .unwrap();
+        let (image, _) = frames_until_complete(&mut s, &mut exec, &v);
+        assert_eq!(max_diff(&image, &reference), 0.0);
+        // The read figure is what came down: at least the levels' whole
+        // shards, at most everything (the documents and statistics read
+        // outside the source's counters are not in it).
+        let counted = src.stats.borrow().bytes;
+        let [ranged, all] = bytes.get();
+        assert!(
+            counted >= ranged && counted <= all,
+            "read {counted} bytes counted, {ranged} downloaded of shards, {all} in all"
+        );
+        assert!(src.ranges_ignored());
+        let shards: Vec<(String, u64)> = counts
+            .borrow()
+            .iter()
+            .map(|(p, n)| (p.clone(), *n))
+            .collect();
+        assert!(!shards.is_empty());
+        let worst = shards.iter().map(|s| s.1).max().unwrap();
+        eprintln!(
+            "budget {budget}: {} shards, at most {worst} downloads of one, {} bytes, {:?}",
+            shards.len(),
+            ranged,
+            src.stats.borrow()
+        );
+        assert!(
+            worst <= most,
+            "a shard downloaded whole {worst} times: {shards:?}"
+        );
+    }
 }
