@@ -922,9 +922,7 @@ def _warn_notes(dst: Any, report: str, command: str = "convert") -> str:
     sees where a note inside the returned text goes unread, their flags as
     keyword arguments. Which input became which channel is said in the
     report only (it warns of nothing)."""
-    notes = report.split("; note: ")[1:]
-    notes += [p for p in report.split("; ") if p.startswith("no table of label statistics")]
-    for note in notes:
+    for note in report.split("; note: ")[1:]:
         if re.match(r"channels? \d+(, \d+)* from ", note):
             continue
         warnings.warn(f"{os.fspath(dst)}: {_keywords(note, command)}", UserWarning, stacklevel=3)

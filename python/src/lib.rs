@@ -649,7 +649,7 @@ fn run_convert(
                 .map_err(to_py)?;
             let mut t = String::new();
             if let Some(why) = notes.no_table {
-                t += &format!("; no table of label statistics ({why})");
+                t += &format!("; note: no table of label statistics ({why})");
             }
             if let Some(how) = notes.off_grid {
                 t += &format!("; note: a label image off its image's grid: {how}");

@@ -550,3 +550,13 @@ def test_what_render_says_on_stderr_is_a_python_warning(tmp_path):
     with pytest.warns(RuntimeWarning, match=r"labels reach 33554435; labels beyond 16777216"):
         img = brickyard.render(dst, size=24, backend="cpu")
     assert img[..., 3].max() > 0
+
+
+def test_a_label_image_without_a_table_warns(tmp_path):
+    """A label image holding a negative id gets no table of label statistics:
+    said in the report only, where a script did not see it."""
+    lab = np.zeros((8, 8, 8), np.int32) - 1
+    lab[2:5, 2:5, 2:5] = 3
+    with pytest.warns(UserWarning, match=r"no table of label statistics \(voxel \[0, 0, 0\].* holds -1"):
+        report = brickyard.from_numpy(lab, tmp_path / "neg.ome.zarr", labels=True, progress=False)
+    assert "; note: no table of label statistics" in report
