@@ -380,14 +380,13 @@ fn site(c: &ServeCmd) -> Result<Site> {
             },
         );
     }
-    for o in &c.allow_origin {
-        let Some(host) = origin_host(o).or(Some("").filter(|_| o == "*")) else {
+    for o in c.allow_origin.iter().filter(|o| *o != "*") {
+        let Some(host) = origin_host(o) else {
             bail!("--allow-origin: expected * or scheme://host[:port] (as a browser sends it), found {o:?}");
         };
-        // (A port past 65535 was taken, and named an origin no browser sends.)
-        let port = host
-            .rsplit_once(':')
-            .filter(|(h, _)| !h.ends_with('[') && !host.ends_with(']'));
+        // (A port past 65535 was taken, and named an origin no browser
+        // sends. `[::1]` has colons but no port.)
+        let port = host.rsplit_once(':').filter(|_| !host.ends_with(']'));
         if let Some((_, p)) = port {
             if p.parse::<u16>().map_or(true, |p| p == 0) {
                 bail!("--allow-origin: the port of {o:?} is not 1 to 65535");

@@ -674,6 +674,7 @@ fn serve_refuses_folders_without_a_store() {
     for (origin, why) in [
         ("http://x:99999", "is not 1 to 65535"),
         ("http://x:0", "is not 1 to 65535"),
+        ("http://[::1]:99999", "is not 1 to 65535"),
         ("x.org", "expected * or scheme://host[:port]"),
     ] {
         let o = run(&["serve", s(&st), "--port", "0", "--allow-origin", origin]);
