@@ -213,9 +213,9 @@ impl Filter {
     }
 
     /// [`Filter::apply_nearest`] with the filter's
-    /// [`Filter::components`] computed once beforehand.
+    /// [`Filter::components`] computed once beforehand. A median gives up
+    /// once `stop` is set (see [`median_nearest_until`]).
     #[allow(clippy::type_complexity)]
-    /// A median gives up once `stop` is set (see [`median_nearest_until`]).
     fn apply_with<R: Real>(
         &self,
         components: Option<(Vec<[Vec<f64>; 3]>, bool)>,
