@@ -683,10 +683,9 @@ pub enum PoolShare {
 }
 
 impl PoolShare {
-    /// The bytes of this share of a pool of `mib` MiB (as the page splits
-    /// it: the label image gets `pool / 4`).
-    pub fn of(self, mib: u64) -> u64 {
-        let pool = mib << 20;
+    /// The bytes of this share of a pool of `pool` bytes (the page's
+    /// split: the label image gets `pool / 4`).
+    pub fn of(self, pool: u64) -> u64 {
         match self {
             PoolShare::All => pool,
             PoolShare::Image => pool - pool / 4,
@@ -696,7 +695,7 @@ impl PoolShare {
 
     /// The least `pool=` (whole MiB) whose share holds `bytes`.
     pub fn least_mib(self, bytes: u64) -> u64 {
-        let per_mib = self.of(1);
+        let per_mib = self.of(1 << 20);
         bytes.div_ceil(per_mib).max(1)
     }
 }
@@ -814,8 +813,8 @@ mod tests {
         assert!(t.contains("give pool=2 (MiB)") && !t.contains("1.9"), "{t}");
         for share in [PoolShare::All, PoolShare::Image, PoolShare::Labels] {
             let m = share.least_mib(e.minimum_bytes);
-            assert!(share.of(m) >= e.minimum_bytes, "{share:?}");
-            assert!(share.of(m - 1) < e.minimum_bytes, "{share:?}");
+            assert!(share.of(m << 20) >= e.minimum_bytes, "{share:?}");
+            assert!(share.of((m - 1) << 20) < e.minimum_bytes, "{share:?}");
         }
         // Beside labels the image has three quarters, the labels one.
         assert_eq!(PoolShare::Image.least_mib(3 << 20), 4);

@@ -8,7 +8,7 @@ use crate::session::{FrameOut, Spawn, WebSession};
 use crate::source::{
     brick_name, cut, Fetch, Got, LocalFuture, Range, WebSource, STORE_CHANGED, UNREACHABLE,
 };
-use crate::view::{Backend, ViewState};
+use crate::view::{Backend, PoolShare, ViewState};
 use brickyard_cache::vm::VmConfig;
 use std::cell::RefCell;
 use std::rc::Rc;
@@ -380,10 +380,13 @@ impl Viewer {
         let window = default_window(&src, state.channel);
         // The label image takes a quarter of the pool, as in the viewer.
         let pool = crate::view::pool_bytes(pool.as_deref()).map_err(|e| JsValue::from_str(&e))?;
-        let label_pool = state.labels.as_ref().map_or(0, |_| pool / 4);
+        let share = match state.labels {
+            Some(_) => PoolShare::Image,
+            None => PoolShare::All,
+        };
         let cfg = VmConfig {
             brick: [32; 3],
-            pool_bytes: pool - label_pool,
+            pool_bytes: share.of(pool),
             request_cap: 256,
             upload_bytes_per_frame: 64 << 20,
             ..Default::default()
@@ -416,14 +419,14 @@ impl Viewer {
                     )));
                 }
                 let lcfg = VmConfig {
-                    pool_bytes: label_pool,
+                    pool_bytes: PoolShare::Labels.of(pool),
                     ..cfg.clone()
                 };
                 let mut session =
                     WebSession::new(Rc::new(lsrc), lcfg, spawn.clone(), 16).map_err(|e| {
                         JsValue::from_str(&format!(
                             "labels: {}",
-                            crate::view::pool_too_small(&e, crate::view::PoolShare::Labels)
+                            crate::view::pool_too_small(&e, PoolShare::Labels)
                         ))
                     })?;
                 stats_problems.extend(session.read_ranges(MAX_RANGES).await);
@@ -435,10 +438,6 @@ impl Viewer {
                 })
             }
             None => None,
-        };
-        let share = match labels {
-            Some(_) => crate::view::PoolShare::Image,
-            None => crate::view::PoolShare::All,
         };
         let mut session = WebSession::new(Rc::new(src), cfg, spawn, 32)
             .map_err(|e| JsValue::from_str(&crate::view::pool_too_small(&e, share)))?;

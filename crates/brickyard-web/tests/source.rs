@@ -1444,26 +1444,27 @@ impl brickyard_web::source::Fetch for DownFetch {
     }
 }
 
-/// A session over `store` through a [`DownFetch`] (its switch and
-/// counter), a pool of 64 MiB, the statistics read.
-type DownSession = (
-    WebSession,
-    LocalPool,
-    Rc<WebSource>,
-    Rc<std::cell::Cell<bool>>,
-    Rc<std::cell::Cell<u64>>,
-);
+/// A view (`query`) of the MNI152 T1 over a [`DownFetch`] (its switch
+/// and counter), a pool of 64 MiB, the statistics read and the coarsest
+/// levels in; and the reference image of the view.
+struct DownView {
+    s: WebSession,
+    exec: LocalPool,
+    down: Rc<std::cell::Cell<bool>>,
+    sent: Rc<std::cell::Cell<u64>>,
+    v: brickyard_web::view::View,
+    reference: Image,
+}
 
-fn down_session(store: &Path) -> DownSession {
+fn down_view(dir: &Path, query: &str) -> DownView {
+    let store = convert_file(dir, "mni152-t1-u8.nii.gz", Compression::Lz4, 64, 128);
+    let st = ViewState::from_query(query).unwrap();
+    let (reference, _) = stream(&store, &st, [0.0, 255.0], 64 << 20);
     let down = Rc::new(std::cell::Cell::new(false));
     let sent = Rc::new(std::cell::Cell::new(0));
     let src = Rc::new(
         futures_executor::block_on(WebSource::open(
-            Rc::new(DownFetch(
-                FileFetch(store.to_path_buf()),
-                down.clone(),
-                sent.clone(),
-            )),
+            Rc::new(DownFetch(FileFetch(store), down.clone(), sent.clone())),
             32,
             1,
             1 << 20,
@@ -1480,27 +1481,38 @@ fn down_session(store: &Path) -> DownSession {
     };
     let mut s = WebSession::new(src.clone(), cfg, spawn, 6).unwrap();
     exec.run_until(s.read_ranges(1 << 21));
-    (s, exec, src, down, sent)
+    let v = st
+        .params(&s.scene, [0.0, 255.0], &src.meta.channels, 1, false)
+        .unwrap();
+    while !s.ready() {
+        exec.run_until_stalled();
+        s.frame_cpu(&v.params, v.lod);
+    }
+    DownView {
+        s,
+        exec,
+        down,
+        sent,
+        v,
+        reference,
+    }
 }
 
 #[test]
 fn a_server_gone_is_not_asked_for_each_brick_and_the_view_ends_from_what_it_has() {
     use brickyard_web::session::RETRY_FAILED_AFTER_MS;
     let dir = tempfile::tempdir().unwrap();
-    let store = convert_file(dir.path(), "mni152-t1-u8.nii.gz", Compression::Lz4, 64, 128);
     // A view of many level-0 bricks (more than a frame's request list).
-    let st = ViewState::from_query("size=400x400&window=0,255&zoom=1.3").unwrap();
-    let (reference, _) = stream(&store, &st, [0.0, 255.0], 64 << 20);
-    let (mut s, mut exec, src, down, sent) = down_session(&store);
-    let v = st
-        .params(&s.scene, [0.0, 255.0], &src.meta.channels, 1, false)
-        .unwrap();
+    let DownView {
+        mut s,
+        mut exec,
+        down,
+        sent,
+        v,
+        reference,
+    } = down_view(dir.path(), "size=400x400&window=0,255&zoom=1.3");
     // The coarsest levels in and a few frames' bricks, then the server
     // goes.
-    while !s.ready() {
-        exec.run_until_stalled();
-        s.frame_cpu(&v.params, v.lod);
-    }
     for _ in 0..2 {
         exec.run_until_stalled();
         s.frame_cpu(&v.params, v.lod);
@@ -1564,18 +1576,15 @@ fn a_server_gone_is_not_asked_for_each_brick_and_the_view_ends_from_what_it_has(
 fn failed_bricks_are_asked_for_again_after_a_while() {
     use brickyard_web::session::RETRY_FAILED_AFTER_MS;
     let dir = tempfile::tempdir().unwrap();
-    let store = convert_file(dir.path(), "mni152-t1-u8.nii.gz", Compression::Lz4, 64, 128);
-    let st = ViewState::from_query("mode=mip&size=96x96").unwrap();
-    let (reference, _) = stream(&store, &st, [0.0, 255.0], 64 << 20);
-    let (mut s, mut exec, src, down, _) = down_session(&store);
-    let v = st
-        .params(&s.scene, [0.0, 255.0], &src.meta.channels, 1, false)
-        .unwrap();
+    let DownView {
+        mut s,
+        mut exec,
+        down,
+        v,
+        reference,
+        ..
+    } = down_view(dir.path(), "mode=mip&size=96x96");
     // The coarsest levels in, then the server goes.
-    while !s.ready() {
-        exec.run_until_stalled();
-        s.frame_cpu(&v.params, v.lod);
-    }
     down.set(true);
     let (partial, _) = frames_until_complete(&mut s, &mut exec, &v);
     assert!(s.failing() > 0, "bricks must fail while the server is down");
