@@ -516,6 +516,13 @@ fn a_pool_smaller_than_the_view_still_completes() {
 /// statistics read as the page reads them) and its executor.
 fn session(store: &Path, pool: u64) -> (WebSession, LocalPool, Rc<WebSource>) {
     let src = Rc::new(open_web(store, 32));
+    let (s, exec) = session_over(src.clone(), pool);
+    (s, exec, src)
+}
+
+/// A session over `src` with a pool of `pool` bytes (bricks of 32³, six
+/// loads at a time), its brick statistics read without a problem.
+fn session_over(src: Rc<WebSource>, pool: u64) -> (WebSession, LocalPool) {
     let mut exec = LocalPool::new();
     let sp = exec.spawner();
     let spawn: Spawn = Rc::new(move |f| spawn_local(&sp, f));
@@ -524,10 +531,10 @@ fn session(store: &Path, pool: u64) -> (WebSession, LocalPool, Rc<WebSource>) {
         pool_bytes: pool,
         ..Default::default()
     };
-    let mut s = WebSession::new(src.clone(), cfg, spawn, 6).expect("session");
+    let mut s = WebSession::new(src, cfg, spawn, 6).expect("session");
     let problems = exec.run_until(s.read_ranges(1 << 21));
     assert!(problems.is_empty(), "{problems:?}");
-    (s, exec, src)
+    (s, exec)
 }
 
 #[test]
@@ -1471,16 +1478,7 @@ fn down_view(dir: &Path, query: &str) -> DownView {
         ))
         .unwrap(),
     );
-    let mut exec = LocalPool::new();
-    let sp = exec.spawner();
-    let spawn: Spawn = Rc::new(move |f| spawn_local(&sp, f));
-    let cfg = VmConfig {
-        brick: [32; 3],
-        pool_bytes: 64 << 20,
-        ..Default::default()
-    };
-    let mut s = WebSession::new(src.clone(), cfg, spawn, 6).unwrap();
-    exec.run_until(s.read_ranges(1 << 21));
+    let (mut s, mut exec) = session_over(src.clone(), 64 << 20);
     let v = st
         .params(&s.scene, [0.0, 255.0], &src.meta.channels, 1, false)
         .unwrap();
@@ -1694,17 +1692,7 @@ fn a_server_that_ignores_ranges_sends_each_shard_once_and_the_bytes_are_counted(
             ))
             .unwrap(),
         );
-        let mut exec = LocalPool::new();
-        let sp = exec.spawner();
-        let spawn: Spawn = Rc::new(move |f| spawn_local(&sp, f));
-        let cfg = VmConfig {
-            brick: [32; 3],
-            pool_bytes: 64 << 20,
-            ..Default::default()
-        };
-        let mut s = WebSession::new(src.clone(), cfg, spawn, 6).unwrap();
-        let problems = exec.run_until(s.read_ranges(1 << 21));
-        assert!(problems.is_empty(), "{problems:?}");
+        let (mut s, mut exec) = session_over(src.clone(), 64 << 20);
         let v = st
             .params(&s.scene, [0.0, 255.0], &src.meta.channels, 1, false)
             .unwrap();
